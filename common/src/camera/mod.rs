@@ -1,0 +1,89 @@
+//! Posed training images: intrinsics + world-to-camera extrinsics, read from COLMAP `sparse/0`
+//! (binary or text) or nerfstudio `transforms.json`.
+//!
+//! Frame convention (COLMAP / OpenCV, also what gsplat and the INRIA rasterizer use): camera looks
+//! down +z, x right, y down; `world_to_camera` maps world points to that frame. nerfstudio's OpenGL
+//! camera-to-world matrices (y up, z backwards) are converted on load.
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DVec3};
+
+use crate::Result;
+
+/// Pinhole intrinsics in pixels, for an image of `width` x `height`.
+/// Pixel centres are at integer + 0.5 (COLMAP convention: the top-left pixel's centre is (0.5, 0.5)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// The same camera at `scale` times the resolution (`--raster-scale`): size rounded to whole
+    /// pixels (at least 1), focal lengths and principal point scaled by the exact size ratio.
+    pub fn scaled(&self, scale: f64) -> Intrinsics {
+        let w = ((self.width as f64 * scale).round() as u32).max(1);
+        let h = ((self.height as f64 * scale).round() as u32).max(1);
+        let sx = w as f64 / self.width as f64;
+        let sy = h as f64 / self.height as f64;
+        Intrinsics { width: w, height: h, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy }
+    }
+}
+
+/// A rigid world-to-camera transform `x_cam = rotation * x_world + translation` (COLMAP convention).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WorldToCamera {
+    /// Rotation, world → camera.
+    pub rotation: DMat3,
+    /// Translation, camera frame, scene units.
+    pub translation: DVec3,
+}
+
+impl WorldToCamera {
+    /// The camera centre in world coordinates, `-Rᵀ t`.
+    pub fn camera_centre(&self) -> DVec3 {
+        -(self.rotation.transpose() * self.translation)
+    }
+}
+
+/// One posed training image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// Image file name as listed by the camera source (e.g. `20240212_003919.jpg`).
+    pub name: String,
+    /// Full path of the image file (`<scene>/images/<name>`).
+    pub image_path: PathBuf,
+    /// Intrinsics at the image's full resolution.
+    pub intrinsics: Intrinsics,
+    /// Extrinsics.
+    pub world_to_camera: WorldToCamera,
+}
+
+/// Loads the posed views of a scene folder: `sparse/0` (binary preferred, text accepted) or
+/// `transforms.json`, sorted by image name. Image paths point into `<scene>/images/`.
+///
+/// Errors: neither source present; a distorted camera model (message: run
+/// `colmap image_undistorter`); malformed files.
+pub fn load_views(scene_dir: &Path) -> Result<Vec<View>> {
+    sources::load(scene_dir)
+}
+
+/// Keeps every `every`-th view (indices 0, N, 2N, ... of the name-sorted list), the paper's 1:N
+/// image subsampling. `every` = 0 is treated as 1.
+pub fn subsample(views: Vec<View>, every: usize) -> Vec<View> {
+    let every = every.max(1);
+    views.into_iter().enumerate().filter(|(i, _)| i % every == 0).map(|(_, v)| v).collect()
+}
+
+mod sources;

@@ -1,0 +1,1 @@
+//! The per-Gaussian embeddings file (safetensors) (to be implemented).

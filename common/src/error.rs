@@ -1,0 +1,68 @@
+//! Typed errors shared by every slag crate.
+//!
+//! Every variant carries the offending path (where there is one) and a message that tells the user
+//! what to do next. Library code never panics on bad input; it returns one of these.
+
+use std::path::PathBuf;
+
+/// Result alias used across slag.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// What went wrong, with enough context to fix it.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file or folder involved.
+        path: PathBuf,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// A file exists but its content is malformed (truncated, wrong header, NaN values, ...).
+    #[error("{path}: {message}")]
+    Format {
+        /// The file involved.
+        path: PathBuf,
+        /// What is wrong and how to fix it.
+        message: String,
+    },
+    /// A valid file describes something slag does not support (e.g. a distorted camera model).
+    #[error("{path}: unsupported: {message}")]
+    Unsupported {
+        /// The file involved.
+        path: PathBuf,
+        /// What is unsupported and what to do instead.
+        message: String,
+    },
+    /// An ONNX model is missing, fails to load, or has the wrong signature for its role.
+    #[error("model {path}: {message}")]
+    Model {
+        /// The `.onnx` file.
+        path: PathBuf,
+        /// What is wrong (expected vs found signature) and what to pass instead.
+        message: String,
+    },
+    /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch).
+    #[error("invalid input: {0}")]
+    Invalid(String),
+    /// The GPU (wgpu) could not be used or a kernel failed.
+    #[error("gpu: {0}")]
+    Gpu(String),
+}
+
+impl Error {
+    /// Wraps an I/O error with the path it concerns.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Error::Io { path: path.into(), source }
+    }
+    /// A malformed-content error for `path`.
+    pub fn format(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Format { path: path.into(), message: message.into() }
+    }
+    /// A model error for `path`.
+    pub fn model(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
+        Error::Model { path: path.into(), message: message.into() }
+    }
+}

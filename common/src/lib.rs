@@ -1,0 +1,23 @@
+//! slag-common: the pieces shared by the cloud encoder (`slag-encoder`) and the robot runtime
+//! (`slag-edge`).
+//!
+//! | module | paper stage / concern |
+//! |---|---|
+//! | [`scene`] | inputs: the trained 3DGS `.ply` (INRIA layout) |
+//! | [`camera`] | inputs: posed training images (COLMAP `sparse/0`, nerfstudio `transforms.json`) |
+//! | [`onnx`] | ONNX Runtime sessions (`ort`, `load-dynamic`) with a selectable execution provider |
+//! | [`text`] | CLIP text tower + tokenizer (queries) |
+//! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
+//! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`paths`] | locating `../shared` fixtures for tests and examples |
+
+pub mod camera;
+pub mod embeddings;
+pub mod error;
+pub mod onnx;
+pub mod paths;
+pub mod scene;
+pub mod similarity;
+pub mod text;
+
+pub use error::{Error, Result};

@@ -1,0 +1,1 @@
+//! CLIP text tower + BPE tokenizer (to be implemented).

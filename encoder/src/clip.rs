@@ -1,0 +1,1 @@
+//! CLIP crop embeddings (to be implemented).

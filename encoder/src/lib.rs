@@ -1,0 +1,18 @@
+//! slag-encoder: the SLAG Semantic Embedding stage (Szilagyi, Engelmann, Bohg, RA-L 2025).
+//!
+//! For each posed training image: [`masks`] (SAM automatic masks or a graph segmenter) →
+//! [`clip`] (CLIP embedding of each mask's white-background bounding-box crop) → [`raster`]
+//! (3DGS forward pass yielding per-pixel blend weights `w_kp = α·T`) → [`aggregate`]
+//! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
+//! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
+//! mIoU with color-clip, [`query`] checks a text prompt against the result.
+
+pub mod aggregate;
+pub mod clip;
+pub mod eval;
+pub mod masks;
+pub mod pipeline;
+pub mod preprocess;
+pub mod query;
+pub mod raster;
+pub mod report;

@@ -1,0 +1,2 @@
+//! `slag-encoder` command line (to be implemented).
+fn main() {}

@@ -1,0 +1,1 @@
+//! Felzenszwalb-Huttenlocher graph segmentation (to be implemented).

@@ -1,0 +1,78 @@
+//! Masks: the paper's segmentation step. Every generator returns full-resolution binary masks of one
+//! image; masks may overlap (SAM) or partition the image (graph segmenter).
+//!
+//! - [`sam`]: SAM automatic mask generation over any SAM-family ONNX encoder/decoder pair
+//!   (segment_anything 1.0 `SamAutomaticMaskGenerator`, `crop_n_layers = 0`).
+//! - [`graph`]: Felzenszwalb-Huttenlocher graph segmentation, weight-free, CPU.
+
+use image::RgbImage;
+use slag_common::Result;
+
+pub mod graph;
+pub mod sam;
+
+/// One binary mask over an image of `width` x `height` pixels.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mask {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// `width * height` values, row-major, 1 = inside the mask, 0 = outside.
+    pub pixels: Vec<u8>,
+    /// Bounding box `[x, y, w, h]` in SAM's (COCO) convention: `x, y` = min column/row of the
+    /// mask, `w = max_col - x`, `h = max_row - y` (the box is inclusive: the crop spans `w+1` columns).
+    pub bbox_xywh: [u32; 4],
+    /// Number of pixels inside the mask.
+    pub area: u32,
+    /// SAM's predicted IoU (1.0 for generators without a score).
+    pub predicted_iou: f32,
+    /// SAM's stability score (1.0 for generators without a score).
+    pub stability_score: f32,
+    /// The prompt point `(x, y)` in image pixels that produced the mask, if any.
+    pub point: Option<[f32; 2]>,
+}
+
+impl Mask {
+    /// Builds a mask from a row-major 0/1 buffer, computing `area` and `bbox_xywh`.
+    /// Returns `None` for an empty mask or a buffer whose length is not `width * height`.
+    pub fn from_pixels(width: u32, height: u32, pixels: Vec<u8>) -> Option<Mask> {
+        if pixels.len() != width as usize * height as usize {
+            return None;
+        }
+        let (mut x0, mut y0, mut x1, mut y1, mut area) = (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
+        for (i, &v) in pixels.iter().enumerate() {
+            if v != 0 {
+                let (x, y) = ((i % width as usize) as u32, (i / width as usize) as u32);
+                x0 = x0.min(x);
+                y0 = y0.min(y);
+                x1 = x1.max(x);
+                y1 = y1.max(y);
+                area += 1;
+            }
+        }
+        (area > 0).then(|| Mask {
+            width,
+            height,
+            pixels,
+            bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
+            area,
+            predicted_iou: 1.0,
+            stability_score: 1.0,
+            point: None,
+        })
+    }
+
+    /// Whether pixel `(x, y)` is inside the mask (false outside the image).
+    pub fn contains(&self, x: u32, y: u32) -> bool {
+        x < self.width && y < self.height && self.pixels[(y * self.width + x) as usize] != 0
+    }
+}
+
+/// A source of masks for one image (the paper's SAM step, or a cheaper stand-in).
+pub trait MaskGenerator: Send {
+    /// Short name recorded in the run report (e.g. `"sam"`, `"graph"`).
+    fn name(&self) -> &str;
+    /// All masks of `image` (RGB, any size), in the generator's own order.
+    fn generate(&mut self, image: &RgbImage) -> Result<Vec<Mask>>;
+}

@@ -1,0 +1,1 @@
+//! SAM automatic mask generation (to be implemented).

@@ -1,0 +1,1 @@
+//! PIL-compatible image resampling for SAM/CLIP preprocessing (to be implemented).

@@ -1,0 +1,1 @@
+//! Shared helpers for slag's end-to-end tests.
