@@ -102,3 +102,104 @@ mod tests {
         assert!(top_k(&s, 0).is_empty());
     }
 }
+
+/// One Gaussian matching a query.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Match {
+    /// Gaussian index in the source `.ply`.
+    pub id: u32,
+    /// Its mean, world frame, scene units.
+    pub position: [f32; 3],
+    /// Cosine similarity with the text embedding.
+    pub score: f32,
+}
+
+/// Where the matches are, for a planner: count, axis-aligned bounds and centroid (world frame).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MatchSummary {
+    /// Number of matches.
+    pub count: usize,
+    /// `[min xyz, max xyz]`, `None` without matches.
+    pub aabb: Option<[[f32; 3]; 2]>,
+    /// Mean position, `None` without matches.
+    pub centroid: Option<[f32; 3]>,
+}
+
+/// Ranks Gaussians against a text embedding: those with cosine ≥ `threshold` (if given), best
+/// first, at most `top_k` (if given). `ids[i]`/`means[i]` describe row `i` of `vectors`.
+pub fn rank(
+    ids: &[u32],
+    means: &[[f32; 3]],
+    vectors: &[f32],
+    dim: usize,
+    query: &[f32],
+    top_k: Option<usize>,
+    threshold: Option<f32>,
+) -> Result<(Vec<Match>, MatchSummary)> {
+    if ids.len() != means.len() || ids.len() * dim != vectors.len() {
+        return Err(Error::Invalid("ids, means and vectors disagree in length".into()));
+    }
+    if let Some(t) = threshold.filter(|t| !t.is_finite()) {
+        return Err(Error::Invalid(format!("threshold {t} is not a finite number")));
+    }
+    let mut scores = cosine_scores(vectors, dim, query)?;
+    if let Some(t) = threshold {
+        scores.iter_mut().filter(|s| **s < t).for_each(|s| *s = f32::NAN);
+    }
+    let ranked = top_k_or_all(&scores, top_k);
+    let matches: Vec<Match> =
+        ranked.into_iter().map(|(i, score)| Match { id: ids[i], position: means[i], score }).collect();
+    let summary = summarise(&matches);
+    Ok((matches, summary))
+}
+
+fn top_k_or_all(scores: &[f32], k: Option<usize>) -> Vec<(usize, f32)> {
+    top_k(scores, k.unwrap_or(scores.len()))
+}
+
+/// Count, AABB and centroid of `matches` (f64 sums).
+pub fn summarise(matches: &[Match]) -> MatchSummary {
+    if matches.is_empty() {
+        return MatchSummary { count: 0, aabb: None, centroid: None };
+    }
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    let mut sum = [0f64; 3];
+    for m in matches {
+        for a in 0..3 {
+            lo[a] = lo[a].min(m.position[a]);
+            hi[a] = hi[a].max(m.position[a]);
+            sum[a] += m.position[a] as f64;
+        }
+    }
+    let n = matches.len() as f64;
+    MatchSummary {
+        count: matches.len(),
+        aabb: Some([lo, hi]),
+        centroid: Some([(sum[0] / n) as f32, (sum[1] / n) as f32, (sum[2] / n) as f32]),
+    }
+}
+
+#[cfg(test)]
+mod rank_tests {
+    use super::*;
+
+    #[test]
+    fn threshold_and_top_k_select_the_right_rows() {
+        // 2-d unit vectors at angles 0, 60, 90, 180 degrees; query along x.
+        let s3 = 3f32.sqrt() / 2.0;
+        let vectors = [1.0, 0.0, 0.5, s3, 0.0, 1.0, -1.0, 0.0];
+        let ids = [10, 11, 12, 13];
+        let means = [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 4.0, 0.0], [9.0, 9.0, 9.0]];
+        let (m, s) = rank(&ids, &means, &vectors, 2, &[3.0, 0.0], None, Some(0.28)).unwrap();
+        assert_eq!(m.iter().map(|m| m.id).collect::<Vec<_>>(), vec![10, 11]);
+        assert_eq!(s.count, 2);
+        assert_eq!(s.aabb, Some([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]));
+        assert_eq!(s.centroid, Some([1.0, 0.0, 0.0]));
+        let (m, _) = rank(&ids, &means, &vectors, 2, &[1.0, 0.0], Some(3), None).unwrap();
+        assert_eq!(m.iter().map(|m| m.id).collect::<Vec<_>>(), vec![10, 11, 12]);
+        let (m, s) = rank(&ids, &means, &vectors, 2, &[1.0, 0.0], None, Some(2.0)).unwrap();
+        assert!(m.is_empty() && s.aabb.is_none());
+        assert!(rank(&ids, &means, &vectors, 2, &[1.0, 0.0], None, Some(f32::NAN)).is_err());
+    }
+}

@@ -1,1 +1,72 @@
-//! (to be implemented)
+//! The JSON run report written beside the embeddings (`report.json`): inputs, models, parameters,
+//! per-stage timings and counts, so a run can be audited and compared.
+
+use serde::Serialize;
+
+/// Wall-clock seconds spent in each stage, summed over images (stages of different images overlap
+/// in the pipeline, so the sum of stages can exceed `total`).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct StageTimings {
+    /// Reading the `.ply` and the cameras.
+    pub load_scene: f64,
+    /// Decoding image files.
+    pub decode: f64,
+    /// Mask generation (SAM encoder + decoder + filters, or graph segmentation).
+    pub masks: f64,
+    /// CLIP crop preparation + visual tower.
+    pub clip: f64,
+    /// Weight rasterization (projection, tiles, blending, readback).
+    pub raster: f64,
+    /// Image stage of the aggregation (`a_kj`).
+    pub image_aggregate: f64,
+    /// Reduction over images (`E_k`).
+    pub reduce: f64,
+    /// Writing the output files.
+    pub write: f64,
+    /// Whole run, wall clock.
+    pub total: f64,
+}
+
+/// Counts describing the run.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Counts {
+    /// Views in the camera source.
+    pub views_total: usize,
+    /// Views encoded (after `--every`).
+    pub views_used: usize,
+    /// Gaussians in the `.ply`.
+    pub gaussians: usize,
+    /// Gaussians that received an embedding.
+    pub observed: usize,
+    /// `observed / gaussians`.
+    pub observed_fraction: f64,
+    /// Masks over all images.
+    pub masks: usize,
+    /// Non-zero `a_kj` over all images.
+    pub entries: usize,
+    /// Mean contributors per raster pixel over all images.
+    pub contributors_per_pixel: f64,
+    /// Image contributions spilled to disk (memory budget exceeded).
+    pub spilled_images: usize,
+    /// Chunks the reduction used.
+    pub reduce_chunks: usize,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Report {
+    /// slag version.
+    pub slag_version: String,
+    /// Input paths and selection.
+    pub inputs: serde_json::Value,
+    /// Models and their execution providers.
+    pub models: serde_json::Value,
+    /// Parameters that change the result.
+    pub parameters: serde_json::Value,
+    /// Per-stage timings, seconds.
+    pub timings: StageTimings,
+    /// Counts.
+    pub counts: Counts,
+    /// Output files and sizes.
+    pub outputs: serde_json::Value,
+}

@@ -33,3 +33,16 @@ impl PixelWeights {
         (&self.ids[a..b], &self.weights[a..b])
     }
 }
+
+/// A weight rasterizer bound to one scene's Gaussians (uploaded once), rendering any view.
+pub trait WeightRasterizer {
+    /// Short name for reports (`"gpu:<adapter>"`, `"cpu-reference"`).
+    fn name(&self) -> &str;
+    /// Per-pixel contributors for a camera with `intrinsics` (already at raster resolution) and
+    /// pose `world_to_camera`.
+    fn rasterize(
+        &mut self,
+        intrinsics: &slag_common::camera::Intrinsics,
+        world_to_camera: &slag_common::camera::WorldToCamera,
+    ) -> slag_common::Result<PixelWeights>;
+}
