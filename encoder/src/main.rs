@@ -1,2 +1,76 @@
-//! `slag-encoder` command line (to be implemented).
-fn main() {}
+//! `slag-encoder`: give every Gaussian of a trained 3DGS scene a CLIP embedding (SLAG).
+//!
+//! Subcommands: `encode` (the Semantic Embedding stage), `query` (check a prompt), `eval-colors`
+//! (colour mIoU with color-clip), `render` (validate the rasterizer against a photo), `bench`
+//! (per-stage timings).
+
+use clap::{Parser, Subcommand};
+use slag_encoder::cli;
+
+/// slag-encoder: per-Gaussian CLIP embeddings for 3D Gaussian Splatting scenes (SLAG).
+///
+/// Typical run (models are any SAM / CLIP ONNX exports; see README):
+///   slag-encoder encode --scene SCENE --sam-encoder SAM_ENC.onnx --sam-decoder SAM_DEC.onnx
+///       --clip-visual CLIP_VISUAL.onnx --out OUT
+///   slag-encoder query --embeddings OUT/embeddings.safetensors --clip-textual CLIP_TEXT.onnx
+///       --tokenizer clip-tokenizer.json --text "a chair"
+///
+/// ONNX Runtime is loaded from $ORT_DYLIB_PATH (../shared/tools/install-onnxruntime.sh).
+#[derive(Parser)]
+#[command(version, about, long_about, verbatim_doc_comment)]
+struct Cli {
+    /// Debug logging (or set RUST_LOG).
+    #[arg(long, short, global = true)]
+    verbose: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Embed a scene: masks -> CLIP crops -> weight raster -> aggregation -> embeddings.safetensors.
+    Encode(cli::encode::EncodeArgs),
+    /// Rank the Gaussians of an embeddings file against a text prompt.
+    Query(cli::query::QueryArgs),
+    /// Colour mIoU of an embeddings file made with color-clip (ground truth from SH DC colours).
+    EvalColors(cli::eval::EvalArgs),
+    /// Render a training view through the weight rasterizer and compare it with the photo.
+    Render(cli::render::RenderArgs),
+    /// Run `encode` and print a per-stage timing table.
+    Bench(cli::encode::EncodeArgs),
+}
+
+fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
+    println!("{}", serde_json::to_string_pretty(v)?);
+    Ok(())
+}
+
+fn main() -> std::process::ExitCode {
+    let args = Cli::parse();
+    cli::init_logging(args.verbose);
+    let result = match &args.command {
+        Command::Encode(a) => cli::encode::run(a).and_then(|r| {
+            eprintln!(
+                "encoded {} of {} Gaussians ({:.1}%) from {} views in {:.1} s -> {}",
+                r.counts.observed,
+                r.counts.gaussians,
+                100.0 * r.counts.observed_fraction,
+                r.counts.views_used,
+                r.timings.total,
+                a.out.join("embeddings.safetensors").display()
+            );
+            Ok(())
+        }),
+        Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
+        Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
+        Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
+        Command::Bench(a) => cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r))),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

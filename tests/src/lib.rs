@@ -1,1 +1,36 @@
-//! Shared helpers for slag's end-to-end tests.
+//! Shared helpers for slag's end-to-end tests: fixture paths and CLI-equivalent argument parsing.
+
+use std::path::PathBuf;
+
+use clap::Parser;
+use slag_encoder::cli::encode::EncodeArgs;
+
+/// `../shared` (or `$SLAG_SHARED`).
+pub fn shared() -> PathBuf {
+    slag_common::paths::shared_dir()
+}
+
+/// A file under `../shared/fixtures`.
+pub fn fixture(rel: &str) -> PathBuf {
+    shared().join("fixtures").join(rel)
+}
+
+/// The embedded default scene shipped in the repository.
+pub fn default_scene() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join("data").join("snowmiku-mini")
+}
+
+#[derive(Parser)]
+struct EncodeCli {
+    #[command(flatten)]
+    args: EncodeArgs,
+}
+
+/// Parses `slag-encoder encode` arguments exactly as the binary does.
+pub fn encode_args(args: &[&str]) -> EncodeArgs {
+    let argv = std::iter::once("encode").chain(args.iter().copied());
+    match EncodeCli::try_parse_from(argv) {
+        Ok(c) => c.args,
+        Err(e) => panic!("bad test arguments: {e}"),
+    }
+}
