@@ -12,8 +12,8 @@
 //!    Euclidean distance of the two smoothed RGB colours (0..~441.7). (The reference code segments
 //!    each channel separately and intersects; slag uses the common Euclidean-RGB variant, as
 //!    scikit-image does.)
-//! 3. edges are sorted by weight with a stable LSD radix sort on the f32 bit patterns (ties keep
-//!    their generation order, so the result is deterministic);
+//! 3. weights are quantised to 1/128 of an RGB level and the edges sorted by weight with a stable
+//!    LSD radix sort (ties keep their generation order, so the result is deterministic);
 //! 4. a disjoint-set forest (union by rank, full path compression) merges the two components
 //!    `C1, C2` of an edge of weight `w` when `w <= Int(C) + τ(C)` for both, `τ(C) = k / |C|`
 //!    ([`GraphParams::k`]; `Int(C)` is the largest edge weight of `C`'s minimum spanning tree);
@@ -28,7 +28,9 @@
 //! (pixel centres). The `min_size` guarantee then holds at the reduced resolution only.
 //!
 //! Defaults (chosen on the snowmiku 990×742 indoor photos, see [`GraphParams::default`]):
-//! `sigma = 0.8`, `k = 1500`, `min_size = 500` px (≈ 0.07 % of 990×742), no downscale.
+//! `sigma = 0.8`, `k = 500`, `min_size = 500` px (≈ 0.07 % of 990×742), no downscale: 45–70
+//! segments per photo (`k = 300` gives 75–100; `max_side = 640` gives 85–110 in ~60 % of the
+//! time).
 
 use image::RgbImage;
 use slag_common::{Error, Result};
@@ -42,9 +44,8 @@ pub struct GraphParams {
     /// `0` disables smoothing. Default 0.8 (the paper's value).
     pub sigma: f32,
     /// Scale `k` of the threshold `τ(C) = k / |C|`, in RGB-distance units (0..255 scale) times
-    /// pixels. Larger `k` → larger, fewer segments. Default 1500: with `min_size = 500` it yields
-    /// roughly 50–150 segments on a 990×742 indoor photo (the paper's `k = 500` targets 320×240
-    /// images and over-segments at this size).
+    /// pixels. Larger `k` → larger, fewer segments. Default 500 (the paper's value): with
+    /// `min_size = 500` it yields 45–70 segments on a 990×742 snowmiku photo.
     pub k: f32,
     /// Minimum segment size, full-resolution pixels; smaller components are merged into a
     /// neighbour by the post-pass. Default 500 (≈ 0.07 % of a 990×742 image).
@@ -56,7 +57,12 @@ pub struct GraphParams {
 
 impl Default for GraphParams {
     fn default() -> Self {
-        GraphParams { sigma: 0.8, k: 1500.0, min_size: 500, max_side: None }
+        GraphParams {
+            sigma: 0.8,
+            k: 500.0,
+            min_size: 500,
+            max_side: None,
+        }
     }
 }
 
@@ -70,13 +76,14 @@ impl GraphParams {
         }
         if !(self.k.is_finite() && self.k > 0.0) {
             return Err(Error::Invalid(format!(
-                "graph segmenter k = {}; pass a finite threshold scale k > 0 (default 1500)",
+                "graph segmenter k = {}; pass a finite threshold scale k > 0 (default 500)",
                 self.k
             )));
         }
         if self.max_side == Some(0) {
             return Err(Error::Invalid(
-                "graph segmenter max_side = 0; pass a positive longer side in pixels or none".into(),
+                "graph segmenter max_side = 0; pass a positive longer side in pixels or none"
+                    .into(),
             ));
         }
         Ok(())
@@ -155,7 +162,12 @@ impl MaskGenerator for GraphSegmenter {
     /// Errors: as [`segment_labels`].
     fn generate(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
         let (labels, count) = segment_labels(image, &self.params)?;
-        Ok(masks_from_labels(&labels, count, image.width(), image.height()))
+        Ok(masks_from_labels(
+            &labels,
+            count,
+            image.width(),
+            image.height(),
+        ))
     }
 }
 
@@ -170,7 +182,11 @@ pub fn masks_from_labels(labels: &[u32], count: u32, width: u32, height: u32) ->
     let mut bbox = vec![[u32::MAX, u32::MAX, 0u32, 0u32]; c];
     let mut area = vec![0u32; c];
     if width > 0 {
-        for (y, row) in labels.chunks_exact(width as usize).take(height as usize).enumerate() {
+        for (y, row) in labels
+            .chunks_exact(width as usize)
+            .take(height as usize)
+            .enumerate()
+        {
             let y = y as u32;
             let base = y as usize * width as usize;
             for (x, &l) in row.iter().enumerate() {
@@ -214,12 +230,12 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
     let n = w * h;
     let smooth = smooth_rgb(image, params.sigma);
     let mut edges = build_edges(&smooth, w, h);
-    radix_sort_by_high_word(&mut edges);
+    radix_sort_by_weight(&mut edges);
 
     let mut forest = Forest::new(n);
     let mut thresh = vec![params.k; n];
     for &e in &edges {
-        let weight = f32::from_bits((e >> 32) as u32);
+        let weight = (e >> 32) as f32 * (1.0 / WEIGHT_SCALE);
         let (p, q) = endpoints(e as u32, w);
         let a = forest.find(p);
         let b = forest.find(q);
@@ -228,10 +244,21 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
             thresh[r as usize] = weight + params.k / forest.size[r as usize] as f32;
         }
     }
+    // Post-pass: only edges with an endpoint in a component below `min_size` can merge
+    // (components only grow), so filter them first with one root lookup per pixel.
     let min_size = params.min_size;
     if min_size > 1 {
+        let small: Vec<bool> = (0..n as u32)
+            .map(|p| {
+                let r = forest.find(p);
+                forest.size[r as usize] < min_size
+            })
+            .collect();
         for &e in &edges {
             let (p, q) = endpoints(e as u32, w);
+            if !small[p as usize] && !small[q as usize] {
+                continue;
+            }
             let a = forest.find(p);
             let b = forest.find(q);
             if a != b && (forest.size[a as usize] < min_size || forest.size[b as usize] < min_size)
@@ -295,25 +322,37 @@ fn smooth_rgb(image: &RgbImage, sigma: f32) -> Vec<f32> {
         return src;
     }
     let len = (sigma * 4.0).ceil() as usize + 1;
-    let mut mask: Vec<f32> = (0..len).map(|i| (-0.5 * (i as f32 / sigma).powi(2)).exp()).collect();
+    let mut mask: Vec<f32> = (0..len)
+        .map(|i| (-0.5 * (i as f32 / sigma).powi(2)).exp())
+        .collect();
     let sum = 2.0 * mask.iter().sum::<f32>() - mask[0];
     mask.iter_mut().for_each(|m| *m /= sum);
 
-    // Horizontal pass.
+    // Horizontal pass over a row padded with `len - 1` replicated pixels on each side.
+    let pad = len - 1;
     let mut tmp = vec![0f32; src.len()];
+    let mut padded = vec![0f32; (w + 2 * pad) * 3];
     for y in 0..h {
         let row = &src[y * w * 3..(y + 1) * w * 3];
+        for x in 0..w + 2 * pad {
+            let sx = x.saturating_sub(pad).min(w - 1);
+            padded[x * 3..x * 3 + 3].copy_from_slice(&row[sx * 3..sx * 3 + 3]);
+        }
         let out = &mut tmp[y * w * 3..(y + 1) * w * 3];
-        for x in 0..w {
-            for ch in 0..3 {
-                let mut acc = mask[0] * row[x * 3 + ch];
-                for (i, &m) in mask.iter().enumerate().skip(1) {
-                    let l = x.saturating_sub(i);
-                    let r = (x + i).min(w - 1);
-                    acc += m * (row[l * 3 + ch] + row[r * 3 + ch]);
+        for (x, o) in out.chunks_exact_mut(3).enumerate() {
+            let c = (x + pad) * 3;
+            let mut acc = [
+                mask[0] * padded[c],
+                mask[0] * padded[c + 1],
+                mask[0] * padded[c + 2],
+            ];
+            for (i, &m) in mask.iter().enumerate().skip(1) {
+                let (l, r) = (c - i * 3, c + i * 3);
+                for (ch, a) in acc.iter_mut().enumerate() {
+                    *a += m * (padded[l + ch] + padded[r + ch]);
                 }
-                out[x * 3 + ch] = acc;
             }
+            o.copy_from_slice(&acc);
         }
     }
     // Vertical pass, row-wise so that memory is read contiguously.
@@ -322,7 +361,9 @@ fn smooth_rgb(image: &RgbImage, sigma: f32) -> Vec<f32> {
     for y in 0..h {
         let out = &mut dst[y * stride..(y + 1) * stride];
         let centre = &tmp[y * stride..(y + 1) * stride];
-        out.iter_mut().zip(centre).for_each(|(o, &c)| *o = mask[0] * c);
+        out.iter_mut()
+            .zip(centre)
+            .for_each(|(o, &c)| *o = mask[0] * c);
         for (i, &m) in mask.iter().enumerate().skip(1) {
             let up = &tmp[y.saturating_sub(i) * stride..][..stride];
             let down = &tmp[(y + i).min(h - 1) * stride..][..stride];
@@ -346,45 +387,56 @@ fn endpoints(id: u32, w: usize) -> (u32, u32) {
     (p as u32, q as u32)
 }
 
-/// All grid edges packed as `(weight.to_bits() << 32) | (p * 4 + dir)`. Weights are non-negative
-/// finite f32, whose bit patterns order like the values.
+/// Weights are stored quantised to `1 / WEIGHT_SCALE` RGB levels (the largest distance,
+/// `255·√3 ≈ 441.7`, maps to 56,537 < 2^16).
+const WEIGHT_SCALE: f32 = 128.0;
+
+/// All grid edges packed as `(quantised weight << 32) | (p * 4 + dir)`, the quantised weight
+/// being `round(distance · WEIGHT_SCALE)` (16 bits).
 fn build_edges(smooth: &[f32], w: usize, h: usize) -> Vec<u64> {
     let mut edges = Vec::with_capacity(w * h * 4);
-    let dist = |p: usize, q: usize| -> f32 {
-        let (a, b) = (&smooth[p * 3..p * 3 + 3], &smooth[q * 3..q * 3 + 3]);
+    let key = |a: &[f32], b: &[f32]| -> u64 {
         let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-        (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+        let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        // Non-negative, so `+ 0.5` then truncation rounds half up.
+        ((dist * WEIGHT_SCALE + 0.5) as u64).min(0xffff) << 32
     };
+    let stride = w * 3;
     for y in 0..h {
+        let row = &smooth[y * stride..(y + 1) * stride];
+        let below = (y + 1 < h).then(|| &smooth[(y + 1) * stride..(y + 2) * stride]);
+        let above = (y > 0).then(|| &smooth[(y - 1) * stride..y * stride]);
         for x in 0..w {
-            let p = y * w + x;
-            for (dir, &(dx, dy)) in DIRS.iter().enumerate() {
-                let nx = x as isize + dx;
-                let ny = y as isize + dy;
-                if nx >= w as isize || ny < 0 || ny >= h as isize {
-                    continue;
+            let id = ((y * w + x) * 4) as u64;
+            let c = &row[x * 3..x * 3 + 3];
+            let right = (x + 1 < w).then(|| x * 3 + 3..x * 3 + 6);
+            if let Some(r) = right.clone() {
+                edges.push(key(c, &row[r]) | id);
+            }
+            if let Some(b) = below {
+                edges.push(key(c, &b[x * 3..x * 3 + 3]) | (id + 1));
+                if let Some(r) = right.clone() {
+                    edges.push(key(c, &b[r]) | (id + 2));
                 }
-                let q = ny as usize * w + nx as usize;
-                let key = dist(p, q).to_bits() as u64;
-                edges.push((key << 32) | (p * 4 + dir) as u64);
+            }
+            if let (Some(a), Some(r)) = (above, right) {
+                edges.push(key(c, &a[r]) | (id + 3));
             }
         }
     }
     edges
 }
 
-/// Stable LSD radix sort of `v` by its upper 32 bits (three 11-bit digits; a digit whose values
-/// are all equal is skipped).
-fn radix_sort_by_high_word(v: &mut Vec<u64>) {
-    const BITS: u32 = 11;
-    const BUCKETS: usize = 1 << BITS;
+/// Stable LSD radix sort of `v` by bits 32..48 (the quantised weight; two 8-bit digits, a digit
+/// whose values are all equal is skipped).
+fn radix_sort_by_weight(v: &mut Vec<u64>) {
     let mut buf = vec![0u64; v.len()];
-    for shift in [32u32, 43, 54] {
-        let mut count = vec![0usize; BUCKETS];
+    for shift in [32u32, 40] {
+        let mut count = [0usize; 256];
         for &e in v.iter() {
-            count[((e >> shift) as usize) & (BUCKETS - 1)] += 1;
+            count[((e >> shift) & 0xff) as usize] += 1;
         }
-        if count.iter().any(|&c| c == v.len()) {
+        if count.contains(&v.len()) {
             continue;
         }
         let mut sum = 0;
@@ -394,7 +446,7 @@ fn radix_sort_by_high_word(v: &mut Vec<u64>) {
             sum += here;
         }
         for &e in v.iter() {
-            let d = ((e >> shift) as usize) & (BUCKETS - 1);
+            let d = ((e >> shift) & 0xff) as usize;
             buf[count[d]] = e;
             count[d] += 1;
         }
@@ -411,7 +463,11 @@ struct Forest {
 
 impl Forest {
     fn new(n: usize) -> Self {
-        Forest { parent: (0..n as u32).collect(), rank: vec![0; n], size: vec![1; n] }
+        Forest {
+            parent: (0..n as u32).collect(),
+            rank: vec![0; n],
+            size: vec![1; n],
+        }
     }
 
     fn find(&mut self, x: u32) -> u32 {
@@ -430,7 +486,11 @@ impl Forest {
 
     /// Joins two distinct roots; returns the new root.
     fn join(&mut self, a: u32, b: u32) -> u32 {
-        let (a, b) = if self.rank[a as usize] < self.rank[b as usize] { (b, a) } else { (a, b) };
+        let (a, b) = if self.rank[a as usize] < self.rank[b as usize] {
+            (b, a)
+        } else {
+            (a, b)
+        };
         self.parent[b as usize] = a;
         self.size[a as usize] += self.size[b as usize];
         if self.rank[a as usize] == self.rank[b as usize] {
@@ -441,6 +501,7 @@ impl Forest {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)] // tests fail loudly on purpose
 mod tests {
     use super::*;
     use proptest::prelude::*;
@@ -511,12 +572,17 @@ mod tests {
             .collect()
     }
 
-    /// The default `sigma` and `k` with a `min_size` below the smallest rectangle (900 px) for
-    /// the 160x120 synthetic scenes. (With the paper's `k = 500` instead, the one-pixel rings of
-    /// blurred ramp pixels along each outline stay separate in the main pass and can join the
-    /// wrong side through a corner in the post-pass: IoU ~0.9.)
-    const RECT_PARAMS: GraphParams =
-        GraphParams { sigma: 0.8, k: 1500.0, min_size: 400, max_side: None };
+    /// The default `sigma` with `k = 1500` and a `min_size` below the smallest rectangle (900 px)
+    /// for the 160x120 synthetic scenes. (With `k = 500`, the one-pixel rings of blurred ramp
+    /// pixels along each outline stay separate in the main pass and can join the wrong side
+    /// through a corner in the post-pass: IoU ~0.9; noise-free edges this sharp are rare in
+    /// photos.)
+    const RECT_PARAMS: GraphParams = GraphParams {
+        sigma: 0.8,
+        k: 1500.0,
+        min_size: 400,
+        max_side: None,
+    };
 
     fn scene() -> Vec<(u32, u32, u32, u32, [u8; 3])> {
         vec![
@@ -542,7 +608,12 @@ mod tests {
     fn unsmoothed_rectangles_are_recovered_exactly_for_any_k() {
         let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 0);
         for k in [50.0, 500.0, 5000.0] {
-            let params = GraphParams { sigma: 0.0, k, min_size: 1, max_side: None };
+            let params = GraphParams {
+                sigma: 0.0,
+                k,
+                min_size: 1,
+                max_side: None,
+            };
             let (labels, count) = segment_labels(&img, &params).unwrap();
             assert_eq!(count, 6, "k {k}");
             let ious = best_ious(&gt, &labels, count);
@@ -564,11 +635,18 @@ mod tests {
     fn downscaled_segmentation_recovers_rectangles() {
         // 320x240 segmented at 160x120; rectangle edges fall on even pixels, so the nearest
         // upsampling is exact up to the resize filter's blur at edges.
-        let rects: Vec<_> =
-            scene().into_iter().map(|(a, b, c, d, col)| (a * 2, b * 2, c * 2, d * 2, col)).collect();
+        let rects: Vec<_> = scene()
+            .into_iter()
+            .map(|(a, b, c, d, col)| (a * 2, b * 2, c * 2, d * 2, col))
+            .collect();
         let (img, gt) = rectangles(320, 240, [128, 128, 128], &rects, 0);
         // k and min_size are scaled by the area ratio (1/4): segmented with RECT_PARAMS.
-        let params = GraphParams { k: 6000.0, min_size: 1600, max_side: Some(160), sigma: 0.8 };
+        let params = GraphParams {
+            k: 6000.0,
+            min_size: 1600,
+            max_side: Some(160),
+            sigma: 0.8,
+        };
         let (labels, count) = segment_labels(&img, &params).unwrap();
         assert_eq!(labels.len(), 320 * 240);
         assert_eq!(count, 6);
@@ -593,36 +671,70 @@ mod tests {
                 *c += v as u32;
             }
         }
-        assert!(cover.iter().all(|&c| c == 1), "every pixel in exactly one mask");
-        assert!(masks.windows(2).all(|p| p[0].area >= p[1].area), "area descending");
+        assert!(
+            cover.iter().all(|&c| c == 1),
+            "every pixel in exactly one mask"
+        );
+        assert!(
+            masks.windows(2).all(|p| p[0].area >= p[1].area),
+            "area descending"
+        );
     }
 
     #[test]
     fn min_size_is_respected() {
         // Many tiny 3x3 specks that differ strongly from the background.
         let rects: Vec<_> = (0..20)
-            .map(|i| (5 + (i % 5) * 20, 5 + (i / 5) * 20, 8 + (i % 5) * 20, 8 + (i / 5) * 20, [250, 0, 0]))
+            .map(|i| {
+                (
+                    5 + (i % 5) * 20,
+                    5 + (i / 5) * 20,
+                    8 + (i % 5) * 20,
+                    8 + (i / 5) * 20,
+                    [250, 0, 0],
+                )
+            })
             .collect();
         let (img, _) = rectangles(100, 80, [0, 0, 250], &rects, 3);
-        let loose = GraphParams { sigma: 0.0, min_size: 1, ..GraphParams::default() };
+        let loose = GraphParams {
+            sigma: 0.0,
+            min_size: 1,
+            ..GraphParams::default()
+        };
         let (_, many) = segment_labels(&img, &loose).unwrap();
-        assert!(many >= 21, "specks are separate segments without min_size, got {many}");
+        assert!(
+            many >= 21,
+            "specks are separate segments without min_size, got {many}"
+        );
         for min_size in [10u32, 50, 500] {
-            let params = GraphParams { sigma: 0.0, min_size, ..GraphParams::default() };
+            let params = GraphParams {
+                sigma: 0.0,
+                min_size,
+                ..GraphParams::default()
+            };
             let (labels, count) = segment_labels(&img, &params).unwrap();
             let mut sizes = vec![0u32; count as usize];
             labels.iter().for_each(|&l| sizes[l as usize] += 1);
-            assert!(sizes.iter().all(|&s| s >= min_size), "min_size {min_size}: {sizes:?}");
+            assert!(
+                sizes.iter().all(|&s| s >= min_size),
+                "min_size {min_size}: {sizes:?}"
+            );
         }
         // Larger than the image: one segment.
-        let params = GraphParams { min_size: 100 * 80 + 1, ..GraphParams::default() };
+        let params = GraphParams {
+            min_size: 100 * 80 + 1,
+            ..GraphParams::default()
+        };
         assert_eq!(segment_labels(&img, &params).unwrap().1, 1);
     }
 
     #[test]
     fn deterministic() {
         let (img, _) = rectangles(160, 120, [100, 120, 140], &scene()[..3], 40);
-        let params = GraphParams { min_size: 5, ..GraphParams::default() };
+        let params = GraphParams {
+            min_size: 5,
+            ..GraphParams::default()
+        };
         let a = segment_labels(&img, &params).unwrap();
         let b = segment_labels(&img, &params).unwrap();
         assert_eq!(a, b);
@@ -632,9 +744,15 @@ mod tests {
     #[test]
     fn trivial_images_give_one_segment() {
         let one = RgbImage::from_pixel(1, 1, image::Rgb([10, 20, 30]));
-        assert_eq!(segment_labels(&one, &GraphParams::default()).unwrap(), (vec![0], 1));
+        assert_eq!(
+            segment_labels(&one, &GraphParams::default()).unwrap(),
+            (vec![0], 1)
+        );
         let flat = RgbImage::from_pixel(64, 48, image::Rgb([90, 90, 90]));
-        let params = GraphParams { min_size: 1, ..GraphParams::default() };
+        let params = GraphParams {
+            min_size: 1,
+            ..GraphParams::default()
+        };
         let (labels, count) = segment_labels(&flat, &params).unwrap();
         assert_eq!(count, 1);
         assert!(labels.iter().all(|&l| l == 0));
@@ -657,12 +775,27 @@ mod tests {
         ));
         let img = RgbImage::new(4, 4);
         for bad in [
-            GraphParams { k: 0.0, ..GraphParams::default() },
-            GraphParams { k: f32::NAN, ..GraphParams::default() },
-            GraphParams { sigma: -1.0, ..GraphParams::default() },
-            GraphParams { max_side: Some(0), ..GraphParams::default() },
+            GraphParams {
+                k: 0.0,
+                ..GraphParams::default()
+            },
+            GraphParams {
+                k: f32::NAN,
+                ..GraphParams::default()
+            },
+            GraphParams {
+                sigma: -1.0,
+                ..GraphParams::default()
+            },
+            GraphParams {
+                max_side: Some(0),
+                ..GraphParams::default()
+            },
         ] {
-            assert!(matches!(segment_labels(&img, &bad), Err(Error::Invalid(_))), "{bad:?}");
+            assert!(
+                matches!(segment_labels(&img, &bad), Err(Error::Invalid(_))),
+                "{bad:?}"
+            );
         }
     }
 
@@ -670,14 +803,11 @@ mod tests {
     fn radix_sort_matches_std_sort() {
         let mut noise = Noise(7);
         let mut v: Vec<u64> = (0..5000u64)
-            .map(|i| {
-                let w = (noise.next(1000) + 1000) as f32 * 0.173;
-                ((w.to_bits() as u64) << 32) | i
-            })
+            .map(|i| (((noise.next(30000) + 30000) as u64) << 32) | i)
             .collect();
         let mut reference = v.clone();
         reference.sort_by_key(|e| e >> 32); // stable
-        radix_sort_by_high_word(&mut v);
+        radix_sort_by_weight(&mut v);
         assert_eq!(v, reference);
     }
 
