@@ -41,11 +41,12 @@ use super::{Mask, MaskGenerator};
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct GraphParams {
     /// Standard deviation of the Gaussian pre-smoothing, pixels (of the segmented resolution).
-    /// `0` disables smoothing. Default 0.8 (the paper's value).
+    /// Values below 0.01 disable smoothing. Default 0.8 (scikit-image's default; the reference code's README
+    /// suggests 0.5).
     pub sigma: f32,
     /// Scale `k` of the threshold `τ(C) = k / |C|`, in RGB-distance units (0..255 scale) times
-    /// pixels. Larger `k` → larger, fewer segments. Default 500 (the paper's value): with
-    /// `min_size = 500` it yields 45–70 segments on a 990×742 snowmiku photo.
+    /// pixels. Larger `k` → larger, fewer segments. Default 500 (the reference code's typical
+    /// value): with `min_size = 500` it yields 45–70 segments on a 990×742 snowmiku photo.
     pub k: f32,
     /// Minimum segment size, full-resolution pixels; smaller components are merged into a
     /// neighbour by the post-pass. Default 500 (≈ 0.07 % of a 990×742 image).
@@ -96,7 +97,8 @@ impl GraphParams {
 /// the largest segment and labels are ordered by area descending (ties: the segment whose first
 /// pixel in raster order comes first). Deterministic.
 ///
-/// Errors ([`Error::Invalid`]): a zero-sized image, an image of 2^30 pixels or more, invalid
+/// Errors ([`Error::Invalid`]): a zero-sized image, 2^30 pixels or more to segment (after the
+/// optional downscale), invalid
 /// parameters (non-finite or negative `sigma`, `k <= 0`, `max_side = 0`).
 pub fn segment_labels(image: &RgbImage, params: &GraphParams) -> Result<(Vec<u32>, u32)> {
     params.validate()?;
@@ -107,16 +109,21 @@ pub fn segment_labels(image: &RgbImage, params: &GraphParams) -> Result<(Vec<u32
         )));
     }
     let n = w as u64 * h as u64;
-    if n >= 1 << 30 {
-        return Err(Error::Invalid(format!(
-            "graph segmenter got a {w}x{h} image (over 2^30 pixels); set max_side to downscale it"
-        )));
-    }
+    let too_large = |sw: u32, sh: u32| -> Result<()> {
+        if sw as u64 * sh as u64 >= 1 << 30 {
+            return Err(Error::Invalid(format!(
+                "graph segmenter would segment {sw}x{sh} pixels (2^30 or more); set max_side to \
+                 downscale the image"
+            )));
+        }
+        Ok(())
+    };
     let labels = match params.max_side {
         Some(side) if w.max(h) > side => {
             let scale = side as f64 / w.max(h) as f64;
             let sw = ((w as f64 * scale).round() as u32).clamp(1, side);
             let sh = ((h as f64 * scale).round() as u32).clamp(1, side);
+            too_large(sw, sh)?;
             let small =
                 image::imageops::resize(image, sw, sh, image::imageops::FilterType::Triangle);
             let ratio = (sw as f64 * sh as f64) / n as f64;
@@ -129,7 +136,10 @@ pub fn segment_labels(image: &RgbImage, params: &GraphParams) -> Result<(Vec<u32
             let small_labels = segment_raw(&small, &small_params);
             upsample_nearest(&small_labels, sw, sh, w, h)
         }
-        _ => segment_raw(image, params),
+        _ => {
+            too_large(w, h)?;
+            segment_raw(image, params)
+        }
     };
     Ok(order_by_area(labels))
 }
