@@ -182,8 +182,9 @@ impl MaskGenerator for GraphSegmenter {
 }
 
 /// One [`Mask`] per label of a `width`×`height` label image with labels in `0..count`, in label
-/// order, built in a single pass (bounding boxes and areas included). Labels without pixels give
-/// no mask. Labels `>= count` are ignored.
+/// order, built in a single pass (bounding boxes and areas included). `labels` is row-major with
+/// `width·height` entries (missing trailing rows count as unlabelled). Labels without pixels give
+/// no mask; labels `>= count` are ignored.
 pub fn masks_from_labels(labels: &[u32], count: u32, width: u32, height: u32) -> Vec<Mask> {
     let n = width as usize * height as usize;
     let c = count as usize;
