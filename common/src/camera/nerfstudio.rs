@@ -68,15 +68,15 @@ pub(super) fn load(path: &Path, scene_dir: &Path) -> Result<Vec<View>> {
             });
         }
         for k in DISTORTION {
-            if let Some(v) = field(frame, &top, k) {
-                if v.as_f64() != Some(0.0) {
-                    return Err(Error::Unsupported {
-                        path: path.into(),
-                        message: format!(
-                            "{what}: camera_model {model} with distortion {k} = {v}; {UNDISTORT_HINT}"
-                        ),
-                    });
-                }
+            if let Some(v) = field(frame, &top, k)
+                && v.as_f64() != Some(0.0)
+            {
+                return Err(Error::Unsupported {
+                    path: path.into(),
+                    message: format!(
+                        "{what}: camera_model {model} with distortion {k} = {v}; {UNDISTORT_HINT}"
+                    ),
+                });
             }
         }
         let fx = number(path, frame, &top, "fl_x", &what)?;

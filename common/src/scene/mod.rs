@@ -74,6 +74,10 @@ impl Gaussians {
 /// 0, 9, 24 or 45). Errors: missing property, truncated body, non-finite values (with the vertex
 /// index), an unsupported property type; each message says which file and what to do.
 ///
+/// Activated opacities stay inside the open interval (0, 1) in f32: `sigmoid(o)` is clamped to
+/// [`f32::MIN_POSITIVE`, 1 - 2^-24] (trained scenes have logits up to ~19, whose sigmoid rounds to
+/// 1.0 in f32). Scales are `exp(s)` (an overflow is an error); quaternions are normalised.
+///
 /// Property types `char uchar short ushort int uint float double` (and their `int8`.. aliases) are
 /// converted to f32; list properties in the vertex element are rejected. The body is decoded in
 /// 32 MiB chunks with fixed per-property offsets; only the requested columns are kept (no SH memory
@@ -113,7 +117,7 @@ pub fn write_highlighted_ply(
 /// Writes `gaussians` as an INRIA-layout binary little-endian `.ply` that [`load_ply`] and 3DGS
 /// viewers read: float properties `x y z [f_dc_0..2 f_rest_*] opacity scale_0..2 rot_0..3` (SH only
 /// when `gaussians.sh` is set; `f_rest` written channel-major), with the activations inverted:
-/// `opacity = logit(o)` (o clamped to [1e-12, 1 - 1e-7] so the logit is finite),
+/// `opacity = logit(o)` (o clamped to [`f32::MIN_POSITIVE`, 1 - 2^-24] so the logit is finite),
 /// `scale = ln(s)`, rotations as stored (w, x, y, z). Written atomically.
 ///
 /// Errors: inconsistent array lengths or SH size ([`crate::Error::Invalid`]); I/O.

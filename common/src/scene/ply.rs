@@ -343,6 +343,9 @@ fn select_columns(path: &Path, header: &Header, options: PlyLoadOptions) -> Resu
     })
 }
 
+/// The largest f32 below 1 (`1 - 2^-24`): activated opacities are clamped to it.
+pub(crate) const OPACITY_MAX: f32 = 1.0 - 1.0 / 16_777_216.0;
+
 /// Accumulates activated Gaussians.
 struct Builder<'a> {
     path: &'a Path,
@@ -428,7 +431,10 @@ impl<'a> Builder<'a> {
             (q[2] / norm) as f32,
             (q[3] / norm) as f32,
         ]);
-        self.out.opacities.push(opacity as f32);
+        // Keep sigmoid's open interval in f32: logits beyond ~±16.6 / -103 would round to 1 / 0.
+        self.out
+            .opacities
+            .push((opacity as f32).clamp(f32::MIN_POSITIVE, OPACITY_MAX));
         if self.cols.colours {
             // DC, then rest coefficient j of channel c at f_rest_{c*per_rest + j}.
             self.coeffs
@@ -681,14 +687,14 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
         )));
     }
     let per = g.sh.as_ref().map(|s| s.per_channel()).unwrap_or(0);
-    if let Some(sh) = &g.sh {
-        if sh.degree > 3 || sh.coeffs.len() != n * per * 3 {
-            return Err(Error::Invalid(format!(
-                "write_ply: SH degree {} with {} coefficients for {n} Gaussians",
-                sh.degree,
-                sh.coeffs.len()
-            )));
-        }
+    if let Some(sh) = &g.sh
+        && (sh.degree > 3 || sh.coeffs.len() != n * per * 3)
+    {
+        return Err(Error::Invalid(format!(
+            "write_ply: SH degree {} with {} coefficients for {n} Gaussians",
+            sh.degree,
+            sh.coeffs.len()
+        )));
     }
     let mut names: Vec<String> = ["x", "y", "z"].iter().map(|s| s.to_string()).collect();
     if per > 0 {
@@ -716,7 +722,7 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
                 (1..per).for_each(|j| put(c[j * 3 + ch] as f64));
             }
         }
-        let o = (g.opacities[i] as f64).clamp(1e-12, 1.0 - 1e-7);
+        let o = (g.opacities[i] as f64).clamp(f32::MIN_POSITIVE as f64, OPACITY_MAX as f64);
         put((o / (1.0 - o)).ln());
         g.scales[i]
             .iter()
@@ -727,6 +733,7 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
     use crate::scene::{load_ply, write_highlighted_ply, write_ply};
@@ -1063,7 +1070,10 @@ mod tests {
                 let mut end = bytes.len() - cut;
                 if enc == Encoding::Ascii {
                     // A cut inside a number still leaves a number: cut whole tokens.
-                    end = bytes[..end].iter().rposition(|&b| b == b' ').expect("space");
+                    end = bytes[..end]
+                        .iter()
+                        .rposition(|&b| b == b' ')
+                        .expect("space");
                 }
                 let (_d, p) = write_tmp(&bytes[..end]);
                 let err = load_ply(&p, PlyLoadOptions { colours: true }).expect_err("truncated");
