@@ -8,6 +8,8 @@ use std::fs::File;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 
+use rayon::prelude::*;
+
 use super::{Gaussians, PlyLoadOptions, SH_C0, ShCoeffs};
 use crate::{Error, Result};
 
@@ -450,6 +452,15 @@ impl<'a> Builder<'a> {
         Ok(())
     }
 
+    /// Appends the Gaussians decoded by `other` (the vertices following this builder's).
+    fn append(&mut self, mut other: Builder<'_>) {
+        self.out.means.append(&mut other.out.means);
+        self.out.scales.append(&mut other.out.scales);
+        self.out.rotations.append(&mut other.out.rotations);
+        self.out.opacities.append(&mut other.out.opacities);
+        self.coeffs.append(&mut other.coeffs);
+    }
+
     fn finish(mut self) -> Gaussians {
         if self.cols.colours {
             self.out.sh = Some(ShCoeffs {
@@ -513,9 +524,13 @@ fn read_binary(
         .map(|&p| (header.props[p].offset, header.props[p].ty))
         .collect();
     let mut builder = Builder::new(path, cols, n);
-    let mut vals = vec![0f64; layout.len()];
     let chunk_vertices = ((32usize << 20) / stride.max(1)).max(1);
     let mut buf = vec![0u8; chunk_vertices.min(n.max(1)) * stride];
+    // Each chunk is decoded in parallel slices; the slices are appended in order, and the first
+    // error in vertex order is returned.
+    let slice_vertices = chunk_vertices
+        .div_ceil(4 * rayon::current_num_threads().max(1))
+        .max(4096);
     let mut done = 0usize;
     while done < n {
         let count = chunk_vertices.min(n - done);
@@ -527,11 +542,24 @@ fn read_binary(
                 Error::io(path, e)
             }
         })?;
-        for (k, rec) in bytes.chunks_exact(stride).enumerate() {
-            for (v, &(off, ty)) in vals.iter_mut().zip(&layout) {
-                *v = read_scalar(rec, off, ty, be);
-            }
-            builder.push(done + k, &vals)?;
+        let parts: Vec<Result<Builder>> = bytes
+            .par_chunks(slice_vertices * stride)
+            .enumerate()
+            .map(|(p, slice)| {
+                let first = done + p * slice_vertices;
+                let mut part = Builder::new(path, cols, slice.len() / stride);
+                let mut vals = vec![0f64; layout.len()];
+                for (k, rec) in slice.chunks_exact(stride).enumerate() {
+                    for (v, &(off, ty)) in vals.iter_mut().zip(&layout) {
+                        *v = read_scalar(rec, off, ty, be);
+                    }
+                    part.push(first + k, &vals)?;
+                }
+                Ok(part)
+            })
+            .collect();
+        for part in parts {
+            builder.append(part?);
         }
         done += count;
     }
@@ -982,6 +1010,30 @@ mod tests {
             .expect_err("nan")
             .to_string();
         assert!(msg.contains("vertex 2") && msg.contains("f_dc_2"), "{msg}");
+    }
+
+    #[test]
+    fn many_vertices_decode_in_order_and_report_the_first_error() {
+        // Enough vertices for several parallel slices per chunk.
+        let props = inria_props(1);
+        let mut rows = rows(&props, 100_000, 77);
+        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
+        let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
+        check(&g, &props, &rows, true);
+        let op = props
+            .iter()
+            .position(|(n, _)| n == "opacity")
+            .expect("opacity");
+        rows[90_000][op] = f64::NAN;
+        rows[50_000][op] = f64::INFINITY;
+        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
+        let msg = load_ply(&p, PlyLoadOptions::default())
+            .expect_err("nan")
+            .to_string();
+        assert!(
+            msg.contains("vertex 50000") && msg.contains("opacity"),
+            "{msg}"
+        );
     }
 
     #[test]
