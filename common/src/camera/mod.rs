@@ -62,7 +62,8 @@ impl WorldToCamera {
 pub struct View {
     /// Image file name as listed by the camera source (e.g. `20240212_003919.jpg`).
     pub name: String,
-    /// Full path of the image file (`<scene>/images/<name>`).
+    /// Full path of the image file: `<scene>/images/<name>` for COLMAP, `<scene>/<file_path>` for
+    /// nerfstudio (where `name` is `file_path` without a leading `./`).
     pub image_path: PathBuf,
     /// Intrinsics at the image's full resolution.
     pub intrinsics: Intrinsics,
@@ -70,11 +71,17 @@ pub struct View {
     pub world_to_camera: WorldToCamera,
 }
 
-/// Loads the posed views of a scene folder: `sparse/0` (binary preferred, text accepted) or
-/// `transforms.json`, sorted by image name. Image paths point into `<scene>/images/`.
+/// Loads the posed views of a scene folder, sorted by image name.
 ///
-/// Errors: neither source present; a distorted camera model (message: run
-/// `colmap image_undistorter`); malformed files.
+/// Sources, first found wins: COLMAP `sparse/0/{cameras,images}.bin`, `sparse/0/*.txt`, the same in
+/// `sparse/`, then nerfstudio `transforms.json`. COLMAP cameras must be `PINHOLE` or
+/// `SIMPLE_PINHOLE`; the pose (qw qx qy qz, t) is world-to-camera. nerfstudio camera-to-world
+/// matrices (OpenGL axes) are converted to OpenCV axes and inverted. `points3D` is never read.
+///
+/// Errors: no source present ([`crate::Error::Format`] listing every path looked for); a distorted
+/// camera model ([`crate::Error::Unsupported`] naming it and telling to run
+/// `colmap image_undistorter`); truncated binary files, unknown camera ids, duplicate names, bad
+/// numbers ([`crate::Error::Format`]); I/O.
 pub fn load_views(scene_dir: &Path) -> Result<Vec<View>> {
     sources::load(scene_dir)
 }
@@ -86,4 +93,6 @@ pub fn subsample(views: Vec<View>, every: usize) -> Vec<View> {
     views.into_iter().enumerate().filter(|(i, _)| i % every == 0).map(|(_, v)| v).collect()
 }
 
+mod colmap;
+mod nerfstudio;
 mod sources;

@@ -73,8 +73,56 @@ impl Gaussians {
 /// [`PlyLoadOptions::colours`] also `f_dc_0..2` and any `f_rest_*` (degree inferred from their count:
 /// 0, 9, 24 or 45). Errors: missing property, truncated body, non-finite values (with the vertex
 /// index), an unsupported property type; each message says which file and what to do.
+///
+/// Activated opacities stay inside the open interval (0, 1) in f32: `sigmoid(o)` is clamped to
+/// [`f32::MIN_POSITIVE`, 1 - 2^-24] (trained scenes have logits up to ~19, whose sigmoid rounds to
+/// 1.0 in f32). Scales are `exp(s)` (an overflow is an error); quaternions are normalised.
+///
+/// Property types `char uchar short ushort int uint float double` (and their `int8`.. aliases) are
+/// converted to f32; list properties in the vertex element are rejected. The body is decoded in
+/// 32 MiB chunks with fixed per-property offsets; only the requested columns are kept (no SH memory
+/// when `colours` is false).
+///
+/// Errors ([`crate::Error::Format`] unless noted): not a PLY / no `end_header`; missing property
+/// (the message lists those found); list vertex property; `f_rest_*` count not 0/9/24/45; truncated
+/// body; a non-finite value (names the vertex index and property); a zero quaternion (names the
+/// vertex); [`crate::Error::Io`] when the file cannot be read.
 pub fn load_ply(path: &Path, options: PlyLoadOptions) -> Result<Gaussians> {
     ply::read(path, options)
+}
+
+/// The zeroth-order real SH basis constant `1 / (2 sqrt(pi))`: `colour = 0.5 + SH_C0 * f_dc`
+/// (INRIA/gsplat convention).
+pub const SH_C0: f64 = 0.28209479177387814;
+
+/// Copies the 3DGS `.ply` at `src` to `dst` with some Gaussians recoloured, so any splat viewer
+/// shows them in a flat colour (used by `slag-encoder query` to highlight matches).
+///
+/// The copy is byte-for-byte (any property layout, binary little- or big-endian) except, for each
+/// vertex `i` where `colour_of(i)` returns `Some(rgb)` (linear display RGB in 0..1), `f_dc_0..2` are
+/// set to `(rgb - 0.5) / SH_C0` and every `f_rest_*` is zeroed (view-independent colour).
+/// Written atomically (`<dst>.partial` then rename): a failure never leaves a partial `dst`.
+///
+/// Errors: ASCII input ([`crate::Error::Unsupported`]); no `f_dc_0..2` or a truncated body
+/// ([`crate::Error::Format`]); SH stored as integers ([`crate::Error::Unsupported`]); a non-finite
+/// colour ([`crate::Error::Invalid`]); I/O.
+pub fn write_highlighted_ply(
+    src: &Path,
+    dst: &Path,
+    colour_of: impl Fn(usize) -> Option<[f32; 3]>,
+) -> Result<()> {
+    ply::write_highlighted(src, dst, colour_of)
+}
+
+/// Writes `gaussians` as an INRIA-layout binary little-endian `.ply` that [`load_ply`] and 3DGS
+/// viewers read: float properties `x y z [f_dc_0..2 f_rest_*] opacity scale_0..2 rot_0..3` (SH only
+/// when `gaussians.sh` is set; `f_rest` written channel-major), with the activations inverted:
+/// `opacity = logit(o)` (o clamped to [`f32::MIN_POSITIVE`, 1 - 2^-24] so the logit is finite),
+/// `scale = ln(s)`, rotations as stored (w, x, y, z). Written atomically.
+///
+/// Errors: inconsistent array lengths or SH size ([`crate::Error::Invalid`]); I/O.
+pub fn write_ply(path: &Path, gaussians: &Gaussians) -> Result<()> {
+    ply::write(path, gaussians)
 }
 
 mod ply;
