@@ -12,8 +12,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
 
-use ort::ep::ExecutionProvider as _;
 use ort::environment::Environment;
+use ort::ep::ExecutionProvider as _;
 use ort::session::Session;
 use ort::value::{TensorElementType, ValueType};
 
@@ -69,12 +69,17 @@ pub fn environment() -> Result<&'static Environment> {
     }
     let path = dylib_path()?;
     let builder = ort::init_from(&path).map_err(|e| {
-        Error::model(&path, format!("cannot load ONNX Runtime: {e}; {INSTALL_HINT}"))
+        Error::model(
+            &path,
+            format!("cannot load ONNX Runtime: {e}; {INSTALL_HINT}"),
+        )
     })?;
-    let env = builder
-        .with_name("slag")
-        .build()
-        .map_err(|e| Error::model(&path, format!("cannot create the ONNX Runtime environment: {e}")))?;
+    let env = builder.with_name("slag").build().map_err(|e| {
+        Error::model(
+            &path,
+            format!("cannot create the ONNX Runtime environment: {e}"),
+        )
+    })?;
     Ok(ENV.get_or_init(|| env))
 }
 
@@ -117,7 +122,8 @@ pub fn load_session(path: &Path, ep: ExecutionProvider, intra_threads: usize) ->
         ));
     }
     let env = environment()?;
-    let model_err = |what: &str, e: &dyn std::fmt::Display| Error::model(path, format!("{what}: {e}"));
+    let model_err =
+        |what: &str, e: &dyn std::fmt::Display| Error::model(path, format!("{what}: {e}"));
     let mut builder =
         Session::builder(env).map_err(|e| model_err("cannot create a session builder", &e))?;
     if intra_threads > 0 {
@@ -138,10 +144,15 @@ pub fn load_session(path: &Path, ep: ExecutionProvider, intra_threads: usize) ->
         builder = builder
             .with_execution_providers([ort::ep::CUDA::default().build().error_on_failure()])
             .map_err(|e| {
-                model_err("the CUDA execution provider failed to register (CUDA/cuDNN libraries?)", &e)
+                model_err(
+                    "the CUDA execution provider failed to register (CUDA/cuDNN libraries?)",
+                    &e,
+                )
             })?;
     }
-    builder.commit_from_file(path).map_err(|e| model_err("cannot load the ONNX model", &e))
+    builder
+        .commit_from_file(path)
+        .map_err(|e| model_err("cannot load the ONNX model", &e))
 }
 
 /// Element type of a tensor in a model signature.
@@ -182,15 +193,28 @@ pub struct TensorSpec {
 impl TensorSpec {
     /// A named tensor spec.
     pub const fn named(name: &'static str, dtype: ElemType, dims: &'static [i64]) -> Self {
-        TensorSpec { name: Some(name), dtype, dims }
+        TensorSpec {
+            name: Some(name),
+            dtype,
+            dims,
+        }
     }
     /// A spec that accepts any tensor name.
     pub const fn any_name(dtype: ElemType, dims: &'static [i64]) -> Self {
-        TensorSpec { name: None, dtype, dims }
+        TensorSpec {
+            name: None,
+            dtype,
+            dims,
+        }
     }
 
     fn describe(&self) -> String {
-        format!("{}: {}{}", self.name.unwrap_or("*"), self.dtype.as_str(), dims_str(self.dims))
+        format!(
+            "{}: {}{}",
+            self.name.unwrap_or("*"),
+            self.dtype.as_str(),
+            dims_str(self.dims)
+        )
     }
 
     fn matches(&self, name: &str, ty: &ValueType) -> bool {
@@ -202,7 +226,10 @@ impl TensorSpec {
         };
         self.dtype.matches(t)
             && shape.len() == self.dims.len()
-            && shape.iter().zip(self.dims).all(|(&a, &e)| e < 0 || a < 0 || a == e)
+            && shape
+                .iter()
+                .zip(self.dims)
+                .all(|(&a, &e)| e < 0 || a < 0 || a == e)
     }
 }
 
@@ -255,7 +282,10 @@ pub fn check_signature(
 ) -> Result<()> {
     let ok = |specs: &[TensorSpec], found: &[ort::value::Outlet]| {
         specs.len() == found.len()
-            && specs.iter().zip(found).all(|(s, o)| s.matches(o.name(), o.dtype()))
+            && specs
+                .iter()
+                .zip(found)
+                .all(|(s, o)| s.matches(o.name(), o.dtype()))
     };
     if ok(inputs, session.inputs()) && ok(outputs, session.outputs()) {
         return Ok(());
@@ -263,10 +293,20 @@ pub fn check_signature(
     let list = |v: Vec<String>| format!("[{}]", v.join(", "));
     let expected_in = list(inputs.iter().map(TensorSpec::describe).collect());
     let expected_out = list(outputs.iter().map(TensorSpec::describe).collect());
-    let found_in =
-        list(session.inputs().iter().map(|o| describe_found(o.name(), o.dtype())).collect());
-    let found_out =
-        list(session.outputs().iter().map(|o| describe_found(o.name(), o.dtype())).collect());
+    let found_in = list(
+        session
+            .inputs()
+            .iter()
+            .map(|o| describe_found(o.name(), o.dtype()))
+            .collect(),
+    );
+    let found_out = list(
+        session
+            .outputs()
+            .iter()
+            .map(|o| describe_found(o.name(), o.dtype()))
+            .collect(),
+    );
     Err(Error::model(
         path,
         format!(
@@ -301,10 +341,14 @@ mod tests {
         let s = TensorSpec::named("pixel_values", ElemType::F32, &[-1, 3, 224, 224]);
         assert!(s.matches("pixel_values", &ty));
         assert!(!s.matches("input_ids", &ty));
-        assert!(!TensorSpec::named("pixel_values", ElemType::I64, &[-1, 3, 224, 224])
-            .matches("pixel_values", &ty));
-        assert!(!TensorSpec::named("pixel_values", ElemType::F32, &[1, 3, 1024, 1024])
-            .matches("pixel_values", &ty));
+        assert!(
+            !TensorSpec::named("pixel_values", ElemType::I64, &[-1, 3, 224, 224])
+                .matches("pixel_values", &ty)
+        );
+        assert!(
+            !TensorSpec::named("pixel_values", ElemType::F32, &[1, 3, 1024, 1024])
+                .matches("pixel_values", &ty)
+        );
         assert!(TensorSpec::any_name(ElemType::F32, &[2, 3, 224, 224]).matches("x", &ty));
         assert!(!TensorSpec::any_name(ElemType::F32, &[-1, 512]).matches("x", &ty));
     }

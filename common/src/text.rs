@@ -27,8 +27,11 @@ pub const CONTEXT_LENGTH: usize = 77;
 /// Number of prompts whose embeddings [`TextEncoder`] remembers.
 pub const CACHE_CAPACITY: usize = 256;
 
-const TEXT_INPUTS: &[TensorSpec] =
-    &[TensorSpec::named("input_ids", ElemType::I64, &[-1, CONTEXT_LENGTH as i64])];
+const TEXT_INPUTS: &[TensorSpec] = &[TensorSpec::named(
+    "input_ids",
+    ElemType::I64,
+    &[-1, CONTEXT_LENGTH as i64],
+)];
 const TEXT_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, -1])];
 
 /// L2-normalises `v` in place (for embeddings produced by the model at `path`).
@@ -37,7 +40,11 @@ const TEXT_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, 
 /// [`Error::Model`] when the norm is zero (below 1e-12) or not finite: such an embedding has no
 /// direction, and dividing would put NaN into similarity scores.
 pub fn l2_normalize(v: &mut [f32], path: &Path) -> Result<()> {
-    let n = v.iter().map(|&x| f64::from(x) * f64::from(x)).sum::<f64>().sqrt();
+    let n = v
+        .iter()
+        .map(|&x| f64::from(x) * f64::from(x))
+        .sum::<f64>()
+        .sqrt();
     if !(n.is_finite() && n > 1e-12) {
         return Err(Error::model(
             path,
@@ -71,15 +78,26 @@ impl ClipTokenizer {
             ));
         }
         let inner = Tokenizer::from_file(path).map_err(|e| {
-            Error::format(path, format!("not a tokenizers JSON file: {e}; pass clip-tokenizer.json"))
+            Error::format(
+                path,
+                format!("not a tokenizers JSON file: {e}; pass clip-tokenizer.json"),
+            )
         })?;
         let special = |t: &str| {
             inner.token_to_id(t).ok_or_else(|| {
-                Error::format(path, format!("tokenizer has no {t} token: pass a CLIP tokenizer"))
+                Error::format(
+                    path,
+                    format!("tokenizer has no {t} token: pass a CLIP tokenizer"),
+                )
             })
         };
         let (sot, eot) = (special("<|startoftext|>")?, special("<|endoftext|>")?);
-        Ok(ClipTokenizer { inner, path: path.to_path_buf(), sot, eot })
+        Ok(ClipTokenizer {
+            inner,
+            path: path.to_path_buf(),
+            sot,
+            eot,
+        })
     }
 
     /// open_clip token ids of `text`: `[sot, bpe..., eot, 0...]`, exactly `context` long; when too
@@ -89,12 +107,19 @@ impl ClipTokenizer {
     /// [`Error::Invalid`] for `context < 2`, [`Error::Format`] if the tokenizer fails.
     pub fn tokenize(&self, text: &str, context: usize) -> Result<Vec<i64>> {
         if context < 2 {
-            return Err(Error::Invalid(format!("context length {context} is below 2")));
+            return Err(Error::Invalid(format!(
+                "context length {context} is below 2"
+            )));
         }
-        let clean = text.split_whitespace().collect::<Vec<_>>().join(" ").to_lowercase();
-        let enc = self.inner.encode(clean.as_str(), false).map_err(|e| {
-            Error::format(&self.path, format!("cannot tokenize {text:?}: {e}"))
-        })?;
+        let clean = text
+            .split_whitespace()
+            .collect::<Vec<_>>()
+            .join(" ")
+            .to_lowercase();
+        let enc = self
+            .inner
+            .encode(clean.as_str(), false)
+            .map_err(|e| Error::format(&self.path, format!("cannot tokenize {text:?}: {e}")))?;
         let mut ids = Vec::with_capacity(context);
         ids.push(i64::from(self.sot));
         ids.extend(enc.get_ids().iter().map(|&i| i64::from(i)));
@@ -156,7 +181,10 @@ impl TextEncoder {
     /// # Errors
     /// As [`ClipTokenizer::tokenize`].
     pub fn tokenize(&self, texts: &[&str]) -> Result<Vec<Vec<i64>>> {
-        texts.iter().map(|t| self.tokenizer.tokenize(t, CONTEXT_LENGTH)).collect()
+        texts
+            .iter()
+            .map(|t| self.tokenizer.tokenize(t, CONTEXT_LENGTH))
+            .collect()
     }
 
     /// L2-normalised embeddings of `texts` (one row of the model's width `D` per text, in order).
@@ -196,7 +224,9 @@ impl TextEncoder {
         if shape.len() != 2 || shape[0] != n as i64 || shape[1] <= 0 {
             return Err(Error::model(
                 path,
-                format!("CLIP text model returned shape {shape:?} for {n} prompts, expected [{n}, D]"),
+                format!(
+                    "CLIP text model returned shape {shape:?} for {n} prompts, expected [{n}, D]"
+                ),
             ));
         }
         let d = shape[1] as usize;
@@ -228,5 +258,32 @@ impl TextEncoder {
     /// Number of prompts currently cached.
     pub fn cached(&self) -> usize {
         self.cache.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn zero_or_non_finite_embedding_is_a_typed_error_not_nan() {
+        let mut v = vec![0f32; 4];
+        assert!(matches!(
+            l2_normalize(&mut v, Path::new("m.onnx")),
+            Err(Error::Model { .. })
+        ));
+        let mut v = vec![1e-30f32; 4];
+        assert!(matches!(
+            l2_normalize(&mut v, Path::new("m.onnx")),
+            Err(Error::Model { .. })
+        ));
+        let mut v = vec![f32::NAN, 1.0];
+        assert!(matches!(
+            l2_normalize(&mut v, Path::new("m.onnx")),
+            Err(Error::Model { .. })
+        ));
+        let mut v = vec![3f32, 4.0];
+        l2_normalize(&mut v, Path::new("m.onnx")).unwrap();
+        assert_eq!(v, vec![0.6, 0.8]);
     }
 }

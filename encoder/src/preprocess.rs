@@ -101,11 +101,19 @@ fn precompute_coeffs(in_size: usize, out_size: usize, filter: Filter) -> Coeffs 
         for (x, kx) in k.iter().enumerate().take(n) {
             let v = if ww != 0.0 { kx / ww } else { *kx };
             let f = v * f64::from(1u32 << PRECISION_BITS);
-            weights[xx * ksize + x] = if v < 0.0 { (f - 0.5) as i32 } else { (f + 0.5) as i32 };
+            weights[xx * ksize + x] = if v < 0.0 {
+                (f - 0.5) as i32
+            } else {
+                (f + 0.5) as i32
+            };
         }
         bounds.push((xmin, n));
     }
-    Coeffs { bounds, weights, ksize }
+    Coeffs {
+        bounds,
+        weights,
+        ksize,
+    }
 }
 
 #[inline]
@@ -242,9 +250,17 @@ pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_58, 0.275_777_11];
 /// torchvision `Resize(size)` with an int size: the `(width, height)` whose shorter side is `size`
 /// and whose longer side is `int(size * long / short)`.
 pub fn shortest_side_shape(width: u32, height: u32, size: u32) -> (u32, u32) {
-    let (short, long) = if width <= height { (width, height) } else { (height, width) };
+    let (short, long) = if width <= height {
+        (width, height)
+    } else {
+        (height, width)
+    };
     let new_long = (f64::from(size) * f64::from(long) / f64::from(short)) as u32;
-    if width <= height { (size, new_long) } else { (new_long, size) }
+    if width <= height {
+        (size, new_long)
+    } else {
+        (new_long, size)
+    }
 }
 
 /// torchvision `center_crop` offset: `int(round((len - crop) / 2))` with Python's round-half-even.
@@ -268,7 +284,9 @@ pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
         )));
     }
     if img.width() == 0 || img.height() == 0 {
-        return Err(Error::Invalid("cannot embed an empty (0-pixel) crop".into()));
+        return Err(Error::Invalid(
+            "cannot embed an empty (0-pixel) crop".into(),
+        ));
     }
     let (w, h) = shortest_side_shape(img.width(), img.height(), CLIP_IMAGE_SIZE);
     let resized = if (w, h) == img.dimensions() {
@@ -276,7 +294,10 @@ pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
     } else {
         resize_rgb(img, w, h, Filter::Bicubic)?
     };
-    let (x0, y0) = (center_offset(w, CLIP_IMAGE_SIZE), center_offset(h, CLIP_IMAGE_SIZE));
+    let (x0, y0) = (
+        center_offset(w, CLIP_IMAGE_SIZE),
+        center_offset(h, CLIP_IMAGE_SIZE),
+    );
     for c in 0..3 {
         let plane = &mut out[c * s * s..(c + 1) * s * s];
         for y in 0..s {
@@ -299,9 +320,14 @@ mod tests {
             for f in [Filter::Bilinear, Filter::Bicubic] {
                 let c = precompute_coeffs(i, o, f);
                 for (xx, &(_, n)) in c.bounds.iter().enumerate() {
-                    let s: i64 =
-                        c.weights[xx * c.ksize..xx * c.ksize + n].iter().map(|&v| i64::from(v)).sum();
-                    assert!((s - (1 << PRECISION_BITS)).abs() <= n as i64, "{i}->{o} {f:?}: {s}");
+                    let s: i64 = c.weights[xx * c.ksize..xx * c.ksize + n]
+                        .iter()
+                        .map(|&v| i64::from(v))
+                        .sum();
+                    assert!(
+                        (s - (1 << PRECISION_BITS)).abs() <= n as i64,
+                        "{i}->{o} {f:?}: {s}"
+                    );
                 }
             }
         }

@@ -81,7 +81,9 @@ impl SamParams {
             )));
         }
         if self.points_per_batch == 0 {
-            return Err(Error::Invalid("SAM points_per_batch must be at least 1".into()));
+            return Err(Error::Invalid(
+                "SAM points_per_batch must be at least 1".into(),
+            ));
         }
         for (name, v) in [
             ("pred_iou_thresh", self.pred_iou_thresh),
@@ -89,7 +91,9 @@ impl SamParams {
             ("box_nms_thresh", self.box_nms_thresh),
         ] {
             if !(0.0..=1.0).contains(&v) {
-                return Err(Error::Invalid(format!("SAM {name} must be in [0, 1], got {v}")));
+                return Err(Error::Invalid(format!(
+                    "SAM {name} must be in [0, 1], got {v}"
+                )));
             }
         }
         if !self.stability_score_offset.is_finite() || !self.mask_threshold.is_finite() {
@@ -111,7 +115,15 @@ pub fn build_point_grid(n: u32) -> Vec<[f64; 2]> {
         vec![offset]
     } else {
         let step = (1.0 - 2.0 * offset) / (n - 1) as f64;
-        (0..n).map(|i| if i == n - 1 { 1.0 - offset } else { offset + i as f64 * step }).collect()
+        (0..n)
+            .map(|i| {
+                if i == n - 1 {
+                    1.0 - offset
+                } else {
+                    offset + i as f64 * step
+                }
+            })
+            .collect()
     };
     let mut pts = Vec::with_capacity(n * n);
     for &y in &side {
@@ -122,10 +134,16 @@ pub fn build_point_grid(n: u32) -> Vec<[f64; 2]> {
     pts
 }
 
-const ENCODER_INPUTS: &[TensorSpec] =
-    &[TensorSpec::named("pixel_values", ElemType::F32, &[1, 3, 1024, 1024])];
-const ENCODER_OUTPUTS: &[TensorSpec] =
-    &[TensorSpec::named("image_embeddings", ElemType::F32, &[1, 256, 64, 64])];
+const ENCODER_INPUTS: &[TensorSpec] = &[TensorSpec::named(
+    "pixel_values",
+    ElemType::F32,
+    &[1, 3, 1024, 1024],
+)];
+const ENCODER_OUTPUTS: &[TensorSpec] = &[TensorSpec::named(
+    "image_embeddings",
+    ElemType::F32,
+    &[1, 256, 64, 64],
+)];
 const DECODER_INPUTS: &[TensorSpec] = &[
     TensorSpec::named("image_embeddings", ElemType::F32, &[1, 256, 64, 64]),
     TensorSpec::named("point_coords", ElemType::F32, &[-1, -1, 2]),
@@ -231,7 +249,9 @@ impl SamAutomaticMaskGenerator {
         if **shape != [1, 256, 64, 64] {
             return Err(Error::model(
                 path,
-                format!("encoder returned image_embeddings of shape {shape:?}, expected [1,256,64,64]"),
+                format!(
+                    "encoder returned image_embeddings of shape {shape:?}, expected [1,256,64,64]"
+                ),
             ));
         }
         Ok(data.to_vec())
@@ -275,7 +295,9 @@ impl SamAutomaticMaskGenerator {
             .map_err(|e| Error::model(&path, format!("decoder masks are not f32: {e}")))?;
         let (ishape, ious) = outputs["iou_predictions"]
             .try_extract_tensor::<f32>()
-            .map_err(|e| Error::model(&path, format!("decoder iou_predictions are not f32: {e}")))?;
+            .map_err(|e| {
+                Error::model(&path, format!("decoder iou_predictions are not f32: {e}"))
+            })?;
         let (hu, wu) = (h as usize, w as usize);
         if **mshape != [n as i64, 4, i64::from(h), i64::from(w)] {
             return Err(Error::model(
@@ -357,13 +379,18 @@ impl SamAutomaticMaskGenerator {
         }
         let embeddings = self.encode(image)?;
         let (new_h, new_w) = sam_preprocess_shape(h, w, SAM_IMAGE_SIZE);
-        let (sx, sy) = (f64::from(new_w) / f64::from(w), f64::from(new_h) / f64::from(h));
+        let (sx, sy) = (
+            f64::from(new_w) / f64::from(w),
+            f64::from(new_h) / f64::from(h),
+        );
         let points: Vec<[f64; 2]> = build_point_grid(self.params.points_per_side)
             .into_iter()
             .map(|[x, y]| [x * f64::from(w), y * f64::from(h)])
             .collect();
-        let transformed: Vec<[f32; 2]> =
-            points.iter().map(|p| [(p[0] * sx) as f32, (p[1] * sy) as f32]).collect();
+        let transformed: Vec<[f32; 2]> = points
+            .iter()
+            .map(|p| [(p[0] * sx) as f32, (p[1] * sy) as f32])
+            .collect();
         let mut cands = Vec::new();
         let bs = self.params.points_per_batch;
         for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
@@ -374,8 +401,9 @@ impl SamAutomaticMaskGenerator {
         let mut out = Vec::with_capacity(keep.len());
         for i in keep {
             let c = &cands[i];
-            let pixels: Vec<u8> =
-                (0..plane).map(|k| ((c.bits[k / 64] >> (k % 64)) & 1) as u8).collect();
+            let pixels: Vec<u8> = (0..plane)
+                .map(|k| ((c.bits[k / 64] >> (k % 64)) & 1) as u8)
+                .collect();
             let [x0, y0, x1, y1] = c.bbox;
             out.push(Mask {
                 width: w,
@@ -398,7 +426,10 @@ fn nms(cands: &[Candidate], iou_thresh: f32) -> Vec<usize> {
     let mut order: Vec<usize> = (0..cands.len()).collect();
     order.sort_by(|&a, &b| cands[b].iou.total_cmp(&cands[a].iou));
     let boxes: Vec<[f32; 4]> = cands.iter().map(|c| c.bbox.map(|v| v as f32)).collect();
-    let areas: Vec<f32> = boxes.iter().map(|b| (b[2] - b[0]) * (b[3] - b[1])).collect();
+    let areas: Vec<f32> = boxes
+        .iter()
+        .map(|b| (b[2] - b[0]) * (b[3] - b[1]))
+        .collect();
     let mut suppressed = vec![false; cands.len()];
     let mut keep = Vec::new();
     for (oi, &i) in order.iter().enumerate() {
@@ -451,7 +482,14 @@ mod tests {
     }
 
     fn cand(bbox: [u32; 4], iou: f32) -> Candidate {
-        Candidate { bits: vec![], bbox, area: 1, iou, stability: 1.0, point: [0.0; 2] }
+        Candidate {
+            bits: vec![],
+            bbox,
+            area: 1,
+            iou,
+            stability: 1.0,
+            point: [0.0; 2],
+        }
     }
 
     #[test]
@@ -471,9 +509,15 @@ mod tests {
     #[test]
     fn params_are_validated() {
         assert!(SamParams::default().validate().is_ok());
-        let bad = SamParams { points_per_batch: 0, ..SamParams::default() };
+        let bad = SamParams {
+            points_per_batch: 0,
+            ..SamParams::default()
+        };
         assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
-        let bad = SamParams { pred_iou_thresh: f32::NAN, ..SamParams::default() };
+        let bad = SamParams {
+            pred_iou_thresh: f32::NAN,
+            ..SamParams::default()
+        };
         assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
     }
 }
