@@ -7,7 +7,9 @@
 //! - per-output-pixel coefficients normalised to sum 1, then quantised to 22-bit fixed point
 //!   (`PRECISION_BITS = 32 - 8 - 2`, rounded half away from zero),
 //! - accumulation from `1 << 21` and `>> 22` with clamping to `0..=255` after *each* pass (the
-//!   intermediate image is uint8, like PIL's).
+//!   intermediate image is uint8, like PIL's),
+//! - the vertical pass first when the height shrinks by more than twice as many pixels as the
+//!   width (Pillow 13's `ImagingResampleInner`), otherwise horizontal first.
 //!
 //! The result is bit-identical to Pillow for `RGB` images with the bilinear (triangle, support 1)
 //! and bicubic (Keys, `a = -0.5`, support 2) filters.
@@ -19,8 +21,36 @@
 //!   (shortest side, PIL bicubic), `CenterCrop(224)`, `ToTensor`, `Normalize(CLIP mean, std)` →
 //!   `f32[3,224,224]`.
 
+use std::path::Path;
+
 use image::RgbImage;
 use slag_common::{Error, Result};
+
+mod jpeg;
+
+/// Loads an image as RGB8, decoding JPEGs exactly as Pillow does (libjpeg-turbo defaults: islow
+/// IDCT, fancy upsampling), so SAM/CLIP inputs match the Python references bit for bit.
+///
+/// Baseline JPEGs (grey, 4:4:4 or 4:2:0) use slag's libjpeg-turbo-compatible decoder; other JPEGs
+/// (progressive, 4:2:2, CMYK, ...) and every other format go through the `image` crate, whose
+/// JPEG decoder differs from libjpeg-turbo by a few levels on some pixels. EXIF orientation is
+/// not applied (neither Pillow's `Image.open` nor COLMAP apply it).
+///
+/// # Errors
+/// [`Error::Io`] when the file cannot be read, [`Error::Format`] when it cannot be decoded.
+pub fn load_rgb(path: &Path) -> Result<RgbImage> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if bytes.starts_with(&[0xFF, 0xD8]) {
+        match jpeg::decode(&bytes) {
+            Ok(Some(img)) => return Ok(img),
+            Ok(None) => {}
+            Err(e) => return Err(Error::format(path, format!("corrupt JPEG: {e}"))),
+        }
+    }
+    image::load_from_memory(&bytes)
+        .map(|i| i.to_rgb8())
+        .map_err(|e| Error::format(path, format!("cannot decode image: {e}")))
+}
 
 /// Resampling filter (Pillow's names).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -121,7 +151,59 @@ fn clip8(acc: i64) -> u8 {
     (acc >> PRECISION_BITS).clamp(0, 255) as u8
 }
 
-/// Resizes an RGB image to `width` x `height` exactly as Pillow's `Image.resize(size, filter)`.
+/// Horizontal 8-bit pass of Pillow's resampler: `iw` x `h` RGB → `ow` x `h`.
+fn horizontal_pass(src: &[u8], iw: usize, h: usize, ow: usize, filter: Filter) -> Vec<u8> {
+    let half = 1i64 << (PRECISION_BITS - 1);
+    let c = precompute_coeffs(iw, ow, filter);
+    let mut out = vec![0u8; ow * h * 3];
+    for y in 0..h {
+        let line = &src[y * iw * 3..(y + 1) * iw * 3];
+        let dst = &mut out[y * ow * 3..(y + 1) * ow * 3];
+        for (xx, &(xmin, n)) in c.bounds.iter().enumerate() {
+            let k = &c.weights[xx * c.ksize..xx * c.ksize + n];
+            let (mut s0, mut s1, mut s2) = (half, half, half);
+            for (x, &kx) in k.iter().enumerate() {
+                let p = (xmin + x) * 3;
+                let kx = i64::from(kx);
+                s0 += i64::from(line[p]) * kx;
+                s1 += i64::from(line[p + 1]) * kx;
+                s2 += i64::from(line[p + 2]) * kx;
+            }
+            dst[xx * 3] = clip8(s0);
+            dst[xx * 3 + 1] = clip8(s1);
+            dst[xx * 3 + 2] = clip8(s2);
+        }
+    }
+    out
+}
+
+/// Vertical 8-bit pass of Pillow's resampler: `w` x `ih` RGB → `w` x `oh`.
+fn vertical_pass(src: &[u8], w: usize, ih: usize, oh: usize, filter: Filter) -> Vec<u8> {
+    let half = 1i64 << (PRECISION_BITS - 1);
+    let c = precompute_coeffs(ih, oh, filter);
+    let row = w * 3;
+    let mut out = vec![0u8; row * oh];
+    let mut acc = vec![0i64; row];
+    for (yy, &(ymin, n)) in c.bounds.iter().enumerate() {
+        acc.fill(half);
+        let k = &c.weights[yy * c.ksize..yy * c.ksize + n];
+        for (y, &ky) in k.iter().enumerate() {
+            let line = &src[(ymin + y) * row..(ymin + y + 1) * row];
+            let ky = i64::from(ky);
+            for (a, &p) in acc.iter_mut().zip(line) {
+                *a += i64::from(p) * ky;
+            }
+        }
+        for (d, &a) in out[yy * row..(yy + 1) * row].iter_mut().zip(&acc) {
+            *d = clip8(a);
+        }
+    }
+    out
+}
+
+/// Resizes an RGB image to `width` x `height` exactly as Pillow's `Image.resize(size, filter)`
+/// (Pillow 13's pass order: vertical first when the height shrinks by more than twice as many
+/// pixels as the width).
 ///
 /// # Errors
 /// [`Error::Invalid`] when the source or the target has a zero dimension.
@@ -133,59 +215,32 @@ pub fn resize_rgb(img: &RgbImage, width: u32, height: u32, filter: Filter) -> Re
         )));
     }
     let (ow, oh) = (width as usize, height as usize);
-    let src = img.as_raw();
-    let half = 1i64 << (PRECISION_BITS - 1);
-
-    // Horizontal pass (skipped when the width is unchanged, like Pillow's `need_horizontal`).
-    let tmp: std::borrow::Cow<'_, [u8]> = if ow != iw {
-        let c = precompute_coeffs(iw, ow, filter);
-        let mut out = vec![0u8; ow * ih * 3];
-        for y in 0..ih {
-            let line = &src[y * iw * 3..(y + 1) * iw * 3];
-            let dst = &mut out[y * ow * 3..(y + 1) * ow * 3];
-            for (xx, &(xmin, n)) in c.bounds.iter().enumerate() {
-                let k = &c.weights[xx * c.ksize..xx * c.ksize + n];
-                let (mut s0, mut s1, mut s2) = (half, half, half);
-                for (x, &kx) in k.iter().enumerate() {
-                    let p = (xmin + x) * 3;
-                    let kx = i64::from(kx);
-                    s0 += i64::from(line[p]) * kx;
-                    s1 += i64::from(line[p + 1]) * kx;
-                    s2 += i64::from(line[p + 2]) * kx;
-                }
-                dst[xx * 3] = clip8(s0);
-                dst[xx * 3 + 1] = clip8(s1);
-                dst[xx * 3 + 2] = clip8(s2);
-            }
+    let src = img.as_raw().as_slice();
+    // Pillow (ImagingResampleInner, since 13.0): the vertical pass runs first when the height
+    // shrinks by more than twice as many pixels as the width does.
+    let vertical_first = ih > oh && (ih - oh) as i64 > (iw as i64 - ow as i64) * 2;
+    let out = if vertical_first {
+        let tmp = if oh != ih {
+            vertical_pass(src, iw, ih, oh, filter)
+        } else {
+            src.to_vec()
+        };
+        if ow != iw {
+            horizontal_pass(&tmp, iw, oh, ow, filter)
+        } else {
+            tmp
         }
-        std::borrow::Cow::Owned(out)
     } else {
-        std::borrow::Cow::Borrowed(src.as_slice())
-    };
-
-    // Vertical pass.
-    let out = if oh != ih {
-        let c = precompute_coeffs(ih, oh, filter);
-        let mut out = vec![0u8; ow * oh * 3];
-        let row = ow * 3;
-        let mut acc = vec![0i64; row];
-        for (yy, &(ymin, n)) in c.bounds.iter().enumerate() {
-            acc.fill(half);
-            let k = &c.weights[yy * c.ksize..yy * c.ksize + n];
-            for (y, &ky) in k.iter().enumerate() {
-                let line = &tmp[(ymin + y) * row..(ymin + y + 1) * row];
-                let ky = i64::from(ky);
-                for (a, &p) in acc.iter_mut().zip(line) {
-                    *a += i64::from(p) * ky;
-                }
-            }
-            for (d, &a) in out[yy * row..(yy + 1) * row].iter_mut().zip(&acc) {
-                *d = clip8(a);
-            }
+        let tmp = if ow != iw {
+            horizontal_pass(src, iw, ih, ow, filter)
+        } else {
+            src.to_vec()
+        };
+        if oh != ih {
+            vertical_pass(&tmp, ow, ih, oh, filter)
+        } else {
+            tmp
         }
-        out
-    } else {
-        tmp.into_owned()
     };
     RgbImage::from_raw(width, height, out)
         .ok_or_else(|| Error::Invalid("internal resize buffer size mismatch".into()))
@@ -357,6 +412,94 @@ mod tests {
         let e1 = ((100.0 * 0.25 + 200.0 * 0.75 + 40.0 * 0.75) / 1.75f64).round() as u8;
         assert_eq!(r.get_pixel(0, 0).0[0], e0);
         assert_eq!(r.get_pixel(1, 0).0[0], e1);
+    }
+
+    /// Pillow 13.0.0 `Image.fromarray(pattern).resize((W, H), filter)` on the integer pattern
+    /// `(3x² + 7y + 85c + xy) mod 256`: sum, index-weighted checksum (`Σ v · (i mod 251)` over the
+    /// row-major HWC buffer) and the first 4 pixels of row `H / 2`, computed in Python.
+    #[test]
+    fn resize_matches_pillow_bit_for_bit() {
+        type Case = (u32, u32, u32, u32, Filter, i64, i64, [u8; 12]);
+        let cases: [Case; 6] = [
+            // 244x491 -> 224x450: height shrinks by 41 > 2 * 20 pixels: vertical pass first.
+            (
+                244,
+                491,
+                224,
+                450,
+                Filter::Bicubic,
+                38_582_273,
+                4_822_558_280,
+                [182, 9, 96, 175, 19, 89, 174, 98, 88, 181, 0, 95],
+            ),
+            (
+                37,
+                23,
+                101,
+                9,
+                Filter::Bicubic,
+                345_189,
+                42_844_360,
+                [76, 161, 255, 77, 162, 236, 81, 166, 185, 87, 172, 117],
+            ),
+            (
+                990,
+                742,
+                1024,
+                767,
+                Filter::Bilinear,
+                300_770_448,
+                37_596_274_687,
+                [34, 119, 204, 145, 230, 72, 30, 115, 179, 133, 218, 77],
+            ),
+            (
+                491,
+                244,
+                450,
+                224,
+                Filter::Bicubic,
+                38_593_068,
+                4_823_584_110,
+                [97, 160, 15, 193, 59, 108, 115, 145, 33, 202, 94, 103],
+            ),
+            (
+                50,
+                300,
+                224,
+                1344,
+                Filter::Bicubic,
+                115_130_766,
+                14_385_236_018,
+                [6, 122, 205, 13, 116, 200, 28, 104, 189, 59, 78, 166],
+            ),
+            (
+                300,
+                200,
+                17,
+                31,
+                Filter::Bilinear,
+                201_865,
+                24_383_270,
+                [127, 128, 125, 129, 125, 129, 123, 129, 127, 125, 129, 128],
+            ),
+        ];
+        for (w, h, ow, oh, f, sum, check, row) in cases {
+            let img = RgbImage::from_fn(w, h, |x, y| {
+                let v = |c: u32| ((3 * x * x + 7 * y + 85 * c + x * y) % 256) as u8;
+                image::Rgb([v(0), v(1), v(2)])
+            });
+            let r = resize_rgb(&img, ow, oh, f).unwrap();
+            let raw = r.as_raw();
+            let s: i64 = raw.iter().map(|&v| i64::from(v)).sum();
+            let c: i64 = raw
+                .iter()
+                .enumerate()
+                .map(|(i, &v)| i64::from(v) * (i % 251) as i64)
+                .sum();
+            let start = (oh / 2 * ow * 3) as usize;
+            assert_eq!((s, c), (sum, check), "{w}x{h} -> {ow}x{oh} {f:?}");
+            assert_eq!(&raw[start..start + 12], &row, "{w}x{h} -> {ow}x{oh} {f:?}");
+        }
     }
 
     #[test]
