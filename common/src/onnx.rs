@@ -105,6 +105,21 @@ pub fn dylib_path() -> Result<PathBuf> {
     Ok(path)
 }
 
+/// Whether the loaded ONNX Runtime was built with the CUDA execution provider.
+///
+/// # Errors
+/// Those of [`environment`] (the runtime must be loadable first), or [`Error::Model`] if ONNX
+/// Runtime cannot list its providers.
+pub fn cuda_available() -> Result<bool> {
+    environment()?;
+    ort::ep::CUDA::is_available().map_err(|e| {
+        Error::model(
+            dylib_path().unwrap_or_default(),
+            format!("cannot list execution providers: {e}"),
+        )
+    })
+}
+
 /// Builds a session for the ONNX model at `path`.
 ///
 /// `intra_threads` is ONNX Runtime's intra-op thread count (0 = ONNX Runtime's default, one per
@@ -132,8 +147,7 @@ pub fn load_session(path: &Path, ep: ExecutionProvider, intra_threads: usize) ->
             .map_err(|e| model_err("cannot set the intra-op thread count", &e))?;
     }
     if ep == ExecutionProvider::Cuda {
-        let available = ort::ep::CUDA::is_available().unwrap_or(false);
-        if !available {
+        if !cuda_available()? {
             return Err(Error::model(
                 path,
                 "the CUDA execution provider was requested but the loaded ONNX Runtime \
@@ -317,6 +331,7 @@ pub fn check_signature(
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

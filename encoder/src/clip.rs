@@ -135,7 +135,7 @@ impl ClipVisual {
     pub fn embed_pixels(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
         let per = 3 * s * s;
-        if pixels.len() % per != 0 {
+        if !pixels.len().is_multiple_of(per) {
             return Err(Error::Invalid(format!(
                 "CLIP pixel buffer of {} values is not a multiple of 3*224*224",
                 pixels.len()
@@ -189,6 +189,7 @@ impl ClipVisual {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -297,9 +297,11 @@ pub fn sam_pixel_values(img: &RgbImage) -> Result<(Vec<f32>, (u32, u32))> {
 
 /// CLIP's input side length.
 pub const CLIP_IMAGE_SIZE: u32 = 224;
-/// OpenAI CLIP normalisation mean (RGB, 0..1).
+/// OpenAI CLIP normalisation mean (RGB, 0..1), as written in open_clip.
+#[allow(clippy::excessive_precision)]
 pub const CLIP_MEAN: [f32; 3] = [0.481_454_66, 0.457_827_5, 0.408_210_73];
-/// OpenAI CLIP normalisation std (RGB, 0..1).
+/// OpenAI CLIP normalisation std (RGB, 0..1), as written in open_clip.
+#[allow(clippy::excessive_precision)]
 pub const CLIP_STD: [f32; 3] = [0.268_629_54, 0.261_302_58, 0.275_777_11];
 
 /// torchvision `Resize(size)` with an int size: the `(width, height)` whose shorter side is `size`
@@ -366,6 +368,7 @@ pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

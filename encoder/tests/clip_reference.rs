@@ -5,6 +5,8 @@
 //! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
 //! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
 
+#![allow(clippy::unwrap_used)]
+
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -291,4 +293,19 @@ fn clip_rejects_wrong_models_and_bad_batches() {
         ),
         Err(Error::Invalid(_))
     ));
+
+    // CUDA on a runtime without it: a typed error, not a silent CPU fallback.
+    if !slag_common::onnx::cuda_available().unwrap() {
+        let err = ClipVisual::new(
+            &clip_dir.join("tiny-clip-visual.onnx"),
+            ExecutionProvider::Cuda,
+            4,
+        )
+        .err()
+        .expect("CUDA is not available in this ONNX Runtime");
+        assert!(
+            matches!(&err, Error::Model { message, .. } if message.contains("CUDA")),
+            "{err}"
+        );
+    }
 }

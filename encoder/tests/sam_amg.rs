@@ -5,6 +5,8 @@
 //! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
 //! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
 
+#![allow(clippy::unwrap_used)]
+
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 

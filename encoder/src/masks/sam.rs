@@ -286,10 +286,16 @@ impl SamAutomaticMaskGenerator {
             "has_mask_input" => TensorRef::from_array_view(([1usize], &has_mask[..])).map_err(err)?,
             "orig_im_size" => TensorRef::from_array_view(([2usize], &orig[..])).map_err(err)?,
         ];
+        let t = std::time::Instant::now();
         let outputs = self
             .decoder
             .run(inputs)
             .map_err(|e| Error::model(&path, format!("decoder run failed: {e}")))?;
+        tracing::trace!(
+            prompts = n,
+            run_s = t.elapsed().as_secs_f64(),
+            "SAM decoder batch"
+        );
         let (mshape, masks) = outputs["masks"]
             .try_extract_tensor::<f32>()
             .map_err(|e| Error::model(&path, format!("decoder masks are not f32: {e}")))?;
@@ -333,7 +339,7 @@ impl SamAutomaticMaskGenerator {
                 }
                 // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
                 let stability = inter as f32 / union as f32;
-                if !(stability >= p.stability_score_thresh) {
+                if stability.is_nan() || stability < p.stability_score_thresh {
                     return None;
                 }
                 let mut bits = vec![0u64; plane.div_ceil(64)];
@@ -377,7 +383,9 @@ impl SamAutomaticMaskGenerator {
         if w == 0 || h == 0 {
             return Err(Error::Invalid("SAM cannot segment an empty image".into()));
         }
+        let t0 = std::time::Instant::now();
         let embeddings = self.encode(image)?;
+        let t_encode = t0.elapsed();
         let (new_h, new_w) = sam_preprocess_shape(h, w, SAM_IMAGE_SIZE);
         let (sx, sy) = (
             f64::from(new_w) / f64::from(w),
@@ -393,10 +401,19 @@ impl SamAutomaticMaskGenerator {
             .collect();
         let mut cands = Vec::new();
         let bs = self.params.points_per_batch;
+        let t1 = std::time::Instant::now();
         for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
             cands.extend(self.decode_batch(&embeddings, pts, tr, (h, w))?);
         }
+        let t_decode = t1.elapsed();
         let keep = nms(&cands, self.params.box_nms_thresh);
+        tracing::debug!(
+            encode_s = t_encode.as_secs_f64(),
+            decode_and_filter_s = t_decode.as_secs_f64(),
+            candidates = cands.len(),
+            kept = keep.len(),
+            "SAM automatic mask generation"
+        );
         let plane = w as usize * h as usize;
         let mut out = Vec::with_capacity(keep.len());
         for i in keep {
@@ -466,6 +483,7 @@ impl MaskGenerator for SamAutomaticMaskGenerator {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -614,6 +614,7 @@ fn ycc_to_rgb(y: &[u8], ystride: usize, cb: &[u8], cr: &[u8], w: usize, h: usize
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
