@@ -1,1 +1,541 @@
-//! SAM automatic mask generation (to be implemented).
+//! SAM automatic mask generation over an ONNX encoder/decoder pair.
+//!
+//! A port of segment_anything 1.0's `SamAutomaticMaskGenerator` with `crop_n_layers = 0` and
+//! `min_mask_region_area = 0` (one crop = the whole image, no hole/island removal):
+//!
+//! 1. the encoder runs once per image on SAM's input (`ResizeLongestSide(1024)`, PIL bilinear,
+//!    `(x - pixel_mean) / pixel_std`, zero padding to 1024x1024; see
+//!    [`crate::preprocess::sam_pixel_values`]);
+//! 2. a `points_per_side`² grid (`build_point_grid`: cell centres, offset `1 / (2 n)`) is scaled to
+//!    the image (`x * W`, `y * H`) and mapped to the 1024 frame (`apply_coords`);
+//! 3. the decoder (segment_anything's `SamOnnxModel` signature, `return_single_mask=False`) runs in
+//!    batches of `points_per_batch` prompts, each `[point, label 1] + padding point (0, 0) label -1`,
+//!    `mask_input` zeros, `has_mask_input = 0`, `orig_im_size = [H, W]`; multimask channels 1..=3
+//!    are used;
+//! 4. filters, in SAM's order: predicted IoU `> pred_iou_thresh`; stability score (IoU of the
+//!    full-resolution logits thresholded at `mask_threshold ± stability_score_offset`)
+//!    `>= stability_score_thresh`; masks = logits `> mask_threshold`; boxes (xyxy, inclusive max);
+//! 5. greedy box NMS (torchvision `nms`, IoU `> box_nms_thresh` suppresses, boxes areas
+//!    `(x1 - x0) * (y1 - y0)`, f32), scores = predicted IoU; the output keeps NMS order (descending
+//!    predicted IoU), as `SamAutomaticMaskGenerator.generate` does.
+
+use std::path::{Path, PathBuf};
+
+use image::RgbImage;
+use ort::session::Session;
+use ort::value::TensorRef;
+use rayon::prelude::*;
+use slag_common::onnx::{self, ElemType, ExecutionProvider, TensorSpec};
+use slag_common::{Error, Result};
+
+use super::{Mask, MaskGenerator};
+use crate::preprocess::{SAM_IMAGE_SIZE, sam_pixel_values, sam_preprocess_shape};
+
+/// `SamAutomaticMaskGenerator` parameters (segment_anything 1.0 names and semantics).
+///
+/// The defaults are those of slag's reference run (`shared/fixtures/sam-amg/reference.json`), not
+/// segment_anything's ViT-H defaults (32 points per side, 0.88 / 0.95 thresholds).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct SamParams {
+    /// Grid points along each image side (`points_per_side`² prompts per image).
+    pub points_per_side: u32,
+    /// Prompts per decoder call. Results do not depend on it; memory does (one call holds
+    /// `points_per_batch * 4` full-resolution f32 logit maps).
+    pub points_per_batch: usize,
+    /// Keep masks whose predicted IoU is `>` this.
+    pub pred_iou_thresh: f32,
+    /// Keep masks whose stability score is `>=` this.
+    pub stability_score_thresh: f32,
+    /// Logit offset for the stability score.
+    pub stability_score_offset: f32,
+    /// Box IoU above which NMS drops the lower-scored mask.
+    pub box_nms_thresh: f32,
+    /// Logit threshold that binarises masks (`Sam.mask_threshold`).
+    pub mask_threshold: f32,
+}
+
+impl Default for SamParams {
+    fn default() -> Self {
+        SamParams {
+            points_per_side: 16,
+            points_per_batch: 64,
+            pred_iou_thresh: 0.8,
+            stability_score_thresh: 0.5,
+            stability_score_offset: 1.0,
+            box_nms_thresh: 0.7,
+            mask_threshold: 0.0,
+        }
+    }
+}
+
+impl SamParams {
+    /// Checks ranges.
+    ///
+    /// # Errors
+    /// [`Error::Invalid`] for zero counts or non-finite / out-of-range thresholds.
+    pub fn validate(&self) -> Result<()> {
+        if self.points_per_side == 0 || self.points_per_side > 1024 {
+            return Err(Error::Invalid(format!(
+                "SAM points_per_side must be in 1..=1024, got {}",
+                self.points_per_side
+            )));
+        }
+        if self.points_per_batch == 0 {
+            return Err(Error::Invalid(
+                "SAM points_per_batch must be at least 1".into(),
+            ));
+        }
+        for (name, v) in [
+            ("pred_iou_thresh", self.pred_iou_thresh),
+            ("stability_score_thresh", self.stability_score_thresh),
+            ("box_nms_thresh", self.box_nms_thresh),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                return Err(Error::Invalid(format!(
+                    "SAM {name} must be in [0, 1], got {v}"
+                )));
+            }
+        }
+        if !self.stability_score_offset.is_finite() || !self.mask_threshold.is_finite() {
+            return Err(Error::Invalid(
+                "SAM stability_score_offset and mask_threshold must be finite".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// segment_anything's `build_point_grid(n)`: `n`² points in `[0, 1]²`, row-major (x fastest),
+/// at `linspace(1/(2n), 1 - 1/(2n), n)`, as `(x, y)`.
+pub fn build_point_grid(n: u32) -> Vec<[f64; 2]> {
+    let n = n as usize;
+    let offset = 1.0 / (2.0 * n as f64);
+    // numpy.linspace: start + i * step, the last value set to stop exactly.
+    let side: Vec<f64> = if n == 1 {
+        vec![offset]
+    } else {
+        let step = (1.0 - 2.0 * offset) / (n - 1) as f64;
+        (0..n)
+            .map(|i| {
+                if i == n - 1 {
+                    1.0 - offset
+                } else {
+                    offset + i as f64 * step
+                }
+            })
+            .collect()
+    };
+    let mut pts = Vec::with_capacity(n * n);
+    for &y in &side {
+        for &x in &side {
+            pts.push([x, y]);
+        }
+    }
+    pts
+}
+
+const ENCODER_INPUTS: &[TensorSpec] = &[TensorSpec::named(
+    "pixel_values",
+    ElemType::F32,
+    &[1, 3, 1024, 1024],
+)];
+const ENCODER_OUTPUTS: &[TensorSpec] = &[TensorSpec::named(
+    "image_embeddings",
+    ElemType::F32,
+    &[1, 256, 64, 64],
+)];
+const DECODER_INPUTS: &[TensorSpec] = &[
+    TensorSpec::named("image_embeddings", ElemType::F32, &[1, 256, 64, 64]),
+    TensorSpec::named("point_coords", ElemType::F32, &[-1, -1, 2]),
+    TensorSpec::named("point_labels", ElemType::F32, &[-1, -1]),
+    TensorSpec::named("mask_input", ElemType::F32, &[1, 1, 256, 256]),
+    TensorSpec::named("has_mask_input", ElemType::F32, &[1]),
+    TensorSpec::named("orig_im_size", ElemType::F32, &[2]),
+];
+const DECODER_OUTPUTS: &[TensorSpec] = &[
+    TensorSpec::named("masks", ElemType::F32, &[-1, 4, -1, -1]),
+    TensorSpec::named("iou_predictions", ElemType::F32, &[-1, 4]),
+    TensorSpec::named("low_res_masks", ElemType::F32, &[-1, 4, 256, 256]),
+];
+
+/// A candidate mask that passed the score filters, kept bit-packed until NMS.
+struct Candidate {
+    bits: Vec<u64>,
+    /// xyxy, inclusive max.
+    bbox: [u32; 4],
+    area: u32,
+    iou: f32,
+    stability: f32,
+    point: [f64; 2],
+}
+
+/// SAM automatic mask generator over ONNX models (segment_anything 1.0 semantics, see the module
+/// docs). Implements [`MaskGenerator`] with name `"sam"`.
+pub struct SamAutomaticMaskGenerator {
+    encoder: Session,
+    decoder: Session,
+    encoder_path: PathBuf,
+    decoder_path: PathBuf,
+    params: SamParams,
+}
+
+impl SamAutomaticMaskGenerator {
+    /// Loads and checks the encoder (`pixel_values f32[1,3,1024,1024] → image_embeddings
+    /// f32[1,256,64,64]`) and the decoder (segment_anything `SamOnnxModel`,
+    /// `return_single_mask=False`: `masks f32[P,4,H,W]`, `iou_predictions f32[P,4]`,
+    /// `low_res_masks f32[P,4,256,256]`).
+    ///
+    /// `intra_threads` is ONNX Runtime's intra-op thread count (0 = its default).
+    ///
+    /// # Errors
+    /// [`Error::Model`] for a missing/unloadable model or the wrong signature (e.g. a CLIP model
+    /// passed as the encoder), [`Error::Invalid`] for bad `params`.
+    pub fn new(
+        encoder: &Path,
+        decoder: &Path,
+        ep: ExecutionProvider,
+        intra_threads: usize,
+        params: SamParams,
+    ) -> Result<Self> {
+        params.validate()?;
+        let enc = onnx::load_session(encoder, ep, intra_threads)?;
+        onnx::check_signature(
+            &enc,
+            encoder,
+            "SAM image encoder",
+            ENCODER_INPUTS,
+            ENCODER_OUTPUTS,
+            "pass a SAM image encoder exported with input pixel_values f32[1,3,1024,1024] \
+             (normalised, padded) and output image_embeddings f32[1,256,64,64]",
+        )?;
+        let dec = onnx::load_session(decoder, ep, intra_threads)?;
+        onnx::check_signature(
+            &dec,
+            decoder,
+            "SAM mask decoder",
+            DECODER_INPUTS,
+            DECODER_OUTPUTS,
+            "pass a SAM decoder exported with segment_anything's SamOnnxModel \
+             (return_single_mask=False, dynamic point axes), e.g. scripts/export_onnx_model.py",
+        )?;
+        Ok(SamAutomaticMaskGenerator {
+            encoder: enc,
+            decoder: dec,
+            encoder_path: encoder.to_path_buf(),
+            decoder_path: decoder.to_path_buf(),
+            params,
+        })
+    }
+
+    /// The parameters in use.
+    pub fn params(&self) -> &SamParams {
+        &self.params
+    }
+
+    /// Runs the encoder on SAM's input of `image`: `f32[1,256,64,64]` image embeddings.
+    fn encode(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
+        let (pixels, _) = sam_pixel_values(image)?;
+        let s = SAM_IMAGE_SIZE as usize;
+        let path = &self.encoder_path;
+        let input = TensorRef::from_array_view(([1usize, 3, s, s], pixels.as_slice()))
+            .map_err(|e| Error::model(path, format!("cannot build the encoder input: {e}")))?;
+        let outputs = self
+            .encoder
+            .run(ort::inputs!["pixel_values" => input])
+            .map_err(|e| Error::model(path, format!("encoder run failed: {e}")))?;
+        let (shape, data) = outputs["image_embeddings"]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| Error::model(path, format!("encoder output is not f32: {e}")))?;
+        if **shape != [1, 256, 64, 64] {
+            return Err(Error::model(
+                path,
+                format!(
+                    "encoder returned image_embeddings of shape {shape:?}, expected [1,256,64,64]"
+                ),
+            ));
+        }
+        Ok(data.to_vec())
+    }
+
+    /// Decodes one batch of prompts (points in the 1024 frame) and returns the candidates that pass
+    /// the predicted-IoU and stability filters, in SAM order (prompt-major, then channel 1..=3).
+    fn decode_batch(
+        &mut self,
+        embeddings: &[f32],
+        points: &[[f64; 2]],
+        transformed: &[[f32; 2]],
+        (h, w): (u32, u32),
+    ) -> Result<Vec<Candidate>> {
+        let n = points.len();
+        let mut coords = Vec::with_capacity(n * 4);
+        let mut labels = Vec::with_capacity(n * 2);
+        for p in transformed {
+            coords.extend_from_slice(&[p[0], p[1], 0.0, 0.0]);
+            labels.extend_from_slice(&[1.0f32, -1.0]);
+        }
+        let mask_input = vec![0f32; 256 * 256];
+        let has_mask = [0f32];
+        let orig = [h as f32, w as f32];
+        let path = self.decoder_path.clone();
+        let err = |e: ort::Error| Error::model(&path, format!("cannot build decoder inputs: {e}"));
+        let inputs = ort::inputs![
+            "image_embeddings" => TensorRef::from_array_view(([1usize, 256, 64, 64], embeddings)).map_err(err)?,
+            "point_coords" => TensorRef::from_array_view(([n, 2, 2], coords.as_slice())).map_err(err)?,
+            "point_labels" => TensorRef::from_array_view(([n, 2], labels.as_slice())).map_err(err)?,
+            "mask_input" => TensorRef::from_array_view(([1usize, 1, 256, 256], mask_input.as_slice())).map_err(err)?,
+            "has_mask_input" => TensorRef::from_array_view(([1usize], &has_mask[..])).map_err(err)?,
+            "orig_im_size" => TensorRef::from_array_view(([2usize], &orig[..])).map_err(err)?,
+        ];
+        let t = std::time::Instant::now();
+        let outputs = self
+            .decoder
+            .run(inputs)
+            .map_err(|e| Error::model(&path, format!("decoder run failed: {e}")))?;
+        tracing::trace!(
+            prompts = n,
+            run_s = t.elapsed().as_secs_f64(),
+            "SAM decoder batch"
+        );
+        let (mshape, masks) = outputs["masks"]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| Error::model(&path, format!("decoder masks are not f32: {e}")))?;
+        let (ishape, ious) = outputs["iou_predictions"]
+            .try_extract_tensor::<f32>()
+            .map_err(|e| {
+                Error::model(&path, format!("decoder iou_predictions are not f32: {e}"))
+            })?;
+        let (hu, wu) = (h as usize, w as usize);
+        if **mshape != [n as i64, 4, i64::from(h), i64::from(w)] {
+            return Err(Error::model(
+                &path,
+                format!(
+                    "decoder returned masks of shape {mshape:?} for {n} prompts and orig_im_size \
+                     [{h}, {w}]; expected [{n}, 4, {h}, {w}]: the decoder must upscale its masks to \
+                     orig_im_size (SamOnnxModel.mask_postprocessing)"
+                ),
+            ));
+        }
+        if **ishape != [n as i64, 4] {
+            return Err(Error::model(
+                &path,
+                format!("decoder returned iou_predictions of shape {ishape:?}, expected [{n}, 4]"),
+            ));
+        }
+        let plane = hu * wu;
+        let p = &self.params;
+        let (thr, off) = (p.mask_threshold, p.stability_score_offset);
+        let jobs: Vec<(usize, usize)> = (0..n)
+            .flat_map(|i| (1..4).map(move |c| (i, c)))
+            .filter(|&(i, c)| ious[i * 4 + c] > p.pred_iou_thresh)
+            .collect();
+        let cands: Vec<Option<Candidate>> = jobs
+            .par_iter()
+            .map(|&(i, c)| {
+                let logits = &masks[(i * 4 + c) * plane..(i * 4 + c + 1) * plane];
+                let (mut inter, mut union) = (0u32, 0u32);
+                for &v in logits {
+                    inter += u32::from(v > thr + off);
+                    union += u32::from(v > thr - off);
+                }
+                // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
+                let stability = inter as f32 / union as f32;
+                if stability.is_nan() || stability < p.stability_score_thresh {
+                    return None;
+                }
+                let mut bits = vec![0u64; plane.div_ceil(64)];
+                let (mut x0, mut y0, mut x1, mut y1, mut area) =
+                    (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
+                for (y, row) in logits.chunks_exact(wu).enumerate() {
+                    for (x, &v) in row.iter().enumerate() {
+                        if v > thr {
+                            let k = y * wu + x;
+                            bits[k / 64] |= 1 << (k % 64);
+                            x0 = x0.min(x as u32);
+                            x1 = x1.max(x as u32);
+                            y0 = y0.min(y as u32);
+                            y1 = y1.max(y as u32);
+                            area += 1;
+                        }
+                    }
+                }
+                // batched_mask_to_box gives [0,0,0,0] for an empty mask.
+                let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
+                Some(Candidate {
+                    bits,
+                    bbox,
+                    area,
+                    iou: ious[i * 4 + c],
+                    stability,
+                    point: points[i],
+                })
+            })
+            .collect();
+        Ok(cands.into_iter().flatten().collect())
+    }
+
+    /// All masks of `image`, in SAM AMG order (NMS order: descending predicted IoU).
+    ///
+    /// # Errors
+    /// [`Error::Invalid`] for an empty image, [`Error::Model`] when a model fails or returns
+    /// tensors of unexpected shapes.
+    pub fn generate_masks(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
+        let (w, h) = image.dimensions();
+        if w == 0 || h == 0 {
+            return Err(Error::Invalid("SAM cannot segment an empty image".into()));
+        }
+        let t0 = std::time::Instant::now();
+        let embeddings = self.encode(image)?;
+        let t_encode = t0.elapsed();
+        let (new_h, new_w) = sam_preprocess_shape(h, w, SAM_IMAGE_SIZE);
+        let (sx, sy) = (
+            f64::from(new_w) / f64::from(w),
+            f64::from(new_h) / f64::from(h),
+        );
+        let points: Vec<[f64; 2]> = build_point_grid(self.params.points_per_side)
+            .into_iter()
+            .map(|[x, y]| [x * f64::from(w), y * f64::from(h)])
+            .collect();
+        let transformed: Vec<[f32; 2]> = points
+            .iter()
+            .map(|p| [(p[0] * sx) as f32, (p[1] * sy) as f32])
+            .collect();
+        let mut cands = Vec::new();
+        let bs = self.params.points_per_batch;
+        let t1 = std::time::Instant::now();
+        for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
+            cands.extend(self.decode_batch(&embeddings, pts, tr, (h, w))?);
+        }
+        let t_decode = t1.elapsed();
+        let keep = nms(&cands, self.params.box_nms_thresh);
+        tracing::debug!(
+            encode_s = t_encode.as_secs_f64(),
+            decode_and_filter_s = t_decode.as_secs_f64(),
+            candidates = cands.len(),
+            kept = keep.len(),
+            "SAM automatic mask generation"
+        );
+        let plane = w as usize * h as usize;
+        let mut out = Vec::with_capacity(keep.len());
+        for i in keep {
+            let c = &cands[i];
+            let pixels: Vec<u8> = (0..plane)
+                .map(|k| ((c.bits[k / 64] >> (k % 64)) & 1) as u8)
+                .collect();
+            let [x0, y0, x1, y1] = c.bbox;
+            out.push(Mask {
+                width: w,
+                height: h,
+                pixels,
+                bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
+                area: c.area,
+                predicted_iou: c.iou,
+                stability_score: c.stability,
+                point: Some([c.point[0] as f32, c.point[1] as f32]),
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// torchvision `nms` (CPU kernel) over xyxy boxes with scores = predicted IoU: indices kept, in
+/// descending score order (stable sort).
+fn nms(cands: &[Candidate], iou_thresh: f32) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..cands.len()).collect();
+    order.sort_by(|&a, &b| cands[b].iou.total_cmp(&cands[a].iou));
+    let boxes: Vec<[f32; 4]> = cands.iter().map(|c| c.bbox.map(|v| v as f32)).collect();
+    let areas: Vec<f32> = boxes
+        .iter()
+        .map(|b| (b[2] - b[0]) * (b[3] - b[1]))
+        .collect();
+    let mut suppressed = vec![false; cands.len()];
+    let mut keep = Vec::new();
+    for (oi, &i) in order.iter().enumerate() {
+        if suppressed[i] {
+            continue;
+        }
+        keep.push(i);
+        let bi = boxes[i];
+        for &j in &order[oi + 1..] {
+            if suppressed[j] {
+                continue;
+            }
+            let bj = boxes[j];
+            let ww = (bi[2].min(bj[2]) - bi[0].max(bj[0])).max(0.0);
+            let hh = (bi[3].min(bj[3]) - bi[1].max(bj[1])).max(0.0);
+            let inter = ww * hh;
+            let ovr = inter / (areas[i] + areas[j] - inter);
+            if f64::from(ovr) > f64::from(iou_thresh) {
+                suppressed[j] = true;
+            }
+        }
+    }
+    keep
+}
+
+impl MaskGenerator for SamAutomaticMaskGenerator {
+    fn name(&self) -> &str {
+        "sam"
+    }
+
+    fn generate(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
+        self.generate_masks(image)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn point_grid_matches_segment_anything() {
+        let g = build_point_grid(16);
+        assert_eq!(g.len(), 256);
+        assert_eq!(g[0], [1.0 / 32.0, 1.0 / 32.0]);
+        assert_eq!(g[1][1], 1.0 / 32.0);
+        assert!((g[1][0] - 3.0 / 32.0).abs() < 1e-15);
+        assert_eq!(g[255], [31.0 / 32.0, 31.0 / 32.0]);
+        // The reference's first mask came from grid point (31/32 * 990, ...).
+        assert_eq!(g[15][0] * 990.0, 959.0625);
+    }
+
+    fn cand(bbox: [u32; 4], iou: f32) -> Candidate {
+        Candidate {
+            bits: vec![],
+            bbox,
+            area: 1,
+            iou,
+            stability: 1.0,
+            point: [0.0; 2],
+        }
+    }
+
+    #[test]
+    fn nms_suppresses_overlaps_above_threshold_in_score_order() {
+        let c = vec![
+            cand([0, 0, 10, 10], 0.8),
+            cand([0, 0, 10, 11], 0.9), // IoU 100/110 with the first: suppresses it
+            cand([20, 20, 30, 30], 0.85),
+            cand([0, 0, 10, 15], 0.95), // IoU with #1 = 110/150 = 0.733 > 0.7
+        ];
+        // #0 overlaps #3 at 100/150 = 0.667: kept at 0.7.
+        assert_eq!(nms(&c, 0.7), vec![3, 2, 0]);
+        // At 0.75 the 0.733 overlap survives, then #0 is suppressed by #1 (0.909).
+        assert_eq!(nms(&c, 0.75), vec![3, 1, 2]);
+    }
+
+    #[test]
+    fn params_are_validated() {
+        assert!(SamParams::default().validate().is_ok());
+        let bad = SamParams {
+            points_per_batch: 0,
+            ..SamParams::default()
+        };
+        assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
+        let bad = SamParams {
+            pred_iou_thresh: f32::NAN,
+            ..SamParams::default()
+        };
+        assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
+    }
+}

@@ -1,0 +1,311 @@
+//! CLIP crop embeddings and text embeddings against open_clip's own output
+//! (`shared/fixtures/clip/reference.json`, tiny-clip ONNX towers), plus a colour sanity check with
+//! the color-clip stand-in whose answer is known.
+//!
+//! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
+//! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde_json::Value;
+use slag_common::Error;
+use slag_common::onnx::ExecutionProvider;
+use slag_common::text::TextEncoder;
+use slag_encoder::clip::{ClipVisual, crop};
+use slag_encoder::masks::Mask;
+use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
+
+fn shared() -> PathBuf {
+    slag_common::paths::shared_dir()
+}
+
+fn ort_available() -> bool {
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        eprintln!(
+            "SKIPPED: ORT_DYLIB_PATH is not set (export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so)"
+        );
+        return false;
+    }
+    true
+}
+
+fn json(path: PathBuf) -> Value {
+    serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()
+}
+
+/// segment_anything's `rle_to_mask`: uncompressed COCO RLE, column-major, runs start with 0s.
+fn rle_to_mask(rle: &Value) -> Mask {
+    let size = rle["size"].as_array().unwrap();
+    let (h, w) = (
+        size[0].as_u64().unwrap() as usize,
+        size[1].as_u64().unwrap() as usize,
+    );
+    let mut px = vec![0u8; h * w];
+    let (mut idx, mut val) = (0usize, 0u8);
+    for c in rle["counts"].as_array().unwrap() {
+        let c = c.as_u64().unwrap() as usize;
+        for k in idx..idx + c {
+            let (x, y) = (k / h, k % h);
+            px[y * w + x] = val;
+        }
+        idx += c;
+        val ^= 1;
+    }
+    assert_eq!(idx, h * w, "RLE counts must cover the image");
+    Mask::from_pixels(w as u32, h as u32, px).expect("reference masks are non-empty")
+}
+
+fn cosine(a: &[f32], b: &[f64]) -> f64 {
+    let dot: f64 = a.iter().zip(b).map(|(&x, &y)| f64::from(x) * y).sum();
+    let na: f64 = a.iter().map(|&x| f64::from(x).powi(2)).sum::<f64>().sqrt();
+    let nb: f64 = b.iter().map(|y| y * y).sum::<f64>().sqrt();
+    dot / (na * nb)
+}
+
+fn f64s(v: &Value) -> Vec<f64> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
+}
+
+#[test]
+fn clip_crops_reproduce_open_clip_reference() {
+    if !ort_available() {
+        return;
+    }
+    let clip_dir = shared().join("fixtures/clip");
+    let reference = json(clip_dir.join("reference.json"));
+    let sam_ref = json(shared().join("fixtures/sam-amg/reference.json"));
+    let mut visual = ClipVisual::new(
+        &clip_dir.join("tiny-clip-visual.onnx"),
+        ExecutionProvider::Cpu,
+        4,
+    )
+    .unwrap();
+    let crops = reference["crops"].as_array().unwrap();
+    let want = reference["image_embeds"].as_array().unwrap();
+    let mut done = 0;
+    for image_ref in sam_ref["images"].as_array().unwrap() {
+        let name = image_ref["image"].as_str().unwrap();
+        let img = load_rgb(&shared().join("scenes/snowmiku/images").join(name)).unwrap();
+        let mut masks = Vec::new();
+        let mut rows = Vec::new();
+        for (i, c) in crops.iter().enumerate().filter(|(_, c)| c["image"] == name) {
+            let k = c["mask_index"].as_u64().unwrap() as usize;
+            let m = rle_to_mask(&image_ref["masks"][k]["rle"]);
+            let bbox: Vec<u64> = f64s(&c["bbox_xywh"]).iter().map(|&v| v as u64).collect();
+            assert_eq!(
+                m.bbox_xywh.map(u64::from).to_vec(),
+                bbox,
+                "{name} mask {k}: bbox"
+            );
+            masks.push(m);
+            rows.push(i);
+        }
+        if rows.first() == Some(&0) {
+            // Preprocessing of the first crop: channel 0, row 112 (reference rounded to 1e-5).
+            let mut px = vec![0f32; 3 * 224 * 224];
+            clip_pixel_values(&crop(&img, &masks[0]).unwrap(), &mut px).unwrap();
+            let row = f64s(&reference["pixel_values_first_crop_channel0_row112"]);
+            let diffs: Vec<f64> = row
+                .iter()
+                .enumerate()
+                .map(|(x, &v)| (f64::from(px[112 * 224 + x]) - v).abs())
+                .collect();
+            let max = diffs.iter().copied().fold(0.0, f64::max);
+            let mean = diffs.iter().sum::<f64>() / diffs.len() as f64;
+            eprintln!("pixel_values row 112: max |diff| {max:.5}, mean {mean:.6}");
+            assert!(max < 2e-5, "row 112 differs: max {max}, mean {mean}");
+        }
+        let t = Instant::now();
+        let embs = visual.embed_masks(&img, &masks).unwrap();
+        eprintln!(
+            "{name}: tiny-clip, {} crops (batch 4) in {:.3} s",
+            masks.len(),
+            t.elapsed().as_secs_f64()
+        );
+        for (e, &i) in embs.iter().zip(&rows) {
+            assert_eq!(e.len(), 512);
+            let n: f32 = e.iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((n - 1.0).abs() < 1e-5, "embedding must be L2-normalised");
+            let cos = cosine(e, &f64s(&want[i]));
+            eprintln!("crop {i}: cosine {cos:.6}");
+            assert!(cos >= 0.999, "crop {i}: cosine {cos}");
+            done += 1;
+        }
+    }
+    assert_eq!(done, crops.len());
+}
+
+#[test]
+fn clip_text_reproduces_open_clip_tokens_and_embeddings() {
+    if !ort_available() {
+        return;
+    }
+    let clip_dir = shared().join("fixtures/clip");
+    let reference = json(clip_dir.join("reference.json"));
+    let mut text = TextEncoder::new(
+        &clip_dir.join("tiny-clip-textual.onnx"),
+        &clip_dir.join("clip-tokenizer.json"),
+        ExecutionProvider::Cpu,
+    )
+    .unwrap();
+    let texts: Vec<&str> = reference["texts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_str().unwrap())
+        .collect();
+    let ids = text.tokenize(&texts).unwrap();
+    for (i, row) in ids.iter().enumerate() {
+        let want: Vec<i64> = reference["input_ids"][i]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_i64().unwrap())
+            .collect();
+        assert_eq!(row, &want, "token ids of {:?}", texts[i]);
+    }
+    let embs = text.encode(&texts).unwrap();
+    for (i, e) in embs.iter().enumerate() {
+        let cos = cosine(e, &f64s(&reference["text_embeds"][i]));
+        assert!(cos >= 0.999, "text {:?}: cosine {cos}", texts[i]);
+    }
+    // Cached prompts come back identical, mixed with new ones in order.
+    assert_eq!(text.cached(), texts.len());
+    let again = text.encode(&[texts[2], "a new prompt", texts[0]]).unwrap();
+    assert_eq!(again[0], embs[2]);
+    assert_eq!(again[2], embs[0]);
+    assert_eq!(text.cached(), texts.len() + 1);
+
+    // Truncation keeps <|endoftext|> last.
+    let long = "word ".repeat(100);
+    let ids = text.tokenize(&[long.as_str()]).unwrap();
+    assert_eq!(ids[0].len(), 77);
+    assert_eq!(ids[0][0], 49406);
+    assert_eq!(ids[0][76], 49407);
+    assert!(ids[0][1..76].iter().all(|&t| t != 0 && t != 49407));
+}
+
+#[test]
+fn color_clip_red_crop_is_closest_to_red() {
+    if !ort_available() {
+        return;
+    }
+    let clip_dir = shared().join("fixtures/clip");
+    let meta = json(clip_dir.join("color-clip.json"));
+    let classes: Vec<&str> = meta["classes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c.as_str().unwrap())
+        .collect();
+    let mut text = TextEncoder::new(
+        &clip_dir.join("color-clip-textual.onnx"),
+        &clip_dir.join("clip-tokenizer.json"),
+        ExecutionProvider::Cpu,
+    )
+    .unwrap();
+    let words = text.encode(&classes).unwrap();
+    let mut visual = ClipVisual::new(
+        &clip_dir.join("color-clip-visual.onnx"),
+        ExecutionProvider::Cpu,
+        8,
+    )
+    .unwrap();
+    // A pure red object in a grey image, plus pure green and blue ones.
+    let img = image::RgbImage::from_fn(64, 48, |x, _| match x / 16 {
+        0 => image::Rgb([255, 0, 0]),
+        1 => image::Rgb([0, 160, 40]),
+        2 => image::Rgb([20, 40, 210]),
+        _ => image::Rgb([128, 128, 128]),
+    });
+    let strip = |k: u32| {
+        Mask::from_pixels(
+            64,
+            48,
+            (0..64 * 48).map(|i| u8::from((i % 64) / 16 == k)).collect(),
+        )
+        .unwrap()
+    };
+    let masks = [strip(0), strip(1), strip(2)];
+    let t = Instant::now();
+    let embs = visual.embed_masks(&img, &masks).unwrap();
+    eprintln!("color-clip: 3 crops in {:.3} s", t.elapsed().as_secs_f64());
+    for (e, expected) in embs.iter().zip(["red", "green", "blue"]) {
+        let scores: Vec<f32> = words
+            .iter()
+            .map(|w| w.iter().zip(e).map(|(a, b)| a * b).sum())
+            .collect();
+        let best = (0..scores.len())
+            .max_by(|&a, &b| scores[a].total_cmp(&scores[b]))
+            .unwrap();
+        assert_eq!(classes[best], expected, "scores {scores:?}");
+    }
+}
+
+#[test]
+fn clip_rejects_wrong_models_and_bad_batches() {
+    if !ort_available() {
+        return;
+    }
+    let clip_dir = shared().join("fixtures/clip");
+    let err = ClipVisual::new(
+        &clip_dir.join("tiny-clip-textual.onnx"),
+        ExecutionProvider::Cpu,
+        4,
+    )
+    .err()
+    .expect("a text tower is not a visual tower");
+    assert!(
+        matches!(&err, Error::Model { message, .. } if message.contains("found inputs [input_ids: i64[?,77]]")),
+        "{err}"
+    );
+    let err = TextEncoder::new(
+        &clip_dir.join("tiny-clip-visual.onnx"),
+        &clip_dir.join("clip-tokenizer.json"),
+        ExecutionProvider::Cpu,
+    )
+    .err()
+    .expect("a visual tower is not a text tower");
+    assert!(
+        matches!(&err, Error::Model { message, .. } if message.contains("CLIP text tower")),
+        "{err}"
+    );
+    let err = TextEncoder::new(
+        &clip_dir.join("tiny-clip-textual.onnx"),
+        &clip_dir.join("color-clip.json"),
+        ExecutionProvider::Cpu,
+    )
+    .err()
+    .expect("not a tokenizer");
+    assert!(matches!(err, Error::Format { .. }), "{err}");
+    assert!(matches!(
+        ClipVisual::new(
+            &clip_dir.join("tiny-clip-visual.onnx"),
+            ExecutionProvider::Cpu,
+            0
+        ),
+        Err(Error::Invalid(_))
+    ));
+
+    // CUDA on a runtime without it: a typed error, not a silent CPU fallback.
+    if !slag_common::onnx::cuda_available().unwrap() {
+        let err = ClipVisual::new(
+            &clip_dir.join("tiny-clip-visual.onnx"),
+            ExecutionProvider::Cuda,
+            4,
+        )
+        .err()
+        .expect("CUDA is not available in this ONNX Runtime");
+        assert!(
+            matches!(&err, Error::Model { message, .. } if message.contains("CUDA")),
+            "{err}"
+        );
+    }
+}

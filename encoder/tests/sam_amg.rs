@@ -1,0 +1,306 @@
+//! SAM automatic mask generation against segment_anything 1.0's own output
+//! (`shared/fixtures/sam-amg/reference.json`, color-sam ONNX models, two snowmiku images), and an
+//! end-to-end run of the real SAM architecture (`sam-tiny-random-*`).
+//!
+//! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
+//! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde_json::Value;
+use slag_common::Error;
+use slag_common::onnx::ExecutionProvider;
+use slag_encoder::masks::sam::{SamAutomaticMaskGenerator, SamParams};
+use slag_encoder::masks::{Mask, MaskGenerator};
+use slag_encoder::preprocess::sam_pixel_values;
+
+fn shared() -> PathBuf {
+    slag_common::paths::shared_dir()
+}
+
+fn ort_available() -> bool {
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        eprintln!(
+            "SKIPPED: ORT_DYLIB_PATH is not set (export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so)"
+        );
+        return false;
+    }
+    true
+}
+
+/// segment_anything's `rle_to_mask`: uncompressed COCO RLE, column-major, runs start with 0s.
+fn rle_to_pixels(rle: &Value) -> (u32, u32, Vec<u8>) {
+    let size = rle["size"].as_array().unwrap();
+    let (h, w) = (
+        size[0].as_u64().unwrap() as usize,
+        size[1].as_u64().unwrap() as usize,
+    );
+    let mut col_major = vec![0u8; h * w];
+    let (mut idx, mut val) = (0usize, 0u8);
+    for c in rle["counts"].as_array().unwrap() {
+        let c = c.as_u64().unwrap() as usize;
+        col_major[idx..idx + c].fill(val);
+        idx += c;
+        val ^= 1;
+    }
+    assert_eq!(idx, h * w, "RLE counts must cover the image");
+    let mut px = vec![0u8; h * w];
+    for x in 0..w {
+        for y in 0..h {
+            px[y * w + x] = col_major[x * h + y];
+        }
+    }
+    (w as u32, h as u32, px)
+}
+
+fn iou(a: &[u8], b: &[u8]) -> f64 {
+    let (mut i, mut u) = (0u64, 0u64);
+    for (&x, &y) in a.iter().zip(b) {
+        i += u64::from(x & y);
+        u += u64::from(x | y);
+    }
+    i as f64 / u.max(1) as f64
+}
+
+fn load_rgb(path: &Path) -> image::RgbImage {
+    slag_encoder::preprocess::load_rgb(path).unwrap()
+}
+
+/// Pixel-derived consistency of one generated mask.
+fn assert_mask_valid(m: &Mask, w: u32, h: u32) {
+    assert_eq!((m.width, m.height), (w, h));
+    assert_eq!(m.pixels.len(), (w * h) as usize);
+    let from = Mask::from_pixels(w, h, m.pixels.clone()).expect("SAM masks are never empty");
+    assert_eq!(from.bbox_xywh, m.bbox_xywh, "bbox must match the pixels");
+    assert_eq!(from.area, m.area, "area must match the pixels");
+    assert!(m.predicted_iou.is_finite() && m.stability_score.is_finite());
+}
+
+#[test]
+fn sam_amg_reproduces_segment_anything_reference() {
+    if !ort_available() {
+        return;
+    }
+    let dir = shared().join("fixtures/sam-amg");
+    let reference: Value =
+        serde_json::from_slice(&std::fs::read(dir.join("reference.json")).unwrap()).unwrap();
+    let p = &reference["params"];
+    let params = SamParams::default();
+    assert_eq!(
+        p["points_per_side"].as_u64(),
+        Some(u64::from(params.points_per_side))
+    );
+    assert_eq!(
+        p["points_per_batch"].as_u64(),
+        Some(params.points_per_batch as u64)
+    );
+    for (key, v) in [
+        ("pred_iou_thresh", params.pred_iou_thresh),
+        ("stability_score_thresh", params.stability_score_thresh),
+        ("stability_score_offset", params.stability_score_offset),
+        ("box_nms_thresh", params.box_nms_thresh),
+    ] {
+        assert!(
+            (p[key].as_f64().unwrap() - f64::from(v)).abs() < 1e-6,
+            "default {key}"
+        );
+    }
+    let mut sam = SamAutomaticMaskGenerator::new(
+        &dir.join("color-sam-encoder.onnx"),
+        &dir.join("color-sam-decoder.onnx"),
+        ExecutionProvider::Cpu,
+        0,
+        params,
+    )
+    .unwrap();
+    assert_eq!(sam.name(), "sam");
+    for r in reference["images"].as_array().unwrap() {
+        let name = r["image"].as_str().unwrap();
+        let img = load_rgb(&shared().join("scenes/snowmiku/images").join(name));
+        assert_eq!(img.width() as u64, r["width"].as_u64().unwrap());
+        assert_eq!(img.height() as u64, r["height"].as_u64().unwrap());
+
+        // Encoder input (PIL bilinear ResizeLongestSide + normalisation + padding).
+        let (pixels, _) = sam_pixel_values(&img).unwrap();
+        let sum: f64 = pixels.iter().map(|&v| f64::from(v)).sum();
+        let want = r["encoder_input_sum"].as_f64().unwrap();
+        eprintln!("{name}: encoder input sum {sum:.4} (reference {want:.4})");
+        assert!(
+            (sum - want).abs() < 1e-3,
+            "{name}: encoder input sum {sum} vs {want}"
+        );
+
+        let t = Instant::now();
+        let masks = sam.generate(&img).unwrap();
+        eprintln!(
+            "{name}: {} masks (reference {}), color-sam AMG {:.2} s",
+            masks.len(),
+            r["masks"].as_array().unwrap().len(),
+            t.elapsed().as_secs_f64()
+        );
+        let refs = r["masks"].as_array().unwrap();
+        assert!(
+            (masks.len() as i64 - refs.len() as i64).abs() <= 2,
+            "{name}: {} masks vs {} in the reference",
+            masks.len(),
+            refs.len()
+        );
+        for m in &masks {
+            assert_mask_valid(m, img.width(), img.height());
+        }
+        // Output order: descending predicted IoU (NMS order), as SAM's.
+        assert!(
+            masks
+                .windows(2)
+                .all(|w| w[0].predicted_iou >= w[1].predicted_iou)
+        );
+
+        for (k, rm) in refs.iter().enumerate() {
+            let (_, _, rpx) = rle_to_pixels(&rm["rle"]);
+            let rb: Vec<i64> = rm["bbox_xywh"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_i64().unwrap())
+                .collect();
+            // Candidates: boxes within 2 px in every coordinate, best IoU among them.
+            let best = masks
+                .iter()
+                .filter(|m| {
+                    m.bbox_xywh
+                        .iter()
+                        .zip(&rb)
+                        .all(|(&a, &b)| (i64::from(a) - b).abs() <= 2)
+                })
+                .map(|m| (iou(&m.pixels, &rpx), m))
+                .max_by(|a, b| a.0.total_cmp(&b.0));
+            let Some((best_iou, m)) = best else {
+                panic!("{name}: reference mask {k} (bbox {rb:?}) has no mask with a similar box");
+            };
+            assert!(
+                best_iou >= 0.98,
+                "{name}: reference mask {k}: best IoU {best_iou}"
+            );
+            for (a, b) in m.bbox_xywh.iter().zip(&rb) {
+                assert!(
+                    (i64::from(*a) - b).abs() <= 1,
+                    "{name} mask {k}: bbox {:?} vs {rb:?}",
+                    m.bbox_xywh
+                );
+            }
+            let (pi, ss) = (
+                rm["predicted_iou"].as_f64().unwrap(),
+                rm["stability_score"].as_f64().unwrap(),
+            );
+            assert!(
+                (f64::from(m.predicted_iou) - pi).abs() <= 1e-3,
+                "{name} mask {k}: iou {} vs {pi}",
+                m.predicted_iou
+            );
+            assert!(
+                (f64::from(m.stability_score) - ss).abs() <= 1e-3,
+                "{name} mask {k}: stability {} vs {ss}",
+                m.stability_score
+            );
+            let rp = &rm["point_coords"][0];
+            let point = m.point.unwrap();
+            assert!((f64::from(point[0]) - rp[0].as_f64().unwrap()).abs() < 1e-3);
+            assert!((f64::from(point[1]) - rp[1].as_f64().unwrap()).abs() < 1e-3);
+        }
+    }
+}
+
+#[test]
+fn sam_tiny_random_runs_end_to_end() {
+    if !ort_available() {
+        return;
+    }
+    let dir = shared().join("fixtures/sam-amg");
+    let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_003919.jpg"));
+    // Thresholds at 0 keep every non-empty candidate, so the real decoder's full output path
+    // (all three channels, several batches, NMS) is exercised. A 4x4 grid in batches of 6 (the
+    // last one partial) keeps the CPU run short; the full 16x16 timing is in the report.
+    let params = SamParams {
+        points_per_side: 4,
+        points_per_batch: 6,
+        pred_iou_thresh: 0.0,
+        stability_score_thresh: 0.0,
+        ..SamParams::default()
+    };
+    let mut sam = SamAutomaticMaskGenerator::new(
+        &dir.join("sam-tiny-random-encoder.onnx"),
+        &dir.join("sam-tiny-random-decoder.onnx"),
+        ExecutionProvider::Cpu,
+        0,
+        params,
+    )
+    .unwrap();
+    let t = Instant::now();
+    let masks = sam.generate(&img).unwrap();
+    eprintln!(
+        "sam-tiny-random AMG: {} masks in {:.2} s",
+        masks.len(),
+        t.elapsed().as_secs_f64()
+    );
+    for m in &masks {
+        assert_mask_valid(m, img.width(), img.height());
+    }
+}
+
+#[test]
+fn sam_rejects_models_of_the_wrong_role() {
+    if !ort_available() {
+        return;
+    }
+    let sam_dir = shared().join("fixtures/sam-amg");
+    let clip = shared().join("fixtures/clip/tiny-clip-visual.onnx");
+    let err = SamAutomaticMaskGenerator::new(
+        &clip,
+        &sam_dir.join("color-sam-decoder.onnx"),
+        ExecutionProvider::Cpu,
+        0,
+        SamParams::default(),
+    )
+    .err()
+    .expect("a CLIP model is not a SAM encoder");
+    let Error::Model { path, message } = &err else {
+        panic!("expected Error::Model, got {err}")
+    };
+    assert_eq!(path, &clip);
+    assert!(
+        message.contains("expected inputs [pixel_values: f32[1,3,1024,1024]]"),
+        "{message}"
+    );
+    assert!(
+        message.contains("found inputs [pixel_values: f32[?,3,224,224]]"),
+        "{message}"
+    );
+    // Encoder passed as decoder.
+    let err = SamAutomaticMaskGenerator::new(
+        &sam_dir.join("color-sam-encoder.onnx"),
+        &sam_dir.join("color-sam-encoder.onnx"),
+        ExecutionProvider::Cpu,
+        0,
+        SamParams::default(),
+    )
+    .err()
+    .expect("an encoder is not a decoder");
+    assert!(
+        matches!(&err, Error::Model { message, .. } if message.contains("SAM mask decoder")),
+        "{err}"
+    );
+    // Missing file.
+    let err = SamAutomaticMaskGenerator::new(
+        &sam_dir.join("nope.onnx"),
+        &sam_dir.join("color-sam-decoder.onnx"),
+        ExecutionProvider::Cpu,
+        0,
+        SamParams::default(),
+    )
+    .err()
+    .expect("missing model");
+    assert!(matches!(err, Error::Io { .. }), "{err}");
+}
