@@ -230,12 +230,12 @@ impl GpuRasterizer {
         let max_bind = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
-        let per_g = 32u64.max(16); // largest per-Gaussian buffer: splats, 32 B
+        let per_g = 32u64; // largest per-Gaussian buffer: splats, 32 B
         if n as u64 * per_g > max_bind {
             return Err(Error::Gpu(format!(
                 "{n} Gaussians need {} MiB buffers but the device allows {} MiB per binding; \
                  use a GPU with larger limits or a smaller scene",
-                n as u64 * per_g >> 20,
+                (n as u64 * per_g) >> 20,
                 max_bind >> 20
             )));
         }

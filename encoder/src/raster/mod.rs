@@ -18,6 +18,8 @@ pub mod cpu;
 pub mod gpu;
 pub mod project;
 #[cfg(test)]
+mod testdata;
+#[cfg(test)]
 mod tests;
 
 pub use colour::{psnr, render_colour};

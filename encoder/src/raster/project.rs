@@ -153,7 +153,7 @@ pub fn project_gaussian(
     let det = minors.length_squared() + LOW_PASS * (a0 + c0) + LOW_PASS * LOW_PASS;
     let a = a0 + LOW_PASS;
     let c = c0 + LOW_PASS;
-    if !(det > 0.0) {
+    if det.is_nan() || det <= 0.0 {
         return None;
     }
     let inv = 1.0 / det;
