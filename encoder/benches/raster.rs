@@ -57,6 +57,7 @@ fn main() {
             let t = Instant::now();
             let w = gpu.rasterize(&k, pose).expect("gpu");
             gpu_ms += ms(t);
+            println!("  view {i}: GPU phases {:?}", gpu.last_timings());
             entries += w.len();
             contrib += w.mean_contributors();
             if run_cpu {

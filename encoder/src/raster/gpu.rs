@@ -67,6 +67,20 @@ struct Params {
     _pad: u32,
 }
 
+/// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
+/// including submission and readback waits).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PhaseTimings {
+    /// Projection kernel + tile-rect readback.
+    pub project_ms: f64,
+    /// Host binning and depth sort.
+    pub bin_sort_ms: f64,
+    /// Count pass, prefix sum, offsets readback.
+    pub count_scan_ms: f64,
+    /// Write pass(es) + ids/weights readback.
+    pub write_ms: f64,
+}
+
 struct Pipelines {
     project: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
@@ -95,6 +109,7 @@ pub struct GpuRasterizer {
     pipelines: Pipelines,
     noise_seed: Option<u64>,
     band_limit: Option<u64>,
+    timings: PhaseTimings,
 }
 
 impl std::fmt::Debug for GpuRasterizer {
@@ -294,6 +309,7 @@ impl GpuRasterizer {
             pipelines,
             noise_seed: None,
             band_limit: None,
+            timings: PhaseTimings::default(),
         })
     }
 
@@ -309,6 +325,11 @@ impl GpuRasterizer {
     /// same. For tests of the banding, or to bound peak GPU memory.
     pub fn set_band_limit(&mut self, bytes: Option<u64>) {
         self.band_limit = bytes;
+    }
+
+    /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
+    pub fn last_timings(&self) -> PhaseTimings {
+        self.timings
     }
 
     /// The device limits in force (the adapter's own limits).
@@ -470,6 +491,13 @@ impl GpuRasterizer {
         self.noise(&self.isect, seed_salt + 1);
 
         // 1. Projection.
+        let mut clock = std::time::Instant::now();
+        let lap = |c: &mut std::time::Instant| {
+            let ms = c.elapsed().as_secs_f64() * 1e3;
+            *c = std::time::Instant::now();
+            ms
+        };
+        let mut timings = PhaseTimings::default();
         let groups = self.n.div_ceil(256);
         let mut enc = self.device.create_command_encoder(&Default::default());
         if groups > 0 {
@@ -493,9 +521,11 @@ impl GpuRasterizer {
         let read = self.submit_and_read(enc, &[(&self.isect, 0, isect_bytes)])?;
         let isect: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0]);
 
+        timings.project_ms = lap(&mut clock);
         // 2. CPU binning + sort (per Gaussian work only).
         let (ranges, sorted_ids) = bin_and_sort(&isect, &self.means, w2c, tiles_x, n_tiles)?;
         self.check_size("tile intersections", sorted_ids.len() as u64 * 4, k)?;
+        timings.bin_sort_ms = lap(&mut clock);
         let ranges_buf = storage_init(&self.device, "tile_ranges", bytemuck::cast_slice(&ranges));
         let ids_buf = storage_init(
             &self.device,
@@ -561,6 +591,7 @@ impl GpuRasterizer {
             )));
         }
         let total = offsets_host[n_pix as usize] as usize;
+        timings.count_scan_ms = lap(&mut clock);
 
         // 3b. Write pass, in bands of whole tile rows (a contiguous range of CSR entries) so no
         // output binding exceeds the device limit.
@@ -616,6 +647,9 @@ impl GpuRasterizer {
             weights.extend_from_slice(&bytemuck::pod_collect_to_vec::<u8, f32>(&read[1]));
             r0 = r1;
         }
+        timings.write_ms = lap(&mut clock);
+        self.timings = timings;
+        tracing::debug!(?timings, entries = total, "gpu weight raster");
         Ok(PixelWeights {
             width: k.width,
             height: k.height,

@@ -24,7 +24,7 @@ mod tests;
 
 pub use colour::{psnr, render_colour};
 pub use cpu::CpuRasterizer;
-pub use gpu::GpuRasterizer;
+pub use gpu::{GpuRasterizer, PhaseTimings};
 
 use slag_common::camera::Intrinsics;
 use slag_common::{Error, Result};
