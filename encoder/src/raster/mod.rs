@@ -5,6 +5,29 @@
 //! Conventions follow the INRIA rasterizer / gsplat: 0.3 px low-pass added to the 2D covariance,
 //! `α = min(0.99, o · exp(-½ dᵀ Σ⁻¹ d))`, contributions with `α < 1/255` skipped, a pixel stops
 //! once `T < 1e-4`.
+//!
+//! | module | role |
+//! |---|---|
+//! | [`project`] | the EWA projection math (the one written-down definition; the WGSL mirrors it) |
+//! | [`cpu`] | [`CpuRasterizer`]: slow, simple f64 reference |
+//! | [`gpu`] | [`GpuRasterizer`]: wgpu compute kernels (`weights.wgsl`) |
+//! | [`colour`] | SH colour render composited with the same weights, and PSNR, for validation |
+
+pub mod colour;
+pub mod cpu;
+pub mod gpu;
+pub mod project;
+#[cfg(test)]
+mod testdata;
+#[cfg(test)]
+mod tests;
+
+pub use colour::{psnr, render_colour};
+pub use cpu::CpuRasterizer;
+pub use gpu::{GpuRasterizer, PhaseTimings};
+
+use slag_common::camera::Intrinsics;
+use slag_common::{Error, Result};
 
 /// Per-pixel contributor lists of one rendered view, in compressed-sparse-row form.
 ///
@@ -34,15 +57,74 @@ impl PixelWeights {
     }
 }
 
-/// A weight rasterizer bound to one scene's Gaussians (uploaded once), rendering any view.
+impl PixelWeights {
+    /// Total number of `(id, weight)` entries over all pixels.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    /// True when no pixel has any contributor.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+    /// Mean number of contributors per pixel (0 for an empty raster).
+    pub fn mean_contributors(&self) -> f64 {
+        let n = self.width as f64 * self.height as f64;
+        if n == 0.0 {
+            0.0
+        } else {
+            self.ids.len() as f64 / n
+        }
+    }
+}
+
+/// A per-pixel blend-weight rasterizer (the 3DGS forward pass without colours).
+///
+/// Implementations must agree: same contributor ids per pixel in the same front-to-back order and
+/// weights within f32 round-off (the GPU path is tested against [`CpuRasterizer`]).
 pub trait WeightRasterizer {
-    /// Short name for reports (`"gpu:<adapter>"`, `"cpu-reference"`).
-    fn name(&self) -> &str;
-    /// Per-pixel contributors for a camera with `intrinsics` (already at raster resolution) and
-    /// pose `world_to_camera`.
+    /// Renders the per-pixel weights of one view. `intrinsics` give the raster size (already
+    /// scaled for `--raster-scale`, see [`raster_intrinsics`]); `world_to_camera` is the COLMAP pose.
+    ///
+    /// Errors: an empty or absurd raster size ([`Error::Invalid`]); GPU failures or output larger
+    /// than the device allows ([`Error::Gpu`], with the hint to lower `--raster-scale`).
     fn rasterize(
         &mut self,
-        intrinsics: &slag_common::camera::Intrinsics,
+        intrinsics: &Intrinsics,
         world_to_camera: &slag_common::camera::WorldToCamera,
-    ) -> slag_common::Result<PixelWeights>;
+    ) -> Result<PixelWeights>;
+    /// A short name for logs and reports (e.g. the GPU adapter).
+    fn name(&self) -> &str;
+}
+
+/// The intrinsics of the weight raster for a photo's full-resolution `intrinsics` at `scale`
+/// (`--raster-scale`, in (0, 4]): [`Intrinsics::scaled`], after checking the scale.
+///
+/// Errors: [`Error::Invalid`] for a non-finite or out-of-range scale.
+pub fn raster_intrinsics(intrinsics: &Intrinsics, scale: f64) -> Result<Intrinsics> {
+    if !(scale.is_finite() && scale > 0.0 && scale <= 4.0) {
+        return Err(Error::Invalid(format!(
+            "--raster-scale {scale} is out of range; use a value in (0, 4], e.g. 0.5"
+        )));
+    }
+    let k = intrinsics.scaled(scale);
+    validate_raster(&k)?;
+    Ok(k)
+}
+
+/// Checks a raster's intrinsics: non-zero size, at most 2^28 pixels, finite positive focal lengths.
+pub(crate) fn validate_raster(k: &Intrinsics) -> Result<()> {
+    let n = k.width as u64 * k.height as u64;
+    if n == 0 || n > (1 << 28) {
+        return Err(Error::Invalid(format!(
+            "raster of {}x{} pixels is empty or too large; use a --raster-scale giving at most 2^28 pixels",
+            k.width, k.height
+        )));
+    }
+    let ok = |v: f64| v.is_finite();
+    if !(ok(k.fx) && ok(k.fy) && k.fx > 0.0 && k.fy > 0.0 && ok(k.cx) && ok(k.cy)) {
+        return Err(Error::Invalid(format!(
+            "camera intrinsics must be finite with positive focal lengths, got {k:?}; check the camera file"
+        )));
+    }
+    Ok(())
 }

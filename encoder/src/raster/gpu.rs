@@ -1,0 +1,755 @@
+//! The GPU weight rasterizer: wgpu compute kernels in `weights.wgsl` (Vulkan backend).
+//!
+//! Per view ([`GpuRasterizer::rasterize`]):
+//! 1. `project` kernel, one thread per Gaussian: the EWA projection of [`super::project`] in f32 →
+//!    per-Gaussian splat (mean2d, conic, opacity) kept on the GPU, and an 8-byte tile rect read
+//!    back.
+//! 2. Tile binning and depth sort **on the CPU** (per Gaussian, never per pixel): every
+//!    (tile, Gaussian) intersection gets the key `(tile, depth, id)`, sorted with rayon, then
+//!    per-tile ranges. The depth is computed on the host in f64 by the same function as the CPU
+//!    reference ([`camera_point`]), so the order is bit-identical to the reference's, near-ties
+//!    included; the id makes keys unique, so the order is deterministic. Moving this to the GPU (a
+//!    radix sort of the keys, as gsplat does) is the next step for very large scenes; there the
+//!    depth would become f32 and exact-tie order would still be fixed by the id.
+//! 3. `blend` kernel, one 16×16 workgroup per tile, splats streamed through shared memory in
+//!    batches of 256 (gsplat `rasterize_to_pixels`), front to back, stopping a pixel at `T < 1e-4`
+//!    and the whole tile once every pixel has stopped. Run twice: a count pass (contributors per
+//!    pixel) and, after an exclusive prefix sum on the GPU (`scan_*` kernels), a write pass that
+//!    fills each pixel's slots. Both passes run the same compiled kernel (a uniform selects the
+//!    mode), so their decisions agree exactly; the write pass is also bounded to its pixel's slots.
+//!    The write pass runs in bands of whole tile rows (each band a contiguous CSR range) so that
+//!    no output binding exceeds the device limit (lavapipe: 128 MiB).
+//! 4. Read back the CSR offsets, ids and weights (the only per-pixel data touching the CPU).
+//!
+//! Output buffers are sized from the counts and checked against the device's
+//! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
+//! offsets array) exceeds them is an [`Error::Gpu`] asking for a lower `--raster-scale`.
+
+use std::sync::mpsc;
+
+use rayon::prelude::*;
+use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
+use wgpu::util::DeviceExt;
+
+use super::project::{camera_point, jacobian_limits, tile_grid};
+use super::{PixelWeights, WeightRasterizer, validate_raster};
+
+const SHADER: &str = include_str!("weights.wgsl");
+/// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
+const GROUPS_X: u32 = 32768;
+/// Elements per scan block (256 invocations × 4).
+const SCAN_BLOCK: u32 = 1024;
+
+/// Environment variable: substring (case-insensitive) of the adapter name to use.
+pub const ADAPTER_ENV: &str = "SLAG_WGPU_ADAPTER";
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rot0: [f32; 4],
+    rot1: [f32; 4],
+    rot2: [f32; 4],
+    focal: [f32; 4],
+    lims: [f32; 4],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n_gaussians: u32,
+    n_pixels: u32,
+    groups_x: u32,
+    mode: u32,
+    n_blocks: u32,
+    tile_y0: u32,
+    out_base: u32,
+    _pad: u32,
+}
+
+/// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
+/// including submission and readback waits).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PhaseTimings {
+    /// Projection kernel + tile-rect readback.
+    pub project_ms: f64,
+    /// Host binning and depth sort.
+    pub bin_sort_ms: f64,
+    /// Count pass, prefix sum, offsets readback.
+    pub count_scan_ms: f64,
+    /// Write pass(es) + ids/weights readback.
+    pub write_ms: f64,
+}
+
+struct Pipelines {
+    project: wgpu::ComputePipeline,
+    blend: wgpu::ComputePipeline,
+    scan_local: wgpu::ComputePipeline,
+    scan_blocks: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+}
+
+/// 3DGS weight rasterizer on a wgpu device (see the module docs for the kernel sequence).
+///
+/// The Gaussians' means, scales, rotations and opacities are uploaded once in [`Self::new`];
+/// each [`WeightRasterizer::rasterize`] call renders one view. Output is deterministic.
+pub struct GpuRasterizer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    name: String,
+    limits: wgpu::Limits,
+    n: u32,
+    /// Means kept on the host for the f64 sort depth ([`camera_point`]).
+    means: Vec<[f32; 3]>,
+    means_opac: wgpu::Buffer,
+    scales: wgpu::Buffer,
+    quats: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    isect: wgpu::Buffer,
+    pipelines: Pipelines,
+    noise_seed: Option<u64>,
+    band_limit: Option<u64>,
+    timings: PhaseTimings,
+}
+
+impl std::fmt::Debug for GpuRasterizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRasterizer")
+            .field("adapter", &self.name)
+            .field("n", &self.n)
+            .finish()
+    }
+}
+
+fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Gpu(format!("{what}: {e}"))
+}
+
+/// Picks the adapter: `$SLAG_WGPU_ADAPTER` substring if set, else the first discrete, then
+/// integrated, then virtual, then CPU (Mesa lavapipe) Vulkan adapter.
+fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter> {
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
+    let names: Vec<String> = adapters
+        .iter()
+        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
+        .collect();
+    if adapters.is_empty() {
+        return Err(Error::Gpu(
+            "no Vulkan adapter found; install a Vulkan driver (on Debian/Ubuntu without a GPU: \
+             `apt-get install mesa-vulkan-drivers` for the lavapipe CPU driver)"
+                .into(),
+        ));
+    }
+    if let Ok(want) = std::env::var(ADAPTER_ENV) {
+        let want_l = want.to_lowercase();
+        return adapters
+            .into_iter()
+            .find(|a| a.get_info().name.to_lowercase().contains(&want_l))
+            .ok_or_else(|| {
+                Error::Gpu(format!(
+                    "{ADAPTER_ENV}={want:?} matches no Vulkan adapter; available: {}",
+                    names.join(", ")
+                ))
+            });
+    }
+    use wgpu::DeviceType as D;
+    let rank = |t: D| match t {
+        D::DiscreteGpu => 0,
+        D::IntegratedGpu => 1,
+        D::VirtualGpu => 2,
+        D::Other => 3,
+        D::Cpu => 4,
+    };
+    adapters
+        .into_iter()
+        .min_by_key(|a| rank(a.get_info().device_type))
+        .ok_or_else(|| Error::Gpu("no Vulkan adapter".into()))
+}
+
+fn storage_init(device: &wgpu::Device, label: &str, data: &[u8]) -> wgpu::Buffer {
+    // Bindings must be non-empty and hold one array element: pad empty data to 64 bytes.
+    let pad = [0u8; 64];
+    let contents = if data.is_empty() { &pad[..] } else { data };
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+fn storage(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size.max(64).next_multiple_of(4),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// Deterministic pseudo-random bytes (splitmix64), for the noise fill.
+fn noise_bytes(seed: u64, len: usize) -> Vec<u8> {
+    let mut s = seed;
+    let mut out = Vec::with_capacity(len + 8);
+    while out.len() < len {
+        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = s;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        out.extend_from_slice(&z.to_le_bytes());
+    }
+    out.truncate(len);
+    out
+}
+
+impl GpuRasterizer {
+    /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
+    /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
+    /// scratch).
+    ///
+    /// Errors: [`Error::Gpu`] when no Vulkan adapter exists (install `mesa-vulkan-drivers`), the
+    /// device cannot be created, or the scene exceeds the device's buffer limits;
+    /// [`Error::Invalid`] for more than 2^32 − 1 Gaussians or array lengths that disagree.
+    pub fn new(gaussians: &Gaussians) -> Result<Self> {
+        let n = gaussians.len();
+        if gaussians.scales.len() != n
+            || gaussians.rotations.len() != n
+            || gaussians.opacities.len() != n
+        {
+            return Err(Error::Invalid(
+                "Gaussians arrays (means/scales/rotations/opacities) have different lengths".into(),
+            ));
+        }
+        let n32 = u32::try_from(n)
+            .map_err(|_| Error::Invalid(format!("{n} Gaussians exceed the 2^32 - 1 supported")))?;
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN;
+        let instance = wgpu::Instance::new(desc);
+        let adapter = pick_adapter(&instance)?;
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("slag-raster"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| gpu_err(&format!("cannot open device {}", info.name), e))?;
+        let name = format!("wgpu-vulkan {} ({:?})", info.name, info.device_type);
+        tracing::info!(adapter = %name, gaussians = n, "weight rasterizer device");
+
+        let max_bind = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let per_g = 32u64; // largest per-Gaussian buffer: splats, 32 B
+        if n as u64 * per_g > max_bind {
+            return Err(Error::Gpu(format!(
+                "{n} Gaussians need {} MiB buffers but the device allows {} MiB per binding; \
+                 use a GPU with larger limits or a smaller scene",
+                (n as u64 * per_g) >> 20,
+                max_bind >> 20
+            )));
+        }
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let mut mo = Vec::with_capacity(n * 4);
+        let mut sc = Vec::with_capacity(n * 4);
+        let mut qu = Vec::with_capacity(n * 4);
+        for i in 0..n {
+            let m = gaussians.means[i];
+            let s = gaussians.scales[i];
+            mo.extend_from_slice(&[m[0], m[1], m[2], gaussians.opacities[i]]);
+            sc.extend_from_slice(&[s[0], s[1], s[2], 0.0]);
+            qu.extend_from_slice(&gaussians.rotations[i]);
+        }
+        let means_opac = storage_init(&device, "means_opac", bytemuck::cast_slice(&mo));
+        let scales = storage_init(&device, "scales", bytemuck::cast_slice(&sc));
+        let quats = storage_init(&device, "quats", bytemuck::cast_slice(&qu));
+        let splats = storage(&device, "splats", n as u64 * 32);
+        let isect = storage(&device, "isect", n as u64 * 8);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("weights.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let pipe = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let pipelines = Pipelines {
+            project: pipe("project"),
+            blend: pipe("blend"),
+            scan_local: pipe("scan_local"),
+            scan_blocks: pipe("scan_blocks"),
+            scan_add: pipe("scan_add"),
+        };
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_err("creating the rasterizer kernels/buffers failed", e));
+        }
+        Ok(GpuRasterizer {
+            device,
+            queue,
+            name,
+            limits,
+            n: n32,
+            means: gaussians.means.clone(),
+            means_opac,
+            scales,
+            quats,
+            splats,
+            isect,
+            pipelines,
+            noise_seed: None,
+            band_limit: None,
+            timings: PhaseTimings::default(),
+        })
+    }
+
+    /// Testing aid: before every kernel run, fill every GPU output/scratch buffer with
+    /// pseudo-random bytes from `seed` (or stop doing so with `None`), so that any output slot the
+    /// kernels fail to write shows up as garbage instead of a plausible zero.
+    pub fn set_noise_fill(&mut self, seed: Option<u64>) {
+        self.noise_seed = seed;
+    }
+
+    /// Caps the bytes of one output buffer of the write pass (default: the device's binding
+    /// limit). Smaller values split the write pass into more bands of tile rows; output is the
+    /// same. For tests of the banding, or to bound peak GPU memory.
+    pub fn set_band_limit(&mut self, bytes: Option<u64>) {
+        self.band_limit = bytes;
+    }
+
+    /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
+    pub fn last_timings(&self) -> PhaseTimings {
+        self.timings
+    }
+
+    /// The device limits in force (the adapter's own limits).
+    pub fn limits(&self) -> &wgpu::Limits {
+        &self.limits
+    }
+
+    fn max_binding(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    fn noise(&self, buf: &wgpu::Buffer, salt: u64) {
+        if let Some(seed) = self.noise_seed {
+            let bytes = noise_bytes(
+                seed ^ salt.wrapping_mul(0x2545_F491_4F6C_DD1D),
+                buf.size() as usize,
+            );
+            self.queue.write_buffer(buf, 0, &bytes);
+        }
+    }
+
+    fn bind(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        entries: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = entries
+            .iter()
+            .map(|(b, buf)| wgpu::BindGroupEntry {
+                binding: *b,
+                resource: buf.as_entire_binding(),
+            })
+            .collect();
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        })
+    }
+
+    /// Submits `encoder` after adding copies of `(buffer, byte offset, byte size)` into staging
+    /// buffers, waits, and returns the bytes of each.
+    fn submit_and_read(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        reads: &[(&wgpu::Buffer, u64, u64)],
+    ) -> Result<Vec<Vec<u8>>> {
+        let staging: Vec<wgpu::Buffer> = reads
+            .iter()
+            .map(|&(src, off, size)| {
+                let size = size.max(4).next_multiple_of(4);
+                let dst = self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("readback"),
+                    size,
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                });
+                let copy = size.min(src.size() - off);
+                encoder.copy_buffer_to_buffer(src, off, &dst, 0, copy);
+                dst
+            })
+            .collect();
+        self.queue.submit([encoder.finish()]);
+        let (tx, rx) = mpsc::channel();
+        for (i, buf) in staging.iter().enumerate() {
+            let tx = tx.clone();
+            buf.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send((i, r));
+            });
+        }
+        drop(tx);
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| gpu_err("waiting for the rasterizer kernels failed", e))?;
+        for (_, r) in rx.iter() {
+            r.map_err(|e| gpu_err("reading back rasterizer output failed", e))?;
+        }
+        let mut out = Vec::with_capacity(reads.len());
+        for (buf, &(_, _, size)) in staging.iter().zip(reads) {
+            let view = buf
+                .slice(..)
+                .get_mapped_range()
+                .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
+            out.push(view[..size as usize].to_vec());
+            drop(view);
+            buf.unmap();
+        }
+        Ok(out)
+    }
+
+    fn check_size(&self, what: &str, bytes: u64, k: &Intrinsics) -> Result<()> {
+        if bytes > self.max_binding() {
+            return Err(Error::Gpu(format!(
+                "the {}x{} weight raster needs a {} MiB {what} buffer but the device allows {} MiB \
+                 per binding; lower --raster-scale",
+                k.width,
+                k.height,
+                bytes >> 20,
+                self.max_binding() >> 20
+            )));
+        }
+        Ok(())
+    }
+
+    fn run(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+        validate_raster(k)?;
+        let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
+        let max_groups = self.limits.max_compute_workgroups_per_dimension;
+        if tiles_x > max_groups.min(65535) || tiles_y > max_groups.min(65535) {
+            return Err(Error::Gpu(format!(
+                "{}x{} raster has more tiles per side than the device dispatches ({max_groups}); \
+                 lower --raster-scale",
+                k.width, k.height
+            )));
+        }
+        let n_pix = k.width * k.height; // ≤ 2^28 (validate_raster)
+        let n_tiles = tiles_x * tiles_y;
+        let n_blocks = n_pix.div_ceil(SCAN_BLOCK);
+        self.check_size("offsets", (n_pix as u64 + 1) * 4, k)?;
+        self.check_size("tile ranges", n_tiles as u64 * 8, k)?;
+
+        let r = w2c.rotation.transpose(); // rows of R are columns of Rᵀ
+        let t = w2c.translation;
+        let row = |i: usize, ti: f64| {
+            let c = r.col(i);
+            [c.x as f32, c.y as f32, c.z as f32, ti as f32]
+        };
+        let lims = jacobian_limits(k).map(|v| v as f32);
+        let mut params = Params {
+            rot0: row(0, t.x),
+            rot1: row(1, t.y),
+            rot2: row(2, t.z),
+            focal: [k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32],
+            lims,
+            width: k.width,
+            height: k.height,
+            tiles_x,
+            tiles_y,
+            n_gaussians: self.n,
+            n_pixels: n_pix,
+            groups_x: GROUPS_X,
+            mode: 0,
+            n_blocks,
+            tile_y0: 0,
+            out_base: 0,
+            _pad: 0,
+        };
+        let params_buf = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("params"),
+                contents: bytemuck::bytes_of(&params),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
+        let seed_salt = 1;
+        self.noise(&self.splats, seed_salt);
+        self.noise(&self.isect, seed_salt + 1);
+
+        // 1. Projection.
+        let mut clock = std::time::Instant::now();
+        let lap = |c: &mut std::time::Instant| {
+            let ms = c.elapsed().as_secs_f64() * 1e3;
+            *c = std::time::Instant::now();
+            ms
+        };
+        let mut timings = PhaseTimings::default();
+        let groups = self.n.div_ceil(256);
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        if groups > 0 {
+            let bg = self.bind(
+                &self.pipelines.project,
+                &[
+                    (0, &params_buf),
+                    (1, &self.means_opac),
+                    (2, &self.scales),
+                    (3, &self.quats),
+                    (4, &self.splats),
+                    (5, &self.isect),
+                ],
+            );
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.project);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(groups.min(GROUPS_X), groups.div_ceil(GROUPS_X), 1);
+        }
+        let isect_bytes = self.n as u64 * 8;
+        let read = self.submit_and_read(enc, &[(&self.isect, 0, isect_bytes)])?;
+        let isect: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0]);
+
+        timings.project_ms = lap(&mut clock);
+        // 2. CPU binning + sort (per Gaussian work only).
+        let (ranges, sorted_ids) = bin_and_sort(&isect, &self.means, w2c, tiles_x, n_tiles)?;
+        self.check_size("tile intersections", sorted_ids.len() as u64 * 4, k)?;
+        timings.bin_sort_ms = lap(&mut clock);
+        let ranges_buf = storage_init(&self.device, "tile_ranges", bytemuck::cast_slice(&ranges));
+        let ids_buf = storage_init(
+            &self.device,
+            "sorted_ids",
+            bytemuck::cast_slice(&sorted_ids),
+        );
+        let offsets = storage(&self.device, "offsets", (n_pix as u64 + 1) * 4);
+        let block_sums = storage(&self.device, "block_sums", (n_blocks as u64 + 1) * 4);
+        let dummy = storage(&self.device, "dummy", 16);
+        self.noise(&offsets, seed_salt + 2);
+        self.noise(&block_sums, seed_salt + 3);
+
+        // 3a. Count pass + exclusive scan.
+        let blend_bg = |out_ids: &wgpu::Buffer, out_w: &wgpu::Buffer| {
+            self.bind(
+                &self.pipelines.blend,
+                &[
+                    (0, &params_buf),
+                    (4, &self.splats),
+                    (6, &ranges_buf),
+                    (7, &ids_buf),
+                    (8, &offsets),
+                    (9, out_ids),
+                    (10, out_w),
+                ],
+            )
+        };
+        let scan_entries = [(0, &params_buf), (8, &offsets), (11, &block_sums)];
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        {
+            let bg = blend_bg(&dummy, &dummy);
+            let bg_l = self.bind(&self.pipelines.scan_local, &scan_entries);
+            let bg_b = self.bind(&self.pipelines.scan_blocks, &scan_entries);
+            let bg_a = self.bind(&self.pipelines.scan_add, &scan_entries);
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.blend);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+            let (gx, gy) = (n_blocks.min(GROUPS_X), n_blocks.div_ceil(GROUPS_X));
+            pass.set_pipeline(&self.pipelines.scan_local);
+            pass.set_bind_group(0, &bg_l, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+            pass.set_pipeline(&self.pipelines.scan_blocks);
+            pass.set_bind_group(0, &bg_b, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(&self.pipelines.scan_add);
+            pass.set_bind_group(0, &bg_a, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        let read = self.submit_and_read(
+            enc,
+            &[
+                (&offsets, 0, (n_pix as u64 + 1) * 4),
+                (&block_sums, n_blocks as u64 * 4, 4),
+            ],
+        )?;
+        let offsets_host: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
+        let overflow = u32::from_le_bytes([read[1][0], read[1][1], read[1][2], read[1][3]]);
+        if overflow != 0 {
+            return Err(Error::Gpu(format!(
+                "the {}x{} weight raster has more than 2^32 entries; lower --raster-scale",
+                k.width, k.height
+            )));
+        }
+        let total = offsets_host[n_pix as usize] as usize;
+        timings.count_scan_ms = lap(&mut clock);
+
+        // 3b. Write pass, in bands of whole tile rows (a contiguous range of CSR entries) so no
+        // output binding exceeds the device limit.
+        let band_bytes = self
+            .band_limit
+            .unwrap_or(u64::MAX)
+            .min(self.max_binding())
+            .max(4);
+        let row_start = |tile_row: u32| {
+            let py = (tile_row * super::project::TILE_SIZE).min(k.height);
+            offsets_host[(py * k.width) as usize] as u64
+        };
+        let mut ids = Vec::with_capacity(total);
+        let mut weights = Vec::with_capacity(total);
+        let mut r0 = 0u32;
+        while r0 < tiles_y {
+            let base = row_start(r0);
+            let mut r1 = r0 + 1;
+            if (row_start(r1) - base) * 4 > band_bytes {
+                return Err(Error::Gpu(format!(
+                    "one row of tiles of the {}x{} weight raster needs {:.2} MiB of output but the \
+                     device allows {:.2} MiB per binding; lower --raster-scale",
+                    k.width,
+                    k.height,
+                    ((row_start(r1) - base) * 4) as f64 / 1048576.0,
+                    band_bytes as f64 / 1048576.0
+                )));
+            }
+            while r1 < tiles_y && (row_start(r1 + 1) - base) * 4 <= band_bytes {
+                r1 += 1;
+            }
+            let entries = row_start(r1) - base;
+            let out_ids = storage(&self.device, "out_ids", entries * 4);
+            let out_w = storage(&self.device, "out_weights", entries * 4);
+            self.noise(&out_ids, seed_salt + 4 + r0 as u64);
+            self.noise(&out_w, seed_salt + 5 + r0 as u64);
+            params.mode = 1;
+            params.tile_y0 = r0;
+            params.out_base = base as u32;
+            self.queue
+                .write_buffer(&params_buf, 0, bytemuck::bytes_of(&params));
+            let mut enc = self.device.create_command_encoder(&Default::default());
+            {
+                let bg = blend_bg(&out_ids, &out_w);
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&self.pipelines.blend);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(tiles_x, r1 - r0, 1);
+            }
+            let read =
+                self.submit_and_read(enc, &[(&out_ids, 0, entries * 4), (&out_w, 0, entries * 4)])?;
+            ids.extend_from_slice(&bytemuck::pod_collect_to_vec::<u8, u32>(&read[0]));
+            weights.extend_from_slice(&bytemuck::pod_collect_to_vec::<u8, f32>(&read[1]));
+            r0 = r1;
+        }
+        timings.write_ms = lap(&mut clock);
+        self.timings = timings;
+        tracing::debug!(?timings, entries = total, "gpu weight raster");
+        Ok(PixelWeights {
+            width: k.width,
+            height: k.height,
+            offsets: offsets_host,
+            ids,
+            weights,
+        })
+    }
+}
+
+/// Tile binning on the CPU: for every Gaussian with a non-empty tile rect (from the GPU
+/// projection), one 128-bit key `tile | depth | id` per touched tile, sorted. The depth is the f64
+/// camera-frame z of [`camera_point`] (bit-identical to the CPU reference's; positive f64 bit
+/// patterns sort like their values), so both rasterizers order every tile identically, exact
+/// ties included (by id). Returns per-tile `[start, end)` ranges into the sorted Gaussian ids.
+fn bin_and_sort(
+    isect: &[[u32; 2]],
+    means: &[[f32; 3]],
+    w2c: &WorldToCamera,
+    tiles_x: u32,
+    n_tiles: u32,
+) -> Result<(Vec<[u32; 2]>, Vec<u32>)> {
+    let rect = |r: &[u32; 2]| {
+        let (x0, y0, x1, y1) = (r[0] & 0xffff, r[0] >> 16, r[1] & 0xffff, r[1] >> 16);
+        (x0, y0, x1.max(x0), y1.max(y0))
+    };
+    let counts: Vec<u64> = isect
+        .par_iter()
+        .map(|r| {
+            let (x0, y0, x1, y1) = rect(r);
+            (x1 - x0) as u64 * (y1 - y0) as u64
+        })
+        .collect();
+    let total: u64 = counts.iter().sum();
+    if total > u32::MAX as u64 {
+        return Err(Error::Gpu(format!(
+            "{total} tile intersections exceed 2^32; lower --raster-scale"
+        )));
+    }
+    let mut keys = vec![0u128; total as usize];
+    // Fill disjoint chunks in parallel: split `keys` at each Gaussian's start.
+    let mut rest: &mut [u128] = &mut keys;
+    let mut chunks = Vec::with_capacity(isect.len());
+    for c in &counts {
+        let (a, b) = rest.split_at_mut(*c as usize);
+        chunks.push(a);
+        rest = b;
+    }
+    chunks.into_par_iter().enumerate().for_each(|(id, chunk)| {
+        if chunk.is_empty() {
+            return;
+        }
+        let (x0, y0, x1, y1) = rect(&isect[id]);
+        let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
+        let low = ((depth.to_bits() as u128) << 32) | id as u128;
+        let mut e = 0;
+        for y in y0..y1 {
+            for x in x0..x1 {
+                chunk[e] = (((y * tiles_x + x) as u128) << 96) | low;
+                e += 1;
+            }
+        }
+    });
+    keys.par_sort_unstable();
+    let mut ranges = vec![[0u32; 2]; n_tiles as usize];
+    let mut i = 0usize;
+    while i < keys.len() {
+        let tile = (keys[i] >> 96) as usize;
+        let mut j = i;
+        while j < keys.len() && (keys[j] >> 96) as usize == tile {
+            j += 1;
+        }
+        if tile >= ranges.len() {
+            return Err(Error::Gpu(format!(
+                "projection produced tile {tile} outside the grid"
+            )));
+        }
+        ranges[tile] = [i as u32, j as u32];
+        i = j;
+    }
+    let ids = keys.into_iter().map(|k| k as u32).collect();
+    Ok((ranges, ids))
+}
+
+impl WeightRasterizer for GpuRasterizer {
+    fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let out = self.run(k, w2c);
+        if let Some(e) = pollster::block_on(oom.pop()) {
+            let _ = pollster::block_on(scope.pop());
+            return Err(gpu_err("out of GPU memory; lower --raster-scale", e));
+        }
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_err("rasterizer kernel failed", e));
+        }
+        out
+    }
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+}

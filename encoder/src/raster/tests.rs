@@ -1,0 +1,528 @@
+//! Tests of the weight rasterizers: GPU vs the f64 CPU reference (random scenes and the real
+//! snowmiku scene), invariants, and a colour render of snowmiku against its training photos.
+//!
+//! GPU tests run on whatever Vulkan adapter [`GpuRasterizer::new`] picks (lavapipe in CI). Without
+//! one they fail, unless `SLAG_SKIP_GPU=1` is set.
+
+use std::path::PathBuf;
+
+use glam::{DMat3, DQuat, DVec3};
+use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::scene::Gaussians;
+
+use super::project::{ALPHA_MIN, Splat2d, T_MIN, TILE_SIZE, splat_alpha};
+use super::testdata::{load_ply_for_test, load_views_for_test, snowmiku_dir};
+use super::*;
+
+// ---------------------------------------------------------------------------------------------
+// helpers
+
+/// splitmix64-based generator (no extra dev-dependency needed).
+struct Rng(u64);
+impl Rng {
+    fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, 1).
+    fn f(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn range(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * self.f()
+    }
+}
+
+fn skip_gpu() -> bool {
+    std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1")
+}
+
+/// The GPU rasterizer, with noise-filled outputs; `None` only when `SLAG_SKIP_GPU=1`.
+fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
+    if skip_gpu() {
+        eprintln!("SLAG_SKIP_GPU=1: skipping the GPU part of this test");
+        return None;
+    }
+    let mut r = GpuRasterizer::new(g).unwrap_or_else(|e| {
+        panic!("no usable Vulkan adapter ({e}); install mesa-vulkan-drivers or set SLAG_SKIP_GPU=1")
+    });
+    r.set_noise_fill(Some(0x5eed));
+    Some(r)
+}
+
+/// A random scene of `n` Gaussians around the origin: means in front of and behind a camera at
+/// z = -4 looking down +z, scales over 4 orders of magnitude, random unit quaternions, opacities
+/// including values near 0 and near 1.
+fn random_scene(seed: u64, n: usize) -> Gaussians {
+    let mut r = Rng(seed);
+    let mut g = Gaussians::default();
+    for _ in 0..n {
+        g.means.push([
+            r.range(-3.0, 3.0) as f32,
+            r.range(-2.5, 2.5) as f32,
+            r.range(-6.0, 4.0) as f32,
+        ]);
+        let base = 10f64.powf(r.range(-3.5, 0.0));
+        g.scales
+            .push([0, 1, 2].map(|_| (base * 10f64.powf(r.range(-1.0, 1.0))) as f32));
+        let q = [
+            r.range(-1.0, 1.0),
+            r.range(-1.0, 1.0),
+            r.range(-1.0, 1.0),
+            r.range(-1.0, 1.0),
+        ];
+        let nq = q.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
+        g.rotations.push(q.map(|v| (v / nq) as f32));
+        let o = match r.next_u64() % 4 {
+            0 => r.range(0.0, 0.01),
+            1 => r.range(0.98, 0.9999),
+            _ => r.range(0.0, 1.0),
+        };
+        g.opacities.push(o as f32);
+    }
+    g
+}
+
+fn test_camera(seed: u64) -> (Intrinsics, WorldToCamera) {
+    let mut r = Rng(seed ^ 0xCA3E);
+    let k = Intrinsics {
+        width: 160 + (seed % 3) as u32 * 17,
+        height: 120 + (seed % 2) as u32 * 9,
+        fx: 140.0,
+        fy: 150.0,
+        cx: 83.0,
+        cy: 61.5,
+    };
+    // Camera centre near (0, 0, -4), small random rotation.
+    let rot = DMat3::from_quat(DQuat::from_euler(
+        glam::EulerRot::XYZ,
+        r.range(-0.2, 0.2),
+        r.range(-0.2, 0.2),
+        r.range(-0.3, 0.3),
+    ));
+    let centre = DVec3::new(r.range(-0.3, 0.3), r.range(-0.3, 0.3), -4.0);
+    (
+        k,
+        WorldToCamera {
+            rotation: rot,
+            translation: -(rot * centre),
+        },
+    )
+}
+
+#[derive(Debug, Default)]
+struct Agreement {
+    _pixels: usize,
+    identical_lists: usize,
+    explained: usize,
+    _entries: usize,
+    max_weight_diff: f64,
+    why: std::collections::BTreeMap<String, usize>,
+}
+
+/// Why a contributor may legitimately differ between f32 (GPU) and f64 (reference) at a pixel:
+/// a value within f32 error of a decision threshold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Border {
+    /// `α` within f32 error of `1/255`.
+    Alpha,
+    /// The next transmittance within f32 error of `1e-4`.
+    Transmittance,
+    /// The radius (before `ceil`) or a tile-rect edge within f32 error of an integer.
+    TileEdge,
+}
+
+fn borderline(s: Option<&Splat2d>, px: f64, py: f64, t_before: f64) -> Option<Border> {
+    let s = s?;
+    let (sigma, alpha) = splat_alpha(s, px, py);
+    let rel = |a: f64, b: f64| ((a - b) / b).abs();
+    // f32 relative error of exp(-σ) grows with σ.
+    if sigma >= 0.0 && rel(alpha, ALPHA_MIN) < 1e-4 * (1.0 + sigma) {
+        return Some(Border::Alpha);
+    }
+    // The f32 product of up to a few thousand (1 - α) factors.
+    if rel(t_before * (1.0 - alpha), T_MIN) < 1e-3 {
+        return Some(Border::Transmittance);
+    }
+    let m = s.cov2d;
+    let mid = 0.5 * (m[0] + m[2]);
+    let det = m[0] * m[2] - m[1] * m[1];
+    let r_exact = 3.0 * (mid + (mid * mid - det).max(0.01).sqrt()).sqrt();
+    let near_int = |v: f64| (v - v.round()).abs() < 1e-4 * v.abs().max(1.0);
+    let ts = TILE_SIZE as f64;
+    let edges = [
+        (s.mean2d[0] - s.radius) / ts,
+        (s.mean2d[1] - s.radius) / ts,
+        (s.mean2d[0] + s.radius) / ts,
+        (s.mean2d[1] + s.radius) / ts,
+    ];
+    if near_int(r_exact) || edges.iter().any(|&e| near_int(e)) {
+        return Some(Border::TileEdge);
+    }
+    None
+}
+
+/// Compares GPU output to the CPU reference pixel by pixel: identical id lists with weights within
+/// 1e-4, except pixels whose first difference is explained by [`borderline`] or by an exact depth
+/// tie; those are counted and must stay rare.
+fn compare(
+    gpu: &PixelWeights,
+    cpu: &PixelWeights,
+    splats: &[Option<Splat2d>],
+    label: &str,
+) -> Agreement {
+    assert_eq!(
+        (gpu.width, gpu.height),
+        (cpu.width, cpu.height),
+        "{label}: size"
+    );
+    let n_pix = (cpu.width * cpu.height) as usize;
+    assert_eq!(gpu.offsets.len(), n_pix + 1, "{label}: offsets length");
+    assert_eq!(gpu.offsets[0], 0, "{label}: first offset");
+    assert_eq!(
+        *gpu.offsets.last().expect("non-empty") as usize,
+        gpu.ids.len(),
+        "{label}: last offset"
+    );
+    assert_eq!(gpu.ids.len(), gpu.weights.len(), "{label}: ids/weights");
+    let mut a = Agreement {
+        _pixels: n_pix,
+        _entries: cpu.ids.len(),
+        ..Default::default()
+    };
+    for y in 0..cpu.height {
+        for x in 0..cpu.width {
+            let p = (y * cpu.width + x) as usize;
+            assert!(
+                gpu.offsets[p] <= gpu.offsets[p + 1],
+                "{label}: offsets not monotone at {p}"
+            );
+            let (gi, gw) = gpu.pixel(x, y);
+            let (ci, cw) = cpu.pixel(x, y);
+            let first_diff = (0..gi.len().max(ci.len())).find(|&e| gi.get(e) != ci.get(e));
+            let upto = first_diff.unwrap_or(gi.len());
+            for e in 0..upto {
+                let d = (gw[e] as f64 - cw[e] as f64).abs();
+                a.max_weight_diff = a.max_weight_diff.max(d);
+                assert!(
+                    d <= 1e-4,
+                    "{label}: pixel ({x},{y}) entry {e} id {}: gpu weight {} vs cpu {}",
+                    gi[e],
+                    gw[e],
+                    cw[e]
+                );
+            }
+            let Some(e) = first_diff else {
+                a.identical_lists += 1;
+                continue;
+            };
+            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+            // Transmittance before entry e, replayed in f64 from the reference's splats.
+            let t_before: f64 = ci[..e]
+                .iter()
+                .map(|&id| splats[id as usize].map_or(1.0, |s| 1.0 - splat_alpha(&s, px, py).1))
+                .product();
+            let cand: Vec<u32> = [gi.get(e), ci.get(e)]
+                .into_iter()
+                .flatten()
+                .copied()
+                .collect();
+            let depth = |id: u32| splats[id as usize].map(|s| s.depth);
+            let tie = cand.len() == 2
+                && matches!((depth(cand[0]), depth(cand[1])), (Some(d0), Some(d1)) if (d0 - d1).abs() <= 1e-6 * d0.abs().max(1.0));
+            let border = cand
+                .iter()
+                .find_map(|&id| borderline(splats[id as usize].as_ref(), px, py, t_before));
+            assert!(
+                tie || border.is_some(),
+                "{label}: pixel ({x},{y}) differs at entry {e}: gpu {:?} vs cpu {:?} (weights {:?} vs {:?}); splats {:?}",
+                &gi[e..gi.len().min(e + 3)],
+                &ci[e..ci.len().min(e + 3)],
+                &gw[e..gw.len().min(e + 3)],
+                &cw[e..cw.len().min(e + 3)],
+                cand.iter()
+                    .map(|&id| splats[id as usize])
+                    .collect::<Vec<_>>()
+            );
+            a.explained += 1;
+            let why = if tie {
+                "depth tie".to_string()
+            } else {
+                format!("{border:?}")
+            };
+            *a.why.entry(why).or_default() += 1;
+        }
+    }
+    eprintln!("{label}: {a:?}");
+    assert!(
+        a.explained as f64 <= 1e-3 * n_pix as f64 + 2.0,
+        "{label}: {} of {} pixels differ (all at thresholds) — more than expected",
+        a.explained,
+        n_pix
+    );
+    a
+}
+
+/// Invariants every rasterizer output must satisfy.
+fn check_invariants(w: &PixelWeights, n: usize, label: &str) {
+    let n_pix = (w.width * w.height) as usize;
+    assert_eq!(w.offsets.len(), n_pix + 1, "{label}");
+    assert_eq!(w.offsets[0], 0, "{label}");
+    assert_eq!(w.offsets[n_pix] as usize, w.ids.len(), "{label}");
+    assert_eq!(w.ids.len(), w.weights.len(), "{label}");
+    for p in 0..n_pix {
+        let (a, b) = (w.offsets[p] as usize, w.offsets[p + 1] as usize);
+        assert!(a <= b, "{label}: offsets decrease at pixel {p}");
+        let sum: f64 = w.weights[a..b].iter().map(|&v| v as f64).sum();
+        assert!(sum <= 1.0 + 1e-5, "{label}: pixel {p} weights sum to {sum}");
+        let mut seen = std::collections::HashSet::new();
+        for e in a..b {
+            assert!((w.ids[e] as usize) < n, "{label}: id {} >= {n}", w.ids[e]);
+            assert!(
+                seen.insert(w.ids[e]),
+                "{label}: id {} twice in pixel {p}",
+                w.ids[e]
+            );
+            let v = w.weights[e];
+            assert!(v > 0.0 && v <= 1.0, "{label}: weight {v} outside (0, 1]");
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// tests
+
+#[test]
+fn gpu_matches_cpu_on_random_scenes() {
+    for seed in 0..5u64 {
+        let g = random_scene(seed, 400 + seed as usize * 300);
+        let (k, w2c) = test_camera(seed);
+        let mut cpu = CpuRasterizer::new(&g);
+        let reference = cpu.rasterize(&k, &w2c).expect("cpu");
+        check_invariants(&reference, g.len(), "cpu");
+        assert!(
+            reference.len() > 1000,
+            "seed {seed}: scene too sparse to test ({})",
+            reference.len()
+        );
+        let Some(mut gpu) = gpu(&g) else { continue };
+        let out = gpu.rasterize(&k, &w2c).expect("gpu");
+        check_invariants(&out, g.len(), "gpu");
+        compare(
+            &out,
+            &reference,
+            &cpu.project_all(&k, &w2c),
+            &format!("random seed {seed}"),
+        );
+        // Deterministic: a second run (fresh noise) gives the same bytes.
+        gpu.set_noise_fill(Some(seed + 99));
+        assert_eq!(
+            gpu.rasterize(&k, &w2c).expect("gpu again"),
+            out,
+            "seed {seed}: not deterministic"
+        );
+        // Banded write pass (tiny output buffers): same result.
+        let row_bytes = |r: u32| {
+            let px =
+                |row: u32| out.offsets[((row * TILE_SIZE).min(k.height) * k.width) as usize] as u64;
+            (px(r + 1) - px(r)) * 4
+        };
+        let max_row = (0..k.height.div_ceil(TILE_SIZE))
+            .map(row_bytes)
+            .max()
+            .unwrap_or(4);
+        gpu.set_band_limit(Some(max_row.max(out.len() as u64 * 4 / 3)));
+        assert_eq!(
+            gpu.rasterize(&k, &w2c).expect("gpu banded"),
+            out,
+            "seed {seed}: banding changed output"
+        );
+        gpu.set_band_limit(None);
+    }
+}
+
+#[test]
+fn empty_and_all_behind_scenes_give_empty_lists() {
+    let (k, w2c) = test_camera(7);
+    let empty = Gaussians::default();
+    let mut behind = random_scene(3, 200);
+    for m in &mut behind.means {
+        m[2] = -4.0 - m[2].abs() - 0.001; // at or behind the camera centre (z = -4)
+    }
+    for (label, g) in [("empty", &empty), ("behind", &behind)] {
+        let w = CpuRasterizer::new(g).rasterize(&k, &w2c).expect("cpu");
+        check_invariants(&w, g.len(), label);
+        assert!(
+            w.is_empty() && w.offsets.iter().all(|&o| o == 0),
+            "{label}: cpu not empty"
+        );
+        if let Some(mut r) = gpu(g) {
+            let w = r.rasterize(&k, &w2c).expect("gpu");
+            check_invariants(&w, g.len(), label);
+            assert!(
+                w.is_empty() && w.offsets.iter().all(|&o| o == 0),
+                "{label}: gpu not empty"
+            );
+        }
+    }
+}
+
+#[test]
+fn single_gaussian_weight_matches_closed_form() {
+    // One isotropic Gaussian straight ahead: w at the centre pixel = min(0.99, o·exp(-σ)).
+    let g = Gaussians {
+        means: vec![[0.0, 0.0, 2.0]],
+        scales: vec![[0.05; 3]],
+        rotations: vec![[1.0, 0.0, 0.0, 0.0]],
+        opacities: vec![0.8],
+        sh: None,
+    };
+    let k = Intrinsics {
+        width: 32,
+        height: 32,
+        fx: 100.0,
+        fy: 100.0,
+        cx: 16.0,
+        cy: 16.0,
+    };
+    let w2c = WorldToCamera {
+        rotation: DMat3::IDENTITY,
+        translation: DVec3::ZERO,
+    };
+    let var = (100.0f64 / 2.0 * 0.05).powi(2) + 0.3;
+    let expected = |x: u32, y: u32| {
+        let (dx, dy) = (16.0 - (x as f64 + 0.5), 16.0 - (y as f64 + 0.5));
+        0.8 * (-0.5 * (dx * dx + dy * dy) / var).exp()
+    };
+    let mut rs: Vec<Box<dyn WeightRasterizer>> = vec![Box::new(CpuRasterizer::new(&g))];
+    if let Some(r) = gpu(&g) {
+        rs.push(Box::new(r));
+    }
+    for r in &mut rs {
+        let w = r.rasterize(&k, &w2c).expect("rasterize");
+        for (x, y) in [(15, 15), (16, 16), (12, 17), (20, 16)] {
+            let (ids, ws) = w.pixel(x, y);
+            assert_eq!(ids, &[0], "{} ({x},{y})", r.name());
+            assert!(
+                (ws[0] as f64 - expected(x, y)).abs() < 1e-6,
+                "{}: {} vs {}",
+                r.name(),
+                ws[0],
+                expected(x, y)
+            );
+        }
+    }
+}
+
+#[test]
+fn raster_intrinsics_checks_the_scale() {
+    let k = Intrinsics {
+        width: 990,
+        height: 742,
+        fx: 819.6,
+        fy: 819.2,
+        cx: 495.0,
+        cy: 371.0,
+    };
+    let h = raster_intrinsics(&k, 0.5).expect("valid");
+    assert_eq!((h.width, h.height), (495, 371));
+    assert!((h.fx - 409.8).abs() < 1e-9);
+    assert!(raster_intrinsics(&k, 0.0).is_err());
+    assert!(raster_intrinsics(&k, f64::NAN).is_err());
+}
+
+type PosedViews = Vec<(String, Intrinsics, WorldToCamera)>;
+
+fn snowmiku() -> Option<(Gaussians, PosedViews)> {
+    let dir = snowmiku_dir();
+    let ply = dir.join("point_cloud.ply");
+    assert!(
+        ply.exists(),
+        "{} missing: the shared scene is required",
+        ply.display()
+    );
+    Some((load_ply_for_test(&ply, true), load_views_for_test(&dir)))
+}
+
+#[test]
+fn gpu_matches_cpu_on_snowmiku() {
+    let Some((g, views)) = snowmiku() else { return };
+    assert_eq!(g.len(), 120_000);
+    let mut cpu = CpuRasterizer::new(&g);
+    let mut gpu = gpu(&g);
+    for (i, scale) in [(1usize, 0.25), (40, 0.3), (80, 0.25)] {
+        let (name, k, w2c) = &views[i];
+        let k = raster_intrinsics(k, scale).expect("scale");
+        let reference = cpu.rasterize(&k, w2c).expect("cpu");
+        check_invariants(&reference, g.len(), name);
+        assert!(
+            reference.mean_contributors() > 5.0,
+            "{name}: suspiciously few contributors"
+        );
+        if let Some(r) = gpu.as_mut() {
+            let out = r.rasterize(&k, w2c).expect("gpu");
+            check_invariants(&out, g.len(), name);
+            compare(
+                &out,
+                &reference,
+                &cpu.project_all(&k, w2c),
+                &format!("snowmiku {name} @{scale}"),
+            );
+        }
+    }
+}
+
+#[test]
+fn colour_render_of_snowmiku_matches_photos() {
+    let Some((g, views)) = snowmiku() else { return };
+    if skip_gpu() {
+        eprintln!(
+            "SLAG_SKIP_GPU=1: colour render test skipped (full resolution needs the GPU path)"
+        );
+        return;
+    }
+    let mut r = gpu(&g).expect("gpu");
+    let out_dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join("target")
+        .join("raster-colour");
+    std::fs::create_dir_all(&out_dir).expect("out dir");
+    let mut psnrs = Vec::new();
+    // Training views only: the trainer held out every 8th image (indices 0, 8, ...).
+    for i in [1usize, 33, 66] {
+        let (name, k, w2c) = &views[i];
+        let w = r.rasterize(k, w2c).expect("gpu");
+        let img = render_colour(&g, k, w2c, &w).expect("render");
+        let photo_path = snowmiku_dir().join("images").join(name);
+        let photo = image::open(&photo_path).expect("photo").to_rgb8();
+        let p = psnr(&img, &photo).expect("psnr");
+        img.save(out_dir.join(name.replace(".jpg", ".png")))
+            .expect("save png");
+        eprintln!(
+            "snowmiku {name}: PSNR {p:.2} dB, {:.1} contributors/pixel",
+            w.mean_contributors()
+        );
+        psnrs.push(p);
+        assert!(
+            p >= 25.0,
+            "{name}: PSNR {p:.2} dB < 25 (render in {})",
+            out_dir.display()
+        );
+    }
+    // Control: the same render from a wrong pose must be much worse (the test can fail).
+    let (_, k, w2c) = &views[1];
+    let (name1, ..) = &views[33];
+    let w = r.rasterize(k, w2c).expect("gpu");
+    let img = render_colour(&g, k, w2c, &w).expect("render");
+    let other = image::open(snowmiku_dir().join("images").join(name1))
+        .expect("photo")
+        .to_rgb8();
+    let p_wrong = psnr(&img, &other).expect("psnr");
+    assert!(
+        p_wrong < psnrs[0] - 5.0,
+        "wrong-pose control PSNR {p_wrong:.2} too high"
+    );
+}
