@@ -83,6 +83,8 @@ pub struct ClipVisual {
     path: PathBuf,
     batch_size: usize,
     input_name: String,
+    model_id: String,
+    dim: usize,
 }
 
 impl ClipVisual {
@@ -119,12 +121,29 @@ impl ClipVisual {
              output image_embeds f32[B,D] (e.g. open_clip encode_image)",
         )?;
         let input_name = session.inputs()[0].name().to_string();
-        Ok(ClipVisual {
-            session,
-            path: model.to_path_buf(),
-            batch_size,
-            input_name,
-        })
+        let declared = match session.outputs()[0].dtype() {
+            ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
+            _ => None,
+        };
+        let model_id = model.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        let mut clip =
+            ClipVisual { session, path: model.to_path_buf(), batch_size, input_name, model_id, dim: 0 };
+        clip.dim = match declared {
+            Some(d) => d as usize,
+            // Dynamic width: one probe run on a mid-grey image.
+            None => clip.embed_pixels(&vec![0.5f32; 3 * 224 * 224])?[0].len(),
+        };
+        Ok(clip)
+    }
+
+    /// Embedding width D (the model's output width).
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Model id recorded in outputs: the ONNX file stem (e.g. `color-clip-visual`).
+    pub fn model_id(&self) -> &str {
+        &self.model_id
     }
 
     /// Embeds preprocessed pixels `f32[n,3,224,224]`: `n` L2-normalised rows of the model's width.

@@ -5,14 +5,15 @@
 //! (3DGS forward pass yielding per-pixel blend weights `w_kp = α·T`) → [`aggregate`]
 //! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
 //! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
-//! mIoU with color-clip, [`query`] checks a text prompt against the result.
+//! mIoU with color-clip, [`cli`] holds the `slag-encoder` subcommands (`query` checks a text
+//! prompt against the result).
 
 pub mod aggregate;
+pub mod cli;
 pub mod clip;
 pub mod eval;
 pub mod masks;
 pub mod pipeline;
 pub mod preprocess;
-pub mod query;
 pub mod raster;
 pub mod report;

@@ -97,12 +97,8 @@ struct FrontItem {
 
 /// Reads an image and checks it against the camera's intrinsics.
 pub fn read_image(view: &View) -> Result<RgbImage> {
-    let img = image::open(&view.image_path)
-        .map_err(|e| match e {
-            image::ImageError::IoError(io) => Error::io(&view.image_path, io),
-            other => Error::format(&view.image_path, format!("cannot decode image: {other}")),
-        })?
-        .to_rgb8();
+    // Pillow-exact JPEG decoding, so SAM/CLIP inputs match the Python reference pipeline.
+    let img = crate::preprocess::load_rgb(&view.image_path)?;
     let (w, h) = (view.intrinsics.width, view.intrinsics.height);
     if img.dimensions() != (w, h) {
         return Err(Error::Invalid(format!(
@@ -206,7 +202,7 @@ pub fn encode(
             t.clip += item.clip_s;
             let view = &views[item.view];
             let t0 = Instant::now();
-            let intr = view.intrinsics.scaled(params.raster_scale);
+            let intr = crate::raster::raster_intrinsics(&view.intrinsics, params.raster_scale)?;
             let weights = rasterizer.rasterize(&intr, &view.world_to_camera)?;
             let t1 = Instant::now();
             raster_pixels += (weights.width * weights.height) as usize;
@@ -265,4 +261,16 @@ pub fn encode(
     let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
     Ok(report)
+}
+
+impl CropEmbedder for crate::clip::ClipVisual {
+    fn model_id(&self) -> &str {
+        crate::clip::ClipVisual::model_id(self)
+    }
+    fn dim(&self) -> usize {
+        crate::clip::ClipVisual::dim(self)
+    }
+    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+        self.embed_masks(image, masks)
+    }
 }

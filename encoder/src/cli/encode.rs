@@ -61,7 +61,7 @@ pub struct EncodeArgs {
     pub sam_decoder: Option<PathBuf>,
     /// SAM point grid: points per image side (segment_anything's default 32).
     #[arg(long, default_value_t = 32)]
-    pub sam_points_per_side: usize,
+    pub sam_points_per_side: u32,
     /// SAM prompts per decoder call.
     #[arg(long, default_value_t = 64)]
     pub sam_points_per_batch: usize,
@@ -139,7 +139,7 @@ fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGen
                 box_nms_thresh: a.sam_box_nms_thresh,
                 ..Default::default()
             };
-            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::new(enc, dec, params, a.ep.into(), threads)?)
+            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::new(enc, dec, a.ep.into(), threads, params)?)
         }
         MaskSource::Graph => {
             let mut p = crate::masks::graph::GraphParams::default();
@@ -189,7 +189,7 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
     let masks = build_masks(a, threads)?;
-    let clip = crate::clip::ClipVisual::new(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
+    let clip = crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
     let crops: Box<dyn CropEmbedder> = Box::new(clip);
     let params = EncodeParams {
         raster_scale: a.raster_scale,

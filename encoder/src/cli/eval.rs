@@ -59,6 +59,6 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<eval::ColourEval> {
     let names: Vec<&str> = classes.names.iter().map(String::as_str).collect();
     let text_embeds = text.encode(&names).context("encoding the colour prompts")?;
     let gt = eval::ground_truth(&classes, &gaussians)?;
-    let predicted = eval::assign(&emb, &text_embeds);
-    Ok(eval::evaluate(&gt, &emb, &predicted, &classes.names))
+    let predicted = eval::assign(&emb, &text_embeds)?;
+    Ok(eval::evaluate(&gt, &emb, &predicted, &classes.names)?)
 }

@@ -68,12 +68,12 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
         RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(&gaussians)?),
         RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(&gaussians)),
     };
-    let intr = view.intrinsics.scaled(a.raster_scale);
+    let intr = crate::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
     let weights = r.rasterize(&intr, &view.world_to_camera)?;
-    let img = crate::raster::render_colour(&gaussians, &view.world_to_camera, &weights)?;
+    let img = crate::raster::colour::render_colour(&gaussians, &intr, &view.world_to_camera, &weights)?;
     let psnr_db = if (a.raster_scale - 1.0).abs() < 1e-12 {
         let photo = crate::pipeline::read_image(view)?;
-        Some(crate::raster::psnr(&img, &photo))
+        Some(crate::raster::colour::psnr(&img, &photo)?)
     } else {
         None
     };
