@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Runs on the lent GPU machine (x86_64, NVIDIA, no Rust toolchain): the per-stage bench of encode on
-# snowmiku with wgpu on Vulkan (the NVIDIA driver) and ONNX Runtime on the CPU cores.
-# Expects .devcarry/ (made by scripts/make-devcarry.sh): slag-encoder, scene/, fixtures/.
+# Runs on the lent GPU machine (x86_64, NVIDIA, no Rust toolchain): per-stage bench of `encode` on
+# snowmiku (every 2nd image) with wgpu on Vulkan (NVIDIA driver) and ONNX Runtime on the CPU cores,
+# then colour mIoU. Expects .devcarry/ (release slag-encoder, scene/ with a geometry+DC .ply,
+# shared/fixtures/) and .gl/ (Vulkan loader debs). Results go to $OUT (reports, eval JSON, log).
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
 if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
@@ -12,15 +13,19 @@ export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared
 nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 echo "ORT: $ORT_LIB  cores: $(nproc)"
 B=.devcarry/slag-encoder; S=.devcarry/scene; F=.devcarry/shared/fixtures
-OUT=${OUT:-/tmp/slag-out}
-run() { echo "### $*"; "$B" "$@" 2>&1 | grep -v '^\s*$' ; }
+R=${OUT:-/tmp/out}; W=/tmp/slag-work; mkdir -p "$R" "$W"
 SAM=(--masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx --sam-decoder $F/sam-amg/color-sam-decoder.onnx
      --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5)
 CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
-for scale in 1.0 0.5; do
-  run bench --scene $S "${SAM[@]}" "${CLIP[@]}" --every 2 --raster-scale $scale --quiet --out $OUT/sam-$scale
-  cp $OUT/sam-$scale/report.json "$OUT_DIR/report-sam-$scale.json" 2>/dev/null
-done
-run bench --scene $S --masks graph "${CLIP[@]}" --every 2 --raster-scale 0.5 --quiet --out $OUT/graph
-[ -n "${OUT_DIR:-}" ] && cp $OUT/graph/report.json "$OUT_DIR/report-graph.json"
+one() { # name, args...
+  local name=$1; shift
+  echo "### $name: $*"
+  "$B" bench --scene $S "$@" --quiet --out $W/$name 2>&1 | grep -v XDG_RUNTIME
+  cp $W/$name/report.json "$R/report-$name.json"
+  "$B" eval-colors --scene $S --embeddings $W/$name/embeddings.safetensors > "$R/eval-$name.json" 2>/dev/null
+  python3 -c "import json,sys; e=json.load(open('$R/eval-$name.json')); print('$name mIoU', round(e['miou'],4), 'acc', round(e['accuracy'],4), 'observed', round(e['observed_fraction'],4), {c['name']: round(c['iou'],3) for c in e['classes'] if c['in_miou']})"
+}
+one sam-every2-s0.5 "${SAM[@]}" "${CLIP[@]}" --every 2 --raster-scale 0.5
+one graph-every2-s0.5 --masks graph "${CLIP[@]}" --every 2 --raster-scale 0.5
+one graph-every2-s1.0 --masks graph "${CLIP[@]}" --every 2 --raster-scale 1.0
 exit 0

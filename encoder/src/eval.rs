@@ -635,55 +635,8 @@ mod tests {
         }
     }
 
-    /// Test-only reader for the INRIA binary little-endian `.ply` (all properties `float`), until
-    /// `slag_common::scene::load_ply` lands: loads opacities (activated) and the SH DC.
     fn read_inria_ply_dc(path: &Path) -> Gaussians {
-        let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-        let end = b"end_header\n";
-        let hdr_len = bytes
-            .windows(end.len())
-            .position(|w| w == end)
-            .expect("ply header")
-            + end.len();
-        let header = std::str::from_utf8(&bytes[..hdr_len]).expect("ascii header");
-        assert!(
-            header.contains("format binary_little_endian 1.0"),
-            "binary LE ply expected"
-        );
-        let mut n = 0usize;
-        let mut props = Vec::new();
-        for line in header.lines() {
-            let f: Vec<&str> = line.split_whitespace().collect();
-            match f.as_slice() {
-                ["element", "vertex", count] => n = count.parse().expect("vertex count"),
-                ["property", "float", name] => props.push(name.to_string()),
-                ["property", ..] => panic!("non-float property: {line}"),
-                _ => {}
-            }
-        }
-        let col = |name: &str| props.iter().position(|p| p == name).expect(name);
-        let (x, op, dc0) = (col("x"), col("opacity"), col("f_dc_0"));
-        let stride = props.len() * 4;
-        let body = &bytes[hdr_len..];
-        assert_eq!(body.len(), n * stride, "body size");
-        let f = |i: usize, c: usize| {
-            let o = i * stride + c * 4;
-            f32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]])
-        };
-        Gaussians {
-            means: (0..n)
-                .map(|i| [f(i, x), f(i, x + 1), f(i, x + 2)])
-                .collect(),
-            scales: vec![[1.0; 3]; n],
-            rotations: vec![[1.0, 0.0, 0.0, 0.0]; n],
-            opacities: (0..n).map(|i| 1.0 / (1.0 + (-f(i, op)).exp())).collect(),
-            sh: Some(ShCoeffs {
-                degree: 0,
-                coeffs: (0..n)
-                    .flat_map(|i| [f(i, dc0), f(i, dc0 + 1), f(i, dc0 + 2)])
-                    .collect(),
-            }),
-        }
+        slag_common::scene::load_ply(path, slag_common::scene::PlyLoadOptions { colours: true }).unwrap()
     }
 
     #[test]

@@ -93,6 +93,10 @@ fn real_architecture_models_run_end_to_end() {
     assert!(emb.vectors.iter().all(|v| v.is_finite()));
 }
 
-/// Floors: see README "Accuracy" (full runs); set below the subset's measured value with margin.
-const MIOU_FLOOR_SAM: f64 = 0.0;
-const MIOU_FLOOR_GRAPH: f64 = 0.0;
+/// Floors (README "Accuracy"): this CI subset (9 views, raster scale 0.25) measured mIoU 0.195 with
+/// color-sam and 0.165 with the graph segmenter on the 2-core CPU machine, against 0.2x on the full
+/// every-2nd-image runs; the floors sit ~25% below the subset values so that a broken stage (wrong
+/// mask resampling, wrong pose convention, unnormalised sums) fails while run-to-run noise
+/// (none expected: the pipeline is deterministic) cannot.
+const MIOU_FLOOR_SAM: f64 = 0.15;
+const MIOU_FLOOR_GRAPH: f64 = 0.12;
