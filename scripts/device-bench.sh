@@ -28,4 +28,10 @@ one() { # name, args...
 one sam-every2-s0.5 "${SAM[@]}" "${CLIP[@]}" --every 2 --raster-scale 0.5
 one graph-every2-s0.5 --masks graph "${CLIP[@]}" --every 2 --raster-scale 0.5
 one graph-every2-s1.0 --masks graph "${CLIP[@]}" --every 2 --raster-scale 1.0
+echo "### real-architecture SAM (sam-tiny-random, 16x16, no filters) + tiny-clip, every 16th image"
+"$B" bench --scene $S --masks sam --sam-encoder $F/sam-amg/sam-tiny-random-encoder.onnx \
+  --sam-decoder $F/sam-amg/sam-tiny-random-decoder.onnx --sam-points-per-side 16 \
+  --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 --clip-visual $F/clip/tiny-clip-visual.onnx \
+  --every 16 --raster-scale 0.5 --quiet --out $W/real-arch 2>&1 | grep -v XDG_RUNTIME
+cp $W/real-arch/report.json "$R/report-real-arch.json"
 exit 0
