@@ -6,13 +6,21 @@
 //! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
 //! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
 //! mIoU with color-clip, [`query`] checks a text prompt against the result.
+//!
+//! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
+//! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting.
 
 pub mod aggregate;
+pub mod cli;
 pub mod clip;
 pub mod eval;
+pub mod export;
 pub mod masks;
+pub mod partition;
 pub mod pipeline;
 pub mod preprocess;
 pub mod query;
 pub mod raster;
 pub mod report;
+pub mod serve;
+pub mod store;

@@ -1,0 +1,3 @@
+//! Command-line argument structs and run functions of `slag-encoder` subcommands.
+
+pub mod shards;
