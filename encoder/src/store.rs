@@ -130,6 +130,26 @@ impl ShardStore {
         }
     }
 
+    /// Every generation of `scene` with stored data (committed or left over by an interrupted
+    /// writer), ascending. Diagnostics; readers only ever see [`ShardStore::current_generation`].
+    ///
+    /// Errors: invalid scene id, storage errors.
+    pub fn stored_generations(&self, scene: &str) -> Result<Vec<u64>> {
+        check_scene(scene)?;
+        let mut p = scene.as_bytes().to_vec();
+        p.push(0);
+        let mut gens = std::collections::BTreeSet::new();
+        for tree in [&self.shards, &self.tiles, &self.manifests] {
+            for kv in tree.scan_prefix(&p) {
+                let (k, _) = kv.map_err(db_err)?;
+                if let Some(g) = k.get(p.len()..p.len() + 8).and_then(be_u64) {
+                    gens.insert(g);
+                }
+            }
+        }
+        Ok(gens.into_iter().collect())
+    }
+
     /// Starts writing a new generation of `scene`, first removing leftovers of generations that
     /// were never committed.
     ///

@@ -61,10 +61,10 @@ fn dense_areas_get_small_tiles_and_sparse_areas_large_ones() {
     let (m, _) = partition(&scene, &params(500, z_up(), Dtype::I8)).expect("partition");
     let area = |t: &slag_common::shards::TileInfo| {
         let f = &t.footprint;
-        (f[2][0] - f[0][0]) * (f[2][1] - f[0][1])
+        ((f[2][0] - f[0][0]) * (f[2][1] - f[0][1])) as f64
     };
     let dense: Vec<f64> =
-        m.tiles.iter().filter(|t| t.footprint.iter().all(|p| (99.0..=103.0).contains(&p[0]) && (99.0..=103.0).contains(&p[1]))).map(area).collect();
+        m.tiles.iter().filter(|t| t.footprint.iter().all(|p| (99.0..=103.0f32).contains(&p[0]) && (99.0..=103.0f32).contains(&p[1]))).map(area).collect();
     let sparse_max = m.tiles.iter().map(area).fold(0.0, f64::max);
     assert!(dense.len() >= 40, "{} dense tiles", dense.len());
     assert!(dense.iter().all(|&a| a <= 4.0));
@@ -111,7 +111,7 @@ proptest! {
         let idx = TileIndex::new(&m.tiles);
         let got = idx.select_tiles([cx, cy], r);
         let want: Vec<u64> = m.tiles.iter().filter(|t| {
-            let (lo, hi) = (t.footprint[0], t.footprint[2]);
+            let (lo, hi) = (t.footprint[0].map(f64::from), t.footprint[2].map(f64::from));
             let dx = (lo[0] - cx).max(0.0).max(cx - hi[0]);
             let dy = (lo[1] - cy).max(0.0).max(cy - hi[1]);
             (dx * dx + dy * dy).sqrt() <= r
