@@ -20,13 +20,18 @@ use crate::store::ShardStore;
 
 fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-    f.write_all(bytes).and_then(|_| f.sync_all()).map_err(|e| Error::io(path, e))
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(path, e))
 }
 
 fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
-    let name = dir
-        .file_name()
-        .ok_or_else(|| Error::Invalid(format!("export folder {} has no name; pass e.g. out/scene", dir.display())))?;
+    let name = dir.file_name().ok_or_else(|| {
+        Error::Invalid(format!(
+            "export folder {} has no name; pass e.g. out/scene",
+            dir.display()
+        ))
+    })?;
     let mut n = std::ffi::OsString::from(".");
     n.push(name);
     n.push(format!(".{tag}-{}", std::process::id()));
@@ -40,11 +45,16 @@ fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
 /// during export or is corrupted; [`Error::Format`]), I/O. On error nothing is left at `dir`
 /// (or the previous `dir` is unchanged) and the temporary folder is removed.
 pub fn export(store: &ShardStore, scene: &str, dir: &Path, force: bool) -> Result<Manifest> {
-    let manifest = store
-        .manifest(scene)?
-        .ok_or_else(|| Error::Invalid(format!("scene {scene:?} is not in the store; run slag-encoder partition first")))?;
+    let manifest = store.manifest(scene)?.ok_or_else(|| {
+        Error::Invalid(format!(
+            "scene {scene:?} is not in the store; run slag-encoder partition first"
+        ))
+    })?;
     if dir.exists() && !force {
-        return Err(Error::Invalid(format!("{} exists; pass --force to replace it", dir.display())));
+        return Err(Error::Invalid(format!(
+            "{} exists; pass --force to replace it",
+            dir.display()
+        )));
     }
     if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
@@ -65,12 +75,21 @@ fn write_tree(store: &ShardStore, manifest: &Manifest, tmp: &Path) -> Result<()>
     std::fs::create_dir_all(&shards).map_err(|e| Error::io(&shards, e))?;
     for t in &manifest.tiles {
         let bytes = store.shard(&manifest.scene_id, t.id)?.ok_or_else(|| {
-            Error::format("<shard store>", format!("tile {} missing; the store changed during export, re-run", t.id))
+            Error::format(
+                "<shard store>",
+                format!(
+                    "tile {} missing; the store changed during export, re-run",
+                    t.id
+                ),
+            )
         })?;
         if format!("{:08x}", shard_checksum(&bytes)) != t.checksum {
             return Err(Error::format(
                 "<shard store>",
-                format!("tile {} checksum differs from the manifest; the store changed during export, re-run", t.id),
+                format!(
+                    "tile {} checksum differs from the manifest; the store changed during export, re-run",
+                    t.id
+                ),
             ));
         }
         write_synced(&shards.join(t.id.to_string()), &bytes)?;

@@ -9,8 +9,8 @@
 
 use rayon::prelude::*;
 use slag_common::shards::{
-    Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, SHARD_FORMAT_VERSION,
-    ShardInput, TileInfo, encode_shard, shard_checksum, valid_scene_id,
+    Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest,
+    SHARD_FORMAT_VERSION, ShardInput, TileInfo, encode_shard, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -66,15 +66,24 @@ pub fn ground_frame(means: &[[f32; 3]], up: &UpChoice) -> Result<GroundFrame> {
 ///
 /// Errors: `max_per_shard == 0`, more than `u32::MAX` Gaussians, non-finite means
 /// ([`Error::Invalid`]).
-pub fn plan_tiles(means: &[[f32; 3]], ground: &GroundFrame, max_per_shard: usize) -> Result<Vec<TilePlan>> {
+pub fn plan_tiles(
+    means: &[[f32; 3]],
+    ground: &GroundFrame,
+    max_per_shard: usize,
+) -> Result<Vec<TilePlan>> {
     if max_per_shard == 0 {
         return Err(Error::Invalid("--max-per-shard must be at least 1".into()));
     }
     if u32::try_from(means.len()).is_err() {
-        return Err(Error::Invalid(format!("{} Gaussians exceed the u32 id range", means.len())));
+        return Err(Error::Invalid(format!(
+            "{} Gaussians exceed the u32 id range",
+            means.len()
+        )));
     }
     if let Some(i) = means.iter().position(|m| m.iter().any(|x| !x.is_finite())) {
-        return Err(Error::Invalid(format!("mean {i} is not finite; fix the embeddings file")));
+        return Err(Error::Invalid(format!(
+            "mean {i} is not finite; fix the embeddings file"
+        )));
     }
     let g: Vec<[f64; 2]> = means
         .par_iter()
@@ -108,12 +117,19 @@ pub fn plan_tiles(means: &[[f32; 3]], ground: &GroundFrame, max_per_shard: usize
         if rows.len() <= max_per_shard {
             let mut r = rows.to_vec();
             r.sort_unstable();
-            tiles.push(TilePlan { id: tiles.len() as u64, rows: r, min: lo, max: hi });
+            tiles.push(TilePlan {
+                id: tiles.len() as u64,
+                rows: r,
+                min: lo,
+                max: hi,
+            });
             continue;
         }
         let axis = if hi[0] - lo[0] >= hi[1] - lo[1] { 0 } else { 1 };
         let mid = rows.len() / 2;
-        rows.select_nth_unstable_by(mid, |&x, &y| g[x as usize][axis].total_cmp(&g[y as usize][axis]));
+        rows.select_nth_unstable_by(mid, |&x, &y| {
+            g[x as usize][axis].total_cmp(&g[y as usize][axis])
+        });
         stack.push((a + mid, b));
         stack.push((a, a + mid));
     }
@@ -123,7 +139,12 @@ pub fn plan_tiles(means: &[[f32; 3]], ground: &GroundFrame, max_per_shard: usize
 /// Encodes the shard of one planned tile.
 ///
 /// Errors: as [`encode_shard`].
-pub fn encode_tile(src: &impl GaussianSource, scene_id: &str, dtype: Dtype, plan: &TilePlan) -> Result<(TileInfo, Vec<u8>)> {
+pub fn encode_tile(
+    src: &impl GaussianSource,
+    scene_id: &str,
+    dtype: Dtype,
+    plan: &TilePlan,
+) -> Result<(TileInfo, Vec<u8>)> {
     let d = src.dim();
     let n = plan.rows.len();
     let (ids_all, means_all) = (src.ids(), src.means());
@@ -176,7 +197,10 @@ pub fn partition_with(
     }
     let (n, d) = (src.ids().len(), src.dim());
     if src.means().len() != n {
-        return Err(Error::Invalid(format!("{n} ids but {} means", src.means().len())));
+        return Err(Error::Invalid(format!(
+            "{n} ids but {} means",
+            src.means().len()
+        )));
     }
     if d == 0 {
         return Err(Error::Invalid("embedding dim is 0".into()));
@@ -186,8 +210,10 @@ pub fn partition_with(
     let batch = 4 * rayon::current_num_threads().max(1);
     let mut tiles = Vec::with_capacity(plans.len());
     for chunk in plans.chunks(batch) {
-        let encoded: Vec<Result<(TileInfo, Vec<u8>)>> =
-            chunk.par_iter().map(|p| encode_tile(src, &params.scene_id, params.dtype, p)).collect();
+        let encoded: Vec<Result<(TileInfo, Vec<u8>)>> = chunk
+            .par_iter()
+            .map(|p| encode_tile(src, &params.scene_id, params.dtype, p))
+            .collect();
         for e in encoded {
             let (info, bytes) = e?;
             sink(&info, bytes)?;
@@ -213,7 +239,10 @@ pub fn partition_with(
 /// Partitions in memory: the manifest and `(tile id, shard bytes)` for every tile.
 ///
 /// Errors: as [`partition_with`].
-pub fn partition(src: &impl GaussianSource, params: &PartitionParams) -> Result<(Manifest, Vec<(u64, Vec<u8>)>)> {
+pub fn partition(
+    src: &impl GaussianSource,
+    params: &PartitionParams,
+) -> Result<(Manifest, Vec<(u64, Vec<u8>)>)> {
     let mut shards = Vec::new();
     let m = partition_with(src, params, |info, bytes| {
         shards.push((info.id, bytes));

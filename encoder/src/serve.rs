@@ -33,7 +33,12 @@ pub fn router(store: ShardStore) -> Router {
         .route("/v1/scenes", get(scenes))
         .route("/v1/scenes/{scene}/manifest", get(manifest))
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
-        .fallback(|| async { error(StatusCode::NOT_FOUND, "no such route; see /v1/scenes/{scene}/manifest".into()) })
+        .fallback(|| async {
+            error(
+                StatusCode::NOT_FOUND,
+                "no such route; see /v1/scenes/{scene}/manifest".into(),
+            )
+        })
         .with_state(Arc::new(store))
 }
 
@@ -41,9 +46,17 @@ pub fn router(store: ShardStore) -> Router {
 /// with port 0).
 ///
 /// Errors: the address cannot be bound ([`slag_common::Error::Io`]).
-pub async fn serve(store: ShardStore, addr: SocketAddr, on_bound: impl FnOnce(SocketAddr)) -> slag_common::Result<()> {
-    let listener = tokio::net::TcpListener::bind(addr).await.map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
-    let local = listener.local_addr().map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
+pub async fn serve(
+    store: ShardStore,
+    addr: SocketAddr,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
     axum::serve(listener, router(store))
         .with_graceful_shutdown(async {
@@ -55,7 +68,12 @@ pub async fn serve(store: ShardStore, addr: SocketAddr, on_bound: impl FnOnce(So
 
 fn error(status: StatusCode, message: String) -> Response {
     let body = serde_json::json!({ "error": message, "status": status.as_u16() });
-    (status, [(header::CONTENT_TYPE, "application/json")], body.to_string()).into_response()
+    (
+        status,
+        [(header::CONTENT_TYPE, "application/json")],
+        body.to_string(),
+    )
+        .into_response()
 }
 
 fn internal(e: slag_common::Error) -> Response {
@@ -64,7 +82,10 @@ fn internal(e: slag_common::Error) -> Response {
 
 fn bad_scene(scene: &str) -> Option<Response> {
     (!valid_scene_id(scene)).then(|| {
-        error(StatusCode::BAD_REQUEST, format!("invalid scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."))
+        error(
+            StatusCode::BAD_REQUEST,
+            format!("invalid scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."),
+        )
     })
 }
 
@@ -77,12 +98,22 @@ async fn scenes(State(store): State<Arc<ShardStore>>) -> Response {
 
 /// True when an `If-None-Match` header lists `etag` (or `*`). Weak comparison per RFC 9110.
 fn none_match(headers: &HeaderMap, etag: &str) -> bool {
-    headers.get_all(header::IF_NONE_MATCH).iter().filter_map(|v| v.to_str().ok()).any(|v| {
-        v.split(',').map(str::trim).any(|t| t == "*" || t.trim_start_matches("W/") == etag)
-    })
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .any(|v| {
+            v.split(',')
+                .map(str::trim)
+                .any(|t| t == "*" || t.trim_start_matches("W/") == etag)
+        })
 }
 
-async fn manifest(State(store): State<Arc<ShardStore>>, Path(scene): Path<String>, headers: HeaderMap) -> Response {
+async fn manifest(
+    State(store): State<Arc<ShardStore>>,
+    Path(scene): Path<String>,
+    headers: HeaderMap,
+) -> Response {
     if let Some(r) = bad_scene(&scene) {
         return r;
     }
@@ -97,7 +128,17 @@ async fn manifest(State(store): State<Arc<ShardStore>>, Path(scene): Path<String
     if none_match(&headers, &etag) {
         return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
     }
-    (StatusCode::OK, [(header::CONTENT_TYPE, HeaderValue::from_static("application/json")), (header::ETAG, etag_h)], json)
+    (
+        StatusCode::OK,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/json"),
+            ),
+            (header::ETAG, etag_h),
+        ],
+        json,
+    )
         .into_response()
 }
 
@@ -113,12 +154,22 @@ enum RangeReq {
 }
 
 fn parse_range(v: &str, len: u64) -> RangeReq {
-    let Some(spec) = v.trim().strip_prefix("bytes=") else { return RangeReq::Full };
+    let Some(spec) = v.trim().strip_prefix("bytes=") else {
+        return RangeReq::Full;
+    };
     if spec.contains(',') {
         return RangeReq::Full;
     }
-    let Some((a, b)) = spec.trim().split_once('-') else { return RangeReq::Full };
-    let num = |s: &str| if s.bytes().all(|c| c.is_ascii_digit()) && !s.is_empty() { s.parse::<u64>().ok() } else { None };
+    let Some((a, b)) = spec.trim().split_once('-') else {
+        return RangeReq::Full;
+    };
+    let num = |s: &str| {
+        if s.bytes().all(|c| c.is_ascii_digit()) && !s.is_empty() {
+            s.parse::<u64>().ok()
+        } else {
+            None
+        }
+    };
     match (a.trim(), b.trim()) {
         ("", "") => RangeReq::Full,
         ("", n) => match num(n) {
@@ -127,7 +178,14 @@ fn parse_range(v: &str, len: u64) -> RangeReq {
             Some(n) => RangeReq::Part(len.saturating_sub(n), len - 1),
             None => RangeReq::Full,
         },
-        (s, e) => match (num(s), if e.is_empty() { Some(None) } else { num(e).map(Some) }) {
+        (s, e) => match (
+            num(s),
+            if e.is_empty() {
+                Some(None)
+            } else {
+                num(e).map(Some)
+            },
+        ) {
             (Some(s), Some(e)) => {
                 if e.is_some_and(|e| e < s) {
                     RangeReq::Full
@@ -142,17 +200,34 @@ fn parse_range(v: &str, len: u64) -> RangeReq {
     }
 }
 
-async fn shard(State(store): State<Arc<ShardStore>>, Path((scene, id)): Path<(String, String)>, headers: HeaderMap) -> Response {
+async fn shard(
+    State(store): State<Arc<ShardStore>>,
+    Path((scene, id)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
     if let Some(r) = bad_scene(&scene) {
         return r;
     }
-    let tile = match (id.len() <= 20 && id.bytes().all(|b| b.is_ascii_digit())).then(|| id.parse::<u64>().ok()).flatten() {
+    let tile = match (id.len() <= 20 && id.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| id.parse::<u64>().ok())
+        .flatten()
+    {
         Some(t) => t,
-        None => return error(StatusCode::BAD_REQUEST, format!("invalid shard id {id:?}: use the decimal tile id from the manifest")),
+        None => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                format!("invalid shard id {id:?}: use the decimal tile id from the manifest"),
+            );
+        }
     };
     let bytes = match store.shard(&scene, tile) {
         Ok(Some(b)) => b,
-        Ok(None) => return error(StatusCode::NOT_FOUND, format!("unknown shard {tile} of scene {scene:?}")),
+        Ok(None) => {
+            return error(
+                StatusCode::NOT_FOUND,
+                format!("unknown shard {tile} of scene {scene:?}"),
+            );
+        }
         Err(e) => return internal(e),
     };
     let etag = format!("\"{:08x}\"", shard_checksum(&bytes));
@@ -161,7 +236,9 @@ async fn shard(State(store): State<Arc<ShardStore>>, Path((scene, id)): Path<(St
         return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
     }
     let len = bytes.len() as u64;
-    let if_range_ok = headers.get(header::IF_RANGE).is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
+    let if_range_ok = headers
+        .get(header::IF_RANGE)
+        .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
     let range = match headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
         Some(v) if if_range_ok => parse_range(v, len),
         _ => RangeReq::Full,
@@ -169,18 +246,34 @@ async fn shard(State(store): State<Arc<ShardStore>>, Path((scene, id)): Path<(St
     let common = [
         (header::ETAG, etag_h),
         (header::ACCEPT_RANGES, HeaderValue::from_static("bytes")),
-        (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+        (
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/octet-stream"),
+        ),
     ];
     match range {
         RangeReq::Full => (StatusCode::OK, common, Bytes::copy_from_slice(&bytes)).into_response(),
         RangeReq::Part(a, b) => {
-            let cr = HeaderValue::from_str(&format!("bytes {a}-{b}/{len}")).unwrap_or(HeaderValue::from_static("bytes */0"));
+            let cr = HeaderValue::from_str(&format!("bytes {a}-{b}/{len}"))
+                .unwrap_or(HeaderValue::from_static("bytes */0"));
             let body = Bytes::copy_from_slice(&bytes[a as usize..=b as usize]);
-            (StatusCode::PARTIAL_CONTENT, common, [(header::CONTENT_RANGE, cr)], body).into_response()
+            (
+                StatusCode::PARTIAL_CONTENT,
+                common,
+                [(header::CONTENT_RANGE, cr)],
+                body,
+            )
+                .into_response()
         }
         RangeReq::Unsatisfiable => {
-            let cr = HeaderValue::from_str(&format!("bytes */{len}")).unwrap_or(HeaderValue::from_static("bytes */0"));
-            (StatusCode::RANGE_NOT_SATISFIABLE, [(header::CONTENT_RANGE, cr)], "").into_response()
+            let cr = HeaderValue::from_str(&format!("bytes */{len}"))
+                .unwrap_or(HeaderValue::from_static("bytes */0"));
+            (
+                StatusCode::RANGE_NOT_SATISFIABLE,
+                [(header::CONTENT_RANGE, cr)],
+                "",
+            )
+                .into_response()
         }
     }
 }

@@ -15,10 +15,10 @@
 
 use std::path::Path;
 
-use sled::Transactional;
-use sled::transaction::{ConflictableTransactionError, TransactionError};
 use slag_common::shards::{GaussianSource, Manifest, TileInfo, shard_checksum, valid_scene_id};
 use slag_common::{Error, Result};
+use sled::Transactional;
+use sled::transaction::{ConflictableTransactionError, TransactionError};
 
 use crate::partition::{PartitionParams, partition_with};
 
@@ -60,7 +60,9 @@ fn check_scene(scene: &str) -> Result<()> {
     if valid_scene_id(scene) {
         Ok(())
     } else {
-        Err(Error::Invalid(format!("scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - .")))
+        Err(Error::Invalid(format!(
+            "scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."
+        )))
     }
 }
 
@@ -83,7 +85,11 @@ impl ShardStore {
 
     /// Committed generation of `scene`, if any.
     pub fn current_generation(&self, scene: &str) -> Result<Option<u64>> {
-        Ok(self.current.get(scene.as_bytes()).map_err(db_err)?.and_then(|v| be_u64(&v)))
+        Ok(self
+            .current
+            .get(scene.as_bytes())
+            .map_err(db_err)?
+            .and_then(|v| be_u64(&v)))
     }
 
     /// Scene ids with a committed generation, ascending.
@@ -91,7 +97,10 @@ impl ShardStore {
         self.current
             .iter()
             .keys()
-            .map(|k| k.map(|k| String::from_utf8_lossy(&k).into_owned()).map_err(db_err))
+            .map(|k| {
+                k.map(|k| String::from_utf8_lossy(&k).into_owned())
+                    .map_err(db_err)
+            })
             .collect()
     }
 
@@ -100,10 +109,15 @@ impl ShardStore {
     /// Errors: invalid scene id, storage errors, a corrupted manifest ([`Error::Format`]).
     pub fn manifest(&self, scene: &str) -> Result<Option<Manifest>> {
         check_scene(scene)?;
-        let Some(g) = self.current_generation(scene)? else { return Ok(None) };
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
         match self.manifests.get(prefix(scene, g)).map_err(db_err)? {
             Some(b) => Manifest::from_json(&b, &format!("store manifest {scene}@{g}")).map(Some),
-            None => Err(Error::format("<store>", format!("scene {scene} generation {g} has no manifest"))),
+            None => Err(Error::format(
+                "<store>",
+                format!("scene {scene} generation {g} has no manifest"),
+            )),
         }
     }
 
@@ -112,7 +126,9 @@ impl ShardStore {
     /// Errors: invalid scene id, storage errors.
     pub fn shard(&self, scene: &str, tile: u64) -> Result<Option<sled::IVec>> {
         check_scene(scene)?;
-        let Some(g) = self.current_generation(scene)? else { return Ok(None) };
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
         self.shards.get(tile_key(scene, g, tile)).map_err(db_err)
     }
 
@@ -121,7 +137,9 @@ impl ShardStore {
     /// Errors: invalid scene id, storage errors, corrupted entries.
     pub fn tile(&self, scene: &str, tile: u64) -> Result<Option<TileInfo>> {
         check_scene(scene)?;
-        let Some(g) = self.current_generation(scene)? else { return Ok(None) };
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
         match self.tiles.get(tile_key(scene, g, tile)).map_err(db_err)? {
             Some(b) => serde_json::from_slice(&b)
                 .map(Some)
@@ -158,7 +176,11 @@ impl ShardStore {
         check_scene(scene)?;
         let current = self.current_generation(scene)?;
         self.remove_generations(scene, |g| Some(g) != current)?;
-        Ok(SceneWriter { store: self, scene: scene.to_string(), generation: current.map_or(1, |g| g + 1) })
+        Ok(SceneWriter {
+            store: self,
+            scene: scene.to_string(),
+            generation: current.map_or(1, |g| g + 1),
+        })
     }
 
     /// Deletes every stored generation of `scene` for which `drop(generation)` is true.
@@ -204,7 +226,10 @@ impl SceneWriter<'_> {
     ///
     /// Errors: storage errors.
     pub fn put_shard(&mut self, tile: u64, bytes: &[u8]) -> Result<()> {
-        self.store.shards.insert(tile_key(&self.scene, self.generation, tile), bytes).map_err(db_err)?;
+        self.store
+            .shards
+            .insert(tile_key(&self.scene, self.generation, tile), bytes)
+            .map_err(db_err)?;
         Ok(())
     }
 
@@ -215,13 +240,25 @@ impl SceneWriter<'_> {
     /// Errors: scene mismatch or missing/mismatching shards ([`Error::Invalid`]), storage errors.
     pub fn commit(self, mut manifest: Manifest) -> Result<Manifest> {
         if manifest.scene_id != self.scene {
-            return Err(Error::Invalid(format!("manifest is for scene {} but writer for {}", manifest.scene_id, self.scene)));
+            return Err(Error::Invalid(format!(
+                "manifest is for scene {} but writer for {}",
+                manifest.scene_id, self.scene
+            )));
         }
         for t in &manifest.tiles {
-            let b = self.store.shards.get(tile_key(&self.scene, self.generation, t.id)).map_err(db_err)?;
-            let ok = b.is_some_and(|b| b.len() as u64 == t.bytes && format!("{:08x}", shard_checksum(&b)) == t.checksum);
+            let b = self
+                .store
+                .shards
+                .get(tile_key(&self.scene, self.generation, t.id))
+                .map_err(db_err)?;
+            let ok = b.is_some_and(|b| {
+                b.len() as u64 == t.bytes && format!("{:08x}", shard_checksum(&b)) == t.checksum
+            });
             if !ok {
-                return Err(Error::Invalid(format!("tile {} has no stored shard matching the manifest", t.id)));
+                return Err(Error::Invalid(format!(
+                    "tile {} has no stored shard matching the manifest",
+                    t.id
+                )));
             }
         }
         manifest.generation = self.generation;
@@ -229,7 +266,12 @@ impl SceneWriter<'_> {
         let tile_entries: Vec<(Vec<u8>, Vec<u8>)> = manifest
             .tiles
             .iter()
-            .map(|t| (tile_key(&self.scene, self.generation, t.id), serde_json::to_vec(t).unwrap_or_default()))
+            .map(|t| {
+                (
+                    tile_key(&self.scene, self.generation, t.id),
+                    serde_json::to_vec(t).unwrap_or_default(),
+                )
+            })
             .collect();
         let s = self.store;
         // Shards must be durable before the pointer flip can be.
@@ -244,7 +286,9 @@ impl SceneWriter<'_> {
                 c.insert(self.scene.as_bytes(), &g.to_be_bytes())?;
                 Ok::<(), ConflictableTransactionError<()>>(())
             })
-            .map_err(|e: TransactionError<()>| Error::Invalid(format!("store transaction failed: {e:?}")))?;
+            .map_err(|e: TransactionError<()>| {
+                Error::Invalid(format!("store transaction failed: {e:?}"))
+            })?;
         s.flush()?;
         s.remove_generations(&self.scene, |old| old != g)?;
         Ok(manifest)
@@ -255,7 +299,11 @@ impl SceneWriter<'_> {
 /// only after every shard is stored.
 ///
 /// Errors: as [`partition_with`] and [`SceneWriter::commit`].
-pub fn partition_into_store(store: &ShardStore, src: &impl GaussianSource, params: &PartitionParams) -> Result<Manifest> {
+pub fn partition_into_store(
+    store: &ShardStore,
+    src: &impl GaussianSource,
+    params: &PartitionParams,
+) -> Result<Manifest> {
     let mut w = store.writer(&params.scene_id)?;
     let manifest = partition_with(src, params, |info, bytes| w.put_shard(info.id, &bytes))?;
     w.commit(manifest)
@@ -264,7 +312,10 @@ pub fn partition_into_store(store: &ShardStore, src: &impl GaussianSource, param
 fn db_err(e: sled::Error) -> Error {
     match e {
         sled::Error::Io(io) => Error::io("<shard store>", io),
-        other => Error::format("<shard store>", format!("{other}; the store may be corrupted, re-run partition into a new folder")),
+        other => Error::format(
+            "<shard store>",
+            format!("{other}; the store may be corrupted, re-run partition into a new folder"),
+        ),
     }
 }
 

@@ -3,11 +3,18 @@
 
 use proptest::prelude::*;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GaussianSource, GroundFrame, TileIndex, UpSource, decode_shard, shard_checksum};
+use slag_common::shards::{
+    Dtype, GaussianSource, GroundFrame, TileIndex, UpSource, decode_shard, shard_checksum,
+};
 use slag_encoder::partition::{PartitionParams, UpChoice, partition};
 
 fn params(max: usize, up: UpChoice, dtype: Dtype) -> PartitionParams {
-    PartitionParams { scene_id: "synthetic-1".into(), max_per_shard: max, up, dtype }
+    PartitionParams {
+        scene_id: "synthetic-1".into(),
+        max_per_shard: max,
+        up,
+        dtype,
+    }
 }
 
 fn z_up() -> UpChoice {
@@ -27,7 +34,12 @@ fn every_gaussian_lands_in_exactly_one_bounded_tile_with_its_own_vector() {
         assert_eq!(t.id, *id);
         assert_eq!(t.bytes, bytes.len() as u64);
         assert_eq!(t.checksum, format!("{:08x}", shard_checksum(bytes)));
-        assert!(t.count >= 1 && t.count <= 300, "tile {} holds {}", t.id, t.count);
+        assert!(
+            t.count >= 1 && t.count <= 300,
+            "tile {} holds {}",
+            t.id,
+            t.count
+        );
         let s = decode_shard(bytes).expect("decode");
         assert_eq!(s.header.count as u64, t.count);
         assert_eq!(s.header.aabb, t.aabb);
@@ -43,7 +55,10 @@ fn every_gaussian_lands_in_exactly_one_bounded_tile_with_its_own_vector() {
             assert_eq!(s.vector(k), emb.vector(row));
             let g = m.ground.to_ground(s.means[k]);
             let p = geo::Point::new(g[0], g[1]);
-            assert!(rect.contains(&p) || rect.intersects(&p), "mean outside its footprint");
+            assert!(
+                rect.contains(&p) || rect.intersects(&p),
+                "mean outside its footprint"
+            );
         }
     }
     assert!(seen.iter().all(|&s| s), "some Gaussian is in no tile");
@@ -56,19 +71,34 @@ fn dense_areas_get_small_tiles_and_sparse_areas_large_ones() {
     for (i, m) in scene.means.iter_mut().enumerate() {
         let u = ((i * 7919) % 1000) as f32 / 1000.0;
         let v = ((i * 104_729) % 997) as f32 / 997.0;
-        *m = if i < 20_000 { [100.0 + 2.0 * u, 100.0 + 2.0 * v, 0.0] } else { [400.0 * u, 400.0 * v, 0.0] };
+        *m = if i < 20_000 {
+            [100.0 + 2.0 * u, 100.0 + 2.0 * v, 0.0]
+        } else {
+            [400.0 * u, 400.0 * v, 0.0]
+        };
     }
     let (m, _) = partition(&scene, &params(500, z_up(), Dtype::I8)).expect("partition");
     let area = |t: &slag_common::shards::TileInfo| {
         let f = &t.footprint;
         ((f[2][0] - f[0][0]) * (f[2][1] - f[0][1])) as f64
     };
-    let dense: Vec<f64> =
-        m.tiles.iter().filter(|t| t.footprint.iter().all(|p| (99.0..=103.0f32).contains(&p[0]) && (99.0..=103.0f32).contains(&p[1]))).map(area).collect();
+    let dense: Vec<f64> = m
+        .tiles
+        .iter()
+        .filter(|t| {
+            t.footprint
+                .iter()
+                .all(|p| (99.0..=103.0f32).contains(&p[0]) && (99.0..=103.0f32).contains(&p[1]))
+        })
+        .map(area)
+        .collect();
     let sparse_max = m.tiles.iter().map(area).fold(0.0, f64::max);
     assert!(dense.len() >= 40, "{} dense tiles", dense.len());
     assert!(dense.iter().all(|&a| a <= 4.0));
-    assert!(sparse_max > 100.0 * dense.iter().fold(0.0, |a: f64, &b| a.max(b)), "sparse {sparse_max}");
+    assert!(
+        sparse_max > 100.0 * dense.iter().fold(0.0, |a: f64, &b| a.max(b)),
+        "sparse {sparse_max}"
+    );
     assert!(m.tiles.iter().all(|t| t.count >= 1 && t.count <= 500));
 }
 
@@ -77,12 +107,25 @@ fn up_axis_is_estimated_or_taken_from_user_and_cameras() {
     let scene = SyntheticScene::new(3000, 4, 5, 100.0, 11);
     let (m, _) = partition(&scene, &params(1000, UpChoice::Pca, Dtype::F16)).expect("pca");
     assert_eq!(m.ground.up_source, UpSource::Pca);
-    assert!(m.ground.up[2].abs() > 0.999, "synthetic scenes are z-up, PCA gave {:?}", m.ground.up);
-    let (m, _) = partition(&scene, &params(1000, UpChoice::Given(GroundFrame::from_axis_name("-y").expect("y")), Dtype::F16)).expect("user");
+    assert!(
+        m.ground.up[2].abs() > 0.999,
+        "synthetic scenes are z-up, PCA gave {:?}",
+        m.ground.up
+    );
+    let (m, _) = partition(
+        &scene,
+        &params(
+            1000,
+            UpChoice::Given(GroundFrame::from_axis_name("-y").expect("y")),
+            Dtype::F16,
+        ),
+    )
+    .expect("user");
     assert_eq!(m.ground.up, [0.0, -1.0, 0.0]);
     assert_eq!(m.ground.up_source, UpSource::User);
     let ups = vec![[0.05, 0.0, 1.0], [-0.05, 0.0, 1.0], [0.0, 0.02, 0.9]];
-    let (m, _) = partition(&scene, &params(1000, UpChoice::CameraUps(ups), Dtype::F16)).expect("cams");
+    let (m, _) =
+        partition(&scene, &params(1000, UpChoice::CameraUps(ups), Dtype::F16)).expect("cams");
     assert_eq!(m.ground.up_source, UpSource::Cameras);
     assert!(m.ground.up[2] > 0.999);
 }
@@ -93,10 +136,16 @@ fn bad_parameters_are_typed_errors() {
     assert!(partition(&scene, &params(0, z_up(), Dtype::F16)).is_err());
     let mut p = params(5, z_up(), Dtype::F16);
     p.scene_id = "../etc".into();
-    assert!(matches!(partition(&scene, &p), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        partition(&scene, &p),
+        Err(slag_common::Error::Invalid(_))
+    ));
     let mut bad = scene.to_embeddings();
     bad.means[3][1] = f32::NAN;
-    assert!(matches!(partition(&bad, &params(5, z_up(), Dtype::F16)), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        partition(&bad, &params(5, z_up(), Dtype::F16)),
+        Err(slag_common::Error::Invalid(_))
+    ));
 }
 
 proptest! {

@@ -20,15 +20,27 @@ fn pct(v: &mut [u64], p: f64) -> u64 {
 #[test]
 #[ignore = "measurement; run explicitly with --ignored --nocapture"]
 fn measure_partition_at_scale() {
-    let spec = std::env::var("SLAG_SHARDS_SCALE").unwrap_or_else(|_| "1000000:512:f32,f16,i8".into());
-    let max: usize = std::env::var("SLAG_SHARDS_MAX").ok().and_then(|s| s.parse().ok()).unwrap_or(65536);
+    let spec =
+        std::env::var("SLAG_SHARDS_SCALE").unwrap_or_else(|_| "1000000:512:f32,f16,i8".into());
+    let max: usize = std::env::var("SLAG_SHARDS_MAX")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(65536);
     let mut parts = spec.split(':');
     let n: usize = parts.next().and_then(|s| s.parse().ok()).expect("N");
     let dim: usize = parts.next().and_then(|s| s.parse().ok()).expect("dim");
-    let dtypes: Vec<Dtype> = parts.next().unwrap_or("f16").split(',').map(|s| s.parse().expect("dtype")).collect();
+    let dtypes: Vec<Dtype> = parts
+        .next()
+        .unwrap_or("f16")
+        .split(',')
+        .map(|s| s.parse().expect("dtype"))
+        .collect();
     let t = Instant::now();
     let scene = SyntheticScene::new(n, dim, 64, 2000.0, 42);
-    println!("scene: {n} Gaussians, dim {dim}, 64 clusters over 2 km x 2 km; means generated in {:.1}s", t.elapsed().as_secs_f64());
+    println!(
+        "scene: {n} Gaussians, dim {dim}, 64 clusters over 2 km x 2 km; means generated in {:.1}s",
+        t.elapsed().as_secs_f64()
+    );
     for dtype in dtypes {
         let params = PartitionParams {
             scene_id: "synthetic-scale".into(),

@@ -14,7 +14,10 @@ struct Resp {
 
 impl Resp {
     fn header(&self, name: &str) -> Option<&str> {
-        self.headers.iter().find(|(k, _)| k.eq_ignore_ascii_case(name)).map(|(_, v)| v.as_str())
+        self.headers
+            .iter()
+            .find(|(k, _)| k.eq_ignore_ascii_case(name))
+            .map(|(_, v)| v.as_str())
     }
 }
 
@@ -29,14 +32,27 @@ fn get(addr: std::net::SocketAddr, path: &str, extra: &[(&str, &str)]) -> Resp {
     s.write_all(req.as_bytes()).expect("send");
     let mut raw = Vec::new();
     s.read_to_end(&mut raw).expect("read");
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n").expect("header end");
+    let split = raw
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("header end");
     let head = String::from_utf8_lossy(&raw[..split]).into_owned();
     let mut lines = head.split("\r\n");
-    let status = lines.next().and_then(|l| l.split(' ').nth(1)).and_then(|c| c.parse().ok()).expect("status");
-    let headers: Vec<(String, String)> =
-        lines.filter_map(|l| l.split_once(':')).map(|(k, v)| (k.trim().to_string(), v.trim().to_string())).collect();
+    let status = lines
+        .next()
+        .and_then(|l| l.split(' ').nth(1))
+        .and_then(|c| c.parse().ok())
+        .expect("status");
+    let headers: Vec<(String, String)> = lines
+        .filter_map(|l| l.split_once(':'))
+        .map(|(k, v)| (k.trim().to_string(), v.trim().to_string()))
+        .collect();
     let body = raw[split + 4..].to_vec();
-    let r = Resp { status, headers, body };
+    let r = Resp {
+        status,
+        headers,
+        body,
+    };
     if let Some(len) = r.header("content-length") {
         assert_eq!(len.parse::<usize>().expect("len"), r.body.len());
     }
@@ -64,8 +80,11 @@ fn manifest_and_shards_over_loopback() {
     std::thread::spawn(move || {
         let rt = tokio::runtime::Runtime::new().expect("runtime");
         rt.block_on(async move {
-            let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
-            tx.send(listener.local_addr().expect("addr")).expect("send addr");
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+                .await
+                .expect("bind");
+            tx.send(listener.local_addr().expect("addr"))
+                .expect("send addr");
             axum::serve(listener, slag_encoder::serve::router(store)).await
         })
     });
@@ -78,13 +97,24 @@ fn manifest_and_shards_over_loopback() {
     let got: Manifest = Manifest::from_json(&r.body, "http").expect("manifest json");
     assert_eq!(got, m);
     let metag = r.header("etag").expect("etag").to_string();
-    assert_eq!(get(addr, "/v1/scenes/lab.v1/manifest", &[("If-None-Match", &metag)]).status, 304);
+    assert_eq!(
+        get(
+            addr,
+            "/v1/scenes/lab.v1/manifest",
+            &[("If-None-Match", &metag)]
+        )
+        .status,
+        304
+    );
 
     // Every shard: bytes, strong ETag = checksum, decodes.
     for t in &m.tiles {
         let r = get(addr, &format!("/v1/scenes/lab.v1/shards/{}", t.id), &[]);
         assert_eq!(r.status, 200);
-        assert_eq!(r.header("etag"), Some(format!("\"{}\"", t.checksum).as_str()));
+        assert_eq!(
+            r.header("etag"),
+            Some(format!("\"{}\"", t.checksum).as_str())
+        );
         assert_eq!(r.header("accept-ranges"), Some("bytes"));
         assert_eq!(format!("{:08x}", shard_checksum(&r.body)), t.checksum);
         assert_eq!(decode_shard(&r.body).expect("decode").header.tile_id, t.id);
@@ -95,21 +125,37 @@ fn manifest_and_shards_over_loopback() {
     let etag = format!("\"{}\"", t.checksum);
     let r = get(addr, &path, &[("If-None-Match", &etag)]);
     assert_eq!((r.status, r.body.len()), (304, 0));
-    assert_eq!(get(addr, &path, &[("If-None-Match", "\"00000000\"")]).status, 200);
+    assert_eq!(
+        get(addr, &path, &[("If-None-Match", "\"00000000\"")]).status,
+        200
+    );
 
     // Ranges.
     let r = get(addr, &path, &[("Range", "bytes=8-15")]);
     assert_eq!(r.status, 206);
     assert_eq!(r.body, full[8..16]);
-    assert_eq!(r.header("content-range"), Some(format!("bytes 8-15/{}", full.len()).as_str()));
+    assert_eq!(
+        r.header("content-range"),
+        Some(format!("bytes 8-15/{}", full.len()).as_str())
+    );
     let r = get(addr, &path, &[("Range", "bytes=-10")]);
-    assert_eq!((r.status, r.body.as_slice()), (206, &full[full.len() - 10..]));
+    assert_eq!(
+        (r.status, r.body.as_slice()),
+        (206, &full[full.len() - 10..])
+    );
     let r = get(addr, &path, &[("Range", "bytes=100-")]);
     assert_eq!((r.status, r.body.as_slice()), (206, &full[100..]));
     let r = get(addr, &path, &[("Range", &format!("bytes={}-", full.len()))]);
     assert_eq!(r.status, 416);
-    assert_eq!(r.header("content-range"), Some(format!("bytes */{}", full.len()).as_str()));
-    let r = get(addr, &path, &[("Range", "bytes=0-3"), ("If-Range", "\"deadbeef\"")]);
+    assert_eq!(
+        r.header("content-range"),
+        Some(format!("bytes */{}", full.len()).as_str())
+    );
+    let r = get(
+        addr,
+        &path,
+        &[("Range", "bytes=0-3"), ("If-Range", "\"deadbeef\"")],
+    );
     assert_eq!((r.status, r.body.len()), (200, full.len()));
 
     // Errors: JSON 404 / 400, no traversal.
@@ -138,7 +184,11 @@ fn export_is_complete_and_atomic() {
     let out = dir.path().join("out").join("lab");
     let got = slag_encoder::export::export(&store, "lab.v1", &out, false).expect("export");
     assert_eq!(got, m);
-    let back = Manifest::from_json(&std::fs::read(out.join("manifest.json")).expect("manifest"), "export").expect("json");
+    let back = Manifest::from_json(
+        &std::fs::read(out.join("manifest.json")).expect("manifest"),
+        "export",
+    )
+    .expect("json");
     assert_eq!(back, m);
     for t in &m.tiles {
         let b = std::fs::read(out.join("shards").join(t.id.to_string())).expect("shard file");
@@ -147,7 +197,10 @@ fn export_is_complete_and_atomic() {
     let n_files = std::fs::read_dir(out.join("shards")).expect("dir").count();
     assert_eq!(n_files, m.tiles.len());
     // Refuses to overwrite without force; leaves no temporary folder behind.
-    assert!(matches!(slag_encoder::export::export(&store, "lab.v1", &out, false), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        slag_encoder::export::export(&store, "lab.v1", &out, false),
+        Err(slag_common::Error::Invalid(_))
+    ));
     assert!(slag_encoder::export::export(&store, "nope", &dir.path().join("x"), false).is_err());
     assert!(!dir.path().join("x").exists());
     std::fs::write(out.join("shards").join("stale"), b"old").expect("write");

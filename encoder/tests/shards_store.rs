@@ -25,7 +25,10 @@ fn assert_complete(store: &ShardStore, scene: &str) -> Manifest {
     let m = store.manifest(scene).expect("read").expect("committed");
     let mut total = 0;
     for t in &m.tiles {
-        let b = store.shard(scene, t.id).expect("read").expect("shard present");
+        let b = store
+            .shard(scene, t.id)
+            .expect("read")
+            .expect("shard present");
         assert_eq!(b.len() as u64, t.bytes);
         assert_eq!(format!("{:08x}", shard_checksum(&b)), t.checksum);
         let s = decode_shard(&b).expect("decodes");
@@ -52,7 +55,12 @@ fn commit_publishes_and_new_generations_replace_old_ones() {
     assert_eq!(m2.generation, 2);
     assert_eq!(assert_complete(&store, "a"), m2);
     assert_eq!(store.scenes().expect("scenes"), vec!["a".to_string()]);
-    assert!(store.shard("a", m1.tiles.len() as u64 + 100).expect("read").is_none());
+    assert!(
+        store
+            .shard("a", m1.tiles.len() as u64 + 100)
+            .expect("read")
+            .is_none()
+    );
     assert!(matches!(store.manifest("../x"), Err(Error::Invalid(_))));
 }
 
@@ -66,14 +74,15 @@ fn injected_failure_mid_partition_keeps_previous_generation() {
     let s2 = SyntheticScene::new(1500, 8, 3, 50.0, 99);
     let mut w = store.writer("scene").expect("writer");
     let mut written = 0;
-    let r: Result<Manifest> = partition_with(&s2, &params("scene", 100, Dtype::F32), |info, bytes| {
-        if written == 3 {
-            return Err(Error::Invalid("injected failure".into()));
-        }
-        w.put_shard(info.id, &bytes)?;
-        written += 1;
-        Ok(())
-    });
+    let r: Result<Manifest> =
+        partition_with(&s2, &params("scene", 100, Dtype::F32), |info, bytes| {
+            if written == 3 {
+                return Err(Error::Invalid("injected failure".into()));
+            }
+            w.put_shard(info.id, &bytes)?;
+            written += 1;
+            Ok(())
+        });
     assert!(r.is_err());
     drop(w);
     assert_eq!(assert_complete(&store, "scene"), m1);
@@ -81,7 +90,8 @@ fn injected_failure_mid_partition_keeps_previous_generation() {
     let b = store.shard("scene", 0).expect("read").expect("present");
     assert_eq!(format!("{:08x}", shard_checksum(&b)), m1.tiles[0].checksum);
     // The next writer discards the leftovers and commits normally.
-    let m3 = partition_into_store(&store, &s2, &params("scene", 100, Dtype::F32)).expect("v after failure");
+    let m3 = partition_into_store(&store, &s2, &params("scene", 100, Dtype::F32))
+        .expect("v after failure");
     assert_eq!(assert_complete(&store, "scene"), m3);
 }
 
@@ -92,7 +102,9 @@ const CHILD_ENV: &str = "SLAG_SHARDS_KILL_CHILD_STORE";
 #[test]
 #[ignore = "helper run as a child process by killed_writer_leaves_previous_generation_readable"]
 fn child_writer_for_kill_test() {
-    let Ok(path) = std::env::var(CHILD_ENV) else { return };
+    let Ok(path) = std::env::var(CHILD_ENV) else {
+        return;
+    };
     let store = ShardStore::open(std::path::Path::new(&path)).expect("open");
     let s1 = SyntheticScene::new(3000, 16, 4, 80.0, 5);
     let m1 = partition_into_store(&store, &s1, &params("kill", 250, Dtype::F16)).expect("v1");
@@ -116,7 +128,13 @@ fn killed_writer_leaves_previous_generation_readable() {
     let dir = tempfile::tempdir().expect("tmp");
     let exe = std::env::current_exe().expect("exe");
     let mut child = Command::new(exe)
-        .args(["--exact", "child_writer_for_kill_test", "--ignored", "--nocapture", "--test-threads=1"])
+        .args([
+            "--exact",
+            "child_writer_for_kill_test",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
         .env(CHILD_ENV, dir.path())
         .stdout(Stdio::piped())
         .spawn()

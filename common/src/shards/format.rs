@@ -57,7 +57,9 @@ const FLAG_SCALES: u8 = 1;
 const FLAG_OPACITIES: u8 = 2;
 
 /// Storage type of the embedding vectors in a shard.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum Dtype {
     /// IEEE single precision, 4 bytes per component (exact).
@@ -105,7 +107,9 @@ impl std::str::FromStr for Dtype {
             "f32" => Ok(Dtype::F32),
             "f16" => Ok(Dtype::F16),
             "i8" | "int8" => Ok(Dtype::I8),
-            _ => Err(Error::Invalid(format!("unknown shard dtype {s:?}; use f32, f16 or int8"))),
+            _ => Err(Error::Invalid(format!(
+                "unknown shard dtype {s:?}; use f32, f16 or int8"
+            ))),
         }
     }
 }
@@ -124,7 +128,10 @@ impl Aabb {
     pub fn of_points(points: impl IntoIterator<Item = [f32; 3]>) -> Option<Aabb> {
         let mut it = points.into_iter();
         let first = it.next()?;
-        let mut b = Aabb { min: first, max: first };
+        let mut b = Aabb {
+            min: first,
+            max: first,
+        };
         for p in it {
             for a in 0..3 {
                 b.min[a] = b.min[a].min(p[a]);
@@ -150,10 +157,14 @@ pub enum ShardError {
     #[error("not a slag shard (bad magic); pass a file produced by slag-encoder partition/export")]
     BadMagic,
     /// A format version this crate does not read.
-    #[error("shard format version {0}, this slag reads {SHARD_FORMAT_VERSION}; upgrade slag or re-export")]
+    #[error(
+        "shard format version {0}, this slag reads {SHARD_FORMAT_VERSION}; upgrade slag or re-export"
+    )]
     UnsupportedVersion(u16),
     /// A stored CRC-32 does not match the bytes.
-    #[error("shard {section} checksum mismatch (stored {stored:08x}, computed {computed:08x}); the shard is corrupted, re-download it")]
+    #[error(
+        "shard {section} checksum mismatch (stored {stored:08x}, computed {computed:08x}); the shard is corrupted, re-download it"
+    )]
     Checksum {
         /// `"header"` or `"payload"`.
         section: &'static str,
@@ -251,9 +262,17 @@ fn align(n: usize, a: usize) -> usize {
 /// Quantises one vector to symmetric int8; returns the scale (`0` for an all-zero vector).
 pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
     let m = v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
-    let scale = if m > 0.0 && m.is_finite() { m / 127.0 } else { 0.0 };
+    let scale = if m > 0.0 && m.is_finite() {
+        m / 127.0
+    } else {
+        0.0
+    };
     for &x in v {
-        let q = if scale > 0.0 { (x / scale).round().clamp(-127.0, 127.0) as i8 } else { 0 };
+        let q = if scale > 0.0 {
+            (x / scale).round().clamp(-127.0, 127.0) as i8
+        } else {
+            0
+        };
         out.push(q as u8);
     }
     scale
@@ -271,7 +290,9 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         return Err(bad(format!("embedding dim {d} outside 1..={MAX_DIM}")));
     }
     if u32::try_from(n).is_err() {
-        return Err(bad(format!("{n} Gaussians do not fit one shard; lower --max-per-shard")));
+        return Err(bad(format!(
+            "{n} Gaussians do not fit one shard; lower --max-per-shard"
+        )));
     }
     if input.means.len() != n || input.vectors.len() != n * d {
         return Err(bad(format!(
@@ -281,13 +302,19 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         )));
     }
     if input.scales.is_some_and(|s| s.len() != n) || input.opacities.is_some_and(|o| o.len() != n) {
-        return Err(bad("scales/opacities length differs from the id count".into()));
+        return Err(bad(
+            "scales/opacities length differs from the id count".into()
+        ));
     }
     if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
         return Err(bad("scene or model id longer than 65535 bytes".into()));
     }
-    if input.means.iter().flatten().any(|x| !x.is_finite()) || input.vectors.iter().any(|x| !x.is_finite()) {
-        return Err(bad("non-finite mean or embedding value; fix the encoder output".into()));
+    if input.means.iter().flatten().any(|x| !x.is_finite())
+        || input.vectors.iter().any(|x| !x.is_finite())
+    {
+        return Err(bad(
+            "non-finite mean or embedding value; fix the encoder output".into(),
+        ));
     }
     let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
     let (s, m) = (input.scene_id.len(), input.model.len());
@@ -295,10 +322,20 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
 
     // Payload.
     let mut p: Vec<u8> = Vec::with_capacity(n * (16 + input.dtype.bytes_per_vector(d)) + 4);
-    input.ids.iter().for_each(|i| p.extend_from_slice(&i.to_le_bytes()));
-    input.means.iter().flatten().for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    input
+        .ids
+        .iter()
+        .for_each(|i| p.extend_from_slice(&i.to_le_bytes()));
+    input
+        .means
+        .iter()
+        .flatten()
+        .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     match input.dtype {
-        Dtype::F32 => input.vectors.iter().for_each(|x| p.extend_from_slice(&x.to_le_bytes())),
+        Dtype::F32 => input
+            .vectors
+            .iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes())),
         Dtype::F16 => input
             .vectors
             .iter()
@@ -316,11 +353,14 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     let mut flags = 0u8;
     if let Some(sc) = input.scales {
         flags |= FLAG_SCALES;
-        sc.iter().flatten().for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+        sc.iter()
+            .flatten()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
     if let Some(op) = input.opacities {
         flags |= FLAG_OPACITIES;
-        op.iter().for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+        op.iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
 
     let mut h: Vec<u8> = Vec::with_capacity(header_len + p.len());
@@ -332,7 +372,10 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     h.extend_from_slice(&(n as u32).to_le_bytes());
     h.extend_from_slice(&(header_len as u32).to_le_bytes());
     h.extend_from_slice(&input.tile_id.to_le_bytes());
-    aabb.min.iter().chain(&aabb.max).for_each(|x| h.extend_from_slice(&x.to_le_bytes()));
+    aabb.min
+        .iter()
+        .chain(&aabb.max)
+        .for_each(|x| h.extend_from_slice(&x.to_le_bytes()));
     h.extend_from_slice(&(p.len() as u64).to_le_bytes());
     h.extend_from_slice(&crc32fast::hash(&p).to_le_bytes());
     h.extend_from_slice(&(s as u16).to_le_bytes());
@@ -359,10 +402,14 @@ struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> Result<&'a [u8], ShardError> {
-        let end = self.at.checked_add(n).filter(|&e| e <= self.b.len()).ok_or(ShardError::Truncated {
-            needed: self.at as u64 + n as u64,
-            got: self.b.len() as u64,
-        })?;
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.b.len())
+            .ok_or(ShardError::Truncated {
+                needed: self.at as u64 + n as u64,
+                got: self.b.len() as u64,
+            })?;
         let s = &self.b[self.at..end];
         self.at = end;
         Ok(s)
@@ -388,7 +435,9 @@ impl<'a> Reader<'a> {
 }
 
 fn le_f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
 }
 
 fn triples(v: Vec<f32>) -> Vec<[f32; 3]> {
@@ -402,7 +451,10 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
         if bytes.len() >= 8 && bytes[..8] != SHARD_MAGIC {
             return Err(ShardError::BadMagic);
         }
-        return Err(ShardError::Truncated { needed: FIXED_HEADER as u64, got: bytes.len() as u64 });
+        return Err(ShardError::Truncated {
+            needed: FIXED_HEADER as u64,
+            got: bytes.len() as u64,
+        });
     }
     let mut r = Reader { b: bytes, at: 0 };
     if r.arr::<8>()? != SHARD_MAGIC {
@@ -429,11 +481,19 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
     let payload_crc = r.u32()?;
     let s = r.u16()? as usize;
     let m = r.u16()? as usize;
-    if header_len % 8 != 0 || header_len < align(FIXED_HEADER + s + m + 4, 8) || header_len > 1 << 20 {
-        return Err(ShardError::Malformed(format!("header length {header_len} inconsistent")));
+    if header_len % 8 != 0
+        || header_len < align(FIXED_HEADER + s + m + 4, 8)
+        || header_len > 1 << 20
+    {
+        return Err(ShardError::Malformed(format!(
+            "header length {header_len} inconsistent"
+        )));
     }
     if bytes.len() < header_len {
-        return Err(ShardError::Truncated { needed: header_len as u64, got: bytes.len() as u64 });
+        return Err(ShardError::Truncated {
+            needed: header_len as u64,
+            got: bytes.len() as u64,
+        });
     }
     let stored = u32::from_le_bytes([
         bytes[header_len - 4],
@@ -443,7 +503,11 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
     ]);
     let computed = crc32fast::hash(&bytes[..header_len - 4]);
     if stored != computed {
-        return Err(ShardError::Checksum { section: "header", stored, computed });
+        return Err(ShardError::Checksum {
+            section: "header",
+            stored,
+            computed,
+        });
     }
     let scene_id = std::str::from_utf8(r.take(s)?)
         .map_err(|_| ShardError::Malformed("scene id is not UTF-8".into()))?
@@ -457,9 +521,20 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
         return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
     }
     if dim == 0 || dim > MAX_DIM {
-        return Err(ShardError::Malformed(format!("embedding dim {dim} outside 1..={MAX_DIM}")));
+        return Err(ShardError::Malformed(format!(
+            "embedding dim {dim} outside 1..={MAX_DIM}"
+        )));
     }
-    let header = ShardHeader { version, scene_id, model, dim, dtype, count, aabb, tile_id };
+    let header = ShardHeader {
+        version,
+        scene_id,
+        model,
+        dim,
+        dtype,
+        count,
+        aabb,
+        tile_id,
+    };
     Ok((header, header_len, flags, payload_len, payload_crc))
 }
 
@@ -502,7 +577,10 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
     }
     let total = header_len as u64 + payload_len;
     if (bytes.len() as u64) < total {
-        return Err(ShardError::Truncated { needed: total, got: bytes.len() as u64 });
+        return Err(ShardError::Truncated {
+            needed: total,
+            got: bytes.len() as u64,
+        });
     }
     if (bytes.len() as u64) > total {
         return Err(ShardError::Malformed(format!(
@@ -513,12 +591,20 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
     let payload = &bytes[header_len..];
     let computed = crc32fast::hash(payload);
     if computed != payload_crc {
-        return Err(ShardError::Checksum { section: "payload", stored: payload_crc, computed });
+        return Err(ShardError::Checksum {
+            section: "payload",
+            stored: payload_crc,
+            computed,
+        });
     }
     // Lengths are now proven to fit in memory (they sum to bytes.len()).
     let (n, d) = (n as usize, d as usize);
     let mut r = Reader { b: payload, at: 0 };
-    let ids = r.take(4 * n)?.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let ids = r
+        .take(4 * n)?
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
     let means = triples(le_f32s(r.take(12 * n)?));
     let vectors: Vec<f32> = match header.dtype {
         Dtype::F32 => le_f32s(r.take(4 * n * d)?),
@@ -538,9 +624,24 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
         }
     };
     r.at = align(r.at, 4);
-    let scales = if flags & FLAG_SCALES != 0 { Some(triples(le_f32s(r.take(12 * n)?))) } else { None };
-    let opacities = if flags & FLAG_OPACITIES != 0 { Some(le_f32s(r.take(4 * n)?)) } else { None };
-    Ok(Shard { header, ids, means, vectors, scales, opacities })
+    let scales = if flags & FLAG_SCALES != 0 {
+        Some(triples(le_f32s(r.take(12 * n)?)))
+    } else {
+        None
+    };
+    let opacities = if flags & FLAG_OPACITIES != 0 {
+        Some(le_f32s(r.take(4 * n)?))
+    } else {
+        None
+    };
+    Ok(Shard {
+        header,
+        ids,
+        means,
+        vectors,
+        scales,
+        opacities,
+    })
 }
 
 #[cfg(test)]
@@ -550,7 +651,11 @@ mod tests {
 
     fn unit(v: Vec<f32>) -> Vec<f32> {
         let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-        if n < 1e-6 { v.iter().map(|_| 0.0).collect() } else { v.iter().map(|x| x / n).collect() }
+        if n < 1e-6 {
+            v.iter().map(|_| 0.0).collect()
+        } else {
+            v.iter().map(|x| x / n).collect()
+        }
     }
 
     #[derive(Debug, Clone)]
@@ -572,23 +677,28 @@ mod tests {
                 proptest::collection::vec(any::<u32>(), n),
                 proptest::collection::vec(prop::array::uniform3(-1e4f32..1e4), n),
                 proptest::collection::vec(proptest::collection::vec(-1.0f32..1.0, dim), n),
-                proptest::option::of(proptest::collection::vec(prop::array::uniform3(-10f32..3.0), n)),
+                proptest::option::of(proptest::collection::vec(
+                    prop::array::uniform3(-10f32..3.0),
+                    n,
+                )),
                 proptest::option::of(proptest::collection::vec(-8f32..8.0, n)),
                 "[a-z0-9_-]{0,12}",
                 "\\PC{0,10}",
                 any::<u64>(),
             )
-                .prop_map(move |(ids, means, vecs, scales, opacities, scene, model, tile)| Case {
-                    ids,
-                    means,
-                    vectors: vecs.into_iter().flat_map(unit).collect(),
-                    dim,
-                    scales,
-                    opacities,
-                    scene,
-                    model,
-                    tile,
-                })
+                .prop_map(
+                    move |(ids, means, vecs, scales, opacities, scene, model, tile)| Case {
+                        ids,
+                        means,
+                        vectors: vecs.into_iter().flat_map(unit).collect(),
+                        dim,
+                        scales,
+                        opacities,
+                        scene,
+                        model,
+                        tile,
+                    },
+                )
         })
     }
 
@@ -682,7 +792,10 @@ mod tests {
         let c = Case {
             ids: vec![3, 9],
             means: vec![[0.0, 1.0, 2.0], [-1.0, 5.0, 0.5]],
-            vectors: unit(vec![1.0, 2.0, 3.0]).into_iter().chain(unit(vec![0.0, -1.0, 0.5])).collect(),
+            vectors: unit(vec![1.0, 2.0, 3.0])
+                .into_iter()
+                .chain(unit(vec![0.0, -1.0, 0.5]))
+                .collect(),
             dim: 3,
             scales: None,
             opacities: Some(vec![0.1, 0.2]),
@@ -691,7 +804,12 @@ mod tests {
             tile: 7,
         };
         let mut b = encode(&c, Dtype::I8);
-        assert_eq!(decode_shard(b"hello world, this is not a shard at all, no no no no no no no no no no no"), Err(ShardError::BadMagic));
+        assert_eq!(
+            decode_shard(
+                b"hello world, this is not a shard at all, no no no no no no no no no no no"
+            ),
+            Err(ShardError::BadMagic)
+        );
         b.push(0);
         assert!(matches!(decode_shard(&b), Err(ShardError::Malformed(_))));
         b.pop();
@@ -700,10 +818,22 @@ mod tests {
         b[8] = 1;
         let last = b.len() - 1;
         b[last] ^= 0x40;
-        assert!(matches!(decode_shard(&b), Err(ShardError::Checksum { section: "payload", .. })));
+        assert!(matches!(
+            decode_shard(&b),
+            Err(ShardError::Checksum {
+                section: "payload",
+                ..
+            })
+        ));
         b[last] ^= 0x40;
         b[30] ^= 1; // inside the tile id/AABB
-        assert!(matches!(decode_shard(&b), Err(ShardError::Checksum { section: "header", .. })));
+        assert!(matches!(
+            decode_shard(&b),
+            Err(ShardError::Checksum {
+                section: "header",
+                ..
+            })
+        ));
     }
 
     #[test]

@@ -13,10 +13,12 @@ pub mod synthetic;
 pub mod tiles;
 
 pub use format::{
-    Aabb, Dtype, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError, ShardHeader, ShardInput, decode_header,
-    decode_shard, encode_shard, shard_checksum,
+    Aabb, Dtype, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError, ShardHeader, ShardInput,
+    decode_header, decode_shard, encode_shard, shard_checksum,
 };
-pub use tiles::{GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, TileIndex, TileInfo, UpSource};
+pub use tiles::{
+    GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, TileIndex, TileInfo, UpSource,
+};
 
 use crate::embeddings::Embeddings;
 
@@ -59,5 +61,7 @@ pub fn valid_scene_id(id: &str) -> bool {
     !id.is_empty()
         && id.len() <= 64
         && !id.starts_with('.')
-        && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
 }

@@ -43,7 +43,12 @@ impl SyntheticScene {
     pub fn new(n: usize, dim: usize, clusters: usize, extent: f32, seed: u64) -> SyntheticScene {
         let mut s = seed ^ 0x5EED;
         let centres: Vec<([f32; 2], f32)> = (0..clusters.max(1))
-            .map(|_| ([uniform(&mut s) * extent, uniform(&mut s) * extent], 0.5 + 7.5 * uniform(&mut s)))
+            .map(|_| {
+                (
+                    [uniform(&mut s) * extent, uniform(&mut s) * extent],
+                    0.5 + 7.5 * uniform(&mut s),
+                )
+            })
             .collect();
         let means = (0..n)
             .map(|_| {
@@ -53,11 +58,20 @@ impl SyntheticScene {
                 } else {
                     let k = (splitmix(&mut s) % centres.len() as u64) as usize;
                     let (c, sigma) = centres[k];
-                    [c[0] + sigma * normal(&mut s), c[1] + sigma * normal(&mut s), z]
+                    [
+                        c[0] + sigma * normal(&mut s),
+                        c[1] + sigma * normal(&mut s),
+                        z,
+                    ]
                 }
             })
             .collect();
-        SyntheticScene { ids: (0..n as u32).map(|i| i.wrapping_mul(2)).collect(), means, dim, seed }
+        SyntheticScene {
+            ids: (0..n as u32).map(|i| i.wrapping_mul(2)).collect(),
+            means,
+            dim,
+            seed,
+        }
     }
 
     /// Materialises the vectors into an [`Embeddings`] (small scenes only: N·D·4 bytes).

@@ -52,7 +52,9 @@ impl GroundFrame {
     pub fn from_up(up: [f64; 3], source: UpSource) -> Result<GroundFrame> {
         let u = DVec3::from(up);
         if !u.is_finite() || u.length() < 1e-12 {
-            return Err(Error::Invalid(format!("up vector {up:?} is zero or not finite; pass --up x|y|z|-x|-y|-z")));
+            return Err(Error::Invalid(format!(
+                "up vector {up:?} is zero or not finite; pass --up x|y|z|-x|-y|-z"
+            )));
         }
         let u = u.normalize();
         let a = u.abs();
@@ -67,7 +69,11 @@ impl GroundFrame {
         let e2 = u.cross(e1);
         Ok(GroundFrame {
             up: u.as_vec3().to_array(),
-            world_to_ground: [e1.as_vec3().to_array(), e2.as_vec3().to_array(), u.as_vec3().to_array()],
+            world_to_ground: [
+                e1.as_vec3().to_array(),
+                e2.as_vec3().to_array(),
+                u.as_vec3().to_array(),
+            ],
             up_source: source,
         })
     }
@@ -84,7 +90,11 @@ impl GroundFrame {
             "x" => [sign, 0.0, 0.0],
             "y" => [0.0, sign, 0.0],
             "z" => [0.0, 0.0, sign],
-            _ => return Err(Error::Invalid(format!("--up {name:?}: use one of x, y, z, -x, -y, -z"))),
+            _ => {
+                return Err(Error::Invalid(format!(
+                    "--up {name:?}: use one of x, y, z, -x, -y, -z"
+                )));
+            }
         };
         GroundFrame::from_up(v, UpSource::User)
     }
@@ -94,7 +104,10 @@ impl GroundFrame {
     ///
     /// Errors: empty list or vectors that cancel out ([`Error::Invalid`]).
     pub fn from_camera_ups(ups: &[[f64; 3]]) -> Result<GroundFrame> {
-        let sum: DVec3 = ups.iter().map(|&u| DVec3::from(u).normalize_or_zero()).sum();
+        let sum: DVec3 = ups
+            .iter()
+            .map(|&u| DVec3::from(u).normalize_or_zero())
+            .sum();
         if ups.is_empty() || sum.length() < 1e-6 * ups.len() as f64 {
             return Err(Error::Invalid(
                 "camera up vectors are missing or cancel out; pass --up x|y|z|-x|-y|-z".into(),
@@ -110,10 +123,16 @@ impl GroundFrame {
     /// Errors: fewer than 3 means, non-finite values ([`Error::Invalid`]).
     pub fn from_pca(means: &[[f32; 3]]) -> Result<GroundFrame> {
         if means.len() < 3 {
-            return Err(Error::Invalid("need at least 3 Gaussians to estimate the up axis; pass --up".into()));
+            return Err(Error::Invalid(
+                "need at least 3 Gaussians to estimate the up axis; pass --up".into(),
+            ));
         }
         let n = means.len() as f64;
-        let mean: DVec3 = means.iter().map(|m| DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64)).sum::<DVec3>() / n;
+        let mean: DVec3 = means
+            .iter()
+            .map(|m| DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64))
+            .sum::<DVec3>()
+            / n;
         let mut c = [[0.0f64; 3]; 3];
         for m in means {
             let d = DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64) - mean;
@@ -125,11 +144,19 @@ impl GroundFrame {
             }
         }
         if c.iter().flatten().any(|x| !x.is_finite()) {
-            return Err(Error::Invalid("non-finite means; cannot estimate the up axis".into()));
+            return Err(Error::Invalid(
+                "non-finite means; cannot estimate the up axis".into(),
+            ));
         }
         let v = smallest_eigenvector(DMat3::from_cols_array_2d(&c));
         let a = v.abs();
-        let big = if a.x >= a.y && a.x >= a.z { v.x } else if a.y >= a.z { v.y } else { v.z };
+        let big = if a.x >= a.y && a.x >= a.z {
+            v.x
+        } else if a.y >= a.z {
+            v.y
+        } else {
+            v.z
+        };
         let v = if big < 0.0 { -v } else { v };
         GroundFrame::from_up(v.to_array(), UpSource::Pca)
     }
@@ -137,7 +164,9 @@ impl GroundFrame {
     /// Ground coordinates `(g0, g1, height)` of a world point.
     pub fn to_ground(&self, p: [f32; 3]) -> [f64; 3] {
         let x = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        let r = self.world_to_ground.map(|row| DVec3::new(row[0] as f64, row[1] as f64, row[2] as f64));
+        let r = self
+            .world_to_ground
+            .map(|row| DVec3::new(row[0] as f64, row[1] as f64, row[2] as f64));
         [r[0].dot(x), r[1].dot(x), r[2].dot(x)]
     }
 }
@@ -177,7 +206,9 @@ fn smallest_eigenvector(m: DMat3) -> DVec3 {
             }
         }
     }
-    let i = (0..3).min_by(|&i, &j| a[i][i].total_cmp(&a[j][j])).unwrap_or(0);
+    let i = (0..3)
+        .min_by(|&i, &j| a[i][i].total_cmp(&a[j][j]))
+        .unwrap_or(0);
     DVec3::new(v[0][i], v[1][i], v[2][i]).normalize_or_zero()
 }
 
@@ -204,7 +235,12 @@ impl TileInfo {
     /// The footprint as a `geo` polygon.
     pub fn footprint_polygon(&self) -> geo::Polygon<f64> {
         geo::Polygon::new(
-            geo::LineString::from(self.footprint.iter().map(|p| (p[0] as f64, p[1] as f64)).collect::<Vec<_>>()),
+            geo::LineString::from(
+                self.footprint
+                    .iter()
+                    .map(|p| (p[0] as f64, p[1] as f64))
+                    .collect::<Vec<_>>(),
+            ),
             vec![],
         )
     }
@@ -212,7 +248,13 @@ impl TileInfo {
     pub fn rect_ring(min: [f64; 2], max: [f64; 2]) -> Vec<[f32; 2]> {
         let min = min.map(|v| f32_down(v));
         let max = max.map(|v| f32_up(v));
-        vec![[min[0], min[1]], [max[0], min[1]], [max[0], max[1]], [min[0], max[1]], [min[0], min[1]]]
+        vec![
+            [min[0], min[1]],
+            [max[0], min[1]],
+            [max[0], max[1]],
+            [min[0], max[1]],
+            [min[0], min[1]],
+        ]
     }
 }
 
@@ -255,7 +297,10 @@ impl Manifest {
         if m.format != MANIFEST_FORMAT || m.manifest_version != MANIFEST_VERSION {
             return Err(Error::format(
                 origin,
-                format!("manifest {} v{}, expected {MANIFEST_FORMAT} v{MANIFEST_VERSION}", m.format, m.manifest_version),
+                format!(
+                    "manifest {} v{}, expected {MANIFEST_FORMAT} v{MANIFEST_VERSION}",
+                    m.format, m.manifest_version
+                ),
             ));
         }
         Ok(m)
@@ -305,7 +350,9 @@ impl TileIndex {
     pub fn new(tiles: &[TileInfo]) -> TileIndex {
         let entries = tiles
             .iter()
-            .filter(|t| !t.footprint.is_empty() && t.footprint.iter().flatten().all(|x| x.is_finite()))
+            .filter(|t| {
+                !t.footprint.is_empty() && t.footprint.iter().flatten().all(|x| x.is_finite())
+            })
             .map(|t| {
                 let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
                 for p in &t.footprint {
@@ -314,10 +361,16 @@ impl TileIndex {
                         hi[a] = hi[a].max(p[a] as f64);
                     }
                 }
-                Entry { id: t.id, polygon: t.footprint_polygon(), envelope: AABB::from_corners(lo, hi) }
+                Entry {
+                    id: t.id,
+                    polygon: t.footprint_polygon(),
+                    envelope: AABB::from_corners(lo, hi),
+                }
             })
             .collect();
-        TileIndex { tree: RTree::bulk_load(entries) }
+        TileIndex {
+            tree: RTree::bulk_load(entries),
+        }
     }
 
     /// Ids (ascending) of exactly the tiles whose footprint intersects the closed disc of
@@ -327,7 +380,10 @@ impl TileIndex {
         if !(radius >= 0.0) || !center.iter().all(|c| c.is_finite()) {
             return Vec::new();
         }
-        let query = AABB::from_corners([center[0] - radius, center[1] - radius], [center[0] + radius, center[1] + radius]);
+        let query = AABB::from_corners(
+            [center[0] - radius, center[1] - radius],
+            [center[0] + radius, center[1] + radius],
+        );
         let pt = geo::Point::new(center[0], center[1]);
         let mut ids: Vec<u64> = self
             .tree
@@ -402,7 +458,12 @@ mod tests {
 
     #[test]
     fn ground_frames_are_orthonormal_right_handed() {
-        for up in [[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [0.3, 0.2, -0.9], [1.0, 1.0, 1.0]] {
+        for up in [
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            [0.3, 0.2, -0.9],
+            [1.0, 1.0, 1.0],
+        ] {
             let g = GroundFrame::from_up(up, UpSource::User).expect("frame");
             let r = g.world_to_ground.map(|v| glam::Vec3::from(v).as_dvec3());
             for i in 0..3 {
@@ -415,7 +476,10 @@ mod tests {
             assert!((r[2] - DVec3::from(up).normalize()).length() < 1e-6);
         }
         assert!(GroundFrame::from_up([0.0; 3], UpSource::User).is_err());
-        assert_eq!(GroundFrame::from_axis_name("-y").expect("axis").up, [0.0, -1.0, 0.0]);
+        assert_eq!(
+            GroundFrame::from_axis_name("-y").expect("axis").up,
+            [0.0, -1.0, 0.0]
+        );
         assert!(GroundFrame::from_axis_name("w").is_err());
     }
 
@@ -428,7 +492,9 @@ mod tests {
         let mut pts = Vec::new();
         let mut s = 12345u64;
         let mut rnd = || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
         };
         for _ in 0..2000 {
@@ -436,9 +502,14 @@ mod tests {
             pts.push([p.x as f32, p.y as f32, p.z as f32]);
         }
         let g = GroundFrame::from_pca(&pts).expect("pca");
-        assert!(glam::Vec3::from(g.up).as_dvec3().dot(n).abs() > 0.999, "{:?} vs {n:?}", g.up);
+        assert!(
+            glam::Vec3::from(g.up).as_dvec3().dot(n).abs() > 0.999,
+            "{:?} vs {n:?}",
+            g.up
+        );
         assert_eq!(g.up_source, UpSource::Pca);
-        let cams = GroundFrame::from_camera_ups(&[[0.1, 1.0, 0.0], [-0.1, 1.0, 0.0]]).expect("cams");
+        let cams =
+            GroundFrame::from_camera_ups(&[[0.1, 1.0, 0.0], [-0.1, 1.0, 0.0]]).expect("cams");
         assert!((glam::Vec3::from(cams.up).as_dvec3() - DVec3::Y).length() < 1e-7);
         assert!(GroundFrame::from_camera_ups(&[]).is_err());
     }

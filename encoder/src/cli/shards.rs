@@ -47,11 +47,21 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
         UpChoice::Given(GroundFrame::from_axis_name(u)?)
     } else if let Some(dir) = &args.cameras {
         let views = slag_common::camera::load_views(dir)?;
-        UpChoice::CameraUps(views.iter().map(|v| (-v.world_to_camera.rotation.row(1)).to_array()).collect())
+        UpChoice::CameraUps(
+            views
+                .iter()
+                .map(|v| (-v.world_to_camera.rotation.row(1)).to_array())
+                .collect(),
+        )
     } else {
         UpChoice::Pca
     };
-    let params = PartitionParams { scene_id: args.scene.clone(), max_per_shard: args.max_per_shard, up, dtype: args.dtype };
+    let params = PartitionParams {
+        scene_id: args.scene.clone(),
+        max_per_shard: args.max_per_shard,
+        up,
+        dtype: args.dtype,
+    };
     let store = ShardStore::open(&args.store)?;
     let t = std::time::Instant::now();
     let m = partition_into_store(&store, &emb, &params).context("partition")?;
@@ -89,7 +99,9 @@ pub struct ServeArgs {
 pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     let store = ShardStore::open(&args.store)?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
-    rt.block_on(crate::serve::serve(store, args.bind, |a| println!("serving on http://{a}/v1/scenes")))?;
+    rt.block_on(crate::serve::serve(store, args.bind, |a| {
+        println!("serving on http://{a}/v1/scenes")
+    }))?;
     Ok(())
 }
 
@@ -115,6 +127,12 @@ pub struct ExportArgs {
 pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
     let store = ShardStore::open(&args.store)?;
     let m = crate::export::export(&store, &args.scene, &args.dir, args.force)?;
-    println!("exported {} shards of {} (generation {}) to {}", m.tiles.len(), m.scene_id, m.generation, args.dir.display());
+    println!(
+        "exported {} shards of {} (generation {}) to {}",
+        m.tiles.len(),
+        m.scene_id,
+        m.generation,
+        args.dir.display()
+    );
     Ok(())
 }
