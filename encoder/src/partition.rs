@@ -236,13 +236,16 @@ pub fn partition_with(
     })
 }
 
+/// `(tile id, shard bytes)` of every tile, ascending id.
+pub type EncodedShards = Vec<(u64, Vec<u8>)>;
+
 /// Partitions in memory: the manifest and `(tile id, shard bytes)` for every tile.
 ///
 /// Errors: as [`partition_with`].
 pub fn partition(
     src: &impl GaussianSource,
     params: &PartitionParams,
-) -> Result<(Manifest, Vec<(u64, Vec<u8>)>)> {
+) -> Result<(Manifest, EncodedShards)> {
     let mut shards = Vec::new();
     let m = partition_with(src, params, |info, bytes| {
         shards.push((info.id, bytes));

@@ -133,9 +133,9 @@ impl Aabb {
             max: first,
         };
         for p in it {
-            for a in 0..3 {
-                b.min[a] = b.min[a].min(p[a]);
-                b.max[a] = b.max[a].max(p[a]);
+            for (a, v) in p.iter().enumerate() {
+                b.min[a] = b.min[a].min(*v);
+                b.max[a] = b.max[a].max(*v);
             }
         }
         Some(b)
@@ -481,7 +481,7 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
     let payload_crc = r.u32()?;
     let s = r.u16()? as usize;
     let m = r.u16()? as usize;
-    if header_len % 8 != 0
+    if !header_len.is_multiple_of(8)
         || header_len < align(FIXED_HEADER + s + m + 4, 8)
         || header_len > 1 << 20
     {

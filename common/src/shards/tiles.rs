@@ -189,15 +189,15 @@ fn smallest_eigenvector(m: DMat3) -> DVec3 {
             let t = if theta == 0.0 { 1.0 } else { t };
             let c = 1.0 / (t * t + 1.0).sqrt();
             let s = t * c;
-            for k in 0..3 {
-                let (akp, akq) = (a[k][p], a[k][q]);
-                a[k][p] = c * akp - s * akq;
-                a[k][q] = s * akp + c * akq;
+            for row in a.iter_mut() {
+                let (akp, akq) = (row[p], row[q]);
+                row[p] = c * akp - s * akq;
+                row[q] = s * akp + c * akq;
             }
+            let (rp, rq) = (a[p], a[q]);
             for k in 0..3 {
-                let (apk, aqk) = (a[p][k], a[q][k]);
-                a[p][k] = c * apk - s * aqk;
-                a[q][k] = s * apk + c * aqk;
+                a[p][k] = c * rp[k] - s * rq[k];
+                a[q][k] = s * rp[k] + c * rq[k];
             }
             for row in v.iter_mut() {
                 let (vp, vq) = (row[p], row[q]);
@@ -246,8 +246,8 @@ impl TileInfo {
     }
     /// A closed rectangle ring from ground-plane bounds, rounded outward to `f32`.
     pub fn rect_ring(min: [f64; 2], max: [f64; 2]) -> Vec<[f32; 2]> {
-        let min = min.map(|v| f32_down(v));
-        let max = max.map(|v| f32_up(v));
+        let min = min.map(f32_down);
+        let max = max.map(f32_up);
         vec![
             [min[0], min[1]],
             [max[0], min[1]],
@@ -377,7 +377,7 @@ impl TileIndex {
     /// `radius` around `center` (ground coordinates `(g0, g1)`, scene units; see
     /// [`GroundFrame::to_ground`]). A negative or NaN radius selects nothing.
     pub fn select_tiles(&self, center: [f64; 2], radius: f64) -> Vec<u64> {
-        if !(radius >= 0.0) || !center.iter().all(|c| c.is_finite()) {
+        if radius.is_nan() || radius < 0.0 || !center.iter().all(|c| c.is_finite()) {
             return Vec::new();
         }
         let query = AABB::from_corners(

@@ -24,7 +24,7 @@ pub struct PartitionArgs {
     #[arg(long)]
     pub scene: String,
     /// Most Gaussians per tile; tiles split adaptively (k-d on the ground plane) until they fit.
-    #[arg(long, default_value_t = 65536)]
+    #[arg(long, default_value_t = 16384)]
     pub max_per_shard: usize,
     /// World up axis (x, y, z, -x, -y, -z). Default: from --cameras if given, else PCA.
     #[arg(long, allow_hyphen_values = true)]
