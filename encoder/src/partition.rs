@@ -154,6 +154,13 @@ pub fn encode_tile(
     for (row, out) in plan.rows.iter().zip(vectors.chunks_exact_mut(d.max(1))) {
         src.vector_into(*row as usize, out);
     }
+    let display: Option<(Vec<[f32; 3]>, Vec<f32>)> =
+        (n > 0 && src.display(0).is_some()).then(|| {
+            plan.rows
+                .iter()
+                .map(|&r| src.display(r as usize).unwrap_or(([0.0; 3], 0.0)))
+                .unzip()
+        });
     let bytes = encode_shard(&ShardInput {
         scene_id,
         model: src.model(),
@@ -163,8 +170,8 @@ pub fn encode_tile(
         ids: &ids,
         means: &means,
         vectors: &vectors,
-        scales: None,
-        opacities: None,
+        scales: display.as_ref().map(|d| d.0.as_slice()),
+        opacities: display.as_ref().map(|d| d.1.as_slice()),
     })?;
     let aabb = slag_common::shards::Aabb::of_points(means.iter().copied()).unwrap_or_default();
     let info = TileInfo {

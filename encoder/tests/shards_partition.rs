@@ -65,6 +65,25 @@ fn every_gaussian_lands_in_exactly_one_bounded_tile_with_its_own_vector() {
 }
 
 #[test]
+fn display_attributes_travel_with_their_gaussians() {
+    let scene = SyntheticScene::new(700, 4, 2, 30.0, 5);
+    // .ply has 2N Gaussians (synthetic ids are 2*row); attributes encode the id.
+    let scales: Vec<[f32; 3]> = (0..1400).map(|i| [i as f32, -(i as f32), 0.5]).collect();
+    let opac: Vec<f32> = (0..1400).map(|i| i as f32 * 0.01).collect();
+    let src = slag_common::shards::WithDisplay::new(&scene, &scales, &opac).expect("ids in range");
+    let (_, shards) = partition(&src, &params(100, z_up(), Dtype::F16)).expect("partition");
+    for (_, b) in &shards {
+        let s = decode_shard(b).expect("decode");
+        let (sc, op) = (s.scales.expect("scales"), s.opacities.expect("opacities"));
+        for (k, &id) in s.ids.iter().enumerate() {
+            assert_eq!(sc[k], scales[id as usize]);
+            assert_eq!(op[k], opac[id as usize]);
+        }
+    }
+    assert!(slag_common::shards::WithDisplay::new(&scene, &scales[..10], &opac).is_err());
+}
+
+#[test]
 fn dense_areas_get_small_tiles_and_sparse_areas_large_ones() {
     // 20k Gaussians in a 2 m square, 2k spread over 400 m: max 500 per tile.
     let mut scene = SyntheticScene::new(22_000, 4, 1, 1.0, 3);

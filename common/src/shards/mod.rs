@@ -35,6 +35,64 @@ pub trait GaussianSource: Sync {
     fn model(&self) -> &str;
     /// Writes row `i` (unit norm) into `out` (`out.len() == dim`).
     fn vector_into(&self, i: usize, out: &mut [f32]);
+    /// Optional display attributes of row `i`: log-scales and pre-sigmoid opacity (INRIA `.ply`
+    /// convention). When `Some` for row 0, partitioning stores them in every shard.
+    fn display(&self, _i: usize) -> Option<([f32; 3], f32)> {
+        None
+    }
+}
+
+/// A [`GaussianSource`] plus display attributes taken from the source `.ply` (indexed by
+/// Gaussian id), so shards can be rendered without the scene file.
+#[derive(Debug, Clone, Copy)]
+pub struct WithDisplay<'a, S> {
+    /// The embeddings.
+    pub inner: &'a S,
+    /// Log-scales of every `.ply` Gaussian (`Gaussians::scales`).
+    pub scales: &'a [[f32; 3]],
+    /// Pre-sigmoid opacities of every `.ply` Gaussian (`Gaussians::opacities`).
+    pub opacities: &'a [f32],
+}
+
+impl<'a, S: GaussianSource> WithDisplay<'a, S> {
+    /// Wraps `inner`; checks every id indexes `scales` and `opacities`.
+    ///
+    /// Errors: an id out of range (the embeddings come from another `.ply`; [`crate::Error::Invalid`]).
+    pub fn new(inner: &'a S, scales: &'a [[f32; 3]], opacities: &'a [f32]) -> crate::Result<Self> {
+        let n = scales.len().min(opacities.len());
+        if let Some(id) = inner.ids().iter().find(|&&id| id as usize >= n) {
+            return Err(crate::Error::Invalid(format!(
+                "Gaussian id {id} but the scene has {n}; pass the .ply the embeddings were made from"
+            )));
+        }
+        Ok(WithDisplay {
+            inner,
+            scales,
+            opacities,
+        })
+    }
+}
+
+impl<S: GaussianSource> GaussianSource for WithDisplay<'_, S> {
+    fn ids(&self) -> &[u32] {
+        self.inner.ids()
+    }
+    fn means(&self) -> &[[f32; 3]] {
+        self.inner.means()
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn model(&self) -> &str {
+        self.inner.model()
+    }
+    fn vector_into(&self, i: usize, out: &mut [f32]) {
+        self.inner.vector_into(i, out)
+    }
+    fn display(&self, i: usize) -> Option<([f32; 3], f32)> {
+        let id = *self.inner.ids().get(i)? as usize;
+        Some((*self.scales.get(id)?, *self.opacities.get(id)?))
+    }
 }
 
 impl GaussianSource for Embeddings {

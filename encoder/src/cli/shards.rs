@@ -33,6 +33,9 @@ pub struct PartitionArgs {
     /// −y axis in world frame.
     #[arg(long)]
     pub cameras: Option<PathBuf>,
+    /// Source `.ply`: store each Gaussian's scales and opacity in the shards for display.
+    #[arg(long)]
+    pub display_ply: Option<PathBuf>,
     /// Embedding storage in the shards: f32, f16 or int8 (per-vector scale).
     #[arg(long, default_value = "f16")]
     pub dtype: Dtype,
@@ -64,7 +67,14 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     };
     let store = ShardStore::open(&args.store)?;
     let t = std::time::Instant::now();
-    let m = partition_into_store(&store, &emb, &params).context("partition")?;
+    let m = match &args.display_ply {
+        Some(ply) => {
+            let g = slag_common::scene::load_ply(ply, Default::default())?;
+            let src = slag_common::shards::WithDisplay::new(&emb, &g.scales, &g.opacities)?;
+            partition_into_store(&store, &src, &params).context("partition")?
+        }
+        None => partition_into_store(&store, &emb, &params).context("partition")?,
+    };
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
         "scene {} generation {}: {} Gaussians in {} shards, {} bytes ({:.1} B/Gaussian, {:?}), up {:?} ({:?}), {:.1}s",
