@@ -5,7 +5,9 @@
 //! median of its longer side until each leaf holds at most `max_per_shard` Gaussians, so dense
 //! areas get small tiles and empty space none. Each leaf becomes one shard
 //! ([`slag_common::shards::format`]); its footprint is the tight ground-plane rectangle of its
-//! means. Leaves are numbered in depth-first order (spatially coherent ids).
+//! means. Leaves are numbered in depth-first order (spatially coherent ids). Median splits make
+//! leaf counts balanced (between `max/2` and `max` for large scenes) while their areas follow the
+//! density.
 
 use rayon::prelude::*;
 use slag_common::shards::{

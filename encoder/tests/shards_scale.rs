@@ -78,5 +78,35 @@ fn measure_partition_at_scale() {
             total_bytes as f64 / n as f64,
             secs
         );
+        // Optionally the same partition into a sled store (SLAG_SHARDS_STORE=1): commit time and
+        // on-disk size.
+        if std::env::var("SLAG_SHARDS_STORE").is_ok() {
+            let dir = tempfile::tempdir().expect("tmp");
+            let store = slag_encoder::store::ShardStore::open(dir.path()).expect("open");
+            let t = Instant::now();
+            let m =
+                slag_encoder::store::partition_into_store(&store, &scene, &params).expect("store");
+            let secs = t.elapsed().as_secs_f64();
+            let disk: u64 = walk_size(dir.path());
+            println!(
+                "{dtype:?} into sled: generation {} committed in {secs:.1}s; store on disk {:.3} GB",
+                m.generation,
+                disk as f64 / 1e9
+            );
+        }
     }
+}
+
+fn walk_size(p: &std::path::Path) -> u64 {
+    std::fs::read_dir(p)
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| match e.metadata() {
+                    Ok(m) if m.is_dir() => walk_size(&e.path()),
+                    Ok(m) => m.len(),
+                    Err(_) => 0,
+                })
+                .sum()
+        })
+        .unwrap_or(0)
 }

@@ -305,6 +305,10 @@ impl Manifest {
         }
         Ok(m)
     }
+    /// R-tree over this manifest's tile footprints.
+    pub fn tile_index(&self) -> TileIndex {
+        TileIndex::new(&self.tiles)
+    }
     /// Pretty JSON.
     pub fn to_json(&self) -> Vec<u8> {
         serde_json::to_vec_pretty(self).unwrap_or_default()
