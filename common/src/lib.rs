@@ -9,6 +9,7 @@
 //! | [`text`] | CLIP text tower + tokenizer (queries) |
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 
 pub mod camera;
@@ -17,6 +18,7 @@ pub mod error;
 pub mod onnx;
 pub mod paths;
 pub mod scene;
+pub mod shards;
 pub mod similarity;
 pub mod text;
 

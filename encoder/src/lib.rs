@@ -7,13 +7,20 @@
 //! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
 //! mIoU with color-clip, [`cli`] holds the `slag-encoder` subcommands (`query` checks a text
 //! prompt against the result).
+//!
+//! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
+//! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting.
 
 pub mod aggregate;
 pub mod cli;
 pub mod clip;
 pub mod eval;
+pub mod export;
 pub mod masks;
+pub mod partition;
 pub mod pipeline;
 pub mod preprocess;
 pub mod raster;
 pub mod report;
+pub mod serve;
+pub mod store;

@@ -4,6 +4,7 @@ pub mod encode;
 pub mod eval;
 pub mod query;
 pub mod render;
+pub mod shards;
 
 use slag_common::onnx::ExecutionProvider;
 

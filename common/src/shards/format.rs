@@ -1,0 +1,855 @@
+//! The shard file: one spatial tile of per-Gaussian embeddings, self-describing and checksummed.
+//!
+//! # Byte layout (format version 1)
+//!
+//! All integers and floats are **little-endian**. The header length is a multiple of 8 and every
+//! payload section starts on a 4-byte boundary relative to the start of the shard, so a reader
+//! that maps the shard at an 8-aligned address can view each section in place as `u32`/`f32`.
+//!
+//! Header (`header_len` bytes):
+//!
+//! | offset | size | field |
+//! |---|---|---|
+//! | 0 | 8 | magic `b"SLAGSHRD"` |
+//! | 8 | 2 | format version `u16` (= [`SHARD_FORMAT_VERSION`]) |
+//! | 10 | 1 | dtype `u8`: 0 = f32, 1 = f16, 2 = int8 with per-vector scale |
+//! | 11 | 1 | flags `u8`: bit 0 = scales present, bit 1 = opacities present; others must be 0 |
+//! | 12 | 4 | embedding dim `D` `u32` |
+//! | 16 | 4 | Gaussian count `N` `u32` |
+//! | 20 | 4 | `header_len` `u32` (offset of the payload; multiple of 8) |
+//! | 24 | 8 | tile id `u64` |
+//! | 32 | 24 | AABB of the means: `min[3]`, `max[3]` as `f32`, world frame, scene units |
+//! | 56 | 8 | payload length in bytes `u64` |
+//! | 64 | 4 | CRC-32 (IEEE, `crc32fast`) of the payload |
+//! | 68 | 2 | scene id length `S` `u16` |
+//! | 70 | 2 | embedding model id length `M` `u16` |
+//! | 72 | S | scene id, UTF-8 |
+//! | 72+S | M | model id, UTF-8 |
+//! | … | | zero padding up to `header_len - 4` |
+//! | `header_len-4` | 4 | CRC-32 of header bytes `[0, header_len-4)` |
+//!
+//! Payload (`payload_len` bytes, starting at `header_len`), sections in this order:
+//!
+//! 1. Gaussian ids `u32[N]` (index in the source `.ply`);
+//! 2. means `f32[N][3]` (world frame, scene units);
+//! 3. int8 only: per-vector scales `f32[N]`;
+//! 4. embeddings `[N][D]`: `f32`, `f16` (IEEE half), or `i8` (value = `q * scale[i]`),
+//!    followed by zero padding to a 4-byte boundary;
+//! 5. if flag bit 0: Gaussian scales `f32[N][3]` (log-scale as in the INRIA `.ply`, for display);
+//! 6. if flag bit 1: opacities `f32[N]` (pre-sigmoid as in the INRIA `.ply`, for display).
+//!
+//! The file is exactly `header_len + payload_len` bytes; trailing bytes are an error. The
+//! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
+//! the CRC-32 of all its bytes.
+
+use half::f16;
+
+use crate::Error;
+
+/// Magic bytes opening every shard.
+pub const SHARD_MAGIC: [u8; 8] = *b"SLAGSHRD";
+/// Shard format version written by this crate (and the only one it reads).
+pub const SHARD_FORMAT_VERSION: u16 = 1;
+/// Largest embedding width accepted when decoding (guards allocations on corrupted input).
+pub const MAX_DIM: u32 = 1 << 16;
+const FIXED_HEADER: usize = 72;
+const FLAG_SCALES: u8 = 1;
+const FLAG_OPACITIES: u8 = 2;
+
+/// Storage type of the embedding vectors in a shard.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Dtype {
+    /// IEEE single precision, 4 bytes per component (exact).
+    F32,
+    /// IEEE half precision, 2 bytes per component (absolute error ≤ ~5e-4 for unit vectors).
+    #[default]
+    F16,
+    /// Symmetric int8 per vector: `q = round(v / s)`, `s = max|v| / 127`; 1 byte per component
+    /// plus one `f32` scale per vector (absolute error ≤ `s / 2`).
+    I8,
+}
+
+impl Dtype {
+    /// Code stored in the header.
+    pub fn code(self) -> u8 {
+        match self {
+            Dtype::F32 => 0,
+            Dtype::F16 => 1,
+            Dtype::I8 => 2,
+        }
+    }
+    /// Inverse of [`Dtype::code`].
+    pub fn from_code(code: u8) -> Option<Dtype> {
+        match code {
+            0 => Some(Dtype::F32),
+            1 => Some(Dtype::F16),
+            2 => Some(Dtype::I8),
+            _ => None,
+        }
+    }
+    /// Bytes used per vector of width `dim` (including the int8 scale).
+    pub fn bytes_per_vector(self, dim: usize) -> usize {
+        match self {
+            Dtype::F32 => 4 * dim,
+            Dtype::F16 => 2 * dim,
+            Dtype::I8 => dim + 4,
+        }
+    }
+}
+
+impl std::str::FromStr for Dtype {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self, Error> {
+        match s.to_ascii_lowercase().as_str() {
+            "f32" => Ok(Dtype::F32),
+            "f16" => Ok(Dtype::F16),
+            "i8" | "int8" => Ok(Dtype::I8),
+            _ => Err(Error::Invalid(format!(
+                "unknown shard dtype {s:?}; use f32, f16 or int8"
+            ))),
+        }
+    }
+}
+
+/// An axis-aligned box, world frame, scene units.
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Aabb {
+    /// Smallest x, y, z.
+    pub min: [f32; 3],
+    /// Largest x, y, z.
+    pub max: [f32; 3],
+}
+
+impl Aabb {
+    /// Tight box of `points`; `None` when empty.
+    pub fn of_points(points: impl IntoIterator<Item = [f32; 3]>) -> Option<Aabb> {
+        let mut it = points.into_iter();
+        let first = it.next()?;
+        let mut b = Aabb {
+            min: first,
+            max: first,
+        };
+        for p in it {
+            for (a, v) in p.iter().enumerate() {
+                b.min[a] = b.min[a].min(*v);
+                b.max[a] = b.max[a].max(*v);
+            }
+        }
+        Some(b)
+    }
+}
+
+/// Decoding failure of a shard. Never a panic: every malformed input maps to one of these.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ShardError {
+    /// Fewer bytes than the header or payload lengths require.
+    #[error("shard truncated: {needed} bytes needed, {got} present; re-download the shard")]
+    Truncated {
+        /// Bytes the header says the shard has (or the fixed header size).
+        needed: u64,
+        /// Bytes present.
+        got: u64,
+    },
+    /// The first 8 bytes are not [`SHARD_MAGIC`].
+    #[error("not a slag shard (bad magic); pass a file produced by slag-encoder partition/export")]
+    BadMagic,
+    /// A format version this crate does not read.
+    #[error(
+        "shard format version {0}, this slag reads {SHARD_FORMAT_VERSION}; upgrade slag or re-export"
+    )]
+    UnsupportedVersion(u16),
+    /// A stored CRC-32 does not match the bytes.
+    #[error(
+        "shard {section} checksum mismatch (stored {stored:08x}, computed {computed:08x}); the shard is corrupted, re-download it"
+    )]
+    Checksum {
+        /// `"header"` or `"payload"`.
+        section: &'static str,
+        /// CRC stored in the shard.
+        stored: u32,
+        /// CRC of the bytes present.
+        computed: u32,
+    },
+    /// A field is out of range or inconsistent (dtype code, flags, lengths, UTF-8 strings).
+    #[error("malformed shard: {0}")]
+    Malformed(String),
+}
+
+impl From<ShardError> for Error {
+    fn from(e: ShardError) -> Self {
+        Error::format("<shard>", e.to_string())
+    }
+}
+
+/// Everything the shard header says about its payload.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShardHeader {
+    /// Format version ([`SHARD_FORMAT_VERSION`]).
+    pub version: u16,
+    /// Scene id (same as in the manifest).
+    pub scene_id: String,
+    /// Embedding model id (CLIP visual model, [`crate::embeddings::Embeddings::model`]).
+    pub model: String,
+    /// Embedding width D.
+    pub dim: u32,
+    /// Storage type of the vectors.
+    pub dtype: Dtype,
+    /// Number of Gaussians N.
+    pub count: u32,
+    /// Box of the means, world frame.
+    pub aabb: Aabb,
+    /// Tile id (as in the manifest).
+    pub tile_id: u64,
+}
+
+/// A decoded shard: the Gaussians of one tile. Vectors are held as f32 (dequantised).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Shard {
+    /// Header fields.
+    pub header: ShardHeader,
+    /// Source-`.ply` indices. `[N]`.
+    pub ids: Vec<u32>,
+    /// Centres, world frame. `[N]`.
+    pub means: Vec<[f32; 3]>,
+    /// `[N * D]` row-major embeddings, dequantised to f32.
+    pub vectors: Vec<f32>,
+    /// Optional log-scales (INRIA `.ply` convention), `[N]`, for display.
+    pub scales: Option<Vec<[f32; 3]>>,
+    /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
+    pub opacities: Option<Vec<f32>>,
+}
+
+impl Shard {
+    /// Row `i` of the embedding matrix.
+    pub fn vector(&self, i: usize) -> &[f32] {
+        let d = self.header.dim as usize;
+        &self.vectors[i * d..(i + 1) * d]
+    }
+}
+
+/// Borrowed content to encode into one shard (see [`encode_shard`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ShardInput<'a> {
+    /// Scene id (≤ 65535 bytes UTF-8).
+    pub scene_id: &'a str,
+    /// Embedding model id (≤ 65535 bytes UTF-8).
+    pub model: &'a str,
+    /// Tile id.
+    pub tile_id: u64,
+    /// Embedding width D (1..=[`MAX_DIM`]).
+    pub dim: usize,
+    /// Storage type to write.
+    pub dtype: Dtype,
+    /// Source-`.ply` indices `[N]`.
+    pub ids: &'a [u32],
+    /// Centres `[N]`, world frame.
+    pub means: &'a [[f32; 3]],
+    /// `[N * D]` f32 row-major vectors (normally unit norm; any finite values encode).
+    pub vectors: &'a [f32],
+    /// Optional log-scales `[N]`.
+    pub scales: Option<&'a [[f32; 3]]>,
+    /// Optional pre-sigmoid opacities `[N]`.
+    pub opacities: Option<&'a [f32]>,
+}
+
+fn align(n: usize, a: usize) -> usize {
+    n.div_ceil(a) * a
+}
+
+/// Quantises one vector to symmetric int8; returns the scale (`0` for an all-zero vector).
+pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
+    let m = v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+    let scale = if m > 0.0 && m.is_finite() {
+        m / 127.0
+    } else {
+        0.0
+    };
+    for &x in v {
+        let q = if scale > 0.0 {
+            (x / scale).round().clamp(-127.0, 127.0) as i8
+        } else {
+            0
+        };
+        out.push(q as u8);
+    }
+    scale
+}
+
+/// Encodes one shard (layout in the module doc).
+///
+/// Errors ([`Error::Invalid`]): array lengths that disagree with N and D, `dim` of 0 or above
+/// [`MAX_DIM`], N above `u32::MAX`, ids longer than 65535 bytes, non-finite means or vectors.
+pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
+    let n = input.ids.len();
+    let d = input.dim;
+    let bad = |m: String| Error::Invalid(format!("encode_shard: {m}"));
+    if d == 0 || d > MAX_DIM as usize {
+        return Err(bad(format!("embedding dim {d} outside 1..={MAX_DIM}")));
+    }
+    if u32::try_from(n).is_err() {
+        return Err(bad(format!(
+            "{n} Gaussians do not fit one shard; lower --max-per-shard"
+        )));
+    }
+    if input.means.len() != n || input.vectors.len() != n * d {
+        return Err(bad(format!(
+            "{n} ids but {} means and {} vector values for dim {d}",
+            input.means.len(),
+            input.vectors.len()
+        )));
+    }
+    if input.scales.is_some_and(|s| s.len() != n) || input.opacities.is_some_and(|o| o.len() != n) {
+        return Err(bad(
+            "scales/opacities length differs from the id count".into()
+        ));
+    }
+    if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
+        return Err(bad("scene or model id longer than 65535 bytes".into()));
+    }
+    if input.means.iter().flatten().any(|x| !x.is_finite())
+        || input.vectors.iter().any(|x| !x.is_finite())
+    {
+        return Err(bad(
+            "non-finite mean or embedding value; fix the encoder output".into(),
+        ));
+    }
+    let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
+    let (s, m) = (input.scene_id.len(), input.model.len());
+    let header_len = align(FIXED_HEADER + s + m + 4, 8);
+
+    // Payload.
+    let mut p: Vec<u8> = Vec::with_capacity(n * (16 + input.dtype.bytes_per_vector(d)) + 4);
+    input
+        .ids
+        .iter()
+        .for_each(|i| p.extend_from_slice(&i.to_le_bytes()));
+    input
+        .means
+        .iter()
+        .flatten()
+        .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    match input.dtype {
+        Dtype::F32 => input
+            .vectors
+            .iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes())),
+        Dtype::F16 => input
+            .vectors
+            .iter()
+            .for_each(|&x| p.extend_from_slice(&f16::from_f32(x).to_le_bytes())),
+        Dtype::I8 => {
+            let mut q = Vec::with_capacity(n * d);
+            for row in input.vectors.chunks_exact(d) {
+                let scale = quantize_i8(row, &mut q);
+                p.extend_from_slice(&scale.to_le_bytes());
+            }
+            p.extend_from_slice(&q);
+        }
+    }
+    p.resize(align(p.len(), 4), 0);
+    let mut flags = 0u8;
+    if let Some(sc) = input.scales {
+        flags |= FLAG_SCALES;
+        sc.iter()
+            .flatten()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
+    if let Some(op) = input.opacities {
+        flags |= FLAG_OPACITIES;
+        op.iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
+
+    let mut h: Vec<u8> = Vec::with_capacity(header_len + p.len());
+    h.extend_from_slice(&SHARD_MAGIC);
+    h.extend_from_slice(&SHARD_FORMAT_VERSION.to_le_bytes());
+    h.push(input.dtype.code());
+    h.push(flags);
+    h.extend_from_slice(&(d as u32).to_le_bytes());
+    h.extend_from_slice(&(n as u32).to_le_bytes());
+    h.extend_from_slice(&(header_len as u32).to_le_bytes());
+    h.extend_from_slice(&input.tile_id.to_le_bytes());
+    aabb.min
+        .iter()
+        .chain(&aabb.max)
+        .for_each(|x| h.extend_from_slice(&x.to_le_bytes()));
+    h.extend_from_slice(&(p.len() as u64).to_le_bytes());
+    h.extend_from_slice(&crc32fast::hash(&p).to_le_bytes());
+    h.extend_from_slice(&(s as u16).to_le_bytes());
+    h.extend_from_slice(&(m as u16).to_le_bytes());
+    h.extend_from_slice(input.scene_id.as_bytes());
+    h.extend_from_slice(input.model.as_bytes());
+    h.resize(header_len - 4, 0);
+    let hcrc = crc32fast::hash(&h);
+    h.extend_from_slice(&hcrc.to_le_bytes());
+    h.extend_from_slice(&p);
+    Ok(h)
+}
+
+/// CRC-32 (IEEE) of a whole encoded shard: the checksum the manifest lists and the HTTP `ETag`.
+pub fn shard_checksum(bytes: &[u8]) -> u32 {
+    crc32fast::hash(bytes)
+}
+
+/// Little-endian cursor that never panics.
+struct Reader<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], ShardError> {
+        let end = self
+            .at
+            .checked_add(n)
+            .filter(|&e| e <= self.b.len())
+            .ok_or(ShardError::Truncated {
+                needed: self.at as u64 + n as u64,
+                got: self.b.len() as u64,
+            })?;
+        let s = &self.b[self.at..end];
+        self.at = end;
+        Ok(s)
+    }
+    fn arr<const K: usize>(&mut self) -> Result<[u8; K], ShardError> {
+        let s = self.take(K)?;
+        let mut a = [0u8; K];
+        a.copy_from_slice(s);
+        Ok(a)
+    }
+    fn u16(&mut self) -> Result<u16, ShardError> {
+        Ok(u16::from_le_bytes(self.arr()?))
+    }
+    fn u32(&mut self) -> Result<u32, ShardError> {
+        Ok(u32::from_le_bytes(self.arr()?))
+    }
+    fn u64(&mut self) -> Result<u64, ShardError> {
+        Ok(u64::from_le_bytes(self.arr()?))
+    }
+    fn f32(&mut self) -> Result<f32, ShardError> {
+        Ok(f32::from_le_bytes(self.arr()?))
+    }
+}
+
+fn le_f32s(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+fn triples(v: Vec<f32>) -> Vec<[f32; 3]> {
+    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+/// Decodes and fully validates the header only (checks magic, version, header CRC, lengths
+/// against `bytes.len()`); returns the header, `header_len`, flags and payload CRC.
+fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), ShardError> {
+    if bytes.len() < FIXED_HEADER {
+        if bytes.len() >= 8 && bytes[..8] != SHARD_MAGIC {
+            return Err(ShardError::BadMagic);
+        }
+        return Err(ShardError::Truncated {
+            needed: FIXED_HEADER as u64,
+            got: bytes.len() as u64,
+        });
+    }
+    let mut r = Reader { b: bytes, at: 0 };
+    if r.arr::<8>()? != SHARD_MAGIC {
+        return Err(ShardError::BadMagic);
+    }
+    let version = r.u16()?;
+    if version != SHARD_FORMAT_VERSION {
+        return Err(ShardError::UnsupportedVersion(version));
+    }
+    let dtype_code = r.arr::<1>()?[0];
+    let flags = r.arr::<1>()?[0];
+    let dim = r.u32()?;
+    let count = r.u32()?;
+    let header_len = r.u32()? as usize;
+    let tile_id = r.u64()?;
+    let mut aabb = Aabb::default();
+    for a in 0..3 {
+        aabb.min[a] = r.f32()?;
+    }
+    for a in 0..3 {
+        aabb.max[a] = r.f32()?;
+    }
+    let payload_len = r.u64()?;
+    let payload_crc = r.u32()?;
+    let s = r.u16()? as usize;
+    let m = r.u16()? as usize;
+    if !header_len.is_multiple_of(8)
+        || header_len < align(FIXED_HEADER + s + m + 4, 8)
+        || header_len > 1 << 20
+    {
+        return Err(ShardError::Malformed(format!(
+            "header length {header_len} inconsistent"
+        )));
+    }
+    if bytes.len() < header_len {
+        return Err(ShardError::Truncated {
+            needed: header_len as u64,
+            got: bytes.len() as u64,
+        });
+    }
+    let stored = u32::from_le_bytes([
+        bytes[header_len - 4],
+        bytes[header_len - 3],
+        bytes[header_len - 2],
+        bytes[header_len - 1],
+    ]);
+    let computed = crc32fast::hash(&bytes[..header_len - 4]);
+    if stored != computed {
+        return Err(ShardError::Checksum {
+            section: "header",
+            stored,
+            computed,
+        });
+    }
+    let scene_id = std::str::from_utf8(r.take(s)?)
+        .map_err(|_| ShardError::Malformed("scene id is not UTF-8".into()))?
+        .to_string();
+    let model = std::str::from_utf8(r.take(m)?)
+        .map_err(|_| ShardError::Malformed("model id is not UTF-8".into()))?
+        .to_string();
+    let dtype = Dtype::from_code(dtype_code)
+        .ok_or_else(|| ShardError::Malformed(format!("unknown dtype code {dtype_code}")))?;
+    if flags & !(FLAG_SCALES | FLAG_OPACITIES) != 0 {
+        return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
+    }
+    if dim == 0 || dim > MAX_DIM {
+        return Err(ShardError::Malformed(format!(
+            "embedding dim {dim} outside 1..={MAX_DIM}"
+        )));
+    }
+    let header = ShardHeader {
+        version,
+        scene_id,
+        model,
+        dim,
+        dtype,
+        count,
+        aabb,
+        tile_id,
+    };
+    Ok((header, header_len, flags, payload_len, payload_crc))
+}
+
+/// Expected payload length for the header fields (u64, overflow-free for u32 N and D ≤ 2^16).
+fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
+    let vec_bytes = match dtype {
+        Dtype::F32 => 4 * n * d,
+        Dtype::F16 => 2 * n * d,
+        Dtype::I8 => 4 * n + n * d,
+    };
+    let mut len = 4 * n + 12 * n + vec_bytes;
+    len = len.div_ceil(4) * 4;
+    if flags & FLAG_SCALES != 0 {
+        len += 12 * n;
+    }
+    if flags & FLAG_OPACITIES != 0 {
+        len += 4 * n;
+    }
+    len
+}
+
+/// Reads only the header of a shard (validating its CRC), without touching the payload.
+pub fn decode_header(bytes: &[u8]) -> Result<ShardHeader, ShardError> {
+    parse_header(bytes).map(|h| h.0)
+}
+
+/// Decodes a shard, verifying magic, version, both CRCs and every length.
+///
+/// Errors: [`ShardError`] for any truncated, corrupted, foreign or inconsistent input; never
+/// panics and never allocates more than the input length implies.
+pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
+    let (header, header_len, flags, payload_len, payload_crc) = parse_header(bytes)?;
+    let (n, d) = (header.count as u64, header.dim as u64);
+    let expected = expected_payload(header.dtype, flags, n, d);
+    if payload_len != expected {
+        return Err(ShardError::Malformed(format!(
+            "payload length {payload_len} but {n} Gaussians of dim {d} ({:?}) need {expected}",
+            header.dtype
+        )));
+    }
+    let total = header_len as u64 + payload_len;
+    if (bytes.len() as u64) < total {
+        return Err(ShardError::Truncated {
+            needed: total,
+            got: bytes.len() as u64,
+        });
+    }
+    if (bytes.len() as u64) > total {
+        return Err(ShardError::Malformed(format!(
+            "{} trailing bytes after the payload",
+            bytes.len() as u64 - total
+        )));
+    }
+    let payload = &bytes[header_len..];
+    let computed = crc32fast::hash(payload);
+    if computed != payload_crc {
+        return Err(ShardError::Checksum {
+            section: "payload",
+            stored: payload_crc,
+            computed,
+        });
+    }
+    // Lengths are now proven to fit in memory (they sum to bytes.len()).
+    let (n, d) = (n as usize, d as usize);
+    let mut r = Reader { b: payload, at: 0 };
+    let ids = r
+        .take(4 * n)?
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    let means = triples(le_f32s(r.take(12 * n)?));
+    let vectors: Vec<f32> = match header.dtype {
+        Dtype::F32 => le_f32s(r.take(4 * n * d)?),
+        Dtype::F16 => r
+            .take(2 * n * d)?
+            .chunks_exact(2)
+            .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
+            .collect(),
+        Dtype::I8 => {
+            let scales = le_f32s(r.take(4 * n)?);
+            let q = r.take(n * d)?;
+            let mut v = Vec::with_capacity(n * d);
+            for (row, s) in q.chunks_exact(d.max(1)).zip(&scales) {
+                v.extend(row.iter().map(|&b| (b as i8) as f32 * s));
+            }
+            v
+        }
+    };
+    r.at = align(r.at, 4);
+    let scales = if flags & FLAG_SCALES != 0 {
+        Some(triples(le_f32s(r.take(12 * n)?)))
+    } else {
+        None
+    };
+    let opacities = if flags & FLAG_OPACITIES != 0 {
+        Some(le_f32s(r.take(4 * n)?))
+    } else {
+        None
+    };
+    Ok(Shard {
+        header,
+        ids,
+        means,
+        vectors,
+        scales,
+        opacities,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn unit(v: Vec<f32>) -> Vec<f32> {
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        if n < 1e-6 {
+            v.iter().map(|_| 0.0).collect()
+        } else {
+            v.iter().map(|x| x / n).collect()
+        }
+    }
+
+    #[derive(Debug, Clone)]
+    struct Case {
+        ids: Vec<u32>,
+        means: Vec<[f32; 3]>,
+        vectors: Vec<f32>,
+        dim: usize,
+        scales: Option<Vec<[f32; 3]>>,
+        opacities: Option<Vec<f32>>,
+        scene: String,
+        model: String,
+        tile: u64,
+    }
+
+    fn case() -> impl Strategy<Value = Case> {
+        (0usize..20, 1usize..40).prop_flat_map(|(n, dim)| {
+            (
+                proptest::collection::vec(any::<u32>(), n),
+                proptest::collection::vec(prop::array::uniform3(-1e4f32..1e4), n),
+                proptest::collection::vec(proptest::collection::vec(-1.0f32..1.0, dim), n),
+                proptest::option::of(proptest::collection::vec(
+                    prop::array::uniform3(-10f32..3.0),
+                    n,
+                )),
+                proptest::option::of(proptest::collection::vec(-8f32..8.0, n)),
+                "[a-z0-9_-]{0,12}",
+                "\\PC{0,10}",
+                any::<u64>(),
+            )
+                .prop_map(
+                    move |(ids, means, vecs, scales, opacities, scene, model, tile)| Case {
+                        ids,
+                        means,
+                        vectors: vecs.into_iter().flat_map(unit).collect(),
+                        dim,
+                        scales,
+                        opacities,
+                        scene,
+                        model,
+                        tile,
+                    },
+                )
+        })
+    }
+
+    fn encode(c: &Case, dtype: Dtype) -> Vec<u8> {
+        encode_shard(&ShardInput {
+            scene_id: &c.scene,
+            model: &c.model,
+            tile_id: c.tile,
+            dim: c.dim,
+            dtype,
+            ids: &c.ids,
+            means: &c.means,
+            vectors: &c.vectors,
+            scales: c.scales.as_deref(),
+            opacities: c.opacities.as_deref(),
+        })
+        .expect("valid input encodes")
+    }
+
+    fn dtype() -> impl Strategy<Value = Dtype> {
+        prop_oneof![Just(Dtype::F32), Just(Dtype::F16), Just(Dtype::I8)]
+    }
+
+    proptest! {
+        #[test]
+        fn round_trip_every_dtype(c in case(), dt in dtype()) {
+            let bytes = encode(&c, dt);
+            prop_assert_eq!(bytes.len() % 4, 0);
+            let s = decode_shard(&bytes).expect("decodes");
+            prop_assert_eq!(&s.header.scene_id, &c.scene);
+            prop_assert_eq!(&s.header.model, &c.model);
+            prop_assert_eq!(s.header.tile_id, c.tile);
+            prop_assert_eq!(s.header.dtype, dt);
+            prop_assert_eq!(s.header.dim as usize, c.dim);
+            prop_assert_eq!(s.header.count as usize, c.ids.len());
+            prop_assert_eq!(&s.ids, &c.ids);
+            prop_assert_eq!(&s.means, &c.means);
+            prop_assert_eq!(&s.scales, &c.scales);
+            prop_assert_eq!(&s.opacities, &c.opacities);
+            prop_assert_eq!(Some(s.header.aabb), Aabb::of_points(c.means.iter().copied()).or(Some(Aabb::default())));
+            prop_assert_eq!(s.vectors.len(), c.vectors.len());
+            for (row_in, row_out) in c.vectors.chunks(c.dim).zip(s.vectors.chunks(c.dim)) {
+                let maxabs = row_in.iter().fold(0f32, |m, x| m.max(x.abs()));
+                let tol = match dt { Dtype::F32 => 0.0, Dtype::F16 => 1e-3 * maxabs.max(1e-3), Dtype::I8 => maxabs / 127.0 * 0.5 + 1e-7 };
+                for (a, b) in row_in.iter().zip(row_out) {
+                    prop_assert!((a - b).abs() <= tol, "{:?}: {} vs {} tol {}", dt, a, b, tol);
+                }
+            }
+            prop_assert_eq!(decode_header(&bytes).expect("header"), s.header);
+        }
+
+        #[test]
+        fn truncation_is_a_typed_error(c in case(), dt in dtype(), cut in any::<prop::sample::Index>()) {
+            let bytes = encode(&c, dt);
+            let k = cut.index(bytes.len());
+            let r = decode_shard(&bytes[..k]);
+            prop_assert!(matches!(r, Err(ShardError::Truncated { .. })), "cut at {} of {}: {:?}", k, bytes.len(), r.map(|_| ()));
+        }
+
+        #[test]
+        fn corruption_never_panics_and_is_detected(c in case(), dt in dtype(),
+                flips in proptest::collection::vec((any::<prop::sample::Index>(), 1u8..=255), 1..4)) {
+            let mut bytes = encode(&c, dt);
+            for (at, x) in &flips {
+                let i = at.index(bytes.len());
+                bytes[i] ^= x;
+            }
+            // Flips may cancel out; only a changed file must be rejected.
+            let original = encode(&c, dt);
+            let r = decode_shard(&bytes);
+            if bytes != original {
+                prop_assert!(r.is_err(), "corruption not detected");
+            } else {
+                prop_assert!(r.is_ok());
+            }
+        }
+
+        #[test]
+        fn arbitrary_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..300), magic in any::<bool>()) {
+            let mut b = bytes;
+            if magic && b.len() >= 10 {
+                b[..8].copy_from_slice(&SHARD_MAGIC);
+                b[8..10].copy_from_slice(&SHARD_FORMAT_VERSION.to_le_bytes());
+            }
+            let _ = decode_shard(&b);
+        }
+    }
+
+    #[test]
+    fn foreign_and_versioned_inputs_give_specific_errors() {
+        let c = Case {
+            ids: vec![3, 9],
+            means: vec![[0.0, 1.0, 2.0], [-1.0, 5.0, 0.5]],
+            vectors: unit(vec![1.0, 2.0, 3.0])
+                .into_iter()
+                .chain(unit(vec![0.0, -1.0, 0.5]))
+                .collect(),
+            dim: 3,
+            scales: None,
+            opacities: Some(vec![0.1, 0.2]),
+            scene: "s".into(),
+            model: "m".into(),
+            tile: 7,
+        };
+        let mut b = encode(&c, Dtype::I8);
+        assert_eq!(
+            decode_shard(
+                b"hello world, this is not a shard at all, no no no no no no no no no no no"
+            ),
+            Err(ShardError::BadMagic)
+        );
+        b.push(0);
+        assert!(matches!(decode_shard(&b), Err(ShardError::Malformed(_))));
+        b.pop();
+        b[8] = 2;
+        assert_eq!(decode_shard(&b), Err(ShardError::UnsupportedVersion(2)));
+        b[8] = 1;
+        let last = b.len() - 1;
+        b[last] ^= 0x40;
+        assert!(matches!(
+            decode_shard(&b),
+            Err(ShardError::Checksum {
+                section: "payload",
+                ..
+            })
+        ));
+        b[last] ^= 0x40;
+        b[30] ^= 1; // inside the tile id/AABB
+        assert!(matches!(
+            decode_shard(&b),
+            Err(ShardError::Checksum {
+                section: "header",
+                ..
+            })
+        ));
+    }
+
+    #[test]
+    fn rejects_bad_encoder_input() {
+        let r = encode_shard(&ShardInput {
+            scene_id: "s",
+            model: "m",
+            tile_id: 0,
+            dim: 2,
+            dtype: Dtype::F32,
+            ids: &[1],
+            means: &[[0.0; 3]],
+            vectors: &[1.0],
+            scales: None,
+            opacities: None,
+        });
+        assert!(matches!(r, Err(Error::Invalid(_))));
+    }
+}

@@ -1,0 +1,520 @@
+//! Ground frame, manifest and the tile R-tree used for radius selection.
+//!
+//! Scenes from drones and indoor captures are mostly 2.5D, so tiles are cut on a *ground plane*:
+//! a right-handed orthonormal basis `(e1, e2, up)` of the world frame. A world point `x` maps to
+//! ground coordinates `g = R·x` where the rows of `R` are `e1, e2, up`; `(g0, g1)` is the position
+//! on the plane (scene units, metres for metric reconstructions) and `g2` the height.
+
+use geo::{Distance, Euclidean};
+use glam::{DMat3, DVec3};
+use rstar::{AABB, RTree, RTreeObject};
+
+use super::format::{Aabb, Dtype};
+use crate::{Error, Result};
+
+/// Manifest `format` field.
+pub const MANIFEST_FORMAT: &str = "slag-shards-manifest";
+/// Manifest schema version.
+pub const MANIFEST_VERSION: u32 = 1;
+
+/// Where the ground plane's up axis came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum UpSource {
+    /// Given by the user (`--up`).
+    User,
+    /// Mean of the training cameras' up vectors (COLMAP: camera −y axis in world frame).
+    Cameras,
+    /// Smallest-variance principal axis of the means (sign: largest |component| positive).
+    Pca,
+}
+
+/// World→ground rotation recorded in the manifest.
+///
+/// Stored as `f32` so the JSON manifest round-trips bit-exactly (the basis is computed in f64 and
+/// rounded; it is orthonormal to ~1e-7, and [`GroundFrame::to_ground`] uses the stored values, so
+/// partitioning and selection agree with what clients read).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GroundFrame {
+    /// Unit up vector, world frame.
+    pub up: [f32; 3],
+    /// Rows `e1, e2, up` of the world→ground rotation `R` (`g = R·x`); right-handed.
+    pub world_to_ground: [[f32; 3]; 3],
+    /// How `up` was chosen.
+    pub up_source: UpSource,
+}
+
+impl GroundFrame {
+    /// Frame with the given up vector (any non-zero length; normalised here). `e1` is the world
+    /// axis least aligned with `up`, projected onto the plane; `e2 = up × e1`.
+    ///
+    /// Errors: zero or non-finite `up` ([`Error::Invalid`]).
+    pub fn from_up(up: [f64; 3], source: UpSource) -> Result<GroundFrame> {
+        let u = DVec3::from(up);
+        if !u.is_finite() || u.length() < 1e-12 {
+            return Err(Error::Invalid(format!(
+                "up vector {up:?} is zero or not finite; pass --up x|y|z|-x|-y|-z"
+            )));
+        }
+        let u = u.normalize();
+        let a = u.abs();
+        let reference = if a.x <= a.y && a.x <= a.z {
+            DVec3::X
+        } else if a.y <= a.z {
+            DVec3::Y
+        } else {
+            DVec3::Z
+        };
+        let e1 = (reference - u * reference.dot(u)).normalize();
+        let e2 = u.cross(e1);
+        Ok(GroundFrame {
+            up: u.as_vec3().to_array(),
+            world_to_ground: [
+                e1.as_vec3().to_array(),
+                e2.as_vec3().to_array(),
+                u.as_vec3().to_array(),
+            ],
+            up_source: source,
+        })
+    }
+
+    /// Parses `x|y|z|-x|-y|-z` (also `+y`) as a user up axis.
+    ///
+    /// Errors: any other string ([`Error::Invalid`]).
+    pub fn from_axis_name(name: &str) -> Result<GroundFrame> {
+        let (sign, axis) = match name.trim().strip_prefix('-') {
+            Some(rest) => (-1.0, rest),
+            None => (1.0, name.trim().trim_start_matches('+')),
+        };
+        let v = match axis.to_ascii_lowercase().as_str() {
+            "x" => [sign, 0.0, 0.0],
+            "y" => [0.0, sign, 0.0],
+            "z" => [0.0, 0.0, sign],
+            _ => {
+                return Err(Error::Invalid(format!(
+                    "--up {name:?}: use one of x, y, z, -x, -y, -z"
+                )));
+            }
+        };
+        GroundFrame::from_up(v, UpSource::User)
+    }
+
+    /// Up = normalised mean of the cameras' up vectors (world frame). For COLMAP cameras pass
+    /// the camera −y axis in world frame, `-(R_wc row 1)` of each world-to-camera rotation.
+    ///
+    /// Errors: empty list or vectors that cancel out ([`Error::Invalid`]).
+    pub fn from_camera_ups(ups: &[[f64; 3]]) -> Result<GroundFrame> {
+        let sum: DVec3 = ups
+            .iter()
+            .map(|&u| DVec3::from(u).normalize_or_zero())
+            .sum();
+        if ups.is_empty() || sum.length() < 1e-6 * ups.len() as f64 {
+            return Err(Error::Invalid(
+                "camera up vectors are missing or cancel out; pass --up x|y|z|-x|-y|-z".into(),
+            ));
+        }
+        GroundFrame::from_up(sum.to_array(), UpSource::Cameras)
+    }
+
+    /// Up = eigenvector of the smallest eigenvalue of the means' covariance (2.5D scenes are
+    /// flattest along up). Sign: the largest-magnitude component is made positive (PCA cannot
+    /// tell up from down; tiling does not depend on it).
+    ///
+    /// Errors: fewer than 3 means, non-finite values ([`Error::Invalid`]).
+    pub fn from_pca(means: &[[f32; 3]]) -> Result<GroundFrame> {
+        if means.len() < 3 {
+            return Err(Error::Invalid(
+                "need at least 3 Gaussians to estimate the up axis; pass --up".into(),
+            ));
+        }
+        let n = means.len() as f64;
+        let mean: DVec3 = means
+            .iter()
+            .map(|m| DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64))
+            .sum::<DVec3>()
+            / n;
+        let mut c = [[0.0f64; 3]; 3];
+        for m in means {
+            let d = DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64) - mean;
+            let d = d.to_array();
+            for i in 0..3 {
+                for j in 0..3 {
+                    c[i][j] += d[i] * d[j] / n;
+                }
+            }
+        }
+        if c.iter().flatten().any(|x| !x.is_finite()) {
+            return Err(Error::Invalid(
+                "non-finite means; cannot estimate the up axis".into(),
+            ));
+        }
+        let v = smallest_eigenvector(DMat3::from_cols_array_2d(&c));
+        let a = v.abs();
+        let big = if a.x >= a.y && a.x >= a.z {
+            v.x
+        } else if a.y >= a.z {
+            v.y
+        } else {
+            v.z
+        };
+        let v = if big < 0.0 { -v } else { v };
+        GroundFrame::from_up(v.to_array(), UpSource::Pca)
+    }
+
+    /// Ground coordinates `(g0, g1, height)` of a world point.
+    pub fn to_ground(&self, p: [f32; 3]) -> [f64; 3] {
+        let x = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        let r = self
+            .world_to_ground
+            .map(|row| DVec3::new(row[0] as f64, row[1] as f64, row[2] as f64));
+        [r[0].dot(x), r[1].dot(x), r[2].dot(x)]
+    }
+}
+
+/// Eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix (cyclic Jacobi rotations).
+fn smallest_eigenvector(m: DMat3) -> DVec3 {
+    let mut a = m.to_cols_array_2d();
+    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    for _ in 0..50 {
+        let off = a[0][1].abs() + a[0][2].abs() + a[1][2].abs();
+        if off < 1e-30 {
+            break;
+        }
+        for (p, q) in [(0usize, 1usize), (0, 2), (1, 2)] {
+            if a[p][q].abs() < 1e-300 {
+                continue;
+            }
+            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let t = if theta == 0.0 { 1.0 } else { t };
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let s = t * c;
+            for row in a.iter_mut() {
+                let (akp, akq) = (row[p], row[q]);
+                row[p] = c * akp - s * akq;
+                row[q] = s * akp + c * akq;
+            }
+            let (rp, rq) = (a[p], a[q]);
+            for k in 0..3 {
+                a[p][k] = c * rp[k] - s * rq[k];
+                a[q][k] = s * rp[k] + c * rq[k];
+            }
+            for row in v.iter_mut() {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = c * vp - s * vq;
+                row[q] = s * vp + c * vq;
+            }
+        }
+    }
+    let i = (0..3)
+        .min_by(|&i, &j| a[i][i].total_cmp(&a[j][j]))
+        .unwrap_or(0);
+    DVec3::new(v[0][i], v[1][i], v[2][i]).normalize_or_zero()
+}
+
+/// One tile (= one shard) in the manifest.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TileInfo {
+    /// Tile id; also the shard id in URLs and store keys.
+    pub id: u64,
+    /// Footprint on the ground plane: closed polygon ring `[[g0, g1], …]` (first = last), ground
+    /// coordinates, scene units. Partition writes the tight rectangle of the tile's means, rounded
+    /// outward to `f32` (exact JSON round trip).
+    pub footprint: Vec<[f32; 2]>,
+    /// Box of the tile's means, world frame.
+    pub aabb: Aabb,
+    /// Number of Gaussians in the shard.
+    pub count: u64,
+    /// Shard size in bytes.
+    pub bytes: u64,
+    /// CRC-32 of the whole shard ([`super::shard_checksum`]), 8 lowercase hex digits.
+    pub checksum: String,
+}
+
+impl TileInfo {
+    /// The footprint as a `geo` polygon.
+    pub fn footprint_polygon(&self) -> geo::Polygon<f64> {
+        geo::Polygon::new(
+            geo::LineString::from(
+                self.footprint
+                    .iter()
+                    .map(|p| (p[0] as f64, p[1] as f64))
+                    .collect::<Vec<_>>(),
+            ),
+            vec![],
+        )
+    }
+    /// A closed rectangle ring from ground-plane bounds, rounded outward to `f32`.
+    pub fn rect_ring(min: [f64; 2], max: [f64; 2]) -> Vec<[f32; 2]> {
+        let min = min.map(f32_down);
+        let max = max.map(f32_up);
+        vec![
+            [min[0], min[1]],
+            [max[0], min[1]],
+            [max[0], max[1]],
+            [min[0], max[1]],
+            [min[0], min[1]],
+        ]
+    }
+}
+
+/// The scene's shard catalogue (`manifest.json`, `GET /v1/scenes/{scene}/manifest`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Manifest {
+    /// Always [`MANIFEST_FORMAT`].
+    pub format: String,
+    /// Manifest schema version ([`MANIFEST_VERSION`]).
+    pub manifest_version: u32,
+    /// Shard byte-layout version ([`super::SHARD_FORMAT_VERSION`]).
+    pub shard_format_version: u16,
+    /// Scene id (`[A-Za-z0-9_.-]`, 1..=64, not starting with `.`).
+    pub scene_id: String,
+    /// Partition generation, incremented on each store commit (0 before commit).
+    pub generation: u64,
+    /// Embedding model id.
+    pub model: String,
+    /// Embedding width D.
+    pub dim: u32,
+    /// Storage type of the vectors in every shard.
+    pub dtype: Dtype,
+    /// Ground plane used for tiling and selection.
+    pub ground: GroundFrame,
+    /// `--max-per-shard` used.
+    pub max_per_shard: u64,
+    /// Gaussians over all tiles.
+    pub total_gaussians: u64,
+    /// Tiles, ascending id.
+    pub tiles: Vec<TileInfo>,
+}
+
+impl Manifest {
+    /// Parses and checks a manifest (format string, version, tile ids unique).
+    ///
+    /// Errors: [`Error::Format`] naming `origin`.
+    pub fn from_json(bytes: &[u8], origin: &str) -> Result<Manifest> {
+        let m: Manifest = serde_json::from_slice(bytes)
+            .map_err(|e| Error::format(origin, format!("not a slag shard manifest: {e}")))?;
+        if m.format != MANIFEST_FORMAT || m.manifest_version != MANIFEST_VERSION {
+            return Err(Error::format(
+                origin,
+                format!(
+                    "manifest {} v{}, expected {MANIFEST_FORMAT} v{MANIFEST_VERSION}",
+                    m.format, m.manifest_version
+                ),
+            ));
+        }
+        Ok(m)
+    }
+    /// R-tree over this manifest's tile footprints.
+    pub fn tile_index(&self) -> TileIndex {
+        TileIndex::new(&self.tiles)
+    }
+    /// Pretty JSON.
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec_pretty(self).unwrap_or_default()
+    }
+}
+
+/// Largest `f32` ≤ `v`.
+fn f32_down(v: f64) -> f32 {
+    let f = v as f32;
+    if (f as f64) > v { f.next_down() } else { f }
+}
+
+/// Smallest `f32` ≥ `v`.
+fn f32_up(v: f64) -> f32 {
+    let f = v as f32;
+    if (f as f64) < v { f.next_up() } else { f }
+}
+
+/// R-tree entry: a tile's footprint envelope.
+#[derive(Debug, Clone)]
+struct Entry {
+    id: u64,
+    polygon: geo::Polygon<f64>,
+    envelope: AABB<[f64; 2]>,
+}
+
+impl RTreeObject for Entry {
+    type Envelope = AABB<[f64; 2]>;
+    fn envelope(&self) -> Self::Envelope {
+        self.envelope
+    }
+}
+
+/// R-tree (`rstar`) over tile footprints on the ground plane.
+#[derive(Debug, Clone)]
+pub struct TileIndex {
+    tree: RTree<Entry>,
+}
+
+impl TileIndex {
+    /// Builds the index from manifest tiles. Tiles with an empty or non-finite footprint are
+    /// skipped (they can never intersect a disc).
+    pub fn new(tiles: &[TileInfo]) -> TileIndex {
+        let entries = tiles
+            .iter()
+            .filter(|t| {
+                !t.footprint.is_empty() && t.footprint.iter().flatten().all(|x| x.is_finite())
+            })
+            .map(|t| {
+                let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+                for p in &t.footprint {
+                    for a in 0..2 {
+                        lo[a] = lo[a].min(p[a] as f64);
+                        hi[a] = hi[a].max(p[a] as f64);
+                    }
+                }
+                Entry {
+                    id: t.id,
+                    polygon: t.footprint_polygon(),
+                    envelope: AABB::from_corners(lo, hi),
+                }
+            })
+            .collect();
+        TileIndex {
+            tree: RTree::bulk_load(entries),
+        }
+    }
+
+    /// Ids (ascending) of exactly the tiles whose footprint intersects the closed disc of
+    /// `radius` around `center` (ground coordinates `(g0, g1)`, scene units; see
+    /// [`GroundFrame::to_ground`]). A negative or NaN radius selects nothing.
+    pub fn select_tiles(&self, center: [f64; 2], radius: f64) -> Vec<u64> {
+        if radius.is_nan() || radius < 0.0 || !center.iter().all(|c| c.is_finite()) {
+            return Vec::new();
+        }
+        let query = AABB::from_corners(
+            [center[0] - radius, center[1] - radius],
+            [center[0] + radius, center[1] + radius],
+        );
+        let pt = geo::Point::new(center[0], center[1]);
+        let mut ids: Vec<u64> = self
+            .tree
+            .locate_in_envelope_intersecting(&query)
+            .filter(|e| Euclidean.distance(&pt, &e.polygon) <= radius)
+            .map(|e| e.id)
+            .collect();
+        ids.sort_unstable();
+        ids
+    }
+
+    /// Number of indexed tiles.
+    pub fn len(&self) -> usize {
+        self.tree.size()
+    }
+    /// True when no tile is indexed.
+    pub fn is_empty(&self) -> bool {
+        self.tree.size() == 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Independent reference: distance from a point to an axis-aligned rectangle by clamping.
+    fn rect_distance(c: [f64; 2], lo: [f64; 2], hi: [f64; 2]) -> f64 {
+        let dx = (lo[0] - c[0]).max(0.0).max(c[0] - hi[0]);
+        let dy = (lo[1] - c[1]).max(0.0).max(c[1] - hi[1]);
+        (dx * dx + dy * dy).sqrt()
+    }
+
+    fn tile(id: u64, lo: [f64; 2], hi: [f64; 2]) -> TileInfo {
+        TileInfo {
+            id,
+            footprint: TileInfo::rect_ring(lo, hi),
+            aabb: Aabb::default(),
+            count: 1,
+            bytes: 1,
+            checksum: String::new(),
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn radius_selection_matches_brute_force(
+            rects in proptest::collection::vec((-100f32..100.0, -100f32..100.0, 0f32..20.0, 0f32..20.0), 0..60),
+            cx in -130f64..130.0, cy in -130f64..130.0, r in 0f64..60.0,
+        ) {
+            let tiles: Vec<TileInfo> = rects.iter().enumerate()
+                .map(|(i, &(x, y, w, h))| tile(i as u64, [x as f64, y as f64], [(x + w) as f64, (y + h) as f64])).collect();
+            let idx = TileIndex::new(&tiles);
+            let got = idx.select_tiles([cx, cy], r);
+            let want: Vec<u64> = rects.iter().enumerate()
+                .filter(|&(_, &(x, y, w, h))| rect_distance([cx, cy], [x as f64, y as f64], [(x + w) as f64, (y + h) as f64]) <= r)
+                .map(|(i, _)| i as u64).collect();
+            prop_assert_eq!(got, want);
+        }
+    }
+
+    #[test]
+    fn disc_touching_a_corner_counts_and_missing_it_does_not() {
+        let idx = TileIndex::new(&[tile(4, [0.0, 0.0], [1.0, 1.0])]);
+        // Corner (1,1) at distance 5 from (4,5).
+        assert_eq!(idx.select_tiles([4.0, 5.0], 5.0), vec![4]);
+        assert!(idx.select_tiles([4.0, 5.0], 4.999).is_empty());
+        // Disc inside the tile.
+        assert_eq!(idx.select_tiles([0.5, 0.5], 0.01), vec![4]);
+        assert!(idx.select_tiles([0.5, 0.5], -1.0).is_empty());
+    }
+
+    #[test]
+    fn ground_frames_are_orthonormal_right_handed() {
+        for up in [
+            [0.0, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            [0.3, 0.2, -0.9],
+            [1.0, 1.0, 1.0],
+        ] {
+            let g = GroundFrame::from_up(up, UpSource::User).expect("frame");
+            let r = g.world_to_ground.map(|v| glam::Vec3::from(v).as_dvec3());
+            for i in 0..3 {
+                assert!((r[i].length() - 1.0).abs() < 1e-6);
+                for j in 0..i {
+                    assert!(r[i].dot(r[j]).abs() < 1e-6);
+                }
+            }
+            assert!((r[0].cross(r[1]) - r[2]).length() < 1e-6);
+            assert!((r[2] - DVec3::from(up).normalize()).length() < 1e-6);
+        }
+        assert!(GroundFrame::from_up([0.0; 3], UpSource::User).is_err());
+        assert_eq!(
+            GroundFrame::from_axis_name("-y").expect("axis").up,
+            [0.0, -1.0, 0.0]
+        );
+        assert!(GroundFrame::from_axis_name("w").is_err());
+    }
+
+    #[test]
+    fn pca_finds_the_flat_axis_of_a_tilted_plane() {
+        // Points on a plane with normal n, spread ±50 in-plane and ±0.5 off-plane.
+        let n = DVec3::new(0.2, -0.9, 0.3).normalize();
+        let a = n.any_orthonormal_vector();
+        let b = n.cross(a);
+        let mut pts = Vec::new();
+        let mut s = 12345u64;
+        let mut rnd = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        for _ in 0..2000 {
+            let p = a * 100.0 * rnd() + b * 100.0 * rnd() + n * rnd() + DVec3::new(3.0, 4.0, 5.0);
+            pts.push([p.x as f32, p.y as f32, p.z as f32]);
+        }
+        let g = GroundFrame::from_pca(&pts).expect("pca");
+        assert!(
+            glam::Vec3::from(g.up).as_dvec3().dot(n).abs() > 0.999,
+            "{:?} vs {n:?}",
+            g.up
+        );
+        assert_eq!(g.up_source, UpSource::Pca);
+        let cams =
+            GroundFrame::from_camera_ups(&[[0.1, 1.0, 0.0], [-0.1, 1.0, 0.0]]).expect("cams");
+        assert!((glam::Vec3::from(cams.up).as_dvec3() - DVec3::Y).length() < 1e-7);
+        assert!(GroundFrame::from_camera_ups(&[]).is_err());
+    }
+}

@@ -1,0 +1,148 @@
+//! `partition`, `serve` and `export` subcommands (clap `Args` + run functions; wired in
+//! `main.rs`).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::Context;
+use slag_common::embeddings::Embeddings;
+use slag_common::shards::{Dtype, GroundFrame};
+
+use crate::partition::{PartitionParams, UpChoice};
+use crate::store::{ShardStore, partition_into_store};
+
+/// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PartitionArgs {
+    /// Embeddings file written by `slag-encoder encode` (safetensors).
+    #[arg(long)]
+    pub embeddings: PathBuf,
+    /// Shard store folder (sled; created if missing).
+    #[arg(long)]
+    pub store: PathBuf,
+    /// Scene id: 1-64 characters of A-Z a-z 0-9 _ - . (used in URLs).
+    #[arg(long)]
+    pub scene: String,
+    /// Most Gaussians per tile; tiles split adaptively (k-d on the ground plane) until they fit.
+    #[arg(long, default_value_t = 16384)]
+    pub max_per_shard: usize,
+    /// World up axis (x, y, z, -x, -y, -z). Default: from --cameras if given, else PCA.
+    #[arg(long, allow_hyphen_values = true)]
+    pub up: Option<String>,
+    /// Scene folder with COLMAP `sparse/0` (or nerfstudio `transforms.json`): up = mean camera
+    /// −y axis in world frame.
+    #[arg(long)]
+    pub cameras: Option<PathBuf>,
+    /// Source `.ply`: store each Gaussian's scales and opacity in the shards for display.
+    #[arg(long)]
+    pub display_ply: Option<PathBuf>,
+    /// Embedding storage in the shards: f32, f16 or int8 (per-vector scale).
+    #[arg(long, default_value = "f16")]
+    pub dtype: Dtype,
+}
+
+/// Runs `partition`; prints a one-line summary.
+///
+/// Errors: unreadable embeddings, invalid parameters, store failures.
+pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
+    let emb = Embeddings::read(&args.embeddings)?;
+    let up = if let Some(u) = &args.up {
+        UpChoice::Given(GroundFrame::from_axis_name(u)?)
+    } else if let Some(dir) = &args.cameras {
+        let views = slag_common::camera::load_views(dir)?;
+        UpChoice::CameraUps(
+            views
+                .iter()
+                .map(|v| (-v.world_to_camera.rotation.row(1)).to_array())
+                .collect(),
+        )
+    } else {
+        UpChoice::Pca
+    };
+    let params = PartitionParams {
+        scene_id: args.scene.clone(),
+        max_per_shard: args.max_per_shard,
+        up,
+        dtype: args.dtype,
+    };
+    let store = ShardStore::open(&args.store)?;
+    let t = std::time::Instant::now();
+    let m = match &args.display_ply {
+        Some(ply) => {
+            let g = slag_common::scene::load_ply(ply, Default::default())?;
+            let src = slag_common::shards::WithDisplay::new(&emb, &g.scales, &g.opacities)?;
+            partition_into_store(&store, &src, &params).context("partition")?
+        }
+        None => partition_into_store(&store, &emb, &params).context("partition")?,
+    };
+    let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
+    println!(
+        "scene {} generation {}: {} Gaussians in {} shards, {} bytes ({:.1} B/Gaussian, {:?}), up {:?} ({:?}), {:.1}s",
+        m.scene_id,
+        m.generation,
+        m.total_gaussians,
+        m.tiles.len(),
+        bytes,
+        bytes as f64 / m.total_gaussians.max(1) as f64,
+        m.dtype,
+        m.ground.up,
+        m.ground.up_source,
+        t.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// `slag-encoder serve`: HTTP manifest + shards of a store.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Shard store folder.
+    #[arg(long)]
+    pub store: PathBuf,
+    /// Address to bind.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub bind: SocketAddr,
+}
+
+/// Runs `serve` until Ctrl-C (own tokio runtime).
+///
+/// Errors: store cannot be opened, address cannot be bound.
+pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
+    let store = ShardStore::open(&args.store)?;
+    let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
+    rt.block_on(crate::serve::serve(store, args.bind, |a| {
+        println!("serving on http://{a}/v1/scenes")
+    }))?;
+    Ok(())
+}
+
+/// `slag-encoder export`: manifest.json + shard files of one scene, written atomically.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ExportArgs {
+    /// Shard store folder.
+    #[arg(long)]
+    pub store: PathBuf,
+    /// Scene id.
+    #[arg(long)]
+    pub scene: String,
+    /// Output folder (must not exist unless --force).
+    pub dir: PathBuf,
+    /// Replace an existing output folder.
+    #[arg(long)]
+    pub force: bool,
+}
+
+/// Runs `export`.
+///
+/// Errors: unknown scene, existing folder without --force, I/O.
+pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
+    let store = ShardStore::open(&args.store)?;
+    let m = crate::export::export(&store, &args.scene, &args.dir, args.force)?;
+    println!(
+        "exported {} shards of {} (generation {}) to {}",
+        m.tiles.len(),
+        m.scene_id,
+        m.generation,
+        args.dir.display()
+    );
+    Ok(())
+}

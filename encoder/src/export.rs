@@ -1,0 +1,124 @@
+//! `slag-encoder export DIR`: the current generation of a scene as plain files for any static
+//! host or object store.
+//!
+//! Layout: `DIR/manifest.json` (the same JSON as `GET /v1/scenes/{scene}/manifest`) and
+//! `DIR/shards/{id}` (the same bytes as `GET /v1/scenes/{scene}/shards/{id}`), so serving `DIR`
+//! at `/v1/scenes/{scene}/` reproduces the shard URLs.
+//!
+//! Atomic: everything is written into a hidden sibling `.DIR.partial-<pid>` (each file fsynced,
+//! `manifest.json` last), then renamed to `DIR`. A killed export leaves at most that hidden
+//! folder, never a `DIR` that looks complete. Replacing an existing `DIR` (`force`) renames the
+//! old one aside first and deletes it after the new one is in place.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use slag_common::shards::{Manifest, shard_checksum};
+use slag_common::{Error, Result};
+
+use crate::store::ShardStore;
+
+fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(path, e))
+}
+
+fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
+    let name = dir.file_name().ok_or_else(|| {
+        Error::Invalid(format!(
+            "export folder {} has no name; pass e.g. out/scene",
+            dir.display()
+        ))
+    })?;
+    let mut n = std::ffi::OsString::from(".");
+    n.push(name);
+    n.push(format!(".{tag}-{}", std::process::id()));
+    Ok(dir.with_file_name(n))
+}
+
+/// Exports the current generation of `scene` from `store` into `dir`.
+///
+/// Errors: unknown scene ([`Error::Invalid`]), `dir` exists and `force` is false
+/// ([`Error::Invalid`]), a shard missing or not matching the manifest checksum (the store changed
+/// during export or is corrupted; [`Error::Format`]), I/O. On error nothing is left at `dir`
+/// (or the previous `dir` is unchanged) and the temporary folder is removed.
+pub fn export(store: &ShardStore, scene: &str, dir: &Path, force: bool) -> Result<Manifest> {
+    let manifest = store.manifest(scene)?.ok_or_else(|| {
+        Error::Invalid(format!(
+            "scene {scene:?} is not in the store; run slag-encoder partition first"
+        ))
+    })?;
+    if dir.exists() && !force {
+        return Err(Error::Invalid(format!(
+            "{} exists; pass --force to replace it",
+            dir.display()
+        )));
+    }
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;
+    }
+    let tmp = sibling(dir, "partial")?;
+    if tmp.exists() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    }
+    let result = write_tree(store, &manifest, &tmp).and_then(|_| publish(&tmp, dir));
+    if result.is_err() {
+        let _ = std::fs::remove_dir_all(&tmp);
+    }
+    result.map(|_| manifest)
+}
+
+fn write_tree(store: &ShardStore, manifest: &Manifest, tmp: &Path) -> Result<()> {
+    let shards = tmp.join("shards");
+    std::fs::create_dir_all(&shards).map_err(|e| Error::io(&shards, e))?;
+    for t in &manifest.tiles {
+        let bytes = store.shard(&manifest.scene_id, t.id)?.ok_or_else(|| {
+            Error::format(
+                "<shard store>",
+                format!(
+                    "tile {} missing; the store changed during export, re-run",
+                    t.id
+                ),
+            )
+        })?;
+        if format!("{:08x}", shard_checksum(&bytes)) != t.checksum {
+            return Err(Error::format(
+                "<shard store>",
+                format!(
+                    "tile {} checksum differs from the manifest; the store changed during export, re-run",
+                    t.id
+                ),
+            ));
+        }
+        write_synced(&shards.join(t.id.to_string()), &bytes)?;
+    }
+    write_synced(&tmp.join("manifest.json"), &manifest.to_json())?;
+    for d in [&shards, tmp] {
+        if let Ok(f) = std::fs::File::open(d) {
+            let _ = f.sync_all();
+        }
+    }
+    Ok(())
+}
+
+fn publish(tmp: &Path, dir: &Path) -> Result<()> {
+    if dir.exists() {
+        let old = sibling(dir, "old")?;
+        std::fs::rename(dir, &old).map_err(|e| Error::io(dir, e))?;
+        if let Err(e) = std::fs::rename(tmp, dir) {
+            let _ = std::fs::rename(&old, dir);
+            return Err(Error::io(dir, e));
+        }
+        std::fs::remove_dir_all(&old).map_err(|e| Error::io(&old, e))?;
+    } else {
+        std::fs::rename(tmp, dir).map_err(|e| Error::io(dir, e))?;
+    }
+    if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty())
+        && let Ok(f) = std::fs::File::open(parent)
+    {
+        let _ = f.sync_all();
+    }
+    Ok(())
+}

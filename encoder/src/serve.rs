@@ -1,0 +1,299 @@
+//! `slag-encoder serve`: HTTP access to a [`ShardStore`] (axum 0.8 + tokio).
+//!
+//! Routes:
+//! - `GET /v1/scenes` → `{"scenes": [..]}`;
+//! - `GET /v1/scenes/{scene}/manifest` → the current [`Manifest`] as JSON (strong `ETag` = CRC-32
+//!   of the JSON, `If-None-Match` → 304);
+//! - `GET /v1/scenes/{scene}/shards/{id}` → shard bytes (`application/octet-stream`), strong
+//!   `ETag` = `"<crc32 hex>"` (the manifest checksum), `If-None-Match` → 304, single
+//!   `Range: bytes=a-b | a- | -n` → 206 with `Content-Range`, unsatisfiable → 416 with
+//!   `Content-Range: bytes */len`; `If-Range` with another ETag → full 200. Multi-range requests
+//!   get the full body (200), as RFC 9110 allows.
+//!
+//! Errors are JSON `{"error": message, "status": code}`: invalid scene id (`[A-Za-z0-9_.-]`,
+//! 1..=64, not starting with `.`) or non-decimal shard id → 400, unknown scene/shard → 404,
+//! store failures → 500. Ids are never used as file paths.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use axum::Router;
+use axum::body::Bytes;
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use slag_common::shards::{shard_checksum, valid_scene_id};
+
+use crate::store::ShardStore;
+
+/// Builds the router over `store`.
+pub fn router(store: ShardStore) -> Router {
+    Router::new()
+        .route("/v1/scenes", get(scenes))
+        .route("/v1/scenes/{scene}/manifest", get(manifest))
+        .route("/v1/scenes/{scene}/shards/{id}", get(shard))
+        .fallback(|| async {
+            error(
+                StatusCode::NOT_FOUND,
+                "no such route; see /v1/scenes/{scene}/manifest".into(),
+            )
+        })
+        .with_state(Arc::new(store))
+}
+
+/// Binds `addr` and serves until Ctrl-C. Returns the bound address through `on_bound` (useful
+/// with port 0).
+///
+/// Errors: the address cannot be bound ([`slag_common::Error::Io`]).
+pub async fn serve(
+    store: ShardStore,
+    addr: SocketAddr,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
+    on_bound(local);
+    axum::serve(listener, router(store))
+        .with_graceful_shutdown(async {
+            let _ = tokio::signal::ctrl_c().await;
+        })
+        .await
+        .map_err(|e| slag_common::Error::io(local.to_string(), e))
+}
+
+fn error(status: StatusCode, message: String) -> Response {
+    let body = serde_json::json!({ "error": message, "status": status.as_u16() });
+    (
+        status,
+        [(header::CONTENT_TYPE, "application/json")],
+        body.to_string(),
+    )
+        .into_response()
+}
+
+fn internal(e: slag_common::Error) -> Response {
+    error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+}
+
+fn bad_scene(scene: &str) -> Option<Response> {
+    (!valid_scene_id(scene)).then(|| {
+        error(
+            StatusCode::BAD_REQUEST,
+            format!("invalid scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."),
+        )
+    })
+}
+
+async fn scenes(State(store): State<Arc<ShardStore>>) -> Response {
+    match store.scenes() {
+        Ok(s) => axum::Json(serde_json::json!({ "scenes": s })).into_response(),
+        Err(e) => internal(e),
+    }
+}
+
+/// True when an `If-None-Match` header lists `etag` (or `*`). Weak comparison per RFC 9110.
+fn none_match(headers: &HeaderMap, etag: &str) -> bool {
+    headers
+        .get_all(header::IF_NONE_MATCH)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .any(|v| {
+            v.split(',')
+                .map(str::trim)
+                .any(|t| t == "*" || t.trim_start_matches("W/") == etag)
+        })
+}
+
+async fn manifest(
+    State(store): State<Arc<ShardStore>>,
+    Path(scene): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    if let Some(r) = bad_scene(&scene) {
+        return r;
+    }
+    let m = match store.manifest(&scene) {
+        Ok(Some(m)) => m,
+        Ok(None) => return error(StatusCode::NOT_FOUND, format!("unknown scene {scene:?}")),
+        Err(e) => return internal(e),
+    };
+    let json = m.to_json();
+    let etag = format!("\"{:08x}\"", shard_checksum(&json));
+    let etag_h = HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\""));
+    if none_match(&headers, &etag) {
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
+    }
+    (
+        StatusCode::OK,
+        [
+            (
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("application/json"),
+            ),
+            (header::ETAG, etag_h),
+        ],
+        json,
+    )
+        .into_response()
+}
+
+/// Outcome of parsing a `Range` header against a body of `len` bytes.
+#[derive(Debug, PartialEq, Eq)]
+enum RangeReq {
+    /// Serve everything (no header, malformed, multi-range, or a non-`bytes` unit).
+    Full,
+    /// Inclusive byte range.
+    Part(u64, u64),
+    /// 416.
+    Unsatisfiable,
+}
+
+fn parse_range(v: &str, len: u64) -> RangeReq {
+    let Some(spec) = v.trim().strip_prefix("bytes=") else {
+        return RangeReq::Full;
+    };
+    if spec.contains(',') {
+        return RangeReq::Full;
+    }
+    let Some((a, b)) = spec.trim().split_once('-') else {
+        return RangeReq::Full;
+    };
+    let num = |s: &str| {
+        if s.bytes().all(|c| c.is_ascii_digit()) && !s.is_empty() {
+            s.parse::<u64>().ok()
+        } else {
+            None
+        }
+    };
+    match (a.trim(), b.trim()) {
+        ("", "") => RangeReq::Full,
+        ("", n) => match num(n) {
+            Some(0) => RangeReq::Unsatisfiable,
+            Some(_) if len == 0 => RangeReq::Unsatisfiable,
+            Some(n) => RangeReq::Part(len.saturating_sub(n), len - 1),
+            None => RangeReq::Full,
+        },
+        (s, e) => match (
+            num(s),
+            if e.is_empty() {
+                Some(None)
+            } else {
+                num(e).map(Some)
+            },
+        ) {
+            (Some(s), Some(e)) => {
+                if e.is_some_and(|e| e < s) {
+                    RangeReq::Full
+                } else if s >= len {
+                    RangeReq::Unsatisfiable
+                } else {
+                    RangeReq::Part(s, e.map_or(len - 1, |e| e.min(len - 1)))
+                }
+            }
+            _ => RangeReq::Full,
+        },
+    }
+}
+
+async fn shard(
+    State(store): State<Arc<ShardStore>>,
+    Path((scene, id)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Response {
+    if let Some(r) = bad_scene(&scene) {
+        return r;
+    }
+    let tile = match (id.len() <= 20 && id.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| id.parse::<u64>().ok())
+        .flatten()
+    {
+        Some(t) => t,
+        None => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                format!("invalid shard id {id:?}: use the decimal tile id from the manifest"),
+            );
+        }
+    };
+    let bytes = match store.shard(&scene, tile) {
+        Ok(Some(b)) => b,
+        Ok(None) => {
+            return error(
+                StatusCode::NOT_FOUND,
+                format!("unknown shard {tile} of scene {scene:?}"),
+            );
+        }
+        Err(e) => return internal(e),
+    };
+    let etag = format!("\"{:08x}\"", shard_checksum(&bytes));
+    let etag_h = HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\""));
+    if none_match(&headers, &etag) {
+        return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
+    }
+    let len = bytes.len() as u64;
+    let if_range_ok = headers
+        .get(header::IF_RANGE)
+        .is_none_or(|v| v.to_str().is_ok_and(|v| v.trim() == etag));
+    let range = match headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
+        Some(v) if if_range_ok => parse_range(v, len),
+        _ => RangeReq::Full,
+    };
+    let common = [
+        (header::ETAG, etag_h),
+        (header::ACCEPT_RANGES, HeaderValue::from_static("bytes")),
+        (
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/octet-stream"),
+        ),
+    ];
+    match range {
+        RangeReq::Full => (StatusCode::OK, common, Bytes::copy_from_slice(&bytes)).into_response(),
+        RangeReq::Part(a, b) => {
+            let cr = HeaderValue::from_str(&format!("bytes {a}-{b}/{len}"))
+                .unwrap_or(HeaderValue::from_static("bytes */0"));
+            let body = Bytes::copy_from_slice(&bytes[a as usize..=b as usize]);
+            (
+                StatusCode::PARTIAL_CONTENT,
+                common,
+                [(header::CONTENT_RANGE, cr)],
+                body,
+            )
+                .into_response()
+        }
+        RangeReq::Unsatisfiable => {
+            let cr = HeaderValue::from_str(&format!("bytes */{len}"))
+                .unwrap_or(HeaderValue::from_static("bytes */0"));
+            (
+                StatusCode::RANGE_NOT_SATISFIABLE,
+                [(header::CONTENT_RANGE, cr)],
+                "",
+            )
+                .into_response()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn range_parsing_follows_rfc9110() {
+        assert_eq!(parse_range("bytes=0-9", 100), RangeReq::Part(0, 9));
+        assert_eq!(parse_range("bytes=90-", 100), RangeReq::Part(90, 99));
+        assert_eq!(parse_range("bytes=90-500", 100), RangeReq::Part(90, 99));
+        assert_eq!(parse_range("bytes=-10", 100), RangeReq::Part(90, 99));
+        assert_eq!(parse_range("bytes=-500", 100), RangeReq::Part(0, 99));
+        assert_eq!(parse_range("bytes=100-", 100), RangeReq::Unsatisfiable);
+        assert_eq!(parse_range("bytes=-0", 100), RangeReq::Unsatisfiable);
+        assert_eq!(parse_range("bytes=5-2", 100), RangeReq::Full);
+        assert_eq!(parse_range("bytes=0-1,5-6", 100), RangeReq::Full);
+        assert_eq!(parse_range("items=0-1", 100), RangeReq::Full);
+        assert_eq!(parse_range("bytes=x-1", 100), RangeReq::Full);
+    }
+}

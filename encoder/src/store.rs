@@ -1,0 +1,327 @@
+//! The cloud shard store (`sled` 0.34): manifests, tile index and shards of many scenes.
+//!
+//! Trees (keys are `scene id ++ 0x00 ++ generation u64 BE [++ tile id u64 BE]`):
+//! - `current`: scene id → committed generation (u64 BE), the *current pointer*;
+//! - `manifests`: scene/generation → manifest JSON;
+//! - `tiles`: scene/generation/tile → [`TileInfo`] JSON (the tile index);
+//! - `shards`: scene/generation/tile → shard bytes.
+//!
+//! Writes are versioned: a [`SceneWriter`] puts shards under a fresh generation nobody reads,
+//! then [`SceneWriter::commit`] inserts the manifest, the tile index and the current pointer in
+//! one sled transaction over three trees and flushes. A crash before that transaction leaves the
+//! previous generation current and intact; leftovers of the unfinished generation are removed by
+//! the next writer of that scene. One writer per scene at a time (sled locks the folder against
+//! other processes).
+
+use std::path::Path;
+
+use slag_common::shards::{GaussianSource, Manifest, TileInfo, shard_checksum, valid_scene_id};
+use slag_common::{Error, Result};
+use sled::Transactional;
+use sled::transaction::{ConflictableTransactionError, TransactionError};
+
+use crate::partition::{PartitionParams, partition_with};
+
+/// Handle on a sled shard store folder. Cheap to clone (sled handles are reference counted).
+#[derive(Clone)]
+pub struct ShardStore {
+    db: sled::Db,
+    current: sled::Tree,
+    manifests: sled::Tree,
+    tiles: sled::Tree,
+    shards: sled::Tree,
+}
+
+impl std::fmt::Debug for ShardStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ShardStore").finish_non_exhaustive()
+    }
+}
+
+fn prefix(scene: &str, generation: u64) -> Vec<u8> {
+    let mut k = Vec::with_capacity(scene.len() + 9);
+    k.extend_from_slice(scene.as_bytes());
+    k.push(0);
+    k.extend_from_slice(&generation.to_be_bytes());
+    k
+}
+
+fn tile_key(scene: &str, generation: u64, tile: u64) -> Vec<u8> {
+    let mut k = prefix(scene, generation);
+    k.extend_from_slice(&tile.to_be_bytes());
+    k
+}
+
+fn be_u64(v: &[u8]) -> Option<u64> {
+    Some(u64::from_be_bytes(v.try_into().ok()?))
+}
+
+fn check_scene(scene: &str) -> Result<()> {
+    if valid_scene_id(scene) {
+        Ok(())
+    } else {
+        Err(Error::Invalid(format!(
+            "scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."
+        )))
+    }
+}
+
+impl ShardStore {
+    /// Opens (creating if needed) the store folder `path`.
+    ///
+    /// Errors: the folder cannot be opened, e.g. another process holds it ([`Error::Io`] /
+    /// [`Error::Format`]).
+    pub fn open(path: &Path) -> Result<ShardStore> {
+        let db = sled::open(path).map_err(|e| sled_err(path, e))?;
+        let tree = |name: &str| db.open_tree(name).map_err(|e| sled_err(path, e));
+        Ok(ShardStore {
+            current: tree("current")?,
+            manifests: tree("manifests")?,
+            tiles: tree("tiles")?,
+            shards: tree("shards")?,
+            db,
+        })
+    }
+
+    /// Committed generation of `scene`, if any.
+    pub fn current_generation(&self, scene: &str) -> Result<Option<u64>> {
+        Ok(self
+            .current
+            .get(scene.as_bytes())
+            .map_err(db_err)?
+            .and_then(|v| be_u64(&v)))
+    }
+
+    /// Scene ids with a committed generation, ascending.
+    pub fn scenes(&self) -> Result<Vec<String>> {
+        self.current
+            .iter()
+            .keys()
+            .map(|k| {
+                k.map(|k| String::from_utf8_lossy(&k).into_owned())
+                    .map_err(db_err)
+            })
+            .collect()
+    }
+
+    /// The current manifest of `scene`; `None` for an unknown scene.
+    ///
+    /// Errors: invalid scene id, storage errors, a corrupted manifest ([`Error::Format`]).
+    pub fn manifest(&self, scene: &str) -> Result<Option<Manifest>> {
+        check_scene(scene)?;
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
+        match self.manifests.get(prefix(scene, g)).map_err(db_err)? {
+            Some(b) => Manifest::from_json(&b, &format!("store manifest {scene}@{g}")).map(Some),
+            None => Err(Error::format(
+                "<store>",
+                format!("scene {scene} generation {g} has no manifest"),
+            )),
+        }
+    }
+
+    /// Raw bytes of shard `tile` in the current generation of `scene`; `None` if unknown.
+    ///
+    /// Errors: invalid scene id, storage errors.
+    pub fn shard(&self, scene: &str, tile: u64) -> Result<Option<sled::IVec>> {
+        check_scene(scene)?;
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
+        self.shards.get(tile_key(scene, g, tile)).map_err(db_err)
+    }
+
+    /// Tile info of `tile` in the current generation (from the tile index tree).
+    ///
+    /// Errors: invalid scene id, storage errors, corrupted entries.
+    pub fn tile(&self, scene: &str, tile: u64) -> Result<Option<TileInfo>> {
+        check_scene(scene)?;
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
+        match self.tiles.get(tile_key(scene, g, tile)).map_err(db_err)? {
+            Some(b) => serde_json::from_slice(&b)
+                .map(Some)
+                .map_err(|e| Error::format("<store>", format!("tile index entry: {e}"))),
+            None => Ok(None),
+        }
+    }
+
+    /// Every generation of `scene` with stored data (committed or left over by an interrupted
+    /// writer), ascending. Diagnostics; readers only ever see [`ShardStore::current_generation`].
+    ///
+    /// Errors: invalid scene id, storage errors.
+    pub fn stored_generations(&self, scene: &str) -> Result<Vec<u64>> {
+        check_scene(scene)?;
+        let mut p = scene.as_bytes().to_vec();
+        p.push(0);
+        let mut gens = std::collections::BTreeSet::new();
+        for tree in [&self.shards, &self.tiles, &self.manifests] {
+            for kv in tree.scan_prefix(&p) {
+                let (k, _) = kv.map_err(db_err)?;
+                if let Some(g) = k.get(p.len()..p.len() + 8).and_then(be_u64) {
+                    gens.insert(g);
+                }
+            }
+        }
+        Ok(gens.into_iter().collect())
+    }
+
+    /// Starts writing a new generation of `scene`, first removing leftovers of generations that
+    /// were never committed.
+    ///
+    /// Errors: invalid scene id, storage errors.
+    pub fn writer(&self, scene: &str) -> Result<SceneWriter<'_>> {
+        check_scene(scene)?;
+        let current = self.current_generation(scene)?;
+        self.remove_generations(scene, |g| Some(g) != current)?;
+        Ok(SceneWriter {
+            store: self,
+            scene: scene.to_string(),
+            generation: current.map_or(1, |g| g + 1),
+        })
+    }
+
+    /// Deletes every stored generation of `scene` for which `drop(generation)` is true.
+    fn remove_generations(&self, scene: &str, drop: impl Fn(u64) -> bool) -> Result<()> {
+        let mut p = scene.as_bytes().to_vec();
+        p.push(0);
+        for tree in [&self.shards, &self.tiles, &self.manifests] {
+            for kv in tree.scan_prefix(&p) {
+                let (k, _) = kv.map_err(db_err)?;
+                let g = k.get(p.len()..p.len() + 8).and_then(be_u64);
+                if g.is_some_and(&drop) {
+                    tree.remove(k).map_err(db_err)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Flushes all trees to disk.
+    ///
+    /// Errors: storage errors.
+    pub fn flush(&self) -> Result<()> {
+        self.db.flush().map(|_| ()).map_err(db_err)
+    }
+}
+
+/// Writes one new generation of a scene; invisible to readers until [`SceneWriter::commit`].
+/// Dropping it without committing leaves the previous generation current.
+#[derive(Debug)]
+pub struct SceneWriter<'a> {
+    store: &'a ShardStore,
+    scene: String,
+    generation: u64,
+}
+
+impl SceneWriter<'_> {
+    /// Generation this writer will commit.
+    pub fn generation(&self) -> u64 {
+        self.generation
+    }
+
+    /// Stores the bytes of shard `tile` (not yet visible).
+    ///
+    /// Errors: storage errors.
+    pub fn put_shard(&mut self, tile: u64, bytes: &[u8]) -> Result<()> {
+        self.store
+            .shards
+            .insert(tile_key(&self.scene, self.generation, tile), bytes)
+            .map_err(db_err)?;
+        Ok(())
+    }
+
+    /// Checks that every manifest tile has a stored shard with the listed size and checksum,
+    /// then atomically publishes manifest + tile index + current pointer, flushes, and deletes
+    /// older generations. Returns the manifest with `generation` set.
+    ///
+    /// Errors: scene mismatch or missing/mismatching shards ([`Error::Invalid`]), storage errors.
+    pub fn commit(self, mut manifest: Manifest) -> Result<Manifest> {
+        if manifest.scene_id != self.scene {
+            return Err(Error::Invalid(format!(
+                "manifest is for scene {} but writer for {}",
+                manifest.scene_id, self.scene
+            )));
+        }
+        for t in &manifest.tiles {
+            let b = self
+                .store
+                .shards
+                .get(tile_key(&self.scene, self.generation, t.id))
+                .map_err(db_err)?;
+            let ok = b.is_some_and(|b| {
+                b.len() as u64 == t.bytes && format!("{:08x}", shard_checksum(&b)) == t.checksum
+            });
+            if !ok {
+                return Err(Error::Invalid(format!(
+                    "tile {} has no stored shard matching the manifest",
+                    t.id
+                )));
+            }
+        }
+        manifest.generation = self.generation;
+        let json = manifest.to_json();
+        let tile_entries: Vec<(Vec<u8>, Vec<u8>)> = manifest
+            .tiles
+            .iter()
+            .map(|t| {
+                (
+                    tile_key(&self.scene, self.generation, t.id),
+                    serde_json::to_vec(t).unwrap_or_default(),
+                )
+            })
+            .collect();
+        let s = self.store;
+        // Shards must be durable before the pointer flip can be.
+        s.shards.flush().map_err(db_err)?;
+        let g = self.generation;
+        (&s.manifests, &s.tiles, &s.current)
+            .transaction(|(m, t, c)| {
+                m.insert(prefix(&self.scene, g), json.as_slice())?;
+                for (k, v) in &tile_entries {
+                    t.insert(k.as_slice(), v.as_slice())?;
+                }
+                c.insert(self.scene.as_bytes(), &g.to_be_bytes())?;
+                Ok::<(), ConflictableTransactionError<()>>(())
+            })
+            .map_err(|e: TransactionError<()>| {
+                Error::Invalid(format!("store transaction failed: {e:?}"))
+            })?;
+        s.flush()?;
+        s.remove_generations(&self.scene, |old| old != g)?;
+        Ok(manifest)
+    }
+}
+
+/// Partitions `src` straight into `store` as a new generation of `params.scene_id`, committing
+/// only after every shard is stored.
+///
+/// Errors: as [`partition_with`] and [`SceneWriter::commit`].
+pub fn partition_into_store(
+    store: &ShardStore,
+    src: &impl GaussianSource,
+    params: &PartitionParams,
+) -> Result<Manifest> {
+    let mut w = store.writer(&params.scene_id)?;
+    let manifest = partition_with(src, params, |info, bytes| w.put_shard(info.id, &bytes))?;
+    w.commit(manifest)
+}
+
+fn db_err(e: sled::Error) -> Error {
+    match e {
+        sled::Error::Io(io) => Error::io("<shard store>", io),
+        other => Error::format(
+            "<shard store>",
+            format!("{other}; the store may be corrupted, re-run partition into a new folder"),
+        ),
+    }
+}
+
+fn sled_err(path: &Path, e: sled::Error) -> Error {
+    match e {
+        sled::Error::Io(io) => Error::io(path, io),
+        other => Error::format(path, format!("cannot open shard store: {other}")),
+    }
+}
