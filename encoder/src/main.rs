@@ -2,7 +2,7 @@
 //!
 //! Subcommands: `encode` (the Semantic Embedding stage), `query` (check a prompt), `eval-colors`
 //! (colour mIoU with color-clip), `render` (validate the rasterizer against a photo), `bench`
-//! (per-stage timings).
+//! (per-stage timings), `partition` / `serve` / `export` (spatial shards).
 
 use clap::{Parser, Subcommand};
 use slag_encoder::cli;
@@ -38,6 +38,12 @@ enum Command {
     Render(cli::render::RenderArgs),
     /// Run `encode` and print a per-stage timing table.
     Bench(cli::encode::EncodeArgs),
+    /// Cut an embeddings file into spatial shards (ground-plane k-d tiles) in a sled store.
+    Partition(cli::shards::PartitionArgs),
+    /// Serve a store's manifests and shards over HTTP (ETag, Range).
+    Serve(cli::shards::ServeArgs),
+    /// Write a scene's manifest.json + shard files for any static host or object store.
+    Export(cli::shards::ExportArgs),
 }
 
 fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
@@ -65,6 +71,9 @@ fn main() -> std::process::ExitCode {
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r))),
+        Command::Partition(a) => cli::shards::run_partition(a),
+        Command::Serve(a) => cli::shards::run_serve(a),
+        Command::Export(a) => cli::shards::run_export(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

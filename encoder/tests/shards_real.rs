@@ -1,8 +1,6 @@
 //! Partitioning and radius selection on a real scene: the snowmiku 3DGS means (120k Gaussians)
 //! with its training cameras' up vectors; embeddings are synthetic (the encoder output is not part
-//! of the shared data). The means and cameras are read here with a minimal reader of the INRIA
-//! `.ply` (float properties, little-endian) and `cameras.json` (camera-to-world `rotation`
-//! rows), so the test does not depend on the scene loaders being written in parallel.
+//! of the shared data). Means and cameras come from the real loaders (`load_ply`, `load_views`).
 
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::{Dtype, TileIndex, UpSource, decode_shard};
@@ -11,19 +9,16 @@ use slag_encoder::partition::{PartitionParams, UpChoice, partition};
 #[test]
 fn snowmiku_partition_and_radius_selection() {
     let dir = slag_common::paths::shared_dir().join("scenes/snowmiku");
-    let means = read_means(&dir.join("point_cloud.ply"));
-    let cams: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("cameras.json")).expect("cameras.json"))
-            .expect("json");
-    // Camera -y axis in world = -(column 1 of the camera-to-world rotation).
-    let ups: Vec<[f64; 3]> = cams
-        .as_array()
-        .expect("list")
+    let means = slag_common::scene::load_ply(&dir.join("point_cloud.ply"), Default::default())
+        .expect("ply")
+        .means;
+    // Camera -y axis in world = -(row 1 of the world-to-camera rotation).
+    let ups: Vec<[f64; 3]> = slag_common::camera::load_views(&dir)
+        .expect("views")
         .iter()
-        .map(|c| {
-            let r = &c["rotation"];
-            let at = |i: usize| r[i][1].as_f64().expect("rotation entry");
-            [-at(0), -at(1), -at(2)]
+        .map(|v| {
+            let up = -v.world_to_camera.rotation.row(1);
+            [up.x, up.y, up.z]
         })
         .collect();
     assert_eq!(ups.len(), 97);
@@ -119,37 +114,4 @@ fn snowmiku_partition_and_radius_selection() {
         pca.up,
         cos.abs()
     );
-}
-
-/// `x y z` of every vertex of a binary little-endian `.ply` whose properties are all `float`.
-fn read_means(path: &std::path::Path) -> Vec<[f32; 3]> {
-    let bytes = std::fs::read(path).expect("ply");
-    let end = bytes
-        .windows(11)
-        .position(|w| w == b"end_header\n")
-        .expect("header")
-        + 11;
-    let header = std::str::from_utf8(&bytes[..end]).expect("ascii header");
-    assert!(header.contains("binary_little_endian"));
-    let mut n = 0usize;
-    let mut props = Vec::new();
-    for line in header.lines() {
-        let w: Vec<&str> = line.split_whitespace().collect();
-        match w.as_slice() {
-            ["element", "vertex", k] => n = k.parse().expect("count"),
-            ["property", "float", name] => props.push(name.to_string()),
-            ["property", ..] => panic!("non-float property {line}"),
-            _ => {}
-        }
-    }
-    let stride = 4 * props.len();
-    let col = |name: &str| props.iter().position(|p| p == name).expect("x/y/z");
-    let (x, y, z) = (col("x"), col("y"), col("z"));
-    let body = &bytes[end..];
-    assert_eq!(body.len(), n * stride);
-    let f = |v: usize, c: usize| {
-        let o = v * stride + 4 * c;
-        f32::from_le_bytes([body[o], body[o + 1], body[o + 2], body[o + 3]])
-    };
-    (0..n).map(|v| [f(v, x), f(v, y), f(v, z)]).collect()
 }
