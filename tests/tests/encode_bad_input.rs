@@ -1,0 +1,78 @@
+//! Bad input to `encode` gets a typed error naming the file and what to do, never a panic and
+//! never an output that looks complete.
+
+use slag_tests::{default_scene, encode_args, fixture};
+
+/// A copy of the embedded default scene that a test may damage.
+fn scene_copy(dir: &std::path::Path) -> std::path::PathBuf {
+    let src = default_scene();
+    let dst = dir.join("scene");
+    for sub in ["images", "sparse/0"] {
+        std::fs::create_dir_all(dst.join(sub)).unwrap();
+        for e in std::fs::read_dir(src.join(sub)).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), dst.join(sub).join(e.file_name())).unwrap();
+        }
+    }
+    std::fs::copy(src.join("point_cloud.ply"), dst.join("point_cloud.ply")).unwrap();
+    dst
+}
+
+fn encode_graph(scene: &std::path::Path, out: &std::path::Path) -> anyhow::Result<()> {
+    let vis = fixture("clip/color-clip-visual.onnx");
+    let a = encode_args(&[
+        "--scene", scene.to_str().unwrap(), "--masks", "graph",
+        "--clip-visual", vis.to_str().unwrap(), "--raster-scale", "0.25", "--quiet",
+        "--rasterizer", "cpu", "--out", out.to_str().unwrap(),
+    ]);
+    slag_encoder::cli::encode::run(&a).map(|_| ())
+}
+
+#[test]
+fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene_copy(dir.path());
+    let first = std::fs::read_dir(scene.join("images")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    image::RgbImage::new(100, 80).save(&first).unwrap();
+    let out = dir.path().join("out");
+    let err = format!("{:#}", encode_graph(&scene, &out).unwrap_err());
+    assert!(err.contains("100x80") && err.contains("camera"), "{err}");
+    assert!(!out.join("embeddings.safetensors").exists() && !out.join("report.json").exists());
+}
+
+#[test]
+fn missing_image_names_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene_copy(dir.path());
+    let first = std::fs::read_dir(scene.join("images")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    std::fs::remove_file(&first).unwrap();
+    let err = format!("{:#}", encode_graph(&scene, &dir.path().join("out")).unwrap_err());
+    assert!(err.contains(first.file_name().unwrap().to_str().unwrap()), "{err}");
+}
+
+#[test]
+fn nan_in_the_ply_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene_copy(dir.path());
+    let ply = scene.join("point_cloud.ply");
+    let mut bytes = std::fs::read(&ply).unwrap();
+    let body = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    // Vertex 0, property 0 (x) := NaN.
+    bytes[body..body + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&ply, bytes).unwrap();
+    let err = format!("{:#}", encode_graph(&scene, &dir.path().join("out")).unwrap_err());
+    assert!(err.contains("point_cloud.ply") && err.to_lowercase().contains("vertex 0"), "{err}");
+}
+
+#[test]
+fn wrong_model_for_the_role_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let wrong = fixture("clip/color-clip-textual.onnx");
+    let a = encode_args(&[
+        "--scene", default_scene().to_str().unwrap(), "--masks", "graph",
+        "--clip-visual", wrong.to_str().unwrap(), "--quiet",
+        "--out", dir.path().join("out").to_str().unwrap(),
+    ]);
+    let err = format!("{:#}", slag_encoder::cli::encode::run(&a).unwrap_err());
+    assert!(err.contains("color-clip-textual.onnx") && err.contains("pixel_values"), "{err}");
+}
