@@ -64,8 +64,11 @@ pub struct QueryOutput {
     pub threshold: f32,
     /// Gaussians above the threshold (all of them, for the summary).
     pub summary: MatchSummary,
-    /// The best `top_k` matches, best first.
+    /// The best `top_k` matches above the threshold, best first.
     pub matches: Vec<Match>,
+    /// When nothing reaches the threshold: the `top_k` best-scoring Gaussians anyway, so the user
+    /// sees how close the scene came (empty otherwise).
+    pub nearest_below_threshold: Vec<Match>,
     /// The highlighted .ply, if written.
     pub highlighted_ply: Option<PathBuf>,
 }
@@ -82,12 +85,18 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
         let rgb = a.highlight_rgb;
         slag_common::scene::write_highlighted_ply(src, dst, |i| hit.get(i).copied().unwrap_or(false).then_some(rgb))?;
     }
+    let nearest_below_threshold = if all.is_empty() {
+        similarity::rank(&emb.ids, &emb.means, &emb.vectors, emb.dim, &q, Some(a.top_k), None)?.0
+    } else {
+        Vec::new()
+    };
     Ok(QueryOutput {
         query: a.text.clone(),
         model: emb.model.clone(),
         threshold: a.threshold,
         summary,
         matches: all.into_iter().take(a.top_k).collect(),
+        nearest_below_threshold,
         highlighted_ply: a.highlight_out.clone(),
     })
 }
