@@ -1,7 +1,7 @@
 //! Loads a scene folder (views + `point_cloud.ply`) and prints what it found and how long it took.
 //!
 //! ```text
-//! cargo run --example load_scene -- /work/shared/scenes/snowmiku [--colours]
+//! cargo run --example load_scene -- ../shared/scenes/snowmiku [--colours]
 //! ```
 
 use std::error::Error;

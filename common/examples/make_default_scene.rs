@@ -1,7 +1,7 @@
 //! Derives the embedded default scene `data/snowmiku-mini` from the full snowmiku scene.
 //!
 //! ```text
-//! cargo run --example make_default_scene -- /work/shared/scenes/snowmiku data/snowmiku-mini
+//! cargo run --example make_default_scene -- ../shared/scenes/snowmiku data/snowmiku-mini
 //! ```
 //!
 //! Deterministic: the same input gives byte-identical output. What it does is written to

@@ -14,7 +14,7 @@ pub const PAPER_THRESHOLD: f32 = 0.28;
 /// Errors: `query.len() != dim`, a zero or non-finite query (a CLIP text tower can return a zero
 /// vector for an empty prompt: the caller should reject the prompt, not rank noise).
 pub fn cosine_scores(vectors: &[f32], dim: usize, query: &[f32]) -> Result<Vec<f32>> {
-    if dim == 0 || query.len() != dim || vectors.len() % dim != 0 {
+    if dim == 0 || query.len() != dim || !vectors.len().is_multiple_of(dim) {
         return Err(Error::Invalid(format!(
             "query has {} components, embeddings have {dim} per row ({} values); use the text tower of the same CLIP model",
             query.len(),
@@ -63,6 +63,7 @@ pub fn top_k(scores: &[f32], k: usize) -> Vec<(usize, f32)> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
@@ -181,6 +182,7 @@ pub fn summarise(matches: &[Match]) -> MatchSummary {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod rank_tests {
     use super::*;
 

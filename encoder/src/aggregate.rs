@@ -369,12 +369,13 @@ pub fn reduce(store: &ContributionStore, n_gaussians: usize, dim: usize, params:
             return Err(Error::Invalid(format!("contribution of dim {d}, expected {dim}")));
         }
         for (r, &d) in den.iter().enumerate() {
-            if !(d >= params.min_total_weight) {
+            // NaN sums count as unobserved too.
+            if d.is_nan() || d < params.min_total_weight {
                 continue;
             }
             let row = &num[r * dim..(r + 1) * dim];
             let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !(norm > 1e-9 * d) || !norm.is_finite() {
+            if !norm.is_finite() || norm <= 1e-9 * d {
                 continue;
             }
             out.ids.push((start + r) as u32);
@@ -386,6 +387,7 @@ pub fn reduce(store: &ContributionStore, n_gaussians: usize, dim: usize, params:
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

@@ -55,7 +55,7 @@ fn main() -> std::process::ExitCode {
     let args = Cli::parse();
     cli::init_logging(args.verbose);
     let result = match &args.command {
-        Command::Encode(a) => cli::encode::run(a).and_then(|r| {
+        Command::Encode(a) => cli::encode::run(a).map(|r| {
             eprintln!(
                 "encoded {} of {} Gaussians ({:.1}%) from {} views in {:.1} s -> {}",
                 r.counts.observed,
@@ -65,7 +65,6 @@ fn main() -> std::process::ExitCode {
                 r.timings.total,
                 a.out.join("embeddings.safetensors").display()
             );
-            Ok(())
         }),
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),

@@ -2,8 +2,8 @@
 //! (`shared/fixtures/clip/reference.json`, tiny-clip ONNX towers), plus a colour sanity check with
 //! the color-clip stand-in whose answer is known.
 //!
-//! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
-//! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
+//! These tests need ONNX Runtime: `. scripts/setup.sh` exports `ORT_DYLIB_PATH` (the path
+//! printed by `shared/tools/install-onnxruntime.sh`); without it they fail (SLAG_SKIP_ORT=1 skips).
 
 #![allow(clippy::unwrap_used)]
 
@@ -18,19 +18,8 @@ use slag_encoder::clip::{ClipVisual, crop};
 use slag_encoder::masks::Mask;
 use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
 
-fn shared() -> PathBuf {
-    slag_common::paths::shared_dir()
-}
-
-fn ort_available() -> bool {
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        eprintln!(
-            "SKIPPED: ORT_DYLIB_PATH is not set (export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so)"
-        );
-        return false;
-    }
-    true
-}
+mod support;
+use support::{ort_available, shared};
 
 fn json(path: PathBuf) -> Value {
     serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()

@@ -2,12 +2,12 @@
 //! (`shared/fixtures/sam-amg/reference.json`, color-sam ONNX models, two snowmiku images), and an
 //! end-to-end run of the real SAM architecture (`sam-tiny-random-*`).
 //!
-//! These tests need ONNX Runtime: `export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so` (or the path
-//! printed by `shared/tools/install-onnxruntime.sh`). Without it they print SKIPPED and return.
+//! These tests need ONNX Runtime: `. scripts/setup.sh` exports `ORT_DYLIB_PATH` (the path
+//! printed by `shared/tools/install-onnxruntime.sh`); without it they fail (SLAG_SKIP_ORT=1 skips).
 
 #![allow(clippy::unwrap_used)]
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use serde_json::Value;
@@ -17,19 +17,8 @@ use slag_encoder::masks::sam::{SamAutomaticMaskGenerator, SamParams};
 use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::preprocess::sam_pixel_values;
 
-fn shared() -> PathBuf {
-    slag_common::paths::shared_dir()
-}
-
-fn ort_available() -> bool {
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        eprintln!(
-            "SKIPPED: ORT_DYLIB_PATH is not set (export ORT_DYLIB_PATH=/opt/ort/libonnxruntime.so)"
-        );
-        return false;
-    }
-    true
-}
+mod support;
+use support::{ort_available, shared};
 
 /// segment_anything's `rle_to_mask`: uncompressed COCO RLE, column-major, runs start with 0s.
 fn rle_to_pixels(rle: &Value) -> (u32, u32, Vec<u8>) {

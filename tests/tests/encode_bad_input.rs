@@ -1,6 +1,8 @@
 //! Bad input to `encode` gets a typed error naming the file and what to do, never a panic and
 //! never an output that looks complete.
 
+#![allow(clippy::unwrap_used)]
+
 use slag_tests::{default_scene, encode_args, fixture};
 
 /// A copy of the embedded default scene that a test may damage.

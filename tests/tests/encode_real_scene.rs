@@ -2,6 +2,8 @@
 //! color-clip and with the graph segmenter, then measure colour mIoU; run the real-architecture
 //! SAM/CLIP path. The mIoU floors come from the full runs recorded in the README.
 
+#![allow(clippy::unwrap_used)]
+
 use slag_encoder::cli::eval::EvalArgs;
 use slag_tests::{encode_args, fixture, shared};
 

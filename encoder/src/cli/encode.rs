@@ -233,9 +233,7 @@ pub fn timing_table(r: &Report) -> String {
         ("write", t.write, false),
         ("total (wall)", t.total, false),
     ];
-    let mut s = format!(
-        "| stage | seconds | ms / image |\n|---|---:|---:|\n"
-    );
+    let mut s = String::from("| stage | seconds | ms / image |\n|---|---:|---:|\n");
     for (name, secs, per_image) in rows {
         let per = if per_image { format!("{:.1}", 1000.0 * secs / n) } else { "".into() };
         s += &format!("| {name} | {secs:.3} | {per} |\n");
