@@ -9,7 +9,8 @@
 //! prompt against the result).
 //!
 //! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
-//! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting.
+//! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting,
+//! [`qdrant`] upserts them into a Qdrant collection (optionally one snapshot per tile).
 
 pub mod aggregate;
 pub mod cli;
@@ -20,6 +21,7 @@ pub mod masks;
 pub mod partition;
 pub mod pipeline;
 pub mod preprocess;
+pub mod qdrant;
 pub mod raster;
 pub mod report;
 pub mod serve;

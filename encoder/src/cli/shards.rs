@@ -39,6 +39,26 @@ pub struct PartitionArgs {
     /// Embedding storage in the shards: f32, f16 or int8 (per-vector scale).
     #[arg(long, default_value = "f16")]
     pub dtype: Dtype,
+    /// After partitioning, upsert every Gaussian (vector + payload id, x, y, z, tile) into this
+    /// Qdrant server (gRPC URL, e.g. http://localhost:6334). The collection is recreated.
+    #[arg(long)]
+    pub qdrant_url: Option<String>,
+    /// Qdrant collection name (default: the scene id).
+    #[arg(long)]
+    pub qdrant_collection: Option<String>,
+    /// Points per Qdrant upsert request.
+    #[arg(long, default_value_t = 256)]
+    pub qdrant_batch: usize,
+    /// Enable scalar int8 quantisation in the Qdrant collection.
+    #[arg(long)]
+    pub qdrant_int8: bool,
+    /// Also create one Qdrant collection per tile (`<collection>-tile-<id>`) and a snapshot of
+    /// each (Qdrant snapshots are per collection).
+    #[arg(long)]
+    pub qdrant_snapshot_per_tile: bool,
+    /// Qdrant API key.
+    #[arg(long, env = "QDRANT_API_KEY", hide_env_values = true)]
+    pub qdrant_api_key: Option<String>,
 }
 
 /// Runs `partition`; prints a one-line summary.
@@ -89,6 +109,28 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
         m.ground.up_source,
         t.elapsed().as_secs_f64()
     );
+    if let Some(url) = &args.qdrant_url {
+        let params = crate::qdrant::QdrantParams {
+            url: url.clone(),
+            collection: args.qdrant_collection.clone().unwrap_or_else(|| args.scene.clone()),
+            batch_size: args.qdrant_batch,
+            quantize_int8: args.qdrant_int8,
+            snapshot_per_tile: args.qdrant_snapshot_per_tile,
+            api_key: args.qdrant_api_key.clone(),
+        };
+        let t = std::time::Instant::now();
+        // Display attributes are not uploaded; the plain embeddings have the same rows.
+        let s = crate::qdrant::upload(&emb, &m, &params).context("Qdrant upload")?;
+        println!(
+            "Qdrant {url}: {} points into {} in {} batches, {} tile collections, {} snapshots, {:.1}s",
+            s.points,
+            s.collection,
+            s.batches,
+            s.tile_collections.len(),
+            s.snapshots.len(),
+            t.elapsed().as_secs_f64()
+        );
+    }
     Ok(())
 }
 
