@@ -15,8 +15,8 @@ use std::io::Write;
 use std::path::Path;
 
 use half::f16;
-use safetensors::tensor::{Dtype, TensorView};
 use safetensors::SafeTensors;
+use safetensors::tensor::{Dtype, TensorView};
 
 use crate::{Error, Result};
 
@@ -77,7 +77,10 @@ impl Embeddings {
     /// Errors: inconsistent lengths ([`Error::Invalid`]), I/O.
     pub fn write(&self, path: &Path, precision: StoredPrecision) -> Result<()> {
         let n = self.ids.len();
-        if self.means.len() != n || self.total_weights.len() != n || self.vectors.len() != n * self.dim {
+        if self.means.len() != n
+            || self.total_weights.len() != n
+            || self.vectors.len() != n * self.dim
+        {
             return Err(Error::Invalid(format!(
                 "embeddings arrays disagree: {} ids, {} means, {} weights, {} values for dim {}",
                 n,
@@ -99,7 +102,8 @@ impl Embeddings {
             }
         };
         let view = |dtype, shape: Vec<usize>, data| {
-            TensorView::new(dtype, shape, data).map_err(|e| Error::Invalid(format!("safetensors: {e}")))
+            TensorView::new(dtype, shape, data)
+                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
         };
         let tensors = vec![
             ("gaussian_ids", view(Dtype::U32, vec![n], ids)?),
@@ -129,11 +133,17 @@ impl Embeddings {
     pub fn read(path: &Path) -> Result<Embeddings> {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         let bad = |m: String| Error::format(path, m);
-        let (_, header) = SafeTensors::read_metadata(&bytes)
-            .map_err(|e| bad(format!("not a safetensors file ({e}); pass the encoder's embeddings.safetensors")))?;
+        let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| {
+            bad(format!(
+                "not a safetensors file ({e}); pass the encoder's embeddings.safetensors"
+            ))
+        })?;
         let meta = header.metadata().clone().unwrap_or_default();
         if meta.get("format").map(String::as_str) != Some(FORMAT) {
-            return Err(bad(format!("not a slag embeddings file (metadata format {:?})", meta.get("format"))));
+            return Err(bad(format!(
+                "not a slag embeddings file (metadata format {:?})",
+                meta.get("format")
+            )));
         }
         if meta.get("version").map(String::as_str) != Some(VERSION) {
             return Err(bad(format!(
@@ -142,7 +152,10 @@ impl Embeddings {
             )));
         }
         let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("{e}")))?;
-        let get = |name: &str| st.tensor(name).map_err(|e| bad(format!("tensor {name}: {e}")));
+        let get = |name: &str| {
+            st.tensor(name)
+                .map_err(|e| bad(format!("tensor {name}: {e}")))
+        };
         let ids_t = get("gaussian_ids")?;
         let means_t = get("means")?;
         let emb_t = get("embeddings")?;
@@ -157,7 +170,9 @@ impl Embeddings {
             && emb_t.shape().len() == 2
             && emb_t.shape()[0] == n;
         if !shape_ok {
-            return Err(bad("tensor shapes or dtypes disagree with the slag embeddings layout".into()));
+            return Err(bad(
+                "tensor shapes or dtypes disagree with the slag embeddings layout".into(),
+            ));
         }
         let dim = emb_t.shape()[1];
         let vectors: Vec<f32> = match emb_t.dtype() {
@@ -167,9 +182,17 @@ impl Embeddings {
                 .chunks_exact(2)
                 .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
                 .collect(),
-            other => return Err(bad(format!("embeddings dtype {other:?}; expected F16 or F32"))),
+            other => {
+                return Err(bad(format!(
+                    "embeddings dtype {other:?}; expected F16 or F32"
+                )));
+            }
         };
-        let ids = ids_t.data().chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let ids = ids_t
+            .data()
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
         let flat = le_f32(means_t.data());
         let means = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         Ok(Embeddings {
@@ -179,14 +202,20 @@ impl Embeddings {
             vectors,
             total_weights: le_f32(w_t.data()),
             model: meta.get("model").cloned().unwrap_or_default(),
-            scene_gaussians: meta.get("scene_gaussians").and_then(|s| s.parse().ok()).unwrap_or(0),
+            scene_gaussians: meta
+                .get("scene_gaussians")
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(0),
             source_ply: meta.get("source_ply").cloned().unwrap_or_default(),
         })
     }
 }
 
 fn le_f32(bytes: &[u8]) -> Vec<f32> {
-    bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+    bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
 }
 
 /// Writes `bytes` to `path` atomically (`<path>.partial`, fsync, rename). Creates parent folders.
@@ -198,7 +227,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     tmp.push(".partial");
     let tmp = std::path::PathBuf::from(tmp);
     let mut f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
-    f.write_all(bytes).and_then(|_| f.sync_all()).map_err(|e| Error::io(&tmp, e))?;
+    f.write_all(bytes)
+        .and_then(|_| f.sync_all())
+        .map_err(|e| Error::io(&tmp, e))?;
     drop(f);
     std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
 }
@@ -211,7 +242,9 @@ mod tests {
     fn sample(n: usize, dim: usize) -> Embeddings {
         let mut vectors = Vec::new();
         for i in 0..n {
-            let mut v: Vec<f32> = (0..dim).map(|d| ((i * 7 + d * 3) % 11) as f32 - 5.0).collect();
+            let mut v: Vec<f32> = (0..dim)
+                .map(|d| ((i * 7 + d * 3) % 11) as f32 - 5.0)
+                .collect();
             let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-6);
             v.iter_mut().for_each(|x| *x /= norm);
             vectors.extend(v);
@@ -240,7 +273,12 @@ mod tests {
         let back = Embeddings::read(&p16).unwrap();
         assert_eq!(back.ids, e.ids);
         assert_eq!(back.means, e.means);
-        let max_err = back.vectors.iter().zip(&e.vectors).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+        let max_err = back
+            .vectors
+            .iter()
+            .zip(&e.vectors)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
         assert!(max_err < 1e-3, "f16 error {max_err}");
         assert!(!p16.with_extension("safetensors.partial").exists());
     }
@@ -265,6 +303,9 @@ mod tests {
         let mut e = sample(3, 4);
         e.means.pop();
         let dir = tempfile::tempdir().unwrap();
-        assert!(matches!(e.write(&dir.path().join("x"), StoredPrecision::F32), Err(Error::Invalid(_))));
+        assert!(matches!(
+            e.write(&dir.path().join("x"), StoredPrecision::F32),
+            Err(Error::Invalid(_))
+        ));
     }
 }

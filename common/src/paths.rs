@@ -11,5 +11,8 @@ pub fn shared_dir() -> PathBuf {
         return PathBuf::from(p);
     }
     // common/ is one level below the workspace root.
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join("..").join("shared")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join("..")
+        .join("shared")
 }

@@ -21,14 +21,21 @@ pub fn cosine_scores(vectors: &[f32], dim: usize, query: &[f32]) -> Result<Vec<f
             vectors.len()
         )));
     }
-    let norm = query.iter().map(|&q| q as f64 * q as f64).sum::<f64>().sqrt();
+    let norm = query
+        .iter()
+        .map(|&q| q as f64 * q as f64)
+        .sum::<f64>()
+        .sqrt();
     if !norm.is_finite() || norm < 1e-12 {
         return Err(Error::Invalid(
             "the text embedding is zero or not finite; rephrase the prompt".into(),
         ));
     }
     let q: Vec<f32> = query.iter().map(|&v| (v as f64 / norm) as f32).collect();
-    Ok(vectors.par_chunks_exact(dim).map(|row| dot(row, &q)).collect())
+    Ok(vectors
+        .par_chunks_exact(dim)
+        .map(|row| dot(row, &q))
+        .collect())
 }
 
 /// Dot product with 8 independent accumulators (vectorises well).
@@ -47,8 +54,12 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
 
 /// Indices of the `k` highest scores, best first (ties by lower index). NaN scores are ignored.
 pub fn top_k(scores: &[f32], k: usize) -> Vec<(usize, f32)> {
-    let mut idx: Vec<(usize, f32)> =
-        scores.iter().copied().enumerate().filter(|(_, s)| !s.is_nan()).collect();
+    let mut idx: Vec<(usize, f32)> = scores
+        .iter()
+        .copied()
+        .enumerate()
+        .filter(|(_, s)| !s.is_nan())
+        .collect();
     let k = k.min(idx.len());
     if k == 0 {
         return Vec::new();
@@ -72,7 +83,9 @@ mod tests {
         let dim = 13;
         let rows: Vec<Vec<f32>> = (0..20)
             .map(|i| {
-                let v: Vec<f32> = (0..dim).map(|d| ((i * 31 + d * 17) % 23) as f32 - 11.0).collect();
+                let v: Vec<f32> = (0..dim)
+                    .map(|d| ((i * 31 + d * 17) % 23) as f32 - 11.0)
+                    .collect();
                 let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
                 v.into_iter().map(|x| x / n).collect()
             })
@@ -138,18 +151,31 @@ pub fn rank(
     threshold: Option<f32>,
 ) -> Result<(Vec<Match>, MatchSummary)> {
     if ids.len() != means.len() || ids.len() * dim != vectors.len() {
-        return Err(Error::Invalid("ids, means and vectors disagree in length".into()));
+        return Err(Error::Invalid(
+            "ids, means and vectors disagree in length".into(),
+        ));
     }
     if let Some(t) = threshold.filter(|t| !t.is_finite()) {
-        return Err(Error::Invalid(format!("threshold {t} is not a finite number")));
+        return Err(Error::Invalid(format!(
+            "threshold {t} is not a finite number"
+        )));
     }
     let mut scores = cosine_scores(vectors, dim, query)?;
     if let Some(t) = threshold {
-        scores.iter_mut().filter(|s| **s < t).for_each(|s| *s = f32::NAN);
+        scores
+            .iter_mut()
+            .filter(|s| **s < t)
+            .for_each(|s| *s = f32::NAN);
     }
     let ranked = top_k_or_all(&scores, top_k);
-    let matches: Vec<Match> =
-        ranked.into_iter().map(|(i, score)| Match { id: ids[i], position: means[i], score }).collect();
+    let matches: Vec<Match> = ranked
+        .into_iter()
+        .map(|(i, score)| Match {
+            id: ids[i],
+            position: means[i],
+            score,
+        })
+        .collect();
     let summary = summarise(&matches);
     Ok((matches, summary))
 }
@@ -161,7 +187,11 @@ fn top_k_or_all(scores: &[f32], k: Option<usize>) -> Vec<(usize, f32)> {
 /// Count, AABB and centroid of `matches` (f64 sums).
 pub fn summarise(matches: &[Match]) -> MatchSummary {
     if matches.is_empty() {
-        return MatchSummary { count: 0, aabb: None, centroid: None };
+        return MatchSummary {
+            count: 0,
+            aabb: None,
+            centroid: None,
+        };
     }
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
@@ -177,7 +207,11 @@ pub fn summarise(matches: &[Match]) -> MatchSummary {
     MatchSummary {
         count: matches.len(),
         aabb: Some([lo, hi]),
-        centroid: Some([(sum[0] / n) as f32, (sum[1] / n) as f32, (sum[2] / n) as f32]),
+        centroid: Some([
+            (sum[0] / n) as f32,
+            (sum[1] / n) as f32,
+            (sum[2] / n) as f32,
+        ]),
     }
 }
 
@@ -192,7 +226,12 @@ mod rank_tests {
         let s3 = 3f32.sqrt() / 2.0;
         let vectors = [1.0, 0.0, 0.5, s3, 0.0, 1.0, -1.0, 0.0];
         let ids = [10, 11, 12, 13];
-        let means = [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 4.0, 0.0], [9.0, 9.0, 9.0]];
+        let means = [
+            [0.0, 0.0, 0.0],
+            [2.0, 0.0, 0.0],
+            [0.0, 4.0, 0.0],
+            [9.0, 9.0, 9.0],
+        ];
         let (m, s) = rank(&ids, &means, &vectors, 2, &[3.0, 0.0], None, Some(0.28)).unwrap();
         assert_eq!(m.iter().map(|m| m.id).collect::<Vec<_>>(), vec![10, 11]);
         assert_eq!(s.count, 2);

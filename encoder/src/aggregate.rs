@@ -65,25 +65,30 @@ pub struct ImageStageParams {
 fn membership(masks: &[Mask], width: u32, height: u32) -> (usize, Vec<u64>) {
     let words = masks.len().div_ceil(64).max(1);
     let mut bits = vec![0u64; width as usize * height as usize * words];
-    bits.par_chunks_mut(width as usize * words).enumerate().for_each(|(y, row)| {
-        for (j, m) in masks.iter().enumerate() {
-            let sy = (((y as f64 + 0.5) * m.height as f64 / height as f64) as u32).min(m.height - 1);
-            let [bx, by, bw, bh] = m.bbox_xywh;
-            if sy < by || sy > by + bh {
-                continue;
-            }
-            // Raster columns whose centre can sample inside the bbox.
-            let x0 = ((bx as f64 * width as f64 / m.width as f64) - 1.0).max(0.0) as usize;
-            let x1 = ((((bx + bw + 1) as f64) * width as f64 / m.width as f64).ceil() as usize + 1)
+    bits.par_chunks_mut(width as usize * words)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for (j, m) in masks.iter().enumerate() {
+                let sy =
+                    (((y as f64 + 0.5) * m.height as f64 / height as f64) as u32).min(m.height - 1);
+                let [bx, by, bw, bh] = m.bbox_xywh;
+                if sy < by || sy > by + bh {
+                    continue;
+                }
+                // Raster columns whose centre can sample inside the bbox.
+                let x0 = ((bx as f64 * width as f64 / m.width as f64) - 1.0).max(0.0) as usize;
+                let x1 = ((((bx + bw + 1) as f64) * width as f64 / m.width as f64).ceil() as usize
+                    + 1)
                 .min(width as usize);
-            for x in x0..x1 {
-                let sx = (((x as f64 + 0.5) * m.width as f64 / width as f64) as u32).min(m.width - 1);
-                if sx >= bx && sx <= bx + bw && m.pixels[(sy * m.width + sx) as usize] != 0 {
-                    row[x * words + j / 64] |= 1u64 << (j % 64);
+                for x in x0..x1 {
+                    let sx = (((x as f64 + 0.5) * m.width as f64 / width as f64) as u32)
+                        .min(m.width - 1);
+                    if sx >= bx && sx <= bx + bw && m.pixels[(sy * m.width + sx) as usize] != 0 {
+                        row[x * words + j / 64] |= 1u64 << (j % 64);
+                    }
                 }
             }
-        }
-    });
+        });
     (words, bits)
 }
 
@@ -106,7 +111,10 @@ pub fn image_contribution(
             mask_embeddings.len()
         )));
     }
-    if let Some(m) = masks.iter().find(|m| (m.width, m.height) != (masks[0].width, masks[0].height)) {
+    if let Some(m) = masks
+        .iter()
+        .find(|m| (m.width, m.height) != (masks[0].width, masks[0].height))
+    {
         return Err(Error::Invalid(format!(
             "masks of one image differ in size ({}x{} vs {}x{})",
             m.width, m.height, masks[0].width, masks[0].height
@@ -114,7 +122,11 @@ pub fn image_contribution(
     }
     let (w, h) = (weights.width, weights.height);
     if masks.is_empty() || w == 0 || h == 0 {
-        return Ok(ImageContribution { dim, mask_embeddings, entries: Vec::new() });
+        return Ok(ImageContribution {
+            dim,
+            mask_embeddings,
+            entries: Vec::new(),
+        });
     }
     let (words, bits) = membership(masks, w, h);
 
@@ -138,7 +150,9 @@ pub fn image_contribution(
         .collect();
 
     // Σ_p w_kp per (Gaussian, signature), row bands in parallel, f64 sums.
-    let band = (h as usize).div_ceil(rayon::current_num_threads() * 4).max(1);
+    let band = (h as usize)
+        .div_ceil(rayon::current_num_threads() * 4)
+        .max(1);
     let partial: Vec<FxHashMap<u64, f64>> = (0..h as usize)
         .step_by(band)
         .collect::<Vec<_>>()
@@ -190,10 +204,18 @@ pub fn image_contribution(
     let mut entries: Vec<Entry> = per_kj
         .into_iter()
         .filter(|&(_, v)| v > 0.0)
-        .map(|(key, v)| Entry { gaussian: (key >> 32) as u32, mask: key as u32, weight: v as f32 })
+        .map(|(key, v)| Entry {
+            gaussian: (key >> 32) as u32,
+            mask: key as u32,
+            weight: v as f32,
+        })
         .collect();
     entries.par_sort_unstable_by_key(|e| (e.gaussian, e.mask));
-    Ok(ImageContribution { dim, mask_embeddings, entries })
+    Ok(ImageContribution {
+        dim,
+        mask_embeddings,
+        entries,
+    })
 }
 
 /// Holds image contributions until the reduction, in memory up to a budget and spilled to files
@@ -210,7 +232,13 @@ impl ContributionStore {
     /// A store keeping up to `budget_bytes` in memory, spilling the rest into `spill_dir`
     /// (created on first spill; its files are removed when the store is dropped).
     pub fn new(budget_bytes: usize, spill_dir: PathBuf) -> Self {
-        Self { budget_bytes, used_bytes: 0, in_memory: Vec::new(), spilled: Vec::new(), spill_dir }
+        Self {
+            budget_bytes,
+            used_bytes: 0,
+            in_memory: Vec::new(),
+            spilled: Vec::new(),
+            spill_dir,
+        }
     }
 
     /// Number of contributions held.
@@ -238,7 +266,9 @@ impl ContributionStore {
             return Ok(());
         }
         std::fs::create_dir_all(&self.spill_dir).map_err(|e| Error::io(&self.spill_dir, e))?;
-        let path = self.spill_dir.join(format!("contribution-{:06}.bin", self.spilled.len()));
+        let path = self
+            .spill_dir
+            .join(format!("contribution-{:06}.bin", self.spilled.len()));
         let io = |e| Error::io(&path, e);
         let mut f = BufWriter::new(std::fs::File::create(&path).map_err(io)?);
         let mut put = |v: u64| f.write_all(&v.to_le_bytes());
@@ -266,18 +296,33 @@ impl ContributionStore {
             r.read_exact(&mut b8).map_err(io)?;
             Ok(u64::from_le_bytes(b8))
         };
-        let (dim, ne, nn) = (get(&mut r)? as usize, get(&mut r)? as usize, get(&mut r)? as usize);
+        let (dim, ne, nn) = (
+            get(&mut r)? as usize,
+            get(&mut r)? as usize,
+            get(&mut r)? as usize,
+        );
         let mut buf = vec![0u8; ne * 4];
         r.read_exact(&mut buf).map_err(io)?;
-        let mask_embeddings = buf.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let mask_embeddings = buf
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
         let mut buf = vec![0u8; nn * 12];
         r.read_exact(&mut buf).map_err(io)?;
         let u = |c: &[u8]| u32::from_le_bytes([c[0], c[1], c[2], c[3]]);
         let entries = buf
             .chunks_exact(12)
-            .map(|c| Entry { gaussian: u(&c[0..4]), mask: u(&c[4..8]), weight: f32::from_bits(u(&c[8..12])) })
+            .map(|c| Entry {
+                gaussian: u(&c[0..4]),
+                mask: u(&c[4..8]),
+                weight: f32::from_bits(u(&c[8..12])),
+            })
             .collect();
-        Ok(ImageContribution { dim, mask_embeddings, entries })
+        Ok(ImageContribution {
+            dim,
+            mask_embeddings,
+            entries,
+        })
     }
 
     /// Calls `f` on every contribution (spilled ones are read back one at a time).
@@ -310,7 +355,10 @@ pub struct ReduceParams {
 
 impl Default for ReduceParams {
     fn default() -> Self {
-        Self { min_total_weight: 1e-6, accumulator_budget_bytes: 2 << 30 }
+        Self {
+            min_total_weight: 1e-6,
+            accumulator_budget_bytes: 2 << 30,
+        }
     }
 }
 
@@ -331,7 +379,12 @@ pub struct Reduced {
 /// normalised to unit length (cosine queries). f64 accumulation; chunked over Gaussian ids.
 /// Unobserved: `Σ a < min_total_weight`, or the weighted mean's norm below 1e-9 of `Σ a`
 /// (mask embeddings that cancel out carry no direction).
-pub fn reduce(store: &ContributionStore, n_gaussians: usize, dim: usize, params: ReduceParams) -> Result<Reduced> {
+pub fn reduce(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+) -> Result<Reduced> {
     let per_gaussian = (dim + 1) * 8;
     let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
     let mut out = Reduced::default();
@@ -347,8 +400,10 @@ pub fn reduce(store: &ContributionStore, n_gaussians: usize, dim: usize, params:
                 bad_dim = Some(c.dim);
                 return;
             }
-            num.par_chunks_mut(BLOCK * dim).zip(den.par_chunks_mut(BLOCK)).enumerate().for_each(
-                |(b, (nb, db))| {
+            num.par_chunks_mut(BLOCK * dim)
+                .zip(den.par_chunks_mut(BLOCK))
+                .enumerate()
+                .for_each(|(b, (nb, db))| {
                     let g0 = (start + b * BLOCK) as u32;
                     let g1 = g0 + db.len() as u32;
                     let lo = c.entries.partition_point(|e| e.gaussian < g0);
@@ -357,16 +412,18 @@ pub fn reduce(store: &ContributionStore, n_gaussians: usize, dim: usize, params:
                         let r = (e.gaussian - g0) as usize;
                         let a = e.weight as f64;
                         db[r] += a;
-                        let ej = &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
+                        let ej =
+                            &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
                         for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
                             *acc += a * v as f64;
                         }
                     }
-                },
-            );
+                });
         })?;
         if let Some(d) = bad_dim {
-            return Err(Error::Invalid(format!("contribution of dim {d}, expected {dim}")));
+            return Err(Error::Invalid(format!(
+                "contribution of dim {d}, expected {dim}"
+            )));
         }
         for (r, &d) in den.iter().enumerate() {
             // NaN sums count as unobserved too.
@@ -392,7 +449,10 @@ mod tests {
     use super::*;
 
     fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
-        let px = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).map(|(x, y)| f(x, y) as u8).collect();
+        let px = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| f(x, y) as u8)
+            .collect();
         Mask::from_pixels(w, h, px).unwrap()
     }
 
@@ -405,7 +465,12 @@ mod tests {
             s ^= s << 17;
             s
         };
-        let mut pw = PixelWeights { width: w, height: h, offsets: vec![0], ..Default::default() };
+        let mut pw = PixelWeights {
+            width: w,
+            height: h,
+            offsets: vec![0],
+            ..Default::default()
+        };
         for _ in 0..w * h {
             let c = next() % 5;
             for _ in 0..c {
@@ -445,21 +510,40 @@ mod tests {
             mask(w, h, |x, y| (x + y) % 3 == 0),
             mask(w, h, |_, _| true),
         ];
-        let c = image_contribution(&pw, &masks, vec![0.0; 4 * 2], 2, ImageStageParams::default()).unwrap();
+        let c = image_contribution(
+            &pw,
+            &masks,
+            vec![0.0; 4 * 2],
+            2,
+            ImageStageParams::default(),
+        )
+        .unwrap();
         let expect = brute(&pw, &masks);
         assert_eq!(c.entries.len(), expect.len());
         for e in &c.entries {
             let v = expect[&(e.gaussian, e.mask)];
-            assert!((v - e.weight as f64).abs() < 1e-5 * v.max(1.0), "{e:?} vs {v}");
+            assert!(
+                (v - e.weight as f64).abs() < 1e-5 * v.max(1.0),
+                "{e:?} vs {v}"
+            );
         }
-        assert!(c.entries.windows(2).all(|p| (p[0].gaussian, p[0].mask) < (p[1].gaussian, p[1].mask)));
+        assert!(
+            c.entries
+                .windows(2)
+                .all(|p| (p[0].gaussian, p[0].mask) < (p[1].gaussian, p[1].mask))
+        );
     }
 
     #[test]
     fn masks_are_resampled_to_a_smaller_raster() {
         // Full-res masks 40x20, raster 20x10: raster pixel (x, y) samples mask pixel (2x+1, 2y+1).
         let masks = vec![mask(40, 20, |x, _| x >= 20)];
-        let mut pw = PixelWeights { width: 20, height: 10, offsets: vec![0], ..Default::default() };
+        let mut pw = PixelWeights {
+            width: 20,
+            height: 10,
+            offsets: vec![0],
+            ..Default::default()
+        };
         for p in 0..200u32 {
             pw.ids.push(p);
             pw.weights.push(0.5);
@@ -467,7 +551,11 @@ mod tests {
         }
         let c = image_contribution(&pw, &masks, vec![1.0], 1, ImageStageParams::default()).unwrap();
         assert_eq!(c.entries.len(), 100);
-        assert!(c.entries.iter().all(|e| e.gaussian % 20 >= 10 && e.weight == 0.5));
+        assert!(
+            c.entries
+                .iter()
+                .all(|e| e.gaussian % 20 >= 10 && e.weight == 0.5)
+        );
     }
 
     #[test]
@@ -480,7 +568,16 @@ mod tests {
             ids: vec![0, 1, 2, 3],
             weights: vec![0.1, 0.4, 0.05, 0.3],
         };
-        let c = image_contribution(&pw, &masks, vec![1.0], 1, ImageStageParams { top_k_per_pixel: Some(2) }).unwrap();
+        let c = image_contribution(
+            &pw,
+            &masks,
+            vec![1.0],
+            1,
+            ImageStageParams {
+                top_k_per_pixel: Some(2),
+            },
+        )
+        .unwrap();
         let kept: Vec<u32> = c.entries.iter().map(|e| e.gaussian).collect();
         assert_eq!(kept, vec![1, 3]);
     }
@@ -495,10 +592,26 @@ mod tests {
                 dim,
                 mask_embeddings: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
                 entries: vec![
-                    Entry { gaussian: 0, mask: 0, weight: 1.0 },
-                    Entry { gaussian: 0, mask: 1, weight: 1.0 },
-                    Entry { gaussian: 2, mask: 1, weight: 3.0 },
-                    Entry { gaussian: 3, mask: 0, weight: 1e-9 },
+                    Entry {
+                        gaussian: 0,
+                        mask: 0,
+                        weight: 1.0,
+                    },
+                    Entry {
+                        gaussian: 0,
+                        mask: 1,
+                        weight: 1.0,
+                    },
+                    Entry {
+                        gaussian: 2,
+                        mask: 1,
+                        weight: 3.0,
+                    },
+                    Entry {
+                        gaussian: 3,
+                        mask: 0,
+                        weight: 1e-9,
+                    },
                 ],
             })
             .unwrap();
@@ -507,13 +620,20 @@ mod tests {
             .push(ImageContribution {
                 dim,
                 mask_embeddings: vec![0.0, 0.0, 1.0],
-                entries: vec![Entry { gaussian: 0, mask: 0, weight: 2.0 }],
+                entries: vec![Entry {
+                    gaussian: 0,
+                    mask: 0,
+                    weight: 2.0,
+                }],
             })
             .unwrap();
         let r = reduce(&store, 5, dim, ReduceParams::default()).unwrap();
         assert_eq!(r.ids, vec![0, 2]); // 1 and 4 unseen, 3 below the threshold
         let n = (1.0f64 + 1.0 + 4.0).sqrt();
-        let e0: Vec<f32> = [1.0 / n, 1.0 / n, 2.0 / n].iter().map(|&v| v as f32).collect();
+        let e0: Vec<f32> = [1.0 / n, 1.0 / n, 2.0 / n]
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
         for (a, b) in r.vectors[..3].iter().zip(&e0) {
             assert!((a - b).abs() < 1e-6);
         }
@@ -528,7 +648,9 @@ mod tests {
         let make = |seed: u64| {
             let pw = weights(30, 20, n, seed);
             let masks = vec![mask(30, 20, |x, _| x < 15), mask(30, 20, |_, y| y < 12)];
-            let emb: Vec<f32> = (0..8).map(|i| ((i * 7 + seed as usize) % 5) as f32 - 2.0).collect();
+            let emb: Vec<f32> = (0..8)
+                .map(|i| ((i * 7 + seed as usize) % 5) as f32 - 2.0)
+                .collect();
             image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap()
         };
         let dir = tempfile::tempdir().unwrap();
@@ -540,7 +662,10 @@ mod tests {
         }
         assert_eq!(spilling.spilled(), 5);
         let one = reduce(&all_mem, n as usize, dim, ReduceParams::default()).unwrap();
-        let tight = ReduceParams { accumulator_budget_bytes: 1024 * (dim + 1) * 8, ..Default::default() };
+        let tight = ReduceParams {
+            accumulator_budget_bytes: 1024 * (dim + 1) * 8,
+            ..Default::default()
+        };
         let many = reduce(&spilling, n as usize, dim, tight).unwrap();
         assert_eq!(one.chunks, 1);
         assert!(many.chunks >= 4);

@@ -125,9 +125,18 @@ impl ClipVisual {
             ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
             _ => None,
         };
-        let model_id = model.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let mut clip =
-            ClipVisual { session, path: model.to_path_buf(), batch_size, input_name, model_id, dim: 0 };
+        let model_id = model
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let mut clip = ClipVisual {
+            session,
+            path: model.to_path_buf(),
+            batch_size,
+            input_name,
+            model_id,
+            dim: 0,
+        };
         clip.dim = match declared {
             Some(d) => d as usize,
             // Dynamic width: one probe run on a mid-grey image.

@@ -636,7 +636,8 @@ mod tests {
     }
 
     fn read_inria_ply_dc(path: &Path) -> Gaussians {
-        slag_common::scene::load_ply(path, slag_common::scene::PlyLoadOptions { colours: true }).unwrap()
+        slag_common::scene::load_ply(path, slag_common::scene::PlyLoadOptions { colours: true })
+            .unwrap()
     }
 
     #[test]

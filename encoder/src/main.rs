@@ -69,7 +69,9 @@ fn main() -> std::process::ExitCode {
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
-        Command::Bench(a) => cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r))),
+        Command::Bench(a) => {
+            cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r)))
+        }
         Command::Partition(a) => cli::shards::run_partition(a),
         Command::Serve(a) => cli::shards::run_serve(a),
         Command::Export(a) => cli::shards::run_export(a),

@@ -47,8 +47,14 @@ pub struct SceneInput {
 impl SceneInput {
     /// `dir` with the default `.ply` location.
     pub fn new(dir: &Path, ply: Option<&Path>, every: usize) -> Self {
-        let ply = ply.map(Path::to_path_buf).unwrap_or_else(|| dir.join("point_cloud.ply"));
-        Self { dir: dir.to_path_buf(), ply, every }
+        let ply = ply
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| dir.join("point_cloud.ply"));
+        Self {
+            dir: dir.to_path_buf(),
+            ply,
+            every,
+        }
     }
 
     /// Loads the Gaussians (geometry only: the weights never need SH colours) and the views.
@@ -112,10 +118,15 @@ pub fn read_image(view: &View) -> Result<RgbImage> {
 }
 
 fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
-    let style = ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
-        .map(|s| s.progress_chars("=> "))
-        .unwrap_or_else(|_| ProgressStyle::default_bar());
-    multi.add(ProgressBar::new(len as u64).with_style(style).with_prefix(label.to_string()))
+    let style =
+        ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar());
+    multi.add(
+        ProgressBar::new(len as u64)
+            .with_style(style)
+            .with_prefix(label.to_string()),
+    )
 }
 
 /// Runs the whole Semantic Embedding stage on `scene` and writes
@@ -130,7 +141,10 @@ pub fn encode(
     mut report: Report,
 ) -> Result<Report> {
     if !(params.raster_scale > 0.0 && params.raster_scale <= 4.0) {
-        return Err(Error::Invalid(format!("--raster-scale {} must be in (0, 4]", params.raster_scale)));
+        return Err(Error::Invalid(format!(
+            "--raster-scale {} must be in (0, 4]",
+            params.raster_scale
+        )));
     }
     let t_total = Instant::now();
     let mut t = StageTimings::default();
@@ -138,9 +152,16 @@ pub fn encode(
     let (gaussians, views, views_total) = scene.load()?;
     t.load_scene = t0.elapsed().as_secs_f64();
     if views.is_empty() {
-        return Err(Error::Invalid(format!("{}: no views to encode (check --every)", scene.dir.display())));
+        return Err(Error::Invalid(format!(
+            "{}: no views to encode (check --every)",
+            scene.dir.display()
+        )));
     }
-    tracing::info!(gaussians = gaussians.len(), views = views.len(), "scene loaded");
+    tracing::info!(
+        gaussians = gaussians.len(),
+        views = views.len(),
+        "scene loaded"
+    );
     let mut rasterizer = make_rasterizer(&gaussians)?;
     if let Some(models) = report.models.as_object_mut() {
         models.insert("rasterizer".into(), rasterizer.name().into());
@@ -158,7 +179,12 @@ pub fn encode(
     let bar_back = bar(&multi, views.len(), "raster + a_kj");
     let spill_dir = params.out_dir.join(".contributions.partial");
     let mut store = ContributionStore::new(params.contribution_budget_bytes, spill_dir);
-    let mut counts = Counts { views_total, views_used: views.len(), gaussians: gaussians.len(), ..Default::default() };
+    let mut counts = Counts {
+        views_total,
+        views_used: views.len(),
+        gaussians: gaussians.len(),
+        ..Default::default()
+    };
     let mut raster_pixels = 0usize;
     let mut raster_entries = 0usize;
 
@@ -177,7 +203,12 @@ pub fn encode(
                     let e = crops.embed(&img, &m)?;
                     let t3 = Instant::now();
                     if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
-                        return Err(Error::Invalid(format!("{}: CLIP returned {} vectors for {} masks", view.name, e.len(), m.len())));
+                        return Err(Error::Invalid(format!(
+                            "{}: CLIP returned {} vectors for {} masks",
+                            view.name,
+                            e.len(),
+                            m.len()
+                        )));
                     }
                     Ok(FrontItem {
                         view: i,
@@ -208,7 +239,13 @@ pub fn encode(
             raster_pixels += (weights.width * weights.height) as usize;
             raster_entries += weights.ids.len();
             counts.masks += item.masks.len();
-            let c = aggregate::image_contribution(&weights, &item.masks, item.embeddings, dim, params.image_stage)?;
+            let c = aggregate::image_contribution(
+                &weights,
+                &item.masks,
+                item.embeddings,
+                dim,
+                params.image_stage,
+            )?;
             counts.entries += c.entries.len();
             store.push(c)?;
             t.raster += (t1 - t0).as_secs_f64();
@@ -233,7 +270,11 @@ pub fn encode(
 
     let t0 = Instant::now();
     let embeddings = Embeddings {
-        means: reduced.ids.iter().map(|&k| gaussians.means[k as usize]).collect(),
+        means: reduced
+            .ids
+            .iter()
+            .map(|&k| gaussians.means[k as usize])
+            .collect(),
         ids: reduced.ids,
         dim,
         vectors: reduced.vectors,
@@ -258,7 +299,8 @@ pub fn encode(
         "embeddings": emb_path, "embeddings_bytes": emb_bytes,
         "precision": params.precision, "report": report_path,
     });
-    let json = serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
+    let json =
+        serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
     Ok(report)
 }

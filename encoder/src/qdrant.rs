@@ -93,7 +93,9 @@ pub struct UploadSummary {
 fn valid_collection(name: &str) -> bool {
     !name.is_empty()
         && name.len() <= 200
-        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-' || b == b'.')
 }
 
 /// Uploads every Gaussian of `src` (partitioned as `manifest` says) to Qdrant; see the module
@@ -120,7 +122,8 @@ pub fn upload(
         return Err(Error::Invalid("--qdrant-batch must be at least 1".into()));
     }
     let (n, d) = (src.ids().len(), src.dim());
-    if src.means().len() != n || manifest.total_gaussians != n as u64 || manifest.dim as usize != d {
+    if src.means().len() != n || manifest.total_gaussians != n as u64 || manifest.dim as usize != d
+    {
         return Err(Error::Invalid(format!(
             "manifest ({} Gaussians, dim {}) does not match the embeddings ({n} ids, {} means, dim {d}); \
              upload the embeddings the shards were made from",
@@ -138,7 +141,10 @@ pub fn upload(
         usize::try_from(manifest.max_per_shard).unwrap_or(usize::MAX),
     )?;
     let same = plans.len() == manifest.tiles.len()
-        && plans.iter().zip(&manifest.tiles).all(|(p, t)| p.id == t.id && p.rows.len() as u64 == t.count);
+        && plans
+            .iter()
+            .zip(&manifest.tiles)
+            .all(|(p, t)| p.id == t.id && p.rows.len() as u64 == t.count);
     if !same {
         return Err(Error::Invalid(
             "the manifest's tiles do not match a re-tiling of the embeddings; \
@@ -182,11 +188,17 @@ async fn upload_async(
     if let Some(key) = &params.api_key {
         builder = builder.api_key(key.clone());
     }
-    let client = builder.build().map_err(|e| request_error(url, "connecting", e))?;
-    client.health_check().await.map_err(|e| request_error(url, "health check", e))?;
+    let client = builder
+        .build()
+        .map_err(|e| request_error(url, "connecting", e))?;
+    client
+        .health_check()
+        .await
+        .map_err(|e| request_error(url, "health check", e))?;
 
     let all: Vec<u32> = (0..src.ids().len() as u32).collect();
-    let batches = upload_collection(&client, src, &params.collection, &all, tile_of, params).await?;
+    let batches =
+        upload_collection(&client, src, &params.collection, &all, tile_of, params).await?;
     let mut summary = UploadSummary {
         collection: params.collection.clone(),
         points: all.len() as u64,
@@ -202,7 +214,11 @@ async fn upload_async(
                 .create_snapshot(name.as_str())
                 .await
                 .map_err(|e| request_error(url, &format!("snapshot of {name}"), e))?;
-            summary.snapshots.push(snap.snapshot_description.map(|s| s.name).unwrap_or_default());
+            summary.snapshots.push(
+                snap.snapshot_description
+                    .map(|s| s.name)
+                    .unwrap_or_default(),
+            );
             summary.tile_collections.push((p.id, name));
         }
     }

@@ -11,9 +11,9 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
 
 use qdrant_client::qdrant::{
-    self as q, collections_server::Collections, collections_server::CollectionsServer, points_server::Points,
-    points_server::PointsServer, qdrant_server::Qdrant as QdrantService, qdrant_server::QdrantServer,
-    snapshots_server::Snapshots, snapshots_server::SnapshotsServer,
+    self as q, collections_server::Collections, collections_server::CollectionsServer,
+    points_server::Points, points_server::PointsServer, qdrant_server::Qdrant as QdrantService,
+    qdrant_server::QdrantServer, snapshots_server::Snapshots, snapshots_server::SnapshotsServer,
 };
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::synthetic::SyntheticScene;
@@ -47,8 +47,14 @@ struct Mock {
 
 impl Mock {
     fn new(existing: &[&str], api_key: Option<&str>) -> Mock {
-        let log = Log { existing: existing.iter().map(|s| s.to_string()).collect(), ..Log::default() };
-        Mock { log: Arc::new(Mutex::new(log)), api_key: api_key.map(str::to_string) }
+        let log = Log {
+            existing: existing.iter().map(|s| s.to_string()).collect(),
+            ..Log::default()
+        };
+        Mock {
+            log: Arc::new(Mutex::new(log)),
+            api_key: api_key.map(str::to_string),
+        }
     }
 
     /// Checks the `api-key` header, records the call.
@@ -201,7 +207,9 @@ service!(Snapshots, {
 /// Serves `mock` on 127.0.0.1:<free port>; returns the runtime (keep it alive) and the URL.
 fn start(mock: &Mock) -> (tokio::runtime::Runtime, String) {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
-    let incoming = rt.block_on(async { TcpIncoming::bind(([127, 0, 0, 1], 0).into()) }).expect("bind");
+    let incoming = rt
+        .block_on(async { TcpIncoming::bind(([127, 0, 0, 1], 0).into()) })
+        .expect("bind");
     let addr = incoming.local_addr().expect("local addr");
     rt.spawn(
         Server::builder()
@@ -278,12 +286,19 @@ fn double(p: &q::PointStruct, k: &str) -> f64 {
 fn check_schema(c: &q::CreateCollection, int8: bool) {
     let vp = match c.vectors_config.as_ref().and_then(|v| v.config.as_ref()) {
         Some(q::vectors_config::Config::Params(p)) => p,
-        other => panic!("{}: expected one unnamed vector config, got {other:?}", c.collection_name),
+        other => panic!(
+            "{}: expected one unnamed vector config, got {other:?}",
+            c.collection_name
+        ),
     };
     assert_eq!(vp.size, DIM as u64);
     assert_eq!(vp.distance, i32::from(q::Distance::Cosine));
     assert!(vp.quantization_config.is_none());
-    match c.quantization_config.as_ref().and_then(|q| q.quantization.as_ref()) {
+    match c
+        .quantization_config
+        .as_ref()
+        .and_then(|q| q.quantization.as_ref())
+    {
         Some(q::quantization_config::Quantization::Scalar(s)) => {
             assert!(int8, "{}: quantisation not asked for", c.collection_name);
             assert_eq!(s.r#type, i32::from(q::QuantizationType::Int8));
@@ -303,7 +318,11 @@ fn check_points(
     let row_of: HashMap<u32, usize> = emb.ids.iter().enumerate().map(|(r, &id)| (id, r)).collect();
     let mut ids = Vec::new();
     for u in upserts {
-        assert!(!u.points.is_empty() && u.points.len() <= batch, "batch of {}", u.points.len());
+        assert!(
+            !u.points.is_empty() && u.points.len() <= batch,
+            "batch of {}",
+            u.points.len()
+        );
         assert_eq!(u.wait, Some(true));
         for p in &u.points {
             let id = u32::try_from(num_id(p)).expect("id in u32");
@@ -338,7 +357,15 @@ fn upserts_every_gaussian_once_with_schema_payload_and_vectors() {
     // The old collection was deleted, then created again, before any point was sent.
     assert_eq!(log.deleted, ["slag-test"]);
     let order: Vec<&str> = log.calls.iter().map(|c| c.0).take(4).collect();
-    assert_eq!(order, ["health_check", "collection_exists", "delete_collection", "create_collection"]);
+    assert_eq!(
+        order,
+        [
+            "health_check",
+            "collection_exists",
+            "delete_collection",
+            "create_collection"
+        ]
+    );
     assert_eq!(log.creates.len(), 1);
     assert_eq!(log.creates[0].collection_name, "slag-test");
     check_schema(&log.creates[0], false);
@@ -371,18 +398,36 @@ fn int8_quantisation_and_one_collection_and_snapshot_per_tile() {
     let names: Vec<String> = std::iter::once("scene".to_string())
         .chain(m.tiles.iter().map(|t| format!("scene-tile-{}", t.id)))
         .collect();
-    let created: Vec<&str> = log.creates.iter().map(|c| c.collection_name.as_str()).collect();
+    let created: Vec<&str> = log
+        .creates
+        .iter()
+        .map(|c| c.collection_name.as_str())
+        .collect();
     assert_eq!(created, names);
     log.creates.iter().for_each(|c| check_schema(c, true));
     assert_eq!(log.snapshots, names[1..]);
-    assert_eq!(s.snapshots, names[1..].iter().map(|n| format!("{n}.snapshot")).collect::<Vec<_>>());
+    assert_eq!(
+        s.snapshots,
+        names[1..]
+            .iter()
+            .map(|n| format!("{n}.snapshot"))
+            .collect::<Vec<_>>()
+    );
     assert_eq!(
         s.tile_collections,
-        m.tiles.iter().zip(&names[1..]).map(|(t, n)| (t.id, n.clone())).collect::<Vec<_>>()
+        m.tiles
+            .iter()
+            .zip(&names[1..])
+            .map(|(t, n)| (t.id, n.clone()))
+            .collect::<Vec<_>>()
     );
 
     // Main collection: everything once.
-    let main: Vec<&q::UpsertPoints> = log.upserts.iter().filter(|u| u.collection_name == "scene").collect();
+    let main: Vec<&q::UpsertPoints> = log
+        .upserts
+        .iter()
+        .filter(|u| u.collection_name == "scene")
+        .collect();
     assert_eq!(check_points(&main, 100, &emb, &tile_of), emb.ids);
     // Each tile collection: exactly that tile's Gaussians, and its snapshot after its upserts.
     let mut by_tile: BTreeMap<u64, Vec<u32>> = BTreeMap::new();
@@ -391,15 +436,25 @@ fn int8_quantisation_and_one_collection_and_snapshot_per_tile() {
     }
     for t in &m.tiles {
         let name = format!("scene-tile-{}", t.id);
-        let ups: Vec<&q::UpsertPoints> = log.upserts.iter().filter(|u| u.collection_name == name).collect();
+        let ups: Vec<&q::UpsertPoints> = log
+            .upserts
+            .iter()
+            .filter(|u| u.collection_name == name)
+            .collect();
         let mut ids = check_points(&ups, 100, &emb, &tile_of);
         assert_eq!(ids.len() as u64, t.count);
         ids.sort_unstable();
         let want = by_tile.get_mut(&t.id).expect("tile");
         want.sort_unstable();
         assert_eq!(&ids, want, "tile {}", t.id);
-        let last_upsert = log.calls.iter().rposition(|c| c.0 == "upsert" && c.1 == name);
-        let snap = log.calls.iter().position(|c| c.0 == "create_snapshot" && c.1 == name);
+        let last_upsert = log
+            .calls
+            .iter()
+            .rposition(|c| c.0 == "upsert" && c.1 == name);
+        let snap = log
+            .calls
+            .iter()
+            .position(|c| c.0 == "create_snapshot" && c.1 == name);
         assert!(last_upsert < snap, "snapshot of {name} before its points");
     }
 }
@@ -424,7 +479,10 @@ fn wrong_api_key_is_a_typed_error() {
 fn unreachable_server_is_a_typed_error() {
     let (emb, m, _) = scene();
     // A port that was free a moment ago and is now closed: connection refused.
-    let port = std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).expect("port").port();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("port")
+        .port();
     let url = format!("http://127.0.0.1:{port}");
     match upload(&emb, &m, &QdrantParams::new(url.clone(), "c")) {
         Err(slag_common::Error::Invalid(msg)) => {
@@ -440,9 +498,15 @@ fn bad_parameters_and_mismatched_manifest_are_rejected_before_connecting() {
     let url = "http://127.0.0.1:9"; // never contacted
     let mut p = QdrantParams::new(url, "c");
     p.batch_size = 0;
-    assert!(matches!(upload(&emb, &m, &p), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        upload(&emb, &m, &p),
+        Err(slag_common::Error::Invalid(_))
+    ));
     let p = QdrantParams::new(url, "a/b");
-    assert!(matches!(upload(&emb, &m, &p), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        upload(&emb, &m, &p),
+        Err(slag_common::Error::Invalid(_))
+    ));
     let other = SyntheticScene::new(900, DIM, 5, 100.0, 11).to_embeddings();
     let p = QdrantParams::new(url, "c");
     match upload(&other, &m, &p) {

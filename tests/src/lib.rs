@@ -17,7 +17,10 @@ pub fn fixture(rel: &str) -> PathBuf {
 
 /// The embedded default scene shipped in the repository.
 pub fn default_scene() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").join("data").join("snowmiku-mini")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join("data")
+        .join("snowmiku-mini")
 }
 
 #[derive(Parser)]

@@ -23,9 +23,19 @@ fn scene_copy(dir: &std::path::Path) -> std::path::PathBuf {
 fn encode_graph(scene: &std::path::Path, out: &std::path::Path) -> anyhow::Result<()> {
     let vis = fixture("clip/color-clip-visual.onnx");
     let a = encode_args(&[
-        "--scene", scene.to_str().unwrap(), "--masks", "graph",
-        "--clip-visual", vis.to_str().unwrap(), "--raster-scale", "0.25", "--quiet",
-        "--rasterizer", "cpu", "--out", out.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--masks",
+        "graph",
+        "--clip-visual",
+        vis.to_str().unwrap(),
+        "--raster-scale",
+        "0.25",
+        "--quiet",
+        "--rasterizer",
+        "cpu",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     slag_encoder::cli::encode::run(&a).map(|_| ())
 }
@@ -34,7 +44,11 @@ fn encode_graph(scene: &std::path::Path, out: &std::path::Path) -> anyhow::Resul
 fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene_copy(dir.path());
-    let first = std::fs::read_dir(scene.join("images")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    let first = std::fs::read_dir(scene.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
     image::RgbImage::new(100, 80).save(&first).unwrap();
     let out = dir.path().join("out");
     let err = format!("{:#}", encode_graph(&scene, &out).unwrap_err());
@@ -46,10 +60,20 @@ fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
 fn missing_image_names_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene_copy(dir.path());
-    let first = std::fs::read_dir(scene.join("images")).unwrap().map(|e| e.unwrap().path()).min().unwrap();
+    let first = std::fs::read_dir(scene.join("images"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .min()
+        .unwrap();
     std::fs::remove_file(&first).unwrap();
-    let err = format!("{:#}", encode_graph(&scene, &dir.path().join("out")).unwrap_err());
-    assert!(err.contains(first.file_name().unwrap().to_str().unwrap()), "{err}");
+    let err = format!(
+        "{:#}",
+        encode_graph(&scene, &dir.path().join("out")).unwrap_err()
+    );
+    assert!(
+        err.contains(first.file_name().unwrap().to_str().unwrap()),
+        "{err}"
+    );
 }
 
 #[test]
@@ -58,12 +82,22 @@ fn nan_in_the_ply_is_a_clear_error() {
     let scene = scene_copy(dir.path());
     let ply = scene.join("point_cloud.ply");
     let mut bytes = std::fs::read(&ply).unwrap();
-    let body = bytes.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let body = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
     // Vertex 0, property 0 (x) := NaN.
     bytes[body..body + 4].copy_from_slice(&f32::NAN.to_le_bytes());
     std::fs::write(&ply, bytes).unwrap();
-    let err = format!("{:#}", encode_graph(&scene, &dir.path().join("out")).unwrap_err());
-    assert!(err.contains("point_cloud.ply") && err.to_lowercase().contains("vertex 0"), "{err}");
+    let err = format!(
+        "{:#}",
+        encode_graph(&scene, &dir.path().join("out")).unwrap_err()
+    );
+    assert!(
+        err.contains("point_cloud.ply") && err.to_lowercase().contains("vertex 0"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -71,10 +105,19 @@ fn wrong_model_for_the_role_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
     let wrong = fixture("clip/color-clip-textual.onnx");
     let a = encode_args(&[
-        "--scene", default_scene().to_str().unwrap(), "--masks", "graph",
-        "--clip-visual", wrong.to_str().unwrap(), "--quiet",
-        "--out", dir.path().join("out").to_str().unwrap(),
+        "--scene",
+        default_scene().to_str().unwrap(),
+        "--masks",
+        "graph",
+        "--clip-visual",
+        wrong.to_str().unwrap(),
+        "--quiet",
+        "--out",
+        dir.path().join("out").to_str().unwrap(),
     ]);
     let err = format!("{:#}", slag_encoder::cli::encode::run(&a).unwrap_err());
-    assert!(err.contains("color-clip-textual.onnx") && err.contains("pixel_values"), "{err}");
+    assert!(
+        err.contains("color-clip-textual.onnx") && err.contains("pixel_values"),
+        "{err}"
+    );
 }

@@ -34,12 +34,29 @@ fn color_sam_and_color_clip_reach_the_miou_floor() {
         fixture("clip/color-clip-visual.onnx"),
     );
     let a = encode_args(&[
-        "--scene", &snowmiku(), "--masks", "sam",
-        "--sam-encoder", enc.to_str().unwrap(), "--sam-decoder", dec.to_str().unwrap(),
-        "--sam-points-per-side", "16", "--sam-pred-iou-thresh", "0.8", "--sam-stability-score-thresh", "0.5",
-        "--clip-visual", vis.to_str().unwrap(),
-        "--every", "12", "--raster-scale", "0.25", "--quiet",
-        "--out", out.to_str().unwrap(),
+        "--scene",
+        &snowmiku(),
+        "--masks",
+        "sam",
+        "--sam-encoder",
+        enc.to_str().unwrap(),
+        "--sam-decoder",
+        dec.to_str().unwrap(),
+        "--sam-points-per-side",
+        "16",
+        "--sam-pred-iou-thresh",
+        "0.8",
+        "--sam-stability-score-thresh",
+        "0.5",
+        "--clip-visual",
+        vis.to_str().unwrap(),
+        "--every",
+        "12",
+        "--raster-scale",
+        "0.25",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     let report = slag_encoder::cli::encode::run(&a).expect("encode");
     assert_eq!(report.counts.views_used, 9);
@@ -48,7 +65,10 @@ fn color_sam_and_color_clip_reach_the_miou_floor() {
     let e = eval(&out);
     eprintln!("color-sam subset: {}", serde_json::to_string(&e).unwrap());
     let miou = e.miou.expect("mIoU defined");
-    assert!(miou >= MIOU_FLOOR_SAM, "mIoU {miou} below floor {MIOU_FLOOR_SAM}");
+    assert!(
+        miou >= MIOU_FLOOR_SAM,
+        "mIoU {miou} below floor {MIOU_FLOOR_SAM}"
+    );
 }
 
 #[test]
@@ -57,16 +77,28 @@ fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
     let out = dir.path().join("out");
     let vis = fixture("clip/color-clip-visual.onnx");
     let a = encode_args(&[
-        "--scene", &snowmiku(), "--masks", "graph",
-        "--clip-visual", vis.to_str().unwrap(),
-        "--every", "12", "--raster-scale", "0.25", "--quiet",
-        "--out", out.to_str().unwrap(),
+        "--scene",
+        &snowmiku(),
+        "--masks",
+        "graph",
+        "--clip-visual",
+        vis.to_str().unwrap(),
+        "--every",
+        "12",
+        "--raster-scale",
+        "0.25",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     slag_encoder::cli::encode::run(&a).expect("encode");
     let e = eval(&out);
     eprintln!("graph subset: {}", serde_json::to_string(&e).unwrap());
     let miou = e.miou.expect("mIoU defined");
-    assert!(miou >= MIOU_FLOOR_GRAPH, "mIoU {miou} below floor {MIOU_FLOOR_GRAPH}");
+    assert!(
+        miou >= MIOU_FLOOR_GRAPH,
+        "mIoU {miou} below floor {MIOU_FLOOR_GRAPH}"
+    );
 }
 
 #[test]
@@ -79,17 +111,38 @@ fn real_architecture_models_run_end_to_end() {
         fixture("clip/tiny-clip-visual.onnx"),
     );
     let a = encode_args(&[
-        "--scene", &snowmiku(), "--masks", "sam",
-        "--sam-encoder", enc.to_str().unwrap(), "--sam-decoder", dec.to_str().unwrap(),
-        "--sam-points-per-side", "8", "--sam-pred-iou-thresh", "0", "--sam-stability-score-thresh", "0",
-        "--clip-visual", vis.to_str().unwrap(),
-        "--every", "48", "--raster-scale", "0.25", "--quiet",
-        "--out", out.to_str().unwrap(),
+        "--scene",
+        &snowmiku(),
+        "--masks",
+        "sam",
+        "--sam-encoder",
+        enc.to_str().unwrap(),
+        "--sam-decoder",
+        dec.to_str().unwrap(),
+        "--sam-points-per-side",
+        "8",
+        "--sam-pred-iou-thresh",
+        "0",
+        "--sam-stability-score-thresh",
+        "0",
+        "--clip-visual",
+        vis.to_str().unwrap(),
+        "--every",
+        "48",
+        "--raster-scale",
+        "0.25",
+        "--quiet",
+        "--out",
+        out.to_str().unwrap(),
     ]);
     let report = slag_encoder::cli::encode::run(&a).expect("encode");
     assert_eq!(report.counts.views_used, 3);
-    assert!(report.counts.masks > 0, "the random SAM produced no mask at all");
-    let emb = slag_common::embeddings::Embeddings::read(&out.join("embeddings.safetensors")).unwrap();
+    assert!(
+        report.counts.masks > 0,
+        "the random SAM produced no mask at all"
+    );
+    let emb =
+        slag_common::embeddings::Embeddings::read(&out.join("embeddings.safetensors")).unwrap();
     assert_eq!(emb.dim, 512);
     assert_eq!(emb.len(), report.counts.observed);
     assert!(emb.vectors.iter().all(|v| v.is_finite()));

@@ -37,7 +37,14 @@ impl Intrinsics {
         let h = ((self.height as f64 * scale).round() as u32).max(1);
         let sx = w as f64 / self.width as f64;
         let sy = h as f64 / self.height as f64;
-        Intrinsics { width: w, height: h, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy }
+        Intrinsics {
+            width: w,
+            height: h,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: self.cx * sx,
+            cy: self.cy * sy,
+        }
     }
 }
 
@@ -90,7 +97,12 @@ pub fn load_views(scene_dir: &Path) -> Result<Vec<View>> {
 /// image subsampling. `every` = 0 is treated as 1.
 pub fn subsample(views: Vec<View>, every: usize) -> Vec<View> {
     let every = every.max(1);
-    views.into_iter().enumerate().filter(|(i, _)| i % every == 0).map(|(_, v)| v).collect()
+    views
+        .into_iter()
+        .enumerate()
+        .filter(|(i, _)| i % every == 0)
+        .map(|(_, v)| v)
+        .collect()
 }
 
 mod colmap;

@@ -128,8 +128,12 @@ fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGen
     Ok(match a.masks {
         MaskSource::Sam => {
             let (enc, dec) = (
-                a.sam_encoder.as_ref().context("--masks sam needs --sam-encoder")?,
-                a.sam_decoder.as_ref().context("--masks sam needs --sam-decoder")?,
+                a.sam_encoder
+                    .as_ref()
+                    .context("--masks sam needs --sam-encoder")?,
+                a.sam_decoder
+                    .as_ref()
+                    .context("--masks sam needs --sam-decoder")?,
             );
             let params = crate::masks::sam::SamParams {
                 points_per_side: a.sam_points_per_side,
@@ -139,7 +143,13 @@ fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGen
                 box_nms_thresh: a.sam_box_nms_thresh,
                 ..Default::default()
             };
-            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::new(enc, dec, a.ep.into(), threads, params)?)
+            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::new(
+                enc,
+                dec,
+                a.ep.into(),
+                threads,
+                params,
+            )?)
         }
         MaskSource::Graph => {
             let mut p = crate::masks::graph::GraphParams::default();
@@ -184,16 +194,25 @@ fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
 
 /// Runs `encode` and returns the report it wrote.
 pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
-    let threads = a.threads.unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
+    let threads = a.threads.unwrap_or_else(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    });
     // The global pool may already exist (tests, bench repeats): then keep it.
-    let _ = rayon::ThreadPoolBuilder::new().num_threads(threads).build_global();
+    let _ = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build_global();
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
     let masks = build_masks(a, threads)?;
-    let clip = crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
+    let clip =
+        crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
     let crops: Box<dyn CropEmbedder> = Box::new(clip);
     let params = EncodeParams {
         raster_scale: a.raster_scale,
-        image_stage: ImageStageParams { top_k_per_pixel: a.top_k_per_pixel },
+        image_stage: ImageStageParams {
+            top_k_per_pixel: a.top_k_per_pixel,
+        },
         reduce: ReduceParams {
             min_total_weight: a.min_weight,
             accumulator_budget_bytes: a.accumulator_memory_mb << 20,
@@ -208,12 +227,13 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     };
     let header = report_header(a, &scene, threads);
     let backend = a.rasterizer;
-    let make = |g: &slag_common::scene::Gaussians| -> slag_common::Result<Box<dyn WeightRasterizer>> {
-        Ok(match backend {
-            RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
-            RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
-        })
-    };
+    let make =
+        |g: &slag_common::scene::Gaussians| -> slag_common::Result<Box<dyn WeightRasterizer>> {
+            Ok(match backend {
+                RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
+                RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
+            })
+        };
     let report = pipeline::encode(&scene, masks, crops, make, &params, header)?;
     Ok(report)
 }
@@ -235,7 +255,11 @@ pub fn timing_table(r: &Report) -> String {
     ];
     let mut s = String::from("| stage | seconds | ms / image |\n|---|---:|---:|\n");
     for (name, secs, per_image) in rows {
-        let per = if per_image { format!("{:.1}", 1000.0 * secs / n) } else { "".into() };
+        let per = if per_image {
+            format!("{:.1}", 1000.0 * secs / n)
+        } else {
+            "".into()
+        };
         s += &format!("| {name} | {secs:.3} | {per} |\n");
     }
     s += &format!(

@@ -40,10 +40,15 @@ pub struct EvalArgs {
 
 /// Runs `eval-colors` and returns the evaluation (serialisable to JSON).
 pub fn run(a: &EvalArgs) -> anyhow::Result<eval::ColourEval> {
-    let clip_dir = slag_common::paths::shared_dir().join("fixtures").join("clip");
+    let clip_dir = slag_common::paths::shared_dir()
+        .join("fixtures")
+        .join("clip");
     let or = |p: &Option<PathBuf>, name: &str| p.clone().unwrap_or_else(|| clip_dir.join(name));
     let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json"))?;
-    let ply = a.ply.clone().unwrap_or_else(|| a.scene.join("point_cloud.ply"));
+    let ply = a
+        .ply
+        .clone()
+        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let emb = Embeddings::read(&a.embeddings)?;
     if emb.scene_gaussians != gaussians.len() as u64 {
@@ -55,7 +60,11 @@ pub fn run(a: &EvalArgs) -> anyhow::Result<eval::ColourEval> {
             gaussians.len()
         );
     }
-    let mut text = TextEncoder::new(&or(&a.clip_textual, "color-clip-textual.onnx"), &or(&a.tokenizer, "clip-tokenizer.json"), a.ep.into())?;
+    let mut text = TextEncoder::new(
+        &or(&a.clip_textual, "color-clip-textual.onnx"),
+        &or(&a.tokenizer, "clip-tokenizer.json"),
+        a.ep.into(),
+    )?;
     let names: Vec<&str> = classes.names.iter().map(String::as_str).collect();
     let text_embeds = text.encode(&names).context("encoding the colour prompts")?;
     let gt = eval::ground_truth(&classes, &gaussians)?;

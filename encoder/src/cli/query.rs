@@ -46,7 +46,11 @@ pub struct QueryArgs {
 }
 
 fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
-    let v: Vec<f32> = s.split(',').map(|p| p.trim().parse::<f32>()).collect::<Result<_, _>>().map_err(|e| e.to_string())?;
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| e.to_string())?;
     match v[..] {
         [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
         _ => Err(format!("expected r,g,b with components in 0..1, got {s:?}")),
@@ -78,15 +82,39 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     let emb = Embeddings::read(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep.into())?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
-    let (all, summary) = similarity::rank(&emb.ids, &emb.means, &emb.vectors, emb.dim, &q, None, Some(a.threshold))?;
+    let (all, summary) = similarity::rank(
+        &emb.ids,
+        &emb.means,
+        &emb.vectors,
+        emb.dim,
+        &q,
+        None,
+        Some(a.threshold),
+    )?;
     if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
-        let mut hit = vec![false; emb.scene_gaussians.max(emb.ids.iter().map(|&i| i as u64 + 1).max().unwrap_or(0)) as usize];
+        let mut hit = vec![
+            false;
+            emb.scene_gaussians
+                .max(emb.ids.iter().map(|&i| i as u64 + 1).max().unwrap_or(0))
+                as usize
+        ];
         all.iter().for_each(|m| hit[m.id as usize] = true);
         let rgb = a.highlight_rgb;
-        slag_common::scene::write_highlighted_ply(src, dst, |i| hit.get(i).copied().unwrap_or(false).then_some(rgb))?;
+        slag_common::scene::write_highlighted_ply(src, dst, |i| {
+            hit.get(i).copied().unwrap_or(false).then_some(rgb)
+        })?;
     }
     let nearest_below_threshold = if all.is_empty() {
-        similarity::rank(&emb.ids, &emb.means, &emb.vectors, emb.dim, &q, Some(a.top_k), None)?.0
+        similarity::rank(
+            &emb.ids,
+            &emb.means,
+            &emb.vectors,
+            emb.dim,
+            &q,
+            Some(a.top_k),
+            None,
+        )?
+        .0
     } else {
         Vec::new()
     };

@@ -54,11 +54,16 @@ pub struct RenderOutput {
 
 /// Runs `render`.
 pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
-    let ply = a.ply.clone().unwrap_or_else(|| a.scene.join("point_cloud.ply"));
+    let ply = a
+        .ply
+        .clone()
+        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let views = camera::load_views(&a.scene)?;
     let view = match a.view.parse::<usize>() {
-        Ok(i) => views.get(i).with_context(|| format!("view index {i} out of range (0..{})", views.len()))?,
+        Ok(i) => views
+            .get(i)
+            .with_context(|| format!("view index {i} out of range (0..{})", views.len()))?,
         Err(_) => views
             .iter()
             .find(|v| v.name == a.view)
@@ -70,14 +75,16 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
     };
     let intr = crate::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
     let weights = r.rasterize(&intr, &view.world_to_camera)?;
-    let img = crate::raster::colour::render_colour(&gaussians, &intr, &view.world_to_camera, &weights)?;
+    let img =
+        crate::raster::colour::render_colour(&gaussians, &intr, &view.world_to_camera, &weights)?;
     let psnr_db = if (a.raster_scale - 1.0).abs() < 1e-12 {
         let photo = crate::pipeline::read_image(view)?;
         Some(crate::raster::colour::psnr(&img, &photo)?)
     } else {
         None
     };
-    img.save(&a.out).with_context(|| format!("writing {}", a.out.display()))?;
+    img.save(&a.out)
+        .with_context(|| format!("writing {}", a.out.display()))?;
     Ok(RenderOutput {
         view: view.name.clone(),
         rasterizer: r.name().to_string(),

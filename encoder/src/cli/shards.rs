@@ -112,7 +112,10 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     if let Some(url) = &args.qdrant_url {
         let params = crate::qdrant::QdrantParams {
             url: url.clone(),
-            collection: args.qdrant_collection.clone().unwrap_or_else(|| args.scene.clone()),
+            collection: args
+                .qdrant_collection
+                .clone()
+                .unwrap_or_else(|| args.scene.clone()),
             batch_size: args.qdrant_batch,
             quantize_int8: args.qdrant_int8,
             snapshot_per_tile: args.qdrant_snapshot_per_tile,

@@ -11,7 +11,9 @@ use slag_common::scene::{Gaussians, PlyLoadOptions};
 
 /// `<shared>/scenes/snowmiku`.
 pub fn snowmiku_dir() -> PathBuf {
-    slag_common::paths::shared_dir().join("scenes").join("snowmiku")
+    slag_common::paths::shared_dir()
+        .join("scenes")
+        .join("snowmiku")
 }
 
 /// Loads a `.ply` (with SH colours when `colours`), panicking with the error on failure.
