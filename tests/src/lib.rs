@@ -37,3 +37,21 @@ pub fn encode_args(args: &[&str]) -> EncodeArgs {
         Err(e) => panic!("bad test arguments: {e}"),
     }
 }
+
+/// Runs `slag-encoder encode` as the binary would on `scene` with the arguments of `line`
+/// (whitespace-separated; `{F}` stands for `../shared/fixtures`), quietly, into `out`.
+pub fn encode_line(
+    scene: &std::path::Path,
+    line: &str,
+    out: &std::path::Path,
+) -> anyhow::Result<slag_encoder::report::Report> {
+    let fixtures = shared().join("fixtures").display().to_string();
+    let mut argv: Vec<String> = ["--scene", &scene.display().to_string(), "--quiet", "--out"]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+    argv.push(out.display().to_string());
+    argv.extend(line.split_whitespace().map(|t| t.replace("{F}", &fixtures)));
+    let args = encode_args(&argv.iter().map(String::as_str).collect::<Vec<_>>());
+    slag_encoder::cli::encode::run(&args)
+}

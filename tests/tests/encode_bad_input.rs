@@ -3,7 +3,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-use slag_tests::{default_scene, encode_args, fixture};
+use slag_tests::{default_scene, encode_line};
 
 /// A copy of the embedded default scene that a test may damage.
 fn scene_copy(dir: &std::path::Path) -> std::path::PathBuf {
@@ -20,35 +20,23 @@ fn scene_copy(dir: &std::path::Path) -> std::path::PathBuf {
     dst
 }
 
+/// The first image (by name) of a scene folder.
+fn first_image(scene: &std::path::Path) -> std::path::PathBuf {
+    let images = std::fs::read_dir(scene.join("images")).unwrap();
+    images.map(|e| e.unwrap().path()).min().unwrap()
+}
+
 fn encode_graph(scene: &std::path::Path, out: &std::path::Path) -> anyhow::Result<()> {
-    let vis = fixture("clip/color-clip-visual.onnx");
-    let a = encode_args(&[
-        "--scene",
-        scene.to_str().unwrap(),
-        "--masks",
-        "graph",
-        "--clip-visual",
-        vis.to_str().unwrap(),
-        "--raster-scale",
-        "0.25",
-        "--quiet",
-        "--rasterizer",
-        "cpu",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    slag_encoder::cli::encode::run(&a).map(|_| ())
+    let line = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.25 \
+                --rasterizer cpu";
+    encode_line(scene, line, out).map(|_| ())
 }
 
 #[test]
 fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene_copy(dir.path());
-    let first = std::fs::read_dir(scene.join("images"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .min()
-        .unwrap();
+    let first = first_image(&scene);
     image::RgbImage::new(100, 80).save(&first).unwrap();
     let out = dir.path().join("out");
     let err = format!("{:#}", encode_graph(&scene, &out).unwrap_err());
@@ -60,11 +48,7 @@ fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
 fn missing_image_names_the_file() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene_copy(dir.path());
-    let first = std::fs::read_dir(scene.join("images"))
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .min()
-        .unwrap();
+    let first = first_image(&scene);
     std::fs::remove_file(&first).unwrap();
     let err = format!(
         "{:#}",
@@ -103,19 +87,9 @@ fn nan_in_the_ply_is_a_clear_error() {
 #[test]
 fn wrong_model_for_the_role_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
-    let wrong = fixture("clip/color-clip-textual.onnx");
-    let a = encode_args(&[
-        "--scene",
-        default_scene().to_str().unwrap(),
-        "--masks",
-        "graph",
-        "--clip-visual",
-        wrong.to_str().unwrap(),
-        "--quiet",
-        "--out",
-        dir.path().join("out").to_str().unwrap(),
-    ]);
-    let err = format!("{:#}", slag_encoder::cli::encode::run(&a).unwrap_err());
+    let line = "--masks graph --clip-visual {F}/clip/color-clip-textual.onnx";
+    let err = encode_line(&default_scene(), line, &dir.path().join("out")).unwrap_err();
+    let err = format!("{err:#}");
     assert!(
         err.contains("color-clip-textual.onnx") && err.contains("pixel_values"),
         "{err}"

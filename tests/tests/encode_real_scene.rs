@@ -5,10 +5,10 @@
 #![allow(clippy::unwrap_used)]
 
 use slag_encoder::cli::eval::EvalArgs;
-use slag_tests::{encode_args, fixture, shared};
+use slag_tests::{encode_line, shared};
 
-fn snowmiku() -> String {
-    shared().join("scenes/snowmiku").display().to_string()
+fn snowmiku() -> std::path::PathBuf {
+    shared().join("scenes/snowmiku")
 }
 
 fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
@@ -24,41 +24,20 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
     slag_encoder::cli::eval::run(&a).expect("eval-colors")
 }
 
+/// The CI subset: every 12th image (9 views), raster scale 0.25.
+const SUBSET: &str = "--every 12 --raster-scale 0.25";
+
 #[test]
 fn color_sam_and_color_clip_reach_the_miou_floor() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let (enc, dec, vis) = (
-        fixture("sam-amg/color-sam-encoder.onnx"),
-        fixture("sam-amg/color-sam-decoder.onnx"),
-        fixture("clip/color-clip-visual.onnx"),
+    let line = format!(
+        "--masks sam --sam-encoder {{F}}/sam-amg/color-sam-encoder.onnx \
+         --sam-decoder {{F}}/sam-amg/color-sam-decoder.onnx --sam-points-per-side 16 \
+         --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
+         --clip-visual {{F}}/clip/color-clip-visual.onnx {SUBSET}"
     );
-    let a = encode_args(&[
-        "--scene",
-        &snowmiku(),
-        "--masks",
-        "sam",
-        "--sam-encoder",
-        enc.to_str().unwrap(),
-        "--sam-decoder",
-        dec.to_str().unwrap(),
-        "--sam-points-per-side",
-        "16",
-        "--sam-pred-iou-thresh",
-        "0.8",
-        "--sam-stability-score-thresh",
-        "0.5",
-        "--clip-visual",
-        vis.to_str().unwrap(),
-        "--every",
-        "12",
-        "--raster-scale",
-        "0.25",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let report = slag_encoder::cli::encode::run(&a).expect("encode");
+    let report = encode_line(&snowmiku(), &line, &out).expect("encode");
     assert_eq!(report.counts.views_used, 9);
     assert!(report.counts.observed > 0);
     assert!(out.join("report.json").exists());
@@ -75,23 +54,8 @@ fn color_sam_and_color_clip_reach_the_miou_floor() {
 fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let vis = fixture("clip/color-clip-visual.onnx");
-    let a = encode_args(&[
-        "--scene",
-        &snowmiku(),
-        "--masks",
-        "graph",
-        "--clip-visual",
-        vis.to_str().unwrap(),
-        "--every",
-        "12",
-        "--raster-scale",
-        "0.25",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    slag_encoder::cli::encode::run(&a).expect("encode");
+    let line = format!("--masks graph --clip-visual {{F}}/clip/color-clip-visual.onnx {SUBSET}");
+    encode_line(&snowmiku(), &line, &out).expect("encode");
     let e = eval(&out);
     eprintln!("graph subset: {}", serde_json::to_string(&e).unwrap());
     let miou = e.miou.expect("mIoU defined");
@@ -105,37 +69,11 @@ fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
 fn real_architecture_models_run_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let (enc, dec, vis) = (
-        fixture("sam-amg/sam-tiny-random-encoder.onnx"),
-        fixture("sam-amg/sam-tiny-random-decoder.onnx"),
-        fixture("clip/tiny-clip-visual.onnx"),
-    );
-    let a = encode_args(&[
-        "--scene",
-        &snowmiku(),
-        "--masks",
-        "sam",
-        "--sam-encoder",
-        enc.to_str().unwrap(),
-        "--sam-decoder",
-        dec.to_str().unwrap(),
-        "--sam-points-per-side",
-        "8",
-        "--sam-pred-iou-thresh",
-        "0",
-        "--sam-stability-score-thresh",
-        "0",
-        "--clip-visual",
-        vis.to_str().unwrap(),
-        "--every",
-        "48",
-        "--raster-scale",
-        "0.25",
-        "--quiet",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    let report = slag_encoder::cli::encode::run(&a).expect("encode");
+    let line = "--masks sam --sam-encoder {F}/sam-amg/sam-tiny-random-encoder.onnx \
+         --sam-decoder {F}/sam-amg/sam-tiny-random-decoder.onnx --sam-points-per-side 8 \
+         --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 \
+         --clip-visual {F}/clip/tiny-clip-visual.onnx --every 48 --raster-scale 0.25";
+    let report = encode_line(&snowmiku(), line, &out).expect("encode");
     assert_eq!(report.counts.views_used, 3);
     assert!(
         report.counts.masks > 0,
