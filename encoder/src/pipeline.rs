@@ -140,12 +140,6 @@ pub fn encode(
     params: &EncodeParams,
     mut report: Report,
 ) -> Result<Report> {
-    if !(params.raster_scale > 0.0 && params.raster_scale <= 4.0) {
-        return Err(Error::Invalid(format!(
-            "--raster-scale {} must be in (0, 4]",
-            params.raster_scale
-        )));
-    }
     let t_total = Instant::now();
     let mut t = StageTimings::default();
     let t0 = Instant::now();
@@ -157,6 +151,11 @@ pub fn encode(
             scene.dir.display()
         )));
     }
+    // Raster intrinsics of every view, checked (scale range, raster size) before any image work.
+    let raster_intrinsics = views
+        .iter()
+        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, params.raster_scale))
+        .collect::<Result<Vec<_>>>()?;
     tracing::info!(
         gaussians = gaussians.len(),
         views = views.len(),
@@ -233,8 +232,8 @@ pub fn encode(
             t.clip += item.clip_s;
             let view = &views[item.view];
             let t0 = Instant::now();
-            let intr = crate::raster::raster_intrinsics(&view.intrinsics, params.raster_scale)?;
-            let weights = rasterizer.rasterize(&intr, &view.world_to_camera)?;
+            let intr = &raster_intrinsics[item.view];
+            let weights = rasterizer.rasterize(intr, &view.world_to_camera)?;
             let t1 = Instant::now();
             raster_pixels += (weights.width * weights.height) as usize;
             raster_entries += weights.ids.len();

@@ -95,3 +95,20 @@ fn wrong_model_for_the_role_is_a_clear_error() {
         "{err}"
     );
 }
+
+#[test]
+fn raster_scale_out_of_range_is_a_clear_error_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    for scale in ["0", "-1", "5", "NaN"] {
+        let line = format!(
+            "--masks graph --clip-visual {{F}}/clip/color-clip-visual.onnx --raster-scale={scale}"
+        );
+        let err = format!(
+            "{:#}",
+            encode_line(&default_scene(), &line, &out).unwrap_err()
+        );
+        assert!(err.contains("--raster-scale"), "{scale}: {err}");
+    }
+    assert!(!out.exists());
+}
