@@ -561,11 +561,95 @@ pub fn decode_header(bytes: &[u8]) -> Result<ShardHeader, ShardError> {
     parse_header(bytes).map(|h| h.0)
 }
 
-/// Decodes a shard, verifying magic, version, both CRCs and every length.
+/// Embedding rows of a shard as stored (no dequantisation): what a scanner keeps in memory so
+/// that an f16 store costs 2 bytes and an int8 store 1 byte (+ one `f32` scale per row) per value.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StoredVectors {
+    /// `[N * D]` row-major `f32`.
+    F32(Vec<f32>),
+    /// `[N * D]` row-major IEEE half.
+    F16(Vec<f16>),
+    /// Symmetric int8: value `[i * D + j]` is `q[i * D + j] as f32 * scales[i]` ([`quantize_i8`]).
+    I8 {
+        /// `[N * D]` row-major quantised values.
+        q: Vec<i8>,
+        /// `[N]` per-row scales (`max |v| / 127`, `0` for an all-zero row).
+        scales: Vec<f32>,
+    },
+}
+
+impl StoredVectors {
+    /// The storage type.
+    pub fn dtype(&self) -> Dtype {
+        match self {
+            StoredVectors::F32(_) => Dtype::F32,
+            StoredVectors::F16(_) => Dtype::F16,
+            StoredVectors::I8 { .. } => Dtype::I8,
+        }
+    }
+    /// Number of stored values (`N * D`).
+    pub fn values(&self) -> usize {
+        match self {
+            StoredVectors::F32(v) => v.len(),
+            StoredVectors::F16(v) => v.len(),
+            StoredVectors::I8 { q, .. } => q.len(),
+        }
+    }
+    /// All rows dequantised to `f32`, `[N * D]` row-major.
+    pub fn to_f32(&self, dim: usize) -> Vec<f32> {
+        match self {
+            StoredVectors::F32(v) => v.clone(),
+            StoredVectors::F16(v) => v.iter().map(|h| h.to_f32()).collect(),
+            StoredVectors::I8 { q, scales } => {
+                let mut out = Vec::with_capacity(q.len());
+                for (row, s) in q.chunks_exact(dim.max(1)).zip(scales) {
+                    out.extend(row.iter().map(|&b| b as f32 * s));
+                }
+                out
+            }
+        }
+    }
+}
+
+/// A decoded shard with its vectors kept in the stored type ([`decode_shard_stored`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredShard {
+    /// Header fields.
+    pub header: ShardHeader,
+    /// Source-`.ply` indices. `[N]`.
+    pub ids: Vec<u32>,
+    /// Centres, world frame. `[N]`.
+    pub means: Vec<[f32; 3]>,
+    /// `[N * D]` embeddings as stored.
+    pub vectors: StoredVectors,
+    /// Optional log-scales (INRIA `.ply` convention), `[N]`, for display.
+    pub scales: Option<Vec<[f32; 3]>>,
+    /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
+    pub opacities: Option<Vec<f32>>,
+}
+
+/// Decodes a shard, verifying magic, version, both CRCs and every length, and dequantises the
+/// vectors to `f32` (see [`decode_shard_stored`] to keep them as stored).
 ///
 /// Errors: [`ShardError`] for any truncated, corrupted, foreign or inconsistent input; never
 /// panics and never allocates more than the input length implies.
 pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
+    let s = decode_shard_stored(bytes)?;
+    let d = s.header.dim as usize;
+    Ok(Shard {
+        vectors: s.vectors.to_f32(d),
+        header: s.header,
+        ids: s.ids,
+        means: s.means,
+        scales: s.scales,
+        opacities: s.opacities,
+    })
+}
+
+/// Decodes a shard like [`decode_shard`] but keeps the embeddings in their stored type.
+///
+/// Errors: [`ShardError`] for any truncated, corrupted, foreign or inconsistent input.
+pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
     let (header, header_len, flags, payload_len, payload_crc) = parse_header(bytes)?;
     let (n, d) = (header.count as u64, header.dim as u64);
     let expected = expected_payload(header.dtype, flags, n, d);
@@ -606,21 +690,18 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
         .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
     let means = triples(le_f32s(r.take(12 * n)?));
-    let vectors: Vec<f32> = match header.dtype {
-        Dtype::F32 => le_f32s(r.take(4 * n * d)?),
-        Dtype::F16 => r
-            .take(2 * n * d)?
-            .chunks_exact(2)
-            .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
-            .collect(),
+    let vectors = match header.dtype {
+        Dtype::F32 => StoredVectors::F32(le_f32s(r.take(4 * n * d)?)),
+        Dtype::F16 => StoredVectors::F16(
+            r.take(2 * n * d)?
+                .chunks_exact(2)
+                .map(|c| f16::from_le_bytes([c[0], c[1]]))
+                .collect(),
+        ),
         Dtype::I8 => {
             let scales = le_f32s(r.take(4 * n)?);
-            let q = r.take(n * d)?;
-            let mut v = Vec::with_capacity(n * d);
-            for (row, s) in q.chunks_exact(d.max(1)).zip(&scales) {
-                v.extend(row.iter().map(|&b| (b as i8) as f32 * s));
-            }
-            v
+            let q = r.take(n * d)?.iter().map(|&b| b as i8).collect();
+            StoredVectors::I8 { q, scales }
         }
     };
     r.at = align(r.at, 4);
@@ -634,7 +715,7 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
     } else {
         None
     };
-    Ok(Shard {
+    Ok(StoredShard {
         header,
         ids,
         means,

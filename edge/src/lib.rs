@@ -1,0 +1,1 @@
+//! slag-edge library: the robot-side runtime (fetch shards by radius into sled, scan, serve).
