@@ -50,6 +50,14 @@ pub enum Error {
     /// The GPU (wgpu) could not be used or a kernel failed.
     #[error("gpu: {0}")]
     Gpu(String),
+    /// A network peer (shard server, Qdrant) could not be reached or answered with an error.
+    #[error("{url}: {message}")]
+    Network {
+        /// The URL involved.
+        url: String,
+        /// What failed (connection, status, timeout) and what to check.
+        message: String,
+    },
 }
 
 impl Error {
@@ -64,6 +72,13 @@ impl Error {
     pub fn format(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
         Error::Format {
             path: path.into(),
+            message: message.into(),
+        }
+    }
+    /// A network error for `url`.
+    pub fn network(url: impl Into<String>, message: impl Into<String>) -> Self {
+        Error::Network {
+            url: url.into(),
             message: message.into(),
         }
     }

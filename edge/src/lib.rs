@@ -1,1 +1,16 @@
-//! slag-edge library: the robot-side runtime (fetch shards by radius into sled, scan, serve).
+//! slag-edge: the robot-side runtime of slag (SLAG's query side, for an NVIDIA Jetson Orin).
+//!
+//! - [`fetch`]: download the shards within a radius of the robot (manifest → `rstar` tile
+//!   selection → resumable, verified downloads);
+//! - [`store`]: the embedded `sled` store of verified shards;
+//! - [`scan`]: the exact scan kernels over f32/f16/int8 embeddings and the approximate HNSW index;
+//! - [`query`]: prompt → CLIP text embedding → cosine or LERF relevancy scores → matches + summary;
+//! - [`serve`]: the HTTP API (`GET /query?text=chair`, `/health`, `/stats`, `POST /query`);
+//! - [`config`]: the TOML config file of `serve` (`jetson/edge.toml`).
+
+pub mod config;
+pub mod fetch;
+pub mod query;
+pub mod scan;
+pub mod serve;
+pub mod store;

@@ -1,10 +1,25 @@
-//! `slag-edge`: the robot-side runtime.
+//! `slag-edge`: the robot-side runtime (Jetson Orin, aarch64).
 //!
-//! Placeholder: the commands (`fetch --radius`, `serve`) are specified by the edge issue and are
-//! not implemented yet. This binary only parses its arguments and says so, so the workspace and the
-//! aarch64 cross build have a target from day one.
+//! - `slag-edge fetch --from URL --scene S --center X,Y --radius 50 [--prune]`: download the shards
+//!   around the robot into the local sled store;
+//! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml]`: answer `GET /query?text=chair`;
+//! - `slag-edge query --text chair`: the same answer on the command line, no server;
+//! - `slag-edge bench`: scan kernels against the memory-bandwidth floor.
 
-use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use slag_common::onnx::ExecutionProvider;
+use slag_common::similarity::PAPER_THRESHOLD;
+use slag_common::text::TextEncoder;
+use slag_edge::config::{ServeConfig, read_token};
+use slag_edge::fetch::{Center, FetchParams};
+use slag_edge::query::{OnnxTextEmbedder, RawQuery, TextEmbedder};
+use slag_edge::serve::{AppState, ServeOptions};
+use slag_edge::store::EdgeStore;
 
 /// slag-edge: download the shards around the robot and answer text queries over HTTP.
 #[derive(Parser)]
@@ -16,17 +31,292 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Download the shards within a radius (not implemented yet).
-    Fetch,
-    /// Serve text queries over HTTP (not implemented yet).
-    Serve,
+    /// Download the shards within a radius into the local store.
+    Fetch(FetchArgs),
+    /// Serve text queries over HTTP.
+    Serve(ServeArgs),
+    /// Answer one query from the local store on the command line (JSON, as GET /query).
+    Query(QueryArgs),
+}
+
+/// ONNX Runtime execution provider.
+#[derive(Debug, Clone, Copy, ValueEnum, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+enum EpArg {
+    /// CPU (any ONNX Runtime build, e.g. PyPI's aarch64 wheel).
+    Cpu,
+    /// CUDA (JetPack's ONNX Runtime build).
+    Cuda,
+}
+
+impl From<EpArg> for ExecutionProvider {
+    fn from(e: EpArg) -> Self {
+        match e {
+            EpArg::Cpu => ExecutionProvider::Cpu,
+            EpArg::Cuda => ExecutionProvider::Cuda,
+        }
+    }
+}
+
+#[derive(Args)]
+struct FetchArgs {
+    /// Shard server base URL (`slag-encoder serve`), e.g. http://10.0.0.2:8090.
+    #[arg(long = "from", value_name = "URL")]
+    server: String,
+    /// Scene id.
+    #[arg(long)]
+    scene: String,
+    /// Disc centre: X,Y on the manifest's ground plane, or X,Y,Z in the world frame.
+    #[arg(long, allow_hyphen_values = true)]
+    center: Center,
+    /// Disc radius, scene units (metres for metric scenes).
+    #[arg(long, default_value_t = 50.0)]
+    radius: f64,
+    /// Also evict stored shards outside the disc.
+    #[arg(long)]
+    prune: bool,
+    /// Store folder (sled database + partial downloads).
+    #[arg(long, default_value = "slag-store")]
+    store: PathBuf,
+    /// Parallel downloads.
+    #[arg(long, default_value_t = 4)]
+    jobs: usize,
+    /// Retries per shard after a transient failure.
+    #[arg(long, default_value_t = 3)]
+    retries: u32,
+    /// Connect / idle-read timeout per request, seconds.
+    #[arg(long, default_value_t = 30.0)]
+    timeout: f64,
+    /// Bearer token of the shard server.
+    #[arg(long, env = "SLAG_SHARD_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct ServeArgs {
+    /// TOML config (keys = these flags' long names with `_`); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Store folder written by `fetch`.
+    #[arg(long)]
+    store: Option<PathBuf>,
+    /// Scene id.
+    #[arg(long)]
+    scene: Option<String>,
+    /// Listen address.
+    #[arg(long)]
+    addr: Option<String>,
+    /// CLIP text tower ONNX (input_ids i64[B,77] → f32[B,D]) of the model that made the shards.
+    #[arg(long)]
+    text_model: Option<PathBuf>,
+    /// CLIP tokenizer (tokenizer.json).
+    #[arg(long)]
+    tokenizer: Option<PathBuf>,
+    /// ONNX Runtime execution provider.
+    #[arg(long, value_enum)]
+    ep: Option<EpArg>,
+    /// Default cosine threshold (paper: 0.28).
+    #[arg(long)]
+    threshold: Option<f32>,
+    /// File with the bearer token clients must send (also env SLAG_EDGE_TOKEN).
+    #[arg(long)]
+    token_file: Option<PathBuf>,
+    /// Build the approximate HNSW index at load (queries pick it with index=hnsw).
+    #[arg(long)]
+    hnsw: bool,
+    /// Per-request timeout, seconds.
+    #[arg(long, default_value_t = 30.0)]
+    request_timeout: f64,
+}
+
+#[derive(Args)]
+struct QueryArgs {
+    /// Store folder written by `fetch`.
+    #[arg(long, default_value = "slag-store")]
+    store: PathBuf,
+    /// Scene id.
+    #[arg(long)]
+    scene: String,
+    /// CLIP text tower ONNX.
+    #[arg(long)]
+    text_model: PathBuf,
+    /// CLIP tokenizer (tokenizer.json).
+    #[arg(long)]
+    tokenizer: PathBuf,
+    /// ONNX Runtime execution provider.
+    #[arg(long, value_enum, default_value_t = EpArg::Cpu)]
+    ep: EpArg,
+    /// Prompt.
+    #[arg(long)]
+    text: String,
+    /// Matches returned.
+    #[arg(long)]
+    top_k: Option<String>,
+    /// Threshold, or `none`.
+    #[arg(long, allow_hyphen_values = true)]
+    threshold: Option<String>,
+    /// cosine | relevancy.
+    #[arg(long)]
+    mode: Option<String>,
+    /// minx,miny,minz,maxx,maxy,maxz (world frame).
+    #[arg(long, allow_hyphen_values = true)]
+    bbox: Option<String>,
+}
+
+fn text_embedder(
+    model: &std::path::Path,
+    tokenizer: &std::path::Path,
+    ep: EpArg,
+) -> anyhow::Result<Arc<dyn TextEmbedder>> {
+    let enc = TextEncoder::new(model, tokenizer, ep.into())?;
+    let name = model
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "clip-text".into());
+    Ok(Arc::new(OnnxTextEmbedder::new(enc, name)))
+}
+
+fn timeout(secs: f64, flag: &str) -> anyhow::Result<Duration> {
+    Duration::try_from_secs_f64(secs)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .with_context(|| format!("{flag} {secs}: use a positive number of seconds"))
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")
+}
+
+fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
+    let store = EdgeStore::open(&a.store)?;
+    let params = FetchParams {
+        server: a.server,
+        scene: a.scene,
+        center: a.center,
+        radius: a.radius,
+        prune: a.prune,
+        jobs: a.jobs,
+        retries: a.retries,
+        timeout: timeout(a.timeout, "--timeout")?,
+        token: a.token,
+        progress: true,
+    };
+    let summary = runtime()?.block_on(slag_edge::fetch::fetch(&store, &params))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        println!("{summary}");
+    }
+    Ok(())
+}
+
+fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
+    let c = match &a.config {
+        Some(p) => ServeConfig::read(p)?,
+        None => ServeConfig::default(),
+    };
+    let need = |v: Option<PathBuf>, flag: &str| {
+        v.with_context(|| {
+            format!(
+                "--{flag} is required (flag or `{}` in --config)",
+                flag.replace('-', "_")
+            )
+        })
+    };
+    let store = a
+        .store
+        .or(c.store)
+        .unwrap_or_else(|| PathBuf::from("slag-store"));
+    let scene = a
+        .scene
+        .or(c.scene)
+        .context("--scene is required (flag or `scene` in --config)")?;
+    let addr: std::net::SocketAddr = a
+        .addr
+        .or(c.addr)
+        .unwrap_or_else(|| "0.0.0.0:8080".into())
+        .parse()
+        .context("--addr: use HOST:PORT, e.g. 0.0.0.0:8080")?;
+    let text_model = need(a.text_model.or(c.text_model), "text-model")?;
+    let tokenizer = need(a.tokenizer.or(c.tokenizer), "tokenizer")?;
+    let ep = match (a.ep, c.ep.as_deref()) {
+        (Some(e), _) => e,
+        (None, None | Some("cpu")) => EpArg::Cpu,
+        (None, Some("cuda")) => EpArg::Cuda,
+        (None, Some(other)) => anyhow::bail!("config ep {other:?}: use cpu or cuda"),
+    };
+    let threshold = a.threshold.or(c.threshold).unwrap_or(PAPER_THRESHOLD);
+    anyhow::ensure!(
+        threshold.is_finite() && (-1.0..=1.0).contains(&threshold),
+        "--threshold {threshold}: use a cosine in -1..=1"
+    );
+    let token = match (
+        a.token_file.or(c.token_file),
+        std::env::var("SLAG_EDGE_TOKEN").ok(),
+    ) {
+        (Some(p), _) => Some(read_token(&p)?),
+        (None, Some(t)) if !t.trim().is_empty() => Some(t.trim().to_string()),
+        _ => None,
+    };
+    let opts = ServeOptions {
+        scene,
+        token,
+        threshold,
+        hnsw: a.hnsw || c.hnsw.unwrap_or(false),
+        request_timeout: timeout(a.request_timeout, "--request-timeout")?,
+    };
+    let edge = EdgeStore::open(&store)?;
+    let text = text_embedder(&text_model, &tokenizer, ep)?;
+    let state = Arc::new(AppState::new(edge, text, opts)?);
+    runtime()?.block_on(slag_edge::serve::serve(state, addr, |bound| {
+        tracing::info!("listening on http://{bound}");
+        eprintln!("slag-edge: listening on http://{bound}");
+    }))?;
+    Ok(())
+}
+
+fn run_query(a: QueryArgs) -> anyhow::Result<()> {
+    let edge = EdgeStore::open(&a.store)?;
+    let engine = slag_edge::serve::Engine::load(&edge, &a.scene, false)?;
+    let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
+    let params = RawQuery {
+        text: Some(a.text),
+        top_k: a.top_k,
+        threshold: a.threshold,
+        mode: a.mode,
+        bbox: a.bbox,
+        index: None,
+    }
+    .validate(PAPER_THRESHOLD)?;
+    let negatives = text.embed(&slag_edge::query::CANONICAL_NEGATIVES)?;
+    let answer = slag_edge::query::run_query(
+        &engine.store,
+        &engine.manifest.model,
+        text.as_ref(),
+        &negatives,
+        None,
+        &params,
+    )?;
+    println!("{}", serde_json::to_string_pretty(&answer)?);
+    Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    let what = match cli.command {
-        Command::Fetch => "fetch",
-        Command::Serve => "serve",
-    };
-    anyhow::bail!("slag-edge {what} is not implemented yet: the edge runtime is a later milestone")
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match Cli::parse().command {
+        Command::Fetch(a) => run_fetch(a),
+        Command::Serve(a) => run_serve(a),
+        Command::Query(a) => run_query(a),
+    }
 }

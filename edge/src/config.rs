@@ -1,0 +1,94 @@
+//! `slag-edge serve --config edge.toml`: the same settings as the command-line flags, as TOML
+//! (keys = long flag names with `_`). Flags given on the command line win over the file.
+//!
+//! ```toml
+//! store = "/var/lib/slag/store"
+//! scene = "site"
+//! addr = "0.0.0.0:8080"
+//! text_model = "/opt/slag/models/clip-textual.onnx"
+//! tokenizer = "/opt/slag/models/tokenizer.json"
+//! ep = "cpu"            # or "cuda" with JetPack's ONNX Runtime
+//! threshold = 0.28
+//! token_file = "/etc/slag/token"
+//! hnsw = false
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use slag_common::{Error, Result};
+
+/// Settings read from the TOML file; every key optional.
+#[derive(Debug, Clone, Default, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServeConfig {
+    /// Store folder.
+    pub store: Option<PathBuf>,
+    /// Scene id.
+    pub scene: Option<String>,
+    /// Listen address, e.g. `0.0.0.0:8080`.
+    pub addr: Option<String>,
+    /// CLIP text tower ONNX.
+    pub text_model: Option<PathBuf>,
+    /// CLIP tokenizer (`tokenizer.json`).
+    pub tokenizer: Option<PathBuf>,
+    /// ONNX Runtime execution provider: `cpu` or `cuda`.
+    pub ep: Option<String>,
+    /// Default cosine threshold.
+    pub threshold: Option<f32>,
+    /// File holding the bearer token.
+    pub token_file: Option<PathBuf>,
+    /// Build the HNSW index.
+    pub hnsw: Option<bool>,
+}
+
+impl ServeConfig {
+    /// Reads and parses a config file.
+    ///
+    /// Errors: [`Error::Io`] when unreadable, [`Error::Format`] for bad TOML or unknown keys
+    /// (the message names the key and line).
+    pub fn read(path: &Path) -> Result<ServeConfig> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        toml::from_str(&text).map_err(|e| Error::format(path, format!("config: {e}")))
+    }
+}
+
+/// Reads a bearer token from a file (first line, trimmed).
+///
+/// Errors: [`Error::Io`]; [`Error::Invalid`] for an empty token.
+pub fn read_token(path: &Path) -> Result<String> {
+    let t = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let t = t.lines().next().unwrap_or("").trim().to_string();
+    if t.is_empty() {
+        return Err(Error::Invalid(format!(
+            "token file {} is empty; write the token on its first line",
+            path.display()
+        )));
+    }
+    Ok(t)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn example_config_parses_and_unknown_keys_are_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("edge.toml");
+        std::fs::write(
+            &p,
+            "store = \"/s\"\nscene = \"site\"\naddr = \"0.0.0.0:8080\"\nthreshold = 0.3\nhnsw = true\n",
+        )
+        .unwrap();
+        let c = ServeConfig::read(&p).unwrap();
+        assert_eq!(c.scene.as_deref(), Some("site"));
+        assert_eq!(c.threshold, Some(0.3));
+        assert_eq!(c.hnsw, Some(true));
+        std::fs::write(&p, "scene = \"a\"\nradius = 3\n").unwrap();
+        let e = ServeConfig::read(&p).unwrap_err().to_string();
+        assert!(e.contains("radius"), "{e}");
+        std::fs::write(&p, "").unwrap();
+        assert!(read_token(&p).is_err());
+    }
+}

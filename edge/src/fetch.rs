@@ -1,0 +1,570 @@
+//! `slag-edge fetch`: download the shards around the robot into the [`EdgeStore`].
+//!
+//! 1. `GET {server}/v1/scenes/{scene}/manifest` (the shard server of `slag-encoder serve`);
+//! 2. tiles whose footprint meets the closed disc (centre, radius) on the manifest's ground plane
+//!    ([`slag_common::shards::TileIndex::select_tiles`], an `rstar` R-tree);
+//! 3. each selected tile not already stored with the same checksum is downloaded into
+//!    `partial/<scene>-<tile>-<checksum>.part`, resumed with `Range: bytes=N-` + `If-Range` when a
+//!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and committed;
+//! 4. when every selected tile is stored, the manifest and a [`FetchRecord`] are committed in one
+//!    transaction (a new partition generation becomes visible at once, never half);
+//! 5. shards that no manifest references any more (an older generation) are dropped; shards of the
+//!    current manifest outside the disc are kept unless [`FetchParams::prune`] is set.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use futures_util::{StreamExt, TryStreamExt};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use slag_common::shards::{Manifest, TileInfo, valid_scene_id};
+use slag_common::{Error, Result};
+use tokio::io::AsyncWriteExt;
+
+use crate::store::{EdgeStore, FetchRecord, parse_checksum};
+
+/// Where the disc is centred.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Center {
+    /// Ground-plane coordinates `(g0, g1)` of the manifest's [`slag_common::shards::GroundFrame`].
+    Ground([f64; 2]),
+    /// A world-frame point (the scene's frame, e.g. the robot's pose in the map), projected onto
+    /// the ground plane with [`slag_common::shards::GroundFrame::to_ground`].
+    World([f64; 3]),
+}
+
+impl std::str::FromStr for Center {
+    type Err = String;
+    /// `"X,Y"` (ground) or `"X,Y,Z"` (world); finite numbers.
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let v: Vec<f64> = s
+            .split(',')
+            .map(|p| p.trim().parse::<f64>())
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|e| format!("--center {s:?}: {e}; use X,Y (ground) or X,Y,Z (world)"))?;
+        if !v.iter().all(|x| x.is_finite()) {
+            return Err(format!("--center {s:?} has a non-finite coordinate"));
+        }
+        match v[..] {
+            [x, y] => Ok(Center::Ground([x, y])),
+            [x, y, z] => Ok(Center::World([x, y, z])),
+            _ => Err(format!(
+                "--center {s:?}: expected 2 (ground X,Y) or 3 (world X,Y,Z) numbers"
+            )),
+        }
+    }
+}
+
+/// What to fetch and how.
+#[derive(Debug, Clone)]
+pub struct FetchParams {
+    /// Shard server base URL, e.g. `http://10.0.0.2:8090`.
+    pub server: String,
+    /// Scene id.
+    pub scene: String,
+    /// Disc centre.
+    pub center: Center,
+    /// Disc radius, scene units (≥ 0, finite).
+    pub radius: f64,
+    /// Drop stored shards outside the disc.
+    pub prune: bool,
+    /// Parallel downloads (≥ 1).
+    pub jobs: usize,
+    /// Retries per shard after a transient failure (connection drop, timeout, 5xx).
+    pub retries: u32,
+    /// Connect and read (idle) timeout per request.
+    pub timeout: Duration,
+    /// Bearer token for the shard server, if it requires one.
+    pub token: Option<String>,
+    /// Draw a progress bar on stderr (when it is a terminal).
+    pub progress: bool,
+}
+
+/// What a fetch did.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct FetchSummary {
+    /// Scene id.
+    pub scene: String,
+    /// Partition generation of the manifest now current.
+    pub generation: u64,
+    /// Tiles in the disc.
+    pub selected: usize,
+    /// Of those, already stored with the same checksum.
+    pub skipped: usize,
+    /// Downloaded in this run (including resumed ones).
+    pub downloaded: usize,
+    /// Downloads that continued a partial file with a `Range` request.
+    pub resumed: usize,
+    /// Shards dropped: older generations, plus those outside the disc with `--prune`.
+    pub evicted: usize,
+    /// Tiles of the manifest stored outside the disc (kept without `--prune`).
+    pub kept_outside: usize,
+    /// Gaussians in the selected tiles.
+    pub gaussians: u64,
+    /// Shard bytes in the selected tiles.
+    pub shard_bytes: u64,
+    /// Bytes received over the network in this run.
+    pub bytes_received: u64,
+    /// Store size on disk afterwards.
+    pub store_bytes: u64,
+}
+
+impl std::fmt::Display for FetchSummary {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "scene {} generation {}: {} shards in the radius ({} downloaded, {} resumed, {} already \
+             stored), {} Gaussians, {:.1} MB of shards, {:.1} MB received; {} outside the radius kept, \
+             {} evicted; store {:.1} MB on disk",
+            self.scene,
+            self.generation,
+            self.selected,
+            self.downloaded,
+            self.resumed,
+            self.skipped,
+            self.gaussians,
+            self.shard_bytes as f64 / 1e6,
+            self.bytes_received as f64 / 1e6,
+            self.kept_outside,
+            self.evicted,
+            self.store_bytes as f64 / 1e6
+        )
+    }
+}
+
+fn url_join(server: &str, path: &str) -> String {
+    format!("{}/{}", server.trim_end_matches('/'), path)
+}
+
+/// A failure of one request: transient ones are retried.
+struct Attempt {
+    error: Error,
+    transient: bool,
+}
+
+fn transient(error: Error) -> Attempt {
+    Attempt {
+        error,
+        transient: true,
+    }
+}
+fn permanent(error: Error) -> Attempt {
+    Attempt {
+        error,
+        transient: false,
+    }
+}
+
+fn net_error(url: &str, e: reqwest::Error) -> Attempt {
+    let what = if e.is_timeout() {
+        "timed out; check the link or raise --timeout"
+    } else if e.is_connect() {
+        "cannot connect; is `slag-encoder serve` running there and reachable?"
+    } else {
+        "transfer failed"
+    };
+    transient(Error::network(url, format!("{what} ({e})")))
+}
+
+fn status_error(url: &str, status: reqwest::StatusCode, body: &str) -> Attempt {
+    let hint = match status.as_u16() {
+        401 | 403 => "the server wants a bearer token: pass --token or SLAG_SHARD_TOKEN",
+        404 => "not on the server: check --scene, or rerun fetch if the scene was re-partitioned",
+        _ => "",
+    };
+    let error = Error::network(
+        url,
+        format!(
+            "HTTP {status}: {} {hint}",
+            body.chars().take(300).collect::<String>()
+        ),
+    );
+    if status.is_server_error() || status.as_u16() == 429 {
+        transient(error)
+    } else {
+        permanent(error)
+    }
+}
+
+/// Builds the HTTP client (rustls, timeouts, no proxy surprises).
+///
+/// Errors: [`Error::Invalid`] if the TLS backend cannot be initialised.
+pub fn client(timeout: Duration) -> Result<reqwest::Client> {
+    reqwest::Client::builder()
+        .connect_timeout(timeout)
+        .read_timeout(timeout)
+        .user_agent(concat!("slag-edge/", env!("CARGO_PKG_VERSION")))
+        .build()
+        .map_err(|e| Error::Invalid(format!("HTTP client: {e}")))
+}
+
+/// Downloads and parses the scene's manifest.
+///
+/// Errors: [`Error::Network`] (unreachable, non-2xx), [`Error::Format`] (not a manifest, or one of
+/// another scene).
+pub async fn fetch_manifest(
+    client: &reqwest::Client,
+    server: &str,
+    scene: &str,
+    token: Option<&str>,
+) -> Result<Manifest> {
+    let url = url_join(server, &format!("v1/scenes/{scene}/manifest"));
+    let mut req = client.get(&url);
+    if let Some(t) = token {
+        req = req.bearer_auth(t);
+    }
+    let resp = req.send().await.map_err(|e| net_error(&url, e).error)?;
+    let status = resp.status();
+    let body = resp.bytes().await.map_err(|e| net_error(&url, e).error)?;
+    if !status.is_success() {
+        return Err(status_error(&url, status, &String::from_utf8_lossy(&body)).error);
+    }
+    let m = Manifest::from_json(&body, &url)?;
+    if m.scene_id != scene {
+        return Err(Error::format(
+            &url,
+            format!(
+                "manifest is for scene {:?}, asked for {scene:?}",
+                m.scene_id
+            ),
+        ));
+    }
+    for t in &m.tiles {
+        parse_checksum(t)?;
+    }
+    Ok(m)
+}
+
+/// Runs a fetch (steps in the module doc).
+///
+/// Errors: bad parameters ([`Error::Invalid`]), the server ([`Error::Network`]), a shard that
+/// fails verification twice ([`Error::Format`]), store I/O. On error the store keeps every shard
+/// completed so far and the previous manifest stays current; rerunning resumes.
+pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+    if !valid_scene_id(&p.scene) {
+        return Err(Error::Invalid(format!(
+            "invalid scene id {:?}: use 1-64 characters of A-Z a-z 0-9 _ - .",
+            p.scene
+        )));
+    }
+    if !(p.radius.is_finite() && p.radius >= 0.0) {
+        return Err(Error::Invalid(format!(
+            "--radius {} must be a finite number ≥ 0 (scene units)",
+            p.radius
+        )));
+    }
+    if p.jobs == 0 {
+        return Err(Error::Invalid("--jobs must be at least 1".into()));
+    }
+    let client = client(p.timeout)?;
+    let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref()).await?;
+    let center = match p.center {
+        Center::Ground(g) => g,
+        Center::World(w) => {
+            let g = manifest
+                .ground
+                .to_ground([w[0] as f32, w[1] as f32, w[2] as f32]);
+            [g[0], g[1]]
+        }
+    };
+    let index = manifest.tile_index();
+    let selected: Vec<TileInfo> = index
+        .select_tiles(center, p.radius)
+        .into_iter()
+        .filter_map(|id| manifest.tiles.iter().find(|t| t.id == id).cloned())
+        .collect();
+
+    let mut summary = FetchSummary {
+        scene: p.scene.clone(),
+        generation: manifest.generation,
+        selected: selected.len(),
+        gaussians: selected.iter().map(|t| t.count).sum(),
+        shard_bytes: selected.iter().map(|t| t.bytes).sum(),
+        ..Default::default()
+    };
+    let mut todo = Vec::new();
+    for t in &selected {
+        if store.has_shard(&p.scene, t)? {
+            summary.skipped += 1;
+        } else {
+            todo.push(t.clone());
+        }
+    }
+
+    let total: u64 = todo.iter().map(|t| t.bytes).sum();
+    let pb = if p.progress {
+        ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr())
+    } else {
+        ProgressBar::hidden()
+    };
+    pb.set_style(
+        ProgressStyle::with_template(
+            "{msg} [{bar:30}] {bytes}/{total_bytes} {bytes_per_sec} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> "),
+    );
+    pb.set_message(format!("{} shards", todo.len()));
+
+    let manifest = Arc::new(manifest);
+    let results: Vec<Result<(bool, u64)>> = futures_util::stream::iter(todo.into_iter().map(|t| {
+        let (client, store, manifest, pb) = (&client, store, manifest.clone(), pb.clone());
+        async move { download_tile(client, store, &manifest, &t, p, &pb).await }
+    }))
+    .buffer_unordered(p.jobs)
+    .collect()
+    .await;
+    pb.finish_and_clear();
+    let mut first_error = None;
+    for r in results {
+        match r {
+            Ok((resumed, received)) => {
+                summary.downloaded += 1;
+                summary.resumed += resumed as usize;
+                summary.bytes_received += received;
+            }
+            Err(e) => {
+                first_error.get_or_insert(e);
+            }
+        }
+    }
+    if let Some(e) = first_error {
+        store.flush()?;
+        return Err(e);
+    }
+
+    let record = FetchRecord {
+        server: p.server.clone(),
+        center,
+        radius: p.radius,
+        completed_unix_s: SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0),
+    };
+    {
+        let (store, manifest) = (store.clone(), manifest.clone());
+        tokio::task::spawn_blocking(move || store.commit_fetch(&manifest, &record))
+            .await
+            .map_err(|e| Error::Invalid(format!("store task failed: {e}")))??;
+    }
+
+    // Eviction: shards no manifest tile references (older generations) always; shards outside the
+    // disc only with --prune.
+    let wanted: std::collections::HashSet<(u64, u32)> = selected
+        .iter()
+        .filter_map(|t| parse_checksum(t).ok().map(|c| (t.id, c)))
+        .collect();
+    let current: std::collections::HashSet<(u64, u32)> = manifest
+        .tiles
+        .iter()
+        .filter_map(|t| parse_checksum(t).ok().map(|c| (t.id, c)))
+        .collect();
+    for (tile, checksum, _) in store.stored_shards(&p.scene)? {
+        let in_manifest = current.contains(&(tile, checksum));
+        let in_disc = wanted.contains(&(tile, checksum));
+        if !in_manifest || (p.prune && !in_disc) {
+            summary.evicted += store.remove_shard(&p.scene, tile, checksum)? as usize;
+        } else if !in_disc {
+            summary.kept_outside += 1;
+        }
+    }
+    store.flush()?;
+    summary.store_bytes = store.disk_bytes();
+    Ok(summary)
+}
+
+/// Downloads one tile with retries; returns `(resumed, bytes received)`.
+async fn download_tile(
+    client: &reqwest::Client,
+    store: &EdgeStore,
+    manifest: &Manifest,
+    tile: &TileInfo,
+    p: &FetchParams,
+    pb: &ProgressBar,
+) -> Result<(bool, u64)> {
+    let url = url_join(
+        &p.server,
+        &format!("v1/scenes/{}/shards/{}", manifest.scene_id, tile.id),
+    );
+    let part = store.partial_path(&manifest.scene_id, tile);
+    let mut counts = Counts::default();
+    let mut resumed = false;
+    let mut attempt = 0u32;
+    let mut verify_failures = 0u32;
+    loop {
+        match try_download(
+            client,
+            &url,
+            &part,
+            tile,
+            p.token.as_deref(),
+            pb,
+            &mut counts,
+        )
+        .await
+        {
+            Ok(r) => {
+                resumed |= r;
+                let bytes = tokio::fs::read(&part)
+                    .await
+                    .map_err(|e| Error::io(&part, e))?;
+                let committed = {
+                    let (store, manifest, tile) = (store.clone(), manifest.clone(), tile.clone());
+                    tokio::task::spawn_blocking(move || {
+                        store.commit_shard(&manifest, &tile, &bytes)
+                    })
+                    .await
+                    .map_err(|e| Error::Invalid(format!("store task failed: {e}")))?
+                };
+                match committed {
+                    Ok(()) => {
+                        let _ = tokio::fs::remove_file(&part).await;
+                        return Ok((resumed, counts.received));
+                    }
+                    Err(Error::Format { path, message }) => {
+                        // Corrupted in transit or on disk: start this shard over once.
+                        let _ = tokio::fs::remove_file(&part).await;
+                        verify_failures += 1;
+                        if verify_failures > 1 {
+                            return Err(Error::Format {
+                                path,
+                                message: format!(
+                                    "{message}; downloaded twice, rejected twice: the server's \
+                                     copy disagrees with its manifest"
+                                ),
+                            });
+                        }
+                        tracing::warn!("{}: {message}; downloading again", path.display());
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+            Err(a) if a.transient && attempt < p.retries => {
+                attempt += 1;
+                let wait = Duration::from_millis(200 * 2u64.pow(attempt.min(6)));
+                tracing::warn!("{} (retry {attempt}/{} in {wait:?})", a.error, p.retries);
+                tokio::time::sleep(wait).await;
+            }
+            Err(a) => return Err(a.error),
+        }
+    }
+}
+
+/// Bytes of one tile: received over the network in this run, and shown in the progress bar.
+#[derive(Default)]
+struct Counts {
+    received: u64,
+    shown: u64,
+}
+
+/// One HTTP attempt: continues `part` if it holds a prefix, otherwise starts over. On success the
+/// file holds exactly `tile.bytes` bytes (synced). Returns whether a `Range` request was honoured.
+async fn try_download(
+    client: &reqwest::Client,
+    url: &str,
+    part: &Path,
+    tile: &TileInfo,
+    token: Option<&str>,
+    pb: &ProgressBar,
+    counts: &mut Counts,
+) -> std::result::Result<bool, Attempt> {
+    let io = |e: std::io::Error| permanent(Error::io(part, e));
+    let have = match tokio::fs::metadata(part).await {
+        Ok(m) if m.len() <= tile.bytes => m.len(),
+        Ok(_) => {
+            tokio::fs::remove_file(part).await.map_err(io)?;
+            0
+        }
+        Err(_) => 0,
+    };
+    if have == tile.bytes && have > 0 {
+        return Ok(false);
+    }
+    let mut req = client.get(url);
+    if let Some(t) = token {
+        req = req.bearer_auth(t);
+    }
+    if have > 0 {
+        req = req
+            .header(reqwest::header::RANGE, format!("bytes={have}-"))
+            .header(reqwest::header::IF_RANGE, format!("\"{}\"", tile.checksum));
+    }
+    let resp = req.send().await.map_err(|e| net_error(url, e))?;
+    let status = resp.status();
+    let (mut file, start, resumed) = if status == reqwest::StatusCode::PARTIAL_CONTENT && have > 0 {
+        let cr = resp
+            .headers()
+            .get(reqwest::header::CONTENT_RANGE)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("");
+        if !cr.starts_with(&format!("bytes {have}-")) {
+            return Err(transient(Error::network(
+                url,
+                format!("asked for bytes {have}- but got Content-Range {cr:?}; starting over"),
+            )))
+            .inspect_err(|_| {
+                let _ = std::fs::remove_file(part);
+            });
+        }
+        let f = tokio::fs::OpenOptions::new()
+            .append(true)
+            .open(part)
+            .await
+            .map_err(io)?;
+        (f, have, true)
+    } else if status.is_success() {
+        let f = tokio::fs::File::create(part).await.map_err(io)?;
+        (f, 0, false)
+    } else {
+        let body = resp.text().await.unwrap_or_default();
+        return Err(status_error(url, status, &body));
+    };
+    // Keep the bar at "bytes of this tile on disk" across resumes and restarts.
+    if start >= counts.shown {
+        pb.inc(start - counts.shown);
+    } else {
+        pb.set_position(pb.position().saturating_sub(counts.shown - start));
+    }
+    counts.shown = start;
+    let mut written = start;
+    let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
+    while let Some(chunk) = stream.next().await {
+        let chunk = match chunk {
+            Ok(c) => c,
+            Err(a) => {
+                let _ = file.flush().await;
+                let _ = file.sync_data().await;
+                return Err(a);
+            }
+        };
+        written += chunk.len() as u64;
+        if written > tile.bytes {
+            drop(file);
+            let _ = tokio::fs::remove_file(part).await;
+            return Err(transient(Error::network(
+                url,
+                format!(
+                    "more than the manifest's {} bytes; starting over",
+                    tile.bytes
+                ),
+            )));
+        }
+        file.write_all(&chunk).await.map_err(io)?;
+        counts.received += chunk.len() as u64;
+        counts.shown += chunk.len() as u64;
+        pb.inc(chunk.len() as u64);
+    }
+    file.flush().await.map_err(io)?;
+    file.sync_data().await.map_err(io)?;
+    if written != tile.bytes {
+        return Err(transient(Error::network(
+            url,
+            format!(
+                "connection closed after {written} of {} bytes; will resume",
+                tile.bytes
+            ),
+        )));
+    }
+    Ok(resumed)
+}

@@ -1,0 +1,534 @@
+//! Text queries against the stored per-Gaussian embeddings (SLAG's query step).
+//!
+//! A prompt is embedded by the CLIP text tower ([`TextEmbedder`]), then every stored Gaussian is
+//! scored in one pass over memory ([`crate::scan`]):
+//! - [`ScoreMode::Cosine`] (default): `s_k = cos(E_k, φ_q)`, matches are `s_k ≥ threshold`
+//!   (paper default [`PAPER_THRESHOLD`] = 0.28);
+//! - [`ScoreMode::Relevancy`]: LERF's relevancy (Kerr et al., ICCV 2023, eq. 1) against the
+//!   canonical negatives [`CANONICAL_NEGATIVES`]:
+//!   `r_k = min_i exp(s_k) / (exp(s_k) + exp(n_ik)) = 1 / (1 + exp(max_i n_ik − s_k))` with
+//!   `n_ik = cos(E_k, φ_canon_i)`; 0.5 means "as close to the prompt as to the closest negative",
+//!   default threshold [`RELEVANCY_THRESHOLD`].
+//!
+//! The answer lists the best `top_k` matches (Gaussian id, world position, score) and a summary of
+//! all matches (count, AABB, centroid, world frame) a planner can navigate to.
+
+use std::sync::Mutex;
+use std::time::Instant;
+
+#[cfg(doc)]
+use slag_common::similarity::PAPER_THRESHOLD;
+use slag_common::similarity::{Match, MatchSummary, summarise};
+use slag_common::text::TextEncoder;
+use slag_common::{Error, Result};
+
+use crate::scan::{self, ScanRequest, VectorStore};
+
+/// LERF's canonical negative phrases.
+pub const CANONICAL_NEGATIVES: [&str; 4] = ["object", "things", "stuff", "texture"];
+/// Default relevancy threshold (the prompt beats every negative).
+pub const RELEVANCY_THRESHOLD: f32 = 0.5;
+/// Default number of matches returned.
+pub const DEFAULT_TOP_K: usize = 100;
+/// Largest `top_k` accepted.
+pub const MAX_TOP_K: usize = 10_000;
+/// Longest prompt accepted, in bytes (CLIP reads 77 tokens anyway).
+pub const MAX_TEXT_BYTES: usize = 1000;
+
+/// Something that turns prompts into unit vectors of the stored embeddings' width.
+pub trait TextEmbedder: Send + Sync {
+    /// L2-normalised embeddings, one per text, in order.
+    ///
+    /// Errors: [`Error::Model`] when the model fails.
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>>;
+    /// Model name for answers and logs.
+    fn name(&self) -> String;
+    /// Prompts held in the cache of recent prompts.
+    fn cached(&self) -> usize;
+}
+
+/// The CLIP text tower through ONNX Runtime ([`TextEncoder`], LRU cache of 256 prompts).
+pub struct OnnxTextEmbedder {
+    inner: Mutex<TextEncoder>,
+    name: String,
+}
+
+impl OnnxTextEmbedder {
+    /// Wraps a loaded encoder; `name` is reported in answers (e.g. the model file stem).
+    pub fn new(encoder: TextEncoder, name: String) -> Self {
+        OnnxTextEmbedder {
+            inner: Mutex::new(encoder),
+            name,
+        }
+    }
+}
+
+impl TextEmbedder for OnnxTextEmbedder {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>> {
+        self.inner
+            .lock()
+            .map_err(|_| Error::Invalid("text encoder poisoned by an earlier failure".into()))?
+            .encode(texts)
+    }
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+    fn cached(&self) -> usize {
+        self.inner.lock().map(|e| e.cached()).unwrap_or(0)
+    }
+}
+
+/// How Gaussians are scored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ScoreMode {
+    /// Cosine similarity with the prompt.
+    Cosine,
+    /// LERF relevancy against [`CANONICAL_NEGATIVES`].
+    Relevancy,
+}
+
+/// Which index answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum IndexKind {
+    /// Exact scan over every stored Gaussian.
+    Exact,
+    /// The approximate HNSW index (top-k only; needs `serve --hnsw`).
+    Hnsw,
+}
+
+/// A validated query.
+#[derive(Debug, Clone, PartialEq)]
+pub struct QueryParams {
+    /// Prompt (1..=[`MAX_TEXT_BYTES`] bytes, not blank).
+    pub text: String,
+    /// Matches returned (1..=[`MAX_TOP_K`]).
+    pub top_k: usize,
+    /// Score threshold; `None` = rank everything (summary then covers the returned matches).
+    pub threshold: Option<f32>,
+    /// Scoring mode.
+    pub mode: ScoreMode,
+    /// Only Gaussians whose mean lies in this box (world frame, inclusive): `[min, max]`.
+    pub bbox: Option<[[f32; 3]; 2]>,
+    /// Index to use.
+    pub index: IndexKind,
+}
+
+/// Raw query fields as they arrive (`GET /query?text=…&top_k=…` or a `POST /query` JSON item).
+#[derive(Debug, Clone, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RawQuery {
+    /// Prompt.
+    pub text: Option<String>,
+    /// Integer 1..=10000.
+    pub top_k: Option<String>,
+    /// Number, or `none`.
+    pub threshold: Option<String>,
+    /// `cosine` | `relevancy`.
+    pub mode: Option<String>,
+    /// `minx,miny,minz,maxx,maxy,maxz`.
+    pub bbox: Option<String>,
+    /// `exact` | `hnsw`.
+    pub index: Option<String>,
+}
+
+/// A JSON value that may be a number or a string (for `POST /query` bodies).
+fn json_field(v: &serde_json::Value) -> Option<String> {
+    match v {
+        serde_json::Value::Null => None,
+        serde_json::Value::String(s) => Some(s.clone()),
+        other => Some(other.to_string()),
+    }
+}
+
+impl RawQuery {
+    /// From a JSON object; numbers and strings are both accepted, unknown keys rejected.
+    ///
+    /// Errors: [`Error::Invalid`] naming the offending key.
+    pub fn from_json(v: &serde_json::Value) -> Result<RawQuery> {
+        let obj = v.as_object().ok_or_else(|| {
+            Error::Invalid("each query must be a JSON object like {\"text\": \"chair\"}".into())
+        })?;
+        let mut q = RawQuery::default();
+        for (k, v) in obj {
+            let val = json_field(v);
+            match k.as_str() {
+                "text" => q.text = val,
+                "top_k" => q.top_k = val,
+                "threshold" => q.threshold = val,
+                "mode" => q.mode = val,
+                "bbox" => {
+                    q.bbox = match v {
+                        serde_json::Value::Array(a) => Some(
+                            a.iter()
+                                .map(|x| x.to_string())
+                                .collect::<Vec<_>>()
+                                .join(","),
+                        ),
+                        _ => val,
+                    }
+                }
+                "index" => q.index = val,
+                other => {
+                    return Err(Error::Invalid(format!(
+                        "unknown query field {other:?}; use text, top_k, threshold, mode, bbox, index"
+                    )));
+                }
+            }
+        }
+        Ok(q)
+    }
+
+    /// Validates every field; `cosine_default` is the threshold used in cosine mode when none is
+    /// given (the paper's [`PAPER_THRESHOLD`] unless the server is configured otherwise).
+    ///
+    /// Errors: [`Error::Invalid`] with a message naming the field, the value and the allowed range.
+    pub fn validate(&self, cosine_default: f32) -> Result<QueryParams> {
+        let bad = |m: String| Err(Error::Invalid(m));
+        let text = self.text.clone().unwrap_or_default();
+        if text.trim().is_empty() {
+            return bad("missing query text: use /query?text=chair".into());
+        }
+        if text.len() > MAX_TEXT_BYTES {
+            return bad(format!(
+                "text is {} bytes; at most {MAX_TEXT_BYTES} are accepted",
+                text.len()
+            ));
+        }
+        let mode = match self.mode.as_deref().map(str::trim) {
+            None | Some("cosine") => ScoreMode::Cosine,
+            Some("relevancy") => ScoreMode::Relevancy,
+            Some(m) => return bad(format!("mode {m:?}: use cosine or relevancy")),
+        };
+        let top_k = match self.top_k.as_deref().map(str::trim) {
+            None => DEFAULT_TOP_K,
+            Some(s) => match s.parse::<usize>() {
+                Ok(k) if (1..=MAX_TOP_K).contains(&k) => k,
+                _ => return bad(format!("top_k {s:?}: use an integer in 1..={MAX_TOP_K}")),
+            },
+        };
+        let (lo, hi, default) = match mode {
+            ScoreMode::Cosine => (-1.0, 1.0, cosine_default),
+            ScoreMode::Relevancy => (0.0, 1.0, RELEVANCY_THRESHOLD),
+        };
+        let threshold = match self.threshold.as_deref().map(str::trim) {
+            None => Some(default),
+            Some("none") => None,
+            Some(s) => match s.parse::<f32>() {
+                Ok(t) if t.is_finite() && (lo..=hi).contains(&t) => Some(t),
+                _ => {
+                    return bad(format!(
+                        "threshold {s:?}: use a number in {lo}..={hi} for {mode:?} scores, or none"
+                    ));
+                }
+            },
+        };
+        let bbox = match self.bbox.as_deref() {
+            None => None,
+            Some(s) => {
+                let v: Vec<f32> = s
+                    .split(',')
+                    .map(|p| p.trim().parse::<f32>())
+                    .collect::<std::result::Result<_, _>>()
+                    .map_err(|_| {
+                        Error::Invalid(format!(
+                            "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (world frame)"
+                        ))
+                    })?;
+                match v[..] {
+                    [a, b, c, d, e, f]
+                        if v.iter().all(|x| x.is_finite()) && a <= d && b <= e && c <= f =>
+                    {
+                        Some([[a, b, c], [d, e, f]])
+                    }
+                    _ => {
+                        return bad(format!(
+                            "bbox {s:?}: need 6 finite numbers minx,miny,minz,maxx,maxy,maxz with \
+                             min ≤ max"
+                        ));
+                    }
+                }
+            }
+        };
+        let index = match self.index.as_deref().map(str::trim) {
+            None | Some("exact") => IndexKind::Exact,
+            Some("hnsw") => IndexKind::Hnsw,
+            Some(i) => return bad(format!("index {i:?}: use exact or hnsw")),
+        };
+        Ok(QueryParams {
+            text,
+            top_k,
+            threshold,
+            mode,
+            bbox,
+            index,
+        })
+    }
+}
+
+/// The answer to one query (JSON of `GET /query`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct QueryAnswer {
+    /// The prompt.
+    pub query: String,
+    /// Embedding model of the stored Gaussians (from the manifest).
+    pub embedding_model: String,
+    /// Text model used for the prompt.
+    pub text_model: String,
+    /// Scoring mode.
+    pub mode: ScoreMode,
+    /// Threshold applied (`null`: none).
+    pub threshold: Option<f32>,
+    /// `top_k` asked for.
+    pub top_k: usize,
+    /// Index that answered.
+    pub index: IndexKind,
+    /// Best matches, score descending (ties: lower row first).
+    pub matches: Vec<Match>,
+    /// All matches above the threshold (or the returned ones without a threshold).
+    pub summary: MatchSummary,
+    /// Best score over the searched Gaussians when nothing reached the threshold (else `null`).
+    pub best_score_below_threshold: Option<f32>,
+    /// Gaussians searched.
+    pub searched: usize,
+    /// Server-side time: text encoding and scan, milliseconds.
+    pub timings_ms: Timings,
+}
+
+/// Where a query's time went.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct Timings {
+    /// CLIP text tower (0 for cached prompts apart from lookup).
+    pub text: f64,
+    /// Scoring and selection.
+    pub scan: f64,
+}
+
+/// Per-Gaussian score from the `Q` dot products of one row: `dots[0]` is the prompt; in
+/// relevancy mode `dots[1..]` are the canonical negatives.
+fn relevancy(dots: &[f32]) -> f32 {
+    let pos = dots[0];
+    let neg = dots[1..].iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    if neg == f32::NEG_INFINITY {
+        return 1.0;
+    }
+    1.0 / (1.0 + (neg - pos).exp())
+}
+
+fn cosine(dots: &[f32]) -> f32 {
+    dots[0]
+}
+
+/// Runs a validated query against `store`.
+///
+/// `negatives` are the embeddings of [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw`
+/// the optional approximate index.
+///
+/// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
+/// ([`Error::Invalid`]), `index=hnsw` without an index or with a threshold-only query.
+pub fn run_query(
+    store: &VectorStore,
+    embedding_model: &str,
+    text: &dyn TextEmbedder,
+    negatives: &[Vec<f32>],
+    hnsw: Option<&scan::HnswIndex>,
+    q: &QueryParams,
+) -> Result<QueryAnswer> {
+    let t0 = Instant::now();
+    let phi = text
+        .embed(&[q.text.as_str()])?
+        .into_iter()
+        .next()
+        .ok_or_else(|| Error::Invalid("text encoder returned nothing".into()))?;
+    if phi.len() != store.dim() {
+        return Err(Error::Invalid(format!(
+            "the text model gives {}-d embeddings but the stored Gaussians are {}-d ({}); serve \
+             with the CLIP text tower of the same model",
+            phi.len(),
+            store.dim(),
+            embedding_model
+        )));
+    }
+    let t_text = t0.elapsed().as_secs_f64() * 1e3;
+    let t1 = Instant::now();
+    let mut queries: Vec<&[f32]> = vec![&phi];
+    let combine: fn(&[f32]) -> f32 = match q.mode {
+        ScoreMode::Cosine => cosine,
+        ScoreMode::Relevancy => {
+            queries.extend(negatives.iter().map(Vec::as_slice));
+            relevancy
+        }
+    };
+    let bbox = q.bbox.map(|b| (b[0], b[1]));
+    let hits = match q.index {
+        IndexKind::Exact => {
+            // Threshold queries collect every match for the summary; ranked-only ones keep a
+            // bounded top-k heap.
+            let req = ScanRequest {
+                queries: &queries,
+                top_k: if q.threshold.is_some() {
+                    None
+                } else {
+                    Some(q.top_k)
+                },
+                threshold: q.threshold,
+                bbox,
+            };
+            scan::scan(store, &req, combine)?
+        }
+        IndexKind::Hnsw => {
+            let index = hnsw.ok_or_else(|| {
+                Error::Invalid(
+                    "index=hnsw needs the approximate index: start serve with --hnsw".into(),
+                )
+            })?;
+            if q.mode != ScoreMode::Cosine {
+                return Err(Error::Invalid(
+                    "index=hnsw answers cosine queries only; use index=exact for relevancy".into(),
+                ));
+            }
+            let mut hits = index.search(store, &phi, q.top_k)?;
+            hits.retain(|h| {
+                q.threshold.is_none_or(|t| h.score >= t)
+                    && bbox.is_none_or(|(lo, hi)| {
+                        let m = store.means()[h.row];
+                        (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
+                    })
+            });
+            hits
+        }
+    };
+    let all: Vec<Match> = hits
+        .iter()
+        .map(|h| Match {
+            id: store.ids()[h.row],
+            position: store.means()[h.row],
+            score: h.score,
+        })
+        .collect();
+    let summary = summarise(&all);
+    let mut matches = all;
+    matches.truncate(q.top_k);
+    let best_score_below_threshold = if matches.is_empty() && q.index == IndexKind::Exact {
+        let req = ScanRequest {
+            queries: &queries,
+            top_k: Some(1),
+            threshold: None,
+            bbox,
+        };
+        scan::scan(store, &req, combine)?.first().map(|h| h.score)
+    } else {
+        None
+    };
+    Ok(QueryAnswer {
+        query: q.text.clone(),
+        embedding_model: embedding_model.to_string(),
+        text_model: text.name(),
+        mode: q.mode,
+        threshold: q.threshold,
+        top_k: q.top_k,
+        index: q.index,
+        matches,
+        summary,
+        best_score_below_threshold,
+        searched: store.len(),
+        timings_ms: Timings {
+            text: t_text,
+            scan: t1.elapsed().as_secs_f64() * 1e3,
+        },
+    })
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use slag_common::similarity::PAPER_THRESHOLD;
+
+    fn raw(pairs: &[(&str, &str)]) -> RawQuery {
+        let v: serde_json::Map<String, serde_json::Value> = pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), serde_json::Value::String(v.to_string())))
+            .collect();
+        RawQuery::from_json(&serde_json::Value::Object(v)).unwrap()
+    }
+
+    #[test]
+    fn defaults_follow_the_paper_and_lerf() {
+        let q = raw(&[("text", "chair")]).validate(PAPER_THRESHOLD).unwrap();
+        assert_eq!(q.threshold, Some(PAPER_THRESHOLD));
+        assert_eq!(q.top_k, DEFAULT_TOP_K);
+        assert_eq!(q.mode, ScoreMode::Cosine);
+        let q = raw(&[("text", "chair"), ("mode", "relevancy")])
+            .validate(PAPER_THRESHOLD)
+            .unwrap();
+        assert_eq!(q.threshold, Some(RELEVANCY_THRESHOLD));
+        let q = raw(&[("text", "chair"), ("threshold", "none")])
+            .validate(PAPER_THRESHOLD)
+            .unwrap();
+        assert_eq!(q.threshold, None);
+    }
+
+    #[test]
+    fn bad_parameters_are_typed_errors_naming_the_field() {
+        for (pairs, needle) in [
+            (vec![], "missing query text"),
+            (vec![("text", "   ")], "missing query text"),
+            (vec![("text", "a"), ("top_k", "0")], "top_k"),
+            (vec![("text", "a"), ("top_k", "10001")], "top_k"),
+            (vec![("text", "a"), ("top_k", "-3")], "top_k"),
+            (vec![("text", "a"), ("threshold", "NaN")], "threshold"),
+            (vec![("text", "a"), ("threshold", "2")], "threshold"),
+            (
+                vec![("text", "a"), ("mode", "relevancy"), ("threshold", "-0.1")],
+                "threshold",
+            ),
+            (vec![("text", "a"), ("mode", "fuzzy")], "mode"),
+            (vec![("text", "a"), ("bbox", "1,2,3")], "bbox"),
+            (vec![("text", "a"), ("bbox", "1,1,1,0,0,0")], "bbox"),
+            (vec![("text", "a"), ("bbox", "0,0,0,inf,1,1")], "bbox"),
+            (vec![("text", "a"), ("index", "ivf")], "index"),
+        ] {
+            let e = raw(&pairs)
+                .validate(PAPER_THRESHOLD)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(needle), "{pairs:?}: {e}");
+        }
+        let long = "x".repeat(MAX_TEXT_BYTES + 1);
+        assert!(raw(&[("text", &long)]).validate(PAPER_THRESHOLD).is_err());
+        let e = RawQuery::from_json(&serde_json::json!({"text": "a", "topk": 3})).unwrap_err();
+        assert!(e.to_string().contains("topk"));
+        assert!(RawQuery::from_json(&serde_json::json!(["a"])).is_err());
+    }
+
+    #[test]
+    fn json_numbers_and_arrays_are_accepted() {
+        let q = RawQuery::from_json(&serde_json::json!({
+            "text": "red", "top_k": 5, "threshold": 0.1, "bbox": [0, 0, 0, 1, 2, 3]
+        }))
+        .unwrap()
+        .validate(PAPER_THRESHOLD)
+        .unwrap();
+        assert_eq!(q.top_k, 5);
+        assert_eq!(q.threshold, Some(0.1));
+        assert_eq!(q.bbox, Some([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]));
+    }
+
+    #[test]
+    fn relevancy_matches_lerf_formula() {
+        // Independent form: min over negatives of the pairwise softmax.
+        let dots = [0.3f32, 0.1, 0.25, -0.2, 0.2];
+        let want = dots[1..]
+            .iter()
+            .map(|n| dots[0].exp() / (dots[0].exp() + n.exp()))
+            .fold(f32::INFINITY, f32::min);
+        assert!((relevancy(&dots) - want).abs() < 1e-6);
+        // Prompt equal to the closest negative: exactly 0.5.
+        assert!((relevancy(&[0.4, 0.4, 0.0]) - 0.5).abs() < 1e-7);
+        // Extremes stay finite and within (0, 1).
+        let r = relevancy(&[-1.0, 1.0]);
+        assert!(r > 0.0 && r < 0.5);
+    }
+}

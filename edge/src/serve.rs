@@ -1,0 +1,542 @@
+//! `slag-edge serve`: HTTP text queries over the fetched shards (axum 0.8 + tokio).
+//!
+//! Routes (JSON in and out; errors are `{"error": message, "status": code}`):
+//! - `GET /health` → `{"status": "ok", …}` (never needs the token: for liveness probes);
+//! - `GET /stats` → shards, Gaussians, bytes per Gaussian, memory (vectors, index, process RSS),
+//!   store size, queries served, prompt-cache size, last fetch;
+//! - `GET /query?text=chair[&top_k=100][&threshold=0.28|none][&mode=cosine|relevancy]
+//!   [&bbox=minx,miny,minz,maxx,maxy,maxz][&index=exact|hnsw]` → [`QueryAnswer`];
+//! - `POST /query` with `{"queries": [{"text": …, …}, …]}` (at most [`MAX_BATCH`]) →
+//!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
+//! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool}` → fetches
+//!   from the server of the last fetch (or `"server"`) into the store this process holds, then
+//!   reloads; `POST /reload` reloads the store.
+//!
+//! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
+//! bodies over [`MAX_BODY_BYTES`] → 413; requests over the timeout → 408.
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::extract::rejection::{JsonRejection, QueryRejection};
+use axum::extract::{Query, Request, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use slag_common::shards::Manifest;
+use slag_common::{Error, Result};
+
+use crate::fetch::{self, Center, FetchParams};
+use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
+use crate::scan::{HnswIndex, VectorStore};
+use crate::store::{EdgeStore, SceneLoad};
+
+/// Most queries in one `POST /query`.
+pub const MAX_BATCH: usize = 64;
+/// Largest request body accepted.
+pub const MAX_BODY_BYTES: usize = 64 * 1024;
+
+/// A loaded scene: the manifest, every verified shard's Gaussians in one [`VectorStore`], and the
+/// optional HNSW index.
+pub struct Engine {
+    /// Manifest of the last completed fetch.
+    pub manifest: Manifest,
+    /// All stored Gaussians of the scene.
+    pub store: VectorStore,
+    /// Which tiles were loaded / absent / rejected.
+    pub load: SceneLoad,
+    /// Approximate index, when enabled.
+    pub hnsw: Option<HnswIndex>,
+}
+
+impl Engine {
+    /// Loads `scene` from the store (verifying every shard) and builds the HNSW index if asked.
+    ///
+    /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
+    pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
+        let (manifest, shards, load) = edge.load_scene(scene)?;
+        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype);
+        for s in shards {
+            store.push_shard(s)?;
+        }
+        let hnsw = if hnsw && !store.is_empty() {
+            Some(HnswIndex::build(&store)?)
+        } else {
+            None
+        };
+        Ok(Engine {
+            manifest,
+            store,
+            load,
+            hnsw,
+        })
+    }
+}
+
+/// Server settings.
+#[derive(Debug, Clone)]
+pub struct ServeOptions {
+    /// Scene to serve.
+    pub scene: String,
+    /// Bearer token every route but `/health` requires (`None`: open).
+    pub token: Option<String>,
+    /// Cosine threshold used when a query gives none.
+    pub threshold: f32,
+    /// Build the HNSW index at load.
+    pub hnsw: bool,
+    /// Per-request timeout.
+    pub request_timeout: Duration,
+}
+
+/// Shared server state.
+pub struct AppState {
+    engine: RwLock<Arc<Engine>>,
+    edge: EdgeStore,
+    text: Arc<dyn TextEmbedder>,
+    negatives: Vec<Vec<f32>>,
+    opts: ServeOptions,
+    queries: AtomicU64,
+    rejected: AtomicU64,
+    started: Instant,
+    fetching: tokio::sync::Mutex<()>,
+}
+
+impl AppState {
+    /// Loads the scene and embeds the canonical negatives once.
+    ///
+    /// Errors: as [`Engine::load`]; a text model whose width differs from the stored embeddings.
+    pub fn new(edge: EdgeStore, text: Arc<dyn TextEmbedder>, opts: ServeOptions) -> Result<Self> {
+        let engine = Engine::load(&edge, &opts.scene, opts.hnsw)?;
+        let negatives = text.embed(&CANONICAL_NEGATIVES)?;
+        if let Some(n) = negatives.first()
+            && n.len() != engine.store.dim()
+        {
+            return Err(Error::Invalid(format!(
+                "the text model {} gives {}-d embeddings but scene {} holds {}-d ones from {}; \
+                 serve with the CLIP text tower of that model",
+                text.name(),
+                n.len(),
+                opts.scene,
+                engine.store.dim(),
+                engine.manifest.model
+            )));
+        }
+        Ok(AppState {
+            engine: RwLock::new(Arc::new(engine)),
+            edge,
+            text,
+            negatives,
+            opts,
+            queries: AtomicU64::new(0),
+            rejected: AtomicU64::new(0),
+            started: Instant::now(),
+            fetching: tokio::sync::Mutex::new(()),
+        })
+    }
+
+    fn engine(&self) -> Arc<Engine> {
+        match self.engine.read() {
+            Ok(g) => g.clone(),
+            Err(p) => p.into_inner().clone(),
+        }
+    }
+
+    fn swap(&self, e: Engine) {
+        match self.engine.write() {
+            Ok(mut g) => *g = Arc::new(e),
+            Err(p) => *p.into_inner() = Arc::new(e),
+        }
+    }
+}
+
+/// Builds the router (auth, body limit and timeout layers included).
+pub fn router(state: Arc<AppState>) -> Router {
+    let timeout = state.opts.request_timeout;
+    Router::new()
+        .route("/health", get(health))
+        .route("/stats", get(stats))
+        .route("/query", get(query_get).post(query_post))
+        .route("/fetch", post(fetch_post))
+        .route("/reload", post(reload))
+        .fallback(|| async {
+            error(
+                StatusCode::NOT_FOUND,
+                "no such route; use GET /query?text=…, POST /query, GET /health, GET /stats".into(),
+            )
+        })
+        .layer(middleware::from_fn_with_state(state.clone(), auth))
+        .layer(tower_http::limit::RequestBodyLimitLayer::new(
+            MAX_BODY_BYTES,
+        ))
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            timeout,
+        ))
+        .with_state(state)
+}
+
+/// Binds `addr` and serves until Ctrl-C or SIGTERM; `on_bound` receives the bound address.
+///
+/// Errors: the address cannot be bound ([`Error::Io`]).
+pub async fn serve(
+    state: Arc<AppState>,
+    addr: SocketAddr,
+    on_bound: impl FnOnce(SocketAddr),
+) -> Result<()> {
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|e| Error::io(addr.to_string(), e))?;
+    let local = listener
+        .local_addr()
+        .map_err(|e| Error::io(addr.to_string(), e))?;
+    on_bound(local);
+    axum::serve(listener, router(state))
+        .with_graceful_shutdown(shutdown())
+        .await
+        .map_err(|e| Error::io(local.to_string(), e))
+}
+
+async fn shutdown() {
+    #[cfg(unix)]
+    {
+        let term = async {
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(mut s) => {
+                    s.recv().await;
+                }
+                Err(_) => std::future::pending::<()>().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+fn error(status: StatusCode, message: String) -> Response {
+    let body = serde_json::json!({ "error": message, "status": status.as_u16() });
+    (
+        status,
+        [(header::CONTENT_TYPE, "application/json")],
+        body.to_string(),
+    )
+        .into_response()
+}
+
+/// Maps a slag error to an HTTP status: bad input 400, everything else 500.
+fn status_of(e: &Error) -> StatusCode {
+    match e {
+        Error::Invalid(_) => StatusCode::BAD_REQUEST,
+        Error::Network { .. } => StatusCode::BAD_GATEWAY,
+        _ => StatusCode::INTERNAL_SERVER_ERROR,
+    }
+}
+
+/// Constant-time comparison of the presented and configured tokens.
+fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
+    let mut diff = (presented.len() ^ expected.len()) as u8;
+    for (i, b) in expected.iter().enumerate() {
+        diff |= b ^ presented.get(i).copied().unwrap_or(0);
+    }
+    diff == 0
+}
+
+async fn auth(
+    State(state): State<Arc<AppState>>,
+    headers: HeaderMap,
+    req: Request,
+    next: Next,
+) -> Response {
+    let Some(token) = state.opts.token.as_deref() else {
+        return next.run(req).await;
+    };
+    if req.uri().path() == "/health" {
+        return next.run(req).await;
+    }
+    let presented = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .unwrap_or("");
+    if token_matches(presented.as_bytes(), token.as_bytes()) {
+        next.run(req).await
+    } else {
+        state.rejected.fetch_add(1, Ordering::Relaxed);
+        let mut r = error(
+            StatusCode::UNAUTHORIZED,
+            "missing or wrong bearer token: send Authorization: Bearer <token>".into(),
+        );
+        r.headers_mut().insert(
+            header::WWW_AUTHENTICATE,
+            header::HeaderValue::from_static("Bearer"),
+        );
+        r
+    }
+}
+
+async fn health(State(state): State<Arc<AppState>>) -> Response {
+    let e = state.engine();
+    axum::Json(serde_json::json!({
+        "status": "ok",
+        "scene": state.opts.scene,
+        "gaussians": e.store.len(),
+        "uptime_s": state.started.elapsed().as_secs(),
+    }))
+    .into_response()
+}
+
+/// Resident set size of this process in bytes (Linux `/proc/self/status`), if readable.
+pub fn rss_bytes() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+async fn stats(State(state): State<Arc<AppState>>) -> Response {
+    let e = state.engine();
+    let edge = state.edge.clone();
+    let scene = state.opts.scene.clone();
+    let (disk, record) = tokio::task::spawn_blocking(move || {
+        (edge.disk_bytes(), edge.fetch_record(&scene).ok().flatten())
+    })
+    .await
+    .unwrap_or((0, None));
+    let n = e.store.len();
+    axum::Json(serde_json::json!({
+        "scene": state.opts.scene,
+        "generation": e.manifest.generation,
+        "embedding_model": e.manifest.model,
+        "text_model": state.text.name(),
+        "dim": e.store.dim(),
+        "dtype": e.manifest.dtype,
+        "tiles_in_manifest": e.manifest.tiles.len(),
+        "shards_loaded": e.load.loaded_tiles.len(),
+        "shards_absent": e.load.absent_tiles,
+        "shards_rejected": e.load.rejected,
+        "gaussians": n,
+        "memory": {
+            "vectors_bytes": e.store.memory_bytes(),
+            "bytes_per_gaussian": if n > 0 { e.store.memory_bytes() as f64 / n as f64 } else { 0.0 },
+            "hnsw_bytes": e.hnsw.as_ref().map(|h| h.memory_bytes()),
+            "process_rss_bytes": rss_bytes(),
+        },
+        "store_disk_bytes": disk,
+        "last_fetch": record,
+        "queries_served": state.queries.load(Ordering::Relaxed),
+        "requests_rejected": state.rejected.load(Ordering::Relaxed),
+        "prompt_cache_entries": state.text.cached(),
+        "uptime_s": state.started.elapsed().as_secs(),
+    }))
+    .into_response()
+}
+
+/// Runs queries on the blocking pool (the scan itself fans out over rayon).
+async fn answer(state: &Arc<AppState>, qs: Vec<QueryParams>) -> Vec<Result<query::QueryAnswer>> {
+    let st = state.clone();
+    let n = qs.len();
+    match tokio::task::spawn_blocking(move || {
+        let e = st.engine();
+        qs.iter()
+            .map(|q| {
+                query::run_query(
+                    &e.store,
+                    &e.manifest.model,
+                    st.text.as_ref(),
+                    &st.negatives,
+                    e.hnsw.as_ref(),
+                    q,
+                )
+            })
+            .collect::<Vec<_>>()
+    })
+    .await
+    {
+        Ok(v) => {
+            state.queries.fetch_add(n as u64, Ordering::Relaxed);
+            v
+        }
+        Err(e) => (0..n)
+            .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
+            .collect(),
+    }
+}
+
+fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
+    let obj: serde_json::Map<String, serde_json::Value> = pairs
+        .into_iter()
+        .map(|(k, v)| (k, serde_json::Value::String(v)))
+        .collect();
+    RawQuery::from_json(&serde_json::Value::Object(obj))
+}
+
+async fn query_get(
+    State(state): State<Arc<AppState>>,
+    q: std::result::Result<Query<std::collections::HashMap<String, String>>, QueryRejection>,
+) -> Response {
+    let params = q
+        .map_err(|e| Error::Invalid(format!("query string: {e}")))
+        .and_then(|Query(p)| raw_from_pairs(p))
+        .and_then(|r| r.validate(state.opts.threshold));
+    let params = match params {
+        Ok(p) => p,
+        Err(e) => {
+            state.rejected.fetch_add(1, Ordering::Relaxed);
+            return error(status_of(&e), e.to_string());
+        }
+    };
+    match answer(&state, vec![params]).await.pop() {
+        Some(Ok(a)) => axum::Json(a).into_response(),
+        Some(Err(e)) => error(status_of(&e), e.to_string()),
+        None => error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
+    }
+}
+
+async fn query_post(
+    State(state): State<Arc<AppState>>,
+    body: std::result::Result<axum::Json<serde_json::Value>, JsonRejection>,
+) -> Response {
+    let bad = |m: String| {
+        state.rejected.fetch_add(1, Ordering::Relaxed);
+        error(StatusCode::BAD_REQUEST, m)
+    };
+    let body = match body {
+        Ok(axum::Json(b)) => b,
+        Err(e) => {
+            return bad(format!(
+                "body: {e}; send {{\"queries\": [{{\"text\": \"chair\"}}]}}"
+            ));
+        }
+    };
+    let Some(items) = body.get("queries").and_then(|q| q.as_array()) else {
+        return bad("body must be {\"queries\": [{\"text\": \"chair\"}, …]}".into());
+    };
+    if items.is_empty() || items.len() > MAX_BATCH {
+        return bad(format!(
+            "{} queries in the batch; send 1..={MAX_BATCH}",
+            items.len()
+        ));
+    }
+    // Validate everything first: one bad item fails the whole batch with its index.
+    let mut params = Vec::with_capacity(items.len());
+    for (i, it) in items.iter().enumerate() {
+        match RawQuery::from_json(it).and_then(|r| r.validate(state.opts.threshold)) {
+            Ok(p) => params.push(p),
+            Err(e) => return bad(format!("queries[{i}]: {e}")),
+        }
+    }
+    let answers: Vec<serde_json::Value> = answer(&state, params)
+        .await
+        .into_iter()
+        .map(|r| match r {
+            Ok(a) => serde_json::to_value(a).unwrap_or_default(),
+            Err(e) => serde_json::json!({"error": e.to_string(), "status": status_of(&e).as_u16()}),
+        })
+        .collect();
+    axum::Json(serde_json::json!({ "answers": answers })).into_response()
+}
+
+async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
+    let st = state.clone();
+    let e =
+        tokio::task::spawn_blocking(move || Engine::load(&st.edge, &st.opts.scene, st.opts.hnsw))
+            .await
+            .map_err(|e| Error::Invalid(format!("reload task failed: {e}")))??;
+    state.swap(e);
+    Ok(())
+}
+
+async fn reload(State(state): State<Arc<AppState>>) -> Response {
+    match reload_engine(&state).await {
+        Ok(()) => {
+            let e = state.engine();
+            axum::Json(serde_json::json!({
+                "reloaded": true, "gaussians": e.store.len(), "shards": e.load.loaded_tiles.len()
+            }))
+            .into_response()
+        }
+        Err(e) => error(status_of(&e), e.to_string()),
+    }
+}
+
+/// `POST /fetch` body.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FetchBody {
+    center: Vec<f64>,
+    radius: f64,
+    #[serde(default)]
+    prune: bool,
+    server: Option<String>,
+    token: Option<String>,
+}
+
+async fn fetch_post(
+    State(state): State<Arc<AppState>>,
+    body: std::result::Result<axum::Json<FetchBody>, JsonRejection>,
+) -> Response {
+    let b = match body {
+        Ok(axum::Json(b)) => b,
+        Err(e) => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                format!("body: {e}; send {{\"center\": [x, y], \"radius\": 50}}"),
+            );
+        }
+    };
+    let center = match b.center[..] {
+        [x, y] if x.is_finite() && y.is_finite() => Center::Ground([x, y]),
+        [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) => Center::World([x, y, z]),
+        _ => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                "center: 2 (ground) or 3 (world) finite numbers".into(),
+            );
+        }
+    };
+    let server = match b.server.clone().or_else(|| {
+        state
+            .edge
+            .fetch_record(&state.opts.scene)
+            .ok()
+            .flatten()
+            .map(|r| r.server)
+    }) {
+        Some(s) => s,
+        None => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                "no previous fetch to take the server from: pass \"server\"".into(),
+            );
+        }
+    };
+    let _guard = state.fetching.lock().await;
+    let params = FetchParams {
+        server,
+        scene: state.opts.scene.clone(),
+        center,
+        radius: b.radius,
+        prune: b.prune,
+        jobs: 4,
+        retries: 3,
+        timeout: Duration::from_secs(30),
+        token: b.token,
+        progress: false,
+    };
+    match fetch::fetch(&state.edge, &params).await {
+        Ok(summary) => match reload_engine(&state).await {
+            Ok(()) => axum::Json(summary).into_response(),
+            Err(e) => error(status_of(&e), e.to_string()),
+        },
+        Err(e) => error(status_of(&e), e.to_string()),
+    }
+}

@@ -1,0 +1,362 @@
+//! `slag-edge serve` over loopback: answers equal an independent f64 reference over the decoded
+//! shards; relevancy, bbox, batches, auth, limits and bad parameters.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use slag_common::shards::{Dtype, decode_shard};
+use slag_edge::fetch::{Center, FetchParams, fetch};
+use slag_edge::serve::{AppState, ServeOptions};
+use slag_edge::store::EdgeStore;
+use support::{BasisEmbedder, TestScene, grid_scene, shard_server};
+
+struct Edge {
+    url: String,
+    client: reqwest::Client,
+    embedder: Arc<BasisEmbedder>,
+    _dir: tempfile::TempDir,
+}
+
+async fn start(scene: TestScene, radius: f64, token: Option<&str>) -> (Edge, Vec<Vec<u8>>) {
+    let dim = scene.manifest.dim as usize;
+    let server = shard_server(scene, None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let store = EdgeStore::open(dir.path()).unwrap();
+    fetch(
+        &store,
+        &FetchParams {
+            server: server.url.clone(),
+            scene: "grid".into(),
+            center: Center::Ground([0.0, 0.0]),
+            radius,
+            prune: false,
+            jobs: 2,
+            retries: 0,
+            timeout: Duration::from_secs(10),
+            token: None,
+            progress: false,
+        },
+    )
+    .await
+    .unwrap();
+    let stored: Vec<Vec<u8>> = {
+        let m = store.manifest("grid").unwrap().unwrap();
+        m.tiles
+            .iter()
+            .filter_map(|t| store.shard_bytes("grid", t).unwrap().map(|b| b.to_vec()))
+            .collect()
+    };
+    let embedder = Arc::new(BasisEmbedder::new(dim));
+    let state = Arc::new(
+        AppState::new(
+            store,
+            embedder.clone(),
+            ServeOptions {
+                scene: "grid".into(),
+                token: token.map(str::to_string),
+                threshold: 0.28,
+                hnsw: true,
+                request_timeout: Duration::from_secs(10),
+            },
+        )
+        .unwrap(),
+    );
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    tokio::spawn(async move {
+        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
+            let _ = tx.send(a);
+        })
+        .await
+        .unwrap();
+    });
+    let addr = rx.await.unwrap();
+    (
+        Edge {
+            url: format!("http://{addr}"),
+            client: reqwest::Client::new(),
+            embedder,
+            _dir: dir,
+        },
+        stored,
+    )
+}
+
+/// Reference: every stored Gaussian's score in f64 over the dequantised shard vectors.
+fn reference(
+    shards: &[Vec<u8>],
+    q: &[f32],
+    negs: &[Vec<f32>],
+    relevancy: bool,
+) -> Vec<(u32, [f32; 3], f64)> {
+    let mut out = Vec::new();
+    for b in shards {
+        let s = decode_shard(b).unwrap();
+        for i in 0..s.ids.len() {
+            let v = s.vector(i);
+            let dot = |w: &[f32]| {
+                v.iter()
+                    .zip(w)
+                    .map(|(a, b)| *a as f64 * *b as f64)
+                    .sum::<f64>()
+            };
+            let pos = dot(q);
+            let score = if relevancy {
+                negs.iter()
+                    .map(|n| pos.exp() / (pos.exp() + dot(n).exp()))
+                    .fold(f64::INFINITY, f64::min)
+            } else {
+                pos
+            };
+            out.push((s.ids[i], s.means[i], score));
+        }
+    }
+    out.sort_by(|a, b| b.2.total_cmp(&a.2).then(a.0.cmp(&b.0)));
+    out
+}
+
+async fn get_json(e: &Edge, path: &str) -> (u16, serde_json::Value) {
+    let r = e
+        .client
+        .get(format!("{}{path}", e.url))
+        .send()
+        .await
+        .unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap())
+}
+
+fn ids(v: &serde_json::Value) -> Vec<u32> {
+    v["matches"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["id"].as_u64().unwrap() as u32)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn query_answers_match_an_independent_reference_for_every_dtype() {
+    for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+        let (e, shards) = start(grid_scene("grid", 3, 3, 60, 12, dtype, 1), 100.0, None).await;
+        let q = e.embedder.vector("t4");
+        let want = reference(&shards, &q, &[], false);
+        let (status, a) = get_json(&e, "/query?text=t4").await;
+        assert_eq!(status, 200, "{a}");
+        assert_eq!(a["mode"], "cosine");
+        assert_eq!(a["embedding_model"], "test-clip");
+        let above: Vec<_> = want.iter().filter(|w| w.2 >= 0.28).collect();
+        assert_eq!(
+            a["summary"]["count"].as_u64().unwrap() as usize,
+            above.len()
+        );
+        let got = ids(&a);
+        assert_eq!(got.len(), above.len().min(100));
+        // Same ranking up to near-ties (f32 kernel vs f64 reference).
+        for (m, w) in a["matches"].as_array().unwrap().iter().zip(&above) {
+            let s = m["score"].as_f64().unwrap();
+            assert!((s - w.2).abs() < 1e-5, "{dtype:?}: {s} vs {}", w.2);
+        }
+        // Gaussians of tile 4 (ids 240..300) are the matches: the grid's ground truth.
+        assert!(got.iter().all(|&i| (240..300).contains(&i)), "{got:?}");
+        // Centroid and AABB of all matches.
+        let n = above.len() as f64;
+        for ax in 0..3 {
+            let c = above.iter().map(|w| w.1[ax] as f64).sum::<f64>() / n;
+            let got = a["summary"]["centroid"][ax].as_f64().unwrap();
+            assert!((got - c).abs() < 1e-3, "centroid {ax}: {got} vs {c}");
+        }
+
+        // top_k + threshold=none: the k best of everything.
+        let (_, a) = get_json(&e, "/query?text=t4&top_k=7&threshold=none").await;
+        let best: Vec<u32> = want.iter().take(7).map(|w| w.0).collect();
+        assert_eq!(ids(&a), best, "{dtype:?}");
+
+        // bbox keeps only Gaussians inside.
+        let (_, a) = get_json(
+            &e,
+            "/query?text=t4&bbox=10,10,0,15,15,1&threshold=none&top_k=10000",
+        )
+        .await;
+        for m in a["matches"].as_array().unwrap() {
+            let p: Vec<f64> = m["position"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect();
+            assert!(
+                p[0] >= 10.0 && p[0] <= 15.0 && p[1] >= 10.0 && p[1] <= 15.0,
+                "{p:?}"
+            );
+        }
+        let inside = want
+            .iter()
+            .filter(|w| (10.0..=15.0).contains(&w.1[0]) && (10.0..=15.0).contains(&w.1[1]))
+            .count();
+        assert_eq!(ids(&a).len(), inside);
+
+        // Relevancy against the canonical negatives (all map to the background basis here).
+        let negs: Vec<Vec<f32>> = (0..4).map(|_| e.embedder.vector("object")).collect();
+        let want_r = reference(&shards, &q, &negs, true);
+        let (_, a) = get_json(&e, "/query?text=t4&mode=relevancy&top_k=5").await;
+        assert_eq!(a["mode"], "relevancy");
+        assert_eq!(a["threshold"].as_f64().unwrap(), 0.5);
+        let above_r = want_r.iter().filter(|w| w.2 >= 0.5).count();
+        assert_eq!(a["summary"]["count"].as_u64().unwrap() as usize, above_r);
+        for (m, w) in a["matches"].as_array().unwrap().iter().zip(&want_r) {
+            assert!((m["score"].as_f64().unwrap() - w.2).abs() < 1e-5);
+        }
+
+        // Nothing above the threshold: the best score is reported.
+        let (_, a) = get_json(&e, "/query?text=t4&threshold=0.999").await;
+        assert_eq!(a["summary"]["count"], 0);
+        let best = a["best_score_below_threshold"].as_f64().unwrap();
+        assert!((best - want[0].2).abs() < 1e-5);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batches_hnsw_stats_health_and_errors() {
+    let (e, shards) = start(
+        grid_scene("grid", 3, 3, 80, 12, Dtype::F16, 1),
+        12.0,
+        Some("tok"),
+    )
+    .await;
+    let auth = |r: reqwest::RequestBuilder| r.bearer_auth("tok");
+
+    // Health needs no token; everything else does.
+    let (s, h) = get_json(&e, "/health").await;
+    assert_eq!((s, h["status"].as_str()), (200, Some("ok")));
+    let (s, err) = get_json(&e, "/query?text=t1").await;
+    assert_eq!(s, 401, "{err}");
+    assert!(err["error"].as_str().unwrap().contains("Bearer"));
+    let r = e
+        .client
+        .get(format!("{}/query?text=t1", e.url))
+        .bearer_auth("wrong")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 401);
+
+    // Stats: what was fetched within 12 units of the origin: tiles 0, 1 and 3 (tile 4's corner
+    // (10, 10) is 14.1 away).
+    let st: serde_json::Value = auth(e.client.get(format!("{}/stats", e.url)))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(st["shards_loaded"], 3);
+    assert_eq!(st["shards_absent"], 6);
+    assert_eq!(st["gaussians"], 240);
+    assert!(st["memory"]["bytes_per_gaussian"].as_f64().unwrap() >= 12.0 * 2.0);
+    assert_eq!(shards.len(), 3);
+
+    // Batch: answers in order, equal to the single queries.
+    let body = serde_json::json!({"queries": [
+        {"text": "t0", "top_k": 3, "threshold": "none"},
+        {"text": "t4", "mode": "relevancy", "top_k": 2},
+    ]});
+    let b: serde_json::Value = auth(e.client.post(format!("{}/query", e.url)))
+        .json(&body)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let answers = b["answers"].as_array().unwrap();
+    assert_eq!(answers.len(), 2);
+    let single: serde_json::Value = auth(
+        e.client
+            .get(format!("{}/query?text=t0&top_k=3&threshold=none", e.url)),
+    )
+    .send()
+    .await
+    .unwrap()
+    .json()
+    .await
+    .unwrap();
+    assert_eq!(ids(&answers[0]), ids(&single));
+    assert_eq!(answers[1]["mode"], "relevancy");
+
+    // HNSW: top-k answered by the approximate index agrees with the exact one here.
+    let h: serde_json::Value = auth(e.client.get(format!(
+        "{}/query?text=t1&index=hnsw&top_k=10&threshold=none",
+        e.url
+    )))
+    .send()
+    .await
+    .unwrap()
+    .json()
+    .await
+    .unwrap();
+    let x: serde_json::Value = auth(
+        e.client
+            .get(format!("{}/query?text=t1&top_k=10&threshold=none", e.url)),
+    )
+    .send()
+    .await
+    .unwrap()
+    .json()
+    .await
+    .unwrap();
+    assert_eq!(h["index"], "hnsw");
+    let (hi, xi) = (ids(&h), ids(&x));
+    let common = hi.iter().filter(|i| xi.contains(i)).count();
+    assert!(common >= 9, "hnsw recall@10 {common}/10");
+
+    // Bad input: 4xx with a message naming the field; the server stays up.
+    for (path, status, needle) in [
+        ("/query", 400, "missing query text"),
+        ("/query?text=t1&top_k=abc", 400, "top_k"),
+        ("/query?text=t1&top_k=1000000", 400, "top_k"),
+        ("/query?text=t1&threshold=nan", 400, "threshold"),
+        ("/query?text=t1&bbox=1,2", 400, "bbox"),
+        ("/query?text=t1&mode=relevancy&index=hnsw", 400, "hnsw"),
+        ("/query?text=t1&colour=red", 400, "colour"),
+        ("/nope", 404, "no such route"),
+    ] {
+        let r = auth(e.client.get(format!("{}{path}", e.url)))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), status, "{path}");
+        let v: serde_json::Value = r.json().await.unwrap();
+        assert!(v["error"].as_str().unwrap().contains(needle), "{path}: {v}");
+    }
+    let too_many: Vec<_> = (0..65).map(|_| serde_json::json!({"text": "t1"})).collect();
+    let r = auth(e.client.post(format!("{}/query", e.url)))
+        .json(&serde_json::json!({ "queries": too_many }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let r = auth(e.client.post(format!("{}/query", e.url)))
+        .json(&serde_json::json!({"queries": [{"text": "t1"}, {"text": "t1", "top_k": 0}]}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    assert!(r.text().await.unwrap().contains("queries[1]"));
+    let big = "x".repeat(100 * 1024);
+    let r = auth(e.client.post(format!("{}/query", e.url)))
+        .header("content-type", "application/json")
+        .body(big)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 413);
+    let (s, _) = get_json(&e, "/health").await;
+    assert_eq!(s, 200);
+
+    // The prompt is embedded once per query (negatives once at start-up).
+    assert!(e.embedder.calls.load(Ordering::SeqCst) >= 1);
+}

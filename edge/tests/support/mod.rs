@@ -1,0 +1,299 @@
+//! Test fixtures for the edge: a synthetic grid scene cut into shards, an in-process shard server
+//! (same routes as `slag-encoder serve`, with fault injection), and a text embedder without ONNX.
+#![allow(dead_code, missing_docs, clippy::unwrap_used)]
+
+use std::collections::{HashMap, HashSet};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+
+use axum::body::{Body, Bytes};
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use futures_util::StreamExt;
+use slag_common::Result;
+use slag_common::shards::{
+    Aabb, Dtype, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, SHARD_FORMAT_VERSION,
+    ShardInput, TileInfo, encode_shard, shard_checksum,
+};
+use slag_edge::query::TextEmbedder;
+
+/// Side of one tile on the ground (z-up, ground = world x, y).
+pub const TILE: f32 = 10.0;
+
+/// A grid scene: tile (i, j) covers `[i*10, i*10+9] × [j*10, j*10+9]`; its Gaussians point
+/// mostly along basis direction `(i*ny + j) % (dim - 1)` (the last basis is "background").
+pub struct TestScene {
+    pub manifest: Manifest,
+    pub shards: HashMap<u64, Vec<u8>>,
+}
+
+fn lcg(seed: &mut u64) -> f32 {
+    *seed = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    ((*seed >> 40) as f32) / ((1u64 << 24) as f32)
+}
+
+pub fn grid_scene(
+    scene: &str,
+    nx: usize,
+    ny: usize,
+    per_tile: usize,
+    dim: usize,
+    dtype: Dtype,
+    generation: u64,
+) -> TestScene {
+    let mut seed = 7 + generation;
+    let mut tiles = Vec::new();
+    let mut shards = HashMap::new();
+    for i in 0..nx {
+        for j in 0..ny {
+            let id = (i * ny + j) as u64;
+            let dir = (i * ny + j) % (dim - 1);
+            let mut ids = Vec::new();
+            let mut means = Vec::new();
+            let mut vectors = Vec::new();
+            for k in 0..per_tile {
+                ids.push((id as usize * per_tile + k) as u32);
+                means.push([
+                    i as f32 * TILE + 9.0 * lcg(&mut seed),
+                    j as f32 * TILE + 9.0 * lcg(&mut seed),
+                    lcg(&mut seed),
+                ]);
+                let mut v: Vec<f32> = (0..dim).map(|_| 0.3 * (lcg(&mut seed) - 0.5)).collect();
+                v[dir] += 0.5 + lcg(&mut seed);
+                v[dim - 1] += 0.4 * lcg(&mut seed);
+                let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+                vectors.extend(v.iter().map(|x| x / n));
+            }
+            let bytes = encode_shard(&ShardInput {
+                scene_id: scene,
+                model: "test-clip",
+                tile_id: id,
+                dim,
+                dtype,
+                ids: &ids,
+                means: &means,
+                vectors: &vectors,
+                scales: None,
+                opacities: None,
+            })
+            .unwrap();
+            let lo = [i as f64 * TILE as f64, j as f64 * TILE as f64];
+            let hi = [lo[0] + 9.0, lo[1] + 9.0];
+            tiles.push(TileInfo {
+                id,
+                footprint: TileInfo::rect_ring(lo, hi),
+                aabb: Aabb::of_points(means.iter().copied()).unwrap(),
+                count: per_tile as u64,
+                bytes: bytes.len() as u64,
+                checksum: format!("{:08x}", shard_checksum(&bytes)),
+            });
+            shards.insert(id, bytes);
+        }
+    }
+    let manifest = Manifest {
+        format: MANIFEST_FORMAT.into(),
+        manifest_version: MANIFEST_VERSION,
+        shard_format_version: SHARD_FORMAT_VERSION,
+        scene_id: scene.into(),
+        generation,
+        model: "test-clip".into(),
+        dim: dim as u32,
+        dtype,
+        ground: GroundFrame::from_axis_name("z").unwrap(),
+        max_per_shard: per_tile as u64,
+        total_gaussians: (nx * ny * per_tile) as u64,
+        tiles,
+    };
+    TestScene { manifest, shards }
+}
+
+/// The in-process shard server's state and fault switches.
+pub struct ServerState {
+    pub scene: RwLock<TestScene>,
+    /// Shard GETs seen.
+    pub requests: AtomicUsize,
+    /// Shard GETs that carried a Range header.
+    pub range_requests: AtomicUsize,
+    /// Tile → send only this many bytes of the next response, then break the connection.
+    pub cut_next: Mutex<HashMap<u64, usize>>,
+    /// Tiles served with a flipped byte (a corrupt copy on the server).
+    pub corrupt: Mutex<HashSet<u64>>,
+    /// Required bearer token.
+    pub token: Option<String>,
+}
+
+pub struct ShardServer {
+    pub url: String,
+    pub state: Arc<ServerState>,
+}
+
+pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServer {
+    let state = Arc::new(ServerState {
+        scene: RwLock::new(scene),
+        requests: AtomicUsize::new(0),
+        range_requests: AtomicUsize::new(0),
+        cut_next: Mutex::new(HashMap::new()),
+        corrupt: Mutex::new(HashSet::new()),
+        token,
+    });
+    let app = axum::Router::new()
+        .route("/v1/scenes/{scene}/manifest", get(manifest))
+        .route("/v1/scenes/{scene}/shards/{id}", get(shard))
+        .with_state(state.clone());
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr: SocketAddr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        axum::serve(listener, app).await.unwrap();
+    });
+    ShardServer {
+        url: format!("http://{addr}"),
+        state,
+    }
+}
+
+fn authorized(state: &ServerState, headers: &HeaderMap) -> bool {
+    match &state.token {
+        None => true,
+        Some(t) => {
+            headers
+                .get(header::AUTHORIZATION)
+                .and_then(|v| v.to_str().ok())
+                == Some(format!("Bearer {t}").as_str())
+        }
+    }
+}
+
+async fn manifest(
+    State(state): State<Arc<ServerState>>,
+    Path(scene): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    if !authorized(&state, &headers) {
+        return (StatusCode::UNAUTHORIZED, "token").into_response();
+    }
+    let s = state.scene.read().unwrap();
+    if scene != s.manifest.scene_id {
+        return (StatusCode::NOT_FOUND, "no such scene").into_response();
+    }
+    s.manifest.to_json().into_response()
+}
+
+async fn shard(
+    State(state): State<Arc<ServerState>>,
+    Path((scene, id)): Path<(String, u64)>,
+    headers: HeaderMap,
+) -> Response {
+    if !authorized(&state, &headers) {
+        return (StatusCode::UNAUTHORIZED, "token").into_response();
+    }
+    state.requests.fetch_add(1, Ordering::SeqCst);
+    let (mut bytes, etag) = {
+        let s = state.scene.read().unwrap();
+        if scene != s.manifest.scene_id {
+            return (StatusCode::NOT_FOUND, "no such scene").into_response();
+        }
+        let Some(b) = s.shards.get(&id) else {
+            return (StatusCode::NOT_FOUND, "no such shard").into_response();
+        };
+        (b.clone(), format!("\"{:08x}\"", shard_checksum(b)))
+    };
+    if state.corrupt.lock().unwrap().contains(&id) {
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x5a;
+    }
+    let mut start = 0usize;
+    let mut status = StatusCode::OK;
+    if let Some(r) = headers.get(header::RANGE).and_then(|v| v.to_str().ok()) {
+        state.range_requests.fetch_add(1, Ordering::SeqCst);
+        let if_range_ok = headers
+            .get(header::IF_RANGE)
+            .and_then(|v| v.to_str().ok())
+            .is_none_or(|v| v == etag);
+        if let Some(n) = r.strip_prefix("bytes=").and_then(|s| s.strip_suffix('-'))
+            && let Ok(n) = n.parse::<usize>()
+            && if_range_ok
+            && n < bytes.len()
+        {
+            start = n;
+            status = StatusCode::PARTIAL_CONTENT;
+        }
+    }
+    let total = bytes.len();
+    let body_bytes = Bytes::from(bytes[start..].to_vec());
+    let cut = state.cut_next.lock().unwrap().remove(&id);
+    let len = body_bytes.len();
+    let body = match cut {
+        Some(n) => {
+            let first = body_bytes.slice(..n.min(len));
+            // The error comes after a pause so the first part is flushed to the client before
+            // the connection is aborted (hyper would otherwise drop its buffered write).
+            let stream = futures_util::stream::iter(vec![
+                Ok::<Bytes, std::io::Error>(first),
+                Err(std::io::Error::other("injected connection drop")),
+            ])
+            .then(|item| async move {
+                if item.is_err() {
+                    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+                }
+                item
+            });
+            Body::from_stream(stream)
+        }
+        None => Body::from(body_bytes),
+    };
+    let mut resp = Response::builder()
+        .status(status)
+        .header(header::CONTENT_LENGTH, len)
+        .header(header::ETAG, etag);
+    if status == StatusCode::PARTIAL_CONTENT {
+        resp = resp.header(
+            header::CONTENT_RANGE,
+            format!("bytes {start}-{}/{total}", total - 1),
+        );
+    }
+    resp.body(body).unwrap()
+}
+
+/// Maps `"t<N>"` (and any prompt containing it) to basis vector N; the canonical negatives and
+/// anything else to the last ("background") basis vector. Counts calls.
+pub struct BasisEmbedder {
+    pub dim: usize,
+    pub calls: AtomicUsize,
+}
+
+impl BasisEmbedder {
+    pub fn new(dim: usize) -> Self {
+        BasisEmbedder {
+            dim,
+            calls: AtomicUsize::new(0),
+        }
+    }
+    pub fn vector(&self, text: &str) -> Vec<f32> {
+        let mut v = vec![0f32; self.dim];
+        let n = text
+            .strip_prefix('t')
+            .and_then(|s| s.parse::<usize>().ok())
+            .filter(|&n| n < self.dim - 1)
+            .unwrap_or(self.dim - 1);
+        v[n] = 1.0;
+        v
+    }
+}
+
+impl TextEmbedder for BasisEmbedder {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>> {
+        self.calls.fetch_add(1, Ordering::SeqCst);
+        Ok(texts.iter().map(|t| self.vector(t)).collect())
+    }
+    fn name(&self) -> String {
+        "basis".into()
+    }
+    fn cached(&self) -> usize {
+        0
+    }
+}
