@@ -5,18 +5,20 @@
 #   1. installs (idempotently, only what is missing) Debian's Rust 1.96 (`rustc-web`, `cargo-web`) with
 #      the arm64 standard library (`libstd-rust-web-dev:arm64`), the aarch64 GCC/G++ cross compilers
 #      (ring's C/asm, onig's C, tokenizers' C++), the arm64 C/C++ runtime (for running under qemu)
-#      and qemu-user >= 8 (bookworm's qemu 7.2 segfaults inside ONNX Runtime's arm64 start-up, so
-#      the bookworm-backports qemu 10 is used; the backports source is added when apt lacks it);
+#      and qemu-user >= 8 (bookworm's qemu 7.2 was seen to segfault inside ONNX Runtime's arm64
+#      start-up, so the bookworm-backports qemu 10 is used; the source is added when apt lacks it);
 #   2. fetches the arm64 ONNX Runtime library (PyPI `onnxruntime` manylinux aarch64 wheel) into
 #      ~/.cache/slag/onnxruntime-VERSION-aarch64 (the name scripts/setup.sh uses on an aarch64 host);
 #   3. builds and runs the edge crate's tests under qemu-user (ORT_DYLIB_PATH = the arm64 library);
 #   4. builds the release binary, runs `slag-edge --version` / `--help` under qemu;
-#   5. glibc guard: fails when the binary needs a GLIBC_ symbol newer than 2.35 (JetPack 6).
+#   5. glibc guard: fails when the binary (or the arm64 ORT library) needs a GLIBC_ symbol newer
+#      than 2.35 (JetPack 6).
 # The rustup toolchain stays the user's default for native builds: this script calls Debian's
 # /usr/bin/cargo and /usr/bin/rustc explicitly and builds into its own target dir.
 #
 #   bash scripts/cross-aarch64.sh            # everything above
 #   SLAG_CROSS_NO_TEST=1 bash scripts/cross-aarch64.sh   # build + guard only (no test run)
+#   eval "$(bash scripts/cross-aarch64.sh --env)"        # the cross environment, for other cargo runs
 # Environment: SLAG_CROSS_TARGET_DIR (default target/aarch64), SLAG_CROSS_PROFILE (release|dev,
 # default release), SLAG_GLIBC_MAX (default 2.35), ORT_VERSION (default 1.23.2), SLAG_SHARED.
 # Output: target/aarch64/aarch64-unknown-linux-gnu/release/slag-edge (see jetson/README.md).
@@ -31,6 +33,32 @@ export SLAG_SHARED=${SLAG_SHARED:-$(cd "$SLAG_ROOT/.." && pwd)/shared}
 say() { echo "cross-aarch64: $*" >&2; }
 die() { echo "cross-aarch64: ERROR: $*" >&2; exit 1; }
 t0=$(date +%s)
+
+# ---- the cross environment (also printed by --env) ---------------------------------------------
+CARGO=/usr/bin/cargo
+export RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc
+ORT_DIR=${ORT_DIR_AARCH64:-$HOME/.cache/slag/onnxruntime-$ORT_VERSION-aarch64}
+export CARGO_TARGET_DIR=${SLAG_CROSS_TARGET_DIR:-$SLAG_ROOT/target/aarch64}
+export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
+export CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc
+export CXX_aarch64_unknown_linux_gnu=aarch64-linux-gnu-g++
+export AR_aarch64_unknown_linux_gnu=aarch64-linux-gnu-ar
+# `-L /`: the arm64 loader and libraries of the multiarch packages (libc6:arm64, libstdc++6:arm64)
+# live under /lib/aarch64-linux-gnu. (`-L /usr/aarch64-linux-gnu` makes threaded binaries hang in
+# pthread_create.)
+QEMU="qemu-aarch64-static -L /"
+export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=$QEMU
+export ORT_DYLIB_PATH=$ORT_DIR/libonnxruntime.so
+if [ "${1:-}" = --env ]; then
+  # For running other cargo commands by hand: eval "$(bash scripts/cross-aarch64.sh --env)"
+  for v in RUSTC RUSTDOC CARGO_TARGET_DIR CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER \
+    CC_aarch64_unknown_linux_gnu CXX_aarch64_unknown_linux_gnu AR_aarch64_unknown_linux_gnu \
+    CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER ORT_DYLIB_PATH SLAG_SHARED; do
+    printf 'export %s=%q\n' "$v" "${!v}"
+  done
+  echo "# then: /usr/bin/cargo test|build --release -p slag-edge --target $TARGET"
+  exit 0
+fi
 
 # ---- 1. packages --------------------------------------------------------------------------------
 [ "$(dpkg --print-architecture 2>/dev/null)" = amd64 ] ||
@@ -80,15 +108,12 @@ if [ "$(qemu_major)" -lt 8 ]; then
   [ "$(qemu_major)" -ge 8 ] ||
     die "qemu-aarch64-static $(qemu_major).x is too old (< 8 segfaults in ONNX Runtime's start-up)"
 fi
-CARGO=/usr/bin/cargo
-export RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc
 "$RUSTC" --print sysroot >/dev/null
 [ -d "$("$RUSTC" --print sysroot)/lib/rustlib/$TARGET/lib" ] ||
   die "Debian's rustc has no $TARGET standard library (package libstd-rust-web-dev:arm64)"
 say "$("$RUSTC" -V) / $("$CARGO" -V) / $(qemu-aarch64-static --version | head -n1)"
 
 # ---- 2. arm64 ONNX Runtime ----------------------------------------------------------------------
-ORT_DIR=${ORT_DIR_AARCH64:-$HOME/.cache/slag/onnxruntime-$ORT_VERSION-aarch64}
 if [ ! -e "$ORT_DIR/libonnxruntime.so" ]; then
   [ -f "$SLAG_SHARED/tools/install-onnxruntime.sh" ] ||
     die "no $SLAG_SHARED/tools/install-onnxruntime.sh (set SLAG_SHARED)"
@@ -97,18 +122,7 @@ if [ ! -e "$ORT_DIR/libonnxruntime.so" ]; then
 fi
 ORT_LIB=$(readlink -f "$ORT_DIR/libonnxruntime.so")
 
-# ---- 3./4. build, test under qemu ---------------------------------------------------------------
-export CARGO_TARGET_DIR=${SLAG_CROSS_TARGET_DIR:-$SLAG_ROOT/target/aarch64}
-export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
-export CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc
-export CXX_aarch64_unknown_linux_gnu=aarch64-linux-gnu-g++
-export AR_aarch64_unknown_linux_gnu=aarch64-linux-gnu-ar
-# `-L /`: the arm64 loader and libraries of the multiarch packages (libc6:arm64, libstdc++6:arm64)
-# live under /lib/aarch64-linux-gnu. (`-L /usr/aarch64-linux-gnu` makes threaded binaries hang in
-# pthread_create.)
-QEMU="qemu-aarch64-static -L /"
-export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=$QEMU
-export ORT_DYLIB_PATH=$ORT_LIB
+# ---- 3. tests under qemu, build, run ------------------------------------------------------------
 prof=(--release); outdir=release
 [ "$PROFILE" = release ] || { prof=(); outdir=debug; }
 cargo_x() { "$CARGO" "$@" --locked -p slag-edge --target "$TARGET" "${prof[@]}"; }
@@ -116,6 +130,9 @@ if [ "${SLAG_CROSS_NO_TEST:-0}" != 1 ]; then
   say "building and running the edge tests under qemu (ORT_DYLIB_PATH=$ORT_DYLIB_PATH)"
   cargo_x test
 fi
+# The plain build after the tests: `cargo test` unifies the dev-dependencies' features (proptest's
+# rand, ...) and leaves its own build of the binary at the output path; this one (a few crates
+# recompiled on a cold cache) is what ships.
 say "building slag-edge ($PROFILE) for $TARGET"
 cargo_x build --bin slag-edge
 BIN=$CARGO_TARGET_DIR/$TARGET/$outdir/slag-edge
@@ -132,7 +149,7 @@ check_glibc() {
   v=$(newest "$f")
   [ -n "$v" ] || die "no GLIBC_ symbol versions found in $f (objdump failed?)"
   if [ "$(printf '%s\n%s\n' "$v" "$GLIBC_MAX" | sort -V | tail -n1)" != "$GLIBC_MAX" ]; then
-    echo "cross-aarch64: ERROR: $f needs glibc $v, newer than $GLIBC_MAX (JetPack 6 / Ubuntu 22.04)." >&2
+    echo "cross-aarch64: ERROR: $f needs glibc $v, newer than $GLIBC_MAX (SLAG_GLIBC_MAX; 2.35 = JetPack 6 / Ubuntu 22.04)." >&2
     echo "  symbols needing more than $GLIBC_MAX:" >&2
     aarch64-linux-gnu-objdump -T "$f" | grep 'GLIBC_' | awk -v max="$GLIBC_MAX" '{
       for (i = 1; i <= NF; i++) if ($i ~ /GLIBC_/) { v = $i; gsub(/[()]|GLIBC_/, "", v); print v, $NF } }' |
