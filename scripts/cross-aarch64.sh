@@ -52,6 +52,8 @@ export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=$QEMU
 # entry here: the child fails with status 127). Tests that spawn the binary
 # (env!("CARGO_BIN_EXE_slag-edge"), current_exe()) must prefix this runner when it is set.
 export SLAG_TEST_RUNNER=$QEMU
+# Property tests run emulated (several times slower): fewer cases than natively, unless set.
+export PROPTEST_CASES=${PROPTEST_CASES:-64}
 export ORT_DYLIB_PATH=$ORT_DIR/libonnxruntime.so
 if [ "${1:-}" = --env ]; then
   # For running other cargo commands by hand: eval "$(bash scripts/cross-aarch64.sh --env)"
@@ -79,8 +81,10 @@ if ! dpkg --print-foreign-architectures | grep -qx arm64; then
   apt_updated=0
 fi
 need=()
+# libc6-dev-arm64-cross (the linker's sysroot, /usr/aarch64-linux-gnu) is only a Recommends of
+# gcc-aarch64-linux-gnu, hence named; the multiarch libc6/libgcc-s1/libstdc++6:arm64 serve qemu.
 for p in rustc-web cargo-web libstd-rust-web-dev:arm64 gcc-aarch64-linux-gnu g++-aarch64-linux-gnu \
-  binutils-aarch64-linux-gnu libc6:arm64 libgcc-s1:arm64 libstdc++6:arm64; do
+  binutils-aarch64-linux-gnu libc6-dev-arm64-cross libc6:arm64 libgcc-s1:arm64 libstdc++6:arm64; do
   dpkg -s "$p" >/dev/null 2>&1 || need+=("$p")
 done
 if [ ${#need[@]} -gt 0 ]; then
