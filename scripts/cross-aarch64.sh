@@ -130,7 +130,7 @@ if [ ! -e "$ORT_DIR/libonnxruntime.so" ]; then
 fi
 ORT_LIB=$(readlink -f "$ORT_DIR/libonnxruntime.so")
 
-# ---- 3. tests under qemu, build, run ------------------------------------------------------------
+# ---- 3./4. tests under qemu, build, run ---------------------------------------------------------
 prof=(--release); outdir=release
 [ "$PROFILE" = release ] || { prof=(); outdir=debug; }
 cargo_x() { "$CARGO" "$@" --locked -p slag-edge --target "$TARGET" "${prof[@]}"; }
@@ -168,7 +168,7 @@ check_glibc() {
     echo "  Link against an older glibc (see jetson/README.md, 'glibc')." >&2
     exit 1
   fi
-  say "glibc guard: $(basename "$f") needs glibc <= $v (limit $GLIBC_MAX): ok"
+  say "glibc guard: $(basename "$f"): newest GLIBC_ symbol version $v (limit $GLIBC_MAX): ok"
 }
 check_glibc "$BIN"
 check_glibc "$ORT_LIB"
