@@ -91,4 +91,14 @@ mod tests {
         std::fs::write(&p, "").unwrap();
         assert!(read_token(&p).is_err());
     }
+
+    #[test]
+    fn the_shipped_jetson_config_parses_with_every_key() {
+        let c: ServeConfig = toml::from_str(include_str!("../../jetson/edge.toml")).unwrap();
+        assert!(c.store.is_some() && c.scene.is_some() && c.addr.is_some());
+        assert!(c.text_model.is_some() && c.tokenizer.is_some() && c.token_file.is_some());
+        assert_eq!(c.ep.as_deref(), Some("cpu"));
+        assert_eq!(c.threshold, Some(0.28));
+        assert_eq!(c.hnsw, Some(false));
+    }
 }

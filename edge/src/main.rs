@@ -37,6 +37,9 @@ enum Command {
     Serve(ServeArgs),
     /// Answer one query from the local store on the command line (JSON, as GET /query).
     Query(QueryArgs),
+    /// Check a deployment without serving: config, ONNX Runtime + text model (one prompt), store
+    /// and scene load; prints a JSON report, exits non-zero on the first problem.
+    Check(ServeArgs),
 }
 
 /// ONNX Runtime execution provider.
@@ -216,7 +219,17 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
+/// Everything `serve` needs, resolved from flags over the config file.
+struct Resolved {
+    store: PathBuf,
+    addr: std::net::SocketAddr,
+    text_model: PathBuf,
+    tokenizer: PathBuf,
+    ep: EpArg,
+    opts: ServeOptions,
+}
+
+fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let c = match &a.config {
         Some(p) => ServeConfig::read(p)?,
         None => ServeConfig::default(),
@@ -271,13 +284,68 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
         hnsw: a.hnsw || c.hnsw.unwrap_or(false),
         request_timeout: timeout(a.request_timeout, "--request-timeout")?,
     };
-    let edge = EdgeStore::open(&store)?;
-    let text = text_embedder(&text_model, &tokenizer, ep)?;
-    let state = Arc::new(AppState::new(edge, text, opts)?);
-    runtime()?.block_on(slag_edge::serve::serve(state, addr, |bound| {
+    Ok(Resolved {
+        store,
+        addr,
+        text_model,
+        tokenizer,
+        ep,
+        opts,
+    })
+}
+
+fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
+    let r = resolve(a)?;
+    let edge = EdgeStore::open(&r.store)?;
+    let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
+    let state = Arc::new(AppState::new(edge, text, r.opts)?);
+    runtime()?.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
         tracing::info!("listening on http://{bound}");
         eprintln!("slag-edge: listening on http://{bound}");
     }))?;
+    Ok(())
+}
+
+fn run_check(a: ServeArgs) -> anyhow::Result<()> {
+    let r = resolve(a)?;
+    let t = std::time::Instant::now();
+    let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
+    let v = text.embed(&["a chair"])?;
+    let text_ms = t.elapsed().as_secs_f64() * 1e3;
+    let edge = EdgeStore::open(&r.store)?;
+    let engine = slag_edge::serve::Engine::load(&edge, &r.opts.scene, false)?;
+    anyhow::ensure!(
+        v[0].len() == engine.store.dim(),
+        "the text model gives {}-d embeddings, the stored Gaussians are {}-d ({}): use the CLIP \
+         text tower of that model",
+        v[0].len(),
+        engine.store.dim(),
+        engine.manifest.model
+    );
+    let report = serde_json::json!({
+        "ok": true,
+        "text_model": r.text_model,
+        "text_dim": v[0].len(),
+        "text_load_and_first_prompt_ms": text_ms,
+        "ep": format!("{:?}", r.ep),
+        "store": r.store,
+        "scene": r.opts.scene,
+        "generation": engine.manifest.generation,
+        "embedding_model": engine.manifest.model,
+        "shards_loaded": engine.load.loaded_tiles.len(),
+        "shards_absent": engine.load.absent_tiles,
+        "shards_rejected": engine.load.rejected,
+        "gaussians": engine.store.len(),
+        "vector_memory_bytes": engine.store.memory_bytes(),
+        "addr": r.addr,
+        "token": r.opts.token.is_some(),
+    });
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    anyhow::ensure!(
+        engine.load.rejected.is_empty(),
+        "{} stored shards failed verification; rerun fetch to replace them",
+        engine.load.rejected.len()
+    );
     Ok(())
 }
 
@@ -318,5 +386,6 @@ fn main() -> anyhow::Result<()> {
         Command::Fetch(a) => run_fetch(a),
         Command::Serve(a) => run_serve(a),
         Command::Query(a) => run_query(a),
+        Command::Check(a) => run_check(a),
     }
 }

@@ -1,0 +1,158 @@
+//! The `slag-edge` binary as a user runs it: `fetch` (summary, exit codes, messages), `check` and
+//! `query` with the color-clip text tower. Under qemu (cross build) the binary is started through
+//! `$SLAG_TEST_RUNNER`.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::process::{Command, Output};
+
+use slag_common::shards::Dtype;
+use support::{grid_scene, shard_server};
+
+fn slag_edge(args: &[&str]) -> Output {
+    let bin = env!("CARGO_BIN_EXE_slag-edge");
+    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
+        Ok(r) if !r.trim().is_empty() => {
+            let mut parts = r.split_whitespace();
+            let mut c = Command::new(parts.next().unwrap());
+            c.args(parts).arg(bin);
+            c
+        }
+        _ => Command::new(bin),
+    };
+    cmd.args(args).env("RUST_LOG", "warn").output().unwrap()
+}
+
+fn fixture(rel: &str) -> String {
+    slag_common::paths::shared_dir()
+        .join("fixtures")
+        .join(rel)
+        .display()
+        .to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fetch_check_and_query_from_the_command_line() {
+    // 512-d so that color-clip's text tower fits the stored embeddings.
+    let server = shard_server(grid_scene("grid", 3, 3, 20, 512, Dtype::F16, 1), None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store").display().to_string();
+    let url = server.url.clone();
+
+    let (s, u) = (store.clone(), url.clone());
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "fetch", "--from", &u, "--scene", "grid", "--center", "0,0", "--radius", "5",
+            "--store", &s, "--json",
+        ])
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["selected"], 1);
+    assert_eq!(summary["gaussians"], 20);
+
+    // Bad input: non-zero exit and a message naming the flag.
+    let (s, u) = (store.clone(), url.clone());
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "fetch", "--from", &u, "--scene", "grid", "--center", "0,zero", "--store", &s,
+        ])
+    })
+    .await
+    .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--center"));
+
+    let (tm, tok) = (
+        fixture("clip/color-clip-textual.onnx"),
+        fixture("clip/clip-tokenizer.json"),
+    );
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        assert!(
+            std::env::var_os("SLAG_SKIP_ORT").is_some(),
+            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
+        );
+        return;
+    }
+    let s = store.clone();
+    let (tm2, tok2) = (tm.clone(), tok.clone());
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "check",
+            "--store",
+            &s,
+            "--scene",
+            "grid",
+            "--text-model",
+            &tm2,
+            "--tokenizer",
+            &tok2,
+        ])
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["gaussians"], 20);
+    assert_eq!(report["text_dim"], 512);
+
+    let s = store.clone();
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "query",
+            "--store",
+            &s,
+            "--scene",
+            "grid",
+            "--text-model",
+            &tm,
+            "--tokenizer",
+            &tok,
+            "--text",
+            "red",
+            "--top-k",
+            "5",
+            "--threshold",
+            "none",
+        ])
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let a: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(a["matches"].as_array().unwrap().len(), 5);
+    assert_eq!(a["searched"], 20);
+
+    // A scene that was never fetched: non-zero exit, the message says to run fetch.
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "check",
+            "--store",
+            &store,
+            "--scene",
+            "nope",
+            "--text-model",
+            "x",
+            "--tokenizer",
+            "y",
+        ])
+    })
+    .await
+    .unwrap();
+    assert!(!out.status.success());
+}
