@@ -103,7 +103,8 @@ fn encode_partition_serve_fetch_serve_query_matches_the_local_query() {
     // f32 shards: the edge sees exactly the values of the embeddings file.
     let shard_store = dir.path().join("shards");
     slag_encoder::cli::shards::run_partition(&PartitionArgs {
-        embeddings: emb.clone(),
+        embeddings: Some(emb.clone()),
+        synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
         max_per_shard: 8000,

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use slag_common::embeddings::Embeddings;
+use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame};
 
 use crate::partition::{PartitionParams, UpChoice};
@@ -15,8 +16,17 @@ use crate::store::{ShardStore, partition_into_store};
 #[derive(Debug, Clone, clap::Args)]
 pub struct PartitionArgs {
     /// Embeddings file written by `slag-encoder encode` (safetensors).
-    #[arg(long)]
-    pub embeddings: PathBuf,
+    #[arg(
+        long,
+        required_unless_present = "synthetic",
+        conflicts_with = "synthetic"
+    )]
+    pub embeddings: Option<PathBuf>,
+    /// Instead of an embeddings file: a synthetic scene of N Gaussians (`N` or `N:DIM`, default
+    /// dim 512; 64 clusters over 2 km × 2 km, z up, random unit vectors), for scale and load tests.
+    /// Vectors are generated per tile, never all in memory.
+    #[arg(long, value_name = "N[:DIM]")]
+    pub synthetic: Option<String>,
     /// Shard store folder (sled; created if missing).
     #[arg(long)]
     pub store: PathBuf,
@@ -65,7 +75,13 @@ pub struct PartitionArgs {
 ///
 /// Errors: unreadable embeddings, invalid parameters, store failures.
 pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
-    let emb = Embeddings::read(&args.embeddings)?;
+    if let Some(spec) = &args.synthetic {
+        return run_partition_synthetic(args, spec);
+    }
+    let Some(path) = &args.embeddings else {
+        anyhow::bail!("pass --embeddings FILE (or --synthetic N)");
+    };
+    let emb = Embeddings::read(path)?;
     let up = if let Some(u) = &args.up {
         UpChoice::Given(GroundFrame::from_axis_name(u)?)
     } else if let Some(dir) = &args.cameras {
@@ -134,6 +150,55 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
             t.elapsed().as_secs_f64()
         );
     }
+    Ok(())
+}
+
+/// `partition --synthetic N[:DIM]`: a [`SyntheticScene`] (z up) straight into the store.
+fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<()> {
+    let mut it = spec.split(':');
+    let n: usize = it
+        .next()
+        .and_then(|s| s.trim().parse().ok())
+        .filter(|&n| n > 0)
+        .with_context(|| format!("--synthetic {spec:?}: use N or N:DIM, e.g. 1000000:512"))?;
+    let dim: usize = match it.next() {
+        None => 512,
+        Some(d) => d
+            .trim()
+            .parse()
+            .ok()
+            .filter(|&d| d > 0 && d <= slag_common::shards::format::MAX_DIM as usize)
+            .with_context(|| format!("--synthetic {spec:?}: DIM must be 1..=65536"))?,
+    };
+    anyhow::ensure!(
+        args.qdrant_url.is_none() && args.display_ply.is_none(),
+        "--synthetic has no display attributes and is not uploaded to Qdrant"
+    );
+    let scene = SyntheticScene::new(n, dim, 64, 2000.0, 42);
+    let up = match &args.up {
+        Some(u) => GroundFrame::from_axis_name(u)?,
+        None => GroundFrame::from_axis_name("z")?,
+    };
+    let params = PartitionParams {
+        scene_id: args.scene.clone(),
+        max_per_shard: args.max_per_shard,
+        up: UpChoice::Given(up),
+        dtype: args.dtype,
+    };
+    let store = ShardStore::open(&args.store)?;
+    let t = std::time::Instant::now();
+    let m = partition_into_store(&store, &scene, &params).context("partition")?;
+    let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
+    println!(
+        "scene {} generation {}: {} synthetic Gaussians (dim {dim}) in {} shards, {} bytes ({:?}), {:.1}s",
+        m.scene_id,
+        m.generation,
+        m.total_gaussians,
+        m.tiles.len(),
+        bytes,
+        m.dtype,
+        t.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 
