@@ -8,6 +8,7 @@ use rayon::prelude::*;
 use slag_common::shards::{Dtype, StoredVectors};
 
 use super::hnsw::HnswIndex;
+use super::kernels::{self, SimdLevel};
 use super::store::{normal, random_centres};
 use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan};
 
@@ -357,10 +358,15 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
         limit / 1e9
     ));
     out.push_str(&format!(
-        "Settings: D = {dim}, top-k = {}, threshold = {}, {} timed queries (median), seed {}, \
+        "SIMD level of the scans: {:?} (SLAG_SCAN_SIMD=baseline forces the portable loops).\n\n\
+         Settings: D = {dim}, top-k = {}, threshold = {}, {} timed queries (median), seed {}, \
          {CLUSTERS}-cluster synthetic unit rows; LERF = 5 queries (prompt + 4 negatives) in one \
          pass, top-k of lerf_relevancy.\n\n",
-        args.top_k, args.threshold, args.queries, args.seed
+        kernels::simd_level(),
+        args.top_k,
+        args.threshold,
+        args.queries,
+        args.seed
     ));
     out.push_str(
         "| N | dtype | B/Gaussian | vectors GB | gen s | floor ms (GB/s) | top-k ms | GB/s | \
@@ -399,9 +405,79 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
         out.push('\n');
     }
 
+    out.push('\n');
+    out.push_str(&kernel_table(args, &dtypes)?);
     if args.hnsw_size > 0 {
         out.push('\n');
         out.push_str(&hnsw_row(args, &qvecs, limit)?);
+    }
+    Ok(out)
+}
+
+/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level`.
+fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: SimdLevel) -> f64 {
+    let mut sum = 0.0f32;
+    let keep = |_: usize| true;
+    let t = Instant::now();
+    let mut sink = |_: usize, d: &[f32; Q]| sum += d[0];
+    kernels::scan_chunk_at::<Q>(
+        level,
+        store.vectors(),
+        store.dim(),
+        0,
+        store.len(),
+        qs,
+        &keep,
+        &mut sink,
+    );
+    let e = t.elapsed().as_secs_f64();
+    std::hint::black_box(sum);
+    e
+}
+
+/// Single-thread kernel throughput on a cache-resident block (≈1 MiB of f32 rows), every
+/// dtype × Q ∈ {1, 5} × available [`SimdLevel`]: the compute ceiling, independent of DRAM.
+fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
+    let dim = args.dim;
+    let n = ((1usize << 20) / (4 * dim)).max(64);
+    let mut levels = vec![SimdLevel::Baseline];
+    if kernels::avx2_fma_available() {
+        levels.push(SimdLevel::Avx2Fma);
+    }
+    let centres = random_centres(dim, CLUSTERS, args.seed);
+    let qv: Vec<Vec<f32>> = (0..5)
+        .map(|i| make_query(&centres, dim, i, args.seed))
+        .collect();
+    let q1: [&[f32]; 1] = [&qv[0]];
+    let q5: [&[f32]; 5] = [&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]];
+    let mut out = format!(
+        "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n\
+         | dtype | Q | SIMD | ns/row | row GB/s |\n|---|---|---|---|---|\n"
+    );
+    for &dtype in dtypes {
+        let store = VectorStore::synthetic(n, dim, dtype, CLUSTERS, args.seed)?;
+        let bytes = store.vector_bytes() as f64;
+        for q in [1usize, 5] {
+            for &level in &levels {
+                let mut best = f64::INFINITY;
+                for _ in 0..5 {
+                    let mut t = 0.0;
+                    for _ in 0..20 {
+                        t += match q {
+                            1 => kernel_pass::<1>(&store, &q1, level),
+                            _ => kernel_pass::<5>(&store, &q5, level),
+                        };
+                    }
+                    best = best.min(t / 20.0);
+                }
+                out.push_str(&format!(
+                    "| {} | {q} | {level:?} | {:.1} | {:.1} |\n",
+                    dtype_name(dtype),
+                    best * 1e9 / n as f64,
+                    bytes / best / 1e9
+                ));
+            }
+        }
     }
     Ok(out)
 }
@@ -458,6 +534,24 @@ fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The benchmark from a test binary (the CLI lives in the lead's `main.rs`):
+    /// `SLAG_BENCH_ARGS="--sizes 1M,2M" cargo test --workspace --lib \
+    ///   --config 'profile.dev.package.slag-edge.opt-level=3' -- --ignored bench_from_env --nocapture`.
+    #[test]
+    #[ignore = "benchmark: generates gigabyte stores; run explicitly"]
+    fn bench_from_env() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: BenchArgs,
+        }
+        let extra = std::env::var("SLAG_BENCH_ARGS").unwrap_or_default();
+        let argv = std::iter::once("bench").chain(extra.split_whitespace());
+        let cli = Cli::try_parse_from(argv).expect("SLAG_BENCH_ARGS");
+        println!("{}", run_bench(&cli.args).expect("bench"));
+    }
 
     #[test]
     fn sizes_parse_with_suffixes() {

@@ -36,7 +36,7 @@ impl RowPoint {
 impl Point for RowPoint {
     fn distance(&self, other: &Self) -> f32 {
         let mut out = [0.0f32; 1];
-        dots_f32::<1>(self.slice(), &[other.slice()], &mut out);
+        dots_f32::<1, false>(self.slice(), &[other.slice()], &mut out);
         1.0 - out[0]
     }
 }

@@ -29,7 +29,7 @@ pub use kernels::MAX_QUERIES;
 pub use select::{Hit, TopK};
 pub use store::VectorStore;
 
-use kernels::{F16_BLOCK, dots_f16, dots_f32, dots_i8};
+pub use kernels::{SimdLevel, simd_level};
 
 /// Rows handed to one rayon task (a few hundred KiB to 4 MiB of rows at D = 512).
 const CHUNK_ROWS: usize = 2048;
@@ -265,38 +265,8 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             |mut acc, c| {
                 let start = c * CHUNK_ROWS;
                 let end = (start + CHUNK_ROWS).min(n);
-                let mut dots = [0.0f32; Q];
-                match store.vectors() {
-                    StoredVectors::F32(v) => {
-                        for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
-                            let i = start + r;
-                            if inside(i) {
-                                dots_f32::<Q>(row, &qs, &mut dots);
-                                offer(&mut acc, i, &dots);
-                            }
-                        }
-                    }
-                    StoredVectors::F16(v) => {
-                        let mut buf = [0.0f32; F16_BLOCK];
-                        for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
-                            let i = start + r;
-                            if inside(i) {
-                                dots_f16::<Q>(row, &qs, &mut buf, &mut dots);
-                                offer(&mut acc, i, &dots);
-                            }
-                        }
-                    }
-                    StoredVectors::I8 { q, scales } => {
-                        let rows = q[start * d..end * d].chunks_exact(d);
-                        for (r, (row, &s)) in rows.zip(&scales[start..end]).enumerate() {
-                            let i = start + r;
-                            if inside(i) {
-                                dots_i8::<Q>(row, s, &qs, &mut dots);
-                                offer(&mut acc, i, &dots);
-                            }
-                        }
-                    }
-                }
+                let mut sink = |i: usize, dots: &[f32; Q]| offer(&mut acc, i, dots);
+                kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &qs, &inside, &mut sink);
                 acc
             },
         )
