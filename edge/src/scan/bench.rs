@@ -122,9 +122,9 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn fmt_size(n: usize) -> String {
-    if n >= 1_000_000 && n % 1_000_000 == 0 {
+    if n >= 1_000_000 && n.is_multiple_of(1_000_000) {
         format!("{}M", n / 1_000_000)
-    } else if n >= 1000 && n % 1000 == 0 {
+    } else if n >= 1000 && n.is_multiple_of(1000) {
         format!("{}K", n / 1000)
     } else {
         n.to_string()
@@ -190,7 +190,7 @@ fn floor_ms(store: &VectorStore) -> f64 {
 /// so the 0.28 threshold keeps roughly one cluster.
 fn make_query(centres: &[f32], dim: usize, i: usize, seed: u64) -> Vec<f32> {
     let c = i % CLUSTERS;
-    let mut s = seed ^ 0x0051_EE7 ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut s = seed ^ 0x0005_1EE7 ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     let mut q: Vec<f32> = centres[c * dim..(c + 1) * dim]
         .iter()
         .map(|&x| x + 0.5 * normal(&mut s) / (dim as f32).sqrt())

@@ -199,12 +199,12 @@ pub fn scan(store: &VectorStore, req: &ScanRequest<'_>) -> Result<Vec<Hit>, Erro
             "threshold is NaN; pass a cosine such as 0.28".into(),
         ));
     }
-    if let Some((lo, hi)) = req.bbox {
-        if (0..3).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a]) {
-            return Err(Error::Invalid(format!(
-                "box min {lo:?} max {hi:?} is empty or NaN; give min <= max on every axis"
-            )));
-        }
+    if let Some((lo, hi)) = req.bbox
+        && (0..3).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a])
+    {
+        return Err(Error::Invalid(format!(
+            "box min {lo:?} max {hi:?} is empty or NaN; give min <= max on every axis"
+        )));
     }
     let q = req.queries;
     Ok(match q.len() {
@@ -243,8 +243,8 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             Some(f) => f(dots),
         };
         if let Some(t) = thr {
-            // NaN scores fail this comparison and are dropped.
-            if !(s >= t) {
+            // NaN scores are dropped too.
+            if s.is_nan() || s < t {
                 return;
             }
         }
