@@ -16,7 +16,7 @@
 
 pub mod bench;
 pub mod hnsw;
-pub mod kernels;
+mod kernels;
 pub mod select;
 mod store;
 
@@ -25,7 +25,7 @@ use slag_common::Error;
 use slag_common::shards::StoredVectors;
 
 pub use bench::{BenchArgs, run_bench};
-pub use kernels::MAX_QUERIES;
+pub use kernels::{MAX_QUERIES, avx2_fma_available};
 pub use select::{Hit, TopK};
 pub use store::VectorStore;
 
