@@ -248,7 +248,7 @@ pub enum SimdLevel {
     Avx2Fma,
 }
 
-/// The level used by [`scan_chunk`]: AVX2 + FMA when the x86_64 CPU has both, unless the
+/// The level used by [`scan`](super::scan): AVX2 + FMA when the x86_64 CPU has both, unless the
 /// environment variable `SLAG_SCAN_SIMD=baseline` forces the portable loops (for measurements).
 /// Detected once per process.
 pub fn simd_level() -> SimdLevel {

@@ -9,7 +9,7 @@
 //! - [`naive_scan_f32`]: what a straightforward implementation does (scalar dot, all scores, full
 //!   sort), the benchmark baseline;
 //! - [`hnsw::HnswIndex`]: an approximate HNSW index (`instant-distance`) for comparison;
-//! - [`bench`]: the scan benchmark (`run_bench`).
+//! - [`mod@bench`]: the scan benchmark ([`run_bench`]).
 //!
 //! Memory: a scan allocates only per-thread selection state (O(k) for top-k) and its output; it
 //! never copies or dequantises the store.
