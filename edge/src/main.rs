@@ -4,6 +4,7 @@
 //!   around the robot into the local sled store;
 //! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml]`: answer `GET /query?text=chair`;
 //! - `slag-edge query --text chair`: the same answer on the command line, no server;
+//! - `slag-edge check`: config + ONNX Runtime + store, without serving;
 //! - `slag-edge bench`: scan kernels against the memory-bandwidth floor.
 
 use std::path::PathBuf;
@@ -40,6 +41,9 @@ enum Command {
     /// Check a deployment without serving: config, ONNX Runtime + text model (one prompt), store
     /// and scene load; prints a JSON report, exits non-zero on the first problem.
     Check(ServeArgs),
+    /// Benchmark the scan kernels (f32/f16/int8, top-k, threshold, LERF) against the
+    /// memory-bandwidth floor of the same bytes and a naive f32 scan; prints a Markdown table.
+    Bench(slag_edge::scan::BenchArgs),
 }
 
 /// ONNX Runtime execution provider.
@@ -387,5 +391,9 @@ fn main() -> anyhow::Result<()> {
         Command::Serve(a) => run_serve(a),
         Command::Query(a) => run_query(a),
         Command::Check(a) => run_check(a),
+        Command::Bench(a) => {
+            println!("{}", slag_edge::scan::run_bench(&a)?);
+            Ok(())
+        }
     }
 }

@@ -4,10 +4,11 @@
 //! scored in one pass over memory ([`crate::scan`]):
 //! - [`ScoreMode::Cosine`] (default): `s_k = cos(E_k, φ_q)`, matches are `s_k ≥ threshold`
 //!   (paper default [`PAPER_THRESHOLD`] = 0.28);
-//! - [`ScoreMode::Relevancy`]: LERF's relevancy (Kerr et al., ICCV 2023, eq. 1) against the
-//!   canonical negatives [`CANONICAL_NEGATIVES`]:
-//!   `r_k = min_i exp(s_k) / (exp(s_k) + exp(n_ik)) = 1 / (1 + exp(max_i n_ik − s_k))` with
-//!   `n_ik = cos(E_k, φ_canon_i)`; 0.5 means "as close to the prompt as to the closest negative",
+//! - [`ScoreMode::Relevancy`]: LERF's relevancy (Kerr et al., ICCV 2023, eq. 1, with the
+//!   reference implementation's temperature τ = 10) against the canonical negatives
+//!   [`CANONICAL_NEGATIVES`]: `r_k = min_i exp(τ s_k) / (exp(τ s_k) + exp(τ n_ik))
+//!   = 1 / (1 + exp(τ (max_i n_ik − s_k)))` with `n_ik = cos(E_k, φ_canon_i)`
+//!   ([`scan::lerf_relevancy`]); 0.5 means "as close to the prompt as to the closest negative",
 //!   default threshold [`RELEVANCY_THRESHOLD`].
 //!
 //! The answer lists the best `top_k` matches (Gaussian id, world position, score) and a summary of
@@ -305,21 +306,6 @@ pub struct Timings {
     pub scan: f64,
 }
 
-/// Per-Gaussian score from the `Q` dot products of one row: `dots[0]` is the prompt; in
-/// relevancy mode `dots[1..]` are the canonical negatives.
-fn relevancy(dots: &[f32]) -> f32 {
-    let pos = dots[0];
-    let neg = dots[1..].iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    if neg == f32::NEG_INFINITY {
-        return 1.0;
-    }
-    1.0 / (1.0 + (neg - pos).exp())
-}
-
-fn cosine(dots: &[f32]) -> f32 {
-    dots[0]
-}
-
 /// Runs a validated query against `store`.
 ///
 /// `negatives` are the embeddings of [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw`
@@ -332,7 +318,7 @@ pub fn run_query(
     embedding_model: &str,
     text: &dyn TextEmbedder,
     negatives: &[Vec<f32>],
-    hnsw: Option<&scan::HnswIndex>,
+    hnsw: Option<&scan::hnsw::HnswIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
     let t0 = Instant::now();
@@ -353,11 +339,12 @@ pub fn run_query(
     let t_text = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
     let mut queries: Vec<&[f32]> = vec![&phi];
-    let combine: fn(&[f32]) -> f32 = match q.mode {
-        ScoreMode::Cosine => cosine,
+    let relevancy: scan::Combiner<'_> = &scan::lerf_relevancy;
+    let combine = match q.mode {
+        ScoreMode::Cosine => None,
         ScoreMode::Relevancy => {
             queries.extend(negatives.iter().map(Vec::as_slice));
-            relevancy
+            Some(relevancy)
         }
     };
     let bbox = q.bbox.map(|b| (b[0], b[1]));
@@ -374,8 +361,9 @@ pub fn run_query(
                 },
                 threshold: q.threshold,
                 bbox,
+                combine,
             };
-            scan::scan(store, &req, combine)?
+            scan::scan(store, &req)?
         }
         IndexKind::Hnsw => {
             let index = hnsw.ok_or_else(|| {
@@ -388,7 +376,13 @@ pub fn run_query(
                     "index=hnsw answers cosine queries only; use index=exact for relevancy".into(),
                 ));
             }
-            let mut hits = index.search(store, &phi, q.top_k)?;
+            if q.top_k > index.ef_search() {
+                return Err(Error::Invalid(format!(
+                    "index=hnsw answers top_k ≤ {} (its ef_search); ask fewer or use index=exact",
+                    index.ef_search()
+                )));
+            }
+            let mut hits = index.query(&phi, q.top_k)?;
             hits.retain(|h| {
                 q.threshold.is_none_or(|t| h.score >= t)
                     && bbox.is_none_or(|(lo, hi)| {
@@ -416,8 +410,9 @@ pub fn run_query(
             top_k: Some(1),
             threshold: None,
             bbox,
+            combine,
         };
-        scan::scan(store, &req, combine)?.first().map(|h| h.score)
+        scan::scan(store, &req)?.first().map(|h| h.score)
     } else {
         None
     };
@@ -518,17 +513,18 @@ mod tests {
 
     #[test]
     fn relevancy_matches_lerf_formula() {
-        // Independent form: min over negatives of the pairwise softmax.
+        // Independent form: min over negatives of the pairwise softmax at temperature 10.
         let dots = [0.3f32, 0.1, 0.25, -0.2, 0.2];
+        let e = |x: f32| (10.0 * x).exp();
         let want = dots[1..]
             .iter()
-            .map(|n| dots[0].exp() / (dots[0].exp() + n.exp()))
+            .map(|&n| e(dots[0]) / (e(dots[0]) + e(n)))
             .fold(f32::INFINITY, f32::min);
-        assert!((relevancy(&dots) - want).abs() < 1e-6);
+        assert!((scan::lerf_relevancy(&dots) - want).abs() < 1e-6);
         // Prompt equal to the closest negative: exactly 0.5.
-        assert!((relevancy(&[0.4, 0.4, 0.0]) - 0.5).abs() < 1e-7);
+        assert!((scan::lerf_relevancy(&[0.4, 0.4, 0.0]) - 0.5).abs() < 1e-7);
         // Extremes stay finite and within (0, 1).
-        let r = relevancy(&[-1.0, 1.0]);
+        let r = scan::lerf_relevancy(&[-1.0, 1.0]);
         assert!(r > 0.0 && r < 0.5);
     }
 }

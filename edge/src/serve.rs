@@ -32,9 +32,14 @@ use slag_common::{Error, Result};
 
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
-use crate::scan::{HnswIndex, VectorStore};
+use crate::scan::VectorStore;
+use crate::scan::hnsw::HnswIndex;
 use crate::store::{EdgeStore, SceneLoad};
 
+/// HNSW build effort (`instant-distance` ef_construction).
+pub const HNSW_EF_CONSTRUCTION: usize = 100;
+/// HNSW search breadth; also the largest `top_k` the index answers.
+pub const HNSW_EF_SEARCH: usize = 1000;
 /// Most queries in one `POST /query`.
 pub const MAX_BATCH: usize = 64;
 /// Largest request body accepted.
@@ -59,12 +64,17 @@ impl Engine {
     /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
         let (manifest, shards, load) = edge.load_scene(scene)?;
-        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype);
+        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
         for s in shards {
             store.push_shard(s)?;
         }
         let hnsw = if hnsw && !store.is_empty() {
-            Some(HnswIndex::build(&store)?)
+            Some(HnswIndex::build(
+                &store,
+                HNSW_EF_CONSTRUCTION,
+                HNSW_EF_SEARCH,
+                0x51A6,
+            )?)
         } else {
             None
         };

@@ -105,8 +105,9 @@ fn reference(
             };
             let pos = dot(q);
             let score = if relevancy {
+                // LERF's pairwise softmax at temperature 10.
                 negs.iter()
-                    .map(|n| pos.exp() / (pos.exp() + dot(n).exp()))
+                    .map(|n| (10.0 * pos).exp() / ((10.0 * pos).exp() + (10.0 * dot(n)).exp()))
                     .fold(f64::INFINITY, f64::min)
             } else {
                 pos

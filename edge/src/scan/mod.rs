@@ -1,123 +1,309 @@
-//! TEMPORARY stand-in for the scan kernels (being written on branch `scan`); same API, naive code.
-#![allow(missing_docs)]
+//! Exact and approximate text-query scans over the robot's stored embeddings.
+//!
+//! - [`VectorStore`]: all stored rows (f32, f16 or int8, as fetched) with ids and means;
+//! - [`scan`]: the exact multi-threaded scan: `Q` query vectors (1 ≤ Q ≤ [`MAX_QUERIES`]) dotted
+//!   with every row in one pass over memory, scores combined per row (plain cosine for Q = 1, e.g.
+//!   [`lerf_relevancy`] for a positive prompt plus canonical negatives), then a top-k and/or
+//!   threshold selection (the paper's cosine ≥ 0.28 rule, SLAG Sec. IV) and an optional box on
+//!   the means;
+//! - [`naive_scan_f32`]: what a straightforward implementation does (scalar dot, all scores, full
+//!   sort), the benchmark baseline;
+//! - [`hnsw::HnswIndex`]: an approximate HNSW index (`instant-distance`) for comparison;
+//! - [`mod@bench`]: the scan benchmark ([`run_bench`]).
+//!
+//! Memory: a scan allocates only per-thread selection state (O(k) for top-k) and its output; it
+//! never copies or dequantises the store.
 
-use slag_common::shards::{Dtype, StoredShard, StoredVectors};
-use slag_common::{Error, Result};
+pub mod bench;
+pub mod hnsw;
+mod kernels;
+pub mod select;
+mod store;
 
-pub struct VectorStore {
-    dim: usize,
-    dtype: Dtype,
-    ids: Vec<u32>,
-    means: Vec<[f32; 3]>,
-    vectors: Vec<f32>,
-}
+use rayon::prelude::*;
+use slag_common::Error;
+use slag_common::shards::StoredVectors;
 
-impl VectorStore {
-    pub fn new(dim: usize, dtype: Dtype) -> Self {
-        VectorStore {
-            dim,
-            dtype,
-            ids: vec![],
-            means: vec![],
-            vectors: vec![],
-        }
-    }
-    pub fn push_shard(&mut self, s: StoredShard) -> Result<()> {
-        if s.header.dim as usize != self.dim || s.vectors.dtype() != self.dtype {
-            return Err(Error::Invalid("dim/dtype mismatch".into()));
-        }
-        self.vectors.extend(s.vectors.to_f32(self.dim));
-        self.ids.extend(s.ids);
-        self.means.extend(s.means);
-        let _ = StoredVectors::F32(vec![]);
-        Ok(())
-    }
-    pub fn dim(&self) -> usize {
-        self.dim
-    }
-    pub fn dtype(&self) -> Dtype {
-        self.dtype
-    }
-    pub fn len(&self) -> usize {
-        self.ids.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.ids.is_empty()
-    }
-    pub fn ids(&self) -> &[u32] {
-        &self.ids
-    }
-    pub fn means(&self) -> &[[f32; 3]] {
-        &self.means
-    }
-    pub fn memory_bytes(&self) -> usize {
-        self.vectors.len() * 4 + self.ids.len() * 16
-    }
-}
+pub use bench::{BenchArgs, run_bench};
+pub use kernels::{MAX_QUERIES, avx2_fma_available};
+pub use select::{Hit, TopK};
+pub use store::VectorStore;
 
+pub use kernels::{SimdLevel, simd_level};
+
+/// Rows handed to one rayon task (a few hundred KiB to 4 MiB of rows at D = 512).
+const CHUNK_ROWS: usize = 2048;
+
+/// Combines the `Q` dot products of one row (`[Q]`, in the order of
+/// [`ScanRequest::queries`]) into the row's score.
+pub type Combiner<'a> = &'a (dyn Fn(&[f32]) -> f32 + Sync);
+
+/// One scan: which queries, how to combine them, which rows to keep.
+#[derive(Clone, Copy)]
 pub struct ScanRequest<'a> {
+    /// `Q` query vectors, each `[D]`, 1 ≤ Q ≤ [`MAX_QUERIES`]. Used as given (not normalised):
+    /// pass unit vectors to get cosines. A zero query gives score 0 for every row.
     pub queries: &'a [&'a [f32]],
+    /// Keep at most this many best rows (`Some(0)` keeps none).
     pub top_k: Option<usize>,
+    /// Keep rows whose combined score is `>= threshold` (e.g. the paper's 0.28). `+inf` keeps
+    /// nothing, `-inf` keeps every row; NaN is rejected.
     pub threshold: Option<f32>,
+    /// Keep only rows whose mean lies in the closed box `(min, max)` (world frame, scene units).
     pub bbox: Option<([f32; 3], [f32; 3])>,
+    /// Score of a row from its `Q` dot products. `None`: the dot product itself (Q = 1 only).
+    pub combine: Option<Combiner<'a>>,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Hit {
-    pub row: usize,
-    pub score: f32,
+impl<'a> ScanRequest<'a> {
+    /// The `k` rows with the highest cosine to one query.
+    pub fn top_k(query: &'a [&'a [f32]], k: usize) -> Self {
+        ScanRequest {
+            queries: query,
+            top_k: Some(k),
+            threshold: None,
+            bbox: None,
+            combine: None,
+        }
+    }
+    /// All rows with cosine `>= threshold` to one query.
+    pub fn threshold(query: &'a [&'a [f32]], threshold: f32) -> Self {
+        ScanRequest {
+            queries: query,
+            top_k: None,
+            threshold: Some(threshold),
+            bbox: None,
+            combine: None,
+        }
+    }
 }
 
-pub fn scan(
-    store: &VectorStore,
-    req: &ScanRequest<'_>,
-    combine: fn(&[f32]) -> f32,
-) -> Result<Vec<Hit>> {
-    let d = store.dim;
-    let mut hits = Vec::new();
-    let mut dots = vec![0f32; req.queries.len()];
-    for i in 0..store.len() {
-        if let Some((lo, hi)) = req.bbox {
-            let m = store.means[i];
-            if !(0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a]) {
-                continue;
+impl std::fmt::Debug for ScanRequest<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ScanRequest")
+            .field("queries", &self.queries.len())
+            .field("top_k", &self.top_k)
+            .field("threshold", &self.threshold)
+            .field("bbox", &self.bbox)
+            .field("combine", &self.combine.is_some())
+            .finish()
+    }
+}
+
+/// Temperature of LERF's pairwise softmax (LERF reference implementation: `softmax(10 · …)`).
+pub const LERF_TEMPERATURE: f32 = 10.0;
+
+/// LERF relevancy (Kerr et al. 2023, Eq. 1) from the dots `[positive, negative_1, …]`:
+/// `min_i exp(τ·p) / (exp(τ·p) + exp(τ·n_i)) = 1 / (1 + exp(τ·(max_i n_i − p)))`, τ =
+/// [`LERF_TEMPERATURE`]. In (0, 1); 0.5 means "as close to the prompt as to a canonical phrase".
+/// With no negatives it returns 1. Use as [`ScanRequest::combine`].
+pub fn lerf_relevancy(dots: &[f32]) -> f32 {
+    let Some((&p, negs)) = dots.split_first() else {
+        return 0.0;
+    };
+    let Some(worst) = negs.iter().copied().reduce(f32::max) else {
+        return 1.0;
+    };
+    1.0 / (1.0 + (LERF_TEMPERATURE * (worst - p)).exp())
+}
+
+/// Selection state of one rayon task.
+enum Acc {
+    Top(TopK),
+    All(Vec<Hit>),
+}
+
+impl Acc {
+    fn new(top_k: Option<usize>) -> Acc {
+        match top_k {
+            Some(k) => Acc::Top(TopK::new(k)),
+            None => Acc::All(Vec::new()),
+        }
+    }
+    fn merge(self, other: Acc) -> Acc {
+        match (self, other) {
+            (Acc::Top(a), Acc::Top(b)) => Acc::Top(a.merge(b)),
+            (Acc::All(mut a), Acc::All(mut b)) => {
+                if a.len() < b.len() {
+                    std::mem::swap(&mut a, &mut b);
+                }
+                a.append(&mut b);
+                Acc::All(a)
+            }
+            // Both sides are created from the same request.
+            (a, _) => a,
+        }
+    }
+    fn into_sorted(self) -> Vec<Hit> {
+        match self {
+            Acc::Top(t) => t.into_sorted(),
+            Acc::All(mut v) => {
+                v.sort_unstable_by(select::rank_cmp);
+                v
             }
         }
-        let row = &store.vectors[i * d..(i + 1) * d];
-        for (q, o) in req.queries.iter().zip(dots.iter_mut()) {
-            *o = row.iter().zip(q.iter()).map(|(a, b)| a * b).sum();
-        }
-        let s = combine(&dots);
-        if req.threshold.is_none_or(|t| s >= t) {
-            hits.push(Hit { row: i, score: s });
-        }
     }
-    hits.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.row.cmp(&b.row)));
-    if let Some(k) = req.top_k {
-        hits.truncate(k);
-    }
-    Ok(hits)
 }
 
-pub struct HnswIndex;
-impl HnswIndex {
-    pub fn build(_store: &VectorStore) -> Result<Self> {
-        Ok(HnswIndex)
+fn check_queries(dim: usize, queries: &[&[f32]]) -> Result<(), Error> {
+    if queries.is_empty() || queries.len() > MAX_QUERIES {
+        return Err(Error::Invalid(format!(
+            "{} query vectors given; a scan takes 1 to {MAX_QUERIES}",
+            queries.len()
+        )));
     }
-    pub fn search(&self, store: &VectorStore, q: &[f32], k: usize) -> Result<Vec<Hit>> {
-        let qs = [q];
-        scan(
-            store,
-            &ScanRequest {
-                queries: &qs,
-                top_k: Some(k),
-                threshold: None,
-                bbox: None,
-            },
-            |d| d[0],
-        )
+    for (i, q) in queries.iter().enumerate() {
+        if q.len() != dim {
+            return Err(Error::Invalid(format!(
+                "query {i} has {} components but the store's rows have dim {dim}; \
+                 encode the text with the model that produced the shards",
+                q.len()
+            )));
+        }
+        if q.iter().any(|x| !x.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "query {i} contains NaN or infinite values; re-encode the text"
+            )));
+        }
     }
-    pub fn memory_bytes(&self) -> usize {
-        0
-    }
+    Ok(())
 }
+
+/// Exact scan of every row (see the module doc): returns the selected rows, best first
+/// (higher score, then lower row), deterministic for any thread count.
+///
+/// Score of row `i`: `combine(&[q_0·x_i, …, q_{Q-1}·x_i])`, or `q_0·x_i` without a combiner,
+/// where `x_i` is the stored row dequantised (f16 → f32; int8 `q·scale`). Rows with a NaN score
+/// are never returned. Work: one pass over `store.vector_bytes()` on all rayon threads; memory:
+/// O(k) per task for top-k, plus the output.
+///
+/// Errors ([`Error::Invalid`], message says what to change): no queries or more than
+/// [`MAX_QUERIES`]; a query of the wrong width or with non-finite values; Q > 1 without a
+/// combiner; neither `top_k` nor `threshold` set (that would return the whole store); a NaN
+/// threshold; a box with a NaN bound or `min > max`.
+pub fn scan(store: &VectorStore, req: &ScanRequest<'_>) -> Result<Vec<Hit>, Error> {
+    check_queries(store.dim(), req.queries)?;
+    if req.queries.len() > 1 && req.combine.is_none() {
+        return Err(Error::Invalid(format!(
+            "{} queries need a score combiner (e.g. lerf_relevancy); pass one or scan one query",
+            req.queries.len()
+        )));
+    }
+    if req.top_k.is_none() && req.threshold.is_none() {
+        return Err(Error::Invalid(
+            "a scan needs top_k, threshold, or both (otherwise it returns every row)".into(),
+        ));
+    }
+    if req.threshold.is_some_and(f32::is_nan) {
+        return Err(Error::Invalid(
+            "threshold is NaN; pass a cosine such as 0.28".into(),
+        ));
+    }
+    if let Some((lo, hi)) = req.bbox
+        && (0..3).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a])
+    {
+        return Err(Error::Invalid(format!(
+            "box min {lo:?} max {hi:?} is empty or NaN; give min <= max on every axis"
+        )));
+    }
+    let q = req.queries;
+    Ok(match q.len() {
+        1 => scan_q::<1>(store, [q[0]], req),
+        2 => scan_q::<2>(store, [q[0], q[1]], req),
+        3 => scan_q::<3>(store, [q[0], q[1], q[2]], req),
+        4 => scan_q::<4>(store, [q[0], q[1], q[2], q[3]], req),
+        5 => scan_q::<5>(store, [q[0], q[1], q[2], q[3], q[4]], req),
+        6 => scan_q::<6>(store, [q[0], q[1], q[2], q[3], q[4], q[5]], req),
+        7 => scan_q::<7>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6]], req),
+        _ => scan_q::<8>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7]], req),
+    })
+}
+
+fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanRequest<'_>) -> Vec<Hit> {
+    let n = store.len();
+    let d = store.dim();
+    let means = store.means();
+    let bbox = req.bbox;
+    let thr = req.threshold;
+    let combine = req.combine;
+    let top_k = req.top_k;
+    if top_k == Some(0) || n == 0 {
+        return Vec::new();
+    }
+    let inside = |i: usize| match bbox {
+        None => true,
+        Some((lo, hi)) => {
+            let m = means[i];
+            (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
+        }
+    };
+    let offer = |acc: &mut Acc, i: usize, dots: &[f32; Q]| {
+        let s = match combine {
+            None => dots[0],
+            Some(f) => f(dots),
+        };
+        if let Some(t) = thr {
+            // NaN scores are dropped too.
+            if s.is_nan() || s < t {
+                return;
+            }
+        }
+        match acc {
+            Acc::Top(t) => t.push(i, s),
+            Acc::All(v) => {
+                if !s.is_nan() {
+                    v.push(Hit { row: i, score: s })
+                }
+            }
+        }
+    };
+    let chunks = n.div_ceil(CHUNK_ROWS);
+    (0..chunks)
+        .into_par_iter()
+        .fold(
+            || Acc::new(top_k),
+            |mut acc, c| {
+                let start = c * CHUNK_ROWS;
+                let end = (start + CHUNK_ROWS).min(n);
+                let mut sink = |i: usize, dots: &[f32; Q]| offer(&mut acc, i, dots);
+                kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &qs, &inside, &mut sink);
+                acc
+            },
+        )
+        .reduce(|| Acc::new(top_k), Acc::merge)
+        .into_sorted()
+}
+
+/// The baseline a user would write first: single thread, each row dequantised to a fresh `f32`
+/// vector ([`VectorStore::row_f32`]; borrowed as is for f32 stores), a scalar
+/// `iter().zip().map().sum()` dot, every score collected into an `[N]` vector, a full sort, then
+/// the first `top_k`. Same result order as [`scan`] (score desc, row asc).
+///
+/// Errors: [`Error::Invalid`] for a query of the wrong width or with non-finite values.
+pub fn naive_scan_f32(store: &VectorStore, query: &[f32], top_k: usize) -> Result<Vec<Hit>, Error> {
+    check_queries(store.dim(), &[query])?;
+    let d = store.dim();
+    let mut all: Vec<Hit> = Vec::with_capacity(store.len());
+    for i in 0..store.len() {
+        let score = match store.vectors() {
+            StoredVectors::F32(v) => v[i * d..(i + 1) * d]
+                .iter()
+                .zip(query)
+                .map(|(a, b)| a * b)
+                .sum::<f32>(),
+            _ => {
+                let row = store.row_f32(i).unwrap_or_default();
+                row.iter().zip(query).map(|(a, b)| a * b).sum::<f32>()
+            }
+        };
+        if !score.is_nan() {
+            all.push(Hit { row: i, score });
+        }
+    }
+    all.sort_by(select::rank_cmp);
+    all.truncate(top_k);
+    Ok(all)
+}
+
+#[cfg(test)]
+mod tests;

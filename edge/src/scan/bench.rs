@@ -1,0 +1,610 @@
+//! The scan benchmark behind `slag-edge bench`: exact scan vs memory-bandwidth floor vs the naive
+//! baseline, per store size and dtype, plus one HNSW row. All ratios come from one run on one
+//! machine.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use slag_common::shards::{Dtype, StoredVectors};
+
+use super::hnsw::HnswIndex;
+use super::kernels::{self, SimdLevel};
+use super::store::{normal, random_centres};
+use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan};
+
+/// Clusters of the synthetic store (directions; each query targets one of them).
+const CLUSTERS: usize = 64;
+
+/// Options of the scan benchmark (`slag-edge bench`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct BenchArgs {
+    /// Store sizes in Gaussians (suffix K = 1e3, M = 1e6), comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1M,2M,4M,8M", value_parser = parse_size)]
+    pub sizes: Vec<usize>,
+    /// Stored vector types to measure (f32, f16, i8), comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "f32,f16,i8")]
+    pub dtypes: Vec<Dtype>,
+    /// Embedding width D.
+    #[arg(long, default_value_t = 512)]
+    pub dim: usize,
+    /// k of the top-k queries.
+    #[arg(long, default_value_t = 1000)]
+    pub top_k: usize,
+    /// Cosine threshold of the threshold query (the paper's 0.28).
+    #[arg(long, default_value_t = 0.28)]
+    pub threshold: f32,
+    /// Timed runs per measurement (the median is reported); each run uses a different query.
+    #[arg(long, default_value_t = 5)]
+    pub queries: usize,
+    /// Rayon threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Skip any store (or index) that would need more than this many GB (1e9 bytes). Default:
+    /// 75 % of MemAvailable from /proc/meminfo (8 GB when it cannot be read).
+    #[arg(long)]
+    pub max_memory_gb: Option<f64>,
+    /// Seed of the synthetic store and queries.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Store size of the HNSW row (0 = no HNSW row). Build time grows ~N log N: on a 2-core
+    /// machine 1M × 512 takes well over ten minutes, so the default is 100K.
+    #[arg(long, default_value = "100K", value_parser = parse_size)]
+    pub hnsw_size: usize,
+    /// HNSW ef_construction.
+    #[arg(long, default_value_t = 100)]
+    pub hnsw_ef_construction: usize,
+    /// Skip the naive single-thread baseline for stores above this size (it is slow).
+    #[arg(long, default_value = "8M", value_parser = parse_size)]
+    pub naive_max: usize,
+}
+
+impl Default for BenchArgs {
+    fn default() -> Self {
+        BenchArgs {
+            sizes: vec![1_000_000, 2_000_000, 4_000_000, 8_000_000],
+            dtypes: vec![Dtype::F32, Dtype::F16, Dtype::I8],
+            dim: 512,
+            top_k: 1000,
+            threshold: 0.28,
+            queries: 5,
+            threads: None,
+            max_memory_gb: None,
+            seed: 1,
+            hnsw_size: 100_000,
+            hnsw_ef_construction: 100,
+            naive_max: 8_000_000,
+        }
+    }
+}
+
+/// Parses `1M`, `500K`, `2000000` into a count.
+fn parse_size(s: &str) -> Result<usize, String> {
+    let t = s.trim();
+    let (num, mul) = match t.chars().last() {
+        Some('k' | 'K') => (&t[..t.len() - 1], 1_000.0),
+        Some('m' | 'M') => (&t[..t.len() - 1], 1_000_000.0),
+        _ => (t, 1.0),
+    };
+    let v: f64 = num
+        .parse()
+        .map_err(|_| format!("size {s:?} is not a number like 1M, 500K or 2000000"))?;
+    if !(v >= 0.0 && v.is_finite()) {
+        return Err(format!("size {s:?} must be a non-negative number"));
+    }
+    Ok((v * mul).round() as usize)
+}
+
+fn mem_available_bytes() -> Option<f64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024.0)
+}
+
+fn cpu_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name") || l.starts_with("Model"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into())
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn fmt_size(n: usize) -> String {
+    if n >= 1_000_000 && n.is_multiple_of(1_000_000) {
+        format!("{}M", n / 1_000_000)
+    } else if n >= 1000 && n.is_multiple_of(1000) {
+        format!("{}K", n / 1000)
+    } else {
+        n.to_string()
+    }
+}
+
+fn dtype_name(d: Dtype) -> &'static str {
+    match d {
+        Dtype::F32 => "f32",
+        Dtype::F16 => "f16",
+        Dtype::I8 => "int8",
+    }
+}
+
+/// Wrapping sum of the bytes viewed as `u64` words (4 independent accumulators so the adds
+/// vectorise): a plain read of every byte, the floor any scan of them must pay.
+fn read_words(bytes: &[u8]) -> u64 {
+    let (head, words, tail) = bytemuck::pod_align_to::<u8, u64>(bytes);
+    let mut acc = [0u64; 4];
+    for c in words.chunks_exact(4) {
+        for l in 0..4 {
+            acc[l] = acc[l].wrapping_add(c[l]);
+        }
+    }
+    let rest = words.chunks_exact(4).remainder();
+    let edge = head.iter().chain(tail).map(|&b| b as u64).sum::<u64>();
+    acc.iter().chain(rest).fold(edge, |a, &b| a.wrapping_add(b))
+}
+
+/// The stored vector bytes of `store` (and int8 scales) as byte slices.
+fn vector_byte_slices(store: &VectorStore) -> Vec<&[u8]> {
+    match store.vectors() {
+        StoredVectors::F32(v) => vec![bytemuck::cast_slice(v)],
+        StoredVectors::F16(v) => vec![bytemuck::cast_slice(v)],
+        StoredVectors::I8 { q, scales } => {
+            vec![bytemuck::cast_slice(q), bytemuck::cast_slice(scales)]
+        }
+    }
+}
+
+/// Best-of-3 time (ms) of a parallel read of every vector byte, split in the scan's chunks.
+fn floor_ms(store: &VectorStore) -> f64 {
+    let chunk = (super::CHUNK_ROWS * store.dtype().bytes_per_vector(store.dim())).max(4096);
+    let slices = vector_byte_slices(store);
+    let mut best = f64::INFINITY;
+    let mut sink = 0u64;
+    for _ in 0..3 {
+        let t = Instant::now();
+        for s in &slices {
+            sink = sink.wrapping_add(
+                s.par_chunks(chunk)
+                    .map(read_words)
+                    .reduce(|| 0, u64::wrapping_add),
+            );
+        }
+        best = best.min(t.elapsed().as_secs_f64() * 1e3);
+    }
+    std::hint::black_box(sink);
+    best
+}
+
+/// Unit query `i`: cluster centre `i mod CLUSTERS` blended with noise (cos ≈ 0.9 to the centre),
+/// so the 0.28 threshold keeps roughly one cluster.
+fn make_query(centres: &[f32], dim: usize, i: usize, seed: u64) -> Vec<f32> {
+    let c = i % CLUSTERS;
+    let mut s = seed ^ 0x0005_1EE7 ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut q: Vec<f32> = centres[c * dim..(c + 1) * dim]
+        .iter()
+        .map(|&x| x + 0.5 * normal(&mut s) / (dim as f32).sqrt())
+        .collect();
+    let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
+    q.iter_mut().for_each(|x| *x /= n);
+    q
+}
+
+/// Random unit "canonical phrase" embeddings for the LERF rows.
+fn negatives(dim: usize, seed: u64) -> Vec<Vec<f32>> {
+    let mut s = seed ^ 0xBAD0;
+    (0..4)
+        .map(|_| {
+            let mut v: Vec<f32> = (0..dim).map(|_| normal(&mut s)).collect();
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            v.iter_mut().for_each(|x| *x /= n);
+            v
+        })
+        .collect()
+}
+
+struct Row {
+    size: usize,
+    dtype: Dtype,
+    bpg: usize,
+    gb: f64,
+    gen_s: f64,
+    floor: f64,
+    topk: f64,
+    thr: f64,
+    thr_hits: usize,
+    lerf: f64,
+    naive: Option<f64>,
+}
+
+/// Runs the benchmark (see [`BenchArgs`]) and returns a Markdown report: machine, settings, one
+/// table row per (size, dtype) and an HNSW table. Sizes or dtypes that would exceed the memory
+/// guard are listed as skipped, not attempted.
+///
+/// Columns: bytes/Gaussian (vectors + id + mean); floor = best-of-3 parallel read of the vector
+/// bytes; top-k / threshold / LERF = median wall time of `queries` exact scans (Q = 1, 1, 5);
+/// GB/s = vector bytes / time; ÷floor = scan time / floor time (1.0 = at the bandwidth floor);
+/// naive = single-thread [`naive_scan_f32`] on the f32 store of the same size (median of up to
+/// 3 runs); speed-up = naive / top-k.
+///
+/// Errors: invalid settings (dim 0, no sizes, bad thread count) or a scan error.
+pub fn run_bench(args: &BenchArgs) -> anyhow::Result<String> {
+    anyhow::ensure!(args.dim > 0, "--dim must be at least 1");
+    anyhow::ensure!(args.queries > 0, "--queries must be at least 1");
+    anyhow::ensure!(!args.sizes.is_empty(), "--sizes needs at least one size");
+    anyhow::ensure!(
+        args.threshold.is_finite(),
+        "--threshold must be a finite cosine"
+    );
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads.unwrap_or(0))
+        .build()?;
+    pool.install(|| run_inner(args))
+}
+
+fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
+    let dim = args.dim;
+    let limit = args
+        .max_memory_gb
+        .map(|g| g * 1e9)
+        .unwrap_or_else(|| mem_available_bytes().map_or(8e9, |m| 0.75 * m));
+    let centres = random_centres(dim, CLUSTERS, args.seed);
+    let qvecs: Vec<Vec<f32>> = (0..args.queries)
+        .map(|i| make_query(&centres, dim, i * 7 + 1, args.seed))
+        .collect();
+    let negs = negatives(dim, args.seed);
+    let mut dtypes = args.dtypes.clone();
+    dtypes.sort_by_key(|d| d.code()); // f32 first: the naive baseline runs on it.
+    dtypes.dedup();
+    let mut rows = Vec::new();
+    let mut skipped = Vec::new();
+    for &size in &args.sizes {
+        let mut naive: Option<f64> = None;
+        for &dtype in &dtypes {
+            let need = size as f64 * (dtype.bytes_per_vector(dim) + 16) as f64;
+            if need > limit {
+                skipped.push(format!(
+                    "{} {}: needs {:.1} GB > limit {:.1} GB",
+                    fmt_size(size),
+                    dtype_name(dtype),
+                    need / 1e9,
+                    limit / 1e9
+                ));
+                continue;
+            }
+            tracing::info!("bench: generating {} {}", fmt_size(size), dtype_name(dtype));
+            let t = Instant::now();
+            let store = VectorStore::synthetic(size, dim, dtype, CLUSTERS, args.seed)?;
+            let gen_s = t.elapsed().as_secs_f64();
+            let floor = floor_ms(&store);
+            let time_q =
+                |f: &dyn Fn(&[f32]) -> anyhow::Result<usize>| -> anyhow::Result<(f64, usize)> {
+                    let mut ts = Vec::new();
+                    let mut hits = Vec::new();
+                    for q in &qvecs {
+                        let t = Instant::now();
+                        hits.push(f(q)?);
+                        ts.push(t.elapsed().as_secs_f64() * 1e3);
+                    }
+                    Ok((
+                        median(ts),
+                        median(hits.iter().map(|&h| h as f64).collect()) as usize,
+                    ))
+                };
+            let (topk, _) = time_q(&|q| {
+                let qs = [q];
+                Ok(scan(&store, &ScanRequest::top_k(&qs, args.top_k))?.len())
+            })?;
+            let (thr, thr_hits) = time_q(&|q| {
+                let qs = [q];
+                Ok(scan(&store, &ScanRequest::threshold(&qs, args.threshold))?.len())
+            })?;
+            let lerf_fn: Combiner<'_> = &lerf_relevancy;
+            let (lerf, _) = time_q(&|q| {
+                let qs: [&[f32]; 5] = [q, &negs[0], &negs[1], &negs[2], &negs[3]];
+                let req = ScanRequest {
+                    queries: &qs,
+                    top_k: Some(args.top_k),
+                    threshold: None,
+                    bbox: None,
+                    combine: Some(lerf_fn),
+                };
+                Ok(scan(&store, &req)?.len())
+            })?;
+            if dtype == Dtype::F32 && size <= args.naive_max {
+                let runs = args.queries.min(3);
+                let mut ts = Vec::new();
+                for q in qvecs.iter().take(runs) {
+                    let t = Instant::now();
+                    std::hint::black_box(naive_scan_f32(&store, q, args.top_k)?);
+                    ts.push(t.elapsed().as_secs_f64() * 1e3);
+                }
+                naive = Some(median(ts));
+            }
+            rows.push(Row {
+                size,
+                dtype,
+                bpg: store.bytes_per_gaussian(),
+                gb: store.vector_bytes() as f64 / 1e9,
+                gen_s,
+                floor,
+                topk,
+                thr,
+                thr_hits,
+                lerf,
+                naive,
+            });
+        }
+    }
+
+    let mut out = String::new();
+    let threads = rayon::current_num_threads();
+    out.push_str(&format!(
+        "Machine: {} ({}), {} rayon threads, MemAvailable {:.1} GB, memory guard {:.1} GB\n\n",
+        cpu_name(),
+        std::env::consts::ARCH,
+        threads,
+        mem_available_bytes().unwrap_or(f64::NAN) / 1e9,
+        limit / 1e9
+    ));
+    out.push_str(&format!(
+        "SIMD level of the scans: {:?} (SLAG_SCAN_SIMD=baseline forces the portable loops).\n\n\
+         Settings: D = {dim}, top-k = {}, threshold = {}, {} timed queries (median), seed {}, \
+         {CLUSTERS}-cluster synthetic unit rows; LERF = 5 queries (prompt + 4 negatives) in one \
+         pass, top-k of lerf_relevancy.\n\n",
+        kernels::simd_level(),
+        args.top_k,
+        args.threshold,
+        args.queries,
+        args.seed
+    ));
+    out.push_str(
+        "| N | dtype | B/Gaussian | vectors GB | gen s | floor ms (GB/s) | top-k ms | GB/s | \
+         ÷floor | thr ms (hits) | LERF Q=5 ms | ÷floor | naive f32 ms (same N) | speed-up |\n",
+    );
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    for r in &rows {
+        let (naive_s, speed) = match r.naive {
+            Some(x) => (format!("{x:.0}"), format!("{:.1}×", x / r.topk)),
+            None => ("n/a".into(), "n/a".into()),
+        };
+        out.push_str(&format!(
+            "| {} | {} | {} | {:.2} | {:.1} | {:.1} ({:.1}) | {:.1} | {:.1} | {:.2} | {:.1} ({}) | \
+             {:.1} | {:.2} | {} | {} |\n",
+            fmt_size(r.size),
+            dtype_name(r.dtype),
+            r.bpg,
+            r.gb,
+            r.gen_s,
+            r.floor,
+            r.gb / (r.floor / 1e3),
+            r.topk,
+            r.gb / (r.topk / 1e3),
+            r.topk / r.floor,
+            r.thr,
+            r.thr_hits,
+            r.lerf,
+            r.lerf / r.floor,
+            naive_s,
+            speed
+        ));
+    }
+    if !skipped.is_empty() {
+        out.push_str("\nSkipped (memory guard): ");
+        out.push_str(&skipped.join("; "));
+        out.push('\n');
+    }
+
+    out.push('\n');
+    out.push_str(&kernel_table(args, &dtypes)?);
+    if args.hnsw_size > 0 {
+        out.push('\n');
+        out.push_str(&hnsw_row(args, &qvecs, limit)?);
+    }
+    Ok(out)
+}
+
+/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level`.
+fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: SimdLevel) -> f64 {
+    let mut sum = 0.0f32;
+    let keep = |_: usize| true;
+    let t = Instant::now();
+    let mut sink = |_: usize, d: &[f32; Q]| sum += d[0];
+    kernels::scan_chunk_at::<Q>(
+        level,
+        store.vectors(),
+        store.dim(),
+        0,
+        store.len(),
+        qs,
+        &keep,
+        &mut sink,
+    );
+    let e = t.elapsed().as_secs_f64();
+    std::hint::black_box(sum);
+    e
+}
+
+/// Single-thread kernel throughput on a cache-resident block (≈1 MiB of f32 rows), every
+/// dtype × Q ∈ {1, 5} × available [`SimdLevel`]: the compute ceiling, independent of DRAM.
+fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
+    let dim = args.dim;
+    let n = ((1usize << 20) / (4 * dim)).max(64);
+    let mut levels = vec![SimdLevel::Baseline];
+    if kernels::avx2_fma_available() {
+        levels.push(SimdLevel::Avx2Fma);
+    }
+    let centres = random_centres(dim, CLUSTERS, args.seed);
+    let qv: Vec<Vec<f32>> = (0..5)
+        .map(|i| make_query(&centres, dim, i, args.seed))
+        .collect();
+    let q1: [&[f32]; 1] = [&qv[0]];
+    let q5: [&[f32]; 5] = [&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]];
+    let mut out = format!(
+        "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n\
+         | dtype | Q | SIMD | ns/row | row GB/s |\n|---|---|---|---|---|\n"
+    );
+    for &dtype in dtypes {
+        let store = VectorStore::synthetic(n, dim, dtype, CLUSTERS, args.seed)?;
+        let bytes = store.vector_bytes() as f64;
+        for q in [1usize, 5] {
+            for &level in &levels {
+                let mut best = f64::INFINITY;
+                for _ in 0..5 {
+                    let mut t = 0.0;
+                    for _ in 0..20 {
+                        t += match q {
+                            1 => kernel_pass::<1>(&store, &q1, level),
+                            _ => kernel_pass::<5>(&store, &q5, level),
+                        };
+                    }
+                    best = best.min(t / 20.0);
+                }
+                out.push_str(&format!(
+                    "| {} | {q} | {level:?} | {:.1} | {:.1} |\n",
+                    dtype_name(dtype),
+                    best * 1e9 / n as f64,
+                    bytes / best / 1e9
+                ));
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<String> {
+    let n = args.hnsw_size;
+    let dim = args.dim;
+    // Store (f32) + the index's own f32 copy + graph (~300 B/node).
+    let need = n as f64 * (2.0 * (4 * dim) as f64 + 16.0 + 400.0);
+    if need > limit {
+        return Ok(format!(
+            "HNSW at {}: skipped, needs {:.1} GB > limit {:.1} GB\n",
+            fmt_size(n),
+            need / 1e9,
+            limit / 1e9
+        ));
+    }
+    let k = args.top_k;
+    let ef_search = k.max(100);
+    let store = VectorStore::synthetic(n, dim, Dtype::F32, CLUSTERS, args.seed)?;
+    tracing::info!("bench: building HNSW over {}", fmt_size(n));
+    let t = Instant::now();
+    let index = HnswIndex::build(&store, args.hnsw_ef_construction, ef_search, args.seed)?;
+    let build_s = t.elapsed().as_secs_f64();
+    let mut q_ms = Vec::new();
+    let mut exact_ms = Vec::new();
+    let mut recalls = Vec::new();
+    for q in qvecs {
+        let t = Instant::now();
+        let approx = index.query(q, k)?;
+        q_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        let qs = [q.as_slice()];
+        let t = Instant::now();
+        let exact = scan(&store, &ScanRequest::top_k(&qs, k))?;
+        exact_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        let want: std::collections::HashSet<usize> = exact.iter().map(|h| h.row).collect();
+        let found = approx.iter().filter(|h| want.contains(&h.row)).count();
+        recalls.push(found as f64 / want.len().max(1) as f64);
+    }
+    let mean_recall = recalls.iter().sum::<f64>() / recalls.len().max(1) as f64;
+    Ok(format!(
+        "| HNSW N | D | ef_construction | ef_search | build s | index bytes/Gaussian | query ms | \
+         exact f32 scan ms | recall@{k} (mean) |\n|---|---|---|---|---|---|---|---|---|\n\
+         | {} | {dim} | {} | {ef_search} | {build_s:.1} | {} | {:.2} | {:.1} | {:.3} |\n",
+        fmt_size(n),
+        args.hnsw_ef_construction,
+        index.memory_bytes() / n.max(1),
+        median(q_ms),
+        median(exact_ms),
+        mean_recall
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The benchmark from a test binary (the CLI lives in the lead's `main.rs`):
+    /// `SLAG_BENCH_ARGS="--sizes 1M,2M" cargo test --workspace --lib \
+    ///   --config 'profile.dev.package.slag-edge.opt-level=3' -- --ignored bench_from_env --nocapture`.
+    #[test]
+    #[ignore = "benchmark: generates gigabyte stores; run explicitly"]
+    fn bench_from_env() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            args: BenchArgs,
+        }
+        let extra = std::env::var("SLAG_BENCH_ARGS").unwrap_or_default();
+        let argv = std::iter::once("bench").chain(extra.split_whitespace());
+        let cli = Cli::try_parse_from(argv).expect("SLAG_BENCH_ARGS");
+        println!("{}", run_bench(&cli.args).expect("bench"));
+    }
+
+    #[test]
+    fn sizes_parse_with_suffixes() {
+        assert_eq!(parse_size("1M"), Ok(1_000_000));
+        assert_eq!(parse_size("500K"), Ok(500_000));
+        assert_eq!(parse_size("1.5M"), Ok(1_500_000));
+        assert_eq!(parse_size("42"), Ok(42));
+        assert!(parse_size("big").is_err());
+        assert!(parse_size("-1M").is_err());
+    }
+
+    #[test]
+    fn floor_read_sums_every_byte_once() {
+        let bytes: Vec<u8> = (0..1001u32).map(|i| (i % 251) as u8).collect();
+        // Word sum of the aligned middle + byte sum of the edges: compare against an
+        // independent split at every offset.
+        for off in 0..8 {
+            let s = &bytes[off..];
+            let (h, w, t) = bytemuck::pod_align_to::<u8, u64>(s);
+            let want = w
+                .iter()
+                .fold(0u64, |a, &b| a.wrapping_add(b))
+                .wrapping_add(h.iter().chain(t).map(|&b| b as u64).sum::<u64>());
+            assert_eq!(read_words(s), want);
+        }
+    }
+
+    #[test]
+    fn tiny_bench_produces_a_table() {
+        let args = BenchArgs {
+            sizes: vec![3000],
+            dim: 32,
+            top_k: 10,
+            queries: 2,
+            threads: Some(2),
+            hnsw_size: 500,
+            hnsw_ef_construction: 20,
+            ..BenchArgs::default()
+        };
+        let md = run_bench(&args).expect("bench");
+        assert!(md.contains("| 3K | f32 |"), "{md}");
+        assert!(md.contains("| 3K | f16 |"));
+        assert!(md.contains("| 3K | int8 |"));
+        assert!(md.contains("| 500 | 32 | 20 | 100 |"), "{md}");
+        let skipped = run_bench(&BenchArgs {
+            max_memory_gb: Some(1e-6),
+            hnsw_size: 0,
+            ..args
+        })
+        .expect("bench");
+        assert!(
+            skipped.contains("Skipped (memory guard): 3K f32"),
+            "{skipped}"
+        );
+    }
+}

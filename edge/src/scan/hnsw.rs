@@ -1,0 +1,241 @@
+//! Approximate nearest-neighbour index (HNSW, Malkov & Yashunin 2018) over a [`VectorStore`],
+//! built with the `instant-distance` crate, for comparison with the exact [`scan`](super::scan).
+//!
+//! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32 (unit rows, so
+//! ranking by distance is ranking by cosine). The index holds its own f32 copy of the rows
+//! (instant-distance keeps its points by value), so its memory is `N·D·4` bytes plus the graph:
+//! see [`HnswIndex::memory_bytes`].
+
+use std::sync::Arc;
+
+use instant_distance::{Builder, Hnsw, Point, Search};
+use slag_common::Error;
+
+use super::kernels::dots_f32;
+use super::{Hit, VectorStore};
+
+/// Neighbours per node in instant-distance 0.6 (`M`; layer 0 keeps `2·M`).
+const HNSW_M: usize = 32;
+
+/// One row as an instant-distance point: a shared matrix and a row index.
+#[derive(Clone, Debug)]
+struct RowPoint {
+    data: Arc<[f32]>,
+    row: u32,
+    dim: u32,
+}
+
+impl RowPoint {
+    fn slice(&self) -> &[f32] {
+        let d = self.dim as usize;
+        let r = self.row as usize;
+        self.data.get(r * d..(r + 1) * d).unwrap_or(&[])
+    }
+}
+
+impl Point for RowPoint {
+    fn distance(&self, other: &Self) -> f32 {
+        let mut out = [0.0f32; 1];
+        dots_f32::<1, false>(self.slice(), &[other.slice()], &mut out);
+        1.0 - out[0]
+    }
+}
+
+/// An HNSW graph over every row of a store (row indices refer to that store).
+pub struct HnswIndex {
+    hnsw: Hnsw<RowPoint>,
+    data: Arc<[f32]>,
+    dim: usize,
+    len: usize,
+    ef_search: usize,
+}
+
+impl std::fmt::Debug for HnswIndex {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("HnswIndex")
+            .field("len", &self.len)
+            .field("dim", &self.dim)
+            .field("ef_search", &self.ef_search)
+            .finish()
+    }
+}
+
+impl HnswIndex {
+    /// Builds the index over all rows of `store` (multi-threaded, rayon) with
+    /// `ef_construction` candidates per insertion and a fixed `ef_search` (instant-distance fixes
+    /// the search beam at build time; a query returns at most `ef_search` rows). `seed` makes the
+    /// layer assignment, and so the graph, reproducible.
+    ///
+    /// Errors: [`Error::Invalid`] for `ef_construction == 0`, `ef_search == 0`, or more than
+    /// `u32::MAX - 1` rows.
+    pub fn build(
+        store: &VectorStore,
+        ef_construction: usize,
+        ef_search: usize,
+        seed: u64,
+    ) -> Result<HnswIndex, Error> {
+        if ef_construction == 0 || ef_search == 0 {
+            return Err(Error::Invalid(
+                "HNSW ef_construction and ef_search must be at least 1 (typical: 100)".into(),
+            ));
+        }
+        let n = store.len();
+        if n >= u32::MAX as usize {
+            return Err(Error::Invalid(format!(
+                "{n} rows exceed the HNSW index limit of {} rows",
+                u32::MAX - 1
+            )));
+        }
+        let dim = store.dim();
+        let mut flat = Vec::with_capacity(n * dim);
+        for i in 0..n {
+            flat.extend(store.row_f32(i).unwrap_or_default());
+        }
+        let data: Arc<[f32]> = flat.into();
+        let points: Vec<RowPoint> = (0..n as u32)
+            .map(|row| RowPoint {
+                data: Arc::clone(&data),
+                row,
+                dim: dim as u32,
+            })
+            .collect();
+        let (hnsw, _) = Builder::default()
+            .ef_construction(ef_construction)
+            .ef_search(ef_search)
+            .seed(seed)
+            .build_hnsw(points);
+        Ok(HnswIndex {
+            hnsw,
+            data,
+            dim,
+            len: n,
+            ef_search,
+        })
+    }
+
+    /// Number of indexed rows.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+    /// `true` when the index holds no row.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+    /// The search beam fixed at build time.
+    pub fn ef_search(&self) -> usize {
+        self.ef_search
+    }
+
+    /// Approximately the `k` rows with the highest cosine to `query` (`[D]`), best first (score
+    /// = `query · row`, ties by row). Recall depends on `ef_search` and `ef_construction`.
+    ///
+    /// Errors: [`Error::Invalid`] for a query of the wrong width or with non-finite values, or
+    /// `k > ef_search` (rebuild with `ef_search >= k`).
+    pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
+        super::check_queries(self.dim, &[query])?;
+        if k > self.ef_search {
+            return Err(Error::Invalid(format!(
+                "HNSW top-{k} asked but the index was built with ef_search {}; \
+                 rebuild with ef_search >= {k}",
+                self.ef_search
+            )));
+        }
+        let q = RowPoint {
+            data: query.into(),
+            row: 0,
+            dim: self.dim as u32,
+        };
+        let mut search = Search::default();
+        let mut hits: Vec<Hit> = self
+            .hnsw
+            .search(&q, &mut search)
+            .map(|item| Hit {
+                row: item.point.row as usize,
+                score: 1.0 - item.distance,
+            })
+            .collect();
+        hits.sort_by(super::select::rank_cmp);
+        hits.truncate(k);
+        Ok(hits)
+    }
+
+    /// Bytes held by the index: the f32 copy of the rows (`N·D·4`), the point handles, and the
+    /// graph as laid out by instant-distance 0.6 (layer 0: `2·M` u32 links per node; each upper
+    /// layer `l`: `M` links for every node of layer ≥ `l`; M = 32). Excludes allocator slack.
+    pub fn memory_bytes(&self) -> usize {
+        let n = self.len;
+        let vectors = self.data.len() * 4;
+        let handles = n * std::mem::size_of::<RowPoint>();
+        let zero = n * 2 * HNSW_M * 4;
+        // Same layer sizing as instant-distance's `Hnsw::new` (ml = 1 / ln M).
+        let ml = 1.0 / (HNSW_M as f32).ln();
+        let mut upper_nodes = 0usize;
+        let mut num = n;
+        loop {
+            let next = (num as f32 * ml) as usize;
+            if next < HNSW_M {
+                break;
+            }
+            upper_nodes += next;
+            num = next;
+        }
+        vectors + handles + zero + upper_nodes * HNSW_M * 4
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scan::{ScanRequest, scan};
+    use slag_common::shards::Dtype;
+
+    #[test]
+    fn hnsw_recall_at_10_is_high_on_a_clustered_store() {
+        let store = VectorStore::synthetic(20_000, 64, Dtype::F32, 50, 11).expect("store");
+        let index = HnswIndex::build(&store, 100, 100, 3).expect("index");
+        assert_eq!(index.len(), 20_000);
+        assert!(index.memory_bytes() >= 20_000 * (64 * 4 + 256));
+        let mut found = 0usize;
+        let mut total = 0usize;
+        for qi in 0..30 {
+            // Queries: perturbed stored rows (near, not equal to, a row).
+            let mut q = store.row_f32(qi * 617).expect("row");
+            for (j, x) in q.iter_mut().enumerate() {
+                *x += 0.05 * (((j * 7 + qi) % 13) as f32 / 13.0 - 0.5);
+            }
+            let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
+            q.iter_mut().for_each(|x| *x /= n);
+            let qs: [&[f32]; 1] = [&q];
+            let exact = scan(&store, &ScanRequest::top_k(&qs, 10)).expect("scan");
+            let approx = index.query(&q, 10).expect("query");
+            assert_eq!(approx.len(), 10);
+            for h in &approx {
+                let r = store.row_f32(h.row).expect("row");
+                let dot: f32 = r.iter().zip(&q).map(|(a, b)| a * b).sum();
+                assert!((dot - h.score).abs() < 1e-4, "hnsw score is the cosine");
+            }
+            total += exact.len();
+            found += approx
+                .iter()
+                .filter(|h| exact.iter().any(|e| e.row == h.row))
+                .count();
+        }
+        let recall = found as f64 / total as f64;
+        assert!(recall >= 0.9, "recall@10 {recall}");
+    }
+
+    #[test]
+    fn hnsw_rejects_bad_parameters() {
+        let store = VectorStore::synthetic(100, 8, Dtype::F16, 3, 1).expect("store");
+        assert!(matches!(
+            HnswIndex::build(&store, 0, 10, 1),
+            Err(Error::Invalid(_))
+        ));
+        let index = HnswIndex::build(&store, 20, 10, 1).expect("index");
+        assert!(matches!(index.query(&[0.0; 8], 11), Err(Error::Invalid(_))));
+        assert!(matches!(index.query(&[0.0; 7], 5), Err(Error::Invalid(_))));
+        let empty = VectorStore::new(8, Dtype::F32).expect("store");
+        let e = HnswIndex::build(&empty, 20, 10, 1).expect("index");
+        assert!(e.query(&[0.1; 8], 5).expect("query").is_empty());
+    }
+}

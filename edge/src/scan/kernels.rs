@@ -1,0 +1,454 @@
+//! Inner loops: dot products of `Q` query vectors (1 ≤ Q ≤ [`MAX_QUERIES`]) with one stored row,
+//! for `f32`, `f16` and symmetric-int8 rows.
+//!
+//! Every kernel is written so that LLVM vectorises it without intrinsics: one dot product walks
+//! the row in fixed-size array blocks of [`LANES`] values into [`LANES`] independent accumulators
+//! (4 AVX2 / 8 SSE-NEON registers), reduced once at the end. A row is fetched from DRAM once per
+//! scan; for `Q > 1` the other `Q - 1` dot products re-read it from L1 (f16/int8 rows are first
+//! converted per [`BLOCK`] into a stack buffer, so conversion is paid once), which is what makes a
+//! LERF query (positive + 4 canonical negatives) cost one pass over memory.
+//!
+//! - `f32`: multiply-add (fused on aarch64 and in the AVX2 path).
+//! - `f16`: converted per block into a stack buffer: with `half`'s
+//!   [`convert_to_f32_slice`](half::slice::HalfFloatSliceExt::convert_to_f32_slice) (F16C on
+//!   x86_64 / FP16 on aarch64, detected at run time) in the portable path, with inlined F16C
+//!   `vcvtph2ps` (8 values per instruction) in the AVX2 path.
+//! - `int8`: `q as f32 · query` accumulated, the per-row scale applied once at the end
+//!   (`dot = scale · Σ q_j x_j`).
+//!
+//! Dispatch ([`scan_chunk`]): on x86_64 CPUs with AVX2 + FMA the loops are compiled a second time
+//! with those features enabled and selected at run time ([`simd_level`]); elsewhere the build
+//! target's baseline is used (aarch64 baseline already has NEON and FMA).
+//!
+//! Accumulation order differs from a sequential sum (32 partial sums), so results differ from a
+//! scalar `f64` reference by normal `f32` rounding only (≈1e-6 relative for D = 512).
+
+use half::f16;
+use half::slice::HalfFloatSliceExt;
+use slag_common::shards::StoredVectors;
+
+/// Independent accumulators of one dot product (4 AVX2 registers, 8 SSE/NEON registers): enough
+/// parallel chains to hide the add/FMA latency.
+pub const LANES: usize = 32;
+/// Largest number of queries scored in one pass.
+pub const MAX_QUERIES: usize = 8;
+/// Values of a row converted to f32 per block (a 1 KiB stack buffer, stays in L1).
+pub const BLOCK: usize = 256;
+
+/// `a · b + c`, fused (one rounding) when `FMA` (only instantiated where the CPU has FMA:
+/// otherwise `mul_add` would be a libm call).
+#[inline(always)]
+fn madd<const FMA: bool>(a: f32, b: f32, c: f32) -> f32 {
+    if FMA { a.mul_add(b, c) } else { c + a * b }
+}
+
+/// `Σ_j conv(x[j]) · y[j]` over `min(x.len(), y.len())` values with [`LANES`] accumulators.
+///
+/// Written for LLVM's loop vectoriser: fixed-size array blocks (`as_chunks`), one flat
+/// accumulator array, a plain sum at the end (a pairwise reduction tree here makes LLVM fall
+/// back to 2-wide vectors).
+#[inline(always)]
+fn dot_conv<T: Copy, const FMA: bool>(x: &[T], y: &[f32], conv: impl Fn(T) -> f32) -> f32 {
+    let n = x.len().min(y.len());
+    let (xb, xr) = x[..n].as_chunks::<LANES>();
+    let (yb, yr) = y[..n].as_chunks::<LANES>();
+    let mut a = [0.0f32; LANES];
+    for (r, q) in xb.iter().zip(yb) {
+        for l in 0..LANES {
+            a[l] = madd::<FMA>(conv(r[l]), q[l], a[l]);
+        }
+    }
+    let mut t = 0.0f32;
+    for (&r, &q) in xr.iter().zip(yr) {
+        t = madd::<FMA>(conv(r), q, t);
+    }
+    a.iter().sum::<f32>() + t
+}
+
+/// Accumulators per query in the multi-query loop ([`LANES_MULTI`] · Q ≤ 128 floats: 16 AVX2
+/// registers at Q = 8).
+pub const LANES_MULTI: usize = 16;
+
+/// `out[q] += Σ_j x[j] · qs[q][off + j]` for all `Q` queries in one sweep over `x`: each block of
+/// `x` is loaded once and multiplied into `Q` accumulator arrays (`std::array::from_fn` keeps
+/// them as whole vectors for LLVM).
+#[inline(always)]
+fn dots_multi<const Q: usize, const FMA: bool>(
+    x: &[f32],
+    qs: &[&[f32]; Q],
+    off: usize,
+    out: &mut [f32],
+) {
+    const W: usize = LANES_MULTI;
+    let n = x.len();
+    let (xb, xr) = x.as_chunks::<W>();
+    let mut qb: [&[[f32; W]]; Q] = [&[]; Q];
+    let mut qt: [&[f32]; Q] = [&[]; Q];
+    for q in 0..Q {
+        let (b, t) = qs[q][off..off + n].as_chunks::<W>();
+        qb[q] = b;
+        qt[q] = t;
+    }
+    let mut acc = [[0.0f32; W]; Q];
+    for (c, r) in xb.iter().enumerate() {
+        for q in 0..Q {
+            let y = &qb[q][c];
+            let a = &mut acc[q];
+            *a = std::array::from_fn(|l| madd::<FMA>(r[l], y[l], a[l]));
+        }
+    }
+    for q in 0..Q {
+        let mut t = 0.0f32;
+        for (&v, &y) in xr.iter().zip(qt[q]) {
+            t = madd::<FMA>(v, y, t);
+        }
+        out[q] += acc[q].iter().sum::<f32>() + t;
+    }
+}
+
+/// Dot products of one `f32` row with `Q` queries: `out[q] = Σ_j row[j] · qs[q][j]`
+/// (fused multiply-add when `FMA`), the row read once.
+///
+/// Shapes: `row.len() == qs[q].len() == D`, `out.len() >= Q`.
+#[inline(always)]
+pub fn dots_f32<const Q: usize, const FMA: bool>(row: &[f32], qs: &[&[f32]; Q], out: &mut [f32]) {
+    if Q == 1 {
+        out[0] = dot_conv::<f32, FMA>(row, qs[0], |x| x);
+    } else {
+        out[..Q].fill(0.0);
+        dots_multi::<Q, FMA>(row, qs, 0, out);
+    }
+}
+
+/// Dot products of one IEEE-half row with `Q` f32 queries: the row is converted in blocks of
+/// [`BLOCK`] values into `buf` by `convert(src, dst)` (equal lengths; e.g.
+/// [`convert_f16_portable`]), then the f32 loop runs on the buffer for every query.
+///
+/// Shapes: `row.len() == qs[q].len() == D`, `out.len() >= Q`.
+#[inline(always)]
+pub fn dots_f16<const Q: usize, const FMA: bool>(
+    row: &[f16],
+    qs: &[&[f32]; Q],
+    buf: &mut [f32; BLOCK],
+    out: &mut [f32],
+    convert: impl Fn(&[f16], &mut [f32]),
+) {
+    out[..Q].fill(0.0);
+    let mut off = 0;
+    for block in row.chunks(BLOCK) {
+        let b = &mut buf[..block.len()];
+        convert(block, b);
+        if Q == 1 {
+            out[0] += dot_conv::<f32, FMA>(b, &qs[0][off..], |x| x);
+        } else {
+            dots_multi::<Q, FMA>(b, qs, off, out);
+        }
+        off += block.len();
+    }
+}
+
+/// Converts f16 values to f32 (`src.len() == dst.len()`) with `half`'s slice conversion (F16C on
+/// x86_64 / FP16 on aarch64 when present at run time, exact software conversion otherwise).
+#[inline(always)]
+pub fn convert_f16_portable(src: &[f16], dst: &mut [f32]) {
+    src.convert_to_f32_slice(dst);
+}
+
+/// Dot products of one symmetric-int8 row (value `q_j · scale`) with `Q` f32 queries:
+/// `out[q] = scale · Σ_j q_j · qs[q][j]` (scale applied once per row). For Q > 1 the row is
+/// converted once per [`BLOCK`] into `buf` and reused by every query.
+///
+/// Shapes: `row.len() == qs[q].len() == D`, `out.len() >= Q`.
+#[inline(always)]
+pub fn dots_i8<const Q: usize, const FMA: bool>(
+    row: &[i8],
+    scale: f32,
+    qs: &[&[f32]; Q],
+    buf: &mut [f32; BLOCK],
+    out: &mut [f32],
+) {
+    if Q == 1 {
+        out[0] = scale * dot_conv::<i8, FMA>(row, qs[0], |x| x as f32);
+        return;
+    }
+    out[..Q].fill(0.0);
+    let mut off = 0;
+    for block in row.chunks(BLOCK) {
+        let b = &mut buf[..block.len()];
+        for (d, &x) in b.iter_mut().zip(block) {
+            *d = x as f32;
+        }
+        dots_multi::<Q, FMA>(b, qs, off, out);
+        off += block.len();
+    }
+    for o in &mut out[..Q] {
+        *o *= scale;
+    }
+}
+
+/// Row filter of a chunk scan: `true` keeps row `i` (global row index).
+pub type Keep<'a> = &'a dyn Fn(usize) -> bool;
+
+/// Scores rows `start..end` of `vectors` (`[N * d]` as stored) against `qs` and calls
+/// `sink(i, &dots)` for every row `i` with `keep(i)`. Portable body; `FMA` selects fused
+/// multiply-add (only where the CPU has it).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn chunk_impl<const Q: usize, const FMA: bool>(
+    vectors: &StoredVectors,
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &[&[f32]; Q],
+    keep: Keep<'_>,
+    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    convert: impl Fn(&[f16], &mut [f32]) + Copy,
+) {
+    let mut dots = [0.0f32; Q];
+    match vectors {
+        StoredVectors::F32(v) => {
+            for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
+                let i = start + r;
+                if keep(i) {
+                    dots_f32::<Q, FMA>(row, qs, &mut dots);
+                    sink(i, &dots);
+                }
+            }
+        }
+        StoredVectors::F16(v) => {
+            let mut buf = [0.0f32; BLOCK];
+            for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
+                let i = start + r;
+                if keep(i) {
+                    dots_f16::<Q, FMA>(row, qs, &mut buf, &mut dots, convert);
+                    sink(i, &dots);
+                }
+            }
+        }
+        StoredVectors::I8 { q, scales } => {
+            let mut buf = [0.0f32; BLOCK];
+            let rows = q[start * d..end * d].chunks_exact(d);
+            for (r, (row, &s)) in rows.zip(&scales[start..end]).enumerate() {
+                let i = start + r;
+                if keep(i) {
+                    dots_i8::<Q, FMA>(row, s, qs, &mut buf, &mut dots);
+                    sink(i, &dots);
+                }
+            }
+        }
+    }
+}
+
+/// Which instruction set the scan loops run with (see [`simd_level`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SimdLevel {
+    /// The build target's baseline, auto-vectorised (SSE2 on x86_64; NEON + FMA on aarch64).
+    Baseline,
+    /// x86_64 AVX2 + FMA + F16C, selected at run time.
+    Avx2Fma,
+}
+
+/// The level used by [`scan`](super::scan): AVX2 + FMA when the x86_64 CPU has both, unless the
+/// environment variable `SLAG_SCAN_SIMD=baseline` forces the portable loops (for measurements).
+/// Detected once per process.
+pub fn simd_level() -> SimdLevel {
+    static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
+    *LEVEL.get_or_init(|| {
+        if std::env::var("SLAG_SCAN_SIMD").is_ok_and(|v| v.eq_ignore_ascii_case("baseline")) {
+            return SimdLevel::Baseline;
+        }
+        if avx2_fma_available() {
+            SimdLevel::Avx2Fma
+        } else {
+            SimdLevel::Baseline
+        }
+    })
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,f16c")]
+fn chunk_avx2<const Q: usize>(
+    vectors: &StoredVectors,
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &[&[f32]; Q],
+    keep: Keep<'_>,
+    sink: &mut dyn FnMut(usize, &[f32; Q]),
+) {
+    use std::arch::x86_64::{__m128i, __m256, _mm256_cvtph_ps};
+    // F16C: 8 halves per instruction (this closure inherits the function's target features, so
+    // the intrinsic is safe to call; the casts are bytemuck's checked plain-data casts).
+    let f16c = |src: &[f16], dst: &mut [f32]| {
+        let (sb, sr) = src.as_chunks::<8>();
+        let (db, dr) = dst.as_chunks_mut::<8>();
+        for (s8, d8) in sb.iter().zip(db) {
+            let bits: [u16; 8] = bytemuck::cast(*s8);
+            let v: __m128i = bytemuck::cast(bits);
+            let f: __m256 = _mm256_cvtph_ps(v);
+            *d8 = bytemuck::cast(f);
+        }
+        for (s, d) in sr.iter().zip(dr) {
+            *d = s.to_f32();
+        }
+    };
+    chunk_impl::<Q, true>(vectors, d, start, end, qs, keep, sink, f16c)
+}
+
+/// Scores rows `start..end` (see the module doc) with the best available [`SimdLevel`] and
+/// calls `sink(i, &dots)` for every row `i` with `keep(i)`, in row order.
+///
+/// Shapes: `vectors` holds `[N * d]` values, `end <= N`, every `qs[q]` is `[d]`.
+pub fn scan_chunk<const Q: usize>(
+    vectors: &StoredVectors,
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &[&[f32]; Q],
+    keep: Keep<'_>,
+    sink: &mut dyn FnMut(usize, &[f32; Q]),
+) {
+    scan_chunk_at::<Q>(simd_level(), vectors, d, start, end, qs, keep, sink)
+}
+
+/// `true` when this CPU can run [`SimdLevel::Avx2Fma`].
+pub fn avx2_fma_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+            && std::arch::is_x86_feature_detected!("f16c")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// [`scan_chunk`] at an explicit level (benchmarks compare levels in one process). A level the
+/// CPU lacks falls back to [`SimdLevel::Baseline`].
+#[allow(clippy::too_many_arguments)]
+pub fn scan_chunk_at<const Q: usize>(
+    level: SimdLevel,
+    vectors: &StoredVectors,
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &[&[f32]; Q],
+    keep: Keep<'_>,
+    sink: &mut dyn FnMut(usize, &[f32; Q]),
+) {
+    #[cfg(target_arch = "x86_64")]
+    if level == SimdLevel::Avx2Fma && avx2_fma_available() {
+        // SAFETY: `chunk_avx2` only needs the AVX2 and FMA instructions, and
+        // `avx2_fma_available` just confirmed both on this CPU (`is_x86_feature_detected!`).
+        // This is the crate's only unsafe: calling a `#[target_feature]` function.
+        #[allow(unsafe_code)]
+        unsafe {
+            chunk_avx2::<Q>(vectors, d, start, end, qs, keep, sink)
+        };
+        return;
+    }
+    let _ = level;
+    // aarch64 always has FMA (and NEON); elsewhere plain multiply + add. f16 rows go through
+    // `half`'s run-time-detected slice conversion (F16C / FP16) here.
+    const FMA: bool = cfg!(target_arch = "aarch64");
+    chunk_impl::<Q, FMA>(vectors, d, start, end, qs, keep, sink, convert_f16_portable)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lcg(seed: &mut u64) -> f32 {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        ((*seed >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+    }
+
+    fn ref_dot(a: impl Iterator<Item = f64>, b: &[f32]) -> f64 {
+        a.zip(b).map(|(x, &y)| x * y as f64).sum()
+    }
+
+    #[test]
+    fn every_simd_level_gives_the_same_dots() {
+        use crate::scan::VectorStore;
+        use slag_common::shards::Dtype;
+        let d = 45;
+        let mut s = 3u64;
+        let qv: Vec<Vec<f32>> = (0..5)
+            .map(|_| (0..d).map(|_| lcg(&mut s)).collect())
+            .collect();
+        let qs: [&[f32]; 5] = [&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]];
+        for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+            let store = VectorStore::synthetic(300, d, dtype, 4, 2).expect("store");
+            let keep = |i: usize| i % 7 != 3;
+            let mut per_level = Vec::new();
+            for level in [SimdLevel::Baseline, SimdLevel::Avx2Fma] {
+                let mut got: Vec<(usize, [f32; 5])> = Vec::new();
+                let mut sink = |i: usize, dots: &[f32; 5]| got.push((i, *dots));
+                scan_chunk_at::<5>(level, store.vectors(), d, 10, 300, &qs, &keep, &mut sink);
+                per_level.push(got);
+            }
+            assert_eq!(per_level[0].len(), (10..300).filter(|&i| keep(i)).count());
+            for ((ia, a), (ib, b)) in per_level[0].iter().zip(&per_level[1]) {
+                assert_eq!(ia, ib);
+                let row = store.row_f32(*ia).expect("row");
+                for q in 0..5 {
+                    let r: f64 = row
+                        .iter()
+                        .zip(&qv[q])
+                        .map(|(&x, &y)| x as f64 * y as f64)
+                        .sum();
+                    assert!((a[q] as f64 - r).abs() < 1e-5, "{dtype:?} baseline");
+                    assert!((b[q] as f64 - r).abs() < 1e-5, "{dtype:?} simd");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn kernels_match_f64_reference_for_odd_widths() {
+        let mut s = 7u64;
+        // Widths around the lane and block boundaries.
+        for d in [1usize, 3, 15, 16, 17, 31, 64, 255, 256, 257, 600] {
+            let row: Vec<f32> = (0..d).map(|_| lcg(&mut s)).collect();
+            let qv: Vec<Vec<f32>> = (0..3)
+                .map(|_| (0..d).map(|_| lcg(&mut s)).collect())
+                .collect();
+            let qs: [&[f32]; 3] = [&qv[0], &qv[1], &qv[2]];
+            let mut out = [0.0f32; 3];
+            dots_f32::<3, false>(&row, &qs, &mut out);
+            for q in 0..3 {
+                let r = ref_dot(row.iter().map(|&x| x as f64), &qv[q]);
+                assert!(
+                    (out[q] as f64 - r).abs() < 1e-5 * d as f64,
+                    "f32 d={d} q={q}"
+                );
+            }
+            let h: Vec<f16> = row.iter().map(|&x| f16::from_f32(x)).collect();
+            let mut buf = [0.0f32; BLOCK];
+            {
+                dots_f16::<3, false>(&h, &qs, &mut buf, &mut out, convert_f16_portable);
+                for q in 0..3 {
+                    let r = ref_dot(h.iter().map(|x| x.to_f32() as f64), &qv[q]);
+                    assert!(
+                        (out[q] as f64 - r).abs() < 1e-5 * d as f64,
+                        "f16 d={d} q={q}"
+                    );
+                }
+            }
+            let i: Vec<i8> = row.iter().map(|&x| (x * 127.0).round() as i8).collect();
+            let scale = 0.01f32;
+            dots_i8::<3, false>(&i, scale, &qs, &mut buf, &mut out);
+            for q in 0..3 {
+                let r = scale as f64 * ref_dot(i.iter().map(|&x| x as f64), &qv[q]);
+                assert!(
+                    (out[q] as f64 - r).abs() < 1e-5 * d as f64,
+                    "i8 d={d} q={q}"
+                );
+            }
+        }
+    }
+}

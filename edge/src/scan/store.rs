@@ -1,0 +1,372 @@
+//! [`VectorStore`]: every stored row in one matrix, in the shard's stored type.
+
+use half::f16;
+use half::slice::HalfFloatSliceExt;
+use rayon::prelude::*;
+use slag_common::Error;
+use slag_common::shards::format::quantize_i8;
+use slag_common::shards::{Dtype, StoredShard, StoredVectors};
+
+/// All embedding rows held by the robot, concatenated shard after shard, kept in the stored type
+/// (no f32 copy): `f32` = 4 B per value, `f16` = 2 B per value, `int8` = 1 B per value + one
+/// `f32` scale per row (value = `q · scale`, [`quantize_i8`]).
+///
+/// Row `i` describes the Gaussian `ids()[i]` (index in the source `.ply`) centred at `means()[i]`
+/// (world frame, scene units). Rows are expected to be (approximately) unit L2 norm, as written
+/// by the encoder, so a dot product with a unit query is the cosine similarity.
+#[derive(Debug, Clone)]
+pub struct VectorStore {
+    dim: usize,
+    ids: Vec<u32>,
+    means: Vec<[f32; 3]>,
+    vectors: StoredVectors,
+}
+
+fn empty_vectors(dtype: Dtype) -> StoredVectors {
+    match dtype {
+        Dtype::F32 => StoredVectors::F32(Vec::new()),
+        Dtype::F16 => StoredVectors::F16(Vec::new()),
+        Dtype::I8 => StoredVectors::I8 {
+            q: Vec::new(),
+            scales: Vec::new(),
+        },
+    }
+}
+
+fn dtype_name(d: Dtype) -> &'static str {
+    match d {
+        Dtype::F32 => "f32",
+        Dtype::F16 => "f16",
+        Dtype::I8 => "int8",
+    }
+}
+
+impl VectorStore {
+    /// An empty store of `dim`-wide rows stored as `dtype`.
+    ///
+    /// Errors: [`Error::Invalid`] when `dim == 0`.
+    pub fn new(dim: usize, dtype: Dtype) -> Result<VectorStore, Error> {
+        if dim == 0 {
+            return Err(Error::Invalid(
+                "vector store dim is 0; pass the embedding width of the shards (e.g. 512)".into(),
+            ));
+        }
+        Ok(VectorStore {
+            dim,
+            ids: Vec::new(),
+            means: Vec::new(),
+            vectors: empty_vectors(dtype),
+        })
+    }
+
+    /// Appends every row of a decoded shard (vectors moved, not converted).
+    ///
+    /// Errors: [`Error::Invalid`] when the shard's dim or dtype differ from the store's (both are
+    /// named; fetch shards of one encoding into one store), or its arrays disagree with its
+    /// Gaussian count. The store is unchanged on error.
+    pub fn push_shard(&mut self, shard: StoredShard) -> Result<(), Error> {
+        let h = &shard.header;
+        let n = shard.ids.len();
+        if h.dim as usize != self.dim {
+            return Err(Error::Invalid(format!(
+                "shard (tile {}) has embedding dim {} but the store holds dim {}; \
+                 use one embedding model for all shards of a store",
+                h.tile_id, h.dim, self.dim
+            )));
+        }
+        let sd = shard.vectors.dtype();
+        if sd != self.dtype() {
+            return Err(Error::Invalid(format!(
+                "shard (tile {}) stores {} vectors but the store holds {}; \
+                 fetch shards of one dtype or open a store of dtype {}",
+                h.tile_id,
+                dtype_name(sd),
+                dtype_name(self.dtype()),
+                dtype_name(sd)
+            )));
+        }
+        let values_ok = shard.vectors.values() == n * self.dim;
+        let scales_ok = match &shard.vectors {
+            StoredVectors::I8 { scales, .. } => scales.len() == n,
+            _ => true,
+        };
+        if shard.means.len() != n || !values_ok || !scales_ok {
+            return Err(Error::Invalid(format!(
+                "shard (tile {}) is inconsistent: {} ids, {} means, {} vector values for dim {}; \
+                 re-download it",
+                h.tile_id,
+                n,
+                shard.means.len(),
+                shard.vectors.values(),
+                self.dim
+            )));
+        }
+        self.ids.extend_from_slice(&shard.ids);
+        self.means.extend_from_slice(&shard.means);
+        match (&mut self.vectors, shard.vectors) {
+            (StoredVectors::F32(a), StoredVectors::F32(b)) => a.extend_from_slice(&b),
+            (StoredVectors::F16(a), StoredVectors::F16(b)) => a.extend_from_slice(&b),
+            (StoredVectors::I8 { q, scales }, StoredVectors::I8 { q: bq, scales: bs }) => {
+                q.extend_from_slice(&bq);
+                scales.extend_from_slice(&bs);
+            }
+            // Unreachable: dtypes were compared above; kept as an error, not a panic.
+            _ => return Err(Error::Invalid("internal dtype mismatch".into())),
+        }
+        Ok(())
+    }
+
+    /// Appends rows given as `f32` (`vectors` is `[n * dim]` row-major), converting them to the
+    /// store's dtype exactly as the shard encoder does (f16 round-to-nearest, [`quantize_i8`]).
+    ///
+    /// Errors: [`Error::Invalid`] when `ids`, `means` and `vectors` disagree in length, or a
+    /// value is not finite.
+    pub fn push_f32_rows(
+        &mut self,
+        ids: &[u32],
+        means: &[[f32; 3]],
+        vectors: &[f32],
+    ) -> Result<(), Error> {
+        let n = ids.len();
+        if means.len() != n || vectors.len() != n * self.dim {
+            return Err(Error::Invalid(format!(
+                "{} ids, {} means and {} vector values do not describe rows of dim {}",
+                n,
+                means.len(),
+                vectors.len(),
+                self.dim
+            )));
+        }
+        if vectors.iter().any(|x| !x.is_finite()) {
+            return Err(Error::Invalid(
+                "embedding rows contain NaN or infinite values; re-encode the scene".into(),
+            ));
+        }
+        match &mut self.vectors {
+            StoredVectors::F32(a) => a.extend_from_slice(vectors),
+            StoredVectors::F16(a) => a.extend(vectors.iter().map(|&x| f16::from_f32(x))),
+            StoredVectors::I8 { q, scales } => {
+                let mut bytes = Vec::with_capacity(self.dim);
+                for row in vectors.chunks_exact(self.dim) {
+                    bytes.clear();
+                    scales.push(quantize_i8(row, &mut bytes));
+                    q.extend(bytes.iter().map(|&b| b as i8));
+                }
+            }
+        }
+        self.ids.extend_from_slice(ids);
+        self.means.extend_from_slice(means);
+        Ok(())
+    }
+
+    /// Embedding width D.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+    /// Number of rows N.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+    /// `true` when no row is stored.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+    /// Storage type of the rows.
+    pub fn dtype(&self) -> Dtype {
+        self.vectors.dtype()
+    }
+    /// Source-`.ply` index of every row, `[N]`.
+    pub fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+    /// Centre of every row's Gaussian, `[N]`, world frame, scene units.
+    pub fn means(&self) -> &[[f32; 3]] {
+        &self.means
+    }
+    /// The rows as stored (`[N * D]` row-major; int8 with `[N]` scales).
+    pub fn vectors(&self) -> &StoredVectors {
+        &self.vectors
+    }
+
+    /// Bytes of the embedding rows (values plus int8 scales), not counting ids and means.
+    pub fn vector_bytes(&self) -> usize {
+        self.len() * self.dtype().bytes_per_vector(self.dim)
+    }
+
+    /// Bytes held by the store's live data: rows + ids (4 B) + means (12 B) per Gaussian.
+    /// Vector capacity slack beyond the length is not counted (it is at most what the last
+    /// shard appended).
+    pub fn memory_bytes(&self) -> usize {
+        self.vector_bytes() + self.len() * (4 + 12)
+    }
+
+    /// Bytes per Gaussian: `dtype.bytes_per_vector(dim) + 16` (id + mean).
+    pub fn bytes_per_gaussian(&self) -> usize {
+        self.dtype().bytes_per_vector(self.dim) + 16
+    }
+
+    /// Row `i` dequantised to `f32` (`[D]`), or `None` when `i >= len()`. For tests and index
+    /// building, not for the scan loop.
+    pub fn row_f32(&self, i: usize) -> Option<Vec<f32>> {
+        if i >= self.len() {
+            return None;
+        }
+        let d = self.dim;
+        let r = i * d..(i + 1) * d;
+        Some(match &self.vectors {
+            StoredVectors::F32(v) => v[r].to_vec(),
+            StoredVectors::F16(v) => v[r].iter().map(|h| h.to_f32()).collect(),
+            StoredVectors::I8 { q, scales } => {
+                let s = scales[i];
+                q[r].iter().map(|&b| b as f32 * s).collect()
+            }
+        })
+    }
+
+    /// A deterministic synthetic store for benchmarks and tests: `n` unit rows of width `dim` in
+    /// `clusters` directional clusters (row = normalise(centre + 0.75 · g / √D), g standard
+    /// normal, so cos(row, centre) ≈ 0.8), means uniform in a 100 m cube, ids `0..n`.
+    ///
+    /// Rows are generated in parallel (rayon) straight into the stored type: no f32 copy of the
+    /// whole matrix exists for f16/int8. The same `(n, dim, clusters, seed)` gives the same rows
+    /// for every dtype (before conversion) and every thread count.
+    ///
+    /// Errors: [`Error::Invalid`] for `dim == 0`, `clusters == 0`, or `n · dim` overflowing.
+    pub fn synthetic(
+        n: usize,
+        dim: usize,
+        dtype: Dtype,
+        clusters: usize,
+        seed: u64,
+    ) -> Result<VectorStore, Error> {
+        let mut store = VectorStore::new(dim, dtype)?;
+        if clusters == 0 {
+            return Err(Error::Invalid(
+                "synthetic store needs at least one cluster".into(),
+            ));
+        }
+        let total = n.checked_mul(dim).ok_or_else(|| {
+            Error::Invalid(format!("{n} rows of dim {dim} overflow the address space"))
+        })?;
+        let centres = random_centres(dim, clusters, seed);
+        let gen_row = |i: usize, out: &mut [f32]| {
+            let mut s = seed ^ (i as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93) ^ 0xA5A5;
+            let c = (splitmix(&mut s) % clusters as u64) as usize;
+            let centre = &centres[c * dim..(c + 1) * dim];
+            let sigma = 0.75 / (dim as f32).sqrt();
+            let mut norm = 0.0f32;
+            for (x, &m) in out.iter_mut().zip(centre) {
+                *x = m + sigma * fast_normal(&mut s);
+                norm += *x * *x;
+            }
+            let inv = if norm > 0.0 { norm.sqrt().recip() } else { 0.0 };
+            out.iter_mut().for_each(|x| *x *= inv);
+        };
+        const ROWS: usize = 256;
+        match &mut store.vectors {
+            StoredVectors::F32(v) => {
+                *v = vec![0.0f32; total];
+                v.par_chunks_mut(ROWS * dim)
+                    .enumerate()
+                    .for_each(|(b, chunk)| {
+                        for (r, row) in chunk.chunks_exact_mut(dim).enumerate() {
+                            gen_row(b * ROWS + r, row);
+                        }
+                    });
+            }
+            StoredVectors::F16(v) => {
+                *v = vec![f16::ZERO; total];
+                v.par_chunks_mut(ROWS * dim).enumerate().for_each_init(
+                    || vec![0.0f32; dim],
+                    |tmp, (b, chunk)| {
+                        for (r, row) in chunk.chunks_exact_mut(dim).enumerate() {
+                            gen_row(b * ROWS + r, tmp);
+                            row.convert_from_f32_slice(tmp);
+                        }
+                    },
+                );
+            }
+            StoredVectors::I8 { q, scales } => {
+                *q = vec![0i8; total];
+                *scales = vec![0.0f32; n];
+                q.par_chunks_mut(ROWS * dim)
+                    .zip(scales.par_chunks_mut(ROWS))
+                    .enumerate()
+                    .for_each_init(
+                        || (vec![0.0f32; dim], Vec::with_capacity(dim)),
+                        |(tmp, bytes), (b, (chunk, sc))| {
+                            for (r, (row, s)) in
+                                chunk.chunks_exact_mut(dim).zip(sc.iter_mut()).enumerate()
+                            {
+                                gen_row(b * ROWS + r, tmp);
+                                bytes.clear();
+                                *s = quantize_i8(tmp, bytes);
+                                for (o, &byte) in row.iter_mut().zip(bytes.iter()) {
+                                    *o = byte as i8;
+                                }
+                            }
+                        },
+                    );
+            }
+        }
+        store.ids = (0..n).map(|i| i as u32).collect();
+        store.means = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let mut s = seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x3EA5;
+                [
+                    100.0 * uniform(&mut s) - 50.0,
+                    100.0 * uniform(&mut s) - 50.0,
+                    100.0 * uniform(&mut s) - 50.0,
+                ]
+            })
+            .collect();
+        Ok(store)
+    }
+}
+
+/// `clusters` random unit directions `[clusters * dim]`.
+pub(crate) fn random_centres(dim: usize, clusters: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed ^ 0xC3C3_5EED;
+    let mut c = vec![0.0f32; dim * clusters];
+    for row in c.chunks_exact_mut(dim) {
+        let mut norm = 0.0f32;
+        for x in row.iter_mut() {
+            *x = normal(&mut s);
+            norm += *x * *x;
+        }
+        let inv = norm.sqrt().recip();
+        row.iter_mut().for_each(|x| *x *= inv);
+    }
+    c
+}
+
+/// SplitMix64 step (public-domain reference constants).
+pub(crate) fn splitmix(x: &mut u64) -> u64 {
+    *x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut z = *x;
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Uniform in `[0, 1)` with 24 random bits.
+pub(crate) fn uniform(s: &mut u64) -> f32 {
+    (splitmix(s) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// Approximately standard normal (Irwin–Hall sum of 4 uniforms from one SplitMix64 draw,
+/// rescaled to unit variance): cheap enough to generate gigabytes of rows.
+pub(crate) fn fast_normal(s: &mut u64) -> f32 {
+    let z = splitmix(s);
+    let sum: u32 = (0..4).map(|k| ((z >> (16 * k)) & 0xFFFF) as u32).sum();
+    // Mean of 4 U(0,1) is 2, variance 4/12.
+    (sum as f32 / 65536.0 - 2.0) * 3.0f32.sqrt()
+}
+
+/// Standard normal (Box–Muller, one of the pair).
+pub(crate) fn normal(s: &mut u64) -> f32 {
+    let u1 = uniform(s).max(1e-7);
+    let u2 = uniform(s);
+    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+}
