@@ -225,6 +225,19 @@ struct Row {
     thr_hits: usize,
     lerf: f64,
     naive: Option<f64>,
+    /// Mean IoU of this store's top-k row sets with the f32 store's (same synthetic rows).
+    agree_f32: Option<f64>,
+}
+
+/// |a ∩ b| / |a ∪ b| of two row sets (1 for two empty sets).
+fn iou(a: &std::collections::HashSet<usize>, b: &std::collections::HashSet<usize>) -> f64 {
+    let inter = a.intersection(b).count();
+    let union = a.len() + b.len() - inter;
+    if union == 0 {
+        1.0
+    } else {
+        inter as f64 / union as f64
+    }
 }
 
 /// Runs the benchmark (see [`BenchArgs`]) and returns a Markdown report: machine, settings, one
@@ -235,7 +248,9 @@ struct Row {
 /// bytes; top-k / threshold / LERF = median wall time of `queries` exact scans (Q = 1, 1, 5);
 /// GB/s = vector bytes / time; ÷floor = scan time / floor time (1.0 = at the bandwidth floor);
 /// naive = single-thread [`naive_scan_f32`] on the f32 store of the same size (median of up to
-/// 3 runs); speed-up = naive / top-k.
+/// 3 runs; its top-k must equal the scan's, else the benchmark fails); speed-up = naive / top-k;
+/// top-k IoU vs f32 = mean over queries of the IoU between this dtype's top-k rows and the f32
+/// store's (same synthetic rows, quantised), `n/a` when f32 was not run at that size.
 ///
 /// Errors: invalid settings (dim 0, no sizes, bad thread count) or a scan error.
 pub fn run_bench(args: &BenchArgs) -> anyhow::Result<String> {
@@ -270,6 +285,7 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     let mut skipped = Vec::new();
     for &size in &args.sizes {
         let mut naive: Option<f64> = None;
+        let mut f32_sets: Option<Vec<std::collections::HashSet<usize>>> = None;
         for &dtype in &dtypes {
             let need = size as f64 * (dtype.bytes_per_vector(dim) + 16) as f64;
             if need > limit {
@@ -321,15 +337,36 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
                 };
                 Ok(scan(&store, &req)?.len())
             })?;
+            // Correctness and quantisation agreement (untimed): the top-k row sets.
+            let sets: Vec<std::collections::HashSet<usize>> = qvecs
+                .iter()
+                .map(|q| {
+                    let qs = [q.as_slice()];
+                    scan(&store, &ScanRequest::top_k(&qs, args.top_k))
+                        .map(|h| h.iter().map(|x| x.row).collect())
+                })
+                .collect::<Result<_, _>>()?;
             if dtype == Dtype::F32 && size <= args.naive_max {
                 let runs = args.queries.min(3);
                 let mut ts = Vec::new();
-                for q in qvecs.iter().take(runs) {
+                for (i, q) in qvecs.iter().take(runs).enumerate() {
                     let t = Instant::now();
-                    std::hint::black_box(naive_scan_f32(&store, q, args.top_k)?);
+                    let hits = std::hint::black_box(naive_scan_f32(&store, q, args.top_k)?);
                     ts.push(t.elapsed().as_secs_f64() * 1e3);
+                    let naive_set = hits.iter().map(|h| h.row).collect();
+                    anyhow::ensure!(
+                        iou(&naive_set, &sets[i]) == 1.0,
+                        "the f32 scan and the naive scan disagree on query {i}'s top-{}",
+                        args.top_k
+                    );
                 }
                 naive = Some(median(ts));
+            }
+            let agree_f32 = f32_sets.as_ref().map(|f| {
+                sets.iter().zip(f).map(|(a, b)| iou(a, b)).sum::<f64>() / sets.len().max(1) as f64
+            });
+            if dtype == Dtype::F32 {
+                f32_sets = Some(sets);
             }
             rows.push(Row {
                 size,
@@ -343,6 +380,11 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
                 thr_hits,
                 lerf,
                 naive,
+                agree_f32: if dtype == Dtype::F32 {
+                    Some(1.0)
+                } else {
+                    agree_f32
+                },
             });
         }
     }
@@ -370,17 +412,21 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     ));
     out.push_str(
         "| N | dtype | B/Gaussian | vectors GB | gen s | floor ms (GB/s) | top-k ms | GB/s | \
-         ÷floor | thr ms (hits) | LERF Q=5 ms | ÷floor | naive f32 ms (same N) | speed-up |\n",
+         ÷floor | thr ms (hits) | LERF Q=5 ms | ÷floor | naive f32 ms (same N) | speed-up | \
+         top-k IoU vs f32 |\n",
     );
-    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in &rows {
         let (naive_s, speed) = match r.naive {
             Some(x) => (format!("{x:.0}"), format!("{:.1}×", x / r.topk)),
             None => ("n/a".into(), "n/a".into()),
         };
+        let agree = r
+            .agree_f32
+            .map_or_else(|| "n/a".to_string(), |a| format!("{a:.4}"));
         out.push_str(&format!(
             "| {} | {} | {} | {:.2} | {:.1} | {:.1} ({:.1}) | {:.1} | {:.1} | {:.2} | {:.1} ({}) | \
-             {:.1} | {:.2} | {} | {} |\n",
+             {:.1} | {:.2} | {} | {} | {} |\n",
             fmt_size(r.size),
             dtype_name(r.dtype),
             r.bpg,
@@ -396,7 +442,8 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
             r.lerf,
             r.lerf / r.floor,
             naive_s,
-            speed
+            speed,
+            agree
         ));
     }
     if !skipped.is_empty() {
