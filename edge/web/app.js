@@ -52,21 +52,27 @@ async function show(text, token) {
     throw new Error(msg);
   }
   const buf = await r.arrayBuffer();
+  status(`“${text}”: loading ${buf.byteLength} bytes into the viewer…`);
   const matches = r.headers.get('x-slag-matches') || '0';
   const up = (r.headers.get('x-slag-up') || '0,0,1').split(',').map(Number);
   const b = plyBounds(buf);
   if (b.n === 0) throw new Error('the store holds no Gaussians: fetch a radius first');
-  // Camera: 2.2 radii from the centre, horizontal offset perpendicular to up, slightly above.
+  // Camera: 1.4 radii (90th percentile distance of the means) from the centre, horizontal
+  // offset perpendicular to up, slightly above.
   const side = Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0];
   const dot = side[0] * up[0] + side[1] * up[1] + side[2] * up[2];
   const h = side.map((v, a) => v - dot * up[a]);
   const hl = Math.hypot(...h);
-  const dist = 2.2 * b.radius;
-  const eye = b.center.map((c, a) => c + (h[a] / hl) * dist + up[a] * 0.5 * dist);
+  const dist = 1.4 * b.radius;
+  const eye = b.center.map((c, a) => c + (h[a] / hl) * dist + up[a] * 0.3 * dist);
+  // The viewer's dispose() removes its root element from document.body: give each answer a
+  // fresh root there.
   if (viewer) { await viewer.dispose(); viewer = null; }
-  $('view').replaceChildren();
+  const root = document.createElement('div');
+  root.className = 'view';
+  document.body.appendChild(root);
   viewer = new GS.Viewer({
-    rootElement: $('view'),
+    rootElement: root,
     cameraUp: up,
     initialCameraPosition: eye,
     initialCameraLookAt: b.center,
@@ -83,9 +89,10 @@ async function show(text, token) {
     splatAlphaRemovalThreshold: 1,
   });
   URL.revokeObjectURL(url);
+  status(`“${text}”: rendering ${b.n} Gaussians…`);
   viewer.start();
   // Let the sort worker and a few frames finish before calling it rendered.
-  for (let i = 0; i < 30; i++) await new Promise((res) => requestAnimationFrame(res));
+  for (let i = 0; i < 6; i++) await new Promise((res) => requestAnimationFrame(res));
   document.body.dataset.matches = matches;
   status(`“${text}”: ${matches} of ${b.n} Gaussians match (magenta). Drag to orbit, scroll to zoom.`);
   setState('rendered');

@@ -19,7 +19,7 @@ const userDataDir = mkdtempSync(join(tmpdir(), 'slag-chromium-'));
 const ctx = await chromium.launchPersistentContext(userDataDir, {
   executablePath: exe,
   headless: true,
-  viewport: { width: 800, height: 600 },
+  viewport: { width: 640, height: 480 },
   args: [
     '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
     '--disable-background-networking', '--disable-component-update', '--disable-sync',
@@ -39,7 +39,7 @@ try {
     await page.click('#go');
     await page.waitForFunction(
       () => ['rendered', 'error', 'no-viewer'].includes(document.body.dataset.state),
-      null, { timeout: 180000, polling: 250 });
+      null, { timeout: 420000, polling: 500 });
     // Give the sort worker and SwiftShader a moment for the final frames.
     await page.waitForTimeout(1500);
     const state = await page.evaluate(() => document.body.dataset.state);
@@ -54,6 +54,10 @@ try {
   }
 } catch (e) {
   logs.push(`e2e: ${e.message}`);
+  try {
+    logs.push(`page state ${await page.evaluate(() => document.body.dataset.state)}: ${await page.textContent('#status')}`);
+    await page.screenshot({ path: join(out, 'failure.png') });
+  } catch (_) { /* page gone */ }
   failed = true;
 } finally {
   writeFileSync(join(out, 'result.json'), JSON.stringify({ results, logs }, null, 2));
