@@ -527,14 +527,14 @@ mod tests {
             }
             match (&s.scales, &s.opacities, &s.rotations) {
                 (Some(sc), Some(op), Some(rot)) => {
-                    for ax in 0..3 {
-                        let want = sc[k][ax].exp();
-                        assert!((g.scales[i][ax] - want).abs() < 1e-6 * want.max(1.0));
+                    for (got, log) in g.scales[i].iter().zip(sc[k]) {
+                        let want = log.exp();
+                        assert!((got - want).abs() < 1e-6 * want.max(1.0));
                     }
                     let want = 1.0 / (1.0 + (-op[k]).exp());
                     assert!((g.opacities[i] - want).abs() < 1e-6);
-                    for c in 0..4 {
-                        assert!((g.rotations[i][c] - rot[k][c]).abs() < 1e-6);
+                    for (got, want) in g.rotations[i].iter().zip(rot[k]) {
+                        assert!((got - want).abs() < 1e-6);
                     }
                 }
                 _ => {

@@ -155,14 +155,14 @@ async fn query_ply_paints_exactly_the_matches_in_store_order() {
                 }
                 match (&s.scales, &s.opacities, &s.rotations, &s.sh_dc) {
                     (Some(sc), Some(op), Some(rot), Some(dc)) => {
-                        for a in 0..3 {
-                            let want = sc[k][a].exp();
-                            assert!((g.scales[row][a] - want).abs() <= 1e-6 * want);
+                        for (got, log) in g.scales[row].iter().zip(sc[k]) {
+                            let want = log.exp();
+                            assert!((got - want).abs() <= 1e-6 * want);
                         }
                         let o = 1.0 / (1.0 + (-op[k]).exp());
                         assert!((g.opacities[row] - o).abs() < 1e-6);
-                        for a in 0..4 {
-                            assert!((g.rotations[row][a] - rot[k][a]).abs() < 1e-6);
+                        for (got, want) in g.rotations[row].iter().zip(rot[k]) {
+                            assert!((got - want).abs() < 1e-6);
                         }
                         if !magenta {
                             assert_eq!(sh.dc(row), dc[k]);

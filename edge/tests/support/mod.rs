@@ -90,7 +90,7 @@ pub fn grid_scene(
                 let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
                 vectors.extend(v.iter().map(|x| x / n));
             }
-            let display = (id % 2 == 0).then(|| display_attrs(&ids));
+            let display = id.is_multiple_of(2).then(|| display_attrs(&ids));
             let bytes = encode_shard(&ShardInput {
                 scene_id: scene,
                 model: "test-clip",
