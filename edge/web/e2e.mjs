@@ -4,7 +4,7 @@
 // prompt, waits until the page says the splat is rendered, and saves OUT_DIR/<n>-<prompt>.png
 // plus OUT_DIR/result.json ({prompt, matches, state, status, png}). Exit 1 on a page error.
 import { chromium } from 'playwright-core';
-import { mkdirSync, writeFileSync, mkdtempSync } from 'node:fs';
+import { mkdirSync, writeFileSync, mkdtempSync, rmSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { join } from 'node:path';
 
@@ -62,6 +62,7 @@ try {
 } finally {
   writeFileSync(join(out, 'result.json'), JSON.stringify({ results, logs }, null, 2));
   await ctx.close();
+  rmSync(userDataDir, { recursive: true, force: true });
 }
 console.log(JSON.stringify({ results, logs: logs.slice(-20) }, null, 2));
 process.exit(failed ? 1 : 0);
