@@ -6,6 +6,8 @@
 //! - [`scan`]: the exact scan kernels over f32/f16/int8 embeddings and the approximate HNSW index;
 //! - [`query`]: prompt → CLIP text embedding → cosine or LERF relevancy scores → matches + summary;
 //! - [`serve`]: the HTTP API (`GET /query?text=chair`, `/health`, `/stats`, `POST /query`);
+//! - [`view`]: the answer shown to a person: `GET /query.ply` (matches painted in a 3DGS `.ply`)
+//!   and the web page `GET /` that renders it;
 //! - [`config`]: the TOML config file of `serve` (`jetson/edge.toml`).
 
 pub mod config;
@@ -14,3 +16,4 @@ pub mod query;
 pub mod scan;
 pub mod serve;
 pub mod store;
+pub mod view;

@@ -137,6 +137,11 @@ struct ServeArgs {
     /// Per-request timeout, seconds.
     #[arg(long, default_value_t = 30.0)]
     request_timeout: f64,
+    /// Folder whose `vendor/` holds the web viewer bundles served under `/vendor/` for the page
+    /// at `/` (made by `bash scripts/web-vendor.sh`). Default: the source tree's `edge/web`
+    /// when it exists.
+    #[arg(long)]
+    web_dir: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -231,9 +236,11 @@ struct Resolved {
     tokenizer: PathBuf,
     ep: EpArg,
     opts: ServeOptions,
+    web_dir: Option<PathBuf>,
 }
 
 fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
+    let web_dir = a.web_dir.clone();
     let c = match &a.config {
         Some(p) => ServeConfig::read(p)?,
         None => ServeConfig::default(),
@@ -295,6 +302,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         tokenizer,
         ep,
         opts,
+        web_dir,
     })
 }
 
@@ -302,7 +310,7 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     let r = resolve(a)?;
     let edge = EdgeStore::open(&r.store)?;
     let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
-    let state = Arc::new(AppState::new(edge, text, r.opts)?);
+    let state = Arc::new(AppState::new(edge, text, r.opts)?.with_web_dir(r.web_dir));
     runtime()?.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
         tracing::info!("listening on http://{bound}");
         eprintln!("slag-edge: listening on http://{bound}");

@@ -6,6 +6,9 @@
 //!   store size, queries served, prompt-cache size, last fetch;
 //! - `GET /query?text=chair[&top_k=100][&threshold=0.28|none][&mode=cosine|relevancy]
 //!   [&bbox=minx,miny,minz,maxx,maxy,maxz][&index=exact|hnsw]` → [`QueryAnswer`];
+//! - `GET /query.ply?text=…` (same parameters, plus `color`, `dim`) → the loaded Gaussians as a
+//!   3DGS `.ply` with the matches painted, and `GET /` → a web page that renders it
+//!   ([`crate::view`]; the page, its script and `/vendor/*` need no token);
 //! - `POST /query` with `{"queries": [{"text": …, …}, …]}` (at most [`MAX_BATCH`]) →
 //!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
 //! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool}` → fetches
@@ -56,6 +59,8 @@ pub struct Engine {
     pub load: SceneLoad,
     /// Approximate index, when enabled.
     pub hnsw: Option<HnswIndex>,
+    /// Display columns of the same Gaussians, same row order (for `GET /query.ply`).
+    pub display: crate::view::DisplayAttrs,
 }
 
 impl Engine {
@@ -65,6 +70,7 @@ impl Engine {
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
         let (manifest, shards, load) = edge.load_scene(scene)?;
         let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
+        let display = crate::view::DisplayAttrs::from_shards(&shards);
         for s in shards {
             store.push_shard(s)?;
         }
@@ -83,6 +89,7 @@ impl Engine {
             store,
             load,
             hnsw,
+            display,
         })
     }
 }
@@ -108,9 +115,10 @@ pub struct AppState {
     edge: EdgeStore,
     text: Arc<dyn TextEmbedder>,
     negatives: Vec<Vec<f32>>,
-    opts: ServeOptions,
+    pub(crate) opts: ServeOptions,
     queries: AtomicU64,
-    rejected: AtomicU64,
+    pub(crate) rejected: AtomicU64,
+    pub(crate) web_dir: Option<std::path::PathBuf>,
     started: Instant,
     fetching: tokio::sync::Mutex<()>,
 }
@@ -145,10 +153,20 @@ impl AppState {
             rejected: AtomicU64::new(0),
             started: Instant::now(),
             fetching: tokio::sync::Mutex::new(()),
+            web_dir: crate::view::default_web_dir(),
         })
     }
 
-    fn engine(&self) -> Arc<Engine> {
+    /// Serves the web page's vendored viewer from `<dir>/vendor` (`scripts/web-vendor.sh`);
+    /// `None` keeps the default ([`crate::view::default_web_dir`]).
+    pub fn with_web_dir(mut self, dir: Option<std::path::PathBuf>) -> Self {
+        if dir.is_some() {
+            self.web_dir = dir;
+        }
+        self
+    }
+
+    pub(crate) fn engine(&self) -> Arc<Engine> {
         match self.engine.read() {
             Ok(g) => g.clone(),
             Err(p) => p.into_inner().clone(),
@@ -170,12 +188,19 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/health", get(health))
         .route("/stats", get(stats))
         .route("/query", get(query_get).post(query_post))
+        .route("/query.ply", get(crate::view::query_ply))
+        .route("/", get(crate::view::index))
+        .route("/index.html", get(crate::view::index))
+        .route("/app.js", get(crate::view::app_js))
+        .route("/vendor/{name}", get(crate::view::vendor))
         .route("/fetch", post(fetch_post))
         .route("/reload", post(reload))
         .fallback(|| async {
             error(
                 StatusCode::NOT_FOUND,
-                "no such route; use GET /query?text=…, POST /query, GET /health, GET /stats".into(),
+                "no such route; use GET /query?text=…, GET /query.ply?text=…, POST /query, GET /, \
+                 GET /health, GET /stats"
+                    .into(),
             )
         })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
@@ -232,7 +257,7 @@ async fn shutdown() {
     }
 }
 
-fn error(status: StatusCode, message: String) -> Response {
+pub(crate) fn error(status: StatusCode, message: String) -> Response {
     let body = serde_json::json!({ "error": message, "status": status.as_u16() });
     (
         status,
@@ -243,7 +268,7 @@ fn error(status: StatusCode, message: String) -> Response {
 }
 
 /// Maps a slag error to an HTTP status: bad input 400, everything else 500.
-fn status_of(e: &Error) -> StatusCode {
+pub(crate) fn status_of(e: &Error) -> StatusCode {
     match e {
         Error::Invalid(_) => StatusCode::BAD_REQUEST,
         Error::Network { .. } => StatusCode::BAD_GATEWAY,
@@ -269,7 +294,7 @@ async fn auth(
     let Some(token) = state.opts.token.as_deref() else {
         return next.run(req).await;
     };
-    if req.uri().path() == "/health" {
+    if req.uri().path() == "/health" || crate::view::is_public_path(req.uri().path()) {
         return next.run(req).await;
     }
     let presented = headers
@@ -351,7 +376,10 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
 }
 
 /// Runs queries on the blocking pool (the scan itself fans out over rayon).
-async fn answer(state: &Arc<AppState>, qs: Vec<QueryParams>) -> Vec<Result<query::QueryAnswer>> {
+pub(crate) async fn answer(
+    state: &Arc<AppState>,
+    qs: Vec<QueryParams>,
+) -> Vec<Result<query::QueryAnswer>> {
     let st = state.clone();
     let n = qs.len();
     match tokio::task::spawn_blocking(move || {
@@ -381,7 +409,7 @@ async fn answer(state: &Arc<AppState>, qs: Vec<QueryParams>) -> Vec<Result<query
     }
 }
 
-fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
+pub(crate) fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
     let obj: serde_json::Map<String, serde_json::Value> = pairs
         .into_iter()
         .map(|(k, v)| (k, serde_json::Value::String(v)))

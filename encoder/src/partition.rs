@@ -163,6 +163,23 @@ pub fn encode_tile(
                 .map(|&r| src.display(r as usize).unwrap_or(([0.0; 3], 0.0)))
                 .unzip()
         });
+    let has_display = display.is_some();
+    let rotations: Option<Vec<[f32; 4]>> =
+        (has_display && src.display_rotation(0).is_some()).then(|| {
+            plan.rows
+                .iter()
+                .map(|&r| {
+                    src.display_rotation(r as usize)
+                        .unwrap_or([1.0, 0.0, 0.0, 0.0])
+                })
+                .collect()
+        });
+    let sh_dc: Option<Vec<[f32; 3]>> = (has_display && src.display_sh_dc(0).is_some()).then(|| {
+        plan.rows
+            .iter()
+            .map(|&r| src.display_sh_dc(r as usize).unwrap_or([0.0; 3]))
+            .collect()
+    });
     let bytes = encode_shard(&ShardInput {
         scene_id,
         model: src.model(),
@@ -174,6 +191,8 @@ pub fn encode_tile(
         vectors: &vectors,
         scales: display.as_ref().map(|d| d.0.as_slice()),
         opacities: display.as_ref().map(|d| d.1.as_slice()),
+        rotations: rotations.as_deref(),
+        sh_dc: sh_dc.as_deref(),
     })?;
     let aabb = slag_common::shards::Aabb::of_points(means.iter().copied()).unwrap_or_default();
     let info = TileInfo {

@@ -13,7 +13,7 @@
 //! | 0 | 8 | magic `b"SLAGSHRD"` |
 //! | 8 | 2 | format version `u16` (= [`SHARD_FORMAT_VERSION`]) |
 //! | 10 | 1 | dtype `u8`: 0 = f32, 1 = f16, 2 = int8 with per-vector scale |
-//! | 11 | 1 | flags `u8`: bit 0 = scales present, bit 1 = opacities present; others must be 0 |
+//! | 11 | 1 | flags `u8`: bit 0 = scales, bit 1 = opacities, bit 2 = rotations, bit 3 = SH DC present; others must be 0 |
 //! | 12 | 4 | embedding dim `D` `u32` |
 //! | 16 | 4 | Gaussian count `N` `u32` |
 //! | 20 | 4 | `header_len` `u32` (offset of the payload; multiple of 8) |
@@ -36,7 +36,17 @@
 //! 4. embeddings `[N][D]`: `f32`, `f16` (IEEE half), or `i8` (value = `q * scale[i]`),
 //!    followed by zero padding to a 4-byte boundary;
 //! 5. if flag bit 0: Gaussian scales `f32[N][3]` (log-scale as in the INRIA `.ply`, for display);
-//! 6. if flag bit 1: opacities `f32[N]` (pre-sigmoid as in the INRIA `.ply`, for display).
+//! 6. if flag bit 1: opacities `f32[N]` (pre-sigmoid as in the INRIA `.ply`, for display);
+//! 7. if flag bit 2: rotations `f32[N][4]`, quaternions (w, x, y, z) as `rot_0..3` of the INRIA
+//!    `.ply`, **normalised** (as [`crate::scene::load_ply`] returns them), for display;
+//! 8. if flag bit 3: SH DC colour `f32[N][3]` (`f_dc_0..2` of the INRIA `.ply`:
+//!    `rgb = 0.5 + SH_C0 * f_dc`), for display.
+//!
+//! Bits 2 and 3 were added within version 1: every section is optional and appended after the
+//! older ones, so shards without them are byte-identical to before. A reader that predates them
+//! rejects a shard carrying them with [`ShardError::Malformed`] `"unknown flags 0x0c"` (it checks
+//! the flags before the payload length): upgrade slag-edge, or re-partition without
+//! `--display-ply`.
 //!
 //! The file is exactly `header_len + payload_len` bytes; trailing bytes are an error. The
 //! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
@@ -55,6 +65,9 @@ pub const MAX_DIM: u32 = 1 << 16;
 const FIXED_HEADER: usize = 72;
 const FLAG_SCALES: u8 = 1;
 const FLAG_OPACITIES: u8 = 2;
+const FLAG_ROTATIONS: u8 = 4;
+const FLAG_SH_DC: u8 = 8;
+const KNOWN_FLAGS: u8 = FLAG_SCALES | FLAG_OPACITIES | FLAG_ROTATIONS | FLAG_SH_DC;
 
 /// Storage type of the embedding vectors in a shard.
 #[derive(
@@ -220,6 +233,11 @@ pub struct Shard {
     pub scales: Option<Vec<[f32; 3]>>,
     /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
     pub opacities: Option<Vec<f32>>,
+    /// Optional normalised rotations, quaternions (w, x, y, z) (INRIA `rot_0..3`), `[N]`, for
+    /// display.
+    pub rotations: Option<Vec<[f32; 4]>>,
+    /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
+    pub sh_dc: Option<Vec<[f32; 3]>>,
 }
 
 impl Shard {
@@ -253,6 +271,10 @@ pub struct ShardInput<'a> {
     pub scales: Option<&'a [[f32; 3]]>,
     /// Optional pre-sigmoid opacities `[N]`.
     pub opacities: Option<&'a [f32]>,
+    /// Optional normalised rotations (w, x, y, z) `[N]`.
+    pub rotations: Option<&'a [[f32; 4]]>,
+    /// Optional SH DC colour (`f_dc_0..2`) `[N]`.
+    pub sh_dc: Option<&'a [[f32; 3]]>,
 }
 
 fn align(n: usize, a: usize) -> usize {
@@ -301,9 +323,13 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
             input.vectors.len()
         )));
     }
-    if input.scales.is_some_and(|s| s.len() != n) || input.opacities.is_some_and(|o| o.len() != n) {
+    if input.scales.is_some_and(|s| s.len() != n)
+        || input.opacities.is_some_and(|o| o.len() != n)
+        || input.rotations.is_some_and(|r| r.len() != n)
+        || input.sh_dc.is_some_and(|c| c.len() != n)
+    {
         return Err(bad(
-            "scales/opacities length differs from the id count".into()
+            "scales/opacities/rotations/SH DC length differs from the id count".into(),
         ));
     }
     if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
@@ -360,6 +386,18 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     if let Some(op) = input.opacities {
         flags |= FLAG_OPACITIES;
         op.iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
+    if let Some(rot) = input.rotations {
+        flags |= FLAG_ROTATIONS;
+        rot.iter()
+            .flatten()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
+    if let Some(dc) = input.sh_dc {
+        flags |= FLAG_SH_DC;
+        dc.iter()
+            .flatten()
             .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
 
@@ -517,7 +555,7 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
         .to_string();
     let dtype = Dtype::from_code(dtype_code)
         .ok_or_else(|| ShardError::Malformed(format!("unknown dtype code {dtype_code}")))?;
-    if flags & !(FLAG_SCALES | FLAG_OPACITIES) != 0 {
+    if flags & !KNOWN_FLAGS != 0 {
         return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
     }
     if dim == 0 || dim > MAX_DIM {
@@ -552,6 +590,12 @@ fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
     }
     if flags & FLAG_OPACITIES != 0 {
         len += 4 * n;
+    }
+    if flags & FLAG_ROTATIONS != 0 {
+        len += 16 * n;
+    }
+    if flags & FLAG_SH_DC != 0 {
+        len += 12 * n;
     }
     len
 }
@@ -626,6 +670,11 @@ pub struct StoredShard {
     pub scales: Option<Vec<[f32; 3]>>,
     /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
     pub opacities: Option<Vec<f32>>,
+    /// Optional normalised rotations, quaternions (w, x, y, z) (INRIA `rot_0..3`), `[N]`, for
+    /// display.
+    pub rotations: Option<Vec<[f32; 4]>>,
+    /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
+    pub sh_dc: Option<Vec<[f32; 3]>>,
 }
 
 /// Decodes a shard, verifying magic, version, both CRCs and every length, and dequantises the
@@ -643,6 +692,8 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
         means: s.means,
         scales: s.scales,
         opacities: s.opacities,
+        rotations: s.rotations,
+        sh_dc: s.sh_dc,
     })
 }
 
@@ -715,6 +766,21 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
     } else {
         None
     };
+    let rotations = if flags & FLAG_ROTATIONS != 0 {
+        Some(
+            le_f32s(r.take(16 * n)?)
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
+        )
+    } else {
+        None
+    };
+    let sh_dc = if flags & FLAG_SH_DC != 0 {
+        Some(triples(le_f32s(r.take(12 * n)?)))
+    } else {
+        None
+    };
     Ok(StoredShard {
         header,
         ids,
@@ -722,6 +788,8 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
         vectors,
         scales,
         opacities,
+        rotations,
+        sh_dc,
     })
 }
 
@@ -747,6 +815,8 @@ mod tests {
         dim: usize,
         scales: Option<Vec<[f32; 3]>>,
         opacities: Option<Vec<f32>>,
+        rotations: Option<Vec<[f32; 4]>>,
+        sh_dc: Option<Vec<[f32; 3]>>,
         scene: String,
         model: String,
         tile: u64,
@@ -763,18 +833,39 @@ mod tests {
                     n,
                 )),
                 proptest::option::of(proptest::collection::vec(-8f32..8.0, n)),
+                proptest::option::of(proptest::collection::vec(
+                    prop::array::uniform4(-1f32..1.0),
+                    n,
+                )),
+                proptest::option::of(proptest::collection::vec(
+                    prop::array::uniform3(-2f32..2.0),
+                    n,
+                )),
                 "[a-z0-9_-]{0,12}",
                 "\\PC{0,10}",
                 any::<u64>(),
             )
                 .prop_map(
-                    move |(ids, means, vecs, scales, opacities, scene, model, tile)| Case {
+                    move |(
+                        ids,
+                        means,
+                        vecs,
+                        scales,
+                        opacities,
+                        rotations,
+                        sh_dc,
+                        scene,
+                        model,
+                        tile,
+                    )| Case {
                         ids,
                         means,
                         vectors: vecs.into_iter().flat_map(unit).collect(),
                         dim,
                         scales,
                         opacities,
+                        rotations,
+                        sh_dc,
                         scene,
                         model,
                         tile,
@@ -795,6 +886,8 @@ mod tests {
             vectors: &c.vectors,
             scales: c.scales.as_deref(),
             opacities: c.opacities.as_deref(),
+            rotations: c.rotations.as_deref(),
+            sh_dc: c.sh_dc.as_deref(),
         })
         .expect("valid input encodes")
     }
@@ -819,6 +912,11 @@ mod tests {
             prop_assert_eq!(&s.means, &c.means);
             prop_assert_eq!(&s.scales, &c.scales);
             prop_assert_eq!(&s.opacities, &c.opacities);
+            prop_assert_eq!(&s.rotations, &c.rotations);
+            prop_assert_eq!(&s.sh_dc, &c.sh_dc);
+            let stored = decode_shard_stored(&bytes).expect("decodes stored");
+            prop_assert_eq!(&stored.rotations, &c.rotations);
+            prop_assert_eq!(&stored.sh_dc, &c.sh_dc);
             prop_assert_eq!(Some(s.header.aabb), Aabb::of_points(c.means.iter().copied()).or(Some(Aabb::default())));
             prop_assert_eq!(s.vectors.len(), c.vectors.len());
             for (row_in, row_out) in c.vectors.chunks(c.dim).zip(s.vectors.chunks(c.dim)) {
@@ -880,6 +978,8 @@ mod tests {
             dim: 3,
             scales: None,
             opacities: Some(vec![0.1, 0.2]),
+            rotations: Some(vec![[1.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.5, 0.5]]),
+            sh_dc: None,
             scene: "s".into(),
             model: "m".into(),
             tile: 7,
@@ -915,6 +1015,21 @@ mod tests {
                 ..
             })
         ));
+        b[30] ^= 1;
+        // The shard carries opacities (bit 1) and rotations (bit 2) in that order.
+        let s = decode_shard_stored(&b).expect("valid");
+        assert_eq!(s.rotations, c.rotations);
+        assert_eq!(s.opacities, c.opacities);
+        assert_eq!(b[11], FLAG_OPACITIES | FLAG_ROTATIONS);
+        // A flag bit this reader does not know (with a valid header CRC) is a clear error.
+        let header_len = u32::from_le_bytes([b[20], b[21], b[22], b[23]]) as usize;
+        b[11] |= 0x10;
+        let crc = crc32fast::hash(&b[..header_len - 4]);
+        b[header_len - 4..header_len].copy_from_slice(&crc.to_le_bytes());
+        match decode_shard(&b) {
+            Err(ShardError::Malformed(m)) => assert!(m.contains("unknown flags 0x16"), "{m}"),
+            other => panic!("expected unknown flags, got {other:?}"),
+        }
     }
 
     #[test]
@@ -930,6 +1045,23 @@ mod tests {
             vectors: &[1.0],
             scales: None,
             opacities: None,
+            rotations: None,
+            sh_dc: None,
+        });
+        assert!(matches!(r, Err(Error::Invalid(_))));
+        let r = encode_shard(&ShardInput {
+            scene_id: "s",
+            model: "m",
+            tile_id: 0,
+            dim: 1,
+            dtype: Dtype::F32,
+            ids: &[1],
+            means: &[[0.0; 3]],
+            vectors: &[1.0],
+            scales: None,
+            opacities: None,
+            rotations: Some(&[]),
+            sh_dc: None,
         });
         assert!(matches!(r, Err(Error::Invalid(_))));
     }

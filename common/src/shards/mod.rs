@@ -41,6 +41,56 @@ pub trait GaussianSource: Sync {
     fn display(&self, _i: usize) -> Option<([f32; 3], f32)> {
         None
     }
+    /// Optional normalised rotation (w, x, y, z) of row `i`, for display. When `Some` for row 0
+    /// (and [`GaussianSource::display`] is too), partitioning stores rotations in every shard.
+    fn display_rotation(&self, _i: usize) -> Option<[f32; 4]> {
+        None
+    }
+    /// Optional SH DC colour (`f_dc_0..2`) of row `i`, for display; stored like
+    /// [`GaussianSource::display_rotation`].
+    fn display_sh_dc(&self, _i: usize) -> Option<[f32; 3]> {
+        None
+    }
+}
+
+/// Display columns of a whole scene in the INRIA `.ply` storage convention (what shards carry),
+/// indexed by Gaussian id: see [`DisplayColumns::from_gaussians`] and [`WithDisplay::from_columns`].
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct DisplayColumns {
+    /// Log-scales `ln(s)` `[N][3]`.
+    pub log_scales: Vec<[f32; 3]>,
+    /// Pre-sigmoid opacities `logit(o)` `[N]`.
+    pub logit_opacities: Vec<f32>,
+    /// Normalised rotations (w, x, y, z) `[N][4]`.
+    pub rotations: Vec<[f32; 4]>,
+    /// SH DC colour `f_dc_0..2` `[N][3]`, when the scene was loaded with colours.
+    pub sh_dc: Option<Vec<[f32; 3]>>,
+}
+
+impl DisplayColumns {
+    /// Inverts the activations of [`crate::scene::load_ply`]: `ln(scale)` and `logit(opacity)`
+    /// (both finite: `load_ply` keeps scales positive and opacities inside (0, 1)); rotations
+    /// as loaded (normalised); SH DC from `g.sh` when present (load with
+    /// `PlyLoadOptions { colours: true }`).
+    pub fn from_gaussians(g: &crate::scene::Gaussians) -> DisplayColumns {
+        let logit = |o: f32| {
+            let o = (o as f64).clamp(f32::MIN_POSITIVE as f64, 1.0 - 1e-7);
+            (o / (1.0 - o)).ln() as f32
+        };
+        DisplayColumns {
+            log_scales: g
+                .scales
+                .iter()
+                .map(|s| s.map(|v| (v as f64).max(1e-30).ln() as f32))
+                .collect(),
+            logit_opacities: g.opacities.iter().map(|&o| logit(o)).collect(),
+            rotations: g.rotations.clone(),
+            sh_dc: g
+                .sh
+                .as_ref()
+                .map(|sh| (0..g.len()).map(|i| sh.dc(i)).collect()),
+        }
+    }
 }
 
 /// A [`GaussianSource`] plus display attributes taken from the source `.ply` (indexed by
@@ -53,6 +103,10 @@ pub struct WithDisplay<'a, S> {
     pub scales: &'a [[f32; 3]],
     /// Pre-sigmoid opacities of every `.ply` Gaussian (`Gaussians::opacities`).
     pub opacities: &'a [f32],
+    /// Optional normalised rotations (w, x, y, z) of every `.ply` Gaussian.
+    pub rotations: Option<&'a [[f32; 4]]>,
+    /// Optional SH DC colours (`f_dc_0..2`) of every `.ply` Gaussian.
+    pub sh_dc: Option<&'a [[f32; 3]]>,
 }
 
 impl<'a, S: GaussianSource> WithDisplay<'a, S> {
@@ -70,7 +124,50 @@ impl<'a, S: GaussianSource> WithDisplay<'a, S> {
             inner,
             scales,
             opacities,
+            rotations: None,
+            sh_dc: None,
         })
+    }
+
+    /// Wraps `inner` with every column of `cols` (log-scales, logit opacities, rotations and,
+    /// when present, SH DC), so shards carry all a splat viewer needs.
+    ///
+    /// Errors: an id out of range of any column ([`crate::Error::Invalid`]).
+    pub fn from_columns(inner: &'a S, cols: &'a DisplayColumns) -> crate::Result<Self> {
+        let w = Self::new(inner, &cols.log_scales, &cols.logit_opacities)?;
+        let w = w.with_rotations(&cols.rotations)?;
+        match &cols.sh_dc {
+            Some(dc) => w.with_sh_dc(dc),
+            None => Ok(w),
+        }
+    }
+
+    fn check_ids(&self, n: usize, what: &str) -> crate::Result<()> {
+        match self.inner.ids().iter().find(|&&id| id as usize >= n) {
+            Some(id) => Err(crate::Error::Invalid(format!(
+                "Gaussian id {id} but the scene has {n} {what}; pass the .ply the embeddings were \
+                 made from"
+            ))),
+            None => Ok(()),
+        }
+    }
+
+    /// Adds rotations (normalised, w x y z) indexed by Gaussian id.
+    ///
+    /// Errors: an id out of range ([`crate::Error::Invalid`]).
+    pub fn with_rotations(mut self, rotations: &'a [[f32; 4]]) -> crate::Result<Self> {
+        self.check_ids(rotations.len(), "rotations")?;
+        self.rotations = Some(rotations);
+        Ok(self)
+    }
+
+    /// Adds SH DC colours (`f_dc_0..2`) indexed by Gaussian id.
+    ///
+    /// Errors: an id out of range ([`crate::Error::Invalid`]).
+    pub fn with_sh_dc(mut self, sh_dc: &'a [[f32; 3]]) -> crate::Result<Self> {
+        self.check_ids(sh_dc.len(), "colours")?;
+        self.sh_dc = Some(sh_dc);
+        Ok(self)
     }
 }
 
@@ -93,6 +190,14 @@ impl<S: GaussianSource> GaussianSource for WithDisplay<'_, S> {
     fn display(&self, i: usize) -> Option<([f32; 3], f32)> {
         let id = *self.inner.ids().get(i)? as usize;
         Some((*self.scales.get(id)?, *self.opacities.get(id)?))
+    }
+    fn display_rotation(&self, i: usize) -> Option<[f32; 4]> {
+        let id = *self.inner.ids().get(i)? as usize;
+        self.rotations?.get(id).copied()
+    }
+    fn display_sh_dc(&self, i: usize) -> Option<[f32; 3]> {
+        let id = *self.inner.ids().get(i)? as usize;
+        self.sh_dc?.get(id).copied()
     }
 }
 

@@ -37,6 +37,27 @@ fn lcg(seed: &mut u64) -> f32 {
     ((*seed >> 40) as f32) / ((1u64 << 24) as f32)
 }
 
+/// Display columns derived from the ids: (log-scales, logit opacities, rotations, SH DC).
+pub type Display = (Vec<[f32; 3]>, Vec<f32>, Vec<[f32; 4]>, Vec<[f32; 3]>);
+
+pub fn display_attrs(ids: &[u32]) -> Display {
+    let f = |id: u32| (id % 97) as f32 / 97.0;
+    (
+        ids.iter()
+            .map(|&i| [-2.0 - f(i), -2.5, -3.0 + f(i)])
+            .collect(),
+        ids.iter().map(|&i| 3.0 * f(i) - 1.0).collect(),
+        ids.iter()
+            .map(|&i| {
+                let q = [1.0, f(i), -0.5 * f(i), 0.25];
+                let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
+                q.map(|x| x / n)
+            })
+            .collect(),
+        ids.iter().map(|&i| [f(i) - 0.5, 0.3, -0.2]).collect(),
+    )
+}
+
 pub fn grid_scene(
     scene: &str,
     nx: usize,
@@ -69,6 +90,7 @@ pub fn grid_scene(
                 let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
                 vectors.extend(v.iter().map(|x| x / n));
             }
+            let display = id.is_multiple_of(2).then(|| display_attrs(&ids));
             let bytes = encode_shard(&ShardInput {
                 scene_id: scene,
                 model: "test-clip",
@@ -78,8 +100,11 @@ pub fn grid_scene(
                 ids: &ids,
                 means: &means,
                 vectors: &vectors,
-                scales: None,
-                opacities: None,
+                // Even tiles carry display attributes (derived from the id), odd ones none.
+                scales: display.as_ref().map(|d| d.0.as_slice()),
+                opacities: display.as_ref().map(|d| d.1.as_slice()),
+                rotations: display.as_ref().map(|d| d.2.as_slice()),
+                sh_dc: display.as_ref().map(|d| d.3.as_slice()),
             })
             .unwrap();
             let lo = [i as f64 * TILE as f64, j as f64 * TILE as f64];

@@ -43,7 +43,8 @@ pub struct PartitionArgs {
     /// −y axis in world frame.
     #[arg(long)]
     pub cameras: Option<PathBuf>,
-    /// Source `.ply`: store each Gaussian's scales and opacity in the shards for display.
+    /// Source `.ply`: store each Gaussian's log-scales, pre-sigmoid opacity, normalised rotation
+    /// and SH DC colour (INRIA `.ply` convention) in the shards, for display (`GET /query.ply`).
     #[arg(long)]
     pub display_ply: Option<PathBuf>,
     /// Embedding storage in the shards: f32, f16 or int8 (per-vector scale).
@@ -105,8 +106,15 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     let t = std::time::Instant::now();
     let m = match &args.display_ply {
         Some(ply) => {
-            let g = slag_common::scene::load_ply(ply, Default::default())?;
-            let src = slag_common::shards::WithDisplay::new(&emb, &g.scales, &g.opacities)?;
+            // Shards store the .ply convention (log-scales, logit opacities, normalised
+            // rotations, SH DC): invert load_ply's activations.
+            let g = slag_common::scene::load_ply(
+                ply,
+                slag_common::scene::PlyLoadOptions { colours: true },
+            )?;
+            let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
+            drop(g);
+            let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
             partition_into_store(&store, &src, &params).context("partition")?
         }
         None => partition_into_store(&store, &emb, &params).context("partition")?,

@@ -1,0 +1,585 @@
+//! Showing an answer to a person: the loaded Gaussians as a 3DGS `.ply` with the matches painted,
+//! and a small web page that renders it with a Gaussian-splat viewer.
+//!
+//! - [`DisplayAttrs`]: the display columns of every loaded Gaussian (log-scales, pre-sigmoid
+//!   opacities, normalised rotations (w, x, y, z), SH DC), rows in the scan store's order (shards
+//!   in manifest tile order, rows in shard order, as [`crate::serve::Engine::load`] pushes them);
+//! - [`highlighted_ply`]: a binary little-endian INRIA-layout `.ply` of them, matches in a flat
+//!   highlight colour, the rest optionally dimmed;
+//! - routes (added to [`crate::serve::router`]): `GET /query.ply?text=…` (the same parameters and
+//!   validation as `GET /query`, plus `color=RRGGBB` and `dim=0..1`), and the page `GET /` with
+//!   its script `GET /app.js` and the vendored viewer bundles `GET /vendor/<file>`.
+//!
+//! The page and its script are compiled into the binary; the viewer
+//! ([`@mkkellogg/gaussian-splats-3d`](https://github.com/mkkellogg/GaussianSplats3D) on three.js)
+//! is vendored at build time by `bash scripts/web-vendor.sh` (`npm ci` in `edge/web`, bundles
+//! copied to `edge/web/vendor`, git-ignored) and served from `--web-dir` (default: this crate's
+//! `web` folder when it exists). Without it the page says how to vendor; `cargo build` never
+//! needs npm.
+
+use std::collections::{HashMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Query, State};
+use axum::http::{StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use slag_common::scene::SH_C0;
+use slag_common::shards::StoredShard;
+use slag_common::{Error, Result};
+
+use crate::serve::{AppState, error, raw_from_pairs, status_of};
+
+/// Highlight colour of matches when none is given: magenta (linear display RGB in 0..1).
+pub const DEFAULT_HIGHLIGHT: [f32; 3] = [1.0, 0.0, 1.0];
+/// Pre-sigmoid opacity given to Gaussians whose shard has no opacities: `logit(0.95)`.
+pub const FALLBACK_LOGIT_OPACITY: f32 = 2.944_439;
+/// Isotropic standard deviation of Gaussians whose shard has no scales, as a fraction of the
+/// diagonal of the loaded means' bounding box (0.01 scene units when that box is degenerate).
+pub const FALLBACK_SCALE_FRACTION: f32 = 0.002;
+
+const HAS_SCALES: u8 = 1;
+const HAS_OPACITY: u8 = 2;
+const HAS_ROTATION: u8 = 4;
+const HAS_DC: u8 = 8;
+
+/// Display columns of every loaded Gaussian, rows in the order of the scan store
+/// ([`crate::scan::VectorStore`]); all values in the INRIA `.ply` storage convention.
+///
+/// Gaussians whose shard lacks a column get a fallback when written ([`highlighted_ply`]): a
+/// small isotropic scale ([`FALLBACK_SCALE_FRACTION`] of the scene diagonal), the identity
+/// rotation, opacity `sigmoid(`[`FALLBACK_LOGIT_OPACITY`]`)` = 0.95 and mid gray (`f_dc = 0`,
+/// RGB 0.5).
+#[derive(Debug, Clone, Default)]
+pub struct DisplayAttrs {
+    ids: Vec<u32>,
+    means: Vec<[f32; 3]>,
+    log_scales: Vec<[f32; 3]>,
+    logit_opacities: Vec<f32>,
+    rotations: Vec<[f32; 4]>,
+    sh_dc: Vec<[f32; 3]>,
+    present: Vec<u8>,
+}
+
+impl DisplayAttrs {
+    /// No Gaussians.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Appends the rows of one shard (call in the order the shards are pushed into the scan
+    /// store). Columns of the wrong length (not produced by [`slag_common::shards::decode_shard`])
+    /// are treated as absent.
+    pub fn push_shard(&mut self, s: &StoredShard) {
+        let n = s.ids.len().min(s.means.len());
+        let ok = |len: usize| len == n;
+        let scales = s.scales.as_ref().filter(|v| ok(v.len()));
+        let opac = s.opacities.as_ref().filter(|v| ok(v.len()));
+        let rot = s.rotations.as_ref().filter(|v| ok(v.len()));
+        let dc = s.sh_dc.as_ref().filter(|v| ok(v.len()));
+        let flags = scales.map_or(0, |_| HAS_SCALES)
+            | opac.map_or(0, |_| HAS_OPACITY)
+            | rot.map_or(0, |_| HAS_ROTATION)
+            | dc.map_or(0, |_| HAS_DC);
+        self.ids.extend_from_slice(&s.ids[..n]);
+        self.means.extend_from_slice(&s.means[..n]);
+        for i in 0..n {
+            self.log_scales.push(scales.map_or([0.0; 3], |v| v[i]));
+            self.logit_opacities
+                .push(opac.map_or(FALLBACK_LOGIT_OPACITY, |v| v[i]));
+            self.rotations
+                .push(rot.map_or([1.0, 0.0, 0.0, 0.0], |v| v[i]));
+            self.sh_dc.push(dc.map_or([0.0; 3], |v| v[i]));
+            self.present.push(flags);
+        }
+    }
+
+    /// Builds the columns of `shards` in order.
+    pub fn from_shards<'a>(shards: impl IntoIterator<Item = &'a StoredShard>) -> Self {
+        let mut d = Self::new();
+        for s in shards {
+            d.push_shard(s);
+        }
+        d
+    }
+
+    /// Number of Gaussians (rows).
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// True without Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    /// Source-`.ply` ids of the rows `[N]`.
+    pub fn ids(&self) -> &[u32] {
+        &self.ids
+    }
+
+    /// Rows whose shard carried all four display columns (scales, opacities, rotations, SH DC).
+    pub fn complete(&self) -> usize {
+        self.present.iter().filter(|&&f| f == 0b1111).count()
+    }
+
+    /// Bytes held (for `/stats`-style accounting).
+    pub fn memory_bytes(&self) -> usize {
+        self.len() * (4 + 12 + 12 + 4 + 16 + 12 + 1)
+    }
+
+    /// Log of the fallback isotropic scale: [`FALLBACK_SCALE_FRACTION`] of the means' diagonal.
+    fn fallback_log_scale(&self) -> f32 {
+        let b = slag_common::shards::Aabb::of_points(self.means.iter().copied());
+        let diag = b
+            .map(|b| {
+                (0..3)
+                    .map(|a| ((b.max[a] - b.min[a]) as f64).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .unwrap_or(0.0);
+        let s = if diag.is_finite() && diag > 1e-9 {
+            diag * FALLBACK_SCALE_FRACTION as f64
+        } else {
+            0.01
+        };
+        s.ln() as f32
+    }
+}
+
+/// How matches and the rest are painted by [`highlighted_ply`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HighlightStyle {
+    /// Flat colour of the matches, linear display RGB in 0..1 (written as
+    /// `f_dc = (rgb - 0.5) / SH_C0`, the INRIA/gsplat DC convention).
+    pub colour: [f32; 3],
+    /// When `Some(f)` (0..=1), every other Gaussian's DC colour is scaled towards black:
+    /// `rgb' = f * (0.5 + SH_C0 * f_dc)`.
+    pub dim: Option<f32>,
+}
+
+impl Default for HighlightStyle {
+    fn default() -> Self {
+        HighlightStyle {
+            colour: DEFAULT_HIGHLIGHT,
+            dim: None,
+        }
+    }
+}
+
+/// `f_dc` of a display RGB colour: `(rgb - 0.5) / SH_C0`.
+pub fn dc_of_rgb(rgb: [f32; 3]) -> [f32; 3] {
+    rgb.map(|c| ((c as f64 - 0.5) / SH_C0) as f32)
+}
+
+/// The `.ply` property names written by [`highlighted_ply`], in order (all `float`).
+pub const PLY_PROPERTIES: [&str; 14] = [
+    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+    "rot_0", "rot_1", "rot_2", "rot_3",
+];
+
+/// Every Gaussian of `attrs` as a binary little-endian INRIA-layout 3DGS `.ply`
+/// (`float` properties [`PLY_PROPERTIES`]: means (world frame), SH DC, pre-sigmoid opacity,
+/// log-scales, rotation (w, x, y, z); SH degree 0, no normals), which 3DGS viewers and
+/// [`slag_common::scene::load_ply`] read. Rows whose id is in `highlighted` get
+/// `style.colour`; the others keep their colour, dimmed by `style.dim`. Missing columns get the
+/// fallbacks documented on [`DisplayAttrs`].
+///
+/// Errors ([`Error::Invalid`]): a non-finite or out-of-range colour or dim factor.
+pub fn highlighted_ply(
+    attrs: &DisplayAttrs,
+    highlighted: &HashSet<u32>,
+    style: &HighlightStyle,
+) -> Result<Vec<u8>> {
+    if style
+        .colour
+        .iter()
+        .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
+    {
+        return Err(Error::Invalid(format!(
+            "highlight colour {:?}: use RGB components in 0..=1",
+            style.colour
+        )));
+    }
+    if let Some(f) = style.dim
+        && !(f.is_finite() && (0.0..=1.0).contains(&f))
+    {
+        return Err(Error::Invalid(format!("dim {f}: use a factor in 0..=1")));
+    }
+    let n = attrs.len();
+    let mut out = String::from("ply\nformat binary_little_endian 1.0\n");
+    out.push_str("comment slag-edge /query.ply: matches painted in a flat colour\n");
+    out.push_str(&format!("element vertex {n}\n"));
+    for p in PLY_PROPERTIES {
+        out.push_str(&format!("property float {p}\n"));
+    }
+    out.push_str("end_header\n");
+    let mut bytes = out.into_bytes();
+    bytes.reserve(n * PLY_PROPERTIES.len() * 4);
+    let hl = dc_of_rgb(style.colour);
+    let fallback_scale = attrs.fallback_log_scale();
+    let mut put = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
+    for i in 0..n {
+        let f = attrs.present[i];
+        attrs.means[i].iter().for_each(|&v| put(v));
+        let dc = if highlighted.contains(&attrs.ids[i]) {
+            hl
+        } else {
+            let dc = attrs.sh_dc[i];
+            match style.dim {
+                Some(k) => dc.map(|c| {
+                    let rgb = 0.5 + SH_C0 * c as f64;
+                    ((k as f64 * rgb - 0.5) / SH_C0) as f32
+                }),
+                None => dc,
+            }
+        };
+        dc.iter().for_each(|&v| put(v));
+        put(attrs.logit_opacities[i]);
+        let s = if f & HAS_SCALES != 0 {
+            attrs.log_scales[i]
+        } else {
+            [fallback_scale; 3]
+        };
+        s.iter().for_each(|&v| put(v));
+        attrs.rotations[i].iter().for_each(|&v| put(v));
+    }
+    Ok(bytes)
+}
+
+/// Parses a colour `RRGGBB` or `#RRGGBB` (hex, sRGB bytes mapped to 0..1).
+///
+/// Errors: anything else ([`Error::Invalid`], naming the `color` parameter).
+pub fn parse_colour(s: &str) -> Result<[f32; 3]> {
+    let h = s.trim().trim_start_matches('#');
+    let bad = || Error::Invalid(format!("color {s:?}: use RRGGBB hex, e.g. ff00ff"));
+    if h.len() != 6 || !h.is_ascii() {
+        return Err(bad());
+    }
+    let mut rgb = [0f32; 3];
+    for (k, c) in rgb.iter_mut().enumerate() {
+        let v = u8::from_str_radix(&h[2 * k..2 * k + 2], 16).map_err(|_| bad())?;
+        *c = v as f32 / 255.0;
+    }
+    Ok(rgb)
+}
+
+/// Takes the highlight parameters (`color`, `dim`) out of a query string's pairs.
+fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyle> {
+    let mut style = HighlightStyle::default();
+    if let Some(c) = pairs.remove("color") {
+        style.colour = parse_colour(&c)?;
+    }
+    if let Some(d) = pairs.remove("dim") {
+        let f: f32 = d
+            .trim()
+            .parse()
+            .ok()
+            .filter(|f: &f32| f.is_finite() && (0.0..=1.0).contains(f))
+            .ok_or_else(|| Error::Invalid(format!("dim {d:?}: use a number in 0..=1")))?;
+        style.dim = Some(f);
+    }
+    Ok(style)
+}
+
+/// `GET /query.ply?text=…[&color=RRGGBB][&dim=0..1]` plus every `GET /query` parameter.
+///
+/// With a threshold (the default) every match is painted (`top_k` only limits `/query`'s list);
+/// with `threshold=none` the `top_k` best are. Headers: `Content-Type: application/octet-stream`,
+/// `Content-Disposition: attachment; filename="query.ply"`, `X-Slag-Matches` (painted ids),
+/// `X-Slag-Gaussians` (vertices), `X-Slag-Up` (world up `x,y,z` of the manifest's ground frame).
+pub(crate) async fn query_ply(
+    State(state): State<Arc<AppState>>,
+    q: std::result::Result<Query<HashMap<String, String>>, QueryRejection>,
+) -> Response {
+    let params = q
+        .map_err(|e| Error::Invalid(format!("query string: {e}")))
+        .and_then(|Query(mut p)| {
+            let style = style_from_pairs(&mut p)?;
+            let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
+            Ok((params, style))
+        });
+    let (mut params, style) = match params {
+        Ok(p) => p,
+        Err(e) => {
+            state.rejected.fetch_add(1, Ordering::Relaxed);
+            return error(status_of(&e), e.to_string());
+        }
+    };
+    let engine = state.engine();
+    if params.threshold.is_some() {
+        params.top_k = engine.store.len().max(1);
+    }
+    let answer = match crate::serve::answer(&state, vec![params]).await.pop() {
+        Some(Ok(a)) => a,
+        Some(Err(e)) => return error(status_of(&e), e.to_string()),
+        None => return error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
+    };
+    let ids: HashSet<u32> = answer.matches.iter().map(|m| m.id).collect();
+    let e2 = engine.clone();
+    let ids_n = ids.len();
+    let built =
+        tokio::task::spawn_blocking(move || highlighted_ply(&e2.display, &ids, &style)).await;
+    let bytes = match built {
+        Ok(Ok(b)) => b,
+        Ok(Err(e)) => return error(status_of(&e), e.to_string()),
+        Err(e) => {
+            return error(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                format!("ply task failed: {e}"),
+            );
+        }
+    };
+    let up = engine.manifest.ground.up;
+    (
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+            (
+                header::CONTENT_DISPOSITION,
+                "attachment; filename=\"query.ply\"".to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-slag-matches"),
+                ids_n.to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-slag-gaussians"),
+                engine.display.len().to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-slag-up"),
+                format!("{},{},{}", up[0], up[1], up[2]),
+            ),
+        ],
+        bytes,
+    )
+        .into_response()
+}
+
+/// The page (`GET /`), compiled in.
+pub const INDEX_HTML: &str = include_str!("../web/index.html");
+/// The page's script (`GET /app.js`), compiled in.
+pub const APP_JS: &str = include_str!("../web/app.js");
+
+/// True for the routes every visitor may load without the bearer token: the page, its script
+/// and the vendored viewer (no scene data).
+pub fn is_public_path(path: &str) -> bool {
+    path == "/" || path == "/index.html" || path == "/app.js" || path.starts_with("/vendor/")
+}
+
+/// This crate's `web` folder (`edge/web` of the source tree) when it exists on this machine:
+/// the default `--web-dir`.
+pub fn default_web_dir() -> Option<PathBuf> {
+    let p = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/web"));
+    p.is_dir().then_some(p)
+}
+
+pub(crate) async fn index() -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        INDEX_HTML,
+    )
+        .into_response()
+}
+
+pub(crate) async fn app_js() -> Response {
+    (
+        [
+            (header::CONTENT_TYPE, "text/javascript; charset=utf-8"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        APP_JS,
+    )
+        .into_response()
+}
+
+/// Resolves `/vendor/<name>` inside `<web_dir>/vendor`: a single file name of
+/// `[A-Za-z0-9._-]` not starting with `.` (no traversal).
+pub fn vendor_file(web_dir: &Path, name: &str) -> Option<PathBuf> {
+    let ok = !name.is_empty()
+        && !name.starts_with('.')
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'.' || b == b'_' || b == b'-');
+    ok.then(|| web_dir.join("vendor").join(name))
+}
+
+pub(crate) async fn vendor(
+    State(state): State<Arc<AppState>>,
+    axum::extract::Path(name): axum::extract::Path<String>,
+) -> Response {
+    let missing = || {
+        error(
+            StatusCode::NOT_FOUND,
+            format!(
+                "viewer file {name:?} is not vendored; run `bash scripts/web-vendor.sh` in the slag \
+                 repository and start serve with --web-dir <repo>/edge/web"
+            ),
+        )
+    };
+    let Some(dir) = state.web_dir.clone() else {
+        return missing();
+    };
+    let Some(path) = vendor_file(&dir, &name) else {
+        return error(StatusCode::BAD_REQUEST, format!("bad file name {name:?}"));
+    };
+    match tokio::fs::read(&path).await {
+        Ok(b) => {
+            let ct = match path.extension().and_then(|e| e.to_str()) {
+                Some("js" | "mjs") => "text/javascript; charset=utf-8",
+                Some("wasm") => "application/wasm",
+                Some("json") => "application/json",
+                Some("css") => "text/css",
+                _ => "application/octet-stream",
+            };
+            ([(header::CONTENT_TYPE, ct)], b).into_response()
+        }
+        Err(_) => missing(),
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use slag_common::scene::{PlyLoadOptions, load_ply};
+    use slag_common::shards::{Dtype, ShardHeader, StoredVectors};
+
+    fn shard(ids: Vec<u32>, display: bool) -> StoredShard {
+        let n = ids.len();
+        let means: Vec<[f32; 3]> = ids
+            .iter()
+            .map(|&i| [i as f32, 2.0 * i as f32, -1.0])
+            .collect();
+        let q = |i: usize| {
+            let v = [1.0 + i as f32, 0.2, -0.3, 0.1 * i as f32];
+            let l = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            v.map(|x| x / l)
+        };
+        StoredShard {
+            header: ShardHeader {
+                version: 1,
+                scene_id: "s".into(),
+                model: "m".into(),
+                dim: 1,
+                dtype: Dtype::F32,
+                count: n as u32,
+                aabb: Default::default(),
+                tile_id: 0,
+            },
+            means,
+            vectors: StoredVectors::F32(vec![1.0; n]),
+            scales: display.then(|| {
+                (0..n)
+                    .map(|i| [-3.0, -2.5, -4.0 + i as f32 * 0.1])
+                    .collect()
+            }),
+            opacities: display.then(|| (0..n).map(|i| -1.0 + i as f32 * 0.5).collect()),
+            rotations: display.then(|| (0..n).map(q).collect()),
+            sh_dc: display.then(|| (0..n).map(|i| [0.1 * i as f32, -0.4, 0.9]).collect()),
+            ids,
+        }
+    }
+
+    #[test]
+    fn ply_round_trips_through_load_ply_with_highlight_and_fallbacks() {
+        let a = shard(vec![10, 11, 12], true);
+        let b = shard(vec![40, 41], false);
+        let attrs = DisplayAttrs::from_shards([&a, &b]);
+        assert_eq!((attrs.len(), attrs.complete()), (5, 3));
+        let hl: HashSet<u32> = [11, 41].into_iter().collect();
+        let style = HighlightStyle {
+            colour: [1.0, 0.0, 1.0],
+            dim: Some(0.5),
+        };
+        let bytes = highlighted_ply(&attrs, &hl, &style).unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("q.ply");
+        std::fs::write(&p, &bytes).unwrap();
+        let g = load_ply(&p, PlyLoadOptions { colours: true }).unwrap();
+        assert_eq!(g.len(), 5);
+        let sh = g.sh.as_ref().unwrap();
+        assert_eq!(sh.degree, 0);
+        let rows: Vec<(&StoredShard, usize)> = (0..3)
+            .map(|k| (&a, k))
+            .chain((0..2).map(|k| (&b, k)))
+            .collect();
+        let fallback = (0.002f64 * (31f64.powi(2) + 62f64.powi(2)).sqrt()) as f32;
+        for (i, (s, k)) in rows.into_iter().enumerate() {
+            assert_eq!(g.means[i], s.means[k]);
+            let rgb: Vec<f64> = (0..3).map(|c| 0.5 + SH_C0 * sh.dc(i)[c] as f64).collect();
+            if hl.contains(&s.ids[k]) {
+                for (c, want) in rgb.iter().zip([1.0, 0.0, 1.0]) {
+                    assert!((c - want).abs() < 1e-6, "{rgb:?}");
+                }
+            } else {
+                let src = s.sh_dc.as_ref().map_or([0.0; 3], |d| d[k]);
+                for c in 0..3 {
+                    let want = 0.5 * (0.5 + SH_C0 * src[c] as f64);
+                    assert!((rgb[c] - want).abs() < 1e-5, "{rgb:?} vs {want}");
+                }
+            }
+            match (&s.scales, &s.opacities, &s.rotations) {
+                (Some(sc), Some(op), Some(rot)) => {
+                    for (got, log) in g.scales[i].iter().zip(sc[k]) {
+                        let want = log.exp();
+                        assert!((got - want).abs() < 1e-6 * want.max(1.0));
+                    }
+                    let want = 1.0 / (1.0 + (-op[k]).exp());
+                    assert!((g.opacities[i] - want).abs() < 1e-6);
+                    for (got, want) in g.rotations[i].iter().zip(rot[k]) {
+                        assert!((got - want).abs() < 1e-6);
+                    }
+                }
+                _ => {
+                    for ax in 0..3 {
+                        assert!((g.scales[i][ax] - fallback).abs() < 1e-5 * fallback);
+                    }
+                    assert!((g.opacities[i] - 0.95).abs() < 1e-5);
+                    assert_eq!(g.rotations[i], [1.0, 0.0, 0.0, 0.0]);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn bad_style_is_a_typed_error() {
+        let attrs = DisplayAttrs::from_shards([&shard(vec![1], true)]);
+        let none = HashSet::new();
+        for style in [
+            HighlightStyle {
+                colour: [2.0, 0.0, 0.0],
+                dim: None,
+            },
+            HighlightStyle {
+                colour: [f32::NAN, 0.0, 0.0],
+                dim: None,
+            },
+            HighlightStyle {
+                colour: [1.0, 0.0, 0.0],
+                dim: Some(1.5),
+            },
+        ] {
+            assert!(matches!(
+                highlighted_ply(&attrs, &none, &style),
+                Err(Error::Invalid(_))
+            ));
+        }
+        assert_eq!(parse_colour("#ff8000").unwrap(), [1.0, 128.0 / 255.0, 0.0]);
+        for bad in ["ff00", "zz0000", "ff00ff00", "é0000"] {
+            assert!(parse_colour(bad).is_err(), "{bad}");
+        }
+        assert!(vendor_file(Path::new("/w"), "../x").is_none());
+        assert!(vendor_file(Path::new("/w"), ".hidden").is_none());
+        assert_eq!(
+            vendor_file(Path::new("/w"), "three.module.js"),
+            Some(PathBuf::from("/w/vendor/three.module.js"))
+        );
+    }
+}

@@ -1,0 +1,110 @@
+// slag-edge web page: prompt -> GET /query.ply -> Gaussian-splat render (@mkkellogg/gaussian-splats-3d).
+// State for tests and people: document.body.dataset.state = idle | loading | rendered | error,
+// document.body.dataset.matches = painted Gaussians of the last answer.
+
+const $ = (id) => document.getElementById(id);
+const status = (msg) => { $('status').textContent = msg; };
+const setState = (s) => { document.body.dataset.state = s; };
+
+let GS = null;
+try {
+  GS = await import('@mkkellogg/gaussian-splats-3d');
+} catch (e) {
+  $('help').hidden = false;
+  status('viewer not vendored: run bash scripts/web-vendor.sh');
+  setState('no-viewer');
+  console.error('viewer import failed', e);
+}
+
+// Bounds of the means in a binary little-endian .ply (float properties x, y, z).
+function plyBounds(buf) {
+  const head = new TextDecoder().decode(new Uint8Array(buf, 0, Math.min(buf.byteLength, 4096)));
+  const end = head.indexOf('end_header\n');
+  if (end < 0) throw new Error('not a .ply answer');
+  const lines = head.slice(0, end).split('\n');
+  const n = parseInt((lines.find((l) => l.startsWith('element vertex')) || '').split(' ')[2], 10);
+  const props = lines.filter((l) => l.startsWith('property float')).map((l) => l.split(' ')[2]);
+  const stride = props.length;
+  const ix = props.indexOf('x');
+  const f = new Float32Array(buf.slice(end + 'end_header\n'.length));
+  const c = [0, 0, 0];
+  for (let i = 0; i < n; i++) for (let a = 0; a < 3; a++) c[a] += f[i * stride + ix + a] / n;
+  const d = [];
+  for (let i = 0; i < n; i++) {
+    let s = 0;
+    for (let a = 0; a < 3; a++) s += (f[i * stride + ix + a] - c[a]) ** 2;
+    d.push(Math.sqrt(s));
+  }
+  d.sort((a, b) => a - b);
+  return { n, center: c, radius: d.length ? d[Math.floor(0.9 * (d.length - 1))] : 1 };
+}
+
+let viewer = null;
+
+async function show(text, token) {
+  setState('loading');
+  status(`asking for “${text}”…`);
+  const headers = token ? { Authorization: `Bearer ${token}` } : {};
+  const r = await fetch(`/query.ply?dim=0.35&text=${encodeURIComponent(text)}`, { headers });
+  if (!r.ok) {
+    let msg = `${r.status}`;
+    try { msg = (await r.json()).error; } catch (_) { /* not JSON */ }
+    throw new Error(msg);
+  }
+  const buf = await r.arrayBuffer();
+  status(`“${text}”: loading ${buf.byteLength} bytes into the viewer…`);
+  const matches = r.headers.get('x-slag-matches') || '0';
+  const up = (r.headers.get('x-slag-up') || '0,0,1').split(',').map(Number);
+  const b = plyBounds(buf);
+  if (b.n === 0) throw new Error('the store holds no Gaussians: fetch a radius first');
+  // Camera: 1.4 radii (90th percentile distance of the means) from the centre, horizontal
+  // offset perpendicular to up, slightly above.
+  const side = Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0];
+  const dot = side[0] * up[0] + side[1] * up[1] + side[2] * up[2];
+  const h = side.map((v, a) => v - dot * up[a]);
+  const hl = Math.hypot(...h);
+  const dist = 1.4 * b.radius;
+  const eye = b.center.map((c, a) => c + (h[a] / hl) * dist + up[a] * 0.3 * dist);
+  // The viewer's dispose() removes its root element from document.body: give each answer a
+  // fresh root there.
+  if (viewer) { await viewer.dispose(); viewer = null; }
+  const root = document.createElement('div');
+  root.className = 'view';
+  document.body.appendChild(root);
+  viewer = new GS.Viewer({
+    rootElement: root,
+    cameraUp: up,
+    initialCameraPosition: eye,
+    initialCameraLookAt: b.center,
+    sharedMemoryForWorkers: false,
+    gpuAcceleratedSort: false,
+    sphericalHarmonicsDegree: 0,
+    antialiased: false,
+  });
+  const url = URL.createObjectURL(new Blob([buf]));
+  await viewer.addSplatScene(url, {
+    format: GS.SceneFormat.Ply,
+    showLoadingUI: false,
+    progressiveLoad: false,
+    splatAlphaRemovalThreshold: 1,
+  });
+  URL.revokeObjectURL(url);
+  status(`“${text}”: rendering ${b.n} Gaussians…`);
+  viewer.start();
+  // Let the sort worker and a few frames finish before calling it rendered.
+  for (let i = 0; i < 6; i++) await new Promise((res) => requestAnimationFrame(res));
+  document.body.dataset.matches = matches;
+  status(`“${text}”: ${matches} of ${b.n} Gaussians match (magenta). Drag to orbit, scroll to zoom.`);
+  setState('rendered');
+}
+
+$('bar').addEventListener('submit', (ev) => {
+  ev.preventDefault();
+  const text = $('text').value.trim();
+  if (!text) { status('type what to look for first'); return; }
+  if (!GS) return;
+  show(text, $('token').value.trim()).catch((e) => {
+    status(`error: ${e.message}`);
+    setState('error');
+  });
+});
