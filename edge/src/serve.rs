@@ -371,7 +371,11 @@ async fn answer(state: &Arc<AppState>, qs: Vec<QueryParams>) -> Vec<Result<query
     }
 }
 
-fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
+/// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
+/// to a [`RawQuery`] (unknown keys rejected like a `POST` item).
+///
+/// Errors: [`Error::Invalid`] naming an unknown key.
+pub fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
     let obj: serde_json::Map<String, serde_json::Value> = pairs
         .into_iter()
         .map(|(k, v)| (k, serde_json::Value::String(v)))

@@ -484,6 +484,17 @@ pub(super) fn read(path: &Path, options: PlyLoadOptions) -> Result<Gaussians> {
     }
 }
 
+/// [`read`] on bytes already in memory; `path` only names them in errors.
+pub(super) fn read_bytes(path: &Path, bytes: &[u8], options: PlyLoadOptions) -> Result<Gaussians> {
+    let mut reader = std::io::Cursor::new(bytes);
+    let header = parse_header(path, &mut reader)?;
+    let cols = select_columns(path, &header, options)?;
+    match header.encoding {
+        Encoding::Ascii => read_ascii(path, &header, &cols, reader),
+        _ => read_binary(path, &header, &cols, reader, bytes.len() as u64),
+    }
+}
+
 fn truncated(path: &Path, header: &Header, have: u64) -> Error {
     Error::format(
         path,
