@@ -243,7 +243,8 @@ fn status_of(e: &Error) -> StatusCode {
 
 /// Constant-time comparison of the presented and configured tokens.
 fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
-    let mut diff = (presented.len() ^ expected.len()) as u8;
+    // Lengths compared in full (a `as u8` truncation would accept a token with 256 extra bytes).
+    let mut diff = u8::from(presented.len() != expected.len());
     for (i, b) in expected.iter().enumerate() {
         diff |= b ^ presented.get(i).copied().unwrap_or(0);
     }
@@ -542,5 +543,23 @@ async fn fetch_post(
             Err(e) => error(status_of(&e), e.to_string()),
         },
         Err(e) => error(status_of(&e), e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod token_tests {
+    use super::token_matches;
+
+    #[test]
+    fn token_comparison_needs_the_exact_token() {
+        let t = b"s3cret";
+        assert!(token_matches(t, t));
+        for bad in [&b""[..], b"s3cre", b"s3cret!", b"S3cret"] {
+            assert!(!token_matches(bad, t), "{bad:?}");
+        }
+        // Regression: the token followed by 256 more bytes was accepted (length difference
+        // truncated to u8).
+        let long = [&t[..], &[b'a'; 256][..]].concat();
+        assert!(!token_matches(&long, t));
     }
 }
