@@ -42,7 +42,7 @@ done
 for p in "${pids[@]}"; do wait "$p" || status=1; done
 for t in "${targets[@]}"; do
   printf '%-16s ' "$t"
-  grep -E '^(Done|stat::number_of_executed_units|.*cov: )' "logs/$t.log" | tail -2 | tr '\n' ' '
+  { grep -E '^(Done|#[0-9]+.*cov: )' "logs/$t.log" || true; } | tail -2 | tr '\n' ' '
   echo
 done
 exit $status
