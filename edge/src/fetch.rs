@@ -10,6 +10,15 @@
 //!    transaction (a new partition generation becomes visible at once, never half);
 //! 5. shards that no manifest references any more (an older generation) are dropped; shards of the
 //!    current manifest outside the disc are kept unless [`FetchParams::prune`] is set.
+//!
+//! # Fault injection (tests only)
+//!
+//! With `SLAG_FAULT_EXIT_AT=<n>` in the environment the process exits with status 137 (as if
+//! SIGKILLed) at the n-th durability boundary of the run (1-based), counted in one place,
+//! [`fault_boundary`]: after each chunk written to a partial file, after each partial-file sync,
+//! after each shard commit, and before and after the manifest commit. `edge/tests/faults.rs`
+//! kills a fetch at every boundary in turn and checks that the store stays consistent. Unset
+//! (the normal case) it costs one atomic load per boundary.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -129,6 +138,30 @@ impl std::fmt::Display for FetchSummary {
             self.evicted,
             self.store_bytes as f64 / 1e6
         )
+    }
+}
+
+/// Exit status used by the fault hook (128 + SIGKILL, what a shell reports for `kill -9`).
+pub const FAULT_EXIT_STATUS: i32 = 137;
+
+/// The fault hook (module doc): counts durability boundaries and exits the process with
+/// [`FAULT_EXIT_STATUS`] at the one named by `SLAG_FAULT_EXIT_AT`. `what` is logged to stderr.
+pub fn fault_boundary(what: &str) {
+    use std::sync::OnceLock;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static AT: OnceLock<Option<u64>> = OnceLock::new();
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    let Some(at) = *AT.get_or_init(|| {
+        std::env::var("SLAG_FAULT_EXIT_AT")
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .filter(|&n| n > 0)
+    }) else {
+        return;
+    };
+    if COUNT.fetch_add(1, Ordering::SeqCst) + 1 == at {
+        eprintln!("SLAG_FAULT_EXIT_AT={at}: exiting at boundary {at} ({what})");
+        std::process::exit(FAULT_EXIT_STATUS);
     }
 }
 
@@ -342,12 +375,14 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
             .map(|d| d.as_secs())
             .unwrap_or(0),
     };
+    fault_boundary("before the manifest commit");
     {
         let (store, manifest) = (store.clone(), manifest.clone());
         tokio::task::spawn_blocking(move || store.commit_fetch(&manifest, &record))
             .await
             .map_err(|e| Error::Invalid(format!("store task failed: {e}")))??;
     }
+    fault_boundary("after the manifest commit");
 
     // Eviction: shards no manifest tile references (older generations) always; shards outside the
     // disc only with --prune.
@@ -369,6 +404,15 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
             summary.kept_outside += 1;
         }
     }
+    // Partial files of tiles now stored (a kill between a shard commit and the file's removal)
+    // or of older generations; partials of this manifest's other tiles are kept for a later fetch.
+    let mut keep = Vec::new();
+    for t in &manifest.tiles {
+        if !store.has_shard(&p.scene, t)? {
+            keep.push(store.partial_path(&p.scene, t));
+        }
+    }
+    store.clean_partials(&p.scene, &keep)?;
     store.flush()?;
     summary.store_bytes = store.disk_bytes();
     Ok(summary)
@@ -419,6 +463,7 @@ async fn download_tile(
                 };
                 match committed {
                     Ok(()) => {
+                        fault_boundary("after a shard commit");
                         let _ = tokio::fs::remove_file(&part).await;
                         return Ok((resumed, counts.received));
                     }
@@ -551,12 +596,14 @@ async fn try_download(
             )));
         }
         file.write_all(&chunk).await.map_err(io)?;
+        fault_boundary("after a partial-file write");
         counts.received += chunk.len() as u64;
         counts.shown += chunk.len() as u64;
         pb.inc(chunk.len() as u64);
     }
     file.flush().await.map_err(io)?;
     file.sync_data().await.map_err(io)?;
+    fault_boundary("after a partial-file sync");
     if written != tile.bytes {
         return Err(transient(Error::network(
             url,

@@ -278,7 +278,8 @@ pub(crate) fn status_of(e: &Error) -> StatusCode {
 
 /// Constant-time comparison of the presented and configured tokens.
 fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
-    let mut diff = (presented.len() ^ expected.len()) as u8;
+    // Lengths compared in full (a `as u8` truncation would accept a token with 256 extra bytes).
+    let mut diff = u8::from(presented.len() != expected.len());
     for (i, b) in expected.iter().enumerate() {
         diff |= b ^ presented.get(i).copied().unwrap_or(0);
     }
@@ -409,7 +410,11 @@ pub(crate) async fn answer(
     }
 }
 
-pub(crate) fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
+/// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
+/// to a [`RawQuery`] (unknown keys rejected like a `POST` item).
+///
+/// Errors: [`Error::Invalid`] naming an unknown key.
+pub fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
     let obj: serde_json::Map<String, serde_json::Value> = pairs
         .into_iter()
         .map(|(k, v)| (k, serde_json::Value::String(v)))
@@ -576,5 +581,23 @@ async fn fetch_post(
             Err(e) => error(status_of(&e), e.to_string()),
         },
         Err(e) => error(status_of(&e), e.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod token_tests {
+    use super::token_matches;
+
+    #[test]
+    fn token_comparison_needs_the_exact_token() {
+        let t = b"s3cret";
+        assert!(token_matches(t, t));
+        for bad in [&b""[..], b"s3cre", b"s3cret!", b"S3cret"] {
+            assert!(!token_matches(bad, t), "{bad:?}");
+        }
+        // Regression: the token followed by 256 more bytes was accepted (length difference
+        // truncated to u8).
+        let long = [&t[..], &[b'a'; 256][..]].concat();
+        assert!(!token_matches(&long, t));
     }
 }

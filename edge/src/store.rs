@@ -20,7 +20,9 @@
 
 use std::path::{Path, PathBuf};
 
-use slag_common::shards::{Manifest, StoredShard, TileInfo, decode_shard_stored, shard_checksum};
+use slag_common::shards::{
+    Manifest, StoredShard, TileInfo, decode_shard_stored, shard_checksum, valid_scene_id,
+};
 use slag_common::{Error, Result};
 
 /// Where and how a scene was last fetched (stored beside the manifest).
@@ -114,7 +116,15 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
             format!("checksum {got:08x}, the manifest says {want:08x}"),
         ));
     }
-    let shard = decode_shard_stored(bytes).map_err(|e| Error::format(&origin, e.to_string()))?;
+    let shard = decode_shard_stored(bytes).map_err(|e| match e {
+        // Not corruption: a shard from a newer (or older) slag. Typed apart so that fetch does not
+        // download it again and the message names the version.
+        slag_common::shards::ShardError::UnsupportedVersion(_) => Error::Unsupported {
+            path: origin.clone().into(),
+            message: e.to_string(),
+        },
+        e => Error::format(&origin, e.to_string()),
+    })?;
     let h = &shard.header;
     if h.scene_id != manifest.scene_id
         || h.tile_id != tile.id
@@ -173,11 +183,63 @@ impl EdgeStore {
         db_err(&self.root, e)
     }
 
-    /// Path of the partial download of `tile` (its checksum names the content it resumes).
+    /// Path of the partial download of `tile` (its checksum names the content it resumes):
+    /// `DIR/partial/<scene>-<tile>-<checksum>.part`, always a plain file name inside
+    /// `DIR/partial`: a scene id failing [`valid_scene_id`] or a checksum that is not 8 hex digits
+    /// (both come from outside: the command line and the server's manifest) is written as hex of
+    /// its bytes (prefixed `x`), so no `/`, `..` or NUL can reach the file system.
     pub fn partial_path(&self, scene: &str, tile: &TileInfo) -> PathBuf {
+        fn hex(s: &str) -> String {
+            let mut out = String::from("x");
+            for b in s.bytes().take(64) {
+                out.push_str(&format!("{b:02x}"));
+            }
+            out
+        }
+        let scene = if valid_scene_id(scene) {
+            scene.to_string()
+        } else {
+            hex(scene)
+        };
+        let checksum = match parse_checksum(tile) {
+            Ok(c) => format!("{c:08x}"),
+            Err(_) => hex(&tile.checksum),
+        };
         self.root
             .join("partial")
-            .join(format!("{scene}-{}-{}.part", tile.id, tile.checksum))
+            .join(format!("{scene}-{}-{checksum}.part", tile.id))
+    }
+
+    /// Removes the partial downloads of `scene` except those in `keep` (file names from
+    /// [`EdgeStore::partial_path`]); returns how many were removed. Called after a completed
+    /// fetch: partials of stored shards (a kill between the commit and the removal) and of older
+    /// generations can never be resumed into anything useful.
+    ///
+    /// Errors: the partial folder cannot be listed ([`Error::Io`]); single removals are best effort.
+    pub fn clean_partials(&self, scene: &str, keep: &[PathBuf]) -> Result<usize> {
+        let dir = self.root.join("partial");
+        let rd = std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))?;
+        let mut removed = 0;
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            // `<scene>-<tile>-<checksum>.part`: the scene is what is left of the last two dashes.
+            let Some(stem) = name.strip_suffix(".part") else {
+                continue;
+            };
+            let mut parts = stem.rsplitn(3, '-');
+            let (_, _, owner) = (parts.next(), parts.next(), parts.next());
+            if owner != Some(scene)
+                || keep
+                    .iter()
+                    .any(|k| k.file_name() == Some(e.file_name().as_os_str()))
+            {
+                continue;
+            }
+            if std::fs::remove_file(e.path()).is_ok() {
+                removed += 1;
+            }
+        }
+        Ok(removed)
     }
 
     /// The manifest of the last completed fetch of `scene`.

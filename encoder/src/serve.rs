@@ -13,6 +13,10 @@
 //! Errors are JSON `{"error": message, "status": code}`: invalid scene id (`[A-Za-z0-9_.-]`,
 //! 1..=64, not starting with `.`) or non-decimal shard id → 400, unknown scene/shard → 404,
 //! store failures → 500. Ids are never used as file paths.
+//!
+//! With a bearer token ([`router_with_token`], `slag-encoder serve --token-file F` or env
+//! `SLAG_SHARD_TOKEN`) every route requires `Authorization: Bearer <token>` (compared in constant
+//! time); otherwise 401 JSON with `WWW-Authenticate: Bearer`. `slag-edge fetch --token` sends it.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -42,6 +46,53 @@ pub fn router(store: ShardStore) -> Router {
         .with_state(Arc::new(store))
 }
 
+/// [`router`] behind a bearer token when `token` is `Some` (module doc); `None` is [`router`].
+pub fn router_with_token(store: ShardStore, token: Option<String>) -> Router {
+    let r = router(store);
+    match token {
+        None => r,
+        Some(t) => r.layer(axum::middleware::from_fn_with_state(
+            Arc::new(t),
+            require_token,
+        )),
+    }
+}
+
+/// Constant-time comparison of the presented and configured tokens.
+fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
+    // Lengths compared in full (a `as u8` truncation would accept a token with 256 extra bytes).
+    let mut diff = u8::from(presented.len() != expected.len());
+    for (i, b) in expected.iter().enumerate() {
+        diff |= b ^ presented.get(i).copied().unwrap_or(0);
+    }
+    diff == 0
+}
+
+async fn require_token(
+    State(token): State<Arc<String>>,
+    req: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let presented = req
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .unwrap_or("");
+    if token_matches(presented.trim().as_bytes(), token.as_bytes()) {
+        return next.run(req).await;
+    }
+    let mut r = error(
+        StatusCode::UNAUTHORIZED,
+        "missing or wrong bearer token: send Authorization: Bearer <token> (slag-edge fetch \
+         --token, or SLAG_SHARD_TOKEN)"
+            .into(),
+    );
+    r.headers_mut()
+        .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+    r
+}
+
 /// Binds `addr` and serves until Ctrl-C. Returns the bound address through `on_bound` (useful
 /// with port 0).
 ///
@@ -51,6 +102,18 @@ pub async fn serve(
     addr: SocketAddr,
     on_bound: impl FnOnce(SocketAddr),
 ) -> slag_common::Result<()> {
+    serve_with_token(store, addr, None, on_bound).await
+}
+
+/// [`serve`] behind an optional bearer token ([`router_with_token`]).
+///
+/// Errors: the address cannot be bound ([`slag_common::Error::Io`]).
+pub async fn serve_with_token(
+    store: ShardStore,
+    addr: SocketAddr,
+    token: Option<String>,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
@@ -58,7 +121,7 @@ pub async fn serve(
         .local_addr()
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
-    axum::serve(listener, router(store))
+    axum::serve(listener, router_with_token(store, token))
         .with_graceful_shutdown(async {
             let _ = tokio::signal::ctrl_c().await;
         })
@@ -295,5 +358,17 @@ mod tests {
         assert_eq!(parse_range("bytes=0-1,5-6", 100), RangeReq::Full);
         assert_eq!(parse_range("items=0-1", 100), RangeReq::Full);
         assert_eq!(parse_range("bytes=x-1", 100), RangeReq::Full);
+    }
+
+    #[test]
+    fn token_comparison_needs_the_exact_token() {
+        let t = b"s3cret";
+        assert!(token_matches(t, t));
+        for bad in [&b""[..], b"s3cre", b"s3cret!", b"S3cret", b"x3cret"] {
+            assert!(!token_matches(bad, t), "{bad:?}");
+        }
+        // The token followed by 256 more bytes: lengths differ by a multiple of 256.
+        let long = [&t[..], &[b'a'; 256][..]].concat();
+        assert!(!token_matches(&long, t));
     }
 }

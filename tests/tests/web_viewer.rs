@@ -97,7 +97,8 @@ fn page_renders_pink_matches_in_magenta_in_headless_chromium() {
     .expect("encode");
     let shard_store = dir.path().join("shards");
     slag_encoder::cli::shards::run_partition(&PartitionArgs {
-        embeddings: out.join("embeddings.safetensors"),
+        embeddings: Some(out.join("embeddings.safetensors")),
+        synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
         max_per_shard: 8000,

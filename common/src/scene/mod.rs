@@ -91,6 +91,13 @@ pub fn load_ply(path: &Path, options: PlyLoadOptions) -> Result<Gaussians> {
     ply::read(path, options)
 }
 
+/// [`load_ply`] on the bytes of a `.ply` file already in memory (a download, a fuzzer input);
+/// `origin` only names the data in error messages. Same conventions and errors as [`load_ply`]
+/// (never [`crate::Error::Io`] except for invalid UTF-8 in an ASCII body).
+pub fn load_ply_bytes(bytes: &[u8], origin: &Path, options: PlyLoadOptions) -> Result<Gaussians> {
+    ply::read_bytes(origin, bytes, options)
+}
+
 /// The zeroth-order real SH basis constant `1 / (2 sqrt(pi))`: `colour = 0.5 + SH_C0 * f_dc`
 /// (INRIA/gsplat convention).
 pub const SH_C0: f64 = 0.28209479177387814;

@@ -388,12 +388,14 @@ impl<'a> Builder<'a> {
     /// `v` holds the raw values of vertex `i` in `Columns::names` order.
     #[inline]
     fn push(&mut self, i: usize, v: &[f64]) -> Result<()> {
-        if let Some(j) = v.iter().position(|x| !x.is_finite()) {
+        // Every value is stored as f32: one beyond the f32 range (an ASCII or `double` property
+        // like 1e39) would become ±inf after the conversion, so it is rejected like a NaN.
+        if let Some(j) = v.iter().position(|&x| !(x as f32).is_finite()) {
             return Err(Error::format(
                 self.path,
                 format!(
-                    "vertex {i}: property `{}` is {} (non-finite); the scene is corrupt (diverged \
-                     training?); re-export or retrain it",
+                    "vertex {i}: property `{}` is {} (non-finite or beyond the f32 range); the \
+                     scene is corrupt (diverged training?); re-export or retrain it",
                     self.cols.names[j], v[j]
                 ),
             ));
@@ -481,6 +483,17 @@ pub(super) fn read(path: &Path, options: PlyLoadOptions) -> Result<Gaussians> {
     match header.encoding {
         Encoding::Ascii => read_ascii(path, &header, &cols, reader),
         _ => read_binary(path, &header, &cols, reader, file_len),
+    }
+}
+
+/// [`read`] on bytes already in memory; `path` only names them in errors.
+pub(super) fn read_bytes(path: &Path, bytes: &[u8], options: PlyLoadOptions) -> Result<Gaussians> {
+    let mut reader = std::io::Cursor::new(bytes);
+    let header = parse_header(path, &mut reader)?;
+    let cols = select_columns(path, &header, options)?;
+    match header.encoding {
+        Encoding::Ascii => read_ascii(path, &header, &cols, reader),
+        _ => read_binary(path, &header, &cols, reader, bytes.len() as u64),
     }
 }
 
@@ -1010,6 +1023,38 @@ mod tests {
             .expect_err("nan")
             .to_string();
         assert!(msg.contains("vertex 2") && msg.contains("f_dc_2"), "{msg}");
+    }
+
+    #[test]
+    fn a_value_beyond_the_f32_range_is_rejected_not_stored_as_infinity() {
+        // Found by `fuzz/` (target `ply`): an ASCII x of -1.6e118 parsed as a finite f64 and became
+        // -inf in the f32 means.
+        let crash = include_bytes!("../../tests/data/fuzz-ply-beyond-f32.ply");
+        let path = Path::new("fuzz-ply-beyond-f32.ply");
+        for colours in [false, true] {
+            let err = crate::scene::load_ply_bytes(crash, path, PlyLoadOptions { colours })
+                .expect_err("a mean beyond f32 must be rejected");
+            let msg = err.to_string();
+            assert!(matches!(err, Error::Format { .. }), "{msg}");
+            assert!(msg.contains("vertex 1") && msg.contains("`x`"), "{msg}");
+        }
+        // The same through a binary `double` property, and for an SH coefficient.
+        let props: Vec<(String, ScalarType)> = inria_props(0)
+            .into_iter()
+            .map(|(n, _)| (n, ScalarType::F64))
+            .collect();
+        for (name, value) in [("y", 1e39), ("f_dc_1", -4e38)] {
+            let mut rows = rows(&props, 3, 5);
+            let k = props.iter().position(|(n, _)| n == name).expect("column");
+            rows[2][k] = value;
+            let bytes = encode(Encoding::BinaryLe, &refs(&props), &rows);
+            let err = crate::scene::load_ply_bytes(&bytes, path, PlyLoadOptions { colours: true })
+                .expect_err("beyond f32");
+            assert!(err.to_string().contains("vertex 2"), "{err}");
+            // In memory and from a file alike.
+            let (_d, p) = write_tmp(&bytes);
+            assert!(load_ply(&p, PlyLoadOptions { colours: true }).is_err());
+        }
     }
 
     #[test]

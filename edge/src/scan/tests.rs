@@ -49,6 +49,8 @@ fn store_via_shards(n: usize, d: usize, dtype: Dtype, seed: u64) -> VectorStore 
             vectors: &vectors[start * d..end * d],
             scales: None,
             opacities: None,
+            rotations: None,
+            sh_dc: None,
         })
         .expect("encode");
         store
@@ -412,6 +414,8 @@ fn push_shard_rejects_mismatches_and_leaves_the_store_unchanged() {
                 vectors: &v,
                 scales: None,
                 opacities: None,
+                rotations: None,
+                sh_dc: None,
             })
             .expect("encode"),
         )

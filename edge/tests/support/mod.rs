@@ -150,6 +150,10 @@ pub struct ServerState {
     pub corrupt: Mutex<HashSet<u64>>,
     /// Required bearer token.
     pub token: Option<String>,
+    /// Stream every shard body in chunks of this many bytes with this pause before each.
+    pub slow: Mutex<Option<(usize, std::time::Duration)>>,
+    /// Tile → send this many bytes of every response, then stall (never finish, never close).
+    pub stall: Mutex<HashMap<u64, usize>>,
 }
 
 pub struct ShardServer {
@@ -165,6 +169,8 @@ pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServe
         cut_next: Mutex::new(HashMap::new()),
         corrupt: Mutex::new(HashSet::new()),
         token,
+        slow: Mutex::new(None),
+        stall: Mutex::new(HashMap::new()),
     });
     let app = axum::Router::new()
         .route("/v1/scenes/{scene}/manifest", get(manifest))
@@ -252,24 +258,45 @@ async fn shard(
     let body_bytes = Bytes::from(bytes[start..].to_vec());
     let cut = state.cut_next.lock().unwrap().remove(&id);
     let len = body_bytes.len();
-    let body = match cut {
-        Some(n) => {
+    let stall = state.stall.lock().unwrap().get(&id).copied();
+    let slow = *state.slow.lock().unwrap();
+    let body = match (cut, stall, slow) {
+        (None, Some(n), _) => {
             let first = body_bytes.slice(..n.min(len));
-            // The error comes after a pause so the first part is flushed to the client before
-            // the connection is aborted (hyper would otherwise drop its buffered write).
-            let stream = futures_util::stream::iter(vec![
-                Ok::<Bytes, std::io::Error>(first),
-                Err(std::io::Error::other("injected connection drop")),
-            ])
-            .then(|item| async move {
-                if item.is_err() {
-                    tokio::time::sleep(std::time::Duration::from_millis(300)).await;
-                }
-                item
+            let stream = futures_util::stream::iter(vec![Ok::<Bytes, std::io::Error>(first)])
+                .chain(futures_util::stream::pending());
+            Body::from_stream(stream)
+        }
+        (None, None, Some((chunk, pause))) => {
+            let pieces: Vec<Bytes> = (0..len)
+                .step_by(chunk.max(1))
+                .map(|a| body_bytes.slice(a..(a + chunk.max(1)).min(len)))
+                .collect();
+            let stream = futures_util::stream::iter(pieces).then(move |b| async move {
+                tokio::time::sleep(pause).await;
+                Ok::<Bytes, std::io::Error>(b)
             });
             Body::from_stream(stream)
         }
-        None => Body::from(body_bytes),
+        _ => match cut {
+            Some(n) => {
+                let first = body_bytes.slice(..n.min(len));
+                // The error comes after a pause so the first part is flushed to the client before
+                // the connection is aborted (hyper would otherwise drop its buffered write).
+                let stream = futures_util::stream::iter(vec![
+                    Ok::<Bytes, std::io::Error>(first),
+                    Err(std::io::Error::other("injected connection drop")),
+                ])
+                .then(|item| async move {
+                    if item.is_err() {
+                        tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+                    }
+                    item
+                });
+                Body::from_stream(stream)
+            }
+            None => Body::from(body_bytes),
+        },
     };
     let mut resp = Response::builder()
         .status(status)

@@ -219,6 +219,31 @@ pub struct ServeArgs {
     /// Address to bind.
     #[arg(long, default_value = "127.0.0.1:8080")]
     pub bind: SocketAddr,
+    /// File whose first line is the bearer token clients must send (also env
+    /// SLAG_SHARD_TOKEN); without either the server is open.
+    #[arg(long)]
+    pub token_file: Option<PathBuf>,
+}
+
+/// The shard server's token: `--token-file` (first line, trimmed) else env `SLAG_SHARD_TOKEN`.
+///
+/// Errors: unreadable or empty token file ([`slag_common::Error::Io`] / `Invalid`).
+pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<Option<String>> {
+    if let Some(p) = token_file {
+        let t = std::fs::read_to_string(p).map_err(|e| slag_common::Error::io(p, e))?;
+        let t = t.lines().next().unwrap_or("").trim().to_string();
+        if t.is_empty() {
+            return Err(slag_common::Error::Invalid(format!(
+                "token file {} is empty; write the token on its first line",
+                p.display()
+            )));
+        }
+        return Ok(Some(t));
+    }
+    Ok(std::env::var("SLAG_SHARD_TOKEN")
+        .ok()
+        .map(|t| t.trim().to_string())
+        .filter(|t| !t.is_empty()))
 }
 
 /// Runs `serve` until Ctrl-C (own tokio runtime).
@@ -226,10 +251,19 @@ pub struct ServeArgs {
 /// Errors: store cannot be opened, address cannot be bound.
 pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     let store = ShardStore::open(&args.store)?;
+    let token = serve_token(args.token_file.as_deref())?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
-    rt.block_on(crate::serve::serve(store, args.bind, |a| {
-        println!("serving on http://{a}/v1/scenes")
-    }))?;
+    let guarded = if token.is_some() {
+        " (bearer token required)"
+    } else {
+        ""
+    };
+    rt.block_on(crate::serve::serve_with_token(
+        store,
+        args.bind,
+        token,
+        |a| println!("serving on http://{a}/v1/scenes{guarded}"),
+    ))?;
     Ok(())
 }
 

@@ -1,0 +1,80 @@
+//! `slag-encoder encode` SIGKILLed after it started writing (per-image contributions spilled to
+//! `OUT/.contributions.partial`) leaves no output that looks complete: no `report.json`, no
+//! `embeddings.safetensors` (the embeddings are written to `.partial`, synced and renamed).
+#![allow(clippy::unwrap_used)]
+
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+#[test]
+fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let scene = root.join("data/snowmiku-mini");
+    let fixtures = slag_common::paths::shared_dir().join("fixtures");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let bin = env!("CARGO_BIN_EXE_slag-encoder");
+    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
+        Ok(r) if !r.trim().is_empty() => {
+            let mut parts = r.split_whitespace();
+            let mut c = Command::new(parts.next().unwrap());
+            c.args(parts).arg(bin);
+            c
+        }
+        _ => Command::new(bin),
+    };
+    // A zero contribution budget spills every image's a_kj to disk as soon as it is computed,
+    // so the run writes into OUT early and keeps writing until the end.
+    let mut child = cmd
+        .args(["encode", "--scene"])
+        .arg(&scene)
+        .arg("--out")
+        .arg(&out)
+        .args(["--quiet", "--masks", "graph", "--clip-visual"])
+        .arg(fixtures.join("clip/color-clip-visual.onnx"))
+        .args([
+            "--raster-scale",
+            "0.25",
+            "--rasterizer",
+            "cpu",
+            "--contribution-memory-mb",
+            "0",
+        ])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let spill = out.join(".contributions.partial");
+    let t0 = Instant::now();
+    loop {
+        let started = std::fs::read_dir(&spill).is_ok_and(|mut rd| rd.next().is_some());
+        if started {
+            break;
+        }
+        if let Some(status) = child.try_wait().unwrap() {
+            let mut err = String::new();
+            use std::io::Read;
+            child
+                .stderr
+                .take()
+                .unwrap()
+                .read_to_string(&mut err)
+                .unwrap();
+            panic!("encode ended ({status}) before writing anything: {err}");
+        }
+        assert!(
+            t0.elapsed() < Duration::from_secs(60),
+            "encode wrote nothing in 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!out.join("report.json").exists());
+    assert!(!out.join("embeddings.safetensors").exists());
+    // What is there is visibly unfinished (hidden .partial names).
+    for e in std::fs::read_dir(&out).unwrap() {
+        let name = e.unwrap().file_name().to_string_lossy().into_owned();
+        assert!(name.ends_with(".partial"), "{name}");
+    }
+}
