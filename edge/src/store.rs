@@ -25,6 +25,9 @@ use slag_common::shards::{
 };
 use slag_common::{Error, Result};
 
+/// sled page-cache size of the edge store (bytes).
+pub const SLED_CACHE_BYTES: u64 = 64 * 1024 * 1024;
+
 /// Where and how a scene was last fetched (stored beside the manifest).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FetchRecord {
@@ -163,7 +166,13 @@ impl EdgeStore {
     /// process holds the store.
     pub fn open(root: &Path) -> Result<EdgeStore> {
         std::fs::create_dir_all(root.join("partial")).map_err(|e| Error::io(root, e))?;
-        let db = sled::open(root.join("db")).map_err(|e| db_err(root, e))?;
+        // sled's page cache defaults to 1 GB; the scan holds its own copy of the vectors, so the
+        // store only needs a small cache (robots have little memory to spare).
+        let db = sled::Config::new()
+            .path(root.join("db"))
+            .cache_capacity(SLED_CACHE_BYTES)
+            .open()
+            .map_err(|e| db_err(root, e))?;
         let tree = |name: &str| db.open_tree(name).map_err(|e| db_err(root, e));
         Ok(EdgeStore {
             root: root.to_path_buf(),
