@@ -68,12 +68,17 @@ impl Engine {
     ///
     /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
-        let (manifest, shards, load) = edge.load_scene(scene)?;
-        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
-        let display = crate::view::DisplayAttrs::from_shards(&shards);
-        for s in shards {
-            store.push_shard(s)?;
-        }
+        // One shard at a time: decode, copy its rows into the scan store, drop it.
+        let (dim, dtype) = match edge.manifest(scene)? {
+            Some(m) => (m.dim as usize, m.dtype),
+            None => (1, slag_common::shards::Dtype::F32), // load_scene_with reports the error
+        };
+        let mut store = VectorStore::new(dim, dtype)?;
+        let mut display = crate::view::DisplayAttrs::new();
+        let (manifest, load) = edge.load_scene_with(scene, |s| {
+            display.push_shard(&s);
+            store.push_shard(s)
+        })?;
         let hnsw = if hnsw && !store.is_empty() {
             Some(HnswIndex::build(
                 &store,

@@ -406,6 +406,23 @@ impl EdgeStore {
     ///
     /// Errors: no completed fetch of `scene` ([`Error::Invalid`]), store I/O.
     pub fn load_scene(&self, scene: &str) -> Result<(Manifest, Vec<StoredShard>, SceneLoad)> {
+        let mut shards = Vec::new();
+        let (manifest, load) = self.load_scene_with(scene, |s| {
+            shards.push(s);
+            Ok(())
+        })?;
+        Ok((manifest, shards, load))
+    }
+
+    /// Like [`Self::load_scene`] but hands each verified shard to `f` as soon as it is decoded,
+    /// so a caller that copies the rows elsewhere holds one shard at a time, not the whole scene.
+    ///
+    /// Errors: as [`Self::load_scene`], plus the first error `f` returns.
+    pub fn load_scene_with(
+        &self,
+        scene: &str,
+        mut f: impl FnMut(StoredShard) -> Result<()>,
+    ) -> Result<(Manifest, SceneLoad)> {
         let manifest = self.manifest(scene)?.ok_or_else(|| {
             Error::Invalid(format!(
                 "store {} has no completed fetch of scene {scene:?}; run `slag-edge fetch --from URL \
@@ -414,15 +431,15 @@ impl EdgeStore {
                 self.root.display()
             ))
         })?;
-        let mut shards = Vec::new();
         let mut load = SceneLoad::default();
         for tile in &manifest.tiles {
             match self.shard_bytes(scene, tile)? {
                 None => load.absent_tiles += 1,
                 Some(bytes) => match verify_shard(&manifest, tile, &bytes) {
                     Ok(s) => {
+                        drop(bytes);
                         load.loaded_tiles.push(tile.id);
-                        shards.push(s);
+                        f(s)?;
                     }
                     Err(e) => {
                         tracing::error!("not serving a corrupted shard: {e}");
@@ -431,6 +448,6 @@ impl EdgeStore {
                 },
             }
         }
-        Ok((manifest, shards, load))
+        Ok((manifest, load))
     }
 }
