@@ -26,3 +26,4 @@ pub mod raster;
 pub mod report;
 pub mod serve;
 pub mod store;
+pub mod synthetic;

@@ -2,7 +2,8 @@
 //!
 //! Subcommands: `encode` (the Semantic Embedding stage), `query` (check a prompt), `eval-colors`
 //! (colour mIoU with color-clip), `render` (validate the rasterizer against a photo), `bench`
-//! (per-stage timings), `partition` / `serve` / `export` (spatial shards).
+//! (per-stage timings), `partition` / `serve` / `export` (spatial shards), `synth-scene`
+//! (synthetic scenes of any size).
 
 use clap::{Parser, Subcommand};
 use slag_encoder::cli;
@@ -44,6 +45,8 @@ enum Command {
     Serve(cli::shards::ServeArgs),
     /// Write a scene's manifest.json + shard files for any static host or object store.
     Export(cli::shards::ExportArgs),
+    /// Write a synthetic terrain scene of any size (ply + images + COLMAP poses) for scale tests.
+    SynthScene(cli::synthetic::SynthArgs),
 }
 
 fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
@@ -75,6 +78,7 @@ fn main() -> std::process::ExitCode {
         Command::Partition(a) => cli::shards::run_partition(a),
         Command::Serve(a) => cli::shards::run_serve(a),
         Command::Export(a) => cli::shards::run_export(a),
+        Command::SynthScene(a) => cli::synthetic::run(a).and_then(|o| print_json(&o)),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -20,6 +20,7 @@ use slag_common::{Error, Result};
 use crate::aggregate::{self, ContributionStore, ImageStageParams, ReduceParams};
 use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
+pub use crate::report::WorkerShare;
 use crate::report::{Counts, Report, StageTimings};
 
 /// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
@@ -129,19 +130,80 @@ fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
     )
 }
 
+/// The CPU-side stage instances of one *front* worker: a mask generator and a crop embedder
+/// (each holding its own ONNX Runtime sessions). [`encode_pool`] runs one thread per entry.
+pub struct FrontStages {
+    /// SAM (or graph) masks of one image.
+    pub masks: Box<dyn MaskGenerator>,
+    /// CLIP embeddings of the masks' crops.
+    pub crops: Box<dyn CropEmbedder>,
+}
+
 /// Runs the whole Semantic Embedding stage on `scene` and writes
 /// `<out>/embeddings.safetensors` + `<out>/report.json` (each atomically; the report last, so a
 /// report's presence means the run completed).
+///
+/// One front worker and one rasterizer: [`encode_pool`] with a single worker on each side.
 pub fn encode(
     scene: &SceneInput,
-    mut masks: Box<dyn MaskGenerator>,
-    mut crops: Box<dyn CropEmbedder>,
+    masks: Box<dyn MaskGenerator>,
+    crops: Box<dyn CropEmbedder>,
     make_rasterizer: impl FnOnce(&Gaussians) -> Result<Box<dyn WeightRasterizer>>,
+    params: &EncodeParams,
+    report: Report,
+) -> Result<Report> {
+    encode_pool(
+        scene,
+        vec![FrontStages { masks, crops }],
+        |g: &Gaussians| Ok(vec![make_rasterizer(g)?]),
+        params,
+        report,
+    )
+}
+
+/// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
+/// CLIP crops, on the CPU / ONNX Runtime) and one back thread per rasterizer returned by
+/// `make_rasterizers` (one per GPU: raster → `a_kj`), then one reduction over all images.
+///
+/// Scheduling is dynamic at both ends: front workers take the next unclaimed view from a shared
+/// counter, and back workers take the next finished front item from one bounded queue (depth
+/// 2 × rasterizers), so an image with many masks or a slow GPU holds up only its own worker
+/// (the paper saw large stragglers with a static split). The per-image contributions of all
+/// workers go to one [`ContributionStore`]; the reduction (`E_k`, f64) runs once at the end, so
+/// the result equals a one-worker run up to the f64 summation order.
+///
+/// Errors: the first error of any worker stops the others (no output is written); otherwise as
+/// [`encode`]. All fronts must embed with the same model (same `model_id` and `dim`).
+pub fn encode_pool(
+    scene: &SceneInput,
+    fronts: Vec<FrontStages>,
+    make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
     params: &EncodeParams,
     mut report: Report,
 ) -> Result<Report> {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use std::sync::{Arc, Mutex};
+
     let t_total = Instant::now();
     let mut t = StageTimings::default();
+    let Some(first) = fronts.first() else {
+        return Err(Error::Invalid(
+            "encode needs at least one front worker".into(),
+        ));
+    };
+    let dim = first.crops.dim();
+    let model_id = first.crops.model_id().to_string();
+    let mask_name = first.masks.name().to_string();
+    if let Some(f) = fronts
+        .iter()
+        .find(|f| f.crops.dim() != dim || f.crops.model_id() != model_id)
+    {
+        return Err(Error::Invalid(format!(
+            "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
+            f.crops.model_id(),
+            f.crops.dim()
+        )));
+    }
     let t0 = Instant::now();
     let (gaussians, views, views_total) = scene.load()?;
     t.load_scene = t0.elapsed().as_secs_f64();
@@ -159,16 +221,23 @@ pub fn encode(
     tracing::info!(
         gaussians = gaussians.len(),
         views = views.len(),
+        fronts = fronts.len(),
         "scene loaded"
     );
-    let mut rasterizer = make_rasterizer(&gaussians)?;
-    if let Some(models) = report.models.as_object_mut() {
-        models.insert("rasterizer".into(), rasterizer.name().into());
-        models.insert("clip_model_id".into(), crops.model_id().into());
-        models.insert("masks".into(), masks.name().into());
+    let rasterizers = make_rasterizers(&gaussians)?;
+    if rasterizers.is_empty() {
+        return Err(Error::Invalid(
+            "encode needs at least one rasterizer".into(),
+        ));
     }
-    let dim = crops.dim();
-    let model_id = crops.model_id().to_string();
+    let raster_names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
+    if let Some(models) = report.models.as_object_mut() {
+        models.insert("rasterizer".into(), raster_names[0].clone().into());
+        models.insert("rasterizers".into(), raster_names.clone().into());
+        models.insert("front_workers".into(), fronts.len().into());
+        models.insert("clip_model_id".into(), model_id.clone().into());
+        models.insert("masks".into(), mask_name.into());
+    }
     let multi = MultiProgress::with_draw_target(if params.progress {
         ProgressDrawTarget::stderr()
     } else {
@@ -177,83 +246,212 @@ pub fn encode(
     let bar_front = bar(&multi, views.len(), "masks + CLIP");
     let bar_back = bar(&multi, views.len(), "raster + a_kj");
     let spill_dir = params.out_dir.join(".contributions.partial");
-    let mut store = ContributionStore::new(params.contribution_budget_bytes, spill_dir);
+    let store = Mutex::new(ContributionStore::new(
+        params.contribution_budget_bytes,
+        spill_dir,
+    ));
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
         gaussians: gaussians.len(),
         ..Default::default()
     };
-    let mut raster_pixels = 0usize;
-    let mut raster_entries = 0usize;
 
-    std::thread::scope(|s| -> Result<()> {
-        let (tx, rx) = mpsc::sync_channel::<Result<FrontItem>>(2);
-        let views_ref = &views;
-        let bar_front = &bar_front;
-        s.spawn(move || {
-            for (i, view) in views_ref.iter().enumerate() {
-                let item = (|| {
-                    let t0 = Instant::now();
-                    let img = read_image(view)?;
-                    let t1 = Instant::now();
-                    let m = masks.generate(&img)?;
-                    let t2 = Instant::now();
-                    let e = crops.embed(&img, &m)?;
-                    let t3 = Instant::now();
-                    if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
-                        return Err(Error::Invalid(format!(
-                            "{}: CLIP returned {} vectors for {} masks",
-                            view.name,
-                            e.len(),
-                            m.len()
-                        )));
-                    }
-                    Ok(FrontItem {
-                        view: i,
-                        masks: m,
-                        embeddings: e.concat(),
-                        decode_s: (t1 - t0).as_secs_f64(),
-                        masks_s: (t2 - t1).as_secs_f64(),
-                        clip_s: (t3 - t2).as_secs_f64(),
-                    })
-                })();
-                let failed = item.is_err();
-                bar_front.inc(1);
-                if tx.send(item).is_err() || failed {
-                    return;
-                }
-            }
-        });
-        for item in rx {
-            let item = item?;
-            t.decode += item.decode_s;
-            t.masks += item.masks_s;
-            t.clip += item.clip_s;
-            let view = &views[item.view];
-            let t0 = Instant::now();
-            let intr = &raster_intrinsics[item.view];
-            let weights = rasterizer.rasterize(intr, &view.world_to_camera)?;
-            let t1 = Instant::now();
-            raster_pixels += (weights.width * weights.height) as usize;
-            raster_entries += weights.ids.len();
-            counts.masks += item.masks.len();
-            let c = aggregate::image_contribution(
-                &weights,
-                &item.masks,
-                item.embeddings,
-                dim,
-                params.image_stage,
-            )?;
-            counts.entries += c.entries.len();
-            store.push(c)?;
-            t.raster += (t1 - t0).as_secs_f64();
-            t.image_aggregate += t1.elapsed().as_secs_f64();
-            bar_back.inc(1);
-            tracing::debug!(view = %view.name, masks = item.masks.len(), "image done");
+    /// What the back workers add up (under one lock, once per image).
+    #[derive(Default)]
+    struct BackTotals {
+        raster_s: f64,
+        aggregate_s: f64,
+        pixels: usize,
+        raster_entries: usize,
+        masks: usize,
+        entries: usize,
+        decode_s: f64,
+        masks_s: f64,
+        clip_s: f64,
+    }
+    let totals = Mutex::new(BackTotals::default());
+    let next_view = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let first_error: Mutex<Option<Error>> = Mutex::new(None);
+    let fail = |e: Error| {
+        failed.store(true, Ordering::SeqCst);
+        if let Ok(mut slot) = first_error.lock() {
+            slot.get_or_insert(e);
         }
-        Ok(())
-    })?;
+    };
+    let n_back = rasterizers.len();
+    let (tx, rx) = mpsc::sync_channel::<FrontItem>(2 * n_back);
+    let rx = Arc::new(Mutex::new(rx));
+    let mut shares: Vec<WorkerShare> = Vec::new();
+
+    std::thread::scope(|s| {
+        let mut handles = Vec::new();
+        for (w, mut front) in fronts.into_iter().enumerate() {
+            let tx = tx.clone();
+            let (views, next_view, failed, fail, bar_front) =
+                (&views, &next_view, &failed, &fail, &bar_front);
+            handles.push(s.spawn(move || {
+                let mut share = WorkerShare {
+                    name: format!("front-{w}"),
+                    ..Default::default()
+                };
+                while !failed.load(Ordering::SeqCst) {
+                    let i = next_view.fetch_add(1, Ordering::SeqCst);
+                    let Some(view) = views.get(i) else { break };
+                    let t0 = Instant::now();
+                    let item = (|| {
+                        let img = read_image(view)?;
+                        let t1 = Instant::now();
+                        let m = front.masks.generate(&img)?;
+                        let t2 = Instant::now();
+                        let e = front.crops.embed(&img, &m)?;
+                        let t3 = Instant::now();
+                        if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
+                            return Err(Error::Invalid(format!(
+                                "{}: CLIP returned {} vectors for {} masks",
+                                view.name,
+                                e.len(),
+                                m.len()
+                            )));
+                        }
+                        Ok(FrontItem {
+                            view: i,
+                            masks: m,
+                            embeddings: e.concat(),
+                            decode_s: (t1 - t0).as_secs_f64(),
+                            masks_s: (t2 - t1).as_secs_f64(),
+                            clip_s: (t3 - t2).as_secs_f64(),
+                        })
+                    })();
+                    share.busy_s += t0.elapsed().as_secs_f64();
+                    bar_front.inc(1);
+                    match item {
+                        Ok(item) => {
+                            share.images += 1;
+                            if tx.send(item).is_err() {
+                                break;
+                            }
+                        }
+                        Err(e) => {
+                            fail(e);
+                            break;
+                        }
+                    }
+                }
+                share
+            }));
+        }
+        // The back workers hold the only receivers: when every front is done, the queue closes.
+        drop(tx);
+        for (g, mut rasterizer) in rasterizers.into_iter().enumerate() {
+            let rx = Arc::clone(&rx);
+            let name = format!("raster-{g} {}", raster_names[g]);
+            let (views, raster_intrinsics, failed, fail, bar_back, store, totals) = (
+                &views,
+                &raster_intrinsics,
+                &failed,
+                &fail,
+                &bar_back,
+                &store,
+                &totals,
+            );
+            handles.push(s.spawn(move || {
+                let mut share = WorkerShare {
+                    name,
+                    ..Default::default()
+                };
+                loop {
+                    // Take the next finished front item; the lock is held only while waiting.
+                    let item = match rx.lock() {
+                        Ok(rx) => rx.recv(),
+                        Err(_) => break,
+                    };
+                    let Ok(item) = item else { break };
+                    if failed.load(Ordering::SeqCst) {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    let res = (|| -> Result<()> {
+                        let view = &views[item.view];
+                        let weights = rasterizer
+                            .rasterize(&raster_intrinsics[item.view], &view.world_to_camera)?;
+                        let t1 = Instant::now();
+                        let (pixels, raster_entries) =
+                            ((weights.width * weights.height) as usize, weights.ids.len());
+                        let n_masks = item.masks.len();
+                        let c = aggregate::image_contribution(
+                            &weights,
+                            &item.masks,
+                            item.embeddings,
+                            dim,
+                            params.image_stage,
+                        )?;
+                        drop(weights);
+                        let entries = c.entries.len();
+                        store
+                            .lock()
+                            .map_err(|_| Error::Invalid("contribution store poisoned".into()))?
+                            .push(c)?;
+                        let t2 = Instant::now();
+                        if let Ok(mut tt) = totals.lock() {
+                            tt.raster_s += (t1 - t0).as_secs_f64();
+                            tt.aggregate_s += (t2 - t1).as_secs_f64();
+                            tt.pixels += pixels;
+                            tt.raster_entries += raster_entries;
+                            tt.masks += n_masks;
+                            tt.entries += entries;
+                            tt.decode_s += item.decode_s;
+                            tt.masks_s += item.masks_s;
+                            tt.clip_s += item.clip_s;
+                        }
+                        tracing::debug!(view = %view.name, masks = n_masks, "image done");
+                        Ok(())
+                    })();
+                    share.busy_s += t0.elapsed().as_secs_f64();
+                    bar_back.inc(1);
+                    match res {
+                        Ok(()) => share.images += 1,
+                        Err(e) => {
+                            fail(e);
+                            break;
+                        }
+                    }
+                }
+                share
+            }));
+        }
+        drop(rx);
+        for h in handles {
+            match h.join() {
+                Ok(share) => shares.push(share),
+                Err(_) => fail(Error::Invalid("an encode worker thread panicked".into())),
+            }
+        }
+    });
+    if let Some(e) = first_error.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let store = store
+        .into_inner()
+        .map_err(|_| Error::Invalid("contribution store poisoned".into()))?;
+    let tt = totals.into_inner().unwrap_or_default();
+    if store.len() != views.len() {
+        return Err(Error::Invalid(format!(
+            "only {} of {} images reached the reduction",
+            store.len(),
+            views.len()
+        )));
+    }
+    t.decode = tt.decode_s;
+    t.masks = tt.masks_s;
+    t.clip = tt.clip_s;
+    t.raster = tt.raster_s;
+    t.image_aggregate = tt.aggregate_s;
+    counts.masks = tt.masks;
+    counts.entries = tt.entries;
+    let (raster_pixels, raster_entries) = (tt.pixels, tt.raster_entries);
+    report.workers = shares;
     bar_front.finish();
     bar_back.finish();
 

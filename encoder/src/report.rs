@@ -69,4 +69,18 @@ pub struct Report {
     pub counts: Counts,
     /// Output files and sizes.
     pub outputs: serde_json::Value,
+    /// Each worker thread's share (images, busy seconds), fronts first, then one per rasterizer.
+    pub workers: Vec<WorkerShare>,
+}
+
+/// How one worker thread's share of the run went (the balance report: with dynamic scheduling
+/// a slow image delays only its own worker, and the shares show how even the split was).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct WorkerShare {
+    /// `"front-<i>"` or the rasterizer's name with its index, e.g. `"raster-1 wgpu-vulkan H200"`.
+    pub name: String,
+    /// Images this worker processed.
+    pub images: usize,
+    /// Seconds it spent working (excluding waits for input or for a free queue slot).
+    pub busy_s: f64,
 }

@@ -101,6 +101,14 @@ pub struct EncodeArgs {
     /// Worker threads (ONNX Runtime intra-op and CPU stages); default: all cores.
     #[arg(long)]
     pub threads: Option<usize>,
+    /// GPUs to rasterize on: a count or `all` (every discrete GPU; one wgpu device and one back
+    /// worker each, images balanced dynamically). Default 1. Ignored with `--rasterizer cpu`.
+    #[arg(long, default_value = "1")]
+    pub gpus: GpuCount,
+    /// Front workers (decode → masks → CLIP, each with its own ONNX Runtime sessions sharing
+    /// `--threads`); default: 1 per GPU plus 1, at most the cores.
+    #[arg(long)]
+    pub front_workers: Option<usize>,
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
     #[arg(long)]
     pub top_k_per_pixel: Option<usize>,
@@ -122,6 +130,28 @@ pub struct EncodeArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// `--gpus`: a positive count or `all`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GpuCount {
+    /// Exactly this many GPUs (error if fewer are visible).
+    Count(usize),
+    /// Every discrete GPU visible.
+    All,
+}
+
+impl std::str::FromStr for GpuCount {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("all") {
+            return Ok(GpuCount::All);
+        }
+        match s.parse::<usize>() {
+            Ok(n) if n >= 1 => Ok(GpuCount::Count(n)),
+            _ => Err(format!("--gpus {s:?}: give a count >= 1 or `all`")),
+        }
+    }
 }
 
 fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGenerator>> {
@@ -187,6 +217,7 @@ fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
             "top_k_per_pixel": a.top_k_per_pixel,
             "min_weight": a.min_weight,
             "threads": threads,
+            "gpus": format!("{:?}", a.gpus), "front_workers": a.front_workers,
         }),
         ..Default::default()
     }
@@ -204,10 +235,27 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
         .num_threads(threads)
         .build_global();
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
-    let masks = build_masks(a, threads)?;
-    let clip =
-        crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
-    let crops: Box<dyn CropEmbedder> = Box::new(clip);
+    let gpus = match (a.rasterizer, a.gpus) {
+        (RasterBackend::Cpu, _) => 1,
+        (_, GpuCount::Count(n)) => n,
+        (_, GpuCount::All) => crate::raster::gpu::adapter_names()
+            .map(|v| v.len())
+            .unwrap_or(1),
+    };
+    let n_fronts = a.front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
+    let per_front = (threads / n_fronts).max(1);
+    let mut fronts = Vec::with_capacity(n_fronts);
+    for _ in 0..n_fronts {
+        let masks = build_masks(a, per_front)?;
+        let clip = crate::clip::ClipVisual::with_threads(
+            &a.clip_visual,
+            a.ep.into(),
+            a.clip_batch,
+            per_front,
+        )?;
+        let crops: Box<dyn CropEmbedder> = Box::new(clip);
+        fronts.push(pipeline::FrontStages { masks, crops });
+    }
     let params = EncodeParams {
         raster_scale: a.raster_scale,
         image_stage: ImageStageParams {
@@ -227,14 +275,21 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     };
     let header = report_header(a, &scene, threads);
     let backend = a.rasterizer;
+    let want = match a.gpus {
+        GpuCount::Count(n) => Some(n),
+        GpuCount::All => None,
+    };
     let make =
-        |g: &slag_common::scene::Gaussians| -> slag_common::Result<Box<dyn WeightRasterizer>> {
+        |g: &slag_common::scene::Gaussians| -> slag_common::Result<Vec<Box<dyn WeightRasterizer>>> {
             Ok(match backend {
-                RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
-                RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
+                RasterBackend::Gpu => crate::raster::gpu::GpuRasterizer::new_many(g, want)?
+                    .into_iter()
+                    .map(|r| Box::new(r) as Box<dyn WeightRasterizer>)
+                    .collect(),
+                RasterBackend::Cpu => vec![Box::new(crate::raster::cpu::CpuRasterizer::new(g))],
             })
         };
-    let report = pipeline::encode(&scene, masks, crops, make, &params, header)?;
+    let report = pipeline::encode_pool(&scene, fronts, make, &params, header)?;
     Ok(report)
 }
 
@@ -274,5 +329,17 @@ pub fn timing_table(r: &Report) -> String {
         r.models["rasterizer"].as_str().unwrap_or("?"),
         r.models["masks"].as_str().unwrap_or("?"),
     );
+    if r.workers.len() > 2 {
+        s += "\n| worker | images | busy s | busy % of wall |\n|---|---:|---:|---:|\n";
+        for w in &r.workers {
+            s += &format!(
+                "| {} | {} | {:.1} | {:.0} |\n",
+                w.name,
+                w.images,
+                w.busy_s,
+                100.0 * w.busy_s / t.total.max(1e-9)
+            );
+        }
+    }
     s
 }

@@ -5,6 +5,7 @@ pub mod eval;
 pub mod query;
 pub mod render;
 pub mod shards;
+pub mod synthetic;
 
 use slag_common::onnx::ExecutionProvider;
 

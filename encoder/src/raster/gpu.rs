@@ -125,9 +125,13 @@ fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Gpu(format!("{what}: {e}"))
 }
 
-/// Picks the adapter: `$SLAG_WGPU_ADAPTER` substring if set, else the first discrete, then
-/// integrated, then virtual, then CPU (Mesa lavapipe) Vulkan adapter.
-fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter> {
+/// The Vulkan adapters slag would use, best first: those matching `$SLAG_WGPU_ADAPTER`
+/// (case-insensitive substring) if set, else ranked discrete, integrated, virtual, other, CPU
+/// (Mesa lavapipe), in enumeration order within a rank.
+///
+/// Errors: [`Error::Gpu`] when there is no Vulkan adapter (install a driver) or none matches
+/// `$SLAG_WGPU_ADAPTER` (the message lists what exists).
+fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
     let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
     let names: Vec<String> = adapters
         .iter()
@@ -142,15 +146,17 @@ fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter> {
     }
     if let Ok(want) = std::env::var(ADAPTER_ENV) {
         let want_l = want.to_lowercase();
-        return adapters
+        let matching: Vec<wgpu::Adapter> = adapters
             .into_iter()
-            .find(|a| a.get_info().name.to_lowercase().contains(&want_l))
-            .ok_or_else(|| {
-                Error::Gpu(format!(
-                    "{ADAPTER_ENV}={want:?} matches no Vulkan adapter; available: {}",
-                    names.join(", ")
-                ))
-            });
+            .filter(|a| a.get_info().name.to_lowercase().contains(&want_l))
+            .collect();
+        if matching.is_empty() {
+            return Err(Error::Gpu(format!(
+                "{ADAPTER_ENV}={want:?} matches no Vulkan adapter; available: {}",
+                names.join(", ")
+            )));
+        }
+        return Ok(matching);
     }
     use wgpu::DeviceType as D;
     let rank = |t: D| match t {
@@ -160,10 +166,22 @@ fn pick_adapter(instance: &wgpu::Instance) -> Result<wgpu::Adapter> {
         D::Other => 3,
         D::Cpu => 4,
     };
-    adapters
-        .into_iter()
-        .min_by_key(|a| rank(a.get_info().device_type))
-        .ok_or_else(|| Error::Gpu("no Vulkan adapter".into()))
+    let mut adapters = adapters;
+    adapters.sort_by_key(|a| rank(a.get_info().device_type));
+    Ok(adapters)
+}
+
+/// Names and types of the adapters [`GpuRasterizer::new_many`] chooses from, best first.
+///
+/// Errors: as [`GpuRasterizer::new`] when no adapter exists.
+pub fn adapter_names() -> Result<Vec<String>> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    let instance = wgpu::Instance::new(desc);
+    Ok(ranked_adapters(&instance)?
+        .iter()
+        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
+        .collect())
 }
 
 fn storage_init(device: &wgpu::Device, label: &str, data: &[u8]) -> wgpu::Buffer {
@@ -215,6 +233,55 @@ impl GpuRasterizer {
     /// device cannot be created, or the scene exceeds the device's buffer limits;
     /// [`Error::Invalid`] for more than 2^32 − 1 Gaussians or array lengths that disagree.
     pub fn new(gaussians: &Gaussians) -> Result<Self> {
+        Ok(Self::new_many(gaussians, Some(1))?.remove(0))
+    }
+
+    /// One rasterizer per GPU for a multi-GPU run: `gpus` adapters of the best available kind
+    /// (all discrete GPUs when `None`; see [`adapter_names`] for the order), each with its own
+    /// device, kernels and copy of the Gaussians' geometry. Without a discrete GPU, one rasterizer
+    /// on the best adapter (e.g. lavapipe) is returned whatever `gpus` says.
+    ///
+    /// Errors: as [`GpuRasterizer::new`]; [`Error::Invalid`] when more GPUs are asked for than
+    /// exist (the message lists them) or `gpus` is `Some(0)`.
+    pub fn new_many(gaussians: &Gaussians, gpus: Option<usize>) -> Result<Vec<Self>> {
+        if gpus == Some(0) {
+            return Err(Error::Invalid("--gpus must be at least 1".into()));
+        }
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN;
+        let instance = wgpu::Instance::new(desc);
+        let ranked = ranked_adapters(&instance)?;
+        let best = ranked[0].get_info().device_type;
+        let same: Vec<wgpu::Adapter> = ranked
+            .into_iter()
+            .filter(|a| a.get_info().device_type == best)
+            .collect();
+        let chosen: Vec<wgpu::Adapter> = if best != wgpu::DeviceType::DiscreteGpu {
+            same.into_iter().take(1).collect()
+        } else {
+            match gpus {
+                None => same,
+                Some(k) if k <= same.len() => same.into_iter().take(k).collect(),
+                Some(k) => {
+                    return Err(Error::Invalid(format!(
+                        "--gpus {k} but only {} GPU(s) are visible: {}",
+                        same.len(),
+                        same.iter()
+                            .map(|a| a.get_info().name)
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )));
+                }
+            }
+        };
+        chosen
+            .into_iter()
+            .map(|adapter| Self::with_adapter(gaussians, adapter))
+            .collect()
+    }
+
+    /// The rasterizer on one given adapter (see [`GpuRasterizer::new`]).
+    fn with_adapter(gaussians: &Gaussians, adapter: wgpu::Adapter) -> Result<Self> {
         let n = gaussians.len();
         if gaussians.scales.len() != n
             || gaussians.rotations.len() != n
@@ -226,10 +293,6 @@ impl GpuRasterizer {
         }
         let n32 = u32::try_from(n)
             .map_err(|_| Error::Invalid(format!("{n} Gaussians exceed the 2^32 - 1 supported")))?;
-        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = wgpu::Backends::VULKAN;
-        let instance = wgpu::Instance::new(desc);
-        let adapter = pick_adapter(&instance)?;
         let info = adapter.get_info();
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {

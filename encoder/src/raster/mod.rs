@@ -81,7 +81,7 @@ impl PixelWeights {
 ///
 /// Implementations must agree: same contributor ids per pixel in the same front-to-back order and
 /// weights within f32 round-off (the GPU path is tested against [`CpuRasterizer`]).
-pub trait WeightRasterizer {
+pub trait WeightRasterizer: Send {
     /// Renders the per-pixel weights of one view. `intrinsics` give the raster size (already
     /// scaled for `--raster-scale`, see [`raster_intrinsics`]); `world_to_camera` is the COLMAP pose.
     ///

@@ -1,0 +1,61 @@
+//! `slag-encoder synth-scene`: write a synthetic terrain scene of any size (scale tests).
+
+use std::path::PathBuf;
+
+use clap::Args;
+
+use crate::synthetic::{SyntheticSceneParams, SyntheticSummary, write_synthetic_scene};
+
+/// Arguments of `synth-scene`.
+#[derive(Debug, Clone, Args)]
+pub struct SynthArgs {
+    /// Number of Gaussians (suffixes K and M allowed, e.g. 30M).
+    #[arg(long, value_parser = parse_count)]
+    pub gaussians: usize,
+    /// Number of posed views on the camera ring.
+    #[arg(long, default_value_t = 16)]
+    pub views: usize,
+    /// Image width, pixels.
+    #[arg(long, default_value_t = 990)]
+    pub width: u32,
+    /// Image height, pixels.
+    #[arg(long, default_value_t = 742)]
+    pub height: u32,
+    /// Side of the square terrain, metres.
+    #[arg(long, default_value_t = 100.0)]
+    pub extent: f64,
+    /// Generator seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output scene folder.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Parses `30M`, `500K` or a plain count.
+pub fn parse_count(s: &str) -> Result<usize, String> {
+    let t = s.trim();
+    let (num, mult) = match t.chars().last() {
+        Some('M' | 'm') => (&t[..t.len() - 1], 1_000_000),
+        Some('K' | 'k') => (&t[..t.len() - 1], 1_000),
+        _ => (t, 1),
+    };
+    num.parse::<usize>()
+        .ok()
+        .and_then(|n| n.checked_mul(mult))
+        .filter(|&n| n > 0)
+        .ok_or_else(|| format!("{s:?} is not a positive count (e.g. 1000000, 500K, 30M)"))
+}
+
+/// Writes the scene and returns what was written.
+pub fn run(a: &SynthArgs) -> anyhow::Result<SyntheticSummary> {
+    let p = SyntheticSceneParams {
+        gaussians: a.gaussians,
+        views: a.views,
+        width: a.width,
+        height: a.height,
+        extent: a.extent,
+        seed: a.seed,
+    };
+    Ok(write_synthetic_scene(&a.out, &p)?)
+}

@@ -1,0 +1,217 @@
+//! The worker pool of `encode` (several front workers, several rasterizers, dynamic scheduling)
+//! computes what one front + one rasterizer computes, on a synthetic terrain scene; a failing
+//! worker stops the run with nothing that looks complete.
+
+#![allow(clippy::unwrap_used)]
+
+use slag_common::embeddings::Embeddings;
+use slag_encoder::masks::{Mask, MaskGenerator};
+use slag_encoder::pipeline::{self, FrontStages};
+use slag_encoder::raster::WeightRasterizer;
+use slag_encoder::synthetic::{SyntheticSceneParams, write_synthetic_scene};
+use slag_tests::{encode_args, encode_line, fixture};
+
+fn small_scene(dir: &std::path::Path) {
+    let p = SyntheticSceneParams {
+        gaussians: 40_000,
+        views: 7,
+        width: 240,
+        height: 180,
+        extent: 60.0,
+        seed: 3,
+    };
+    write_synthetic_scene(dir, &p).unwrap();
+}
+
+fn max_abs_diff(a: &Embeddings, b: &Embeddings) -> f32 {
+    assert_eq!(a.ids, b.ids, "observed Gaussians differ");
+    a.vectors
+        .iter()
+        .zip(&b.vectors)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+const LINE: &str = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.5 \
+                    --precision f32 --threads 2";
+
+#[test]
+fn pool_of_fronts_and_rasterizers_equals_one_worker() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    small_scene(&scene);
+    let one = dir.path().join("one");
+    let r1 = encode_line(&scene, &format!("{LINE} --front-workers 1"), &one).unwrap();
+    assert_eq!(r1.counts.views_used, 7);
+    assert!(r1.counts.observed > 10_000, "{}", r1.counts.observed);
+
+    // Three fronts and two rasterizers (two wgpu devices on the same adapter), built by hand.
+    let many = dir.path().join("many");
+    let args = encode_args(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        many.to_str().unwrap(),
+        "--masks",
+        "graph",
+        "--clip-visual",
+        fixture("clip/color-clip-visual.onnx").to_str().unwrap(),
+        "--precision",
+        "f32",
+    ]);
+    let fronts = (0..3)
+        .map(|_| FrontStages {
+            masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
+                Default::default(),
+            )),
+            crops: Box::new(
+                slag_encoder::clip::ClipVisual::with_threads(
+                    &args.clip_visual,
+                    slag_common::onnx::ExecutionProvider::Cpu,
+                    32,
+                    1,
+                )
+                .unwrap(),
+            ),
+        })
+        .collect();
+    let params = pipeline::EncodeParams {
+        raster_scale: 0.5,
+        image_stage: Default::default(),
+        reduce: slag_encoder::aggregate::ReduceParams {
+            min_total_weight: 1e-6,
+            accumulator_budget_bytes: 64 << 20,
+        },
+        contribution_budget_bytes: 1 << 20, // small: some images spill to disk
+        precision: slag_common::embeddings::StoredPrecision::F32,
+        out_dir: many.clone(),
+        progress: false,
+    };
+    let scene_in = pipeline::SceneInput::new(&scene, None, 1);
+    let r2 = pipeline::encode_pool(
+        &scene_in,
+        fronts,
+        |g: &slag_common::scene::Gaussians| {
+            Ok((0..2)
+                .map(|_| {
+                    Box::new(slag_encoder::raster::GpuRasterizer::new(g).unwrap())
+                        as Box<dyn WeightRasterizer>
+                })
+                .collect())
+        },
+        &params,
+        Default::default(),
+    )
+    .unwrap();
+    assert_eq!(r2.counts.views_used, 7);
+    assert!(
+        r2.counts.spilled_images > 0,
+        "the spill path was not exercised"
+    );
+    // Every image was done exactly once, by one front and one rasterizer.
+    let fronts: usize = r2
+        .workers
+        .iter()
+        .filter(|w| w.name.starts_with("front"))
+        .map(|w| w.images)
+        .sum();
+    let backs: usize = r2
+        .workers
+        .iter()
+        .filter(|w| w.name.starts_with("raster"))
+        .map(|w| w.images)
+        .sum();
+    assert_eq!((fronts, backs, r2.workers.len()), (7, 7, 5));
+    assert_eq!(r2.counts.masks, r1.counts.masks);
+    assert_eq!(r2.counts.entries, r1.counts.entries);
+
+    let e1 = Embeddings::read(&one.join("embeddings.safetensors")).unwrap();
+    let e2 = Embeddings::read(&many.join("embeddings.safetensors")).unwrap();
+    // Same sums in another order: f64 accumulation, stored f32.
+    let d = max_abs_diff(&e1, &e2);
+    assert!(d <= 1e-6, "max |Δ| {d}");
+    assert!(many.join("report.json").exists());
+}
+
+/// Fails on the `n`-th image it sees.
+struct FailingMasks {
+    left: usize,
+}
+
+impl MaskGenerator for FailingMasks {
+    fn name(&self) -> &str {
+        "failing"
+    }
+    fn generate(&mut self, image: &image::RgbImage) -> slag_common::Result<Vec<Mask>> {
+        if self.left == 0 {
+            return Err(slag_common::Error::Invalid("injected mask failure".into()));
+        }
+        self.left -= 1;
+        slag_encoder::masks::graph::GraphSegmenter::new(Default::default()).generate(image)
+    }
+}
+
+#[test]
+fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    small_scene(&scene);
+    let out = dir.path().join("out");
+    let args = encode_args(&[
+        "--scene",
+        scene.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--masks",
+        "graph",
+        "--clip-visual",
+        fixture("clip/color-clip-visual.onnx").to_str().unwrap(),
+    ]);
+    let clip = || {
+        Box::new(
+            slag_encoder::clip::ClipVisual::with_threads(
+                &args.clip_visual,
+                slag_common::onnx::ExecutionProvider::Cpu,
+                32,
+                1,
+            )
+            .unwrap(),
+        )
+    };
+    let fronts = vec![
+        FrontStages {
+            masks: Box::new(FailingMasks { left: 2 }),
+            crops: clip(),
+        },
+        FrontStages {
+            masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
+                Default::default(),
+            )),
+            crops: clip(),
+        },
+    ];
+    let params = pipeline::EncodeParams {
+        raster_scale: 0.5,
+        image_stage: Default::default(),
+        reduce: Default::default(),
+        contribution_budget_bytes: 1 << 30,
+        precision: slag_common::embeddings::StoredPrecision::F16,
+        out_dir: out.clone(),
+        progress: false,
+    };
+    let err = pipeline::encode_pool(
+        &pipeline::SceneInput::new(&scene, None, 1),
+        fronts,
+        |g: &slag_common::scene::Gaussians| {
+            Ok(vec![
+                Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>
+            ])
+        },
+        &params,
+        Default::default(),
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("injected mask failure"), "{err}");
+    assert!(!out.join("embeddings.safetensors").exists());
+    assert!(!out.join("report.json").exists());
+}
