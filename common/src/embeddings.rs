@@ -218,6 +218,198 @@ fn le_f32(bytes: &[u8]) -> Vec<f32> {
         .collect()
 }
 
+/// Writes an embeddings file (same layout as [`Embeddings::write`]) whose rows arrive in blocks,
+/// so that a scene with tens of millions of observed Gaussians never holds its `[N, D]` matrix in
+/// memory: each block's vectors are converted to the stored precision and appended to
+/// `<path>.vectors.partial`; only ids, means and total weights (20 bytes a row) stay in memory.
+/// [`EmbeddingsWriter::finish`] then writes the safetensors header, the small tensors and streams
+/// the vectors into `<path>.partial`, fsyncs and renames it to `path`. Dropped unfinished (an
+/// error, a panic), it removes its partial files: nothing that looks complete is left.
+#[derive(Debug)]
+pub struct EmbeddingsWriter {
+    path: std::path::PathBuf,
+    vectors_tmp: std::path::PathBuf,
+    vectors: Option<std::io::BufWriter<std::fs::File>>,
+    dim: usize,
+    precision: StoredPrecision,
+    ids: Vec<u32>,
+    means: Vec<[f32; 3]>,
+    total_weights: Vec<f32>,
+}
+
+impl EmbeddingsWriter {
+    /// Starts a file at `path` for rows of width `dim` stored at `precision` (creates parent
+    /// folders; an existing file at `path` stays until [`EmbeddingsWriter::finish`] replaces it).
+    ///
+    /// Errors: `dim == 0` ([`Error::Invalid`]); I/O.
+    pub fn create(path: &Path, dim: usize, precision: StoredPrecision) -> Result<Self> {
+        if dim == 0 {
+            return Err(Error::Invalid("embedding width must be at least 1".into()));
+        }
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        }
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(".vectors.partial");
+        let vectors_tmp = std::path::PathBuf::from(tmp);
+        let f = std::fs::File::create(&vectors_tmp).map_err(|e| Error::io(&vectors_tmp, e))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            vectors_tmp,
+            vectors: Some(std::io::BufWriter::with_capacity(1 << 22, f)),
+            dim,
+            precision,
+            ids: Vec::new(),
+            means: Vec::new(),
+            total_weights: Vec::new(),
+        })
+    }
+
+    /// Rows written so far.
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    /// True before the first row.
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    /// Appends a block of rows: `ids [B]` (ascending, above every id already written), `means
+    /// [B]` (world frame), `vectors [B * dim]` (L2-normalised rows), `total_weights [B]`.
+    ///
+    /// Errors: lengths that disagree or ids out of order ([`Error::Invalid`]); I/O.
+    pub fn push(
+        &mut self,
+        ids: &[u32],
+        means: &[[f32; 3]],
+        vectors: &[f32],
+        total_weights: &[f32],
+    ) -> Result<()> {
+        let b = ids.len();
+        if means.len() != b || total_weights.len() != b || vectors.len() != b * self.dim {
+            return Err(Error::Invalid(format!(
+                "embeddings block disagrees: {b} ids, {} means, {} weights, {} values for dim {}",
+                means.len(),
+                total_weights.len(),
+                vectors.len(),
+                self.dim
+            )));
+        }
+        let mut last = self.ids.last().copied();
+        for &id in ids {
+            if last.is_some_and(|l| id <= l) {
+                return Err(Error::Invalid(format!(
+                    "embeddings rows must come in ascending Gaussian id order (got {id} after {last:?})"
+                )));
+            }
+            last = Some(id);
+        }
+        let w = self
+            .vectors
+            .as_mut()
+            .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
+        let io = |e| Error::io(&self.vectors_tmp, e);
+        match self.precision {
+            StoredPrecision::F32 => w.write_all(bytemuck::cast_slice(vectors)).map_err(io)?,
+            StoredPrecision::F16 => {
+                let halves: Vec<f16> = vectors.iter().map(|&v| f16::from_f32(v)).collect();
+                w.write_all(bytemuck::cast_slice(&halves)).map_err(io)?
+            }
+        }
+        self.ids.extend_from_slice(ids);
+        self.means.extend_from_slice(means);
+        self.total_weights.extend_from_slice(total_weights);
+        Ok(())
+    }
+
+    /// Writes the file (header with the metadata of [`Embeddings`], then `gaussian_ids`, `means`,
+    /// `total_weights`, `embeddings`), atomically.
+    ///
+    /// Errors: I/O (the partial files are removed).
+    pub fn finish(mut self, model: &str, scene_gaussians: u64, source_ply: &str) -> Result<()> {
+        let n = self.ids.len();
+        let mut vf = self
+            .vectors
+            .take()
+            .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
+        vf.flush().map_err(|e| Error::io(&self.vectors_tmp, e))?;
+        drop(vf);
+        let (dtype, elem) = match self.precision {
+            StoredPrecision::F32 => ("F32", 4usize),
+            StoredPrecision::F16 => ("F16", 2usize),
+        };
+        let sizes = [
+            ("gaussian_ids", "U32", vec![n], 4 * n),
+            ("means", "F32", vec![n, 3], 12 * n),
+            ("total_weights", "F32", vec![n], 4 * n),
+            ("embeddings", dtype, vec![n, self.dim], elem * n * self.dim),
+        ];
+        let mut header = serde_json::Map::new();
+        header.insert(
+            "__metadata__".into(),
+            serde_json::json!({
+                "format": FORMAT, "version": VERSION, "model": model,
+                "scene_gaussians": scene_gaussians.to_string(), "source_ply": source_ply,
+            }),
+        );
+        let mut off = 0usize;
+        for (name, dt, shape, len) in &sizes {
+            header.insert(
+                (*name).into(),
+                serde_json::json!({"dtype": dt, "shape": shape, "data_offsets": [off, off + len]}),
+            );
+            off += len;
+        }
+        let mut hbytes = serde_json::to_vec(&serde_json::Value::Object(header))
+            .map_err(|e| Error::Invalid(format!("embeddings header: {e}")))?;
+        while hbytes.len() % 8 != 0 {
+            hbytes.push(b' ');
+        }
+        let expected_vectors = (elem * n * self.dim) as u64;
+        let got = std::fs::metadata(&self.vectors_tmp)
+            .map_err(|e| Error::io(&self.vectors_tmp, e))?
+            .len();
+        if got != expected_vectors {
+            return Err(Error::Invalid(format!(
+                "{}: {got} vector bytes written, {expected_vectors} expected",
+                self.vectors_tmp.display()
+            )));
+        }
+        let mut tmp = self.path.as_os_str().to_owned();
+        tmp.push(".partial");
+        let tmp = std::path::PathBuf::from(tmp);
+        let res = (|| -> std::io::Result<()> {
+            let f = std::fs::File::create(&tmp)?;
+            let mut w = std::io::BufWriter::with_capacity(1 << 22, f);
+            w.write_all(&(hbytes.len() as u64).to_le_bytes())?;
+            w.write_all(&hbytes)?;
+            w.write_all(bytemuck::cast_slice(&self.ids))?;
+            w.write_all(bytemuck::cast_slice(&self.means))?;
+            w.write_all(bytemuck::cast_slice(&self.total_weights))?;
+            let mut src = std::fs::File::open(&self.vectors_tmp)?;
+            std::io::copy(&mut src, &mut w)?;
+            let f = w.into_inner().map_err(|e| e.into_error())?;
+            f.sync_all()
+        })();
+        if let Err(e) = res {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(Error::io(&tmp, e));
+        }
+        std::fs::rename(&tmp, &self.path).map_err(|e| Error::io(&self.path, e))?;
+        let _ = std::fs::remove_file(&self.vectors_tmp);
+        Ok(())
+    }
+}
+
+impl Drop for EmbeddingsWriter {
+    fn drop(&mut self) {
+        // Unfinished (or finished: then the file is already gone and this is a no-op).
+        self.vectors = None;
+        let _ = std::fs::remove_file(&self.vectors_tmp);
+    }
+}
+
 /// Writes `bytes` to `path` atomically (`<path>.partial`, fsync, rename). Creates parent folders.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -238,6 +430,79 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn streaming_writer_equals_the_in_memory_writer() {
+        let dir = tempfile::tempdir().unwrap();
+        let dim = 5;
+        let n = 37;
+        let mut e = Embeddings {
+            dim,
+            model: "m".into(),
+            scene_gaussians: 100,
+            source_ply: "scene.ply".into(),
+            ..Default::default()
+        };
+        for i in 0..n {
+            e.ids.push(i as u32 * 2 + 1);
+            e.means.push([i as f32, -(i as f32), 0.5]);
+            let v: Vec<f32> = (0..dim)
+                .map(|d| ((i * 7 + d * 3) % 11) as f32 - 5.0)
+                .collect();
+            let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-6);
+            e.vectors.extend(v.iter().map(|x| x / norm));
+            e.total_weights.push(0.25 * i as f32 + 1.0);
+        }
+        for precision in [StoredPrecision::F32, StoredPrecision::F16] {
+            let a = dir.path().join(format!("a-{precision:?}.safetensors"));
+            let b = dir.path().join(format!("b-{precision:?}.safetensors"));
+            e.write(&a, precision).unwrap();
+            let mut w = EmbeddingsWriter::create(&b, dim, precision).unwrap();
+            for (lo, hi) in [(0, 10), (10, 11), (11, 11), (11, n)] {
+                w.push(
+                    &e.ids[lo..hi],
+                    &e.means[lo..hi],
+                    &e.vectors[lo * dim..hi * dim],
+                    &e.total_weights[lo..hi],
+                )
+                .unwrap();
+            }
+            w.finish(&e.model, e.scene_gaussians, &e.source_ply)
+                .unwrap();
+            assert_eq!(Embeddings::read(&a).unwrap(), Embeddings::read(&b).unwrap());
+            assert!(
+                !dir.path()
+                    .join(format!("b-{precision:?}.safetensors.vectors.partial"))
+                    .exists()
+            );
+        }
+        // Out of order and unfinished writers leave nothing behind.
+        let c = dir.path().join("c.safetensors");
+        let mut w = EmbeddingsWriter::create(&c, dim, StoredPrecision::F16).unwrap();
+        w.push(
+            &e.ids[5..6],
+            &e.means[5..6],
+            &e.vectors[5 * dim..6 * dim],
+            &e.total_weights[5..6],
+        )
+        .unwrap();
+        assert!(matches!(
+            w.push(
+                &e.ids[2..3],
+                &e.means[2..3],
+                &e.vectors[2 * dim..3 * dim],
+                &e.total_weights[2..3]
+            ),
+            Err(Error::Invalid(_))
+        ));
+        drop(w);
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_name().to_string_lossy().starts_with('c'))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+    }
 
     fn sample(n: usize, dim: usize) -> Embeddings {
         let mut vectors = Vec::new();

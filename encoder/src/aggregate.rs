@@ -385,12 +385,36 @@ pub fn reduce(
     dim: usize,
     params: ReduceParams,
 ) -> Result<Reduced> {
+    let mut out = Reduced::default();
+    out.chunks = reduce_each(store, n_gaussians, dim, params, |ids, vectors, weights| {
+        out.ids.extend_from_slice(ids);
+        out.vectors.extend_from_slice(vectors);
+        out.total_weights.extend_from_slice(weights);
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// [`reduce`] without collecting: for each chunk of Gaussian ids (ascending), calls `sink` with
+/// the chunk's observed ids `[B]`, unit vectors `[B * dim]` and `Σ a_kj` `[B]`, then frees the
+/// chunk. Memory: the f64 accumulator (≤ `params.accumulator_budget_bytes`) plus one chunk's
+/// output, whatever the scene size. Returns the number of chunks.
+///
+/// Errors: a contribution of another width ([`Error::Invalid`]); spill-file I/O; `sink`'s errors.
+pub fn reduce_each(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+    mut sink: impl FnMut(&[u32], &[f32], &[f32]) -> Result<()>,
+) -> Result<usize> {
     let per_gaussian = (dim + 1) * 8;
     let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
-    let mut out = Reduced::default();
+    let mut chunks = 0;
     let mut bad_dim = None;
     for start in (0..n_gaussians).step_by(chunk) {
-        out.chunks += 1;
+        chunks += 1;
+        let mut out = Reduced::default();
         let end = (start + chunk).min(n_gaussians);
         let mut num = vec![0f64; (end - start) * dim];
         let mut den = vec![0f64; end - start];
@@ -439,8 +463,10 @@ pub fn reduce(
             out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
             out.total_weights.push(d as f32);
         }
+        drop((num, den));
+        sink(&out.ids, &out.vectors, &out.total_weights)?;
     }
-    Ok(out)
+    Ok(chunks)
 }
 
 #[cfg(test)]

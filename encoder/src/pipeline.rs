@@ -13,7 +13,7 @@ use std::time::Instant;
 use image::RgbImage;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use slag_common::camera::{self, View};
-use slag_common::embeddings::{Embeddings, StoredPrecision, write_atomic};
+use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision, write_atomic};
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::{Error, Result};
 
@@ -455,41 +455,48 @@ pub fn encode_pool(
     bar_front.finish();
     bar_back.finish();
 
-    let t0 = Instant::now();
-    let reduced = aggregate::reduce(&store, gaussians.len(), dim, params.reduce)?;
-    t.reduce = t0.elapsed().as_secs_f64();
-    counts.spilled_images = store.spilled();
-    counts.reduce_chunks = reduced.chunks;
-    counts.observed = reduced.ids.len();
-    counts.observed_fraction = reduced.ids.len() as f64 / gaussians.len().max(1) as f64;
-    counts.contributors_per_pixel = raster_entries as f64 / raster_pixels.max(1) as f64;
-    drop(store);
-
-    let t0 = Instant::now();
-    let embeddings = Embeddings {
-        means: reduced
-            .ids
-            .iter()
-            .map(|&k| gaussians.means[k as usize])
-            .collect(),
-        ids: reduced.ids,
-        dim,
-        vectors: reduced.vectors,
-        total_weights: reduced.total_weights,
-        model: model_id,
-        scene_gaussians: gaussians.len() as u64,
-        source_ply: scene.ply.display().to_string(),
-    };
     let emb_path = params.out_dir.join("embeddings.safetensors");
     let report_path = params.out_dir.join("report.json");
     // A stale report from an earlier run must not vouch for the new embeddings while they are written.
     if report_path.exists() {
         std::fs::remove_file(&report_path).map_err(|e| Error::io(&report_path, e))?;
     }
-    embeddings.write(&emb_path, params.precision)?;
-    t.write = t0.elapsed().as_secs_f64();
+    // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
+    let t0 = Instant::now();
+    let mut writer = EmbeddingsWriter::create(&emb_path, dim, params.precision)?;
+    let mut write_s = 0.0;
+    let chunks = aggregate::reduce_each(
+        &store,
+        gaussians.len(),
+        dim,
+        params.reduce,
+        |ids, vectors, weights| {
+            let tw = Instant::now();
+            let means: Vec<[f32; 3]> = ids.iter().map(|&k| gaussians.means[k as usize]).collect();
+            writer.push(ids, &means, vectors, weights)?;
+            write_s += tw.elapsed().as_secs_f64();
+            Ok(())
+        },
+    )?;
+    t.reduce = t0.elapsed().as_secs_f64() - write_s;
+    counts.spilled_images = store.spilled();
+    counts.reduce_chunks = chunks;
+    counts.observed = writer.len();
+    counts.observed_fraction = writer.len() as f64 / gaussians.len().max(1) as f64;
+    counts.contributors_per_pixel = raster_entries as f64 / raster_pixels.max(1) as f64;
+    drop(store);
+
+    let t0 = Instant::now();
+    writer.finish(
+        &model_id,
+        gaussians.len() as u64,
+        &scene.ply.display().to_string(),
+    )?;
+    let write_total = write_s + t0.elapsed().as_secs_f64();
+    t.write = write_total;
     t.total = t_total.elapsed().as_secs_f64();
     let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
+    counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     report.timings = t;
     report.counts = counts;
     report.outputs = serde_json::json!({

@@ -50,6 +50,17 @@ pub struct Counts {
     pub spilled_images: usize,
     /// Chunks the reduction used.
     pub reduce_chunks: usize,
+    /// Peak resident memory of the process (`VmHWM` of /proc/self/status), bytes; `None` where
+    /// the platform does not report it.
+    pub peak_rss_bytes: Option<u64>,
+}
+
+/// The process's peak resident set size (`VmHWM`), bytes, on Linux; `None` elsewhere.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
 }
 
 /// The whole report.

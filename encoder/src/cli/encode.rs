@@ -329,6 +329,12 @@ pub fn timing_table(r: &Report) -> String {
         r.models["rasterizer"].as_str().unwrap_or("?"),
         r.models["masks"].as_str().unwrap_or("?"),
     );
+    if let Some(b) = r.counts.peak_rss_bytes {
+        s += &format!(
+            "peak resident memory {:.2} GiB\n",
+            b as f64 / (1u64 << 30) as f64
+        );
+    }
     if r.workers.len() > 2 {
         s += "\n| worker | images | busy s | busy % of wall |\n|---|---:|---:|---:|\n";
         for w in &r.workers {

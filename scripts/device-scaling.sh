@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# Runs on the lent multi-GPU machine (x86_64, NVIDIA, no Rust toolchain); NOT part of CI.
+#   scripts/device-scaling.sh scaling [GPU_COUNTS]   # same scene on 1, 2, 4 GPUs (default "1 2 4")
+#   scripts/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
+#   scripts/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
+#                                                    # on one GPU, peak host + GPU memory
+# Expects .devcarry/ (release slag-encoder, scene/ = snowmiku geometry + DC .ply and images,
+# shared/fixtures/) and .gl/ (Vulkan loader debs), as scripts/device-bench.sh. Reports, logs and
+# timing tables go to $OUT.
+set -uo pipefail
+for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null; done; ldconfig
+if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
+  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+fi
+ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')
+export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared XDG_RUNTIME_DIR=/tmp
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+B=.devcarry/slag-encoder; F=.devcarry/shared/fixtures
+R=${OUT:-/tmp/out}; W=/tmp/slag-work; mkdir -p "$R" "$W"
+nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader
+echo "cores: $(nproc)  ORT: $ORT_LIB"
+CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
+mode=${1:-scaling}
+
+gpu_mem_watch() { # samples the GPUs' used memory every 0.5 s into $1 until killed
+  nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 500 > "$1" 2>/dev/null
+}
+
+case "$mode" in
+scaling)
+  counts=${2:-"1 2 4"}
+  for g in $counts; do
+    echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, $g GPU(s), 12 front workers"
+    "$B" bench --scene .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
+      --gpus "$g" --front-workers 12 --quiet --out "$W/g$g" 2>&1 | grep -v XDG_RUNTIME | tee "$R/scaling-g$g.txt"
+    cp "$W/g$g/report.json" "$R/report-scaling-g$g.json"
+  done
+  python3 - "$R" $counts <<'EOF'
+import json, sys
+r = sys.argv[1]; gs = [int(g) for g in sys.argv[2:]]
+rep = {g: json.load(open(f"{r}/report-scaling-g{g}.json")) for g in gs}
+t1 = rep[gs[0]]["timings"]["total"] * gs[0]
+print("| GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU |")
+print("|---:|---:|---:|---:|---:|---|")
+for g in gs:
+    t = rep[g]["timings"]["total"]; n = rep[g]["counts"]["views_used"]
+    busy = [f'{100*w["busy_s"]/t:.0f}' for w in rep[g]["workers"] if w["name"].startswith("raster")]
+    print(f"| {g} | {t:.1f} | {n/t:.2f} | {t1/t:.2f} | {t1/t/g:.2f} | {' '.join(busy)} |")
+EOF
+  ;;
+big)
+  n=${2:-30M}; v=${3:-24}
+  echo "### synth-scene $n Gaussians, $v views"
+  /usr/bin/env time -v true >/dev/null 2>&1 && T=(/usr/bin/env time -v) || T=()
+  start=$(date +%s.%N)
+  "$B" synth-scene --gaussians "$n" --views "$v" --out "$W/big" | tee "$R/synth.json"
+  echo "synth-scene took $(python3 -c "import time; print(round(time.time()-$start,1))") s"
+  du -sh "$W/big"
+  gpu_mem_watch "$R/gpu-mem-big.csv" & watch=$!
+  "${T[@]}" "$B" bench --scene "$W/big" --masks graph "${CLIP[@]}" --raster-scale 0.5 --gpus 1 \
+    --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --quiet --out "$W/big-out" 2>&1 \
+    | grep -v XDG_RUNTIME | tee "$R/big.txt"
+  kill $watch 2>/dev/null
+  cp "$W/big-out/report.json" "$R/report-big.json"
+  ls -l "$W/big-out"
+  python3 - "$R/gpu-mem-big.csv" <<'EOF'
+import sys
+peak = {}
+for line in open(sys.argv[1]):
+    p = [x.strip() for x in line.split(",")]
+    if len(p) == 2 and p[1].isdigit():
+        peak[p[0]] = max(peak.get(p[0], 0), int(p[1]))
+print("peak GPU memory used (MiB):", peak)
+EOF
+  ;;
+clip)
+  echo "### CLIP ViT-B/16 (random weights): torch on the GPU vs ONNX Runtime, batch 32"
+  python3 scripts/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
+  echo "### slag-encoder with that model (graph masks, every 8th view, 1 GPU)"
+  "$B" bench --scene .devcarry/scene --masks graph --clip-visual "$W/clip/vitb16-clip-visual.onnx" \
+    --every 8 --raster-scale 0.5 --quiet --out "$W/clip-run" 2>&1 | grep -v XDG_RUNTIME | tee "$R/clip-run.txt"
+  cp "$W/clip-run/report.json" "$R/report-clip-run.json"
+  ;;
+*) echo "unknown mode $mode"; exit 2;;
+esac
+exit 0
