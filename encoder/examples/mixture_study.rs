@@ -1,7 +1,9 @@
 //! Size/accuracy of the mixture storage (`slag_common::mixture`) against the exact f32 `E_k`.
 //!
-//! `cargo run --workspace --example mixture_study -- [--scene DIR] [--masks graph|sam] [--every N]
-//!  [--raster-scale S] [--keep 1,2,4,8,16,32]` (defaults: `data/snowmiku-mini`, graph masks,
+//! `keep` `all` keeps every non-zero `a_kj` (the default list ends with it).
+//!
+//! `cargo build --workspace --example mixture_study && target/debug/examples/mixture_study [--scene DIR] [--masks graph|sam] [--every N]
+//!  [--raster-scale S] [--keep 1,2,4,8,16,32,all]` (defaults: `data/snowmiku-mini`, graph masks,
 //! every view, raster scale 0.5, color-clip from `shared/fixtures/clip`).
 //!
 //! Runs the encode stages once (masks → color-clip crops → weight raster → `a_kj`), then the exact
@@ -43,7 +45,7 @@ fn main() -> anyhow::Result<()> {
         1usize,
         0.5f64,
     );
-    let mut keeps = vec![1usize, 2, 4, 8, 16, 32];
+    let mut keeps = vec![1usize, 2, 4, 8, 16, 32, usize::MAX];
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         let v = args.next().with_context(|| format!("{a} needs a value"))?;
@@ -52,7 +54,18 @@ fn main() -> anyhow::Result<()> {
             "--masks" => masks_kind = v,
             "--every" => every = v.parse()?,
             "--raster-scale" => scale = v.parse()?,
-            "--keep" => keeps = v.split(',').map(str::parse).collect::<Result<_, _>>()?,
+            "--keep" => {
+                keeps = v
+                    .split(',')
+                    .map(|k| {
+                        if k == "all" {
+                            Ok(usize::MAX)
+                        } else {
+                            k.parse()
+                        }
+                    })
+                    .collect::<Result<_, _>>()?
+            }
             _ => anyhow::bail!("unknown argument {a}"),
         }
     }
@@ -107,6 +120,36 @@ fn main() -> anyhow::Result<()> {
     let exact = aggregate::reduce(&store, gaussians.len(), dim, p)?;
     let reduce_s = t0.elapsed().as_secs_f64();
     let n = exact.ids.len();
+    // Non-zero a_kj per observed Gaussian (the slots a keep-all mixture uses).
+    let all = aggregate::reduce_mixture(
+        &store,
+        gaussians.len(),
+        dim,
+        p,
+        usize::MAX,
+        "",
+        &gaussians.means,
+    )?;
+    let counts: Vec<usize> = all
+        .atoms
+        .chunks_exact(all.keep)
+        .map(|r| {
+            r.iter()
+                .filter(|&&a| a != slag_common::mixture::UNUSED)
+                .count()
+        })
+        .collect();
+    drop(all);
+    let mut sorted_counts = counts.clone();
+    sorted_counts.sort_unstable();
+    println!(
+        "non-zero a_kj per observed Gaussian: mean {:.2}, median {}, p90 {}, p99 {}, max {}",
+        counts.iter().sum::<usize>() as f64 / n.max(1) as f64,
+        sorted_counts.get(n / 2).copied().unwrap_or(0),
+        sorted_counts.get(n * 9 / 10).copied().unwrap_or(0),
+        sorted_counts.get(n * 99 / 100).copied().unwrap_or(0),
+        sorted_counts.last().copied().unwrap_or(0),
+    );
 
     let classes = [
         "red", "orange", "yellow", "green", "teal", "blue", "purple", "pink", "brown", "white",
@@ -130,15 +173,15 @@ fn main() -> anyhow::Result<()> {
         gaussians.len(),
     );
     let mut header = String::from(
-        "| storage | S | M | bytes/Gaussian | reduce s | mean cos | p1 cos | min cos | mean IoU@0.28 |",
+        "| storage | S | M | bytes/Gaussian | all atoms kept | reduce s | mean cos | p1 cos | min cos | mean IoU@0.28 |",
     );
     for c in classes {
         header += &format!(" {c} |");
     }
     println!("{header}");
-    println!("|{}", "---|".repeat(9 + classes.len()));
+    println!("|{}", "---|".repeat(10 + classes.len()));
     let row = |name: String,
-               s: String,
+               s: usize,
                m: String,
                bpg: f64,
                secs: String,
@@ -163,7 +206,13 @@ fn main() -> anyhow::Result<()> {
         }
         let miou = ious.iter().sum::<f64>() / ious.len().max(1) as f64;
         println!(
-            "| {name} | {s} | {m} | {bpg:.1} | {secs} | {mean:.6} | {p1:.6} | {min:.6} | {miou:.4} |{cells}"
+            "| {name} | {} | {m} | {bpg:.1} | {:.2}% | {secs} | {mean:.6} | {p1:.6} | {min:.6} | {miou:.4} |{cells}",
+            if s == usize::MAX {
+                "–".to_string()
+            } else {
+                s.to_string()
+            },
+            100.0 * counts.iter().filter(|&&c| c <= s).count() as f64 / n.max(1) as f64,
         );
     };
     // Baseline: the dense f16 file.
@@ -195,7 +244,7 @@ fn main() -> anyhow::Result<()> {
         .collect::<Result<_, _>>()?;
     row(
         "dense f16".into(),
-        "–".into(),
+        usize::MAX,
         "–".into(),
         (dim * 2 + 16) as f64,
         "–".into(),
@@ -227,8 +276,12 @@ fn main() -> anyhow::Result<()> {
         let refs: Vec<&[f32]> = prompts.iter().map(Vec::as_slice).collect();
         let scores = mix.scores_many(&refs)?;
         row(
-            format!("mixture keep {keep}"),
-            mix.keep.to_string(),
+            if keep == usize::MAX {
+                "mixture keep all".into()
+            } else {
+                format!("mixture keep {keep}")
+            },
+            mix.keep,
             mix.codebook_len().to_string(),
             mix.bytes_per_gaussian(),
             format!("{secs:.2}"),
