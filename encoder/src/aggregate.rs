@@ -460,8 +460,10 @@ pub fn reduce(
 /// `keep` at least a Gaussian's number of non-zero `a_kj` its reconstruction equals [`reduce`]'s
 /// `E_k` up to f16 rounding of the codebook and weights. Ties between equal `a_kj` keep the lower
 /// codebook row. Memory: the f64 accumulator of [`reduce`] plus up to `keep` `(a, row)` pairs per
-/// Gaussian of a chunk, chunked over Gaussian ids within `params.accumulator_budget_bytes`; the
-/// result holds `N × S` slots with `S = min(keep, most non-zero a_kj of any observed Gaussian)`.
+/// Gaussian of a chunk, chunked over Gaussian ids within `params.accumulator_budget_bytes`, plus
+/// the whole `M × D` f32 codebook; the result holds `N × S` slots with
+/// `S = min(keep, most non-zero a_kj of any observed Gaussian)` (the `[N, S]` layout pays `S`
+/// slots for every Gaussian, so a heavy tail of atom counts makes a large `keep` expensive).
 ///
 /// `means` are all `n_gaussians` centres (world frame, source `.ply` order); `model_id` is the
 /// CLIP visual model id recorded in the output.
