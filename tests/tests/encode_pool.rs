@@ -86,6 +86,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         precision: slag_common::embeddings::StoredPrecision::F32,
         out_dir: many.clone(),
         progress: false,
+        mixture_keep: None,
     };
     let scene_in = pipeline::SceneInput::new(&scene, None, 1);
     let r2 = pipeline::encode_pool(
@@ -198,6 +199,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         precision: slag_common::embeddings::StoredPrecision::F16,
         out_dir: out.clone(),
         progress: false,
+        mixture_keep: None,
     };
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),
