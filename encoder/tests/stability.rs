@@ -138,14 +138,15 @@ struct Agreement {
     /// Largest `|w_a - w_b|` over all (pixel, Gaussian), a missing entry counting as 0.
     dense_max_diff: f64,
     pixels: usize,
-    entries: usize,
+    /// Entries of the second raster (the reference), for the printout.
+    _entries: usize,
 }
 
 fn compare(a: &PixelWeights, b: &PixelWeights) -> Agreement {
     assert_eq!((a.width, a.height), (b.width, b.height));
     let mut r = Agreement {
         pixels: (a.width * a.height) as usize,
-        entries: b.ids.len(),
+        _entries: b.ids.len(),
         ..Default::default()
     };
     for y in 0..a.height {
@@ -178,8 +179,13 @@ fn compare(a: &PixelWeights, b: &PixelWeights) -> Agreement {
 /// The rasterizer's GPU-vs-reference tolerance (`raster::tests::compare`): identical lists agree
 /// within 1e-4; at most 0.1 % of pixels + 2 differ (threshold cases).
 fn assert_agree(a: &Agreement, label: &str) {
+    assert_agree_within(a, 1e-4, label)
+}
+
+/// [`assert_agree`] with another weight tolerance on identical lists.
+fn assert_agree_within(a: &Agreement, tol: f64, label: &str) {
     assert!(
-        a.same_list_max_diff <= 1e-4,
+        a.same_list_max_diff <= tol,
         "{label}: weights differ by {} on identical lists ({a:?})",
         a.same_list_max_diff
     );
@@ -199,13 +205,24 @@ fn render_both(
     w2c: &WorldToCamera,
     label: &str,
 ) -> (PixelWeights, Option<(PixelWeights, Agreement)>) {
+    render_both_within(g, k, w2c, 1e-4, label)
+}
+
+/// [`render_both`] with another weight tolerance (see [`assert_agree_within`]).
+fn render_both_within(
+    g: &Gaussians,
+    k: &Intrinsics,
+    w2c: &WorldToCamera,
+    tol: f64,
+    label: &str,
+) -> (PixelWeights, Option<(PixelWeights, Agreement)>) {
     let cpu = CpuRasterizer::new(g).rasterize(k, w2c).expect("cpu raster");
     invariants(&cpu, g.len(), &format!("{label} cpu"));
     let gpu_out = gpu(g).map(|mut r| {
         let out = r.rasterize(k, w2c).expect("gpu raster");
         invariants(&out, g.len(), &format!("{label} gpu"));
         let a = compare(&out, &cpu);
-        assert_agree(&a, label);
+        assert_agree_within(&a, tol, label);
         (out, a)
     });
     (cpu, gpu_out)
@@ -319,17 +336,45 @@ fn extreme_scales_have_their_closed_form_weights() {
     }
 }
 
-proptest! {
-    #![proptest_config(ProptestConfig::with_cases(8))]
+/// Worst GPU-vs-CPU weight difference on identical lists seen by the proptest, per anisotropy
+/// spread in decades (0..=10), for the printout.
+static WORST_BY_SPREAD: std::sync::Mutex<[f64; 11]> = std::sync::Mutex::new([0.0; 11]);
 
-    /// Random mixtures of all 10 decades, per axis (needles, discs, blobs bigger than the world):
-    /// finite weights, Σw ≤ 1, GPU == CPU within the tolerance.
+/// Identical-list tolerance for a scene whose per-axis scales spread over `spread` decades: the
+/// rasterizer's 1e-4 at every spread. (Before the GPU kernel evaluated `½dᵀΣ⁻¹d` in eigen form,
+/// needles and sheets — nearly singular conics — exceeded it from 3 decades on: up to 7.9e-4
+/// at 10 decades, 2.0e-4 at 3; see docs/stability.md.)
+fn spread_tolerance(_spread: u32) -> f64 {
+    1e-4
+}
+
+proptest! {
+    // 16 cases in CI; `SLAG_STABILITY_CASES=500` for a deeper run.
+    #![proptest_config(ProptestConfig {
+        cases: std::env::var("SLAG_STABILITY_CASES").ok().and_then(|v| v.parse().ok()).unwrap_or(16),
+        max_shrink_iters: 8,
+        ..ProptestConfig::default()
+    })]
+
+    /// Random mixtures of scales from 1e-6 to 1e4 x the extent, independently per axis over a
+    /// `spread` of decades (needles, discs, blobs bigger than the world): finite weights, Σw ≤ 1,
+    /// GPU == CPU within [`spread_tolerance`].
     #[test]
-    fn prop_mixed_extreme_scales_match(seed in any::<u64>(), n in 1usize..60) {
-        let g = scale_scene(seed, n, -6.0, 4.0);
-        let (_cpu, gpu_out) = render_both(&g, &intrinsics(), &default_camera(), "prop scales");
+    fn prop_mixed_extreme_scales_match(
+        seed in any::<u64>(),
+        n in 1usize..60,
+        spread in 0u32..=10,
+        at in 0.0f64..1.0,
+    ) {
+        let lo = -6.0 + (10.0 - spread as f64) * at;
+        let g = scale_scene(seed, n, lo, lo + spread as f64);
+        let tol = spread_tolerance(spread);
+        let (_cpu, gpu_out) = render_both_within(&g, &intrinsics(), &default_camera(), tol, "prop scales");
         if let Some((_, a)) = gpu_out {
-            prop_assert!(a.same_list_max_diff <= 1e-4);
+            let mut w = WORST_BY_SPREAD.lock().unwrap();
+            w[spread as usize] = w[spread as usize].max(a.same_list_max_diff);
+            eprintln!("worst identical-list |w_gpu - w_cpu| by spread (decades 0..=10): {:?}", *w);
+            prop_assert!(a.same_list_max_diff <= tol);
         }
     }
 }
