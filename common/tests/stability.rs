@@ -153,7 +153,10 @@ fn extreme_stored_vectors_give_typed_errors_or_finite_results() {
         assert!((i8_back[1] - big).abs() <= big.abs() / 254.0 * 1.0001);
     }
     // The largest f16 (and values rounding to it) are kept.
-    assert_eq!(round_trip(&[F16_MAX, -65519.0], Dtype::F16).unwrap(), vec![F16_MAX, -F16_MAX]);
+    assert_eq!(
+        round_trip(&[F16_MAX, -65519.0], Dtype::F16).unwrap(),
+        vec![F16_MAX, -F16_MAX]
+    );
     // f32::MAX in int8: the scale is stepped down so that 127·s stays finite.
     let back = round_trip(&[f32::MAX, 1.0, -f32::MAX], Dtype::I8).unwrap();
     assert!(back.iter().all(|x| x.is_finite()), "{back:?}");
@@ -167,7 +170,10 @@ fn extreme_stored_vectors_give_typed_errors_or_finite_results() {
     let mut q = Vec::new();
     let s = quantize_i8(&[1.0, f32::NAN, f32::INFINITY, -0.5], &mut q);
     assert_eq!(s, 1.0 / 127.0);
-    assert_eq!(q.iter().map(|&b| b as i8).collect::<Vec<_>>(), vec![127, 0, 0, -64]);
+    assert_eq!(
+        q.iter().map(|&b| b as i8).collect::<Vec<_>>(),
+        vec![127, 0, 0, -64]
+    );
 }
 
 #[test]
@@ -186,7 +192,11 @@ fn embeddings_file_rejects_non_finite_and_out_of_f16_range_values() {
     let path = dir.path().join("e.safetensors");
     for (v, precision, what) in [
         (vec![1.0, 0.0, f32::NAN, 1.0], StoredPrecision::F32, "NaN"),
-        (vec![1.0, 0.0, f32::INFINITY, 1.0], StoredPrecision::F16, "inf"),
+        (
+            vec![1.0, 0.0, f32::INFINITY, 1.0],
+            StoredPrecision::F16,
+            "inf",
+        ),
         (vec![1.0, 0.0, 7e4, 1.0], StoredPrecision::F16, "7e4 in f16"),
     ] {
         match e(v).write(&path, precision) {
@@ -196,9 +206,16 @@ fn embeddings_file_rejects_non_finite_and_out_of_f16_range_values() {
         assert!(!path.exists(), "{what}: a file was written");
     }
     // 7e4 is fine in f32; subnormals and zero rows are fine in f16 (zero, or the nearest half).
-    e(vec![1.0, 0.0, 7e4, 1.0]).write(&path, StoredPrecision::F32).unwrap();
-    assert_eq!(Embeddings::read(&path).unwrap().vectors, vec![1.0, 0.0, 7e4, 1.0]);
-    e(vec![0.0, 0.0, 1e-40, 3e-6]).write(&path, StoredPrecision::F16).unwrap();
+    e(vec![1.0, 0.0, 7e4, 1.0])
+        .write(&path, StoredPrecision::F32)
+        .unwrap();
+    assert_eq!(
+        Embeddings::read(&path).unwrap().vectors,
+        vec![1.0, 0.0, 7e4, 1.0]
+    );
+    e(vec![0.0, 0.0, 1e-40, 3e-6])
+        .write(&path, StoredPrecision::F16)
+        .unwrap();
     let back = Embeddings::read(&path).unwrap().vectors;
     assert_eq!(&back[..3], &[0.0, 0.0, 0.0]);
     assert!((back[3] - 3e-6).abs() <= 2f32.powi(-25), "{back:?}");
@@ -229,14 +246,16 @@ fn ply(rows: &[[f64; 11]]) -> Vec<u8> {
 fn ply_loader_normalises_quaternions_clamps_opacities_and_rejects_zero_quaternions() {
     let opts = PlyLoadOptions { colours: false };
     let row = |q: [f64; 4], logit: f64, log_s: f64| {
-        [0.0, 1.0, 2.0, log_s, log_s, log_s, q[0], q[1], q[2], q[3], logit]
+        [
+            0.0, 1.0, 2.0, log_s, log_s, log_s, q[0], q[1], q[2], q[3], logit,
+        ]
     };
     let g = load_ply_bytes(
         &ply(&[
-            row([2.0, 0.0, 0.0, 0.0], 16.0, -1.0),    // non-unit quaternion, logit +16
+            row([2.0, 0.0, 0.0, 0.0], 16.0, -1.0), // non-unit quaternion, logit +16
             row([1e-30, 1e-30, 0.0, 0.0], -16.0, -1.0), // tiny quaternion, logit -16
-            row([0.0, 0.0, 0.0, -3.0], 200.0, -200.0),  // logit +200, log-scale -200
-            row([0.5, 0.5, 0.5, 0.5], -200.0, 0.0),     // logit -200
+            row([0.0, 0.0, 0.0, -3.0], 200.0, -200.0), // logit +200, log-scale -200
+            row([0.5, 0.5, 0.5, 0.5], -200.0, 0.0), // logit -200
         ]),
         Path::new("t.ply"),
         opts,
@@ -258,13 +277,19 @@ fn ply_loader_normalises_quaternions_clamps_opacities_and_rejects_zero_quaternio
 
     // The zero quaternion is not a rotation: a typed format error naming the vertex.
     let r = load_ply_bytes(
-        &ply(&[row([1.0, 0.0, 0.0, 0.0], 0.0, -1.0), row([0.0; 4], 0.0, -1.0)]),
+        &ply(&[
+            row([1.0, 0.0, 0.0, 0.0], 0.0, -1.0),
+            row([0.0; 4], 0.0, -1.0),
+        ]),
         Path::new("t.ply"),
         opts,
     );
     match r {
         Err(Error::Format { message, .. }) => {
-            assert!(message.contains("vertex 1") && message.contains("quaternion"), "{message}")
+            assert!(
+                message.contains("vertex 1") && message.contains("quaternion"),
+                "{message}"
+            )
         }
         other => panic!("{:?}", other.map(|g| g.rotations)),
     }
@@ -274,7 +299,11 @@ fn ply_loader_normalises_quaternions_clamps_opacities_and_rejects_zero_quaternio
         row([1.0, 0.0, 0.0, 0.0], 0.0, 200.0),
     ] {
         let r = load_ply_bytes(&ply(&[bad]), Path::new("t.ply"), opts);
-        assert!(matches!(r, Err(Error::Format { .. })), "{:?}", r.map(|g| g.scales));
+        assert!(
+            matches!(r, Err(Error::Format { .. })),
+            "{:?}",
+            r.map(|g| g.scales)
+        );
     }
 }
 

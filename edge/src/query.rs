@@ -326,7 +326,8 @@ pub fn unit_prompt_embedding(mut phi: Vec<f32>) -> Result<Vec<f32>> {
              direction to compare with; rephrase the prompt, or check the text model"
         )));
     }
-    phi.iter_mut().for_each(|x| *x = (f64::from(*x) / norm) as f32);
+    phi.iter_mut()
+        .for_each(|x| *x = (f64::from(*x) / norm) as f32);
     Ok(phi)
 }
 

@@ -44,7 +44,11 @@ fn rows(n: usize) -> Vec<f32> {
         if i == 0 || i == 3 {
             v.extend(std::iter::repeat_n(0.0, DIM));
         } else {
-            v.extend(unit((0..DIM).map(|d| ((i * 7 + d * 5) % 13) as f32 - 6.0).collect()));
+            v.extend(unit(
+                (0..DIM)
+                    .map(|d| ((i * 7 + d * 5) % 13) as f32 - 6.0)
+                    .collect(),
+            ));
         }
     }
     v
@@ -119,7 +123,12 @@ fn zero_or_non_finite_prompt_embeddings_are_a_typed_400_error() {
     assert_eq!(a.matches.len(), 5);
     for (x, y) in a.matches.iter().zip(&b.matches) {
         assert_eq!(x.id, y.id);
-        assert!((x.score - y.score).abs() < 1e-6, "{} vs {}", x.score, y.score);
+        assert!(
+            (x.score - y.score).abs() < 1e-6,
+            "{} vs {}",
+            x.score,
+            y.score
+        );
         assert!(x.score.is_finite() && x.score.abs() <= 1.0 + 1e-5);
     }
 }
@@ -154,14 +163,20 @@ fn zero_rows_score_zero_in_every_dtype_and_the_index() {
             combine: Some(&lerf_relevancy),
         };
         let hits = scan(&s, &req).expect("relevancy");
-        assert!(hits.iter().all(|h| h.score.is_finite() && (0.0..=1.0).contains(&h.score)));
+        assert!(
+            hits.iter()
+                .all(|h| h.score.is_finite() && (0.0..=1.0).contains(&h.score))
+        );
         let zero_row = hits.iter().find(|h| h.row == 0).expect("row 0");
         assert_eq!(zero_row.score, 0.5, "{dtype:?}");
         // HNSW over a store holding zero rows: builds, answers finite scores.
         let index = HnswIndex::build(&s, 32, 32, 7).expect("hnsw build");
         let hits = index.query(&q, 10).expect("hnsw query");
         assert_eq!(hits.len(), 10, "{dtype:?}");
-        assert!(hits.iter().all(|h| h.score.is_finite()), "{dtype:?}: {hits:?}");
+        assert!(
+            hits.iter().all(|h| h.score.is_finite()),
+            "{dtype:?}: {hits:?}"
+        );
         let hits = index.query(&zero_q, 10).expect("hnsw zero query");
         assert!(hits.iter().all(|h| h.score == 0.0), "{dtype:?}: {hits:?}");
     }

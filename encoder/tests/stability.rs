@@ -317,10 +317,14 @@ fn extreme_scales_have_their_closed_form_weights() {
                     let sy = scale * k.fy / 3.0;
                     let var_x = s * s + LOW_PASS;
                     let var_y = sy * sy + LOW_PASS;
-                    let alpha = (0.6 * (-0.5 * (dx * dx / var_x + dy * dy / var_y)).exp()).min(ALPHA_MAX);
+                    let alpha =
+                        (0.6 * (-0.5 * (dx * dx / var_x + dy * dy / var_y)).exp()).min(ALPHA_MAX);
                     let (ids, ws) = w.pixel(x, y);
                     if alpha < ALPHA_MIN * 0.999 {
-                        assert!(ids.is_empty(), "{label} {name} ({x},{y}): drawn at α {alpha}");
+                        assert!(
+                            ids.is_empty(),
+                            "{label} {name} ({x},{y}): drawn at α {alpha}"
+                        );
                         continue;
                     }
                     if alpha < ALPHA_MIN * 1.001 {
@@ -424,7 +428,10 @@ fn opacities_near_zero_and_one_clamp_and_skip() {
         // Clamped at 0.99 (to f32 rounding), never above.
         for id in [2, 3, 4, 5] {
             let m = max_weight(w, id);
-            assert!((m - ALPHA_MAX).abs() < 1e-7, "{name}: Gaussian {id} max weight {m}");
+            assert!(
+                (m - ALPHA_MAX).abs() < 1e-7,
+                "{name}: Gaussian {id} max weight {m}"
+            );
         }
         // The stack's pixel: 0.99, then 0.5·0.01; the third would take T to 0.005·0.01 = 5e-5
         // < 1e-4, so the pixel stops before it.
@@ -454,15 +461,33 @@ fn degenerate_covariances_are_low_pass_regularised_and_bad_quaternions_culled() 
         ([0.2, 0.2, 0.0], u, 0.7, true, "one scale zero (a disc)"),
         ([1e-40, 1e-40, 1e-40], u, 0.7, true, "subnormal scales"),
         ([0.05; 3], [0.0; 4], 0.7, false, "zero quaternion"),
-        ([0.05; 3], [f32::NAN, 0.0, 0.0, 1.0], 0.7, false, "NaN quaternion"),
-        ([0.05; 3], [f32::INFINITY, 0.0, 0.0, 0.0], 0.7, false, "infinite quaternion"),
+        (
+            [0.05; 3],
+            [f32::NAN, 0.0, 0.0, 1.0],
+            0.7,
+            false,
+            "NaN quaternion",
+        ),
+        (
+            [0.05; 3],
+            [f32::INFINITY, 0.0, 0.0, 0.0],
+            0.7,
+            false,
+            "infinite quaternion",
+        ),
         ([f32::NAN, 0.1, 0.1], u, 0.7, false, "NaN scale"),
         ([f32::INFINITY, 0.1, 0.1], u, 0.7, false, "infinite scale"),
         ([0.05; 3], u, f32::NAN, false, "NaN opacity"),
         ([0.05; 3], u, f32::INFINITY, false, "infinite opacity"),
         ([0.05; 3], u, 0.0, false, "zero opacity"),
         ([0.05; 3], u, -0.5, false, "negative opacity"),
-        ([0.05; 3], u, 7.0, true, "opacity above 1 (α clamps at 0.99)"),
+        (
+            [0.05; 3],
+            u,
+            7.0,
+            true,
+            "opacity above 1 (α clamps at 0.99)",
+        ),
     ];
     // A 4x4 grid 1 m apart at depth 5 (16 px apart: no overlap).
     let pos = |i: usize| [(i % 4) as f32 - 1.5, (i / 4) as f32 - 1.5, 5.0f32];
@@ -481,7 +506,10 @@ fn degenerate_covariances_are_low_pass_regularised_and_bad_quaternions_culled() 
         for (i, (_, _, _, expect, what)) in cases.iter().enumerate() {
             assert_eq!(ids.contains(&(i as u32)), *expect, "{name}: {what}");
         }
-        assert!((max_weight(w, 13) - ALPHA_MAX).abs() < 1e-7, "{name}: opacity 7");
+        assert!(
+            (max_weight(w, 13) - ALPHA_MAX).abs() < 1e-7,
+            "{name}: opacity 7"
+        );
         // Zero scales: Σ2D = 0.3·I exactly, so every pixel has the closed form.
         let p = pos(0).map(f64::from);
         let (mx, my) = (k.fx * p[0] / p[2] + k.cx, k.fy * p[1] / p[2] + k.cy);
@@ -564,7 +592,17 @@ fn gaussians_behind_or_on_the_camera_plane_are_not_drawn() {
     }
     // And the projection says so directly.
     for &z in &culled {
-        assert!(project_gaussian([0.0, 0.0, z as f64], [1.0; 3], [1.0, 0.0, 0.0, 0.0], 0.9, &k, &w2c).is_none());
+        assert!(
+            project_gaussian(
+                [0.0, 0.0, z as f64],
+                [1.0; 3],
+                [1.0, 0.0, 0.0, 0.0],
+                0.9,
+                &k,
+                &w2c
+            )
+            .is_none()
+        );
     }
 }
 
@@ -615,9 +653,15 @@ fn a_scene_1e6_m_from_the_origin_renders_like_the_same_scene_at_the_origin() {
             translation: near.translation - near.rotation * shift,
         };
         let cpu_near = CpuRasterizer::new(&g).rasterize(&k, &near).expect("cpu");
-        let cpu_far = CpuRasterizer::new(&far).rasterize(&k, &far_cam).expect("cpu");
+        let cpu_far = CpuRasterizer::new(&far)
+            .rasterize(&k, &far_cam)
+            .expect("cpu");
         invariants(&cpu_far, far.len(), "cpu far");
-        assert!(cpu_near.len() > 2000, "view {i}: scene too sparse ({})", cpu_near.len());
+        assert!(
+            cpu_near.len() > 2000,
+            "view {i}: scene too sparse ({})",
+            cpu_near.len()
+        );
         let a = compare(&cpu_far, &cpu_near);
         eprintln!("view {i}: cpu at 1e6 m vs cpu at origin: {a:?}");
         assert_eq!(a.differing_pixels, 0, "view {i}: {a:?}");
@@ -631,7 +675,10 @@ fn a_scene_1e6_m_from_the_origin_renders_like_the_same_scene_at_the_origin() {
         invariants(&gpu_far, far.len(), "gpu far");
         let a = compare(&gpu_far, &gpu_near);
         eprintln!("view {i}: gpu at 1e6 m vs gpu at origin: {a:?}");
-        for (w, v) in [(&mut worst_gpu, a), (&mut worst_gpu_vs_cpu, compare(&gpu_far, &cpu_far))] {
+        for (w, v) in [
+            (&mut worst_gpu, a),
+            (&mut worst_gpu_vs_cpu, compare(&gpu_far, &cpu_far)),
+        ] {
             w.same_list_max_diff = w.same_list_max_diff.max(v.same_list_max_diff);
             w.dense_max_diff = w.dense_max_diff.max(v.dense_max_diff);
             w.differing_pixels = w.differing_pixels.max(v.differing_pixels);
@@ -755,18 +802,50 @@ fn vanishing_weights_and_cancelling_masks_are_unobserved_never_nan() {
     ];
     let entries = vec![
         // Gaussian 0: Σa = 1e-30 + 1e-38 (far below min_total_weight 1e-6).
-        Entry { gaussian: 0, mask: 0, weight: 1e-30 },
-        Entry { gaussian: 0, mask: 2, weight: 1e-38 },
+        Entry {
+            gaussian: 0,
+            mask: 0,
+            weight: 1e-30,
+        },
+        Entry {
+            gaussian: 0,
+            mask: 2,
+            weight: 1e-38,
+        },
         // Gaussian 1: subnormal weights only.
-        Entry { gaussian: 1, mask: 0, weight: 1e-44 },
+        Entry {
+            gaussian: 1,
+            mask: 0,
+            weight: 1e-44,
+        },
         // Gaussian 2: two masks that cancel exactly, large weight.
-        Entry { gaussian: 2, mask: 0, weight: 3.5 },
-        Entry { gaussian: 2, mask: 1, weight: 3.5 },
+        Entry {
+            gaussian: 2,
+            mask: 0,
+            weight: 3.5,
+        },
+        Entry {
+            gaussian: 2,
+            mask: 1,
+            weight: 3.5,
+        },
         // Gaussian 3: a real observation (control: the test can fail).
-        Entry { gaussian: 3, mask: 0, weight: 1e-3 },
-        Entry { gaussian: 3, mask: 2, weight: 3e-3 },
+        Entry {
+            gaussian: 3,
+            mask: 0,
+            weight: 1e-3,
+        },
+        Entry {
+            gaussian: 3,
+            mask: 2,
+            weight: 3e-3,
+        },
         // Gaussian 4: a NaN weight (corrupt input) is unobserved, not a NaN vector.
-        Entry { gaussian: 4, mask: 2, weight: f32::NAN },
+        Entry {
+            gaussian: 4,
+            mask: 2,
+            weight: f32::NAN,
+        },
     ];
     let tmp = std::env::temp_dir().join(format!("slag-stability-v-{}", std::process::id()));
     let mut store = ContributionStore::new(usize::MAX, tmp);
