@@ -74,7 +74,11 @@ impl Embeddings {
     /// Writes the file atomically: to `<path>.partial`, fsync, then rename, so a killed run never
     /// leaves a file that looks complete.
     ///
-    /// Errors: inconsistent lengths ([`Error::Invalid`]), I/O.
+    /// f16 rounds to nearest: relative error ≤ 2^-11 for |v| ≥ 6.1e-5, absolute ≤ 2^-25 below
+    /// (subnormal halves, then 0).
+    ///
+    /// Errors: inconsistent lengths, a non-finite component, or with [`StoredPrecision::F16`] a
+    /// component beyond the f16 range (±65504) ([`Error::Invalid`], nothing written); I/O.
     pub fn write(&self, path: &Path, precision: StoredPrecision) -> Result<()> {
         let n = self.ids.len();
         if self.means.len() != n
@@ -88,6 +92,27 @@ impl Embeddings {
                 self.total_weights.len(),
                 self.vectors.len(),
                 self.dim
+            )));
+        }
+        if let Some(i) = self.vectors.iter().position(|v| !v.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "embedding of Gaussian {} has a non-finite component ({}); the encoder output is \
+                 corrupt, nothing was written",
+                self.ids.get(i / self.dim.max(1)).copied().unwrap_or(0),
+                self.vectors[i]
+            )));
+        }
+        if precision == StoredPrecision::F16
+            && let Some(i) = self
+                .vectors
+                .iter()
+                .position(|&v| !f16::from_f32(v).is_finite())
+        {
+            return Err(Error::Invalid(format!(
+                "embedding of Gaussian {} has the component {}, beyond the f16 range (±65504); \
+                 write f32 precision or L2-normalise the rows (they should be unit vectors)",
+                self.ids.get(i / self.dim.max(1)).copied().unwrap_or(0),
+                self.vectors[i]
             )));
         }
         let ids: &[u8] = bytemuck::cast_slice(&self.ids);

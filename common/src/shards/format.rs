@@ -281,16 +281,35 @@ fn align(n: usize, a: usize) -> usize {
     n.div_ceil(a) * a
 }
 
-/// Quantises one vector to symmetric int8; returns the scale (`0` for an all-zero vector).
+/// Quantises one vector to symmetric int8 and appends the codes to `out`; returns the scale.
+///
+/// `s = max|v| / 127` (rounded down one f32 step when `127·s` would overflow to infinity),
+/// `q = round(v / s)` clamped to `[-127, 127]`; the stored value is `q·s`. Round trip (asserted
+/// by `common/tests/stability.rs`): `|v - q·s| ≤ 0.50002·s` per component (`s/2` plus f32
+/// rounding), and `q·s` is finite.
+///
+/// Degenerate inputs give the zero vector (scale 0, all codes 0; cosine 0 with any query), never
+/// a NaN: an all-zero vector, and a vector whose largest component is below
+/// `127 · f32::MIN_POSITIVE` (≈ 1.5e-36), where `s` would be subnormal and inexact. Non-finite
+/// components are not valid input (the callers, [`encode_shard`] and the edge store, reject them
+/// with a typed error); if given anyway they are left out of the scale and quantise to 0.
 pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
-    let m = v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
-    let scale = if m > 0.0 && m.is_finite() {
-        m / 127.0
+    let m = v
+        .iter()
+        .filter(|x| x.is_finite())
+        .fold(0.0f32, |m, x| m.max(x.abs()));
+    let scale = if m >= 127.0 * f32::MIN_POSITIVE {
+        let s = m / 127.0;
+        if (s * 127.0).is_finite() {
+            s
+        } else {
+            f32::from_bits(s.to_bits() - 1)
+        }
     } else {
         0.0
     };
     for &x in v {
-        let q = if scale > 0.0 {
+        let q = if scale > 0.0 && x.is_finite() {
             (x / scale).round().clamp(-127.0, 127.0) as i8
         } else {
             0
@@ -300,10 +319,16 @@ pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
     scale
 }
 
+/// Largest finite IEEE half value; f32 values beyond `F16_MAX` (after rounding) would be stored
+/// as infinity.
+pub const F16_MAX: f32 = 65504.0;
+
 /// Encodes one shard (layout in the module doc).
 ///
 /// Errors ([`Error::Invalid`]): array lengths that disagree with N and D, `dim` of 0 or above
-/// [`MAX_DIM`], N above `u32::MAX`, ids longer than 65535 bytes, non-finite means or vectors.
+/// [`MAX_DIM`], N above `u32::MAX`, ids longer than 65535 bytes, non-finite means or vectors,
+/// and for [`Dtype::F16`] a vector value that rounds beyond the f16 range ([`F16_MAX`]).
+/// f16 values are rounded to nearest (subnormal halves below 6.1e-5, zero below 2^-25).
 pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     let n = input.ids.len();
     let d = input.dim;
@@ -341,6 +366,17 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         return Err(bad(
             "non-finite mean or embedding value; fix the encoder output".into(),
         ));
+    }
+    if input.dtype == Dtype::F16
+        && let Some(x) = input
+            .vectors
+            .iter()
+            .find(|&&x| !f16::from_f32(x).is_finite())
+    {
+        return Err(bad(format!(
+            "embedding value {x} is beyond the f16 range (±{F16_MAX}); store f32 (--dtype f32) \
+             or L2-normalise the vectors (CLIP embeddings are unit vectors)"
+        )));
     }
     let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
     let (s, m) = (input.scene_id.len(), input.model.len());

@@ -119,8 +119,8 @@ impl VectorStore {
     /// Appends rows given as `f32` (`vectors` is `[n * dim]` row-major), converting them to the
     /// store's dtype exactly as the shard encoder does (f16 round-to-nearest, [`quantize_i8`]).
     ///
-    /// Errors: [`Error::Invalid`] when `ids`, `means` and `vectors` disagree in length, or a
-    /// value is not finite.
+    /// Errors: [`Error::Invalid`] when `ids`, `means` and `vectors` disagree in length, a
+    /// value is not finite, or (f16 store) a value rounds beyond the f16 range.
     pub fn push_f32_rows(
         &mut self,
         ids: &[u32],
@@ -141,6 +141,14 @@ impl VectorStore {
             return Err(Error::Invalid(
                 "embedding rows contain NaN or infinite values; re-encode the scene".into(),
             ));
+        }
+        if matches!(self.vectors, StoredVectors::F16(_))
+            && let Some(x) = vectors.iter().find(|&&x| !f16::from_f32(x).is_finite())
+        {
+            return Err(Error::Invalid(format!(
+                "embedding value {x} is beyond the f16 range (±65504); use an f32 store or \
+                 L2-normalise the rows"
+            )));
         }
         match &mut self.vectors {
             StoredVectors::F32(a) => a.extend_from_slice(vectors),

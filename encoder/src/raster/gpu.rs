@@ -1,8 +1,20 @@
 //! The GPU weight rasterizer: wgpu compute kernels in `weights.wgsl` (Vulkan backend).
 //!
 //! Per view ([`GpuRasterizer::rasterize`]):
+//! 0. Once, in [`GpuRasterizer::new`]: the means are uploaded relative to the scene's centre `o`
+//!    (the midpoint of their bounding box, f64), `μ - o` rounded to f32, and every view's
+//!    world-to-camera translation is folded with it in f64 (`T' = R·o + T`), so that the kernel's
+//!    f32 camera-frame point `R·(μ - o) + T'` keeps its precision however far the scene lies from
+//!    the world origin (drone scenes in UTM coordinates, ~1e6 m: f32 world coordinates there have
+//!    a 6 cm spacing, and `R·μ + T` in f32 loses metres to cancellation). The quaternions are
+//!    normalised on the host in f64, and a Gaussian with a non-finite mean, scale or quaternion, a
+//!    zero quaternion, or an opacity outside `(0, ∞)` is uploaded with opacity 0, which the kernel
+//!    culls: the same Gaussians [`super::project::project_gaussian`] culls, decided without relying
+//!    on NaN comparisons in the shader.
 //! 1. `project` kernel, one thread per Gaussian: the EWA projection of [`super::project`] in f32 →
-//!    per-Gaussian splat (mean2d, conic, opacity) kept on the GPU, and an 8-byte tile rect read
+//!    per-Gaussian splat (mean2d, opacity, and `Σ2D⁻¹` in eigen form: major axis, `1/√λ` of both
+//!    axes, so that `½dᵀΣ⁻¹d` is a sum of two squares, without the f32 cancellation of the conic
+//!    form for needles and sheets) kept on the GPU, and an 8-byte tile rect read
 //!    back.
 //! 2. Tile binning and depth sort **on the CPU** (per Gaussian, never per pixel): every
 //!    (tile, Gaussian) intersection gets the key `(tile, depth, id)`, sorted with rayon, then
@@ -101,6 +113,8 @@ pub struct GpuRasterizer {
     n: u32,
     /// Means kept on the host for the f64 sort depth ([`camera_point`]).
     means: Vec<[f32; 3]>,
+    /// World-frame centre the uploaded means are relative to (f64; see the module docs, step 0).
+    origin: glam::DVec3,
     means_opac: wgpu::Buffer,
     scales: wgpu::Buffer,
     quats: wgpu::Buffer,
@@ -318,15 +332,23 @@ impl GpuRasterizer {
             )));
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let origin = scene_origin(&gaussians.means);
         let mut mo = Vec::with_capacity(n * 4);
         let mut sc = Vec::with_capacity(n * 4);
         let mut qu = Vec::with_capacity(n * 4);
         for i in 0..n {
             let m = gaussians.means[i];
             let s = gaussians.scales[i];
-            mo.extend_from_slice(&[m[0], m[1], m[2], gaussians.opacities[i]]);
+            let q = unit_quaternion(gaussians.rotations[i]);
+            let o = gaussians.opacities[i];
+            let valid = m.iter().chain(&s).all(|v| v.is_finite())
+                && q.is_some()
+                && o > 0.0
+                && o.is_finite();
+            let rel = |k: usize| (m[k] as f64 - origin[k]) as f32;
+            mo.extend_from_slice(&[rel(0), rel(1), rel(2), if valid { o } else { 0.0 }]);
             sc.extend_from_slice(&[s[0], s[1], s[2], 0.0]);
-            qu.extend_from_slice(&gaussians.rotations[i]);
+            qu.extend_from_slice(&q.unwrap_or([0.0; 4]));
         }
         let means_opac = storage_init(&device, "means_opac", bytemuck::cast_slice(&mo));
         let scales = storage_init(&device, "scales", bytemuck::cast_slice(&sc));
@@ -364,6 +386,7 @@ impl GpuRasterizer {
             limits,
             n: n32,
             means: gaussians.means.clone(),
+            origin,
             means_opac,
             scales,
             quats,
@@ -517,7 +540,8 @@ impl GpuRasterizer {
         self.check_size("tile ranges", n_tiles as u64 * 8, k)?;
 
         let r = w2c.rotation.transpose(); // rows of R are columns of Rᵀ
-        let t = w2c.translation;
+        // The kernel sees means relative to `origin`: R·μ + T = R·(μ - o) + (R·o + T), in f64.
+        let t = w2c.rotation * self.origin + w2c.translation;
         let row = |i: usize, ti: f64| {
             let c = r.col(i);
             [c.x as f32, c.y as f32, c.z as f32, ti as f32]
@@ -721,6 +745,32 @@ impl GpuRasterizer {
             weights,
         })
     }
+}
+
+/// The midpoint of the bounding box of the finite means, f64 (the origin the uploaded means are
+/// relative to); zero when there is none.
+fn scene_origin(means: &[[f32; 3]]) -> glam::DVec3 {
+    let mut lo = glam::DVec3::splat(f64::INFINITY);
+    let mut hi = glam::DVec3::splat(f64::NEG_INFINITY);
+    for m in means.iter().filter(|m| m.iter().all(|v| v.is_finite())) {
+        let p = glam::DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+        lo = lo.min(p);
+        hi = hi.max(p);
+    }
+    if lo.x <= hi.x {
+        (lo + hi) * 0.5
+    } else {
+        glam::DVec3::ZERO
+    }
+}
+
+/// A (w, x, y, z) quaternion normalised in f64 (no f32 overflow or underflow of `|q|²` for any
+/// finite f32 components); `None` for a zero or non-finite quaternion (culled, as in
+/// [`super::project::quat_to_mat`]).
+fn unit_quaternion(q: [f32; 4]) -> Option<[f32; 4]> {
+    let q = q.map(f64::from);
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    (n > 0.0 && n.is_finite()).then(|| q.map(|v| (v / n) as f32))
 }
 
 /// Tile binning on the CPU: for every Gaussian with a non-empty tile rect (from the GPU

@@ -112,7 +112,10 @@ pub fn camera_point(mean: [f64; 3], w2c: &WorldToCamera) -> DVec3 {
 
 /// Projects one Gaussian (steps 1-6 of the module docs). Returns `None` when it is culled: behind
 /// the near plane or beyond the far plane, degenerate 2D covariance, radius box outside the image,
-/// or any non-finite intermediate value (a zero quaternion, NaN input).
+/// an opacity that is not a finite positive number (a NaN opacity would otherwise pass the
+/// `min(0.99, ·)` clamp as 0.99), or any non-finite intermediate value (a zero quaternion, NaN or
+/// infinite mean / scale). Zero scales are not culled: the 0.3 px² low-pass alone gives the splat
+/// its footprint (gsplat's rule).
 ///
 /// `mean`: world frame; `scale`: standard deviations, scene units; `quat`: (w, x, y, z);
 /// `opacity` in (0, 1).
@@ -124,6 +127,9 @@ pub fn project_gaussian(
     k: &Intrinsics,
     w2c: &WorldToCamera,
 ) -> Option<Splat2d> {
+    if !(opacity > 0.0 && opacity.is_finite()) {
+        return None;
+    }
     let t = camera_point(mean, w2c);
     if !(t.z >= NEAR_PLANE && t.z <= FAR_PLANE) {
         return None;

@@ -1,7 +1,7 @@
 // slag weight rasterizer kernels (see gpu.rs). f32 mirror of project.rs; gsplat 1.x conventions.
 //
 // Entry points, in dispatch order:
-//   project      one thread per Gaussian: EWA projection -> splats[] (mean2d, opacity, conic) and
+//   project      one thread per Gaussian: EWA projection -> splats[] (mean2d, opacity, axes) and
 //                isect[] (packed tile rect) read back for CPU binning.
 //   blend        one 16x16 workgroup per tile, shared-memory batches of 256 splats (gsplat's
 //                rasterize_to_pixels scheme). params.mode == 0: count contributors per pixel into
@@ -32,7 +32,11 @@ struct Params {
 
 struct Splat {
     xy_opac: vec4<f32>,  // mean2d.x, mean2d.y, opacity, unused
-    conic: vec4<f32>,    // a, b, c of the inverse 2D covariance, unused
+    // The inverse 2D covariance in eigen form: unit major axis u (xy), 1/sqrt(λ_major) (z),
+    // 1/sqrt(λ_minor) (w); ½dᵀΣ⁻¹d = ½((u·d)²/λ_major + (u⊥·d)²/λ_minor). A sum of squares: no
+    // f32 cancellation for needles and sheets, where the (a, b, c) conic form loses ~1e-3 of σ
+    // at ~100 px from the centre (its terms are ~1e4 times σ).
+    axes: vec4<f32>,
 }
 
 const NEAR_PLANE: f32 = 0.01;
@@ -75,6 +79,12 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
         return;
     }
     let mo = means_opac[i];
+    // The host uploads opacity 0 for every Gaussian to cull for bad input (gpu.rs, step 0).
+    if (!(mo.w > 0.0)) {
+        culled(i);
+        return;
+    }
+    // Relative to the scene centre; params.rot*.w carry the folded translation R·o + T.
     let mean = mo.xyz;
     let t = vec3<f32>(
         dot(params.rot0.xyz, mean) + params.rot0.w,
@@ -132,11 +142,30 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     }
     let inv = 1.0 / det;
     let conic = vec3<f32>(c * inv, -b * inv, a * inv);
+    // Eigen form of Σ2D (see Splat.axes), each step free of cancellation: the discriminant as
+    // ((a - c)/2)² + b², the minor eigenvalue as det / λ_major (det by Cauchy-Binet), the major
+    // axis from the row whose entries are both non-negative sums.
+    let half_diff = 0.5 * (a - c);
+    let disc = sqrt(half_diff * half_diff + b * b);
+    let l_major = 0.5 * (a + c) + disc;
+    let l_minor = det / l_major;
+    var u = vec2<f32>(b, disc - half_diff);
+    if (a >= c) {
+        u = vec2<f32>(half_diff + disc, b);
+    }
+    let un = length(u);
+    if (un > 0.0) {
+        u = u / un;
+    } else {
+        u = vec2<f32>(1.0, 0.0); // isotropic: any axis
+    }
+    let axes = vec4<f32>(u, inverseSqrt(l_major), inverseSqrt(l_minor));
     let mid = 0.5 * (a + c);
     let lambda = mid + sqrt(max(0.01, mid * mid - det));
     let radius = ceil(3.0 * sqrt(lambda));
     let mean2d = vec2<f32>(fx * t.x * rz + params.focal.z, fy * t.y * rz + params.focal.w);
-    if (!all_finite(vec4<f32>(mean2d, radius, 0.0)) || !all_finite(vec4<f32>(conic, 0.0))) {
+    if (!all_finite(vec4<f32>(mean2d, radius, 0.0)) || !all_finite(vec4<f32>(conic, 0.0))
+        || !all_finite(axes)) {
         culled(i);
         return;
     }
@@ -153,12 +182,12 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     let y0 = u32(clamp(floor((mean2d.y - radius) / 16.0), 0.0, tyf));
     let x1 = u32(clamp(ceil((mean2d.x + radius) / 16.0), 0.0, txf));
     let y1 = u32(clamp(ceil((mean2d.y + radius) / 16.0), 0.0, tyf));
-    splats[i] = Splat(vec4<f32>(mean2d, mo.w, 0.0), vec4<f32>(conic, 0.0));
+    splats[i] = Splat(vec4<f32>(mean2d, mo.w, 0.0), axes);
     isect[i] = vec2<u32>(x0 | (y0 << 16u), x1 | (y1 << 16u));
 }
 
 var<workgroup> sh_xy_opac: array<vec4<f32>, 256>;
-var<workgroup> sh_conic: array<vec4<f32>, 256>;
+var<workgroup> sh_axes: array<vec4<f32>, 256>;
 var<workgroup> sh_id: array<u32, 256>;
 var<workgroup> sh_range: vec2<u32>;
 var<workgroup> done_count: atomic<u32>;
@@ -212,7 +241,7 @@ fn blend(
             let g = sorted_ids[idx];
             let s = splats[g];
             sh_xy_opac[lid] = s.xy_opac;
-            sh_conic[lid] = s.conic;
+            sh_axes[lid] = s.axes;
             sh_id[lid] = g;
         }
         workgroupBarrier();
@@ -220,10 +249,13 @@ fn blend(
         if (!done) {
             for (var k = 0u; k < n_here; k++) {
                 let xo = sh_xy_opac[k];
-                let co = sh_conic[k];
+                let ax = sh_axes[k];
                 let dx = xo.x - pxc;
                 let dy = xo.y - pyc;
-                let sigma = 0.5 * (co.x * dx * dx + co.z * dy * dy) + co.y * dx * dy;
+                // ½dᵀΣ⁻¹d in eigen form (Splat.axes): the same σ as project.rs's conic form.
+                let pa = (ax.x * dx + ax.y * dy) * ax.z;
+                let pb = (ax.x * dy - ax.y * dx) * ax.w;
+                let sigma = 0.5 * (pa * pa + pb * pb);
                 let alpha = min(ALPHA_MAX, xo.z * exp(-sigma));
                 if (sigma < 0.0 || alpha < ALPHA_MIN) {
                     continue;
