@@ -330,6 +330,12 @@ impl EmbeddingsWriter {
             }
             last = Some(id);
         }
+        if let Some(bad) = vectors.iter().position(|v| !v.is_finite() || v.abs() > 65504.0) {
+            return Err(Error::Invalid(format!(
+                "embedding component {} of the block is {} (rows must be finite unit vectors)",
+                bad, vectors[bad]
+            )));
+        }
         let w = self
             .vectors
             .as_mut()
