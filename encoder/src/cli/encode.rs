@@ -124,7 +124,11 @@ pub struct EncodeArgs {
     pub quiet: bool,
 }
 
-fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGenerator>> {
+/// The mask generator `a` asks for (`--masks`), with `threads` ONNX Runtime intra-op threads.
+pub(crate) fn build_masks(
+    a: &EncodeArgs,
+    threads: usize,
+) -> anyhow::Result<Box<dyn MaskGenerator>> {
     Ok(match a.masks {
         MaskSource::Sam => {
             let (enc, dec) = (
@@ -164,7 +168,8 @@ fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGen
     })
 }
 
-fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
+/// The report's inputs, models and parameters sections for `a`.
+pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
     Report {
         slag_version: env!("CARGO_PKG_VERSION").to_string(),
         inputs: serde_json::json!({
@@ -192,23 +197,23 @@ fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
     }
 }
 
-/// Runs `encode` and returns the report it wrote.
-pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+/// Worker threads for `a` (`--threads`, default all cores); sets rayon's global pool to that
+/// size unless it already exists (tests, bench repeats).
+pub(crate) fn setup_threads(a: &EncodeArgs) -> usize {
     let threads = a.threads.unwrap_or_else(|| {
         std::thread::available_parallelism()
             .map(|n| n.get())
             .unwrap_or(1)
     });
-    // The global pool may already exist (tests, bench repeats): then keep it.
     let _ = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build_global();
-    let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
-    let masks = build_masks(a, threads)?;
-    let clip =
-        crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
-    let crops: Box<dyn CropEmbedder> = Box::new(clip);
-    let params = EncodeParams {
+    threads
+}
+
+/// The pipeline parameters `a` asks for.
+pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
+    EncodeParams {
         raster_scale: a.raster_scale,
         image_stage: ImageStageParams {
             top_k_per_pixel: a.top_k_per_pixel,
@@ -224,16 +229,32 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
         },
         out_dir: a.out.clone(),
         progress: !a.quiet,
-    };
+    }
+}
+
+/// The weight rasterizer `backend` names, over the Gaussians `g`.
+pub(crate) fn make_rasterizer(
+    backend: RasterBackend,
+    g: &slag_common::scene::Gaussians,
+) -> slag_common::Result<Box<dyn WeightRasterizer>> {
+    Ok(match backend {
+        RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
+        RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
+    })
+}
+
+/// Runs `encode` and returns the report it wrote.
+pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+    let threads = setup_threads(a);
+    let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
+    let masks = build_masks(a, threads)?;
+    let clip =
+        crate::clip::ClipVisual::with_threads(&a.clip_visual, a.ep.into(), a.clip_batch, threads)?;
+    let crops: Box<dyn CropEmbedder> = Box::new(clip);
+    let params = encode_params(a);
     let header = report_header(a, &scene, threads);
     let backend = a.rasterizer;
-    let make =
-        |g: &slag_common::scene::Gaussians| -> slag_common::Result<Box<dyn WeightRasterizer>> {
-            Ok(match backend {
-                RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
-                RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
-            })
-        };
+    let make = |g: &slag_common::scene::Gaussians| make_rasterizer(backend, g);
     let report = pipeline::encode(&scene, masks, crops, make, &params, header)?;
     Ok(report)
 }
