@@ -55,7 +55,7 @@
 //! `SLAG_FAULT_EXIT_AFTER_IMAGES=<n>` makes a process exit with status 137 (as if SIGKILLed, no
 //! destructors, no connection shutdown) right after it has sent its n-th image.
 
-use std::cell::{Cell, RefCell};
+use std::cell::RefCell;
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use std::sync::Arc;
@@ -554,7 +554,7 @@ fn map_side(
     worker: &mut timely::worker::Worker,
     input: &mut Input,
     job: &ClusterJob,
-    aborted: &Cell<bool>,
+    aborted: &RefCell<Option<String>>,
     scene: &(Gaussians, Vec<slag_common::camera::View>, usize),
     stages: &mut Stages,
     key: &JobKey,
@@ -572,7 +572,7 @@ fn map_side(
         .collect::<Result<Vec<_>>>()?;
     let t_map = Instant::now();
     for (round, i) in (w..views.len()).step_by(peers).enumerate() {
-        if aborted.get() {
+        if aborted.borrow().is_some() {
             break;
         }
         let view = &views[i];
@@ -643,7 +643,7 @@ fn map_side(
 fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<WorkerOutcome> {
     let (w, peers) = (worker.index(), worker.peers());
     let mut input = Input::new();
-    let aborted = Rc::new(Cell::new(false));
+    let aborted: Rc<RefCell<Option<String>>> = Rc::new(RefCell::new(None));
     let gathered = Rc::new(RefCell::new(Gathered::default()));
     let spill_dir = spill_dir(&job.params.out_dir, w);
     let reducer = PartitionReducer::new(
@@ -666,8 +666,8 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
                     move |(input, frontier), output| {
                         input.for_each(|_time, data| {
                             for record in data.drain(..) {
-                                if matches!(record, ToReducer::Abort { .. }) {
-                                    aborted.set(true);
+                                if let ToReducer::Abort { message, .. } = &record {
+                                    aborted.borrow_mut().get_or_insert_with(|| message.clone());
                                 }
                                 if let Some(r) = reducer.as_mut() {
                                     r.absorb(record);
@@ -699,7 +699,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     });
 
     // Map side. Errors are broadcast as Abort so every process fails with the same message.
-    let t_load = Instant::now();
+    let mut load_scene_s = 0.0;
     let mut stats = MapStats {
         worker: w as u32,
         ..Default::default()
@@ -708,7 +708,9 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     let mut key = None;
     let mut scene_kept = None;
     let result = (|| -> Result<()> {
+        let t_load = Instant::now();
         let scene = job.scene.load()?;
+        load_scene_s = t_load.elapsed().as_secs_f64();
         if scene.1.is_empty() {
             return Err(Error::Invalid(format!(
                 "{}: no views to encode (check --every)",
@@ -736,7 +738,6 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         scene_kept = Some(scene);
         r
     })();
-    let load_scene_s = t_load.elapsed().as_secs_f64() - stats.wall_s;
     let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
     for p in 0..peers as u32 {
         if let Some(m) = &failed {
@@ -760,8 +761,8 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     result?;
     let gathered = std::mem::take(&mut *gathered.borrow_mut());
     if w != 0 {
-        if aborted.get() {
-            return Err(Error::Invalid("the job was aborted by another process (its message is above in that process's log)".into()));
+        if let Some(m) = aborted.borrow_mut().take() {
+            return Err(Error::Invalid(format!("the job was aborted: {m}")));
         }
         return Ok(WorkerOutcome {
             output: None,
