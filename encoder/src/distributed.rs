@@ -1109,15 +1109,18 @@ mod tests {
             s
         };
         let mut entries: Vec<Entry> = (0..n * 2)
-            .map(|_| Entry {
-                gaussian: (next() % n as u64) as u32,
-                mask: (next() % masks as u64) as u32,
-                // Some tiny weights: Gaussians below the threshold stay unobserved.
-                weight: if next() % 17 == 0 {
-                    1e-9
-                } else {
-                    (next() % 1000) as f32 / 100.0 + 0.01
-                },
+            .map(|_| {
+                let gaussian = (next() % n as u64) as u32;
+                Entry {
+                    gaussian,
+                    mask: (next() % masks as u64) as u32,
+                    // Every 11th Gaussian gets only tiny weights: below the threshold, unobserved.
+                    weight: if gaussian % 11 == 0 {
+                        1e-9
+                    } else {
+                        (next() % 1000) as f32 / 100.0 + 0.01
+                    },
+                }
             })
             .collect();
         entries.sort_by_key(|e| (e.gaussian, e.mask));
