@@ -1015,18 +1015,21 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     let job = Arc::new(job);
     let worker_job = Arc::clone(&job);
     let worker_connected = Arc::clone(&connected);
-    let guards = timely::execute(config, move |worker| {
+    let started = timely::execute(config, move |worker| {
         worker_connected.store(true, Ordering::SeqCst);
         run_worker(worker, &worker_job)
-    })
-    .map_err(|e| {
+    });
+    // Past this point neither the watchdog nor the hook may act: the job has ended one way or the
+    // other (joined) or never started.
+    let results = started.map(|guards| guards.join());
+    connected.store(true, Ordering::SeqCst);
+    std::panic::set_hook(previous_hook);
+    let results = results.map_err(|e| {
         Error::Invalid(format!(
             "encode-cluster process {process}: cannot start the cluster on {}: {e}",
             cluster.addresses[process]
         ))
     })?;
-    let results = guards.join();
-    std::panic::set_hook(previous_hook);
 
     let outcome = results
         .into_iter()
@@ -1115,7 +1118,7 @@ mod tests {
                     gaussian,
                     mask: (next() % masks as u64) as u32,
                     // Every 11th Gaussian gets only tiny weights: below the threshold, unobserved.
-                    weight: if gaussian % 11 == 0 {
+                    weight: if gaussian.is_multiple_of(11) {
                         1e-9
                     } else {
                         (next() % 1000) as f32 / 100.0 + 0.01
