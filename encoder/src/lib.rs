@@ -6,7 +6,8 @@
 //! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
 //! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
 //! mIoU with color-clip, [`cli`] holds the `slag-encoder` subcommands (`query` checks a text
-//! prompt against the result).
+//! prompt against the result). [`distributed`] runs the same map/reduce over several processes
+//! (timely dataflow cluster).
 //!
 //! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
 //! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting,
@@ -15,6 +16,7 @@
 pub mod aggregate;
 pub mod cli;
 pub mod clip;
+pub mod distributed;
 pub mod eval;
 pub mod export;
 pub mod masks;

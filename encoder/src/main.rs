@@ -1,6 +1,7 @@
 //! `slag-encoder`: give every Gaussian of a trained 3DGS scene a CLIP embedding (SLAG).
 //!
-//! Subcommands: `encode` (the Semantic Embedding stage), `query` (check a prompt), `eval-colors`
+//! Subcommands: `encode` (the Semantic Embedding stage), `encode-cluster` (the same over several
+//! processes), `query` (check a prompt), `eval-colors`
 //! (colour mIoU with color-clip), `render` (validate the rasterizer against a photo), `bench`
 //! (per-stage timings), `partition` / `serve` / `export` (spatial shards), `synth-scene`
 //! (synthetic scenes of any size).
@@ -31,6 +32,8 @@ struct Cli {
 enum Command {
     /// Embed a scene: masks -> CLIP crops -> weight raster -> aggregation -> embeddings.safetensors.
     Encode(cli::encode::EncodeArgs),
+    /// `encode` as one process of a timely dataflow cluster (same arguments on every process).
+    EncodeCluster(cli::cluster::EncodeClusterArgs),
     /// Rank the Gaussians of an embeddings file against a text prompt.
     Query(cli::query::QueryArgs),
     /// Colour mIoU of an embeddings file made with color-clip (ground truth from SH DC colours).
@@ -68,6 +71,19 @@ fn main() -> std::process::ExitCode {
                 r.timings.total,
                 a.out.join("embeddings.safetensors").display()
             );
+        }),
+        Command::EncodeCluster(a) => cli::cluster::run(a).map(|r| match r {
+            Some(r) => eprintln!(
+                "encoded {} of {} Gaussians ({:.1}%) from {} views on {} processes in {:.1} s -> {}",
+                r.counts.observed,
+                r.counts.gaussians,
+                100.0 * r.counts.observed_fraction,
+                r.counts.views_used,
+                r.parameters["cluster_processes"],
+                r.timings.total,
+                a.encode.out.join("embeddings.safetensors").display()
+            ),
+            None => eprintln!("process {}: job completed (process 0 wrote the outputs)", a.process),
         }),
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),

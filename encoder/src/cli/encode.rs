@@ -167,7 +167,11 @@ fn parse_keep(s: &str) -> Result<usize, String> {
     }
 }
 
-fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGenerator>> {
+/// The mask generator `a` asks for (`--masks`), with `threads` ONNX Runtime intra-op threads.
+pub(crate) fn build_masks(
+    a: &EncodeArgs,
+    threads: usize,
+) -> anyhow::Result<Box<dyn MaskGenerator>> {
     Ok(match a.masks {
         MaskSource::Sam => {
             let (enc, dec) = (
@@ -207,7 +211,8 @@ fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGen
     })
 }
 
-fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
+/// The report's inputs, models and parameters sections for `a`.
+pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
     Report {
         slag_version: env!("CARGO_PKG_VERSION").to_string(),
         inputs: serde_json::json!({
@@ -237,17 +242,57 @@ fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
     }
 }
 
-/// Runs `encode` and returns the report it wrote.
-pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+/// Worker threads for `a` (`--threads`, default all cores); sets rayon's global pool to that
+/// size unless it already exists (tests, bench repeats).
+pub(crate) fn setup_threads(a: &EncodeArgs) -> usize {
     let threads = a.threads.unwrap_or_else(|| {
         std::thread::available_parallelism()
             .map(|n| n.get())
             .unwrap_or(1)
     });
-    // The global pool may already exist (tests, bench repeats): then keep it.
     let _ = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build_global();
+    threads
+}
+
+/// The pipeline parameters `a` asks for.
+pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
+    EncodeParams {
+        raster_scale: a.raster_scale,
+        image_stage: ImageStageParams {
+            top_k_per_pixel: a.top_k_per_pixel,
+        },
+        reduce: ReduceParams {
+            min_total_weight: a.min_weight,
+            accumulator_budget_bytes: a.accumulator_memory_mb << 20,
+        },
+        contribution_budget_bytes: a.contribution_memory_mb << 20,
+        precision: match a.precision {
+            PrecisionArg::F16 => StoredPrecision::F16,
+            PrecisionArg::F32 => StoredPrecision::F32,
+        },
+        out_dir: a.out.clone(),
+        progress: !a.quiet,
+        mixture_keep: a.mixture_keep,
+    }
+}
+
+/// The weight rasterizer `backend` names, over the Gaussians `g`.
+pub(crate) fn make_rasterizer(
+    backend: RasterBackend,
+    g: &slag_common::scene::Gaussians,
+) -> slag_common::Result<Box<dyn WeightRasterizer>> {
+    Ok(match backend {
+        RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
+        RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
+    })
+}
+
+/// Runs `encode` and returns the report it wrote: `--front-workers` front workers (masks + CLIP,
+/// each with `threads / fronts` ONNX Runtime threads) and one rasterizer per GPU (`--gpus`).
+pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+    let threads = setup_threads(a);
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
     let gpus = match (a.rasterizer, a.gpus) {
         (RasterBackend::Cpu, _) => 1,
@@ -270,24 +315,7 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
         let crops: Box<dyn CropEmbedder> = Box::new(clip);
         fronts.push(pipeline::FrontStages { masks, crops });
     }
-    let params = EncodeParams {
-        raster_scale: a.raster_scale,
-        image_stage: ImageStageParams {
-            top_k_per_pixel: a.top_k_per_pixel,
-        },
-        reduce: ReduceParams {
-            min_total_weight: a.min_weight,
-            accumulator_budget_bytes: a.accumulator_memory_mb << 20,
-        },
-        contribution_budget_bytes: a.contribution_memory_mb << 20,
-        precision: match a.precision {
-            PrecisionArg::F16 => StoredPrecision::F16,
-            PrecisionArg::F32 => StoredPrecision::F32,
-        },
-        out_dir: a.out.clone(),
-        progress: !a.quiet,
-        mixture_keep: a.mixture_keep,
-    };
+    let params = encode_params(a);
     let header = report_header(a, &scene, threads);
     let backend = a.rasterizer;
     let want = match a.gpus {
@@ -301,7 +329,7 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
                     .into_iter()
                     .map(|r| Box::new(r) as Box<dyn WeightRasterizer>)
                     .collect(),
-                RasterBackend::Cpu => vec![Box::new(crate::raster::cpu::CpuRasterizer::new(g))],
+                RasterBackend::Cpu => vec![make_rasterizer(backend, g)?],
             })
         };
     let report = pipeline::encode_pool(&scene, fronts, make, &params, header)?;

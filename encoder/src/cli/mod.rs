@@ -1,5 +1,6 @@
 //! The `slag-encoder` command line: one module per subcommand. `main.rs` only dispatches.
 
+pub mod cluster;
 pub mod encode;
 pub mod eval;
 pub mod query;

@@ -1,0 +1,281 @@
+//! `slag-encoder encode-cluster`: three worker processes of the built binary on loopback
+//! (timely dataflow's TCP cluster) on the embedded mini scene, graph masks + color-clip.
+//!
+//! 1. The cluster's embeddings equal a single-process `slag-encoder encode` of the same inputs:
+//!    the same observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run
+//!    the same f64 code, only the order in which images are summed differs), total weights within
+//!    1e-6 relative.
+//! 2. One worker process dies after its first image (`SLAG_FAULT_EXIT_AFTER_IMAGES=1`, exit 137
+//!    without destructors or connection shutdown, as `kill -9`): every process exits non-zero
+//!    within the timeout, the survivors with status 3 and a message naming the lost connection,
+//!    and OUT holds nothing that looks complete (no embeddings.safetensors, no report.json, only
+//!    `.partial` names). A rerun in the same OUT completes and matches the single-process run.
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus};
+use std::time::{Duration, Instant};
+
+use slag_common::embeddings::Embeddings;
+
+/// Exit status of a process that lost a peer (`slag_encoder::distributed::EXIT_PEER_LOST`).
+const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
+const TIMEOUT: Duration = Duration::from_secs(180);
+
+fn command() -> Command {
+    let bin = env!("CARGO_BIN_EXE_slag-encoder");
+    match std::env::var("SLAG_TEST_RUNNER") {
+        Ok(r) if !r.trim().is_empty() => {
+            let mut parts = r.split_whitespace();
+            let mut c = Command::new(parts.next().unwrap());
+            c.args(parts).arg(bin);
+            c
+        }
+        _ => Command::new(bin),
+    }
+}
+
+/// The encode arguments shared by every run: 7 of the 13 views, raster scale 0.25, f32 output.
+fn encode_args(out: &Path) -> Vec<String> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let fixtures = slag_common::paths::shared_dir().join("fixtures");
+    let mut a: Vec<String> = vec![
+        "--scene".into(),
+        root.join("data/snowmiku-mini").display().to_string(),
+    ];
+    a.extend(["--masks", "graph", "--clip-visual"].map(String::from));
+    a.push(
+        fixtures
+            .join("clip/color-clip-visual.onnx")
+            .display()
+            .to_string(),
+    );
+    a.extend(
+        [
+            "--every",
+            "2",
+            "--raster-scale",
+            "0.25",
+            "--rasterizer",
+            "cpu",
+            "--precision",
+            "f32",
+            "--threads",
+            "1",
+            "--quiet",
+            "--out",
+        ]
+        .map(String::from),
+    );
+    a.push(out.display().to_string());
+    a
+}
+
+/// Three free loopback ports in a host file.
+fn hosts_file(dir: &Path, name: &str) -> PathBuf {
+    let listeners: Vec<_> = (0..3)
+        .map(|_| std::net::TcpListener::bind("127.0.0.1:0").unwrap())
+        .collect();
+    let text: String = listeners
+        .iter()
+        .map(|l| format!("127.0.0.1:{}\n", l.local_addr().unwrap().port()))
+        .collect();
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+struct Proc {
+    child: Child,
+    log: PathBuf,
+}
+
+/// Starts process `i` of the cluster described by `hosts`, logging to `dir/<tag>-<i>.log`.
+fn spawn(i: usize, hosts: &Path, out: &Path, dir: &Path, tag: &str, fault: Option<u32>) -> Proc {
+    let log = dir.join(format!("{tag}-{i}.log"));
+    let f = std::fs::File::create(&log).unwrap();
+    let mut c = command();
+    c.args(["encode-cluster", "--process", &i.to_string(), "--hosts"])
+        .arg(hosts)
+        .args(["--connect-timeout", "120"])
+        .args(encode_args(out))
+        // Spill every contribution and chunk the accumulator, as on a scene larger than memory.
+        .args([
+            "--contribution-memory-mb",
+            "0",
+            "--accumulator-memory-mb",
+            "16",
+        ])
+        .env_remove("SLAG_FAULT_EXIT_AFTER_IMAGES")
+        .stdout(f.try_clone().unwrap())
+        .stderr(f);
+    if let Some(n) = fault {
+        c.env("SLAG_FAULT_EXIT_AFTER_IMAGES", n.to_string());
+    }
+    Proc {
+        child: c.spawn().unwrap(),
+        log,
+    }
+}
+
+/// Waits for every process (killing all on timeout); their statuses and logs.
+fn wait_all(mut procs: Vec<Proc>) -> Vec<(ExitStatus, String)> {
+    let t0 = Instant::now();
+    let mut statuses: Vec<Option<ExitStatus>> = vec![None; procs.len()];
+    while statuses.iter().any(Option::is_none) {
+        for (p, s) in procs.iter_mut().zip(statuses.iter_mut()) {
+            if s.is_none() {
+                *s = p.child.try_wait().unwrap();
+            }
+        }
+        if t0.elapsed() > TIMEOUT {
+            for p in procs.iter_mut() {
+                let _ = p.child.kill();
+                let _ = p.child.wait();
+            }
+            let logs: Vec<String> = procs
+                .iter()
+                .map(|p| std::fs::read_to_string(&p.log).unwrap_or_default())
+                .collect();
+            panic!("cluster did not finish within {TIMEOUT:?}: {statuses:?}\n{logs:#?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    procs
+        .iter()
+        .zip(statuses)
+        .map(|(p, s)| (s.unwrap(), std::fs::read_to_string(&p.log).unwrap()))
+        .collect()
+}
+
+fn run_cluster(
+    hosts: &Path,
+    out: &Path,
+    dir: &Path,
+    tag: &str,
+    fault: Option<(usize, u32)>,
+) -> Vec<(ExitStatus, String)> {
+    let procs = (0..3)
+        .map(|i| {
+            spawn(
+                i,
+                hosts,
+                out,
+                dir,
+                tag,
+                fault.filter(|f| f.0 == i).map(|f| f.1),
+            )
+        })
+        .collect();
+    wait_all(procs)
+}
+
+/// Asserts the cluster's output equals the single-process output (module doc, point 1).
+fn assert_same(single: &Embeddings, cluster: &Embeddings) {
+    assert!(!single.is_empty());
+    assert_eq!(single.ids, cluster.ids, "observed Gaussian ids differ");
+    assert_eq!(single.dim, cluster.dim);
+    assert_eq!(single.means, cluster.means);
+    assert_eq!(single.model, cluster.model);
+    assert_eq!(single.scene_gaussians, cluster.scene_gaussians);
+    let max_dv = single
+        .vectors
+        .iter()
+        .zip(&cluster.vectors)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0f32, f32::max);
+    let max_dw = single
+        .total_weights
+        .iter()
+        .zip(&cluster.total_weights)
+        .map(|(a, b)| (a - b).abs() / a.abs().max(1e-12))
+        .fold(0f32, f32::max);
+    eprintln!(
+        "{} observed Gaussians; max |Δ| vector component {max_dv:e}, max relative Δ total weight {max_dw:e}",
+        single.len()
+    );
+    assert!(max_dv <= 1e-6, "max |Δ| {max_dv}");
+    assert!(max_dw <= 1e-6, "max relative Δ weight {max_dw}");
+}
+
+fn names(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    v.sort();
+    v
+}
+
+#[test]
+fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
+    let dir = tempfile::tempdir().unwrap();
+    let single_out = dir.path().join("single");
+    let out = dir.path().join("cluster");
+
+    // Reference: one process.
+    let o = command()
+        .arg("encode")
+        .args(encode_args(&single_out))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let single = Embeddings::read(&single_out.join("embeddings.safetensors")).unwrap();
+
+    // (2) Process 1 dies after its first image (of 7: processes take views 0,3,6 / 1,4 / 2,5).
+    let hosts = hosts_file(dir.path(), "hosts-1");
+    let t0 = Instant::now();
+    let r = run_cluster(&hosts, &out, dir.path(), "faulted", Some((1, 1)));
+    eprintln!("faulted run ended in {:.1} s", t0.elapsed().as_secs_f64());
+    assert_eq!(r[1].0.code(), Some(137), "{}", r[1].1);
+    for i in [0, 2] {
+        let (status, log) = &r[i];
+        assert_eq!(status.code(), Some(PEER_LOST), "process {i}: {log}");
+        assert!(
+            log.contains("lost the connection to another process"),
+            "process {i}: {log}"
+        );
+    }
+    assert!(!out.join("embeddings.safetensors").exists());
+    assert!(!out.join("report.json").exists());
+    for name in names(&out) {
+        assert!(name.ends_with(".partial"), "{name} left after a failed job");
+    }
+
+    // (1) Rerun in the same OUT: completes, equals the single-process run.
+    let hosts = hosts_file(dir.path(), "hosts-2");
+    let r = run_cluster(&hosts, &out, dir.path(), "rerun", None);
+    for (i, (status, log)) in r.iter().enumerate() {
+        assert!(status.success(), "process {i}: {log}");
+    }
+    assert_eq!(names(&out), ["embeddings.safetensors", "report.json"]);
+    let cluster = Embeddings::read(&out.join("embeddings.safetensors")).unwrap();
+    assert_same(&single, &cluster);
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["counts"]["views_used"], 7);
+    assert_eq!(report["counts"]["observed"], cluster.len());
+    let parts = report["outputs"]["cluster"]["partitions"]
+        .as_array()
+        .unwrap();
+    assert_eq!(parts.len(), 3);
+    let observed: u64 = parts.iter().map(|p| p["observed"].as_u64().unwrap()).sum();
+    assert_eq!(observed as usize, cluster.len());
+    let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
+    let images: Vec<u64> = workers
+        .iter()
+        .map(|w| w["images"].as_u64().unwrap())
+        .collect();
+    assert_eq!(images, [3, 2, 2], "round-robin image assignment");
+    assert_eq!(
+        report["counts"]["spilled_images"],
+        7 * 3,
+        "every image part was spilled"
+    );
+    assert!(report["counts"]["reduce_chunks"].as_u64().unwrap() >= 3 * 3);
+    let single_report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(single_out.join("report.json")).unwrap()).unwrap();
+    for key in ["masks", "entries"] {
+        assert_eq!(report["counts"][key], single_report["counts"][key], "{key}");
+    }
+}
