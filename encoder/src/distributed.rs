@@ -900,6 +900,8 @@ fn assemble(
             / pixels.max(1) as f64,
         spilled_images: g.parts.iter().map(|s| s.spilled).sum::<u64>() as usize,
         reduce_chunks: g.parts.iter().map(|s| s.chunks).sum::<u64>() as usize,
+        // Process 0's own peak (it assembles the output); the others report none.
+        peak_rss_bytes: crate::report::peak_rss_bytes(),
     };
     let cluster = serde_json::json!({
         "processes": peers,
