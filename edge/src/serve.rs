@@ -68,14 +68,12 @@ impl Engine {
     ///
     /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
-        // One shard at a time: decode, copy its rows into the scan store, drop it.
-        let (dim, dtype) = match edge.manifest(scene)? {
-            Some(m) => (m.dim as usize, m.dtype),
-            None => (1, slag_common::shards::Dtype::F32), // load_scene_with reports the error
-        };
-        let mut store = VectorStore::new(dim, dtype)?;
+        // The manifest is read once; then one shard file at a time: read, verify, copy its rows
+        // into the scan store, drop.
+        let manifest = edge.current_manifest(scene)?;
+        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
         let mut display = crate::view::DisplayAttrs::new();
-        let (manifest, load) = edge.load_scene_with(scene, |s| {
+        let load = edge.load_shards(&manifest, |s| {
             display.push_shard(&s);
             store.push_shard(s)
         })?;

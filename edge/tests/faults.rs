@@ -312,14 +312,13 @@ async fn a_shard_corrupted_in_the_store_is_not_served_and_is_reported() {
     }
     // Flip one byte of one stored shard behind the store's back (bit rot, a bad flash block).
     {
-        let db = sled::open(dir.path().join("db")).unwrap();
-        let shards = db.open_tree("shards").unwrap();
-        let (k, v) = shards.iter().next().unwrap().unwrap();
-        let mut v = v.to_vec();
+        let store = EdgeStore::open(dir.path()).unwrap();
+        let m = store.manifest("grid").unwrap().unwrap();
+        let path = store.shard_path("grid", &m.tiles[0]).unwrap();
+        let mut v = std::fs::read(&path).unwrap();
         let mid = v.len() / 2;
         v[mid] ^= 0x40;
-        shards.insert(k, v).unwrap();
-        db.flush().unwrap();
+        std::fs::write(&path, v).unwrap();
     }
     let store = EdgeStore::open(dir.path()).unwrap();
     let state = std::sync::Arc::new(
