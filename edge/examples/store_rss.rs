@@ -38,7 +38,9 @@ fn report(stage: &str) {
         let mut size = 0u64;
         for l in s.lines() {
             let f: Vec<&str> = l.split_whitespace().collect();
-            if f.first().is_some_and(|a| a.contains('-') && !a.ends_with(':')) {
+            if f.first()
+                .is_some_and(|a| a.contains('-') && !a.ends_with(':'))
+            {
                 // Mapping header: address perms offset dev inode [path].
                 anon_map = f.len() == 5;
             } else if f.first() == Some(&"Size:") {

@@ -182,8 +182,10 @@ impl Busy {
                 self.waiting, self.retry_after_s
             ),
         );
-        r.headers_mut()
-            .insert(header::RETRY_AFTER, header::HeaderValue::from(self.retry_after_s));
+        r.headers_mut().insert(
+            header::RETRY_AFTER,
+            header::HeaderValue::from(self.retry_after_s),
+        );
         r
     }
 }
@@ -548,36 +550,38 @@ pub(crate) async fn answer(
     let permit = state.admission.admit().await?;
     let st = state.clone();
     let n = qs.len();
-    Ok(match tokio::task::spawn_blocking(move || {
-        let _permit = permit;
-        let t0 = Instant::now();
-        let e = st.engine();
-        let answers = qs
-            .iter()
-            .map(|q| {
-                query::run_query(
-                    &e.store,
-                    &e.manifest.model,
-                    st.text.as_ref(),
-                    &st.negatives,
-                    e.hnsw.as_ref(),
-                    q,
-                )
-            })
-            .collect::<Vec<_>>();
-        st.admission.record(t0.elapsed());
-        answers
-    })
-    .await
-    {
-        Ok(v) => {
-            state.queries.fetch_add(n as u64, Ordering::Relaxed);
-            v
-        }
-        Err(e) => (0..n)
-            .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
-            .collect(),
-    })
+    Ok(
+        match tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            let t0 = Instant::now();
+            let e = st.engine();
+            let answers = qs
+                .iter()
+                .map(|q| {
+                    query::run_query(
+                        &e.store,
+                        &e.manifest.model,
+                        st.text.as_ref(),
+                        &st.negatives,
+                        e.hnsw.as_ref(),
+                        q,
+                    )
+                })
+                .collect::<Vec<_>>();
+            st.admission.record(t0.elapsed());
+            answers
+        })
+        .await
+        {
+            Ok(v) => {
+                state.queries.fetch_add(n as u64, Ordering::Relaxed);
+                v
+            }
+            Err(e) => (0..n)
+                .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
+                .collect(),
+        },
+    )
 }
 
 /// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)

@@ -210,10 +210,11 @@ impl EdgeStore {
             if !legacy.is_empty() {
                 return Err(Error::Unsupported {
                     path: root.to_path_buf(),
-                    message: "this store was written by an older slag-edge that kept shards inside \
+                    message:
+                        "this store was written by an older slag-edge that kept shards inside \
                               its sled database; this version keeps them in files. Delete the \
                               folder (or pass another --store) and run `slag-edge fetch` again"
-                        .into(),
+                            .into(),
                 });
             }
             drop(legacy);
@@ -247,10 +248,9 @@ impl EdgeStore {
     /// Errors: [`Error::Format`] when the manifest checksum is not 8 hex digits.
     pub fn shard_path(&self, scene: &str, tile: &TileInfo) -> Result<PathBuf> {
         let checksum = parse_checksum(tile)?;
-        Ok(self.scene_dir(scene).join(format!(
-            "{:016x}-{checksum:08x}.{SHARD_EXTENSION}",
-            tile.id
-        )))
+        Ok(self
+            .scene_dir(scene)
+            .join(format!("{:016x}-{checksum:08x}.{SHARD_EXTENSION}", tile.id)))
     }
 
     /// Path of the partial download of `tile` (its checksum names the content it resumes):

@@ -367,7 +367,10 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
         let (c, u) = (client.clone(), format!("{url}/query?text={text}"));
         tokio::spawn(async move {
             let r = c.get(u).send().await.unwrap();
-            (r.status().as_u16(), r.json::<serde_json::Value>().await.unwrap())
+            (
+                r.status().as_u16(),
+                r.json::<serde_json::Value>().await.unwrap(),
+            )
         })
     };
 

@@ -467,7 +467,10 @@ impl TextEmbedder for GateEmbedder {
 pub async fn wait_until(what: &str, mut cond: impl AsyncFnMut() -> bool) {
     let t0 = std::time::Instant::now();
     while !cond().await {
-        assert!(t0.elapsed() < Duration::from_secs(30), "never happened: {what}");
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "never happened: {what}"
+        );
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
