@@ -11,6 +11,8 @@
 //! threshold = 0.28
 //! token_file = "/etc/slag/token"
 //! hnsw = false
+//! max_scans = 1         # scans at once (each uses every core)
+//! scan_queue = 32       # waiting queries; one more gets 503 + Retry-After
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -39,6 +41,10 @@ pub struct ServeConfig {
     pub token_file: Option<PathBuf>,
     /// Build the HNSW index.
     pub hnsw: Option<bool>,
+    /// Scans running at once (`slag_edge::serve::DEFAULT_MAX_SCANS` when absent).
+    pub max_scans: Option<usize>,
+    /// Queries that may wait for a scan (`slag_edge::serve::DEFAULT_SCAN_QUEUE` when absent).
+    pub scan_queue: Option<usize>,
 }
 
 impl ServeConfig {
@@ -100,5 +106,7 @@ mod tests {
         assert_eq!(c.ep.as_deref(), Some("cpu"));
         assert_eq!(c.threshold, Some(0.28));
         assert_eq!(c.hnsw, Some(false));
+        assert_eq!(c.max_scans, Some(1));
+        assert_eq!(c.scan_queue, Some(32));
     }
 }

@@ -5,7 +5,8 @@
 //!    ([`slag_common::shards::TileIndex::select_tiles`], an `rstar` R-tree);
 //! 3. each selected tile not already stored with the same checksum is downloaded into
 //!    `partial/<scene>-<tile>-<checksum>.part`, resumed with `Range: bytes=N-` + `If-Range` when a
-//!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and committed;
+//!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and renamed into the
+//!    store's shard folder ([`EdgeStore::commit_partial`]);
 //! 4. when every selected tile is stored, the manifest and a [`FetchRecord`] are committed in one
 //!    transaction (a new partition generation becomes visible at once, never half);
 //! 5. shards that no manifest references any more (an older generation) are dropped; shards of the
@@ -16,7 +17,8 @@
 //! With `SLAG_FAULT_EXIT_AT=<n>` in the environment the process exits with status 137 (as if
 //! SIGKILLed) at the n-th durability boundary of the run (1-based), counted in one place,
 //! [`fault_boundary`]: after each chunk written to a partial file, after each partial-file sync,
-//! after each shard commit, and before and after the manifest commit. `edge/tests/faults.rs`
+//! after each shard commit (the verified partial file renamed into `shards/`), before and after
+//! the manifest commit, and after each shard eviction. `edge/tests/faults.rs`
 //! kills a fetch at every boundary in turn and checks that the store stays consistent. Unset
 //! (the normal case) it costs one atomic load per boundary.
 
@@ -400,6 +402,7 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
         let in_disc = wanted.contains(&(tile, checksum));
         if !in_manifest || (p.prune && !in_disc) {
             summary.evicted += store.remove_shard(&p.scene, tile, checksum)? as usize;
+            fault_boundary("after a shard eviction");
         } else if !in_disc {
             summary.kept_outside += 1;
         }
@@ -450,13 +453,11 @@ async fn download_tile(
         {
             Ok(r) => {
                 resumed |= r;
-                let bytes = tokio::fs::read(&part)
-                    .await
-                    .map_err(|e| Error::io(&part, e))?;
                 let committed = {
-                    let (store, manifest, tile) = (store.clone(), manifest.clone(), tile.clone());
+                    let (store, manifest, tile, part) =
+                        (store.clone(), manifest.clone(), tile.clone(), part.clone());
                     tokio::task::spawn_blocking(move || {
-                        store.commit_shard(&manifest, &tile, &bytes)
+                        store.commit_partial(&manifest, &tile, &part)
                     })
                     .await
                     .map_err(|e| Error::Invalid(format!("store task failed: {e}")))?
@@ -464,7 +465,6 @@ async fn download_tile(
                 match committed {
                     Ok(()) => {
                         fault_boundary("after a shard commit");
-                        let _ = tokio::fs::remove_file(&part).await;
                         return Ok((resumed, counts.received));
                     }
                     Err(Error::Format { path, message }) => {

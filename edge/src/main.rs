@@ -137,6 +137,12 @@ struct ServeArgs {
     /// Per-request timeout, seconds.
     #[arg(long, default_value_t = 30.0)]
     request_timeout: f64,
+    /// Scans running at once (each already uses every core; default 1).
+    #[arg(long)]
+    max_scans: Option<usize>,
+    /// Queries that may wait for a scan; one more is answered 503 with Retry-After (default 32).
+    #[arg(long)]
+    scan_queue: Option<usize>,
     /// Folder whose `vendor/` holds the web viewer bundles served under `/vendor/` for the page
     /// at `/` (made by `bash scripts/web-vendor.sh`). Default: the source tree's `edge/web`
     /// when it exists.
@@ -294,7 +300,16 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         threshold,
         hnsw: a.hnsw || c.hnsw.unwrap_or(false),
         request_timeout: timeout(a.request_timeout, "--request-timeout")?,
+        max_scans: a
+            .max_scans
+            .or(c.max_scans)
+            .unwrap_or(slag_edge::serve::DEFAULT_MAX_SCANS),
+        scan_queue: a
+            .scan_queue
+            .or(c.scan_queue)
+            .unwrap_or(slag_edge::serve::DEFAULT_SCAN_QUEUE),
     };
+    anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
     Ok(Resolved {
         store,
         addr,

@@ -17,9 +17,24 @@
 //!
 //! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
 //! bodies over [`MAX_BODY_BYTES`] → 413; requests over the timeout → 408.
+//!
+//! # Admission control
+//!
+//! Every scan (`GET`/`POST /query`, `GET /query.ply`) passes a FIFO gate ([`Admission`]: a fair
+//! `tokio` semaphore of [`ServeOptions::max_scans`] permits, default [`DEFAULT_MAX_SCANS`] = 1)
+//! after its parameters are validated. A scan already fans out over every core (rayon), so running
+//! two at once only interleaves them: both finish late and the order in which requests are served
+//! becomes arbitrary, which is what made the tail latency grow with the number of connections.
+//! One at a time in arrival order, a request waits for the scans ahead of it and no longer.
+//! At most [`ServeOptions::scan_queue`] (default [`DEFAULT_SCAN_QUEUE`]) requests wait; one more
+//! gets **503 Service Unavailable** with a `Retry-After` header (whole seconds, at least 1: the
+//! estimated time to drain the queue, from a moving average of recent scan times) and a JSON
+//! error, so the latency of accepted requests stays bounded by the queue length. A waiting
+//! request that reaches the request timeout gets 408 and leaves the queue. `GET /stats` reports
+//! the gate under `"scans"`.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
@@ -47,6 +62,10 @@ pub const HNSW_EF_SEARCH: usize = 1000;
 pub const MAX_BATCH: usize = 64;
 /// Largest request body accepted.
 pub const MAX_BODY_BYTES: usize = 64 * 1024;
+/// Scans running at once by default (module doc, "Admission control").
+pub const DEFAULT_MAX_SCANS: usize = 1;
+/// Requests waiting for a scan by default; one more gets 503.
+pub const DEFAULT_SCAN_QUEUE: usize = 32;
 
 /// A loaded scene: the manifest, every verified shard's Gaussians in one [`VectorStore`], and the
 /// optional HNSW index.
@@ -68,14 +87,12 @@ impl Engine {
     ///
     /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
-        // One shard at a time: decode, copy its rows into the scan store, drop it.
-        let (dim, dtype) = match edge.manifest(scene)? {
-            Some(m) => (m.dim as usize, m.dtype),
-            None => (1, slag_common::shards::Dtype::F32), // load_scene_with reports the error
-        };
-        let mut store = VectorStore::new(dim, dtype)?;
+        // The manifest is read once; then one shard file at a time: read, verify, copy its rows
+        // into the scan store, drop.
+        let manifest = edge.current_manifest(scene)?;
+        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
         let mut display = crate::view::DisplayAttrs::new();
-        let (manifest, load) = edge.load_scene_with(scene, |s| {
+        let load = edge.load_shards(&manifest, |s| {
             display.push_shard(&s);
             store.push_shard(s)
         })?;
@@ -112,6 +129,144 @@ pub struct ServeOptions {
     pub hnsw: bool,
     /// Per-request timeout.
     pub request_timeout: Duration,
+    /// Scans running at once (≥ 1; module doc, "Admission control").
+    pub max_scans: usize,
+    /// Requests that may wait for a scan; one more is answered 503 with `Retry-After`.
+    pub scan_queue: usize,
+}
+
+impl ServeOptions {
+    /// Options for `scene` with the defaults of `slag-edge serve`: no token, threshold 0.28
+    /// (the paper's), no HNSW, 30 s request timeout, [`DEFAULT_MAX_SCANS`] and
+    /// [`DEFAULT_SCAN_QUEUE`].
+    pub fn new(scene: impl Into<String>) -> ServeOptions {
+        ServeOptions {
+            scene: scene.into(),
+            token: None,
+            threshold: slag_common::similarity::PAPER_THRESHOLD,
+            hnsw: false,
+            request_timeout: Duration::from_secs(30),
+            max_scans: DEFAULT_MAX_SCANS,
+            scan_queue: DEFAULT_SCAN_QUEUE,
+        }
+    }
+}
+
+/// The FIFO gate scans pass (module doc, "Admission control").
+pub struct Admission {
+    permits: Arc<tokio::sync::Semaphore>,
+    max_scans: usize,
+    max_queue: usize,
+    waiting: AtomicUsize,
+    busy: AtomicU64,
+    /// Moving average of scan times, microseconds (0 until the first scan).
+    scan_us: AtomicU64,
+}
+
+/// A request turned away because the scan queue is full (→ 503 with `Retry-After`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Busy {
+    /// Requests waiting when it was turned away.
+    pub waiting: usize,
+    /// Seconds after which a retry is likely to be accepted (≥ 1).
+    pub retry_after_s: u64,
+}
+
+impl Busy {
+    /// The 503 answer: `Retry-After` header and a JSON error saying what to do.
+    pub fn response(&self) -> Response {
+        let mut r = error(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!(
+                "server busy: {} queries already wait for a scan; retry after {} s (Retry-After)",
+                self.waiting, self.retry_after_s
+            ),
+        );
+        r.headers_mut().insert(
+            header::RETRY_AFTER,
+            header::HeaderValue::from(self.retry_after_s),
+        );
+        r
+    }
+}
+
+/// Decrements the waiting count when a waiter leaves the queue (admitted, or cancelled by the
+/// request timeout).
+struct Waiting<'a>(&'a AtomicUsize);
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+impl Admission {
+    /// A gate of `max_scans` permits (at least 1) and a queue of `max_queue` waiters.
+    pub fn new(max_scans: usize, max_queue: usize) -> Admission {
+        let max_scans = max_scans.max(1);
+        Admission {
+            permits: Arc::new(tokio::sync::Semaphore::new(max_scans)),
+            max_scans,
+            max_queue,
+            waiting: AtomicUsize::new(0),
+            busy: AtomicU64::new(0),
+            scan_us: AtomicU64::new(0),
+        }
+    }
+
+    /// Waits (FIFO) for a scan permit.
+    ///
+    /// Errors: [`Busy`] at once when `max_queue` requests already wait.
+    pub async fn admit(&self) -> std::result::Result<tokio::sync::OwnedSemaphorePermit, Busy> {
+        if let Ok(p) = self.permits.clone().try_acquire_owned() {
+            return Ok(p);
+        }
+        let before = self.waiting.fetch_add(1, Ordering::SeqCst);
+        let _w = Waiting(&self.waiting);
+        if before >= self.max_queue {
+            self.busy.fetch_add(1, Ordering::Relaxed);
+            return Err(Busy {
+                waiting: before,
+                retry_after_s: self.retry_after_s(before),
+            });
+        }
+        // The semaphore is never closed; a closed one would mean no scan can run.
+        self.permits
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| Busy {
+                waiting: before,
+                retry_after_s: 1,
+            })
+    }
+
+    /// Estimated seconds until `waiting` queued scans and the running ones are done (≥ 1).
+    fn retry_after_s(&self, waiting: usize) -> u64 {
+        let scan_s = self.scan_us.load(Ordering::Relaxed) as f64 * 1e-6;
+        let rounds = (waiting + self.max_scans) as f64 / self.max_scans as f64;
+        (rounds * scan_s).ceil().max(1.0) as u64
+    }
+
+    /// Folds one scan's duration into the moving average (weight 1/8).
+    fn record(&self, took: Duration) {
+        let us = took.as_micros().min(u64::MAX as u128) as u64;
+        let old = self.scan_us.load(Ordering::Relaxed);
+        let new = if old == 0 { us } else { old - old / 8 + us / 8 };
+        self.scan_us.store(new, Ordering::Relaxed);
+    }
+
+    /// `{"max_scans", "running", "waiting", "max_queue", "rejected_busy", "mean_scan_ms"}`.
+    fn stats(&self) -> serde_json::Value {
+        serde_json::json!({
+            "max_scans": self.max_scans,
+            "running": self.max_scans - self.permits.available_permits().min(self.max_scans),
+            "waiting": self.waiting.load(Ordering::SeqCst),
+            "max_queue": self.max_queue,
+            "rejected_busy": self.busy.load(Ordering::Relaxed),
+            "mean_scan_ms": self.scan_us.load(Ordering::Relaxed) as f64 / 1e3,
+        })
+    }
 }
 
 /// Shared server state.
@@ -126,6 +281,7 @@ pub struct AppState {
     pub(crate) web_dir: Option<std::path::PathBuf>,
     started: Instant,
     fetching: tokio::sync::Mutex<()>,
+    admission: Admission,
 }
 
 impl AppState {
@@ -153,12 +309,13 @@ impl AppState {
             edge,
             text,
             negatives,
-            opts,
             queries: AtomicU64::new(0),
             rejected: AtomicU64::new(0),
             started: Instant::now(),
             fetching: tokio::sync::Mutex::new(()),
             web_dir: crate::view::default_web_dir(),
+            admission: Admission::new(opts.max_scans, opts.scan_queue),
+            opts,
         })
     }
 
@@ -376,43 +533,55 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "queries_served": state.queries.load(Ordering::Relaxed),
         "requests_rejected": state.rejected.load(Ordering::Relaxed),
         "prompt_cache_entries": state.text.cached(),
+        "scans": state.admission.stats(),
         "uptime_s": state.started.elapsed().as_secs(),
     }))
     .into_response()
 }
 
-/// Runs queries on the blocking pool (the scan itself fans out over rayon).
+/// Runs queries on the blocking pool (the scan itself fans out over rayon) once the admission
+/// gate lets them in (module doc); the permit is held until the last query of the batch is done.
+///
+/// Errors: [`Busy`] when the scan queue is full.
 pub(crate) async fn answer(
     state: &Arc<AppState>,
     qs: Vec<QueryParams>,
-) -> Vec<Result<query::QueryAnswer>> {
+) -> std::result::Result<Vec<Result<query::QueryAnswer>>, Busy> {
+    let permit = state.admission.admit().await?;
     let st = state.clone();
     let n = qs.len();
-    match tokio::task::spawn_blocking(move || {
-        let e = st.engine();
-        qs.iter()
-            .map(|q| {
-                query::run_query(
-                    &e.store,
-                    &e.manifest.model,
-                    st.text.as_ref(),
-                    &st.negatives,
-                    e.hnsw.as_ref(),
-                    q,
-                )
-            })
-            .collect::<Vec<_>>()
-    })
-    .await
-    {
-        Ok(v) => {
-            state.queries.fetch_add(n as u64, Ordering::Relaxed);
-            v
-        }
-        Err(e) => (0..n)
-            .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
-            .collect(),
-    }
+    Ok(
+        match tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            let t0 = Instant::now();
+            let e = st.engine();
+            let answers = qs
+                .iter()
+                .map(|q| {
+                    query::run_query(
+                        &e.store,
+                        &e.manifest.model,
+                        st.text.as_ref(),
+                        &st.negatives,
+                        e.hnsw.as_ref(),
+                        q,
+                    )
+                })
+                .collect::<Vec<_>>();
+            st.admission.record(t0.elapsed());
+            answers
+        })
+        .await
+        {
+            Ok(v) => {
+                state.queries.fetch_add(n as u64, Ordering::Relaxed);
+                v
+            }
+            Err(e) => (0..n)
+                .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
+                .collect(),
+        },
+    )
 }
 
 /// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
@@ -442,7 +611,11 @@ async fn query_get(
             return error(status_of(&e), e.to_string());
         }
     };
-    match answer(&state, vec![params]).await.pop() {
+    let mut answers = match answer(&state, vec![params]).await {
+        Ok(a) => a,
+        Err(busy) => return busy.response(),
+    };
+    match answers.pop() {
         Some(Ok(a)) => axum::Json(a).into_response(),
         Some(Err(e)) => error(status_of(&e), e.to_string()),
         None => error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
@@ -482,8 +655,11 @@ async fn query_post(
             Err(e) => return bad(format!("queries[{i}]: {e}")),
         }
     }
-    let answers: Vec<serde_json::Value> = answer(&state, params)
-        .await
+    let answers = match answer(&state, params).await {
+        Ok(a) => a,
+        Err(busy) => return busy.response(),
+    };
+    let answers: Vec<serde_json::Value> = answers
         .into_iter()
         .map(|r| match r {
             Ok(a) => serde_json::to_value(a).unwrap_or_default(),

@@ -1,23 +1,34 @@
-//! The robot's embedded shard store (`sled`): what `slag-edge fetch` downloaded, what `serve`
-//! scans.
+//! The robot's shard store: what `slag-edge fetch` downloaded, what `serve` scans.
 //!
 //! Layout of a store directory `DIR`:
-//! - `DIR/db/`: the sled database with trees
-//!   - `shards`: key `scene \0 tile_id(u64 BE) checksum(u32 BE)` → the verified shard bytes.
-//!     Shards are content-addressed by their manifest checksum, so two partition generations can
-//!     coexist and a new generation never overwrites the one being served;
+//! - `DIR/shards/<scene-hex>/<tile:016x>-<checksum:08x>.shard`: one plain file per verified shard
+//!   (scene id hex-encoded, so no id reaches the file system as a path). Shards are
+//!   content-addressed by their manifest checksum, so two partition generations can coexist and a
+//!   new generation never overwrites the one being served. A file gets its final name only by a
+//!   `rename` after its bytes are complete, synced and verified (and the folder is synced after the
+//!   rename), so a shard file is never half written;
+//! - `DIR/db/`: a small sled database with trees
 //!   - `manifests`: key `scene` → the manifest JSON of the last *completed* fetch (the switch to a
-//!     new generation happens in one write, after all its selected shards are committed);
+//!     new generation happens in one write, after all its selected shard files are in place);
 //!   - `fetches`: key `scene` → [`FetchRecord`] JSON (server, centre, radius of that fetch);
 //! - `DIR/partial/`: `<scene>-<tile>-<checksum>.part` files of interrupted downloads (resumed with
-//!   an HTTP `Range` request). A shard enters `shards` only after its full bytes match the
-//!   manifest checksum and decode (both CRCs, header scene/tile/model/dim/dtype) — a reader never
-//!   sees a partial shard.
+//!   an HTTP `Range` request). A download is renamed into `DIR/shards/` only after its full bytes
+//!   match the manifest checksum and decode (both CRCs, header scene/tile/model/dim/dtype) — a
+//!   reader never sees a partial shard.
+//!
+//! Shard bytes live in files, not in sled, because sled 0.34 kept the ~65 MB values it had read in
+//! its page cache well past its configured capacity: loading 1M × 512 f16 Gaussians (16 shards)
+//! left ~1 GB of shard values resident beside the 1 GB scan copy (measured with
+//! `cargo run --example store_rss`). Loading now reads one file at a time and frees it.
+//!
+//! A store written by an older slag-edge (shards inside sled, tree `shards`) is refused at
+//! [`EdgeStore::open`] with [`Error::Unsupported`] telling the user to fetch again.
 //!
 //! One process opens a store at a time (sled holds a lock on `DIR/db`); a second one gets
 //! [`slag_common::Error::Invalid`] telling the user to stop the other (`serve` can fetch through
 //! `POST /fetch` instead).
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use slag_common::shards::{
@@ -25,8 +36,11 @@ use slag_common::shards::{
 };
 use slag_common::{Error, Result};
 
-/// sled page-cache size of the edge store (bytes).
-pub const SLED_CACHE_BYTES: u64 = 64 * 1024 * 1024;
+/// sled page-cache size of the edge store (bytes). sled holds only manifests and fetch records.
+pub const SLED_CACHE_BYTES: u64 = 8 * 1024 * 1024;
+
+/// File-name extension of a stored shard.
+pub const SHARD_EXTENSION: &str = "shard";
 
 /// Where and how a scene was last fetched (stored beside the manifest).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -41,12 +55,11 @@ pub struct FetchRecord {
     pub completed_unix_s: u64,
 }
 
-/// The store: a sled database plus the partial-download folder.
+/// The store: shard files, a sled database of manifests, and the partial-download folder.
 #[derive(Debug, Clone)]
 pub struct EdgeStore {
     root: PathBuf,
     db: sled::Db,
-    shards: sled::Tree,
     manifests: sled::Tree,
     fetches: sled::Tree,
 }
@@ -65,14 +78,32 @@ fn db_err(root: &Path, e: sled::Error) -> Error {
     }
 }
 
-/// Shard key: `scene \0 tile(u64 BE) checksum(u32 BE)`.
-fn shard_key(scene: &str, tile: u64, checksum: u32) -> Vec<u8> {
-    let mut k = Vec::with_capacity(scene.len() + 13);
-    k.extend_from_slice(scene.as_bytes());
-    k.push(0);
-    k.extend_from_slice(&tile.to_be_bytes());
-    k.extend_from_slice(&checksum.to_be_bytes());
-    k
+/// Lower-case hex of `bytes`.
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Syncs a folder so that the renames and creations inside it survive a power loss.
+fn sync_dir(dir: &Path) -> Result<()> {
+    match std::fs::File::open(dir).and_then(|d| d.sync_all()) {
+        Ok(()) => Ok(()),
+        // Some file systems cannot sync a folder; the rename itself is still atomic.
+        Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => Ok(()),
+        Err(e) => Err(Error::io(dir, e)),
+    }
+}
+
+/// `tile:016x-checksum:08x.shard` → `(tile, checksum)`.
+fn parse_shard_name(name: &str) -> Option<(u64, u32)> {
+    let stem = name.strip_suffix(SHARD_EXTENSION)?.strip_suffix('.')?;
+    let (t, c) = stem.split_once('-')?;
+    if t.len() != 16 || c.len() != 8 {
+        return None;
+    }
+    Some((
+        u64::from_str_radix(t, 16).ok()?,
+        u32::from_str_radix(c, 16).ok()?,
+    ))
 }
 
 /// Parses the manifest's 8-hex-digit checksum.
@@ -162,21 +193,36 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
 impl EdgeStore {
     /// Opens (creating if needed) the store in `root`.
     ///
-    /// Errors: [`Error::Io`] when the folder cannot be created, [`Error::Invalid`] when another
-    /// process holds the store.
+    /// Errors: [`Error::Io`] when the folders cannot be created, [`Error::Invalid`] when another
+    /// process holds the store, [`Error::Unsupported`] for a store of an older slag-edge that kept
+    /// shards inside sled (delete it or pick another folder and fetch again).
     pub fn open(root: &Path) -> Result<EdgeStore> {
-        std::fs::create_dir_all(root.join("partial")).map_err(|e| Error::io(root, e))?;
-        // sled's page cache defaults to 1 GB; the scan holds its own copy of the vectors, so the
-        // store only needs a small cache (robots have little memory to spare).
+        for sub in ["partial", "shards"] {
+            std::fs::create_dir_all(root.join(sub)).map_err(|e| Error::io(root, e))?;
+        }
         let db = sled::Config::new()
             .path(root.join("db"))
             .cache_capacity(SLED_CACHE_BYTES)
             .open()
             .map_err(|e| db_err(root, e))?;
+        if db.tree_names().iter().any(|n| n.as_ref() == b"shards") {
+            let legacy = db.open_tree("shards").map_err(|e| db_err(root, e))?;
+            if !legacy.is_empty() {
+                return Err(Error::Unsupported {
+                    path: root.to_path_buf(),
+                    message:
+                        "this store was written by an older slag-edge that kept shards inside \
+                              its sled database; this version keeps them in files. Delete the \
+                              folder (or pass another --store) and run `slag-edge fetch` again"
+                            .into(),
+                });
+            }
+            drop(legacy);
+            db.drop_tree("shards").map_err(|e| db_err(root, e))?;
+        }
         let tree = |name: &str| db.open_tree(name).map_err(|e| db_err(root, e));
         Ok(EdgeStore {
             root: root.to_path_buf(),
-            shards: tree("shards")?,
             manifests: tree("manifests")?,
             fetches: tree("fetches")?,
             db,
@@ -192,27 +238,36 @@ impl EdgeStore {
         db_err(&self.root, e)
     }
 
+    /// Folder of `scene`'s shard files: `DIR/shards/<hex of the scene id>`.
+    pub fn scene_dir(&self, scene: &str) -> PathBuf {
+        self.root.join("shards").join(hex(scene.as_bytes()))
+    }
+
+    /// Path of the stored shard of `tile` (module doc); it exists only once the shard is verified.
+    ///
+    /// Errors: [`Error::Format`] when the manifest checksum is not 8 hex digits.
+    pub fn shard_path(&self, scene: &str, tile: &TileInfo) -> Result<PathBuf> {
+        let checksum = parse_checksum(tile)?;
+        Ok(self
+            .scene_dir(scene)
+            .join(format!("{:016x}-{checksum:08x}.{SHARD_EXTENSION}", tile.id)))
+    }
+
     /// Path of the partial download of `tile` (its checksum names the content it resumes):
     /// `DIR/partial/<scene>-<tile>-<checksum>.part`, always a plain file name inside
     /// `DIR/partial`: a scene id failing [`valid_scene_id`] or a checksum that is not 8 hex digits
     /// (both come from outside: the command line and the server's manifest) is written as hex of
     /// its bytes (prefixed `x`), so no `/`, `..` or NUL can reach the file system.
     pub fn partial_path(&self, scene: &str, tile: &TileInfo) -> PathBuf {
-        fn hex(s: &str) -> String {
-            let mut out = String::from("x");
-            for b in s.bytes().take(64) {
-                out.push_str(&format!("{b:02x}"));
-            }
-            out
-        }
+        let x = |s: &str| format!("x{}", hex(&s.as_bytes()[..s.len().min(64)]));
         let scene = if valid_scene_id(scene) {
             scene.to_string()
         } else {
-            hex(scene)
+            x(scene)
         };
         let checksum = match parse_checksum(tile) {
             Ok(c) => format!("{c:08x}"),
-            Err(_) => hex(&tile.checksum),
+            Err(_) => x(&tile.checksum),
         };
         self.root
             .join("partial")
@@ -220,9 +275,10 @@ impl EdgeStore {
     }
 
     /// Removes the partial downloads of `scene` except those in `keep` (file names from
-    /// [`EdgeStore::partial_path`]); returns how many were removed. Called after a completed
-    /// fetch: partials of stored shards (a kill between the commit and the removal) and of older
-    /// generations can never be resumed into anything useful.
+    /// [`EdgeStore::partial_path`]), and temporary files of interrupted shard writes in the
+    /// scene's shard folder; returns how many were removed. Called after a completed fetch:
+    /// partials of stored shards and of older generations can never be resumed into anything
+    /// useful.
     ///
     /// Errors: the partial folder cannot be listed ([`Error::Io`]); single removals are best effort.
     pub fn clean_partials(&self, scene: &str, keep: &[PathBuf]) -> Result<usize> {
@@ -248,6 +304,15 @@ impl EdgeStore {
                 removed += 1;
             }
         }
+        if let Ok(rd) = std::fs::read_dir(self.scene_dir(scene)) {
+            for e in rd.flatten() {
+                if e.file_name().to_string_lossy().ends_with(".tmp")
+                    && std::fs::remove_file(e.path()).is_ok()
+                {
+                    removed += 1;
+                }
+            }
+        }
         Ok(removed)
     }
 
@@ -263,6 +328,21 @@ impl EdgeStore {
             Some(b) => Ok(Some(Manifest::from_json(&b, "stored manifest")?)),
             None => Ok(None),
         }
+    }
+
+    /// Like [`Self::manifest`], but a scene never fetched is an error.
+    ///
+    /// Errors: [`Error::Invalid`] (naming the `slag-edge fetch` command to run) when there is no
+    /// completed fetch of `scene`; as [`Self::manifest`] otherwise.
+    pub fn current_manifest(&self, scene: &str) -> Result<Manifest> {
+        self.manifest(scene)?.ok_or_else(|| {
+            Error::Invalid(format!(
+                "store {} has no completed fetch of scene {scene:?}; run `slag-edge fetch --from URL \
+                 --scene {scene} --center X,Y --radius R --store {}` first",
+                self.root.display(),
+                self.root.display()
+            ))
+        })
     }
 
     /// The record of the last completed fetch of `scene`.
@@ -292,30 +372,79 @@ impl EdgeStore {
     }
 
     /// True when the shard of `tile` with the manifest's checksum is stored.
-    pub fn has_shard(&self, scene: &str, tile: &TileInfo) -> Result<bool> {
-        let key = shard_key(scene, tile.id, parse_checksum(tile)?);
-        self.shards.contains_key(key).map_err(|e| self.err(e))
-    }
-
-    /// Raw bytes of a stored shard (as downloaded; the caller decodes and verifies).
-    pub fn shard_bytes(&self, scene: &str, tile: &TileInfo) -> Result<Option<sled::IVec>> {
-        let key = shard_key(scene, tile.id, parse_checksum(tile)?);
-        self.shards.get(key).map_err(|e| self.err(e))
-    }
-
-    /// Verifies `bytes` ([`verify_shard`]) and stores them durably (flushed before returning).
     ///
-    /// Errors: verification ([`Error::Format`]; nothing is stored) or store I/O.
+    /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits.
+    pub fn has_shard(&self, scene: &str, tile: &TileInfo) -> Result<bool> {
+        Ok(self.shard_path(scene, tile)?.is_file())
+    }
+
+    /// Raw bytes of a stored shard (as downloaded; the caller decodes and verifies), `None` when
+    /// it is not stored.
+    ///
+    /// Errors: [`Error::Io`] when the file exists but cannot be read.
+    pub fn shard_bytes(&self, scene: &str, tile: &TileInfo) -> Result<Option<Vec<u8>>> {
+        let path = self.shard_path(scene, tile)?;
+        match std::fs::read(&path) {
+            Ok(b) => Ok(Some(b)),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+            Err(e) => Err(Error::io(path, e)),
+        }
+    }
+
+    /// Creates the scene's shard folder (synced into its parent the first time).
+    fn ensure_scene_dir(&self, scene: &str) -> Result<PathBuf> {
+        let dir = self.scene_dir(scene);
+        if !dir.is_dir() {
+            std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+            sync_dir(&self.root.join("shards"))?;
+        }
+        Ok(dir)
+    }
+
+    /// Verifies `bytes` ([`verify_shard`]) and stores them durably: written to a temporary file in
+    /// the scene's folder, synced, renamed to [`Self::shard_path`], folder synced.
+    ///
+    /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; nothing is stored) or
+    /// file I/O ([`Error::Io`]; at most a `.tmp` file is left, removed by the next fetch).
     pub fn commit_shard(&self, manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
         verify_shard(manifest, tile, bytes)?;
-        let key = shard_key(&manifest.scene_id, tile.id, parse_checksum(tile)?);
-        self.shards.insert(key, bytes).map_err(|e| self.err(e))?;
-        self.db.flush().map_err(|e| self.err(e))?;
-        Ok(())
+        let path = self.shard_path(&manifest.scene_id, tile)?;
+        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
+        let tmp = path.with_extension(format!("{SHARD_EXTENSION}.tmp"));
+        let write = || -> std::io::Result<()> {
+            let mut f = std::fs::File::create(&tmp)?;
+            f.write_all(bytes)?;
+            f.sync_all()
+        };
+        write().map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            Error::io(&tmp, e)
+        })?;
+        std::fs::rename(&tmp, &path).map_err(|e| Error::io(&path, e))?;
+        sync_dir(&dir)
+    }
+
+    /// Verifies a complete, synced partial download `part` ([`verify_shard`]) and moves it into
+    /// place with one `rename` (same file system), then syncs the folder. Nothing is copied: the
+    /// bytes are read once to verify them and freed.
+    ///
+    /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; `part` is left for the
+    /// caller to discard) or file I/O ([`Error::Io`]).
+    pub fn commit_partial(&self, manifest: &Manifest, tile: &TileInfo, part: &Path) -> Result<()> {
+        let bytes = std::fs::read(part).map_err(|e| Error::io(part, e))?;
+        verify_shard(manifest, tile, &bytes)?;
+        drop(bytes);
+        let path = self.shard_path(&manifest.scene_id, tile)?;
+        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
+        std::fs::rename(part, &path).map_err(|e| Error::io(&path, e))?;
+        sync_dir(&dir)?;
+        sync_dir(&self.root.join("partial"))
     }
 
     /// Makes `manifest` the scene's current one and records the fetch, in one transaction, then
-    /// flushes. Called after every selected shard is committed.
+    /// flushes. Called after every selected shard is committed (their files and folders synced).
+    ///
+    /// Errors: store I/O, an aborted transaction ([`Error::Invalid`]).
     pub fn commit_fetch(&self, manifest: &Manifest, record: &FetchRecord) -> Result<()> {
         use sled::Transactional;
         let m = manifest.to_json();
@@ -337,41 +466,49 @@ impl EdgeStore {
         Ok(())
     }
 
-    /// Stored shards of `scene` as `(tile id, checksum, bytes on disk)`.
+    /// Stored shards of `scene` as `(tile id, checksum, bytes on disk)`, in no particular order.
+    ///
+    /// Errors: the scene's shard folder exists but cannot be listed ([`Error::Io`]).
     pub fn stored_shards(&self, scene: &str) -> Result<Vec<(u64, u32, u64)>> {
-        let mut prefix = scene.as_bytes().to_vec();
-        prefix.push(0);
+        let dir = self.scene_dir(scene);
+        let rd = match std::fs::read_dir(&dir) {
+            Ok(rd) => rd,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+            Err(e) => return Err(Error::io(&dir, e)),
+        };
         let mut out = Vec::new();
-        for kv in self.shards.scan_prefix(&prefix) {
-            let (k, v) = kv.map_err(|e| self.err(e))?;
-            let rest = &k[prefix.len()..];
-            if rest.len() == 12 {
-                let mut t = [0u8; 8];
-                t.copy_from_slice(&rest[..8]);
-                let mut c = [0u8; 4];
-                c.copy_from_slice(&rest[8..]);
-                out.push((u64::from_be_bytes(t), u32::from_be_bytes(c), v.len() as u64));
+        for e in rd.flatten() {
+            if let Some((tile, checksum)) = parse_shard_name(&e.file_name().to_string_lossy()) {
+                let len = e.metadata().map(|m| m.len()).unwrap_or(0);
+                out.push((tile, checksum, len));
             }
         }
         Ok(out)
     }
 
     /// Removes one stored shard (by tile id and checksum); returns whether it existed.
+    ///
+    /// Errors: [`Error::Io`] when the file exists but cannot be removed.
     pub fn remove_shard(&self, scene: &str, tile: u64, checksum: u32) -> Result<bool> {
-        let existed = self
-            .shards
-            .remove(shard_key(scene, tile, checksum))
-            .map_err(|e| self.err(e))?
-            .is_some();
-        Ok(existed)
+        let path = self
+            .scene_dir(scene)
+            .join(format!("{tile:016x}-{checksum:08x}.{SHARD_EXTENSION}"));
+        match std::fs::remove_file(&path) {
+            Ok(()) => Ok(true),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(Error::io(path, e)),
+        }
     }
 
-    /// Flushes everything to disk.
+    /// Flushes the sled database (manifests, fetch records) and syncs the scene folders.
+    ///
+    /// Errors: store I/O.
     pub fn flush(&self) -> Result<()> {
-        self.db.flush().map(|_| ()).map_err(|e| self.err(e))
+        self.db.flush().map_err(|e| self.err(e))?;
+        sync_dir(&self.root.join("shards"))
     }
 
-    /// Bytes the store uses on disk (sled files + partial downloads).
+    /// Bytes the store uses on disk (shard files, sled files, partial downloads).
     pub fn disk_bytes(&self) -> u64 {
         fn walk(p: &Path) -> u64 {
             let Ok(rd) = std::fs::read_dir(p) else {
@@ -403,51 +540,80 @@ pub struct SceneLoad {
 impl EdgeStore {
     /// Decodes every stored shard of the scene's current manifest, verifying each again
     /// ([`verify_shard`]); corrupted shards are reported in [`SceneLoad::rejected`] and skipped.
+    /// Holds every decoded shard at once: servers use [`Self::load_shards`].
     ///
     /// Errors: no completed fetch of `scene` ([`Error::Invalid`]), store I/O.
     pub fn load_scene(&self, scene: &str) -> Result<(Manifest, Vec<StoredShard>, SceneLoad)> {
+        let manifest = self.current_manifest(scene)?;
         let mut shards = Vec::new();
-        let (manifest, load) = self.load_scene_with(scene, |s| {
+        let load = self.load_shards(&manifest, |s| {
             shards.push(s);
             Ok(())
         })?;
         Ok((manifest, shards, load))
     }
 
-    /// Like [`Self::load_scene`] but hands each verified shard to `f` as soon as it is decoded,
-    /// so a caller that copies the rows elsewhere holds one shard at a time, not the whole scene.
+    /// Reads the stored shards of `manifest` one file at a time, in manifest tile order: each is
+    /// read, verified ([`verify_shard`]), its file bytes freed, and the decoded shard handed to
+    /// `f`, so a caller that copies the rows elsewhere holds at most one shard (file bytes plus
+    /// decoded copy) besides its own copy. Tiles without a file count as absent; corrupted ones
+    /// are logged, listed in [`SceneLoad::rejected`] and skipped.
     ///
-    /// Errors: as [`Self::load_scene`], plus the first error `f` returns.
-    pub fn load_scene_with(
+    /// Errors: a shard file that exists but cannot be read ([`Error::Io`]), the first error `f`
+    /// returns.
+    pub fn load_shards(
         &self,
-        scene: &str,
+        manifest: &Manifest,
         mut f: impl FnMut(StoredShard) -> Result<()>,
-    ) -> Result<(Manifest, SceneLoad)> {
-        let manifest = self.manifest(scene)?.ok_or_else(|| {
-            Error::Invalid(format!(
-                "store {} has no completed fetch of scene {scene:?}; run `slag-edge fetch --from URL \
-                 --scene {scene} --center X,Y --radius R --store {}` first",
-                self.root.display(),
-                self.root.display()
-            ))
-        })?;
+    ) -> Result<SceneLoad> {
         let mut load = SceneLoad::default();
         for tile in &manifest.tiles {
-            match self.shard_bytes(scene, tile)? {
-                None => load.absent_tiles += 1,
-                Some(bytes) => match verify_shard(&manifest, tile, &bytes) {
-                    Ok(s) => {
-                        drop(bytes);
-                        load.loaded_tiles.push(tile.id);
-                        f(s)?;
-                    }
-                    Err(e) => {
-                        tracing::error!("not serving a corrupted shard: {e}");
-                        load.rejected.push(e.to_string());
-                    }
-                },
+            let bytes = match self.shard_bytes(&manifest.scene_id, tile) {
+                Ok(Some(b)) => b,
+                Ok(None) => {
+                    load.absent_tiles += 1;
+                    continue;
+                }
+                Err(Error::Format { path, message }) => {
+                    // A checksum the store cannot name: reported like a corrupted shard.
+                    let e = Error::Format { path, message };
+                    load.rejected.push(e.to_string());
+                    continue;
+                }
+                Err(e) => return Err(e),
+            };
+            let verified = verify_shard(manifest, tile, &bytes);
+            drop(bytes);
+            match verified {
+                Ok(s) => {
+                    load.loaded_tiles.push(tile.id);
+                    f(s)?;
+                }
+                Err(e) => {
+                    tracing::error!("not serving a corrupted shard: {e}");
+                    load.rejected.push(e.to_string());
+                }
             }
         }
-        Ok((manifest, load))
+        Ok(load)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_shard_name;
+
+    #[test]
+    fn shard_file_names_round_trip_and_others_are_ignored() {
+        let name = format!("{:016x}-{:08x}.shard", 0x1234u64, 0xdeadbeefu32);
+        assert_eq!(parse_shard_name(&name), Some((0x1234, 0xdeadbeef)));
+        for other in [
+            "0000000000001234-deadbeef.shard.tmp",
+            "1234-deadbeef.shard",
+            "0000000000001234-deadbeef.part",
+            "000000000000123g-deadbeef.shard",
+        ] {
+            assert_eq!(parse_shard_name(other), None, "{other}");
+        }
     }
 }

@@ -313,7 +313,11 @@ pub(crate) async fn query_ply(
     if params.threshold.is_some() {
         params.top_k = engine.store.len().max(1);
     }
-    let answer = match crate::serve::answer(&state, vec![params]).await.pop() {
+    let mut answers = match crate::serve::answer(&state, vec![params]).await {
+        Ok(a) => a,
+        Err(busy) => return busy.response(),
+    };
+    let answer = match answers.pop() {
         Some(Ok(a)) => a,
         Some(Err(e)) => return error(status_of(&e), e.to_string()),
         None => return error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),

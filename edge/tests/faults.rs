@@ -15,7 +15,7 @@ use slag_common::Error;
 use slag_common::shards::{Dtype, Manifest, TileInfo, shard_checksum};
 use slag_edge::fetch::{Center, FAULT_EXIT_STATUS, FetchParams, fetch};
 use slag_edge::store::{EdgeStore, verify_shard};
-use support::{BasisEmbedder, grid_scene, shard_server};
+use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
 
 fn params(url: &str, radius: f64) -> FetchParams {
     FetchParams {
@@ -305,47 +305,27 @@ async fn a_shard_of_a_future_format_version_is_refused_naming_the_version() {
 async fn a_shard_corrupted_in_the_store_is_not_served_and_is_reported() {
     let scene = grid_scene("grid", 2, 2, 25, 8, Dtype::F32, 1);
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    {
-        let store = EdgeStore::open(dir.path()).unwrap();
-        fetch(&store, &params(&server.url, 100.0)).await.unwrap();
-    }
+    let (_dir, store) = fetch_grid(&server.url, 100.0).await;
     // Flip one byte of one stored shard behind the store's back (bit rot, a bad flash block).
     {
-        let db = sled::open(dir.path().join("db")).unwrap();
-        let shards = db.open_tree("shards").unwrap();
-        let (k, v) = shards.iter().next().unwrap().unwrap();
-        let mut v = v.to_vec();
+        let m = store.manifest("grid").unwrap().unwrap();
+        let path = store.shard_path("grid", &m.tiles[0]).unwrap();
+        let mut v = std::fs::read(&path).unwrap();
         let mid = v.len() / 2;
         v[mid] ^= 0x40;
-        shards.insert(k, v).unwrap();
-        db.flush().unwrap();
+        std::fs::write(&path, v).unwrap();
     }
-    let store = EdgeStore::open(dir.path()).unwrap();
-    let state = std::sync::Arc::new(
-        slag_edge::serve::AppState::new(
-            store,
-            std::sync::Arc::new(BasisEmbedder::new(8)),
-            slag_edge::serve::ServeOptions {
-                scene: "grid".into(),
-                token: None,
-                threshold: 0.28,
-                hnsw: false,
-                request_timeout: Duration::from_secs(10),
-            },
-        )
-        .unwrap(),
-    );
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(async move {
-        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
-            let _ = tx.send(a);
-        })
-        .await
-        .unwrap();
-    });
-    let addr = rx.await.unwrap();
-    let stats: serde_json::Value = reqwest::get(format!("http://{addr}/stats"))
+    let state = slag_edge::serve::AppState::new(
+        store,
+        std::sync::Arc::new(BasisEmbedder::new(8)),
+        slag_edge::serve::ServeOptions {
+            request_timeout: Duration::from_secs(10),
+            ..slag_edge::serve::ServeOptions::new("grid")
+        },
+    )
+    .unwrap();
+    let url = serve_on_loopback(state).await;
+    let stats: serde_json::Value = reqwest::get(format!("{url}/stats"))
         .await
         .unwrap()
         .json()
@@ -406,4 +386,35 @@ async fn hostile_ids_and_checksums_never_leave_the_partial_folder() {
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
     assert_eq!(std::fs::read_dir(&partial).unwrap().count(), 0);
+}
+
+#[test]
+fn a_store_of_an_older_slag_edge_is_refused_with_a_typed_error_saying_to_fetch_again() {
+    // Older slag-edge kept shard bytes in the sled tree `shards` (key scene \0 tile checksum).
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let db = sled::open(dir.path().join("db")).unwrap();
+        let shards = db.open_tree("shards").unwrap();
+        let scene = grid_scene("grid", 1, 1, 5, 8, Dtype::F32, 1);
+        let mut key = b"grid\0".to_vec();
+        key.extend_from_slice(&0u64.to_be_bytes());
+        key.extend_from_slice(&shard_checksum(&scene.shards[&0]).to_be_bytes());
+        shards.insert(key, scene.shards[&0].as_slice()).unwrap();
+        db.flush().unwrap();
+    }
+    let err = EdgeStore::open(dir.path()).unwrap_err();
+    let msg = err.to_string();
+    assert!(matches!(err, Error::Unsupported { .. }), "{msg}");
+    assert!(
+        msg.contains("older slag-edge") && msg.contains("slag-edge fetch"),
+        "{msg}"
+    );
+    // An empty tree of that name (nothing to lose) is dropped and the store opens.
+    {
+        let db = sled::open(dir.path().join("db")).unwrap();
+        db.open_tree("shards").unwrap().clear().unwrap();
+        db.flush().unwrap();
+    }
+    let store = EdgeStore::open(dir.path()).unwrap();
+    assert!(store.manifest("grid").unwrap().is_none());
 }

@@ -9,10 +9,11 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use slag_common::shards::{Dtype, decode_shard};
-use slag_edge::fetch::{Center, FetchParams, fetch};
 use slag_edge::serve::{AppState, ServeOptions};
-use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, TestScene, grid_scene, shard_server};
+use support::{
+    BasisEmbedder, GateEmbedder, TestScene, fetch_grid, grid_scene, serve_on_loopback,
+    shard_server, wait_until,
+};
 
 struct Edge {
     url: String,
@@ -24,59 +25,30 @@ struct Edge {
 async fn start(scene: TestScene, radius: f64, token: Option<&str>) -> (Edge, Vec<Vec<u8>>) {
     let dim = scene.manifest.dim as usize;
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
-    fetch(
-        &store,
-        &FetchParams {
-            server: server.url.clone(),
-            scene: "grid".into(),
-            center: Center::Ground([0.0, 0.0]),
-            radius,
-            prune: false,
-            jobs: 2,
-            retries: 0,
-            timeout: Duration::from_secs(10),
-            token: None,
-            progress: false,
-        },
-    )
-    .await
-    .unwrap();
+    let (dir, store) = fetch_grid(&server.url, radius).await;
     let stored: Vec<Vec<u8>> = {
         let m = store.manifest("grid").unwrap().unwrap();
         m.tiles
             .iter()
-            .filter_map(|t| store.shard_bytes("grid", t).unwrap().map(|b| b.to_vec()))
+            .filter_map(|t| store.shard_bytes("grid", t).unwrap())
             .collect()
     };
     let embedder = Arc::new(BasisEmbedder::new(dim));
-    let state = Arc::new(
-        AppState::new(
-            store,
-            embedder.clone(),
-            ServeOptions {
-                scene: "grid".into(),
-                token: token.map(str::to_string),
-                threshold: 0.28,
-                hnsw: true,
-                request_timeout: Duration::from_secs(10),
-            },
-        )
-        .unwrap(),
-    );
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(async move {
-        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
-            let _ = tx.send(a);
-        })
-        .await
-        .unwrap();
-    });
-    let addr = rx.await.unwrap();
+    let state = AppState::new(
+        store,
+        embedder.clone(),
+        ServeOptions {
+            token: token.map(str::to_string),
+            threshold: 0.28,
+            hnsw: true,
+            request_timeout: Duration::from_secs(10),
+            ..ServeOptions::new("grid")
+        },
+    )
+    .unwrap();
     (
         Edge {
-            url: format!("http://{addr}"),
+            url: serve_on_loopback(state).await,
             client: reqwest::Client::new(),
             embedder,
             _dir: dir,
@@ -366,4 +338,108 @@ async fn batches_hnsw_stats_health_and_errors() {
 
     // The prompt is embedded once per query (negatives once at start-up).
     assert!(e.embedder.calls.load(Ordering::SeqCst) >= 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503() {
+    let scene = grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1);
+    let server = shard_server(scene, None).await;
+    let (_dir, store) = fetch_grid(&server.url, 100.0).await;
+    let gate = Arc::new(GateEmbedder::new(8));
+    let _open = gate.open_on_drop();
+    let state = AppState::new(
+        store,
+        gate.clone(),
+        ServeOptions {
+            max_scans: 1,
+            scan_queue: 2,
+            ..ServeOptions::new("grid")
+        },
+    )
+    .unwrap();
+    let url = serve_on_loopback(state).await;
+    let client = reqwest::Client::new();
+    let stats = async || -> serde_json::Value {
+        let r = client.get(format!("{url}/stats")).send().await.unwrap();
+        r.json().await.unwrap()
+    };
+    let send = |text: &str| {
+        let (c, u) = (client.clone(), format!("{url}/query?text={text}"));
+        tokio::spawn(async move {
+            let r = c.get(u).send().await.unwrap();
+            (
+                r.status().as_u16(),
+                r.json::<serde_json::Value>().await.unwrap(),
+            )
+        })
+    };
+
+    // t1 holds the only scan permit (its prompt waits at the gate); t2 then t3 queue behind it.
+    let a = send("t1");
+    wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
+    let b = send("t2");
+    wait_until("t2 waits", async || stats().await["scans"]["waiting"] == 1).await;
+    let c = send("t3");
+    wait_until("t3 waits", async || stats().await["scans"]["waiting"] == 2).await;
+    let s = stats().await;
+    assert_eq!(s["scans"]["running"], 1, "{s}");
+    assert_eq!(s["scans"]["max_queue"], 2, "{s}");
+
+    // The queue is full: a fourth query is turned away at once with 503 and Retry-After, as is a
+    // batch; a bad query is still answered 400 (validation comes before the queue).
+    let r = client
+        .get(format!("{url}/query?text=t4"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 503);
+    let retry: u64 = r.headers()["retry-after"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(retry >= 1, "Retry-After {retry}");
+    let body: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(body["status"], 503);
+    assert!(
+        body["error"].as_str().unwrap().contains("retry after"),
+        "{body}"
+    );
+    let r = client
+        .post(format!("{url}/query"))
+        .json(&serde_json::json!({"queries": [{"text": "t5"}]}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 503);
+    assert!(r.headers().contains_key("retry-after"));
+    let r = client
+        .get(format!("{url}/query?text=t6&top_k=0"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+
+    // Released one at a time, the queued queries run in arrival order, each only after the one
+    // before it has answered.
+    for (i, (handle, text)) in [(a, "t1"), (b, "t2"), (c, "t3")].into_iter().enumerate() {
+        gate.release(1);
+        let (status, answer) = handle.await.unwrap();
+        assert_eq!(status, 200, "{text}: {answer}");
+        assert_eq!(answer["query"], text, "{answer}");
+        if i < 2 {
+            let next = ["t2", "t3"][i];
+            wait_until("the next queued query starts", async || {
+                gate.entered().len() == i + 2
+            })
+            .await;
+            assert_eq!(gate.entered()[i + 1], next);
+        }
+    }
+    assert_eq!(gate.entered(), ["t1", "t2", "t3"]);
+    let s = stats().await;
+    assert_eq!(s["scans"]["waiting"], 0, "{s}");
+    assert_eq!(s["scans"]["running"], 0, "{s}");
+    assert_eq!(s["scans"]["rejected_busy"], 2, "{s}");
+    assert_eq!(s["queries_served"], 3, "{s}");
 }

@@ -11,10 +11,8 @@ use std::time::Duration;
 
 use slag_common::scene::{PlyLoadOptions, SH_C0, load_ply};
 use slag_common::shards::{Dtype, decode_shard};
-use slag_edge::fetch::{Center, FetchParams, fetch};
 use slag_edge::serve::{AppState, ServeOptions};
-use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, grid_scene, shard_server};
+use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
 
 struct Edge {
     url: String,
@@ -28,25 +26,7 @@ struct Edge {
 async fn start(token: Option<&str>) -> Edge {
     let scene = grid_scene("grid", 3, 2, 40, 8, Dtype::F16, 1);
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
-    fetch(
-        &store,
-        &FetchParams {
-            server: server.url.clone(),
-            scene: "grid".into(),
-            center: Center::Ground([0.0, 0.0]),
-            radius: 1000.0,
-            prune: false,
-            jobs: 2,
-            retries: 0,
-            timeout: Duration::from_secs(10),
-            token: None,
-            progress: false,
-        },
-    )
-    .await
-    .unwrap();
+    let (dir, store) = fetch_grid(&server.url, 1000.0).await;
     let m = store.manifest("grid").unwrap().unwrap();
     let shards = m
         .tiles
@@ -57,32 +37,21 @@ async fn start(token: Option<&str>) -> Edge {
     let web = tempfile::tempdir().unwrap();
     std::fs::create_dir(web.path().join("vendor")).unwrap();
     std::fs::write(web.path().join("vendor/three.module.js"), "export {};").unwrap();
-    let state = Arc::new(
-        AppState::new(
-            store,
-            Arc::new(BasisEmbedder::new(8)),
-            ServeOptions {
-                scene: "grid".into(),
-                token: token.map(str::to_string),
-                threshold: 0.28,
-                hnsw: false,
-                request_timeout: Duration::from_secs(10),
-            },
-        )
-        .unwrap()
-        .with_web_dir(Some(web.path().to_path_buf())),
-    );
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(async move {
-        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
-            let _ = tx.send(a);
-        })
-        .await
-        .unwrap();
-    });
-    let addr = rx.await.unwrap();
+    let state = AppState::new(
+        store,
+        Arc::new(BasisEmbedder::new(8)),
+        ServeOptions {
+            token: token.map(str::to_string),
+            threshold: 0.28,
+            hnsw: false,
+            request_timeout: Duration::from_secs(10),
+            ..ServeOptions::new("grid")
+        },
+    )
+    .unwrap()
+    .with_web_dir(Some(web.path().to_path_buf()));
     Edge {
-        url: format!("http://{addr}"),
+        url: serve_on_loopback(state).await,
         client: reqwest::Client::new(),
         shards,
         _dir: dir,

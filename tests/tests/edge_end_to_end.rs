@@ -5,18 +5,12 @@
 #![allow(clippy::unwrap_used)]
 
 use std::collections::HashSet;
-use std::sync::Arc;
 use std::time::Duration;
 
-use slag_common::text::TextEncoder;
-use slag_edge::fetch::{Center, FetchParams};
-use slag_edge::query::OnnxTextEmbedder;
-use slag_edge::serve::{AppState, ServeOptions};
-use slag_edge::store::EdgeStore;
+use slag_edge::fetch::Center;
 use slag_encoder::cli::EpArg;
 use slag_encoder::cli::query::QueryArgs;
-use slag_encoder::cli::shards::PartitionArgs;
-use slag_tests::{default_scene, encode_line, fixture};
+use slag_tests::{fixture, robot_fetch_params, robot_path};
 
 fn local_query(
     emb: &std::path::Path,
@@ -90,104 +84,27 @@ fn assert_same_summary(a: &serde_json::Value, b: &serde_json::Value) {
 
 #[test]
 fn encode_partition_serve_fetch_serve_query_matches_the_local_query() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("enc");
-    encode_line(
-        &default_scene(),
-        "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --every 2 --raster-scale 0.5",
-        &out,
-    )
-    .expect("encode");
-    let emb = out.join("embeddings.safetensors");
-
-    // f32 shards: the edge sees exactly the values of the embeddings file.
-    let shard_store = dir.path().join("shards");
-    slag_encoder::cli::shards::run_partition(&PartitionArgs {
-        embeddings: Some(emb.clone()),
-        synthetic: None,
-        store: shard_store.clone(),
-        scene: "snowmiku-mini".into(),
-        max_per_shard: 8000,
-        up: None,
-        cameras: Some(default_scene()),
-        display_ply: None,
-        dtype: "f32".parse().unwrap(),
-        qdrant_url: None,
-        qdrant_collection: None,
-        qdrant_batch: 256,
-        qdrant_int8: false,
-        qdrant_snapshot_per_tile: false,
-        qdrant_api_key: None,
-    })
-    .unwrap();
-
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .unwrap();
+    // f32 shards: the edge sees exactly the values of the embeddings file.
+    let robot = robot_path(&rt, "f32", false, Duration::from_secs(60), None);
+    let (emb, manifest, edge, edge_url) = (
+        robot.embeddings.clone(),
+        robot.manifest.clone(),
+        robot.edge.clone(),
+        robot.edge_url.clone(),
+    );
+    let mut params = robot_fetch_params(&robot.shard_url);
     rt.block_on(async {
-        let store = slag_encoder::store::ShardStore::open(&shard_store).unwrap();
-        let manifest = store.manifest("snowmiku-mini").unwrap().unwrap();
         assert!(manifest.tiles.len() >= 4, "{} tiles", manifest.tiles.len());
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        tokio::spawn(slag_encoder::serve::serve(
-            store,
-            "127.0.0.1:0".parse().unwrap(),
-            move |a| {
-                let _ = tx.send(a);
-            },
-        ));
-        let shard_url = format!("http://{}", rx.await.unwrap());
-
-        // Fetch everything within a radius that covers the scene's ground footprint.
-        let edge_dir = dir.path().join("edge");
-        let edge = EdgeStore::open(&edge_dir).unwrap();
-        let mut params = FetchParams {
-            server: shard_url.clone(),
-            scene: "snowmiku-mini".into(),
-            center: Center::Ground([0.0, 0.0]),
-            radius: 1e6,
-            prune: false,
-            jobs: 4,
-            retries: 1,
-            timeout: Duration::from_secs(30),
-            token: None,
-            progress: false,
-        };
-        let s = slag_edge::fetch::fetch(&edge, &params).await.unwrap();
+        // The fetch covered the scene's whole ground footprint.
+        let s = &robot.fetched;
         assert_eq!(s.selected, manifest.tiles.len());
         assert_eq!(s.gaussians, manifest.total_gaussians);
 
-        let text = TextEncoder::new(
-            &fixture("clip/color-clip-textual.onnx"),
-            &fixture("clip/clip-tokenizer.json"),
-            slag_common::onnx::ExecutionProvider::Cpu,
-        )
-        .unwrap();
-        let state = Arc::new(
-            AppState::new(
-                edge.clone(),
-                Arc::new(OnnxTextEmbedder::new(text, "color-clip-textual".into())),
-                ServeOptions {
-                    scene: "snowmiku-mini".into(),
-                    token: None,
-                    threshold: 0.28,
-                    hnsw: false,
-                    request_timeout: Duration::from_secs(60),
-                },
-            )
-            .unwrap(),
-        );
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        tokio::spawn(slag_edge::serve::serve(
-            state,
-            "127.0.0.1:0".parse().unwrap(),
-            move |a| {
-                let _ = tx.send(a);
-            },
-        ));
-        let edge_url = format!("http://{}", rx.await.unwrap());
         let client = reqwest::Client::new();
         let get = |path: String| {
             let c = client.clone();

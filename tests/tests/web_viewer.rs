@@ -12,16 +12,9 @@
 #![allow(clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Duration;
 
-use slag_common::text::TextEncoder;
-use slag_edge::fetch::{Center, FetchParams};
-use slag_edge::query::OnnxTextEmbedder;
-use slag_edge::serve::{AppState, ServeOptions};
-use slag_edge::store::EdgeStore;
-use slag_encoder::cli::shards::PartitionArgs;
-use slag_tests::{default_scene, encode_line, fixture};
+use slag_tests::robot_path;
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -87,95 +80,19 @@ fn page_renders_pink_matches_in_magenta_in_headless_chromium() {
         eprintln!("SKIPPED: {msg}");
         return;
     }
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("enc");
-    encode_line(
-        &default_scene(),
-        "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --every 2 --raster-scale 0.5",
-        &out,
-    )
-    .expect("encode");
-    let shard_store = dir.path().join("shards");
-    slag_encoder::cli::shards::run_partition(&PartitionArgs {
-        embeddings: Some(out.join("embeddings.safetensors")),
-        synthetic: None,
-        store: shard_store.clone(),
-        scene: "snowmiku-mini".into(),
-        max_per_shard: 8000,
-        up: None,
-        cameras: Some(default_scene()),
-        display_ply: Some(default_scene().join("point_cloud.ply")),
-        dtype: "f16".parse().unwrap(),
-        qdrant_url: None,
-        qdrant_collection: None,
-        qdrant_batch: 256,
-        qdrant_int8: false,
-        qdrant_snapshot_per_tile: false,
-        qdrant_api_key: None,
-    })
-    .unwrap();
-
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
         .unwrap();
-    let edge_url = rt.block_on(async {
-        let store = slag_encoder::store::ShardStore::open(&shard_store).unwrap();
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        tokio::spawn(slag_encoder::serve::serve(
-            store,
-            "127.0.0.1:0".parse().unwrap(),
-            move |a| {
-                let _ = tx.send(a);
-            },
-        ));
-        let shard_url = format!("http://{}", rx.await.unwrap());
-        let edge = EdgeStore::open(&dir.path().join("edge")).unwrap();
-        let params = FetchParams {
-            server: shard_url,
-            scene: "snowmiku-mini".into(),
-            center: Center::Ground([0.0, 0.0]),
-            radius: 1e6,
-            prune: false,
-            jobs: 2,
-            retries: 1,
-            timeout: Duration::from_secs(30),
-            token: None,
-            progress: false,
-        };
-        slag_edge::fetch::fetch(&edge, &params).await.unwrap();
-        let text = TextEncoder::new(
-            &fixture("clip/color-clip-textual.onnx"),
-            &fixture("clip/clip-tokenizer.json"),
-            slag_common::onnx::ExecutionProvider::Cpu,
-        )
-        .unwrap();
-        let state = Arc::new(
-            AppState::new(
-                edge,
-                Arc::new(OnnxTextEmbedder::new(text, "color-clip-textual".into())),
-                ServeOptions {
-                    scene: "snowmiku-mini".into(),
-                    token: None,
-                    threshold: 0.28,
-                    hnsw: false,
-                    request_timeout: Duration::from_secs(120),
-                },
-            )
-            .unwrap()
-            .with_web_dir(Some(repo().join("edge/web"))),
-        );
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        tokio::spawn(slag_edge::serve::serve(
-            state,
-            "127.0.0.1:0".parse().unwrap(),
-            move |a| {
-                let _ = tx.send(a);
-            },
-        ));
-        format!("http://{}", rx.await.unwrap())
-    });
+    let robot = robot_path(
+        &rt,
+        "f16",
+        true,
+        Duration::from_secs(120),
+        Some(repo().join("edge/web")),
+    );
+    let edge_url = robot.edge_url.clone();
     // Ground truth from the JSON API: pink matches a region, red nothing.
     let count = |text: &str| {
         rt.block_on(async {
@@ -193,7 +110,7 @@ fn page_renders_pink_matches_in_magenta_in_headless_chromium() {
 
     let shots = std::env::var("SLAG_WEB_E2E_OUT")
         .map(PathBuf::from)
-        .unwrap_or_else(|_| dir.path().join("shots"));
+        .unwrap_or_else(|_| robot.dir.path().join("shots"));
     // The servers run on `rt`'s workers while node drives the browser.
     let node = std::process::Command::new("node")
         .arg(repo().join("edge/web/e2e.mjs"))

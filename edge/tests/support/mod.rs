@@ -1,11 +1,13 @@
 //! Test fixtures for the edge: a synthetic grid scene cut into shards, an in-process shard server
-//! (same routes as `slag-encoder serve`, with fault injection), and a text embedder without ONNX.
+//! (same routes as `slag-encoder serve`, with fault injection), text embedders without ONNX, and
+//! the fetch-then-serve set-up the serve, view and fault tests share.
 #![allow(dead_code, missing_docs, clippy::unwrap_used)]
 
 use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Condvar, Mutex, RwLock};
+use std::time::Duration;
 
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, State};
@@ -18,7 +20,10 @@ use slag_common::shards::{
     Aabb, Dtype, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, SHARD_FORMAT_VERSION,
     ShardInput, TileInfo, encode_shard, shard_checksum,
 };
+use slag_edge::fetch::{Center, FetchParams, fetch};
 use slag_edge::query::TextEmbedder;
+use slag_edge::serve::AppState;
+use slag_edge::store::EdgeStore;
 
 /// Side of one tile on the ground (z-up, ground = world x, y).
 pub const TILE: f32 = 10.0;
@@ -347,5 +352,125 @@ impl TextEmbedder for BasisEmbedder {
     }
     fn cached(&self) -> usize {
         0
+    }
+}
+
+/// Fetches scene `grid` from the shard server at `url` (disc around the ground origin of
+/// `radius`, 2 jobs, no retries) into a new store in a temporary folder.
+pub async fn fetch_grid(url: &str, radius: f64) -> (tempfile::TempDir, EdgeStore) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = EdgeStore::open(dir.path()).unwrap();
+    fetch(
+        &store,
+        &FetchParams {
+            server: url.into(),
+            scene: "grid".into(),
+            center: Center::Ground([0.0, 0.0]),
+            radius,
+            prune: false,
+            jobs: 2,
+            retries: 0,
+            timeout: Duration::from_secs(10),
+            token: None,
+            progress: false,
+        },
+    )
+    .await
+    .unwrap();
+    (dir, store)
+}
+
+/// Serves `state` on an ephemeral loopback port in the background; returns `http://ADDR`.
+pub async fn serve_on_loopback(state: AppState) -> String {
+    let state = Arc::new(state);
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    tokio::spawn(async move {
+        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
+            let _ = tx.send(a);
+        })
+        .await
+        .unwrap();
+    });
+    format!("http://{}", rx.await.unwrap())
+}
+
+/// A [`BasisEmbedder`] whose prompts `t<N>` each wait for one [`Self::release`] before they are
+/// embedded (anything else, e.g. the canonical negatives, passes at once); records the order in which
+/// prompts entered. Lets a test hold a scan in progress and watch the queue behind it.
+pub struct GateEmbedder {
+    inner: BasisEmbedder,
+    entered: Mutex<Vec<String>>,
+    tokens: Mutex<usize>,
+    cv: Condvar,
+}
+
+impl GateEmbedder {
+    pub fn new(dim: usize) -> Self {
+        GateEmbedder {
+            inner: BasisEmbedder::new(dim),
+            entered: Mutex::new(Vec::new()),
+            tokens: Mutex::new(0),
+            cv: Condvar::new(),
+        }
+    }
+    /// Lets `n` more gated prompts through.
+    pub fn release(&self, n: usize) {
+        *self.tokens.lock().unwrap() += n;
+        self.cv.notify_all();
+    }
+    /// A guard that opens the gate for good when dropped (also when a test panics: a runtime
+    /// cannot shut down while a blocking task waits at the gate).
+    pub fn open_on_drop(self: &Arc<Self>) -> OpenOnDrop {
+        OpenOnDrop(self.clone())
+    }
+    /// Gated prompts in the order they reached the embedder.
+    pub fn entered(&self) -> Vec<String> {
+        self.entered.lock().unwrap().clone()
+    }
+}
+
+/// See [`GateEmbedder::open_on_drop`].
+pub struct OpenOnDrop(Arc<GateEmbedder>);
+
+impl Drop for OpenOnDrop {
+    fn drop(&mut self) {
+        self.0.release(1 << 20);
+    }
+}
+
+impl TextEmbedder for GateEmbedder {
+    fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>> {
+        let gated = |t: &&&str| {
+            t.strip_prefix('t')
+                .is_some_and(|d| !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
+        };
+        for t in texts.iter().filter(gated) {
+            self.entered.lock().unwrap().push(t.to_string());
+            let mut tokens = self.tokens.lock().unwrap();
+            while *tokens == 0 {
+                tokens = self.cv.wait(tokens).unwrap();
+            }
+            *tokens -= 1;
+        }
+        self.inner.embed(texts)
+    }
+    fn name(&self) -> String {
+        "gate".into()
+    }
+    fn cached(&self) -> usize {
+        0
+    }
+}
+
+/// Polls `cond` every 10 ms until it holds; panics with `what` after 30 s (a liveness bound, not
+/// a speed check).
+pub async fn wait_until(what: &str, mut cond: impl AsyncFnMut() -> bool) {
+    let t0 = std::time::Instant::now();
+    while !cond().await {
+        assert!(
+            t0.elapsed() < Duration::from_secs(30),
+            "never happened: {what}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
