@@ -9,11 +9,13 @@
 //! | [`text`] | CLIP text tower + tokenizer (queries) |
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 
 pub mod camera;
 pub mod embeddings;
+pub mod mixture;
 pub mod error;
 pub mod onnx;
 pub mod paths;

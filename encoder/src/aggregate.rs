@@ -12,12 +12,15 @@
 //! signature. The reduction ([`reduce`]) accumulates in f64, chunked over Gaussian ids so that the
 //! accumulator stays within a memory budget however large the scene, and declares a Gaussian
 //! *unobserved* (no embedding) when `Σ a_kj` is below a threshold or the weighted mean vanishes.
+//! [`reduce_mixture`] runs the same reduction but keeps each `E_k` as a sparse mixture of the
+//! shared mask embeddings (`slag_common::mixture`), the compressed storage form.
 
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
+use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::{Error, Result};
 
 use crate::masks::Mask;
@@ -443,6 +446,168 @@ pub fn reduce(
     Ok(out)
 }
 
+/// The same reduction as [`reduce`], kept in mixture form ([`MixtureEmbeddings`]): a shared
+/// codebook of every image's mask embeddings `E_j` plus, per observed Gaussian, its `keep`
+/// largest `a_kj` over all images, so that `E_k ≈ Σ_{kept} a_kj E_j / ‖Σ_{kept} a_kj E_j‖`.
+///
+/// Codebook ids: the mask embeddings of the images are concatenated in the order
+/// [`ContributionStore::for_each`] visits them (the in-memory images, then the spilled ones, each
+/// in push order), so mask `j` of image `i` is row `offset_i + j`; rows no kept atom uses are then
+/// dropped and the rest renumbered in that order ([`MixtureEmbeddings::from_sparse`]).
+///
+/// The observed Gaussians are exactly those of [`reduce`] with the same `params` (same f64
+/// sums in the same order, same unobserved rule on the full `Σ a_kj` and `‖Σ a_kj E_j‖`); with
+/// `keep` at least a Gaussian's number of non-zero `a_kj` its reconstruction equals [`reduce`]'s
+/// `E_k` up to f16 rounding of the codebook and weights. Ties between equal `a_kj` keep the lower
+/// codebook row. Memory: the f64 accumulator of [`reduce`] plus up to `keep` `(a, row)` pairs per
+/// Gaussian of a chunk, chunked over Gaussian ids within `params.accumulator_budget_bytes`; the
+/// result holds `N × S` slots with `S = min(keep, most non-zero a_kj of any observed Gaussian)`.
+///
+/// `means` are all `n_gaussians` centres (world frame, source `.ply` order); `model_id` is the
+/// CLIP visual model id recorded in the output.
+///
+/// Errors ([`Error::Invalid`]): `keep == 0`, `means.len() != n_gaussians`, a contribution of
+/// another width than `dim`, more than `u32::MAX - 1` mask embeddings in all, a kept mixture that
+/// [`MixtureEmbeddings::from_sparse`] cannot store (mask embeddings that nearly cancel); I/O
+/// errors of spilled contributions.
+pub fn reduce_mixture(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+    keep: usize,
+    model_id: &str,
+    means: &[[f32; 3]],
+) -> Result<MixtureEmbeddings> {
+    if keep == 0 {
+        return Err(Error::Invalid(
+            "mixture keep is 0; keep at least 1 mask embedding per Gaussian".into(),
+        ));
+    }
+    if means.len() != n_gaussians {
+        return Err(Error::Invalid(format!(
+            "{} means for {n_gaussians} Gaussians",
+            means.len()
+        )));
+    }
+    let slots_estimate = keep.min(64);
+    let per_gaussian = (dim + 1) * 8 + std::mem::size_of::<Vec<(f32, u32)>>() + slots_estimate * 8;
+    let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    let mut codebook: Vec<f32> = Vec::new();
+    let mut image_offsets: Vec<u32> = Vec::new();
+    let mut parts = SparseMixture {
+        dim,
+        model_id: model_id.to_string(),
+        offsets: vec![0],
+        ..Default::default()
+    };
+    let mut failure: Option<Error> = None;
+    for start in (0..n_gaussians).step_by(chunk) {
+        let end = (start + chunk).min(n_gaussians);
+        let mut num = vec![0f64; (end - start) * dim];
+        let mut den = vec![0f64; end - start];
+        let mut tops: Vec<Vec<(f32, u32)>> = vec![Vec::new(); end - start];
+        const BLOCK: usize = 1024;
+        let first_pass = start == 0;
+        let mut image = 0usize;
+        store.for_each(|c| {
+            if failure.is_some() {
+                return;
+            }
+            if c.dim != dim {
+                failure = Some(Error::Invalid(format!(
+                    "contribution of dim {}, expected {dim}",
+                    c.dim
+                )));
+                return;
+            }
+            if first_pass {
+                let rows = codebook.len() / dim.max(1);
+                if rows + c.mask_embeddings.len() / dim.max(1) >= u32::MAX as usize {
+                    failure = Some(Error::Invalid(format!(
+                        "more than {} mask embeddings in all: too many for u32 codebook ids",
+                        u32::MAX - 1
+                    )));
+                    return;
+                }
+                image_offsets.push(rows as u32);
+                codebook.extend_from_slice(&c.mask_embeddings);
+            }
+            let Some(&offset) = image_offsets.get(image) else {
+                failure = Some(Error::Invalid(
+                    "the contribution store changed during the reduction".into(),
+                ));
+                return;
+            };
+            image += 1;
+            num.par_chunks_mut(BLOCK * dim)
+                .zip(den.par_chunks_mut(BLOCK))
+                .zip(tops.par_chunks_mut(BLOCK))
+                .enumerate()
+                .for_each(|(b, ((nb, db), tb))| {
+                    let g0 = (start + b * BLOCK) as u32;
+                    let g1 = g0 + db.len() as u32;
+                    let lo = c.entries.partition_point(|e| e.gaussian < g0);
+                    let hi = c.entries.partition_point(|e| e.gaussian < g1);
+                    for e in &c.entries[lo..hi] {
+                        let r = (e.gaussian - g0) as usize;
+                        // Same f64 sums, in the same order, as `reduce`.
+                        let a = e.weight as f64;
+                        db[r] += a;
+                        let ej =
+                            &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
+                        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
+                            *acc += a * v as f64;
+                        }
+                        push_top(&mut tb[r], keep, e.weight, offset + e.mask);
+                    }
+                });
+        })?;
+        if let Some(e) = failure.take() {
+            return Err(e);
+        }
+        for (r, &d) in den.iter().enumerate() {
+            // The unobserved rule of `reduce`, verbatim.
+            if d.is_nan() || d < params.min_total_weight {
+                continue;
+            }
+            let row = &num[r * dim..(r + 1) * dim];
+            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !norm.is_finite() || norm <= 1e-9 * d {
+                continue;
+            }
+            let k = start + r;
+            parts.gaussian_ids.push(k as u32);
+            parts.means.push(means[k]);
+            for &(a, atom) in &tops[r] {
+                parts.atoms.push(atom);
+                parts.weights.push(a as f64);
+            }
+            parts.offsets.push(parts.atoms.len());
+        }
+    }
+    parts.codebook = codebook;
+    MixtureEmbeddings::from_sparse(parts)
+}
+
+/// Keeps the `keep` largest `(a, atom)` of one Gaussian (ties: the lower atom). Atoms arrive in
+/// increasing order, so an equal `a` never displaces a kept one.
+fn push_top(top: &mut Vec<(f32, u32)>, keep: usize, a: f32, atom: u32) {
+    if top.len() < keep {
+        top.push((a, atom));
+        return;
+    }
+    let weakest = top
+        .iter()
+        .enumerate()
+        .min_by(|x, y| x.1.0.total_cmp(&y.1.0).then(y.1.1.cmp(&x.1.1)));
+    if let Some((i, &(wa, watom))) = weakest
+        && (a > wa || (a == wa && atom < watom))
+    {
+        top[i] = (a, atom);
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -676,5 +841,250 @@ mod tests {
         }
         drop(spilling);
         assert!(!dir.path().join("b").exists());
+    }
+    /// Unit rows from a xorshift stream.
+    fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed | 1;
+        let mut out = Vec::new();
+        for _ in 0..m {
+            let v: Vec<f32> = (0..dim)
+                .map(|_| {
+                    s ^= s << 13;
+                    s ^= s >> 7;
+                    s ^= s << 17;
+                    (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+                })
+                .collect();
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+            out.extend(v.iter().map(|x| x / n));
+        }
+        out
+    }
+
+    /// Images with overlapping masks over `n` Gaussians, unit mask embeddings of width `dim`.
+    fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionStore {
+        let mut store = ContributionStore::new(budget, dir.to_path_buf());
+        for seed in 1..5u64 {
+            let pw = weights(30, 20, n, seed);
+            let masks = vec![
+                mask(30, 20, |x, _| x < 15),
+                mask(30, 20, |_, y| y < 12),
+                mask(30, 20, |x, y| (x + 2 * y) % 5 < 2),
+            ];
+            let emb = unit_rows(masks.len(), dim, seed * 31);
+            let c = image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap();
+            store.push(c).unwrap();
+        }
+        store
+    }
+
+    #[test]
+    fn mixture_with_every_atom_kept_reproduces_reduce() {
+        let (n, dim) = (3000u32, 16);
+        let dir = tempfile::tempdir().unwrap();
+        let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 1.0, -2.0]).collect();
+        let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
+        let exact = reduce(&store, n as usize, dim, ReduceParams::default()).unwrap();
+        let mix = reduce_mixture(
+            &store,
+            n as usize,
+            dim,
+            ReduceParams::default(),
+            usize::MAX,
+            "m",
+            &means,
+        )
+        .unwrap();
+        assert_eq!(mix.gaussian_ids, exact.ids);
+        assert!(mix.len() > 1000);
+        assert_eq!(mix.model_id, "m");
+        // 4 images x 3 overlapping masks: up to 12 atoms, all of them used by someone.
+        assert_eq!(mix.codebook_len(), 12);
+        assert!(mix.keep > 3 && mix.keep <= 12);
+        for (i, &k) in mix.gaussian_ids.iter().enumerate() {
+            assert_eq!(mix.means[i], means[k as usize]);
+        }
+        let dense = mix.to_dense();
+        let max = dense
+            .iter()
+            .zip(&exact.vectors)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f32::max);
+        // f16 rounding of codebook values and weights of magnitude <= 1: <= 2^-11 each.
+        assert!(max < 1e-3, "max |Δ| {max}");
+        assert!(max > 0.0, "f16 storage should not be bit-exact against f32");
+
+        // Chunked and spilled: the same mixture.
+        let spilling = mixture_store(n, dim, 0, &dir.path().join("b"));
+        assert_eq!(spilling.spilled(), 4);
+        let tight = ReduceParams {
+            accumulator_budget_bytes: 1024 * (dim + 1) * 8,
+            ..Default::default()
+        };
+        let again =
+            reduce_mixture(&spilling, n as usize, dim, tight, usize::MAX, "m", &means).unwrap();
+        assert_eq!(again, mix);
+    }
+
+    #[test]
+    fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
+        let dim = 3;
+        let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
+        // Gaussian 0: a=1 on e_x and on -e_x (cancels: unobserved); 1: tiny weight; 2: e_y.
+        store
+            .push(ImageContribution {
+                dim,
+                mask_embeddings: vec![1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+                entries: vec![
+                    Entry {
+                        gaussian: 0,
+                        mask: 0,
+                        weight: 1.0,
+                    },
+                    Entry {
+                        gaussian: 0,
+                        mask: 1,
+                        weight: 1.0,
+                    },
+                    Entry {
+                        gaussian: 1,
+                        mask: 2,
+                        weight: 1e-9,
+                    },
+                    Entry {
+                        gaussian: 2,
+                        mask: 2,
+                        weight: 2.0,
+                    },
+                    Entry {
+                        gaussian: 2,
+                        mask: 0,
+                        weight: 0.5,
+                    },
+                ],
+            })
+            .unwrap();
+        let means = vec![[0.0; 3]; 4];
+        let p = ReduceParams::default();
+        let exact = reduce(&store, 4, dim, p).unwrap();
+        let mix = reduce_mixture(&store, 4, dim, p, 1, "m", &means).unwrap();
+        assert_eq!(exact.ids, vec![2]);
+        assert_eq!(mix.gaussian_ids, vec![2]);
+        // keep 1: only the e_y atom (a=2) survives, and the unused codebook rows are dropped.
+        assert_eq!(mix.codebook, vec![0.0, 1.0, 0.0]);
+        assert_eq!(
+            (mix.keep, mix.atoms.clone(), mix.weights.clone()),
+            (1, vec![0], vec![1.0])
+        );
+        assert!(matches!(
+            reduce_mixture(&store, 4, dim, p, 0, "m", &means),
+            Err(Error::Invalid(_))
+        ));
+        assert!(matches!(
+            reduce_mixture(&store, 4, dim, p, 2, "m", &means[..3]),
+            Err(Error::Invalid(_))
+        ));
+        assert!(matches!(
+            reduce_mixture(&store, 4, 4, p, 2, "m", &means),
+            Err(Error::Invalid(_))
+        ));
+    }
+
+    mod mixture_props {
+        use super::*;
+        use proptest::prelude::*;
+
+        /// Random sparse contributions: per image, random masks and random (gaussian, mask, a).
+        fn random_store(n: u32, images: usize, dim: usize, seed: u64) -> Vec<ImageContribution> {
+            let mut s = seed | 1;
+            let mut next = move || {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                s
+            };
+            (0..images)
+                .map(|i| {
+                    let m = 1 + (next() % 5) as u32;
+                    let mut entries = Vec::new();
+                    for g in 0..n {
+                        for j in 0..m {
+                            if next() % 3 == 0 {
+                                // Coarse weights so that ties happen and test the tie rule.
+                                let weight = (1 + next() % 40) as f32 / 8.0;
+                                entries.push(Entry {
+                                    gaussian: g,
+                                    mask: j,
+                                    weight,
+                                });
+                            }
+                        }
+                    }
+                    ImageContribution {
+                        dim,
+                        mask_embeddings: unit_rows(m as usize, dim, seed ^ ((i as u64 + 1) * 77)),
+                        entries,
+                    }
+                })
+                .collect()
+        }
+
+        proptest! {
+            #![proptest_config(ProptestConfig::with_cases(40))]
+            #[test]
+            fn mixture_scores_and_top_atom(
+                n in 1u32..40, images in 1usize..5, dim in 2usize..12, keep in 1usize..6,
+                seed in any::<u64>(),
+            ) {
+                let contribs = random_store(n, images, dim, seed);
+                let mut store =
+                    ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
+                for c in &contribs {
+                    store.push(c.clone()).unwrap();
+                }
+                let means = vec![[0.5f32; 3]; n as usize];
+                let p = ReduceParams::default();
+                let exact = reduce(&store, n as usize, dim, p).unwrap();
+                // Random embeddings may cancel at some keep: then the mixture refuses, typed.
+                let mix = match reduce_mixture(&store, n as usize, dim, p, keep, "m", &means) {
+                    Ok(m) => m,
+                    Err(e) => {
+                        prop_assert!(matches!(e, Error::Invalid(_)));
+                        return Ok(());
+                    }
+                };
+                prop_assert_eq!(&mix.gaussian_ids, &exact.ids);
+                prop_assert!(mix.keep <= keep);
+                // Scores equal dense cosine scores of the reconstruction.
+                let q = unit_rows(1, dim, seed ^ 0xabc);
+                let s = mix.scores(&q).unwrap();
+                let dense = slag_common::similarity::cosine_scores(&mix.to_dense(), dim, &q).unwrap();
+                for (a, b) in s.iter().zip(&dense) {
+                    prop_assert!((a - b).abs() < 1e-5, "{} vs {}", a, b);
+                }
+                // The first slot holds the largest a_kj (ties: first image, then lower mask).
+                for (i, &k) in mix.gaussian_ids.iter().enumerate() {
+                    let mut best: Option<(f32, &[f32])> = None;
+                    for c in &contribs {
+                        for e in c.entries.iter().filter(|e| e.gaussian == k) {
+                            if best.is_none_or(|(a, _)| e.weight > a) {
+                                let j = e.mask as usize;
+                                best = Some((e.weight, &c.mask_embeddings[j * dim..(j + 1) * dim]));
+                            }
+                        }
+                    }
+                    let (_, want) = best.unwrap();
+                    let atom = mix.atoms[i * mix.keep];
+                    let row = &mix.codebook[atom as usize * dim..(atom as usize + 1) * dim];
+                    for (a, b) in row.iter().zip(want) {
+                        prop_assert_eq!(*a, half::f16::from_f32(*b).to_f32());
+                    }
+                    if keep == 1 {
+                        // One atom: the reconstruction is that mask embedding (weight 1/‖E‖ ≈ 1).
+                        prop_assert!((mix.weights[i] - 1.0).abs() < 2e-3);
+                    }
+                }
+            }
+        }
     }
 }

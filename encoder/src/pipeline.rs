@@ -89,6 +89,10 @@ pub struct EncodeParams {
     pub out_dir: PathBuf,
     /// Show progress bars (stderr).
     pub progress: bool,
+    /// Also write `<out>/mixture.safetensors`: the embeddings as a shared codebook of mask
+    /// embeddings plus each Gaussian's `S` largest `a_kj` ([`aggregate::reduce_mixture`]);
+    /// `None` = dense file only.
+    pub mixture_keep: Option<usize>,
 }
 
 /// Decoded image + its masks and mask embeddings, passed from the front to the back thread.
@@ -130,7 +134,8 @@ fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
 }
 
 /// Runs the whole Semantic Embedding stage on `scene` and writes
-/// `<out>/embeddings.safetensors` + `<out>/report.json` (each atomically; the report last, so a
+/// `<out>/embeddings.safetensors` (+ `<out>/mixture.safetensors` with
+/// [`EncodeParams::mixture_keep`]) + `<out>/report.json` (each atomically; the report last, so a
 /// report's presence means the run completed).
 pub fn encode(
     scene: &SceneInput,
@@ -265,6 +270,15 @@ pub fn encode(
     counts.observed = reduced.ids.len();
     counts.observed_fraction = reduced.ids.len() as f64 / gaussians.len().max(1) as f64;
     counts.contributors_per_pixel = raster_entries as f64 / raster_pixels.max(1) as f64;
+    let t0 = Instant::now();
+    let mixture = params
+        .mixture_keep
+        .map(|keep| {
+            let (n, p) = (gaussians.len(), params.reduce);
+            aggregate::reduce_mixture(&store, n, dim, p, keep, &model_id, &gaussians.means)
+        })
+        .transpose()?;
+    let mixture_s = t0.elapsed().as_secs_f64();
     drop(store);
 
     let t0 = Instant::now();
@@ -289,6 +303,15 @@ pub fn encode(
         std::fs::remove_file(&report_path).map_err(|e| Error::io(&report_path, e))?;
     }
     embeddings.write(&emb_path, params.precision)?;
+    let mix_path = params.out_dir.join("mixture.safetensors");
+    match &mixture {
+        Some(m) => m.write(&mix_path)?,
+        // A mixture of an earlier run must not sit beside this run's report.
+        None if mix_path.exists() => {
+            std::fs::remove_file(&mix_path).map_err(|e| Error::io(&mix_path, e))?
+        }
+        None => {}
+    }
     t.write = t0.elapsed().as_secs_f64();
     t.total = t_total.elapsed().as_secs_f64();
     let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
@@ -297,6 +320,11 @@ pub fn encode(
     report.outputs = serde_json::json!({
         "embeddings": emb_path, "embeddings_bytes": emb_bytes,
         "precision": params.precision, "report": report_path,
+        "mixture": mixture.as_ref().map(|_| &mix_path),
+        "mixture_keep": mixture.as_ref().map(|m| m.keep),
+        "mixture_codebook_rows": mixture.as_ref().map(|m| m.codebook_len()),
+        "mixture_bytes_per_gaussian": mixture.as_ref().map(|m| m.bytes_per_gaussian()),
+        "mixture_reduce_s": mixture.as_ref().map(|_| mixture_s),
     });
     let json =
         serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;

@@ -116,12 +116,25 @@ pub struct EncodeArgs {
     /// Stored precision of the embeddings.
     #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
     pub precision: PrecisionArg,
+    /// Also write OUT/mixture.safetensors: a shared codebook of the mask embeddings plus each
+    /// Gaussian's S largest a_kj (compressed embeddings; S >= 1).
+    #[arg(long, value_name = "S", value_parser = parse_keep)]
+    pub mixture_keep: Option<usize>,
     /// Output folder (embeddings.safetensors, report.json).
     #[arg(long)]
     pub out: PathBuf,
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+}
+
+/// `--mixture-keep`: a positive slot count.
+fn parse_keep(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("keep at least 1 mask embedding per Gaussian".into()),
+        Ok(k) => Ok(k),
+        Err(e) => Err(format!("{e}; pass a positive integer")),
+    }
 }
 
 fn build_masks(a: &EncodeArgs, threads: usize) -> anyhow::Result<Box<dyn MaskGenerator>> {
@@ -186,6 +199,7 @@ fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
             "clip_batch": a.clip_batch,
             "top_k_per_pixel": a.top_k_per_pixel,
             "min_weight": a.min_weight,
+            "mixture_keep": a.mixture_keep,
             "threads": threads,
         }),
         ..Default::default()
@@ -224,6 +238,7 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
         },
         out_dir: a.out.clone(),
         progress: !a.quiet,
+        mixture_keep: a.mixture_keep,
     };
     let header = report_header(a, &scene, threads);
     let backend = a.rasterizer;

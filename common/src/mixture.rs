@@ -1,0 +1,997 @@
+//! Mixture storage of the per-Gaussian embeddings: one shared codebook of mask embeddings plus a
+//! few sparse weights per Gaussian.
+//!
+//! SLAG's per-Gaussian embedding (Semantic Embedding stage)
+//!
+//! ```text
+//!   E_k = Σ_i Σ_j a_kj · E_j / Σ_i Σ_j a_kj
+//! ```
+//!
+//! is a weighted mean of the CLIP embeddings `E_j` of the masks that cover Gaussian `k` in the
+//! training images. Instead of storing `E_k` densely (D values per Gaussian), this form stores
+//! every mask embedding of the run once (the *codebook*, `M × D`) and, per Gaussian, the `S`
+//! largest `a_kj` (over all images) as `(codebook row, weight)` pairs. With `S` at least the number
+//! of non-zero `a_kj` of a Gaussian, its reconstruction equals the normalised `E_k` up to f16
+//! rounding; with fewer it is the normalised mean of its `S` strongest masks.
+//!
+//! Because the reconstruction is linear in the codebook, a query needs one dot product per
+//! codebook row (`q·E_j`, `M × D` work) and then only `S` multiply-adds per Gaussian
+//! ([`MixtureEmbeddings::scores`]).
+//!
+//! File layout (safetensors, little-endian, readable with `safetensors.numpy.load_file`):
+//! - `codebook`     F16 `[M, D]` — mask embeddings `E_j` (L2-normalised CLIP crop embeddings);
+//! - `atoms`        U32 `[N, S]` — codebook row of each kept mask, [`UNUSED`] for an empty slot;
+//! - `weights`      F16 `[N, S]` — `a_kj / ‖Σ_s a_ks E_s‖` (0 in empty slots), so each row of
+//!   `Σ_s weights · codebook[atoms]` has unit L2 norm (up to f16 rounding);
+//! - `gaussian_ids` U32 `[N]` — source `.ply` vertex index, strictly ascending;
+//! - `means`        F32 `[N, 3]` — Gaussian centres, world frame of the scene, scene units.
+//!
+//! Metadata (`__metadata__`, strings): `format = "slag-mixture"`, `version = "1"`, `dim`,
+//! `model_id` (CLIP visual model id), `keep` (S).
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use half::f16;
+use rayon::prelude::*;
+use safetensors::SafeTensors;
+use safetensors::tensor::{Dtype, TensorView};
+
+use crate::embeddings::write_atomic;
+use crate::similarity::dot;
+use crate::{Error, Result};
+
+/// Format identifier stored in the metadata.
+pub const FORMAT: &str = "slag-mixture";
+/// Current format version.
+pub const VERSION: &str = "1";
+/// Atom value of an empty slot (a Gaussian with fewer than `S` non-zero `a_kj`).
+pub const UNUSED: u32 = u32::MAX;
+/// Largest weight magnitude the f16 file can hold (`f16::MAX`, 65504).
+pub const MAX_WEIGHT: f32 = 65504.0;
+
+/// Rounds to the nearest f16 value (what the file stores), returned as f32.
+fn round_f16(v: f32) -> f32 {
+    f16::from_f32(v).to_f32()
+}
+
+/// Per-Gaussian embeddings as a sparse mixture over a shared codebook of mask embeddings.
+///
+/// All values held here are exactly the values the file stores (the codebook and the weights are
+/// rounded to f16 when built), so [`MixtureEmbeddings::write`] then [`MixtureEmbeddings::read`]
+/// returns an equal value and every figure measured in memory holds for the file.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct MixtureEmbeddings {
+    /// Embedding width D (512 for CLIP ViT-B).
+    pub dim: usize,
+    /// CLIP visual model id the mask embeddings come from.
+    pub model_id: String,
+    /// `[M * D]` row-major codebook: the mask embeddings `E_j` some kept atom uses (unit L2 norm
+    /// up to f16 rounding), f16-representable values.
+    pub codebook: Vec<f32>,
+    /// `[N]` source-`.ply` indices of the observed Gaussians, strictly ascending.
+    pub gaussian_ids: Vec<u32>,
+    /// `[N]` Gaussian centres, world frame of the scene, scene units.
+    pub means: Vec<[f32; 3]>,
+    /// `S`: atom slots per Gaussian.
+    pub keep: usize,
+    /// `[N * S]` codebook row per slot, [`UNUSED`] for an empty slot. Within a Gaussian the
+    /// slots are ordered by decreasing weight, empty slots last.
+    pub atoms: Vec<u32>,
+    /// `[N * S]` weights, f16-representable values, 0 in empty slots, scaled so that each
+    /// Gaussian's `Σ_s weights · codebook[atoms]` has unit L2 norm (up to f16 rounding).
+    pub weights: Vec<f32>,
+}
+
+/// The unnormalised input of [`MixtureEmbeddings::from_sparse`]: a codebook and, per Gaussian, a
+/// ragged row of `(codebook row, a)` pairs in CSR layout.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct SparseMixture {
+    /// Embedding width D.
+    pub dim: usize,
+    /// CLIP visual model id.
+    pub model_id: String,
+    /// `[M * D]` mask embeddings `E_j` (any precision; rounded to f16 by the build).
+    pub codebook: Vec<f32>,
+    /// `[N]` source-`.ply` indices, strictly ascending.
+    pub gaussian_ids: Vec<u32>,
+    /// `[N]` centres, world frame.
+    pub means: Vec<[f32; 3]>,
+    /// `[N + 1]` offsets into `atoms` / `weights` (row `i` is `offsets[i]..offsets[i + 1]`).
+    pub offsets: Vec<usize>,
+    /// Codebook rows (`< M`); no repeats within a row.
+    pub atoms: Vec<u32>,
+    /// Mixture weights `a_kj` (any positive scale; zeros are dropped).
+    pub weights: Vec<f64>,
+}
+
+impl MixtureEmbeddings {
+    /// Builds the stored form from sparse rows: drops codebook rows no atom uses (renumbering the
+    /// rest in their original order), rounds the codebook to f16, orders each row by decreasing
+    /// `a` (ties: lower codebook row first), sets `S` to the longest row, and scales each row's
+    /// weights by `1 / ‖Σ_s a_s · E_s‖` (computed in f64 with the f16-rounded codebook) before
+    /// rounding them to f16.
+    ///
+    /// Errors ([`Error::Invalid`]): inconsistent lengths, ids not strictly ascending, an atom out of
+    /// range or repeated in a row, non-finite values, a row whose weighted codebook rows sum to
+    /// zero (no direction), or a weight beyond the f16 range (the kept mask embeddings nearly
+    /// cancel: `‖Σ a E‖ < Σ|a| / 65504`).
+    pub fn from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
+        let SparseMixture {
+            dim,
+            model_id,
+            codebook,
+            gaussian_ids,
+            means,
+            offsets,
+            atoms,
+            weights,
+        } = parts;
+        let n = gaussian_ids.len();
+        let bad = |m: String| Err(Error::Invalid(format!("mixture: {m}")));
+        if dim == 0 || !codebook.len().is_multiple_of(dim) {
+            return bad(format!(
+                "codebook of {} values for dim {dim}",
+                codebook.len()
+            ));
+        }
+        let m = codebook.len() / dim;
+        if m >= UNUSED as usize {
+            return bad(format!(
+                "{m} codebook rows; at most {} fit u32 ids",
+                UNUSED - 1
+            ));
+        }
+        if means.len() != n
+            || offsets.len() != n + 1
+            || atoms.len() != weights.len()
+            || offsets.first() != Some(&0)
+            || offsets.last() != Some(&atoms.len())
+            || offsets.windows(2).any(|w| w[0] > w[1])
+        {
+            return bad(format!(
+                "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
+                means.len(),
+                offsets.len(),
+                atoms.len(),
+                weights.len()
+            ));
+        }
+        if gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
+            return bad("Gaussian ids are not strictly ascending".into());
+        }
+        if codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
+            return bad("non-finite codebook value or weight".into());
+        }
+        if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
+            return bad(format!("atom {a} beyond the {m} codebook rows"));
+        }
+        // Used codebook rows, renumbered in their original order.
+        let mut new_row = vec![UNUSED; m];
+        for (i, &a) in atoms.iter().enumerate() {
+            if weights[i] != 0.0 {
+                new_row[a as usize] = 0;
+            }
+        }
+        let mut kept_rows = 0u32;
+        let mut book = Vec::new();
+        for (r, slot) in new_row.iter_mut().enumerate() {
+            if *slot == 0 {
+                *slot = kept_rows;
+                kept_rows += 1;
+                book.extend(
+                    codebook[r * dim..(r + 1) * dim]
+                        .iter()
+                        .map(|&v| round_f16(v)),
+                );
+            }
+        }
+        drop(codebook);
+        // Rows: sorted, de-duplicated check, normalised with the rounded codebook.
+        let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let mut row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
+                    .filter(|&e| weights[e] != 0.0)
+                    .map(|e| (new_row[atoms[e] as usize], weights[e]))
+                    .collect();
+                row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
+                let mut ids: Vec<u32> = row.iter().map(|r| r.0).collect();
+                ids.sort_unstable();
+                if ids.windows(2).any(|w| w[0] == w[1]) {
+                    return Err(format!("Gaussian {} repeats an atom", gaussian_ids[i]));
+                }
+                let mut acc = vec![0f64; dim];
+                for &(a, w) in &row {
+                    let e = &book[a as usize * dim..(a as usize + 1) * dim];
+                    acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
+                }
+                let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
+                if !(norm.is_finite() && norm > 0.0) {
+                    return Err(format!(
+                        "Gaussian {}: its weighted mask embeddings sum to zero (no direction)",
+                        gaussian_ids[i]
+                    ));
+                }
+                let mut out = Vec::with_capacity(row.len());
+                for (a, w) in row {
+                    let s = w / norm;
+                    if s.abs() > MAX_WEIGHT as f64 {
+                        return Err(format!(
+                            "Gaussian {}: weight {s:e} beyond the f16 range (its mask embeddings \
+                             nearly cancel out); such a Gaussian cannot be stored as a mixture, \
+                             use the dense embeddings file",
+                            gaussian_ids[i]
+                        ));
+                    }
+                    out.push((a, round_f16(s as f32) as f64));
+                }
+                Ok(out)
+            })
+            .collect();
+        let mut kept = Vec::with_capacity(n);
+        for r in rows {
+            match r {
+                Ok(r) => kept.push(r),
+                Err(m) => return bad(m),
+            }
+        }
+        let keep = kept.iter().map(Vec::len).max().unwrap_or(0).max(1);
+        let mut out_atoms = vec![UNUSED; n * keep];
+        let mut out_weights = vec![0f32; n * keep];
+        for (i, row) in kept.iter().enumerate() {
+            for (s, &(a, w)) in row.iter().enumerate() {
+                out_atoms[i * keep + s] = a;
+                out_weights[i * keep + s] = w as f32;
+            }
+        }
+        Ok(MixtureEmbeddings {
+            dim,
+            model_id,
+            codebook: book,
+            gaussian_ids,
+            means,
+            keep,
+            atoms: out_atoms,
+            weights: out_weights,
+        })
+    }
+
+    /// Number of stored (observed) Gaussians N.
+    pub fn len(&self) -> usize {
+        self.gaussian_ids.len()
+    }
+    /// True when no Gaussian is stored.
+    pub fn is_empty(&self) -> bool {
+        self.gaussian_ids.is_empty()
+    }
+    /// Number of codebook rows M.
+    pub fn codebook_len(&self) -> usize {
+        self.codebook.len().checked_div(self.dim).unwrap_or(0)
+    }
+
+    /// Codebook row `j` (`[D]`), `None` beyond the codebook (including [`UNUSED`]).
+    fn row(&self, j: u32) -> Option<&[f32]> {
+        let j = j as usize;
+        self.codebook.get(j * self.dim..(j + 1) * self.dim)
+    }
+
+    /// The reconstructed unit embedding of stored Gaussian `i` (`[D]`):
+    /// `Σ_s weights[i,s] · codebook[atoms[i,s]]`, unit L2 norm up to f16 rounding of the weights.
+    ///
+    /// # Panics
+    /// If `i >= len()` (like slice indexing).
+    pub fn vector(&self, i: usize) -> Vec<f32> {
+        let mut v = vec![0f32; self.dim];
+        self.vector_into(i, &mut v);
+        v
+    }
+
+    fn vector_into(&self, i: usize, out: &mut [f32]) {
+        let slots = i * self.keep..(i + 1) * self.keep;
+        for (&a, &w) in self.atoms[slots.clone()].iter().zip(&self.weights[slots]) {
+            if let Some(e) = self.row(a) {
+                out.iter_mut().zip(e).for_each(|(o, &v)| *o += w * v);
+            }
+        }
+    }
+
+    /// All reconstructed embeddings, `[N * D]` row-major (row `i` = [`MixtureEmbeddings::vector`]).
+    pub fn to_dense(&self) -> Vec<f32> {
+        let mut out = vec![0f32; self.len() * self.dim];
+        if self.dim > 0 {
+            out.par_chunks_mut(self.dim)
+                .enumerate()
+                .for_each(|(i, row)| self.vector_into(i, row));
+        }
+        out
+    }
+
+    /// Bytes of the tensors as written to disk: the codebook at f16 (`M·D·2`, shared by all
+    /// Gaussians) plus per Gaussian `S × (4 B atom + 2 B f16 weight)`, 4 B id and 12 B mean. The
+    /// safetensors JSON header (a few hundred bytes) is not counted.
+    pub fn stored_bytes(&self) -> usize {
+        self.codebook.len() * 2 + self.len() * (self.keep * 6 + 4 + 12)
+    }
+
+    /// [`MixtureEmbeddings::stored_bytes`] per stored Gaussian (the codebook amortised over N);
+    /// 0 when empty. Compare with 1040 B (dense f16, D = 512) or 2064 B (dense f32).
+    pub fn bytes_per_gaussian(&self) -> f64 {
+        if self.is_empty() {
+            0.0
+        } else {
+            self.stored_bytes() as f64 / self.len() as f64
+        }
+    }
+
+    /// Checks the arrays agree (lengths, `S ≥ 1`, atoms in range or [`UNUSED`] with weight 0,
+    /// finite values, weights within the f16 range, ids strictly ascending).
+    ///
+    /// Errors: [`Error::Invalid`] naming the first inconsistency.
+    pub fn validate(&self) -> Result<()> {
+        self.check()
+            .map_err(|m| Error::Invalid(format!("mixture: {m}")))
+    }
+
+    fn check(&self) -> std::result::Result<(), String> {
+        let n = self.len();
+        if self.dim == 0 || !self.codebook.len().is_multiple_of(self.dim) {
+            return Err(format!(
+                "codebook of {} values for dim {}",
+                self.codebook.len(),
+                self.dim
+            ));
+        }
+        if self.keep == 0 {
+            return Err("keep (atom slots per Gaussian) is 0".into());
+        }
+        if self.means.len() != n
+            || self.atoms.len() != n * self.keep
+            || self.weights.len() != n * self.keep
+        {
+            return Err(format!(
+                "{n} ids, {} means, {} atoms, {} weights for keep {}",
+                self.means.len(),
+                self.atoms.len(),
+                self.weights.len(),
+                self.keep
+            ));
+        }
+        if self.gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
+            return Err("Gaussian ids are not strictly ascending".into());
+        }
+        if self.codebook.iter().any(|v| !v.is_finite())
+            || self.means.iter().flatten().any(|v| !v.is_finite())
+        {
+            return Err("non-finite codebook value or mean".into());
+        }
+        let m = self.codebook_len();
+        for (&a, &w) in self.atoms.iter().zip(&self.weights) {
+            if !(w.is_finite() && w.abs() <= MAX_WEIGHT) {
+                return Err(format!("weight {w} is not a finite f16 value"));
+            }
+            if a == UNUSED {
+                if w != 0.0 {
+                    return Err(format!("an empty slot carries weight {w}"));
+                }
+            } else if a as usize >= m {
+                return Err(format!("atom {a} beyond the {m} codebook rows"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Normalised copy of a query, or a typed error.
+    fn unit_query(&self, query: &[f32]) -> Result<Vec<f32>> {
+        if query.len() != self.dim {
+            return Err(Error::Invalid(format!(
+                "query has {} components, the mixture embeddings have {}; use the text tower of \
+                 the same CLIP model",
+                query.len(),
+                self.dim
+            )));
+        }
+        let norm = query
+            .iter()
+            .map(|&q| q as f64 * q as f64)
+            .sum::<f64>()
+            .sqrt();
+        if !norm.is_finite() || norm < 1e-12 {
+            return Err(Error::Invalid(
+                "the text embedding is zero or not finite; rephrase the prompt".into(),
+            ));
+        }
+        Ok(query.iter().map(|&v| (v as f64 / norm) as f32).collect())
+    }
+
+    fn check_shapes(&self) -> Result<()> {
+        let n = self.len();
+        if self.dim == 0
+            || self.keep == 0
+            || !self.codebook.len().is_multiple_of(self.dim)
+            || self.atoms.len() != n * self.keep
+            || self.weights.len() != n * self.keep
+        {
+            return self.validate();
+        }
+        Ok(())
+    }
+
+    /// Cosine similarity of every stored Gaussian with `query` (`[D]`, any norm; normalised here):
+    /// `[N]` scores. Computes `q·E_j` once per codebook row, then per Gaussian the sparse sum
+    /// `Σ_s weights · (q·E_atom)` (the paper's query rule over the reconstructed `E_k`; rayon over
+    /// N).
+    ///
+    /// Errors ([`Error::Invalid`]): `query.len() != dim`, a zero or non-finite query, arrays of
+    /// inconsistent lengths.
+    pub fn scores(&self, query: &[f32]) -> Result<Vec<f32>> {
+        self.check_shapes()?;
+        let q = self.unit_query(query)?;
+        let proj: Vec<f32> = self
+            .codebook
+            .par_chunks_exact(self.dim)
+            .map(|row| dot(row, &q))
+            .collect();
+        Ok(self
+            .atoms
+            .par_chunks_exact(self.keep)
+            .zip(self.weights.par_chunks_exact(self.keep))
+            .map(|(atoms, weights)| {
+                atoms
+                    .iter()
+                    .zip(weights)
+                    .map(|(&a, &w)| proj.get(a as usize).map_or(0.0, |&p| w * p))
+                    .sum()
+            })
+            .collect())
+    }
+
+    /// [`MixtureEmbeddings::scores`] for several queries in one pass over the Gaussians:
+    /// `[queries.len()][N]`.
+    ///
+    /// Errors: as [`MixtureEmbeddings::scores`], for the first bad query.
+    pub fn scores_many(&self, queries: &[&[f32]]) -> Result<Vec<Vec<f32>>> {
+        self.check_shapes()?;
+        let qs = queries
+            .iter()
+            .map(|q| self.unit_query(q))
+            .collect::<Result<Vec<_>>>()?;
+        let nq = qs.len();
+        if nq == 0 {
+            return Ok(Vec::new());
+        }
+        // proj[j * nq + t] = q_t · E_j
+        let proj: Vec<f32> = self
+            .codebook
+            .par_chunks_exact(self.dim)
+            .flat_map_iter(|row| qs.iter().map(move |q| dot(row, q)))
+            .collect();
+        let mut flat = vec![0f32; self.len() * nq];
+        flat.par_chunks_mut(nq)
+            .zip(self.atoms.par_chunks_exact(self.keep))
+            .zip(self.weights.par_chunks_exact(self.keep))
+            .for_each(|((out, atoms), weights)| {
+                for (&a, &w) in atoms.iter().zip(weights) {
+                    if let Some(p) = proj.get(a as usize * nq..(a as usize + 1) * nq) {
+                        out.iter_mut().zip(p).for_each(|(o, &p)| *o += w * p);
+                    }
+                }
+            });
+        Ok((0..nq)
+            .map(|t| flat.iter().skip(t).step_by(nq).copied().collect())
+            .collect())
+    }
+
+    /// Writes the file atomically (`<path>.partial`, fsync, rename; see the module docs for the
+    /// layout).
+    ///
+    /// Errors: [`Error::Invalid`] when [`MixtureEmbeddings::validate`] fails, I/O.
+    pub fn write(&self, path: &Path) -> Result<()> {
+        self.validate()?;
+        let (n, s, m, d) = (self.len(), self.keep, self.codebook_len(), self.dim);
+        let book: Vec<f16> = self.codebook.iter().map(|&v| f16::from_f32(v)).collect();
+        let weights: Vec<f16> = self.weights.iter().map(|&v| f16::from_f32(v)).collect();
+        let view = |dtype, shape: Vec<usize>, data| {
+            TensorView::new(dtype, shape, data)
+                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
+        };
+        let tensors = vec![
+            (
+                "codebook",
+                view(Dtype::F16, vec![m, d], bytemuck::cast_slice(&book))?,
+            ),
+            (
+                "atoms",
+                view(Dtype::U32, vec![n, s], bytemuck::cast_slice(&self.atoms))?,
+            ),
+            (
+                "weights",
+                view(Dtype::F16, vec![n, s], bytemuck::cast_slice(&weights))?,
+            ),
+            (
+                "gaussian_ids",
+                view(
+                    Dtype::U32,
+                    vec![n],
+                    bytemuck::cast_slice(&self.gaussian_ids),
+                )?,
+            ),
+            (
+                "means",
+                view(Dtype::F32, vec![n, 3], bytemuck::cast_slice(&self.means))?,
+            ),
+        ];
+        let meta: HashMap<String, String> = [
+            ("format", FORMAT.to_string()),
+            ("version", VERSION.to_string()),
+            ("dim", d.to_string()),
+            ("model_id", self.model_id.clone()),
+            ("keep", s.to_string()),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        let bytes = safetensors::serialize(tensors, Some(meta))
+            .map_err(|e| Error::Invalid(format!("safetensors: {e}")))?;
+        write_atomic(path, &bytes)
+    }
+
+    /// Reads a file written by [`MixtureEmbeddings::write`].
+    ///
+    /// Errors: [`Error::Io`]; [`Error::Format`] (naming the file) for a file that is not
+    /// safetensors, another format or version, missing tensors, wrong dtypes or shapes, metadata
+    /// that disagrees with the shapes, atoms out of range, non-finite values, or ids not
+    /// ascending.
+    pub fn read(path: &Path) -> Result<MixtureEmbeddings> {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let bad = |m: String| Error::format(path, m);
+        let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| {
+            bad(format!(
+                "not a safetensors file ({e}); pass the encoder's mixture.safetensors"
+            ))
+        })?;
+        let meta = header.metadata().clone().unwrap_or_default();
+        if meta.get("format").map(String::as_str) != Some(FORMAT) {
+            return Err(bad(format!(
+                "not a slag mixture file (metadata format {:?})",
+                meta.get("format")
+            )));
+        }
+        if meta.get("version").map(String::as_str) != Some(VERSION) {
+            return Err(bad(format!(
+                "mixture format version {:?}, this slag reads {VERSION}; re-run slag-encoder \
+                 encode --mixture-keep",
+                meta.get("version")
+            )));
+        }
+        let num = |key: &str| -> Result<usize> {
+            meta.get(key)
+                .and_then(|v| v.parse().ok())
+                .ok_or_else(|| bad(format!("metadata {key} missing or not a number")))
+        };
+        let (dim, keep) = (num("dim")?, num("keep")?);
+        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("{e}")))?;
+        let get = |name: &str, dtype: Dtype| {
+            let t = st
+                .tensor(name)
+                .map_err(|e| bad(format!("tensor {name}: {e}")))?;
+            if t.dtype() != dtype {
+                return Err(bad(format!(
+                    "tensor {name} is {:?}, expected {dtype:?}",
+                    t.dtype()
+                )));
+            }
+            Ok(t)
+        };
+        let book_t = get("codebook", Dtype::F16)?;
+        let atoms_t = get("atoms", Dtype::U32)?;
+        let weights_t = get("weights", Dtype::F16)?;
+        let ids_t = get("gaussian_ids", Dtype::U32)?;
+        let means_t = get("means", Dtype::F32)?;
+        let n = ids_t.shape().first().copied().unwrap_or(0);
+        let m = book_t.shape().first().copied().unwrap_or(0);
+        if book_t.shape() != [m, dim]
+            || atoms_t.shape() != [n, keep]
+            || weights_t.shape() != [n, keep]
+            || ids_t.shape() != [n]
+            || means_t.shape() != [n, 3]
+        {
+            return Err(bad(format!(
+                "tensor shapes disagree with the mixture layout (dim {dim}, keep {keep}): \
+                 codebook {:?}, atoms {:?}, weights {:?}, gaussian_ids {:?}, means {:?}",
+                book_t.shape(),
+                atoms_t.shape(),
+                weights_t.shape(),
+                ids_t.shape(),
+                means_t.shape()
+            )));
+        }
+        let halves = |b: &[u8]| -> Vec<f32> {
+            b.chunks_exact(2)
+                .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
+                .collect()
+        };
+        let words = |b: &[u8]| -> Vec<u32> {
+            b.chunks_exact(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        };
+        let means = words(means_t.data())
+            .chunks_exact(3)
+            .map(|c| {
+                [
+                    f32::from_bits(c[0]),
+                    f32::from_bits(c[1]),
+                    f32::from_bits(c[2]),
+                ]
+            })
+            .collect();
+        let out = MixtureEmbeddings {
+            dim,
+            model_id: meta.get("model_id").cloned().unwrap_or_default(),
+            codebook: halves(book_t.data()),
+            gaussian_ids: words(ids_t.data()),
+            means,
+            keep,
+            atoms: words(atoms_t.data()),
+            weights: halves(weights_t.data()),
+        };
+        out.check().map_err(bad)?;
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use crate::similarity::cosine_scores;
+    use proptest::prelude::*;
+
+    /// Deterministic xorshift stream in [-1, 1).
+    fn stream(seed: u64) -> impl FnMut() -> f32 {
+        let mut s = seed | 1;
+        move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+        }
+    }
+
+    fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
+        let mut r = stream(seed);
+        let mut out = Vec::with_capacity(m * dim);
+        for _ in 0..m {
+            let v: Vec<f32> = (0..dim).map(|_| r()).collect();
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            out.extend(v.iter().map(|x| x / n));
+        }
+        out
+    }
+
+    /// N Gaussians, each mixing up to 4 of M rows with positive weights.
+    fn sample(n: usize, m: usize, dim: usize, seed: u64) -> SparseMixture {
+        let mut r = stream(seed ^ 0x5eed);
+        let mut parts = SparseMixture {
+            dim,
+            model_id: "color-clip-visual".into(),
+            codebook: unit_rows(m, dim, seed),
+            gaussian_ids: (0..n as u32).map(|i| 3 * i + 1).collect(),
+            means: (0..n).map(|i| [i as f32, 0.5, -(i as f32)]).collect(),
+            offsets: vec![0],
+            ..Default::default()
+        };
+        for i in 0..n {
+            let k = 1 + i % 4;
+            for t in 0..k {
+                parts.atoms.push(((i * 7 + t * 3) % m) as u32);
+                parts.weights.push(0.1 + r().abs() as f64 * 5.0);
+            }
+            parts.offsets.push(parts.atoms.len());
+        }
+        parts
+    }
+
+    /// The f64 normalised weighted mean, straight from E_k = Σ a E / Σ a.
+    fn exact(parts: &SparseMixture, i: usize) -> Vec<f64> {
+        let d = parts.dim;
+        let mut acc = vec![0f64; d];
+        for e in parts.offsets[i]..parts.offsets[i + 1] {
+            let a = parts.atoms[e] as usize;
+            for (s, &v) in acc.iter_mut().zip(&parts.codebook[a * d..(a + 1) * d]) {
+                *s += parts.weights[e] * v as f64;
+            }
+        }
+        let n = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
+        acc.iter().map(|v| v / n).collect()
+    }
+
+    #[test]
+    fn reconstruction_is_the_normalised_weighted_mean_and_unit_length() {
+        let parts = sample(40, 23, 16, 7);
+        let mix = MixtureEmbeddings::from_sparse(parts.clone()).unwrap();
+        assert_eq!(mix.len(), 40);
+        assert_eq!(mix.keep, 4);
+        mix.validate().unwrap();
+        for i in 0..mix.len() {
+            let v = mix.vector(i);
+            let e = exact(&parts, i);
+            let max = v
+                .iter()
+                .zip(&e)
+                .map(|(a, b)| (*a as f64 - b).abs())
+                .fold(0.0, f64::max);
+            assert!(max < 1e-3, "Gaussian {i}: max |Δ| {max}");
+            let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-3, "norm {norm}");
+            // Slots ordered by decreasing weight, empty ones last.
+            let w = &mix.weights[i * 4..(i + 1) * 4];
+            assert!(w.windows(2).all(|p| p[0] >= p[1]));
+            let used = mix.atoms[i * 4..(i + 1) * 4]
+                .iter()
+                .filter(|&&a| a != UNUSED)
+                .count();
+            assert_eq!(used, 1 + i % 4);
+        }
+    }
+
+    #[test]
+    fn unused_codebook_rows_are_dropped_and_renumbered() {
+        let dim = 4;
+        let parts = SparseMixture {
+            dim,
+            model_id: String::new(),
+            codebook: unit_rows(5, dim, 3),
+            gaussian_ids: vec![2, 9],
+            means: vec![[0.0; 3]; 2],
+            offsets: vec![0, 2, 3],
+            atoms: vec![4, 1, 4],
+            weights: vec![1.0, 3.0, 2.0],
+        };
+        let mix = MixtureEmbeddings::from_sparse(parts.clone()).unwrap();
+        assert_eq!(mix.codebook_len(), 2);
+        // Row 1 -> 0, row 4 -> 1; the larger weight (3 on row 1) comes first.
+        assert_eq!(mix.atoms, vec![0, 1, 1, UNUSED]);
+        assert_eq!(mix.weights[3], 0.0);
+        for (j, r) in [1usize, 4].iter().enumerate() {
+            for d in 0..dim {
+                let want = round_f16(parts.codebook[r * dim + d]);
+                assert_eq!(mix.codebook[j * dim + d], want);
+            }
+        }
+        assert_eq!(mix.stored_bytes(), 2 * dim * 2 + 2 * (2 * 6 + 16));
+        assert_eq!(mix.bytes_per_gaussian(), mix.stored_bytes() as f64 / 2.0);
+    }
+
+    #[test]
+    fn scores_equal_dense_cosine_of_the_reconstruction() {
+        let mix = MixtureEmbeddings::from_sparse(sample(300, 37, 24, 11)).unwrap();
+        let dense = mix.to_dense();
+        for i in [0, 17, 299] {
+            assert_eq!(&dense[i * 24..(i + 1) * 24], mix.vector(i).as_slice());
+        }
+        let queries: Vec<Vec<f32>> = (0..3).map(|t| unit_rows(1, 24, 100 + t)).collect();
+        let mut q0 = queries[0].clone();
+        q0.iter_mut().for_each(|v| *v *= 3.5); // any norm
+        let s = mix.scores(&q0).unwrap();
+        let reference = cosine_scores(&dense, 24, &q0).unwrap();
+        assert_eq!(s.len(), 300);
+        for (a, b) in s.iter().zip(&reference) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        let refs: Vec<&[f32]> = queries.iter().map(Vec::as_slice).collect();
+        let many = mix.scores_many(&refs).unwrap();
+        assert_eq!(many.len(), 3);
+        for (q, got) in queries.iter().zip(&many) {
+            let one = mix.scores(q).unwrap();
+            for (a, b) in got.iter().zip(&one) {
+                assert!((a - b).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn bad_queries_are_typed_errors() {
+        let mix = MixtureEmbeddings::from_sparse(sample(5, 4, 8, 1)).unwrap();
+        assert!(matches!(mix.scores(&[0.0; 8]), Err(Error::Invalid(_))));
+        assert!(matches!(mix.scores(&[1.0; 7]), Err(Error::Invalid(_))));
+        assert!(matches!(mix.scores(&[f32::NAN; 8]), Err(Error::Invalid(_))));
+        assert!(matches!(
+            mix.scores_many(&[&[1.0; 8], &[0.0; 8]]),
+            Err(Error::Invalid(_))
+        ));
+        let mut broken = mix.clone();
+        broken.atoms.pop();
+        assert!(matches!(broken.scores(&[1.0; 8]), Err(Error::Invalid(_))));
+    }
+
+    #[test]
+    fn write_read_round_trip_is_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("sub/mixture.safetensors");
+        let mix = MixtureEmbeddings::from_sparse(sample(50, 11, 12, 5)).unwrap();
+        mix.write(&p).unwrap();
+        assert!(!dir.path().join("sub/mixture.safetensors.partial").exists());
+        let back = MixtureEmbeddings::read(&p).unwrap();
+        assert_eq!(back, mix);
+        let len = std::fs::metadata(&p).unwrap().len() as usize;
+        assert!(len >= mix.stored_bytes() && len < mix.stored_bytes() + 1024);
+        // Empty mixtures round-trip too.
+        let empty = MixtureEmbeddings::from_sparse(SparseMixture {
+            dim: 12,
+            offsets: vec![0],
+            ..Default::default()
+        })
+        .unwrap();
+        empty.write(&p).unwrap();
+        assert_eq!(MixtureEmbeddings::read(&p).unwrap(), empty);
+        assert_eq!(empty.bytes_per_gaussian(), 0.0);
+    }
+
+    #[test]
+    fn corrupt_or_inconsistent_files_are_format_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("m.safetensors");
+        let mix = MixtureEmbeddings::from_sparse(sample(6, 5, 4, 2)).unwrap();
+        mix.write(&p).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() - 5]).unwrap();
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+        std::fs::write(&p, b"not safetensors at all").unwrap();
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+        // A dense embeddings file is another format.
+        let other = safetensors::serialize(Vec::<(&str, TensorView)>::new(), None).unwrap();
+        std::fs::write(&p, other).unwrap();
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+        // Atom out of range: written by hand past validate.
+        let mut bad = mix.clone();
+        bad.atoms[0] = 99;
+        assert!(matches!(bad.write(&p), Err(Error::Invalid(_))));
+        let write_raw = |m: &MixtureEmbeddings, keep_meta: usize| {
+            let book: Vec<f16> = m.codebook.iter().map(|&v| f16::from_f32(v)).collect();
+            let w: Vec<f16> = m.weights.iter().map(|&v| f16::from_f32(v)).collect();
+            let (n, s) = (m.len(), m.keep);
+            let t = vec![
+                (
+                    "codebook",
+                    TensorView::new(
+                        Dtype::F16,
+                        vec![m.codebook_len(), m.dim],
+                        bytemuck::cast_slice(&book),
+                    )
+                    .unwrap(),
+                ),
+                (
+                    "atoms",
+                    TensorView::new(Dtype::U32, vec![n, s], bytemuck::cast_slice(&m.atoms))
+                        .unwrap(),
+                ),
+                (
+                    "weights",
+                    TensorView::new(Dtype::F16, vec![n, s], bytemuck::cast_slice(&w)).unwrap(),
+                ),
+                (
+                    "gaussian_ids",
+                    TensorView::new(Dtype::U32, vec![n], bytemuck::cast_slice(&m.gaussian_ids))
+                        .unwrap(),
+                ),
+                (
+                    "means",
+                    TensorView::new(Dtype::F32, vec![n, 3], bytemuck::cast_slice(&m.means))
+                        .unwrap(),
+                ),
+            ];
+            let meta: HashMap<String, String> = [
+                ("format", FORMAT.to_string()),
+                ("version", VERSION.to_string()),
+                ("dim", m.dim.to_string()),
+                ("keep", keep_meta.to_string()),
+            ]
+            .into_iter()
+            .map(|(k, v)| (k.to_string(), v))
+            .collect();
+            std::fs::write(&p, safetensors::serialize(t, Some(meta)).unwrap()).unwrap();
+        };
+        write_raw(&mix, mix.keep);
+        assert_eq!(MixtureEmbeddings::read(&p).unwrap().atoms, mix.atoms);
+        write_raw(&bad, bad.keep);
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+        write_raw(&mix, mix.keep + 1);
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+        let mut unsorted = mix.clone();
+        unsorted.gaussian_ids.swap(0, 1);
+        write_raw(&unsorted, mix.keep);
+        assert!(matches!(
+            MixtureEmbeddings::read(&p),
+            Err(Error::Format { .. })
+        ));
+    }
+
+    #[test]
+    fn cancelling_or_inconsistent_rows_are_rejected() {
+        let dim = 2;
+        let base = SparseMixture {
+            dim,
+            model_id: String::new(),
+            codebook: vec![1.0, 0.0, -1.0, 0.0],
+            gaussian_ids: vec![0],
+            means: vec![[0.0; 3]],
+            offsets: vec![0, 2],
+            atoms: vec![0, 1],
+            weights: vec![1.0, 1.0],
+        };
+        assert!(matches!(
+            MixtureEmbeddings::from_sparse(base.clone()),
+            Err(Error::Invalid(_))
+        ));
+        let mut repeated = base.clone();
+        repeated.atoms = vec![0, 0];
+        assert!(matches!(
+            MixtureEmbeddings::from_sparse(repeated),
+            Err(Error::Invalid(_))
+        ));
+        let mut out_of_range = base.clone();
+        out_of_range.atoms = vec![0, 2];
+        assert!(matches!(
+            MixtureEmbeddings::from_sparse(out_of_range),
+            Err(Error::Invalid(_))
+        ));
+        let mut short = base;
+        short.offsets = vec![0, 1];
+        assert!(matches!(
+            MixtureEmbeddings::from_sparse(short),
+            Err(Error::Invalid(_))
+        ));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+        /// For random sparse mixtures the mixture scores equal dense cosine scores of `to_dense()`.
+        #[test]
+        fn scores_match_dense_scores(
+            n in 1usize..60, m in 1usize..20, dim in 1usize..40, seed in any::<u64>(),
+        ) {
+            let mut parts = sample(n, m, dim, seed);
+            // Drop repeats that `sample` makes when m is small.
+            let mut atoms = Vec::new();
+            let mut weights = Vec::new();
+            let mut offsets = vec![0];
+            for i in 0..n {
+                let mut seen = std::collections::HashSet::new();
+                for e in parts.offsets[i]..parts.offsets[i + 1] {
+                    if seen.insert(parts.atoms[e]) {
+                        atoms.push(parts.atoms[e]);
+                        weights.push(parts.weights[e]);
+                    }
+                }
+                offsets.push(atoms.len());
+            }
+            (parts.atoms, parts.weights, parts.offsets) = (atoms, weights, offsets);
+            // Positive weights on random directions can cancel only by accident; skip then.
+            let Ok(mix) = MixtureEmbeddings::from_sparse(parts) else { return Ok(()) };
+            let dense = mix.to_dense();
+            let q = unit_rows(1, dim, seed ^ 99);
+            let s = mix.scores(&q).unwrap();
+            let reference = cosine_scores(&dense, dim, &q).unwrap();
+            for (a, b) in s.iter().zip(&reference) {
+                prop_assert!((a - b).abs() < 1e-5, "{} vs {}", a, b);
+            }
+        }
+    }
+}
