@@ -148,6 +148,27 @@ fn quick_study_writes_complete_consistent_tables() {
     assert!((num(by_point["store-int8"], "colour_miou") - m32).abs() < 0.01);
     assert_eq!(m32, num(baseline, "colour_miou"));
 
+    // Mixture (codebook + S sparse weights): with every atom kept it reconstructs the f32 rows up
+    // to f16 rounding, so it answers like them; fewer slots cost fewer bytes.
+    let all = by_point["mixture-Sall"];
+    assert!(num(all, "iou") >= 0.99, "mixture-Sall IoU {}", all["iou"]);
+    assert!((num(all, "colour_miou") - m32).abs() < 0.01);
+    let mix_bpg: Vec<f64> = [
+        "mixture-S1",
+        "mixture-S2",
+        "mixture-S4",
+        "mixture-S8",
+        "mixture-S16",
+    ]
+    .iter()
+    .map(|p| bpg(p))
+    .collect();
+    assert!(mix_bpg.windows(2).all(|w| w[0] <= w[1]), "{mix_bpg:?}");
+    assert!(
+        mix_bpg[0] < bpg("store-int8"),
+        "S = 1 is smaller than int8 rows"
+    );
+
     // Index: the exact scan is its own reference; HNSW holds more bytes than the store.
     let scan = rows
         .iter()

@@ -45,6 +45,9 @@ pub struct EncodePoint {
     pub raster_scale: f64,
     /// Contributors kept per pixel (`--top-k-per-pixel`); `None` = all (the paper).
     pub top_k: Option<usize>,
+    /// Also write the mixture form with this many slots (`--mixture-keep`); the dense
+    /// embeddings do not depend on it. The study sets it on the baseline only.
+    pub mixture_keep: Option<usize>,
 }
 
 impl EncodePoint {
@@ -56,17 +59,24 @@ impl EncodePoint {
             every,
             raster_scale,
             top_k,
+            mixture_keep: None,
         }
     }
 
-    /// Stable identifier, also the cache folder name: e.g. `graph-e4-r0.5-kall`.
+    /// Stable identifier, also the cache folder name: e.g. `graph-e4-r0.5-kall` (`-mix` appended
+    /// when the run also writes the mixture form).
     pub fn id(&self) -> String {
         format!(
-            "{}-e{}-r{}-k{}",
+            "{}-e{}-r{}-k{}{}",
             self.masks.name(),
             self.every,
             self.raster_scale,
-            self.top_k_name()
+            self.top_k_name(),
+            if self.mixture_keep.is_some() {
+                "-mix"
+            } else {
+                ""
+            }
         )
     }
 
@@ -100,6 +110,9 @@ impl EncodePoint {
         push("--raster-scale", self.raster_scale.to_string());
         if let Some(k) = self.top_k {
             push("--top-k-per-pixel", k.to_string());
+        }
+        if let Some(s) = self.mixture_keep {
+            push("--mixture-keep", s.to_string());
         }
         if let Some(t) = threads {
             push("--threads", t.to_string());
@@ -166,9 +179,10 @@ pub fn full_argv(
     argv
 }
 
-/// The record of a completed run in `dir` made with exactly `argv`, if there is one.
+/// The record of a completed run in `dir` made with exactly `argv`, if there is one (its
+/// embeddings may have been removed after evaluation, see [`EvalRecord`]).
 pub fn cached(dir: &Path, argv: &[String]) -> Option<EncodeRecord> {
-    if !dir.join("report.json").exists() || !dir.join("embeddings.safetensors").exists() {
+    if !dir.join("report.json").exists() {
         return None;
     }
     let bytes = std::fs::read(dir.join("record.json")).ok()?;
@@ -190,9 +204,14 @@ pub fn run_point(
     fresh: bool,
 ) -> anyhow::Result<(EncodeRecord, bool)> {
     let argv = full_argv(point, scene, fixtures, threads, dir);
-    if !fresh && let Some(rec) = cached(dir, &argv) {
+    if !fresh
+        && dir.join("embeddings.safetensors").exists()
+        && let Some(rec) = cached(dir, &argv)
+    {
         return Ok((rec, true));
     }
+    // A stale evaluation must not outlive the run it measured.
+    std::fs::remove_file(dir.join(EVAL_FILE)).ok();
     let record_path = dir.join("record.json");
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let cli = EncodeCli::try_parse_from(std::iter::once("encode".to_string()).chain(argv.clone()))
@@ -217,6 +236,30 @@ pub fn run_point(
     };
     slag_common::embeddings::write_atomic(&record_path, &serde_json::to_vec_pretty(&rec)?)?;
     Ok((rec, false))
+}
+
+/// File of a point's cached [`EvalRecord`].
+pub const EVAL_FILE: &str = "eval.json";
+
+/// What the study measures on a point's f32 embeddings, cached beside its record so that the
+/// embeddings (240 MB at f32 for snowmiku) can be removed once evaluated.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EvalRecord {
+    /// Match threshold the sets were taken at.
+    pub threshold: f32,
+    /// Colour mIoU.
+    pub colour_miou: Option<f64>,
+    /// Median f32 scan latency, ms.
+    pub scan_ms: f64,
+    /// Per prompt, the ascending ids with cosine `>= threshold`.
+    pub sets: Vec<Vec<u32>>,
+}
+
+/// The cached evaluation in `dir` taken at `threshold`, if any.
+pub fn cached_eval(dir: &Path, threshold: f32) -> Option<EvalRecord> {
+    let bytes = std::fs::read(dir.join(EVAL_FILE)).ok()?;
+    let e = serde_json::from_slice::<EvalRecord>(&bytes).ok()?;
+    (e.threshold == threshold).then_some(e)
 }
 
 /// Cache folder of a point under the study's work folder.

@@ -31,6 +31,7 @@
 //! them; `--fresh` re-encodes).
 
 pub mod encode;
+pub mod mixture;
 pub mod output;
 pub mod sets;
 pub mod storage;
@@ -68,6 +69,13 @@ pub struct TradeoffArgs {
     /// Re-encode every point even when the work folder holds a run with the same arguments.
     #[arg(long, conflicts_with = "cached_only")]
     pub fresh: bool,
+    /// Keep every point's f32 embeddings (default: only the baseline's; the others are removed
+    /// once evaluated, their results cached in eval.json).
+    #[arg(long)]
+    pub keep_embeddings: bool,
+    /// With --cached-only, still encode these points (ids as in the tables, comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    pub encode: Vec<String>,
     /// Encode nothing: use only the points the work folder already holds (a study cut short);
     /// the header lists the points left out. The baseline and the reference must be there.
     #[arg(long)]
@@ -213,6 +221,19 @@ impl EvalContext {
     }
 }
 
+/// `--mixture-keep` of the mixture source (the baseline's settings; in `--quick` the baseline
+/// itself): large enough to keep every atom of every Gaussian (the
+/// mixture's `S` is then its longest row); the study's smaller `S` are cut from it.
+pub const MIXTURE_KEEP_ALL: usize = 1 << 16;
+
+/// Mixture slot counts of the storage sweep (plus `all`, the baseline's own mixture).
+pub const MIXTURE_KEEPS: [usize; 5] = [1, 2, 4, 8, 16];
+
+fn with_mixture(mut p: EncodePoint) -> EncodePoint {
+    p.mixture_keep = Some(MIXTURE_KEEP_ALL);
+    p
+}
+
 /// The encode points of the study: the full sweep, or the `--quick` one (on snowmiku-mini:
 /// baseline every 6th image at raster 0.25, reference every 2nd image at raster 0.25, and top-K 1).
 /// The full sweep is ordered so that the most informative points run first (a study cut short
@@ -221,7 +242,7 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
     let g = EncodePoint::graph;
     if quick {
         return vec![
-            g("baseline", 6, 0.25, None),
+            with_mixture(g("baseline", 6, 0.25, None)),
             g("reference", 2, 0.25, None),
             g("top-k", 6, 0.25, Some(1)),
         ];
@@ -234,11 +255,13 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
         every: 8,
         raster_scale: 0.5,
         top_k: None,
+        mixture_keep: None,
     };
     // Mask sources at every 8th image (color-sam costs ~5 s per image at 16x16 on 2 cores).
     vec![
         g("baseline", 4, 0.5, None),
         g("reference", 1, 0.5, None),
+        with_mixture(g("mixture", 4, 0.5, None)),
         g("every", 20, 0.5, None),
         g("every", 10, 0.5, None),
         g("every", 5, 0.5, None),
@@ -299,13 +322,17 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
         let dir = encode::point_dir(&work, p);
-        if a.cached_only
-            && encode::cached(
-                &dir,
-                &encode::full_argv(p, &scene, &fixtures, a.threads, &dir),
-            )
-            .is_none()
-        {
+        let argv = encode::full_argv(p, &scene, &fixtures, a.threads, &dir);
+        let emb_path = dir.join("embeddings.safetensors");
+        let prior = (!a.fresh).then(|| encode::cached(&dir, &argv)).flatten();
+        let prior_eval = prior
+            .as_ref()
+            .and_then(|_| encode::cached_eval(&dir, ctx.threshold));
+        // The baseline's embeddings feed the storage sweep: it needs them on disk.
+        let keep_emb = p.knob == "baseline" || p.mixture_keep.is_some();
+        let need_emb = keep_emb || prior_eval.is_none();
+        let usable = prior.is_some() && (!need_emb || emb_path.exists());
+        if a.cached_only && !usable && !a.encode.contains(&p.id()) {
             eprintln!(
                 "[{}/{}] {} not in the work folder: left out",
                 i + 1,
@@ -322,20 +349,42 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             p.id(),
             p.knob
         );
-        let (rec, cached) = encode::run_point(p, &scene, &fixtures, a.threads, &dir, a.fresh)?;
-        let emb = Embeddings::read(&dir.join("embeddings.safetensors"))?;
-        let miou = ctx.colour_miou(&emb)?;
-        let answer = sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?;
-        let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
-        let (ms, _) = storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
+        let (rec, cached) = match prior {
+            Some(r) if usable => (r, true),
+            _ => encode::run_point(p, &scene, &fixtures, a.threads, &dir, true)?,
+        };
+        let ev = match encode::cached_eval(&dir, ctx.threshold) {
+            Some(e) => e,
+            None => {
+                let emb = Embeddings::read(&emb_path)?;
+                let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
+                let (scan_ms, _) =
+                    storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
+                let e = encode::EvalRecord {
+                    threshold: ctx.threshold,
+                    colour_miou: ctx.colour_miou(&emb)?,
+                    scan_ms,
+                    sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
+                };
+                slag_common::embeddings::write_atomic(
+                    &dir.join(encode::EVAL_FILE),
+                    &serde_json::to_vec(&e)?,
+                )?;
+                e
+            }
+        };
+        if !keep_emb && !a.keep_embeddings {
+            std::fs::remove_file(&emb_path).ok();
+        }
         eprintln!(
-            "    {:.1} s{} | observed {} | mIoU {:?} | scan {ms:.2} ms",
+            "    {:.1} s{} | observed {} | mIoU {:?} | scan {:.2} ms",
             rec.total_s,
             if cached { " (cached)" } else { "" },
             rec.observed,
-            miou
+            ev.colour_miou,
+            ev.scan_ms
         );
-        encoded.push((p.clone(), rec, miou, answer, ms));
+        encoded.push((p.clone(), rec, ev.colour_miou, ev.sets, ev.scan_ms));
     }
     let reference = encoded
         .iter()
@@ -345,8 +394,13 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         .iter()
         .find(|e| e.0.knob == "baseline")
         .context("the baseline point is not in the work folder; run it first")?;
+    let mixture_dir = encoded
+        .iter()
+        .find(|e| e.0.mixture_keep.is_some())
+        .map(|e| encode::point_dir(&work, &e.0));
     let mut rows: Vec<Row> = encoded
         .iter()
+        .filter(|e| e.0.knob != "mixture")
         .map(|(p, rec, miou, answer, ms)| {
             let (iou, n) = sets::mean_iou(answer, &reference.3);
             Row {
@@ -403,10 +457,25 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         },
     };
     rows.extend(storage::storage_rows(&ctx, &base_emb, &template, &st)?);
+    let mut mix_footprint = Vec::new();
+    if let Some(dir) = &mixture_dir {
+        // The mixture's exact f32 answer is its own run's dense embeddings (same observed set).
+        let mix = slag_common::mixture::MixtureEmbeddings::read(&dir.join("mixture.safetensors"))?;
+        let dense = if *dir == base_dir {
+            base_emb.clone()
+        } else {
+            Embeddings::read(&dir.join("embeddings.safetensors"))?
+        };
+        let (mix_rows, fp) =
+            mixture::mixture_rows(&ctx, &dense, &mix, &MIXTURE_KEEPS, &template, repeats)?;
+        rows.extend(mix_rows);
+        mix_footprint = fp;
+    }
     rows.extend(storage::index_rows(&ctx, &base_emb, &template, &st)?);
 
     // 3. Footprint: what the scene requires vs a dense tensor.
-    let footprint = storage::footprint(&ctx, &scene, &base_emb, &work)?;
+    let mut footprint = storage::footprint(&ctx, &scene, &base_emb, &work)?;
+    footprint.extend(mix_footprint);
 
     // 4. Write.
     let command = std::iter::once("slag-bench".to_string())

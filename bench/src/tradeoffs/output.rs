@@ -235,7 +235,13 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
          row with an f32 scale). Bytes per Gaussian = vector + 4 B id + 12 B mean. *Build* = \
          seconds to convert the f32 rows. Colour mIoU from the dequantised rows; IoU against the \
-         exact f32 answer (`slag_common::similarity::cosine_scores` on the f32 rows).\n"
+         exact f32 answer (`slag_common::similarity::cosine_scores` on the f32 rows). \
+         **Mixture** `S`: the mixture of a run with the baseline's settings (`encode \
+         --mixture-keep`, every atom kept = `Sall`; its IoU is against that run's own f32 rows) cut to each Gaussian's S largest weights and renormalised (= `reduce_mixture` \
+         with keep S up to f16 rounding of the weights); bytes as written (f16 codebook amortised \
+         over the Gaussians + S × 6 B + 16 B); its query is `MixtureEmbeddings::scores` (one dot \
+         per codebook row, then S multiply-adds per Gaussian) plus the threshold, and its build \
+         time the cut.\n"
     );
     s += "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n";
     s += "|---|---|---:|---:|---:|---:|---:|\n";

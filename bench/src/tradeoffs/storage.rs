@@ -43,7 +43,8 @@ pub fn store_of(emb: &Embeddings, dtype: Dtype) -> anyhow::Result<(VectorStore, 
     Ok((store, t.elapsed().as_secs_f64()))
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// Median of `v` (NaN when empty).
+pub fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }
