@@ -1,0 +1,12 @@
+//! slag-bench: reproducible studies of slag, one module per study.
+//!
+//! - [`tradeoffs`]: the speed/accuracy trade study on a real scene with color-clip (ground truth
+//!   known): the knobs a user turns (mask source, image subsampling, raster resolution,
+//!   contributors kept per pixel, stored precision, exact scan vs HNSW) against encode time,
+//!   query latency, bytes per Gaussian and accuracy; writes `tradeoffs.{md,csv}` (the plot is
+//!   drawn from the CSV by `scripts/plot_tradeoffs.py`).
+//!
+//! The binary `slag-bench` exposes each study as a subcommand (`slag-bench tradeoffs …`).
+
+pub mod machine;
+pub mod tradeoffs;

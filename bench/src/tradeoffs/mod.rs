@@ -1,0 +1,510 @@
+//! The speed/accuracy trade study (`slag-bench tradeoffs`).
+//!
+//! On a real scene with color-clip (whose ground truth is known: a Gaussian's colour class is the
+//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]), the study sweeps, one factor at a
+//! time around a baseline (graph masks, every 4th image, raster scale 0.5, all contributors per
+//! pixel):
+//!
+//! - **encode**: mask source (graph vs color-sam on an 8/16/32 grid, compared at every 8th
+//!   image), image subsampling (`--every` 1…20), raster scale (0.25…1.0), contributors kept per
+//!   pixel (top-K 1…8 vs all). Each point records encode wall time and per-stage times, observed
+//!   Gaussians, colour mIoU, the f32 scan latency of its embeddings, and its agreement with the
+//!   **reference** run (graph, every image, raster 0.5, all contributors: the costliest
+//!   graph-mask configuration of the sweep): for each of color-clip's 12 colour prompts the set
+//!   of Gaussians with cosine `>= 0.28`, IoU against the reference's set, averaged over the
+//!   prompts whose union is non-empty (a prompt empty in both runs is left out; the count of
+//!   prompts averaged is reported);
+//! - **storage** (the baseline run's embeddings): f32, f16, int8 rows quantised exactly as the
+//!   shards store them (`slag_edge::scan::VectorStore::push_f32_rows` = the shard codec), with
+//!   bytes per Gaussian, exact-scan latency (median over prompts × repeats), colour mIoU from the
+//!   dequantised rows, and IoU of the `>= 0.28` sets against the exact f32 answer;
+//! - **index**: exact scan vs HNSW (`slag_edge::scan::hnsw`): build time, memory, top-k latency
+//!   and top-k IoU against the exact scan;
+//! - **footprint** ("model only what a scene requires"): a naive dense `N × D` f32 tensor over
+//!   every Gaussian of the `.ply` against what slag stores (observed rows only, f16 file, shards
+//!   at f32/f16/int8 with their count and sizes).
+//!
+//! Outputs: `OUT/tradeoffs.csv` (one row per point, every column filled; `na` only for the colour
+//! mIoU of an index point, which returns top-k lists, not a class per Gaussian) and
+//! `OUT/tradeoffs.md` (header with the command and machine, one table row per CSV row, the
+//! footprint table). Encode runs are cached under `--work` (a rerun with the same arguments reuses
+//! them; `--fresh` re-encodes).
+
+pub mod encode;
+pub mod mixture;
+pub mod output;
+pub mod sets;
+pub mod storage;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Args;
+use slag_common::embeddings::Embeddings;
+use slag_common::scene::{self, PlyLoadOptions};
+use slag_common::text::TextEncoder;
+use slag_encoder::eval;
+
+pub use encode::{EncodePoint, EncodeRecord, MaskChoice};
+
+/// Arguments of `slag-bench tradeoffs`.
+#[derive(Debug, Clone, Args)]
+pub struct TradeoffArgs {
+    /// Scene folder (point_cloud.ply, images/, sparse/0). Default: <shared>/scenes/snowmiku, or
+    /// data/snowmiku-mini with --quick.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Output folder for tradeoffs.md and tradeoffs.csv (e.g. docs/).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Small study for tests: 3 encode points (reference, baseline, raster 0.25), every storage
+    /// and index point, fewer repeats.
+    #[arg(long)]
+    pub quick: bool,
+    /// Work folder for the encode runs (cached by arguments). Default:
+    /// target/slag-bench/<scene folder name>[-quick].
+    #[arg(long)]
+    pub work: Option<PathBuf>,
+    /// Re-encode every point even when the work folder holds a run with the same arguments.
+    #[arg(long, conflicts_with = "cached_only")]
+    pub fresh: bool,
+    /// Keep every point's f32 embeddings (default: only the baseline's; the others are removed
+    /// once evaluated, their results cached in eval.json).
+    #[arg(long)]
+    pub keep_embeddings: bool,
+    /// With --cached-only, still encode these points (ids as in the tables, comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    pub encode: Vec<String>,
+    /// Encode nothing: use only the points the work folder already holds (a study cut short);
+    /// the header lists the points left out. The baseline and the reference must be there.
+    #[arg(long)]
+    pub cached_only: bool,
+    /// Fixtures folder (sam-amg/, clip/). Default: <shared>/fixtures.
+    #[arg(long)]
+    pub fixtures: Option<PathBuf>,
+    /// Worker threads of the encoder (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Timed repetitions of each prompt's scan (default 5, --quick 1).
+    #[arg(long)]
+    pub repeats: Option<usize>,
+    /// Cosine threshold of a match (SLAG's 0.28).
+    #[arg(long, default_value_t = 0.28)]
+    pub threshold: f32,
+    /// k of the exact-vs-HNSW comparison (top-k; default 1000, --quick 100).
+    #[arg(long)]
+    pub index_top_k: Option<usize>,
+    /// HNSW ef_construction, candidates per insertion (default 100, --quick 40).
+    #[arg(long)]
+    pub hnsw_ef_construction: Option<usize>,
+    /// Rows indexed by HNSW: every n-th row of the baseline's so that about this many remain
+    /// (the exact scan it is compared with runs on the same rows); 0 = all. Default 20000
+    /// (building over all of snowmiku's rows takes many minutes on 2 cores), --quick 1500.
+    #[arg(long)]
+    pub hnsw_rows: Option<usize>,
+    /// Free text for the header (e.g. "2 cores shared with other builds").
+    #[arg(long)]
+    pub note: Option<String>,
+}
+
+/// One row of the study's CSV (and of its markdown tables).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Row {
+    /// `encode`, `storage` or `index`.
+    pub section: String,
+    /// Unique id of the point (encode: `graph-e4-r0.5-kall`; storage: `store-f16`, …).
+    pub point: String,
+    /// The knob varied (`baseline`, `reference`, `masks`, `every`, `raster`, `top-k`, `dtype`,
+    /// `mixture`, `index`).
+    pub knob: String,
+    /// Mask source of the embeddings (`graph`, `sam16`, …).
+    pub masks: String,
+    /// `--every` of the embeddings.
+    pub every: usize,
+    /// `--raster-scale` of the embeddings.
+    pub raster_scale: f64,
+    /// Contributors kept per pixel (`all` or K).
+    pub top_k: String,
+    /// Stored form of the rows (`f32`, `f16`, `int8`, `mixture-S<k>`).
+    pub storage: String,
+    /// Query index (`scan` = exact, `hnsw`).
+    pub index: String,
+    /// Views encoded.
+    pub views: usize,
+    /// Observed (stored) Gaussians.
+    pub observed: usize,
+    /// Encode wall time, s (storage/index points: the baseline's).
+    pub encode_s: f64,
+    /// Decode seconds summed over images.
+    pub decode_s: f64,
+    /// Mask seconds summed over images.
+    pub masks_s: f64,
+    /// CLIP crop seconds summed over images.
+    pub clip_s: f64,
+    /// Raster seconds summed over images.
+    pub raster_s: f64,
+    /// Image-stage aggregation (`a_kj`) seconds summed over images.
+    pub aggregate_s: f64,
+    /// Reduction (`E_k`) seconds.
+    pub reduce_s: f64,
+    /// Seconds to build the queried form from f32 rows (quantise, fit mixture, build HNSW).
+    pub build_s: f64,
+    /// Bytes per stored Gaussian in memory (vector + 4 B id + 12 B mean; HNSW adds its index).
+    pub bytes_per_gaussian: f64,
+    /// Median latency of one prompt's query, ms (threshold scan, or top-k for `index` points).
+    pub query_ms: f64,
+    /// Colour mIoU (`None` for index points).
+    pub colour_miou: Option<f64>,
+    /// Agreement with the exact answer (see `iou_kind`): mean IoU over prompts of the matched
+    /// sets; for index points the tie-aware top-k recall.
+    pub iou: f64,
+    /// Mean IoU over prompts of the answer sets as returned (equal to `iou` except for index
+    /// points, where ties at the k-th score make the plain top-k set IoU understate agreement).
+    pub set_iou: f64,
+    /// What `iou` compares: `ref-run cos>=T` (encode), `f32 cos>=T` (storage), `f32 top-k`
+    /// (index).
+    pub iou_kind: String,
+    /// Prompts averaged in `iou` (non-empty union).
+    pub iou_prompts: usize,
+}
+
+/// Everything the evaluation of a set of embeddings needs, loaded once.
+pub struct EvalContext {
+    /// color-clip's classes (names = the 12 colour prompts).
+    pub classes: eval::ColorClasses,
+    /// Ground-truth class per scene Gaussian.
+    pub gt: Vec<Option<u8>>,
+    /// L2-normalised text embedding per class name, `[12][D]`.
+    pub prompts: Vec<Vec<f32>>,
+    /// Match threshold (cosine).
+    pub threshold: f32,
+    /// Gaussians in the scene's `.ply`.
+    pub scene_gaussians: usize,
+}
+
+impl EvalContext {
+    /// Loads the classes, the scene's ground truth and the prompts' text embeddings (color-clip
+    /// textual tower under `fixtures/clip`).
+    ///
+    /// Errors: missing fixtures or `.ply`, model errors.
+    pub fn load(scene_dir: &Path, fixtures: &Path, threshold: f32) -> anyhow::Result<Self> {
+        let clip = fixtures.join("clip");
+        let classes = eval::ColorClasses::load(&clip.join("color-clip.json"))?;
+        let g = scene::load_ply(
+            &scene_dir.join("point_cloud.ply"),
+            PlyLoadOptions { colours: true },
+        )?;
+        let gt = eval::ground_truth(&classes, &g)?;
+        let mut text = TextEncoder::new(
+            &clip.join("color-clip-textual.onnx"),
+            &clip.join("clip-tokenizer.json"),
+            slag_common::onnx::ExecutionProvider::Cpu,
+        )?;
+        let names: Vec<&str> = classes.names.iter().map(String::as_str).collect();
+        let prompts = text.encode(&names).context("encoding the colour prompts")?;
+        Ok(EvalContext {
+            classes,
+            scene_gaussians: g.len(),
+            gt,
+            prompts,
+            threshold,
+        })
+    }
+
+    /// Colour mIoU of `emb` ([`eval::assign`] + [`eval::evaluate`]).
+    ///
+    /// Errors: embeddings of another scene or model width.
+    pub fn colour_miou(&self, emb: &Embeddings) -> anyhow::Result<Option<f64>> {
+        let predicted = eval::assign(emb, &self.prompts)?;
+        Ok(eval::evaluate(&self.gt, emb, &predicted, &self.classes.names)?.miou)
+    }
+}
+
+/// `--mixture-keep` of the mixture source (the baseline's settings; in `--quick` the baseline
+/// itself): large enough to keep every atom of every Gaussian (the
+/// mixture's `S` is then its longest row); the study's smaller `S` are cut from it.
+pub const MIXTURE_KEEP_ALL: usize = 1 << 16;
+
+/// Mixture slot counts of the storage sweep (plus `all`, the baseline's own mixture).
+pub const MIXTURE_KEEPS: [usize; 5] = [1, 2, 4, 8, 16];
+
+fn with_mixture(mut p: EncodePoint) -> EncodePoint {
+    p.mixture_keep = Some(MIXTURE_KEEP_ALL);
+    p
+}
+
+/// The encode points of the study: the full sweep, or the `--quick` one (on snowmiku-mini:
+/// baseline every 6th image at raster 0.25, reference every 2nd image at raster 0.25, and top-K 1).
+/// The full sweep is ordered so that the most informative points run first (a study cut short
+/// with `--cached-only` still has them).
+pub fn plan(quick: bool) -> Vec<EncodePoint> {
+    let g = EncodePoint::graph;
+    if quick {
+        return vec![
+            with_mixture(g("baseline", 6, 0.25, None)),
+            g("reference", 2, 0.25, None),
+            g("top-k", 6, 0.25, Some(1)),
+        ];
+    }
+    let sam = |pps: u32| EncodePoint {
+        knob: "masks".into(),
+        masks: MaskChoice::Sam {
+            points_per_side: pps,
+        },
+        every: 8,
+        raster_scale: 0.5,
+        top_k: None,
+        mixture_keep: None,
+    };
+    // Mask sources at every 8th image (color-sam costs ~5 s per image at 16x16 on 2 cores).
+    vec![
+        g("baseline", 4, 0.5, None),
+        g("reference", 1, 0.5, None),
+        with_mixture(g("mixture", 4, 0.5, None)),
+        g("every", 20, 0.5, None),
+        g("every", 10, 0.5, None),
+        g("every", 5, 0.5, None),
+        g("every", 2, 0.5, None),
+        g("raster", 4, 0.25, None),
+        g("top-k", 4, 0.5, Some(1)),
+        g("top-k", 4, 0.5, Some(8)),
+        g("masks", 8, 0.5, None),
+        sam(8),
+        sam(16),
+        g("raster", 4, 1.0, None),
+        g("top-k", 4, 0.5, Some(2)),
+        g("top-k", 4, 0.5, Some(4)),
+        sam(32),
+    ]
+}
+
+/// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
+///
+/// Errors: missing scene or fixtures, any encode error, unwritable output folder.
+pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
+    let t_start = Instant::now();
+    let machine = crate::machine::MachineInfo::detect();
+    let shared = slag_common::paths::shared_dir();
+    let scene = match &a.scene {
+        Some(s) => s.clone(),
+        None if a.quick => PathBuf::from("data/snowmiku-mini"),
+        None => shared.join("scenes").join("snowmiku"),
+    };
+    if !scene.join("point_cloud.ply").is_file() {
+        anyhow::bail!(
+            "{} holds no point_cloud.ply; pass --scene DIR (a scene with point_cloud.ply, images/, sparse/0)",
+            scene.display()
+        );
+    }
+    let fixtures = a
+        .fixtures
+        .clone()
+        .unwrap_or_else(|| shared.join("fixtures"));
+    let scene_name = scene
+        .file_name()
+        .map(|s| s.to_string_lossy().to_string())
+        .unwrap_or_else(|| "scene".into());
+    let work = a.work.clone().unwrap_or_else(|| {
+        PathBuf::from("target").join("slag-bench").join(format!(
+            "{scene_name}{}",
+            if a.quick { "-quick" } else { "" }
+        ))
+    });
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let repeats = a.repeats.unwrap_or(if a.quick { 1 } else { 5 }).max(1);
+    let index_top_k = a.index_top_k.unwrap_or(if a.quick { 100 } else { 1000 });
+    let ctx = EvalContext::load(&scene, &fixtures, a.threshold)?;
+
+    // 1. Encode sweep.
+    let points = plan(a.quick);
+    let mut encoded: Vec<(EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64)> = Vec::new();
+    let mut skipped = Vec::new();
+    for (i, p) in points.iter().enumerate() {
+        let dir = encode::point_dir(&work, p);
+        let argv = encode::full_argv(p, &scene, &fixtures, a.threads, &dir);
+        let emb_path = dir.join("embeddings.safetensors");
+        let prior = (!a.fresh).then(|| encode::cached(&dir, &argv)).flatten();
+        let prior_eval = prior
+            .as_ref()
+            .and_then(|_| encode::cached_eval(&dir, ctx.threshold));
+        // The baseline's embeddings feed the storage sweep: it needs them on disk.
+        let keep_emb = p.knob == "baseline" || p.mixture_keep.is_some();
+        let need_emb = keep_emb || prior_eval.is_none();
+        let usable = prior.is_some() && (!need_emb || emb_path.exists());
+        if a.cached_only && !usable && !a.encode.contains(&p.id()) {
+            eprintln!(
+                "[{}/{}] {} not in the work folder: left out",
+                i + 1,
+                points.len(),
+                p.id()
+            );
+            skipped.push(format!("{} ({})", p.id(), p.knob));
+            continue;
+        }
+        eprintln!(
+            "[{}/{}] encode {} ({})",
+            i + 1,
+            points.len(),
+            p.id(),
+            p.knob
+        );
+        let (rec, cached) = match prior {
+            Some(r) if usable => (r, true),
+            _ => encode::run_point(p, &scene, &fixtures, a.threads, &dir, true)?,
+        };
+        let ev = match encode::cached_eval(&dir, ctx.threshold) {
+            Some(e) => e,
+            None => {
+                let emb = Embeddings::read(&emb_path)?;
+                let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
+                let (scan_ms, _) =
+                    storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
+                let e = encode::EvalRecord {
+                    threshold: ctx.threshold,
+                    colour_miou: ctx.colour_miou(&emb)?,
+                    scan_ms,
+                    sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
+                };
+                slag_common::embeddings::write_atomic(
+                    &dir.join(encode::EVAL_FILE),
+                    &serde_json::to_vec(&e)?,
+                )?;
+                e
+            }
+        };
+        if !keep_emb && !a.keep_embeddings {
+            std::fs::remove_file(&emb_path).ok();
+        }
+        eprintln!(
+            "    {:.1} s{} | observed {} | mIoU {:?} | scan {:.2} ms",
+            rec.total_s,
+            if cached { " (cached)" } else { "" },
+            rec.observed,
+            ev.colour_miou,
+            ev.scan_ms
+        );
+        encoded.push((p.clone(), rec, ev.colour_miou, ev.sets, ev.scan_ms));
+    }
+    let reference = encoded
+        .iter()
+        .find(|e| e.0.knob == "reference")
+        .context("the reference point (every image) is not in the work folder; run it first")?;
+    let baseline = encoded
+        .iter()
+        .find(|e| e.0.knob == "baseline")
+        .context("the baseline point is not in the work folder; run it first")?;
+    let mixture_dir = encoded
+        .iter()
+        .find(|e| e.0.mixture_keep.is_some())
+        .map(|e| encode::point_dir(&work, &e.0));
+    let mut rows: Vec<Row> = encoded
+        .iter()
+        .filter(|e| e.0.knob != "mixture")
+        .map(|(p, rec, miou, answer, ms)| {
+            let (iou, n) = sets::mean_iou(answer, &reference.3);
+            Row {
+                section: "encode".into(),
+                point: p.id(),
+                knob: p.knob.clone(),
+                masks: p.masks.name(),
+                every: p.every,
+                raster_scale: p.raster_scale,
+                top_k: p.top_k_name(),
+                storage: "f32".into(),
+                index: "scan".into(),
+                views: rec.views,
+                observed: rec.observed,
+                encode_s: rec.total_s,
+                decode_s: rec.decode_s,
+                masks_s: rec.masks_s,
+                clip_s: rec.clip_s,
+                raster_s: rec.raster_s,
+                aggregate_s: rec.aggregate_s,
+                reduce_s: rec.reduce_s,
+                build_s: 0.0,
+                bytes_per_gaussian: storage::bytes_per_gaussian_of(
+                    slag_common::shards::Dtype::F32,
+                    ctx.prompts.first().map_or(0, Vec::len),
+                ),
+                query_ms: *ms,
+                colour_miou: *miou,
+                iou,
+                set_iou: iou,
+                iou_kind: format!("ref-run cos>={}", ctx.threshold),
+                iou_prompts: n,
+            }
+        })
+        .collect();
+
+    // 2. Storage and index sweep on the baseline's embeddings.
+    let base_dir = encode::point_dir(&work, &baseline.0);
+    let base_emb = Embeddings::read(&base_dir.join("embeddings.safetensors"))?;
+    let template = rows
+        .iter()
+        .find(|r| r.knob == "baseline")
+        .cloned()
+        .context("baseline row")?;
+    let st = storage::StorageOptions {
+        repeats,
+        index_top_k,
+        hnsw_ef_construction: a
+            .hnsw_ef_construction
+            .unwrap_or(if a.quick { 40 } else { 100 }),
+        hnsw_rows: match a.hnsw_rows.unwrap_or(if a.quick { 1500 } else { 20_000 }) {
+            0 => None,
+            n => Some(n),
+        },
+    };
+    rows.extend(storage::storage_rows(&ctx, &base_emb, &template, &st)?);
+    let mut mix_footprint = Vec::new();
+    if let Some(dir) = &mixture_dir {
+        // The mixture's exact f32 answer is its own run's dense embeddings (same observed set).
+        let mix = slag_common::mixture::MixtureEmbeddings::read(&dir.join("mixture.safetensors"))?;
+        let dense = if *dir == base_dir {
+            base_emb.clone()
+        } else {
+            Embeddings::read(&dir.join("embeddings.safetensors"))?
+        };
+        let (mix_rows, fp) =
+            mixture::mixture_rows(&ctx, &dense, &mix, &MIXTURE_KEEPS, &template, repeats)?;
+        rows.extend(mix_rows);
+        mix_footprint = fp;
+    }
+    rows.extend(storage::index_rows(&ctx, &base_emb, &template, &st)?);
+
+    // 3. Footprint: what the scene requires vs a dense tensor.
+    let mut footprint = storage::footprint(&ctx, &scene, &base_emb, &work)?;
+    footprint.extend(mix_footprint);
+
+    // 4. Write.
+    let command = std::iter::once("slag-bench".to_string())
+        .chain(std::env::args().skip(1))
+        .collect::<Vec<_>>()
+        .join(" ");
+    let header = output::Header {
+        command,
+        machine,
+        note: a.note.clone(),
+        scene: scene.display().to_string(),
+        scene_gaussians: ctx.scene_gaussians,
+        threshold: ctx.threshold,
+        repeats,
+        index_top_k,
+        skipped,
+        study_s: t_start.elapsed().as_secs_f64(),
+    };
+    let csv = output::csv(&rows);
+    let md = output::markdown(&header, &rows, &footprint);
+    let csv_path = a.out.join("tradeoffs.csv");
+    let md_path = a.out.join("tradeoffs.md");
+    slag_common::embeddings::write_atomic(&csv_path, csv.as_bytes())?;
+    slag_common::embeddings::write_atomic(&md_path, md.as_bytes())?;
+    Ok(format!(
+        "wrote {} and {} ({} points, {:.0} s)",
+        md_path.display(),
+        csv_path.display(),
+        rows.len(),
+        t_start.elapsed().as_secs_f64()
+    ))
+}

@@ -1,0 +1,94 @@
+#!/usr/bin/env python3
+"""Pareto plot of slag's speed/accuracy trade study.
+
+usage: plot_tradeoffs.py docs/tradeoffs.csv docs/tradeoffs.png
+
+Panels (from the CSV written by `slag-bench tradeoffs`):
+  1. encode wall time (s, log) vs colour mIoU for the encode points; the Pareto front
+     (faster and more accurate) is drawn as a line;
+  2. bytes per Gaussian vs agreement with the exact f32 answer (IoU of the cos >= 0.28 sets;
+     HNSW: tie-aware top-k recall) for the storage and index points;
+  3. bytes per Gaussian vs query latency (ms) for the same points.
+"""
+import csv
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def pareto(points):
+    """Indices of the points no other point beats in both time (lower) and mIoU (higher)."""
+    front = []
+    for i, (t, m) in enumerate(points):
+        dominated = any(
+            (t2 <= t and m2 >= m and (t2 < t or m2 > m)) for j, (t2, m2) in enumerate(points) if j != i
+        )
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def main():
+    if len(sys.argv) != 3:
+        sys.exit(__doc__)
+    with open(sys.argv[1], newline="") as f:
+        rows = list(csv.DictReader(f))
+    enc = [r for r in rows if r["section"] == "encode" and r["colour_miou"] != "na"]
+    sto = [r for r in rows if r["section"] in ("storage", "index")]
+
+    fig, ax = plt.subplots(1, 3, figsize=(18, 5.5))
+    colours = {"baseline": "black", "reference": "tab:red", "every": "tab:blue", "raster": "tab:green",
+               "top-k": "tab:orange", "masks": "tab:purple"}
+    pts = [(float(r["encode_s"]), float(r["colour_miou"])) for r in enc]
+    for r, (t, m) in zip(enc, pts):
+        ax[0].scatter(t, m, color=colours.get(r["knob"], "gray"), s=40, zorder=3)
+        label = {"every": f"every {r['every']}", "raster": f"raster {r['raster_scale']}",
+                 "top-k": f"top-{r['top_k']}", "masks": r["masks"] + (f" (every {r['every']})"),
+                 "baseline": "baseline", "reference": f"reference (every {r['every']})"}.get(r["knob"], r["point"])
+        ax[0].annotate(label, (t, m), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    front = pareto(pts)
+    if front:
+        ax[0].plot([pts[i][0] for i in front], [pts[i][1] for i in front], "--", color="gray",
+                   zorder=2, label="Pareto front")
+    for k, c in colours.items():
+        if any(r["knob"] == k for r in enc):
+            ax[0].scatter([], [], color=c, label=k)
+    ax[0].set_xscale("log")
+    ax[0].set_xlabel("encode wall time, s (log)")
+    ax[0].set_ylabel("colour mIoU (color-clip ground truth)")
+    ax[0].set_title("Encode: time vs accuracy")
+    ax[0].legend(fontsize=8)
+    ax[0].grid(alpha=0.3)
+
+    for r in sto:
+        b, iou, ms = float(r["bytes_per_gaussian"]), float(r["iou"]), float(r["query_ms"])
+        hnsw = r["index"] == "hnsw"
+        marker = "s" if r["section"] == "index" else "o"
+        c = "tab:red" if hnsw else ("tab:blue" if r["section"] == "storage" else "gray")
+        label = r["point"].replace("store-", "")
+        if r["section"] == "index":
+            label += f" ({r['observed']} rows)"
+        ax[1].scatter(b, iou, marker=marker, color=c, s=40)
+        ax[1].annotate(label, (b, iou), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        ax[2].scatter(b, ms, marker=marker, color=c, s=40)
+        ax[2].annotate(label, (b, ms), textcoords="offset points", xytext=(4, 4), fontsize=8)
+    ax[1].set_xscale("log")
+    ax[1].set_xlabel("bytes per Gaussian (log)")
+    ax[1].set_ylabel("agreement with exact f32 (IoU; HNSW: top-k recall)")
+    ax[1].set_title("Storage: size vs agreement")
+    ax[1].grid(alpha=0.3)
+    ax[2].set_xscale("log")
+    ax[2].set_yscale("log")
+    ax[2].set_xlabel("bytes per Gaussian (log)")
+    ax[2].set_ylabel("query latency, ms (log; index points: top-k)")
+    ax[2].set_title("Storage: size vs query latency")
+    ax[2].grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(sys.argv[2], dpi=110)
+
+
+if __name__ == "__main__":
+    main()
