@@ -20,7 +20,6 @@ os.makedirs(out, exist_ok=True)
 torch.manual_seed(0)
 # open_clip's ViT-B/16 image tower layout (timm's CLIP variant), projection to 512 as CLIP does.
 model = timm.create_model("vit_base_patch16_clip_224", pretrained=False, num_classes=512).eval()
-flops_per_image = None
 x = torch.randn(32, 3, 224, 224)
 path = os.path.join(out, "vitb16-clip-visual.onnx")
 with torch.no_grad():
