@@ -279,6 +279,10 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
     ]
 }
 
+/// One encoded sweep point: its plan, run record, colour mIoU (if defined), the matched id set per
+/// colour prompt, and the median scan latency of its f32 embeddings in milliseconds.
+type EncodedPoint = (EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64);
+
 /// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
 ///
 /// Errors: missing scene or fixtures, any encode error, unwritable output folder.
@@ -318,7 +322,7 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
 
     // 1. Encode sweep.
     let points = plan(a.quick);
-    let mut encoded: Vec<(EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64)> = Vec::new();
+    let mut encoded: Vec<EncodedPoint> = Vec::new();
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
         let dir = encode::point_dir(&work, p);
