@@ -4,6 +4,12 @@
 #   scripts/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
 #   scripts/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
 #                                                    # on one GPU, peak host + GPU memory
+#   scripts/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
+#                                                    # (color-clip all views; ViT-B/16 and color-sam
+#                                                    # every 8th view); rates from device_facts.py
+#   scripts/device-scaling.sh tradeoffs IDS          # slag-bench tradeoffs --cached-only --encode IDS
+#                                                    # on the snowmiku copy; the work folder's records
+#                                                    # go back as tw.tgz and come in as .devwork/tw.tgz
 # Expects .devcarry/ (release slag-encoder, scene/ = snowmiku geometry + DC .ply and images,
 # shared/fixtures/) and .gl/ (Vulkan loader debs), as scripts/device-bench.sh. Reports, logs and
 # timing tables go to $OUT.
@@ -15,7 +21,7 @@ fi
 ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')
 export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared XDG_RUNTIME_DIR=/tmp
 export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
-B=.devcarry/slag-encoder; F=.devcarry/shared/fixtures
+B=.devcarry/slag-encoder; BB=.devcarry/slag-bench; F=.devcarry/shared/fixtures
 R=${OUT:-/tmp/out}; W=/tmp/slag-work; mkdir -p "$R" "$W"
 nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader
 echo "cores: $(nproc)  ORT: $ORT_LIB"
@@ -80,6 +86,37 @@ clip)
   "$B" bench --scene .devcarry/scene --masks graph --clip-visual "$W/clip/vitb16-clip-visual.onnx" \
     --every 8 --raster-scale 0.5 --quiet --out "$W/clip-run" 2>&1 | grep -v XDG_RUNTIME | tee "$R/clip-run.txt"
   cp "$W/clip-run/report.json" "$R/report-clip-run.json"
+  ;;
+stages)
+  echo "### facts: rates of this machine, FLOPs of the models; torch vs ORT for CLIP ViT-B/16"
+  python3 scripts/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
+  V=$W/clip/vitb16-clip-visual.onnx
+  cp "$W/clip/clip-vs-torch.json" "$R/"
+  python3 scripts/device_facts.py "$R/facts.json" $F/clip/color-clip-visual.onnx \
+    $F/sam-amg/color-sam-encoder.onnx $F/sam-amg/color-sam-decoder.onnx "$V" | tee "$R/facts.txt"
+  S=(--scene .devcarry/scene --raster-scale 1.0 --quiet --facts "$R/facts.json")
+  echo "### stages: graph masks, color-clip, all views"
+  "$BB" stages "${S[@]}" --masks graph "${CLIP[@]}" --front-workers 15 --out "$W/st-color" \
+    --table "$R/stages-color.md" 2>&1 | grep -v XDG_RUNTIME
+  echo "### stages: graph masks, CLIP ViT-B/16 (random weights), every 8th view"
+  "$BB" stages "${S[@]}" --masks graph --clip-visual "$V" --every 8 --front-workers 4 \
+    --torch "$R/clip-vs-torch.json" --out "$W/st-vit" --table "$R/stages-vitb16.md" 2>&1 | grep -v XDG_RUNTIME
+  echo "### stages: color-sam 32x32 points, color-clip, every 8th view"
+  "$BB" stages "${S[@]}" --masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx \
+    --sam-decoder $F/sam-amg/color-sam-decoder.onnx --sam-pred-iou-thresh 0.8 \
+    --sam-stability-score-thresh 0.5 "${CLIP[@]}" --every 8 --front-workers 8 --out "$W/st-sam" \
+    --table "$R/stages-sam.md" 2>&1 | grep -v XDG_RUNTIME
+  for m in color vitb16 sam; do cp "$W/st-${m/vitb16/vit}/report.json" "$R/report-stages-$m.json" 2>/dev/null; done
+  ;;
+tradeoffs)
+  TW=target/slag-bench/snowmiku-dev; mkdir -p "$TW"
+  [ -f .devwork/tw.tgz ] && tar xzf .devwork/tw.tgz -C "$TW"
+  timeout "${TW_TIMEOUT:-540}" "$BB" tradeoffs --scene .devcarry/scene --fixtures $F --work "$TW" \
+    --out "$R/tradeoffs" --front-workers 8 --cached-only --encode "${2:-}" \
+    --note "$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $(nproc) cores, GPU raster (wgpu/Vulkan), ORT CPU EP" \
+    2>&1 | grep -v XDG_RUNTIME | tee "$R/tradeoffs.log"
+  (cd "$TW" && find . \( -name record.json -o -name eval.json -o -name report.json \) -print0 \
+    | tar czf "$R/tw.tgz" --null -T -)
   ;;
 *) echo "unknown mode $mode"; exit 2;;
 esac

@@ -86,3 +86,11 @@ print("| runtime | ms / 32 crops | x floor |")
 print("|---|---:|---:|")
 for name, ms in rows:
     print(f"| {name} | {ms:.2f} | {ms/floor_ms:.1f} |")
+
+# For `slag-bench stages --torch`: the same timings as JSON.
+import json  # noqa: E402
+
+with open(os.path.join(out, "clip-vs-torch.json"), "w") as f:
+    json.dump({"model": os.path.basename(path), "batch": 32, "fp16_ms": rows[0][1],
+               "fp32_ms": rows[1][1], "ort_cpu_ms": rows[2][1], "gflop_per_image": flops / 1e9,
+               "matmul_tflops_fp16": tflops}, f, indent=2)

@@ -17,6 +17,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import NullFormatter, ScalarFormatter  # noqa: E402
 
 
 def pareto(points):
@@ -82,6 +83,11 @@ def main():
     ax[1].grid(alpha=0.3)
     ax[2].set_xscale("log")
     ax[2].set_yscale("log")
+    # Plain numbers on the log axes, major ticks only (minor labels overlap on short ranges).
+    for a, axis in ((ax[0], "x"), (ax[1], "x"), (ax[2], "x"), (ax[2], "y")):
+        axis_obj = a.xaxis if axis == "x" else a.yaxis
+        axis_obj.set_major_formatter(ScalarFormatter())
+        axis_obj.set_minor_formatter(NullFormatter())
     ax[2].set_xlabel("bytes per Gaussian (log)")
     ax[2].set_ylabel("query latency, ms (log; index points: top-k)")
     ax[2].set_title("Storage: size vs query latency")

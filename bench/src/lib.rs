@@ -6,7 +6,13 @@
 //!   query latency, bytes per Gaussian and accuracy; writes `tradeoffs.{md,csv}` (the plot is
 //!   drawn from the CSV by `scripts/plot_tradeoffs.py`).
 //!
+//! - [`stages`]: each encoder stage's time per image against its floor (FLOPs at the measured
+//!   matrix rate, bytes at the measured bandwidths) on the machine it runs on (issue 5).
+//! - [`scaling`]: the same encode on 1, 2, 4 … GPUs of one host: speed-up and efficiency.
+//!
 //! The binary `slag-bench` exposes each study as a subcommand (`slag-bench tradeoffs …`).
 
 pub mod machine;
+pub mod scaling;
+pub mod stages;
 pub mod tradeoffs;

@@ -2,7 +2,7 @@
 
 use clap::{Parser, Subcommand};
 
-/// slag studies (speed/accuracy trade-offs, …), reproducible by one command each.
+/// slag studies (speed/accuracy trade-offs, stage floors, GPU scaling), one command each.
 #[derive(Parser)]
 #[command(name = "slag-bench", version, about)]
 struct Cli {
@@ -15,6 +15,11 @@ enum Command {
     /// Speed/accuracy trade study on a real scene with color-clip: writes
     /// OUT/tradeoffs.md and OUT/tradeoffs.csv.
     Tradeoffs(slag_bench::tradeoffs::TradeoffArgs),
+    /// Each encoder stage's time per image against its floor on this machine (needs the facts
+    /// JSON of scripts/device_facts.py; see scripts/device-scaling.sh stages).
+    Stages(Box<slag_bench::stages::StagesArgs>),
+    /// The same encode on 1, 2, 4 … GPUs of this host: speed-up and efficiency table.
+    Scaling(Box<slag_bench::scaling::ScalingArgs>),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -25,6 +30,8 @@ fn main() -> anyhow::Result<()> {
             let summary = slag_bench::tradeoffs::run(&a)?;
             println!("{summary}");
         }
+        Command::Stages(a) => println!("{}", slag_bench::stages::run(&a)?),
+        Command::Scaling(a) => println!("{}", slag_bench::scaling::run(&a)?),
     }
     Ok(())
 }

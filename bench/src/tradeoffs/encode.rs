@@ -87,7 +87,7 @@ impl EncodePoint {
 
     /// The `slag-encoder encode` arguments of this point (besides `--scene`/`--out`).
     /// `fixtures` is `shared/fixtures`.
-    pub fn encode_argv(&self, fixtures: &Path, threads: Option<usize>) -> Vec<String> {
+    pub fn encode_argv(&self, fixtures: &Path, workers: &Workers) -> Vec<String> {
         let f = |rel: &str| fixtures.join(rel).display().to_string();
         let mut v: Vec<String> = Vec::new();
         let mut push = |a: &str, b: String| {
@@ -114,13 +114,25 @@ impl EncodePoint {
         if let Some(s) = self.mixture_keep {
             push("--mixture-keep", s.to_string());
         }
-        if let Some(t) = threads {
+        if let Some(t) = workers.threads {
             push("--threads", t.to_string());
+        }
+        if let Some(f) = workers.front_workers {
+            push("--front-workers", f.to_string());
         }
         push("--precision", "f32".into());
         v.push("--quiet".into());
         v
     }
+}
+
+/// Worker counts passed to every encode of the sweep (part of each point's cache key).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Workers {
+    /// `--threads` (default: all cores).
+    pub threads: Option<usize>,
+    /// `--front-workers` (default: the encoder's, GPUs + 1).
+    pub front_workers: Option<usize>,
 }
 
 /// What the study keeps of one encode run's `report.json` (also the cache record).
@@ -166,7 +178,7 @@ pub fn full_argv(
     point: &EncodePoint,
     scene: &Path,
     fixtures: &Path,
-    threads: Option<usize>,
+    workers: &Workers,
     dir: &Path,
 ) -> Vec<String> {
     let mut argv = vec![
@@ -175,7 +187,7 @@ pub fn full_argv(
         "--out".into(),
         dir.display().to_string(),
     ];
-    argv.extend(point.encode_argv(fixtures, threads));
+    argv.extend(point.encode_argv(fixtures, workers));
     argv
 }
 
@@ -199,11 +211,11 @@ pub fn run_point(
     point: &EncodePoint,
     scene: &Path,
     fixtures: &Path,
-    threads: Option<usize>,
+    workers: &Workers,
     dir: &Path,
     fresh: bool,
 ) -> anyhow::Result<(EncodeRecord, bool)> {
-    let argv = full_argv(point, scene, fixtures, threads, dir);
+    let argv = full_argv(point, scene, fixtures, workers, dir);
     if !fresh
         && dir.join("embeddings.safetensors").exists()
         && let Some(rec) = cached(dir, &argv)

@@ -86,6 +86,9 @@ pub struct TradeoffArgs {
     /// Worker threads of the encoder (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Front workers of the encoder (masks + CLIP; default GPUs + 1: raise it on many cores).
+    #[arg(long)]
+    pub front_workers: Option<usize>,
     /// Timed repetitions of each prompt's scan (default 5, --quick 1).
     #[arg(long)]
     pub repeats: Option<usize>,
@@ -321,12 +324,16 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let ctx = EvalContext::load(&scene, &fixtures, a.threshold)?;
 
     // 1. Encode sweep.
+    let workers = encode::Workers {
+        threads: a.threads,
+        front_workers: a.front_workers,
+    };
     let points = plan(a.quick);
     let mut encoded: Vec<EncodedPoint> = Vec::new();
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
         let dir = encode::point_dir(&work, p);
-        let argv = encode::full_argv(p, &scene, &fixtures, a.threads, &dir);
+        let argv = encode::full_argv(p, &scene, &fixtures, &workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
         let prior = (!a.fresh).then(|| encode::cached(&dir, &argv)).flatten();
         let prior_eval = prior
@@ -355,7 +362,7 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         );
         let (rec, cached) = match prior {
             Some(r) if usable => (r, true),
-            _ => encode::run_point(p, &scene, &fixtures, a.threads, &dir, true)?,
+            _ => encode::run_point(p, &scene, &fixtures, &workers, &dir, true)?,
         };
         let ev = match encode::cached_eval(&dir, ctx.threshold) {
             Some(e) => e,
