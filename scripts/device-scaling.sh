@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Runs on the lent multi-GPU machine (x86_64, NVIDIA, no Rust toolchain); NOT part of CI.
-#   scripts/device-scaling.sh scaling [GPU_COUNTS]   # same scene on 1, 2, 4 GPUs (default "1 2 4")
+#   scripts/device-scaling.sh scaling [GPU_COUNTS]   # slag-bench scaling: same scene on 1,2,4 GPUs
 #   scripts/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
 #   scripts/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
 #                                                    # on one GPU, peak host + GPU memory
 #   scripts/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
 #                                                    # (color-clip all views; ViT-B/16 and color-sam
 #                                                    # every 8th view); rates from device_facts.py
+#   scripts/device-scaling.sh stages-color [FRONTS]  # the color-clip stage table again per front count
 #   scripts/device-scaling.sh tradeoffs IDS          # slag-bench tradeoffs --cached-only --encode IDS
 #                                                    # on the snowmiku copy; the work folder's records
 #                                                    # go back as tw.tgz and come in as .devwork/tw.tgz
@@ -34,25 +35,12 @@ gpu_mem_watch() { # samples the GPUs' used memory every 0.5 s into $1 until kill
 
 case "$mode" in
 scaling)
-  counts=${2:-"1 2 4"}
-  for g in $counts; do
-    echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, $g GPU(s), 12 front workers"
-    "$B" bench --scene .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
-      --gpus "$g" --front-workers 12 --quiet --out "$W/g$g" 2>&1 | grep -v XDG_RUNTIME | tee "$R/scaling-g$g.txt"
-    cp "$W/g$g/report.json" "$R/report-scaling-g$g.json"
-  done
-  python3 - "$R" $counts <<'EOF'
-import json, sys
-r = sys.argv[1]; gs = [int(g) for g in sys.argv[2:]]
-rep = {g: json.load(open(f"{r}/report-scaling-g{g}.json")) for g in gs}
-t1 = rep[gs[0]]["timings"]["total"] * gs[0]
-print("| GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU |")
-print("|---:|---:|---:|---:|---:|---|")
-for g in gs:
-    t = rep[g]["timings"]["total"]; n = rep[g]["counts"]["views_used"]
-    busy = [f'{100*w["busy_s"]/t:.0f}' for w in rep[g]["workers"] if w["name"].startswith("raster")]
-    print(f"| {g} | {t:.1f} | {n/t:.2f} | {t1/t:.2f} | {t1/t/g:.2f} | {' '.join(busy)} |")
-EOF
+  counts=${2:-1,2,4}
+  echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, GPUs $counts, 12 front workers"
+  "$BB" scaling --scene .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
+    --front-workers 12 --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" \
+    2>&1 | grep -v XDG_RUNTIME
+  for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json"; done
   ;;
 big)
   n=${2:-30M}; v=${3:-24}
@@ -107,6 +95,16 @@ stages)
     --sam-stability-score-thresh 0.5 "${CLIP[@]}" --every 8 --front-workers 8 --out "$W/st-sam" \
     --table "$R/stages-sam.md" 2>&1 | grep -v XDG_RUNTIME
   for m in color vitb16 sam; do cp "$W/st-${m/vitb16/vit}/report.json" "$R/report-stages-$m.json" 2>/dev/null; done
+  ;;
+stages-color)
+  # Re-time the color-clip stage table with facts measured before (.devwork/facts.json), once per
+  # front-worker count given (default 15).
+  for fw in ${2:-15}; do
+    echo "### stages: graph masks, color-clip, all views, $fw front workers"
+    "$BB" stages --scene .devcarry/scene --raster-scale 1.0 --quiet --facts .devwork/facts.json \
+      --masks graph "${CLIP[@]}" --front-workers "$fw" --out "$W/st-color-$fw" \
+      --table "$R/stages-color-f$fw.md" 2>&1 | grep -v XDG_RUNTIME
+  done
   ;;
 tradeoffs)
   TW=target/slag-bench/snowmiku-dev; mkdir -p "$TW"

@@ -72,7 +72,8 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
         let mut e = a.encode.clone();
         e.gpus = GpuCount::Count(g);
         e.out = a.encode.out.join(format!("g{g}"));
-        let r = slag_encoder::cli::encode::run(&e).with_context(|| format!("encode on {g} GPU(s)"))?;
+        let r =
+            slag_encoder::cli::encode::run(&e).with_context(|| format!("encode on {g} GPU(s)"))?;
         eprintln!("{g} GPU(s): {:.1} s", r.timings.total);
         runs.push((g, r));
     }

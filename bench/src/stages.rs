@@ -244,10 +244,7 @@ pub fn stage_rows(
             });
         }
         _ => rows.push(StageRow {
-            stage: format!(
-                "masks ({})",
-                r.models["masks"].as_str().unwrap_or("graph")
-            ),
+            stage: format!("masks ({})", r.models["masks"].as_str().unwrap_or("graph")),
             runs_on: "CPU".into(),
             ms_per_image: per(t.masks),
             work: "no FLOP model (graph segmentation)".into(),
@@ -432,9 +429,9 @@ pub fn run(a: &StagesArgs) -> anyhow::Result<String> {
     let report = slag_encoder::cli::encode::run(&a.encode)?;
     let phases = raster_phases(&a.encode, a.raster_views)?;
     let views = slag_common::camera::load_views(&a.encode.scene)?;
-    let image_pixels = views
-        .first()
-        .map_or(0.0, |v| f64::from(v.intrinsics.width) * f64::from(v.intrinsics.height));
+    let image_pixels = views.first().map_or(0.0, |v| {
+        f64::from(v.intrinsics.width) * f64::from(v.intrinsics.height)
+    });
     let rows = stage_rows(&a.encode, &report, &facts, &phases, image_pixels);
     let command = std::iter::once("slag-bench".to_string())
         .chain(std::env::args().skip(1))

@@ -124,6 +124,34 @@ pub struct GpuRasterizer {
     noise_seed: Option<u64>,
     band_limit: Option<u64>,
     timings: PhaseTimings,
+    /// Write-pass output and its readback staging, kept across views (grown on demand).
+    out: Option<OutBuffers>,
+}
+
+/// The write pass's output buffers (ids, weights) and their `MAP_READ` staging twins, reused
+/// across views so that a view neither allocates (and zero-fills) ~8 bytes per entry on the
+/// device nor maps fresh host memory: each view's weights are copied once, from the mapped
+/// staging range straight into the returned [`PixelWeights`].
+struct OutBuffers {
+    ids: wgpu::Buffer,
+    weights: wgpu::Buffer,
+    stage_ids: wgpu::Buffer,
+    stage_weights: wgpu::Buffer,
+    /// Bytes each of the four holds.
+    capacity: u64,
+}
+
+/// Appends the little-endian `T`s in `bytes` to `dst` (one copy when `bytes` is aligned for `T`,
+/// as mapped ranges are; element by element otherwise).
+fn extend_pod<T: bytemuck::Pod>(dst: &mut Vec<T>, bytes: &[u8]) {
+    match bytemuck::try_cast_slice::<u8, T>(bytes) {
+        Ok(s) => dst.extend_from_slice(s),
+        Err(_) => dst.extend(
+            bytes
+                .chunks_exact(std::mem::size_of::<T>())
+                .map(bytemuck::pod_read_unaligned::<T>),
+        ),
+    }
 }
 
 impl std::fmt::Debug for GpuRasterizer {
@@ -396,6 +424,7 @@ impl GpuRasterizer {
             noise_seed: None,
             band_limit: None,
             timings: PhaseTimings::default(),
+            out: None,
         })
     }
 
@@ -508,6 +537,77 @@ impl GpuRasterizer {
         Ok(out)
     }
 
+    /// `kept` if it holds `bytes`, else new write-pass buffers of `bytes` plus a quarter (at
+    /// most `limit`), so views of similar size reuse them.
+    fn out_buffers(&self, kept: Option<OutBuffers>, bytes: u64, limit: u64) -> OutBuffers {
+        if let Some(o) = kept
+            && o.capacity >= bytes
+            && o.capacity <= limit.max(bytes)
+        {
+            return o;
+        }
+        let capacity = (bytes + bytes / 4)
+            .min(limit.max(bytes))
+            .next_multiple_of(4);
+        let staging = |label| {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: capacity,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        OutBuffers {
+            ids: storage(&self.device, "out_ids", capacity),
+            weights: storage(&self.device, "out_weights", capacity),
+            stage_ids: staging("readback_ids"),
+            stage_weights: staging("readback_weights"),
+            capacity,
+        }
+    }
+
+    /// Submits `enc` (which ends with the copies into `out`'s staging buffers), waits, and
+    /// appends the first `bytes` of each staging buffer to `ids` / `weights`.
+    fn read_entries(
+        &self,
+        enc: wgpu::CommandEncoder,
+        out: &OutBuffers,
+        bytes: u64,
+        ids: &mut Vec<u32>,
+        weights: &mut Vec<f32>,
+    ) -> Result<()> {
+        self.queue.submit([enc.finish()]);
+        let (tx, rx) = mpsc::channel();
+        for buf in [&out.stage_ids, &out.stage_weights] {
+            let tx = tx.clone();
+            buf.slice(..bytes).map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send(r);
+            });
+        }
+        drop(tx);
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| gpu_err("waiting for the rasterizer kernels failed", e))?;
+        for r in rx.iter() {
+            r.map_err(|e| gpu_err("reading back rasterizer output failed", e))?;
+        }
+        for (buf, is_ids) in [(&out.stage_ids, true), (&out.stage_weights, false)] {
+            {
+                let view = buf
+                    .slice(..bytes)
+                    .get_mapped_range()
+                    .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
+                if is_ids {
+                    extend_pod(ids, &view);
+                } else {
+                    extend_pod(weights, &view);
+                }
+            }
+            buf.unmap();
+        }
+        Ok(())
+    }
+
     fn check_size(&self, what: &str, bytes: u64, k: &Intrinsics) -> Result<()> {
         if bytes > self.max_binding() {
             return Err(Error::Gpu(format!(
@@ -524,6 +624,7 @@ impl GpuRasterizer {
 
     fn run(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
         validate_raster(k)?;
+        let mut kept = self.out.take();
         let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
         let max_groups = self.limits.max_compute_workgroups_per_dimension;
         if tiles_x > max_groups.min(65535) || tiles_y > max_groups.min(65535) {
@@ -711,10 +812,14 @@ impl GpuRasterizer {
                 r1 += 1;
             }
             let entries = row_start(r1) - base;
-            let out_ids = storage(&self.device, "out_ids", entries * 4);
-            let out_w = storage(&self.device, "out_weights", entries * 4);
-            self.noise(&out_ids, seed_salt + 4 + r0 as u64);
-            self.noise(&out_w, seed_salt + 5 + r0 as u64);
+            let bytes = entries * 4;
+            if bytes == 0 {
+                r0 = r1; // no pixel of these tile rows has a contributor: nothing to write
+                continue;
+            }
+            let out = self.out_buffers(kept.take(), bytes, band_bytes);
+            self.noise(&out.ids, seed_salt + 4 + r0 as u64);
+            self.noise(&out.weights, seed_salt + 5 + r0 as u64);
             params.mode = 1;
             params.tile_y0 = r0;
             params.out_base = base as u32;
@@ -722,18 +827,19 @@ impl GpuRasterizer {
                 .write_buffer(&params_buf, 0, bytemuck::bytes_of(&params));
             let mut enc = self.device.create_command_encoder(&Default::default());
             {
-                let bg = blend_bg(&out_ids, &out_w);
+                let bg = blend_bg(&out.ids, &out.weights);
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&self.pipelines.blend);
                 pass.set_bind_group(0, &bg, &[]);
                 pass.dispatch_workgroups(tiles_x, r1 - r0, 1);
             }
-            let read =
-                self.submit_and_read(enc, &[(&out_ids, 0, entries * 4), (&out_w, 0, entries * 4)])?;
-            ids.extend_from_slice(&bytemuck::pod_collect_to_vec::<u8, u32>(&read[0]));
-            weights.extend_from_slice(&bytemuck::pod_collect_to_vec::<u8, f32>(&read[1]));
+            enc.copy_buffer_to_buffer(&out.ids, 0, &out.stage_ids, 0, bytes);
+            enc.copy_buffer_to_buffer(&out.weights, 0, &out.stage_weights, 0, bytes);
+            self.read_entries(enc, &out, bytes, &mut ids, &mut weights)?;
+            kept = Some(out);
             r0 = r1;
         }
+        self.out = kept;
         timings.write_ms = lap(&mut clock);
         self.timings = timings;
         tracing::debug!(?timings, entries = total, "gpu weight raster");

@@ -341,6 +341,18 @@ fn gpu_matches_cpu_on_random_scenes() {
             "seed {seed}: banding changed output"
         );
         gpu.set_band_limit(None);
+        // Another view on the same rasterizer (its write-pass buffers are kept and reused, larger
+        // or smaller than this view needs) equals a fresh rasterizer's output.
+        let (k2, w2c2) = test_camera(seed + 7);
+        let reused = gpu.rasterize(&k2, &w2c2).expect("gpu reused");
+        let Some(mut fresh) = self::gpu(&g) else {
+            continue;
+        };
+        assert_eq!(
+            reused,
+            fresh.rasterize(&k2, &w2c2).expect("gpu fresh"),
+            "seed {seed}: reused write-pass buffers changed the output"
+        );
     }
 }
 
