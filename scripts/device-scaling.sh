@@ -36,9 +36,10 @@ gpu_mem_watch() { # samples the GPUs' used memory every 0.5 s into $1 until kill
 case "$mode" in
 scaling)
   counts=${2:-1,2,4}
-  echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, GPUs $counts, 12 front workers"
+  fronts=${FRONTS:-12}
+  echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, GPUs $counts, $fronts front workers"
   "$BB" scaling --scene .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
-    --front-workers 12 --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" \
+    --front-workers "$fronts" --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" \
     2>&1 | grep -v XDG_RUNTIME
   for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json"; done
   ;;

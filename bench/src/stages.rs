@@ -2,15 +2,17 @@
 //! item 1), on the machine it runs on.
 //!
 //! The run: one `slag-encoder encode` with the given arguments (in process), then the GPU weight
-//! rasterizer alone over `--raster-views` views for its phase breakdown
+//! rasterizer alone over `--raster-views` views for the phase breakdown of its per-pixel-list
+//! path
 //! ([`slag_encoder::raster::PhaseTimings`]). The floors come from a facts file measured on the same
 //! machine by `scripts/device_facts.py` (matrix rate, copy bandwidths, each ONNX model's FLOPs)
 //! and, optionally, the torch timing of the same CLIP model from `scripts/device_clip_vs_torch.py`.
 //!
 //! A stage's floor is its work at the machine's measured ceiling: FLOPs at the fp16 matrix rate
 //! (SAM, CLIP: what the model would take on the GPU with perfect kernels), bytes at a measured
-//! bandwidth (raster: GPU memory traffic plus the weights' readback over PCIe, which this design
-//! does; `a_kj` and the reduction: host memory). Stages without a work model (JPEG decode, the
+//! bandwidth (raster: GPU memory traffic plus what is read back over PCIe — the per-pixel lists
+//! with top-K, only the per-(Gaussian, label) sums otherwise, whose size is approximated by the
+//! `a_kj` count; `a_kj` and the reduction: host memory). Stages without a work model (JPEG decode, the
 //! graph segmenter) show their time only. Times are busy seconds summed over workers divided by
 //! images (the report's convention), so a stage's "ms / image" is its cost, not the wall clock.
 
@@ -194,6 +196,8 @@ pub fn raster_phases(a: &EncodeArgs, n: usize) -> anyhow::Result<RasterPhases> {
 const PROJECT_BYTES_PER_GAUSSIAN: f64 = 16.0 + 12.0 + 16.0 + 32.0;
 /// Bytes per (Gaussian, weight) entry written by the blend pass and read back (u32 id + f32).
 const ENTRY_BYTES: f64 = 8.0;
+/// Bytes per slot of the GPU label-sum table (Gaussian, label, 64-bit sum), read back per sum.
+const LABEL_SLOT_BYTES: f64 = 16.0;
 /// Bytes per sparse `a_kj` record handed to the reduction (u32 Gaussian, u32 mask, f32 weight).
 const AKJ_BYTES: f64 = 12.0;
 
@@ -277,38 +281,78 @@ pub fn stage_rows(
         let px = image_pixels * a.raster_scale * a.raster_scale;
         (px * c.contributors_per_pixel, px)
     };
-    let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + entries * ENTRY_BYTES;
-    let readback = entries * ENTRY_BYTES + (pixels + 1.0) * 4.0;
-    rows.push(StageRow {
-        stage: "raster (weights)".into(),
-        runs_on: r.models["rasterizer"]
-            .as_str()
-            .unwrap_or("wgpu")
-            .to_string(),
-        ms_per_image: per(t.raster),
-        work: format!(
-            "{:.1} MB GPU traffic + {:.1} MB read back ({:.1} M entries)",
-            gpu_bytes / 1e6,
-            readback / 1e6,
-            entries / 1e6
-        ),
-        ceiling: format!(
-            "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
-            facts.gpu_copy_gbps, facts.d2h_gbps
-        ),
-        floor_ms: Some(
-            (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
-        ),
-    });
-    let akj_bytes = entries * ENTRY_BYTES;
-    rows.push(StageRow {
-        stage: "a_kj (image stage)".into(),
-        runs_on: "CPU (rayon)".into(),
-        ms_per_image: per(t.image_aggregate),
-        work: format!("{:.1} MB of weights read", akj_bytes / 1e6),
-        ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
-        floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
-    });
+    // Without top-K the GPU rasterizer sums per (Gaussian, label) on the device and only the
+    // sums come back (`aggregate::view_contribution`); with top-K the per-pixel lists do.
+    let label_path = a.top_k_per_pixel.is_none()
+        && a.rasterizer == slag_encoder::cli::encode::RasterBackend::Gpu
+        && c.masks > 0;
+    let akj_per_image = c.entries as f64 / n;
+    if label_path {
+        let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + pixels * 4.0;
+        let readback = akj_per_image * LABEL_SLOT_BYTES;
+        rows.push(StageRow {
+            stage: "raster + a_kj sums (GPU)".into(),
+            runs_on: r.models["rasterizer"]
+                .as_str()
+                .unwrap_or("wgpu")
+                .to_string(),
+            ms_per_image: per(t.raster),
+            work: format!(
+                "{:.1} M contributions summed on the GPU; ≈{:.1} MB of sums read back",
+                entries / 1e6,
+                readback / 1e6
+            ),
+            ceiling: format!(
+                "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
+                facts.gpu_copy_gbps, facts.d2h_gbps
+            ),
+            floor_ms: Some(
+                (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
+            ),
+        });
+        let host_bytes = pixels * 4.0 + akj_per_image * AKJ_BYTES;
+        rows.push(StageRow {
+            stage: "a_kj host side (labels, expansion)".into(),
+            runs_on: "CPU (rayon)".into(),
+            ms_per_image: per(t.image_aggregate),
+            work: format!("{:.1} MB of labels and a_kj written", host_bytes / 1e6),
+            ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
+            floor_ms: Some(host_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
+        });
+    } else {
+        let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + entries * ENTRY_BYTES;
+        let readback = entries * ENTRY_BYTES + (pixels + 1.0) * 4.0;
+        rows.push(StageRow {
+            stage: "raster (weights)".into(),
+            runs_on: r.models["rasterizer"]
+                .as_str()
+                .unwrap_or("wgpu")
+                .to_string(),
+            ms_per_image: per(t.raster),
+            work: format!(
+                "{:.1} MB GPU traffic + {:.1} MB read back ({:.1} M entries)",
+                gpu_bytes / 1e6,
+                readback / 1e6,
+                entries / 1e6
+            ),
+            ceiling: format!(
+                "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
+                facts.gpu_copy_gbps, facts.d2h_gbps
+            ),
+            floor_ms: Some(
+                (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
+            ),
+        });
+        let akj_bytes = entries * ENTRY_BYTES;
+        rows.push(StageRow {
+            stage: "a_kj (image stage)".into(),
+            runs_on: "CPU (rayon)".into(),
+            ms_per_image: per(t.image_aggregate),
+            work: format!("{:.1} MB of weights read", akj_bytes / 1e6),
+            ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
+            floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
+        });
+    }
     let dim = r.outputs["embeddings_bytes"]
         .as_f64()
         .map(|b| b / (c.observed.max(1) as f64 * 2.0))
@@ -379,7 +423,7 @@ pub fn markdown(
     }
     if phases.views > 0 {
         s += &format!(
-            "\nRaster phases, the rasterizer alone over {} views (ms / view): projection {:.1}, \
+            "\nRaster phases of the per-pixel-list path (top-K), the rasterizer alone over {} views (ms / view): projection {:.1}, \
              host tile binning + depth sort {:.1}, count + prefix sum {:.1}, write + readback \
              {:.1}; whole call {:.1}. {:.2} M entries and {:.0} pixels per view.\n",
             phases.views,

@@ -17,14 +17,16 @@
 
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
+use slag_common::camera::{Intrinsics, WorldToCamera};
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::{Error, Result};
 
 use crate::masks::Mask;
-use crate::raster::PixelWeights;
+use crate::raster::{PixelWeights, WeightRasterizer};
 
 /// One non-zero `a_kj` of an image: Gaussian `gaussian` received total blend weight `weight`
 /// (units: pixels at the raster resolution) inside mask `mask`.
@@ -95,18 +97,51 @@ fn membership(masks: &[Mask], width: u32, height: u32) -> (usize, Vec<u64>) {
     (words, bits)
 }
 
-/// The image stage: `a_kj = Σ_{p∈M_j} w_kp` for every Gaussian k and mask j of one image.
-///
-/// `weights` is the raster output at any resolution; `masks` are at the image's full resolution
-/// (all the same size) and are resampled to the raster grid. `mask_embeddings` is `[M * dim]`.
-/// Errors: mask/embedding count mismatch, masks of different sizes.
-pub fn image_contribution(
-    weights: &PixelWeights,
-    masks: &[Mask],
-    mask_embeddings: Vec<f32>,
-    dim: usize,
-    params: ImageStageParams,
-) -> Result<ImageContribution> {
+/// Every raster pixel's *label*: the id of the distinct set of masks covering it (its
+/// signature; 0 = no mask), so that `a_kj = Σ_{s ∋ j} Σ_{p: label(p) = s} w_kp`: the image stage
+/// sums weights per (Gaussian, label) — on the host or on the GPU
+/// ([`WeightRasterizer::label_sums`]) — and expands labels to masks once per image.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PixelLabels {
+    /// `[height × width]` row-major label of each raster pixel.
+    pub labels: Vec<u32>,
+    /// `masks_of[s]`: the mask indices of label `s` (ascending; `masks_of[0]` is empty).
+    pub masks_of: Vec<Vec<u32>>,
+}
+
+/// The labels of the raster grid `width × height` for full-resolution `masks` (nearest sampling
+/// at raster pixel centres, as [`image_contribution`] does). Labels are numbered in row-major
+/// order of first appearance, so they are deterministic.
+pub fn pixel_labels(masks: &[Mask], width: u32, height: u32) -> PixelLabels {
+    if masks.is_empty() || width == 0 || height == 0 {
+        return PixelLabels {
+            labels: vec![0; width as usize * height as usize],
+            masks_of: vec![Vec::new()],
+        };
+    }
+    let (words, bits) = membership(masks, width, height);
+    let mut sig_of: FxHashMap<&[u64], u32> = FxHashMap::default();
+    let mut masks_of: Vec<Vec<u32>> = vec![Vec::new()];
+    let labels = bits
+        .chunks_exact(words)
+        .map(|set| {
+            if set.iter().all(|&b| b == 0) {
+                return 0;
+            }
+            *sig_of.entry(set).or_insert_with(|| {
+                let members = (0..masks.len() as u32)
+                    .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
+                    .collect();
+                masks_of.push(members);
+                (masks_of.len() - 1) as u32
+            })
+        })
+        .collect();
+    PixelLabels { labels, masks_of }
+}
+
+/// Checks the image stage's inputs: one embedding of width `dim` per mask, masks of one size.
+fn check_image_inputs(masks: &[Mask], mask_embeddings: &[f32], dim: usize) -> Result<()> {
     if mask_embeddings.len() != masks.len() * dim {
         return Err(Error::Invalid(format!(
             "{} masks but {} embedding values for dim {dim}",
@@ -123,6 +158,49 @@ pub fn image_contribution(
             m.width, m.height, masks[0].width, masks[0].height
         )));
     }
+    Ok(())
+}
+
+/// `a_kj` from per-(Gaussian, label) sums sorted by (Gaussian, label): `a_kj = Σ_{s ∋ j} sum_ks`,
+/// added in that order (deterministic), zero sums dropped; sorted by (Gaussian, mask).
+fn expand_labels(
+    sums: impl IntoIterator<Item = (u32, u32, f64)>,
+    masks_of: &[Vec<u32>],
+) -> Vec<Entry> {
+    let mut per_kj: FxHashMap<u64, f64> = FxHashMap::default();
+    for (k, s, v) in sums {
+        for &j in masks_of.get(s as usize).map_or(&[][..], Vec::as_slice) {
+            *per_kj
+                .entry((u64::from(k) << 32) | u64::from(j))
+                .or_insert(0.0) += v;
+        }
+    }
+    let mut entries: Vec<Entry> = per_kj
+        .into_iter()
+        .filter(|&(_, v)| v > 0.0)
+        .map(|(key, v)| Entry {
+            gaussian: (key >> 32) as u32,
+            mask: key as u32,
+            weight: v as f32,
+        })
+        .collect();
+    entries.par_sort_unstable_by_key(|e| (e.gaussian, e.mask));
+    entries
+}
+
+/// The image stage: `a_kj = Σ_{p∈M_j} w_kp` for every Gaussian k and mask j of one image.
+///
+/// `weights` is the raster output at any resolution; `masks` are at the image's full resolution
+/// (all the same size) and are resampled to the raster grid. `mask_embeddings` is `[M * dim]`.
+/// Errors: mask/embedding count mismatch, masks of different sizes.
+pub fn image_contribution(
+    weights: &PixelWeights,
+    masks: &[Mask],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+    params: ImageStageParams,
+) -> Result<ImageContribution> {
+    check_image_inputs(masks, &mask_embeddings, dim)?;
     let (w, h) = (weights.width, weights.height);
     if masks.is_empty() || w == 0 || h == 0 {
         return Ok(ImageContribution {
@@ -131,28 +209,12 @@ pub fn image_contribution(
             entries: Vec::new(),
         });
     }
-    let (words, bits) = membership(masks, w, h);
+    let PixelLabels {
+        labels: pixel_sig,
+        masks_of,
+    } = pixel_labels(masks, w, h);
 
-    // Signatures: distinct mask sets. Id 0 is reserved for "no mask" (skipped).
-    let mut sig_of: FxHashMap<&[u64], u32> = FxHashMap::default();
-    let mut sig_masks: Vec<Vec<u32>> = vec![Vec::new()];
-    let pixel_sig: Vec<u32> = bits
-        .chunks_exact(words)
-        .map(|set| {
-            if set.iter().all(|&b| b == 0) {
-                return 0;
-            }
-            *sig_of.entry(set).or_insert_with(|| {
-                let members = (0..masks.len() as u32)
-                    .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
-                    .collect();
-                sig_masks.push(members);
-                (sig_masks.len() - 1) as u32
-            })
-        })
-        .collect();
-
-    // Σ_p w_kp per (Gaussian, signature), row bands in parallel, f64 sums.
+    // Σ_p w_kp per (Gaussian, label), row bands in parallel, f64 sums.
     let band = (h as usize)
         .div_ceil(rayon::current_num_threads() * 4)
         .max(1);
@@ -196,29 +258,96 @@ pub fn image_contribution(
             *merged.entry(key).or_insert(0.0) += v;
         }
     }
-    // Expand signatures to masks: a_kj = Σ_{s ∋ j} acc[k, s].
-    let mut per_kj: FxHashMap<u64, f64> = FxHashMap::default();
-    for (key, v) in merged {
-        let (k, s) = (key >> 32, (key & 0xffff_ffff) as usize);
-        for &j in &sig_masks[s] {
-            *per_kj.entry((k << 32) | j as u64).or_insert(0.0) += v;
-        }
-    }
-    let mut entries: Vec<Entry> = per_kj
-        .into_iter()
-        .filter(|&(_, v)| v > 0.0)
-        .map(|(key, v)| Entry {
-            gaussian: (key >> 32) as u32,
-            mask: key as u32,
-            weight: v as f32,
-        })
-        .collect();
-    entries.par_sort_unstable_by_key(|e| (e.gaussian, e.mask));
+    let mut sums: Vec<(u64, f64)> = merged.into_iter().collect();
+    sums.sort_unstable_by_key(|e| e.0);
+    let entries = expand_labels(
+        sums.into_iter()
+            .map(|(key, v)| ((key >> 32) as u32, key as u32, v)),
+        &masks_of,
+    );
     Ok(ImageContribution {
         dim,
         mask_embeddings,
         entries,
     })
+}
+
+/// What [`view_contribution`] measured of one view.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ViewStats {
+    /// Seconds in the rasterizer (with label sums: the GPU pass and its readback).
+    pub raster_s: f64,
+    /// Seconds in the host side of the image stage (labels, expansion, or the host sums).
+    pub aggregate_s: f64,
+    /// Raster pixels.
+    pub pixels: usize,
+    /// (pixel, Gaussian) contributions: all of them on the list path, those of pixels covered by
+    /// a mask on the label-sum path.
+    pub contributions: u64,
+    /// Pixels the contributions were counted over (all, or the labelled ones).
+    pub counted_pixels: usize,
+    /// Whether the rasterizer summed per label on its device ([`WeightRasterizer::label_sums`]).
+    pub device_sums: bool,
+}
+
+/// Raster + image stage of one view: the [`ImageContribution`] of `masks` (full resolution) and
+/// their embeddings. Without `top_k_per_pixel` and with a rasterizer that sums per label on its
+/// device (the GPU rasterizer), only the per-(Gaussian, label) sums leave the device (SLAG's
+/// `a_kj = Σ_{p∈M_j} w_kp` with masks expanded from labels on the host); otherwise the per-pixel
+/// lists are rasterized and summed by [`image_contribution`]. Both give the same `a_kj` up to
+/// the device path's 2^-32 fixed point per weight.
+///
+/// Errors: as [`image_contribution`] and the rasterizer's.
+pub fn view_contribution(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    masks: &[Mask],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+    params: ImageStageParams,
+) -> Result<(ImageContribution, ViewStats)> {
+    check_image_inputs(masks, &mask_embeddings, dim)?;
+    let pixels = intrinsics.width as usize * intrinsics.height as usize;
+    if params.top_k_per_pixel.is_none() && !masks.is_empty() {
+        let t0 = Instant::now();
+        let labels = pixel_labels(masks, intrinsics.width, intrinsics.height);
+        let t1 = Instant::now();
+        if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
+            let t2 = Instant::now();
+            let entries = expand_labels(
+                sums.sums.iter().map(|e| (e.gaussian, e.label, e.weight())),
+                &labels.masks_of,
+            );
+            let stats = ViewStats {
+                raster_s: (t2 - t1).as_secs_f64(),
+                aggregate_s: (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
+                pixels,
+                contributions: sums.contributions,
+                counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
+                device_sums: true,
+            };
+            let c = ImageContribution {
+                dim,
+                mask_embeddings,
+                entries,
+            };
+            return Ok((c, stats));
+        }
+    }
+    let t0 = Instant::now();
+    let weights = rasterizer.rasterize(intrinsics, world_to_camera)?;
+    let t1 = Instant::now();
+    let c = image_contribution(&weights, masks, mask_embeddings, dim, params)?;
+    let stats = ViewStats {
+        raster_s: (t1 - t0).as_secs_f64(),
+        aggregate_s: t1.elapsed().as_secs_f64(),
+        pixels,
+        contributions: weights.ids.len() as u64,
+        counted_pixels: pixels,
+        device_sums: false,
+    };
+    Ok((c, stats))
 }
 
 /// Holds image contributions until the reduction, in memory up to a budget and spilled to files

@@ -591,12 +591,10 @@ fn map_side(
                 masks.len()
             )));
         }
-        let weights = stages
-            .rasterizer
-            .rasterize(&raster_intrinsics[i], &view.world_to_camera)?;
-        let t4 = Instant::now();
-        let c = aggregate::image_contribution(
-            &weights,
+        let (c, vs) = aggregate::view_contribution(
+            stages.rasterizer.as_mut(),
+            &raster_intrinsics[i],
+            &view.world_to_camera,
             &masks,
             e.concat(),
             dim,
@@ -605,14 +603,13 @@ fn map_side(
         stats.decode_s += (t1 - t0).as_secs_f64();
         stats.masks_s += (t2 - t1).as_secs_f64();
         stats.clip_s += (t3 - t2).as_secs_f64();
-        stats.raster_s += (t4 - t3).as_secs_f64();
-        stats.image_aggregate_s += t4.elapsed().as_secs_f64();
+        stats.raster_s += vs.raster_s;
+        stats.image_aggregate_s += vs.aggregate_s;
         stats.masks += masks.len() as u64;
         stats.entries += c.entries.len() as u64;
-        stats.raster_pixels += weights.width as u64 * weights.height as u64;
-        stats.raster_entries += weights.ids.len() as u64;
+        stats.raster_pixels += vs.counted_pixels as u64;
+        stats.raster_entries += vs.contributions;
         stats.images += 1;
-        drop(weights);
         let parts = split(&c, i as u32, peers);
         for part in parts {
             input.send(ToReducer::Image(part));

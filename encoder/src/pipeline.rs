@@ -379,31 +379,26 @@ pub fn encode_pool(
                     let t0 = Instant::now();
                     let res = (|| -> Result<()> {
                         let view = &views[item.view];
-                        let weights = rasterizer
-                            .rasterize(&raster_intrinsics[item.view], &view.world_to_camera)?;
-                        let t1 = Instant::now();
-                        let (pixels, raster_entries) =
-                            ((weights.width * weights.height) as usize, weights.ids.len());
                         let n_masks = item.masks.len();
-                        let c = aggregate::image_contribution(
-                            &weights,
+                        let (c, vs) = aggregate::view_contribution(
+                            rasterizer.as_mut(),
+                            &raster_intrinsics[item.view],
+                            &view.world_to_camera,
                             &item.masks,
                             item.embeddings,
                             dim,
                             params.image_stage,
                         )?;
-                        drop(weights);
                         let entries = c.entries.len();
                         store
                             .lock()
                             .map_err(|_| Error::Invalid("contribution store poisoned".into()))?
                             .push(c)?;
-                        let t2 = Instant::now();
                         if let Ok(mut tt) = totals.lock() {
-                            tt.raster_s += (t1 - t0).as_secs_f64();
-                            tt.aggregate_s += (t2 - t1).as_secs_f64();
-                            tt.pixels += pixels;
-                            tt.raster_entries += raster_entries;
+                            tt.raster_s += vs.raster_s;
+                            tt.aggregate_s += vs.aggregate_s;
+                            tt.pixels += vs.counted_pixels;
+                            tt.raster_entries += vs.contributions as usize;
                             tt.masks += n_masks;
                             tt.entries += entries;
                             tt.decode_s += item.decode_s;

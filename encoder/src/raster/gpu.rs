@@ -46,7 +46,7 @@ use slag_common::{Error, Result};
 use wgpu::util::DeviceExt;
 
 use super::project::{camera_point, jacobian_limits, tile_grid};
-use super::{PixelWeights, WeightRasterizer, validate_raster};
+use super::{LabelSum, LabelSums, PixelWeights, WeightRasterizer, validate_raster};
 
 const SHADER: &str = include_str!("weights.wgsl");
 /// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
@@ -76,7 +76,7 @@ struct Params {
     n_blocks: u32,
     tile_y0: u32,
     out_base: u32,
-    _pad: u32,
+    table_mask: u32,
 }
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
@@ -126,6 +126,9 @@ pub struct GpuRasterizer {
     timings: PhaseTimings,
     /// Write-pass output and its readback staging, kept across views (grown on demand).
     out: Option<OutBuffers>,
+    /// Slots of the label-sum table for the next view (a power of two; grown when a view
+    /// overflows it or fills more than half of it).
+    label_slots: u32,
 }
 
 /// The write pass's output buffers (ids, weights) and their `MAP_READ` staging twins, reused
@@ -139,6 +142,43 @@ struct OutBuffers {
     stage_weights: wgpu::Buffer,
     /// Bytes each of the four holds.
     capacity: u64,
+}
+
+/// What one [`GpuRasterizer::run`] produced.
+enum RunOutput {
+    /// Per-pixel lists (modes 0 + 1).
+    Weights(PixelWeights),
+    /// Per-(Gaussian, label) sums (mode 2).
+    Sums(LabelSums),
+}
+
+/// Label-sum table slots of a new rasterizer (4 MiB); grown per view as needed.
+const INITIAL_LABEL_SLOTS: u32 = 1 << 18;
+/// Most label-sum table slots (4 GiB of table): beyond, the view is refused.
+const MAX_LABEL_SLOTS: u32 = 1 << 28;
+
+/// The non-empty slots of a mode-2 table (4 words each: Gaussian + 1, label, low, high), sorted by
+/// (Gaussian, label), duplicates of one key (see `add_label_sum` in weights.wgsl) added.
+fn decode_label_sums(slots: &[u32]) -> Vec<LabelSum> {
+    let mut out: Vec<LabelSum> = slots
+        .chunks_exact(4)
+        .filter(|w| w[0] != 0)
+        .map(|w| LabelSum {
+            gaussian: w[0] - 1,
+            label: w[1],
+            sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
+        })
+        .collect();
+    out.sort_unstable_by_key(|e| (e.gaussian, e.label));
+    out.dedup_by(|next, kept| {
+        if (next.gaussian, next.label) == (kept.gaussian, kept.label) {
+            kept.sum += next.sum;
+            true
+        } else {
+            false
+        }
+    });
+    out
 }
 
 /// Appends the little-endian `T`s in `bytes` to `dst` (one copy when `bytes` is aligned for `T`,
@@ -425,6 +465,7 @@ impl GpuRasterizer {
             band_limit: None,
             timings: PhaseTimings::default(),
             out: None,
+            label_slots: INITIAL_LABEL_SLOTS,
         })
     }
 
@@ -440,6 +481,13 @@ impl GpuRasterizer {
     /// same. For tests of the banding, or to bound peak GPU memory.
     pub fn set_band_limit(&mut self, bytes: Option<u64>) {
         self.band_limit = bytes;
+    }
+
+    /// Testing aid: the slots of the label-sum table for the next view (rounded up to a power of
+    /// two, at least 4). Tiny tables overflow and exercise the retry with more slots; the sums do
+    /// not depend on the table size.
+    pub fn set_label_table_slots(&mut self, slots: u32) {
+        self.label_slots = slots.max(4).next_power_of_two();
     }
 
     /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
@@ -622,7 +670,12 @@ impl GpuRasterizer {
         Ok(())
     }
 
-    fn run(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+    fn run(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: Option<&[u32]>,
+    ) -> Result<RunOutput> {
         validate_raster(k)?;
         let mut kept = self.out.take();
         let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
@@ -665,7 +718,7 @@ impl GpuRasterizer {
             n_blocks,
             tile_y0: 0,
             out_base: 0,
-            _pad: 0,
+            table_mask: 0,
         };
         let params_buf = self
             .device
@@ -723,11 +776,16 @@ impl GpuRasterizer {
         let offsets = storage(&self.device, "offsets", (n_pix as u64 + 1) * 4);
         let block_sums = storage(&self.device, "block_sums", (n_blocks as u64 + 1) * 4);
         let dummy = storage(&self.device, "dummy", 16);
+        // Read-only bindings cannot share a buffer with read-write ones in one dispatch.
+        let dummy_labels = storage(&self.device, "dummy_labels", 16);
         self.noise(&offsets, seed_salt + 2);
         self.noise(&block_sums, seed_salt + 3);
 
         // 3a. Count pass + exclusive scan.
-        let blend_bg = |out_ids: &wgpu::Buffer, out_w: &wgpu::Buffer| {
+        let blend_bg_with = |out_ids: &wgpu::Buffer,
+                             out_w: &wgpu::Buffer,
+                             labels: &wgpu::Buffer,
+                             sums: &wgpu::Buffer| {
             self.bind(
                 &self.pipelines.blend,
                 &[
@@ -738,9 +796,71 @@ impl GpuRasterizer {
                     (8, &offsets),
                     (9, out_ids),
                     (10, out_w),
+                    (12, labels),
+                    (13, sums),
                 ],
             )
         };
+        let blend_bg = |out_ids: &wgpu::Buffer, out_w: &wgpu::Buffer| {
+            blend_bg_with(out_ids, out_w, &dummy_labels, &dummy)
+        };
+
+        // 3'. Label sums (mode 2) instead of per-pixel lists: only the table is read back.
+        if let Some(labels) = labels {
+            if labels.len() != n_pix as usize {
+                return Err(Error::Invalid(format!(
+                    "{} pixel labels for a {}x{} raster; pass one label per raster pixel",
+                    labels.len(),
+                    k.width,
+                    k.height
+                )));
+            }
+            let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
+            let mut slots = self.label_slots.max(4);
+            loop {
+                let table_bytes = 16 + u64::from(slots) * 16;
+                self.check_size("label-sum table", table_bytes, k)?;
+                let table = storage(&self.device, "label_sums", table_bytes);
+                params.mode = 2;
+                params.table_mask = slots - 1;
+                self.queue
+                    .write_buffer(&params_buf, 0, bytemuck::bytes_of(&params));
+                let mut enc = self.device.create_command_encoder(&Default::default());
+                enc.clear_buffer(&table, 0, None);
+                {
+                    let bg = blend_bg_with(&dummy, &dummy, &labels_buf, &table);
+                    let mut pass = enc.begin_compute_pass(&Default::default());
+                    pass.set_pipeline(&self.pipelines.blend);
+                    pass.set_bind_group(0, &bg, &[]);
+                    pass.dispatch_workgroups(tiles_x, tiles_y, 1);
+                }
+                let read = self.submit_and_read(enc, &[(&table, 0, table_bytes)])?;
+                let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
+                if words.first().copied().unwrap_or(1) != 0 {
+                    // Some contribution found no slot: retry the view with 4x the slots.
+                    slots = slots.checked_mul(4).filter(|&n| n <= MAX_LABEL_SLOTS).ok_or_else(|| {
+                        Error::Gpu(format!(
+                            "the {}x{} view has more (Gaussian, label) sums than {MAX_LABEL_SLOTS} \
+                             table slots; lower --raster-scale",
+                            k.width, k.height
+                        ))
+                    })?;
+                    continue;
+                }
+                let sums = LabelSums {
+                    sums: decode_label_sums(&words[4..]),
+                    contributions: (u64::from(words[2]) << 32) | u64::from(words[1]),
+                };
+                // Next view: keep the table at most half full.
+                let want = (sums.sums.len() as u64 * 2).next_power_of_two();
+                let next = u64::from(slots).max(want).min(u64::from(MAX_LABEL_SLOTS)) as u32;
+                timings.write_ms = lap(&mut clock);
+                self.timings = timings;
+                self.label_slots = next;
+                self.out = kept;
+                return Ok(RunOutput::Sums(sums));
+            }
+        }
         let scan_entries = [(0, &params_buf), (8, &offsets), (11, &block_sums)];
         let mut enc = self.device.create_command_encoder(&Default::default());
         {
@@ -843,13 +963,13 @@ impl GpuRasterizer {
         timings.write_ms = lap(&mut clock);
         self.timings = timings;
         tracing::debug!(?timings, entries = total, "gpu weight raster");
-        Ok(PixelWeights {
+        Ok(RunOutput::Weights(PixelWeights {
             width: k.width,
             height: k.height,
             offsets: offsets_host,
             ids,
             weights,
-        })
+        }))
     }
 }
 
@@ -953,11 +1073,17 @@ fn bin_and_sort(
     Ok((ranges, ids))
 }
 
-impl WeightRasterizer for GpuRasterizer {
-    fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+impl GpuRasterizer {
+    /// [`Self::run`] inside validation and out-of-memory error scopes.
+    fn run_scoped(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: Option<&[u32]>,
+    ) -> Result<RunOutput> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let out = self.run(k, w2c);
+        let out = self.run(k, w2c, labels);
         if let Some(e) = pollster::block_on(oom.pop()) {
             let _ = pollster::block_on(scope.pop());
             return Err(gpu_err("out of GPU memory; lower --raster-scale", e));
@@ -966,6 +1092,31 @@ impl WeightRasterizer for GpuRasterizer {
             return Err(gpu_err("rasterizer kernel failed", e));
         }
         out
+    }
+}
+
+impl WeightRasterizer for GpuRasterizer {
+    fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+        match self.run_scoped(k, w2c, None)? {
+            RunOutput::Weights(w) => Ok(w),
+            RunOutput::Sums(_) => Err(Error::Gpu(
+                "rasterizer returned sums for a weights run".into(),
+            )),
+        }
+    }
+
+    fn label_sums(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: &[u32],
+    ) -> Result<Option<LabelSums>> {
+        match self.run_scoped(k, w2c, Some(labels))? {
+            RunOutput::Sums(s) => Ok(Some(s)),
+            RunOutput::Weights(_) => Err(Error::Gpu(
+                "rasterizer returned weights for a sums run".into(),
+            )),
+        }
     }
 
     fn name(&self) -> &str {

@@ -92,8 +92,56 @@ pub trait WeightRasterizer: Send {
         intrinsics: &Intrinsics,
         world_to_camera: &slag_common::camera::WorldToCamera,
     ) -> Result<PixelWeights>;
+    /// Per-label sums of one view's blend weights, `Σ_{p: labels[p] = l} w_kp` for every
+    /// Gaussian k and label l ≠ 0 with a contribution: the image stage's `a_kj` before masks are
+    /// expanded from labels (see [`crate::aggregate::view_contribution`]), without the per-pixel
+    /// lists ever leaving the device. `labels` is `[height × width]` row-major at the raster size
+    /// of `intrinsics`, 0 = no label. Sums sorted by (Gaussian, label), one entry per key.
+    ///
+    /// `Ok(None)`: this rasterizer has no such path (the caller rasterizes and sums on the host;
+    /// the default). Errors: as [`Self::rasterize`], and [`Error::Invalid`] when `labels` does not
+    /// hold one label per raster pixel.
+    fn label_sums(
+        &mut self,
+        intrinsics: &Intrinsics,
+        world_to_camera: &slag_common::camera::WorldToCamera,
+        labels: &[u32],
+    ) -> Result<Option<LabelSums>> {
+        let _ = (intrinsics, world_to_camera, labels);
+        Ok(None)
+    }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;
+}
+
+/// One per-label sum of blend weights ([`WeightRasterizer::label_sums`]): Gaussian `gaussian`
+/// received `Σ w_kp` over the pixels labelled `label`, in exact 64-bit fixed point with 32
+/// fractional bits (each `w_kp` truncated to a multiple of 2^-32 before the sum; units: pixels
+/// at the raster resolution).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LabelSum {
+    /// Gaussian index (source `.ply` order).
+    pub gaussian: u32,
+    /// Pixel label (≥ 1).
+    pub label: u32,
+    /// `Σ w_kp · 2^32`, truncated per term.
+    pub sum: u64,
+}
+
+/// One view's [`WeightRasterizer::label_sums`].
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct LabelSums {
+    /// Sorted by (Gaussian, label), one entry per key.
+    pub sums: Vec<LabelSum>,
+    /// Contributions (pixel, Gaussian) summed: those of labelled pixels only.
+    pub contributions: u64,
+}
+
+impl LabelSum {
+    /// The sum in pixels (`sum / 2^32`).
+    pub fn weight(&self) -> f64 {
+        self.sum as f64 / 4_294_967_296.0
+    }
 }
 
 /// The intrinsics of the weight raster for a photo's full-resolution `intrinsics` at `scale`

@@ -538,3 +538,126 @@ fn colour_render_of_snowmiku_matches_photos() {
         "wrong-pose control PSNR {p_wrong:.2} too high"
     );
 }
+
+/// `n` random overlapping masks (discs and boxes) of a `width × height` image; some pixels in
+/// none of them.
+fn random_masks(seed: u64, width: u32, height: u32, n: usize) -> Vec<crate::masks::Mask> {
+    let mut r = Rng(seed ^ 0x3A5C);
+    (0..n)
+        .filter_map(|i| {
+            let (cx, cy) = (r.range(0.0, width as f64), r.range(0.0, height as f64));
+            let (rx, ry) = (
+                r.range(0.08, 0.45) * width as f64,
+                r.range(0.08, 0.45) * height as f64,
+            );
+            let disc = i % 2 == 0;
+            let pixels = (0..height)
+                .flat_map(|y| (0..width).map(move |x| (x, y)))
+                .map(|(x, y)| {
+                    let (dx, dy) = ((x as f64 + 0.5 - cx) / rx, (y as f64 + 0.5 - cy) / ry);
+                    let inside = if disc {
+                        dx * dx + dy * dy <= 1.0
+                    } else {
+                        dx.abs() <= 1.0 && dy.abs() <= 1.0
+                    };
+                    u8::from(inside)
+                })
+                .collect();
+            crate::masks::Mask::from_pixels(width, height, pixels)
+        })
+        .collect()
+}
+
+#[test]
+fn gpu_label_sums_equal_the_host_image_stage() {
+    use crate::aggregate::{ImageStageParams, image_contribution, view_contribution};
+    for seed in 0..4u64 {
+        let g = random_scene(seed, 600 + seed as usize * 250);
+        let (k, w2c) = test_camera(seed);
+        let Some(mut gpu) = gpu(&g) else { return };
+        // Masks at 2x the raster size: the labels resample them like the host stage does.
+        let masks = random_masks(seed, k.width * 2, k.height * 2, 7);
+        assert!(masks.len() >= 5, "seed {seed}: too few masks");
+        let dim = 3;
+        let emb: Vec<f32> = (0..masks.len() * dim).map(|i| i as f32).collect();
+        let params = ImageStageParams::default();
+        let weights = gpu.rasterize(&k, &w2c).expect("gpu lists");
+        let host = image_contribution(&weights, &masks, emb.clone(), dim, params).expect("host");
+        assert!(
+            host.entries.len() > 100,
+            "seed {seed}: too few a_kj to test"
+        );
+        // Even seeds start from a 4-slot table: the sums overflow it and retry with more slots.
+        gpu.set_label_table_slots(if seed % 2 == 0 { 4 } else { 1 << 16 });
+        let (dev, stats) =
+            view_contribution(&mut gpu, &k, &w2c, &masks, emb.clone(), dim, params).expect("dev");
+        assert!(stats.device_sums, "the GPU rasterizer sums per label");
+        assert_eq!(dev.mask_embeddings, host.mask_embeddings);
+        assert_eq!(
+            dev.entries.len(),
+            host.entries.len(),
+            "seed {seed}: a_kj key sets differ"
+        );
+        // Contributions counted on the device = list entries of labelled pixels.
+        let labels = crate::aggregate::pixel_labels(&masks, k.width, k.height);
+        let labelled: u64 = (0..labels.labels.len())
+            .filter(|&p| labels.labels[p] != 0)
+            .map(|p| u64::from(weights.offsets[p + 1] - weights.offsets[p]))
+            .sum();
+        assert_eq!(stats.contributions, labelled, "seed {seed}");
+        for (d, h) in dev.entries.iter().zip(&host.entries) {
+            assert_eq!((d.gaussian, d.mask), (h.gaussian, h.mask), "seed {seed}");
+            // Fixed point truncates each weight by < 2^-32; f32 storage rounds both.
+            let tol = 1e-6 * h.weight.abs().max(1.0) as f64;
+            assert!(
+                (d.weight as f64 - h.weight as f64).abs() <= tol,
+                "seed {seed}: a_kj({}, {}) {} vs host {}",
+                d.gaussian,
+                d.mask,
+                d.weight,
+                h.weight
+            );
+        }
+        // Deterministic: integer sums do not depend on the threads' order.
+        let (again, _) =
+            view_contribution(&mut gpu, &k, &w2c, &masks, emb, dim, params).expect("dev again");
+        assert_eq!(again, dev, "seed {seed}: label sums not deterministic");
+    }
+}
+
+#[test]
+fn top_k_and_mask_free_views_take_the_list_path() {
+    use crate::aggregate::{ImageStageParams, image_contribution, view_contribution};
+    let g = random_scene(11, 500);
+    let (k, w2c) = test_camera(11);
+    let Some(mut gpu) = gpu(&g) else { return };
+    let masks = random_masks(11, k.width, k.height, 4);
+    let emb = vec![0.5f32; masks.len() * 2];
+    let params = ImageStageParams {
+        top_k_per_pixel: Some(2),
+    };
+    let (c, stats) =
+        view_contribution(&mut gpu, &k, &w2c, &masks, emb.clone(), 2, params).expect("top-k");
+    assert!(!stats.device_sums, "top-K needs the per-pixel lists");
+    let weights = gpu.rasterize(&k, &w2c).expect("lists");
+    assert_eq!(
+        c,
+        image_contribution(&weights, &masks, emb, 2, params).expect("host")
+    );
+    let (empty, stats) = view_contribution(
+        &mut gpu,
+        &k,
+        &w2c,
+        &[],
+        Vec::new(),
+        2,
+        ImageStageParams::default(),
+    )
+    .expect("no masks");
+    assert!(empty.entries.is_empty() && !stats.device_sums);
+    // Labels of the wrong size are refused with a typed error.
+    let err = gpu
+        .label_sums(&k, &w2c, &[1, 2, 3])
+        .expect_err("wrong label count");
+    assert!(err.to_string().contains("labels"), "{err}");
+}

@@ -6,7 +6,11 @@
 //   blend        one 16x16 workgroup per tile, shared-memory batches of 256 splats (gsplat's
 //                rasterize_to_pixels scheme). params.mode == 0: count contributors per pixel into
 //                offsets[p]; mode == 1: write ids/weights into [offsets[p], offsets[p+1]), shifted
-//                by out_base, for the tile rows tile_y0.. of this dispatch (one band of rows).
+//                by out_base, for the tile rows tile_y0.. of this dispatch (one band of rows);
+//                mode == 2: per-label sums instead of per-pixel lists: every contribution w_kp of
+//                a pixel p with labels[p] != 0 is added to the slot of (k, labels[p]) in the
+//                open-addressing table sums[] (64-bit fixed point, integer atomics: the sums are
+//                exact and independent of thread order), so only the sums are read back.
 //   scan_local, scan_blocks, scan_add   exclusive prefix sum of offsets[0..n_pixels] in place,
 //                total written to offsets[n_pixels].
 
@@ -23,11 +27,11 @@ struct Params {
     n_gaussians: u32,
     n_pixels: u32,
     groups_x: u32,       // x extent of 2D dispatches (project, scan_local, scan_add)
-    mode: u32,           // blend: 0 count, 1 write
+    mode: u32,           // blend: 0 count, 1 write, 2 label sums
     n_blocks: u32,       // scan: number of 1024-element blocks
     tile_y0: u32,        // blend: first tile row of this dispatch (banded write pass)
     out_base: u32,       // blend write: entry index of out_ids[0] / out_weights[0]
-    _pad2: u32,
+    table_mask: u32,     // blend mode 2: slots in sums[] minus 1 (slots are a power of two)
 }
 
 struct Splat {
@@ -61,6 +65,59 @@ const SCAN_BLOCK: u32 = 1024u;
 @group(0) @binding(9) var<storage, read_write> out_ids: array<u32>;
 @group(0) @binding(10) var<storage, read_write> out_weights: array<f32>;
 @group(0) @binding(11) var<storage, read_write> block_sums: array<u32>;
+// Mode 2: the label of every pixel (0 = none: the pixel is skipped).
+@group(0) @binding(12) var<storage, read> labels: array<u32>;
+// Mode 2: sums[0] = overflow flag (a contribution found no slot within MAX_PROBES: the host
+// retries with more slots), sums[1], sums[2] = low and high word of the contributions counted,
+// sums[3] unused, then 4 words per slot: Gaussian id + 1 (0 = empty),
+// label, low and high word of Σ w·2^32.
+@group(0) @binding(13) var<storage, read_write> sums: array<atomic<u32>>;
+
+const MAX_PROBES: u32 = 64u;
+
+// Adds w·2^32 (truncated; w <= ALPHA_MAX < 1) to the 64-bit fixed-point sum of the slot at `base`.
+fn fixed_add(base: u32, w: f32) {
+    let lo = u32(min(w * 4294967296.0, 4294967040.0));
+    let old = atomicAdd(&sums[base + 2u], lo);
+    if (old > 0xFFFFFFFFu - lo) {
+        atomicAdd(&sums[base + 3u], 1u);
+    }
+}
+
+// Adds w to the slot of (Gaussian g, label) of sums[], claiming an empty slot if none holds that
+// key yet. A slot claimed by another thread whose label is not yet stored reads as a different key,
+// so one key can end up in two slots: the host adds such duplicates (integers: exact).
+fn add_label_sum(g: u32, label: u32, w: f32) {
+    let key = g + 1u;
+    var h = (g * 0x9E3779B1u) ^ (label * 0x85EBCA77u);
+    h = h ^ (h >> 15u);
+    var probe = 0u;
+    loop {
+        if (probe >= MAX_PROBES) {
+            atomicStore(&sums[0], 1u);
+            return;
+        }
+        let base = 4u + ((h + probe) & params.table_mask) * 4u;
+        var kk = atomicLoad(&sums[base]);
+        if (kk == 0u) {
+            let r = atomicCompareExchangeWeak(&sums[base], 0u, key);
+            if (r.exchanged) {
+                atomicStore(&sums[base + 1u], label);
+                fixed_add(base, w);
+                return;
+            }
+            kk = r.old_value;
+            if (kk == 0u) {
+                continue; // spurious failure of the weak exchange: try this slot again
+            }
+        }
+        if (kk == key && atomicLoad(&sums[base + 1u]) == label) {
+            fixed_add(base, w);
+            return;
+        }
+        probe += 1u;
+    }
+}
 
 fn culled(i: u32) {
     splats[i] = Splat(vec4<f32>(0.0), vec4<f32>(0.0));
@@ -206,6 +263,7 @@ fn blend(
     let inside = px < params.width && py < params.height;
     let pix = py * params.width + px;
     let write = params.mode == 1u;
+    let summing = params.mode == 2u;
     if (lid == 0u) {
         sh_range = tile_ranges[tile];
         atomicStore(&done_count, 0u);
@@ -217,9 +275,14 @@ fn blend(
         out = offsets[pix] - params.out_base;
         out_end = offsets[pix + 1u] - params.out_base;
     }
+    var label = 0u;
+    if (summing && inside) {
+        label = labels[pix];
+    }
     var t_acc = 1.0;
     var count = 0u;
-    var done = !inside;
+    // Unlabelled pixels contribute nothing to label sums: done from the start.
+    var done = !inside || (summing && label == 0u);
     if (done) {
         atomicAdd(&done_count, 1u);
     }
@@ -265,7 +328,10 @@ fn blend(
                     done = true;
                     break;
                 }
-                if (write) {
+                if (summing) {
+                    add_label_sum(sh_id[k], label, alpha * t_acc);
+                    count += 1u;
+                } else if (write) {
                     // Bounded by the count pass's range: never writes outside this pixel's slots.
                     if (out < out_end) {
                         out_ids[out] = sh_id[k];
@@ -282,7 +348,14 @@ fn blend(
             }
         }
     }
-    if (!write && inside) {
+    if (summing && count > 0u) {
+        // Contributions counted (64-bit, words 1 and 2 of the table header).
+        let old = atomicAdd(&sums[1], count);
+        if (old > 0xFFFFFFFFu - count) {
+            atomicAdd(&sums[2], 1u);
+        }
+    }
+    if (params.mode == 0u && inside) {
         offsets[pix] = count;
     }
 }
