@@ -52,7 +52,7 @@ pub struct PartitionParams {
 ///
 /// 16 MiB keeps the f16 default where the old `--max-per-shard 16384` put it (16,384 f16 rows
 /// were 17.0 MB = 16.25 MiB): a dim-512 f16 row is 1040 bytes (1084 with `--display-ply`), so
-/// with a ~100-byte header the cap is 16,131 Gaussians (15,476 with display columns), 1.5 %
+/// with a ~100-byte header the cap is 16,131 Gaussians (15,477 with display columns), 1.5 %
 /// fewer than before, and snowmiku's 117,880 observed Gaussians still make 8 shards of 14,735.
 /// The same 16 MiB holds 8,128 Gaussians at f32 and 31,535 at int8, where the count cap gave
 /// 34 MB and 8.7 MB shards: a robot fetches the same unit whatever the dtype. It also keeps the
@@ -461,8 +461,8 @@ pub fn storage_report(
 }
 
 impl std::fmt::Display for StorageReport {
-    /// One line: `stored R of N Gaussians (D dropped) as f16 in S shards (≤ B bytes each): X
-    /// bytes vs dense N×D f32 Y bytes = Z %`.
+    /// One line: `stored R of N scene Gaussians (K unobserved dropped) as F16 dim D in S shards
+    /// (largest B bytes, cap C Gaussians): X bytes vs dense N×D f32 Y bytes = Z % of dense`.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match (self.scene_gaussians, self.dropped) {
             (Some(n), Some(d)) => write!(
@@ -480,7 +480,7 @@ impl std::fmt::Display for StorageReport {
         write!(
             f,
             " as {:?} dim {} in {} shards (largest {} bytes, cap {} Gaussians): {} bytes vs \
-             dense {}×{} f32 {} bytes = {:.2} % ({:.1}× smaller)",
+             dense {}×{} f32 {} bytes = {:.2} % of dense",
             self.dtype,
             self.dim,
             self.shards,
@@ -491,11 +491,13 @@ impl std::fmt::Display for StorageReport {
             self.dim,
             self.dense_f32_bytes,
             100.0 * self.ratio,
-            if self.ratio > 0.0 {
-                1.0 / self.ratio
-            } else {
-                0.0
-            }
-        )
+        )?;
+        if self.ratio > 0.0 && self.ratio < 1.0 {
+            write!(f, " ({:.2}× smaller)", 1.0 / self.ratio)?;
+        } else if self.ratio >= 1.0 {
+            // Possible at f32 when nearly every Gaussian is observed: ids and means add 16 B/row.
+            write!(f, " (ids and means add 16 bytes a row)")?;
+        }
+        Ok(())
     }
 }

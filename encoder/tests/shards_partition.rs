@@ -375,6 +375,12 @@ fn storage_report_compares_stored_shards_with_a_dense_f32_scene() {
     assert_eq!(r.dense_f32_bytes, 600 * 2048);
     assert!(r.to_string().contains("not recorded"));
     assert_eq!(storage_report(&m, Some(0), stored).dense_rows, 600);
+    // More bytes than the dense baseline is reported as such, never as "smaller".
+    let line = storage_report(&m, None, 2 * 600 * 2048).to_string();
+    assert!(
+        line.contains("200.00 % of dense") && !line.contains("smaller"),
+        "{line}"
+    );
 }
 
 #[derive(clap::Parser)]
