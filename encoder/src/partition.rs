@@ -8,11 +8,18 @@
 //! means. Leaves are numbered in depth-first order (spatially coherent ids). Median splits make
 //! leaf counts balanced (between `max/2` and `max` for large scenes) while their areas follow the
 //! density.
+//!
+//! The cap is set in bytes by default ([`ShardCap::Bytes`], `--max-shard-mb`): the largest count
+//! whose encoded shard fits, from the shard format's exact size model
+//! ([`ShardLayout::max_rows_within`]), so a robot's download unit stays the same whether the
+//! vectors are stored as f32, f16 or int8. [`storage_report`] compares what was stored with a
+//! naive dense `N × D` f32 tensor of the whole scene.
 
 use rayon::prelude::*;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest,
-    SHARD_FORMAT_VERSION, ShardInput, TileInfo, encode_shard, shard_checksum, valid_scene_id,
+    SHARD_FORMAT_VERSION, ShardInput, ShardLayout, TileInfo, encode_shard, shard_checksum,
+    valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -32,12 +39,111 @@ pub enum UpChoice {
 pub struct PartitionParams {
     /// Scene id (see [`valid_scene_id`]).
     pub scene_id: String,
-    /// Most Gaussians per tile (≥ 1).
+    /// Most Gaussians per tile (≥ 1), as recorded in the manifest. From a byte budget, resolve it
+    /// with [`resolve_max_per_shard`].
     pub max_per_shard: usize,
     /// Up axis choice.
     pub up: UpChoice,
     /// Storage type of the vectors in the shards.
     pub dtype: Dtype,
+}
+
+/// Default `--max-shard-mb`, in MiB (2^20 bytes) of encoded shard per tile.
+///
+/// 16 MiB keeps the f16 default where the old `--max-per-shard 16384` put it (16,384 f16 rows
+/// were 17.0 MB = 16.25 MiB): a dim-512 f16 row is 1040 bytes (1084 with `--display-ply`), so
+/// with a ~100-byte header the cap is 16,131 Gaussians (15,477 with display columns), 1.5 %
+/// fewer than before, and snowmiku's 117,880 observed Gaussians still make 8 shards of 14,735.
+/// The same 16 MiB holds 8,128 Gaussians at f32 and 31,535 at int8, where the count cap gave
+/// 34 MB and 8.7 MB shards: a robot fetches the same unit whatever the dtype. It also keeps the
+/// manifest short (a 10 M-Gaussian f16 scene makes ~1000 tiles).
+pub const DEFAULT_MAX_SHARD_MIB: f64 = 16.0;
+
+/// Bytes in one MiB (`--max-shard-mb` counts MiB).
+pub const MIB: u64 = 1 << 20;
+
+/// How large one tile may grow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ShardCap {
+    /// At most this many bytes of encoded shard (header + payload: what `TileInfo::bytes` records
+    /// and a robot downloads); `--max-shard-mb`.
+    Bytes(u64),
+    /// At most this many Gaussians, whatever their size; `--max-per-shard`.
+    Gaussians(usize),
+}
+
+impl ShardCap {
+    /// `--max-shard-mb mib`: `floor(mib · 2^20)` bytes.
+    ///
+    /// Errors ([`Error::Invalid`]): `mib` not finite or not positive, or below one byte.
+    pub fn from_mib(mib: f64) -> Result<ShardCap> {
+        let bytes = mib * MIB as f64;
+        if !bytes.is_finite() || bytes < 1.0 {
+            return Err(Error::Invalid(format!(
+                "--max-shard-mb {mib}: pass a positive size in MiB, e.g. --max-shard-mb \
+                 {DEFAULT_MAX_SHARD_MIB} (or --max-per-shard N to cap tiles by Gaussian count)"
+            )));
+        }
+        Ok(ShardCap::Bytes(bytes.min(u64::MAX as f64) as u64))
+    }
+}
+
+/// The layout every shard of `src` gets from [`partition`] (same dtype, scene and model ids, and
+/// the same display-section choice as [`encode_tile`]: sections present when the source has
+/// them for row 0).
+pub fn shard_layout(src: &impl GaussianSource, scene_id: &str, dtype: Dtype) -> ShardLayout {
+    let display = !src.ids().is_empty() && src.display(0).is_some();
+    ShardLayout {
+        dtype,
+        dim: src.dim(),
+        scales: display,
+        opacities: display,
+        rotations: display && src.display_rotation(0).is_some(),
+        sh_dc: display && src.display_sh_dc(0).is_some(),
+        scene_id_len: scene_id.len(),
+        model_len: src.model().len(),
+    }
+}
+
+/// Resolves `cap` to [`PartitionParams::max_per_shard`]: a count is taken as is; a byte budget
+/// becomes the largest N whose shard under `layout` fits in it
+/// ([`ShardLayout::max_rows_within`], exact: no estimate), so every written shard is ≤ the
+/// budget and a full tile is within one row of it.
+///
+/// Errors ([`Error::Invalid`], naming the flag to change): a count of 0, a budget of 0 bytes,
+/// or a budget smaller than a shard of one Gaussian.
+pub fn resolve_max_per_shard(layout: &ShardLayout, cap: ShardCap) -> Result<usize> {
+    match cap {
+        ShardCap::Gaussians(0) => Err(Error::Invalid(
+            "--max-per-shard must be at least 1 (or leave it out to size shards by \
+             --max-shard-mb)"
+                .into(),
+        )),
+        ShardCap::Gaussians(n) => Ok(n),
+        ShardCap::Bytes(0) => Err(Error::Invalid(format!(
+            "--max-shard-mb must be positive; pass e.g. --max-shard-mb {DEFAULT_MAX_SHARD_MIB}"
+        ))),
+        ShardCap::Bytes(b) => {
+            let n = layout.max_rows_within(b);
+            if n == 0 {
+                let one = layout.shard_len(1);
+                return Err(Error::Invalid(format!(
+                    "--max-shard-mb {:.6} ({b} bytes) is smaller than a shard of one Gaussian \
+                     ({one} bytes at {:?}, dim {}{}); pass --max-shard-mb {:.6} or more",
+                    b as f64 / MIB as f64,
+                    layout.dtype,
+                    layout.dim,
+                    if layout.scales {
+                        ", with display columns"
+                    } else {
+                        ""
+                    },
+                    (one as f64 / MIB as f64 * 1e6).ceil() / 1e6,
+                )));
+            }
+            Ok(usize::try_from(n).unwrap_or(usize::MAX))
+        }
+    }
 }
 
 /// One planned tile: which Gaussians (row indices into the source) and their ground bounds.
@@ -280,4 +386,118 @@ pub fn partition(
         Ok(())
     })?;
     Ok((m, shards))
+}
+
+/// What a partition stored against a naive dense tensor of the whole scene: SLAG stores only
+/// the observed Gaussians (unobserved ones are dropped by the encoder), at the chosen precision,
+/// in shards sized to a byte budget; the baseline is an `N × D` f32 matrix over every Gaussian
+/// of the source scene (`N × 512 × 4` bytes for CLIP ViT-B).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct StorageReport {
+    /// Scene id.
+    pub scene_id: String,
+    /// Gaussians in the source scene (`.ply` vertex count), observed or not, when the
+    /// embeddings file records it (`scene_gaussians` metadata); `None` when it does not, and the
+    /// dense baseline then counts the stored rows only.
+    pub scene_gaussians: Option<u64>,
+    /// Rows stored over all shards (observed Gaussians).
+    pub rows_stored: u64,
+    /// Gaussians of the scene not stored (`scene_gaussians - rows_stored`), when known.
+    pub dropped: Option<u64>,
+    /// Storage type of the vectors.
+    pub dtype: Dtype,
+    /// Embedding width D.
+    pub dim: u32,
+    /// Number of shards (tiles).
+    pub shards: u64,
+    /// Gaussian cap per tile used (manifest `max_per_shard`).
+    pub max_per_shard: u64,
+    /// Largest shard, bytes.
+    pub largest_shard_bytes: u64,
+    /// Bytes of all shards as stored (headers, ids, means, vectors, display columns).
+    pub bytes_stored: u64,
+    /// Rows of the dense baseline: `scene_gaussians` when known, else `rows_stored`.
+    pub dense_rows: u64,
+    /// `dense_rows × D × 4` bytes.
+    pub dense_f32_bytes: u64,
+    /// `bytes_stored / dense_f32_bytes` (0 for an empty scene).
+    pub ratio: f64,
+}
+
+/// Builds the [`StorageReport`] of a committed partition. `bytes_stored` should be measured from
+/// the store (the sum of its shard lengths, [`crate::store::ShardStore::scene_bytes`]);
+/// `scene_gaussians` is the source scene's Gaussian count when known (0 means unknown, as in an
+/// embeddings file without the metadata).
+pub fn storage_report(
+    manifest: &Manifest,
+    scene_gaussians: Option<u64>,
+    bytes_stored: u64,
+) -> StorageReport {
+    let rows = manifest.total_gaussians;
+    let scene_gaussians = scene_gaussians.filter(|&n| n > 0);
+    let dense_rows = scene_gaussians.unwrap_or(rows);
+    let dense = dense_rows
+        .saturating_mul(manifest.dim as u64)
+        .saturating_mul(4);
+    StorageReport {
+        scene_id: manifest.scene_id.clone(),
+        scene_gaussians,
+        rows_stored: rows,
+        dropped: scene_gaussians.map(|n| n.saturating_sub(rows)),
+        dtype: manifest.dtype,
+        dim: manifest.dim,
+        shards: manifest.tiles.len() as u64,
+        max_per_shard: manifest.max_per_shard,
+        largest_shard_bytes: manifest.tiles.iter().map(|t| t.bytes).max().unwrap_or(0),
+        bytes_stored,
+        dense_rows,
+        dense_f32_bytes: dense,
+        ratio: if dense > 0 {
+            bytes_stored as f64 / dense as f64
+        } else {
+            0.0
+        },
+    }
+}
+
+impl std::fmt::Display for StorageReport {
+    /// One line: `stored R of N scene Gaussians (K unobserved dropped) as F16 dim D in S shards
+    /// (largest B bytes, cap C Gaussians): X bytes vs dense N×D f32 Y bytes = Z % of dense`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.scene_gaussians, self.dropped) {
+            (Some(n), Some(d)) => write!(
+                f,
+                "stored {} of {} scene Gaussians ({} unobserved dropped)",
+                self.rows_stored, n, d
+            )?,
+            _ => write!(
+                f,
+                "stored {} Gaussians (the source's scene count is not recorded: dense baseline \
+                 over the stored rows only)",
+                self.rows_stored
+            )?,
+        }
+        write!(
+            f,
+            " as {:?} dim {} in {} shards (largest {} bytes, cap {} Gaussians): {} bytes vs \
+             dense {}×{} f32 {} bytes = {:.2} % of dense",
+            self.dtype,
+            self.dim,
+            self.shards,
+            self.largest_shard_bytes,
+            self.max_per_shard,
+            self.bytes_stored,
+            self.dense_rows,
+            self.dim,
+            self.dense_f32_bytes,
+            100.0 * self.ratio,
+        )?;
+        if self.ratio > 0.0 && self.ratio < 1.0 {
+            write!(f, " ({:.2}× smaller)", 1.0 / self.ratio)?;
+        } else if self.ratio >= 1.0 {
+            // Possible at f32 when nearly every Gaussian is observed: ids and means add 16 B/row.
+            write!(f, " (ids and means add 16 bytes a row)")?;
+        }
+        Ok(())
+    }
 }

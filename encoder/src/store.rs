@@ -132,6 +132,31 @@ impl ShardStore {
         self.shards.get(tile_key(scene, g, tile)).map_err(db_err)
     }
 
+    /// Total bytes of the stored shards of the current generation of `scene` (each tile of
+    /// its manifest, as read back from the store); `None` for an unknown scene.
+    ///
+    /// Errors: invalid scene id, storage errors, a manifest tile without a stored shard
+    /// ([`Error::Format`]: the store is damaged, re-run partition).
+    pub fn scene_bytes(&self, scene: &str) -> Result<Option<u64>> {
+        let Some(m) = self.manifest(scene)? else {
+            return Ok(None);
+        };
+        let mut total = 0u64;
+        for t in &m.tiles {
+            let b = self.shard(scene, t.id)?.ok_or_else(|| {
+                Error::format(
+                    "<store>",
+                    format!(
+                        "scene {scene} lists tile {} but has no shard for it; re-run partition",
+                        t.id
+                    ),
+                )
+            })?;
+            total += b.len() as u64;
+        }
+        Ok(Some(total))
+    }
+
     /// Tile info of `tile` in the current generation (from the tile index tree).
     ///
     /// Errors: invalid scene id, storage errors, corrupted entries.

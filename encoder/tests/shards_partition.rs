@@ -197,3 +197,265 @@ proptest! {
         prop_assert_eq!(scene.ids().len(), n);
     }
 }
+
+// ---- Byte-sized shards (`--max-shard-mb`) and the stored-vs-dense report ----
+
+use slag_common::shards::{ShardInput, encode_shard};
+use slag_encoder::partition::{MIB, ShardCap, resolve_max_per_shard, shard_layout, storage_report};
+
+/// Shard header length written by `encode_shard`, from the format's module doc (72 fixed bytes
+/// + scene id + model id + CRC, padded to 8), computed here independently of `ShardLayout`.
+fn header_len(scene: &str, model: &str) -> u64 {
+    ((72 + scene.len() + model.len() + 4) as u64).div_ceil(8) * 8
+}
+
+/// Payload bytes per dim-`d` row (id + mean + vector) per the format's module doc.
+fn row_bytes(dtype: Dtype, d: u64) -> u64 {
+    16 + match dtype {
+        Dtype::F32 => 4 * d,
+        Dtype::F16 => 2 * d,
+        Dtype::I8 => 4 + d,
+    }
+}
+
+#[test]
+fn a_byte_budget_caps_shards_of_every_dtype_and_f16_fills_it() {
+    let budget_mib = 0.25;
+    let ShardCap::Bytes(budget) = ShardCap::from_mib(budget_mib).expect("cap") else {
+        panic!("--max-shard-mb must give a byte cap");
+    };
+    assert_eq!(budget, 262_144);
+    let scene = SyntheticScene::new(1004, 512, 5, 100.0, 11);
+    let emb = scene.to_embeddings();
+    let h = header_len("synthetic-1", &emb.model);
+    let mut caps = Vec::new();
+    for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+        let row = row_bytes(dtype, 512);
+        let layout = shard_layout(&emb, "synthetic-1", dtype);
+        let cap = resolve_max_per_shard(&layout, ShardCap::Bytes(budget)).expect("resolves");
+        // dim 512 rows keep every section 4-aligned: no padding, so the cap is plain division.
+        assert_eq!(cap as u64, (budget - h) / row, "{dtype:?}");
+        caps.push(cap);
+        let (m, shards) = partition(&emb, &params(cap, z_up(), dtype)).expect("partition");
+        assert_eq!(m.max_per_shard, cap as u64);
+        assert_eq!(m.total_gaussians, 1004);
+        let largest = shards
+            .iter()
+            .map(|(_, b)| b.len() as u64)
+            .max()
+            .expect("shards");
+        for (t, (_, bytes)) in m.tiles.iter().zip(&shards) {
+            assert!(
+                bytes.len() as u64 <= budget,
+                "{dtype:?} tile {} is {} bytes > {budget}",
+                t.id,
+                bytes.len()
+            );
+            assert_eq!(
+                bytes.len() as u64,
+                h + t.count * row,
+                "{dtype:?} size model"
+            );
+        }
+        // The cap is tight: one more row, actually encoded, no longer fits.
+        let k = cap + 1;
+        let big = encode_shard(&ShardInput {
+            scene_id: "synthetic-1",
+            model: &emb.model,
+            tile_id: 0,
+            dim: 512,
+            dtype,
+            ids: &emb.ids[..k],
+            means: &emb.means[..k],
+            vectors: &emb.vectors[..k * 512],
+            scales: None,
+            opacities: None,
+            rotations: None,
+            sh_dc: None,
+        })
+        .expect("encode");
+        assert!(big.len() as u64 > budget, "{dtype:?}: {} rows fit", k);
+        if dtype == Dtype::F16 {
+            // 1004 = 4 × 251: median splits make four full tiles, each within one row of the
+            // budget.
+            assert_eq!(shards.len(), 4);
+            assert!(
+                budget - largest < row,
+                "f16 shard {largest} bytes, budget {budget}"
+            );
+            assert!(largest as f64 >= 0.99 * budget as f64);
+        }
+    }
+    // The download unit is the same; the Gaussians per shard follow the bytes per row.
+    assert_eq!(caps, vec![126, 251, 492]);
+}
+
+#[test]
+fn byte_budgets_too_small_for_one_gaussian_are_typed_errors_with_a_remedy() {
+    let emb = SyntheticScene::new(10, 512, 1, 10.0, 1).to_embeddings();
+    let layout = shard_layout(&emb, "s", Dtype::F32);
+    let one = header_len("s", &emb.model) + row_bytes(Dtype::F32, 512);
+    assert!(matches!(
+        resolve_max_per_shard(&layout, ShardCap::Bytes(0)),
+        Err(slag_common::Error::Invalid(m)) if m.contains("--max-shard-mb")
+    ));
+    assert!(matches!(
+        resolve_max_per_shard(&layout, ShardCap::Gaussians(0)),
+        Err(slag_common::Error::Invalid(m)) if m.contains("--max-per-shard")
+    ));
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e-9] {
+        assert!(
+            matches!(ShardCap::from_mib(bad), Err(slag_common::Error::Invalid(_))),
+            "{bad}"
+        );
+    }
+    assert_eq!(
+        resolve_max_per_shard(&layout, ShardCap::Bytes(one)).expect("one row fits"),
+        1
+    );
+    let Err(slag_common::Error::Invalid(msg)) =
+        resolve_max_per_shard(&layout, ShardCap::Bytes(one - 1))
+    else {
+        panic!("a budget one byte short of one row must be rejected");
+    };
+    assert!(msg.contains(&format!("{one} bytes")), "{msg}");
+    // The suggested --max-shard-mb works.
+    let suggested: f64 = msg
+        .rsplit("pass --max-shard-mb ")
+        .next()
+        .and_then(|t| t.split_whitespace().next())
+        .and_then(|t| t.parse().ok())
+        .unwrap_or_else(|| panic!("no suggestion in {msg:?}"));
+    let cap = ShardCap::from_mib(suggested).expect("suggested cap");
+    assert_eq!(resolve_max_per_shard(&layout, cap).expect("fits"), 1);
+    // A count is taken as is.
+    assert_eq!(
+        resolve_max_per_shard(&layout, ShardCap::Gaussians(7)).expect("count"),
+        7
+    );
+}
+
+#[test]
+fn storage_report_compares_stored_shards_with_a_dense_f32_scene() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let store = slag_encoder::store::ShardStore::open(&dir.path().join("s")).expect("store");
+    let emb = SyntheticScene::new(600, 512, 3, 50.0, 5).to_embeddings();
+    assert_eq!(emb.scene_gaussians, 1200); // every other .ply Gaussian observed
+    let p = PartitionParams {
+        scene_id: "tiny".into(),
+        ..params(250, z_up(), Dtype::F16)
+    };
+    let m = slag_encoder::store::partition_into_store(&store, &emb, &p).expect("partition");
+    let stored = store.scene_bytes("tiny").expect("read").expect("scene");
+    // Independently: each shard is its header plus 1040 bytes per f16 row.
+    let expected = m.tiles.len() as u64 * header_len("tiny", &emb.model) + 600 * 1040;
+    assert_eq!(stored, expected);
+    let r = storage_report(&m, Some(emb.scene_gaussians), stored);
+    assert_eq!(r.scene_gaussians, Some(1200));
+    assert_eq!(r.rows_stored, 600);
+    assert_eq!(r.dropped, Some(600));
+    assert_eq!(r.dtype, Dtype::F16);
+    assert_eq!(r.shards, m.tiles.len() as u64);
+    assert_eq!(r.bytes_stored, expected);
+    assert_eq!(r.dense_rows, 1200);
+    assert_eq!(r.dense_f32_bytes, 1200 * 512 * 4);
+    assert!((r.ratio - expected as f64 / 2_457_600.0).abs() < 1e-12);
+    assert!(r.ratio < 0.26); // half the rows dropped, half the bytes per value, + 16 B/row
+    let line = r.to_string();
+    assert!(
+        line.contains("600 of 1200") && line.contains(&expected.to_string()),
+        "{line}"
+    );
+    // Without a recorded scene count the baseline is the stored rows.
+    let r = storage_report(&m, None, stored);
+    assert_eq!(
+        (r.scene_gaussians, r.dropped, r.dense_rows),
+        (None, None, 600)
+    );
+    assert_eq!(r.dense_f32_bytes, 600 * 2048);
+    assert!(r.to_string().contains("not recorded"));
+    assert_eq!(storage_report(&m, Some(0), stored).dense_rows, 600);
+    // More bytes than the dense baseline is reported as such, never as "smaller".
+    let line = storage_report(&m, None, 2 * 600 * 2048).to_string();
+    assert!(
+        line.contains("200.00 % of dense") && !line.contains("smaller"),
+        "{line}"
+    );
+}
+
+#[derive(clap::Parser)]
+struct PartitionCli {
+    #[command(flatten)]
+    args: slag_encoder::cli::shards::PartitionArgs,
+}
+
+fn parse(extra: &[&str]) -> Result<PartitionCli, clap::Error> {
+    use clap::Parser;
+    let base = [
+        "partition",
+        "--synthetic",
+        "10",
+        "--store",
+        "S",
+        "--scene",
+        "x",
+    ];
+    PartitionCli::try_parse_from(base.iter().chain(extra))
+}
+
+#[test]
+fn partition_cli_sizes_shards_in_mib_by_default_and_counts_on_request() {
+    let a = parse(&[]).expect("parse").args;
+    assert_eq!(a.shard_cap().expect("cap"), ShardCap::Bytes(16 * MIB));
+    let a = parse(&["--max-shard-mb", "0.5"]).expect("parse").args;
+    assert_eq!(a.shard_cap().expect("cap"), ShardCap::Bytes(MIB / 2));
+    let a = parse(&["--max-per-shard", "100"]).expect("parse").args;
+    assert_eq!(a.shard_cap().expect("cap"), ShardCap::Gaussians(100));
+    let e = parse(&["--max-per-shard", "100", "--max-shard-mb", "4"])
+        .err()
+        .expect("both flags conflict");
+    assert_eq!(e.kind(), clap::error::ErrorKind::ArgumentConflict);
+    let a = parse(&["--max-shard-mb", "0"]).expect("parse").args;
+    assert!(matches!(a.shard_cap(), Err(slag_common::Error::Invalid(_))));
+}
+
+#[test]
+fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
+    let dir = tempfile::tempdir().expect("tmp");
+    let store = dir.path().join("store");
+    let report = dir.path().join("report.json");
+    let budget = MIB / 8; // 131072 bytes
+    let mut a = parse(&["--max-shard-mb", "0.125", "--dtype", "int8"])
+        .expect("parse")
+        .args;
+    a.scene = "syn".into();
+    a.synthetic = Some("1000:512".into());
+    a.store = store.clone();
+    a.report = Some(report.clone());
+    slag_encoder::cli::shards::run_partition(&a).expect("partition");
+    let s = slag_encoder::store::ShardStore::open(&store).expect("store");
+    let m = s.manifest("syn").expect("read").expect("scene");
+    let h = header_len("syn", "synthetic");
+    let row = row_bytes(Dtype::I8, 512);
+    assert_eq!(m.max_per_shard, (budget - h) / row);
+    let mut total = 0;
+    for t in &m.tiles {
+        let b = s.shard("syn", t.id).expect("read").expect("shard");
+        assert!(b.len() as u64 <= budget, "tile {} {} bytes", t.id, b.len());
+        total += b.len() as u64;
+    }
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&report).expect("report written")).expect("json");
+    assert_eq!(json["rows_stored"], 1000);
+    assert_eq!(json["bytes_stored"], total);
+    assert_eq!(json["dtype"], "i8");
+    assert_eq!(json["scene_gaussians"], serde_json::Value::Null);
+    assert_eq!(json["dense_f32_bytes"], 1000 * 512 * 4);
+    // The budget is refused when it cannot hold one Gaussian, before the store is touched.
+    a.max_shard_mb = 0.0004; // 419 bytes < 88 + 532
+    a.report = None;
+    a.store = dir.path().join("never-created");
+    let e = slag_encoder::cli::shards::run_partition(&a).expect_err("too small");
+    assert!(format!("{e:#}").contains("pass --max-shard-mb"), "{e:#}");
+    assert!(!a.store.exists());
+}

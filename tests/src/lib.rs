@@ -122,7 +122,10 @@ pub fn robot_path(
         synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
-        max_per_shard: 8000,
+        max_shard_mb: slag_encoder::partition::DEFAULT_MAX_SHARD_MIB,
+        // A count keeps this scene's tiling independent of the dtype under test.
+        max_per_shard: Some(8000),
+        report: None,
         up: None,
         cameras: Some(default_scene()),
         display_ply: display.then(|| default_scene().join("point_cloud.ply")),

@@ -463,6 +463,94 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     Ok(h)
 }
 
+/// Size model of the shards of one partition: everything that fixes a shard's byte length apart
+/// from its Gaussian count N (the header's string lengths and which optional sections it carries).
+/// [`ShardLayout::shard_len`] is the exact length [`encode_shard`] writes (module-doc layout), so
+/// a partitioner can cap tiles by bytes rather than by Gaussians.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ShardLayout {
+    /// Storage type of the vectors.
+    pub dtype: Dtype,
+    /// Embedding width D.
+    pub dim: usize,
+    /// Log-scales section present (flag bit 0).
+    pub scales: bool,
+    /// Opacities section present (flag bit 1).
+    pub opacities: bool,
+    /// Rotations section present (flag bit 2).
+    pub rotations: bool,
+    /// SH DC section present (flag bit 3).
+    pub sh_dc: bool,
+    /// Scene id length in bytes (UTF-8).
+    pub scene_id_len: usize,
+    /// Embedding model id length in bytes (UTF-8).
+    pub model_len: usize,
+}
+
+impl ShardLayout {
+    /// The layout [`encode_shard`] gives `input` (its N aside).
+    pub fn of_input(input: &ShardInput<'_>) -> ShardLayout {
+        ShardLayout {
+            dtype: input.dtype,
+            dim: input.dim,
+            scales: input.scales.is_some(),
+            opacities: input.opacities.is_some(),
+            rotations: input.rotations.is_some(),
+            sh_dc: input.sh_dc.is_some(),
+            scene_id_len: input.scene_id.len(),
+            model_len: input.model.len(),
+        }
+    }
+
+    fn flags(&self) -> u8 {
+        (if self.scales { FLAG_SCALES } else { 0 })
+            | (if self.opacities { FLAG_OPACITIES } else { 0 })
+            | (if self.rotations { FLAG_ROTATIONS } else { 0 })
+            | (if self.sh_dc { FLAG_SH_DC } else { 0 })
+    }
+
+    /// Header bytes (`header_len`: 72 fixed + ids + CRC, padded to a multiple of 8).
+    pub fn header_len(&self) -> u64 {
+        align(FIXED_HEADER + self.scene_id_len + self.model_len + 4, 8) as u64
+    }
+
+    /// Payload bytes per Gaussian: id (4) + mean (12) + vector
+    /// ([`Dtype::bytes_per_vector`]) + the optional display sections (12 + 4 + 16 + 12). A
+    /// shard of N Gaussians is `header_len + N · bytes_per_row` plus 0..=3 bytes of padding
+    /// after the embeddings section ([`ShardLayout::shard_len`] is exact).
+    pub fn bytes_per_row(&self) -> u64 {
+        let mut b = 16 + self.dtype.bytes_per_vector(self.dim) as u64;
+        b += if self.scales { 12 } else { 0 };
+        b += if self.opacities { 4 } else { 0 };
+        b += if self.rotations { 16 } else { 0 };
+        b + if self.sh_dc { 12 } else { 0 }
+    }
+
+    /// Exact byte length of an encoded shard of `n` Gaussians (header + payload), as
+    /// [`encode_shard`] writes it and a manifest's `TileInfo::bytes` records it. Saturates
+    /// instead of overflowing for absurd `n`.
+    pub fn shard_len(&self, n: u64) -> u64 {
+        let d = self.dim as u64;
+        let n = n.min(u64::MAX / (64 + 4 * d.max(1)));
+        self.header_len() + expected_payload(self.dtype, self.flags(), n, d)
+    }
+
+    /// Largest N (≤ `u32::MAX`, the format's count field) whose shard fits in `max_bytes`
+    /// ([`ShardLayout::shard_len`]`(N) ≤ max_bytes`); 0 when not even one Gaussian fits.
+    pub fn max_rows_within(&self, max_bytes: u64) -> u64 {
+        let (h, row) = (self.header_len(), self.bytes_per_row().max(1));
+        if max_bytes < self.shard_len(1) {
+            return 0;
+        }
+        // shard_len(n) ≤ h + n·row + 3, and row ≥ 16 > 3: at most one step down is needed.
+        let mut n = ((max_bytes - h) / row).min(u32::MAX as u64);
+        while n > 0 && self.shard_len(n) > max_bytes {
+            n -= 1;
+        }
+        n
+    }
+}
+
 /// CRC-32 (IEEE) of a whole encoded shard: the checksum the manifest lists and the HTTP `ETag`.
 pub fn shard_checksum(bytes: &[u8]) -> u32 {
     crc32fast::hash(bytes)
@@ -963,6 +1051,38 @@ mod tests {
                 }
             }
             prop_assert_eq!(decode_header(&bytes).expect("header"), s.header);
+        }
+
+        #[test]
+        fn layout_predicts_the_encoded_length(c in case(), dt in dtype(), budget in 0u64..4000) {
+            let input = ShardInput {
+                scene_id: &c.scene,
+                model: &c.model,
+                tile_id: c.tile,
+                dim: c.dim,
+                dtype: dt,
+                ids: &c.ids,
+                means: &c.means,
+                vectors: &c.vectors,
+                scales: c.scales.as_deref(),
+                opacities: c.opacities.as_deref(),
+                rotations: c.rotations.as_deref(),
+                sh_dc: c.sh_dc.as_deref(),
+            };
+            let layout = ShardLayout::of_input(&input);
+            let n = c.ids.len() as u64;
+            let len = encode(&c, dt).len() as u64;
+            prop_assert_eq!(layout.shard_len(n), len);
+            let linear = layout.header_len() + n * layout.bytes_per_row();
+            prop_assert!(len >= linear && len <= linear + 3, "{} vs linear {}", len, linear);
+            // The byte cap is the largest count that fits.
+            let k = layout.max_rows_within(budget);
+            if k > 0 {
+                prop_assert!(layout.shard_len(k) <= budget);
+            } else {
+                prop_assert!(layout.shard_len(1) > budget);
+            }
+            prop_assert!(layout.shard_len(k + 1) > budget);
         }
 
         #[test]

@@ -14,8 +14,8 @@ pub mod tiles;
 
 pub use format::{
     Aabb, Dtype, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError, ShardHeader, ShardInput,
-    StoredShard, StoredVectors, decode_header, decode_shard, decode_shard_stored, encode_shard,
-    shard_checksum,
+    ShardLayout, StoredShard, StoredVectors, decode_header, decode_shard, decode_shard_stored,
+    encode_shard, shard_checksum,
 };
 pub use tiles::{
     GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, TileIndex, TileInfo, UpSource,

@@ -7,9 +7,12 @@ use std::path::PathBuf;
 use anyhow::Context;
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GroundFrame};
+use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest};
 
-use crate::partition::{PartitionParams, UpChoice};
+use crate::partition::{
+    DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice,
+    resolve_max_per_shard, shard_layout, storage_report,
+};
 use crate::store::{ShardStore, partition_into_store};
 
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
@@ -33,9 +36,23 @@ pub struct PartitionArgs {
     /// Scene id: 1-64 characters of A-Z a-z 0-9 _ - . (used in URLs).
     #[arg(long)]
     pub scene: String,
-    /// Most Gaussians per tile; tiles split adaptively (k-d on the ground plane) until they fit.
-    #[arg(long, default_value_t = 16384)]
-    pub max_per_shard: usize,
+    /// Most MiB (2^20 bytes) of encoded shard per tile: tiles split adaptively (k-d on the
+    /// ground plane) until each shard fits, the Gaussian cap following from the exact bytes per
+    /// Gaussian of --dtype, the dim and the display columns. 16 MiB ≈ the old 16384 Gaussians at
+    /// f16 (8128 at f32, 31535 at int8).
+    #[arg(
+        long,
+        value_name = "MIB",
+        default_value_t = DEFAULT_MAX_SHARD_MIB,
+        conflicts_with = "max_per_shard"
+    )]
+    pub max_shard_mb: f64,
+    /// Override --max-shard-mb: most Gaussians per tile, whatever their size in bytes.
+    #[arg(long, value_name = "N")]
+    pub max_per_shard: Option<usize>,
+    /// Also write the stored-vs-dense report (see the printed summary) as JSON to this file.
+    #[arg(long, value_name = "FILE")]
+    pub report: Option<PathBuf>,
     /// World up axis (x, y, z, -x, -y, -z). Default: from --cameras if given, else PCA.
     #[arg(long, allow_hyphen_values = true)]
     pub up: Option<String>,
@@ -72,10 +89,58 @@ pub struct PartitionArgs {
     pub qdrant_api_key: Option<String>,
 }
 
-/// Runs `partition`; prints a one-line summary.
+impl PartitionArgs {
+    /// The tile cap asked for: `--max-per-shard N` when given (a count), else `--max-shard-mb`
+    /// (bytes; default [`DEFAULT_MAX_SHARD_MIB`]).
+    ///
+    /// Errors: a non-positive or non-finite `--max-shard-mb` ([`slag_common::Error::Invalid`]).
+    pub fn shard_cap(&self) -> slag_common::Result<ShardCap> {
+        match self.max_per_shard {
+            Some(n) => Ok(ShardCap::Gaussians(n)),
+            None => ShardCap::from_mib(self.max_shard_mb),
+        }
+    }
+}
+
+/// Resolves the cap for `src`, opens `--store` and partitions `src` into it, then prints and
+/// (with `--report`) writes the [`StorageReport`]. `scene_gaussians`: the source scene's
+/// Gaussian count if known. A cap that cannot hold one Gaussian fails before the store is opened.
+fn partition_source(
+    args: &PartitionArgs,
+    src: &impl GaussianSource,
+    up: UpChoice,
+    scene_gaussians: Option<u64>,
+) -> anyhow::Result<(Manifest, StorageReport)> {
+    let layout = shard_layout(src, &args.scene, args.dtype);
+    let max_per_shard = resolve_max_per_shard(&layout, args.shard_cap()?)?;
+    let store = &ShardStore::open(&args.store)?;
+    let params = PartitionParams {
+        scene_id: args.scene.clone(),
+        max_per_shard,
+        up,
+        dtype: args.dtype,
+    };
+    let m = partition_into_store(store, src, &params).context("partition")?;
+    let bytes = store
+        .scene_bytes(&m.scene_id)?
+        .context("the partition was committed but its scene is missing from the store")?;
+    let report = storage_report(&m, scene_gaussians, bytes);
+    println!("{report}");
+    if let Some(path) = &args.report {
+        let json = serde_json::to_vec_pretty(&report).context("report JSON")?;
+        slag_common::embeddings::write_atomic(path, &json)?;
+    }
+    Ok((m, report))
+}
+
+/// Runs `partition`; prints a one-line summary and the stored-vs-dense [`StorageReport`]
+/// (also written as JSON with `--report FILE`).
 ///
-/// Errors: unreadable embeddings, invalid parameters, store failures.
+/// Errors: unreadable embeddings, invalid parameters (a `--max-shard-mb` smaller than one
+/// Gaussian's shard, `--max-per-shard 0`), store failures.
 pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
+    // Reject a bad --max-shard-mb before reading a large input.
+    args.shard_cap()?;
     if let Some(spec) = &args.synthetic {
         return run_partition_synthetic(args, spec);
     }
@@ -96,15 +161,10 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     } else {
         UpChoice::Pca
     };
-    let params = PartitionParams {
-        scene_id: args.scene.clone(),
-        max_per_shard: args.max_per_shard,
-        up,
-        dtype: args.dtype,
-    };
-    let store = ShardStore::open(&args.store)?;
     let t = std::time::Instant::now();
-    let m = match &args.display_ply {
+    // The embeddings file records the source .ply's Gaussian count (0 in files without it).
+    let mut scene_gaussians = Some(emb.scene_gaussians).filter(|&n| n > 0);
+    let (m, _) = match &args.display_ply {
         Some(ply) => {
             // Shards store the .ply convention (log-scales, logit opacities, normalised
             // rotations, SH DC): invert load_ply's activations.
@@ -112,12 +172,13 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
                 ply,
                 slag_common::scene::PlyLoadOptions { colours: true },
             )?;
+            scene_gaussians = scene_gaussians.or(Some(g.len() as u64));
             let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
             drop(g);
             let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
-            partition_into_store(&store, &src, &params).context("partition")?
+            partition_source(args, &src, up, scene_gaussians)?
         }
-        None => partition_into_store(&store, &emb, &params).context("partition")?,
+        None => partition_source(args, &emb, up, scene_gaussians)?,
     };
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
@@ -187,15 +248,9 @@ fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<(
         Some(u) => GroundFrame::from_axis_name(u)?,
         None => GroundFrame::from_axis_name("z")?,
     };
-    let params = PartitionParams {
-        scene_id: args.scene.clone(),
-        max_per_shard: args.max_per_shard,
-        up: UpChoice::Given(up),
-        dtype: args.dtype,
-    };
-    let store = ShardStore::open(&args.store)?;
     let t = std::time::Instant::now();
-    let m = partition_into_store(&store, &scene, &params).context("partition")?;
+    // A synthetic scene has no source .ply: its baseline counts the stored rows.
+    let (m, _) = partition_source(args, &scene, UpChoice::Given(up), None)?;
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
         "scene {} generation {}: {} synthetic Gaussians (dim {dim}) in {} shards, {} bytes ({:?}), {:.1}s",
