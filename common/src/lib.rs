@@ -21,6 +21,7 @@ pub mod error;
 pub mod onnx;
 pub mod paths;
 pub mod rng;
+mod safetensors_io;
 pub mod scene;
 pub mod shards;
 pub mod similarity;
