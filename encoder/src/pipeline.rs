@@ -170,7 +170,7 @@ pub(crate) struct BackOut {
 /// ([`WeightRasterizer::rasterize`]), then the image's `a_kj` ([`aggregate::image_contribution`]).
 ///
 /// Errors: those of the rasterizer and the image stage; [`Error::Invalid`] for a view index out
-/// of range.
+/// of range of `views` or `raster_intrinsics` (an internal error).
 pub(crate) fn back_stage(
     rasterizer: &mut dyn WeightRasterizer,
     views: &[View],
@@ -181,9 +181,11 @@ pub(crate) fn back_stage(
 ) -> Result<BackOut> {
     let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
         return Err(Error::Invalid(format!(
-            "view {} of {}",
+            "internal: image {} has no view or raster intrinsics ({} views, {} intrinsics); \
+             this is a slag bug, please report it",
             item.view,
-            views.len()
+            views.len(),
+            raster_intrinsics.len()
         )));
     };
     let t0 = Instant::now();
