@@ -10,20 +10,28 @@
 //! Metadata (`__metadata__`, strings): `format = "slag-embeddings"`, `version = "1"`, `model`
 //! (CLIP visual model id), `scene_gaussians` (N of the source `.ply`), `source_ply`.
 
-use std::collections::HashMap;
 use std::io::Write;
 use std::path::Path;
 
 use half::f16;
-use safetensors::SafeTensors;
-use safetensors::tensor::{Dtype, TensorView};
+use safetensors::tensor::Dtype;
 
+use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, triples};
 use crate::{Error, Result};
 
 /// Format identifier stored in the metadata.
 pub const FORMAT: &str = "slag-embeddings";
 /// Current format version.
 pub const VERSION: &str = "1";
+
+/// The metadata and message words of this file for [`safetensors_io`].
+const KIND: FileKind = FileKind {
+    format: FORMAT,
+    version: VERSION,
+    noun: "embeddings",
+    file_name: "embeddings.safetensors",
+    rewrite_with: "slag-encoder encode",
+};
 
 /// Precision of the stored embedding vectors.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -115,9 +123,6 @@ impl Embeddings {
                 self.vectors[i]
             )));
         }
-        let ids: &[u8] = bytemuck::cast_slice(&self.ids);
-        let means: &[u8] = bytemuck::cast_slice(&self.means);
-        let weights: &[u8] = bytemuck::cast_slice(&self.total_weights);
         let halves: Vec<f16>;
         let (emb_dtype, emb): (Dtype, &[u8]) = match precision {
             StoredPrecision::F32 => (Dtype::F32, bytemuck::cast_slice(&self.vectors)),
@@ -126,29 +131,35 @@ impl Embeddings {
                 (Dtype::F16, bytemuck::cast_slice(&halves))
             }
         };
-        let view = |dtype, shape: Vec<usize>, data| {
-            TensorView::new(dtype, shape, data)
-                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
-        };
         let tensors = vec![
-            ("gaussian_ids", view(Dtype::U32, vec![n], ids)?),
-            ("means", view(Dtype::F32, vec![n, 3], means)?),
-            ("embeddings", view(emb_dtype, vec![n, self.dim], emb)?),
-            ("total_weights", view(Dtype::F32, vec![n], weights)?),
+            (
+                "gaussian_ids",
+                Dtype::U32,
+                vec![n],
+                bytemuck::cast_slice(&self.ids),
+            ),
+            (
+                "means",
+                Dtype::F32,
+                vec![n, 3],
+                bytemuck::cast_slice(&self.means),
+            ),
+            ("embeddings", emb_dtype, vec![n, self.dim], emb),
+            (
+                "total_weights",
+                Dtype::F32,
+                vec![n],
+                bytemuck::cast_slice(&self.total_weights),
+            ),
         ];
-        let meta: HashMap<String, String> = [
+        let meta = [
             ("format", FORMAT.to_string()),
             ("version", VERSION.to_string()),
             ("model", self.model.clone()),
             ("scene_gaussians", self.scene_gaussians.to_string()),
             ("source_ply", self.source_ply.clone()),
-        ]
-        .into_iter()
-        .map(|(k, v)| (k.to_string(), v))
-        .collect();
-        let bytes = safetensors::serialize(tensors, Some(meta))
-            .map_err(|e| Error::Invalid(format!("safetensors: {e}")))?;
-        write_atomic(path, &bytes)
+        ];
+        safetensors_io::write(path, tensors, &meta)
     }
 
     /// Reads a file written by [`Embeddings::write`] (either precision).
@@ -158,33 +169,12 @@ impl Embeddings {
     pub fn read(path: &Path) -> Result<Embeddings> {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         let bad = |m: String| Error::format(path, m);
-        let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| {
-            bad(format!(
-                "not a safetensors file ({e}); pass the encoder's embeddings.safetensors"
-            ))
-        })?;
-        let meta = header.metadata().clone().unwrap_or_default();
-        if meta.get("format").map(String::as_str) != Some(FORMAT) {
-            return Err(bad(format!(
-                "not a slag embeddings file (metadata format {:?})",
-                meta.get("format")
-            )));
-        }
-        if meta.get("version").map(String::as_str) != Some(VERSION) {
-            return Err(bad(format!(
-                "embeddings format version {:?}, this slag reads {VERSION}; re-run slag-encoder encode",
-                meta.get("version")
-            )));
-        }
-        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("{e}")))?;
-        let get = |name: &str| {
-            st.tensor(name)
-                .map_err(|e| bad(format!("tensor {name}: {e}")))
-        };
-        let ids_t = get("gaussian_ids")?;
-        let means_t = get("means")?;
-        let emb_t = get("embeddings")?;
-        let w_t = get("total_weights")?;
+        let file = safetensors_io::open(path, &bytes, &KIND)?;
+        let meta = &file.meta;
+        let ids_t = file.tensor(path, "gaussian_ids")?;
+        let means_t = file.tensor(path, "means")?;
+        let emb_t = file.tensor(path, "embeddings")?;
+        let w_t = file.tensor(path, "total_weights")?;
         let n = ids_t.shape().first().copied().unwrap_or(0);
         let shape_ok = ids_t.dtype() == Dtype::U32
             && ids_t.shape() == [n]
@@ -202,27 +192,16 @@ impl Embeddings {
         let dim = emb_t.shape()[1];
         let vectors: Vec<f32> = match emb_t.dtype() {
             Dtype::F32 => le_f32(emb_t.data()),
-            Dtype::F16 => emb_t
-                .data()
-                .chunks_exact(2)
-                .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
-                .collect(),
+            Dtype::F16 => le_f16(emb_t.data()),
             other => {
                 return Err(bad(format!(
                     "embeddings dtype {other:?}; expected F16 or F32"
                 )));
             }
         };
-        let ids = ids_t
-            .data()
-            .chunks_exact(4)
-            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
-        let flat = le_f32(means_t.data());
-        let means = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         Ok(Embeddings {
-            ids,
-            means,
+            ids: le_u32(ids_t.data()),
+            means: triples(&le_f32(means_t.data())),
             dim,
             vectors,
             total_weights: le_f32(w_t.data()),
@@ -234,13 +213,6 @@ impl Embeddings {
             source_ply: meta.get("source_ply").cloned().unwrap_or_default(),
         })
     }
-}
-
-fn le_f32(bytes: &[u8]) -> Vec<f32> {
-    bytes
-        .chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
 }
 
 /// Writes an embeddings file (same layout as [`Embeddings::write`]) whose rows arrive in blocks,
@@ -330,7 +302,10 @@ impl EmbeddingsWriter {
             }
             last = Some(id);
         }
-        if let Some(bad) = vectors.iter().position(|v| !v.is_finite() || v.abs() > 65504.0) {
+        if let Some(bad) = vectors
+            .iter()
+            .position(|v| !v.is_finite() || v.abs() > 65504.0)
+        {
             return Err(Error::Invalid(format!(
                 "embedding component {} of the block is {} (rows must be finite unit vectors)",
                 bad, vectors[bad]
@@ -461,6 +436,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+    use safetensors::tensor::TensorView;
 
     #[test]
     fn streaming_writer_equals_the_in_memory_writer() {

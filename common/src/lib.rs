@@ -12,6 +12,7 @@
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
+//! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 
 pub mod camera;
 pub mod embeddings;
@@ -19,6 +20,8 @@ pub mod mixture;
 pub mod error;
 pub mod onnx;
 pub mod paths;
+pub mod rng;
+mod safetensors_io;
 pub mod scene;
 pub mod shards;
 pub mod similarity;

@@ -29,15 +29,13 @@
 //! Metadata (`__metadata__`, strings): `format = "slag-mixture"`, `version = "1"`, `dim`,
 //! `model_id` (CLIP visual model id), `keep` (S).
 
-use std::collections::HashMap;
 use std::path::Path;
 
 use half::f16;
 use rayon::prelude::*;
-use safetensors::SafeTensors;
-use safetensors::tensor::{Dtype, TensorView};
+use safetensors::tensor::Dtype;
 
-use crate::embeddings::write_atomic;
+use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, triples};
 use crate::similarity::dot;
 use crate::{Error, Result};
 
@@ -45,6 +43,15 @@ use crate::{Error, Result};
 pub const FORMAT: &str = "slag-mixture";
 /// Current format version.
 pub const VERSION: &str = "1";
+
+/// The metadata and message words of this file for [`safetensors_io`].
+const KIND: FileKind = FileKind {
+    format: FORMAT,
+    version: VERSION,
+    noun: "mixture",
+    file_name: "mixture.safetensors",
+    rewrite_with: "slag-encoder encode --mixture-keep",
+};
 /// Atom value of an empty slot (a Gaussian with fewer than `S` non-zero `a_kj`).
 pub const UNUSED: u32 = u32::MAX;
 /// Largest weight magnitude the f16 file can hold (`f16::MAX`, 65504).
@@ -491,49 +498,46 @@ impl MixtureEmbeddings {
         let (n, s, m, d) = (self.len(), self.keep, self.codebook_len(), self.dim);
         let book: Vec<f16> = self.codebook.iter().map(|&v| f16::from_f32(v)).collect();
         let weights: Vec<f16> = self.weights.iter().map(|&v| f16::from_f32(v)).collect();
-        let view = |dtype, shape: Vec<usize>, data| {
-            TensorView::new(dtype, shape, data)
-                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
-        };
         let tensors = vec![
             (
                 "codebook",
-                view(Dtype::F16, vec![m, d], bytemuck::cast_slice(&book))?,
+                Dtype::F16,
+                vec![m, d],
+                bytemuck::cast_slice(&book),
             ),
             (
                 "atoms",
-                view(Dtype::U32, vec![n, s], bytemuck::cast_slice(&self.atoms))?,
+                Dtype::U32,
+                vec![n, s],
+                bytemuck::cast_slice(&self.atoms),
             ),
             (
                 "weights",
-                view(Dtype::F16, vec![n, s], bytemuck::cast_slice(&weights))?,
+                Dtype::F16,
+                vec![n, s],
+                bytemuck::cast_slice(&weights),
             ),
             (
                 "gaussian_ids",
-                view(
-                    Dtype::U32,
-                    vec![n],
-                    bytemuck::cast_slice(&self.gaussian_ids),
-                )?,
+                Dtype::U32,
+                vec![n],
+                bytemuck::cast_slice(&self.gaussian_ids),
             ),
             (
                 "means",
-                view(Dtype::F32, vec![n, 3], bytemuck::cast_slice(&self.means))?,
+                Dtype::F32,
+                vec![n, 3],
+                bytemuck::cast_slice(&self.means),
             ),
         ];
-        let meta: HashMap<String, String> = [
+        let meta = [
             ("format", FORMAT.to_string()),
             ("version", VERSION.to_string()),
             ("dim", d.to_string()),
             ("model_id", self.model_id.clone()),
             ("keep", s.to_string()),
-        ]
-        .into_iter()
-        .map(|(k, v)| (k.to_string(), v))
-        .collect();
-        let bytes = safetensors::serialize(tensors, Some(meta))
-            .map_err(|e| Error::Invalid(format!("safetensors: {e}")))?;
-        write_atomic(path, &bytes)
+        ];
+        safetensors_io::write(path, tensors, &meta)
     }
 
     /// Reads a file written by [`MixtureEmbeddings::write`].
@@ -545,44 +549,15 @@ impl MixtureEmbeddings {
     pub fn read(path: &Path) -> Result<MixtureEmbeddings> {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         let bad = |m: String| Error::format(path, m);
-        let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| {
-            bad(format!(
-                "not a safetensors file ({e}); pass the encoder's mixture.safetensors"
-            ))
-        })?;
-        let meta = header.metadata().clone().unwrap_or_default();
-        if meta.get("format").map(String::as_str) != Some(FORMAT) {
-            return Err(bad(format!(
-                "not a slag mixture file (metadata format {:?})",
-                meta.get("format")
-            )));
-        }
-        if meta.get("version").map(String::as_str) != Some(VERSION) {
-            return Err(bad(format!(
-                "mixture format version {:?}, this slag reads {VERSION}; re-run slag-encoder \
-                 encode --mixture-keep",
-                meta.get("version")
-            )));
-        }
+        let file = safetensors_io::open(path, &bytes, &KIND)?;
+        let meta = &file.meta;
         let num = |key: &str| -> Result<usize> {
             meta.get(key)
                 .and_then(|v| v.parse().ok())
                 .ok_or_else(|| bad(format!("metadata {key} missing or not a number")))
         };
         let (dim, keep) = (num("dim")?, num("keep")?);
-        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("{e}")))?;
-        let get = |name: &str, dtype: Dtype| {
-            let t = st
-                .tensor(name)
-                .map_err(|e| bad(format!("tensor {name}: {e}")))?;
-            if t.dtype() != dtype {
-                return Err(bad(format!(
-                    "tensor {name} is {:?}, expected {dtype:?}",
-                    t.dtype()
-                )));
-            }
-            Ok(t)
-        };
+        let get = |name: &str, dtype: Dtype| file.tensor_of(path, name, dtype);
         let book_t = get("codebook", Dtype::F16)?;
         let atoms_t = get("atoms", Dtype::U32)?;
         let weights_t = get("weights", Dtype::F16)?;
@@ -606,35 +581,15 @@ impl MixtureEmbeddings {
                 means_t.shape()
             )));
         }
-        let halves = |b: &[u8]| -> Vec<f32> {
-            b.chunks_exact(2)
-                .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
-                .collect()
-        };
-        let words = |b: &[u8]| -> Vec<u32> {
-            b.chunks_exact(4)
-                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect()
-        };
-        let means = words(means_t.data())
-            .chunks_exact(3)
-            .map(|c| {
-                [
-                    f32::from_bits(c[0]),
-                    f32::from_bits(c[1]),
-                    f32::from_bits(c[2]),
-                ]
-            })
-            .collect();
         let out = MixtureEmbeddings {
             dim,
             model_id: meta.get("model_id").cloned().unwrap_or_default(),
-            codebook: halves(book_t.data()),
-            gaussian_ids: words(ids_t.data()),
-            means,
+            codebook: le_f16(book_t.data()),
+            gaussian_ids: le_u32(ids_t.data()),
+            means: triples(&le_f32(means_t.data())),
             keep,
-            atoms: words(atoms_t.data()),
-            weights: halves(weights_t.data()),
+            atoms: le_u32(atoms_t.data()),
+            weights: le_f16(weights_t.data()),
         };
         out.check().map_err(bad)?;
         Ok(out)
@@ -647,6 +602,8 @@ mod tests {
     use super::*;
     use crate::similarity::cosine_scores;
     use proptest::prelude::*;
+    use safetensors::tensor::TensorView;
+    use std::collections::HashMap;
 
     /// Deterministic xorshift stream in [-1, 1).
     fn stream(seed: u64) -> impl FnMut() -> f32 {

@@ -542,24 +542,122 @@ pub fn reduce_each(
 ) -> Result<usize> {
     let per_gaussian = (dim + 1) * 8;
     let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    accumulate(
+        store,
+        n_gaussians,
+        dim,
+        chunk,
+        |_, _, _| Ok(0),
+        |_: &mut (), _, _| {},
+        |sums| {
+            let mut out = Reduced::default();
+            for (r, row, norm, d) in sums.observed(params.min_total_weight) {
+                out.ids.push((sums.start + r) as u32);
+                out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
+                out.total_weights.push(d as f32);
+            }
+            drop(sums);
+            sink(&out.ids, &out.vectors, &out.total_weights)
+        },
+    )
+}
+
+/// One chunk of Gaussian ids after every contribution was added: `Σ_i Σ_j a_kj E_j` and
+/// `Σ_i Σ_j a_kj` in f64 for Gaussians `start..start + den.len()`, plus a per-Gaussian extra
+/// (`T`) that the entry hook of [`accumulate`] filled.
+struct ChunkSums<T> {
+    /// First Gaussian id of the chunk.
+    start: usize,
+    /// Embedding width D.
+    dim: usize,
+    /// `[B * D]` weighted sums `Σ a_kj E_j`.
+    num: Vec<f64>,
+    /// `[B]` total weights `Σ a_kj`.
+    den: Vec<f64>,
+    /// `[B]` per-Gaussian extras.
+    extra: Vec<T>,
+}
+
+impl<T> ChunkSums<T> {
+    /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`.
+    /// Unobserved (skipped): `Σ a` NaN or below `min_total_weight`, or the norm not finite or
+    /// at most `1e-9 · Σ a` (mask embeddings that cancel out carry no direction).
+    fn observed(&self, min_total_weight: f64) -> impl Iterator<Item = (usize, &[f64], f64, f64)> {
+        self.den.iter().enumerate().filter_map(move |(r, &d)| {
+            // NaN sums count as unobserved too.
+            if d.is_nan() || d < min_total_weight {
+                return None;
+            }
+            let row = &self.num[r * self.dim..(r + 1) * self.dim];
+            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !norm.is_finite() || norm <= 1e-9 * d {
+                return None;
+            }
+            Some((r, row, norm, d))
+        })
+    }
+}
+
+/// The f64 accumulation shared by [`reduce_each`] and [`reduce_mixture`]: for each chunk of
+/// `chunk` Gaussian ids, visits every contribution ([`ContributionStore::for_each`] order) and adds
+/// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian (rayon over blocks of 1024
+/// Gaussians; within a Gaussian the sums run in contribution, then entry order, so every caller
+/// gets the same f64 values), then hands the chunk to `done`.
+///
+/// Hooks: `on_image(first_chunk, image, c)` runs once per contribution and chunk before its
+/// entries (after the width check; `image` counts the contributions of this chunk's visit from 0)
+/// and returns a tag passed to `on_entry` (the mixture's codebook offset);
+/// `on_entry(extra, entry, tag)` sees every entry with its Gaussian's extra. The first error of a
+/// width mismatch or `on_image` skips the remaining contributions and is returned after the visit
+/// (spill-file I/O errors come first). Returns the number of chunks.
+fn accumulate<T: Clone + Default + Send>(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    chunk: usize,
+    mut on_image: impl FnMut(bool, usize, &ImageContribution) -> Result<u32>,
+    on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
+    mut done: impl FnMut(ChunkSums<T>) -> Result<()>,
+) -> Result<usize> {
+    const BLOCK: usize = 1024;
     let mut chunks = 0;
-    let mut bad_dim = None;
     for start in (0..n_gaussians).step_by(chunk) {
         chunks += 1;
-        let mut out = Reduced::default();
         let end = (start + chunk).min(n_gaussians);
-        let mut num = vec![0f64; (end - start) * dim];
-        let mut den = vec![0f64; end - start];
-        const BLOCK: usize = 1024;
+        let mut sums = ChunkSums {
+            start,
+            dim,
+            num: vec![0f64; (end - start) * dim],
+            den: vec![0f64; end - start],
+            extra: vec![T::default(); end - start],
+        };
+        let mut failure: Option<Error> = None;
+        let mut image = 0usize;
         store.for_each(|c| {
-            if c.dim != dim {
-                bad_dim = Some(c.dim);
+            if failure.is_some() {
                 return;
             }
-            num.par_chunks_mut(BLOCK * dim)
-                .zip(den.par_chunks_mut(BLOCK))
+            if c.dim != dim {
+                failure = Some(Error::Invalid(format!(
+                    "contribution of dim {}, expected {dim}",
+                    c.dim
+                )));
+                return;
+            }
+            let tag = match on_image(start == 0, image, c) {
+                Ok(tag) => tag,
+                Err(e) => {
+                    failure = Some(e);
+                    return;
+                }
+            };
+            image += 1;
+            sums.num
+                .par_chunks_mut(BLOCK * dim)
+                .zip(sums.den.par_chunks_mut(BLOCK))
+                .zip(sums.extra.par_chunks_mut(BLOCK))
                 .enumerate()
-                .for_each(|(b, (nb, db))| {
+                .for_each(|(b, ((nb, db), xb))| {
                     let g0 = (start + b * BLOCK) as u32;
                     let g1 = g0 + db.len() as u32;
                     let lo = c.entries.partition_point(|e| e.gaussian < g0);
@@ -573,30 +671,14 @@ pub fn reduce_each(
                         for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
                             *acc += a * v as f64;
                         }
+                        on_entry(&mut xb[r], e, tag);
                     }
                 });
         })?;
-        if let Some(d) = bad_dim {
-            return Err(Error::Invalid(format!(
-                "contribution of dim {d}, expected {dim}"
-            )));
+        if let Some(e) = failure {
+            return Err(e);
         }
-        for (r, &d) in den.iter().enumerate() {
-            // NaN sums count as unobserved too.
-            if d.is_nan() || d < params.min_total_weight {
-                continue;
-            }
-            let row = &num[r * dim..(r + 1) * dim];
-            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !norm.is_finite() || norm <= 1e-9 * d {
-                continue;
-            }
-            out.ids.push((start + r) as u32);
-            out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
-            out.total_weights.push(d as f32);
-        }
-        drop((num, den));
-        sink(&out.ids, &out.vectors, &out.total_weights)?;
+        done(sums)?;
     }
     Ok(chunks)
 }
@@ -658,91 +740,42 @@ pub fn reduce_mixture(
         offsets: vec![0],
         ..Default::default()
     };
-    let mut failure: Option<Error> = None;
-    for start in (0..n_gaussians).step_by(chunk) {
-        let end = (start + chunk).min(n_gaussians);
-        let mut num = vec![0f64; (end - start) * dim];
-        let mut den = vec![0f64; end - start];
-        let mut tops: Vec<Vec<(f32, u32)>> = vec![Vec::new(); end - start];
-        const BLOCK: usize = 1024;
-        let first_pass = start == 0;
-        let mut image = 0usize;
-        store.for_each(|c| {
-            if failure.is_some() {
-                return;
-            }
-            if c.dim != dim {
-                failure = Some(Error::Invalid(format!(
-                    "contribution of dim {}, expected {dim}",
-                    c.dim
-                )));
-                return;
-            }
-            if first_pass {
+    accumulate(
+        store,
+        n_gaussians,
+        dim,
+        chunk,
+        |first_chunk, image, c| {
+            if first_chunk {
                 let rows = codebook.len() / dim.max(1);
                 if rows + c.mask_embeddings.len() / dim.max(1) >= u32::MAX as usize {
-                    failure = Some(Error::Invalid(format!(
+                    return Err(Error::Invalid(format!(
                         "more than {} mask embeddings in all: too many for u32 codebook ids",
                         u32::MAX - 1
                     )));
-                    return;
                 }
                 image_offsets.push(rows as u32);
                 codebook.extend_from_slice(&c.mask_embeddings);
             }
-            let Some(&offset) = image_offsets.get(image) else {
-                failure = Some(Error::Invalid(
-                    "the contribution store changed during the reduction".into(),
-                ));
-                return;
-            };
-            image += 1;
-            num.par_chunks_mut(BLOCK * dim)
-                .zip(den.par_chunks_mut(BLOCK))
-                .zip(tops.par_chunks_mut(BLOCK))
-                .enumerate()
-                .for_each(|(b, ((nb, db), tb))| {
-                    let g0 = (start + b * BLOCK) as u32;
-                    let g1 = g0 + db.len() as u32;
-                    let lo = c.entries.partition_point(|e| e.gaussian < g0);
-                    let hi = c.entries.partition_point(|e| e.gaussian < g1);
-                    for e in &c.entries[lo..hi] {
-                        let r = (e.gaussian - g0) as usize;
-                        // Same f64 sums, in the same order, as `reduce`.
-                        let a = e.weight as f64;
-                        db[r] += a;
-                        let ej =
-                            &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
-                        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
-                            *acc += a * v as f64;
-                        }
-                        push_top(&mut tb[r], keep, e.weight, offset + e.mask);
-                    }
-                });
-        })?;
-        if let Some(e) = failure.take() {
-            return Err(e);
-        }
-        for (r, &d) in den.iter().enumerate() {
-            // The unobserved rule of `reduce`, verbatim.
-            if d.is_nan() || d < params.min_total_weight {
-                continue;
+            image_offsets.get(image).copied().ok_or_else(|| {
+                Error::Invalid("the contribution store changed during the reduction".into())
+            })
+        },
+        |top: &mut Vec<(f32, u32)>, e, offset| push_top(top, keep, e.weight, offset + e.mask),
+        |sums| {
+            for (r, _, _, _) in sums.observed(params.min_total_weight) {
+                let k = sums.start + r;
+                parts.gaussian_ids.push(k as u32);
+                parts.means.push(means[k]);
+                for &(a, atom) in &sums.extra[r] {
+                    parts.atoms.push(atom);
+                    parts.weights.push(a as f64);
+                }
+                parts.offsets.push(parts.atoms.len());
             }
-            let row = &num[r * dim..(r + 1) * dim];
-            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !norm.is_finite() || norm <= 1e-9 * d {
-                continue;
-            }
-            let k = start + r;
-            parts.gaussian_ids.push(k as u32);
-            parts.means.push(means[k]);
-            for &(a, atom) in &tops[r] {
-                parts.atoms.push(atom);
-                parts.weights.push(a as f64);
-            }
-            parts.offsets.push(parts.atoms.len());
-        }
-    }
+            Ok(())
+        },
+    )?;
     parts.codebook = codebook;
     MixtureEmbeddings::from_sparse(parts)
 }

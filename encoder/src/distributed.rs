@@ -73,7 +73,7 @@ use timely::dataflow::operators::Operator;
 
 use crate::aggregate::{self, ContributionStore, Entry, ImageContribution, ReduceParams};
 use crate::masks::MaskGenerator;
-use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput, read_image};
+use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput, back_stage, front_stage};
 use crate::raster::WeightRasterizer;
 use crate::report::{Counts, Report, StageTimings};
 
@@ -575,40 +575,27 @@ fn map_side(
         if aborted.borrow().is_some() {
             break;
         }
-        let view = &views[i];
-        let t0 = Instant::now();
-        let img = read_image(view)?;
-        let t1 = Instant::now();
-        let masks = stages.masks.generate(&img)?;
-        let t2 = Instant::now();
-        let e = stages.crops.embed(&img, &masks)?;
-        let t3 = Instant::now();
-        if e.len() != masks.len() || e.iter().any(|v| v.len() != dim) {
-            return Err(Error::Invalid(format!(
-                "{}: CLIP returned {} vectors for {} masks",
-                view.name,
-                e.len(),
-                masks.len()
-            )));
-        }
-        let (c, vs) = aggregate::view_contribution(
-            stages.rasterizer.as_mut(),
-            &raster_intrinsics[i],
-            &view.world_to_camera,
-            &masks,
-            e.concat(),
+        let item = front_stage(&views[i], i, &mut *stages.masks, &mut *stages.crops, dim)?;
+        let n_masks = item.masks.len();
+        let (decode_s, masks_s, clip_s) = (item.decode_s, item.masks_s, item.clip_s);
+        let out = back_stage(
+            &mut *stages.rasterizer,
+            views,
+            &raster_intrinsics,
+            item,
             dim,
             job.params.image_stage,
         )?;
-        stats.decode_s += (t1 - t0).as_secs_f64();
-        stats.masks_s += (t2 - t1).as_secs_f64();
-        stats.clip_s += (t3 - t2).as_secs_f64();
-        stats.raster_s += vs.raster_s;
-        stats.image_aggregate_s += vs.aggregate_s;
-        stats.masks += masks.len() as u64;
+        let c = out.contribution;
+        stats.decode_s += decode_s;
+        stats.masks_s += masks_s;
+        stats.clip_s += clip_s;
+        stats.raster_s += out.raster_s;
+        stats.image_aggregate_s += out.contribution_s;
+        stats.masks += n_masks as u64;
         stats.entries += c.entries.len() as u64;
-        stats.raster_pixels += vs.counted_pixels as u64;
-        stats.raster_entries += vs.contributions;
+        stats.raster_pixels += out.pixels;
+        stats.raster_entries += out.raster_entries;
         stats.images += 1;
         let parts = split(&c, i as u32, peers);
         for part in parts {
@@ -620,7 +607,7 @@ fn map_side(
             worker = w,
             image = i,
             views = views.len(),
-            masks = masks.len(),
+            masks = n_masks,
             "image sent"
         );
         if fault_after == Some(stats.images) {

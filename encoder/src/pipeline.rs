@@ -12,12 +12,14 @@ use std::time::Instant;
 
 use image::RgbImage;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use slag_common::camera::{self, View};
+use slag_common::camera::{self, Intrinsics, View};
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision, write_atomic};
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::{Error, Result};
 
-use crate::aggregate::{self, ContributionStore, ImageStageParams, ReduceParams};
+use crate::aggregate::{
+    self, ContributionStore, ImageContribution, ImageStageParams, ReduceParams,
+};
 use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
@@ -96,14 +98,113 @@ pub struct EncodeParams {
     pub mixture_keep: Option<usize>,
 }
 
-/// Decoded image + its masks and mask embeddings, passed from the front to the back thread.
-struct FrontItem {
-    view: usize,
-    masks: Vec<Mask>,
-    embeddings: Vec<f32>,
-    decode_s: f64,
-    masks_s: f64,
-    clip_s: f64,
+/// One image after the front stages: its masks and mask embeddings (passed from the front to the
+/// back thread of [`encode_pool`]; the map side of `distributed` uses it in place).
+pub(crate) struct FrontItem {
+    /// Index of the view in the scene's view list.
+    pub view: usize,
+    /// SAM (or graph) masks of the image.
+    pub masks: Vec<Mask>,
+    /// `[masks.len() * D]` CLIP crop embeddings `E_j`, row-major.
+    pub embeddings: Vec<f32>,
+    /// Seconds spent decoding the image.
+    pub decode_s: f64,
+    /// Seconds spent generating masks.
+    pub masks_s: f64,
+    /// Seconds spent embedding the crops.
+    pub clip_s: f64,
+}
+
+/// The front stages of `view` (number `index` of the scene's views): decode ([`read_image`]),
+/// masks, CLIP crop embeddings.
+///
+/// Errors: those of the stages; [`Error::Invalid`] when CLIP does not return one `dim`-wide
+/// vector per mask.
+pub(crate) fn front_stage(
+    view: &View,
+    index: usize,
+    masks: &mut dyn MaskGenerator,
+    crops: &mut dyn CropEmbedder,
+    dim: usize,
+) -> Result<FrontItem> {
+    let t0 = Instant::now();
+    let img = read_image(view)?;
+    let t1 = Instant::now();
+    let m = masks.generate(&img)?;
+    let t2 = Instant::now();
+    let e = crops.embed(&img, &m)?;
+    let t3 = Instant::now();
+    if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
+        return Err(Error::Invalid(format!(
+            "{}: CLIP returned {} vectors for {} masks",
+            view.name,
+            e.len(),
+            m.len()
+        )));
+    }
+    Ok(FrontItem {
+        view: index,
+        masks: m,
+        embeddings: e.concat(),
+        decode_s: (t1 - t0).as_secs_f64(),
+        masks_s: (t2 - t1).as_secs_f64(),
+        clip_s: (t3 - t2).as_secs_f64(),
+    })
+}
+
+/// One image after the back stages: its `a_kj` contribution and what producing it cost.
+pub(crate) struct BackOut {
+    /// The image's contribution to the reduction.
+    pub contribution: ImageContribution,
+    /// Seconds in the rasterizer (with GPU label sums: the pass and its readback).
+    pub raster_s: f64,
+    /// Seconds of the host side of the image stage ([`aggregate::view_contribution`]).
+    pub contribution_s: f64,
+    /// Pixels the contributions were counted over (all, or those covered by a mask when the
+    /// rasterizer summed per label; [`aggregate::ViewStats`]).
+    pub pixels: u64,
+    /// `(pixel, Gaussian)` contributions over those pixels.
+    pub raster_entries: u64,
+}
+
+/// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
+/// ([`aggregate::view_contribution`]: GPU label sums, or weights then the host image stage).
+///
+/// Errors: those of the rasterizer and the image stage; [`Error::Invalid`] for a view index out
+/// of range of `views` or `raster_intrinsics` (an internal error).
+pub(crate) fn back_stage(
+    rasterizer: &mut dyn WeightRasterizer,
+    views: &[View],
+    raster_intrinsics: &[Intrinsics],
+    item: FrontItem,
+    dim: usize,
+    image_stage: ImageStageParams,
+) -> Result<BackOut> {
+    let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
+        return Err(Error::Invalid(format!(
+            "internal: image {} has no view or raster intrinsics ({} views, {} intrinsics); \
+             this is a slag bug, please report it",
+            item.view,
+            views.len(),
+            raster_intrinsics.len()
+        )));
+    };
+    let (contribution, vs) = aggregate::view_contribution(
+        rasterizer,
+        k,
+        &view.world_to_camera,
+        &item.masks,
+        item.embeddings,
+        dim,
+        image_stage,
+    )?;
+    Ok(BackOut {
+        contribution,
+        raster_s: vs.raster_s,
+        contribution_s: vs.aggregate_s,
+        pixels: vs.counted_pixels as u64,
+        raster_entries: vs.contributions,
+    })
 }
 
 /// Reads an image and checks it against the camera's intrinsics.
@@ -305,30 +406,7 @@ pub fn encode_pool(
                     let i = next_view.fetch_add(1, Ordering::SeqCst);
                     let Some(view) = views.get(i) else { break };
                     let t0 = Instant::now();
-                    let item = (|| {
-                        let img = read_image(view)?;
-                        let t1 = Instant::now();
-                        let m = front.masks.generate(&img)?;
-                        let t2 = Instant::now();
-                        let e = front.crops.embed(&img, &m)?;
-                        let t3 = Instant::now();
-                        if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
-                            return Err(Error::Invalid(format!(
-                                "{}: CLIP returned {} vectors for {} masks",
-                                view.name,
-                                e.len(),
-                                m.len()
-                            )));
-                        }
-                        Ok(FrontItem {
-                            view: i,
-                            masks: m,
-                            embeddings: e.concat(),
-                            decode_s: (t1 - t0).as_secs_f64(),
-                            masks_s: (t2 - t1).as_secs_f64(),
-                            clip_s: (t3 - t2).as_secs_f64(),
-                        })
-                    })();
+                    let item = front_stage(view, i, &mut *front.masks, &mut *front.crops, dim);
                     share.busy_s += t0.elapsed().as_secs_f64();
                     bar_front.inc(1);
                     match item {
@@ -378,34 +456,38 @@ pub fn encode_pool(
                     }
                     let t0 = Instant::now();
                     let res = (|| -> Result<()> {
-                        let view = &views[item.view];
-                        let n_masks = item.masks.len();
-                        let (c, vs) = aggregate::view_contribution(
-                            rasterizer.as_mut(),
-                            &raster_intrinsics[item.view],
-                            &view.world_to_camera,
-                            &item.masks,
-                            item.embeddings,
+                        let (view, n_masks) = (item.view, item.masks.len());
+                        let (decode_s, masks_s, clip_s) =
+                            (item.decode_s, item.masks_s, item.clip_s);
+                        let out = back_stage(
+                            &mut *rasterizer,
+                            views,
+                            raster_intrinsics,
+                            item,
                             dim,
                             params.image_stage,
                         )?;
-                        let entries = c.entries.len();
+                        let t1 = Instant::now();
+                        let entries = out.contribution.entries.len();
                         store
                             .lock()
                             .map_err(|_| Error::Invalid("contribution store poisoned".into()))?
-                            .push(c)?;
+                            .push(out.contribution)?;
+                        let push_s = t1.elapsed().as_secs_f64();
                         if let Ok(mut tt) = totals.lock() {
-                            tt.raster_s += vs.raster_s;
-                            tt.aggregate_s += vs.aggregate_s;
-                            tt.pixels += vs.counted_pixels;
-                            tt.raster_entries += vs.contributions as usize;
+                            tt.raster_s += out.raster_s;
+                            tt.aggregate_s += out.contribution_s + push_s;
+                            tt.pixels += out.pixels as usize;
+                            tt.raster_entries += out.raster_entries as usize;
                             tt.masks += n_masks;
                             tt.entries += entries;
-                            tt.decode_s += item.decode_s;
-                            tt.masks_s += item.masks_s;
-                            tt.clip_s += item.clip_s;
+                            tt.decode_s += decode_s;
+                            tt.masks_s += masks_s;
+                            tt.clip_s += clip_s;
                         }
-                        tracing::debug!(view = %view.name, masks = n_masks, "image done");
+                        if let Some(view) = views.get(view) {
+                            tracing::debug!(view = %view.name, masks = n_masks, "image done");
+                        }
                         Ok(())
                     })();
                     share.busy_s += t0.elapsed().as_secs_f64();

@@ -15,6 +15,7 @@ use std::path::Path;
 
 use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
+use slag_common::rng::SplitMix64;
 use slag_common::scene::{Gaussians, ShCoeffs, write_ply};
 use slag_common::{Error, Result};
 
@@ -65,23 +66,6 @@ impl Default for SyntheticSceneParams {
     }
 }
 
-/// SplitMix64: a tiny deterministic generator (synthetic data only, not for anything secret).
-struct SplitMix(u64);
-
-impl SplitMix {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    fn unit(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 /// Terrain height at (x, y): amplitude 2 % of the extent, wavelength 1/6 of it.
 fn height(x: f64, y: f64, extent: f64) -> f64 {
     let l = extent / (6.0 * std::f64::consts::TAU);
@@ -105,21 +89,21 @@ pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
     let parts: Vec<_> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| {
-            let mut rng = SplitMix(p.seed ^ (c as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
+            let mut rng = SplitMix64::new(p.seed ^ (c as u64).wrapping_mul(0xD1B5_4A32_D192_ED03));
             let len = CHUNK.min(n - c * CHUNK);
             let mut out = Vec::with_capacity(len);
             for _ in 0..len {
-                let x = (rng.unit() - 0.5) * p.extent;
-                let y = (rng.unit() - 0.5) * p.extent;
+                let x = (rng.next_f64() - 0.5) * p.extent;
+                let y = (rng.next_f64() - 0.5) * p.extent;
                 let z = height(x, y, p.extent);
-                let s = spacing * (0.6 + 0.8 * rng.unit());
+                let s = spacing * (0.6 + 0.8 * rng.next_f64());
                 // A disc lying on the ground: thin along z, random spin about z.
-                let a = rng.unit() * std::f64::consts::PI;
+                let a = rng.next_f64() * std::f64::consts::PI;
                 let rot = [(a * 0.5).cos() as f32, 0.0, 0.0, (a * 0.5).sin() as f32];
                 let col = PALETTE[patch(x, y, p.extent)];
-                let jitter = 0.9 + 0.2 * rng.unit();
+                let jitter = 0.9 + 0.2 * rng.next_f64();
                 let dc = col.map(|c| (((c as f64 * jitter).min(1.0) - 0.5) / SH_C0) as f32);
-                let opacity = (0.6 + 0.35 * rng.unit()) as f32;
+                let opacity = (0.6 + 0.35 * rng.next_f64()) as f32;
                 out.push((
                     [x as f32, y as f32, z as f32],
                     [s as f32, s as f32, (s * 0.1) as f32],

@@ -15,6 +15,7 @@
 use glam::{DMat3, DQuat, DVec3};
 use proptest::prelude::*;
 use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::rng::SplitMix64;
 use slag_common::scene::Gaussians;
 use slag_encoder::aggregate::{ContributionStore, Entry, ImageContribution, ReduceParams, reduce};
 use slag_encoder::raster::project::{ALPHA_MAX, ALPHA_MIN, LOW_PASS, project_gaussian};
@@ -23,27 +24,11 @@ use slag_encoder::raster::{CpuRasterizer, GpuRasterizer, PixelWeights, WeightRas
 // ---------------------------------------------------------------------------------------------
 // helpers
 
-/// splitmix64 (deterministic scenes without an RNG dependency).
-struct Rng(u64);
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    fn f(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.f()
-    }
-    fn unit_quat(&mut self) -> [f32; 4] {
-        let q = [0; 4].map(|_| self.range(-1.0, 1.0));
-        let n = q.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
-        q.map(|v| (v / n) as f32)
-    }
+/// A random unit quaternion (wxyz, f32): four components uniform in [-1, 1), normalised.
+fn unit_quat(r: &mut SplitMix64) -> [f32; 4] {
+    let q = [0; 4].map(|_| r.range(-1.0, 1.0));
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-9);
+    q.map(|v| (v / n) as f32)
 }
 
 fn skip_gpu() -> bool {
@@ -250,13 +235,13 @@ fn max_weight(w: &PixelWeights, id: u32) -> f64 {
 /// `[lo, hi]` independently per axis (so up to 10 decades of anisotropy), random rotations and
 /// opacities in (0.02, 1).
 fn scale_scene(seed: u64, n: usize, lo: f64, hi: f64) -> Gaussians {
-    let mut r = Rng(seed);
+    let mut r = SplitMix64::new(seed);
     let mut g = Gaussians::default();
     let h = EXTENT / 2.0;
     for _ in 0..n {
         let mean = [0; 3].map(|_| r.range(-h, h) as f32);
         let scale = [0; 3].map(|_| (EXTENT * 10f64.powf(r.range(lo, hi))) as f32);
-        let q = r.unit_quat();
+        let q = unit_quat(&mut r);
         let o = r.range(0.02, 1.0) as f32;
         push(&mut g, mean, scale, q, o);
     }
@@ -732,7 +717,7 @@ fn a_million_tiny_contributions_reduce_to_the_compensated_reference() {
     let (images, masks) = (100usize, 10_000usize);
     let tmp = std::env::temp_dir().join(format!("slag-stability-{}", std::process::id()));
     let mut store = ContributionStore::new(usize::MAX, tmp);
-    let mut rng = Rng(0xA66);
+    let mut rng = SplitMix64::new(0xA66);
     let mut num = vec![Neumaier::default(); 2 * dim];
     let mut den = [Neumaier::default(); 2];
     let mut naive_f32_den = 0f32;

@@ -3,15 +3,7 @@
 
 use super::GaussianSource;
 use crate::embeddings::Embeddings;
-
-/// SplitMix64 step (public-domain reference constants).
-fn splitmix(x: &mut u64) -> u64 {
-    *x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    let mut z = *x;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
+use crate::rng::splitmix64 as splitmix;
 
 fn uniform(s: &mut u64) -> f32 {
     (splitmix(s) >> 40) as f32 / (1u64 << 24) as f32

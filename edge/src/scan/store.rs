@@ -4,6 +4,7 @@ use half::f16;
 use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use slag_common::Error;
+use slag_common::rng::splitmix64 as splitmix;
 use slag_common::shards::format::quantize_i8;
 use slag_common::shards::{Dtype, StoredShard, StoredVectors};
 
@@ -347,15 +348,6 @@ pub(crate) fn random_centres(dim: usize, clusters: usize, seed: u64) -> Vec<f32>
         row.iter_mut().for_each(|x| *x *= inv);
     }
     c
-}
-
-/// SplitMix64 step (public-domain reference constants).
-pub(crate) fn splitmix(x: &mut u64) -> u64 {
-    *x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    let mut z = *x;
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
 }
 
 /// Uniform in `[0, 1)` with 24 random bits.

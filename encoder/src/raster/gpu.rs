@@ -41,6 +41,7 @@ use std::sync::mpsc;
 
 use rayon::prelude::*;
 use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::rng::SplitMix64;
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 use wgpu::util::DeviceExt;
@@ -292,15 +293,10 @@ fn storage(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {
 
 /// Deterministic pseudo-random bytes (splitmix64), for the noise fill.
 fn noise_bytes(seed: u64, len: usize) -> Vec<u8> {
-    let mut s = seed;
+    let mut rng = SplitMix64::new(seed);
     let mut out = Vec::with_capacity(len + 8);
     while out.len() < len {
-        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = s;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        out.extend_from_slice(&z.to_le_bytes());
+        out.extend_from_slice(&rng.next_u64().to_le_bytes());
     }
     out.truncate(len);
     out

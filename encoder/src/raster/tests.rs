@@ -8,6 +8,7 @@ use std::path::PathBuf;
 
 use glam::{DMat3, DQuat, DVec3};
 use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::rng::SplitMix64;
 use slag_common::scene::Gaussians;
 
 use super::project::{ALPHA_MIN, Splat2d, T_MIN, TILE_SIZE, splat_alpha};
@@ -16,25 +17,6 @@ use super::*;
 
 // ---------------------------------------------------------------------------------------------
 // helpers
-
-/// splitmix64-based generator (no extra dev-dependency needed).
-struct Rng(u64);
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    /// Uniform in [0, 1).
-    fn f(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-    fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.f()
-    }
-}
 
 fn skip_gpu() -> bool {
     std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1")
@@ -57,7 +39,7 @@ fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
 /// z = -4 looking down +z, scales over 4 orders of magnitude, random unit quaternions, opacities
 /// including values near 0 and near 1.
 fn random_scene(seed: u64, n: usize) -> Gaussians {
-    let mut r = Rng(seed);
+    let mut r = SplitMix64::new(seed);
     let mut g = Gaussians::default();
     for _ in 0..n {
         g.means.push([
@@ -87,7 +69,7 @@ fn random_scene(seed: u64, n: usize) -> Gaussians {
 }
 
 fn test_camera(seed: u64) -> (Intrinsics, WorldToCamera) {
-    let mut r = Rng(seed ^ 0xCA3E);
+    let mut r = SplitMix64::new(seed ^ 0xCA3E);
     let k = Intrinsics {
         width: 160 + (seed % 3) as u32 * 17,
         height: 120 + (seed % 2) as u32 * 9,
@@ -542,7 +524,7 @@ fn colour_render_of_snowmiku_matches_photos() {
 /// `n` random overlapping masks (discs and boxes) of a `width × height` image; some pixels in
 /// none of them.
 fn random_masks(seed: u64, width: u32, height: u32, n: usize) -> Vec<crate::masks::Mask> {
-    let mut r = Rng(seed ^ 0x3A5C);
+    let mut r = SplitMix64::new(seed ^ 0x3A5C);
     (0..n)
         .filter_map(|i| {
             let (cx, cy) = (r.range(0.0, width as f64), r.range(0.0, height as f64));

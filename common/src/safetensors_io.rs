@@ -1,0 +1,151 @@
+//! Shared reading and writing of slag's safetensors files ([`crate::embeddings`],
+//! [`crate::mixture`]): the format/version metadata check, typed tensor look-ups, little-endian
+//! decoding and the atomic write. Every error names the file ([`Error::format`]) and says what to
+//! do.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use half::f16;
+use safetensors::SafeTensors;
+use safetensors::tensor::{Dtype, TensorView};
+
+use crate::embeddings::write_atomic;
+use crate::{Error, Result};
+
+/// What a slag safetensors file must declare in its `__metadata__`, and the words its errors use.
+pub(crate) struct FileKind {
+    /// `format` metadata value, e.g. `"slag-embeddings"`.
+    pub format: &'static str,
+    /// `version` metadata value this slag reads.
+    pub version: &'static str,
+    /// Noun for the file in messages, e.g. `"embeddings"` ("not a slag embeddings file").
+    pub noun: &'static str,
+    /// The encoder's output file name, e.g. `"embeddings.safetensors"`.
+    pub file_name: &'static str,
+    /// The command that writes a current file, e.g. `"slag-encoder encode"`.
+    pub rewrite_with: &'static str,
+}
+
+/// A parsed file whose metadata declares `kind`'s format and version.
+pub(crate) struct Checked<'a> {
+    /// The `__metadata__` strings.
+    pub meta: HashMap<String, String>,
+    /// The tensors.
+    pub tensors: SafeTensors<'a>,
+}
+
+/// Parses `bytes` (read from `path`) and checks the `format` and `version` metadata against
+/// `kind`.
+///
+/// Errors ([`Error::Format`] naming `path`): not safetensors, another format, another version, a
+/// header that does not match the data.
+pub(crate) fn open<'a>(path: &Path, bytes: &'a [u8], kind: &FileKind) -> Result<Checked<'a>> {
+    let bad = |m: String| Error::format(path, m);
+    let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| {
+        bad(format!(
+            "not a safetensors file ({e}); pass the encoder's {}",
+            kind.file_name
+        ))
+    })?;
+    let meta = header.metadata().clone().unwrap_or_default();
+    if meta.get("format").map(String::as_str) != Some(kind.format) {
+        return Err(bad(format!(
+            "not a slag {} file (metadata format {:?})",
+            kind.noun,
+            meta.get("format")
+        )));
+    }
+    if meta.get("version").map(String::as_str) != Some(kind.version) {
+        return Err(bad(format!(
+            "{} format version {:?}, this slag reads {}; re-run {}",
+            kind.noun,
+            meta.get("version"),
+            kind.version,
+            kind.rewrite_with
+        )));
+    }
+    let tensors = SafeTensors::deserialize(bytes).map_err(|e| bad(format!("{e}")))?;
+    Ok(Checked { meta, tensors })
+}
+
+impl<'a> Checked<'a> {
+    /// Tensor `name`, any dtype.
+    ///
+    /// Errors ([`Error::Format`] naming `path`): no such tensor.
+    pub fn tensor(&self, path: &Path, name: &str) -> Result<TensorView<'a>> {
+        self.tensors
+            .tensor(name)
+            .map_err(|e| Error::format(path, format!("tensor {name}: {e}")))
+    }
+
+    /// Tensor `name`, which must have dtype `dtype`.
+    ///
+    /// Errors ([`Error::Format`] naming `path`): no such tensor, another dtype.
+    pub fn tensor_of(&self, path: &Path, name: &str, dtype: Dtype) -> Result<TensorView<'a>> {
+        let t = self.tensor(path, name)?;
+        if t.dtype() != dtype {
+            return Err(Error::format(
+                path,
+                format!("tensor {name} is {:?}, expected {dtype:?}", t.dtype()),
+            ));
+        }
+        Ok(t)
+    }
+}
+
+/// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
+/// strings `meta` and writes the file atomically ([`write_atomic`]).
+///
+/// Errors: [`Error::Invalid`] when a tensor's data length disagrees with its dtype and shape;
+/// I/O.
+pub(crate) fn write(
+    path: &Path,
+    tensors: Vec<(&str, Dtype, Vec<usize>, &[u8])>,
+    meta: &[(&str, String)],
+) -> Result<()> {
+    let views = tensors
+        .into_iter()
+        .map(|(name, dtype, shape, data)| {
+            TensorView::new(dtype, shape, data)
+                .map(|v| (name, v))
+                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let meta: HashMap<String, String> = meta
+        .iter()
+        .map(|(k, v)| (k.to_string(), v.clone()))
+        .collect();
+    let bytes = safetensors::serialize(views, Some(meta))
+        .map_err(|e| Error::Invalid(format!("safetensors: {e}")))?;
+    write_atomic(path, &bytes)
+}
+
+/// Little-endian f32 values (a trailing partial value is ignored).
+pub(crate) fn le_f32(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Little-endian u32 values (a trailing partial value is ignored).
+pub(crate) fn le_u32(bytes: &[u8]) -> Vec<u32> {
+    bytes
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
+}
+
+/// Little-endian IEEE half values, widened to f32 (exact; a trailing odd byte is ignored).
+pub(crate) fn le_f16(bytes: &[u8]) -> Vec<f32> {
+    bytes
+        .chunks_exact(2)
+        .map(|c| f16::from_le_bytes([c[0], c[1]]).to_f32())
+        .collect()
+}
+
+/// `[x, y, z]` rows of a flat `[N * 3]` array (a trailing partial row is ignored).
+pub(crate) fn triples(flat: &[f32]) -> Vec<[f32; 3]> {
+    flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
