@@ -130,6 +130,10 @@ pub struct GpuRasterizer {
     /// Slots of the label-sum table for the next view (a power of two; grown when a view
     /// overflows it or fills more than half of it).
     label_slots: u32,
+    /// Testing aid: start the next view's table at exactly `label_slots` (no estimate).
+    label_slots_fixed: bool,
+    /// Retries (table overflows) of the last label-sum view.
+    label_retries: u32,
 }
 
 /// The write pass's output buffers (ids, weights) and their `MAP_READ` staging twins, reused
@@ -170,7 +174,7 @@ fn decode_label_sums(slots: &[u32]) -> Vec<LabelSum> {
             sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
         })
         .collect();
-    out.sort_unstable_by_key(|e| (e.gaussian, e.label));
+    out.par_sort_unstable_by_key(|e| (e.gaussian, e.label));
     out.dedup_by(|next, kept| {
         if (next.gaussian, next.label) == (kept.gaussian, kept.label) {
             kept.sum += next.sum;
@@ -462,6 +466,8 @@ impl GpuRasterizer {
             timings: PhaseTimings::default(),
             out: None,
             label_slots: INITIAL_LABEL_SLOTS,
+            label_slots_fixed: false,
+            label_retries: 0,
         })
     }
 
@@ -484,6 +490,12 @@ impl GpuRasterizer {
     /// not depend on the table size.
     pub fn set_label_table_slots(&mut self, slots: u32) {
         self.label_slots = slots.max(4).next_power_of_two();
+        self.label_slots_fixed = true;
+    }
+
+    /// Table overflows (each a retry with 4× the slots) of the last label-sum view.
+    pub fn last_label_retries(&self) -> u32 {
+        self.label_retries
     }
 
     /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
@@ -674,6 +686,7 @@ impl GpuRasterizer {
     ) -> Result<RunOutput> {
         validate_raster(k)?;
         let mut kept = self.out.take();
+        let fixed_slots = labels.is_some() && std::mem::take(&mut self.label_slots_fixed);
         let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
         let max_groups = self.limits.max_compute_workgroups_per_dimension;
         if tiles_x > max_groups.min(65535) || tiles_y > max_groups.min(65535) {
@@ -812,7 +825,21 @@ impl GpuRasterizer {
                 )));
             }
             let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
-            let mut slots = self.label_slots.max(4);
+            // A table at most half full for ~2 labels per visible Gaussian, at least the size
+            // the last view needed: a first view of a large scene then rarely retries.
+            let visible = isect
+                .iter()
+                .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
+                .count() as u64;
+            let mut slots = if fixed_slots {
+                self.label_slots.max(4)
+            } else {
+                (visible * 4).next_power_of_two().clamp(
+                    u64::from(self.label_slots.max(4)),
+                    u64::from(MAX_LABEL_SLOTS),
+                ) as u32
+            };
+            let mut retries = 0;
             loop {
                 let table_bytes = 16 + u64::from(slots) * 16;
                 self.check_size("label-sum table", table_bytes, k)?;
@@ -834,6 +861,7 @@ impl GpuRasterizer {
                 let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
                 if words.first().copied().unwrap_or(1) != 0 {
                     // Some contribution found no slot: retry the view with 4x the slots.
+                    retries += 1;
                     slots = slots.checked_mul(4).filter(|&n| n <= MAX_LABEL_SLOTS).ok_or_else(|| {
                         Error::Gpu(format!(
                             "the {}x{} view has more (Gaussian, label) sums than {MAX_LABEL_SLOTS} \
@@ -853,6 +881,7 @@ impl GpuRasterizer {
                 timings.write_ms = lap(&mut clock);
                 self.timings = timings;
                 self.label_slots = next;
+                self.label_retries = retries;
                 self.out = kept;
                 return Ok(RunOutput::Sums(sums));
             }

@@ -574,6 +574,12 @@ fn gpu_label_sums_equal_the_host_image_stage() {
         let (dev, stats) =
             view_contribution(&mut gpu, &k, &w2c, &masks, emb.clone(), dim, params).expect("dev");
         assert!(stats.device_sums, "the GPU rasterizer sums per label");
+        if seed % 2 == 0 {
+            assert!(
+                gpu.last_label_retries() > 0,
+                "seed {seed}: the 4-slot table must overflow"
+            );
+        }
         assert_eq!(dev.mask_embeddings, host.mask_embeddings);
         assert_eq!(
             dev.entries.len(),
