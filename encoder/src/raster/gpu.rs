@@ -155,6 +155,9 @@ enum RunOutput {
     Weights(PixelWeights),
     /// Per-(Gaussian, label) sums (mode 2).
     Sums(LabelSums),
+    /// Mode 2 declined: more visible Gaussians than raster pixels (few contributions per sum,
+    /// where the per-pixel lists are faster), or more sums than one table binding holds.
+    UseLists,
 }
 
 /// Label-sum table slots of a new rasterizer (4 MiB); grown per view as needed.
@@ -825,20 +828,31 @@ impl GpuRasterizer {
                 )));
             }
             let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
-            // A table at most half full for ~2 labels per visible Gaussian, at least the size
+            // A table at most half full for one label per visible Gaussian, at least the size
             // the last view needed: a first view of a large scene then rarely retries.
             let visible = isect
                 .iter()
                 .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
                 .count() as u64;
+            // Sums pay off when many contributions fall on each (Gaussian, label): with more
+            // visible Gaussians than pixels (a 30M-Gaussian terrain at 495x371 px: ~2 per sum,
+            // H200: 3.9 s/view vs 1.8 for the lists) the caller takes the lists instead.
+            if !fixed_slots && visible > u64::from(n_pix) {
+                self.out = kept;
+                return Ok(RunOutput::UseLists);
+            }
+            // Most slots one binding holds (a power of two).
+            let cap = ((self.max_binding().saturating_sub(16) / 16)
+                .min(u64::from(MAX_LABEL_SLOTS)))
+            .max(4);
+            let cap = 1u64 << (63 - cap.leading_zeros());
             let mut slots = if fixed_slots {
-                self.label_slots.max(4)
+                u64::from(self.label_slots.max(4)).min(cap)
             } else {
-                (visible * 4).next_power_of_two().clamp(
-                    u64::from(self.label_slots.max(4)),
-                    u64::from(MAX_LABEL_SLOTS),
-                ) as u32
-            };
+                (visible * 2)
+                    .next_power_of_two()
+                    .clamp(u64::from(self.label_slots.max(4)), cap)
+            } as u32;
             let mut retries = 0;
             loop {
                 let table_bytes = 16 + u64::from(slots) * 16;
@@ -860,15 +874,15 @@ impl GpuRasterizer {
                 let read = self.submit_and_read(enc, &[(&table, 0, table_bytes)])?;
                 let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
                 if words.first().copied().unwrap_or(1) != 0 {
-                    // Some contribution found no slot: retry the view with 4x the slots.
+                    // Some contribution found no slot: retry the view with 4x the slots, or,
+                    // past what one binding holds, let the caller take the per-pixel lists.
                     retries += 1;
-                    slots = slots.checked_mul(4).filter(|&n| n <= MAX_LABEL_SLOTS).ok_or_else(|| {
-                        Error::Gpu(format!(
-                            "the {}x{} view has more (Gaussian, label) sums than {MAX_LABEL_SLOTS} \
-                             table slots; lower --raster-scale",
-                            k.width, k.height
-                        ))
-                    })?;
+                    if u64::from(slots) >= cap {
+                        self.label_retries = retries;
+                        self.out = kept;
+                        return Ok(RunOutput::UseLists);
+                    }
+                    slots = (u64::from(slots) * 4).min(cap) as u32;
                     continue;
                 }
                 let sums = LabelSums {
@@ -877,7 +891,7 @@ impl GpuRasterizer {
                 };
                 // Next view: keep the table at most half full.
                 let want = (sums.sums.len() as u64 * 2).next_power_of_two();
-                let next = u64::from(slots).max(want).min(u64::from(MAX_LABEL_SLOTS)) as u32;
+                let next = u64::from(slots).max(want).min(cap) as u32;
                 timings.write_ms = lap(&mut clock);
                 self.timings = timings;
                 self.label_slots = next;
@@ -1124,7 +1138,7 @@ impl WeightRasterizer for GpuRasterizer {
     fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
         match self.run_scoped(k, w2c, None)? {
             RunOutput::Weights(w) => Ok(w),
-            RunOutput::Sums(_) => Err(Error::Gpu(
+            RunOutput::Sums(_) | RunOutput::UseLists => Err(Error::Gpu(
                 "rasterizer returned sums for a weights run".into(),
             )),
         }
@@ -1138,6 +1152,8 @@ impl WeightRasterizer for GpuRasterizer {
     ) -> Result<Option<LabelSums>> {
         match self.run_scoped(k, w2c, Some(labels))? {
             RunOutput::Sums(s) => Ok(Some(s)),
+            // More sums than one table binding holds: the caller rasterizes the lists instead.
+            RunOutput::UseLists => Ok(None),
             RunOutput::Weights(_) => Err(Error::Gpu(
                 "rasterizer returned weights for a sums run".into(),
             )),

@@ -630,7 +630,7 @@ fn top_k_and_mask_free_views_take_the_list_path() {
     let weights = gpu.rasterize(&k, &w2c).expect("lists");
     assert_eq!(
         c,
-        image_contribution(&weights, &masks, emb, 2, params).expect("host")
+        image_contribution(&weights, &masks, emb.clone(), 2, params).expect("host")
     );
     let (empty, stats) = view_contribution(
         &mut gpu,
@@ -643,6 +643,35 @@ fn top_k_and_mask_free_views_take_the_list_path() {
     )
     .expect("no masks");
     assert!(empty.entries.is_empty() && !stats.device_sums);
+    // More visible Gaussians than raster pixels: the GPU declines the sums, same a_kj.
+    let tiny = Intrinsics {
+        width: 12,
+        height: 9,
+        fx: k.fx * 12.0 / f64::from(k.width),
+        fy: k.fy * 9.0 / f64::from(k.height),
+        cx: k.cx * 12.0 / f64::from(k.width),
+        cy: k.cy * 9.0 / f64::from(k.height),
+    };
+    let (c, stats) = view_contribution(
+        &mut gpu,
+        &tiny,
+        &w2c,
+        &masks,
+        emb.clone(),
+        2,
+        ImageStageParams::default(),
+    )
+    .expect("tiny raster");
+    assert!(
+        !stats.device_sums,
+        "500 Gaussians on 108 pixels take the list path"
+    );
+    let weights = gpu.rasterize(&tiny, &w2c).expect("tiny lists");
+    assert!(!c.entries.is_empty());
+    assert_eq!(
+        c,
+        image_contribution(&weights, &masks, emb, 2, ImageStageParams::default()).expect("host")
+    );
     // Labels of the wrong size are refused with a typed error.
     let err = gpu
         .label_sums(&k, &w2c, &[1, 2, 3])
