@@ -259,7 +259,7 @@ pub fn image_contribution(
         }
     }
     let mut sums: Vec<(u64, f64)> = merged.into_iter().collect();
-    sums.sort_unstable_by_key(|e| e.0);
+    sums.par_sort_unstable_by_key(|e| e.0);
     let entries = expand_labels(
         sums.into_iter()
             .map(|(key, v)| ((key >> 32) as u32, key as u32, v)),
