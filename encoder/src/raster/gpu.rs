@@ -775,6 +775,17 @@ impl GpuRasterizer {
         let isect: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0]);
 
         timings.project_ms = lap(&mut clock);
+        let visible = isect
+            .iter()
+            .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
+            .count() as u64;
+        // Label sums pay off when many contributions fall on each (Gaussian, label): with more
+        // visible Gaussians than pixels (a 30M-Gaussian terrain at 495x371 px: ~2 per sum,
+        // H200: 3.9 s/view vs 1.8 for the lists) the caller takes the lists instead.
+        if labels.is_some() && !fixed_slots && visible > u64::from(n_pix) {
+            self.out = kept;
+            return Ok(RunOutput::UseLists);
+        }
         // 2. CPU binning + sort (per Gaussian work only).
         let (ranges, sorted_ids) = bin_and_sort(&isect, &self.means, w2c, tiles_x, n_tiles)?;
         self.check_size("tile intersections", sorted_ids.len() as u64 * 4, k)?;
@@ -830,17 +841,6 @@ impl GpuRasterizer {
             let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
             // A table at most half full for one label per visible Gaussian, at least the size
             // the last view needed: a first view of a large scene then rarely retries.
-            let visible = isect
-                .iter()
-                .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
-                .count() as u64;
-            // Sums pay off when many contributions fall on each (Gaussian, label): with more
-            // visible Gaussians than pixels (a 30M-Gaussian terrain at 495x371 px: ~2 per sum,
-            // H200: 3.9 s/view vs 1.8 for the lists) the caller takes the lists instead.
-            if !fixed_slots && visible > u64::from(n_pix) {
-                self.out = kept;
-                return Ok(RunOutput::UseLists);
-            }
             // Most slots one binding holds (a power of two).
             let cap = ((self.max_binding().saturating_sub(16) / 16)
                 .min(u64::from(MAX_LABEL_SLOTS)))
