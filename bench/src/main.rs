@@ -14,7 +14,7 @@ struct Cli {
 enum Command {
     /// Speed/accuracy trade study on a real scene with color-clip: writes
     /// OUT/tradeoffs.md and OUT/tradeoffs.csv.
-    Tradeoffs(slag_bench::tradeoffs::TradeoffArgs),
+    Tradeoffs(Box<slag_bench::tradeoffs::TradeoffArgs>),
     /// Each encoder stage's time per image against its floor on this machine (needs the facts
     /// JSON of scripts/device_facts.py; see scripts/device-scaling.sh stages).
     Stages(Box<slag_bench::stages::StagesArgs>),
