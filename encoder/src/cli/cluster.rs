@@ -34,8 +34,35 @@ pub struct EncodeClusterArgs {
     pub encode: EncodeArgs,
 }
 
+/// Refuses `encode` arguments that `encode-cluster` cannot honour, instead of ignoring them:
+/// `--mixture-keep` (the mixture form is written by `encode` only) and `--gpus`/`--front-workers`
+/// other than the defaults (each process runs one rasterizer and one front; start one process
+/// per GPU instead).
+///
+/// Errors: [`Error::Invalid`] naming the flag and what to do instead.
+pub fn check_supported(e: &EncodeArgs) -> Result<(), Error> {
+    if e.mixture_keep.is_some() {
+        return Err(Error::Invalid(
+            "encode-cluster does not write the mixture form yet: drop --mixture-keep, or run \
+             `slag-encoder encode --mixture-keep S` on one machine"
+                .into(),
+        ));
+    }
+    if e.gpus != super::encode::GpuCount::Count(1) || e.front_workers.is_some_and(|f| f != 1) {
+        return Err(Error::Invalid(
+            "encode-cluster runs one rasterizer and one front worker per process: drop --gpus / \
+             --front-workers and start one process per GPU (one line each in --hosts)"
+                .into(),
+        ));
+    }
+    Ok(())
+}
+
 /// Runs this process's part of the job; the report on process 0, `None` on the others.
+///
+/// Errors: [`check_supported`]'s, then cluster, model and encode errors.
 pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
+    check_supported(&a.encode)?;
     let cluster = ClusterConfig::from_hosts_file(
         &a.hosts,
         a.process,
@@ -70,4 +97,62 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
         report,
     };
     Ok(distributed::encode_cluster(job, &cluster)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: EncodeClusterArgs,
+    }
+
+    fn parse(extra: &[&str]) -> EncodeClusterArgs {
+        let mut argv = vec![
+            "encode-cluster",
+            "--process",
+            "0",
+            "--hosts",
+            "hosts.txt",
+            "--scene",
+            "s",
+            "--clip-visual",
+            "c.onnx",
+            "--masks",
+            "graph",
+            "--out",
+            "o",
+        ];
+        argv.extend_from_slice(extra);
+        match Cli::try_parse_from(argv) {
+            Ok(c) => c.args,
+            Err(e) => panic!("arguments: {e}"),
+        }
+    }
+
+    #[test]
+    fn flags_the_cluster_cannot_honour_are_refused_not_ignored() {
+        assert!(check_supported(&parse(&[]).encode).is_ok());
+        assert!(check_supported(&parse(&["--gpus", "1", "--front-workers", "1"]).encode).is_ok());
+        for bad in [
+            &["--mixture-keep", "8"][..],
+            &["--gpus", "2"][..],
+            &["--gpus", "all"][..],
+            &["--front-workers", "3"][..],
+        ] {
+            match check_supported(&parse(bad).encode) {
+                Err(Error::Invalid(msg)) => {
+                    assert!(
+                        msg.contains(bad[0]),
+                        "{bad:?}: message {msg:?} names the flag"
+                    )
+                }
+                other => panic!("{bad:?}: expected Invalid, got {other:?}"),
+            }
+        }
+    }
 }
