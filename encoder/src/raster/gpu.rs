@@ -568,31 +568,13 @@ impl GpuRasterizer {
                 dst
             })
             .collect();
-        self.queue.submit([encoder.finish()]);
-        let (tx, rx) = mpsc::channel();
-        for (i, buf) in staging.iter().enumerate() {
-            let tx = tx.clone();
-            buf.slice(..).map_async(wgpu::MapMode::Read, move |r| {
-                let _ = tx.send((i, r));
-            });
-        }
-        drop(tx);
-        self.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| gpu_err("waiting for the rasterizer kernels failed", e))?;
-        for (_, r) in rx.iter() {
-            r.map_err(|e| gpu_err("reading back rasterizer output failed", e))?;
-        }
         let mut out = Vec::with_capacity(reads.len());
-        for (buf, &(_, _, size)) in staging.iter().zip(reads) {
-            let view = buf
-                .slice(..)
-                .get_mapped_range()
-                .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
-            out.push(view[..size as usize].to_vec());
-            drop(view);
-            buf.unmap();
-        }
+        let mapped: Vec<(&wgpu::Buffer, u64)> = staging
+            .iter()
+            .zip(reads)
+            .map(|(buf, &(_, _, size))| (buf, size))
+            .collect();
+        self.submit_and_map(encoder, &mapped, |_, bytes| out.push(bytes.to_vec()))?;
         Ok(out)
     }
 
@@ -635,13 +617,34 @@ impl GpuRasterizer {
         ids: &mut Vec<u32>,
         weights: &mut Vec<f32>,
     ) -> Result<()> {
+        let staged = [(&out.stage_ids, bytes), (&out.stage_weights, bytes)];
+        self.submit_and_map(enc, &staged, |i, view| {
+            if i == 0 {
+                extend_pod(ids, view);
+            } else {
+                extend_pod(weights, view);
+            }
+        })
+    }
+
+    /// Submits `enc` (which ends with copies into the `MAP_READ` buffers of `staged`), waits, and
+    /// hands the first `bytes` of each staged buffer to `visit(index, bytes)`, then unmaps it.
+    fn submit_and_map(
+        &self,
+        enc: wgpu::CommandEncoder,
+        staged: &[(&wgpu::Buffer, u64)],
+        mut visit: impl FnMut(usize, &[u8]),
+    ) -> Result<()> {
         self.queue.submit([enc.finish()]);
         let (tx, rx) = mpsc::channel();
-        for buf in [&out.stage_ids, &out.stage_weights] {
+        for &(buf, bytes) in staged {
             let tx = tx.clone();
-            buf.slice(..bytes).map_async(wgpu::MapMode::Read, move |r| {
-                let _ = tx.send(r);
-            });
+            buf.slice(..bytes.max(4).next_multiple_of(4)).map_async(
+                wgpu::MapMode::Read,
+                move |r| {
+                    let _ = tx.send(r);
+                },
+            );
         }
         drop(tx);
         self.device
@@ -650,17 +653,13 @@ impl GpuRasterizer {
         for r in rx.iter() {
             r.map_err(|e| gpu_err("reading back rasterizer output failed", e))?;
         }
-        for (buf, is_ids) in [(&out.stage_ids, true), (&out.stage_weights, false)] {
+        for (i, &(buf, bytes)) in staged.iter().enumerate() {
             {
                 let view = buf
-                    .slice(..bytes)
+                    .slice(..bytes.max(4).next_multiple_of(4))
                     .get_mapped_range()
                     .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
-                if is_ids {
-                    extend_pod(ids, &view);
-                } else {
-                    extend_pod(weights, &view);
-                }
+                visit(i, &view[..bytes as usize]);
             }
             buf.unmap();
         }
