@@ -281,78 +281,74 @@ pub fn stage_rows(
         let px = image_pixels * a.raster_scale * a.raster_scale;
         (px * c.contributors_per_pixel, px)
     };
-    // Without top-K the GPU rasterizer sums per (Gaussian, label) on the device and only the
-    // sums come back (`aggregate::view_contribution`); with top-K the per-pixel lists do.
-    let label_path = a.top_k_per_pixel.is_none()
-        && a.rasterizer == slag_encoder::cli::encode::RasterBackend::Gpu
-        && c.masks > 0;
+    // The report says whether the GPU summed per (Gaussian, label) (only the sums come back) or
+    // the per-pixel lists were read back (top-K, or a view the GPU declined).
+    let label_path = c.device_sum_views * 2 > c.views_used;
     let akj_per_image = c.entries as f64 / n;
-    if label_path {
-        let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + pixels * 4.0;
-        let readback = akj_per_image * LABEL_SLOT_BYTES;
-        rows.push(StageRow {
-            stage: "raster + a_kj sums (GPU)".into(),
-            runs_on: r.models["rasterizer"]
-                .as_str()
-                .unwrap_or("wgpu")
-                .to_string(),
-            ms_per_image: per(t.raster),
-            work: format!(
-                "{:.1} M contributions summed on the GPU; ≈{:.1} MB of sums read back",
-                entries / 1e6,
-                readback / 1e6
-            ),
-            ceiling: format!(
-                "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
-                facts.gpu_copy_gbps, facts.d2h_gbps
-            ),
-            floor_ms: Some(
-                (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
-            ),
-        });
-        let host_bytes = pixels * 4.0 + akj_per_image * AKJ_BYTES;
-        rows.push(StageRow {
-            stage: "a_kj host side (labels, expansion)".into(),
-            runs_on: "CPU (rayon)".into(),
-            ms_per_image: per(t.image_aggregate),
-            work: format!("{:.1} MB of labels and a_kj written", host_bytes / 1e6),
-            ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
-            floor_ms: Some(host_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
-        });
-    } else {
-        let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + entries * ENTRY_BYTES;
-        let readback = entries * ENTRY_BYTES + (pixels + 1.0) * 4.0;
-        rows.push(StageRow {
-            stage: "raster (weights)".into(),
-            runs_on: r.models["rasterizer"]
-                .as_str()
-                .unwrap_or("wgpu")
-                .to_string(),
-            ms_per_image: per(t.raster),
-            work: format!(
-                "{:.1} MB GPU traffic + {:.1} MB read back ({:.1} M entries)",
-                gpu_bytes / 1e6,
-                readback / 1e6,
-                entries / 1e6
-            ),
-            ceiling: format!(
-                "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
-                facts.gpu_copy_gbps, facts.d2h_gbps
-            ),
-            floor_ms: Some(
-                (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
-            ),
-        });
-        let akj_bytes = entries * ENTRY_BYTES;
-        rows.push(StageRow {
-            stage: "a_kj (image stage)".into(),
-            runs_on: "CPU (rayon)".into(),
-            ms_per_image: per(t.image_aggregate),
-            work: format!("{:.1} MB of weights read", akj_bytes / 1e6),
-            ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
-            floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
-        });
-    }
+    // The raster row's GPU traffic and readback, and the host side of the image stage.
+    let (raster_stage, raster_work, gpu_bytes, readback, akj_stage, akj_work, akj_bytes) =
+        if label_path {
+            let readback = akj_per_image * LABEL_SLOT_BYTES;
+            let host_bytes = pixels * 4.0 + akj_per_image * AKJ_BYTES;
+            (
+                "raster + a_kj sums (GPU)",
+                format!(
+                    "{:.1} M contributions summed on the GPU; ≈{:.1} MB of sums read back",
+                    entries / 1e6,
+                    readback / 1e6
+                ),
+                c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + pixels * 4.0,
+                readback,
+                "a_kj host side (labels, expansion)",
+                format!("{:.1} MB of labels and a_kj written", host_bytes / 1e6),
+                host_bytes,
+            )
+        } else {
+            let gpu_bytes = c.gaussians as f64 * PROJECT_BYTES_PER_GAUSSIAN + entries * ENTRY_BYTES;
+            let readback = entries * ENTRY_BYTES + (pixels + 1.0) * 4.0;
+            let akj_bytes = entries * ENTRY_BYTES;
+            (
+                "raster (weights)",
+                format!(
+                    "{:.1} MB GPU traffic + {:.1} MB read back ({:.1} M entries)",
+                    gpu_bytes / 1e6,
+                    readback / 1e6,
+                    entries / 1e6
+                ),
+                gpu_bytes,
+                readback,
+                "a_kj (image stage)",
+                format!("{:.1} MB of weights read", akj_bytes / 1e6),
+                akj_bytes,
+            )
+        };
+    rows.push(StageRow {
+        stage: format!(
+            "{raster_stage} [GPU sums on {} of {} views]",
+            c.device_sum_views, c.views_used
+        ),
+        runs_on: r.models["rasterizer"]
+            .as_str()
+            .unwrap_or("wgpu")
+            .to_string(),
+        ms_per_image: per(t.raster),
+        work: raster_work,
+        ceiling: format!(
+            "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
+            facts.gpu_copy_gbps, facts.d2h_gbps
+        ),
+        floor_ms: Some(
+            (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
+        ),
+    });
+    rows.push(StageRow {
+        stage: akj_stage.into(),
+        runs_on: "CPU (rayon)".into(),
+        ms_per_image: per(t.image_aggregate),
+        work: akj_work,
+        ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
+        floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
+    });
     let dim = r.outputs["embeddings_bytes"]
         .as_f64()
         .map(|b| b / (c.observed.max(1) as f64 * 2.0))

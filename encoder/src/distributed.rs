@@ -189,6 +189,9 @@ struct MapStats {
     entries: u64,
     raster_pixels: u64,
     raster_entries: u64,
+    /// Views whose `a_kj` were summed on the GPU.
+    #[serde(default)]
+    device_sum_views: u64,
 }
 
 /// What a job must agree on across processes (a mismatch means processes got other arguments).
@@ -596,6 +599,7 @@ fn map_side(
         stats.entries += c.entries.len() as u64;
         stats.raster_pixels += out.pixels;
         stats.raster_entries += out.raster_entries;
+        stats.device_sum_views += u64::from(out.device_sums);
         stats.images += 1;
         let parts = split(&c, i as u32, peers);
         for part in parts {
@@ -884,6 +888,7 @@ fn assemble(
             / pixels.max(1) as f64,
         spilled_images: g.parts.iter().map(|s| s.spilled).sum::<u64>() as usize,
         reduce_chunks: g.parts.iter().map(|s| s.chunks).sum::<u64>() as usize,
+        device_sum_views: g.stats.iter().map(|s| s.device_sum_views).sum::<u64>() as usize,
         // Process 0's own peak (it assembles the output); the others report none.
         peak_rss_bytes: crate::report::peak_rss_bytes(),
     };

@@ -165,6 +165,8 @@ pub(crate) struct BackOut {
     pub pixels: u64,
     /// `(pixel, Gaussian)` contributions over those pixels.
     pub raster_entries: u64,
+    /// Whether the sums were made on the GPU ([`aggregate::ViewStats::device_sums`]).
+    pub device_sums: bool,
 }
 
 /// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
@@ -204,6 +206,7 @@ pub(crate) fn back_stage(
         contribution_s: vs.aggregate_s,
         pixels: vs.counted_pixels as u64,
         raster_entries: vs.contributions,
+        device_sums: vs.device_sums,
     })
 }
 
@@ -370,6 +373,7 @@ pub fn encode_pool(
         aggregate_s: f64,
         pixels: usize,
         raster_entries: usize,
+        device_sum_views: usize,
         masks: usize,
         entries: usize,
         decode_s: f64,
@@ -479,6 +483,7 @@ pub fn encode_pool(
                             tt.aggregate_s += out.contribution_s + push_s;
                             tt.pixels += out.pixels as usize;
                             tt.raster_entries += out.raster_entries as usize;
+                            tt.device_sum_views += usize::from(out.device_sums);
                             tt.masks += n_masks;
                             tt.entries += entries;
                             tt.decode_s += decode_s;
@@ -532,6 +537,7 @@ pub fn encode_pool(
     t.image_aggregate = tt.aggregate_s;
     counts.masks = tt.masks;
     counts.entries = tt.entries;
+    counts.device_sum_views = tt.device_sum_views;
     let (raster_pixels, raster_entries) = (tt.pixels, tt.raster_entries);
     report.workers = shares;
     bar_front.finish();
