@@ -24,4 +24,11 @@ if [ ! -e "$ORT_DIR/libonnxruntime.so" ]; then
   bash "$SLAG_SHARED/tools/install-onnxruntime.sh" "$ORT_DIR" "$ORT_VERSION" >/dev/null
 fi
 export ORT_DYLIB_PATH=$ORT_DIR/libonnxruntime.so
+# Mesa's Vulkan loader (wgpu on lavapipe) prints "error: XDG_RUNTIME_DIR is invalid or not set"
+# at every start on machines without a login session (CI, containers): give it a private runtime
+# folder, as a login session would. Other errors still reach stderr.
+if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "$XDG_RUNTIME_DIR" ]; then
+  export XDG_RUNTIME_DIR=${TMPDIR:-/tmp}/slag-runtime-$(id -u)
+  mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
+fi
 echo "setup: ORT_DYLIB_PATH=$ORT_DYLIB_PATH SLAG_SHARED=$SLAG_SHARED" >&2

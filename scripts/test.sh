@@ -12,11 +12,20 @@ if [ "${SLAG_SKIP_WEB:-0}" = 1 ]; then
 else
   . scripts/web-setup.sh
 fi
-cargo test --workspace --locked "$@"
+# --no-fail-fast: every test binary runs even after one fails, and the cross step below runs
+# whatever the native result, so one run shows every failure; the exit status is still non-zero.
+native=0
+cargo test --workspace --locked --no-fail-fast "$@" || native=$?
+cross=0
 if [ "${SLAG_SKIP_CROSS:-0}" = 1 ]; then
   echo "test: SLAG_SKIP_CROSS=1: aarch64 cross build skipped" >&2
 elif [ "$(uname -m)" != x86_64 ]; then
   echo "test: $(uname -m) host: the native build above is the Jetson build; cross step skipped" >&2
 else
-  bash scripts/cross-aarch64.sh
+  bash scripts/cross-aarch64.sh || cross=$?
 fi
+if [ "$native" -ne 0 ] || [ "$cross" -ne 0 ]; then
+  echo "test: FAILED (native cargo test exit $native, aarch64 cross step exit $cross)" >&2
+  exit 1
+fi
+echo "test: all passed (native and aarch64 cross step)" >&2

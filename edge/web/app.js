@@ -1,20 +1,26 @@
 // slag-edge web page: prompt -> GET /query.ply -> Gaussian-splat render (@mkkellogg/gaussian-splats-3d).
-// State for tests and people: document.body.dataset.state = idle | loading | rendered | error,
-// document.body.dataset.matches = painted Gaussians of the last answer.
+// State for tests and people: document.body.dataset.state = idle | loading | rendered | error |
+// no-viewer, document.body.dataset.matches = painted Gaussians of the last answer, and
+// document.body.dataset.ready = "1" once the submit handler is attached and the viewer module has
+// settled (loaded or failed): a click before that would be lost, so tests wait for it.
 
 const $ = (id) => document.getElementById(id);
 const status = (msg) => { $('status').textContent = msg; };
 const setState = (s) => { document.body.dataset.state = s; };
 
+// The viewer module loads in the background; the submit handler (at the end) is attached at once
+// and awaits it, so a prompt typed while the module is still loading is answered, not dropped.
 let GS = null;
-try {
-  GS = await import('@mkkellogg/gaussian-splats-3d');
-} catch (e) {
-  $('help').hidden = false;
-  status('viewer not vendored: run bash scripts/web-vendor.sh');
-  setState('no-viewer');
-  console.error('viewer import failed', e);
-}
+const viewerLoaded = import('@mkkellogg/gaussian-splats-3d').then(
+  (m) => { GS = m; return m; },
+  (e) => {
+    $('help').hidden = false;
+    status('viewer not vendored: run bash scripts/web-vendor.sh');
+    setState('no-viewer');
+    console.error('viewer import failed', e);
+    return null;
+  },
+);
 
 // Bounds of the means in a binary little-endian .ply (float properties x, y, z).
 function plyBounds(buf) {
@@ -102,9 +108,17 @@ $('bar').addEventListener('submit', (ev) => {
   ev.preventDefault();
   const text = $('text').value.trim();
   if (!text) { status('type what to look for first'); return; }
-  if (!GS) return;
-  show(text, $('token').value.trim()).catch((e) => {
-    status(`error: ${e.message}`);
-    setState('error');
-  });
+  const token = $('token').value.trim();
+  setState('loading');
+  viewerLoaded
+    .then((m) => {
+      if (!m) { setState('no-viewer'); return undefined; }
+      return show(text, token);
+    })
+    .catch((e) => {
+      status(`error: ${e.message}`);
+      setState('error');
+    });
 });
+// Handlers attached; ready once the viewer module has settled too.
+viewerLoaded.then(() => { document.body.dataset.ready = '1'; });
