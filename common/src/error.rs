@@ -44,6 +44,22 @@ pub enum Error {
         /// What is wrong (expected vs found signature) and what to pass instead.
         message: String,
     },
+    /// A model failed to load or run on its execution provider (out of GPU memory, a missing CUDA
+    /// library, a driver/runtime mismatch, a provider the runtime lacks): names the model, the
+    /// provider, the GPU and what to do ([`crate::onnx::remedy`]).
+    #[error("model {model} on {device}: {message}; {remedy}")]
+    Inference {
+        /// The `.onnx` file.
+        model: PathBuf,
+        /// The provider that failed (`cpu`, `cuda`, `tensorrt`).
+        provider: String,
+        /// Where: `cpu`, `cuda:0`, ...
+        device: String,
+        /// ONNX Runtime's / CUDA's message, with the step that failed.
+        message: String,
+        /// What to do about it.
+        remedy: String,
+    },
     /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch).
     #[error("invalid input: {0}")]
     Invalid(String),

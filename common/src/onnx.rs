@@ -19,18 +19,28 @@ use ort::value::{TensorElementType, ValueType};
 
 use crate::{Error, Result};
 
-/// Which ONNX Runtime execution provider runs a model.
+/// Which ONNX Runtime execution provider runs a model: what the user asks for (`--ep`), and, with
+/// [`OnnxModel::provider`], what actually runs it (never [`ExecutionProvider::Auto`] there).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ExecutionProvider {
     /// The default CPU provider.
     #[default]
     Cpu,
-    /// NVIDIA CUDA (only where the loaded ONNX Runtime build has it).
+    /// NVIDIA CUDA (only where the loaded ONNX Runtime build has it: PyPI's `onnxruntime-gpu`,
+    /// `scripts/setup.sh --gpu`).
     ///
-    /// Requesting CUDA from a runtime without it is an error ([`Error::Model`]), never a silent
-    /// fallback to the CPU: a run that was meant for a GPU should not quietly take hours.
+    /// Requesting CUDA from a runtime without it is an error ([`Error::Inference`]), never a
+    /// silent fallback to the CPU: a run that was meant for a GPU should not quietly take hours.
     Cuda,
+    /// NVIDIA TensorRT (where TensorRT 10 and the runtime's TensorRT provider are installed),
+    /// fp16 engines cached beside the model (`<model>.trt-cache/`); nodes TensorRT cannot take
+    /// fall back to CUDA. An error where TensorRT does not register.
+    #[serde(rename = "tensorrt")]
+    TensorRt,
+    /// CUDA when the loaded runtime has it and it registers on the GPU, otherwise the CPU, with one
+    /// log line per process saying why.
+    Auto,
 }
 
 impl std::fmt::Display for ExecutionProvider {
@@ -38,7 +48,47 @@ impl std::fmt::Display for ExecutionProvider {
         f.write_str(match self {
             ExecutionProvider::Cpu => "cpu",
             ExecutionProvider::Cuda => "cuda",
+            ExecutionProvider::TensorRt => "tensorrt",
+            ExecutionProvider::Auto => "auto",
         })
+    }
+}
+
+/// Where and how one ONNX model runs: the requested provider, the GPU (CUDA device ordinal, as
+/// `nvidia-smi` numbers them unless `CUDA_VISIBLE_DEVICES` says otherwise), ONNX Runtime's
+/// intra-op thread count (0 = its default) and a cap on the GPU memory arena of this model's
+/// session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Placement {
+    /// Requested provider.
+    pub ep: ExecutionProvider,
+    /// CUDA device ordinal (ignored on the CPU).
+    pub device: u32,
+    /// Intra-op threads (0 = ONNX Runtime's default, one per physical core).
+    pub intra_threads: usize,
+    /// Upper bound of the session's CUDA memory arena, bytes (`gpu_mem_limit`; `None` = ONNX
+    /// Runtime's default, the whole card).
+    pub gpu_mem_limit: Option<usize>,
+}
+
+impl Placement {
+    /// On the CPU with `intra_threads` threads.
+    pub fn cpu(intra_threads: usize) -> Self {
+        Placement {
+            ep: ExecutionProvider::Cpu,
+            device: 0,
+            intra_threads,
+            gpu_mem_limit: None,
+        }
+    }
+    /// `ep` on GPU `device`.
+    pub fn new(ep: ExecutionProvider, device: u32, intra_threads: usize) -> Self {
+        Placement {
+            ep,
+            device,
+            intra_threads,
+            gpu_mem_limit: None,
+        }
     }
 }
 
@@ -120,53 +170,330 @@ pub fn cuda_available() -> Result<bool> {
     })
 }
 
-/// Builds a session for the ONNX model at `path`.
-///
-/// `intra_threads` is ONNX Runtime's intra-op thread count (0 = ONNX Runtime's default, one per
-/// physical core). With [`ExecutionProvider::Cuda`] the CUDA provider must register, otherwise
-/// this fails (no silent CPU fallback).
+/// Builds a session for the ONNX model at `path` on `ep` (GPU 0), with `intra_threads` intra-op
+/// threads (0 = ONNX Runtime's default): [`OnnxModel::load`] without the bookkeeping.
 ///
 /// # Errors
-/// [`Error::Io`] if the model file is missing, [`Error::Model`] if it cannot be parsed or CUDA is
-/// unavailable, plus the errors of [`environment`].
+/// As [`OnnxModel::load`].
 pub fn load_session(path: &Path, ep: ExecutionProvider, intra_threads: usize) -> Result<Session> {
-    if !path.is_file() {
-        return Err(Error::io(
-            path,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "ONNX model file not found"),
-        ));
+    Ok(OnnxModel::load(path, &Placement::new(ep, 0, intra_threads))?.session)
+}
+
+/// One loaded ONNX model with the provider that actually runs it and the GPU it sits on; its
+/// errors ([`OnnxModel::error`]) name the model, the provider, the GPU and the remedy.
+///
+/// ONNX Runtime's `Run` needs `&mut Session` in `ort`; a model shared by several threads (one
+/// session per GPU, every front worker on that GPU) is kept behind a `Mutex`, so its runs on one
+/// GPU are serialised while the host work around them runs in parallel.
+pub struct OnnxModel {
+    session: Session,
+    path: PathBuf,
+    provider: ExecutionProvider,
+    device: u32,
+}
+
+impl std::fmt::Debug for OnnxModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OnnxModel")
+            .field("path", &self.path)
+            .field("provider", &self.provider)
+            .field("device", &self.device)
+            .finish()
     }
-    let env = environment()?;
-    let model_err =
-        |what: &str, e: &dyn std::fmt::Display| Error::model(path, format!("{what}: {e}"));
-    let mut builder =
-        Session::builder(env).map_err(|e| model_err("cannot create a session builder", &e))?;
-    if intra_threads > 0 {
-        builder = builder
-            .with_intra_threads(intra_threads)
-            .map_err(|e| model_err("cannot set the intra-op thread count", &e))?;
-    }
-    if ep == ExecutionProvider::Cuda {
-        if !cuda_available()? {
-            return Err(Error::model(
+}
+
+/// Says once per process why `--ep auto` runs on the CPU.
+fn note_cpu_fallback(why: &str) {
+    static SAID: OnceLock<()> = OnceLock::new();
+    SAID.get_or_init(|| tracing::warn!("--ep auto: SAM and CLIP run on the CPU: {why}"));
+}
+
+impl OnnxModel {
+    /// Loads the model at `path` where `placement` says.
+    ///
+    /// - [`ExecutionProvider::Cpu`]: ONNX Runtime's CPU provider.
+    /// - [`ExecutionProvider::Cuda`] / [`ExecutionProvider::TensorRt`]: that provider must
+    ///   register and the session must be created on GPU `placement.device`, else an error
+    ///   (no silent CPU fallback). The CUDA arena is capped at `placement.gpu_mem_limit` and
+    ///   grows by what is requested (`kSameAsRequested`), so sessions sharing a GPU do not
+    ///   reserve it all.
+    /// - [`ExecutionProvider::Auto`]: CUDA where the runtime has it and the session can be made
+    ///   on the GPU, otherwise the CPU, with one warning per process saying why.
+    ///
+    /// Models whose weights are ONNX external data (> 2 GB, e.g. SAM ViT-H) load from their
+    /// folder: keep the data file beside the `.onnx`.
+    ///
+    /// # Errors
+    /// [`Error::Io`] if the model file is missing; [`Error::Inference`] when the provider is not in
+    /// the loaded runtime, does not register, or the GPU session cannot be made (out of memory,
+    /// missing CUDA library, driver/runtime mismatch, no such GPU), with the remedy;
+    /// [`Error::Model`] if the file cannot be parsed; plus the errors of [`environment`].
+    pub fn load(path: &Path, placement: &Placement) -> Result<Self> {
+        if !path.is_file() {
+            return Err(Error::io(
                 path,
-                "the CUDA execution provider was requested but the loaded ONNX Runtime \
-                 ($ORT_DYLIB_PATH) was built without it: install the GPU build \
-                 (`install-onnxruntime.sh` from the `onnxruntime-gpu` wheel) or run on the CPU",
+                std::io::Error::new(std::io::ErrorKind::NotFound, "ONNX model file not found"),
             ));
         }
-        builder = builder
-            .with_execution_providers([ort::ep::CUDA::default().build().error_on_failure()])
-            .map_err(|e| {
-                model_err(
-                    "the CUDA execution provider failed to register (CUDA/cuDNN libraries?)",
-                    &e,
-                )
-            })?;
+        environment()?;
+        match placement.ep {
+            ExecutionProvider::Cpu => Self::load_on(path, placement, ExecutionProvider::Cpu),
+            ExecutionProvider::Cuda | ExecutionProvider::TensorRt => {
+                Self::load_on(path, placement, placement.ep)
+            }
+            ExecutionProvider::Auto => {
+                if !cuda_available()? {
+                    note_cpu_fallback(&format!(
+                        "the ONNX Runtime at {} has no CUDA provider (a CPU build); \
+                         `bash scripts/setup.sh --gpu` installs the GPU build",
+                        dylib_path().unwrap_or_default().display()
+                    ));
+                    return Self::load_on(path, placement, ExecutionProvider::Cpu);
+                }
+                match Self::load_on(path, placement, ExecutionProvider::Cuda) {
+                    Ok(m) => Ok(m),
+                    Err(Error::Inference { message, .. }) => {
+                        note_cpu_fallback(&format!(
+                            "the CUDA provider could not run on GPU {}: {message}",
+                            placement.device
+                        ));
+                        Self::load_on(path, placement, ExecutionProvider::Cpu)
+                    }
+                    Err(e) => Err(e),
+                }
+            }
+        }
     }
-    builder
-        .commit_from_file(path)
-        .map_err(|e| model_err("cannot load the ONNX model", &e))
+
+    fn load_on(path: &Path, placement: &Placement, ep: ExecutionProvider) -> Result<Self> {
+        let env = environment()?;
+        let device = placement.device;
+        let inference_err = |message: String| inference_error(path, ep, device, &message);
+        let model_err =
+            |what: &str, e: &dyn std::fmt::Display| Error::model(path, format!("{what}: {e}"));
+        let mut builder =
+            Session::builder(env).map_err(|e| model_err("cannot create a session builder", &e))?;
+        if placement.intra_threads > 0 {
+            builder = builder
+                .with_intra_threads(placement.intra_threads)
+                .map_err(|e| model_err("cannot set the intra-op thread count", &e))?;
+        }
+        if matches!(ep, ExecutionProvider::Cuda | ExecutionProvider::TensorRt) {
+            let available = match ep {
+                ExecutionProvider::TensorRt => ort::ep::TensorRT::is_available(),
+                _ => ort::ep::CUDA::is_available(),
+            }
+            .map_err(|e| inference_err(format!("cannot list execution providers: {e}")))?;
+            if !available {
+                return Err(inference_err(format!(
+                    "the {ep} execution provider was requested but the ONNX Runtime at {} was \
+                     built without it",
+                    dylib_path().unwrap_or_default().display()
+                )));
+            }
+            let mut cuda = ort::ep::CUDA::default()
+                .with_device_id(device as i32)
+                .with_arena_extend_strategy(ort::ep::ArenaExtendStrategy::SameAsRequested);
+            if let Some(limit) = placement.gpu_mem_limit {
+                cuda = cuda.with_memory_limit(limit);
+            }
+            let mut eps = Vec::new();
+            if ep == ExecutionProvider::TensorRt {
+                let cache = path.with_extension("trt-cache");
+                eps.push(
+                    ort::ep::TensorRT::default()
+                        .with_device_id(device as i32)
+                        .with_fp16(true)
+                        .with_engine_cache(true)
+                        .with_engine_cache_path(cache.display())
+                        .with_timing_cache(true)
+                        .with_timing_cache_path(cache.display())
+                        .build()
+                        .error_on_failure(),
+                );
+            }
+            eps.push(cuda.build().error_on_failure());
+            builder = builder
+                .with_execution_providers(eps)
+                .map_err(|e| inference_err(format!("the provider did not register: {e}")))?;
+        }
+        let session = builder.commit_from_file(path).map_err(|e| {
+            if ep == ExecutionProvider::Cpu {
+                model_err("cannot load the ONNX model", &e)
+            } else {
+                inference_err(format!("cannot create the session: {e}"))
+            }
+        })?;
+        Ok(OnnxModel {
+            session,
+            path: path.to_path_buf(),
+            provider: ep,
+            device,
+        })
+    }
+
+    /// The session (inputs, outputs, metadata).
+    pub fn session(&self) -> &Session {
+        &self.session
+    }
+
+    /// The session, to run it.
+    pub fn session_mut(&mut self) -> &mut Session {
+        &mut self.session
+    }
+
+    /// The `.onnx` file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The provider that runs the model (CPU, CUDA or TensorRT; never `Auto`).
+    pub fn provider(&self) -> ExecutionProvider {
+        self.provider
+    }
+
+    /// Where it runs, as the report and errors write it: `cpu`, `cuda:0`, `tensorrt:1`.
+    pub fn device_label(&self) -> String {
+        device_label(self.provider, self.device)
+    }
+
+    /// The CUDA device memory of this model's GPU, for outputs kept on the GPU (IO binding);
+    /// `None` on the CPU.
+    ///
+    /// # Errors
+    /// [`Error::Inference`] if ONNX Runtime cannot describe the memory.
+    pub fn device_memory(&self) -> Result<Option<ort::memory::MemoryInfo<'static>>> {
+        if self.provider == ExecutionProvider::Cpu {
+            return Ok(None);
+        }
+        ort::memory::MemoryInfo::new(
+            ort::memory::AllocationDevice::CUDA,
+            self.device as i32,
+            ort::memory::AllocatorType::Device,
+            ort::memory::MemoryType::Default,
+        )
+        .map(Some)
+        .map_err(|e| self.error("cannot describe the GPU memory", &e))
+    }
+
+    /// A typed error of this model: `what` failed with `e` (e.g. `"encoder run"`), with the
+    /// remedy [`remedy`] finds for the message.
+    pub fn error(&self, what: &str, e: &dyn std::fmt::Display) -> Error {
+        self.errors().error(what, e)
+    }
+
+    /// What [`OnnxModel::error`] needs, detached from the session (for use while a run borrows
+    /// it).
+    pub fn errors(&self) -> ModelErrors {
+        ModelErrors {
+            path: self.path.clone(),
+            provider: self.provider,
+            device: self.device,
+        }
+    }
+}
+
+/// Builds the typed errors of one model ([`OnnxModel::errors`]).
+#[derive(Debug, Clone)]
+pub struct ModelErrors {
+    path: PathBuf,
+    provider: ExecutionProvider,
+    device: u32,
+}
+
+impl ModelErrors {
+    /// [`Error::Inference`]: `what` failed with `e`, with the remedy for the message.
+    pub fn error(&self, what: &str, e: &dyn std::fmt::Display) -> Error {
+        inference_error(&self.path, self.provider, self.device, &format!("{what}: {e}"))
+    }
+    /// [`Error::Model`]: the model answered with something unexpected (shape, type).
+    pub fn unexpected(&self, message: impl Into<String>) -> Error {
+        Error::model(&self.path, message)
+    }
+}
+
+/// `cpu`, `cuda:N`, `tensorrt:N`.
+pub fn device_label(ep: ExecutionProvider, device: u32) -> String {
+    match ep {
+        ExecutionProvider::Cpu => "cpu".into(),
+        other => format!("{other}:{device}"),
+    }
+}
+
+fn inference_error(path: &Path, ep: ExecutionProvider, device: u32, message: &str) -> Error {
+    Error::Inference {
+        model: path.to_path_buf(),
+        provider: ep.to_string(),
+        device: device_label(ep, device),
+        message: message.to_string(),
+        remedy: remedy(ep, message).to_string(),
+    }
+}
+
+/// What the user should do about an ONNX Runtime / CUDA failure message (the `remedy` of
+/// [`Error::Inference`]): out of GPU memory, a missing CUDA library, a driver or runtime version
+/// mismatch, a GPU that does not exist, a provider the runtime lacks, or anything else.
+pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
+    let m = message.to_ascii_lowercase();
+    let any = |keys: &[&str]| keys.iter().any(|k| m.contains(k));
+    if any(&[
+        "out of memory",
+        "alloc_failed",
+        "resource allocation failed",
+        "cudaerrormemoryallocation",
+        "failed to allocate memory",
+        "bfcarena",
+    ]) {
+        "the GPU ran out of memory: lower --clip-batch or --sam-points-per-batch, cap each \
+         model's arena with --gpu-mem-limit-gb, or use a GPU with more free memory \
+         (nvidia-smi shows what else holds it)"
+    } else if any(&[
+        "cannot open shared object",
+        "error while loading shared libraries",
+        "failed to load library",
+        "loadlibrary",
+        "libcudnn",
+        "libcublas",
+        "libcudart",
+        "libnvinfer",
+    ]) {
+        "a CUDA library is missing: `bash scripts/setup.sh --gpu` installs onnxruntime-gpu and \
+         its CUDA 13 runtime, cuBLAS and cuDNN 9 (or put yours on LD_LIBRARY_PATH); TensorRT \
+         needs libnvinfer 10 as well"
+    } else if any(&[
+        "insufficient driver",
+        "driver version is insufficient",
+        "cudaerrorinsufficientdriver",
+        "version mismatch",
+        "api version",
+        "not compatible",
+        "unsupported ptx",
+    ]) {
+        "the ONNX Runtime GPU build does not match the driver: onnxruntime-gpu 1.31 is built for \
+         CUDA 13 (driver >= 580); on a CUDA 12 machine install a CUDA 12 build \
+         (ORT_GPU_VERSION=1.22.0 bash scripts/setup.sh --gpu)"
+    } else if any(&[
+        "invalid device ordinal",
+        "no cuda-capable device",
+        "cudaerrornodevice",
+        "cuda_error_no_device",
+    ]) {
+        "no such GPU: check nvidia-smi and CUDA_VISIBLE_DEVICES, and ask for at most that many \
+         with --gpus"
+    } else if m.contains("built without it") || m.contains("did not register") {
+        match ep {
+            ExecutionProvider::TensorRt => {
+                "install TensorRT 10 and an onnxruntime-gpu with its TensorRT provider, or use \
+                 --ep cuda"
+            }
+            _ => {
+                "install the GPU build of ONNX Runtime (`bash scripts/setup.sh --gpu`), or use \
+                 --ep cpu / --ep auto"
+            }
+        }
+    } else {
+        "rerun with --ep cpu to tell a model fault from a GPU fault, and report this message"
+    }
 }
 
 /// Element type of a tensor in a model signature.
@@ -334,6 +661,41 @@ pub fn check_signature(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn failures_get_the_remedy_for_their_cause() {
+        let cases = [
+            (
+                "CUBLAS failure 3: CUBLAS_STATUS_ALLOC_FAILED ; GPU=0",
+                "ran out of memory",
+            ),
+            (
+                "Failed to allocate memory for requested buffer of size 1073741824",
+                "ran out of memory",
+            ),
+            (
+                "libcudnn.so.9: cannot open shared object file: No such file or directory",
+                "CUDA library is missing",
+            ),
+            (
+                "CUDA failure 35: CUDA driver version is insufficient for CUDA runtime version",
+                "does not match the driver",
+            ),
+            ("CUDA failure 101: invalid device ordinal", "no such GPU"),
+            ("something else entirely", "rerun with --ep cpu"),
+        ];
+        for (message, want) in cases {
+            let got = remedy(ExecutionProvider::Cuda, message);
+            assert!(got.contains(want), "{message:?} -> {got:?}");
+        }
+        assert!(
+            remedy(ExecutionProvider::TensorRt, "was built without it").contains("TensorRT 10")
+        );
+        let e = inference_error(Path::new("m.onnx"), ExecutionProvider::Cuda, 3, "decoder run: out of memory");
+        let text = e.to_string();
+        assert!(text.starts_with("model m.onnx on cuda:3: decoder run: out of memory; the GPU ran out"), "{text}");
+        assert_eq!(device_label(ExecutionProvider::Cpu, 3), "cpu");
+    }
 
     #[test]
     fn dims_are_printed_with_dynamic_marks() {

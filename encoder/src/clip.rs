@@ -4,15 +4,17 @@
 //! the mask set to white (255). Each crop gets open_clip's preprocessing
 //! ([`crate::preprocess::clip_pixel_values`]: shortest side 224 with PIL bicubic, centre crop,
 //! CLIP mean/std), crops run through the visual tower in batches, and every output is
-//! L2-normalised.
+//! L2-normalised. On a GPU one [`ClipService`] per GPU owns the tower and batches the crops of
+//! every front worker's images together.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
+use std::sync::{Arc, Mutex, mpsc};
+use std::time::Instant;
 
 use image::RgbImage;
-use ort::session::Session;
 use ort::value::TensorRef;
 use rayon::prelude::*;
-use slag_common::onnx::{self, ElemType, ExecutionProvider, TensorSpec};
+use slag_common::onnx::{self, ElemType, ExecutionProvider, OnnxModel, Placement, TensorSpec};
 use slag_common::text::l2_normalize;
 use slag_common::{Error, Result};
 
@@ -79,8 +81,7 @@ pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
 /// The CLIP image tower over ONNX (`pixel_values f32[B,3,224,224] → one f32[B,D] output`, e.g.
 /// open_clip's `encode_image` without normalisation).
 pub struct ClipVisual {
-    session: Session,
-    path: PathBuf,
+    model: OnnxModel,
     batch_size: usize,
     input_name: String,
     model_id: String,
@@ -88,11 +89,13 @@ pub struct ClipVisual {
 }
 
 impl ClipVisual {
-    /// Loads and checks the visual tower; crops are embedded `batch_size` at a time.
+    /// Loads and checks the visual tower on `ep` (GPU 0); crops are embedded `batch_size` at a
+    /// time.
     ///
     /// # Errors
     /// [`Error::Invalid`] for `batch_size == 0`; [`Error::Model`] for a missing/unloadable model or
-    /// the wrong signature (e.g. a SAM encoder or a text tower).
+    /// the wrong signature (e.g. a SAM encoder or a text tower); [`Error::Inference`] when the
+    /// provider fails.
     pub fn new(model: &Path, ep: ExecutionProvider, batch_size: usize) -> Result<Self> {
         Self::with_threads(model, ep, batch_size, 0)
     }
@@ -107,21 +110,29 @@ impl ClipVisual {
         batch_size: usize,
         intra_threads: usize,
     ) -> Result<Self> {
+        Self::with_placement(model, &Placement::new(ep, 0, intra_threads), batch_size)
+    }
+
+    /// [`ClipVisual::new`] where `placement` says (provider, GPU, threads, arena cap).
+    ///
+    /// # Errors
+    /// As [`ClipVisual::new`].
+    pub fn with_placement(model: &Path, placement: &Placement, batch_size: usize) -> Result<Self> {
         if batch_size == 0 {
             return Err(Error::Invalid("CLIP batch size must be at least 1".into()));
         }
-        let session = onnx::load_session(model, ep, intra_threads)?;
+        let loaded = OnnxModel::load(model, placement)?;
         onnx::check_signature(
-            &session,
+            loaded.session(),
             model,
             "CLIP image tower",
             VISUAL_INPUTS,
             VISUAL_OUTPUTS,
             "pass a CLIP visual model exported with input pixel_values f32[B,3,224,224] and one \
-             output image_embeds f32[B,D] (e.g. open_clip encode_image)",
+             output image_embeds f32[B,D] (e.g. open_clip encode_image; scripts/export-models.py clip)",
         )?;
-        let input_name = session.inputs()[0].name().to_string();
-        let declared = match session.outputs()[0].dtype() {
+        let input_name = loaded.session().inputs()[0].name().to_string();
+        let declared = match loaded.session().outputs()[0].dtype() {
             ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
             _ => None,
         };
@@ -130,8 +141,7 @@ impl ClipVisual {
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default();
         let mut clip = ClipVisual {
-            session,
-            path: model.to_path_buf(),
+            model: loaded,
             batch_size,
             input_name,
             model_id,
@@ -155,11 +165,27 @@ impl ClipVisual {
         &self.model_id
     }
 
-    /// Embeds preprocessed pixels `f32[n,3,224,224]`: `n` L2-normalised rows of the model's width.
+    /// The provider that runs the tower and where (`cpu`, `cuda:0`).
+    pub fn device_label(&self) -> String {
+        self.model.device_label()
+    }
+
+    /// The provider that runs the tower.
+    pub fn provider(&self) -> ExecutionProvider {
+        self.model.provider()
+    }
+
+    /// Crops per run.
+    pub fn batch_size(&self) -> usize {
+        self.batch_size
+    }
+
+    /// Embeds preprocessed pixels `f32[n,3,224,224]`: `n` L2-normalised rows of the model's width,
+    /// in runs of at most the batch size.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for a buffer that is not a whole number of images, [`Error::Model`]
-    /// when the run fails or an embedding has zero norm.
+    /// [`Error::Invalid`] for a buffer that is not a whole number of images, [`Error::Inference`]
+    /// when the run fails, [`Error::Model`] for a wrong output or an embedding of zero norm.
     pub fn embed_pixels(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
         let per = 3 * s * s;
@@ -169,27 +195,37 @@ impl ClipVisual {
                 pixels.len()
             )));
         }
-        let n = pixels.len() / per;
-        let path = &self.path;
+        let mut out = Vec::with_capacity(pixels.len() / per);
+        for chunk in pixels.chunks(self.batch_size * per) {
+            out.extend(self.run_batch(chunk)?);
+        }
+        Ok(out)
+    }
+
+    fn run_batch(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
+        let s = CLIP_IMAGE_SIZE as usize;
+        let n = pixels.len() / (3 * s * s);
+        let errs = self.model.errors();
+        let path = self.model.path().to_path_buf();
         let input = TensorRef::from_array_view(([n, 3, s, s], pixels))
-            .map_err(|e| Error::model(path, format!("cannot build the CLIP input: {e}")))?;
+            .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
         let outputs = self
-            .session
+            .model
+            .session_mut()
             .run(ort::inputs![self.input_name.as_str() => input])
-            .map_err(|e| Error::model(path, format!("CLIP visual run failed: {e}")))?;
+            .map_err(|e| errs.error("CLIP visual run", &e))?;
         let (shape, data) = outputs[0]
             .try_extract_tensor::<f32>()
-            .map_err(|e| Error::model(path, format!("CLIP output is not f32: {e}")))?;
+            .map_err(|e| errs.unexpected(format!("CLIP output is not f32: {e}")))?;
         if shape.len() != 2 || shape[0] != n as i64 || shape[1] <= 0 {
-            return Err(Error::model(
-                path,
-                format!("CLIP visual returned shape {shape:?} for {n} images, expected [{n}, D]"),
-            ));
+            return Err(errs.unexpected(format!(
+                "CLIP visual returned shape {shape:?} for {n} images, expected [{n}, D]"
+            )));
         }
         let d = shape[1] as usize;
         let mut out: Vec<Vec<f32>> = data.chunks_exact(d).map(<[f32]>::to_vec).collect();
         for v in &mut out {
-            l2_normalize(v, path)?;
+            l2_normalize(v, &path)?;
         }
         Ok(out)
     }
@@ -201,18 +237,226 @@ impl ClipVisual {
     /// # Errors
     /// As [`crop`] and [`ClipVisual::embed_pixels`].
     pub fn embed_masks(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
-        let s = CLIP_IMAGE_SIZE as usize;
-        let per = 3 * s * s;
-        let mut out = Vec::with_capacity(masks.len());
-        for chunk in masks.chunks(self.batch_size) {
-            let mut pixels = vec![0f32; chunk.len() * per];
-            pixels
-                .par_chunks_mut(per)
-                .zip(chunk.par_iter())
-                .try_for_each(|(buf, m)| clip_pixel_values(&crop(image, m)?, buf))?;
-            out.extend(self.embed_pixels(&pixels)?);
+        let pixels = crop_pixels(image, masks)?;
+        self.embed_pixels(&pixels)
+    }
+
+    /// Moves the tower onto its own thread, which runs the crops of every [`ClipHandle`] in shared
+    /// batches (see [`ClipService`]).
+    pub fn into_service(self) -> ClipService {
+        ClipService::start(self)
+    }
+}
+
+/// `f32[masks.len(), 3, 224, 224]`: CLIP's input for the white-background crops of `masks`,
+/// cut and preprocessed in parallel (rayon).
+///
+/// # Errors
+/// As [`crop`] and [`clip_pixel_values`].
+pub fn crop_pixels(image: &RgbImage, masks: &[Mask]) -> Result<Vec<f32>> {
+    let s = CLIP_IMAGE_SIZE as usize;
+    let per = 3 * s * s;
+    let mut pixels = vec![0f32; masks.len() * per];
+    pixels
+        .par_chunks_mut(per)
+        .zip(masks.par_iter())
+        .try_for_each(|(buf, m)| clip_pixel_values(&crop(image, m)?, buf))?;
+    Ok(pixels)
+}
+
+/// One front worker's crops waiting for the tower.
+struct Request {
+    pixels: Vec<f32>,
+    reply: mpsc::SyncSender<Result<Vec<Vec<f32>>>>,
+}
+
+/// What a [`ClipService`] has done: runs, crops, and seconds inside the tower.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+pub struct ClipServiceStats {
+    /// Tower runs.
+    pub runs: u64,
+    /// Crops embedded.
+    pub crops: u64,
+    /// Seconds inside the tower's runs.
+    pub run_s: f64,
+}
+
+/// The CLIP image tower of one GPU on its own thread, shared by every front worker of that GPU
+/// through [`ClipHandle`]s: each worker cuts and preprocesses its crops on its own thread, sends
+/// them, and waits; the service takes every request that is waiting, concatenates their crops,
+/// and runs them in batches of the tower's batch size, so crops of several images share a run
+/// (one image's ~50 crops alone would leave a large batch half empty). The thread ends when the
+/// service and every handle are dropped.
+pub struct ClipService {
+    tx: mpsc::Sender<Request>,
+    model_id: String,
+    dim: usize,
+    device: String,
+    provider: ExecutionProvider,
+    stats: Arc<Mutex<ClipServiceStats>>,
+}
+
+impl ClipService {
+    fn start(mut clip: ClipVisual) -> Self {
+        let (tx, rx) = mpsc::channel::<Request>();
+        let stats = Arc::new(Mutex::new(ClipServiceStats::default()));
+        let (model_id, dim, device, provider) = (
+            clip.model_id.clone(),
+            clip.dim,
+            clip.device_label(),
+            clip.provider(),
+        );
+        let st = Arc::clone(&stats);
+        let per = 3 * (CLIP_IMAGE_SIZE as usize).pow(2);
+        let spawned = std::thread::Builder::new()
+            .name(format!("clip-{device}"))
+            .spawn(move || {
+                while let Ok(first) = rx.recv() {
+                    let mut reqs = vec![first];
+                    let mut n = reqs[0].pixels.len() / per;
+                    while n < clip.batch_size {
+                        match rx.try_recv() {
+                            Ok(r) => {
+                                n += r.pixels.len() / per;
+                                reqs.push(r);
+                            }
+                            Err(_) => break,
+                        }
+                    }
+                    let t = Instant::now();
+                    let result = if reqs.len() == 1 {
+                        clip.embed_pixels(&reqs[0].pixels)
+                    } else {
+                        let all: Vec<f32> =
+                            reqs.iter().flat_map(|r| r.pixels.iter().copied()).collect();
+                        clip.embed_pixels(&all)
+                    };
+                    if let Ok(mut s) = st.lock() {
+                        s.runs += n.div_ceil(clip.batch_size) as u64;
+                        s.crops += n as u64;
+                        s.run_s += t.elapsed().as_secs_f64();
+                    }
+                    match result {
+                        Ok(mut rows) => {
+                            // Hand each request its rows, in order.
+                            for r in reqs.into_iter().rev() {
+                                let k = r.pixels.len() / per;
+                                let mine = rows.split_off(rows.len() - k);
+                                let _ = r.reply.send(Ok(mine));
+                            }
+                        }
+                        Err(e) => {
+                            // Every image of the failed run gets the error (typed as it was).
+                            for r in reqs {
+                                let _ = r.reply.send(Err(copy_error(&e)));
+                            }
+                        }
+                    }
+                }
+            });
+        if let Err(e) = spawned {
+            tracing::error!("cannot start the CLIP service thread: {e}");
         }
-        Ok(out)
+        ClipService {
+            tx,
+            model_id,
+            dim,
+            device,
+            provider,
+            stats,
+        }
+    }
+
+    /// A handle for one front worker.
+    pub fn handle(&self) -> ClipHandle {
+        ClipHandle {
+            tx: self.tx.clone(),
+            model_id: self.model_id.clone(),
+            dim: self.dim,
+            device: self.device.clone(),
+        }
+    }
+
+    /// Where the tower runs (`cpu`, `cuda:0`).
+    pub fn device_label(&self) -> &str {
+        &self.device
+    }
+
+    /// The provider that runs the tower.
+    pub fn provider(&self) -> ExecutionProvider {
+        self.provider
+    }
+
+    /// Runs, crops and seconds so far.
+    pub fn stats(&self) -> ClipServiceStats {
+        self.stats.lock().map(|s| *s).unwrap_or_default()
+    }
+}
+
+/// The same error for another waiting request (an [`Error::Inference`] stays one).
+fn copy_error(e: &Error) -> Error {
+    match e {
+        Error::Inference {
+            model,
+            provider,
+            device,
+            message,
+            remedy,
+        } => Error::Inference {
+            model: model.clone(),
+            provider: provider.clone(),
+            device: device.clone(),
+            message: message.clone(),
+            remedy: remedy.clone(),
+        },
+        Error::Model { path, message } => Error::model(path, message.clone()),
+        other => Error::Invalid(other.to_string()),
+    }
+}
+
+/// A front worker's way to a [`ClipService`]; implements the pipeline's crop embedder.
+#[derive(Clone)]
+pub struct ClipHandle {
+    tx: mpsc::Sender<Request>,
+    model_id: String,
+    dim: usize,
+    device: String,
+}
+
+impl ClipHandle {
+    /// Model id (the visual tower's file stem).
+    pub fn model_id(&self) -> &str {
+        &self.model_id
+    }
+    /// Embedding width D.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+    /// Where the tower runs.
+    pub fn device_label(&self) -> &str {
+        &self.device
+    }
+
+    /// As [`ClipVisual::embed_masks`], through the service.
+    ///
+    /// # Errors
+    /// As [`ClipVisual::embed_masks`]; [`Error::Invalid`] if the service thread is gone.
+    pub fn embed_masks(&self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+        if masks.is_empty() {
+            return Ok(Vec::new());
+        }
+        let pixels = crop_pixels(image, masks)?;
+        let (reply, answer) = mpsc::sync_channel(1);
+        let gone = || {
+            Error::Invalid(format!(
+                "the CLIP service on {} stopped (an earlier error ended it)",
+                self.device
+            ))
+        };
+        self.tx
+            .send(Request { pixels, reply })
+            .map_err(|_| gone())?;
+        answer.recv().map_err(|_| gone())?
     }
 }
 

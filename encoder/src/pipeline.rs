@@ -238,13 +238,29 @@ fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
     )
 }
 
-/// The CPU-side stage instances of one *front* worker: a mask generator and a crop embedder
-/// (each holding its own ONNX Runtime sessions). [`encode_pool`] runs one thread per entry.
+/// The stage instances of one *front* worker: a mask generator and a crop embedder (their own
+/// ONNX Runtime sessions on the CPU, or handles to the sessions of their GPU). [`encode_pool`]
+/// runs one thread per entry.
 pub struct FrontStages {
     /// SAM (or graph) masks of one image.
     pub masks: Box<dyn MaskGenerator>,
     /// CLIP embeddings of the masks' crops.
     pub crops: Box<dyn CropEmbedder>,
+    /// The GPU whose models this worker uses, if any: its images then go to that GPU's
+    /// rasterizer (rasterizer `gpu`), so one pipeline's SAM, CLIP and raster share a GPU.
+    /// `None`: any rasterizer takes them.
+    pub gpu: Option<usize>,
+}
+
+impl FrontStages {
+    /// A worker bound to no GPU.
+    pub fn new(masks: Box<dyn MaskGenerator>, crops: Box<dyn CropEmbedder>) -> Self {
+        FrontStages {
+            masks,
+            crops,
+            gpu: None,
+        }
+    }
 }
 
 /// Runs the whole Semantic Embedding stage on `scene` and writes
@@ -263,7 +279,7 @@ pub fn encode(
 ) -> Result<Report> {
     encode_pool(
         scene,
-        vec![FrontStages { masks, crops }],
+        vec![FrontStages::new(masks, crops)],
         |g: &Gaussians| Ok(vec![make_rasterizer(g)?]),
         params,
         report,
@@ -391,14 +407,29 @@ pub fn encode_pool(
         }
     };
     let n_back = rasterizers.len();
-    let (tx, rx) = mpsc::sync_channel::<FrontItem>(2 * n_back);
-    let rx = Arc::new(Mutex::new(rx));
+    // One queue for all rasterizers, or, when the fronts are bound to GPUs, one queue per GPU so
+    // an image stays on the GPU whose SAM and CLIP made its masks.
+    let per_gpu = fronts.iter().any(|f| f.gpu.is_some());
+    if let Some(f) = fronts.iter().find(|f| f.gpu.is_some_and(|g| g >= n_back)) {
+        return Err(Error::Invalid(format!(
+            "a front worker is bound to GPU {:?} but there are {n_back} rasterizers;              internal error, please report it",
+            f.gpu
+        )));
+    }
+    let n_queues = if per_gpu { n_back } else { 1 };
+    let mut txs = Vec::with_capacity(n_queues);
+    let mut rxs = Vec::with_capacity(n_queues);
+    for _ in 0..n_queues {
+        let (tx, rx) = mpsc::sync_channel::<FrontItem>(2 * n_back / n_queues);
+        txs.push(tx);
+        rxs.push(Arc::new(Mutex::new(rx)));
+    }
     let mut shares: Vec<WorkerShare> = Vec::new();
 
     std::thread::scope(|s| {
         let mut handles = Vec::new();
         for (w, mut front) in fronts.into_iter().enumerate() {
-            let tx = tx.clone();
+            let tx = txs[front.gpu.unwrap_or(0) % n_queues].clone();
             let (views, next_view, failed, fail, bar_front) =
                 (&views, &next_view, &failed, &fail, &bar_front);
             handles.push(s.spawn(move || {
@@ -430,9 +461,9 @@ pub fn encode_pool(
             }));
         }
         // The back workers hold the only receivers: when every front is done, the queue closes.
-        drop(tx);
+        drop(txs);
         for (g, mut rasterizer) in rasterizers.into_iter().enumerate() {
-            let rx = Arc::clone(&rx);
+            let rx = Arc::clone(&rxs[g % n_queues]);
             let name = format!("raster-{g} {}", raster_names[g]);
             let (views, raster_intrinsics, failed, fail, bar_back, store, totals) = (
                 &views,
@@ -508,7 +539,7 @@ pub fn encode_pool(
                 share
             }));
         }
-        drop(rx);
+        drop(rxs);
         for h in handles {
             match h.join() {
                 Ok(share) => shares.push(share),
@@ -618,6 +649,18 @@ pub fn encode_pool(
         serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
     Ok(report)
+}
+
+impl CropEmbedder for crate::clip::ClipHandle {
+    fn model_id(&self) -> &str {
+        crate::clip::ClipHandle::model_id(self)
+    }
+    fn dim(&self) -> usize {
+        crate::clip::ClipHandle::dim(self)
+    }
+    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+        self.embed_masks(image, masks)
+    }
 }
 
 impl CropEmbedder for crate::clip::ClipVisual {

@@ -292,9 +292,91 @@ fn clip_rejects_wrong_models_and_bad_batches() {
         )
         .err()
         .expect("CUDA is not available in this ONNX Runtime");
-        assert!(
-            matches!(&err, Error::Model { message, .. } if message.contains("CUDA")),
-            "{err}"
-        );
+        let Error::Inference {
+            provider,
+            device,
+            message,
+            remedy,
+            ..
+        } = &err
+        else {
+            panic!("expected Error::Inference, got {err}")
+        };
+        assert_eq!((provider.as_str(), device.as_str()), ("cuda", "cuda:0"));
+        assert!(message.contains("built without it"), "{message}");
+        assert!(remedy.contains("setup.sh --gpu"), "{remedy}");
+        // `--ep auto` on the same runtime falls back to the CPU and says so (once).
+        let auto = ClipVisual::new(
+            &clip_dir.join("tiny-clip-visual.onnx"),
+            ExecutionProvider::Auto,
+            4,
+        )
+        .unwrap();
+        assert_eq!(auto.provider(), ExecutionProvider::Cpu);
+        assert_eq!(auto.device_label(), "cpu");
     }
+}
+
+/// One CLIP service shared by several front workers (threads) returns, for every worker, exactly
+/// the rows a private tower gives for its crops, in order (runs may hold crops of several
+/// requests; how many share a run depends on timing and is printed).
+#[test]
+fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
+    if !ort_available() {
+        return;
+    }
+    let clip_dir = shared().join("fixtures/clip");
+    let model = clip_dir.join("color-clip-visual.onnx");
+    let img = image::RgbImage::from_fn(64, 48, |x, y| {
+        image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x + y) * 2) as u8])
+    });
+    // Masks of different sizes and places: 3 to 9 per request.
+    let masks_of = |seed: u32| -> Vec<Mask> {
+        (0..3 + seed % 7)
+            .map(|k| {
+                let (x0, y0) = ((seed * 7 + k * 5) % 50, (seed * 3 + k * 7) % 36);
+                let px = (0..64 * 48)
+                    .map(|i| {
+                        let (x, y) = (i % 64, i / 64);
+                        u8::from(x >= x0 && x < x0 + 10 && y >= y0 && y < y0 + 8)
+                    })
+                    .collect();
+                Mask::from_pixels(64, 48, px).unwrap()
+            })
+            .collect()
+    };
+    let mut direct = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
+    let service = ClipVisual::new(&model, ExecutionProvider::Cpu, 64)
+        .unwrap()
+        .into_service();
+    let requests = 24u32;
+    std::thread::scope(|s| {
+        let hs: Vec<_> = (0..4u32)
+            .map(|w| {
+                let h = service.handle();
+                let img = &img;
+                s.spawn(move || {
+                    (0..requests / 4)
+                        .map(|r| {
+                            let seed = w * 100 + r;
+                            (seed, h.embed_masks(img, &masks_of(seed)).unwrap())
+                        })
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        for h in hs {
+            for (seed, rows) in h.join().unwrap() {
+                let want = direct.embed_masks(&img, &masks_of(seed)).unwrap();
+                assert_eq!(rows.len(), want.len());
+                for (a, b) in rows.iter().zip(&want) {
+                    let d = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+                    assert!(d < 1e-5, "request {seed}: max |diff| {d}");
+                }
+            }
+        }
+    });
+    let st = service.stats();
+    eprintln!("CLIP service: {} runs for {requests} requests, {} crops", st.runs, st.crops);
+    assert_eq!(st.crops, (0..4u32).flat_map(|w| (0..requests / 4).map(move |r| u64::from(3 + (w * 100 + r) % 7))).sum::<u64>());
 }

@@ -293,3 +293,58 @@ fn sam_rejects_models_of_the_wrong_role() {
     .expect("missing model");
     assert!(matches!(err, Error::Io { .. }), "{err}");
 }
+
+/// The default low-resolution path (decoder asked for `iou_predictions` + `low_res_masks`, logits
+/// upsampled on the host for the candidates that pass the IoU filter) gives the masks of the
+/// graph's own full-resolution `masks` output: same count and order, IoU ≥ 0.99, boxes within
+/// 1 px, stability within 1e-3, on color-sam with every filter at 0 (every candidate kept).
+#[test]
+fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
+    use slag_encoder::masks::sam::MaskPostprocess;
+    if !ort_available() {
+        return;
+    }
+    let dir = shared().join("fixtures/sam-amg");
+    let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_004040.jpg"));
+    let run = |postprocess| {
+        let params = SamParams {
+            points_per_side: 6,
+            points_per_batch: 16,
+            pred_iou_thresh: 0.0,
+            stability_score_thresh: 0.0,
+            postprocess,
+            ..SamParams::default()
+        };
+        let mut sam = SamAutomaticMaskGenerator::new(
+            &dir.join("color-sam-encoder.onnx"),
+            &dir.join("color-sam-decoder.onnx"),
+            ExecutionProvider::Cpu,
+            0,
+            params,
+        )
+        .unwrap();
+        sam.generate(&img).unwrap(); // warm-up
+        let t = Instant::now();
+        let m = sam.generate(&img).unwrap();
+        (m, t.elapsed().as_secs_f64())
+    };
+    let (graph, t_graph) = run(MaskPostprocess::Graph);
+    let (low, t_low) = run(MaskPostprocess::LowRes);
+    eprintln!(
+        "color-sam 6x6: graph masks {} in {t_graph:.2} s, low-res path {} in {t_low:.2} s",
+        graph.len(),
+        low.len()
+    );
+    assert!(graph.len() > 5, "too few masks to compare: {}", graph.len());
+    assert_eq!(graph.len(), low.len());
+    for (k, (a, b)) in graph.iter().zip(&low).enumerate() {
+        assert_mask_valid(b, img.width(), img.height());
+        let iou = iou(&a.pixels, &b.pixels);
+        assert!(iou >= 0.99, "mask {k}: IoU {iou}");
+        for (x, y) in a.bbox_xywh.iter().zip(&b.bbox_xywh) {
+            assert!(x.abs_diff(*y) <= 1, "mask {k}: {:?} vs {:?}", a.bbox_xywh, b.bbox_xywh);
+        }
+        assert_eq!(a.predicted_iou, b.predicted_iou, "mask {k}");
+        assert!((a.stability_score - b.stability_score).abs() <= 1e-3, "mask {k}");
+    }
+}

@@ -73,6 +73,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
                 )
                 .unwrap(),
             ),
+            gpu: None,
         })
         .collect();
     let params = pipeline::EncodeParams {
@@ -183,12 +184,14 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         FrontStages {
             masks: Box::new(FailingMasks { left: 2 }),
             crops: clip(),
+            gpu: None,
         },
         FrontStages {
             masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
                 Default::default(),
             )),
             crops: clip(),
+            gpu: None,
         },
     ];
     let params = pipeline::EncodeParams {

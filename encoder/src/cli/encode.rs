@@ -5,10 +5,11 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, ValueEnum};
 use slag_common::embeddings::StoredPrecision;
+use slag_common::onnx::Placement;
 
 use crate::aggregate::{ImageStageParams, ReduceParams};
 use crate::masks::MaskGenerator;
-use crate::pipeline::{self, CropEmbedder, EncodeParams, SceneInput};
+use crate::pipeline::{self, EncodeParams, SceneInput};
 use crate::raster::WeightRasterizer;
 use crate::report::Report;
 
@@ -95,9 +96,13 @@ pub struct EncodeArgs {
     /// Weight rasterizer.
     #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
     pub rasterizer: RasterBackend,
-    /// ONNX Runtime execution provider for SAM and CLIP.
-    #[arg(long, value_enum, default_value_t = EpArg::Cpu)]
+    /// ONNX Runtime execution provider for SAM and CLIP: `auto` = CUDA where the loaded ONNX
+    /// Runtime has it and a GPU answers, else the CPU (one line says why).
+    #[arg(long, value_enum, default_value_t = EpArg::Auto)]
     pub ep: EpArg,
+    /// Cap of each model session's CUDA memory arena, GiB (default: no cap beyond the card).
+    #[arg(long, value_name = "GIB")]
+    pub gpu_mem_limit_gb: Option<f64>,
     /// Worker threads (ONNX Runtime intra-op and CPU stages); default: all cores.
     #[arg(long)]
     pub threads: Option<usize>,
@@ -105,8 +110,10 @@ pub struct EncodeArgs {
     /// worker each, images balanced dynamically). Default 1. Ignored with `--rasterizer cpu`.
     #[arg(long, default_value = "1")]
     pub gpus: GpuCount,
-    /// Front workers (decode → masks → CLIP, each with its own ONNX Runtime sessions sharing
-    /// `--threads`); default: 1 per GPU plus 1, at most the cores.
+    /// Front workers (decode → masks → CLIP crops). With the models on the CPU each has its own
+    /// ONNX Runtime sessions sharing `--threads` (default: 1 per GPU plus 1); with the models on
+    /// GPUs they share each GPU's one SAM session pair and one CLIP service, spread round-robin
+    /// over the GPUs (default: 4 per GPU). At most the cores.
     #[arg(long)]
     pub front_workers: Option<usize>,
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
@@ -167,6 +174,32 @@ fn parse_keep(s: &str) -> Result<usize, String> {
     }
 }
 
+/// Where `a`'s models run on GPU `device` with `threads` intra-op threads (`--ep`,
+/// `--gpu-mem-limit-gb`).
+pub(crate) fn placement(a: &EncodeArgs, device: u32, threads: usize) -> Placement {
+    Placement {
+        ep: a.ep.into(),
+        device,
+        intra_threads: threads,
+        gpu_mem_limit: a
+            .gpu_mem_limit_gb
+            .filter(|g| *g > 0.0)
+            .map(|g| (g * f64::from(1u32 << 30)) as usize),
+    }
+}
+
+/// SAM parameters from `a`.
+fn sam_params(a: &EncodeArgs) -> crate::masks::sam::SamParams {
+    crate::masks::sam::SamParams {
+        points_per_side: a.sam_points_per_side,
+        points_per_batch: a.sam_points_per_batch,
+        pred_iou_thresh: a.sam_pred_iou_thresh,
+        stability_score_thresh: a.sam_stability_score_thresh,
+        box_nms_thresh: a.sam_box_nms_thresh,
+        ..Default::default()
+    }
+}
+
 /// The mask generator `a` asks for (`--masks`), with `threads` ONNX Runtime intra-op threads.
 pub(crate) fn build_masks(
     a: &EncodeArgs,
@@ -182,19 +215,11 @@ pub(crate) fn build_masks(
                     .as_ref()
                     .context("--masks sam needs --sam-decoder")?,
             );
-            let params = crate::masks::sam::SamParams {
-                points_per_side: a.sam_points_per_side,
-                points_per_batch: a.sam_points_per_batch,
-                pred_iou_thresh: a.sam_pred_iou_thresh,
-                stability_score_thresh: a.sam_stability_score_thresh,
-                box_nms_thresh: a.sam_box_nms_thresh,
-                ..Default::default()
-            };
-            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::new(
+            let params = sam_params(a);
+            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
                 enc,
                 dec,
-                a.ep.into(),
-                threads,
+                &placement(a, 0, threads),
                 params,
             )?)
         }
@@ -221,7 +246,7 @@ pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) 
         models: serde_json::json!({
             "sam_encoder": a.sam_encoder, "sam_decoder": a.sam_decoder,
             "clip_visual": a.clip_visual,
-            "execution_provider": format!("{:?}", a.ep).to_lowercase(),
+            "execution_provider_requested": format!("{:?}", a.ep).to_lowercase(),
         }),
         parameters: serde_json::json!({
             "raster_scale": a.raster_scale,
@@ -289,8 +314,124 @@ pub(crate) fn make_rasterizer(
     })
 }
 
-/// Runs `encode` and returns the report it wrote: `--front-workers` front workers (masks + CLIP,
-/// each with `threads / fronts` ONNX Runtime threads) and one rasterizer per GPU (`--gpus`).
+/// The front workers of a run and what keeps their shared models alive.
+pub(crate) struct Fronts {
+    /// One entry per front worker.
+    pub stages: Vec<pipeline::FrontStages>,
+    /// The CLIP services of the GPUs (empty on the CPU); dropped after the encode.
+    pub services: Vec<crate::clip::ClipService>,
+    /// Per GPU (or one entry for the CPU): where each model actually runs.
+    pub providers: Vec<serde_json::Value>,
+    /// The provider that actually runs CLIP (and SAM): `cpu`, `cuda`, `tensorrt`.
+    pub provider: slag_common::onnx::ExecutionProvider,
+}
+
+/// Builds the front workers of `a` over `gpus` GPUs with `threads` cores.
+///
+/// CLIP is loaded on GPU 0 first with `--ep`: if it runs on the CPU (`--ep cpu`, or `auto`
+/// without a usable GPU provider) every front worker gets its own sessions with a share of the
+/// cores (as ONNX Runtime's CPU provider scales best); otherwise each GPU gets one SAM session
+/// pair and one [`crate::clip::ClipService`], and the workers are bound round-robin to the GPUs.
+pub(crate) fn build_fronts(
+    a: &EncodeArgs,
+    gpus: usize,
+    front_workers: Option<usize>,
+    threads: usize,
+) -> anyhow::Result<Fronts> {
+    use slag_common::onnx::ExecutionProvider;
+    let gpu_threads = (threads / gpus.max(1)).max(1);
+    let clip0 =
+        crate::clip::ClipVisual::with_placement(&a.clip_visual, &placement(a, 0, gpu_threads), a.clip_batch)?;
+    if clip0.provider() == ExecutionProvider::Cpu {
+        drop(clip0);
+        let n = front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
+        let per_front = (threads / n).max(1);
+        let mut cpu = a.clone();
+        cpu.ep = EpArg::Cpu;
+        let mut stages = Vec::with_capacity(n);
+        for _ in 0..n {
+            let masks = build_masks(&cpu, per_front)?;
+            let clip = crate::clip::ClipVisual::with_threads(
+                &a.clip_visual,
+                ExecutionProvider::Cpu,
+                a.clip_batch,
+                per_front,
+            )?;
+            stages.push(pipeline::FrontStages::new(masks, Box::new(clip)));
+        }
+        let sam = (a.masks == MaskSource::Sam).then_some("cpu");
+        return Ok(Fronts {
+            stages,
+            services: Vec::new(),
+            providers: vec![serde_json::json!({
+                "device": "cpu", "sam_encoder": sam, "sam_decoder": sam, "clip_visual": "cpu",
+            })],
+            provider: ExecutionProvider::Cpu,
+        });
+    }
+    let provider = clip0.provider();
+    let mut services = vec![clip0.into_service()];
+    let mut sams = Vec::new();
+    let mut providers = Vec::new();
+    for g in 0..gpus {
+        if g > 0 {
+            let clip = crate::clip::ClipVisual::with_placement(
+                &a.clip_visual,
+                &placement(a, g as u32, gpu_threads),
+                a.clip_batch,
+            )?;
+            services.push(clip.into_service());
+        }
+        let sam = match a.masks {
+            MaskSource::Sam => {
+                let (enc, dec) = (
+                    a.sam_encoder.as_ref().context("--masks sam needs --sam-encoder")?,
+                    a.sam_decoder.as_ref().context("--masks sam needs --sam-decoder")?,
+                );
+                Some(crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                    enc,
+                    dec,
+                    &placement(a, g as u32, gpu_threads),
+                    sam_params(a),
+                )?)
+            }
+            MaskSource::Graph => None,
+        };
+        let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |s| {
+            let (e, d) = s.models().providers();
+            (Some(e.to_string()), Some(d.to_string()))
+        });
+        providers.push(serde_json::json!({
+            "gpu": g, "device": services[g].device_label(),
+            "sam_encoder": enc_p, "sam_decoder": dec_p,
+            "clip_visual": services[g].provider().to_string(),
+        }));
+        sams.push(sam);
+    }
+    let n = front_workers.unwrap_or(4 * gpus).clamp(1, threads.max(1));
+    let mut stages = Vec::with_capacity(n);
+    for w in 0..n {
+        let g = w % gpus;
+        let masks: Box<dyn MaskGenerator> = match &sams[g] {
+            Some(sam) => Box::new(sam.share()),
+            None => build_masks(a, 1)?,
+        };
+        stages.push(pipeline::FrontStages {
+            masks,
+            crops: Box::new(services[g].handle()),
+            gpu: Some(g),
+        });
+    }
+    Ok(Fronts {
+        stages,
+        services,
+        providers,
+        provider,
+    })
+}
+
+/// Runs `encode` and returns the report it wrote: front workers (masks + CLIP; see
+/// [`build_fronts`]) and one rasterizer per GPU (`--gpus`).
 pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     let threads = setup_threads(a);
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
@@ -301,22 +442,19 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
             .map(|v| v.len())
             .unwrap_or(1),
     };
-    let n_fronts = a.front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
-    let per_front = (threads / n_fronts).max(1);
-    let mut fronts = Vec::with_capacity(n_fronts);
-    for _ in 0..n_fronts {
-        let masks = build_masks(a, per_front)?;
-        let clip = crate::clip::ClipVisual::with_threads(
-            &a.clip_visual,
-            a.ep.into(),
-            a.clip_batch,
-            per_front,
-        )?;
-        let crops: Box<dyn CropEmbedder> = Box::new(clip);
-        fronts.push(pipeline::FrontStages { masks, crops });
-    }
+    let fronts = build_fronts(a, gpus, a.front_workers, threads)?;
     let params = encode_params(a);
-    let header = report_header(a, &scene, threads);
+    let mut header = report_header(a, &scene, threads);
+    if let Some(m) = header.models.as_object_mut() {
+        m.insert(
+            "execution_provider".into(),
+            fronts.provider.to_string().into(),
+        );
+        m.insert(
+            "execution_providers".into(),
+            fronts.providers.clone().into(),
+        );
+    }
     let backend = a.rasterizer;
     let want = match a.gpus {
         GpuCount::Count(n) => Some(n),
@@ -332,7 +470,20 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
                 RasterBackend::Cpu => vec![make_rasterizer(backend, g)?],
             })
         };
-    let report = pipeline::encode_pool(&scene, fronts, make, &params, header)?;
+    let Fronts {
+        stages, services, ..
+    } = fronts;
+    let report = pipeline::encode_pool(&scene, stages, make, &params, header)?;
+    for s in &services {
+        let st = s.stats();
+        tracing::info!(
+            device = s.device_label(),
+            runs = st.runs,
+            crops = st.crops,
+            run_s = st.run_s,
+            "CLIP service"
+        );
+    }
     Ok(report)
 }
 

@@ -13,17 +13,25 @@ use slag_common::onnx::ExecutionProvider;
 /// `--ep`: ONNX Runtime execution provider.
 #[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
 pub enum EpArg {
+    /// CUDA when the loaded ONNX Runtime has it and a GPU answers, else the CPU (one line says
+    /// why).
+    Auto,
     /// CPU (always available).
     Cpu,
-    /// NVIDIA CUDA (needs an ONNX Runtime build with CUDA, e.g. onnxruntime-gpu's library).
+    /// NVIDIA CUDA (needs an ONNX Runtime build with CUDA: `bash scripts/setup.sh --gpu`).
     Cuda,
+    /// NVIDIA TensorRT (needs TensorRT 10 and an ONNX Runtime with its TensorRT provider; fp16
+    /// engines cached beside each model).
+    Tensorrt,
 }
 
 impl From<EpArg> for ExecutionProvider {
     fn from(e: EpArg) -> Self {
         match e {
+            EpArg::Auto => ExecutionProvider::Auto,
             EpArg::Cpu => ExecutionProvider::Cpu,
             EpArg::Cuda => ExecutionProvider::Cuda,
+            EpArg::Tensorrt => ExecutionProvider::TensorRt,
         }
     }
 }

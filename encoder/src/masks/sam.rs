@@ -14,18 +14,26 @@
 //!    are used;
 //! 4. filters, in SAM's order: predicted IoU `> pred_iou_thresh`; stability score (IoU of the
 //!    full-resolution logits thresholded at `mask_threshold ± stability_score_offset`)
-//!    `>= stability_score_thresh`; masks = logits `> mask_threshold`; boxes (xyxy, inclusive max);
+//!    `>= stability_score_thresh`; masks = logits `> mask_threshold`; boxes (xyxy, inclusive max).
+//!    The full-resolution logits are not taken from the graph's `masks` output (`P × 4 × H × W`
+//!    f32, 750 MB for 256 prompts at 990×742): the decoder is asked for `iou_predictions` and
+//!    `low_res_masks` only, and the logits of the candidates that pass the predicted-IoU filter
+//!    are upsampled on the host ([`LowResUpsampler`]) exactly as `SamOnnxModel.mask_postprocessing`
+//!    does (bilinear 256 → 1024, crop to the resized image, bilinear to `H × W`, both with
+//!    `align_corners=False`), composed into one separable 4-tap filter per axis
+//!    ([`MaskPostprocess::LowRes`], the default; [`MaskPostprocess::Graph`] keeps the old path);
 //! 5. greedy box NMS (torchvision `nms`, IoU `> box_nms_thresh` suppresses, boxes areas
 //!    `(x1 - x0) * (y1 - y0)`, f32), scores = predicted IoU; the output keeps NMS order (descending
 //!    predicted IoU), as `SamAutomaticMaskGenerator.generate` does.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
+use std::sync::{Arc, Mutex};
 
 use image::RgbImage;
-use ort::session::Session;
-use ort::value::TensorRef;
+use ort::session::{OutputSelector, RunOptions};
+use ort::value::{DynValue, TensorRef};
 use rayon::prelude::*;
-use slag_common::onnx::{self, ElemType, ExecutionProvider, TensorSpec};
+use slag_common::onnx::{self, ElemType, ExecutionProvider, OnnxModel, Placement, TensorSpec};
 use slag_common::{Error, Result};
 
 use super::{Mask, MaskGenerator};
@@ -52,6 +60,22 @@ pub struct SamParams {
     pub box_nms_thresh: f32,
     /// Logit threshold that binarises masks (`Sam.mask_threshold`).
     pub mask_threshold: f32,
+    /// Where the full-resolution logits come from.
+    #[serde(default)]
+    pub postprocess: MaskPostprocess,
+}
+
+/// Where AMG's full-resolution mask logits come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskPostprocess {
+    /// `low_res_masks` (P × 4 × 256 × 256) from the decoder, upsampled on the host for the
+    /// candidates that pass the predicted-IoU filter only (the graph's full-resolution `masks`
+    /// output is not requested, so it is neither copied back nor, on the GPU, kept).
+    #[default]
+    LowRes,
+    /// The graph's own `masks` output (P × 4 × H × W), as segment_anything reads it.
+    Graph,
 }
 
 impl Default for SamParams {
@@ -64,6 +88,7 @@ impl Default for SamParams {
             stability_score_offset: 1.0,
             box_nms_thresh: 0.7,
             mask_threshold: 0.0,
+            postprocess: MaskPostprocess::LowRes,
         }
     }
 }
@@ -169,13 +194,46 @@ struct Candidate {
     point: [f64; 2],
 }
 
+/// The SAM encoder and decoder sessions of one GPU (or of the CPU), shared by every
+/// [`SamAutomaticMaskGenerator`] made with [`SamAutomaticMaskGenerator::share`]: one session per
+/// model per GPU, whatever the number of front workers. Each session's runs are serialised by its
+/// lock; the encoder of one image and the decoder of another run at the same time.
+pub struct SamModels {
+    encoder: Mutex<OnnxModel>,
+    decoder: Mutex<OnnxModel>,
+    /// Providers that actually run the encoder and decoder, and where (`cuda:0`).
+    providers: (ExecutionProvider, ExecutionProvider),
+    device: String,
+}
+
+impl SamModels {
+    /// Providers that run the encoder and the decoder (never `Auto`).
+    pub fn providers(&self) -> (ExecutionProvider, ExecutionProvider) {
+        self.providers
+    }
+    /// Where they run: `cpu`, `cuda:0`, ...
+    pub fn device(&self) -> &str {
+        &self.device
+    }
+}
+
+/// The image embedding between the encoder and the decoder: on the host (CPU provider), or left
+/// on the GPU where the encoder wrote it (IO binding), so the decoder reads it without a copy.
+enum ImageEmbedding {
+    Host(Vec<f32>),
+    Device(DynValue),
+}
+
+fn lock(m: &Mutex<OnnxModel>) -> std::sync::MutexGuard<'_, OnnxModel> {
+    // A panic while holding the lock leaves the session itself intact.
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 /// SAM automatic mask generator over ONNX models (segment_anything 1.0 semantics, see the module
-/// docs). Implements [`MaskGenerator`] with name `"sam"`.
+/// docs). Implements [`MaskGenerator`] with name `"sam"`. Cheap to [`share`](Self::share): every
+/// front worker of a GPU holds one over the same [`SamModels`].
 pub struct SamAutomaticMaskGenerator {
-    encoder: Session,
-    decoder: Session,
-    encoder_path: PathBuf,
-    decoder_path: PathBuf,
+    models: Arc<SamModels>,
     params: SamParams,
 }
 
@@ -183,13 +241,14 @@ impl SamAutomaticMaskGenerator {
     /// Loads and checks the encoder (`pixel_values f32[1,3,1024,1024] → image_embeddings
     /// f32[1,256,64,64]`) and the decoder (segment_anything `SamOnnxModel`,
     /// `return_single_mask=False`: `masks f32[P,4,H,W]`, `iou_predictions f32[P,4]`,
-    /// `low_res_masks f32[P,4,256,256]`).
+    /// `low_res_masks f32[P,4,256,256]`) on `ep`, GPU 0.
     ///
     /// `intra_threads` is ONNX Runtime's intra-op thread count (0 = its default).
     ///
     /// # Errors
     /// [`Error::Model`] for a missing/unloadable model or the wrong signature (e.g. a CLIP model
-    /// passed as the encoder), [`Error::Invalid`] for bad `params`.
+    /// passed as the encoder), [`Error::Inference`] when the provider fails,
+    /// [`Error::Invalid`] for bad `params`.
     pub fn new(
         encoder: &Path,
         decoder: &Path,
@@ -197,34 +256,71 @@ impl SamAutomaticMaskGenerator {
         intra_threads: usize,
         params: SamParams,
     ) -> Result<Self> {
+        Self::with_placement(
+            encoder,
+            decoder,
+            &Placement::new(ep, 0, intra_threads),
+            params,
+        )
+    }
+
+    /// [`SamAutomaticMaskGenerator::new`] where `placement` says (provider, GPU, threads, arena
+    /// cap).
+    ///
+    /// # Errors
+    /// As [`SamAutomaticMaskGenerator::new`].
+    pub fn with_placement(
+        encoder: &Path,
+        decoder: &Path,
+        placement: &Placement,
+        params: SamParams,
+    ) -> Result<Self> {
         params.validate()?;
-        let enc = onnx::load_session(encoder, ep, intra_threads)?;
+        let enc = OnnxModel::load(encoder, placement)?;
         onnx::check_signature(
-            &enc,
+            enc.session(),
             encoder,
             "SAM image encoder",
             ENCODER_INPUTS,
             ENCODER_OUTPUTS,
             "pass a SAM image encoder exported with input pixel_values f32[1,3,1024,1024] \
-             (normalised, padded) and output image_embeddings f32[1,256,64,64]",
+             (normalised, padded) and output image_embeddings f32[1,256,64,64] \
+             (scripts/export-models.py sam)",
         )?;
-        let dec = onnx::load_session(decoder, ep, intra_threads)?;
+        let dec = OnnxModel::load(decoder, placement)?;
         onnx::check_signature(
-            &dec,
+            dec.session(),
             decoder,
             "SAM mask decoder",
             DECODER_INPUTS,
             DECODER_OUTPUTS,
             "pass a SAM decoder exported with segment_anything's SamOnnxModel \
-             (return_single_mask=False, dynamic point axes), e.g. scripts/export_onnx_model.py",
+             (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py sam",
         )?;
+        let providers = (enc.provider(), dec.provider());
+        let device = enc.device_label();
         Ok(SamAutomaticMaskGenerator {
-            encoder: enc,
-            decoder: dec,
-            encoder_path: encoder.to_path_buf(),
-            decoder_path: decoder.to_path_buf(),
+            models: Arc::new(SamModels {
+                encoder: Mutex::new(enc),
+                decoder: Mutex::new(dec),
+                providers,
+                device,
+            }),
             params,
         })
+    }
+
+    /// Another generator over the same sessions (same GPU), for another front worker.
+    pub fn share(&self) -> Self {
+        SamAutomaticMaskGenerator {
+            models: Arc::clone(&self.models),
+            params: self.params.clone(),
+        }
+    }
+
+    /// The sessions and where they run.
+    pub fn models(&self) -> &SamModels {
+        &self.models
     }
 
     /// The parameters in use.
@@ -232,39 +328,59 @@ impl SamAutomaticMaskGenerator {
         &self.params
     }
 
-    /// Runs the encoder on SAM's input of `image`: `f32[1,256,64,64]` image embeddings.
-    fn encode(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
+    /// Runs the encoder on SAM's input of `image`: `f32[1,256,64,64]` image embeddings, left on
+    /// the GPU when the encoder runs there.
+    fn encode(&self, image: &RgbImage) -> Result<ImageEmbedding> {
         let (pixels, _) = sam_pixel_values(image)?;
         let s = SAM_IMAGE_SIZE as usize;
-        let path = &self.encoder_path;
+        let mut enc = lock(&self.models.encoder);
         let input = TensorRef::from_array_view(([1usize, 3, s, s], pixels.as_slice()))
-            .map_err(|e| Error::model(path, format!("cannot build the encoder input: {e}")))?;
-        let outputs = self
-            .encoder
+            .map_err(|e| enc.error("cannot build the encoder input", &e))?;
+        if let Some(mem) = enc.device_memory()? {
+            let mut binding = enc
+                .session()
+                .create_binding()
+                .map_err(|e| enc.error("cannot create the encoder's IO binding", &e))?;
+            binding
+                .bind_input("pixel_values", &input)
+                .map_err(|e| enc.error("cannot bind the encoder input", &e))?;
+            binding
+                .bind_output_to_device("image_embeddings", &mem)
+                .map_err(|e| enc.error("cannot bind the encoder output to the GPU", &e))?;
+            let errs = enc.errors();
+            let value = enc
+                .session_mut()
+                .run_binding(&binding)
+                .map_err(|e| errs.error("encoder run", &e))?
+                .remove("image_embeddings")
+                .ok_or_else(|| errs.unexpected("the encoder returned no image_embeddings"))?;
+            return Ok(ImageEmbedding::Device(value));
+        }
+        let errs = enc.errors();
+        let outputs = enc
+            .session_mut()
             .run(ort::inputs!["pixel_values" => input])
-            .map_err(|e| Error::model(path, format!("encoder run failed: {e}")))?;
+            .map_err(|e| errs.error("encoder run", &e))?;
         let (shape, data) = outputs["image_embeddings"]
             .try_extract_tensor::<f32>()
-            .map_err(|e| Error::model(path, format!("encoder output is not f32: {e}")))?;
+            .map_err(|e| errs.unexpected(format!("encoder output is not f32: {e}")))?;
         if **shape != [1, 256, 64, 64] {
-            return Err(Error::model(
-                path,
-                format!(
-                    "encoder returned image_embeddings of shape {shape:?}, expected [1,256,64,64]"
-                ),
-            ));
+            return Err(errs.unexpected(format!(
+                "encoder returned image_embeddings of shape {shape:?}, expected [1,256,64,64]"
+            )));
         }
-        Ok(data.to_vec())
+        Ok(ImageEmbedding::Host(data.to_vec()))
     }
 
     /// Decodes one batch of prompts (points in the 1024 frame) and returns the candidates that pass
     /// the predicted-IoU and stability filters, in SAM order (prompt-major, then channel 1..=3).
     fn decode_batch(
-        &mut self,
-        embeddings: &[f32],
+        &self,
+        embedding: &ImageEmbedding,
         points: &[[f64; 2]],
         transformed: &[[f32; 2]],
         (h, w): (u32, u32),
+        upsampler: &LowResUpsampler,
     ) -> Result<Vec<Candidate>> {
         let n = points.len();
         let mut coords = Vec::with_capacity(n * 4);
@@ -276,10 +392,20 @@ impl SamAutomaticMaskGenerator {
         let mask_input = vec![0f32; 256 * 256];
         let has_mask = [0f32];
         let orig = [h as f32, w as f32];
-        let path = self.decoder_path.clone();
-        let err = |e: ort::Error| Error::model(&path, format!("cannot build decoder inputs: {e}"));
+        let low_res = self.params.postprocess == MaskPostprocess::LowRes;
+        let mut dec = lock(&self.models.decoder);
+        let errs = dec.errors();
+        let err = |e: ort::Error| errs.error("cannot build the decoder inputs", &e);
+        let emb_input: ort::session::SessionInputValue<'_> = match embedding {
+            ImageEmbedding::Host(v) => {
+                TensorRef::from_array_view(([1usize, 256, 64, 64], v.as_slice()))
+                    .map_err(err)?
+                    .into()
+            }
+            ImageEmbedding::Device(v) => v.into(),
+        };
         let inputs = ort::inputs![
-            "image_embeddings" => TensorRef::from_array_view(([1usize, 256, 64, 64], embeddings)).map_err(err)?,
+            "image_embeddings" => emb_input,
             "point_coords" => TensorRef::from_array_view(([n, 2, 2], coords.as_slice())).map_err(err)?,
             "point_labels" => TensorRef::from_array_view(([n, 2], labels.as_slice())).map_err(err)?,
             "mask_input" => TensorRef::from_array_view(([1usize, 1, 256, 256], mask_input.as_slice())).map_err(err)?,
@@ -287,104 +413,94 @@ impl SamAutomaticMaskGenerator {
             "orig_im_size" => TensorRef::from_array_view(([2usize], &orig[..])).map_err(err)?,
         ];
         let t = std::time::Instant::now();
-        let outputs = self
-            .decoder
-            .run(inputs)
-            .map_err(|e| Error::model(&path, format!("decoder run failed: {e}")))?;
+        // The low-resolution path asks for two outputs only: ONNX Runtime then neither copies
+        // the full-resolution masks back nor keeps them.
+        let selector = if low_res {
+            OutputSelector::no_default()
+                .with("iou_predictions")
+                .with("low_res_masks")
+        } else {
+            OutputSelector::default()
+        };
+        let options = RunOptions::new()
+            .map_err(|e| errs.error("cannot create run options", &e))?
+            .with_outputs(selector);
+        let outputs = dec
+            .session_mut()
+            .run_with_options(inputs, &options)
+            .map_err(|e| errs.error("decoder run", &e))?;
         tracing::trace!(
             prompts = n,
             run_s = t.elapsed().as_secs_f64(),
             "SAM decoder batch"
         );
-        let (mshape, masks) = outputs["masks"]
-            .try_extract_tensor::<f32>()
-            .map_err(|e| Error::model(&path, format!("decoder masks are not f32: {e}")))?;
         let (ishape, ious) = outputs["iou_predictions"]
             .try_extract_tensor::<f32>()
-            .map_err(|e| {
-                Error::model(&path, format!("decoder iou_predictions are not f32: {e}"))
-            })?;
-        let (hu, wu) = (h as usize, w as usize);
-        if **mshape != [n as i64, 4, i64::from(h), i64::from(w)] {
-            return Err(Error::model(
-                &path,
-                format!(
-                    "decoder returned masks of shape {mshape:?} for {n} prompts and orig_im_size \
-                     [{h}, {w}]; expected [{n}, 4, {h}, {w}]: the decoder must upscale its masks to \
-                     orig_im_size (SamOnnxModel.mask_postprocessing)"
-                ),
-            ));
-        }
+            .map_err(|e| errs.unexpected(format!("decoder iou_predictions are not f32: {e}")))?;
         if **ishape != [n as i64, 4] {
-            return Err(Error::model(
-                &path,
-                format!("decoder returned iou_predictions of shape {ishape:?}, expected [{n}, 4]"),
-            ));
+            return Err(errs.unexpected(format!(
+                "decoder returned iou_predictions of shape {ishape:?}, expected [{n}, 4]"
+            )));
         }
-        let plane = hu * wu;
         let p = &self.params;
-        let (thr, off) = (p.mask_threshold, p.stability_score_offset);
         let jobs: Vec<(usize, usize)> = (0..n)
             .flat_map(|i| (1..4).map(move |c| (i, c)))
             .filter(|&(i, c)| ious[i * 4 + c] > p.pred_iou_thresh)
             .collect();
-        let cands: Vec<Option<Candidate>> = jobs
-            .par_iter()
-            .map(|&(i, c)| {
-                let logits = &masks[(i * 4 + c) * plane..(i * 4 + c + 1) * plane];
-                let (mut inter, mut union) = (0u32, 0u32);
-                for &v in logits {
-                    inter += u32::from(v > thr + off);
-                    union += u32::from(v > thr - off);
-                }
-                // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
-                let stability = inter as f32 / union as f32;
-                if stability.is_nan() || stability < p.stability_score_thresh {
-                    return None;
-                }
-                let mut bits = vec![0u64; plane.div_ceil(64)];
-                let (mut x0, mut y0, mut x1, mut y1, mut area) =
-                    (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
-                for (y, row) in logits.chunks_exact(wu).enumerate() {
-                    for (x, &v) in row.iter().enumerate() {
-                        if v > thr {
-                            let k = y * wu + x;
-                            bits[k / 64] |= 1 << (k % 64);
-                            x0 = x0.min(x as u32);
-                            x1 = x1.max(x as u32);
-                            y0 = y0.min(y as u32);
-                            y1 = y1.max(y as u32);
-                            area += 1;
-                        }
-                    }
-                }
-                // batched_mask_to_box gives [0,0,0,0] for an empty mask.
-                let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
-                Some(Candidate {
-                    bits,
-                    bbox,
-                    area,
-                    iou: ious[i * 4 + c],
-                    stability,
-                    point: points[i],
+        let (hu, wu) = (h as usize, w as usize);
+        let plane = hu * wu;
+        let cands: Vec<Option<Candidate>> = if low_res {
+            let (lshape, lows) = outputs["low_res_masks"]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| errs.unexpected(format!("decoder low_res_masks are not f32: {e}")))?;
+            if **lshape != [n as i64, 4, 256, 256] {
+                return Err(errs.unexpected(format!(
+                    "decoder returned low_res_masks of shape {lshape:?}, expected [{n}, 4, 256, 256]"
+                )));
+            }
+            let lp = 256 * 256;
+            jobs.par_iter()
+                .map_init(
+                    || (vec![0f32; 256 * wu], vec![0f32; plane]),
+                    |(rows, full), &(i, c)| {
+                        upsampler.upsample(&lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp], rows, full);
+                        candidate(full, wu, p, ious[i * 4 + c], points[i])
+                    },
+                )
+                .collect()
+        } else {
+            let (mshape, masks) = outputs["masks"]
+                .try_extract_tensor::<f32>()
+                .map_err(|e| errs.unexpected(format!("decoder masks are not f32: {e}")))?;
+            if **mshape != [n as i64, 4, i64::from(h), i64::from(w)] {
+                return Err(errs.unexpected(format!(
+                    "decoder returned masks of shape {mshape:?} for {n} prompts and orig_im_size \
+                     [{h}, {w}]; expected [{n}, 4, {h}, {w}]: the decoder must upscale its masks \
+                     to orig_im_size (SamOnnxModel.mask_postprocessing)"
+                )));
+            }
+            jobs.par_iter()
+                .map(|&(i, c)| {
+                    let logits = &masks[(i * 4 + c) * plane..(i * 4 + c + 1) * plane];
+                    candidate(logits, wu, p, ious[i * 4 + c], points[i])
                 })
-            })
-            .collect();
+                .collect()
+        };
         Ok(cands.into_iter().flatten().collect())
     }
 
     /// All masks of `image`, in SAM AMG order (NMS order: descending predicted IoU).
     ///
     /// # Errors
-    /// [`Error::Invalid`] for an empty image, [`Error::Model`] when a model fails or returns
-    /// tensors of unexpected shapes.
+    /// [`Error::Invalid`] for an empty image, [`Error::Model`] / [`Error::Inference`] when a
+    /// model fails or returns tensors of unexpected shapes.
     pub fn generate_masks(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
         let (w, h) = image.dimensions();
         if w == 0 || h == 0 {
             return Err(Error::Invalid("SAM cannot segment an empty image".into()));
         }
         let t0 = std::time::Instant::now();
-        let embeddings = self.encode(image)?;
+        let embedding = self.encode(image)?;
         let t_encode = t0.elapsed();
         let (new_h, new_w) = sam_preprocess_shape(h, w, SAM_IMAGE_SIZE);
         let (sx, sy) = (
@@ -399,11 +515,12 @@ impl SamAutomaticMaskGenerator {
             .iter()
             .map(|p| [(p[0] * sx) as f32, (p[1] * sy) as f32])
             .collect();
+        let upsampler = LowResUpsampler::new((h, w), (new_h, new_w));
         let mut cands = Vec::new();
         let bs = self.params.points_per_batch;
         let t1 = std::time::Instant::now();
         for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
-            cands.extend(self.decode_batch(&embeddings, pts, tr, (h, w))?);
+            cands.extend(self.decode_batch(&embedding, pts, tr, (h, w), &upsampler)?);
         }
         let t_decode = t1.elapsed();
         let keep = nms(&cands, self.params.box_nms_thresh);
@@ -434,6 +551,135 @@ impl SamAutomaticMaskGenerator {
             });
         }
         Ok(out)
+    }
+}
+
+/// One full-resolution logit map (`H × W`, row-major) → a candidate, or `None` when its stability
+/// score fails the filter (segment_anything's `calculate_stability_score`, mask, box).
+fn candidate(
+    logits: &[f32],
+    w: usize,
+    p: &SamParams,
+    iou: f32,
+    point: [f64; 2],
+) -> Option<Candidate> {
+    let (thr, off) = (p.mask_threshold, p.stability_score_offset);
+    let (mut inter, mut union) = (0u32, 0u32);
+    for &v in logits {
+        inter += u32::from(v > thr + off);
+        union += u32::from(v > thr - off);
+    }
+    // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
+    let stability = inter as f32 / union as f32;
+    if stability.is_nan() || stability < p.stability_score_thresh {
+        return None;
+    }
+    let mut bits = vec![0u64; logits.len().div_ceil(64)];
+    let (mut x0, mut y0, mut x1, mut y1, mut area) = (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
+    for (y, row) in logits.chunks_exact(w).enumerate() {
+        for (x, &v) in row.iter().enumerate() {
+            if v > thr {
+                let k = y * w + x;
+                bits[k / 64] |= 1 << (k % 64);
+                x0 = x0.min(x as u32);
+                x1 = x1.max(x as u32);
+                y0 = y0.min(y as u32);
+                y1 = y1.max(y as u32);
+                area += 1;
+            }
+        }
+    }
+    // batched_mask_to_box gives [0,0,0,0] for an empty mask.
+    let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
+    Some(Candidate {
+        bits,
+        bbox,
+        area,
+        iou,
+        stability,
+        point,
+    })
+}
+
+/// Taps of one output coordinate: up to four `(low-res index, weight)` pairs.
+type Taps = ([u16; 4], [f32; 4]);
+
+/// `SamOnnxModel.mask_postprocessing` on the host: 256 × 256 low-resolution logits → bilinear
+/// (`align_corners=False`) to 1024 × 1024 → crop to the resized image `new_h × new_w` → bilinear
+/// to `h × w`. Bilinear resampling is separable and the crop only selects rows and columns, so
+/// each axis is one 4-tap filter (two taps of the second resize, each two taps of the first);
+/// rows are filtered first (256 × `w`), then columns. The weights are PyTorch's
+/// (`area_pixel_compute_source_index`: `src = (dst + 0.5) · in / out − 0.5`, clamped at 0;
+/// the upper neighbour clamped to the last index), computed in f32.
+pub struct LowResUpsampler {
+    x: Vec<Taps>,
+    y: Vec<Taps>,
+}
+
+/// PyTorch's linear taps for `out` samples over `in_` samples (`align_corners=False`).
+fn linear_taps(in_: usize, out: usize) -> Vec<(usize, usize, f32)> {
+    let scale = in_ as f32 / out as f32;
+    (0..out)
+        .map(|d| {
+            let src = ((d as f32 + 0.5) * scale - 0.5).max(0.0);
+            let i0 = (src as usize).min(in_ - 1);
+            let i1 = (i0 + 1).min(in_ - 1);
+            (i0, i1, src - i0 as f32)
+        })
+        .collect()
+}
+
+/// The composed taps of one axis: `256 → 1024`, keep the first `kept`, `kept → out`.
+fn composed_taps(kept: usize, out: usize) -> Vec<Taps> {
+    let first = linear_taps(256, 1024);
+    linear_taps(kept, out)
+        .into_iter()
+        .map(|(a, b, l)| {
+            let mut idx = [0u16; 4];
+            let mut wt = [0f32; 4];
+            for (k, (mid, lw)) in [(a, 1.0 - l), (b, l)].into_iter().enumerate() {
+                let (c0, c1, m) = first[mid];
+                idx[2 * k] = c0 as u16;
+                idx[2 * k + 1] = c1 as u16;
+                wt[2 * k] = lw * (1.0 - m);
+                wt[2 * k + 1] = lw * m;
+            }
+            (idx, wt)
+        })
+        .collect()
+}
+
+impl LowResUpsampler {
+    /// The filters for an image of `h × w` pixels whose SAM input was resized to `new_h × new_w`
+    /// ([`sam_preprocess_shape`]).
+    pub fn new((h, w): (u32, u32), (new_h, new_w): (u32, u32)) -> Self {
+        let kept = |n: u32| (n as usize).clamp(1, SAM_IMAGE_SIZE as usize);
+        LowResUpsampler {
+            x: composed_taps(kept(new_w), w as usize),
+            y: composed_taps(kept(new_h), h as usize),
+        }
+    }
+
+    /// Upsamples one 256 × 256 logit map into `full` (`h × w`), using `rows` (256 × `w`) as
+    /// scratch.
+    pub fn upsample(&self, low: &[f32], rows: &mut [f32], full: &mut [f32]) {
+        let w = self.x.len();
+        for (r, out) in rows.chunks_exact_mut(w).enumerate().take(256) {
+            let src = &low[r * 256..(r + 1) * 256];
+            for (o, (idx, wt)) in out.iter_mut().zip(&self.x) {
+                *o = wt[0] * src[idx[0] as usize]
+                    + wt[1] * src[idx[1] as usize]
+                    + wt[2] * src[idx[2] as usize]
+                    + wt[3] * src[idx[3] as usize];
+            }
+        }
+        for (out, (idx, wt)) in full.chunks_exact_mut(w).zip(&self.y) {
+            let r = |k: usize| &rows[idx[k] as usize * w..(idx[k] as usize + 1) * w];
+            let (r0, r1, r2, r3) = (r(0), r(1), r(2), r(3));
+            for x in 0..w {
+                out[x] = wt[0] * r0[x] + wt[1] * r1[x] + wt[2] * r2[x] + wt[3] * r3[x];
+            }
+        }
     }
 }
 
