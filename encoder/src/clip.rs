@@ -125,10 +125,7 @@ impl ClipVisual {
             ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
             _ => None,
         };
-        let model_id = model
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
+        let model_id = onnx::clip_pair_id(&session, model);
         let mut clip = ClipVisual {
             session,
             path: model.to_path_buf(),
@@ -150,7 +147,8 @@ impl ClipVisual {
         self.dim
     }
 
-    /// Model id recorded in outputs: the ONNX file stem (e.g. `color-clip-visual`).
+    /// Model id recorded in outputs: the CLIP pair id ([`onnx::clip_pair_id`]: ONNX metadata
+    /// `slag.clip_pair_id`, else the file stem without `-visual`, e.g. `color-clip`).
     pub fn model_id(&self) -> &str {
         &self.model_id
     }
