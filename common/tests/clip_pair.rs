@@ -111,6 +111,11 @@ fn metadata_id_is_preferred_over_the_file_name() {
     assert_eq!(onnx::clip_pair_id(&s, &renamed), "ViT-B-16/openai/0123abcd");
     // An empty metadata value falls back to the file name.
     let empty = dir.path().join("mine_textual.onnx");
-    with_metadata(&clip_dir().join("tiny-clip-textual.onnx"), &empty, CLIP_PAIR_ID_KEY, " ");
+    with_metadata(
+        &clip_dir().join("tiny-clip-textual.onnx"),
+        &empty,
+        CLIP_PAIR_ID_KEY,
+        " ",
+    );
     assert_eq!(text_encoder(&empty).pair_id(), "mine");
 }

@@ -86,7 +86,15 @@ fn exported_models_encode_and_query() {
     let s = |rel: &str| p(rel).display().to_string();
     let t_sam = export(&["sam", "--kind", "tiny", "--external-data", &s("sam")]);
     let t_clip = export(&["clip", "--model", "tiny", "--random", &s("clip")]);
-    let t_other = export(&["clip", "--model", "tiny", "--random", "--seed", "1", &s("other")]);
+    let t_other = export(&[
+        "clip",
+        "--model",
+        "tiny",
+        "--random",
+        "--seed",
+        "1",
+        &s("other"),
+    ]);
     assert!(p("sam/sam-tiny-encoder.onnx.data").is_file());
     let info: serde_json::Value =
         serde_json::from_slice(&std::fs::read(p("clip/tiny-random.json")).unwrap()).unwrap();
@@ -102,8 +110,8 @@ fn exported_models_encode_and_query() {
         assert_eq!(tok.tokenize(t.as_str().unwrap(), 77).unwrap(), want, "{t}");
     }
     // ... and equals the shared fixture's token ids (same vocabulary and merges).
-    let fx = slag_common::text::ClipTokenizer::from_file(&fixture("clip/clip-tokenizer.json"))
-        .unwrap();
+    let fx =
+        slag_common::text::ClipTokenizer::from_file(&fixture("clip/clip-tokenizer.json")).unwrap();
     for t in texts {
         let t = t.as_str().unwrap();
         assert_eq!(tok.tokenize(t, 77).unwrap(), fx.tokenize(t, 77).unwrap());
