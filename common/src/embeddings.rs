@@ -8,7 +8,9 @@
 //! - `total_weights` F32 `[N]` — `Σ_i Σ_j a_kj`, the evidence behind `E_k`.
 //!
 //! Metadata (`__metadata__`, strings): `format = "slag-embeddings"`, `version = "1"`, `model`
-//! (CLIP visual model id), `scene_gaussians` (N of the source `.ply`), `source_ply`.
+//! (CLIP model id: the image tower's `slag.clip_pair_id` metadata, else its file stem without
+//! `-visual`; older files hold the full visual file stem, which pairs the same way),
+//! `scene_gaussians` (N of the source `.ply`), `source_ply`.
 
 use std::io::Write;
 use std::path::Path;
@@ -57,7 +59,8 @@ pub struct Embeddings {
     pub vectors: Vec<f32>,
     /// `Σ a_kj` per Gaussian (blend-weight pixels of evidence). `[N]`.
     pub total_weights: Vec<f32>,
-    /// CLIP visual model id (file stem of the ONNX export).
+    /// CLIP model id (`slag_common::onnx::clip_pair_id` of the image tower; older files: the
+    /// visual file stem). The text side checks it with `slag_common::onnx::check_clip_pair`.
     pub model: String,
     /// Number of Gaussians in the source `.ply` (observed or not).
     pub scene_gaussians: u64,

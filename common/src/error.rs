@@ -60,6 +60,22 @@ pub enum Error {
         /// What to do about it.
         remedy: String,
     },
+    /// A CLIP text tower from another model than the image tower that made the embeddings: their
+    /// cosines would be meaningless, so the text side refuses it.
+    #[error(
+        "model {text_path}: this CLIP text tower is model `{text_model}` but the embeddings were \
+         made with the image tower of `{embeddings_model}`; pass the text tower exported together \
+         with that image tower (ONNX metadata `slag.clip_pair_id` = `{embeddings_model}`, or a \
+         file named `{embeddings_model}-textual.onnx`)"
+    )]
+    ModelMismatch {
+        /// The text tower's `.onnx` file.
+        text_path: PathBuf,
+        /// The text tower's model id.
+        text_model: String,
+        /// The model id recorded with the embeddings (shard manifest / embeddings file).
+        embeddings_model: String,
+    },
     /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch).
     #[error("invalid input: {0}")]
     Invalid(String),

@@ -16,8 +16,8 @@
 
 pub mod camera;
 pub mod embeddings;
-pub mod mixture;
 pub mod error;
+pub mod mixture;
 pub mod onnx;
 pub mod paths;
 pub mod rng;

@@ -404,7 +404,12 @@ pub struct ModelErrors {
 impl ModelErrors {
     /// [`Error::Inference`]: `what` failed with `e`, with the remedy for the message.
     pub fn error(&self, what: &str, e: &dyn std::fmt::Display) -> Error {
-        inference_error(&self.path, self.provider, self.device, &format!("{what}: {e}"))
+        inference_error(
+            &self.path,
+            self.provider,
+            self.device,
+            &format!("{what}: {e}"),
+        )
     }
     /// [`Error::Model`]: the model answered with something unexpected (shape, type).
     pub fn unexpected(&self, message: impl Into<String>) -> Error {
@@ -494,6 +499,70 @@ pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
     } else {
         "rerun with --ep cpu to tell a model fault from a GPU fault, and report this message"
     }
+}
+
+/// ONNX custom metadata key holding a CLIP tower's model id (`scripts/export-models.py clip`
+/// writes the same value into the image and the text tower).
+pub const CLIP_PAIR_ID_KEY: &str = "slag.clip_pair_id";
+
+/// Model id of stores made from synthetic vectors (`partition --synthetic`): no CLIP model made
+/// them, so any text tower of the right width may query them.
+pub const SYNTHETIC_MODEL_ID: &str = "synthetic";
+
+const TOWER_SUFFIXES: [&str; 4] = ["-visual", "-textual", "_visual", "_textual"];
+
+/// The CLIP model id `id` names, with a trailing `-visual` / `-textual` / `_visual` / `_textual`
+/// removed: `color-clip-visual` → `color-clip`. Ids recorded by older encoders (the visual
+/// file stem) thus pair with their text tower.
+pub fn clip_base_id(id: &str) -> &str {
+    let id = id.trim();
+    TOWER_SUFFIXES
+        .iter()
+        .find_map(|s| id.strip_suffix(s).filter(|b| !b.is_empty()))
+        .unwrap_or(id)
+}
+
+/// The fallback model id of the CLIP tower at `path` (no `slag.clip_pair_id` metadata): its file
+/// stem without the tower suffix (`tiny-clip-textual.onnx` → `tiny-clip`).
+pub fn clip_pair_id_from_path(path: &Path) -> String {
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    clip_base_id(&stem).to_string()
+}
+
+/// The model id of the CLIP tower loaded in `session` from `path`: the ONNX custom metadata
+/// [`CLIP_PAIR_ID_KEY`] when present and non-empty, otherwise [`clip_pair_id_from_path`].
+/// The image tower's id is recorded with the embeddings; the text side compares its own with
+/// [`check_clip_pair`].
+pub fn clip_pair_id(session: &Session, path: &Path) -> String {
+    session
+        .metadata()
+        .ok()
+        .and_then(|m| m.custom(CLIP_PAIR_ID_KEY))
+        .map(|v| v.trim().to_string())
+        .filter(|v| !v.is_empty())
+        .unwrap_or_else(|| clip_pair_id_from_path(path))
+}
+
+/// Refuses a text tower (id `text_id`, file `text_path`) that does not belong to the image tower
+/// that made the embeddings (id `embeddings_id`, as recorded in the embeddings file or shard
+/// manifest). Both ids are compared after [`clip_base_id`]. Embeddings without a model id or of
+/// synthetic vectors ([`SYNTHETIC_MODEL_ID`]) pair with any text tower.
+///
+/// # Errors
+/// [`Error::ModelMismatch`] naming both ids and the text tower to pass instead.
+pub fn check_clip_pair(embeddings_id: &str, text_id: &str, text_path: &Path) -> Result<()> {
+    let emb = clip_base_id(embeddings_id);
+    if emb.is_empty() || emb == SYNTHETIC_MODEL_ID || emb == clip_base_id(text_id) {
+        return Ok(());
+    }
+    Err(Error::ModelMismatch {
+        text_path: text_path.to_path_buf(),
+        text_model: clip_base_id(text_id).to_string(),
+        embeddings_model: emb.to_string(),
+    })
 }
 
 /// Element type of a tensor in a model signature.
@@ -691,10 +760,69 @@ mod tests {
         assert!(
             remedy(ExecutionProvider::TensorRt, "was built without it").contains("TensorRT 10")
         );
-        let e = inference_error(Path::new("m.onnx"), ExecutionProvider::Cuda, 3, "decoder run: out of memory");
+        let e = inference_error(
+            Path::new("m.onnx"),
+            ExecutionProvider::Cuda,
+            3,
+            "decoder run: out of memory",
+        );
         let text = e.to_string();
-        assert!(text.starts_with("model m.onnx on cuda:3: decoder run: out of memory; the GPU ran out"), "{text}");
+        assert!(
+            text.starts_with("model m.onnx on cuda:3: decoder run: out of memory; the GPU ran out"),
+            "{text}"
+        );
         assert_eq!(device_label(ExecutionProvider::Cpu, 3), "cpu");
+    }
+
+    #[test]
+    fn clip_ids_pair_by_base_name() {
+        assert_eq!(clip_base_id("color-clip-visual"), "color-clip");
+        assert_eq!(clip_base_id("color-clip-textual"), "color-clip");
+        assert_eq!(clip_base_id("vitb16_visual"), "vitb16");
+        assert_eq!(clip_base_id("ViT-B-16"), "ViT-B-16");
+        assert_eq!(clip_base_id("-visual"), "-visual");
+        assert_eq!(
+            clip_pair_id_from_path(Path::new("/x/tiny-clip-textual.onnx")),
+            "tiny-clip"
+        );
+        assert_eq!(
+            clip_pair_id_from_path(Path::new("color-clip-visual.onnx")),
+            "color-clip"
+        );
+        // Old stores recorded the visual file stem; new ones the pair id: both pair.
+        let t = Path::new("color-clip-textual.onnx");
+        check_clip_pair("color-clip-visual", "color-clip", t).unwrap();
+        check_clip_pair("color-clip", "color-clip", t).unwrap();
+        check_clip_pair("color-clip", "color-clip-textual", t).unwrap();
+        // Synthetic or unlabelled embeddings take any text tower.
+        check_clip_pair("synthetic", "tiny-clip", t).unwrap();
+        check_clip_pair("", "tiny-clip", t).unwrap();
+    }
+
+    #[test]
+    fn mismatched_text_tower_is_refused_naming_both_ids() {
+        let t = Path::new("/m/tiny-clip-textual.onnx");
+        let e = check_clip_pair("color-clip-visual", "tiny-clip", t).unwrap_err();
+        match &e {
+            Error::ModelMismatch {
+                text_path,
+                text_model,
+                embeddings_model,
+            } => {
+                assert_eq!(text_path, t);
+                assert_eq!(text_model, "tiny-clip");
+                assert_eq!(embeddings_model, "color-clip");
+            }
+            other => panic!("expected ModelMismatch, got {other:?}"),
+        }
+        let msg = e.to_string();
+        assert!(
+            msg.contains("`tiny-clip`")
+                && msg.contains("`color-clip`")
+                && msg.contains("color-clip-textual.onnx")
+                && msg.contains(CLIP_PAIR_ID_KEY),
+            "{msg}"
+        );
     }
 
     #[test]

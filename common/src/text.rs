@@ -139,6 +139,7 @@ pub struct TextEncoder {
     tokenizer: ClipTokenizer,
     path: PathBuf,
     input_name: String,
+    pair_id: String,
     cache: VecDeque<(String, Vec<f32>)>,
 }
 
@@ -162,13 +163,35 @@ impl TextEncoder {
              text_embeds f32[B,D] (e.g. open_clip encode_text)",
         )?;
         let input_name = session.inputs()[0].name().to_string();
+        let pair_id = onnx::clip_pair_id(&session, model);
         Ok(TextEncoder {
             session,
             tokenizer,
             path: model.to_path_buf(),
             input_name,
+            pair_id,
             cache: VecDeque::new(),
         })
+    }
+
+    /// The CLIP model id of this text tower ([`onnx::clip_pair_id`]: ONNX metadata
+    /// `slag.clip_pair_id`, else the file stem without `-textual`).
+    pub fn pair_id(&self) -> &str {
+        &self.pair_id
+    }
+
+    /// The text tower's `.onnx` path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Refuses to query embeddings made by another CLIP model (`embeddings_id` as recorded in the
+    /// embeddings file or shard manifest).
+    ///
+    /// # Errors
+    /// [`Error::ModelMismatch`] (see [`onnx::check_clip_pair`]).
+    pub fn check_pair(&self, embeddings_id: &str) -> Result<()> {
+        onnx::check_clip_pair(embeddings_id, &self.pair_id, &self.path)
     }
 
     /// The tokenizer in use.

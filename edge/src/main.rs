@@ -341,6 +341,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     let text_ms = t.elapsed().as_secs_f64() * 1e3;
     let edge = EdgeStore::open(&r.store)?;
     let engine = slag_edge::serve::Engine::load(&edge, &r.opts.scene, false)?;
+    text.check_pair(&engine.manifest.model)?;
     anyhow::ensure!(
         v[0].len() == engine.store.dim(),
         "the text model gives {}-d embeddings, the stored Gaussians are {}-d ({}): use the CLIP \
@@ -380,6 +381,7 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
     let edge = EdgeStore::open(&a.store)?;
     let engine = slag_edge::serve::Engine::load(&edge, &a.scene, false)?;
     let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
+    text.check_pair(&engine.manifest.model)?;
     let params = RawQuery {
         text: Some(a.text),
         top_k: a.top_k,

@@ -46,6 +46,14 @@ pub trait TextEmbedder: Send + Sync {
     fn name(&self) -> String;
     /// Prompts held in the cache of recent prompts.
     fn cached(&self) -> usize;
+    /// Refuses a text model of another CLIP model than the one that made the stored embeddings
+    /// (`embedding_model`, the manifest's model id). The default accepts any (test embedders).
+    ///
+    /// Errors: [`Error::ModelMismatch`] naming both model ids.
+    fn check_pair(&self, embedding_model: &str) -> Result<()> {
+        let _ = embedding_model;
+        Ok(())
+    }
 }
 
 /// The CLIP text tower through ONNX Runtime ([`TextEncoder`], LRU cache of 256 prompts).
@@ -76,6 +84,12 @@ impl TextEmbedder for OnnxTextEmbedder {
     }
     fn cached(&self) -> usize {
         self.inner.lock().map(|e| e.cached()).unwrap_or(0)
+    }
+    fn check_pair(&self, embedding_model: &str) -> Result<()> {
+        self.inner
+            .lock()
+            .map_err(|_| Error::Invalid("text encoder poisoned by an earlier failure".into()))?
+            .check_pair(embedding_model)
     }
 }
 

@@ -287,9 +287,11 @@ pub struct AppState {
 impl AppState {
     /// Loads the scene and embeds the canonical negatives once.
     ///
-    /// Errors: as [`Engine::load`]; a text model whose width differs from the stored embeddings.
+    /// Errors: as [`Engine::load`]; a text model of another CLIP model than the stored embeddings
+    /// ([`Error::ModelMismatch`]) or whose width differs from theirs.
     pub fn new(edge: EdgeStore, text: Arc<dyn TextEmbedder>, opts: ServeOptions) -> Result<Self> {
         let engine = Engine::load(&edge, &opts.scene, opts.hnsw)?;
+        text.check_pair(&engine.manifest.model)?;
         let negatives = text.embed(&CANONICAL_NEGATIVES)?;
         if let Some(n) = negatives.first()
             && n.len() != engine.store.dim()
@@ -434,6 +436,7 @@ pub(crate) fn status_of(e: &Error) -> StatusCode {
     match e {
         Error::Invalid(_) => StatusCode::BAD_REQUEST,
         Error::Network { .. } => StatusCode::BAD_GATEWAY,
+        Error::ModelMismatch { .. } => StatusCode::CONFLICT,
         _ => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
@@ -675,6 +678,8 @@ async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
         tokio::task::spawn_blocking(move || Engine::load(&st.edge, &st.opts.scene, st.opts.hnsw))
             .await
             .map_err(|e| Error::Invalid(format!("reload task failed: {e}")))??;
+    // A newly fetched generation of another CLIP model is not swapped in.
+    state.text.check_pair(&e.manifest.model)?;
     state.swap(e);
     Ok(())
 }

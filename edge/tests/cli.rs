@@ -138,6 +138,31 @@ async fn fetch_check_and_query_from_the_command_line() {
     assert_eq!(a["matches"].as_array().unwrap().len(), 5);
     assert_eq!(a["searched"], 20);
 
+    // A text tower of another CLIP model (tiny-clip) than the stored one (color-clip): refused.
+    let (s, tok3) = (store.clone(), fixture("clip/clip-tokenizer.json"));
+    let out = tokio::task::spawn_blocking(move || {
+        slag_edge(&[
+            "query",
+            "--store",
+            &s,
+            "--scene",
+            "grid",
+            "--text-model",
+            &fixture("clip/tiny-clip-textual.onnx"),
+            "--tokenizer",
+            &tok3,
+            "--text",
+            "red",
+        ])
+    })
+    .await
+    .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("`tiny-clip`") && err.contains("`color-clip`"),
+        "{err}"
+    );
+
     // A scene that was never fetched: non-zero exit, the message says to run fetch.
     let out = tokio::task::spawn_blocking(move || {
         slag_edge(&[

@@ -120,7 +120,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
         let (status, a) = get_json(&e, "/query?text=t4").await;
         assert_eq!(status, 200, "{a}");
         assert_eq!(a["mode"], "cosine");
-        assert_eq!(a["embedding_model"], "test-clip");
+        assert_eq!(a["embedding_model"], "color-clip");
         let above: Vec<_> = want.iter().filter(|w| w.2 >= 0.28).collect();
         assert_eq!(
             a["summary"]["count"].as_u64().unwrap() as usize,

@@ -136,10 +136,7 @@ impl ClipVisual {
             ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
             _ => None,
         };
-        let model_id = model
-            .file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default();
+        let model_id = onnx::clip_pair_id(loaded.session(), model);
         let mut clip = ClipVisual {
             model: loaded,
             batch_size,
@@ -160,7 +157,8 @@ impl ClipVisual {
         self.dim
     }
 
-    /// Model id recorded in outputs: the ONNX file stem (e.g. `color-clip-visual`).
+    /// Model id recorded in outputs: the CLIP pair id ([`onnx::clip_pair_id`]: ONNX metadata
+    /// `slag.clip_pair_id`, else the file stem without `-visual`, e.g. `color-clip`).
     pub fn model_id(&self) -> &str {
         &self.model_id
     }

@@ -370,13 +370,25 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
                 let want = direct.embed_masks(&img, &masks_of(seed)).unwrap();
                 assert_eq!(rows.len(), want.len());
                 for (a, b) in rows.iter().zip(&want) {
-                    let d = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+                    let d = a
+                        .iter()
+                        .zip(b)
+                        .map(|(x, y)| (x - y).abs())
+                        .fold(0f32, f32::max);
                     assert!(d < 1e-5, "request {seed}: max |diff| {d}");
                 }
             }
         }
     });
     let st = service.stats();
-    eprintln!("CLIP service: {} runs for {requests} requests, {} crops", st.runs, st.crops);
-    assert_eq!(st.crops, (0..4u32).flat_map(|w| (0..requests / 4).map(move |r| u64::from(3 + (w * 100 + r) % 7))).sum::<u64>());
+    eprintln!(
+        "CLIP service: {} runs for {requests} requests, {} crops",
+        st.runs, st.crops
+    );
+    assert_eq!(
+        st.crops,
+        (0..4u32)
+            .flat_map(|w| (0..requests / 4).map(move |r| u64::from(3 + (w * 100 + r) % 7)))
+            .sum::<u64>()
+    );
 }

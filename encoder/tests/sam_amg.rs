@@ -342,9 +342,17 @@ fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
         let iou = iou(&a.pixels, &b.pixels);
         assert!(iou >= 0.99, "mask {k}: IoU {iou}");
         for (x, y) in a.bbox_xywh.iter().zip(&b.bbox_xywh) {
-            assert!(x.abs_diff(*y) <= 1, "mask {k}: {:?} vs {:?}", a.bbox_xywh, b.bbox_xywh);
+            assert!(
+                x.abs_diff(*y) <= 1,
+                "mask {k}: {:?} vs {:?}",
+                a.bbox_xywh,
+                b.bbox_xywh
+            );
         }
         assert_eq!(a.predicted_iou, b.predicted_iou, "mask {k}");
-        assert!((a.stability_score - b.stability_score).abs() <= 1e-3, "mask {k}");
+        assert!(
+            (a.stability_score - b.stability_score).abs() <= 1e-3,
+            "mask {k}"
+        );
     }
 }

@@ -78,7 +78,7 @@ impl SyntheticScene {
             dim: self.dim,
             vectors,
             total_weights: vec![1.0; self.means.len()],
-            model: "synthetic".into(),
+            model: crate::onnx::SYNTHETIC_MODEL_ID.into(),
             scene_gaussians: 2 * self.means.len() as u64,
             source_ply: "synthetic".into(),
         }

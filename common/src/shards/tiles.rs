@@ -271,7 +271,8 @@ pub struct Manifest {
     pub scene_id: String,
     /// Partition generation, incremented on each store commit (0 before commit).
     pub generation: u64,
-    /// Embedding model id.
+    /// Embedding model id (the CLIP pair id, [`crate::embeddings::Embeddings::model`]); the edge
+    /// refuses a text tower of another model.
     pub model: String,
     /// Embedding width D.
     pub dim: u32,

@@ -98,7 +98,7 @@ pub fn grid_scene(
             let display = id.is_multiple_of(2).then(|| display_attrs(&ids));
             let bytes = encode_shard(&ShardInput {
                 scene_id: scene,
-                model: "test-clip",
+                model: "color-clip",
                 tile_id: id,
                 dim,
                 dtype,
@@ -131,7 +131,7 @@ pub fn grid_scene(
         shard_format_version: SHARD_FORMAT_VERSION,
         scene_id: scene.into(),
         generation,
-        model: "test-clip".into(),
+        model: "color-clip".into(),
         dim: dim as u32,
         dtype,
         ground: GroundFrame::from_axis_name("z").unwrap(),

@@ -216,12 +216,14 @@ pub(crate) fn build_masks(
                     .context("--masks sam needs --sam-decoder")?,
             );
             let params = sam_params(a);
-            Box::new(crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-                enc,
-                dec,
-                &placement(a, 0, threads),
-                params,
-            )?)
+            Box::new(
+                crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                    enc,
+                    dec,
+                    &placement(a, 0, threads),
+                    params,
+                )?,
+            )
         }
         MaskSource::Graph => {
             let mut p = crate::masks::graph::GraphParams::default();
@@ -340,8 +342,11 @@ pub(crate) fn build_fronts(
 ) -> anyhow::Result<Fronts> {
     use slag_common::onnx::ExecutionProvider;
     let gpu_threads = (threads / gpus.max(1)).max(1);
-    let clip0 =
-        crate::clip::ClipVisual::with_placement(&a.clip_visual, &placement(a, 0, gpu_threads), a.clip_batch)?;
+    let clip0 = crate::clip::ClipVisual::with_placement(
+        &a.clip_visual,
+        &placement(a, 0, gpu_threads),
+        a.clip_batch,
+    )?;
     if clip0.provider() == ExecutionProvider::Cpu {
         drop(clip0);
         let n = front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
@@ -385,15 +390,21 @@ pub(crate) fn build_fronts(
         let sam = match a.masks {
             MaskSource::Sam => {
                 let (enc, dec) = (
-                    a.sam_encoder.as_ref().context("--masks sam needs --sam-encoder")?,
-                    a.sam_decoder.as_ref().context("--masks sam needs --sam-decoder")?,
+                    a.sam_encoder
+                        .as_ref()
+                        .context("--masks sam needs --sam-encoder")?,
+                    a.sam_decoder
+                        .as_ref()
+                        .context("--masks sam needs --sam-decoder")?,
                 );
-                Some(crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-                    enc,
-                    dec,
-                    &placement(a, g as u32, gpu_threads),
-                    sam_params(a),
-                )?)
+                Some(
+                    crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                        enc,
+                        dec,
+                        &placement(a, g as u32, gpu_threads),
+                        sam_params(a),
+                    )?,
+                )
             }
             MaskSource::Graph => None,
         };

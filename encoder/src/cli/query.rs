@@ -81,6 +81,7 @@ pub struct QueryOutput {
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     let emb = Embeddings::read(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep.into())?;
+    text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
     let (all, summary) = similarity::rank(
         &emb.ids,

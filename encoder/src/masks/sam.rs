@@ -463,7 +463,11 @@ impl SamAutomaticMaskGenerator {
                 .map_init(
                     || (vec![0f32; 256 * wu], vec![0f32; plane]),
                     |(rows, full), &(i, c)| {
-                        upsampler.upsample(&lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp], rows, full);
+                        upsampler.upsample(
+                            &lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp],
+                            rows,
+                            full,
+                        );
                         candidate(full, wu, p, ious[i * 4 + c], points[i])
                     },
                 )

@@ -1,0 +1,477 @@
+#!/usr/bin/env python3
+"""Export your own SAM and CLIP models to ONNX in the signatures slag reads ("bring your own models").
+
+Needs python3 with, from PyPI: torch, onnx, segment-anything==1.0 (SAM), open-clip-torch (CLIP);
+for MobileSAM also mobilesam-mirror and timm. onnxruntime is optional: when importable, every
+exported file is run once as a check.
+
+    export-models.py sam --kind vit_b|vit_l|vit_h|vit_t|tiny [--checkpoint FILE | --random] [--fp16] OUT_DIR
+    export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] OUT_DIR
+
+sam  writes OUT_DIR/sam-KIND-encoder.onnx (pixel_values f32[1,3,1024,1024] -> image_embeddings
+     f32[1,256,64,64]; ViT-H, anything over 2 GB, or with --external-data: its weights in
+     sam-KIND-encoder.onnx.data beside it; keep the two files together) and OUT_DIR/sam-KIND-decoder.onnx (segment_anything's
+     SamOnnxModel(return_single_mask=False): image_embeddings, point_coords [P,N,2], point_labels
+     [P,N], mask_input, has_mask_input, orig_im_size -> masks, iou_predictions, low_res_masks).
+     vit_t is MobileSAM (TinyViT encoder, SAM's decoder; package mobilesam-mirror).
+     tiny is a small random ViT for tests (always random).
+clip writes OUT_DIR/NAME-visual.onnx (pixel_values f32[B,3,224,224] -> image_embeds f32[B,D]),
+     OUT_DIR/NAME-textual.onnx (input_ids i64[B,77] -> text_embeds f32[B,D]), both not normalised,
+     OUT_DIR/clip-tokenizer.json (open_clip's CLIP BPE tokenizer for the `tokenizers` crate) and
+     OUT_DIR/NAME.json (what was exported, the pair id, token ids of a few prompts), with NAME =
+     MODEL-TAG (e.g. ViT-B-16-openai) or MODEL-random. Both towers carry the ONNX metadata
+     slag.clip_pair_id = "MODEL/TAG/<sha256 of all CLIP weights, 16 hex>": slag-encoder records it
+     with the embeddings and the text side (slag-encoder query, slag-edge) refuses a text tower
+     whose id differs.
+
+--fp16: weights and compute in half precision, graph inputs and outputs still f32 (a cast inside
+the graph), so slag's signatures are unchanged. Meant for the CUDA execution provider; the SAM
+decoder stays f32 (it is small and its prompt coordinates need f32).
+"""
+import argparse
+import hashlib
+import json
+import os
+import re
+import shutil
+import sys
+import tempfile
+from functools import partial
+from pathlib import Path
+
+OPSET = 17
+# ONNX protobufs cannot exceed 2 GiB; above this the weights go to an external data file.
+EXTERNAL_DATA_ABOVE = 1800 << 20
+
+SAM_CHECKPOINTS = {  # the official file names (segment-anything / MobileSAM releases)
+    "vit_b": "sam_vit_b_01ec64.pth",
+    "vit_l": "sam_vit_l_0b3195.pth",
+    "vit_h": "sam_vit_h_4b8939.pth",
+    "vit_t": "mobile_sam.pt",
+}
+
+
+def die(msg):
+    print(f"export-models: {msg}", file=sys.stderr)
+    sys.exit(2)
+
+
+def need(module, pip_name):
+    try:
+        return __import__(module)
+    except ImportError as e:
+        die(f"python module {module!r} is missing ({e}): pip install {pip_name}")
+
+
+def onnx_export(torch, module, args, path, input_names, output_names, dynamic_axes=None,
+                external=False):
+    """Legacy (TorchScript) exporter, opset 17, into a temporary folder (the exporter may scatter
+    one file per tensor for models over 2 GB); then one .onnx, plus one .data file when large."""
+    import onnx
+
+    path = Path(path)
+    with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+        raw = Path(tmp) / "model.onnx"
+        with torch.no_grad():
+            torch.onnx.export(module, args, str(raw), input_names=input_names,
+                              output_names=output_names, dynamic_axes=dynamic_axes,
+                              opset_version=OPSET, dynamo=False)
+        size = sum(f.stat().st_size for f in Path(tmp).iterdir())
+        model = onnx.load(str(raw))  # also reads external tensors, if any
+        data = path.with_name(path.name + ".data")
+        for p in (path, data):
+            if p.exists():
+                p.unlink()
+        if external or size > EXTERNAL_DATA_ABOVE:
+            onnx.save_model(model, str(path), save_as_external_data=True,
+                            all_tensors_to_one_file=True, location=data.name, size_threshold=1024)
+        else:
+            onnx.save_model(model, str(path))
+    return path
+
+
+def set_metadata(path, props):
+    import onnx
+
+    path = Path(path)
+    data = path.with_name(path.name + ".data")
+    model = onnx.load(str(path), load_external_data=False)
+    old = {p.key: p.value for p in model.metadata_props}
+    old.update(props)
+    onnx.helper.set_model_props(model, old)
+    onnx.save_model(model, str(path))  # external data references are kept as they are
+    assert not data.exists() or data.stat().st_size > 0
+
+
+def io_signature(path):
+    import onnx
+
+    m = onnx.load(str(path), load_external_data=False)
+
+    def dims(v):
+        return [d.dim_value if d.HasField("dim_value") else -1 for d in v.type.tensor_type.shape.dim]
+
+    def elem(v):
+        return onnx.helper.tensor_dtype_to_np_dtype(v.type.tensor_type.elem_type).name
+
+    return ([(v.name, elem(v), dims(v)) for v in m.graph.input],
+            [(v.name, elem(v), dims(v)) for v in m.graph.output])
+
+
+def signature_ok(got, want):
+    """Names, element types and ranks equal; a dimension the exporter left dynamic (-1) matches
+    any expected size (slag's own check treats it the same way)."""
+    def same(g, w):
+        return (len(g) == len(w) and
+                all(gn == wn and gt == wt and len(gd) == len(wd) and
+                    all(x == y or x == -1 or y == -1 for x, y in zip(gd, wd))
+                    for (gn, gt, gd), (wn, wt, wd) in zip(g, w)))
+    return same(got[0], want[0]) and same(got[1], want[1])
+
+
+def check_with_ort(path, feeds):
+    """Runs the model once with onnxruntime's CPU provider (default, i.e. full, graph
+    optimisation, as slag does) when onnxruntime is installed; in a child process, because some
+    onnxruntime builds crash on half-precision transformer graphs. Returns the output shapes, or a
+    string saying why not."""
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        return None
+    import subprocess
+
+    import numpy as np
+
+    with tempfile.TemporaryDirectory() as tmp:
+        np.savez(f"{tmp}/feeds.npz", **feeds)
+        code = ("import sys, json, numpy as np, onnxruntime as ort\n"
+                "f = dict(np.load(sys.argv[2]))\n"
+                "s = ort.InferenceSession(sys.argv[1], providers=['CPUExecutionProvider'])\n"
+                "o = s.run(None, f)\n"
+                "np.savez(sys.argv[3], *o)\n"
+                "print(json.dumps([list(x.shape) for x in o]))\n")
+        r = subprocess.run([sys.executable, "-c", code, str(path), f"{tmp}/feeds.npz",
+                            f"{tmp}/out.npz"], capture_output=True, text=True)
+        if r.returncode != 0:
+            msg = (f"onnxruntime {onnxruntime.__version__} CPU failed on {Path(path).name} "
+                   f"(exit {r.returncode}): {r.stderr.strip().splitlines()[-1:]}")
+            print(f"export-models: warning: {msg}", file=sys.stderr)
+            return msg
+        out = np.load(f"{tmp}/out.npz")
+        check_with_ort.last = [out[k] for k in out.files]
+        return json.loads(r.stdout)
+
+
+def file_sizes(paths):
+    out = []
+    for p in paths:
+        p = Path(p)
+        out.append(f"{p.name} {p.stat().st_size / 2**20:.1f} MiB")
+        data = p.with_name(p.name + ".data")
+        if data.exists():
+            out.append(f"{data.name} {data.stat().st_size / 2**20:.1f} MiB")
+    return out
+
+
+# ------------------------------------------------------------------------------------------ SAM
+def tiny_sam(modeling, torch):
+    """A small SAM with the real architecture (ViT encoder, SAM's prompt encoder and two-way
+    transformer decoder) for tests: 96-wide, 2-deep encoder, same 256x64x64 embeddings."""
+    enc = modeling.ImageEncoderViT(depth=2, embed_dim=96, img_size=1024, mlp_ratio=4,
+                                   norm_layer=partial(torch.nn.LayerNorm, eps=1e-6), num_heads=3,
+                                   patch_size=16, qkv_bias=True, use_rel_pos=True,
+                                   global_attn_indexes=[1], window_size=14, out_chans=256)
+    prompt = modeling.PromptEncoder(embed_dim=256, image_embedding_size=(64, 64),
+                                    input_image_size=(1024, 1024), mask_in_chans=16)
+    dec = modeling.MaskDecoder(num_multimask_outputs=3,
+                               transformer=modeling.TwoWayTransformer(depth=2, embedding_dim=256,
+                                                                      mlp_dim=512, num_heads=8),
+                               transformer_dim=256, iou_head_depth=3, iou_head_hidden_dim=256)
+    return modeling.Sam(image_encoder=enc, prompt_encoder=prompt, mask_decoder=dec,
+                        pixel_mean=[123.675, 116.28, 103.53], pixel_std=[58.395, 57.12, 57.375])
+
+
+def export_sam(a):
+    torch = need("torch", "torch")
+    need("onnx", "onnx")
+    if a.kind == "vit_t":
+        pkg = need("mobile_sam", "mobilesam-mirror timm")
+        from mobile_sam.utils.onnx import SamOnnxModel
+    else:
+        pkg = need("segment_anything", "segment-anything==1.0")
+        from segment_anything.utils.onnx import SamOnnxModel
+    if a.kind == "tiny":
+        if a.checkpoint:
+            die("--kind tiny is a random test model: it takes no --checkpoint")
+        a.random = True
+    elif not (a.random or a.checkpoint):
+        die(f"--kind {a.kind}: pass --checkpoint {SAM_CHECKPOINTS[a.kind]} (the official "
+            "checkpoint) or --random (random weights: for timing and tests only)")
+    torch.manual_seed(a.seed)
+    if a.kind == "tiny":
+        from segment_anything import modeling
+        sam = tiny_sam(modeling, torch)
+    else:
+        sam = pkg.sam_model_registry[a.kind](checkpoint=None)
+        if a.checkpoint:
+            state = torch.load(a.checkpoint, map_location="cpu", weights_only=True)
+            sam.load_state_dict(state)
+    sam = sam.eval()
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    enc_path = out / f"sam-{a.kind}-encoder.onnx"
+    dec_path = out / f"sam-{a.kind}-decoder.onnx"
+
+    # Decoder first, in f32, before the encoder is converted to half precision.
+    torch.backends.mha.set_fastpath_enabled(False) if hasattr(torch.backends, "mha") else None
+    dummy = {"image_embeddings": torch.randn(1, 256, 64, 64),
+             "point_coords": torch.randint(0, 1024, (2, 2, 2), dtype=torch.float),
+             "point_labels": torch.tensor([[1, -1], [1, -1]], dtype=torch.float),
+             "mask_input": torch.zeros(1, 1, 256, 256),
+             "has_mask_input": torch.tensor([0.0]),
+             "orig_im_size": torch.tensor([600, 800], dtype=torch.float)}
+    onnx_export(torch, SamOnnxModel(sam, return_single_mask=False), tuple(dummy.values()),
+                dec_path, input_names=list(dummy),
+                output_names=["masks", "iou_predictions", "low_res_masks"],
+                dynamic_axes={"point_coords": {0: "num_prompts", 1: "num_points"},
+                              "point_labels": {0: "num_prompts", 1: "num_points"}})
+
+    class Encoder(torch.nn.Module):
+        def __init__(self, enc, half):
+            super().__init__()
+            self.enc = enc.half() if half else enc
+            self.half = half
+
+        def forward(self, pixel_values):
+            if self.half:
+                return self.enc(pixel_values.half()).float()
+            return self.enc(pixel_values)
+
+    enc = Encoder(sam.image_encoder, a.fp16).eval()
+    onnx_export(torch, enc, (torch.zeros(1, 3, 1024, 1024),), enc_path,
+                input_names=["pixel_values"], output_names=["image_embeddings"],
+                external=a.external_data)
+    source = f"checkpoint {Path(a.checkpoint).name}" if a.checkpoint else f"random (seed {a.seed})"
+    for p, role in ((enc_path, "encoder"), (dec_path, "decoder")):
+        set_metadata(p, {"slag.sam_kind": a.kind, "slag.sam_role": role, "slag.weights": source,
+                         "slag.fp16": str(bool(a.fp16 and role == "encoder")).lower()})
+    expect_enc = ([("pixel_values", "float32", [1, 3, 1024, 1024])],
+                  [("image_embeddings", "float32", [1, 256, 64, 64])])
+    got = io_signature(enc_path)
+    if not signature_ok(got, expect_enc):
+        die(f"{enc_path}: unexpected signature {got}")
+    ins, outs = io_signature(dec_path)
+    names = ([n for n, _, _ in ins], [n for n, _, _ in outs])
+    if names != (list(dummy), ["masks", "iou_predictions", "low_res_masks"]):
+        die(f"{dec_path}: unexpected signature {ins} -> {outs}")
+    shapes = check_with_ort(enc_path, {"pixel_values": torch.zeros(1, 3, 1024, 1024).numpy()})
+    print(json.dumps({"encoder": str(enc_path), "decoder": str(dec_path), "kind": a.kind,
+                      "weights": source, "fp16_encoder": bool(a.fp16),
+                      "files": file_sizes([enc_path, dec_path]),
+                      "onnxruntime_check": shapes}, indent=1))
+
+
+# ------------------------------------------------------------------------------------------ CLIP
+TINY_CLIP = {"embed_dim": 512,
+             "vision_cfg": {"image_size": 224, "layers": 2, "width": 128, "patch_size": 16,
+                            "head_width": 64},
+             "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 1,
+                          "layers": 2}}
+CHECK_TEXTS = ["a photo of a cat", "chair", "A red mug on a wooden table", "",
+               "UPPER case,   punctuation!?", "don't stop", "über 9000 cafés"]
+
+
+def clip_tokenizer_json(tok):
+    """open_clip's SimpleTokenizer (CLIP BPE) as a `tokenizers` JSON: the same vocabulary and
+    merges, specials named <|startoftext|> / <|endoftext|> (what slag looks up), the same word
+    split (open_clip's regex), byte-level alphabet and `</w>` word suffix. slag adds the start/end
+    tokens, pads and truncates itself (open_clip.tokenize's rules)."""
+    rename = {"<start_of_text>": "<|startoftext|>", "<end_of_text>": "<|endoftext|>"}
+    vocab = {rename.get(k, k): v for k, v in tok.encoder.items()}
+    for k in ("<|startoftext|>", "<|endoftext|>"):
+        if k not in vocab:
+            die(f"the tokenizer has no {k} token")
+    merges = [list(m) for m in sorted(tok.bpe_ranks, key=tok.bpe_ranks.get)]
+    special = lambda name: {"id": name, "ids": [vocab[name]], "tokens": [name]}  # noqa: E731
+    return {
+        "version": "1.0", "truncation": None, "padding": None, "added_tokens": [],
+        "normalizer": {"type": "Sequence", "normalizers": [
+            {"type": "NFC"},
+            {"type": "Replace", "pattern": {"Regex": r"\s+"}, "content": " "},
+            {"type": "Lowercase"}]},
+        "pre_tokenizer": {"type": "Sequence", "pretokenizers": [
+            {"type": "Split",
+             "pattern": {"Regex": r"'s|'t|'re|'ve|'m|'ll|'d|[\p{L}]+|[\p{N}]|[^\s\p{L}\p{N}]+"},
+             "behavior": "Removed", "invert": True},
+            {"type": "ByteLevel", "add_prefix_space": False, "trim_offsets": True,
+             "use_regex": False}]},
+        "post_processor": {"type": "TemplateProcessing",
+                           "single": [{"SpecialToken": {"id": "<|startoftext|>", "type_id": 0}},
+                                      {"Sequence": {"id": "A", "type_id": 0}},
+                                      {"SpecialToken": {"id": "<|endoftext|>", "type_id": 0}}],
+                           "pair": [{"Sequence": {"id": "A", "type_id": 0}},
+                                    {"Sequence": {"id": "B", "type_id": 1}}],
+                           "special_tokens": {k: special(k) for k in
+                                              ("<|endoftext|>", "<|startoftext|>")}},
+        "decoder": {"type": "ByteLevel", "add_prefix_space": True, "trim_offsets": True,
+                    "use_regex": True},
+        "model": {"type": "BPE", "dropout": None, "unk_token": "<|endoftext|>",
+                  "continuing_subword_prefix": None, "end_of_word_suffix": "</w>",
+                  "fuse_unk": False, "byte_fallback": False, "ignore_merges": False,
+                  "vocab": vocab, "merges": merges},
+    }
+
+
+def weights_sha256(model):
+    h = hashlib.sha256()
+    for name, t in sorted(model.state_dict().items()):
+        h.update(name.encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.detach().float().contiguous().cpu().numpy().tobytes())
+    return h.hexdigest()
+
+
+def export_clip(a):
+    torch = need("torch", "torch")
+    need("onnx", "onnx")
+    open_clip = need("open_clip", "open-clip-torch")
+    torch.backends.mha.set_fastpath_enabled(False)  # plain ops, exportable to ONNX
+    torch.manual_seed(a.seed)
+    if a.model == "tiny":
+        if a.pretrained:
+            die("--model tiny is a random test model: it takes no --pretrained")
+        a.random = True
+        model = open_clip.CLIP(**TINY_CLIP)
+        tok = open_clip.get_tokenizer("ViT-B-32")
+    else:
+        if not (a.random or a.pretrained):
+            tags = [t for m, t in open_clip.list_pretrained() if m == a.model]
+            die(f"--model {a.model}: pass --pretrained TAG (one of {tags}; downloads the weights) "
+                "or --random")
+        if a.model not in open_clip.list_models():
+            die(f"unknown open_clip model {a.model!r}; see open_clip.list_models()")
+        model = open_clip.create_model(a.model, pretrained=a.pretrained or None, device="cpu")
+        tok = open_clip.get_tokenizer(a.model)
+    model = model.eval()
+    if not isinstance(tok, open_clip.tokenizer.SimpleTokenizer):
+        die(f"{a.model} uses {type(tok).__name__}, not CLIP's BPE tokenizer (SimpleTokenizer): "
+            "slag's tokenizer (start/end tokens, 77 ids) cannot reproduce it")
+    if tok.context_length != 77:
+        die(f"{a.model} has context length {tok.context_length}; slag's text side feeds 77 ids")
+    if getattr(tok.clean_fn, "__name__", "") not in ("_clean_lower", "<lambda>"):
+        print(f"export-models: warning: {a.model}'s tokenizer cleans text with "
+              f"{tok.clean_fn.__name__}; slag lower-cases and collapses whitespace only",
+              file=sys.stderr)
+    tag = "random" if a.random else a.pretrained
+    digest = weights_sha256(model)
+    pair_id = f"{a.model}/{tag}/{digest[:16]}"
+    name = re.sub(r"[^A-Za-z0-9._-]+", "-", f"{a.model}-{tag}").strip("-")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    vis_path, txt_path = out / f"{name}-visual.onnx", out / f"{name}-textual.onnx"
+    tok_path, info_path = out / "clip-tokenizer.json", out / f"{name}.json"
+    ids = tok(CHECK_TEXTS)
+    with torch.no_grad():
+        ref_txt = model.encode_text(ids, normalize=False).float()
+    image_size = model.visual.image_size
+    image_size = image_size[0] if isinstance(image_size, (tuple, list)) else image_size
+    if image_size != 224:
+        die(f"{a.model} takes {image_size}px images; slag's CLIP crops are 224x224")
+    if a.fp16:
+        model = model.half()
+
+    class Visual(torch.nn.Module):
+        def __init__(self, m, half):
+            super().__init__()
+            self.m, self.half = m, half
+
+        def forward(self, pixel_values):
+            x = pixel_values.half() if self.half else pixel_values
+            return self.m.encode_image(x, normalize=False).float()
+
+    class Textual(torch.nn.Module):
+        def __init__(self, m):
+            super().__init__()
+            self.m = m
+
+        def forward(self, input_ids):
+            return self.m.encode_text(input_ids, normalize=False).float()
+
+    batch = {0: "batch"}
+    onnx_export(torch, Visual(model, a.fp16), (torch.zeros(2, 3, 224, 224),), vis_path,
+                input_names=["pixel_values"], output_names=["image_embeds"],
+                dynamic_axes={"pixel_values": batch, "image_embeds": batch})
+    onnx_export(torch, Textual(model), (torch.zeros(2, 77, dtype=torch.long),), txt_path,
+                input_names=["input_ids"], output_names=["text_embeds"],
+                dynamic_axes={"input_ids": batch, "text_embeds": batch})
+    common = {"slag.clip_pair_id": pair_id, "slag.open_clip_model": a.model,
+              "slag.pretrained": tag, "slag.weights_sha256": digest,
+              "slag.fp16": str(bool(a.fp16)).lower(), "slag.tokenizer": tok_path.name}
+    set_metadata(vis_path, {**common, "slag.clip_tower": "visual"})
+    set_metadata(txt_path, {**common, "slag.clip_tower": "textual"})
+    dim = ref_txt.shape[1]
+    for p, want in ((vis_path, ([("pixel_values", "float32", [-1, 3, 224, 224])],
+                                [("image_embeds", "float32", [-1, dim])])),
+                    (txt_path, ([("input_ids", "int64", [-1, 77])],
+                                [("text_embeds", "float32", [-1, dim])]))):
+        got = io_signature(p)
+        if not signature_ok(got, want):
+            die(f"{p}: signature {got}, expected {want}")
+    tok_path.write_text(json.dumps(clip_tokenizer_json(tok), ensure_ascii=False))
+    import numpy as np
+
+    ort_check = None
+    txt_shapes = check_with_ort(txt_path, {"input_ids": ids.numpy()})
+    if isinstance(txt_shapes, list):
+        got, ref = check_with_ort.last[0], ref_txt.numpy()
+        cos = (got * ref).sum(1) / (np.linalg.norm(got, axis=1) * np.linalg.norm(ref, axis=1))
+        ort_check = {"text_cosine_min_vs_torch_f32": float(cos.min())}
+    elif txt_shapes is not None:
+        ort_check = {"text": txt_shapes}
+    if txt_shapes is not None:
+        ort_check["visual"] = check_with_ort(
+            vis_path, {"pixel_values": np.zeros((3, 3, 224, 224), np.float32)})
+    info = {"open_clip_model": a.model, "pretrained": tag, "clip_pair_id": pair_id,
+            "weights_sha256": digest, "fp16": bool(a.fp16), "dim": dim,
+            "visual": vis_path.name, "textual": txt_path.name, "tokenizer": tok_path.name,
+            "check": {"texts": CHECK_TEXTS, "input_ids": ids.tolist()},
+            "onnxruntime_check": ort_check,
+            "files": file_sizes([vis_path, txt_path, tok_path])}
+    info_path.write_text(json.dumps(info, indent=1))
+    print(json.dumps({k: v for k, v in info.items() if k != "check"}, indent=1))
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=__doc__.split("\n", 2)[2])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("sam", help="SAM image encoder + prompt decoder")
+    s.add_argument("--kind", required=True, choices=["vit_b", "vit_l", "vit_h", "vit_t", "tiny"])
+    w = s.add_mutually_exclusive_group()
+    w.add_argument("--checkpoint", help="official checkpoint, e.g. " + SAM_CHECKPOINTS["vit_h"])
+    w.add_argument("--random", action="store_true", help="random weights (timing, tests)")
+    s.add_argument("--fp16", action="store_true", help="half-precision encoder, f32 I/O")
+    s.add_argument("--external-data", action="store_true",
+                   help="encoder weights in ENCODER.onnx.data even when small (always over 2 GB)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("out", metavar="OUT_DIR")
+    c = sub.add_parser("clip", help="open_clip image + text towers and tokenizer")
+    c.add_argument("--model", default="ViT-B-16", help="open_clip model name, or tiny (tests)")
+    w = c.add_mutually_exclusive_group()
+    w.add_argument("--pretrained", help="open_clip pretrained tag, e.g. openai (downloads)")
+    w.add_argument("--random", action="store_true", help="random weights (timing, tests)")
+    c.add_argument("--fp16", action="store_true", help="half-precision towers, f32 I/O")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("out", metavar="OUT_DIR")
+    a = p.parse_args()
+    if a.cmd == "sam":
+        if a.checkpoint and not os.path.isfile(a.checkpoint):
+            die(f"--checkpoint {a.checkpoint}: no such file")
+        export_sam(a)
+    else:
+        export_clip(a)
+
+
+if __name__ == "__main__":
+    main()

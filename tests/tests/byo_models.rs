@@ -1,0 +1,189 @@
+//! "Bring your own models": `scripts/export-models.py` exports a (tiny, random) SAM and CLIP in
+//! slag's signatures, then slag runs on them: `encode` on the embedded scene with the exported SAM
+//! encoder (external-data weights) + decoder and CLIP image tower, `query` with the exported text
+//! tower and tokenizer; the tokenizer reproduces open_clip's token ids, and a text tower of another
+//! CLIP model (same file name, other weights: only its `slag.clip_pair_id` differs) is refused.
+//!
+//! Needs a python with torch, onnx, segment-anything and open-clip-torch (`$SLAG_PYTHON`, default
+//! `python3`); without them (CI) the test prints why and passes.
+
+#![allow(clippy::unwrap_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use slag_encoder::cli::query::QueryArgs;
+use slag_tests::{default_scene, encode_line, fixture};
+
+fn python() -> String {
+    std::env::var("SLAG_PYTHON").unwrap_or_else(|_| "python3".into())
+}
+
+/// Why the test cannot run here, if it cannot.
+fn skip_reason() -> Option<String> {
+    let probe = Command::new(python())
+        .args(["-c", "import torch, onnx, segment_anything, open_clip"])
+        .output();
+    match probe {
+        Err(e) => return Some(format!("cannot run {}: {e}", python())),
+        Ok(o) if !o.status.success() => {
+            let err = String::from_utf8_lossy(&o.stderr);
+            return Some(format!(
+                "{} lacks torch/onnx/segment_anything/open_clip ({}); set SLAG_PYTHON to a python \
+                 with them",
+                python(),
+                err.lines().last().unwrap_or("").trim()
+            ));
+        }
+        Ok(_) => {}
+    }
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        return Some("ORT_DYLIB_PATH is not set (run `. scripts/setup.sh`)".into());
+    }
+    None
+}
+
+fn export(args: &[&str]) -> f64 {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/export-models.py");
+    let t = Instant::now();
+    let out = Command::new(python())
+        .arg(&script)
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "export-models.py {args:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    t.elapsed().as_secs_f64()
+}
+
+fn query_args(emb: &Path, textual: &Path, tokenizer: &Path, text: &str) -> QueryArgs {
+    QueryArgs {
+        embeddings: emb.to_path_buf(),
+        clip_textual: textual.to_path_buf(),
+        tokenizer: tokenizer.to_path_buf(),
+        text: text.into(),
+        top_k: 5,
+        threshold: 0.28,
+        ply: None,
+        highlight_out: None,
+        highlight_rgb: [1.0, 0.0, 1.0],
+        ep: slag_encoder::cli::EpArg::Cpu,
+    }
+}
+
+#[test]
+fn exported_models_encode_and_query() {
+    if let Some(why) = skip_reason() {
+        eprintln!("SKIPPED exported_models_encode_and_query: {why}");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let p = |rel: &str| -> PathBuf { dir.path().join(rel) };
+    let s = |rel: &str| p(rel).display().to_string();
+    let t_sam = export(&["sam", "--kind", "tiny", "--external-data", &s("sam")]);
+    let t_clip = export(&["clip", "--model", "tiny", "--random", &s("clip")]);
+    let t_other = export(&[
+        "clip",
+        "--model",
+        "tiny",
+        "--random",
+        "--seed",
+        "1",
+        &s("other"),
+    ]);
+    assert!(p("sam/sam-tiny-encoder.onnx.data").is_file());
+    let info: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(p("clip/tiny-random.json")).unwrap()).unwrap();
+    let pair_id = info["clip_pair_id"].as_str().unwrap().to_string();
+    assert!(pair_id.starts_with("tiny/random/"), "{pair_id}");
+
+    // The exported tokenizer gives open_clip's ids (recorded by the script).
+    let tok = slag_common::text::ClipTokenizer::from_file(&p("clip/clip-tokenizer.json")).unwrap();
+    let texts = info["check"]["texts"].as_array().unwrap();
+    let ids = info["check"]["input_ids"].as_array().unwrap();
+    for (t, want) in texts.iter().zip(ids) {
+        let want: Vec<i64> = serde_json::from_value(want.clone()).unwrap();
+        assert_eq!(tok.tokenize(t.as_str().unwrap(), 77).unwrap(), want, "{t}");
+    }
+    // ... and equals the shared fixture's token ids (same vocabulary and merges).
+    let fx =
+        slag_common::text::ClipTokenizer::from_file(&fixture("clip/clip-tokenizer.json")).unwrap();
+    for t in texts {
+        let t = t.as_str().unwrap();
+        assert_eq!(tok.tokenize(t, 77).unwrap(), fx.tokenize(t, 77).unwrap());
+    }
+
+    let out = p("out");
+    let line = format!(
+        "--masks sam --sam-encoder {sam}/sam-tiny-encoder.onnx \
+         --sam-decoder {sam}/sam-tiny-decoder.onnx --sam-points-per-side 8 \
+         --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 \
+         --clip-visual {clip}/tiny-random-visual.onnx --every 6 --raster-scale 0.25",
+        sam = s("sam"),
+        clip = s("clip")
+    );
+    let t = Instant::now();
+    let report = encode_line(&default_scene(), &line, &out).expect("encode");
+    let t_encode = t.elapsed().as_secs_f64();
+    assert!(report.counts.masks > 0, "the exported SAM produced no mask");
+    let emb_path = out.join("embeddings.safetensors");
+    let emb = slag_common::embeddings::Embeddings::read(&emb_path).unwrap();
+    assert_eq!(emb.dim, 512);
+    assert!(!emb.is_empty() && emb.vectors.iter().all(|v| v.is_finite()));
+    assert_eq!(emb.model, pair_id, "the encoder records the CLIP pair id");
+
+    let tokenizer = p("clip/clip-tokenizer.json");
+    let q = slag_encoder::cli::query::run(&query_args(
+        &emb_path,
+        &p("clip/tiny-random-textual.onnx"),
+        &tokenizer,
+        "a red chair",
+    ))
+    .expect("query with the paired text tower");
+    assert_eq!(q.model, pair_id);
+    assert!(!q.matches.is_empty() || !q.nearest_below_threshold.is_empty());
+
+    // Same architecture, same file name, other weights: refused, naming both ids.
+    let e = slag_encoder::cli::query::run(&query_args(
+        &emb_path,
+        &p("other/tiny-random-textual.onnx"),
+        &tokenizer,
+        "a red chair",
+    ))
+    .err()
+    .expect("a text tower of another CLIP model must be refused");
+    let msg = e.to_string();
+    assert!(
+        matches!(
+            e.downcast_ref::<slag_common::Error>(),
+            Some(slag_common::Error::ModelMismatch { .. })
+        ) && msg.contains(&pair_id),
+        "{msg}"
+    );
+    // The shared fixture's text tower (color-clip) is refused as well.
+    let e = slag_encoder::cli::query::run(&query_args(
+        &emb_path,
+        &fixture("clip/color-clip-textual.onnx"),
+        &tokenizer,
+        "red",
+    ))
+    .err()
+    .unwrap();
+    assert!(e.to_string().contains("`color-clip`"), "{e}");
+    eprintln!(
+        "byo models: export sam {t_sam:.1} s, clip {t_clip:.1} s (+{t_other:.1} s); encode \
+         {t_encode:.1} s: {} views, {} masks, {} Gaussians observed; pair id {pair_id}; \
+         'a red chair' best {:?}",
+        report.counts.views_used,
+        report.counts.masks,
+        emb.len(),
+        q.matches
+            .first()
+            .or(q.nearest_below_threshold.first())
+            .map(|m| m.score)
+    );
+}
