@@ -14,6 +14,7 @@ fn params(max: usize, up: UpChoice, dtype: Dtype) -> PartitionParams {
         max_per_shard: max,
         up,
         dtype,
+        to_map: None,
     }
 }
 

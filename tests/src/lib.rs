@@ -90,6 +90,7 @@ pub fn robot_fetch_params(shard_url: &str) -> slag_edge::fetch::FetchParams {
         timeout: std::time::Duration::from_secs(30),
         token: None,
         progress: false,
+        frame: Default::default(),
     }
 }
 
