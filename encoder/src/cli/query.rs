@@ -22,7 +22,7 @@ pub struct QueryArgs {
     /// CLIP BPE tokenizer (tokenizer.json for the `tokenizers` crate).
     #[arg(long)]
     pub tokenizer: PathBuf,
-    /// The prompt, e.g. "red" or "a chair".
+    /// The prompt, e.g. "red" or "a chair" (not blank, at most 1000 bytes, as on slag-edge).
     #[arg(long)]
     pub text: String,
     /// Print at most this many matches.
@@ -77,8 +77,16 @@ pub struct QueryOutput {
     pub highlighted_ply: Option<PathBuf>,
 }
 
+/// How to give a prompt to `slag-encoder query` (the hint of a refused prompt).
+pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
+
 /// Runs `query`.
+///
+/// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
+/// `slag-edge`; [`slag_common::Error::Invalid`], checked before anything is read), unreadable
+/// embeddings or models.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
+    slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
     let emb = Embeddings::read(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep.into())?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
