@@ -119,7 +119,11 @@ async fn a_radius_in_metres_selects_the_tiles_of_the_same_radius_in_scene_units_
             assert_eq!(by_map.frame, "map");
             assert!((by_map.scene_radius - r).abs() < 1e-9 * r.max(1.0));
             assert_eq!(by_scene.selected, by_map.selected, "{c:?} r {r}");
-            assert_eq!(stored_ids(&scene_store), stored_ids(&map_store), "{c:?} r {r}");
+            assert_eq!(
+                stored_ids(&scene_store),
+                stored_ids(&map_store),
+                "{c:?} r {r}"
+            );
             checked += by_map.selected;
             // The manifest's own selection agrees, and frame=scene reads scene units as before.
             let manifest = map_store.manifest("grid").unwrap().unwrap();
@@ -154,7 +158,12 @@ async fn a_radius_in_metres_selects_the_tiles_of_the_same_radius_in_scene_units_
     let store = EdgeStore::open(d.path()).unwrap();
     let e = fetch(
         &store,
-        &params(&plain.url, Center::Ground([0.0, 0.0]), 5.0, FrameChoice::Map),
+        &params(
+            &plain.url,
+            Center::Ground([0.0, 0.0]),
+            5.0,
+            FrameChoice::Map,
+        ),
     )
     .await
     .unwrap_err();
@@ -290,7 +299,13 @@ async fn answers_are_in_the_map_frame_by_default_and_bbox_is_read_in_it() {
             .map(|m| m["id"].as_u64().unwrap() as u32)
             .collect();
         assert_eq!(got, want, "{extra}");
-        assert!(c["matches"].as_array().unwrap().iter().all(|m| inside(pos(m))));
+        assert!(
+            c["matches"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .all(|m| inside(pos(m)))
+        );
     }
     // /query.ply says which frame its vertices are in.
     for (q, want) in [("", "map"), ("&frame=scene", "scene")] {
@@ -312,11 +327,19 @@ async fn answers_are_in_the_map_frame_by_default_and_bbox_is_read_in_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn blank_and_too_long_prompts_get_the_http_hints() {
     let s = serve_with_map(&SceneToMap::identity()).await;
-    for q in ["/query?text=", "/query?text=%20%20", "/query", "/query.ply?text=+"] {
+    for q in [
+        "/query?text=",
+        "/query?text=%20%20",
+        "/query",
+        "/query.ply?text=+",
+    ] {
         let (st, e) = get(&s, q).await;
         let m = e["error"].as_str().unwrap();
         assert_eq!(st, 400, "{q}: {e}");
-        assert!(m.contains("missing query text") && m.contains("/query?text=chair"), "{q}: {m}");
+        assert!(
+            m.contains("missing query text") && m.contains("/query?text=chair"),
+            "{q}: {m}"
+        );
     }
     let long = "a".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
     let (st, e) = get(&s, &format!("/query?text={long}")).await;
