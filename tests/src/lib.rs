@@ -129,6 +129,8 @@ pub fn robot_path(
         report: None,
         up: None,
         cameras: Some(default_scene()),
+        to_map: None,
+        to_map_points: None,
         display_ply: display.then(|| default_scene().join("point_cloud.ply")),
         dtype: dtype.parse().expect("dtype"),
         qdrant_url: None,
