@@ -8,6 +8,7 @@
 //! | [`onnx`] | ONNX Runtime sessions (`ort`, `load-dynamic`) with a selectable execution provider |
 //! | [`text`] | CLIP text tower + tokenizer (queries) |
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
+//! | [`prompt`] | limits on text prompts shared by every query interface |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
@@ -20,6 +21,7 @@ pub mod error;
 pub mod mixture;
 pub mod onnx;
 pub mod paths;
+pub mod prompt;
 pub mod rng;
 mod safetensors_io;
 pub mod scene;

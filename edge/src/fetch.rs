@@ -2,7 +2,9 @@
 //!
 //! 1. `GET {server}/v1/scenes/{scene}/manifest` (the shard server of `slag-encoder serve`);
 //! 2. tiles whose footprint meets the closed disc (centre, radius) on the manifest's ground plane
-//!    ([`slag_common::shards::TileIndex::select_tiles`], an `rstar` R-tree);
+//!    ([`select_tiles`] → [`slag_common::shards::TileIndex::select_tiles`], an `rstar` R-tree);
+//!    centre and radius are in the robot's map frame (metres) when the manifest has a
+//!    scene-to-map transform, converted by [`selection_disc`];
 //! 3. each selected tile not already stored with the same checksum is downloaded into
 //!    `partial/<scene>-<tile>-<checksum>.part`, resumed with `Range: bytes=N-` + `If-Range` when a
 //!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and renamed into the
@@ -28,19 +30,103 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use futures_util::{StreamExt, TryStreamExt};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use slag_common::shards::{Manifest, TileInfo, valid_scene_id};
+use slag_common::shards::{MAP_FRAME, Manifest, SCENE_FRAME, TileInfo, valid_scene_id};
 use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
+use crate::query::{FrameChoice, answer_frame};
 use crate::store::{EdgeStore, FetchRecord, parse_checksum};
 
+/// The disc to select, on the manifest's ground plane: `(centre (g0, g1), radius in scene
+/// units, frame name)`. In the map frame (module doc of [`Center`]) the centre is mapped back by
+/// the inverse scene-to-map transform and the radius divided by its scale (`r` metres =
+/// `r / s` scene units).
+///
+/// Errors: [`Error::Invalid`] for a negative or non-finite radius, or `frame` map when the
+/// manifest has no transform.
+pub fn selection_disc(
+    manifest: &Manifest,
+    center: Center,
+    radius: f64,
+    frame: FrameChoice,
+) -> Result<([f64; 2], f64, &'static str)> {
+    let map = answer_frame(frame, manifest.frames.scene_to_map.as_ref())?;
+    if !(radius.is_finite() && radius >= 0.0) {
+        return Err(Error::Invalid(format!(
+            "--radius {radius} must be a finite number ≥ 0 ({})",
+            if map.is_some() {
+                "metres of the map frame"
+            } else {
+                "scene units"
+            }
+        )));
+    }
+    let ground = |w: [f64; 3]| {
+        let g = manifest
+            .ground
+            .to_ground([w[0] as f32, w[1] as f32, w[2] as f32]);
+        [g[0], g[1]]
+    };
+    Ok(match map {
+        None => {
+            let c = match center {
+                Center::Ground(g) => g,
+                Center::World(w) => ground(w),
+            };
+            (c, radius, SCENE_FRAME)
+        }
+        Some(t) => {
+            let m = match center {
+                Center::Ground([x, y]) => [x, y, 0.0],
+                Center::World(w) => w,
+            };
+            // The ground projection in f64 (to_ground takes f32 points): far-away map origins
+            // (UTM) would lose centimetres in f32.
+            let s = t.to_scene(m);
+            let r = manifest
+                .ground
+                .world_to_ground
+                .map(|row| row.map(f64::from));
+            let g = [0, 1].map(|i| r[i][0] * s[0] + r[i][1] * s[1] + r[i][2] * s[2]);
+            (g, t.map_to_scene_distance(radius), MAP_FRAME)
+        }
+    })
+}
+
+/// The manifest's tiles whose footprint meets the disc of [`selection_disc`] (ascending id):
+/// what a fetch downloads.
+///
+/// Errors: as [`selection_disc`].
+pub fn select_tiles(
+    manifest: &Manifest,
+    center: Center,
+    radius: f64,
+    frame: FrameChoice,
+) -> Result<Vec<TileInfo>> {
+    let (c, r, _) = selection_disc(manifest, center, radius, frame)?;
+    Ok(manifest
+        .tile_index()
+        .select_tiles(c, r)
+        .into_iter()
+        .filter_map(|id| manifest.tiles.iter().find(|t| t.id == id).cloned())
+        .collect())
+}
+
 /// Where the disc is centred.
+///
+/// In the **map frame** (metres) when the manifest has a scene-to-map transform and the fetch's
+/// [`FetchParams::frame`] is auto or map: `X,Y` is the map point `(X, Y, 0)` and `X,Y,Z` the map
+/// point itself; either is taken back to the scene with the inverse transform and projected onto
+/// the manifest's ground plane (partitions with a transform tile on the map's ground, whose up is
+/// the map's z, so the height of a map point then does not change the disc). In the **scene
+/// frame** otherwise, as below.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Center {
-    /// Ground-plane coordinates `(g0, g1)` of the manifest's [`slag_common::shards::GroundFrame`].
+    /// Scene frame: ground-plane coordinates `(g0, g1)` of the manifest's
+    /// [`slag_common::shards::GroundFrame`]. Map frame: the map point `(X, Y, 0)`.
     Ground([f64; 2]),
-    /// A world-frame point (the scene's frame, e.g. the robot's pose in the map), projected onto
-    /// the ground plane with [`slag_common::shards::GroundFrame::to_ground`].
+    /// Scene frame: a world point, projected onto the ground plane with
+    /// [`slag_common::shards::GroundFrame::to_ground`]. Map frame: a map point.
     World([f64; 3]),
 }
 
@@ -75,8 +161,11 @@ pub struct FetchParams {
     pub scene: String,
     /// Disc centre.
     pub center: Center,
-    /// Disc radius, scene units (≥ 0, finite).
+    /// Disc radius (≥ 0, finite): metres in the map frame, scene units in the scene frame.
     pub radius: f64,
+    /// Frame of `center` and `radius`: auto (the default) = the map frame when the manifest has
+    /// a scene-to-map transform, else the scene frame ([`selection_disc`]).
+    pub frame: FrameChoice,
     /// Drop stored shards outside the disc.
     pub prune: bool,
     /// Parallel downloads (≥ 1).
@@ -98,6 +187,11 @@ pub struct FetchSummary {
     pub scene: String,
     /// Partition generation of the manifest now current.
     pub generation: u64,
+    /// Frame the centre and radius were read in: `"map"` (metres) or `"scene"` (scene units).
+    pub frame: String,
+    /// The radius in scene units on the manifest's ground plane (= the radius in the scene frame,
+    /// radius / scale in the map frame).
+    pub scene_radius: f64,
     /// Tiles in the disc.
     pub selected: usize,
     /// Of those, already stored with the same checksum.
@@ -124,11 +218,17 @@ impl std::fmt::Display for FetchSummary {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "scene {} generation {}: {} shards in the radius ({} downloaded, {} resumed, {} already \
-             stored), {} Gaussians, {:.1} MB of shards, {:.1} MB received; {} outside the radius kept, \
-             {} evicted; store {:.1} MB on disk",
+            "scene {} generation {} ({} frame{}): {} shards in the radius ({} downloaded, {} \
+             resumed, {} already stored), {} Gaussians, {:.1} MB of shards, {:.1} MB received; {} \
+             outside the radius kept, {} evicted; store {:.1} MB on disk",
             self.scene,
             self.generation,
+            self.frame,
+            if self.frame == MAP_FRAME {
+                format!(", radius {:.6} scene units", self.scene_radius)
+            } else {
+                String::new()
+            },
             self.selected,
             self.downloaded,
             self.resumed,
@@ -284,7 +384,7 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     }
     if !(p.radius.is_finite() && p.radius >= 0.0) {
         return Err(Error::Invalid(format!(
-            "--radius {} must be a finite number ≥ 0 (scene units)",
+            "--radius {} must be a finite number ≥ 0 (metres with a map frame, else scene units)",
             p.radius
         )));
     }
@@ -293,25 +393,14 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     }
     let client = client(p.timeout)?;
     let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref()).await?;
-    let center = match p.center {
-        Center::Ground(g) => g,
-        Center::World(w) => {
-            let g = manifest
-                .ground
-                .to_ground([w[0] as f32, w[1] as f32, w[2] as f32]);
-            [g[0], g[1]]
-        }
-    };
-    let index = manifest.tile_index();
-    let selected: Vec<TileInfo> = index
-        .select_tiles(center, p.radius)
-        .into_iter()
-        .filter_map(|id| manifest.tiles.iter().find(|t| t.id == id).cloned())
-        .collect();
+    let (center, scene_radius, frame) = selection_disc(&manifest, p.center, p.radius, p.frame)?;
+    let selected = select_tiles(&manifest, p.center, p.radius, p.frame)?;
 
     let mut summary = FetchSummary {
         scene: p.scene.clone(),
         generation: manifest.generation,
+        frame: frame.into(),
+        scene_radius,
         selected: selected.len(),
         gaussians: selected.iter().map(|t| t.count).sum(),
         shard_bytes: selected.iter().map(|t| t.bytes).sum(),
@@ -371,7 +460,7 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     let record = FetchRecord {
         server: p.server.clone(),
         center,
-        radius: p.radius,
+        radius: scene_radius,
         completed_unix_s: SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map(|d| d.as_secs())

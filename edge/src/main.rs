@@ -18,7 +18,7 @@ use slag_common::similarity::PAPER_THRESHOLD;
 use slag_common::text::TextEncoder;
 use slag_edge::config::{ServeConfig, read_token};
 use slag_edge::fetch::{Center, FetchParams};
-use slag_edge::query::{OnnxTextEmbedder, RawQuery, TextEmbedder};
+use slag_edge::query::{FrameChoice, Interface, OnnxTextEmbedder, RawQuery, TextEmbedder};
 use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::store::EdgeStore;
 
@@ -26,8 +26,35 @@ use slag_edge::store::EdgeStore;
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
+    /// On an error, also print its debug form (and the backtrace when RUST_BACKTRACE=1);
+    /// without it an error is one line (its causes joined by `: `).
+    #[arg(long, short = 'v', global = true)]
+    verbose: bool,
     #[command(subcommand)]
     command: Command,
+}
+
+/// Frame of coordinates given to or printed by a command.
+#[derive(Debug, Clone, Copy, Default, ValueEnum)]
+enum FrameArg {
+    /// The map frame (metres) when the scene's manifest has a scene-to-map transform, else the
+    /// scene frame.
+    #[default]
+    Auto,
+    /// The robot's map frame (metres); an error when the manifest has no transform.
+    Map,
+    /// The scene (reconstruction) frame, scene units.
+    Scene,
+}
+
+impl From<FrameArg> for FrameChoice {
+    fn from(f: FrameArg) -> Self {
+        match f {
+            FrameArg::Auto => FrameChoice::Auto,
+            FrameArg::Map => FrameChoice::Map,
+            FrameArg::Scene => FrameChoice::Scene,
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -73,12 +100,17 @@ struct FetchArgs {
     /// Scene id.
     #[arg(long)]
     scene: String,
-    /// Disc centre: X,Y on the manifest's ground plane, or X,Y,Z in the world frame.
+    /// Disc centre. With a map frame (the manifest has a scene-to-map transform): X,Y or X,Y,Z
+    /// in the robot's map frame, metres. Without: X,Y on the manifest's ground plane, or X,Y,Z
+    /// in the scene frame.
     #[arg(long, allow_hyphen_values = true)]
     center: Center,
-    /// Disc radius, scene units (metres for metric scenes).
+    /// Disc radius: metres with a map frame, else scene units.
     #[arg(long, default_value_t = 50.0)]
     radius: f64,
+    /// Frame of --center and --radius.
+    #[arg(long, value_enum, default_value_t = FrameArg::Auto)]
+    frame: FrameArg,
     /// Also evict stored shards outside the disc.
     #[arg(long)]
     prune: bool,
@@ -179,9 +211,12 @@ struct QueryArgs {
     /// cosine | relevancy.
     #[arg(long)]
     mode: Option<String>,
-    /// minx,miny,minz,maxx,maxy,maxz (world frame).
+    /// minx,miny,minz,maxx,maxy,maxz (in the answer's frame, see --frame).
     #[arg(long, allow_hyphen_values = true)]
     bbox: Option<String>,
+    /// Frame of the answer's coordinates and of --bbox.
+    #[arg(long, value_enum, default_value_t = FrameArg::Auto)]
+    frame: FrameArg,
 }
 
 fn text_embedder(
@@ -224,6 +259,7 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
         timeout: timeout(a.timeout, "--timeout")?,
         token: a.token,
         progress: true,
+        frame: a.frame.into(),
     };
     let summary = runtime()?.block_on(slag_edge::fetch::fetch(&store, &params))?;
     if a.json {
@@ -323,7 +359,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
 
 fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     let r = resolve(a)?;
-    let edge = EdgeStore::open(&r.store)?;
+    let edge = EdgeStore::open_existing(&r.store)?;
     let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
     let state = Arc::new(AppState::new(edge, text, r.opts)?.with_web_dir(r.web_dir));
     runtime()?.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
@@ -339,7 +375,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
     let v = text.embed(&["a chair"])?;
     let text_ms = t.elapsed().as_secs_f64() * 1e3;
-    let edge = EdgeStore::open(&r.store)?;
+    let edge = EdgeStore::open_existing(&r.store)?;
     let engine = slag_edge::serve::Engine::load(&edge, &r.opts.scene, false)?;
     text.check_pair(&engine.manifest.model)?;
     anyhow::ensure!(
@@ -360,6 +396,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
         "scene": r.opts.scene,
         "generation": engine.manifest.generation,
         "embedding_model": engine.manifest.model,
+        "frames": engine.manifest.frames,
         "shards_loaded": engine.load.loaded_tiles.len(),
         "shards_absent": engine.load.absent_tiles,
         "shards_rejected": engine.load.rejected,
@@ -378,23 +415,28 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
 }
 
 fn run_query(a: QueryArgs) -> anyhow::Result<()> {
-    let edge = EdgeStore::open(&a.store)?;
-    let engine = slag_edge::serve::Engine::load(&edge, &a.scene, false)?;
-    let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
-    text.check_pair(&engine.manifest.model)?;
-    let params = RawQuery {
+    // Parameters first (no store, no model needed to refuse a blank prompt), then the store
+    // without creating it.
+    let mut params = RawQuery {
         text: Some(a.text),
         top_k: a.top_k,
         threshold: a.threshold,
         mode: a.mode,
         bbox: a.bbox,
         index: None,
+        frame: None,
     }
-    .validate(PAPER_THRESHOLD)?;
+    .validate_for(PAPER_THRESHOLD, Interface::Cli)?;
+    params.frame = a.frame.into();
+    let edge = EdgeStore::open_existing(&a.store)?;
+    let engine = slag_edge::serve::Engine::load(&edge, &a.scene, false)?;
+    let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
+    text.check_pair(&engine.manifest.model)?;
     let negatives = text.embed(&slag_edge::query::CANONICAL_NEGATIVES)?;
-    let answer = slag_edge::query::run_query(
+    let answer = slag_edge::query::run_query_framed(
         &engine.store,
         &engine.manifest.model,
+        engine.manifest.frames.scene_to_map.as_ref(),
         text.as_ref(),
         &negatives,
         None,
@@ -404,14 +446,31 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn main() -> anyhow::Result<()> {
+fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
         .with_writer(std::io::stderr)
         .init();
-    match Cli::parse().command {
+    let cli = Cli::parse();
+    let verbose = cli.verbose;
+    match run(cli.command) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // One line with the causes; no backtrace (anyhow captures one when RUST_BACKTRACE is
+            // set, and returning the error from main printed it on every failure).
+            eprintln!("error: {e:#}");
+            if verbose {
+                eprintln!("\n{e:?}");
+            }
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(command: Command) -> anyhow::Result<()> {
+    match command {
         Command::Fetch(a) => run_fetch(a),
         Command::Serve(a) => run_serve(a),
         Command::Query(a) => run_query(a),

@@ -12,11 +12,14 @@
 //!   default threshold [`RELEVANCY_THRESHOLD`].
 //!
 //! The answer lists the best `top_k` matches (Gaussian id, world position, score) and a summary of
-//! all matches (count, AABB, centroid, world frame) a planner can navigate to.
+//! all matches (count, AABB, centroid) a planner can navigate to, in the robot's map frame when
+//! the manifest has a scene-to-map transform (`frame=map`, the default then) or in the scene frame
+//! (`frame=scene`); the answer's `frame` field says which.
 
 use std::sync::Mutex;
 use std::time::Instant;
 
+use slag_common::shards::{MAP_FRAME, SCENE_FRAME, SceneToMap};
 #[cfg(doc)]
 use slag_common::similarity::PAPER_THRESHOLD;
 use slag_common::similarity::{Match, MatchSummary, summarise};
@@ -33,8 +36,65 @@ pub const RELEVANCY_THRESHOLD: f32 = 0.5;
 pub const DEFAULT_TOP_K: usize = 100;
 /// Largest `top_k` accepted.
 pub const MAX_TOP_K: usize = 10_000;
-/// Longest prompt accepted, in bytes (CLIP reads 77 tokens anyway).
-pub const MAX_TEXT_BYTES: usize = 1000;
+/// Longest prompt accepted, in bytes (CLIP reads 77 tokens anyway): the limit every slag
+/// interface shares, [`slag_common::prompt::MAX_PROMPT_BYTES`].
+pub const MAX_TEXT_BYTES: usize = slag_common::prompt::MAX_PROMPT_BYTES;
+
+/// Which interface a query came through: each refusal of a prompt ends with that interface's own
+/// hint.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Interface {
+    /// `GET /query?text=…` (and `GET /query.ply`).
+    HttpGet,
+    /// An item of `POST /query`.
+    HttpPost,
+    /// `slag-edge query --text …`.
+    Cli,
+}
+
+impl Interface {
+    /// How to give a prompt through this interface.
+    pub fn prompt_hint(self) -> &'static str {
+        match self {
+            Interface::HttpGet => "use /query?text=chair",
+            Interface::HttpPost => "send {\"text\": \"chair\"}",
+            Interface::Cli => "pass --text chair",
+        }
+    }
+}
+
+/// Which frame an answer's coordinates (and a query's `bbox`) are in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FrameChoice {
+    /// The map frame when the manifest has a scene-to-map transform, else the scene frame.
+    #[default]
+    Auto,
+    /// The robot's map frame (metres); an error when the manifest has no transform.
+    Map,
+    /// The scene (reconstruction) frame, scene units.
+    Scene,
+}
+
+/// The transform to apply to answers for `choice`, given the manifest's scene-to-map transform:
+/// `Some` = answer in the map frame.
+///
+/// Errors: [`Error::Invalid`] for [`FrameChoice::Map`] when the scene has no map frame.
+pub fn answer_frame(
+    choice: FrameChoice,
+    to_map: Option<&SceneToMap>,
+) -> Result<Option<&SceneToMap>> {
+    match (choice, to_map) {
+        (FrameChoice::Scene, _) => Ok(None),
+        (FrameChoice::Auto, t) => Ok(t),
+        (FrameChoice::Map, Some(t)) => Ok(Some(t)),
+        (FrameChoice::Map, None) => Err(Error::Invalid(
+            "frame map: this scene has no map frame (its manifest has no scene-to-map transform); \
+             partition it with --to-map or --to-map-points, or ask frame=scene"
+                .into(),
+        )),
+    }
+}
 
 /// Something that turns prompts into unit vectors of the stored embeddings' width.
 pub trait TextEmbedder: Send + Sync {
@@ -124,10 +184,13 @@ pub struct QueryParams {
     pub threshold: Option<f32>,
     /// Scoring mode.
     pub mode: ScoreMode,
-    /// Only Gaussians whose mean lies in this box (world frame, inclusive): `[min, max]`.
+    /// Only Gaussians whose mean lies in this box (inclusive, in the answer's frame):
+    /// `[min, max]`.
     pub bbox: Option<[[f32; 3]; 2]>,
     /// Index to use.
     pub index: IndexKind,
+    /// Frame of the answer's coordinates and of `bbox`.
+    pub frame: FrameChoice,
 }
 
 /// Raw query fields as they arrive (`GET /query?text=…&top_k=…` or a `POST /query` JSON item).
@@ -146,6 +209,8 @@ pub struct RawQuery {
     pub bbox: Option<String>,
     /// `exact` | `hnsw`.
     pub index: Option<String>,
+    /// `map` | `scene` (default: map when the scene has a map frame).
+    pub frame: Option<String>,
 }
 
 /// A JSON value that may be a number or a string (for `POST /query` bodies).
@@ -185,9 +250,11 @@ impl RawQuery {
                     }
                 }
                 "index" => q.index = val,
+                "frame" => q.frame = val,
                 other => {
                     return Err(Error::Invalid(format!(
-                        "unknown query field {other:?}; use text, top_k, threshold, mode, bbox, index"
+                        "unknown query field {other:?}; use text, top_k, threshold, mode, bbox, \
+                         index, frame"
                     )));
                 }
             }
@@ -195,22 +262,23 @@ impl RawQuery {
         Ok(q)
     }
 
+    /// Validates every field as `GET /query` does ([`Self::validate_for`] with
+    /// [`Interface::HttpGet`]).
+    ///
+    /// Errors: as [`Self::validate_for`].
+    pub fn validate(&self, cosine_default: f32) -> Result<QueryParams> {
+        self.validate_for(cosine_default, Interface::HttpGet)
+    }
+
     /// Validates every field; `cosine_default` is the threshold used in cosine mode when none is
-    /// given (the paper's [`PAPER_THRESHOLD`] unless the server is configured otherwise).
+    /// given (the paper's [`PAPER_THRESHOLD`] unless the server is configured otherwise). A blank
+    /// or too long prompt ([`slag_common::prompt`]) is refused with `via`'s hint.
     ///
     /// Errors: [`Error::Invalid`] with a message naming the field, the value and the allowed range.
-    pub fn validate(&self, cosine_default: f32) -> Result<QueryParams> {
+    pub fn validate_for(&self, cosine_default: f32, via: Interface) -> Result<QueryParams> {
         let bad = |m: String| Err(Error::Invalid(m));
         let text = self.text.clone().unwrap_or_default();
-        if text.trim().is_empty() {
-            return bad("missing query text: use /query?text=chair".into());
-        }
-        if text.len() > MAX_TEXT_BYTES {
-            return bad(format!(
-                "text is {} bytes; at most {MAX_TEXT_BYTES} are accepted",
-                text.len()
-            ));
-        }
+        slag_common::prompt::check_prompt(&text, via.prompt_hint())?;
         let mode = match self.mode.as_deref().map(str::trim) {
             None | Some("cosine") => ScoreMode::Cosine,
             Some("relevancy") => ScoreMode::Relevancy,
@@ -248,7 +316,7 @@ impl RawQuery {
                     .collect::<std::result::Result<_, _>>()
                     .map_err(|_| {
                         Error::Invalid(format!(
-                            "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (world frame)"
+                            "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (in the answer's frame)"
                         ))
                     })?;
                 match v[..] {
@@ -271,6 +339,12 @@ impl RawQuery {
             Some("hnsw") => IndexKind::Hnsw,
             Some(i) => return bad(format!("index {i:?}: use exact or hnsw")),
         };
+        let frame = match self.frame.as_deref().map(str::trim) {
+            None | Some("auto") => FrameChoice::Auto,
+            Some("map") => FrameChoice::Map,
+            Some("scene") => FrameChoice::Scene,
+            Some(f) => return bad(format!("frame {f:?}: use map or scene")),
+        };
         Ok(QueryParams {
             text,
             top_k,
@@ -278,6 +352,7 @@ impl RawQuery {
             mode,
             bbox,
             index,
+            frame,
         })
     }
 }
@@ -299,6 +374,10 @@ pub struct QueryAnswer {
     pub top_k: usize,
     /// Index that answered.
     pub index: IndexKind,
+    /// Frame of every coordinate in this answer (match positions, summary AABB and centroid)
+    /// and of the query's `bbox`: `"map"` (the robot's map frame, metres, through the manifest's
+    /// scene-to-map transform) or `"scene"` (the reconstruction's frame, scene units).
+    pub frame: &'static str,
     /// Best matches, score descending (ties: lower row first).
     pub matches: Vec<Match>,
     /// All matches above the threshold (or the returned ones without a threshold).
@@ -345,14 +424,10 @@ pub fn unit_prompt_embedding(mut phi: Vec<f32>) -> Result<Vec<f32>> {
     Ok(phi)
 }
 
-/// Runs a validated query against `store`.
+/// Runs a validated query against `store`, answering in the scene frame (no map frame known):
+/// [`run_query_framed`] without a transform.
 ///
-/// `negatives` are the embeddings of [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw`
-/// the optional approximate index.
-///
-/// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
-/// or without a direction (zero / non-finite norm, [`unit_prompt_embedding`]) ([`Error::Invalid`]),
-/// `index=hnsw` without an index or with a threshold-only query.
+/// Errors: as [`run_query_framed`].
 pub fn run_query(
     store: &VectorStore,
     embedding_model: &str,
@@ -361,6 +436,36 @@ pub fn run_query(
     hnsw: Option<&scan::hnsw::HnswIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
+    run_query_framed(store, embedding_model, None, text, negatives, hnsw, q)
+}
+
+/// `lo ≤ p ≤ hi` on every axis.
+fn in_box(p: [f32; 3], b: &[[f32; 3]; 2]) -> bool {
+    (0..3).all(|a| p[a] >= b[0][a] && p[a] <= b[1][a])
+}
+
+/// Runs a validated query against `store` (means in the scene frame).
+///
+/// `to_map` is the manifest's scene-to-map transform (`Frames::scene_to_map`): with it, and
+/// `q.frame` auto or map, every coordinate of the answer is mapped into the map frame and
+/// `q.bbox` is read in the map frame (the scan keeps the scene box around the map box's corners,
+/// then the exact map box is applied to each kept row). `negatives` are the embeddings of
+/// [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw` the optional approximate index.
+///
+/// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
+/// or without a direction (zero / non-finite norm, [`unit_prompt_embedding`]) ([`Error::Invalid`]),
+/// `frame=map` without a transform ([`answer_frame`]), `index=hnsw` without an index or with a
+/// threshold-only query.
+pub fn run_query_framed(
+    store: &VectorStore,
+    embedding_model: &str,
+    to_map: Option<&SceneToMap>,
+    text: &dyn TextEmbedder,
+    negatives: &[Vec<f32>],
+    hnsw: Option<&scan::hnsw::HnswIndex>,
+    q: &QueryParams,
+) -> Result<QueryAnswer> {
+    let map = answer_frame(q.frame, to_map)?;
     let t0 = Instant::now();
     let phi = text
         .embed(&[q.text.as_str()])?
@@ -388,24 +493,63 @@ pub fn run_query(
             Some(relevancy)
         }
     };
-    let bbox = q.bbox.map(|b| (b[0], b[1]));
-    let hits = match q.index {
-        IndexKind::Exact => {
-            // Threshold queries collect every match for the summary; ranked-only ones keep a
-            // bounded top-k heap.
-            let req = ScanRequest {
-                queries: &queries,
-                top_k: if q.threshold.is_some() {
-                    None
-                } else {
-                    Some(q.top_k)
-                },
-                threshold: q.threshold,
-                bbox,
-                combine,
-            };
-            scan::scan(store, &req)?
+    // Position of a row in the answer's frame.
+    let position = |row: usize| -> [f32; 3] {
+        let m = store.means()[row];
+        match map {
+            Some(t) => t.to_map_f32(m),
+            None => m,
         }
+    };
+    // The scan's box (scene frame) and, in the map frame, the exact box applied afterwards.
+    let (bbox, map_box) = match (q.bbox, map) {
+        (None, _) => (None, None),
+        (Some(b), None) => (Some((b[0], b[1])), None),
+        (Some(b), Some(t)) => {
+            let (lo, hi) = t.map_box_in_scene(b[0].map(f64::from), b[1].map(f64::from));
+            let lo = lo.map(|v| (v as f32).next_down());
+            let hi = hi.map(|v| (v as f32).next_up());
+            (Some((lo, hi)), Some(b))
+        }
+    };
+    let keep = |h: &scan::Hit| map_box.is_none_or(|b| in_box(position(h.row), &b));
+    // Exact scan honouring the map box: rows are kept by the scan's scene box, then by the map
+    // box; a top-k-only scan then collects every row of the scene box (threshold −inf) so the
+    // map box cannot leave it short.
+    let exact = |top_k: Option<usize>, threshold: Option<f32>| -> Result<Vec<scan::Hit>> {
+        let (top_k_scan, thr_scan) = match (map_box, threshold) {
+            (None, _) => (top_k, threshold),
+            (Some(_), Some(t)) => (None, Some(t)),
+            (Some(_), None) => (None, Some(f32::NEG_INFINITY)),
+        };
+        let req = ScanRequest {
+            queries: &queries,
+            top_k: top_k_scan,
+            threshold: thr_scan,
+            bbox,
+            combine,
+        };
+        let mut hits = scan::scan(store, &req)?;
+        if map_box.is_some() {
+            hits.retain(|h| keep(h));
+            hits.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.row.cmp(&b.row)));
+            if let Some(k) = top_k {
+                hits.truncate(k);
+            }
+        }
+        Ok(hits)
+    };
+    let hits = match q.index {
+        // Threshold queries collect every match for the summary; ranked-only ones keep a
+        // bounded top-k heap.
+        IndexKind::Exact => exact(
+            if q.threshold.is_some() {
+                None
+            } else {
+                Some(q.top_k)
+            },
+            q.threshold,
+        )?,
         IndexKind::Hnsw => {
             let index = hnsw.ok_or_else(|| {
                 Error::Invalid(
@@ -430,6 +574,7 @@ pub fn run_query(
                         let m = store.means()[h.row];
                         (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
                     })
+                    && keep(h)
             });
             hits
         }
@@ -438,7 +583,7 @@ pub fn run_query(
         .iter()
         .map(|h| Match {
             id: store.ids()[h.row],
-            position: store.means()[h.row],
+            position: position(h.row),
             score: h.score,
         })
         .collect();
@@ -446,14 +591,7 @@ pub fn run_query(
     let mut matches = all;
     matches.truncate(q.top_k);
     let best_score_below_threshold = if matches.is_empty() && q.index == IndexKind::Exact {
-        let req = ScanRequest {
-            queries: &queries,
-            top_k: Some(1),
-            threshold: None,
-            bbox,
-            combine,
-        };
-        scan::scan(store, &req)?.first().map(|h| h.score)
+        exact(Some(1), None)?.first().map(|h| h.score)
     } else {
         None
     };
@@ -465,6 +603,11 @@ pub fn run_query(
         threshold: q.threshold,
         top_k: q.top_k,
         index: q.index,
+        frame: if map.is_some() {
+            MAP_FRAME
+        } else {
+            SCENE_FRAME
+        },
         matches,
         summary,
         best_score_below_threshold,

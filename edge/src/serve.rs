@@ -5,13 +5,16 @@
 //! - `GET /stats` → shards, Gaussians, bytes per Gaussian, memory (vectors, index, process RSS),
 //!   store size, queries served, prompt-cache size, last fetch;
 //! - `GET /query?text=chair[&top_k=100][&threshold=0.28|none][&mode=cosine|relevancy]
-//!   [&bbox=minx,miny,minz,maxx,maxy,maxz][&index=exact|hnsw]` → [`QueryAnswer`];
+//!   [&bbox=minx,miny,minz,maxx,maxy,maxz][&index=exact|hnsw][&frame=map|scene]` →
+//!   [`QueryAnswer`] (coordinates and `bbox` in the robot's map frame when the manifest has a
+//!   scene-to-map transform, unless `frame=scene`; the answer's `frame` says which);
 //! - `GET /query.ply?text=…` (same parameters, plus `color`, `dim`) → the loaded Gaussians as a
 //!   3DGS `.ply` with the matches painted, and `GET /` → a web page that renders it
 //!   ([`crate::view`]; the page, its script and `/vendor/*` need no token);
 //! - `POST /query` with `{"queries": [{"text": …, …}, …]}` (at most [`MAX_BATCH`]) →
 //!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
-//! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool}` → fetches
+//! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool,
+//!   "frame": "map" | "scene"}` (map metres by default when the manifest has a transform) → fetches
 //!   from the server of the last fetch (or `"server"`) into the store this process holds, then
 //!   reloads; `POST /reload` reloads the store.
 //!
@@ -521,6 +524,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "dim": e.store.dim(),
         "dtype": e.manifest.dtype,
         "tiles_in_manifest": e.manifest.tiles.len(),
+        "frames": e.manifest.frames,
         "shards_loaded": e.load.loaded_tiles.len(),
         "shards_absent": e.load.absent_tiles,
         "shards_rejected": e.load.rejected,
@@ -561,9 +565,10 @@ pub(crate) async fn answer(
             let answers = qs
                 .iter()
                 .map(|q| {
-                    query::run_query(
+                    query::run_query_framed(
                         &e.store,
                         &e.manifest.model,
+                        e.manifest.frames.scene_to_map.as_ref(),
                         st.text.as_ref(),
                         &st.negatives,
                         e.hnsw.as_ref(),
@@ -653,7 +658,9 @@ async fn query_post(
     // Validate everything first: one bad item fails the whole batch with its index.
     let mut params = Vec::with_capacity(items.len());
     for (i, it) in items.iter().enumerate() {
-        match RawQuery::from_json(it).and_then(|r| r.validate(state.opts.threshold)) {
+        match RawQuery::from_json(it)
+            .and_then(|r| r.validate_for(state.opts.threshold, query::Interface::HttpPost))
+        {
             Ok(p) => params.push(p),
             Err(e) => return bad(format!("queries[{i}]: {e}")),
         }
@@ -705,6 +712,8 @@ struct FetchBody {
     radius: f64,
     #[serde(default)]
     prune: bool,
+    /// `map` | `scene` (default: map when the manifest has a transform).
+    frame: Option<String>,
     server: Option<String>,
     token: Option<String>,
 }
@@ -719,6 +728,17 @@ async fn fetch_post(
             return error(
                 StatusCode::BAD_REQUEST,
                 format!("body: {e}; send {{\"center\": [x, y], \"radius\": 50}}"),
+            );
+        }
+    };
+    let frame = match b.frame.as_deref() {
+        None | Some("auto") => query::FrameChoice::Auto,
+        Some("map") => query::FrameChoice::Map,
+        Some("scene") => query::FrameChoice::Scene,
+        Some(f) => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                format!("frame {f:?}: use map or scene"),
             );
         }
     };
@@ -760,6 +780,7 @@ async fn fetch_post(
         timeout: Duration::from_secs(30),
         token: b.token,
         progress: false,
+        frame,
     };
     match fetch::fetch(&state.edge, &params).await {
         Ok(summary) => match reload_engine(&state).await {

@@ -49,7 +49,8 @@ pub struct FetchRecord {
     pub server: String,
     /// Centre of the fetched disc, ground coordinates `(g0, g1)` of the manifest's ground frame.
     pub center: [f64; 2],
-    /// Radius of the disc, scene units (metres for metric scenes).
+    /// Radius of the disc on the ground plane, scene units (a fetch in the map frame records
+    /// its radius in metres divided by the transform's scale).
     pub radius: f64,
     /// Seconds since the Unix epoch when the fetch completed.
     pub completed_unix_s: u64,
@@ -191,6 +192,28 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
 }
 
 impl EdgeStore {
+    /// Opens the store in `root` for reading (`slag-edge query`, `serve`, `check`): unlike
+    /// [`Self::open`], a folder that holds no store is an error and nothing is created.
+    ///
+    /// Errors: [`Error::Invalid`] naming the `slag-edge fetch` command to run when `root` or its
+    /// database does not exist; as [`Self::open`] otherwise.
+    pub fn open_existing(root: &Path) -> Result<EdgeStore> {
+        if !root.join("db").is_dir() {
+            return Err(Error::Invalid(format!(
+                "no slag-edge store at {} ({}); run `slag-edge fetch --from URL --scene NAME \
+                 --center X,Y --radius R --store {}` first, or pass the --store that fetch wrote",
+                root.display(),
+                if root.exists() {
+                    "the folder holds no store database"
+                } else {
+                    "no such folder"
+                },
+                root.display()
+            )));
+        }
+        EdgeStore::open(root)
+    }
+
     /// Opens (creating if needed) the store in `root`.
     ///
     /// Errors: [`Error::Io`] when the folders cannot be created, [`Error::Invalid`] when another

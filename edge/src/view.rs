@@ -194,6 +194,31 @@ pub fn highlighted_ply(
     highlighted: &HashSet<u32>,
     style: &HighlightStyle,
 ) -> Result<Vec<u8>> {
+    highlighted_ply_framed(attrs, highlighted, style, None)
+}
+
+/// Hamilton product `a ⊗ b` of quaternions `(w, x, y, z)`.
+fn quat_mul(a: [f64; 4], b: [f64; 4]) -> [f64; 4] {
+    [
+        a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3],
+        a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2],
+        a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1],
+        a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0],
+    ]
+}
+
+/// [`highlighted_ply`] in the robot's map frame when `to_map` is given: each Gaussian is moved
+/// by the scene-to-map similarity (mean `s·R·x + t`, log-scales `+ ln s`, rotation `q_R ⊗ q`), so
+/// the `.ply` overlays the robot's map. `None`: the scene frame, as stored.
+///
+/// Errors: as [`highlighted_ply`].
+pub fn highlighted_ply_framed(
+    attrs: &DisplayAttrs,
+    highlighted: &HashSet<u32>,
+    style: &HighlightStyle,
+    to_map: Option<&slag_common::shards::SceneToMap>,
+) -> Result<Vec<u8>> {
+    let frame = to_map.map(|t| (t, t.scale.ln() as f32, t.quaternion_wxyz()));
     if style
         .colour
         .iter()
@@ -224,7 +249,11 @@ pub fn highlighted_ply(
     let mut put = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
     for i in 0..n {
         let f = attrs.present[i];
-        attrs.means[i].iter().for_each(|&v| put(v));
+        let mean = match frame {
+            Some((t, _, _)) => t.to_map_f32(attrs.means[i]),
+            None => attrs.means[i],
+        };
+        mean.iter().for_each(|&v| put(v));
         let dc = if highlighted.contains(&attrs.ids[i]) {
             hl
         } else {
@@ -244,8 +273,18 @@ pub fn highlighted_ply(
         } else {
             [fallback_scale; 3]
         };
-        s.iter().for_each(|&v| put(v));
-        attrs.rotations[i].iter().for_each(|&v| put(v));
+        match frame {
+            Some((_, ln_s, q_r)) => {
+                s.iter().for_each(|&v| put(v + ln_s));
+                quat_mul(q_r, attrs.rotations[i].map(f64::from))
+                    .iter()
+                    .for_each(|&v| put(v as f32));
+            }
+            None => {
+                s.iter().for_each(|&v| put(v));
+                attrs.rotations[i].iter().for_each(|&v| put(v));
+            }
+        }
     }
     Ok(bytes)
 }
@@ -290,7 +329,9 @@ fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyl
 /// With a threshold (the default) every match is painted (`top_k` only limits `/query`'s list);
 /// with `threshold=none` the `top_k` best are. Headers: `Content-Type: application/octet-stream`,
 /// `Content-Disposition: attachment; filename="query.ply"`, `X-Slag-Matches` (painted ids),
-/// `X-Slag-Gaussians` (vertices), `X-Slag-Up` (world up `x,y,z` of the manifest's ground frame).
+/// `X-Slag-Gaussians` (vertices), `X-Slag-Up` (up `x,y,z` of the manifest's ground frame),
+/// `X-Slag-Frame` (`map` or `scene`: the frame of the vertices and of `X-Slag-Up`; the map frame
+/// by default when the manifest has a scene-to-map transform, `frame=scene` for the stored one).
 pub(crate) async fn query_ply(
     State(state): State<Arc<AppState>>,
     q: std::result::Result<Query<HashMap<String, String>>, QueryRejection>,
@@ -325,8 +366,12 @@ pub(crate) async fn query_ply(
     let ids: HashSet<u32> = answer.matches.iter().map(|m| m.id).collect();
     let e2 = engine.clone();
     let ids_n = ids.len();
-    let built =
-        tokio::task::spawn_blocking(move || highlighted_ply(&e2.display, &ids, &style)).await;
+    let in_map = answer.frame == slag_common::shards::MAP_FRAME;
+    let built = tokio::task::spawn_blocking(move || {
+        let to_map = e2.manifest.frames.scene_to_map.as_ref().filter(|_| in_map);
+        highlighted_ply_framed(&e2.display, &ids, &style, to_map)
+    })
+    .await;
     let bytes = match built {
         Ok(Ok(b)) => b,
         Ok(Err(e)) => return error(status_of(&e), e.to_string()),
@@ -337,7 +382,18 @@ pub(crate) async fn query_ply(
             );
         }
     };
-    let up = engine.manifest.ground.up;
+    let mut up = engine.manifest.ground.up;
+    if let Some(t) = engine
+        .manifest
+        .frames
+        .scene_to_map
+        .as_ref()
+        .filter(|_| in_map)
+    {
+        let r = t.rotation;
+        let u = up.map(f64::from);
+        up = [0, 1, 2].map(|i| (r[i][0] * u[0] + r[i][1] * u[1] + r[i][2] * u[2]) as f32);
+    }
     (
         [
             (header::CONTENT_TYPE, "application/octet-stream".to_string()),
@@ -356,6 +412,10 @@ pub(crate) async fn query_ply(
             (
                 header::HeaderName::from_static("x-slag-up"),
                 format!("{},{},{}", up[0], up[1], up[2]),
+            ),
+            (
+                header::HeaderName::from_static("x-slag-frame"),
+                answer.frame.to_string(),
             ),
         ],
         bytes,

@@ -181,3 +181,113 @@ async fn fetch_check_and_query_from_the_command_line() {
     .unwrap();
     assert!(!out.status.success());
 }
+
+/// Failed queries: no store folder is created, each refusal gives the CLI's own hint, and an error
+/// is one line without a backtrace unless --verbose is given (even with RUST_BACKTRACE=1).
+#[test]
+fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("no-store");
+    let s = store.display().to_string();
+    let run = |text: &str, extra: &[&str], backtrace: bool| {
+        let bin = env!("CARGO_BIN_EXE_slag-edge");
+        let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
+            Ok(r) if !r.trim().is_empty() => {
+                let mut parts = r.split_whitespace();
+                let mut c = Command::new(parts.next().unwrap());
+                c.args(parts).arg(bin);
+                c
+            }
+            _ => Command::new(bin),
+        };
+        cmd.args([
+            "query",
+            "--store",
+            &s,
+            "--scene",
+            "grid",
+            "--text-model",
+            "m.onnx",
+            "--tokenizer",
+            "t.json",
+            "--text",
+            text,
+        ])
+        .args(extra)
+        .env("RUST_LOG", "warn");
+        if backtrace {
+            cmd.env("RUST_BACKTRACE", "1");
+        } else {
+            cmd.env_remove("RUST_BACKTRACE")
+                .env_remove("RUST_LIB_BACKTRACE");
+        }
+        let out = cmd.output().unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    // Missing store: a typed error saying to fetch first; the folder is not created.
+    let e = run("chair", &[], true);
+    assert!(
+        e.contains("slag-edge fetch") && e.contains("no-store"),
+        "{e}"
+    );
+    assert!(!e.to_lowercase().contains("backtrace"), "{e}");
+    assert_eq!(e.trim().lines().count(), 1, "{e}");
+    assert!(
+        !store.exists(),
+        "slag-edge query created {}",
+        store.display()
+    );
+    // --verbose shows the debug form (with the backtrace anyhow captured).
+    let e = run("chair", &["--verbose"], true);
+    assert!(
+        e.contains("Stack backtrace") || e.contains("stack backtrace"),
+        "{e}"
+    );
+    // Blank and too-long prompts: refused before the store is touched, with the CLI hint.
+    for text in ["", "   "] {
+        let e = run(text, &[], false);
+        assert!(
+            e.contains("missing query text") && e.contains("--text"),
+            "{e}"
+        );
+        assert!(
+            !e.contains("/query?text"),
+            "the CLI gave the HTTP hint: {e}"
+        );
+    }
+    let long = "a".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
+    let e = run(&long, &[], false);
+    assert!(e.contains("at most 1000") && e.contains("--text"), "{e}");
+    assert!(!store.exists());
+    // check and serve do not create it either.
+    for sub in ["check", "serve"] {
+        let bin = env!("CARGO_BIN_EXE_slag-edge");
+        if std::env::var("SLAG_TEST_RUNNER").is_ok_and(|r| !r.trim().is_empty()) {
+            break;
+        }
+        let out = Command::new(bin)
+            .args([
+                sub,
+                "--store",
+                &s,
+                "--scene",
+                "grid",
+                "--text-model",
+                "m.onnx",
+                "--tokenizer",
+                "t.json",
+                "--addr",
+                "127.0.0.1:0",
+            ])
+            .env("RUST_LOG", "warn")
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        assert!(
+            !store.exists(),
+            "slag-edge {sub} created {}",
+            store.display()
+        );
+    }
+}

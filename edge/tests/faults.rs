@@ -29,6 +29,7 @@ fn params(url: &str, radius: f64) -> FetchParams {
         timeout: Duration::from_secs(10),
         token: None,
         progress: false,
+        frame: Default::default(),
     }
 }
 

@@ -25,6 +25,7 @@ fn params(url: &str, center: [f64; 2], radius: f64) -> FetchParams {
         timeout: Duration::from_secs(10),
         token: None,
         progress: false,
+        frame: Default::default(),
     }
 }
 

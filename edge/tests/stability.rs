@@ -70,6 +70,7 @@ fn params(mode: ScoreMode, threshold: Option<f32>) -> QueryParams {
         mode,
         bbox: None,
         index: IndexKind::Exact,
+        frame: Default::default(),
     }
 }
 

@@ -18,8 +18,8 @@
 use rayon::prelude::*;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest,
-    SHARD_FORMAT_VERSION, ShardInput, ShardLayout, TileInfo, encode_shard, shard_checksum,
-    valid_scene_id,
+    SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo, encode_shard,
+    shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -46,6 +46,19 @@ pub struct PartitionParams {
     pub up: UpChoice,
     /// Storage type of the vectors in the shards.
     pub dtype: Dtype,
+    /// Scene-to-map transform recorded in the manifest (`Frames::scene_to_map`); `None`: the
+    /// manifest has no map frame. It does not change the tiling (footprints stay in the scene
+    /// frame); pass [`UpChoice::Given`] with [`map_ground_frame`] to tile on the map's ground.
+    pub to_map: Option<SceneToMap>,
+}
+
+/// The ground frame whose up axis is the map's z axis seen from the scene
+/// ([`SceneToMap::map_up_in_scene`]), [`slag_common::shards::UpSource::Map`]: discs on it are
+/// horizontal discs of the map.
+///
+/// Errors: none in practice (the rotation is orthonormal); as [`GroundFrame::from_up`].
+pub fn map_ground_frame(to_map: &SceneToMap) -> Result<GroundFrame> {
+    GroundFrame::from_up(to_map.map_up_in_scene(), slag_common::shards::UpSource::Map)
 }
 
 /// Default `--max-shard-mb`, in MiB (2^20 bytes) of encoded shard per tile.
@@ -364,6 +377,10 @@ pub fn partition_with(
         dim: d as u32,
         dtype: params.dtype,
         ground,
+        frames: slag_common::shards::Frames {
+            scene_to_map: params.to_map.clone(),
+            ..Default::default()
+        },
         max_per_shard: params.max_per_shard as u64,
         total_gaussians: n as u64,
         tiles,

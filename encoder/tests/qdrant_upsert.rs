@@ -233,6 +233,7 @@ fn scene() -> (Embeddings, Manifest, HashMap<u32, u64>) {
         max_per_shard: 300,
         up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("axis")),
         dtype: Dtype::F16,
+        to_map: None,
     };
     let (m, shards) = partition(&emb, &params).expect("partition");
     assert!(m.tiles.len() >= 4, "{} tiles", m.tiles.len());

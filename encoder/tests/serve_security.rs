@@ -35,6 +35,7 @@ fn start(token: Option<&str>) -> (std::net::SocketAddr, tempfile::TempDir) {
         max_per_shard: 100,
         up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
         dtype: Dtype::F16,
+        to_map: None,
     };
     partition_into_store(&store, &scene, &p).unwrap();
     let token = token.map(str::to_string);

@@ -14,6 +14,7 @@ fn params(max: usize, up: UpChoice, dtype: Dtype) -> PartitionParams {
         max_per_shard: max,
         up,
         dtype,
+        to_map: None,
     }
 }
 
@@ -458,4 +459,111 @@ fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
     let e = slag_encoder::cli::shards::run_partition(&a).expect_err("too small");
     assert!(format!("{e:#}").contains("pass --max-shard-mb"), "{e:#}");
     assert!(!a.store.exists());
+}
+
+#[test]
+fn partition_records_the_scene_to_map_transform_from_a_file_or_surveyed_points() {
+    use slag_common::shards::{MapSource, SceneToMap};
+    let dir = tempfile::tempdir().expect("tmp");
+    // A known transform: yaw 90° about z after a tilt, scale 4, UTM-like offset.
+    let h = std::f64::consts::FRAC_PI_4;
+    let truth = SceneToMap::new(
+        4.0,
+        slag_common::shards::frame::quaternion_to_matrix([h.cos(), 0.0, 0.0, h.sin()]),
+        [350_000.0, 5_600_000.0, 12.0],
+        MapSource::File,
+    )
+    .expect("transform");
+    let file = dir.path().join("to-map.json");
+    std::fs::write(
+        &file,
+        serde_json::json!({"scale": 4.0, "quaternion_wxyz": truth.quaternion_wxyz(),
+                           "translation": truth.translation})
+        .to_string(),
+    )
+    .expect("write");
+    let scene_pts = [
+        [0.0, 0.0, 0.0],
+        [10.0, 0.0, 0.5],
+        [0.0, 7.0, 0.2],
+        [5.0, 5.0, 3.0],
+    ];
+    let pairs: Vec<serde_json::Value> = scene_pts
+        .iter()
+        .map(|&p| serde_json::json!({"scene": p, "map": truth.to_map(p)}))
+        .collect();
+    let points = dir.path().join("points.json");
+    std::fs::write(&points, serde_json::json!({ "pairs": pairs }).to_string()).expect("write");
+    for (flag, path, source) in [
+        ("--to-map", &file, MapSource::File),
+        ("--to-map-points", &points, MapSource::Points),
+    ] {
+        let store = dir.path().join(format!("store{flag}"));
+        let mut a = parse(&[flag, path.to_str().expect("utf-8")])
+            .expect("parse")
+            .args;
+        a.scene = "syn".into();
+        a.synthetic = Some("500:8".into());
+        a.store = store.clone();
+        slag_encoder::cli::shards::run_partition(&a).expect("partition");
+        let s = slag_encoder::store::ShardStore::open(&store).expect("store");
+        let m = s.manifest("syn").expect("read").expect("scene");
+        assert_eq!(m.frames.data, "scene");
+        let t = m.frames.scene_to_map.clone().expect("transform stored");
+        assert_eq!(t.source, source);
+        assert!((t.scale - 4.0).abs() < 1e-9, "{}", t.scale);
+        let p = [3.0, -2.0, 1.0];
+        let (x, y) = (t.to_map(p), truth.to_map(p));
+        assert!((0..3).all(|i| (x[i] - y[i]).abs() < 1e-6), "{x:?} {y:?}");
+        if source == MapSource::Points {
+            assert!(t.rms_residual.expect("rms") < 1e-6);
+            assert_eq!(t.points, Some(4));
+        }
+        // Without --up, tiles lie on the map's ground: up = the map's z seen from the scene.
+        assert_eq!(m.ground.up_source, UpSource::Map);
+        let u = t.map_up_in_scene();
+        assert!((0..3).all(|i| (m.ground.up[i] as f64 - u[i]).abs() < 1e-6));
+        // The manifest JSON round-trips with the transform (serde_json parses f64 to within an
+        // ulp, not always bit-exactly, without its float_roundtrip feature).
+        let mut back = slag_common::shards::Manifest::from_json(&m.to_json(), "m").expect("json");
+        let bt = back.frames.scene_to_map.take().expect("transform");
+        for i in 0..3 {
+            for k in 0..3 {
+                assert!((bt.rotation[i][k] - t.rotation[i][k]).abs() <= 1e-15);
+            }
+        }
+        assert_eq!((bt.scale, bt.translation), (t.scale, t.translation));
+        let mut m2 = m.clone();
+        m2.frames.scene_to_map = None;
+        assert_eq!(back, m2);
+    }
+    // Too few or collinear points are typed errors before anything is stored.
+    std::fs::write(
+        &points,
+        serde_json::json!({ "pairs": &pairs[..2] }).to_string(),
+    )
+    .expect("write");
+    let mut a = parse(&["--to-map-points", points.to_str().expect("utf-8")])
+        .expect("parse")
+        .args;
+    a.store = dir.path().join("never-created");
+    let e = slag_encoder::cli::shards::run_partition(&a).expect_err("2 points");
+    assert!(format!("{e:#}").contains("at least 3"), "{e:#}");
+    assert!(!a.store.exists());
+    // Both sources at once are refused by the parser.
+    assert!(parse(&["--to-map", "identity", "--to-map-points", "p.json"]).is_err());
+}
+
+#[test]
+fn manifests_without_frames_read_as_the_scene_frame() {
+    let scene = SyntheticScene::new(200, 8, 3, 50.0, 3);
+    let emb = scene.to_embeddings();
+    let (m, _) = partition(&emb, &params(100, z_up(), Dtype::F16)).expect("partition");
+    let mut v: serde_json::Value = serde_json::from_slice(&m.to_json()).expect("json");
+    v.as_object_mut().expect("object").remove("frames");
+    let old = slag_common::shards::Manifest::from_json(v.to_string().as_bytes(), "old")
+        .expect("an old manifest parses");
+    assert_eq!(old.frames.data, "scene");
+    assert!(old.frames.scene_to_map.is_none());
+    assert_eq!(old, m);
 }

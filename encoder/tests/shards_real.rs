@@ -44,6 +44,7 @@ fn snowmiku_partition_and_radius_selection() {
         max_per_shard: 4096,
         up: UpChoice::CameraUps(ups),
         dtype: Dtype::F16,
+        to_map: None,
     };
     let (m, shards) = partition(&emb, &params).expect("partition");
     assert_eq!(m.ground.up_source, UpSource::Cameras);

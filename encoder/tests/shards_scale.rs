@@ -47,6 +47,7 @@ fn measure_partition_at_scale() {
             max_per_shard: max,
             up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
             dtype,
+            to_map: None,
         };
         let mut checked = 0;
         let t = Instant::now();

@@ -67,6 +67,7 @@ fn filled_store(dir: &std::path::Path) -> (ShardStore, Manifest) {
         max_per_shard: 200,
         up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
         dtype: Dtype::I8,
+        to_map: None,
     };
     let m = partition_into_store(&store, &scene, &p).expect("partition");
     (store, m)

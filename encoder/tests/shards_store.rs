@@ -16,6 +16,7 @@ fn params(scene: &str, max: usize, dtype: Dtype) -> PartitionParams {
         max_per_shard: max,
         up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
         dtype,
+        to_map: None,
     }
 }
 

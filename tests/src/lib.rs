@@ -90,6 +90,7 @@ pub fn robot_fetch_params(shard_url: &str) -> slag_edge::fetch::FetchParams {
         timeout: std::time::Duration::from_secs(30),
         token: None,
         progress: false,
+        frame: Default::default(),
     }
 }
 
@@ -128,6 +129,8 @@ pub fn robot_path(
         report: None,
         up: None,
         cameras: Some(default_scene()),
+        to_map: None,
+        to_map_points: None,
         display_ply: display.then(|| default_scene().join("point_cloud.ply")),
         dtype: dtype.parse().expect("dtype"),
         qdrant_url: None,

@@ -25,6 +25,7 @@ async fn fetch_needs_the_shard_servers_token() {
             max_per_shard: 100,
             up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
             dtype: Dtype::F16,
+            to_map: None,
         },
     )
     .unwrap();
@@ -50,6 +51,7 @@ async fn fetch_needs_the_shard_servers_token() {
         timeout: Duration::from_secs(10),
         token: None,
         progress: false,
+        frame: Default::default(),
     };
     for token in [None, Some("tok-4"), Some("TOK-42")] {
         p.token = token.map(str::to_string);

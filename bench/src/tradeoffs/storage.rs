@@ -313,6 +313,7 @@ pub fn footprint(
             max_per_shard: 16384,
             up: UpChoice::CameraUps(ups.clone()),
             dtype,
+            to_map: None,
         };
         let (m, shards) = partition(emb, &params)?;
         let mut sizes: Vec<u64> = shards.iter().map(|(_, b)| b.len() as u64).collect();

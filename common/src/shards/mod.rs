@@ -4,11 +4,13 @@
 //! - [`format`]: the versioned, checksummed shard byte layout ([`encode_shard`], [`decode_shard`]);
 //! - [`tiles`]: ground frame, [`Manifest`], [`TileInfo`] and the `rstar` [`TileIndex`] for
 //!   [`TileIndex::select_tiles`] (closed-disc radius selection on the ground plane);
+//! - [`frame`]: the scene-to-map similarity transform ([`SceneToMap`]) recorded in the manifest;
 //! - [`synthetic`]: deterministic synthetic scenes for tests and scale measurements;
 //! - [`GaussianSource`]: what partitioning reads (implemented by
 //!   [`Embeddings`](crate::embeddings::Embeddings) and [`synthetic::SyntheticScene`]).
 
 pub mod format;
+pub mod frame;
 pub mod synthetic;
 pub mod tiles;
 
@@ -17,6 +19,7 @@ pub use format::{
     ShardLayout, StoredShard, StoredVectors, decode_header, decode_shard, decode_shard_stored,
     encode_shard, shard_checksum,
 };
+pub use frame::{Frames, MAP_FRAME, MapSource, SCENE_FRAME, SceneToMap};
 pub use tiles::{
     GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, TileIndex, TileInfo, UpSource,
 };

@@ -27,6 +27,9 @@ pub enum UpSource {
     Cameras,
     /// Smallest-variance principal axis of the means (sign: largest |component| positive).
     Pca,
+    /// The map frame's up axis (z) taken into the scene frame by the scene-to-map transform
+    /// ([`super::SceneToMap::map_up_in_scene`]), so ground discs are horizontal in the map.
+    Map,
 }
 
 /// World→ground rotation recorded in the manifest.
@@ -280,6 +283,11 @@ pub struct Manifest {
     pub dtype: Dtype,
     /// Ground plane used for tiling and selection.
     pub ground: GroundFrame,
+    /// Which frame the coordinates above and below are in (always the scene's), and the
+    /// scene-to-map transform when the partition was given one. Absent in manifests written
+    /// before it existed: no map frame (fetch radii and answers in scene units).
+    #[serde(default)]
+    pub frames: super::Frames,
     /// `--max-per-shard` used.
     pub max_per_shard: u64,
     /// Gaussians over all tiles.

@@ -135,6 +135,7 @@ pub fn grid_scene(
         dim: dim as u32,
         dtype,
         ground: GroundFrame::from_axis_name("z").unwrap(),
+        frames: Default::default(),
         max_per_shard: per_tile as u64,
         total_gaussians: (nx * ny * per_tile) as u64,
         tiles,
@@ -373,6 +374,7 @@ pub async fn fetch_grid(url: &str, radius: f64) -> (tempfile::TempDir, EdgeStore
             timeout: Duration::from_secs(10),
             token: None,
             progress: false,
+            frame: Default::default(),
         },
     )
     .await

@@ -22,7 +22,7 @@ pub struct QueryArgs {
     /// CLIP BPE tokenizer (tokenizer.json for the `tokenizers` crate).
     #[arg(long)]
     pub tokenizer: PathBuf,
-    /// The prompt, e.g. "red" or "a chair".
+    /// The prompt, e.g. "red" or "a chair" (not blank, at most 1000 bytes, as on slag-edge).
     #[arg(long)]
     pub text: String,
     /// Print at most this many matches.
@@ -77,8 +77,16 @@ pub struct QueryOutput {
     pub highlighted_ply: Option<PathBuf>,
 }
 
+/// How to give a prompt to `slag-encoder query` (the hint of a refused prompt).
+pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
+
 /// Runs `query`.
+///
+/// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
+/// `slag-edge`; [`slag_common::Error::Invalid`], checked before anything is read), unreadable
+/// embeddings or models.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
+    slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
     let emb = Embeddings::read(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep.into())?;
     text.check_pair(&emb.model)?;
@@ -128,4 +136,49 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
         nearest_below_threshold,
         highlighted_ply: a.highlight_out.clone(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(text: &str) -> QueryArgs {
+        QueryArgs {
+            embeddings: "does-not-exist.safetensors".into(),
+            clip_textual: "m.onnx".into(),
+            tokenizer: "t.json".into(),
+            text: text.into(),
+            top_k: 5,
+            threshold: similarity::PAPER_THRESHOLD,
+            ply: None,
+            highlight_out: None,
+            highlight_rgb: [1.0, 0.0, 1.0],
+            ep: EpArg::Cpu,
+        }
+    }
+
+    #[test]
+    fn blank_and_too_long_prompts_are_typed_errors_with_the_cli_hint() {
+        let long = "x".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
+        for (text, needle) in [
+            ("", "missing query text"),
+            (" \t", "missing query text"),
+            (long.as_str(), "at most 1000"),
+        ] {
+            let e = run(&args(text)).unwrap_err();
+            let typed = e.downcast_ref::<slag_common::Error>();
+            assert!(
+                matches!(typed, Some(slag_common::Error::Invalid(_))),
+                "{e:#}"
+            );
+            let m = format!("{e:#}");
+            assert!(
+                m.contains(needle) && m.contains("--text") && !m.contains("/query?"),
+                "{m}"
+            );
+        }
+        // A valid prompt gets past the check (then fails on the missing file, not the prompt).
+        let m = format!("{:#}", run(&args("a chair")).unwrap_err());
+        assert!(m.contains("does-not-exist"), "{m}");
+    }
 }

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest};
+use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap};
 
 use crate::partition::{
     DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice,
@@ -53,13 +53,26 @@ pub struct PartitionArgs {
     /// Also write the stored-vs-dense report (see the printed summary) as JSON to this file.
     #[arg(long, value_name = "FILE")]
     pub report: Option<PathBuf>,
-    /// World up axis (x, y, z, -x, -y, -z). Default: from --cameras if given, else PCA.
+    /// World up axis (x, y, z, -x, -y, -z). Default: the map's z axis with --to-map /
+    /// --to-map-points, else from --cameras if given, else PCA.
     #[arg(long, allow_hyphen_values = true)]
     pub up: Option<String>,
     /// Scene folder with COLMAP `sparse/0` (or nerfstudio `transforms.json`): up = mean camera
     /// −y axis in world frame.
     #[arg(long)]
     pub cameras: Option<PathBuf>,
+    /// Scene-to-map transform (the robot's map frame, metres): a JSON file
+    /// `{"scale": s, "rotation": [[…],[…],[…]] (row-major) | "quaternion_wxyz": [w,x,y,z],
+    /// "translation": [tx,ty,tz]}` with x_map = s·R·x_scene + t, or the word `identity` for a
+    /// geo-registered (metric, e.g. ENU) model. Stored in the manifest; `slag-edge fetch` radii
+    /// and answers are then in map metres. Without --up, tiles lie on the map's ground (z up).
+    #[arg(long, value_name = "FILE|identity", conflicts_with = "to_map_points")]
+    pub to_map: Option<PathBuf>,
+    /// Estimate the scene-to-map transform from ≥ 3 surveyed points (Umeyama's least-squares
+    /// similarity; the RMS residual is printed and stored): JSON
+    /// `{"pairs": [{"scene": [x,y,z], "map": [x,y,z]}, …]}`.
+    #[arg(long, value_name = "FILE")]
+    pub to_map_points: Option<PathBuf>,
     /// Source `.ply`: store each Gaussian's log-scales, pre-sigmoid opacity, normalised rotation
     /// and SH DC colour (INRIA `.ply` convention) in the shards, for display (`GET /query.ply`).
     #[arg(long)]
@@ -90,6 +103,47 @@ pub struct PartitionArgs {
 }
 
 impl PartitionArgs {
+    /// The scene-to-map transform of `--to-map` / `--to-map-points`, if any (printed).
+    ///
+    /// Errors: unreadable file, bad JSON, too few / collinear points, a non-rotation
+    /// ([`slag_common::Error`]).
+    pub fn scene_to_map(&self) -> slag_common::Result<Option<SceneToMap>> {
+        let t = match (&self.to_map, &self.to_map_points) {
+            (Some(f), _) => SceneToMap::read(f)?,
+            (None, Some(f)) => SceneToMap::read_points(f)?,
+            (None, None) => return Ok(None),
+        };
+        let q = t.quaternion_wxyz();
+        println!(
+            "scene-to-map ({:?}): scale {:.9} m per scene unit, rotation (wxyz) [{:.9}, {:.9}, \
+             {:.9}, {:.9}], translation {:?} m{}",
+            t.source,
+            t.scale,
+            q[0],
+            q[1],
+            q[2],
+            q[3],
+            t.translation,
+            match (t.points, t.rms_residual) {
+                (Some(n), Some(r)) => format!("; {n} surveyed points, RMS residual {r:.4} m"),
+                _ => String::new(),
+            }
+        );
+        Ok(Some(t))
+    }
+
+    /// The up-axis choice: `--up`, else the map's z when a transform is given, else `--cameras`,
+    /// else PCA of the means.
+    fn up_choice(&self, to_map: Option<&SceneToMap>) -> anyhow::Result<Option<UpChoice>> {
+        Ok(if let Some(u) = &self.up {
+            Some(UpChoice::Given(GroundFrame::from_axis_name(u)?))
+        } else {
+            to_map
+                .map(|t| crate::partition::map_ground_frame(t).map(UpChoice::Given))
+                .transpose()?
+        })
+    }
+
     /// The tile cap asked for: `--max-per-shard N` when given (a count), else `--max-shard-mb`
     /// (bytes; default [`DEFAULT_MAX_SHARD_MIB`]).
     ///
@@ -109,6 +163,7 @@ fn partition_source(
     args: &PartitionArgs,
     src: &impl GaussianSource,
     up: UpChoice,
+    to_map: Option<SceneToMap>,
     scene_gaussians: Option<u64>,
 ) -> anyhow::Result<(Manifest, StorageReport)> {
     let layout = shard_layout(src, &args.scene, args.dtype);
@@ -119,6 +174,7 @@ fn partition_source(
         max_per_shard,
         up,
         dtype: args.dtype,
+        to_map,
     };
     let m = partition_into_store(store, src, &params).context("partition")?;
     let bytes = store
@@ -147,9 +203,10 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     let Some(path) = &args.embeddings else {
         anyhow::bail!("pass --embeddings FILE (or --synthetic N)");
     };
+    let to_map = args.scene_to_map()?;
     let emb = Embeddings::read(path)?;
-    let up = if let Some(u) = &args.up {
-        UpChoice::Given(GroundFrame::from_axis_name(u)?)
+    let up = if let Some(u) = args.up_choice(to_map.as_ref())? {
+        u
     } else if let Some(dir) = &args.cameras {
         let views = slag_common::camera::load_views(dir)?;
         UpChoice::CameraUps(
@@ -176,9 +233,9 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
             let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
             drop(g);
             let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
-            partition_source(args, &src, up, scene_gaussians)?
+            partition_source(args, &src, up, to_map.clone(), scene_gaussians)?
         }
-        None => partition_source(args, &emb, up, scene_gaussians)?,
+        None => partition_source(args, &emb, up, to_map, scene_gaussians)?,
     };
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
@@ -243,14 +300,15 @@ fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<(
         args.qdrant_url.is_none() && args.display_ply.is_none(),
         "--synthetic has no display attributes and is not uploaded to Qdrant"
     );
+    let to_map = args.scene_to_map()?;
     let scene = SyntheticScene::new(n, dim, 64, 2000.0, 42);
-    let up = match &args.up {
-        Some(u) => GroundFrame::from_axis_name(u)?,
-        None => GroundFrame::from_axis_name("z")?,
+    let up = match args.up_choice(to_map.as_ref())? {
+        Some(u) => u,
+        None => UpChoice::Given(GroundFrame::from_axis_name("z")?),
     };
     let t = std::time::Instant::now();
     // A synthetic scene has no source .ply: its baseline counts the stored rows.
-    let (m, _) = partition_source(args, &scene, UpChoice::Given(up), None)?;
+    let (m, _) = partition_source(args, &scene, up, to_map, None)?;
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
         "scene {} generation {}: {} synthetic Gaussians (dim {dim}) in {} shards, {} bytes ({:?}), {:.1}s",

@@ -1,0 +1,111 @@
+#!/usr/bin/env bash
+# SAM and CLIP on the GPU (issue 16), on the lent GPU machine (x86_64, NVIDIA, torch, no Rust, no
+# network); NOT part of CI. Needs, on that machine, ONNX Runtime's CUDA provider assembled in
+# /root/og (../shared/tools/ort-gpu-chunks.sh: four carries), and carried: .whl/ (segment_anything,
+# open_clip_torch, ftfy, wcwidth wheels), .devcarry/ (zstd-compressed release slag-encoder and
+# slag-bench, scene/ = snowmiku images + COLMAP + a geometry+DC .ply) and .gl/ (Vulkan loader debs).
+#   scripts/device-gpu-models.sh prep        # wheels, binaries, real-size random-weight exports:
+#                                            # SAM ViT-B and ViT-H, CLIP ViT-B/16, f32 and fp16;
+#                                            # device facts (rates, FLOPs); torch fp16/fp32 peers
+#   scripts/device-gpu-models.sh stages      # slag-bench stages per model, CUDA and CPU
+#   scripts/device-gpu-models.sh e2e [N] [V] # synthetic scene of N Gaussians (2M), V views (250)
+#                                            # at 990x742: ViT-H 16x16 + CLIP ViT-B/16 on CUDA
+#   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
+#                                            # were shared per GPU)
+#   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
+# Files under /root survive between calls while the machine is held. Results go to $OUT.
+set -uo pipefail
+for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
+if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
+  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+fi
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
+export XDG_RUNTIME_DIR=/tmp PYTHONPATH=/root/site PYTHONUNBUFFERED=1 SLAG_EXPORT_NO_CHECK=1
+# shellcheck disable=SC1091
+source /root/og/assemble.sh
+R=${OUT:-/tmp/out}; W=/root/work; M=/root/models; B=/root/bin/slag-encoder; BB=/root/bin/slag-bench
+mkdir -p "$R" "$W" "$M" /root/bin
+if [ -d .devcarry ]; then
+  for z in .devcarry/*.zst; do [ -f "$z" ] && LD_LIBRARY_PATH=/root/og /root/og/zstd -dqf "$z" -o "/root/bin/$(basename "$z" .zst)"; done
+  chmod +x /root/bin/* 2>/dev/null
+  [ -d .devcarry/scene ] && rm -rf /root/scene && cp -r .devcarry/scene /root/scene
+fi
+nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader
+echo "cores: $(nproc)  ORT: $ORT_DYLIB_PATH"
+mode=${1:-prep}
+SAMARGS=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0)
+samm() { echo --sam-encoder "$M/$1/sam-$2-encoder.onnx" --sam-decoder "$M/$1/sam-$2-decoder.onnx"; }
+clipm() { echo --clip-visual "$M/$1/"*visual*.onnx; }
+case "$mode" in
+prep)
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  t0=$(date +%s)
+  if [ ! -f "$M/f16/sam-vit_h-encoder.onnx" ]; then
+  for k in ${KINDS:-vit_b vit_h}; do
+    [ "${QUICK:-0}" = 1 ] || python3 scripts/export-models.py sam --kind $k --random "$M/f32" > "$R/export-$k.json" 2>"$R/export-$k.err" || tail -5 "$R/export-$k.err"
+    python3 scripts/export-models.py sam --kind $k --random --fp16 "$M/f16" > "$R/export-$k-fp16.json" 2>"$R/export-$k-fp16.err" || tail -5 "$R/export-$k-fp16.err"
+    echo "exported $k ($(( $(date +%s) - t0 )) s)"
+  done
+  [ "${QUICK:-0}" = 1 ] || python3 scripts/export-models.py clip --model ViT-B-16 --random "$M/f32" > "$R/export-clip.json" 2>&1 | tail -3
+  python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 "$M/f16" > "$R/export-clip-fp16.json" 2>&1 | tail -3
+  fi
+  ls -la "$M"/f32 "$M"/f16
+  [ "${QUICK:-0}" = 1 ] && exit 0
+  python3 scripts/device_facts.py "$R/facts.json" "$M"/f32/sam-vit_b-encoder.onnx \
+    "$M"/f32/sam-vit_b-decoder.onnx $(ls "$M"/f32/*visual*.onnx) > "$R/facts.log" 2>&1 || tail -5 "$R/facts.log"
+  cp "$R/facts.json" /root/facts.json
+  python3 scripts/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -12
+  cp "$R/torch-peers.json" /root/torch-peers.json
+  ;;
+stages)
+  S=(--scene /root/scene --raster-scale 0.5 --quiet --facts /root/facts.json)
+  st() { # name, ep, every, args...
+    local name=$1 ep=$2 every=$3; shift 3
+    echo "### $name ($ep, every $every)"
+    "$BB" stages "${S[@]}" --ep "$ep" --every "$every" "$@" --out "$W/$name" --table "$R/stages-$name.md" 2>&1 \
+      | grep -v "^\s*$" | tail -4
+    cp "$W/$name/report.json" "$R/report-$name.json" 2>/dev/null
+  }
+  for prec in f16 f32; do
+    st "vitb-$prec-cuda" cuda 4 "${SAMARGS[@]}" $(samm $prec vit_b) $(clipm $prec)
+    st "vith-$prec-cuda" cuda 4 "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec)
+    st "clip-$prec-cuda" cuda 2 --masks graph $(clipm $prec)
+  done
+  st vitb-f32-cpu cpu 49 "${SAMARGS[@]}" $(samm f32 vit_b) $(clipm f32)
+  st clip-f32-cpu cpu 49 --masks graph $(clipm f32)
+  ;;
+fronts)
+  echo "### 8 front workers, SAM ViT-B fp16 + CLIP ViT-B/16 fp16, CUDA"
+  /usr/bin/time -v "$B" bench --scene /root/scene --ep cuda --every 4 --raster-scale 0.5 --front-workers 8 \
+    "${SAMARGS[@]}" $(samm f16 vit_b) $(clipm f16) --quiet --out "$W/fronts8" > "$R/fronts8.txt" 2>&1
+  echo "exit $?"; grep -E "wall|masks|CLIP|Maximum resident|peak|execution" "$R/fronts8.txt" | head -20
+  cp "$W/fronts8/report.json" "$R/report-fronts8.json" 2>/dev/null
+  ;;
+e2e)
+  n=${2:-2M}; v=${3:-250}
+  if [ ! -f /root/big/report-synth.json ]; then
+    echo "### synth-scene $n Gaussians, $v views 990x742"
+    t0=$(date +%s.%N)
+    "$B" synth-scene --gaussians "$n" --views "$v" --width 990 --height 742 --out /root/big > /root/big-synth.json
+    echo "synth-scene took $(python3 -c "import time; print(round(time.time()-$t0,1))") s"; cp /root/big-synth.json /root/big/report-synth.json
+  fi
+  cp /root/big/report-synth.json "$R/synth.json"
+  prec=${PREC:-f16}
+  echo "### encode: SAM ViT-H $prec 16x16 (filters 0) + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
+  /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
+    "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
+  echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
+  cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
+  ;;
+scaling)
+  counts=${2:-1,2}; prec=${PREC:-f16}
+  [ -f /root/big/report-synth.json ] || { "$B" synth-scene --gaussians 2M --views 250 --width 990 --height 742 --out /root/big > /root/big-synth.json && cp /root/big-synth.json /root/big/report-synth.json; }
+  echo "### scaling $counts: e2e scene, ViT-H $prec + CLIP $prec on CUDA"
+  "$BB" scaling --scene /root/big --ep cuda --raster-scale 0.5 "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
+    --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" 2>&1 | tail -30
+  for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json" 2>/dev/null; done
+  ;;
+esac
+# At most 8 files come back from a call: pack the results into one archive.
+(cd "$R" && shopt -s nullglob && f=(*) && [ ${#f[@]} -gt 6 ] && tar czf "results-$mode.tgz" --exclude='*.tgz' "${f[@]}" && rm -f -- "${f[@]}")
+
