@@ -231,7 +231,14 @@ pub fn stage_rows(
         ceiling: format!("host copy 1 thread {:.1} GB/s", facts.host_copy_1t_gbps),
         floor_ms: Some(image_pixels * 3.0 / (facts.host_copy_1t_gbps * 1e9) * 1e3),
     });
-    let ort = format!("ORT CPU EP, {} cores", facts.host_cores);
+    // Where the models actually ran (the report's resolved provider, not the request).
+    let ort = match r.models["execution_provider"].as_str() {
+        Some(ep) if ep != "cpu" => {
+            let fronts = r.models["front_workers"].as_u64().unwrap_or(1);
+            format!("ORT {ep} EP, one session per GPU shared by {fronts} front workers")
+        }
+        _ => format!("ORT CPU EP, {} cores", facts.host_cores),
+    };
     match (gflop(&a.sam_encoder), gflop(&a.sam_decoder)) {
         (Some(enc), Some(dec)) if a.sam_encoder.is_some() => {
             let points = f64::from(a.sam_points_per_side).powi(2);
@@ -249,9 +256,17 @@ pub fn stage_rows(
         }
         _ => rows.push(StageRow {
             stage: format!("masks ({})", r.models["masks"].as_str().unwrap_or("graph")),
-            runs_on: "CPU".into(),
+            runs_on: if a.sam_encoder.is_some() {
+                ort.clone()
+            } else {
+                "CPU".into()
+            },
             ms_per_image: per(t.masks),
-            work: "no FLOP model (graph segmentation)".into(),
+            work: if a.sam_encoder.is_some() {
+                "SAM model not in the facts file: no FLOP count".into()
+            } else {
+                "no FLOP model (graph segmentation)".into()
+            },
             ceiling: "-".into(),
             floor_ms: None,
         }),
