@@ -200,6 +200,18 @@ fn sam_params(a: &EncodeArgs) -> crate::masks::sam::SamParams {
     }
 }
 
+/// `--sam-encoder` and `--sam-decoder`, required with `--masks sam`.
+fn sam_paths(a: &EncodeArgs) -> anyhow::Result<(&std::path::Path, &std::path::Path)> {
+    Ok((
+        a.sam_encoder
+            .as_deref()
+            .context("--masks sam needs --sam-encoder")?,
+        a.sam_decoder
+            .as_deref()
+            .context("--masks sam needs --sam-decoder")?,
+    ))
+}
+
 /// The mask generator `a` asks for (`--masks`), with `threads` ONNX Runtime intra-op threads.
 pub(crate) fn build_masks(
     a: &EncodeArgs,
@@ -207,14 +219,7 @@ pub(crate) fn build_masks(
 ) -> anyhow::Result<Box<dyn MaskGenerator>> {
     Ok(match a.masks {
         MaskSource::Sam => {
-            let (enc, dec) = (
-                a.sam_encoder
-                    .as_ref()
-                    .context("--masks sam needs --sam-encoder")?,
-                a.sam_decoder
-                    .as_ref()
-                    .context("--masks sam needs --sam-decoder")?,
-            );
+            let (enc, dec) = sam_paths(a)?;
             let params = sam_params(a);
             Box::new(
                 crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
@@ -389,14 +394,7 @@ pub(crate) fn build_fronts(
         }
         let sam = match a.masks {
             MaskSource::Sam => {
-                let (enc, dec) = (
-                    a.sam_encoder
-                        .as_ref()
-                        .context("--masks sam needs --sam-encoder")?,
-                    a.sam_decoder
-                        .as_ref()
-                        .context("--masks sam needs --sam-decoder")?,
-                );
+                let (enc, dec) = sam_paths(a)?;
                 Some(
                     crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
                         enc,
