@@ -10,9 +10,10 @@ use std::process::{Command, Output};
 use slag_common::shards::Dtype;
 use support::{grid_scene, shard_server};
 
-fn slag_edge(args: &[&str]) -> Output {
+/// The slag-edge binary as a command (through `$SLAG_TEST_RUNNER`, e.g. qemu, when set).
+fn slag_edge_command() -> Command {
     let bin = env!("CARGO_BIN_EXE_slag-edge");
-    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
+    match std::env::var("SLAG_TEST_RUNNER") {
         Ok(r) if !r.trim().is_empty() => {
             let mut parts = r.split_whitespace();
             let mut c = Command::new(parts.next().unwrap());
@@ -20,8 +21,15 @@ fn slag_edge(args: &[&str]) -> Output {
             c
         }
         _ => Command::new(bin),
-    };
-    cmd.args(args).env("RUST_LOG", "warn").output().unwrap()
+    }
+}
+
+fn slag_edge(args: &[&str]) -> Output {
+    slag_edge_command()
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap()
 }
 
 fn fixture(rel: &str) -> String {
@@ -190,16 +198,7 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
     let store = dir.path().join("no-store");
     let s = store.display().to_string();
     let run = |text: &str, extra: &[&str], backtrace: bool| {
-        let bin = env!("CARGO_BIN_EXE_slag-edge");
-        let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
-            Ok(r) if !r.trim().is_empty() => {
-                let mut parts = r.split_whitespace();
-                let mut c = Command::new(parts.next().unwrap());
-                c.args(parts).arg(bin);
-                c
-            }
-            _ => Command::new(bin),
-        };
+        let mut cmd = slag_edge_command();
         cmd.args([
             "query",
             "--store",
