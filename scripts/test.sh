@@ -14,8 +14,12 @@ else
 fi
 # --no-fail-fast: every test binary runs even after one fails, and the cross step below runs
 # whatever the native result, so one run shows every failure; the exit status is still non-zero.
+disk_free() { df -h "${CARGO_TARGET_DIR:-target}" 2>/dev/null | awk 'NR==2 {print $4 " free on " $6}'; }
+mkdir -p "${CARGO_TARGET_DIR:-target}"
+echo "test: disk before the build: $(disk_free)" >&2
 native=0
 cargo test --workspace --locked --no-fail-fast "$@" || native=$?
+echo "test: disk after the native tests: $(disk_free)" >&2
 cross=0
 if [ "${SLAG_SKIP_CROSS:-0}" = 1 ]; then
   echo "test: SLAG_SKIP_CROSS=1: aarch64 cross build skipped" >&2
