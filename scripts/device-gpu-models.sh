@@ -13,6 +13,9 @@
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
+#   scripts/device-gpu-models.sh reduce      # slag-bench reduce at the e2e scene's size (2M
+#                                            # Gaussians, 250 views x 250k a_kj, D 512): both loop
+#                                            # orders of the reduction + the f16 write (CPU only)
 # Files under /root survive between calls while the machine is held. Results go to $OUT.
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
@@ -96,6 +99,11 @@ e2e)
     "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
   cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
+  ;;
+reduce)
+  echo "### slag-bench reduce, 2M Gaussians, 250 views x 250k entries, D 512"
+  "$BB" reduce --gaussians 2000000 --images 250 --entries-per-image 250000 --dim 512 --repeats 1 \
+    > "$R/reduce.md" 2>&1; echo "exit $?"; cat "$R/reduce.md"
   ;;
 scaling)
   counts=${2:-1,2}; prec=${PREC:-f16}

@@ -9,10 +9,13 @@
 //! - [`stages`]: each encoder stage's time per image against its floor (FLOPs at the measured
 //!   matrix rate, bytes at the measured bandwidths) on the machine it runs on (issue 5).
 //! - [`scaling`]: the same encode on 1, 2, 4 … GPUs of one host: speed-up and efficiency.
+//! - [`reduce`]: the reduction over images (the encoder's serial tail) in its two loop orders,
+//!   against each other in one run, plus the embeddings write.
 //!
 //! The binary `slag-bench` exposes each study as a subcommand (`slag-bench tradeoffs …`).
 
 pub mod machine;
+pub mod reduce;
 pub mod scaling;
 pub mod stages;
 pub mod tradeoffs;

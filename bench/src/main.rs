@@ -20,6 +20,9 @@ enum Command {
     Stages(Box<slag_bench::stages::StagesArgs>),
     /// The same encode on 1, 2, 4 … GPUs of this host: speed-up and efficiency table.
     Scaling(Box<slag_bench::scaling::ScalingArgs>),
+    /// The reduction over images in its two loop orders on a synthetic store of a real scene's
+    /// size (same sums bit for bit), plus the embeddings write.
+    Reduce(Box<slag_bench::reduce::ReduceArgs>),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -32,6 +35,7 @@ fn main() -> anyhow::Result<()> {
         }
         Command::Stages(a) => println!("{}", slag_bench::stages::run(&a)?),
         Command::Scaling(a) => println!("{}", slag_bench::scaling::run(&a)?),
+        Command::Reduce(a) => println!("{}", slag_bench::reduce::run(&a)?),
     }
     Ok(())
 }

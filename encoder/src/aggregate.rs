@@ -483,6 +483,11 @@ pub struct ReduceParams {
     pub min_total_weight: f64,
     /// Upper bound on the f64 accumulator, bytes; the Gaussians are processed in chunks that fit.
     pub accumulator_budget_bytes: usize,
+    /// Use the image-major loop (the spilled path's) even when every contribution is in memory.
+    /// Same values bit for bit, only slower; kept so that benchmarks can measure the two orders
+    /// against each other in one run (`slag-bench reduce`).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub image_major: bool,
 }
 
 impl Default for ReduceParams {
@@ -490,6 +495,7 @@ impl Default for ReduceParams {
         Self {
             min_total_weight: 1e-6,
             accumulator_budget_bytes: 2 << 30,
+            image_major: false,
         }
     }
 }
@@ -507,6 +513,27 @@ pub struct Reduced {
     pub chunks: usize,
 }
 
+impl Reduced {
+    /// Runs in ascending id order joined into one (`chunks` summed).
+    pub fn concat(parts: Vec<Reduced>) -> Reduced {
+        let rows: usize = parts.iter().map(|p| p.ids.len()).sum();
+        let values: usize = parts.iter().map(|p| p.vectors.len()).sum();
+        let mut out = Reduced {
+            ids: Vec::with_capacity(rows),
+            vectors: Vec::with_capacity(values),
+            total_weights: Vec::with_capacity(rows),
+            chunks: 0,
+        };
+        for p in parts {
+            out.ids.extend_from_slice(&p.ids);
+            out.vectors.extend_from_slice(&p.vectors);
+            out.total_weights.extend_from_slice(&p.total_weights);
+            out.chunks += p.chunks;
+        }
+        out
+    }
+}
+
 /// `E_k = Σ a_kj E_j / Σ a_kj` over every stored contribution, for Gaussians `0..n_gaussians`,
 /// normalised to unit length (cosine queries). f64 accumulation; chunked over Gaussian ids.
 /// Unobserved: `Σ a < min_total_weight`, or the weighted mean's norm below 1e-9 of `Σ a`
@@ -518,19 +545,23 @@ pub fn reduce(
     params: ReduceParams,
 ) -> Result<Reduced> {
     let mut out = Reduced::default();
-    out.chunks = reduce_each(store, n_gaussians, dim, params, |ids, vectors, weights| {
-        out.ids.extend_from_slice(ids);
-        out.vectors.extend_from_slice(vectors);
-        out.total_weights.extend_from_slice(weights);
+    out.chunks = reduce_each(store, n_gaussians, dim, params, |parts| {
+        let part = Reduced::concat(parts);
+        out.ids.extend_from_slice(&part.ids);
+        out.vectors.extend_from_slice(&part.vectors);
+        out.total_weights.extend_from_slice(&part.total_weights);
         Ok(())
     })?;
     Ok(out)
 }
 
-/// [`reduce`] without collecting: for each chunk of Gaussian ids (ascending), calls `sink` with
-/// the chunk's observed ids `[B]`, unit vectors `[B * dim]` and `Σ a_kj` `[B]`, then frees the
-/// chunk. Memory: the f64 accumulator (≤ `params.accumulator_budget_bytes`) plus one chunk's
-/// output, whatever the scene size. Returns the number of chunks.
+/// [`reduce`] without collecting: for each chunk of Gaussian ids (ascending), hands `sink` the
+/// chunk's observed rows as consecutive [`Reduced`] runs in ascending id order (observed ids
+/// `[B]`, unit vectors `[B * dim]`, `Σ a_kj` `[B]`, `chunks` 0; one run per block of Gaussians), owned, so
+/// that a sink may pass them to a writer thread and overlap the write with the next chunk's
+/// accumulation. Memory: the f64 accumulators (one chunk's, ≤ `params.accumulator_budget_bytes`,
+/// on the image-major path; one block's per thread otherwise) plus one chunk's output, whatever
+/// the scene size. Returns the number of chunks.
 ///
 /// Errors: a contribution of another width ([`Error::Invalid`]); spill-file I/O; `sink`'s errors.
 pub fn reduce_each(
@@ -538,7 +569,7 @@ pub fn reduce_each(
     n_gaussians: usize,
     dim: usize,
     params: ReduceParams,
-    mut sink: impl FnMut(&[u32], &[f32], &[f32]) -> Result<()>,
+    mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
 ) -> Result<usize> {
     let per_gaussian = (dim + 1) * 8;
     let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
@@ -547,24 +578,28 @@ pub fn reduce_each(
         n_gaussians,
         dim,
         chunk,
+        params.image_major,
         |_, _, _| Ok(0),
         |_: &mut (), _, _| {},
         |sums| {
-            let mut out = Reduced::default();
+            let mut out = Reduced {
+                chunks: 0,
+                ..Default::default()
+            };
             for (r, row, norm, d) in sums.observed(params.min_total_weight) {
                 out.ids.push((sums.start + r) as u32);
                 out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
                 out.total_weights.push(d as f32);
             }
-            drop(sums);
-            sink(&out.ids, &out.vectors, &out.total_weights)
+            out
         },
+        &mut sink,
     )
 }
 
-/// One chunk of Gaussian ids after every contribution was added: `Σ_i Σ_j a_kj E_j` and
-/// `Σ_i Σ_j a_kj` in f64 for Gaussians `start..start + den.len()`, plus a per-Gaussian extra
-/// (`T`) that the entry hook of [`accumulate`] filled.
+/// One run of Gaussian ids (a chunk, or a block of one) after every contribution was added:
+/// `Σ_i Σ_j a_kj E_j` and `Σ_i Σ_j a_kj` in f64 for Gaussians `start..start + den.len()`, plus a
+/// per-Gaussian extra (`T`) that the entry hook of [`accumulate`] filled.
 struct ChunkSums<T> {
     /// First Gaussian id of the chunk.
     start: usize,
@@ -578,7 +613,18 @@ struct ChunkSums<T> {
     extra: Vec<T>,
 }
 
-impl<T> ChunkSums<T> {
+impl<T: Clone + Default> ChunkSums<T> {
+    /// Zeroed sums for Gaussians `start..start + len`, reusing the buffers.
+    fn reset(&mut self, start: usize, len: usize) {
+        self.start = start;
+        self.num.clear();
+        self.num.resize(len * self.dim, 0.0);
+        self.den.clear();
+        self.den.resize(len, 0.0);
+        self.extra.clear();
+        self.extra.resize(len, T::default());
+    }
+
     /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`.
     /// Unobserved (skipped): `Σ a` NaN or below `min_total_weight`, or the norm not finite or
     /// at most `1e-9 · Σ a` (mask embeddings that cancel out carry no direction).
@@ -600,87 +646,147 @@ impl<T> ChunkSums<T> {
 
 /// The f64 accumulation shared by [`reduce_each`] and [`reduce_mixture`]: for each chunk of
 /// `chunk` Gaussian ids, visits every contribution ([`ContributionStore::for_each`] order) and adds
-/// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian (rayon over blocks of 1024
-/// Gaussians; within a Gaussian the sums run in contribution, then entry order, so every caller
-/// gets the same f64 values), then hands the chunk to `done`.
+/// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian; `finish` turns each run of final
+/// sums into a part (in parallel), and `done` receives the chunk's parts in ascending id order.
+/// Within a Gaussian the sums always run in contribution, then entry order, so every caller and
+/// both loop orders below get bit-identical f64 values.
 ///
-/// Hooks: `on_image(first_chunk, image, c)` runs once per contribution and chunk before its
-/// entries (after the width check; `image` counts the contributions of this chunk's visit from 0)
-/// and returns a tag passed to `on_entry` (the mixture's codebook offset);
-/// `on_entry(extra, entry, tag)` sees every entry with its Gaussian's extra. The first error of a
-/// width mismatch or `on_image` skips the remaining contributions and is returned after the visit
-/// (spill-file I/O errors come first). Returns the number of chunks.
-fn accumulate<T: Clone + Default + Send>(
+/// Loop order ([`ReduceParams::image_major`]):
+/// - *Gaussian-block-major* (default when no contribution is spilled): rayon over blocks of
+///   [`REDUCE_BLOCK`] Gaussians, each block visiting every image's entries of its id range into
+///   its thread's accumulator (`REDUCE_BLOCK × D` f64, 512 KiB at D = 512, reused from block to
+///   block), which stays in the core's cache while all images are added; `finish` runs per
+///   block. The memory traffic is one read of the entries and mask embeddings.
+/// - *Image-major* (spilled contributions, streamed from disk one at a time): a chunk-sized
+///   accumulator; for each image, rayon over blocks of 1024 Gaussians; every entry reads and
+///   writes its Gaussian's f64 row in memory; `finish` runs once on the whole chunk.
+///
+/// Hooks: `on_image(first_chunk, image, c)` runs once per contribution and chunk, in visit order,
+/// before its entries are added (after the width check; `image` counts the contributions of this
+/// chunk's visit from 0) and returns a tag passed to `on_entry` (the mixture's codebook offset);
+/// `on_entry(extra, entry, tag)` sees every entry with its Gaussian's extra, in the per-Gaussian
+/// order above. The first error of a width mismatch or `on_image` is returned and no part of
+/// that chunk is handed on (spill-file I/O errors come first). Returns the number of chunks.
+#[allow(clippy::too_many_arguments)]
+fn accumulate<T: Clone + Default + Send, B: Send>(
     store: &ContributionStore,
     n_gaussians: usize,
     dim: usize,
     chunk: usize,
+    image_major: bool,
     mut on_image: impl FnMut(bool, usize, &ImageContribution) -> Result<u32>,
     on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
-    mut done: impl FnMut(ChunkSums<T>) -> Result<()>,
+    finish: impl Fn(&ChunkSums<T>) -> B + Sync,
+    mut done: impl FnMut(Vec<B>) -> Result<()>,
 ) -> Result<usize> {
-    const BLOCK: usize = 1024;
+    let width_check = |c: &ImageContribution| {
+        if c.dim != dim {
+            return Err(Error::Invalid(format!(
+                "contribution of dim {}, expected {dim}",
+                c.dim
+            )));
+        }
+        Ok(())
+    };
+    let empty = || ChunkSums {
+        start: 0,
+        dim,
+        num: Vec::new(),
+        den: Vec::new(),
+        extra: Vec::new(),
+    };
     let mut chunks = 0;
     for start in (0..n_gaussians).step_by(chunk) {
         chunks += 1;
         let end = (start + chunk).min(n_gaussians);
-        let mut sums = ChunkSums {
-            start,
-            dim,
-            num: vec![0f64; (end - start) * dim],
-            den: vec![0f64; end - start],
-            extra: vec![T::default(); end - start],
-        };
-        let mut failure: Option<Error> = None;
-        let mut image = 0usize;
-        store.for_each(|c| {
-            if failure.is_some() {
-                return;
+        if store.spilled() == 0 && !image_major {
+            let images = &store.in_memory;
+            let mut tags = Vec::with_capacity(images.len());
+            for (image, c) in images.iter().enumerate() {
+                width_check(c)?;
+                tags.push(on_image(start == 0, image, c)?);
             }
-            if c.dim != dim {
-                failure = Some(Error::Invalid(format!(
-                    "contribution of dim {}, expected {dim}",
-                    c.dim
-                )));
-                return;
-            }
-            let tag = match on_image(start == 0, image, c) {
-                Ok(tag) => tag,
-                Err(e) => {
-                    failure = Some(e);
+            let parts: Vec<B> = (start..end)
+                .step_by(REDUCE_BLOCK)
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map_init(empty, |sums, g0| {
+                    sums.reset(g0, REDUCE_BLOCK.min(end - g0));
+                    for (c, &tag) in images.iter().zip(&tags) {
+                        let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
+                        add_entries(c, g0 as u32, dim, num, den, extra, tag, &on_entry);
+                    }
+                    finish(sums)
+                })
+                .collect();
+            done(parts)?;
+        } else {
+            const BLOCK: usize = 1024;
+            let mut sums = empty();
+            sums.reset(start, end - start);
+            let mut failure: Option<Error> = None;
+            let mut image = 0usize;
+            store.for_each(|c| {
+                if failure.is_some() {
                     return;
                 }
-            };
-            image += 1;
-            sums.num
-                .par_chunks_mut(BLOCK * dim)
-                .zip(sums.den.par_chunks_mut(BLOCK))
-                .zip(sums.extra.par_chunks_mut(BLOCK))
-                .enumerate()
-                .for_each(|(b, ((nb, db), xb))| {
-                    let g0 = (start + b * BLOCK) as u32;
-                    let g1 = g0 + db.len() as u32;
-                    let lo = c.entries.partition_point(|e| e.gaussian < g0);
-                    let hi = c.entries.partition_point(|e| e.gaussian < g1);
-                    for e in &c.entries[lo..hi] {
-                        let r = (e.gaussian - g0) as usize;
-                        let a = e.weight as f64;
-                        db[r] += a;
-                        let ej =
-                            &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
-                        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
-                            *acc += a * v as f64;
-                        }
-                        on_entry(&mut xb[r], e, tag);
+                let tag = match width_check(c).and_then(|()| on_image(start == 0, image, c)) {
+                    Ok(tag) => tag,
+                    Err(e) => {
+                        failure = Some(e);
+                        return;
                     }
-                });
-        })?;
-        if let Some(e) = failure {
-            return Err(e);
+                };
+                image += 1;
+                sums.num
+                    .par_chunks_mut(BLOCK * dim)
+                    .zip(sums.den.par_chunks_mut(BLOCK))
+                    .zip(sums.extra.par_chunks_mut(BLOCK))
+                    .enumerate()
+                    .for_each(|(b, ((num, den), extra))| {
+                        let g0 = (start + b * BLOCK) as u32;
+                        add_entries(c, g0, dim, num, den, extra, tag, &on_entry);
+                    });
+            })?;
+            if let Some(e) = failure {
+                return Err(e);
+            }
+            done(vec![finish(&sums)])?;
         }
-        done(sums)?;
     }
     Ok(chunks)
+}
+
+/// Gaussians per task of the Gaussian-block-major reduction ([`accumulate`]).
+const REDUCE_BLOCK: usize = 128;
+
+/// Adds one image's entries for Gaussians `g0..g0 + db.len()` (its entries are sorted by
+/// Gaussian) to that block's sums: `db[r] += a`, `nb[r·D..(r+1)·D] += a · E_j`, in entry order.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn add_entries<T>(
+    c: &ImageContribution,
+    g0: u32,
+    dim: usize,
+    nb: &mut [f64],
+    db: &mut [f64],
+    xb: &mut [T],
+    tag: u32,
+    on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
+) {
+    let g1 = g0 + db.len() as u32;
+    let lo = c.entries.partition_point(|e| e.gaussian < g0);
+    let hi = lo + c.entries[lo..].partition_point(|e| e.gaussian < g1);
+    for e in &c.entries[lo..hi] {
+        let r = (e.gaussian - g0) as usize;
+        let a = e.weight as f64;
+        db[r] += a;
+        let ej = &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
+        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
+            *acc += a * v as f64;
+        }
+        on_entry(&mut xb[r], e, tag);
+    }
 }
 
 /// The same reduction as [`reduce`], kept in mixture form ([`MixtureEmbeddings`]): a shared
@@ -745,6 +851,7 @@ pub fn reduce_mixture(
         n_gaussians,
         dim,
         chunk,
+        params.image_major,
         |first_chunk, image, c| {
             if first_chunk {
                 let rows = codebook.len() / dim.max(1);
@@ -762,12 +869,17 @@ pub fn reduce_mixture(
             })
         },
         |top: &mut Vec<(f32, u32)>, e, offset| push_top(top, keep, e.weight, offset + e.mask),
+        // Per run: the observed Gaussians with their kept (a, atom), in id order.
         |sums| {
-            for (r, _, _, _) in sums.observed(params.min_total_weight) {
-                let k = sums.start + r;
+            sums.observed(params.min_total_weight)
+                .map(|(r, _, _, _)| (sums.start + r, sums.extra[r].clone()))
+                .collect::<Vec<_>>()
+        },
+        |runs| {
+            for (k, top) in runs.into_iter().flatten() {
                 parts.gaussian_ids.push(k as u32);
                 parts.means.push(means[k]);
-                for &(a, atom) in &sums.extra[r] {
+                for (a, atom) in top {
                     parts.atoms.push(atom);
                     parts.weights.push(a as f64);
                 }
@@ -1114,6 +1226,57 @@ mod tests {
         let again =
             reduce_mixture(&spilling, n as usize, dim, tight, usize::MAX, "m", &means).unwrap();
         assert_eq!(again, mix);
+    }
+
+    #[test]
+    fn both_loop_orders_give_the_same_sums_bit_for_bit() {
+        // 3000 Gaussians = 23.4 blocks of REDUCE_BLOCK: a partial last block, and with the tight
+        // budget 3 chunks whose edges fall inside blocks of the image-major loop.
+        let (n, dim) = (3000u32, 16);
+        let dir = tempfile::tempdir().unwrap();
+        let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.0, 0.0]).collect();
+        let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
+        assert_eq!(store.spilled(), 0);
+        for budget in [usize::MAX / 2, 1024 * (dim + 1) * 8] {
+            let block_major = ReduceParams {
+                accumulator_budget_bytes: budget,
+                ..Default::default()
+            };
+            let image_major = ReduceParams {
+                image_major: true,
+                ..block_major
+            };
+            let a = reduce(&store, n as usize, dim, block_major).unwrap();
+            let b = reduce(&store, n as usize, dim, image_major).unwrap();
+            assert!(a.ids.len() > 1000);
+            // Exact equality of the f32 outputs of the f64 sums, not a tolerance.
+            assert_eq!(a, b, "budget {budget}");
+            let ma = reduce_mixture(&store, n as usize, dim, block_major, 4, "m", &means).unwrap();
+            let mb = reduce_mixture(&store, n as usize, dim, image_major, 4, "m", &means).unwrap();
+            assert_eq!(ma, mb, "budget {budget}");
+        }
+        // A contribution of another width fails in both orders, before any sum is handed on.
+        let mut bad = mixture_store(n, dim, usize::MAX, &dir.path().join("b"));
+        bad.push(ImageContribution {
+            dim: dim + 1,
+            mask_embeddings: vec![0.0; dim + 1],
+            entries: vec![],
+        })
+        .unwrap();
+        for image_major in [false, true] {
+            let p = ReduceParams {
+                image_major,
+                ..Default::default()
+            };
+            let mut handed = 0;
+            let e = reduce_each(&bad, n as usize, dim, p, |_| {
+                handed += 1;
+                Ok(())
+            })
+            .unwrap_err();
+            assert!(e.to_string().contains("dim 17"), "{e}");
+            assert_eq!(handed, 0);
+        }
     }
 
     #[test]

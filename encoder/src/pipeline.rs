@@ -581,23 +581,43 @@ pub fn encode_pool(
         std::fs::remove_file(&report_path).map_err(|e| Error::io(&report_path, e))?;
     }
     // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
+    // A writer thread converts and writes chunk c while chunk c + 1 is accumulated (one chunk
+    // queued at most, so memory stays at the accumulator plus two chunks' output).
     let t0 = Instant::now();
-    let mut writer = EmbeddingsWriter::create(&emb_path, dim, params.precision)?;
-    let mut write_s = 0.0;
-    let chunks = aggregate::reduce_each(
-        &store,
-        gaussians.len(),
-        dim,
-        params.reduce,
-        |ids, vectors, weights| {
-            let tw = Instant::now();
-            let means: Vec<[f32; 3]> = ids.iter().map(|&k| gaussians.means[k as usize]).collect();
-            writer.push(ids, &means, vectors, weights)?;
-            write_s += tw.elapsed().as_secs_f64();
-            Ok(())
-        },
-    )?;
-    t.reduce = t0.elapsed().as_secs_f64() - write_s;
+    let writer = EmbeddingsWriter::create(&emb_path, dim, params.precision)?;
+    let means = &gaussians.means;
+    let (chunks, writer, reduce_s) = std::thread::scope(|s| -> Result<_> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<aggregate::Reduced>>(1);
+        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
+            let mut writer = writer;
+            for parts in rx {
+                // One push per chunk, so that the writer converts the whole chunk in parallel.
+                let chunk = aggregate::Reduced::concat(parts);
+                let chunk_means: Vec<[f32; 3]> =
+                    chunk.ids.iter().map(|&k| means[k as usize]).collect();
+                writer.push(
+                    &chunk.ids,
+                    &chunk_means,
+                    &chunk.vectors,
+                    &chunk.total_weights,
+                )?;
+            }
+            Ok(writer)
+        });
+        let reduced = aggregate::reduce_each(&store, gaussians.len(), dim, params.reduce, |part| {
+            tx.send(part)
+                .map_err(|_| Error::Invalid("the embeddings writer stopped early".into()))
+        });
+        let reduce_s = t0.elapsed().as_secs_f64();
+        drop(tx);
+        // The writer's own error explains a failed send better than the send does.
+        let writer = handle
+            .join()
+            .map_err(|_| Error::Invalid("the embeddings writer thread panicked".into()))??;
+        Ok((reduced?, writer, reduce_s))
+    })?;
+    let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
+    t.reduce = reduce_s;
     counts.spilled_images = store.spilled();
     counts.reduce_chunks = chunks;
     counts.observed = writer.len();
@@ -630,7 +650,7 @@ pub fn encode_pool(
         }
         None => {}
     }
-    t.write = write_s + t0.elapsed().as_secs_f64();
+    t.write = write_tail_s + t0.elapsed().as_secs_f64();
     t.total = t_total.elapsed().as_secs_f64();
     let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();

@@ -19,9 +19,11 @@ pub struct StageTimings {
     pub raster: f64,
     /// Image stage of the aggregation (`a_kj`).
     pub image_aggregate: f64,
-    /// Reduction over images (`E_k`).
+    /// Reduction over images (`E_k`), wall clock until its last chunk was handed to the writer
+    /// (the writer thread converts and writes each chunk while the next one is accumulated).
     pub reduce: f64,
-    /// Writing the output files.
+    /// Writing the output files, wall clock after the reduction: the last chunk's write, the
+    /// mixture file and the embeddings file's assembly and fsync (what the overlap left).
     pub write: f64,
     /// Whole run, wall clock.
     pub total: f64,

@@ -82,6 +82,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         reduce: slag_encoder::aggregate::ReduceParams {
             min_total_weight: 1e-6,
             accumulator_budget_bytes: 64 << 20,
+            ..Default::default()
         },
         contribution_budget_bytes: 1 << 20, // small: some images spill to disk
         precision: slag_common::embeddings::StoredPrecision::F32,

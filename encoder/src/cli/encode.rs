@@ -298,6 +298,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         reduce: ReduceParams {
             min_total_weight: a.min_weight,
             accumulator_budget_bytes: a.accumulator_memory_mb << 20,
+            ..Default::default()
         },
         contribution_budget_bytes: a.contribution_memory_mb << 20,
         precision: match a.precision {
