@@ -307,10 +307,16 @@ impl EmbeddingsWriter {
             }
             last = Some(id);
         }
-        if let Some(bad) = vectors
-            .par_iter()
-            .position_first(|v| !v.is_finite() || v.abs() > 65504.0)
-        {
+        // Large blocks are checked and converted in parallel; small runs (a block of the
+        // reduction: 128 rows) serially, where rayon's fork would cost more than the work.
+        const PAR: usize = 1 << 20;
+        let bad_value = |v: &f32| !v.is_finite() || v.abs() > 65504.0;
+        let bad = if vectors.len() >= PAR {
+            vectors.par_iter().position_first(bad_value)
+        } else {
+            vectors.iter().position(bad_value)
+        };
+        if let Some(bad) = bad {
             return Err(Error::Invalid(format!(
                 "embedding component {} of the block is {} (rows must be finite unit vectors)",
                 bad, vectors[bad]
@@ -326,10 +332,14 @@ impl EmbeddingsWriter {
             StoredPrecision::F16 => {
                 // Bulk conversion (F16C where the CPU has it), in parallel blocks.
                 let mut halves = vec![f16::ZERO; vectors.len()];
-                halves
-                    .par_chunks_mut(1 << 16)
-                    .zip(vectors.par_chunks(1 << 16))
-                    .for_each(|(h, v)| h.convert_from_f32_slice(v));
+                if vectors.len() >= PAR {
+                    halves
+                        .par_chunks_mut(1 << 16)
+                        .zip(vectors.par_chunks(1 << 16))
+                        .for_each(|(h, v)| h.convert_from_f32_slice(v));
+                } else {
+                    halves.convert_from_f32_slice(vectors);
+                }
                 w.write_all(bytemuck::cast_slice(&halves)).map_err(io)?
             }
         }

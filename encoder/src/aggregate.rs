@@ -22,6 +22,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::embeddings::EmbeddingsWriter;
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::{Error, Result};
 
@@ -572,7 +573,13 @@ pub fn reduce_each(
     mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
 ) -> Result<usize> {
     let per_gaussian = (dim + 1) * 8;
-    let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    let mut chunk =
+        (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    if store.spilled() == 0 && !params.image_major {
+        // The block-major loop needs no chunk-wide accumulator: smaller chunks (at least 8 of
+        // them, of at least 64 Ki Gaussians) only let the writer overlap more of the work.
+        chunk = chunk.min(n_gaussians.div_ceil(8).max(1 << 16));
+    }
     accumulate(
         store,
         n_gaussians,
@@ -595,6 +602,67 @@ pub fn reduce_each(
         },
         &mut sink,
     )
+}
+
+/// What [`reduce_to_writer`] leaves: the writer with every observed row pushed (call
+/// [`EmbeddingsWriter::finish`]), the number of chunks, and the reduction's wall time in seconds
+/// until its last chunk was handed to the writer thread.
+pub struct Streamed {
+    /// The writer, all rows pushed, not yet finished.
+    pub writer: EmbeddingsWriter,
+    /// Chunks the reduction used.
+    pub chunks: usize,
+    /// Seconds from the start until the last chunk was handed on (the rest of the call's time
+    /// is the writer finishing its last chunk).
+    pub reduce_s: f64,
+}
+
+/// [`reduce_each`] streamed into `writer` (the encoder's tail): a writer thread converts and
+/// writes the runs of chunk c while chunk c + 1 is accumulated; at most one chunk waits in
+/// between, so memory stays at the accumulators plus two chunks' output. `means` are all
+/// Gaussian centres (`[N]`, world frame, `.ply` order), written beside each row.
+///
+/// Errors: those of [`reduce_each`]; the writer's (I/O, non-finite rows), which take precedence
+/// over the reduction's "writer stopped" error they cause.
+pub fn reduce_to_writer(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    params: ReduceParams,
+    writer: EmbeddingsWriter,
+) -> Result<Streamed> {
+    let t0 = std::time::Instant::now();
+    std::thread::scope(|s| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Reduced>>(1);
+        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
+            let mut writer = writer;
+            let mut run_means: Vec<[f32; 3]> = Vec::new();
+            for run in rx.into_iter().flatten() {
+                run_means.clear();
+                for &k in &run.ids {
+                    run_means.push(*means.get(k as usize).ok_or_else(|| {
+                        Error::Invalid(format!("Gaussian {k} has no mean ({} given)", means.len()))
+                    })?);
+                }
+                writer.push(&run.ids, &run_means, &run.vectors, &run.total_weights)?;
+            }
+            Ok(writer)
+        });
+        let reduced = reduce_each(store, means.len(), dim, params, |runs| {
+            tx.send(runs)
+                .map_err(|_| Error::Invalid("the embeddings writer stopped early".into()))
+        });
+        let reduce_s = t0.elapsed().as_secs_f64();
+        drop(tx);
+        let writer = handle
+            .join()
+            .map_err(|_| Error::Invalid("the embeddings writer thread panicked".into()))??;
+        Ok(Streamed {
+            writer,
+            chunks: reduced?,
+            reduce_s,
+        })
+    })
 }
 
 /// One run of Gaussian ids (a chunk, or a block of one) after every contribution was added:

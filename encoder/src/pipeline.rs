@@ -581,41 +581,13 @@ pub fn encode_pool(
         std::fs::remove_file(&report_path).map_err(|e| Error::io(&report_path, e))?;
     }
     // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
-    // A writer thread converts and writes chunk c while chunk c + 1 is accumulated (one chunk
-    // queued at most, so memory stays at the accumulator plus two chunks' output).
     let t0 = Instant::now();
     let writer = EmbeddingsWriter::create(&emb_path, dim, params.precision)?;
-    let means = &gaussians.means;
-    let (chunks, writer, reduce_s) = std::thread::scope(|s| -> Result<_> {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<aggregate::Reduced>>(1);
-        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
-            let mut writer = writer;
-            for parts in rx {
-                // One push per chunk, so that the writer converts the whole chunk in parallel.
-                let chunk = aggregate::Reduced::concat(parts);
-                let chunk_means: Vec<[f32; 3]> =
-                    chunk.ids.iter().map(|&k| means[k as usize]).collect();
-                writer.push(
-                    &chunk.ids,
-                    &chunk_means,
-                    &chunk.vectors,
-                    &chunk.total_weights,
-                )?;
-            }
-            Ok(writer)
-        });
-        let reduced = aggregate::reduce_each(&store, gaussians.len(), dim, params.reduce, |part| {
-            tx.send(part)
-                .map_err(|_| Error::Invalid("the embeddings writer stopped early".into()))
-        });
-        let reduce_s = t0.elapsed().as_secs_f64();
-        drop(tx);
-        // The writer's own error explains a failed send better than the send does.
-        let writer = handle
-            .join()
-            .map_err(|_| Error::Invalid("the embeddings writer thread panicked".into()))??;
-        Ok((reduced?, writer, reduce_s))
-    })?;
+    let aggregate::Streamed {
+        chunks,
+        writer,
+        reduce_s,
+    } = aggregate::reduce_to_writer(&store, &gaussians.means, dim, params.reduce, writer)?;
     let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
     t.reduce = reduce_s;
     counts.spilled_images = store.spilled();
