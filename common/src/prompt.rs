@@ -54,6 +54,7 @@ pub fn check_prompt(text: &str, hint: &str) -> Result<()> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

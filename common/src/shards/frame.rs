@@ -155,62 +155,6 @@ pub fn quaternion_to_matrix(q: [f64; 4]) -> [[f64; 3]; 3] {
     ]
 }
 
-/// Eigenvalues and eigenvectors (columns of the second value) of a symmetric `N × N` matrix by
-/// cyclic Jacobi rotations.
-fn jacobi_eigen<const N: usize>(mut a: [[f64; N]; N]) -> ([f64; N], [[f64; N]; N]) {
-    let mut v = [[0.0; N]; N];
-    for (i, row) in v.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    let scale: f64 = a.iter().flatten().map(|x| x * x).sum::<f64>().max(1e-300);
-    for _ in 0..100 {
-        let mut off = 0.0;
-        for p in 0..N {
-            for q in p + 1..N {
-                off += a[p][q] * a[p][q];
-            }
-        }
-        if off <= 1e-32 * scale {
-            break;
-        }
-        for p in 0..N {
-            for q in p + 1..N {
-                if a[p][q] == 0.0 {
-                    continue;
-                }
-                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-                let t = if theta == 0.0 {
-                    1.0
-                } else {
-                    theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt())
-                };
-                let c = 1.0 / (t * t + 1.0).sqrt();
-                let s = t * c;
-                for row in a.iter_mut() {
-                    let (akp, akq) = (row[p], row[q]);
-                    row[p] = c * akp - s * akq;
-                    row[q] = s * akp + c * akq;
-                }
-                let (rp, rq) = (a[p], a[q]);
-                for k in 0..N {
-                    a[p][k] = c * rp[k] - s * rq[k];
-                    a[q][k] = s * rp[k] + c * rq[k];
-                }
-                for row in v.iter_mut() {
-                    let (vp, vq) = (row[p], row[q]);
-                    row[p] = c * vp - s * vq;
-                    row[q] = s * vp + c * vq;
-                }
-            }
-        }
-    }
-    let mut w = [0.0; N];
-    for (i, x) in w.iter_mut().enumerate() {
-        *x = a[i][i];
-    }
-    (w, v)
-}
-
 /// The rotation (unit quaternion `(w, x, y, z)`) maximising `Σ b_i · R a_i`, from the
 /// cross-covariance `s[j][k] = Σ_i a_i[j] b_i[k]` (Horn 1987: the eigenvector of the largest
 /// eigenvalue of a symmetric 4×4 matrix). It is the same rotation as Umeyama's SVD solution with
@@ -223,7 +167,7 @@ fn horn_rotation(s: [[f64; 3]; 3]) -> [f64; 4] {
         [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
         [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
     ];
-    let (w, v) = jacobi_eigen(n);
+    let (w, v) = super::eigen::jacobi_eigen(n);
     let i = (0..4).max_by(|&i, &j| w[i].total_cmp(&w[j])).unwrap_or(0);
     let q = [v[0][i], v[1][i], v[2][i], v[3][i]];
     let norm = q.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -260,7 +204,7 @@ fn spread(pts: &[DVec3]) -> ([f64; 3], DVec3) {
             }
         }
     }
-    let (mut w, _) = jacobi_eigen(m);
+    let (mut w, _) = super::eigen::jacobi_eigen(m);
     w.sort_by(|a, b| b.total_cmp(a));
     (w, c)
 }
@@ -451,7 +395,7 @@ impl SceneToMap {
         let (wa, ca) = spread(&a);
         let (wb, cb) = spread(&b);
         for (w, which) in [(wa, "scene"), (wb, "map")] {
-            if !(w[0] > 0.0) || w[1] <= 1e-10 * w[0] {
+            if w[0].is_nan() || w[0] <= 0.0 || w[1] <= 1e-10 * w[0] {
                 return Err(Error::Invalid(format!(
                     "the {which} points are {}: the rotation is undetermined; survey at least 3 \
                      points that are not on one line (spread over the site)",

@@ -9,6 +9,7 @@
 //! - [`GaussianSource`]: what partitioning reads (implemented by
 //!   [`Embeddings`](crate::embeddings::Embeddings) and [`synthetic::SyntheticScene`]).
 
+mod eigen;
 pub mod format;
 pub mod frame;
 pub mod synthetic;

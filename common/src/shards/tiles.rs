@@ -174,44 +174,10 @@ impl GroundFrame {
     }
 }
 
-/// Eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix (cyclic Jacobi rotations).
+/// Eigenvector of the smallest eigenvalue of a symmetric 3×3 matrix ([`super::eigen`]).
 fn smallest_eigenvector(m: DMat3) -> DVec3 {
-    let mut a = m.to_cols_array_2d();
-    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
-    for _ in 0..50 {
-        let off = a[0][1].abs() + a[0][2].abs() + a[1][2].abs();
-        if off < 1e-30 {
-            break;
-        }
-        for (p, q) in [(0usize, 1usize), (0, 2), (1, 2)] {
-            if a[p][q].abs() < 1e-300 {
-                continue;
-            }
-            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
-            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
-            let t = if theta == 0.0 { 1.0 } else { t };
-            let c = 1.0 / (t * t + 1.0).sqrt();
-            let s = t * c;
-            for row in a.iter_mut() {
-                let (akp, akq) = (row[p], row[q]);
-                row[p] = c * akp - s * akq;
-                row[q] = s * akp + c * akq;
-            }
-            let (rp, rq) = (a[p], a[q]);
-            for k in 0..3 {
-                a[p][k] = c * rp[k] - s * rq[k];
-                a[q][k] = s * rp[k] + c * rq[k];
-            }
-            for row in v.iter_mut() {
-                let (vp, vq) = (row[p], row[q]);
-                row[p] = c * vp - s * vq;
-                row[q] = s * vp + c * vq;
-            }
-        }
-    }
-    let i = (0..3)
-        .min_by(|&i, &j| a[i][i].total_cmp(&a[j][j]))
-        .unwrap_or(0);
+    let (w, v) = super::eigen::jacobi_eigen(m.to_cols_array_2d());
+    let i = (0..3).min_by(|&i, &j| w[i].total_cmp(&w[j])).unwrap_or(0);
     DVec3::new(v[0][i], v[1][i], v[2][i]).normalize_or_zero()
 }
 

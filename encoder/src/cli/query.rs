@@ -139,6 +139,7 @@ pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
