@@ -13,6 +13,8 @@
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
+#   scripts/device-gpu-models.sh clipbatch   # CLIP ViT-B/16 fp16 on CUDA at --clip-batch 8..128
+#                                            # (snowmiku every 2nd view, graph masks, 4 fronts)
 #   scripts/device-gpu-models.sh reduce      # slag-bench reduce at the e2e scene's size (2M
 #                                            # Gaussians, 250 views x 250k a_kj, D 512): both loop
 #                                            # orders of the reduction + the f16 write (CPU only)
@@ -99,6 +101,14 @@ e2e)
     "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
   cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
+  ;;
+clipbatch)
+  for b in ${BATCHES:-8 16 32 64 128}; do
+    "$B" bench --scene /root/scene --ep cuda --every 2 --raster-scale 0.5 --masks graph $(clipm f16) \
+      --clip-batch "$b" --quiet --out "$W/cb$b" 2>&1 | sed 's/\x1b\[[0-9;]*m//g' > "$R/clipbatch-$b.txt"
+    rc=${PIPESTATUS[0]}
+    echo "batch $b exit $rc | $(grep -o 'runs=[0-9]* crops=[0-9]* run_s=[0-9.]*' "$R/clipbatch-$b.txt" | tr '\n' ' ')| $(grep -E '^\| (CLIP crops|total)' "$R/clipbatch-$b.txt" | tr '\n' ' ')"
+  done
   ;;
 reduce)
   echo "### slag-bench reduce, 2M Gaussians, 250 views x 250k entries, D 512"
