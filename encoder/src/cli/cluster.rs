@@ -81,7 +81,8 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
         let crops = crate::clip::ClipVisual::with_threads(
             &args.clip_visual,
             args.ep.into(),
-            args.clip_batch,
+            args.clip_batch
+                .unwrap_or(crate::cli::encode::CLIP_BATCH_CPU),
             threads,
         )?;
         Ok(Stages {
