@@ -220,18 +220,22 @@ impl Embeddings {
     }
 }
 
-/// Writes an embeddings file (same layout as [`Embeddings::write`]) whose rows arrive in blocks,
+/// Writes an embeddings file (the tensors of [`Embeddings::write`]) whose rows arrive in blocks,
 /// so that a scene with tens of millions of observed Gaussians never holds its `[N, D]` matrix in
 /// memory: each block's vectors are converted to the stored precision and appended to
-/// `<path>.vectors.partial`; only ids, means and total weights (20 bytes a row) stay in memory.
-/// [`EmbeddingsWriter::finish`] then writes the safetensors header, the small tensors and streams
-/// the vectors into `<path>.partial`, fsyncs and renames it to `path`. Dropped unfinished (an
-/// error, a panic), it removes its partial files: nothing that looks complete is left.
+/// `<path>.partial` behind a reserved header region ([`HEADER_RESERVE`] bytes); only ids, means
+/// and total weights (20 bytes a row) stay in memory. [`EmbeddingsWriter::finish`] appends the
+/// small tensors, writes the safetensors header into the reserved region (space-padded, as the
+/// format allows), fsyncs and renames the file to `path`, so the vectors are written once. In this
+/// layout `embeddings` comes first in the data section (safetensors readers go by each tensor's
+/// `data_offsets`). A header longer than the reserve (a very long `source_ply`) falls back to
+/// copying the data behind a header of its own size. Dropped unfinished (an error, a panic), the
+/// writer removes its partial file: nothing that looks complete is left.
 #[derive(Debug)]
 pub struct EmbeddingsWriter {
     path: std::path::PathBuf,
-    vectors_tmp: std::path::PathBuf,
-    vectors: Option<std::io::BufWriter<std::fs::File>>,
+    partial: std::path::PathBuf,
+    file: Option<std::io::BufWriter<std::fs::File>>,
     dim: usize,
     precision: StoredPrecision,
     ids: Vec<u32>,
@@ -239,12 +243,17 @@ pub struct EmbeddingsWriter {
     total_weights: Vec<f32>,
 }
 
+/// Bytes reserved at the start of an [`EmbeddingsWriter`] file for the 8-byte header length and
+/// the JSON header; the data section starts at this (page-aligned) offset.
+pub const HEADER_RESERVE: u64 = 8192;
+
 impl EmbeddingsWriter {
     /// Starts a file at `path` for rows of width `dim` stored at `precision` (creates parent
     /// folders; an existing file at `path` stays until [`EmbeddingsWriter::finish`] replaces it).
     ///
     /// Errors: `dim == 0` ([`Error::Invalid`]); I/O.
     pub fn create(path: &Path, dim: usize, precision: StoredPrecision) -> Result<Self> {
+        use std::io::{Seek, SeekFrom};
         if dim == 0 {
             return Err(Error::Invalid("embedding width must be at least 1".into()));
         }
@@ -252,13 +261,16 @@ impl EmbeddingsWriter {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         }
         let mut tmp = path.as_os_str().to_owned();
-        tmp.push(".vectors.partial");
-        let vectors_tmp = std::path::PathBuf::from(tmp);
-        let f = std::fs::File::create(&vectors_tmp).map_err(|e| Error::io(&vectors_tmp, e))?;
+        tmp.push(".partial");
+        let partial = std::path::PathBuf::from(tmp);
+        let mut f = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
+        // The header region stays a hole until finish; a crash leaves only `<path>.partial`.
+        f.seek(SeekFrom::Start(HEADER_RESERVE))
+            .map_err(|e| Error::io(&partial, e))?;
         Ok(Self {
             path: path.to_path_buf(),
-            vectors_tmp,
-            vectors: Some(std::io::BufWriter::with_capacity(1 << 22, f)),
+            partial,
+            file: Some(std::io::BufWriter::with_capacity(1 << 22, f)),
             dim,
             precision,
             ids: Vec::new(),
@@ -323,10 +335,10 @@ impl EmbeddingsWriter {
             )));
         }
         let w = self
-            .vectors
+            .file
             .as_mut()
             .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
-        let io = |e| Error::io(&self.vectors_tmp, e);
+        let io = |e| Error::io(&self.partial, e);
         match self.precision {
             StoredPrecision::F32 => w.write_all(bytemuck::cast_slice(vectors)).map_err(io)?,
             StoredPrecision::F16 => {
@@ -349,27 +361,27 @@ impl EmbeddingsWriter {
         Ok(())
     }
 
-    /// Writes the file (header with the metadata of [`Embeddings`], then `gaussian_ids`, `means`,
-    /// `total_weights`, `embeddings`), atomically.
+    /// Completes the file: appends `gaussian_ids`, `means` and `total_weights` behind the
+    /// vectors, writes the header (the metadata of [`Embeddings`]) into the reserved region,
+    /// fsyncs and renames `<path>.partial` to `path`.
     ///
-    /// Errors: I/O (the partial files are removed).
+    /// Errors: I/O (the partial file is removed).
     pub fn finish(mut self, model: &str, scene_gaussians: u64, source_ply: &str) -> Result<()> {
+        use std::io::{Seek, SeekFrom};
         let n = self.ids.len();
-        let mut vf = self
-            .vectors
+        let mut w = self
+            .file
             .take()
             .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
-        vf.flush().map_err(|e| Error::io(&self.vectors_tmp, e))?;
-        drop(vf);
         let (dtype, elem) = match self.precision {
             StoredPrecision::F32 => ("F32", 4usize),
             StoredPrecision::F16 => ("F16", 2usize),
         };
         let sizes = [
+            ("embeddings", dtype, vec![n, self.dim], elem * n * self.dim),
             ("gaussian_ids", "U32", vec![n], 4 * n),
             ("means", "F32", vec![n, 3], 12 * n),
             ("total_weights", "F32", vec![n], 4 * n),
-            ("embeddings", dtype, vec![n, self.dim], elem * n * self.dim),
         ];
         let mut header = serde_json::Map::new();
         header.insert(
@@ -389,50 +401,68 @@ impl EmbeddingsWriter {
         }
         let mut hbytes = serde_json::to_vec(&serde_json::Value::Object(header))
             .map_err(|e| Error::Invalid(format!("embeddings header: {e}")))?;
-        while hbytes.len() % 8 != 0 {
-            hbytes.push(b' ');
-        }
-        let expected_vectors = (elem * n * self.dim) as u64;
-        let got = std::fs::metadata(&self.vectors_tmp)
-            .map_err(|e| Error::io(&self.vectors_tmp, e))?
-            .len();
-        if got != expected_vectors {
+        let partial = self.partial.clone();
+        let io = |e| Error::io(&partial, e);
+        w.write_all(bytemuck::cast_slice(&self.ids)).map_err(io)?;
+        w.write_all(bytemuck::cast_slice(&self.means)).map_err(io)?;
+        w.write_all(bytemuck::cast_slice(&self.total_weights))
+            .map_err(io)?;
+        let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
+        let end = f.stream_position().map_err(io)?;
+        if end != HEADER_RESERVE + off as u64 {
             return Err(Error::Invalid(format!(
-                "{}: {got} vector bytes written, {expected_vectors} expected",
-                self.vectors_tmp.display()
+                "{}: {} data bytes written, {off} expected",
+                partial.display(),
+                end - HEADER_RESERVE
             )));
         }
-        let mut tmp = self.path.as_os_str().to_owned();
-        tmp.push(".partial");
-        let tmp = std::path::PathBuf::from(tmp);
-        let res = (|| -> std::io::Result<()> {
-            let f = std::fs::File::create(&tmp)?;
-            let mut w = std::io::BufWriter::with_capacity(1 << 22, f);
-            w.write_all(&(hbytes.len() as u64).to_le_bytes())?;
-            w.write_all(&hbytes)?;
-            w.write_all(bytemuck::cast_slice(&self.ids))?;
-            w.write_all(bytemuck::cast_slice(&self.means))?;
-            w.write_all(bytemuck::cast_slice(&self.total_weights))?;
-            let mut src = std::fs::File::open(&self.vectors_tmp)?;
-            std::io::copy(&mut src, &mut w)?;
-            let f = w.into_inner().map_err(|e| e.into_error())?;
-            f.sync_all()
-        })();
-        if let Err(e) = res {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(Error::io(&tmp, e));
+        let reserve = (HEADER_RESERVE - 8) as usize;
+        let res = if hbytes.len() <= reserve {
+            hbytes.resize(reserve, b' ');
+            (|| -> std::io::Result<()> {
+                f.seek(SeekFrom::Start(0))?;
+                f.write_all(&(reserve as u64).to_le_bytes())?;
+                f.write_all(&hbytes)?;
+                f.sync_all()
+            })()
+            .map(|()| partial.clone())
+        } else {
+            // The header does not fit: copy the data behind a header of its own size.
+            while hbytes.len() % 8 != 0 {
+                hbytes.push(b' ');
+            }
+            drop(f);
+            let mut again = partial.as_os_str().to_owned();
+            again.push("2");
+            let again = std::path::PathBuf::from(again);
+            let r = (|| -> std::io::Result<()> {
+                let mut src = std::fs::File::open(&partial)?;
+                src.seek(SeekFrom::Start(HEADER_RESERVE))?;
+                let mut out =
+                    std::io::BufWriter::with_capacity(1 << 22, std::fs::File::create(&again)?);
+                out.write_all(&(hbytes.len() as u64).to_le_bytes())?;
+                out.write_all(&hbytes)?;
+                std::io::copy(&mut src, &mut out)?;
+                out.into_inner().map_err(|e| e.into_error())?.sync_all()
+            })();
+            let _ = std::fs::remove_file(&partial);
+            if r.is_err() {
+                let _ = std::fs::remove_file(&again);
+            }
+            r.map(|()| again)
+        };
+        match res {
+            Ok(done) => std::fs::rename(&done, &self.path).map_err(|e| Error::io(&self.path, e)),
+            Err(e) => Err(Error::io(&partial, e)),
         }
-        std::fs::rename(&tmp, &self.path).map_err(|e| Error::io(&self.path, e))?;
-        let _ = std::fs::remove_file(&self.vectors_tmp);
-        Ok(())
     }
 }
 
 impl Drop for EmbeddingsWriter {
     fn drop(&mut self) {
-        // Unfinished (or finished: then the file is already gone and this is a no-op).
-        self.vectors = None;
-        let _ = std::fs::remove_file(&self.vectors_tmp);
+        // Unfinished (or finished: then the file was renamed and this is a no-op).
+        self.file = None;
+        let _ = std::fs::remove_file(&self.partial);
     }
 }
 
@@ -499,10 +529,25 @@ mod tests {
             assert_eq!(Embeddings::read(&a).unwrap(), Embeddings::read(&b).unwrap());
             assert!(
                 !dir.path()
-                    .join(format!("b-{precision:?}.safetensors.vectors.partial"))
+                    .join(format!("b-{precision:?}.safetensors.partial"))
                     .exists()
             );
         }
+        // A header longer than the reserve (a 10 kB source path) takes the copying route.
+        let long = dir.path().join("long.safetensors");
+        let mut w = EmbeddingsWriter::create(&long, dim, StoredPrecision::F16).unwrap();
+        w.push(&e.ids, &e.means, &e.vectors, &e.total_weights)
+            .unwrap();
+        let source = "d/".repeat(5000) + "scene.ply";
+        w.finish(&e.model, e.scene_gaussians, &source).unwrap();
+        let back = Embeddings::read(&long).unwrap();
+        assert_eq!(back.source_ply, source);
+        assert_eq!(back.ids, e.ids);
+        assert!(
+            std::fs::read_dir(dir.path())
+                .unwrap()
+                .all(|f| { !f.unwrap().file_name().to_string_lossy().contains("partial") })
+        );
         // Out of order and unfinished writers leave nothing behind.
         let c = dir.path().join("c.safetensors");
         let mut w = EmbeddingsWriter::create(&c, dim, StoredPrecision::F16).unwrap();
