@@ -19,6 +19,7 @@ pub mod clip;
 pub mod distributed;
 pub mod eval;
 pub mod export;
+pub mod heldout;
 pub mod masks;
 pub mod partition;
 pub mod pipeline;
