@@ -64,6 +64,62 @@ impl ImageContribution {
 pub struct ImageStageParams {
     /// Keep only the `k` largest-weight contributors of each pixel (`None` = all, the paper's rule).
     pub top_k_per_pixel: Option<usize>,
+    /// Specificity weighting of each mask's `a_kj` (default: none, the paper's rule).
+    pub mask_weighting: MaskWeighting,
+}
+
+/// Specificity weighting of the image stage (`encode --mask-weighting`): every `a_kj` of mask `j`
+/// is multiplied by a factor `g_j` before the reduction, so that
+/// `E_k = Σ g_j a_kj E_j / Σ g_j a_kj` (and the stored total weight is `Σ g_j a_kj`). Training
+/// free and single pass: `g_j` depends only on the mask.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, clap::ValueEnum,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskWeighting {
+    /// `g_j = 1`: the paper's mean.
+    #[default]
+    None,
+    /// `g_j = image pixels / mask area` (≥ 1): small, specific masks (parts) outweigh large
+    /// ones (wholes, background) covering the same Gaussian.
+    Area,
+    /// `g_j = SAM predicted IoU × stability score` (both 1 for generators without scores, e.g.
+    /// the graph segmenter): confident masks outweigh doubtful ones.
+    SamScore,
+}
+
+impl MaskWeighting {
+    /// The factor `g_j` of `mask` (finite, > 0; non-finite or non-positive SAM scores give
+    /// `f32::MIN_POSITIVE`).
+    pub fn factor(self, mask: &Mask) -> f32 {
+        match self {
+            MaskWeighting::None => 1.0,
+            MaskWeighting::Area => {
+                (mask.width as f64 * mask.height as f64 / mask.area.max(1) as f64) as f32
+            }
+            MaskWeighting::SamScore => {
+                let g = mask.predicted_iou * mask.stability_score;
+                if g.is_finite() && g > 0.0 {
+                    g
+                } else {
+                    f32::MIN_POSITIVE
+                }
+            }
+        }
+    }
+}
+
+/// Multiplies every entry's `a_kj` by its mask's [`MaskWeighting::factor`].
+fn weight_entries(entries: &mut [Entry], masks: &[Mask], weighting: MaskWeighting) {
+    if weighting == MaskWeighting::None {
+        return;
+    }
+    let g: Vec<f32> = masks.iter().map(|m| weighting.factor(m)).collect();
+    for e in entries {
+        if let Some(&f) = g.get(e.mask as usize) {
+            e.weight *= f;
+        }
+    }
 }
 
 /// Resamples full-resolution masks onto the raster grid (`width` x `height`) by nearest sampling at
@@ -261,11 +317,12 @@ pub fn image_contribution(
     }
     let mut sums: Vec<(u64, f64)> = merged.into_iter().collect();
     sums.par_sort_unstable_by_key(|e| e.0);
-    let entries = expand_labels(
+    let mut entries = expand_labels(
         sums.into_iter()
             .map(|(key, v)| ((key >> 32) as u32, key as u32, v)),
         &masks_of,
     );
+    weight_entries(&mut entries, masks, params.mask_weighting);
     Ok(ImageContribution {
         dim,
         mask_embeddings,
@@ -316,10 +373,11 @@ pub fn view_contribution(
         let t1 = Instant::now();
         if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
             let t2 = Instant::now();
-            let entries = expand_labels(
+            let mut entries = expand_labels(
                 sums.sums.iter().map(|e| (e.gaussian, e.label, e.weight())),
                 &labels.masks_of,
             );
+            weight_entries(&mut entries, masks, params.mask_weighting);
             let stats = ViewStats {
                 raster_s: (t2 - t1).as_secs_f64(),
                 aggregate_s: (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
@@ -1033,6 +1091,45 @@ mod tests {
             }
         }
         m
+    }
+
+    #[test]
+    fn mask_weighting_scales_each_masks_a_kj() {
+        let (w, h, n) = (37, 23, 50);
+        let pw = weights(w, h, n, 0x51ed);
+        let mut masks = vec![
+            mask(w, h, |x, _| x < 20),
+            mask(w, h, |x, y| x > 10 && y > 5),
+            mask(w, h, |_, _| true),
+        ];
+        masks[0].predicted_iou = 0.5;
+        masks[0].stability_score = 0.8;
+        masks[1].predicted_iou = f32::NAN;
+        let expect = brute(&pw, &masks);
+        for weighting in [MaskWeighting::Area, MaskWeighting::SamScore] {
+            let params = ImageStageParams {
+                mask_weighting: weighting,
+                ..ImageStageParams::default()
+            };
+            let c = image_contribution(&pw, &masks, vec![0.0; 3 * 2], 2, params).unwrap();
+            assert_eq!(c.entries.len(), expect.len());
+            for e in &c.entries {
+                let m = &masks[e.mask as usize];
+                let g = match weighting {
+                    MaskWeighting::Area => (w * h) as f64 / m.area as f64,
+                    _ if e.mask == 0 => 0.4,
+                    _ if e.mask == 1 => f32::MIN_POSITIVE as f64,
+                    _ => 1.0,
+                };
+                let v = g * expect[&(e.gaussian, e.mask)];
+                assert!(
+                    (v - e.weight as f64).abs() < 1e-5 * v.max(1e-30),
+                    "{weighting:?} {e:?} vs {v}"
+                );
+            }
+        }
+        assert_eq!(MaskWeighting::None.factor(&masks[1]), 1.0);
+        assert_eq!(MaskWeighting::Area.factor(&masks[2]), 1.0);
     }
 
     #[test]

@@ -5,8 +5,9 @@
 //! (3DGS forward pass yielding per-pixel blend weights `w_kp = α·T`) → [`aggregate`]
 //! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
 //! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
-//! mIoU with color-clip, [`cli`] holds the `slag-encoder` subcommands (`query` checks a text
-//! prompt against the result). [`distributed`] runs the same map/reduce over several processes
+//! mIoU with color-clip per Gaussian, [`heldout`] per pixel of views never encoded (2D
+//! held-out), [`cli`] holds the `slag-encoder` subcommands (`query` checks a text prompt against
+//! the result). [`distributed`] runs the same map/reduce over several processes
 //! (timely dataflow cluster).
 //!
 //! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
@@ -19,6 +20,7 @@ pub mod clip;
 pub mod distributed;
 pub mod eval;
 pub mod export;
+pub mod heldout;
 pub mod masks;
 pub mod partition;
 pub mod pipeline;

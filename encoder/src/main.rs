@@ -36,7 +36,8 @@ enum Command {
     EncodeCluster(cli::cluster::EncodeClusterArgs),
     /// Rank the Gaussians of an embeddings file against a text prompt.
     Query(cli::query::QueryArgs),
-    /// Colour mIoU of an embeddings file made with color-clip (ground truth from SH DC colours).
+    /// Colour mIoU of an embeddings file made with color-clip: per Gaussian (SH-DC colour truth),
+    /// or with --held-out per pixel of the views the encoder never saw (photo colour truth).
     EvalColors(cli::eval::EvalArgs),
     /// Render a training view through the weight rasterizer and compare it with the photo.
     Render(cli::render::RenderArgs),
@@ -86,6 +87,9 @@ fn main() -> std::process::ExitCode {
             None => eprintln!("process {}: job completed (process 0 wrote the outputs)", a.process),
         }),
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
+        Command::EvalColors(a) if a.held_out => {
+            cli::eval::run_held_out(a).and_then(|o| print_json(&o))
+        }
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {

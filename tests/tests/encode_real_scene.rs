@@ -20,6 +20,10 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         tokenizer: None,
         classes: None,
         ep: slag_encoder::cli::EpArg::Cpu,
+        held_out: false,
+        every: None,
+        raster_scale: None,
+        rasterizer: slag_encoder::cli::encode::RasterBackend::Gpu,
     };
     slag_encoder::cli::eval::run(&a).expect("eval-colors")
 }

@@ -120,6 +120,10 @@ pub struct EncodeArgs {
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
     #[arg(long)]
     pub top_k_per_pixel: Option<usize>,
+    /// Specificity weighting of each mask's a_kj: none (the paper's mean), area (image pixels /
+    /// mask area: small masks count more), sam-score (SAM predicted IoU × stability).
+    #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::None)]
+    pub mask_weighting: crate::aggregate::MaskWeighting,
     /// Σa below which a Gaussian is unobserved (gets no embedding).
     #[arg(long, default_value_t = 1e-6)]
     pub min_weight: f64,
@@ -266,6 +270,7 @@ pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) 
             "graph_k": a.graph_k, "graph_min_size": a.graph_min_size,
             "clip_batch": a.clip_batch,
             "top_k_per_pixel": a.top_k_per_pixel,
+            "mask_weighting": a.mask_weighting,
             "min_weight": a.min_weight,
             "mixture_keep": a.mixture_keep,
             "threads": threads,
@@ -295,6 +300,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         raster_scale: a.raster_scale,
         image_stage: ImageStageParams {
             top_k_per_pixel: a.top_k_per_pixel,
+            mask_weighting: a.mask_weighting,
         },
         reduce: ReduceParams {
             min_total_weight: a.min_weight,

@@ -623,6 +623,7 @@ fn top_k_and_mask_free_views_take_the_list_path() {
     let emb = vec![0.5f32; masks.len() * 2];
     let params = ImageStageParams {
         top_k_per_pixel: Some(2),
+        ..ImageStageParams::default()
     };
     let (c, stats) =
         view_contribution(&mut gpu, &k, &w2c, &masks, emb.clone(), 2, params).expect("top-k");

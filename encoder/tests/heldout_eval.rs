@@ -1,0 +1,141 @@
+//! The 2D held-out protocol (`eval-colors --held-out`) end to end on the embedded scene
+//! data/snowmiku-mini (13 views, 60,000 Gaussians, 495×371): encode with the graph segmenter and
+//! color-clip at `--every 4` (views 0, 4, 8, 12), then score the held-out views 2, 6 and 10 per
+//! pixel against the photos' colour classes, with the majority and pixel-lifting-oracle
+//! baselines.
+//!
+//! Needs ONNX Runtime (color-clip): `. scripts/setup.sh`; SLAG_SKIP_ORT=1 skips.
+
+mod support;
+
+use clap::Parser;
+use slag_encoder::cli::encode::{EncodeArgs, RasterBackend};
+use slag_encoder::cli::eval::{run_held_out, EvalArgs};
+use support::{ort_available, shared};
+
+#[derive(Parser)]
+struct EncodeCli {
+    #[command(flatten)]
+    args: EncodeArgs,
+}
+
+fn mini() -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
+}
+
+/// Floors measured on this subset (2-core CPU, lavapipe), see the assertions: slag must beat the
+/// majority class by a wide margin, and the oracle, which lifts the photos' own classes with the
+/// same blend weights, must reach at least slag.
+#[test]
+fn held_out_protocol_on_snowmiku_mini() {
+    if !ort_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("out");
+    let clip = shared().join("fixtures/clip/color-clip-visual.onnx");
+    let argv = [
+        "encode".to_string(),
+        "--scene".into(),
+        mini().display().to_string(),
+        "--quiet".into(),
+        "--masks".into(),
+        "graph".into(),
+        "--clip-visual".into(),
+        clip.display().to_string(),
+        "--every".into(),
+        "4".into(),
+        "--raster-scale".into(),
+        "0.5".into(),
+        "--out".into(),
+        out.display().to_string(),
+    ];
+    let args = EncodeCli::try_parse_from(argv).expect("encode arguments").args;
+    let report = slag_encoder::cli::encode::run(&args).expect("encode");
+    assert_eq!(report.counts.views_used, 4);
+
+    let a = EvalArgs {
+        scene: mini(),
+        ply: None,
+        embeddings: out.join("embeddings.safetensors"),
+        clip_textual: None,
+        tokenizer: None,
+        classes: None,
+        ep: slag_encoder::cli::EpArg::Cpu,
+        held_out: true,
+        every: None, // from the report beside the embeddings
+        raster_scale: None,
+        rasterizer: RasterBackend::Gpu,
+    };
+    let r = run_held_out(&a).expect("eval-colors --held-out");
+    let h = &r.held_out;
+    eprintln!(
+        "held-out mini: slag {:?}, oracle {:?}, majority {:?} ({}), counted {} of {} pixels; \
+         3D {:?}",
+        h.slag.miou,
+        h.oracle.miou,
+        h.majority.miou,
+        h.majority_class,
+        h.counted_pixels,
+        h.pixels,
+        r.colour_3d.miou
+    );
+    eprintln!("{}", serde_json::to_string(&r).expect("json"));
+
+    // The protocol's bookkeeping.
+    assert_eq!(h.every, 4);
+    assert_eq!(
+        h.held_out_views,
+        [
+            "20240212_003936.jpg",
+            "20240212_004014.jpg",
+            "20240212_004107.jpg"
+        ]
+    );
+    assert_eq!(h.encoded_views, 4);
+    assert_eq!(h.oracle_raster_scale, 0.5);
+    assert_eq!(h.pixels, 3 * 495 * 371, "held-out views render at full resolution");
+    assert!(
+        h.counted_pixels * 2 > h.pixels,
+        "only {} of {} pixels have alpha ≥ 0.5: the scene is not being rendered",
+        h.counted_pixels,
+        h.pixels
+    );
+    assert!(h.miou_classes.len() >= 3, "{:?}", h.miou_classes);
+    for s in [&h.slag, &h.oracle, &h.majority] {
+        assert_eq!(s.classes.len(), 12);
+        let truth: u64 = s.classes.iter().map(|c| c.truth_pixels).sum();
+        let pred: u64 = s.classes.iter().map(|c| c.predicted_pixels).sum();
+        assert_eq!(truth, h.counted_pixels);
+        assert_eq!(pred, h.counted_pixels);
+        for c in &s.classes {
+            if let Some(iou) = c.iou {
+                assert!((0.0..=1.0).contains(&iou), "{}: IoU {iou}", c.name);
+            }
+            assert!(c.intersection <= c.truth_pixels.min(c.predicted_pixels));
+        }
+    }
+    let (slag, oracle, majority) = (
+        h.slag.miou.expect("slag mIoU"),
+        h.oracle.miou.expect("oracle mIoU"),
+        h.majority.miou.expect("majority mIoU"),
+    );
+    // Majority: one class's share / number of averaged classes.
+    assert!(majority < 0.2, "majority baseline {majority}");
+    assert!(
+        slag >= majority + MARGIN_OVER_MAJORITY,
+        "slag {slag} does not clearly beat the majority class {majority}"
+    );
+    assert!(
+        slag >= SLAG_FLOOR,
+        "slag held-out mIoU {slag} below {SLAG_FLOOR}"
+    );
+    assert!(oracle >= slag, "oracle {oracle} below slag {slag}");
+    assert!(oracle >= ORACLE_FLOOR, "oracle {oracle} below {ORACLE_FLOOR}");
+}
+
+/// slag's held-out mIoU on this subset must exceed the majority class's by at least this.
+const MARGIN_OVER_MAJORITY: f64 = 0.1;
+/// Floors ~25 % below what this subset measured (see the README's accuracy section).
+const SLAG_FLOOR: f64 = 0.2;
+const ORACLE_FLOOR: f64 = 0.3;
