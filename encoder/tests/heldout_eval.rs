@@ -23,9 +23,9 @@ fn mini() -> std::path::PathBuf {
     std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
 }
 
-/// Floors measured on this subset (2-core CPU, lavapipe), see the assertions: slag must beat the
-/// majority class by a wide margin, and the oracle, which lifts the photos' own classes with the
-/// same blend weights, must reach at least slag.
+/// Floors from the values measured on this subset (see the constants): slag must beat the
+/// majority class clearly, and the oracle, which lifts the photos' own classes with the same
+/// blend weights, must reach at least slag.
 #[test]
 fn held_out_protocol_on_snowmiku_mini() {
     if !ort_available() {
@@ -143,8 +143,11 @@ fn held_out_protocol_on_snowmiku_mini() {
     );
 }
 
-/// slag's held-out mIoU on this subset must exceed the majority class's by at least this.
-const MARGIN_OVER_MAJORITY: f64 = 0.1;
-/// Floors ~25 % below what this subset measured (see the README's accuracy section).
-const SLAG_FLOOR: f64 = 0.2;
-const ORACLE_FLOOR: f64 = 0.3;
+/// Measured on this subset (release build, 2-core CPU, lavapipe; README "Accuracy"): slag 0.223,
+/// oracle 0.323, majority class (gray) 0.112; the pipeline is deterministic. slag must stay clearly
+/// above the majority class (a broken render, pose or argmax falls to it or below).
+const MARGIN_OVER_MAJORITY: f64 = 0.05;
+/// ~25 % below the measured 0.223.
+const SLAG_FLOOR: f64 = 0.17;
+/// ~25 % below the measured 0.323.
+const ORACLE_FLOOR: f64 = 0.25;
