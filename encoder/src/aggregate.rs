@@ -1027,6 +1027,7 @@ mod tests {
             1,
             ImageStageParams {
                 top_k_per_pixel: Some(2),
+                ..ImageStageParams::default()
             },
         )
         .unwrap();
