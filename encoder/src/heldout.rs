@@ -192,10 +192,7 @@ impl OracleLifting {
                 intrinsics.height
             )));
         }
-        if let Some(&c) = pixel_classes
-            .iter()
-            .find(|&&c| c as usize >= self.classes)
-        {
+        if let Some(&c) = pixel_classes.iter().find(|&&c| c as usize >= self.classes) {
             return Err(Error::Invalid(format!(
                 "pixel class {c} but the oracle has {} classes",
                 self.classes
@@ -359,11 +356,7 @@ impl HeldOutTally {
             )));
         }
         check_weights(weights, pixels)?;
-        if let Some(&k) = weights
-            .ids
-            .iter()
-            .find(|&&k| k as usize >= scene_gaussians)
-        {
+        if let Some(&k) = weights.ids.iter().find(|&&k| k as usize >= scene_gaussians) {
             return Err(Error::Invalid(format!(
                 "pixel weights reference Gaussian {k} but the scene has {scene_gaussians}"
             )));
@@ -450,7 +443,10 @@ impl HeldOutTally {
                 );
                 let union = t + p - i;
                 PixelClassScore {
-                    name: names.get(c).cloned().unwrap_or_else(|| format!("class {c}")),
+                    name: names
+                        .get(c)
+                        .cloned()
+                        .unwrap_or_else(|| format!("class {c}")),
                     iou: (union > 0).then(|| i as f64 / union as f64),
                     truth_pixels: t,
                     predicted_pixels: p,
@@ -554,12 +550,7 @@ mod tests {
         let w = raster(
             2,
             2,
-            &[
-                &[(0, 0.7)],
-                &[(0, 0.3), (1, 0.6)],
-                &[(1, 0.2)],
-                &[(2, 0.9)],
-            ],
+            &[&[(0, 0.7)], &[(0, 0.3), (1, 0.6)], &[(1, 0.2)], &[(2, 0.9)]],
         );
         let truth = [0u8, 0, 1, 1];
         let mut t = HeldOutTally::new(2, 1);
@@ -656,7 +647,10 @@ mod tests {
         let mut o = OracleLifting::new(3, 2).unwrap();
         o.add_view(&mut r, &intr, &pose, &classes).unwrap();
         let s = o.scores();
-        assert!((s[0] - 0.6).abs() < 1e-6 && (s[1] - 0.8).abs() < 1e-6, "{s:?}");
+        assert!(
+            (s[0] - 0.6).abs() < 1e-6 && (s[1] - 0.8).abs() < 1e-6,
+            "{s:?}"
+        );
         assert_eq!(&s[2..], &[0.0, 1.0, 0.0, 0.0]);
         assert_eq!(o.observed(), 2);
         assert!(o.add_view(&mut r, &intr, &pose, &[0]).is_err());

@@ -10,7 +10,7 @@ mod support;
 
 use clap::Parser;
 use slag_encoder::cli::encode::{EncodeArgs, RasterBackend};
-use slag_encoder::cli::eval::{run_held_out, EvalArgs};
+use slag_encoder::cli::eval::{EvalArgs, run_held_out};
 use support::{ort_available, shared};
 
 #[derive(Parser)]
@@ -50,7 +50,9 @@ fn held_out_protocol_on_snowmiku_mini() {
         "--out".into(),
         out.display().to_string(),
     ];
-    let args = EncodeCli::try_parse_from(argv).expect("encode arguments").args;
+    let args = EncodeCli::try_parse_from(argv)
+        .expect("encode arguments")
+        .args;
     let report = slag_encoder::cli::encode::run(&args).expect("encode");
     assert_eq!(report.counts.views_used, 4);
 
@@ -94,7 +96,11 @@ fn held_out_protocol_on_snowmiku_mini() {
     );
     assert_eq!(h.encoded_views, 4);
     assert_eq!(h.oracle_raster_scale, 0.5);
-    assert_eq!(h.pixels, 3 * 495 * 371, "held-out views render at full resolution");
+    assert_eq!(
+        h.pixels,
+        3 * 495 * 371,
+        "held-out views render at full resolution"
+    );
     assert!(
         h.counted_pixels * 2 > h.pixels,
         "only {} of {} pixels have alpha ≥ 0.5: the scene is not being rendered",
@@ -131,7 +137,10 @@ fn held_out_protocol_on_snowmiku_mini() {
         "slag held-out mIoU {slag} below {SLAG_FLOOR}"
     );
     assert!(oracle >= slag, "oracle {oracle} below slag {slag}");
-    assert!(oracle >= ORACLE_FLOOR, "oracle {oracle} below {ORACLE_FLOOR}");
+    assert!(
+        oracle >= ORACLE_FLOOR,
+        "oracle {oracle} below {ORACLE_FLOOR}"
+    );
 }
 
 /// Measured on this subset (release build, 2-core CPU, lavapipe; README "Accuracy"): slag 0.223,

@@ -16,8 +16,8 @@ use slag_common::embeddings::Embeddings;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 
-use super::encode::{make_rasterizer, RasterBackend};
 use super::EpArg;
+use super::encode::{RasterBackend, make_rasterizer};
 use crate::{eval, heldout};
 
 /// Arguments of `eval-colors`.
@@ -182,8 +182,12 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
     }
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("{} is not JSON; pass --every and --raster-scale", path.display()))?;
+    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| {
+        format!(
+            "{} is not JSON; pass --every and --raster-scale",
+            path.display()
+        )
+    })?;
     Ok((
         v["inputs"]["every"].as_u64().map(|e| e as usize),
         v["parameters"]["raster_scale"].as_f64(),
