@@ -1205,7 +1205,7 @@ mod tests {
             1,
             ImageStageParams {
                 top_k_per_pixel: Some(2),
-                ..Default::default()
+                ..ImageStageParams::default()
             },
         )
         .unwrap();

@@ -369,14 +369,15 @@ impl HeldOutTally {
                 || (vec![0u64; c], vec![Confusion::new(c); np]),
                 |(mut tr, mut conf), y| {
                     let mut acc = vec![0f32; c];
-                    for p in y * width..(y + 1) * width {
+                    let row = y * width..(y + 1) * width;
+                    for (p, &t) in row.clone().zip(&truth[row]) {
                         let (a, b) = (weights.offsets[p] as usize, weights.offsets[p + 1] as usize);
                         let (ids, ws) = (&weights.ids[a..b], &weights.weights[a..b]);
                         let alpha: f32 = ws.iter().sum();
                         if alpha < ALPHA_MIN {
                             continue;
                         }
-                        let t = truth[p] as usize;
+                        let t = t as usize;
                         tr[t] += 1;
                         for (table, cf) in scores.iter().zip(conf.iter_mut()) {
                             acc.iter_mut().for_each(|v| *v = 0.0);
