@@ -46,7 +46,7 @@ pub enum Error {
     },
     /// A model failed to load or run on its execution provider (out of GPU memory, a missing CUDA
     /// library, a driver/runtime mismatch, a provider the runtime lacks): names the model, the
-    /// provider, the GPU and what to do ([`crate::onnx::remedy`]).
+    /// provider, the GPU and what to do (`onnx::remedy`).
     #[error("model {model} on {device}: {message}; {remedy}")]
     Inference {
         /// The `.onnx` file.
@@ -76,9 +76,32 @@ pub enum Error {
         /// The model id recorded with the embeddings (shard manifest / embeddings file).
         embeddings_model: String,
     },
-    /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch).
+    /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch): the
+    /// user's to fix (HTTP 400).
     #[error("invalid input: {0}")]
     Invalid(String),
+    /// A shard that does not decode (truncated, corrupted, foreign, another format version): the
+    /// typed cause, so a caller can re-download, skip or upgrade.
+    #[error(transparent)]
+    Shard(#[from] crate::shards::ShardError),
+    /// The work needs more of a bounded resource than there is (a GPU buffer, a file-format
+    /// field, memory): names the resource, what was needed and the limit. Library code states
+    /// the limit; a command line adds the flag that lowers the need.
+    #[error("{resource}: {needed} needed, the limit is {limit}")]
+    Limit {
+        /// What is bounded.
+        resource: Resource,
+        /// What this run needs, with its unit.
+        needed: String,
+        /// The bound, with its unit.
+        limit: String,
+    },
+    /// Something that must not happen did (a panicked worker task, a broken invariant): a bug in
+    /// slag, never the user's input (HTTP 500).
+    #[error(
+        "internal fault: {0}; this is a slag bug, please report it with the command and its --verbose log"
+    )]
+    Internal(String),
     /// The GPU (wgpu) could not be used or a kernel failed.
     #[error("gpu: {0}")]
     Gpu(String),
@@ -114,11 +137,71 @@ impl Error {
             message: message.into(),
         }
     }
+    /// A resource-limit error ([`Error::Limit`]).
+    pub fn limit(
+        resource: Resource,
+        needed: impl std::fmt::Display,
+        limit: impl std::fmt::Display,
+    ) -> Self {
+        Error::Limit {
+            resource,
+            needed: needed.to_string(),
+            limit: limit.to_string(),
+        }
+    }
+    /// An internal fault ([`Error::Internal`]): `what` failed, e.g. a task that panicked.
+    pub fn internal(what: impl std::fmt::Display) -> Self {
+        Error::Internal(what.to_string())
+    }
+    /// `true` for errors the user (or an HTTP client) caused and can fix by changing the input:
+    /// [`Error::Invalid`] and [`Error::ModelMismatch`]. Everything else is the environment
+    /// (files, models, GPU, network, limits) or a fault of slag itself.
+    pub fn is_user_input(&self) -> bool {
+        match self {
+            Error::Invalid(_) | Error::ModelMismatch { .. } => true,
+            Error::Io { .. }
+            | Error::Format { .. }
+            | Error::Unsupported { .. }
+            | Error::Model { .. }
+            | Error::Inference { .. }
+            | Error::Gpu(_)
+            | Error::Network { .. }
+            | Error::Shard(_)
+            | Error::Limit { .. }
+            | Error::Internal(_) => false,
+        }
+    }
     /// A model error for `path`.
     pub fn model(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
         Error::Model {
             path: path.into(),
             message: message.into(),
         }
+    }
+}
+
+/// A bounded resource named by [`Error::Limit`]. A front end maps each to what lowers the need
+/// (the encoder's command line: `--raster-scale` for the raster ones).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Resource {
+    /// One GPU storage-buffer binding (wgpu `max_storage_buffer_binding_size`), bytes.
+    GpuBinding,
+    /// Workgroups per dispatch dimension (wgpu `max_compute_workgroups_per_dimension`).
+    GpuDispatch,
+    /// GPU memory (the device ran out while allocating a view's buffers).
+    GpuMemory,
+    /// Entries of one view's weight raster (`w_kp` pairs, or tile intersections), indexed with
+    /// 32-bit offsets.
+    RasterEntries,
+}
+
+impl std::fmt::Display for Resource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Resource::GpuBinding => "GPU buffer binding size",
+            Resource::GpuDispatch => "GPU workgroups per dispatch dimension",
+            Resource::GpuMemory => "GPU memory",
+            Resource::RasterEntries => "weight raster entries per view (32-bit offsets)",
+        })
     }
 }

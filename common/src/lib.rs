@@ -15,10 +15,12 @@
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 
+pub mod auth;
 pub mod camera;
 pub mod embeddings;
 pub mod error;
 pub mod mixture;
+#[cfg(feature = "onnx")]
 pub mod onnx;
 pub mod paths;
 pub mod prompt;
@@ -27,6 +29,7 @@ mod safetensors_io;
 pub mod scene;
 pub mod shards;
 pub mod similarity;
+#[cfg(feature = "onnx")]
 pub mod text;
 
-pub use error::{Error, Result};
+pub use error::{Error, Resource, Result};

@@ -398,17 +398,7 @@ impl MixtureEmbeddings {
                 self.dim
             )));
         }
-        let norm = query
-            .iter()
-            .map(|&q| q as f64 * q as f64)
-            .sum::<f64>()
-            .sqrt();
-        if !norm.is_finite() || norm < 1e-12 {
-            return Err(Error::Invalid(
-                "the text embedding is zero or not finite; rephrase the prompt".into(),
-            ));
-        }
-        Ok(query.iter().map(|&v| (v as f64 / norm) as f32).collect())
+        crate::similarity::unit_query(query)
     }
 
     fn check_shapes(&self) -> Result<()> {

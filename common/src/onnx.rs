@@ -21,7 +21,11 @@ use crate::{Error, Result};
 
 /// Which ONNX Runtime execution provider runs a model: what the user asks for (`--ep`), and, with
 /// [`OnnxModel::provider`], what actually runs it (never [`ExecutionProvider::Auto`] there).
+///
+/// With the `clap` feature it is also the `--ep` value of every binary (`cpu`, `cuda`,
+/// `tensorrt`, `auto`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ExecutionProvider {
     /// The default CPU provider.
@@ -37,6 +41,7 @@ pub enum ExecutionProvider {
     /// fp16 engines cached beside the model (`<model>.trt-cache/`); nodes TensorRT cannot take
     /// fall back to CUDA. An error where TensorRT does not register.
     #[serde(rename = "tensorrt")]
+    #[cfg_attr(feature = "clap", value(name = "tensorrt"))]
     TensorRt,
     /// CUDA when the loaded runtime has it and it registers on the GPU, otherwise the CPU, with one
     /// log line per process saying why.
@@ -505,9 +510,7 @@ pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
 /// writes the same value into the image and the text tower).
 pub const CLIP_PAIR_ID_KEY: &str = "slag.clip_pair_id";
 
-/// Model id of stores made from synthetic vectors (`partition --synthetic`): no CLIP model made
-/// them, so any text tower of the right width may query them.
-pub const SYNTHETIC_MODEL_ID: &str = "synthetic";
+pub use crate::shards::synthetic::SYNTHETIC_MODEL_ID;
 
 const TOWER_SUFFIXES: [&str; 4] = ["-visual", "-textual", "_visual", "_textual"];
 

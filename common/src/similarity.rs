@@ -5,6 +5,58 @@ use rayon::prelude::*;
 
 use crate::{Error, Result};
 
+/// Smallest L2 norm a vector may have and still be normalised ([`normalize_in_place`]).
+pub const MIN_NORM: f64 = 1e-12;
+
+/// A vector whose L2 norm is below [`MIN_NORM`] or not finite (zero, subnormal, NaN or infinite
+/// components): it has no direction, and dividing by its norm would put NaN into cosine scores.
+/// Each caller turns it into the error its user can act on (a prompt to rephrase, a model to
+/// check).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DegenerateNorm(
+    /// The norm found (computed in f64).
+    pub f64,
+);
+
+impl std::fmt::Display for DegenerateNorm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "norm {} (zero or not finite): no direction", self.0)
+    }
+}
+
+/// Scales `v` in place to unit L2 norm, the one normalisation slag uses for image embeddings
+/// (`E_j`), prompt embeddings and queries: the norm is summed in f64, then every component is
+/// multiplied by the f32 reciprocal. Returns the norm.
+///
+/// Errors: [`DegenerateNorm`] when the norm is below [`MIN_NORM`] or not finite; `v` is then left
+/// unchanged.
+pub fn normalize_in_place(v: &mut [f32]) -> std::result::Result<f64, DegenerateNorm> {
+    let norm = v
+        .iter()
+        .map(|&x| f64::from(x) * f64::from(x))
+        .sum::<f64>()
+        .sqrt();
+    if !(norm.is_finite() && norm >= MIN_NORM) {
+        return Err(DegenerateNorm(norm));
+    }
+    let inv = (1.0 / norm) as f32;
+    v.iter_mut().for_each(|x| *x *= inv);
+    Ok(norm)
+}
+
+/// A unit copy of a query (prompt) embedding, or [`Error::Invalid`] telling the user to rephrase
+/// the prompt (a CLIP text tower can return a zero vector for an empty prompt).
+pub fn unit_query(query: &[f32]) -> Result<Vec<f32>> {
+    let mut q = query.to_vec();
+    normalize_in_place(&mut q).map_err(|d| {
+        Error::Invalid(format!(
+            "the prompt's text embedding has {d}, so it cannot be compared with the Gaussians; \
+             rephrase the prompt, or check the text model"
+        ))
+    })?;
+    Ok(q)
+}
+
 /// The paper's cosine threshold for "this Gaussian matches the prompt" (SLAG, Sec. IV).
 pub const PAPER_THRESHOLD: f32 = 0.28;
 
@@ -21,17 +73,7 @@ pub fn cosine_scores(vectors: &[f32], dim: usize, query: &[f32]) -> Result<Vec<f
             vectors.len()
         )));
     }
-    let norm = query
-        .iter()
-        .map(|&q| q as f64 * q as f64)
-        .sum::<f64>()
-        .sqrt();
-    if !norm.is_finite() || norm < 1e-12 {
-        return Err(Error::Invalid(
-            "the text embedding is zero or not finite; rephrase the prompt".into(),
-        ));
-    }
-    let q: Vec<f32> = query.iter().map(|&v| (v as f64 / norm) as f32).collect();
+    let q = unit_query(query)?;
     Ok(vectors
         .par_chunks_exact(dim)
         .map(|row| dot(row, &q))
@@ -77,6 +119,36 @@ pub fn top_k(scores: &[f32], k: usize) -> Vec<(usize, f32)> {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn one_normalisation_rule_at_the_extremes() {
+        // Around MIN_NORM: twice it is accepted (and comes out unit), half of it is refused.
+        let mut v = vec![2e-12f32, 0.0];
+        assert!(normalize_in_place(&mut v).is_ok());
+        assert!((v[0] - 1.0).abs() < 1e-6, "{v:?}");
+        assert!(normalize_in_place(&mut [5e-13f32, 0.0]).is_err());
+        for bad in [
+            vec![0f32; 4],
+            vec![1e-30f32; 4],
+            vec![f32::NAN, 1.0],
+            vec![f32::INFINITY, 0.0],
+        ] {
+            let mut w = bad.clone();
+            assert!(normalize_in_place(&mut w).is_err(), "{bad:?}");
+            assert_eq!(format!("{w:?}"), format!("{bad:?}"), "left unchanged");
+            assert!(matches!(unit_query(&bad), Err(Error::Invalid(_))));
+        }
+        // f32::MAX components: the f64 sum does not overflow.
+        let mut big = vec![f32::MAX, f32::MAX];
+        normalize_in_place(&mut big).expect("f32::MAX is normalisable in f64");
+        assert!(
+            (big[0] - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6,
+            "{big:?}"
+        );
+        let mut v = vec![3f32, 4.0];
+        assert_eq!(normalize_in_place(&mut v), Ok(5.0));
+        assert_eq!(v, vec![0.6, 0.8]);
+    }
 
     #[test]
     fn cosine_matches_direct_computation() {

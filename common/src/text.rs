@@ -37,23 +37,17 @@ const TEXT_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, 
 /// L2-normalises `v` in place (for embeddings produced by the model at `path`).
 ///
 /// # Errors
-/// [`Error::Model`] when the norm is zero (below 1e-12) or not finite: such an embedding has no
+/// [`Error::Model`] when the norm is below [`crate::similarity::MIN_NORM`] or not finite: such an embedding has no
 /// direction, and dividing would put NaN into similarity scores.
 pub fn l2_normalize(v: &mut [f32], path: &Path) -> Result<()> {
-    let n = v
-        .iter()
-        .map(|&x| f64::from(x) * f64::from(x))
-        .sum::<f64>()
-        .sqrt();
-    if !(n.is_finite() && n > 1e-12) {
-        return Err(Error::model(
-            path,
-            format!("the model returned an embedding with norm {n}: it cannot be normalised"),
-        ));
-    }
-    let inv = (1.0 / n) as f32;
-    v.iter_mut().for_each(|x| *x *= inv);
-    Ok(())
+    crate::similarity::normalize_in_place(v)
+        .map(|_| ())
+        .map_err(|d| {
+            Error::model(
+                path,
+                format!("the model returned an embedding with {d}: it cannot be normalised"),
+            )
+        })
 }
 
 /// CLIP BPE tokenizer producing open_clip's `input_ids` rows.

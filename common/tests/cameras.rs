@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 use slag_common::camera::{View, load_views};
-use slag_common::{Error, paths::shared_dir};
+use slag_common::{Error, paths::source_tree_shared_dir as shared_dir};
 
 fn snowmiku() -> PathBuf {
     shared_dir().join("scenes").join("snowmiku")

@@ -13,7 +13,7 @@ use slag_common::onnx::{self, CLIP_PAIR_ID_KEY, ExecutionProvider};
 use slag_common::text::TextEncoder;
 
 fn clip_dir() -> PathBuf {
-    slag_common::paths::shared_dir().join("fixtures/clip")
+    slag_common::paths::source_tree_shared_dir().join("fixtures/clip")
 }
 
 fn ort_ready() -> bool {

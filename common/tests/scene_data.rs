@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use slag_common::camera::{load_views, subsample};
-use slag_common::paths::shared_dir;
+use slag_common::paths::source_tree_shared_dir as shared_dir;
 use slag_common::scene::{PlyLoadOptions, SH_C0, load_ply, write_highlighted_ply};
 
 fn snowmiku() -> PathBuf {

@@ -14,7 +14,7 @@ use slag_common::onnx::ExecutionProvider;
 use slag_common::text::TextEncoder;
 
 fn clip_dir() -> PathBuf {
-    slag_common::paths::shared_dir().join("fixtures/clip")
+    slag_common::paths::source_tree_shared_dir().join("fixtures/clip")
 }
 
 fn try_load() -> Error {

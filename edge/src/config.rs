@@ -58,20 +58,8 @@ impl ServeConfig {
     }
 }
 
-/// Reads a bearer token from a file (first line, trimmed).
-///
-/// Errors: [`Error::Io`]; [`Error::Invalid`] for an empty token.
-pub fn read_token(path: &Path) -> Result<String> {
-    let t = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-    let t = t.lines().next().unwrap_or("").trim().to_string();
-    if t.is_empty() {
-        return Err(Error::Invalid(format!(
-            "token file {} is empty; write the token on its first line",
-            path.display()
-        )));
-    }
-    Ok(t)
-}
+/// Reads a bearer token from a file (first line, trimmed): [`slag_common::auth::read_token_file`].
+pub use slag_common::auth::read_token_file as read_token;
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]

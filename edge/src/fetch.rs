@@ -471,7 +471,7 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
         let (store, manifest) = (store.clone(), manifest.clone());
         tokio::task::spawn_blocking(move || store.commit_fetch(&manifest, &record))
             .await
-            .map_err(|e| Error::Invalid(format!("store task failed: {e}")))??;
+            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
     }
     fault_boundary("after the manifest commit");
 
@@ -549,7 +549,7 @@ async fn download_tile(
                         store.commit_partial(&manifest, &tile, &part)
                     })
                     .await
-                    .map_err(|e| Error::Invalid(format!("store task failed: {e}")))?
+                    .map_err(|e| Error::internal(format!("store task failed: {e}")))?
                 };
                 match committed {
                     Ok(()) => {

@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use slag_common::onnx::ExecutionProvider;
+use slag_common::onnx::ExecutionProvider as EpArg;
 use slag_common::similarity::PAPER_THRESHOLD;
 use slag_common::text::TextEncoder;
 use slag_edge::config::{ServeConfig, read_token};
@@ -71,25 +71,6 @@ enum Command {
     /// Benchmark the scan kernels (f32/f16/int8, top-k, threshold, LERF) against the
     /// memory-bandwidth floor of the same bytes and a naive f32 scan; prints a Markdown table.
     Bench(slag_edge::scan::BenchArgs),
-}
-
-/// ONNX Runtime execution provider.
-#[derive(Debug, Clone, Copy, ValueEnum, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-enum EpArg {
-    /// CPU (any ONNX Runtime build, e.g. PyPI's aarch64 wheel).
-    Cpu,
-    /// CUDA (JetPack's ONNX Runtime build).
-    Cuda,
-}
-
-impl From<EpArg> for ExecutionProvider {
-    fn from(e: EpArg) -> Self {
-        match e {
-            EpArg::Cpu => ExecutionProvider::Cpu,
-            EpArg::Cuda => ExecutionProvider::Cuda,
-        }
-    }
 }
 
 #[derive(Args)]
@@ -175,9 +156,9 @@ struct ServeArgs {
     /// Queries that may wait for a scan; one more is answered 503 with Retry-After (default 32).
     #[arg(long)]
     scan_queue: Option<usize>,
-    /// Folder whose `vendor/` holds the web viewer bundles served under `/vendor/` for the page
-    /// at `/` (made by `bash scripts/web-vendor.sh`). Default: the source tree's `edge/web`
-    /// when it exists.
+    /// Serve the web page from this folder instead of the compiled-in one: its `index.html` and
+    /// `app.js` where present, and the viewer bundles from its `vendor/` (made by `bash
+    /// scripts/web-vendor.sh`). Default: the page and viewer compiled into this binary.
     #[arg(long)]
     web_dir: Option<PathBuf>,
 }
@@ -224,7 +205,7 @@ fn text_embedder(
     tokenizer: &std::path::Path,
     ep: EpArg,
 ) -> anyhow::Result<Arc<dyn TextEmbedder>> {
-    let enc = TextEncoder::new(model, tokenizer, ep.into())?;
+    let enc = TextEncoder::new(model, tokenizer, ep)?;
     let name = model
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
@@ -313,9 +294,9 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let tokenizer = need(a.tokenizer.or(c.tokenizer), "tokenizer")?;
     let ep = match (a.ep, c.ep.as_deref()) {
         (Some(e), _) => e,
-        (None, None | Some("cpu")) => EpArg::Cpu,
-        (None, Some("cuda")) => EpArg::Cuda,
-        (None, Some(other)) => anyhow::bail!("config ep {other:?}: use cpu or cuda"),
+        (None, None) => EpArg::Cpu,
+        (None, Some(name)) => <EpArg as ValueEnum>::from_str(name, true)
+            .map_err(|_| anyhow::anyhow!("config ep {name:?}: use cpu, cuda, tensorrt or auto"))?,
     };
     let threshold = a.threshold.or(c.threshold).unwrap_or(PAPER_THRESHOLD);
     anyhow::ensure!(

@@ -399,29 +399,17 @@ pub struct Timings {
     pub scan: f64,
 }
 
-/// The prompt embedding `phi` scaled to unit L2 norm (computed in f64), so that scores are
+/// The prompt embedding `phi` scaled to unit L2 norm
+/// ([`slag_common::similarity::unit_query`]: norm in f64, f32 reciprocal), so that scores are
 /// cosines whatever the [`TextEmbedder`] returns (a no-op up to rounding for the CLIP text tower,
 /// which already normalises).
 ///
 /// Errors: [`Error::Invalid`] (HTTP 400) when the norm is below 1e-12 or not finite (a zero,
 /// subnormal, NaN or infinite embedding): it has no direction, and scanning with it would rank
-/// every Gaussian at score 0 (or NaN). The rule matches `slag_common::similarity::cosine_scores`
-/// and `slag_common::text::l2_normalize`.
-pub fn unit_prompt_embedding(mut phi: Vec<f32>) -> Result<Vec<f32>> {
-    let norm = phi
-        .iter()
-        .map(|&x| f64::from(x) * f64::from(x))
-        .sum::<f64>()
-        .sqrt();
-    if !(norm.is_finite() && norm >= 1e-12) {
-        return Err(Error::Invalid(format!(
-            "the prompt's text embedding has norm {norm} (zero or not finite), so it has no \
-             direction to compare with; rephrase the prompt, or check the text model"
-        )));
-    }
-    phi.iter_mut()
-        .for_each(|x| *x = (f64::from(*x) / norm) as f32);
-    Ok(phi)
+/// every Gaussian at score 0 (or NaN). One rule for every normalisation in slag
+/// (`slag_common::similarity::normalize_in_place`).
+pub fn unit_prompt_embedding(phi: Vec<f32>) -> Result<Vec<f32>> {
+    slag_common::similarity::unit_query(&phi)
 }
 
 /// Runs a validated query against `store`, answering in the scene frame (no map frame known):

@@ -318,14 +318,15 @@ impl AppState {
             rejected: AtomicU64::new(0),
             started: Instant::now(),
             fetching: tokio::sync::Mutex::new(()),
-            web_dir: crate::view::default_web_dir(),
+            web_dir: None,
             admission: Admission::new(opts.max_scans, opts.scan_queue),
             opts,
         })
     }
 
-    /// Serves the web page's vendored viewer from `<dir>/vendor` (`scripts/web-vendor.sh`);
-    /// `None` keeps the default ([`crate::view::default_web_dir`]).
+    /// Serves the web page from `dir` instead of the compiled-in files ([`crate::view`]):
+    /// `index.html` and `app.js` where present, the viewer from `<dir>/vendor` only
+    /// (`scripts/web-vendor.sh`). `None` keeps the compiled-in page and viewer.
     pub fn with_web_dir(mut self, dir: Option<std::path::PathBuf>) -> Self {
         if dir.is_some() {
             self.web_dir = dir;
@@ -434,24 +435,24 @@ pub(crate) fn error(status: StatusCode, message: String) -> Response {
         .into_response()
 }
 
-/// Maps a slag error to an HTTP status: bad input 400, everything else 500.
+/// Maps a slag error to an HTTP status, one arm per variant (a new variant must be placed here):
+/// the client's input 400, a text model of another CLIP model 409, an upstream shard server 502,
+/// everything on this side (files, stored shards, models, GPU, limits, faults) 500.
 pub(crate) fn status_of(e: &Error) -> StatusCode {
     match e {
         Error::Invalid(_) => StatusCode::BAD_REQUEST,
-        Error::Network { .. } => StatusCode::BAD_GATEWAY,
         Error::ModelMismatch { .. } => StatusCode::CONFLICT,
-        _ => StatusCode::INTERNAL_SERVER_ERROR,
+        Error::Network { .. } => StatusCode::BAD_GATEWAY,
+        Error::Io { .. }
+        | Error::Format { .. }
+        | Error::Unsupported { .. }
+        | Error::Model { .. }
+        | Error::Inference { .. }
+        | Error::Gpu(_)
+        | Error::Shard(_)
+        | Error::Limit { .. }
+        | Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
     }
-}
-
-/// Constant-time comparison of the presented and configured tokens.
-fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
-    // Lengths compared in full (a `as u8` truncation would accept a token with 256 extra bytes).
-    let mut diff = u8::from(presented.len() != expected.len());
-    for (i, b) in expected.iter().enumerate() {
-        diff |= b ^ presented.get(i).copied().unwrap_or(0);
-    }
-    diff == 0
 }
 
 async fn auth(
@@ -466,12 +467,10 @@ async fn auth(
     if req.uri().path() == "/health" || crate::view::is_public_path(req.uri().path()) {
         return next.run(req).await;
     }
-    let presented = headers
+    let authorization = headers
         .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .unwrap_or("");
-    if token_matches(presented.as_bytes(), token.as_bytes()) {
+        .and_then(|v| v.to_str().ok());
+    if slag_common::auth::authorized(authorization, token) {
         next.run(req).await
     } else {
         state.rejected.fetch_add(1, Ordering::Relaxed);
@@ -586,7 +585,7 @@ pub(crate) async fn answer(
                 v
             }
             Err(e) => (0..n)
-                .map(|_| Err(Error::Invalid(format!("query task failed: {e}"))))
+                .map(|_| Err(Error::internal(format!("query task failed: {e}"))))
                 .collect(),
         },
     )
@@ -684,7 +683,7 @@ async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
     let e =
         tokio::task::spawn_blocking(move || Engine::load(&st.edge, &st.opts.scene, st.opts.hnsw))
             .await
-            .map_err(|e| Error::Invalid(format!("reload task failed: {e}")))??;
+            .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
     // A newly fetched generation of another CLIP model is not swapped in.
     state.text.check_pair(&e.manifest.model)?;
     state.swap(e);
@@ -792,19 +791,28 @@ async fn fetch_post(
 }
 
 #[cfg(test)]
-mod token_tests {
-    use super::token_matches;
+mod status_tests {
+    use super::*;
 
     #[test]
-    fn token_comparison_needs_the_exact_token() {
-        let t = b"s3cret";
-        assert!(token_matches(t, t));
-        for bad in [&b""[..], b"s3cre", b"s3cret!", b"S3cret"] {
-            assert!(!token_matches(bad, t), "{bad:?}");
+    fn client_faults_4xx_server_faults_5xx() {
+        assert_eq!(
+            status_of(&Error::Invalid("k".into())),
+            StatusCode::BAD_REQUEST
+        );
+        assert_eq!(
+            status_of(&Error::network("http://s", "down")),
+            StatusCode::BAD_GATEWAY
+        );
+        for e in [
+            Error::internal("query task failed: panicked"),
+            Error::Shard(slag_common::shards::ShardError::BadMagic),
+            Error::limit(slag_common::Resource::GpuMemory, "1 GiB", "0"),
+            Error::Gpu("lost".into()),
+        ] {
+            assert_eq!(status_of(&e), StatusCode::INTERNAL_SERVER_ERROR, "{e}");
+            assert!(!e.is_user_input(), "{e}");
         }
-        // Regression: the token followed by 256 more bytes was accepted (length difference
-        // truncated to u8).
-        let long = [&t[..], &[b'a'; 256][..]].concat();
-        assert!(!token_matches(&long, t));
+        assert!(Error::Invalid("k".into()).is_user_input());
     }
 }

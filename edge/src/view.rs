@@ -10,12 +10,13 @@
 //!   validation as `GET /query`, plus `color=RRGGBB` and `dim=0..1`), and the page `GET /` with
 //!   its script `GET /app.js` and the vendored viewer bundles `GET /vendor/<file>`.
 //!
-//! The page and its script are compiled into the binary; the viewer
+//! Everything the page needs is compiled into the binary: the page, its script, and the viewer
 //! ([`@mkkellogg/gaussian-splats-3d`](https://github.com/mkkellogg/GaussianSplats3D) on three.js)
-//! is vendored at build time by `bash scripts/web-vendor.sh` (`npm ci` in `edge/web`, bundles
-//! copied to `edge/web/vendor`, git-ignored) and served from `--web-dir` (default: this crate's
-//! `web` folder when it exists). Without it the page says how to vendor; `cargo build` never
-//! needs npm.
+//! when it was vendored before the build (`bash scripts/web-vendor.sh`: `npm ci` in `edge/web`,
+//! bundles copied to `edge/web/vendor`, git-ignored; [`Vendored`]). `--web-dir DIR` overrides
+//! them: `DIR/index.html` and `DIR/app.js` where present, and the viewer from `DIR/vendor` only.
+//! A binary built without the vendored viewer serves the page, which says how to vendor; `cargo
+//! build` never needs npm, and nothing is looked up in the build machine's source tree.
 
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
@@ -235,14 +236,11 @@ pub fn highlighted_ply_framed(
         return Err(Error::Invalid(format!("dim {f}: use a factor in 0..=1")));
     }
     let n = attrs.len();
-    let mut out = String::from("ply\nformat binary_little_endian 1.0\n");
-    out.push_str("comment slag-edge /query.ply: matches painted in a flat colour\n");
-    out.push_str(&format!("element vertex {n}\n"));
-    for p in PLY_PROPERTIES {
-        out.push_str(&format!("property float {p}\n"));
-    }
-    out.push_str("end_header\n");
-    let mut bytes = out.into_bytes();
+    let mut bytes = slag_common::scene::float_vertex_header(
+        n,
+        &PLY_PROPERTIES,
+        Some("slag-edge /query.ply: matches painted in a flat colour"),
+    );
     bytes.reserve(n * PLY_PROPERTIES.len() * 4);
     let hl = dc_of_rgb(style.colour);
     let fallback_scale = attrs.fallback_log_scale();
@@ -434,31 +432,42 @@ pub fn is_public_path(path: &str) -> bool {
     path == "/" || path == "/index.html" || path == "/app.js" || path.starts_with("/vendor/")
 }
 
-/// This crate's `web` folder (`edge/web` of the source tree) when it exists on this machine:
-/// the default `--web-dir`.
-pub fn default_web_dir() -> Option<PathBuf> {
-    let p = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/web"));
-    p.is_dir().then_some(p)
+/// The viewer bundles of `edge/web/vendor` as they were when the binary was built (none when
+/// `scripts/web-vendor.sh` had not run): served under `/vendor/<file>` unless `--web-dir` is
+/// given.
+#[derive(rust_embed::Embed)]
+#[folder = "web/vendor/"]
+#[allow_missing = true]
+pub struct Vendored;
+
+/// `<web_dir>/<name>` when `--web-dir` is set and the file is there, else the compiled-in text.
+async fn page_file(state: &AppState, name: &str, compiled: &'static str) -> Vec<u8> {
+    if let Some(dir) = &state.web_dir
+        && let Ok(b) = tokio::fs::read(dir.join(name)).await
+    {
+        return b;
+    }
+    compiled.as_bytes().to_vec()
 }
 
-pub(crate) async fn index() -> Response {
+pub(crate) async fn index(State(state): State<Arc<AppState>>) -> Response {
     (
         [
             (header::CONTENT_TYPE, "text/html; charset=utf-8"),
             (header::CACHE_CONTROL, "no-cache"),
         ],
-        INDEX_HTML,
+        page_file(&state, "index.html", INDEX_HTML).await,
     )
         .into_response()
 }
 
-pub(crate) async fn app_js() -> Response {
+pub(crate) async fn app_js(State(state): State<Arc<AppState>>) -> Response {
     (
         [
             (header::CONTENT_TYPE, "text/javascript; charset=utf-8"),
             (header::CACHE_CONTROL, "no-cache"),
         ],
-        APP_JS,
+        page_file(&state, "app.js", APP_JS).await,
     )
         .into_response()
 }
@@ -483,29 +492,29 @@ pub(crate) async fn vendor(
             StatusCode::NOT_FOUND,
             format!(
                 "viewer file {name:?} is not vendored; run `bash scripts/web-vendor.sh` in the slag \
-                 repository and start serve with --web-dir <repo>/edge/web"
+                 repository, then rebuild slag-edge (it embeds edge/web/vendor) or start serve \
+                 with --web-dir <repo>/edge/web"
             ),
         )
     };
-    let Some(dir) = state.web_dir.clone() else {
-        return missing();
-    };
-    let Some(path) = vendor_file(&dir, &name) else {
+    let Some(path) = vendor_file(Path::new(""), &name) else {
         return error(StatusCode::BAD_REQUEST, format!("bad file name {name:?}"));
     };
-    match tokio::fs::read(&path).await {
-        Ok(b) => {
-            let ct = match path.extension().and_then(|e| e.to_str()) {
-                Some("js" | "mjs") => "text/javascript; charset=utf-8",
-                Some("wasm") => "application/wasm",
-                Some("json") => "application/json",
-                Some("css") => "text/css",
-                _ => "application/octet-stream",
-            };
-            ([(header::CONTENT_TYPE, ct)], b).into_response()
-        }
-        Err(_) => missing(),
-    }
+    let bytes = match &state.web_dir {
+        Some(dir) => tokio::fs::read(dir.join(&path)).await.ok(),
+        None => Vendored::get(&name).map(|f| f.data.into_owned()),
+    };
+    let Some(b) = bytes else {
+        return missing();
+    };
+    let ct = match path.extension().and_then(|e| e.to_str()) {
+        Some("js" | "mjs") => "text/javascript; charset=utf-8",
+        Some("wasm") => "application/wasm",
+        Some("json") => "application/json",
+        Some("css") => "text/css",
+        _ => "application/octet-stream",
+    };
+    ([(header::CONTENT_TYPE, ct)], b).into_response()
 }
 
 #[cfg(test)]

@@ -33,7 +33,7 @@ fn slag_edge(args: &[&str]) -> Output {
 }
 
 fn fixture(rel: &str) -> String {
-    slag_common::paths::shared_dir()
+    slag_common::paths::source_tree_shared_dir()
         .join("fixtures")
         .join(rel)
         .display()

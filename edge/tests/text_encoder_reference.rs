@@ -28,7 +28,7 @@ fn ort_available() -> bool {
 }
 
 fn clip_dir() -> PathBuf {
-    slag_common::paths::shared_dir().join("fixtures/clip")
+    slag_common::paths::source_tree_shared_dir().join("fixtures/clip")
 }
 
 fn cosine(a: &[f32], b: &[f64]) -> f64 {

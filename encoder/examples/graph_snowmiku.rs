@@ -26,7 +26,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     if images.is_empty() {
-        let dir = slag_common::paths::shared_dir().join("scenes/snowmiku/images");
+        let dir = slag_common::paths::source_tree_shared_dir().join("scenes/snowmiku/images");
         let mut all: Vec<_> = std::fs::read_dir(&dir)?
             .filter_map(|e| e.ok().map(|e| e.path()))
             .collect();

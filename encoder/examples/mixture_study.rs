@@ -38,7 +38,7 @@ fn iou(a: &[f32], b: &[f32]) -> (usize, usize, Option<f64>) {
 
 fn main() -> anyhow::Result<()> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
-    let fixtures = slag_common::paths::shared_dir().join("fixtures");
+    let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let (mut scene_dir, mut masks_kind, mut every, mut scale) = (
         root.join("data/snowmiku-mini"),
         "graph".to_string(),

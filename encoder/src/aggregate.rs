@@ -712,7 +712,7 @@ pub fn reduce_to_writer(
         drop(tx);
         let writer = handle
             .join()
-            .map_err(|_| Error::Invalid("the embeddings writer thread panicked".into()))??;
+            .map_err(|_| Error::internal("the embeddings writer thread panicked"))??;
         Ok(Streamed {
             writer,
             chunks: reduced?,

@@ -366,7 +366,7 @@ mod tests {
     use std::collections::BTreeSet;
 
     fn color_clip_path() -> std::path::PathBuf {
-        slag_common::paths::shared_dir().join("fixtures/clip/color-clip.json")
+        slag_common::paths::source_tree_shared_dir().join("fixtures/clip/color-clip.json")
     }
 
     fn names(k: usize) -> Vec<String> {
@@ -643,7 +643,8 @@ mod tests {
     #[test]
     fn snowmiku_class_histogram_is_sane() {
         let cc = ColorClasses::load(&color_clip_path()).unwrap();
-        let ply = slag_common::paths::shared_dir().join("scenes/snowmiku/point_cloud.ply");
+        let ply =
+            slag_common::paths::source_tree_shared_dir().join("scenes/snowmiku/point_cloud.ply");
         let g = read_inria_ply_dc(&ply);
         assert_eq!(g.len(), 120_000);
         let gt = ground_truth(&cc, &g).unwrap();

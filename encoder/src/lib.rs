@@ -10,24 +10,18 @@
 //! the result). [`distributed`] runs the same map/reduce over several processes
 //! (timely dataflow cluster).
 //!
-//! Vector Database and Partitioning: [`partition`] cuts embeddings into spatial shards, [`store`]
-//! keeps them (sled), [`serve`] serves them over HTTP, [`export`] writes them for static hosting,
-//! [`qdrant`] upserts them into a Qdrant collection (optionally one snapshot per tile).
+//! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
+//! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
 
 pub mod aggregate;
 pub mod cli;
 pub mod clip;
 pub mod distributed;
 pub mod eval;
-pub mod export;
 pub mod heldout;
 pub mod masks;
-pub mod partition;
 pub mod pipeline;
 pub mod preprocess;
-pub mod qdrant;
 pub mod raster;
 pub mod report;
-pub mod serve;
-pub mod store;
 pub mod synthetic;

@@ -44,11 +44,11 @@ enum Command {
     /// Run `encode` and print a per-stage timing table.
     Bench(cli::encode::EncodeArgs),
     /// Cut an embeddings file into spatial shards (ground-plane k-d tiles) in a sled store.
-    Partition(cli::shards::PartitionArgs),
+    Partition(slag_shards::cli::PartitionArgs),
     /// Serve a store's manifests and shards over HTTP (ETag, Range).
-    Serve(cli::shards::ServeArgs),
+    Serve(slag_shards::cli::ServeArgs),
     /// Write a scene's manifest.json + shard files for any static host or object store.
-    Export(cli::shards::ExportArgs),
+    Export(slag_shards::cli::ExportArgs),
     /// Write a synthetic terrain scene of any size (ply + images + COLMAP poses) for scale tests.
     SynthScene(cli::synthetic::SynthArgs),
 }
@@ -95,15 +95,18 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => {
             cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r)))
         }
-        Command::Partition(a) => cli::shards::run_partition(a),
-        Command::Serve(a) => cli::shards::run_serve(a),
-        Command::Export(a) => cli::shards::run_export(a),
+        Command::Partition(a) => slag_shards::cli::run_partition(a),
+        Command::Serve(a) => slag_shards::cli::run_serve(a),
+        Command::Export(a) => slag_shards::cli::run_export(a),
         Command::SynthScene(a) => cli::synthetic::run(a).and_then(|o| print_json(&o)),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
+            if let Some(h) = cli::hint(&e) {
+                eprintln!("hint: {h}");
+            }
             std::process::ExitCode::FAILURE
         }
     }

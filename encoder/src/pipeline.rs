@@ -543,7 +543,7 @@ pub fn encode_pool(
         for h in handles {
             match h.join() {
                 Ok(share) => shares.push(share),
-                Err(_) => fail(Error::Invalid("an encode worker thread panicked".into())),
+                Err(_) => fail(Error::internal("an encode worker thread panicked")),
             }
         }
     });

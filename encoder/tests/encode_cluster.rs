@@ -38,7 +38,7 @@ fn command() -> Command {
 /// The encode arguments shared by every run: 7 of the 13 views, raster scale 0.25, f32 output.
 fn encode_args(out: &Path) -> Vec<String> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
-    let fixtures = slag_common::paths::shared_dir().join("fixtures");
+    let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let mut a: Vec<String> = vec![
         "--scene".into(),
         root.join("data/snowmiku-mini").display().to_string(),

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
     let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let scene = root.join("data/snowmiku-mini");
-    let fixtures = slag_common::paths::shared_dir().join("fixtures");
+    let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
     let bin = env!("CARGO_BIN_EXE_slag-encoder");

@@ -60,6 +60,7 @@ fn held_out_protocol_on_snowmiku_mini() {
         scene: mini(),
         ply: None,
         embeddings: out.join("embeddings.safetensors"),
+        color_clip: Some(slag_common::paths::source_tree_shared_dir().join("fixtures/clip")),
         clip_textual: None,
         tokenizer: None,
         classes: None,

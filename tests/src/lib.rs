@@ -9,7 +9,7 @@ use slag_encoder::cli::encode::EncodeArgs;
 
 /// `../shared` (or `$SLAG_SHARED`).
 pub fn shared() -> PathBuf {
-    slag_common::paths::shared_dir()
+    slag_common::paths::source_tree_shared_dir()
 }
 
 /// A file under `../shared/fixtures`.
@@ -118,12 +118,12 @@ pub fn robot_path(
     .expect("encode");
     let embeddings = out.join("embeddings.safetensors");
     let shard_store = dir.path().join("shards");
-    slag_encoder::cli::shards::run_partition(&slag_encoder::cli::shards::PartitionArgs {
+    slag_shards::cli::run_partition(&slag_shards::cli::PartitionArgs {
         embeddings: Some(embeddings.clone()),
         synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
-        max_shard_mb: slag_encoder::partition::DEFAULT_MAX_SHARD_MIB,
+        max_shard_mb: slag_shards::partition::DEFAULT_MAX_SHARD_MIB,
         // A count keeps this scene's tiling independent of the dtype under test.
         max_per_shard: Some(8000),
         report: None,
@@ -142,13 +142,13 @@ pub fn robot_path(
     })
     .expect("partition");
     rt.block_on(async {
-        let store = slag_encoder::store::ShardStore::open(&shard_store).expect("shard store");
+        let store = slag_shards::store::ShardStore::open(&shard_store).expect("shard store");
         let manifest = store
             .manifest("snowmiku-mini")
             .expect("manifest")
             .expect("a partitioned scene");
         let (tx, rx) = tokio::sync::oneshot::channel();
-        tokio::spawn(slag_encoder::serve::serve(
+        tokio::spawn(slag_shards::serve::serve(
             store,
             "127.0.0.1:0".parse().expect("address"),
             move |a| {

@@ -16,6 +16,7 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         scene: shared().join("scenes/snowmiku"),
         ply: None,
         embeddings: out.join("embeddings.safetensors"),
+        color_clip: Some(shared().join("fixtures/clip")),
         clip_textual: None,
         tokenizer: None,
         classes: None,

@@ -9,8 +9,8 @@ use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame};
 use slag_edge::fetch::{Center, FetchParams, fetch};
 use slag_edge::store::EdgeStore;
-use slag_encoder::partition::{PartitionParams, UpChoice};
-use slag_encoder::store::{ShardStore, partition_into_store};
+use slag_shards::partition::{PartitionParams, UpChoice};
+use slag_shards::store::{ShardStore, partition_into_store};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fetch_needs_the_shard_servers_token() {
@@ -30,7 +30,7 @@ async fn fetch_needs_the_shard_servers_token() {
     )
     .unwrap();
     let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(slag_encoder::serve::serve_with_token(
+    tokio::spawn(slag_shards::serve::serve_with_token(
         store,
         "127.0.0.1:0".parse().unwrap(),
         Some("tok-42".into()),

@@ -292,11 +292,12 @@ type EncodedPoint = (EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64)
 pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let t_start = Instant::now();
     let machine = crate::machine::MachineInfo::detect();
-    let shared = slag_common::paths::shared_dir();
+    // `$SLAG_SHARED`, needed only for what --scene / --fixtures do not name.
+    let shared = || slag_common::paths::shared_dir();
     let scene = match &a.scene {
         Some(s) => s.clone(),
         None if a.quick => PathBuf::from("data/snowmiku-mini"),
-        None => shared.join("scenes").join("snowmiku"),
+        None => shared()?.join("scenes").join("snowmiku"),
     };
     if !scene.join("point_cloud.ply").is_file() {
         anyhow::bail!(
@@ -304,10 +305,10 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             scene.display()
         );
     }
-    let fixtures = a
-        .fixtures
-        .clone()
-        .unwrap_or_else(|| shared.join("fixtures"));
+    let fixtures = match &a.fixtures {
+        Some(f) => f.clone(),
+        None => shared()?.join("fixtures"),
+    };
     let scene_name = scene
         .file_name()
         .map(|s| s.to_string_lossy().to_string())

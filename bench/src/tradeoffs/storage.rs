@@ -9,7 +9,7 @@ use slag_common::embeddings::{Embeddings, StoredPrecision};
 use slag_common::shards::Dtype;
 use slag_edge::scan::hnsw::HnswIndex;
 use slag_edge::scan::{ScanRequest, VectorStore, scan};
-use slag_encoder::partition::{PartitionParams, UpChoice, partition};
+use slag_shards::partition::{PartitionParams, UpChoice, partition};
 
 use super::{EvalContext, Row, sets};
 
@@ -271,7 +271,7 @@ pub struct FootprintRow {
 
 /// The footprint of the baseline run: a dense `N × D` f32 tensor over every Gaussian of the
 /// `.ply` vs the observed-only embeddings file (f32, f16) and the shards at f32/f16/int8
-/// (`slag_encoder::partition` with the CLI default of 16384 Gaussians per shard, up axis from the
+/// (`slag_shards::partition` with the CLI default of 16384 Gaussians per shard, up axis from the
 /// cameras).
 ///
 /// Errors: I/O in `work`, partition errors.

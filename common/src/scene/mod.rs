@@ -132,4 +132,13 @@ pub fn write_ply(path: &Path, gaussians: &Gaussians) -> Result<()> {
     ply::write(path, gaussians)
 }
 
+/// The header of a binary little-endian PLY with one `vertex` element of `n` rows and one `float`
+/// property per name, in order, up to and including `end_header\n` (the INRIA 3DGS `.ply` layout
+/// when the names are `x y z f_dc_* f_rest_* opacity scale_* rot_*`). `comment` (line breaks
+/// replaced by spaces) follows the format line. The one PLY header writer: [`write_ply`] and the
+/// edge's `/query.ply` use it.
+pub fn float_vertex_header<S: AsRef<str>>(n: usize, names: &[S], comment: Option<&str>) -> Vec<u8> {
+    ply::float_vertex_header(n, names, comment)
+}
+
 mod ply;

@@ -716,6 +716,24 @@ pub(super) fn write_highlighted(
     crate::embeddings::write_atomic(dst, &bytes)
 }
 
+/// See [`super::float_vertex_header`].
+pub(crate) fn float_vertex_header<S: AsRef<str>>(
+    n: usize,
+    names: &[S],
+    comment: Option<&str>,
+) -> Vec<u8> {
+    let mut out = String::from("ply\nformat binary_little_endian 1.0\n");
+    if let Some(c) = comment {
+        out.push_str(&format!("comment {}\n", c.replace(['\n', '\r'], " ")));
+    }
+    out.push_str(&format!("element vertex {n}\n"));
+    for name in names {
+        out.push_str(&format!("property float {}\n", name.as_ref()));
+    }
+    out.push_str("end_header\n");
+    out.into_bytes()
+}
+
 /// See [`super::write_ply`].
 pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
     let n = g.len();
@@ -745,13 +763,7 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
     names.push("opacity".into());
     names.extend((0..3).map(|k| format!("scale_{k}")));
     names.extend((0..4).map(|k| format!("rot_{k}")));
-    let mut out = String::from("ply\nformat binary_little_endian 1.0\n");
-    out.push_str(&format!("element vertex {n}\n"));
-    for name in &names {
-        out.push_str(&format!("property float {name}\n"));
-    }
-    out.push_str("end_header\n");
-    let mut bytes = out.into_bytes();
+    let mut bytes = float_vertex_header(n, &names, None);
     bytes.reserve(n * names.len() * 4);
     let mut put = |v: f64| bytes.extend_from_slice(&(v as f32).to_le_bytes());
     for i in 0..n {

@@ -191,12 +191,6 @@ pub enum ShardError {
     Malformed(String),
 }
 
-impl From<ShardError> for Error {
-    fn from(e: ShardError) -> Self {
-        Error::format("<shard>", e.to_string())
-    }
-}
-
 /// Everything the shard header says about its payload.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ShardHeader {

@@ -15,6 +15,10 @@ fn normal(s: &mut u64) -> f32 {
     (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
 }
 
+/// Model id of stores made from synthetic vectors (`partition --synthetic`): no CLIP model made
+/// them, so any text tower of the right width may query them.
+pub const SYNTHETIC_MODEL_ID: &str = "synthetic";
+
 /// A synthetic scene: `n` Gaussians whose means lie in `clusters` Gaussian blobs (σ 0.5..8 m)
 /// scattered over a `extent`×`extent` m ground plane with a little height (z up, world frame),
 /// plus 10 % uniform background; vectors are generated from `(seed, i)` on demand.
@@ -78,7 +82,7 @@ impl SyntheticScene {
             dim: self.dim,
             vectors,
             total_weights: vec![1.0; self.means.len()],
-            model: crate::onnx::SYNTHETIC_MODEL_ID.into(),
+            model: SYNTHETIC_MODEL_ID.into(),
             scene_gaussians: 2 * self.means.len() as u64,
             source_ply: "synthetic".into(),
         }

@@ -80,7 +80,7 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
         let masks = build_masks(&args, threads).map_err(|e| Error::Invalid(format!("{e:#}")))?;
         let crops = crate::clip::ClipVisual::with_threads(
             &args.clip_visual,
-            args.ep.into(),
+            args.ep,
             args.clip_batch
                 .unwrap_or(crate::cli::encode::CLIP_BATCH_CPU),
             threads,

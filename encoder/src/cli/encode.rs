@@ -183,7 +183,7 @@ fn parse_keep(s: &str) -> Result<usize, String> {
 /// `--gpu-mem-limit-gb`).
 pub(crate) fn placement(a: &EncodeArgs, device: u32, threads: usize) -> Placement {
     Placement {
-        ep: a.ep.into(),
+        ep: a.ep,
         device,
         intra_threads: threads,
         gpu_mem_limit: a

@@ -32,13 +32,18 @@ pub struct EvalArgs {
     /// embeddings.safetensors written by `encode` with color-clip.
     #[arg(long)]
     pub embeddings: PathBuf,
-    /// color-clip text tower; default <shared>/fixtures/clip/color-clip-textual.onnx.
+    /// Folder holding color-clip (`color-clip-textual.onnx`, `clip-tokenizer.json`,
+    /// `color-clip.json`); default `$SLAG_SHARED/fixtures/clip`. The three flags below override
+    /// single files.
+    #[arg(long, value_name = "DIR")]
+    pub color_clip: Option<PathBuf>,
+    /// color-clip text tower; default <color-clip>/color-clip-textual.onnx.
     #[arg(long)]
     pub clip_textual: Option<PathBuf>,
-    /// CLIP tokenizer; default <shared>/fixtures/clip/clip-tokenizer.json.
+    /// CLIP tokenizer; default <color-clip>/clip-tokenizer.json.
     #[arg(long)]
     pub tokenizer: Option<PathBuf>,
-    /// color-clip class rule; default <shared>/fixtures/clip/color-clip.json.
+    /// color-clip class rule; default <color-clip>/color-clip.json.
     #[arg(long)]
     pub classes: Option<PathBuf>,
     /// ONNX Runtime execution provider.
@@ -72,11 +77,23 @@ struct Inputs {
 }
 
 fn load_inputs(a: &EvalArgs) -> anyhow::Result<Inputs> {
-    let clip_dir = slag_common::paths::shared_dir()
-        .join("fixtures")
-        .join("clip");
-    let or = |p: &Option<PathBuf>, name: &str| p.clone().unwrap_or_else(|| clip_dir.join(name));
-    let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json"))?;
+    // The folder is needed only for the files no flag names.
+    let clip_dir = || -> anyhow::Result<PathBuf> {
+        match &a.color_clip {
+            Some(d) => Ok(d.clone()),
+            None => Ok(slag_common::paths::shared_dir()
+                .context("color-clip's files: pass --color-clip DIR")?
+                .join("fixtures")
+                .join("clip")),
+        }
+    };
+    let or = |p: &Option<PathBuf>, name: &str| -> anyhow::Result<PathBuf> {
+        match p {
+            Some(p) => Ok(p.clone()),
+            None => Ok(clip_dir()?.join(name)),
+        }
+    };
+    let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json")?)?;
     let ply = a
         .ply
         .clone()
@@ -93,9 +110,9 @@ fn load_inputs(a: &EvalArgs) -> anyhow::Result<Inputs> {
         );
     }
     let mut text = TextEncoder::new(
-        &or(&a.clip_textual, "color-clip-textual.onnx"),
-        &or(&a.tokenizer, "clip-tokenizer.json"),
-        a.ep.into(),
+        &or(&a.clip_textual, "color-clip-textual.onnx")?,
+        &or(&a.tokenizer, "clip-tokenizer.json")?,
+        a.ep,
     )?;
     let names: Vec<&str> = classes.names.iter().map(String::as_str).collect();
     let text_embeds = text.encode(&names).context("encoding the colour prompts")?;

@@ -88,7 +88,7 @@ pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
     let emb = Embeddings::read(&a.embeddings)?;
-    let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep.into())?;
+    let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
     let (all, summary) = similarity::rank(

@@ -123,8 +123,10 @@ impl WeightRasterizer for CpuRasterizer {
                     weights.push(w);
                 }
                 let n = u32::try_from(ids.len()).map_err(|_| {
-                    slag_common::Error::Invalid(
-                        "more than 2^32 pixel weights in one view; lower --raster-scale".into(),
+                    slag_common::Error::limit(
+                        slag_common::Resource::RasterEntries,
+                        "more than 2^32 pixel weights in one view",
+                        "2^32",
                     )
                 })?;
                 offsets.push(n);

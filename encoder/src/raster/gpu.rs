@@ -35,7 +35,8 @@
 //!
 //! Output buffers are sized from the counts and checked against the device's
 //! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
-//! offsets array) exceeds them is an [`Error::Gpu`] asking for a lower `--raster-scale`.
+//! offsets array) exceeds them is an [`Error::Limit`] naming the limit (the command line adds
+//! that `--raster-scale` lowers the need).
 
 use std::sync::mpsc;
 
@@ -43,7 +44,7 @@ use rayon::prelude::*;
 use slag_common::camera::{Intrinsics, WorldToCamera};
 use slag_common::rng::SplitMix64;
 use slag_common::scene::Gaussians;
-use slag_common::{Error, Result};
+use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
 use super::project::{camera_point, jacobian_limits, tile_grid};
@@ -668,14 +669,16 @@ impl GpuRasterizer {
 
     fn check_size(&self, what: &str, bytes: u64, k: &Intrinsics) -> Result<()> {
         if bytes > self.max_binding() {
-            return Err(Error::Gpu(format!(
-                "the {}x{} weight raster needs a {} MiB {what} buffer but the device allows {} MiB \
-                 per binding; lower --raster-scale",
-                k.width,
-                k.height,
-                bytes >> 20,
-                self.max_binding() >> 20
-            )));
+            return Err(Error::limit(
+                Resource::GpuBinding,
+                format!(
+                    "{} MiB for the {what} buffer of the {}x{} weight raster",
+                    bytes >> 20,
+                    k.width,
+                    k.height
+                ),
+                format!("{} MiB on this device", self.max_binding() >> 20),
+            ));
         }
         Ok(())
     }
@@ -692,11 +695,14 @@ impl GpuRasterizer {
         let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
         let max_groups = self.limits.max_compute_workgroups_per_dimension;
         if tiles_x > max_groups.min(65535) || tiles_y > max_groups.min(65535) {
-            return Err(Error::Gpu(format!(
-                "{}x{} raster has more tiles per side than the device dispatches ({max_groups}); \
-                 lower --raster-scale",
-                k.width, k.height
-            )));
+            return Err(Error::limit(
+                Resource::GpuDispatch,
+                format!(
+                    "{tiles_x}x{tiles_y} tiles for the {}x{} raster",
+                    k.width, k.height
+                ),
+                max_groups.min(65535),
+            ));
         }
         let n_pix = k.width * k.height; // ≤ 2^28 (validate_raster)
         let n_tiles = tiles_x * tiles_y;
@@ -931,10 +937,14 @@ impl GpuRasterizer {
         let offsets_host: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
         let overflow = u32::from_le_bytes([read[1][0], read[1][1], read[1][2], read[1][3]]);
         if overflow != 0 {
-            return Err(Error::Gpu(format!(
-                "the {}x{} weight raster has more than 2^32 entries; lower --raster-scale",
-                k.width, k.height
-            )));
+            return Err(Error::limit(
+                Resource::RasterEntries,
+                format!(
+                    "more than 2^32 for the {}x{} weight raster",
+                    k.width, k.height
+                ),
+                "2^32",
+            ));
         }
         let total = offsets_host[n_pix as usize] as usize;
         timings.count_scan_ms = lap(&mut clock);
@@ -957,14 +967,16 @@ impl GpuRasterizer {
             let base = row_start(r0);
             let mut r1 = r0 + 1;
             if (row_start(r1) - base) * 4 > band_bytes {
-                return Err(Error::Gpu(format!(
-                    "one row of tiles of the {}x{} weight raster needs {:.2} MiB of output but the \
-                     device allows {:.2} MiB per binding; lower --raster-scale",
-                    k.width,
-                    k.height,
-                    ((row_start(r1) - base) * 4) as f64 / 1048576.0,
-                    band_bytes as f64 / 1048576.0
-                )));
+                return Err(Error::limit(
+                    Resource::GpuBinding,
+                    format!(
+                        "{:.2} MiB of output for one row of tiles of the {}x{} weight raster",
+                        ((row_start(r1) - base) * 4) as f64 / 1048576.0,
+                        k.width,
+                        k.height
+                    ),
+                    format!("{:.2} MiB per binding", band_bytes as f64 / 1048576.0),
+                ));
             }
             while r1 < tiles_y && (row_start(r1 + 1) - base) * 4 <= band_bytes {
                 r1 += 1;
@@ -1062,9 +1074,11 @@ fn bin_and_sort(
         .collect();
     let total: u64 = counts.iter().sum();
     if total > u32::MAX as u64 {
-        return Err(Error::Gpu(format!(
-            "{total} tile intersections exceed 2^32; lower --raster-scale"
-        )));
+        return Err(Error::limit(
+            Resource::RasterEntries,
+            format!("{total} tile intersections"),
+            "2^32",
+        ));
     }
     let mut keys = vec![0u128; total as usize];
     // Fill disjoint chunks in parallel: split `keys` at each Gaussian's start.
@@ -1100,7 +1114,7 @@ fn bin_and_sort(
             j += 1;
         }
         if tile >= ranges.len() {
-            return Err(Error::Gpu(format!(
+            return Err(Error::internal(format!(
                 "projection produced tile {tile} outside the grid"
             )));
         }
@@ -1124,7 +1138,11 @@ impl GpuRasterizer {
         let out = self.run(k, w2c, labels);
         if let Some(e) = pollster::block_on(oom.pop()) {
             let _ = pollster::block_on(scope.pop());
-            return Err(gpu_err("out of GPU memory; lower --raster-scale", e));
+            return Err(Error::limit(
+                Resource::GpuMemory,
+                format!("the {}x{} view's buffers ({e})", k.width, k.height),
+                "the memory the device had free",
+            ));
         }
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_err("rasterizer kernel failed", e));

@@ -11,7 +11,7 @@ use slag_common::scene::{Gaussians, PlyLoadOptions};
 
 /// `<shared>/scenes/snowmiku`.
 pub fn snowmiku_dir() -> PathBuf {
-    slag_common::paths::shared_dir()
+    slag_common::paths::source_tree_shared_dir()
         .join("scenes")
         .join("snowmiku")
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 /// `../shared` (or `$SLAG_SHARED`).
 pub fn shared() -> PathBuf {
-    slag_common::paths::shared_dir()
+    slag_common::paths::source_tree_shared_dir()
 }
 
 /// Whether the ONNX Runtime tests should run. They need `ORT_DYLIB_PATH` (scripts/setup.sh

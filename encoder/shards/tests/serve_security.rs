@@ -6,8 +6,8 @@ use std::io::{Read, Write};
 
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame};
-use slag_encoder::partition::{PartitionParams, UpChoice};
-use slag_encoder::store::{ShardStore, partition_into_store};
+use slag_shards::partition::{PartitionParams, UpChoice};
+use slag_shards::store::{ShardStore, partition_into_store};
 
 /// One `GET` over a fresh connection: (status, headers text, body).
 fn get(addr: std::net::SocketAddr, path: &str, auth: Option<&str>) -> (u16, String, Vec<u8>) {
@@ -47,7 +47,7 @@ fn start(token: Option<&str>) -> (std::net::SocketAddr, tempfile::TempDir) {
             tx.send(listener.local_addr().unwrap()).unwrap();
             axum::serve(
                 listener,
-                slag_encoder::serve::router_with_token(store, token),
+                slag_shards::serve::router_with_token(store, token),
             )
             .await
         })
@@ -124,11 +124,11 @@ fn the_token_file_is_read_and_an_empty_one_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("token");
     std::fs::write(&f, "  abc123 \nignored\n").unwrap();
-    let t = slag_encoder::cli::shards::serve_token(Some(&f)).unwrap();
+    let t = slag_shards::cli::serve_token(Some(&f)).unwrap();
     assert_eq!(t.as_deref(), Some("abc123"));
     std::fs::write(&f, "\n").unwrap();
-    let e = slag_encoder::cli::shards::serve_token(Some(&f)).unwrap_err();
+    let e = slag_shards::cli::serve_token(Some(&f)).unwrap_err();
     assert!(e.to_string().contains("empty"), "{e}");
-    let e = slag_encoder::cli::shards::serve_token(Some(&dir.path().join("absent"))).unwrap_err();
+    let e = slag_shards::cli::serve_token(Some(&dir.path().join("absent"))).unwrap_err();
     assert!(matches!(e, slag_common::Error::Io { .. }), "{e}");
 }

@@ -4,11 +4,11 @@
 
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::{Dtype, TileIndex, UpSource, decode_shard};
-use slag_encoder::partition::{PartitionParams, UpChoice, partition};
+use slag_shards::partition::{PartitionParams, UpChoice, partition};
 
 #[test]
 fn snowmiku_partition_and_radius_selection() {
-    let dir = slag_common::paths::shared_dir().join("scenes/snowmiku");
+    let dir = slag_common::paths::source_tree_shared_dir().join("scenes/snowmiku");
     let means = slag_common::scene::load_ply(&dir.join("point_cloud.ply"), Default::default())
         .expect("ply")
         .means;

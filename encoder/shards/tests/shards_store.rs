@@ -7,8 +7,8 @@ use std::process::{Command, Stdio};
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard, shard_checksum};
 use slag_common::{Error, Result};
-use slag_encoder::partition::{PartitionParams, UpChoice, partition_with};
-use slag_encoder::store::{ShardStore, partition_into_store};
+use slag_shards::partition::{PartitionParams, UpChoice, partition_with};
+use slag_shards::store::{ShardStore, partition_into_store};
 
 fn params(scene: &str, max: usize, dtype: Dtype) -> PartitionParams {
     PartitionParams {

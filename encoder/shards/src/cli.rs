@@ -1,5 +1,5 @@
-//! `partition`, `serve` and `export` subcommands (clap `Args` + run functions; wired in
-//! `main.rs`).
+//! `partition`, `serve` and `export` subcommands (clap `Args` + run functions), shared by the
+//! `slag-shards` binary and `slag-encoder` (same names and flags).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -343,15 +343,7 @@ pub struct ServeArgs {
 /// Errors: unreadable or empty token file ([`slag_common::Error::Io`] / `Invalid`).
 pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<Option<String>> {
     if let Some(p) = token_file {
-        let t = std::fs::read_to_string(p).map_err(|e| slag_common::Error::io(p, e))?;
-        let t = t.lines().next().unwrap_or("").trim().to_string();
-        if t.is_empty() {
-            return Err(slag_common::Error::Invalid(format!(
-                "token file {} is empty; write the token on its first line",
-                p.display()
-            )));
-        }
-        return Ok(Some(t));
+        return slag_common::auth::read_token_file(p).map(Some);
     }
     Ok(std::env::var("SLAG_SHARD_TOKEN")
         .ok()
@@ -410,4 +402,15 @@ pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
         args.dir.display()
     );
     Ok(())
+}
+
+/// Sets up `tracing` (respects `RUST_LOG`, default `info`, `debug` with `verbose`) on stderr.
+pub fn init_logging(verbose: bool) {
+    let default = if verbose { "debug" } else { "info" };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
 }

@@ -2,8 +2,8 @@
 
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard, shard_checksum};
-use slag_encoder::partition::{PartitionParams, UpChoice};
-use slag_encoder::store::{ShardStore, partition_into_store};
+use slag_shards::partition::{PartitionParams, UpChoice};
+use slag_shards::store::{ShardStore, partition_into_store};
 use std::io::{Read, Write};
 
 struct Resp {
@@ -86,7 +86,7 @@ fn manifest_and_shards_over_loopback() {
                 .expect("bind");
             tx.send(listener.local_addr().expect("addr"))
                 .expect("send addr");
-            axum::serve(listener, slag_encoder::serve::router(store)).await
+            axum::serve(listener, slag_shards::serve::router(store)).await
         })
     });
     let addr = rx.recv().expect("server address");
@@ -183,7 +183,7 @@ fn export_is_complete_and_atomic() {
     let dir = tempfile::tempdir().expect("tmp");
     let (store, m) = filled_store(&dir.path().join("store"));
     let out = dir.path().join("out").join("lab");
-    let got = slag_encoder::export::export(&store, "lab.v1", &out, false).expect("export");
+    let got = slag_shards::export::export(&store, "lab.v1", &out, false).expect("export");
     assert_eq!(got, m);
     let back = Manifest::from_json(
         &std::fs::read(out.join("manifest.json")).expect("manifest"),
@@ -199,13 +199,13 @@ fn export_is_complete_and_atomic() {
     assert_eq!(n_files, m.tiles.len());
     // Refuses to overwrite without force; leaves no temporary folder behind.
     assert!(matches!(
-        slag_encoder::export::export(&store, "lab.v1", &out, false),
+        slag_shards::export::export(&store, "lab.v1", &out, false),
         Err(slag_common::Error::Invalid(_))
     ));
-    assert!(slag_encoder::export::export(&store, "nope", &dir.path().join("x"), false).is_err());
+    assert!(slag_shards::export::export(&store, "nope", &dir.path().join("x"), false).is_err());
     assert!(!dir.path().join("x").exists());
     std::fs::write(out.join("shards").join("stale"), b"old").expect("write");
-    slag_encoder::export::export(&store, "lab.v1", &out, true).expect("force");
+    slag_shards::export::export(&store, "lab.v1", &out, true).expect("force");
     assert!(!out.join("shards").join("stale").exists());
     let leftovers: Vec<_> = std::fs::read_dir(dir.path().join("out"))
         .expect("dir")

@@ -1,4 +1,4 @@
-//! Qdrant upload ([`slag_encoder::qdrant::upload`]) against a protocol-level test server.
+//! Qdrant upload ([`slag_shards::qdrant::upload`]) against a protocol-level test server.
 //!
 //! No Qdrant server can be run on the development machines, so this test serves the gRPC
 //! services `qdrant-client` talks to (`Qdrant`, `Collections`, `Points`, `Snapshots`) with the
@@ -18,8 +18,8 @@ use qdrant_client::qdrant::{
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard};
-use slag_encoder::partition::{PartitionParams, UpChoice, partition};
-use slag_encoder::qdrant::{QdrantParams, upload};
+use slag_shards::partition::{PartitionParams, UpChoice, partition};
+use slag_shards::qdrant::{QdrantParams, upload};
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
 use tonic::{Request, Response, Status};

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame, decode_shard};
-use slag_encoder::partition::{PartitionParams, UpChoice, partition_with};
+use slag_shards::partition::{PartitionParams, UpChoice, partition_with};
 
 fn pct(v: &mut [u64], p: f64) -> u64 {
     v.sort_unstable();
@@ -83,10 +83,10 @@ fn measure_partition_at_scale() {
         // on-disk size.
         if std::env::var("SLAG_SHARDS_STORE").is_ok() {
             let dir = tempfile::tempdir().expect("tmp");
-            let store = slag_encoder::store::ShardStore::open(dir.path()).expect("open");
+            let store = slag_shards::store::ShardStore::open(dir.path()).expect("open");
             let t = Instant::now();
             let m =
-                slag_encoder::store::partition_into_store(&store, &scene, &params).expect("store");
+                slag_shards::store::partition_into_store(&store, &scene, &params).expect("store");
             let secs = t.elapsed().as_secs_f64();
             let disk: u64 = walk_size(dir.path());
             println!(

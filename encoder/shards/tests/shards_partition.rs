@@ -6,7 +6,7 @@ use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, TileIndex, UpSource, decode_shard, shard_checksum,
 };
-use slag_encoder::partition::{PartitionParams, UpChoice, partition};
+use slag_shards::partition::{PartitionParams, UpChoice, partition};
 
 fn params(max: usize, up: UpChoice, dtype: Dtype) -> PartitionParams {
     PartitionParams {
@@ -202,7 +202,7 @@ proptest! {
 // ---- Byte-sized shards (`--max-shard-mb`) and the stored-vs-dense report ----
 
 use slag_common::shards::{ShardInput, encode_shard};
-use slag_encoder::partition::{MIB, ShardCap, resolve_max_per_shard, shard_layout, storage_report};
+use slag_shards::partition::{MIB, ShardCap, resolve_max_per_shard, shard_layout, storage_report};
 
 /// Shard header length written by `encode_shard`, from the format's module doc (72 fixed bytes
 /// + scene id + model id + CRC, padded to 8), computed here independently of `ShardLayout`.
@@ -339,14 +339,14 @@ fn byte_budgets_too_small_for_one_gaussian_are_typed_errors_with_a_remedy() {
 #[test]
 fn storage_report_compares_stored_shards_with_a_dense_f32_scene() {
     let dir = tempfile::tempdir().expect("tmp");
-    let store = slag_encoder::store::ShardStore::open(&dir.path().join("s")).expect("store");
+    let store = slag_shards::store::ShardStore::open(&dir.path().join("s")).expect("store");
     let emb = SyntheticScene::new(600, 512, 3, 50.0, 5).to_embeddings();
     assert_eq!(emb.scene_gaussians, 1200); // every other .ply Gaussian observed
     let p = PartitionParams {
         scene_id: "tiny".into(),
         ..params(250, z_up(), Dtype::F16)
     };
-    let m = slag_encoder::store::partition_into_store(&store, &emb, &p).expect("partition");
+    let m = slag_shards::store::partition_into_store(&store, &emb, &p).expect("partition");
     let stored = store.scene_bytes("tiny").expect("read").expect("scene");
     // Independently: each shard is its header plus 1040 bytes per f16 row.
     let expected = m.tiles.len() as u64 * header_len("tiny", &emb.model) + 600 * 1040;
@@ -387,7 +387,7 @@ fn storage_report_compares_stored_shards_with_a_dense_f32_scene() {
 #[derive(clap::Parser)]
 struct PartitionCli {
     #[command(flatten)]
-    args: slag_encoder::cli::shards::PartitionArgs,
+    args: slag_shards::cli::PartitionArgs,
 }
 
 fn parse(extra: &[&str]) -> Result<PartitionCli, clap::Error> {
@@ -433,8 +433,8 @@ fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
     a.synthetic = Some("1000:512".into());
     a.store = store.clone();
     a.report = Some(report.clone());
-    slag_encoder::cli::shards::run_partition(&a).expect("partition");
-    let s = slag_encoder::store::ShardStore::open(&store).expect("store");
+    slag_shards::cli::run_partition(&a).expect("partition");
+    let s = slag_shards::store::ShardStore::open(&store).expect("store");
     let m = s.manifest("syn").expect("read").expect("scene");
     let h = header_len("syn", "synthetic");
     let row = row_bytes(Dtype::I8, 512);
@@ -456,7 +456,7 @@ fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
     a.max_shard_mb = 0.0004; // 419 bytes < 88 + 532
     a.report = None;
     a.store = dir.path().join("never-created");
-    let e = slag_encoder::cli::shards::run_partition(&a).expect_err("too small");
+    let e = slag_shards::cli::run_partition(&a).expect_err("too small");
     assert!(format!("{e:#}").contains("pass --max-shard-mb"), "{e:#}");
     assert!(!a.store.exists());
 }
@@ -505,8 +505,8 @@ fn partition_records_the_scene_to_map_transform_from_a_file_or_surveyed_points()
         a.scene = "syn".into();
         a.synthetic = Some("500:8".into());
         a.store = store.clone();
-        slag_encoder::cli::shards::run_partition(&a).expect("partition");
-        let s = slag_encoder::store::ShardStore::open(&store).expect("store");
+        slag_shards::cli::run_partition(&a).expect("partition");
+        let s = slag_shards::store::ShardStore::open(&store).expect("store");
         let m = s.manifest("syn").expect("read").expect("scene");
         assert_eq!(m.frames.data, "scene");
         let t = m.frames.scene_to_map.clone().expect("transform stored");
@@ -547,7 +547,7 @@ fn partition_records_the_scene_to_map_transform_from_a_file_or_surveyed_points()
         .expect("parse")
         .args;
     a.store = dir.path().join("never-created");
-    let e = slag_encoder::cli::shards::run_partition(&a).expect_err("2 points");
+    let e = slag_shards::cli::run_partition(&a).expect_err("2 points");
     assert!(format!("{e:#}").contains("at least 3"), "{e:#}");
     assert!(!a.store.exists());
     // Both sources at once are refused by the parser.

@@ -1,0 +1,98 @@
+//! Where a process sits in the cluster and what every process runs: [`ClusterConfig`] (host
+//! file), [`ClusterJob`], the per-worker [`Stages`].
+
+#[allow(unused_imports)]
+use super::gather::*;
+#[allow(unused_imports)]
+use super::map::*;
+#[allow(unused_imports)]
+use super::reduce::*;
+#[allow(unused_imports)]
+use super::*;
+
+/// The per-image stage implementations of one worker process.
+pub struct Stages {
+    /// Mask source (SAM automatic masks or the graph segmenter).
+    pub masks: Box<dyn MaskGenerator>,
+    /// CLIP visual tower over mask crops.
+    pub crops: Box<dyn CropEmbedder>,
+    /// Weight rasterizer over the scene's Gaussians.
+    pub rasterizer: Box<dyn WeightRasterizer>,
+}
+
+/// Builds a worker's [`Stages`] from the scene's Gaussians; called once in every process, on its
+/// worker thread (ONNX sessions and the GPU device live there).
+pub type StageFactory = Arc<dyn Fn(&Gaussians) -> Result<Stages> + Send + Sync>;
+
+/// Where this process sits in the cluster.
+#[derive(Debug, Clone)]
+pub struct ClusterConfig {
+    /// This process's index, `0..addresses.len()`; process 0 writes the outputs.
+    pub process: usize,
+    /// `host:port` of every process, the same list in every process; process `i` listens on
+    /// `addresses[i]`, the others connect to it.
+    pub addresses: Vec<String>,
+    /// How long to wait for every process to connect before giving up.
+    pub connect_timeout: Duration,
+}
+
+impl ClusterConfig {
+    /// Reads a host file: one `host:port` per line, line `i` for process `i`; blank lines and
+    /// lines starting with `#` are ignored.
+    ///
+    /// Errors: unreadable file, no address, a line that is not `host:port`, `process` out of range.
+    pub fn from_hosts_file(path: &Path, process: usize, connect_timeout: Duration) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let addresses: Vec<String> = text
+            .lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty() && !l.starts_with('#'))
+            .map(str::to_string)
+            .collect();
+        if let Some(bad) = addresses.iter().find(|a| {
+            a.rsplit_once(':')
+                .is_none_or(|(_, p)| p.parse::<u16>().is_err())
+        }) {
+            return Err(Error::format(
+                path,
+                format!(
+                    "{bad:?} is not host:port; write one host:port per line, one line per process"
+                ),
+            ));
+        }
+        let config = Self {
+            process,
+            addresses,
+            connect_timeout,
+        };
+        config.check().map_err(|m| Error::format(path, m))?;
+        Ok(config)
+    }
+
+    pub(super) fn check(&self) -> std::result::Result<(), String> {
+        if self.addresses.is_empty() {
+            return Err("no process address; write one host:port per line".into());
+        }
+        if self.process >= self.addresses.len() {
+            return Err(format!(
+                "--process {} but the host list names {} processes (0..{})",
+                self.process,
+                self.addresses.len(),
+                self.addresses.len()
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What every process runs: the same scene, parameters and stage factory.
+pub struct ClusterJob {
+    /// Scene folder, `.ply` and view selection (identical on every process).
+    pub scene: SceneInput,
+    /// Encode parameters; `out_dir` is where process 0 writes and where every process spills.
+    pub params: EncodeParams,
+    /// Builds the per-image stages on each worker.
+    pub stages: StageFactory,
+    /// The report header (inputs, models, parameters) process 0 completes and writes.
+    pub report: Report,
+}

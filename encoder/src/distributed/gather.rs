@@ -1,0 +1,204 @@
+//! The gather side: worker 0 collects every partition's rows and summaries ([`ToGather`]) and
+//! assembles `embeddings.safetensors` and the report.
+
+#[allow(unused_imports)]
+use super::map::*;
+#[allow(unused_imports)]
+use super::reduce::*;
+#[allow(unused_imports)]
+use super::*;
+
+/// Reduce → gather records, all routed to worker 0.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(super) enum ToGather {
+    Rows {
+        partition: u32,
+        ids: Vec<u32>,
+        vectors: Vec<f32>,
+        total_weights: Vec<f32>,
+    },
+    Part(PartSummary),
+    Map(MapStats),
+    Abort(String),
+}
+
+/// What worker 0 receives.
+#[derive(Default)]
+pub(super) struct Gathered {
+    pub(super) rows: Vec<(Vec<u32>, Vec<f32>, Vec<f32>)>,
+    pub(super) rows_per_partition: Vec<u64>,
+    pub(super) parts: Vec<PartSummary>,
+    pub(super) stats: Vec<MapStats>,
+    pub(super) aborts: Vec<String>,
+}
+
+impl Gathered {
+    pub(super) fn absorb(&mut self, record: ToGather) {
+        match record {
+            ToGather::Rows {
+                partition,
+                ids,
+                vectors,
+                total_weights,
+            } => {
+                let p = partition as usize;
+                if self.rows_per_partition.len() <= p {
+                    self.rows_per_partition.resize(p + 1, 0);
+                }
+                self.rows_per_partition[p] += ids.len() as u64;
+                self.rows.push((ids, vectors, total_weights));
+            }
+            ToGather::Part(s) => self.parts.push(s),
+            ToGather::Map(s) => self.stats.push(s),
+            ToGather::Abort(m) => self.aborts.push(m),
+        }
+    }
+}
+
+/// What a worker hands back to its process's main thread.
+pub(super) struct WorkerOutcome {
+    /// Process 0 only: the assembled output and the run's counts.
+    pub(super) output: Option<(Embeddings, Counts, StageTimings, serde_json::Value)>,
+    pub(super) models: [String; 3],
+    pub(super) images: u64,
+}
+
+/// Worker 0: checks that every partition and every map worker reported, then merges the rows in
+/// ascending Gaussian id order.
+pub(super) fn assemble(
+    mut g: Gathered,
+    peers: usize,
+    gaussians: &Gaussians,
+    views_total: usize,
+    load_scene_s: f64,
+) -> Result<(Embeddings, Counts, StageTimings, serde_json::Value)> {
+    if let Some(m) = g.aborts.first() {
+        return Err(Error::Invalid(format!("the job was aborted: {m}")));
+    }
+    g.parts.sort_by_key(|s| s.partition);
+    g.stats.sort_by_key(|s| s.worker);
+    let parts_ok = g.parts.len() == peers
+        && g.parts
+            .iter()
+            .enumerate()
+            .all(|(i, s)| s.partition as usize == i);
+    let stats_ok = g.stats.len() == peers
+        && g.stats
+            .iter()
+            .enumerate()
+            .all(|(i, s)| s.worker as usize == i);
+    if !parts_ok || !stats_ok {
+        return Err(Error::Invalid(format!(
+            "incomplete job: {} of {peers} partition summaries and {} of {peers} worker reports \
+             reached process 0",
+            g.parts.len(),
+            g.stats.len()
+        )));
+    }
+    g.rows_per_partition.resize(peers, 0);
+    for s in &g.parts {
+        if g.rows_per_partition[s.partition as usize] != s.rows {
+            return Err(Error::Invalid(format!(
+                "incomplete job: partition {} reduced {} Gaussians but {} reached process 0",
+                s.partition, s.rows, g.rows_per_partition[s.partition as usize]
+            )));
+        }
+    }
+    let job = g.parts[0].job.clone();
+    let dim = job.dim as usize;
+    if job.gaussians != gaussians.len() as u64 {
+        return Err(Error::Invalid(format!(
+            "process 0 loaded {} Gaussians, the job has {}",
+            gaussians.len(),
+            job.gaussians
+        )));
+    }
+    let images: u64 = g.stats.iter().map(|s| s.images).sum();
+    if images != job.views {
+        return Err(Error::Invalid(format!(
+            "incomplete job: {images} of {} views encoded",
+            job.views
+        )));
+    }
+    // Merge: (id, record, row) sorted by id.
+    let mut order: Vec<(u32, u32, u32)> = g
+        .rows
+        .iter()
+        .enumerate()
+        .flat_map(|(r, (ids, _, _))| {
+            ids.iter()
+                .enumerate()
+                .map(move |(i, &id)| (id, r as u32, i as u32))
+        })
+        .collect();
+    order.sort_unstable();
+    if order.windows(2).any(|w| w[0].0 == w[1].0)
+        || order
+            .last()
+            .is_some_and(|l| l.0 as usize >= gaussians.len())
+    {
+        return Err(Error::Invalid(
+            "partitions returned duplicate or out-of-range Gaussian ids".into(),
+        ));
+    }
+    let n = order.len();
+    let mut e = Embeddings {
+        ids: Vec::with_capacity(n),
+        means: Vec::with_capacity(n),
+        dim,
+        vectors: Vec::with_capacity(n * dim),
+        total_weights: Vec::with_capacity(n),
+        ..Default::default()
+    };
+    for &(id, r, i) in &order {
+        let (_, vectors, weights) = &g.rows[r as usize];
+        let i = i as usize;
+        e.ids.push(id);
+        e.means.push(gaussians.means[id as usize]);
+        e.vectors
+            .extend_from_slice(&vectors[i * dim..(i + 1) * dim]);
+        e.total_weights.push(weights[i]);
+    }
+    let sum = |f: fn(&MapStats) -> f64| g.stats.iter().map(f).sum::<f64>();
+    let timings = StageTimings {
+        load_scene: load_scene_s,
+        decode: sum(|s| s.decode_s),
+        masks: sum(|s| s.masks_s),
+        clip: sum(|s| s.clip_s),
+        raster: sum(|s| s.raster_s),
+        image_aggregate: sum(|s| s.image_aggregate_s),
+        reduce: g.parts.iter().map(|s| s.reduce_s).fold(0.0, f64::max),
+        ..Default::default()
+    };
+    let pixels: u64 = g.stats.iter().map(|s| s.raster_pixels).sum();
+    let counts = Counts {
+        views_total,
+        views_used: job.views as usize,
+        gaussians: gaussians.len(),
+        observed: n,
+        observed_fraction: n as f64 / gaussians.len().max(1) as f64,
+        masks: g.stats.iter().map(|s| s.masks).sum::<u64>() as usize,
+        entries: g.stats.iter().map(|s| s.entries).sum::<u64>() as usize,
+        contributors_per_pixel: g.stats.iter().map(|s| s.raster_entries).sum::<u64>() as f64
+            / pixels.max(1) as f64,
+        spilled_images: g.parts.iter().map(|s| s.spilled).sum::<u64>() as usize,
+        reduce_chunks: g.parts.iter().map(|s| s.chunks).sum::<u64>() as usize,
+        device_sum_views: g.stats.iter().map(|s| s.device_sum_views).sum::<u64>() as usize,
+        // Process 0's own peak (it assembles the output); the others report none.
+        peak_rss_bytes: crate::report::peak_rss_bytes(),
+    };
+    let cluster = serde_json::json!({
+        "processes": peers,
+        "workers": g.stats.iter().map(|s| serde_json::json!({
+            "worker": s.worker, "images": s.images, "map_wall_s": s.wall_s,
+            "masks": s.masks, "entries": s.entries,
+        })).collect::<Vec<_>>(),
+        "partitions": g.parts.iter().map(|s| serde_json::json!({
+            "partition": s.partition, "observed": s.rows, "images": s.images,
+            "entries": s.entries, "reduce_s": s.reduce_s, "reduce_chunks": s.chunks,
+            "spilled_images": s.spilled,
+        })).collect::<Vec<_>>(),
+        "reduce_timing": "slowest partition (partitions reduce in parallel)",
+    });
+    Ok((e, counts, timings, cluster))
+}

@@ -1,0 +1,206 @@
+//! The map side: each worker encodes its images (masks → CLIP → raster → `a_kj`) and splits
+//! each image's `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
+
+#[allow(unused_imports)]
+use super::gather::*;
+#[allow(unused_imports)]
+use super::reduce::*;
+#[allow(unused_imports)]
+use super::*;
+
+/// Timings and counts of one map worker, summed over its images.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub(super) struct MapStats {
+    pub(super) worker: u32,
+    pub(super) images: u64,
+    pub(super) decode_s: f64,
+    pub(super) masks_s: f64,
+    pub(super) clip_s: f64,
+    pub(super) raster_s: f64,
+    pub(super) image_aggregate_s: f64,
+    pub(super) wall_s: f64,
+    pub(super) masks: u64,
+    pub(super) entries: u64,
+    pub(super) raster_pixels: u64,
+    pub(super) raster_entries: u64,
+    /// Views whose `a_kj` were summed on the GPU.
+    #[serde(default)]
+    pub(super) device_sum_views: u64,
+}
+
+/// What a job must agree on across processes (a mismatch means processes got other arguments).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub(super) struct JobKey {
+    pub(super) gaussians: u64,
+    pub(super) views: u64,
+    pub(super) dim: u64,
+    pub(super) fingerprint: String,
+}
+
+/// One image's share of partition `partition`: `a_kj` over local ids `k / P`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(super) struct ImagePart {
+    pub(super) partition: u32,
+    pub(super) image: u32,
+    pub(super) dim: u32,
+    /// `[M * dim]` the image's mask embeddings `E_j`.
+    pub(super) mask_embeddings: Vec<f32>,
+    /// Local Gaussian ids (global id / P), ascending.
+    pub(super) local_ids: Vec<u32>,
+    pub(super) masks: Vec<u32>,
+    pub(super) weights: Vec<f32>,
+}
+
+/// Map → reduce records, routed by `partition`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(super) enum ToReducer {
+    Image(ImagePart),
+    Done {
+        partition: u32,
+        worker: u32,
+        images: u64,
+        job: Option<JobKey>,
+        stats: Option<MapStats>,
+    },
+    Abort {
+        partition: u32,
+        message: String,
+    },
+}
+
+impl ToReducer {
+    pub(super) fn partition(&self) -> u32 {
+        match self {
+            ToReducer::Image(p) => p.partition,
+            ToReducer::Done { partition, .. } | ToReducer::Abort { partition, .. } => *partition,
+        }
+    }
+}
+
+/// The fingerprint of the parameters every process must share.
+pub(super) fn job_key(
+    job: &ClusterJob,
+    gaussians: usize,
+    views: &[slag_common::camera::View],
+    dim: usize,
+    stages: &Stages,
+) -> JobKey {
+    let p = &job.params;
+    JobKey {
+        gaussians: gaussians as u64,
+        views: views.len() as u64,
+        dim: dim as u64,
+        fingerprint: format!(
+            "views {:?}..{:?} every {} raster_scale {} image_stage {:?} masks {} clip {} min_weight {}",
+            views.first().map(|v| &v.name),
+            views.last().map(|v| &v.name),
+            job.scene.every,
+            p.raster_scale,
+            p.image_stage,
+            stages.masks.name(),
+            stages.crops.model_id(),
+            p.reduce.min_total_weight,
+        ),
+    }
+}
+
+/// Splits one image's contribution into the `peers` partitions (`k mod peers`), with local ids
+/// `k / peers` (ascending, as [`aggregate::reduce`] requires) and the image's mask table in each.
+pub(super) fn split(c: &ImageContribution, image: u32, peers: usize) -> Vec<ImagePart> {
+    let mut parts: Vec<ImagePart> = (0..peers as u32)
+        .map(|p| ImagePart {
+            partition: p,
+            image,
+            dim: c.dim as u32,
+            mask_embeddings: c.mask_embeddings.clone(),
+            local_ids: Vec::new(),
+            masks: Vec::new(),
+            weights: Vec::new(),
+        })
+        .collect();
+    for e in &c.entries {
+        let part = &mut parts[e.gaussian as usize % peers];
+        part.local_ids.push(e.gaussian / peers as u32);
+        part.masks.push(e.mask);
+        part.weights.push(e.weight);
+    }
+    parts
+}
+
+pub(super) type Input = InputHandle<u64, CapacityContainerBuilder<Vec<ToReducer>>>;
+
+/// The map side of worker `w`: images `w, w + P, …`; sends each image's partitions and advances
+/// the input's time so they leave at once. Returns the worker's stats and the job key.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn map_side(
+    worker: &mut timely::worker::Worker,
+    input: &mut Input,
+    job: &ClusterJob,
+    aborted: &RefCell<Option<String>>,
+    scene: &(Gaussians, Vec<slag_common::camera::View>, usize),
+    stages: &mut Stages,
+    key: &JobKey,
+    stats: &mut MapStats,
+) -> Result<()> {
+    let (w, peers) = (worker.index(), worker.peers());
+    let (_, views, _) = scene;
+    let dim = key.dim as usize;
+    let fault_after: Option<u64> = std::env::var("SLAG_FAULT_EXIT_AFTER_IMAGES")
+        .ok()
+        .and_then(|v| v.trim().parse().ok());
+    let raster_intrinsics = views
+        .iter()
+        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
+        .collect::<Result<Vec<_>>>()?;
+    let t_map = Instant::now();
+    for (round, i) in (w..views.len()).step_by(peers).enumerate() {
+        if aborted.borrow().is_some() {
+            break;
+        }
+        let item = front_stage(&views[i], i, &mut *stages.masks, &mut *stages.crops, dim)?;
+        let n_masks = item.masks.len();
+        let (decode_s, masks_s, clip_s) = (item.decode_s, item.masks_s, item.clip_s);
+        let out = back_stage(
+            &mut *stages.rasterizer,
+            views,
+            &raster_intrinsics,
+            item,
+            dim,
+            job.params.image_stage,
+        )?;
+        let c = out.contribution;
+        stats.decode_s += decode_s;
+        stats.masks_s += masks_s;
+        stats.clip_s += clip_s;
+        stats.raster_s += out.raster_s;
+        stats.image_aggregate_s += out.contribution_s;
+        stats.masks += n_masks as u64;
+        stats.entries += c.entries.len() as u64;
+        stats.raster_pixels += out.pixels;
+        stats.raster_entries += out.raster_entries;
+        stats.device_sum_views += u64::from(out.device_sums);
+        stats.images += 1;
+        let parts = split(&c, i as u32, peers);
+        for part in parts {
+            input.send(ToReducer::Image(part));
+        }
+        input.advance_to(round as u64 + 1);
+        worker.step();
+        tracing::info!(
+            worker = w,
+            image = i,
+            views = views.len(),
+            masks = n_masks,
+            "image sent"
+        );
+        if fault_after == Some(stats.images) {
+            eprintln!(
+                "SLAG_FAULT_EXIT_AFTER_IMAGES={}: process exits after image {i}",
+                stats.images
+            );
+            std::process::exit(FAULT_EXIT_STATUS);
+        }
+    }
+    stats.wall_s = t_map.elapsed().as_secs_f64();
+    Ok(())
+}
