@@ -143,7 +143,7 @@ fn load(dir: &Path) {
     report("start");
     let store = EdgeStore::open(dir).unwrap();
     report("store open");
-    let engine = slag_edge::serve::Engine::load(&store, "synth", false).unwrap();
+    let engine = slag_edge::engine::Engine::load(&store, "synth", false).unwrap();
     report(&format!(
         "scene loaded ({} Gaussians, {} MiB vectors)",
         engine.store.len(),

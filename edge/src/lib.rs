@@ -5,12 +5,15 @@
 //! - [`store`]: the embedded `sled` store of verified shards;
 //! - [`scan`]: the exact scan kernels over f32/f16/int8 embeddings and the approximate HNSW index;
 //! - [`query`]: prompt → CLIP text embedding → cosine or LERF relevancy scores → matches + summary;
-//! - [`serve`]: the HTTP API (`GET /query?text=chair`, `/health`, `/stats`, `POST /query`);
-//! - [`view`]: the answer shown to a person: `GET /query.ply` (matches painted in a 3DGS `.ply`)
-//!   and the web page `GET /` that renders it;
+//! - [`engine`]: a loaded scene (manifest, vector store, display columns, HNSW index);
+//! - [`serve`]: the HTTP API (`GET /query?text=chair`, `/health`, `/stats`, `POST /query`), and in
+//!   [`serve::web`] `GET /query.ply` and the web page `GET /` that renders it;
+//! - [`view`]: the answer shown to a person: the loaded Gaussians as a 3DGS `.ply` with the
+//!   matches painted;
 //! - [`config`]: the TOML config file of `serve` (`jetson/edge.toml`).
 
 pub mod config;
+pub mod engine;
 pub mod fetch;
 pub mod query;
 pub mod scan;

@@ -357,7 +357,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     let v = text.embed(&["a chair"])?;
     let text_ms = t.elapsed().as_secs_f64() * 1e3;
     let edge = EdgeStore::open_existing(&r.store)?;
-    let engine = slag_edge::serve::Engine::load(&edge, &r.opts.scene, false)?;
+    let engine = slag_edge::engine::Engine::load(&edge, &r.opts.scene, false)?;
     text.check_pair(&engine.manifest.model)?;
     anyhow::ensure!(
         v[0].len() == engine.store.dim(),
@@ -410,7 +410,7 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
     .validate_for(PAPER_THRESHOLD, Interface::Cli)?;
     params.frame = a.frame.into();
     let edge = EdgeStore::open_existing(&a.store)?;
-    let engine = slag_edge::serve::Engine::load(&edge, &a.scene, false)?;
+    let engine = slag_edge::engine::Engine::load(&edge, &a.scene, false)?;
     let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
     text.check_pair(&engine.manifest.model)?;
     let negatives = text.embed(&slag_edge::query::CANONICAL_NEGATIVES)?;

@@ -3,35 +3,18 @@
 //!
 //! - [`DisplayAttrs`]: the display columns of every loaded Gaussian (log-scales, pre-sigmoid
 //!   opacities, normalised rotations (w, x, y, z), SH DC), rows in the scan store's order (shards
-//!   in manifest tile order, rows in shard order, as [`crate::serve::Engine::load`] pushes them);
+//!   in manifest tile order, rows in shard order, as [`crate::engine::Engine::load`] pushes them);
 //! - [`highlighted_ply`]: a binary little-endian INRIA-layout `.ply` of them, matches in a flat
 //!   highlight colour, the rest optionally dimmed;
-//! - routes (added to [`crate::serve::router`]): `GET /query.ply?text=…` (the same parameters and
-//!   validation as `GET /query`, plus `color=RRGGBB` and `dim=0..1`), and the page `GET /` with
-//!   its script `GET /app.js` and the vendored viewer bundles `GET /vendor/<file>`.
+//! - the HTTP side (`GET /query.ply`, the page, its script and the viewer) is
+//!   [`crate::serve::web`]; this module knows nothing of HTTP.
 //!
-//! Everything the page needs is compiled into the binary: the page, its script, and the viewer
-//! ([`@mkkellogg/gaussian-splats-3d`](https://github.com/mkkellogg/GaussianSplats3D) on three.js)
-//! when it was vendored before the build (`bash scripts/web-vendor.sh`: `npm ci` in `edge/web`,
-//! bundles copied to `edge/web/vendor`, git-ignored; [`Vendored`]). `--web-dir DIR` overrides
-//! them: `DIR/index.html` and `DIR/app.js` where present, and the viewer from `DIR/vendor` only.
-//! A binary built without the vendored viewer serves the page, which says how to vendor; `cargo
-//! build` never needs npm, and nothing is looked up in the build machine's source tree.
 
-use std::collections::{HashMap, HashSet};
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::collections::HashSet;
 
-use axum::extract::rejection::QueryRejection;
-use axum::extract::{Query, State};
-use axum::http::{StatusCode, header};
-use axum::response::{IntoResponse, Response};
 use slag_common::scene::SH_C0;
 use slag_common::shards::StoredShard;
 use slag_common::{Error, Result};
-
-use crate::serve::{AppState, error, raw_from_pairs, status_of};
 
 /// Highlight colour of matches when none is given: magenta (linear display RGB in 0..1).
 pub const DEFAULT_HIGHLIGHT: [f32; 3] = [1.0, 0.0, 1.0];
@@ -304,219 +287,6 @@ pub fn parse_colour(s: &str) -> Result<[f32; 3]> {
     Ok(rgb)
 }
 
-/// Takes the highlight parameters (`color`, `dim`) out of a query string's pairs.
-fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyle> {
-    let mut style = HighlightStyle::default();
-    if let Some(c) = pairs.remove("color") {
-        style.colour = parse_colour(&c)?;
-    }
-    if let Some(d) = pairs.remove("dim") {
-        let f: f32 = d
-            .trim()
-            .parse()
-            .ok()
-            .filter(|f: &f32| f.is_finite() && (0.0..=1.0).contains(f))
-            .ok_or_else(|| Error::Invalid(format!("dim {d:?}: use a number in 0..=1")))?;
-        style.dim = Some(f);
-    }
-    Ok(style)
-}
-
-/// `GET /query.ply?text=…[&color=RRGGBB][&dim=0..1]` plus every `GET /query` parameter.
-///
-/// With a threshold (the default) every match is painted (`top_k` only limits `/query`'s list);
-/// with `threshold=none` the `top_k` best are. Headers: `Content-Type: application/octet-stream`,
-/// `Content-Disposition: attachment; filename="query.ply"`, `X-Slag-Matches` (painted ids),
-/// `X-Slag-Gaussians` (vertices), `X-Slag-Up` (up `x,y,z` of the manifest's ground frame),
-/// `X-Slag-Frame` (`map` or `scene`: the frame of the vertices and of `X-Slag-Up`; the map frame
-/// by default when the manifest has a scene-to-map transform, `frame=scene` for the stored one).
-pub(crate) async fn query_ply(
-    State(state): State<Arc<AppState>>,
-    q: std::result::Result<Query<HashMap<String, String>>, QueryRejection>,
-) -> Response {
-    let params = q
-        .map_err(|e| Error::Invalid(format!("query string: {e}")))
-        .and_then(|Query(mut p)| {
-            let style = style_from_pairs(&mut p)?;
-            let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
-            Ok((params, style))
-        });
-    let (mut params, style) = match params {
-        Ok(p) => p,
-        Err(e) => {
-            state.rejected.fetch_add(1, Ordering::Relaxed);
-            return error(status_of(&e), e.to_string());
-        }
-    };
-    let engine = state.engine();
-    if params.threshold.is_some() {
-        params.top_k = engine.store.len().max(1);
-    }
-    let mut answers = match crate::serve::answer(&state, vec![params]).await {
-        Ok(a) => a,
-        Err(busy) => return busy.response(),
-    };
-    let answer = match answers.pop() {
-        Some(Ok(a)) => a,
-        Some(Err(e)) => return error(status_of(&e), e.to_string()),
-        None => return error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
-    };
-    let ids: HashSet<u32> = answer.matches.iter().map(|m| m.id).collect();
-    let e2 = engine.clone();
-    let ids_n = ids.len();
-    let in_map = answer.frame == slag_common::shards::MAP_FRAME;
-    let built = tokio::task::spawn_blocking(move || {
-        let to_map = e2.manifest.frames.scene_to_map.as_ref().filter(|_| in_map);
-        highlighted_ply_framed(&e2.display, &ids, &style, to_map)
-    })
-    .await;
-    let bytes = match built {
-        Ok(Ok(b)) => b,
-        Ok(Err(e)) => return error(status_of(&e), e.to_string()),
-        Err(e) => {
-            return error(
-                StatusCode::INTERNAL_SERVER_ERROR,
-                format!("ply task failed: {e}"),
-            );
-        }
-    };
-    let mut up = engine.manifest.ground.up;
-    if let Some(t) = engine
-        .manifest
-        .frames
-        .scene_to_map
-        .as_ref()
-        .filter(|_| in_map)
-    {
-        let r = t.rotation;
-        let u = up.map(f64::from);
-        up = [0, 1, 2].map(|i| (r[i][0] * u[0] + r[i][1] * u[1] + r[i][2] * u[2]) as f32);
-    }
-    (
-        [
-            (header::CONTENT_TYPE, "application/octet-stream".to_string()),
-            (
-                header::CONTENT_DISPOSITION,
-                "attachment; filename=\"query.ply\"".to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-matches"),
-                ids_n.to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-gaussians"),
-                engine.display.len().to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-up"),
-                format!("{},{},{}", up[0], up[1], up[2]),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-frame"),
-                answer.frame.to_string(),
-            ),
-        ],
-        bytes,
-    )
-        .into_response()
-}
-
-/// The page (`GET /`), compiled in.
-pub const INDEX_HTML: &str = include_str!("../web/index.html");
-/// The page's script (`GET /app.js`), compiled in.
-pub const APP_JS: &str = include_str!("../web/app.js");
-
-/// True for the routes every visitor may load without the bearer token: the page, its script
-/// and the vendored viewer (no scene data).
-pub fn is_public_path(path: &str) -> bool {
-    path == "/" || path == "/index.html" || path == "/app.js" || path.starts_with("/vendor/")
-}
-
-/// The viewer bundles of `edge/web/vendor` as they were when the binary was built (none when
-/// `scripts/web-vendor.sh` had not run): served under `/vendor/<file>` unless `--web-dir` is
-/// given.
-#[derive(rust_embed::Embed)]
-#[folder = "web/vendor/"]
-#[allow_missing = true]
-pub struct Vendored;
-
-/// `<web_dir>/<name>` when `--web-dir` is set and the file is there, else the compiled-in text.
-async fn page_file(state: &AppState, name: &str, compiled: &'static str) -> Vec<u8> {
-    if let Some(dir) = &state.web_dir
-        && let Ok(b) = tokio::fs::read(dir.join(name)).await
-    {
-        return b;
-    }
-    compiled.as_bytes().to_vec()
-}
-
-pub(crate) async fn index(State(state): State<Arc<AppState>>) -> Response {
-    (
-        [
-            (header::CONTENT_TYPE, "text/html; charset=utf-8"),
-            (header::CACHE_CONTROL, "no-cache"),
-        ],
-        page_file(&state, "index.html", INDEX_HTML).await,
-    )
-        .into_response()
-}
-
-pub(crate) async fn app_js(State(state): State<Arc<AppState>>) -> Response {
-    (
-        [
-            (header::CONTENT_TYPE, "text/javascript; charset=utf-8"),
-            (header::CACHE_CONTROL, "no-cache"),
-        ],
-        page_file(&state, "app.js", APP_JS).await,
-    )
-        .into_response()
-}
-
-/// Resolves `/vendor/<name>` inside `<web_dir>/vendor`: a single file name of
-/// `[A-Za-z0-9._-]` not starting with `.` (no traversal).
-pub fn vendor_file(web_dir: &Path, name: &str) -> Option<PathBuf> {
-    let ok = !name.is_empty()
-        && !name.starts_with('.')
-        && name
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'.' || b == b'_' || b == b'-');
-    ok.then(|| web_dir.join("vendor").join(name))
-}
-
-pub(crate) async fn vendor(
-    State(state): State<Arc<AppState>>,
-    axum::extract::Path(name): axum::extract::Path<String>,
-) -> Response {
-    let missing = || {
-        error(
-            StatusCode::NOT_FOUND,
-            format!(
-                "viewer file {name:?} is not vendored; run `bash scripts/web-vendor.sh` in the slag \
-                 repository, then rebuild slag-edge (it embeds edge/web/vendor) or start serve \
-                 with --web-dir <repo>/edge/web"
-            ),
-        )
-    };
-    let Some(path) = vendor_file(Path::new(""), &name) else {
-        return error(StatusCode::BAD_REQUEST, format!("bad file name {name:?}"));
-    };
-    let bytes = match &state.web_dir {
-        Some(dir) => tokio::fs::read(dir.join(&path)).await.ok(),
-        None => Vendored::get(&name).map(|f| f.data.into_owned()),
-    };
-    let Some(b) = bytes else {
-        return missing();
-    };
-    let ct = match path.extension().and_then(|e| e.to_str()) {
-        Some("js" | "mjs") => "text/javascript; charset=utf-8",
-        Some("wasm") => "application/wasm",
-        Some("json") => "application/json",
-        Some("css") => "text/css",
-        _ => "application/octet-stream",
-    };
-    ([(header::CONTENT_TYPE, ct)], b).into_response()
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -648,11 +418,5 @@ mod tests {
         for bad in ["ff00", "zz0000", "ff00ff00", "é0000"] {
             assert!(parse_colour(bad).is_err(), "{bad}");
         }
-        assert!(vendor_file(Path::new("/w"), "../x").is_none());
-        assert!(vendor_file(Path::new("/w"), ".hidden").is_none());
-        assert_eq!(
-            vendor_file(Path::new("/w"), "three.module.js"),
-            Some(PathBuf::from("/w/vendor/three.module.js"))
-        );
     }
 }

@@ -10,7 +10,7 @@
 //! |---|---|
 //! | [`project`] | the EWA projection math (the one written-down definition; the WGSL mirrors it) |
 //! | [`cpu`] | [`CpuRasterizer`]: slow, simple f64 reference |
-//! | [`gpu`] | [`GpuRasterizer`]: wgpu compute kernels (`weights.wgsl`) |
+//! | [`gpu`] | [`GpuRasterizer`]: wgpu compute kernels (`gpu/*.wgsl`, one file per kernel family, beside the Rust pass that dispatches it) |
 //! | [`colour`] | SH colour render composited with the same weights, and PSNR, for validation |
 
 pub mod colour;

@@ -2,7 +2,7 @@
 //! gsplat 1.x "classic" `fully_fused_projection` + `isect_tiles`).
 //!
 //! This is the single written-down definition of the projection math; the CPU reference
-//! ([`super::cpu`]) calls it in f64 and the GPU kernel (`weights.wgsl`, `project` entry point)
+//! ([`super::cpu`]) calls it in f64 and the GPU kernel (`gpu/project.wgsl`, `project` entry point)
 //! mirrors it line by line in f32. Steps, for a Gaussian with world mean `μ`, per-axis standard
 //! deviations `s`, unit quaternion `q = (w, x, y, z)` and opacity `o`:
 //!

@@ -10,7 +10,7 @@
 //!   scene-to-map transform, unless `frame=scene`; the answer's `frame` says which);
 //! - `GET /query.ply?text=…` (same parameters, plus `color`, `dim`) → the loaded Gaussians as a
 //!   3DGS `.ply` with the matches painted, and `GET /` → a web page that renders it
-//!   ([`crate::view`]; the page, its script and `/vendor/*` need no token);
+//!   ([`web`]; the page, its script and `/vendor/*` need no token);
 //! - `POST /query` with `{"queries": [{"text": …, …}, …]}` (at most [`MAX_BATCH`]) →
 //!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
 //! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool,
@@ -48,19 +48,15 @@ use axum::http::{HeaderMap, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use slag_common::shards::Manifest;
 use slag_common::{Error, Result};
 
+pub mod web;
+
+pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH};
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
-use crate::scan::VectorStore;
-use crate::scan::hnsw::HnswIndex;
-use crate::store::{EdgeStore, SceneLoad};
+use crate::store::EdgeStore;
 
-/// HNSW build effort (`instant-distance` ef_construction).
-pub const HNSW_EF_CONSTRUCTION: usize = 100;
-/// HNSW search breadth; also the largest `top_k` the index answers.
-pub const HNSW_EF_SEARCH: usize = 1000;
 /// Most queries in one `POST /query`.
 pub const MAX_BATCH: usize = 64;
 /// Largest request body accepted.
@@ -69,55 +65,6 @@ pub const MAX_BODY_BYTES: usize = 64 * 1024;
 pub const DEFAULT_MAX_SCANS: usize = 1;
 /// Requests waiting for a scan by default; one more gets 503.
 pub const DEFAULT_SCAN_QUEUE: usize = 32;
-
-/// A loaded scene: the manifest, every verified shard's Gaussians in one [`VectorStore`], and the
-/// optional HNSW index.
-pub struct Engine {
-    /// Manifest of the last completed fetch.
-    pub manifest: Manifest,
-    /// All stored Gaussians of the scene.
-    pub store: VectorStore,
-    /// Which tiles were loaded / absent / rejected.
-    pub load: SceneLoad,
-    /// Approximate index, when enabled.
-    pub hnsw: Option<HnswIndex>,
-    /// Display columns of the same Gaussians, same row order (for `GET /query.ply`).
-    pub display: crate::view::DisplayAttrs,
-}
-
-impl Engine {
-    /// Loads `scene` from the store (verifying every shard) and builds the HNSW index if asked.
-    ///
-    /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
-    pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
-        // The manifest is read once; then one shard file at a time: read, verify, copy its rows
-        // into the scan store, drop.
-        let manifest = edge.current_manifest(scene)?;
-        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
-        let mut display = crate::view::DisplayAttrs::new();
-        let load = edge.load_shards(&manifest, |s| {
-            display.push_shard(&s);
-            store.push_shard(s)
-        })?;
-        let hnsw = if hnsw && !store.is_empty() {
-            Some(HnswIndex::build(
-                &store,
-                HNSW_EF_CONSTRUCTION,
-                HNSW_EF_SEARCH,
-                0x51A6,
-            )?)
-        } else {
-            None
-        };
-        Ok(Engine {
-            manifest,
-            store,
-            load,
-            hnsw,
-            display,
-        })
-    }
-}
 
 /// Server settings.
 #[derive(Debug, Clone)]
@@ -324,7 +271,7 @@ impl AppState {
         })
     }
 
-    /// Serves the web page from `dir` instead of the compiled-in files ([`crate::view`]):
+    /// Serves the web page from `dir` instead of the compiled-in files ([`web`]):
     /// `index.html` and `app.js` where present, the viewer from `<dir>/vendor` only
     /// (`scripts/web-vendor.sh`). `None` keeps the compiled-in page and viewer.
     pub fn with_web_dir(mut self, dir: Option<std::path::PathBuf>) -> Self {
@@ -356,11 +303,11 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/health", get(health))
         .route("/stats", get(stats))
         .route("/query", get(query_get).post(query_post))
-        .route("/query.ply", get(crate::view::query_ply))
-        .route("/", get(crate::view::index))
-        .route("/index.html", get(crate::view::index))
-        .route("/app.js", get(crate::view::app_js))
-        .route("/vendor/{name}", get(crate::view::vendor))
+        .route("/query.ply", get(web::query_ply))
+        .route("/", get(web::index))
+        .route("/index.html", get(web::index))
+        .route("/app.js", get(web::app_js))
+        .route("/vendor/{name}", get(web::vendor))
         .route("/fetch", post(fetch_post))
         .route("/reload", post(reload))
         .fallback(|| async {
@@ -464,7 +411,7 @@ async fn auth(
     let Some(token) = state.opts.token.as_deref() else {
         return next.run(req).await;
     };
-    if req.uri().path() == "/health" || crate::view::is_public_path(req.uri().path()) {
+    if req.uri().path() == "/health" || web::is_public_path(req.uri().path()) {
         return next.run(req).await;
     }
     let authorization = headers

@@ -1,0 +1,64 @@
+//! A loaded scene, what every query runs against: the manifest of the last completed fetch, the
+//! Gaussians of every verified shard in one [`VectorStore`] (the scan kernels' layout), their
+//! display columns, and the optional HNSW index. [`crate::serve`] swaps a new one in on reload;
+//! `slag-edge query`/`bench` and the examples use it directly.
+
+use slag_common::Result;
+use slag_common::shards::Manifest;
+
+use crate::scan::VectorStore;
+use crate::scan::hnsw::HnswIndex;
+use crate::store::{EdgeStore, SceneLoad};
+
+/// HNSW build effort (`instant-distance` ef_construction).
+pub const HNSW_EF_CONSTRUCTION: usize = 100;
+/// HNSW search breadth; also the largest `top_k` the index answers.
+pub const HNSW_EF_SEARCH: usize = 1000;
+/// A loaded scene: the manifest, every verified shard's Gaussians in one [`VectorStore`], and the
+/// optional HNSW index.
+pub struct Engine {
+    /// Manifest of the last completed fetch.
+    pub manifest: Manifest,
+    /// All stored Gaussians of the scene.
+    pub store: VectorStore,
+    /// Which tiles were loaded / absent / rejected.
+    pub load: SceneLoad,
+    /// Approximate index, when enabled.
+    pub hnsw: Option<HnswIndex>,
+    /// Display columns of the same Gaussians, same row order (for `GET /query.ply`).
+    pub display: crate::view::DisplayAttrs,
+}
+
+impl Engine {
+    /// Loads `scene` from the store (verifying every shard) and builds the HNSW index if asked.
+    ///
+    /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
+    pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
+        // The manifest is read once; then one shard file at a time: read, verify, copy its rows
+        // into the scan store, drop.
+        let manifest = edge.current_manifest(scene)?;
+        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
+        let mut display = crate::view::DisplayAttrs::new();
+        let load = edge.load_shards(&manifest, |s| {
+            display.push_shard(&s);
+            store.push_shard(s)
+        })?;
+        let hnsw = if hnsw && !store.is_empty() {
+            Some(HnswIndex::build(
+                &store,
+                HNSW_EF_CONSTRUCTION,
+                HNSW_EF_SEARCH,
+                0x51A6,
+            )?)
+        } else {
+            None
+        };
+        Ok(Engine {
+            manifest,
+            store,
+            load,
+            hnsw,
+            display,
+        })
+    }
+}

@@ -1,0 +1,118 @@
+// `blend` (gpu/count_scan.rs, write.rs, label_sums.rs): one 16x16 workgroup per tile.
+var<workgroup> sh_xy_opac: array<vec4<f32>, 256>;
+var<workgroup> sh_axes: array<vec4<f32>, 256>;
+var<workgroup> sh_id: array<u32, 256>;
+var<workgroup> sh_range: vec2<u32>;
+var<workgroup> done_count: atomic<u32>;
+var<workgroup> done_snapshot: u32;
+
+@compute @workgroup_size(16, 16)
+fn blend(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_id) lid3: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let ty = wid.y + params.tile_y0;
+    let tile = ty * params.tiles_x + wid.x;
+    let px = wid.x * TILE + lid3.x;
+    let py = ty * TILE + lid3.y;
+    let inside = px < params.width && py < params.height;
+    let pix = py * params.width + px;
+    let write = params.mode == 1u;
+    let summing = params.mode == 2u;
+    if (lid == 0u) {
+        sh_range = tile_ranges[tile];
+        atomicStore(&done_count, 0u);
+    }
+    let range = workgroupUniformLoad(&sh_range);
+    var out = 0u;
+    var out_end = 0u;
+    if (write && inside) {
+        out = offsets[pix] - params.out_base;
+        out_end = offsets[pix + 1u] - params.out_base;
+    }
+    var label = 0u;
+    if (summing && inside) {
+        label = labels[pix];
+    }
+    var t_acc = 1.0;
+    var count = 0u;
+    // Unlabelled pixels contribute nothing to label sums: done from the start.
+    var done = !inside || (summing && label == 0u);
+    if (done) {
+        atomicAdd(&done_count, 1u);
+    }
+    let pxc = f32(px) + 0.5;
+    let pyc = f32(py) + 0.5;
+    let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
+    for (var b = 0u; b < n_batches; b++) {
+        workgroupBarrier();
+        if (lid == 0u) {
+            done_snapshot = atomicLoad(&done_count);
+        }
+        let n_done = workgroupUniformLoad(&done_snapshot);
+        if (n_done >= BATCH) {
+            break;
+        }
+        let start = range.x + b * BATCH;
+        let idx = start + lid;
+        if (idx < range.y) {
+            let g = sorted_ids[idx];
+            let s = splats[g];
+            sh_xy_opac[lid] = s.xy_opac;
+            sh_axes[lid] = s.axes;
+            sh_id[lid] = g;
+        }
+        workgroupBarrier();
+        let n_here = min(BATCH, range.y - start);
+        if (!done) {
+            for (var k = 0u; k < n_here; k++) {
+                let xo = sh_xy_opac[k];
+                let ax = sh_axes[k];
+                let dx = xo.x - pxc;
+                let dy = xo.y - pyc;
+                // ½dᵀΣ⁻¹d in eigen form (Splat.axes): the same σ as project.rs's conic form.
+                let pa = (ax.x * dx + ax.y * dy) * ax.z;
+                let pb = (ax.x * dy - ax.y * dx) * ax.w;
+                let sigma = 0.5 * (pa * pa + pb * pb);
+                let alpha = min(ALPHA_MAX, xo.z * exp(-sigma));
+                if (sigma < 0.0 || alpha < ALPHA_MIN) {
+                    continue;
+                }
+                let next_t = t_acc * (1.0 - alpha);
+                if (next_t < T_MIN) {
+                    done = true;
+                    break;
+                }
+                if (summing) {
+                    add_label_sum(sh_id[k], label, alpha * t_acc);
+                    count += 1u;
+                } else if (write) {
+                    // Bounded by the count pass's range: never writes outside this pixel's slots.
+                    if (out < out_end) {
+                        out_ids[out] = sh_id[k];
+                        out_weights[out] = alpha * t_acc;
+                        out += 1u;
+                    }
+                } else {
+                    count += 1u;
+                }
+                t_acc = next_t;
+            }
+            if (done) {
+                atomicAdd(&done_count, 1u);
+            }
+        }
+    }
+    if (summing && count > 0u) {
+        // Contributions counted (64-bit, words 1 and 2 of the table header).
+        let old = atomicAdd(&sums[1], count);
+        if (old > 0xFFFFFFFFu - count) {
+            atomicAdd(&sums[2], 1u);
+        }
+    }
+    if (params.mode == 0u && inside) {
+        offsets[pix] = count;
+    }
+}
+

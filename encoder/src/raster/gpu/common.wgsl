@@ -1,0 +1,69 @@
+// slag weight rasterizer kernels (see gpu/mod.rs): the declarations every kernel shares; the module is
+// this file joined with label_sums.wgsl, project.wgsl, blend.wgsl and scan.wgsl, in that order.
+// f32 mirror of project.rs; gsplat 1.x conventions.
+//
+// Entry points, in dispatch order:
+//   project      one thread per Gaussian: EWA projection -> splats[] (mean2d, opacity, axes) and
+//                isect[] (packed tile rect) read back for CPU binning.
+//   blend        one 16x16 workgroup per tile, shared-memory batches of 256 splats (gsplat's
+//                rasterize_to_pixels scheme). params.mode == 0: count contributors per pixel into
+//                offsets[p]; mode == 1: write ids/weights into [offsets[p], offsets[p+1]), shifted
+//                by out_base, for the tile rows tile_y0.. of this dispatch (one band of rows);
+//                mode == 2: per-label sums instead of per-pixel lists: every contribution w_kp of
+//                a pixel p with labels[p] != 0 is added to the slot of (k, labels[p]) in the
+//                open-addressing table sums[] (64-bit fixed point, integer atomics: the sums are
+//                exact and independent of thread order), so only the sums are read back.
+//   scan_local, scan_blocks, scan_add   exclusive prefix sum of offsets[0..n_pixels] in place,
+//                total written to offsets[n_pixels].
+
+struct Params {
+    rot0: vec4<f32>,     // world-to-camera rotation row 0 (xyz), translation.x (w)
+    rot1: vec4<f32>,     // row 1, translation.y
+    rot2: vec4<f32>,     // row 2, translation.z
+    focal: vec4<f32>,    // fx, fy, cx, cy (pixels)
+    lims: vec4<f32>,     // jacobian clamp: lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n_gaussians: u32,
+    n_pixels: u32,
+    groups_x: u32,       // x extent of 2D dispatches (project, scan_local, scan_add)
+    mode: u32,           // blend: 0 count, 1 write, 2 label sums
+    n_blocks: u32,       // scan: number of 1024-element blocks
+    tile_y0: u32,        // blend: first tile row of this dispatch (banded write pass)
+    out_base: u32,       // blend write: entry index of out_ids[0] / out_weights[0]
+    table_mask: u32,     // blend mode 2: slots in sums[] minus 1 (slots are a power of two)
+}
+
+struct Splat {
+    xy_opac: vec4<f32>,  // mean2d.x, mean2d.y, opacity, unused
+    // The inverse 2D covariance in eigen form: unit major axis u (xy), 1/sqrt(λ_major) (z),
+    // 1/sqrt(λ_minor) (w); ½dᵀΣ⁻¹d = ½((u·d)²/λ_major + (u⊥·d)²/λ_minor). A sum of squares: no
+    // f32 cancellation for needles and sheets, where the (a, b, c) conic form loses ~1e-3 of σ
+    // at ~100 px from the centre (its terms are ~1e4 times σ).
+    axes: vec4<f32>,
+}
+
+const NEAR_PLANE: f32 = 0.01;
+const FAR_PLANE: f32 = 1e10;
+const LOW_PASS: f32 = 0.3;
+const ALPHA_MAX: f32 = 0.99;
+const ALPHA_MIN: f32 = 1.0 / 255.0;
+const T_MIN: f32 = 1e-4;
+const TILE: u32 = 16u;
+const BATCH: u32 = 256u;
+const SCAN_BLOCK: u32 = 1024u;
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> means_opac: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read> scales: array<vec4<f32>>;
+@group(0) @binding(3) var<storage, read> quats: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read_write> splats: array<Splat>;
+@group(0) @binding(5) var<storage, read_write> isect: array<vec2<u32>>;
+@group(0) @binding(6) var<storage, read> tile_ranges: array<vec2<u32>>;
+@group(0) @binding(7) var<storage, read> sorted_ids: array<u32>;
+@group(0) @binding(8) var<storage, read_write> offsets: array<u32>;
+@group(0) @binding(9) var<storage, read_write> out_ids: array<u32>;
+@group(0) @binding(10) var<storage, read_write> out_weights: array<f32>;
+@group(0) @binding(11) var<storage, read_write> block_sums: array<u32>;

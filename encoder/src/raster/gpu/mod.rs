@@ -1,0 +1,780 @@
+//! The GPU weight rasterizer: wgpu compute kernels in the WGSL files beside this module (Vulkan backend).
+//!
+//! Per view ([`GpuRasterizer::rasterize`]):
+//! 0. Once, in [`GpuRasterizer::new`]: the means are uploaded relative to the scene's centre `o`
+//!    (the midpoint of their bounding box, f64), `μ - o` rounded to f32, and every view's
+//!    world-to-camera translation is folded with it in f64 (`T' = R·o + T`), so that the kernel's
+//!    f32 camera-frame point `R·(μ - o) + T'` keeps its precision however far the scene lies from
+//!    the world origin (drone scenes in UTM coordinates, ~1e6 m: f32 world coordinates there have
+//!    a 6 cm spacing, and `R·μ + T` in f32 loses metres to cancellation). The quaternions are
+//!    normalised on the host in f64, and a Gaussian with a non-finite mean, scale or quaternion, a
+//!    zero quaternion, or an opacity outside `(0, ∞)` is uploaded with opacity 0, which the kernel
+//!    culls: the same Gaussians [`super::project::project_gaussian`] culls, decided without relying
+//!    on NaN comparisons in the shader.
+//! 1. `project` kernel, one thread per Gaussian: the EWA projection of [`super::project`] in f32 →
+//!    per-Gaussian splat (mean2d, opacity, and `Σ2D⁻¹` in eigen form: major axis, `1/√λ` of both
+//!    axes, so that `½dᵀΣ⁻¹d` is a sum of two squares, without the f32 cancellation of the conic
+//!    form for needles and sheets) kept on the GPU, and an 8-byte tile rect read
+//!    back.
+//! 2. Tile binning and depth sort **on the CPU** (per Gaussian, never per pixel): every
+//!    (tile, Gaussian) intersection gets the key `(tile, depth, id)`, sorted with rayon, then
+//!    per-tile ranges. The depth is computed on the host in f64 by the same function as the CPU
+//!    reference ([`camera_point`]), so the order is bit-identical to the reference's, near-ties
+//!    included; the id makes keys unique, so the order is deterministic. Moving this to the GPU (a
+//!    radix sort of the keys, as gsplat does) is the next step for very large scenes; there the
+//!    depth would become f32 and exact-tie order would still be fixed by the id.
+//! 3. `blend` kernel, one 16×16 workgroup per tile, splats streamed through shared memory in
+//!    batches of 256 (gsplat `rasterize_to_pixels`), front to back, stopping a pixel at `T < 1e-4`
+//!    and the whole tile once every pixel has stopped. Run twice: a count pass (contributors per
+//!    pixel) and, after an exclusive prefix sum on the GPU (`scan_*` kernels), a write pass that
+//!    fills each pixel's slots. Both passes run the same compiled kernel (a uniform selects the
+//!    mode), so their decisions agree exactly; the write pass is also bounded to its pixel's slots.
+//!    The write pass runs in bands of whole tile rows (each band a contiguous CSR range) so that
+//!    no output binding exceeds the device limit (lavapipe: 128 MiB).
+//! 4. Read back the CSR offsets, ids and weights (the only per-pixel data touching the CPU).
+//!
+//! Output buffers are sized from the counts and checked against the device's
+//! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
+//! offsets array) exceeds them is an [`Error::Limit`] naming the limit (the command line adds
+//! that `--raster-scale` lowers the need).
+//!
+//! One file per pass, each beside its WGSL: [`project`] (step 1, `project.wgsl`, and the CPU
+//! binning of step 2), `count_scan` (step 3a, the count mode of `blend.wgsl` + `scan.wgsl`),
+//! `write` (step 3b, the banded write mode of `blend.wgsl`), `label_sums` (step 3', mode 2 of
+//! `blend.wgsl` + `label_sums.wgsl`), `buffers` (storage, readback, noise fill). `common.wgsl`
+//! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
+//! layout, constants and bindings; the shader module is the files joined in that order.
+
+use slag_common::camera::{Intrinsics, WorldToCamera};
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Resource, Result};
+use wgpu::util::DeviceExt;
+
+use super::project::{jacobian_limits, tile_grid};
+use super::{LabelSums, PixelWeights, WeightRasterizer, validate_raster};
+
+mod buffers;
+mod count_scan;
+mod label_sums;
+pub mod project;
+mod write;
+
+use buffers::{OutBuffers, storage, storage_init};
+use label_sums::INITIAL_LABEL_SLOTS;
+use project::bin_and_sort;
+
+/// The kernels: the WGSL files beside this module, joined (common declarations first).
+const SHADER: &str = concat!(
+    include_str!("common.wgsl"),
+    include_str!("label_sums.wgsl"),
+    include_str!("project.wgsl"),
+    include_str!("blend.wgsl"),
+    include_str!("scan.wgsl"),
+);
+/// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
+const GROUPS_X: u32 = 32768;
+/// Elements per scan block (256 invocations × 4).
+const SCAN_BLOCK: u32 = 1024;
+
+/// Environment variable: substring (case-insensitive) of the adapter name to use.
+pub const ADAPTER_ENV: &str = "SLAG_WGPU_ADAPTER";
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Params {
+    rot0: [f32; 4],
+    rot1: [f32; 4],
+    rot2: [f32; 4],
+    focal: [f32; 4],
+    lims: [f32; 4],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n_gaussians: u32,
+    n_pixels: u32,
+    groups_x: u32,
+    mode: u32,
+    n_blocks: u32,
+    tile_y0: u32,
+    out_base: u32,
+    table_mask: u32,
+}
+
+// `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 12 u32, 128 bytes, no padding.
+// A field added on one side only changes the size or breaks the test below.
+const _: () = assert!(std::mem::size_of::<Params>() == 128);
+
+/// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
+/// including submission and readback waits).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PhaseTimings {
+    /// Projection kernel + tile-rect readback.
+    pub project_ms: f64,
+    /// Host binning and depth sort.
+    pub bin_sort_ms: f64,
+    /// Count pass, prefix sum, offsets readback.
+    pub count_scan_ms: f64,
+    /// Write pass(es) + ids/weights readback.
+    pub write_ms: f64,
+}
+
+struct Pipelines {
+    project: wgpu::ComputePipeline,
+    blend: wgpu::ComputePipeline,
+    scan_local: wgpu::ComputePipeline,
+    scan_blocks: wgpu::ComputePipeline,
+    scan_add: wgpu::ComputePipeline,
+}
+
+/// 3DGS weight rasterizer on a wgpu device (see the module docs for the kernel sequence).
+///
+/// The Gaussians' means, scales, rotations and opacities are uploaded once in [`Self::new`];
+/// each [`WeightRasterizer::rasterize`] call renders one view. Output is deterministic.
+pub struct GpuRasterizer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    name: String,
+    limits: wgpu::Limits,
+    n: u32,
+    /// Means kept on the host for the f64 sort depth ([`camera_point`]).
+    means: Vec<[f32; 3]>,
+    /// World-frame centre the uploaded means are relative to (f64; see the module docs, step 0).
+    origin: glam::DVec3,
+    means_opac: wgpu::Buffer,
+    scales: wgpu::Buffer,
+    quats: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    isect: wgpu::Buffer,
+    pipelines: Pipelines,
+    noise_seed: Option<u64>,
+    band_limit: Option<u64>,
+    timings: PhaseTimings,
+    /// Write-pass output and its readback staging, kept across views (grown on demand).
+    out: Option<OutBuffers>,
+    /// Slots of the label-sum table for the next view (a power of two; grown when a view
+    /// overflows it or fills more than half of it).
+    label_slots: u32,
+    /// Testing aid: start the next view's table at exactly `label_slots` (no estimate).
+    label_slots_fixed: bool,
+    /// Retries (table overflows) of the last label-sum view.
+    label_retries: u32,
+}
+
+/// What one [`GpuRasterizer::run`] produced.
+enum RunOutput {
+    /// Per-pixel lists (modes 0 + 1).
+    Weights(PixelWeights),
+    /// Per-(Gaussian, label) sums (mode 2).
+    Sums(LabelSums),
+    /// Mode 2 declined: more visible Gaussians than raster pixels (few contributions per sum,
+    /// where the per-pixel lists are faster), or more sums than one table binding holds.
+    UseLists,
+}
+
+/// One view's dispatch state: its raster size and tile grid, the uniform [`Params`] and their
+/// buffer (rewritten per pass as `mode`, `tile_y0`, `out_base`, `table_mask` change).
+struct View {
+    k: Intrinsics,
+    tiles_x: u32,
+    tiles_y: u32,
+    n_pix: u32,
+    n_tiles: u32,
+    n_blocks: u32,
+    params: Params,
+    params_buf: wgpu::Buffer,
+}
+
+/// The buffers of a binned view (step 2's output on the device): tile ranges, depth-sorted ids,
+/// the per-pixel counts / CSR offsets with the scan's block sums, and the placeholders bound
+/// where a mode needs no buffer.
+struct Binned {
+    ranges: wgpu::Buffer,
+    sorted_ids: wgpu::Buffer,
+    offsets: wgpu::Buffer,
+    block_sums: wgpu::Buffer,
+    dummy: wgpu::Buffer,
+    /// Read-only bindings cannot share a buffer with read-write ones in one dispatch.
+    dummy_labels: wgpu::Buffer,
+}
+
+/// Noise-fill salts (testing aid, [`GpuRasterizer::set_noise_fill`]): one per buffer, the write
+/// pass's adding the band's first tile row.
+const SEED_SALT: u64 = 1;
+
+/// Milliseconds since `c`, which is reset to now.
+fn lap(c: &mut std::time::Instant) -> f64 {
+    let ms = c.elapsed().as_secs_f64() * 1e3;
+    *c = std::time::Instant::now();
+    ms
+}
+
+impl std::fmt::Debug for GpuRasterizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRasterizer")
+            .field("adapter", &self.name)
+            .field("n", &self.n)
+            .finish()
+    }
+}
+
+fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Gpu(format!("{what}: {e}"))
+}
+
+/// The Vulkan adapters slag would use, best first: those matching `$SLAG_WGPU_ADAPTER`
+/// (case-insensitive substring) if set, else ranked discrete, integrated, virtual, other, CPU
+/// (Mesa lavapipe), in enumeration order within a rank.
+///
+/// Errors: [`Error::Gpu`] when there is no Vulkan adapter (install a driver) or none matches
+/// `$SLAG_WGPU_ADAPTER` (the message lists what exists).
+fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
+    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
+    let names: Vec<String> = adapters
+        .iter()
+        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
+        .collect();
+    if adapters.is_empty() {
+        return Err(Error::Gpu(
+            "no Vulkan adapter found; install a Vulkan driver (on Debian/Ubuntu without a GPU: \
+             `apt-get install mesa-vulkan-drivers` for the lavapipe CPU driver)"
+                .into(),
+        ));
+    }
+    if let Ok(want) = std::env::var(ADAPTER_ENV) {
+        let want_l = want.to_lowercase();
+        let matching: Vec<wgpu::Adapter> = adapters
+            .into_iter()
+            .filter(|a| a.get_info().name.to_lowercase().contains(&want_l))
+            .collect();
+        if matching.is_empty() {
+            return Err(Error::Gpu(format!(
+                "{ADAPTER_ENV}={want:?} matches no Vulkan adapter; available: {}",
+                names.join(", ")
+            )));
+        }
+        return Ok(matching);
+    }
+    use wgpu::DeviceType as D;
+    let rank = |t: D| match t {
+        D::DiscreteGpu => 0,
+        D::IntegratedGpu => 1,
+        D::VirtualGpu => 2,
+        D::Other => 3,
+        D::Cpu => 4,
+    };
+    let mut adapters = adapters;
+    adapters.sort_by_key(|a| rank(a.get_info().device_type));
+    Ok(adapters)
+}
+
+/// Names and types of the adapters [`GpuRasterizer::new_many`] chooses from, best first.
+///
+/// Errors: as [`GpuRasterizer::new`] when no adapter exists.
+pub fn adapter_names() -> Result<Vec<String>> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN;
+    let instance = wgpu::Instance::new(desc);
+    Ok(ranked_adapters(&instance)?
+        .iter()
+        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
+        .collect())
+}
+
+impl GpuRasterizer {
+    /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
+    /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
+    /// scratch).
+    ///
+    /// Errors: [`Error::Gpu`] when no Vulkan adapter exists (install `mesa-vulkan-drivers`), the
+    /// device cannot be created, or the scene exceeds the device's buffer limits;
+    /// [`Error::Invalid`] for more than 2^32 − 1 Gaussians or array lengths that disagree.
+    pub fn new(gaussians: &Gaussians) -> Result<Self> {
+        Ok(Self::new_many(gaussians, Some(1))?.remove(0))
+    }
+
+    /// One rasterizer per GPU for a multi-GPU run: `gpus` adapters of the best available kind
+    /// (all discrete GPUs when `None`; see [`adapter_names`] for the order), each with its own
+    /// device, kernels and copy of the Gaussians' geometry. Without a discrete GPU, one rasterizer
+    /// on the best adapter (e.g. lavapipe) is returned whatever `gpus` says.
+    ///
+    /// Errors: as [`GpuRasterizer::new`]; [`Error::Invalid`] when more GPUs are asked for than
+    /// exist (the message lists them) or `gpus` is `Some(0)`.
+    pub fn new_many(gaussians: &Gaussians, gpus: Option<usize>) -> Result<Vec<Self>> {
+        if gpus == Some(0) {
+            return Err(Error::Invalid("--gpus must be at least 1".into()));
+        }
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN;
+        let instance = wgpu::Instance::new(desc);
+        let ranked = ranked_adapters(&instance)?;
+        let best = ranked[0].get_info().device_type;
+        let same: Vec<wgpu::Adapter> = ranked
+            .into_iter()
+            .filter(|a| a.get_info().device_type == best)
+            .collect();
+        let chosen: Vec<wgpu::Adapter> = if best != wgpu::DeviceType::DiscreteGpu {
+            same.into_iter().take(1).collect()
+        } else {
+            match gpus {
+                None => same,
+                Some(k) if k <= same.len() => same.into_iter().take(k).collect(),
+                Some(k) => {
+                    return Err(Error::Invalid(format!(
+                        "--gpus {k} but only {} GPU(s) are visible: {}",
+                        same.len(),
+                        same.iter()
+                            .map(|a| a.get_info().name)
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )));
+                }
+            }
+        };
+        chosen
+            .into_iter()
+            .map(|adapter| Self::with_adapter(gaussians, adapter))
+            .collect()
+    }
+
+    /// The rasterizer on one given adapter (see [`GpuRasterizer::new`]).
+    fn with_adapter(gaussians: &Gaussians, adapter: wgpu::Adapter) -> Result<Self> {
+        let n = gaussians.len();
+        if gaussians.scales.len() != n
+            || gaussians.rotations.len() != n
+            || gaussians.opacities.len() != n
+        {
+            return Err(Error::Invalid(
+                "Gaussians arrays (means/scales/rotations/opacities) have different lengths".into(),
+            ));
+        }
+        let n32 = u32::try_from(n)
+            .map_err(|_| Error::Invalid(format!("{n} Gaussians exceed the 2^32 - 1 supported")))?;
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("slag-raster"),
+            required_features: wgpu::Features::empty(),
+            required_limits: limits.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| gpu_err(&format!("cannot open device {}", info.name), e))?;
+        let name = format!("wgpu-vulkan {} ({:?})", info.name, info.device_type);
+        tracing::info!(adapter = %name, gaussians = n, "weight rasterizer device");
+
+        let max_bind = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let per_g = 32u64; // largest per-Gaussian buffer: splats, 32 B
+        if n as u64 * per_g > max_bind {
+            return Err(Error::Gpu(format!(
+                "{n} Gaussians need {} MiB buffers but the device allows {} MiB per binding; \
+                 use a GPU with larger limits or a smaller scene",
+                (n as u64 * per_g) >> 20,
+                max_bind >> 20
+            )));
+        }
+        let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let origin = scene_origin(&gaussians.means);
+        let mut mo = Vec::with_capacity(n * 4);
+        let mut sc = Vec::with_capacity(n * 4);
+        let mut qu = Vec::with_capacity(n * 4);
+        for i in 0..n {
+            let m = gaussians.means[i];
+            let s = gaussians.scales[i];
+            let q = unit_quaternion(gaussians.rotations[i]);
+            let o = gaussians.opacities[i];
+            let valid = m.iter().chain(&s).all(|v| v.is_finite())
+                && q.is_some()
+                && o > 0.0
+                && o.is_finite();
+            let rel = |k: usize| (m[k] as f64 - origin[k]) as f32;
+            mo.extend_from_slice(&[rel(0), rel(1), rel(2), if valid { o } else { 0.0 }]);
+            sc.extend_from_slice(&[s[0], s[1], s[2], 0.0]);
+            qu.extend_from_slice(&q.unwrap_or([0.0; 4]));
+        }
+        let means_opac = storage_init(&device, "means_opac", bytemuck::cast_slice(&mo));
+        let scales = storage_init(&device, "scales", bytemuck::cast_slice(&sc));
+        let quats = storage_init(&device, "quats", bytemuck::cast_slice(&qu));
+        let splats = storage(&device, "splats", n as u64 * 32);
+        let isect = storage(&device, "isect", n as u64 * 8);
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("slag-raster kernels"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let pipe = |entry: &str| {
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        };
+        let pipelines = Pipelines {
+            project: pipe("project"),
+            blend: pipe("blend"),
+            scan_local: pipe("scan_local"),
+            scan_blocks: pipe("scan_blocks"),
+            scan_add: pipe("scan_add"),
+        };
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_err("creating the rasterizer kernels/buffers failed", e));
+        }
+        Ok(GpuRasterizer {
+            device,
+            queue,
+            name,
+            limits,
+            n: n32,
+            means: gaussians.means.clone(),
+            origin,
+            means_opac,
+            scales,
+            quats,
+            splats,
+            isect,
+            pipelines,
+            noise_seed: None,
+            band_limit: None,
+            timings: PhaseTimings::default(),
+            out: None,
+            label_slots: INITIAL_LABEL_SLOTS,
+            label_slots_fixed: false,
+            label_retries: 0,
+        })
+    }
+
+    /// Testing aid: before every kernel run, fill every GPU output/scratch buffer with
+    /// pseudo-random bytes from `seed` (or stop doing so with `None`), so that any output slot the
+    /// kernels fail to write shows up as garbage instead of a plausible zero.
+    pub fn set_noise_fill(&mut self, seed: Option<u64>) {
+        self.noise_seed = seed;
+    }
+
+    /// Caps the bytes of one output buffer of the write pass (default: the device's binding
+    /// limit). Smaller values split the write pass into more bands of tile rows; output is the
+    /// same. For tests of the banding, or to bound peak GPU memory.
+    pub fn set_band_limit(&mut self, bytes: Option<u64>) {
+        self.band_limit = bytes;
+    }
+
+    /// Testing aid: the slots of the label-sum table for the next view (rounded up to a power of
+    /// two, at least 4). Tiny tables overflow and exercise the retry with more slots; the sums do
+    /// not depend on the table size.
+    pub fn set_label_table_slots(&mut self, slots: u32) {
+        self.label_slots = slots.max(4).next_power_of_two();
+        self.label_slots_fixed = true;
+    }
+
+    /// Table overflows (each a retry with 4× the slots) of the last label-sum view.
+    pub fn last_label_retries(&self) -> u32 {
+        self.label_retries
+    }
+
+    /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
+    pub fn last_timings(&self) -> PhaseTimings {
+        self.timings
+    }
+
+    /// The device limits in force (the adapter's own limits).
+    pub fn limits(&self) -> &wgpu::Limits {
+        &self.limits
+    }
+
+    fn max_binding(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    fn check_size(&self, what: &str, bytes: u64, k: &Intrinsics) -> Result<()> {
+        if bytes > self.max_binding() {
+            return Err(Error::limit(
+                Resource::GpuBinding,
+                format!(
+                    "{} MiB for the {what} buffer of the {}x{} weight raster",
+                    bytes >> 20,
+                    k.width,
+                    k.height
+                ),
+                format!("{} MiB on this device", self.max_binding() >> 20),
+            ));
+        }
+        Ok(())
+    }
+
+    /// One view: projection, binning, then either the label sums (`labels`) or the count +
+    /// scan and banded write passes.
+    fn run(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: Option<&[u32]>,
+    ) -> Result<RunOutput> {
+        validate_raster(k)?;
+        let mut kept = self.out.take();
+        let fixed_slots = labels.is_some() && std::mem::take(&mut self.label_slots_fixed);
+        let mut view = self.begin_view(k, w2c)?;
+        self.noise(&self.splats, SEED_SALT);
+        self.noise(&self.isect, SEED_SALT + 1);
+
+        // 1. Projection.
+        let mut clock = std::time::Instant::now();
+        let mut timings = PhaseTimings::default();
+        let isect = self.project(&view)?;
+        timings.project_ms = lap(&mut clock);
+        let visible = isect
+            .iter()
+            .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
+            .count() as u64;
+        // Label sums pay off when many contributions fall on each (Gaussian, label): with more
+        // visible Gaussians than pixels (a 30M-Gaussian terrain at 495x371 px: ~2 per sum,
+        // H200: 3.9 s/view vs 1.8 for the lists) the caller takes the lists instead.
+        if labels.is_some() && !fixed_slots && visible > u64::from(view.n_pix) {
+            self.out = kept;
+            return Ok(RunOutput::UseLists);
+        }
+        // 2. CPU binning + sort (per Gaussian work only).
+        let (ranges, sorted_ids) =
+            bin_and_sort(&isect, &self.means, w2c, view.tiles_x, view.n_tiles)?;
+        self.check_size("tile intersections", sorted_ids.len() as u64 * 4, k)?;
+        timings.bin_sort_ms = lap(&mut clock);
+        let binned = self.upload_bins(&view, &ranges, &sorted_ids);
+
+        // 3'. Label sums (mode 2) instead of per-pixel lists: only the table is read back.
+        if let Some(labels) = labels {
+            let out = self.label_sums_pass(&mut view, &binned, labels, fixed_slots, visible)?;
+            if matches!(out, RunOutput::Sums(_)) {
+                timings.write_ms = lap(&mut clock);
+                self.timings = timings;
+            }
+            self.out = kept;
+            return Ok(out);
+        }
+        // 3a. Count pass + exclusive scan.
+        let offsets = self.count_scan(&view, &binned)?;
+        let total = offsets[view.n_pix as usize] as usize;
+        timings.count_scan_ms = lap(&mut clock);
+        // 3b. Write pass, in bands of whole tile rows.
+        let (ids, weights) = self.write_banded(&mut view, &binned, &offsets, &mut kept)?;
+        self.out = kept;
+        timings.write_ms = lap(&mut clock);
+        self.timings = timings;
+        tracing::debug!(?timings, entries = total, "gpu weight raster");
+        Ok(RunOutput::Weights(PixelWeights {
+            width: k.width,
+            height: k.height,
+            offsets,
+            ids,
+            weights,
+        }))
+    }
+
+    /// Checks the view against the device's dispatch and binding limits and uploads its
+    /// [`Params`] (mode 0: count).
+    fn begin_view(&self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<View> {
+        let (tiles_x, tiles_y) = tile_grid(k.width, k.height);
+        let max_groups = self.limits.max_compute_workgroups_per_dimension;
+        if tiles_x > max_groups.min(65535) || tiles_y > max_groups.min(65535) {
+            return Err(Error::limit(
+                Resource::GpuDispatch,
+                format!(
+                    "{tiles_x}x{tiles_y} tiles for the {}x{} raster",
+                    k.width, k.height
+                ),
+                max_groups.min(65535),
+            ));
+        }
+        let n_pix = k.width * k.height; // ≤ 2^28 (validate_raster)
+        let n_tiles = tiles_x * tiles_y;
+        let n_blocks = n_pix.div_ceil(SCAN_BLOCK);
+        self.check_size("offsets", (n_pix as u64 + 1) * 4, k)?;
+        self.check_size("tile ranges", n_tiles as u64 * 8, k)?;
+
+        let r = w2c.rotation.transpose(); // rows of R are columns of Rᵀ
+        // The kernel sees means relative to `origin`: R·μ + T = R·(μ - o) + (R·o + T), in f64.
+        let t = w2c.rotation * self.origin + w2c.translation;
+        let row = |i: usize, ti: f64| {
+            let c = r.col(i);
+            [c.x as f32, c.y as f32, c.z as f32, ti as f32]
+        };
+        let lims = jacobian_limits(k).map(|v| v as f32);
+        let params = Params {
+            rot0: row(0, t.x),
+            rot1: row(1, t.y),
+            rot2: row(2, t.z),
+            focal: [k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32],
+            lims,
+            width: k.width,
+            height: k.height,
+            tiles_x,
+            tiles_y,
+            n_gaussians: self.n,
+            n_pixels: n_pix,
+            groups_x: GROUPS_X,
+            mode: 0,
+            n_blocks,
+            tile_y0: 0,
+            out_base: 0,
+            table_mask: 0,
+        };
+        let params_buf = self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("params"),
+                contents: bytemuck::bytes_of(&params),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
+        Ok(View {
+            k: *k,
+            tiles_x,
+            tiles_y,
+            n_pix,
+            n_tiles,
+            n_blocks,
+            params,
+            params_buf,
+        })
+    }
+
+    /// Rewrites the view's [`Params`] on the device (after a change of mode or band).
+    fn write_params(&self, view: &View) {
+        self.queue
+            .write_buffer(&view.params_buf, 0, bytemuck::bytes_of(&view.params));
+    }
+
+    /// The `blend` kernel's bind group for `view`: per-pixel outputs `out_ids` / `out_w`, and for
+    /// mode 2 the pixel `labels` and the `sums` table (placeholders otherwise).
+    fn blend_group(
+        &self,
+        view: &View,
+        b: &Binned,
+        out_ids: &wgpu::Buffer,
+        out_w: &wgpu::Buffer,
+        labels: &wgpu::Buffer,
+        sums: &wgpu::Buffer,
+    ) -> wgpu::BindGroup {
+        self.bind(
+            &self.pipelines.blend,
+            &[
+                (0, &view.params_buf),
+                (4, &self.splats),
+                (6, &b.ranges),
+                (7, &b.sorted_ids),
+                (8, &b.offsets),
+                (9, out_ids),
+                (10, out_w),
+                (12, labels),
+                (13, sums),
+            ],
+        )
+    }
+}
+
+/// The midpoint of the bounding box of the finite means, f64 (the origin the uploaded means are
+/// relative to); zero when there is none.
+fn scene_origin(means: &[[f32; 3]]) -> glam::DVec3 {
+    let mut lo = glam::DVec3::splat(f64::INFINITY);
+    let mut hi = glam::DVec3::splat(f64::NEG_INFINITY);
+    for m in means.iter().filter(|m| m.iter().all(|v| v.is_finite())) {
+        let p = glam::DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64);
+        lo = lo.min(p);
+        hi = hi.max(p);
+    }
+    if lo.x <= hi.x {
+        (lo + hi) * 0.5
+    } else {
+        glam::DVec3::ZERO
+    }
+}
+
+/// A (w, x, y, z) quaternion normalised in f64 (no f32 overflow or underflow of `|q|²` for any
+/// finite f32 components); `None` for a zero or non-finite quaternion (culled, as in
+/// [`super::project::quat_to_mat`]).
+fn unit_quaternion(q: [f32; 4]) -> Option<[f32; 4]> {
+    let q = q.map(f64::from);
+    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+    (n > 0.0 && n.is_finite()).then(|| q.map(|v| (v / n) as f32))
+}
+
+impl GpuRasterizer {
+    /// [`Self::run`] inside validation and out-of-memory error scopes.
+    fn run_scoped(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: Option<&[u32]>,
+    ) -> Result<RunOutput> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let out = self.run(k, w2c, labels);
+        if let Some(e) = pollster::block_on(oom.pop()) {
+            let _ = pollster::block_on(scope.pop());
+            return Err(Error::limit(
+                Resource::GpuMemory,
+                format!("the {}x{} view's buffers ({e})", k.width, k.height),
+                "the memory the device had free",
+            ));
+        }
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            return Err(gpu_err("rasterizer kernel failed", e));
+        }
+        out
+    }
+}
+
+impl WeightRasterizer for GpuRasterizer {
+    fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
+        match self.run_scoped(k, w2c, None)? {
+            RunOutput::Weights(w) => Ok(w),
+            RunOutput::Sums(_) | RunOutput::UseLists => Err(Error::internal(
+                "rasterizer returned sums for a weights run",
+            )),
+        }
+    }
+
+    fn label_sums(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: &[u32],
+    ) -> Result<Option<LabelSums>> {
+        match self.run_scoped(k, w2c, Some(labels))? {
+            RunOutput::Sums(s) => Ok(Some(s)),
+            // More sums than one table binding holds: the caller rasterizes the lists instead.
+            RunOutput::UseLists => Ok(None),
+            RunOutput::Weights(_) => Err(Error::internal(
+                "rasterizer returned weights for a sums run",
+            )),
+        }
+    }
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    /// The Rust mirror of the WGSL `Params` struct has the same size as the WGSL declaration
+    /// (counted from common.wgsl: 16 bytes per vec4<f32>, 4 per u32).
+    #[test]
+    fn params_size_matches_the_wgsl_struct() {
+        let wgsl = include_str!("common.wgsl");
+        let start = wgsl.find("struct Params {").expect("Params in common.wgsl");
+        let body = &wgsl[start..start + wgsl[start..].find('}').expect("closing brace")];
+        let (mut vec4s, mut u32s) = (0, 0);
+        for line in body.lines().skip(1) {
+            let ty = line.split("//").next().unwrap_or("").trim();
+            if ty.ends_with("vec4<f32>,") {
+                vec4s += 1;
+            } else if ty.ends_with("u32,") {
+                u32s += 1;
+            }
+        }
+        assert_eq!((vec4s, u32s), (5, 12), "{body}");
+        assert_eq!(16 * vec4s + 4 * u32s, std::mem::size_of::<super::Params>());
+    }
+}
