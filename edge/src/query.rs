@@ -136,7 +136,7 @@ impl TextEmbedder for OnnxTextEmbedder {
     fn embed(&self, texts: &[&str]) -> Result<Vec<Vec<f32>>> {
         self.inner
             .lock()
-            .map_err(|_| Error::Invalid("text encoder poisoned by an earlier failure".into()))?
+            .map_err(|_| Error::internal("text encoder poisoned by an earlier panic"))?
             .encode(texts)
     }
     fn name(&self) -> String {
@@ -148,7 +148,7 @@ impl TextEmbedder for OnnxTextEmbedder {
     fn check_pair(&self, embedding_model: &str) -> Result<()> {
         self.inner
             .lock()
-            .map_err(|_| Error::Invalid("text encoder poisoned by an earlier failure".into()))?
+            .map_err(|_| Error::internal("text encoder poisoned by an earlier panic"))?
             .check_pair(embedding_model)
     }
 }

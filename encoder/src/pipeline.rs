@@ -506,7 +506,7 @@ pub fn encode_pool(
                         let entries = out.contribution.entries.len();
                         store
                             .lock()
-                            .map_err(|_| Error::Invalid("contribution store poisoned".into()))?
+                            .map_err(|_| Error::internal("contribution store poisoned by a panicked worker"))?
                             .push(out.contribution)?;
                         let push_s = t1.elapsed().as_secs_f64();
                         if let Ok(mut tt) = totals.lock() {
@@ -552,7 +552,7 @@ pub fn encode_pool(
     }
     let store = store
         .into_inner()
-        .map_err(|_| Error::Invalid("contribution store poisoned".into()))?;
+        .map_err(|_| Error::internal("contribution store poisoned by a panicked worker"))?;
     let tt = totals.into_inner().unwrap_or_default();
     if store.len() != views.len() {
         return Err(Error::Invalid(format!(

@@ -243,7 +243,7 @@ pub fn resize_rgb(img: &RgbImage, width: u32, height: u32, filter: Filter) -> Re
         }
     };
     RgbImage::from_raw(width, height, out)
-        .ok_or_else(|| Error::Invalid("internal resize buffer size mismatch".into()))
+        .ok_or_else(|| Error::internal("resize buffer size mismatch"))
 }
 
 /// SAM's input side length (`ImageEncoderViT.img_size`).

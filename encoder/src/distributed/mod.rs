@@ -353,8 +353,8 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     let outcome = results
         .into_iter()
         .next()
-        .ok_or_else(|| Error::Invalid("timely started no worker".into()))?
-        .map_err(|e| Error::Invalid(format!("worker thread failed: {e}")))??;
+        .ok_or_else(|| Error::internal("timely started no worker"))?
+        .map_err(|e| Error::internal(format!("worker thread failed: {e}")))??;
     let Some((embeddings, counts, mut timings, cluster_stats)) = outcome.output else {
         tracing::info!(
             process,
