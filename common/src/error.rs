@@ -153,23 +153,28 @@ impl Error {
     pub fn internal(what: impl std::fmt::Display) -> Self {
         Error::Internal(what.to_string())
     }
-    /// `true` for errors the user (or an HTTP client) caused and can fix by changing the input:
-    /// [`Error::Invalid`] and [`Error::ModelMismatch`]. Everything else is the environment
-    /// (files, models, GPU, network, limits) or a fault of slag itself.
-    pub fn is_user_input(&self) -> bool {
+    /// Who has to act: the one exhaustive classification of the variants (a new variant must
+    /// be placed here). Front ends map it: the edge's HTTP status, the CLIs' exit messages.
+    pub fn kind(&self) -> ErrorKind {
         match self {
-            Error::Invalid(_) | Error::ModelMismatch { .. } => true,
+            Error::Invalid(_) => ErrorKind::UserInput,
+            Error::ModelMismatch { .. } => ErrorKind::Conflict,
+            Error::Network { .. } => ErrorKind::Upstream,
             Error::Io { .. }
             | Error::Format { .. }
             | Error::Unsupported { .. }
             | Error::Model { .. }
             | Error::Inference { .. }
             | Error::Gpu(_)
-            | Error::Network { .. }
             | Error::Shard(_)
-            | Error::Limit { .. }
-            | Error::Internal(_) => false,
+            | Error::Limit { .. } => ErrorKind::Environment,
+            Error::Internal(_) => ErrorKind::Internal,
         }
+    }
+    /// `true` for errors the user (or an HTTP client) caused and can fix by changing the input
+    /// ([`ErrorKind::UserInput`]).
+    pub fn is_user_input(&self) -> bool {
+        self.kind() == ErrorKind::UserInput
     }
     /// A model error for `path`.
     pub fn model(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
@@ -178,6 +183,23 @@ impl Error {
             message: message.into(),
         }
     }
+}
+
+/// Who has to act on an [`Error`] ([`Error::kind`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorKind {
+    /// The caller's input: a parameter, a prompt, a file that is not what it should be named
+    /// (HTTP 400).
+    UserInput,
+    /// Inputs that are each valid but do not belong together, e.g. a CLIP text tower of another
+    /// model than the embeddings (HTTP 409).
+    Conflict,
+    /// A peer slag talks to (shard server, Qdrant) failed or could not be reached (HTTP 502).
+    Upstream,
+    /// This machine's files, models, GPU or limits (HTTP 500).
+    Environment,
+    /// A bug in slag: a panicked task, a broken invariant (HTTP 500).
+    Internal,
 }
 
 /// A bounded resource named by [`Error::Limit`]. A front end maps each to what lowers the need

@@ -21,9 +21,8 @@ use slag_encoder::cli;
 #[derive(Parser)]
 #[command(version, about, long_about, verbatim_doc_comment)]
 struct Cli {
-    /// Debug logging (or set RUST_LOG).
-    #[arg(long, short, global = true)]
-    verbose: bool,
+    #[command(flatten)]
+    global: slag_shards::cli::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -60,7 +59,7 @@ fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
 
 fn main() -> std::process::ExitCode {
     let args = Cli::parse();
-    cli::init_logging(args.verbose);
+    cli::init_logging(args.global.verbose);
     let result = match &args.command {
         Command::Encode(a) => cli::encode::run(a).map(|r| {
             eprintln!(

@@ -506,7 +506,9 @@ pub fn encode_pool(
                         let entries = out.contribution.entries.len();
                         store
                             .lock()
-                            .map_err(|_| Error::internal("contribution store poisoned by a panicked worker"))?
+                            .map_err(|_| {
+                                Error::internal("contribution store poisoned by a panicked worker")
+                            })?
                             .push(out.contribution)?;
                         let push_s = t1.elapsed().as_secs_f64();
                         if let Ok(mut tt) = totals.lock() {

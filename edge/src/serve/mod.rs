@@ -48,7 +48,7 @@ use axum::http::{HeaderMap, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use slag_common::{Error, Result};
+use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
 
@@ -382,23 +382,16 @@ pub(crate) fn error(status: StatusCode, message: String) -> Response {
         .into_response()
 }
 
-/// Maps a slag error to an HTTP status, one arm per variant (a new variant must be placed here):
-/// the client's input 400, a text model of another CLIP model 409, an upstream shard server 502,
-/// everything on this side (files, stored shards, models, GPU, limits, faults) 500.
+/// Maps a slag error to an HTTP status by who has to act ([`slag_common::Error::kind`], one
+/// exhaustive arm per kind, no `_`): the client's input 400, a text model of another CLIP model
+/// 409, an upstream shard server 502, this side (files, stored shards, models, GPU, limits) and
+/// slag's own faults (a panicked task) 500.
 pub(crate) fn status_of(e: &Error) -> StatusCode {
-    match e {
-        Error::Invalid(_) => StatusCode::BAD_REQUEST,
-        Error::ModelMismatch { .. } => StatusCode::CONFLICT,
-        Error::Network { .. } => StatusCode::BAD_GATEWAY,
-        Error::Io { .. }
-        | Error::Format { .. }
-        | Error::Unsupported { .. }
-        | Error::Model { .. }
-        | Error::Inference { .. }
-        | Error::Gpu(_)
-        | Error::Shard(_)
-        | Error::Limit { .. }
-        | Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+    match e.kind() {
+        ErrorKind::UserInput => StatusCode::BAD_REQUEST,
+        ErrorKind::Conflict => StatusCode::CONFLICT,
+        ErrorKind::Upstream => StatusCode::BAD_GATEWAY,
+        ErrorKind::Environment | ErrorKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
 

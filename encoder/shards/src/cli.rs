@@ -404,6 +404,14 @@ pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Options every subcommand of `slag-shards` and `slag-encoder` takes.
+#[derive(Debug, Clone, Copy, clap::Args)]
+pub struct GlobalArgs {
+    /// Debug logging (or set RUST_LOG).
+    #[arg(long, short, global = true)]
+    pub verbose: bool,
+}
+
 /// Sets up `tracing` (respects `RUST_LOG`, default `info`, `debug` with `verbose`) on stderr.
 pub fn init_logging(verbose: bool) {
     let default = if verbose { "debug" } else { "info" };

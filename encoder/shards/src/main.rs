@@ -13,9 +13,8 @@ use slag_shards::cli;
 #[derive(Parser)]
 #[command(version, about, long_about, verbatim_doc_comment)]
 struct Cli {
-    /// Debug logging (or set RUST_LOG).
-    #[arg(long, short, global = true)]
-    verbose: bool,
+    #[command(flatten)]
+    global: cli::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -33,7 +32,7 @@ enum Command {
 
 fn main() -> std::process::ExitCode {
     let args = Cli::parse();
-    cli::init_logging(args.verbose);
+    cli::init_logging(args.global.verbose);
     let result = match &args.command {
         Command::Partition(a) => cli::run_partition(a),
         Command::Serve(a) => cli::run_serve(a),
