@@ -321,7 +321,11 @@ proptest! {
     ) {
         let rows: Vec<f32> = [
             vec![0.0f32; 8],
-            vec![0.5; 4].into_iter().chain(vec![-0.5; 4]).collect(),
+            // Unit rows, as the embeddings file stores them (a non-unit row could score past 1).
+            vec![0.5f32.sqrt() * 0.5; 4]
+                .into_iter()
+                .chain(vec![-(0.5f32.sqrt()) * 0.5; 4])
+                .collect(),
             (0..8).map(|i| if i == 3 { 1.0 } else { 0.0 }).collect(),
         ]
         .concat();
