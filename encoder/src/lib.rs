@@ -19,6 +19,8 @@ pub mod clip;
 pub mod distributed;
 pub mod eval;
 pub mod heldout;
+pub mod heldout_variants;
+pub mod levels;
 pub mod masks;
 pub mod pipeline;
 pub mod preprocess;

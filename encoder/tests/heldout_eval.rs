@@ -69,6 +69,7 @@ fn held_out_protocol_on_snowmiku_mini() {
         every: None, // from the report beside the embeddings
         raster_scale: None,
         rasterizer: RasterBackend::Gpu,
+        compare: Vec::new(),
     };
     let r = run_held_out(&a).expect("eval-colors --held-out");
     let h = &r.held_out;

@@ -124,6 +124,16 @@ pub struct EncodeArgs {
     /// mask area: small masks count more), sam-score (SAM predicted IoU × stability).
     #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::None)]
     pub mask_weighting: crate::aggregate::MaskWeighting,
+    /// Which masks a pixel covered by several gives its blend weights to: all (the paper's
+    /// a_kj) or finest (only the smallest covering mask, so each Gaussian mixes only its most
+    /// specific segments).
+    #[arg(long, value_enum, default_value_t = crate::levels::MaskOverlap::All)]
+    pub overlap: crate::levels::MaskOverlap,
+    /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
+    /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
+    /// level's masks only (LangSplat's levels; needs --masks sam).
+    #[arg(long)]
+    pub levels: bool,
     /// Σa below which a Gaussian is unobserved (gets no embedding).
     #[arg(long, default_value_t = 1e-6)]
     pub min_weight: f64,
@@ -271,6 +281,8 @@ pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) 
             "clip_batch": a.clip_batch,
             "top_k_per_pixel": a.top_k_per_pixel,
             "mask_weighting": a.mask_weighting,
+            "overlap": a.overlap,
+            "levels": a.levels,
             "min_weight": a.min_weight,
             "mixture_keep": a.mixture_keep,
             "threads": threads,
@@ -301,6 +313,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         image_stage: ImageStageParams {
             top_k_per_pixel: a.top_k_per_pixel,
             mask_weighting: a.mask_weighting,
+            overlap: a.overlap,
         },
         reduce: ReduceParams {
             min_total_weight: a.min_weight,
@@ -315,6 +328,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         out_dir: a.out.clone(),
         progress: !a.quiet,
         mixture_keep: a.mixture_keep,
+        levels: a.levels,
     }
 }
 
@@ -457,6 +471,12 @@ pub(crate) fn build_fronts(
 /// Runs `encode` and returns the report it wrote: front workers (masks + CLIP; see
 /// [`build_fronts`]) and one rasterizer per GPU (`--gpus`).
 pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+    if a.levels && a.masks != MaskSource::Sam {
+        anyhow::bail!(
+            "--levels needs masks with granularity levels (SAM's three multimask outputs): use \
+             --masks sam, or drop --levels"
+        );
+    }
     let threads = setup_threads(a);
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
     let gpus = match (a.rasterizer, a.gpus) {
