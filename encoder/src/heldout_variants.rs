@@ -153,6 +153,24 @@ pub fn variant_tables(
             scores: spread(m.scores_many(&unit_texts)?)?,
             chosen_levels: Vec::new(),
         });
+        for kappa in [10.0f32] {
+            let modes = crate::robust::mixture_modes(&m, kappa, crate::robust::MODE_ITERATIONS)?;
+            let e = Embeddings {
+                ids: m.gaussian_ids.clone(),
+                means: m.means.clone(),
+                dim: m.dim,
+                vectors: modes,
+                total_weights: vec![1.0; m.len()],
+                scene_gaussians: n as u64,
+                ..Embeddings::default()
+            };
+            out.push(VariantTable {
+                name: format!("mixture-mode-S{}-k{kappa}", m.keep),
+                source: mix_path.clone(),
+                scores: gaussian_scores(&e, texts, n)?,
+                chosen_levels: Vec::new(),
+            });
+        }
         let mut tops: Vec<usize> = [1, 2, 4, 8].into_iter().filter(|&s| s < m.keep).collect();
         tops.push(m.keep);
         for s in tops {

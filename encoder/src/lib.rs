@@ -26,4 +26,5 @@ pub mod pipeline;
 pub mod preprocess;
 pub mod raster;
 pub mod report;
+pub mod robust;
 pub mod synthetic;
