@@ -20,6 +20,9 @@ use slag_common::{Error, Result};
 use crate::heldout::{PixelScore, gaussian_scores};
 use crate::levels::{LEVELS, LevelRule, combine_levels};
 
+/// Concentration of the mode variant (`mixture-mode-S*`, [`crate::robust`]).
+const MODE_KAPPA: f32 = 10.0;
+
 /// One predictor's `[scene Gaussians × C]` class-score table, before scoring.
 #[derive(Debug, Clone, PartialEq)]
 pub struct VariantTable {
@@ -153,7 +156,8 @@ pub fn variant_tables(
             scores: spread(m.scores_many(&unit_texts)?)?,
             chosen_levels: Vec::new(),
         });
-        for kappa in [10.0f32] {
+        {
+            let kappa = MODE_KAPPA;
             let modes = crate::robust::mixture_modes(&m, kappa, crate::robust::MODE_ITERATIONS)?;
             let e = Embeddings {
                 ids: m.gaussian_ids.clone(),

@@ -66,11 +66,7 @@ pub fn split_by_level(
     levels: &[Option<u8>],
 ) -> Result<Vec<ImageContribution>> {
     let dim = c.dim;
-    let masks = if dim == 0 {
-        0
-    } else {
-        c.mask_embeddings.len() / dim
-    };
+    let masks = c.mask_embeddings.len().checked_div(dim).unwrap_or(0);
     if levels.len() != masks {
         return Err(Error::Invalid(format!(
             "{} mask levels for {masks} masks",

@@ -120,14 +120,15 @@ pub struct EncodeArgs {
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
     #[arg(long)]
     pub top_k_per_pixel: Option<usize>,
-    /// Specificity weighting of each mask's a_kj: none (the paper's mean), area (image pixels /
-    /// mask area: small masks count more), sam-score (SAM predicted IoU × stability).
-    #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::None)]
+    /// Specificity weighting of each mask's a_kj: area (the default: image pixels / mask area,
+    /// small masks count more), none (the paper's mean), sam-score (SAM predicted IoU ×
+    /// stability). Issue 17's held-out measurement chose the default (docs/tradeoffs.md).
+    #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::Area)]
     pub mask_weighting: crate::aggregate::MaskWeighting,
-    /// Which masks a pixel covered by several gives its blend weights to: all (the paper's
-    /// a_kj) or finest (only the smallest covering mask, so each Gaussian mixes only its most
-    /// specific segments).
-    #[arg(long, value_enum, default_value_t = crate::levels::MaskOverlap::All)]
+    /// Which masks a pixel covered by several gives its blend weights to: finest (the default:
+    /// only the smallest covering mask, so each Gaussian mixes only its most specific segments)
+    /// or all (the paper's a_kj). `--overlap all --mask-weighting none` is the paper's mean.
+    #[arg(long, value_enum, default_value_t = crate::levels::MaskOverlap::Finest)]
     pub overlap: crate::levels::MaskOverlap,
     /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
     /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
