@@ -253,6 +253,45 @@ mod tests {
     }
 
     #[test]
+    fn finest_overlap_gives_each_pixel_to_its_smallest_mask_only() {
+        use crate::aggregate::{ImageStageParams, image_contribution};
+        use crate::raster::PixelWeights;
+        // 4×1 image, full resolution raster. Masks: big = all 4 pixels, small = pixels 1..3.
+        let big = Mask::from_pixels(4, 1, vec![1, 1, 1, 1]).unwrap();
+        let small = Mask::from_pixels(4, 1, vec![0, 1, 1, 0]).unwrap();
+        // Gaussian 0 on every pixel (0.5), Gaussian 1 on pixel 2 (0.25).
+        let pw = PixelWeights {
+            width: 4,
+            height: 1,
+            offsets: vec![0, 1, 2, 4, 5],
+            ids: vec![0, 0, 0, 1, 0],
+            weights: vec![0.5, 0.5, 0.5, 0.25, 0.5],
+        };
+        let masks = [big, small];
+        let run = |overlap| {
+            let params = ImageStageParams {
+                overlap,
+                ..ImageStageParams::default()
+            };
+            let c = image_contribution(&pw, &masks, vec![1.0, 0.0, 0.0, 1.0], 2, params).unwrap();
+            c.entries
+                .iter()
+                .map(|e| (e.gaussian, e.mask, e.weight))
+                .collect::<Vec<_>>()
+        };
+        // The paper: every covering mask gets the pixel.
+        assert_eq!(
+            run(MaskOverlap::All),
+            vec![(0, 0, 2.0), (0, 1, 1.0), (1, 0, 0.25), (1, 1, 0.25)]
+        );
+        // Finest: pixels 1 and 2 go to the small mask only; Gaussian 1 sees only the small one.
+        assert_eq!(
+            run(MaskOverlap::Finest),
+            vec![(0, 0, 1.0), (0, 1, 1.0), (1, 1, 0.25)]
+        );
+    }
+
+    #[test]
     fn split_by_level_partitions_masks_and_entries() {
         let dim = 2;
         let c = ImageContribution {

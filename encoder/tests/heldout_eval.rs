@@ -69,7 +69,7 @@ fn eval_args(embeddings: std::path::PathBuf, compare: Vec<std::path::PathBuf>) -
 }
 
 /// color-sam masks (16×16 grid, pred-IoU 0.8, stability 0.5) with the encoder's default
-/// aggregation against the paper's mean (`--overlap all --mask-weighting none`) on the same
+/// aggregation (`--overlap finest`) against the paper's mean (`--overlap all`) on the same
 /// held-out pixels, scored in one pass (`--compare`): the default must reach its floor and beat
 /// the mean clearly.
 #[test]
@@ -102,11 +102,7 @@ fn default_aggregation_beats_the_mean_on_held_out_views() {
         "0.5",
     ];
     let default = encode_mini(&dir.path().join("default"), &sam, &[]);
-    let mean = encode_mini(
-        &dir.path().join("mean"),
-        &sam,
-        &["--overlap", "all", "--mask-weighting", "none"],
-    );
+    let mean = encode_mini(&dir.path().join("mean"), &sam, &["--overlap", "all"]);
     let r = run_held_out(&eval_args(default, vec![mean])).expect("eval-colors --held-out");
     let h = &r.held_out;
     let (ours, paper, oracle) = (
@@ -227,7 +223,8 @@ const MARGIN_OVER_MAJORITY: f64 = 0.05;
 const SLAG_FLOOR: f64 = 0.17;
 /// ~25 % below the measured 0.323.
 const ORACLE_FLOOR: f64 = 0.25;
-/// Placeholder floor until measured (see README "Accuracy").
-const SAM_DEFAULT_FLOOR: f64 = 0.0;
-/// Placeholder margin until measured.
-const SAM_MARGIN_OVER_MEAN: f64 = 0.0;
+/// color-sam with the default `--overlap finest` measured 0.290 here (release build, 2-core CPU,
+/// lavapipe), the paper's mean 0.275, the oracle 0.323 (README "Accuracy"); ~10 % below 0.290.
+const SAM_DEFAULT_FLOOR: f64 = 0.26;
+/// Half the measured gain of 0.015 over the mean.
+const SAM_MARGIN_OVER_MEAN: f64 = 0.007;

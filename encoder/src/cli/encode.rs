@@ -120,10 +120,11 @@ pub struct EncodeArgs {
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
     #[arg(long)]
     pub top_k_per_pixel: Option<usize>,
-    /// Specificity weighting of each mask's a_kj: area (the default: image pixels / mask area,
-    /// small masks count more), none (the paper's mean), sam-score (SAM predicted IoU ×
-    /// stability). Issue 17's held-out measurement chose the default (docs/tradeoffs.md).
-    #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::Area)]
+    /// Specificity weighting of each mask's a_kj: none (the default, as in the paper), area
+    /// (image pixels / mask area: small masks count more), sam-score (SAM predicted IoU ×
+    /// stability). Measured held-out in docs/tradeoffs.md: area adds +0.004 over --overlap
+    /// finest with SAM masks but costs 0.032 with graph masks, so it is not the default.
+    #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::None)]
     pub mask_weighting: crate::aggregate::MaskWeighting,
     /// Which masks a pixel covered by several gives its blend weights to: finest (the default:
     /// only the smallest covering mask, so each Gaussian mixes only its most specific segments)
