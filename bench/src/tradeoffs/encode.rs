@@ -333,3 +333,42 @@ pub fn cached_eval(dir: &Path, threshold: f32) -> Option<EvalRecord> {
 pub fn point_dir(work: &Path, point: &EncodePoint) -> PathBuf {
     work.join("points").join(point.id())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn aggregation_points_name_and_pass_their_flags() {
+        let mut p = EncodePoint::graph("baseline", 4, 0.5, None);
+        assert_eq!(
+            p.id(),
+            "graph-e4-r0.5-kall",
+            "the paper's mean keeps the old id"
+        );
+        let argv = p.encode_argv(Path::new("f"), &Workers::default());
+        let flag = |argv: &[String], name: &str| {
+            let i = argv.iter().position(|a| a == name).expect(name);
+            argv[i + 1].clone()
+        };
+        assert_eq!(flag(&argv, "--mask-weighting"), "none");
+        assert_eq!(flag(&argv, "--overlap"), "all");
+        p.aggregation = Aggregation::FinestArea;
+        p.mixture_keep = Some(4);
+        assert_eq!(p.id(), "graph-e4-r0.5-kall-finest-area-mix");
+        let argv = p.encode_argv(Path::new("f"), &Workers::default());
+        assert_eq!(flag(&argv, "--mask-weighting"), "area");
+        assert_eq!(flag(&argv, "--overlap"), "finest");
+        let ids: std::collections::HashSet<String> = Aggregation::ALL
+            .iter()
+            .map(|&a| {
+                EncodePoint {
+                    aggregation: a,
+                    ..p.clone()
+                }
+                .id()
+            })
+            .collect();
+        assert_eq!(ids.len(), Aggregation::ALL.len(), "ids are unique");
+    }
+}
