@@ -8,7 +8,8 @@
 //!   most-relevant level per query, and the per-Gaussian max); a Gaussian without the level falls
 //!   back to its mean `E_k`.
 //! - `mixture.safetensors` beside the main file (`encode --mixture-keep S`): the mixture's mean
-//!   form (`MixtureEmbeddings::scores`) and its *max* form, the highest cosine over a Gaussian's
+//!   form (`MixtureEmbeddings::scores`), the mean over each Gaussian's top 1, 2, 4, 8 masks only,
+//!   the robust mode of [`crate::robust`], and its *max* form, the highest cosine over a Gaussian's
 //!   top-`s` mask embeddings (`MixtureEmbeddings::max_atom_scores`), for `s` in 1, 2, 4, 8, S.
 
 use std::path::{Path, PathBuf};
@@ -156,6 +157,31 @@ pub fn variant_tables(
             scores: spread(m.scores_many(&unit_texts)?)?,
             chosen_levels: Vec::new(),
         });
+        // The mean over each Gaussian's `s` strongest masks only (slots are ordered by weight).
+        for s in [1usize, 2, 4, 8].into_iter().filter(|&s| s < m.keep) {
+            let mut cut = m.clone();
+            for (i, (a, w)) in cut.atoms.iter_mut().zip(cut.weights.iter_mut()).enumerate() {
+                if i % m.keep >= s {
+                    *a = slag_common::mixture::UNUSED;
+                    *w = 0.0;
+                }
+            }
+            let e = Embeddings {
+                ids: m.gaussian_ids.clone(),
+                means: m.means.clone(),
+                dim: m.dim,
+                vectors: cut.to_dense(),
+                total_weights: vec![1.0; m.len()],
+                scene_gaussians: n as u64,
+                ..Embeddings::default()
+            };
+            out.push(VariantTable {
+                name: format!("mixture-mean-S{s}"),
+                source: mix_path.clone(),
+                scores: gaussian_scores(&e, texts, n)?,
+                chosen_levels: Vec::new(),
+            });
+        }
         {
             let kappa = MODE_KAPPA;
             let modes = crate::robust::mixture_modes(&m, kappa, crate::robust::MODE_ITERATIONS)?;
