@@ -532,7 +532,9 @@ pub fn encode_pool(
                             for (part, ls) in parts.into_iter().zip(level_stores) {
                                 ls.lock()
                                     .map_err(|_| {
-                                        Error::Invalid("contribution store poisoned".into())
+                                        Error::internal(
+                                            "contribution store poisoned by a panicked worker",
+                                        )
                                     })?
                                     .push(part)?;
                             }
@@ -650,9 +652,9 @@ pub fn encode_pool(
             .join(format!("embeddings-level{l}.safetensors"));
         match level_stores.get(l) {
             Some(ls) => {
-                let ls = ls
-                    .lock()
-                    .map_err(|_| Error::Invalid("contribution store poisoned".into()))?;
+                let ls = ls.lock().map_err(|_| {
+                    Error::internal("contribution store poisoned by a panicked worker")
+                })?;
                 let w = EmbeddingsWriter::create(&path, dim, params.precision)?;
                 let streamed =
                     aggregate::reduce_to_writer(&ls, &gaussians.means, dim, params.reduce, w)?;
