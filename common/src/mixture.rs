@@ -443,6 +443,43 @@ impl MixtureEmbeddings {
             .collect())
     }
 
+    /// The mixture's *max* form (issue 17): per Gaussian, the highest cosine of `query` (`[D]`, any
+    /// norm) with any of its `top` strongest mask embeddings (its first `min(top, S)` non-empty
+    /// slots, which hold its largest `a_kj`), instead of the cosine with their weighted mean
+    /// ([`MixtureEmbeddings::scores`]). `[N]` scores; a Gaussian without atoms scores 0. One dot
+    /// per codebook row, then `top` comparisons per Gaussian.
+    ///
+    /// Errors ([`Error::Invalid`]): `top == 0`, and as [`MixtureEmbeddings::scores`].
+    pub fn max_atom_scores(&self, query: &[f32], top: usize) -> Result<Vec<f32>> {
+        if top == 0 {
+            return Err(Error::Invalid(
+                "max over 0 mask embeddings; pass top >= 1".into(),
+            ));
+        }
+        self.check_shapes()?;
+        let q = self.unit_query(query)?;
+        let proj: Vec<f32> = self
+            .codebook
+            .par_chunks_exact(self.dim)
+            .map(|row| {
+                let norm = dot(row, row).sqrt();
+                if norm > 0.0 { dot(row, &q) / norm } else { 0.0 }
+            })
+            .collect();
+        Ok(self
+            .atoms
+            .par_chunks_exact(self.keep)
+            .map(|atoms| {
+                atoms
+                    .iter()
+                    .take(top)
+                    .filter_map(|&a| proj.get(a as usize).copied())
+                    .reduce(f32::max)
+                    .unwrap_or(0.0)
+            })
+            .collect())
+    }
+
     /// [`MixtureEmbeddings::scores`] for several queries in one pass over the Gaussians:
     /// `[queries.len()][N]`.
     ///
@@ -736,6 +773,42 @@ mod tests {
                 assert!((a - b).abs() < 1e-6);
             }
         }
+    }
+
+    #[test]
+    fn max_atom_scores_take_the_best_of_the_strongest_atoms() {
+        let mix = MixtureEmbeddings::from_sparse(sample(200, 31, 12, 5)).unwrap();
+        let q: Vec<f32> = (0..12).map(|i| (i as f32 * 0.7).sin()).collect();
+        let qn = dot(&q, &q).sqrt();
+        for top in [1, 2, mix.keep, mix.keep + 3] {
+            let s = mix.max_atom_scores(&q, top).unwrap();
+            assert_eq!(s.len(), mix.len());
+            for (i, &got) in s.iter().enumerate() {
+                let slots = i * mix.keep..(i + 1) * mix.keep;
+                let want = mix.atoms[slots]
+                    .iter()
+                    .take(top)
+                    .filter(|&&a| a != UNUSED)
+                    .map(|&a| {
+                        let row = &mix.codebook[a as usize * mix.dim..(a as usize + 1) * mix.dim];
+                        dot(row, &q) / (qn * dot(row, row).sqrt())
+                    })
+                    .fold(f32::NEG_INFINITY, f32::max);
+                assert!(
+                    (got - want).abs() < 1e-5,
+                    "row {i} top {top}: {got} vs {want}"
+                );
+            }
+        }
+        // The max over more atoms never falls.
+        let one = mix.max_atom_scores(&q, 1).unwrap();
+        let all = mix.max_atom_scores(&q, mix.keep).unwrap();
+        assert!(one.iter().zip(&all).all(|(a, b)| b >= a));
+        assert!(matches!(mix.max_atom_scores(&q, 0), Err(Error::Invalid(_))));
+        assert!(matches!(
+            mix.max_atom_scores(&[0.0; 12], 1),
+            Err(Error::Invalid(_))
+        ));
     }
 
     #[test]

@@ -59,13 +59,18 @@ impl ImageContribution {
     }
 }
 
-/// Knobs of the image stage.
+/// Knobs of the image stage. `Default` is the paper's rule (all contributors, no weighting,
+/// every covering mask); `slag-encoder encode`'s default is `--overlap finest` (issue 17's
+/// held-out measurement, docs/tradeoffs.md).
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
 pub struct ImageStageParams {
     /// Keep only the `k` largest-weight contributors of each pixel (`None` = all, the paper's rule).
     pub top_k_per_pixel: Option<usize>,
     /// Specificity weighting of each mask's `a_kj` (default: none, the paper's rule).
     pub mask_weighting: MaskWeighting,
+    /// Which of the masks covering a pixel receive its weights (default: all, the paper's
+    /// rule; [`crate::levels::MaskOverlap`]).
+    pub overlap: crate::levels::MaskOverlap,
 }
 
 /// Specificity weighting of the image stage (`encode --mask-weighting`): every `a_kj` of mask `j`
@@ -266,8 +271,11 @@ pub fn image_contribution(
     }
     let PixelLabels {
         labels: pixel_sig,
-        masks_of,
+        mut masks_of,
     } = pixel_labels(masks, w, h);
+    if params.overlap == crate::levels::MaskOverlap::Finest {
+        crate::levels::restrict_to_finest(&mut masks_of, masks);
+    }
 
     // Σ_p w_kp per (Gaussian, label), row bands in parallel, f64 sums.
     let band = (h as usize)
@@ -367,7 +375,10 @@ pub fn view_contribution(
     let pixels = intrinsics.width as usize * intrinsics.height as usize;
     if params.top_k_per_pixel.is_none() && !masks.is_empty() {
         let t0 = Instant::now();
-        let labels = pixel_labels(masks, intrinsics.width, intrinsics.height);
+        let mut labels = pixel_labels(masks, intrinsics.width, intrinsics.height);
+        if params.overlap == crate::levels::MaskOverlap::Finest {
+            crate::levels::restrict_to_finest(&mut labels.masks_of, masks);
+        }
         let t1 = Instant::now();
         if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
             let t2 = Instant::now();

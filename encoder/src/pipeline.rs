@@ -96,6 +96,10 @@ pub struct EncodeParams {
     /// embeddings plus each Gaussian's `S` largest `a_kj` ([`aggregate::reduce_mixture`]);
     /// `None` = dense file only.
     pub mixture_keep: Option<usize>,
+    /// Also write `<out>/embeddings-level{l}.safetensors` for each SAM granularity level `l`
+    /// (0 subpart, 1 part, 2 whole; [`crate::levels`]): the same reduction over the `a_kj` of
+    /// that level's masks only. Needs masks with levels (SAM).
+    pub levels: bool,
 }
 
 /// One image after the front stages: its masks and mask embeddings (passed from the front to the
@@ -375,6 +379,21 @@ pub fn encode_pool(
         params.contribution_budget_bytes,
         spill_dir,
     ));
+    // One more store per granularity level with `levels` (the same entries, split by level).
+    let level_stores: Vec<Mutex<ContributionStore>> = if params.levels {
+        (0..crate::levels::LEVELS)
+            .map(|l| {
+                Mutex::new(ContributionStore::new(
+                    params.contribution_budget_bytes,
+                    params
+                        .out_dir
+                        .join(format!(".contributions-level{l}.partial")),
+                ))
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
@@ -474,6 +493,7 @@ pub fn encode_pool(
                 &store,
                 &totals,
             );
+            let level_stores = &level_stores;
             handles.push(s.spawn(move || {
                 let mut share = WorkerShare {
                     name,
@@ -494,6 +514,8 @@ pub fn encode_pool(
                         let (view, n_masks) = (item.view, item.masks.len());
                         let (decode_s, masks_s, clip_s) =
                             (item.decode_s, item.masks_s, item.clip_s);
+                        let mask_levels: Vec<Option<u8>> =
+                            item.masks.iter().map(|m| m.level).collect();
                         let out = back_stage(
                             &mut *rasterizer,
                             views,
@@ -504,6 +526,19 @@ pub fn encode_pool(
                         )?;
                         let t1 = Instant::now();
                         let entries = out.contribution.entries.len();
+                        if !level_stores.is_empty() {
+                            let parts =
+                                crate::levels::split_by_level(&out.contribution, &mask_levels)?;
+                            for (part, ls) in parts.into_iter().zip(level_stores) {
+                                ls.lock()
+                                    .map_err(|_| {
+                                        Error::internal(
+                                            "contribution store poisoned by a panicked worker",
+                                        )
+                                    })?
+                                    .push(part)?;
+                            }
+                        }
                         store
                             .lock()
                             .map_err(|_| {
@@ -608,6 +643,41 @@ pub fn encode_pool(
         .transpose()?;
     let mixture_s = t0.elapsed().as_secs_f64();
     drop(store);
+    // Granularity kept apart: one ordinary embeddings file per level.
+    let t0 = Instant::now();
+    let mut level_files = Vec::new();
+    for l in 0..crate::levels::LEVELS {
+        let path = params
+            .out_dir
+            .join(format!("embeddings-level{l}.safetensors"));
+        match level_stores.get(l) {
+            Some(ls) => {
+                let ls = ls.lock().map_err(|_| {
+                    Error::internal("contribution store poisoned by a panicked worker")
+                })?;
+                let w = EmbeddingsWriter::create(&path, dim, params.precision)?;
+                let streamed =
+                    aggregate::reduce_to_writer(&ls, &gaussians.means, dim, params.reduce, w)?;
+                let rows = streamed.writer.len();
+                streamed.writer.finish(
+                    &model_id,
+                    gaussians.len() as u64,
+                    &scene.ply.display().to_string(),
+                )?;
+                let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+                level_files.push(serde_json::json!({
+                    "level": l, "path": path, "observed": rows, "bytes": bytes,
+                }));
+            }
+            // Level files of an earlier run must not sit beside this run's report.
+            None if path.exists() => {
+                std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?
+            }
+            None => {}
+        }
+    }
+    drop(level_stores);
+    let levels_s = t0.elapsed().as_secs_f64();
 
     let t0 = Instant::now();
     writer.finish(
@@ -638,6 +708,8 @@ pub fn encode_pool(
         "mixture_codebook_rows": mixture.as_ref().map(|m| m.codebook_len()),
         "mixture_bytes_per_gaussian": mixture.as_ref().map(|m| m.bytes_per_gaussian()),
         "mixture_reduce_s": mixture.as_ref().map(|_| mixture_s),
+        "levels": (!level_files.is_empty()).then_some(&level_files),
+        "levels_reduce_s": (!level_files.is_empty()).then_some(levels_s),
     });
     let json =
         serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;

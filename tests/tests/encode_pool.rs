@@ -89,6 +89,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         out_dir: many.clone(),
         progress: false,
         mixture_keep: None,
+        levels: false,
     };
     let scene_in = pipeline::SceneInput::new(&scene, None, 1);
     let r2 = pipeline::encode_pool(
@@ -204,6 +205,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         out_dir: out.clone(),
         progress: false,
         mixture_keep: None,
+        levels: false,
     };
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),

@@ -25,6 +25,7 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         every: None,
         raster_scale: None,
         rasterizer: slag_encoder::cli::encode::RasterBackend::Gpu,
+        compare: Vec::new(),
     };
     slag_encoder::cli::eval::run(&a).expect("eval-colors")
 }

@@ -48,6 +48,55 @@ pub struct EncodePoint {
     /// Also write the mixture form with this many slots (`--mixture-keep`); the dense
     /// embeddings do not depend on it. The study sets it on the baseline only.
     pub mixture_keep: Option<usize>,
+    /// How `a_kj` are formed (issue 17): `--mask-weighting` and `--overlap`, always passed
+    /// explicitly so that a point's meaning does not follow the encoder's defaults.
+    #[serde(default)]
+    pub aggregation: Aggregation,
+}
+
+/// The aggregation knobs of a point (`encode --mask-weighting W --overlap O`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+pub enum Aggregation {
+    /// The paper's mean: `--mask-weighting none --overlap all`.
+    #[default]
+    Mean,
+    /// `--mask-weighting area --overlap all`.
+    Area,
+    /// `--mask-weighting none --overlap finest`.
+    Finest,
+    /// `--mask-weighting area --overlap finest`.
+    FinestArea,
+}
+
+impl Aggregation {
+    /// Every choice, in the study's order.
+    pub const ALL: [Aggregation; 4] = [
+        Aggregation::Mean,
+        Aggregation::Area,
+        Aggregation::Finest,
+        Aggregation::FinestArea,
+    ];
+
+    /// Id suffix: empty for the paper's mean (so older ids keep their meaning), else
+    /// `-area`, `-finest`, `-finest-area`.
+    pub fn suffix(self) -> &'static str {
+        match self {
+            Aggregation::Mean => "",
+            Aggregation::Area => "-area",
+            Aggregation::Finest => "-finest",
+            Aggregation::FinestArea => "-finest-area",
+        }
+    }
+
+    /// `(--mask-weighting, --overlap)` values.
+    pub fn flags(self) -> (&'static str, &'static str) {
+        match self {
+            Aggregation::Mean => ("none", "all"),
+            Aggregation::Area => ("area", "all"),
+            Aggregation::Finest => ("none", "finest"),
+            Aggregation::FinestArea => ("area", "finest"),
+        }
+    }
 }
 
 impl EncodePoint {
@@ -60,18 +109,21 @@ impl EncodePoint {
             raster_scale,
             top_k,
             mixture_keep: None,
+            aggregation: Aggregation::Mean,
         }
     }
 
-    /// Stable identifier, also the cache folder name: e.g. `graph-e4-r0.5-kall` (`-mix` appended
-    /// when the run also writes the mixture form).
+    /// Stable identifier, also the cache folder name: e.g. `graph-e4-r0.5-kall` (the
+    /// aggregation's [`Aggregation::suffix`] then `-mix` appended when the run also writes the
+    /// mixture form).
     pub fn id(&self) -> String {
         format!(
-            "{}-e{}-r{}-k{}{}",
+            "{}-e{}-r{}-k{}{}{}",
             self.masks.name(),
             self.every,
             self.raster_scale,
             self.top_k_name(),
+            self.aggregation.suffix(),
             if self.mixture_keep.is_some() {
                 "-mix"
             } else {
@@ -111,6 +163,9 @@ impl EncodePoint {
         if let Some(k) = self.top_k {
             push("--top-k-per-pixel", k.to_string());
         }
+        let (weighting, overlap) = self.aggregation.flags();
+        push("--mask-weighting", weighting.into());
+        push("--overlap", overlap.into());
         if let Some(s) = self.mixture_keep {
             push("--mixture-keep", s.to_string());
         }
@@ -277,4 +332,43 @@ pub fn cached_eval(dir: &Path, threshold: f32) -> Option<EvalRecord> {
 /// Cache folder of a point under the study's work folder.
 pub fn point_dir(work: &Path, point: &EncodePoint) -> PathBuf {
     work.join("points").join(point.id())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn aggregation_points_name_and_pass_their_flags() {
+        let mut p = EncodePoint::graph("baseline", 4, 0.5, None);
+        assert_eq!(
+            p.id(),
+            "graph-e4-r0.5-kall",
+            "the paper's mean keeps the old id"
+        );
+        let argv = p.encode_argv(Path::new("f"), &Workers::default());
+        let flag = |argv: &[String], name: &str| {
+            let i = argv.iter().position(|a| a == name).expect(name);
+            argv[i + 1].clone()
+        };
+        assert_eq!(flag(&argv, "--mask-weighting"), "none");
+        assert_eq!(flag(&argv, "--overlap"), "all");
+        p.aggregation = Aggregation::FinestArea;
+        p.mixture_keep = Some(4);
+        assert_eq!(p.id(), "graph-e4-r0.5-kall-finest-area-mix");
+        let argv = p.encode_argv(Path::new("f"), &Workers::default());
+        assert_eq!(flag(&argv, "--mask-weighting"), "area");
+        assert_eq!(flag(&argv, "--overlap"), "finest");
+        let ids: std::collections::HashSet<String> = Aggregation::ALL
+            .iter()
+            .map(|&a| {
+                EncodePoint {
+                    aggregation: a,
+                    ..p.clone()
+                }
+                .id()
+            })
+            .collect();
+        assert_eq!(ids.len(), Aggregation::ALL.len(), "ids are unique");
+    }
 }

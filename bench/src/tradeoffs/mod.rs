@@ -46,7 +46,7 @@ use slag_common::scene::{self, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 use slag_encoder::eval;
 
-pub use encode::{EncodePoint, EncodeRecord, MaskChoice};
+pub use encode::{Aggregation, EncodePoint, EncodeRecord, MaskChoice};
 
 /// Arguments of `slag-bench tradeoffs`.
 #[derive(Debug, Clone, Args)]
@@ -259,6 +259,14 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
         raster_scale: 0.5,
         top_k: None,
         mixture_keep: None,
+        aggregation: encode::Aggregation::Mean,
+    };
+    // Aggregation variants (issue 17) on color-sam 16x16 at every 4th image.
+    let aggregation = |a: encode::Aggregation| EncodePoint {
+        knob: "aggregation".into(),
+        every: 4,
+        aggregation: a,
+        ..sam(16)
     };
     // Mask sources at every 8th image (color-sam costs ~5 s per image at 16x16 on 2 cores).
     vec![
@@ -280,6 +288,9 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
         g("top-k", 4, 0.5, Some(4)),
         sam(32),
     ]
+    .into_iter()
+    .chain(encode::Aggregation::ALL.map(aggregation))
+    .collect()
 }
 
 /// One encoded sweep point: its plan, run record, colour mIoU (if defined), the matched id set per

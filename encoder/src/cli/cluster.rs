@@ -48,6 +48,13 @@ pub fn check_supported(e: &EncodeArgs) -> Result<(), Error> {
                 .into(),
         ));
     }
+    if e.levels {
+        return Err(Error::Invalid(
+            "encode-cluster does not write per-level embeddings yet: drop --levels, or run \
+             `slag-encoder encode --levels` on one machine"
+                .into(),
+        ));
+    }
     if e.gpus != super::encode::GpuCount::Count(1) || e.front_workers.is_some_and(|f| f != 1) {
         return Err(Error::Invalid(
             "encode-cluster runs one rasterizer and one front worker per process: drop --gpus / \

@@ -120,10 +120,22 @@ pub struct EncodeArgs {
     /// Keep only the K largest contributors per pixel (default: all, as in the paper).
     #[arg(long)]
     pub top_k_per_pixel: Option<usize>,
-    /// Specificity weighting of each mask's a_kj: none (the paper's mean), area (image pixels /
-    /// mask area: small masks count more), sam-score (SAM predicted IoU × stability).
+    /// Specificity weighting of each mask's a_kj: none (the default, as in the paper), area
+    /// (image pixels / mask area: small masks count more), sam-score (SAM predicted IoU ×
+    /// stability). Measured held-out in docs/tradeoffs.md: area adds +0.004 over --overlap
+    /// finest with SAM masks but costs 0.032 with graph masks, so it is not the default.
     #[arg(long, value_enum, default_value_t = crate::aggregate::MaskWeighting::None)]
     pub mask_weighting: crate::aggregate::MaskWeighting,
+    /// Which masks a pixel covered by several gives its blend weights to: finest (the default:
+    /// only the smallest covering mask, so each Gaussian mixes only its most specific segments)
+    /// or all (the paper's a_kj). `--overlap all --mask-weighting none` is the paper's mean.
+    #[arg(long, value_enum, default_value_t = crate::levels::MaskOverlap::Finest)]
+    pub overlap: crate::levels::MaskOverlap,
+    /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
+    /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
+    /// level's masks only (LangSplat's levels; needs --masks sam).
+    #[arg(long)]
+    pub levels: bool,
     /// Σa below which a Gaussian is unobserved (gets no embedding).
     #[arg(long, default_value_t = 1e-6)]
     pub min_weight: f64,
@@ -271,6 +283,8 @@ pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) 
             "clip_batch": a.clip_batch,
             "top_k_per_pixel": a.top_k_per_pixel,
             "mask_weighting": a.mask_weighting,
+            "overlap": a.overlap,
+            "levels": a.levels,
             "min_weight": a.min_weight,
             "mixture_keep": a.mixture_keep,
             "threads": threads,
@@ -301,6 +315,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         image_stage: ImageStageParams {
             top_k_per_pixel: a.top_k_per_pixel,
             mask_weighting: a.mask_weighting,
+            overlap: a.overlap,
         },
         reduce: ReduceParams {
             min_total_weight: a.min_weight,
@@ -315,6 +330,7 @@ pub(crate) fn encode_params(a: &EncodeArgs) -> EncodeParams {
         out_dir: a.out.clone(),
         progress: !a.quiet,
         mixture_keep: a.mixture_keep,
+        levels: a.levels,
     }
 }
 
@@ -457,6 +473,12 @@ pub(crate) fn build_fronts(
 /// Runs `encode` and returns the report it wrote: front workers (masks + CLIP; see
 /// [`build_fronts`]) and one rasterizer per GPU (`--gpus`).
 pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
+    if a.levels && a.masks != MaskSource::Sam {
+        anyhow::bail!(
+            "--levels needs masks with granularity levels (SAM's three multimask outputs): use \
+             --masks sam, or drop --levels"
+        );
+    }
     let threads = setup_threads(a);
     let scene = SceneInput::new(&a.scene, a.ply.as_deref(), a.every);
     let gpus = match (a.rasterizer, a.gpus) {

@@ -66,6 +66,12 @@ pub struct EvalArgs {
     /// Weight rasterizer for the held-out renders and the oracle.
     #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
     pub rasterizer: RasterBackend,
+    /// More embeddings files of the same scene and --every to score in the same held-out pass
+    /// (held-out only; listed under `variants` by path). Forms beside the main embeddings are
+    /// scored too: `embeddings-level{0,1,2}.safetensors` (`encode --levels`) and
+    /// `mixture.safetensors` (`encode --mixture-keep`).
+    #[arg(long, value_name = "EMBEDDINGS")]
+    pub compare: Vec<PathBuf>,
 }
 
 /// What every evaluation needs: the classes, the scene, the embeddings and the class texts.
@@ -175,6 +181,9 @@ pub struct HeldOutEval {
     pub observed_gaussians: usize,
     /// slag's mIoU / the oracle's.
     pub slag_over_oracle: Option<f64>,
+    /// Other predictors scored on the same pixels: `--compare` files and the stored forms
+    /// beside the embeddings (per-level embeddings, mixture), see [`crate::heldout_variants`].
+    pub variants: Vec<crate::heldout_variants::VariantScore>,
     /// Wall time of the held-out evaluation (renders, oracle, scoring), seconds.
     pub seconds: f64,
 }
@@ -267,9 +276,18 @@ pub fn run_held_out(a: &EvalArgs) -> anyhow::Result<HeldOutOutput> {
             .with_context(|| format!("oracle lifting of view {}", v.name))?;
     }
     let oracle_scores = oracle.scores();
+    let variants = crate::heldout_variants::variant_tables(
+        &a.embeddings,
+        &a.compare,
+        &slag_scores,
+        &inputs.text_embeds,
+        n,
+    )?;
 
-    // Held-out views at full resolution: slag and the oracle on the same counted pixels.
-    let mut tally = heldout::HeldOutTally::new(c, 2);
+    // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
+    let mut tally = heldout::HeldOutTally::new(c, 2 + variants.len());
+    let mut tables: Vec<&[f32]> = vec![&slag_scores, &oracle_scores];
+    tables.extend(variants.iter().map(|v| v.scores.as_slice()));
     for &i in &held {
         let v = &views[i];
         let intr = crate::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
@@ -278,12 +296,17 @@ pub fn run_held_out(a: &EvalArgs) -> anyhow::Result<HeldOutOutput> {
             .with_context(|| format!("rendering held-out view {}", v.name))?;
         let photo = crate::pipeline::read_image(v)?;
         let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
-        tally.add_view(&weights, &truth, &[&slag_scores, &oracle_scores], n)?;
+        tally.add_view(&weights, &truth, &tables, n)?;
         tracing::info!("held-out view {} scored", v.name);
     }
     let slag = tally.score(&tally.predictors[0], names);
     let oracle_score = tally.score(&tally.predictors[1], names);
     let majority = tally.score(&tally.majority(), names);
+    let variants = variants
+        .into_iter()
+        .zip(&tally.predictors[2..])
+        .map(|(v, cf)| v.scored(tally.score(cf, names)))
+        .collect();
     let slag_over_oracle = match (slag.miou, oracle_score.miou) {
         (Some(s), Some(o)) if o > 0.0 => Some(s / o),
         _ => None,
@@ -311,6 +334,7 @@ pub fn run_held_out(a: &EvalArgs) -> anyhow::Result<HeldOutOutput> {
         oracle_observed_gaussians: oracle.observed(),
         observed_gaussians: inputs.emb.len(),
         slag_over_oracle,
+        variants,
         seconds: t0.elapsed().as_secs_f64(),
     };
     Ok(HeldOutOutput {

@@ -230,6 +230,7 @@ pub fn masks_from_labels(labels: &[u32], count: u32, width: u32, height: u32) ->
             predicted_iou: 1.0,
             stability_score: 1.0,
             point: None,
+            level: None,
         })
         .collect()
 }

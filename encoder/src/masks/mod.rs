@@ -31,6 +31,11 @@ pub struct Mask {
     pub stability_score: f32,
     /// The prompt point `(x, y)` in image pixels that produced the mask, if any.
     pub point: Option<[f32; 2]>,
+    /// Granularity level, for generators that produce several per prompt: SAM's multimask
+    /// output channel 1, 2, 3 as level 0, 1, 2 (by SAM's convention roughly subpart, part,
+    /// whole; LangSplat's three levels). `None` for generators without levels (the graph
+    /// segmenter, masks built from pixels).
+    pub level: Option<u8>,
 }
 
 impl Mask {
@@ -60,6 +65,7 @@ impl Mask {
             predicted_iou: 1.0,
             stability_score: 1.0,
             point: None,
+            level: None,
         })
     }
 

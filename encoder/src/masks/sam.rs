@@ -192,6 +192,8 @@ struct Candidate {
     iou: f32,
     stability: f32,
     point: [f64; 2],
+    /// Multimask output channel (1..=3) that produced the candidate.
+    channel: u8,
 }
 
 /// The SAM encoder and decoder sessions of one GPU (or of the CPU), shared by every
@@ -468,7 +470,7 @@ impl SamAutomaticMaskGenerator {
                             rows,
                             full,
                         );
-                        candidate(full, wu, p, ious[i * 4 + c], points[i])
+                        candidate(full, wu, p, ious[i * 4 + c], points[i], c)
                     },
                 )
                 .collect()
@@ -486,7 +488,7 @@ impl SamAutomaticMaskGenerator {
             jobs.par_iter()
                 .map(|&(i, c)| {
                     let logits = &masks[(i * 4 + c) * plane..(i * 4 + c + 1) * plane];
-                    candidate(logits, wu, p, ious[i * 4 + c], points[i])
+                    candidate(logits, wu, p, ious[i * 4 + c], points[i], c)
                 })
                 .collect()
         };
@@ -552,6 +554,7 @@ impl SamAutomaticMaskGenerator {
                 predicted_iou: c.iou,
                 stability_score: c.stability,
                 point: Some([c.point[0] as f32, c.point[1] as f32]),
+                level: Some(c.channel - 1),
             });
         }
         Ok(out)
@@ -566,6 +569,7 @@ fn candidate(
     p: &SamParams,
     iou: f32,
     point: [f64; 2],
+    channel: usize,
 ) -> Option<Candidate> {
     let (thr, off) = (p.mask_threshold, p.stability_score_offset);
     let (mut inter, mut union) = (0u32, 0u32);
@@ -602,6 +606,7 @@ fn candidate(
         iou,
         stability,
         point,
+        channel: channel as u8,
     })
 }
 
@@ -757,6 +762,7 @@ mod tests {
             iou,
             stability: 1.0,
             point: [0.0; 2],
+            channel: 1,
         }
     }
 
