@@ -242,57 +242,89 @@ fn chunk_impl<const Q: usize, const FMA: bool>(
 /// Which instruction set the scan loops run with (see [`simd_level`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SimdLevel {
-    /// The build target's baseline, auto-vectorised (SSE2 on x86_64; NEON + FMA on aarch64).
+    /// The build target's baseline, auto-vectorised portable loops (SSE2 on x86_64; NEON + FMA
+    /// on aarch64); f16 rows converted per [`BLOCK`] through a stack buffer.
     Baseline,
-    /// x86_64 AVX2 + FMA + F16C, selected at run time.
+    /// x86_64 AVX2 + FMA + F16C intrinsics (8 lanes), selected at run time.
     Avx2Fma,
+    /// x86_64 AVX-512F intrinsics (16 lanes; `vcvtph2ps zmm` for f16), selected at run time.
+    Avx512,
+    /// aarch64 NEON intrinsics (FMLA; FCVTL for f16; SXTL + SCVTF for int8).
+    Neon,
+    /// aarch64 NEON with the dot-product extension: as [`SimdLevel::Neon`], int8 rows with SDOT
+    /// against three-term int8 splits of the queries; selected at run time.
+    NeonDotprod,
 }
 
-/// The level used by [`scan`](super::scan): AVX2 + FMA when the x86_64 CPU has both, unless the
-/// environment variable `SLAG_SCAN_SIMD=baseline` forces the portable loops (for measurements).
-/// Detected once per process.
+impl SimdLevel {
+    /// Every level, best last.
+    pub const ALL: [SimdLevel; 5] = [
+        SimdLevel::Baseline,
+        SimdLevel::Avx2Fma,
+        SimdLevel::Avx512,
+        SimdLevel::Neon,
+        SimdLevel::NeonDotprod,
+    ];
+
+    /// `true` when this build target and CPU can run the level (detected at run time with
+    /// `is_x86_feature_detected!` / `is_aarch64_feature_detected!`).
+    pub fn available(self) -> bool {
+        match self {
+            SimdLevel::Baseline => true,
+            SimdLevel::Avx2Fma => avx2_fma_available(),
+            #[cfg(target_arch = "x86_64")]
+            SimdLevel::Avx512 => {
+                avx2_fma_available() && std::arch::is_x86_feature_detected!("avx512f")
+            }
+            #[cfg(target_arch = "aarch64")]
+            SimdLevel::Neon => true,
+            #[cfg(target_arch = "aarch64")]
+            SimdLevel::NeonDotprod => std::arch::is_aarch64_feature_detected!("dotprod"),
+            #[allow(unreachable_patterns)]
+            _ => false,
+        }
+    }
+
+    /// The levels this CPU can run, baseline first, best last.
+    pub fn available_levels() -> Vec<SimdLevel> {
+        SimdLevel::ALL
+            .into_iter()
+            .filter(|l| l.available())
+            .collect()
+    }
+
+    /// Parses `baseline`, `avx2`, `avx512`, `neon`, `dotprod` (case-insensitive).
+    pub fn from_name(s: &str) -> Option<SimdLevel> {
+        match s.to_ascii_lowercase().as_str() {
+            "baseline" => Some(SimdLevel::Baseline),
+            "avx2" | "avx2fma" => Some(SimdLevel::Avx2Fma),
+            "avx512" => Some(SimdLevel::Avx512),
+            "neon" => Some(SimdLevel::Neon),
+            "dotprod" | "neondotprod" => Some(SimdLevel::NeonDotprod),
+            _ => None,
+        }
+    }
+}
+
+/// The level used by [`scan`](super::scan): the best available one (AVX-512F, else AVX2 + FMA +
+/// F16C on x86_64; NEON + dotprod, else NEON on aarch64), unless the environment variable
+/// `SLAG_SCAN_SIMD` names an available level (`baseline`, `avx2`, `avx512`, `neon`, `dotprod`;
+/// for measurements). Detected once per process.
 pub fn simd_level() -> SimdLevel {
     static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
     *LEVEL.get_or_init(|| {
-        if std::env::var("SLAG_SCAN_SIMD").is_ok_and(|v| v.eq_ignore_ascii_case("baseline")) {
-            return SimdLevel::Baseline;
+        if let Some(l) = std::env::var("SLAG_SCAN_SIMD")
+            .ok()
+            .and_then(|v| SimdLevel::from_name(&v))
+            .filter(|l| l.available())
+        {
+            return l;
         }
-        if avx2_fma_available() {
-            SimdLevel::Avx2Fma
-        } else {
-            SimdLevel::Baseline
-        }
+        SimdLevel::available_levels()
+            .last()
+            .copied()
+            .unwrap_or(SimdLevel::Baseline)
     })
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn chunk_avx2<const Q: usize>(
-    vectors: &StoredVectors,
-    d: usize,
-    start: usize,
-    end: usize,
-    qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
-) {
-    use std::arch::x86_64::{__m128i, __m256, _mm256_cvtph_ps};
-    // F16C: 8 halves per instruction (this closure inherits the function's target features, so
-    // the intrinsic is safe to call; the casts are bytemuck's checked plain-data casts).
-    let f16c = |src: &[f16], dst: &mut [f32]| {
-        let (sb, sr) = src.as_chunks::<8>();
-        let (db, dr) = dst.as_chunks_mut::<8>();
-        for (s8, d8) in sb.iter().zip(db) {
-            let bits: [u16; 8] = bytemuck::cast(*s8);
-            let v: __m128i = bytemuck::cast(bits);
-            let f: __m256 = _mm256_cvtph_ps(v);
-            *d8 = bytemuck::cast(f);
-        }
-        for (s, d) in sr.iter().zip(dr) {
-            *d = s.to_f32();
-        }
-    };
-    chunk_impl::<Q, true>(vectors, d, start, end, qs, keep, sink, f16c)
 }
 
 /// Scores rows `start..end` (see the module doc) with the best available [`SimdLevel`] and
@@ -325,8 +357,8 @@ pub fn avx2_fma_available() -> bool {
     }
 }
 
-/// [`scan_chunk`] at an explicit level (benchmarks compare levels in one process). A level the
-/// CPU lacks falls back to [`SimdLevel::Baseline`].
+/// [`scan_chunk`] at an explicit level (benchmarks and tests compare levels in one process). A
+/// level the CPU lacks falls back to [`SimdLevel::Baseline`].
 #[allow(clippy::too_many_arguments)]
 pub fn scan_chunk_at<const Q: usize>(
     level: SimdLevel,
@@ -338,18 +370,9 @@ pub fn scan_chunk_at<const Q: usize>(
     keep: Keep<'_>,
     sink: &mut dyn FnMut(usize, &[f32; Q]),
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if level == SimdLevel::Avx2Fma && avx2_fma_available() {
-        // SAFETY: `chunk_avx2` only needs the AVX2 and FMA instructions, and
-        // `avx2_fma_available` just confirmed both on this CPU (`is_x86_feature_detected!`).
-        // This is the crate's only unsafe: calling a `#[target_feature]` function.
-        #[allow(unsafe_code)]
-        unsafe {
-            chunk_avx2::<Q>(vectors, d, start, end, qs, keep, sink)
-        };
+    if super::simd::chunk::<Q>(level, vectors, d, start, end, qs, keep, sink) {
         return;
     }
-    let _ = level;
     // aarch64 always has FMA (and NEON); elsewhere plain multiply + add. f16 rows go through
     // `half`'s run-time-detected slice conversion (F16C / FP16) here.
     const FMA: bool = cfg!(target_arch = "aarch64");
@@ -384,25 +407,25 @@ mod tests {
         for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
             let store = VectorStore::synthetic(300, d, dtype, 4, 2).expect("store");
             let keep = |i: usize| i % 7 != 3;
-            let mut per_level = Vec::new();
-            for level in [SimdLevel::Baseline, SimdLevel::Avx2Fma] {
+            let want = (10..300).filter(|&i| keep(i)).count();
+            for level in SimdLevel::available_levels() {
                 let mut got: Vec<(usize, [f32; 5])> = Vec::new();
                 let mut sink = |i: usize, dots: &[f32; 5]| got.push((i, *dots));
                 scan_chunk_at::<5>(level, store.vectors(), d, 10, 300, &qs, &keep, &mut sink);
-                per_level.push(got);
-            }
-            assert_eq!(per_level[0].len(), (10..300).filter(|&i| keep(i)).count());
-            for ((ia, a), (ib, b)) in per_level[0].iter().zip(&per_level[1]) {
-                assert_eq!(ia, ib);
-                let row = store.row_f32(*ia).expect("row");
-                for q in 0..5 {
-                    let r: f64 = row
-                        .iter()
-                        .zip(&qv[q])
-                        .map(|(&x, &y)| x as f64 * y as f64)
-                        .sum();
-                    assert!((a[q] as f64 - r).abs() < 1e-5, "{dtype:?} baseline");
-                    assert!((b[q] as f64 - r).abs() < 1e-5, "{dtype:?} simd");
+                assert_eq!(got.len(), want, "{level:?}");
+                let mut prev = 0;
+                for (i, a) in &got {
+                    assert!(*i >= prev && keep(*i), "{level:?}: rows out of order");
+                    prev = *i;
+                    let row = store.row_f32(*i).expect("row");
+                    for q in 0..5 {
+                        let r: f64 = row
+                            .iter()
+                            .zip(&qv[q])
+                            .map(|(&x, &y)| x as f64 * y as f64)
+                            .sum();
+                        assert!((a[q] as f64 - r).abs() < 1e-5, "{dtype:?} {level:?}");
+                    }
                 }
             }
         }
@@ -450,5 +473,133 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Scores `rows` (`[n * d]` as f64 values of the stored type) against `qs` in f64.
+    fn reference(rows: &StoredVectors, d: usize, qs: &[Vec<f32>]) -> Vec<Vec<f64>> {
+        let n = rows.values() / d.max(1);
+        (0..n)
+            .map(|i| {
+                let row: Vec<f64> = match rows {
+                    StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
+                    StoredVectors::F16(v) => {
+                        v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
+                    }
+                    StoredVectors::I8 { q, scales } => q[i * d..][..d]
+                        .iter()
+                        .map(|&x| x as f64 * scales[i] as f64)
+                        .collect(),
+                };
+                qs.iter().map(|q| ref_dot(row.iter().copied(), q)).collect()
+            })
+            .collect()
+    }
+
+    /// Every available level against the f64 reference: `|got − ref| ≤ 1e-5 · Σ|x_j·q_j| +
+    /// 1e-6 · Σ|x_j| · max|q|` (f32 rounding of D products; the SDOT split's 6e-8 · max|q|).
+    fn check_levels<const Q: usize>(
+        rows: &StoredVectors,
+        d: usize,
+        qv: &[Vec<f32>],
+    ) -> Result<(), proptest::test_runner::TestCaseError> {
+        let n = rows.values() / d;
+        let qs: [&[f32]; Q] = std::array::from_fn(|q| qv[q].as_slice());
+        let want = reference(rows, d, qv);
+        let row_f64 = |i: usize| -> Vec<f64> {
+            match rows {
+                StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
+                StoredVectors::F16(v) => v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect(),
+                StoredVectors::I8 { q, scales } => q[i * d..][..d]
+                    .iter()
+                    .map(|&x| x as f64 * scales[i] as f64)
+                    .collect(),
+            }
+        };
+        for level in SimdLevel::available_levels() {
+            let mut got: Vec<(usize, [f32; Q])> = Vec::new();
+            let keep = |_: usize| true;
+            let mut sink = |i: usize, dots: &[f32; Q]| got.push((i, *dots));
+            scan_chunk_at::<Q>(level, rows, d, 0, n, &qs, &keep, &mut sink);
+            proptest::prop_assert_eq!(got.len(), n);
+            for (i, dots) in got {
+                let row = row_f64(i);
+                for q in 0..Q {
+                    let abs: f64 = row.iter().zip(&qv[q]).map(|(x, &y)| (x * y as f64).abs()).sum();
+                    let l1: f64 = row.iter().map(|x| x.abs()).sum();
+                    let m = qv[q].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+                    let tol = 1e-5 * abs + 1e-6 * l1 * m + 1e-30;
+                    let err = (dots[q] as f64 - want[i][q]).abs();
+                    proptest::prop_assert!(
+                        err <= tol,
+                        "{:?} {:?} d={} q={} row={}: {} vs {} (tol {})",
+                        level, rows.dtype(), d, q, i, dots[q], want[i][q], tol
+                    );
+                }
+            }
+        }
+        Ok(())
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+
+        /// Every SIMD kernel equals the scalar f64 reference for any width (tails included), any
+        /// query count, every stored type.
+        #[test]
+        fn simd_kernels_match_the_scalar_reference(
+            d in 1usize..300,
+            n in 1usize..6,
+            nq in 0usize..5,
+            seed in proptest::prelude::any::<u64>(),
+            mag in proptest::sample::select(vec![1e-3f32, 1.0, 300.0]),
+        ) {
+            let mut s = seed | 1;
+            let vals: Vec<f32> = (0..n * d).map(|_| lcg(&mut s) * mag).collect();
+            let qv: Vec<Vec<f32>> = (0..8).map(|_| (0..d).map(|_| lcg(&mut s)).collect()).collect();
+            let f16s = vals.iter().map(|&x| f16::from_f32(x)).collect();
+            let mut q = Vec::new();
+            let scales: Vec<f32> = vals
+                .chunks_exact(d)
+                .map(|r| {
+                    let mut b = Vec::new();
+                    let sc = slag_common::shards::format::quantize_i8(r, &mut b);
+                    q.extend(b.iter().map(|&x| x as i8));
+                    sc
+                })
+                .collect();
+            for rows in [StoredVectors::F32(vals.clone()), StoredVectors::F16(f16s), StoredVectors::I8 { q, scales }] {
+                match [1, 2, 3, 5, 8][nq] {
+                    1 => check_levels::<1>(&rows, d, &qv)?,
+                    2 => check_levels::<2>(&rows, d, &qv)?,
+                    3 => check_levels::<3>(&rows, d, &qv)?,
+                    5 => check_levels::<5>(&rows, d, &qv)?,
+                    _ => check_levels::<8>(&rows, d, &qv)?,
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn query_split_reconstructs_within_its_bound() {
+        let mut s = 11u64;
+        let d = 77;
+        let qv: Vec<Vec<f32>> = (0..2).map(|_| (0..d).map(|_| lcg(&mut s)).collect()).collect();
+        let zero = vec![0.0f32; d];
+        let qs: [&[f32]; 3] = [&qv[0], &qv[1], &zero];
+        let (terms, steps) = crate::scan::simd::split_queries(&qs, d);
+        for k in 0..3 {
+            let m = qs[k].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+            for j in 0..d {
+                let r: f64 = (0..3)
+                    .map(|t| steps[k][t] as f64 * terms[(k * 3 + t) * d + j] as f64)
+                    .sum();
+                assert!(
+                    (r - qs[k][j] as f64).abs() <= m * 7e-8 + 1e-12,
+                    "query {k} component {j}: {r} vs {}",
+                    qs[k][j]
+                );
+            }
+        }
+        assert_eq!(steps[2], [0.0; 3]);
     }
 }

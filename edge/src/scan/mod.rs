@@ -18,6 +18,7 @@ pub mod bench;
 pub mod hnsw;
 mod kernels;
 pub mod select;
+mod simd;
 mod store;
 
 use rayon::prelude::*;
