@@ -506,7 +506,10 @@ pub(super) fn split_queries<const Q: usize>(qs: &[&[f32]; Q], d: usize) -> (Vec<
         if m == 0.0 || !m.is_finite() {
             continue;
         }
-        let s = [m / 127.0, m / (127.0 * 254.0), m / (127.0 * 254.0 * 254.0)];
+        // The steps are rounded to f32 first (the kernel multiplies by the f32 values), so the
+        // residual of each term is taken against the step that is actually applied.
+        let s = [m / 127.0, m / (127.0 * 254.0), m / (127.0 * 254.0 * 254.0)]
+            .map(|x| x as f32 as f64);
         for (j, &v) in y.iter().take(d).enumerate() {
             let mut r = v as f64;
             for t in 0..3 {
