@@ -461,12 +461,16 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     Ok(out)
 }
 
-/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level`.
-fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: SimdLevel) -> f64 {
-    let mut sum = 0.0f32;
-    let keep = |_: usize| true;
+/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level` (`out` is the
+/// `[N][Q]` output, reused).
+fn kernel_pass<const Q: usize>(
+    store: &VectorStore,
+    qs: &kernels::Queries<'_, Q>,
+    level: SimdLevel,
+    out: &mut Vec<[f32; Q]>,
+) -> f64 {
+    out.resize(store.len(), [0.0; Q]);
     let t = Instant::now();
-    let mut sink = |_: usize, d: &[f32; Q]| sum += d[0];
     kernels::scan_chunk_at::<Q>(
         level,
         store.vectors(),
@@ -474,11 +478,11 @@ fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: Sim
         0,
         store.len(),
         qs,
-        &keep,
-        &mut sink,
+        None,
+        out,
     );
     let e = t.elapsed().as_secs_f64();
-    std::hint::black_box(sum);
+    std::hint::black_box(&out);
     e
 }
 
@@ -487,16 +491,13 @@ fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: Sim
 fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
     let dim = args.dim;
     let n = ((1usize << 20) / (4 * dim)).max(64);
-    let mut levels = vec![SimdLevel::Baseline];
-    if kernels::avx2_fma_available() {
-        levels.push(SimdLevel::Avx2Fma);
-    }
+    let levels = SimdLevel::available_levels();
     let centres = random_centres(dim, CLUSTERS, args.seed);
     let qv: Vec<Vec<f32>> = (0..5)
         .map(|i| make_query(&centres, dim, i, args.seed))
         .collect();
-    let q1: [&[f32]; 1] = [&qv[0]];
-    let q5: [&[f32]; 5] = [&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]];
+    let q1 = kernels::Queries::new([qv[0].as_slice()]);
+    let q5 = kernels::Queries::new([&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]].map(|v| v.as_slice()));
     let mut out = format!(
         "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n\
          | dtype | Q | SIMD | ns/row | row GB/s |\n|---|---|---|---|---|\n"
@@ -507,12 +508,13 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
         for q in [1usize, 5] {
             for &level in &levels {
                 let mut best = f64::INFINITY;
+                let (mut o1, mut o5) = (Vec::new(), Vec::new());
                 for _ in 0..5 {
                     let mut t = 0.0;
                     for _ in 0..20 {
                         t += match q {
-                            1 => kernel_pass::<1>(&store, &q1, level),
-                            _ => kernel_pass::<5>(&store, &q5, level),
+                            1 => kernel_pass::<1>(&store, &q1, level, &mut o1),
+                            _ => kernel_pass::<5>(&store, &q5, level, &mut o5),
                         };
                     }
                     best = best.min(t / 20.0);

@@ -26,7 +26,7 @@
 use half::f16;
 use slag_common::shards::StoredVectors;
 
-use super::kernels::{Keep, SimdLevel};
+use super::kernels::{Keep, Queries, SimdLevel};
 
 /// One vector instruction set: `W` f32 lanes in a `V`.
 trait Simd {
@@ -57,6 +57,32 @@ trait Simd {
     /// # Safety
     /// As [`Simd::load_f32`].
     unsafe fn load_i8(p: *const i8) -> Self::V;
+    /// Hints the cache line holding `p` into L1 (a hint: never faults, any address).
+    fn prefetch(p: *const u8);
+}
+
+/// Bytes ahead of the current row that [`prefetch_row`] asks for: far enough that a row's DRAM
+/// latency is hidden behind the rows in between, across the 4 KiB page boundaries where the
+/// hardware prefetchers stop.
+pub(super) const PREFETCH_BYTES: usize = 4096;
+
+/// Prefetches the cache lines of the row `PREFETCH_BYTES` ahead of `row` (`bytes` long), when
+/// that row still lies inside `all` (no pointer is formed outside the slice).
+#[inline(always)]
+fn prefetch_row<S: Simd, T>(all: &[T], row_start: usize, row_len: usize) {
+    let bytes = std::mem::size_of_val(all);
+    let sz = std::mem::size_of::<T>().max(1);
+    let at = row_start * sz + PREFETCH_BYTES;
+    let len = row_len * sz;
+    if at + len <= bytes {
+        let base = all.as_ptr().cast::<u8>();
+        let mut o = 0;
+        while o < len {
+            // `at + o < bytes`: inside the slice, so `wrapping_add` stays in bounds.
+            S::prefetch(base.wrapping_add(at + o));
+            o += 64;
+        }
+    }
 }
 
 /// A stored element type.
@@ -107,6 +133,7 @@ impl Elem for i8 {
 /// The CPU has `S`'s instruction set. (Lengths are checked here: every query is re-sliced to
 /// `row.len()`, panicking when shorter.)
 #[inline(always)]
+#[allow(clippy::needless_range_loop)] // `u` and `q` index several arrays at once
 unsafe fn dots<S: Simd, T: Elem, const Q: usize, const U: usize>(
     row: &[T],
     qs: &[&[f32]; Q],
@@ -172,7 +199,8 @@ unsafe fn dots_q<S: Simd, T: Elem, const Q: usize>(row: &[T], qs: &[&[f32]; Q]) 
     }
 }
 
-/// The chunk scan (rows `start..end`, see `kernels::scan_chunk`) with `S` for every dtype.
+/// The chunk scan (rows `start..end`, see `kernels::scan_chunk_at`) with `S` for every dtype:
+/// `out[r]` = the `Q` dots of row `start + r` for every kept row (others are left untouched).
 ///
 /// # Safety
 /// The CPU has `S`'s instruction set.
@@ -184,38 +212,45 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
     start: usize,
     end: usize,
     qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
 ) {
+    let kept = |i: usize| keep.is_none_or(|k| k(i));
     // SAFETY: forwarded contract (the CPU has `S`).
     unsafe {
         match vectors {
             StoredVectors::F32(v) => {
-                for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
+                let rows = v[start * d..end * d].chunks_exact(d);
+                for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
                     let i = start + r;
-                    if keep(i) {
-                        sink(i, &dots_q::<S, f32, Q>(row, qs));
+                    prefetch_row::<S, f32>(v, i * d, d);
+                    if kept(i) {
+                        *o = dots_q::<S, f32, Q>(row, qs);
                     }
                 }
             }
             StoredVectors::F16(v) => {
-                for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
+                let rows = v[start * d..end * d].chunks_exact(d);
+                for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
                     let i = start + r;
-                    if keep(i) {
-                        sink(i, &dots_q::<S, f16, Q>(row, qs));
+                    prefetch_row::<S, f16>(v, i * d, d);
+                    if kept(i) {
+                        *o = dots_q::<S, f16, Q>(row, qs);
                     }
                 }
             }
             StoredVectors::I8 { q, scales } => {
                 let rows = q[start * d..end * d].chunks_exact(d);
-                for (r, (row, &s)) in rows.zip(&scales[start..end]).enumerate() {
+                let rows = rows.zip(&scales[start..end]).zip(out.iter_mut());
+                for (r, ((row, &s), o)) in rows.enumerate() {
                     let i = start + r;
-                    if keep(i) {
-                        let mut o = dots_q::<S, i8, Q>(row, qs);
-                        for x in &mut o {
-                            *x *= s;
+                    prefetch_row::<S, i8>(q, i * d, d);
+                    if kept(i) {
+                        let mut x = dots_q::<S, i8, Q>(row, qs);
+                        for v in &mut x {
+                            *v *= s;
                         }
-                        sink(i, &o);
+                        *o = x;
                     }
                 }
             }
@@ -223,10 +258,217 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
     }
 }
 
+/// Integer dot-product instructions for int8 rows against int8 query terms (SDOT on aarch64,
+/// VPDPBUSD on x86_64): `W` row bytes per step, i32 lane accumulators.
+trait I8Dot {
+    /// i32 accumulator lanes.
+    type Acc: Copy;
+    /// `W` int8 (or offset u8) values.
+    type X: Copy;
+    /// Row bytes per step.
+    const W: usize;
+    /// Added to every row value by [`I8Dot::load_row`] (VPDPBUSD multiplies unsigned by signed
+    /// bytes, so rows are shifted by +128 and `128 · Σ term` is subtracted afterwards).
+    const OFFSET: i32;
+    /// # Safety
+    /// The CPU has the instructions.
+    unsafe fn zero() -> Self::Acc;
+    /// `W` row bytes from `p` (+ [`I8Dot::OFFSET`]).
+    /// # Safety
+    /// As [`I8Dot::zero`]; `p` points at `W` readable bytes.
+    unsafe fn load_row(p: *const i8) -> Self::X;
+    /// `W` query-term bytes from `p`.
+    /// # Safety
+    /// As [`I8Dot::load_row`].
+    unsafe fn load_term(p: *const i8) -> Self::X;
+    /// `acc` + the 4-byte-group dot products of `x` and `y` per i32 lane.
+    /// # Safety
+    /// As [`I8Dot::zero`].
+    unsafe fn dot(acc: Self::Acc, x: Self::X, y: Self::X) -> Self::Acc;
+    /// Sum of the lanes.
+    /// # Safety
+    /// As [`I8Dot::zero`].
+    unsafe fn sum(acc: Self::Acc) -> i32;
+    /// As [`Simd::prefetch`].
+    fn prefetch(p: *const u8);
+}
+
+/// Prefetch-only view of an [`I8Dot`] for [`prefetch_row`].
+struct PrefetchOf<K>(std::marker::PhantomData<K>);
+
+/// Exact i32 sums `Σ_j rows[r][j] · term_k,t,j` of `R` int8 rows against every query term (`R`
+/// rows share each term load; `R · Q · 3` independent accumulators). `offs[k][t]` =
+/// `K::OFFSET · Σ_{j<body} term_k,t,j` undoes the row offset; `body` = `d` rounded down to `K::W`,
+/// the rest is summed in scalar code.
+///
+/// # Safety
+/// The CPU has `K`'s instructions; every row and term has at least `body` values (it is checked:
+/// the tails are sliced from `body`, which panics on a shorter slice before any pointer read).
+#[inline(always)]
+unsafe fn i8_sums<K: I8Dot, const Q: usize, const R: usize>(
+    rows: [&[i8]; R],
+    tq: &[[&[i8]; 3]; Q],
+    offs: &[[i32; 3]; Q],
+    body: usize,
+) -> [[[i32; 3]; Q]; R] {
+    let w = K::W;
+    let mut sums = [[[0i32; 3]; Q]; R];
+    // Plain loops, not closures: a closure body is not compiled with the caller's target
+    // features, so intrinsics inside it would become calls. The tails first: they bound-check
+    // every slice against `body`.
+    for r in 0..R {
+        for k in 0..Q {
+            for t in 0..3 {
+                let mut v = -offs[k][t];
+                for (&a, &b) in rows[r][body..].iter().zip(&tq[k][t][body..]) {
+                    v += a as i32 * b as i32;
+                }
+                sums[r][k][t] = v;
+            }
+        }
+    }
+    // SAFETY: the CPU has `K` (caller); every read covers `j .. j + w` with `j + w <= body`, and
+    // every row and term has at least `body` values (checked by the slicing above).
+    unsafe {
+        let mut acc = [[[K::zero(); 3]; Q]; R];
+        let mut j = 0;
+        while j + w <= body {
+            let mut x = [K::load_row(rows[0].as_ptr().add(j)); R];
+            for r in 1..R {
+                x[r] = K::load_row(rows[r].as_ptr().add(j));
+            }
+            for k in 0..Q {
+                for t in 0..3 {
+                    let y = K::load_term(tq[k][t].as_ptr().add(j));
+                    for r in 0..R {
+                        acc[r][k][t] = K::dot(acc[r][k][t], x[r], y);
+                    }
+                }
+            }
+            j += w;
+        }
+        for r in 0..R {
+            for k in 0..Q {
+                for t in 0..3 {
+                    sums[r][k][t] += K::sum(acc[r][k][t]);
+                }
+            }
+        }
+    }
+    sums
+}
+
+/// int8 rows against three-term int8 splits of the queries (module doc), `R` rows at a time:
+/// `out[r][k] = scale_i · Σ_t step_k,t · Σ_j row_j · term_k,t,j` with exact i32 sums.
+///
+/// # Safety
+/// The CPU has `K`'s instructions.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn chunk_i8_split<K: I8Dot, const Q: usize, const R: usize>(
+    q: &[i8],
+    scales: &[f32],
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &Queries<'_, Q>,
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
+) {
+    let kept = |i: usize| keep.is_none_or(|k| k(i));
+    let body = d - d % K::W;
+    let split = qs.split(d);
+    let (terms, steps) = (&split.terms, &split.steps);
+    let mut tq: [[&[i8]; 3]; Q] = [[&[]; 3]; Q];
+    let mut offs = [[0i32; 3]; Q];
+    for k in 0..Q {
+        for t in 0..3 {
+            tq[k][t] = &terms[(k * 3 + t) * d..][..d];
+            offs[k][t] = K::OFFSET * tq[k][t][..body].iter().map(|&a| a as i32).sum::<i32>();
+        }
+    }
+    let row = |i: usize| &q[i * d..(i + 1) * d];
+    let finish = |i: usize, sums: &[[i32; 3]; Q], o: &mut [f32; Q]| {
+        let s = scales[i];
+        for k in 0..Q {
+            let [a, b, c] = sums[k];
+            let st = steps[k];
+            o[k] = s * (st[0] * a as f32 + st[1] * b as f32 + st[2] * c as f32);
+        }
+    };
+    let mut i = start;
+    while i + R <= end {
+        for r in 0..R {
+            prefetch_row::<PrefetchOf<K>, i8>(q, (i + r) * d, d);
+        }
+        let mut any = false;
+        for r in 0..R {
+            any |= kept(i + r);
+        }
+        if any {
+            let mut rows: [&[i8]; R] = [&[]; R];
+            for (r, x) in rows.iter_mut().enumerate() {
+                *x = row(i + r);
+            }
+            // SAFETY: the CPU has `K` (caller).
+            let sums = unsafe { i8_sums::<K, Q, R>(rows, &tq, &offs, body) };
+            for r in 0..R {
+                if kept(i + r) {
+                    finish(i + r, &sums[r], &mut out[i + r - start]);
+                }
+            }
+        }
+        i += R;
+    }
+    while i < end {
+        if kept(i) {
+            // SAFETY: the CPU has `K` (caller).
+            let sums = unsafe { i8_sums::<K, Q, 1>([row(i)], &tq, &offs, body) };
+            finish(i, &sums[0], &mut out[i - start]);
+        }
+        i += 1;
+    }
+}
+
+/// [`chunk_i8_split`] with the rows per step chosen for `Q` (4 rows for one or two queries,
+/// 12 / 24 accumulators; one row beyond, 3·Q accumulators).
+///
+/// # Safety
+/// As [`chunk_i8_split`].
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn chunk_i8_split_q<K: I8Dot, const Q: usize>(
+    q: &[i8],
+    scales: &[f32],
+    d: usize,
+    start: usize,
+    end: usize,
+    qs: &Queries<'_, Q>,
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
+) {
+    // SAFETY: forwarded contract.
+    unsafe {
+        if Q <= 2 {
+            chunk_i8_split::<K, Q, 4>(q, scales, d, start, end, qs, keep, out)
+        } else {
+            chunk_i8_split::<K, Q, 1>(q, scales, d, start, end, qs, keep, out)
+        }
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{Keep, Simd, StoredVectors, chunk_body, f16};
+    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, f16};
     use std::arch::x86_64::*;
+
+    /// `prefetcht0` (SSE, part of the x86_64 baseline).
+    #[inline(always)]
+    fn prefetch_t0(p: *const u8) {
+        // SAFETY: SSE is in the x86_64 baseline; a prefetch is a hint that never faults and
+        // reads nothing visible to the program, whatever the address.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
+    }
 
     /// AVX2 + FMA + F16C: 8 lanes.
     pub struct Avx2;
@@ -268,6 +510,10 @@ mod x86 {
             // SAFETY: as `zero`; `p` points at 8 readable bytes (caller).
             unsafe { _mm256_cvtepi32_ps(_mm256_cvtepi8_epi32(_mm_loadl_epi64(p.cast()))) }
         }
+        #[inline(always)]
+        fn prefetch(p: *const u8) {
+            prefetch_t0(p)
+        }
     }
 
     /// AVX-512F (+ F16C-equivalent `vcvtph2ps zmm`): 16 lanes.
@@ -305,6 +551,48 @@ mod x86 {
             // SAFETY: as `zero`; `p` points at 16 readable bytes (caller).
             unsafe { _mm512_cvtepi32_ps(_mm512_cvtepi8_epi32(_mm_loadu_si128(p.cast()))) }
         }
+        #[inline(always)]
+        fn prefetch(p: *const u8) {
+            prefetch_t0(p)
+        }
+    }
+
+    /// AVX-512 VNNI `vpdpbusd`: 64 bytes per step, rows shifted to unsigned (x XOR 0x80 = x + 128).
+    pub struct Vnni512;
+    impl I8Dot for Vnni512 {
+        type Acc = __m512i;
+        type X = __m512i;
+        const W: usize = 64;
+        const OFFSET: i32 = 128;
+        #[inline(always)]
+        unsafe fn zero() -> __m512i {
+            // SAFETY: the caller runs on a CPU with AVX-512F/BW/VNNI.
+            unsafe { _mm512_setzero_si512() }
+        }
+        #[inline(always)]
+        unsafe fn load_row(p: *const i8) -> __m512i {
+            // SAFETY: as `zero`; `p` points at 64 readable bytes (caller).
+            unsafe { _mm512_xor_si512(_mm512_loadu_si512(p.cast()), _mm512_set1_epi8(-128)) }
+        }
+        #[inline(always)]
+        unsafe fn load_term(p: *const i8) -> __m512i {
+            // SAFETY: as `load_row`.
+            unsafe { _mm512_loadu_si512(p.cast()) }
+        }
+        #[inline(always)]
+        unsafe fn dot(acc: __m512i, x: __m512i, y: __m512i) -> __m512i {
+            // SAFETY: as `zero`.
+            unsafe { _mm512_dpbusd_epi32(acc, x, y) }
+        }
+        #[inline(always)]
+        unsafe fn sum(acc: __m512i) -> i32 {
+            // SAFETY: as `zero`.
+            unsafe { _mm512_reduce_add_epi32(acc) }
+        }
+        #[inline(always)]
+        fn prefetch(p: *const u8) {
+            prefetch_t0(p)
+        }
     }
 
     /// [`chunk_body`] compiled for AVX2 + FMA + F16C.
@@ -315,11 +603,11 @@ mod x86 {
         start: usize,
         end: usize,
         qs: &[&[f32]; Q],
-        keep: Keep<'_>,
-        sink: &mut dyn FnMut(usize, &[f32; Q]),
+        keep: Option<Keep<'_>>,
+        out: &mut [[f32; Q]],
     ) {
         // SAFETY: this function is compiled for (and only called on CPUs with) AVX2+FMA+F16C.
-        unsafe { chunk_body::<Avx2, Q>(vectors, d, start, end, qs, keep, sink) }
+        unsafe { chunk_body::<Avx2, Q>(vectors, d, start, end, qs, keep, out) }
     }
 
     /// [`chunk_body`] compiled for AVX-512F.
@@ -330,18 +618,49 @@ mod x86 {
         start: usize,
         end: usize,
         qs: &[&[f32]; Q],
-        keep: Keep<'_>,
-        sink: &mut dyn FnMut(usize, &[f32; Q]),
+        keep: Option<Keep<'_>>,
+        out: &mut [[f32; Q]],
     ) {
         // SAFETY: this function is compiled for (and only called on CPUs with) AVX-512F.
-        unsafe { chunk_body::<Avx512, Q>(vectors, d, start, end, qs, keep, sink) }
+        unsafe { chunk_body::<Avx512, Q>(vectors, d, start, end, qs, keep, out) }
+    }
+
+    /// int8 rows with `vpdpbusd` against three-term int8 splits of the queries (module doc).
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    #[allow(clippy::too_many_arguments)]
+    pub fn chunk_i8_vnni<const Q: usize>(
+        q: &[i8],
+        scales: &[f32],
+        d: usize,
+        start: usize,
+        end: usize,
+        qs: &Queries<'_, Q>,
+        keep: Option<Keep<'_>>,
+        out: &mut [[f32; Q]],
+    ) {
+        // SAFETY: compiled for (and only called on CPUs with) AVX-512F/BW/VNNI.
+        unsafe { chunk_i8_split_q::<Vnni512, Q>(q, scales, d, start, end, qs, keep, out) }
     }
 }
 
 #[cfg(target_arch = "aarch64")]
 mod arm {
-    use super::{Keep, Simd, StoredVectors, chunk_body, f16};
+    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, f16};
     use std::arch::aarch64::*;
+
+    /// `prfm pldl1keep` (a hint: never faults).
+    #[inline(always)]
+    fn prefetch_l1(p: *const u8) {
+        // SAFETY: PRFM is a base AArch64 instruction; a prefetch never faults and has no effect
+        // visible to the program, whatever the address.
+        unsafe {
+            std::arch::asm!(
+                "prfm pldl1keep, [{p}]",
+                p = in(reg) p,
+                options(nostack, preserves_flags, readonly)
+            );
+        }
+    }
 
     /// NEON: two `float32x4_t` (8 lanes) per vector, so that one `ld1` of 8 halves feeds an
     /// `FCVTL` + `FCVTL2` pair and one `ld1` of 8 int8 a `SXTL` chain.
@@ -372,9 +691,9 @@ mod arm {
         #[inline(always)]
         unsafe fn load_f16(p: *const f16) -> Self::V {
             // SAFETY: as `zero`; `p` points at 8 readable halves = 16 bytes (caller). FCVTL /
-            // FCVTL2 (half → single, exact) are base AdvSIMD instructions (no FP16 extension
-            // needed); written as `asm!` because the `float16x4_t` intrinsics need a newer Rust
-            // than the workspace's minimum.
+            // FCVTL2 (half → single, exact, subnormals included) are base AdvSIMD instructions
+            // (no FP16 extension needed); written as `asm!` because the `float16x4_t`
+            // intrinsics are not stable Rust.
             unsafe {
                 let h = vld1q_u16(p.cast());
                 let lo: float32x4_t;
@@ -401,6 +720,60 @@ mod arm {
                 )
             }
         }
+        #[inline(always)]
+        fn prefetch(p: *const u8) {
+            prefetch_l1(p)
+        }
+    }
+
+    /// NEON `SDOT` (dot-product extension): 16 bytes per step, signed × signed.
+    pub struct Sdot;
+    impl I8Dot for Sdot {
+        type Acc = int32x4_t;
+        type X = int8x16_t;
+        const W: usize = 16;
+        const OFFSET: i32 = 0;
+        #[inline(always)]
+        unsafe fn zero() -> int32x4_t {
+            // SAFETY: NEON is baseline.
+            unsafe { vdupq_n_s32(0) }
+        }
+        #[inline(always)]
+        unsafe fn load_row(p: *const i8) -> int8x16_t {
+            // SAFETY: NEON is baseline; `p` points at 16 readable bytes (caller).
+            unsafe { vld1q_s8(p) }
+        }
+        #[inline(always)]
+        unsafe fn load_term(p: *const i8) -> int8x16_t {
+            // SAFETY: as `load_row`.
+            unsafe { vld1q_s8(p) }
+        }
+        #[inline(always)]
+        unsafe fn dot(acc: int32x4_t, x: int8x16_t, y: int8x16_t) -> int32x4_t {
+            let mut acc = acc;
+            // SAFETY: only inlined into `chunk_i8_sdot`, which is compiled for and only called
+            // on CPUs with `dotprod` (caller's contract); register-only instruction.
+            // (`vdotq_s32` is not stable Rust.)
+            unsafe {
+                std::arch::asm!(
+                    "sdot {acc:v}.4s, {a:v}.16b, {b:v}.16b",
+                    acc = inout(vreg) acc,
+                    a = in(vreg) x,
+                    b = in(vreg) y,
+                    options(pure, nomem, nostack, preserves_flags)
+                );
+            }
+            acc
+        }
+        #[inline(always)]
+        unsafe fn sum(acc: int32x4_t) -> i32 {
+            // SAFETY: NEON is baseline.
+            unsafe { vaddvq_s32(acc) }
+        }
+        #[inline(always)]
+        fn prefetch(p: *const u8) {
+            prefetch_l1(p)
+        }
     }
 
     /// [`chunk_body`] with NEON (FMLA; FCVTL for f16; SXTL + SCVTF for int8).
@@ -410,29 +783,11 @@ mod arm {
         start: usize,
         end: usize,
         qs: &[&[f32]; Q],
-        keep: Keep<'_>,
-        sink: &mut dyn FnMut(usize, &[f32; Q]),
+        keep: Option<Keep<'_>>,
+        out: &mut [[f32; Q]],
     ) {
         // SAFETY: NEON is part of the aarch64 baseline.
-        unsafe { chunk_body::<Neon, Q>(vectors, d, start, end, qs, keep, sink) }
-    }
-
-    /// `acc += Σ` of 4-byte groups of `a ⊙ b` per lane (SDOT). Needs `dotprod`.
-    #[inline(always)]
-    fn sdot(acc: int32x4_t, a: int8x16_t, b: int8x16_t) -> int32x4_t {
-        let mut acc = acc;
-        // SAFETY: only inlined into `chunk_i8_sdot`, which is compiled for and only called on
-        // CPUs with `dotprod`; register-only instruction. (`vdotq_s32` is not stable yet.)
-        unsafe {
-            std::arch::asm!(
-                "sdot {acc:v}.4s, {a:v}.16b, {b:v}.16b",
-                acc = inout(vreg) acc,
-                a = in(vreg) a,
-                b = in(vreg) b,
-                options(pure, nomem, nostack, preserves_flags)
-            );
-        }
-        acc
+        unsafe { chunk_body::<Neon, Q>(vectors, d, start, end, qs, keep, out) }
     }
 
     /// int8 rows with SDOT against three-term int8 splits of the queries (module doc).
@@ -444,52 +799,29 @@ mod arm {
         d: usize,
         start: usize,
         end: usize,
-        qs: &[&[f32]; Q],
-        keep: Keep<'_>,
-        sink: &mut dyn FnMut(usize, &[f32; Q]),
+        qs: &Queries<'_, Q>,
+        keep: Option<Keep<'_>>,
+        out: &mut [[f32; Q]],
     ) {
-        let (terms, steps) = super::split_queries(qs, d);
-        let tq: [[&[i8]; 3]; Q] =
-            std::array::from_fn(|k| std::array::from_fn(|t| &terms[(k * 3 + t) * d..][..d]));
-        let rows = q[start * d..end * d].chunks_exact(d);
-        for (r, (row, &s)) in rows.zip(&scales[start..end]).enumerate() {
-            let i = start + r;
-            if !keep(i) {
-                continue;
-            }
-            // SAFETY: pointer reads of 16 bytes at `j`, `j + 16 <= d` by the loop condition;
-            // `row` and every `tq[k][t]` have `d` values (sliced above); NEON is baseline.
-            let sums: [[i32; 3]; Q] = unsafe {
-                let mut acc = [[vdupq_n_s32(0); 3]; Q];
-                let mut j = 0;
-                while j + 16 <= d {
-                    let x = vld1q_s8(row.as_ptr().add(j));
-                    for k in 0..Q {
-                        for t in 0..3 {
-                            let y = vld1q_s8(tq[k][t].as_ptr().add(j));
-                            acc[k][t] = sdot(acc[k][t], x, y);
-                        }
-                    }
-                    j += 16;
-                }
-                std::array::from_fn(|k| {
-                    std::array::from_fn(|t| {
-                        let tail: i32 = row[j..]
-                            .iter()
-                            .zip(&tq[k][t][j..])
-                            .map(|(&a, &b)| a as i32 * b as i32)
-                            .sum();
-                        vaddvq_s32(acc[k][t]) + tail
-                    })
-                })
-            };
-            let out: [f32; Q] = std::array::from_fn(|k| {
-                let [a, b, c] = sums[k];
-                let st = steps[k];
-                s * (st[0] * a as f32 + st[1] * b as f32 + st[2] * c as f32)
-            });
-            sink(i, &out);
-        }
+        // SAFETY: compiled for (and only called on CPUs with) `dotprod`.
+        unsafe { chunk_i8_split_q::<Sdot, Q>(q, scales, d, start, end, qs, keep, out) }
+    }
+}
+
+impl<K: I8Dot> Simd for PrefetchOf<K> {
+    type V = ();
+    const W: usize = 1;
+    unsafe fn zero() {}
+    unsafe fn fma(_: (), _: (), _: ()) {}
+    unsafe fn sum(_: ()) -> f32 {
+        0.0
+    }
+    unsafe fn load_f32(_: *const f32) {}
+    unsafe fn load_f16(_: *const f16) {}
+    unsafe fn load_i8(_: *const i8) {}
+    #[inline(always)]
+    fn prefetch(p: *const u8) {
+        K::prefetch(p)
     }
 }
 
@@ -497,8 +829,10 @@ mod arm {
 /// `[s1, s2, s3]` with `y ≈ s1·a + s2·b + s3·c` (module doc). Returns the terms as one
 /// `[Q · 3 · d]` vector (query-major, then term) and the steps per query. A zero query gives
 /// zero terms and steps.
-#[cfg_attr(not(target_arch = "aarch64"), allow(dead_code))]
-pub(super) fn split_queries<const Q: usize>(qs: &[&[f32]; Q], d: usize) -> (Vec<i8>, [[f32; 3]; Q]) {
+pub(super) fn split_queries<const Q: usize>(
+    qs: &[&[f32]; Q],
+    d: usize,
+) -> (Vec<i8>, [[f32; 3]; Q]) {
     let mut terms = vec![0i8; Q * 3 * d];
     let mut steps = [[0.0f32; 3]; Q];
     for (k, y) in qs.iter().enumerate() {
@@ -508,8 +842,8 @@ pub(super) fn split_queries<const Q: usize>(qs: &[&[f32]; Q], d: usize) -> (Vec<
         }
         // The steps are rounded to f32 first (the kernel multiplies by the f32 values), so the
         // residual of each term is taken against the step that is actually applied.
-        let s = [m / 127.0, m / (127.0 * 254.0), m / (127.0 * 254.0 * 254.0)]
-            .map(|x| x as f32 as f64);
+        let s =
+            [m / 127.0, m / (127.0 * 254.0), m / (127.0 * 254.0 * 254.0)].map(|x| x as f32 as f64);
         for (j, &v) in y.iter().take(d).enumerate() {
             let mut r = v as f64;
             for t in 0..3 {
@@ -532,39 +866,58 @@ pub(super) fn chunk<const Q: usize>(
     d: usize,
     start: usize,
     end: usize,
-    qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    queries: &Queries<'_, Q>,
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
 ) -> bool {
+    let qs = queries.vectors();
     if !level.available() {
         return false;
     }
     match level {
         #[cfg(target_arch = "x86_64")]
         SimdLevel::Avx2Fma => {
-            // SAFETY: `level.available()` confirmed AVX2 + FMA + F16C on this CPU.
-            unsafe { x86::chunk_avx2::<Q>(vectors, d, start, end, qs, keep, sink) };
+            // SAFETY: `level.available()` confirmed AVX2 + FMA + F16C on this CPU
+            // (`is_x86_feature_detected!`).
+            unsafe { x86::chunk_avx2::<Q>(vectors, d, start, end, qs, keep, out) };
             true
         }
         #[cfg(target_arch = "x86_64")]
         SimdLevel::Avx512 => {
-            // SAFETY: `level.available()` confirmed AVX-512F + AVX2 + FMA + F16C.
-            unsafe { x86::chunk_avx512::<Q>(vectors, d, start, end, qs, keep, sink) };
+            // SAFETY: `level.available()` confirmed AVX-512F + AVX2 + FMA + F16C
+            // (`is_x86_feature_detected!`).
+            unsafe { x86::chunk_avx512::<Q>(vectors, d, start, end, qs, keep, out) };
+            true
+        }
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx512Vnni => {
+            match vectors {
+                // Q > 2: 3·Q term loads per 64 row bytes make VPDPBUSD load-bound; the
+                // convert + FMA kernel measured faster there (`slag-edge bench` kernel table).
+                StoredVectors::I8 { q, scales } if Q <= 2 => {
+                    // SAFETY: `level.available()` confirmed AVX-512F/BW/VNNI
+                    // (`is_x86_feature_detected!`).
+                    unsafe { x86::chunk_i8_vnni::<Q>(q, scales, d, start, end, queries, keep, out) }
+                }
+                // SAFETY: as above (Avx512Vnni implies Avx512).
+                _ => unsafe { x86::chunk_avx512::<Q>(vectors, d, start, end, qs, keep, out) },
+            }
             true
         }
         #[cfg(target_arch = "aarch64")]
         SimdLevel::Neon => {
-            arm::chunk_neon::<Q>(vectors, d, start, end, qs, keep, sink);
+            arm::chunk_neon::<Q>(vectors, d, start, end, qs, keep, out);
             true
         }
         #[cfg(target_arch = "aarch64")]
         SimdLevel::NeonDotprod => {
             match vectors {
                 StoredVectors::I8 { q, scales } => {
-                    // SAFETY: `level.available()` confirmed `dotprod` on this CPU.
-                    unsafe { arm::chunk_i8_sdot::<Q>(q, scales, d, start, end, qs, keep, sink) }
+                    // SAFETY: `level.available()` confirmed `dotprod` on this CPU
+                    // (`is_aarch64_feature_detected!`).
+                    unsafe { arm::chunk_i8_sdot::<Q>(q, scales, d, start, end, queries, keep, out) }
                 }
-                _ => arm::chunk_neon::<Q>(vectors, d, start, end, qs, keep, sink),
+                _ => arm::chunk_neon::<Q>(vectors, d, start, end, qs, keep, out),
             }
             true
         }
