@@ -17,6 +17,8 @@
 pub mod bench;
 pub mod hnsw;
 mod kernels;
+#[cfg(feature = "qdrant-edge")]
+mod qdrant_cmp;
 pub mod select;
 mod simd;
 mod store;
