@@ -260,7 +260,8 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             }
         }
     };
-    let chunks = n.div_ceil(CHUNK_ROWS);
+    let cr = CHUNK_ROWS;
+    let chunks = n.div_ceil(cr);
     let queries = kernels::Queries::new(qs);
     let keep: Option<kernels::Keep<'_>> = match bbox {
         Some(_) => Some(&inside),
@@ -272,8 +273,8 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             // Per task: its selection and one chunk's dot products (`[CHUNK_ROWS][Q]`).
             || (Acc::new(top_k), Vec::new()),
             |(mut acc, mut dots), c| {
-                let start = c * CHUNK_ROWS;
-                let end = (start + CHUNK_ROWS).min(n);
+                let start = c * cr;
+                let end = (start + cr).min(n);
                 dots.clear();
                 dots.resize(end - start, [f32::NAN; Q]);
                 kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &queries, keep, &mut dots);

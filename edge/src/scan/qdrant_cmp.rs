@@ -20,7 +20,6 @@
 //! Qdrant alternately; the report gives both medians, their ratio and each side's top-k IoU
 //! against slag's exact f32 answer on the same rows.
 
-use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -63,7 +62,8 @@ impl Kind {
 
 /// One built Qdrant Edge shard and how to search it.
 pub(super) struct Shard {
-    shard: EdgeShard,
+    /// `None` only while dropping: the shard is closed (and flushed) before its folder goes.
+    shard: Option<EdgeShard>,
     dir: PathBuf,
     params: SearchParams,
     /// Seconds to upsert and optimise.
@@ -72,8 +72,10 @@ pub(super) struct Shard {
 
 impl Drop for Shard {
     fn drop(&mut self) {
-        // Best effort: the shard's files are only scratch data of the benchmark; the scratch
-        // base folder goes too once it is empty.
+        // Close the shard first (its drop flushes into the folder), then remove the folder:
+        // best effort, the files are only scratch data of the benchmark; the scratch base folder
+        // goes too once it is empty.
+        drop(self.shard.take());
         let _ = std::fs::remove_dir_all(&self.dir);
         if let Some(base) = self.dir.parent() {
             let _ = std::fs::remove_dir(base);
@@ -170,7 +172,6 @@ pub(super) fn build(
     // Large enough for one segment, too small for two: the merge optimiser leaves them apart.
     let max_segment_kb = (per_segment * bytes_per_row).div_ceil(1024) * 3 / 2 + 1;
     let config = EdgeConfig::builder()
-        .on_disk_payload(false)
         .vector(DEFAULT_VECTOR_NAME, vp.build())
         .hnsw_config(hnsw)
         .optimizers(EdgeOptimizersConfig {
@@ -207,7 +208,7 @@ pub(super) fn build(
         ..SearchParams::default()
     };
     Ok(Shard {
-        shard,
+        shard: Some(shard),
         dir,
         params,
         build_s,
@@ -227,7 +228,10 @@ impl Shard {
 
     /// Number of segments the shard ended with.
     pub(super) fn segments(&self) -> usize {
-        self.shard.info().map(|i| i.segments_count).unwrap_or(0)
+        self.shard
+            .as_ref()
+            .and_then(|s| s.info().ok())
+            .map_or(0, |i| i.segments_count)
     }
 
     /// Top-`k` rows for `q` (ids are row indices), with `hnsw_ef` for graph searches.
@@ -250,8 +254,11 @@ impl Shard {
         .with_payload(WithPayloadInterface::Bool(false))
         .with_vector(WithVector::Bool(false))
         .build();
-        let hits = self
+        let shard = self
             .shard
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("Qdrant Edge shard already closed"))?;
+        let hits = shard
             .search(req)
             .map_err(|e| anyhow::anyhow!("Qdrant Edge search: {e}"))?;
         hits.iter()
@@ -260,16 +267,5 @@ impl Shard {
                 PointId::Uuid(u) => Err(anyhow::anyhow!("unexpected point id {u}")),
             })
             .collect()
-    }
-}
-
-/// |a ∩ b| / |a ∪ b| of two row sets (1 for two empty sets).
-pub(super) fn iou(a: &HashSet<usize>, b: &HashSet<usize>) -> f64 {
-    let inter = a.intersection(b).count();
-    let union = a.len() + b.len() - inter;
-    if union == 0 {
-        1.0
-    } else {
-        inter as f64 / union as f64
     }
 }
