@@ -56,6 +56,19 @@ pub struct BenchArgs {
     /// Skip the naive single-thread baseline for stores above this size (it is slow).
     #[arg(long, default_value = "8M", value_parser = parse_size)]
     pub naive_max: usize,
+    /// Also run Qdrant Edge 0.9.0 on the same rows and queries (exact f32 / f16, scalar int8 with
+    /// and without rescoring, HNSW), alternating with slag's scans. Needs a binary built with
+    /// `--features qdrant-edge` (Rust >= 1.96); refused otherwise.
+    #[arg(long)]
+    pub qdrant: bool,
+    /// Scratch folder for the Qdrant Edge shards (removed afterwards). Default: a folder in the
+    /// system temp dir.
+    #[arg(long)]
+    pub qdrant_dir: Option<std::path::PathBuf>,
+    /// Oversampling of Qdrant's int8 search with rescoring (it rescores `k × oversampling`
+    /// candidates on the f32 originals).
+    #[arg(long, default_value_t = 1.0)]
+    pub qdrant_oversampling: f64,
 }
 
 impl Default for BenchArgs {
@@ -73,6 +86,9 @@ impl Default for BenchArgs {
             hnsw_size: 100_000,
             hnsw_ef_construction: 100,
             naive_max: 8_000_000,
+            qdrant: false,
+            qdrant_dir: None,
+            qdrant_oversampling: 1.0,
         }
     }
 }
@@ -264,6 +280,15 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<String> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.threads.unwrap_or(0))
         .build()?;
+    anyhow::ensure!(
+        !args.qdrant || cfg!(feature = "qdrant-edge"),
+        "--qdrant needs slag-edge built with `--features qdrant-edge` (Rust >= 1.96): \
+         cargo build --release -p slag-edge --features qdrant-edge"
+    );
+    anyhow::ensure!(
+        args.qdrant_oversampling >= 1.0 && args.qdrant_oversampling.is_finite(),
+        "--qdrant-oversampling must be a finite number >= 1"
+    );
     pool.install(|| run_inner(args))
 }
 
@@ -282,6 +307,7 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     dtypes.sort_by_key(|d| d.code()); // f32 first: the naive baseline runs on it.
     dtypes.dedup();
     let mut rows = Vec::new();
+    let mut qrows: Vec<QRow> = Vec::new();
     let mut skipped = Vec::new();
     for &size in &args.sizes {
         let mut naive: Option<f64> = None;
@@ -368,6 +394,12 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
             if dtype == Dtype::F32 {
                 f32_sets = Some(sets);
             }
+            if args.qdrant {
+                let exact = f32_sets.as_deref().unwrap_or(&[]);
+                qrows.extend(qdrant::exact_rows(
+                    args, size, dtype, &store, &qvecs, exact,
+                )?);
+            }
             rows.push(Row {
                 size,
                 dtype,
@@ -452,6 +484,10 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
         out.push('\n');
     }
 
+    if !qrows.is_empty() {
+        out.push('\n');
+        out.push_str(&qdrant_table(args, &qrows));
+    }
     out.push('\n');
     out.push_str(&kernel_table(args, &dtypes)?);
     if args.hnsw_size > 0 {
@@ -461,12 +497,288 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     Ok(out)
 }
 
-/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level`.
-fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: SimdLevel) -> f64 {
-    let mut sum = 0.0f32;
-    let keep = |_: usize| true;
+/// One side-by-side measurement of slag and Qdrant Edge on the same rows and queries.
+struct QRow {
+    size: usize,
+    /// slag's stored type of this row.
+    dtype: Dtype,
+    /// Qdrant Edge's configuration.
+    label: String,
+    /// Qdrant Edge upsert + optimise seconds, and its segment count.
+    build_s: f64,
+    segments: usize,
+    /// Medians over the queries, answered alternately.
+    slag_ms: f64,
+    qdrant_ms: f64,
+    /// Mean top-k IoU against slag's exact f32 answer on the same rows (`None` without f32).
+    slag_iou: Option<f64>,
+    qdrant_iou: Option<f64>,
+}
+
+fn qdrant_table(args: &BenchArgs, rows: &[QRow]) -> String {
+    let mut out = format!(
+        "Qdrant Edge 0.9.0 side by side (same rows, same {} queries, top-{}, answered \
+         alternately; Dot distance on unit rows; Qdrant's search pool and slag's rayon pool \
+         both {} threads; IoU = mean top-k IoU against slag's exact f32 answer):\n\n\
+         | N | slag dtype | slag top-k ms | Qdrant Edge | Qdrant ms | Qdrant ÷ slag | slag IoU | \
+         Qdrant IoU | Qdrant build s (segments) |\n|---|---|---|---|---|---|---|---|---|\n",
+        args.queries,
+        args.top_k,
+        rayon::current_num_threads()
+    );
+    let f = |x: Option<f64>| x.map_or_else(|| "n/a".to_string(), |v| format!("{v:.4}"));
+    for r in rows {
+        out.push_str(&format!(
+            "| {} | {} | {:.1} | {} | {:.1} | {:.2}× | {} | {} | {:.1} ({}) |\n",
+            fmt_size(r.size),
+            dtype_name(r.dtype),
+            r.slag_ms,
+            r.label,
+            r.qdrant_ms,
+            r.qdrant_ms / r.slag_ms,
+            f(r.slag_iou),
+            f(r.qdrant_iou),
+            r.build_s,
+            r.segments
+        ));
+    }
+    out
+}
+
+/// Mean IoU of `sets[i]` with `exact[i]` (`None` when `exact` is empty).
+#[cfg_attr(not(feature = "qdrant-edge"), allow(dead_code))]
+fn mean_iou(
+    sets: &[std::collections::HashSet<usize>],
+    exact: &[std::collections::HashSet<usize>],
+) -> Option<f64> {
+    (!exact.is_empty()).then(|| {
+        sets.iter().zip(exact).map(|(a, b)| iou(a, b)).sum::<f64>() / sets.len().max(1) as f64
+    })
+}
+
+#[cfg(feature = "qdrant-edge")]
+mod qdrant {
+    //! The Qdrant Edge rows of the report (see `super::super::qdrant_cmp`).
+    use std::collections::HashSet;
+    use std::time::Instant;
+
+    use slag_common::shards::Dtype;
+
+    use super::super::qdrant_cmp::{self, Kind};
+    use super::super::{ScanRequest, VectorStore, scan};
+    use super::{BenchArgs, CLUSTERS, QRow, mean_iou, median};
+
+    fn base(args: &BenchArgs) -> std::path::PathBuf {
+        args.qdrant_dir.clone().unwrap_or_else(|| {
+            std::env::temp_dir().join(format!("slag-qdrant-bench-{}", std::process::id()))
+        })
+    }
+
+    /// Builds Qdrant Edge `kind` over `qrows` (two segments: the thread count of the bench).
+    fn build(
+        args: &BenchArgs,
+        size: usize,
+        qrows: &VectorStore,
+        kind: Kind,
+    ) -> anyhow::Result<qdrant_cmp::Shard> {
+        let threads = rayon::current_num_threads();
+        let label = kind.label(args.qdrant_oversampling);
+        tracing::info!("bench: building {label} over {size} rows");
+        qdrant_cmp::build(
+            &base(args),
+            &format!("exact-{size}"),
+            qrows,
+            kind,
+            0,
+            args.hnsw_ef_construction,
+            threads.max(1),
+            threads,
+            args.qdrant_oversampling,
+        )
+    }
+
+    /// slag's exact top-k on `store` and Qdrant Edge's search on `shard`, alternately.
+    #[allow(clippy::too_many_arguments)]
+    fn side_by_side(
+        args: &BenchArgs,
+        size: usize,
+        dtype: Dtype,
+        store: &VectorStore,
+        shard: &qdrant_cmp::Shard,
+        label: String,
+        qvecs: &[Vec<f32>],
+        exact: &[HashSet<usize>],
+    ) -> anyhow::Result<QRow> {
+        let k = args.top_k;
+        // Warm-up (untimed) on both sides.
+        let q0 = [qvecs[0].as_slice()];
+        scan(store, &ScanRequest::top_k(&q0, k))?;
+        shard.search(&qvecs[0], k, None)?;
+        let (mut ts, mut tq, mut ss, mut sq) = (vec![], vec![], vec![], vec![]);
+        for q in qvecs {
+            let qs = [q.as_slice()];
+            let t = Instant::now();
+            let a = scan(store, &ScanRequest::top_k(&qs, k))?;
+            ts.push(t.elapsed().as_secs_f64() * 1e3);
+            let t = Instant::now();
+            let b = shard.search(q, k, None)?;
+            tq.push(t.elapsed().as_secs_f64() * 1e3);
+            ss.push(a.iter().map(|h| h.row).collect::<HashSet<usize>>());
+            sq.push(b.into_iter().collect::<HashSet<usize>>());
+        }
+        Ok(QRow {
+            size,
+            dtype,
+            label,
+            build_s: shard.build_s,
+            segments: shard.segments(),
+            slag_ms: median(ts),
+            qdrant_ms: median(tq),
+            slag_iou: mean_iou(&ss, exact),
+            qdrant_iou: mean_iou(&sq, exact),
+        })
+    }
+
+    /// The Qdrant Edge rows for slag's `dtype` store of `size` rows: f32 → exact f32, f16 →
+    /// exact f16 (the same halves), int8 → scalar int8 with and without rescoring (one shard)
+    /// over the f32 rows the int8 store was quantised from.
+    pub(super) fn exact_rows(
+        args: &BenchArgs,
+        size: usize,
+        dtype: Dtype,
+        store: &VectorStore,
+        qvecs: &[Vec<f32>],
+        exact: &[HashSet<usize>],
+    ) -> anyhow::Result<Vec<QRow>> {
+        let o = args.qdrant_oversampling;
+        match dtype {
+            Dtype::F32 | Dtype::F16 => {
+                let kind = if dtype == Dtype::F32 {
+                    Kind::F32
+                } else {
+                    Kind::F16
+                };
+                let shard = build(args, size, store, kind)?;
+                let row = side_by_side(
+                    args,
+                    size,
+                    dtype,
+                    store,
+                    &shard,
+                    kind.label(o),
+                    qvecs,
+                    exact,
+                )?;
+                Ok(vec![row])
+            }
+            Dtype::I8 => {
+                let f32_rows =
+                    VectorStore::synthetic(size, store.dim(), Dtype::F32, CLUSTERS, args.seed)?;
+                let mut shard = build(args, size, &f32_rows, Kind::Int8 { rescore: true })?;
+                drop(f32_rows);
+                let mut out = Vec::new();
+                for rescore in [true, false] {
+                    shard.set_rescore(rescore, o);
+                    let label = Kind::Int8 { rescore }.label(o);
+                    out.push(side_by_side(
+                        args, size, dtype, store, &shard, label, qvecs, exact,
+                    )?);
+                }
+                Ok(out)
+            }
+        }
+    }
+
+    /// Qdrant Edge's HNSW (m = 16, one segment) over `store` (f32), searched with hnsw_ef = k and
+    /// 2k: `(label, build s, median ms, mean recall@k)` per ef.
+    pub(super) fn hnsw_rows(
+        args: &BenchArgs,
+        store: &VectorStore,
+        qvecs: &[Vec<f32>],
+        exact: &[HashSet<usize>],
+    ) -> anyhow::Result<Vec<(String, f64, f64, f64)>> {
+        let threads = rayon::current_num_threads();
+        tracing::info!("bench: building Qdrant Edge HNSW over {} rows", store.len());
+        let shard = qdrant_cmp::build(
+            &base(args),
+            "hnsw",
+            store,
+            Kind::F32,
+            16,
+            args.hnsw_ef_construction,
+            1,
+            threads,
+            1.0,
+        )?;
+        let k = args.top_k;
+        let mut out = Vec::new();
+        for ef in [k, 2 * k] {
+            shard.search(&qvecs[0], k, Some(ef))?;
+            let mut ts = Vec::new();
+            let mut rec = Vec::new();
+            for (q, want) in qvecs.iter().zip(exact) {
+                let t = Instant::now();
+                let got = shard.search(q, k, Some(ef))?;
+                ts.push(t.elapsed().as_secs_f64() * 1e3);
+                let found = got.iter().filter(|r| want.contains(r)).count();
+                rec.push(found as f64 / want.len().max(1) as f64);
+            }
+            out.push((
+                format!(
+                    "Qdrant Edge HNSW m=16, ef_construct={}, hnsw_ef={ef}, {} segment(s)",
+                    args.hnsw_ef_construction,
+                    shard.segments()
+                ),
+                shard.build_s,
+                median(ts),
+                rec.iter().sum::<f64>() / rec.len().max(1) as f64,
+            ));
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(not(feature = "qdrant-edge"))]
+mod qdrant {
+    //! Without the `qdrant-edge` feature `run_bench` refuses `--qdrant` before it gets here.
+    use std::collections::HashSet;
+
+    use slag_common::shards::Dtype;
+
+    use super::super::VectorStore;
+    use super::{BenchArgs, QRow};
+
+    pub(super) fn exact_rows(
+        _: &BenchArgs,
+        _: usize,
+        _: Dtype,
+        _: &VectorStore,
+        _: &[Vec<f32>],
+        _: &[HashSet<usize>],
+    ) -> anyhow::Result<Vec<QRow>> {
+        anyhow::bail!("slag-edge was built without the `qdrant-edge` feature")
+    }
+
+    pub(super) fn hnsw_rows(
+        _: &BenchArgs,
+        _: &VectorStore,
+        _: &[Vec<f32>],
+        _: &[HashSet<usize>],
+    ) -> anyhow::Result<Vec<(String, f64, f64, f64)>> {
+        anyhow::bail!("slag-edge was built without the `qdrant-edge` feature")
+    }
+}
+
+/// Time (s) of one single-thread pass of the chunk kernel over `store` at `level` (`out` is the
+/// `[N][Q]` output, reused).
+fn kernel_pass<const Q: usize>(
+    store: &VectorStore,
+    qs: &kernels::Queries<'_, Q>,
+    level: SimdLevel,
+    out: &mut Vec<[f32; Q]>,
+) -> f64 {
+    out.resize(store.len(), [0.0; Q]);
     let t = Instant::now();
-    let mut sink = |_: usize, d: &[f32; Q]| sum += d[0];
     kernels::scan_chunk_at::<Q>(
         level,
         store.vectors(),
@@ -474,11 +786,11 @@ fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: Sim
         0,
         store.len(),
         qs,
-        &keep,
-        &mut sink,
+        None,
+        out,
     );
     let e = t.elapsed().as_secs_f64();
-    std::hint::black_box(sum);
+    std::hint::black_box(&out);
     e
 }
 
@@ -487,16 +799,13 @@ fn kernel_pass<const Q: usize>(store: &VectorStore, qs: &[&[f32]; Q], level: Sim
 fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
     let dim = args.dim;
     let n = ((1usize << 20) / (4 * dim)).max(64);
-    let mut levels = vec![SimdLevel::Baseline];
-    if kernels::avx2_fma_available() {
-        levels.push(SimdLevel::Avx2Fma);
-    }
+    let levels = SimdLevel::available_levels();
     let centres = random_centres(dim, CLUSTERS, args.seed);
     let qv: Vec<Vec<f32>> = (0..5)
         .map(|i| make_query(&centres, dim, i, args.seed))
         .collect();
-    let q1: [&[f32]; 1] = [&qv[0]];
-    let q5: [&[f32]; 5] = [&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]];
+    let q1 = kernels::Queries::new([qv[0].as_slice()]);
+    let q5 = kernels::Queries::new([&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]].map(|v| v.as_slice()));
     let mut out = format!(
         "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n\
          | dtype | Q | SIMD | ns/row | row GB/s |\n|---|---|---|---|---|\n"
@@ -507,12 +816,13 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
         for q in [1usize, 5] {
             for &level in &levels {
                 let mut best = f64::INFINITY;
+                let (mut o1, mut o5) = (Vec::new(), Vec::new());
                 for _ in 0..5 {
                     let mut t = 0.0;
                     for _ in 0..20 {
                         t += match q {
-                            1 => kernel_pass::<1>(&store, &q1, level),
-                            _ => kernel_pass::<5>(&store, &q5, level),
+                            1 => kernel_pass::<1>(&store, &q1, level, &mut o1),
+                            _ => kernel_pass::<5>(&store, &q5, level, &mut o5),
                         };
                     }
                     best = best.min(t / 20.0);
@@ -552,6 +862,7 @@ fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<
     let mut q_ms = Vec::new();
     let mut exact_ms = Vec::new();
     let mut recalls = Vec::new();
+    let mut exact_sets = Vec::new();
     for q in qvecs {
         let t = Instant::now();
         let approx = index.query(q, k)?;
@@ -563,9 +874,26 @@ fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<
         let want: std::collections::HashSet<usize> = exact.iter().map(|h| h.row).collect();
         let found = approx.iter().filter(|h| want.contains(&h.row)).count();
         recalls.push(found as f64 / want.len().max(1) as f64);
+        exact_sets.push(want);
     }
     let mean_recall = recalls.iter().sum::<f64>() / recalls.len().max(1) as f64;
-    Ok(format!(
+    let mut extra = String::new();
+    if args.qdrant {
+        extra.push_str(&format!(
+            "\nHNSW side by side on the same {} rows and queries (slag: instant-distance, \
+             ef_search {ef_search}, one thread per query; recall@{k} against the exact f32 scan):\n\n\
+             | index | build s | query ms | recall@{k} (mean) |\n|---|---|---|---|\n\
+             | slag HNSW (instant-distance) ef_construction={} ef_search={ef_search} | {build_s:.1} \
+             | {:.2} | {mean_recall:.3} |\n",
+            fmt_size(n),
+            args.hnsw_ef_construction,
+            median(q_ms.clone()),
+        ));
+        for (label, b, ms, rec) in qdrant::hnsw_rows(args, &store, qvecs, &exact_sets)? {
+            extra.push_str(&format!("| {label} | {b:.1} | {ms:.2} | {rec:.3} |\n"));
+        }
+    }
+    let table = format!(
         "| HNSW N | D | ef_construction | ef_search | build s | index bytes/Gaussian | query ms | \
          exact f32 scan ms | recall@{k} (mean) |\n|---|---|---|---|---|---|---|---|---|\n\
          | {} | {dim} | {} | {ef_search} | {build_s:.1} | {} | {:.2} | {:.1} | {:.3} |\n",
@@ -575,7 +903,8 @@ fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<
         median(q_ms),
         median(exact_ms),
         mean_recall
-    ))
+    );
+    Ok(table + &extra)
 }
 
 #[cfg(test)]

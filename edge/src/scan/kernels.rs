@@ -186,12 +186,49 @@ pub fn dots_i8<const Q: usize, const FMA: bool>(
     }
 }
 
-/// Row filter of a chunk scan: `true` keeps row `i` (global row index).
-pub type Keep<'a> = &'a dyn Fn(usize) -> bool;
+/// The `Q` query vectors of one scan (each `[d]`), with what some kernels derive from them once
+/// per scan rather than once per chunk: the three-term int8 split of the integer dot-product
+/// kernels (SDOT / VPDPBUSD), computed on first use by whichever thread needs it.
+pub struct Queries<'a, const Q: usize> {
+    qs: [&'a [f32]; Q],
+    split: std::sync::OnceLock<Split<Q>>,
+}
 
-/// Scores rows `start..end` of `vectors` (`[N * d]` as stored) against `qs` and calls
-/// `sink(i, &dots)` for every row `i` with `keep(i)`. Portable body; `FMA` selects fused
-/// multiply-add (only where the CPU has it).
+/// Query split of the integer kernels: `terms` is `[Q · 3 · d]` (query-major, then term), `steps`
+/// the three steps per query (see `simd::split_queries`).
+pub(super) struct Split<const Q: usize> {
+    pub terms: Vec<i8>,
+    pub steps: [[f32; 3]; Q],
+}
+
+impl<'a, const Q: usize> Queries<'a, Q> {
+    /// Wraps `Q` query vectors (used as given; every one must have the store's width `d`, which
+    /// [`scan_chunk_at`] checks).
+    pub fn new(qs: [&'a [f32]; Q]) -> Self {
+        Queries {
+            qs,
+            split: std::sync::OnceLock::new(),
+        }
+    }
+    /// The query vectors.
+    pub fn vectors(&self) -> &[&'a [f32]; Q] {
+        &self.qs
+    }
+    /// The int8 split for rows of width `d` (computed once).
+    pub(super) fn split(&self, d: usize) -> &Split<Q> {
+        self.split.get_or_init(|| {
+            let (terms, steps) = super::simd::split_queries(&self.qs, d);
+            Split { terms, steps }
+        })
+    }
+}
+
+/// Row filter of a chunk scan: `true` keeps row `i` (global row index).
+pub type Keep<'a> = &'a (dyn Fn(usize) -> bool + Sync);
+
+/// Scores rows `start..end` of `vectors` (`[N * d]` as stored) against `qs` into `out[r]` (row
+/// `start + r`) for every row with `keep(i)` (all rows when `None`; other entries are left
+/// untouched). Portable body; `FMA` selects fused multiply-add (only where the CPU has it).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn chunk_impl<const Q: usize, const FMA: bool>(
@@ -200,39 +237,36 @@ fn chunk_impl<const Q: usize, const FMA: bool>(
     start: usize,
     end: usize,
     qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
     convert: impl Fn(&[f16], &mut [f32]) + Copy,
 ) {
-    let mut dots = [0.0f32; Q];
+    let kept = |i: usize| keep.is_none_or(|k| k(i));
     match vectors {
         StoredVectors::F32(v) => {
-            for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
-                let i = start + r;
-                if keep(i) {
-                    dots_f32::<Q, FMA>(row, qs, &mut dots);
-                    sink(i, &dots);
+            let rows = v[start * d..end * d].chunks_exact(d);
+            for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
+                if kept(start + r) {
+                    dots_f32::<Q, FMA>(row, qs, o);
                 }
             }
         }
         StoredVectors::F16(v) => {
             let mut buf = [0.0f32; BLOCK];
-            for (r, row) in v[start * d..end * d].chunks_exact(d).enumerate() {
-                let i = start + r;
-                if keep(i) {
-                    dots_f16::<Q, FMA>(row, qs, &mut buf, &mut dots, convert);
-                    sink(i, &dots);
+            let rows = v[start * d..end * d].chunks_exact(d);
+            for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
+                if kept(start + r) {
+                    dots_f16::<Q, FMA>(row, qs, &mut buf, o, convert);
                 }
             }
         }
         StoredVectors::I8 { q, scales } => {
             let mut buf = [0.0f32; BLOCK];
             let rows = q[start * d..end * d].chunks_exact(d);
-            for (r, (row, &s)) in rows.zip(&scales[start..end]).enumerate() {
-                let i = start + r;
-                if keep(i) {
-                    dots_i8::<Q, FMA>(row, s, qs, &mut buf, &mut dots);
-                    sink(i, &dots);
+            let rows = rows.zip(&scales[start..end]).zip(out.iter_mut());
+            for (r, ((row, &s), o)) in rows.enumerate() {
+                if kept(start + r) {
+                    dots_i8::<Q, FMA>(row, s, qs, &mut buf, o);
                 }
             }
         }
@@ -242,73 +276,119 @@ fn chunk_impl<const Q: usize, const FMA: bool>(
 /// Which instruction set the scan loops run with (see [`simd_level`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SimdLevel {
-    /// The build target's baseline, auto-vectorised (SSE2 on x86_64; NEON + FMA on aarch64).
+    /// The build target's baseline, auto-vectorised portable loops (SSE2 on x86_64; NEON + FMA
+    /// on aarch64); f16 rows converted per [`BLOCK`] through a stack buffer.
     Baseline,
-    /// x86_64 AVX2 + FMA + F16C, selected at run time.
+    /// x86_64 AVX2 + FMA + F16C intrinsics (8 lanes), selected at run time.
     Avx2Fma,
+    /// x86_64 AVX-512F intrinsics (16 lanes; `vcvtph2ps zmm` for f16), selected at run time.
+    Avx512,
+    /// aarch64 NEON intrinsics (FMLA; FCVTL for f16; SXTL + SCVTF for int8).
+    Neon,
+    /// aarch64 NEON with the dot-product extension: as [`SimdLevel::Neon`], int8 rows with SDOT
+    /// against three-term int8 splits of the queries; selected at run time.
+    NeonDotprod,
+    /// x86_64 AVX-512 with VNNI: as [`SimdLevel::Avx512`], int8 rows with `vpdpbusd` against
+    /// three-term int8 splits of the queries; selected at run time.
+    Avx512Vnni,
 }
 
-/// The level used by [`scan`](super::scan): AVX2 + FMA when the x86_64 CPU has both, unless the
-/// environment variable `SLAG_SCAN_SIMD=baseline` forces the portable loops (for measurements).
-/// Detected once per process.
+impl SimdLevel {
+    /// Every level, best last per architecture.
+    pub const ALL: [SimdLevel; 6] = [
+        SimdLevel::Baseline,
+        SimdLevel::Avx2Fma,
+        SimdLevel::Avx512,
+        SimdLevel::Avx512Vnni,
+        SimdLevel::Neon,
+        SimdLevel::NeonDotprod,
+    ];
+
+    /// `true` when this build target and CPU can run the level (detected at run time with
+    /// `is_x86_feature_detected!` / `is_aarch64_feature_detected!`).
+    pub fn available(self) -> bool {
+        match self {
+            SimdLevel::Baseline => true,
+            SimdLevel::Avx2Fma => avx2_fma_available(),
+            #[cfg(target_arch = "x86_64")]
+            SimdLevel::Avx512 => {
+                avx2_fma_available() && std::arch::is_x86_feature_detected!("avx512f")
+            }
+            #[cfg(target_arch = "x86_64")]
+            SimdLevel::Avx512Vnni => {
+                SimdLevel::Avx512.available()
+                    && std::arch::is_x86_feature_detected!("avx512bw")
+                    && std::arch::is_x86_feature_detected!("avx512vnni")
+            }
+            #[cfg(target_arch = "aarch64")]
+            SimdLevel::Neon => true,
+            #[cfg(target_arch = "aarch64")]
+            SimdLevel::NeonDotprod => std::arch::is_aarch64_feature_detected!("dotprod"),
+            #[allow(unreachable_patterns)]
+            _ => false,
+        }
+    }
+
+    /// The levels this CPU can run, baseline first, best last.
+    pub fn available_levels() -> Vec<SimdLevel> {
+        SimdLevel::ALL
+            .into_iter()
+            .filter(|l| l.available())
+            .collect()
+    }
+
+    /// Parses `baseline`, `avx2`, `avx512`, `avx512vnni`, `neon`, `dotprod` (case-insensitive).
+    pub fn from_name(s: &str) -> Option<SimdLevel> {
+        match s.to_ascii_lowercase().as_str() {
+            "baseline" => Some(SimdLevel::Baseline),
+            "avx2" | "avx2fma" => Some(SimdLevel::Avx2Fma),
+            "avx512" => Some(SimdLevel::Avx512),
+            "avx512vnni" | "vnni" => Some(SimdLevel::Avx512Vnni),
+            "neon" => Some(SimdLevel::Neon),
+            "dotprod" | "neondotprod" => Some(SimdLevel::NeonDotprod),
+            _ => None,
+        }
+    }
+}
+
+/// The level used by [`scan`](super::scan): the best available one (AVX-512F, else AVX2 + FMA +
+/// F16C on x86_64; NEON + dotprod, else NEON on aarch64), unless the environment variable
+/// `SLAG_SCAN_SIMD` names an available level (`baseline`, `avx2`, `avx512`, `neon`, `dotprod`;
+/// for measurements). Detected once per process.
 pub fn simd_level() -> SimdLevel {
     static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
     *LEVEL.get_or_init(|| {
-        if std::env::var("SLAG_SCAN_SIMD").is_ok_and(|v| v.eq_ignore_ascii_case("baseline")) {
-            return SimdLevel::Baseline;
+        if let Some(l) = std::env::var("SLAG_SCAN_SIMD")
+            .ok()
+            .and_then(|v| SimdLevel::from_name(&v))
+            .filter(|l| l.available())
+        {
+            return l;
         }
-        if avx2_fma_available() {
-            SimdLevel::Avx2Fma
-        } else {
-            SimdLevel::Baseline
-        }
+        SimdLevel::available_levels()
+            .last()
+            .copied()
+            .unwrap_or(SimdLevel::Baseline)
     })
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma,f16c")]
-fn chunk_avx2<const Q: usize>(
-    vectors: &StoredVectors,
-    d: usize,
-    start: usize,
-    end: usize,
-    qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
-) {
-    use std::arch::x86_64::{__m128i, __m256, _mm256_cvtph_ps};
-    // F16C: 8 halves per instruction (this closure inherits the function's target features, so
-    // the intrinsic is safe to call; the casts are bytemuck's checked plain-data casts).
-    let f16c = |src: &[f16], dst: &mut [f32]| {
-        let (sb, sr) = src.as_chunks::<8>();
-        let (db, dr) = dst.as_chunks_mut::<8>();
-        for (s8, d8) in sb.iter().zip(db) {
-            let bits: [u16; 8] = bytemuck::cast(*s8);
-            let v: __m128i = bytemuck::cast(bits);
-            let f: __m256 = _mm256_cvtph_ps(v);
-            *d8 = bytemuck::cast(f);
-        }
-        for (s, d) in sr.iter().zip(dr) {
-            *d = s.to_f32();
-        }
-    };
-    chunk_impl::<Q, true>(vectors, d, start, end, qs, keep, sink, f16c)
-}
-
-/// Scores rows `start..end` (see the module doc) with the best available [`SimdLevel`] and
-/// calls `sink(i, &dots)` for every row `i` with `keep(i)`, in row order.
+/// Scores rows `start..end` (see the module doc) with the best available [`SimdLevel`]:
+/// `out[r]` = the `Q` dot products of row `start + r`, for every row `i` with `keep(i)` (every
+/// row when `keep` is `None`; the other entries are left as they were).
 ///
-/// Shapes: `vectors` holds `[N * d]` values, `end <= N`, every `qs[q]` is `[d]`.
+/// Shapes (checked by [`scan`](super::scan) before it gets here; a violation is a bug and
+/// panics): `vectors` holds `[N * d]` values, `start <= end <= N`, `out.len() == end - start`,
+/// every `qs[q]` is `[d]`.
 pub fn scan_chunk<const Q: usize>(
     vectors: &StoredVectors,
     d: usize,
     start: usize,
     end: usize,
-    qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    qs: &Queries<'_, Q>,
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
 ) {
-    scan_chunk_at::<Q>(simd_level(), vectors, d, start, end, qs, keep, sink)
+    scan_chunk_at::<Q>(simd_level(), vectors, d, start, end, qs, keep, out)
 }
 
 /// `true` when this CPU can run [`SimdLevel::Avx2Fma`].
@@ -325,8 +405,8 @@ pub fn avx2_fma_available() -> bool {
     }
 }
 
-/// [`scan_chunk`] at an explicit level (benchmarks compare levels in one process). A level the
-/// CPU lacks falls back to [`SimdLevel::Baseline`].
+/// [`scan_chunk`] at an explicit level (benchmarks and tests compare levels in one process). A
+/// level the CPU lacks falls back to [`SimdLevel::Baseline`].
 #[allow(clippy::too_many_arguments)]
 pub fn scan_chunk_at<const Q: usize>(
     level: SimdLevel,
@@ -334,26 +414,36 @@ pub fn scan_chunk_at<const Q: usize>(
     d: usize,
     start: usize,
     end: usize,
-    qs: &[&[f32]; Q],
-    keep: Keep<'_>,
-    sink: &mut dyn FnMut(usize, &[f32; Q]),
+    qs: &Queries<'_, Q>,
+    keep: Option<Keep<'_>>,
+    out: &mut [[f32; Q]],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    if level == SimdLevel::Avx2Fma && avx2_fma_available() {
-        // SAFETY: `chunk_avx2` only needs the AVX2 and FMA instructions, and
-        // `avx2_fma_available` just confirmed both on this CPU (`is_x86_feature_detected!`).
-        // This is the crate's only unsafe: calling a `#[target_feature]` function.
-        #[allow(unsafe_code)]
-        unsafe {
-            chunk_avx2::<Q>(vectors, d, start, end, qs, keep, sink)
-        };
+    assert!(
+        start <= end && end * d <= vectors.values() && out.len() == end - start,
+        "scan_chunk: rows {start}..{end} of dim {d}, {} values, {} outputs",
+        vectors.values(),
+        out.len()
+    );
+    assert!(
+        qs.vectors().iter().all(|q| q.len() == d),
+        "scan_chunk: query width != {d}"
+    );
+    if super::simd::chunk::<Q>(level, vectors, d, start, end, qs, keep, out) {
         return;
     }
-    let _ = level;
     // aarch64 always has FMA (and NEON); elsewhere plain multiply + add. f16 rows go through
     // `half`'s run-time-detected slice conversion (F16C / FP16) here.
     const FMA: bool = cfg!(target_arch = "aarch64");
-    chunk_impl::<Q, FMA>(vectors, d, start, end, qs, keep, sink, convert_f16_portable)
+    chunk_impl::<Q, FMA>(
+        vectors,
+        d,
+        start,
+        end,
+        qs.vectors(),
+        keep,
+        out,
+        convert_f16_portable,
+    )
 }
 
 #[cfg(test)]
@@ -384,25 +474,36 @@ mod tests {
         for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
             let store = VectorStore::synthetic(300, d, dtype, 4, 2).expect("store");
             let keep = |i: usize| i % 7 != 3;
-            let mut per_level = Vec::new();
-            for level in [SimdLevel::Baseline, SimdLevel::Avx2Fma] {
-                let mut got: Vec<(usize, [f32; 5])> = Vec::new();
-                let mut sink = |i: usize, dots: &[f32; 5]| got.push((i, *dots));
-                scan_chunk_at::<5>(level, store.vectors(), d, 10, 300, &qs, &keep, &mut sink);
-                per_level.push(got);
-            }
-            assert_eq!(per_level[0].len(), (10..300).filter(|&i| keep(i)).count());
-            for ((ia, a), (ib, b)) in per_level[0].iter().zip(&per_level[1]) {
-                assert_eq!(ia, ib);
-                let row = store.row_f32(*ia).expect("row");
-                for q in 0..5 {
-                    let r: f64 = row
-                        .iter()
-                        .zip(&qv[q])
-                        .map(|(&x, &y)| x as f64 * y as f64)
-                        .sum();
-                    assert!((a[q] as f64 - r).abs() < 1e-5, "{dtype:?} baseline");
-                    assert!((b[q] as f64 - r).abs() < 1e-5, "{dtype:?} simd");
+            let want = (10..300).filter(|&i| keep(i)).count();
+            for level in SimdLevel::available_levels() {
+                let mut out = vec![[f32::NAN; 5]; 290];
+                let qq = Queries::new(qs);
+                scan_chunk_at::<5>(
+                    level,
+                    store.vectors(),
+                    d,
+                    10,
+                    300,
+                    &qq,
+                    Some(&keep),
+                    &mut out,
+                );
+                let got: Vec<(usize, [f32; 5])> =
+                    (10..300).zip(out).filter(|(_, o)| !o[0].is_nan()).collect();
+                assert_eq!(got.len(), want, "{level:?}");
+                let mut prev = 0;
+                for (i, a) in &got {
+                    assert!(*i >= prev && keep(*i), "{level:?}: rows out of order");
+                    prev = *i;
+                    let row = store.row_f32(*i).expect("row");
+                    for q in 0..5 {
+                        let r: f64 = row
+                            .iter()
+                            .zip(&qv[q])
+                            .map(|(&x, &y)| x as f64 * y as f64)
+                            .sum();
+                        assert!((a[q] as f64 - r).abs() < 1e-5, "{dtype:?} {level:?}");
+                    }
                 }
             }
         }
@@ -450,5 +551,283 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Scores `rows` (`[n * d]` as f64 values of the stored type) against `qs` in f64.
+    fn reference(rows: &StoredVectors, d: usize, qs: &[Vec<f32>]) -> Vec<Vec<f64>> {
+        let n = rows.values() / d.max(1);
+        (0..n)
+            .map(|i| {
+                let row: Vec<f64> = match rows {
+                    StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
+                    StoredVectors::F16(v) => {
+                        v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
+                    }
+                    StoredVectors::I8 { q, scales } => q[i * d..][..d]
+                        .iter()
+                        .map(|&x| x as f64 * scales[i] as f64)
+                        .collect(),
+                };
+                qs.iter().map(|q| ref_dot(row.iter().copied(), q)).collect()
+            })
+            .collect()
+    }
+
+    /// Every available level against the f64 reference: `|got − ref| ≤ 1e-5 · Σ|x_j·q_j| +
+    /// 1e-6 · Σ|x_j| · max|q|` (f32 rounding of D products; the SDOT split's 6e-8 · max|q|).
+    fn check_levels<const Q: usize>(
+        rows: &StoredVectors,
+        d: usize,
+        qv: &[Vec<f32>],
+    ) -> Result<(), proptest::test_runner::TestCaseError> {
+        let n = rows.values() / d;
+        let qs: [&[f32]; Q] = std::array::from_fn(|q| qv[q].as_slice());
+        let want = reference(rows, d, qv);
+        let row_f64 = |i: usize| -> Vec<f64> {
+            match rows {
+                StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
+                StoredVectors::F16(v) => {
+                    v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
+                }
+                StoredVectors::I8 { q, scales } => q[i * d..][..d]
+                    .iter()
+                    .map(|&x| x as f64 * scales[i] as f64)
+                    .collect(),
+            }
+        };
+        for level in SimdLevel::available_levels() {
+            let mut out = vec![[f32::NAN; Q]; n];
+            scan_chunk_at::<Q>(level, rows, d, 0, n, &Queries::new(qs), None, &mut out);
+            let got: Vec<(usize, [f32; Q])> = out.into_iter().enumerate().collect();
+            proptest::prop_assert_eq!(got.len(), n);
+            for (i, dots) in got {
+                let row = row_f64(i);
+                for q in 0..Q {
+                    let abs: f64 = row
+                        .iter()
+                        .zip(&qv[q])
+                        .map(|(x, &y)| (x * y as f64).abs())
+                        .sum();
+                    let l1: f64 = row.iter().map(|x| x.abs()).sum();
+                    let m = qv[q].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+                    let tol = 1e-5 * abs + 1e-6 * l1 * m + 1e-30;
+                    let err = (dots[q] as f64 - want[i][q]).abs();
+                    proptest::prop_assert!(
+                        err <= tol,
+                        "{:?} {:?} d={} q={} row={}: {} vs {} (tol {})",
+                        level,
+                        rows.dtype(),
+                        d,
+                        q,
+                        i,
+                        dots[q],
+                        want[i][q],
+                        tol
+                    );
+                }
+            }
+        }
+        Ok(())
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+
+        /// Every SIMD kernel equals the scalar f64 reference for any width (tails included), any
+        /// query count, every stored type.
+        #[test]
+        fn simd_kernels_match_the_scalar_reference(
+            d in 1usize..300,
+            n in 1usize..6,
+            nq in 0usize..5,
+            seed in proptest::prelude::any::<u64>(),
+            mag in proptest::sample::select(vec![1e-3f32, 1.0, 300.0]),
+        ) {
+            let mut s = seed | 1;
+            let vals: Vec<f32> = (0..n * d).map(|_| lcg(&mut s) * mag).collect();
+            let qv: Vec<Vec<f32>> = (0..8).map(|_| (0..d).map(|_| lcg(&mut s)).collect()).collect();
+            let f16s = vals.iter().map(|&x| f16::from_f32(x)).collect();
+            let mut q = Vec::new();
+            let scales: Vec<f32> = vals
+                .chunks_exact(d)
+                .map(|r| {
+                    let mut b = Vec::new();
+                    let sc = slag_common::shards::format::quantize_i8(r, &mut b);
+                    q.extend(b.iter().map(|&x| x as i8));
+                    sc
+                })
+                .collect();
+            for rows in [StoredVectors::F32(vals.clone()), StoredVectors::F16(f16s), StoredVectors::I8 { q, scales }] {
+                match [1, 2, 3, 5, 8][nq] {
+                    1 => check_levels::<1>(&rows, d, &qv)?,
+                    2 => check_levels::<2>(&rows, d, &qv)?,
+                    3 => check_levels::<3>(&rows, d, &qv)?,
+                    5 => check_levels::<5>(&rows, d, &qv)?,
+                    _ => check_levels::<8>(&rows, d, &qv)?,
+                }
+            }
+        }
+    }
+
+    /// Dots of every available level vs [`SimdLevel::Baseline`] (the portable scalar-order
+    /// fallback): equal within f32 rounding when finite, the same NaN / ±inf otherwise.
+    fn same_as_baseline<const Q: usize>(
+        rows: &StoredVectors,
+        d: usize,
+        qv: &[Vec<f32>],
+        what: &str,
+    ) {
+        let n = rows.values() / d;
+        let qs: [&[f32]; Q] = std::array::from_fn(|q| qv[q].as_slice());
+        let queries = Queries::new(qs);
+        let mut base = vec![[0.0f32; Q]; n];
+        scan_chunk_at::<Q>(
+            SimdLevel::Baseline,
+            rows,
+            d,
+            0,
+            n,
+            &queries,
+            None,
+            &mut base,
+        );
+        for level in SimdLevel::available_levels() {
+            let mut got = vec![[0.0f32; Q]; n];
+            scan_chunk_at::<Q>(level, rows, d, 0, n, &queries, None, &mut got);
+            for i in 0..n {
+                for q in 0..Q {
+                    let (a, b) = (got[i][q], base[i][q]);
+                    let ok = if a.is_finite() && b.is_finite() {
+                        let row: Vec<f64> = match rows {
+                            StoredVectors::F32(v) => {
+                                v[i * d..][..d].iter().map(|&x| x as f64).collect()
+                            }
+                            StoredVectors::F16(v) => {
+                                v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
+                            }
+                            StoredVectors::I8 { q: b8, scales } => b8[i * d..][..d]
+                                .iter()
+                                .map(|&x| x as f64 * scales[i] as f64)
+                                .collect(),
+                        };
+                        let abs: f64 = row
+                            .iter()
+                            .zip(&qv[q])
+                            .map(|(x, &y)| (x * y as f64).abs())
+                            .sum();
+                        let l1: f64 = row.iter().map(|x| x.abs()).sum();
+                        let m = qv[q].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+                        ((a - b) as f64).abs() <= 2e-5 * abs + 2e-6 * l1 * m + 1e-30
+                    } else {
+                        (a.is_nan() && b.is_nan()) || a == b
+                    };
+                    assert!(
+                        ok,
+                        "{what} {level:?} d={d} row {i} query {q}: {a} vs baseline {b}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn simd_levels_equal_the_scalar_fallback_on_edge_case_rows() {
+        let mut s = 5u64;
+        // Widths around every lane count (8, 16, 64 bytes) and the f16 block.
+        for d in [
+            1usize, 7, 8, 9, 15, 16, 17, 63, 64, 65, 127, 255, 256, 257, 511, 512, 513,
+        ] {
+            let qv: Vec<Vec<f32>> = (0..2)
+                .map(|_| (0..d).map(|_| lcg(&mut s)).collect())
+                .collect();
+            let zero_q = vec![vec![0.0f32; d], qv[0].clone()];
+            // f16: zeros, subnormals (smallest and largest), the largest finite, ±inf, normal.
+            let specials = [
+                f16::ZERO,
+                f16::NEG_ZERO,
+                f16::from_bits(0x0001),
+                f16::from_bits(0x03ff),
+                f16::from_bits(0x8001),
+                f16::MAX,
+                f16::MIN,
+                f16::from_f32(0.3),
+            ];
+            let mut h = Vec::new();
+            for r in 0..6 {
+                for j in 0..d {
+                    h.push(match r {
+                        0 => f16::ZERO,
+                        1 => specials[j % specials.len()],
+                        2 => f16::from_bits(0x0001 + (j as u16 % 0x3ff)), // all subnormal
+                        3 if j == d / 2 => f16::INFINITY,
+                        4 if j == 0 => f16::NEG_INFINITY,
+                        _ => f16::from_f32(lcg(&mut s)),
+                    });
+                }
+            }
+            let h = StoredVectors::F16(h);
+            same_as_baseline::<1>(&h, d, &qv, "f16");
+            same_as_baseline::<2>(&h, d, &qv, "f16");
+            same_as_baseline::<2>(&h, d, &zero_q, "f16 zero query");
+            // int8: zeros, the extremes ±127 and -128, alternating signs, random.
+            let mut q8 = Vec::new();
+            for r in 0..5 {
+                for j in 0..d {
+                    q8.push(match r {
+                        0 => 0i8,
+                        1 => 127,
+                        2 => -128,
+                        3 => {
+                            if j % 2 == 0 {
+                                127
+                            } else {
+                                -127
+                            }
+                        }
+                        _ => (lcg(&mut s) * 127.0) as i8,
+                    });
+                }
+            }
+            let i8s = StoredVectors::I8 {
+                q: q8,
+                scales: vec![1.0, 0.5, 1e-3, 7.0, 0.01],
+            };
+            same_as_baseline::<1>(&i8s, d, &qv, "int8");
+            same_as_baseline::<2>(&i8s, d, &qv, "int8");
+            same_as_baseline::<2>(&i8s, d, &zero_q, "int8 zero query");
+            // A query with a huge dynamic range (the int8 split's steps follow its largest value).
+            let mut wide = qv[1].clone();
+            wide[0] = 1e3;
+            same_as_baseline::<1>(&i8s, d, &[wide], "int8 wide query");
+            let f = StoredVectors::F32((0..4 * d).map(|_| lcg(&mut s)).collect());
+            same_as_baseline::<1>(&f, d, &qv, "f32");
+            same_as_baseline::<2>(&f, d, &qv, "f32");
+        }
+    }
+
+    #[test]
+    fn query_split_reconstructs_within_its_bound() {
+        let mut s = 11u64;
+        let d = 77;
+        let qv: Vec<Vec<f32>> = (0..2)
+            .map(|_| (0..d).map(|_| lcg(&mut s)).collect())
+            .collect();
+        let zero = vec![0.0f32; d];
+        let qs: [&[f32]; 3] = [&qv[0], &qv[1], &zero];
+        let (terms, steps) = crate::scan::simd::split_queries(&qs, d);
+        for k in 0..3 {
+            let m = qs[k].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+            for j in 0..d {
+                let r: f64 = (0..3)
+                    .map(|t| steps[k][t] as f64 * terms[(k * 3 + t) * d + j] as f64)
+                    .sum();
+                assert!(
+                    (r - qs[k][j] as f64).abs() <= m * 7e-8 + 1e-12,
+                    "query {k} component {j}: {r} vs {}",
+                    qs[k][j]
+                );
+            }
+        }
+        assert_eq!(steps[2], [0.0; 3]);
     }
 }

@@ -17,7 +17,10 @@
 pub mod bench;
 pub mod hnsw;
 mod kernels;
+#[cfg(feature = "qdrant-edge")]
+mod qdrant_cmp;
 pub mod select;
+mod simd;
 mod store;
 
 use rayon::prelude::*;
@@ -257,19 +260,34 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             }
         }
     };
-    let chunks = n.div_ceil(CHUNK_ROWS);
+    let cr = CHUNK_ROWS;
+    let chunks = n.div_ceil(cr);
+    let queries = kernels::Queries::new(qs);
+    let keep: Option<kernels::Keep<'_>> = match bbox {
+        Some(_) => Some(&inside),
+        None => None,
+    };
     (0..chunks)
         .into_par_iter()
         .fold(
-            || Acc::new(top_k),
-            |mut acc, c| {
-                let start = c * CHUNK_ROWS;
-                let end = (start + CHUNK_ROWS).min(n);
-                let mut sink = |i: usize, dots: &[f32; Q]| offer(&mut acc, i, dots);
-                kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &qs, &inside, &mut sink);
-                acc
+            // Per task: its selection and one chunk's dot products (`[CHUNK_ROWS][Q]`).
+            || (Acc::new(top_k), Vec::new()),
+            |(mut acc, mut dots), c| {
+                let start = c * cr;
+                let end = (start + cr).min(n);
+                dots.clear();
+                dots.resize(end - start, [f32::NAN; Q]);
+                kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &queries, keep, &mut dots);
+                for (r, row_dots) in dots.iter().enumerate() {
+                    let i = start + r;
+                    if bbox.is_none() || inside(i) {
+                        offer(&mut acc, i, row_dots);
+                    }
+                }
+                (acc, dots)
             },
         )
+        .map(|(acc, _)| acc)
         .reduce(|| Acc::new(top_k), Acc::merge)
         .into_sorted()
 }

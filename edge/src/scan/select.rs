@@ -5,7 +5,6 @@
 //! not depend on how rows were split between threads.
 
 use std::cmp::Ordering;
-use std::collections::BinaryHeap;
 
 /// One scored row of a [`VectorStore`](super::VectorStore).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
@@ -22,34 +21,16 @@ pub fn rank_cmp(a: &Hit, b: &Hit) -> Ordering {
     b.score.total_cmp(&a.score).then(a.row.cmp(&b.row))
 }
 
-/// Heap entry whose `Ord` puts the *worst* hit on top of a max-heap.
-#[derive(Debug, Clone, Copy)]
-struct Worst(Hit);
-
-impl PartialEq for Worst {
-    fn eq(&self, other: &Self) -> bool {
-        self.cmp(other) == Ordering::Equal
-    }
-}
-impl Eq for Worst {}
-impl PartialOrd for Worst {
-    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
-        Some(self.cmp(other))
-    }
-}
-impl Ord for Worst {
-    fn cmp(&self, other: &Self) -> Ordering {
-        // Worse rank = greater.
-        rank_cmp(&self.0, &other.0)
-    }
-}
-
-/// Keeps the `k` best hits seen so far in O(k) memory.
+/// Keeps the `k` best hits seen so far in O(k) memory: candidates at or above the current floor
+/// go into a buffer of up to `2k + 64` hits, which is then cut back to the best `k`
+/// (`select_nth_unstable`, O(k)), raising the floor to the `k`-th best score. Amortised O(1) per
+/// offered hit (a binary heap costs O(log k) per accepted one).
 #[derive(Debug, Clone)]
 pub struct TopK {
     k: usize,
-    heap: BinaryHeap<Worst>,
-    /// Score of the current worst kept hit once full (`-inf` until then): a cheap pre-filter.
+    buf: Vec<Hit>,
+    /// Score of the `k`-th best hit at the last cut (`-inf` before): rows strictly below it can
+    /// never be selected.
     floor: f32,
 }
 
@@ -58,55 +39,58 @@ impl TopK {
     pub fn new(k: usize) -> Self {
         TopK {
             k,
-            heap: BinaryHeap::with_capacity(k.min(1 << 16)),
+            buf: Vec::new(),
             floor: f32::NEG_INFINITY,
+        }
+    }
+
+    /// Buffer length that triggers a cut.
+    fn limit(&self) -> usize {
+        self.k.saturating_mul(2).saturating_add(64)
+    }
+
+    /// Cuts the buffer back to its best `k` hits and raises the floor.
+    fn cut(&mut self) {
+        if self.buf.len() > self.k {
+            if self.k == 0 {
+                self.buf.clear();
+                return;
+            }
+            self.buf.select_nth_unstable_by(self.k - 1, rank_cmp);
+            self.buf.truncate(self.k);
+            self.floor = self.buf[self.k - 1].score;
         }
     }
 
     /// Offers a hit. NaN scores are never kept.
     #[inline]
     pub fn push(&mut self, row: usize, score: f32) {
-        // Fast reject: strictly below the current floor (ties go through the exact compare).
-        if score < self.floor || score.is_nan() || self.k == 0 {
+        // Strictly below the floor (or NaN): never selected. Ties go in; the cut orders them.
+        if score.is_nan() || score < self.floor || self.k == 0 {
             return;
         }
-        let hit = Hit { row, score };
-        if self.heap.len() < self.k {
-            self.heap.push(Worst(hit));
-            if self.heap.len() == self.k {
-                self.floor = self.heap.peek().map_or(f32::NEG_INFINITY, |w| w.0.score);
-            }
-        } else {
-            let replaced = match self.heap.peek_mut() {
-                Some(mut top) if rank_cmp(&hit, &top.0) == Ordering::Less => {
-                    *top = Worst(hit);
-                    true
-                }
-                _ => false,
-            };
-            if replaced {
-                self.floor = self.heap.peek().map_or(f32::NEG_INFINITY, |w| w.0.score);
-            }
+        self.buf.push(Hit { row, score });
+        if self.buf.len() >= self.limit() {
+            self.cut();
         }
     }
 
     /// Merges another selector (same `k`) into this one; the result is exactly the top-k of the
     /// union of both inputs.
-    pub fn merge(mut self, other: TopK) -> TopK {
-        let (mut big, small) = if self.heap.len() >= other.heap.len() {
-            (std::mem::replace(&mut self, TopK::new(0)), other)
-        } else {
-            (other, self)
-        };
-        for w in small.heap {
-            big.push(w.0.row, w.0.score);
+    pub fn merge(mut self, mut other: TopK) -> TopK {
+        if self.buf.len() < other.buf.len() {
+            std::mem::swap(&mut self, &mut other);
         }
-        big
+        for h in other.buf {
+            self.push(h.row, h.score);
+        }
+        self
     }
 
     /// The kept hits, best first (higher score, then lower row).
-    pub fn into_sorted(self) -> Vec<Hit> {
-        let mut v: Vec<Hit> = self.heap.into_iter().map(|w| w.0).collect();
+    pub fn into_sorted(mut self) -> Vec<Hit> {
+        self.cut();
+        let mut v = self.buf;
         v.sort_unstable_by(rank_cmp);
         v
     }
