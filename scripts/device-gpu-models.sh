@@ -119,9 +119,9 @@ scaling)
   counts=${2:-1,2}; prec=${PREC:-f16}
   [ -f /root/big/report-synth.json ] || { "$B" synth-scene --gaussians 2M --views 250 --width 990 --height 742 --out /root/big > /root/big-synth.json && cp /root/big-synth.json /root/big/report-synth.json; }
   echo "### scaling $counts: e2e scene, ViT-H $prec + CLIP $prec on CUDA"
-  "$BB" scaling --scene /root/big --ep cuda --raster-scale 0.5 "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
+  "$BB" scaling --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
     --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" 2>&1 | tail -30
-  for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json" 2>/dev/null; done
+  for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json" 2>/dev/null; done; true
   ;;
 esac
 # At most 8 files come back from a call: pack the results into one archive.

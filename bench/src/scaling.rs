@@ -1,6 +1,9 @@
 //! `slag-bench scaling`: the same encode on 1, 2, … GPUs of one host (issue 5, item 2): wall
 //! time, images per second, speed-up and efficiency against the first count, and each GPU's
-//! rasterizer busy share (dynamic balancing shows as even shares).
+//! rasterizer busy share (dynamic balancing shows as even shares), and where the wall goes besides
+//! the images: the fill (when the last GPU's rasterizer got its first image), the drain (the
+//! spread of the rasterizers' last image ends) and the serial tail after the last image (the
+//! reduction to `E_k` and the write).
 //!
 //! Efficiency follows the usual definition: `t(g0)·g0 / (t(g)·g)` with `g0` the first count
 //! (normally 1). Each count is one run (the issue asks for one run each); the encode's outputs go
@@ -28,8 +31,8 @@ pub struct ScalingArgs {
 /// The scaling table of finished runs `(gpus, report)`, first entry the baseline.
 pub fn table(runs: &[(usize, Report)]) -> String {
     let mut s = String::from(
-        "| GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU | images per GPU |\n\
-         |---:|---:|---:|---:|---:|---|---|\n",
+        "| GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU | images per GPU | first image s (last GPU) | last images end s (spread) | after the last image s |\n\
+         |---:|---:|---:|---:|---:|---|---|---:|---|---:|\n",
     );
     let Some((g0, r0)) = runs.first() else {
         return s;
@@ -48,13 +51,22 @@ pub fn table(runs: &[(usize, Report)]) -> String {
             .map(|w| format!("{:.0}", 100.0 * w.busy_s / t))
             .collect();
         let imgs: Vec<String> = backs.iter().map(|w| w.images.to_string()).collect();
+        let first = backs.iter().map(|w| w.first_s).fold(0.0, f64::max);
+        let last_max = backs.iter().map(|w| w.last_s).fold(0.0, f64::max);
+        let last_min = backs.iter().map(|w| w.last_s).fold(f64::INFINITY, f64::min);
+        let spread = if backs.is_empty() {
+            0.0
+        } else {
+            last_max - last_min
+        };
         s += &format!(
-            "| {g} | {t:.1} | {:.2} | {:.2} | {:.2} | {} | {} |\n",
+            "| {g} | {t:.1} | {:.2} | {:.2} | {:.2} | {} | {} | {first:.2} | {last_max:.1} ({spread:.2}) | {:.1} |\n",
             n / t,
             t0 / t / *g0 as f64,
             t0 / t / *g as f64,
             busy.join(" "),
-            imgs.join("/")
+            imgs.join("/"),
+            t - last_max,
         );
     }
     s
@@ -91,4 +103,65 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
         .unwrap_or_else(|| a.encode.out.join("scaling.md"));
     slag_common::embeddings::write_atomic(&path, md.as_bytes())?;
     Ok(md)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use slag_encoder::report::WorkerShare;
+
+    fn run(total: f64, backs: &[(usize, f64, f64, f64)]) -> Report {
+        let mut r = Report::default();
+        r.timings.total = total;
+        r.counts.views_used = backs.iter().map(|b| b.0).sum();
+        r.workers = backs
+            .iter()
+            .enumerate()
+            .map(|(i, &(images, busy_s, first_s, last_s))| WorkerShare {
+                name: format!("raster-{i} test"),
+                images,
+                busy_s,
+                first_s,
+                last_s,
+            })
+            .chain(std::iter::once(WorkerShare {
+                name: "front-0".into(),
+                images: 9,
+                busy_s: 1.0,
+                first_s: 0.0,
+                last_s: 99.0,
+            }))
+            .collect();
+        r
+    }
+
+    #[test]
+    fn efficiency_fill_drain_and_tail_come_from_the_raster_workers() {
+        let md = table(&[
+            (1, run(40.0, &[(100, 30.0, 0.5, 36.0)])),
+            (
+                4,
+                run(
+                    12.5,
+                    &[
+                        (25, 8.0, 0.5, 9.0),
+                        (25, 8.0, 1.5, 10.0),
+                        (24, 7.0, 1.0, 9.5),
+                        (26, 8.0, 0.7, 9.8),
+                    ],
+                ),
+            ),
+        ]);
+        let rows: Vec<&str> = md.lines().skip(2).collect();
+        assert_eq!(rows.len(), 2, "{md}");
+        // 40 s on 1 GPU, 12.5 s on 4: speed-up 3.2, efficiency 0.80; front workers are ignored.
+        assert_eq!(
+            rows[0],
+            "| 1 | 40.0 | 2.50 | 1.00 | 1.00 | 75 | 100 | 0.50 | 36.0 (0.00) | 4.0 |"
+        );
+        assert_eq!(
+            rows[1],
+            "| 4 | 12.5 | 8.00 | 3.20 | 0.80 | 64 64 56 64 | 25/25/24/26 | 1.50 | 10.0 (1.00) | 2.5 |"
+        );
+    }
 }

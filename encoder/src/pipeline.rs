@@ -230,6 +230,19 @@ pub fn read_image(view: &View) -> Result<RgbImage> {
     Ok(img)
 }
 
+/// The rayon pool of back worker `g` of `n_back`: an equal share of the global pool's threads
+/// (at least 2). `None` (with a warning) when the OS refuses the threads; the worker then uses
+/// the global pool, which is correct, only slower under load.
+fn back_pool(g: usize, n_back: usize) -> Option<rayon::ThreadPool> {
+    let threads = (rayon::current_num_threads() / n_back.max(1)).max(2);
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(move |i| format!("slag-raster-{g}-{i}"))
+        .build()
+        .map_err(|e| tracing::warn!(error = %e, "no rayon pool for rasterizer {g}; using the global pool"))
+        .ok()
+}
+
 fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
     let style =
         ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
@@ -460,8 +473,12 @@ pub fn encode_pool(
                     let i = next_view.fetch_add(1, Ordering::SeqCst);
                     let Some(view) = views.get(i) else { break };
                     let t0 = Instant::now();
+                    if share.images == 0 {
+                        share.first_s = (t0 - t_total).as_secs_f64();
+                    }
                     let item = front_stage(view, i, &mut *front.masks, &mut *front.crops, dim);
                     share.busy_s += t0.elapsed().as_secs_f64();
+                    share.last_s = t_total.elapsed().as_secs_f64();
                     bar_front.inc(1);
                     match item {
                         Ok(item) => {
@@ -499,7 +516,12 @@ pub fn encode_pool(
                     name,
                     ..Default::default()
                 };
-                loop {
+                // Each rasterizer's host work (binning sort, readback, a_kj sums) runs on a rayon
+                // pool of its own, so that it never queues behind the front workers' jobs (SAM
+                // post-processing, crops) in the global pool: the back is the pipeline's
+                // critical path.
+                let pool = back_pool(g, n_back);
+                let mut run = || loop {
                     // Take the next finished front item; the lock is held only while waiting.
                     let item = match rx.lock() {
                         Ok(rx) => rx.recv(),
@@ -510,6 +532,9 @@ pub fn encode_pool(
                         break;
                     }
                     let t0 = Instant::now();
+                    if share.images == 0 {
+                        share.first_s = (t0 - t_total).as_secs_f64();
+                    }
                     let res = (|| -> Result<()> {
                         let (view, n_masks) = (item.view, item.masks.len());
                         let (decode_s, masks_s, clip_s) =
@@ -565,6 +590,7 @@ pub fn encode_pool(
                     })();
                     share.busy_s += t0.elapsed().as_secs_f64();
                     bar_back.inc(1);
+                    share.last_s = t_total.elapsed().as_secs_f64();
                     match res {
                         Ok(()) => share.images += 1,
                         Err(e) => {
@@ -572,6 +598,10 @@ pub fn encode_pool(
                             break;
                         }
                     }
+                };
+                match &pool {
+                    Some(pool) => pool.install(run),
+                    None => run(),
                 }
                 share
             }));

@@ -99,4 +99,11 @@ pub struct WorkerShare {
     pub images: usize,
     /// Seconds it spent working (excluding waits for input or for a free queue slot).
     pub busy_s: f64,
+    /// Seconds from the start of the run's wall clock ([`StageTimings::total`]) to the start of
+    /// this worker's first image (0 when it processed none): the pipeline's fill time.
+    pub first_s: f64,
+    /// Seconds from the start of the wall clock to the end of this worker's last image: the
+    /// drain shows as the spread of these over the workers, and the serial tail (reduction,
+    /// write) as `total` minus their maximum.
+    pub last_s: f64,
 }

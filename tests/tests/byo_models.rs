@@ -154,8 +154,7 @@ fn exported_models_encode_and_query() {
         &tokenizer,
         "a red chair",
     ))
-    .err()
-    .expect("a text tower of another CLIP model must be refused");
+    .expect_err("a text tower of another CLIP model must be refused");
     let msg = e.to_string();
     assert!(
         matches!(

@@ -126,6 +126,15 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         .map(|w| w.images)
         .sum();
     assert_eq!((fronts, backs, r2.workers.len()), (7, 7, 5));
+    // Fill and drain times lie inside the wall clock, in order, for every worker that worked.
+    for w in r2.workers.iter().filter(|w| w.images > 0) {
+        assert!(
+            0.0 <= w.first_s && w.first_s <= w.last_s && w.last_s <= r2.timings.total,
+            "{w:?} total {}",
+            r2.timings.total
+        );
+        assert!(w.busy_s <= w.last_s - w.first_s + 1e-3, "{w:?}");
+    }
     assert_eq!(r2.counts.masks, r1.counts.masks);
     assert_eq!(r2.counts.entries, r1.counts.entries);
 
