@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use image::RgbImage;
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
-use slag_common::camera::{self, Intrinsics, View};
+use slag_common::camera::{self, Intrinsics, View, WorldToCamera};
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision, write_atomic};
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::{Error, Result};
@@ -162,19 +162,101 @@ pub(crate) struct BackOut {
     pub contribution: ImageContribution,
     /// Seconds in the rasterizer (with GPU label sums: the pass and its readback).
     pub raster_s: f64,
-    /// Seconds of the host side of the image stage ([`aggregate::view_contribution`]).
+    /// Seconds of the host side of the image stage ([`view_contribution`]).
     pub contribution_s: f64,
     /// Pixels the contributions were counted over (all, or those covered by a mask when the
-    /// rasterizer summed per label; [`aggregate::ViewStats`]).
+    /// rasterizer summed per label; [`ViewStats`]).
     pub pixels: u64,
     /// `(pixel, Gaussian)` contributions over those pixels.
     pub raster_entries: u64,
-    /// Whether the sums were made on the GPU ([`aggregate::ViewStats::device_sums`]).
+    /// Whether the sums were made on the GPU ([`ViewStats::device_sums`]).
     pub device_sums: bool,
 }
 
+/// What [`view_contribution`] measured of one view.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ViewStats {
+    /// Seconds in the rasterizer (with label sums: the GPU pass and its readback).
+    pub raster_s: f64,
+    /// Seconds in the host side of the image stage (labels, expansion, or the host sums).
+    pub aggregate_s: f64,
+    /// Raster pixels.
+    pub pixels: usize,
+    /// (pixel, Gaussian) contributions: all of them on the list path, those of pixels covered by
+    /// a mask on the label-sum path.
+    pub contributions: u64,
+    /// Pixels the contributions were counted over (all, or the labelled ones).
+    pub counted_pixels: usize,
+    /// Whether the rasterizer summed per label on its device ([`WeightRasterizer::label_sums`]).
+    pub device_sums: bool,
+}
+
+/// Raster + image stage of one view: the [`ImageContribution`] of `masks` (full resolution) and
+/// their embeddings. Without `top_k_per_pixel` and with a rasterizer that sums per label on its
+/// device (the GPU rasterizer), only the per-(Gaussian, label) sums leave the device (SLAG's
+/// `a_kj = Σ_{p∈M_j} w_kp` with masks expanded from labels on the host); otherwise the per-pixel
+/// lists are rasterized and summed by [`image_contribution`]. Both give the same `a_kj` up to
+/// the device path's 2^-32 fixed point per weight.
+///
+/// Errors: as [`image_contribution`] and the rasterizer's.
+pub fn view_contribution(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    masks: &[Mask],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+    params: ImageStageParams,
+) -> Result<(ImageContribution, ViewStats)> {
+    aggregate::image::check_image_inputs(masks, &mask_embeddings, dim)?;
+    let pixels = intrinsics.width as usize * intrinsics.height as usize;
+    if params.top_k_per_pixel.is_none() && !masks.is_empty() {
+        let t0 = Instant::now();
+        let mut labels = aggregate::pixel_labels(masks, intrinsics.width, intrinsics.height);
+        if params.overlap == crate::levels::MaskOverlap::Finest {
+            crate::levels::restrict_to_finest(&mut labels.masks_of, masks);
+        }
+        let t1 = Instant::now();
+        if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
+            let t2 = Instant::now();
+            let mut entries = aggregate::image::expand_labels(
+                sums.sums.iter().map(|e| (e.gaussian, e.label, e.weight())),
+                &labels.masks_of,
+            );
+            aggregate::image::weight_entries(&mut entries, masks, params.mask_weighting);
+            let stats = ViewStats {
+                raster_s: (t2 - t1).as_secs_f64(),
+                aggregate_s: (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
+                pixels,
+                contributions: sums.contributions,
+                counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
+                device_sums: true,
+            };
+            let c = ImageContribution {
+                dim,
+                mask_embeddings,
+                entries,
+            };
+            return Ok((c, stats));
+        }
+    }
+    let t0 = Instant::now();
+    let weights = rasterizer.rasterize(intrinsics, world_to_camera)?;
+    let t1 = Instant::now();
+    let c = aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?;
+    let stats = ViewStats {
+        raster_s: (t1 - t0).as_secs_f64(),
+        aggregate_s: t1.elapsed().as_secs_f64(),
+        pixels,
+        contributions: weights.ids.len() as u64,
+        counted_pixels: pixels,
+        device_sums: false,
+    };
+    Ok((c, stats))
+}
+
 /// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
-/// ([`aggregate::view_contribution`]: GPU label sums, or weights then the host image stage).
+/// ([`view_contribution`]: GPU label sums, or weights then the host image stage).
 ///
 /// Errors: those of the rasterizer and the image stage; [`Error::Invalid`] for a view index out
 /// of range of `views` or `raster_intrinsics` (an internal error).
@@ -195,7 +277,7 @@ pub(crate) fn back_stage(
             raster_intrinsics.len()
         )));
     };
-    let (contribution, vs) = aggregate::view_contribution(
+    let (contribution, vs) = view_contribution(
         rasterizer,
         k,
         &view.world_to_camera,

@@ -53,7 +53,7 @@ pub struct Counts {
     /// Chunks the reduction used.
     pub reduce_chunks: usize,
     /// Views whose `a_kj` were summed on the GPU per (Gaussian, mask-set label)
-    /// ([`crate::aggregate::view_contribution`]); the others went through per-pixel lists.
+    /// ([`crate::pipeline::view_contribution`]); the others went through per-pixel lists.
     pub device_sum_views: usize,
     /// Peak resident memory of the process (`VmHWM` of /proc/self/status), bytes; `None` where
     /// the platform does not report it.

@@ -94,7 +94,7 @@ pub trait WeightRasterizer: Send {
     ) -> Result<PixelWeights>;
     /// Per-label sums of one view's blend weights, `Σ_{p: labels[p] = l} w_kp` for every
     /// Gaussian k and label l ≠ 0 with a contribution: the image stage's `a_kj` before masks are
-    /// expanded from labels (see [`crate::aggregate::view_contribution`]), without the per-pixel
+    /// expanded from labels (see [`crate::pipeline::view_contribution`]), without the per-pixel
     /// lists ever leaving the device. `labels` is `[height × width]` row-major at the raster size
     /// of `intrinsics`, 0 = no label. Sums sorted by (Gaussian, label), one entry per key.
     ///

@@ -552,7 +552,8 @@ fn random_masks(seed: u64, width: u32, height: u32, n: usize) -> Vec<crate::mask
 
 #[test]
 fn gpu_label_sums_equal_the_host_image_stage() {
-    use crate::aggregate::{ImageStageParams, image_contribution, view_contribution};
+    use crate::aggregate::{ImageStageParams, image_contribution};
+    use crate::pipeline::view_contribution;
     for seed in 0..4u64 {
         let g = random_scene(seed, 600 + seed as usize * 250);
         let (k, w2c) = test_camera(seed);
@@ -615,7 +616,8 @@ fn gpu_label_sums_equal_the_host_image_stage() {
 
 #[test]
 fn top_k_and_mask_free_views_take_the_list_path() {
-    use crate::aggregate::{ImageStageParams, image_contribution, view_contribution};
+    use crate::aggregate::{ImageStageParams, image_contribution};
+    use crate::pipeline::view_contribution;
     let g = random_scene(11, 500);
     let (k, w2c) = test_camera(11);
     let Some(mut gpu) = gpu(&g) else { return };

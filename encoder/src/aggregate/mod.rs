@@ -1,0 +1,39 @@
+//! Parameter masking and aggregation: SLAG's per-Gaussian embedding
+//!
+//! ```text
+//!   a_kj = Σ_{p ∈ M_j} w_kp                       (image stage, one image)
+//!   E_k  = Σ_i Σ_j a_kj · E_j  /  Σ_i Σ_j a_kj    (reduction over all images)
+//! ```
+//!
+//! The image stage ([`image_contribution`]) turns one image's per-pixel blend weights
+//! ([`PixelWeights`]) and masks into the sparse non-zero `a_kj` ([`Entry`]); nothing dense leaves it.
+//! Overlapping masks are handled exactly: pixels are grouped by the *set* of masks covering them
+//! (a "signature"), weights are summed per (Gaussian, signature), then expanded to each mask of the
+//! signature. The reduction ([`reduce`]) accumulates in f64, chunked over Gaussian ids so that the
+//! accumulator stays within a memory budget however large the scene, and declares a Gaussian
+//! *unobserved* (no embedding) when `Σ a_kj` is below a threshold or the weighted mean vanishes.
+//! [`reduce_mixture`] runs the same reduction but keeps each `E_k` as a sparse mixture of the
+//! shared mask embeddings (`slag_common::mixture`), the compressed storage form.
+//!
+//! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
+//! image), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
+//! reduction, spilling to disk beyond a budget), [`reduce`] (the f64 reduction to `E_k`, in
+//! memory or streamed to the embeddings file) and [`mixture`] (the same reduction kept as a sparse
+//! mixture). The rasterizer is driven by the pipeline's back stage
+//! ([`crate::pipeline::view_contribution`]), not from here: this module is the paper's math only.
+
+pub mod image;
+pub mod mixture;
+pub mod reduce;
+pub mod store;
+
+pub use image::{
+    Entry, ImageContribution, ImageStageParams, MaskWeighting, PixelLabels, image_contribution,
+    pixel_labels,
+};
+pub use mixture::reduce_mixture;
+pub use reduce::{ReduceParams, Reduced, Streamed, reduce, reduce_each, reduce_to_writer};
+pub use store::ContributionStore;
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,391 @@
+//! The reduction `E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj` in f64, chunked over Gaussian ids within a
+//! memory budget, into memory ([`reduce`]) or streamed to the embeddings file ([`reduce_to_writer`]).
+
+use rayon::prelude::*;
+use slag_common::embeddings::EmbeddingsWriter;
+use slag_common::{Error, Result};
+
+use super::*;
+
+/// Knobs of the reduction.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ReduceParams {
+    /// A Gaussian whose `Σ a_kj` is below this is *unobserved* and gets no embedding.
+    pub min_total_weight: f64,
+    /// Upper bound on the f64 accumulator, bytes; the Gaussians are processed in chunks that fit.
+    pub accumulator_budget_bytes: usize,
+    /// Use the image-major loop (the spilled path's) even when every contribution is in memory.
+    /// Same values bit for bit, only slower; kept so that benchmarks can measure the two orders
+    /// against each other in one run (`slag-bench reduce`).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub image_major: bool,
+}
+
+impl Default for ReduceParams {
+    fn default() -> Self {
+        Self {
+            min_total_weight: 1e-6,
+            accumulator_budget_bytes: 2 << 30,
+            image_major: false,
+        }
+    }
+}
+
+/// Result of the reduction: the observed Gaussians with their `E_k`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Reduced {
+    /// Observed Gaussian indices, ascending.
+    pub ids: Vec<u32>,
+    /// `[ids.len() * dim]`, rows L2-normalised `E_k`.
+    pub vectors: Vec<f32>,
+    /// `Σ_i Σ_j a_kj` per observed Gaussian.
+    pub total_weights: Vec<f32>,
+    /// Number of chunks the reduction used.
+    pub chunks: usize,
+}
+
+impl Reduced {
+    /// Runs in ascending id order joined into one (`chunks` summed).
+    pub fn concat(parts: Vec<Reduced>) -> Reduced {
+        let rows: usize = parts.iter().map(|p| p.ids.len()).sum();
+        let values: usize = parts.iter().map(|p| p.vectors.len()).sum();
+        let mut out = Reduced {
+            ids: Vec::with_capacity(rows),
+            vectors: Vec::with_capacity(values),
+            total_weights: Vec::with_capacity(rows),
+            chunks: 0,
+        };
+        for p in parts {
+            out.ids.extend_from_slice(&p.ids);
+            out.vectors.extend_from_slice(&p.vectors);
+            out.total_weights.extend_from_slice(&p.total_weights);
+            out.chunks += p.chunks;
+        }
+        out
+    }
+}
+
+/// `E_k = Σ a_kj E_j / Σ a_kj` over every stored contribution, for Gaussians `0..n_gaussians`,
+/// normalised to unit length (cosine queries). f64 accumulation; chunked over Gaussian ids.
+/// Unobserved: `Σ a < min_total_weight`, or the weighted mean's norm below 1e-9 of `Σ a`
+/// (mask embeddings that cancel out carry no direction).
+pub fn reduce(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+) -> Result<Reduced> {
+    let mut out = Reduced::default();
+    out.chunks = reduce_each(store, n_gaussians, dim, params, |parts| {
+        let part = Reduced::concat(parts);
+        out.ids.extend_from_slice(&part.ids);
+        out.vectors.extend_from_slice(&part.vectors);
+        out.total_weights.extend_from_slice(&part.total_weights);
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// [`reduce`] without collecting: for each chunk of Gaussian ids (ascending), hands `sink` the
+/// chunk's observed rows as consecutive [`Reduced`] runs in ascending id order (observed ids
+/// `[B]`, unit vectors `[B * dim]`, `Σ a_kj` `[B]`, `chunks` 0; one run per block of Gaussians), owned, so
+/// that a sink may pass them to a writer thread and overlap the write with the next chunk's
+/// accumulation. Memory: the f64 accumulators (one chunk's, ≤ `params.accumulator_budget_bytes`,
+/// on the image-major path; one block's per thread otherwise) plus one chunk's output, whatever
+/// the scene size. Returns the number of chunks.
+///
+/// Errors: a contribution of another width ([`Error::Invalid`]); spill-file I/O; `sink`'s errors.
+pub fn reduce_each(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+    mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
+) -> Result<usize> {
+    let per_gaussian = (dim + 1) * 8;
+    let mut chunk =
+        (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    if store.spilled() == 0 && !params.image_major {
+        // The block-major loop needs no chunk-wide accumulator: smaller chunks (at least 8 of
+        // them, of at least 64 Ki Gaussians) only let the writer overlap more of the work.
+        chunk = chunk.min(n_gaussians.div_ceil(8).max(1 << 16));
+    }
+    accumulate(
+        store,
+        n_gaussians,
+        dim,
+        chunk,
+        params.image_major,
+        |_, _, _| Ok(0),
+        |_: &mut (), _, _| {},
+        |sums| {
+            let mut out = Reduced {
+                chunks: 0,
+                ..Default::default()
+            };
+            for (r, row, norm, d) in sums.observed(params.min_total_weight) {
+                out.ids.push((sums.start + r) as u32);
+                out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
+                out.total_weights.push(d as f32);
+            }
+            out
+        },
+        &mut sink,
+    )
+}
+
+/// What [`reduce_to_writer`] leaves: the writer with every observed row pushed (call
+/// [`EmbeddingsWriter::finish`]), the number of chunks, and the reduction's wall time in seconds
+/// until its last chunk was handed to the writer thread.
+pub struct Streamed {
+    /// The writer, all rows pushed, not yet finished.
+    pub writer: EmbeddingsWriter,
+    /// Chunks the reduction used.
+    pub chunks: usize,
+    /// Seconds from the start until the last chunk was handed on (the rest of the call's time
+    /// is the writer finishing its last chunk).
+    pub reduce_s: f64,
+}
+
+/// [`reduce_each`] streamed into `writer` (the encoder's tail): a writer thread converts and
+/// writes the runs of chunk c while chunk c + 1 is accumulated; at most one chunk waits in
+/// between, so memory stays at the accumulators plus two chunks' output. `means` are all
+/// Gaussian centres (`[N]`, world frame, `.ply` order), written beside each row.
+///
+/// Errors: those of [`reduce_each`]; the writer's (I/O, non-finite rows), which take precedence
+/// over the reduction's "writer stopped" error they cause.
+pub fn reduce_to_writer(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    params: ReduceParams,
+    writer: EmbeddingsWriter,
+) -> Result<Streamed> {
+    let t0 = std::time::Instant::now();
+    std::thread::scope(|s| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Reduced>>(1);
+        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
+            let mut writer = writer;
+            let mut run_means: Vec<[f32; 3]> = Vec::new();
+            for run in rx.into_iter().flatten() {
+                run_means.clear();
+                for &k in &run.ids {
+                    run_means.push(*means.get(k as usize).ok_or_else(|| {
+                        Error::Invalid(format!("Gaussian {k} has no mean ({} given)", means.len()))
+                    })?);
+                }
+                writer.push(&run.ids, &run_means, &run.vectors, &run.total_weights)?;
+            }
+            Ok(writer)
+        });
+        let reduced = reduce_each(store, means.len(), dim, params, |runs| {
+            tx.send(runs)
+                .map_err(|_| Error::Invalid("the embeddings writer stopped early".into()))
+        });
+        let reduce_s = t0.elapsed().as_secs_f64();
+        drop(tx);
+        let writer = handle
+            .join()
+            .map_err(|_| Error::internal("the embeddings writer thread panicked"))??;
+        Ok(Streamed {
+            writer,
+            chunks: reduced?,
+            reduce_s,
+        })
+    })
+}
+
+/// One run of Gaussian ids (a chunk, or a block of one) after every contribution was added:
+/// `Σ_i Σ_j a_kj E_j` and `Σ_i Σ_j a_kj` in f64 for Gaussians `start..start + den.len()`, plus a
+/// per-Gaussian extra (`T`) that the entry hook of [`accumulate`] filled.
+pub(super) struct ChunkSums<T> {
+    /// First Gaussian id of the chunk.
+    pub(super) start: usize,
+    /// Embedding width D.
+    pub(super) dim: usize,
+    /// `[B * D]` weighted sums `Σ a_kj E_j`.
+    pub(super) num: Vec<f64>,
+    /// `[B]` total weights `Σ a_kj`.
+    pub(super) den: Vec<f64>,
+    /// `[B]` per-Gaussian extras.
+    pub(super) extra: Vec<T>,
+}
+
+impl<T: Clone + Default> ChunkSums<T> {
+    /// Zeroed sums for Gaussians `start..start + len`, reusing the buffers.
+    fn reset(&mut self, start: usize, len: usize) {
+        self.start = start;
+        self.num.clear();
+        self.num.resize(len * self.dim, 0.0);
+        self.den.clear();
+        self.den.resize(len, 0.0);
+        self.extra.clear();
+        self.extra.resize(len, T::default());
+    }
+
+    /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`.
+    /// Unobserved (skipped): `Σ a` NaN or below `min_total_weight`, or the norm not finite or
+    /// at most `1e-9 · Σ a` (mask embeddings that cancel out carry no direction).
+    pub(super) fn observed(
+        &self,
+        min_total_weight: f64,
+    ) -> impl Iterator<Item = (usize, &[f64], f64, f64)> {
+        self.den.iter().enumerate().filter_map(move |(r, &d)| {
+            // NaN sums count as unobserved too.
+            if d.is_nan() || d < min_total_weight {
+                return None;
+            }
+            let row = &self.num[r * self.dim..(r + 1) * self.dim];
+            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if !norm.is_finite() || norm <= 1e-9 * d {
+                return None;
+            }
+            Some((r, row, norm, d))
+        })
+    }
+}
+
+/// The f64 accumulation shared by [`reduce_each`] and [`reduce_mixture`]: for each chunk of
+/// `chunk` Gaussian ids, visits every contribution ([`ContributionStore::for_each`] order) and adds
+/// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian; `finish` turns each run of final
+/// sums into a part (in parallel), and `done` receives the chunk's parts in ascending id order.
+/// Within a Gaussian the sums always run in contribution, then entry order, so every caller and
+/// both loop orders below get bit-identical f64 values.
+///
+/// Loop order ([`ReduceParams::image_major`]):
+/// - *Gaussian-block-major* (default when no contribution is spilled): rayon over blocks of
+///   [`REDUCE_BLOCK`] Gaussians, each block visiting every image's entries of its id range into
+///   its thread's accumulator (`REDUCE_BLOCK × D` f64, 512 KiB at D = 512, reused from block to
+///   block), which stays in the core's cache while all images are added; `finish` runs per
+///   block. The memory traffic is one read of the entries and mask embeddings.
+/// - *Image-major* (spilled contributions, streamed from disk one at a time): a chunk-sized
+///   accumulator; for each image, rayon over blocks of 1024 Gaussians; every entry reads and
+///   writes its Gaussian's f64 row in memory; `finish` runs once on the whole chunk.
+///
+/// Hooks: `on_image(first_chunk, image, c)` runs once per contribution and chunk, in visit order,
+/// before its entries are added (after the width check; `image` counts the contributions of this
+/// chunk's visit from 0) and returns a tag passed to `on_entry` (the mixture's codebook offset);
+/// `on_entry(extra, entry, tag)` sees every entry with its Gaussian's extra, in the per-Gaussian
+/// order above. The first error of a width mismatch or `on_image` is returned and no part of
+/// that chunk is handed on (spill-file I/O errors come first). Returns the number of chunks.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    chunk: usize,
+    image_major: bool,
+    mut on_image: impl FnMut(bool, usize, &ImageContribution) -> Result<u32>,
+    on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
+    finish: impl Fn(&ChunkSums<T>) -> B + Sync,
+    mut done: impl FnMut(Vec<B>) -> Result<()>,
+) -> Result<usize> {
+    let width_check = |c: &ImageContribution| {
+        if c.dim != dim {
+            return Err(Error::Invalid(format!(
+                "contribution of dim {}, expected {dim}",
+                c.dim
+            )));
+        }
+        Ok(())
+    };
+    let empty = || ChunkSums {
+        start: 0,
+        dim,
+        num: Vec::new(),
+        den: Vec::new(),
+        extra: Vec::new(),
+    };
+    let mut chunks = 0;
+    for start in (0..n_gaussians).step_by(chunk) {
+        chunks += 1;
+        let end = (start + chunk).min(n_gaussians);
+        if store.spilled() == 0 && !image_major {
+            let images = &store.in_memory;
+            let mut tags = Vec::with_capacity(images.len());
+            for (image, c) in images.iter().enumerate() {
+                width_check(c)?;
+                tags.push(on_image(start == 0, image, c)?);
+            }
+            let parts: Vec<B> = (start..end)
+                .step_by(REDUCE_BLOCK)
+                .collect::<Vec<_>>()
+                .into_par_iter()
+                .map_init(empty, |sums, g0| {
+                    sums.reset(g0, REDUCE_BLOCK.min(end - g0));
+                    for (c, &tag) in images.iter().zip(&tags) {
+                        let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
+                        add_entries(c, g0 as u32, dim, num, den, extra, tag, &on_entry);
+                    }
+                    finish(sums)
+                })
+                .collect();
+            done(parts)?;
+        } else {
+            const BLOCK: usize = 1024;
+            let mut sums = empty();
+            sums.reset(start, end - start);
+            let mut failure: Option<Error> = None;
+            let mut image = 0usize;
+            store.for_each(|c| {
+                if failure.is_some() {
+                    return;
+                }
+                let tag = match width_check(c).and_then(|()| on_image(start == 0, image, c)) {
+                    Ok(tag) => tag,
+                    Err(e) => {
+                        failure = Some(e);
+                        return;
+                    }
+                };
+                image += 1;
+                sums.num
+                    .par_chunks_mut(BLOCK * dim)
+                    .zip(sums.den.par_chunks_mut(BLOCK))
+                    .zip(sums.extra.par_chunks_mut(BLOCK))
+                    .enumerate()
+                    .for_each(|(b, ((num, den), extra))| {
+                        let g0 = (start + b * BLOCK) as u32;
+                        add_entries(c, g0, dim, num, den, extra, tag, &on_entry);
+                    });
+            })?;
+            if let Some(e) = failure {
+                return Err(e);
+            }
+            done(vec![finish(&sums)])?;
+        }
+    }
+    Ok(chunks)
+}
+
+/// Gaussians per task of the Gaussian-block-major reduction ([`accumulate`]).
+const REDUCE_BLOCK: usize = 128;
+
+/// Adds one image's entries for Gaussians `g0..g0 + db.len()` (its entries are sorted by
+/// Gaussian) to that block's sums: `db[r] += a`, `nb[r·D..(r+1)·D] += a · E_j`, in entry order.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn add_entries<T>(
+    c: &ImageContribution,
+    g0: u32,
+    dim: usize,
+    nb: &mut [f64],
+    db: &mut [f64],
+    xb: &mut [T],
+    tag: u32,
+    on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
+) {
+    let g1 = g0 + db.len() as u32;
+    let lo = c.entries.partition_point(|e| e.gaussian < g0);
+    let hi = lo + c.entries[lo..].partition_point(|e| e.gaussian < g1);
+    for e in &c.entries[lo..hi] {
+        let r = (e.gaussian - g0) as usize;
+        let a = e.weight as f64;
+        db[r] += a;
+        let ej = &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
+        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
+            *acc += a * v as f64;
+        }
+        on_entry(&mut xb[r], e, tag);
+    }
+}

@@ -1,0 +1,574 @@
+//! Tests of the image stage, the store and the reductions.
+#![allow(clippy::unwrap_used)]
+
+use super::*;
+use crate::masks::Mask;
+use crate::raster::PixelWeights;
+use rustc_hash::FxHashMap;
+use slag_common::Error;
+use std::path::Path;
+
+fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
+    let px = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| f(x, y) as u8)
+        .collect();
+    Mask::from_pixels(w, h, px).unwrap()
+}
+
+/// Random-ish PixelWeights with 0..4 contributors per pixel.
+fn weights(w: u32, h: u32, n: u32, seed: u64) -> PixelWeights {
+    let mut s = seed;
+    let mut next = || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        s
+    };
+    let mut pw = PixelWeights {
+        width: w,
+        height: h,
+        offsets: vec![0],
+        ..Default::default()
+    };
+    for _ in 0..w * h {
+        let c = next() % 5;
+        for _ in 0..c {
+            pw.ids.push((next() % n as u64) as u32);
+            pw.weights.push((next() % 1000) as f32 / 4000.0 + 1e-3);
+        }
+        pw.offsets.push(pw.ids.len() as u32);
+    }
+    pw
+}
+
+/// Brute force straight from the paper's formula.
+fn brute(pw: &PixelWeights, masks: &[Mask]) -> FxHashMap<(u32, u32), f64> {
+    let mut m = FxHashMap::default();
+    for (j, mk) in masks.iter().enumerate() {
+        for y in 0..pw.height {
+            for x in 0..pw.width {
+                if mk.contains(x, y) {
+                    let (ids, ws) = pw.pixel(x, y);
+                    for (&k, &w) in ids.iter().zip(ws) {
+                        *m.entry((k, j as u32)).or_insert(0.0) += w as f64;
+                    }
+                }
+            }
+        }
+    }
+    m
+}
+
+#[test]
+fn mask_weighting_scales_each_masks_a_kj() {
+    let (w, h, n) = (37, 23, 50);
+    let pw = weights(w, h, n, 0x51ed);
+    let mut masks = vec![
+        mask(w, h, |x, _| x < 20),
+        mask(w, h, |x, y| x > 10 && y > 5),
+        mask(w, h, |_, _| true),
+    ];
+    masks[0].predicted_iou = 0.5;
+    masks[0].stability_score = 0.8;
+    masks[1].predicted_iou = f32::NAN;
+    let expect = brute(&pw, &masks);
+    for weighting in [MaskWeighting::Area, MaskWeighting::SamScore] {
+        let params = ImageStageParams {
+            mask_weighting: weighting,
+            ..ImageStageParams::default()
+        };
+        let c = image_contribution(&pw, &masks, vec![0.0; 3 * 2], 2, params).unwrap();
+        assert_eq!(c.entries.len(), expect.len());
+        for e in &c.entries {
+            let m = &masks[e.mask as usize];
+            let g = match weighting {
+                MaskWeighting::Area => (w * h) as f64 / m.area as f64,
+                _ if e.mask == 0 => 0.4,
+                _ if e.mask == 1 => f32::MIN_POSITIVE as f64,
+                _ => 1.0,
+            };
+            let v = g * expect[&(e.gaussian, e.mask)];
+            assert!(
+                (v - e.weight as f64).abs() < 1e-5 * v.max(1e-30),
+                "{weighting:?} {e:?} vs {v}"
+            );
+        }
+    }
+    assert_eq!(MaskWeighting::None.factor(&masks[1]), 1.0);
+    assert_eq!(MaskWeighting::Area.factor(&masks[2]), 1.0);
+}
+
+#[test]
+fn image_stage_matches_brute_force_with_overlapping_masks() {
+    let (w, h, n) = (37, 23, 50);
+    let pw = weights(w, h, n, 0x9e3779b97f4a7c15);
+    let masks = vec![
+        mask(w, h, |x, _| x < 20),
+        mask(w, h, |x, y| x > 10 && y > 5),
+        mask(w, h, |x, y| (x + y) % 3 == 0),
+        mask(w, h, |_, _| true),
+    ];
+    let c = image_contribution(
+        &pw,
+        &masks,
+        vec![0.0; 4 * 2],
+        2,
+        ImageStageParams::default(),
+    )
+    .unwrap();
+    let expect = brute(&pw, &masks);
+    assert_eq!(c.entries.len(), expect.len());
+    for e in &c.entries {
+        let v = expect[&(e.gaussian, e.mask)];
+        assert!(
+            (v - e.weight as f64).abs() < 1e-5 * v.max(1.0),
+            "{e:?} vs {v}"
+        );
+    }
+    assert!(
+        c.entries
+            .windows(2)
+            .all(|p| (p[0].gaussian, p[0].mask) < (p[1].gaussian, p[1].mask))
+    );
+}
+
+#[test]
+fn masks_are_resampled_to_a_smaller_raster() {
+    // Full-res masks 40x20, raster 20x10: raster pixel (x, y) samples mask pixel (2x+1, 2y+1).
+    let masks = vec![mask(40, 20, |x, _| x >= 20)];
+    let mut pw = PixelWeights {
+        width: 20,
+        height: 10,
+        offsets: vec![0],
+        ..Default::default()
+    };
+    for p in 0..200u32 {
+        pw.ids.push(p);
+        pw.weights.push(0.5);
+        pw.offsets.push(pw.ids.len() as u32);
+    }
+    let c = image_contribution(&pw, &masks, vec![1.0], 1, ImageStageParams::default()).unwrap();
+    assert_eq!(c.entries.len(), 100);
+    assert!(
+        c.entries
+            .iter()
+            .all(|e| e.gaussian % 20 >= 10 && e.weight == 0.5)
+    );
+}
+
+#[test]
+fn top_k_keeps_largest_contributors() {
+    let masks = vec![mask(1, 1, |_, _| true)];
+    let pw = PixelWeights {
+        width: 1,
+        height: 1,
+        offsets: vec![0, 4],
+        ids: vec![0, 1, 2, 3],
+        weights: vec![0.1, 0.4, 0.05, 0.3],
+    };
+    let c = image_contribution(
+        &pw,
+        &masks,
+        vec![1.0],
+        1,
+        ImageStageParams {
+            top_k_per_pixel: Some(2),
+            ..ImageStageParams::default()
+        },
+    )
+    .unwrap();
+    let kept: Vec<u32> = c.entries.iter().map(|e| e.gaussian).collect();
+    assert_eq!(kept, vec![1, 3]);
+}
+
+#[test]
+fn reduction_is_the_weighted_mean_and_flags_unobserved() {
+    let dim = 3;
+    let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
+    // Image 1: masks e_x and e_y. Gaussian 0: a=1 in both; Gaussian 2: a=3 in e_y only.
+    store
+        .push(ImageContribution {
+            dim,
+            mask_embeddings: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            entries: vec![
+                Entry {
+                    gaussian: 0,
+                    mask: 0,
+                    weight: 1.0,
+                },
+                Entry {
+                    gaussian: 0,
+                    mask: 1,
+                    weight: 1.0,
+                },
+                Entry {
+                    gaussian: 2,
+                    mask: 1,
+                    weight: 3.0,
+                },
+                Entry {
+                    gaussian: 3,
+                    mask: 0,
+                    weight: 1e-9,
+                },
+            ],
+        })
+        .unwrap();
+    // Image 2: mask e_z. Gaussian 0: a=2.
+    store
+        .push(ImageContribution {
+            dim,
+            mask_embeddings: vec![0.0, 0.0, 1.0],
+            entries: vec![Entry {
+                gaussian: 0,
+                mask: 0,
+                weight: 2.0,
+            }],
+        })
+        .unwrap();
+    let r = reduce(&store, 5, dim, ReduceParams::default()).unwrap();
+    assert_eq!(r.ids, vec![0, 2]); // 1 and 4 unseen, 3 below the threshold
+    let n = (1.0f64 + 1.0 + 4.0).sqrt();
+    let e0: Vec<f32> = [1.0 / n, 1.0 / n, 2.0 / n]
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    for (a, b) in r.vectors[..3].iter().zip(&e0) {
+        assert!((a - b).abs() < 1e-6);
+    }
+    assert_eq!(&r.vectors[3..6], &[0.0, 1.0, 0.0]);
+    assert_eq!(r.total_weights, vec![4.0, 3.0]);
+}
+
+#[test]
+fn chunked_and_spilled_reduction_equals_single_pass() {
+    let dim = 4;
+    let n = 5000;
+    let make = |seed: u64| {
+        let pw = weights(30, 20, n, seed);
+        let masks = vec![mask(30, 20, |x, _| x < 15), mask(30, 20, |_, y| y < 12)];
+        let emb: Vec<f32> = (0..8)
+            .map(|i| ((i * 7 + seed as usize) % 5) as f32 - 2.0)
+            .collect();
+        image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let mut all_mem = ContributionStore::new(usize::MAX, dir.path().join("a"));
+    let mut spilling = ContributionStore::new(0, dir.path().join("b"));
+    for seed in 1..6 {
+        all_mem.push(make(seed)).unwrap();
+        spilling.push(make(seed)).unwrap();
+    }
+    assert_eq!(spilling.spilled(), 5);
+    let one = reduce(&all_mem, n as usize, dim, ReduceParams::default()).unwrap();
+    let tight = ReduceParams {
+        accumulator_budget_bytes: 1024 * (dim + 1) * 8,
+        ..Default::default()
+    };
+    let many = reduce(&spilling, n as usize, dim, tight).unwrap();
+    assert_eq!(one.chunks, 1);
+    assert!(many.chunks >= 4);
+    assert_eq!(one.ids, many.ids);
+    assert!(!one.ids.is_empty());
+    for (a, b) in one.vectors.iter().zip(&many.vectors) {
+        assert!((a - b).abs() < 1e-6);
+    }
+    drop(spilling);
+    assert!(!dir.path().join("b").exists());
+}
+/// Unit rows from a xorshift stream.
+fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed | 1;
+    let mut out = Vec::new();
+    for _ in 0..m {
+        let v: Vec<f32> = (0..dim)
+            .map(|_| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                (s >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+            })
+            .collect();
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+        out.extend(v.iter().map(|x| x / n));
+    }
+    out
+}
+
+/// Images with overlapping masks over `n` Gaussians, unit mask embeddings of width `dim`.
+fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionStore {
+    let mut store = ContributionStore::new(budget, dir.to_path_buf());
+    for seed in 1..5u64 {
+        let pw = weights(30, 20, n, seed);
+        let masks = vec![
+            mask(30, 20, |x, _| x < 15),
+            mask(30, 20, |_, y| y < 12),
+            mask(30, 20, |x, y| (x + 2 * y) % 5 < 2),
+        ];
+        let emb = unit_rows(masks.len(), dim, seed * 31);
+        let c = image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap();
+        store.push(c).unwrap();
+    }
+    store
+}
+
+#[test]
+fn mixture_with_every_atom_kept_reproduces_reduce() {
+    let (n, dim) = (3000u32, 16);
+    let dir = tempfile::tempdir().unwrap();
+    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 1.0, -2.0]).collect();
+    let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
+    let exact = reduce(&store, n as usize, dim, ReduceParams::default()).unwrap();
+    let mix = reduce_mixture(
+        &store,
+        n as usize,
+        dim,
+        ReduceParams::default(),
+        usize::MAX,
+        "m",
+        &means,
+    )
+    .unwrap();
+    assert_eq!(mix.gaussian_ids, exact.ids);
+    assert!(mix.len() > 1000);
+    assert_eq!(mix.model_id, "m");
+    // 4 images x 3 overlapping masks: up to 12 atoms, all of them used by someone.
+    assert_eq!(mix.codebook_len(), 12);
+    assert!(mix.keep > 3 && mix.keep <= 12);
+    for (i, &k) in mix.gaussian_ids.iter().enumerate() {
+        assert_eq!(mix.means[i], means[k as usize]);
+    }
+    let dense = mix.to_dense();
+    let max = dense
+        .iter()
+        .zip(&exact.vectors)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f32::max);
+    // f16 rounding of codebook values and weights of magnitude <= 1: <= 2^-11 each.
+    assert!(max < 1e-3, "max |Δ| {max}");
+    assert!(max > 0.0, "f16 storage should not be bit-exact against f32");
+
+    // Chunked and spilled: the same mixture.
+    let spilling = mixture_store(n, dim, 0, &dir.path().join("b"));
+    assert_eq!(spilling.spilled(), 4);
+    let tight = ReduceParams {
+        accumulator_budget_bytes: 1024 * (dim + 1) * 8,
+        ..Default::default()
+    };
+    let again = reduce_mixture(&spilling, n as usize, dim, tight, usize::MAX, "m", &means).unwrap();
+    assert_eq!(again, mix);
+}
+
+#[test]
+fn both_loop_orders_give_the_same_sums_bit_for_bit() {
+    // 3000 Gaussians = 23.4 blocks of REDUCE_BLOCK: a partial last block, and with the tight
+    // budget 3 chunks whose edges fall inside blocks of the image-major loop.
+    let (n, dim) = (3000u32, 16);
+    let dir = tempfile::tempdir().unwrap();
+    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.0, 0.0]).collect();
+    let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
+    assert_eq!(store.spilled(), 0);
+    for budget in [usize::MAX / 2, 1024 * (dim + 1) * 8] {
+        let block_major = ReduceParams {
+            accumulator_budget_bytes: budget,
+            ..Default::default()
+        };
+        let image_major = ReduceParams {
+            image_major: true,
+            ..block_major
+        };
+        let a = reduce(&store, n as usize, dim, block_major).unwrap();
+        let b = reduce(&store, n as usize, dim, image_major).unwrap();
+        assert!(a.ids.len() > 1000);
+        // Exact equality of the f32 outputs of the f64 sums, not a tolerance.
+        assert_eq!(a, b, "budget {budget}");
+        let ma = reduce_mixture(&store, n as usize, dim, block_major, 4, "m", &means).unwrap();
+        let mb = reduce_mixture(&store, n as usize, dim, image_major, 4, "m", &means).unwrap();
+        assert_eq!(ma, mb, "budget {budget}");
+    }
+    // A contribution of another width fails in both orders, before any sum is handed on.
+    let mut bad = mixture_store(n, dim, usize::MAX, &dir.path().join("b"));
+    bad.push(ImageContribution {
+        dim: dim + 1,
+        mask_embeddings: vec![0.0; dim + 1],
+        entries: vec![],
+    })
+    .unwrap();
+    for image_major in [false, true] {
+        let p = ReduceParams {
+            image_major,
+            ..Default::default()
+        };
+        let mut handed = 0;
+        let e = reduce_each(&bad, n as usize, dim, p, |_| {
+            handed += 1;
+            Ok(())
+        })
+        .unwrap_err();
+        assert!(e.to_string().contains("dim 17"), "{e}");
+        assert_eq!(handed, 0);
+    }
+}
+
+#[test]
+fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
+    let dim = 3;
+    let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
+    // Gaussian 0: a=1 on e_x and on -e_x (cancels: unobserved); 1: tiny weight; 2: e_y.
+    store
+        .push(ImageContribution {
+            dim,
+            mask_embeddings: vec![1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            entries: vec![
+                Entry {
+                    gaussian: 0,
+                    mask: 0,
+                    weight: 1.0,
+                },
+                Entry {
+                    gaussian: 0,
+                    mask: 1,
+                    weight: 1.0,
+                },
+                Entry {
+                    gaussian: 1,
+                    mask: 2,
+                    weight: 1e-9,
+                },
+                Entry {
+                    gaussian: 2,
+                    mask: 2,
+                    weight: 2.0,
+                },
+                Entry {
+                    gaussian: 2,
+                    mask: 0,
+                    weight: 0.5,
+                },
+            ],
+        })
+        .unwrap();
+    let means = vec![[0.0; 3]; 4];
+    let p = ReduceParams::default();
+    let exact = reduce(&store, 4, dim, p).unwrap();
+    let mix = reduce_mixture(&store, 4, dim, p, 1, "m", &means).unwrap();
+    assert_eq!(exact.ids, vec![2]);
+    assert_eq!(mix.gaussian_ids, vec![2]);
+    // keep 1: only the e_y atom (a=2) survives, and the unused codebook rows are dropped.
+    assert_eq!(mix.codebook, vec![0.0, 1.0, 0.0]);
+    assert_eq!(
+        (mix.keep, mix.atoms.clone(), mix.weights.clone()),
+        (1, vec![0], vec![1.0])
+    );
+    assert!(matches!(
+        reduce_mixture(&store, 4, dim, p, 0, "m", &means),
+        Err(Error::Invalid(_))
+    ));
+    assert!(matches!(
+        reduce_mixture(&store, 4, dim, p, 2, "m", &means[..3]),
+        Err(Error::Invalid(_))
+    ));
+    assert!(matches!(
+        reduce_mixture(&store, 4, 4, p, 2, "m", &means),
+        Err(Error::Invalid(_))
+    ));
+}
+
+mod mixture_props {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Random sparse contributions: per image, random masks and random (gaussian, mask, a).
+    fn random_store(n: u32, images: usize, dim: usize, seed: u64) -> Vec<ImageContribution> {
+        let mut s = seed | 1;
+        let mut next = move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        };
+        (0..images)
+            .map(|i| {
+                let m = 1 + (next() % 5) as u32;
+                let mut entries = Vec::new();
+                for g in 0..n {
+                    for j in 0..m {
+                        if next() % 3 == 0 {
+                            // Coarse weights so that ties happen and test the tie rule.
+                            let weight = (1 + next() % 40) as f32 / 8.0;
+                            entries.push(Entry {
+                                gaussian: g,
+                                mask: j,
+                                weight,
+                            });
+                        }
+                    }
+                }
+                ImageContribution {
+                    dim,
+                    mask_embeddings: unit_rows(m as usize, dim, seed ^ ((i as u64 + 1) * 77)),
+                    entries,
+                }
+            })
+            .collect()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(40))]
+        #[test]
+        fn mixture_scores_and_top_atom(
+            n in 1u32..40, images in 1usize..5, dim in 2usize..12, keep in 1usize..6,
+            seed in any::<u64>(),
+        ) {
+            let contribs = random_store(n, images, dim, seed);
+            let mut store =
+                ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
+            for c in &contribs {
+                store.push(c.clone()).unwrap();
+            }
+            let means = vec![[0.5f32; 3]; n as usize];
+            let p = ReduceParams::default();
+            let exact = reduce(&store, n as usize, dim, p).unwrap();
+            // Random embeddings may cancel at some keep: then the mixture refuses, typed.
+            let mix = match reduce_mixture(&store, n as usize, dim, p, keep, "m", &means) {
+                Ok(m) => m,
+                Err(e) => {
+                    prop_assert!(matches!(e, Error::Invalid(_)));
+                    return Ok(());
+                }
+            };
+            prop_assert_eq!(&mix.gaussian_ids, &exact.ids);
+            prop_assert!(mix.keep <= keep);
+            // Scores equal dense cosine scores of the reconstruction.
+            let q = unit_rows(1, dim, seed ^ 0xabc);
+            let s = mix.scores(&q).unwrap();
+            let dense = slag_common::similarity::cosine_scores(&mix.to_dense(), dim, &q).unwrap();
+            for (a, b) in s.iter().zip(&dense) {
+                prop_assert!((a - b).abs() < 1e-5, "{} vs {}", a, b);
+            }
+            // The first slot holds the largest a_kj (ties: first image, then lower mask).
+            for (i, &k) in mix.gaussian_ids.iter().enumerate() {
+                let mut best: Option<(f32, &[f32])> = None;
+                for c in &contribs {
+                    for e in c.entries.iter().filter(|e| e.gaussian == k) {
+                        if best.is_none_or(|(a, _)| e.weight > a) {
+                            let j = e.mask as usize;
+                            best = Some((e.weight, &c.mask_embeddings[j * dim..(j + 1) * dim]));
+                        }
+                    }
+                }
+                let (_, want) = best.unwrap();
+                let atom = mix.atoms[i * mix.keep];
+                let row = &mix.codebook[atom as usize * dim..(atom as usize + 1) * dim];
+                for (a, b) in row.iter().zip(want) {
+                    prop_assert_eq!(*a, half::f16::from_f32(*b).to_f32());
+                }
+                if keep == 1 {
+                    // One atom: the reconstruction is that mask embedding (weight 1/‖E‖ ≈ 1).
+                    prop_assert!((mix.weights[i] - 1.0).abs() < 2e-3);
+                }
+            }
+        }
+    }
+}
