@@ -448,20 +448,7 @@ pub fn encode_pool(
         fronts = fronts.len(),
         "scene loaded"
     );
-    let rasterizers = make_rasterizers(&gaussians)?;
-    if rasterizers.is_empty() {
-        return Err(Error::Invalid(
-            "encode needs at least one rasterizer".into(),
-        ));
-    }
-    let raster_names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
-    if let Some(models) = report.models.as_object_mut() {
-        models.insert("rasterizer".into(), raster_names[0].clone().into());
-        models.insert("rasterizers".into(), raster_names.clone().into());
-        models.insert("front_workers".into(), fronts.len().into());
-        models.insert("clip_model_id".into(), model_id.clone().into());
-        models.insert("masks".into(), mask_name.into());
-    }
+    let n_fronts = fronts.len();
     let multi = MultiProgress::with_draw_target(if params.progress {
         ProgressDrawTarget::stderr()
     } else {
@@ -520,26 +507,26 @@ pub fn encode_pool(
             slot.get_or_insert(e);
         }
     };
-    let n_back = rasterizers.len();
     // One queue for all rasterizers, or, when the fronts are bound to GPUs, one queue per GPU so
-    // an image stays on the GPU whose SAM and CLIP made its masks.
-    let per_gpu = fronts.iter().any(|f| f.gpu.is_some());
-    if let Some(f) = fronts.iter().find(|f| f.gpu.is_some_and(|g| g >= n_back)) {
-        return Err(Error::Invalid(format!(
-            "a front worker is bound to GPU {:?} but there are {n_back} rasterizers;              internal error, please report it",
-            f.gpu
-        )));
-    }
-    let n_queues = if per_gpu { n_back } else { 1 };
+    // an image stays on the GPU whose SAM and CLIP made its masks. Each queue holds two finished
+    // images per rasterizer it feeds (the unbound fronts' queue: two per front, at most 8).
+    let bound_gpus = fronts.iter().filter_map(|f| f.gpu).max().map(|g| g + 1);
+    let (n_queues, capacity) = match bound_gpus {
+        Some(n) => (n, 2),
+        None => (1, (2 * fronts.len()).clamp(2, 8)),
+    };
     let mut txs = Vec::with_capacity(n_queues);
     let mut rxs = Vec::with_capacity(n_queues);
     for _ in 0..n_queues {
-        let (tx, rx) = mpsc::sync_channel::<FrontItem>(2 * n_back / n_queues);
+        let (tx, rx) = mpsc::sync_channel::<FrontItem>(capacity);
         txs.push(tx);
         rxs.push(Arc::new(Mutex::new(rx)));
     }
     let mut shares: Vec<WorkerShare> = Vec::new();
+    let mut raster_names: Vec<String> = Vec::new();
 
+    // The fronts start first; the rasterizers are set up (device, upload of the Gaussians) while
+    // the first images go through SAM and CLIP, so that set-up is off the critical path.
     std::thread::scope(|s| {
         let mut handles = Vec::new();
         for (w, mut front) in fronts.into_iter().enumerate() {
@@ -580,6 +567,29 @@ pub fn encode_pool(
         }
         // The back workers hold the only receivers: when every front is done, the queue closes.
         drop(txs);
+        let rasterizers = match make_rasterizers(&gaussians) {
+            Ok(r) if r.is_empty() => {
+                fail(Error::Invalid(
+                    "encode needs at least one rasterizer".into(),
+                ));
+                Vec::new()
+            }
+            Ok(r) if r.len() < bound_gpus.unwrap_or(1) => {
+                fail(Error::internal(format!(
+                    "front workers are bound to {} GPUs but there are {} rasterizers",
+                    bound_gpus.unwrap_or(1),
+                    r.len()
+                )));
+                Vec::new()
+            }
+            Ok(r) => r,
+            Err(e) => {
+                fail(e);
+                Vec::new()
+            }
+        };
+        let n_back = rasterizers.len();
+        raster_names = rasterizers.iter().map(|r| r.name().to_string()).collect();
         for (g, mut rasterizer) in rasterizers.into_iter().enumerate() {
             let rx = Arc::clone(&rxs[g % n_queues]);
             let name = format!("raster-{g} {}", raster_names[g]);
@@ -688,6 +698,7 @@ pub fn encode_pool(
                 share
             }));
         }
+        // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
         drop(rxs);
         for h in handles {
             match h.join() {
@@ -698,6 +709,14 @@ pub fn encode_pool(
     });
     if let Some(e) = first_error.into_inner().ok().flatten() {
         return Err(e);
+    }
+    if let Some(models) = report.models.as_object_mut() {
+        let first = raster_names.first().cloned().unwrap_or_default();
+        models.insert("rasterizer".into(), first.into());
+        models.insert("rasterizers".into(), raster_names.clone().into());
+        models.insert("front_workers".into(), n_fronts.into());
+        models.insert("clip_model_id".into(), model_id.clone().into());
+        models.insert("masks".into(), mask_name.into());
     }
     let store = store
         .into_inner()

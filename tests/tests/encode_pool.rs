@@ -232,3 +232,80 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
     assert!(!out.join("embeddings.safetensors").exists());
     assert!(!out.join("report.json").exists());
 }
+
+/// The rasterizers are set up while the fronts already run: a set-up that fails, or that yields
+/// fewer rasterizers than the GPUs the fronts are bound to, stops the fronts (no hang) and
+/// returns the error; nothing is written.
+#[test]
+fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    small_scene(&scene);
+    let clip_path = fixture("clip/color-clip-visual.onnx");
+    let fronts = |gpus: &[Option<usize>]| -> Vec<FrontStages> {
+        gpus.iter()
+            .map(|&gpu| FrontStages {
+                masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
+                    Default::default(),
+                )),
+                crops: Box::new(
+                    slag_encoder::clip::ClipVisual::with_threads(
+                        &clip_path,
+                        slag_common::onnx::ExecutionProvider::Cpu,
+                        32,
+                        1,
+                    )
+                    .unwrap(),
+                ),
+                gpu,
+            })
+            .collect()
+    };
+    let params = |out: &std::path::Path| pipeline::EncodeParams {
+        raster_scale: 0.5,
+        image_stage: Default::default(),
+        reduce: Default::default(),
+        contribution_budget_bytes: 1 << 30,
+        precision: slag_common::embeddings::StoredPrecision::F16,
+        out_dir: out.to_path_buf(),
+        progress: false,
+        mixture_keep: None,
+        levels: false,
+    };
+    let input = pipeline::SceneInput::new(&scene, None, 1);
+
+    let out = dir.path().join("out-err");
+    let err = pipeline::encode_pool(
+        &input,
+        fronts(&[None, None]),
+        |_: &slag_common::scene::Gaussians| {
+            Err(slag_common::Error::Gpu("injected set-up failure".into()))
+        },
+        &params(&out),
+        Default::default(),
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("injected set-up failure"), "{err}");
+    assert!(!out.join("embeddings.safetensors").exists());
+    assert!(!out.join("report.json").exists());
+
+    // Fronts bound to GPUs 0 and 1, one rasterizer: an internal fault, not a hang.
+    let out = dir.path().join("out-short");
+    let err = pipeline::encode_pool(
+        &input,
+        fronts(&[Some(0), Some(1)]),
+        |g: &slag_common::scene::Gaussians| {
+            Ok(vec![
+                Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>
+            ])
+        },
+        &params(&out),
+        Default::default(),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(err, slag_common::Error::Internal(_)) && err.to_string().contains("2 GPUs"),
+        "{err}"
+    );
+    assert!(!out.join("embeddings.safetensors").exists());
+}
