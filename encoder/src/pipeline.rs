@@ -23,7 +23,7 @@ use crate::aggregate::{
 use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
-use crate::report::{Counts, Report, StageTimings};
+use crate::report::{Counts, ImageWork, Report, StageTimings};
 
 /// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
 /// `E_j = CLIP(crop_j(I ⊙ M_j))`).
@@ -171,6 +171,33 @@ pub(crate) struct BackOut {
     pub raster_entries: u64,
     /// Whether the sums were made on the GPU ([`ViewStats::device_sums`]).
     pub device_sums: bool,
+}
+
+impl BackOut {
+    /// This image's [`ImageWork`]: its front times (`decode_s`, `masks_s`, `clip_s`), its
+    /// `n_masks` masks and `entries` non-zero `a_kj`, and the back stage's own measurements.
+    pub(crate) fn work(
+        &self,
+        decode_s: f64,
+        masks_s: f64,
+        clip_s: f64,
+        n_masks: usize,
+        entries: usize,
+    ) -> ImageWork {
+        ImageWork {
+            images: 1,
+            decode_s,
+            masks_s,
+            clip_s,
+            raster_s: self.raster_s,
+            image_aggregate_s: self.contribution_s,
+            masks: n_masks as u64,
+            entries: entries as u64,
+            raster_pixels: self.pixels,
+            raster_entries: self.raster_entries,
+            device_sum_views: u64::from(self.device_sums),
+        }
+    }
 }
 
 /// What [`view_contribution`] measured of one view.
@@ -483,21 +510,8 @@ pub fn encode_pool(
         ..Default::default()
     };
 
-    /// What the back workers add up (under one lock, once per image).
-    #[derive(Default)]
-    struct BackTotals {
-        raster_s: f64,
-        aggregate_s: f64,
-        pixels: usize,
-        raster_entries: usize,
-        device_sum_views: usize,
-        masks: usize,
-        entries: usize,
-        decode_s: f64,
-        masks_s: f64,
-        clip_s: f64,
-    }
-    let totals = Mutex::new(BackTotals::default());
+    // What the back workers add up (under one lock, once per image).
+    let totals = Mutex::new(ImageWork::default());
     let next_view = AtomicUsize::new(0);
     let failed = AtomicBool::new(false);
     let first_error: Mutex<Option<Error>> = Mutex::new(None);
@@ -643,6 +657,7 @@ pub fn encode_pool(
                         )?;
                         let t1 = Instant::now();
                         let entries = out.contribution.entries.len();
+                        let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
                         if !level_stores.is_empty() {
                             let parts =
                                 crate::levels::split_by_level(&out.contribution, &mask_levels)?;
@@ -663,17 +678,9 @@ pub fn encode_pool(
                             })?
                             .push(out.contribution)?;
                         let push_s = t1.elapsed().as_secs_f64();
+                        work.image_aggregate_s += push_s;
                         if let Ok(mut tt) = totals.lock() {
-                            tt.raster_s += out.raster_s;
-                            tt.aggregate_s += out.contribution_s + push_s;
-                            tt.pixels += out.pixels as usize;
-                            tt.raster_entries += out.raster_entries as usize;
-                            tt.device_sum_views += usize::from(out.device_sums);
-                            tt.masks += n_masks;
-                            tt.entries += entries;
-                            tt.decode_s += decode_s;
-                            tt.masks_s += masks_s;
-                            tt.clip_s += clip_s;
+                            tt.add(&work);
                         }
                         if let Some(view) = views.get(view) {
                             tracing::debug!(view = %view.name, masks = n_masks, "image done");
@@ -729,15 +736,7 @@ pub fn encode_pool(
             views.len()
         )));
     }
-    t.decode = tt.decode_s;
-    t.masks = tt.masks_s;
-    t.clip = tt.clip_s;
-    t.raster = tt.raster_s;
-    t.image_aggregate = tt.aggregate_s;
-    counts.masks = tt.masks;
-    counts.entries = tt.entries;
-    counts.device_sum_views = tt.device_sum_views;
-    let (raster_pixels, raster_entries) = (tt.pixels, tt.raster_entries);
+    tt.fill(&mut t, &mut counts);
     report.workers = shares;
     bar_front.finish();
     bar_back.finish();
@@ -762,7 +761,6 @@ pub fn encode_pool(
     counts.reduce_chunks = chunks;
     counts.observed = writer.len();
     counts.observed_fraction = writer.len() as f64 / gaussians.len().max(1) as f64;
-    counts.contributors_per_pixel = raster_entries as f64 / raster_pixels.max(1) as f64;
     // The compressed form (shared codebook of mask embeddings + top-S weights), if asked for.
     let t0 = Instant::now();
     let mixture = params

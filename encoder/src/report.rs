@@ -1,7 +1,7 @@
 //! The JSON run report written beside the embeddings (`report.json`): inputs, models, parameters,
 //! per-stage timings and counts, so a run can be audited and compared.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Wall-clock seconds spent in each stage, summed over images (stages of different images overlap
 /// in the pipeline, so the sum of stages can exceed `total`).
@@ -27,6 +27,69 @@ pub struct StageTimings {
     pub write: f64,
     /// Whole run, wall clock.
     pub total: f64,
+}
+
+/// The per-image work of some images, summed: what every image adds to [`StageTimings`] and
+/// [`Counts`]. One struct for the back workers of `encode` ([`crate::pipeline::encode_pool`]) and
+/// the map workers of `encode-cluster` (sent between processes), so that both fill the report the
+/// same way ([`ImageWork::fill`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ImageWork {
+    /// Images done.
+    pub images: u64,
+    /// Seconds decoding image files.
+    pub decode_s: f64,
+    /// Seconds generating masks.
+    pub masks_s: f64,
+    /// Seconds embedding the mask crops with CLIP.
+    pub clip_s: f64,
+    /// Seconds in the rasterizer (with GPU label sums: the pass and its readback).
+    pub raster_s: f64,
+    /// Seconds of the host side of the image stage (`a_kj`), and, in `encode`, the hand-over to
+    /// the contribution store.
+    pub image_aggregate_s: f64,
+    /// Masks over the images.
+    pub masks: u64,
+    /// Non-zero `a_kj` over the images.
+    pub entries: u64,
+    /// Raster pixels the contributions were counted over.
+    pub raster_pixels: u64,
+    /// `(pixel, Gaussian)` contributions over those pixels.
+    pub raster_entries: u64,
+    /// Images whose `a_kj` were summed on the GPU.
+    #[serde(default)]
+    pub device_sum_views: u64,
+}
+
+impl ImageWork {
+    /// Adds another share (another worker's, or one image's).
+    pub fn add(&mut self, o: &ImageWork) {
+        self.images += o.images;
+        self.decode_s += o.decode_s;
+        self.masks_s += o.masks_s;
+        self.clip_s += o.clip_s;
+        self.raster_s += o.raster_s;
+        self.image_aggregate_s += o.image_aggregate_s;
+        self.masks += o.masks;
+        self.entries += o.entries;
+        self.raster_pixels += o.raster_pixels;
+        self.raster_entries += o.raster_entries;
+        self.device_sum_views += o.device_sum_views;
+    }
+
+    /// Writes the per-image stage times into `t` and the per-image counts into `c` (masks,
+    /// entries, contributors per pixel, GPU-summed views); the other fields are left as they are.
+    pub fn fill(&self, t: &mut StageTimings, c: &mut Counts) {
+        t.decode = self.decode_s;
+        t.masks = self.masks_s;
+        t.clip = self.clip_s;
+        t.raster = self.raster_s;
+        t.image_aggregate = self.image_aggregate_s;
+        c.masks = self.masks as usize;
+        c.entries = self.entries as usize;
+        c.contributors_per_pixel = self.raster_entries as f64 / self.raster_pixels.max(1) as f64;
+        c.device_sum_views = self.device_sum_views as usize;
+    }
 }
 
 /// Counts describing the run.
@@ -106,4 +169,54 @@ pub struct WorkerShare {
     /// drain shows as the spread of these over the workers, and the serial tail (reduction,
     /// write) as `total` minus their maximum.
     pub last_s: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn image_work_adds_every_field_and_fills_timings_and_counts() {
+        let one = |k: f64| ImageWork {
+            images: 1,
+            decode_s: k,
+            masks_s: 2.0 * k,
+            clip_s: 3.0 * k,
+            raster_s: 4.0 * k,
+            image_aggregate_s: 5.0 * k,
+            masks: 6,
+            entries: 70,
+            raster_pixels: 100,
+            raster_entries: 250,
+            device_sum_views: 1,
+        };
+        let mut w = ImageWork::default();
+        w.add(&one(1.0));
+        w.add(&one(0.5));
+        assert_eq!(w.images, 2);
+        assert_eq!((w.masks, w.entries, w.device_sum_views), (12, 140, 2));
+        let (mut t, mut c) = (
+            StageTimings {
+                total: 9.0,
+                reduce: 1.0,
+                ..Default::default()
+            },
+            Counts {
+                views_used: 2,
+                ..Default::default()
+            },
+        );
+        w.fill(&mut t, &mut c);
+        assert_eq!(
+            (t.decode, t.masks, t.clip, t.raster, t.image_aggregate),
+            (1.5, 3.0, 4.5, 6.0, 7.5)
+        );
+        // Untouched: the whole-run fields.
+        assert_eq!((t.total, t.reduce, c.views_used), (9.0, 1.0, 2));
+        assert_eq!((c.masks, c.entries, c.device_sum_views), (12, 140, 2));
+        assert_eq!(c.contributors_per_pixel, 2.5);
+        // Across processes (encode-cluster) the struct travels serialised.
+        let back: ImageWork = serde_json::from_str(&serde_json::to_string(&w).unwrap()).unwrap();
+        assert_eq!(back, w);
+    }
 }

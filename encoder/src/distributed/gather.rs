@@ -113,7 +113,7 @@ pub(super) fn assemble(
             job.gaussians
         )));
     }
-    let images: u64 = g.stats.iter().map(|s| s.images).sum();
+    let images: u64 = g.stats.iter().map(|s| s.work.images).sum();
     if images != job.views {
         return Err(Error::Invalid(format!(
             "incomplete job: {images} of {} views encoded",
@@ -159,39 +159,31 @@ pub(super) fn assemble(
             .extend_from_slice(&vectors[i * dim..(i + 1) * dim]);
         e.total_weights.push(weights[i]);
     }
-    let sum = |f: fn(&MapStats) -> f64| g.stats.iter().map(f).sum::<f64>();
-    let timings = StageTimings {
+    let mut work = crate::report::ImageWork::default();
+    g.stats.iter().for_each(|s| work.add(&s.work));
+    let mut timings = StageTimings {
         load_scene: load_scene_s,
-        decode: sum(|s| s.decode_s),
-        masks: sum(|s| s.masks_s),
-        clip: sum(|s| s.clip_s),
-        raster: sum(|s| s.raster_s),
-        image_aggregate: sum(|s| s.image_aggregate_s),
         reduce: g.parts.iter().map(|s| s.reduce_s).fold(0.0, f64::max),
         ..Default::default()
     };
-    let pixels: u64 = g.stats.iter().map(|s| s.raster_pixels).sum();
-    let counts = Counts {
+    let mut counts = Counts {
         views_total,
         views_used: job.views as usize,
         gaussians: gaussians.len(),
         observed: n,
         observed_fraction: n as f64 / gaussians.len().max(1) as f64,
-        masks: g.stats.iter().map(|s| s.masks).sum::<u64>() as usize,
-        entries: g.stats.iter().map(|s| s.entries).sum::<u64>() as usize,
-        contributors_per_pixel: g.stats.iter().map(|s| s.raster_entries).sum::<u64>() as f64
-            / pixels.max(1) as f64,
         spilled_images: g.parts.iter().map(|s| s.spilled).sum::<u64>() as usize,
         reduce_chunks: g.parts.iter().map(|s| s.chunks).sum::<u64>() as usize,
-        device_sum_views: g.stats.iter().map(|s| s.device_sum_views).sum::<u64>() as usize,
         // Process 0's own peak (it assembles the output); the others report none.
         peak_rss_bytes: crate::report::peak_rss_bytes(),
+        ..Default::default()
     };
+    work.fill(&mut timings, &mut counts);
     let cluster = serde_json::json!({
         "processes": peers,
         "workers": g.stats.iter().map(|s| serde_json::json!({
-            "worker": s.worker, "images": s.images, "map_wall_s": s.wall_s,
-            "masks": s.masks, "entries": s.entries,
+            "worker": s.worker, "images": s.work.images, "map_wall_s": s.wall_s,
+            "masks": s.work.masks, "entries": s.work.entries,
         })).collect::<Vec<_>>(),
         "partitions": g.parts.iter().map(|s| serde_json::json!({
             "partition": s.partition, "observed": s.rows, "images": s.images,

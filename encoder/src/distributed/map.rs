@@ -12,20 +12,11 @@ use super::*;
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub(super) struct MapStats {
     pub(super) worker: u32,
-    pub(super) images: u64,
-    pub(super) decode_s: f64,
-    pub(super) masks_s: f64,
-    pub(super) clip_s: f64,
-    pub(super) raster_s: f64,
-    pub(super) image_aggregate_s: f64,
+    /// Wall-clock seconds of the map loop.
     pub(super) wall_s: f64,
-    pub(super) masks: u64,
-    pub(super) entries: u64,
-    pub(super) raster_pixels: u64,
-    pub(super) raster_entries: u64,
-    /// Views whose `a_kj` were summed on the GPU.
-    #[serde(default)]
-    pub(super) device_sum_views: u64,
+    /// The images' work (the same struct `encode`'s back workers sum). Not `#[serde(flatten)]`:
+    /// timely's exchange uses bincode, which cannot decode flattened structs.
+    pub(super) work: crate::report::ImageWork,
 }
 
 /// What a job must agree on across processes (a mismatch means processes got other arguments).
@@ -168,18 +159,14 @@ pub(super) fn map_side(
             dim,
             job.params.image_stage,
         )?;
+        stats.work.add(&out.work(
+            decode_s,
+            masks_s,
+            clip_s,
+            n_masks,
+            out.contribution.entries.len(),
+        ));
         let c = out.contribution;
-        stats.decode_s += decode_s;
-        stats.masks_s += masks_s;
-        stats.clip_s += clip_s;
-        stats.raster_s += out.raster_s;
-        stats.image_aggregate_s += out.contribution_s;
-        stats.masks += n_masks as u64;
-        stats.entries += c.entries.len() as u64;
-        stats.raster_pixels += out.pixels;
-        stats.raster_entries += out.raster_entries;
-        stats.device_sum_views += u64::from(out.device_sums);
-        stats.images += 1;
         let parts = split(&c, i as u32, peers);
         for part in parts {
             input.send(ToReducer::Image(part));
@@ -193,10 +180,10 @@ pub(super) fn map_side(
             masks = n_masks,
             "image sent"
         );
-        if fault_after == Some(stats.images) {
+        if fault_after == Some(stats.work.images) {
             eprintln!(
                 "SLAG_FAULT_EXIT_AFTER_IMAGES={}: process exits after image {i}",
-                stats.images
+                stats.work.images
             );
             std::process::exit(FAULT_EXIT_STATUS);
         }

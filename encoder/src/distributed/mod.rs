@@ -205,7 +205,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         input.send(ToReducer::Done {
             partition: p,
             worker: w as u32,
-            images: stats.images,
+            images: stats.work.images,
             job: key.clone(),
             stats: (p == 0).then(|| stats.clone()),
         });
@@ -223,7 +223,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         return Ok(WorkerOutcome {
             output: None,
             models,
-            images: stats.images,
+            images: stats.work.images,
         });
     }
     let (gaussians, _, views_total) =
@@ -232,7 +232,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     Ok(WorkerOutcome {
         output: Some(output),
         models,
-        images: stats.images,
+        images: stats.work.images,
     })
 }
 
@@ -494,7 +494,10 @@ mod tests {
                     job: Some(key(n, images.len() as u64, dim)),
                     stats: (p == 0).then(|| MapStats {
                         worker: w as u32,
-                        images: mine.len() as u64,
+                        work: crate::report::ImageWork {
+                            images: mine.len() as u64,
+                            ..Default::default()
+                        },
                         ..Default::default()
                     }),
                 });
