@@ -38,6 +38,15 @@ impl Engine {
         // into the scan store, drop.
         let manifest = edge.current_manifest(scene)?;
         let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
+        // Room for the rows of every stored shard up front: they land in place (no reallocation,
+        // no doubling of the served memory) on transparent huge pages.
+        let mut rows = 0u64;
+        for tile in &manifest.tiles {
+            if edge.has_shard(&manifest.scene_id, tile)? {
+                rows += tile.count;
+            }
+        }
+        store.reserve(usize::try_from(rows).unwrap_or(usize::MAX))?;
         let mut display = crate::view::DisplayAttrs::new();
         let load = edge.load_shards(&manifest, |s| {
             display.push_shard(&s);

