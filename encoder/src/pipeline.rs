@@ -341,10 +341,11 @@ pub fn read_image(view: &View) -> Result<RgbImage> {
 
 /// The rayon pool of back worker `g`: as many threads as the global pool (at least 2). Each
 /// rasterizer alternates between its GPU passes and host work (binning sort, `a_kj` sums), one
-/// image at a time, so a pool of `threads / GPUs` would stretch every image's host phase on more
-/// GPUs (measured on 4 H200s: summed raster time +27 % over 1 GPU with quarter pools); full pools
-/// let a host phase use the cores the other rasterizers leave idle while they wait on their GPUs.
-/// Idle rayon threads sleep, so the extra threads cost no CPU. `None` (with a warning) when the
+/// image at a time; full pools let a host phase use the cores the other rasterizers leave idle
+/// while they wait on their GPUs (a pool of `threads / GPUs` could stretch it). Measured: the
+/// per-image back cost grows with the GPUs either way (4 H200s, quarter pools: raster +27 % over
+/// 1 GPU; 2 H200s, full pools: +12 %), see docs/device/gpu-models. Idle rayon threads sleep, so the
+/// extra threads cost no CPU. `None` (with a warning) when the
 /// OS refuses the threads; the worker then uses the global pool, which is correct, only slower
 /// under load.
 fn back_pool(g: usize) -> Option<rayon::ThreadPool> {
