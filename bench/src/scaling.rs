@@ -123,6 +123,7 @@ mod tests {
                 busy_s,
                 first_s,
                 last_s,
+                raster_phases_ms: None,
             })
             .chain(std::iter::once(WorkerShare {
                 name: "front-0".into(),
@@ -130,6 +131,7 @@ mod tests {
                 busy_s: 1.0,
                 first_s: 0.0,
                 last_s: 99.0,
+                raster_phases_ms: None,
             }))
             .collect();
         r

@@ -661,6 +661,9 @@ pub fn encode_pool(
                             dim,
                             params.image_stage,
                         )?;
+                        if let Some(p) = rasterizer.last_phases() {
+                            share.raster_phases_ms.get_or_insert_default().add(&p);
+                        }
                         let t1 = Instant::now();
                         let entries = out.contribution.entries.len();
                         let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);

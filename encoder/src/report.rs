@@ -169,9 +169,15 @@ pub struct WorkerShare {
     /// drain shows as the spread of these over the workers, and the serial tail (reduction,
     /// write) as `total` minus their maximum.
     pub last_s: f64,
+    /// A rasterizer's phases summed over its images, in ms (GPU rasterizer only; `None` for
+    /// front workers): where its per-image time goes (project, host binning and sort,
+    /// count/scan, write or label sums, each with its readback).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub raster_phases_ms: Option<crate::raster::PhaseTimings>,
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 

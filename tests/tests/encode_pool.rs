@@ -135,6 +135,17 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         );
         assert!(w.busy_s <= w.last_s - w.first_s + 1e-3, "{w:?}");
     }
+    // The GPU rasterizers report their phases summed over their images; fronts report none.
+    for w in &r2.workers {
+        match (&w.raster_phases_ms, w.name.starts_with("raster")) {
+            (Some(p), true) => assert!(
+                w.images == 0 || (p.project_ms > 0.0 && p.write_ms > 0.0),
+                "{w:?}"
+            ),
+            (None, false) => {}
+            _ => panic!("phases on the wrong worker: {w:?}"),
+        }
+    }
     assert_eq!(r2.counts.masks, r1.counts.masks);
     assert_eq!(r2.counts.entries, r1.counts.entries);
 

@@ -114,6 +114,11 @@ pub trait WeightRasterizer: Send {
     }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;
+    /// Phase timings of the last successful [`Self::rasterize`] or [`Self::label_sums`] run,
+    /// where the rasterizer measures them (the GPU rasterizer); `None` by default.
+    fn last_phases(&self) -> Option<PhaseTimings> {
+        None
+    }
 }
 
 /// One per-label sum of blend weights ([`WeightRasterizer::label_sums`]): Gaussian `gaussian`

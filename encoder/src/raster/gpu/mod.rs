@@ -106,8 +106,9 @@ struct Params {
 const _: () = assert!(std::mem::size_of::<Params>() == 128);
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
-/// including submission and readback waits).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// including submission and readback waits), or their sum over runs ([`PhaseTimings::add`]).
+/// With GPU label sums, `write_ms` is the label-sum pass and its readback.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct PhaseTimings {
     /// Projection kernel + tile-rect readback.
     pub project_ms: f64,
@@ -117,6 +118,16 @@ pub struct PhaseTimings {
     pub count_scan_ms: f64,
     /// Write pass(es) + ids/weights readback.
     pub write_ms: f64,
+}
+
+impl PhaseTimings {
+    /// Adds another run's phases.
+    pub fn add(&mut self, o: &PhaseTimings) {
+        self.project_ms += o.project_ms;
+        self.bin_sort_ms += o.bin_sort_ms;
+        self.count_scan_ms += o.count_scan_ms;
+        self.write_ms += o.write_ms;
+    }
 }
 
 struct Pipelines {
@@ -753,6 +764,10 @@ impl WeightRasterizer for GpuRasterizer {
 
     fn name(&self) -> &str {
         &self.name
+    }
+
+    fn last_phases(&self) -> Option<PhaseTimings> {
+        Some(self.timings)
     }
 }
 
