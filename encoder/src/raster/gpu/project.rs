@@ -55,30 +55,143 @@ impl GpuRasterizer {
     }
 }
 
-/// Tile binning on the CPU: for every Gaussian with a non-empty tile rect (from the GPU
-/// projection), one 128-bit key `tile | depth | id` per touched tile, sorted. The depth is the f64
-/// camera-frame z of [`camera_point`] (bit-identical to the CPU reference's; positive f64 bit
-/// patterns sort like their values), so both rasterizers order every tile identically, exact
-/// ties included (by id). Returns per-tile `[start, end)` ranges into the sorted Gaussian ids.
-pub(super) fn bin_and_sort(
+/// Tile binning on the CPU: every (tile, Gaussian) intersection of the Gaussians' tile rects
+/// (from the GPU projection; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
+/// ordered by `(tile, depth, id)`. The depth is the f64 camera-frame z of [`camera_point`]
+/// (bit-identical to the CPU reference's; positive f64 bit patterns sort like their values), so
+/// both rasterizers order every tile identically, exact ties included (by id). Returns per-tile
+/// `[start, end)` ranges into the sorted Gaussian ids (`n_tiles` ranges, tiles row-major with
+/// `tiles_x` per row).
+///
+/// A counting sort by tile, then a sort of each tile's `(depth, id)` keys, in parallel: the
+/// Gaussians are cut into chunks, each chunk counts its intersections per tile, the counts give
+/// every (chunk, tile) its own slots, the chunks fill them, and the tiles are sorted one by one.
+/// The same order as one sort of all `(tile, depth, id)` keys ([`bin_and_sort_reference`]), at a
+/// fraction of its cost: the per-tile sorts are small and independent. Where the tile grid is so
+/// large that the per-chunk counts would outweigh the intersections, the reference is used.
+///
+/// Errors: more than 2^32 intersections ([`Error::Limit`]); a rect outside the grid
+/// ([`Error::Internal`]).
+pub fn bin_and_sort(
     isect: &[[u32; 2]],
     means: &[[f32; 3]],
     w2c: &WorldToCamera,
     tiles_x: u32,
     n_tiles: u32,
 ) -> Result<(Vec<[u32; 2]>, Vec<u32>)> {
-    let rect = |r: &[u32; 2]| {
-        let (x0, y0, x1, y1) = (r[0] & 0xffff, r[0] >> 16, r[1] & 0xffff, r[1] >> 16);
-        (x0, y0, x1.max(x0), y1.max(y0))
+    let total = intersections(isect)?;
+    let n_t = n_tiles as usize;
+    let n_chunks = (rayon::current_num_threads() * 4).clamp(1, isect.len().max(1));
+    if (n_chunks as u64).saturating_mul(n_t as u64) > 4 * total.max(1 << 16) {
+        return bin_and_sort_reference(isect, means, w2c, tiles_x, n_tiles);
+    }
+    let per_chunk = isect.len().div_ceil(n_chunks).max(1);
+    let outside = || {
+        Error::internal(format!(
+            "projection produced a tile outside the {n_tiles}-tile grid"
+        ))
     };
-    let counts: Vec<u64> = isect
+    // 1. Intersections per (chunk, tile).
+    let counts: Vec<Vec<u32>> = isect
+        .par_chunks(per_chunk)
+        .map(|chunk| {
+            let mut h = vec![0u32; n_t];
+            for r in chunk {
+                let (x0, y0, x1, y1) = rect(r);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        *h.get_mut((y * tiles_x + x) as usize).ok_or_else(outside)? += 1;
+                    }
+                }
+            }
+            Ok(h)
+        })
+        .collect::<Result<_>>()?;
+    // 2. Every chunk sorts its own keys by tile (a local counting sort: id order within a tile).
+    let local: Vec<(Vec<u128>, Vec<u32>)> = isect
+        .par_chunks(per_chunk)
+        .zip(counts.par_iter())
+        .enumerate()
+        .map(|(c, (chunk, h))| {
+            let mut starts = Vec::with_capacity(n_t + 1);
+            let mut next = 0u32;
+            for &k in h {
+                starts.push(next);
+                next += k;
+            }
+            starts.push(next);
+            let mut cursor = starts.clone();
+            let mut keys = vec![0u128; next as usize];
+            for (j, r) in chunk.iter().enumerate() {
+                let (x0, y0, x1, y1) = rect(r);
+                if x0 == x1 || y0 == y1 {
+                    continue;
+                }
+                let id = c * per_chunk + j;
+                let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
+                let key = ((depth.to_bits() as u128) << 32) | id as u128;
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let t = (y * tiles_x + x) as usize;
+                        keys[cursor[t] as usize] = key;
+                        cursor[t] += 1;
+                    }
+                }
+            }
+            (keys, starts)
+        })
+        .collect();
+    // 3. Tile ranges; each tile gathers its keys from every chunk (chunk order) and sorts them by
+    //    (depth, id).
+    let mut ranges = vec![[0u32; 2]; n_t];
+    let mut next = 0u32;
+    for (t, r) in ranges.iter_mut().enumerate() {
+        let len: u32 = counts.iter().map(|h| h[t]).sum();
+        *r = [next, next + len];
+        next += len;
+    }
+    let mut keys = vec![0u128; total as usize];
+    let mut segments = Vec::with_capacity(n_t);
+    let mut rest: &mut [u128] = &mut keys;
+    for r in &ranges {
+        let (a, b) = rest.split_at_mut((r[1] - r[0]) as usize);
+        segments.push(a);
+        rest = b;
+    }
+    segments.into_par_iter().enumerate().for_each(|(t, seg)| {
+        let mut at = 0;
+        for (chunk_keys, starts) in &local {
+            let part = &chunk_keys[starts[t] as usize..starts[t + 1] as usize];
+            seg[at..at + part.len()].copy_from_slice(part);
+            at += part.len();
+        }
+        seg.sort_unstable();
+    });
+    drop(local);
+    let ids = keys.into_par_iter().map(|k| k as u32).collect();
+    // Empty tiles read [0, 0), as in the reference.
+    for r in ranges.iter_mut().filter(|r| r[0] == r[1]) {
+        *r = [0, 0];
+    }
+    Ok((ranges, ids))
+}
+
+/// A Gaussian's packed tile rect as `(x0, y0, x1, y1)`, end-exclusive, empty when `x1 <= x0` or
+/// `y1 <= y0`.
+fn rect(r: &[u32; 2]) -> (u32, u32, u32, u32) {
+    let (x0, y0, x1, y1) = (r[0] & 0xffff, r[0] >> 16, r[1] & 0xffff, r[1] >> 16);
+    (x0, y0, x1.max(x0), y1.max(y0))
+}
+
+/// The number of (tile, Gaussian) intersections, checked against the u32 offsets of the kernels.
+fn intersections(isect: &[[u32; 2]]) -> Result<u64> {
+    let total: u64 = isect
         .par_iter()
         .map(|r| {
             let (x0, y0, x1, y1) = rect(r);
             (x1 - x0) as u64 * (y1 - y0) as u64
         })
-        .collect();
-    let total: u64 = counts.iter().sum();
+        .sum();
     if total > u32::MAX as u64 {
         return Err(Error::limit(
             Resource::RasterEntries,
@@ -86,6 +199,27 @@ pub(super) fn bin_and_sort(
             "2^32",
         ));
     }
+    Ok(total)
+}
+
+/// [`bin_and_sort`] as one sort of all 128-bit `tile | depth | id` keys: the straightforward form,
+/// kept as the test oracle, the benchmark baseline (`cargo bench --bench binsort`) and the
+/// fallback for very large tile grids. Same inputs, outputs and errors.
+pub fn bin_and_sort_reference(
+    isect: &[[u32; 2]],
+    means: &[[f32; 3]],
+    w2c: &WorldToCamera,
+    tiles_x: u32,
+    n_tiles: u32,
+) -> Result<(Vec<[u32; 2]>, Vec<u32>)> {
+    let counts: Vec<u64> = isect
+        .par_iter()
+        .map(|r| {
+            let (x0, y0, x1, y1) = rect(r);
+            (x1 - x0) as u64 * (y1 - y0) as u64
+        })
+        .collect();
+    let total = intersections(isect)?;
     let mut keys = vec![0u128; total as usize];
     // Fill disjoint chunks in parallel: split `keys` at each Gaussian's start.
     let mut rest: &mut [u128] = &mut keys;
@@ -129,4 +263,61 @@ pub(super) fn bin_and_sort(
     }
     let ids = keys.into_iter().map(|k| k as u32).collect();
     Ok((ranges, ids))
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+    use glam::{DMat3, DVec3};
+    use proptest::prelude::*;
+
+    fn pack(x0: u32, y0: u32, x1: u32, y1: u32) -> [u32; 2] {
+        [x0 | y0 << 16, x1 | y1 << 16]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// The chunked counting sort gives exactly the reference's ranges and ids: random rects
+        /// (empty, culled, single-tile, large), depths with exact ties (repeated means), any
+        /// number of Gaussians relative to the chunks.
+        #[test]
+        fn counting_sort_equals_the_global_sort(
+            tiles_x in 1u32..12,
+            tiles_y in 1u32..9,
+            gaussians in prop::collection::vec((0u32..12, 0u32..9, 0u32..5, 0u32..5, 0u8..6), 0..400),
+        ) {
+            let w2c = WorldToCamera { rotation: DMat3::IDENTITY, translation: DVec3::new(0.0, 0.0, 1.0) };
+            let isect: Vec<[u32; 2]> = gaussians
+                .iter()
+                .map(|&(x, y, w, h, _)| {
+                    let (x0, y0) = (x.min(tiles_x - 1), y.min(tiles_y - 1));
+                    pack(x0, y0, (x0 + w).min(tiles_x), (y0 + h).min(tiles_y))
+                })
+                .collect();
+            // Six depths only: many exact ties, broken by id.
+            let means: Vec<[f32; 3]> = gaussians.iter().map(|g| [0.0, 0.0, g.4 as f32 * 0.5]).collect();
+            let n_tiles = tiles_x * tiles_y;
+            let fast = bin_and_sort(&isect, &means, &w2c, tiles_x, n_tiles).unwrap();
+            let reference = bin_and_sort_reference(&isect, &means, &w2c, tiles_x, n_tiles).unwrap();
+            prop_assert_eq!(fast, reference);
+        }
+    }
+
+    #[test]
+    fn a_rect_outside_the_grid_is_an_internal_error_in_both() {
+        let w2c = WorldToCamera {
+            rotation: DMat3::IDENTITY,
+            translation: DVec3::ZERO,
+        };
+        let isect = vec![pack(0, 0, 1, 1), pack(2, 3, 3, 5)];
+        let means = vec![[0.0, 0.0, 1.0]; 2];
+        for r in [
+            bin_and_sort(&isect, &means, &w2c, 4, 16),
+            bin_and_sort_reference(&isect, &means, &w2c, 4, 16),
+        ] {
+            assert!(matches!(r, Err(Error::Internal(_))), "{r:?}");
+        }
+    }
 }
