@@ -79,7 +79,7 @@ pub fn bin_and_sort(
     tiles_x: u32,
     n_tiles: u32,
 ) -> Result<(Vec<[u32; 2]>, Vec<u32>)> {
-    let total = intersections(isect)?;
+    let total = checked_total(isect.par_iter().map(area).sum())?;
     let n_t = n_tiles as usize;
     let n_chunks = (rayon::current_num_threads() * 4).clamp(1, isect.len().max(1));
     if (n_chunks as u64).saturating_mul(n_t as u64) > 4 * total.max(1 << 16) {
@@ -127,9 +127,7 @@ pub fn bin_and_sort(
                 if x0 == x1 || y0 == y1 {
                     continue;
                 }
-                let id = c * per_chunk + j;
-                let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
-                let key = ((depth.to_bits() as u128) << 32) | id as u128;
+                let key = depth_key(c * per_chunk + j, means, w2c);
                 for y in y0..y1 {
                     for x in x0..x1 {
                         let t = (y * tiles_x + x) as usize;
@@ -151,13 +149,7 @@ pub fn bin_and_sort(
         next += len;
     }
     let mut keys = vec![0u128; total as usize];
-    let mut segments = Vec::with_capacity(n_t);
-    let mut rest: &mut [u128] = &mut keys;
-    for r in &ranges {
-        let (a, b) = rest.split_at_mut((r[1] - r[0]) as usize);
-        segments.push(a);
-        rest = b;
-    }
+    let segments = split_lengths(&mut keys, ranges.iter().map(|r| (r[1] - r[0]) as usize));
     segments.into_par_iter().enumerate().for_each(|(t, seg)| {
         let mut at = 0;
         for (chunk_keys, starts) in &local {
@@ -183,15 +175,14 @@ fn rect(r: &[u32; 2]) -> (u32, u32, u32, u32) {
     (x0, y0, x1.max(x0), y1.max(y0))
 }
 
-/// The number of (tile, Gaussian) intersections, checked against the u32 offsets of the kernels.
-fn intersections(isect: &[[u32; 2]]) -> Result<u64> {
-    let total: u64 = isect
-        .par_iter()
-        .map(|r| {
-            let (x0, y0, x1, y1) = rect(r);
-            (x1 - x0) as u64 * (y1 - y0) as u64
-        })
-        .sum();
+/// The number of tiles a Gaussian's packed rect covers.
+fn area(r: &[u32; 2]) -> u64 {
+    let (x0, y0, x1, y1) = rect(r);
+    (x1 - x0) as u64 * (y1 - y0) as u64
+}
+
+/// `total` (tile, Gaussian) intersections, checked against the u32 offsets of the kernels.
+fn checked_total(total: u64) -> Result<u64> {
     if total > u32::MAX as u64 {
         return Err(Error::limit(
             Resource::RasterEntries,
@@ -200,6 +191,26 @@ fn intersections(isect: &[[u32; 2]]) -> Result<u64> {
         ));
     }
     Ok(total)
+}
+
+/// Gaussian `id`'s sort key within a tile: the f64 bits of its camera-frame depth (clamped at 0)
+/// above its id, so keys order by depth, exact ties by id.
+fn depth_key(id: usize, means: &[[f32; 3]], w2c: &WorldToCamera) -> u128 {
+    let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
+    ((depth.to_bits() as u128) << 32) | id as u128
+}
+
+/// `keys` cut into consecutive disjoint slices of the given lengths (their sum must not exceed
+/// `keys.len()`), for filling or sorting in parallel.
+fn split_lengths(keys: &mut [u128], lens: impl Iterator<Item = usize>) -> Vec<&mut [u128]> {
+    let mut parts = Vec::with_capacity(lens.size_hint().0);
+    let mut rest = keys;
+    for len in lens {
+        let (a, b) = rest.split_at_mut(len);
+        parts.push(a);
+        rest = b;
+    }
+    parts
 }
 
 /// [`bin_and_sort`] as one sort of all 128-bit `tile | depth | id` keys: the straightforward form,
@@ -212,30 +223,17 @@ pub fn bin_and_sort_reference(
     tiles_x: u32,
     n_tiles: u32,
 ) -> Result<(Vec<[u32; 2]>, Vec<u32>)> {
-    let counts: Vec<u64> = isect
-        .par_iter()
-        .map(|r| {
-            let (x0, y0, x1, y1) = rect(r);
-            (x1 - x0) as u64 * (y1 - y0) as u64
-        })
-        .collect();
-    let total = intersections(isect)?;
+    let counts: Vec<u64> = isect.par_iter().map(area).collect();
+    let total = checked_total(counts.iter().sum())?;
     let mut keys = vec![0u128; total as usize];
     // Fill disjoint chunks in parallel: split `keys` at each Gaussian's start.
-    let mut rest: &mut [u128] = &mut keys;
-    let mut chunks = Vec::with_capacity(isect.len());
-    for c in &counts {
-        let (a, b) = rest.split_at_mut(*c as usize);
-        chunks.push(a);
-        rest = b;
-    }
+    let chunks = split_lengths(&mut keys, counts.iter().map(|&c| c as usize));
     chunks.into_par_iter().enumerate().for_each(|(id, chunk)| {
         if chunk.is_empty() {
             return;
         }
         let (x0, y0, x1, y1) = rect(&isect[id]);
-        let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
-        let low = ((depth.to_bits() as u128) << 32) | id as u128;
+        let low = depth_key(id, means, w2c);
         let mut e = 0;
         for y in y0..y1 {
             for x in x0..x1 {
