@@ -75,6 +75,17 @@ fn advise_huge_pages<T>(v: &Vec<T>) {
     let _ = v;
 }
 
+/// Reserves room for exactly `additional` more values in `v` and advises the new room to use
+/// huge pages ([`advise_huge_pages`]).
+fn reserve_on_huge_pages<T>(
+    v: &mut Vec<T>,
+    additional: usize,
+) -> Result<(), std::collections::TryReserveError> {
+    v.try_reserve_exact(additional)?;
+    advise_huge_pages(v);
+    Ok(())
+}
+
 impl VectorStore {
     /// Reserves room for `rows` more rows (exactly: no doubling, so that the served store stays
     /// near its floor of memory), with the vector buffer advised to use transparent huge pages
@@ -98,24 +109,15 @@ impl VectorStore {
         self.means
             .try_reserve_exact(rows)
             .map_err(|e| refused("means", e))?;
+        let vectors = |e| refused("vectors", e);
         match &mut self.vectors {
-            StoredVectors::F32(v) => {
-                v.try_reserve_exact(values)
-                    .map_err(|e| refused("vectors", e))?;
-                advise_huge_pages(v);
-            }
-            StoredVectors::F16(v) => {
-                v.try_reserve_exact(values)
-                    .map_err(|e| refused("vectors", e))?;
-                advise_huge_pages(v);
-            }
+            StoredVectors::F32(v) => reserve_on_huge_pages(v, values).map_err(vectors)?,
+            StoredVectors::F16(v) => reserve_on_huge_pages(v, values).map_err(vectors)?,
             StoredVectors::I8 { q, scales } => {
-                q.try_reserve_exact(values)
-                    .map_err(|e| refused("vectors", e))?;
+                reserve_on_huge_pages(q, values).map_err(vectors)?;
                 scales
                     .try_reserve_exact(rows)
                     .map_err(|e| refused("scales", e))?;
-                advise_huge_pages(q);
             }
         }
         Ok(())
