@@ -25,7 +25,17 @@ use crate::masks::Mask;
 pub const LEVELS: usize = 3;
 
 /// How a pixel covered by several masks contributes (`encode --overlap`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskOverlap {
     /// To every mask that covers it (the paper's `a_kj = Σ_{p∈M_j} w_kp`).

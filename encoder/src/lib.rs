@@ -16,6 +16,7 @@
 pub mod aggregate;
 pub mod cli;
 pub mod clip;
+pub mod config;
 pub mod distributed;
 pub mod eval;
 pub mod heldout;

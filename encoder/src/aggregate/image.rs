@@ -57,7 +57,17 @@ pub struct ImageStageParams {
 /// is multiplied by a factor `g_j` before the reduction, so that
 /// `E_k = Σ g_j a_kj E_j / Σ g_j a_kj` (and the stored total weight is `Σ g_j a_kj`). Training
 /// free and single pass: `g_j` depends only on the mask.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, clap::ValueEnum)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    clap::ValueEnum,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskWeighting {
     /// `g_j = 1`: the paper's mean.
