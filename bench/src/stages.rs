@@ -232,9 +232,9 @@ pub fn stage_rows(
         floor_ms: Some(image_pixels * 3.0 / (facts.host_copy_1t_gbps * 1e9) * 1e3),
     });
     // Where the models actually ran (the report's resolved provider, not the request).
-    let ort = match r.models["execution_provider"].as_str() {
-        Some(ep) if ep != "cpu" => {
-            let fronts = r.models["front_workers"].as_u64().unwrap_or(1);
+    let ort = match r.models.execution_provider {
+        Some(ep) if ep != slag_common::onnx::ExecutionProvider::Cpu => {
+            let fronts = r.models.front_workers.unwrap_or(1);
             format!("ORT {ep} EP, one session per GPU shared by {fronts} front workers")
         }
         _ => format!("ORT CPU EP, {} cores", facts.host_cores),
@@ -255,7 +255,14 @@ pub fn stage_rows(
             });
         }
         _ => rows.push(StageRow {
-            stage: format!("masks ({})", r.models["masks"].as_str().unwrap_or("graph")),
+            stage: format!(
+                "masks ({})",
+                if r.models.masks.is_empty() {
+                    "graph"
+                } else {
+                    &r.models.masks
+                }
+            ),
             runs_on: if a.sam_encoder.is_some() {
                 ort.clone()
             } else {
@@ -342,10 +349,11 @@ pub fn stage_rows(
             "{raster_stage} [GPU sums on {} of {} views]",
             c.device_sum_views, c.views_used
         ),
-        runs_on: r.models["rasterizer"]
-            .as_str()
-            .unwrap_or("wgpu")
-            .to_string(),
+        runs_on: if r.models.rasterizer.is_empty() {
+            "wgpu".to_string()
+        } else {
+            r.models.rasterizer.clone()
+        },
         ms_per_image: per(t.raster),
         work: raster_work,
         ceiling: format!(
@@ -364,11 +372,7 @@ pub fn stage_rows(
         ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
         floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
     });
-    let dim = r.outputs["embeddings_bytes"]
-        .as_f64()
-        .map(|b| b / (c.observed.max(1) as f64 * 2.0))
-        .unwrap_or(512.0)
-        .round();
+    let dim = (r.outputs.embeddings_bytes as f64 / (c.observed.max(1) as f64 * 2.0)).round();
     let reduce_bytes = c.entries as f64 * AKJ_BYTES + c.observed as f64 * dim * 8.0 * 2.0;
     rows.push(StageRow {
         stage: "reduce (E_k), whole run / images".into(),
@@ -414,7 +418,9 @@ pub fn markdown(
         r.counts.observed,
         r.counts.masks,
         a.raster_scale,
-        r.models["front_workers"],
+        r.models
+            .front_workers
+            .map_or_else(|| "?".to_string(), |f| f.to_string()),
         r.timings.total,
     );
     s += "| stage | runs on | ms / image | work / image | ceiling | floor ms / image | measured / floor |\n";

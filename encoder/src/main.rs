@@ -79,7 +79,7 @@ fn main() -> std::process::ExitCode {
                 r.counts.gaussians,
                 100.0 * r.counts.observed_fraction,
                 r.counts.views_used,
-                r.parameters["cluster_processes"],
+                r.parameters.cluster_processes.unwrap_or(0),
                 r.timings.total,
                 a.encode.out.join("embeddings.safetensors").display()
             ),
@@ -92,7 +92,7 @@ fn main() -> std::process::ExitCode {
         Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {
-            cli::encode::run(a).map(|r| println!("{}", cli::encode::timing_table(&r)))
+            cli::encode::run(a).map(|r| println!("{}", slag_encoder::report::timing_table(&r)))
         }
         Command::Partition(a) => slag_shards::cli::run_partition(a),
         Command::Serve(a) => slag_shards::cli::run_serve(a),

@@ -23,7 +23,7 @@ use crate::aggregate::{
 use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
-use crate::report::{Counts, ImageWork, Report, StageTimings};
+use crate::report::{Counts, FormOutputs, ImageWork, LevelOutput, Outputs, Report, StageTimings};
 
 /// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
 /// `E_j = CLIP(crop_j(I ⊙ M_j))`).
@@ -726,14 +726,12 @@ pub fn encode_pool(
     if let Some(e) = first_error.into_inner().ok().flatten() {
         return Err(e);
     }
-    if let Some(models) = report.models.as_object_mut() {
-        let first = raster_names.first().cloned().unwrap_or_default();
-        models.insert("rasterizer".into(), first.into());
-        models.insert("rasterizers".into(), raster_names.clone().into());
-        models.insert("front_workers".into(), n_fronts.into());
-        models.insert("clip_model_id".into(), model_id.clone().into());
-        models.insert("masks".into(), mask_name.into());
-    }
+    let models = &mut report.models;
+    models.rasterizer = raster_names.first().cloned().unwrap_or_default();
+    models.rasterizers = Some(raster_names.clone());
+    models.front_workers = Some(n_fronts);
+    models.clip_model_id = model_id.clone();
+    models.masks = mask_name;
     let store = store
         .into_inner()
         .map_err(|_| Error::internal("contribution store poisoned by a panicked worker"))?;
@@ -803,9 +801,12 @@ pub fn encode_pool(
                     &scene.ply.display().to_string(),
                 )?;
                 let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-                level_files.push(serde_json::json!({
-                    "level": l, "path": path, "observed": rows, "bytes": bytes,
-                }));
+                level_files.push(LevelOutput {
+                    bytes,
+                    level: l,
+                    observed: rows,
+                    path,
+                });
             }
             // Level files of an earlier run must not sit beside this run's report.
             None if path.exists() => {
@@ -838,17 +839,23 @@ pub fn encode_pool(
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     report.timings = t;
     report.counts = counts;
-    report.outputs = serde_json::json!({
-        "embeddings": emb_path, "embeddings_bytes": emb_bytes,
-        "precision": params.precision, "report": report_path,
-        "mixture": mixture.as_ref().map(|_| &mix_path),
-        "mixture_keep": mixture.as_ref().map(|m| m.keep),
-        "mixture_codebook_rows": mixture.as_ref().map(|m| m.codebook_len()),
-        "mixture_bytes_per_gaussian": mixture.as_ref().map(|m| m.bytes_per_gaussian()),
-        "mixture_reduce_s": mixture.as_ref().map(|_| mixture_s),
-        "levels": (!level_files.is_empty()).then_some(&level_files),
-        "levels_reduce_s": (!level_files.is_empty()).then_some(levels_s),
-    });
+    let has_levels = !level_files.is_empty();
+    report.outputs = Outputs {
+        cluster: None,
+        embeddings: emb_path,
+        embeddings_bytes: emb_bytes,
+        forms: Some(FormOutputs {
+            levels: has_levels.then_some(level_files),
+            levels_reduce_s: has_levels.then_some(levels_s),
+            mixture: mixture.as_ref().map(|_| mix_path),
+            mixture_bytes_per_gaussian: mixture.as_ref().map(|m| m.bytes_per_gaussian()),
+            mixture_codebook_rows: mixture.as_ref().map(|m| m.codebook_len()),
+            mixture_keep: mixture.as_ref().map(|m| m.keep),
+            mixture_reduce_s: mixture.as_ref().map(|_| mixture_s),
+        }),
+        precision: params.precision,
+        report: report_path.clone(),
+    };
     let json =
         serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;

@@ -1,7 +1,11 @@
 //! The JSON run report written beside the embeddings (`report.json`): inputs, models, parameters,
 //! per-stage timings and counts, so a run can be audited and compared.
 
+use std::path::PathBuf;
+
 use serde::{Deserialize, Serialize};
+use slag_common::embeddings::StoredPrecision;
+use slag_common::onnx::ExecutionProvider;
 
 /// Wall-clock seconds spent in each stage, summed over images (stages of different images overlap
 /// in the pipeline, so the sum of stages can exceed `total`).
@@ -132,24 +136,300 @@ pub fn peak_rss_bytes() -> Option<u64> {
 }
 
 /// The whole report.
+///
+/// Every section is a struct; fields are declared in alphabetical order, the order in which
+/// `report.json` has always listed them. Fields marked "`encode` only" or "`encode-cluster`
+/// only" are left out of the file (not written as `null`) by the other command.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Report {
     /// slag version.
     pub slag_version: String,
     /// Input paths and selection.
-    pub inputs: serde_json::Value,
+    pub inputs: Inputs,
     /// Models and their execution providers.
-    pub models: serde_json::Value,
+    pub models: Models,
     /// Parameters that change the result.
-    pub parameters: serde_json::Value,
+    pub parameters: Parameters,
     /// Per-stage timings, seconds.
     pub timings: StageTimings,
     /// Counts.
     pub counts: Counts,
     /// Output files and sizes.
-    pub outputs: serde_json::Value,
+    pub outputs: Outputs,
     /// Each worker thread's share (images, busy seconds), fronts first, then one per rasterizer.
     pub workers: Vec<WorkerShare>,
+}
+
+/// The report's `inputs`: what was encoded.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Inputs {
+    /// Keep every N-th view ([`crate::config::SceneConfig::every`]).
+    pub every: usize,
+    /// The `.ply` read.
+    pub ply: PathBuf,
+    /// The scene folder.
+    pub scene: PathBuf,
+}
+
+/// The report's `models`: the model files, the mask source and rasterizer that ran, and where
+/// each model ran.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Models {
+    /// The CLIP model id recorded in the embeddings (the visual tower's file stem).
+    pub clip_model_id: String,
+    /// The CLIP visual tower file.
+    pub clip_visual: PathBuf,
+    /// The provider that actually ran CLIP (and SAM); `encode` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub execution_provider: Option<ExecutionProvider>,
+    /// The provider asked for ([`crate::config::ExecutionConfig::ep`]).
+    pub execution_provider_requested: ExecutionProvider,
+    /// Per GPU (or one entry for the CPU): where each model ran; `encode` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub execution_providers: Option<Vec<ModelPlacement>>,
+    /// Front workers that ran; `encode` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub front_workers: Option<usize>,
+    /// The mask generator's name (e.g. `sam-automatic`, `graph`).
+    pub masks: String,
+    /// The first (or only) rasterizer's name.
+    pub rasterizer: String,
+    /// Every rasterizer's name, one per GPU; `encode` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rasterizers: Option<Vec<String>>,
+    /// The SAM prompt decoder file (`null` without SAM masks).
+    pub sam_decoder: Option<PathBuf>,
+    /// The SAM image encoder file (`null` without SAM masks).
+    pub sam_encoder: Option<PathBuf>,
+}
+
+/// Where the models of one GPU (or of the CPU) ran: an entry of [`Models::execution_providers`].
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ModelPlacement {
+    /// Crops per CLIP batch.
+    pub clip_batch: usize,
+    /// Provider running CLIP.
+    pub clip_visual: ExecutionProvider,
+    /// The device's label (`cpu`, or the GPU's name).
+    pub device: String,
+    /// GPU index; absent for the CPU entry.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<usize>,
+    /// Provider running the SAM decoder (`null` without SAM masks).
+    pub sam_decoder: Option<ExecutionProvider>,
+    /// Provider running the SAM encoder (`null` without SAM masks).
+    pub sam_encoder: Option<ExecutionProvider>,
+}
+
+/// The report's `parameters`: the settings of the run, as [`crate::config::EncodeConfig`]
+/// holds them (flat, with the command line's names). The f32 settings are written widened to
+/// f64 (0.88 as 0.8799999952316284), as `report.json` has always had them.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Parameters {
+    /// [`crate::config::ClipConfig::batch`] (`null`: the provider's default).
+    pub clip_batch: Option<usize>,
+    /// `host:port` of every process; `encode-cluster` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cluster_addresses: Option<Vec<String>>,
+    /// Processes of the cluster; `encode-cluster` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cluster_processes: Option<usize>,
+    /// [`crate::config::ExecutionConfig::front_workers`] as asked (`null`: the default).
+    pub front_workers: Option<usize>,
+    /// [`crate::config::ExecutionConfig::gpus`] in its `Debug` form: `Count(N)` or `All`.
+    pub gpus: String,
+    /// [`crate::config::GraphConfig::k`] (widened to f64, as are the other f32 settings).
+    pub graph_k: Option<f64>,
+    /// [`crate::config::GraphConfig::min_size`].
+    pub graph_min_size: Option<u32>,
+    /// [`crate::config::AggregateConfig::levels`].
+    pub levels: bool,
+    /// [`crate::config::AggregateConfig::mask_weighting`].
+    pub mask_weighting: crate::aggregate::MaskWeighting,
+    /// [`crate::config::AggregateConfig::min_weight`].
+    pub min_weight: f64,
+    /// [`crate::config::AggregateConfig::mixture_keep`].
+    pub mixture_keep: Option<usize>,
+    /// [`crate::config::AggregateConfig::overlap`].
+    pub overlap: crate::levels::MaskOverlap,
+    /// [`crate::config::RasterConfig::scale`].
+    pub raster_scale: f64,
+    /// [`crate::config::SamConfig::box_nms_thresh`].
+    pub sam_box_nms_thresh: f64,
+    /// [`crate::config::SamConfig::points_per_batch`].
+    pub sam_points_per_batch: usize,
+    /// [`crate::config::SamConfig::points_per_side`].
+    pub sam_points_per_side: u32,
+    /// [`crate::config::SamConfig::pred_iou_thresh`].
+    pub sam_pred_iou_thresh: f64,
+    /// [`crate::config::SamConfig::stability_score_thresh`].
+    pub sam_stability_score_thresh: f64,
+    /// Worker threads the run used (resolved: never `null`).
+    pub threads: usize,
+    /// [`crate::config::AggregateConfig::top_k_per_pixel`].
+    pub top_k_per_pixel: Option<usize>,
+}
+
+/// The report's `outputs`: the files written and their sizes.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Outputs {
+    /// The cluster's per-worker and per-partition shares; `encode-cluster` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cluster: Option<ClusterOutputs>,
+    /// The embeddings file.
+    pub embeddings: PathBuf,
+    /// Its size, bytes.
+    pub embeddings_bytes: u64,
+    /// The optional forms (mixture, levels), each `null` when not written; `encode` only.
+    #[serde(flatten)]
+    pub forms: Option<FormOutputs>,
+    /// Stored precision of the embeddings.
+    pub precision: StoredPrecision,
+    /// This report's path.
+    pub report: PathBuf,
+}
+
+/// The optional forms `encode` writes beside the embeddings ([`Outputs::forms`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct FormOutputs {
+    /// One embeddings file per SAM granularity level (with `levels`).
+    pub levels: Option<Vec<LevelOutput>>,
+    /// Seconds reducing the levels.
+    pub levels_reduce_s: Option<f64>,
+    /// The mixture file (with `mixture_keep`).
+    pub mixture: Option<PathBuf>,
+    /// Stored bytes per Gaussian of the mixture form.
+    pub mixture_bytes_per_gaussian: Option<f64>,
+    /// Rows of the mixture's codebook (mask embeddings kept).
+    pub mixture_codebook_rows: Option<usize>,
+    /// Slots per Gaussian of the mixture.
+    pub mixture_keep: Option<usize>,
+    /// Seconds reducing the mixture.
+    pub mixture_reduce_s: Option<f64>,
+}
+
+/// One per-level embeddings file ([`FormOutputs::levels`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LevelOutput {
+    /// File size, bytes.
+    pub bytes: u64,
+    /// Granularity level (0 subpart, 1 part, 2 whole).
+    pub level: usize,
+    /// Gaussians with an embedding at this level.
+    pub observed: usize,
+    /// The file.
+    pub path: PathBuf,
+}
+
+/// How a cluster encode's work was shared ([`Outputs::cluster`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct ClusterOutputs {
+    /// One entry per reduce partition.
+    pub partitions: Vec<ClusterPartition>,
+    /// Processes (= partitions = map workers).
+    pub processes: usize,
+    /// How [`StageTimings::reduce`] is measured for a cluster.
+    pub reduce_timing: String,
+    /// One entry per map worker.
+    pub workers: Vec<ClusterWorker>,
+}
+
+/// One reduce partition of a cluster encode.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ClusterPartition {
+    /// Non-zero `a_kj` it reduced.
+    pub entries: u64,
+    /// Image parts it received.
+    pub images: u64,
+    /// Gaussians of the partition with an embedding.
+    pub observed: u64,
+    /// Partition index (Gaussians `k ≡ partition mod processes`).
+    pub partition: u32,
+    /// Chunks of its reduction.
+    pub reduce_chunks: u64,
+    /// Seconds of its reduction.
+    pub reduce_s: f64,
+    /// Image parts spilled to disk.
+    pub spilled_images: u64,
+}
+
+/// One map worker of a cluster encode.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ClusterWorker {
+    /// Non-zero `a_kj` of its images.
+    pub entries: u64,
+    /// Images it mapped.
+    pub images: u64,
+    /// Wall-clock seconds of its map loop.
+    pub map_wall_s: f64,
+    /// Masks of its images.
+    pub masks: u64,
+    /// Worker (= process) index.
+    pub worker: u32,
+}
+
+/// A markdown table of per-stage times from a run report (`slag-encoder bench`'s output).
+pub fn timing_table(r: &Report) -> String {
+    let t = &r.timings;
+    let n = r.counts.views_used.max(1) as f64;
+    let rows = [
+        ("load scene", t.load_scene, false),
+        ("decode", t.decode, true),
+        ("masks", t.masks, true),
+        ("CLIP crops", t.clip, true),
+        ("raster", t.raster, true),
+        ("a_kj (image stage)", t.image_aggregate, true),
+        ("reduce (E_k)", t.reduce, false),
+        ("write", t.write, false),
+        ("total (wall)", t.total, false),
+    ];
+    let mut s = String::from("| stage | seconds | ms / image |\n|---|---:|---:|\n");
+    for (name, secs, per_image) in rows {
+        let per = if per_image {
+            format!("{:.1}", 1000.0 * secs / n)
+        } else {
+            "".into()
+        };
+        s += &format!("| {name} | {secs:.3} | {per} |\n");
+    }
+    let or_unknown = |s: &str| {
+        if s.is_empty() {
+            "?".to_string()
+        } else {
+            s.to_string()
+        }
+    };
+    s += &format!(
+        "\nviews {} | Gaussians {} | observed {} ({:.1}%) | masks {} | a_kj entries {} | contributors/pixel {:.1} | rasterizer {} | masks {}\n",
+        r.counts.views_used,
+        r.counts.gaussians,
+        r.counts.observed,
+        100.0 * r.counts.observed_fraction,
+        r.counts.masks,
+        r.counts.entries,
+        r.counts.contributors_per_pixel,
+        or_unknown(&r.models.rasterizer),
+        or_unknown(&r.models.masks),
+    );
+    if let Some(b) = r.counts.peak_rss_bytes {
+        s += &format!(
+            "peak resident memory {:.2} GiB\n",
+            b as f64 / (1u64 << 30) as f64
+        );
+    }
+    if r.workers.len() > 2 {
+        s += "\n| worker | images | busy s | busy % of wall |\n|---|---:|---:|---:|\n";
+        for w in &r.workers {
+            s += &format!(
+                "| {} | {} | {:.1} | {:.0} |\n",
+                w.name,
+                w.images,
+                w.busy_s,
+                100.0 * w.busy_s / t.total.max(1e-9)
+            );
+        }
+    }
+    s
 }
 
 /// How one worker thread's share of the run went (the balance report: with dynamic scheduling
@@ -224,5 +504,172 @@ mod tests {
         // Across processes (encode-cluster) the struct travels serialised.
         let back: ImageWork = serde_json::from_str(&serde_json::to_string(&w).unwrap()).unwrap();
         assert_eq!(back, w);
+    }
+
+    /// `report.json` keeps the layout of the `serde_json::Value` sections it was built from
+    /// before they were typed: the same keys and values, in the same (alphabetical) order, with
+    /// the mode-specific keys absent (not `null`) in the other mode.
+    #[test]
+    fn sections_serialise_as_the_untyped_report_did() {
+        use slag_common::onnx::ExecutionProvider as Ep;
+        let header = |cluster: bool| Report {
+            slag_version: "0.1.0".into(),
+            inputs: Inputs {
+                every: 2,
+                ply: "s/point_cloud.ply".into(),
+                scene: "s".into(),
+            },
+            models: Models {
+                clip_model_id: "color-clip-visual".into(),
+                clip_visual: "c.onnx".into(),
+                execution_provider: (!cluster).then_some(Ep::Cpu),
+                execution_provider_requested: Ep::Auto,
+                execution_providers: (!cluster).then(|| {
+                    vec![ModelPlacement {
+                        clip_batch: 32,
+                        clip_visual: Ep::Cpu,
+                        device: "cpu".into(),
+                        gpu: None,
+                        sam_decoder: None,
+                        sam_encoder: None,
+                    }]
+                }),
+                front_workers: (!cluster).then_some(2),
+                masks: "graph".into(),
+                rasterizer: "wgpu".into(),
+                rasterizers: (!cluster).then(|| vec!["wgpu".into()]),
+                sam_decoder: None,
+                sam_encoder: None,
+            },
+            parameters: Parameters {
+                cluster_addresses: cluster.then(|| vec!["h:1".into()]),
+                cluster_processes: cluster.then_some(1),
+                gpus: "Count(1)".into(),
+                graph_k: Some(700.0),
+                sam_pred_iou_thresh: f64::from(0.88f32),
+                mask_weighting: crate::aggregate::MaskWeighting::None,
+                min_weight: 1e-6,
+                overlap: crate::levels::MaskOverlap::Finest,
+                raster_scale: 0.5,
+                threads: 2,
+                ..Default::default()
+            },
+            outputs: Outputs {
+                cluster: cluster.then(|| ClusterOutputs {
+                    partitions: vec![ClusterPartition {
+                        entries: 5,
+                        images: 3,
+                        observed: 4,
+                        partition: 0,
+                        reduce_chunks: 1,
+                        reduce_s: 0.25,
+                        spilled_images: 0,
+                    }],
+                    processes: 1,
+                    reduce_timing: "slowest".into(),
+                    workers: vec![ClusterWorker {
+                        entries: 5,
+                        images: 3,
+                        map_wall_s: 1.5,
+                        masks: 7,
+                        worker: 0,
+                    }],
+                }),
+                embeddings: "o/embeddings.safetensors".into(),
+                embeddings_bytes: 1000,
+                forms: (!cluster).then(|| FormOutputs {
+                    levels: Some(vec![LevelOutput {
+                        bytes: 10,
+                        level: 1,
+                        observed: 3,
+                        path: "o/embeddings-level1.safetensors".into(),
+                    }]),
+                    levels_reduce_s: Some(0.5),
+                    ..Default::default()
+                }),
+                precision: StoredPrecision::F16,
+                report: "o/report.json".into(),
+            },
+            ..Default::default()
+        };
+        // The sections as the untyped code built them (`serde_json::json!`: sorted keys).
+        let untyped = |cluster: bool| {
+            let mut models = serde_json::json!({
+                "sam_encoder": null, "sam_decoder": null, "clip_visual": "c.onnx",
+                "execution_provider_requested": "auto",
+                "rasterizer": "wgpu", "clip_model_id": "color-clip-visual", "masks": "graph",
+            });
+            let mut parameters = serde_json::json!({
+                "raster_scale": 0.5, "sam_points_per_side": 0, "sam_points_per_batch": 0,
+                "sam_pred_iou_thresh": 0.88f32, "sam_stability_score_thresh": 0.0,
+                "sam_box_nms_thresh": 0.0, "graph_k": 700.0f32, "graph_min_size": null,
+                "clip_batch": null, "top_k_per_pixel": null, "mask_weighting": "none",
+                "overlap": "finest", "levels": false, "min_weight": 1e-6, "mixture_keep": null,
+                "threads": 2, "gpus": "Count(1)", "front_workers": null,
+            });
+            let outputs = if cluster {
+                let p = parameters.as_object_mut().unwrap();
+                p.insert("cluster_processes".into(), 1.into());
+                p.insert("cluster_addresses".into(), vec!["h:1"].into());
+                serde_json::json!({
+                    "embeddings": "o/embeddings.safetensors", "embeddings_bytes": 1000,
+                    "precision": "f16", "report": "o/report.json",
+                    "cluster": {
+                        "processes": 1,
+                        "workers": [{"worker": 0, "images": 3, "map_wall_s": 1.5, "masks": 7,
+                                     "entries": 5}],
+                        "partitions": [{"partition": 0, "observed": 4, "images": 3,
+                                        "entries": 5, "reduce_s": 0.25, "reduce_chunks": 1,
+                                        "spilled_images": 0}],
+                        "reduce_timing": "slowest",
+                    },
+                })
+            } else {
+                let m = models.as_object_mut().unwrap();
+                m.insert("execution_provider".into(), "cpu".into());
+                m.insert(
+                    "execution_providers".into(),
+                    serde_json::json!([{"device": "cpu", "sam_encoder": null,
+                        "sam_decoder": null, "clip_visual": "cpu", "clip_batch": 32}]),
+                );
+                m.insert("rasterizers".into(), vec!["wgpu"].into());
+                m.insert("front_workers".into(), 2.into());
+                serde_json::json!({
+                    "embeddings": "o/embeddings.safetensors", "embeddings_bytes": 1000,
+                    "precision": "f16", "report": "o/report.json",
+                    "mixture": null, "mixture_keep": null, "mixture_codebook_rows": null,
+                    "mixture_bytes_per_gaussian": null, "mixture_reduce_s": null,
+                    "levels": [{"level": 1, "path": "o/embeddings-level1.safetensors",
+                                "observed": 3, "bytes": 10}],
+                    "levels_reduce_s": 0.5,
+                })
+            };
+            (
+                serde_json::json!({"scene": "s", "ply": "s/point_cloud.ply", "every": 2}),
+                models,
+                parameters,
+                outputs,
+            )
+        };
+        for cluster in [false, true] {
+            let r = header(cluster);
+            let (inputs, models, parameters, outputs) = untyped(cluster);
+            for (name, typed, old) in [
+                ("inputs", serde_json::to_string(&r.inputs), inputs),
+                ("models", serde_json::to_string(&r.models), models),
+                (
+                    "parameters",
+                    serde_json::to_string(&r.parameters),
+                    parameters,
+                ),
+                ("outputs", serde_json::to_string(&r.outputs), outputs),
+            ] {
+                assert_eq!(
+                    typed.unwrap(),
+                    serde_json::to_string(&old).unwrap(),
+                    "{name}, cluster {cluster}"
+                );
+            }
+        }
     }
 }

@@ -79,9 +79,7 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
     let threads = setup_threads(e);
     let scene = SceneInput::new(&e.scene, e.ply.as_deref(), e.every);
     let mut report = report_header(e, &scene, threads);
-    if let Some(p) = report.parameters.as_object_mut() {
-        p.insert("cluster_processes".into(), cluster.addresses.len().into());
-    }
+    report.parameters.cluster_processes = Some(cluster.addresses.len());
     let args = e.clone();
     let stages: StageFactory = Arc::new(move |g| {
         let masks = build_masks(&args, threads).map_err(|e| Error::Invalid(format!("{e:#}")))?;

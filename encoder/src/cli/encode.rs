@@ -11,7 +11,7 @@ use crate::aggregate::{ImageStageParams, ReduceParams};
 use crate::masks::MaskGenerator;
 use crate::pipeline::{self, EncodeParams, SceneInput};
 use crate::raster::WeightRasterizer;
-use crate::report::Report;
+use crate::report::{Inputs, ModelPlacement, Models, Parameters, Report};
 
 use super::EpArg;
 
@@ -264,32 +264,40 @@ pub(crate) fn build_masks(
 pub(crate) fn report_header(a: &EncodeArgs, scene: &SceneInput, threads: usize) -> Report {
     Report {
         slag_version: env!("CARGO_PKG_VERSION").to_string(),
-        inputs: serde_json::json!({
-            "scene": scene.dir, "ply": scene.ply, "every": scene.every,
-        }),
-        models: serde_json::json!({
-            "sam_encoder": a.sam_encoder, "sam_decoder": a.sam_decoder,
-            "clip_visual": a.clip_visual,
-            "execution_provider_requested": format!("{:?}", a.ep).to_lowercase(),
-        }),
-        parameters: serde_json::json!({
-            "raster_scale": a.raster_scale,
-            "sam_points_per_side": a.sam_points_per_side,
-            "sam_points_per_batch": a.sam_points_per_batch,
-            "sam_pred_iou_thresh": a.sam_pred_iou_thresh,
-            "sam_stability_score_thresh": a.sam_stability_score_thresh,
-            "sam_box_nms_thresh": a.sam_box_nms_thresh,
-            "graph_k": a.graph_k, "graph_min_size": a.graph_min_size,
-            "clip_batch": a.clip_batch,
-            "top_k_per_pixel": a.top_k_per_pixel,
-            "mask_weighting": a.mask_weighting,
-            "overlap": a.overlap,
-            "levels": a.levels,
-            "min_weight": a.min_weight,
-            "mixture_keep": a.mixture_keep,
-            "threads": threads,
-            "gpus": format!("{:?}", a.gpus), "front_workers": a.front_workers,
-        }),
+        inputs: Inputs {
+            every: scene.every,
+            ply: scene.ply.clone(),
+            scene: scene.dir.clone(),
+        },
+        models: Models {
+            clip_visual: a.clip_visual.clone(),
+            execution_provider_requested: a.ep,
+            sam_decoder: a.sam_decoder.clone(),
+            sam_encoder: a.sam_encoder.clone(),
+            ..Default::default()
+        },
+        parameters: Parameters {
+            clip_batch: a.clip_batch,
+            cluster_addresses: None,
+            cluster_processes: None,
+            front_workers: a.front_workers,
+            gpus: format!("{:?}", a.gpus),
+            graph_k: a.graph_k.map(f64::from),
+            graph_min_size: a.graph_min_size,
+            levels: a.levels,
+            mask_weighting: a.mask_weighting,
+            min_weight: a.min_weight,
+            mixture_keep: a.mixture_keep,
+            overlap: a.overlap,
+            raster_scale: a.raster_scale,
+            sam_box_nms_thresh: f64::from(a.sam_box_nms_thresh),
+            sam_points_per_batch: a.sam_points_per_batch,
+            sam_points_per_side: a.sam_points_per_side,
+            sam_pred_iou_thresh: f64::from(a.sam_pred_iou_thresh),
+            sam_stability_score_thresh: f64::from(a.sam_stability_score_thresh),
+            threads,
+            top_k_per_pixel: a.top_k_per_pixel,
+        },
         ..Default::default()
     }
 }
@@ -352,7 +360,7 @@ pub(crate) struct Fronts {
     /// The CLIP services of the GPUs (empty on the CPU); dropped after the encode.
     pub services: Vec<crate::clip::ClipService>,
     /// Per GPU (or one entry for the CPU): where each model actually runs.
-    pub providers: Vec<serde_json::Value>,
+    pub providers: Vec<ModelPlacement>,
     /// The provider that actually runs CLIP (and SAM): `cpu`, `cuda`, `tensorrt`.
     pub provider: slag_common::onnx::ExecutionProvider,
 }
@@ -399,14 +407,18 @@ pub(crate) fn build_fronts(
             )?;
             stages.push(pipeline::FrontStages::new(masks, Box::new(clip)));
         }
-        let sam = (a.masks == MaskSource::Sam).then_some("cpu");
+        let sam = (a.masks == MaskSource::Sam).then_some(ExecutionProvider::Cpu);
         return Ok(Fronts {
             stages,
             services: Vec::new(),
-            providers: vec![serde_json::json!({
-                "device": "cpu", "sam_encoder": sam, "sam_decoder": sam, "clip_visual": "cpu",
-                "clip_batch": a.clip_batch.unwrap_or(CLIP_BATCH_CPU),
-            })],
+            providers: vec![ModelPlacement {
+                clip_batch: a.clip_batch.unwrap_or(CLIP_BATCH_CPU),
+                clip_visual: ExecutionProvider::Cpu,
+                device: "cpu".into(),
+                gpu: None,
+                sam_decoder: sam,
+                sam_encoder: sam,
+            }],
             provider: ExecutionProvider::Cpu,
         });
     }
@@ -439,13 +451,16 @@ pub(crate) fn build_fronts(
         };
         let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |s| {
             let (e, d) = s.models().providers();
-            (Some(e.to_string()), Some(d.to_string()))
+            (Some(e), Some(d))
         });
-        providers.push(serde_json::json!({
-            "gpu": g, "device": services[g].device_label(),
-            "sam_encoder": enc_p, "sam_decoder": dec_p,
-            "clip_visual": services[g].provider().to_string(), "clip_batch": gpu_batch,
-        }));
+        providers.push(ModelPlacement {
+            clip_batch: gpu_batch,
+            clip_visual: services[g].provider(),
+            device: services[g].device_label().to_string(),
+            gpu: Some(g),
+            sam_decoder: dec_p,
+            sam_encoder: enc_p,
+        });
         sams.push(sam);
     }
     let n = front_workers.unwrap_or(4 * gpus).clamp(1, threads.max(1));
@@ -491,16 +506,8 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     let fronts = build_fronts(a, gpus, a.front_workers, threads)?;
     let params = encode_params(a);
     let mut header = report_header(a, &scene, threads);
-    if let Some(m) = header.models.as_object_mut() {
-        m.insert(
-            "execution_provider".into(),
-            fronts.provider.to_string().into(),
-        );
-        m.insert(
-            "execution_providers".into(),
-            fronts.providers.clone().into(),
-        );
-    }
+    header.models.execution_provider = Some(fronts.provider);
+    header.models.execution_providers = Some(fronts.providers.clone());
     let backend = a.rasterizer;
     let want = match a.gpus {
         GpuCount::Count(n) => Some(n),
@@ -531,61 +538,4 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
         );
     }
     Ok(report)
-}
-
-/// A markdown table of per-stage times from a run report (the `bench` output).
-pub fn timing_table(r: &Report) -> String {
-    let t = &r.timings;
-    let n = r.counts.views_used.max(1) as f64;
-    let rows = [
-        ("load scene", t.load_scene, false),
-        ("decode", t.decode, true),
-        ("masks", t.masks, true),
-        ("CLIP crops", t.clip, true),
-        ("raster", t.raster, true),
-        ("a_kj (image stage)", t.image_aggregate, true),
-        ("reduce (E_k)", t.reduce, false),
-        ("write", t.write, false),
-        ("total (wall)", t.total, false),
-    ];
-    let mut s = String::from("| stage | seconds | ms / image |\n|---|---:|---:|\n");
-    for (name, secs, per_image) in rows {
-        let per = if per_image {
-            format!("{:.1}", 1000.0 * secs / n)
-        } else {
-            "".into()
-        };
-        s += &format!("| {name} | {secs:.3} | {per} |\n");
-    }
-    s += &format!(
-        "\nviews {} | Gaussians {} | observed {} ({:.1}%) | masks {} | a_kj entries {} | contributors/pixel {:.1} | rasterizer {} | masks {}\n",
-        r.counts.views_used,
-        r.counts.gaussians,
-        r.counts.observed,
-        100.0 * r.counts.observed_fraction,
-        r.counts.masks,
-        r.counts.entries,
-        r.counts.contributors_per_pixel,
-        r.models["rasterizer"].as_str().unwrap_or("?"),
-        r.models["masks"].as_str().unwrap_or("?"),
-    );
-    if let Some(b) = r.counts.peak_rss_bytes {
-        s += &format!(
-            "peak resident memory {:.2} GiB\n",
-            b as f64 / (1u64 << 30) as f64
-        );
-    }
-    if r.workers.len() > 2 {
-        s += "\n| worker | images | busy s | busy % of wall |\n|---|---:|---:|---:|\n";
-        for w in &r.workers {
-            s += &format!(
-                "| {} | {} | {:.1} | {:.0} |\n",
-                w.name,
-                w.images,
-                w.busy_s,
-                100.0 * w.busy_s / t.total.max(1e-9)
-            );
-        }
-    }
-    s
 }

@@ -58,7 +58,7 @@ impl Gathered {
 /// What a worker hands back to its process's main thread.
 pub(super) struct WorkerOutcome {
     /// Process 0 only: the assembled output and the run's counts.
-    pub(super) output: Option<(Embeddings, Counts, StageTimings, serde_json::Value)>,
+    pub(super) output: Option<(Embeddings, Counts, StageTimings, ClusterOutputs)>,
     pub(super) models: [String; 3],
     pub(super) images: u64,
 }
@@ -71,7 +71,7 @@ pub(super) fn assemble(
     gaussians: &Gaussians,
     views_total: usize,
     load_scene_s: f64,
-) -> Result<(Embeddings, Counts, StageTimings, serde_json::Value)> {
+) -> Result<(Embeddings, Counts, StageTimings, ClusterOutputs)> {
     if let Some(m) = g.aborts.first() {
         return Err(Error::Invalid(format!("the job was aborted: {m}")));
     }
@@ -179,18 +179,33 @@ pub(super) fn assemble(
         ..Default::default()
     };
     work.fill(&mut timings, &mut counts);
-    let cluster = serde_json::json!({
-        "processes": peers,
-        "workers": g.stats.iter().map(|s| serde_json::json!({
-            "worker": s.worker, "images": s.work.images, "map_wall_s": s.wall_s,
-            "masks": s.work.masks, "entries": s.work.entries,
-        })).collect::<Vec<_>>(),
-        "partitions": g.parts.iter().map(|s| serde_json::json!({
-            "partition": s.partition, "observed": s.rows, "images": s.images,
-            "entries": s.entries, "reduce_s": s.reduce_s, "reduce_chunks": s.chunks,
-            "spilled_images": s.spilled,
-        })).collect::<Vec<_>>(),
-        "reduce_timing": "slowest partition (partitions reduce in parallel)",
-    });
+    let cluster = ClusterOutputs {
+        partitions: g
+            .parts
+            .iter()
+            .map(|s| ClusterPartition {
+                entries: s.entries,
+                images: s.images,
+                observed: s.rows,
+                partition: s.partition,
+                reduce_chunks: s.chunks,
+                reduce_s: s.reduce_s,
+                spilled_images: s.spilled,
+            })
+            .collect(),
+        processes: peers,
+        reduce_timing: "slowest partition (partitions reduce in parallel)".into(),
+        workers: g
+            .stats
+            .iter()
+            .map(|s| ClusterWorker {
+                entries: s.work.entries,
+                images: s.work.images,
+                map_wall_s: s.wall_s,
+                masks: s.work.masks,
+                worker: s.worker,
+            })
+            .collect(),
+    };
     Ok((e, counts, timings, cluster))
 }

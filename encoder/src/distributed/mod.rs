@@ -75,7 +75,9 @@ use crate::aggregate::{self, ContributionStore, Entry, ImageContribution, Reduce
 use crate::masks::MaskGenerator;
 use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput, back_stage, front_stage};
 use crate::raster::WeightRasterizer;
-use crate::report::{Counts, Report, StageTimings};
+use crate::report::{
+    ClusterOutputs, ClusterPartition, ClusterWorker, Counts, Outputs, Report, StageTimings,
+};
 
 mod config;
 mod gather;
@@ -380,22 +382,22 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     timings.write = t0.elapsed().as_secs_f64();
     timings.total = t_total.elapsed().as_secs_f64();
     let mut report = models_header;
-    if let Some(models) = report.models.as_object_mut() {
-        models.insert("rasterizer".into(), outcome.models[0].clone().into());
-        models.insert("clip_model_id".into(), outcome.models[1].clone().into());
-        models.insert("masks".into(), outcome.models[2].clone().into());
-    }
-    if let Some(params) = report.parameters.as_object_mut() {
-        params.insert("cluster_addresses".into(), cluster.addresses.clone().into());
-    }
+    let [rasterizer, clip_model_id, masks] = outcome.models;
+    report.models.rasterizer = rasterizer;
+    report.models.clip_model_id = clip_model_id;
+    report.models.masks = masks;
+    report.parameters.cluster_addresses = Some(cluster.addresses.clone());
     let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
     report.timings = timings;
     report.counts = counts;
-    report.outputs = serde_json::json!({
-        "embeddings": emb_path, "embeddings_bytes": emb_bytes,
-        "precision": job.params.precision, "report": report_path,
-        "cluster": cluster_stats,
-    });
+    report.outputs = Outputs {
+        cluster: Some(cluster_stats),
+        embeddings: emb_path,
+        embeddings_bytes: emb_bytes,
+        forms: None,
+        precision: job.params.precision,
+        report: report_path.clone(),
+    };
     let json =
         serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
