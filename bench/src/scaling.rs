@@ -10,7 +10,8 @@
 //! to `--out`/g<N>/.
 
 use anyhow::Context;
-use slag_encoder::cli::encode::{EncodeArgs, GpuCount};
+use slag_encoder::cli::encode::EncodeArgs;
+use slag_encoder::config::GpuCount;
 use slag_encoder::report::Report;
 
 /// Arguments of `slag-bench scaling`.

@@ -5,6 +5,10 @@
 //! embeds its crops while the *back* thread rasterizes image i and computes its `a_kj`
 //! (a bounded channel of depth 2 keeps memory flat). Every per-image step is independent, as in
 //! the paper; only the reduction sees all images.
+//!
+//! [`Encoder`] runs a [`crate::config::EncodeConfig`]: [`build`] turns the config into the stage
+//! instances (mask generators, front workers with their shared GPU models, rasterizers), the
+//! [`EncodeParams`] and the report's header, and [`encode_pool`] runs them.
 
 use std::path::{Path, PathBuf};
 use std::sync::mpsc;
@@ -24,6 +28,11 @@ use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
 use crate::report::{Counts, FormOutputs, ImageWork, LevelOutput, Outputs, Report, StageTimings};
+
+pub mod build;
+mod encoder;
+
+pub use encoder::Encoder;
 
 /// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
 /// `E_j = CLIP(crop_j(I ⊙ M_j))`).

@@ -9,8 +9,9 @@
 mod support;
 
 use clap::Parser;
-use slag_encoder::cli::encode::{EncodeArgs, RasterBackend};
+use slag_encoder::cli::encode::EncodeArgs;
 use slag_encoder::cli::eval::{EvalArgs, run_held_out};
+use slag_encoder::config::RasterBackend;
 use support::{ort_available, shared};
 
 #[derive(Parser)]

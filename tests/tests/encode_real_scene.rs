@@ -24,7 +24,7 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         held_out: false,
         every: None,
         raster_scale: None,
-        rasterizer: slag_encoder::cli::encode::RasterBackend::Gpu,
+        rasterizer: slag_encoder::config::RasterBackend::Gpu,
         compare: Vec::new(),
     };
     slag_encoder::cli::eval::run(&a).expect("eval-colors")

@@ -17,7 +17,8 @@ use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 
 use super::EpArg;
-use super::encode::{RasterBackend, make_rasterizer};
+use crate::config::RasterBackend;
+use crate::pipeline::build::make_rasterizer;
 use crate::{eval, heldout};
 
 /// Arguments of `eval-colors`.

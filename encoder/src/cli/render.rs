@@ -9,7 +9,7 @@ use clap::Args;
 use slag_common::camera;
 use slag_common::scene::{self, PlyLoadOptions};
 
-use super::encode::RasterBackend;
+use crate::config::RasterBackend;
 use crate::raster::WeightRasterizer;
 
 /// Arguments of `render`.
@@ -69,10 +69,8 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
             .find(|v| v.name == a.view)
             .with_context(|| format!("no view named {:?} in {}", a.view, a.scene.display()))?,
     };
-    let mut r: Box<dyn WeightRasterizer> = match a.rasterizer {
-        RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(&gaussians)?),
-        RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(&gaussians)),
-    };
+    let mut r: Box<dyn WeightRasterizer> =
+        crate::pipeline::build::make_rasterizer(a.rasterizer, &gaussians)?;
     let intr = crate::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
     let weights = r.rasterize(&intr, &view.world_to_camera)?;
     let img =

@@ -80,11 +80,13 @@ use crate::report::{
 };
 
 mod config;
+mod encoder;
 mod gather;
 mod map;
 mod reduce;
 
 pub use config::{ClusterConfig, ClusterJob, StageFactory, Stages};
+pub use encoder::ClusterEncoder;
 use gather::*;
 use map::*;
 use reduce::*;

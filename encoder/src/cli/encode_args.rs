@@ -1,0 +1,211 @@
+//! The flags of `slag-encoder encode` ([`EncodeArgs`]) and their conversion into the library's
+//! [`EncodeConfig`], one flag to one field.
+
+use std::path::PathBuf;
+
+use crate::aggregate::MaskWeighting;
+use crate::config::{
+    AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
+    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig,
+};
+use crate::levels::MaskOverlap;
+use clap::{Args, ValueEnum};
+use slag_common::embeddings::StoredPrecision;
+use slag_common::onnx::ExecutionProvider as EpArg;
+
+/// `--precision`: stored precision of the embeddings.
+#[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
+pub enum PrecisionArg {
+    /// 2 bytes per component.
+    F16,
+    /// 4 bytes per component.
+    F32,
+}
+
+/// Arguments of `encode` (the CLI contract of the encoder issue).
+#[derive(Debug, Clone, Args)]
+pub struct EncodeArgs {
+    /// Scene folder: point_cloud.ply (or --ply), images/, and sparse/0 (COLMAP) or transforms.json.
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// The trained 3DGS .ply (INRIA layout); default <scene>/point_cloud.ply.
+    #[arg(long)]
+    pub ply: Option<PathBuf>,
+    /// Mask source.
+    #[arg(long, value_enum, default_value_t = MaskSource::Sam)]
+    pub masks: MaskSource,
+    /// SAM image encoder ONNX (pixel_values f32[1,3,1024,1024] -> image_embeddings).
+    #[arg(long, required_if_eq("masks", "sam"))]
+    pub sam_encoder: Option<PathBuf>,
+    /// SAM prompt decoder ONNX (segment_anything SamOnnxModel signature).
+    #[arg(long, required_if_eq("masks", "sam"))]
+    pub sam_decoder: Option<PathBuf>,
+    /// SAM point grid: points per image side (segment_anything's default 32).
+    #[arg(long, default_value_t = 32)]
+    pub sam_points_per_side: u32,
+    /// SAM prompts per decoder call.
+    #[arg(long, default_value_t = 64)]
+    pub sam_points_per_batch: usize,
+    /// SAM filter: minimum predicted IoU (segment_anything's default 0.88).
+    #[arg(long, default_value_t = 0.88)]
+    pub sam_pred_iou_thresh: f32,
+    /// SAM filter: minimum stability score (segment_anything's default 0.95).
+    #[arg(long, default_value_t = 0.95)]
+    pub sam_stability_score_thresh: f32,
+    /// SAM box NMS IoU threshold.
+    #[arg(long, default_value_t = 0.7)]
+    pub sam_box_nms_thresh: f32,
+    /// Graph segmenter: scale parameter k (larger = larger segments).
+    #[arg(long)]
+    pub graph_k: Option<f32>,
+    /// Graph segmenter: minimum segment size, pixels.
+    #[arg(long)]
+    pub graph_min_size: Option<u32>,
+    /// CLIP visual tower ONNX (pixel_values f32[B,3,224,224] -> [B,D]).
+    #[arg(long)]
+    pub clip_visual: PathBuf,
+    /// Crops per CLIP batch (default: 64 on a GPU provider, where the batched service ran
+    /// ViT-B/16 fp16 1.45x faster than at 32 on an H100 (docs/device/gpu-models); 32 on the CPU).
+    #[arg(long)]
+    pub clip_batch: Option<usize>,
+    /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    /// Raster resolution relative to the images (weights are computed at this resolution).
+    #[arg(long, default_value_t = 0.5)]
+    pub raster_scale: f64,
+    /// Weight rasterizer.
+    #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
+    pub rasterizer: RasterBackend,
+    /// ONNX Runtime execution provider for SAM and CLIP: `auto` = CUDA where the loaded ONNX
+    /// Runtime has it and a GPU answers, else the CPU (one line says why).
+    #[arg(long, value_enum, default_value_t = EpArg::Auto)]
+    pub ep: EpArg,
+    /// Cap of each model session's CUDA memory arena, GiB (default: no cap beyond the card).
+    #[arg(long, value_name = "GIB")]
+    pub gpu_mem_limit_gb: Option<f64>,
+    /// Worker threads (ONNX Runtime intra-op and CPU stages); default: all cores.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// GPUs to rasterize on: a count or `all` (every discrete GPU; one wgpu device and one back
+    /// worker each, images balanced dynamically). Default 1. Ignored with `--rasterizer cpu`.
+    #[arg(long, default_value = "1")]
+    pub gpus: GpuCount,
+    /// Front workers (decode → masks → CLIP crops). With the models on the CPU each has its own
+    /// ONNX Runtime sessions sharing `--threads` (default: 1 per GPU plus 1); with the models on
+    /// GPUs they share each GPU's one SAM session pair and one CLIP service, spread round-robin
+    /// over the GPUs (default: 4 per GPU). At most the cores.
+    #[arg(long)]
+    pub front_workers: Option<usize>,
+    /// Keep only the K largest contributors per pixel (default: all, as in the paper).
+    #[arg(long)]
+    pub top_k_per_pixel: Option<usize>,
+    /// Specificity weighting of each mask's a_kj: none (the default, as in the paper), area
+    /// (image pixels / mask area: small masks count more), sam-score (SAM predicted IoU ×
+    /// stability). Measured held-out in docs/tradeoffs.md: area adds +0.004 over --overlap
+    /// finest with SAM masks but costs 0.032 with graph masks, so it is not the default.
+    #[arg(long, value_enum, default_value_t = MaskWeighting::None)]
+    pub mask_weighting: MaskWeighting,
+    /// Which masks a pixel covered by several gives its blend weights to: finest (the default:
+    /// only the smallest covering mask, so each Gaussian mixes only its most specific segments)
+    /// or all (the paper's a_kj). `--overlap all --mask-weighting none` is the paper's mean.
+    #[arg(long, value_enum, default_value_t = MaskOverlap::Finest)]
+    pub overlap: MaskOverlap,
+    /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
+    /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
+    /// level's masks only (LangSplat's levels; needs --masks sam).
+    #[arg(long)]
+    pub levels: bool,
+    /// Σa below which a Gaussian is unobserved (gets no embedding).
+    #[arg(long, default_value_t = 1e-6)]
+    pub min_weight: f64,
+    /// Memory for per-image contributions before spilling to disk, MiB.
+    #[arg(long, default_value_t = 4096)]
+    pub contribution_memory_mb: usize,
+    /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks).
+    #[arg(long, default_value_t = 2048)]
+    pub accumulator_memory_mb: usize,
+    /// Stored precision of the embeddings.
+    #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
+    pub precision: PrecisionArg,
+    /// Also write OUT/mixture.safetensors: a shared codebook of the mask embeddings plus each
+    /// Gaussian's S largest a_kj (compressed embeddings; S >= 1).
+    #[arg(long, value_name = "S", value_parser = parse_keep)]
+    pub mixture_keep: Option<usize>,
+    /// Output folder (embeddings.safetensors, report.json).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// No progress bars.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// `--mixture-keep`: a positive slot count.
+fn parse_keep(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(0) => Err("keep at least 1 mask embedding per Gaussian".into()),
+        Ok(k) => Ok(k),
+        Err(e) => Err(format!("{e}; pass a positive integer")),
+    }
+}
+
+impl From<&EncodeArgs> for EncodeConfig {
+    fn from(a: &EncodeArgs) -> Self {
+        EncodeConfig {
+            scene: SceneConfig {
+                dir: a.scene.clone(),
+                ply: a.ply.clone(),
+                every: a.every,
+            },
+            masks: MasksConfig {
+                source: a.masks,
+                sam: SamConfig {
+                    encoder: a.sam_encoder.clone(),
+                    decoder: a.sam_decoder.clone(),
+                    points_per_side: a.sam_points_per_side,
+                    points_per_batch: a.sam_points_per_batch,
+                    pred_iou_thresh: a.sam_pred_iou_thresh,
+                    stability_score_thresh: a.sam_stability_score_thresh,
+                    box_nms_thresh: a.sam_box_nms_thresh,
+                },
+                graph: GraphConfig {
+                    k: a.graph_k,
+                    min_size: a.graph_min_size,
+                },
+            },
+            clip: ClipConfig {
+                visual: a.clip_visual.clone(),
+                batch: a.clip_batch,
+            },
+            raster: RasterConfig {
+                scale: a.raster_scale,
+                backend: a.rasterizer,
+            },
+            aggregate: AggregateConfig {
+                top_k_per_pixel: a.top_k_per_pixel,
+                mask_weighting: a.mask_weighting,
+                overlap: a.overlap,
+                levels: a.levels,
+                min_weight: a.min_weight,
+                contribution_memory_mb: a.contribution_memory_mb,
+                accumulator_memory_mb: a.accumulator_memory_mb,
+                mixture_keep: a.mixture_keep,
+            },
+            output: OutputConfig {
+                dir: a.out.clone(),
+                precision: match a.precision {
+                    PrecisionArg::F16 => StoredPrecision::F16,
+                    PrecisionArg::F32 => StoredPrecision::F32,
+                },
+                progress: !a.quiet,
+            },
+            execution: ExecutionConfig {
+                ep: a.ep,
+                gpu_mem_limit_gb: a.gpu_mem_limit_gb,
+                threads: a.threads,
+                gpus: a.gpus,
+                front_workers: a.front_workers,
+            },
+        }
+    }
+}

@@ -1,0 +1,307 @@
+//! The stage instances and parameters of a run, built from an [`EncodeConfig`]: mask
+//! generators, the front workers with their shared GPU models, rasterizers, the pipeline's
+//! [`EncodeParams`] and the report's header.
+
+use slag_common::onnx::ExecutionProvider;
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
+
+use super::{EncodeParams, FrontStages, SceneInput};
+use crate::aggregate::{ImageStageParams, ReduceParams};
+use crate::config::{
+    CLIP_BATCH_CPU, CLIP_BATCH_GPU, ConfigError, EncodeConfig, Field, GpuCount, MaskSource,
+    RasterBackend,
+};
+use crate::masks::MaskGenerator;
+use crate::raster::WeightRasterizer;
+use crate::report::{Inputs, ModelPlacement, Models, Parameters, Report};
+
+/// The scene input of `c`.
+pub(crate) fn scene_input(c: &EncodeConfig) -> SceneInput {
+    SceneInput::new(&c.scene.dir, c.scene.ply.as_deref(), c.scene.every)
+}
+
+/// SAM's two model files, required with SAM masks.
+fn sam_paths(c: &EncodeConfig) -> Result<(&std::path::Path, &std::path::Path)> {
+    let missing = |field| Error::from(ConfigError::Missing { field });
+    Ok((
+        c.masks
+            .sam
+            .encoder
+            .as_deref()
+            .ok_or_else(|| missing(Field::SamEncoder))?,
+        c.masks
+            .sam
+            .decoder
+            .as_deref()
+            .ok_or_else(|| missing(Field::SamDecoder))?,
+    ))
+}
+
+/// The mask generator `c` asks for, with `threads` ONNX Runtime intra-op threads (SAM on GPU 0
+/// with `c`'s execution provider).
+///
+/// Errors: SAM's models missing or unloadable.
+pub fn build_masks(c: &EncodeConfig, threads: usize) -> Result<Box<dyn MaskGenerator>> {
+    Ok(match c.masks.source {
+        MaskSource::Sam => {
+            let (enc, dec) = sam_paths(c)?;
+            Box::new(
+                crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                    enc,
+                    dec,
+                    &c.placement(0, threads),
+                    c.masks.sam.params(),
+                )?,
+            )
+        }
+        MaskSource::Graph => Box::new(crate::masks::graph::GraphSegmenter::new(
+            c.masks.graph.params(),
+        )),
+    })
+}
+
+/// The report's inputs, models and parameters sections for `c` run with `threads` threads
+/// (the rest is filled by the run).
+pub fn report_header(c: &EncodeConfig, threads: usize) -> Report {
+    let scene = scene_input(c);
+    let (sam, a, e) = (&c.masks.sam, &c.aggregate, &c.execution);
+    Report {
+        slag_version: env!("CARGO_PKG_VERSION").to_string(),
+        inputs: Inputs {
+            every: scene.every,
+            ply: scene.ply,
+            scene: scene.dir,
+        },
+        models: Models {
+            clip_visual: c.clip.visual.clone(),
+            execution_provider_requested: e.ep,
+            sam_decoder: sam.decoder.clone(),
+            sam_encoder: sam.encoder.clone(),
+            ..Default::default()
+        },
+        parameters: Parameters {
+            clip_batch: c.clip.batch,
+            cluster_addresses: None,
+            cluster_processes: None,
+            front_workers: e.front_workers,
+            gpus: format!("{:?}", e.gpus),
+            graph_k: c.masks.graph.k.map(f64::from),
+            graph_min_size: c.masks.graph.min_size,
+            levels: a.levels,
+            mask_weighting: a.mask_weighting,
+            min_weight: a.min_weight,
+            mixture_keep: a.mixture_keep,
+            overlap: a.overlap,
+            raster_scale: c.raster.scale,
+            sam_box_nms_thresh: f64::from(sam.box_nms_thresh),
+            sam_points_per_batch: sam.points_per_batch,
+            sam_points_per_side: sam.points_per_side,
+            sam_pred_iou_thresh: f64::from(sam.pred_iou_thresh),
+            sam_stability_score_thresh: f64::from(sam.stability_score_thresh),
+            threads,
+            top_k_per_pixel: a.top_k_per_pixel,
+        },
+        ..Default::default()
+    }
+}
+
+/// Worker threads of `c` ([`crate::config::ExecutionConfig::resolved_threads`]); sets rayon's
+/// global pool to that size unless it already exists (tests, bench repeats).
+pub fn setup_threads(c: &EncodeConfig) -> usize {
+    let threads = c.execution.resolved_threads();
+    let _ = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build_global();
+    threads
+}
+
+/// The pipeline parameters `c` asks for.
+pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
+    let a = &c.aggregate;
+    EncodeParams {
+        raster_scale: c.raster.scale,
+        image_stage: ImageStageParams {
+            top_k_per_pixel: a.top_k_per_pixel,
+            mask_weighting: a.mask_weighting,
+            overlap: a.overlap,
+        },
+        reduce: ReduceParams {
+            min_total_weight: a.min_weight,
+            accumulator_budget_bytes: a.accumulator_memory_mb << 20,
+            ..Default::default()
+        },
+        contribution_budget_bytes: a.contribution_memory_mb << 20,
+        precision: c.output.precision,
+        out_dir: c.output.dir.clone(),
+        progress: c.output.progress,
+        mixture_keep: a.mixture_keep,
+        levels: a.levels,
+    }
+}
+
+/// The weight rasterizer `backend` names, over the Gaussians `g`.
+///
+/// Errors: no GPU adapter (GPU backend), the scene too large for it.
+pub fn make_rasterizer(backend: RasterBackend, g: &Gaussians) -> Result<Box<dyn WeightRasterizer>> {
+    Ok(match backend {
+        RasterBackend::Gpu => Box::new(crate::raster::gpu::GpuRasterizer::new(g)?),
+        RasterBackend::Cpu => Box::new(crate::raster::cpu::CpuRasterizer::new(g)),
+    })
+}
+
+/// The rasterizers of a run of `c`: one per GPU ([`crate::config::ExecutionConfig::gpus`]), or
+/// the one CPU reference.
+///
+/// Errors: as [`make_rasterizer`]; fewer GPUs than a [`GpuCount::Count`] asks for.
+pub fn make_rasterizers(c: &EncodeConfig, g: &Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>> {
+    let want = match c.execution.gpus {
+        GpuCount::Count(n) => Some(n),
+        GpuCount::All => None,
+    };
+    Ok(match c.raster.backend {
+        RasterBackend::Gpu => crate::raster::gpu::GpuRasterizer::new_many(g, want)?
+            .into_iter()
+            .map(|r| Box::new(r) as Box<dyn WeightRasterizer>)
+            .collect(),
+        RasterBackend::Cpu => vec![make_rasterizer(RasterBackend::Cpu, g)?],
+    })
+}
+
+/// The GPUs a run of `c` rasterizes on: 1 with the CPU rasterizer, the count asked for, or
+/// every discrete GPU wgpu sees (1 when it sees none).
+pub fn gpu_count(c: &EncodeConfig) -> usize {
+    match (c.raster.backend, c.execution.gpus) {
+        (RasterBackend::Cpu, _) => 1,
+        (_, GpuCount::Count(n)) => n,
+        (_, GpuCount::All) => crate::raster::gpu::adapter_names()
+            .map(|v| v.len())
+            .unwrap_or(1),
+    }
+}
+
+/// The front workers of a run and what keeps their shared models alive.
+pub struct Fronts {
+    /// One entry per front worker.
+    pub stages: Vec<FrontStages>,
+    /// The CLIP services of the GPUs (empty on the CPU); dropped after the encode.
+    pub services: Vec<crate::clip::ClipService>,
+    /// Per GPU (or one entry for the CPU): where each model actually runs.
+    pub providers: Vec<ModelPlacement>,
+    /// The provider that actually runs CLIP (and SAM): `cpu`, `cuda`, `tensorrt`.
+    pub provider: ExecutionProvider,
+}
+
+/// Builds the front workers of `c` over `gpus` GPUs with `threads` cores.
+///
+/// CLIP is loaded on GPU 0 first with `c`'s execution provider: if it runs on the CPU (provider
+/// `cpu`, or `auto` without a usable GPU provider) every front worker gets its own sessions with
+/// a share of the cores (as ONNX Runtime's CPU provider scales best); otherwise each GPU gets one
+/// SAM session pair and one [`crate::clip::ClipService`], and the workers are bound round-robin
+/// to the GPUs. The CLIP batch defaults to [`CLIP_BATCH_GPU`] on a GPU provider,
+/// [`CLIP_BATCH_CPU`] on the CPU.
+///
+/// Errors: models missing or unloadable.
+pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
+    let front_workers = c.execution.front_workers;
+    let gpu_threads = (threads / gpus.max(1)).max(1);
+    let gpu_batch = c.clip.batch.unwrap_or(CLIP_BATCH_GPU);
+    let clip0 = crate::clip::ClipVisual::with_placement(
+        &c.clip.visual,
+        &c.placement(0, gpu_threads),
+        gpu_batch,
+    )?;
+    if clip0.provider() == ExecutionProvider::Cpu {
+        drop(clip0);
+        let n = front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
+        let per_front = (threads / n).max(1);
+        let mut cpu = c.clone();
+        cpu.execution.ep = ExecutionProvider::Cpu;
+        let mut stages = Vec::with_capacity(n);
+        for _ in 0..n {
+            let masks = build_masks(&cpu, per_front)?;
+            let clip = crate::clip::ClipVisual::with_threads(
+                &c.clip.visual,
+                ExecutionProvider::Cpu,
+                c.clip.batch.unwrap_or(CLIP_BATCH_CPU),
+                per_front,
+            )?;
+            stages.push(FrontStages::new(masks, Box::new(clip)));
+        }
+        let sam = (c.masks.source == MaskSource::Sam).then_some(ExecutionProvider::Cpu);
+        return Ok(Fronts {
+            stages,
+            services: Vec::new(),
+            providers: vec![ModelPlacement {
+                clip_batch: c.clip.batch.unwrap_or(CLIP_BATCH_CPU),
+                clip_visual: ExecutionProvider::Cpu,
+                device: "cpu".into(),
+                gpu: None,
+                sam_decoder: sam,
+                sam_encoder: sam,
+            }],
+            provider: ExecutionProvider::Cpu,
+        });
+    }
+    let provider = clip0.provider();
+    let mut services = vec![clip0.into_service()];
+    let mut sams = Vec::new();
+    let mut providers = Vec::new();
+    for g in 0..gpus {
+        if g > 0 {
+            let clip = crate::clip::ClipVisual::with_placement(
+                &c.clip.visual,
+                &c.placement(g as u32, gpu_threads),
+                gpu_batch,
+            )?;
+            services.push(clip.into_service());
+        }
+        let sam = match c.masks.source {
+            MaskSource::Sam => {
+                let (enc, dec) = sam_paths(c)?;
+                Some(
+                    crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                        enc,
+                        dec,
+                        &c.placement(g as u32, gpu_threads),
+                        c.masks.sam.params(),
+                    )?,
+                )
+            }
+            MaskSource::Graph => None,
+        };
+        let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |s| {
+            let (e, d) = s.models().providers();
+            (Some(e), Some(d))
+        });
+        providers.push(ModelPlacement {
+            clip_batch: gpu_batch,
+            clip_visual: services[g].provider(),
+            device: services[g].device_label().to_string(),
+            gpu: Some(g),
+            sam_decoder: dec_p,
+            sam_encoder: enc_p,
+        });
+        sams.push(sam);
+    }
+    let n = front_workers.unwrap_or(4 * gpus).clamp(1, threads.max(1));
+    let mut stages = Vec::with_capacity(n);
+    for w in 0..n {
+        let g = w % gpus;
+        let masks: Box<dyn MaskGenerator> = match &sams[g] {
+            Some(sam) => Box::new(sam.share()),
+            None => build_masks(c, 1)?,
+        };
+        stages.push(FrontStages {
+            masks,
+            crops: Box::new(services[g].handle()),
+            gpu: Some(g),
+        });
+    }
+    Ok(Fronts {
+        stages,
+        services,
+        providers,
+        provider,
+    })
+}

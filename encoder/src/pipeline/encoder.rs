@@ -1,0 +1,84 @@
+//! [`Encoder`]: an [`EncodeConfig`] checked and run in this process.
+
+use slag_common::Result;
+
+use super::build::{self, Fronts};
+use crate::config::{ConfigError, EncodeConfig};
+use crate::report::Report;
+
+/// One encode run of this process (the Semantic Embedding stage over a scene): front workers
+/// (decode → masks → CLIP crops) and one rasterizer per GPU (raster → `a_kj`), then the reduction
+/// to `E_k`, written to [`crate::config::OutputConfig::dir`]
+/// ([`super::encode_pool`]).
+///
+/// ```no_run
+/// use slag_encoder::config::{EncodeConfig, MasksConfig};
+/// use slag_encoder::pipeline::Encoder;
+///
+/// let mut config = EncodeConfig::new("scene", "clip-visual.onnx", "out");
+/// config.masks = MasksConfig::graph();
+/// config.scene.every = 2;
+/// let report = Encoder::new(config)?.run()?;
+/// println!("{} Gaussians observed", report.counts.observed);
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+#[derive(Debug, Clone)]
+pub struct Encoder {
+    config: EncodeConfig,
+}
+
+impl Encoder {
+    /// Checks `config` ([`EncodeConfig::validate`]); nothing is loaded yet.
+    ///
+    /// Errors: the [`ConfigError`] of the first setting that cannot run.
+    pub fn new(config: EncodeConfig) -> std::result::Result<Self, ConfigError> {
+        config.validate()?;
+        Ok(Encoder { config })
+    }
+
+    /// The configuration this encoder runs.
+    pub fn config(&self) -> &EncodeConfig {
+        &self.config
+    }
+
+    /// Runs the encode and returns the report it wrote beside the embeddings
+    /// (`embeddings.safetensors`, `report.json`, and the optional forms, each atomically, the
+    /// report last). Sets rayon's global pool to [`crate::config::ExecutionConfig::threads`]
+    /// unless the process already has one.
+    ///
+    /// Errors: unreadable scene or models, no GPU for the GPU rasterizer, a resource limit of
+    /// the rasterizer ([`slag_common::Error::Limit`]), any worker's error (nothing that looks
+    /// complete is written), I/O on the outputs.
+    pub fn run(&self) -> Result<Report> {
+        let c = &self.config;
+        let threads = build::setup_threads(c);
+        let scene = build::scene_input(c);
+        let gpus = build::gpu_count(c);
+        let fronts = build::build_fronts(c, gpus, threads)?;
+        let params = build::encode_params(c);
+        let mut header = build::report_header(c, threads);
+        header.models.execution_provider = Some(fronts.provider);
+        header.models.execution_providers = Some(fronts.providers.clone());
+        let Fronts {
+            stages, services, ..
+        } = fronts;
+        let report = super::encode_pool(
+            &scene,
+            stages,
+            |g| build::make_rasterizers(c, g),
+            &params,
+            header,
+        )?;
+        for s in &services {
+            let st = s.stats();
+            tracing::info!(
+                device = s.device_label(),
+                runs = st.runs,
+                crops = st.crops,
+                run_s = st.run_s,
+                "CLIP service"
+            );
+        }
+        Ok(report)
+    }
+}
