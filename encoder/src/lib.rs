@@ -4,11 +4,13 @@
 //! [`clip`] (CLIP embedding of each mask's white-background bounding-box crop) → [`raster`]
 //! (3DGS forward pass yielding per-pixel blend weights `w_kp = α·T`) → [`aggregate`]
 //! (`a_kj = Σ_{p∈M_j} w_kp`, then `E_k = Σ a_kj E_j / Σ a_kj` over all images).
-//! [`pipeline`] runs the stages over a scene, [`report`] records what ran, [`eval`] measures colour
+//! [`config::EncodeConfig`] holds every setting of a run, grouped by those stages;
+//! [`pipeline::Encoder`] checks and runs it over a scene, [`report`] records what ran.
+//! [`distributed::ClusterEncoder`] runs the same map/reduce over several processes (timely
+//! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] measures colour
 //! mIoU with color-clip per Gaussian, [`heldout`] per pixel of views never encoded (2D
-//! held-out), [`cli`] holds the `slag-encoder` subcommands (`query` checks a text prompt against
-//! the result). [`distributed`] runs the same map/reduce over several processes
-//! (timely dataflow cluster).
+//! held-out), [`eval_colors`] runs both on an embeddings file.
+//! [`cli`] holds the `slag-encoder` subcommands, which turn their flags into these types.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
@@ -19,12 +21,14 @@ pub mod clip;
 pub mod config;
 pub mod distributed;
 pub mod eval;
+pub mod eval_colors;
 pub mod heldout;
 pub mod heldout_variants;
 pub mod levels;
 pub mod masks;
 pub mod pipeline;
 pub mod preprocess;
+pub mod query;
 pub mod raster;
 pub mod report;
 pub mod robust;

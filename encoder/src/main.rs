@@ -87,9 +87,11 @@ fn main() -> std::process::ExitCode {
         }),
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) if a.held_out => {
-            cli::eval::run_held_out(a).and_then(|o| print_json(&o))
+            slag_encoder::eval_colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
         }
-        Command::EvalColors(a) => cli::eval::run(a).and_then(|o| print_json(&o)),
+        Command::EvalColors(a) => {
+            slag_encoder::eval_colors::run(&a.into()).and_then(|o| print_json(&o))
+        }
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {
             cli::encode::run(a).map(|r| println!("{}", slag_encoder::report::timing_table(&r)))

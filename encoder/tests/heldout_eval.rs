@@ -10,8 +10,7 @@ mod support;
 
 use clap::Parser;
 use slag_encoder::cli::encode::EncodeArgs;
-use slag_encoder::cli::eval::{EvalArgs, run_held_out};
-use slag_encoder::config::RasterBackend;
+use slag_encoder::eval_colors::{EvalColorsConfig, run_held_out};
 use support::{ort_available, shared};
 
 #[derive(Parser)]
@@ -51,21 +50,12 @@ fn encode_mini(out: &std::path::Path, masks: &[&str], extra: &[&str]) -> std::pa
     out.join("embeddings.safetensors")
 }
 
-fn eval_args(embeddings: std::path::PathBuf, compare: Vec<std::path::PathBuf>) -> EvalArgs {
-    EvalArgs {
-        scene: mini(),
-        ply: None,
-        embeddings,
+fn eval_args(embeddings: std::path::PathBuf, compare: Vec<std::path::PathBuf>) -> EvalColorsConfig {
+    EvalColorsConfig {
         color_clip: Some(slag_common::paths::source_tree_shared_dir().join("fixtures/clip")),
-        clip_textual: None,
-        tokenizer: None,
-        classes: None,
-        ep: slag_encoder::cli::EpArg::Cpu,
-        held_out: true,
-        every: None, // from the report beside the embeddings
-        raster_scale: None,
-        rasterizer: RasterBackend::Gpu,
+        // every and raster_scale: from the report beside the embeddings
         compare,
+        ..EvalColorsConfig::new(mini(), embeddings)
     }
 }
 

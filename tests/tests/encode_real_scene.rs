@@ -4,7 +4,7 @@
 
 #![allow(clippy::unwrap_used)]
 
-use slag_encoder::cli::eval::EvalArgs;
+use slag_encoder::eval_colors::EvalColorsConfig;
 use slag_tests::{encode_line, shared};
 
 fn snowmiku() -> std::path::PathBuf {
@@ -12,22 +12,11 @@ fn snowmiku() -> std::path::PathBuf {
 }
 
 fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
-    let a = EvalArgs {
-        scene: shared().join("scenes/snowmiku"),
-        ply: None,
-        embeddings: out.join("embeddings.safetensors"),
+    let a = EvalColorsConfig {
         color_clip: Some(shared().join("fixtures/clip")),
-        clip_textual: None,
-        tokenizer: None,
-        classes: None,
-        ep: slag_encoder::cli::EpArg::Cpu,
-        held_out: false,
-        every: None,
-        raster_scale: None,
-        rasterizer: slag_encoder::config::RasterBackend::Gpu,
-        compare: Vec::new(),
+        ..EvalColorsConfig::new(snowmiku(), out.join("embeddings.safetensors"))
     };
-    slag_encoder::cli::eval::run(&a).expect("eval-colors")
+    slag_encoder::eval_colors::run(&a).expect("eval-colors")
 }
 
 /// The CI subset: every 12th image (9 views), raster scale 0.25.

@@ -1,25 +1,14 @@
 //! `slag-encoder eval-colors`: colour mIoU of an embeddings file with color-clip (the accuracy
-//! instrument of every speed/accuracy trade).
-//!
-//! Without `--held-out`: the 3D score of [`crate::eval`] (each Gaussian's class against the
-//! prototype nearest its SH-DC colour). With `--held-out`: the 2D protocol of [`crate::heldout`]
-//! on the views the encoder never saw, with the majority-class and pixel-lifting-oracle baselines,
-//! and the 3D score as a secondary line.
+//! instrument of every speed/accuracy trade), per Gaussian or with `--held-out` per pixel of the
+//! views the encoder never saw ([`crate::eval_colors`]).
 
-use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::path::PathBuf;
 
-use anyhow::Context;
+use crate::config::RasterBackend;
+use crate::eval_colors::EvalColorsConfig;
 use clap::Args;
-use slag_common::camera;
-use slag_common::embeddings::Embeddings;
-use slag_common::scene::{self, Gaussians, PlyLoadOptions};
-use slag_common::text::TextEncoder;
 
 use super::EpArg;
-use crate::config::RasterBackend;
-use crate::pipeline::build::make_rasterizer;
-use crate::{eval, heldout};
 
 /// Arguments of `eval-colors`.
 #[derive(Debug, Clone, Args)]
@@ -75,271 +64,21 @@ pub struct EvalArgs {
     pub compare: Vec<PathBuf>,
 }
 
-/// What every evaluation needs: the classes, the scene, the embeddings and the class texts.
-struct Inputs {
-    classes: eval::ColorClasses,
-    gaussians: Gaussians,
-    emb: Embeddings,
-    text_embeds: Vec<Vec<f32>>,
-}
-
-fn load_inputs(a: &EvalArgs) -> anyhow::Result<Inputs> {
-    // The folder is needed only for the files no flag names.
-    let clip_dir = || -> anyhow::Result<PathBuf> {
-        match &a.color_clip {
-            Some(d) => Ok(d.clone()),
-            None => Ok(slag_common::paths::shared_dir()
-                .context("color-clip's files: pass --color-clip DIR")?
-                .join("fixtures")
-                .join("clip")),
+impl From<&EvalArgs> for EvalColorsConfig {
+    fn from(a: &EvalArgs) -> Self {
+        EvalColorsConfig {
+            scene: a.scene.clone(),
+            ply: a.ply.clone(),
+            embeddings: a.embeddings.clone(),
+            color_clip: a.color_clip.clone(),
+            clip_textual: a.clip_textual.clone(),
+            tokenizer: a.tokenizer.clone(),
+            classes: a.classes.clone(),
+            ep: a.ep,
+            every: a.every,
+            raster_scale: a.raster_scale,
+            rasterizer: a.rasterizer,
+            compare: a.compare.clone(),
         }
-    };
-    let or = |p: &Option<PathBuf>, name: &str| -> anyhow::Result<PathBuf> {
-        match p {
-            Some(p) => Ok(p.clone()),
-            None => Ok(clip_dir()?.join(name)),
-        }
-    };
-    let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json")?)?;
-    let ply = a
-        .ply
-        .clone()
-        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
-    let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
-    let emb = Embeddings::read(&a.embeddings)?;
-    if emb.scene_gaussians != gaussians.len() as u64 {
-        anyhow::bail!(
-            "{} was made from a scene of {} Gaussians but {} has {}; pass the .ply used by encode (--ply)",
-            a.embeddings.display(),
-            emb.scene_gaussians,
-            ply.display(),
-            gaussians.len()
-        );
     }
-    let mut text = TextEncoder::new(
-        &or(&a.clip_textual, "color-clip-textual.onnx")?,
-        &or(&a.tokenizer, "clip-tokenizer.json")?,
-        a.ep,
-    )?;
-    let names: Vec<&str> = classes.names.iter().map(String::as_str).collect();
-    let text_embeds = text.encode(&names).context("encoding the colour prompts")?;
-    Ok(Inputs {
-        classes,
-        gaussians,
-        emb,
-        text_embeds,
-    })
-}
-
-fn colour_3d(i: &Inputs) -> anyhow::Result<eval::ColourEval> {
-    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
-    let predicted = eval::assign(&i.emb, &i.text_embeds)?;
-    Ok(eval::evaluate(&gt, &i.emb, &predicted, &i.classes.names)?)
-}
-
-/// Runs `eval-colors` without `--held-out` and returns the 3D evaluation (serialisable to JSON).
-pub fn run(a: &EvalArgs) -> anyhow::Result<eval::ColourEval> {
-    colour_3d(&load_inputs(a)?)
-}
-
-/// The 2D held-out evaluation ([`crate::heldout`]); serialises to `eval-colors --held-out`'s
-/// `held_out` object.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct HeldOutEval {
-    /// The encoder's `--every N`; held-out views have name-sorted index ≡ ⌊N/2⌋ (mod N).
-    pub every: usize,
-    /// Names of the held-out views, in name order.
-    pub held_out_views: Vec<String>,
-    /// Number of encoded views (index ≡ 0 mod N), which the oracle lifts.
-    pub encoded_views: usize,
-    /// Raster scale of the oracle's lifting (the encoder's `--raster-scale`); held-out renders
-    /// are at scale 1.
-    pub oracle_raster_scale: f64,
-    /// The weight rasterizer that ran.
-    pub rasterizer: String,
-    /// Pixels count when their rendered alpha is at least this.
-    pub alpha_min: f32,
-    /// Pixels of all held-out views.
-    pub pixels: u64,
-    /// Pixels counted (alpha ≥ `alpha_min`).
-    pub counted_pixels: u64,
-    /// The class-size threshold of the mIoU (fraction of the counted pixels, by truth).
-    pub miou_min_class_fraction: f64,
-    /// Classes averaged in every mIoU below.
-    pub miou_classes: Vec<String>,
-    /// slag: `cos(E_k, text_c)` rendered and argmaxed.
-    pub slag: heldout::PixelScore,
-    /// The majority class of the counted pixels (the majority baseline's answer everywhere).
-    pub majority_class: String,
-    /// Baseline: every counted pixel gets `majority_class`.
-    pub majority: heldout::PixelScore,
-    /// Baseline: pixel-level lifting oracle `Σ_p w_kp · onehot(class(photo_p))` over the encoded
-    /// views, rendered like slag.
-    pub oracle: heldout::PixelScore,
-    /// Gaussians that received weight in the oracle's lifting.
-    pub oracle_observed_gaussians: usize,
-    /// Gaussians with an embedding (slag's observed).
-    pub observed_gaussians: usize,
-    /// slag's mIoU / the oracle's.
-    pub slag_over_oracle: Option<f64>,
-    /// Other predictors scored on the same pixels: `--compare` files and the stored forms
-    /// beside the embeddings (per-level embeddings, mixture), see [`crate::heldout_variants`].
-    pub variants: Vec<crate::heldout_variants::VariantScore>,
-    /// Wall time of the held-out evaluation (renders, oracle, scoring), seconds.
-    pub seconds: f64,
-}
-
-/// What `eval-colors --held-out` prints.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct HeldOutOutput {
-    /// The 2D held-out protocol (primary).
-    pub held_out: HeldOutEval,
-    /// The 3D per-Gaussian score (secondary line), as `eval-colors` without `--held-out`.
-    pub colour_3d: eval::ColourEval,
-}
-
-/// `every` and `raster_scale` from the report.json beside `embeddings`, if there is one.
-fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f64>)> {
-    let path = embeddings
-        .parent()
-        .unwrap_or(Path::new("."))
-        .join("report.json");
-    if !path.exists() {
-        return Ok((None, None));
-    }
-    let text =
-        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| {
-        format!(
-            "{} is not JSON; pass --every and --raster-scale",
-            path.display()
-        )
-    })?;
-    Ok((
-        v["inputs"]["every"].as_u64().map(|e| e as usize),
-        v["parameters"]["raster_scale"].as_f64(),
-    ))
-}
-
-/// Runs `eval-colors --held-out` (the 2D protocol of [`crate::heldout`], plus the 3D score).
-///
-/// Errors: `--every` unknown (no report.json beside the embeddings and no flag) or contradicting
-/// the report, `--every` < 2, the scene's views or photos unreadable, rasterizer failures, and
-/// everything [`run`] refuses.
-pub fn run_held_out(a: &EvalArgs) -> anyhow::Result<HeldOutOutput> {
-    let (report_every, report_scale) = report_settings(&a.embeddings)?;
-    let every = match (a.every, report_every) {
-        (Some(f), Some(r)) if f != r => anyhow::bail!(
-            "--every {f} but the report beside {} says the encoder ran with --every {r}: the \
-             held-out views would include encoded ones; pass --every {r}",
-            a.embeddings.display()
-        ),
-        (Some(e), _) | (None, Some(e)) => e,
-        (None, None) => anyhow::bail!(
-            "no report.json beside {}: pass the encoder's --every (and --raster-scale)",
-            a.embeddings.display()
-        ),
-    };
-    let raster_scale = a.raster_scale.or(report_scale).with_context(|| {
-        format!(
-            "no raster_scale in a report beside {}: pass the encoder's --raster-scale",
-            a.embeddings.display()
-        )
-    })?;
-    let inputs = load_inputs(a)?;
-    let colour_3d = colour_3d(&inputs)?;
-    let t0 = Instant::now();
-    let views = camera::load_views(&a.scene)?;
-    let held = heldout::held_out_indices(views.len(), every)?;
-    if held.is_empty() {
-        anyhow::bail!(
-            "{} has {} views: none has an index ≡ {} (mod {every}); encode with a smaller --every",
-            a.scene.display(),
-            views.len(),
-            every / 2
-        );
-    }
-    let n = inputs.gaussians.len();
-    let c = inputs.classes.len();
-    let names = &inputs.classes.names;
-    let slag_scores = heldout::gaussian_scores(&inputs.emb, &inputs.text_embeds, n)?;
-    let mut rasterizer = make_rasterizer(a.rasterizer, &inputs.gaussians)?;
-
-    // Oracle: lift the encoded views' photo classes at the encoder's raster scale.
-    let mut oracle = heldout::OracleLifting::new(n, c)?;
-    let encoded: Vec<&camera::View> = views.iter().step_by(every).collect();
-    for v in &encoded {
-        let intr = crate::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
-        let photo = crate::pipeline::read_image(v)?;
-        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
-        oracle
-            .add_view(rasterizer.as_mut(), &intr, &v.world_to_camera, &truth)
-            .with_context(|| format!("oracle lifting of view {}", v.name))?;
-    }
-    let oracle_scores = oracle.scores();
-    let variants = crate::heldout_variants::variant_tables(
-        &a.embeddings,
-        &a.compare,
-        &slag_scores,
-        &inputs.text_embeds,
-        n,
-    )?;
-
-    // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
-    let mut tally = heldout::HeldOutTally::new(c, 2 + variants.len());
-    let mut tables: Vec<&[f32]> = vec![&slag_scores, &oracle_scores];
-    tables.extend(variants.iter().map(|v| v.scores.as_slice()));
-    for &i in &held {
-        let v = &views[i];
-        let intr = crate::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
-        let weights = rasterizer
-            .rasterize(&intr, &v.world_to_camera)
-            .with_context(|| format!("rendering held-out view {}", v.name))?;
-        let photo = crate::pipeline::read_image(v)?;
-        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
-        tally.add_view(&weights, &truth, &tables, n)?;
-        tracing::info!("held-out view {} scored", v.name);
-    }
-    let slag = tally.score(&tally.predictors[0], names);
-    let oracle_score = tally.score(&tally.predictors[1], names);
-    let majority = tally.score(&tally.majority(), names);
-    let variants = variants
-        .into_iter()
-        .zip(&tally.predictors[2..])
-        .map(|(v, cf)| v.scored(tally.score(cf, names)))
-        .collect();
-    let slag_over_oracle = match (slag.miou, oracle_score.miou) {
-        (Some(s), Some(o)) if o > 0.0 => Some(s / o),
-        _ => None,
-    };
-    let held_out = HeldOutEval {
-        every,
-        held_out_views: held.iter().map(|&i| views[i].name.clone()).collect(),
-        encoded_views: encoded.len(),
-        oracle_raster_scale: raster_scale,
-        rasterizer: rasterizer.name().to_string(),
-        alpha_min: heldout::ALPHA_MIN,
-        pixels: tally.pixels,
-        counted_pixels: tally.counted(),
-        miou_min_class_fraction: eval::MIOU_MIN_CLASS_FRACTION,
-        miou_classes: slag
-            .classes
-            .iter()
-            .filter(|s| s.in_miou)
-            .map(|s| s.name.clone())
-            .collect(),
-        majority_class: names[tally.majority_class()].clone(),
-        slag,
-        majority,
-        oracle: oracle_score,
-        oracle_observed_gaussians: oracle.observed(),
-        observed_gaussians: inputs.emb.len(),
-        slag_over_oracle,
-        variants,
-        seconds: t0.elapsed().as_secs_f64(),
-    };
-    Ok(HeldOutOutput {
-        held_out,
-        colour_3d,
-    })
 }

@@ -1,12 +1,12 @@
 //! `slag-encoder query`: check a text prompt against an embeddings file, print the best Gaussians,
-//! optionally write a copy of the scene `.ply` with the matches highlighted.
+//! optionally write a copy of the scene `.ply` with the matches highlighted
+//! ([`crate::query`]).
 
 use std::path::PathBuf;
 
+use crate::query::{QueryOutput, QueryParams};
 use clap::Args;
-use slag_common::embeddings::Embeddings;
-use slag_common::similarity::{self, Match, MatchSummary};
-use slag_common::text::TextEncoder;
+use slag_common::similarity;
 
 use super::EpArg;
 
@@ -57,24 +57,21 @@ fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
     }
 }
 
-/// What `query` prints (JSON).
-#[derive(Debug, serde::Serialize)]
-pub struct QueryOutput {
-    /// The prompt.
-    pub query: String,
-    /// CLIP model id of the embeddings.
-    pub model: String,
-    /// The cosine threshold applied.
-    pub threshold: f32,
-    /// Gaussians above the threshold (all of them, for the summary).
-    pub summary: MatchSummary,
-    /// The best `top_k` matches above the threshold, best first.
-    pub matches: Vec<Match>,
-    /// When nothing reaches the threshold: the `top_k` best-scoring Gaussians anyway, so the user
-    /// sees how close the scene came (empty otherwise).
-    pub nearest_below_threshold: Vec<Match>,
-    /// The highlighted .ply, if written.
-    pub highlighted_ply: Option<PathBuf>,
+impl From<&QueryArgs> for QueryParams {
+    fn from(a: &QueryArgs) -> Self {
+        QueryParams {
+            embeddings: a.embeddings.clone(),
+            clip_textual: a.clip_textual.clone(),
+            tokenizer: a.tokenizer.clone(),
+            text: a.text.clone(),
+            top_k: a.top_k,
+            threshold: a.threshold,
+            ply: a.ply.clone(),
+            highlight_out: a.highlight_out.clone(),
+            highlight_rgb: a.highlight_rgb,
+            ep: a.ep,
+        }
+    }
 }
 
 /// How to give a prompt to `slag-encoder query` (the hint of a refused prompt).
@@ -83,59 +80,11 @@ pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
 /// Runs `query`.
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
-/// `slag-edge`; [`slag_common::Error::Invalid`], checked before anything is read), unreadable
-/// embeddings or models.
+/// `slag-edge`; [`slag_common::Error::Invalid`] with [`PROMPT_HINT`], checked before anything is
+/// read), then [`crate::query::run`]'s.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
-    let emb = Embeddings::read(&a.embeddings)?;
-    let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
-    text.check_pair(&emb.model)?;
-    let q = text.encode(&[a.text.as_str()])?.remove(0);
-    let (all, summary) = similarity::rank(
-        &emb.ids,
-        &emb.means,
-        &emb.vectors,
-        emb.dim,
-        &q,
-        None,
-        Some(a.threshold),
-    )?;
-    if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
-        let mut hit = vec![
-            false;
-            emb.scene_gaussians
-                .max(emb.ids.iter().map(|&i| i as u64 + 1).max().unwrap_or(0))
-                as usize
-        ];
-        all.iter().for_each(|m| hit[m.id as usize] = true);
-        let rgb = a.highlight_rgb;
-        slag_common::scene::write_highlighted_ply(src, dst, |i| {
-            hit.get(i).copied().unwrap_or(false).then_some(rgb)
-        })?;
-    }
-    let nearest_below_threshold = if all.is_empty() {
-        similarity::rank(
-            &emb.ids,
-            &emb.means,
-            &emb.vectors,
-            emb.dim,
-            &q,
-            Some(a.top_k),
-            None,
-        )?
-        .0
-    } else {
-        Vec::new()
-    };
-    Ok(QueryOutput {
-        query: a.text.clone(),
-        model: emb.model.clone(),
-        threshold: a.threshold,
-        summary,
-        matches: all.into_iter().take(a.top_k).collect(),
-        nearest_below_threshold,
-        highlighted_ply: a.highlight_out.clone(),
-    })
+    Ok(crate::query::run(&QueryParams::from(a))?)
 }
 
 #[cfg(test)]
