@@ -10,9 +10,11 @@
 //! to `--out`/g<N>/.
 
 use anyhow::Context;
-use slag_encoder::cli::encode::EncodeArgs;
-use slag_encoder::config::GpuCount;
+use slag_encoder::config::{EncodeConfig, GpuCount};
+use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
+
+use slag_encoder::cli::encode::EncodeArgs;
 
 /// Arguments of `slag-bench scaling`.
 #[derive(Debug, Clone, clap::Args)]
@@ -80,13 +82,16 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
     if a.counts.is_empty() || a.counts.contains(&0) || !a.counts.is_sorted() {
         anyhow::bail!("--counts needs ascending GPU counts >= 1, e.g. --counts 1,2,4");
     }
+    let base = EncodeConfig::from(&a.encode);
     let mut runs = Vec::new();
     for &g in &a.counts {
-        let mut e = a.encode.clone();
-        e.gpus = GpuCount::Count(g);
-        e.out = a.encode.out.join(format!("g{g}"));
-        let r =
-            slag_encoder::cli::encode::run(&e).with_context(|| format!("encode on {g} GPU(s)"))?;
+        let mut e = base.clone();
+        e.execution.gpus = GpuCount::Count(g);
+        e.output.dir = base.output.dir.join(format!("g{g}"));
+        let r = Encoder::new(e)
+            .map_err(anyhow::Error::from)
+            .and_then(|enc| Ok(enc.run()?))
+            .with_context(|| format!("encode on {g} GPU(s)"))?;
         eprintln!("{g} GPU(s): {:.1} s", r.timings.total);
         runs.push((g, r));
     }
@@ -101,7 +106,7 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
     let path = a
         .table
         .clone()
-        .unwrap_or_else(|| a.encode.out.join("scaling.md"));
+        .unwrap_or_else(|| base.output.dir.join("scaling.md"));
     slag_common::embeddings::write_atomic(&path, md.as_bytes())?;
     Ok(md)
 }

@@ -19,9 +19,12 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use slag_encoder::cli::encode::EncodeArgs;
+use slag_encoder::config::{EncodeConfig, MaskSource};
+use slag_encoder::pipeline::Encoder;
 use slag_encoder::raster::{GpuRasterizer, WeightRasterizer, raster_intrinsics};
 use slag_encoder::report::Report;
+
+use slag_encoder::cli::encode::EncodeArgs;
 
 /// Arguments of `slag-bench stages`: the encode arguments plus where the floors come from.
 #[derive(Debug, Clone, clap::Args)]
@@ -146,24 +149,23 @@ fn file_name(p: &Path) -> String {
 /// Rasterizes `n` evenly spaced views of the encode's scene alone and averages the phases.
 ///
 /// Errors: no GPU adapter, unreadable scene.
-pub fn raster_phases(a: &EncodeArgs, n: usize) -> anyhow::Result<RasterPhases> {
-    let ply = a
-        .ply
-        .clone()
-        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
-    let g = slag_common::scene::load_ply(&ply, Default::default())?;
-    let views = slag_common::camera::subsample(slag_common::camera::load_views(&a.scene)?, a.every);
+pub fn raster_phases(a: &EncodeConfig, n: usize) -> anyhow::Result<RasterPhases> {
+    let g = slag_common::scene::load_ply(&a.ply(), Default::default())?;
+    let views = slag_common::camera::subsample(
+        slag_common::camera::load_views(&a.scene.dir)?,
+        a.scene.every,
+    );
     if views.is_empty() || n == 0 {
         return Ok(RasterPhases::default());
     }
     let mut r = GpuRasterizer::new(&g)?;
-    let k0 = raster_intrinsics(&views[0].intrinsics, a.raster_scale)?;
+    let k0 = raster_intrinsics(&views[0].intrinsics, a.raster.scale)?;
     r.rasterize(&k0, &views[0].world_to_camera)?; // warm-up: pipelines, allocations
     let mut p = RasterPhases::default();
     let n = n.min(views.len());
     for i in 0..n {
         let v = &views[i * views.len() / n];
-        let k = raster_intrinsics(&v.intrinsics, a.raster_scale)?;
+        let k = raster_intrinsics(&v.intrinsics, a.raster.scale)?;
         let t = std::time::Instant::now();
         let w = r.rasterize(&k, &v.world_to_camera)?;
         p.total_ms += t.elapsed().as_secs_f64() * 1e3;
@@ -206,7 +208,7 @@ const AKJ_BYTES: f64 = 12.0;
 /// `phases` gives the entries and pixels per view (from [`raster_phases`] at the same raster
 /// scale); with `phases.views == 0` they are estimated from the report's contributors per pixel.
 pub fn stage_rows(
-    a: &EncodeArgs,
+    a: &EncodeConfig,
     r: &Report,
     facts: &Facts,
     phases: &RasterPhases,
@@ -239,9 +241,10 @@ pub fn stage_rows(
         }
         _ => format!("ORT CPU EP, {} cores", facts.host_cores),
     };
-    match (gflop(&a.sam_encoder), gflop(&a.sam_decoder)) {
-        (Some(enc), Some(dec)) if a.sam_encoder.is_some() => {
-            let points = f64::from(a.sam_points_per_side).powi(2);
+    let sam = a.masks.source == MaskSource::Sam;
+    match (gflop(&a.masks.sam.encoder), gflop(&a.masks.sam.decoder)) {
+        (Some(enc), Some(dec)) if sam => {
+            let points = f64::from(a.masks.sam.points_per_side).powi(2);
             let work = enc + dec * points;
             rows.push(StageRow {
                 stage: "masks (SAM)".into(),
@@ -263,13 +266,9 @@ pub fn stage_rows(
                     &r.models.masks
                 }
             ),
-            runs_on: if a.sam_encoder.is_some() {
-                ort.clone()
-            } else {
-                "CPU".into()
-            },
+            runs_on: if sam { ort.clone() } else { "CPU".into() },
             ms_per_image: per(t.masks),
-            work: if a.sam_encoder.is_some() {
+            work: if sam {
                 "SAM model not in the facts file: no FLOP count".into()
             } else {
                 "no FLOP model (graph segmentation)".into()
@@ -279,7 +278,7 @@ pub fn stage_rows(
         }),
     }
     let crops = c.masks as f64 / n;
-    match gflop(&Some(a.clip_visual.clone())) {
+    match gflop(&Some(a.clip.visual.clone())) {
         Some(g) => rows.push(StageRow {
             stage: "CLIP crops".into(),
             runs_on: ort.clone(),
@@ -300,7 +299,7 @@ pub fn stage_rows(
     let (entries, pixels) = if phases.views > 0 {
         (phases.entries, phases.pixels)
     } else {
-        let px = image_pixels * a.raster_scale * a.raster_scale;
+        let px = image_pixels * a.raster.scale * a.raster.scale;
         (px * c.contributors_per_pixel, px)
     };
     // The report says whether the GPU summed per (Gaussian, label) (only the sums come back) or
@@ -390,7 +389,7 @@ pub fn stage_rows(
 
 /// Markdown of the stage table, the raster phases and the torch comparison.
 pub fn markdown(
-    a: &EncodeArgs,
+    a: &EncodeConfig,
     r: &Report,
     facts: &Facts,
     rows: &[StageRow],
@@ -417,7 +416,7 @@ pub fn markdown(
         r.counts.gaussians,
         r.counts.observed,
         r.counts.masks,
-        a.raster_scale,
+        a.raster.scale,
         r.models
             .front_workers
             .map_or_else(|| "?".to_string(), |f| f.to_string()),
@@ -487,19 +486,20 @@ pub fn run(a: &StagesArgs) -> anyhow::Result<String> {
         Some(p) => Some(read_json(p, "torch CLIP timing")?),
         None => None,
     };
-    let report = slag_encoder::cli::encode::run(&a.encode)?;
-    let phases = raster_phases(&a.encode, a.raster_views)?;
-    let views = slag_common::camera::load_views(&a.encode.scene)?;
+    let config = EncodeConfig::from(&a.encode);
+    let report = Encoder::new(config.clone())?.run()?;
+    let phases = raster_phases(&config, a.raster_views)?;
+    let views = slag_common::camera::load_views(&config.scene.dir)?;
     let image_pixels = views.first().map_or(0.0, |v| {
         f64::from(v.intrinsics.width) * f64::from(v.intrinsics.height)
     });
-    let rows = stage_rows(&a.encode, &report, &facts, &phases, image_pixels);
+    let rows = stage_rows(&config, &report, &facts, &phases, image_pixels);
     let command = std::iter::once("slag-bench".to_string())
         .chain(std::env::args().skip(1))
         .collect::<Vec<_>>()
         .join(" ");
     let md = markdown(
-        &a.encode,
+        &config,
         &report,
         &facts,
         &rows,

@@ -8,44 +8,34 @@
 
 mod support;
 
-use clap::Parser;
-use slag_encoder::cli::encode::EncodeArgs;
+use slag_encoder::config::{EncodeConfig, MasksConfig};
 use slag_encoder::eval_colors::{EvalColorsConfig, run_held_out};
+use slag_encoder::levels::MaskOverlap;
+use slag_encoder::pipeline::Encoder;
 use support::{ort_available, shared};
-
-#[derive(Parser)]
-struct EncodeCli {
-    #[command(flatten)]
-    args: EncodeArgs,
-}
 
 fn mini() -> std::path::PathBuf {
     std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
 }
 
-/// `slag-encoder encode` on snowmiku-mini at `--every 4`, raster 0.5, with `extra` arguments;
-/// returns the output folder's embeddings path.
-fn encode_mini(out: &std::path::Path, masks: &[&str], extra: &[&str]) -> std::path::PathBuf {
+/// An encode of snowmiku-mini at `every` 4, raster 0.5, with color-clip and `masks`.
+fn mini_config(out: &std::path::Path, masks: MasksConfig) -> EncodeConfig {
     let clip = shared().join("fixtures/clip/color-clip-visual.onnx");
-    let mut argv: Vec<String> = vec![
-        "encode".into(),
-        "--scene".into(),
-        mini().display().to_string(),
-        "--quiet".into(),
-        "--clip-visual".into(),
-        clip.display().to_string(),
-        "--every".into(),
-        "4".into(),
-        "--raster-scale".into(),
-        "0.5".into(),
-        "--out".into(),
-        out.display().to_string(),
-    ];
-    argv.extend(masks.iter().chain(extra).map(|s| s.to_string()));
-    let args = EncodeCli::try_parse_from(argv)
-        .expect("encode arguments")
-        .args;
-    let report = slag_encoder::cli::encode::run(&args).expect("encode");
+    let mut c = EncodeConfig::new(mini(), clip, out);
+    c.masks = masks;
+    c.scene.every = 4;
+    c.raster.scale = 0.5;
+    c.output.progress = false;
+    c
+}
+
+/// Runs `config` (an encode of [`mini_config`]); returns the output folder's embeddings path.
+fn encode_mini(config: EncodeConfig) -> std::path::PathBuf {
+    let out = config.output.dir.clone();
+    let report = Encoder::new(config)
+        .expect("encode config")
+        .run()
+        .expect("encode");
     assert_eq!(report.counts.views_used, 4);
     out.join("embeddings.safetensors")
 }
@@ -70,30 +60,17 @@ fn default_aggregation_beats_the_mean_on_held_out_views() {
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let fixtures = shared().join("fixtures/sam-amg");
-    let enc = fixtures
-        .join("color-sam-encoder.onnx")
-        .display()
-        .to_string();
-    let dec = fixtures
-        .join("color-sam-decoder.onnx")
-        .display()
-        .to_string();
-    let sam = [
-        "--masks",
-        "sam",
-        "--sam-encoder",
-        &enc,
-        "--sam-decoder",
-        &dec,
-        "--sam-points-per-side",
-        "16",
-        "--sam-pred-iou-thresh",
-        "0.8",
-        "--sam-stability-score-thresh",
-        "0.5",
-    ];
-    let default = encode_mini(&dir.path().join("default"), &sam, &[]);
-    let mean = encode_mini(&dir.path().join("mean"), &sam, &["--overlap", "all"]);
+    let mut sam = MasksConfig::sam(
+        fixtures.join("color-sam-encoder.onnx"),
+        fixtures.join("color-sam-decoder.onnx"),
+    );
+    sam.sam.points_per_side = 16;
+    sam.sam.pred_iou_thresh = 0.8;
+    sam.sam.stability_score_thresh = 0.5;
+    let default = encode_mini(mini_config(&dir.path().join("default"), sam.clone()));
+    let mut mean = mini_config(&dir.path().join("mean"), sam);
+    mean.aggregate.overlap = MaskOverlap::All;
+    let mean = encode_mini(mean);
     let r = run_held_out(&eval_args(default, vec![mean])).expect("eval-colors --held-out");
     let h = &r.held_out;
     let (ours, paper, oracle) = (
@@ -129,7 +106,7 @@ fn held_out_protocol_on_snowmiku_mini() {
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("out");
-    encode_mini(&out, &["--masks", "graph"], &[]);
+    encode_mini(mini_config(&out, MasksConfig::graph()));
 
     let a = eval_args(out.join("embeddings.safetensors"), Vec::new());
     let r = run_held_out(&a).expect("eval-colors --held-out");

@@ -1,11 +1,13 @@
-//! Shared helpers for slag's end-to-end tests: fixture paths, CLI-equivalent argument parsing,
-//! and the encode → partition → shard server → fetch → edge serve set-up ([`robot_path`]).
+//! Shared helpers for slag's end-to-end tests: fixture paths, the tests' encode settings as
+//! typed [`EncodeConfig`]s, and the encode → partition → shard server → fetch → edge serve
+//! set-up ([`robot_path`]).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use clap::Parser;
-use slag_encoder::cli::encode::EncodeArgs;
+use slag_encoder::config::{EncodeConfig, MasksConfig};
+use slag_encoder::pipeline::Encoder;
+use slag_encoder::report::Report;
 
 /// `../shared` (or `$SLAG_SHARED`).
 pub fn shared() -> PathBuf {
@@ -25,37 +27,36 @@ pub fn default_scene() -> PathBuf {
         .join("snowmiku-mini")
 }
 
-#[derive(Parser)]
-struct EncodeCli {
-    #[command(flatten)]
-    args: EncodeArgs,
+/// color-clip's visual tower, `fixtures/clip/color-clip-visual.onnx`.
+pub fn color_clip_visual() -> PathBuf {
+    fixture("clip/color-clip-visual.onnx")
 }
 
-/// Parses `slag-encoder encode` arguments exactly as the binary does.
-pub fn encode_args(args: &[&str]) -> EncodeArgs {
-    let argv = std::iter::once("encode").chain(args.iter().copied());
-    match EncodeCli::try_parse_from(argv) {
-        Ok(c) => c.args,
-        Err(e) => panic!("bad test arguments: {e}"),
-    }
+/// The tests' usual encode of `scene` into `out`: graph masks and color-clip, no progress bars,
+/// every other setting at the command line's default. Change fields before [`encode`].
+pub fn graph_config(scene: &Path, out: &Path) -> EncodeConfig {
+    let mut c = EncodeConfig::new(scene, color_clip_visual(), out);
+    c.masks = MasksConfig::graph();
+    c.output.progress = false;
+    c
 }
 
-/// Runs `slag-encoder encode` as the binary would on `scene` with the arguments of `line`
-/// (whitespace-separated; `{F}` stands for `../shared/fixtures`), quietly, into `out`.
-pub fn encode_line(
-    scene: &std::path::Path,
-    line: &str,
-    out: &std::path::Path,
-) -> anyhow::Result<slag_encoder::report::Report> {
-    let fixtures = shared().join("fixtures").display().to_string();
-    let mut argv: Vec<String> = ["--scene", &scene.display().to_string(), "--quiet", "--out"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    argv.push(out.display().to_string());
-    argv.extend(line.split_whitespace().map(|t| t.replace("{F}", &fixtures)));
-    let args = encode_args(&argv.iter().map(String::as_str).collect::<Vec<_>>());
-    slag_encoder::cli::encode::run(&args)
+/// color-sam masks (`fixtures/sam-amg`) on a `points_per_side`² grid with the reference filters
+/// (predicted IoU 0.8, stability 0.5), as the encoder's tests and the trade study use them.
+pub fn color_sam(points_per_side: u32) -> MasksConfig {
+    let mut m = MasksConfig::sam(
+        fixture("sam-amg/color-sam-encoder.onnx"),
+        fixture("sam-amg/color-sam-decoder.onnx"),
+    );
+    m.sam.points_per_side = points_per_side;
+    m.sam.pred_iou_thresh = 0.8;
+    m.sam.stability_score_thresh = 0.5;
+    m
+}
+
+/// Runs `config` as `slag-encoder encode` does: checked by [`Encoder::new`], then run.
+pub fn encode(config: EncodeConfig) -> anyhow::Result<Report> {
+    Ok(Encoder::new(config)?.run()?)
 }
 
 /// What [`robot_path`] sets up: every server runs on the runtime it was given.
@@ -110,12 +111,10 @@ pub fn robot_path(
     use slag_edge::serve::{AppState, ServeOptions};
     let dir = tempfile::tempdir().expect("temporary folder");
     let out = dir.path().join("enc");
-    encode_line(
-        &default_scene(),
-        "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --every 2 --raster-scale 0.5",
-        &out,
-    )
-    .expect("encode");
+    let mut config = graph_config(&default_scene(), &out);
+    config.scene.every = 2;
+    config.raster.scale = 0.5;
+    encode(config).expect("encode");
     let embeddings = out.join("embeddings.safetensors");
     let shard_store = dir.path().join("shards");
     slag_shards::cli::run_partition(&slag_shards::cli::PartitionArgs {

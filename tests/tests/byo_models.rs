@@ -13,8 +13,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use slag_encoder::cli::query::QueryArgs;
-use slag_tests::{default_scene, encode_line, fixture};
+use slag_encoder::config::{EncodeConfig, MasksConfig};
+use slag_encoder::query::QueryParams;
+use slag_tests::{default_scene, encode, fixture};
 
 fn python() -> String {
     std::env::var("SLAG_PYTHON").unwrap_or_else(|_| "python3".into())
@@ -60,18 +61,11 @@ fn export(args: &[&str]) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
-fn query_args(emb: &Path, textual: &Path, tokenizer: &Path, text: &str) -> QueryArgs {
-    QueryArgs {
-        embeddings: emb.to_path_buf(),
-        clip_textual: textual.to_path_buf(),
-        tokenizer: tokenizer.to_path_buf(),
-        text: text.into(),
+fn query_args(emb: &Path, textual: &Path, tokenizer: &Path, text: &str) -> QueryParams {
+    QueryParams {
         top_k: 5,
         threshold: 0.28,
-        ply: None,
-        highlight_out: None,
-        highlight_rgb: [1.0, 0.0, 1.0],
-        ep: slag_encoder::cli::EpArg::Cpu,
+        ..QueryParams::new(emb, textual, tokenizer, text)
     }
 }
 
@@ -118,16 +112,19 @@ fn exported_models_encode_and_query() {
     }
 
     let out = p("out");
-    let line = format!(
-        "--masks sam --sam-encoder {sam}/sam-tiny-encoder.onnx \
-         --sam-decoder {sam}/sam-tiny-decoder.onnx --sam-points-per-side 8 \
-         --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 \
-         --clip-visual {clip}/tiny-random-visual.onnx --every 6 --raster-scale 0.25",
-        sam = s("sam"),
-        clip = s("clip")
+    let mut config = EncodeConfig::new(default_scene(), p("clip/tiny-random-visual.onnx"), &out);
+    config.masks = MasksConfig::sam(
+        p("sam/sam-tiny-encoder.onnx"),
+        p("sam/sam-tiny-decoder.onnx"),
     );
+    config.masks.sam.points_per_side = 8;
+    config.masks.sam.pred_iou_thresh = 0.0;
+    config.masks.sam.stability_score_thresh = 0.0;
+    config.scene.every = 6;
+    config.raster.scale = 0.25;
+    config.output.progress = false;
     let t = Instant::now();
-    let report = encode_line(&default_scene(), &line, &out).expect("encode");
+    let report = encode(config).expect("encode");
     let t_encode = t.elapsed().as_secs_f64();
     assert!(report.counts.masks > 0, "the exported SAM produced no mask");
     let emb_path = out.join("embeddings.safetensors");
@@ -137,7 +134,7 @@ fn exported_models_encode_and_query() {
     assert_eq!(emb.model, pair_id, "the encoder records the CLIP pair id");
 
     let tokenizer = p("clip/clip-tokenizer.json");
-    let q = slag_encoder::cli::query::run(&query_args(
+    let q = slag_encoder::query::run(&query_args(
         &emb_path,
         &p("clip/tiny-random-textual.onnx"),
         &tokenizer,
@@ -148,7 +145,7 @@ fn exported_models_encode_and_query() {
     assert!(!q.matches.is_empty() || !q.nearest_below_threshold.is_empty());
 
     // Same architecture, same file name, other weights: refused, naming both ids.
-    let e = slag_encoder::cli::query::run(&query_args(
+    let e = slag_encoder::query::run(&query_args(
         &emb_path,
         &p("other/tiny-random-textual.onnx"),
         &tokenizer,
@@ -157,14 +154,11 @@ fn exported_models_encode_and_query() {
     .expect_err("a text tower of another CLIP model must be refused");
     let msg = e.to_string();
     assert!(
-        matches!(
-            e.downcast_ref::<slag_common::Error>(),
-            Some(slag_common::Error::ModelMismatch { .. })
-        ) && msg.contains(&pair_id),
+        matches!(e, slag_common::Error::ModelMismatch { .. }) && msg.contains(&pair_id),
         "{msg}"
     );
     // The shared fixture's text tower (color-clip) is refused as well.
-    let e = slag_encoder::cli::query::run(&query_args(
+    let e = slag_encoder::query::run(&query_args(
         &emb_path,
         &fixture("clip/color-clip-textual.onnx"),
         &tokenizer,

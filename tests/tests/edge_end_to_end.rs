@@ -8,8 +8,7 @@ use std::collections::HashSet;
 use std::time::Duration;
 
 use slag_edge::fetch::Center;
-use slag_encoder::cli::EpArg;
-use slag_encoder::cli::query::QueryArgs;
+use slag_encoder::query::QueryParams;
 use slag_tests::{fixture, robot_fetch_params, robot_path};
 
 fn local_query(
@@ -18,17 +17,15 @@ fn local_query(
     top_k: usize,
     threshold: f32,
 ) -> serde_json::Value {
-    let out = slag_encoder::cli::query::run(&QueryArgs {
-        embeddings: emb.to_path_buf(),
-        clip_textual: fixture("clip/color-clip-textual.onnx"),
-        tokenizer: fixture("clip/clip-tokenizer.json"),
-        text: text.into(),
+    let out = slag_encoder::query::run(&QueryParams {
         top_k,
         threshold,
-        ply: None,
-        highlight_out: None,
-        highlight_rgb: [1.0, 0.0, 1.0],
-        ep: EpArg::Cpu,
+        ..QueryParams::new(
+            emb,
+            fixture("clip/color-clip-textual.onnx"),
+            fixture("clip/clip-tokenizer.json"),
+            text,
+        )
     })
     .unwrap();
     serde_json::to_value(out).unwrap()

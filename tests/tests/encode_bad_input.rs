@@ -3,7 +3,8 @@
 
 #![allow(clippy::unwrap_used)]
 
-use slag_tests::{default_scene, encode_line};
+use slag_encoder::config::RasterBackend;
+use slag_tests::{default_scene, encode, fixture, graph_config};
 
 /// A copy of the embedded default scene that a test may damage.
 fn scene_copy(dir: &std::path::Path) -> std::path::PathBuf {
@@ -27,9 +28,10 @@ fn first_image(scene: &std::path::Path) -> std::path::PathBuf {
 }
 
 fn encode_graph(scene: &std::path::Path, out: &std::path::Path) -> anyhow::Result<()> {
-    let line = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.25 \
-                --rasterizer cpu";
-    encode_line(scene, line, out).map(|_| ())
+    let mut config = graph_config(scene, out);
+    config.raster.scale = 0.25;
+    config.raster.backend = RasterBackend::Cpu;
+    encode(config).map(|_| ())
 }
 
 #[test]
@@ -87,8 +89,9 @@ fn nan_in_the_ply_is_a_clear_error() {
 #[test]
 fn wrong_model_for_the_role_is_a_clear_error() {
     let dir = tempfile::tempdir().unwrap();
-    let line = "--masks graph --clip-visual {F}/clip/color-clip-textual.onnx";
-    let err = encode_line(&default_scene(), line, &dir.path().join("out")).unwrap_err();
+    let mut config = graph_config(&default_scene(), &dir.path().join("out"));
+    config.clip.visual = fixture("clip/color-clip-textual.onnx");
+    let err = encode(config).unwrap_err();
     let err = format!("{err:#}");
     assert!(
         err.contains("color-clip-textual.onnx") && err.contains("pixel_values"),
@@ -100,14 +103,10 @@ fn wrong_model_for_the_role_is_a_clear_error() {
 fn raster_scale_out_of_range_is_a_clear_error_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    for scale in ["0", "-1", "5", "NaN"] {
-        let line = format!(
-            "--masks graph --clip-visual {{F}}/clip/color-clip-visual.onnx --raster-scale={scale}"
-        );
-        let err = format!(
-            "{:#}",
-            encode_line(&default_scene(), &line, &out).unwrap_err()
-        );
+    for scale in [0.0, -1.0, 5.0, f64::NAN] {
+        let mut config = graph_config(&default_scene(), &out);
+        config.raster.scale = scale;
+        let err = format!("{:#}", encode(config).unwrap_err());
         assert!(err.contains("--raster-scale"), "{scale}: {err}");
     }
     assert!(!out.exists());

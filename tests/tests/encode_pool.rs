@@ -9,7 +9,7 @@ use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::pipeline::{self, FrontStages};
 use slag_encoder::raster::WeightRasterizer;
 use slag_encoder::synthetic::{SyntheticSceneParams, write_synthetic_scene};
-use slag_tests::{encode_args, encode_line, fixture};
+use slag_tests::{color_clip_visual, encode, graph_config};
 
 fn small_scene(dir: &std::path::Path) {
     let p = SyntheticSceneParams {
@@ -32,8 +32,14 @@ fn max_abs_diff(a: &Embeddings, b: &Embeddings) -> f32 {
         .fold(0.0, f32::max)
 }
 
-const LINE: &str = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.5 \
-                    --precision f32 --threads 2";
+/// Graph masks and color-clip at raster scale 0.5, f32 output, 2 threads.
+fn config(scene: &std::path::Path, out: &std::path::Path) -> slag_encoder::config::EncodeConfig {
+    let mut c = graph_config(scene, out);
+    c.raster.scale = 0.5;
+    c.output.precision = slag_common::embeddings::StoredPrecision::F32;
+    c.execution.threads = Some(2);
+    c
+}
 
 #[test]
 fn pool_of_fronts_and_rasterizers_equals_one_worker() {
@@ -41,24 +47,14 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     let scene = dir.path().join("scene");
     small_scene(&scene);
     let one = dir.path().join("one");
-    let r1 = encode_line(&scene, &format!("{LINE} --front-workers 1"), &one).unwrap();
+    let mut one_front = config(&scene, &one);
+    one_front.execution.front_workers = Some(1);
+    let r1 = encode(one_front).unwrap();
     assert_eq!(r1.counts.views_used, 7);
     assert!(r1.counts.observed > 10_000, "{}", r1.counts.observed);
 
     // Three fronts and two rasterizers (two wgpu devices on the same adapter), built by hand.
     let many = dir.path().join("many");
-    let args = encode_args(&[
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        many.to_str().unwrap(),
-        "--masks",
-        "graph",
-        "--clip-visual",
-        fixture("clip/color-clip-visual.onnx").to_str().unwrap(),
-        "--precision",
-        "f32",
-    ]);
     let fronts = (0..3)
         .map(|_| FrontStages {
             masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
@@ -66,7 +62,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
             )),
             crops: Box::new(
                 slag_encoder::clip::ClipVisual::with_threads(
-                    &args.clip_visual,
+                    &color_clip_visual(),
                     slag_common::onnx::ExecutionProvider::Cpu,
                     32,
                     1,
@@ -181,20 +177,10 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
     let scene = dir.path().join("scene");
     small_scene(&scene);
     let out = dir.path().join("out");
-    let args = encode_args(&[
-        "--scene",
-        scene.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--masks",
-        "graph",
-        "--clip-visual",
-        fixture("clip/color-clip-visual.onnx").to_str().unwrap(),
-    ]);
     let clip = || {
         Box::new(
             slag_encoder::clip::ClipVisual::with_threads(
-                &args.clip_visual,
+                &color_clip_visual(),
                 slag_common::onnx::ExecutionProvider::Cpu,
                 32,
                 1,
@@ -252,7 +238,7 @@ fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     small_scene(&scene);
-    let clip_path = fixture("clip/color-clip-visual.onnx");
+    let clip_path = color_clip_visual();
     let fronts = |gpus: &[Option<usize>]| -> Vec<FrontStages> {
         gpus.iter()
             .map(|&gpu| FrontStages {

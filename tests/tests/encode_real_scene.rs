@@ -4,8 +4,9 @@
 
 #![allow(clippy::unwrap_used)]
 
+use slag_encoder::config::{EncodeConfig, MasksConfig};
 use slag_encoder::eval_colors::EvalColorsConfig;
-use slag_tests::{encode_line, shared};
+use slag_tests::{color_sam, encode, fixture, graph_config, shared};
 
 fn snowmiku() -> std::path::PathBuf {
     shared().join("scenes/snowmiku")
@@ -20,19 +21,19 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
 }
 
 /// The CI subset: every 12th image (9 views), raster scale 0.25.
-const SUBSET: &str = "--every 12 --raster-scale 0.25";
+fn subset(mut c: EncodeConfig) -> EncodeConfig {
+    c.scene.every = 12;
+    c.raster.scale = 0.25;
+    c
+}
 
 #[test]
 fn color_sam_and_color_clip_reach_the_miou_floor() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let line = format!(
-        "--masks sam --sam-encoder {{F}}/sam-amg/color-sam-encoder.onnx \
-         --sam-decoder {{F}}/sam-amg/color-sam-decoder.onnx --sam-points-per-side 16 \
-         --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
-         --clip-visual {{F}}/clip/color-clip-visual.onnx {SUBSET}"
-    );
-    let report = encode_line(&snowmiku(), &line, &out).expect("encode");
+    let mut config = subset(graph_config(&snowmiku(), &out));
+    config.masks = color_sam(16);
+    let report = encode(config).expect("encode");
     assert_eq!(report.counts.views_used, 9);
     assert!(report.counts.observed > 0);
     assert!(out.join("report.json").exists());
@@ -49,8 +50,7 @@ fn color_sam_and_color_clip_reach_the_miou_floor() {
 fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let line = format!("--masks graph --clip-visual {{F}}/clip/color-clip-visual.onnx {SUBSET}");
-    encode_line(&snowmiku(), &line, &out).expect("encode");
+    encode(subset(graph_config(&snowmiku(), &out))).expect("encode");
     let e = eval(&out);
     eprintln!("graph subset: {}", serde_json::to_string(&e).unwrap());
     let miou = e.miou.expect("mIoU defined");
@@ -64,11 +64,18 @@ fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
 fn real_architecture_models_run_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let line = "--masks sam --sam-encoder {F}/sam-amg/sam-tiny-random-encoder.onnx \
-         --sam-decoder {F}/sam-amg/sam-tiny-random-decoder.onnx --sam-points-per-side 8 \
-         --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 \
-         --clip-visual {F}/clip/tiny-clip-visual.onnx --every 48 --raster-scale 0.25";
-    let report = encode_line(&snowmiku(), line, &out).expect("encode");
+    let mut config = EncodeConfig::new(snowmiku(), fixture("clip/tiny-clip-visual.onnx"), &out);
+    config.masks = MasksConfig::sam(
+        fixture("sam-amg/sam-tiny-random-encoder.onnx"),
+        fixture("sam-amg/sam-tiny-random-decoder.onnx"),
+    );
+    config.masks.sam.points_per_side = 8;
+    config.masks.sam.pred_iou_thresh = 0.0;
+    config.masks.sam.stability_score_thresh = 0.0;
+    config.scene.every = 48;
+    config.raster.scale = 0.25;
+    config.output.progress = false;
+    let report = encode(config).expect("encode");
     assert_eq!(report.counts.views_used, 3);
     assert!(
         report.counts.masks > 0,

@@ -8,15 +8,17 @@
 use slag_common::embeddings::Embeddings;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::similarity::cosine_scores;
-use slag_tests::{default_scene, encode_line, fixture};
+use slag_tests::{default_scene, encode, fixture, graph_config};
 
 #[test]
 fn mixture_keeping_every_atom_reproduces_the_dense_embeddings() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let line = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.25 \
-                --precision f32 --mixture-keep 100000";
-    let report = encode_line(&default_scene(), line, &out).expect("encode");
+    let mut config = graph_config(&default_scene(), &out);
+    config.raster.scale = 0.25;
+    config.output.precision = slag_common::embeddings::StoredPrecision::F32;
+    config.aggregate.mixture_keep = Some(100_000);
+    let report = encode(config).expect("encode");
     let dense = Embeddings::read(&out.join("embeddings.safetensors")).unwrap();
     let mix = MixtureEmbeddings::read(&out.join("mixture.safetensors")).unwrap();
     assert_eq!(mix.gaussian_ids, dense.ids);
@@ -61,9 +63,10 @@ fn mixture_keeping_every_atom_reproduces_the_dense_embeddings() {
     }
 
     // A later run without --mixture-keep into the same folder leaves no stale mixture behind.
-    let line = "--masks graph --clip-visual {F}/clip/color-clip-visual.onnx --raster-scale 0.25 \
-                --every 13";
-    let report = encode_line(&default_scene(), line, &out).expect("encode");
+    let mut config = graph_config(&default_scene(), &out);
+    config.raster.scale = 0.25;
+    config.scene.every = 13;
+    let report = encode(config).expect("encode");
     assert!(!out.join("mixture.safetensors").exists());
     let forms = report
         .outputs

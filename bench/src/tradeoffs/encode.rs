@@ -3,8 +3,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use clap::Parser;
-use slag_encoder::cli::encode::EncodeArgs;
+use slag_common::embeddings::StoredPrecision;
+use slag_encoder::aggregate::MaskWeighting;
+use slag_encoder::config::{EncodeConfig, MasksConfig};
+use slag_encoder::levels::MaskOverlap;
+use slag_encoder::pipeline::Encoder;
 
 /// Where a point's masks come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -88,13 +91,13 @@ impl Aggregation {
         }
     }
 
-    /// `(--mask-weighting, --overlap)` values.
-    pub fn flags(self) -> (&'static str, &'static str) {
+    /// `(mask weighting, overlap)` of the encode (`--mask-weighting`, `--overlap`).
+    pub fn settings(self) -> (MaskWeighting, MaskOverlap) {
         match self {
-            Aggregation::Mean => ("none", "all"),
-            Aggregation::Area => ("area", "all"),
-            Aggregation::Finest => ("none", "finest"),
-            Aggregation::FinestArea => ("area", "finest"),
+            Aggregation::Mean => (MaskWeighting::None, MaskOverlap::All),
+            Aggregation::Area => (MaskWeighting::Area, MaskOverlap::All),
+            Aggregation::Finest => (MaskWeighting::None, MaskOverlap::Finest),
+            Aggregation::FinestArea => (MaskWeighting::Area, MaskOverlap::Finest),
         }
     }
 }
@@ -137,47 +140,40 @@ impl EncodePoint {
         self.top_k.map_or_else(|| "all".into(), |k| k.to_string())
     }
 
-    /// The `slag-encoder encode` arguments of this point (besides `--scene`/`--out`).
-    /// `fixtures` is `shared/fixtures`.
-    pub fn encode_argv(&self, fixtures: &Path, workers: &Workers) -> Vec<String> {
-        let f = |rel: &str| fixtures.join(rel).display().to_string();
-        let mut v: Vec<String> = Vec::new();
-        let mut push = |a: &str, b: String| {
-            v.push(a.to_string());
-            v.push(b);
-        };
-        match self.masks {
-            MaskChoice::Graph => push("--masks", "graph".into()),
+    /// The encode of this point on `scene` into `out`: everything the point does not set stays
+    /// at the command line's defaults, except f32 output and no progress bars. `fixtures` is
+    /// `shared/fixtures`.
+    pub fn encode_config(
+        &self,
+        scene: &Path,
+        fixtures: &Path,
+        workers: &Workers,
+        out: &Path,
+    ) -> EncodeConfig {
+        let mut c = EncodeConfig::new(scene, fixtures.join("clip/color-clip-visual.onnx"), out);
+        c.masks = match self.masks {
+            MaskChoice::Graph => MasksConfig::graph(),
             MaskChoice::Sam { points_per_side } => {
-                push("--masks", "sam".into());
-                push("--sam-encoder", f("sam-amg/color-sam-encoder.onnx"));
-                push("--sam-decoder", f("sam-amg/color-sam-decoder.onnx"));
-                push("--sam-points-per-side", points_per_side.to_string());
-                push("--sam-pred-iou-thresh", "0.8".into());
-                push("--sam-stability-score-thresh", "0.5".into());
+                let mut m = MasksConfig::sam(
+                    fixtures.join("sam-amg/color-sam-encoder.onnx"),
+                    fixtures.join("sam-amg/color-sam-decoder.onnx"),
+                );
+                m.sam.points_per_side = points_per_side;
+                m.sam.pred_iou_thresh = 0.8;
+                m.sam.stability_score_thresh = 0.5;
+                m
             }
-        }
-        push("--clip-visual", f("clip/color-clip-visual.onnx"));
-        push("--every", self.every.to_string());
-        push("--raster-scale", self.raster_scale.to_string());
-        if let Some(k) = self.top_k {
-            push("--top-k-per-pixel", k.to_string());
-        }
-        let (weighting, overlap) = self.aggregation.flags();
-        push("--mask-weighting", weighting.into());
-        push("--overlap", overlap.into());
-        if let Some(s) = self.mixture_keep {
-            push("--mixture-keep", s.to_string());
-        }
-        if let Some(t) = workers.threads {
-            push("--threads", t.to_string());
-        }
-        if let Some(f) = workers.front_workers {
-            push("--front-workers", f.to_string());
-        }
-        push("--precision", "f32".into());
-        v.push("--quiet".into());
-        v
+        };
+        c.scene.every = self.every;
+        c.raster.scale = self.raster_scale;
+        c.aggregate.top_k_per_pixel = self.top_k;
+        (c.aggregate.mask_weighting, c.aggregate.overlap) = self.aggregation.settings();
+        c.aggregate.mixture_keep = self.mixture_keep;
+        c.execution.threads = workers.threads;
+        c.execution.front_workers = workers.front_workers;
+        c.output.precision = StoredPrecision::F32;
+        c.output.progress = false;
+        c
     }
 }
 
@@ -193,8 +189,8 @@ pub struct Workers {
 /// What the study keeps of one encode run's `report.json` (also the cache record).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EncodeRecord {
-    /// The full `encode` argument list the run used (cache key).
-    pub argv: Vec<String>,
+    /// The encode the run used; its JSON is the cache key ([`cached`]).
+    pub config: EncodeConfig,
     /// Views encoded.
     pub views: usize,
     /// Gaussians in the scene.
@@ -222,46 +218,30 @@ pub struct EncodeRecord {
     pub reduce_s: f64,
 }
 
-#[derive(Parser)]
-struct EncodeCli {
-    #[command(flatten)]
-    args: EncodeArgs,
-}
-
-/// The `encode` argument list of `point` on `scene` into `dir` (the cache key).
-pub fn full_argv(
-    point: &EncodePoint,
-    scene: &Path,
-    fixtures: &Path,
-    workers: &Workers,
-    dir: &Path,
-) -> Vec<String> {
-    let mut argv = vec![
-        "--scene".to_string(),
-        scene.display().to_string(),
-        "--out".into(),
-        dir.display().to_string(),
-    ];
-    argv.extend(point.encode_argv(fixtures, workers));
-    argv
-}
-
-/// The record of a completed run in `dir` made with exactly `argv`, if there is one (its
-/// embeddings may have been removed after evaluation, see [`EvalRecord`]).
-pub fn cached(dir: &Path, argv: &[String]) -> Option<EncodeRecord> {
+/// The record of a completed run in `dir` made with exactly `config` (same JSON), if there is
+/// one (its embeddings may have been removed after evaluation, see [`EvalRecord`]). Records of
+/// older versions (keyed by an argument list) never match.
+pub fn cached(dir: &Path, config: &EncodeConfig) -> Option<EncodeRecord> {
     if !dir.join("report.json").exists() {
         return None;
     }
     let bytes = std::fs::read(dir.join("record.json")).ok()?;
-    let rec = serde_json::from_slice::<EncodeRecord>(&bytes).ok()?;
-    (rec.argv == argv).then_some(rec)
+    let stored: serde_json::Value = serde_json::from_slice(&bytes).ok()?;
+    // Both sides as parsed JSON text (`to_value` would widen the f32 settings to f64 while the
+    // file holds their shortest f32 form).
+    let key: serde_json::Value = serde_json::from_str(&serde_json::to_string(config).ok()?).ok()?;
+    if stored.get("config")? != &key {
+        return None;
+    }
+    serde_json::from_value::<EncodeRecord>(stored).ok()
 }
 
 /// Runs `point` on `scene` into `dir` (unless `dir` already holds a completed run with the same
 /// arguments, see [`cached`], and `fresh` is false) and returns its record and whether it came
 /// from the cache; the embeddings are at `dir/embeddings.safetensors` (f32).
 ///
-/// Errors: bad arguments (a bug here), any `encode` error (missing fixture, bad scene, …).
+/// Errors: settings the encoder refuses (a bug here), any encode error (missing fixture, bad
+/// scene, …).
 pub fn run_point(
     point: &EncodePoint,
     scene: &Path,
@@ -270,10 +250,10 @@ pub fn run_point(
     dir: &Path,
     fresh: bool,
 ) -> anyhow::Result<(EncodeRecord, bool)> {
-    let argv = full_argv(point, scene, fixtures, workers, dir);
+    let config = point.encode_config(scene, fixtures, workers, dir);
     if !fresh
         && dir.join("embeddings.safetensors").exists()
-        && let Some(rec) = cached(dir, &argv)
+        && let Some(rec) = cached(dir, &config)
     {
         return Ok((rec, true));
     }
@@ -281,13 +261,13 @@ pub fn run_point(
     std::fs::remove_file(dir.join(EVAL_FILE)).ok();
     let record_path = dir.join("record.json");
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let cli = EncodeCli::try_parse_from(std::iter::once("encode".to_string()).chain(argv.clone()))
-        .with_context(|| format!("encode arguments of point {}", point.id()))?;
-    let r = slag_encoder::cli::encode::run(&cli.args)
+    let r = Encoder::new(config.clone())
+        .with_context(|| format!("encode settings of point {}", point.id()))?
+        .run()
         .with_context(|| format!("encoding point {}", point.id()))?;
     let t = &r.timings;
     let rec = EncodeRecord {
-        argv,
+        config,
         views: r.counts.views_used,
         gaussians: r.counts.gaussians,
         observed: r.counts.observed,
@@ -335,30 +315,31 @@ pub fn point_dir(work: &Path, point: &EncodePoint) -> PathBuf {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
 
     #[test]
-    fn aggregation_points_name_and_pass_their_flags() {
+    fn aggregation_points_name_and_pass_their_settings() {
         let mut p = EncodePoint::graph("baseline", 4, 0.5, None);
         assert_eq!(
             p.id(),
             "graph-e4-r0.5-kall",
             "the paper's mean keeps the old id"
         );
-        let argv = p.encode_argv(Path::new("f"), &Workers::default());
-        let flag = |argv: &[String], name: &str| {
-            let i = argv.iter().position(|a| a == name).expect(name);
-            argv[i + 1].clone()
-        };
-        assert_eq!(flag(&argv, "--mask-weighting"), "none");
-        assert_eq!(flag(&argv, "--overlap"), "all");
+        let (f, w, out) = (Path::new("f"), Workers::default(), Path::new("o"));
+        let c = p.encode_config(Path::new("s"), f, &w, out);
+        assert_eq!(c.aggregate.mask_weighting, MaskWeighting::None);
+        assert_eq!(c.aggregate.overlap, MaskOverlap::All);
+        assert_eq!(c.output.precision, StoredPrecision::F32);
+        assert!(c.validate().is_ok());
         p.aggregation = Aggregation::FinestArea;
         p.mixture_keep = Some(4);
         assert_eq!(p.id(), "graph-e4-r0.5-kall-finest-area-mix");
-        let argv = p.encode_argv(Path::new("f"), &Workers::default());
-        assert_eq!(flag(&argv, "--mask-weighting"), "area");
-        assert_eq!(flag(&argv, "--overlap"), "finest");
+        let c2 = p.encode_config(Path::new("s"), f, &w, out);
+        assert_eq!(c2.aggregate.mask_weighting, MaskWeighting::Area);
+        assert_eq!(c2.aggregate.overlap, MaskOverlap::Finest);
+        assert_eq!(c2.aggregate.mixture_keep, Some(4));
         let ids: std::collections::HashSet<String> = Aggregation::ALL
             .iter()
             .map(|&a| {
@@ -370,5 +351,49 @@ mod tests {
             })
             .collect();
         assert_eq!(ids.len(), Aggregation::ALL.len(), "ids are unique");
+    }
+
+    #[test]
+    fn the_cache_key_is_the_configs_json() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = EncodePoint::graph("baseline", 4, 0.5, None);
+        let c = p.encode_config(
+            Path::new("s"),
+            Path::new("f"),
+            &Workers::default(),
+            dir.path(),
+        );
+        let rec = EncodeRecord {
+            config: c.clone(),
+            views: 1,
+            gaussians: 2,
+            observed: 2,
+            masks: 3,
+            contributors_per_pixel: 1.5,
+            total_s: 1.0,
+            decode_s: 0.1,
+            masks_s: 0.1,
+            clip_s: 0.1,
+            raster_s: 0.1,
+            aggregate_s: 0.1,
+            reduce_s: 0.1,
+        };
+        std::fs::write(dir.path().join("report.json"), "{}").unwrap();
+        std::fs::write(
+            dir.path().join("record.json"),
+            serde_json::to_vec(&rec).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(cached(dir.path(), &c), Some(rec));
+        let mut other = c.clone();
+        other.execution.threads = Some(3);
+        assert_eq!(cached(dir.path(), &other), None, "another setting misses");
+        // A record of an older version (argument list) misses instead of failing.
+        std::fs::write(
+            dir.path().join("record.json"),
+            r#"{"argv": ["--scene", "s"]}"#,
+        )
+        .unwrap();
+        assert_eq!(cached(dir.path(), &c), None);
     }
 }

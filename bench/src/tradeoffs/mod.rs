@@ -345,9 +345,9 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
         let dir = encode::point_dir(&work, p);
-        let argv = encode::full_argv(p, &scene, &fixtures, &workers, &dir);
+        let config = p.encode_config(&scene, &fixtures, &workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
-        let prior = (!a.fresh).then(|| encode::cached(&dir, &argv)).flatten();
+        let prior = (!a.fresh).then(|| encode::cached(&dir, &config)).flatten();
         let prior_eval = prior
             .as_ref()
             .and_then(|_| encode::cached_eval(&dir, ctx.threshold));
