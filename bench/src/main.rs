@@ -26,7 +26,7 @@ enum Command {
 }
 
 fn main() -> anyhow::Result<()> {
-    slag_encoder::cli::init_logging(false);
+    slag_shards::cli::init_logging(false);
     let cli = Cli::parse();
     match cli.command {
         Command::Tradeoffs(a) => {

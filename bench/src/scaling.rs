@@ -14,7 +14,7 @@ use slag_encoder::config::{EncodeConfig, GpuCount};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
 
-use slag_encoder::cli::encode::EncodeArgs;
+use crate::encode_args::EncodeArgs;
 
 /// Arguments of `slag-bench scaling`.
 #[derive(Debug, Clone, clap::Args)]

@@ -24,7 +24,7 @@ use slag_encoder::pipeline::Encoder;
 use slag_encoder::raster::{GpuRasterizer, WeightRasterizer, raster_intrinsics};
 use slag_encoder::report::Report;
 
-use slag_encoder::cli::encode::EncodeArgs;
+use crate::encode_args::EncodeArgs;
 
 /// Arguments of `slag-bench stages`: the encode arguments plus where the floors come from.
 #[derive(Debug, Clone, clap::Args)]

@@ -10,13 +10,14 @@
 //! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] measures colour
 //! mIoU with color-clip per Gaussian, [`heldout`] per pixel of views never encoded (2D
 //! held-out), [`eval_colors`] runs both on an embeddings file.
-//! [`cli`] holds the `slag-encoder` subcommands, which turn their flags into these types.
+//!
+//! The `slag-encoder` binary's subcommands (in `src/cli/`, private to the binary) only turn
+//! their flags into these types: everything they run is here.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
 
 pub mod aggregate;
-pub mod cli;
 pub mod clip;
 pub mod config;
 pub mod distributed;

@@ -7,7 +7,8 @@
 //! (synthetic scenes of any size).
 
 use clap::{Parser, Subcommand};
-use slag_encoder::cli;
+
+mod cli;
 
 /// slag-encoder: per-Gaussian CLIP embeddings for 3D Gaussian Splatting scenes (SLAG).
 ///

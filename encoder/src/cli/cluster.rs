@@ -1,14 +1,14 @@
 //! `slag-encoder encode-cluster`: the encode as a timely dataflow job over several processes
-//! ([`crate::distributed`]). Every process gets the same encode arguments and host file,
+//! ([`slag_encoder::distributed`]). Every process gets the same encode arguments and host file,
 //! and its own `--process` index.
 
 use std::path::PathBuf;
 use std::time::Duration;
 
-use crate::config::EncodeConfig;
-use crate::distributed::{ClusterConfig, ClusterEncoder};
-use crate::report::Report;
 use clap::Args;
+use slag_encoder::config::EncodeConfig;
+use slag_encoder::distributed::{ClusterConfig, ClusterEncoder};
+use slag_encoder::report::Report;
 
 use super::encode::EncodeArgs;
 
@@ -31,7 +31,7 @@ pub struct EncodeClusterArgs {
 
 /// Runs this process's part of the job; the report on process 0, `None` on the others.
 ///
-/// Errors: what a cluster cannot honour ([`crate::config::ConfigError`], before the host
+/// Errors: what a cluster cannot honour ([`slag_encoder::config::ConfigError`], before the host
 /// file is read; [`super::hint`] names the flags), then cluster, model and encode errors.
 pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
     let encoder = ClusterEncoder::new(EncodeConfig::from(&a.encode))?;
@@ -45,8 +45,8 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
 
 #[cfg(test)]
 mod tests {
-    use crate::config::{ClusterUnsupported, ConfigError};
     use clap::Parser;
+    use slag_encoder::config::{ClusterUnsupported, ConfigError};
 
     use super::*;
 

@@ -1,15 +1,15 @@
 //! `slag-encoder encode` (and `bench`, which times the same run): flags → [`EncodeConfig`] →
 //! [`Encoder`].
 
-use crate::config::EncodeConfig;
-use crate::pipeline::Encoder;
-use crate::report::Report;
+use slag_encoder::config::EncodeConfig;
+use slag_encoder::pipeline::Encoder;
+use slag_encoder::report::Report;
 
 pub use super::encode_args::EncodeArgs;
 
 /// Runs `encode` and returns the report it wrote.
 ///
-/// Errors: the [`crate::config::ConfigError`] of a setting that cannot run, then the
+/// Errors: the [`slag_encoder::config::ConfigError`] of a setting that cannot run, then the
 /// run's ([`Encoder::run`]).
 pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
     Ok(Encoder::new(EncodeConfig::from(a))?.run()?)
@@ -18,8 +18,8 @@ pub fn run(a: &EncodeArgs) -> anyhow::Result<Report> {
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
-    use crate::config::{GpuCount, MaskSource, MasksConfig};
     use clap::Parser;
+    use slag_encoder::config::{GpuCount, MaskSource, MasksConfig};
 
     use super::*;
 
@@ -131,7 +131,7 @@ mod tests {
         );
         assert_eq!(c.clip.batch, Some(7));
         assert_eq!(c.raster.scale, 0.25);
-        assert_eq!(c.raster.backend, crate::config::RasterBackend::Cpu);
+        assert_eq!(c.raster.backend, slag_encoder::config::RasterBackend::Cpu);
         let e = &c.execution;
         assert_eq!(e.ep, slag_common::onnx::ExecutionProvider::Cpu);
         assert_eq!(e.gpu_mem_limit_gb, Some(2.5));
@@ -141,8 +141,11 @@ mod tests {
         );
         let a = &c.aggregate;
         assert_eq!(a.top_k_per_pixel, Some(4));
-        assert_eq!(a.mask_weighting, crate::aggregate::MaskWeighting::Area);
-        assert_eq!(a.overlap, crate::levels::MaskOverlap::All);
+        assert_eq!(
+            a.mask_weighting,
+            slag_encoder::aggregate::MaskWeighting::Area
+        );
+        assert_eq!(a.overlap, slag_encoder::levels::MaskOverlap::All);
         assert_eq!(a.min_weight, 0.01);
         assert_eq!(
             (a.contribution_memory_mb, a.accumulator_memory_mb),

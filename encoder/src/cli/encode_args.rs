@@ -1,17 +1,21 @@
 //! The flags of `slag-encoder encode` ([`EncodeArgs`]) and their conversion into the library's
 //! [`EncodeConfig`], one flag to one field.
+//!
+//! `slag-bench stages` and `slag-bench scaling` take the same flags: they include this file
+//! (`#[path]`), so it names the library only through `slag_encoder::` and `slag_common::` paths
+//! and holds nothing but the flags and their conversion.
 
 use std::path::PathBuf;
 
-use crate::aggregate::MaskWeighting;
-use crate::config::{
-    AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
-    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig,
-};
-use crate::levels::MaskOverlap;
 use clap::{Args, ValueEnum};
 use slag_common::embeddings::StoredPrecision;
 use slag_common::onnx::ExecutionProvider as EpArg;
+use slag_encoder::aggregate::MaskWeighting;
+use slag_encoder::config::{
+    AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
+    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig,
+};
+use slag_encoder::levels::MaskOverlap;
 
 /// `--precision`: stored precision of the embeddings.
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]

@@ -38,11 +38,9 @@ pub fn hint(e: &anyhow::Error) -> Option<&'static str> {
     })
 }
 
-use crate::config::{ClusterUnsupported, ConfigError, Field};
+use slag_encoder::config::{ClusterUnsupported, ConfigError, Field};
 
 /// The flags behind a [`ConfigError`].
-// The wildcards are for the `#[non_exhaustive]` enums once this module leaves the library.
-#[allow(unreachable_patterns)]
 fn config_hint(e: &ConfigError) -> &'static str {
     match e {
         ConfigError::Missing { field } | ConfigError::NotPositive { field } => match field {
@@ -74,8 +72,8 @@ fn config_hint(e: &ConfigError) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::hint;
-    use crate::config::{ConfigError, Field};
     use slag_common::{Error, Resource};
+    use slag_encoder::config::{ConfigError, Field};
 
     #[test]
     fn raster_limits_get_the_flag_other_errors_do_not() {

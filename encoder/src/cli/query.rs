@@ -1,12 +1,12 @@
 //! `slag-encoder query`: check a text prompt against an embeddings file, print the best Gaussians,
 //! optionally write a copy of the scene `.ply` with the matches highlighted
-//! ([`crate::query`]).
+//! ([`slag_encoder::query`]).
 
 use std::path::PathBuf;
 
-use crate::query::{QueryOutput, QueryParams};
 use clap::Args;
 use slag_common::similarity;
+use slag_encoder::query::{QueryOutput, QueryParams};
 
 use super::EpArg;
 
@@ -81,10 +81,10 @@ pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
 /// `slag-edge`; [`slag_common::Error::Invalid`] with [`PROMPT_HINT`], checked before anything is
-/// read), then [`crate::query::run`]'s.
+/// read), then [`slag_encoder::query::run`]'s.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
-    Ok(crate::query::run(&QueryParams::from(a))?)
+    Ok(slag_encoder::query::run(&QueryParams::from(a))?)
 }
 
 #[cfg(test)]

@@ -9,8 +9,8 @@ use clap::Args;
 use slag_common::camera;
 use slag_common::scene::{self, PlyLoadOptions};
 
-use crate::config::RasterBackend;
-use crate::raster::WeightRasterizer;
+use slag_encoder::config::RasterBackend;
+use slag_encoder::raster::WeightRasterizer;
 
 /// Arguments of `render`.
 #[derive(Debug, Clone, Args)]
@@ -70,14 +70,18 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
             .with_context(|| format!("no view named {:?} in {}", a.view, a.scene.display()))?,
     };
     let mut r: Box<dyn WeightRasterizer> =
-        crate::pipeline::build::make_rasterizer(a.rasterizer, &gaussians)?;
-    let intr = crate::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
+        slag_encoder::pipeline::build::make_rasterizer(a.rasterizer, &gaussians)?;
+    let intr = slag_encoder::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
     let weights = r.rasterize(&intr, &view.world_to_camera)?;
-    let img =
-        crate::raster::colour::render_colour(&gaussians, &intr, &view.world_to_camera, &weights)?;
+    let img = slag_encoder::raster::colour::render_colour(
+        &gaussians,
+        &intr,
+        &view.world_to_camera,
+        &weights,
+    )?;
     let psnr_db = if (a.raster_scale - 1.0).abs() < 1e-12 {
-        let photo = crate::pipeline::read_image(view)?;
-        Some(crate::raster::colour::psnr(&img, &photo)?)
+        let photo = slag_encoder::pipeline::read_image(view)?;
+        Some(slag_encoder::raster::colour::psnr(&img, &photo)?)
     } else {
         None
     };

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use crate::synthetic::{SyntheticSceneParams, SyntheticSummary, write_synthetic_scene};
+use slag_encoder::synthetic::{SyntheticSceneParams, SyntheticSummary, write_synthetic_scene};
 
 /// Arguments of `synth-scene`.
 #[derive(Debug, Clone, Args)]
