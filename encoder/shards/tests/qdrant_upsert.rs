@@ -1,11 +1,11 @@
 //! Qdrant upload ([`slag_shards::qdrant::upload`]) against a protocol-level test server.
 //!
-//! No Qdrant server can be run on the development machines, so this test serves the gRPC
-//! services `qdrant-client` talks to (`Qdrant`, `Collections`, `Points`, `Snapshots`) with the
-//! client crate's own generated server traits, records every request, enforces the ordering a
-//! real server enforces (no upsert/snapshot into a missing collection, no create over an
-//! existing one, API key), and the tests compare the recorded requests with the source
-//! embeddings and the shard tiling.
+//! A live Qdrant server is too heavy for CI (it was run once by hand: docs/qdrant-live.md), so
+//! this test serves the gRPC services `qdrant-client` talks to (`Qdrant`, `Collections`,
+//! `Points`, `Snapshots`) with the client crate's own generated server traits, records every
+//! request, enforces the ordering a real server enforces (no upsert/snapshot into a missing
+//! collection, no create over an existing one, API key), and the tests compare the recorded
+//! requests with the source embeddings and the shard tiling.
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
