@@ -253,7 +253,7 @@ async fn a_stalled_download_times_out_with_the_url_and_resumes() {
     p.timeout = Duration::from_secs(1);
     let err = fetch(&store, &p).await.unwrap_err();
     match &err {
-        Error::Network { url, message } => {
+        Error::Network { url, message, .. } => {
             assert!(url.ends_with("/v1/scenes/grid/shards/0"), "{url}");
             assert!(
                 message.contains("timed out") && message.contains("--timeout"),
