@@ -230,9 +230,7 @@ impl Error {
     /// be placed here). Front ends map it: the edge's HTTP status, the CLIs' exit messages.
     pub fn kind(&self) -> ErrorKind {
         match self {
-            Error::Param { .. } | Error::Query { .. } | Error::Invalid(_) => {
-                ErrorKind::UserInput
-            }
+            Error::Param { .. } | Error::Query { .. } | Error::Invalid(_) => ErrorKind::UserInput,
             Error::ModelMismatch { .. } | Error::Mismatch { .. } => ErrorKind::Conflict,
             Error::Network { .. } => ErrorKind::Upstream,
             Error::Io { .. }
@@ -358,7 +356,13 @@ mod tests {
         assert_eq!(Error::internal("x").kind(), ErrorKind::Internal);
         let http = Error::http_status("http://s/m", 401, "HTTP 401");
         assert_eq!(http.kind(), ErrorKind::Upstream);
-        assert!(matches!(http, Error::Network { status: Some(401), .. }));
+        assert!(matches!(
+            http,
+            Error::Network {
+                status: Some(401),
+                ..
+            }
+        ));
         for r in [
             Resource::GpuBinding,
             Resource::GpuDispatch,

@@ -823,7 +823,8 @@ mod tests {
     #[test]
     fn bad_queries_are_typed_errors() {
         let mix = MixtureEmbeddings::from_sparse(sample(5, 4, 8, 1)).unwrap();
-        let no_direction = |r: Result<Vec<f32>>| matches!(r, Err(Error::Query { field: "text", .. }));
+        let no_direction =
+            |r: Result<Vec<f32>>| matches!(r, Err(Error::Query { field: "text", .. }));
         assert!(no_direction(mix.scores(&[0.0; 8])));
         assert!(matches!(mix.scores(&[1.0; 7]), Err(Error::Mismatch { .. })));
         assert!(no_direction(mix.scores(&[f32::NAN; 8])));

@@ -49,10 +49,13 @@ pub fn normalize_in_place(v: &mut [f32]) -> std::result::Result<f64, DegenerateN
 pub fn unit_query(query: &[f32]) -> Result<Vec<f32>> {
     let mut q = query.to_vec();
     normalize_in_place(&mut q).map_err(|d| {
-        Error::query("text", format!(
-            "the prompt's text embedding has {d}, so it cannot be compared with the Gaussians; \
+        Error::query(
+            "text",
+            format!(
+                "the prompt's text embedding has {d}, so it cannot be compared with the Gaussians; \
              rephrase the prompt, or check the text model"
-        ))
+            ),
+        )
     })?;
     Ok(q)
 }
@@ -227,7 +230,9 @@ pub fn rank(
     threshold: Option<f32>,
 ) -> Result<(Vec<Match>, MatchSummary)> {
     if ids.len() != means.len() || ids.len() * dim != vectors.len() {
-        return Err(Error::internal("rank: ids, means and vectors disagree in length"));
+        return Err(Error::internal(
+            "rank: ids, means and vectors disagree in length",
+        ));
     }
     if let Some(t) = threshold.filter(|t| !t.is_finite()) {
         return Err(Error::param("threshold", t, "a finite cosine"));

@@ -101,7 +101,11 @@ impl ClipTokenizer {
     /// [`Error::Param`] for `context < 2`, [`Error::Format`] if the tokenizer fails.
     pub fn tokenize(&self, text: &str, context: usize) -> Result<Vec<i64>> {
         if context < 2 {
-            return Err(Error::param("context", context, "a context length of at least 2"));
+            return Err(Error::param(
+                "context",
+                context,
+                "a context length of at least 2",
+            ));
         }
         let clean = text
             .split_whitespace()

@@ -204,7 +204,12 @@ fn embeddings_file_rejects_non_finite_and_out_of_f16_range_values() {
     ] {
         match e(v).write(&path, precision) {
             // A non-finite value is bad data; a value beyond f16 asks for f32 precision.
-            Err(e @ (Error::Invalid(_) | Error::Param { name: "precision", .. })) => {
+            Err(
+                e @ (Error::Invalid(_)
+                | Error::Param {
+                    name: "precision", ..
+                }),
+            ) => {
                 assert!(e.to_string().contains("Gaussian 9"), "{what}: {e}")
             }
             other => panic!("{what}: {other:?}"),

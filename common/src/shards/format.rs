@@ -336,11 +336,7 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         ));
     }
     if u32::try_from(n).is_err() {
-        return Err(Error::limit(
-            crate::Resource::ShardGaussians,
-            n,
-            u32::MAX,
-        ));
+        return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
     }
     if input.means.len() != n || input.vectors.len() != n * d {
         return Err(inconsistent(format!(
