@@ -104,11 +104,12 @@ fn raster_scale_out_of_range_is_a_clear_error_and_writes_nothing() {
         let line = format!(
             "--masks graph --clip-visual {{F}}/clip/color-clip-visual.onnx --raster-scale={scale}"
         );
-        let err = format!(
-            "{:#}",
-            encode_line(&default_scene(), &line, &out).unwrap_err()
-        );
-        assert!(err.contains("--raster-scale"), "{scale}: {err}");
+        let e = encode_line(&default_scene(), &line, &out).unwrap_err();
+        // The library names the parameter; the command line's hint names the flag.
+        let err = format!("{e:#}");
+        assert!(err.contains("raster_scale"), "{scale}: {err}");
+        let hint = slag_encoder::cli::hints::hint(&e).unwrap_or_default();
+        assert!(hint.contains("--raster-scale"), "{scale}: {hint}");
     }
     assert!(!out.exists());
 }

@@ -83,7 +83,7 @@ pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
 /// Runs `query`.
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
-/// `slag-edge`; [`slag_common::Error::Invalid`], checked before anything is read), unreadable
+/// `slag-edge`; [`slag_common::Error::Query`], checked before anything is read), unreadable
 /// embeddings or models.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
@@ -169,7 +169,7 @@ mod tests {
             let e = run(&args(text)).unwrap_err();
             let typed = e.downcast_ref::<slag_common::Error>();
             assert!(
-                matches!(typed, Some(slag_common::Error::Invalid(_))),
+                matches!(typed, Some(slag_common::Error::Query { field: "text", .. })),
                 "{e:#}"
             );
             let m = format!("{e:#}");
