@@ -814,8 +814,13 @@ mod tests {
             mix.max_atom_scores(&q, 0),
             Err(Error::Param { name: "top", .. })
         ));
+        // A zero query has no direction; one of another width belongs to another model.
         assert!(matches!(
             mix.max_atom_scores(&[0.0; 12], 1),
+            Err(Error::Query { field: "text", .. })
+        ));
+        assert!(matches!(
+            mix.max_atom_scores(&[1.0; 11], 1),
             Err(Error::Mismatch { .. })
         ));
     }
