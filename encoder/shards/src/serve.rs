@@ -72,8 +72,8 @@ async fn require_token(
     }
     let mut r = error(
         StatusCode::UNAUTHORIZED,
-        "missing or wrong bearer token: send Authorization: Bearer <token> (a slag-edge fetch \
-         sends its token, or SLAG_SHARD_TOKEN)"
+        "missing or wrong bearer token: send Authorization: Bearer <token> (slag-edge fetch \
+         --token, or SLAG_SHARD_TOKEN)"
             .into(),
     );
     r.headers_mut()

@@ -476,7 +476,12 @@ fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
     a.report = None;
     a.store = dir.path().join("never-created");
     let e = slag_shards::cli::run_partition(&a).expect_err("too small");
-    assert!(format!("{e:#}").contains("pass --max-shard-mb"), "{e:#}");
+    // The library names the parameter and what fits; the command line's hint names the flag.
+    assert!(format!("{e:#}").contains("max_shard_mib"), "{e:#}");
+    assert!(
+        slag_shards::cli::hint(&e).is_some_and(|h| h.contains("--max-shard-mb")),
+        "{e:#}"
+    );
     assert!(!a.store.exists());
 }
 
