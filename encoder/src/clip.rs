@@ -97,7 +97,7 @@ impl ClipVisual {
     /// time.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for `batch_size == 0`; [`Error::Model`] for a missing/unloadable model or
+    /// [`Error::Param`] `clip_batch` for `batch_size == 0`; [`Error::Model`] for a missing/unloadable model or
     /// the wrong signature (e.g. a SAM encoder or a text tower); [`Error::Inference`] when the
     /// provider fails.
     pub fn new(model: &Path, ep: ExecutionProvider, batch_size: usize) -> Result<Self> {

@@ -336,9 +336,9 @@ impl HeldOutTally {
     /// (as [`gaussian_scores`] returns). Each predictor's per-pixel class is
     /// `argmax_c Σ_k w_kp · s_kc` (ties → lower index); a pixel counts when `Σ_k w_kp ≥ ALPHA_MIN`.
     ///
-    /// Errors ([`Error::Invalid`]): a different number of score tables than predictors, a table
-    /// of the wrong size, truth of the wrong length or class, malformed weights, a contributor
-    /// outside the scene.
+    /// Errors: a different number of score tables than predictors, a table of the wrong size,
+    /// truth of the wrong length or class, malformed weights ([`Error::Internal`]), a contributor
+    /// outside the scene ([`Error::Mismatch`]).
     pub fn add_view(
         &mut self,
         weights: &PixelWeights,

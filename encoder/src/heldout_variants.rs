@@ -84,7 +84,7 @@ fn read_same_scene(path: &Path, scene_gaussians: usize) -> Result<Embeddings> {
 /// beside `embeddings_path`. `mean_scores` is the main embeddings' table (the levels' fallback),
 /// `texts` the class text embeddings, `n` the scene's Gaussians.
 ///
-/// Errors: unreadable or mismatched files ([`Error::Invalid`], I/O), and those of
+/// Errors: unreadable files (I/O), files of another scene ([`Error::Mismatch`]), and those of
 /// [`gaussian_scores`] and [`combine_levels`].
 pub fn variant_tables(
     embeddings_path: &Path,

@@ -94,7 +94,7 @@ pub fn reduce(
 /// on the image-major path; one block's per thread otherwise) plus one chunk's output, whatever
 /// the scene size. Returns the number of chunks.
 ///
-/// Errors: a contribution of another width ([`Error::Invalid`]); spill-file I/O; `sink`'s errors.
+/// Errors: a contribution of another width ([`Error::Mismatch`]); spill-file I/O; `sink`'s errors.
 pub fn reduce_each(
     store: &ContributionStore,
     n_gaussians: usize,

@@ -255,7 +255,7 @@ impl SamAutomaticMaskGenerator {
     /// # Errors
     /// [`Error::Model`] for a missing/unloadable model or the wrong signature (e.g. a CLIP model
     /// passed as the encoder), [`Error::Inference`] when the provider fails,
-    /// [`Error::Invalid`] for bad `params`.
+    /// [`Error::Param`] for bad `params`.
     pub fn new(
         encoder: &Path,
         decoder: &Path,
