@@ -514,6 +514,19 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
     })
 }
 
+fn run(command: Command) -> anyhow::Result<()> {
+    match command {
+        Command::Fetch(a) => run_fetch(a),
+        Command::Serve(a) => run_serve(a),
+        Command::Query(a) => run_query(a),
+        Command::Check(a) => run_check(a),
+        Command::Bench(a) => {
+            println!("{}", slag_edge::scan::run_bench(&a)?);
+            Ok(())
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::{hint, hint_for};
@@ -541,18 +554,5 @@ mod tests {
         let e = anyhow::Error::new(Error::param("scene", "\"grid\"", "a fetched scene"))
             .context("query");
         assert!(hint(&e).is_some_and(|h| h.contains("slag-edge fetch")));
-    }
-}
-
-fn run(command: Command) -> anyhow::Result<()> {
-    match command {
-        Command::Fetch(a) => run_fetch(a),
-        Command::Serve(a) => run_serve(a),
-        Command::Query(a) => run_query(a),
-        Command::Check(a) => run_check(a),
-        Command::Bench(a) => {
-            println!("{}", slag_edge::scan::run_bench(&a)?);
-            Ok(())
-        }
     }
 }

@@ -304,7 +304,7 @@ fn byte_budgets_too_small_for_one_gaussian_are_typed_errors_with_a_remedy() {
         (ShardCap::Bytes(0), "max_shard_mib", "--max-shard-mb"),
         (ShardCap::Gaussians(0), "max_per_shard", "--max-per-shard"),
     ] {
-        let e = resolve_max_per_shard(&layout, cap).unwrap_err();
+        let e = resolve_max_per_shard(&layout, cap).expect_err("refused");
         assert!(
             matches!(&e, slag_common::Error::Param { name: n, .. } if *n == name),
             "{e}"

@@ -204,7 +204,7 @@ fn export_is_complete_and_atomic() {
             if source.kind() == std::io::ErrorKind::AlreadyExists
     ));
     // The command line adds the flag.
-    let e = slag_shards::export::export(&store, "lab.v1", &out, false).unwrap_err();
+    let e = slag_shards::export::export(&store, "lab.v1", &out, false).expect_err("exists");
     assert!(!e.to_string().contains("--force"), "{e}");
     assert_eq!(
         slag_shards::cli::hint_for(&e).as_deref(),
