@@ -42,16 +42,16 @@ pub fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
 
 /// Reads a bearer token from a file: its first line, trimmed.
 ///
-/// Errors: [`Error::Io`] when the file cannot be read; [`Error::Invalid`] when the first line is
+/// Errors: [`Error::Io`] when the file cannot be read; [`Error::Format`] when the first line is
 /// empty (write the token on it).
 pub fn read_token_file(path: &Path) -> Result<String> {
     let t = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let t = t.lines().next().unwrap_or("").trim().to_string();
     if t.is_empty() {
-        return Err(Error::Invalid(format!(
-            "token file {} is empty; write the token on its first line",
-            path.display()
-        )));
+        return Err(Error::format(
+            path,
+            "the token file is empty; write the token on its first line",
+        ));
     }
     Ok(t)
 }

@@ -90,15 +90,16 @@ impl Embeddings {
     /// f16 rounds to nearest: relative error ≤ 2^-11 for |v| ≥ 6.1e-5, absolute ≤ 2^-25 below
     /// (subnormal halves, then 0).
     ///
-    /// Errors: inconsistent lengths, a non-finite component, or with [`StoredPrecision::F16`] a
-    /// component beyond the f16 range (±65504) ([`Error::Invalid`], nothing written); I/O.
+    /// Errors (nothing written): inconsistent lengths ([`Error::Internal`]), a non-finite
+    /// component ([`Error::Invalid`]), with [`StoredPrecision::F16`] a component beyond the f16
+    /// range (±65504) ([`Error::Param`] `precision`); I/O.
     pub fn write(&self, path: &Path, precision: StoredPrecision) -> Result<()> {
         let n = self.ids.len();
         if self.means.len() != n
             || self.total_weights.len() != n
             || self.vectors.len() != n * self.dim
         {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "embeddings arrays disagree: {} ids, {} means, {} weights, {} values for dim {}",
                 n,
                 self.means.len(),
@@ -121,12 +122,16 @@ impl Embeddings {
                 .iter()
                 .position(|&v| !f16::from_f32(v).is_finite())
         {
-            return Err(Error::Invalid(format!(
-                "embedding of Gaussian {} has the component {}, beyond the f16 range (±65504); \
-                 write f32 precision or L2-normalise the rows (they should be unit vectors)",
-                self.ids.get(i / self.dim.max(1)).copied().unwrap_or(0),
-                self.vectors[i]
-            )));
+            return Err(Error::param(
+                "precision",
+                "f16",
+                format!(
+                    "f32 for the embedding of Gaussian {}, whose component {} is beyond the f16 \
+                     range (±65504), or L2-normalised rows (they should be unit vectors)",
+                    self.ids.get(i / self.dim.max(1)).copied().unwrap_or(0),
+                    self.vectors[i]
+                ),
+            ));
         }
         let halves: Vec<f16>;
         let (emb_dtype, emb): (Dtype, &[u8]) = match precision {
@@ -251,11 +256,11 @@ impl EmbeddingsWriter {
     /// Starts a file at `path` for rows of width `dim` stored at `precision` (creates parent
     /// folders; an existing file at `path` stays until [`EmbeddingsWriter::finish`] replaces it).
     ///
-    /// Errors: `dim == 0` ([`Error::Invalid`]); I/O.
+    /// Errors: `dim == 0` ([`Error::Param`]); I/O.
     pub fn create(path: &Path, dim: usize, precision: StoredPrecision) -> Result<Self> {
         use std::io::{Seek, SeekFrom};
         if dim == 0 {
-            return Err(Error::Invalid("embedding width must be at least 1".into()));
+            return Err(Error::param("dim", dim, "an embedding width of at least 1"));
         }
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
@@ -292,7 +297,8 @@ impl EmbeddingsWriter {
     /// Appends a block of rows: `ids [B]` (ascending, above every id already written), `means
     /// [B]` (world frame), `vectors [B * dim]` (L2-normalised rows), `total_weights [B]`.
     ///
-    /// Errors: lengths that disagree or ids out of order ([`Error::Invalid`]); I/O.
+    /// Errors: lengths that disagree or ids out of order ([`Error::Internal`]: the caller's
+    /// contract), non-finite or beyond-f16 values ([`Error::Invalid`]); I/O.
     pub fn push(
         &mut self,
         ids: &[u32],
@@ -302,7 +308,7 @@ impl EmbeddingsWriter {
     ) -> Result<()> {
         let b = ids.len();
         if means.len() != b || total_weights.len() != b || vectors.len() != b * self.dim {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "embeddings block disagrees: {b} ids, {} means, {} weights, {} values for dim {}",
                 means.len(),
                 total_weights.len(),
@@ -313,7 +319,7 @@ impl EmbeddingsWriter {
         let mut last = self.ids.last().copied();
         for &id in ids {
             if last.is_some_and(|l| id <= l) {
-                return Err(Error::Invalid(format!(
+                return Err(Error::internal(format!(
                     "embeddings rows must come in ascending Gaussian id order (got {id} after {last:?})"
                 )));
             }
@@ -337,7 +343,7 @@ impl EmbeddingsWriter {
         let w = self
             .file
             .as_mut()
-            .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
+            .ok_or_else(|| Error::internal("embeddings writer already finished"))?;
         let io = |e| Error::io(&self.partial, e);
         match self.precision {
             StoredPrecision::F32 => w.write_all(bytemuck::cast_slice(vectors)).map_err(io)?,
@@ -372,7 +378,7 @@ impl EmbeddingsWriter {
         let mut w = self
             .file
             .take()
-            .ok_or_else(|| Error::Invalid("embeddings writer already finished".into()))?;
+            .ok_or_else(|| Error::internal("embeddings writer already finished"))?;
         let (dtype, elem) = match self.precision {
             StoredPrecision::F32 => ("F32", 4usize),
             StoredPrecision::F16 => ("F16", 2usize),
@@ -400,7 +406,7 @@ impl EmbeddingsWriter {
             off += len;
         }
         let mut hbytes = serde_json::to_vec(&serde_json::Value::Object(header))
-            .map_err(|e| Error::Invalid(format!("embeddings header: {e}")))?;
+            .map_err(|e| Error::internal(format!("embeddings header: {e}")))?;
         let partial = self.partial.clone();
         let io = |e| Error::io(&partial, e);
         w.write_all(bytemuck::cast_slice(&self.ids)).map_err(io)?;
@@ -410,7 +416,7 @@ impl EmbeddingsWriter {
         let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
         let end = f.stream_position().map_err(io)?;
         if end != HEADER_RESERVE + off as u64 {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{}: {} data bytes written, {off} expected",
                 partial.display(),
                 end - HEADER_RESERVE
@@ -565,7 +571,7 @@ mod tests {
                 &e.vectors[2 * dim..3 * dim],
                 &e.total_weights[2..3]
             ),
-            Err(Error::Invalid(_))
+            Err(Error::Internal(_))
         ));
         drop(w);
         let left: Vec<_> = std::fs::read_dir(dir.path())
@@ -642,7 +648,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         assert!(matches!(
             e.write(&dir.path().join("x"), StoredPrecision::F32),
-            Err(Error::Invalid(_))
+            Err(Error::Internal(_))
         ));
     }
 }

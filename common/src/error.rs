@@ -76,8 +76,42 @@ pub enum Error {
         /// The model id recorded with the embeddings (shard manifest / embeddings file).
         embeddings_model: String,
     },
-    /// A parameter or combination of inputs is invalid (e.g. camera/image size mismatch): the
-    /// user's to fix (HTTP 400).
+    /// A library parameter outside its domain (a scale, a count, a size, a choice): `name` is the
+    /// parameter's library name (`raster_scale`, `every`, `max_per_shard`, `radius`, ...), `value`
+    /// what was given, `expected` what is accepted. The user's to fix (HTTP 400); a command line
+    /// maps `name` to its flag.
+    #[error("{name} = {value}: expected {expected}")]
+    Param {
+        /// The parameter, as the library spells it (a field or argument name).
+        name: &'static str,
+        /// The value given.
+        value: String,
+        /// What is accepted, e.g. `a value in (0, 4], e.g. 0.5`.
+        expected: String,
+    },
+    /// A query refused before it runs: a blank or too long prompt, a query field (`top_k`,
+    /// `threshold`, `bbox`, `mode`, `index`, `frame`) outside its domain or not available here,
+    /// or a prompt whose embedding has no direction. The caller's to fix (HTTP 400).
+    #[error("{message}")]
+    Query {
+        /// The field as the query API spells it (`text` for the prompt; `query` for the query as
+        /// a whole: not an object, an unknown key).
+        field: &'static str,
+        /// What is wrong and what is accepted.
+        message: String,
+    },
+    /// Inputs that are each well-formed but do not belong together (an image and its camera of
+    /// different sizes, a query vector of another width than the stored embeddings, embeddings
+    /// of another scene): `what` says which property differs (HTTP 409).
+    #[error("{message}")]
+    Mismatch {
+        /// The property that differs.
+        what: Mismatched,
+        /// Both sides, and which input to replace.
+        message: String,
+    },
+    /// Any other input the user has to fix, in words (a folder in use by another process, an
+    /// empty token file, ...) (HTTP 400). Cases a caller could act on get their own variant.
     #[error("invalid input: {0}")]
     Invalid(String),
     /// A shard that does not decode (truncated, corrupted, foreign, another format version): the
@@ -99,7 +133,7 @@ pub enum Error {
     /// Something that must not happen did (a panicked worker task, a broken invariant): a bug in
     /// slag, never the user's input (HTTP 500).
     #[error(
-        "internal fault: {0}; this is a slag bug, please report it with the command and its --verbose log"
+        "internal fault: {0}; this is a slag bug, please report it with the command that failed"
     )]
     Internal(String),
     /// The GPU (wgpu) could not be used or a kernel failed.
@@ -110,6 +144,9 @@ pub enum Error {
     Network {
         /// The URL involved.
         url: String,
+        /// The HTTP status the peer answered with, if it answered (401: it wants a token, 404:
+        /// no such scene or shard).
+        status: Option<u16>,
         /// What failed (connection, status, timeout) and what to check.
         message: String,
     },
@@ -134,6 +171,42 @@ impl Error {
     pub fn network(url: impl Into<String>, message: impl Into<String>) -> Self {
         Error::Network {
             url: url.into(),
+            status: None,
+            message: message.into(),
+        }
+    }
+    /// A network error for `url` whose peer answered with HTTP `status`.
+    pub fn http_status(url: impl Into<String>, status: u16, message: impl Into<String>) -> Self {
+        Error::Network {
+            url: url.into(),
+            status: Some(status),
+            message: message.into(),
+        }
+    }
+    /// A parameter outside its domain ([`Error::Param`]): `name` (the library's name for it) is
+    /// `value`, but `expected` is accepted.
+    pub fn param(
+        name: &'static str,
+        value: impl std::fmt::Display,
+        expected: impl Into<String>,
+    ) -> Self {
+        Error::Param {
+            name,
+            value: value.to_string(),
+            expected: expected.into(),
+        }
+    }
+    /// A refused query ([`Error::Query`]): `field` is wrong, `message` says how.
+    pub fn query(field: &'static str, message: impl Into<String>) -> Self {
+        Error::Query {
+            field,
+            message: message.into(),
+        }
+    }
+    /// Inputs that do not belong together ([`Error::Mismatch`]).
+    pub fn mismatch(what: Mismatched, message: impl Into<String>) -> Self {
+        Error::Mismatch {
+            what,
             message: message.into(),
         }
     }
@@ -157,8 +230,8 @@ impl Error {
     /// be placed here). Front ends map it: the edge's HTTP status, the CLIs' exit messages.
     pub fn kind(&self) -> ErrorKind {
         match self {
-            Error::Invalid(_) => ErrorKind::UserInput,
-            Error::ModelMismatch { .. } => ErrorKind::Conflict,
+            Error::Param { .. } | Error::Query { .. } | Error::Invalid(_) => ErrorKind::UserInput,
+            Error::ModelMismatch { .. } | Error::Mismatch { .. } => ErrorKind::Conflict,
             Error::Network { .. } => ErrorKind::Upstream,
             Error::Io { .. }
             | Error::Format { .. }
@@ -192,7 +265,7 @@ pub enum ErrorKind {
     /// (HTTP 400).
     UserInput,
     /// Inputs that are each valid but do not belong together, e.g. a CLIP text tower of another
-    /// model than the embeddings (HTTP 409).
+    /// model than the embeddings, an image of another size than its camera (HTTP 409).
     Conflict,
     /// A peer slag talks to (shard server, Qdrant) failed or could not be reached (HTTP 502).
     Upstream,
@@ -215,6 +288,29 @@ pub enum Resource {
     /// Entries of one view's weight raster (`w_kp` pairs, or tile intersections), indexed with
     /// 32-bit offsets.
     RasterEntries,
+    /// Pixels of one view's weight raster (at most 2^28).
+    RasterPixels,
+    /// Host memory (an allocation was refused, e.g. the edge's vector store growing).
+    Memory,
+    /// Gaussians in one shard (a 32-bit count in the shard header).
+    ShardGaussians,
+}
+
+/// The property on which two inputs disagree ([`Error::Mismatch`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Mismatched {
+    /// Embedding width: a query or text embedding against the stored embeddings, shards of one
+    /// store, text towers against the image tower that made the embeddings. Replace the text
+    /// model (or the shards) with those of one CLIP model.
+    EmbeddingWidth,
+    /// Storage type: a shard of another dtype than the store holding it.
+    Dtype,
+    /// Pixel size: an image against its camera, masks against their image, pixel weights against
+    /// their camera, two images compared.
+    ImageSize,
+    /// The scene: embeddings, pixel weights, ground truth or a manifest made from another scene
+    /// (another Gaussian count, an id beyond it). Use the inputs of one `.ply`.
+    Scene,
 }
 
 impl std::fmt::Display for Resource {
@@ -224,6 +320,61 @@ impl std::fmt::Display for Resource {
             Resource::GpuDispatch => "GPU workgroups per dispatch dimension",
             Resource::GpuMemory => "GPU memory",
             Resource::RasterEntries => "weight raster entries per view (32-bit offsets)",
+            Resource::RasterPixels => "weight raster pixels per view",
+            Resource::Memory => "host memory",
+            Resource::ShardGaussians => "Gaussians per shard (32-bit count)",
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_new_variant_has_its_kind() {
+        let param = Error::param("raster_scale", 5.0, "a value in (0, 4]");
+        assert_eq!(param.kind(), ErrorKind::UserInput);
+        assert!(param.is_user_input());
+        assert_eq!(
+            param.to_string(),
+            "raster_scale = 5: expected a value in (0, 4]"
+        );
+        let query = Error::query("top_k", "top_k \"x\": use an integer");
+        assert_eq!(query.kind(), ErrorKind::UserInput);
+        assert_eq!(query.to_string(), "top_k \"x\": use an integer");
+        for what in [
+            Mismatched::EmbeddingWidth,
+            Mismatched::Dtype,
+            Mismatched::ImageSize,
+            Mismatched::Scene,
+        ] {
+            let e = Error::mismatch(what, "a vs b");
+            assert_eq!(e.kind(), ErrorKind::Conflict, "{what:?}");
+            assert!(!e.is_user_input());
+        }
+        assert_eq!(Error::internal("x").kind(), ErrorKind::Internal);
+        let http = Error::http_status("http://s/m", 401, "HTTP 401");
+        assert_eq!(http.kind(), ErrorKind::Upstream);
+        assert!(matches!(
+            http,
+            Error::Network {
+                status: Some(401),
+                ..
+            }
+        ));
+        for r in [
+            Resource::GpuBinding,
+            Resource::GpuDispatch,
+            Resource::GpuMemory,
+            Resource::RasterEntries,
+            Resource::RasterPixels,
+            Resource::Memory,
+            Resource::ShardGaussians,
+        ] {
+            let e = Error::limit(r, "2 G", "1 G");
+            assert_eq!(e.kind(), ErrorKind::Environment);
+            assert!(!e.to_string().contains("--"), "{e}");
+        }
     }
 }

@@ -32,4 +32,4 @@ pub mod similarity;
 #[cfg(feature = "onnx")]
 pub mod text;
 
-pub use error::{Error, ErrorKind, Resource, Result};
+pub use error::{Error, ErrorKind, Mismatched, Resource, Result};

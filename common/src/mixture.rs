@@ -334,10 +334,11 @@ impl MixtureEmbeddings {
     /// Checks the arrays agree (lengths, `S ≥ 1`, atoms in range or [`UNUSED`] with weight 0,
     /// finite values, weights within the f16 range, ids strictly ascending).
     ///
-    /// Errors: [`Error::Invalid`] naming the first inconsistency.
+    /// Errors: [`Error::Internal`] naming the first inconsistency (the reduction that builds
+    /// a mixture keeps them consistent).
     pub fn validate(&self) -> Result<()> {
         self.check()
-            .map_err(|m| Error::Invalid(format!("mixture: {m}")))
+            .map_err(|m| Error::internal(format!("mixture: {m}")))
     }
 
     fn check(&self) -> std::result::Result<(), String> {
@@ -391,12 +392,15 @@ impl MixtureEmbeddings {
     /// Normalised copy of a query, or a typed error.
     fn unit_query(&self, query: &[f32]) -> Result<Vec<f32>> {
         if query.len() != self.dim {
-            return Err(Error::Invalid(format!(
-                "query has {} components, the mixture embeddings have {}; use the text tower of \
-                 the same CLIP model",
-                query.len(),
-                self.dim
-            )));
+            return Err(Error::mismatch(
+                crate::Mismatched::EmbeddingWidth,
+                format!(
+                    "query has {} components, the mixture embeddings have {}; use the text tower \
+                     of the same CLIP model",
+                    query.len(),
+                    self.dim
+                ),
+            ));
         }
         crate::similarity::unit_query(query)
     }
@@ -419,8 +423,8 @@ impl MixtureEmbeddings {
     /// `Σ_s weights · (q·E_atom)` (the paper's query rule over the reconstructed `E_k`; rayon over
     /// N).
     ///
-    /// Errors ([`Error::Invalid`]): `query.len() != dim`, a zero or non-finite query, arrays of
-    /// inconsistent lengths.
+    /// Errors: `query.len() != dim` ([`Error::Mismatch`]), a zero or non-finite query
+    /// ([`Error::Query`]), arrays of inconsistent lengths ([`Error::Internal`]).
     pub fn scores(&self, query: &[f32]) -> Result<Vec<f32>> {
         self.check_shapes()?;
         let q = self.unit_query(query)?;
@@ -449,11 +453,13 @@ impl MixtureEmbeddings {
     /// ([`MixtureEmbeddings::scores`]). `[N]` scores; a Gaussian without atoms scores 0. One dot
     /// per codebook row, then `top` comparisons per Gaussian.
     ///
-    /// Errors ([`Error::Invalid`]): `top == 0`, and as [`MixtureEmbeddings::scores`].
+    /// Errors: `top == 0` ([`Error::Param`]), and as [`MixtureEmbeddings::scores`].
     pub fn max_atom_scores(&self, query: &[f32], top: usize) -> Result<Vec<f32>> {
         if top == 0 {
-            return Err(Error::Invalid(
-                "max over 0 mask embeddings; pass top >= 1".into(),
+            return Err(Error::param(
+                "top",
+                top,
+                "at least 1 mask embedding to take the max over",
             ));
         }
         self.check_shapes()?;
@@ -519,7 +525,7 @@ impl MixtureEmbeddings {
     /// Writes the file atomically (`<path>.partial`, fsync, rename; see the module docs for the
     /// layout).
     ///
-    /// Errors: [`Error::Invalid`] when [`MixtureEmbeddings::validate`] fails, I/O.
+    /// Errors: [`Error::Internal`] when [`MixtureEmbeddings::validate`] fails, I/O.
     pub fn write(&self, path: &Path) -> Result<()> {
         self.validate()?;
         let (n, s, m, d) = (self.len(), self.keep, self.codebook_len(), self.dim);
@@ -804,26 +810,36 @@ mod tests {
         let one = mix.max_atom_scores(&q, 1).unwrap();
         let all = mix.max_atom_scores(&q, mix.keep).unwrap();
         assert!(one.iter().zip(&all).all(|(a, b)| b >= a));
-        assert!(matches!(mix.max_atom_scores(&q, 0), Err(Error::Invalid(_))));
+        assert!(matches!(
+            mix.max_atom_scores(&q, 0),
+            Err(Error::Param { name: "top", .. })
+        ));
+        // A zero query has no direction; one of another width belongs to another model.
         assert!(matches!(
             mix.max_atom_scores(&[0.0; 12], 1),
-            Err(Error::Invalid(_))
+            Err(Error::Query { field: "text", .. })
+        ));
+        assert!(matches!(
+            mix.max_atom_scores(&[1.0; 11], 1),
+            Err(Error::Mismatch { .. })
         ));
     }
 
     #[test]
     fn bad_queries_are_typed_errors() {
         let mix = MixtureEmbeddings::from_sparse(sample(5, 4, 8, 1)).unwrap();
-        assert!(matches!(mix.scores(&[0.0; 8]), Err(Error::Invalid(_))));
-        assert!(matches!(mix.scores(&[1.0; 7]), Err(Error::Invalid(_))));
-        assert!(matches!(mix.scores(&[f32::NAN; 8]), Err(Error::Invalid(_))));
+        let no_direction =
+            |r: Result<Vec<f32>>| matches!(r, Err(Error::Query { field: "text", .. }));
+        assert!(no_direction(mix.scores(&[0.0; 8])));
+        assert!(matches!(mix.scores(&[1.0; 7]), Err(Error::Mismatch { .. })));
+        assert!(no_direction(mix.scores(&[f32::NAN; 8])));
         assert!(matches!(
             mix.scores_many(&[&[1.0; 8], &[0.0; 8]]),
-            Err(Error::Invalid(_))
+            Err(Error::Query { .. })
         ));
         let mut broken = mix.clone();
         broken.atoms.pop();
-        assert!(matches!(broken.scores(&[1.0; 8]), Err(Error::Invalid(_))));
+        assert!(matches!(broken.scores(&[1.0; 8]), Err(Error::Internal(_))));
     }
 
     #[test]
@@ -876,7 +892,7 @@ mod tests {
         // Atom out of range: written by hand past validate.
         let mut bad = mix.clone();
         bad.atoms[0] = 99;
-        assert!(matches!(bad.write(&p), Err(Error::Invalid(_))));
+        assert!(matches!(bad.write(&p), Err(Error::Internal(_))));
         let write_raw = |m: &MixtureEmbeddings, keep_meta: usize| {
             let book: Vec<f16> = m.codebook.iter().map(|&v| f16::from_f32(v)).collect();
             let w: Vec<f16> = m.weights.iter().map(|&v| f16::from_f32(v)).collect();

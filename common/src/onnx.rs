@@ -207,10 +207,12 @@ impl std::fmt::Debug for OnnxModel {
     }
 }
 
-/// Says once per process why `--ep auto` runs on the CPU.
+/// Says once per process why [`ExecutionProvider::Auto`] runs on the CPU.
 fn note_cpu_fallback(why: &str) {
     static SAID: OnceLock<()> = OnceLock::new();
-    SAID.get_or_init(|| tracing::warn!("--ep auto: SAM and CLIP run on the CPU: {why}"));
+    SAID.get_or_init(|| {
+        tracing::warn!("execution provider auto: SAM and CLIP run on the CPU: {why}")
+    });
 }
 
 impl OnnxModel {
@@ -440,10 +442,26 @@ fn inference_error(path: &Path, ep: ExecutionProvider, device: u32, message: &st
     }
 }
 
-/// What the user should do about an ONNX Runtime / CUDA failure message (the `remedy` of
-/// [`Error::Inference`]): out of GPU memory, a missing CUDA library, a driver or runtime version
-/// mismatch, a GPU that does not exist, a provider the runtime lacks, or anything else.
-pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
+/// What kind of ONNX Runtime / CUDA failure a message ([`Error::Inference`]'s `message`)
+/// reports: what [`remedy`] is chosen by, and what a command line maps to its flags.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InferenceCause {
+    /// The GPU ran out of memory.
+    OutOfMemory,
+    /// A CUDA / cuDNN / TensorRT library could not be loaded.
+    MissingLibrary,
+    /// The ONNX Runtime GPU build does not match the driver.
+    DriverMismatch,
+    /// The GPU asked for does not exist.
+    NoSuchDevice,
+    /// The runtime lacks the provider, or it did not register.
+    ProviderMissing,
+    /// Anything else.
+    Other,
+}
+
+/// Classifies an ONNX Runtime / CUDA failure message ([`InferenceCause`]).
+pub fn inference_cause(message: &str) -> InferenceCause {
     let m = message.to_ascii_lowercase();
     let any = |keys: &[&str]| keys.iter().any(|k| m.contains(k));
     if any(&[
@@ -454,9 +472,7 @@ pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
         "failed to allocate memory",
         "bfcarena",
     ]) {
-        "the GPU ran out of memory: lower --clip-batch or --sam-points-per-batch, cap each \
-         model's arena with --gpu-mem-limit-gb, or use a GPU with more free memory \
-         (nvidia-smi shows what else holds it)"
+        InferenceCause::OutOfMemory
     } else if any(&[
         "cannot open shared object",
         "error while loading shared libraries",
@@ -467,9 +483,7 @@ pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
         "libcudart",
         "libnvinfer",
     ]) {
-        "a CUDA library is missing: `bash scripts/setup.sh --gpu` installs onnxruntime-gpu and \
-         its CUDA 13 runtime, cuBLAS and cuDNN 9 (or put yours on LD_LIBRARY_PATH); TensorRT \
-         needs libnvinfer 10 as well"
+        InferenceCause::MissingLibrary
     } else if any(&[
         "insufficient driver",
         "driver version is insufficient",
@@ -479,30 +493,60 @@ pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
         "not compatible",
         "unsupported ptx",
     ]) {
-        "the ONNX Runtime GPU build does not match the driver: onnxruntime-gpu 1.31 is built for \
-         CUDA 13 (driver >= 580); on a CUDA 12 machine install a CUDA 12 build \
-         (ORT_GPU_VERSION=1.22.0 bash scripts/setup.sh --gpu)"
+        InferenceCause::DriverMismatch
     } else if any(&[
         "invalid device ordinal",
         "no cuda-capable device",
         "cudaerrornodevice",
         "cuda_error_no_device",
     ]) {
-        "no such GPU: check nvidia-smi and CUDA_VISIBLE_DEVICES, and ask for at most that many \
-         with --gpus"
+        InferenceCause::NoSuchDevice
     } else if m.contains("built without it") || m.contains("did not register") {
-        match ep {
+        InferenceCause::ProviderMissing
+    } else {
+        InferenceCause::Other
+    }
+}
+
+/// What the user should do about an ONNX Runtime / CUDA failure message (the `remedy` of
+/// [`Error::Inference`], by [`inference_cause`]): out of GPU memory, a missing CUDA library, a
+/// driver or runtime version mismatch, a GPU that does not exist, a provider the runtime lacks,
+/// or anything else. It names the library's parameters (a command line adds its flags).
+pub fn remedy(ep: ExecutionProvider, message: &str) -> &'static str {
+    match inference_cause(message) {
+        InferenceCause::OutOfMemory => {
+            "the GPU ran out of memory: lower the CLIP batch or SAM's points_per_batch, cap each \
+             model's arena (gpu_mem_limit), or use a GPU with more free memory (nvidia-smi shows \
+             what else holds it)"
+        }
+        InferenceCause::MissingLibrary => {
+            "a CUDA library is missing: `bash scripts/setup.sh --gpu` installs onnxruntime-gpu \
+             and its CUDA 13 runtime, cuBLAS and cuDNN 9 (or put yours on LD_LIBRARY_PATH); \
+             TensorRT needs libnvinfer 10 as well"
+        }
+        InferenceCause::DriverMismatch => {
+            "the ONNX Runtime GPU build does not match the driver: onnxruntime-gpu 1.31 is built \
+             for CUDA 13 (driver >= 580); on a CUDA 12 machine install a CUDA 12 build \
+             (ORT_GPU_VERSION=1.22.0 bash scripts/setup.sh --gpu)"
+        }
+        InferenceCause::NoSuchDevice => {
+            "no such GPU: check nvidia-smi and CUDA_VISIBLE_DEVICES, and ask for at most that \
+             many GPUs"
+        }
+        InferenceCause::ProviderMissing => match ep {
             ExecutionProvider::TensorRt => {
-                "install TensorRT 10 and an onnxruntime-gpu with its TensorRT provider, or use \
-                 --ep cuda"
+                "install TensorRT 10 and an onnxruntime-gpu with its TensorRT provider, or run on \
+                 the cuda execution provider"
             }
             _ => {
-                "install the GPU build of ONNX Runtime (`bash scripts/setup.sh --gpu`), or use \
-                 --ep cpu / --ep auto"
+                "install the GPU build of ONNX Runtime (`bash scripts/setup.sh --gpu`), or run \
+                 on the cpu or auto execution provider"
             }
+        },
+        InferenceCause::Other => {
+            "run on the cpu execution provider to tell a model fault from a GPU fault, and report \
+             this message"
         }
-    } else {
-        "rerun with --ep cpu to tell a model fault from a GPU fault, and report this message"
     }
 }
 
@@ -754,12 +798,23 @@ mod tests {
                 "does not match the driver",
             ),
             ("CUDA failure 101: invalid device ordinal", "no such GPU"),
-            ("something else entirely", "rerun with --ep cpu"),
+            ("something else entirely", "cpu execution provider"),
         ];
         for (message, want) in cases {
             let got = remedy(ExecutionProvider::Cuda, message);
             assert!(got.contains(want), "{message:?} -> {got:?}");
+            // Install commands stay; a binary's flags are the command line's to add.
+            let flags = ["--ep", "--gpus", "--clip-batch", "--sam-", "--gpu-mem"];
+            assert!(
+                !flags.iter().any(|f| got.contains(f)),
+                "a library remedy names no flag: {got}"
+            );
         }
+        assert_eq!(
+            inference_cause("CUDA failure 2: out of memory"),
+            InferenceCause::OutOfMemory
+        );
+        assert_eq!(inference_cause("nothing known"), InferenceCause::Other);
         assert!(
             remedy(ExecutionProvider::TensorRt, "was built without it").contains("TensorRT 10")
         );

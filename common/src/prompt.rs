@@ -42,14 +42,15 @@ pub fn prompt_problem(text: &str) -> Option<PromptProblem> {
     }
 }
 
-/// Checks a prompt; `hint` (e.g. `pass --text chair`) ends the message of a refusal.
+/// Checks a prompt; `hint` (e.g. `use /query?text=chair`) ends the message of a refusal. A
+/// command line passes no hint and adds its flag where it reports the error.
 ///
-/// Errors: [`Error::Invalid`] for a blank prompt or one over [`MAX_PROMPT_BYTES`].
+/// Errors: [`Error::Query`] (field `text`) for a blank prompt or one over [`MAX_PROMPT_BYTES`].
 pub fn check_prompt(text: &str, hint: &str) -> Result<()> {
     match prompt_problem(text) {
         None => Ok(()),
-        Some(p) if hint.is_empty() => Err(Error::Invalid(p.to_string())),
-        Some(p) => Err(Error::Invalid(format!("{p}: {hint}"))),
+        Some(p) if hint.is_empty() => Err(Error::query("text", p.to_string())),
+        Some(p) => Err(Error::query("text", format!("{p}: {hint}"))),
     }
 }
 
@@ -61,11 +62,11 @@ mod tests {
     #[test]
     fn blank_and_long_prompts_are_refused_with_the_callers_hint() {
         for t in ["", "   ", "\t\n"] {
-            let e = check_prompt(t, "pass --text chair")
-                .unwrap_err()
-                .to_string();
+            let e = check_prompt(t, "use /query?text=chair").unwrap_err();
+            assert!(matches!(e, Error::Query { field: "text", .. }), "{e}");
+            let e = e.to_string();
             assert!(
-                e.contains("missing query text") && e.ends_with("pass --text chair"),
+                e.contains("missing query text") && e.ends_with("use /query?text=chair"),
                 "{e}"
             );
         }

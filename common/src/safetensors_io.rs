@@ -97,7 +97,7 @@ impl<'a> Checked<'a> {
 /// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
 /// strings `meta` and writes the file atomically ([`write_atomic`]).
 ///
-/// Errors: [`Error::Invalid`] when a tensor's data length disagrees with its dtype and shape;
+/// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape;
 /// I/O.
 pub(crate) fn write(
     path: &Path,
@@ -109,7 +109,7 @@ pub(crate) fn write(
         .map(|(name, dtype, shape, data)| {
             TensorView::new(dtype, shape, data)
                 .map(|v| (name, v))
-                .map_err(|e| Error::Invalid(format!("safetensors: {e}")))
+                .map_err(|e| Error::internal(format!("safetensors: {e}")))
         })
         .collect::<Result<Vec<_>>>()?;
     let meta: HashMap<String, String> = meta
@@ -117,7 +117,7 @@ pub(crate) fn write(
         .map(|(k, v)| (k.to_string(), v.clone()))
         .collect();
     let bytes = safetensors::serialize(views, Some(meta))
-        .map_err(|e| Error::Invalid(format!("safetensors: {e}")))?;
+        .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
     write_atomic(path, &bytes)
 }
 

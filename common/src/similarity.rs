@@ -44,15 +44,18 @@ pub fn normalize_in_place(v: &mut [f32]) -> std::result::Result<f64, DegenerateN
     Ok(norm)
 }
 
-/// A unit copy of a query (prompt) embedding, or [`Error::Invalid`] telling the user to rephrase
-/// the prompt (a CLIP text tower can return a zero vector for an empty prompt).
+/// A unit copy of a query (prompt) embedding, or [`Error::Query`] (field `text`) telling the user
+/// to rephrase the prompt (a CLIP text tower can return a zero vector for an empty prompt).
 pub fn unit_query(query: &[f32]) -> Result<Vec<f32>> {
     let mut q = query.to_vec();
     normalize_in_place(&mut q).map_err(|d| {
-        Error::Invalid(format!(
-            "the prompt's text embedding has {d}, so it cannot be compared with the Gaussians; \
+        Error::query(
+            "text",
+            format!(
+                "the prompt's text embedding has {d}, so it cannot be compared with the Gaussians; \
              rephrase the prompt, or check the text model"
-        ))
+            ),
+        )
     })?;
     Ok(q)
 }
@@ -67,11 +70,15 @@ pub const PAPER_THRESHOLD: f32 = 0.28;
 /// vector for an empty prompt: the caller should reject the prompt, not rank noise).
 pub fn cosine_scores(vectors: &[f32], dim: usize, query: &[f32]) -> Result<Vec<f32>> {
     if dim == 0 || query.len() != dim || !vectors.len().is_multiple_of(dim) {
-        return Err(Error::Invalid(format!(
-            "query has {} components, embeddings have {dim} per row ({} values); use the text tower of the same CLIP model",
-            query.len(),
-            vectors.len()
-        )));
+        return Err(Error::mismatch(
+            crate::Mismatched::EmbeddingWidth,
+            format!(
+                "query has {} components, embeddings have {dim} per row ({} values); use the text \
+                 tower of the same CLIP model",
+                query.len(),
+                vectors.len()
+            ),
+        ));
     }
     let q = unit_query(query)?;
     Ok(vectors
@@ -136,7 +143,7 @@ mod tests {
             let mut w = bad.clone();
             assert!(normalize_in_place(&mut w).is_err(), "{bad:?}");
             assert_eq!(format!("{w:?}"), format!("{bad:?}"), "left unchanged");
-            assert!(matches!(unit_query(&bad), Err(Error::Invalid(_))));
+            assert!(matches!(unit_query(&bad), Err(Error::Query { .. })));
         }
         // f32::MAX components: the f64 sum does not overflow.
         let mut big = vec![f32::MAX, f32::MAX];
@@ -223,14 +230,12 @@ pub fn rank(
     threshold: Option<f32>,
 ) -> Result<(Vec<Match>, MatchSummary)> {
     if ids.len() != means.len() || ids.len() * dim != vectors.len() {
-        return Err(Error::Invalid(
-            "ids, means and vectors disagree in length".into(),
+        return Err(Error::internal(
+            "rank: ids, means and vectors disagree in length",
         ));
     }
     if let Some(t) = threshold.filter(|t| !t.is_finite()) {
-        return Err(Error::Invalid(format!(
-            "threshold {t} is not a finite number"
-        )));
+        return Err(Error::param("threshold", t, "a finite cosine"));
     }
     let mut scores = cosine_scores(vectors, dim, query)?;
     if let Some(t) = threshold {

@@ -98,12 +98,14 @@ impl ClipTokenizer {
     /// long, truncated with `eot` kept as the last token.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for `context < 2`, [`Error::Format`] if the tokenizer fails.
+    /// [`Error::Param`] for `context < 2`, [`Error::Format`] if the tokenizer fails.
     pub fn tokenize(&self, text: &str, context: usize) -> Result<Vec<i64>> {
         if context < 2 {
-            return Err(Error::Invalid(format!(
-                "context length {context} is below 2"
-            )));
+            return Err(Error::param(
+                "context",
+                context,
+                "a context length of at least 2",
+            ));
         }
         let clean = text
             .split_whitespace()

@@ -141,10 +141,13 @@ fn extreme_stored_vectors_give_typed_errors_or_finite_results() {
             assert!(matches!(r, Err(Error::Invalid(_))), "{dt:?} {bad}: {r:?}");
         }
     }
-    // Beyond the f16 range: a typed error for f16 (not a stored infinity); f32 / int8 keep it.
+    // Beyond the f16 range: a typed error naming the dtype for f16 (not a stored infinity); f32
+    // / int8 keep it.
     for big in [65520.0f32, 1e5, -3e38] {
         match round_trip(&[0.5, big], Dtype::F16) {
-            Err(Error::Invalid(m)) => assert!(m.contains("f16 range"), "{m}"),
+            Err(e @ Error::Param { name: "dtype", .. }) => {
+                assert!(e.to_string().contains("f16 range"), "{e}")
+            }
             other => panic!("{big}: {other:?}"),
         }
         assert_eq!(round_trip(&[0.5, big], Dtype::F32).unwrap(), vec![0.5, big]);
@@ -200,7 +203,15 @@ fn embeddings_file_rejects_non_finite_and_out_of_f16_range_values() {
         (vec![1.0, 0.0, 7e4, 1.0], StoredPrecision::F16, "7e4 in f16"),
     ] {
         match e(v).write(&path, precision) {
-            Err(Error::Invalid(m)) => assert!(m.contains("Gaussian 9"), "{what}: {m}"),
+            // A non-finite value is bad data; a value beyond f16 asks for f32 precision.
+            Err(
+                e @ (Error::Invalid(_)
+                | Error::Param {
+                    name: "precision", ..
+                }),
+            ) => {
+                assert!(e.to_string().contains("Gaussian 9"), "{what}: {e}")
+            }
             other => panic!("{what}: {other:?}"),
         }
         assert!(!path.exists(), "{what}: a file was written");
@@ -313,7 +324,7 @@ fn ply_loader_normalises_quaternions_clamps_opacities_and_rejects_zero_quaternio
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
-    /// Any finite query: an Error::Invalid exactly when its norm is below 1e-12, else finite
+    /// Any finite query: an Error::Query exactly when its norm is below 1e-12, else finite
     /// cosines in [-1, 1] (+1e-5), 0 for zero rows.
     #[test]
     fn prop_cosine_scores_are_finite_or_a_typed_error(
@@ -331,7 +342,7 @@ proptest! {
         .concat();
         let norm = q.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
         match cosine_scores(&rows, 8, &q) {
-            Err(Error::Invalid(_)) => prop_assert!(norm < 1e-12 || !norm.is_finite(), "norm {}", norm),
+            Err(Error::Query { .. }) => prop_assert!(norm < 1e-12 || !norm.is_finite(), "norm {}", norm),
             Err(e) => prop_assert!(false, "{}", e),
             Ok(s) => {
                 prop_assert!(norm >= 1e-12);

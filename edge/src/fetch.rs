@@ -42,8 +42,8 @@ use crate::store::{EdgeStore, FetchRecord, parse_checksum};
 /// the inverse scene-to-map transform and the radius divided by its scale (`r` metres =
 /// `r / s` scene units).
 ///
-/// Errors: [`Error::Invalid`] for a negative or non-finite radius, or `frame` map when the
-/// manifest has no transform.
+/// Errors: [`Error::Param`] `radius` for a negative or non-finite radius, [`Error::Query`]
+/// `frame` for `frame` map when the manifest has no transform.
 pub fn selection_disc(
     manifest: &Manifest,
     center: Center,
@@ -52,14 +52,18 @@ pub fn selection_disc(
 ) -> Result<([f64; 2], f64, &'static str)> {
     let map = answer_frame(frame, manifest.frames.scene_to_map.as_ref())?;
     if !(radius.is_finite() && radius >= 0.0) {
-        return Err(Error::Invalid(format!(
-            "--radius {radius} must be a finite number ≥ 0 ({})",
-            if map.is_some() {
-                "metres of the map frame"
-            } else {
-                "scene units"
-            }
-        )));
+        return Err(Error::param(
+            "radius",
+            radius,
+            format!(
+                "a finite number ≥ 0 ({})",
+                if map.is_some() {
+                    "metres of the map frame"
+                } else {
+                    "scene units"
+                }
+            ),
+        ));
     }
     let ground = |w: [f64; 3]| {
         let g = manifest
@@ -138,15 +142,15 @@ impl std::str::FromStr for Center {
             .split(',')
             .map(|p| p.trim().parse::<f64>())
             .collect::<std::result::Result<_, _>>()
-            .map_err(|e| format!("--center {s:?}: {e}; use X,Y (ground) or X,Y,Z (world)"))?;
+            .map_err(|e| format!("center {s:?}: {e}; use X,Y (ground) or X,Y,Z (world)"))?;
         if !v.iter().all(|x| x.is_finite()) {
-            return Err(format!("--center {s:?} has a non-finite coordinate"));
+            return Err(format!("center {s:?} has a non-finite coordinate"));
         }
         match v[..] {
             [x, y] => Ok(Center::Ground([x, y])),
             [x, y, z] => Ok(Center::World([x, y, z])),
             _ => Err(format!(
-                "--center {s:?}: expected 2 (ground X,Y) or 3 (world X,Y,Z) numbers"
+                "center {s:?}: expected 2 (ground X,Y) or 3 (world X,Y,Z) numbers"
             )),
         }
     }
@@ -292,7 +296,7 @@ fn permanent(error: Error) -> Attempt {
 
 fn net_error(url: &str, e: reqwest::Error) -> Attempt {
     let what = if e.is_timeout() {
-        "timed out; check the link or raise --timeout"
+        "timed out; check the link or raise the timeout"
     } else if e.is_connect() {
         "cannot connect; is `slag-encoder serve` running there and reachable?"
     } else {
@@ -302,13 +306,18 @@ fn net_error(url: &str, e: reqwest::Error) -> Attempt {
 }
 
 fn status_error(url: &str, status: reqwest::StatusCode, body: &str) -> Attempt {
+    // What the status means for a fetch; `slag-edge` adds the flag (its hint reads `status`).
     let hint = match status.as_u16() {
-        401 | 403 => "the server wants a bearer token: pass --token or SLAG_SHARD_TOKEN",
-        404 => "not on the server: check --scene, or rerun fetch if the scene was re-partitioned",
+        401 | 403 => "the server wants a bearer token (the fetch's token)",
+        404 => {
+            "not on the server: check the scene id, or fetch again if the scene was \
+                re-partitioned"
+        }
         _ => "",
     };
-    let error = Error::network(
+    let error = Error::http_status(
         url,
+        status.as_u16(),
         format!(
             "HTTP {status}: {} {hint}",
             body.chars().take(300).collect::<String>()
@@ -323,14 +332,14 @@ fn status_error(url: &str, status: reqwest::StatusCode, body: &str) -> Attempt {
 
 /// Builds the HTTP client (rustls, timeouts, no proxy surprises).
 ///
-/// Errors: [`Error::Invalid`] if the TLS backend cannot be initialised.
+/// Errors: [`Error::Internal`] if the TLS backend cannot be initialised.
 pub fn client(timeout: Duration) -> Result<reqwest::Client> {
     reqwest::Client::builder()
         .connect_timeout(timeout)
         .read_timeout(timeout)
         .user_agent(concat!("slag-edge/", env!("CARGO_PKG_VERSION")))
         .build()
-        .map_err(|e| Error::Invalid(format!("HTTP client: {e}")))
+        .map_err(|e| Error::internal(format!("HTTP client: {e}")))
 }
 
 /// Downloads and parses the scene's manifest.
@@ -372,24 +381,26 @@ pub async fn fetch_manifest(
 
 /// Runs a fetch (steps in the module doc).
 ///
-/// Errors: bad parameters ([`Error::Invalid`]), the server ([`Error::Network`]), a shard that
+/// Errors: bad parameters ([`Error::Param`]), the server ([`Error::Network`]), a shard that
 /// fails verification twice ([`Error::Format`]), store I/O. On error the store keeps every shard
 /// completed so far and the previous manifest stays current; rerunning resumes.
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     if !valid_scene_id(&p.scene) {
-        return Err(Error::Invalid(format!(
-            "invalid scene id {:?}: use 1-64 characters of A-Z a-z 0-9 _ - .",
-            p.scene
-        )));
+        return Err(Error::param(
+            "scene_id",
+            format!("{:?}", p.scene),
+            "1-64 characters of A-Z a-z 0-9 _ - .",
+        ));
     }
     if !(p.radius.is_finite() && p.radius >= 0.0) {
-        return Err(Error::Invalid(format!(
-            "--radius {} must be a finite number ≥ 0 (metres with a map frame, else scene units)",
-            p.radius
-        )));
+        return Err(Error::param(
+            "radius",
+            p.radius,
+            "a finite number ≥ 0 (metres with a map frame, else scene units)",
+        ));
     }
     if p.jobs == 0 {
-        return Err(Error::Invalid("--jobs must be at least 1".into()));
+        return Err(Error::param("jobs", 0, "at least 1 download at a time"));
     }
     let client = client(p.timeout)?;
     let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref()).await?;

@@ -442,12 +442,76 @@ fn main() -> std::process::ExitCode {
             // One line with the causes; no backtrace (anyhow captures one when RUST_BACKTRACE is
             // set, and returning the error from main printed it on every failure).
             eprintln!("error: {e:#}");
+            if let Some(h) = hint(&e) {
+                eprintln!("hint: {h}");
+            }
             if verbose {
                 eprintln!("\n{e:?}");
             }
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// What the command line adds to a library error (`e` or an error it wraps): the flag or the
+/// command that acts on it. The library names the parameter ([`slag_common::Error::Param`]), the
+/// query field ([`slag_common::Error::Query`]), the limit ([`slag_common::Error::Limit`]) or the
+/// server's status ([`slag_common::Error::Network`]), never a flag.
+fn hint(e: &anyhow::Error) -> Option<String> {
+    e.chain()
+        .find_map(|c| c.downcast_ref::<slag_common::Error>().and_then(hint_for))
+}
+
+/// [`hint`] for one library error.
+fn hint_for(e: &slag_common::Error) -> Option<String> {
+    use slag_common::onnx::{InferenceCause, inference_cause};
+    use slag_common::{Error, Resource};
+    const FETCH: &str =
+        "slag-edge fetch --from URL --scene NAME --center X,Y --radius R --store DIR";
+    Some(match e {
+        Error::Param { name, .. } => match *name {
+            "store" => format!("run `{FETCH}` first, or pass the --store that fetch wrote"),
+            "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
+            "scene_id" => "pass --scene NAME".into(),
+            "radius" => "pass --radius R, a finite number ≥ 0".into(),
+            "jobs" => "pass --jobs N with N ≥ 1".into(),
+            _ => return None,
+        },
+        Error::Query { field, .. } => match *field {
+            "text" => "pass --text chair".into(),
+            "top_k" => "pass --top-k N".into(),
+            "threshold" => "pass --threshold T (or none)".into(),
+            "mode" => "pass --mode cosine|relevancy".into(),
+            "bbox" => "pass --bbox minx,miny,minz,maxx,maxy,maxz".into(),
+            "frame" => {
+                "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
+            }
+            "index" => "start serve with --hnsw for index=hnsw".into(),
+            _ => return None,
+        },
+        Error::Limit {
+            resource: Resource::Memory,
+            ..
+        } => "fetch a smaller --radius, or shards of a smaller --dtype (int8, f16) from \
+              `slag-encoder partition`"
+            .into(),
+        Error::Network {
+            status: Some(401 | 403),
+            ..
+        } => "pass --token TOKEN or set SLAG_SHARD_TOKEN".into(),
+        Error::Network {
+            status: Some(404), ..
+        } => "check --scene, or run fetch again if the scene was re-partitioned".into(),
+        Error::Inference { message, .. } => match inference_cause(message) {
+            InferenceCause::ProviderMissing => "use --ep cpu or --ep auto".into(),
+            InferenceCause::Other => {
+                "rerun with --ep cpu to tell a model fault from a GPU fault".into()
+            }
+            _ => return None,
+        },
+        Error::Internal(_) => "rerun with --verbose and report the command and its output".into(),
+        _ => return None,
+    })
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
@@ -460,5 +524,35 @@ fn run(command: Command) -> anyhow::Result<()> {
             println!("{}", slag_edge::scan::run_bench(&a)?);
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{hint, hint_for};
+    use slag_common::{Error, Resource};
+
+    #[test]
+    fn library_errors_get_the_flag_the_library_does_not_name() {
+        let h = |e: Error| {
+            assert!(
+                !e.to_string().contains(" --"),
+                "the library names no flag: {e}"
+            );
+            hint_for(&e).unwrap_or_default()
+        };
+        assert!(h(Error::param("store", "/no-store", "a store")).contains("slag-edge fetch"));
+        assert!(h(Error::param("radius", -1.0, "≥ 0")).contains("--radius"));
+        assert!(h(Error::query("text", "missing query text")).contains("--text"));
+        assert!(h(Error::http_status("http://s/v1", 401, "HTTP 401")).contains("--token"));
+        assert!(
+            h(Error::limit(Resource::Memory, "9e9 rows", "the allocator")).contains("--radius")
+        );
+        assert!(h(Error::internal("query task panicked")).contains("--verbose"));
+        assert_eq!(hint_for(&Error::network("http://s", "down")), None);
+        // Through context, as `main` sees it.
+        let e = anyhow::Error::new(Error::param("scene", "\"grid\"", "a fetched scene"))
+            .context("query");
+        assert!(hint(&e).is_some_and(|h| h.contains("slag-edge fetch")));
     }
 }

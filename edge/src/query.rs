@@ -41,7 +41,7 @@ pub const MAX_TOP_K: usize = 10_000;
 pub const MAX_TEXT_BYTES: usize = slag_common::prompt::MAX_PROMPT_BYTES;
 
 /// Which interface a query came through: each refusal of a prompt ends with that interface's own
-/// hint.
+/// hint (an HTTP one here; the command line adds its flag where it reports the error).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Interface {
     /// `GET /query?text=…` (and `GET /query.ply`).
@@ -58,7 +58,7 @@ impl Interface {
         match self {
             Interface::HttpGet => "use /query?text=chair",
             Interface::HttpPost => "send {\"text\": \"chair\"}",
-            Interface::Cli => "pass --text chair",
+            Interface::Cli => "",
         }
     }
 }
@@ -79,7 +79,7 @@ pub enum FrameChoice {
 /// The transform to apply to answers for `choice`, given the manifest's scene-to-map transform:
 /// `Some` = answer in the map frame.
 ///
-/// Errors: [`Error::Invalid`] for [`FrameChoice::Map`] when the scene has no map frame.
+/// Errors: [`Error::Query`] `frame` for [`FrameChoice::Map`] when the scene has no map frame.
 pub fn answer_frame(
     choice: FrameChoice,
     to_map: Option<&SceneToMap>,
@@ -88,10 +88,10 @@ pub fn answer_frame(
         (FrameChoice::Scene, _) => Ok(None),
         (FrameChoice::Auto, t) => Ok(t),
         (FrameChoice::Map, Some(t)) => Ok(Some(t)),
-        (FrameChoice::Map, None) => Err(Error::Invalid(
-            "frame map: this scene has no map frame (its manifest has no scene-to-map transform); \
-             partition it with --to-map or --to-map-points, or ask frame=scene"
-                .into(),
+        (FrameChoice::Map, None) => Err(Error::query(
+            "frame",
+            "frame map: this scene has no map frame (its manifest has no scene-to-map transform; \
+             partition it with one), or ask frame=scene",
         )),
     }
 }
@@ -225,10 +225,13 @@ fn json_field(v: &serde_json::Value) -> Option<String> {
 impl RawQuery {
     /// From a JSON object; numbers and strings are both accepted, unknown keys rejected.
     ///
-    /// Errors: [`Error::Invalid`] naming the offending key.
+    /// Errors: [`Error::Query`] naming the offending key.
     pub fn from_json(v: &serde_json::Value) -> Result<RawQuery> {
         let obj = v.as_object().ok_or_else(|| {
-            Error::Invalid("each query must be a JSON object like {\"text\": \"chair\"}".into())
+            Error::query(
+                "query",
+                "each query must be a JSON object like {\"text\": \"chair\"}",
+            )
         })?;
         let mut q = RawQuery::default();
         for (k, v) in obj {
@@ -252,10 +255,13 @@ impl RawQuery {
                 "index" => q.index = val,
                 "frame" => q.frame = val,
                 other => {
-                    return Err(Error::Invalid(format!(
-                        "unknown query field {other:?}; use text, top_k, threshold, mode, bbox, \
-                         index, frame"
-                    )));
+                    return Err(Error::query(
+                        "query",
+                        format!(
+                            "unknown query field {other:?}; use text, top_k, threshold, mode, \
+                             bbox, index, frame"
+                        ),
+                    ));
                 }
             }
         }
@@ -274,21 +280,27 @@ impl RawQuery {
     /// given (the paper's [`PAPER_THRESHOLD`] unless the server is configured otherwise). A blank
     /// or too long prompt ([`slag_common::prompt`]) is refused with `via`'s hint.
     ///
-    /// Errors: [`Error::Invalid`] with a message naming the field, the value and the allowed range.
+    /// Errors: [`Error::Query`] with the field, and a message naming the value and the allowed
+    /// range.
     pub fn validate_for(&self, cosine_default: f32, via: Interface) -> Result<QueryParams> {
-        let bad = |m: String| Err(Error::Invalid(m));
+        let bad = |field: &'static str, m: String| Err(Error::query(field, m));
         let text = self.text.clone().unwrap_or_default();
         slag_common::prompt::check_prompt(&text, via.prompt_hint())?;
         let mode = match self.mode.as_deref().map(str::trim) {
             None | Some("cosine") => ScoreMode::Cosine,
             Some("relevancy") => ScoreMode::Relevancy,
-            Some(m) => return bad(format!("mode {m:?}: use cosine or relevancy")),
+            Some(m) => return bad("mode", format!("mode {m:?}: use cosine or relevancy")),
         };
         let top_k = match self.top_k.as_deref().map(str::trim) {
             None => DEFAULT_TOP_K,
             Some(s) => match s.parse::<usize>() {
                 Ok(k) if (1..=MAX_TOP_K).contains(&k) => k,
-                _ => return bad(format!("top_k {s:?}: use an integer in 1..={MAX_TOP_K}")),
+                _ => {
+                    return bad(
+                        "top_k",
+                        format!("top_k {s:?}: use an integer in 1..={MAX_TOP_K}"),
+                    );
+                }
             },
         };
         let (lo, hi, default) = match mode {
@@ -301,9 +313,13 @@ impl RawQuery {
             Some(s) => match s.parse::<f32>() {
                 Ok(t) if t.is_finite() && (lo..=hi).contains(&t) => Some(t),
                 _ => {
-                    return bad(format!(
-                        "threshold {s:?}: use a number in {lo}..={hi} for {mode:?} scores, or none"
-                    ));
+                    return bad(
+                        "threshold",
+                        format!(
+                            "threshold {s:?}: use a number in {lo}..={hi} for {mode:?} scores, or \
+                             none"
+                        ),
+                    );
                 }
             },
         };
@@ -315,9 +331,13 @@ impl RawQuery {
                     .map(|p| p.trim().parse::<f32>())
                     .collect::<std::result::Result<_, _>>()
                     .map_err(|_| {
-                        Error::Invalid(format!(
-                            "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (in the answer's frame)"
-                        ))
+                        Error::query(
+                            "bbox",
+                            format!(
+                                "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (in the answer's \
+                                 frame)"
+                            ),
+                        )
                     })?;
                 match v[..] {
                     [a, b, c, d, e, f]
@@ -326,10 +346,13 @@ impl RawQuery {
                         Some([[a, b, c], [d, e, f]])
                     }
                     _ => {
-                        return bad(format!(
-                            "bbox {s:?}: need 6 finite numbers minx,miny,minz,maxx,maxy,maxz with \
-                             min ≤ max"
-                        ));
+                        return bad(
+                            "bbox",
+                            format!(
+                                "bbox {s:?}: need 6 finite numbers minx,miny,minz,maxx,maxy,maxz \
+                                 with min ≤ max"
+                            ),
+                        );
                     }
                 }
             }
@@ -337,13 +360,13 @@ impl RawQuery {
         let index = match self.index.as_deref().map(str::trim) {
             None | Some("exact") => IndexKind::Exact,
             Some("hnsw") => IndexKind::Hnsw,
-            Some(i) => return bad(format!("index {i:?}: use exact or hnsw")),
+            Some(i) => return bad("index", format!("index {i:?}: use exact or hnsw")),
         };
         let frame = match self.frame.as_deref().map(str::trim) {
             None | Some("auto") => FrameChoice::Auto,
             Some("map") => FrameChoice::Map,
             Some("scene") => FrameChoice::Scene,
-            Some(f) => return bad(format!("frame {f:?}: use map or scene")),
+            Some(f) => return bad("frame", format!("frame {f:?}: use map or scene")),
         };
         Ok(QueryParams {
             text,
@@ -404,7 +427,7 @@ pub struct Timings {
 /// cosines whatever the [`TextEmbedder`] returns (a no-op up to rounding for the CLIP text tower,
 /// which already normalises).
 ///
-/// Errors: [`Error::Invalid`] (HTTP 400) when the norm is below 1e-12 or not finite (a zero,
+/// Errors: [`Error::Query`] (HTTP 400) when the norm is below 1e-12 or not finite (a zero,
 /// subnormal, NaN or infinite embedding): it has no direction, and scanning with it would rank
 /// every Gaussian at score 0 (or NaN). One rule for every normalisation in slag
 /// (`slag_common::similarity::normalize_in_place`).
@@ -441,9 +464,9 @@ fn in_box(p: [f32; 3], b: &[[f32; 3]; 2]) -> bool {
 /// [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw` the optional approximate index.
 ///
 /// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
-/// or without a direction (zero / non-finite norm, [`unit_prompt_embedding`]) ([`Error::Invalid`]),
-/// `frame=map` without a transform ([`answer_frame`]), `index=hnsw` without an index or with a
-/// threshold-only query.
+/// ([`Error::Mismatch`]) or without a direction (zero / non-finite norm, [`unit_prompt_embedding`];
+/// [`Error::Query`]), `frame=map` without a transform ([`answer_frame`]), `index=hnsw` without an
+/// index or with a relevancy or too large top-k query ([`Error::Query`] `index`).
 pub fn run_query_framed(
     store: &VectorStore,
     embedding_model: &str,
@@ -459,15 +482,18 @@ pub fn run_query_framed(
         .embed(&[q.text.as_str()])?
         .into_iter()
         .next()
-        .ok_or_else(|| Error::Invalid("text encoder returned nothing".into()))?;
+        .ok_or_else(|| Error::internal("text encoder returned nothing"))?;
     if phi.len() != store.dim() {
-        return Err(Error::Invalid(format!(
-            "the text model gives {}-d embeddings but the stored Gaussians are {}-d ({}); serve \
-             with the CLIP text tower of the same model",
-            phi.len(),
-            store.dim(),
-            embedding_model
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "the text model gives {}-d embeddings but the stored Gaussians are {}-d ({}); \
+                 serve with the CLIP text tower of the same model",
+                phi.len(),
+                store.dim(),
+                embedding_model
+            ),
+        ));
     }
     let phi = unit_prompt_embedding(phi)?;
     let t_text = t0.elapsed().as_secs_f64() * 1e3;
@@ -540,20 +566,27 @@ pub fn run_query_framed(
         )?,
         IndexKind::Hnsw => {
             let index = hnsw.ok_or_else(|| {
-                Error::Invalid(
-                    "index=hnsw needs the approximate index: start serve with --hnsw".into(),
+                Error::query(
+                    "index",
+                    "index=hnsw needs the approximate index, which this server was started \
+                     without; use index=exact",
                 )
             })?;
             if q.mode != ScoreMode::Cosine {
-                return Err(Error::Invalid(
-                    "index=hnsw answers cosine queries only; use index=exact for relevancy".into(),
+                return Err(Error::query(
+                    "index",
+                    "index=hnsw answers cosine queries only; use index=exact for relevancy",
                 ));
             }
             if q.top_k > index.ef_search() {
-                return Err(Error::Invalid(format!(
-                    "index=hnsw answers top_k ≤ {} (its ef_search); ask fewer or use index=exact",
-                    index.ef_search()
-                )));
+                return Err(Error::query(
+                    "index",
+                    format!(
+                        "index=hnsw answers top_k ≤ {} (its ef_search); ask fewer or use \
+                         index=exact",
+                        index.ef_search()
+                    ),
+                ));
             }
             let mut hits = index.query(&phi, q.top_k)?;
             hits.retain(|h| {

@@ -195,21 +195,22 @@ impl EdgeStore {
     /// Opens the store in `root` for reading (`slag-edge query`, `serve`, `check`): unlike
     /// [`Self::open`], a folder that holds no store is an error and nothing is created.
     ///
-    /// Errors: [`Error::Invalid`] naming the `slag-edge fetch` command to run when `root` or its
-    /// database does not exist; as [`Self::open`] otherwise.
+    /// Errors: [`Error::Param`] `store` when `root` or its database does not exist (a fetch
+    /// into it comes first); as [`Self::open`] otherwise.
     pub fn open_existing(root: &Path) -> Result<EdgeStore> {
         if !root.join("db").is_dir() {
-            return Err(Error::Invalid(format!(
-                "no slag-edge store at {} ({}); run `slag-edge fetch --from URL --scene NAME \
-                 --center X,Y --radius R --store {}` first, or pass the --store that fetch wrote",
+            return Err(Error::param(
+                "store",
                 root.display(),
-                if root.exists() {
-                    "the folder holds no store database"
-                } else {
-                    "no such folder"
-                },
-                root.display()
-            )));
+                format!(
+                    "a slag-edge store written by a fetch; there is no slag-edge store there ({})",
+                    if root.exists() {
+                        "the folder holds no store database"
+                    } else {
+                        "no such folder"
+                    }
+                ),
+            ));
         }
         EdgeStore::open(root)
     }
@@ -236,7 +237,7 @@ impl EdgeStore {
                     message:
                         "this store was written by an older slag-edge that kept shards inside \
                               its sled database; this version keeps them in files. Delete the \
-                              folder (or pass another --store) and run `slag-edge fetch` again"
+                              folder (or use another store folder) and run `slag-edge fetch` again"
                             .into(),
                 });
             }
@@ -355,16 +356,18 @@ impl EdgeStore {
 
     /// Like [`Self::manifest`], but a scene never fetched is an error.
     ///
-    /// Errors: [`Error::Invalid`] (naming the `slag-edge fetch` command to run) when there is no
-    /// completed fetch of `scene`; as [`Self::manifest`] otherwise.
+    /// Errors: [`Error::Param`] `scene` when there is no completed fetch of `scene` (a fetch of
+    /// it comes first); as [`Self::manifest`] otherwise.
     pub fn current_manifest(&self, scene: &str) -> Result<Manifest> {
         self.manifest(scene)?.ok_or_else(|| {
-            Error::Invalid(format!(
-                "store {} has no completed fetch of scene {scene:?}; run `slag-edge fetch --from URL \
-                 --scene {scene} --center X,Y --radius R --store {}` first",
-                self.root.display(),
-                self.root.display()
-            ))
+            Error::param(
+                "scene",
+                format!("{scene:?}"),
+                format!(
+                    "a scene fetched into store {}, which has no completed fetch of it",
+                    self.root.display()
+                ),
+            )
         })
     }
 
@@ -467,7 +470,7 @@ impl EdgeStore {
     /// Makes `manifest` the scene's current one and records the fetch, in one transaction, then
     /// flushes. Called after every selected shard is committed (their files and folders synced).
     ///
-    /// Errors: store I/O, an aborted transaction ([`Error::Invalid`]).
+    /// Errors: store I/O, an aborted transaction ([`Error::Internal`]).
     pub fn commit_fetch(&self, manifest: &Manifest, record: &FetchRecord) -> Result<()> {
         use sled::Transactional;
         let m = manifest.to_json();
@@ -482,7 +485,7 @@ impl EdgeStore {
             .map_err(|e| match e {
                 sled::transaction::TransactionError::Storage(e) => self.err(e),
                 sled::transaction::TransactionError::Abort(()) => {
-                    Error::Invalid("store transaction aborted".into())
+                    Error::internal("store transaction aborted")
                 }
             })?;
         self.db.flush().map_err(|e| self.err(e))?;
@@ -565,7 +568,7 @@ impl EdgeStore {
     /// ([`verify_shard`]); corrupted shards are reported in [`SceneLoad::rejected`] and skipped.
     /// Holds every decoded shard at once: servers use [`Self::load_shards`].
     ///
-    /// Errors: no completed fetch of `scene` ([`Error::Invalid`]), store I/O.
+    /// Errors: no completed fetch of `scene` ([`Error::Param`] `scene`), store I/O.
     pub fn load_scene(&self, scene: &str) -> Result<(Manifest, Vec<StoredShard>, SceneLoad)> {
         let manifest = self.current_manifest(scene)?;
         let mut shards = Vec::new();

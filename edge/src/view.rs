@@ -172,7 +172,7 @@ pub const PLY_PROPERTIES: [&str; 14] = [
 /// `style.colour`; the others keep their colour, dimmed by `style.dim`. Missing columns get the
 /// fallbacks documented on [`DisplayAttrs`].
 ///
-/// Errors ([`Error::Invalid`]): a non-finite or out-of-range colour or dim factor.
+/// Errors ([`Error::Query`] `color` / `dim`): a non-finite or out-of-range colour or dim factor.
 pub fn highlighted_ply(
     attrs: &DisplayAttrs,
     highlighted: &HashSet<u32>,
@@ -208,15 +208,21 @@ pub fn highlighted_ply_framed(
         .iter()
         .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
     {
-        return Err(Error::Invalid(format!(
-            "highlight colour {:?}: use RGB components in 0..=1",
-            style.colour
-        )));
+        return Err(Error::query(
+            "color",
+            format!(
+                "highlight colour {:?}: use RGB components in 0..=1",
+                style.colour
+            ),
+        ));
     }
     if let Some(f) = style.dim
         && !(f.is_finite() && (0.0..=1.0).contains(&f))
     {
-        return Err(Error::Invalid(format!("dim {f}: use a factor in 0..=1")));
+        return Err(Error::query(
+            "dim",
+            format!("dim {f}: use a factor in 0..=1"),
+        ));
     }
     let n = attrs.len();
     let mut bytes = slag_common::scene::float_vertex_header(
@@ -272,10 +278,10 @@ pub fn highlighted_ply_framed(
 
 /// Parses a colour `RRGGBB` or `#RRGGBB` (hex, sRGB bytes mapped to 0..1).
 ///
-/// Errors: anything else ([`Error::Invalid`], naming the `color` parameter).
+/// Errors: anything else ([`Error::Query`] `color`).
 pub fn parse_colour(s: &str) -> Result<[f32; 3]> {
     let h = s.trim().trim_start_matches('#');
-    let bad = || Error::Invalid(format!("color {s:?}: use RRGGBB hex, e.g. ff00ff"));
+    let bad = || Error::query("color", format!("color {s:?}: use RRGGBB hex, e.g. ff00ff"));
     if h.len() != 6 || !h.is_ascii() {
         return Err(bad());
     }
@@ -411,7 +417,7 @@ mod tests {
         ] {
             assert!(matches!(
                 highlighted_ply(&attrs, &none, &style),
-                Err(Error::Invalid(_))
+                Err(Error::Query { .. })
             ));
         }
         assert_eq!(parse_colour("#ff8000").unwrap(), [1.0, 128.0 / 255.0, 0.0]);

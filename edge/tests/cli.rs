@@ -231,7 +231,18 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
         "{e}"
     );
     assert!(!e.to_lowercase().contains("backtrace"), "{e}");
-    assert_eq!(e.trim().lines().count(), 1, "{e}");
+    // One line for the error (the library's words: the store parameter), one for the CLI's hint
+    // (the fetch command to run).
+    let lines: Vec<&str> = e.trim().lines().collect();
+    assert_eq!(lines.len(), 2, "{e}");
+    assert!(
+        lines[0].starts_with("error: ") && lines[0].contains("no-store"),
+        "{e}"
+    );
+    assert!(
+        lines[1].starts_with("hint: ") && lines[1].contains("slag-edge fetch"),
+        "{e}"
+    );
     assert!(
         !store.exists(),
         "slag-edge query created {}",

@@ -168,7 +168,8 @@ async fn a_radius_in_metres_selects_the_tiles_of_the_same_radius_in_scene_units_
     .await
     .unwrap_err();
     assert!(
-        matches!(e, slag_common::Error::Invalid(_)) && e.to_string().contains("no map frame"),
+        matches!(e, slag_common::Error::Query { field: "frame", .. })
+            && e.to_string().contains("no map frame"),
         "{e}"
     );
     assert!(stored_ids(&store).is_empty());

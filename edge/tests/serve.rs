@@ -443,3 +443,73 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
     assert_eq!(s["scans"]["rejected_busy"], 2, "{s}");
     assert_eq!(s["queries_served"], 3, "{s}");
 }
+
+/// A text model that panics on the prompt `boom` (a bug in the model code, say) and is the
+/// basis embedder otherwise.
+struct PanickyEmbedder(BasisEmbedder);
+
+impl slag_edge::query::TextEmbedder for PanickyEmbedder {
+    fn embed(&self, texts: &[&str]) -> slag_common::Result<Vec<Vec<f32>>> {
+        assert!(!texts.contains(&"boom"), "injected panic in the text model");
+        slag_edge::query::TextEmbedder::embed(&self.0, texts)
+    }
+    fn name(&self) -> String {
+        "panicky".into()
+    }
+    fn cached(&self) -> usize {
+        0
+    }
+}
+
+/// Who has to act decides the status: a bad query is the client's (400, the message naming the
+/// field), a panicked query task slag's own fault (500, `Error::Internal`); the server stays up
+/// after each.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_query_is_400_and_a_panicked_query_task_500() {
+    let scene = grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1);
+    let dim = scene.manifest.dim as usize;
+    let server = shard_server(scene, None).await;
+    let (_dir, store) = fetch_grid(&server.url, 100.0).await;
+    let state = AppState::new(
+        store,
+        Arc::new(PanickyEmbedder(BasisEmbedder::new(dim))),
+        ServeOptions::new("grid"),
+    )
+    .unwrap();
+    let url = serve_on_loopback(state).await;
+    let client = reqwest::Client::new();
+    let get = |path: String| {
+        let (client, url) = (client.clone(), url.clone());
+        async move {
+            let r = client.get(format!("{url}{path}")).send().await.unwrap();
+            let status = r.status().as_u16();
+            let v: serde_json::Value = r.json().await.unwrap();
+            (status, v)
+        }
+    };
+    let (s, v) = get("/query?text=t1&top_k=0".into()).await;
+    assert_eq!(s, 400, "{v}");
+    assert_eq!(v["status"], 400);
+    assert!(v["error"].as_str().unwrap().contains("top_k"), "{v}");
+    let (s, v) = get("/query?text=boom".into()).await;
+    assert_eq!(s, 500, "{v}");
+    let msg = v["error"].as_str().unwrap();
+    assert!(
+        msg.contains("internal fault") && msg.contains("query task failed"),
+        "{msg}"
+    );
+    // A batch answers the panicked item's status in place, like any other error.
+    let b: serde_json::Value = client
+        .post(format!("{url}/query"))
+        .json(&serde_json::json!({"queries": [{"text": "boom"}]}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(b["answers"][0]["status"], 500, "{b}");
+    // Still serving.
+    let (s, v) = get("/query?text=t1&top_k=1&threshold=none".into()).await;
+    assert_eq!(s, 200, "{v}");
+}

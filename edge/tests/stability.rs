@@ -1,6 +1,6 @@
 //! Numerical stability of the query side (issue 6, item 2, case 8): zero and non-finite prompt
 //! embeddings, zero-norm stored rows, in the exact scan (f32 / f16 / int8), the HNSW index, the
-//! LERF relevancy combiner and `run_query`. Expected: a typed [`Error::Invalid`] (HTTP 400) for a
+//! LERF relevancy combiner and `run_query`. Expected: a typed [`Error::Query`] (HTTP 400) for a
 //! prompt embedding without a direction, and finite scores (0 for a zero row) everywhere else;
 //! never a NaN score or a panic.
 //!
@@ -106,10 +106,13 @@ fn zero_or_non_finite_prompt_embeddings_are_a_typed_400_error() {
                     &params(mode, threshold),
                 );
                 match r {
-                    Err(Error::Invalid(m)) => {
+                    Err(Error::Query {
+                        field: "text",
+                        message: m,
+                    }) => {
                         assert!(m.contains("prompt") && m.contains("norm"), "{what}: {m}")
                     }
-                    other => panic!("{what} {mode:?}: expected Error::Invalid, got {other:?}"),
+                    other => panic!("{what} {mode:?}: expected Error::Query, got {other:?}"),
                 }
             }
         }
@@ -191,7 +194,7 @@ fn non_finite_queries_and_rows_are_typed_errors() {
     let qs: [&[f32]; 1] = [&q];
     assert!(matches!(
         scan(&s, &ScanRequest::top_k(&qs, 3)),
-        Err(Error::Invalid(_))
+        Err(Error::Query { .. })
     ));
     let mut s2 = VectorStore::new(DIM, Dtype::I8).expect("store");
     let mut v = rows(2);

@@ -33,19 +33,23 @@ const VISUAL_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1
 /// clipped to the image.
 ///
 /// # Errors
-/// [`Error::Invalid`] when the mask and image sizes differ or the box lies outside the image.
+/// [`Error::Mismatch`] when the mask and image sizes differ, [`Error::Internal`] for a malformed
+/// mask or a box outside the image.
 pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
     if (mask.width, mask.height) != image.dimensions() {
-        return Err(Error::Invalid(format!(
-            "mask is {}x{} but the image is {}x{}: masks must be at full image resolution",
-            mask.width,
-            mask.height,
-            image.width(),
-            image.height()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "mask is {}x{} but the image is {}x{}: masks must be at full image resolution",
+                mask.width,
+                mask.height,
+                image.width(),
+                image.height()
+            ),
+        ));
     }
     if mask.pixels.len() != mask.width as usize * mask.height as usize {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "mask has {} pixels, expected {}x{}",
             mask.pixels.len(),
             mask.width,
@@ -55,7 +59,7 @@ pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
     let [x, y, w, h] = mask.bbox_xywh;
     let (iw, ih) = image.dimensions();
     if x >= iw || y >= ih {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "mask bbox [{x}, {y}, {w}, {h}] starts outside the {iw}x{ih} image"
         )));
     }
@@ -93,7 +97,7 @@ impl ClipVisual {
     /// time.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for `batch_size == 0`; [`Error::Model`] for a missing/unloadable model or
+    /// [`Error::Param`] `clip_batch` for `batch_size == 0`; [`Error::Model`] for a missing/unloadable model or
     /// the wrong signature (e.g. a SAM encoder or a text tower); [`Error::Inference`] when the
     /// provider fails.
     pub fn new(model: &Path, ep: ExecutionProvider, batch_size: usize) -> Result<Self> {
@@ -119,7 +123,11 @@ impl ClipVisual {
     /// As [`ClipVisual::new`].
     pub fn with_placement(model: &Path, placement: &Placement, batch_size: usize) -> Result<Self> {
         if batch_size == 0 {
-            return Err(Error::Invalid("CLIP batch size must be at least 1".into()));
+            return Err(Error::param(
+                "clip_batch",
+                0,
+                "a CLIP batch of at least 1 crop",
+            ));
         }
         let loaded = OnnxModel::load(model, placement)?;
         onnx::check_signature(
@@ -182,13 +190,13 @@ impl ClipVisual {
     /// in runs of at most the batch size.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for a buffer that is not a whole number of images, [`Error::Inference`]
+    /// [`Error::Internal`] for a buffer that is not a whole number of images, [`Error::Inference`]
     /// when the run fails, [`Error::Model`] for a wrong output or an embedding of zero norm.
     pub fn embed_pixels(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
         let per = 3 * s * s;
         if !pixels.len().is_multiple_of(per) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "CLIP pixel buffer of {} values is not a multiple of 3*224*224",
                 pixels.len()
             )));
@@ -391,7 +399,8 @@ impl ClipService {
     }
 }
 
-/// The same error for another waiting request (an [`Error::Inference`] stays one).
+/// The same error for another waiting request: the same variant (so the same kind) where it
+/// can be copied; an I/O error keeps its kind and text.
 fn copy_error(e: &Error) -> Error {
     match e {
         Error::Inference {
@@ -408,7 +417,26 @@ fn copy_error(e: &Error) -> Error {
             remedy: remedy.clone(),
         },
         Error::Model { path, message } => Error::model(path, message.clone()),
-        other => Error::Invalid(other.to_string()),
+        Error::Io { path, source } => {
+            Error::io(path, std::io::Error::new(source.kind(), source.to_string()))
+        }
+        Error::Format { path, message } => Error::format(path, message.clone()),
+        Error::Param {
+            name,
+            value,
+            expected,
+        } => Error::param(name, value, expected.clone()),
+        Error::Query { field, message } => Error::query(field, message.clone()),
+        Error::Mismatch { what, message } => Error::mismatch(*what, message.clone()),
+        Error::Limit {
+            resource,
+            needed,
+            limit,
+        } => Error::limit(*resource, needed, limit),
+        Error::Shard(s) => Error::Shard(s.clone()),
+        Error::Gpu(m) => Error::Gpu(m.clone()),
+        Error::Invalid(m) => Error::Invalid(m.clone()),
+        other => Error::internal(other.to_string()),
     }
 }
 
@@ -486,6 +514,12 @@ mod tests {
         m.bbox_xywh = [2, 2, 10, 10];
         assert_eq!(crop(&img, &m).unwrap().dimensions(), (2, 2));
         let small = RgbImage::new(3, 4);
-        assert!(matches!(crop(&small, &m), Err(Error::Invalid(_))));
+        assert!(matches!(
+            crop(&small, &m),
+            Err(Error::Mismatch {
+                what: slag_common::Mismatched::ImageSize,
+                ..
+            })
+        ));
     }
 }

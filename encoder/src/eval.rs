@@ -122,27 +122,33 @@ pub fn dc_colour(f_dc: [f32; 3]) -> [f64; 3] {
 /// Ground-truth colour class of every Gaussian of the scene (`[N]`, `.ply` vertex order):
 /// `Some(class)` for opacity `> 0.1`, `None` otherwise (see the module docs).
 ///
-/// Errors ([`Error::Invalid`]): the Gaussians were loaded without SH colours (load them with
-/// `PlyLoadOptions { colours: true }`), or their arrays disagree in length; no class.
+/// Errors: the Gaussians were loaded without SH colours ([`Error::Param`] `colours`: load them
+/// with `PlyLoadOptions { colours: true }`), no class or a class without prototype
+/// ([`Error::Param`] `classes`), arrays that disagree in length ([`Error::Internal`]).
 pub fn ground_truth(classes: &ColorClasses, gaussians: &Gaussians) -> Result<Vec<Option<u8>>> {
     if classes.is_empty() || classes.len() > 256 || classes.prototypes_rgb01.len() != classes.len()
     {
-        return Err(Error::Invalid(format!(
-            "{} colour classes with {} prototypes; load them with ColorClasses::load",
-            classes.len(),
-            classes.prototypes_rgb01.len()
-        )));
+        return Err(Error::param(
+            "classes",
+            format!(
+                "{} colour classes with {} prototypes",
+                classes.len(),
+                classes.prototypes_rgb01.len()
+            ),
+            "1 to 256 classes, one prototype each (ColorClasses::load)",
+        ));
     }
     let sh = gaussians.sh.as_ref().ok_or_else(|| {
-        Error::Invalid(
-            "the Gaussians have no SH colours; load the .ply with PlyLoadOptions { colours: true } \
-             to evaluate colour classes"
-                .into(),
+        Error::param(
+            "colours",
+            false,
+            "Gaussians with their SH colours to evaluate colour classes: load the .ply with \
+             PlyLoadOptions { colours: true }",
         )
     })?;
     let n = gaussians.opacities.len();
     if sh.coeffs.len() != n * sh.per_channel() * 3 {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{n} opacities but {} SH values for degree {}; the Gaussians are inconsistent",
             sh.coeffs.len(),
             sh.degree
@@ -162,30 +168,35 @@ pub fn ground_truth(classes: &ColorClasses, gaussians: &Gaussians) -> Result<Vec
 /// Both sides are taken as L2-normalised (embeddings rows are, by the file's contract; pass the
 /// text embeddings normalised), so cosine = f32 dot product. Ties → the lower class index.
 ///
-/// Errors ([`Error::Invalid`]): no class or more than 256, a text embedding whose width differs
-/// from `embeddings.dim`, an embeddings matrix whose size is not `len · dim`.
+/// Errors: no class or more than 256 ([`Error::Param`] `classes`), a text embedding whose width
+/// differs from `embeddings.dim` ([`Error::Mismatch`]), an embeddings matrix whose size is not
+/// `len · dim` ([`Error::Internal`]).
 pub fn assign(embeddings: &Embeddings, class_text_embeds: &[Vec<f32>]) -> Result<Vec<u8>> {
     let (n, dim) = (embeddings.len(), embeddings.dim);
     if class_text_embeds.is_empty() || class_text_embeds.len() > 256 {
-        return Err(Error::Invalid(format!(
-            "{} class text embeddings; pass 1 to 256 (one per colour class)",
-            class_text_embeds.len()
-        )));
+        return Err(Error::param(
+            "classes",
+            class_text_embeds.len(),
+            "1 to 256 class text embeddings (one per colour class)",
+        ));
     }
     if let Some((c, t)) = class_text_embeds
         .iter()
         .enumerate()
         .find(|(_, t)| t.len() != dim)
     {
-        return Err(Error::Invalid(format!(
-            "class {c} text embedding has {} values but the Gaussian embeddings have {dim}; \
-             encode the texts with the CLIP model that made the embeddings",
-            t.len()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "class {c} text embedding has {} values but the Gaussian embeddings have \
+                 {dim}; encode the texts with the CLIP model that made the embeddings",
+                t.len()
+            ),
+        ));
     }
     if dim == 0 || embeddings.vectors.len() != n * dim {
-        return Err(Error::Invalid(format!(
-            "embeddings hold {} values for {n} rows of width {dim}; re-read the embeddings file",
+        return Err(Error::internal(format!(
+            "embeddings hold {} values for {n} rows of width {dim}",
             embeddings.vectors.len()
         )));
     }
@@ -258,9 +269,10 @@ pub struct ColourEval {
 /// whose `ids` index into `gt`; `predicted`: [`assign`] of those embeddings (`[embeddings.len()]`);
 /// `class_names`: the class names ([`ColorClasses::names`]).
 ///
-/// Errors ([`Error::Invalid`]): `predicted` and `embeddings` of different lengths, a Gaussian id
-/// outside the scene or repeated, the embeddings' `scene_gaussians` (when non-zero) differing from
-/// `gt.len()` (embeddings of another scene), a class index outside `class_names`.
+/// Errors: `predicted` and `embeddings` of different lengths ([`Error::Internal`]), a Gaussian id
+/// outside the scene or the embeddings' `scene_gaussians` (when non-zero) differing from
+/// `gt.len()` (embeddings of another scene; [`Error::Mismatch`]), a repeated id
+/// ([`Error::Invalid`]), a class index outside `class_names` ([`Error::Param`] `class_names`).
 pub fn evaluate(
     gt: &[Option<u8>],
     embeddings: &Embeddings,
@@ -269,19 +281,22 @@ pub fn evaluate(
 ) -> Result<ColourEval> {
     let k = class_names.len();
     if predicted.len() != embeddings.len() {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{} predictions for {} embedding rows; pass assign(embeddings, ..)",
             predicted.len(),
             embeddings.len()
         )));
     }
     if embeddings.scene_gaussians != 0 && embeddings.scene_gaussians != gt.len() as u64 {
-        return Err(Error::Invalid(format!(
-            "the embeddings come from a scene of {} Gaussians but the ground truth has {}; \
-             evaluate against the .ply the encoder ran on",
-            embeddings.scene_gaussians,
-            gt.len()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "the embeddings come from a scene of {} Gaussians but the ground truth has {}; \
+                 evaluate against the .ply the encoder ran on",
+                embeddings.scene_gaussians,
+                gt.len()
+            ),
+        ));
     }
     if let Some(c) = gt
         .iter()
@@ -289,19 +304,24 @@ pub fn evaluate(
         .chain(predicted)
         .find(|&&c| c as usize >= k)
     {
-        return Err(Error::Invalid(format!(
-            "class index {c} but only {k} class names; pass the names of the classes used"
-        )));
+        return Err(Error::param(
+            "class_names",
+            format!("{k} names"),
+            format!("a name for every class used (class index {c} appears)"),
+        ));
     }
     // Prediction per scene Gaussian (None = unobserved).
     let mut pred: Vec<Option<u8>> = vec![None; gt.len()];
     for (&id, &p) in embeddings.ids.iter().zip(predicted) {
         let slot = pred.get_mut(id as usize).ok_or_else(|| {
-            Error::Invalid(format!(
-                "Gaussian id {id} outside the scene's {} Gaussians; evaluate against the .ply \
-                 the encoder ran on",
-                gt.len()
-            ))
+            Error::mismatch(
+                slag_common::Mismatched::Scene,
+                format!(
+                    "Gaussian id {id} outside the scene's {} Gaussians; evaluate against the \
+                     .ply the encoder ran on",
+                    gt.len()
+                ),
+            )
         })?;
         if slot.replace(p).is_some() {
             return Err(Error::Invalid(format!(
@@ -470,7 +490,13 @@ mod tests {
         g.sh = None;
         let err = ground_truth(&cc, &g).unwrap_err();
         assert!(
-            matches!(&err, Error::Invalid(m) if m.contains("colours: true")),
+            matches!(
+                &err,
+                Error::Param {
+                    name: "colours",
+                    ..
+                }
+            ) && err.to_string().contains("colours: true"),
             "{err}"
         );
     }
@@ -496,9 +522,9 @@ mod tests {
         assert_eq!(assign(&e, &texts).unwrap(), vec![2, 0, 1, 1]);
         assert!(matches!(
             assign(&e, &[vec![1.0, 0.0]]),
-            Err(Error::Invalid(_))
+            Err(Error::Mismatch { .. })
         ));
-        assert!(matches!(assign(&e, &[]), Err(Error::Invalid(_))));
+        assert!(matches!(assign(&e, &[]), Err(Error::Param { .. })));
     }
 
     #[test]
@@ -574,11 +600,11 @@ mod tests {
         let n = names(2);
         assert!(matches!(
             evaluate(&gt, &observed(&[0, 1], 2), &[0], &n),
-            Err(Error::Invalid(_))
+            Err(Error::Internal(_))
         ));
         assert!(matches!(
             evaluate(&gt, &observed(&[0, 2], 2), &[0, 0], &n),
-            Err(Error::Invalid(_))
+            Err(Error::Mismatch { .. })
         ));
         assert!(matches!(
             evaluate(&gt, &observed(&[1, 1], 2), &[0, 0], &n),
@@ -586,15 +612,15 @@ mod tests {
         ));
         assert!(matches!(
             evaluate(&gt, &observed(&[0], 3), &[0], &n),
-            Err(Error::Invalid(_))
+            Err(Error::Mismatch { .. })
         ));
         assert!(matches!(
             evaluate(&gt, &observed(&[0], 2), &[5], &n),
-            Err(Error::Invalid(_))
+            Err(Error::Param { .. })
         ));
         assert!(matches!(
             evaluate(&gt, &observed(&[0], 2), &[0], &names(1)),
-            Err(Error::Invalid(_))
+            Err(Error::Param { .. })
         ));
     }
 

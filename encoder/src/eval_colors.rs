@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
+use slag_common::Error;
 use slag_common::camera;
 use slag_common::embeddings::Embeddings;
 use slag_common::onnx::ExecutionProvider;
@@ -91,7 +92,13 @@ fn load_inputs(a: &EvalColorsConfig) -> anyhow::Result<Inputs> {
         match &a.color_clip {
             Some(d) => Ok(d.clone()),
             None => Ok(slag_common::paths::shared_dir()
-                .context("color-clip's files: pass --color-clip DIR")?
+                .map_err(|e| {
+                    Error::param(
+                        "color_clip",
+                        "unset",
+                        format!("the folder of color-clip's files ({e})"),
+                    )
+                })?
                 .join("fixtures")
                 .join("clip")),
         }
@@ -110,13 +117,16 @@ fn load_inputs(a: &EvalColorsConfig) -> anyhow::Result<Inputs> {
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let emb = Embeddings::read(&a.embeddings)?;
     if emb.scene_gaussians != gaussians.len() as u64 {
-        anyhow::bail!(
-            "{} was made from a scene of {} Gaussians but {} has {}; pass the .ply used by encode (--ply)",
-            a.embeddings.display(),
-            emb.scene_gaussians,
-            ply.display(),
-            gaussians.len()
-        );
+        return Err(Error::param(
+            "ply",
+            format!("{} ({} Gaussians)", ply.display(), gaussians.len()),
+            format!(
+                "the .ply used by encode: {} was made from a scene of {} Gaussians",
+                a.embeddings.display(),
+                emb.scene_gaussians
+            ),
+        )
+        .into());
     }
     let mut text = TextEncoder::new(
         &or(&a.clip_textual, "color-clip-textual.onnx")?,
@@ -141,7 +151,9 @@ fn colour_3d(i: &Inputs) -> anyhow::Result<eval::ColourEval> {
 
 /// The 3D evaluation (`eval-colors` without `--held-out`; serialisable to JSON).
 ///
-/// Errors: the color-clip files or the scene unreadable, embeddings of another scene.
+/// Errors: [`Error::Param`] `color_clip` when no folder is given and `$SLAG_SHARED` is unset,
+/// [`Error::Param`] `ply` for embeddings of another scene; the color-clip files or the scene
+/// unreadable.
 pub fn run(a: &EvalColorsConfig) -> anyhow::Result<eval::ColourEval> {
     colour_3d(&load_inputs(a)?)
 }
@@ -213,10 +225,14 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
     }
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: serde_json::Value = serde_json::from_str(&text).with_context(|| {
-        format!(
-            "{} is not JSON; pass --every and --raster-scale",
-            path.display()
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+        Error::param(
+            "every",
+            "unknown",
+            format!(
+                "every and raster_scale given, as {} is not JSON ({e})",
+                path.display()
+            ),
         )
     })?;
     Ok((
@@ -227,27 +243,46 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
 
 /// Runs `eval-colors --held-out` (the 2D protocol of [`crate::heldout`], plus the 3D score).
 ///
-/// Errors: `--every` unknown (no report.json beside the embeddings and no flag) or contradicting
-/// the report, `--every` < 2, the scene's views or photos unreadable, rasterizer failures, and
+/// Errors: [`Error::Param`] `every` when it is unknown (no report.json beside the embeddings and
+/// none given), contradicts the report, is < 2 or holds out no view; [`Error::Param`]
+/// `raster_scale` when unknown; the scene's views or photos unreadable, rasterizer failures, and
 /// everything [`run`] refuses.
 pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     let (report_every, report_scale) = report_settings(&a.embeddings)?;
     let every = match (a.every, report_every) {
-        (Some(f), Some(r)) if f != r => anyhow::bail!(
-            "--every {f} but the report beside {} says the encoder ran with --every {r}: the \
-             held-out views would include encoded ones; pass --every {r}",
-            a.embeddings.display()
-        ),
+        (Some(f), Some(r)) if f != r => {
+            return Err(Error::param(
+                "every",
+                f,
+                format!(
+                    "{r}, the encoder's every in the report beside {} (another value would hold \
+                     out views that were encoded)",
+                    a.embeddings.display()
+                ),
+            )
+            .into());
+        }
         (Some(e), _) | (None, Some(e)) => e,
-        (None, None) => anyhow::bail!(
-            "no report.json beside {}: pass the encoder's --every (and --raster-scale)",
-            a.embeddings.display()
-        ),
+        (None, None) => {
+            return Err(Error::param(
+                "every",
+                "unknown",
+                format!(
+                    "the encoder's every (and raster_scale): there is no report.json beside {}",
+                    a.embeddings.display()
+                ),
+            )
+            .into());
+        }
     };
-    let raster_scale = a.raster_scale.or(report_scale).with_context(|| {
-        format!(
-            "no raster_scale in a report beside {}: pass the encoder's --raster-scale",
-            a.embeddings.display()
+    let raster_scale = a.raster_scale.or(report_scale).ok_or_else(|| {
+        Error::param(
+            "raster_scale",
+            "unknown",
+            format!(
+                "the encoder's raster_scale: the report beside {} has none",
+                a.embeddings.display()
+            ),
         )
     })?;
     let inputs = load_inputs(a)?;
@@ -256,12 +291,17 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     let views = camera::load_views(&a.scene)?;
     let held = heldout::held_out_indices(views.len(), every)?;
     if held.is_empty() {
-        anyhow::bail!(
-            "{} has {} views: none has an index ≡ {} (mod {every}); encode with a smaller --every",
-            a.scene.display(),
-            views.len(),
-            every / 2
-        );
+        return Err(Error::param(
+            "every",
+            every,
+            format!(
+                "a smaller every: {} has {} views, none with an index ≡ {} (mod {every})",
+                a.scene.display(),
+                views.len(),
+                every / 2
+            ),
+        )
+        .into());
     }
     let n = inputs.gaussians.len();
     let c = inputs.classes.len();

@@ -39,17 +39,19 @@ use crate::raster::{PixelWeights, WeightRasterizer};
 /// A pixel is counted when its rendered alpha `Σ_k w_kp` is at least this.
 pub const ALPHA_MIN: f32 = 0.5;
 
-/// Name-sorted indices of the held-out views for `--every every` among `n_views` views: the
+/// Name-sorted indices of the held-out views for the encoder's step `every` among `n_views` views: the
 /// indices `i ≡ ⌊every/2⌋ (mod every)`. The encoder keeps `i ≡ 0 (mod every)`
 /// ([`slag_common::camera::subsample`]), so these were never encoded.
 ///
-/// Errors ([`Error::Invalid`]): `every < 2` (every view was encoded, none is held out).
+/// Errors ([`Error::Param`] `every`): `every < 2` (every view was encoded, none is held out).
 pub fn held_out_indices(n_views: usize, every: usize) -> Result<Vec<usize>> {
     if every < 2 {
-        return Err(Error::Invalid(format!(
-            "--every {every} encodes every view, so none is held out; encode with --every 2 or \
-             more (e.g. 4) and pass the same --every to eval-colors --held-out"
-        )));
+        return Err(Error::param(
+            "every",
+            every,
+            "2 or more (e.g. 4): every view was encoded, so none is held out; encode with that \
+             step and evaluate with the same one",
+        ));
     }
     Ok((0..n_views).filter(|i| i % every == every / 2).collect())
 }
@@ -92,8 +94,9 @@ pub fn photo_classes(
 /// Both sides are L2-normalised here (the embeddings file stores them normalised already; the
 /// texts may come in any scale), so the cosine holds whatever the inputs' norms.
 ///
-/// Errors ([`Error::Invalid`]): no class text or more than 256, a text of another width than
-/// the embeddings or of zero norm, a Gaussian id outside `scene_gaussians`, a malformed matrix.
+/// Errors: no class text or more than 256 ([`Error::Param`] `classes`), a text of another width
+/// than the embeddings or of zero norm, a Gaussian id outside `scene_gaussians`
+/// ([`Error::Mismatch`]), a malformed matrix ([`Error::Internal`]).
 pub fn gaussian_scores(
     embeddings: &Embeddings,
     class_text_embeds: &[Vec<f32>],
@@ -101,14 +104,15 @@ pub fn gaussian_scores(
 ) -> Result<Vec<f32>> {
     let (n, dim, c) = (embeddings.len(), embeddings.dim, class_text_embeds.len());
     if c == 0 || c > 256 {
-        return Err(Error::Invalid(format!(
-            "{c} class text embeddings; pass 1 to 256 (one per colour class)"
-        )));
+        return Err(Error::param(
+            "classes",
+            c,
+            "1 to 256 class text embeddings (one per colour class)",
+        ));
     }
     if dim == 0 || embeddings.vectors.len() != n * dim || embeddings.ids.len() != n {
-        return Err(Error::Invalid(format!(
-            "embeddings hold {} values and {} ids for {n} rows of width {dim}; re-read the \
-             embeddings file",
+        return Err(Error::internal(format!(
+            "embeddings hold {} values and {} ids for {n} rows of width {dim}",
             embeddings.vectors.len(),
             embeddings.ids.len()
         )));
@@ -117,11 +121,15 @@ pub fn gaussian_scores(
     for (i, t) in class_text_embeds.iter().enumerate() {
         let norm = t.iter().map(|v| v * v).sum::<f32>().sqrt();
         if t.len() != dim || !(norm.is_finite() && norm > 0.0) {
-            return Err(Error::Invalid(format!(
-                "class {i} text embedding has {} values of norm {norm}; expected {dim} values of \
-                 positive norm: encode the texts with the CLIP model that made the embeddings",
-                t.len()
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "class {i} text embedding has {} values of norm {norm}; expected {dim} \
+                     values of positive norm: encode the texts with the CLIP model that made the \
+                     embeddings",
+                    t.len()
+                ),
+            ));
         }
         texts.push(t.iter().map(|v| v / norm).collect::<Vec<f32>>());
     }
@@ -130,10 +138,13 @@ pub fn gaussian_scores(
         let slot = scores
             .get_mut(id as usize * c..(id as usize + 1) * c)
             .ok_or_else(|| {
-                Error::Invalid(format!(
-                    "Gaussian id {id} outside the scene's {scene_gaussians} Gaussians; evaluate \
-                     against the .ply the encoder ran on"
-                ))
+                Error::mismatch(
+                    slag_common::Mismatched::Scene,
+                    format!(
+                        "Gaussian id {id} outside the scene's {scene_gaussians} Gaussians; \
+                         evaluate against the .ply the encoder ran on"
+                    ),
+                )
             })?;
         let norm = row.iter().map(|v| v * v).sum::<f32>().sqrt();
         if !(norm.is_finite() && norm > 0.0) {
@@ -160,9 +171,7 @@ impl OracleLifting {
     /// An empty oracle for `scene_gaussians` Gaussians and `classes` classes (1 to 256).
     pub fn new(scene_gaussians: usize, classes: usize) -> Result<Self> {
         if classes == 0 || classes > 256 {
-            return Err(Error::Invalid(format!(
-                "{classes} classes; the oracle needs 1 to 256"
-            )));
+            return Err(Error::param("classes", classes, "1 to 256 classes"));
         }
         Ok(Self {
             classes,
@@ -175,7 +184,8 @@ impl OracleLifting {
     /// has them (label = class + 1), otherwise its per-pixel lists.
     ///
     /// Errors: `pixel_classes` of the wrong length or holding a class outside the oracle's
-    /// ([`Error::Invalid`]), a contributor outside the scene, the rasterizer's errors.
+    /// ([`Error::Internal`]), a contributor outside the scene ([`Error::Mismatch`]), the
+    /// rasterizer's errors.
     pub fn add_view(
         &mut self,
         rasterizer: &mut dyn WeightRasterizer,
@@ -185,7 +195,7 @@ impl OracleLifting {
     ) -> Result<()> {
         let pixels = intrinsics.width as usize * intrinsics.height as usize;
         if pixel_classes.len() != pixels {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{} pixel classes for a {}x{} raster",
                 pixel_classes.len(),
                 intrinsics.width,
@@ -193,7 +203,7 @@ impl OracleLifting {
             )));
         }
         if let Some(&c) = pixel_classes.iter().find(|&&c| c as usize >= self.classes) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "pixel class {c} but the oracle has {} classes",
                 self.classes
             )));
@@ -201,9 +211,13 @@ impl OracleLifting {
         let labels: Vec<u32> = pixel_classes.iter().map(|&c| c as u32 + 1).collect();
         let n = self.hist.len() / self.classes;
         let outside = |k: u32| {
-            Error::Invalid(format!(
-                "the rasterizer returned Gaussian {k} but the scene has {n}; rasterize the same scene"
-            ))
+            Error::mismatch(
+                slag_common::Mismatched::Scene,
+                format!(
+                    "the rasterizer returned Gaussian {k} but the scene has {n}; rasterize the \
+                     same scene"
+                ),
+            )
         };
         if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels)? {
             for s in &sums.sums {
@@ -259,9 +273,8 @@ fn check_weights(w: &PixelWeights, pixels: usize) -> Result<()> {
     if ok {
         Ok(())
     } else {
-        Err(Error::Invalid(
-            "malformed PixelWeights (offsets/ids/weights); rasterize at the view's raster size"
-                .into(),
+        Err(Error::internal(
+            "malformed PixelWeights (offsets/ids/weights); rasterize at the view's raster size",
         ))
     }
 }
@@ -323,9 +336,9 @@ impl HeldOutTally {
     /// (as [`gaussian_scores`] returns). Each predictor's per-pixel class is
     /// `argmax_c Σ_k w_kp · s_kc` (ties → lower index); a pixel counts when `Σ_k w_kp ≥ ALPHA_MIN`.
     ///
-    /// Errors ([`Error::Invalid`]): a different number of score tables than predictors, a table
-    /// of the wrong size, truth of the wrong length or class, malformed weights, a contributor
-    /// outside the scene.
+    /// Errors: a different number of score tables than predictors, a table of the wrong size,
+    /// truth of the wrong length or class, malformed weights ([`Error::Internal`]), a contributor
+    /// outside the scene ([`Error::Mismatch`]).
     pub fn add_view(
         &mut self,
         weights: &PixelWeights,
@@ -336,20 +349,20 @@ impl HeldOutTally {
         let c = self.truth.len();
         let pixels = weights.width as usize * weights.height as usize;
         if scores.len() != self.predictors.len() {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{} score tables for {} predictors",
                 scores.len(),
                 self.predictors.len()
             )));
         }
         if let Some(s) = scores.iter().find(|s| s.len() != scene_gaussians * c) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "a score table holds {} values; expected {scene_gaussians} Gaussians × {c} classes",
                 s.len()
             )));
         }
         if truth.len() != pixels || truth.iter().any(|&t| t as usize >= c) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{} truth labels for {pixels} pixels (classes 0..{c}); take them with \
                  photo_classes at the raster size",
                 truth.len()
@@ -357,9 +370,10 @@ impl HeldOutTally {
         }
         check_weights(weights, pixels)?;
         if let Some(&k) = weights.ids.iter().find(|&&k| k as usize >= scene_gaussians) {
-            return Err(Error::Invalid(format!(
-                "pixel weights reference Gaussian {k} but the scene has {scene_gaussians}"
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::Scene,
+                format!("pixel weights reference Gaussian {k} but the scene has {scene_gaussians}"),
+            ));
         }
         let width = weights.width as usize;
         let np = self.predictors.len();
@@ -532,11 +546,15 @@ mod tests {
         assert_eq!(held_out_indices(5, 2).unwrap(), vec![1, 3]);
         for every in 2..9 {
             for i in held_out_indices(97, every).unwrap() {
-                assert_ne!(i % every, 0, "view {i} is encoded with --every {every}");
+                assert_ne!(i % every, 0, "view {i} is encoded with every = {every}");
             }
         }
-        assert!(matches!(held_out_indices(10, 1), Err(Error::Invalid(_))));
-        assert!(matches!(held_out_indices(10, 0), Err(Error::Invalid(_))));
+        for every in [0, 1] {
+            assert!(matches!(
+                held_out_indices(10, every),
+                Err(Error::Param { name: "every", .. })
+            ));
+        }
     }
 
     #[test]

@@ -67,12 +67,15 @@ impl VariantTable {
 fn read_same_scene(path: &Path, scene_gaussians: usize) -> Result<Embeddings> {
     let e = Embeddings::read(path)?;
     if e.scene_gaussians != scene_gaussians as u64 {
-        return Err(Error::Invalid(format!(
-            "{} was made from a scene of {} Gaussians, not {scene_gaussians}: compare only \
-             encodes of the same .ply",
-            path.display(),
-            e.scene_gaussians
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "{} was made from a scene of {} Gaussians, not {scene_gaussians}: compare only \
+                 encodes of the same .ply",
+                path.display(),
+                e.scene_gaussians
+            ),
+        ));
     }
     Ok(e)
 }
@@ -81,7 +84,7 @@ fn read_same_scene(path: &Path, scene_gaussians: usize) -> Result<Embeddings> {
 /// beside `embeddings_path`. `mean_scores` is the main embeddings' table (the levels' fallback),
 /// `texts` the class text embeddings, `n` the scene's Gaussians.
 ///
-/// Errors: unreadable or mismatched files ([`Error::Invalid`], I/O), and those of
+/// Errors: unreadable files (I/O), files of another scene ([`Error::Mismatch`]), and those of
 /// [`gaussian_scores`] and [`combine_levels`].
 pub fn variant_tables(
     embeddings_path: &Path,
@@ -141,10 +144,13 @@ pub fn variant_tables(
             for (cls, col) in per_class.iter().enumerate() {
                 for (&id, &v) in m.gaussian_ids.iter().zip(col) {
                     let slot = t.get_mut(id as usize * c + cls).ok_or_else(|| {
-                        Error::Invalid(format!(
-                            "{}: Gaussian {id} outside the scene's {n}",
-                            mix_path.display()
-                        ))
+                        Error::mismatch(
+                            slag_common::Mismatched::Scene,
+                            format!(
+                                "{}: Gaussian {id} outside the scene's {n}",
+                                mix_path.display()
+                            ),
+                        )
                     })?;
                     *slot = v;
                 }

@@ -69,8 +69,9 @@ pub fn restrict_to_finest(masks_of: &mut [Vec<u32>], masks: &[Mask]) {
 /// their original order, renumbered from 0) with their embeddings, and the entries of those
 /// masks (still sorted by (Gaussian, mask)). `levels[j]` is mask `j`'s level ([`Mask::level`]).
 ///
-/// Errors ([`Error::Invalid`]): `levels` not one per mask of `c`, a mask without a level (the
-/// generator has none: `--levels` needs SAM masks), a level ≥ [`LEVELS`].
+/// Errors: a mask without a level ([`Error::Param`] `levels`: the generator has none, per-level
+/// embeddings need SAM masks); `levels` not one per mask of `c`, a level ≥ [`LEVELS`]
+/// ([`Error::Internal`]).
 pub fn split_by_level(
     c: &ImageContribution,
     levels: &[Option<u8>],
@@ -78,7 +79,7 @@ pub fn split_by_level(
     let dim = c.dim;
     let masks = c.mask_embeddings.len().checked_div(dim).unwrap_or(0);
     if levels.len() != masks {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{} mask levels for {masks} masks",
             levels.len()
         )));
@@ -95,15 +96,16 @@ pub fn split_by_level(
         let l = match level {
             Some(l) if (*l as usize) < LEVELS => *l as usize,
             Some(l) => {
-                return Err(Error::Invalid(format!(
+                return Err(Error::internal(format!(
                     "mask {j} has level {l}; levels are 0..{LEVELS} (SAM's three multimask outputs)"
                 )));
             }
             None => {
-                return Err(Error::Invalid(
-                    "a mask has no granularity level: --levels needs masks from SAM's multimask \
-                     output (--masks sam); drop --levels for the graph segmenter"
-                        .into(),
+                return Err(Error::param(
+                    "levels",
+                    true,
+                    "masks with a granularity level (SAM's multimask output); the graph \
+                     segmenter's masks have none",
                 ));
             }
         };
@@ -114,7 +116,7 @@ pub fn split_by_level(
     }
     for e in &c.entries {
         let Some(&(l, mask)) = renumber.get(e.mask as usize) else {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "entry of mask {} but the image has {masks} masks",
                 e.mask
             )));
@@ -155,7 +157,8 @@ impl LevelRule {
 /// table of the mean `E_k` used where the chosen level is missing. Returns `[N × C]` and, for
 /// [`LevelRule::Select`], the level chosen per class (empty otherwise).
 ///
-/// Errors ([`Error::Invalid`]): tables of different sizes, `C == 0`, a fixed level out of range.
+/// Errors: tables of different sizes, `C == 0` ([`Error::Internal`]), a fixed level out of range
+/// ([`Error::Param`] `level`).
 pub fn combine_levels(
     per_level: &[Vec<f32>],
     has_level: &[Vec<bool>],
@@ -170,7 +173,7 @@ pub fn combine_levels(
         || per_level.iter().any(|t| t.len() != fallback.len())
         || has_level.iter().any(|h| h.len() != n)
     {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "level score tables do not match: {} levels, {classes} classes, {n} Gaussians",
             per_level.len()
         )));
@@ -187,10 +190,11 @@ pub fn combine_levels(
     match rule {
         LevelRule::Fixed(l) => {
             if l >= per_level.len() {
-                return Err(Error::Invalid(format!(
-                    "level {l} asked but {} levels stored",
-                    per_level.len()
-                )));
+                return Err(Error::param(
+                    "level",
+                    l,
+                    format!("a level below {} (the levels stored)", per_level.len()),
+                ));
             }
             for k in 0..n {
                 for c in 0..classes {

@@ -106,7 +106,7 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            if let Some(h) = cli::hint(&e) {
+            if let Some(h) = cli::hints::hint(&e) {
                 eprintln!("hint: {h}");
             }
             std::process::ExitCode::FAILURE

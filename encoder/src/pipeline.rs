@@ -72,10 +72,12 @@ impl SceneInput {
     /// Loads the Gaussians (geometry only: the weights never need SH colours) and the views.
     pub fn load(&self) -> Result<(Gaussians, Vec<View>, usize)> {
         if !self.dir.is_dir() {
-            return Err(Error::Invalid(format!(
-                "scene folder {} does not exist; pass --scene DIR holding point_cloud.ply, images/ and sparse/0 or transforms.json",
-                self.dir.display()
-            )));
+            return Err(Error::param(
+                "scene",
+                self.dir.display(),
+                "an existing scene folder holding point_cloud.ply, images/ and sparse/0 or \
+                 transforms.json",
+            ));
         }
         let gaussians = scene::load_ply(&self.ply, PlyLoadOptions::default())?;
         let views = camera::load_views(&self.dir)?;
@@ -131,7 +133,7 @@ pub(crate) struct FrontItem {
 /// The front stages of `view` (number `index` of the scene's views): decode ([`read_image`]),
 /// masks, CLIP crop embeddings.
 ///
-/// Errors: those of the stages; [`Error::Invalid`] when CLIP does not return one `dim`-wide
+/// Errors: those of the stages; [`Error::Internal`] when CLIP does not return one `dim`-wide
 /// vector per mask.
 pub(crate) fn front_stage(
     view: &View,
@@ -148,7 +150,7 @@ pub(crate) fn front_stage(
     let e = crops.embed(&img, &m)?;
     let t3 = Instant::now();
     if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{}: CLIP returned {} vectors for {} masks",
             view.name,
             e.len(),
@@ -294,7 +296,7 @@ pub fn view_contribution(
 /// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
 /// ([`view_contribution`]: GPU label sums, or weights then the host image stage).
 ///
-/// Errors: those of the rasterizer and the image stage; [`Error::Invalid`] for a view index out
+/// Errors: those of the rasterizer and the image stage; [`Error::Internal`] for a view index out
 /// of range of `views` or `raster_intrinsics` (an internal error).
 pub(crate) fn back_stage(
     rasterizer: &mut dyn WeightRasterizer,
@@ -305,9 +307,8 @@ pub(crate) fn back_stage(
     image_stage: ImageStageParams,
 ) -> Result<BackOut> {
     let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
-        return Err(Error::Invalid(format!(
-            "internal: image {} has no view or raster intrinsics ({} views, {} intrinsics); \
-             this is a slag bug, please report it",
+        return Err(Error::internal(format!(
+            "image {} has no view or raster intrinsics ({} views, {} intrinsics)",
             item.view,
             views.len(),
             raster_intrinsics.len()
@@ -332,18 +333,36 @@ pub(crate) fn back_stage(
     })
 }
 
+/// The error for a scene of which no view is left to encode: `every` skips them all
+/// ([`Error::Param`] `every`), or the scene has none.
+pub(crate) fn no_views(scene: &SceneInput, views_total: usize) -> Error {
+    if views_total == 0 {
+        Error::Invalid(format!("{}: the scene has no views", scene.dir.display()))
+    } else {
+        Error::param(
+            "every",
+            scene.every,
+            format!("a step that keeps at least one of the scene's {views_total} views"),
+        )
+    }
+}
+
 /// Reads an image and checks it against the camera's intrinsics.
 pub fn read_image(view: &View) -> Result<RgbImage> {
     // Pillow-exact JPEG decoding, so SAM/CLIP inputs match the Python reference pipeline.
     let img = crate::preprocess::load_rgb(&view.image_path)?;
     let (w, h) = (view.intrinsics.width, view.intrinsics.height);
     if img.dimensions() != (w, h) {
-        return Err(Error::Invalid(format!(
-            "{} is {}x{} but its camera is {w}x{h}: images/ must hold the (undistorted) images the camera model describes",
-            view.image_path.display(),
-            img.width(),
-            img.height()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "{} is {}x{} but its camera is {w}x{h}: images/ must hold the (undistorted) \
+                 images the camera model describes",
+                view.image_path.display(),
+                img.width(),
+                img.height()
+            ),
+        ));
     }
     Ok(img)
 }
@@ -454,9 +473,7 @@ pub fn encode_pool(
     let t_total = Instant::now();
     let mut t = StageTimings::default();
     let Some(first) = fronts.first() else {
-        return Err(Error::Invalid(
-            "encode needs at least one front worker".into(),
-        ));
+        return Err(Error::param("fronts", 0, "at least one front worker"));
     };
     let dim = first.crops.dim();
     let model_id = first.crops.model_id().to_string();
@@ -465,20 +482,20 @@ pub fn encode_pool(
         .iter()
         .find(|f| f.crops.dim() != dim || f.crops.model_id() != model_id)
     {
-        return Err(Error::Invalid(format!(
-            "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
-            f.crops.model_id(),
-            f.crops.dim()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
+                f.crops.model_id(),
+                f.crops.dim()
+            ),
+        ));
     }
     let t0 = Instant::now();
     let (gaussians, views, views_total) = scene.load()?;
     t.load_scene = t0.elapsed().as_secs_f64();
     if views.is_empty() {
-        return Err(Error::Invalid(format!(
-            "{}: no views to encode (check --every)",
-            scene.dir.display()
-        )));
+        return Err(no_views(scene, views_total));
     }
     // Raster intrinsics of every view, checked (scale range, raster size) before any image work.
     let raster_intrinsics = views
@@ -599,9 +616,7 @@ pub fn encode_pool(
         drop(txs);
         let rasterizers = match make_rasterizers(&gaussians) {
             Ok(r) if r.is_empty() => {
-                fail(Error::Invalid(
-                    "encode needs at least one rasterizer".into(),
-                ));
+                fail(Error::param("rasterizers", 0, "at least one rasterizer"));
                 Vec::new()
             }
             Ok(r) if r.len() < bound_gpus.unwrap_or(1) => {
@@ -746,7 +761,7 @@ pub fn encode_pool(
         .map_err(|_| Error::internal("contribution store poisoned by a panicked worker"))?;
     let tt = totals.into_inner().unwrap_or_default();
     if store.len() != views.len() {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "only {} of {} images reached the reduction",
             store.len(),
             views.len()
@@ -866,7 +881,7 @@ pub fn encode_pool(
         report: report_path.clone(),
     };
     let json =
-        serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
+        serde_json::to_vec_pretty(&report).map_err(|e| Error::internal(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
     Ok(report)
 }

@@ -331,11 +331,11 @@ fn center_offset(len: u32, crop: u32) -> u32 {
 /// `(x - mean) / std`.
 ///
 /// # Errors
-/// [`Error::Invalid`] for an empty image or an `out` of the wrong length.
+/// [`Error::Invalid`] for an empty image, [`Error::Internal`] for an `out` of the wrong length.
 pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
     let s = CLIP_IMAGE_SIZE as usize;
     if out.len() != 3 * s * s {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "CLIP input buffer has {} values, expected 3*224*224",
             out.len()
         )));

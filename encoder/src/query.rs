@@ -84,7 +84,7 @@ pub struct QueryOutput {
 /// Ranks the Gaussians of [`QueryParams::embeddings`] against the prompt.
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
-/// `slag-edge`; [`slag_common::Error::Invalid`], checked before anything is read), unreadable
+/// `slag-edge`; [`slag_common::Error::Query`], checked before anything is read), unreadable
 /// embeddings or models, a text tower of another CLIP model than the embeddings'.
 pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, "")?;
@@ -148,7 +148,10 @@ mod tests {
     fn blank_prompts_are_refused_before_anything_is_read() {
         let q = QueryParams::new("does-not-exist.safetensors", "m.onnx", "t.json", " ");
         let e = run(&q).unwrap_err();
-        assert!(matches!(e, slag_common::Error::Invalid(_)), "{e}");
+        assert!(
+            matches!(e, slag_common::Error::Query { field: "text", .. }),
+            "{e}"
+        );
         let m = e.to_string();
         assert!(m.contains("missing query text") && !m.contains("--"), "{m}");
         // A valid prompt gets past the check (then fails on the missing file).

@@ -67,12 +67,15 @@ pub fn mode_of(
 /// The mode ([`mode_of`]) of every Gaussian of a mixture, from its kept atoms and weights:
 /// `[N × D]` row-major unit vectors in the mixture's Gaussian order.
 ///
-/// Errors ([`Error::Invalid`]): `kappa` not finite or negative, a Gaussian whose atoms cancel.
+/// Errors: `kappa` not finite or negative ([`Error::Param`] `kappa`), a Gaussian whose atoms
+/// cancel ([`Error::Invalid`]).
 pub fn mixture_modes(m: &MixtureEmbeddings, kappa: f32, iterations: usize) -> Result<Vec<f32>> {
     if !(kappa.is_finite() && kappa >= 0.0) {
-        return Err(Error::Invalid(format!(
-            "mode concentration {kappa}; pass a finite κ ≥ 0 (0 = the mean)"
-        )));
+        return Err(Error::param(
+            "kappa",
+            kappa,
+            "a finite mode concentration κ ≥ 0 (0 = the mean)",
+        ));
     }
     let (dim, keep) = (m.dim, m.keep);
     let rows: Vec<Option<Vec<f32>>> = m

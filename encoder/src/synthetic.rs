@@ -205,20 +205,29 @@ pub struct SyntheticSummary {
 /// camera, world-to-camera poses). Every file is written whole before the next starts;
 /// `sparse/0/images.txt` is written last, so a folder without it is incomplete.
 ///
-/// Errors: [`Error::Invalid`] for zero Gaussians/views, an empty image size or a non-positive
-/// extent; I/O errors naming the path.
+/// Errors: [`Error::Param`] (the field) for zero Gaussians/views, an empty image size or a
+/// non-positive extent; I/O errors naming the path.
 pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<SyntheticSummary> {
-    if p.gaussians == 0 || p.views == 0 || p.width == 0 || p.height == 0 {
-        return Err(Error::Invalid(
-            "a synthetic scene needs at least one Gaussian, one view and a non-empty image size"
-                .into(),
-        ));
+    for (name, v) in [
+        ("gaussians", p.gaussians),
+        ("views", p.views),
+        ("width", p.width as usize),
+        ("height", p.height as usize),
+    ] {
+        if v == 0 {
+            return Err(Error::param(
+                name,
+                0,
+                "at least 1 (a synthetic scene needs Gaussians, views and a non-empty image size)",
+            ));
+        }
     }
     if !(p.extent.is_finite() && p.extent > 0.0) {
-        return Err(Error::Invalid(format!(
-            "synthetic scene extent {} must be a positive number of metres",
-            p.extent
-        )));
+        return Err(Error::param(
+            "extent",
+            p.extent,
+            "a positive number of metres",
+        ));
     }
     let images = dir.join("images");
     let sparse = dir.join("sparse").join("0");
@@ -238,7 +247,7 @@ pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<Syn
         let path = images.join(format!("view_{i:04}.png"));
         render_image(i, p)
             .save(&path)
-            .map_err(|e| Error::Invalid(format!("writing {}: {e}", path.display())))?;
+            .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
     }
     let f = focal(p);
     let cameras = format!(
@@ -357,7 +366,10 @@ mod tests {
         };
         assert!(matches!(
             write_synthetic_scene(dir.path(), &p),
-            Err(Error::Invalid(_))
+            Err(Error::Param {
+                name: "gaussians",
+                ..
+            })
         ));
         let p = SyntheticSceneParams {
             extent: f64::NAN,
@@ -366,7 +378,7 @@ mod tests {
         };
         assert!(matches!(
             write_synthetic_scene(dir.path(), &p),
-            Err(Error::Invalid(_))
+            Err(Error::Param { name: "extent", .. })
         ));
     }
 }

@@ -280,7 +280,10 @@ fn clip_rejects_wrong_models_and_bad_batches() {
             ExecutionProvider::Cpu,
             0
         ),
-        Err(Error::Invalid(_))
+        Err(Error::Param {
+            name: "clip_batch",
+            ..
+        })
     ));
 
     // CUDA on a runtime without it: a typed error, not a silent CPU fallback.

@@ -106,8 +106,18 @@ fn raster_scale_out_of_range_is_a_clear_error_and_writes_nothing() {
     for scale in [0.0, -1.0, 5.0, f64::NAN] {
         let mut config = graph_config(&default_scene(), &out);
         config.raster.scale = scale;
-        let err = format!("{:#}", encode(config).unwrap_err());
-        assert!(err.contains("--raster-scale"), "{scale}: {err}");
+        let e = encode(config).unwrap_err();
+        // The library names the parameter (slag-encoder's hint adds the flag, tested in
+        // encoder/src/cli/hints.rs).
+        let err = format!("{e:#}");
+        assert!(err.contains("raster_scale"), "{scale}: {err}");
+        let param = e
+            .chain()
+            .find_map(|c| match c.downcast_ref::<slag_common::Error>() {
+                Some(slag_common::Error::Param { name, .. }) => Some(name.to_string()),
+                _ => None,
+            });
+        assert_eq!(param.as_deref(), Some("raster_scale"), "{scale}: {err}");
     }
     assert!(!out.exists());
 }

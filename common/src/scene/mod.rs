@@ -112,7 +112,7 @@ pub const SH_C0: f64 = 0.28209479177387814;
 ///
 /// Errors: ASCII input ([`crate::Error::Unsupported`]); no `f_dc_0..2` or a truncated body
 /// ([`crate::Error::Format`]); SH stored as integers ([`crate::Error::Unsupported`]); a non-finite
-/// colour ([`crate::Error::Invalid`]); I/O.
+/// colour ([`crate::Error::Param`] `colour`); I/O.
 pub fn write_highlighted_ply(
     src: &Path,
     dst: &Path,
@@ -127,7 +127,7 @@ pub fn write_highlighted_ply(
 /// `opacity = logit(o)` (o clamped to [`f32::MIN_POSITIVE`, 1 - 2^-24] so the logit is finite),
 /// `scale = ln(s)`, rotations as stored (w, x, y, z). Written atomically.
 ///
-/// Errors: inconsistent array lengths or SH size ([`crate::Error::Invalid`]); I/O.
+/// Errors: inconsistent array lengths or SH size ([`crate::Error::Internal`]); I/O.
 pub fn write_ply(path: &Path, gaussians: &Gaussians) -> Result<()> {
     ply::write(path, gaussians)
 }

@@ -696,9 +696,11 @@ pub(super) fn write_highlighted(
     {
         let Some(rgb) = colour_of(i) else { continue };
         if rgb.iter().any(|c| !c.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "highlight colour {rgb:?} of vertex {i} is not finite"
-            )));
+            return Err(Error::param(
+                "colour",
+                format!("{rgb:?} (vertex {i})"),
+                "finite RGB components",
+            ));
         }
         for (c, &(off, ty)) in dc.iter().enumerate() {
             let v = (rgb[c] as f64 - 0.5) / SH_C0;
@@ -738,7 +740,7 @@ pub(crate) fn float_vertex_header<S: AsRef<str>>(
 pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
     let n = g.len();
     if g.scales.len() != n || g.rotations.len() != n || g.opacities.len() != n {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "write_ply: inconsistent lengths (means {n}, scales {}, rotations {}, opacities {})",
             g.scales.len(),
             g.rotations.len(),
@@ -749,7 +751,7 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
     if let Some(sh) = &g.sh
         && (sh.degree > 3 || sh.coeffs.len() != n * per * 3)
     {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "write_ply: SH degree {} with {} coefficients for {n} Gaussians",
             sh.degree,
             sh.coeffs.len()

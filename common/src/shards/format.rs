@@ -120,9 +120,7 @@ impl std::str::FromStr for Dtype {
             "f32" => Ok(Dtype::F32),
             "f16" => Ok(Dtype::F16),
             "i8" | "int8" => Ok(Dtype::I8),
-            _ => Err(Error::Invalid(format!(
-                "unknown shard dtype {s:?}; use f32, f16 or int8"
-            ))),
+            _ => Err(Error::param("dtype", format!("{s:?}"), "f32, f16 or int8")),
         }
     }
 }
@@ -319,24 +317,29 @@ pub const F16_MAX: f32 = 65504.0;
 
 /// Encodes one shard (layout in the module doc).
 ///
-/// Errors ([`Error::Invalid`]): array lengths that disagree with N and D, `dim` of 0 or above
-/// [`MAX_DIM`], N above `u32::MAX`, ids longer than 65535 bytes, non-finite means or vectors,
-/// and for [`Dtype::F16`] a vector value that rounds beyond the f16 range ([`F16_MAX`]).
+/// Errors: array lengths that disagree with N and D ([`Error::Internal`]), `dim` of 0 or above
+/// [`MAX_DIM`] ([`Error::Param`] `dim`), N above `u32::MAX` ([`Error::Limit`]
+/// [`crate::Resource::ShardGaussians`]), scene or model ids longer than 65535 bytes, non-finite
+/// means or vectors ([`Error::Invalid`]), and for [`Dtype::F16`] a vector value that rounds
+/// beyond the f16 range ([`F16_MAX`]; [`Error::Param`] `dtype`).
 /// f16 values are rounded to nearest (subnormal halves below 6.1e-5, zero below 2^-25).
 pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
     let n = input.ids.len();
     let d = input.dim;
     let bad = |m: String| Error::Invalid(format!("encode_shard: {m}"));
+    let inconsistent = |m: String| Error::internal(format!("encode_shard: {m}"));
     if d == 0 || d > MAX_DIM as usize {
-        return Err(bad(format!("embedding dim {d} outside 1..={MAX_DIM}")));
+        return Err(Error::param(
+            "dim",
+            d,
+            format!("an embedding width in 1..={MAX_DIM}"),
+        ));
     }
     if u32::try_from(n).is_err() {
-        return Err(bad(format!(
-            "{n} Gaussians do not fit one shard; lower --max-per-shard"
-        )));
+        return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
     }
     if input.means.len() != n || input.vectors.len() != n * d {
-        return Err(bad(format!(
+        return Err(inconsistent(format!(
             "{n} ids but {} means and {} vector values for dim {d}",
             input.means.len(),
             input.vectors.len()
@@ -347,7 +350,7 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         || input.rotations.is_some_and(|r| r.len() != n)
         || input.sh_dc.is_some_and(|c| c.len() != n)
     {
-        return Err(bad(
+        return Err(inconsistent(
             "scales/opacities/rotations/SH DC length differs from the id count".into(),
         ));
     }
@@ -367,10 +370,14 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
             .iter()
             .find(|&&x| !f16::from_f32(x).is_finite())
     {
-        return Err(bad(format!(
-            "embedding value {x} is beyond the f16 range (±{F16_MAX}); store f32 (--dtype f32) \
-             or L2-normalise the vectors (CLIP embeddings are unit vectors)"
-        )));
+        return Err(Error::param(
+            "dtype",
+            "f16",
+            format!(
+                "f32 or int8 for the embedding value {x}, beyond the f16 range (±{F16_MAX}), or \
+                 L2-normalised vectors (CLIP embeddings are unit vectors)"
+            ),
+        ));
     }
     let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
     let (s, m) = (input.scene_id.len(), input.model.len());
@@ -1198,7 +1205,7 @@ mod tests {
             rotations: None,
             sh_dc: None,
         });
-        assert!(matches!(r, Err(Error::Invalid(_))));
+        assert!(matches!(r, Err(Error::Internal(_))));
         let r = encode_shard(&ShardInput {
             scene_id: "s",
             model: "m",
@@ -1213,6 +1220,6 @@ mod tests {
             rotations: Some(&[]),
             sh_dc: None,
         });
-        assert!(matches!(r, Err(Error::Invalid(_))));
+        assert!(matches!(r, Err(Error::Internal(_))));
     }
 }

@@ -116,13 +116,18 @@ pub struct WithDisplay<'a, S> {
 impl<'a, S: GaussianSource> WithDisplay<'a, S> {
     /// Wraps `inner`; checks every id indexes `scales` and `opacities`.
     ///
-    /// Errors: an id out of range (the embeddings come from another `.ply`; [`crate::Error::Invalid`]).
+    /// Errors: an id out of range (the embeddings come from another `.ply`;
+    /// [`crate::Error::Mismatch`]).
     pub fn new(inner: &'a S, scales: &'a [[f32; 3]], opacities: &'a [f32]) -> crate::Result<Self> {
         let n = scales.len().min(opacities.len());
         if let Some(id) = inner.ids().iter().find(|&&id| id as usize >= n) {
-            return Err(crate::Error::Invalid(format!(
-                "Gaussian id {id} but the scene has {n}; pass the .ply the embeddings were made from"
-            )));
+            return Err(crate::Error::mismatch(
+                crate::Mismatched::Scene,
+                format!(
+                    "Gaussian id {id} but the scene has {n}; pass the .ply the embeddings were \
+                     made from"
+                ),
+            ));
         }
         Ok(WithDisplay {
             inner,
@@ -136,7 +141,7 @@ impl<'a, S: GaussianSource> WithDisplay<'a, S> {
     /// Wraps `inner` with every column of `cols` (log-scales, logit opacities, rotations and,
     /// when present, SH DC), so shards carry all a splat viewer needs.
     ///
-    /// Errors: an id out of range of any column ([`crate::Error::Invalid`]).
+    /// Errors: an id out of range of any column ([`crate::Error::Mismatch`]).
     pub fn from_columns(inner: &'a S, cols: &'a DisplayColumns) -> crate::Result<Self> {
         let w = Self::new(inner, &cols.log_scales, &cols.logit_opacities)?;
         let w = w.with_rotations(&cols.rotations)?;
@@ -148,17 +153,20 @@ impl<'a, S: GaussianSource> WithDisplay<'a, S> {
 
     fn check_ids(&self, n: usize, what: &str) -> crate::Result<()> {
         match self.inner.ids().iter().find(|&&id| id as usize >= n) {
-            Some(id) => Err(crate::Error::Invalid(format!(
-                "Gaussian id {id} but the scene has {n} {what}; pass the .ply the embeddings were \
-                 made from"
-            ))),
+            Some(id) => Err(crate::Error::mismatch(
+                crate::Mismatched::Scene,
+                format!(
+                    "Gaussian id {id} but the scene has {n} {what}; pass the .ply the embeddings \
+                     were made from"
+                ),
+            )),
             None => Ok(()),
         }
     }
 
     /// Adds rotations (normalised, w x y z) indexed by Gaussian id.
     ///
-    /// Errors: an id out of range ([`crate::Error::Invalid`]).
+    /// Errors: an id out of range ([`crate::Error::Mismatch`]).
     pub fn with_rotations(mut self, rotations: &'a [[f32; 4]]) -> crate::Result<Self> {
         self.check_ids(rotations.len(), "rotations")?;
         self.rotations = Some(rotations);
@@ -167,7 +175,7 @@ impl<'a, S: GaussianSource> WithDisplay<'a, S> {
 
     /// Adds SH DC colours (`f_dc_0..2`) indexed by Gaussian id.
     ///
-    /// Errors: an id out of range ([`crate::Error::Invalid`]).
+    /// Errors: an id out of range ([`crate::Error::Mismatch`]).
     pub fn with_sh_dc(mut self, sh_dc: &'a [[f32; 3]]) -> crate::Result<Self> {
         self.check_ids(sh_dc.len(), "colours")?;
         self.sh_dc = Some(sh_dc);

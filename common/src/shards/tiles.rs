@@ -21,7 +21,7 @@ pub const MANIFEST_VERSION: u32 = 1;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum UpSource {
-    /// Given by the user (`--up`).
+    /// Given by the user (the partition's `up` parameter).
     User,
     /// Mean of the training cameras' up vectors (COLMAP: camera −y axis in world frame).
     Cameras,
@@ -51,13 +51,15 @@ impl GroundFrame {
     /// Frame with the given up vector (any non-zero length; normalised here). `e1` is the world
     /// axis least aligned with `up`, projected onto the plane; `e2 = up × e1`.
     ///
-    /// Errors: zero or non-finite `up` ([`Error::Invalid`]).
+    /// Errors: zero or non-finite `up` ([`Error::Param`] `up`).
     pub fn from_up(up: [f64; 3], source: UpSource) -> Result<GroundFrame> {
         let u = DVec3::from(up);
         if !u.is_finite() || u.length() < 1e-12 {
-            return Err(Error::Invalid(format!(
-                "up vector {up:?} is zero or not finite; pass --up x|y|z|-x|-y|-z"
-            )));
+            return Err(Error::param(
+                "up",
+                format!("{up:?}"),
+                "a non-zero finite up vector, or an axis x|y|z|-x|-y|-z",
+            ));
         }
         let u = u.normalize();
         let a = u.abs();
@@ -83,7 +85,7 @@ impl GroundFrame {
 
     /// Parses `x|y|z|-x|-y|-z` (also `+y`) as a user up axis.
     ///
-    /// Errors: any other string ([`Error::Invalid`]).
+    /// Errors: any other string ([`Error::Param`] `up`).
     pub fn from_axis_name(name: &str) -> Result<GroundFrame> {
         let (sign, axis) = match name.trim().strip_prefix('-') {
             Some(rest) => (-1.0, rest),
@@ -94,9 +96,11 @@ impl GroundFrame {
             "y" => [0.0, sign, 0.0],
             "z" => [0.0, 0.0, sign],
             _ => {
-                return Err(Error::Invalid(format!(
-                    "--up {name:?}: use one of x, y, z, -x, -y, -z"
-                )));
+                return Err(Error::param(
+                    "up",
+                    format!("{name:?}"),
+                    "one of x, y, z, -x, -y, -z",
+                ));
             }
         };
         GroundFrame::from_up(v, UpSource::User)
@@ -105,15 +109,17 @@ impl GroundFrame {
     /// Up = normalised mean of the cameras' up vectors (world frame). For COLMAP cameras pass
     /// the camera −y axis in world frame, `-(R_wc row 1)` of each world-to-camera rotation.
     ///
-    /// Errors: empty list or vectors that cancel out ([`Error::Invalid`]).
+    /// Errors: empty list or vectors that cancel out ([`Error::Param`] `up`: give the axis).
     pub fn from_camera_ups(ups: &[[f64; 3]]) -> Result<GroundFrame> {
         let sum: DVec3 = ups
             .iter()
             .map(|&u| DVec3::from(u).normalize_or_zero())
             .sum();
         if ups.is_empty() || sum.length() < 1e-6 * ups.len() as f64 {
-            return Err(Error::Invalid(
-                "camera up vectors are missing or cancel out; pass --up x|y|z|-x|-y|-z".into(),
+            return Err(Error::param(
+                "up",
+                format!("the mean of {} camera up vectors", ups.len()),
+                "an up axis x|y|z|-x|-y|-z: the camera up vectors are missing or cancel out",
             ));
         }
         GroundFrame::from_up(sum.to_array(), UpSource::Cameras)
@@ -123,11 +129,14 @@ impl GroundFrame {
     /// flattest along up). Sign: the largest-magnitude component is made positive (PCA cannot
     /// tell up from down; tiling does not depend on it).
     ///
-    /// Errors: fewer than 3 means, non-finite values ([`Error::Invalid`]).
+    /// Errors: fewer than 3 means ([`Error::Param`] `up`: give the axis), non-finite values
+    /// ([`Error::Invalid`]).
     pub fn from_pca(means: &[[f32; 3]]) -> Result<GroundFrame> {
         if means.len() < 3 {
-            return Err(Error::Invalid(
-                "need at least 3 Gaussians to estimate the up axis; pass --up".into(),
+            return Err(Error::param(
+                "up",
+                format!("estimated from {} Gaussians", means.len()),
+                "an up axis x|y|z|-x|-y|-z: estimating it needs at least 3 Gaussians",
             ));
         }
         let n = means.len() as f64;

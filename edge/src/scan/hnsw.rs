@@ -66,7 +66,7 @@ impl HnswIndex {
     /// the search beam at build time; a query returns at most `ef_search` rows). `seed` makes the
     /// layer assignment, and so the graph, reproducible.
     ///
-    /// Errors: [`Error::Invalid`] for `ef_construction == 0`, `ef_search == 0`, or more than
+    /// Errors: [`Error::Param`] for `ef_construction == 0`, `ef_search == 0`; [`Error::Invalid`] for more than
     /// `u32::MAX - 1` rows.
     pub fn build(
         store: &VectorStore,
@@ -75,8 +75,14 @@ impl HnswIndex {
         seed: u64,
     ) -> Result<HnswIndex, Error> {
         if ef_construction == 0 || ef_search == 0 {
-            return Err(Error::Invalid(
-                "HNSW ef_construction and ef_search must be at least 1 (typical: 100)".into(),
+            return Err(Error::param(
+                if ef_construction == 0 {
+                    "ef_construction"
+                } else {
+                    "ef_search"
+                },
+                0,
+                "at least 1 (typical: 100)",
             ));
         }
         let n = store.len();
@@ -129,16 +135,19 @@ impl HnswIndex {
     /// Approximately the `k` rows with the highest cosine to `query` (`[D]`), best first (score
     /// = `query · row`, ties by row). Recall depends on `ef_search` and `ef_construction`.
     ///
-    /// Errors: [`Error::Invalid`] for a query of the wrong width or with non-finite values, or
-    /// `k > ef_search` (rebuild with `ef_search >= k`).
+    /// Errors: as [`super::scan`] for a query of the wrong width or with non-finite values;
+    /// [`Error::Param`] `top_k` for `k > ef_search` (rebuild with `ef_search >= k`).
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
         super::check_queries(self.dim, &[query])?;
         if k > self.ef_search {
-            return Err(Error::Invalid(format!(
-                "HNSW top-{k} asked but the index was built with ef_search {}; \
-                 rebuild with ef_search >= {k}",
-                self.ef_search
-            )));
+            return Err(Error::param(
+                "top_k",
+                k,
+                format!(
+                    "at most the index's ef_search {} (rebuild with ef_search >= {k})",
+                    self.ef_search
+                ),
+            ));
         }
         let q = RowPoint {
             data: query.into(),
@@ -229,11 +238,20 @@ mod tests {
         let store = VectorStore::synthetic(100, 8, Dtype::F16, 3, 1).expect("store");
         assert!(matches!(
             HnswIndex::build(&store, 0, 10, 1),
-            Err(Error::Invalid(_))
+            Err(Error::Param {
+                name: "ef_construction",
+                ..
+            })
         ));
         let index = HnswIndex::build(&store, 20, 10, 1).expect("index");
-        assert!(matches!(index.query(&[0.0; 8], 11), Err(Error::Invalid(_))));
-        assert!(matches!(index.query(&[0.0; 7], 5), Err(Error::Invalid(_))));
+        assert!(matches!(
+            index.query(&[0.0; 8], 11),
+            Err(Error::Param { name: "top_k", .. })
+        ));
+        assert!(matches!(
+            index.query(&[0.0; 7], 5),
+            Err(Error::Mismatch { .. })
+        ));
         let empty = VectorStore::new(8, Dtype::F32).expect("store");
         let e = HnswIndex::build(&empty, 20, 10, 1).expect("index");
         assert!(e.query(&[0.1; 8], 5).expect("query").is_empty());

@@ -150,23 +150,28 @@ impl Acc {
 
 fn check_queries(dim: usize, queries: &[&[f32]]) -> Result<(), Error> {
     if queries.is_empty() || queries.len() > MAX_QUERIES {
-        return Err(Error::Invalid(format!(
-            "{} query vectors given; a scan takes 1 to {MAX_QUERIES}",
-            queries.len()
-        )));
+        return Err(Error::param(
+            "queries",
+            format!("{} query vectors", queries.len()),
+            format!("1 to {MAX_QUERIES} query vectors per scan"),
+        ));
     }
     for (i, q) in queries.iter().enumerate() {
         if q.len() != dim {
-            return Err(Error::Invalid(format!(
-                "query {i} has {} components but the store's rows have dim {dim}; \
-                 encode the text with the model that produced the shards",
-                q.len()
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "query {i} has {} components but the store's rows have dim {dim}; encode \
+                     the text with the model that produced the shards",
+                    q.len()
+                ),
+            ));
         }
         if q.iter().any(|x| !x.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "query {i} contains NaN or infinite values; re-encode the text"
-            )));
+            return Err(Error::query(
+                "text",
+                format!("query {i} contains NaN or infinite values; re-encode the text"),
+            ));
         }
     }
     Ok(())
@@ -180,34 +185,40 @@ fn check_queries(dim: usize, queries: &[&[f32]]) -> Result<(), Error> {
 /// are never returned. Work: one pass over `store.vector_bytes()` on all rayon threads; memory:
 /// O(k) per task for top-k, plus the output.
 ///
-/// Errors ([`Error::Invalid`], message says what to change): no queries or more than
-/// [`MAX_QUERIES`]; a query of the wrong width or with non-finite values; Q > 1 without a
-/// combiner; neither `top_k` nor `threshold` set (that would return the whole store); a NaN
-/// threshold; a box with a NaN bound or `min > max`.
+/// Errors, each saying what to change: a query of the wrong width ([`Error::Mismatch`]) or with
+/// non-finite values ([`Error::Query`]); [`Error::Param`] for no queries or more than
+/// [`MAX_QUERIES`], Q > 1 without a combiner, neither `top_k` nor `threshold` set (that would
+/// return the whole store), a NaN threshold, a box with a NaN bound or `min > max`.
 pub fn scan(store: &VectorStore, req: &ScanRequest<'_>) -> Result<Vec<Hit>, Error> {
     check_queries(store.dim(), req.queries)?;
     if req.queries.len() > 1 && req.combine.is_none() {
-        return Err(Error::Invalid(format!(
-            "{} queries need a score combiner (e.g. lerf_relevancy); pass one or scan one query",
-            req.queries.len()
-        )));
+        return Err(Error::param(
+            "combine",
+            "none",
+            format!(
+                "a score combiner (e.g. lerf_relevancy) for {} queries, or one query",
+                req.queries.len()
+            ),
+        ));
     }
     if req.top_k.is_none() && req.threshold.is_none() {
-        return Err(Error::Invalid(
-            "a scan needs top_k, threshold, or both (otherwise it returns every row)".into(),
+        return Err(Error::param(
+            "top_k",
+            "none",
+            "top_k, a threshold, or both (otherwise a scan returns every row)",
         ));
     }
     if req.threshold.is_some_and(f32::is_nan) {
-        return Err(Error::Invalid(
-            "threshold is NaN; pass a cosine such as 0.28".into(),
-        ));
+        return Err(Error::param("threshold", f32::NAN, "a cosine such as 0.28"));
     }
     if let Some((lo, hi)) = req.bbox
         && (0..3).any(|a| lo[a].is_nan() || hi[a].is_nan() || lo[a] > hi[a])
     {
-        return Err(Error::Invalid(format!(
-            "box min {lo:?} max {hi:?} is empty or NaN; give min <= max on every axis"
-        )));
+        return Err(Error::param(
+            "bbox",
+            format!("min {lo:?} max {hi:?}"),
+            "min <= max on every axis, no NaN",
+        ));
     }
     let q = req.queries;
     Ok(match q.len() {
@@ -297,7 +308,7 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
 /// `iter().zip().map().sum()` dot, every score collected into an `[N]` vector, a full sort, then
 /// the first `top_k`. Same result order as [`scan`] (score desc, row asc).
 ///
-/// Errors: [`Error::Invalid`] for a query of the wrong width or with non-finite values.
+/// Errors: [`Error::Mismatch`] for a query of the wrong width, [`Error::Query`] for non-finite values.
 pub fn naive_scan_f32(store: &VectorStore, query: &[f32], top_k: usize) -> Result<Vec<Hit>, Error> {
     check_queries(store.dim(), &[query])?;
     let d = store.dim();

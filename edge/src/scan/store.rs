@@ -92,16 +92,20 @@ impl VectorStore {
     /// ([`advise_huge_pages`]). Call it before [`VectorStore::push_shard`] with the row count of
     /// the shards about to be loaded: rows then land in place, without reallocation.
     ///
-    /// Errors: [`Error::Invalid`] when the allocator refuses the room (the rows do not fit this
-    /// machine's memory: fetch a smaller radius, or shards of a smaller dtype); the store is then
-    /// unchanged apart from spare capacity.
+    /// Errors: [`Error::Limit`] [`slag_common::Resource::Memory`] when the allocator refuses the
+    /// room (the rows do not fit this machine's memory: fetch a smaller radius, or shards of a
+    /// smaller dtype); the store is then unchanged apart from spare capacity.
     pub fn reserve(&mut self, rows: usize) -> Result<(), Error> {
         let values = rows.saturating_mul(self.dim);
         let refused = |what: &str, e: std::collections::TryReserveError| {
-            Error::Invalid(format!(
-                "no memory for {rows} more rows ({what}: {e}); fetch a smaller radius \
-                 (`slag-edge fetch --radius`) or shards of a smaller dtype (int8, f16)"
-            ))
+            Error::limit(
+                slag_common::Resource::Memory,
+                format!("{rows} more rows of {what}"),
+                format!(
+                    "what the allocator gives ({e}); fetch a smaller radius or shards of a \
+                     smaller dtype (int8, f16)"
+                ),
+            )
         };
         self.ids
             .try_reserve_exact(rows)
@@ -125,11 +129,13 @@ impl VectorStore {
 
     /// An empty store of `dim`-wide rows stored as `dtype`.
     ///
-    /// Errors: [`Error::Invalid`] when `dim == 0`.
+    /// Errors: [`Error::Param`] `dim` when `dim == 0`.
     pub fn new(dim: usize, dtype: Dtype) -> Result<VectorStore, Error> {
         if dim == 0 {
-            return Err(Error::Invalid(
-                "vector store dim is 0; pass the embedding width of the shards (e.g. 512)".into(),
+            return Err(Error::param(
+                "dim",
+                0,
+                "the embedding width of the shards (e.g. 512)",
             ));
         }
         Ok(VectorStore {
@@ -142,29 +148,35 @@ impl VectorStore {
 
     /// Appends every row of a decoded shard (vectors moved, not converted).
     ///
-    /// Errors: [`Error::Invalid`] when the shard's dim or dtype differ from the store's (both are
-    /// named; fetch shards of one encoding into one store), or its arrays disagree with its
-    /// Gaussian count. The store is unchanged on error.
+    /// Errors: [`Error::Mismatch`] when the shard's dim or dtype differ from the store's (both are
+    /// named; fetch shards of one encoding into one store), [`Error::Invalid`] when its arrays
+    /// disagree with its Gaussian count. The store is unchanged on error.
     pub fn push_shard(&mut self, shard: StoredShard) -> Result<(), Error> {
         let h = &shard.header;
         let n = shard.ids.len();
         if h.dim as usize != self.dim {
-            return Err(Error::Invalid(format!(
-                "shard (tile {}) has embedding dim {} but the store holds dim {}; \
-                 use one embedding model for all shards of a store",
-                h.tile_id, h.dim, self.dim
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "shard (tile {}) has embedding dim {} but the store holds dim {}; use one \
+                     embedding model for all shards of a store",
+                    h.tile_id, h.dim, self.dim
+                ),
+            ));
         }
         let sd = shard.vectors.dtype();
         if sd != self.dtype() {
-            return Err(Error::Invalid(format!(
-                "shard (tile {}) stores {} vectors but the store holds {}; \
-                 fetch shards of one dtype or open a store of dtype {}",
-                h.tile_id,
-                dtype_name(sd),
-                dtype_name(self.dtype()),
-                dtype_name(sd)
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::Dtype,
+                format!(
+                    "shard (tile {}) stores {} vectors but the store holds {}; fetch shards of \
+                     one dtype or open a store of dtype {}",
+                    h.tile_id,
+                    dtype_name(sd),
+                    dtype_name(self.dtype()),
+                    dtype_name(sd)
+                ),
+            ));
         }
         let values_ok = shard.vectors.values() == n * self.dim;
         let scales_ok = match &shard.vectors {
@@ -192,7 +204,11 @@ impl VectorStore {
                 scales.extend_from_slice(&bs);
             }
             // Unreachable: dtypes were compared above; kept as an error, not a panic.
-            _ => return Err(Error::Invalid("internal dtype mismatch".into())),
+            _ => {
+                return Err(Error::internal(
+                    "push_shard: dtype mismatch after the check",
+                ));
+            }
         }
         Ok(())
     }
@@ -200,8 +216,9 @@ impl VectorStore {
     /// Appends rows given as `f32` (`vectors` is `[n * dim]` row-major), converting them to the
     /// store's dtype exactly as the shard encoder does (f16 round-to-nearest, [`quantize_i8`]).
     ///
-    /// Errors: [`Error::Invalid`] when `ids`, `means` and `vectors` disagree in length, a
-    /// value is not finite, or (f16 store) a value rounds beyond the f16 range.
+    /// Errors: [`Error::Internal`] when `ids`, `means` and `vectors` disagree in length,
+    /// [`Error::Invalid`] when a value is not finite, [`Error::Param`] `dtype` when (f16 store) a
+    /// value rounds beyond the f16 range.
     pub fn push_f32_rows(
         &mut self,
         ids: &[u32],
@@ -210,7 +227,7 @@ impl VectorStore {
     ) -> Result<(), Error> {
         let n = ids.len();
         if means.len() != n || vectors.len() != n * self.dim {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{} ids, {} means and {} vector values do not describe rows of dim {}",
                 n,
                 means.len(),
@@ -226,10 +243,14 @@ impl VectorStore {
         if matches!(self.vectors, StoredVectors::F16(_))
             && let Some(x) = vectors.iter().find(|&&x| !f16::from_f32(x).is_finite())
         {
-            return Err(Error::Invalid(format!(
-                "embedding value {x} is beyond the f16 range (±65504); use an f32 store or \
-                 L2-normalise the rows"
-            )));
+            return Err(Error::param(
+                "dtype",
+                "f16",
+                format!(
+                    "an f32 store for the embedding value {x}, beyond the f16 range (±65504), or \
+                     L2-normalised rows"
+                ),
+            ));
         }
         match &mut self.vectors {
             StoredVectors::F32(a) => a.extend_from_slice(vectors),
@@ -320,7 +341,7 @@ impl VectorStore {
     /// whole matrix exists for f16/int8. The same `(n, dim, clusters, seed)` gives the same rows
     /// for every dtype (before conversion) and every thread count.
     ///
-    /// Errors: [`Error::Invalid`] for `dim == 0`, `clusters == 0`, or `n · dim` overflowing.
+    /// Errors: [`Error::Param`] for `dim == 0` or `clusters == 0`, [`Error::Limit`] for `n · dim` overflowing.
     pub fn synthetic(
         n: usize,
         dim: usize,
@@ -330,12 +351,14 @@ impl VectorStore {
     ) -> Result<VectorStore, Error> {
         let mut store = VectorStore::new(dim, dtype)?;
         if clusters == 0 {
-            return Err(Error::Invalid(
-                "synthetic store needs at least one cluster".into(),
-            ));
+            return Err(Error::param("clusters", 0, "at least one cluster"));
         }
         let total = n.checked_mul(dim).ok_or_else(|| {
-            Error::Invalid(format!("{n} rows of dim {dim} overflow the address space"))
+            Error::limit(
+                slag_common::Resource::Memory,
+                format!("{n} rows of dim {dim}"),
+                "the address space",
+            )
         })?;
         let centres = random_centres(dim, clusters, seed);
         let gen_row = |i: usize, out: &mut [f32]| {

@@ -381,7 +381,10 @@ fn edge_cases_are_errors_or_documented_results() {
     // NaN threshold: typed error.
     assert!(matches!(
         scan(&store, &ScanRequest::threshold(&qs, f32::NAN)),
-        Err(Error::Invalid(_))
+        Err(Error::Param {
+            name: "threshold",
+            ..
+        })
     ));
     // Zero query: every score is 0, so the top-k are the lowest rows.
     let zero = vec![0.0f32; d];
@@ -392,7 +395,8 @@ fn edge_cases_are_errors_or_documented_results() {
     // Wrong width, non-finite query, bad query counts, missing combiner, no selection, bad box.
     let short = vec![0.1f32; d - 1];
     let sq: [&[f32]; 1] = [&short];
-    let Err(Error::Invalid(msg)) = scan(&store, &ScanRequest::top_k(&sq, 3)) else {
+    let Err(Error::Mismatch { message: msg, .. }) = scan(&store, &ScanRequest::top_k(&sq, 3))
+    else {
         panic!("dim mismatch must be an error");
     };
     assert!(
@@ -449,11 +453,13 @@ fn push_shard_rejects_mismatches_and_leaves_the_store_unchanged() {
         )
         .expect("decode")
     };
-    let Err(Error::Invalid(msg)) = store.push_shard(mk(&other_dim, Dtype::F16)) else {
+    let Err(Error::Mismatch { message: msg, .. }) = store.push_shard(mk(&other_dim, Dtype::F16))
+    else {
         panic!("dim mismatch must be an error");
     };
     assert!(msg.contains("dim 9") && msg.contains("dim 8"), "{msg}");
-    let Err(Error::Invalid(msg)) = store.push_shard(mk(&other_type, Dtype::I8)) else {
+    let Err(Error::Mismatch { message: msg, .. }) = store.push_shard(mk(&other_type, Dtype::I8))
+    else {
         panic!("dtype mismatch must be an error");
     };
     assert!(msg.contains("int8") && msg.contains("f16"), "{msg}");
@@ -614,9 +620,11 @@ fn reserved_stores_fill_in_place_and_equal_unreserved_ones() {
     }
     // Room the allocator cannot give is a typed error that says what to do, not an abort.
     let mut store = store_via_shards(10, 8, Dtype::F16, 1);
-    let Err(Error::Invalid(msg)) = store.reserve(usize::MAX / 2) else {
+    let Err(e @ Error::Limit { .. }) = store.reserve(usize::MAX / 2) else {
         panic!("an impossible reservation must be refused");
     };
-    assert!(msg.contains("--radius"), "{msg}");
+    // The library names the limit and the parameter; `slag-edge` adds the flag (its hint).
+    let msg = e.to_string();
+    assert!(msg.contains("radius") && !msg.contains("--"), "{msg}");
     assert_eq!(store.len(), 10);
 }

@@ -246,15 +246,18 @@ impl AppState {
         if let Some(n) = negatives.first()
             && n.len() != engine.store.dim()
         {
-            return Err(Error::Invalid(format!(
-                "the text model {} gives {}-d embeddings but scene {} holds {}-d ones from {}; \
-                 serve with the CLIP text tower of that model",
-                text.name(),
-                n.len(),
-                opts.scene,
-                engine.store.dim(),
-                engine.manifest.model
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "the text model {} gives {}-d embeddings but scene {} holds {}-d ones \
+                     from {}; serve with the CLIP text tower of that model",
+                    text.name(),
+                    n.len(),
+                    opts.scene,
+                    engine.store.dim(),
+                    engine.manifest.model
+                ),
+            ));
         }
         Ok(AppState {
             engine: RwLock::new(Arc::new(engine)),
@@ -534,7 +537,7 @@ pub(crate) async fn answer(
 /// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
 /// to a [`RawQuery`] (unknown keys rejected like a `POST` item).
 ///
-/// Errors: [`Error::Invalid`] naming an unknown key.
+/// Errors: [`Error::Query`] naming an unknown key.
 pub fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
     let obj: serde_json::Map<String, serde_json::Value> = pairs
         .into_iter()
@@ -548,7 +551,7 @@ async fn query_get(
     q: std::result::Result<Query<std::collections::HashMap<String, String>>, QueryRejection>,
 ) -> Response {
     let params = q
-        .map_err(|e| Error::Invalid(format!("query string: {e}")))
+        .map_err(|e| Error::query("query", format!("query string: {e}")))
         .and_then(|Query(p)| raw_from_pairs(p))
         .and_then(|r| r.validate(state.opts.threshold));
     let params = match params {
@@ -736,9 +739,19 @@ mod status_tests {
 
     #[test]
     fn client_faults_4xx_server_faults_5xx() {
+        for e in [
+            Error::Invalid("k".into()),
+            Error::query("top_k", "top_k \"x\": use an integer"),
+            Error::param("radius", -1, "a finite number ≥ 0"),
+        ] {
+            assert_eq!(status_of(&e), StatusCode::BAD_REQUEST, "{e}");
+        }
         assert_eq!(
-            status_of(&Error::Invalid("k".into())),
-            StatusCode::BAD_REQUEST
+            status_of(&Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                "512 vs 768"
+            )),
+            StatusCode::CONFLICT
         );
         assert_eq!(
             status_of(&Error::network("http://s", "down")),
@@ -748,6 +761,11 @@ mod status_tests {
             Error::internal("query task failed: panicked"),
             Error::Shard(slag_common::shards::ShardError::BadMagic),
             Error::limit(slag_common::Resource::GpuMemory, "1 GiB", "0"),
+            Error::limit(
+                slag_common::Resource::Memory,
+                "1e9 rows",
+                "what the allocator gave",
+            ),
             Error::Gpu("lost".into()),
         ] {
             assert_eq!(status_of(&e), StatusCode::INTERNAL_SERVER_ERROR, "{e}");

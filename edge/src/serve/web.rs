@@ -37,7 +37,7 @@ fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyl
             .parse()
             .ok()
             .filter(|f: &f32| f.is_finite() && (0.0..=1.0).contains(f))
-            .ok_or_else(|| Error::Invalid(format!("dim {d:?}: use a number in 0..=1")))?;
+            .ok_or_else(|| Error::query("dim", format!("dim {d:?}: use a number in 0..=1")))?;
         style.dim = Some(f);
     }
     Ok(style)
@@ -56,7 +56,7 @@ pub(crate) async fn query_ply(
     q: std::result::Result<Query<HashMap<String, String>>, QueryRejection>,
 ) -> Response {
     let params = q
-        .map_err(|e| Error::Invalid(format!("query string: {e}")))
+        .map_err(|e| Error::query("query", format!("query string: {e}")))
         .and_then(|Query(mut p)| {
             let style = style_from_pairs(&mut p)?;
             let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
@@ -213,8 +213,8 @@ pub(crate) async fn vendor(
             StatusCode::NOT_FOUND,
             format!(
                 "viewer file {name:?} is not vendored; run `bash scripts/web-vendor.sh` in the slag \
-                 repository, then rebuild slag-edge (it embeds edge/web/vendor) or start serve \
-                 with --web-dir <repo>/edge/web"
+                 repository, then rebuild slag-edge (it embeds edge/web/vendor) or serve the web \
+                 folder <repo>/edge/web instead of the embedded one"
             ),
         )
     };

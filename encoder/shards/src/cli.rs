@@ -147,7 +147,7 @@ impl PartitionArgs {
     /// The tile cap asked for: `--max-per-shard N` when given (a count), else `--max-shard-mb`
     /// (bytes; default [`DEFAULT_MAX_SHARD_MIB`]).
     ///
-    /// Errors: a non-positive or non-finite `--max-shard-mb` ([`slag_common::Error::Invalid`]).
+    /// Errors: a non-positive or non-finite `--max-shard-mb` ([`slag_common::Error::Param`]).
     pub fn shard_cap(&self) -> slag_common::Result<ShardCap> {
         match self.max_per_shard {
             Some(n) => Ok(ShardCap::Gaussians(n)),
@@ -340,7 +340,7 @@ pub struct ServeArgs {
 
 /// The shard server's token: `--token-file` (first line, trimmed) else env `SLAG_SHARD_TOKEN`.
 ///
-/// Errors: unreadable or empty token file ([`slag_common::Error::Io`] / `Invalid`).
+/// Errors: unreadable or empty token file ([`slag_common::Error::Io`] / `Format`).
 pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<Option<String>> {
     if let Some(p) = token_file {
         return slag_common::auth::read_token_file(p).map(Some);
@@ -402,6 +402,43 @@ pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
         args.dir.display()
     );
     Ok(())
+}
+
+/// What the command line adds to an error of the shard stage (`e` or an error it wraps): the
+/// flag that sets the parameter the library names ([`slag_common::Error::Param`]) or lowers the
+/// need ([`slag_common::Error::Limit`]). The library's messages name no flag.
+pub fn hint(e: &anyhow::Error) -> Option<String> {
+    e.chain()
+        .find_map(|c| c.downcast_ref::<slag_common::Error>().and_then(hint_for))
+}
+
+/// [`hint`] for one library error.
+pub fn hint_for(e: &slag_common::Error) -> Option<String> {
+    use slag_common::{Error, Resource};
+    match e {
+        Error::Param { name, .. } => {
+            let flag = match *name {
+                "up" => "--up x|y|z|-x|-y|-z",
+                "dtype" => "--dtype f32",
+                "max_per_shard" => "--max-per-shard N",
+                "max_shard_mib" => "--max-shard-mb MIB (or --max-per-shard N)",
+                "batch_size" => "--qdrant-batch N",
+                "collection" => "--qdrant-collection NAME",
+                "scene_id" | "scene" => "--scene NAME",
+                "dir" => "the export folder DIR",
+                _ => return None,
+            };
+            Some(format!("pass {flag}"))
+        }
+        Error::Limit {
+            resource: Resource::ShardGaussians,
+            ..
+        } => Some("lower --max-per-shard (or --max-shard-mb)".into()),
+        Error::Io { source, .. } if source.kind() == std::io::ErrorKind::AlreadyExists => {
+            Some("pass --force to replace it".into())
+        }
+        _ => None,
+    }
 }
 
 /// Options every subcommand of `slag-shards` and `slag-encoder` takes.

@@ -27,10 +27,11 @@ fn write_synced(path: &Path, bytes: &[u8]) -> Result<()> {
 
 fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
     let name = dir.file_name().ok_or_else(|| {
-        Error::Invalid(format!(
-            "export folder {} has no name; pass e.g. out/scene",
-            dir.display()
-        ))
+        Error::param(
+            "dir",
+            dir.display(),
+            "an export folder with a name, e.g. out/scene",
+        )
     })?;
     let mut n = std::ffi::OsString::from(".");
     n.push(name);
@@ -40,21 +41,26 @@ fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
 
 /// Exports the current generation of `scene` from `store` into `dir`.
 ///
-/// Errors: unknown scene ([`Error::Invalid`]), `dir` exists and `force` is false
-/// ([`Error::Invalid`]), a shard missing or not matching the manifest checksum (the store changed
+/// Errors: unknown scene ([`Error::Param`] `scene`), `dir` exists and `force` is false
+/// ([`Error::Io`] of kind `AlreadyExists`), a shard missing or not matching the manifest checksum (the store changed
 /// during export or is corrupted; [`Error::Format`]), I/O. On error nothing is left at `dir`
 /// (or the previous `dir` is unchanged) and the temporary folder is removed.
 pub fn export(store: &ShardStore, scene: &str, dir: &Path, force: bool) -> Result<Manifest> {
     let manifest = store.manifest(scene)?.ok_or_else(|| {
-        Error::Invalid(format!(
-            "scene {scene:?} is not in the store; run slag-encoder partition first"
-        ))
+        Error::param(
+            "scene",
+            format!("{scene:?}"),
+            "a scene of the store (partition it into the store first)",
+        )
     })?;
     if dir.exists() && !force {
-        return Err(Error::Invalid(format!(
-            "{} exists; pass --force to replace it",
-            dir.display()
-        )));
+        return Err(Error::io(
+            dir,
+            std::io::Error::new(
+                std::io::ErrorKind::AlreadyExists,
+                "exists; export replaces it only when forced",
+            ),
+        ));
     }
     if let Some(parent) = dir.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|e| Error::io(parent, e))?;

@@ -42,6 +42,9 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
+            if let Some(h) = cli::hint(&e) {
+                eprintln!("hint: {h}");
+            }
             std::process::ExitCode::FAILURE
         }
     }

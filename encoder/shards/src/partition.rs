@@ -86,16 +86,21 @@ pub enum ShardCap {
 }
 
 impl ShardCap {
-    /// `--max-shard-mb mib`: `floor(mib · 2^20)` bytes.
+    /// A budget of `mib` MiB: `floor(mib · 2^20)` bytes.
     ///
-    /// Errors ([`Error::Invalid`]): `mib` not finite or not positive, or below one byte.
+    /// Errors ([`Error::Param`] `max_shard_mib`): `mib` not finite or not positive, or below one
+    /// byte.
     pub fn from_mib(mib: f64) -> Result<ShardCap> {
         let bytes = mib * MIB as f64;
         if !bytes.is_finite() || bytes < 1.0 {
-            return Err(Error::Invalid(format!(
-                "--max-shard-mb {mib}: pass a positive size in MiB, e.g. --max-shard-mb \
-                 {DEFAULT_MAX_SHARD_MIB} (or --max-per-shard N to cap tiles by Gaussian count)"
-            )));
+            return Err(Error::param(
+                "max_shard_mib",
+                mib,
+                format!(
+                    "a positive size in MiB, e.g. {DEFAULT_MAX_SHARD_MIB} (or a max_per_shard \
+                     count of Gaussians instead)"
+                ),
+            ));
         }
         Ok(ShardCap::Bytes(bytes.min(u64::MAX as f64) as u64))
     }
@@ -123,36 +128,41 @@ pub fn shard_layout(src: &impl GaussianSource, scene_id: &str, dtype: Dtype) -> 
 /// ([`ShardLayout::max_rows_within`], exact: no estimate), so every written shard is ≤ the
 /// budget and a full tile is within one row of it.
 ///
-/// Errors ([`Error::Invalid`], naming the flag to change): a count of 0, a budget of 0 bytes,
-/// or a budget smaller than a shard of one Gaussian.
+/// Errors ([`Error::Param`] `max_per_shard` / `max_shard_mib`, saying what works): a count of 0,
+/// a budget of 0 bytes, or a budget smaller than a shard of one Gaussian.
 pub fn resolve_max_per_shard(layout: &ShardLayout, cap: ShardCap) -> Result<usize> {
     match cap {
-        ShardCap::Gaussians(0) => Err(Error::Invalid(
-            "--max-per-shard must be at least 1 (or leave it out to size shards by \
-             --max-shard-mb)"
-                .into(),
+        ShardCap::Gaussians(0) => Err(Error::param(
+            "max_per_shard",
+            0,
+            "at least 1 Gaussian per shard (or a max_shard_mib byte budget instead)",
         )),
         ShardCap::Gaussians(n) => Ok(n),
-        ShardCap::Bytes(0) => Err(Error::Invalid(format!(
-            "--max-shard-mb must be positive; pass e.g. --max-shard-mb {DEFAULT_MAX_SHARD_MIB}"
-        ))),
+        ShardCap::Bytes(0) => Err(Error::param(
+            "max_shard_mib",
+            0,
+            format!("a positive size in MiB, e.g. {DEFAULT_MAX_SHARD_MIB}"),
+        )),
         ShardCap::Bytes(b) => {
             let n = layout.max_rows_within(b);
             if n == 0 {
                 let one = layout.shard_len(1);
-                return Err(Error::Invalid(format!(
-                    "--max-shard-mb {:.6} ({b} bytes) is smaller than a shard of one Gaussian \
-                     ({one} bytes at {:?}, dim {}{}); pass --max-shard-mb {:.6} or more",
-                    b as f64 / MIB as f64,
-                    layout.dtype,
-                    layout.dim,
-                    if layout.scales {
-                        ", with display columns"
-                    } else {
-                        ""
-                    },
-                    (one as f64 / MIB as f64 * 1e6).ceil() / 1e6,
-                )));
+                return Err(Error::param(
+                    "max_shard_mib",
+                    format!("{:.6} ({b} bytes)", b as f64 / MIB as f64),
+                    format!(
+                        "at least {:.6} MiB: a shard of one Gaussian is {one} bytes at {:?}, dim \
+                         {}{}",
+                        (one as f64 / MIB as f64 * 1e6).ceil() / 1e6,
+                        layout.dtype,
+                        layout.dim,
+                        if layout.scales {
+                            ", with display columns"
+                        } else {
+                            ""
+                        },
+                    ),
+                ));
             }
             Ok(usize::try_from(n).unwrap_or(usize::MAX))
         }
@@ -185,15 +195,19 @@ pub fn ground_frame(means: &[[f32; 3]], up: &UpChoice) -> Result<GroundFrame> {
 
 /// Adaptive k-d tiling of `means` on the ground plane (see module doc).
 ///
-/// Errors: `max_per_shard == 0`, more than `u32::MAX` Gaussians, non-finite means
-/// ([`Error::Invalid`]).
+/// Errors: `max_per_shard == 0` ([`Error::Param`]), more than `u32::MAX` Gaussians, non-finite
+/// means ([`Error::Invalid`]).
 pub fn plan_tiles(
     means: &[[f32; 3]],
     ground: &GroundFrame,
     max_per_shard: usize,
 ) -> Result<Vec<TilePlan>> {
     if max_per_shard == 0 {
-        return Err(Error::Invalid("--max-per-shard must be at least 1".into()));
+        return Err(Error::param(
+            "max_per_shard",
+            0,
+            "at least 1 Gaussian per shard",
+        ));
     }
     if u32::try_from(means.len()).is_err() {
         return Err(Error::Invalid(format!(
@@ -329,7 +343,7 @@ pub fn encode_tile(
 /// parallel, a bounded batch at a time, so memory stays at a few shards per thread). Returns the
 /// manifest (`generation` 0; a store sets it on commit).
 ///
-/// Errors: invalid scene id or parameters ([`Error::Invalid`]), encoding errors, and whatever
+/// Errors: invalid scene id or parameters ([`Error::Param`]), encoding errors, and whatever
 /// `sink` returns (partitioning stops at the first error).
 pub fn partition_with(
     src: &impl GaussianSource,
@@ -337,20 +351,21 @@ pub fn partition_with(
     mut sink: impl FnMut(&TileInfo, Vec<u8>) -> Result<()>,
 ) -> Result<Manifest> {
     if !valid_scene_id(&params.scene_id) {
-        return Err(Error::Invalid(format!(
-            "scene id {:?}: use 1-64 characters of A-Z a-z 0-9 _ - . (not starting with '.')",
-            params.scene_id
-        )));
+        return Err(Error::param(
+            "scene_id",
+            format!("{:?}", params.scene_id),
+            "1-64 characters of A-Z a-z 0-9 _ - . (not starting with '.')",
+        ));
     }
     let (n, d) = (src.ids().len(), src.dim());
     if src.means().len() != n {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{n} ids but {} means",
             src.means().len()
         )));
     }
     if d == 0 {
-        return Err(Error::Invalid("embedding dim is 0".into()));
+        return Err(Error::param("dim", 0, "an embedding width of at least 1"));
     }
     let ground = ground_frame(src.means(), &params.up)?;
     let plans = plan_tiles(src.means(), &ground, params.max_per_shard)?;

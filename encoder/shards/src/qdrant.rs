@@ -106,10 +106,10 @@ fn valid_collection(name: &str) -> bool {
 /// doc for the exact requests. Runs the async client on its own current-thread tokio runtime, so
 /// call it from synchronous code (not from inside a tokio runtime).
 ///
-/// Errors ([`Error::Invalid`]): invalid parameters (empty/unsafe collection name, batch size 0),
-/// a manifest that does not match `src` (other dim, count or tiling), and every failed request:
-/// the message names the URL and the operation and says what to check (server running, gRPC port
-/// 6334, API key). Connection attempts time out after 5 s and requests after 60 s, so an
+/// Errors: invalid parameters ([`Error::Param`]: empty/unsafe collection name, batch size 0), a
+/// manifest that does not match `src` ([`Error::Mismatch`]: other dim, count or tiling), and
+/// every failed request ([`Error::Network`]): the message names the URL and the operation and
+/// says what to check (server running, gRPC port 6334, API key). Connection attempts time out after 5 s and requests after 60 s, so an
 /// unreachable server gives an error rather than a hang.
 pub fn upload(
     src: &impl GaussianSource,
@@ -117,27 +117,31 @@ pub fn upload(
     params: &QdrantParams,
 ) -> Result<UploadSummary> {
     if !valid_collection(&params.collection) {
-        return Err(Error::Invalid(format!(
-            "Qdrant collection {:?}: use 1-200 characters of A-Z a-z 0-9 _ - .",
-            params.collection
-        )));
+        return Err(Error::param(
+            "collection",
+            format!("{:?}", params.collection),
+            "a Qdrant collection name of 1-200 characters of A-Z a-z 0-9 _ - .",
+        ));
     }
     if params.batch_size == 0 {
-        return Err(Error::Invalid("--qdrant-batch must be at least 1".into()));
+        return Err(Error::param("batch_size", 0, "at least 1 point per upsert"));
     }
     let (n, d) = (src.ids().len(), src.dim());
     if src.means().len() != n || manifest.total_gaussians != n as u64 || manifest.dim as usize != d
     {
-        return Err(Error::Invalid(format!(
-            "manifest ({} Gaussians, dim {}) does not match the embeddings ({n} ids, {} means, dim {d}); \
-             upload the embeddings the shards were made from",
-            manifest.total_gaussians,
-            manifest.dim,
-            src.means().len()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "manifest ({} Gaussians, dim {}) does not match the embeddings ({n} ids, {} \
+                 means, dim {d}); upload the embeddings the shards were made from",
+                manifest.total_gaussians,
+                manifest.dim,
+                src.means().len()
+            ),
+        ));
     }
     if d == 0 {
-        return Err(Error::Invalid("embedding dim is 0".into()));
+        return Err(Error::param("dim", 0, "an embedding width of at least 1"));
     }
     let plans = plan_tiles(
         src.means(),
@@ -150,10 +154,10 @@ pub fn upload(
             .zip(&manifest.tiles)
             .all(|(p, t)| p.id == t.id && p.rows.len() as u64 == t.count);
     if !same {
-        return Err(Error::Invalid(
-            "the manifest's tiles do not match a re-tiling of the embeddings; \
-             upload the embeddings the shards were made from"
-                .into(),
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            "the manifest's tiles do not match a re-tiling of the embeddings; upload the \
+             embeddings the shards were made from",
         ));
     }
     let mut tile_of = vec![0u64; n];
@@ -165,17 +169,20 @@ pub fn upload(
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(|e| Error::Invalid(format!("cannot start a tokio runtime for Qdrant: {e}")))?;
+        .map_err(|e| Error::internal(format!("cannot start a tokio runtime for Qdrant: {e}")))?;
     rt.block_on(upload_async(src, &plans, &tile_of, params))
 }
 
 /// Error for a failed Qdrant request `op`.
 fn request_error(url: &str, op: &str, e: impl std::fmt::Display) -> Error {
-    Error::Invalid(format!(
-        "Qdrant at {url}: {op} failed: {e}. Check that the server is running and reachable, that \
-         the URL is its gRPC endpoint (port 6334 by default, not the REST port 6333) and that \
-         the API key (--qdrant-api-key / QDRANT_API_KEY) is right"
-    ))
+    Error::network(
+        url,
+        format!(
+            "Qdrant {op} failed: {e}. Check that the server is running and reachable, that the \
+             URL is its gRPC endpoint (port 6334 by default, not the REST port 6333) and that \
+             the API key (api_key, or QDRANT_API_KEY) is right"
+        ),
+    )
 }
 
 async fn upload_async(

@@ -127,8 +127,17 @@ fn error(status: StatusCode, message: String) -> Response {
         .into_response()
 }
 
+/// A store error as a response, its status by who has to act ([`slag_common::Error::kind`], one
+/// arm per kind, no `_`): a store fault on this side or a slag bug is a 500.
 fn internal(e: slag_common::Error) -> Response {
-    error(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    use slag_common::ErrorKind;
+    let status = match e.kind() {
+        ErrorKind::UserInput => StatusCode::BAD_REQUEST,
+        ErrorKind::Conflict => StatusCode::CONFLICT,
+        ErrorKind::Upstream => StatusCode::BAD_GATEWAY,
+        ErrorKind::Environment | ErrorKind::Internal => StatusCode::INTERNAL_SERVER_ERROR,
+    };
+    error(status, e.to_string())
 }
 
 fn bad_scene(scene: &str) -> Option<Response> {

@@ -60,9 +60,11 @@ fn check_scene(scene: &str) -> Result<()> {
     if valid_scene_id(scene) {
         Ok(())
     } else {
-        Err(Error::Invalid(format!(
-            "scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."
-        )))
+        Err(Error::param(
+            "scene_id",
+            format!("{scene:?}"),
+            "1-64 characters of A-Z a-z 0-9 _ - .",
+        ))
     }
 }
 
@@ -262,10 +264,11 @@ impl SceneWriter<'_> {
     /// then atomically publishes manifest + tile index + current pointer, flushes, and deletes
     /// older generations. Returns the manifest with `generation` set.
     ///
-    /// Errors: scene mismatch or missing/mismatching shards ([`Error::Invalid`]), storage errors.
+    /// Errors: scene mismatch or missing/mismatching shards ([`Error::Internal`]: the writer's
+    /// contract), storage errors.
     pub fn commit(self, mut manifest: Manifest) -> Result<Manifest> {
         if manifest.scene_id != self.scene {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "manifest is for scene {} but writer for {}",
                 manifest.scene_id, self.scene
             )));
@@ -280,7 +283,7 @@ impl SceneWriter<'_> {
                 b.len() as u64 == t.bytes && format!("{:08x}", shard_checksum(&b)) == t.checksum
             });
             if !ok {
-                return Err(Error::Invalid(format!(
+                return Err(Error::internal(format!(
                     "tile {} has no stored shard matching the manifest",
                     t.id
                 )));
@@ -311,8 +314,9 @@ impl SceneWriter<'_> {
                 c.insert(self.scene.as_bytes(), &g.to_be_bytes())?;
                 Ok::<(), ConflictableTransactionError<()>>(())
             })
-            .map_err(|e: TransactionError<()>| {
-                Error::Invalid(format!("store transaction failed: {e:?}"))
+            .map_err(|e: TransactionError<()>| match e {
+                TransactionError::Storage(e) => db_err(e),
+                TransactionError::Abort(()) => Error::internal("store transaction aborted"),
             })?;
         s.flush()?;
         s.remove_generations(&self.scene, |old| old != g)?;

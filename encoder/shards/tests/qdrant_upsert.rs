@@ -468,10 +468,11 @@ fn wrong_api_key_is_a_typed_error() {
     let mut params = QdrantParams::new(url.clone(), "c");
     params.api_key = Some("wrong".into());
     match upload(&emb, &m, &params) {
-        Err(slag_common::Error::Invalid(msg)) => {
+        Err(e @ slag_common::Error::Network { .. }) => {
+            let msg = e.to_string();
             assert!(msg.contains(&url) && msg.contains("API key"), "{msg}");
         }
-        other => panic!("expected Error::Invalid, got {other:?}"),
+        other => panic!("expected Error::Network, got {other:?}"),
     }
     assert!(mock.log.lock().expect("log").creates.is_empty());
 }
@@ -486,10 +487,11 @@ fn unreachable_server_is_a_typed_error() {
         .port();
     let url = format!("http://127.0.0.1:{port}");
     match upload(&emb, &m, &QdrantParams::new(url.clone(), "c")) {
-        Err(slag_common::Error::Invalid(msg)) => {
+        Err(e @ slag_common::Error::Network { .. }) => {
+            let msg = e.to_string();
             assert!(msg.contains(&url) && msg.contains("6334"), "{msg}");
         }
-        other => panic!("expected Error::Invalid, got {other:?}"),
+        other => panic!("expected Error::Network, got {other:?}"),
     }
 }
 
@@ -501,17 +503,25 @@ fn bad_parameters_and_mismatched_manifest_are_rejected_before_connecting() {
     p.batch_size = 0;
     assert!(matches!(
         upload(&emb, &m, &p),
-        Err(slag_common::Error::Invalid(_))
+        Err(slag_common::Error::Param {
+            name: "batch_size",
+            ..
+        })
     ));
     let p = QdrantParams::new(url, "a/b");
     assert!(matches!(
         upload(&emb, &m, &p),
-        Err(slag_common::Error::Invalid(_))
+        Err(slag_common::Error::Param {
+            name: "collection",
+            ..
+        })
     ));
     let other = SyntheticScene::new(900, DIM, 5, 100.0, 11).to_embeddings();
     let p = QdrantParams::new(url, "c");
     match upload(&other, &m, &p) {
-        Err(slag_common::Error::Invalid(msg)) => assert!(msg.contains("manifest"), "{msg}"),
-        other => panic!("expected Error::Invalid, got {other:?}"),
+        Err(e @ slag_common::Error::Mismatch { .. }) => {
+            assert!(e.to_string().contains("manifest"), "{e}")
+        }
+        other => panic!("expected Error::Mismatch, got {other:?}"),
     }
 }

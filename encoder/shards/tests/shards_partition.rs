@@ -158,7 +158,10 @@ fn bad_parameters_are_typed_errors() {
     p.scene_id = "../etc".into();
     assert!(matches!(
         partition(&scene, &p),
-        Err(slag_common::Error::Invalid(_))
+        Err(slag_common::Error::Param {
+            name: "scene_id",
+            ..
+        })
     ));
     let mut bad = scene.to_embeddings();
     bad.means[3][1] = f32::NAN;
@@ -296,17 +299,29 @@ fn byte_budgets_too_small_for_one_gaussian_are_typed_errors_with_a_remedy() {
     let emb = SyntheticScene::new(10, 512, 1, 10.0, 1).to_embeddings();
     let layout = shard_layout(&emb, "s", Dtype::F32);
     let one = header_len("s", &emb.model) + row_bytes(Dtype::F32, 512);
-    assert!(matches!(
-        resolve_max_per_shard(&layout, ShardCap::Bytes(0)),
-        Err(slag_common::Error::Invalid(m)) if m.contains("--max-shard-mb")
-    ));
-    assert!(matches!(
-        resolve_max_per_shard(&layout, ShardCap::Gaussians(0)),
-        Err(slag_common::Error::Invalid(m)) if m.contains("--max-per-shard")
-    ));
+    // The library names the parameter; the command line adds the flag.
+    for (cap, name, flag) in [
+        (ShardCap::Bytes(0), "max_shard_mib", "--max-shard-mb"),
+        (ShardCap::Gaussians(0), "max_per_shard", "--max-per-shard"),
+    ] {
+        let e = resolve_max_per_shard(&layout, cap).expect_err("refused");
+        assert!(
+            matches!(&e, slag_common::Error::Param { name: n, .. } if *n == name),
+            "{e}"
+        );
+        assert!(!e.to_string().contains("--"), "{e}");
+        let hint = slag_shards::cli::hint_for(&e).unwrap_or_default();
+        assert!(hint.contains(flag), "{hint}");
+    }
     for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e-9] {
         assert!(
-            matches!(ShardCap::from_mib(bad), Err(slag_common::Error::Invalid(_))),
+            matches!(
+                ShardCap::from_mib(bad),
+                Err(slag_common::Error::Param {
+                    name: "max_shard_mib",
+                    ..
+                })
+            ),
             "{bad}"
         );
     }
@@ -314,15 +329,16 @@ fn byte_budgets_too_small_for_one_gaussian_are_typed_errors_with_a_remedy() {
         resolve_max_per_shard(&layout, ShardCap::Bytes(one)).expect("one row fits"),
         1
     );
-    let Err(slag_common::Error::Invalid(msg)) =
+    let Err(e @ slag_common::Error::Param { .. }) =
         resolve_max_per_shard(&layout, ShardCap::Bytes(one - 1))
     else {
         panic!("a budget one byte short of one row must be rejected");
     };
+    let msg = e.to_string();
     assert!(msg.contains(&format!("{one} bytes")), "{msg}");
-    // The suggested --max-shard-mb works.
+    // The suggested budget works.
     let suggested: f64 = msg
-        .rsplit("pass --max-shard-mb ")
+        .rsplit("at least ")
         .next()
         .and_then(|t| t.split_whitespace().next())
         .and_then(|t| t.parse().ok())
@@ -417,7 +433,10 @@ fn partition_cli_sizes_shards_in_mib_by_default_and_counts_on_request() {
         .expect("both flags conflict");
     assert_eq!(e.kind(), clap::error::ErrorKind::ArgumentConflict);
     let a = parse(&["--max-shard-mb", "0"]).expect("parse").args;
-    assert!(matches!(a.shard_cap(), Err(slag_common::Error::Invalid(_))));
+    assert!(matches!(
+        a.shard_cap(),
+        Err(slag_common::Error::Param { .. })
+    ));
 }
 
 #[test]
@@ -457,7 +476,12 @@ fn synthetic_partition_honours_the_byte_budget_and_writes_the_report() {
     a.report = None;
     a.store = dir.path().join("never-created");
     let e = slag_shards::cli::run_partition(&a).expect_err("too small");
-    assert!(format!("{e:#}").contains("pass --max-shard-mb"), "{e:#}");
+    // The library names the parameter and what fits; the command line's hint names the flag.
+    assert!(format!("{e:#}").contains("max_shard_mib"), "{e:#}");
+    assert!(
+        slag_shards::cli::hint(&e).is_some_and(|h| h.contains("--max-shard-mb")),
+        "{e:#}"
+    );
     assert!(!a.store.exists());
 }
 

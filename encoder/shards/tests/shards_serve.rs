@@ -200,8 +200,16 @@ fn export_is_complete_and_atomic() {
     // Refuses to overwrite without force; leaves no temporary folder behind.
     assert!(matches!(
         slag_shards::export::export(&store, "lab.v1", &out, false),
-        Err(slag_common::Error::Invalid(_))
+        Err(slag_common::Error::Io { source, .. })
+            if source.kind() == std::io::ErrorKind::AlreadyExists
     ));
+    // The command line adds the flag.
+    let e = slag_shards::export::export(&store, "lab.v1", &out, false).expect_err("exists");
+    assert!(!e.to_string().contains("--force"), "{e}");
+    assert_eq!(
+        slag_shards::cli::hint_for(&e).as_deref(),
+        Some("pass --force to replace it")
+    );
     assert!(slag_shards::export::export(&store, "nope", &dir.path().join("x"), false).is_err());
     assert!(!dir.path().join("x").exists());
     std::fs::write(out.join("shards").join("stale"), b"old").expect("write");

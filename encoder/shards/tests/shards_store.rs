@@ -62,7 +62,13 @@ fn commit_publishes_and_new_generations_replace_old_ones() {
             .expect("read")
             .is_none()
     );
-    assert!(matches!(store.manifest("../x"), Err(Error::Invalid(_))));
+    assert!(matches!(
+        store.manifest("../x"),
+        Err(Error::Param {
+            name: "scene_id",
+            ..
+        })
+    ));
 }
 
 #[test]

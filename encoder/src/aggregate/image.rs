@@ -197,7 +197,7 @@ pub(crate) fn check_image_inputs(
     dim: usize,
 ) -> Result<()> {
     if mask_embeddings.len() != masks.len() * dim {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "{} masks but {} embedding values for dim {dim}",
             masks.len(),
             mask_embeddings.len()
@@ -207,10 +207,13 @@ pub(crate) fn check_image_inputs(
         .iter()
         .find(|m| (m.width, m.height) != (masks[0].width, masks[0].height))
     {
-        return Err(Error::Invalid(format!(
-            "masks of one image differ in size ({}x{} vs {}x{})",
-            m.width, m.height, masks[0].width, masks[0].height
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "masks of one image differ in size ({}x{} vs {}x{})",
+                m.width, m.height, masks[0].width, masks[0].height
+            ),
+        ));
     }
     Ok(())
 }

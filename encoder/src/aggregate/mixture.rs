@@ -29,8 +29,9 @@ use super::*;
 /// `means` are all `n_gaussians` centres (world frame, source `.ply` order); `model_id` is the
 /// CLIP visual model id recorded in the output.
 ///
-/// Errors ([`Error::Invalid`]): `keep == 0`, `means.len() != n_gaussians`, a contribution of
-/// another width than `dim`, more than `u32::MAX - 1` mask embeddings in all, a kept mixture that
+/// Errors: `keep == 0` ([`Error::Param`] `mixture_keep`), `means.len() != n_gaussians`
+/// ([`Error::Internal`]), a contribution of another width than `dim` ([`Error::Mismatch`]), more
+/// than `u32::MAX - 1` mask embeddings in all ([`Error::Invalid`]), a kept mixture that
 /// [`MixtureEmbeddings::from_sparse`] cannot store (mask embeddings that nearly cancel); I/O
 /// errors of spilled contributions.
 pub fn reduce_mixture(
@@ -43,13 +44,15 @@ pub fn reduce_mixture(
     means: &[[f32; 3]],
 ) -> Result<MixtureEmbeddings> {
     if keep == 0 {
-        return Err(Error::Invalid(
-            "mixture keep is 0; keep at least 1 mask embedding per Gaussian".into(),
+        return Err(Error::param(
+            "mixture_keep",
+            keep,
+            "at least 1 mask embedding kept per Gaussian",
         ));
     }
     if means.len() != n_gaussians {
-        return Err(Error::Invalid(format!(
-            "{} means for {n_gaussians} Gaussians",
+        return Err(Error::internal(format!(
+            "reduce_mixture: {} means for {n_gaussians} Gaussians",
             means.len()
         )));
     }
@@ -83,7 +86,7 @@ pub fn reduce_mixture(
                 codebook.extend_from_slice(&c.mask_embeddings);
             }
             image_offsets.get(image).copied().ok_or_else(|| {
-                Error::Invalid("the contribution store changed during the reduction".into())
+                Error::internal("the contribution store changed during the reduction")
             })
         },
         |top: &mut Vec<(f32, u32)>, e, offset| push_top(top, keep, e.weight, offset + e.mask),

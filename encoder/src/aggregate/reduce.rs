@@ -94,7 +94,7 @@ pub fn reduce(
 /// on the image-major path; one block's per thread otherwise) plus one chunk's output, whatever
 /// the scene size. Returns the number of chunks.
 ///
-/// Errors: a contribution of another width ([`Error::Invalid`]); spill-file I/O; `sink`'s errors.
+/// Errors: a contribution of another width ([`Error::Mismatch`]); spill-file I/O; `sink`'s errors.
 pub fn reduce_each(
     store: &ContributionStore,
     n_gaussians: usize,
@@ -171,7 +171,7 @@ pub fn reduce_to_writer(
                 run_means.clear();
                 for &k in &run.ids {
                     run_means.push(*means.get(k as usize).ok_or_else(|| {
-                        Error::Invalid(format!("Gaussian {k} has no mean ({} given)", means.len()))
+                        Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
                     })?);
                 }
                 writer.push(&run.ids, &run_means, &run.vectors, &run.total_weights)?;
@@ -180,7 +180,7 @@ pub fn reduce_to_writer(
         });
         let reduced = reduce_each(store, means.len(), dim, params, |runs| {
             tx.send(runs)
-                .map_err(|_| Error::Invalid("the embeddings writer stopped early".into()))
+                .map_err(|_| Error::internal("the embeddings writer stopped early"))
         });
         let reduce_s = t0.elapsed().as_secs_f64();
         drop(tx);
@@ -282,10 +282,13 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
 ) -> Result<usize> {
     let width_check = |c: &ImageContribution| {
         if c.dim != dim {
-            return Err(Error::Invalid(format!(
-                "contribution of dim {}, expected {dim}",
-                c.dim
-            )));
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "contribution of dim {}, expected {dim}: reduce contributions of one CLIP model",
+                    c.dim
+                ),
+            ));
         }
         Ok(())
     };

@@ -463,15 +463,18 @@ fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
     );
     assert!(matches!(
         reduce_mixture(&store, 4, dim, p, 0, "m", &means),
-        Err(Error::Invalid(_))
+        Err(Error::Param {
+            name: "mixture_keep",
+            ..
+        })
     ));
     assert!(matches!(
         reduce_mixture(&store, 4, dim, p, 2, "m", &means[..3]),
-        Err(Error::Invalid(_))
+        Err(Error::Internal(_))
     ));
     assert!(matches!(
         reduce_mixture(&store, 4, 4, p, 2, "m", &means),
-        Err(Error::Invalid(_))
+        Err(Error::Mismatch { .. })
     ));
 }
 

@@ -99,9 +99,9 @@ mod tests {
                     // The library names the setting, the command line the flag.
                     let msg = e.to_string();
                     assert!(!msg.contains("--"), "{bad:?}: {msg}");
-                    let hint = super::super::hint(&anyhow::Error::new(e));
+                    let hint = super::super::hints::hint(&anyhow::Error::new(e));
                     assert!(
-                        hint.is_some_and(|h| h.contains(bad[0])),
+                        hint.as_deref().is_some_and(|h| h.contains(bad[0])),
                         "{bad:?}: hint {hint:?} names the flag"
                     );
                 }

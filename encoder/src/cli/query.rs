@@ -80,8 +80,8 @@ pub const PROMPT_HINT: &str = "pass --text \"a chair\"";
 /// Runs `query`.
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
-/// `slag-edge`; [`slag_common::Error::Invalid`] with [`PROMPT_HINT`], checked before anything is
-/// read), then [`slag_encoder::query::run`]'s.
+/// `slag-edge`; [`slag_common::Error::Query`], checked before anything is read), then
+/// [`slag_encoder::query::run`]'s.
 pub fn run(a: &QueryArgs) -> anyhow::Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, PROMPT_HINT)?;
     Ok(slag_encoder::query::run(&QueryParams::from(a))?)
@@ -118,7 +118,7 @@ mod tests {
             let e = run(&args(text)).unwrap_err();
             let typed = e.downcast_ref::<slag_common::Error>();
             assert!(
-                matches!(typed, Some(slag_common::Error::Invalid(_))),
+                matches!(typed, Some(slag_common::Error::Query { field: "text", .. })),
                 "{e:#}"
             );
             let m = format!("{e:#}");

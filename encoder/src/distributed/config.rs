@@ -75,7 +75,7 @@ impl ClusterConfig {
         }
         if self.process >= self.addresses.len() {
             return Err(format!(
-                "--process {} but the host list names {} processes (0..{})",
+                "process index {} but the host list names {} processes (0..{})",
                 self.process,
                 self.addresses.len(),
                 self.addresses.len()

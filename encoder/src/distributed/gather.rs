@@ -88,7 +88,7 @@ pub(super) fn assemble(
             .enumerate()
             .all(|(i, s)| s.worker as usize == i);
     if !parts_ok || !stats_ok {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "incomplete job: {} of {peers} partition summaries and {} of {peers} worker reports \
              reached process 0",
             g.parts.len(),
@@ -98,7 +98,7 @@ pub(super) fn assemble(
     g.rows_per_partition.resize(peers, 0);
     for s in &g.parts {
         if g.rows_per_partition[s.partition as usize] != s.rows {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "incomplete job: partition {} reduced {} Gaussians but {} reached process 0",
                 s.partition, s.rows, g.rows_per_partition[s.partition as usize]
             )));
@@ -107,15 +107,18 @@ pub(super) fn assemble(
     let job = g.parts[0].job.clone();
     let dim = job.dim as usize;
     if job.gaussians != gaussians.len() as u64 {
-        return Err(Error::Invalid(format!(
-            "process 0 loaded {} Gaussians, the job has {}",
-            gaussians.len(),
-            job.gaussians
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "process 0 loaded {} Gaussians, the job has {}: give every process the same scene",
+                gaussians.len(),
+                job.gaussians
+            ),
+        ));
     }
     let images: u64 = g.stats.iter().map(|s| s.work.images).sum();
     if images != job.views {
-        return Err(Error::Invalid(format!(
+        return Err(Error::internal(format!(
             "incomplete job: {images} of {} views encoded",
             job.views
         )));
@@ -137,8 +140,8 @@ pub(super) fn assemble(
             .last()
             .is_some_and(|l| l.0 as usize >= gaussians.len())
     {
-        return Err(Error::Invalid(
-            "partitions returned duplicate or out-of-range Gaussian ids".into(),
+        return Err(Error::internal(
+            "partitions returned duplicate or out-of-range Gaussian ids",
         ));
     }
     let n = order.len();

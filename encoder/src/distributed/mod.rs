@@ -172,10 +172,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         let scene = job.scene.load()?;
         load_scene_s = t_load.elapsed().as_secs_f64();
         if scene.1.is_empty() {
-            return Err(Error::Invalid(format!(
-                "{}: no views to encode (check --every)",
-                job.scene.dir.display()
-            )));
+            return Err(crate::pipeline::no_views(&job.scene, scene.2));
         }
         let mut stages = (job.stages)(&scene.0)?;
         models = [
@@ -231,7 +228,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         });
     }
     let (gaussians, _, views_total) =
-        scene_kept.ok_or_else(|| Error::Invalid("worker 0 has no scene".into()))?;
+        scene_kept.ok_or_else(|| Error::internal("worker 0 has no scene"))?;
     let output = assemble(gathered, peers, &gaussians, views_total, load_scene_s)?;
     Ok(WorkerOutcome {
         output: Some(output),
@@ -315,7 +312,7 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
             if !connected.load(Ordering::SeqCst) {
                 eprintln!(
                     "error: encode-cluster process {process}: not all {n} processes connected \
-                     within {} s; start every process with the same --hosts file (and check the \
+                     within {} s; start every process with the same hosts file (and check the \
                      addresses and firewalls)",
                     timeout.as_secs()
                 );
@@ -348,10 +345,10 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     connected.store(true, Ordering::SeqCst);
     std::panic::set_hook(previous_hook);
     let results = results.map_err(|e| {
-        Error::Invalid(format!(
-            "encode-cluster process {process}: cannot start the cluster on {}: {e}",
-            cluster.addresses[process]
-        ))
+        Error::network(
+            cluster.addresses[process].clone(),
+            format!("encode-cluster process {process}: cannot start the cluster: {e}"),
+        )
     })?;
 
     let outcome = results
@@ -401,7 +398,7 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         report: report_path.clone(),
     };
     let json =
-        serde_json::to_vec_pretty(&report).map_err(|e| Error::Invalid(format!("report: {e}")))?;
+        serde_json::to_vec_pretty(&report).map_err(|e| Error::internal(format!("report: {e}")))?;
     write_atomic(&report_path, &json)?;
     Ok(Some(report))
 }
@@ -419,7 +416,7 @@ mod tests {
         let c = ClusterConfig::from_hosts_file(&f, 1, Duration::from_secs(1)).unwrap();
         assert_eq!(c.addresses, ["127.0.0.1:4000", "node2:4001"]);
         let err = ClusterConfig::from_hosts_file(&f, 2, Duration::from_secs(1)).unwrap_err();
-        assert!(err.to_string().contains("--process 2"), "{err}");
+        assert!(err.to_string().contains("process index 2"), "{err}");
         std::fs::write(&f, "127.0.0.1\n").unwrap();
         let err = ClusterConfig::from_hosts_file(&f, 0, Duration::from_secs(1)).unwrap_err();
         assert!(err.to_string().contains("host:port"), "{err}");

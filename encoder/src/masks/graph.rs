@@ -70,21 +70,24 @@ impl Default for GraphParams {
 impl GraphParams {
     fn validate(&self) -> Result<()> {
         if !(self.sigma.is_finite() && self.sigma >= 0.0) {
-            return Err(Error::Invalid(format!(
-                "graph segmenter sigma = {}; pass a finite smoothing sigma >= 0 (default 0.8)",
-                self.sigma
-            )));
+            return Err(Error::param(
+                "graph_sigma",
+                self.sigma,
+                "a finite smoothing sigma >= 0 (default 0.8)",
+            ));
         }
         if !(self.k.is_finite() && self.k > 0.0) {
-            return Err(Error::Invalid(format!(
-                "graph segmenter k = {}; pass a finite threshold scale k > 0 (default 500)",
-                self.k
-            )));
+            return Err(Error::param(
+                "graph_k",
+                self.k,
+                "a finite threshold scale k > 0 (default 500)",
+            ));
         }
         if self.max_side == Some(0) {
-            return Err(Error::Invalid(
-                "graph segmenter max_side = 0; pass a positive longer side in pixels or none"
-                    .into(),
+            return Err(Error::param(
+                "graph_max_side",
+                0,
+                "a positive longer side in pixels, or none",
             ));
         }
         Ok(())
@@ -97,9 +100,9 @@ impl GraphParams {
 /// the largest segment and labels are ordered by area descending (ties: the segment whose first
 /// pixel in raster order comes first). Deterministic.
 ///
-/// Errors ([`Error::Invalid`]): a zero-sized image, 2^30 pixels or more to segment (after the
-/// optional downscale), invalid
-/// parameters (non-finite or negative `sigma`, `k <= 0`, `max_side = 0`).
+/// Errors: a zero-sized image ([`Error::Invalid`]), 2^30 pixels or more to segment (after the
+/// optional downscale) or invalid parameters ([`Error::Param`] `graph_sigma`, `graph_k`,
+/// `graph_max_side`: non-finite or negative `sigma`, `k <= 0`, `max_side = 0`).
 pub fn segment_labels(image: &RgbImage, params: &GraphParams) -> Result<(Vec<u32>, u32)> {
     params.validate()?;
     let (w, h) = image.dimensions();
@@ -111,10 +114,14 @@ pub fn segment_labels(image: &RgbImage, params: &GraphParams) -> Result<(Vec<u32
     let n = w as u64 * h as u64;
     let too_large = |sw: u32, sh: u32| -> Result<()> {
         if sw as u64 * sh as u64 >= 1 << 30 {
-            return Err(Error::Invalid(format!(
-                "graph segmenter would segment {sw}x{sh} pixels (2^30 or more); set max_side to \
-                 downscale the image"
-            )));
+            return Err(Error::param(
+                "graph_max_side",
+                format!("{:?}", params.max_side),
+                format!(
+                    "a longer side that downscales the image below 2^30 pixels (it would segment \
+                     {sw}x{sh})"
+                ),
+            ));
         }
         Ok(())
     };
@@ -805,7 +812,7 @@ mod tests {
             },
         ] {
             assert!(
-                matches!(segment_labels(&img, &bad), Err(Error::Invalid(_))),
+                matches!(segment_labels(&img, &bad), Err(Error::Param { .. })),
                 "{bad:?}"
             );
         }

@@ -97,17 +97,21 @@ impl SamParams {
     /// Checks ranges.
     ///
     /// # Errors
-    /// [`Error::Invalid`] for zero counts or non-finite / out-of-range thresholds.
+    /// [`Error::Param`] (named by the field) for zero counts or non-finite / out-of-range
+    /// thresholds.
     pub fn validate(&self) -> Result<()> {
         if self.points_per_side == 0 || self.points_per_side > 1024 {
-            return Err(Error::Invalid(format!(
-                "SAM points_per_side must be in 1..=1024, got {}",
-                self.points_per_side
-            )));
+            return Err(Error::param(
+                "points_per_side",
+                self.points_per_side,
+                "SAM points per side in 1..=1024",
+            ));
         }
         if self.points_per_batch == 0 {
-            return Err(Error::Invalid(
-                "SAM points_per_batch must be at least 1".into(),
+            return Err(Error::param(
+                "points_per_batch",
+                0,
+                "at least 1 SAM point prompt per batch",
             ));
         }
         for (name, v) in [
@@ -116,15 +120,16 @@ impl SamParams {
             ("box_nms_thresh", self.box_nms_thresh),
         ] {
             if !(0.0..=1.0).contains(&v) {
-                return Err(Error::Invalid(format!(
-                    "SAM {name} must be in [0, 1], got {v}"
-                )));
+                return Err(Error::param(name, v, "a SAM threshold in [0, 1]"));
             }
         }
-        if !self.stability_score_offset.is_finite() || !self.mask_threshold.is_finite() {
-            return Err(Error::Invalid(
-                "SAM stability_score_offset and mask_threshold must be finite".into(),
-            ));
+        for (name, v) in [
+            ("stability_score_offset", self.stability_score_offset),
+            ("mask_threshold", self.mask_threshold),
+        ] {
+            if !v.is_finite() {
+                return Err(Error::param(name, v, "a finite SAM logit offset"));
+            }
         }
         Ok(())
     }
@@ -250,7 +255,7 @@ impl SamAutomaticMaskGenerator {
     /// # Errors
     /// [`Error::Model`] for a missing/unloadable model or the wrong signature (e.g. a CLIP model
     /// passed as the encoder), [`Error::Inference`] when the provider fails,
-    /// [`Error::Invalid`] for bad `params`.
+    /// [`Error::Param`] for bad `params`.
     pub fn new(
         encoder: &Path,
         decoder: &Path,
@@ -787,11 +792,23 @@ mod tests {
             points_per_batch: 0,
             ..SamParams::default()
         };
-        assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
+        assert!(matches!(
+            bad.validate(),
+            Err(Error::Param {
+                name: "points_per_batch",
+                ..
+            })
+        ));
         let bad = SamParams {
             pred_iou_thresh: f32::NAN,
             ..SamParams::default()
         };
-        assert!(matches!(bad.validate(), Err(Error::Invalid(_))));
+        assert!(matches!(
+            bad.validate(),
+            Err(Error::Param {
+                name: "pred_iou_thresh",
+                ..
+            })
+        ));
     }
 }

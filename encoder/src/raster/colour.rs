@@ -78,7 +78,8 @@ pub fn sh_colour(sh: &ShCoeffs, i: usize, dir: [f64; 3]) -> [f64; 3] {
 /// been rasterized for `intrinsics` (same size) from the same Gaussians. Output: `width × height`
 /// sRGB-as-stored 8-bit image, each channel `round(255·clamp(colour, 0, 1))`.
 ///
-/// Errors: [`Error::Invalid`] when SH colours are missing, sizes disagree, or an id is out of range.
+/// Errors: SH colours missing ([`Error::Param`] `colours`), weights of another size than the
+/// camera or an id out of range ([`Error::Mismatch`]), malformed arrays ([`Error::Internal`]).
 pub fn render_colour(
     gaussians: &Gaussians,
     intrinsics: &Intrinsics,
@@ -86,23 +87,31 @@ pub fn render_colour(
     weights: &PixelWeights,
 ) -> Result<RgbImage> {
     let sh = gaussians.sh.as_ref().ok_or_else(|| {
-        Error::Invalid("render_colour needs SH colours: load the .ply with colours: true".into())
+        Error::param(
+            "colours",
+            false,
+            "Gaussians with SH colours: load the .ply with colours: true",
+        )
     })?;
     if sh.coeffs.len() != gaussians.len() * sh.per_channel() * 3 {
-        return Err(Error::Invalid(
-            "SH coefficient array does not match the Gaussian count".into(),
+        return Err(Error::internal(
+            "SH coefficient array does not match the Gaussian count",
         ));
     }
     if weights.width != intrinsics.width || weights.height != intrinsics.height {
-        return Err(Error::Invalid(format!(
-            "pixel weights are {}x{} but the camera is {}x{}; rasterize with the same intrinsics",
-            weights.width, weights.height, intrinsics.width, intrinsics.height
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "pixel weights are {}x{} but the camera is {}x{}; rasterize with the same \
+                 intrinsics",
+                weights.width, weights.height, intrinsics.width, intrinsics.height
+            ),
+        ));
     }
     let n_pix = weights.width as usize * weights.height as usize;
     if weights.offsets.len() != n_pix + 1 || weights.ids.len() != weights.weights.len() {
-        return Err(Error::Invalid(
-            "malformed PixelWeights (offsets/ids/weights lengths)".into(),
+        return Err(Error::internal(
+            "malformed PixelWeights (offsets/ids/weights lengths)",
         ));
     }
     if let Some(&bad) = weights
@@ -110,10 +119,14 @@ pub fn render_colour(
         .iter()
         .find(|&&id| id as usize >= gaussians.len())
     {
-        return Err(Error::Invalid(format!(
-            "pixel weights reference Gaussian {bad} but the scene has {}; rasterize the same scene",
-            gaussians.len()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "pixel weights reference Gaussian {bad} but the scene has {}; rasterize the same \
+                 scene",
+                gaussians.len()
+            ),
+        ));
     }
     // Per-Gaussian colour (only for Gaussians that contribute at all would be cheaper; N is small).
     let centre = world_to_camera.camera_centre();
@@ -129,7 +142,7 @@ pub fn render_colour(
     for (p, px) in img.pixels_mut().enumerate() {
         let (a, b) = (weights.offsets[p] as usize, weights.offsets[p + 1] as usize);
         if a > b || b > weights.ids.len() {
-            return Err(Error::Invalid("malformed PixelWeights offsets".into()));
+            return Err(Error::internal("malformed PixelWeights offsets"));
         }
         let mut rgb = [0.0f64; 3];
         for e in a..b {
@@ -147,14 +160,17 @@ pub fn render_colour(
 /// Peak signal-to-noise ratio of two 8-bit RGB images, dB: `10·log10(255² / MSE)` over all
 /// channels; `f64::INFINITY` for identical images.
 ///
-/// Errors: [`Error::Invalid`] when the sizes differ or the images are empty.
+/// Errors: [`Error::Mismatch`] when the sizes differ or the images are empty.
 pub fn psnr(a: &RgbImage, b: &RgbImage) -> Result<f64> {
     if a.dimensions() != b.dimensions() || a.as_raw().is_empty() {
-        return Err(Error::Invalid(format!(
-            "psnr needs two non-empty images of one size, got {:?} and {:?}",
-            a.dimensions(),
-            b.dimensions()
-        )));
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "psnr needs two non-empty images of one size, got {:?} and {:?}",
+                a.dimensions(),
+                b.dimensions()
+            ),
+        ));
     }
     let se: f64 = a
         .as_raw()

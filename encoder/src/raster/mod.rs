@@ -85,8 +85,9 @@ pub trait WeightRasterizer: Send {
     /// Renders the per-pixel weights of one view. `intrinsics` give the raster size (already
     /// scaled for `--raster-scale`, see [`raster_intrinsics`]); `world_to_camera` is the COLMAP pose.
     ///
-    /// Errors: an empty or absurd raster size ([`Error::Invalid`]); GPU failures or output larger
-    /// than the device allows ([`Error::Gpu`], with the hint to lower `--raster-scale`).
+    /// Errors: an empty raster ([`Error::Param`] `raster_size`) or one over 2^28 pixels; GPU
+    /// failures ([`Error::Gpu`]) or output larger than the device allows ([`Error::Limit`]: a
+    /// command line adds the flag that lowers the raster scale).
     fn rasterize(
         &mut self,
         intrinsics: &Intrinsics,
@@ -101,7 +102,7 @@ pub trait WeightRasterizer: Send {
     /// `Ok(None)`: this rasterizer has no such path or declines it for this view (the caller
     /// rasterizes and sums on the host; the default). The GPU rasterizer declines when more
     /// Gaussians are visible than the raster has pixels (few contributions per sum) or the sums
-    /// outgrow one buffer binding. Errors: as [`Self::rasterize`], and [`Error::Invalid`] when `labels` does not
+    /// outgrow one buffer binding. Errors: as [`Self::rasterize`], and [`Error::Internal`] when `labels` does not
     /// hold one label per raster pixel.
     fn label_sums(
         &mut self,
@@ -154,12 +155,15 @@ impl LabelSum {
 /// The intrinsics of the weight raster for a photo's full-resolution `intrinsics` at `scale`
 /// (`--raster-scale`, in (0, 4]): [`Intrinsics::scaled`], after checking the scale.
 ///
-/// Errors: [`Error::Invalid`] for a non-finite or out-of-range scale.
+/// Errors: [`Error::Param`] `raster_scale` for a non-finite or out-of-range scale; as
+/// [`validate_raster`].
 pub fn raster_intrinsics(intrinsics: &Intrinsics, scale: f64) -> Result<Intrinsics> {
     if !(scale.is_finite() && scale > 0.0 && scale <= 4.0) {
-        return Err(Error::Invalid(format!(
-            "--raster-scale {scale} is out of range; use a value in (0, 4], e.g. 0.5"
-        )));
+        return Err(Error::param(
+            "raster_scale",
+            scale,
+            "a value in (0, 4], e.g. 0.5",
+        ));
     }
     let k = intrinsics.scaled(scale);
     validate_raster(&k)?;
@@ -167,13 +171,25 @@ pub fn raster_intrinsics(intrinsics: &Intrinsics, scale: f64) -> Result<Intrinsi
 }
 
 /// Checks a raster's intrinsics: non-zero size, at most 2^28 pixels, finite positive focal lengths.
+///
+/// Errors: an empty raster ([`Error::Param`] `raster_size`), more than 2^28 pixels
+/// ([`Error::Limit`] [`slag_common::Resource::RasterPixels`]), bad focal lengths
+/// ([`Error::Invalid`]).
 pub(crate) fn validate_raster(k: &Intrinsics) -> Result<()> {
     let n = k.width as u64 * k.height as u64;
-    if n == 0 || n > (1 << 28) {
-        return Err(Error::Invalid(format!(
-            "raster of {}x{} pixels is empty or too large; use a --raster-scale giving at most 2^28 pixels",
-            k.width, k.height
-        )));
+    if n == 0 {
+        return Err(Error::param(
+            "raster_size",
+            format!("{}x{}", k.width, k.height),
+            "a raster of at least one pixel (a larger raster_scale)",
+        ));
+    }
+    if n > (1 << 28) {
+        return Err(Error::limit(
+            slag_common::Resource::RasterPixels,
+            format!("{}x{} = {n} pixels", k.width, k.height),
+            "2^28 pixels",
+        ));
     }
     let ok = |v: f64| v.is_finite();
     if !(ok(k.fx) && ok(k.fy) && k.fx > 0.0 && k.fy > 0.0 && ok(k.cx) && ok(k.cy)) {

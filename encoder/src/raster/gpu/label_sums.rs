@@ -43,7 +43,7 @@ impl GpuRasterizer {
     /// visible Gaussian (at least the last view's size), retried with 4× the slots on overflow;
     /// [`RunOutput::UseLists`] past what one binding holds.
     ///
-    /// Errors: `labels` not one per raster pixel ([`Error::Invalid`]); a table over the binding
+    /// Errors: `labels` not one per raster pixel ([`Error::Internal`]); a table over the binding
     /// limit; device failures.
     pub(super) fn label_sums_pass(
         &mut self,
@@ -55,7 +55,7 @@ impl GpuRasterizer {
     ) -> Result<RunOutput> {
         let k = view.k;
         if labels.len() != view.n_pix as usize {
-            return Err(Error::Invalid(format!(
+            return Err(Error::internal(format!(
                 "{} pixel labels for a {}x{} raster; pass one label per raster pixel",
                 labels.len(),
                 k.width,

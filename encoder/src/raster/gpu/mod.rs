@@ -301,7 +301,7 @@ impl GpuRasterizer {
     ///
     /// Errors: [`Error::Gpu`] when no Vulkan adapter exists (install `mesa-vulkan-drivers`), the
     /// device cannot be created, or the scene exceeds the device's buffer limits;
-    /// [`Error::Invalid`] for more than 2^32 − 1 Gaussians or array lengths that disagree.
+    /// [`Error::Invalid`] for more than 2^32 − 1 Gaussians, [`Error::Internal`] for array lengths that disagree.
     pub fn new(gaussians: &Gaussians) -> Result<Self> {
         Ok(Self::new_many(gaussians, Some(1))?.remove(0))
     }
@@ -311,11 +311,11 @@ impl GpuRasterizer {
     /// device, kernels and copy of the Gaussians' geometry. Without a discrete GPU, one rasterizer
     /// on the best adapter (e.g. lavapipe) is returned whatever `gpus` says.
     ///
-    /// Errors: as [`GpuRasterizer::new`]; [`Error::Invalid`] when more GPUs are asked for than
-    /// exist (the message lists them) or `gpus` is `Some(0)`.
+    /// Errors: as [`GpuRasterizer::new`]; [`Error::Param`] `gpus` when more GPUs are asked for
+    /// than exist (the message lists them) or `gpus` is `Some(0)`.
     pub fn new_many(gaussians: &Gaussians, gpus: Option<usize>) -> Result<Vec<Self>> {
         if gpus == Some(0) {
-            return Err(Error::Invalid("--gpus must be at least 1".into()));
+            return Err(Error::param("gpus", 0, "at least 1 GPU"));
         }
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN;
@@ -333,14 +333,18 @@ impl GpuRasterizer {
                 None => same,
                 Some(k) if k <= same.len() => same.into_iter().take(k).collect(),
                 Some(k) => {
-                    return Err(Error::Invalid(format!(
-                        "--gpus {k} but only {} GPU(s) are visible: {}",
-                        same.len(),
-                        same.iter()
-                            .map(|a| a.get_info().name)
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )));
+                    return Err(Error::param(
+                        "gpus",
+                        k,
+                        format!(
+                            "at most the {} visible GPU(s): {}",
+                            same.len(),
+                            same.iter()
+                                .map(|a| a.get_info().name)
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ),
+                    ));
                 }
             }
         };
@@ -357,8 +361,8 @@ impl GpuRasterizer {
             || gaussians.rotations.len() != n
             || gaussians.opacities.len() != n
         {
-            return Err(Error::Invalid(
-                "Gaussians arrays (means/scales/rotations/opacities) have different lengths".into(),
+            return Err(Error::internal(
+                "Gaussians arrays (means/scales/rotations/opacities) have different lengths",
             ));
         }
         let n32 = u32::try_from(n)
