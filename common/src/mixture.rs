@@ -866,6 +866,35 @@ mod tests {
     }
 
     #[test]
+    fn the_same_mixture_always_writes_the_same_bytes() {
+        // The metadata went through a HashMap, whose order changes from map to map: files of
+        // one run differed in their header. Now the keys are sorted.
+        let dir = tempfile::tempdir().unwrap();
+        let mix = MixtureEmbeddings::from_sparse(sample(20, 7, 8, 3)).unwrap();
+        let bytes: Vec<Vec<u8>> = (0..6)
+            .map(|i| {
+                let p = dir.path().join(format!("m{i}.safetensors"));
+                mix.write(&p).unwrap();
+                std::fs::read(&p).unwrap()
+            })
+            .collect();
+        assert!(bytes.iter().all(|b| *b == bytes[0]));
+        let n = u64::from_le_bytes(bytes[0][..8].try_into().unwrap()) as usize;
+        assert_eq!(n % 8, 0, "header padded to 8 bytes");
+        let header = std::str::from_utf8(&bytes[0][8..8 + n]).unwrap();
+        assert!(
+            header.starts_with(r#"{"__metadata__":{"dim":"8","format":"slag-mixture","keep":"4","#),
+            "{header}"
+        );
+        // Any safetensors reader takes it.
+        let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes[0]).unwrap();
+        assert_eq!(
+            meta.metadata().as_ref().and_then(|m| m.get("version")),
+            Some(&VERSION.to_string())
+        );
+    }
+
+    #[test]
     fn corrupt_or_inconsistent_files_are_format_errors() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("m.safetensors");

@@ -112,13 +112,45 @@ pub(crate) fn write(
                 .map_err(|e| Error::internal(format!("safetensors: {e}")))
         })
         .collect::<Result<Vec<_>>>()?;
-    let meta: HashMap<String, String> = meta
-        .iter()
-        .map(|(k, v)| (k.to_string(), v.clone()))
-        .collect();
-    let bytes = safetensors::serialize(views, Some(meta))
+    let bytes = safetensors::serialize(views, None::<HashMap<String, String>>)
         .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
-    write_atomic(path, &bytes)
+    write_atomic(path, &with_metadata(&bytes, meta)?)
+}
+
+/// `file` (a safetensors file without metadata) with `meta` as its `__metadata__`, keys in
+/// sorted order, so that the same tensors and metadata always give the same bytes
+/// (`safetensors::serialize` takes a `HashMap`, whose order changes from run to run). The header
+/// stays padded with spaces to a multiple of 8 bytes; data offsets are relative to the end of the
+/// header, so the tensors are untouched.
+///
+/// Errors: [`Error::Internal`] when `file` is not what `safetensors::serialize` writes.
+fn with_metadata(file: &[u8], meta: &[(&str, String)]) -> Result<Vec<u8>> {
+    let bad = || Error::internal("safetensors: unexpected header layout from serialize");
+    let n = file
+        .get(..8)
+        .and_then(|b| b.try_into().ok())
+        .map(u64::from_le_bytes)
+        .and_then(|n| usize::try_from(n).ok())
+        .ok_or_else(bad)?;
+    let header = file.get(8..8 + n).ok_or_else(bad)?;
+    let data = &file[8 + n..];
+    let rest = header.strip_prefix(b"{").ok_or_else(bad)?;
+    let rest = std::str::from_utf8(rest).map_err(|_| bad())?.trim_end();
+    let sorted: std::collections::BTreeMap<&str, &str> =
+        meta.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let meta_json = serde_json::to_string(&sorted)
+        .map_err(|e| Error::internal(format!("safetensors metadata: {e}")))?;
+    // `rest` is `"name":{..},..}` or `}` for a file without tensors.
+    let sep = if rest == "}" { "" } else { "," };
+    let mut out_header = format!("{{\"__metadata__\":{meta_json}{sep}{rest}");
+    while out_header.len() % 8 != 0 {
+        out_header.push(' ');
+    }
+    let mut out = Vec::with_capacity(8 + out_header.len() + data.len());
+    out.extend_from_slice(&(out_header.len() as u64).to_le_bytes());
+    out.extend_from_slice(out_header.as_bytes());
+    out.extend_from_slice(data);
+    Ok(out)
 }
 
 /// Little-endian f32 values (a trailing partial value is ignored).
