@@ -9,7 +9,7 @@ use slag_common::onnx::ExecutionProvider;
 
 /// Wall-clock seconds spent in each stage, summed over images (stages of different images overlap
 /// in the pipeline, so the sum of stages can exceed `total`).
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct StageTimings {
     /// Reading the `.ply` and the cameras.
     pub load_scene: f64,

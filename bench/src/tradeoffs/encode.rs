@@ -8,6 +8,7 @@ use slag_encoder::aggregate::MaskWeighting;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
 use slag_encoder::levels::MaskOverlap;
 use slag_encoder::pipeline::Encoder;
+use slag_encoder::report::StageTimings;
 
 /// Where a point's masks come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -201,21 +202,9 @@ pub struct EncodeRecord {
     pub masks: usize,
     /// Mean contributors per raster pixel.
     pub contributors_per_pixel: f64,
-    /// Wall time of the whole run, s.
-    pub total_s: f64,
-    /// Per-stage seconds summed over images (overlapping on two threads): decode, masks, CLIP,
-    /// raster, image-stage aggregation; reduce and load once per run.
-    pub decode_s: f64,
-    /// See [`EncodeRecord::decode_s`].
-    pub masks_s: f64,
-    /// See [`EncodeRecord::decode_s`].
-    pub clip_s: f64,
-    /// See [`EncodeRecord::decode_s`].
-    pub raster_s: f64,
-    /// See [`EncodeRecord::decode_s`].
-    pub aggregate_s: f64,
-    /// See [`EncodeRecord::decode_s`].
-    pub reduce_s: f64,
+    /// The report's stage seconds (summed over images, overlapping; `total` is the run's wall
+    /// time), as the encoder measured them.
+    pub stages: StageTimings,
 }
 
 /// The record of a completed run in `dir` made with exactly `config` (same JSON), if there is
@@ -265,7 +254,6 @@ pub fn run_point(
         .with_context(|| format!("encode settings of point {}", point.id()))?
         .run()
         .with_context(|| format!("encoding point {}", point.id()))?;
-    let t = &r.timings;
     let rec = EncodeRecord {
         config,
         views: r.counts.views_used,
@@ -273,13 +261,7 @@ pub fn run_point(
         observed: r.counts.observed,
         masks: r.counts.masks,
         contributors_per_pixel: r.counts.contributors_per_pixel,
-        total_s: t.total,
-        decode_s: t.decode,
-        masks_s: t.masks,
-        clip_s: t.clip,
-        raster_s: t.raster,
-        aggregate_s: t.image_aggregate,
-        reduce_s: t.reduce,
+        stages: r.timings,
     };
     slag_common::embeddings::write_atomic(&record_path, &serde_json::to_vec_pretty(&rec)?)?;
     Ok((rec, false))
@@ -370,13 +352,11 @@ mod tests {
             observed: 2,
             masks: 3,
             contributors_per_pixel: 1.5,
-            total_s: 1.0,
-            decode_s: 0.1,
-            masks_s: 0.1,
-            clip_s: 0.1,
-            raster_s: 0.1,
-            aggregate_s: 0.1,
-            reduce_s: 0.1,
+            stages: StageTimings {
+                total: 1.0,
+                decode: 0.1,
+                ..Default::default()
+            },
         };
         std::fs::write(dir.path().join("report.json"), "{}").unwrap();
         std::fs::write(

@@ -45,6 +45,7 @@ use slag_common::embeddings::Embeddings;
 use slag_common::scene::{self, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 use slag_encoder::eval;
+use slag_encoder::report::StageTimings;
 
 pub use encode::{Aggregation, EncodePoint, EncodeRecord, MaskChoice};
 
@@ -139,18 +140,10 @@ pub struct Row {
     pub observed: usize,
     /// Encode wall time, s (storage/index points: the baseline's).
     pub encode_s: f64,
-    /// Decode seconds summed over images.
-    pub decode_s: f64,
-    /// Mask seconds summed over images.
-    pub masks_s: f64,
-    /// CLIP crop seconds summed over images.
-    pub clip_s: f64,
-    /// Raster seconds summed over images.
-    pub raster_s: f64,
-    /// Image-stage aggregation (`a_kj`) seconds summed over images.
-    pub aggregate_s: f64,
-    /// Reduction (`E_k`) seconds.
-    pub reduce_s: f64,
+    /// The encode's stage seconds (summed over images; storage/index points: the baseline's).
+    /// The CSV's `decode_s` … `reduce_s` columns are `decode`, `masks`, `clip`, `raster`,
+    /// `image_aggregate` and `reduce`.
+    pub stages: StageTimings,
     /// Seconds to build the queried form from f32 rows (quantise, fit mixture, build HNSW).
     pub build_s: f64,
     /// Bytes per stored Gaussian in memory (vector + 4 B id + 12 B mean; HNSW adds its index).
@@ -401,7 +394,7 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         }
         eprintln!(
             "    {:.1} s{} | observed {} | mIoU {:?} | scan {:.2} ms",
-            rec.total_s,
+            rec.stages.total,
             if cached { " (cached)" } else { "" },
             rec.observed,
             ev.colour_miou,
@@ -438,13 +431,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
                 index: "scan".into(),
                 views: rec.views,
                 observed: rec.observed,
-                encode_s: rec.total_s,
-                decode_s: rec.decode_s,
-                masks_s: rec.masks_s,
-                clip_s: rec.clip_s,
-                raster_s: rec.raster_s,
-                aggregate_s: rec.aggregate_s,
-                reduce_s: rec.reduce_s,
+                encode_s: rec.stages.total,
+                stages: rec.stages.clone(),
                 build_s: 0.0,
                 bytes_per_gaussian: storage::bytes_per_gaussian_of(
                     slag_common::shards::Dtype::F32,
