@@ -62,10 +62,12 @@ fn mixture_keeping_every_atom_reproduces_the_dense_embeddings() {
         assert!(worst < 2e-3, "score difference {worst}");
     }
 
-    // A later run without --mixture-keep into the same folder leaves no stale mixture behind.
+    // A later run without the mixture (`--mixture-keep 0`) into the same folder leaves no stale
+    // mixture behind.
     let mut config = graph_config(&default_scene(), &out);
     config.raster.scale = 0.25;
     config.scene.every = 13;
+    config.aggregate.mixture_keep = None;
     let report = encode(config).expect("encode");
     assert!(!out.join("mixture.safetensors").exists());
     let forms = report

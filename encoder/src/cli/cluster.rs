@@ -29,12 +29,23 @@ pub struct EncodeClusterArgs {
     pub encode: EncodeArgs,
 }
 
+/// The encode settings of a cluster run: as `encode`'s, except that an unset `--mixture-keep`
+/// means no mixture file (a cluster encode writes dense embeddings only; asking for the mixture
+/// is refused by [`ClusterEncoder::new`]).
+fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
+    let mut config = EncodeConfig::from(&a.encode);
+    if a.encode.mixture_keep.is_none() {
+        config.aggregate.mixture_keep = None;
+    }
+    config
+}
+
 /// Runs this process's part of the job; the report on process 0, `None` on the others.
 ///
 /// Errors: what a cluster cannot honour ([`slag_encoder::config::ConfigError`], before the host
 /// file is read; [`super::hint`] names the flags), then cluster, model and encode errors.
 pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
-    let encoder = ClusterEncoder::new(EncodeConfig::from(&a.encode))?;
+    let encoder = ClusterEncoder::new(cluster_config(a))?;
     let cluster = ClusterConfig::from_hosts_file(
         &a.hosts,
         a.process,
@@ -80,12 +91,13 @@ mod tests {
     }
 
     fn check(a: &EncodeClusterArgs) -> Result<ClusterEncoder, ConfigError> {
-        ClusterEncoder::new(EncodeConfig::from(&a.encode))
+        ClusterEncoder::new(cluster_config(a))
     }
 
     #[test]
     fn flags_the_cluster_cannot_honour_are_refused_not_ignored() {
-        assert!(check(&parse(&[])).is_ok());
+        assert!(check(&parse(&[])).is_ok(), "no mixture unless asked");
+        assert!(check(&parse(&["--mixture-keep", "0"])).is_ok());
         assert!(check(&parse(&["--gpus", "1", "--front-workers", "1"])).is_ok());
         for (bad, what) in [
             (&["--mixture-keep", "8"][..], ClusterUnsupported::Mixture),

@@ -53,6 +53,15 @@ mod tests {
             ..EncodeConfig::new("s", "c.onnx", "o")
         };
         assert_eq!(c, want);
+        assert_eq!(
+            c.aggregate.mixture_keep,
+            Some(slag_encoder::config::DEFAULT_MIXTURE_KEEP)
+        );
+        let dense = parse(&["--masks", "graph", "--mixture-keep", "0"]);
+        assert_eq!(
+            dense.aggregate.mixture_keep, None,
+            "0: dense embeddings only"
+        );
     }
 
     #[test]

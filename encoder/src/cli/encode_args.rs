@@ -133,7 +133,10 @@ pub struct EncodeArgs {
     #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
     pub precision: PrecisionArg,
     /// Also write OUT/mixture.safetensors: a shared codebook of the mask embeddings plus each
-    /// Gaussian's S largest a_kj (compressed embeddings; S >= 1).
+    /// Gaussian's S largest a_kj (the compressed form the shards carry by default; the mean of a
+    /// Gaussian's 4 strongest masks was the best held-out point, docs/tradeoffs.md). Default 4
+    /// for `encode`; 0 writes dense embeddings only; `encode-cluster` writes none unless asked
+    /// (and then refuses: one-process encodes only).
     #[arg(long, value_name = "S", value_parser = parse_keep)]
     pub mixture_keep: Option<usize>,
     /// Output folder (embeddings.safetensors, report.json).
@@ -144,12 +147,19 @@ pub struct EncodeArgs {
     pub quiet: bool,
 }
 
-/// `--mixture-keep`: a positive slot count.
+/// `--mixture-keep`: a slot count (0: no mixture file).
 fn parse_keep(s: &str) -> Result<usize, String> {
-    match s.parse::<usize>() {
-        Ok(0) => Err("keep at least 1 mask embedding per Gaussian".into()),
-        Ok(k) => Ok(k),
-        Err(e) => Err(format!("{e}; pass a positive integer")),
+    s.parse::<usize>()
+        .map_err(|e| format!("{e}; pass a slot count (0: dense embeddings only)"))
+}
+
+/// `--mixture-keep` as the one-process encode reads it: unset → the library's default
+/// ([`slag_encoder::config::DEFAULT_MIXTURE_KEEP`]), 0 → none.
+fn mixture_keep(flag: Option<usize>) -> Option<usize> {
+    match flag {
+        None => Some(slag_encoder::config::DEFAULT_MIXTURE_KEEP),
+        Some(0) => None,
+        Some(k) => Some(k),
     }
 }
 
@@ -193,7 +203,7 @@ impl From<&EncodeArgs> for EncodeConfig {
                 min_weight: a.min_weight,
                 contribution_memory_mb: a.contribution_memory_mb,
                 accumulator_memory_mb: a.accumulator_memory_mb,
-                mixture_keep: a.mixture_keep,
+                mixture_keep: mixture_keep(a.mixture_keep),
             },
             output: OutputConfig {
                 dir: a.out.clone(),
