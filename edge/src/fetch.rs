@@ -440,7 +440,10 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     let codebook_todo = match (&codebook, store.codebook_path(&manifest)?) {
         (Some(t), Some(path)) => {
             summary.codebook_bytes = t.bytes;
-            (!path.is_file()).then(|| t.clone())
+            // Verified again when present (a few MB): a damaged codebook would make every row
+            // of the scene unusable, so it is downloaded again rather than kept.
+            let usable = path.is_file() && store.codebook(&manifest).is_ok();
+            (!usable).then(|| t.clone())
         }
         _ => None,
     };
