@@ -272,3 +272,19 @@ fn codebooks_round_trip_and_corruption_is_typed() {
         StoredVectors::F16(_)
     ));
 }
+
+#[test]
+fn files_written_from_the_documented_layout_decode() {
+    // The fuzz seeds were written by a 30-line Python script from the module doc's layout
+    // (struct + zlib.crc32), independently of this encoder.
+    let cb = include_bytes!("../../../../fuzz/corpus/mixture_decode/codebook");
+    let ms = include_bytes!("../../../../fuzz/corpus/mixture_decode/mixture_shard");
+    let book = decode_codebook(cb).unwrap();
+    assert_eq!(book.rows[8..10], [0.6f32, 0.8].map(|v| f16::from_f32(v).to_f32()));
+    let s = decode_mixture_shard(ms).unwrap();
+    assert_eq!(s.codebook_crc, shard_checksum(cb));
+    assert_eq!(s.ids, vec![3, 5, 9]);
+    assert_eq!(s.atoms, vec![0, 2, 1, UNUSED, 2, UNUSED]);
+    assert_eq!(s.weights[0], f16::from_f32(0.7));
+    assert_eq!(s.means[2], [-2.0, 0.0, 4.0]);
+}
