@@ -156,13 +156,20 @@ impl MixtureRows {
         let Some(book) = self.codebook_f32() else {
             return;
         };
+        use rayon::prelude::*;
         let (dim, slots) = (self.dim, self.slots);
-        let mut scaled = Vec::with_capacity(s.weights.len());
-        for (a, w) in s.atoms.chunks_exact(slots).zip(s.weights.chunks_exact(slots)) {
-            let norm = row_norm(book, dim, a, w.iter().map(|x| x.to_f32()));
-            let inv = if norm > 0.0 { norm.recip() } else { 0.0 };
-            scaled.extend(w.iter().map(|x| x.to_f32() * inv));
-        }
+        let mut scaled = vec![0.0f32; s.weights.len()];
+        scaled
+            .par_chunks_mut(slots)
+            .zip(s.atoms.par_chunks_exact(slots))
+            .zip(s.weights.par_chunks_exact(slots))
+            .for_each(|((out, a), w)| {
+                let norm = row_norm(book, dim, a, w.iter().map(|x| x.to_f32()));
+                let inv = if norm > 0.0 { norm.recip() } else { 0.0 };
+                out.iter_mut()
+                    .zip(w)
+                    .for_each(|(o, x)| *o = x.to_f32() * inv);
+            });
         self.atoms
             .extend(s.atoms.iter().map(|&a| if a == UNUSED { 0 } else { a }));
         self.weights.extend(scaled);
@@ -232,5 +239,119 @@ impl MixtureRows {
             }
             *o = acc;
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::super::bench_mixture::synthetic_mixture;
+    use super::super::store::random_centres;
+    use super::super::{ScanRequest, VectorStore, lerf_relevancy, scan};
+    use slag_common::Error;
+
+    #[test]
+    fn mixture_scans_equal_the_reference_and_a_dense_copy() {
+        let (n, dim, slots, clusters) = (5000, 24, 3, 8);
+        let centres = random_centres(dim, clusters, 3);
+        let store = synthetic_mixture(n, dim, 64, slots, &centres, clusters, 9).unwrap();
+        assert!(store.is_mixture());
+        let m = store.mixture().unwrap();
+        assert_eq!((m.len(), m.slots(), m.atoms_in_codebook()), (n, slots, 64));
+        // Every score is the cosine of the row's reconstruction (unit after the norm scaling).
+        let q: Vec<f32> = centres[..dim].to_vec();
+        let qs = [q.as_slice()];
+        let hits = scan(&store, &ScanRequest::top_k(&qs, n)).unwrap();
+        assert_eq!(hits.len(), n);
+        for h in &hits {
+            let row = store.row_f32(h.row).unwrap();
+            let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-5, "row {} norm {norm}", h.row);
+            let want: f32 = row.iter().zip(&q).map(|(a, b)| a * b).sum();
+            assert!((h.score - want).abs() < 1e-5, "{} vs {want}", h.score);
+        }
+        // Threshold, box and a combiner select as on a dense f32 copy of the same rows.
+        let mut dense = VectorStore::new(dim, slag_common::shards::Dtype::F32).unwrap();
+        let flat: Vec<f32> = (0..n).flat_map(|i| store.row_f32(i).unwrap()).collect();
+        dense.push_f32_rows(store.ids(), store.means(), &flat).unwrap();
+        let neg: Vec<f32> = centres[dim..2 * dim].to_vec();
+        let q2 = [q.as_slice(), neg.as_slice()];
+        let reqs = [
+            ScanRequest::threshold(&qs, 0.28),
+            ScanRequest {
+                bbox: Some(([-20.0; 3], [10.0; 3])),
+                ..ScanRequest::top_k(&qs, 300)
+            },
+            ScanRequest {
+                combine: Some(&lerf_relevancy),
+                ..ScanRequest::top_k(&q2, 200)
+            },
+        ];
+        for req in &reqs {
+            let a = scan(&store, req).unwrap();
+            let b = scan(&dense, req).unwrap();
+            assert!(a.len().abs_diff(b.len()) <= 1, "{req:?}: {} vs {}", a.len(), b.len());
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x.score - y.score).abs() < 1e-5, "{req:?}");
+            }
+        }
+        assert_eq!(store.bytes_per_gaussian(), 8 * slots + 16);
+    }
+
+    #[test]
+    fn foreign_shards_are_refused_and_leave_the_store_unchanged() {
+        use slag_common::shards::{
+            Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, MixtureShard, ShardHeader,
+        };
+        let book = vec![1.0, 0.0, 0.0, 1.0];
+        let mut store = VectorStore::new_mixture(2, 2, book, 0xabc).unwrap();
+        let shard = |atoms: Vec<u32>, crc: u32| MixtureShard {
+            header: ShardHeader {
+                version: MIXTURE_SHARD_FORMAT_VERSION,
+                scene_id: "s".into(),
+                model: "m".into(),
+                dim: 2,
+                dtype: Dtype::F16,
+                count: 1,
+                aabb: Aabb::default(),
+                tile_id: 4,
+            },
+            slots: 2,
+            codebook_crc: crc,
+            ids: vec![7],
+            means: vec![[0.0; 3]],
+            atoms,
+            weights: vec![half::f16::from_f32(0.6), half::f16::from_f32(0.8)],
+            scales: None,
+            opacities: None,
+            rotations: None,
+            sh_dc: None,
+        };
+        assert!(matches!(
+            store.push_mixture_shard(shard(vec![0, 1], 0xdef)),
+            Err(Error::Mismatch { .. })
+        ));
+        assert!(matches!(
+            store.push_mixture_shard(shard(vec![0, 2], 0xabc)),
+            Err(Error::Format { .. })
+        ));
+        assert!(store.is_empty());
+        store.push_mixture_shard(shard(vec![0, 1], 0xabc)).unwrap();
+        // 0.6·e0 + 0.8·e1 has norm 1 (up to f16): its cosine with e1 is 0.8.
+        let q = [0.0f32, 1.0];
+        let qs = [q.as_slice()];
+        let h = scan(&store, &ScanRequest::top_k(&qs, 1)).unwrap();
+        assert!((h[0].score - 0.8).abs() < 1e-3, "{h:?}");
+        // A dense store refuses mixture rows, a mixture store dense ones.
+        let mut dense = VectorStore::new(2, Dtype::F16).unwrap();
+        assert!(matches!(
+            dense.push_mixture_shard(shard(vec![0, 1], 0xabc)),
+            Err(Error::Mismatch { .. })
+        ));
+        assert!(matches!(
+            store.push_f32_rows(&[1], &[[0.0; 3]], &[1.0, 0.0]),
+            Err(Error::Mismatch { .. })
+        ));
+        assert!(VectorStore::new_mixture(2, 2, vec![1.0; 3], 0).is_err());
     }
 }

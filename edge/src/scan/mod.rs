@@ -16,6 +16,7 @@
 //! never copies or dequantises the store.
 
 pub mod bench;
+mod bench_mixture;
 pub mod hnsw;
 mod kernels;
 pub mod mixture;
@@ -30,6 +31,7 @@ use slag_common::Error;
 use slag_common::shards::StoredVectors;
 
 pub use bench::{BenchArgs, run_bench};
+pub use bench_mixture::synthetic_mixture;
 pub use kernels::{MAX_QUERIES, avx2_fma_available};
 pub use select::{Hit, TopK};
 pub use store::VectorStore;
