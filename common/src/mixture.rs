@@ -920,8 +920,7 @@ mod tests {
                     *w = 0.0;
                 }
             }
-            let reference =
-                cosine_scores(&unit_rows_of(&cut.to_dense(), 16), 16, &q).unwrap();
+            let reference = cosine_scores(&unit_rows_of(&cut.to_dense(), 16), 16, &q).unwrap();
             let t = mix.truncated(s).unwrap();
             assert_eq!(t.keep, s.min(mix.keep));
             t.validate().unwrap();

@@ -80,7 +80,10 @@ fn mixture_shards_are_served_with_the_scores_of_the_mixture_file() {
         let want = reference["pink"][&ids[h.row]];
         worst = worst.max((h.score - want).abs());
     }
-    assert!(worst < 1e-5, "largest |edge - MixtureEmbeddings::scores| {worst}");
+    assert!(
+        worst < 1e-5,
+        "largest |edge - MixtureEmbeddings::scores| {worst}"
+    );
     // The paper threshold on the same scan.
     let above = scan(&engine.store, &ScanRequest::threshold(&qs, 0.28)).unwrap();
     let want = reference["pink"].values().filter(|&&s| s >= 0.28).count();
@@ -160,28 +163,31 @@ fn mixture_shards_are_served_with_the_scores_of_the_mixture_file() {
             .unwrap();
         assert_eq!(r.status().as_u16(), 400);
         let body = r.text().await.unwrap();
-        assert!(body.contains("mixture") && body.contains("index=exact"), "{body}");
+        assert!(
+            body.contains("mixture") && body.contains("index=exact"),
+            "{body}"
+        );
     });
 
     // A corrupted or truncated codebook on disk: the scene is refused with a typed error (no
     // row can be scored without it), and the next fetch downloads it again.
-    let path = robot
-        .edge
-        .codebook_path(&robot.manifest)
-        .unwrap()
-        .unwrap();
+    let path = robot.edge.codebook_path(&robot.manifest).unwrap().unwrap();
     let good = std::fs::read(&path).unwrap();
     let mut bad = good.clone();
     let at = bad.len() / 2;
     bad[at] ^= 0x10;
     for broken in [bad, good[..good.len() - 7].to_vec()] {
         std::fs::write(&path, &broken).unwrap();
-        let err = Engine::load(&robot.edge, "snowmiku-mini", false).err().unwrap();
+        let err = Engine::load(&robot.edge, "snowmiku-mini", false)
+            .err()
+            .unwrap();
         assert!(matches!(err, Error::Format { .. }), "{err}");
         assert!(err.to_string().contains("codebook"), "{err}");
     }
     std::fs::remove_file(&path).unwrap();
-    let err = Engine::load(&robot.edge, "snowmiku-mini", false).err().unwrap();
+    let err = Engine::load(&robot.edge, "snowmiku-mini", false)
+        .err()
+        .unwrap();
     assert!(err.to_string().contains("slag-edge fetch"), "{err}");
     std::fs::write(&path, &good[..100]).unwrap();
     let again = rt

@@ -996,9 +996,14 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
     } = parsed;
     let (n, d) = (header.count as u64, header.dim as u64);
     let expected = expected_payload(header.dtype, flags, n, d);
-    let payload = checked_payload(bytes, header_len, payload_len, payload_crc, expected, || {
-        format!("{n} Gaussians of dim {d} ({:?})", header.dtype)
-    })?;
+    let payload = checked_payload(
+        bytes,
+        header_len,
+        payload_len,
+        payload_crc,
+        expected,
+        || format!("{n} Gaussians of dim {d} ({:?})", header.dtype),
+    )?;
     let (n, d) = (n as usize, d as usize);
     let mut r = Reader { b: payload, at: 0 };
     let ids = read_u32s(&mut r, n)?;
@@ -1092,14 +1097,14 @@ pub(super) fn read_display(
 
 /// Checks the payload length against `expected`, the file length and the payload CRC; returns
 /// the payload. `what` describes the rows for the message.
-pub(super) fn checked_payload<'a>(
-    bytes: &'a [u8],
+pub(super) fn checked_payload(
+    bytes: &[u8],
     header_len: usize,
     payload_len: u64,
     payload_crc: u32,
     expected: u64,
     what: impl FnOnce() -> String,
-) -> Result<&'a [u8], ShardError> {
+) -> Result<&[u8], ShardError> {
     if payload_len != expected {
         return Err(ShardError::Malformed(format!(
             "payload length {payload_len} but {} need {expected}",

@@ -27,10 +27,10 @@
 use half::f16;
 
 use super::format::{
-    Aabb, Dtype, F16_MAX, HeaderFields, MAX_DIM, MIXTURE_SHARD_FORMAT_VERSION,
-    ParsedHeader, Reader, ShardError, ShardHeader, ShardInput, ShardLayout, align, assemble,
-    checked_payload, decode_shard_stored, encode_shard, header_len_for, le_f32s, parse_header,
-    payload_with_rows, read_display, read_f16s, read_u32s, triples, write_display,
+    Aabb, Dtype, F16_MAX, HeaderFields, MAX_DIM, MIXTURE_SHARD_FORMAT_VERSION, ParsedHeader,
+    Reader, ShardError, ShardHeader, ShardInput, ShardLayout, align, assemble, checked_payload,
+    decode_shard_stored, encode_shard, header_len_for, le_f32s, parse_header, payload_with_rows,
+    read_display, read_f16s, read_u32s, triples, write_display,
 };
 use crate::Error;
 
@@ -236,9 +236,14 @@ pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
     };
     let n = header.count as u64;
     let expected = payload_with_rows(flags, n, mixture_row_bytes(n, slots as u64));
-    let payload = checked_payload(bytes, header_len, payload_len, payload_crc, expected, || {
-        format!("{n} Gaussians of {slots} mixture slots")
-    })?;
+    let payload = checked_payload(
+        bytes,
+        header_len,
+        payload_len,
+        payload_crc,
+        expected,
+        || format!("{n} Gaussians of {slots} mixture slots"),
+    )?;
     let (n, s) = (n as usize, slots as usize);
     let mut r = Reader { b: payload, at: 0 };
     let ids = read_u32s(&mut r, n)?;
@@ -294,7 +299,8 @@ impl MixtureLayout {
     /// Payload bytes per Gaussian: id (4) + mean (12) + `6 · S` (u32 atom + f16 weight per slot)
     /// + the optional display sections.
     pub fn bytes_per_row(&self) -> u64 {
-        let dense = self.base.bytes_per_row() - self.base.dtype.bytes_per_vector(self.base.dim) as u64;
+        let dense =
+            self.base.bytes_per_row() - self.base.dtype.bytes_per_vector(self.base.dim) as u64;
         dense + 6 * self.slots as u64
     }
 
@@ -365,8 +371,8 @@ pub fn encode_codebook(
             rows.len()
         )));
     }
-    let a32 = u32::try_from(a)
-        .map_err(|_| Error::limit(crate::Resource::ShardGaussians, a, u32::MAX))?;
+    let a32 =
+        u32::try_from(a).map_err(|_| Error::limit(crate::Resource::ShardGaussians, a, u32::MAX))?;
     let ids: Vec<u32> = (0..a32).collect();
     encode_shard(&ShardInput {
         scene_id,
@@ -399,8 +405,7 @@ pub fn decode_codebook(bytes: &[u8]) -> Result<Codebook, ShardError> {
     if h.dtype != Dtype::F16 {
         return not(format!("dtype {:?}, codebooks are f16", h.dtype));
     }
-    if s.scales.is_some() || s.opacities.is_some() || s.rotations.is_some() || s.sh_dc.is_some()
-    {
+    if s.scales.is_some() || s.opacities.is_some() || s.rotations.is_some() || s.sh_dc.is_some() {
         return not("it carries display sections".into());
     }
     if s.ids.iter().enumerate().any(|(i, &id)| id as usize != i) {

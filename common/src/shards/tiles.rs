@@ -328,7 +328,11 @@ impl Manifest {
                      format 2) mixture shards and their codebook: re-partition",
                     m.manifest_version,
                     m.shard_format_version,
-                    if m.mixture.is_some() { "and" } else { "without" }
+                    if m.mixture.is_some() {
+                        "and"
+                    } else {
+                        "without"
+                    }
                 ),
             ));
         }
@@ -524,7 +528,10 @@ mod tests {
         let dense = manifest(None);
         let json = String::from_utf8(dense.to_json()).expect("utf8");
         assert!(!json.contains("mixture"), "{json}");
-        assert_eq!(Manifest::from_json(json.as_bytes(), "t").expect("v1"), dense);
+        assert_eq!(
+            Manifest::from_json(json.as_bytes(), "t").expect("v1"),
+            dense
+        );
         let info = MixtureInfo {
             slots: 8,
             atoms: 300,

@@ -1031,7 +1031,10 @@ mod tests {
         assert!(md.contains("| 3000 | f16 | 80 | 80 |"), "{md}");
         assert!(md.contains("| 3000 | int8 | 52 | 52 |"), "{md}");
         // f16 copies of the same Gaussians agree with the mixture's exact answer.
-        let f16_row = md.lines().find(|l| l.starts_with("| 3000 | f16 |")).expect("row");
+        let f16_row = md
+            .lines()
+            .find(|l| l.starts_with("| 3000 | f16 |"))
+            .expect("row");
         let iou: f64 = f16_row
             .trim_end_matches(" |")
             .rsplit("| ")

@@ -8,9 +8,7 @@ use std::time::Instant;
 use half::f16;
 use rayon::prelude::*;
 use slag_common::rng::splitmix64 as splitmix;
-use slag_common::shards::{
-    Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, MixtureShard, ShardHeader,
-};
+use slag_common::shards::{Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, MixtureShard, ShardHeader};
 
 use super::store::{fast_normal, uniform};
 use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, scan};
@@ -213,7 +211,9 @@ pub(super) fn mixture_table(b: &MixtureBench<'_>) -> anyhow::Result<String> {
     for &n in b.sizes {
         let need = n as f64 * (16.0 + 8.0 * s) + a * d * 4.0;
         if need > b.limit {
-            out.push_str(&format!("| {n} | mixture | skipped: memory guard | | | | | | | | |\n"));
+            out.push_str(&format!(
+                "| {n} | mixture | skipped: memory guard | | | | | | | | |\n"
+            ));
             continue;
         }
         let t = Instant::now();

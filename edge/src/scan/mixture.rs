@@ -46,7 +46,7 @@ impl MixtureRows {
         codebook: Vec<f32>,
         codebook_crc: u32,
     ) -> Result<MixtureRows, Error> {
-        if dim == 0 || slots == 0 || codebook.is_empty() || codebook.len() % dim != 0 {
+        if dim == 0 || slots == 0 || codebook.is_empty() || !codebook.len().is_multiple_of(dim) {
             return Err(Error::param(
                 "codebook",
                 format!("{} values, dim {dim}, {slots} slots", codebook.len()),
@@ -273,7 +273,9 @@ mod tests {
         // Threshold, box and a combiner select as on a dense f32 copy of the same rows.
         let mut dense = VectorStore::new(dim, slag_common::shards::Dtype::F32).unwrap();
         let flat: Vec<f32> = (0..n).flat_map(|i| store.row_f32(i).unwrap()).collect();
-        dense.push_f32_rows(store.ids(), store.means(), &flat).unwrap();
+        dense
+            .push_f32_rows(store.ids(), store.means(), &flat)
+            .unwrap();
         let neg: Vec<f32> = centres[dim..2 * dim].to_vec();
         let q2 = [q.as_slice(), neg.as_slice()];
         let reqs = [
@@ -290,7 +292,12 @@ mod tests {
         for req in &reqs {
             let a = scan(&store, req).unwrap();
             let b = scan(&dense, req).unwrap();
-            assert!(a.len().abs_diff(b.len()) <= 1, "{req:?}: {} vs {}", a.len(), b.len());
+            assert!(
+                a.len().abs_diff(b.len()) <= 1,
+                "{req:?}: {} vs {}",
+                a.len(),
+                b.len()
+            );
             for (x, y) in a.iter().zip(&b) {
                 assert!((x.score - y.score).abs() < 1e-5, "{req:?}");
             }

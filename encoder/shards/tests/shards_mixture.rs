@@ -73,7 +73,10 @@ fn mixture_partitions_hold_every_row_within_the_byte_cap() {
     assert_eq!(m.manifest_version, MIXTURE_MANIFEST_VERSION);
     let info = m.mixture.clone().expect("mixture section");
     assert_eq!((info.slots, info.atoms as usize), (3, mix.codebook_len()));
-    assert_eq!(info.codebook_checksum, format!("{:08x}", shard_checksum(&codebook)));
+    assert_eq!(
+        info.codebook_checksum,
+        format!("{:08x}", shard_checksum(&codebook))
+    );
     let book = decode_codebook(&codebook).expect("codebook");
     assert_eq!(book.rows, mix.codebook);
     assert!(shards.len() > 2, "{} shards", shards.len());
@@ -113,7 +116,10 @@ fn stores_and_exports_carry_the_codebook_and_qdrant_refuses_mixtures() {
     let m = partition_mixture_into_store(&store, &mix, &mix, &params(200)).expect("partition");
     let info = m.mixture.clone().expect("mixture");
     let cb = store.codebook("mix").expect("read").expect("stored");
-    assert_eq!(format!("{:08x}", shard_checksum(&cb)), info.codebook_checksum);
+    assert_eq!(
+        format!("{:08x}", shard_checksum(&cb)),
+        info.codebook_checksum
+    );
     let shards: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     assert_eq!(
         store.scene_bytes("mix").expect("bytes"),
@@ -121,7 +127,10 @@ fn stores_and_exports_carry_the_codebook_and_qdrant_refuses_mixtures() {
     );
     let out = dir.path().join("export");
     slag_shards::export::export(&store, "mix", &out, false).expect("export");
-    assert_eq!(std::fs::read(out.join("codebook")).expect("file"), cb.to_vec());
+    assert_eq!(
+        std::fs::read(out.join("codebook")).expect("file"),
+        cb.to_vec()
+    );
     // A later dense partition of the scene leaves no codebook behind.
     let emb = slag_common::embeddings::Embeddings {
         ids: mix.gaussian_ids.clone(),
@@ -145,7 +154,13 @@ fn stores_and_exports_carry_the_codebook_and_qdrant_refuses_mixtures() {
     )
     .expect_err("a mixture scene is not uploaded");
     assert!(
-        matches!(err, slag_common::Error::Param { name: "qdrant_url", .. }),
+        matches!(
+            err,
+            slag_common::Error::Param {
+                name: "qdrant_url",
+                ..
+            }
+        ),
         "{err}"
     );
     let dense = slag_shards::store::partition_into_store(&store, &emb, &params(200))

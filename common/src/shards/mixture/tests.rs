@@ -1,3 +1,5 @@
+#![allow(clippy::unwrap_used)]
+
 use super::*;
 use crate::shards::format::{SHARD_FORMAT_VERSION, decode_header, decode_shard};
 use crate::shards::{StoredVectors, shard_checksum};
@@ -16,8 +18,14 @@ struct Case {
 }
 
 fn case() -> impl Strategy<Value = Case> {
-    (0usize..40, 1usize..10, 1usize..24, any::<u64>(), any::<bool>()).prop_map(
-        |(n, slots, dim, seed, display)| {
+    (
+        0usize..40,
+        1usize..10,
+        1usize..24,
+        any::<u64>(),
+        any::<bool>(),
+    )
+        .prop_map(|(n, slots, dim, seed, display)| {
             let mut s = seed | 1;
             let mut next = move || {
                 s ^= s << 13;
@@ -47,8 +55,7 @@ fn case() -> impl Strategy<Value = Case> {
                 weights,
                 display,
             }
-        },
-    )
+        })
 }
 
 fn encode(c: &Case) -> Vec<u8> {
@@ -234,7 +241,10 @@ fn bad_mixture_input_is_refused_before_writing() {
     ));
     let mut short = base;
     short.atoms = &[0];
-    assert!(matches!(encode_mixture_shard(&short), Err(Error::Internal(_))));
+    assert!(matches!(
+        encode_mixture_shard(&short),
+        Err(Error::Internal(_))
+    ));
 }
 
 #[test]
@@ -246,7 +256,10 @@ fn codebooks_round_trip_and_corruption_is_typed() {
     let cb = decode_codebook(&bytes).unwrap();
     assert_eq!(cb.rows, rows);
     assert_eq!((cb.len(), cb.dim), (5, 6));
-    assert_eq!((cb.scene_id.as_str(), cb.model.as_str()), ("scene-a", "color-clip"));
+    assert_eq!(
+        (cb.scene_id.as_str(), cb.model.as_str()),
+        ("scene-a", "color-clip")
+    );
     assert_eq!(decode_header(&bytes).unwrap().tile_id, CODEBOOK_TILE);
     // Truncated: typed, at every cut.
     for cut in 0..bytes.len() {
@@ -280,7 +293,10 @@ fn files_written_from_the_documented_layout_decode() {
     let cb = include_bytes!("../../../../fuzz/corpus/mixture_decode/codebook");
     let ms = include_bytes!("../../../../fuzz/corpus/mixture_decode/mixture_shard");
     let book = decode_codebook(cb).unwrap();
-    assert_eq!(book.rows[8..10], [0.6f32, 0.8].map(|v| f16::from_f32(v).to_f32()));
+    assert_eq!(
+        book.rows[8..10],
+        [0.6f32, 0.8].map(|v| f16::from_f32(v).to_f32())
+    );
     let s = decode_mixture_shard(ms).unwrap();
     assert_eq!(s.codebook_crc, shard_checksum(cb));
     assert_eq!(s.ids, vec![3, 5, 9]);
