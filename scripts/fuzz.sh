@@ -14,7 +14,7 @@ secs=${1:-600}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-  targets=(ply colmap transforms_json shard_decode query_params manifest)
+  targets=(ply colmap transforms_json shard_decode mixture_decode query_params manifest)
 fi
 export RUSTC_BOOTSTRAP=1
 san=${SANITIZER:-none}

@@ -62,6 +62,32 @@ fn round_f16(v: f32) -> f32 {
     f16::from_f32(v).to_f32()
 }
 
+/// L2 norm of one Gaussian's reconstruction `‖Σ_s weights[s] · codebook[atoms[s]]‖` (f64
+/// accumulation, returned as f32): `codebook` is `[A * dim]` row-major, slots whose atom is
+/// beyond it ([`UNUSED`]) count as 0. The one definition shared by [`MixtureEmbeddings::scores`]
+/// and the edge's mixture scan, so both divide by the same value.
+pub fn row_norm(
+    codebook: &[f32],
+    dim: usize,
+    atoms: &[u32],
+    weights: impl IntoIterator<Item = f32>,
+) -> f32 {
+    let mut acc = vec![0f64; dim];
+    for (&a, w) in atoms.iter().zip(weights) {
+        let Some(row) = codebook.get(a as usize * dim..(a as usize + 1) * dim) else {
+            continue;
+        };
+        if w == 0.0 {
+            continue;
+        }
+        let w = w as f64;
+        acc.iter_mut()
+            .zip(row)
+            .for_each(|(s, &v)| *s += w * v as f64);
+    }
+    acc.iter().map(|v| v * v).sum::<f64>().sqrt() as f32
+}
+
 /// Per-Gaussian embeddings as a sparse mixture over a shared codebook of mask embeddings.
 ///
 /// All values held here are exactly the values the file stores (the codebook and the weights are
@@ -290,11 +316,12 @@ impl MixtureEmbeddings {
     /// If `i >= len()` (like slice indexing).
     pub fn vector(&self, i: usize) -> Vec<f32> {
         let mut v = vec![0f32; self.dim];
-        self.vector_into(i, &mut v);
+        self.add_vector_into(i, &mut v);
         v
     }
 
-    fn vector_into(&self, i: usize, out: &mut [f32]) {
+    /// Adds row `i`'s reconstruction `Σ_s weights · codebook[atoms]` into `out` (`[D]`).
+    pub(crate) fn add_vector_into(&self, i: usize, out: &mut [f32]) {
         let slots = i * self.keep..(i + 1) * self.keep;
         for (&a, &w) in self.atoms[slots.clone()].iter().zip(&self.weights[slots]) {
             if let Some(e) = self.row(a) {
@@ -309,9 +336,88 @@ impl MixtureEmbeddings {
         if self.dim > 0 {
             out.par_chunks_mut(self.dim)
                 .enumerate()
-                .for_each(|(i, row)| self.vector_into(i, row));
+                .for_each(|(i, row)| self.add_vector_into(i, row));
         }
         out
+    }
+
+    /// The L2 norm of every Gaussian's reconstruction `‖Σ_s weights · codebook[atoms]‖` (`[N]`,
+    /// [`row_norm`]): 1 up to f16 rounding for a mixture as built, less for one cut to fewer
+    /// slots ([`MixtureEmbeddings::truncated`]). What [`MixtureEmbeddings::scores`] divides by.
+    ///
+    /// Errors: [`Error::Internal`] for arrays of inconsistent lengths.
+    pub fn norms(&self) -> Result<Vec<f32>> {
+        self.check_shapes()?;
+        Ok(self
+            .atoms
+            .par_chunks_exact(self.keep)
+            .zip(self.weights.par_chunks_exact(self.keep))
+            .map(|(a, w)| row_norm(&self.codebook, self.dim, a, w.iter().copied()))
+            .collect())
+    }
+
+    /// The same Gaussians with only their first `slots` slots (their `slots` largest weights:
+    /// slots are ordered by decreasing weight), weights unchanged (not renormalised: the cosine
+    /// divides by the norm), and the codebook rows no kept slot uses dropped (the rest renumbered
+    /// in their original order). `slots ≥ keep` returns an equal copy. This is eval-colors'
+    /// "mean over the top `s` masks" (`heldout_variants`, S = 8 cut from 16): every score equals
+    /// the dense cosine of that variant's reconstruction.
+    ///
+    /// Errors: `slots == 0` ([`Error::Param`] `mixture_slots`), inconsistent arrays
+    /// ([`Error::Internal`]).
+    pub fn truncated(&self, slots: usize) -> Result<MixtureEmbeddings> {
+        if slots == 0 {
+            return Err(Error::param(
+                "mixture_slots",
+                0,
+                "at least 1 slot per Gaussian (at most the file's keep)",
+            ));
+        }
+        self.validate()?;
+        let s = slots.min(self.keep);
+        let m = self.codebook_len();
+        let mut used = vec![false; m];
+        for row in self.atoms.chunks_exact(self.keep) {
+            for &a in &row[..s] {
+                if let Some(u) = used.get_mut(a as usize) {
+                    *u = true;
+                }
+            }
+        }
+        let mut new_row = vec![UNUSED; m];
+        let mut codebook = Vec::new();
+        let mut next = 0u32;
+        for (j, &u) in used.iter().enumerate() {
+            if u {
+                new_row[j] = next;
+                next += 1;
+                codebook.extend_from_slice(&self.codebook[j * self.dim..(j + 1) * self.dim]);
+            }
+        }
+        let mut atoms = Vec::with_capacity(self.len() * s);
+        let mut weights = Vec::with_capacity(self.len() * s);
+        for (a, w) in self
+            .atoms
+            .chunks_exact(self.keep)
+            .zip(self.weights.chunks_exact(self.keep))
+        {
+            atoms.extend(
+                a[..s]
+                    .iter()
+                    .map(|&x| new_row.get(x as usize).copied().unwrap_or(UNUSED)),
+            );
+            weights.extend_from_slice(&w[..s]);
+        }
+        Ok(MixtureEmbeddings {
+            dim: self.dim,
+            model_id: self.model_id.clone(),
+            codebook,
+            gaussian_ids: self.gaussian_ids.clone(),
+            means: self.means.clone(),
+            keep: s,
+            atoms,
+            weights,
+        })
     }
 
     /// Bytes of the tensors as written to disk: the codebook at f16 (`M·D·2`, shared by all
@@ -420,14 +526,17 @@ impl MixtureEmbeddings {
 
     /// Cosine similarity of every stored Gaussian with `query` (`[D]`, any norm; normalised here):
     /// `[N]` scores. Computes `q·E_j` once per codebook row, then per Gaussian the sparse sum
-    /// `Σ_s weights · (q·E_atom)` (the paper's query rule over the reconstructed `E_k`; rayon over
-    /// N).
+    /// `Σ_s weights · (q·E_atom)` divided by the reconstruction's norm ([`MixtureEmbeddings::norms`];
+    /// 1 up to f16 rounding of the weights, less after [`MixtureEmbeddings::truncated`]): the
+    /// paper's query rule over the reconstructed `E_k`, exactly (rayon over N). A Gaussian whose
+    /// reconstruction is zero scores 0.
     ///
     /// Errors: `query.len() != dim` ([`Error::Mismatch`]), a zero or non-finite query
     /// ([`Error::Query`]), arrays of inconsistent lengths ([`Error::Internal`]).
     pub fn scores(&self, query: &[f32]) -> Result<Vec<f32>> {
         self.check_shapes()?;
         let q = self.unit_query(query)?;
+        let norms = self.norms()?;
         let proj: Vec<f32> = self
             .codebook
             .par_chunks_exact(self.dim)
@@ -437,12 +546,14 @@ impl MixtureEmbeddings {
             .atoms
             .par_chunks_exact(self.keep)
             .zip(self.weights.par_chunks_exact(self.keep))
-            .map(|(atoms, weights)| {
-                atoms
+            .zip(norms.par_iter())
+            .map(|((atoms, weights), &norm)| {
+                let s: f32 = atoms
                     .iter()
                     .zip(weights)
                     .map(|(&a, &w)| proj.get(a as usize).map_or(0.0, |&p| w * p))
-                    .sum()
+                    .sum();
+                if norm > 0.0 { s / norm } else { 0.0 }
             })
             .collect())
     }
@@ -506,16 +617,20 @@ impl MixtureEmbeddings {
             .par_chunks_exact(self.dim)
             .flat_map_iter(|row| qs.iter().map(move |q| dot(row, q)))
             .collect();
+        let norms = self.norms()?;
         let mut flat = vec![0f32; self.len() * nq];
         flat.par_chunks_mut(nq)
             .zip(self.atoms.par_chunks_exact(self.keep))
             .zip(self.weights.par_chunks_exact(self.keep))
-            .for_each(|((out, atoms), weights)| {
+            .zip(norms.par_iter())
+            .for_each(|(((out, atoms), weights), &norm)| {
                 for (&a, &w) in atoms.iter().zip(weights) {
                     if let Some(p) = proj.get(a as usize * nq..(a as usize + 1) * nq) {
                         out.iter_mut().zip(p).for_each(|(o, &p)| *o += w * p);
                     }
                 }
+                let inv = if norm > 0.0 { norm.recip() } else { 0.0 };
+                out.iter_mut().for_each(|o| *o *= inv);
             });
         Ok((0..nq)
             .map(|t| flat.iter().skip(t).step_by(nq).copied().collect())
@@ -660,6 +775,15 @@ mod tests {
         out
     }
 
+    /// Each `dim`-wide row scaled to unit L2 norm (zero rows stay zero).
+    fn unit_rows_of(rows: &[f32], dim: usize) -> Vec<f32> {
+        let mut out = rows.to_vec();
+        for r in out.chunks_exact_mut(dim) {
+            let _ = crate::similarity::normalize_in_place(r);
+        }
+        out
+    }
+
     /// N Gaussians, each mixing up to 4 of M rows with positive weights.
     fn sample(n: usize, m: usize, dim: usize, seed: u64) -> SparseMixture {
         let mut r = stream(seed ^ 0x5eed);
@@ -765,7 +889,8 @@ mod tests {
         let mut q0 = queries[0].clone();
         q0.iter_mut().for_each(|v| *v *= 3.5); // any norm
         let s = mix.scores(&q0).unwrap();
-        let reference = cosine_scores(&dense, 24, &q0).unwrap();
+        // The cosine of the reconstruction: its rows are unit only up to f16 rounding.
+        let reference = cosine_scores(&unit_rows_of(&dense, 24), 24, &q0).unwrap();
         assert_eq!(s.len(), 300);
         for (a, b) in s.iter().zip(&reference) {
             assert!((a - b).abs() < 1e-5, "{a} vs {b}");
@@ -779,6 +904,41 @@ mod tests {
                 assert!((a - b).abs() < 1e-6);
             }
         }
+    }
+
+    #[test]
+    fn truncated_mixtures_score_as_eval_colors_cut_variant() {
+        // eval-colors' "S = s cut from S": slots past s emptied in place, then the dense cosine
+        // of the reconstruction (heldout_variants). `truncated` drops them and the unused rows.
+        let mix = MixtureEmbeddings::from_sparse(sample(120, 29, 16, 21)).unwrap();
+        let q = unit_rows(1, 16, 77);
+        for s in [1, 2, 3, 4, 9] {
+            let mut cut = mix.clone();
+            for (i, (a, w)) in cut.atoms.iter_mut().zip(cut.weights.iter_mut()).enumerate() {
+                if i % mix.keep >= s {
+                    *a = UNUSED;
+                    *w = 0.0;
+                }
+            }
+            let reference = cosine_scores(&unit_rows_of(&cut.to_dense(), 16), 16, &q).unwrap();
+            let t = mix.truncated(s).unwrap();
+            assert_eq!(t.keep, s.min(mix.keep));
+            t.validate().unwrap();
+            assert!(t.codebook_len() <= mix.codebook_len());
+            assert_eq!(t.to_dense(), cut.to_dense());
+            for (a, b) in t.scores(&q).unwrap().iter().zip(&reference) {
+                assert!((a - b).abs() < 1e-5, "S = {s}: {a} vs {b}");
+            }
+            let norms = t.norms().unwrap();
+            assert!(norms.iter().all(|&n| n.is_finite() && n > 0.0), "{norms:?}");
+        }
+        assert!(matches!(
+            mix.truncated(0),
+            Err(Error::Param {
+                name: "mixture_slots",
+                ..
+            })
+        ));
     }
 
     #[test]
@@ -1053,7 +1213,7 @@ mod tests {
             let dense = mix.to_dense();
             let q = unit_rows(1, dim, seed ^ 99);
             let s = mix.scores(&q).unwrap();
-            let reference = cosine_scores(&dense, dim, &q).unwrap();
+            let reference = cosine_scores(&unit_rows_of(&dense, dim), dim, &q).unwrap();
             for (a, b) in s.iter().zip(&reference) {
                 prop_assert!((a - b).abs() < 1e-5, "{} vs {}", a, b);
             }

@@ -118,6 +118,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
         dtype: Dtype::F16,
         ground: GroundFrame::from_axis_name("z").unwrap(),
         frames: Default::default(),
+        mixture: None,
         max_per_shard: per_tile as u64,
         total_gaussians: (tiles * per_tile) as u64,
         tiles: infos,

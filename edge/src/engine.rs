@@ -32,12 +32,28 @@ pub struct Engine {
 impl Engine {
     /// Loads `scene` from the store (verifying every shard) and builds the HNSW index if asked.
     ///
-    /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest.
+    /// A mixture scene ([`slag_common::shards::MixtureInfo`]) loads its codebook first and its
+    /// shards into a mixture [`VectorStore`]; no HNSW index is built over mixture rows.
+    ///
+    /// Errors: no completed fetch, store I/O, shards of another width or type than the manifest,
+    /// a mixture scene's codebook missing, truncated or corrupted ([`slag_common::Error::Format`]:
+    /// fetch again).
     pub fn load(edge: &EdgeStore, scene: &str, hnsw: bool) -> Result<Engine> {
         // The manifest is read once; then one shard file at a time: read, verify, copy its rows
         // into the scan store, drop.
         let manifest = edge.current_manifest(scene)?;
-        let mut store = VectorStore::new(manifest.dim as usize, manifest.dtype)?;
+        let mut store = match &manifest.mixture {
+            // A mixture scene: its codebook first (verified; missing or corrupt is an error,
+            // since no row can be scored without it).
+            Some(m) => {
+                let cb = edge.codebook(&manifest)?;
+                let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
+                    slag_common::Error::format("<manifest>", "codebook checksum is not hex")
+                })?;
+                VectorStore::new_mixture(cb.dim, m.slots as usize, cb.rows, crc)?
+            }
+            None => VectorStore::new(manifest.dim as usize, manifest.dtype)?,
+        };
         // Room for the rows of every stored shard up front: they land in place (no reallocation,
         // no doubling of the served memory) on transparent huge pages.
         let mut rows = 0u64;
@@ -48,11 +64,24 @@ impl Engine {
         }
         store.reserve(usize::try_from(rows).unwrap_or(usize::MAX))?;
         let mut display = crate::view::DisplayAttrs::new();
-        let load = edge.load_shards(&manifest, |s| {
-            display.push_shard(&s);
-            store.push_shard(s)
-        })?;
-        let hnsw = if hnsw && !store.is_empty() {
+        let load = if store.is_mixture() {
+            edge.load_mixture_shards(&manifest, |s| {
+                display.push_mixture_shard(&s);
+                store.push_mixture_shard(s)
+            })?
+        } else {
+            edge.load_shards(&manifest, |s| {
+                display.push_shard(&s);
+                store.push_shard(s)
+            })?
+        };
+        if hnsw && store.is_mixture() {
+            tracing::warn!(
+                "scene {scene} holds codebook mixtures: no HNSW index is built over them \
+                 (index=hnsw is refused; the exact mixture scan answers)"
+            );
+        }
+        let hnsw = if hnsw && !store.is_empty() && !store.is_mixture() {
             Some(HnswIndex::build(
                 &store,
                 HNSW_EF_CONSTRUCTION,

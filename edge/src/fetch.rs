@@ -9,6 +9,10 @@
 //!    `partial/<scene>-<tile>-<checksum>.part`, resumed with `Range: bytes=N-` + `If-Range` when a
 //!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and renamed into the
 //!    store's shard folder ([`EdgeStore::commit_partial`]);
+//!    A mixture scene's codebook (manifest [`slag_common::shards::MixtureInfo`]) is fetched the
+//!    same way first, as `partial/<scene>-<u64::MAX>-<checksum>.part` from
+//!    `{server}/v1/scenes/{scene}/codebook`, verified ([`crate::store::verify_codebook`]: length,
+//!    CRC-32, header) and renamed into place ([`EdgeStore::commit_codebook_partial`]);
 //! 4. when every selected tile is stored, the manifest and a [`FetchRecord`] are committed in one
 //!    transaction (a new partition generation becomes visible at once, never half);
 //! 5. shards that no manifest references any more (an older generation) are dropped; shards of the
@@ -30,12 +34,14 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use futures_util::{StreamExt, TryStreamExt};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use slag_common::shards::{MAP_FRAME, Manifest, SCENE_FRAME, TileInfo, valid_scene_id};
+use slag_common::shards::{
+    CODEBOOK_TILE, MAP_FRAME, Manifest, SCENE_FRAME, TileInfo, valid_scene_id,
+};
 use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
 use crate::query::{FrameChoice, answer_frame};
-use crate::store::{EdgeStore, FetchRecord, parse_checksum};
+use crate::store::{EdgeStore, FetchRecord, codebook_tile, parse_checksum};
 
 /// The disc to select, on the manifest's ground plane: `(centre (g0, g1), radius in scene
 /// units, frame name)`. In the map frame (module doc of [`Center`]) the centre is mapped back by
@@ -216,6 +222,9 @@ pub struct FetchSummary {
     pub bytes_received: u64,
     /// Store size on disk afterwards.
     pub store_bytes: u64,
+    /// Mixture scenes: bytes of the scene's codebook (downloaded now or already stored); 0 for
+    /// a dense scene.
+    pub codebook_bytes: u64,
 }
 
 impl std::fmt::Display for FetchSummary {
@@ -426,7 +435,19 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
         }
     }
 
-    let total: u64 = todo.iter().map(|t| t.bytes).sum();
+    // A mixture scene's codebook, before its shards (no row can be scored without it).
+    let codebook = codebook_tile(&manifest);
+    let codebook_todo = match (&codebook, store.codebook_path(&manifest)?) {
+        (Some(t), Some(path)) => {
+            summary.codebook_bytes = t.bytes;
+            // Verified again when present (a few MB): a damaged codebook would make every row
+            // of the scene unusable, so it is downloaded again rather than kept.
+            let usable = path.is_file() && store.codebook(&manifest).is_ok();
+            (!usable).then(|| t.clone())
+        }
+        _ => None,
+    };
+    let total: u64 = todo.iter().chain(&codebook_todo).map(|t| t.bytes).sum();
     let pb = if p.progress {
         ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr())
     } else {
@@ -442,6 +463,16 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     pb.set_message(format!("{} shards", todo.len()));
 
     let manifest = Arc::new(manifest);
+    if let Some(t) = &codebook_todo {
+        match download_tile(&client, store, &manifest, t, p, &pb).await {
+            Ok((_, received)) => summary.bytes_received += received,
+            Err(e) => {
+                pb.finish_and_clear();
+                store.flush()?;
+                return Err(e);
+            }
+        }
+    }
     let results: Vec<Result<(bool, u64)>> = futures_util::stream::iter(todo.into_iter().map(|t| {
         let (client, store, manifest, pb) = (&client, store, manifest.clone(), pb.clone());
         async move { download_tile(client, store, &manifest, &t, p, &pb).await }
@@ -515,6 +546,9 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
             keep.push(store.partial_path(&p.scene, t));
         }
     }
+    // Codebooks of older generations (or of a scene now partitioned dense).
+    let current_codebook = store.codebook_path(&manifest)?;
+    summary.evicted += store.remove_other_codebooks(&p.scene, current_codebook.as_deref())?;
     store.clean_partials(&p.scene, &keep)?;
     store.flush()?;
     summary.store_bytes = store.disk_bytes();
@@ -530,10 +564,19 @@ async fn download_tile(
     p: &FetchParams,
     pb: &ProgressBar,
 ) -> Result<(bool, u64)> {
-    let url = url_join(
-        &p.server,
-        &format!("v1/scenes/{}/shards/{}", manifest.scene_id, tile.id),
-    );
+    // The codebook travels as a pseudo tile ([`codebook_tile`]): its own URL and verification.
+    let is_codebook = manifest.mixture.is_some() && tile.id == CODEBOOK_TILE;
+    let url = if is_codebook {
+        url_join(
+            &p.server,
+            &format!("v1/scenes/{}/codebook", manifest.scene_id),
+        )
+    } else {
+        url_join(
+            &p.server,
+            &format!("v1/scenes/{}/shards/{}", manifest.scene_id, tile.id),
+        )
+    };
     let part = store.partial_path(&manifest.scene_id, tile);
     let mut counts = Counts::default();
     let mut resumed = false;
@@ -557,7 +600,11 @@ async fn download_tile(
                     let (store, manifest, tile, part) =
                         (store.clone(), manifest.clone(), tile.clone(), part.clone());
                     tokio::task::spawn_blocking(move || {
-                        store.commit_partial(&manifest, &tile, &part)
+                        if is_codebook {
+                            store.commit_codebook_partial(&manifest, &part)
+                        } else {
+                            store.commit_partial(&manifest, &tile, &part)
+                        }
                     })
                     .await
                     .map_err(|e| Error::internal(format!("store task failed: {e}")))?

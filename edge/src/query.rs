@@ -565,6 +565,14 @@ pub fn run_query_framed(
             q.threshold,
         )?,
         IndexKind::Hnsw => {
+            if store.is_mixture() {
+                return Err(Error::query(
+                    "index",
+                    "index=hnsw is not available for this scene: its rows are codebook \
+                     mixtures, over which no HNSW index is built; use index=exact (the exact \
+                     mixture scan)",
+                ));
+            }
             let index = hnsw.ok_or_else(|| {
                 Error::query(
                     "index",

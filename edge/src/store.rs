@@ -1,6 +1,8 @@
 //! The robot's shard store: what `slag-edge fetch` downloaded, what `serve` scans.
 //!
 //! Layout of a store directory `DIR`:
+//! - `DIR/shards/<scene-hex>/codebook-<checksum:08x>.codebook`: the codebook of a mixture scene
+//!   (its manifest's [`slag_common::shards::MixtureInfo`]), verified and written like a shard;
 //! - `DIR/shards/<scene-hex>/<tile:016x>-<checksum:08x>.shard`: one plain file per verified shard
 //!   (scene id hex-encoded, so no id reaches the file system as a path). Shards are
 //!   content-addressed by their manifest checksum, so two partition generations can coexist and a
@@ -32,7 +34,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use slag_common::shards::{
-    Manifest, StoredShard, TileInfo, decode_shard_stored, shard_checksum, valid_scene_id,
+    CODEBOOK_TILE, Codebook, Manifest, MixtureShard, StoredShard, TileInfo, decode_codebook,
+    decode_mixture_shard, decode_shard_stored, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -131,15 +134,138 @@ pub fn parse_checksum(tile: &TileInfo) -> Result<u32> {
     })
 }
 
-/// Checks downloaded bytes against the manifest entry and the manifest itself: length, whole-shard
-/// CRC-32, and a full decode whose header names the same scene, tile, model, dim and dtype.
+/// File-name extension of a stored codebook.
+pub const CODEBOOK_EXTENSION: &str = "codebook";
+
+/// The manifest entry of a mixture scene's codebook as a pseudo tile ([`CODEBOOK_TILE`], its
+/// bytes and checksum, no footprint), so downloads and partial files treat it like a shard;
+/// `None` for a dense scene.
+pub fn codebook_tile(manifest: &Manifest) -> Option<TileInfo> {
+    manifest.mixture.as_ref().map(|m| TileInfo {
+        id: CODEBOOK_TILE,
+        footprint: Vec::new(),
+        aabb: Default::default(),
+        count: m.atoms as u64,
+        bytes: m.codebook_bytes,
+        checksum: m.codebook_checksum.clone(),
+    })
+}
+
+/// Checks downloaded codebook bytes against a mixture manifest: length, CRC-32, and a decode
+/// ([`decode_codebook`]) whose scene, model, width and row count match.
 ///
-/// Errors: [`Error::Format`] naming the tile and what differs (the caller discards the bytes).
-pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<StoredShard> {
-    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
-    if bytes.len() as u64 != tile.bytes {
+/// Errors: [`Error::Format`] naming what differs (truncated, corrupted, another scene's), or
+/// [`Error::Param`] `scene` for a dense manifest (it has no codebook).
+pub fn verify_codebook(manifest: &Manifest, bytes: &[u8]) -> Result<Codebook> {
+    let Some(info) = &manifest.mixture else {
+        return Err(Error::param(
+            "scene",
+            format!("{:?}", manifest.scene_id),
+            "a mixture scene: this one is dense and has no codebook",
+        ));
+    };
+    let origin = format!("codebook of scene {}", manifest.scene_id);
+    if bytes.len() as u64 != info.codebook_bytes {
         return Err(Error::format(
             &origin,
+            format!(
+                "{} bytes, the manifest says {}; fetch again",
+                bytes.len(),
+                info.codebook_bytes
+            ),
+        ));
+    }
+    let got = format!("{:08x}", shard_checksum(bytes));
+    if got != info.codebook_checksum {
+        return Err(Error::format(
+            &origin,
+            format!(
+                "checksum {got}, the manifest says {}; the codebook is corrupted, fetch again",
+                info.codebook_checksum
+            ),
+        ));
+    }
+    let cb = decode_codebook(bytes).map_err(|e| Error::format(&origin, e.to_string()))?;
+    if cb.scene_id != manifest.scene_id
+        || cb.model != manifest.model
+        || cb.dim != manifest.dim as usize
+        || cb.len() != info.atoms as usize
+    {
+        return Err(Error::format(
+            &origin,
+            format!(
+                "header (scene {}, model {}, dim {}, {} rows) disagrees with the manifest (scene \
+                 {}, model {}, dim {}, {} rows)",
+                cb.scene_id,
+                cb.model,
+                cb.dim,
+                cb.len(),
+                manifest.scene_id,
+                manifest.model,
+                manifest.dim,
+                info.atoms
+            ),
+        ));
+    }
+    Ok(cb)
+}
+
+/// [`verify_shard`] for a mixture scene's shard: length, CRC-32, a full decode
+/// ([`decode_mixture_shard`]) whose header names the same scene, tile, model, dim and count, the
+/// manifest's slot count and its codebook's checksum.
+///
+/// Errors: [`Error::Format`] naming the tile and what differs, [`Error::Unsupported`] for a shard
+/// of a format version this slag does not read.
+pub fn verify_mixture_shard(
+    manifest: &Manifest,
+    tile: &TileInfo,
+    bytes: &[u8],
+) -> Result<MixtureShard> {
+    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
+    check_bytes(&origin, tile, bytes)?;
+    let shard = decode_mixture_shard(bytes).map_err(|e| shard_error(&origin, e))?;
+    let h = &shard.header;
+    let want = manifest
+        .mixture
+        .as_ref()
+        .map(|m| (m.slots, m.codebook_checksum.clone()));
+    if h.scene_id != manifest.scene_id
+        || h.tile_id != tile.id
+        || h.model != manifest.model
+        || h.dim != manifest.dim
+        || h.count as u64 != tile.count
+        || want != Some((shard.slots, format!("{:08x}", shard.codebook_crc)))
+    {
+        return Err(Error::format(
+            &origin,
+            format!(
+                "header (scene {}, tile {}, model {}, dim {}, {} Gaussians, {} slots, codebook \
+                 {:08x}) disagrees with the manifest (scene {}, tile {}, model {}, dim {}, {} \
+                 Gaussians, mixture {:?})",
+                h.scene_id,
+                h.tile_id,
+                h.model,
+                h.dim,
+                h.count,
+                shard.slots,
+                shard.codebook_crc,
+                manifest.scene_id,
+                tile.id,
+                manifest.model,
+                manifest.dim,
+                tile.count,
+                manifest.mixture
+            ),
+        ));
+    }
+    Ok(shard)
+}
+
+/// Length and whole-file CRC-32 of downloaded bytes against their manifest entry.
+fn check_bytes(origin: &str, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
+    if bytes.len() as u64 != tile.bytes {
+        return Err(Error::format(
+            origin,
             format!("{} bytes, the manifest says {}", bytes.len(), tile.bytes),
         ));
     }
@@ -147,19 +273,35 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
     let got = shard_checksum(bytes);
     if got != want {
         return Err(Error::format(
-            &origin,
+            origin,
             format!("checksum {got:08x}, the manifest says {want:08x}"),
         ));
     }
-    let shard = decode_shard_stored(bytes).map_err(|e| match e {
-        // Not corruption: a shard from a newer (or older) slag. Typed apart so that fetch does not
-        // download it again and the message names the version.
+    Ok(())
+}
+
+/// A decoding failure as the store reports it: another version is [`Error::Unsupported`] (not
+/// corruption: fetch does not download it again), anything else [`Error::Format`].
+fn shard_error(origin: &str, e: slag_common::shards::ShardError) -> Error {
+    match e {
         slag_common::shards::ShardError::UnsupportedVersion(_) => Error::Unsupported {
-            path: origin.clone().into(),
+            path: origin.into(),
             message: e.to_string(),
         },
-        e => Error::format(&origin, e.to_string()),
-    })?;
+        e => Error::format(origin, e.to_string()),
+    }
+}
+
+/// Checks downloaded bytes against the manifest entry and the manifest itself: length, whole-shard
+/// CRC-32, and a full decode whose header names the same scene, tile, model, dim and dtype.
+///
+/// Errors: [`Error::Format`] naming the tile and what differs (the caller discards the bytes).
+pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<StoredShard> {
+    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
+    check_bytes(&origin, tile, bytes)?;
+    // Another version is not corruption: a shard from a newer (or older) slag, typed apart so
+    // that fetch does not download it again and the message names the version.
+    let shard = decode_shard_stored(bytes).map_err(|e| shard_error(&origin, e))?;
     let h = &shard.header;
     if h.scene_id != manifest.scene_id
         || h.tile_id != tile.id
@@ -189,6 +331,14 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
         ));
     }
     Ok(shard)
+}
+
+/// [`verify_mixture_shard`] for a mixture manifest, [`verify_shard`] otherwise.
+fn verify_any_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
+    match manifest.mixture {
+        Some(_) => verify_mixture_shard(manifest, tile, bytes).map(drop),
+        None => verify_shard(manifest, tile, bytes).map(drop),
+    }
 }
 
 impl EdgeStore {
@@ -275,6 +425,82 @@ impl EdgeStore {
         Ok(self
             .scene_dir(scene)
             .join(format!("{:016x}-{checksum:08x}.{SHARD_EXTENSION}", tile.id)))
+    }
+
+    /// Path of the stored codebook of a mixture manifest (`None` for a dense one); it exists
+    /// only once verified.
+    ///
+    /// Errors: [`Error::Format`] when the manifest checksum is not 8 hex digits.
+    pub fn codebook_path(&self, manifest: &Manifest) -> Result<Option<PathBuf>> {
+        let Some(t) = codebook_tile(manifest) else {
+            return Ok(None);
+        };
+        let checksum = parse_checksum(&t)?;
+        Ok(Some(self.scene_dir(&manifest.scene_id).join(format!(
+            "codebook-{checksum:08x}.{CODEBOOK_EXTENSION}"
+        ))))
+    }
+
+    /// Verifies a complete partial download of a mixture manifest's codebook
+    /// ([`verify_codebook`]) and renames it into place (then syncs the folders), like
+    /// [`Self::commit_partial`] for a shard.
+    ///
+    /// Errors: verification ([`Error::Format`]; `part` is left for the caller to discard), file
+    /// I/O.
+    pub fn commit_codebook_partial(&self, manifest: &Manifest, part: &Path) -> Result<()> {
+        let bytes = std::fs::read(part).map_err(|e| Error::io(part, e))?;
+        verify_codebook(manifest, &bytes)?;
+        drop(bytes);
+        let Some(path) = self.codebook_path(manifest)? else {
+            return Err(Error::internal("commit_codebook_partial: a dense manifest"));
+        };
+        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
+        std::fs::rename(part, &path).map_err(|e| Error::io(&path, e))?;
+        sync_dir(&dir)?;
+        sync_dir(&self.root.join("partial"))
+    }
+
+    /// Reads and verifies the stored codebook of a mixture manifest ([`verify_codebook`]).
+    ///
+    /// Errors: [`Error::Format`] when it is missing (naming `slag-edge fetch`), truncated or
+    /// corrupted on disk, or belongs to another scene; [`Error::Io`] when it cannot be read.
+    pub fn codebook(&self, manifest: &Manifest) -> Result<Codebook> {
+        let Some(path) = self.codebook_path(manifest)? else {
+            return verify_codebook(manifest, &[]);
+        };
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(Error::format(
+                    &path,
+                    "the mixture scene's codebook is not stored; run `slag-edge fetch` again",
+                ));
+            }
+            Err(e) => return Err(Error::io(&path, e)),
+        };
+        verify_codebook(manifest, &bytes)
+    }
+
+    /// Removes codebook files of `scene` other than `keep` (a file name from
+    /// [`Self::codebook_path`]); returns how many were removed.
+    ///
+    /// Errors: [`Error::Io`] when a file exists but cannot be removed.
+    pub fn remove_other_codebooks(&self, scene: &str, keep: Option<&Path>) -> Result<usize> {
+        let Ok(rd) = std::fs::read_dir(self.scene_dir(scene)) else {
+            return Ok(0);
+        };
+        let mut removed = 0;
+        for e in rd.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let ours = name.starts_with("codebook-")
+                && name.ends_with(&format!(".{CODEBOOK_EXTENSION}"))
+                && keep.and_then(|k| k.file_name()) != Some(e.file_name().as_os_str());
+            if ours {
+                std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
+                removed += 1;
+            }
+        }
+        Ok(removed)
     }
 
     /// Path of the partial download of `tile` (its checksum names the content it resumes):
@@ -433,7 +659,7 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; nothing is stored) or
     /// file I/O ([`Error::Io`]; at most a `.tmp` file is left, removed by the next fetch).
     pub fn commit_shard(&self, manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
-        verify_shard(manifest, tile, bytes)?;
+        verify_any_shard(manifest, tile, bytes)?;
         let path = self.shard_path(&manifest.scene_id, tile)?;
         let dir = self.ensure_scene_dir(&manifest.scene_id)?;
         let tmp = path.with_extension(format!("{SHARD_EXTENSION}.tmp"));
@@ -458,7 +684,7 @@ impl EdgeStore {
     /// caller to discard) or file I/O ([`Error::Io`]).
     pub fn commit_partial(&self, manifest: &Manifest, tile: &TileInfo, part: &Path) -> Result<()> {
         let bytes = std::fs::read(part).map_err(|e| Error::io(part, e))?;
-        verify_shard(manifest, tile, &bytes)?;
+        verify_any_shard(manifest, tile, &bytes)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;
         let dir = self.ensure_scene_dir(&manifest.scene_id)?;
@@ -609,6 +835,49 @@ impl EdgeStore {
                 Err(e) => return Err(e),
             };
             let verified = verify_shard(manifest, tile, &bytes);
+            drop(bytes);
+            match verified {
+                Ok(s) => {
+                    load.loaded_tiles.push(tile.id);
+                    f(s)?;
+                }
+                Err(e) => {
+                    tracing::error!("not serving a corrupted shard: {e}");
+                    load.rejected.push(e.to_string());
+                }
+            }
+        }
+        Ok(load)
+    }
+}
+
+impl EdgeStore {
+    /// [`Self::load_shards`] for a mixture manifest: each stored shard read, verified
+    /// ([`verify_mixture_shard`]), its bytes freed, and handed to `f`; corrupted ones are logged,
+    /// listed in [`SceneLoad::rejected`] and skipped.
+    ///
+    /// Errors: a shard file that exists but cannot be read ([`Error::Io`]), the first error `f`
+    /// returns.
+    pub fn load_mixture_shards(
+        &self,
+        manifest: &Manifest,
+        mut f: impl FnMut(MixtureShard) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        let mut load = SceneLoad::default();
+        for tile in &manifest.tiles {
+            let bytes = match self.shard_bytes(&manifest.scene_id, tile) {
+                Ok(Some(b)) => b,
+                Ok(None) => {
+                    load.absent_tiles += 1;
+                    continue;
+                }
+                Err(e @ Error::Format { .. }) => {
+                    load.rejected.push(e.to_string());
+                    continue;
+                }
+                Err(e) => return Err(e),
+            };
+            let verified = verify_mixture_shard(manifest, tile, &bytes);
             drop(bytes);
             match verified {
                 Ok(s) => {

@@ -57,18 +57,49 @@ impl DisplayAttrs {
     /// store). Columns of the wrong length (not produced by [`slag_common::shards::decode_shard`])
     /// are treated as absent.
     pub fn push_shard(&mut self, s: &StoredShard) {
-        let n = s.ids.len().min(s.means.len());
+        self.push_columns(
+            &s.ids,
+            &s.means,
+            s.scales.as_deref(),
+            s.opacities.as_deref(),
+            s.rotations.as_deref(),
+            s.sh_dc.as_deref(),
+        );
+    }
+
+    /// [`Self::push_shard`] for a mixture shard (the same display sections).
+    pub fn push_mixture_shard(&mut self, s: &slag_common::shards::MixtureShard) {
+        self.push_columns(
+            &s.ids,
+            &s.means,
+            s.scales.as_deref(),
+            s.opacities.as_deref(),
+            s.rotations.as_deref(),
+            s.sh_dc.as_deref(),
+        );
+    }
+
+    fn push_columns(
+        &mut self,
+        ids: &[u32],
+        means: &[[f32; 3]],
+        scales: Option<&[[f32; 3]]>,
+        opacities: Option<&[f32]>,
+        rotations: Option<&[[f32; 4]]>,
+        sh_dc: Option<&[[f32; 3]]>,
+    ) {
+        let n = ids.len().min(means.len());
         let ok = |len: usize| len == n;
-        let scales = s.scales.as_ref().filter(|v| ok(v.len()));
-        let opac = s.opacities.as_ref().filter(|v| ok(v.len()));
-        let rot = s.rotations.as_ref().filter(|v| ok(v.len()));
-        let dc = s.sh_dc.as_ref().filter(|v| ok(v.len()));
+        let scales = scales.filter(|v| ok(v.len()));
+        let opac = opacities.filter(|v| ok(v.len()));
+        let rot = rotations.filter(|v| ok(v.len()));
+        let dc = sh_dc.filter(|v| ok(v.len()));
         let flags = scales.map_or(0, |_| HAS_SCALES)
             | opac.map_or(0, |_| HAS_OPACITY)
             | rot.map_or(0, |_| HAS_ROTATION)
             | dc.map_or(0, |_| HAS_DC);
-        self.ids.extend_from_slice(&s.ids[..n]);
-        self.means.extend_from_slice(&s.means[..n]);
+        self.ids.extend_from_slice(&ids[..n]);
+        self.means.extend_from_slice(&means[..n]);
         for i in 0..n {
             self.log_scales.push(scales.map_or([0.0; 3], |v| v[i]));
             self.logit_opacities

@@ -65,6 +65,8 @@ pub struct RobotPath {
     pub dir: tempfile::TempDir,
     /// The encoder's `embeddings.safetensors`.
     pub embeddings: PathBuf,
+    /// The encoder's `mixture.safetensors` when the shards are mixtures ([`Shards::Mixture`]).
+    pub mixture: Option<PathBuf>,
     /// The partitioned scene's manifest (as the shard server holds it).
     pub manifest: slag_common::shards::Manifest,
     /// Base URL of the shard server (`slag-encoder serve`).
@@ -108,17 +110,62 @@ pub fn robot_path(
     request_timeout: std::time::Duration,
     web_dir: Option<PathBuf>,
 ) -> RobotPath {
+    robot_path_with(
+        rt,
+        Shards::Dense { dtype, display },
+        request_timeout,
+        web_dir,
+    )
+}
+
+/// What [`robot_path_with`] partitions.
+#[derive(Debug, Clone, Copy)]
+pub enum Shards<'a> {
+    /// The embeddings file, as `dtype` shards, with the display columns when `display`.
+    Dense {
+        /// `f32`, `f16` or `int8`.
+        dtype: &'a str,
+        /// Pass `--display-ply`.
+        display: bool,
+    },
+    /// Encode with `--mixture-keep keep` and partition `mixture.safetensors`
+    /// (`partition --mixture`, cut to `slots` with `--mixture-slots` when given).
+    Mixture {
+        /// `encode --mixture-keep`.
+        keep: usize,
+        /// `partition --mixture-slots`.
+        slots: Option<usize>,
+    },
+}
+
+/// [`robot_path`] with the partition chosen by `shards` (dense or mixture).
+pub fn robot_path_with(
+    rt: &tokio::runtime::Runtime,
+    shards: Shards<'_>,
+    request_timeout: std::time::Duration,
+    web_dir: Option<PathBuf>,
+) -> RobotPath {
     use slag_edge::serve::{AppState, ServeOptions};
     let dir = tempfile::tempdir().expect("temporary folder");
     let out = dir.path().join("enc");
     let mut config = graph_config(&default_scene(), &out);
     config.scene.every = 2;
     config.raster.scale = 0.5;
+    let (dtype, display, mixture_slots) = match shards {
+        Shards::Dense { dtype, display } => (dtype, display, None),
+        Shards::Mixture { keep, slots } => {
+            config.aggregate.mixture_keep = Some(keep);
+            ("f16", false, slots)
+        }
+    };
+    let mixture = matches!(shards, Shards::Mixture { .. }).then(|| out.join("mixture.safetensors"));
     encode(config).expect("encode");
     let embeddings = out.join("embeddings.safetensors");
     let shard_store = dir.path().join("shards");
     slag_shards::cli::run_partition(&slag_shards::cli::PartitionArgs {
-        embeddings: Some(embeddings.clone()),
+        embeddings: mixture.is_none().then(|| embeddings.clone()),
+        mixture: mixture.clone(),
+        mixture_slots,
         synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
@@ -190,6 +237,7 @@ pub fn robot_path(
         RobotPath {
             dir,
             embeddings,
+            mixture,
             manifest,
             shard_url,
             edge,

@@ -48,6 +48,13 @@
 //! the flags before the payload length): upgrade slag-edge, or re-partition without
 //! `--display-ply`.
 //!
+//! **Version 2** ([`MIXTURE_SHARD_FORMAT_VERSION`], mixture shards only, layout in
+//! [`super::mixture`]): the same header with dtype 1 (f16: the weights) and 8 more bytes at
+//! offset 72 (slots `S` `u32`, CRC-32 of the scene's codebook file `u32`) before the strings; the
+//! payload holds ids, means, atom indices `u32[N][S]` and weights `f16[N][S]` (padded to 4 bytes)
+//! in place of the embeddings, then the same display sections. Dense shards stay version 1,
+//! byte for byte; the dense decoders refuse a version-2 shard with [`ShardError::MixtureRows`].
+//!
 //! The file is exactly `header_len + payload_len` bytes; trailing bytes are an error. The
 //! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
 //! the CRC-32 of all its bytes.
@@ -58,16 +65,23 @@ use crate::Error;
 
 /// Magic bytes opening every shard.
 pub const SHARD_MAGIC: [u8; 8] = *b"SLAGSHRD";
-/// Shard format version written by this crate (and the only one it reads).
+/// Shard format version of dense shards (f32 / f16 / int8 rows), written by [`encode_shard`].
 pub const SHARD_FORMAT_VERSION: u16 = 1;
+/// Shard format version of *mixture* shards (codebook atom indices and weights per row instead
+/// of dense vectors, [`super::mixture`]): version 1's header plus 8 bytes (slots, codebook
+/// checksum). Only mixture shards carry it, so dense shards are byte-identical to before.
+pub const MIXTURE_SHARD_FORMAT_VERSION: u16 = 2;
 /// Largest embedding width accepted when decoding (guards allocations on corrupted input).
 pub const MAX_DIM: u32 = 1 << 16;
-const FIXED_HEADER: usize = 72;
-const FLAG_SCALES: u8 = 1;
-const FLAG_OPACITIES: u8 = 2;
-const FLAG_ROTATIONS: u8 = 4;
-const FLAG_SH_DC: u8 = 8;
-const KNOWN_FLAGS: u8 = FLAG_SCALES | FLAG_OPACITIES | FLAG_ROTATIONS | FLAG_SH_DC;
+pub(super) const FIXED_HEADER: usize = 72;
+/// Bytes the mixture header (version 2) adds after the fixed header: slots `u32`, codebook
+/// checksum `u32`.
+pub(super) const MIXTURE_HEADER_EXTRA: usize = 8;
+pub(super) const FLAG_SCALES: u8 = 1;
+pub(super) const FLAG_OPACITIES: u8 = 2;
+pub(super) const FLAG_ROTATIONS: u8 = 4;
+pub(super) const FLAG_SH_DC: u8 = 8;
+pub(super) const KNOWN_FLAGS: u8 = FLAG_SCALES | FLAG_OPACITIES | FLAG_ROTATIONS | FLAG_SH_DC;
 
 /// Storage type of the embedding vectors in a shard.
 #[derive(
@@ -187,6 +201,18 @@ pub enum ShardError {
     /// A field is out of range or inconsistent (dtype code, flags, lengths, UTF-8 strings).
     #[error("malformed shard: {0}")]
     Malformed(String),
+    /// A valid mixture shard (format version [`MIXTURE_SHARD_FORMAT_VERSION`]) handed to a dense
+    /// decoder ([`decode_shard`], [`decode_shard_stored`]): its rows are codebook mixtures, not
+    /// vectors.
+    #[error(
+        "shard of tile {tile_id} holds codebook mixture rows (format version 2), not dense \
+         vectors; read it with its scene's codebook (decode_mixture_shard), or re-partition the \
+         dense embeddings"
+    )]
+    MixtureRows {
+        /// Tile id from the header.
+        tile_id: u64,
+    },
 }
 
 /// Everything the shard header says about its payload.
@@ -269,7 +295,7 @@ pub struct ShardInput<'a> {
     pub sh_dc: Option<&'a [[f32; 3]]>,
 }
 
-fn align(n: usize, a: usize) -> usize {
+pub(super) fn align(n: usize, a: usize) -> usize {
     n.div_ceil(a) * a
 }
 
@@ -380,8 +406,6 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         ));
     }
     let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
-    let (s, m) = (input.scene_id.len(), input.model.len());
-    let header_len = align(FIXED_HEADER + s + m + 4, 8);
 
     // Payload.
     let mut p: Vec<u8> = Vec::with_capacity(n * (16 + input.dtype.bytes_per_vector(d)) + 4);
@@ -413,55 +437,120 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         }
     }
     p.resize(align(p.len(), 4), 0);
+    let flags = write_display(
+        &mut p,
+        input.scales,
+        input.opacities,
+        input.rotations,
+        input.sh_dc,
+    );
+    Ok(assemble(
+        &HeaderFields {
+            version: SHARD_FORMAT_VERSION,
+            dtype: input.dtype,
+            flags,
+            dim: d as u32,
+            count: n as u32,
+            tile_id: input.tile_id,
+            aabb,
+            scene_id: input.scene_id,
+            model: input.model,
+            mixture: None,
+        },
+        p,
+    ))
+}
+
+/// Appends the display sections given (layout order) to a payload; returns their flag bits.
+pub(super) fn write_display(
+    p: &mut Vec<u8>,
+    scales: Option<&[[f32; 3]]>,
+    opacities: Option<&[f32]>,
+    rotations: Option<&[[f32; 4]]>,
+    sh_dc: Option<&[[f32; 3]]>,
+) -> u8 {
     let mut flags = 0u8;
-    if let Some(sc) = input.scales {
+    if let Some(sc) = scales {
         flags |= FLAG_SCALES;
         sc.iter()
             .flatten()
             .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
-    if let Some(op) = input.opacities {
+    if let Some(op) = opacities {
         flags |= FLAG_OPACITIES;
         op.iter()
             .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
-    if let Some(rot) = input.rotations {
+    if let Some(rot) = rotations {
         flags |= FLAG_ROTATIONS;
         rot.iter()
             .flatten()
             .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
-    if let Some(dc) = input.sh_dc {
+    if let Some(dc) = sh_dc {
         flags |= FLAG_SH_DC;
         dc.iter()
             .flatten()
             .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
     }
+    flags
+}
 
+/// The header fields [`assemble`] writes.
+pub(super) struct HeaderFields<'a> {
+    pub version: u16,
+    pub dtype: Dtype,
+    pub flags: u8,
+    pub dim: u32,
+    pub count: u32,
+    pub tile_id: u64,
+    pub aabb: Aabb,
+    pub scene_id: &'a str,
+    pub model: &'a str,
+    /// Version 2: `(slots, codebook checksum)`.
+    pub mixture: Option<(u32, u32)>,
+}
+
+/// Header bytes for the string lengths and version (a multiple of 8).
+pub(super) fn header_len_for(scene_len: usize, model_len: usize, mixture: bool) -> usize {
+    let fixed = FIXED_HEADER + if mixture { MIXTURE_HEADER_EXTRA } else { 0 };
+    align(fixed + scene_len + model_len + 4, 8)
+}
+
+/// Header (module-doc layout; the mixture extension for version 2) followed by `payload`. The
+/// caller has checked the string lengths (≤ 65535 bytes).
+pub(super) fn assemble(f: &HeaderFields<'_>, p: Vec<u8>) -> Vec<u8> {
+    let (s, m) = (f.scene_id.len(), f.model.len());
+    let header_len = header_len_for(s, m, f.mixture.is_some());
     let mut h: Vec<u8> = Vec::with_capacity(header_len + p.len());
     h.extend_from_slice(&SHARD_MAGIC);
-    h.extend_from_slice(&SHARD_FORMAT_VERSION.to_le_bytes());
-    h.push(input.dtype.code());
-    h.push(flags);
-    h.extend_from_slice(&(d as u32).to_le_bytes());
-    h.extend_from_slice(&(n as u32).to_le_bytes());
+    h.extend_from_slice(&f.version.to_le_bytes());
+    h.push(f.dtype.code());
+    h.push(f.flags);
+    h.extend_from_slice(&f.dim.to_le_bytes());
+    h.extend_from_slice(&f.count.to_le_bytes());
     h.extend_from_slice(&(header_len as u32).to_le_bytes());
-    h.extend_from_slice(&input.tile_id.to_le_bytes());
-    aabb.min
+    h.extend_from_slice(&f.tile_id.to_le_bytes());
+    f.aabb
+        .min
         .iter()
-        .chain(&aabb.max)
+        .chain(&f.aabb.max)
         .for_each(|x| h.extend_from_slice(&x.to_le_bytes()));
     h.extend_from_slice(&(p.len() as u64).to_le_bytes());
     h.extend_from_slice(&crc32fast::hash(&p).to_le_bytes());
     h.extend_from_slice(&(s as u16).to_le_bytes());
     h.extend_from_slice(&(m as u16).to_le_bytes());
-    h.extend_from_slice(input.scene_id.as_bytes());
-    h.extend_from_slice(input.model.as_bytes());
+    if let Some((slots, crc)) = f.mixture {
+        h.extend_from_slice(&slots.to_le_bytes());
+        h.extend_from_slice(&crc.to_le_bytes());
+    }
+    h.extend_from_slice(f.scene_id.as_bytes());
+    h.extend_from_slice(f.model.as_bytes());
     h.resize(header_len - 4, 0);
     let hcrc = crc32fast::hash(&h);
     h.extend_from_slice(&hcrc.to_le_bytes());
     h.extend_from_slice(&p);
-    Ok(h)
+    h
 }
 
 /// Size model of the shards of one partition: everything that fixes a shard's byte length apart
@@ -503,7 +592,7 @@ impl ShardLayout {
         }
     }
 
-    fn flags(&self) -> u8 {
+    pub(super) fn flags(&self) -> u8 {
         (if self.scales { FLAG_SCALES } else { 0 })
             | (if self.opacities { FLAG_OPACITIES } else { 0 })
             | (if self.rotations { FLAG_ROTATIONS } else { 0 })
@@ -558,13 +647,13 @@ pub fn shard_checksum(bytes: &[u8]) -> u32 {
 }
 
 /// Little-endian cursor that never panics.
-struct Reader<'a> {
-    b: &'a [u8],
-    at: usize,
+pub(super) struct Reader<'a> {
+    pub(super) b: &'a [u8],
+    pub(super) at: usize,
 }
 
 impl<'a> Reader<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], ShardError> {
+    pub(super) fn take(&mut self, n: usize) -> Result<&'a [u8], ShardError> {
         let end = self
             .at
             .checked_add(n)
@@ -586,7 +675,7 @@ impl<'a> Reader<'a> {
     fn u16(&mut self) -> Result<u16, ShardError> {
         Ok(u16::from_le_bytes(self.arr()?))
     }
-    fn u32(&mut self) -> Result<u32, ShardError> {
+    pub(super) fn u32(&mut self) -> Result<u32, ShardError> {
         Ok(u32::from_le_bytes(self.arr()?))
     }
     fn u64(&mut self) -> Result<u64, ShardError> {
@@ -597,19 +686,35 @@ impl<'a> Reader<'a> {
     }
 }
 
-fn le_f32s(b: &[u8]) -> Vec<f32> {
+pub(super) fn le_f32s(b: &[u8]) -> Vec<f32> {
     b.chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect()
 }
 
-fn triples(v: Vec<f32>) -> Vec<[f32; 3]> {
+pub(super) fn triples(v: Vec<f32>) -> Vec<[f32; 3]> {
     v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+/// A parsed, CRC-checked header ([`parse_header`]).
+pub(super) struct ParsedHeader {
+    /// The header fields.
+    pub header: ShardHeader,
+    /// Offset of the payload.
+    pub header_len: usize,
+    /// Optional-section flags.
+    pub flags: u8,
+    /// Payload bytes the header announces.
+    pub payload_len: u64,
+    /// CRC-32 of the payload the header records.
+    pub payload_crc: u32,
+    /// Version 2 only: `(slots S, codebook checksum)`.
+    pub mixture: Option<(u32, u32)>,
 }
 
 /// Decodes and fully validates the header only (checks magic, version, header CRC, lengths
 /// against `bytes.len()`); returns the header, `header_len`, flags and payload CRC.
-fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), ShardError> {
+pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
     if bytes.len() < FIXED_HEADER {
         if bytes.len() >= 8 && bytes[..8] != SHARD_MAGIC {
             return Err(ShardError::BadMagic);
@@ -624,7 +729,7 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
         return Err(ShardError::BadMagic);
     }
     let version = r.u16()?;
-    if version != SHARD_FORMAT_VERSION {
+    if version != SHARD_FORMAT_VERSION && version != MIXTURE_SHARD_FORMAT_VERSION {
         return Err(ShardError::UnsupportedVersion(version));
     }
     let dtype_code = r.arr::<1>()?[0];
@@ -644,8 +749,16 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
     let payload_crc = r.u32()?;
     let s = r.u16()? as usize;
     let m = r.u16()? as usize;
+    let (fixed, mixture) = if version == MIXTURE_SHARD_FORMAT_VERSION {
+        (
+            FIXED_HEADER + MIXTURE_HEADER_EXTRA,
+            Some((r.u32()?, r.u32()?)),
+        )
+    } else {
+        (FIXED_HEADER, None)
+    };
     if !header_len.is_multiple_of(8)
-        || header_len < align(FIXED_HEADER + s + m + 4, 8)
+        || header_len < align(fixed + s + m + 4, 8)
         || header_len > 1 << 20
     {
         return Err(ShardError::Malformed(format!(
@@ -688,6 +801,19 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
             "embedding dim {dim} outside 1..={MAX_DIM}"
         )));
     }
+    if let Some((slots, _)) = mixture {
+        if dtype != Dtype::F16 {
+            return Err(ShardError::Malformed(format!(
+                "mixture shard with weight dtype {dtype:?}; mixture weights are f16"
+            )));
+        }
+        if slots == 0 || slots > super::mixture::MAX_SLOTS {
+            return Err(ShardError::Malformed(format!(
+                "mixture slots {slots} outside 1..={}",
+                super::mixture::MAX_SLOTS
+            )));
+        }
+    }
     let header = ShardHeader {
         version,
         scene_id,
@@ -698,7 +824,14 @@ fn parse_header(bytes: &[u8]) -> Result<(ShardHeader, usize, u8, u64, u32), Shar
         aabb,
         tile_id,
     };
-    Ok((header, header_len, flags, payload_len, payload_crc))
+    Ok(ParsedHeader {
+        header,
+        header_len,
+        flags,
+        payload_len,
+        payload_crc,
+        mixture,
+    })
 }
 
 /// Expected payload length for the header fields (u64, overflow-free for u32 N and D ≤ 2^16).
@@ -708,7 +841,13 @@ fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
         Dtype::F16 => 2 * n * d,
         Dtype::I8 => 4 * n + n * d,
     };
-    let mut len = 4 * n + 12 * n + vec_bytes;
+    payload_with_rows(flags, n, vec_bytes)
+}
+
+/// Payload length of `n` rows whose row section (vectors, or mixture atoms + weights) takes
+/// `row_bytes` bytes in all: ids + means + rows, padded to 4, then the flagged display sections.
+pub(super) fn payload_with_rows(flags: u8, n: u64, row_bytes: u64) -> u64 {
+    let mut len = 4 * n + 12 * n + row_bytes;
     len = len.div_ceil(4) * 4;
     if flags & FLAG_SCALES != 0 {
         len += 12 * n;
@@ -727,7 +866,7 @@ fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
 
 /// Reads only the header of a shard (validating its CRC), without touching the payload.
 pub fn decode_header(bytes: &[u8]) -> Result<ShardHeader, ShardError> {
-    parse_header(bytes).map(|h| h.0)
+    parse_header(bytes).map(|h| h.header)
 }
 
 /// Embedding rows of a shard as stored (no dequantisation): what a scanner keeps in memory so
@@ -826,54 +965,52 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
 ///
 /// Errors: [`ShardError`] for any truncated, corrupted, foreign or inconsistent input.
 pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
-    let (header, header_len, flags, payload_len, payload_crc) = parse_header(bytes)?;
+    let parsed = match parse_header(bytes) {
+        Ok(p) if p.mixture.is_some() => {
+            return Err(ShardError::MixtureRows {
+                tile_id: p.header.tile_id,
+            });
+        }
+        Ok(p) => p,
+        // A version-2 header that does not parse as one: a version this dense decoder does not
+        // read (checked before anything else, as for every other version).
+        Err(e) => {
+            return Err(match bytes.get(8..10) {
+                Some(&[a, b])
+                    if bytes.starts_with(&SHARD_MAGIC)
+                        && u16::from_le_bytes([a, b]) == MIXTURE_SHARD_FORMAT_VERSION =>
+                {
+                    ShardError::UnsupportedVersion(MIXTURE_SHARD_FORMAT_VERSION)
+                }
+                _ => e,
+            });
+        }
+    };
+    let ParsedHeader {
+        header,
+        header_len,
+        flags,
+        payload_len,
+        payload_crc,
+        ..
+    } = parsed;
     let (n, d) = (header.count as u64, header.dim as u64);
     let expected = expected_payload(header.dtype, flags, n, d);
-    if payload_len != expected {
-        return Err(ShardError::Malformed(format!(
-            "payload length {payload_len} but {n} Gaussians of dim {d} ({:?}) need {expected}",
-            header.dtype
-        )));
-    }
-    let total = header_len as u64 + payload_len;
-    if (bytes.len() as u64) < total {
-        return Err(ShardError::Truncated {
-            needed: total,
-            got: bytes.len() as u64,
-        });
-    }
-    if (bytes.len() as u64) > total {
-        return Err(ShardError::Malformed(format!(
-            "{} trailing bytes after the payload",
-            bytes.len() as u64 - total
-        )));
-    }
-    let payload = &bytes[header_len..];
-    let computed = crc32fast::hash(payload);
-    if computed != payload_crc {
-        return Err(ShardError::Checksum {
-            section: "payload",
-            stored: payload_crc,
-            computed,
-        });
-    }
-    // Lengths are now proven to fit in memory (they sum to bytes.len()).
+    let payload = checked_payload(
+        bytes,
+        header_len,
+        payload_len,
+        payload_crc,
+        expected,
+        || format!("{n} Gaussians of dim {d} ({:?})", header.dtype),
+    )?;
     let (n, d) = (n as usize, d as usize);
     let mut r = Reader { b: payload, at: 0 };
-    let ids = r
-        .take(4 * n)?
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect();
+    let ids = read_u32s(&mut r, n)?;
     let means = triples(le_f32s(r.take(12 * n)?));
     let vectors = match header.dtype {
         Dtype::F32 => StoredVectors::F32(le_f32s(r.take(4 * n * d)?)),
-        Dtype::F16 => StoredVectors::F16(
-            r.take(2 * n * d)?
-                .chunks_exact(2)
-                .map(|c| f16::from_le_bytes([c[0], c[1]]))
-                .collect(),
-        ),
+        Dtype::F16 => StoredVectors::F16(read_f16s(&mut r, n * d)?),
         Dtype::I8 => {
             let scales = le_f32s(r.take(4 * n)?);
             let q = r.take(n * d)?.iter().map(|&b| b as i8).collect();
@@ -881,6 +1018,50 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
         }
     };
     r.at = align(r.at, 4);
+    let display = read_display(&mut r, flags, n)?;
+    Ok(StoredShard {
+        header,
+        ids,
+        means,
+        vectors,
+        scales: display.scales,
+        opacities: display.opacities,
+        rotations: display.rotations,
+        sh_dc: display.sh_dc,
+    })
+}
+
+/// `n` little-endian `u32`s.
+pub(super) fn read_u32s(r: &mut Reader<'_>, n: usize) -> Result<Vec<u32>, ShardError> {
+    Ok(r.take(4 * n)?
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect())
+}
+
+/// `n` little-endian IEEE halves.
+pub(super) fn read_f16s(r: &mut Reader<'_>, n: usize) -> Result<Vec<f16>, ShardError> {
+    Ok(r.take(2 * n)?
+        .chunks_exact(2)
+        .map(|c| f16::from_le_bytes([c[0], c[1]]))
+        .collect())
+}
+
+/// The optional display sections of a payload ([`read_display`]).
+#[derive(Debug, Default)]
+pub(super) struct DisplaySections {
+    pub scales: Option<Vec<[f32; 3]>>,
+    pub opacities: Option<Vec<f32>>,
+    pub rotations: Option<Vec<[f32; 4]>>,
+    pub sh_dc: Option<Vec<[f32; 3]>>,
+}
+
+/// Reads the display sections the flags announce, in layout order.
+pub(super) fn read_display(
+    r: &mut Reader<'_>,
+    flags: u8,
+    n: usize,
+) -> Result<DisplaySections, ShardError> {
     let scales = if flags & FLAG_SCALES != 0 {
         Some(triples(le_f32s(r.take(12 * n)?)))
     } else {
@@ -906,16 +1087,54 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
     } else {
         None
     };
-    Ok(StoredShard {
-        header,
-        ids,
-        means,
-        vectors,
+    Ok(DisplaySections {
         scales,
         opacities,
         rotations,
         sh_dc,
     })
+}
+
+/// Checks the payload length against `expected`, the file length and the payload CRC; returns
+/// the payload. `what` describes the rows for the message.
+pub(super) fn checked_payload(
+    bytes: &[u8],
+    header_len: usize,
+    payload_len: u64,
+    payload_crc: u32,
+    expected: u64,
+    what: impl FnOnce() -> String,
+) -> Result<&[u8], ShardError> {
+    if payload_len != expected {
+        return Err(ShardError::Malformed(format!(
+            "payload length {payload_len} but {} need {expected}",
+            what()
+        )));
+    }
+    let total = header_len as u64 + payload_len;
+    if (bytes.len() as u64) < total {
+        return Err(ShardError::Truncated {
+            needed: total,
+            got: bytes.len() as u64,
+        });
+    }
+    if (bytes.len() as u64) > total {
+        return Err(ShardError::Malformed(format!(
+            "{} trailing bytes after the payload",
+            bytes.len() as u64 - total
+        )));
+    }
+    let payload = &bytes[header_len..];
+    let computed = crc32fast::hash(payload);
+    if computed != payload_crc {
+        return Err(ShardError::Checksum {
+            section: "payload",
+            stored: payload_crc,
+            computed,
+        });
+    }
+    // Lengths are now proven to fit in memory (they sum to bytes.len()).
+    Ok(payload)
 }
 
 #[cfg(test)]

@@ -4,6 +4,8 @@
 //! - [`format`]: the versioned, checksummed shard byte layout ([`encode_shard`], [`decode_shard`]);
 //! - [`tiles`]: ground frame, [`Manifest`], [`TileInfo`] and the `rstar` [`TileIndex`] for
 //!   [`TileIndex::select_tiles`] (closed-disc radius selection on the ground plane);
+//! - [`mixture`]: mixture shards (codebook atom indices and weights per Gaussian, format
+//!   version 2) and the scene's codebook file;
 //! - [`frame`]: the scene-to-map similarity transform ([`SceneToMap`]) recorded in the manifest;
 //! - [`synthetic`]: deterministic synthetic scenes for tests and scale measurements;
 //! - [`GaussianSource`]: what partitioning reads (implemented by
@@ -12,17 +14,23 @@
 mod eigen;
 pub mod format;
 pub mod frame;
+pub mod mixture;
 pub mod synthetic;
 pub mod tiles;
 
 pub use format::{
-    Aabb, Dtype, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError, ShardHeader, ShardInput,
-    ShardLayout, StoredShard, StoredVectors, decode_header, decode_shard, decode_shard_stored,
-    encode_shard, shard_checksum,
+    Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard,
+    ShardError, ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors, decode_header,
+    decode_shard, decode_shard_stored, encode_shard, shard_checksum,
 };
 pub use frame::{Frames, MAP_FRAME, MapSource, SCENE_FRAME, SceneToMap};
+pub use mixture::{
+    CODEBOOK_TILE, Codebook, MixtureLayout, MixtureShard, MixtureShardInput, decode_codebook,
+    decode_mixture_shard, encode_codebook, encode_mixture_shard,
+};
 pub use tiles::{
-    GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, TileIndex, TileInfo, UpSource,
+    GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, MIXTURE_MANIFEST_VERSION, Manifest,
+    MixtureInfo, TileIndex, TileInfo, UpSource,
 };
 
 use crate::embeddings::Embeddings;
@@ -228,6 +236,27 @@ impl GaussianSource for Embeddings {
     }
     fn vector_into(&self, i: usize, out: &mut [f32]) {
         out.copy_from_slice(self.vector(i));
+    }
+}
+
+/// The reconstructed rows of a mixture (`Σ_s weights · codebook[atoms]`, unit norm up to f16
+/// rounding): a mixture can be partitioned densely (e.g. for Qdrant) like any embeddings file.
+impl GaussianSource for crate::mixture::MixtureEmbeddings {
+    fn ids(&self) -> &[u32] {
+        &self.gaussian_ids
+    }
+    fn means(&self) -> &[[f32; 3]] {
+        &self.means
+    }
+    fn dim(&self) -> usize {
+        self.dim
+    }
+    fn model(&self) -> &str {
+        &self.model_id
+    }
+    fn vector_into(&self, i: usize, out: &mut [f32]) {
+        out.iter_mut().for_each(|v| *v = 0.0);
+        self.add_vector_into(i, out);
     }
 }
 

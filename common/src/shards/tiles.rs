@@ -14,8 +14,11 @@ use crate::{Error, Result};
 
 /// Manifest `format` field.
 pub const MANIFEST_FORMAT: &str = "slag-shards-manifest";
-/// Manifest schema version.
+/// Manifest schema version of dense scenes.
 pub const MANIFEST_VERSION: u32 = 1;
+/// Manifest schema version of mixture scenes (with [`Manifest::mixture`]): an older reader
+/// refuses it by version instead of misreading its shards.
+pub const MIXTURE_MANIFEST_VERSION: u32 = 2;
 
 /// Where the ground plane's up axis came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -236,6 +239,20 @@ impl TileInfo {
     }
 }
 
+/// The codebook of a mixture scene ([`super::mixture`]), listed in its manifest like a shard.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct MixtureInfo {
+    /// Slots per Gaussian S in every shard.
+    pub slots: u32,
+    /// Codebook rows A.
+    pub atoms: u32,
+    /// Size of the codebook file in bytes.
+    pub codebook_bytes: u64,
+    /// CRC-32 of the whole codebook file ([`super::shard_checksum`]), 8 lowercase hex digits;
+    /// every shard's header names the same value.
+    pub codebook_checksum: String,
+}
+
 /// The scene's shard catalogue (`manifest.json`, `GET /v1/scenes/{scene}/manifest`).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Manifest {
@@ -263,6 +280,11 @@ pub struct Manifest {
     /// before it existed: no map frame (fetch radii and answers in scene units).
     #[serde(default)]
     pub frames: super::Frames,
+    /// Mixture scenes only ([`MIXTURE_MANIFEST_VERSION`], shard format version 2): slots per
+    /// Gaussian and the codebook file. Absent (and not written) for dense scenes, whose
+    /// manifests are byte-identical to version 1's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mixture: Option<MixtureInfo>,
     /// `--max-per-shard` used.
     pub max_per_shard: u64,
     /// Gaussians over all tiles.
@@ -278,14 +300,59 @@ impl Manifest {
     pub fn from_json(bytes: &[u8], origin: &str) -> Result<Manifest> {
         let m: Manifest = serde_json::from_slice(bytes)
             .map_err(|e| Error::format(origin, format!("not a slag shard manifest: {e}")))?;
-        if m.format != MANIFEST_FORMAT || m.manifest_version != MANIFEST_VERSION {
+        if m.format != MANIFEST_FORMAT
+            || (m.manifest_version != MANIFEST_VERSION
+                && m.manifest_version != MIXTURE_MANIFEST_VERSION)
+        {
             return Err(Error::format(
                 origin,
                 format!(
-                    "manifest {} v{}, expected {MANIFEST_FORMAT} v{MANIFEST_VERSION}",
+                    "manifest {} v{}, expected {MANIFEST_FORMAT} v{MANIFEST_VERSION} or \
+                     v{MIXTURE_MANIFEST_VERSION}; upgrade slag or re-partition",
                     m.format, m.manifest_version
                 ),
             ));
+        }
+        let mixture = m.manifest_version == MIXTURE_MANIFEST_VERSION;
+        let shard_version = if mixture {
+            super::format::MIXTURE_SHARD_FORMAT_VERSION
+        } else {
+            super::SHARD_FORMAT_VERSION
+        };
+        if mixture != m.mixture.is_some() || m.shard_format_version != shard_version {
+            return Err(Error::format(
+                origin,
+                format!(
+                    "manifest v{} with shard format {} {} a mixture section; v{MANIFEST_VERSION} \
+                     (shard format 1) describes dense shards, v{MIXTURE_MANIFEST_VERSION} (shard \
+                     format 2) mixture shards and their codebook: re-partition",
+                    m.manifest_version,
+                    m.shard_format_version,
+                    if m.mixture.is_some() {
+                        "and"
+                    } else {
+                        "without"
+                    }
+                ),
+            ));
+        }
+        if let Some(x) = &m.mixture {
+            let hex = x.codebook_checksum.len() == 8
+                && u32::from_str_radix(&x.codebook_checksum, 16).is_ok();
+            if !hex || x.slots == 0 || x.slots > super::mixture::MAX_SLOTS || m.dtype != Dtype::F16
+            {
+                return Err(Error::format(
+                    origin,
+                    format!(
+                        "mixture section (slots {}, codebook checksum {:?}, dtype {:?}) is \
+                         invalid: slots 1..={}, 8 hex digits, f16 weights",
+                        x.slots,
+                        x.codebook_checksum,
+                        m.dtype,
+                        super::mixture::MAX_SLOTS
+                    ),
+                ));
+            }
         }
         Ok(m)
     }
@@ -430,6 +497,64 @@ mod tests {
                 .filter(|&(_, &(x, y, w, h))| rect_distance([cx, cy], [x as f64, y as f64], [(x + w) as f64, (y + h) as f64]) <= r)
                 .map(|(i, _)| i as u64).collect();
             prop_assert_eq!(got, want);
+        }
+    }
+
+    fn manifest(mixture: Option<MixtureInfo>) -> Manifest {
+        Manifest {
+            format: MANIFEST_FORMAT.into(),
+            manifest_version: if mixture.is_some() {
+                MIXTURE_MANIFEST_VERSION
+            } else {
+                MANIFEST_VERSION
+            },
+            shard_format_version: if mixture.is_some() { 2 } else { 1 },
+            scene_id: "s".into(),
+            generation: 1,
+            model: "m".into(),
+            dim: 4,
+            dtype: Dtype::F16,
+            ground: GroundFrame::from_up([0.0, 0.0, 1.0], UpSource::User).expect("frame"),
+            frames: Default::default(),
+            mixture,
+            max_per_shard: 10,
+            total_gaussians: 1,
+            tiles: vec![tile(0, [0.0, 0.0], [1.0, 1.0])],
+        }
+    }
+
+    #[test]
+    fn mixture_manifests_are_version_2_and_dense_ones_unchanged() {
+        let dense = manifest(None);
+        let json = String::from_utf8(dense.to_json()).expect("utf8");
+        assert!(!json.contains("mixture"), "{json}");
+        assert_eq!(
+            Manifest::from_json(json.as_bytes(), "t").expect("v1"),
+            dense
+        );
+        let info = MixtureInfo {
+            slots: 8,
+            atoms: 300,
+            codebook_bytes: 1234,
+            codebook_checksum: "0badf00d".into(),
+        };
+        let mix = manifest(Some(info.clone()));
+        let back = Manifest::from_json(&mix.to_json(), "t").expect("v2");
+        assert_eq!(back.mixture, Some(info.clone()));
+        // Version and section must agree, the checksum must be hex, slots in range.
+        let mut v1_with_section = mix.clone();
+        v1_with_section.manifest_version = MANIFEST_VERSION;
+        let mut v2_without = dense.clone();
+        v2_without.manifest_version = MIXTURE_MANIFEST_VERSION;
+        let mut bad_sum = mix.clone();
+        bad_sum.mixture.as_mut().expect("m").codebook_checksum = "xyz".into();
+        let mut no_slots = mix.clone();
+        no_slots.mixture.as_mut().expect("m").slots = 0;
+        let mut v3 = mix;
+        v3.manifest_version = 3;
+        for m in [v1_with_section, v2_without, bad_sum, no_slots, v3] {
+            let r = Manifest::from_json(&m.to_json(), "t");
+            assert!(matches!(r, Err(Error::Format { .. })), "{r:?}");
         }
     }
 

@@ -69,6 +69,13 @@ pub struct BenchArgs {
     /// candidates on the f32 originals).
     #[arg(long, default_value_t = 1.0)]
     pub qdrant_oversampling: f64,
+    /// Codebook rows of the mixture table (a synthetic mixture store per size, against f16 and
+    /// int8 copies of the same Gaussians); 0 = no mixture table.
+    #[arg(long, default_value_t = 4000)]
+    pub mixture_atoms: usize,
+    /// Slots per Gaussian S of the mixture table.
+    #[arg(long, default_value_t = 8)]
+    pub mixture_slots: usize,
 }
 
 impl Default for BenchArgs {
@@ -89,6 +96,8 @@ impl Default for BenchArgs {
             qdrant: false,
             qdrant_dir: None,
             qdrant_oversampling: 1.0,
+            mixture_atoms: 4000,
+            mixture_slots: 8,
         }
     }
 }
@@ -487,6 +496,26 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     if !qrows.is_empty() {
         out.push('\n');
         out.push_str(&qdrant_table(args, &qrows));
+    }
+    if args.mixture_atoms > 0 {
+        out.push('\n');
+        out.push_str(&super::bench_mixture::mixture_table(
+            &super::bench_mixture::MixtureBench {
+                sizes: &args.sizes,
+                dim,
+                atoms: args.mixture_atoms,
+                slots: args.mixture_slots,
+                dense: &dtypes,
+                top_k: args.top_k,
+                threshold: args.threshold,
+                centres: &centres,
+                clusters: CLUSTERS,
+                seed: args.seed,
+                qvecs: &qvecs,
+                negs: &negs,
+                limit,
+            },
+        )?);
     }
     out.push('\n');
     out.push_str(&kernel_table(args, &dtypes)?);
@@ -982,5 +1011,36 @@ mod tests {
             skipped.contains("Skipped (memory guard): 3K f32"),
             "{skipped}"
         );
+    }
+
+    #[test]
+    fn tiny_bench_has_a_mixture_table_against_the_same_gaussians() {
+        let md = run_bench(&BenchArgs {
+            sizes: vec![3000],
+            dim: 32,
+            top_k: 10,
+            queries: 2,
+            threads: Some(2),
+            hnsw_size: 0,
+            mixture_atoms: 600,
+            mixture_slots: 4,
+            ..BenchArgs::default()
+        })
+        .expect("bench");
+        assert!(md.contains("| 3000 | mixture S=4 |"), "{md}");
+        assert!(md.contains("| 3000 | f16 | 80 | 80 |"), "{md}");
+        assert!(md.contains("| 3000 | int8 | 52 | 52 |"), "{md}");
+        // f16 copies of the same Gaussians agree with the mixture's exact answer.
+        let f16_row = md
+            .lines()
+            .find(|l| l.starts_with("| 3000 | f16 |"))
+            .expect("row");
+        let iou: f64 = f16_row
+            .trim_end_matches(" |")
+            .rsplit("| ")
+            .next()
+            .and_then(|v| v.trim().parse().ok())
+            .expect("IoU");
+        assert!(iou > 0.8, "{f16_row}");
     }
 }

@@ -1,6 +1,7 @@
 //! Exact and approximate text-query scans over the robot's stored embeddings.
 //!
-//! - [`VectorStore`]: all stored rows (f32, f16 or int8, as fetched) with ids and means;
+//! - [`VectorStore`]: all stored rows (f32, f16 or int8, as fetched, or codebook mixtures,
+//!   [`mixture`]) with ids and means;
 //! - [`scan`]: the exact multi-threaded scan: `Q` query vectors (1 ≤ Q ≤ [`MAX_QUERIES`]) dotted
 //!   with every row in one pass over memory, scores combined per row (plain cosine for Q = 1, e.g.
 //!   [`lerf_relevancy`] for a positive prompt plus canonical negatives), then a top-k and/or
@@ -15,8 +16,10 @@
 //! never copies or dequantises the store.
 
 pub mod bench;
+mod bench_mixture;
 pub mod hnsw;
 mod kernels;
+pub mod mixture;
 #[cfg(feature = "qdrant-edge")]
 mod qdrant_cmp;
 pub mod select;
@@ -28,6 +31,7 @@ use slag_common::Error;
 use slag_common::shards::StoredVectors;
 
 pub use bench::{BenchArgs, run_bench};
+pub use bench_mixture::synthetic_mixture;
 pub use kernels::{MAX_QUERIES, avx2_fma_available};
 pub use select::{Hit, TopK};
 pub use store::VectorStore;
@@ -278,6 +282,8 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
         Some(_) => Some(&inside),
         None => None,
     };
+    // Mixture rows: the queries against the codebook once, then S multiply-adds per row.
+    let mix = store.mixture().map(|m| (m, m.project(&queries)));
     (0..chunks)
         .into_par_iter()
         .fold(
@@ -288,7 +294,18 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
                 let end = (start + cr).min(n);
                 dots.clear();
                 dots.resize(end - start, [f32::NAN; Q]);
-                kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &queries, keep, &mut dots);
+                match &mix {
+                    Some((m, proj)) => m.scan_chunk::<Q>(proj, start, end, keep, &mut dots),
+                    None => kernels::scan_chunk::<Q>(
+                        store.vectors(),
+                        d,
+                        start,
+                        end,
+                        &queries,
+                        keep,
+                        &mut dots,
+                    ),
+                }
                 for (r, row_dots) in dots.iter().enumerate() {
                     let i = start + r;
                     if bbox.is_none() || inside(i) {

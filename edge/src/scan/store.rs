@@ -6,7 +6,9 @@ use rayon::prelude::*;
 use slag_common::Error;
 use slag_common::rng::splitmix64 as splitmix;
 use slag_common::shards::format::quantize_i8;
-use slag_common::shards::{Dtype, StoredShard, StoredVectors};
+use slag_common::shards::{Dtype, MixtureShard, StoredShard, StoredVectors};
+
+use super::mixture::MixtureRows;
 
 /// All embedding rows held by the robot, concatenated shard after shard, kept in the stored type
 /// (no f32 copy): `f32` = 4 B per value, `f16` = 2 B per value, `int8` = 1 B per value + one
@@ -15,12 +17,18 @@ use slag_common::shards::{Dtype, StoredShard, StoredVectors};
 /// Row `i` describes the Gaussian `ids()[i]` (index in the source `.ply`) centred at `means()[i]`
 /// (world frame, scene units). Rows are expected to be (approximately) unit L2 norm, as written
 /// by the encoder, so a dot product with a unit query is the cosine similarity.
+///
+/// A *mixture* store ([`VectorStore::new_mixture`], from mixture shards) holds codebook mixtures
+/// instead ([`MixtureRows`]): [`VectorStore::vectors`] is then empty, [`VectorStore::dtype`]
+/// says f16 (the stored weights and codebook), and the scan scores each row as the exact cosine
+/// of its reconstruction.
 #[derive(Debug, Clone)]
 pub struct VectorStore {
     dim: usize,
     ids: Vec<u32>,
     means: Vec<[f32; 3]>,
     vectors: StoredVectors,
+    mixture: Option<MixtureRows>,
 }
 
 fn empty_vectors(dtype: Dtype) -> StoredVectors {
@@ -114,6 +122,9 @@ impl VectorStore {
             .try_reserve_exact(rows)
             .map_err(|e| refused("means", e))?;
         let vectors = |e| refused("vectors", e);
+        if let Some(m) = &mut self.mixture {
+            return m.try_reserve(rows).map_err(vectors);
+        }
         match &mut self.vectors {
             StoredVectors::F32(v) => reserve_on_huge_pages(v, values).map_err(vectors)?,
             StoredVectors::F16(v) => reserve_on_huge_pages(v, values).map_err(vectors)?,
@@ -143,7 +154,68 @@ impl VectorStore {
             ids: Vec::new(),
             means: Vec::new(),
             vectors: empty_vectors(dtype),
+            mixture: None,
         })
+    }
+
+    /// An empty mixture store over a scene's codebook (`[A * dim]` row-major, the values of the
+    /// codebook file whose CRC-32 is `codebook_crc`) with `slots` slots per row; fill it with
+    /// [`VectorStore::push_mixture_shard`].
+    ///
+    /// Errors: [`Error::Param`] for `dim == 0`, `slots == 0`, or an empty codebook or one that
+    /// is not rows of `dim` values.
+    pub fn new_mixture(
+        dim: usize,
+        slots: usize,
+        codebook: Vec<f32>,
+        codebook_crc: u32,
+    ) -> Result<VectorStore, Error> {
+        let mut store = VectorStore::new(dim, Dtype::F16)?;
+        store.mixture = Some(MixtureRows::new(dim, slots, codebook, codebook_crc)?);
+        Ok(store)
+    }
+
+    /// The mixture rows of a mixture store; `None` for a dense one.
+    pub fn mixture(&self) -> Option<&MixtureRows> {
+        self.mixture.as_ref()
+    }
+
+    /// True for a mixture store ([`VectorStore::new_mixture`]).
+    pub fn is_mixture(&self) -> bool {
+        self.mixture.is_some()
+    }
+
+    /// Appends every row of a decoded mixture shard: weights scaled by each row's reconstruction
+    /// norm, empty slots made harmless (module doc of [`super::mixture`]).
+    ///
+    /// Errors: [`Error::Mismatch`] for a dense store, or a shard of another width, slot count
+    /// or codebook; [`Error::Format`] for an atom beyond the codebook; [`Error::Invalid`] for
+    /// arrays that disagree with its count. The store is unchanged on error.
+    pub fn push_mixture_shard(&mut self, shard: MixtureShard) -> Result<(), Error> {
+        let Some(m) = &mut self.mixture else {
+            return Err(Error::mismatch(
+                slag_common::Mismatched::Dtype,
+                format!(
+                    "mixture shard (tile {}) but the store holds dense {} rows; fetch shards of \
+                     one partition into one store",
+                    shard.header.tile_id,
+                    dtype_name(self.vectors.dtype())
+                ),
+            ));
+        };
+        m.check(&shard)?;
+        if shard.means.len() != shard.ids.len() {
+            return Err(Error::Invalid(format!(
+                "mixture shard (tile {}) has {} ids but {} means; re-download it",
+                shard.header.tile_id,
+                shard.ids.len(),
+                shard.means.len()
+            )));
+        }
+        m.push_checked(&shard);
+        self.ids.extend_from_slice(&shard.ids);
+        self.means.extend_from_slice(&shard.means);
+        Ok(())
     }
 
     /// Appends every row of a decoded shard (vectors moved, not converted).
@@ -154,6 +226,16 @@ impl VectorStore {
     pub fn push_shard(&mut self, shard: StoredShard) -> Result<(), Error> {
         let h = &shard.header;
         let n = shard.ids.len();
+        if self.mixture.is_some() {
+            return Err(Error::mismatch(
+                slag_common::Mismatched::Dtype,
+                format!(
+                    "dense shard (tile {}) but the store holds codebook mixtures; fetch shards \
+                     of one partition into one store",
+                    h.tile_id
+                ),
+            ));
+        }
         if h.dim as usize != self.dim {
             return Err(Error::mismatch(
                 slag_common::Mismatched::EmbeddingWidth,
@@ -235,6 +317,12 @@ impl VectorStore {
                 self.dim
             )));
         }
+        if self.mixture.is_some() {
+            return Err(Error::mismatch(
+                slag_common::Mismatched::Dtype,
+                "dense rows for a store of codebook mixtures; use a dense store",
+            ));
+        }
         if vectors.iter().any(|x| !x.is_finite()) {
             return Err(Error::Invalid(
                 "embedding rows contain NaN or infinite values; re-encode the scene".into(),
@@ -281,7 +369,7 @@ impl VectorStore {
     pub fn is_empty(&self) -> bool {
         self.ids.is_empty()
     }
-    /// Storage type of the rows.
+    /// Storage type of the rows (f16 for a mixture store: its weights and codebook).
     pub fn dtype(&self) -> Dtype {
         self.vectors.dtype()
     }
@@ -298,9 +386,13 @@ impl VectorStore {
         &self.vectors
     }
 
-    /// Bytes of the embedding rows (values plus int8 scales), not counting ids and means.
+    /// Bytes of the embedding rows (values plus int8 scales; a mixture store's codebook plus
+    /// its slots), not counting ids and means.
     pub fn vector_bytes(&self) -> usize {
-        self.len() * self.dtype().bytes_per_vector(self.dim)
+        match &self.mixture {
+            Some(m) => m.memory_bytes(),
+            None => self.len() * self.dtype().bytes_per_vector(self.dim),
+        }
     }
 
     /// Bytes held by the store's live data: rows + ids (4 B) + means (12 B) per Gaussian.
@@ -310,9 +402,13 @@ impl VectorStore {
         self.vector_bytes() + self.len() * (4 + 12)
     }
 
-    /// Bytes per Gaussian: `dtype.bytes_per_vector(dim) + 16` (id + mean).
+    /// Bytes per Gaussian: `dtype.bytes_per_vector(dim) + 16` (id + mean); for a mixture store
+    /// `8 · S + 16` (u32 atom + f32 weight per slot; the shared codebook is not counted).
     pub fn bytes_per_gaussian(&self) -> usize {
-        self.dtype().bytes_per_vector(self.dim) + 16
+        match &self.mixture {
+            Some(m) => 8 * m.slots() + 16,
+            None => self.dtype().bytes_per_vector(self.dim) + 16,
+        }
     }
 
     /// Row `i` dequantised to `f32` (`[D]`), or `None` when `i >= len()`. For tests and index
@@ -320,6 +416,9 @@ impl VectorStore {
     pub fn row_f32(&self, i: usize) -> Option<Vec<f32>> {
         if i >= self.len() {
             return None;
+        }
+        if let Some(m) = &self.mixture {
+            return m.row_f32(i);
         }
         let d = self.dim;
         let r = i * d..(i + 1) * d;

@@ -136,6 +136,7 @@ pub fn grid_scene(
         dtype,
         ground: GroundFrame::from_axis_name("z").unwrap(),
         frames: Default::default(),
+        mixture: None,
         max_per_shard: per_tile as u64,
         total_gaussians: (nx * ny * per_tile) as u64,
         tiles,

@@ -10,10 +10,11 @@ use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap};
 
 use crate::partition::{
-    DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice,
-    resolve_max_per_shard, shard_layout, storage_report,
+    DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice, mixture_layout,
+    resolve_max_per_shard, resolve_mixture_max_per_shard, shard_layout, storage_report,
 };
-use crate::store::{ShardStore, partition_into_store};
+use crate::store::{ShardStore, partition_into_store, partition_mixture_into_store};
+use slag_common::mixture::MixtureEmbeddings;
 
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
 #[derive(Debug, Clone, clap::Args)]
@@ -21,10 +22,22 @@ pub struct PartitionArgs {
     /// Embeddings file written by `slag-encoder encode` (safetensors).
     #[arg(
         long,
-        required_unless_present = "synthetic",
-        conflicts_with = "synthetic"
+        required_unless_present_any = ["synthetic", "mixture"],
+        conflicts_with_all = ["synthetic", "mixture"]
     )]
     pub embeddings: Option<PathBuf>,
+    /// Instead of --embeddings: the mixture file of `slag-encoder encode --mixture-keep S`
+    /// (`OUT/mixture.safetensors`): the shards then hold each Gaussian's codebook slots (atom
+    /// indices + f16 weights, shard format 2) and the scene's codebook is stored beside them
+    /// (manifest version 2). Not picked up implicitly: a partition of --embeddings stays dense.
+    /// --dtype does not apply (weights and codebook are f16); not for Qdrant.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["synthetic", "qdrant_url"])]
+    pub mixture: Option<PathBuf>,
+    /// With --mixture: keep only each Gaussian's S strongest slots (slots are ordered by weight),
+    /// as `eval-colors --held-out` scores "S cut from 16" (8 is its best point); default: every
+    /// slot the file has.
+    #[arg(long, value_name = "S", requires = "mixture")]
+    pub mixture_slots: Option<usize>,
     /// Instead of an embeddings file: a synthetic scene of N Gaussians (`N` or `N:DIM`, default
     /// dim 512; 64 clusters over 2 km × 2 km, z up, random unit vectors), for scale and load tests.
     /// Vectors are generated per tile, never all in memory.
@@ -144,6 +157,23 @@ impl PartitionArgs {
         })
     }
 
+    /// [`Self::up_choice`], else the mean camera up of `--cameras`, else PCA.
+    fn up_or_cameras(&self, to_map: Option<&SceneToMap>) -> anyhow::Result<UpChoice> {
+        Ok(if let Some(u) = self.up_choice(to_map)? {
+            u
+        } else if let Some(dir) = &self.cameras {
+            let views = slag_common::camera::load_views(dir)?;
+            UpChoice::CameraUps(
+                views
+                    .iter()
+                    .map(|v| (-v.world_to_camera.rotation.row(1)).to_array())
+                    .collect(),
+            )
+        } else {
+            UpChoice::Pca
+        })
+    }
+
     /// The tile cap asked for: `--max-per-shard N` when given (a count), else `--max-shard-mb`
     /// (bytes; default [`DEFAULT_MAX_SHARD_MIB`]).
     ///
@@ -177,15 +207,7 @@ fn partition_source(
         to_map,
     };
     let m = partition_into_store(store, src, &params).context("partition")?;
-    let bytes = store
-        .scene_bytes(&m.scene_id)?
-        .context("the partition was committed but its scene is missing from the store")?;
-    let report = storage_report(&m, scene_gaussians, bytes);
-    println!("{report}");
-    if let Some(path) = &args.report {
-        let json = serde_json::to_vec_pretty(&report).context("report JSON")?;
-        slag_common::embeddings::write_atomic(path, &json)?;
-    }
+    let report = report_partition(args, store, &m, scene_gaussians)?;
     Ok((m, report))
 }
 
@@ -200,24 +222,15 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     if let Some(spec) = &args.synthetic {
         return run_partition_synthetic(args, spec);
     }
+    if let Some(path) = &args.mixture {
+        return run_partition_mixture(args, path);
+    }
     let Some(path) = &args.embeddings else {
-        anyhow::bail!("pass --embeddings FILE (or --synthetic N)");
+        anyhow::bail!("pass --embeddings FILE (or --mixture FILE, or --synthetic N)");
     };
     let to_map = args.scene_to_map()?;
     let emb = Embeddings::read(path)?;
-    let up = if let Some(u) = args.up_choice(to_map.as_ref())? {
-        u
-    } else if let Some(dir) = &args.cameras {
-        let views = slag_common::camera::load_views(dir)?;
-        UpChoice::CameraUps(
-            views
-                .iter()
-                .map(|v| (-v.world_to_camera.rotation.row(1)).to_array())
-                .collect(),
-        )
-    } else {
-        UpChoice::Pca
-    };
+    let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
     // The embeddings file records the source .ply's Gaussian count (0 in files without it).
     let mut scene_gaussians = Some(emb.scene_gaussians).filter(|&n| n > 0);
@@ -277,6 +290,94 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// `partition --mixture FILE [--mixture-slots S]`: mixture shards + codebook (module doc of
+/// [`slag_common::shards::mixture`]).
+fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<()> {
+    let to_map = args.scene_to_map()?;
+    let full = MixtureEmbeddings::read(path)?;
+    let mix = match args.mixture_slots {
+        Some(s) => full.truncated(s)?,
+        None => full,
+    };
+    let up = args.up_or_cameras(to_map.as_ref())?;
+    let t = std::time::Instant::now();
+    let (m, report) = match &args.display_ply {
+        Some(ply) => {
+            let g = slag_common::scene::load_ply(
+                ply,
+                slag_common::scene::PlyLoadOptions { colours: true },
+            )?;
+            let n = g.len() as u64;
+            let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
+            drop(g);
+            let src = slag_common::shards::WithDisplay::from_columns(&mix, &cols)?;
+            partition_mixture_source(args, &src, &mix, up, to_map, Some(n))?
+        }
+        None => partition_mixture_source(args, &mix, &mix, up, to_map, None)?,
+    };
+    println!(
+        "scene {} generation {}: {} Gaussians as mixtures of {} slots over {} codebook rows in {} \
+         shards + codebook, {} bytes ({:.1} B/Gaussian), up {:?} ({:?}), {:.1}s",
+        m.scene_id,
+        m.generation,
+        m.total_gaussians,
+        mix.keep,
+        mix.codebook_len(),
+        m.tiles.len(),
+        report.bytes_stored,
+        report.bytes_stored as f64 / m.total_gaussians.max(1) as f64,
+        m.ground.up,
+        m.ground.up_source,
+        t.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// [`partition_source`] for a mixture: `src` gives ids, means and display columns of `mix`'s
+/// rows.
+fn partition_mixture_source(
+    args: &PartitionArgs,
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    up: UpChoice,
+    to_map: Option<SceneToMap>,
+    scene_gaussians: Option<u64>,
+) -> anyhow::Result<(Manifest, StorageReport)> {
+    let layout = mixture_layout(src, &args.scene, mix.keep);
+    let max_per_shard = resolve_mixture_max_per_shard(&layout, args.shard_cap()?)?;
+    let store = &ShardStore::open(&args.store)?;
+    let params = PartitionParams {
+        scene_id: args.scene.clone(),
+        max_per_shard,
+        up,
+        dtype: Dtype::F16,
+        to_map,
+    };
+    let m = partition_mixture_into_store(store, src, mix, &params).context("partition")?;
+    let report = report_partition(args, store, &m, scene_gaussians)?;
+    Ok((m, report))
+}
+
+/// Measures the committed partition's bytes from the store, prints the [`StorageReport`] and
+/// writes it with `--report`.
+fn report_partition(
+    args: &PartitionArgs,
+    store: &ShardStore,
+    m: &Manifest,
+    scene_gaussians: Option<u64>,
+) -> anyhow::Result<StorageReport> {
+    let bytes = store
+        .scene_bytes(&m.scene_id)?
+        .context("the partition was committed but its scene is missing from the store")?;
+    let report = storage_report(m, scene_gaussians, bytes);
+    println!("{report}");
+    if let Some(path) = &args.report {
+        let json = serde_json::to_vec_pretty(&report).context("report JSON")?;
+        slag_common::embeddings::write_atomic(path, &json)?;
+    }
+    Ok(report)
 }
 
 /// `partition --synthetic N[:DIM]`: a [`SyntheticScene`] (z up) straight into the store.
@@ -420,6 +521,8 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
             let flag = match *name {
                 "up" => "--up x|y|z|-x|-y|-z",
                 "dtype" => "--dtype f32",
+                "mixture_slots" => "--mixture-slots S (1 to the file's keep)",
+                "qdrant_url" => "--embeddings FILE for the scene you upload (not --mixture)",
                 "max_per_shard" => "--max-per-shard N",
                 "max_shard_mib" => "--max-shard-mb MIB (or --max-per-shard N)",
                 "batch_size" => "--qdrant-batch N",

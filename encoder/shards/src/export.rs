@@ -2,8 +2,9 @@
 //! host or object store.
 //!
 //! Layout: `DIR/manifest.json` (the same JSON as `GET /v1/scenes/{scene}/manifest`) and
-//! `DIR/shards/{id}` (the same bytes as `GET /v1/scenes/{scene}/shards/{id}`), so serving `DIR`
-//! at `/v1/scenes/{scene}/` reproduces the shard URLs.
+//! `DIR/shards/{id}` (the same bytes as `GET /v1/scenes/{scene}/shards/{id}`), plus, for a
+//! mixture scene, `DIR/codebook` (`GET /v1/scenes/{scene}/codebook`), so serving `DIR` at
+//! `/v1/scenes/{scene}/` reproduces the shard URLs.
 //!
 //! Atomic: everything is written into a hidden sibling `.DIR.partial-<pid>` (each file fsynced,
 //! `manifest.json` last), then renamed to `DIR`. A killed export leaves at most that hidden
@@ -99,6 +100,22 @@ fn write_tree(store: &ShardStore, manifest: &Manifest, tmp: &Path) -> Result<()>
             ));
         }
         write_synced(&shards.join(t.id.to_string()), &bytes)?;
+    }
+    if let Some(x) = &manifest.mixture {
+        let bytes = store.codebook(&manifest.scene_id)?.ok_or_else(|| {
+            Error::format(
+                "<shard store>",
+                "the mixture scene's codebook is missing; re-run partition",
+            )
+        })?;
+        if format!("{:08x}", shard_checksum(&bytes)) != x.codebook_checksum {
+            return Err(Error::format(
+                "<shard store>",
+                "codebook checksum differs from the manifest; the store changed during export, \
+                 re-run",
+            ));
+        }
+        write_synced(&tmp.join("codebook"), &bytes)?;
     }
     write_synced(&tmp.join("manifest.json"), &manifest.to_json())?;
     for d in [&shards, tmp] {

@@ -16,10 +16,12 @@
 //! naive dense `N × D` f32 tensor of the whole scene.
 
 use rayon::prelude::*;
+use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::{
-    Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, Manifest,
-    SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo, encode_shard,
-    shard_checksum, valid_scene_id,
+    Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
+    MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo, MixtureLayout,
+    MixtureShardInput, SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo,
+    encode_codebook, encode_mixture_shard, encode_shard, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -271,24 +273,35 @@ pub fn plan_tiles(
     Ok(tiles)
 }
 
-/// Encodes the shard of one planned tile.
-///
-/// Errors: as [`encode_shard`].
-pub fn encode_tile(
-    src: &impl GaussianSource,
-    scene_id: &str,
-    dtype: Dtype,
-    plan: &TilePlan,
-) -> Result<(TileInfo, Vec<u8>)> {
-    let d = src.dim();
+/// The columns of one tile other than its embeddings: ids, means and the display columns the
+/// source has ([`GaussianSource::display`] for row 0 decides, as for every tile).
+struct TileColumns {
+    ids: Vec<u32>,
+    means: Vec<[f32; 3]>,
+    display: Option<(Vec<[f32; 3]>, Vec<f32>)>,
+    rotations: Option<Vec<[f32; 4]>>,
+    sh_dc: Option<Vec<[f32; 3]>>,
+}
+
+impl TileColumns {
+    fn info(&self, plan: &TilePlan, bytes: &[u8]) -> TileInfo {
+        TileInfo {
+            id: plan.id,
+            footprint: TileInfo::rect_ring(plan.min, plan.max),
+            aabb: slag_common::shards::Aabb::of_points(self.means.iter().copied())
+                .unwrap_or_default(),
+            count: self.ids.len() as u64,
+            bytes: bytes.len() as u64,
+            checksum: format!("{:08x}", shard_checksum(bytes)),
+        }
+    }
+}
+
+fn tile_columns(src: &impl GaussianSource, plan: &TilePlan) -> TileColumns {
     let n = plan.rows.len();
     let (ids_all, means_all) = (src.ids(), src.means());
     let ids: Vec<u32> = plan.rows.iter().map(|&r| ids_all[r as usize]).collect();
     let means: Vec<[f32; 3]> = plan.rows.iter().map(|&r| means_all[r as usize]).collect();
-    let mut vectors = vec![0.0f32; n * d];
-    for (row, out) in plan.rows.iter().zip(vectors.chunks_exact_mut(d.max(1))) {
-        src.vector_into(*row as usize, out);
-    }
     let display: Option<(Vec<[f32; 3]>, Vec<f32>)> =
         (n > 0 && src.display(0).is_some()).then(|| {
             plan.rows
@@ -313,30 +326,229 @@ pub fn encode_tile(
             .map(|&r| src.display_sh_dc(r as usize).unwrap_or([0.0; 3]))
             .collect()
     });
+    TileColumns {
+        ids,
+        means,
+        display,
+        rotations,
+        sh_dc,
+    }
+}
+
+/// Encodes the shard of one planned tile.
+///
+/// Errors: as [`encode_shard`].
+pub fn encode_tile(
+    src: &impl GaussianSource,
+    scene_id: &str,
+    dtype: Dtype,
+    plan: &TilePlan,
+) -> Result<(TileInfo, Vec<u8>)> {
+    let d = src.dim();
+    let n = plan.rows.len();
+    let mut vectors = vec![0.0f32; n * d];
+    for (row, out) in plan.rows.iter().zip(vectors.chunks_exact_mut(d.max(1))) {
+        src.vector_into(*row as usize, out);
+    }
+    let c = tile_columns(src, plan);
     let bytes = encode_shard(&ShardInput {
         scene_id,
         model: src.model(),
         tile_id: plan.id,
         dim: d,
         dtype,
-        ids: &ids,
-        means: &means,
+        ids: &c.ids,
+        means: &c.means,
         vectors: &vectors,
-        scales: display.as_ref().map(|d| d.0.as_slice()),
-        opacities: display.as_ref().map(|d| d.1.as_slice()),
-        rotations: rotations.as_deref(),
-        sh_dc: sh_dc.as_deref(),
+        scales: c.display.as_ref().map(|d| d.0.as_slice()),
+        opacities: c.display.as_ref().map(|d| d.1.as_slice()),
+        rotations: c.rotations.as_deref(),
+        sh_dc: c.sh_dc.as_deref(),
     })?;
-    let aabb = slag_common::shards::Aabb::of_points(means.iter().copied()).unwrap_or_default();
-    let info = TileInfo {
-        id: plan.id,
-        footprint: TileInfo::rect_ring(plan.min, plan.max),
-        aabb,
-        count: n as u64,
-        bytes: bytes.len() as u64,
-        checksum: format!("{:08x}", shard_checksum(&bytes)),
-    };
-    Ok((info, bytes))
+    Ok((c.info(plan, &bytes), bytes))
+}
+
+/// Encodes the mixture shard of one planned tile: rows `plan.rows` of `mix` (same row order as
+/// `src`, whose ids, means and display columns it takes), naming the codebook's checksum.
+///
+/// Errors: as [`encode_mixture_shard`].
+pub fn encode_mixture_tile(
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    scene_id: &str,
+    codebook_crc: u32,
+    plan: &TilePlan,
+) -> Result<(TileInfo, Vec<u8>)> {
+    let s = mix.keep;
+    let mut atoms = Vec::with_capacity(plan.rows.len() * s);
+    let mut weights = Vec::with_capacity(plan.rows.len() * s);
+    for &r in &plan.rows {
+        let slots = r as usize * s..(r as usize + 1) * s;
+        atoms.extend_from_slice(&mix.atoms[slots.clone()]);
+        weights.extend_from_slice(&mix.weights[slots]);
+    }
+    let c = tile_columns(src, plan);
+    let bytes = encode_mixture_shard(&MixtureShardInput {
+        scene_id,
+        model: src.model(),
+        tile_id: plan.id,
+        dim: mix.dim,
+        slots: s,
+        codebook_crc,
+        ids: &c.ids,
+        means: &c.means,
+        atoms: &atoms,
+        weights: &weights,
+        scales: c.display.as_ref().map(|d| d.0.as_slice()),
+        opacities: c.display.as_ref().map(|d| d.1.as_slice()),
+        rotations: c.rotations.as_deref(),
+        sh_dc: c.sh_dc.as_deref(),
+    })?;
+    Ok((c.info(plan, &bytes), bytes))
+}
+
+/// The layout every mixture shard of `src` gets from [`partition_mixture_with`] with `slots`
+/// slots per Gaussian (display sections as [`shard_layout`]).
+pub fn mixture_layout(src: &impl GaussianSource, scene_id: &str, slots: usize) -> MixtureLayout {
+    MixtureLayout {
+        base: shard_layout(src, scene_id, Dtype::F16),
+        slots,
+    }
+}
+
+/// Resolves `cap` for mixture shards ([`resolve_max_per_shard`] with the mixture size model).
+///
+/// Errors: as [`resolve_max_per_shard`].
+pub fn resolve_mixture_max_per_shard(layout: &MixtureLayout, cap: ShardCap) -> Result<usize> {
+    match cap {
+        ShardCap::Bytes(b) if b > 0 && layout.max_rows_within(b) == 0 => Err(Error::param(
+            "max_shard_mib",
+            format!("{:.6} ({b} bytes)", b as f64 / MIB as f64),
+            format!(
+                "at least {} bytes: a mixture shard of one Gaussian with {} slots",
+                layout.shard_len(1),
+                layout.slots
+            ),
+        )),
+        ShardCap::Bytes(b) if b > 0 => {
+            Ok(usize::try_from(layout.max_rows_within(b)).unwrap_or(usize::MAX))
+        }
+        other => resolve_max_per_shard(&layout.base, other),
+    }
+}
+
+/// Partitions a mixture scene: the same ground tiles as [`partition_with`] over `src`'s means,
+/// one mixture shard per tile (format version 2, rows of `mix`: `src` must list the same
+/// Gaussians in the same order, e.g. `mix` itself or a [`slag_common::shards::WithDisplay`]
+/// around it), and the scene's codebook file. Cut `mix` to fewer slots first with
+/// [`MixtureEmbeddings::truncated`]. `params.dtype` is ignored (mixture weights are f16; the
+/// manifest says f16). Returns the manifest (version 2, with its [`MixtureInfo`]) and the
+/// codebook bytes; shards go to `sink` in tile-id order.
+///
+/// Errors: `src` and `mix` listing other Gaussians ([`Error::Mismatch`]), an inconsistent
+/// mixture ([`Error::Internal`]), and as [`partition_with`].
+pub fn partition_mixture_with(
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    params: &PartitionParams,
+    mut sink: impl FnMut(&TileInfo, Vec<u8>) -> Result<()>,
+) -> Result<(Manifest, Vec<u8>)> {
+    check_scene_and_source(src, params)?;
+    mix.validate()?;
+    if src.ids() != mix.gaussian_ids.as_slice() || src.dim() != mix.dim {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            "the rows to partition and the mixture list other Gaussians (or another width); \
+             partition the mixture file with the display .ply of the same scene",
+        ));
+    }
+    let codebook = encode_codebook(&params.scene_id, src.model(), mix.dim, &mix.codebook)?;
+    let crc = shard_checksum(&codebook);
+    let ground = ground_frame(src.means(), &params.up)?;
+    let plans = plan_tiles(src.means(), &ground, params.max_per_shard)?;
+    let tiles = encode_in_batches(&plans, &mut sink, |p| {
+        encode_mixture_tile(src, mix, &params.scene_id, crc, p)
+    })?;
+    let mut m = manifest_of(src, params, ground, tiles, Dtype::F16);
+    m.manifest_version = MIXTURE_MANIFEST_VERSION;
+    m.shard_format_version = MIXTURE_SHARD_FORMAT_VERSION;
+    m.mixture = Some(MixtureInfo {
+        slots: mix.keep as u32,
+        atoms: mix.codebook_len() as u32,
+        codebook_bytes: codebook.len() as u64,
+        codebook_checksum: format!("{crc:08x}"),
+    });
+    Ok((m, codebook))
+}
+
+/// Encodes `plans` in parallel, a bounded batch at a time, handing each shard to `sink` in
+/// order; returns the tiles.
+fn encode_in_batches(
+    plans: &[TilePlan],
+    sink: &mut impl FnMut(&TileInfo, Vec<u8>) -> Result<()>,
+    encode: impl Fn(&TilePlan) -> Result<(TileInfo, Vec<u8>)> + Sync,
+) -> Result<Vec<TileInfo>> {
+    let batch = 4 * rayon::current_num_threads().max(1);
+    let mut tiles = Vec::with_capacity(plans.len());
+    for chunk in plans.chunks(batch) {
+        let encoded: Vec<Result<(TileInfo, Vec<u8>)>> = chunk.par_iter().map(&encode).collect();
+        for e in encoded {
+            let (info, bytes) = e?;
+            sink(&info, bytes)?;
+            tiles.push(info);
+        }
+    }
+    Ok(tiles)
+}
+
+fn check_scene_and_source(src: &impl GaussianSource, params: &PartitionParams) -> Result<()> {
+    if !valid_scene_id(&params.scene_id) {
+        return Err(Error::param(
+            "scene_id",
+            format!("{:?}", params.scene_id),
+            "1-64 characters of A-Z a-z 0-9 _ - . (not starting with '.')",
+        ));
+    }
+    let n = src.ids().len();
+    if src.means().len() != n {
+        return Err(Error::internal(format!(
+            "{n} ids but {} means",
+            src.means().len()
+        )));
+    }
+    if src.dim() == 0 {
+        return Err(Error::param("dim", 0, "an embedding width of at least 1"));
+    }
+    Ok(())
+}
+
+/// The manifest of a partition (`generation` 0; a store sets it on commit).
+fn manifest_of(
+    src: &impl GaussianSource,
+    params: &PartitionParams,
+    ground: GroundFrame,
+    tiles: Vec<TileInfo>,
+    dtype: Dtype,
+) -> Manifest {
+    Manifest {
+        format: MANIFEST_FORMAT.into(),
+        manifest_version: MANIFEST_VERSION,
+        shard_format_version: SHARD_FORMAT_VERSION,
+        scene_id: params.scene_id.clone(),
+        generation: 0,
+        model: src.model().to_string(),
+        dim: src.dim() as u32,
+        dtype,
+        ground,
+        frames: slag_common::shards::Frames {
+            scene_to_map: params.to_map.clone(),
+            ..Default::default()
+        },
+        mixture: None,
+        max_per_shard: params.max_per_shard as u64,
+        total_gaussians: src.ids().len() as u64,
+        tiles,
+    }
 }
 
 /// Partitions `src` and hands each shard to `sink` in tile-id order (tiles are encoded in
@@ -350,56 +562,13 @@ pub fn partition_with(
     params: &PartitionParams,
     mut sink: impl FnMut(&TileInfo, Vec<u8>) -> Result<()>,
 ) -> Result<Manifest> {
-    if !valid_scene_id(&params.scene_id) {
-        return Err(Error::param(
-            "scene_id",
-            format!("{:?}", params.scene_id),
-            "1-64 characters of A-Z a-z 0-9 _ - . (not starting with '.')",
-        ));
-    }
-    let (n, d) = (src.ids().len(), src.dim());
-    if src.means().len() != n {
-        return Err(Error::internal(format!(
-            "{n} ids but {} means",
-            src.means().len()
-        )));
-    }
-    if d == 0 {
-        return Err(Error::param("dim", 0, "an embedding width of at least 1"));
-    }
+    check_scene_and_source(src, params)?;
     let ground = ground_frame(src.means(), &params.up)?;
     let plans = plan_tiles(src.means(), &ground, params.max_per_shard)?;
-    let batch = 4 * rayon::current_num_threads().max(1);
-    let mut tiles = Vec::with_capacity(plans.len());
-    for chunk in plans.chunks(batch) {
-        let encoded: Vec<Result<(TileInfo, Vec<u8>)>> = chunk
-            .par_iter()
-            .map(|p| encode_tile(src, &params.scene_id, params.dtype, p))
-            .collect();
-        for e in encoded {
-            let (info, bytes) = e?;
-            sink(&info, bytes)?;
-            tiles.push(info);
-        }
-    }
-    Ok(Manifest {
-        format: MANIFEST_FORMAT.into(),
-        manifest_version: MANIFEST_VERSION,
-        shard_format_version: SHARD_FORMAT_VERSION,
-        scene_id: params.scene_id.clone(),
-        generation: 0,
-        model: src.model().to_string(),
-        dim: d as u32,
-        dtype: params.dtype,
-        ground,
-        frames: slag_common::shards::Frames {
-            scene_to_map: params.to_map.clone(),
-            ..Default::default()
-        },
-        max_per_shard: params.max_per_shard as u64,
-        total_gaussians: n as u64,
-        tiles,
-    })
+    let tiles = encode_in_batches(&plans, &mut sink, |p| {
+        encode_tile(src, &params.scene_id, params.dtype, p)
+    })?;
+    Ok(manifest_of(src, params, ground, tiles, params.dtype))
 }
 
 /// `(tile id, shard bytes)` of every tile, ascending id.
@@ -436,8 +605,12 @@ pub struct StorageReport {
     pub rows_stored: u64,
     /// Gaussians of the scene not stored (`scene_gaussians - rows_stored`), when known.
     pub dropped: Option<u64>,
-    /// Storage type of the vectors.
+    /// Storage type of the vectors (f16 for a mixture scene: its weights and codebook).
     pub dtype: Dtype,
+    /// Mixture scenes: slots per Gaussian (the shards hold codebook mixtures, and
+    /// `bytes_stored` includes the codebook file).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mixture_slots: Option<u32>,
     /// Embedding width D.
     pub dim: u32,
     /// Number of shards (tiles).
@@ -477,6 +650,7 @@ pub fn storage_report(
         rows_stored: rows,
         dropped: scene_gaussians.map(|n| n.saturating_sub(rows)),
         dtype: manifest.dtype,
+        mixture_slots: manifest.mixture.as_ref().map(|m| m.slots),
         dim: manifest.dim,
         shards: manifest.tiles.len() as u64,
         max_per_shard: manifest.max_per_shard,
@@ -509,11 +683,15 @@ impl std::fmt::Display for StorageReport {
                 self.rows_stored
             )?,
         }
+        let form = match self.mixture_slots {
+            Some(s) => format!("a mixture of {s} slots (+ codebook)"),
+            None => format!("{:?}", self.dtype),
+        };
         write!(
             f,
-            " as {:?} dim {} in {} shards (largest {} bytes, cap {} Gaussians): {} bytes vs \
+            " as {} dim {} in {} shards (largest {} bytes, cap {} Gaussians): {} bytes vs \
              dense {}×{} f32 {} bytes = {:.2} % of dense",
-            self.dtype,
+            form,
             self.dim,
             self.shards,
             self.largest_shard_bytes,

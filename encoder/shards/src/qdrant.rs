@@ -126,6 +126,16 @@ pub fn upload(
     if params.batch_size == 0 {
         return Err(Error::param("batch_size", 0, "at least 1 point per upsert"));
     }
+    if let Some(x) = &manifest.mixture {
+        // Qdrant holds one dense vector per point; a mixture scene's shards hold codebook
+        // mixtures, and uploading reconstructions would give Qdrant other rows than the robot's.
+        return Err(Error::param(
+            "qdrant_url",
+            format!("a mixture scene ({} slots per Gaussian)", x.slots),
+            "a dense partition for Qdrant (Qdrant stores dense vectors): partition the \
+             embeddings file, not the mixture, into the scene you upload",
+        ));
+    }
     let (n, d) = (src.ids().len(), src.dim());
     if src.means().len() != n || manifest.total_gaussians != n as u64 || manifest.dim as usize != d
     {

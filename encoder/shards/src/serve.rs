@@ -8,7 +8,9 @@
 //!   `ETag` = `"<crc32 hex>"` (the manifest checksum), `If-None-Match` → 304, single
 //!   `Range: bytes=a-b | a- | -n` → 206 with `Content-Range`, unsatisfiable → 416 with
 //!   `Content-Range: bytes */len`; `If-Range` with another ETag → full 200. Multi-range requests
-//!   get the full body (200), as RFC 9110 allows.
+//!   get the full body (200), as RFC 9110 allows;
+//! - `GET /v1/scenes/{scene}/codebook` → the codebook file of a mixture scene (same headers,
+//!   ETag and ranges as a shard; 404 for a dense scene).
 //!
 //! Errors are JSON `{"error": message, "status": code}`: invalid scene id (`[A-Za-z0-9_.-]`,
 //! 1..=64, not starting with `.`) or non-decimal shard id → 400, unknown scene/shard → 404,
@@ -37,6 +39,7 @@ pub fn router(store: ShardStore) -> Router {
         .route("/v1/scenes", get(scenes))
         .route("/v1/scenes/{scene}/manifest", get(manifest))
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
+        .route("/v1/scenes/{scene}/codebook", get(codebook))
         .fallback(|| async {
             error(
                 StatusCode::NOT_FOUND,
@@ -290,9 +293,32 @@ async fn shard(
         }
         Err(e) => return internal(e),
     };
-    let etag = format!("\"{:08x}\"", shard_checksum(&bytes));
+    file_response(&bytes, &headers)
+}
+
+async fn codebook(
+    State(store): State<Arc<ShardStore>>,
+    Path(scene): Path<String>,
+    headers: HeaderMap,
+) -> Response {
+    if let Some(r) = bad_scene(&scene) {
+        return r;
+    }
+    match store.codebook(&scene) {
+        Ok(Some(b)) => file_response(&b, &headers),
+        Ok(None) => error(
+            StatusCode::NOT_FOUND,
+            format!("scene {scene:?} has no codebook (unknown, or partitioned dense)"),
+        ),
+        Err(e) => internal(e),
+    }
+}
+
+/// A stored file (shard or codebook) with its CRC-32 ETag, `If-None-Match` and single ranges.
+fn file_response(bytes: &[u8], headers: &HeaderMap) -> Response {
+    let etag = format!("\"{:08x}\"", shard_checksum(bytes));
     let etag_h = HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\""));
-    if none_match(&headers, &etag) {
+    if none_match(headers, &etag) {
         return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
     }
     let len = bytes.len() as u64;
@@ -312,7 +338,7 @@ async fn shard(
         ),
     ];
     match range {
-        RangeReq::Full => (StatusCode::OK, common, Bytes::copy_from_slice(&bytes)).into_response(),
+        RangeReq::Full => (StatusCode::OK, common, Bytes::copy_from_slice(bytes)).into_response(),
         RangeReq::Part(a, b) => {
             let cr = HeaderValue::from_str(&format!("bytes {a}-{b}/{len}"))
                 .unwrap_or(HeaderValue::from_static("bytes */0"));

@@ -4,7 +4,9 @@
 //! - `current`: scene id → committed generation (u64 BE), the *current pointer*;
 //! - `manifests`: scene/generation → manifest JSON;
 //! - `tiles`: scene/generation/tile → [`TileInfo`] JSON (the tile index);
-//! - `shards`: scene/generation/tile → shard bytes.
+//! - `shards`: scene/generation/tile → shard bytes;
+//! - `codebooks`: scene/generation → codebook file bytes (mixture scenes only,
+//!   [`slag_common::shards::mixture`]).
 //!
 //! Writes are versioned: a [`SceneWriter`] puts shards under a fresh generation nobody reads,
 //! then [`SceneWriter::commit`] inserts the manifest, the tile index and the current pointer in
@@ -15,12 +17,13 @@
 
 use std::path::Path;
 
+use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::{GaussianSource, Manifest, TileInfo, shard_checksum, valid_scene_id};
 use slag_common::{Error, Result};
 use sled::Transactional;
 use sled::transaction::{ConflictableTransactionError, TransactionError};
 
-use crate::partition::{PartitionParams, partition_with};
+use crate::partition::{PartitionParams, partition_mixture_with, partition_with};
 
 /// Handle on a sled shard store folder. Cheap to clone (sled handles are reference counted).
 #[derive(Clone)]
@@ -30,6 +33,7 @@ pub struct ShardStore {
     manifests: sled::Tree,
     tiles: sled::Tree,
     shards: sled::Tree,
+    codebooks: sled::Tree,
 }
 
 impl std::fmt::Debug for ShardStore {
@@ -81,6 +85,7 @@ impl ShardStore {
             manifests: tree("manifests")?,
             tiles: tree("tiles")?,
             shards: tree("shards")?,
+            codebooks: tree("codebooks")?,
             db,
         })
     }
@@ -134,8 +139,21 @@ impl ShardStore {
         self.shards.get(tile_key(scene, g, tile)).map_err(db_err)
     }
 
+    /// Raw bytes of the codebook of the current generation of `scene`; `None` for an unknown
+    /// scene or a dense one (no codebook).
+    ///
+    /// Errors: invalid scene id, storage errors.
+    pub fn codebook(&self, scene: &str) -> Result<Option<sled::IVec>> {
+        check_scene(scene)?;
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
+        self.codebooks.get(prefix(scene, g)).map_err(db_err)
+    }
+
     /// Total bytes of the stored shards of the current generation of `scene` (each tile of
-    /// its manifest, as read back from the store); `None` for an unknown scene.
+    /// its manifest, as read back from the store, plus the codebook of a mixture scene); `None`
+    /// for an unknown scene.
     ///
     /// Errors: invalid scene id, storage errors, a manifest tile without a stored shard
     /// ([`Error::Format`]: the store is damaged, re-run partition).
@@ -152,6 +170,15 @@ impl ShardStore {
                         "scene {scene} lists tile {} but has no shard for it; re-run partition",
                         t.id
                     ),
+                )
+            })?;
+            total += b.len() as u64;
+        }
+        if m.mixture.is_some() {
+            let b = self.codebook(scene)?.ok_or_else(|| {
+                Error::format(
+                    "<store>",
+                    format!("mixture scene {scene} has no codebook; re-run partition"),
                 )
             })?;
             total += b.len() as u64;
@@ -184,7 +211,7 @@ impl ShardStore {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
         let mut gens = std::collections::BTreeSet::new();
-        for tree in [&self.shards, &self.tiles, &self.manifests] {
+        for tree in [&self.shards, &self.tiles, &self.manifests, &self.codebooks] {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 if let Some(g) = k.get(p.len()..p.len() + 8).and_then(be_u64) {
@@ -214,7 +241,7 @@ impl ShardStore {
     fn remove_generations(&self, scene: &str, drop: impl Fn(u64) -> bool) -> Result<()> {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
-        for tree in [&self.shards, &self.tiles, &self.manifests] {
+        for tree in [&self.shards, &self.tiles, &self.manifests, &self.codebooks] {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 let g = k.get(p.len()..p.len() + 8).and_then(be_u64);
@@ -260,7 +287,19 @@ impl SceneWriter<'_> {
         Ok(())
     }
 
-    /// Checks that every manifest tile has a stored shard with the listed size and checksum,
+    /// Stores the codebook of a mixture generation (not yet visible).
+    ///
+    /// Errors: storage errors.
+    pub fn put_codebook(&mut self, bytes: &[u8]) -> Result<()> {
+        self.store
+            .codebooks
+            .insert(prefix(&self.scene, self.generation), bytes)
+            .map_err(db_err)?;
+        Ok(())
+    }
+
+    /// Checks that every manifest tile has a stored shard with the listed size and checksum
+    /// (and a mixture manifest's codebook likewise),
     /// then atomically publishes manifest + tile index + current pointer, flushes, and deletes
     /// older generations. Returns the manifest with `generation` set.
     ///
@@ -289,6 +328,22 @@ impl SceneWriter<'_> {
                 )));
             }
         }
+        if let Some(x) = &manifest.mixture {
+            let b = self
+                .store
+                .codebooks
+                .get(prefix(&self.scene, self.generation))
+                .map_err(db_err)?;
+            let ok = b.is_some_and(|b| {
+                b.len() as u64 == x.codebook_bytes
+                    && format!("{:08x}", shard_checksum(&b)) == x.codebook_checksum
+            });
+            if !ok {
+                return Err(Error::internal(
+                    "the mixture manifest's codebook is not stored with its size and checksum",
+                ));
+            }
+        }
         manifest.generation = self.generation;
         let json = manifest.to_json();
         let tile_entries: Vec<(Vec<u8>, Vec<u8>)> = manifest
@@ -302,8 +357,9 @@ impl SceneWriter<'_> {
             })
             .collect();
         let s = self.store;
-        // Shards must be durable before the pointer flip can be.
+        // Shards and codebook must be durable before the pointer flip can be.
         s.shards.flush().map_err(db_err)?;
+        s.codebooks.flush().map_err(db_err)?;
         let g = self.generation;
         (&s.manifests, &s.tiles, &s.current)
             .transaction(|(m, t, c)| {
@@ -335,6 +391,24 @@ pub fn partition_into_store(
 ) -> Result<Manifest> {
     let mut w = store.writer(&params.scene_id)?;
     let manifest = partition_with(src, params, |info, bytes| w.put_shard(info.id, &bytes))?;
+    w.commit(manifest)
+}
+
+/// Partitions the mixture `mix` (rows, ids and display columns from `src`, see
+/// [`partition_mixture_with`]) into `store` as a new generation: shards and codebook stored,
+/// then committed together.
+///
+/// Errors: as [`partition_mixture_with`] and [`SceneWriter::commit`].
+pub fn partition_mixture_into_store(
+    store: &ShardStore,
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    params: &PartitionParams,
+) -> Result<Manifest> {
+    let mut w = store.writer(&params.scene_id)?;
+    let (manifest, codebook) =
+        partition_mixture_with(src, mix, params, |info, bytes| w.put_shard(info.id, &bytes))?;
+    w.put_codebook(&codebook)?;
     w.commit(manifest)
 }
 

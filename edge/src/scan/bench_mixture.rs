@@ -1,0 +1,277 @@
+//! The mixture rows of `slag-edge bench`: a synthetic mixture store (a codebook of `A` atoms in
+//! the benchmark's clusters, `S` slots per Gaussian) against f16 and int8 stores holding the
+//! same Gaussians (each mixture row reconstructed, then stored densely), timed in one run.
+
+use std::collections::HashSet;
+use std::time::Instant;
+
+use half::f16;
+use rayon::prelude::*;
+use slag_common::rng::splitmix64 as splitmix;
+use slag_common::shards::{Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, MixtureShard, ShardHeader};
+
+use super::store::{fast_normal, uniform};
+use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, scan};
+
+/// Rows generated (and pushed) per block.
+const BLOCK: usize = 1 << 16;
+
+/// A synthetic mixture store of `n` rows over `atoms` codebook rows of width `dim`: atom `j`
+/// lies in cluster `j mod clusters` (`normalise(centre + 0.75 · g / √D)`, as the dense synthetic
+/// rows), each row mixes `slots` distinct atoms of one random cluster with random weights in
+/// [0.05, 1) (f16, decreasing); means uniform in a 100 m cube, ids `0..n`.
+///
+/// Errors: as [`VectorStore::new_mixture`] and [`VectorStore::push_mixture_shard`] (e.g. fewer
+/// atoms per cluster than slots).
+pub fn synthetic_mixture(
+    n: usize,
+    dim: usize,
+    atoms: usize,
+    slots: usize,
+    centres: &[f32],
+    clusters: usize,
+    seed: u64,
+) -> anyhow::Result<VectorStore> {
+    anyhow::ensure!(
+        clusters > 0 && atoms >= clusters * slots,
+        "--mixture-atoms {atoms} must be at least {clusters} clusters × {slots} slots"
+    );
+    let mut book = vec![0.0f32; atoms * dim];
+    book.par_chunks_mut(dim).enumerate().for_each(|(j, row)| {
+        let mut s = seed ^ (j as u64).wrapping_mul(0xA24B_AED4_963E_E407) ^ 0xB00C;
+        let c = j % clusters;
+        let sigma = 0.75 / (dim as f32).sqrt();
+        for (x, &m) in row.iter_mut().zip(&centres[c * dim..(c + 1) * dim]) {
+            *x = m + sigma * fast_normal(&mut s);
+        }
+        let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+        row.iter_mut()
+            .for_each(|x| *x = f16::from_f32(*x / norm).to_f32());
+    });
+    let mut store = VectorStore::new_mixture(dim, slots, book, 0)?;
+    store.reserve(n)?;
+    let per_cluster = atoms / clusters;
+    for start in (0..n).step_by(BLOCK) {
+        let end = (start + BLOCK).min(n);
+        let rows: Vec<(Vec<u32>, Vec<f16>, [f32; 3])> = (start..end)
+            .into_par_iter()
+            .map(|i| {
+                let mut s = seed ^ (i as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93) ^ 0x313;
+                let c = (splitmix(&mut s) % clusters as u64) as usize;
+                let mut picked: Vec<u32> = Vec::with_capacity(slots);
+                while picked.len() < slots {
+                    let r = (splitmix(&mut s) % per_cluster as u64) as usize;
+                    let a = (c + clusters * r) as u32;
+                    if !picked.contains(&a) {
+                        picked.push(a);
+                    }
+                }
+                let mut w: Vec<f32> = (0..slots).map(|_| 0.05 + 0.95 * uniform(&mut s)).collect();
+                w.sort_by(|x, y| y.total_cmp(x));
+                let mean = [0, 1, 2].map(|_| 100.0 * uniform(&mut s) - 50.0);
+                (picked, w.into_iter().map(f16::from_f32).collect(), mean)
+            })
+            .collect();
+        let mut shard = MixtureShard {
+            header: ShardHeader {
+                version: MIXTURE_SHARD_FORMAT_VERSION,
+                scene_id: "synthetic".into(),
+                model: "synthetic".into(),
+                dim: dim as u32,
+                dtype: Dtype::F16,
+                count: (end - start) as u32,
+                aabb: Aabb::default(),
+                tile_id: (start / BLOCK) as u64,
+            },
+            slots: slots as u32,
+            codebook_crc: 0,
+            ids: (start as u32..end as u32).collect(),
+            means: Vec::with_capacity(end - start),
+            atoms: Vec::with_capacity((end - start) * slots),
+            weights: Vec::with_capacity((end - start) * slots),
+            scales: None,
+            opacities: None,
+            rotations: None,
+            sh_dc: None,
+        };
+        for (a, w, m) in rows {
+            shard.atoms.extend(a);
+            shard.weights.extend(w);
+            shard.means.push(m);
+        }
+        store.push_mixture_shard(shard)?;
+    }
+    Ok(store)
+}
+
+/// The same rows as `mix` (reconstructed, unit norm) in a dense store of `dtype`.
+fn dense_copy(mix: &VectorStore, dtype: Dtype) -> anyhow::Result<VectorStore> {
+    let (n, d) = (mix.len(), mix.dim());
+    let mut store = VectorStore::new(d, dtype)?;
+    store.reserve(n)?;
+    for start in (0..n).step_by(BLOCK) {
+        let end = (start + BLOCK).min(n);
+        let flat: Vec<f32> = (start..end)
+            .into_par_iter()
+            .flat_map_iter(|i| mix.row_f32(i).unwrap_or_default())
+            .collect();
+        store.push_f32_rows(&mix.ids()[start..end], &mix.means()[start..end], &flat)?;
+    }
+    Ok(store)
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// Median times (ms) of top-k, threshold (with its median hit count) and LERF (Q = 5) scans of
+/// `store`, and the top-k row sets.
+struct Timed {
+    topk: f64,
+    thr: f64,
+    thr_hits: usize,
+    lerf: f64,
+    sets: Vec<HashSet<usize>>,
+}
+
+fn time_store(
+    store: &VectorStore,
+    qvecs: &[Vec<f32>],
+    negs: &[Vec<f32>],
+    top_k: usize,
+    threshold: f32,
+) -> anyhow::Result<Timed> {
+    let (mut topk, mut thr, mut lerf, mut hits, mut sets) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let lerf_fn: Combiner<'_> = &lerf_relevancy;
+    for q in qvecs {
+        let qs = [q.as_slice()];
+        let t = Instant::now();
+        let h = scan(store, &ScanRequest::top_k(&qs, top_k))?;
+        topk.push(t.elapsed().as_secs_f64() * 1e3);
+        sets.push(h.iter().map(|x| x.row).collect());
+        let t = Instant::now();
+        hits.push(scan(store, &ScanRequest::threshold(&qs, threshold))?.len() as f64);
+        thr.push(t.elapsed().as_secs_f64() * 1e3);
+        let q5: [&[f32]; 5] = [q, &negs[0], &negs[1], &negs[2], &negs[3]];
+        let t = Instant::now();
+        std::hint::black_box(scan(
+            store,
+            &ScanRequest {
+                combine: Some(lerf_fn),
+                ..ScanRequest::top_k(&q5, top_k)
+            },
+        )?);
+        lerf.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    Ok(Timed {
+        topk: median(topk),
+        thr: median(thr),
+        thr_hits: median(hits) as usize,
+        lerf: median(lerf),
+        sets,
+    })
+}
+
+/// Settings of [`mixture_table`].
+pub(super) struct MixtureBench<'a> {
+    pub sizes: &'a [usize],
+    pub dim: usize,
+    pub atoms: usize,
+    pub slots: usize,
+    pub dense: &'a [Dtype],
+    pub top_k: usize,
+    pub threshold: f32,
+    pub centres: &'a [f32],
+    pub clusters: usize,
+    pub seed: u64,
+    pub qvecs: &'a [Vec<f32>],
+    pub negs: &'a [Vec<f32>],
+    /// Memory guard, bytes.
+    pub limit: f64,
+}
+
+/// The Markdown table of the mixture rows: per size, the mixture store and f16 / int8 copies of
+/// its Gaussians, with bytes per Gaussian on disk (shard rows + the codebook file amortised) and
+/// in memory, median scan times, ratios to the mixture's times and top-k IoU against the
+/// mixture's (exact) answer.
+pub(super) fn mixture_table(b: &MixtureBench<'_>) -> anyhow::Result<String> {
+    let mut out = format!(
+        "Mixture rows (codebook of {} atoms × D = {}, S = {} slots, {} clusters; f16 / int8 = the \
+         same Gaussians reconstructed and stored densely; disk B/Gaussian = shard row + codebook \
+         file / N, memory = scan store + codebook / N; ÷ mix = time / the mixture's time; IoU = \
+         top-k rows against the mixture's):\n\n\
+         | N | form | disk B/Gaussian | memory B/Gaussian | gen s | top-k ms | ÷ mix | thr ms \
+         (hits) | ÷ mix | LERF Q=5 ms | top-k IoU vs mixture |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
+        b.atoms, b.dim, b.slots, b.clusters
+    );
+    let (a, d, s) = (b.atoms as f64, b.dim as f64, b.slots as f64);
+    for &n in b.sizes {
+        let need = n as f64 * (16.0 + 8.0 * s) + a * d * 4.0;
+        if need > b.limit {
+            out.push_str(&format!(
+                "| {n} | mixture | skipped: memory guard | | | | | | | | |\n"
+            ));
+            continue;
+        }
+        let t = Instant::now();
+        let mix = synthetic_mixture(n, b.dim, b.atoms, b.slots, b.centres, b.clusters, b.seed)?;
+        let gen_s = t.elapsed().as_secs_f64();
+        let m = time_store(&mix, b.qvecs, b.negs, b.top_k, b.threshold)?;
+        let nf = n.max(1) as f64;
+        out.push_str(&format!(
+            "| {n} | mixture S={} | {:.1} | {:.1} | {:.1} | {:.2} | 1 | {:.2} ({}) | 1 | {:.2} | 1 |\n",
+            b.slots,
+            16.0 + 6.0 * s + a * d * 2.0 / nf,
+            mix.bytes_per_gaussian() as f64 + a * d * 4.0 / nf,
+            gen_s,
+            m.topk,
+            m.thr,
+            m.thr_hits,
+            m.lerf
+        ));
+        for &dtype in b.dense {
+            if dtype == Dtype::F32 {
+                continue;
+            }
+            let need = n as f64 * (dtype.bytes_per_vector(b.dim) + 16) as f64;
+            if need > b.limit {
+                continue;
+            }
+            let t = Instant::now();
+            let dense = dense_copy(&mix, dtype)?;
+            let gen_s = t.elapsed().as_secs_f64();
+            let r = time_store(&dense, b.qvecs, b.negs, b.top_k, b.threshold)?;
+            let iou = r
+                .sets
+                .iter()
+                .zip(&m.sets)
+                .map(|(x, y)| {
+                    let i = x.intersection(y).count();
+                    i as f64 / (x.len() + y.len() - i).max(1) as f64
+                })
+                .sum::<f64>()
+                / r.sets.len().max(1) as f64;
+            let bpg = dense.bytes_per_gaussian();
+            out.push_str(&format!(
+                "| {n} | {} | {bpg} | {bpg} | {:.1} | {:.2} | {:.2} | {:.2} ({}) | {:.2} | {:.2} | {:.4} |\n",
+                match dtype {
+                    Dtype::F32 => "f32",
+                    Dtype::F16 => "f16",
+                    Dtype::I8 => "int8",
+                },
+                gen_s,
+                r.topk,
+                r.topk / m.topk,
+                r.thr,
+                r.thr_hits,
+                r.thr / m.thr,
+                r.lerf,
+                iou
+            ));
+        }
+    }
+    Ok(out)
+}
