@@ -1,5 +1,5 @@
-//! Approximate nearest-neighbour index (HNSW, Malkov & Yashunin 2018) over a [`VectorStore`],
-//! built with the `instant-distance` crate, for comparison with the exact [`scan`](super::scan).
+//! The `instant-distance` backend of [`super::ApproxIndex`] (always built): an HNSW graph
+//! (Malkov & Yashunin 2018) over a [`VectorStore`], built with the `instant-distance` crate.
 //!
 //! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32 (unit rows, so
 //! ranking by distance is ranking by cosine). The index holds its own f32 copy of the rows
@@ -11,8 +11,8 @@ use std::sync::Arc;
 use instant_distance::{Builder, Hnsw, Point, Search};
 use slag_common::Error;
 
-use super::kernels::dots_f32;
-use super::{Hit, VectorStore};
+use crate::scan::kernels::dots_f32;
+use crate::scan::{Hit, VectorStore};
 
 /// Neighbours per node in instant-distance 0.6 (`M`; layer 0 keeps `2·M`).
 const HNSW_M: usize = 32;
@@ -135,10 +135,10 @@ impl HnswIndex {
     /// Approximately the `k` rows with the highest cosine to `query` (`[D]`), best first (score
     /// = `query · row`, ties by row). Recall depends on `ef_search` and `ef_construction`.
     ///
-    /// Errors: as [`super::scan`] for a query of the wrong width or with non-finite values;
+    /// Errors: as [`crate::scan::scan`] for a query of the wrong width or with non-finite values;
     /// [`Error::Param`] `top_k` for `k > ef_search` (rebuild with `ef_search >= k`).
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        super::check_queries(self.dim, &[query])?;
+        crate::scan::check_queries(self.dim, &[query])?;
         if k > self.ef_search {
             return Err(Error::param(
                 "top_k",
@@ -163,7 +163,7 @@ impl HnswIndex {
                 score: 1.0 - item.distance,
             })
             .collect();
-        hits.sort_by(super::select::rank_cmp);
+        hits.sort_by(crate::scan::select::rank_cmp);
         hits.truncate(k);
         Ok(hits)
     }
