@@ -194,44 +194,9 @@ impl HnswIndex {
 
 #[cfg(test)]
 mod tests {
+    //! instant-distance on its own; recall and the shared contract: `super::super::tests`.
     use super::*;
-    use crate::scan::{ScanRequest, scan};
     use slag_common::shards::Dtype;
-
-    #[test]
-    fn hnsw_recall_at_10_is_high_on_a_clustered_store() {
-        let store = VectorStore::synthetic(20_000, 64, Dtype::F32, 50, 11).expect("store");
-        let index = HnswIndex::build(&store, 100, 100, 3).expect("index");
-        assert_eq!(index.len(), 20_000);
-        assert!(index.memory_bytes() >= 20_000 * (64 * 4 + 256));
-        let mut found = 0usize;
-        let mut total = 0usize;
-        for qi in 0..30 {
-            // Queries: perturbed stored rows (near, not equal to, a row).
-            let mut q = store.row_f32(qi * 617).expect("row");
-            for (j, x) in q.iter_mut().enumerate() {
-                *x += 0.05 * (((j * 7 + qi) % 13) as f32 / 13.0 - 0.5);
-            }
-            let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
-            q.iter_mut().for_each(|x| *x /= n);
-            let qs: [&[f32]; 1] = [&q];
-            let exact = scan(&store, &ScanRequest::top_k(&qs, 10)).expect("scan");
-            let approx = index.query(&q, 10).expect("query");
-            assert_eq!(approx.len(), 10);
-            for h in &approx {
-                let r = store.row_f32(h.row).expect("row");
-                let dot: f32 = r.iter().zip(&q).map(|(a, b)| a * b).sum();
-                assert!((dot - h.score).abs() < 1e-4, "hnsw score is the cosine");
-            }
-            total += exact.len();
-            found += approx
-                .iter()
-                .filter(|h| exact.iter().any(|e| e.row == h.row))
-                .count();
-        }
-        let recall = found as f64 / total as f64;
-        assert!(recall >= 0.9, "recall@10 {recall}");
-    }
 
     #[test]
     fn hnsw_rejects_bad_parameters() {
