@@ -575,7 +575,9 @@ mod tests {
         assert_eq!(hint_for(&Error::network("http://s", "down")), None);
         let refused = slag_edge::scan::hnsw::HnswBackend::QdrantEdge.require();
         if let Err(e) = refused {
-            assert!(h(e).contains("--hnsw-backend instant-distance"));
+            let hint = h(e);
+            assert!(hint.contains("--hnsw-backend instant-distance"), "{hint}");
+            assert!(hint.contains("--features qdrant-edge"), "{hint}");
         }
         // Through context, as `main` sees it.
         let e = anyhow::Error::new(Error::param("scene", "\"grid\"", "a fetched scene"))

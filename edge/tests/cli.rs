@@ -342,11 +342,13 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
         let lines: Vec<&str> = e.trim().lines().collect();
         assert_eq!(lines.len(), 2, "{e}");
         assert!(
-            lines[0].starts_with("error: ") && lines[0].contains("--features qdrant-edge"),
+            lines[0].starts_with("error: ") && lines[0].contains("cargo feature `qdrant-edge`"),
             "{e}"
         );
         assert!(
-            lines[1].starts_with("hint: ") && lines[1].contains("--hnsw-backend instant-distance"),
+            lines[1].starts_with("hint: ")
+                && lines[1].contains("--hnsw-backend instant-distance")
+                && lines[1].contains("--features qdrant-edge"),
             "{e}"
         );
     }

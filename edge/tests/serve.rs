@@ -370,7 +370,7 @@ async fn hnsw_backends_answer_like_the_exact_scan_or_are_refused_at_start_up() {
                     ),
                     "{e}"
                 );
-                assert!(e.to_string().contains("--features qdrant-edge"), "{e}");
+                assert!(e.to_string().contains("cargo feature `qdrant-edge`"), "{e}");
                 continue;
             }
         };

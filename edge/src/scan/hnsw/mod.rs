@@ -80,7 +80,8 @@ impl HnswBackend {
     /// The backend, if this binary can build it.
     ///
     /// Errors: [`Error::Param`] `hnsw_backend` for `qdrant-edge` in a binary built without the
-    /// cargo feature `qdrant-edge`; the message gives the rebuild command.
+    /// cargo feature `qdrant-edge`; the message says to rebuild with that feature (a command
+    /// line's hint adds the `cargo build` command).
     pub fn require(self) -> Result<HnswBackend, Error> {
         if self.available() {
             return Ok(self);
@@ -89,8 +90,8 @@ impl HnswBackend {
             "hnsw_backend",
             self.name(),
             "instant-distance: this slag-edge was built without Qdrant Edge; to use qdrant-edge \
-             rebuild it with `cargo build --release -p slag-edge --features qdrant-edge` \
-             (Rust >= 1.96, a C++ compiler)",
+             rebuild slag-edge with the cargo feature `qdrant-edge` (Rust >= 1.96, a C++ \
+             compiler)",
         ))
     }
 }

@@ -149,7 +149,10 @@ fn qdrant_edge_is_refused_without_the_feature() {
         }
     ));
     assert!(e.is_user_input());
-    assert!(e.to_string().contains("--features qdrant-edge"), "{e}");
+    assert!(
+        e.to_string().contains("cargo feature `qdrant-edge`"),
+        "{e}"
+    );
     let store = VectorStore::synthetic(100, 8, Dtype::F32, 3, 1).expect("store");
     assert!(matches!(
         ApproxIndex::build(&store, HnswBackend::QdrantEdge, &params(10)),
