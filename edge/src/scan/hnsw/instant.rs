@@ -1,7 +1,8 @@
 //! The `instant-distance` backend of [`super::ApproxIndex`] (always built): an HNSW graph
 //! (Malkov & Yashunin 2018) over a [`VectorStore`], built with the `instant-distance` crate.
 //!
-//! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32 (unit rows, so
+//! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32, with the
+//! scan's explicit SIMD dot at the run-time level (`kernels::dot_f32`; unit rows, so
 //! ranking by distance is ranking by cosine). The index holds its own f32 copy of the rows
 //! (instant-distance keeps its points by value), so its memory is `N·D·4` bytes plus the graph:
 //! see [`HnswIndex::memory_bytes`].
@@ -11,7 +12,7 @@ use std::sync::Arc;
 use instant_distance::{Builder, Hnsw, Point, Search};
 use slag_common::Error;
 
-use crate::scan::kernels::dots_f32;
+use crate::scan::kernels::dot_f32;
 use crate::scan::{Hit, VectorStore};
 
 /// Neighbours per node in instant-distance 0.6 (`M`; layer 0 keeps `2·M`).
@@ -35,9 +36,8 @@ impl RowPoint {
 
 impl Point for RowPoint {
     fn distance(&self, other: &Self) -> f32 {
-        let mut out = [0.0f32; 1];
-        dots_f32::<1, false>(self.slice(), &[other.slice()], &mut out);
-        1.0 - out[0]
+        // The scan's explicit SIMD dot at the run-time level (AVX-512F / AVX2 + FMA / NEON).
+        1.0 - dot_f32(self.slice(), other.slice())
     }
 }
 
