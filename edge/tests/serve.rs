@@ -385,7 +385,10 @@ async fn hnsw_backends_answer_like_the_exact_scan_or_are_refused_at_start_up() {
         let st = get("/stats".into()).await;
         assert_eq!(st["memory"]["hnsw_backend"], backend.name());
         for t in ["t0", "t2", "t5"] {
-            let h = get(format!("/query?text={t}&index=hnsw&top_k=10&threshold=none")).await;
+            let h = get(format!(
+                "/query?text={t}&index=hnsw&top_k=10&threshold=none"
+            ))
+            .await;
             let x = get(format!("/query?text={t}&top_k=10&threshold=none")).await;
             assert_eq!(h["index"], "hnsw");
             assert_eq!(ids(&h), ids(&x), "{backend} {t}");

@@ -901,8 +901,12 @@ mod tests {
         assert!(md.contains("| 3K | f16 |"));
         assert!(md.contains("| 3K | int8 |"));
         // One instant-distance build per ef, sorted.
-        let a = md.find("| instant-distance, M=32 | 20 | 10 |").expect("ef 10 row");
-        let b = md.find("| instant-distance, M=32 | 20 | 20 |").expect("ef 20 row");
+        let a = md
+            .find("| instant-distance, M=32 | 20 | 10 |")
+            .expect("ef 10 row");
+        let b = md
+            .find("| instant-distance, M=32 | 20 | 20 |")
+            .expect("ef 20 row");
         assert!(a < b, "{md}");
         assert!(md.contains("| ≥ 0.99 |"), "{md}");
         // A beam below top-k is refused before anything runs.

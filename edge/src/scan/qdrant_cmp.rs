@@ -207,11 +207,7 @@ impl Shard {
     }
 
     /// Top-`k` rows for `q` (ids are row indices).
-    pub(super) fn search(
-        &self,
-        q: &[f32],
-        k: usize,
-    ) -> anyhow::Result<Vec<usize>> {
+    pub(super) fn search(&self, q: &[f32], k: usize) -> anyhow::Result<Vec<usize>> {
         let params = self.params.clone();
         let req = SearchRequestBuilder::new(
             QueryEnum::Nearest(NamedQuery {

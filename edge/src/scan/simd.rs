@@ -592,7 +592,9 @@ unsafe fn chunk_q1<S: Simd, const Q: usize>(
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16};
+    use super::{
+        I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16,
+    };
     use std::arch::x86_64::*;
 
     /// `prefetcht0` (SSE, part of the x86_64 baseline).
@@ -793,7 +795,9 @@ mod x86 {
 
 #[cfg(target_arch = "aarch64")]
 mod arm {
-    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16};
+    use super::{
+        I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16,
+    };
     use std::arch::aarch64::*;
 
     /// `prfm pldl1keep` (a hint: never faults).

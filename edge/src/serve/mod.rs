@@ -53,9 +53,9 @@ use slag_common::{Error, ErrorKind, Result};
 pub mod web;
 
 pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M};
-pub use crate::scan::hnsw::HnswBackend;
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
+pub use crate::scan::hnsw::HnswBackend;
 use crate::store::EdgeStore;
 
 /// Most queries in one `POST /query`.
@@ -639,10 +639,11 @@ async fn query_post(
 
 async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
     let st = state.clone();
-    let e =
-        tokio::task::spawn_blocking(move || Engine::load_with(&st.edge, &st.opts.scene, st.opts.index()))
-            .await
-            .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
+    let e = tokio::task::spawn_blocking(move || {
+        Engine::load_with(&st.edge, &st.opts.scene, st.opts.index())
+    })
+    .await
+    .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
     // A newly fetched generation of another CLIP model is not swapped in.
     state.text.check_pair(&e.manifest.model)?;
     state.swap(e);

@@ -32,7 +32,11 @@ fn recall(index: &ApproxIndex, store: &VectorStore, k: usize) -> f64 {
         for h in &approx {
             let r = store.row_f32(h.row).expect("row");
             let dot: f32 = r.iter().zip(&q).map(|(a, b)| a * b).sum();
-            assert!((dot - h.score).abs() < 1e-4, "score {} vs dot {dot}", h.score);
+            assert!(
+                (dot - h.score).abs() < 1e-4,
+                "score {} vs dot {dot}",
+                h.score
+            );
         }
         assert!(
             approx
@@ -149,10 +153,7 @@ fn qdrant_edge_is_refused_without_the_feature() {
         }
     ));
     assert!(e.is_user_input());
-    assert!(
-        e.to_string().contains("cargo feature `qdrant-edge`"),
-        "{e}"
-    );
+    assert!(e.to_string().contains("cargo feature `qdrant-edge`"), "{e}");
     let store = VectorStore::synthetic(100, 8, Dtype::F32, 3, 1).expect("store");
     assert!(matches!(
         ApproxIndex::build(&store, HnswBackend::QdrantEdge, &params(10)),
@@ -178,7 +179,11 @@ fn qdrant_edge_recall_is_high_and_its_beam_is_adjustable() {
         assert_eq!(index.backend(), HnswBackend::QdrantEdge);
         assert_eq!(index.len(), 5_000);
         // At least the f32 copy of the rows.
-        assert!(index.memory_bytes() >= 5_000 * 48 * 4, "{}", index.memory_bytes());
+        assert!(
+            index.memory_bytes() >= 5_000 * 48 * 4,
+            "{}",
+            index.memory_bytes()
+        );
         let r = recall(&index, &store, 20);
         assert!(r >= 0.95, "{dtype:?} recall@20 {r}");
         assert!(matches!(
@@ -187,7 +192,10 @@ fn qdrant_edge_recall_is_high_and_its_beam_is_adjustable() {
         ));
         index.set_ef_search(200).expect("qdrant beam");
         assert_eq!(index.ef_search(), 200);
-        assert_eq!(index.query(&query(&store, 1), 150).expect("query").len(), 150);
+        assert_eq!(
+            index.query(&query(&store, 1), 150).expect("query").len(),
+            150
+        );
         assert!(matches!(
             index.query(&[0.1; 47], 5),
             Err(Error::Mismatch { .. })
