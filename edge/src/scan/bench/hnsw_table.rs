@@ -91,6 +91,16 @@ fn build(
     })
 }
 
+/// ` (N segments)` for a Qdrant Edge index (its indexed segment plus its empty appendable one:
+/// 2), empty for instant-distance.
+fn segments_note(index: &ApproxIndex) -> String {
+    match index {
+        #[cfg(feature = "qdrant-edge")]
+        ApproxIndex::QdrantEdge(q) => format!(" ({} segments)", q.segments()),
+        _ => String::new(),
+    }
+}
+
 /// The HNSW section of the report (module doc), or a line saying why it was skipped.
 pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
     let n = args.hnsw_size;
@@ -165,13 +175,15 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
                         ef_search: efs.last().copied().unwrap_or(k),
                         ..base.clone()
                     };
-                    built.push(build(
+                    let mut b = build(
                         &store,
                         backend,
                         &p,
                         format!("qdrant-edge, m={m}"),
                         efs.clone(),
-                    )?);
+                    )?;
+                    b.label.push_str(&segments_note(&b.index));
+                    built.push(b);
                 }
             }
         }

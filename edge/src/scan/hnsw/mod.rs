@@ -302,8 +302,9 @@ impl ApproxIndex {
     }
 
     /// Bytes the index holds beside the store: instant-distance's f32 copy, point handles and
-    /// graph as laid out by the crate ([`HnswIndex::memory_bytes`]); for Qdrant Edge the size of
-    /// its shard's files (f32 vectors, graph links, id tracker), which it keeps in RAM
+    /// graph as laid out by the crate ([`HnswIndex::memory_bytes`]); for Qdrant Edge the bytes
+    /// its shard's files occupy (`du`: f32 vectors, graph links, id tracker, and the chunks it
+    /// preallocates for its empty appendable segment), whose vectors and graph it keeps in RAM
     /// (`Memory::Pinned`). Excludes allocator slack: `slag-edge bench` reports the RSS growth
     /// too.
     pub fn memory_bytes(&self) -> usize {

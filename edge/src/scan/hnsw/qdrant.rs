@@ -76,7 +76,9 @@ pub(in crate::scan) fn upsert(
     Ok(())
 }
 
-/// Total size in bytes of the files under `dir` (0 for what cannot be read).
+/// Bytes the files under `dir` occupy (`du`: allocated blocks on Unix, where Qdrant's sparse
+/// preallocated chunks count only as far as written; apparent sizes elsewhere; 0 for what cannot
+/// be read).
 fn folder_bytes(dir: &Path) -> u64 {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return 0;
@@ -85,6 +87,9 @@ fn folder_bytes(dir: &Path) -> u64 {
         .flatten()
         .map(|e| match e.metadata() {
             Ok(m) if m.is_dir() => folder_bytes(&e.path()),
+            #[cfg(unix)]
+            Ok(m) => std::os::unix::fs::MetadataExt::blocks(&m) * 512,
+            #[cfg(not(unix))]
             Ok(m) => m.len(),
             Err(_) => 0,
         })
@@ -220,7 +225,9 @@ impl QdrantHnsw {
             .map_or(0, |i| i.segments_count)
     }
 
-    /// Size of the shard's files after the build, bytes (held in RAM: `Memory::Pinned`).
+    /// Bytes the shard's files occupy after the build (`du`): the indexed segment's f32 vectors
+    /// and graph links, and the chunks Qdrant preallocates for its empty appendable segment;
+    /// the vectors and graph are held in RAM (`Memory::Pinned`).
     pub fn memory_bytes(&self) -> usize {
         self.bytes
     }
