@@ -11,6 +11,7 @@
 //! threshold = 0.28
 //! token_file = "/etc/slag/token"
 //! hnsw = false
+//! hnsw_backend = "instant-distance"   # or "qdrant-edge" (binary built with --features qdrant-edge)
 //! max_scans = 1         # scans at once (each uses every core)
 //! scan_queue = 32       # waiting queries; one more gets 503 + Retry-After
 //! ```
@@ -41,6 +42,9 @@ pub struct ServeConfig {
     pub token_file: Option<PathBuf>,
     /// Build the HNSW index.
     pub hnsw: Option<bool>,
+    /// Its backend: `instant-distance` or `qdrant-edge` (parsed by
+    /// `slag_edge::scan::hnsw::HnswBackend::from_name`).
+    pub hnsw_backend: Option<String>,
     /// Scans running at once (`slag_edge::serve::DEFAULT_MAX_SCANS` when absent).
     pub max_scans: Option<usize>,
     /// Queries that may wait for a scan (`slag_edge::serve::DEFAULT_SCAN_QUEUE` when absent).
@@ -72,13 +76,15 @@ mod tests {
         let p = dir.path().join("edge.toml");
         std::fs::write(
             &p,
-            "store = \"/s\"\nscene = \"site\"\naddr = \"0.0.0.0:8080\"\nthreshold = 0.3\nhnsw = true\n",
+            "store = \"/s\"\nscene = \"site\"\naddr = \"0.0.0.0:8080\"\nthreshold = 0.3\nhnsw = true\n\
+             hnsw_backend = \"qdrant-edge\"\n",
         )
         .unwrap();
         let c = ServeConfig::read(&p).unwrap();
         assert_eq!(c.scene.as_deref(), Some("site"));
         assert_eq!(c.threshold, Some(0.3));
         assert_eq!(c.hnsw, Some(true));
+        assert_eq!(c.hnsw_backend.as_deref(), Some("qdrant-edge"));
         std::fs::write(&p, "scene = \"a\"\nradius = 3\n").unwrap();
         let e = ServeConfig::read(&p).unwrap_err().to_string();
         assert!(e.contains("radius"), "{e}");
@@ -94,6 +100,7 @@ mod tests {
         assert_eq!(c.ep.as_deref(), Some("cpu"));
         assert_eq!(c.threshold, Some(0.28));
         assert_eq!(c.hnsw, Some(false));
+        assert_eq!(c.hnsw_backend.as_deref(), Some("instant-distance"));
         assert_eq!(c.max_scans, Some(1));
         assert_eq!(c.scan_queue, Some(32));
     }

@@ -2,10 +2,12 @@
 //!
 //! - `slag-edge fetch --from URL --scene S --center X,Y --radius 50 [--prune]`: download the shards
 //!   around the robot into the local sled store;
-//! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml]`: answer `GET /query?text=chair`;
+//! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml] [--hnsw [--hnsw-backend
+//!   instant-distance|qdrant-edge]]`: answer `GET /query?text=chair`;
 //! - `slag-edge query --text chair`: the same answer on the command line, no server;
 //! - `slag-edge check`: config + ONNX Runtime + store, without serving;
-//! - `slag-edge bench`: scan kernels against the memory-bandwidth floor.
+//! - `slag-edge bench`: scan kernels against the memory-bandwidth floor, and the HNSW backends at
+//!   equal recall.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -19,7 +21,7 @@ use slag_common::text::TextEncoder;
 use slag_edge::config::{ServeConfig, read_token};
 use slag_edge::fetch::{Center, FetchParams};
 use slag_edge::query::{FrameChoice, Interface, OnnxTextEmbedder, RawQuery, TextEmbedder};
-use slag_edge::serve::{AppState, ServeOptions};
+use slag_edge::serve::{AppState, HnswBackend, ServeOptions};
 use slag_edge::store::EdgeStore;
 
 /// slag-edge: download the shards around the robot and answer text queries over HTTP.
@@ -147,6 +149,10 @@ struct ServeArgs {
     /// Build the approximate HNSW index at load (queries pick it with index=hnsw).
     #[arg(long)]
     hnsw: bool,
+    /// Implementation of the --hnsw index: instant-distance (default), or qdrant-edge (Qdrant
+    /// Edge's HNSW; only in a binary built with `--features qdrant-edge`, refused otherwise).
+    #[arg(long, value_name = "instant-distance|qdrant-edge")]
+    hnsw_backend: Option<String>,
     /// Per-request timeout, seconds.
     #[arg(long, default_value_t = 30.0)]
     request_timeout: f64,
@@ -311,11 +317,24 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         (None, Some(t)) if !t.trim().is_empty() => Some(t.trim().to_string()),
         _ => None,
     };
+    let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
+    let hnsw_backend = match a.hnsw_backend.or(c.hnsw_backend) {
+        None => HnswBackend::default(),
+        Some(name) => {
+            anyhow::ensure!(
+                hnsw,
+                "--hnsw-backend {name} without --hnsw: add --hnsw (or `hnsw = true` in --config) \
+                 to build the index, or drop the backend"
+            );
+            HnswBackend::from_name(&name)?.require()?
+        }
+    };
     let opts = ServeOptions {
         scene,
         token,
         threshold,
-        hnsw: a.hnsw || c.hnsw.unwrap_or(false),
+        hnsw,
+        hnsw_backend,
         request_timeout: timeout(a.request_timeout, "--request-timeout")?,
         max_scans: a
             .max_scans
@@ -474,6 +493,10 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
             "scene_id" => "pass --scene NAME".into(),
             "radius" => "pass --radius R, a finite number ≥ 0".into(),
+            "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
+                               \"instant-distance\"` in --config), or use a slag-edge built with \
+                               `cargo build --release -p slag-edge --features qdrant-edge`"
+                .into(),
             "jobs" => "pass --jobs N with N ≥ 1".into(),
             _ => return None,
         },
@@ -550,6 +573,12 @@ mod tests {
         );
         assert!(h(Error::internal("query task panicked")).contains("--verbose"));
         assert_eq!(hint_for(&Error::network("http://s", "down")), None);
+        let refused = slag_edge::scan::hnsw::HnswBackend::QdrantEdge.require();
+        if let Err(e) = refused {
+            let hint = h(e);
+            assert!(hint.contains("--hnsw-backend instant-distance"), "{hint}");
+            assert!(hint.contains("--features qdrant-edge"), "{hint}");
+        }
         // Through context, as `main` sees it.
         let e = anyhow::Error::new(Error::param("scene", "\"grid\"", "a fetched scene"))
             .context("query");

@@ -444,7 +444,7 @@ pub fn run_query(
     embedding_model: &str,
     text: &dyn TextEmbedder,
     negatives: &[Vec<f32>],
-    hnsw: Option<&scan::hnsw::HnswIndex>,
+    hnsw: Option<&scan::hnsw::ApproxIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
     run_query_framed(store, embedding_model, None, text, negatives, hnsw, q)
@@ -461,7 +461,8 @@ fn in_box(p: [f32; 3], b: &[[f32; 3]; 2]) -> bool {
 /// `q.frame` auto or map, every coordinate of the answer is mapped into the map frame and
 /// `q.bbox` is read in the map frame (the scan keeps the scene box around the map box's corners,
 /// then the exact map box is applied to each kept row). `negatives` are the embeddings of
-/// [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw` the optional approximate index.
+/// [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw` the optional approximate index
+/// (either backend: same row ids and scores as the exact scan, possibly missing rows).
 ///
 /// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
 /// ([`Error::Mismatch`]) or without a direction (zero / non-finite norm, [`unit_prompt_embedding`];
@@ -473,7 +474,7 @@ pub fn run_query_framed(
     to_map: Option<&SceneToMap>,
     text: &dyn TextEmbedder,
     negatives: &[Vec<f32>],
-    hnsw: Option<&scan::hnsw::HnswIndex>,
+    hnsw: Option<&scan::hnsw::ApproxIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
     let map = answer_frame(q.frame, to_map)?;

@@ -301,3 +301,56 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
         );
     }
 }
+
+/// `serve --hnsw-backend`: an unknown name, a backend without `--hnsw`, and (in a binary built
+/// without the cargo feature) `qdrant-edge` are refused at start-up, before the store or the text
+/// model is opened, with the error and the CLI's hint.
+#[test]
+fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("no-store");
+    let s = store.display().to_string();
+    let serve = |extra: &[&str]| {
+        let mut args = vec![
+            "serve",
+            "--store",
+            &s,
+            "--scene",
+            "grid",
+            "--text-model",
+            "m.onnx",
+            "--tokenizer",
+            "t.json",
+            "--addr",
+            "127.0.0.1:0",
+        ];
+        args.extend_from_slice(extra);
+        let out = slag_edge(&args);
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let e = serve(&["--hnsw", "--hnsw-backend", "faiss"]);
+    assert!(
+        e.contains("hnsw_backend") && e.contains("instant-distance or qdrant-edge"),
+        "{e}"
+    );
+    assert!(e.contains("hint: pass --hnsw-backend"), "{e}");
+    let e = serve(&["--hnsw-backend", "instant-distance"]);
+    assert!(e.contains("without --hnsw"), "{e}");
+    if !cfg!(feature = "qdrant-edge") {
+        let e = serve(&["--hnsw", "--hnsw-backend", "qdrant-edge"]);
+        let lines: Vec<&str> = e.trim().lines().collect();
+        assert_eq!(lines.len(), 2, "{e}");
+        assert!(
+            lines[0].starts_with("error: ") && lines[0].contains("cargo feature `qdrant-edge`"),
+            "{e}"
+        );
+        assert!(
+            lines[1].starts_with("hint: ")
+                && lines[1].contains("--hnsw-backend instant-distance")
+                && lines[1].contains("--features qdrant-edge"),
+            "{e}"
+        );
+    }
+    assert!(!store.exists());
+}

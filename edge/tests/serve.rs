@@ -9,7 +9,7 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use slag_common::shards::{Dtype, decode_shard};
-use slag_edge::serve::{AppState, ServeOptions};
+use slag_edge::serve::{AppState, HnswBackend, ServeOptions};
 use support::{
     BasisEmbedder, GateEmbedder, TestScene, fetch_grid, grid_scene, serve_on_loopback,
     shard_server, wait_until,
@@ -230,6 +230,8 @@ async fn batches_hnsw_stats_health_and_errors() {
     assert_eq!(st["shards_absent"], 6);
     assert_eq!(st["gaussians"], 240);
     assert!(st["memory"]["bytes_per_gaussian"].as_f64().unwrap() >= 12.0 * 2.0);
+    assert_eq!(st["memory"]["hnsw_backend"], "instant-distance");
+    assert!(st["memory"]["hnsw_bytes"].as_u64().unwrap() >= 240 * 12 * 4);
     assert_eq!(shards.len(), 3);
 
     // Batch: answers in order, equal to the single queries.
@@ -338,6 +340,77 @@ async fn batches_hnsw_stats_health_and_errors() {
 
     // The prompt is embedded once per query (negatives once at start-up).
     assert!(e.embedder.calls.load(Ordering::SeqCst) >= 1);
+}
+
+/// `index=hnsw` through each approximate-index backend: a backend this binary has answers with
+/// the exact scan's ids and scores (here all ten of the exact top 10, the set is small) and
+/// reports itself in `/stats`; one it lacks (`qdrant-edge` without the cargo feature) is refused
+/// at start-up with a typed error before anything is served.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hnsw_backends_answer_like_the_exact_scan_or_are_refused_at_start_up() {
+    for backend in HnswBackend::ALL {
+        let server = shard_server(grid_scene("grid", 2, 2, 60, 12, Dtype::F16, 1), None).await;
+        let (_dir, store) = fetch_grid(&server.url, 100.0).await;
+        let opts = ServeOptions {
+            hnsw: true,
+            hnsw_backend: backend,
+            ..ServeOptions::new("grid")
+        };
+        let state = match AppState::new(store, Arc::new(BasisEmbedder::new(12)), opts) {
+            Ok(s) => s,
+            Err(e) => {
+                assert!(!backend.available(), "{backend}: {e}");
+                assert!(
+                    matches!(
+                        e,
+                        slag_common::Error::Param {
+                            name: "hnsw_backend",
+                            ..
+                        }
+                    ),
+                    "{e}"
+                );
+                assert!(e.to_string().contains("cargo feature `qdrant-edge`"), "{e}");
+                continue;
+            }
+        };
+        assert!(backend.available());
+        let url = serve_on_loopback(state).await;
+        let client = reqwest::Client::new();
+        let get = async |path: String| -> serde_json::Value {
+            let r = client.get(format!("{url}{path}")).send().await.unwrap();
+            assert_eq!(r.status().as_u16(), 200, "{path}");
+            r.json().await.unwrap()
+        };
+        let st = get("/stats".into()).await;
+        assert_eq!(st["memory"]["hnsw_backend"], backend.name());
+        for t in ["t0", "t2", "t5"] {
+            let h = get(format!(
+                "/query?text={t}&index=hnsw&top_k=10&threshold=none"
+            ))
+            .await;
+            let x = get(format!("/query?text={t}&top_k=10&threshold=none")).await;
+            assert_eq!(h["index"], "hnsw");
+            assert_eq!(ids(&h), ids(&x), "{backend} {t}");
+            let scores = |v: &serde_json::Value| -> Vec<f64> {
+                v["matches"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|m| m["score"].as_f64().unwrap())
+                    .collect()
+            };
+            for (a, b) in scores(&h).iter().zip(scores(&x)) {
+                assert!((a - b).abs() < 1e-5, "{backend} {t}: {a} vs {b}");
+            }
+            // The paper's threshold applies to index=hnsw answers too.
+            let thr = get(format!("/query?text={t}&index=hnsw&top_k=50")).await;
+            assert!(
+                scores(&thr).iter().all(|&s| s >= 0.28 - 1e-6),
+                "{backend} {t}"
+            );
+        }
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -1,5 +1,6 @@
 //! The scan benchmark behind `slag-edge bench`: exact scan vs memory-bandwidth floor vs the naive
-//! baseline, per store size and dtype, plus one HNSW row. All ratios come from one run on one
+//! baseline, per store size and dtype, plus an HNSW table (`bench/hnsw_table.rs`: every
+//! approximate-index backend over a sweep of search beams). All ratios come from one run on one
 //! machine.
 
 use std::time::Instant;
@@ -7,10 +8,12 @@ use std::time::Instant;
 use rayon::prelude::*;
 use slag_common::shards::{Dtype, StoredVectors};
 
-use super::hnsw::HnswIndex;
+use super::hnsw::HnswBackend;
 use super::kernels::{self, SimdLevel};
 use super::store::{normal, random_centres};
 use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan};
+
+mod hnsw_table;
 
 /// Clusters of the synthetic store (directions; each query targets one of them).
 const CLUSTERS: usize = 64;
@@ -46,13 +49,31 @@ pub struct BenchArgs {
     /// Seed of the synthetic store and queries.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Store size of the HNSW row (0 = no HNSW row). Build time grows ~N log N: on a 2-core
-    /// machine 1M × 512 takes well over ten minutes, so the default is 100K.
+    /// Store size of the HNSW table (0 = no HNSW table). Build time grows ~N log N: on a 2-core
+    /// machine instant-distance takes about two minutes for 100K × 512 and well over ten for 1M,
+    /// so the default is 100K.
     #[arg(long, default_value = "100K", value_parser = parse_size)]
     pub hnsw_size: usize,
-    /// HNSW ef_construction.
+    /// HNSW ef_construction (both backends).
     #[arg(long, default_value_t = 100)]
     pub hnsw_ef_construction: usize,
+    /// Approximate-index backends of the HNSW table (instant-distance, qdrant-edge),
+    /// comma-separated; `--qdrant` adds qdrant-edge. qdrant-edge needs a binary built with
+    /// `--features qdrant-edge`.
+    #[arg(long, value_delimiter = ',', default_value = "instant-distance", value_parser = parse_backend)]
+    pub hnsw_backends: Vec<HnswBackend>,
+    /// Search beams (ef) of the HNSW table, comma-separated, each at least --top-k (default:
+    /// --top-k). instant-distance is built once per ef (its beam is fixed at build time), Qdrant
+    /// Edge once per --hnsw-m and searched with each.
+    #[arg(long, value_delimiter = ',')]
+    pub hnsw_ef: Vec<usize>,
+    /// Qdrant Edge graph degrees (m, links per node; layer 0 keeps 2m), comma-separated.
+    /// instant-distance's M is fixed at 32.
+    #[arg(long, value_delimiter = ',', default_value = "16")]
+    pub hnsw_m: Vec<usize>,
+    /// Queries of the HNSW table (recall is their mean; the time their median).
+    #[arg(long, default_value_t = 50)]
+    pub hnsw_queries: usize,
     /// Skip the naive single-thread baseline for stores above this size (it is slow).
     #[arg(long, default_value = "8M", value_parser = parse_size)]
     pub naive_max: usize,
@@ -92,6 +113,10 @@ impl Default for BenchArgs {
             seed: 1,
             hnsw_size: 100_000,
             hnsw_ef_construction: 100,
+            hnsw_backends: vec![HnswBackend::InstantDistance],
+            hnsw_ef: Vec::new(),
+            hnsw_m: vec![16],
+            hnsw_queries: 50,
             naive_max: 8_000_000,
             qdrant: false,
             qdrant_dir: None,
@@ -117,6 +142,11 @@ fn parse_size(s: &str) -> Result<usize, String> {
         return Err(format!("size {s:?} must be a non-negative number"));
     }
     Ok((v * mul).round() as usize)
+}
+
+/// Parses an approximate-index backend name ([`HnswBackend::from_name`]).
+fn parse_backend(s: &str) -> Result<HnswBackend, String> {
+    HnswBackend::from_name(s).map_err(|e| e.to_string())
 }
 
 fn mem_available_bytes() -> Option<f64> {
@@ -298,6 +328,30 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<String> {
         args.qdrant_oversampling >= 1.0 && args.qdrant_oversampling.is_finite(),
         "--qdrant-oversampling must be a finite number >= 1"
     );
+    if args.hnsw_size > 0 {
+        for b in hnsw_table::backends(args) {
+            anyhow::ensure!(
+                b.available(),
+                "--hnsw-backends {b} needs slag-edge built with `--features qdrant-edge` \
+                 (Rust >= 1.96): cargo build --release -p slag-edge --features qdrant-edge"
+            );
+        }
+        let efs = hnsw_table::efs(args);
+        anyhow::ensure!(
+            efs.first().is_some_and(|&e| e >= args.top_k.max(1)),
+            "--hnsw-ef {efs:?}: every ef must be at least --top-k {} (an HNSW search returns \
+             at most ef rows)",
+            args.top_k
+        );
+        anyhow::ensure!(
+            args.hnsw_m.iter().all(|&m| m >= 2) && !args.hnsw_m.is_empty(),
+            "--hnsw-m: give one or more graph degrees, each at least 2"
+        );
+        anyhow::ensure!(
+            args.hnsw_ef_construction >= 1,
+            "--hnsw-ef-construction must be at least 1"
+        );
+    }
     pool.install(|| run_inner(args))
 }
 
@@ -521,7 +575,7 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     out.push_str(&kernel_table(args, &dtypes)?);
     if args.hnsw_size > 0 {
         out.push('\n');
-        out.push_str(&hnsw_row(args, &qvecs, limit)?);
+        out.push_str(&hnsw_table::table(args, limit)?);
     }
     Ok(out)
 }
@@ -618,8 +672,6 @@ mod qdrant {
             &format!("exact-{size}"),
             qrows,
             kind,
-            0,
-            args.hnsw_ef_construction,
             threads.max(1),
             threads,
             args.qdrant_oversampling,
@@ -642,7 +694,7 @@ mod qdrant {
         // Warm-up (untimed) on both sides.
         let q0 = [qvecs[0].as_slice()];
         scan(store, &ScanRequest::top_k(&q0, k))?;
-        shard.search(&qvecs[0], k, None)?;
+        shard.search(&qvecs[0], k)?;
         let (mut ts, mut tq, mut ss, mut sq) = (vec![], vec![], vec![], vec![]);
         for q in qvecs {
             let qs = [q.as_slice()];
@@ -650,7 +702,7 @@ mod qdrant {
             let a = scan(store, &ScanRequest::top_k(&qs, k))?;
             ts.push(t.elapsed().as_secs_f64() * 1e3);
             let t = Instant::now();
-            let b = shard.search(q, k, None)?;
+            let b = shard.search(q, k)?;
             tq.push(t.elapsed().as_secs_f64() * 1e3);
             ss.push(a.iter().map(|h| h.row).collect::<HashSet<usize>>());
             sq.push(b.into_iter().collect::<HashSet<usize>>());
@@ -717,54 +769,6 @@ mod qdrant {
             }
         }
     }
-
-    /// Qdrant Edge's HNSW (m = 16, one segment) over `store` (f32), searched with hnsw_ef = k and
-    /// 2k: `(label, build s, median ms, mean recall@k)` per ef.
-    pub(super) fn hnsw_rows(
-        args: &BenchArgs,
-        store: &VectorStore,
-        qvecs: &[Vec<f32>],
-        exact: &[HashSet<usize>],
-    ) -> anyhow::Result<Vec<(String, f64, f64, f64)>> {
-        let threads = rayon::current_num_threads();
-        tracing::info!("bench: building Qdrant Edge HNSW over {} rows", store.len());
-        let shard = qdrant_cmp::build(
-            &base(args),
-            "hnsw",
-            store,
-            Kind::F32,
-            16,
-            args.hnsw_ef_construction,
-            1,
-            threads,
-            1.0,
-        )?;
-        let k = args.top_k;
-        let mut out = Vec::new();
-        for ef in [k, 2 * k] {
-            shard.search(&qvecs[0], k, Some(ef))?;
-            let mut ts = Vec::new();
-            let mut rec = Vec::new();
-            for (q, want) in qvecs.iter().zip(exact) {
-                let t = Instant::now();
-                let got = shard.search(q, k, Some(ef))?;
-                ts.push(t.elapsed().as_secs_f64() * 1e3);
-                let found = got.iter().filter(|r| want.contains(r)).count();
-                rec.push(found as f64 / want.len().max(1) as f64);
-            }
-            out.push((
-                format!(
-                    "Qdrant Edge HNSW m=16, ef_construct={}, hnsw_ef={ef}, {} segment(s)",
-                    args.hnsw_ef_construction,
-                    shard.segments()
-                ),
-                shard.build_s,
-                median(ts),
-                rec.iter().sum::<f64>() / rec.len().max(1) as f64,
-            ));
-        }
-        Ok(out)
-    }
 }
 
 #[cfg(not(feature = "qdrant-edge"))]
@@ -785,15 +789,6 @@ mod qdrant {
         _: &[Vec<f32>],
         _: &[HashSet<usize>],
     ) -> anyhow::Result<Vec<QRow>> {
-        anyhow::bail!("slag-edge was built without the `qdrant-edge` feature")
-    }
-
-    pub(super) fn hnsw_rows(
-        _: &BenchArgs,
-        _: &VectorStore,
-        _: &[Vec<f32>],
-        _: &[HashSet<usize>],
-    ) -> anyhow::Result<Vec<(String, f64, f64, f64)>> {
         anyhow::bail!("slag-edge was built without the `qdrant-edge` feature")
     }
 }
@@ -868,74 +863,6 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
     Ok(out)
 }
 
-fn hnsw_row(args: &BenchArgs, qvecs: &[Vec<f32>], limit: f64) -> anyhow::Result<String> {
-    let n = args.hnsw_size;
-    let dim = args.dim;
-    // Store (f32) + the index's own f32 copy + graph (~300 B/node).
-    let need = n as f64 * (2.0 * (4 * dim) as f64 + 16.0 + 400.0);
-    if need > limit {
-        return Ok(format!(
-            "HNSW at {}: skipped, needs {:.1} GB > limit {:.1} GB\n",
-            fmt_size(n),
-            need / 1e9,
-            limit / 1e9
-        ));
-    }
-    let k = args.top_k;
-    let ef_search = k.max(100);
-    let store = VectorStore::synthetic(n, dim, Dtype::F32, CLUSTERS, args.seed)?;
-    tracing::info!("bench: building HNSW over {}", fmt_size(n));
-    let t = Instant::now();
-    let index = HnswIndex::build(&store, args.hnsw_ef_construction, ef_search, args.seed)?;
-    let build_s = t.elapsed().as_secs_f64();
-    let mut q_ms = Vec::new();
-    let mut exact_ms = Vec::new();
-    let mut recalls = Vec::new();
-    let mut exact_sets = Vec::new();
-    for q in qvecs {
-        let t = Instant::now();
-        let approx = index.query(q, k)?;
-        q_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        let qs = [q.as_slice()];
-        let t = Instant::now();
-        let exact = scan(&store, &ScanRequest::top_k(&qs, k))?;
-        exact_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        let want: std::collections::HashSet<usize> = exact.iter().map(|h| h.row).collect();
-        let found = approx.iter().filter(|h| want.contains(&h.row)).count();
-        recalls.push(found as f64 / want.len().max(1) as f64);
-        exact_sets.push(want);
-    }
-    let mean_recall = recalls.iter().sum::<f64>() / recalls.len().max(1) as f64;
-    let mut extra = String::new();
-    if args.qdrant {
-        extra.push_str(&format!(
-            "\nHNSW side by side on the same {} rows and queries (slag: instant-distance, \
-             ef_search {ef_search}, one thread per query; recall@{k} against the exact f32 scan):\n\n\
-             | index | build s | query ms | recall@{k} (mean) |\n|---|---|---|---|\n\
-             | slag HNSW (instant-distance) ef_construction={} ef_search={ef_search} | {build_s:.1} \
-             | {:.2} | {mean_recall:.3} |\n",
-            fmt_size(n),
-            args.hnsw_ef_construction,
-            median(q_ms.clone()),
-        ));
-        for (label, b, ms, rec) in qdrant::hnsw_rows(args, &store, qvecs, &exact_sets)? {
-            extra.push_str(&format!("| {label} | {b:.1} | {ms:.2} | {rec:.3} |\n"));
-        }
-    }
-    let table = format!(
-        "| HNSW N | D | ef_construction | ef_search | build s | index bytes/Gaussian | query ms | \
-         exact f32 scan ms | recall@{k} (mean) |\n|---|---|---|---|---|---|---|---|---|\n\
-         | {} | {dim} | {} | {ef_search} | {build_s:.1} | {} | {:.2} | {:.1} | {:.3} |\n",
-        fmt_size(n),
-        args.hnsw_ef_construction,
-        index.memory_bytes() / n.max(1),
-        median(q_ms),
-        median(exact_ms),
-        mean_recall
-    );
-    Ok(table + &extra)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -994,13 +921,30 @@ mod tests {
             threads: Some(2),
             hnsw_size: 500,
             hnsw_ef_construction: 20,
+            hnsw_ef: vec![20, 10],
+            hnsw_queries: 4,
             ..BenchArgs::default()
         };
         let md = run_bench(&args).expect("bench");
         assert!(md.contains("| 3K | f32 |"), "{md}");
         assert!(md.contains("| 3K | f16 |"));
         assert!(md.contains("| 3K | int8 |"));
-        assert!(md.contains("| 500 | 32 | 20 | 100 |"), "{md}");
+        // One instant-distance build per ef, sorted.
+        let a = md
+            .find("| instant-distance, M=32 | 20 | 10 |")
+            .expect("ef 10 row");
+        let b = md
+            .find("| instant-distance, M=32 | 20 | 20 |")
+            .expect("ef 20 row");
+        assert!(a < b, "{md}");
+        assert!(md.contains("| ≥ 0.99 |"), "{md}");
+        // A beam below top-k is refused before anything runs.
+        let e = run_bench(&BenchArgs {
+            hnsw_ef: vec![5],
+            ..args.clone()
+        })
+        .expect_err("ef < k");
+        assert!(e.to_string().contains("--hnsw-ef"), "{e}");
         let skipped = run_bench(&BenchArgs {
             max_memory_gb: Some(1e-6),
             hnsw_size: 0,

@@ -391,6 +391,22 @@ pub fn scan_chunk<const Q: usize>(
     scan_chunk_at::<Q>(simd_level(), vectors, d, start, end, qs, keep, out)
 }
 
+/// One f32 dot product `a · b` at the [`simd_level`]: [`dot_f32_at`]. The distance of the
+/// instant-distance HNSW graph (`hnsw/instant.rs`), called once per pair of rows it compares.
+///
+/// Shapes: `b.len() >= a.len()` (the first `a.len()` values of `b` are used).
+#[inline]
+pub fn dot_f32(a: &[f32], b: &[f32]) -> f32 {
+    dot_f32_at(simd_level(), a, b)
+}
+
+/// [`dot_f32`] at an explicit level: the explicit SIMD kernel (AVX2 + FMA, AVX-512F, NEON) where
+/// the CPU has it, else the portable loop (no FMA). Results differ between levels by f32
+/// rounding only.
+pub fn dot_f32_at(level: SimdLevel, a: &[f32], b: &[f32]) -> f32 {
+    super::simd::dot_f32(level, a, b).unwrap_or_else(|| dot_conv::<f32, false>(a, b, |x| x))
+}
+
 /// `true` when this CPU can run [`SimdLevel::Avx2Fma`].
 pub fn avx2_fma_available() -> bool {
     #[cfg(target_arch = "x86_64")]
@@ -459,6 +475,24 @@ mod tests {
 
     fn ref_dot(a: impl Iterator<Item = f64>, b: &[f32]) -> f64 {
         a.zip(b).map(|(x, &y)| x * y as f64).sum()
+    }
+
+    #[test]
+    fn every_simd_level_gives_the_same_single_dot() {
+        let mut s = 5u64;
+        for d in [0usize, 1, 7, 8, 15, 16, 17, 33, 64, 100, 512, 515] {
+            let a: Vec<f32> = (0..d).map(|_| lcg(&mut s)).collect();
+            let b: Vec<f32> = (0..d).map(|_| lcg(&mut s)).collect();
+            let want = ref_dot(a.iter().map(|&x| x as f64), &b);
+            for level in SimdLevel::available_levels() {
+                let got = dot_f32_at(level, &a, &b) as f64;
+                assert!(
+                    (got - want).abs() <= 1e-5 * (1.0 + d as f64),
+                    "{level:?} d={d}: {got} vs {want}"
+                );
+            }
+            assert_eq!(dot_f32(&a, &b), dot_f32_at(simd_level(), &a, &b));
+        }
     }
 
     #[test]

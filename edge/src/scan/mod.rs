@@ -9,7 +9,9 @@
 //!   the means;
 //! - [`naive_scan_f32`]: what a straightforward implementation does (scalar dot, all scores, full
 //!   sort), the benchmark baseline;
-//! - [`hnsw::HnswIndex`]: an approximate HNSW index (`instant-distance`) for comparison;
+//! - [`hnsw::ApproxIndex`]: the approximate (HNSW) index behind `index=hnsw`, backend
+//!   `instant-distance` (always built) or `qdrant-edge` (cargo feature `qdrant-edge`), picked at
+//!   run time ([`hnsw::HnswBackend`]);
 //! - [`mod@bench`]: the scan benchmark ([`run_bench`]).
 //!
 //! Memory: a scan allocates only per-thread selection state (O(k) for top-k) and its output; it

@@ -10,9 +10,10 @@
 //! - `int8`: `Float32` storage plus Qdrant's scalar int8 quantization (`ScalarType::Int8`, kept in
 //!   RAM), searched through the quantized vectors with rescoring on the originals
 //!   (`rescore = true`, `--qdrant-oversampling`), and once without rescoring; the graph is
-//!   disabled (`m = 0`), so this is Qdrant's quantized full scan;
-//! - HNSW: `m = 16`, `ef_construct = --hnsw-ef-construction`, one segment, searched with
-//!   `hnsw_ef` = k and 2k, beside slag's `instant-distance` index on the same rows.
+//!   disabled (`m = 0`), so this is Qdrant's quantized full scan.
+//!
+//! Qdrant Edge's HNSW is not built here: the bench's HNSW table builds it through the edge's own
+//! approximate-index type (`super::hnsw::ApproxIndex`, backend `qdrant-edge`).
 //!
 //! The exact shards are built as two optimised segments of N/2 points each (Qdrant searches
 //! segments in parallel on its `max_search_threads` pool, which is set to the bench's thread
@@ -24,13 +25,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context;
-use qdrant_edge::external::serde_json::json;
 use qdrant_edge::{
     DEFAULT_VECTOR_NAME, Distance, EdgeConfig, EdgeOptimizersConfig, EdgeShard, EdgeVectorParams,
-    HnswIndexConfig, Memory, NamedQuery, PointId, PointInsertOperations, PointOperations,
-    PointStruct, QuantizationConfig, QuantizationSearchParams, QueryEnum, ScalarQuantizationConfig,
-    ScalarType, SearchParams, SearchRequestBuilder, UpdateOperation, VectorStorageDatatype,
-    WithPayloadInterface, WithVector,
+    HnswIndexConfig, Memory, NamedQuery, PointId, QuantizationConfig, QuantizationSearchParams,
+    QueryEnum, ScalarQuantizationConfig, ScalarType, SearchParams, SearchRequestBuilder,
+    VectorStorageDatatype, WithPayloadInterface, WithVector,
 };
 
 use super::VectorStore;
@@ -93,42 +92,14 @@ fn scratch(base: &Path, name: &str) -> anyhow::Result<PathBuf> {
     Ok(dir)
 }
 
-/// Upserts rows `range` of `rows` (as f32, ids = row index) in batches of 1000.
-fn upsert(
-    shard: &EdgeShard,
-    rows: &VectorStore,
-    range: std::ops::Range<usize>,
-) -> anyhow::Result<()> {
-    let mut i = range.start;
-    while i < range.end {
-        let end = (i + 1000).min(range.end);
-        let mut batch = Vec::with_capacity(end - i);
-        for r in i..end {
-            let v = rows
-                .row_f32(r)
-                .with_context(|| format!("row {r} of the bench store"))?;
-            batch.push(PointStruct::new(r as u64, v, json!({})).into());
-        }
-        shard
-            .update(UpdateOperation::PointOperation(
-                PointOperations::UpsertPoints(PointInsertOperations::PointsList(batch)),
-            ))
-            .map_err(|e| anyhow::anyhow!("Qdrant Edge upsert: {e}"))?;
-        i = end;
-    }
-    Ok(())
-}
-
 /// Builds a shard of `kind` over every row of `rows` in `base/<name>`: `segments` optimised
-/// segments of equal size (1 for HNSW), `threads` search threads, graph `m` (0 = none).
-#[allow(clippy::too_many_arguments)]
+/// segments of equal size, `threads` search threads, no graph (`m = 0`: exact or quantized full
+/// scans).
 pub(super) fn build(
     base: &Path,
     name: &str,
     rows: &VectorStore,
     kind: Kind,
-    m: usize,
-    ef_construct: usize,
     segments: usize,
     threads: usize,
     oversampling: f64,
@@ -139,8 +110,9 @@ pub(super) fn build(
     let t = Instant::now();
     #[allow(deprecated)] // `on_disk` has no replacement field to leave unset but this one
     let hnsw = HnswIndexConfig {
-        m,
-        ef_construct: ef_construct.max(4),
+        m: 0,
+        // Unused without a graph; Qdrant's default.
+        ef_construct: 100,
         full_scan_threshold: 1,
         max_indexing_threads: threads,
         on_disk: None,
@@ -188,7 +160,7 @@ pub(super) fn build(
     let mut start = 0;
     while start < n {
         let end = (start + per_segment).min(n);
-        upsert(&shard, rows, start..end)?;
+        super::hnsw::qdrant::upsert(&shard, &dir, rows, start..end)?;
         shard
             .optimize()
             .map_err(|e| anyhow::anyhow!("Qdrant Edge optimize: {e}"))?;
@@ -196,7 +168,7 @@ pub(super) fn build(
     }
     let build_s = t.elapsed().as_secs_f64();
     let params = SearchParams {
-        exact: matches!(kind, Kind::F32 | Kind::F16) && m == 0,
+        exact: matches!(kind, Kind::F32 | Kind::F16),
         quantization: match kind {
             Kind::Int8 { rescore } => Some(QuantizationSearchParams {
                 ignore: false,
@@ -234,15 +206,9 @@ impl Shard {
             .map_or(0, |i| i.segments_count)
     }
 
-    /// Top-`k` rows for `q` (ids are row indices), with `hnsw_ef` for graph searches.
-    pub(super) fn search(
-        &self,
-        q: &[f32],
-        k: usize,
-        hnsw_ef: Option<usize>,
-    ) -> anyhow::Result<Vec<usize>> {
-        let mut params = self.params.clone();
-        params.hnsw_ef = hnsw_ef;
+    /// Top-`k` rows for `q` (ids are row indices).
+    pub(super) fn search(&self, q: &[f32], k: usize) -> anyhow::Result<Vec<usize>> {
+        let params = self.params.clone();
         let req = SearchRequestBuilder::new(
             QueryEnum::Nearest(NamedQuery {
                 query: q.to_vec().into(),

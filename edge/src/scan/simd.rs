@@ -592,7 +592,9 @@ unsafe fn chunk_q1<S: Simd, const Q: usize>(
 
 #[cfg(target_arch = "x86_64")]
 mod x86 {
-    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, f16};
+    use super::{
+        I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16,
+    };
     use std::arch::x86_64::*;
 
     /// `prefetcht0` (SSE, part of the x86_64 baseline).
@@ -758,6 +760,21 @@ mod x86 {
         unsafe { chunk_body::<Avx512, Q>(vectors, d, start, end, qs, keep, out) }
     }
 
+    /// One f32 dot product `a · b` (`b` at least as long as `a`) with AVX2 + FMA (the HNSW
+    /// graph's distance, [`super::dot_f32`]).
+    #[target_feature(enable = "avx2,fma,f16c")]
+    pub fn dot_f32_avx2(a: &[f32], b: &[f32]) -> f32 {
+        // SAFETY: compiled for (and only called on CPUs with) AVX2 + FMA + F16C.
+        unsafe { dots_q::<Avx2, f32, 1>(a, &[b])[0] }
+    }
+
+    /// [`dot_f32_avx2`] with AVX-512F.
+    #[target_feature(enable = "avx512f,avx2,fma,f16c")]
+    pub fn dot_f32_avx512(a: &[f32], b: &[f32]) -> f32 {
+        // SAFETY: compiled for (and only called on CPUs with) AVX-512F.
+        unsafe { dots_q::<Avx512, f32, 1>(a, &[b])[0] }
+    }
+
     /// int8 rows with `vpdpbusd` against three-term int8 splits of the queries (module doc).
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
     #[allow(clippy::too_many_arguments)]
@@ -778,7 +795,9 @@ mod x86 {
 
 #[cfg(target_arch = "aarch64")]
 mod arm {
-    use super::{I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, f16};
+    use super::{
+        I8Dot, Keep, Queries, Simd, StoredVectors, chunk_body, chunk_i8_split_q, dots_q, f16,
+    };
     use std::arch::aarch64::*;
 
     /// `prfm pldl1keep` (a hint: never faults).
@@ -923,6 +942,13 @@ mod arm {
         unsafe { chunk_body::<Neon, Q>(vectors, d, start, end, qs, keep, out) }
     }
 
+    /// One f32 dot product `a · b` (`b` at least as long as `a`) with NEON FMLA (the HNSW
+    /// graph's distance, [`super::dot_f32`]).
+    pub fn dot_f32_neon(a: &[f32], b: &[f32]) -> f32 {
+        // SAFETY: NEON is part of the aarch64 baseline.
+        unsafe { dots_q::<Neon, f32, 1>(a, &[b])[0] }
+    }
+
     /// int8 rows with SDOT against three-term int8 splits of the queries (module doc).
     #[target_feature(enable = "neon,dotprod")]
     #[allow(clippy::too_many_arguments)]
@@ -1055,5 +1081,29 @@ pub(super) fn chunk<const Q: usize>(
             true
         }
         _ => false,
+    }
+}
+
+/// One f32 dot product `a · b` (`b` at least as long as `a`; panics when shorter) at `level`
+/// when that level is an explicit SIMD kernel of this build target and the CPU has it; `None`
+/// otherwise (the caller uses the portable loop).
+pub(super) fn dot_f32(level: SimdLevel, a: &[f32], b: &[f32]) -> Option<f32> {
+    if !level.available() {
+        return None;
+    }
+    match level {
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx2Fma => {
+            // SAFETY: `level.available()` confirmed AVX2 + FMA + F16C (`is_x86_feature_detected!`).
+            Some(unsafe { x86::dot_f32_avx2(a, b) })
+        }
+        #[cfg(target_arch = "x86_64")]
+        SimdLevel::Avx512 | SimdLevel::Avx512Vnni => {
+            // SAFETY: `level.available()` confirmed AVX-512F + AVX2 + FMA + F16C.
+            Some(unsafe { x86::dot_f32_avx512(a, b) })
+        }
+        #[cfg(target_arch = "aarch64")]
+        SimdLevel::Neon | SimdLevel::NeonDotprod => Some(arm::dot_f32_neon(a, b)),
+        _ => None,
     }
 }

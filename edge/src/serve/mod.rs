@@ -52,9 +52,10 @@ use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
 
-pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH};
+pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M};
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
+pub use crate::scan::hnsw::HnswBackend;
 use crate::store::EdgeStore;
 
 /// Most queries in one `POST /query`.
@@ -75,8 +76,12 @@ pub struct ServeOptions {
     pub token: Option<String>,
     /// Cosine threshold used when a query gives none.
     pub threshold: f32,
-    /// Build the HNSW index at load.
+    /// Build the approximate (HNSW) index at load, for `index=hnsw` queries.
     pub hnsw: bool,
+    /// Which implementation builds it ([`HnswBackend`]; default instant-distance). `qdrant-edge`
+    /// needs a binary built with the cargo feature `qdrant-edge`: [`AppState::new`] refuses it
+    /// otherwise, whether or not `hnsw` is set.
+    pub hnsw_backend: HnswBackend,
     /// Per-request timeout.
     pub request_timeout: Duration,
     /// Scans running at once (≥ 1; module doc, "Admission control").
@@ -87,7 +92,7 @@ pub struct ServeOptions {
 
 impl ServeOptions {
     /// Options for `scene` with the defaults of `slag-edge serve`: no token, threshold 0.28
-    /// (the paper's), no HNSW, 30 s request timeout, [`DEFAULT_MAX_SCANS`] and
+    /// (the paper's), no HNSW (backend instant-distance when enabled), 30 s request timeout, [`DEFAULT_MAX_SCANS`] and
     /// [`DEFAULT_SCAN_QUEUE`].
     pub fn new(scene: impl Into<String>) -> ServeOptions {
         ServeOptions {
@@ -95,10 +100,16 @@ impl ServeOptions {
             token: None,
             threshold: slag_common::similarity::PAPER_THRESHOLD,
             hnsw: false,
+            hnsw_backend: HnswBackend::InstantDistance,
             request_timeout: Duration::from_secs(30),
             max_scans: DEFAULT_MAX_SCANS,
             scan_queue: DEFAULT_SCAN_QUEUE,
         }
+    }
+
+    /// The approximate index to build: `Some(hnsw_backend)` when `hnsw`.
+    fn index(&self) -> Option<HnswBackend> {
+        self.hnsw.then_some(self.hnsw_backend)
     }
 }
 
@@ -235,12 +246,16 @@ pub struct AppState {
 }
 
 impl AppState {
-    /// Loads the scene and embeds the canonical negatives once.
+    /// Loads the scene (building the approximate index when [`ServeOptions::hnsw`]) and embeds
+    /// the canonical negatives once.
     ///
-    /// Errors: as [`Engine::load`]; a text model of another CLIP model than the stored embeddings
+    /// Errors: [`Error::Param`] `hnsw_backend` first, before the store is read, for a backend
+    /// this binary was built without ([`HnswBackend::require`]); as [`Engine::load_with`]; a
+    /// text model of another CLIP model than the stored embeddings
     /// ([`Error::ModelMismatch`]) or whose width differs from theirs.
     pub fn new(edge: EdgeStore, text: Arc<dyn TextEmbedder>, opts: ServeOptions) -> Result<Self> {
-        let engine = Engine::load(&edge, &opts.scene, opts.hnsw)?;
+        opts.hnsw_backend.require()?;
+        let engine = Engine::load_with(&edge, &opts.scene, opts.index())?;
         text.check_pair(&engine.manifest.model)?;
         let negatives = text.embed(&CANONICAL_NEGATIVES)?;
         if let Some(n) = negatives.first()
@@ -475,6 +490,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
             "vectors_bytes": e.store.memory_bytes(),
             "bytes_per_gaussian": if n > 0 { e.store.memory_bytes() as f64 / n as f64 } else { 0.0 },
             "hnsw_bytes": e.hnsw.as_ref().map(|h| h.memory_bytes()),
+            "hnsw_backend": e.hnsw.as_ref().map(|h| h.backend().name()),
             "process_rss_bytes": rss_bytes(),
         },
         "store_disk_bytes": disk,
@@ -623,10 +639,11 @@ async fn query_post(
 
 async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
     let st = state.clone();
-    let e =
-        tokio::task::spawn_blocking(move || Engine::load(&st.edge, &st.opts.scene, st.opts.hnsw))
-            .await
-            .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
+    let e = tokio::task::spawn_blocking(move || {
+        Engine::load_with(&st.edge, &st.opts.scene, st.opts.index())
+    })
+    .await
+    .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
     // A newly fetched generation of another CLIP model is not swapped in.
     state.text.check_pair(&e.manifest.model)?;
     state.swap(e);

@@ -1,7 +1,8 @@
-//! Approximate nearest-neighbour index (HNSW, Malkov & Yashunin 2018) over a [`VectorStore`],
-//! built with the `instant-distance` crate, for comparison with the exact [`scan`](super::scan).
+//! The `instant-distance` backend of [`super::ApproxIndex`] (always built): an HNSW graph
+//! (Malkov & Yashunin 2018) over a [`VectorStore`], built with the `instant-distance` crate.
 //!
-//! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32 (unit rows, so
+//! Distance is cosine distance `1 − x·y` on the rows as stored, dequantised to f32, with the
+//! scan's explicit SIMD dot at the run-time level (`kernels::dot_f32`; unit rows, so
 //! ranking by distance is ranking by cosine). The index holds its own f32 copy of the rows
 //! (instant-distance keeps its points by value), so its memory is `N·D·4` bytes plus the graph:
 //! see [`HnswIndex::memory_bytes`].
@@ -11,8 +12,8 @@ use std::sync::Arc;
 use instant_distance::{Builder, Hnsw, Point, Search};
 use slag_common::Error;
 
-use super::kernels::dots_f32;
-use super::{Hit, VectorStore};
+use crate::scan::kernels::dot_f32;
+use crate::scan::{Hit, VectorStore};
 
 /// Neighbours per node in instant-distance 0.6 (`M`; layer 0 keeps `2·M`).
 const HNSW_M: usize = 32;
@@ -35,9 +36,8 @@ impl RowPoint {
 
 impl Point for RowPoint {
     fn distance(&self, other: &Self) -> f32 {
-        let mut out = [0.0f32; 1];
-        dots_f32::<1, false>(self.slice(), &[other.slice()], &mut out);
-        1.0 - out[0]
+        // The scan's explicit SIMD dot at the run-time level (AVX-512F / AVX2 + FMA / NEON).
+        1.0 - dot_f32(self.slice(), other.slice())
     }
 }
 
@@ -135,10 +135,10 @@ impl HnswIndex {
     /// Approximately the `k` rows with the highest cosine to `query` (`[D]`), best first (score
     /// = `query · row`, ties by row). Recall depends on `ef_search` and `ef_construction`.
     ///
-    /// Errors: as [`super::scan`] for a query of the wrong width or with non-finite values;
+    /// Errors: as [`crate::scan::scan`] for a query of the wrong width or with non-finite values;
     /// [`Error::Param`] `top_k` for `k > ef_search` (rebuild with `ef_search >= k`).
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        super::check_queries(self.dim, &[query])?;
+        crate::scan::check_queries(self.dim, &[query])?;
         if k > self.ef_search {
             return Err(Error::param(
                 "top_k",
@@ -163,7 +163,7 @@ impl HnswIndex {
                 score: 1.0 - item.distance,
             })
             .collect();
-        hits.sort_by(super::select::rank_cmp);
+        hits.sort_by(crate::scan::select::rank_cmp);
         hits.truncate(k);
         Ok(hits)
     }
@@ -194,44 +194,9 @@ impl HnswIndex {
 
 #[cfg(test)]
 mod tests {
+    //! instant-distance on its own; recall and the shared contract: `super::super::tests`.
     use super::*;
-    use crate::scan::{ScanRequest, scan};
     use slag_common::shards::Dtype;
-
-    #[test]
-    fn hnsw_recall_at_10_is_high_on_a_clustered_store() {
-        let store = VectorStore::synthetic(20_000, 64, Dtype::F32, 50, 11).expect("store");
-        let index = HnswIndex::build(&store, 100, 100, 3).expect("index");
-        assert_eq!(index.len(), 20_000);
-        assert!(index.memory_bytes() >= 20_000 * (64 * 4 + 256));
-        let mut found = 0usize;
-        let mut total = 0usize;
-        for qi in 0..30 {
-            // Queries: perturbed stored rows (near, not equal to, a row).
-            let mut q = store.row_f32(qi * 617).expect("row");
-            for (j, x) in q.iter_mut().enumerate() {
-                *x += 0.05 * (((j * 7 + qi) % 13) as f32 / 13.0 - 0.5);
-            }
-            let n = q.iter().map(|x| x * x).sum::<f32>().sqrt();
-            q.iter_mut().for_each(|x| *x /= n);
-            let qs: [&[f32]; 1] = [&q];
-            let exact = scan(&store, &ScanRequest::top_k(&qs, 10)).expect("scan");
-            let approx = index.query(&q, 10).expect("query");
-            assert_eq!(approx.len(), 10);
-            for h in &approx {
-                let r = store.row_f32(h.row).expect("row");
-                let dot: f32 = r.iter().zip(&q).map(|(a, b)| a * b).sum();
-                assert!((dot - h.score).abs() < 1e-4, "hnsw score is the cosine");
-            }
-            total += exact.len();
-            found += approx
-                .iter()
-                .filter(|h| exact.iter().any(|e| e.row == h.row))
-                .count();
-        }
-        let recall = found as f64 / total as f64;
-        assert!(recall >= 0.9, "recall@10 {recall}");
-    }
 
     #[test]
     fn hnsw_rejects_bad_parameters() {

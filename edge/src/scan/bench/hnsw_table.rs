@@ -1,0 +1,282 @@
+//! The HNSW table of `slag-edge bench`: every approximate-index backend of
+//! [`crate::scan::hnsw`] on the same synthetic f32 store and the same queries, over a sweep of
+//! search beams, so the backends can be read at equal recall.
+//!
+//! Per built index: build seconds, the index's bytes ([`ApproxIndex::memory_bytes`]) and the
+//! growth of the process's resident set over the build (`VmRSS`, /proc/self/status; includes
+//! allocator slack and, for Qdrant Edge, the pages of its scratch files it keeps in RAM). Per
+//! (index, ef): the median query time and the mean and lowest recall@k against the exact f32 scan
+//! of the same store. instant-distance fixes its beam at build time, so it is built once per ef;
+//! Qdrant Edge is built once per `m` and searched with every ef. The queries are answered
+//! round-robin over every (index, ef), so a change of machine load hits all of them alike.
+
+use std::collections::HashSet;
+use std::time::Instant;
+
+use slag_common::shards::Dtype;
+
+use super::{BenchArgs, CLUSTERS, fmt_size, make_query, median};
+use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
+use crate::scan::store::random_centres;
+use crate::scan::{ScanRequest, VectorStore, scan};
+
+/// Bytes per row a graph adds beside the row's f32 copy, for the memory guard (instant-distance
+/// M = 32: 64 + upper-layer u32 links ≈ 260 B; Qdrant Edge m = 16 less), with margin.
+const GRAPH_BYTES_PER_ROW: f64 = 400.0;
+
+/// One built index and what its build cost.
+struct Built {
+    label: String,
+    index: ApproxIndex,
+    build_s: f64,
+    /// VmRSS after − before the build, bytes (`None` where /proc is unreadable).
+    rss_delta: Option<i64>,
+    /// Beams this index is searched with.
+    efs: Vec<usize>,
+}
+
+/// Per (index, ef): query times (ms) and recalls.
+#[derive(Default)]
+struct Measured {
+    ms: Vec<f64>,
+    recall: Vec<f64>,
+}
+
+fn rss() -> Option<i64> {
+    crate::serve::rss_bytes().and_then(|b| i64::try_from(b).ok())
+}
+
+/// The backends of the table: `--hnsw-backends`, plus qdrant-edge with `--qdrant`.
+pub(super) fn backends(args: &BenchArgs) -> Vec<HnswBackend> {
+    let mut b = args.hnsw_backends.clone();
+    if args.qdrant && !b.contains(&HnswBackend::QdrantEdge) {
+        b.push(HnswBackend::QdrantEdge);
+    }
+    b.dedup();
+    b
+}
+
+/// The beams of the sweep: `--hnsw-ef`, or top-k alone; sorted, deduplicated.
+pub(super) fn efs(args: &BenchArgs) -> Vec<usize> {
+    let mut e = if args.hnsw_ef.is_empty() {
+        vec![args.top_k.max(1)]
+    } else {
+        args.hnsw_ef.clone()
+    };
+    e.sort_unstable();
+    e.dedup();
+    e
+}
+
+/// Builds `backend` with `params`, timing it and measuring the RSS growth.
+fn build(
+    store: &VectorStore,
+    backend: HnswBackend,
+    params: &HnswParams,
+    label: String,
+    efs: Vec<usize>,
+) -> anyhow::Result<Built> {
+    tracing::info!("bench: building {label} over {} rows", store.len());
+    let before = rss();
+    let t = Instant::now();
+    let index = ApproxIndex::build(store, backend, params)?;
+    let build_s = t.elapsed().as_secs_f64();
+    let rss_delta = rss().zip(before).map(|(a, b)| a - b);
+    Ok(Built {
+        label,
+        index,
+        build_s,
+        rss_delta,
+        efs,
+    })
+}
+
+/// ` (N segments)` for a Qdrant Edge index (its indexed segment plus its empty appendable one:
+/// 2), empty for instant-distance.
+fn segments_note(index: &ApproxIndex) -> String {
+    match index {
+        #[cfg(feature = "qdrant-edge")]
+        ApproxIndex::QdrantEdge(q) => format!(" ({} segments)", q.segments()),
+        _ => String::new(),
+    }
+}
+
+/// The HNSW section of the report (module doc), or a line saying why it was skipped.
+pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
+    let n = args.hnsw_size;
+    let dim = args.dim;
+    let k = args.top_k;
+    let efs = efs(args);
+    let backends = backends(args);
+    let per_index = n as f64 * (4 * dim) as f64 + n as f64 * GRAPH_BYTES_PER_ROW;
+    let store_bytes = n as f64 * (4 * dim + 16) as f64;
+    let indexes: usize = backends
+        .iter()
+        .map(|b| match b {
+            HnswBackend::InstantDistance => efs.len(),
+            HnswBackend::QdrantEdge => args.hnsw_m.len(),
+        })
+        .sum();
+    let need = store_bytes + per_index * indexes as f64;
+    if need > limit {
+        return Ok(format!(
+            "HNSW at {}: skipped, {indexes} indexes need {:.1} GB > limit {:.1} GB (fewer \
+             --hnsw-ef / --hnsw-m values, or --hnsw-backends)\n",
+            fmt_size(n),
+            need / 1e9,
+            limit / 1e9
+        ));
+    }
+    let store = VectorStore::synthetic(n, dim, Dtype::F32, CLUSTERS, args.seed)?;
+    let centres = random_centres(dim, CLUSTERS, args.seed);
+    // Queries of their own (more than the scans' `--queries`: recall is a mean over them),
+    // targeting the clusters round-robin.
+    let qvecs: Vec<Vec<f32>> = (0..args.hnsw_queries.max(1))
+        .map(|i| make_query(&centres, dim, i * 5 + 3, args.seed))
+        .collect();
+    let mut exact_ms = Vec::new();
+    let mut exact: Vec<HashSet<usize>> = Vec::new();
+    for q in &qvecs {
+        let qs = [q.as_slice()];
+        let t = Instant::now();
+        let hits = scan(&store, &ScanRequest::top_k(&qs, k))?;
+        exact_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        exact.push(hits.iter().map(|h| h.row).collect());
+    }
+
+    let base = HnswParams {
+        ef_construction: args.hnsw_ef_construction,
+        seed: args.seed,
+        scratch_dir: args.qdrant_dir.clone(),
+        ..HnswParams::default()
+    };
+    let mut built = Vec::new();
+    for &backend in &backends {
+        match backend {
+            HnswBackend::InstantDistance => {
+                for &ef in &efs {
+                    let p = HnswParams {
+                        ef_search: ef,
+                        ..base.clone()
+                    };
+                    built.push(build(
+                        &store,
+                        backend,
+                        &p,
+                        "instant-distance, M=32".into(),
+                        vec![ef],
+                    )?);
+                }
+            }
+            HnswBackend::QdrantEdge => {
+                for &m in &args.hnsw_m {
+                    let p = HnswParams {
+                        m,
+                        ef_search: efs.last().copied().unwrap_or(k),
+                        ..base.clone()
+                    };
+                    let mut b = build(
+                        &store,
+                        backend,
+                        &p,
+                        format!("qdrant-edge, m={m}"),
+                        efs.clone(),
+                    )?;
+                    b.label.push_str(&segments_note(&b.index));
+                    built.push(b);
+                }
+            }
+        }
+    }
+
+    // Warm-up (untimed), then every query round-robin over every (index, ef).
+    let mut measured: Vec<Vec<Measured>> = built
+        .iter()
+        .map(|b| b.efs.iter().map(|_| Measured::default()).collect())
+        .collect();
+    for b in &mut built {
+        for &ef in &b.efs {
+            b.index.set_ef_search(ef)?;
+            b.index.query(&qvecs[0], k)?;
+        }
+    }
+    for (q, want) in qvecs.iter().zip(&exact) {
+        for (b, m) in built.iter_mut().zip(&mut measured) {
+            for (&ef, m) in b.efs.iter().zip(m.iter_mut()) {
+                b.index.set_ef_search(ef)?;
+                let t = Instant::now();
+                let got = b.index.query(q, k)?;
+                m.ms.push(t.elapsed().as_secs_f64() * 1e3);
+                let found = got.iter().filter(|h| want.contains(&h.row)).count();
+                m.recall.push(found as f64 / want.len().max(1) as f64);
+            }
+        }
+    }
+
+    let mut out = format!(
+        "HNSW at equal recall ({} × {dim} f32 rows, {} queries answered round-robin over every \
+         index and ef, top-{k}, recall@{k} against the exact f32 scan of the same rows; exact \
+         scan median {:.2} ms on {} threads; index MB = the index's own bytes, RSS Δ = VmRSS \
+         growth over the build):\n\n\
+         | backend | ef_construction | ef_search | build s | index MB (B/row) | RSS Δ MB | \
+         query ms (median) | recall@{k} mean | recall@{k} min |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
+        fmt_size(n),
+        qvecs.len(),
+        median(exact_ms),
+        rayon::current_num_threads()
+    );
+    // (backend label, ef, ms, mean recall) for the equal-recall summary.
+    let mut points: Vec<(String, usize, f64, f64)> = Vec::new();
+    for (b, m) in built.iter().zip(measured) {
+        let bytes = b.index.memory_bytes();
+        for (&ef, m) in b.efs.iter().zip(m) {
+            let ms = median(m.ms);
+            let mean = m.recall.iter().sum::<f64>() / m.recall.len().max(1) as f64;
+            let min = m.recall.iter().copied().fold(f64::INFINITY, f64::min);
+            out.push_str(&format!(
+                "| {} | {} | {ef} | {:.1} | {:.0} ({}) | {} | {ms:.2} | {mean:.4} | {min:.3} |\n",
+                b.label,
+                args.hnsw_ef_construction,
+                b.build_s,
+                bytes as f64 / 1e6,
+                bytes / n.max(1),
+                b.rss_delta
+                    .map_or_else(|| "n/a".into(), |d| format!("{:.0}", d as f64 / 1e6)),
+            ));
+            points.push((b.label.clone(), ef, ms, mean));
+        }
+    }
+    out.push_str(&equal_recall(&points, k));
+    Ok(out)
+}
+
+/// For recall targets 0.99, 0.999 and 1: per index, the fastest sweep point reaching the target
+/// (measured points only, nothing interpolated).
+fn equal_recall(points: &[(String, usize, f64, f64)], k: usize) -> String {
+    let mut labels: Vec<&str> = points.iter().map(|p| p.0.as_str()).collect();
+    labels.dedup();
+    let mut out = format!(
+        "\nFastest measured point per index at recall@{k} ≥ target (no interpolation):\n\n\
+         | target | {} |\n|---|{}\n",
+        labels.join(" | "),
+        "---|".repeat(labels.len())
+    );
+    for target in [0.99, 0.999, 1.0] {
+        let cells: Vec<String> = labels
+            .iter()
+            .map(|l| {
+                points
+                    .iter()
+                    .filter(|p| p.0 == *l && p.3 >= target)
+                    .min_by(|a, b| a.2.total_cmp(&b.2))
+                    .map_or_else(
+                        || "not reached".into(),
+                        |p| format!("{:.2} ms (ef {}, {:.4})", p.2, p.1, p.3),
+                    )
+            })
+            .collect();
+        out.push_str(&format!("| ≥ {target} | {} |\n", cells.join(" | ")));
+    }
+    out
+}

@@ -1,0 +1,290 @@
+//! The `qdrant-edge` backend of [`super::ApproxIndex`] (cargo feature `qdrant-edge`): Qdrant Edge
+//! 0.9.0's HNSW over a [`VectorStore`], in an in-process `EdgeShard` in a scratch folder.
+//!
+//! The shard holds one vector per row: the row as f32 ([`VectorStore::row_f32`]: f32 rows as
+//! stored, f16 rows widened exactly, int8 rows as `q·scale`), `Float32` storage, `Distance::Dot`
+//! (Qdrant normalises nothing for Dot, so a hit's score is `query · row` on those f32 values, as
+//! slag's exact scan scores), point id = row index. One optimised segment with an HNSW graph of
+//! `m` links per node (`2m` on layer 0), `ef_construct` = [`HnswParams::ef_construction`],
+//! `full_scan_threshold` 1 KB (the graph is always used), vectors and graph kept in RAM
+//! (`Memory::Pinned`), no WAL. The scratch folder (a fresh `slag-edge-hnsw-<pid>-<n>` under
+//! [`HnswParams::scratch_dir`] or the system temp folder) is removed when the index is dropped.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use qdrant_edge::external::serde_json::Value as JsonValue;
+use qdrant_edge::{
+    DEFAULT_VECTOR_NAME, Distance, EdgeConfig, EdgeOptimizersConfig, EdgeShard, EdgeVectorParams,
+    HnswIndexConfig, Memory, NamedQuery, PointId, PointInsertOperations, PointOperations,
+    PointStruct, QueryEnum, SearchParams, SearchRequestBuilder, UpdateOperation,
+    VectorStorageDatatype, WithPayloadInterface, WithVector,
+};
+use slag_common::Error;
+
+use super::HnswParams;
+use crate::scan::{Hit, VectorStore};
+
+/// Rows per upsert call.
+const UPSERT_BATCH: usize = 1000;
+
+/// Distinguishes the scratch folders of several indexes in one process.
+static SCRATCH_SEQ: AtomicUsize = AtomicUsize::new(0);
+
+/// A Qdrant Edge failure on the shard in `dir`, as an [`Error::Io`] naming the folder (its
+/// errors are storage errors or bugs; the message says which step failed).
+fn qdrant_err(dir: &Path, step: &str, e: impl std::fmt::Display) -> Error {
+    Error::io(
+        dir,
+        std::io::Error::other(format!(
+            "Qdrant Edge could not {step}: {e}; check that the folder is writable and has room \
+             for N·D·4 bytes plus the graph, or use the instant-distance backend"
+        )),
+    )
+}
+
+/// Upserts rows `range` of `rows` into `shard` (as f32, point id = row index), in batches of
+/// [`UPSERT_BATCH`]. Shared with the bench's exact Qdrant Edge shards (`qdrant_cmp.rs`).
+///
+/// Errors: [`Error::Internal`] for a row index past the store (a caller bug); [`Error::Io`] when
+/// Qdrant Edge refuses the batch.
+pub(in crate::scan) fn upsert(
+    shard: &EdgeShard,
+    dir: &Path,
+    rows: &VectorStore,
+    range: std::ops::Range<usize>,
+) -> Result<(), Error> {
+    let mut i = range.start;
+    while i < range.end {
+        let end = (i + UPSERT_BATCH).min(range.end);
+        let mut batch = Vec::with_capacity(end - i);
+        for r in i..end {
+            let v = rows.row_f32(r).ok_or_else(|| {
+                Error::internal(format!("row {r} of a store of {} rows", rows.len()))
+            })?;
+            // An empty payload object (`PointStruct::new` panics on anything but an object).
+            let payload = JsonValue::Object(Default::default());
+            batch.push(PointStruct::new(r as u64, v, payload).into());
+        }
+        shard
+            .update(UpdateOperation::PointOperation(
+                PointOperations::UpsertPoints(PointInsertOperations::PointsList(batch)),
+            ))
+            .map_err(|e| qdrant_err(dir, "insert rows", e))?;
+        i = end;
+    }
+    Ok(())
+}
+
+/// Bytes the files under `dir` occupy (`du`: allocated blocks on Unix, where Qdrant's sparse
+/// preallocated chunks count only as far as written; apparent sizes elsewhere; 0 for what cannot
+/// be read).
+fn folder_bytes(dir: &Path) -> u64 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .map(|e| match e.metadata() {
+            Ok(m) if m.is_dir() => folder_bytes(&e.path()),
+            #[cfg(unix)]
+            Ok(m) => std::os::unix::fs::MetadataExt::blocks(&m) * 512,
+            #[cfg(not(unix))]
+            Ok(m) => m.len(),
+            Err(_) => 0,
+        })
+        .sum()
+}
+
+/// Qdrant Edge's HNSW over every row of one store (module doc).
+pub struct QdrantHnsw {
+    /// `None` only while dropping: the shard is closed before its folder is removed.
+    shard: Option<EdgeShard>,
+    dir: PathBuf,
+    dim: usize,
+    len: usize,
+    ef_search: usize,
+    /// Size of the shard's files after the build.
+    bytes: usize,
+}
+
+impl Drop for QdrantHnsw {
+    fn drop(&mut self) {
+        // Close (and flush) the shard, then remove its scratch folder: best effort, nothing in
+        // it is needed again.
+        drop(self.shard.take());
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+impl QdrantHnsw {
+    /// Builds the shard and its graph over all rows of `store` (module doc); `params` are
+    /// checked by the caller ([`super::ApproxIndex::build`]).
+    ///
+    /// Errors: [`Error::Io`] when the scratch folder cannot be made or Qdrant Edge fails to
+    /// write or optimise the shard.
+    pub fn build(store: &VectorStore, params: &HnswParams) -> Result<QdrantHnsw, Error> {
+        let base = params
+            .scratch_dir
+            .clone()
+            .unwrap_or_else(std::env::temp_dir);
+        let dir = base.join(format!(
+            "slag-edge-hnsw-{}-{}",
+            std::process::id(),
+            SCRATCH_SEQ.fetch_add(1, Ordering::Relaxed)
+        ));
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        }
+        let threads = match params.threads {
+            0 => rayon::current_num_threads(),
+            t => t,
+        };
+        let n = store.len();
+        let dim = store.dim();
+        #[allow(deprecated)] // `on_disk` has no replacement field to leave unset but this one
+        let hnsw = HnswIndexConfig {
+            m: params.m,
+            ef_construct: params.ef_construction.max(4),
+            full_scan_threshold: 1,
+            max_indexing_threads: threads,
+            on_disk: None,
+            memory: Some(Memory::Pinned),
+            payload_m: None,
+            inline_storage: None,
+        };
+        let vectors = EdgeVectorParams::builder(dim, Distance::Dot)
+            .hnsw_config(hnsw)
+            .datatype(VectorStorageDatatype::Float32)
+            .build();
+        // One segment: large enough for every row (1.5× margin), so the optimiser never splits
+        // or merges.
+        let max_segment_kb = (n * 4 * dim).div_ceil(1024) * 3 / 2 + 1;
+        let config = EdgeConfig::builder()
+            .vector(DEFAULT_VECTOR_NAME, vectors)
+            .hnsw_config(hnsw)
+            .optimizers(EdgeOptimizersConfig {
+                default_segment_number: Some(3),
+                max_segment_size: Some(max_segment_kb),
+                indexing_threshold: Some(1),
+                ..EdgeOptimizersConfig::default()
+            })
+            .wal_enabled(false)
+            .max_search_threads(threads.max(1))
+            .build();
+        let shard = EdgeShard::new(&dir, config).map_err(|e| qdrant_err(&dir, "create", e))?;
+        // From here on the folder is ours: dropping `index` on an error removes it.
+        let mut index = QdrantHnsw {
+            shard: Some(shard),
+            dir,
+            dim,
+            len: n,
+            ef_search: params.ef_search,
+            bytes: 0,
+        };
+        let shard = index.shard()?;
+        upsert(shard, &index.dir, store, 0..n)?;
+        shard
+            .optimize()
+            .map_err(|e| qdrant_err(&index.dir, "build the HNSW graph", e))?;
+        index.bytes = usize::try_from(folder_bytes(&index.dir)).unwrap_or(usize::MAX);
+        Ok(index)
+    }
+
+    fn shard(&self) -> Result<&EdgeShard, Error> {
+        self.shard
+            .as_ref()
+            .ok_or_else(|| Error::internal("Qdrant Edge shard used after it was closed"))
+    }
+
+    /// Number of indexed rows.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// `true` when the index holds no row.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The search beam (`hnsw_ef`) of queries; also the largest `k` answered.
+    pub fn ef_search(&self) -> usize {
+        self.ef_search
+    }
+
+    /// Sets the search beam of later queries (≥ 1, checked by the caller).
+    pub fn set_ef_search(&mut self, ef: usize) {
+        self.ef_search = ef.max(1);
+    }
+
+    /// Segments of the shard (1 after a build; for the bench's report).
+    pub fn segments(&self) -> usize {
+        self.shard
+            .as_ref()
+            .and_then(|s| s.info().ok())
+            .map_or(0, |i| i.segments_count)
+    }
+
+    /// Bytes the shard's files occupy after the build (`du`): the indexed segment's f32 vectors
+    /// and graph links, and the chunks Qdrant preallocates for its empty appendable segment;
+    /// the vectors and graph are held in RAM (`Memory::Pinned`).
+    pub fn memory_bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// Approximately the `k` best rows for `query` (`[D]`), best first (score desc, row asc),
+    /// searched with `hnsw_ef` = [`QdrantHnsw::ef_search`].
+    ///
+    /// Errors: as [`super::ApproxIndex::query`].
+    pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
+        crate::scan::check_queries(self.dim, &[query])?;
+        if k > self.ef_search {
+            return Err(Error::param(
+                "top_k",
+                k,
+                format!(
+                    "at most the index's ef_search {} (raise ef_search to >= {k})",
+                    self.ef_search
+                ),
+            ));
+        }
+        if k == 0 || self.len == 0 {
+            return Ok(Vec::new());
+        }
+        let params = SearchParams {
+            hnsw_ef: Some(self.ef_search),
+            exact: false,
+            ..SearchParams::default()
+        };
+        let req = SearchRequestBuilder::new(
+            QueryEnum::Nearest(NamedQuery {
+                query: query.to_vec().into(),
+                using: None,
+            }),
+            k,
+        )
+        .params(params)
+        .with_payload(WithPayloadInterface::Bool(false))
+        .with_vector(WithVector::Bool(false))
+        .build();
+        let found = self
+            .shard()?
+            .search(req)
+            .map_err(|e| qdrant_err(&self.dir, "search", e))?;
+        let mut hits = found
+            .iter()
+            .map(|p| match p.id {
+                PointId::NumId(i) if (i as usize) < self.len => Ok(Hit {
+                    row: i as usize,
+                    score: p.score,
+                }),
+                other => Err(Error::internal(format!(
+                    "Qdrant Edge returned point id {other} outside the {} rows it was given",
+                    self.len
+                ))),
+            })
+            .collect::<Result<Vec<Hit>, Error>>()?;
+        hits.sort_by(crate::scan::select::rank_cmp);
+        Ok(hits)
+    }
+}
