@@ -233,7 +233,7 @@ impl std::fmt::Display for FetchSummary {
             f,
             "scene {} generation {} ({} frame{}): {} shards in the radius ({} downloaded, {} \
              resumed, {} already stored), {} Gaussians, {:.1} MB of shards, {:.1} MB received; {} \
-             outside the radius kept, {} evicted; store {:.1} MB on disk",
+             outside the radius kept, {} evicted; store {:.1} MB on disk{}",
             self.scene,
             self.generation,
             self.frame,
@@ -251,7 +251,15 @@ impl std::fmt::Display for FetchSummary {
             self.bytes_received as f64 / 1e6,
             self.kept_outside,
             self.evicted,
-            self.store_bytes as f64 / 1e6
+            self.store_bytes as f64 / 1e6,
+            if self.codebook_bytes > 0 {
+                format!(
+                    " (mixture scene: codebook {:.1} MB)",
+                    self.codebook_bytes as f64 / 1e6
+                )
+            } else {
+                String::new()
+            }
         )
     }
 }

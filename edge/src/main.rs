@@ -500,7 +500,7 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "jobs" => "pass --jobs N with N ≥ 1".into(),
             _ => return None,
         },
-        Error::Query { field, .. } => match *field {
+        Error::Query { field, message } => match *field {
             "text" => "pass --text chair".into(),
             "top_k" => "pass --top-k N".into(),
             "threshold" => "pass --threshold T (or none)".into(),
@@ -508,6 +508,9 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "bbox" => "pass --bbox minx,miny,minz,maxx,maxy,maxz".into(),
             "frame" => {
                 "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
+            }
+            "index" if message.contains("mixture") => {
+                "use index=exact: a mixture scene is scanned exactly".into()
             }
             "index" => "start serve with --hnsw for index=hnsw".into(),
             _ => return None,
