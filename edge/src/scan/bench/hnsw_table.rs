@@ -21,8 +21,12 @@ use crate::scan::store::random_centres;
 use crate::scan::{ScanRequest, VectorStore, scan};
 
 /// Bytes per row a graph adds beside the row's f32 copy, for the memory guard (instant-distance
-/// M = 32: 64 + upper-layer u32 links ≈ 260 B; Qdrant Edge m = 16 less), with margin.
+/// M = 32: 64 + upper-layer u32 links ≈ 260 B), with margin.
 const GRAPH_BYTES_PER_ROW: f64 = 400.0;
+
+/// f32 row copies Qdrant Edge's build grows the RSS by, for the memory guard (measured 3.2–3.4
+/// at 100K × 512: docs/edge-bench-hnsw.md), with margin.
+const QDRANT_ROW_COPIES: f64 = 4.0;
 
 /// One built index and what its build cost.
 struct Built {
@@ -108,16 +112,17 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
     let k = args.top_k;
     let efs = efs(args);
     let backends = backends(args);
-    let per_index = n as f64 * (4 * dim) as f64 + n as f64 * GRAPH_BYTES_PER_ROW;
+    let row = n as f64 * (4 * dim) as f64;
     let store_bytes = n as f64 * (4 * dim + 16) as f64;
-    let indexes: usize = backends
-        .iter()
-        .map(|b| match b {
-            HnswBackend::InstantDistance => efs.len(),
-            HnswBackend::QdrantEdge => args.hnsw_m.len(),
-        })
-        .sum();
-    let need = store_bytes + per_index * indexes as f64;
+    let (mut indexes, mut need) = (0usize, store_bytes);
+    for b in &backends {
+        let (count, each) = match b {
+            HnswBackend::InstantDistance => (efs.len(), row + n as f64 * GRAPH_BYTES_PER_ROW),
+            HnswBackend::QdrantEdge => (args.hnsw_m.len(), QDRANT_ROW_COPIES * row),
+        };
+        indexes += count;
+        need += count as f64 * each;
+    }
     if need > limit {
         return Ok(format!(
             "HNSW at {}: skipped, {indexes} indexes need {:.1} GB > limit {:.1} GB (fewer \

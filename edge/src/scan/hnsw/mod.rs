@@ -188,8 +188,8 @@ impl std::fmt::Debug for ApproxIndex {
 
 impl ApproxIndex {
     /// Builds `backend`'s index over all rows of `store` (module doc: f32 copies of the rows).
-    /// Blocks until the graph is complete: seconds to minutes (instant-distance: ~2 min for
-    /// 100K × 512 on 2 cores; Qdrant Edge several times less, docs/edge-bench-hnsw.md).
+    /// Blocks until the graph is complete: seconds to minutes (100K × 512 on 2 cores:
+    /// instant-distance 2–5 min, Qdrant Edge 2.6–3.9× less; docs/edge-bench-hnsw.md).
     ///
     /// Errors: [`Error::Param`] `hnsw_backend` for a backend this binary lacks
     /// ([`HnswBackend::require`]), `ef_construction` / `ef_search` / `m` out of range
