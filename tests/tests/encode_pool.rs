@@ -153,9 +153,15 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     assert!(many.join("report.json").exists());
 }
 
-/// Fails on the `n`-th image it sees.
+/// Set once the failing front has failed; the other front waits for it before its first image,
+/// so the failure happens while the pool runs whatever the scheduling (on a loaded machine the
+/// healthy front could otherwise take every image before the failing one reached its `n`-th).
+type FailureGate = std::sync::Arc<(std::sync::Mutex<bool>, std::sync::Condvar)>;
+
+/// Fails on the `n`-th image it sees, then opens `gate`.
 struct FailingMasks {
     left: usize,
+    gate: FailureGate,
 }
 
 impl MaskGenerator for FailingMasks {
@@ -164,9 +170,32 @@ impl MaskGenerator for FailingMasks {
     }
     fn generate(&mut self, image: &image::RgbImage) -> slag_common::Result<Vec<Mask>> {
         if self.left == 0 {
+            let (failed, cv) = &*self.gate;
+            *failed.lock().unwrap() = true;
+            cv.notify_all();
             return Err(slag_common::Error::Invalid("injected mask failure".into()));
         }
         self.left -= 1;
+        slag_encoder::masks::graph::GraphSegmenter::new(Default::default()).generate(image)
+    }
+}
+
+/// Graph masks that wait (at most 120 s) until the failing front has failed.
+struct GatedMasks {
+    gate: FailureGate,
+}
+
+impl MaskGenerator for GatedMasks {
+    fn name(&self) -> &str {
+        "gated"
+    }
+    fn generate(&mut self, image: &image::RgbImage) -> slag_common::Result<Vec<Mask>> {
+        let (failed, cv) = &*self.gate;
+        let guard = failed.lock().unwrap();
+        drop(
+            cv.wait_timeout_while(guard, std::time::Duration::from_secs(120), |f| !*f)
+                .unwrap(),
+        );
         slag_encoder::masks::graph::GraphSegmenter::new(Default::default()).generate(image)
     }
 }
@@ -188,16 +217,18 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
             .unwrap(),
         )
     };
+    let gate = FailureGate::default();
     let fronts = vec![
         FrontStages {
-            masks: Box::new(FailingMasks { left: 2 }),
+            masks: Box::new(FailingMasks {
+                left: 2,
+                gate: gate.clone(),
+            }),
             crops: clip(),
             gpu: None,
         },
         FrontStages {
-            masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
-                Default::default(),
-            )),
+            masks: Box::new(GatedMasks { gate }),
             crops: clip(),
             gpu: None,
         },
