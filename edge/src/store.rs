@@ -816,42 +816,11 @@ impl EdgeStore {
     pub fn load_shards(
         &self,
         manifest: &Manifest,
-        mut f: impl FnMut(StoredShard) -> Result<()>,
+        f: impl FnMut(StoredShard) -> Result<()>,
     ) -> Result<SceneLoad> {
-        let mut load = SceneLoad::default();
-        for tile in &manifest.tiles {
-            let bytes = match self.shard_bytes(&manifest.scene_id, tile) {
-                Ok(Some(b)) => b,
-                Ok(None) => {
-                    load.absent_tiles += 1;
-                    continue;
-                }
-                Err(Error::Format { path, message }) => {
-                    // A checksum the store cannot name: reported like a corrupted shard.
-                    let e = Error::Format { path, message };
-                    load.rejected.push(e.to_string());
-                    continue;
-                }
-                Err(e) => return Err(e),
-            };
-            let verified = verify_shard(manifest, tile, &bytes);
-            drop(bytes);
-            match verified {
-                Ok(s) => {
-                    load.loaded_tiles.push(tile.id);
-                    f(s)?;
-                }
-                Err(e) => {
-                    tracing::error!("not serving a corrupted shard: {e}");
-                    load.rejected.push(e.to_string());
-                }
-            }
-        }
-        Ok(load)
+        self.load_verified(manifest, verify_shard, f)
     }
-}
 
-impl EdgeStore {
     /// [`Self::load_shards`] for a mixture manifest: each stored shard read, verified
     /// ([`verify_mixture_shard`]), its bytes freed, and handed to `f`; corrupted ones are logged,
     /// listed in [`SceneLoad::rejected`] and skipped.
@@ -861,7 +830,18 @@ impl EdgeStore {
     pub fn load_mixture_shards(
         &self,
         manifest: &Manifest,
-        mut f: impl FnMut(MixtureShard) -> Result<()>,
+        f: impl FnMut(MixtureShard) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        self.load_verified(manifest, verify_mixture_shard, f)
+    }
+
+    /// The loop of [`Self::load_shards`] and [`Self::load_mixture_shards`], with the shard
+    /// type's `verify`.
+    fn load_verified<S>(
+        &self,
+        manifest: &Manifest,
+        verify: fn(&Manifest, &TileInfo, &[u8]) -> Result<S>,
+        mut f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let mut load = SceneLoad::default();
         for tile in &manifest.tiles {
@@ -871,13 +851,14 @@ impl EdgeStore {
                     load.absent_tiles += 1;
                     continue;
                 }
+                // A checksum the store cannot name: reported like a corrupted shard.
                 Err(e @ Error::Format { .. }) => {
                     load.rejected.push(e.to_string());
                     continue;
                 }
                 Err(e) => return Err(e),
             };
-            let verified = verify_mixture_shard(manifest, tile, &bytes);
+            let verified = verify(manifest, tile, &bytes);
             drop(bytes);
             match verified {
                 Ok(s) => {
