@@ -10,6 +10,7 @@
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
 //! | [`prompt`] | limits on text prompts shared by every query interface |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
@@ -20,6 +21,7 @@ pub mod camera;
 pub mod embeddings;
 pub mod error;
 pub mod mixture;
+pub mod objects;
 #[cfg(feature = "onnx")]
 pub mod onnx;
 pub mod paths;
