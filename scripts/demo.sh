@@ -55,5 +55,5 @@ PY
   for text in "${PROMPTS[@]}"; do summary_line "$text" "$OUT/query-$text.json"; done
   echo "  Matches are painted magenta in each highlighted .ply (a full 3DGS copy of the scene)."
   echo "  View one: drag it into https://playcanvas.com/supersplat/editor (or any 3DGS viewer);"
-  echo "  on a robot, the same answer renders at / of \`slag-edge serve\` (README, 'Showing the answer')."
+  echo "  on a robot, the same answer renders at / of \`slag-edge serve\` (docs/guide/robot.md, 'Showing the answer')."
 } >&2

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Pareto plot of slag's speed/accuracy trade study.
 
-usage: plot_tradeoffs.py docs/tradeoffs.csv docs/tradeoffs.png
+usage: plot_tradeoffs.py docs/results/tradeoffs.csv docs/results/tradeoffs.png
 
 Panels (from the CSV written by `slag-bench tradeoffs`):
   1. encode wall time (s, log) vs colour mIoU for the encode points; the Pareto front

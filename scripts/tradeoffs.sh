@@ -3,7 +3,7 @@
 #   bash scripts/tradeoffs.sh [--quick] [more slag-bench tradeoffs arguments]
 # builds slag-bench (release; SLAG_BENCH_PROFILE=dev uses the dev build), runs
 # `slag-bench tradeoffs` on ../shared/scenes/snowmiku (or the embedded mini scene with --quick),
-# writes docs/tradeoffs.{md,csv}, then plots docs/tradeoffs.png with matplotlib from a venv
+# writes docs/results/tradeoffs.{md,csv}, then plots docs/results/tradeoffs.png with matplotlib from a venv
 # (~/.cache/slag/venv-plot, created on first use). Encode runs are cached under
 # target/slag-bench/ (pass --fresh to redo them, --cached-only to tabulate a run cut short).
 set -euo pipefail
@@ -14,7 +14,7 @@ if [ ! -f "$ORT_DYLIB_PATH" ] && [ -f scripts/setup.sh ]; then
     source scripts/setup.sh
 fi
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
-OUT="${SLAG_TRADEOFFS_OUT:-docs}"
+OUT="${SLAG_TRADEOFFS_OUT:-docs/results}"
 PROFILE="${SLAG_BENCH_PROFILE:-release}"
 if [ "$PROFILE" = release ]; then
     cargo build --release --workspace --bin slag-bench
