@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs on the lent GPU machine (x86_64, NVIDIA, no Rust toolchain): per-stage bench of `encode` on
+# Runs on a GPU machine (x86_64, NVIDIA, no Rust toolchain): per-stage bench of `encode` on
 # snowmiku (every 2nd image) with wgpu on Vulkan (NVIDIA driver) and ONNX Runtime on the CPU cores,
 # then colour mIoU. Expects .devcarry/ (release slag-encoder, scene/ with a geometry+DC .ply,
 # shared/fixtures/) and .gl/ (Vulkan loader debs). Results go to $OUT (reports, eval JSON, log).

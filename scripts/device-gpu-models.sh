@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# SAM and CLIP on the GPU (issue 16), on the lent GPU machine (x86_64, NVIDIA, torch, no Rust, no
+# SAM and CLIP on the GPU, on a GPU machine (x86_64, NVIDIA, torch, no Rust, no
 # network); NOT part of CI. Needs, on that machine, ONNX Runtime's CUDA provider assembled in
 # /root/og (../shared/tools/ort-gpu-chunks.sh: four carries), and carried: .whl/ (segment_anything,
 # open_clip_torch, ftfy, wcwidth wheels), .devcarry/ (zstd-compressed release slag-encoder and

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs on the lent GPU machine (x86_64, NVIDIA, no Rust toolchain): issue 17's held-out study of
+# Runs on a GPU machine (x86_64, NVIDIA, no Rust toolchain): the held-out study of
 # the stored forms on snowmiku, `--every 4`: each encode once with `--mixture-keep 16` (the dense
 # `E_k` and the mixture come from the same run) and once without it (the mixture's encode-time
 # cost), then `eval-colors --held-out`, which scores the dense rows, the mixture's mean form cut to

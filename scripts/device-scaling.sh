@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs on the lent multi-GPU machine (x86_64, NVIDIA, no Rust toolchain); NOT part of CI.
+# Runs on a multi-GPU machine (x86_64, NVIDIA, no Rust toolchain); NOT part of CI.
 #   scripts/device-scaling.sh scaling [GPU_COUNTS]   # slag-bench scaling: same scene on 1,2,4 GPUs
 #   scripts/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
 #   scripts/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)

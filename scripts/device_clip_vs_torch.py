@@ -1,5 +1,5 @@
 """CLIP ViT-B/16 image tower, random weights: torch on the GPU vs ONNX Runtime (what slag-encoder
-runs), same model, same batch of 32 crops. Runs on the lent GPU machine (torch + timm + onnxruntime
+runs), same model, same batch of 32 crops. Runs on a GPU machine (torch + timm + onnxruntime
 there); NOT part of CI. Writes OUT/vitb16-clip-visual.onnx (for `slag-encoder bench --clip-visual`)
 and prints a small table.
 

@@ -1,5 +1,5 @@
-"""Measured rates of the lent GPU machine and FLOPs of ONNX models: the floors of
-`slag-bench stages` (issue 5). Runs there (torch, onnx and numpy are installed); NOT part of CI.
+"""Measured rates of a GPU machine and FLOPs of ONNX models: the floors of
+`slag-bench stages`. Runs there (torch, onnx and numpy are installed); NOT part of CI.
 
     python3 scripts/device_facts.py OUT.json [MODEL.onnx ...]
 

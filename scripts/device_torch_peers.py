@@ -1,8 +1,8 @@
-"""torch on the GPU as the peer of each model stage of slag-encoder (issue 16): SAM ViT-B / ViT-H
+"""torch on the GPU as the peer of each model stage of slag-encoder: SAM ViT-B / ViT-H
 image encoder (one 1024x1024 image), SAM's prompt decoder (256 prompts = a 16x16 grid, the
 multimask output, low-resolution masks only, as slag asks for), CLIP ViT-B/16 image tower (54 and
 256 crops). fp16 and fp32, random weights, CUDA events, median of 20 after 5 warm-ups. Runs on
-the lent GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI.
+a GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI.
 
     python3 scripts/device_torch_peers.py OUT.json
 """

@@ -7,7 +7,7 @@
 //!   drawn from the CSV by `scripts/plot_tradeoffs.py`).
 //!
 //! - [`stages`]: each encoder stage's time per image against its floor (FLOPs at the measured
-//!   matrix rate, bytes at the measured bandwidths) on the machine it runs on (issue 5).
+//!   matrix rate, bytes at the measured bandwidths) on the machine it runs on.
 //! - [`scaling`]: the same encode on 1, 2, 4 … GPUs of one host: speed-up and efficiency.
 //! - [`reduce`]: the reduction over images (the encoder's serial tail) in its two loop orders,
 //!   against each other in one run, plus the embeddings write.

@@ -1,4 +1,4 @@
-//! `slag-bench scaling`: the same encode on 1, 2, … GPUs of one host (issue 5, item 2): wall
+//! `slag-bench scaling`: the same encode on 1, 2, … GPUs of one host: wall
 //! time, images per second, speed-up and efficiency against the first count, and each GPU's
 //! rasterizer busy share (dynamic balancing shows as even shares), and where the wall goes besides
 //! the images: the fill (when the last GPU's rasterizer got its first image), the drain (the

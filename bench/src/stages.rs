@@ -1,5 +1,5 @@
-//! `slag-bench stages`: each encoder stage's measured time per image against its floor (issue 5,
-//! item 1), on the machine it runs on.
+//! `slag-bench stages`: each encoder stage's measured time per image against its floor,
+//! on the machine it runs on.
 //!
 //! The run: one `slag-encoder encode` with the given arguments (in process), then the GPU weight
 //! rasterizer alone over `--raster-views` views for the phase breakdown of its per-pixel-list

@@ -558,7 +558,7 @@ impl MixtureEmbeddings {
             .collect())
     }
 
-    /// The mixture's *max* form (issue 17): per Gaussian, the highest cosine of `query` (`[D]`, any
+    /// The mixture's *max* form: per Gaussian, the highest cosine of `query` (`[D]`, any
     /// norm) with any of its `top` strongest mask embeddings (its first `min(top, S)` non-empty
     /// slots, which hold its largest `a_kj`), instead of the cosine with their weighted mean
     /// ([`MixtureEmbeddings::scores`]). `[N]` scores; a Gaussian without atoms scores 0. One dot

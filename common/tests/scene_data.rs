@@ -18,7 +18,7 @@ fn mini() -> PathBuf {
 }
 
 /// Vertex `i` of the snowmiku .ply as raw little-endian floats, parsed independently of the loader
-/// (62 float properties in the INRIA order the README lists).
+/// (62 float properties in the INRIA order).
 fn raw_vertex(bytes: &[u8], i: usize) -> Vec<f32> {
     let end = bytes
         .windows(11)

@@ -1,5 +1,5 @@
-//! Numerical stability of stored vectors, PLY loading and cosine scoring at the extremes (issue 6,
-//! item 2, cases 3, 7, 8): int8 / f16 round-trip bounds by proptest, values beyond the f16 range,
+//! Numerical stability of stored vectors, PLY loading and cosine scoring at the extremes
+//! (cases 3, 7, 8 of docs/results/stability.md): int8 / f16 round-trip bounds by proptest, values beyond the f16 range,
 //! subnormals, all-zero vectors, NaN / inf input, zero quaternions and extreme logits in the PLY
 //! loader, zero-norm queries. Each case asserts a documented typed error or a saturated /
 //! normalised finite result.

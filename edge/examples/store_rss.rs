@@ -1,4 +1,4 @@
-//! Memory of loading an edge store (issue 7): builds a store of synthetic f16 shards, then loads it
+//! Memory of loading an edge store: builds a store of synthetic f16 shards, then loads it
 //! the way `slag-edge serve` does and prints the process's resident memory (`VmRSS`, Linux
 //! `/proc/self/status`) and its large anonymous mappings (`/proc/self/smaps`) after each stage.
 //!

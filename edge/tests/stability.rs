@@ -1,4 +1,4 @@
-//! Numerical stability of the query side (issue 6, item 2, case 8): zero and non-finite prompt
+//! Numerical stability of the query side: zero and non-finite prompt
 //! embeddings, zero-norm stored rows, in the exact scan (f32 / f16 / int8), the HNSW index, the
 //! LERF relevancy combiner and `run_query`. Expected: a typed [`Error::Query`] (HTTP 400) for a
 //! prompt embedding without a direction, and finite scores (0 for a zero row) everywhere else;

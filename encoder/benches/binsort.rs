@@ -1,7 +1,7 @@
 //! Host tile binning + depth sort of the GPU rasterizer (step 2 of `raster::gpu`): the chunked
 //! counting sort (`bin_and_sort`) against one global sort of 128-bit keys
 //! (`bin_and_sort_reference`), on synthetic tile rects shaped like the 2M-Gaussian, 250-view scene
-//! of docs/device/gpu-models (raster 495 × 371 at scale 0.5: 31 × 24 tiles, 1–4 × 1–3 tiles per
+//! of docs/results/gpu-models.md (raster 495 × 371 at scale 0.5: 31 × 24 tiles, 1–4 × 1–3 tiles per
 //! Gaussian, 10 % culled).
 //!
 //! `cargo bench -p slag-encoder --bench binsort` (release). Environment: `SLAG_BENCH_GAUSSIANS`

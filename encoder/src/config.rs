@@ -301,7 +301,7 @@ impl GraphConfig {
 }
 
 /// `clip.batch` default on a GPU execution provider: there the batched service ran ViT-B/16
-/// fp16 1.45x faster than at 32 on an H100 (docs/device/gpu-models, "CLIP batch").
+/// fp16 1.45x faster than at 32 on an H100 (docs/results/gpu-models.md, "CLIP batch").
 pub const CLIP_BATCH_GPU: usize = 64;
 /// `clip.batch` default on the CPU execution provider.
 pub const CLIP_BATCH_CPU: usize = 32;
@@ -349,7 +349,7 @@ impl Default for RasterConfig {
 }
 
 /// The mixture form's default slot count S: each Gaussian keeps the mean of its 4 strongest mask
-/// embeddings. Measured held-out on snowmiku (docs/tradeoffs.md, "Both mask sources and two
+/// embeddings. Measured held-out on snowmiku (docs/results/tradeoffs.md, "Both mask sources and two
 /// splits"): above the dense `E_k` with graph masks (0.351 → 0.399) and color-sam (0.495 → 0.500),
 /// on a second split too, at 52–68 bytes per Gaussian and no measurable encode time.
 pub const DEFAULT_MIXTURE_KEEP: usize = 4;

@@ -1,5 +1,5 @@
 //! The predictors that `eval-colors --held-out` scores beside the main embeddings, in the same
-//! render pass (issue 17's aggregation variants):
+//! render pass (the aggregation variants):
 //!
 //! - `--compare FILE`: another embeddings file (e.g. another `--mask-weighting`), scored like
 //!   the main one (`cos(E_k, text_c)`).

@@ -1,4 +1,4 @@
-//! Aggregation beyond the paper's mean (issue 17): granularity kept apart and the finest-mask
+//! Aggregation beyond the paper's mean: granularity kept apart and the finest-mask
 //! rule.
 //!
 //! SAM answers every prompt point with three masks (multimask output channels 1..=3: roughly

@@ -12,7 +12,7 @@ mod cli;
 
 /// slag-encoder: per-Gaussian CLIP embeddings for 3D Gaussian Splatting scenes (SLAG).
 ///
-/// Typical run (models are any SAM / CLIP ONNX exports; see README):
+/// Typical run (models are any SAM / CLIP ONNX exports; see docs/guide/encoding.md):
 ///   slag-encoder encode --scene SCENE --sam-encoder SAM_ENC.onnx --sam-decoder SAM_DEC.onnx
 ///       --clip-visual CLIP_VISUAL.onnx --out OUT
 ///   slag-encoder query --embeddings OUT/embeddings.safetensors --clip-textual CLIP_TEXT.onnx

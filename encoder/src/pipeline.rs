@@ -372,7 +372,7 @@ pub fn read_image(view: &View) -> Result<RgbImage> {
 /// image at a time; full pools let a host phase use the cores the other rasterizers leave idle
 /// while they wait on their GPUs (a pool of `threads / GPUs` could stretch it). Measured: the
 /// per-image back cost grows with the GPUs either way (4 H200s, quarter pools: raster +27 % over
-/// 1 GPU; 2 H200s, full pools: +12 %), see docs/device/gpu-models. Idle rayon threads sleep, so the
+/// 1 GPU; 2 H200s, full pools: +12 %), see docs/results/gpu-models.md. Idle rayon threads sleep, so the
 /// extra threads cost no CPU. `None` (with a warning) when the
 /// OS refuses the threads; the worker then uses the global pool, which is correct, only slower
 /// under load.

@@ -1,4 +1,4 @@
-//! A robust per-Gaussian embedding (issue 17, "invent better ones"): the weighted *mode* of the
+//! A robust per-Gaussian embedding: the weighted *mode* of the
 //! mask embeddings that cover a Gaussian instead of their weighted mean.
 //!
 //! The paper's `E_k = Σ a_kj E_j / Σ a_kj` lets every mask that covers Gaussian `k` pull on it,

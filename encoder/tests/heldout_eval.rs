@@ -206,7 +206,7 @@ fn held_out_protocol_on_snowmiku_mini() {
     );
 }
 
-/// Measured on this subset (release build, 2-core CPU, lavapipe; README "Accuracy"): slag 0.223,
+/// Measured on this subset (release build, 2-core CPU, lavapipe; docs/results/accuracy.md): slag 0.223,
 /// oracle 0.323, majority class (gray) 0.112; the pipeline is deterministic. slag must stay clearly
 /// above the majority class (a broken render, pose or argmax falls to it or below).
 const MARGIN_OVER_MAJORITY: f64 = 0.05;
@@ -215,7 +215,7 @@ const SLAG_FLOOR: f64 = 0.17;
 /// ~25 % below the measured 0.323.
 const ORACLE_FLOOR: f64 = 0.25;
 /// color-sam with the default `--overlap finest` measured 0.290 here (release build, 2-core CPU,
-/// lavapipe), the paper's mean 0.275, the oracle 0.323 (README "Accuracy"); ~10 % below 0.290.
+/// lavapipe), the paper's mean 0.275, the oracle 0.323 (docs/results/accuracy.md); ~10 % below 0.290.
 const SAM_DEFAULT_FLOOR: f64 = 0.26;
 /// Half the measured gain of 0.015 over the mean.
 const SAM_MARGIN_OVER_MEAN: f64 = 0.007;

@@ -1,10 +1,10 @@
-//! Numerical stability of the weight rasterizer and the aggregation at the extremes (issue 6,
-//! item 2). Every case asserts an expected behaviour (finite weights in (0, 1] summing to ≤ 1 per
+//! Numerical stability of the weight rasterizer and the aggregation at the extremes.
+//! Every case asserts an expected behaviour (finite weights in (0, 1] summing to ≤ 1 per
 //! pixel, a closed-form value, "not drawn", or "unobserved"), and the GPU path (wgpu; Mesa
 //! lavapipe in CI) agrees with the f64 CPU reference within the rasterizer's tolerance (identical
 //! contributor lists with weights within 1e-4, except ≤ 0.1 % of pixels + 2 where an f32 value sits
 //! on a decision threshold). The measured figures are printed (`--nocapture`) and tabulated in
-//! `docs/stability.md`.
+//! `docs/results/stability.md`.
 //!
 //! GPU parts need a Vulkan adapter; `SLAG_SKIP_GPU=1` skips them (as in `raster::tests`).
 //!
@@ -332,7 +332,7 @@ static WORST_BY_SPREAD: std::sync::Mutex<[f64; 11]> = std::sync::Mutex::new([0.0
 /// Identical-list tolerance for a scene whose per-axis scales spread over `spread` decades: the
 /// rasterizer's 1e-4 at every spread. (Before the GPU kernel evaluated `½dᵀΣ⁻¹d` in eigen form,
 /// needles and sheets — nearly singular conics — exceeded it from 3 decades on: up to 7.9e-4
-/// at 10 decades, 2.0e-4 at 3; see docs/stability.md.)
+/// at 10 decades, 2.0e-4 at 3; see docs/results/stability.md.)
 fn spread_tolerance(_spread: u32) -> f64 {
     1e-4
 }

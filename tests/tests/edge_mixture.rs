@@ -1,4 +1,4 @@
-//! The robot path for the mixture form (issue 17, item 3): encode snowmiku-mini with
+//! The robot path for the mixture form: encode snowmiku-mini with
 //! `--mixture-keep 16` → `partition --mixture --mixture-slots 8` (mixture shards + codebook) →
 //! `slag-encoder serve` → `slag-edge fetch` (codebook verified) → `Engine` / `slag-edge serve`,
 //! whose scores must equal `MixtureEmbeddings::truncated(8).scores` (the held-out evaluation's

@@ -1,6 +1,6 @@
 //! End to end on real input: encode snowmiku (a subset small enough for CI) with color-sam +
 //! color-clip and with the graph segmenter, then measure colour mIoU; run the real-architecture
-//! SAM/CLIP path. The mIoU floors come from the full runs recorded in the README.
+//! SAM/CLIP path. The mIoU floors come from the full runs in docs/results/accuracy.md.
 
 #![allow(clippy::unwrap_used)]
 
@@ -88,8 +88,8 @@ fn real_architecture_models_run_end_to_end() {
     assert!(emb.vectors.iter().all(|v| v.is_finite()));
 }
 
-/// Floors (README "Accuracy"): this CI subset (9 views, raster scale 0.25) measured mIoU 0.195 with
-/// color-sam and 0.165 with the graph segmenter on the 2-core CPU machine, see the README for the full
+/// Floors (docs/results/accuracy.md): this CI subset (9 views, raster scale 0.25) measured mIoU 0.195 with
+/// color-sam and 0.165 with the graph segmenter on the 2-core CPU machine, see docs/results/accuracy.md for the full
 /// every-2nd-image runs; the floors sit ~25% below the subset values and above the trivial answer
 /// (every Gaussian "gray", the majority class: mIoU 52464/108957/5 = 0.096), so a broken stage
 /// (wrong mask resampling, wrong pose convention, unnormalised sums) fails, while run-to-run noise

@@ -52,7 +52,7 @@ pub struct EncodePoint {
     /// Also write the mixture form with this many slots (`--mixture-keep`); the dense
     /// embeddings do not depend on it. The study sets it on the baseline only.
     pub mixture_keep: Option<usize>,
-    /// How `a_kj` are formed (issue 17): `--mask-weighting` and `--overlap`, always passed
+    /// How `a_kj` are formed: `--mask-weighting` and `--overlap`, always passed
     /// explicitly so that a point's meaning does not follow the encoder's defaults.
     #[serde(default)]
     pub aggregation: Aggregation,

@@ -56,7 +56,7 @@ pub struct TradeoffArgs {
     /// data/snowmiku-mini with --quick.
     #[arg(long)]
     pub scene: Option<PathBuf>,
-    /// Output folder for tradeoffs.md and tradeoffs.csv (e.g. docs/).
+    /// Output folder for tradeoffs.md and tradeoffs.csv (e.g. docs/results/).
     #[arg(long)]
     pub out: PathBuf,
     /// Small study for tests: 3 encode points (reference, baseline, raster 0.25), every storage
@@ -254,7 +254,7 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
         mixture_keep: None,
         aggregation: encode::Aggregation::Mean,
     };
-    // Aggregation variants (issue 17) on color-sam 16x16 at every 4th image.
+    // Aggregation variants on color-sam 16x16 at every 4th image.
     let aggregation = |a: encode::Aggregation| EncodePoint {
         knob: "aggregation".into(),
         every: 4,

@@ -63,7 +63,7 @@ trait Simd {
 
 /// Bytes ahead of the current row that [`prefetch_row`] asks for: far enough that a row's DRAM
 /// latency is hidden behind the rows in between, across the 4 KiB page boundaries where the
-/// hardware prefetchers stop (measured on the 2-core EPYC, int8 top-k ÷ floor: none 2.1, 2 KiB 1.45,
+/// hardware prefetchers stop (`slag-edge bench`, int8 top-k ÷ floor: none 2.1, 2 KiB 1.45,
 /// 4 KiB 1.16–1.21, 8 KiB 1.3).
 pub(super) const PREFETCH_BYTES: usize = 4096;
 

@@ -1,6 +1,6 @@
 //! Qdrant upload ([`slag_shards::qdrant::upload`]) against a protocol-level test server.
 //!
-//! A live Qdrant server is too heavy for CI (it was run once by hand: docs/qdrant-live.md), so
+//! A live Qdrant server is too heavy for CI (it was checked once by hand: docs/results/qdrant-live.md), so
 //! this test serves the gRPC services `qdrant-client` talks to (`Qdrant`, `Collections`,
 //! `Points`, `Snapshots`) with the client crate's own generated server traits, records every
 //! request, enforces the ordering a real server enforces (no upsert/snapshot into a missing

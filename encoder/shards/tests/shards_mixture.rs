@@ -1,4 +1,4 @@
-//! Mixture partitions (issue 17, item 3): mixture shards + codebook from a `MixtureEmbeddings`,
+//! Mixture partitions: mixture shards + codebook from a `MixtureEmbeddings`,
 //! sized in bytes, stored, exported, refused by the Qdrant upload.
 
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};

@@ -40,8 +40,8 @@ impl ImageContribution {
 }
 
 /// Knobs of the image stage. `Default` is the paper's rule (all contributors, no weighting,
-/// every covering mask); `slag-encoder encode`'s default is `--overlap finest` (issue 17's
-/// held-out measurement, docs/tradeoffs.md).
+/// every covering mask); `slag-encoder encode`'s default is `--overlap finest` (better
+/// held-out mIoU at the same cost, docs/results/tradeoffs.md).
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize)]
 pub struct ImageStageParams {
     /// Keep only the `k` largest-weight contributors of each pixel (`None` = all, the paper's rule).

@@ -69,7 +69,7 @@ pub struct EncodeArgs {
     #[arg(long)]
     pub clip_visual: PathBuf,
     /// Crops per CLIP batch (default: 64 on a GPU provider, where the batched service ran
-    /// ViT-B/16 fp16 1.45x faster than at 32 on an H100 (docs/device/gpu-models); 32 on the CPU).
+    /// ViT-B/16 fp16 1.45x faster than at 32 on an H100 (docs/results/gpu-models.md); 32 on the CPU).
     #[arg(long)]
     pub clip_batch: Option<usize>,
     /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
@@ -106,7 +106,7 @@ pub struct EncodeArgs {
     pub top_k_per_pixel: Option<usize>,
     /// Specificity weighting of each mask's a_kj: none (the default, as in the paper), area
     /// (image pixels / mask area: small masks count more), sam-score (SAM predicted IoU ×
-    /// stability). Measured held-out in docs/tradeoffs.md: area adds +0.004 over --overlap
+    /// stability). Measured held-out in docs/results/tradeoffs.md: area adds +0.004 over --overlap
     /// finest with SAM masks but costs 0.032 with graph masks, so it is not the default.
     #[arg(long, value_enum, default_value_t = MaskWeighting::None)]
     pub mask_weighting: MaskWeighting,
@@ -134,7 +134,7 @@ pub struct EncodeArgs {
     pub precision: PrecisionArg,
     /// Also write OUT/mixture.safetensors: a shared codebook of the mask embeddings plus each
     /// Gaussian's S largest a_kj (the compressed form the shards carry by default; the mean of a
-    /// Gaussian's 4 strongest masks was the best held-out point, docs/tradeoffs.md). Default 4
+    /// Gaussian's 4 strongest masks was the best held-out point, docs/results/tradeoffs.md). Default 4
     /// for `encode`; 0 writes dense embeddings only; `encode-cluster` writes none unless asked
     /// (and then refuses: one-process encodes only).
     #[arg(long, value_name = "S", value_parser = parse_keep)]

@@ -25,7 +25,7 @@ use crate::scan::{ScanRequest, VectorStore, scan};
 const GRAPH_BYTES_PER_ROW: f64 = 400.0;
 
 /// f32 row copies Qdrant Edge's build grows the RSS by, for the memory guard (measured 3.2–3.4
-/// at 100K × 512: docs/edge-bench-hnsw.md), with margin.
+/// at 100K × 512: docs/results/edge-hnsw.md), with margin.
 const QDRANT_ROW_COPIES: f64 = 4.0;
 
 /// One built index and what its build cost.

@@ -189,7 +189,7 @@ impl std::fmt::Debug for ApproxIndex {
 impl ApproxIndex {
     /// Builds `backend`'s index over all rows of `store` (module doc: f32 copies of the rows).
     /// Blocks until the graph is complete: seconds to minutes (100K × 512 on 2 cores:
-    /// instant-distance 2–5 min, Qdrant Edge 2.6–3.9× less; docs/edge-bench-hnsw.md).
+    /// instant-distance 2–5 min, Qdrant Edge 2.6–3.9× less; docs/results/edge-hnsw.md).
     ///
     /// Errors: [`Error::Param`] `hnsw_backend` for a backend this binary lacks
     /// ([`HnswBackend::require`]), `ef_construction` / `ef_search` / `m` out of range
