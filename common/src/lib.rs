@@ -13,11 +13,14 @@
 //! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
+//! | [`doc_flags`] | checks the command lines the manual shows against the binaries' `--help` |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
+//! | [`term`] | whether log lines may carry colour codes (a terminal, `NO_COLOR`) |
 
 pub mod auth;
 pub mod camera;
+pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
 pub mod mixture;
@@ -31,6 +34,7 @@ mod safetensors_io;
 pub mod scene;
 pub mod shards;
 pub mod similarity;
+pub mod term;
 #[cfg(feature = "onnx")]
 pub mod text;
 

@@ -452,6 +452,7 @@ fn main() -> std::process::ExitCode {
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(slag_common::term::stderr_ansi())
         .init();
     let cli = Cli::parse();
     let verbose = cli.verbose;

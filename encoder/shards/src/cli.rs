@@ -552,7 +552,8 @@ pub struct GlobalArgs {
     pub verbose: bool,
 }
 
-/// Sets up `tracing` (respects `RUST_LOG`, default `info`, `debug` with `verbose`) on stderr.
+/// Sets up `tracing` (respects `RUST_LOG`, default `info`, `debug` with `verbose`) on stderr,
+/// coloured only on a terminal without `NO_COLOR` ([`slag_common::term::stderr_ansi`]).
 pub fn init_logging(verbose: bool) {
     let default = if verbose { "debug" } else { "info" };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -560,5 +561,6 @@ pub fn init_logging(verbose: bool) {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(slag_common::term::stderr_ansi())
         .try_init();
 }

@@ -1,0 +1,121 @@
+//! `slag-edge`'s log lines carry no ANSI colour codes when stderr is not a terminal (a log file,
+//! journald, CI): `slag-edge serve 2> log` stays plain text.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+
+use slag_common::shards::Dtype;
+use support::{grid_scene, shard_server};
+
+fn fixture(rel: &str) -> String {
+    slag_common::paths::source_tree_shared_dir()
+        .join("fixtures")
+        .join(rel)
+        .display()
+        .to_string()
+}
+
+/// Runs `serve` with stderr piped until it logs that it listens, then stops it: the log line is
+/// there and holds no escape sequence.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_logs_without_colour_codes_into_a_pipe() {
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        assert!(
+            std::env::var_os("SLAG_SKIP_ORT").is_some(),
+            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
+        );
+        return;
+    }
+    // Under qemu (cross build) the binary is started through `$SLAG_TEST_RUNNER`.
+    let runner: Vec<String> = std::env::var("SLAG_TEST_RUNNER")
+        .unwrap_or_default()
+        .split_whitespace()
+        .map(str::to_owned)
+        .collect();
+    let command = |args: &[&str]| {
+        let bin = env!("CARGO_BIN_EXE_slag-edge");
+        let mut c = match runner.split_first() {
+            Some((r, rest)) => {
+                let mut c = Command::new(r);
+                c.args(rest).arg(bin);
+                c
+            }
+            None => Command::new(bin),
+        };
+        c.args(args).env("RUST_LOG", "info").env_remove("NO_COLOR");
+        c
+    };
+
+    let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store").display().to_string();
+    let mut fetch = command(&[
+        "fetch",
+        "--from",
+        &server.url,
+        "--scene",
+        "grid",
+        "--center",
+        "0,0",
+        "--radius",
+        "100",
+        "--store",
+        &store,
+    ]);
+    let out = tokio::task::spawn_blocking(move || fetch.output().unwrap())
+        .await
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let (tm, tok) = (
+        fixture("clip/color-clip-textual.onnx"),
+        fixture("clip/clip-tokenizer.json"),
+    );
+    let mut child = command(&[
+        "serve",
+        "--store",
+        &store,
+        "--scene",
+        "grid",
+        "--text-model",
+        &tm,
+        "--tokenizer",
+        &tok,
+        "--addr",
+        "127.0.0.1:0",
+    ])
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let log = tokio::task::spawn_blocking(move || {
+        let mut log = String::new();
+        for line in BufReader::new(stderr).lines() {
+            let line = line.unwrap();
+            log.push_str(&line);
+            log.push('\n');
+            if line.contains("listening on http://") {
+                break;
+            }
+        }
+        log
+    })
+    .await
+    .unwrap();
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(log.contains("listening on http://"), "{log}");
+    assert!(log.contains("INFO"), "{log}");
+    assert!(
+        !log.contains('\u{1b}'),
+        "escape codes in a piped log: {log:?}"
+    );
+}
