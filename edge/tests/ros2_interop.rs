@@ -31,7 +31,10 @@ use support::{BasisEmbedder, fetch_grid, grid_scene, shard_server, wait_until};
 
 /// The venv's python, or `None` (with the reason printed) when the install is impossible.
 fn python() -> Option<String> {
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../scripts/ros2-interop-setup.sh");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scripts/ros2-interop-setup.sh"
+    );
     let out = Command::new("bash")
         .arg(script)
         .stderr(Stdio::inherit())
@@ -74,7 +77,11 @@ struct Node {
 
 /// A store of the grid scene served over HTTP and ROS 2 from one [`AppState`].
 async fn start(nx: usize, per_tile: usize, dim: usize) -> Node {
-    let server = shard_server(grid_scene("grid", nx, nx, per_tile, dim, Dtype::F32, 1), None).await;
+    let server = shard_server(
+        grid_scene("grid", nx, nx, per_tile, dim, Dtype::F32, 1),
+        None,
+    )
+    .await;
     let (dir, store) = fetch_grid(&server.url, 1e4).await;
     let state = Arc::new(
         AppState::new(
@@ -147,12 +154,18 @@ async fn client(python: &str, node: &Node, mut request: serde_json::Value) -> se
     .await
     .unwrap();
     let text = String::from_utf8(out.stdout).unwrap();
-    assert!(out.status.success(), "client failed ({}): {text}", out.status);
+    assert!(
+        out.status.success(),
+        "client failed ({}): {text}",
+        out.status
+    );
     serde_json::from_str(text.trim()).unwrap()
 }
 
 async fn http_answer(url: &str, prompt: &str) -> serde_json::Value {
-    let r = reqwest::get(format!("{url}/query?text={prompt}")).await.unwrap();
+    let r = reqwest::get(format!("{url}/query?text={prompt}"))
+        .await
+        .unwrap();
     assert_eq!(r.status(), 200);
     r.json().await.unwrap()
 }
@@ -189,9 +202,20 @@ fn assert_equal_answers(
         assert_eq!(d["id"], o["id"].to_string().as_str(), "{prompt}");
         let r = &d["results"][0];
         assert_eq!(r["class_id"], prompt);
-        assert_eq!(f(&r["score"]) as f32, f(&o["max_score"]) as f32, "{prompt}: score");
-        assert!(close3(&r["pose"]["position"], &o["centroid"], 1e-5), "{prompt}: centroid");
-        assert!(close3(&d["bbox"]["center"]["position"], &o["obb"]["center"], 1e-5));
+        assert_eq!(
+            f(&r["score"]) as f32,
+            f(&o["max_score"]) as f32,
+            "{prompt}: score"
+        );
+        assert!(
+            close3(&r["pose"]["position"], &o["centroid"], 1e-5),
+            "{prompt}: centroid"
+        );
+        assert!(close3(
+            &d["bbox"]["center"]["position"],
+            &o["obb"]["center"],
+            1e-5
+        ));
         assert!(close3(&d["bbox"]["size"], &o["obb"]["extents"], 1e-5));
     }
     // The cloud: the top matches, in order.
@@ -201,7 +225,11 @@ fn assert_equal_answers(
     assert_eq!((f(&cloud["height"]), f(&cloud["point_step"])), (1.0, 16.0));
     for (p, m) in points.iter().zip(matches) {
         for i in 0..3 {
-            assert_eq!(f(&p[i]) as f32, f(&m["position"][i]) as f32, "{prompt}: position");
+            assert_eq!(
+                f(&p[i]) as f32,
+                f(&m["position"][i]) as f32,
+                "{prompt}: position"
+            );
         }
         assert_eq!(f(&p[3]) as f32, f(&m["score"]) as f32, "{prompt}: score");
     }
@@ -211,7 +239,11 @@ fn assert_equal_answers(
     assert_eq!(ms[0]["action"], 3, "DELETEALL first");
     for (i, o) in want.iter().enumerate() {
         assert_eq!(ms[1 + 2 * i]["type"], 1, "CUBE");
-        assert!(close3(&ms[1 + 2 * i]["pose"]["position"], &o["obb"]["center"], 1e-5));
+        assert!(close3(
+            &ms[1 + 2 * i]["pose"]["position"],
+            &o["obb"]["center"],
+            1e-5
+        ));
         assert_eq!(ms[2 + 2 * i]["type"], 9, "TEXT_VIEW_FACING");
         assert!(ms[2 + 2 * i]["text"].as_str().unwrap().starts_with(prompt));
     }
@@ -225,7 +257,10 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
     let mut http = Vec::new();
     for p in prompts {
         let a = http_answer(&node.url, p).await;
-        assert!(!a["matches"].as_array().unwrap().is_empty(), "{p}: the test needs matches");
+        assert!(
+            !a["matches"].as_array().unwrap().is_empty(),
+            "{p}: the test needs matches"
+        );
         http.push(a);
     }
     let long = "x".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
@@ -265,7 +300,10 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
     // history to depth 1 once the earlier answers are acknowledged, on its cleanup timer; a
     // subscription joining before that also gets some of them, in order).
     let late = out["late_objects"].as_array().unwrap();
-    assert!(!late.is_empty() && late.len() <= prompts.len(), "late subscriber: {late:?}");
+    assert!(
+        !late.is_empty() && late.len() <= prompts.len(),
+        "late subscriber: {late:?}"
+    );
     assert_eq!(late[late.len() - 1], out["objects"][prompts.len() - 1]);
     let c = node.counters.clone();
     wait_until("the counters settle", async || {
@@ -290,10 +328,12 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
 #[ignore = "a measurement: run by hand"]
 async fn latency_ros2_next_to_http() {
     let Some(python) = python() else { return };
-    // 8 × 8 tiles × 1000 Gaussians of 512-d f32 (64k rows, 131 MB of vectors).
-    let node = start(8, 1000, 512).await;
+    // 4 × 4 tiles × 2000 Gaussians of 512-d f32 (32k rows, 66 MB of vectors).
+    let node = start(4, 2000, 512).await;
     let rounds = 5;
-    let prompts: Vec<String> = (0..rounds).flat_map(|_| (0..10).map(|i| format!("t{i}"))).collect();
+    let prompts: Vec<String> = (0..rounds)
+        .flat_map(|_| (0..10).map(|i| format!("t{i}")))
+        .collect();
     let n = prompts.len();
     let out = client(
         &python,
@@ -307,9 +347,15 @@ async fn latency_ros2_next_to_http() {
         let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
         (v.len(), q(0.5), q(0.9), v[0], v[v.len() - 1])
     };
-    for (name, key) in [("ROS 2 prompt → ~/objects", "ros_ms"), ("HTTP GET /query", "http_ms")] {
+    for (name, key) in [
+        ("ROS 2 prompt → ~/objects", "ros_ms"),
+        ("HTTP GET /query", "http_ms"),
+    ] {
         let (k, p50, p90, lo, hi) = stats(key);
         println!("{name}: n={k} median={p50:.2} ms p90={p90:.2} ms min={lo:.2} ms max={hi:.2} ms");
     }
-    println!("discovery (client start → matched): {:.2} s", f(&out["discovery_s"]));
+    println!(
+        "discovery (client start → matched): {:.2} s",
+        f(&out["discovery_s"])
+    );
 }

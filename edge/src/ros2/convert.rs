@@ -187,9 +187,9 @@ pub fn point_cloud(matches: &[Match], header: &Header) -> PointCloud2 {
         point_step: POINT_STEP,
         row_step: POINT_STEP.saturating_mul(width),
         data,
-        is_dense: matches.iter().all(|m| {
-            m.position.iter().all(|v| v.is_finite()) && m.score.is_finite()
-        }),
+        is_dense: matches
+            .iter()
+            .all(|m| m.position.iter().all(|v| v.is_finite()) && m.score.is_finite()),
     }
 }
 
@@ -268,9 +268,21 @@ mod tests {
         // v' = q v q*, expanded.
         let (x, y, z, w) = (q.x, q.y, q.z, q.w);
         let m = [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
-            [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
-            [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+            [
+                1.0 - 2.0 * (y * y + z * z),
+                2.0 * (x * y - z * w),
+                2.0 * (x * z + y * w),
+            ],
+            [
+                2.0 * (x * y + z * w),
+                1.0 - 2.0 * (x * x + z * z),
+                2.0 * (y * z - x * w),
+            ],
+            [
+                2.0 * (x * z - y * w),
+                2.0 * (y * z + x * w),
+                1.0 - 2.0 * (x * x + y * y),
+            ],
         ];
         [0, 1, 2].map(|i| (0..3).map(|j| m[i][j] * v[j]).sum())
     }
@@ -288,10 +300,16 @@ mod tests {
         ] {
             let q = rotation_to_quaternion(axes);
             assert!(((q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0).abs() < 1e-9);
-            for (k, e) in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]].iter().enumerate() {
+            for (k, e) in [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+                .iter()
+                .enumerate()
+            {
                 let got = rotate(&q, *e);
                 for i in 0..3 {
-                    assert!((got[i] - f64::from(axes[k][i])).abs() < 1e-6, "{axes:?} {k}");
+                    assert!(
+                        (got[i] - f64::from(axes[k][i])).abs() < 1e-6,
+                        "{axes:?} {k}"
+                    );
                 }
             }
         }
@@ -301,15 +319,33 @@ mod tests {
     fn the_cloud_packs_x_y_z_score_little_endian() {
         let h = Header::default();
         let m = [
-            Match { id: 3, position: [1.0, -2.0, 0.5], score: 0.9 },
-            Match { id: 4, position: [0.0, 0.25, 8.0], score: 0.3 },
+            Match {
+                id: 3,
+                position: [1.0, -2.0, 0.5],
+                score: 0.9,
+            },
+            Match {
+                id: 4,
+                position: [0.0, 0.25, 8.0],
+                score: 0.3,
+            },
         ];
         let c = point_cloud(&m, &h);
-        assert_eq!((c.height, c.width, c.point_step, c.row_step), (1, 2, 16, 32));
+        assert_eq!(
+            (c.height, c.width, c.point_step, c.row_step),
+            (1, 2, 16, 32)
+        );
         assert_eq!(c.data.len(), 32);
         let f = |i: usize| f32::from_le_bytes(c.data[4 * i..4 * i + 4].try_into().unwrap());
-        assert_eq!([f(0), f(1), f(2), f(3), f(4), f(5), f(6), f(7)], [1.0, -2.0, 0.5, 0.9, 0.0, 0.25, 8.0, 0.3]);
-        let names: Vec<_> = c.fields.iter().map(|f| (f.name.as_str(), f.offset)).collect();
+        assert_eq!(
+            [f(0), f(1), f(2), f(3), f(4), f(5), f(6), f(7)],
+            [1.0, -2.0, 0.5, 0.9, 0.0, 0.25, 8.0, 0.3]
+        );
+        let names: Vec<_> = c
+            .fields
+            .iter()
+            .map(|f| (f.name.as_str(), f.offset))
+            .collect();
         assert_eq!(names, [("x", 0), ("y", 4), ("z", 8), ("score", 12)]);
         assert!(c.is_dense);
     }
@@ -329,13 +365,30 @@ mod tests {
             max_score: 0.75,
             mean_score: 0.5,
         };
-        let h = Header { stamp: Time { sec: 5, nanosec: 6 }, frame_id: "map".into() };
+        let h = Header {
+            stamp: Time { sec: 5, nanosec: 6 },
+            frame_id: "map".into(),
+        };
         let d = detection(&o, "chair", &h);
         assert_eq!(d.id, "77");
         assert_eq!(d.results[0].hypothesis.class_id, "chair");
         assert_eq!(d.results[0].hypothesis.score, 0.75);
-        assert_eq!(d.results[0].pose.pose.position, Point { x: 1.0, y: 2.0, z: 3.0 });
-        assert_eq!(d.bbox.size, Vector3 { x: 2.0, y: 2.0, z: 0.0 });
+        assert_eq!(
+            d.results[0].pose.pose.position,
+            Point {
+                x: 1.0,
+                y: 2.0,
+                z: 3.0
+            }
+        );
+        assert_eq!(
+            d.bbox.size,
+            Vector3 {
+                x: 2.0,
+                y: 2.0,
+                z: 0.0
+            }
+        );
         let m = markers(std::slice::from_ref(&o), "chair", &h);
         assert_eq!(m.markers.len(), 3);
         assert_eq!(m.markers[0].action, Marker::DELETEALL);

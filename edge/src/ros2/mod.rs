@@ -31,8 +31,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use futures_util::StreamExt;
-use ros2_client::{Context, ContextOptions, Name, NodeName, NodeOptions, QosProfile};
 use ros2_client::qos::{Durability, History, WhenFull};
+use ros2_client::{Context, ContextOptions, Name, NodeName, NodeOptions, QosProfile};
 use slag_common::{Error, Result};
 
 use crate::query::{Interface, QueryParams, RawQuery};
@@ -109,9 +109,7 @@ impl Ros2Options {
         let node = NodeName::new(&self.namespace, &self.node_name).map_err(|e| {
             let (name, value) = match e {
                 ros2_client::names::NameError::BadSlash(..) => ("ros2_namespace", &self.namespace),
-                _ if NodeName::new("/", &self.node_name).is_err() => {
-                    ("ros2_node", &self.node_name)
-                }
+                _ if NodeName::new("/", &self.node_name).is_err() => ("ros2_node", &self.node_name),
                 _ => ("ros2_namespace", &self.namespace),
             };
             Error::param(
@@ -325,7 +323,12 @@ pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
             .map_err(|e| dds_error(&options, &format!("topic ~/{leaf}"), e))
     };
     let t_prompt = topic(&mut node, "prompt", StringMsg::type_name(), &prompt_qos)?;
-    let t_objects = topic(&mut node, "objects", Detection3DArray::type_name(), &answer_qos)?;
+    let t_objects = topic(
+        &mut node,
+        "objects",
+        Detection3DArray::type_name(),
+        &answer_qos,
+    )?;
     let t_matches = topic(&mut node, "matches", PointCloud2::type_name(), &answer_qos)?;
     let t_markers = topic(&mut node, "markers", MarkerArray::type_name(), &answer_qos)?;
     let sub = node
@@ -467,7 +470,10 @@ mod tests {
         };
         assert_eq!(o.dds_topic("prompt"), "rt/robot1/edge/prompt");
         assert!(o.check().is_ok());
-        assert_eq!(StringMsg::type_name().dds_msg_type(), "std_msgs::msg::dds_::String_");
+        assert_eq!(
+            StringMsg::type_name().dds_msg_type(),
+            "std_msgs::msg::dds_::String_"
+        );
         assert_eq!(
             Detection3DArray::type_name().dds_msg_type(),
             "vision_msgs::msg::dds_::Detection3DArray_"
@@ -481,17 +487,53 @@ mod tests {
             e => panic!("{e}"),
         };
         let d = Ros2Options::default;
-        assert_eq!(bad(Ros2Options { namespace: "robot".into(), ..d() }), "ros2_namespace");
-        assert_eq!(bad(Ros2Options { namespace: "/r/".into(), ..d() }), "ros2_namespace");
-        assert_eq!(bad(Ros2Options { node_name: "9x".into(), ..d() }), "ros2_node");
-        assert_eq!(bad(Ros2Options { node_name: "a-b".into(), ..d() }), "ros2_node");
-        assert_eq!(bad(Ros2Options { frame_id: " ".into(), ..d() }), "ros2_frame_id");
+        assert_eq!(
+            bad(Ros2Options {
+                namespace: "robot".into(),
+                ..d()
+            }),
+            "ros2_namespace"
+        );
+        assert_eq!(
+            bad(Ros2Options {
+                namespace: "/r/".into(),
+                ..d()
+            }),
+            "ros2_namespace"
+        );
+        assert_eq!(
+            bad(Ros2Options {
+                node_name: "9x".into(),
+                ..d()
+            }),
+            "ros2_node"
+        );
+        assert_eq!(
+            bad(Ros2Options {
+                node_name: "a-b".into(),
+                ..d()
+            }),
+            "ros2_node"
+        );
+        assert_eq!(
+            bad(Ros2Options {
+                frame_id: " ".into(),
+                ..d()
+            }),
+            "ros2_frame_id"
+        );
         assert_eq!(domain_id_from(None).unwrap(), 0);
         assert_eq!(domain_id_from(Some("")).unwrap(), 0);
         assert_eq!(domain_id_from(Some("42")).unwrap(), 42);
         for v in ["233", "-1", "x"] {
             assert!(
-                matches!(domain_id_from(Some(v)), Err(Error::Param { name: "ROS_DOMAIN_ID", .. })),
+                matches!(
+                    domain_id_from(Some(v)),
+                    Err(Error::Param {
+                        name: "ROS_DOMAIN_ID",
+                        ..
+                    })
+                ),
                 "{v}"
             );
         }
@@ -503,7 +545,10 @@ mod tests {
         let (intake, mut rx) = PromptIntake::new(1, 0.28, c.clone());
         assert!(matches!(intake.offer("  ".into()), Offer::Refused(_)));
         let long = "x".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
-        assert!(matches!(intake.offer(long), Offer::Refused(Error::Query { field: "text", .. })));
+        assert!(matches!(
+            intake.offer(long),
+            Offer::Refused(Error::Query { field: "text", .. })
+        ));
         assert!(matches!(intake.offer("chair".into()), Offer::Queued));
         assert!(matches!(intake.offer("table".into()), Offer::Dropped));
         let q = rx.try_recv().unwrap();
