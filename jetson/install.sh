@@ -135,6 +135,8 @@ if [ ! -e "$ETC/edge.env" ]; then
     echo "# The ONNX Runtime library slag-edge loads (the ort crate's load-dynamic; ORT >= 1.23)."
     if [ -n "$ORT_PATH" ]; then echo "ORT_DYLIB_PATH=$ORT_PATH"; else echo "#ORT_DYLIB_PATH=/path/to/libonnxruntime.so"; fi
     echo "RUST_LOG=info"
+    echo "# DDS domain of the ROS 2 node (ros2 = true in edge.toml); the robot's ROS 2 graph uses the same."
+    echo "ROS_DOMAIN_ID=0"
     echo "# Alternative to token_file in edge.toml:"
     echo "#SLAG_EDGE_TOKEN=..."
     echo "# JetPack ONNX Runtime with the CUDA / TensorRT providers may need the CUDA libraries:"

@@ -14,7 +14,13 @@
 //! hnsw_backend = "instant-distance"   # or "qdrant-edge" (binary built with --features qdrant-edge)
 //! max_scans = 1         # scans at once (each uses every core)
 //! scan_queue = 32       # waiting queries; one more gets 503 + Retry-After
+//! ros2 = true           # also run the ROS 2 node (slag_edge::ros2) beside HTTP
+//! ros2_node = "slag"    # its name; topics are <ros2_namespace>/<ros2_node>/{prompt,objects,…}
+//! ros2_namespace = "/"
+//! ros2_frame_id = "map" # header.frame_id of what it publishes
 //! ```
+//!
+//! The DDS domain is `ROS_DOMAIN_ID` from the environment, as for every ROS 2 node.
 
 use std::path::{Path, PathBuf};
 
@@ -49,6 +55,14 @@ pub struct ServeConfig {
     pub max_scans: Option<usize>,
     /// Queries that may wait for a scan (`slag_edge::serve::DEFAULT_SCAN_QUEUE` when absent).
     pub scan_queue: Option<usize>,
+    /// Run the ROS 2 node beside HTTP ([`crate::ros2`]).
+    pub ros2: Option<bool>,
+    /// ROS 2 node name ([`crate::ros2::DEFAULT_NODE_NAME`] when absent).
+    pub ros2_node: Option<String>,
+    /// ROS 2 namespace of the node ([`crate::ros2::DEFAULT_NAMESPACE`] when absent).
+    pub ros2_namespace: Option<String>,
+    /// `header.frame_id` of the node's messages ([`crate::ros2::DEFAULT_FRAME_ID`] when absent).
+    pub ros2_frame_id: Option<String>,
 }
 
 impl ServeConfig {
@@ -103,5 +117,9 @@ mod tests {
         assert_eq!(c.hnsw_backend.as_deref(), Some("instant-distance"));
         assert_eq!(c.max_scans, Some(1));
         assert_eq!(c.scan_queue, Some(32));
+        assert_eq!(c.ros2, Some(false));
+        assert_eq!(c.ros2_node.as_deref(), Some("slag"));
+        assert_eq!(c.ros2_namespace.as_deref(), Some("/"));
+        assert_eq!(c.ros2_frame_id.as_deref(), Some("map"));
     }
 }

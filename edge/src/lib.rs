@@ -10,12 +10,15 @@
 //!   [`serve::web`] `GET /query.ply` and the web page `GET /` that renders it;
 //! - [`view`]: the answer shown to a person: the loaded Gaussians as a 3DGS `.ply` with the
 //!   matches painted;
+//! - [`ros2`]: the ROS 2 node of `serve --ros2` (prompts in; objects, matches and RViz
+//!   markers out);
 //! - [`config`]: the TOML config file of `serve` (`jetson/edge.toml`).
 
 pub mod config;
 pub mod engine;
 pub mod fetch;
 pub mod query;
+pub mod ros2;
 pub mod scan;
 pub mod serve;
 pub mod store;

@@ -4,6 +4,7 @@
 //!   around the robot into the local sled store;
 //! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml] [--hnsw [--hnsw-backend
 //!   instant-distance|qdrant-edge]]`: answer `GET /query?text=chair`;
+//!   With `--ros2` a ROS 2 node answers prompts beside HTTP (`slag_edge::ros2`);
 //! - `slag-edge query --text chair`: the same answer on the command line, no server;
 //! - `slag-edge check`: config + ONNX Runtime + store, without serving;
 //! - `slag-edge bench`: scan kernels against the memory-bandwidth floor, and the HNSW backends at
@@ -167,6 +168,19 @@ struct ServeArgs {
     /// scripts/web-vendor.sh`). Default: the page and viewer compiled into this binary.
     #[arg(long)]
     web_dir: Option<PathBuf>,
+    /// Also run a ROS 2 node (DDS, domain $ROS_DOMAIN_ID) beside HTTP: prompts on ~/prompt,
+    /// answers on ~/objects, ~/matches and ~/markers, from the same store and admission gate.
+    #[arg(long)]
+    ros2: bool,
+    /// Name of the ROS 2 node (default slag).
+    #[arg(long)]
+    ros2_node: Option<String>,
+    /// Namespace of the ROS 2 node: / or /a/b (default /).
+    #[arg(long)]
+    ros2_namespace: Option<String>,
+    /// header.frame_id of the ROS 2 messages (default map).
+    #[arg(long)]
+    ros2_frame_id: Option<String>,
 }
 
 #[derive(Args)]
@@ -266,6 +280,8 @@ struct Resolved {
     ep: EpArg,
     opts: ServeOptions,
     web_dir: Option<PathBuf>,
+    /// The ROS 2 node's settings with `--ros2`.
+    ros2: Option<slag_edge::ros2::Ros2Options>,
 }
 
 fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
@@ -346,6 +362,19 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             .unwrap_or(slag_edge::serve::DEFAULT_SCAN_QUEUE),
     };
     anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
+    let ros2 = if a.ros2 || c.ros2.unwrap_or(false) {
+        let d = slag_edge::ros2::Ros2Options::default();
+        let o = slag_edge::ros2::Ros2Options {
+            node_name: a.ros2_node.or(c.ros2_node).unwrap_or(d.node_name),
+            namespace: a.ros2_namespace.or(c.ros2_namespace).unwrap_or(d.namespace),
+            frame_id: a.ros2_frame_id.or(c.ros2_frame_id).unwrap_or(d.frame_id),
+            domain_id: slag_edge::ros2::domain_id_from_env()?,
+        };
+        o.check()?;
+        Some(o)
+    } else {
+        None
+    };
     Ok(Resolved {
         store,
         addr,
@@ -354,6 +383,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         ep,
         opts,
         web_dir,
+        ros2,
     })
 }
 
@@ -362,7 +392,18 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     let edge = EdgeStore::open_existing(&r.store)?;
     let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
     let state = Arc::new(AppState::new(edge, text, r.opts)?.with_web_dir(r.web_dir));
-    runtime()?.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
+    let rt = runtime()?;
+    if let Some(o) = r.ros2 {
+        let _guard = rt.enter();
+        let node = slag_edge::ros2::start(state.clone(), o)?;
+        eprintln!(
+            "slag-edge: ROS 2 node {} in domain {}: prompts on {}",
+            node.options.node_fqn(),
+            node.options.domain_id,
+            node.options.topic("prompt")
+        );
+    }
+    rt.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
         tracing::info!("listening on http://{bound}");
         eprintln!("slag-edge: listening on http://{bound}");
     }))?;
@@ -499,6 +540,10 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
                                `cargo build --release -p slag-edge --features qdrant-edge`"
                 .into(),
             "jobs" => "pass --jobs N with N ≥ 1".into(),
+            "ros2_node" => "pass --ros2-node NAME ([A-Za-z_][A-Za-z0-9_]*)".into(),
+            "ros2_namespace" => "pass --ros2-namespace /NS (or /)".into(),
+            "ros2_frame_id" => "pass --ros2-frame-id map".into(),
+            "ROS_DOMAIN_ID" => "set ROS_DOMAIN_ID to 0..=232, or unset it for domain 0".into(),
             _ => return None,
         },
         Error::Query { field, message } => match *field {

@@ -405,6 +405,8 @@ pub struct QueryAnswer {
     pub matches: Vec<Match>,
     /// All matches above the threshold (or the returned ones without a threshold).
     pub summary: MatchSummary,
+    /// The matches grouped into objects.
+    pub objects: Vec<slag_common::objects::SceneObject>,
     /// Best score over the searched Gaussians when nothing reached the threshold (else `null`).
     pub best_score_below_threshold: Option<f32>,
     /// Gaussians searched.
@@ -640,6 +642,7 @@ pub fn run_query_framed(
         },
         matches,
         summary,
+        objects: Vec::new(),
         best_score_below_threshold,
         searched: store.len(),
         timings_ms: Timings {
