@@ -218,6 +218,18 @@ struct QueryArgs {
     /// Frame of the answer's coordinates and of --bbox.
     #[arg(long, value_enum, default_value_t = FrameArg::Auto)]
     frame: FrameArg,
+    /// Objects returned, 1..=1000 (default 20).
+    #[arg(long)]
+    max_objects: Option<String>,
+    /// x,y,z (answer's frame): sort objects by distance from this point.
+    #[arg(long, allow_hyphen_values = true)]
+    near: Option<String>,
+    /// Single-linkage gap between an object's matches, answer-frame units (default 0.1).
+    #[arg(long)]
+    object_gap: Option<String>,
+    /// Smallest object, in matching Gaussians (default 10).
+    #[arg(long)]
+    object_min_gaussians: Option<String>,
 }
 
 fn text_embedder(
@@ -466,6 +478,10 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
         bbox: a.bbox,
         index: None,
         frame: None,
+        max_objects: a.max_objects,
+        near: a.near,
+        object_gap: a.object_gap,
+        object_min_gaussians: a.object_min_gaussians,
     }
     .validate_for(PAPER_THRESHOLD, Interface::Cli)?;
     params.frame = a.frame.into();
@@ -481,6 +497,7 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
         text.as_ref(),
         &negatives,
         None,
+        Some(&engine.display),
         &params,
     )?;
     println!("{}", serde_json::to_string_pretty(&answer)?);
@@ -552,6 +569,10 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "threshold" => "pass --threshold T (or none)".into(),
             "mode" => "pass --mode cosine|relevancy".into(),
             "bbox" => "pass --bbox minx,miny,minz,maxx,maxy,maxz".into(),
+            "max_objects" => "pass --max-objects N".into(),
+            "near" => "pass --near X,Y,Z".into(),
+            "object_gap" => "pass --object-gap D".into(),
+            "object_min_gaussians" => "pass --object-min-gaussians N".into(),
             "frame" => {
                 "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
             }

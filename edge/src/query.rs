@@ -11,14 +11,16 @@
 //!   ([`scan::lerf_relevancy`]); 0.5 means "as close to the prompt as to the closest negative",
 //!   default threshold [`RELEVANCY_THRESHOLD`].
 //!
-//! The answer lists the best `top_k` matches (Gaussian id, world position, score) and a summary of
-//! all matches (count, AABB, centroid) a planner can navigate to, in the robot's map frame when
+//! The answer lists the best `top_k` matches (Gaussian id, world position, score), a summary of
+//! all matches (count, AABB, centroid) and the matches grouped into `objects` (centroid, AABB,
+//! oriented box, count, scores; [`slag_common::objects`]) a planner can navigate to, in the robot's map frame when
 //! the manifest has a scene-to-map transform (`frame=map`, the default then) or in the scene frame
 //! (`frame=scene`); the answer's `frame` field says which.
 
 use std::sync::Mutex;
 use std::time::Instant;
 
+use slag_common::objects::{self, ObjectParams, SceneObject};
 use slag_common::shards::{MAP_FRAME, SCENE_FRAME, SceneToMap};
 #[cfg(doc)]
 use slag_common::similarity::PAPER_THRESHOLD;
@@ -27,6 +29,7 @@ use slag_common::text::TextEncoder;
 use slag_common::{Error, Result};
 
 use crate::scan::{self, ScanRequest, VectorStore};
+use crate::view::DisplayAttrs;
 
 /// LERF's canonical negative phrases.
 pub const CANONICAL_NEGATIVES: [&str; 4] = ["object", "things", "stuff", "texture"];
@@ -191,6 +194,9 @@ pub struct QueryParams {
     pub index: IndexKind,
     /// Frame of the answer's coordinates and of `bbox`.
     pub frame: FrameChoice,
+    /// How the matches are grouped into the answer's `objects` (gap, minimum size, order,
+    /// number; [`slag_common::objects`]).
+    pub objects: ObjectParams,
 }
 
 /// Raw query fields as they arrive (`GET /query?text=…&top_k=…` or a `POST /query` JSON item).
@@ -211,6 +217,15 @@ pub struct RawQuery {
     pub index: Option<String>,
     /// `map` | `scene` (default: map when the scene has a map frame).
     pub frame: Option<String>,
+    /// Objects returned, integer 1..=1000 (default 20).
+    pub max_objects: Option<String>,
+    /// `x,y,z` in the answer's frame: objects sorted by distance of their centroid from it.
+    pub near: Option<String>,
+    /// Single-linkage gap of the objects, answer-frame units (metres in the map frame), > 0
+    /// (default 0.1).
+    pub object_gap: Option<String>,
+    /// Smallest object in matching Gaussians, integer ≥ 1 (default 10).
+    pub object_min_gaussians: Option<String>,
 }
 
 /// A JSON value that may be a number or a string (for `POST /query` bodies).
@@ -254,12 +269,27 @@ impl RawQuery {
                 }
                 "index" => q.index = val,
                 "frame" => q.frame = val,
+                "max_objects" => q.max_objects = val,
+                "near" => {
+                    q.near = match v {
+                        serde_json::Value::Array(a) => Some(
+                            a.iter()
+                                .map(|x| x.to_string())
+                                .collect::<Vec<_>>()
+                                .join(","),
+                        ),
+                        _ => val,
+                    }
+                }
+                "object_gap" => q.object_gap = val,
+                "object_min_gaussians" => q.object_min_gaussians = val,
                 other => {
                     return Err(Error::query(
                         "query",
                         format!(
                             "unknown query field {other:?}; use text, top_k, threshold, mode, \
-                             bbox, index, frame"
+                             bbox, index, frame, max_objects, near, object_gap, \
+                             object_min_gaussians"
                         ),
                     ));
                 }
@@ -368,6 +398,7 @@ impl RawQuery {
             Some("scene") => FrameChoice::Scene,
             Some(f) => return bad("frame", format!("frame {f:?}: use map or scene")),
         };
+        let objects = self.object_params()?;
         Ok(QueryParams {
             text,
             top_k,
@@ -376,7 +407,72 @@ impl RawQuery {
             bbox,
             index,
             frame,
+            objects,
         })
+    }
+}
+
+impl RawQuery {
+    /// The object fields (`max_objects`, `near`, `object_gap`, `object_min_gaussians`), defaults
+    /// [`slag_common::objects::ObjectParams::default`].
+    ///
+    /// Errors: [`Error::Query`] naming the field, the value and the allowed range.
+    fn object_params(&self) -> Result<ObjectParams> {
+        let mut p = ObjectParams::default();
+        if let Some(s) = self.max_objects.as_deref().map(str::trim) {
+            p.max_objects = s
+                .parse::<usize>()
+                .ok()
+                .filter(|k| (1..=objects::MAX_OBJECTS_LIMIT).contains(k))
+                .ok_or_else(|| {
+                    Error::query(
+                        "max_objects",
+                        format!(
+                            "max_objects {s:?}: use an integer in 1..={}",
+                            objects::MAX_OBJECTS_LIMIT
+                        ),
+                    )
+                })?;
+        }
+        if let Some(s) = self.near.as_deref() {
+            let v: Option<Vec<f32>> = s.split(',').map(|p| p.trim().parse::<f32>().ok()).collect();
+            p.near = match v.as_deref() {
+                Some(&[x, y, z]) if [x, y, z].iter().all(|c| c.is_finite()) => Some([x, y, z]),
+                _ => {
+                    return Err(Error::query(
+                        "near",
+                        format!(
+                            "near {s:?}: use x,y,z, three finite numbers in the answer's frame \
+                             (the robot's position)"
+                        ),
+                    ));
+                }
+            };
+        }
+        if let Some(s) = self.object_gap.as_deref().map(str::trim) {
+            p.gap = s
+                .parse::<f32>()
+                .ok()
+                .filter(|g| g.is_finite() && *g > 0.0)
+                .ok_or_else(|| {
+                    Error::query(
+                        "object_gap",
+                        format!(
+                            "object_gap {s:?}: use a distance > 0 in the answer's frame (metres \
+                             in the map frame)"
+                        ),
+                    )
+                })?;
+        }
+        if let Some(s) = self.object_min_gaussians.as_deref().map(str::trim) {
+            p.min_gaussians = s.parse::<usize>().ok().filter(|k| *k >= 1).ok_or_else(|| {
+                Error::query(
+                    "object_min_gaussians",
+                    format!("object_min_gaussians {s:?}: use an integer ≥ 1"),
+                )
+            })?;
+        }
+        Ok(p)
     }
 }
 
@@ -405,8 +501,16 @@ pub struct QueryAnswer {
     pub matches: Vec<Match>,
     /// All matches above the threshold (or the returned ones without a threshold).
     pub summary: MatchSummary,
-    /// The matches grouped into objects.
-    pub objects: Vec<slag_common::objects::SceneObject>,
+    /// The matches grouped into objects ([`slag_common::objects::group_objects`]), built over
+    /// the same matches as `summary`: every match above the threshold, not only the returned
+    /// `top_k`; without a threshold (`threshold=none`, where every Gaussian "matches") over the
+    /// returned `top_k` best. Sorted by mean score, or by distance from `near`; at most
+    /// `max_objects`.
+    pub objects: Vec<SceneObject>,
+    /// Per entry of `matches`: the index in `objects` of its object (`None`: in no returned
+    /// object). Not serialised; `GET /query.ply?color_by=object` paints with it.
+    #[serde(skip)]
+    pub match_objects: Vec<Option<u32>>,
     /// Best score over the searched Gaussians when nothing reached the threshold (else `null`).
     pub best_score_below_threshold: Option<f32>,
     /// Gaussians searched.
@@ -449,7 +553,7 @@ pub fn run_query(
     hnsw: Option<&scan::hnsw::ApproxIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
-    run_query_framed(store, embedding_model, None, text, negatives, hnsw, q)
+    run_query_framed(store, embedding_model, None, text, negatives, hnsw, None, q)
 }
 
 /// `lo ≤ p ≤ hi` on every axis.
@@ -470,6 +574,7 @@ fn in_box(p: [f32; 3], b: &[[f32; 3]; 2]) -> bool {
 /// ([`Error::Mismatch`]) or without a direction (zero / non-finite norm, [`unit_prompt_embedding`];
 /// [`Error::Query`]), `frame=map` without a transform ([`answer_frame`]), `index=hnsw` without an
 /// index or with a relevancy or too large top-k query ([`Error::Query`] `index`).
+#[allow(clippy::too_many_arguments)]
 pub fn run_query_framed(
     store: &VectorStore,
     embedding_model: &str,
@@ -477,6 +582,7 @@ pub fn run_query_framed(
     text: &dyn TextEmbedder,
     negatives: &[Vec<f32>],
     hnsw: Option<&scan::hnsw::ApproxIndex>,
+    display: Option<&DisplayAttrs>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
     let map = answer_frame(q.frame, to_map)?;
@@ -620,8 +726,12 @@ pub fn run_query_framed(
         })
         .collect();
     let summary = summarise(&all);
+    // Geometric segments are not in the store yet: spatial grouping.
+    let grouped = answer_objects(&hits, &all, display, None, &q.objects)?;
     let mut matches = all;
     matches.truncate(q.top_k);
+    let mut match_objects = grouped.member_of;
+    match_objects.truncate(matches.len());
     let best_score_below_threshold = if matches.is_empty() && q.index == IndexKind::Exact {
         exact(Some(1), None)?.first().map(|h| h.score)
     } else {
@@ -642,7 +752,8 @@ pub fn run_query_framed(
         },
         matches,
         summary,
-        objects: Vec::new(),
+        objects: grouped.objects,
+        match_objects,
         best_score_below_threshold,
         searched: store.len(),
         timings_ms: Timings {
@@ -650,6 +761,53 @@ pub fn run_query_framed(
             scan: t1.elapsed().as_secs_f64() * 1e3,
         },
     })
+}
+
+/// The objects of a query's matches: `hits` (store rows) and `all` (the same matches, answer
+/// frame) grouped by [`objects::group_objects`] with the opacity of each row from `display`
+/// (the sigmoid of the stored pre-sigmoid opacity; 1 for rows whose shard has none, or all rows
+/// without `display`: the centroid is then weighted by score) and, when the scene has geometric
+/// segments, `row_segments[row]` the segment id of each store row (`None`: spatial grouping
+/// only).
+///
+/// Errors: as [`objects::group_objects`].
+pub fn answer_objects(
+    hits: &[scan::Hit],
+    all: &[Match],
+    display: Option<&DisplayAttrs>,
+    row_segments: Option<&[u32]>,
+    p: &ObjectParams,
+) -> Result<objects::Objects> {
+    let positions: Vec<[f32; 3]> = all.iter().map(|m| m.position).collect();
+    let ids: Vec<u32> = all.iter().map(|m| m.id).collect();
+    let scores: Vec<f32> = all.iter().map(|m| m.score).collect();
+    let opacities: Option<Vec<f32>> = display.map(|d| {
+        hits.iter()
+            .map(|h| d.opacity(h.row).unwrap_or(1.0))
+            .collect()
+    });
+    let segments: Option<Vec<u32>> = match row_segments {
+        Some(s) => Some(
+            hits.iter()
+                .map(|h| {
+                    s.get(h.row).copied().ok_or_else(|| {
+                        Error::internal("answer_objects: fewer segment ids than store rows")
+                    })
+                })
+                .collect::<Result<_>>()?,
+        ),
+        None => None,
+    };
+    objects::group_objects(
+        &objects::Matches {
+            ids: &ids,
+            positions: &positions,
+            scores: &scores,
+            opacities: opacities.as_deref(),
+            segments: segments.as_deref(),
+        },
+        p,
+    )
 }
 
 #[cfg(test)]

@@ -135,6 +135,13 @@ impl DisplayAttrs {
         &self.ids
     }
 
+    /// Opacity of row `row` in 0..1, the sigmoid of its stored pre-sigmoid opacity; `None` when
+    /// its shard carried no opacities (or `row` is out of range).
+    pub fn opacity(&self, row: usize) -> Option<f32> {
+        let f = *self.present.get(row)?;
+        (f & HAS_OPACITY != 0).then(|| 1.0 / (1.0 + (-self.logit_opacities[row]).exp()))
+    }
+
     /// Rows whose shard carried all four display columns (scales, opacities, rotations, SH DC).
     pub fn complete(&self) -> usize {
         self.present.iter().filter(|&&f| f == 0b1111).count()
@@ -233,6 +240,46 @@ pub fn highlighted_ply_framed(
     style: &HighlightStyle,
     to_map: Option<&slag_common::shards::SceneToMap>,
 ) -> Result<Vec<u8>> {
+    painted_ply_framed(
+        attrs,
+        &|id| highlighted.contains(&id).then_some(style.colour),
+        style,
+        to_map,
+    )
+}
+
+/// Distinct colours of objects in [`object_colour`] (linear display RGB in 0..1; no magenta,
+/// the colour of matches outside any object).
+pub const OBJECT_PALETTE: [[f32; 3]; 10] = [
+    [0.12, 0.47, 0.71],
+    [1.0, 0.5, 0.05],
+    [0.17, 0.63, 0.17],
+    [0.84, 0.15, 0.16],
+    [0.58, 0.4, 0.74],
+    [0.55, 0.34, 0.29],
+    [0.09, 0.75, 0.81],
+    [0.74, 0.74, 0.13],
+    [1.0, 1.0, 1.0],
+    [0.0, 0.3, 1.0],
+];
+
+/// The colour of the `k`-th object of an answer: [`OBJECT_PALETTE`] in order, repeating after
+/// ten objects (the web page labels its boxes with the same colours).
+pub fn object_colour(k: usize) -> [f32; 3] {
+    OBJECT_PALETTE[k % OBJECT_PALETTE.len()]
+}
+
+/// [`highlighted_ply_framed`] with a colour per Gaussian id: `paint(id)` = `Some(rgb)` paints
+/// that Gaussian flat `rgb` (linear display RGB in 0..1), `None` keeps its colour, dimmed by
+/// `style.dim` (`style.colour` is only validated here).
+///
+/// Errors: as [`highlighted_ply`]; [`Error::Query`] `color` for a painted colour outside 0..=1.
+pub fn painted_ply_framed(
+    attrs: &DisplayAttrs,
+    paint: &dyn Fn(u32) -> Option<[f32; 3]>,
+    style: &HighlightStyle,
+    to_map: Option<&slag_common::shards::SceneToMap>,
+) -> Result<Vec<u8>> {
     let frame = to_map.map(|t| (t, t.scale.ln() as f32, t.quaternion_wxyz()));
     if style
         .colour
@@ -262,7 +309,6 @@ pub fn highlighted_ply_framed(
         Some("slag-edge /query.ply: matches painted in a flat colour"),
     );
     bytes.reserve(n * PLY_PROPERTIES.len() * 4);
-    let hl = dc_of_rgb(style.colour);
     let fallback_scale = attrs.fallback_log_scale();
     let mut put = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
     for i in 0..n {
@@ -272,8 +318,17 @@ pub fn highlighted_ply_framed(
             None => attrs.means[i],
         };
         mean.iter().for_each(|&v| put(v));
-        let dc = if highlighted.contains(&attrs.ids[i]) {
-            hl
+        let dc = if let Some(rgb) = paint(attrs.ids[i]) {
+            if rgb
+                .iter()
+                .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
+            {
+                return Err(Error::query(
+                    "color",
+                    format!("paint colour {rgb:?}: use RGB components in 0..=1"),
+                ));
+            }
+            dc_of_rgb(rgb)
         } else {
             let dc = attrs.sh_dc[i];
             match style.dim {

@@ -71,6 +71,7 @@ fn params(mode: ScoreMode, threshold: Option<f32>) -> QueryParams {
         bbox: None,
         index: IndexKind::Exact,
         frame: Default::default(),
+        objects: Default::default(),
     }
 }
 

@@ -1,6 +1,8 @@
 // slag-edge web page: prompt -> GET /query.ply -> Gaussian-splat render (@mkkellogg/gaussian-splats-3d).
 // State for tests and people: document.body.dataset.state = idle | loading | rendered | error |
-// no-viewer, document.body.dataset.matches = painted Gaussians of the last answer, and
+// no-viewer, document.body.dataset.matches = painted Gaussians of the last answer,
+// document.body.dataset.objects = objects drawn (a box and a label each, in the colour their
+// Gaussians are painted: /query.ply?color_by=object), and
 // document.body.dataset.ready = "1" once the submit handler is attached and the viewer module has
 // settled (loaded or failed): a click before that would be lost, so tests wait for it.
 
@@ -11,8 +13,9 @@ const setState = (s) => { document.body.dataset.state = s; };
 // The viewer module loads in the background; the submit handler (at the end) is attached at once
 // and awaits it, so a prompt typed while the module is still loading is answered, not dropped.
 let GS = null;
-const viewerLoaded = import('@mkkellogg/gaussian-splats-3d').then(
-  (m) => { GS = m; return m; },
+let THREE = null;
+const viewerLoaded = Promise.all([import('@mkkellogg/gaussian-splats-3d'), import('three')]).then(
+  ([m, t]) => { GS = m; THREE = t; return m; },
   (e) => {
     $('help').hidden = false;
     status('viewer not vendored: run bash scripts/web-vendor.sh');
@@ -47,11 +50,53 @@ function plyBounds(buf) {
 
 let viewer = null;
 
+// The colours of an answer's objects: slag-edge's OBJECT_PALETTE (view.rs), in answer order.
+const PALETTE = [
+  [0.12, 0.47, 0.71], [1.0, 0.5, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16], [0.58, 0.4, 0.74],
+  [0.55, 0.34, 0.29], [0.09, 0.75, 0.81], [0.74, 0.74, 0.13], [1.0, 1.0, 1.0], [0.0, 0.3, 1.0],
+];
+
+// An object's oriented box (12 edges) and a label above it, in the object's colour.
+function objectMarks(o, k, up, labelSize) {
+  const rgb = PALETTE[k % PALETTE.length];
+  const colour = new THREE.Color(rgb[0], rgb[1], rgb[2]);
+  const { center, axes, extents } = o.obb;
+  const corner = (sx, sy, sz) => [0, 1, 2].map((a) => center[a]
+    + (sx * extents[0] * axes[0][a] + sy * extents[1] * axes[1][a] + sz * extents[2] * axes[2][a]) / 2);
+  const signs = [-1, 1];
+  const pts = [];
+  for (const a of signs) for (const b of signs) {
+    pts.push(corner(-1, a, b), corner(1, a, b));
+    pts.push(corner(a, -1, b), corner(a, 1, b));
+    pts.push(corner(a, b, -1), corner(a, b, 1));
+  }
+  const geom = new THREE.BufferGeometry();
+  geom.setAttribute('position', new THREE.Float32BufferAttribute(pts.flat(), 3));
+  const lines = new THREE.LineSegments(geom, new THREE.LineBasicMaterial({ color: colour, depthTest: false }));
+  lines.renderOrder = 10;
+  const canvas = document.createElement('canvas');
+  canvas.width = 512; canvas.height = 96;
+  const g = canvas.getContext('2d');
+  g.fillStyle = 'rgba(0,0,0,0.6)'; g.fillRect(0, 0, 512, 96);
+  g.fillStyle = `#${colour.getHexString()}`; g.font = 'bold 44px system-ui, sans-serif';
+  g.fillText(`#${k + 1}  ${o.gaussians} · ${o.mean_score.toFixed(2)}`, 14, 64);
+  const label = new THREE.Sprite(new THREE.SpriteMaterial({ map: new THREE.CanvasTexture(canvas), depthTest: false }));
+  label.renderOrder = 11;
+  label.scale.set(labelSize, labelSize * 96 / 512, 1);
+  const lift = 0.5 * Math.max(...extents) + 0.1 * labelSize;
+  label.position.set(...center.map((c, a) => c + up[a] * lift));
+  return [lines, label];
+}
+
 async function show(text, token) {
   setState('loading');
   status(`asking for “${text}”…`);
   const headers = token ? { Authorization: `Bearer ${token}` } : {};
-  const r = await fetch(`/query.ply?dim=0.35&text=${encodeURIComponent(text)}`, { headers });
+  const q = encodeURIComponent(text);
+  const [r, j] = await Promise.all([
+    fetch(`/query.ply?dim=0.35&color_by=object&text=${q}`, { headers }),
+    fetch(`/query?top_k=1&text=${q}`, { headers }),
+  ]);
   if (!r.ok) {
     let msg = `${r.status}`;
     try { msg = (await r.json()).error; } catch (_) { /* not JSON */ }
@@ -63,6 +108,9 @@ async function show(text, token) {
   const up = (r.headers.get('x-slag-up') || '0,0,1').split(',').map(Number);
   const b = plyBounds(buf);
   if (b.n === 0) throw new Error('the store holds no Gaussians: fetch a radius first');
+  const objects = j.ok ? (await j.json()).objects || [] : [];
+  const marks = new THREE.Scene();
+  objects.forEach((o, k) => objectMarks(o, k, up, 0.25 * b.radius).forEach((m) => marks.add(m)));
   // Camera: 1.4 radii (90th percentile distance of the means) from the centre, horizontal
   // offset perpendicular to up, slightly above.
   const side = Math.abs(up[0]) < 0.9 ? [1, 0, 0] : [0, 1, 0];
@@ -86,6 +134,7 @@ async function show(text, token) {
     gpuAcceleratedSort: false,
     sphericalHarmonicsDegree: 0,
     antialiased: false,
+    threeScene: marks,
   });
   const url = URL.createObjectURL(new Blob([buf]));
   await viewer.addSplatScene(url, {
@@ -100,7 +149,9 @@ async function show(text, token) {
   // Let the sort worker and a few frames finish before calling it rendered.
   for (let i = 0; i < 6; i++) await new Promise((res) => requestAnimationFrame(res));
   document.body.dataset.matches = matches;
-  status(`“${text}”: ${matches} of ${b.n} Gaussians match (magenta). Drag to orbit, scroll to zoom.`);
+  document.body.dataset.objects = String(objects.length);
+  status(`“${text}”: ${matches} of ${b.n} Gaussians match, ${objects.length} objects (boxes, `
+    + `labelled #rank count · mean score; other matches magenta). Drag to orbit, scroll to zoom.`);
   setState('rendered');
 }
 

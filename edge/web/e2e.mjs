@@ -3,7 +3,7 @@
 // Starts headless Chromium (software WebGL through SwiftShader), opens the page, waits until it
 // says its handlers are attached (data-ready), types each prompt, waits until the page says the
 // splat is rendered (every wait bounded: 30 s to ready, 45 s per render), and saves OUT_DIR/<n>-<prompt>.png
-// plus OUT_DIR/result.json ({prompt, matches, state, status, png}). Exit 1 on a page error.
+// plus OUT_DIR/result.json ({prompt, matches, objects, state, status, png}). Exit 1 on a page error.
 import { chromium } from 'playwright-core';
 import { mkdirSync, writeFileSync, mkdtempSync, rmSync } from 'node:fs';
 import { tmpdir } from 'node:os';
@@ -57,10 +57,11 @@ try {
     await page.waitForTimeout(1500);
     const state = await page.evaluate(() => document.body.dataset.state);
     const matches = Number(await page.evaluate(() => document.body.dataset.matches || '0'));
+    const objects = Number(await page.evaluate(() => document.body.dataset.objects || '0'));
     const status = await page.textContent('#status');
     const png = join(out, `${i}-${prompt.replace(/[^A-Za-z0-9_-]/g, '_')}.png`);
     await page.screenshot({ path: png, timeout: READY_MS });
-    results.push({ prompt, matches, state, status, png });
+    results.push({ prompt, matches, objects, state, status, png });
     if (state !== 'rendered') failed = true;
     // Reset the state so the next prompt waits for its own render.
     await page.evaluate(() => { document.body.dataset.state = 'idle'; });

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use slag_common::Result;
 use slag_common::embeddings::Embeddings;
+use slag_common::objects::{self, ObjectParams, SceneObject};
 use slag_common::onnx::ExecutionProvider;
 use slag_common::similarity::{self, Match, MatchSummary};
 use slag_common::text::TextEncoder;
@@ -35,6 +36,9 @@ pub struct QueryParams {
     pub highlight_rgb: [f32; 3],
     /// ONNX Runtime execution provider of the text tower.
     pub ep: ExecutionProvider,
+    /// How the matches are grouped into objects (gap in scene units here: the embeddings file
+    /// is in the scene frame; [`slag_common::objects`]).
+    pub objects: ObjectParams,
 }
 
 impl QueryParams {
@@ -57,6 +61,7 @@ impl QueryParams {
             highlight_out: None,
             highlight_rgb: [1.0, 0.0, 1.0],
             ep: ExecutionProvider::Cpu,
+            objects: ObjectParams::default(),
         }
     }
 }
@@ -72,6 +77,10 @@ pub struct QueryOutput {
     pub threshold: f32,
     /// Gaussians above the threshold (all of them, for the summary).
     pub summary: MatchSummary,
+    /// Every match above the threshold grouped into objects, scene frame
+    /// ([`slag_common::objects::group_objects`], opacity-weighted centroids when the embeddings'
+    /// scene `.ply` is given as `ply`, else score-weighted).
+    pub objects: Vec<SceneObject>,
     /// The best `top_k` matches above the threshold, best first.
     pub matches: Vec<Match>,
     /// When nothing reaches the threshold: the `top_k` best-scoring Gaussians anyway, so the user
@@ -88,6 +97,7 @@ pub struct QueryOutput {
 /// embeddings or models, a text tower of another CLIP model than the embeddings'.
 pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, "")?;
+    a.objects.validate()?;
     let emb = Embeddings::read(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
@@ -114,6 +124,36 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
             hit.get(i).copied().unwrap_or(false).then_some(rgb)
         })?;
     }
+    let opacities = match &a.ply {
+        Some(src) => {
+            let g = slag_common::scene::load_ply(
+                src,
+                slag_common::scene::PlyLoadOptions { colours: false },
+            )?;
+            Some(
+                all.iter()
+                    .map(|m| {
+                        // Already the sigmoid of the stored opacity.
+                        g.opacities.get(m.id as usize).copied().unwrap_or(1.0)
+                    })
+                    .collect::<Vec<f32>>(),
+            )
+        }
+        None => None,
+    };
+    let ids: Vec<u32> = all.iter().map(|m| m.id).collect();
+    let positions: Vec<[f32; 3]> = all.iter().map(|m| m.position).collect();
+    let scores: Vec<f32> = all.iter().map(|m| m.score).collect();
+    let grouped = objects::group_objects(
+        &objects::Matches {
+            ids: &ids,
+            positions: &positions,
+            scores: &scores,
+            opacities: opacities.as_deref(),
+            segments: None,
+        },
+        &a.objects,
+    )?;
     let nearest_below_threshold = if all.is_empty() {
         similarity::rank(
             &emb.ids,
@@ -133,6 +173,7 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         model: emb.model.clone(),
         threshold: a.threshold,
         summary,
+        objects: grouped.objects,
         matches: all.into_iter().take(a.top_k).collect(),
         nearest_below_threshold,
         highlighted_ply: a.highlight_out.clone(),

@@ -9,6 +9,13 @@
 //! points on the ground, COLMAP/OpenCV camera axes (x right, y down, z forward), PINHOLE.
 //! Each image is the terrain colour at the ray's ground hit (ray-cast against the plane z = 0, with
 //! a little texture), so masks follow the colour patches the Gaussians carry.
+//!
+//! With objects ([`write_synthetic_scene_with_objects`], `synth-scene --objects K`): K boxes of
+//! known colour, size and position stand on the terrain (the ground truth of the answer's
+//! objects, [`object_layout`], written to `objects.json`). The terrain is then one gray patch
+//! (gray is no object's colour), the boxes are hollow shells of Gaussians on their top and four
+//! sides (the terrain's spacing, discs lying in each face), and the images ray-cast the boxes
+//! before the ground.
 
 use std::io::Write;
 use std::path::Path;
@@ -66,6 +73,84 @@ impl Default for SyntheticSceneParams {
     }
 }
 
+/// Palette index of the terrain when the scene has objects: gray.
+pub const GROUND_WITH_OBJECTS: usize = 10;
+
+/// A box standing on the terrain, axis-aligned, its base at the terrain height of its centre.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PlacedObject {
+    /// Colour: index into [`PALETTE`] (color-clip's class order), never gray.
+    pub colour: usize,
+    /// Colour name (color-clip's class name).
+    pub name: &'static str,
+    /// Centre of the base, ground coordinates (x, y), scene units.
+    pub center: [f64; 2],
+    /// Full size along x, y and z (height), scene units.
+    pub size: [f64; 3],
+}
+
+/// color-clip's class names, in [`PALETTE`] order.
+pub const COLOUR_NAMES: [&str; 12] = [
+    "red", "orange", "yellow", "green", "teal", "blue", "purple", "pink", "brown", "white", "gray",
+    "black",
+];
+
+impl PlacedObject {
+    /// The box `[min xyz, max xyz]`, scene frame, on a terrain of side `extent`.
+    pub fn aabb(&self, extent: f64) -> [[f64; 3]; 2] {
+        let z0 = height(self.center[0], self.center[1], extent);
+        [
+            [
+                self.center[0] - self.size[0] / 2.0,
+                self.center[1] - self.size[1] / 2.0,
+                z0,
+            ],
+            [
+                self.center[0] + self.size[0] / 2.0,
+                self.center[1] + self.size[1] / 2.0,
+                z0 + self.size[2],
+            ],
+        ]
+    }
+}
+
+/// Largest `k` of [`object_layout`].
+pub const MAX_OBJECTS: usize = 6;
+
+/// The first `k` (1..=[`MAX_OBJECTS`]) objects of a fixed layout on a terrain of side `extent`:
+/// boxes of 6–12 % of the extent, in red (twice: opposite corners, 0.57·extent apart), blue,
+/// yellow, green and purple, at least 0.2·extent apart (edge to edge ≥ 0.1·extent), all within
+/// 0.3·extent of the centre so every view of the ring sees them.
+///
+/// Errors: [`Error::Param`] `objects` for `k` outside 1..=[`MAX_OBJECTS`].
+pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
+    if !(1..=MAX_OBJECTS).contains(&k) {
+        return Err(Error::param(
+            "objects",
+            k,
+            format!("a number of objects in 1..={MAX_OBJECTS}"),
+        ));
+    }
+    // (colour, centre / extent, size / extent)
+    let table: [(usize, [f64; 2], [f64; 3]); MAX_OBJECTS] = [
+        (0, [-0.2, -0.2], [0.10, 0.07, 0.05]),
+        (0, [0.2, 0.2], [0.08, 0.08, 0.04]),
+        (5, [0.2, -0.2], [0.07, 0.12, 0.05]),
+        (2, [-0.2, 0.2], [0.10, 0.10, 0.03]),
+        (3, [0.0, 0.0], [0.08, 0.06, 0.07]),
+        (6, [0.0, 0.25], [0.06, 0.06, 0.04]),
+    ];
+    Ok(table[..k]
+        .iter()
+        .map(|&(colour, c, sz)| PlacedObject {
+            colour,
+            name: COLOUR_NAMES[colour],
+            center: c.map(|v| v * extent),
+            size: sz.map(|v| v * extent),
+        })
+        .collect())
+}
+
 /// Terrain height at (x, y): amplitude 2 % of the extent, wavelength 1/6 of it.
 fn height(x: f64, y: f64, extent: f64) -> f64 {
     let l = extent / (6.0 * std::f64::consts::TAU);
@@ -81,6 +166,22 @@ fn patch(x: f64, y: f64, extent: f64) -> usize {
 
 /// The Gaussians of the terrain (with SH DC colours), deterministic in `p.seed`.
 pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
+    terrain_gaussians_with_objects(p, &[])
+}
+
+/// [`terrain_gaussians`] with `objects` standing on it: the terrain is gray, terrain Gaussians
+/// under a box are left out, and each box is a shell of discs on its top and four sides at the
+/// terrain's spacing `extent / √N` (appended after the terrain, deterministic in `p.seed`).
+pub fn terrain_gaussians_with_objects(
+    p: &SyntheticSceneParams,
+    objects: &[PlacedObject],
+) -> Gaussians {
+    let boxes: Vec<[[f64; 3]; 2]> = objects.iter().map(|o| o.aabb(p.extent)).collect();
+    let under_a_box = |x: f64, y: f64| {
+        boxes
+            .iter()
+            .any(|b| x >= b[0][0] && x <= b[1][0] && y >= b[0][1] && y <= b[1][1])
+    };
     const SH_C0: f64 = 0.282_094_791_773_878_14;
     let n = p.gaussians;
     let spacing = p.extent / (n.max(1) as f64).sqrt();
@@ -100,10 +201,17 @@ pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
                 // A disc lying on the ground: thin along z, random spin about z.
                 let a = rng.next_f64() * std::f64::consts::PI;
                 let rot = [(a * 0.5).cos() as f32, 0.0, 0.0, (a * 0.5).sin() as f32];
-                let col = PALETTE[patch(x, y, p.extent)];
+                let col = if objects.is_empty() {
+                    PALETTE[patch(x, y, p.extent)]
+                } else {
+                    PALETTE[GROUND_WITH_OBJECTS]
+                };
                 let jitter = 0.9 + 0.2 * rng.next_f64();
                 let dc = col.map(|c| (((c as f64 * jitter).min(1.0) - 0.5) / SH_C0) as f32);
                 let opacity = (0.6 + 0.35 * rng.next_f64()) as f32;
+                if under_a_box(x, y) {
+                    continue;
+                }
                 out.push((
                     [x as f32, y as f32, z as f32],
                     [s as f32, s as f32, (s * 0.1) as f32],
@@ -123,7 +231,11 @@ pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
         sh: None,
     };
     let mut dc = Vec::with_capacity(n * 3);
-    for (m, s, r, o, d) in parts.into_iter().flatten() {
+    let shells = objects
+        .iter()
+        .enumerate()
+        .flat_map(|(k, o)| box_shell(o, p, spacing, k as u64));
+    for (m, s, r, o, d) in parts.into_iter().flatten().chain(shells) {
         g.means.push(m);
         g.scales.push(s);
         g.rotations.push(r);
@@ -135,6 +247,74 @@ pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
         coeffs: dc,
     });
     g
+}
+
+/// One Gaussian of a synthetic scene: mean, scales, rotation (w, x, y, z), opacity, SH DC.
+type Disc = ([f32; 3], [f32; 3], [f32; 4], f32, [f32; 3]);
+
+/// The discs of one box's top and four sides, on a jittered grid of step `spacing`, each lying
+/// in its face (thin along the face normal), coloured like the box.
+fn box_shell(o: &PlacedObject, p: &SyntheticSceneParams, spacing: f64, k: u64) -> Vec<Disc> {
+    const SH_C0: f64 = 0.282_094_791_773_878_14;
+    let h = std::f64::consts::FRAC_1_SQRT_2 as f32;
+    let b = o.aabb(p.extent);
+    let mut rng = SplitMix64::new(p.seed ^ 0x0B1E_C7 ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut out = Vec::new();
+    // (fixed axis, fixed value, the two spanned axes, rotation taking local z to the normal)
+    let faces: [(usize, f64, [usize; 2], [f32; 4]); 5] = [
+        (2, b[1][2], [0, 1], [1.0, 0.0, 0.0, 0.0]),
+        (0, b[0][0], [1, 2], [h, 0.0, h, 0.0]),
+        (0, b[1][0], [1, 2], [h, 0.0, h, 0.0]),
+        (1, b[0][1], [0, 2], [h, -h, 0.0, 0.0]),
+        (1, b[1][1], [0, 2], [h, -h, 0.0, 0.0]),
+    ];
+    for (fixed, value, [u, v], rot) in faces {
+        let (lu, lv) = (b[1][u] - b[0][u], b[1][v] - b[0][v]);
+        let (nu, nv) = (
+            (lu / spacing).ceil().max(1.0) as usize,
+            (lv / spacing).ceil().max(1.0) as usize,
+        );
+        for i in 0..nu {
+            for j in 0..nv {
+                let mut m = [0f64; 3];
+                m[fixed] = value;
+                m[u] = b[0][u] + lu * (i as f64 + rng.next_f64()) / nu as f64;
+                m[v] = b[0][v] + lv * (j as f64 + rng.next_f64()) / nv as f64;
+                let s = spacing * (0.6 + 0.8 * rng.next_f64());
+                let jitter = 0.9 + 0.2 * rng.next_f64();
+                let dc = PALETTE[o.colour]
+                    .map(|c| (((c as f64 * jitter).min(1.0) - 0.5) / SH_C0) as f32);
+                let opacity = (0.6 + 0.35 * rng.next_f64()) as f32;
+                out.push((
+                    m.map(|x| x as f32),
+                    [s as f32, s as f32, (s * 0.1) as f32],
+                    rot,
+                    opacity,
+                    dc,
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// Distance along the ray `c + t·d` to the first face of box `b` it enters (slab method), `None`
+/// when it misses or the box is behind.
+fn ray_box(c: DVec3, d: DVec3, b: &[[f64; 3]; 2]) -> Option<f64> {
+    let (mut t0, mut t1) = (0f64, f64::INFINITY);
+    for a in 0..3 {
+        let (o, di) = (c[a], d[a]);
+        if di.abs() < 1e-12 {
+            if o < b[0][a] || o > b[1][a] {
+                return None;
+            }
+            continue;
+        }
+        let (ta, tb) = ((b[0][a] - o) / di, (b[1][a] - o) / di);
+        t0 = t0.max(ta.min(tb));
+        t1 = t1.min(ta.max(tb));
+    }
+    (t0 <= t1).then_some(t0)
 }
 
 /// One view: world-to-camera rotation (rows = camera x right, y down, z forward in world
@@ -158,7 +338,11 @@ fn focal(p: &SyntheticSceneParams) -> f64 {
 
 /// The image of view `i`: per pixel, the colour of the ground patch its ray meets (plane z = 0),
 /// with a faint per-Gaussian-spacing texture; pixels above the horizon are sky white.
-fn render_image(i: usize, p: &SyntheticSceneParams) -> image::RgbImage {
+fn render_image(i: usize, p: &SyntheticSceneParams, objects: &[PlacedObject]) -> image::RgbImage {
+    let boxes: Vec<([[f64; 3]; 2], usize)> = objects
+        .iter()
+        .map(|o| (o.aabb(p.extent), o.colour))
+        .collect();
     let (r, c) = camera(i, p);
     let rt = r.transpose();
     let f = focal(p);
@@ -169,12 +353,25 @@ fn render_image(i: usize, p: &SyntheticSceneParams) -> image::RgbImage {
     buf.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
         for x in 0..w {
             let d = rt * DVec3::new((x as f64 + 0.5 - cx) / f, (y as f64 + 0.5 - cy) / f, 1.0);
-            let rgb = if d.z < -1e-9 {
+            let hit = boxes
+                .iter()
+                .filter_map(|(b, col)| ray_box(c, d, b).map(|t| (t, *col)))
+                .min_by(|a, b| a.0.total_cmp(&b.0));
+            let rgb = if let Some((t, col)) = hit {
+                let g = c + d * t;
+                let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
+                PALETTE[col].map(|v| (v as f64 * k).min(1.0))
+            } else if d.z < -1e-9 {
                 let t = -c.z / d.z;
                 let g = c + d * t;
                 if g.x.abs() <= p.extent / 2.0 && g.y.abs() <= p.extent / 2.0 {
                     let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
-                    PALETTE[patch(g.x, g.y, p.extent)].map(|v| (v as f64 * k).min(1.0))
+                    let ground = if boxes.is_empty() {
+                        patch(g.x, g.y, p.extent)
+                    } else {
+                        GROUND_WITH_OBJECTS
+                    };
+                    PALETTE[ground].map(|v| (v as f64 * k).min(1.0))
                 } else {
                     [0.35, 0.35, 0.35]
                 }
@@ -208,6 +405,34 @@ pub struct SyntheticSummary {
 /// Errors: [`Error::Param`] (the field) for zero Gaussians/views, an empty image size or a
 /// non-positive extent; I/O errors naming the path.
 pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<SyntheticSummary> {
+    write_synthetic_scene_with_objects(dir, p, &[])
+}
+
+/// [`write_synthetic_scene`] with `objects` standing on the terrain (module doc); with objects,
+/// `objects.json` (their list, [`PlacedObject`] fields plus `aabb`, the true box in the scene
+/// frame) is written too. `point_cloud.ply` then holds the terrain's Gaussians outside the boxes'
+/// footprints and the boxes' shells.
+///
+/// Errors: as [`write_synthetic_scene`]; [`Error::Param`] `objects` for an object of gray (the
+/// terrain's colour), an unknown colour or a non-positive size.
+pub fn write_synthetic_scene_with_objects(
+    dir: &Path,
+    p: &SyntheticSceneParams,
+    objects: &[PlacedObject],
+) -> Result<SyntheticSummary> {
+    for o in objects {
+        if o.colour >= PALETTE.len()
+            || o.colour == GROUND_WITH_OBJECTS
+            || !o.size.iter().all(|v| v.is_finite() && *v > 0.0)
+            || !o.center.iter().all(|v| v.is_finite())
+        {
+            return Err(Error::param(
+                "objects",
+                format!("{o:?}"),
+                "objects of a palette colour other than gray, with finite positive sizes",
+            ));
+        }
+    }
     for (name, v) in [
         ("gaussians", p.gaussians),
         ("views", p.views),
@@ -239,13 +464,28 @@ pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<Syn
     if images_txt.exists() {
         std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
     }
-    let g = terrain_gaussians(p);
+    let g = terrain_gaussians_with_objects(p, objects);
+    let gaussians = g.len();
     let ply = dir.join("point_cloud.ply");
     write_ply(&ply, &g)?;
     drop(g);
+    if !objects.is_empty() {
+        let truth: Vec<serde_json::Value> = objects
+            .iter()
+            .map(|o| {
+                serde_json::json!({
+                    "colour": o.colour, "name": o.name, "center": o.center, "size": o.size,
+                    "aabb": o.aabb(p.extent),
+                })
+            })
+            .collect();
+        let bytes = serde_json::to_vec_pretty(&truth)
+            .map_err(|e| Error::internal(format!("objects.json: {e}")))?;
+        write_file(&dir.join("objects.json"), &bytes)?;
+    }
     for i in 0..p.views {
         let path = images.join(format!("view_{i:04}.png"));
-        render_image(i, p)
+        render_image(i, p, objects)
             .save(&path)
             .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
     }
@@ -281,7 +521,7 @@ pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<Syn
         .map_err(|e| Error::io(&ply, e))?
         .len();
     Ok(SyntheticSummary {
-        gaussians: p.gaussians,
+        gaussians,
         views: p.views,
         ply_bytes,
     })

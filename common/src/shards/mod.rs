@@ -11,7 +11,7 @@
 //! - [`GaussianSource`]: what partitioning reads (implemented by
 //!   [`Embeddings`](crate::embeddings::Embeddings) and [`synthetic::SyntheticScene`]).
 
-mod eigen;
+pub(crate) mod eigen;
 pub mod format;
 pub mod frame;
 pub mod mixture;

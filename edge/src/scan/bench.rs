@@ -14,6 +14,7 @@ use super::store::{normal, random_centres};
 use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan};
 
 mod hnsw_table;
+mod objects_table;
 
 /// Clusters of the synthetic store (directions; each query targets one of them).
 const CLUSTERS: usize = 64;
@@ -97,6 +98,10 @@ pub struct BenchArgs {
     /// Slots per Gaussian S of the mixture table.
     #[arg(long, default_value_t = 8)]
     pub mixture_slots: usize,
+    /// Matching Gaussians of the objects table (grouping a query's matches into objects);
+    /// 0 = no objects table.
+    #[arg(long, default_value = "100K", value_parser = parse_size)]
+    pub objects_matches: usize,
 }
 
 impl Default for BenchArgs {
@@ -123,6 +128,7 @@ impl Default for BenchArgs {
             qdrant_oversampling: 1.0,
             mixture_atoms: 4000,
             mixture_slots: 8,
+            objects_matches: 100_000,
         }
     }
 }
@@ -577,6 +583,10 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
         out.push('\n');
         out.push_str(&hnsw_table::table(args, limit)?);
     }
+    if args.objects_matches > 0 {
+        out.push('\n');
+        out.push_str(&objects_table::table(args)?);
+    }
     Ok(out)
 }
 
@@ -923,10 +933,13 @@ mod tests {
             hnsw_ef_construction: 20,
             hnsw_ef: vec![20, 10],
             hnsw_queries: 4,
+            objects_matches: 40_000,
             ..BenchArgs::default()
         };
         let md = run_bench(&args).expect("bench");
         assert!(md.contains("| 3K | f32 |"), "{md}");
+        // The objects table: the 20 boxes (the strays are suppressed).
+        assert!(md.contains("| 40K | 20 | "), "{md}");
         assert!(md.contains("| 3K | f16 |"));
         assert!(md.contains("| 3K | int8 |"));
         // One instant-distance build per ef, sorted.
@@ -948,6 +961,7 @@ mod tests {
         let skipped = run_bench(&BenchArgs {
             max_memory_gb: Some(1e-6),
             hnsw_size: 0,
+            objects_matches: 0,
             ..args
         })
         .expect("bench");
@@ -968,6 +982,7 @@ mod tests {
             hnsw_size: 0,
             mixture_atoms: 600,
             mixture_slots: 4,
+            objects_matches: 0,
             ..BenchArgs::default()
         })
         .expect("bench");

@@ -530,6 +530,7 @@ pub(crate) async fn answer(
                         st.text.as_ref(),
                         &st.negatives,
                         e.hnsw.as_ref(),
+                        Some(&e.display),
                         q,
                     )
                 })

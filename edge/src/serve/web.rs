@@ -11,7 +11,7 @@
 //! A binary built without the vendored viewer serves the page, which says how to vendor; `cargo
 //! build` never needs npm, and nothing is looked up in the build machine's source tree.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
@@ -23,10 +23,30 @@ use axum::response::{IntoResponse, Response};
 use slag_common::{Error, Result};
 
 use super::{AppState, error, raw_from_pairs, status_of};
-use crate::view::{HighlightStyle, highlighted_ply_framed, parse_colour};
+use crate::view::{HighlightStyle, object_colour, painted_ply_framed, parse_colour};
 
-/// Takes the highlight parameters (`color`, `dim`) out of a query string's pairs.
-fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyle> {
+/// What `GET /query.ply` paints.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ColorBy {
+    /// Every painted match in `color` (default).
+    Match,
+    /// The matches of the `k`-th returned object in [`crate::view::object_colour`]`(k)`, the
+    /// other matches in `color`.
+    Object,
+}
+
+/// Takes the highlight parameters (`color`, `dim`, `color_by`) out of a query string's pairs.
+fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<(HighlightStyle, ColorBy)> {
+    let by = match pairs.remove("color_by").as_deref().map(str::trim) {
+        None | Some("match") => ColorBy::Match,
+        Some("object") => ColorBy::Object,
+        Some(b) => {
+            return Err(Error::query(
+                "color_by",
+                format!("color_by {b:?}: use match or object"),
+            ));
+        }
+    };
     let mut style = HighlightStyle::default();
     if let Some(c) = pairs.remove("color") {
         style.colour = parse_colour(&c)?;
@@ -40,15 +60,17 @@ fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<HighlightStyl
             .ok_or_else(|| Error::query("dim", format!("dim {d:?}: use a number in 0..=1")))?;
         style.dim = Some(f);
     }
-    Ok(style)
+    Ok((style, by))
 }
 
-/// `GET /query.ply?text=…[&color=RRGGBB][&dim=0..1]` plus every `GET /query` parameter.
+/// `GET /query.ply?text=…[&color=RRGGBB][&dim=0..1][&color_by=match|object]` plus every
+/// `GET /query` parameter. `color_by=object` paints the matches of the answer's `k`-th object in
+/// [`crate::view::object_colour`]`(k)` (the page's box colours) and the other matches in `color`.
 ///
 /// With a threshold (the default) every match is painted (`top_k` only limits `/query`'s list);
 /// with `threshold=none` the `top_k` best are. Headers: `Content-Type: application/octet-stream`,
 /// `Content-Disposition: attachment; filename="query.ply"`, `X-Slag-Matches` (painted ids),
-/// `X-Slag-Gaussians` (vertices), `X-Slag-Up` (up `x,y,z` of the manifest's ground frame),
+/// `X-Slag-Objects` (objects in the answer), `X-Slag-Gaussians` (vertices), `X-Slag-Up` (up `x,y,z` of the manifest's ground frame),
 /// `X-Slag-Frame` (`map` or `scene`: the frame of the vertices and of `X-Slag-Up`; the map frame
 /// by default when the manifest has a scene-to-map transform, `frame=scene` for the stored one).
 pub(crate) async fn query_ply(
@@ -62,7 +84,7 @@ pub(crate) async fn query_ply(
             let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
             Ok((params, style))
         });
-    let (mut params, style) = match params {
+    let (mut params, (style, by)) = match params {
         Ok(p) => p,
         Err(e) => {
             state.rejected.fetch_add(1, Ordering::Relaxed);
@@ -82,13 +104,26 @@ pub(crate) async fn query_ply(
         Some(Err(e)) => return error(status_of(&e), e.to_string()),
         None => return error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
     };
-    let ids: HashSet<u32> = answer.matches.iter().map(|m| m.id).collect();
+    let colours: HashMap<u32, [f32; 3]> = answer
+        .matches
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let object = answer.match_objects.get(i).copied().flatten();
+            let rgb = match (by, object) {
+                (ColorBy::Object, Some(k)) => object_colour(k as usize),
+                _ => style.colour,
+            };
+            (m.id, rgb)
+        })
+        .collect();
     let e2 = engine.clone();
-    let ids_n = ids.len();
+    let ids_n = colours.len();
+    let objects_n = answer.objects.len();
     let in_map = answer.frame == slag_common::shards::MAP_FRAME;
     let built = tokio::task::spawn_blocking(move || {
         let to_map = e2.manifest.frames.scene_to_map.as_ref().filter(|_| in_map);
-        highlighted_ply_framed(&e2.display, &ids, &style, to_map)
+        painted_ply_framed(&e2.display, &|id| colours.get(&id).copied(), &style, to_map)
     })
     .await;
     let bytes = match built {
@@ -123,6 +158,10 @@ pub(crate) async fn query_ply(
             (
                 header::HeaderName::from_static("x-slag-matches"),
                 ids_n.to_string(),
+            ),
+            (
+                header::HeaderName::from_static("x-slag-objects"),
+                objects_n.to_string(),
             ),
             (
                 header::HeaderName::from_static("x-slag-gaussians"),

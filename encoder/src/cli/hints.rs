@@ -81,6 +81,11 @@ pub fn hint_for(e: &Error) -> Option<String> {
 fn param_flag(name: &str) -> Option<&'static str> {
     Some(match name {
         "raster_scale" => "pass --raster-scale in (0, 4], e.g. 0.5",
+        "gap" => "pass --object-gap D with D > 0 (scene units)",
+        "min_gaussians" => "pass --object-min-gaussians N with N >= 1",
+        "max_objects" => "pass --max-objects N in 1..=1000",
+        "near" => "pass --near X,Y,Z",
+        "objects" => "pass --objects K with K in 1..=6",
         "raster_size" => "raise --raster-scale (the raster is empty)",
         "every" => {
             "pass --every N (the same N to `encode` and to `eval-colors --held-out`; N >= 2 \

@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
+use slag_common::objects::{self, ObjectParams};
 use slag_common::similarity;
 use slag_encoder::query::{QueryOutput, QueryParams};
 
@@ -43,6 +44,30 @@ pub struct QueryArgs {
     /// ONNX Runtime execution provider.
     #[arg(long, value_enum, default_value_t = EpArg::Cpu)]
     pub ep: EpArg,
+    /// Objects printed, 1..=1000.
+    #[arg(long, default_value_t = objects::DEFAULT_MAX_OBJECTS)]
+    pub max_objects: usize,
+    /// x,y,z (scene frame): sort objects by distance from this point instead of by score.
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_xyz)]
+    pub near: Option<[f32; 3]>,
+    /// Single-linkage gap between an object's matches, scene units.
+    #[arg(long, default_value_t = objects::DEFAULT_GAP)]
+    pub object_gap: f32,
+    /// Smallest object, in matching Gaussians.
+    #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
+    pub object_min_gaussians: usize,
+}
+
+fn parse_xyz(s: &str) -> Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| e.to_string())?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!("expected x,y,z (three finite numbers), got {s:?}")),
+    }
 }
 
 fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
@@ -70,6 +95,12 @@ impl From<&QueryArgs> for QueryParams {
             highlight_out: a.highlight_out.clone(),
             highlight_rgb: a.highlight_rgb,
             ep: a.ep,
+            objects: ObjectParams {
+                gap: a.object_gap,
+                min_gaussians: a.object_min_gaussians,
+                max_objects: a.max_objects,
+                near: a.near,
+            },
         }
     }
 }
@@ -104,6 +135,10 @@ mod tests {
             highlight_out: None,
             highlight_rgb: [1.0, 0.0, 1.0],
             ep: EpArg::Cpu,
+            max_objects: objects::DEFAULT_MAX_OBJECTS,
+            near: None,
+            object_gap: objects::DEFAULT_GAP,
+            object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
         }
     }
 

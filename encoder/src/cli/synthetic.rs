@@ -4,7 +4,9 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use slag_encoder::synthetic::{SyntheticSceneParams, SyntheticSummary, write_synthetic_scene};
+use slag_encoder::synthetic::{
+    SyntheticSceneParams, SyntheticSummary, object_layout, write_synthetic_scene_with_objects,
+};
 
 /// Arguments of `synth-scene`.
 #[derive(Debug, Clone, Args)]
@@ -30,6 +32,10 @@ pub struct SynthArgs {
     /// Output scene folder.
     #[arg(long)]
     pub out: PathBuf,
+    /// Place K (1..=6) boxes of known colour, size and position on a gray terrain (two red ones
+    /// far apart first), the ground truth of query answers' objects; written to objects.json.
+    #[arg(long)]
+    pub objects: Option<usize>,
 }
 
 /// Parses `30M`, `500K` or a plain count.
@@ -57,5 +63,9 @@ pub fn run(a: &SynthArgs) -> anyhow::Result<SyntheticSummary> {
         extent: a.extent,
         seed: a.seed,
     };
-    Ok(write_synthetic_scene(&a.out, &p)?)
+    let objects = match a.objects {
+        Some(k) => object_layout(k, a.extent)?,
+        None => Vec::new(),
+    };
+    Ok(write_synthetic_scene_with_objects(&a.out, &p, &objects)?)
 }
