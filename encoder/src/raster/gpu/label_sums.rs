@@ -212,9 +212,18 @@ mod tests {
     #[test]
     fn records_of_one_key_are_added() {
         let words = [
-            3, 1, u32::MAX, 0, // (3, 1): 2^32 - 1
-            1, 2, 5, 0, //
-            3, 1, 1, 1, // (3, 1) again: 2^32 + 1
+            3,
+            1,
+            u32::MAX,
+            0, // (3, 1): 2^32 - 1
+            1,
+            2,
+            5,
+            0, //
+            3,
+            1,
+            1,
+            1, // (3, 1) again: 2^32 + 1
         ];
         let mut out = Vec::new();
         decode_records(&words, &mut out);
