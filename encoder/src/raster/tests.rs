@@ -588,7 +588,8 @@ fn gpu_label_sums_equal_the_host_image_stage() {
             let (banded, _) =
                 view_contribution(&mut gpu, &k, &w2c, &masks, emb.clone(), dim, params)
                     .expect("banded");
-            assert!(gpu.last_label_retries() > 1, "seed {seed}: bands split");
+            // The whole view exceeds one binding, so it was split (at least one re-run).
+            assert!(gpu.last_label_retries() >= 1, "seed {seed}: bands split");
             assert_eq!(banded, dev, "seed {seed}: banded label sums differ");
         }
         assert_eq!(dev.mask_embeddings, host.mask_embeddings);
