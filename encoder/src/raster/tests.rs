@@ -637,7 +637,9 @@ fn gpu_label_sums_equal_the_host_image_stage() {
             );
             for (d, h) in dev.entries.iter().zip(&host.entries) {
                 assert_eq!((d.gaussian, d.mask), (h.gaussian, h.mask));
-                let tol = 1e-6 * h.weight.abs().max(1.0) as f64;
+                // The unweighted tolerance, scaled by the mask's factor g (a_kj · g).
+                let g = crate::aggregate::MaskWeighting::Area.factor(&masks[h.mask as usize]);
+                let tol = 1e-6 * h.weight.abs().max(g) as f64;
                 assert!(
                     (d.weight as f64 - h.weight as f64).abs() <= tol,
                     "{d:?} vs {h:?}"
