@@ -99,10 +99,9 @@ pub trait WeightRasterizer: Send {
     /// lists ever leaving the device. `labels` is `[height × width]` row-major at the raster size
     /// of `intrinsics`, 0 = no label. Sums sorted by (Gaussian, label), one entry per key.
     ///
-    /// `Ok(None)`: this rasterizer has no such path or declines it for this view (the caller
-    /// rasterizes and sums on the host; the default). The GPU rasterizer declines when more
-    /// Gaussians are visible than the raster has pixels (few contributions per sum) or the sums
-    /// outgrow one buffer binding. Errors: as [`Self::rasterize`], and [`Error::Internal`] when `labels` does not
+    /// `Ok(None)`: this rasterizer has no such path (the caller rasterizes and sums on the
+    /// host; the default). The GPU rasterizer always sums, at any scene size (compact
+    /// per-tile records, see [`gpu`]). Errors: as [`Self::rasterize`], and [`Error::Internal`] when `labels` does not
     /// hold one label per raster pixel.
     fn label_sums(
         &mut self,

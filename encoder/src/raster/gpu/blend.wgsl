@@ -1,4 +1,5 @@
-// `blend` (gpu/count_scan.rs, write.rs, label_sums.rs): one 16x16 workgroup per tile.
+// `blend` (gpu/count_scan.rs, write.rs): one 16x16 workgroup per tile. `blend_sums`
+// (label_sums.wgsl) shares its workgroup splat arrays.
 var<workgroup> sh_xy_opac: array<vec4<f32>, 256>;
 var<workgroup> sh_axes: array<vec4<f32>, 256>;
 var<workgroup> sh_id: array<u32, 256>;
@@ -19,7 +20,6 @@ fn blend(
     let inside = px < params.width && py < params.height;
     let pix = py * params.width + px;
     let write = params.mode == 1u;
-    let summing = params.mode == 2u;
     if (lid == 0u) {
         sh_range = tile_ranges[tile];
         atomicStore(&done_count, 0u);
@@ -31,14 +31,9 @@ fn blend(
         out = offsets[pix] - params.out_base;
         out_end = offsets[pix + 1u] - params.out_base;
     }
-    var label = 0u;
-    if (summing && inside) {
-        label = labels[pix];
-    }
     var t_acc = 1.0;
     var count = 0u;
-    // Unlabelled pixels contribute nothing to label sums: done from the start.
-    var done = !inside || (summing && label == 0u);
+    var done = !inside;
     if (done) {
         atomicAdd(&done_count, 1u);
     }
@@ -84,10 +79,7 @@ fn blend(
                     done = true;
                     break;
                 }
-                if (summing) {
-                    add_label_sum(sh_id[k], label, alpha * t_acc);
-                    count += 1u;
-                } else if (write) {
+                if (write) {
                     // Bounded by the count pass's range: never writes outside this pixel's slots.
                     if (out < out_end) {
                         out_ids[out] = sh_id[k];
@@ -102,13 +94,6 @@ fn blend(
             if (done) {
                 atomicAdd(&done_count, 1u);
             }
-        }
-    }
-    if (summing && count > 0u) {
-        // Contributions counted (64-bit, words 1 and 2 of the table header).
-        let old = atomicAdd(&sums[1], count);
-        if (old > 0xFFFFFFFFu - count) {
-            atomicAdd(&sums[2], 1u);
         }
     }
     if (params.mode == 0u && inside) {

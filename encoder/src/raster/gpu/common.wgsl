@@ -8,11 +8,12 @@
 //   blend        one 16x16 workgroup per tile, shared-memory batches of 256 splats (gsplat's
 //                rasterize_to_pixels scheme). params.mode == 0: count contributors per pixel into
 //                offsets[p]; mode == 1: write ids/weights into [offsets[p], offsets[p+1]), shifted
-//                by out_base, for the tile rows tile_y0.. of this dispatch (one band of rows);
-//                mode == 2: per-label sums instead of per-pixel lists: every contribution w_kp of
-//                a pixel p with labels[p] != 0 is added to the slot of (k, labels[p]) in the
-//                open-addressing table sums[] (64-bit fixed point, integer atomics: the sums are
-//                exact and independent of thread order), so only the sums are read back.
+//                by out_base, for the tile rows tile_y0.. of this dispatch (one band of rows).
+//   blend_sums   instead of per-pixel lists: the same loop, per-(Gaussian, label) sums of the
+//                weights of labelled pixels accumulated per tile in workgroup memory and written
+//                as one record per (tile intersection, tile label) with a non-zero sum
+//                (label_sums.wgsl; 64-bit fixed point, integer atomics: exact and independent of
+//                thread order), so only those records are read back.
 //   scan_local, scan_blocks, scan_add   exclusive prefix sum of offsets[0..n_pixels] in place,
 //                total written to offsets[n_pixels].
 
@@ -29,11 +30,11 @@ struct Params {
     n_gaussians: u32,
     n_pixels: u32,
     groups_x: u32,       // x extent of 2D dispatches (project, scan_local, scan_add)
-    mode: u32,           // blend: 0 count, 1 write, 2 label sums
+    mode: u32,           // blend: 0 count, 1 write
     n_blocks: u32,       // scan: number of 1024-element blocks
-    tile_y0: u32,        // blend: first tile row of this dispatch (banded write pass)
+    tile_y0: u32,        // blend, blend_sums: first tile row of this dispatch (a band of rows)
     out_base: u32,       // blend write: entry index of out_ids[0] / out_weights[0]
-    table_mask: u32,     // blend mode 2: slots in sums[] minus 1 (slots are a power of two)
+    out_cap: u32,        // blend_sums: records that fit in records[] after its 4-word header
 }
 
 struct Splat {

@@ -14,7 +14,7 @@ impl GpuRasterizer {
         let scan_entries = [(0, &view.params_buf), (8, &b.offsets), (11, &b.block_sums)];
         let mut enc = self.device.create_command_encoder(&Default::default());
         {
-            let bg = self.blend_group(view, b, &b.dummy, &b.dummy, &b.dummy_labels, &b.dummy);
+            let bg = self.blend_group(view, b, &b.dummy, &b.dummy);
             let bg_l = self.bind(&self.pipelines.scan_local, &scan_entries);
             let bg_b = self.bind(&self.pipelines.scan_blocks, &scan_entries);
             let bg_a = self.bind(&self.pipelines.scan_add, &scan_entries);

@@ -1,33 +1,49 @@
-//! Step 3', mode 2 of the `blend` kernel (`label_sums.wgsl`): per-(Gaussian, label) sums of the
-//! blend weights in an open-addressing table on the device, instead of per-pixel lists; only the
-//! table is read back.
+//! Step 3', the `blend_sums` kernel (`label_sums.wgsl`): per-(Gaussian, label) sums of the blend
+//! weights, accumulated per tile in workgroup memory and written as compact records, one per
+//! (tile intersection, tile label) with a non-zero sum, instead of per-pixel lists; only the
+//! records are read back and reduced by (Gaussian, label) on the host.
+//!
+//! Bounded by construction: a band of tile rows writes at most one record per labelled
+//! contribution and per (intersection, label of its tile), and the kernel counts the records it
+//! wanted past the buffer's capacity, so a band that did not fit is re-run once with room for
+//! exactly its count, or, past one binding, split into smaller bands. No table can overflow, and
+//! there is no fallback to the per-pixel lists at any scene size.
 
 use rayon::prelude::*;
-use slag_common::{Error, Result};
+use slag_common::{Error, Resource, Result};
 
 use super::super::{LabelSum, LabelSums};
 use super::buffers::{storage, storage_init};
-use super::{Binned, GpuRasterizer, RunOutput, View};
+use super::{Binned, GpuRasterizer, SEED_SALT, View};
 
-/// Label-sum table slots of a new rasterizer (4 MiB); grown per view as needed.
-pub(super) const INITIAL_LABEL_SLOTS: u32 = 1 << 18;
-/// Most label-sum table slots (4 GiB of table): beyond, the view is refused.
-const MAX_LABEL_SLOTS: u32 = 1 << 28;
+/// Record capacity of a new rasterizer's buffer (4 MiB); grown per view as needed and kept.
+pub(super) const INITIAL_LABEL_RECORDS: u64 = 1 << 18;
+/// Bytes of one record (Gaussian, label, low and high word of the fixed-point sum).
+const RECORD_BYTES: u64 = 16;
+/// Bytes of the records buffer's header (count, contributions low and high, unused).
+const HEADER_BYTES: u64 = 16;
 
-/// The non-empty slots of a mode-2 table (4 words each: Gaussian + 1, label, low, high), sorted by
-/// (Gaussian, label), duplicates of one key (see `add_label_sum` in label_sums.wgsl) added.
-fn decode_label_sums(slots: &[u32]) -> Vec<LabelSum> {
-    let mut out: Vec<LabelSum> = slots
-        .chunks_exact(4)
-        .filter(|w| w[0] != 0)
-        .map(|w| LabelSum {
-            gaussian: w[0] - 1,
-            label: w[1],
-            sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
-        })
-        .collect();
-    out.par_sort_unstable_by_key(|e| (e.gaussian, e.label));
-    out.dedup_by(|next, kept| {
+/// The record buffer of the label sums and its `MAP_READ` twin, kept across views.
+pub(super) struct RecordBuffers {
+    records: wgpu::Buffer,
+    staging: wgpu::Buffer,
+    /// Records each holds after the header.
+    capacity: u64,
+}
+
+/// Appends the records in `words` (4 words each: Gaussian, label, low, high) to `out`.
+fn decode_records(words: &[u32], out: &mut Vec<LabelSum>) {
+    out.extend(words.chunks_exact(4).map(|w| LabelSum {
+        gaussian: w[0],
+        label: w[1],
+        sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
+    }));
+}
+
+/// `records` sorted by (Gaussian, label), the sums of one key added (integers: exact).
+fn reduce_records(mut records: Vec<LabelSum>) -> Vec<LabelSum> {
+    records.par_sort_unstable_by_key(|e| (e.gaussian, e.label));
+    records.dedup_by(|next, kept| {
         if (next.gaussian, next.label) == (kept.gaussian, kept.label) {
             kept.sum += next.sum;
             true
@@ -35,24 +51,54 @@ fn decode_label_sums(slots: &[u32]) -> Vec<LabelSum> {
             false
         }
     });
-    out
+    records
 }
 
 impl GpuRasterizer {
-    /// The label-sum pass over a binned view: a table at most half full for one label per
-    /// visible Gaussian (at least the last view's size), retried with 4× the slots on overflow;
-    /// [`RunOutput::UseLists`] past what one binding holds.
+    /// Most records one binding (or the testing cap [`GpuRasterizer::set_label_record_limit`])
+    /// holds.
+    fn max_label_records(&self) -> u64 {
+        let bytes = self
+            .label_record_limit
+            .map_or(u64::MAX, |r| HEADER_BYTES + r * RECORD_BYTES)
+            .min(self.max_binding());
+        (bytes.saturating_sub(HEADER_BYTES) / RECORD_BYTES).max(1)
+    }
+
+    /// `kept` if it holds `capacity` records, else new buffers of that capacity.
+    fn record_buffers(&self, kept: Option<RecordBuffers>, capacity: u64) -> RecordBuffers {
+        if let Some(b) = kept
+            && b.capacity >= capacity
+        {
+            return b;
+        }
+        let bytes = HEADER_BYTES + capacity * RECORD_BYTES;
+        RecordBuffers {
+            records: storage(&self.device, "label_records", bytes),
+            staging: self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("readback_label_records"),
+                size: bytes.next_multiple_of(4),
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            capacity,
+        }
+    }
+
+    /// The label-sum pass over a binned view, in bands of tile rows: each band's records are
+    /// counted by the kernel; a band that did not fit is re-run with room for its count, or split
+    /// when its count exceeds one binding.
     ///
-    /// Errors: `labels` not one per raster pixel ([`Error::Internal`]); a table over the binding
-    /// limit; device failures.
+    /// Returns the sums and the host's milliseconds copying, sorting and reducing the records.
+    ///
+    /// Errors: `labels` not one per raster pixel ([`Error::Internal`]); one row of tiles whose
+    /// records exceed one binding ([`Error::Limit`]); device failures.
     pub(super) fn label_sums_pass(
         &mut self,
         view: &mut View,
         b: &Binned,
         labels: &[u32],
-        fixed_slots: bool,
-        visible: u64,
-    ) -> Result<RunOutput> {
+    ) -> Result<(LabelSums, f64)> {
         let k = view.k;
         if labels.len() != view.n_pix as usize {
             return Err(Error::internal(format!(
@@ -63,59 +109,139 @@ impl GpuRasterizer {
             )));
         }
         let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
-        // A table at most half full for one label per visible Gaussian, at least the size
-        // the last view needed: a first view of a large scene then rarely retries.
-        // Most slots one binding holds (a power of two).
-        let cap =
-            ((self.max_binding().saturating_sub(16) / 16).min(u64::from(MAX_LABEL_SLOTS))).max(4);
-        let cap = 1u64 << (63 - cap.leading_zeros());
-        let mut slots = if fixed_slots {
-            u64::from(self.label_slots.max(4)).min(cap)
-        } else {
-            (visible * 2)
-                .next_power_of_two()
-                .clamp(u64::from(self.label_slots.max(4)), cap)
-        } as u32;
-        let mut retries = 0;
-        loop {
-            let table_bytes = 16 + u64::from(slots) * 16;
-            self.check_size("label-sum table", table_bytes, &k)?;
-            let table = storage(&self.device, "label_sums", table_bytes);
-            view.params.mode = 2;
-            view.params.table_mask = slots - 1;
+        let max_records = self.max_label_records();
+        let mut kept = self.label_out.take();
+        let mut records = Vec::new();
+        let mut contributions = 0u64;
+        let mut retries = 0u32;
+        let mut host = std::time::Duration::ZERO;
+        let mut rows = view.tiles_y;
+        let mut r0 = 0u32;
+        while r0 < view.tiles_y {
+            let r1 = (r0 + rows).min(view.tiles_y);
+            let capacity = self.label_records.clamp(1, max_records);
+            let out = self.record_buffers(kept.take(), capacity);
+            self.noise(&out.records, SEED_SALT + 6 + u64::from(r0));
+            view.params.tile_y0 = r0;
+            view.params.out_cap = capacity as u32;
             self.write_params(view);
             let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(&table, 0, None);
+            enc.clear_buffer(&out.records, 0, Some(HEADER_BYTES));
             {
-                let bg = self.blend_group(view, b, &b.dummy, &b.dummy, &labels_buf, &table);
+                let bg = self.bind(
+                    &self.pipelines.blend_sums,
+                    &[
+                        (0, &view.params_buf),
+                        (4, &self.splats),
+                        (6, &b.ranges),
+                        (7, &b.sorted_ids),
+                        (12, &labels_buf),
+                        (13, &out.records),
+                    ],
+                );
                 let mut pass = enc.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&self.pipelines.blend);
+                pass.set_pipeline(&self.pipelines.blend_sums);
                 pass.set_bind_group(0, &bg, &[]);
-                pass.dispatch_workgroups(view.tiles_x, view.tiles_y, 1);
+                pass.dispatch_workgroups(view.tiles_x, r1 - r0, 1);
             }
-            let read = self.submit_and_read(enc, &[(&table, 0, table_bytes)])?;
-            let words: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
-            if words.first().copied().unwrap_or(1) != 0 {
-                // Some contribution found no slot: retry the view with 4x the slots, or,
-                // past what one binding holds, let the caller take the per-pixel lists.
+            enc.copy_buffer_to_buffer(&out.records, 0, &out.staging, 0, HEADER_BYTES);
+            let mut header = [0u32; 4];
+            self.submit_and_map(enc, &[(&out.staging, HEADER_BYTES)], |_, bytes| {
+                header = bytemuck::pod_read_unaligned(bytes);
+            })?;
+            let wanted = u64::from(header[0]);
+            if wanted > capacity {
+                // The band did not fit: re-run it with room for its records, or split it.
                 retries += 1;
-                if u64::from(slots) >= cap {
-                    self.label_retries = retries;
-                    return Ok(RunOutput::UseLists);
+                if wanted <= max_records {
+                    self.label_records = (wanted + wanted / 4).min(max_records);
+                } else if r1 - r0 > 1 {
+                    self.label_records = max_records;
+                    rows = (r1 - r0) / 2;
+                } else {
+                    return Err(Error::limit(
+                        Resource::GpuBinding,
+                        format!(
+                            "{} MiB of label-sum records for one row of tiles of the {}x{} \
+                             weight raster",
+                            (wanted * RECORD_BYTES) >> 20,
+                            k.width,
+                            k.height
+                        ),
+                        format!("{} MiB per binding", (max_records * RECORD_BYTES) >> 20),
+                    ));
                 }
-                slots = (u64::from(slots) * 4).min(cap) as u32;
+                kept = Some(out);
                 continue;
             }
-            let sums = LabelSums {
-                sums: decode_label_sums(&words[4..]),
-                contributions: (u64::from(words[2]) << 32) | u64::from(words[1]),
-            };
-            // Next view: keep the table at most half full.
-            let want = (sums.sums.len() as u64 * 2).next_power_of_two();
-            let next = u64::from(slots).max(want).min(cap) as u32;
-            self.label_slots = next;
-            self.label_retries = retries;
-            return Ok(RunOutput::Sums(sums));
+            contributions += (u64::from(header[2]) << 32) | u64::from(header[1]);
+            if wanted > 0 {
+                let bytes = wanted * RECORD_BYTES;
+                let mut enc = self.device.create_command_encoder(&Default::default());
+                enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+                self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
+                    let t = std::time::Instant::now();
+                    let words: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
+                    decode_records(&words, &mut records);
+                    host += t.elapsed();
+                })?;
+            }
+            kept = Some(out);
+            r0 = r1;
         }
+        self.label_out = kept;
+        self.label_retries = retries;
+        self.label_record_count = records.len() as u64;
+        let t = std::time::Instant::now();
+        let sums = reduce_records(records);
+        host += t.elapsed();
+        Ok((
+            LabelSums {
+                sums,
+                contributions,
+            },
+            host.as_secs_f64() * 1e3,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn records_of_one_key_are_added() {
+        let words = [
+            3,
+            1,
+            u32::MAX,
+            0, // (3, 1): 2^32 - 1
+            1,
+            2,
+            5,
+            0, //
+            3,
+            1,
+            1,
+            1, // (3, 1) again: 2^32 + 1
+        ];
+        let mut out = Vec::new();
+        decode_records(&words, &mut out);
+        let sums = reduce_records(out);
+        assert_eq!(
+            sums,
+            vec![
+                LabelSum {
+                    gaussian: 1,
+                    label: 2,
+                    sum: 5
+                },
+                LabelSum {
+                    gaussian: 3,
+                    label: 1,
+                    sum: (1 << 33)
+                },
+            ]
+        );
     }
 }

@@ -1,54 +1,177 @@
-// Mode 2 of `blend` (gpu/label_sums.rs): the pixel labels and the per-(Gaussian, label) sum table.
-// Mode 2: the label of every pixel (0 = none: the pixel is skipped).
+// `blend_sums` (gpu/label_sums.rs): per-(Gaussian, label) sums of the blend weights, accumulated
+// per tile in workgroup memory and written as one record per (tile intersection, tile label) with
+// a non-zero sum. One 16x16 workgroup per tile, the same front-to-back loop as `blend`.
+//
+// The tile's distinct labels L_t are found first (the first pixel of each label claims a local
+// index 0..|L_t|). Each batch of 256 depth-sorted splats is then processed in sub-batches of
+// ACC_SLOTS / |L_t| splats: every pixel adds its weight of each splat to the workgroup slot
+// (splat in sub-batch, its label's local index), 64-bit fixed point (w·2^32 truncated, two
+// atomic words with carry: exact integer sums, independent of thread order), and the non-zero
+// slots are appended to records[]. The output is bounded by construction: at most one record
+// per (intersection, tile label) and per labelled contribution, so the count of the first
+// dispatch sizes the second exactly when the first did not fit.
+
+// The label of every pixel (0 = none: the pixel is skipped).
 @group(0) @binding(12) var<storage, read> labels: array<u32>;
-// Mode 2: sums[0] = overflow flag (a contribution found no slot within MAX_PROBES: the host
-// retries with more slots), sums[1], sums[2] = low and high word of the contributions counted,
-// sums[3] unused, then 4 words per slot: Gaussian id + 1 (0 = empty),
-// label, low and high word of Σ w·2^32.
-@group(0) @binding(13) var<storage, read_write> sums: array<atomic<u32>>;
+// records[0]: records this dispatch produced (counts past the capacity params.out_cap: the host
+// then re-runs the band with room for them), records[1], records[2]: low and high word of the
+// labelled contributions counted, records[3] unused; then 4 words per record: Gaussian id,
+// label, low and high word of Σ w·2^32 over the tile's pixels of that label.
+@group(0) @binding(13) var<storage, read_write> records: array<atomic<u32>>;
 
-const MAX_PROBES: u32 = 64u;
+// Workgroup accumulator slots (splats of a sub-batch × tile labels); 2 words each.
+const ACC_SLOTS: u32 = 512u;
+var<workgroup> acc_lo: array<atomic<u32>, 512>;
+var<workgroup> acc_hi: array<atomic<u32>, 512>;
+// The pixels' labels, then (by local index) the tile's distinct labels.
+var<workgroup> sh_pix_label: array<u32, 256>;
+var<workgroup> sh_tile_labels: array<u32, 256>;
+var<workgroup> sh_n_labels: atomic<u32>;
+var<workgroup> sh_n_labels_u: u32;
 
-// Adds w·2^32 (truncated; w <= ALPHA_MAX < 1) to the 64-bit fixed-point sum of the slot at `base`.
-fn fixed_add(base: u32, w: f32) {
-    let lo = u32(min(w * 4294967296.0, 4294967040.0));
-    let old = atomicAdd(&sums[base + 2u], lo);
-    if (old > 0xFFFFFFFFu - lo) {
-        atomicAdd(&sums[base + 3u], 1u);
+@compute @workgroup_size(16, 16)
+fn blend_sums(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_id) lid3: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let ty = wid.y + params.tile_y0;
+    let tile = ty * params.tiles_x + wid.x;
+    let px = wid.x * TILE + lid3.x;
+    let py = ty * TILE + lid3.y;
+    let inside = px < params.width && py < params.height;
+    var label = 0u;
+    if (inside) {
+        label = labels[py * params.width + px];
     }
-}
-
-// Adds w to the slot of (Gaussian g, label) of sums[], claiming an empty slot if none holds that
-// key yet. A slot claimed by another thread whose label is not yet stored reads as a different key,
-// so one key can end up in two slots: the host adds such duplicates (integers: exact).
-fn add_label_sum(g: u32, label: u32, w: f32) {
-    let key = g + 1u;
-    var h = (g * 0x9E3779B1u) ^ (label * 0x85EBCA77u);
-    h = h ^ (h >> 15u);
-    var probe = 0u;
-    loop {
-        if (probe >= MAX_PROBES) {
-            atomicStore(&sums[0], 1u);
-            return;
+    sh_pix_label[lid] = label;
+    if (lid == 0u) {
+        sh_range = tile_ranges[tile];
+        atomicStore(&done_count, 0u);
+        atomicStore(&sh_n_labels, 0u);
+    }
+    workgroupBarrier();
+    // The tile's distinct labels: the first pixel (in local order) of each claims a local index,
+    // kept in sh_id[first pixel] until the first batch overwrites it.
+    var first = lid;
+    for (var q = 0u; q < lid; q++) {
+        if (sh_pix_label[q] == label) {
+            first = q;
+            break;
         }
-        let base = 4u + ((h + probe) & params.table_mask) * 4u;
-        var kk = atomicLoad(&sums[base]);
-        if (kk == 0u) {
-            let r = atomicCompareExchangeWeak(&sums[base], 0u, key);
-            if (r.exchanged) {
-                atomicStore(&sums[base + 1u], label);
-                fixed_add(base, w);
-                return;
+    }
+    if (first == lid && label != 0u) {
+        let li = atomicAdd(&sh_n_labels, 1u);
+        sh_tile_labels[li] = label;
+        sh_id[lid] = li;
+    }
+    workgroupBarrier();
+    var li = 0u;
+    if (label != 0u) {
+        li = sh_id[first];
+    }
+    if (lid == 0u) {
+        sh_n_labels_u = atomicLoad(&sh_n_labels);
+    }
+    let n_labels = workgroupUniformLoad(&sh_n_labels_u);
+    if (n_labels == 0u) {
+        return; // no labelled pixel in this tile
+    }
+    let per = ACC_SLOTS / n_labels; // splats per sub-batch, >= 2
+    let range = workgroupUniformLoad(&sh_range);
+    var t_acc = 1.0;
+    var count = 0u;
+    var done = !inside || label == 0u;
+    if (done) {
+        atomicAdd(&done_count, 1u);
+    }
+    let pxc = f32(px) + 0.5;
+    let pyc = f32(py) + 0.5;
+    let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
+    for (var b = 0u; b < n_batches; b++) {
+        workgroupBarrier();
+        if (lid == 0u) {
+            done_snapshot = atomicLoad(&done_count);
+        }
+        let n_done = workgroupUniformLoad(&done_snapshot);
+        if (n_done >= BATCH) {
+            break;
+        }
+        let start = range.x + b * BATCH;
+        let idx = start + lid;
+        if (idx < range.y) {
+            let g = sorted_ids[idx];
+            let s = splats[g];
+            sh_xy_opac[lid] = s.xy_opac;
+            sh_axes[lid] = s.axes;
+            sh_id[lid] = g;
+        }
+        workgroupBarrier();
+        let n_here = min(BATCH, range.y - start);
+        for (var s0 = 0u; s0 < n_here; s0 += per) {
+            let s1 = min(s0 + per, n_here);
+            let slots = (s1 - s0) * n_labels;
+            for (var i = lid; i < slots; i += BATCH) {
+                atomicStore(&acc_lo[i], 0u);
+                atomicStore(&acc_hi[i], 0u);
             }
-            kk = r.old_value;
-            if (kk == 0u) {
-                continue; // spurious failure of the weak exchange: try this slot again
+            workgroupBarrier();
+            if (!done) {
+                for (var k = s0; k < s1; k++) {
+                    let xo = sh_xy_opac[k];
+                    let ax = sh_axes[k];
+                    let dx = xo.x - pxc;
+                    let dy = xo.y - pyc;
+                    // ½dᵀΣ⁻¹d in eigen form, as in `blend`.
+                    let pa = (ax.x * dx + ax.y * dy) * ax.z;
+                    let pb = (ax.x * dy - ax.y * dx) * ax.w;
+                    let sigma = 0.5 * (pa * pa + pb * pb);
+                    let alpha = min(ALPHA_MAX, xo.z * exp(-sigma));
+                    if (sigma < 0.0 || alpha < ALPHA_MIN) {
+                        continue;
+                    }
+                    let next_t = t_acc * (1.0 - alpha);
+                    if (next_t < T_MIN) {
+                        done = true;
+                        break;
+                    }
+                    // w·2^32 truncated (w <= ALPHA_MAX < 1), added with carry into the high word.
+                    let slot = (k - s0) * n_labels + li;
+                    let lo = u32(min(alpha * t_acc * 4294967296.0, 4294967040.0));
+                    let old = atomicAdd(&acc_lo[slot], lo);
+                    if (old > 0xFFFFFFFFu - lo) {
+                        atomicAdd(&acc_hi[slot], 1u);
+                    }
+                    count += 1u;
+                    t_acc = next_t;
+                }
+                if (done) {
+                    atomicAdd(&done_count, 1u);
+                }
             }
+            workgroupBarrier();
+            for (var i = lid; i < slots; i += BATCH) {
+                let lo = atomicLoad(&acc_lo[i]);
+                let hi = atomicLoad(&acc_hi[i]);
+                if (lo != 0u || hi != 0u) {
+                    let r = atomicAdd(&records[0], 1u);
+                    if (r < params.out_cap) {
+                        let base = 4u + r * 4u;
+                        atomicStore(&records[base], sh_id[s0 + i / n_labels]);
+                        atomicStore(&records[base + 1u], sh_tile_labels[i % n_labels]);
+                        atomicStore(&records[base + 2u], lo);
+                        atomicStore(&records[base + 3u], hi);
+                    }
+                }
+            }
+            // The next sub-batch clears the slots only after every thread has read them.
+            workgroupBarrier();
         }
-        if (kk == key && atomicLoad(&sums[base + 1u]) == label) {
-            fixed_add(base, w);
-            return;
+    }
+    if (count > 0u) {
+        let old = atomicAdd(&records[1], count);
+        if (old > 0xFFFFFFFFu - count) {
+            atomicAdd(&records[2], 1u);
         }
-        probe += 1u;
     }
 }

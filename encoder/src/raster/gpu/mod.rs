@@ -35,6 +35,18 @@
 //!    no output binding exceeds the device limit (lavapipe: 128 MiB).
 //! 4. Read back the CSR offsets, ids and weights (the only per-pixel data touching the CPU).
 //!
+//! 3'. Instead of 3–4, when the caller gives per-pixel labels (the image stage's mask sets,
+//!    [`WeightRasterizer::label_sums`]): the `blend_sums` kernel, the same front-to-back loop,
+//!    one 16×16 workgroup per tile. The tile's distinct labels `L_t` are found on the GPU from the
+//!    label image; each batch of splats is blended in sub-batches of `512 / |L_t|` splats whose
+//!    weights are summed per (splat, tile label) in workgroup memory (64-bit fixed point, exact
+//!    integer atomics), and every non-zero sum leaves as one 16-byte record (Gaussian, label,
+//!    sum). A view's records are at most one per (tile intersection, tile label) and one per
+//!    labelled contribution, and the kernel counts them: a band of tile rows that did not fit
+//!    its buffer is re-run with room for exactly its count, or split when that exceeds one
+//!    binding. Nothing overflows, at any scene size; the host sorts the records by (Gaussian,
+//!    label) and adds those of one key (the same key from several tiles).
+//!
 //! Output buffers are sized from the counts and checked against the device's
 //! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
 //! offsets array) exceeds them is an [`Error::Limit`] naming the limit (the command line adds
@@ -42,8 +54,8 @@
 //!
 //! One file per pass, each beside its WGSL: [`project`] (step 1, `project.wgsl`, and the CPU
 //! binning of step 2), `count_scan` (step 3a, the count mode of `blend.wgsl` + `scan.wgsl`),
-//! `write` (step 3b, the banded write mode of `blend.wgsl`), `label_sums` (step 3', mode 2 of
-//! `blend.wgsl` + `label_sums.wgsl`), `buffers` (storage, readback, noise fill). `common.wgsl`
+//! `write` (step 3b, the banded write mode of `blend.wgsl`), `label_sums` (step 3', the
+//! `blend_sums` kernel of `label_sums.wgsl`), `buffers` (storage, readback, noise fill). `common.wgsl`
 //! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
 //! layout, constants and bindings; the shader module is the files joined in that order.
 
@@ -62,7 +74,7 @@ pub mod project;
 mod write;
 
 use buffers::{OutBuffers, storage, storage_init};
-use label_sums::INITIAL_LABEL_SLOTS;
+use label_sums::{INITIAL_LABEL_RECORDS, RecordBuffers};
 use project::bin_and_sort;
 
 /// The kernels: the WGSL files beside this module, joined (common declarations first).
@@ -100,7 +112,7 @@ struct Params {
     n_blocks: u32,
     tile_y0: u32,
     out_base: u32,
-    table_mask: u32,
+    out_cap: u32,
 }
 
 // `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 12 u32, 128 bytes, no padding.
@@ -109,7 +121,8 @@ const _: () = assert!(std::mem::size_of::<Params>() == 128);
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
 /// including submission and readback waits), or their sum over runs ([`PhaseTimings::add`]).
-/// With GPU label sums, `write_ms` is the label-sum pass and its readback.
+/// With GPU label sums, `write_ms` is the label-sum pass and its readback (`reduce_ms` of it on
+/// the host).
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct PhaseTimings {
     /// Projection kernel + tile-rect readback.
@@ -118,8 +131,13 @@ pub struct PhaseTimings {
     pub bin_sort_ms: f64,
     /// Count pass, prefix sum, offsets readback.
     pub count_scan_ms: f64,
-    /// Write pass(es) + ids/weights readback.
+    /// Write pass(es) + ids/weights readback, or the label-sum pass + records readback.
     pub write_ms: f64,
+    /// Label sums: the host's copy, sort and reduction of the records by (Gaussian, label).
+    pub reduce_ms: f64,
+    /// Host computation in the rasterizer's critical path (`bin_sort_ms + reduce_ms`): wall ms
+    /// of work on the host's cores (rayon), excluding waits for the device.
+    pub host_ms: f64,
 }
 
 impl PhaseTimings {
@@ -129,12 +147,15 @@ impl PhaseTimings {
         self.bin_sort_ms += o.bin_sort_ms;
         self.count_scan_ms += o.count_scan_ms;
         self.write_ms += o.write_ms;
+        self.reduce_ms += o.reduce_ms;
+        self.host_ms += o.host_ms;
     }
 }
 
 struct Pipelines {
     project: wgpu::ComputePipeline,
     blend: wgpu::ComputePipeline,
+    blend_sums: wgpu::ComputePipeline,
     scan_local: wgpu::ComputePipeline,
     scan_blocks: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
@@ -165,28 +186,29 @@ pub struct GpuRasterizer {
     timings: PhaseTimings,
     /// Write-pass output and its readback staging, kept across views (grown on demand).
     out: Option<OutBuffers>,
-    /// Slots of the label-sum table for the next view (a power of two; grown when a view
-    /// overflows it or fills more than half of it).
-    label_slots: u32,
-    /// Testing aid: start the next view's table at exactly `label_slots` (no estimate).
-    label_slots_fixed: bool,
-    /// Retries (table overflows) of the last label-sum view.
+    /// Record capacity of the label-sum buffer for the next band (grown when a band needs
+    /// more, kept across views).
+    label_records: u64,
+    /// Testing aid: most records per binding (default: the device's binding limit).
+    label_record_limit: Option<u64>,
+    /// The label-sum records buffer and its staging twin, kept across views.
+    label_out: Option<RecordBuffers>,
+    /// Re-runs of a band (it did not fit its buffer) in the last label-sum view.
     label_retries: u32,
+    /// Records read back in the last label-sum view.
+    label_record_count: u64,
 }
 
 /// What one [`GpuRasterizer::run`] produced.
 enum RunOutput {
     /// Per-pixel lists (modes 0 + 1).
     Weights(PixelWeights),
-    /// Per-(Gaussian, label) sums (mode 2).
+    /// Per-(Gaussian, label) sums (`blend_sums`).
     Sums(LabelSums),
-    /// Mode 2 declined: more visible Gaussians than raster pixels (few contributions per sum,
-    /// where the per-pixel lists are faster), or more sums than one table binding holds.
-    UseLists,
 }
 
 /// One view's dispatch state: its raster size and tile grid, the uniform [`Params`] and their
-/// buffer (rewritten per pass as `mode`, `tile_y0`, `out_base`, `table_mask` change).
+/// buffer (rewritten per pass as `mode`, `tile_y0`, `out_base`, `out_cap` change).
 struct View {
     k: Intrinsics,
     tiles_x: u32,
@@ -207,8 +229,6 @@ struct Binned {
     offsets: wgpu::Buffer,
     block_sums: wgpu::Buffer,
     dummy: wgpu::Buffer,
-    /// Read-only bindings cannot share a buffer with read-write ones in one dispatch.
-    dummy_labels: wgpu::Buffer,
 }
 
 /// Noise-fill salts (testing aid, [`GpuRasterizer::set_noise_fill`]): one per buffer, the write
@@ -432,6 +452,7 @@ impl GpuRasterizer {
         let pipelines = Pipelines {
             project: pipe("project"),
             blend: pipe("blend"),
+            blend_sums: pipe("blend_sums"),
             scan_local: pipe("scan_local"),
             scan_blocks: pipe("scan_blocks"),
             scan_add: pipe("scan_add"),
@@ -457,9 +478,11 @@ impl GpuRasterizer {
             band_limit: None,
             timings: PhaseTimings::default(),
             out: None,
-            label_slots: INITIAL_LABEL_SLOTS,
-            label_slots_fixed: false,
+            label_records: INITIAL_LABEL_RECORDS,
+            label_record_limit: None,
+            label_out: None,
             label_retries: 0,
+            label_record_count: 0,
         })
     }
 
@@ -477,17 +500,25 @@ impl GpuRasterizer {
         self.band_limit = bytes;
     }
 
-    /// Testing aid: the slots of the label-sum table for the next view (rounded up to a power of
-    /// two, at least 4). Tiny tables overflow and exercise the retry with more slots; the sums do
-    /// not depend on the table size.
-    pub fn set_label_table_slots(&mut self, slots: u32) {
-        self.label_slots = slots.max(4).next_power_of_two();
-        self.label_slots_fixed = true;
+    /// Testing aid: the record capacity of the label-sum buffer for the next view (at least
+    /// 1; it grows when a band needs more) and the most records one binding may hold (`None`:
+    /// the device's binding limit). A small capacity exercises the re-run of a band; a small
+    /// limit splits the view into bands of tile rows. The sums do not depend on either.
+    pub fn set_label_records(&mut self, capacity: u64, limit: Option<u64>) {
+        self.label_records = capacity.max(1);
+        self.label_record_limit = limit.map(|l| l.max(1));
+        self.label_out = None;
     }
 
-    /// Table overflows (each a retry with 4× the slots) of the last label-sum view.
+    /// Band re-runs (a band did not fit its records buffer) of the last label-sum view.
     pub fn last_label_retries(&self) -> u32 {
         self.label_retries
+    }
+
+    /// Records (one per tile intersection and tile label with a non-zero sum) read back in the
+    /// last label-sum view.
+    pub fn last_label_records(&self) -> u64 {
+        self.label_record_count
     }
 
     /// Phase timings of the last successful [`WeightRasterizer::rasterize`] call.
@@ -532,7 +563,6 @@ impl GpuRasterizer {
     ) -> Result<RunOutput> {
         validate_raster(k)?;
         let mut kept = self.out.take();
-        let fixed_slots = labels.is_some() && std::mem::take(&mut self.label_slots_fixed);
         let mut view = self.begin_view(k, w2c)?;
         self.noise(&self.splats, SEED_SALT);
         self.noise(&self.isect, SEED_SALT + 1);
@@ -542,17 +572,6 @@ impl GpuRasterizer {
         let mut timings = PhaseTimings::default();
         let isect = self.project(&view)?;
         timings.project_ms = lap(&mut clock);
-        let visible = isect
-            .iter()
-            .filter(|r| (r[0] & 0xffff) < (r[1] & 0xffff) && (r[0] >> 16) < (r[1] >> 16))
-            .count() as u64;
-        // Label sums pay off when many contributions fall on each (Gaussian, label): with more
-        // visible Gaussians than pixels (a 30M-Gaussian terrain at 495x371 px: ~2 per sum,
-        // H200: 3.9 s/view vs 1.8 for the lists) the caller takes the lists instead.
-        if labels.is_some() && !fixed_slots && visible > u64::from(view.n_pix) {
-            self.out = kept;
-            return Ok(RunOutput::UseLists);
-        }
         // 2. CPU binning + sort (per Gaussian work only).
         let (ranges, sorted_ids) =
             bin_and_sort(&isect, &self.means, w2c, view.tiles_x, view.n_tiles)?;
@@ -560,15 +579,15 @@ impl GpuRasterizer {
         timings.bin_sort_ms = lap(&mut clock);
         let binned = self.upload_bins(&view, &ranges, &sorted_ids);
 
-        // 3'. Label sums (mode 2) instead of per-pixel lists: only the table is read back.
+        // 3'. Label sums instead of per-pixel lists: only the compact records are read back.
         if let Some(labels) = labels {
-            let out = self.label_sums_pass(&mut view, &binned, labels, fixed_slots, visible)?;
-            if matches!(out, RunOutput::Sums(_)) {
-                timings.write_ms = lap(&mut clock);
-                self.timings = timings;
-            }
             self.out = kept;
-            return Ok(out);
+            let (sums, reduce_ms) = self.label_sums_pass(&mut view, &binned, labels)?;
+            timings.write_ms = lap(&mut clock);
+            timings.reduce_ms = reduce_ms;
+            timings.host_ms = timings.bin_sort_ms + reduce_ms;
+            self.timings = timings;
+            return Ok(RunOutput::Sums(sums));
         }
         // 3a. Count pass + exclusive scan.
         let offsets = self.count_scan(&view, &binned)?;
@@ -578,6 +597,7 @@ impl GpuRasterizer {
         let (ids, weights) = self.write_banded(&mut view, &binned, &offsets, &mut kept)?;
         self.out = kept;
         timings.write_ms = lap(&mut clock);
+        timings.host_ms = timings.bin_sort_ms;
         self.timings = timings;
         tracing::debug!(?timings, entries = total, "gpu weight raster");
         Ok(RunOutput::Weights(PixelWeights {
@@ -635,7 +655,7 @@ impl GpuRasterizer {
             n_blocks,
             tile_y0: 0,
             out_base: 0,
-            table_mask: 0,
+            out_cap: 0,
         };
         let params_buf = self
             .device
@@ -662,16 +682,14 @@ impl GpuRasterizer {
             .write_buffer(&view.params_buf, 0, bytemuck::bytes_of(&view.params));
     }
 
-    /// The `blend` kernel's bind group for `view`: per-pixel outputs `out_ids` / `out_w`, and for
-    /// mode 2 the pixel `labels` and the `sums` table (placeholders otherwise).
+    /// The `blend` kernel's bind group for `view`: per-pixel outputs `out_ids` / `out_w`
+    /// (placeholders in the count mode).
     fn blend_group(
         &self,
         view: &View,
         b: &Binned,
         out_ids: &wgpu::Buffer,
         out_w: &wgpu::Buffer,
-        labels: &wgpu::Buffer,
-        sums: &wgpu::Buffer,
     ) -> wgpu::BindGroup {
         self.bind(
             &self.pipelines.blend,
@@ -683,8 +701,6 @@ impl GpuRasterizer {
                 (8, &b.offsets),
                 (9, out_ids),
                 (10, out_w),
-                (12, labels),
-                (13, sums),
             ],
         )
     }
@@ -746,7 +762,7 @@ impl WeightRasterizer for GpuRasterizer {
     fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
         match self.run_scoped(k, w2c, None)? {
             RunOutput::Weights(w) => Ok(w),
-            RunOutput::Sums(_) | RunOutput::UseLists => Err(Error::internal(
+            RunOutput::Sums(_) => Err(Error::internal(
                 "rasterizer returned sums for a weights run",
             )),
         }
@@ -760,8 +776,6 @@ impl WeightRasterizer for GpuRasterizer {
     ) -> Result<Option<LabelSums>> {
         match self.run_scoped(k, w2c, Some(labels))? {
             RunOutput::Sums(s) => Ok(Some(s)),
-            // More sums than one table binding holds: the caller rasterizes the lists instead.
-            RunOutput::UseLists => Ok(None),
             RunOutput::Weights(_) => Err(Error::internal(
                 "rasterizer returned weights for a sums run",
             )),

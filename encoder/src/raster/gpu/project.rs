@@ -47,7 +47,6 @@ impl GpuRasterizer {
             offsets: storage(&self.device, "offsets", (view.n_pix as u64 + 1) * 4),
             block_sums: storage(&self.device, "block_sums", (view.n_blocks as u64 + 1) * 4),
             dummy: storage(&self.device, "dummy", 16),
-            dummy_labels: storage(&self.device, "dummy_labels", 16),
         };
         self.noise(&b.offsets, SEED_SALT + 2);
         self.noise(&b.block_sums, SEED_SALT + 3);

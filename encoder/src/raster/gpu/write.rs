@@ -67,8 +67,7 @@ impl GpuRasterizer {
             self.write_params(view);
             let mut enc = self.device.create_command_encoder(&Default::default());
             {
-                let bg =
-                    self.blend_group(view, b, &out.ids, &out.weights, &b.dummy_labels, &b.dummy);
+                let bg = self.blend_group(view, b, &out.ids, &out.weights);
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&self.pipelines.blend);
                 pass.set_bind_group(0, &bg, &[]);
