@@ -2,8 +2,8 @@
 # slag's lifting beside gsplat's, and the encoder's host memory, on the lent GPU machine (x86_64,
 # NVIDIA, torch + nvcc, no Rust, no network); NOT part of CI.
 #
-# Carried (folder $CARRY, default .devcarry): slag-encoder.zst (zstd release build),
-# libonnxruntime.so.zst (ONNX Runtime's CPU library the build was made against), gsplat-*.whl
+# Carried (folder $CARRY, default .devcarry): slag-encoder.gz (gzip release build; .zst only
+# where the machine has zstd), libonnxruntime.so.gz (ONNX Runtime's CPU library of the build), gsplat-*.whl
 # (`pip download gsplat==1.5.3 --no-deps`; torch, jaxtyping, ninja, numpy, rich are on the
 # machine), the fixtures color-sam-encoder.onnx, color-sam-decoder.onnx, color-clip-visual.onnx,
 # and device_peers.py (scripts/); plus .gl/ (the Vulkan loader debs, README "GPU machine").
@@ -28,9 +28,10 @@ export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVL
 export XDG_RUNTIME_DIR=/tmp PYTHONUNBUFFERED=1
 R=${OUT:-/tmp/out}; W=/root/work; B=/root/bin/slag-encoder; FX=$CARRY
 mkdir -p "$R" "$W" /root/bin /root/lib
-unz() { if command -v zstd >/dev/null; then zstd -dqf "$1" -o "$2"; else python3 -c "import sys, zstandard; zstandard.ZstdDecompressor().copy_stream(open(sys.argv[1], 'rb'), open(sys.argv[2], 'wb'))" "$1" "$2"; fi; }
-[ -f "$B" ] || unz "$CARRY/slag-encoder.zst" "$B"
-[ -f /root/lib/libonnxruntime.so ] || unz "$CARRY/libonnxruntime.so.zst" /root/lib/libonnxruntime.so
+# The machine has gzip but no zstd: carry NAME.gz (or NAME.zst where a zstd is on the PATH).
+unz() { if [ -f "$1.gz" ]; then gzip -dc "$1.gz" > "$2"; else zstd -dqf "$1.zst" -o "$2"; fi; }
+[ -f "$B" ] || unz "$CARRY/slag-encoder" "$B"
+[ -f /root/lib/libonnxruntime.so ] || unz "$CARRY/libonnxruntime.so" /root/lib/libonnxruntime.so
 chmod +x "$B"
 export ORT_DYLIB_PATH=/root/lib/libonnxruntime.so
 nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader
