@@ -90,7 +90,10 @@ impl EncodeConfig {
             if self.masks.sam.decoder.is_none() {
                 return missing(Field::SamDecoder);
             }
-            match (&self.masks.sam.timing_encoder, &self.masks.sam.timing_decoder) {
+            match (
+                &self.masks.sam.timing_encoder,
+                &self.masks.sam.timing_decoder,
+            ) {
                 (Some(_), None) => return missing(Field::SamTimingDecoder),
                 (None, Some(_)) => return missing(Field::SamTimingEncoder),
                 _ => {}

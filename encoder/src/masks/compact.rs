@@ -135,7 +135,9 @@ mod tests {
             mask(9, 4, |x, _| x == 8),
             mask(9, 4, |x, _| x == 0),
             mask(6, 6, |_, _| true),
-            mask(13, 11, |x, y| (x as i32 - 6).pow(2) + (y as i32 - 5).pow(2) < 16),
+            mask(13, 11, |x, y| {
+                (x as i32 - 6).pow(2) + (y as i32 - 5).pow(2) < 16
+            }),
         ];
         for m in cases {
             let c = CompactMask::new(&m);
@@ -156,7 +158,9 @@ mod tests {
 
     #[test]
     fn a_full_row_is_one_run_per_row_and_a_blob_costs_far_less_than_its_pixels() {
-        let m = mask(990, 742, |x, y| (200..600).contains(&x) && (100..500).contains(&y));
+        let m = mask(990, 742, |x, y| {
+            (200..600).contains(&x) && (100..500).contains(&y)
+        });
         let c = CompactMask::new(&m);
         assert_eq!(c.runs.len(), 400);
         assert!(c.bytes() < m.pixels.len() / 100, "{} bytes", c.bytes());
