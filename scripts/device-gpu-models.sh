@@ -10,6 +10,9 @@
 #   scripts/device-gpu-models.sh stages      # slag-bench stages per model, CUDA and CPU
 #   scripts/device-gpu-models.sh e2e [N] [V] # synthetic scene of N Gaussians (2M), V views (250)
 #                                            # at 990x742: ViT-H 16x16 + CLIP ViT-B/16 on CUDA
+#                                            # MASKMODEL=DIR: timing model + mask model: ViT-H
+#                                            # runs on every image for its cost, DIR's color-sam
+#                                            # 16x16 (0.8/0.5) masks (~84 / image) go downstream
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -96,9 +99,16 @@ e2e)
   fi
   cp /root/big/report-synth.json "$R/synth.json"
   prec=${PREC:-f16}
-  echo "### encode: SAM ViT-H $prec 16x16 (filters 0) + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
+  MA=("${SAMARGS[@]}" $(samm $prec vit_h))
+  if [ -n "${MASKMODEL:-}" ]; then
+    MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
+      --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "$MASKMODEL/color-sam-decoder.onnx"
+      --sam-timing-encoder "$M/$prec/sam-vit_h-encoder.onnx" --sam-timing-decoder "$M/$prec/sam-vit_h-decoder.onnx")
+    echo "### timing model SAM ViT-H $prec, mask model color-sam 16x16 (0.8/0.5)"
+  fi
+  echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
   /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
-    "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
+    "${MA[@]}" $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
   cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
   ;;

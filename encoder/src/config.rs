@@ -90,6 +90,14 @@ impl EncodeConfig {
             if self.masks.sam.decoder.is_none() {
                 return missing(Field::SamDecoder);
             }
+            match (
+                &self.masks.sam.timing_encoder,
+                &self.masks.sam.timing_decoder,
+            ) {
+                (Some(_), None) => return missing(Field::SamTimingDecoder),
+                (None, Some(_)) => return missing(Field::SamTimingEncoder),
+                _ => {}
+            }
         }
         if self.aggregate.levels && self.masks.source != MaskSource::Sam {
             return Err(ConfigError::LevelsNeedSam);
@@ -245,6 +253,13 @@ pub struct SamConfig {
     pub stability_score_thresh: f32,
     /// Box NMS IoU threshold (default 0.7).
     pub box_nms_thresh: f32,
+    /// Benchmarks only: a second SAM encoder ONNX (e.g. ViT-H) run on every image for its cost
+    /// alone, with the same parameters; its masks are dropped and [`SamConfig::encoder`] /
+    /// [`SamConfig::decoder`]'s go downstream ([`crate::masks::timed::TimedMasks`]). Set with
+    /// [`SamConfig::timing_decoder`], or neither.
+    pub timing_encoder: Option<PathBuf>,
+    /// The timing model's prompt decoder ONNX (see [`SamConfig::timing_encoder`]).
+    pub timing_decoder: Option<PathBuf>,
 }
 
 impl Default for SamConfig {
@@ -257,6 +272,8 @@ impl Default for SamConfig {
             pred_iou_thresh: 0.88,
             stability_score_thresh: 0.95,
             box_nms_thresh: 0.7,
+            timing_encoder: None,
+            timing_decoder: None,
         }
     }
 }
@@ -534,6 +551,10 @@ pub enum Field {
     SamEncoder,
     /// [`SamConfig::decoder`].
     SamDecoder,
+    /// [`SamConfig::timing_encoder`].
+    SamTimingEncoder,
+    /// [`SamConfig::timing_decoder`].
+    SamTimingDecoder,
     /// [`AggregateConfig::mixture_keep`].
     MixtureKeep,
     /// [`ExecutionConfig::gpus`].
@@ -549,6 +570,8 @@ impl Field {
             Field::OutputDir => "output.dir",
             Field::SamEncoder => "masks.sam.encoder",
             Field::SamDecoder => "masks.sam.decoder",
+            Field::SamTimingEncoder => "masks.sam.timing_encoder",
+            Field::SamTimingDecoder => "masks.sam.timing_decoder",
             Field::MixtureKeep => "aggregate.mixture_keep",
             Field::Gpus => "execution.gpus",
         }
@@ -609,6 +632,9 @@ fn missing_what(field: Field) -> &'static str {
         Field::OutputDir => "the output folder",
         Field::SamEncoder | Field::SamDecoder => {
             "SAM masks need the SAM image encoder and prompt decoder (ONNX); or use graph masks"
+        }
+        Field::SamTimingEncoder | Field::SamTimingDecoder => {
+            "a SAM timing model needs both its image encoder and its prompt decoder (ONNX)"
         }
         Field::MixtureKeep | Field::Gpus => "a positive count",
     }

@@ -24,6 +24,7 @@ use slag_common::{Error, Result};
 use crate::aggregate::{
     self, ContributionStore, ImageContribution, ImageStageParams, ReduceParams,
 };
+use crate::masks::compact::CompactMask;
 use crate::masks::{Mask, MaskGenerator};
 use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
@@ -118,8 +119,9 @@ pub struct EncodeParams {
 pub(crate) struct FrontItem {
     /// Index of the view in the scene's view list.
     pub view: usize,
-    /// SAM (or graph) masks of the image.
-    pub masks: Vec<Mask>,
+    /// SAM (or graph) masks of the image, run-length encoded while the image waits between the
+    /// stages ([`CompactMask`]; [`back_stage`] expands them right before the raster call).
+    pub masks: Vec<CompactMask>,
     /// `[masks.len() * D]` CLIP crop embeddings `E_j`, row-major.
     pub embeddings: Vec<f32>,
     /// Seconds spent decoding the image.
@@ -128,6 +130,16 @@ pub(crate) struct FrontItem {
     pub masks_s: f64,
     /// Seconds spent embedding the crops.
     pub clip_s: f64,
+}
+
+impl FrontItem {
+    /// Bytes the item holds (masks' runs and metadata, embeddings): what it costs while it
+    /// waits in the queue between the stages.
+    pub(crate) fn bytes(&self) -> usize {
+        std::mem::size_of::<Self>()
+            + self.masks.iter().map(CompactMask::bytes).sum::<usize>()
+            + self.embeddings.capacity() * std::mem::size_of::<f32>()
+    }
 }
 
 /// The front stages of `view` (number `index` of the scene's views): decode ([`read_image`]),
@@ -159,7 +171,7 @@ pub(crate) fn front_stage(
     }
     Ok(FrontItem {
         view: index,
-        masks: m,
+        masks: crate::masks::compact::compact_all(&m),
         embeddings: e.concat(),
         decode_s: (t1 - t0).as_secs_f64(),
         masks_s: (t2 - t1).as_secs_f64(),
@@ -314,11 +326,12 @@ pub(crate) fn back_stage(
             raster_intrinsics.len()
         )));
     };
+    let masks = crate::masks::compact::expand_all(&item.masks);
     let (contribution, vs) = view_contribution(
         rasterizer,
         k,
         &view.world_to_camera,
-        &item.masks,
+        &masks,
         item.embeddings,
         dim,
         image_stage,
@@ -397,6 +410,53 @@ fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
             .with_style(style)
             .with_prefix(label.to_string()),
     )
+}
+
+/// Occupancy of the queues between the front and the back stages of [`encode_pool`]: images
+/// handed over and not yet taken (a front waiting for a free slot counts: its image is held),
+/// their bytes ([`FrontItem::bytes`]), and the high-water marks of both.
+#[derive(Default)]
+struct QueueGauge {
+    items: std::sync::atomic::AtomicUsize,
+    bytes: std::sync::atomic::AtomicUsize,
+    high_items: std::sync::atomic::AtomicUsize,
+    high_bytes: std::sync::atomic::AtomicUsize,
+    largest_item: std::sync::atomic::AtomicUsize,
+}
+
+impl QueueGauge {
+    /// An image of `bytes` is handed to a queue.
+    fn enter(&self, bytes: usize) {
+        use std::sync::atomic::Ordering::SeqCst;
+        let n = self.items.fetch_add(1, SeqCst) + 1;
+        self.high_items.fetch_max(n, SeqCst);
+        let b = self.bytes.fetch_add(bytes, SeqCst) + bytes;
+        self.high_bytes.fetch_max(b, SeqCst);
+        self.largest_item.fetch_max(bytes, SeqCst);
+    }
+
+    /// An image of `bytes` left its queue (taken by a back worker, or never sent).
+    fn leave(&self, bytes: usize) {
+        use std::sync::atomic::Ordering::SeqCst;
+        // Saturating: a leave can never outnumber its enter, but a gauge must not wrap.
+        let _ = self
+            .items
+            .fetch_update(SeqCst, SeqCst, |v| Some(v.saturating_sub(1)));
+        let _ = self
+            .bytes
+            .fetch_update(SeqCst, SeqCst, |v| Some(v.saturating_sub(bytes)));
+    }
+
+    /// The report's view of the gauge; `capacity` = the queues' slots together.
+    fn stats(&self, capacity: usize) -> crate::report::QueueStats {
+        use std::sync::atomic::Ordering::SeqCst;
+        crate::report::QueueStats {
+            capacity_items: capacity,
+            high_water_bytes: self.high_bytes.load(SeqCst) as u64,
+            high_water_items: self.high_items.load(SeqCst),
+            largest_item_bytes: self.largest_item.load(SeqCst) as u64,
+        }
+    }
 }
 
 /// The stage instances of one *front* worker: a mask generator and a crop embedder (their own
@@ -571,6 +631,9 @@ pub fn encode_pool(
     }
     let mut shares: Vec<WorkerShare> = Vec::new();
     let mut raster_names: Vec<String> = Vec::new();
+    // What waits between the stages: images handed to a queue (a front blocked on a full queue
+    // included) and not yet taken by a back worker, and their bytes.
+    let queue = QueueGauge::default();
 
     // The fronts start first; the rasterizers are set up (device, upload of the Gaussians) while
     // the first images go through SAM and CLIP, so that set-up is off the critical path.
@@ -578,8 +641,8 @@ pub fn encode_pool(
         let mut handles = Vec::new();
         for (w, mut front) in fronts.into_iter().enumerate() {
             let tx = txs[front.gpu.unwrap_or(0) % n_queues].clone();
-            let (views, next_view, failed, fail, bar_front) =
-                (&views, &next_view, &failed, &fail, &bar_front);
+            let (views, next_view, failed, fail, bar_front, queue) =
+                (&views, &next_view, &failed, &fail, &bar_front, &queue);
             handles.push(s.spawn(move || {
                 let mut share = WorkerShare {
                     name: format!("front-{w}"),
@@ -599,7 +662,10 @@ pub fn encode_pool(
                     match item {
                         Ok(item) => {
                             share.images += 1;
+                            let bytes = item.bytes();
+                            queue.enter(bytes);
                             if tx.send(item).is_err() {
+                                queue.leave(bytes);
                                 break;
                             }
                         }
@@ -646,7 +712,7 @@ pub fn encode_pool(
                 &store,
                 &totals,
             );
-            let level_stores = &level_stores;
+            let (level_stores, queue) = (&level_stores, &queue);
             handles.push(s.spawn(move || {
                 let mut share = WorkerShare {
                     name,
@@ -664,6 +730,7 @@ pub fn encode_pool(
                         Err(_) => break,
                     };
                     let Ok(item) = item else { break };
+                    queue.leave(item.bytes());
                     if failed.load(Ordering::SeqCst) {
                         break;
                     }
@@ -861,6 +928,7 @@ pub fn encode_pool(
     t.total = t_total.elapsed().as_secs_f64();
     let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
+    counts.queue = Some(queue.stats(n_queues * capacity));
     report.timings = t;
     report.counts = counts;
     let has_levels = !level_files.is_empty();

@@ -125,6 +125,26 @@ pub struct Counts {
     /// Peak resident memory of the process (`VmHWM` of /proc/self/status), bytes; `None` where
     /// the platform does not report it.
     pub peak_rss_bytes: Option<u64>,
+    /// The queues between the front stages (decode, masks, CLIP) and the back stage (raster,
+    /// `a_kj`): their slots and high-water marks (`encode` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub queue: Option<QueueStats>,
+}
+
+/// The queues between the front and the back stages of one `encode` run. An image waits there
+/// with its masks run-length encoded and its mask embeddings, so the memory between the stages
+/// is at most `high_water_items` of them (`high_water_bytes` measured).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct QueueStats {
+    /// Slots of all queues together (images a queue holds before a front waits).
+    pub capacity_items: usize,
+    /// Most bytes held at once by images handed to a queue and not yet taken.
+    pub high_water_bytes: u64,
+    /// Most images handed to a queue and not yet taken at once; a front waiting for a free slot
+    /// holds its image and counts, so this may reach `capacity_items` + the front workers.
+    pub high_water_items: usize,
+    /// Bytes of the largest image handed over (run-length encoded masks + embeddings).
+    pub largest_item_bytes: u64,
 }
 
 /// The process's peak resident set size (`VmHWM`), bytes, on Linux; `None` elsewhere.
@@ -400,12 +420,13 @@ pub fn timing_table(r: &Report) -> String {
         }
     };
     s += &format!(
-        "\nviews {} | Gaussians {} | observed {} ({:.1}%) | masks {} | a_kj entries {} | contributors/pixel {:.1} | rasterizer {} | masks {}\n",
+        "\nviews {} | Gaussians {} | observed {} ({:.1}%) | masks {} ({:.1} / image) | a_kj entries {} | contributors/pixel {:.1} | rasterizer {} | masks {}\n",
         r.counts.views_used,
         r.counts.gaussians,
         r.counts.observed,
         100.0 * r.counts.observed_fraction,
         r.counts.masks,
+        r.counts.masks as f64 / r.counts.views_used.max(1) as f64,
         r.counts.entries,
         r.counts.contributors_per_pixel,
         or_unknown(&r.models.rasterizer),
@@ -415,6 +436,15 @@ pub fn timing_table(r: &Report) -> String {
         s += &format!(
             "peak resident memory {:.2} GiB\n",
             b as f64 / (1u64 << 30) as f64
+        );
+    }
+    if let Some(q) = &r.counts.queue {
+        s += &format!(
+            "between the stages: at most {} images ({:.1} MiB) of {} slots, largest image {:.2} MiB\n",
+            q.high_water_items,
+            q.high_water_bytes as f64 / (1u64 << 20) as f64,
+            q.capacity_items,
+            q.largest_item_bytes as f64 / (1u64 << 20) as f64
         );
     }
     if r.workers.len() > 2 {

@@ -144,6 +144,23 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     }
     assert_eq!(r2.counts.masks, r1.counts.masks);
     assert_eq!(r2.counts.entries, r1.counts.entries);
+    // The queue between the stages: 3 unbound fronts share one queue of 6 slots; an image held
+    // by a front waiting for a slot counts, so at most 6 + 3 images wait at once. Their masks
+    // travel run-length encoded: an image costs less than its masks' bytes at one per pixel.
+    let q = r2.counts.queue.clone().unwrap();
+    assert_eq!(q.capacity_items, 6);
+    assert!((1..=9).contains(&q.high_water_items), "{q:?}");
+    assert!(q.high_water_bytes >= q.largest_item_bytes, "{q:?}");
+    assert!(
+        q.high_water_bytes <= q.high_water_items as u64 * q.largest_item_bytes,
+        "{q:?}"
+    );
+    let masks_per_image = r2.counts.masks as u64 / 7;
+    assert!(
+        q.largest_item_bytes < masks_per_image * 240 * 180 / 4,
+        "{q:?}, {masks_per_image} masks per image"
+    );
+    assert!(r1.counts.queue.is_some());
 
     let e1 = Embeddings::read(&one.join("embeddings.safetensors")).unwrap();
     let e2 = Embeddings::read(&many.join("embeddings.safetensors")).unwrap();

@@ -44,6 +44,14 @@ pub struct EncodeArgs {
     /// SAM prompt decoder ONNX (segment_anything SamOnnxModel signature).
     #[arg(long, required_if_eq("masks", "sam"))]
     pub sam_decoder: Option<PathBuf>,
+    /// Benchmarks: a second SAM image encoder (e.g. ViT-H) run on every image for its cost only,
+    /// with the same SAM settings; its masks are dropped and --sam-encoder/--sam-decoder's
+    /// masks go downstream (a timing model + mask model pair; the report names both).
+    #[arg(long, requires = "sam_timing_decoder")]
+    pub sam_timing_encoder: Option<PathBuf>,
+    /// The timing model's SAM prompt decoder (see --sam-timing-encoder).
+    #[arg(long, requires = "sam_timing_encoder")]
+    pub sam_timing_decoder: Option<PathBuf>,
     /// SAM point grid: points per image side (segment_anything's default 32).
     #[arg(long, default_value_t = 32)]
     pub sam_points_per_side: u32,
@@ -181,6 +189,8 @@ impl From<&EncodeArgs> for EncodeConfig {
                     pred_iou_thresh: a.sam_pred_iou_thresh,
                     stability_score_thresh: a.sam_stability_score_thresh,
                     box_nms_thresh: a.sam_box_nms_thresh,
+                    timing_encoder: a.sam_timing_encoder.clone(),
+                    timing_decoder: a.sam_timing_decoder.clone(),
                 },
                 graph: GraphConfig {
                     k: a.graph_k,

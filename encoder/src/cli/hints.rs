@@ -27,6 +27,9 @@ fn config_hint(e: &ConfigError) -> &'static str {
             Field::SamEncoder | Field::SamDecoder => {
                 "pass --sam-encoder and --sam-decoder, or use --masks graph"
             }
+            Field::SamTimingEncoder | Field::SamTimingDecoder => {
+                "pass both --sam-timing-encoder and --sam-timing-decoder, or neither"
+            }
             Field::MixtureKeep => "pass --mixture-keep S with S >= 1",
             Field::Gpus => "pass --gpus N with N >= 1, or --gpus all",
             // `Field` is non_exhaustive: a setting added later.

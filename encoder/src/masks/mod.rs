@@ -4,12 +4,16 @@
 //! - [`sam`]: SAM automatic mask generation over any SAM-family ONNX encoder/decoder pair
 //!   (segment_anything 1.0 `SamAutomaticMaskGenerator`, `crop_n_layers = 0`).
 //! - [`graph`]: Felzenszwalb-Huttenlocher graph segmentation, weight-free, CPU.
+//! - [`compact`]: masks as they travel between the pipeline's stages (run-length encoded).
+//! - [`timed`]: a timing model + mask model pair for benchmarks (cost of one SAM, masks of another).
 
 use image::RgbImage;
 use slag_common::Result;
 
+pub mod compact;
 pub mod graph;
 pub mod sam;
+pub mod timed;
 
 /// One binary mask over an image of `width` x `height` pixels.
 #[derive(Debug, Clone, PartialEq)]

@@ -63,6 +63,34 @@ pub struct SamParams {
     /// Where the full-resolution logits come from.
     #[serde(default)]
     pub postprocess: MaskPostprocess,
+    /// Host memory one decoder call may take, bytes: the prompts per call are then at most
+    /// `decoder_batch_bytes / `[`decoder_bytes_per_prompt`] (at least 1), fewer than
+    /// `points_per_batch` on large images. Results do not depend on it. `None`: no cap (GPU
+    /// sessions, whose tensors are on the device). The encoder sets it for CPU front workers,
+    /// which each hold their own sessions: one budget shared by all of them.
+    #[serde(default)]
+    pub decoder_batch_bytes: Option<usize>,
+}
+
+/// Host bytes one prompt costs in a CPU decoder call on an image of `h × w` pixels: its 4
+/// multimask channels as f32 at the image size and at SAM's 1024 × 1024 upsampling step, each
+/// held twice (the resize's input and output, kept in ONNX Runtime's arena). Measured with
+/// color-sam at 990 × 742: 61 MB per prompt; this gives 57 MB.
+pub fn decoder_bytes_per_prompt(h: u32, w: u32) -> usize {
+    let full = h as usize * w as usize;
+    let up = SAM_IMAGE_SIZE as usize * SAM_IMAGE_SIZE as usize;
+    2 * 4 * std::mem::size_of::<f32>() * (full + up)
+}
+
+impl SamParams {
+    /// Prompts per decoder call on an image of `h × w` pixels: `points_per_batch`, capped by
+    /// [`SamParams::decoder_batch_bytes`] (at least 1).
+    pub fn batch_for(&self, h: u32, w: u32) -> usize {
+        let cap = self
+            .decoder_batch_bytes
+            .map_or(usize::MAX, |b| b / decoder_bytes_per_prompt(h, w));
+        self.points_per_batch.min(cap).max(1)
+    }
 }
 
 /// Where AMG's full-resolution mask logits come from.
@@ -89,6 +117,7 @@ impl Default for SamParams {
             box_nms_thresh: 0.7,
             mask_threshold: 0.0,
             postprocess: MaskPostprocess::LowRes,
+            decoder_batch_bytes: None,
         }
     }
 }
@@ -528,7 +557,7 @@ impl SamAutomaticMaskGenerator {
             .collect();
         let upsampler = LowResUpsampler::new((h, w), (new_h, new_w));
         let mut cands = Vec::new();
-        let bs = self.params.points_per_batch;
+        let bs = self.params.batch_for(h, w);
         let t1 = std::time::Instant::now();
         for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
             cands.extend(self.decode_batch(&embedding, pts, tr, (h, w), &upsampler)?);
@@ -783,6 +812,24 @@ mod tests {
         assert_eq!(nms(&c, 0.7), vec![3, 2, 0]);
         // At 0.75 the 0.733 overlap survives, then #0 is suppressed by #1 (0.909).
         assert_eq!(nms(&c, 0.75), vec![3, 1, 2]);
+    }
+
+    #[test]
+    fn decoder_batches_shrink_to_their_memory_budget() {
+        let p = SamParams::default();
+        assert_eq!(p.batch_for(742, 990), 64, "no budget: points_per_batch");
+        let per = decoder_bytes_per_prompt(742, 990);
+        assert_eq!(per, 32 * (742 * 990 + 1024 * 1024));
+        let capped = |bytes| {
+            SamParams {
+                decoder_batch_bytes: Some(bytes),
+                ..SamParams::default()
+            }
+            .batch_for(742, 990)
+        };
+        assert_eq!(capped(10 * per + 1), 10);
+        assert_eq!(capped(0), 1, "at least one prompt");
+        assert_eq!(capped(1000 * per), 64, "never above points_per_batch");
     }
 
     #[test]

@@ -38,22 +38,95 @@ fn sam_paths(c: &EncodeConfig) -> Result<(&std::path::Path, &std::path::Path)> {
     ))
 }
 
+/// The SAM timing model of `c` ([`crate::config::SamConfig::timing_encoder`]) placed at
+/// `placement`, if one is set.
+///
+/// Errors: its models unloadable or of the wrong signature.
+fn sam_timing(
+    c: &EncodeConfig,
+    placement: &slag_common::onnx::Placement,
+    params: &crate::masks::sam::SamParams,
+) -> Result<Option<crate::masks::sam::SamAutomaticMaskGenerator>> {
+    let s = &c.masks.sam;
+    match (&s.timing_encoder, &s.timing_decoder) {
+        (Some(enc), Some(dec)) => Ok(Some(
+            crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                enc,
+                dec,
+                placement,
+                params.clone(),
+            )?,
+        )),
+        _ => Ok(None),
+    }
+}
+
+/// Host memory that the SAM decoder calls of all CPU front workers together may take, bytes
+/// (2 GiB): each CPU front holds its own sessions, and ONNX Runtime's arena keeps a session's
+/// largest call, so without a shared budget this term grows with the fronts (8 fronts at 64
+/// prompts per call on 990 × 742 images: about 8 × 3.6 GiB). Each front's SAM model gets
+/// `SAM_CPU_DECODER_BYTES / fronts` ([`crate::masks::sam::SamParams::decoder_batch_bytes`]).
+pub const SAM_CPU_DECODER_BYTES: usize = 2 << 30;
+
+/// `masks`, or, with a SAM timing model, the [`crate::masks::timed::TimedMasks`] pair of `timing`
+/// and `masks` (named `sam timing=<timing encoder> masks=<mask encoder>` after the files' stems).
+fn with_timing(
+    c: &EncodeConfig,
+    masks: crate::masks::sam::SamAutomaticMaskGenerator,
+    timing: Option<crate::masks::sam::SamAutomaticMaskGenerator>,
+) -> Box<dyn MaskGenerator> {
+    let stem = |p: Option<&std::path::Path>| {
+        p.and_then(|p| p.file_stem())
+            .map_or_else(String::new, |s| s.to_string_lossy().into_owned())
+    };
+    match timing {
+        Some(t) => {
+            let name = format!(
+                "sam timing={} masks={}",
+                stem(c.masks.sam.timing_encoder.as_deref()),
+                stem(c.masks.sam.encoder.as_deref())
+            );
+            Box::new(crate::masks::timed::TimedMasks::new(
+                Box::new(t),
+                Box::new(masks),
+                name,
+            ))
+        }
+        None => Box::new(masks),
+    }
+}
+
 /// The mask generator `c` asks for, with `threads` ONNX Runtime intra-op threads (SAM on GPU 0
-/// with `c`'s execution provider).
+/// with `c`'s execution provider; with a SAM timing model, the pair
+/// [`crate::masks::timed::TimedMasks`]).
 ///
 /// Errors: SAM's models missing or unloadable.
 pub fn build_masks(c: &EncodeConfig, threads: usize) -> Result<Box<dyn MaskGenerator>> {
+    build_masks_within(c, threads, None)
+}
+
+/// [`build_masks`] with SAM's decoder calls capped at `decoder_batch_bytes` of host memory
+/// ([`crate::masks::sam::SamParams::decoder_batch_bytes`]; `None`: no cap).
+fn build_masks_within(
+    c: &EncodeConfig,
+    threads: usize,
+    decoder_batch_bytes: Option<usize>,
+) -> Result<Box<dyn MaskGenerator>> {
     Ok(match c.masks.source {
         MaskSource::Sam => {
             let (enc, dec) = sam_paths(c)?;
-            Box::new(
-                crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-                    enc,
-                    dec,
-                    &c.placement(0, threads),
-                    c.masks.sam.params(),
-                )?,
-            )
+            let placement = c.placement(0, threads);
+            let params = crate::masks::sam::SamParams {
+                decoder_batch_bytes,
+                ..c.masks.sam.params()
+            };
+            let masks = crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                enc,
+                dec,
+                &placement,
+                params.clone(),
+            )?;
+            with_timing(c, masks, sam_timing(c, &placement, &params)?)
         }
         MaskSource::Graph => Box::new(crate::masks::graph::GraphSegmenter::new(
             c.masks.graph.params(),
@@ -196,7 +269,8 @@ pub struct Fronts {
 ///
 /// CLIP is loaded on GPU 0 first with `c`'s execution provider: if it runs on the CPU (provider
 /// `cpu`, or `auto` without a usable GPU provider) every front worker gets its own sessions with
-/// a share of the cores (as ONNX Runtime's CPU provider scales best); otherwise each GPU gets one
+/// a share of the cores (as ONNX Runtime's CPU provider scales best) and a share of
+/// [`SAM_CPU_DECODER_BYTES`] for its SAM decoder calls; otherwise each GPU gets one
 /// SAM session pair and one [`crate::clip::ClipService`], and the workers are bound round-robin
 /// to the GPUs. The CLIP batch defaults to [`CLIP_BATCH_GPU`] on a GPU provider,
 /// [`CLIP_BATCH_CPU`] on the CPU.
@@ -219,7 +293,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         cpu.execution.ep = ExecutionProvider::Cpu;
         let mut stages = Vec::with_capacity(n);
         for _ in 0..n {
-            let masks = build_masks(&cpu, per_front)?;
+            let masks = build_masks_within(&cpu, per_front, Some(SAM_CPU_DECODER_BYTES / n))?;
             let clip = crate::clip::ClipVisual::with_threads(
                 &c.clip.visual,
                 ExecutionProvider::Cpu,
@@ -259,18 +333,20 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         let sam = match c.masks.source {
             MaskSource::Sam => {
                 let (enc, dec) = sam_paths(c)?;
-                Some(
+                let placement = c.placement(g as u32, gpu_threads);
+                Some((
                     crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
                         enc,
                         dec,
-                        &c.placement(g as u32, gpu_threads),
+                        &placement,
                         c.masks.sam.params(),
                     )?,
-                )
+                    sam_timing(c, &placement, &c.masks.sam.params())?,
+                ))
             }
             MaskSource::Graph => None,
         };
-        let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |s| {
+        let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |(s, _)| {
             let (e, d) = s.models().providers();
             (Some(e), Some(d))
         });
@@ -289,7 +365,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
     for w in 0..n {
         let g = w % gpus;
         let masks: Box<dyn MaskGenerator> = match &sams[g] {
-            Some(sam) => Box::new(sam.share()),
+            Some((sam, timing)) => with_timing(c, sam.share(), timing.as_ref().map(|t| t.share())),
             None => build_masks(c, 1)?,
         };
         stages.push(FrontStages {
