@@ -20,6 +20,8 @@ pub mod auth;
 pub mod camera;
 pub mod embeddings;
 pub mod error;
+#[cfg(feature = "server")]
+pub mod http;
 pub mod mixture;
 pub mod objects;
 #[cfg(feature = "onnx")]

@@ -14,6 +14,10 @@
 //! hnsw_backend = "instant-distance"   # or "qdrant-edge" (binary built with --features qdrant-edge)
 //! max_scans = 1         # scans at once (each uses every core)
 //! scan_queue = 32       # waiting queries; one more gets 503 + Retry-After
+//! max_matches = 20000   # matches one request may ask for (sum of top_k over a batch)
+//! header_timeout = 10   # seconds to send a request head; also the idle keep-alive timeout
+//! write_timeout = 30    # seconds a write to a client may stall before it is dropped
+//! max_connections = 512 # open connections; keep below LimitNOFILE - 64
 //! ```
 
 use std::path::{Path, PathBuf};
@@ -49,6 +53,18 @@ pub struct ServeConfig {
     pub max_scans: Option<usize>,
     /// Queries that may wait for a scan (`slag_edge::serve::DEFAULT_SCAN_QUEUE` when absent).
     pub scan_queue: Option<usize>,
+    /// Matches one request may ask for in all, Σ `top_k` over a batch
+    /// (`slag_edge::serve::DEFAULT_MAX_MATCHES`, 20,000, when absent).
+    pub max_matches: Option<usize>,
+    /// Header-read and idle keep-alive timeout, seconds
+    /// (`slag_common::http::DEFAULT_HEADER_TIMEOUT`, 10 s, when absent).
+    pub header_timeout: Option<f64>,
+    /// Write timeout, seconds: a client that reads nothing for this long is dropped
+    /// (`slag_common::http::DEFAULT_WRITE_TIMEOUT`, 30 s, when absent).
+    pub write_timeout: Option<f64>,
+    /// Connections open at once (`slag_common::http::DEFAULT_MAX_CONNECTIONS`, 512, when
+    /// absent); lowered with a warning to the open-file limit minus 64.
+    pub max_connections: Option<usize>,
 }
 
 impl ServeConfig {
@@ -103,5 +119,9 @@ mod tests {
         assert_eq!(c.hnsw_backend.as_deref(), Some("instant-distance"));
         assert_eq!(c.max_scans, Some(1));
         assert_eq!(c.scan_queue, Some(32));
+        assert_eq!(c.max_matches, Some(20_000));
+        assert_eq!(c.header_timeout, Some(10.0));
+        assert_eq!(c.write_timeout, Some(30.0));
+        assert_eq!(c.max_connections, Some(512));
     }
 }
