@@ -221,7 +221,7 @@ def slow_readers(port, n, raw):
 
 
 def batch(n, k):
-    q = [{"text": f"probe {i}", "top_k": k, "threshold": None} for i in range(n)]
+    q = [{"text": f"probe {i}", "top_k": k, "threshold": "none"} for i in range(n)]
     return json.dumps({"queries": q}).encode()
 
 
@@ -239,6 +239,9 @@ def main():
     ap.add_argument("--tokenizer", required=True)
     ap.add_argument("--short", action="store_true")
     ap.add_argument("--skip-store", action="store_true")
+    ap.add_argument("--rss-only", action="store_true",
+                    help="only the memory cases (huge and worst accepted request), for comparing "
+                         "allocators through SLAG_PROBE_PRELOAD (LD_PRELOAD of the edge server)")
     ap.add_argument("--port", type=int, default=18190)
     a = ap.parse_args()
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
@@ -265,7 +268,11 @@ def main():
     shutil.copytree(f"{W}/edge", f"{W}/edge-pristine", dirs_exist_ok=True)
     edge_cmd = [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--addr",
                 f"{HOST}:{ep}", "--text-model", a.text_model, "--tokenizer", a.tokenizer] + timeouts_e
-    edge = start(edge_cmd, {"SLAG_EDGE_TOKEN": TOKEN}, nofile=1024, log=log)
+    edge_env = {"SLAG_EDGE_TOKEN": TOKEN}
+    if os.environ.get("SLAG_PROBE_PRELOAD"):
+        edge_env["LD_PRELOAD"] = os.environ["SLAG_PROBE_PRELOAD"]
+        print(f"probe: edge allocator preloaded: {edge_env['LD_PRELOAD']}", flush=True)
+    edge = start(edge_cmd, edge_env, nofile=1024, log=log)
     assert wait_up(ep, "/health", edge), "edge server did not start"
 
     def query(text, k=20):
@@ -278,7 +285,7 @@ def main():
     print(f"probe: edge idle RSS {idle:.1f} MB, {idle_fds} descriptors", flush=True)
 
     # 1. Stalled sockets against the edge under a 1,024 descriptor limit.
-    socks = stalled(ep, n_stall, b"GET /health HTTP/1.1\r\nHost: x\r\n")
+    socks = [] if a.rss_only else stalled(ep, n_stall, b"GET /health HTTP/1.1\r\nHost: x\r\n")
     t0 = time.time()
     try:
         hs, _, _ = request(ep, "GET", "/health", timeout=60)
@@ -296,7 +303,7 @@ def main():
         hs == 200 and qs == 200 and ids == reference["red"] and closed == len(socks))
 
     # 2. The same against the shard server.
-    socks = stalled(sp, n_stall // 2, b"GET /v1/scenes HTTP/1.1\r\nHost: x\r\n")
+    socks = [] if a.rss_only else stalled(sp, n_stall // 2, b"GET /v1/scenes HTTP/1.1\r\nHost: x\r\n")
     try:
         ss, _, _ = request(sp, "GET", "/v1/scenes", headers=auth(), timeout=60)
     except OSError as e:
@@ -338,6 +345,15 @@ def main():
     row("worst accepted request (2 x top_k 10000)", "200; RSS +<=100 MB",
         f"{st}, {len(body)/1e6:.1f} MB answer; RSS {before:.0f} -> peak {peak:.0f} -> {after:.0f} MB",
         st == 200 and peak - before <= 100)
+
+    if a.rss_only:
+        time.sleep(10)
+        print(f"probe: edge RSS idle {idle:.0f} MB, 10 s after the requests {rss_mb(edge.pid):.0f} MB")
+        stop(edge)
+        stop(shards)
+        for r in ROWS[2:]:
+            print("| " + " | ".join(str(x) for x in r) + " |")
+        return 0
 
     # 5. Slow readers on the edge: clients send the worst accepted request and never read.
     n_slow = 4 if a.short else 10

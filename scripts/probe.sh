@@ -10,15 +10,18 @@
 #   bash scripts/probe.sh --short     # 8,000 Gaussians, 300 stalls (about a minute; CI)
 #   bash scripts/probe.sh --debug     # take target/debug binaries (built by cargo test) instead
 #   bash scripts/probe.sh --skip-store   # leave out the store damage cases
+#   SLAG_PROBE_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2 bash scripts/probe.sh --rss-only
+#                                     # memory cases only, the edge under another allocator
 #   SLAG_EDGE_BIN=... SLAG_SHARDS_BIN=... bash scripts/probe.sh   # probe other binaries
 set -euo pipefail
 cd "$(dirname "$0")/.."
-short=0; profile=release; store=1
+short=0; profile=release; store=1; rss_only=0
 for a in "$@"; do
   case "$a" in
     --short) short=1 ;;
     --debug) profile=debug ;;
     --skip-store) store=0 ;;
+    --rss-only) rss_only=1 ;;
     *) echo "probe: unknown argument $a" >&2; exit 2 ;;
   esac
 done
@@ -40,5 +43,6 @@ args=(--edge "$EDGE" --shards "$SHARDS" --work "$W" --text-model "$F/color-clip-
   --tokenizer "$F/clip-tokenizer.json")
 [ "$short" = 1 ] && args+=(--short)
 [ "$store" = 0 ] && args+=(--skip-store)
-echo "probe: $EDGE, $SHARDS; $(nproc) cores; $(date -u +%FT%TZ); commit $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
+[ "$rss_only" = 1 ] && args+=(--rss-only)
+echo "probe: $EDGE, $SHARDS; $(nproc) cores; $(date -u +%FT%TZ); probe at commit $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
 timeout 900 python3 scripts/probe.py "${args[@]}"

@@ -140,7 +140,7 @@ async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
     let client = reqwest::Client::new();
     let batch = |k: usize, n: usize| {
         let q: Vec<_> = (0..n)
-            .map(|_| serde_json::json!({"text": "a", "top_k": k, "threshold": null}))
+            .map(|_| serde_json::json!({"text": "a", "top_k": k, "threshold": "none"}))
             .collect();
         serde_json::json!({ "queries": q })
     };
