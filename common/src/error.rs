@@ -416,7 +416,10 @@ mod tests {
                 Some(&self.0)
             }
         }
-        let line = causes_once(&Outer(Error::io("/s/db", std::io::Error::from_raw_os_error(11))));
+        let line = causes_once(&Outer(Error::io(
+            "/s/db",
+            std::io::Error::from_raw_os_error(11),
+        )));
         assert_eq!(line, format!("opening the store: /s/db: {os_text}"));
     }
 }

@@ -278,10 +278,7 @@ pub fn json_errors(router: Router) -> Router {
 }
 
 async fn head_limits(req: Request, next: Next) -> Response {
-    let target = req
-        .uri()
-        .path_and_query()
-        .map_or(0, |p| p.as_str().len());
+    let target = req.uri().path_and_query().map_or(0, |p| p.as_str().len());
     if target > MAX_URI_BYTES {
         return error_response(
             StatusCode::URI_TOO_LONG,

@@ -164,7 +164,10 @@ async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
     assert_eq!(r.status(), 400);
     let v: serde_json::Value = r.json().await.unwrap();
     let m = v["error"].as_str().unwrap();
-    assert!(m.contains("max_matches") && m.contains("300") && m.contains("400"), "{m}");
+    assert!(
+        m.contains("max_matches") && m.contains("300") && m.contains("400"),
+        "{m}"
+    );
     let r = client
         .get(format!("http://{addr}/query?text=a&top_k=301"))
         .send()
@@ -172,11 +175,7 @@ async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
         .unwrap();
     assert_eq!(r.status(), 400);
     // The 3.6 KB request of the probe (64 × top_k 10000, no threshold) under the default cap.
-    let (addr2, _dir2) = edge(
-        Arc::new(BasisEmbedder::new(8)),
-        ServeOptions::new("grid"),
-    )
-    .await;
+    let (addr2, _dir2) = edge(Arc::new(BasisEmbedder::new(8)), ServeOptions::new("grid")).await;
     let r = client
         .post(format!("http://{addr2}/query"))
         .json(&batch(10_000, 64))
@@ -207,7 +206,10 @@ async fn every_error_the_server_sends_has_the_json_body() {
     assert_json_error(405, &head, &body);
     assert!(head.to_ascii_lowercase().contains("allow:"), "{head}");
     // 413: a body over the limit.
-    let big = format!("{{\"queries\": [{{\"text\": \"{}\"}}]}}", "a".repeat(70_000));
+    let big = format!(
+        "{{\"queries\": [{{\"text\": \"{}\"}}]}}",
+        "a".repeat(70_000)
+    );
     let raw = format!(
         "POST /query HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/json\r\n\
          Content-Length: {}\r\n\r\n{big}",
@@ -258,7 +260,11 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
     tokio::time::sleep(Duration::from_secs(3)).await;
     let b = send("t2");
     let stats = async || -> serde_json::Value {
-        let r = client.get(format!("http://{addr}/stats")).send().await.unwrap();
+        let r = client
+            .get(format!("http://{addr}/stats"))
+            .send()
+            .await
+            .unwrap();
         r.json().await.unwrap()
     };
     wait_until("t2 waits", async || stats().await["scans"]["waiting"] == 1).await;
@@ -268,9 +274,16 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
         .await
         .unwrap();
     assert_eq!(r.status(), 503);
-    let retry: u64 = r.headers()["retry-after"].to_str().unwrap().parse().unwrap();
+    let retry: u64 = r.headers()["retry-after"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
     // Two scans ahead (the running one and t2), each taking at least the 3 s t1 has run.
-    assert!(retry >= 6, "Retry-After {retry} s while the running scan alone took 3 s");
+    assert!(
+        retry >= 6,
+        "Retry-After {retry} s while the running scan alone took 3 s"
+    );
     gate.release(2);
     assert_eq!(a.await.unwrap(), 200);
     assert_eq!(b.await.unwrap(), 200);
@@ -291,7 +304,12 @@ fn a_blank_token_in_the_environment_refuses_to_start() {
         };
         let out = c
             .args(["serve", "--scene", "grid", "--store", "/nonexistent/store"])
-            .args(["--text-model", "/nonexistent/m.onnx", "--tokenizer", "/nonexistent/t.json"])
+            .args([
+                "--text-model",
+                "/nonexistent/m.onnx",
+                "--tokenizer",
+                "/nonexistent/t.json",
+            ])
             .env("SLAG_EDGE_TOKEN", blank)
             .env("RUST_LOG", "warn")
             .output()

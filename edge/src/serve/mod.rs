@@ -251,9 +251,9 @@ impl Admission {
     /// Marks a scan as started (for [`Self::retry_after_s`]); the oldest running one is kept.
     fn started(&self) {
         let now = (self.epoch.elapsed().as_micros() as u64).max(1);
-        let _ = self
-            .running_since_us
-            .compare_exchange(0, now, Ordering::Relaxed, Ordering::Relaxed);
+        let _ =
+            self.running_since_us
+                .compare_exchange(0, now, Ordering::Relaxed, Ordering::Relaxed);
     }
 
     /// Folds one scan's duration into the moving average (weight 1/8) and clears the running

@@ -152,14 +152,9 @@ pub async fn serve_with_limits(
         .local_addr()
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
-    slag_common::http::serve(
-        listener,
-        router_with_token(store, token),
-        limits,
-        async {
-            let _ = tokio::signal::ctrl_c().await;
-        },
-    )
+    slag_common::http::serve(listener, router_with_token(store, token), limits, async {
+        let _ = tokio::signal::ctrl_c().await;
+    })
     .await;
     Ok(())
 }
@@ -396,7 +391,10 @@ fn file_response(stored: sled::IVec, headers: &HeaderMap) -> Response {
                 .unwrap_or(HeaderValue::from_static("bytes */0"));
             let mut r = error(
                 StatusCode::RANGE_NOT_SATISFIABLE,
-                format!("range not satisfiable: the file has {len} bytes; ask within 0-{}", len.saturating_sub(1)),
+                format!(
+                    "range not satisfiable: the file has {len} bytes; ask within 0-{}",
+                    len.saturating_sub(1)
+                ),
             );
             r.headers_mut().insert(header::CONTENT_RANGE, cr);
             r

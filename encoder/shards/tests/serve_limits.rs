@@ -119,10 +119,7 @@ async fn stalled_sockets_close_and_the_connection_limit_keeps_the_server_answeri
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_that_stops_reading_is_dropped_after_the_write_timeout() {
     const LEN: usize = 64 << 20;
-    let router = axum::Router::new().route(
-        "/big",
-        axum::routing::get(|| async { vec![7u8; LEN] }),
-    );
+    let router = axum::Router::new().route("/big", axum::routing::get(|| async { vec![7u8; LEN] }));
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     tokio::spawn(slag_common::http::serve(
@@ -155,7 +152,11 @@ async fn errors_have_the_json_body_and_the_bearer_scheme_is_case_insensitive() {
     let auth = "Authorization: bearer s3cret\r\n";
     let (s, head, body) = exchange(&addr, &get("/v1/scenes", auth)).await;
     assert_eq!(s, 200, "{head}{body}");
-    let (s, _, _) = exchange(&addr, &get("/v1/scenes", "Authorization: BEARER s3cret\r\n")).await;
+    let (s, _, _) = exchange(
+        &addr,
+        &get("/v1/scenes", "Authorization: BEARER s3cret\r\n"),
+    )
+    .await;
     assert_eq!(s, 200);
     let (s, head, body) = exchange(
         &addr,
@@ -172,11 +173,7 @@ async fn errors_have_the_json_body_and_the_bearer_scheme_is_case_insensitive() {
     let (s, head, body) = exchange(&addr, &get("/v1/scenes", &pad)).await;
     assert_eq!(s, 431, "{head}");
     assert_json_error(431, &head, &body);
-    let (s, head, body) = exchange(
-        &addr,
-        &get("/v1/scenes/lab/codebook", auth),
-    )
-    .await;
+    let (s, head, body) = exchange(&addr, &get("/v1/scenes/lab/codebook", auth)).await;
     assert_eq!(s, 404, "{head}");
     assert_json_error(404, &head, &body);
     // 416 keeps its Content-Range and gets the JSON body.
@@ -184,9 +181,17 @@ async fn errors_have_the_json_body_and_the_bearer_scheme_is_case_insensitive() {
     let m = slag_common::shards::Manifest::from_json(m.as_bytes(), "http").unwrap();
     let t = &m.tiles[0];
     let range = format!("{auth}Range: bytes={}-\r\n", t.bytes);
-    let (s, head, body) = exchange(&addr, &get(&format!("/v1/scenes/lab/shards/{}", t.id), &range)).await;
+    let (s, head, body) = exchange(
+        &addr,
+        &get(&format!("/v1/scenes/lab/shards/{}", t.id), &range),
+    )
+    .await;
     assert_eq!(s, 416, "{head}");
-    assert!(head.to_ascii_lowercase().contains(&format!("content-range: bytes */{}", t.bytes)), "{head}");
+    assert!(
+        head.to_ascii_lowercase()
+            .contains(&format!("content-range: bytes */{}", t.bytes)),
+        "{head}"
+    );
     assert_json_error(416, &head, &body);
 }
 
@@ -202,7 +207,10 @@ fn a_blank_shard_token_in_the_environment_refuses_to_start() {
             .unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "started with a blank token: {err}");
-        assert!(err.contains("SLAG_SHARD_TOKEN") && err.contains("blank"), "{err}");
+        assert!(
+            err.contains("SLAG_SHARD_TOKEN") && err.contains("blank"),
+            "{err}"
+        );
         assert!(err.contains("hint:"), "{err}");
     }
 }
