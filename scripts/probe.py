@@ -325,12 +325,12 @@ def main():
     after = rss_mb(edge.pid)
     msg = ""
     try:
-        msg = json.loads(body).get("error", "")[:60] if st != 200 else f"{len(body)/1e6:.0f} MB answer"
+        msg = json.loads(body).get("error", "") if st != 200 else f"{len(body)/1e6:.0f} MB answer"
     except ValueError:
         pass
     row(f"huge request ({len(huge)} B: 64 x top_k 10000)",
         "400 naming max_matches; RSS +<=100 MB",
-        f"{st} {msg!r}; RSS {before:.0f} -> peak {peak:.0f} -> {after:.0f} MB",
+        f"{st} {msg[-90:]!r}; RSS {before:.0f} -> peak {peak:.0f} -> {after:.0f} MB",
         st == 400 and "max_matches" in msg and peak - before <= 100)
 
     # 4. The largest request the cap accepts (2 x top_k 10000).
