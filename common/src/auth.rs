@@ -1,10 +1,13 @@
 //! Bearer-token authentication, one implementation for both servers: the shard server
 //! (`slag-encoder serve` / `slag-shards serve`) and the robot's server (`slag-edge serve`).
 //!
-//! Convention (RFC 6750): the client sends `Authorization: Bearer <token>`. Surrounding white
-//! space of the presented token and of the configured one is ignored (a token file's trailing
-//! newline, a header written by hand); everything else must match byte for byte, compared in
-//! constant time.
+//! Convention (RFC 6750): the client sends `Authorization: Bearer <token>`; the scheme name is
+//! matched case-insensitively (RFC 9110 §11.1: `bearer`, `BEARER` are the same scheme).
+//! Surrounding white space of the presented token and of the configured one is ignored (a token
+//! file's trailing newline, a header written by hand); everything else must match byte for byte,
+//! compared in constant time. A configured token is never blank: [`configured_token`],
+//! [`env_token`] and [`read_token_file`] refuse one, so a blank setting cannot start a server
+//! open by mistake.
 
 use std::path::Path;
 
@@ -14,10 +17,48 @@ use crate::{Error, Result};
 /// trimmed; `""` when the header is absent or uses another scheme (never matches a configured
 /// token, which is never empty).
 pub fn presented_token(authorization: Option<&str>) -> &str {
-    authorization
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::trim)
-        .unwrap_or("")
+    let Some(v) = authorization.map(str::trim_start) else {
+        return "";
+    };
+    match v.split_once([' ', '\t']) {
+        Some((scheme, token)) if scheme.eq_ignore_ascii_case("bearer") => token.trim(),
+        _ => "",
+    }
+}
+
+/// A token given in `source` (an environment variable's or a flag's name, for the message),
+/// trimmed.
+///
+/// Errors: [`Error::Param`] `token` when it is empty or only white space: set a real token, or
+/// unset it to run without one.
+pub fn configured_token(value: &str, source: &str) -> Result<String> {
+    let t = value.trim();
+    if t.is_empty() {
+        return Err(Error::param(
+            "token",
+            format!("{source} = {value:?}"),
+            format!(
+                "a non-blank token; {source} is set but blank: set a real token, or unset it \
+                 to serve without one"
+            ),
+        ));
+    }
+    Ok(t.to_string())
+}
+
+/// The token in the environment variable `var`: `None` when unset, else [`configured_token`].
+///
+/// Errors: [`Error::Param`] `token` when it is set but blank or not UTF-8.
+pub fn env_token(var: &str) -> Result<Option<String>> {
+    match std::env::var(var) {
+        Err(std::env::VarError::NotPresent) => Ok(None),
+        Err(std::env::VarError::NotUnicode(_)) => Err(Error::param(
+            "token",
+            format!("{var} = (not UTF-8)"),
+            "a token of UTF-8 text",
+        )),
+        Ok(v) => configured_token(&v, var).map(Some),
+    }
 }
 
 /// `true` when the `Authorization` header value carries `expected` (trimmed) as its bearer token.
@@ -79,10 +120,24 @@ mod tests {
         assert!(authorized(Some("Bearer s3cret"), "s3cret"));
         assert!(authorized(Some("Bearer  s3cret \t"), "s3cret\n"));
         assert!(!authorized(Some("Basic s3cret"), "s3cret"));
-        assert!(!authorized(Some("bearer s3cret"), "s3cret"));
+        // The scheme is case-insensitive (RFC 9110 §11.1).
+        assert!(authorized(Some("bearer s3cret"), "s3cret"));
+        assert!(authorized(Some("BEARER\ts3cret"), "s3cret"));
+        assert!(!authorized(Some("Bearers3cret"), "s3cret"));
+        assert!(!authorized(Some("Bearer S3cret"), "s3cret"));
         assert!(!authorized(None, "s3cret"));
         assert!(!authorized(Some("Bearer "), "s3cret"));
         assert_eq!(presented_token(Some("Token x")), "");
+    }
+
+    #[test]
+    fn a_blank_configured_token_is_refused() {
+        assert_eq!(configured_token(" t0k \n", "X").unwrap(), "t0k");
+        for blank in ["", "   ", "\t\n"] {
+            let e = configured_token(blank, "SLAG_EDGE_TOKEN").unwrap_err();
+            assert!(matches!(e, Error::Param { name: "token", .. }), "{e}");
+            assert!(e.to_string().contains("SLAG_EDGE_TOKEN"), "{e}");
+        }
     }
 
     #[test]
@@ -91,6 +146,8 @@ mod tests {
         let p = dir.path().join("t");
         std::fs::write(&p, "  abc \nsecond line\n").unwrap();
         assert_eq!(read_token_file(&p).unwrap(), "abc");
+        std::fs::write(&p, "  \t\nabc\n").unwrap();
+        assert!(read_token_file(&p).is_err());
         std::fs::write(&p, "\nabc\n").unwrap();
         let e = read_token_file(&p).unwrap_err().to_string();
         assert!(e.contains("first line"), "{e}");

@@ -327,6 +327,24 @@ impl std::fmt::Display for Resource {
     }
 }
 
+/// An error and its causes on one line, `outer: cause: cause`, each cause printed once: a cause
+/// whose text the line already ends with (an error that prints its source in its own message,
+/// as [`Error::Io`] does, and also returns it as its source) is not repeated. What the binaries
+/// print after `error: `.
+pub fn causes_once(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut line = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let text = c.to_string();
+        if !text.is_empty() && !line.ends_with(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+        cause = c.source();
+    }
+    line
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -376,5 +394,32 @@ mod tests {
             assert_eq!(e.kind(), ErrorKind::Environment);
             assert!(!e.to_string().contains("--"), "{e}");
         }
+    }
+
+    #[test]
+    fn each_cause_is_printed_once() {
+        let os = std::io::Error::from_raw_os_error(11);
+        let os_text = os.to_string();
+        let e = Error::io("/s/db", os);
+        let line = causes_once(&e);
+        assert_eq!(line.matches(&os_text).count(), 1, "{line}");
+        assert!(line.starts_with("/s/db: "), "{line}");
+        #[derive(Debug)]
+        struct Outer(Error);
+        impl std::fmt::Display for Outer {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str("opening the store")
+            }
+        }
+        impl std::error::Error for Outer {
+            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let line = causes_once(&Outer(Error::io(
+            "/s/db",
+            std::io::Error::from_raw_os_error(11),
+        )));
+        assert_eq!(line, format!("opening the store: /s/db: {os_text}"));
     }
 }

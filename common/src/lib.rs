@@ -23,6 +23,8 @@ pub mod camera;
 pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
+#[cfg(feature = "server")]
+pub mod http;
 pub mod mixture;
 pub mod objects;
 #[cfg(feature = "onnx")]

@@ -18,6 +18,10 @@
 //! ros2_node = "slag"    # its name; topics are <ros2_namespace>/<ros2_node>/{prompt,objects,…}
 //! ros2_namespace = "/"
 //! ros2_frame_id = "map" # header.frame_id of what it publishes
+//! max_matches = 20000   # matches one request may ask for (sum of top_k over a batch)
+//! header_timeout = 10   # seconds to send a request head; also the idle keep-alive timeout
+//! write_timeout = 30    # seconds a write to a client may stall before it is dropped
+//! max_connections = 512 # open connections; keep below LimitNOFILE - 64
 //! ```
 //!
 //! The DDS domain is `ROS_DOMAIN_ID` from the environment, as for every ROS 2 node.
@@ -63,6 +67,18 @@ pub struct ServeConfig {
     pub ros2_namespace: Option<String>,
     /// `header.frame_id` of the node's messages ([`crate::ros2::DEFAULT_FRAME_ID`] when absent).
     pub ros2_frame_id: Option<String>,
+    /// Matches one request may ask for in all, Σ `top_k` over a batch
+    /// (`slag_edge::serve::DEFAULT_MAX_MATCHES`, 20,000, when absent).
+    pub max_matches: Option<usize>,
+    /// Header-read and idle keep-alive timeout, seconds
+    /// (`slag_common::http::DEFAULT_HEADER_TIMEOUT`, 10 s, when absent).
+    pub header_timeout: Option<f64>,
+    /// Write timeout, seconds: a client that reads nothing for this long is dropped
+    /// (`slag_common::http::DEFAULT_WRITE_TIMEOUT`, 30 s, when absent).
+    pub write_timeout: Option<f64>,
+    /// Connections open at once (`slag_common::http::DEFAULT_MAX_CONNECTIONS`, 512, when
+    /// absent); lowered with a warning to the open-file limit minus 64.
+    pub max_connections: Option<usize>,
 }
 
 impl ServeConfig {
@@ -121,5 +137,9 @@ mod tests {
         assert_eq!(c.ros2_node.as_deref(), Some("slag"));
         assert_eq!(c.ros2_namespace.as_deref(), Some("/"));
         assert_eq!(c.ros2_frame_id.as_deref(), Some("map"));
+        assert_eq!(c.max_matches, Some(20_000));
+        assert_eq!(c.header_timeout, Some(10.0));
+        assert_eq!(c.write_timeout, Some(30.0));
+        assert_eq!(c.max_connections, Some(512));
     }
 }

@@ -163,6 +163,22 @@ struct ServeArgs {
     /// Queries that may wait for a scan; one more is answered 503 with Retry-After (default 32).
     #[arg(long)]
     scan_queue: Option<usize>,
+    /// Matches one request may ask for in all: the sum of top_k over a POST /query batch; more
+    /// is answered 400 (default 20000).
+    #[arg(long)]
+    max_matches: Option<usize>,
+    /// Seconds a connection has to send a whole request head; also the idle keep-alive timeout
+    /// (default 10).
+    #[arg(long)]
+    header_timeout: Option<f64>,
+    /// Seconds a write to a client may make no progress (a client that stopped reading) before
+    /// its connection is closed (default 30).
+    #[arg(long)]
+    write_timeout: Option<f64>,
+    /// Connections open at once; further ones wait in the listen queue (default 512). Kept 64
+    /// below the open-file limit (ulimit -n, LimitNOFILE), lowered with a warning where not.
+    #[arg(long)]
+    max_connections: Option<usize>,
     /// Serve the web page from this folder instead of the compiled-in one: its `index.html` and
     /// `app.js` where present, and the viewer bundles from its `vendor/` (made by `bash
     /// scripts/web-vendor.sh`). Default: the page and viewer compiled into this binary.
@@ -270,7 +286,11 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
         jobs: a.jobs,
         retries: a.retries,
         timeout: timeout(a.timeout, "--timeout")?,
-        token: a.token,
+        token: a
+            .token
+            .as_deref()
+            .map(|t| slag_common::auth::configured_token(t, "--token (or SLAG_SHARD_TOKEN)"))
+            .transpose()?,
         progress: true,
         frame: a.frame.into(),
     };
@@ -337,14 +357,28 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         threshold.is_finite() && (-1.0..=1.0).contains(&threshold),
         "--threshold {threshold}: use a cosine in -1..=1"
     );
-    let token = match (
-        a.token_file.or(c.token_file),
-        std::env::var("SLAG_EDGE_TOKEN").ok(),
-    ) {
-        (Some(p), _) => Some(read_token(&p)?),
-        (None, Some(t)) if !t.trim().is_empty() => Some(t.trim().to_string()),
-        _ => None,
+    // A blank token from any source is refused: it must never start the server open.
+    let env_token = slag_common::auth::env_token("SLAG_EDGE_TOKEN")?;
+    let token = match a.token_file.or(c.token_file) {
+        Some(p) => Some(read_token(&p)?),
+        None => env_token,
     };
+    let d = slag_common::http::ServerLimits::default();
+    let limits = slag_common::http::ServerLimits {
+        header_timeout: match a.header_timeout.or(c.header_timeout) {
+            Some(s) => timeout(s, "--header-timeout")?,
+            None => d.header_timeout,
+        },
+        write_timeout: match a.write_timeout.or(c.write_timeout) {
+            Some(s) => timeout(s, "--write-timeout")?,
+            None => d.write_timeout,
+        },
+        max_connections: a
+            .max_connections
+            .or(c.max_connections)
+            .unwrap_or(d.max_connections),
+    };
+    limits.validate()?;
     let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
     let hnsw_backend = match a.hnsw_backend.or(c.hnsw_backend) {
         None => HnswBackend::default(),
@@ -372,7 +406,13 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             .scan_queue
             .or(c.scan_queue)
             .unwrap_or(slag_edge::serve::DEFAULT_SCAN_QUEUE),
+        max_matches: a
+            .max_matches
+            .or(c.max_matches)
+            .unwrap_or(slag_edge::serve::DEFAULT_MAX_MATCHES),
+        limits,
     };
+    anyhow::ensure!(opts.max_matches >= 1, "--max-matches must be at least 1");
     anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
     let ros2 = if a.ros2 || c.ros2.unwrap_or(false) {
         let d = slag_edge::ros2::Ros2Options::default();
@@ -519,7 +559,7 @@ fn main() -> std::process::ExitCode {
         Err(e) => {
             // One line with the causes; no backtrace (anyhow captures one when RUST_BACKTRACE is
             // set, and returning the error from main printed it on every failure).
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
             if let Some(h) = hint(&e) {
                 eprintln!("hint: {h}");
             }
@@ -561,6 +601,14 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "ros2_namespace" => "pass --ros2-namespace /NS (or /)".into(),
             "ros2_frame_id" => "pass --ros2-frame-id map".into(),
             "ROS_DOMAIN_ID" => "set ROS_DOMAIN_ID to 0..=232, or unset it for domain 0".into(),
+            "token" => "write a real token in the token file or SLAG_EDGE_TOKEN / --token, or \
+                        unset the variable to run without one"
+                .into(),
+            "max_connections" => "pass --max-connections N (or `max_connections` in --config), \
+                                  or raise the open-file limit (ulimit -n, LimitNOFILE)"
+                .into(),
+            "header_timeout" => "pass --header-timeout SECONDS".into(),
+            "write_timeout" => "pass --write-timeout SECONDS".into(),
             _ => return None,
         },
         Error::Query { field, message } => match *field {

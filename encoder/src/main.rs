@@ -105,7 +105,7 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
             if let Some(h) = cli::hints::hint(&e) {
                 eprintln!("hint: {h}");
             }

@@ -19,7 +19,20 @@
 //!   reloads; `POST /reload` reloads the store.
 //!
 //! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
-//! bodies over [`MAX_BODY_BYTES`] → 413; requests over the timeout → 408.
+//! bodies over [`MAX_BODY_BYTES`] → 413; requests over the timeout → 408; a method a route does
+//! not answer → 405; an overlong target or header block → 414 / 431. Every one of them has the
+//! JSON error body ([`slag_common::http::json_errors`]).
+//!
+//! # Timeouts, connections and answer size
+//!
+//! [`serve`] runs [`slag_common::http::serve`] under [`ServeOptions::limits`]: a header-read
+//! timeout that is also the idle keep-alive timeout, a write timeout that drops a client that
+//! stopped reading its answer, and a connection limit kept below the open-file limit (lowered
+//! with a warning at start-up where it is not). One request may ask for at most
+//! [`ServeOptions::max_matches`] matches in all (default [`DEFAULT_MAX_MATCHES`]): the sum of
+//! `top_k` over a `POST /query` batch, or one query's `top_k` (a threshold query returns at most
+//! its `top_k` best matches too). More is refused with 400 naming the limit, before any scan, so
+//! the largest answer one request can build is bounded.
 //!
 //! # Admission control
 //!
@@ -48,6 +61,7 @@ use axum::http::{HeaderMap, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
+use slag_common::http::ServerLimits;
 use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
@@ -66,6 +80,9 @@ pub const MAX_BODY_BYTES: usize = 64 * 1024;
 pub const DEFAULT_MAX_SCANS: usize = 1;
 /// Requests waiting for a scan by default; one more gets 503.
 pub const DEFAULT_SCAN_QUEUE: usize = 32;
+/// Matches one request may ask for in all by default (Σ `top_k` over a batch): 20,000, twice the
+/// largest `top_k` of one query ([`query::MAX_TOP_K`]); about 2 MB of JSON.
+pub const DEFAULT_MAX_MATCHES: usize = 20_000;
 
 /// Server settings.
 #[derive(Debug, Clone)]
@@ -88,12 +105,17 @@ pub struct ServeOptions {
     pub max_scans: usize,
     /// Requests that may wait for a scan; one more is answered 503 with `Retry-After`.
     pub scan_queue: usize,
+    /// Matches one request may ask for in all (Σ `top_k` over a batch; module doc).
+    pub max_matches: usize,
+    /// Header-read / idle timeout, write timeout and connection limit of the server.
+    pub limits: ServerLimits,
 }
 
 impl ServeOptions {
     /// Options for `scene` with the defaults of `slag-edge serve`: no token, threshold 0.28
-    /// (the paper's), no HNSW (backend instant-distance when enabled), 30 s request timeout, [`DEFAULT_MAX_SCANS`] and
-    /// [`DEFAULT_SCAN_QUEUE`].
+    /// (the paper's), no HNSW (backend instant-distance when enabled), 30 s request timeout,
+    /// [`DEFAULT_MAX_SCANS`], [`DEFAULT_SCAN_QUEUE`], [`DEFAULT_MAX_MATCHES`] and the default
+    /// [`ServerLimits`].
     pub fn new(scene: impl Into<String>) -> ServeOptions {
         ServeOptions {
             scene: scene.into(),
@@ -104,6 +126,8 @@ impl ServeOptions {
             request_timeout: Duration::from_secs(30),
             max_scans: DEFAULT_MAX_SCANS,
             scan_queue: DEFAULT_SCAN_QUEUE,
+            max_matches: DEFAULT_MAX_MATCHES,
+            limits: ServerLimits::default(),
         }
     }
 
@@ -122,6 +146,9 @@ pub struct Admission {
     busy: AtomicU64,
     /// Moving average of scan times, microseconds (0 until the first scan).
     scan_us: AtomicU64,
+    /// When the oldest running scan started, microseconds after `epoch` (0: none running).
+    running_since_us: AtomicU64,
+    epoch: Instant,
 }
 
 /// A request turned away because the scan queue is full (→ 503 with `Retry-After`).
@@ -172,6 +199,8 @@ impl Admission {
             waiting: AtomicUsize::new(0),
             busy: AtomicU64::new(0),
             scan_us: AtomicU64::new(0),
+            running_since_us: AtomicU64::new(0),
+            epoch: Instant::now(),
         }
     }
 
@@ -202,15 +231,35 @@ impl Admission {
             })
     }
 
-    /// Estimated seconds until `waiting` queued scans and the running ones are done (≥ 1).
+    /// Estimated seconds until `waiting` queued scans and the running ones are done (≥ 1): the
+    /// rounds of `max_scans` scans ahead times the time one takes, the larger of the moving
+    /// average and how long the running scan has already taken (so the first burst, before any
+    /// scan has finished, and a scan slower than the recent ones are not underestimated).
     fn retry_after_s(&self, waiting: usize) -> u64 {
-        let scan_s = self.scan_us.load(Ordering::Relaxed) as f64 * 1e-6;
+        let mean_s = self.scan_us.load(Ordering::Relaxed) as f64 * 1e-6;
+        let since = self.running_since_us.load(Ordering::Relaxed);
+        let running_s = if since == 0 {
+            0.0
+        } else {
+            (self.epoch.elapsed().as_micros() as f64 * 1e-6 - since as f64 * 1e-6).max(0.0)
+        };
+        let scan_s = mean_s.max(running_s);
         let rounds = (waiting + self.max_scans) as f64 / self.max_scans as f64;
         (rounds * scan_s).ceil().max(1.0) as u64
     }
 
-    /// Folds one scan's duration into the moving average (weight 1/8).
+    /// Marks a scan as started (for [`Self::retry_after_s`]); the oldest running one is kept.
+    fn started(&self) {
+        let now = (self.epoch.elapsed().as_micros() as u64).max(1);
+        let _ =
+            self.running_since_us
+                .compare_exchange(0, now, Ordering::Relaxed, Ordering::Relaxed);
+    }
+
+    /// Folds one scan's duration into the moving average (weight 1/8) and clears the running
+    /// mark.
     fn record(&self, took: Duration) {
+        self.running_since_us.store(0, Ordering::Relaxed);
         let us = took.as_micros().min(u64::MAX as u128) as u64;
         let old = self.scan_us.load(Ordering::Relaxed);
         let new = if old == 0 { us } else { old - old / 8 + us / 8 };
@@ -314,10 +363,10 @@ impl AppState {
     }
 }
 
-/// Builds the router (auth, body limit and timeout layers included).
+/// Builds the router (auth, body limit, timeout and JSON error layers included).
 pub fn router(state: Arc<AppState>) -> Router {
     let timeout = state.opts.request_timeout;
-    Router::new()
+    let router = Router::new()
         .route("/health", get(health))
         .route("/stats", get(stats))
         .route("/query", get(query_get).post(query_post))
@@ -336,6 +385,14 @@ pub fn router(state: Arc<AppState>) -> Router {
                     .into(),
             )
         })
+        .method_not_allowed_fallback(|| async {
+            error(
+                StatusCode::METHOD_NOT_ALLOWED,
+                "method not allowed on this route: GET /query, /query.ply, /health, /stats and \
+                 the page; POST /query, /fetch and /reload"
+                    .into(),
+            )
+        })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(
             MAX_BODY_BYTES,
@@ -344,17 +401,29 @@ pub fn router(state: Arc<AppState>) -> Router {
             StatusCode::REQUEST_TIMEOUT,
             timeout,
         ))
-        .with_state(state)
+        .with_state(state);
+    slag_common::http::json_errors(router)
 }
 
-/// Binds `addr` and serves until Ctrl-C or SIGTERM; `on_bound` receives the bound address.
+/// Binds `addr` and serves until Ctrl-C or SIGTERM under [`ServeOptions::limits`] (module doc);
+/// `on_bound` receives the bound address. The connection limit is first checked against the
+/// open-file limit ([`slag_common::http::check_connection_limit`]): lowered, with a warning
+/// logged, where it leaves fewer than [`slag_common::http::FD_HEADROOM`] descriptors free.
 ///
-/// Errors: the address cannot be bound ([`Error::Io`]).
+/// Errors: invalid limits or an open-file limit too low to serve ([`Error::Param`]
+/// `max_connections`, ...); the address cannot be bound ([`Error::Io`]).
 pub async fn serve(
     state: Arc<AppState>,
     addr: SocketAddr,
     on_bound: impl FnOnce(SocketAddr),
 ) -> Result<()> {
+    let (limits, warning) = slag_common::http::check_connection_limit(
+        state.opts.limits,
+        slag_common::http::open_files_limit(),
+    )?;
+    if let Some(w) = warning {
+        tracing::warn!("{w}");
+    }
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .map_err(|e| Error::io(addr.to_string(), e))?;
@@ -362,10 +431,8 @@ pub async fn serve(
         .local_addr()
         .map_err(|e| Error::io(addr.to_string(), e))?;
     on_bound(local);
-    axum::serve(listener, router(state))
-        .with_graceful_shutdown(shutdown())
-        .await
-        .map_err(|e| Error::io(local.to_string(), e))
+    slag_common::http::serve(listener, router(state), limits, shutdown()).await;
+    Ok(())
 }
 
 async fn shutdown() {
@@ -391,13 +458,25 @@ async fn shutdown() {
 }
 
 pub(crate) fn error(status: StatusCode, message: String) -> Response {
-    let body = serde_json::json!({ "error": message, "status": status.as_u16() });
-    (
-        status,
-        [(header::CONTENT_TYPE, "application/json")],
-        body.to_string(),
-    )
-        .into_response()
+    slag_common::http::error_response(status, message)
+}
+
+/// Refuses a request asking for more than `max` matches in all (module doc).
+///
+/// Errors: [`Error::Query`] `top_k` naming the sum and the limit.
+pub fn check_matches(qs: &[QueryParams], max: usize) -> Result<()> {
+    let asked: usize = qs.iter().map(|q| q.top_k).sum();
+    if asked > max {
+        return Err(Error::query(
+            "top_k",
+            format!(
+                "the request asks for {asked} matches in all (sum of top_k over its queries); \
+                 this server answers at most {max} per request (max_matches): lower top_k or \
+                 split the batch"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Maps a slag error to an HTTP status by who has to act ([`slag_common::Error::kind`], one
@@ -518,6 +597,7 @@ pub(crate) async fn answer(
     Ok(
         match tokio::task::spawn_blocking(move || {
             let _permit = permit;
+            st.admission.started();
             let t0 = Instant::now();
             let e = st.engine();
             let answers = qs
@@ -570,7 +650,8 @@ async fn query_get(
     let params = q
         .map_err(|e| Error::query("query", format!("query string: {e}")))
         .and_then(|Query(p)| raw_from_pairs(p))
-        .and_then(|r| r.validate(state.opts.threshold));
+        .and_then(|r| r.validate(state.opts.threshold))
+        .and_then(|p| check_matches(std::slice::from_ref(&p), state.opts.max_matches).map(|()| p));
     let params = match params {
         Ok(p) => p,
         Err(e) => {
@@ -599,6 +680,15 @@ async fn query_post(
     };
     let body = match body {
         Ok(axum::Json(b)) => b,
+        Err(e) if e.status() == StatusCode::PAYLOAD_TOO_LARGE => {
+            state.rejected.fetch_add(1, Ordering::Relaxed);
+            return error(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                format!(
+                    "body over {MAX_BODY_BYTES} bytes; send fewer queries (at most {MAX_BATCH})"
+                ),
+            );
+        }
         Err(e) => {
             return bad(format!(
                 "body: {e}; send {{\"queries\": [{{\"text\": \"chair\"}}]}}"
@@ -624,18 +714,35 @@ async fn query_post(
             Err(e) => return bad(format!("queries[{i}]: {e}")),
         }
     }
+    if let Err(e) = check_matches(&params, state.opts.max_matches) {
+        return bad(e.to_string());
+    }
     let answers = match answer(&state, params).await {
         Ok(a) => a,
         Err(busy) => return busy.response(),
     };
-    let answers: Vec<serde_json::Value> = answers
+    // Serialised straight from the answers (no intermediate JSON tree per match).
+    #[derive(serde::Serialize)]
+    #[serde(untagged)]
+    enum Item {
+        Answer(query::QueryAnswer),
+        Error { error: String, status: u16 },
+    }
+    #[derive(serde::Serialize)]
+    struct Answers {
+        answers: Vec<Item>,
+    }
+    let answers = answers
         .into_iter()
         .map(|r| match r {
-            Ok(a) => serde_json::to_value(a).unwrap_or_default(),
-            Err(e) => serde_json::json!({"error": e.to_string(), "status": status_of(&e).as_u16()}),
+            Ok(a) => Item::Answer(a),
+            Err(e) => Item::Error {
+                error: e.to_string(),
+                status: status_of(&e).as_u16(),
+            },
         })
         .collect();
-    axum::Json(serde_json::json!({ "answers": answers })).into_response()
+    axum::Json(Answers { answers }).into_response()
 }
 
 async fn reload_engine(state: &Arc<AppState>) -> Result<()> {

@@ -437,37 +437,72 @@ pub struct ServeArgs {
     /// SLAG_SHARD_TOKEN); without either the server is open.
     #[arg(long)]
     pub token_file: Option<PathBuf>,
+    /// Seconds a connection has to send a whole request head; also the idle keep-alive timeout.
+    #[arg(long, default_value_t = slag_common::http::DEFAULT_HEADER_TIMEOUT.as_secs_f64())]
+    pub header_timeout: f64,
+    /// Seconds a write to a client may make no progress (a client that stopped reading) before
+    /// its connection is closed.
+    #[arg(long, default_value_t = slag_common::http::DEFAULT_WRITE_TIMEOUT.as_secs_f64())]
+    pub write_timeout: f64,
+    /// Connections open at once; further ones wait in the listen queue. Kept 64 below the
+    /// open-file limit (ulimit -n), lowered with a warning where it is not.
+    #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS)]
+    pub max_connections: usize,
+}
+
+impl ServeArgs {
+    /// The server limits these flags set.
+    ///
+    /// Errors: [`slag_common::Error::Param`] for a timeout that is not a finite number > 0 or a
+    /// connection limit of 0.
+    pub fn limits(&self) -> slag_common::Result<slag_common::http::ServerLimits> {
+        let secs = |v: f64, name: &'static str| {
+            if v.is_finite() && v > 0.0 && v < 1e9 {
+                Ok(std::time::Duration::from_secs_f64(v))
+            } else {
+                Err(slag_common::Error::param(name, v, "seconds > 0"))
+            }
+        };
+        let l = slag_common::http::ServerLimits {
+            header_timeout: secs(self.header_timeout, "header_timeout")?,
+            write_timeout: secs(self.write_timeout, "write_timeout")?,
+            max_connections: self.max_connections,
+        };
+        l.validate()?;
+        Ok(l)
+    }
 }
 
 /// The shard server's token: `--token-file` (first line, trimmed) else env `SLAG_SHARD_TOKEN`.
 ///
-/// Errors: unreadable or empty token file ([`slag_common::Error::Io`] / `Format`).
+/// Errors: unreadable or blank token file ([`slag_common::Error::Io`] / `Format`); a
+/// `SLAG_SHARD_TOKEN` that is set but blank ([`slag_common::Error::Param`] `token`): a blank
+/// token never starts the server open.
 pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<Option<String>> {
     if let Some(p) = token_file {
         return slag_common::auth::read_token_file(p).map(Some);
     }
-    Ok(std::env::var("SLAG_SHARD_TOKEN")
-        .ok()
-        .map(|t| t.trim().to_string())
-        .filter(|t| !t.is_empty()))
+    slag_common::auth::env_token("SLAG_SHARD_TOKEN")
 }
 
 /// Runs `serve` until Ctrl-C (own tokio runtime).
 ///
 /// Errors: store cannot be opened, address cannot be bound.
 pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
-    let store = ShardStore::open(&args.store)?;
     let token = serve_token(args.token_file.as_deref())?;
+    let limits = args.limits()?;
+    let store = ShardStore::open(&args.store)?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
     let guarded = if token.is_some() {
         " (bearer token required)"
     } else {
         ""
     };
-    rt.block_on(crate::serve::serve_with_token(
+    rt.block_on(crate::serve::serve_with_limits(
         store,
         args.bind,
         token,
+        limits,
         |a| println!("serving on http://{a}/v1/scenes{guarded}"),
     ))?;
     Ok(())
@@ -529,6 +564,10 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "collection" => "--qdrant-collection NAME",
                 "scene_id" | "scene" => "--scene NAME",
                 "dir" => "the export folder DIR",
+                "token" => "a non-blank --token-file, or unset SLAG_SHARD_TOKEN",
+                "header_timeout" => "--header-timeout SECONDS",
+                "write_timeout" => "--write-timeout SECONDS",
+                "max_connections" => "--max-connections N (or raise ulimit -n)",
                 _ => return None,
             };
             Some(format!("pass {flag}"))

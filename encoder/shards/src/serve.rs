@@ -19,6 +19,13 @@
 //! With a bearer token ([`router_with_token`], `slag-encoder serve --token-file F` or env
 //! `SLAG_SHARD_TOKEN`) every route requires `Authorization: Bearer <token>` (compared in constant
 //! time); otherwise 401 JSON with `WWW-Authenticate: Bearer`. `slag-edge fetch --token` sends it.
+//!
+//! Every error answer, those axum produces itself included (405 with `Allow`, 414, 431, 416), has
+//! the JSON body ([`slag_common::http::json_errors`]). [`serve_with_limits`] applies the
+//! header-read / idle timeout, the write timeout and the connection limit of
+//! [`slag_common::http::ServerLimits`]. A shard or codebook is answered from the store's own
+//! buffer (the value sled holds), shared by every connection answering it and by ranges of it:
+//! no copy per connection, so a client that reads slowly holds no shard of its own.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -29,6 +36,7 @@ use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
+use slag_common::http::ServerLimits;
 use slag_common::shards::{shard_checksum, valid_scene_id};
 
 use crate::store::ShardStore;
@@ -46,19 +54,28 @@ pub fn router(store: ShardStore) -> Router {
                 "no such route; see /v1/scenes/{scene}/manifest".into(),
             )
         })
+        .method_not_allowed_fallback(|| async {
+            error(
+                StatusCode::METHOD_NOT_ALLOWED,
+                "method not allowed: every route of the shard server answers GET (and HEAD)".into(),
+            )
+        })
         .with_state(Arc::new(store))
 }
 
 /// [`router`] behind a bearer token when `token` is `Some` (module doc); `None` is [`router`].
+/// The JSON error layers ([`slag_common::http::json_errors`]) are outermost, so a 401 or 405
+/// and an overlong request all get the JSON body.
 pub fn router_with_token(store: ShardStore, token: Option<String>) -> Router {
     let r = router(store);
-    match token {
+    let r = match token {
         None => r,
         Some(t) => r.layer(axum::middleware::from_fn_with_state(
             Arc::new(t),
             require_token,
         )),
-    }
+    };
+    slag_common::http::json_errors(r)
 }
 
 async fn require_token(
@@ -96,7 +113,8 @@ pub async fn serve(
     serve_with_token(store, addr, None, on_bound).await
 }
 
-/// [`serve`] behind an optional bearer token ([`router_with_token`]).
+/// [`serve`] behind an optional bearer token ([`router_with_token`]), with the default
+/// [`ServerLimits`].
 ///
 /// Errors: the address cannot be bound ([`slag_common::Error::Io`]).
 pub async fn serve_with_token(
@@ -105,6 +123,28 @@ pub async fn serve_with_token(
     token: Option<String>,
     on_bound: impl FnOnce(SocketAddr),
 ) -> slag_common::Result<()> {
+    serve_with_limits(store, addr, token, ServerLimits::default(), on_bound).await
+}
+
+/// [`serve_with_token`] under `limits`: header-read (and idle keep-alive) timeout, write
+/// timeout, connection limit ([`slag_common::http`]). The connection limit is first checked
+/// against the open-file limit ([`slag_common::http::check_connection_limit`]: lowered with a
+/// warning where it leaves fewer than 64 descriptors free).
+///
+/// Errors: invalid limits or an open-file limit too low for any connection limit
+/// ([`slag_common::Error::Param`]); the address cannot be bound ([`slag_common::Error::Io`]).
+pub async fn serve_with_limits(
+    store: ShardStore,
+    addr: SocketAddr,
+    token: Option<String>,
+    limits: ServerLimits,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
+    let (limits, warning) =
+        slag_common::http::check_connection_limit(limits, slag_common::http::open_files_limit())?;
+    if let Some(w) = warning {
+        tracing::warn!("{w}");
+    }
     let listener = tokio::net::TcpListener::bind(addr)
         .await
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
@@ -112,22 +152,15 @@ pub async fn serve_with_token(
         .local_addr()
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
-    axum::serve(listener, router_with_token(store, token))
-        .with_graceful_shutdown(async {
-            let _ = tokio::signal::ctrl_c().await;
-        })
-        .await
-        .map_err(|e| slag_common::Error::io(local.to_string(), e))
+    slag_common::http::serve(listener, router_with_token(store, token), limits, async {
+        let _ = tokio::signal::ctrl_c().await;
+    })
+    .await;
+    Ok(())
 }
 
 fn error(status: StatusCode, message: String) -> Response {
-    let body = serde_json::json!({ "error": message, "status": status.as_u16() });
-    (
-        status,
-        [(header::CONTENT_TYPE, "application/json")],
-        body.to_string(),
-    )
-        .into_response()
+    slag_common::http::error_response(status, message)
 }
 
 /// A store error as a response, its status by who has to act ([`slag_common::Error::kind`], one
@@ -293,7 +326,7 @@ async fn shard(
         }
         Err(e) => return internal(e),
     };
-    file_response(&bytes, &headers)
+    file_response(bytes, &headers)
 }
 
 async fn codebook(
@@ -305,7 +338,7 @@ async fn codebook(
         return r;
     }
     match store.codebook(&scene) {
-        Ok(Some(b)) => file_response(&b, &headers),
+        Ok(Some(b)) => file_response(b, &headers),
         Ok(None) => error(
             StatusCode::NOT_FOUND,
             format!("scene {scene:?} has no codebook (unknown, or partitioned dense)"),
@@ -315,8 +348,10 @@ async fn codebook(
 }
 
 /// A stored file (shard or codebook) with its CRC-32 ETag, `If-None-Match` and single ranges.
-fn file_response(bytes: &[u8], headers: &HeaderMap) -> Response {
-    let etag = format!("\"{:08x}\"", shard_checksum(bytes));
+/// The body is the store's buffer itself (`Bytes::from_owner`), never a copy.
+fn file_response(stored: sled::IVec, headers: &HeaderMap) -> Response {
+    let bytes = Bytes::from_owner(stored);
+    let etag = format!("\"{:08x}\"", shard_checksum(&bytes));
     let etag_h = HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\""));
     if none_match(headers, &etag) {
         return (StatusCode::NOT_MODIFIED, [(header::ETAG, etag_h)]).into_response();
@@ -338,11 +373,11 @@ fn file_response(bytes: &[u8], headers: &HeaderMap) -> Response {
         ),
     ];
     match range {
-        RangeReq::Full => (StatusCode::OK, common, Bytes::copy_from_slice(bytes)).into_response(),
+        RangeReq::Full => (StatusCode::OK, common, bytes).into_response(),
         RangeReq::Part(a, b) => {
             let cr = HeaderValue::from_str(&format!("bytes {a}-{b}/{len}"))
                 .unwrap_or(HeaderValue::from_static("bytes */0"));
-            let body = Bytes::copy_from_slice(&bytes[a as usize..=b as usize]);
+            let body = bytes.slice(a as usize..=b as usize);
             (
                 StatusCode::PARTIAL_CONTENT,
                 common,
@@ -354,12 +389,15 @@ fn file_response(bytes: &[u8], headers: &HeaderMap) -> Response {
         RangeReq::Unsatisfiable => {
             let cr = HeaderValue::from_str(&format!("bytes */{len}"))
                 .unwrap_or(HeaderValue::from_static("bytes */0"));
-            (
+            let mut r = error(
                 StatusCode::RANGE_NOT_SATISFIABLE,
-                [(header::CONTENT_RANGE, cr)],
-                "",
-            )
-                .into_response()
+                format!(
+                    "range not satisfiable: the file has {len} bytes; ask within 0-{}",
+                    len.saturating_sub(1)
+                ),
+            );
+            r.headers_mut().insert(header::CONTENT_RANGE, cr);
+            r
         }
     }
 }

@@ -1,0 +1,325 @@
+//! `slag-edge serve` against hostile clients: stalled and idle sockets are closed within the
+//! header timeout, the connection limit keeps `/health` answering, one request cannot ask for an
+//! unbounded answer, every error has the JSON body (405, 408, 413, 414, 431), `Retry-After`
+//! estimates the real drain time, and a blank token refuses to start.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use slag_common::http::ServerLimits;
+use slag_common::shards::Dtype;
+use slag_edge::serve::{AppState, ServeOptions};
+use support::{BasisEmbedder, GateEmbedder, fetch_grid, grid_scene, shard_server, wait_until};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// Serves a 2×2-tile grid scene with `opts` (scene "grid", dimension 8); returns `host:port`.
+async fn edge(
+    embedder: Arc<dyn slag_edge::query::TextEmbedder>,
+    opts: ServeOptions,
+) -> (String, tempfile::TempDir) {
+    let server = shard_server(grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1), None).await;
+    let (dir, store) = fetch_grid(&server.url, 100.0).await;
+    let url = support::serve_on_loopback(AppState::new(store, embedder, opts).unwrap()).await;
+    (url.trim_start_matches("http://").to_string(), dir)
+}
+
+fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
+    ServerLimits {
+        header_timeout: Duration::from_secs(header_s),
+        write_timeout: Duration::from_secs(5),
+        max_connections,
+    }
+}
+
+/// Sends `raw` on a fresh connection and reads until the server closes it (at most 30 s):
+/// (status, headers, body).
+async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(raw).await.unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
+        .await
+        .expect("the server answers and closes within 30 s")
+        .unwrap();
+    let text = String::from_utf8_lossy(&out).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let status = head.split(' ').nth(1).unwrap_or("0").parse().unwrap_or(0);
+    (status, head.to_string(), body.to_string())
+}
+
+fn get(path: &str, extra: &str) -> Vec<u8> {
+    format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{extra}\r\n").into_bytes()
+}
+
+/// The JSON error body with `status`.
+fn assert_json_error(status: u16, head: &str, body: &str) {
+    assert!(
+        head.to_ascii_lowercase()
+            .contains("content-type: application/json"),
+        "{status}: {head}"
+    );
+    let v: serde_json::Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body}"));
+    assert_eq!(v["status"], status, "{v}");
+    assert!(!v["error"].as_str().unwrap().is_empty(), "{v}");
+}
+
+/// Waits (at most `bound`) until the server closes `s`; returns how long that took.
+async fn closed_within(s: &mut tokio::net::TcpStream, bound: Duration) -> Duration {
+    let t0 = Instant::now();
+    let mut buf = [0u8; 1024];
+    loop {
+        match tokio::time::timeout(bound.saturating_sub(t0.elapsed()), s.read(&mut buf)).await {
+            Ok(Ok(0) | Err(_)) => return t0.elapsed(),
+            Ok(Ok(_)) => {}
+            Err(_) => panic!("the connection is still open after {bound:?}"),
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
+    let opts = ServeOptions {
+        limits: limits(1, 64),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    // One header line, then nothing (the probe's stalled socket).
+    let mut stalled = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    stalled
+        .write_all(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+        .await
+        .unwrap();
+    // Connected, never sends a byte.
+    let mut silent = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    // Kept alive after one answer, then idle.
+    let mut kept = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    kept.write_all(b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n")
+        .await
+        .unwrap();
+    let mut buf = [0u8; 4096];
+    let n = kept.read(&mut buf).await.unwrap();
+    assert!(String::from_utf8_lossy(&buf[..n]).starts_with("HTTP/1.1 200"));
+    for s in [&mut stalled, &mut silent, &mut kept] {
+        // 1 s timeout; 10 s bounds a loaded machine, not the speed.
+        closed_within(s, Duration::from_secs(10)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_answers_while_stalled_sockets_hold_every_connection_slot() {
+    let opts = ServeOptions {
+        limits: limits(1, 8),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let mut stalled = Vec::new();
+    for _ in 0..24 {
+        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+        s.write_all(b"GET /health HTTP/1.1\r\n").await.unwrap();
+        stalled.push(s);
+    }
+    // Three times the limit stalls; slots come free as the header timeout closes them.
+    let (status, _, body) = exchange(&addr, &get("/health", "")).await;
+    assert_eq!(status, 200, "{body}");
+    assert!(body.contains("\"ok\""), "{body}");
+    for s in &mut stalled {
+        closed_within(s, Duration::from_secs(30)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
+    let opts = ServeOptions {
+        max_matches: 300,
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let client = reqwest::Client::new();
+    let batch = |k: usize, n: usize| {
+        let q: Vec<_> = (0..n)
+            .map(|_| serde_json::json!({"text": "a", "top_k": k, "threshold": "none"}))
+            .collect();
+        serde_json::json!({ "queries": q })
+    };
+    let r = client
+        .post(format!("http://{addr}/query"))
+        .json(&batch(100, 3))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let v: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(v["answers"].as_array().unwrap().len(), 3, "{v}");
+    assert_eq!(v["answers"][0]["matches"].as_array().unwrap().len(), 80);
+    // 4 × 100 > 300: refused before any scan, naming the limit.
+    let r = client
+        .post(format!("http://{addr}/query"))
+        .json(&batch(100, 4))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    let v: serde_json::Value = r.json().await.unwrap();
+    let m = v["error"].as_str().unwrap();
+    assert!(
+        m.contains("max_matches") && m.contains("300") && m.contains("400"),
+        "{m}"
+    );
+    let r = client
+        .get(format!("http://{addr}/query?text=a&top_k=301"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    // The 3.6 KB request of the probe (64 × top_k 10000, no threshold) under the default cap.
+    let (addr2, _dir2) = edge(Arc::new(BasisEmbedder::new(8)), ServeOptions::new("grid")).await;
+    let r = client
+        .post(format!("http://{addr2}/query"))
+        .json(&batch(10_000, 64))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    let v: serde_json::Value = r.json().await.unwrap();
+    assert!(v["error"].as_str().unwrap().contains("20000"), "{v}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_error_the_server_sends_has_the_json_body() {
+    let gate = Arc::new(GateEmbedder::new(8));
+    let _open = gate.open_on_drop();
+    let opts = ServeOptions {
+        request_timeout: Duration::from_millis(500),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(gate.clone(), opts).await;
+    // 405: a method the route does not answer.
+    let (s, head, body) = exchange(
+        &addr,
+        b"DELETE /query HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+    )
+    .await;
+    assert_eq!(s, 405, "{head}");
+    assert_json_error(405, &head, &body);
+    assert!(head.to_ascii_lowercase().contains("allow:"), "{head}");
+    // 413: a body over the limit.
+    let big = format!(
+        "{{\"queries\": [{{\"text\": \"{}\"}}]}}",
+        "a".repeat(70_000)
+    );
+    let raw = format!(
+        "POST /query HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\n\r\n{big}",
+        big.len()
+    );
+    let (s, head, body) = exchange(&addr, raw.as_bytes()).await;
+    assert_eq!(s, 413, "{head}");
+    assert_json_error(413, &head, &body);
+    // 414: an overlong request target.
+    let path = format!("/query?text={}", "a".repeat(9_000));
+    let (s, head, body) = exchange(&addr, &get(&path, "")).await;
+    assert_eq!(s, 414, "{head}");
+    assert_json_error(414, &head, &body);
+    // 431: an oversized header block.
+    let hdr = format!("X-Pad: {}\r\n", "b".repeat(20_000));
+    let (s, head, body) = exchange(&addr, &get("/health", &hdr)).await;
+    assert_eq!(s, 431, "{head}");
+    assert_json_error(431, &head, &body);
+    // 408: a query held past the request timeout (its prompt waits at the gate).
+    let (s, head, body) = exchange(&addr, &get("/query?text=t1", "")).await;
+    assert_eq!(s, 408, "{head}");
+    assert_json_error(408, &head, &body);
+    // 404 and 400 as before.
+    let (s, head, body) = exchange(&addr, &get("/nope", "")).await;
+    assert_eq!(s, 404);
+    assert_json_error(404, &head, &body);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retry_after_covers_the_scan_that_is_still_running() {
+    let gate = Arc::new(GateEmbedder::new(8));
+    let _open = gate.open_on_drop();
+    let opts = ServeOptions {
+        max_scans: 1,
+        scan_queue: 1,
+        request_timeout: Duration::from_secs(60),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(gate.clone(), opts).await;
+    let client = reqwest::Client::new();
+    let send = |text: &str| {
+        let (c, u) = (client.clone(), format!("http://{addr}/query?text={text}"));
+        tokio::spawn(async move { c.get(u).send().await.unwrap().status().as_u16() })
+    };
+    // The first scan ever runs for 3 s (no scan has finished: no moving average yet).
+    let a = send("t1");
+    wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let b = send("t2");
+    let stats = async || -> serde_json::Value {
+        let r = client
+            .get(format!("http://{addr}/stats"))
+            .send()
+            .await
+            .unwrap();
+        r.json().await.unwrap()
+    };
+    wait_until("t2 waits", async || stats().await["scans"]["waiting"] == 1).await;
+    let r = client
+        .get(format!("http://{addr}/query?text=t3"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 503);
+    let retry: u64 = r.headers()["retry-after"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    // Two scans ahead (the running one and t2), each taking at least the 3 s t1 has run.
+    assert!(
+        retry >= 6,
+        "Retry-After {retry} s while the running scan alone took 3 s"
+    );
+    gate.release(2);
+    assert_eq!(a.await.unwrap(), 200);
+    assert_eq!(b.await.unwrap(), 200);
+}
+
+#[test]
+fn a_blank_token_in_the_environment_refuses_to_start() {
+    let bin = env!("CARGO_BIN_EXE_slag-edge");
+    for blank in ["", "   "] {
+        let mut c = match std::env::var("SLAG_TEST_RUNNER") {
+            Ok(r) if !r.trim().is_empty() => {
+                let mut parts = r.split_whitespace();
+                let mut c = std::process::Command::new(parts.next().unwrap());
+                c.args(parts).arg(bin);
+                c
+            }
+            _ => std::process::Command::new(bin),
+        };
+        let out = c
+            .args(["serve", "--scene", "grid", "--store", "/nonexistent/store"])
+            .args([
+                "--text-model",
+                "/nonexistent/m.onnx",
+                "--tokenizer",
+                "/nonexistent/t.json",
+            ])
+            .env("SLAG_EDGE_TOKEN", blank)
+            .env("RUST_LOG", "warn")
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "started with a blank token: {err}");
+        assert!(
+            err.contains("SLAG_EDGE_TOKEN") && err.contains("blank"),
+            "{err}"
+        );
+        assert!(err.contains("hint:"), "{err}");
+    }
+}

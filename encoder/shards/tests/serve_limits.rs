@@ -1,0 +1,216 @@
+//! The shard server against hostile clients: stalled and idle sockets closed within the header
+//! timeout, a client that stops reading dropped after the write timeout, the connection limit,
+//! JSON error bodies for 405 / 414 / 431 / 416, the bearer scheme in any case, and a blank
+//! `SLAG_SHARD_TOKEN` refused at start-up.
+#![allow(clippy::unwrap_used)]
+
+use std::time::{Duration, Instant};
+
+use slag_common::http::ServerLimits;
+use slag_common::shards::synthetic::SyntheticScene;
+use slag_common::shards::{Dtype, GroundFrame};
+use slag_shards::partition::{PartitionParams, UpChoice};
+use slag_shards::store::{ShardStore, partition_into_store};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+fn limits(header_s: u64, write_s: u64, max_connections: usize) -> ServerLimits {
+    ServerLimits {
+        header_timeout: Duration::from_secs(header_s),
+        write_timeout: Duration::from_secs(write_s),
+        max_connections,
+    }
+}
+
+/// A served store of one small scene `lab`; returns `host:port`.
+async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = ShardStore::open(dir.path()).unwrap();
+    let scene = SyntheticScene::new(300, 8, 2, 20.0, 5);
+    let p = PartitionParams {
+        scene_id: "lab".into(),
+        max_per_shard: 100,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
+        dtype: Dtype::F16,
+        to_map: None,
+    };
+    partition_into_store(&store, &scene, &p).unwrap();
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    let token = token.map(str::to_string);
+    tokio::spawn(async move {
+        slag_shards::serve::serve_with_limits(
+            store,
+            "127.0.0.1:0".parse().unwrap(),
+            token,
+            limits,
+            |a| {
+                let _ = tx.send(a);
+            },
+        )
+        .await
+        .unwrap();
+    });
+    (rx.await.unwrap().to_string(), dir)
+}
+
+/// Sends `raw` on a fresh connection, reads until the server closes it: (status, head, body).
+async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(raw).await.unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
+        .await
+        .expect("answered and closed within 30 s")
+        .unwrap();
+    let text = String::from_utf8_lossy(&out).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let status = head.split(' ').nth(1).unwrap_or("0").parse().unwrap_or(0);
+    (status, head.to_string(), body.to_string())
+}
+
+fn get(path: &str, extra: &str) -> Vec<u8> {
+    format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{extra}\r\n").into_bytes()
+}
+
+fn assert_json_error(status: u16, head: &str, body: &str) {
+    assert!(
+        head.to_ascii_lowercase()
+            .contains("content-type: application/json"),
+        "{status}: {head}"
+    );
+    let v: serde_json::Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body}"));
+    assert_eq!(v["status"], status, "{v}");
+    assert!(!v["error"].as_str().unwrap().is_empty(), "{v}");
+}
+
+async fn closed_within(s: &mut tokio::net::TcpStream, bound: Duration) {
+    let t0 = Instant::now();
+    let mut buf = [0u8; 4096];
+    loop {
+        match tokio::time::timeout(bound.saturating_sub(t0.elapsed()), s.read(&mut buf)).await {
+            Ok(Ok(0) | Err(_)) => return,
+            Ok(Ok(_)) => {}
+            Err(_) => panic!("the connection is still open after {bound:?}"),
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_sockets_close_and_the_connection_limit_keeps_the_server_answering() {
+    let (addr, _dir) = start(None, limits(1, 5, 8)).await;
+    let mut idle = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    let mut stalled = Vec::new();
+    for _ in 0..24 {
+        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+        s.write_all(b"GET /v1/scenes HTTP/1.1\r\n").await.unwrap();
+        stalled.push(s);
+    }
+    let (status, _, body) = exchange(&addr, &get("/v1/scenes", "")).await;
+    assert_eq!(status, 200, "{body}");
+    assert!(body.contains("lab"), "{body}");
+    closed_within(&mut idle, Duration::from_secs(30)).await;
+    for s in &mut stalled {
+        closed_within(s, Duration::from_secs(30)).await;
+    }
+}
+
+/// A client that stops reading is dropped after the write timeout instead of holding its
+/// answer: the body is cut short. Served by the same loop as the store routes
+/// ([`slag_common::http::serve`]), with a body larger than the socket buffers can hold.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_is_dropped_after_the_write_timeout() {
+    const LEN: usize = 64 << 20;
+    let router = axum::Router::new().route("/big", axum::routing::get(|| async { vec![7u8; LEN] }));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(slag_common::http::serve(
+        listener,
+        router,
+        limits(5, 1, 16),
+        std::future::pending(),
+    ));
+    let sock = tokio::net::TcpSocket::new_v4().unwrap();
+    sock.set_recv_buffer_size(4096).unwrap();
+    let mut s = sock.connect(addr).await.unwrap();
+    s.write_all(b"GET /big HTTP/1.1\r\nHost: x\r\n\r\n")
+        .await
+        .unwrap();
+    // Read nothing for well past the 1 s write timeout.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let mut got = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut got))
+        .await
+        .expect("the server closed the connection");
+    assert!(
+        got.len() < LEN,
+        "the whole {LEN}-byte answer arrived: the stalled client was never dropped"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn errors_have_the_json_body_and_the_bearer_scheme_is_case_insensitive() {
+    let (addr, _dir) = start(Some("s3cret"), ServerLimits::default()).await;
+    let auth = "Authorization: bearer s3cret\r\n";
+    let (s, head, body) = exchange(&addr, &get("/v1/scenes", auth)).await;
+    assert_eq!(s, 200, "{head}{body}");
+    let (s, _, _) = exchange(
+        &addr,
+        &get("/v1/scenes", "Authorization: BEARER s3cret\r\n"),
+    )
+    .await;
+    assert_eq!(s, 200);
+    let (s, head, body) = exchange(
+        &addr,
+        format!("POST /v1/scenes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{auth}Content-Length: 0\r\n\r\n")
+            .as_bytes(),
+    )
+    .await;
+    assert_eq!(s, 405, "{head}");
+    assert_json_error(405, &head, &body);
+    let (s, head, body) = exchange(&addr, &get(&format!("/v1/{}", "a".repeat(9000)), auth)).await;
+    assert_eq!(s, 414, "{head}");
+    assert_json_error(414, &head, &body);
+    let pad = format!("{auth}X-Pad: {}\r\n", "p".repeat(20_000));
+    let (s, head, body) = exchange(&addr, &get("/v1/scenes", &pad)).await;
+    assert_eq!(s, 431, "{head}");
+    assert_json_error(431, &head, &body);
+    let (s, head, body) = exchange(&addr, &get("/v1/scenes/lab/codebook", auth)).await;
+    assert_eq!(s, 404, "{head}");
+    assert_json_error(404, &head, &body);
+    // 416 keeps its Content-Range and gets the JSON body.
+    let (_, _, m) = exchange(&addr, &get("/v1/scenes/lab/manifest", auth)).await;
+    let m = slag_common::shards::Manifest::from_json(m.as_bytes(), "http").unwrap();
+    let t = &m.tiles[0];
+    let range = format!("{auth}Range: bytes={}-\r\n", t.bytes);
+    let (s, head, body) = exchange(
+        &addr,
+        &get(&format!("/v1/scenes/lab/shards/{}", t.id), &range),
+    )
+    .await;
+    assert_eq!(s, 416, "{head}");
+    assert!(
+        head.to_ascii_lowercase()
+            .contains(&format!("content-range: bytes */{}", t.bytes)),
+        "{head}"
+    );
+    assert_json_error(416, &head, &body);
+}
+
+#[test]
+fn a_blank_shard_token_in_the_environment_refuses_to_start() {
+    let dir = tempfile::tempdir().unwrap();
+    for blank in ["", "  \t"] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_slag-shards"))
+            .args(["serve", "--bind", "127.0.0.1:0", "--store"])
+            .arg(dir.path())
+            .env("SLAG_SHARD_TOKEN", blank)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "started with a blank token: {err}");
+        assert!(
+            err.contains("SLAG_SHARD_TOKEN") && err.contains("blank"),
+            "{err}"
+        );
+        assert!(err.contains("hint:"), "{err}");
+    }
+}

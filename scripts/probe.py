@@ -1,0 +1,523 @@
+#!/usr/bin/env python3
+"""Hostile-client probe of `slag-shards serve` and `slag-edge serve` on loopback (127.0.0.1 only).
+
+Run through scripts/probe.sh, which builds or takes the binaries and makes the fixture. Every case
+is bounded in time and count; prints `case | expected | observed | pass/fail` and RSS figures, and
+exits 1 when a case fails. Standard library only.
+"""
+import argparse
+import json
+import os
+import resource
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+HOST = "127.0.0.1"
+TOKEN = "probe-token"
+ROWS = []
+FIVEXX = [0]
+
+
+SHORT = [False]
+
+
+def row(case, expected, observed, ok, goal=False):
+    """One table row; a memory goal (`goal`) is reported but not failed in the short (CI) form,
+    whose small scene and loaded machine make RSS a figure, not a verdict."""
+    verdict = "pass" if ok else ("info" if goal and SHORT[0] else "FAIL")
+    ROWS.append((case, expected, observed, verdict))
+    print(f"  {case}: {observed} -> {verdict}", flush=True)
+
+
+def rss_mb(pid):
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def fds(pid):
+    try:
+        return len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return -1
+
+
+class Peak:
+    """Samples a process's RSS every 20 ms in a thread; `.peak` is the largest seen."""
+
+    def __init__(self, pid):
+        self.pid, self.peak, self.stop = pid, rss_mb(pid), False
+        self.t = threading.Thread(target=self.run, daemon=True)
+        self.t.start()
+
+    def run(self):
+        while not self.stop:
+            r = rss_mb(self.pid)
+            if r == r:
+                self.peak = max(self.peak, r)
+            time.sleep(0.02)
+
+    def done(self):
+        self.stop = True
+        self.t.join()
+        return self.peak
+
+
+def request(port, method, path, body=None, headers=None, timeout=60.0, raw=None):
+    """One request on a fresh connection: (status, headers dict lower-case, body bytes)."""
+    s = socket.create_connection((HOST, port), timeout=timeout)
+    try:
+        if raw is None:
+            h = {"Host": f"{HOST}:{port}", "Connection": "close"}
+            h.update(headers or {})
+            data = b"" if body is None else body
+            if body is not None:
+                h["Content-Length"] = str(len(data))
+            raw = (f"{method} {path} HTTP/1.1\r\n"
+                   + "".join(f"{k}: {v}\r\n" for k, v in h.items()) + "\r\n").encode() + data
+        s.sendall(raw)
+        out = bytearray()
+        while True:
+            try:
+                chunk = s.recv(1 << 16)
+            except ConnectionResetError:
+                break
+            if not chunk:
+                break
+            out += chunk
+    finally:
+        s.close()
+    head, _, rest = bytes(out).partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    status = int(lines[0].split(" ")[1]) if lines and len(lines[0].split(" ")) > 1 else 0
+    hdrs = {}
+    for line in lines[1:]:
+        k, _, v = line.partition(":")
+        hdrs[k.strip().lower()] = v.strip()
+    if hdrs.get("transfer-encoding") == "chunked":
+        body_b, buf = bytearray(), rest
+        while buf:
+            n, _, buf = buf.partition(b"\r\n")
+            n = int(n or b"0", 16)
+            if n == 0:
+                break
+            body_b += buf[:n]
+            buf = buf[n + 2:]
+        rest = bytes(body_b)
+    if status >= 500:
+        FIVEXX[0] += 1
+    return status, hdrs, rest
+
+
+def auth(extra=None):
+    h = {"Authorization": f"Bearer {TOKEN}"}
+    h.update(extra or {})
+    return h
+
+
+def json_error(status, hdrs, body):
+    try:
+        v = json.loads(body)
+    except ValueError:
+        return False
+    return hdrs.get("content-type", "").startswith("application/json") and v.get("status") == status
+
+
+def wait_up(port, path, proc, secs=120):
+    t0 = time.time()
+    while time.time() - t0 < secs:
+        if proc.poll() is not None:
+            return False
+        try:
+            st, _, _ = request(port, "GET", path, headers=auth(), timeout=5)
+            if st == 200:
+                return True
+        except OSError:
+            pass
+        time.sleep(0.2)
+    return False
+
+
+def start(cmd, env_extra=None, nofile=None, log=None):
+    env = dict(os.environ)
+    env.update(env_extra or {})
+    env.setdefault("RUST_LOG", "warn")
+
+    def pre():
+        os.setsid()
+        if nofile:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
+
+    return subprocess.Popen(cmd, env=env, preexec_fn=pre, stdout=log or subprocess.DEVNULL,
+                            stderr=log or subprocess.DEVNULL)
+
+
+def stop(proc):
+    if proc and proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def supports(binary, sub, flag):
+    out = subprocess.run([binary, sub, "--help"], capture_output=True, text=True).stdout
+    return flag in out
+
+
+def stalled(port, n, line):
+    socks = []
+    for _ in range(n):
+        try:
+            s = socket.socket()
+            s.setblocking(True)
+            s.settimeout(10)
+            s.connect((HOST, port))
+            s.sendall(line)
+            socks.append(s)
+        except OSError:
+            s.close()
+            break
+    return socks
+
+
+def count_closed(socks, bound_s):
+    """Sockets the server closed within `bound_s` seconds (EOF or reset on read)."""
+    closed, t0 = set(), time.time()
+    for s in socks:
+        s.setblocking(False)
+    while time.time() - t0 < bound_s and len(closed) < len(socks):
+        for i, s in enumerate(socks):
+            if i in closed:
+                continue
+            try:
+                if s.recv(4096) == b"":
+                    closed.add(i)
+            except BlockingIOError:
+                pass
+            except OSError:
+                closed.add(i)
+        time.sleep(0.2)
+    for s in socks:
+        s.close()
+    return len(closed), time.time() - t0
+
+
+def slow_readers(port, n, raw):
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        s.connect((HOST, port))
+        s.sendall(raw)
+        socks.append(s)
+    return socks
+
+
+def batch(n, k):
+    q = [{"text": f"probe {i}", "top_k": k, "threshold": "none"} for i in range(n)]
+    return json.dumps({"queries": q}).encode()
+
+
+def post_raw(port, body):
+    return (f"POST /query HTTP/1.1\r\nHost: {HOST}\r\nAuthorization: Bearer {TOKEN}\r\n"
+            f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n").encode() + body
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--edge", required=True)
+    ap.add_argument("--shards", required=True)
+    ap.add_argument("--work", required=True)
+    ap.add_argument("--text-model", required=True)
+    ap.add_argument("--tokenizer", required=True)
+    ap.add_argument("--short", action="store_true")
+    ap.add_argument("--skip-store", action="store_true")
+    ap.add_argument("--rss-only", action="store_true",
+                    help="only the memory cases (huge and worst accepted request), for comparing "
+                         "allocators through SLAG_PROBE_PRELOAD (LD_PRELOAD of the edge server)")
+    ap.add_argument("--port", type=int, default=18190)
+    a = ap.parse_args()
+    SHORT[0] = a.short
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    n_stall = 300 if a.short else 2000
+    hold = 8 if a.short else 20
+    sp, ep = a.port, a.port + 1
+    W = a.work
+    log = open(os.path.join(W, "servers.log"), "ab")
+    new_flags = supports(a.edge, "serve", "--header-timeout")
+    timeouts_e = ["--header-timeout", "3", "--write-timeout", "3"] if new_flags else []
+    timeouts_s = (["--header-timeout", "3", "--write-timeout", "3"]
+                  if supports(a.shards, "serve", "--header-timeout") else [])
+    print(f"probe: {'short' if a.short else 'full'}; {n_stall} stalled sockets; edge "
+          f"{'with' if new_flags else 'without'} timeout flags", flush=True)
+
+    shard_cmd = [a.shards, "serve", "--store", f"{W}/shards", "--bind", f"{HOST}:{sp}"] + timeouts_s
+    shards = start(shard_cmd, {"SLAG_SHARD_TOKEN": TOKEN}, nofile=1024, log=log)
+    assert wait_up(sp, "/v1/scenes", shards), "shard server did not start"
+    r = subprocess.run([a.edge, "fetch", "--from", f"http://{HOST}:{sp}", "--scene", "probe",
+                        "--center", "0,0", "--radius", "100000", "--store", f"{W}/edge"],
+                       env={**os.environ, "SLAG_SHARD_TOKEN": TOKEN}, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    shutil.copytree(f"{W}/edge", f"{W}/edge-pristine", dirs_exist_ok=True)
+    edge_cmd = [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--addr",
+                f"{HOST}:{ep}", "--text-model", a.text_model, "--tokenizer", a.tokenizer] + timeouts_e
+    edge_env = {"SLAG_EDGE_TOKEN": TOKEN}
+    if os.environ.get("SLAG_PROBE_PRELOAD"):
+        edge_env["LD_PRELOAD"] = os.environ["SLAG_PROBE_PRELOAD"]
+        print(f"probe: edge allocator preloaded: {edge_env['LD_PRELOAD']}", flush=True)
+    edge = start(edge_cmd, edge_env, nofile=1024, log=log)
+    assert wait_up(ep, "/health", edge), "edge server did not start"
+
+    def query(text, k=20):
+        st, _, b = request(ep, "GET", f"/query?text={text}&top_k={k}", headers=auth())
+        return st, ([m["id"] for m in json.loads(b)["matches"]] if st == 200 else None)
+
+    reference = {t: query(t)[1] for t in ["red", "a chair", "blue"]}
+    idle = rss_mb(edge.pid)
+    idle_fds = fds(edge.pid)
+    print(f"probe: edge idle RSS {idle:.1f} MB, {idle_fds} descriptors", flush=True)
+
+    # 1. Stalled sockets against the edge under a 1,024 descriptor limit.
+    socks = [] if a.rss_only else stalled(ep, n_stall, b"GET /health HTTP/1.1\r\nHost: x\r\n")
+    t0 = time.time()
+    try:
+        hs, _, _ = request(ep, "GET", "/health", timeout=60)
+    except OSError as e:
+        hs = f"error {e.__class__.__name__}"
+    h_s = time.time() - t0
+    try:
+        qs, ids = query("red")
+    except OSError as e:
+        qs, ids = f"error {e.__class__.__name__}", None
+    closed, took = count_closed(socks, 30)
+    row("stalled sockets, edge (ulimit -n 1024)",
+        f"/health and a query 200 while {n_stall} sockets stall; all closed by the header timeout",
+        f"/health {hs} after {h_s:.1f} s, query {qs}; {closed}/{len(socks)} closed in {took:.0f} s",
+        hs == 200 and qs == 200 and ids == reference["red"] and closed == len(socks))
+
+    # 2. The same against the shard server.
+    socks = [] if a.rss_only else stalled(sp, n_stall // 2, b"GET /v1/scenes HTTP/1.1\r\nHost: x\r\n")
+    try:
+        ss, _, _ = request(sp, "GET", "/v1/scenes", headers=auth(), timeout=60)
+    except OSError as e:
+        ss = f"error {e.__class__.__name__}"
+    closed, took = count_closed(socks, 30)
+    row("stalled sockets, shard server (ulimit -n 1024)",
+        f"/v1/scenes 200 while {len(socks)} sockets stall; all closed by the header timeout",
+        f"/v1/scenes {ss}; {closed}/{len(socks)} closed in {took:.0f} s",
+        ss == 200 and closed == len(socks))
+
+    # 3. The 3.6 KB request: 64 queries x top_k 10000, no threshold.
+    huge = batch(64, 10000)
+    before = rss_mb(edge.pid)
+    pk = Peak(edge.pid)
+    st, hdrs, body = request(ep, "POST", "/query", body=huge,
+                             headers=auth({"Content-Type": "application/json"}), timeout=120)
+    peak = pk.done()
+    time.sleep(1)
+    after = rss_mb(edge.pid)
+    msg = ""
+    try:
+        msg = json.loads(body).get("error", "") if st != 200 else f"{len(body)/1e6:.0f} MB answer"
+    except ValueError:
+        pass
+    row(f"huge request ({len(huge)} B: 64 x top_k 10000)",
+        "400 naming max_matches; RSS +<=100 MB",
+        f"{st} {msg[-90:]!r}; RSS {before:.0f} -> peak {peak:.0f} -> {after:.0f} MB",
+        st == 400 and "max_matches" in msg and peak - before <= 100)
+
+    # 4. The largest request the cap accepts (2 x top_k 10000).
+    worst = batch(2, 10000)
+    before = rss_mb(edge.pid)
+    pk = Peak(edge.pid)
+    st, _, body = request(ep, "POST", "/query", body=worst,
+                          headers=auth({"Content-Type": "application/json"}), timeout=120)
+    peak = pk.done()
+    time.sleep(1)
+    after = rss_mb(edge.pid)
+    row("worst accepted request (2 x top_k 10000)", "200; RSS +<=100 MB",
+        f"{st}, {len(body)/1e6:.1f} MB answer; RSS {before:.0f} -> peak {peak:.0f} -> {after:.0f} MB",
+        st == 200 and peak - before <= 100)
+
+    if a.rss_only:
+        time.sleep(10)
+        print(f"probe: edge RSS idle {idle:.0f} MB, 10 s after the requests {rss_mb(edge.pid):.0f} MB")
+        stop(edge)
+        stop(shards)
+        for r in ROWS[2:]:
+            print("| " + " | ".join(str(x) for x in r) + " |")
+        return 0
+
+    # 5. Slow readers on the edge: clients send the worst accepted request and never read.
+    n_slow = 4 if a.short else 10
+    before = rss_mb(edge.pid)
+    pk = Peak(edge.pid)
+    socks = slow_readers(ep, n_slow, post_raw(ep, worst))
+    time.sleep(hold)
+    during = rss_mb(edge.pid)
+    open_fds = fds(edge.pid)
+    peak = pk.done()
+    for s in socks:
+        s.close()
+    row(f"{n_slow} slow readers, edge", "dropped after the write timeout",
+        f"RSS {before:.0f} -> peak {peak:.0f} MB; after {hold} s {open_fds - idle_fds} extra "
+        f"descriptors, RSS {during:.0f} MB", open_fds - idle_fds <= 1)
+
+    # 6. Slow readers on the shard server: 60 clients fetch the largest shard, never read.
+    m = json.loads(request(sp, "GET", "/v1/scenes/probe/manifest", headers=auth())[2])
+    big = max(m["tiles"], key=lambda t: t["bytes"])
+    n_sr = 20 if a.short else 60
+    s_idle, s_fds = rss_mb(shards.pid), fds(shards.pid)
+    pk = Peak(shards.pid)
+    raw = (f"GET /v1/scenes/probe/shards/{big['id']} HTTP/1.1\r\nHost: x\r\n"
+           f"Authorization: Bearer {TOKEN}\r\n\r\n").encode()
+    socks = slow_readers(sp, n_sr, raw)
+    time.sleep(hold)
+    s_open = fds(shards.pid)
+    peak = pk.done()
+    for s in socks:
+        s.close()
+    time.sleep(1)
+    s_after = rss_mb(shards.pid)
+    row(f"{n_sr} slow readers, shard server ({big['bytes']/1e6:.1f} MB shard)",
+        "no copy per connection (RSS +<=3 shards); dropped after the write timeout",
+        f"RSS {s_idle:.0f} -> peak {peak:.0f} -> {s_after:.0f} MB; after {hold} s "
+        f"{s_open - s_fds} extra descriptors",
+        peak - s_idle <= 3 * big["bytes"] / 1e6 and s_open - s_fds <= 1)
+
+    # 7. Error bodies.
+    cases = [
+        (ep, "edge", 405, dict(method="DELETE", path="/query", headers=auth())),
+        (ep, "edge", 413, dict(method="POST", path="/query", body=b"{" + b" " * 70000 + b"}",
+                               headers=auth({"Content-Type": "application/json"}))),
+        (ep, "edge", 414, dict(method="GET", path="/query?text=" + "a" * 9000, headers=auth())),
+        (ep, "edge", 431, dict(method="GET", path="/health", headers={"X-Pad": "p" * 20000})),
+        (sp, "shards", 405, dict(method="POST", path="/v1/scenes", body=b"", headers=auth())),
+        (sp, "shards", 414, dict(method="GET", path="/v1/" + "a" * 9000, headers=auth())),
+        (sp, "shards", 431, dict(method="GET", path="/v1/scenes",
+                                 headers=auth({"X-Pad": "p" * 20000}))),
+        (sp, "shards", 416, dict(method="GET", path=f"/v1/scenes/probe/shards/{big['id']}",
+                                 headers=auth({"Range": f"bytes={big['bytes']}-"}))),
+    ]
+    for port, name, want, kw in cases:
+        st, hdrs, body = request(port, kw.pop("method"), kw.pop("path"), **kw)
+        row(f"{want} body, {name}", f"{want} with the JSON error body",
+            f"{st} {hdrs.get('content-type', 'no content-type')}, {len(body)} B",
+            st == want and json_error(want, hdrs, body))
+
+    # 8. Bearer scheme in another case.
+    st_e = request(ep, "GET", "/stats", headers={"Authorization": f"bearer {TOKEN}"})[0]
+    st_s = request(sp, "GET", "/v1/scenes", headers={"Authorization": f"BEARER {TOKEN}"})[0]
+    row("bearer scheme case", "'bearer' / 'BEARER' accepted (RFC 9110)", f"edge {st_e}, shards {st_s}",
+        st_e == 200 and st_s == 200)
+
+    # 9. Answers unchanged, memory back.
+    same = all(query(t)[1] == ids_ for t, ids_ in reference.items())
+    time.sleep(2)
+    end = rss_mb(edge.pid)
+    row("answers after the probe", "equal to those before it", "equal" if same else "DIFFERENT", same)
+    row("edge RSS after the probe", f"within 10 % of idle ({idle:.0f} MB)", f"{end:.0f} MB",
+        abs(end - idle) <= 0.1 * idle, goal=True)
+    stop(edge)
+
+    # 10. Blank tokens refuse to start.
+    for name, cmd, var in [
+        ("edge", [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--addr",
+                  f"{HOST}:{ep + 10}", "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+         "SLAG_EDGE_TOKEN"),
+        ("shards", [a.shards, "serve", "--store", f"{W}/shards-copy", "--bind", f"{HOST}:{ep + 11}"],
+         "SLAG_SHARD_TOKEN"),
+    ]:
+        os.makedirs(f"{W}/shards-copy", exist_ok=True)
+        for blank in ["", "   "]:
+            p = subprocess.Popen(cmd, env={**os.environ, var: blank, "RUST_LOG": "warn"},
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            try:
+                _, err = p.communicate(timeout=20)
+                refused = p.returncode != 0 and "blank" in err
+                obs = f"exit {p.returncode}: {err.strip().splitlines()[0][:70] if err.strip() else ''}"
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.communicate()
+                refused, obs = False, "started (open, no token)"
+            row(f"blank {var}={blank!r}, {name}", "refused at start-up", obs, refused)
+
+    # 11. Store damage: one `slag-edge fetch` repairs, `check` tells the truth.
+    kinds = [] if a.skip_store else ["flip", "truncate", "append", "swap", "directory"]
+    shard_dir = None
+    for root, _, files in os.walk(f"{W}/edge-pristine/shards"):
+        if any(f.endswith(".shard") for f in files):
+            shard_dir = os.path.relpath(root, f"{W}/edge-pristine")
+    files = sorted(f for f in os.listdir(f"{W}/edge-pristine/{shard_dir}") if f.endswith(".shard"))
+
+    def damage(kind, d):
+        f0, f1 = f"{d}/{shard_dir}/{files[0]}", f"{d}/{shard_dir}/{files[1]}"
+        if kind == "flip":
+            with open(f0, "r+b") as f:
+                f.seek(4096)
+                b = f.read(16)
+                f.seek(4096)
+                f.write(bytes(x ^ 0xFF for x in b))
+        elif kind == "truncate":
+            os.truncate(f0, os.path.getsize(f0) // 2)
+        elif kind == "append":
+            with open(f0, "ab") as f:
+                f.write(b"\0" * 1000)
+        elif kind == "swap":
+            os.rename(f0, f0 + ".t")
+            os.rename(f1, f0)
+            os.rename(f0 + ".t", f1)
+        elif kind == "directory":
+            os.remove(f0)
+            os.mkdir(f0)
+
+    check_cmd = [a.edge, "check", "--scene", "probe", "--text-model", a.text_model,
+                 "--tokenizer", a.tokenizer]
+    for kind in kinds:
+        d = f"{W}/case-{kind}"
+        shutil.rmtree(d, ignore_errors=True)
+        shutil.copytree(f"{W}/edge-pristine", d)
+        damage(kind, d)
+        c0 = subprocess.run(check_cmd + ["--store", d], capture_output=True, text=True)
+        fr = subprocess.run([a.edge, "fetch", "--from", f"http://{HOST}:{sp}", "--scene", "probe",
+                             "--center", "0,0", "--radius", "100000", "--store", d],
+                            env={**os.environ, "SLAG_SHARD_TOKEN": TOKEN}, capture_output=True,
+                            text=True)
+        c1 = subprocess.run(check_cmd + ["--store", d], capture_output=True, text=True)
+        repaired = all(
+            os.path.isfile(f"{d}/{shard_dir}/{f}")
+            and open(f"{d}/{shard_dir}/{f}", "rb").read()
+            == open(f"{W}/edge-pristine/{shard_dir}/{f}", "rb").read() for f in files)
+        row(f"store: {kind} a shard file", "check fails before; one fetch repairs; check passes",
+            f"check before exit {c0.returncode}, fetch exit {fr.returncode}, "
+            f"check after exit {c1.returncode}, files {'restored' if repaired else 'NOT restored'}",
+            c0.returncode != 0 and fr.returncode == 0 and c1.returncode == 0 and repaired)
+    stop(shards)
+    row("5xx answers over the probe", "0", str(FIVEXX[0]), FIVEXX[0] == 0)
+
+    print()
+    print("| case | expected | observed | pass/fail |")
+    print("|---|---|---|---|")
+    for r in ROWS:
+        print("| " + " | ".join(str(x).replace("|", "/") for x in r) + " |")
+    failed = sum(1 for r in ROWS if r[3] == "FAIL")
+    print(f"\nprobe: {len(ROWS) - failed} of {len(ROWS)} cases pass")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
