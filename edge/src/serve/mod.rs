@@ -15,7 +15,8 @@
 //!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
 //! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool,
 //!   "frame": "map" | "scene"}` (map metres by default when the manifest has a transform) → fetches
-//!   from the server of the last fetch (or `"server"`) into the store this process holds, then
+//!   from the server of the last fetch (or `"server"`; with the body's `"token"`, else
+//!   [`ServeOptions::shard_token`]) into the store this process holds, then
 //!   reloads; `POST /reload` reloads the store.
 //!
 //! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
@@ -88,6 +89,9 @@ pub struct ServeOptions {
     pub max_scans: usize,
     /// Requests that may wait for a scan; one more is answered 503 with `Retry-After`.
     pub scan_queue: usize,
+    /// Bearer token `POST /fetch` sends to the shard server when its body gives none (`None`:
+    /// no token).
+    pub shard_token: Option<String>,
 }
 
 impl ServeOptions {
@@ -104,6 +108,7 @@ impl ServeOptions {
             request_timeout: Duration::from_secs(30),
             max_scans: DEFAULT_MAX_SCANS,
             scan_queue: DEFAULT_SCAN_QUEUE,
+            shard_token: None,
         }
     }
 
@@ -737,7 +742,7 @@ async fn fetch_post(
         jobs: 4,
         retries: 3,
         timeout: Duration::from_secs(30),
-        token: b.token,
+        token: b.token.or_else(|| state.opts.shard_token.clone()),
         progress: false,
         frame,
     };
@@ -746,6 +751,20 @@ async fn fetch_post(
             Ok(()) => axum::Json(summary).into_response(),
             Err(e) => error(status_of(&e), e.to_string()),
         },
+        // The shard server wants a token this server did not send or that it refused: say
+        // where the token comes from.
+        Err(
+            e @ Error::Network {
+                status: Some(401 | 403),
+                ..
+            },
+        ) => error(
+            status_of(&e),
+            format!(
+                "{e}; send \"token\" in the body, or start slag-edge serve with the shard \
+                 server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
+            ),
+        ),
         Err(e) => error(status_of(&e), e.to_string()),
     }
 }
