@@ -476,11 +476,13 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     {
         let store = store.clone();
         let scene = p.scene.clone();
-        let cleaned =
-            tokio::task::spawn_blocking(move || store.clean_partials(&scene, &[])).await;
+        let cleaned = tokio::task::spawn_blocking(move || store.clean_partials(&scene, &[])).await;
         match cleaned {
             Ok(Ok(n)) if n > 0 => {
-                tracing::warn!("removed {n} partial download(s) of scene {} after: {e}", p.scene)
+                tracing::warn!(
+                    "removed {n} partial download(s) of scene {} after: {e}",
+                    p.scene
+                )
             }
             Ok(Ok(_)) => {}
             Ok(Err(c)) => tracing::warn!("partial downloads not removed: {c}"),

@@ -662,8 +662,12 @@ mod tests {
         );
         assert!(h(Error::internal("query task panicked")).contains("--verbose"));
         assert!(
-            h(Error::limit(Resource::DiskSpace, "9 GB", "1 GB free for the store /s"))
-                .contains("--radius")
+            h(Error::limit(
+                Resource::DiskSpace,
+                "9 GB",
+                "1 GB free for the store /s"
+            ))
+            .contains("--radius")
         );
         assert!(h(Error::limit(Resource::ManifestBytes, "40 MB", "32 MiB")).contains("--from"));
         assert_eq!(hint_for(&Error::network("http://s", "down")), None);

@@ -19,7 +19,9 @@
 //!   reader never sees a partial shard;
 //! - `DIR/shards/<scene-hex>/manifest.json` and `fetch.json`: copies of the scene's current
 //!   manifest and [`FetchRecord`], written (atomically) with every completed fetch, from which a
-//!   damaged database is rebuilt ([`EdgeStore::open`]);
+//!   damaged database is rebuilt ([`EdgeStore::open`]: when sled reports its files damaged, the
+//!   database is set aside and a new one refilled; a database that opens holding no scene, as
+//!   sled leaves one whose data file was garbage, is refilled too);
 //! - `DIR/quarantine/`: what the store set aside instead of deleting ([`EdgeStore::set_aside`]):
 //!   stored shard files that no longer match their manifest entry (flipped bytes, truncated,
 //!   appended to, another tile's or scene's bytes), directories or other non-files where a shard
@@ -116,7 +118,10 @@ fn db_err(root: &Path, e: sled::Error) -> Error {
 /// nor an I/O error of the disk itself).
 fn db_damaged(e: &sled::Error) -> bool {
     match e {
-        sled::Error::Corruption { .. } | sled::Error::ReportableBug(_) => true,
+        // `Unsupported` at open: its config file does not read as sled's (garbage there).
+        sled::Error::Corruption { .. }
+        | sled::Error::ReportableBug(_)
+        | sled::Error::Unsupported(_) => true,
         sled::Error::Io(io) => matches!(
             io.kind(),
             std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
@@ -548,21 +553,25 @@ impl EdgeStore {
             fetches: tree("fetches")?,
             db,
         };
-        if rebuild {
+        // sled recovers a log whose data is garbage by dropping it, and opens empty: a database
+        // without any scene beside manifest copies is refilled as well.
+        if rebuild || store.manifests.is_empty() {
             let scenes = store.rebuild_db()?;
-            tracing::warn!(
-                "store {}: database rebuilt with {} scene(s) ({}); shards are verified again \
-                 when loaded and fetched",
-                root.display(),
-                scenes.len(),
-                scenes.join(", ")
-            );
+            if rebuild || !scenes.is_empty() {
+                tracing::warn!(
+                    "store {}: database rebuilt with {} scene(s) ({}) from the manifest copies; \
+                     shards are verified again when loaded and fetched",
+                    root.display(),
+                    scenes.len(),
+                    scenes.join(", ")
+                );
+            }
         }
         Ok(store)
     }
 
-    /// Refills the (new, empty) database from the manifest and fetch-record copies in each
-    /// scene's shard folder; returns the scenes restored. A copy that does not parse, or names
+    /// Refills the database from the manifest and fetch-record copies in each scene's shard
+    /// folder, for scenes it does not hold; returns the scenes restored. A copy that does not parse, or names
     /// another scene than its folder, is skipped with a warning (a fetch of that scene writes it
     /// again).
     fn rebuild_db(&self) -> Result<Vec<String>> {
@@ -578,7 +587,11 @@ impl EdgeStore {
             let m = match Manifest::from_json(&bytes, &copy.display().to_string()) {
                 Ok(m) if self.scene_dir(&m.scene_id) == folder => m,
                 Ok(m) => {
-                    tracing::warn!("{}: scene {} in another scene's folder; skipped", copy.display(), m.scene_id);
+                    tracing::warn!(
+                        "{}: scene {} in another scene's folder; skipped",
+                        copy.display(),
+                        m.scene_id
+                    );
                     continue;
                 }
                 Err(err) => {
@@ -587,6 +600,9 @@ impl EdgeStore {
                 }
             };
             let key = m.scene_id.as_bytes();
+            if self.manifests.contains_key(key).map_err(|e| self.err(e))? {
+                continue;
+            }
             self.manifests.insert(key, bytes).map_err(|e| self.err(e))?;
             if let Ok(r) = std::fs::read(folder.join(FETCH_COPY))
                 && serde_json::from_slice::<FetchRecord>(&r).is_ok()
@@ -639,7 +655,12 @@ impl EdgeStore {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Stored::Missing),
             Err(e) => return Err(Error::io(&path, e)),
         };
-        let damaged = |why: String| Ok(Stored::Damaged { path: path.clone(), why });
+        let damaged = |why: String| {
+            Ok(Stored::Damaged {
+                path: path.clone(),
+                why,
+            })
+        };
         if !meta.is_file() {
             return damaged(if meta.is_dir() {
                 "a folder where a shard file belongs".into()
@@ -648,7 +669,11 @@ impl EdgeStore {
             });
         }
         if meta.len() != tile.bytes {
-            return damaged(format!("{} bytes, the manifest says {}", meta.len(), tile.bytes));
+            return damaged(format!(
+                "{} bytes, the manifest says {}",
+                meta.len(),
+                tile.bytes
+            ));
         }
         let mut f = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
         let mut crc = crc32fast::Hasher::new();
@@ -670,7 +695,10 @@ impl EdgeStore {
             total += n as u64;
         }
         if total != tile.bytes {
-            return damaged(format!("{total} bytes read, the manifest says {}", tile.bytes));
+            return damaged(format!(
+                "{total} bytes read, the manifest says {}",
+                tile.bytes
+            ));
         }
         let want = parse_checksum(tile)?;
         let got = crc.finalize();
@@ -681,7 +709,10 @@ impl EdgeStore {
             Ok(h) => h,
             Err(e) => return damaged(format!("header: {e}")),
         };
-        let codebook = manifest.mixture.as_ref().filter(|_| tile.id == CODEBOOK_TILE);
+        let codebook = manifest
+            .mixture
+            .as_ref()
+            .filter(|_| tile.id == CODEBOOK_TILE);
         let (version, dtype) = match (&manifest.mixture, codebook) {
             (Some(_), None) => (MIXTURE_SHARD_FORMAT_VERSION, Dtype::F16),
             (Some(_), Some(_)) => (SHARD_FORMAT_VERSION, Dtype::F16),
@@ -699,8 +730,18 @@ impl EdgeStore {
                 "header (version {}, scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) \
                  disagrees with the manifest (version {version}, scene {}, tile {}, model {}, \
                  dim {}, {dtype:?}, {} Gaussians)",
-                h.version, h.scene_id, h.tile_id, h.model, h.dim, h.dtype, h.count,
-                manifest.scene_id, tile.id, manifest.model, manifest.dim, tile.count
+                h.version,
+                h.scene_id,
+                h.tile_id,
+                h.model,
+                h.dim,
+                h.dtype,
+                h.count,
+                manifest.scene_id,
+                tile.id,
+                manifest.model,
+                manifest.dim,
+                tile.count
             ));
         }
         Ok(Stored::Verified)
@@ -1193,7 +1234,10 @@ impl EdgeStore {
                 // scene is served.
                 Err(e) => {
                     tracing::error!("not serving shard {}: {e}", tile.id);
-                    load.rejected.push(format!("shard {} of scene {}: {e}", tile.id, manifest.scene_id));
+                    load.rejected.push(format!(
+                        "shard {} of scene {}: {e}",
+                        tile.id, manifest.scene_id
+                    ));
                     continue;
                 }
             };

@@ -172,7 +172,10 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         ("stale partial", stale_partial),
     ];
     let mut reference = None;
-    for (prune, (name, damage)) in [false, true].into_iter().flat_map(|p| cases.map(|c| (p, c))) {
+    for (prune, (name, damage)) in [false, true]
+        .into_iter()
+        .flat_map(|p| cases.map(|c| (p, c)))
+    {
         let dir = tempfile::tempdir().unwrap();
         let store = EdgeStore::open(dir.path()).unwrap();
         let first = fetch(&store, &params(&server.url)).await.unwrap();
@@ -199,10 +202,19 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         let q = quarantined(dir.path());
         let expect_q = set_aside + usize::from(name == "stale partial");
         assert_eq!(q.len(), expect_q, "{name}: {q:?}");
-        assert_eq!(std::fs::read_dir(dir.path().join("partial")).unwrap().count(), 0);
+        assert_eq!(
+            std::fs::read_dir(dir.path().join("partial"))
+                .unwrap()
+                .count(),
+            0
+        );
         // A second fetch finds everything verified.
         let again = fetch(&store, &p).await.unwrap();
-        assert_eq!((again.set_aside, again.downloaded, again.skipped), (0, 0, 4), "{name}");
+        assert_eq!(
+            (again.set_aside, again.downloaded, again.skipped),
+            (0, 0, 4),
+            "{name}"
+        );
     }
 }
 
@@ -216,9 +228,17 @@ async fn a_manifest_declaring_sizes_the_format_does_not_allow_is_refused_before_
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, Error::Format { .. }), "{msg}");
-    assert!(msg.contains("tile 1") && msg.contains("1000000000000 bytes"), "{msg}");
+    assert!(
+        msg.contains("tile 1") && msg.contains("1000000000000 bytes"),
+        "{msg}"
+    );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(std::fs::read_dir(dir.path().join("partial")).unwrap().count(), 0);
+    assert_eq!(
+        std::fs::read_dir(dir.path().join("partial"))
+            .unwrap()
+            .count(),
+        0
+    );
     assert!(store.manifest("grid").unwrap().is_none());
 }
 
@@ -261,7 +281,12 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
         "{msg}"
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(std::fs::read_dir(dir.path().join("partial")).unwrap().count(), 0);
+    assert_eq!(
+        std::fs::read_dir(dir.path().join("partial"))
+            .unwrap()
+            .count(),
+        0
+    );
 }
 
 /// Serves `GET /v1/scenes/grid/manifest` as 200 MB of JSON whitespace, with or without a
@@ -360,8 +385,22 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
     let store = dir.path().join("store");
     let s = store.display().to_string();
     let args = [
-        "fetch", "--from", &server.url, "--scene", "grid", "--center", "0,0", "--radius", "100",
-        "--store", &s, "--jobs", "2", "--retries", "0", "--json",
+        "fetch",
+        "--from",
+        &server.url,
+        "--scene",
+        "grid",
+        "--center",
+        "0,0",
+        "--radius",
+        "100",
+        "--store",
+        &s,
+        "--jobs",
+        "2",
+        "--retries",
+        "0",
+        "--json",
     ];
     let mut cmd = slag_edge(&args);
     cmd.env("SLAG_FAULT_ENOSPC_AT", "3");
@@ -369,13 +408,21 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(err.contains("No space left on device"), "{err}");
-    assert_eq!(std::fs::read_dir(store.join("partial")).unwrap().count(), 0, "{err}");
+    assert_eq!(
+        std::fs::read_dir(store.join("partial")).unwrap().count(),
+        0,
+        "{err}"
+    );
     {
         let edge = EdgeStore::open(&store).unwrap();
         assert!(edge.manifest("grid").unwrap().is_none());
     }
     let out = run(slag_edge(&args)).await;
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(summary["selected"], 4);
     assert_eq!(
@@ -387,45 +434,51 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_damaged_database_is_rebuilt_from_the_manifest_copies() {
     let server = shard_server(grid_scene("grid", 2, 2, 25, 8, Dtype::F16, 1), None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let (want, manifest) = {
-        let store = EdgeStore::open(dir.path()).unwrap();
-        fetch(&store, &params(&server.url)).await.unwrap();
-        (answers(&store).0, store.manifest("grid").unwrap().unwrap())
-    };
-    // Overwrite every database file with garbage of the same length (a bad flash block).
-    damage_db(dir.path());
-    let store = open_after_drop(dir.path());
-    assert_eq!(store.manifest("grid").unwrap().as_ref(), Some(&manifest));
-    assert!(store.fetch_record("grid").unwrap().is_some());
-    let (got, rejected) = answers(&store);
-    assert!(rejected.is_empty());
-    assert_eq!(got, want);
-    assert!(
-        quarantined(dir.path()).iter().any(|n| n.ends_with("-db")),
-        "{:?}",
-        quarantined(dir.path())
-    );
-    // And a fetch finds every shard verified.
-    let s = fetch(&store, &params(&server.url)).await.unwrap();
-    assert_eq!((s.skipped, s.downloaded), (4, 0));
+    // Garbage over every database file, or over its data file only (a bad flash block).
+    for only_data in [false, true] {
+        let dir = tempfile::tempdir().unwrap();
+        let (want, manifest) = {
+            let store = EdgeStore::open(dir.path()).unwrap();
+            fetch(&store, &params(&server.url)).await.unwrap();
+            (answers(&store).0, store.manifest("grid").unwrap().unwrap())
+        };
+        damage_db(dir.path(), only_data);
+        let store = open_after_drop(dir.path());
+        assert_eq!(store.manifest("grid").unwrap().as_ref(), Some(&manifest));
+        assert!(store.fetch_record("grid").unwrap().is_some());
+        let (got, rejected) = answers(&store);
+        assert!(rejected.is_empty());
+        assert_eq!(got, want);
+        // sled refuses garbage in its config file (set aside) but drops a garbage data file
+        // and opens empty (refilled in place).
+        assert_eq!(
+            quarantined(dir.path()).iter().any(|n| n.ends_with("-db")),
+            !only_data,
+            "{:?}",
+            quarantined(dir.path())
+        );
+        // And a fetch finds every shard verified.
+        let s = fetch(&store, &params(&server.url)).await.unwrap();
+        assert_eq!((s.skipped, s.downloaded), (4, 0));
+    }
 }
 
-/// Overwrites the sled files under `root/db` with a repeating garbage pattern.
-fn damage_db(root: &Path) {
-    fn walk(p: &Path) {
+/// Overwrites the sled files under `root/db` (or only its data file `db`) with a repeating
+/// garbage pattern of the same length.
+fn damage_db(root: &Path, only_data: bool) {
+    fn walk(p: &Path, only_data: bool) {
         for e in std::fs::read_dir(p).unwrap().flatten() {
             let path = e.path();
             if path.is_dir() {
-                walk(&path);
-            } else {
+                walk(&path, only_data);
+            } else if !only_data || e.file_name() == "db" {
                 let len = std::fs::metadata(&path).unwrap().len() as usize;
                 let junk: Vec<u8> = (0..len.max(64)).map(|i| (i * 131 % 251) as u8).collect();
                 std::fs::write(&path, junk).unwrap();
             }
         }
     }
-    walk(&root.join("db"));
+    walk(&root.join("db"), only_data);
 }
 
 /// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
@@ -574,7 +627,10 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
         assert_eq!(report["ok"], expect.is_empty(), "{name}: {report}");
         assert_eq!(out.status.success(), expect.is_empty(), "{name}: {report}");
         for e in expect {
-            assert!(problems.iter().any(|p| p.contains(e)), "{name}: {e:?} in {problems:?}");
+            assert!(
+                problems.iter().any(|p| p.contains(e)),
+                "{name}: {e:?} in {problems:?}"
+            );
         }
         if name == "all deleted" {
             assert_eq!(report["gaussians"], 0);

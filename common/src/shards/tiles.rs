@@ -381,7 +381,9 @@ impl Manifest {
         let bad = |m: String| {
             Error::format(
                 origin,
-                format!("{m}; the manifest is damaged or not from a slag partitioner: re-partition"),
+                format!(
+                    "{m}; the manifest is damaged or not from a slag partitioner: re-partition"
+                ),
             )
         };
         if self.dim == 0 || self.dim > MAX_DIM {
@@ -393,7 +395,11 @@ impl Manifest {
         let d = self.dim as u64;
         let (scene, model) = (self.scene_id.len(), self.model.len());
         let dense_header = header_len_for(scene, model, false) as u64;
-        let check = |what: String, bytes: u64, count: u64, min_header: u64, payload: &dyn Fn(u8) -> u64| {
+        let check = |what: String,
+                     bytes: u64,
+                     count: u64,
+                     min_header: u64,
+                     payload: &dyn Fn(u8) -> u64| {
             if count > u32::MAX as u64 {
                 return Err(bad(format!(
                     "{what} declares {count} Gaussians, more than a shard's 32-bit count"
@@ -627,7 +633,9 @@ mod tests {
         let mut tile = tile(0, [0.0, 0.0], [1.0, 1.0]);
         tile.bytes = match &mixture {
             None => header_len_for(1, 1, false) as u64 + expected_payload(Dtype::F16, 0, 1, 4),
-            Some(m) => header_len_for(1, 1, true) as u64 + payload_with_rows(0, 1, 6 * m.slots as u64),
+            Some(m) => {
+                header_len_for(1, 1, true) as u64 + payload_with_rows(0, 1, 6 * m.slots as u64)
+            }
         };
         Manifest {
             format: MANIFEST_FORMAT.into(),
@@ -653,12 +661,15 @@ mod tests {
 
     #[test]
     fn declared_sizes_must_be_ones_the_shard_format_allows() {
-        for m in [manifest(None), manifest(Some(MixtureInfo {
-            slots: 8,
-            atoms: 300,
-            codebook_bytes: 0,
-            codebook_checksum: "0badf00d".into(),
-        }))] {
+        for m in [
+            manifest(None),
+            manifest(Some(MixtureInfo {
+                slots: 8,
+                atoms: 300,
+                codebook_bytes: 0,
+                codebook_checksum: "0badf00d".into(),
+            })),
+        ] {
             Manifest::from_json(&m.to_json(), "t").expect("the writers' sizes");
             // Display sections (here scales + opacities: 16 bytes a row) and a padded header
             // are allowed; one byte more or less, a huge size or count is not.
@@ -670,7 +681,12 @@ mod tests {
                 Manifest::from_json(&ok.to_json(), "t").expect("allowed");
             }
             let mut cases = Vec::new();
-            for bytes in [m.tiles[0].bytes + 1, m.tiles[0].bytes - 1, 1_000_000_000_000, 0] {
+            for bytes in [
+                m.tiles[0].bytes + 1,
+                m.tiles[0].bytes - 1,
+                1_000_000_000_000,
+                0,
+            ] {
                 let mut b = m.clone();
                 b.tiles[0].bytes = bytes;
                 cases.push(b);
@@ -696,7 +712,13 @@ mod tests {
         let huge = vec![b' '; MAX_MANIFEST_BYTES as usize + 1];
         let e = Manifest::from_json(&huge, "t").expect_err("too large");
         assert!(
-            matches!(e, Error::Limit { resource: crate::Resource::ManifestBytes, .. }),
+            matches!(
+                e,
+                Error::Limit {
+                    resource: crate::Resource::ManifestBytes,
+                    ..
+                }
+            ),
             "{e}"
         );
     }
