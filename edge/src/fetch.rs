@@ -744,6 +744,15 @@ async fn download_tile(
         )
     };
     let part = store.partial_path(&manifest.scene_id, tile);
+    // A folder (or anything but a plain file) where the partial file belongs: set aside.
+    if let Ok(m) = tokio::fs::symlink_metadata(&part).await
+        && !m.is_file()
+    {
+        let (store, part) = (store.clone(), part.clone());
+        tokio::task::spawn_blocking(move || store.set_aside(&part, "not a partial download file"))
+            .await
+            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
+    }
     let mut counts = Counts::default();
     let mut resumed = false;
     let mut attempt = 0u32;
@@ -751,7 +760,6 @@ async fn download_tile(
     loop {
         match try_download(
             client,
-            store,
             &url,
             &part,
             tile,
@@ -827,7 +835,6 @@ struct Counts {
 /// file holds exactly `tile.bytes` bytes (synced). Returns whether a `Range` request was honoured.
 async fn try_download(
     client: &reqwest::Client,
-    store: &EdgeStore,
     url: &str,
     part: &Path,
     tile: &TileInfo,
@@ -837,13 +844,6 @@ async fn try_download(
 ) -> std::result::Result<bool, Attempt> {
     let io = |e: std::io::Error| permanent(Error::io(part, e));
     let have = match tokio::fs::symlink_metadata(part).await {
-        // A folder (or anything but a plain file) where the partial file belongs: set aside.
-        Ok(m) if !m.is_file() => {
-            store
-                .set_aside(part, "not a partial download file")
-                .map_err(permanent)?;
-            0
-        }
         Ok(m) if m.len() <= tile.bytes => m.len(),
         Ok(_) => {
             tokio::fs::remove_file(part).await.map_err(io)?;

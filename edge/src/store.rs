@@ -752,10 +752,11 @@ impl EdgeStore {
     ///
     /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits.
     pub fn stored_path(&self, manifest: &Manifest, tile: &TileInfo) -> Result<PathBuf> {
-        if manifest.mixture.is_some() && tile.id == CODEBOOK_TILE {
-            if let Some(p) = self.codebook_path(manifest)? {
-                return Ok(p);
-            }
+        if manifest.mixture.is_some()
+            && tile.id == CODEBOOK_TILE
+            && let Some(p) = self.codebook_path(manifest)?
+        {
+            return Ok(p);
         }
         self.shard_path(&manifest.scene_id, tile)
     }

@@ -580,7 +580,9 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
             &tok,
         ])
     };
-    let damages: [(&str, fn(&EdgeStore), &[&str]); 4] = [
+    /// (name, damage, what the problems must name; none: ok).
+    type Case = (&'static str, fn(&EdgeStore), &'static [&'static str]);
+    let damages: [Case; 4] = [
         ("none", |_| {}, &[]),
         (
             "all deleted",
