@@ -294,6 +294,12 @@ pub enum Resource {
     Memory,
     /// Gaussians in one shard (a 32-bit count in the shard header).
     ShardGaussians,
+    /// Free space on the file system of a folder (bytes): the `needed` and `limit` texts name
+    /// the folder.
+    DiskSpace,
+    /// Size of a shard manifest (bytes of JSON,
+    /// [`crate::shards::MAX_MANIFEST_BYTES`]).
+    ManifestBytes,
 }
 
 /// The property on which two inputs disagree ([`Error::Mismatch`]).
@@ -323,6 +329,8 @@ impl std::fmt::Display for Resource {
             Resource::RasterPixels => "weight raster pixels per view",
             Resource::Memory => "host memory",
             Resource::ShardGaussians => "Gaussians per shard (32-bit count)",
+            Resource::DiskSpace => "free disk space",
+            Resource::ManifestBytes => "manifest size",
         })
     }
 }

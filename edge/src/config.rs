@@ -10,6 +10,7 @@
 //! ep = "cpu"            # or "cuda" with JetPack's ONNX Runtime
 //! threshold = 0.28
 //! token_file = "/etc/slag/token"
+//! shard_token_file = "/etc/slag/shard-token"   # POST /fetch's token (else env SLAG_SHARD_TOKEN)
 //! hnsw = false
 //! hnsw_backend = "instant-distance"   # or "qdrant-edge" (binary built with --features qdrant-edge)
 //! max_scans = 1         # scans at once (each uses every core)
@@ -50,6 +51,9 @@ pub struct ServeConfig {
     pub threshold: Option<f32>,
     /// File holding the bearer token.
     pub token_file: Option<PathBuf>,
+    /// File holding the shard server's bearer token, sent by `POST /fetch` (else env
+    /// `SLAG_SHARD_TOKEN`).
+    pub shard_token_file: Option<PathBuf>,
     /// Build the HNSW index.
     pub hnsw: Option<bool>,
     /// Its backend: `instant-distance` or `qdrant-edge` (parsed by

@@ -5,7 +5,17 @@
 //!    ([`select_tiles`] → [`slag_common::shards::TileIndex::select_tiles`], an `rstar` R-tree);
 //!    centre and radius are in the robot's map frame (metres) when the manifest has a
 //!    scene-to-map transform, converted by [`selection_disc`];
-//! 3. each selected tile not already stored with the same checksum is downloaded into
+//!    The manifest is read as a stream and refused past
+//!    [`slag_common::shards::MAX_MANIFEST_BYTES`]; its declared sizes must be ones the shard
+//!    format allows ([`Manifest::check_sizes`]), so a manifest declaring a 10^12-byte tile is
+//!    refused before anything is written;
+//! 3. every selected tile's stored file is checked ([`EdgeStore::check_stored`]: length, CRC-32,
+//!    header); one that fails (flipped bytes, truncated, appended to, another tile's bytes, a
+//!    folder in its place) is set aside into the store's `quarantine/` ([`EdgeStore::set_aside`])
+//!    and downloaded again, like a tile never stored. Before any download, the bytes still to
+//!    come are compared with the free space of the store's file system ([`Error::Limit`]
+//!    [`slag_common::Resource::DiskSpace`]);
+//! 4. each selected tile not already stored and verified is downloaded into
 //!    `partial/<scene>-<tile>-<checksum>.part`, resumed with `Range: bytes=N-` + `If-Range` when a
 //!    previous run was interrupted, verified ([`crate::store::verify_shard`]) and renamed into the
 //!    store's shard folder ([`EdgeStore::commit_partial`]);
@@ -13,9 +23,9 @@
 //!    same way first, as `partial/<scene>-<u64::MAX>-<checksum>.part` from
 //!    `{server}/v1/scenes/{scene}/codebook`, verified ([`crate::store::verify_codebook`]: length,
 //!    CRC-32, header) and renamed into place ([`EdgeStore::commit_codebook_partial`]);
-//! 4. when every selected tile is stored, the manifest and a [`FetchRecord`] are committed in one
+//! 5. when every selected tile is stored, the manifest and a [`FetchRecord`] are committed in one
 //!    transaction (a new partition generation becomes visible at once, never half);
-//! 5. shards that no manifest references any more (an older generation) are dropped; shards of the
+//! 6. shards that no manifest references any more (an older generation) are dropped; shards of the
 //!    current manifest outside the disc are kept unless [`FetchParams::prune`] is set.
 //!
 //! # Fault injection (tests only)
@@ -26,7 +36,16 @@
 //! after each shard commit (the verified partial file renamed into `shards/`), before and after
 //! the manifest commit, and after each shard eviction. `edge/tests/faults.rs`
 //! kills a fetch at every boundary in turn and checks that the store stays consistent. Unset
-//! (the normal case) it costs one atomic load per boundary.
+//! (the normal case) it costs one atomic load per boundary. With `SLAG_FAULT_ENOSPC_AT=<n>` the
+//! n-th write to a partial file fails as if the disk were full ([`fault_enospc`]).
+//!
+//! # Partial files after a failure
+//!
+//! A fetch that fails for a network reason (timeout, dropped connection, 5xx after its retries)
+//! keeps its partial files, so the next run resumes them with `Range` requests; they never exceed
+//! the manifest's sizes, which the free-space check counted. Any other failure (the disk full or
+//! failing, a shard that fails verification, a store error) removes the scene's partial files
+//! before the error is returned.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -35,13 +54,14 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use futures_util::{StreamExt, TryStreamExt};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use slag_common::shards::{
-    CODEBOOK_TILE, MAP_FRAME, Manifest, SCENE_FRAME, TileInfo, valid_scene_id,
+    CODEBOOK_TILE, MAP_FRAME, MAX_MANIFEST_BYTES, Manifest, SCENE_FRAME, TileInfo,
+    manifest_too_large, valid_scene_id,
 };
 use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
 use crate::query::{FrameChoice, answer_frame};
-use crate::store::{EdgeStore, FetchRecord, codebook_tile, parse_checksum};
+use crate::store::{EdgeStore, FetchRecord, Stored, codebook_tile, parse_checksum};
 
 /// The disc to select, on the manifest's ground plane: `(centre (g0, g1), radius in scene
 /// units, frame name)`. In the map frame (module doc of [`Center`]) the centre is mapped back by
@@ -204,8 +224,11 @@ pub struct FetchSummary {
     pub scene_radius: f64,
     /// Tiles in the disc.
     pub selected: usize,
-    /// Of those, already stored with the same checksum.
+    /// Of those, already stored and verified (length, CRC-32, header).
     pub skipped: usize,
+    /// Stored files of selected tiles that failed verification (or were not files), set aside
+    /// into the store's `quarantine/` folder and downloaded again.
+    pub set_aside: usize,
     /// Downloaded in this run (including resumed ones).
     pub downloaded: usize,
     /// Downloads that continued a partial file with a `Range` request.
@@ -232,8 +255,9 @@ impl std::fmt::Display for FetchSummary {
         write!(
             f,
             "scene {} generation {} ({} frame{}): {} shards in the radius ({} downloaded, {} \
-             resumed, {} already stored), {} Gaussians, {:.1} MB of shards, {:.1} MB received; {} \
-             outside the radius kept, {} evicted; store {:.1} MB on disk{}",
+             resumed, {} already stored and verified, {} damaged set aside), {} Gaussians, {:.1} \
+             MB of shards, {:.1} MB received; {} outside the radius kept, {} evicted; store {:.1} \
+             MB on disk{}",
             self.scene,
             self.generation,
             self.frame,
@@ -246,6 +270,7 @@ impl std::fmt::Display for FetchSummary {
             self.downloaded,
             self.resumed,
             self.skipped,
+            self.set_aside,
             self.gaussians,
             self.shard_bytes as f64 / 1e6,
             self.bytes_received as f64 / 1e6,
@@ -286,6 +311,29 @@ pub fn fault_boundary(what: &str) {
         eprintln!("SLAG_FAULT_EXIT_AT={at}: exiting at boundary {at} ({what})");
         std::process::exit(FAULT_EXIT_STATUS);
     }
+}
+
+/// The disk-full hook (module doc): the n-th partial-file write of the process, n from
+/// `SLAG_FAULT_ENOSPC_AT`, returns the error a full disk gives (`ENOSPC`) instead of writing.
+/// Unset, it costs one atomic load per write.
+pub fn fault_enospc() -> std::io::Result<()> {
+    use std::sync::OnceLock;
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static AT: OnceLock<Option<u64>> = OnceLock::new();
+    static COUNT: AtomicU64 = AtomicU64::new(0);
+    let Some(at) = *AT.get_or_init(|| {
+        std::env::var("SLAG_FAULT_ENOSPC_AT")
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+            .filter(|&n| n > 0)
+    }) else {
+        return Ok(());
+    };
+    if COUNT.fetch_add(1, Ordering::SeqCst) + 1 == at {
+        // ENOSPC on Linux (28).
+        return Err(std::io::Error::from_raw_os_error(28));
+    }
+    Ok(())
 }
 
 fn url_join(server: &str, path: &str) -> String {
@@ -361,8 +409,9 @@ pub fn client(timeout: Duration) -> Result<reqwest::Client> {
 
 /// Downloads and parses the scene's manifest.
 ///
-/// Errors: [`Error::Network`] (unreachable, non-2xx), [`Error::Format`] (not a manifest, or one of
-/// another scene).
+/// Errors: [`Error::Network`] (unreachable, non-2xx), [`Error::Limit`]
+/// [`slag_common::Resource::ManifestBytes`] (more than [`MAX_MANIFEST_BYTES`]), [`Error::Format`]
+/// (not a manifest, sizes the shard format does not allow, or one of another scene).
 pub async fn fetch_manifest(
     client: &reqwest::Client,
     server: &str,
@@ -376,7 +425,22 @@ pub async fn fetch_manifest(
     }
     let resp = req.send().await.map_err(|e| net_error(&url, e).error)?;
     let status = resp.status();
-    let body = resp.bytes().await.map_err(|e| net_error(&url, e).error)?;
+    if let Some(len) = resp.content_length()
+        && len > MAX_MANIFEST_BYTES
+    {
+        return Err(manifest_too_large(len, &url));
+    }
+    // Streamed with a cap: a server that sends more than the limit is cut off there, whatever
+    // its Content-Length said.
+    let mut body = Vec::new();
+    let mut stream = resp.bytes_stream();
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| net_error(&url, e).error)?;
+        if (body.len() + chunk.len()) as u64 > MAX_MANIFEST_BYTES {
+            return Err(manifest_too_large((body.len() + chunk.len()) as u64, &url));
+        }
+        body.extend_from_slice(&chunk);
+    }
     if !status.is_success() {
         return Err(status_error(&url, status, &String::from_utf8_lossy(&body)).error);
     }
@@ -398,10 +462,38 @@ pub async fn fetch_manifest(
 
 /// Runs a fetch (steps in the module doc).
 ///
-/// Errors: bad parameters ([`Error::Param`]), the server ([`Error::Network`]), a shard that
-/// fails verification twice ([`Error::Format`]), store I/O. On error the store keeps every shard
-/// completed so far and the previous manifest stays current; rerunning resumes.
+/// Errors: bad parameters ([`Error::Param`]), the server ([`Error::Network`]), a manifest too
+/// large or whose sizes the shard format does not allow ([`Error::Limit`], [`Error::Format`]),
+/// not enough free disk space for what is to be downloaded ([`Error::Limit`]
+/// [`slag_common::Resource::DiskSpace`], naming the folder), a shard that fails verification
+/// twice ([`Error::Format`]), store I/O. On error the store keeps every shard completed so far
+/// and the previous manifest stays current; rerunning resumes (partial files are kept only after
+/// a network failure: module doc).
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+    let r = fetch_inner(store, p).await;
+    if let Err(e) = &r
+        && !matches!(e, Error::Network { .. })
+    {
+        let store = store.clone();
+        let scene = p.scene.clone();
+        let cleaned = tokio::task::spawn_blocking(move || store.clean_partials(&scene, &[])).await;
+        match cleaned {
+            Ok(Ok(n)) if n > 0 => {
+                tracing::warn!(
+                    "removed {n} partial download(s) of scene {} after: {e}",
+                    p.scene
+                )
+            }
+            Ok(Ok(_)) => {}
+            Ok(Err(c)) => tracing::warn!("partial downloads not removed: {c}"),
+            Err(c) => tracing::warn!("partial downloads not removed: {c}"),
+        }
+    }
+    r
+}
+
+/// [`fetch`] without the clean-up of partial files after a failure.
+async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     if !valid_scene_id(&p.scene) {
         return Err(Error::param(
             "scene_id",
@@ -434,28 +526,52 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
         shard_bytes: selected.iter().map(|t| t.bytes).sum(),
         ..Default::default()
     };
+    // "Already stored" means verified (module doc, step 3): anything else at a tile's path is
+    // set aside and the tile downloaded again. The codebook of a mixture scene is checked the
+    // same way, first: no row can be scored without it.
+    let codebook = codebook_tile(&manifest);
+    if let Some(t) = &codebook {
+        summary.codebook_bytes = t.bytes;
+    }
+    let (checked, manifest) = {
+        let store = store.clone();
+        let tiles: Vec<TileInfo> = codebook.iter().chain(&selected).cloned().collect();
+        tokio::task::spawn_blocking(move || {
+            let mut out = Vec::with_capacity(tiles.len());
+            for t in tiles {
+                let state = match store.check_stored(&manifest, &t)? {
+                    Stored::Damaged { path, why } => {
+                        store.set_aside(&path, &why)?;
+                        Stored::Damaged { path, why }
+                    }
+                    s => s,
+                };
+                out.push((t, state));
+            }
+            Ok::<_, Error>((out, manifest))
+        })
+        .await
+        .map_err(|e| Error::internal(format!("store task failed: {e}")))??
+    };
     let mut todo = Vec::new();
-    for t in &selected {
-        if store.has_shard(&p.scene, t)? {
-            summary.skipped += 1;
-        } else {
-            todo.push(t.clone());
+    let mut codebook_todo = None;
+    for (t, state) in checked {
+        let is_codebook = codebook.as_ref().is_some_and(|c| c.id == t.id);
+        match state {
+            Stored::Verified if is_codebook => {}
+            Stored::Verified => summary.skipped += 1,
+            Stored::Missing | Stored::Damaged { .. } => {
+                summary.set_aside += matches!(state, Stored::Damaged { .. }) as usize;
+                if is_codebook {
+                    codebook_todo = Some(t);
+                } else {
+                    todo.push(t);
+                }
+            }
         }
     }
-
-    // A mixture scene's codebook, before its shards (no row can be scored without it).
-    let codebook = codebook_tile(&manifest);
-    let codebook_todo = match (&codebook, store.codebook_path(&manifest)?) {
-        (Some(t), Some(path)) => {
-            summary.codebook_bytes = t.bytes;
-            // Verified again when present (a few MB): a damaged codebook would make every row
-            // of the scene unusable, so it is downloaded again rather than kept.
-            let usable = path.is_file() && store.codebook(&manifest).is_ok();
-            (!usable).then(|| t.clone())
-        }
-        _ => None,
-    };
     let total: u64 = todo.iter().chain(&codebook_todo).map(|t| t.bytes).sum();
+    check_free_space(store, &manifest, todo.iter().chain(&codebook_todo))?;
     let pb = if p.progress {
         ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr())
     } else {
@@ -563,6 +679,48 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     Ok(summary)
 }
 
+/// Refuses a download that cannot fit: the bytes still to come for `tiles` (their sizes less
+/// what their partial files already hold) against [`EdgeStore::free_bytes`], before anything is
+/// written.
+///
+/// Errors: [`Error::Limit`] [`slag_common::Resource::DiskSpace`] naming the store's folder;
+/// [`Error::Io`] when the free space cannot be read.
+fn check_free_space<'a>(
+    store: &EdgeStore,
+    manifest: &Manifest,
+    tiles: impl Iterator<Item = &'a TileInfo>,
+) -> Result<()> {
+    let mut needed = 0u64;
+    let mut count = 0usize;
+    for t in tiles {
+        let part = store.partial_path(&manifest.scene_id, t);
+        let have = std::fs::symlink_metadata(&part)
+            .ok()
+            .filter(|m| m.is_file() && m.len() <= t.bytes)
+            .map_or(0, |m| m.len());
+        needed = needed.saturating_add(t.bytes - have);
+        count += 1;
+    }
+    if needed == 0 {
+        return Ok(());
+    }
+    let free = store.free_bytes()?;
+    if needed > free {
+        return Err(Error::limit(
+            slag_common::Resource::DiskSpace,
+            format!(
+                "{needed} bytes for {count} shard(s) of scene {}",
+                manifest.scene_id
+            ),
+            format!(
+                "{free} bytes free for the store {}",
+                store.root().join("partial").display()
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Downloads one tile with retries; returns `(resumed, bytes received)`.
 async fn download_tile(
     client: &reqwest::Client,
@@ -586,6 +744,15 @@ async fn download_tile(
         )
     };
     let part = store.partial_path(&manifest.scene_id, tile);
+    // A folder (or anything but a plain file) where the partial file belongs: set aside.
+    if let Ok(m) = tokio::fs::symlink_metadata(&part).await
+        && !m.is_file()
+    {
+        let (store, part) = (store.clone(), part.clone());
+        tokio::task::spawn_blocking(move || store.set_aside(&part, "not a partial download file"))
+            .await
+            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
+    }
     let mut counts = Counts::default();
     let mut resumed = false;
     let mut attempt = 0u32;
@@ -651,6 +818,12 @@ async fn download_tile(
     }
 }
 
+/// Appends one received chunk to a partial file (through the disk-full hook, [`fault_enospc`]).
+async fn write_chunk(file: &mut tokio::fs::File, chunk: &[u8]) -> std::io::Result<()> {
+    fault_enospc()?;
+    file.write_all(chunk).await
+}
+
 /// Bytes of one tile: received over the network in this run, and shown in the progress bar.
 #[derive(Default)]
 struct Counts {
@@ -670,7 +843,7 @@ async fn try_download(
     counts: &mut Counts,
 ) -> std::result::Result<bool, Attempt> {
     let io = |e: std::io::Error| permanent(Error::io(part, e));
-    let have = match tokio::fs::metadata(part).await {
+    let have = match tokio::fs::symlink_metadata(part).await {
         Ok(m) if m.len() <= tile.bytes => m.len(),
         Ok(_) => {
             tokio::fs::remove_file(part).await.map_err(io)?;
@@ -750,7 +923,13 @@ async fn try_download(
                 ),
             )));
         }
-        file.write_all(&chunk).await.map_err(io)?;
+        if let Err(e) = write_chunk(&mut file, &chunk).await {
+            // The disk is full or failing: the partial file is removed (with those of the rest
+            // of the scene, by `fetch`), never left to fill the disk further.
+            drop(file);
+            let _ = tokio::fs::remove_file(part).await;
+            return Err(io(e));
+        }
         fault_boundary("after a partial-file write");
         counts.received += chunk.len() as u64;
         counts.shown += chunk.len() as u64;

@@ -147,6 +147,10 @@ struct ServeArgs {
     /// File with the bearer token clients must send (also env SLAG_EDGE_TOKEN).
     #[arg(long)]
     token_file: Option<PathBuf>,
+    /// File with the shard server's bearer token, which POST /fetch sends (also env
+    /// SLAG_SHARD_TOKEN).
+    #[arg(long)]
+    shard_token_file: Option<PathBuf>,
     /// Build the approximate HNSW index at load (queries pick it with index=hnsw).
     #[arg(long)]
     hnsw: bool,
@@ -379,6 +383,20 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             .unwrap_or(d.max_connections),
     };
     limits.validate()?;
+    let shard_token = match (
+        a.shard_token_file.or(c.shard_token_file),
+        std::env::var("SLAG_SHARD_TOKEN").ok(),
+    ) {
+        (Some(p), _) => Some(read_token(&p)?),
+        (None, Some(t)) => {
+            anyhow::ensure!(
+                !t.trim().is_empty(),
+                "SLAG_SHARD_TOKEN is set but blank: set it to the shard server's token, or unset it"
+            );
+            Some(t.trim().to_string())
+        }
+        (None, None) => None,
+    };
     let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
     let hnsw_backend = match a.hnsw_backend.or(c.hnsw_backend) {
         None => HnswBackend::default(),
@@ -411,6 +429,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             .or(c.max_matches)
             .unwrap_or(slag_edge::serve::DEFAULT_MAX_MATCHES),
         limits,
+        shard_token,
     };
     anyhow::ensure!(opts.max_matches >= 1, "--max-matches must be at least 1");
     anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
@@ -462,47 +481,104 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `slag-edge check`: every problem of the deployment, each named in the JSON report's
+/// `problems` (`"ok"` is true only when there is none), then a non-zero exit when there is one.
+/// Checked: the text model loads and embeds one prompt; the store opens and the scene loads;
+/// every stored shard of its manifest verifies; every tile of the last fetch's disc is stored;
+/// the scene holds at least one Gaussian; the text model is of the shards' CLIP model and width.
 fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     let r = resolve(a)?;
+    let mut problems: Vec<String> = Vec::new();
     let t = std::time::Instant::now();
-    let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
-    let v = text.embed(&["a chair"])?;
+    let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)
+        .and_then(|text| Ok((text.embed(&["a chair"])?, text)));
     let text_ms = t.elapsed().as_secs_f64() * 1e3;
-    let edge = EdgeStore::open_existing(&r.store)?;
-    let engine = slag_edge::engine::Engine::load(&edge, &r.opts.scene, false)?;
-    text.check_pair(&engine.manifest.model)?;
-    anyhow::ensure!(
-        v[0].len() == engine.store.dim(),
-        "the text model gives {}-d embeddings, the stored Gaussians are {}-d ({}): use the CLIP \
-         text tower of that model",
-        v[0].len(),
-        engine.store.dim(),
-        engine.manifest.model
-    );
-    let report = serde_json::json!({
-        "ok": true,
+    let text = match text {
+        Ok((v, text)) => Some((v, text)),
+        Err(e) => {
+            problems.push(format!("text model: {e:#}"));
+            None
+        }
+    };
+    let engine = EdgeStore::open_existing(&r.store)
+        .map_err(anyhow::Error::from)
+        .and_then(|edge| {
+            let engine = slag_edge::engine::Engine::load(&edge, &r.opts.scene, false)?;
+            let missing = edge.missing_tiles(&engine.manifest)?;
+            Ok((engine, missing, edge.quarantine_usage()))
+        });
+    let mut report = serde_json::json!({
         "text_model": r.text_model,
-        "text_dim": v[0].len(),
         "text_load_and_first_prompt_ms": text_ms,
         "ep": format!("{:?}", r.ep),
         "store": r.store,
         "scene": r.opts.scene,
-        "generation": engine.manifest.generation,
-        "embedding_model": engine.manifest.model,
-        "frames": engine.manifest.frames,
-        "shards_loaded": engine.load.loaded_tiles.len(),
-        "shards_absent": engine.load.absent_tiles,
-        "shards_rejected": engine.load.rejected,
-        "gaussians": engine.store.len(),
-        "vector_memory_bytes": engine.store.memory_bytes(),
         "addr": r.addr,
         "token": r.opts.token.is_some(),
     });
+    if let Some((v, _)) = &text {
+        report["text_dim"] = v.first().map_or(0, Vec::len).into();
+    }
+    match &engine {
+        Err(e) => problems.push(format!("store: {e:#}")),
+        Ok((engine, missing, (set_aside, set_aside_bytes))) => {
+            let m = &engine.manifest;
+            for rejected in &engine.load.rejected {
+                problems.push(format!("corrupt shard, not served: {rejected}"));
+            }
+            for id in missing {
+                problems.push(format!(
+                    "shard {id} of the fetched disc is missing from the store"
+                ));
+            }
+            if engine.store.is_empty() {
+                problems.push(format!(
+                    "scene {} has no Gaussians to serve ({} of its {} tiles stored)",
+                    m.scene_id,
+                    engine.load.loaded_tiles.len(),
+                    m.tiles.len()
+                ));
+            }
+            if let Some((v, text)) = &text {
+                if let Err(e) = text.check_pair(&m.model) {
+                    problems.push(format!("text model: {e}"));
+                } else if v.first().map_or(0, Vec::len) != engine.store.dim() {
+                    problems.push(format!(
+                        "the text model gives {}-d embeddings, the stored Gaussians are {}-d \
+                         ({}): use the CLIP text tower of that model",
+                        v.first().map_or(0, Vec::len),
+                        engine.store.dim(),
+                        m.model
+                    ));
+                }
+            }
+            let fields = serde_json::json!({
+                "generation": m.generation,
+                "embedding_model": m.model,
+                "frames": m.frames,
+                "shards_loaded": engine.load.loaded_tiles.len(),
+                "shards_absent": engine.load.absent_tiles,
+                "shards_rejected": engine.load.rejected,
+                "shards_missing": missing,
+                "gaussians": engine.store.len(),
+                "vector_memory_bytes": engine.store.memory_bytes(),
+                "set_aside": set_aside,
+                "set_aside_bytes": set_aside_bytes,
+            });
+            if let (Some(o), serde_json::Value::Object(f)) = (report.as_object_mut(), fields) {
+                o.extend(f);
+            }
+        }
+    }
+    report["ok"] = problems.is_empty().into();
+    report["problems"] = problems.clone().into();
     println!("{}", serde_json::to_string_pretty(&report)?);
     anyhow::ensure!(
-        engine.load.rejected.is_empty(),
-        "{} stored shards failed verification; rerun fetch to replace them",
-        engine.load.rejected.len()
+        problems.is_empty(),
+        "{} problem(s): {}; `slag-edge fetch` again for the same disc replaces missing and \
+         corrupt shards",
+        problems.len(),
+        problems.join("; ")
     );
     Ok(())
 }
@@ -636,6 +712,16 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
         } => "fetch a smaller --radius, or shards of a smaller --dtype (int8, f16) from \
               `slag-encoder partition`"
             .into(),
+        Error::Limit {
+            resource: Resource::DiskSpace,
+            ..
+        } => "free space on that file system (the store's quarantine/ folder holds what fetch \
+              set aside), fetch a smaller --radius, or pass another --store"
+            .into(),
+        Error::Limit {
+            resource: Resource::ManifestBytes,
+            ..
+        } => "check --from: that server's manifest is larger than any slag partition's".into(),
         Error::Network {
             status: Some(401 | 403),
             ..
@@ -690,6 +776,15 @@ mod tests {
             h(Error::limit(Resource::Memory, "9e9 rows", "the allocator")).contains("--radius")
         );
         assert!(h(Error::internal("query task panicked")).contains("--verbose"));
+        assert!(
+            h(Error::limit(
+                Resource::DiskSpace,
+                "9 GB",
+                "1 GB free for the store /s"
+            ))
+            .contains("--radius")
+        );
+        assert!(h(Error::limit(Resource::ManifestBytes, "40 MB", "32 MiB")).contains("--from"));
         assert_eq!(hint_for(&Error::network("http://s", "down")), None);
         let refused = slag_edge::scan::hnsw::HnswBackend::QdrantEdge.require();
         if let Err(e) = refused {

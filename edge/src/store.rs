@@ -16,7 +16,28 @@
 //! - `DIR/partial/`: `<scene>-<tile>-<checksum>.part` files of interrupted downloads (resumed with
 //!   an HTTP `Range` request). A download is renamed into `DIR/shards/` only after its full bytes
 //!   match the manifest checksum and decode (both CRCs, header scene/tile/model/dim/dtype) — a
-//!   reader never sees a partial shard.
+//!   reader never sees a partial shard;
+//! - `DIR/shards/<scene-hex>/manifest.json` and `fetch.json`: copies of the scene's current
+//!   manifest and [`FetchRecord`], written (atomically) with every completed fetch, from which a
+//!   damaged database is rebuilt ([`EdgeStore::open`]: when sled reports its files damaged, the
+//!   database is set aside and a new one refilled; a database that opens holding no scene, as
+//!   sled leaves one whose data file was garbage, is refilled too);
+//! - `DIR/quarantine/`: what the store set aside instead of deleting ([`EdgeStore::set_aside`]):
+//!   stored shard files that no longer match their manifest entry (flipped bytes, truncated,
+//!   appended to, another tile's or scene's bytes), directories or other non-files where a shard
+//!   or a partial download belongs, and a database sled can no longer read. Each is renamed there
+//!   with a warning in the log naming it and why; nothing there is read again, and the operator
+//!   may inspect or delete it.
+//!
+//! # Verification
+//!
+//! "Already stored" means verified: before a fetch skips a tile, [`EdgeStore::check_stored`]
+//! compares the file's length with the manifest's, reads it once to compute its CRC-32 against
+//! the manifest checksum, and compares its header (scene, tile, model, width, dtype, count,
+//! format version) with the manifest. No (length, mtime) cache stands in for the CRC: bit rot and
+//! a bad flash block change bytes without changing either. The cost is one sequential read of
+//! the selected shards per fetch (CRC-32 runs at several GB/s; the read is the cost). Loading for
+//! `serve`, `query` and `check` decodes every shard in full on top ([`verify_shard`]).
 //!
 //! Shard bytes live in files, not in sled, because sled 0.34 kept the ~65 MB values it had read in
 //! its page cache well past its configured capacity: loading 1M × 512 f16 Gaussians (16 shards)
@@ -34,7 +55,8 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use slag_common::shards::{
-    CODEBOOK_TILE, Codebook, Manifest, MixtureShard, StoredShard, TileInfo, decode_codebook,
+    CODEBOOK_TILE, Codebook, Dtype, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureShard,
+    SHARD_FORMAT_VERSION, StoredShard, TileInfo, decode_codebook, decode_header,
     decode_mixture_shard, decode_shard_stored, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
@@ -69,6 +91,16 @@ pub struct EdgeStore {
 }
 
 fn db_err(root: &Path, e: sled::Error) -> Error {
+    if db_damaged(&e) {
+        return Error::format(
+            root.join("db"),
+            format!(
+                "the store's database is damaged ({e}); stop every slag-edge using this store and \
+                 run `slag-edge fetch` again: opening the store sets the database aside and \
+                 rebuilds it from the manifest copies beside the verified shard files"
+            ),
+        );
+    }
     match e {
         sled::Error::Io(io) if io.kind() == std::io::ErrorKind::WouldBlock => {
             Error::Invalid(format!(
@@ -80,6 +112,115 @@ fn db_err(root: &Path, e: sled::Error) -> Error {
         sled::Error::Io(io) => Error::io(root, io),
         other => Error::format(root, format!("sled store: {other}")),
     }
+}
+
+/// True for a sled error that means its files are damaged (not a lock held by another process
+/// nor an I/O error of the disk itself).
+fn db_damaged(e: &sled::Error) -> bool {
+    match e {
+        // `Unsupported` at open: its config file does not read as sled's (garbage there).
+        sled::Error::Corruption { .. }
+        | sled::Error::ReportableBug(_)
+        | sled::Error::Unsupported(_) => true,
+        sled::Error::Io(io) => matches!(
+            io.kind(),
+            std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+        ),
+        _ => false,
+    }
+}
+
+/// Opens the sled database of the store in `root`.
+fn open_db(root: &Path) -> std::result::Result<sled::Db, sled::Error> {
+    sled::Config::new()
+        .path(root.join("db"))
+        .cache_capacity(SLED_CACHE_BYTES)
+        .open()
+}
+
+/// Name of the manifest copy in a scene's shard folder (module doc).
+const MANIFEST_COPY: &str = "manifest.json";
+/// Name of the fetch-record copy in a scene's shard folder (module doc).
+const FETCH_COPY: &str = "fetch.json";
+
+/// Writes `bytes` to `path` atomically: a `.tmp` file beside it, synced, renamed, folder synced.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("json.tmp");
+    let write = || -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()
+    };
+    write().map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::io(&tmp, e)
+    })?;
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+    match path.parent() {
+        Some(dir) => sync_dir(dir),
+        None => Ok(()),
+    }
+}
+
+/// Bytes of the file header kept while a stored file is checksummed: the header decoder reads
+/// no further for the ids and models slag writes (its fixed part is 80 bytes).
+const HEAD_BYTES: usize = 64 * 1024;
+
+/// What [`EdgeStore::check_stored`] found for one tile.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Stored {
+    /// The file matches its manifest entry: length, CRC-32 and header.
+    Verified,
+    /// Nothing at the tile's path.
+    Missing,
+    /// Something at the tile's path that is not its verified file (`why` says what differs): a
+    /// fetch sets it aside ([`EdgeStore::set_aside`]) and downloads the tile again.
+    Damaged {
+        /// The file (or folder) found.
+        path: PathBuf,
+        /// What differs from the manifest.
+        why: String,
+    },
+}
+
+/// [`EdgeStore::set_aside`] without the log line (also used before the store is open).
+fn set_aside_in(root: &Path, path: &Path, why: &str) -> Result<PathBuf> {
+    let q = root.join("quarantine");
+    std::fs::create_dir_all(&q).map_err(|e| Error::io(&q, e))?;
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "unnamed".into());
+    let to = q.join(format!("{nanos}-{name}"));
+    std::fs::rename(path, &to).map_err(|e| {
+        Error::io(
+            path,
+            std::io::Error::new(e.kind(), format!("setting it aside ({why}) failed: {e}")),
+        )
+    })?;
+    sync_dir(&q)?;
+    if let Some(parent) = path.parent() {
+        sync_dir(parent)?;
+    }
+    Ok(to)
+}
+
+/// Bytes of the files under `p` (0 for what cannot be read).
+fn dir_bytes(p: &Path) -> u64 {
+    let Ok(rd) = std::fs::read_dir(p) else {
+        return 0;
+    };
+    rd.flatten()
+        .map(|e| match e.metadata() {
+            Ok(m) if m.is_dir() => dir_bytes(&e.path()),
+            Ok(m) => m.len(),
+            Err(_) => 0,
+        })
+        .sum()
 }
 
 /// Lower-case hex of `bytes`.
@@ -374,11 +515,22 @@ impl EdgeStore {
         for sub in ["partial", "shards"] {
             std::fs::create_dir_all(root.join(sub)).map_err(|e| Error::io(root, e))?;
         }
-        let db = sled::Config::new()
-            .path(root.join("db"))
-            .cache_capacity(SLED_CACHE_BYTES)
-            .open()
-            .map_err(|e| db_err(root, e))?;
+        let (db, rebuild) = match open_db(root) {
+            Ok(db) => (db, false),
+            // Damaged files (not a lock, not a disk error): set the database aside and start a
+            // new one, refilled below from the manifest copies beside the shard files.
+            Err(e) if db_damaged(&e) => {
+                let aside = set_aside_in(root, &root.join("db"), &format!("sled: {e}"))?;
+                tracing::warn!(
+                    "store {}: the database was damaged ({e}); set aside as {}, rebuilding it \
+                     from the manifest copies beside the verified shard files",
+                    root.display(),
+                    aside.display()
+                );
+                (open_db(root).map_err(|e| db_err(root, e))?, true)
+            }
+            Err(e) => return Err(db_err(root, e)),
+        };
         if db.tree_names().iter().any(|n| n.as_ref() == b"shards") {
             let legacy = db.open_tree("shards").map_err(|e| db_err(root, e))?;
             if !legacy.is_empty() {
@@ -395,12 +547,248 @@ impl EdgeStore {
             db.drop_tree("shards").map_err(|e| db_err(root, e))?;
         }
         let tree = |name: &str| db.open_tree(name).map_err(|e| db_err(root, e));
-        Ok(EdgeStore {
+        let store = EdgeStore {
             root: root.to_path_buf(),
             manifests: tree("manifests")?,
             fetches: tree("fetches")?,
             db,
-        })
+        };
+        // sled recovers a log whose data is garbage by dropping it, and opens empty: a database
+        // without any scene beside manifest copies is refilled as well.
+        if rebuild || store.manifests.is_empty() {
+            let scenes = store.rebuild_db()?;
+            if rebuild || !scenes.is_empty() {
+                tracing::warn!(
+                    "store {}: database rebuilt with {} scene(s) ({}) from the manifest copies; \
+                     shards are verified again when loaded and fetched",
+                    root.display(),
+                    scenes.len(),
+                    scenes.join(", ")
+                );
+            }
+        }
+        Ok(store)
+    }
+
+    /// Refills the database from the manifest and fetch-record copies in each scene's shard
+    /// folder, for scenes it does not hold; returns the scenes restored. A copy that does not parse, or names
+    /// another scene than its folder, is skipped with a warning (a fetch of that scene writes it
+    /// again).
+    fn rebuild_db(&self) -> Result<Vec<String>> {
+        let dir = self.root.join("shards");
+        let rd = std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))?;
+        let mut scenes = Vec::new();
+        for e in rd.flatten() {
+            let folder = e.path();
+            let copy = folder.join(MANIFEST_COPY);
+            let Ok(bytes) = std::fs::read(&copy) else {
+                continue;
+            };
+            let m = match Manifest::from_json(&bytes, &copy.display().to_string()) {
+                Ok(m) if self.scene_dir(&m.scene_id) == folder => m,
+                Ok(m) => {
+                    tracing::warn!(
+                        "{}: scene {} in another scene's folder; skipped",
+                        copy.display(),
+                        m.scene_id
+                    );
+                    continue;
+                }
+                Err(err) => {
+                    tracing::warn!("not restored: {err}");
+                    continue;
+                }
+            };
+            let key = m.scene_id.as_bytes();
+            if self.manifests.contains_key(key).map_err(|e| self.err(e))? {
+                continue;
+            }
+            self.manifests.insert(key, bytes).map_err(|e| self.err(e))?;
+            if let Ok(r) = std::fs::read(folder.join(FETCH_COPY))
+                && serde_json::from_slice::<FetchRecord>(&r).is_ok()
+            {
+                self.fetches.insert(key, r).map_err(|e| self.err(e))?;
+            }
+            scenes.push(m.scene_id);
+        }
+        self.db.flush().map_err(|e| self.err(e))?;
+        scenes.sort();
+        Ok(scenes)
+    }
+
+    /// Moves `path` (a file, or a folder where a file belongs) into `DIR/quarantine/` under a new
+    /// name (the time, then its own name), logs a warning with `why`, and returns the new path:
+    /// what the store sets aside is kept for inspection, never deleted (module doc).
+    ///
+    /// Errors: [`Error::Io`] when the quarantine folder cannot be made or the rename fails.
+    pub fn set_aside(&self, path: &Path, why: &str) -> Result<PathBuf> {
+        let to = set_aside_in(&self.root, path, why)?;
+        tracing::warn!(
+            "set aside {} ({why}) as {}; it is fetched again",
+            path.display(),
+            to.display()
+        );
+        Ok(to)
+    }
+
+    /// Files and folders in `DIR/quarantine/` and their bytes ([`Self::set_aside`]).
+    pub fn quarantine_usage(&self) -> (usize, u64) {
+        let dir = self.root.join("quarantine");
+        let Ok(rd) = std::fs::read_dir(&dir) else {
+            return (0, 0);
+        };
+        (rd.flatten().count(), dir_bytes(&dir))
+    }
+
+    /// Checks the stored file of `tile` (a shard, or a mixture scene's codebook as its
+    /// [`codebook_tile`]) against `manifest` without decoding its payload: that it is a regular
+    /// file, its length, the CRC-32 of all its bytes (read once, 1 MiB at a time), and its header
+    /// (format version, scene, tile, model, width, dtype, count). See the module doc.
+    ///
+    /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits; [`Error::Io`] when the
+    /// file exists but cannot be read.
+    pub fn check_stored(&self, manifest: &Manifest, tile: &TileInfo) -> Result<Stored> {
+        use std::io::Read;
+        let path = self.stored_path(manifest, tile)?;
+        let meta = match std::fs::symlink_metadata(&path) {
+            Ok(m) => m,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Stored::Missing),
+            Err(e) => return Err(Error::io(&path, e)),
+        };
+        let damaged = |why: String| {
+            Ok(Stored::Damaged {
+                path: path.clone(),
+                why,
+            })
+        };
+        if !meta.is_file() {
+            return damaged(if meta.is_dir() {
+                "a folder where a shard file belongs".into()
+            } else {
+                "not a regular file".into()
+            });
+        }
+        if meta.len() != tile.bytes {
+            return damaged(format!(
+                "{} bytes, the manifest says {}",
+                meta.len(),
+                tile.bytes
+            ));
+        }
+        let mut f = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
+        let mut crc = crc32fast::Hasher::new();
+        let mut head: Vec<u8> = Vec::new();
+        let mut buf = vec![0u8; 1 << 20];
+        let mut total = 0u64;
+        loop {
+            let n = match f.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(Error::io(&path, e)),
+            };
+            crc.update(&buf[..n]);
+            if head.len() < HEAD_BYTES {
+                let take = n.min(HEAD_BYTES - head.len());
+                head.extend_from_slice(&buf[..take]);
+            }
+            total += n as u64;
+        }
+        if total != tile.bytes {
+            return damaged(format!(
+                "{total} bytes read, the manifest says {}",
+                tile.bytes
+            ));
+        }
+        let want = parse_checksum(tile)?;
+        let got = crc.finalize();
+        if got != want {
+            return damaged(format!("checksum {got:08x}, the manifest says {want:08x}"));
+        }
+        let h = match decode_header(&head) {
+            Ok(h) => h,
+            Err(e) => return damaged(format!("header: {e}")),
+        };
+        let codebook = manifest
+            .mixture
+            .as_ref()
+            .filter(|_| tile.id == CODEBOOK_TILE);
+        let (version, dtype) = match (&manifest.mixture, codebook) {
+            (Some(_), None) => (MIXTURE_SHARD_FORMAT_VERSION, Dtype::F16),
+            (Some(_), Some(_)) => (SHARD_FORMAT_VERSION, Dtype::F16),
+            (None, _) => (SHARD_FORMAT_VERSION, manifest.dtype),
+        };
+        if h.version != version
+            || h.scene_id != manifest.scene_id
+            || h.tile_id != tile.id
+            || h.model != manifest.model
+            || h.dim != manifest.dim
+            || h.dtype != dtype
+            || h.count as u64 != tile.count
+        {
+            return damaged(format!(
+                "header (version {}, scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) \
+                 disagrees with the manifest (version {version}, scene {}, tile {}, model {}, \
+                 dim {}, {dtype:?}, {} Gaussians)",
+                h.version,
+                h.scene_id,
+                h.tile_id,
+                h.model,
+                h.dim,
+                h.dtype,
+                h.count,
+                manifest.scene_id,
+                tile.id,
+                manifest.model,
+                manifest.dim,
+                tile.count
+            ));
+        }
+        Ok(Stored::Verified)
+    }
+
+    /// Where the verified file of `tile` lives: [`Self::codebook_path`] for a mixture scene's
+    /// codebook pseudo tile, [`Self::shard_path`] otherwise.
+    ///
+    /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits.
+    pub fn stored_path(&self, manifest: &Manifest, tile: &TileInfo) -> Result<PathBuf> {
+        if manifest.mixture.is_some()
+            && tile.id == CODEBOOK_TILE
+            && let Some(p) = self.codebook_path(manifest)?
+        {
+            return Ok(p);
+        }
+        self.shard_path(&manifest.scene_id, tile)
+    }
+
+    /// Tiles of `manifest` inside the disc of the scene's last completed fetch
+    /// ([`FetchRecord`]) that have no stored file: what `check` reports as missing. Empty when
+    /// the scene has no fetch record.
+    ///
+    /// Errors: store I/O, a checksum that is not 8 hex digits ([`Error::Format`]).
+    pub fn missing_tiles(&self, manifest: &Manifest) -> Result<Vec<u64>> {
+        let Some(r) = self.fetch_record(&manifest.scene_id)? else {
+            return Ok(Vec::new());
+        };
+        let mut missing = Vec::new();
+        for id in manifest.tile_index().select_tiles(r.center, r.radius) {
+            if let Some(t) = manifest.tiles.iter().find(|t| t.id == id)
+                && std::fs::symlink_metadata(self.shard_path(&manifest.scene_id, t)?).is_err()
+            {
+                missing.push(id);
+            }
+        }
+        Ok(missing)
+    }
+
+    /// Bytes free for this store's downloads: `statvfs` of `DIR/partial` (blocks available to an
+    /// unprivileged user times the fragment size).
+    ///
+    /// Errors: [`Error::Io`] when the file system cannot be asked.
+    pub fn free_bytes(&self) -> Result<u64> {
+        let dir = self.root.join("partial");
+        let st = rustix::fs::statvfs(&dir).map_err(|e| Error::io(&dir, e.into()))?;
+        Ok(st.f_bavail.saturating_mul(st.f_frsize))
     }
 
     /// The store folder.
@@ -695,12 +1083,17 @@ impl EdgeStore {
 
     /// Makes `manifest` the scene's current one and records the fetch, in one transaction, then
     /// flushes. Called after every selected shard is committed (their files and folders synced).
+    /// Copies of both are written first beside the scene's shard files (module doc), for a
+    /// rebuild of the database: they describe shards that are all in place already.
     ///
     /// Errors: store I/O, an aborted transaction ([`Error::Internal`]).
     pub fn commit_fetch(&self, manifest: &Manifest, record: &FetchRecord) -> Result<()> {
         use sled::Transactional;
         let m = manifest.to_json();
         let r = serde_json::to_vec(record).unwrap_or_default();
+        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
+        write_atomic(&dir.join(MANIFEST_COPY), &m)?;
+        write_atomic(&dir.join(FETCH_COPY), &r)?;
         let key = manifest.scene_id.as_bytes();
         (&self.manifests, &self.fetches)
             .transaction(|(tm, tf)| {
@@ -760,21 +1153,9 @@ impl EdgeStore {
         sync_dir(&self.root.join("shards"))
     }
 
-    /// Bytes the store uses on disk (shard files, sled files, partial downloads).
+    /// Bytes the store uses on disk (shard files, sled files, partial downloads, quarantine).
     pub fn disk_bytes(&self) -> u64 {
-        fn walk(p: &Path) -> u64 {
-            let Ok(rd) = std::fs::read_dir(p) else {
-                return 0;
-            };
-            rd.flatten()
-                .map(|e| match e.metadata() {
-                    Ok(m) if m.is_dir() => walk(&e.path()),
-                    Ok(m) => m.len(),
-                    Err(_) => 0,
-                })
-                .sum()
-        }
-        walk(&self.root)
+        dir_bytes(&self.root)
     }
 }
 
@@ -809,10 +1190,9 @@ impl EdgeStore {
     /// read, verified ([`verify_shard`]), its file bytes freed, and the decoded shard handed to
     /// `f`, so a caller that copies the rows elsewhere holds at most one shard (file bytes plus
     /// decoded copy) besides its own copy. Tiles without a file count as absent; corrupted ones
-    /// are logged, listed in [`SceneLoad::rejected`] and skipped.
+    /// and files that cannot be read are logged, listed in [`SceneLoad::rejected`] and skipped.
     ///
-    /// Errors: a shard file that exists but cannot be read ([`Error::Io`]), the first error `f`
-    /// returns.
+    /// Errors: the first error `f` returns.
     pub fn load_shards(
         &self,
         manifest: &Manifest,
@@ -825,8 +1205,7 @@ impl EdgeStore {
     /// ([`verify_mixture_shard`]), its bytes freed, and handed to `f`; corrupted ones are logged,
     /// listed in [`SceneLoad::rejected`] and skipped.
     ///
-    /// Errors: a shard file that exists but cannot be read ([`Error::Io`]), the first error `f`
-    /// returns.
+    /// Errors: the first error `f` returns.
     pub fn load_mixture_shards(
         &self,
         manifest: &Manifest,
@@ -851,12 +1230,17 @@ impl EdgeStore {
                     load.absent_tiles += 1;
                     continue;
                 }
-                // A checksum the store cannot name: reported like a corrupted shard.
-                Err(e @ Error::Format { .. }) => {
-                    load.rejected.push(e.to_string());
+                // A checksum the store cannot name, or a file that cannot be read (a folder in
+                // its place, a bad block): reported like a corrupted shard, and the rest of the
+                // scene is served.
+                Err(e) => {
+                    tracing::error!("not serving shard {}: {e}", tile.id);
+                    load.rejected.push(format!(
+                        "shard {} of scene {}: {e}",
+                        tile.id, manifest.scene_id
+                    ));
                     continue;
                 }
-                Err(e) => return Err(e),
             };
             let verified = verify(manifest, tile, &bytes);
             drop(bytes);

@@ -74,6 +74,9 @@ pub const MIXTURE_SHARD_FORMAT_VERSION: u16 = 2;
 /// Largest embedding width accepted when decoding (guards allocations on corrupted input).
 pub const MAX_DIM: u32 = 1 << 16;
 pub(super) const FIXED_HEADER: usize = 72;
+/// Largest `header_len` the decoders accept (bytes): writers pad the header to a multiple of 8
+/// only, readers allow up to this much.
+pub(super) const MAX_HEADER_LEN: usize = 1 << 20;
 /// Bytes the mixture header (version 2) adds after the fixed header: slots `u32`, codebook
 /// checksum `u32`.
 pub(super) const MIXTURE_HEADER_EXTRA: usize = 8;
@@ -759,7 +762,7 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
     };
     if !header_len.is_multiple_of(8)
         || header_len < align(fixed + s + m + 4, 8)
-        || header_len > 1 << 20
+        || header_len > MAX_HEADER_LEN
     {
         return Err(ShardError::Malformed(format!(
             "header length {header_len} inconsistent"
@@ -835,7 +838,7 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
 }
 
 /// Expected payload length for the header fields (u64, overflow-free for u32 N and D ≤ 2^16).
-fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
+pub(super) fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
     let vec_bytes = match dtype {
         Dtype::F32 => 4 * n * d,
         Dtype::F16 => 2 * n * d,

@@ -29,8 +29,8 @@ pub use mixture::{
     decode_mixture_shard, encode_codebook, encode_mixture_shard,
 };
 pub use tiles::{
-    GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, MIXTURE_MANIFEST_VERSION, Manifest,
-    MixtureInfo, TileIndex, TileInfo, UpSource,
+    GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION, MAX_MANIFEST_BYTES, MIXTURE_MANIFEST_VERSION,
+    Manifest, MixtureInfo, TileIndex, TileInfo, UpSource, manifest_too_large,
 };
 
 use crate::embeddings::Embeddings;

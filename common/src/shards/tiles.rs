@@ -16,6 +16,9 @@ use crate::{Error, Result};
 pub const MANIFEST_FORMAT: &str = "slag-shards-manifest";
 /// Manifest schema version of dense scenes.
 pub const MANIFEST_VERSION: u32 = 1;
+/// Largest manifest accepted, bytes of JSON ([`Manifest::from_json`], and what a fetch reads
+/// from a server before refusing): about 60,000 tiles, far more than a robot's disc holds.
+pub const MAX_MANIFEST_BYTES: u64 = 32 << 20;
 /// Manifest schema version of mixture scenes (with [`Manifest::mixture`]): an older reader
 /// refuses it by version instead of misreading its shards.
 pub const MIXTURE_MANIFEST_VERSION: u32 = 2;
@@ -294,10 +297,15 @@ pub struct Manifest {
 }
 
 impl Manifest {
-    /// Parses and checks a manifest (format string, version, tile ids unique).
+    /// Parses and checks a manifest: size, format string, version, mixture section, and every
+    /// declared byte size against what the shard format allows ([`Manifest::check_sizes`]).
     ///
-    /// Errors: [`Error::Format`] naming `origin`.
+    /// Errors: [`Error::Limit`] [`crate::Resource::ManifestBytes`] for more than
+    /// [`MAX_MANIFEST_BYTES`], [`Error::Format`] naming `origin` otherwise.
     pub fn from_json(bytes: &[u8], origin: &str) -> Result<Manifest> {
+        if bytes.len() as u64 > MAX_MANIFEST_BYTES {
+            return Err(manifest_too_large(bytes.len() as u64, origin));
+        }
         let m: Manifest = serde_json::from_slice(bytes)
             .map_err(|e| Error::format(origin, format!("not a slag shard manifest: {e}")))?;
         if m.format != MANIFEST_FORMAT
@@ -354,8 +362,101 @@ impl Manifest {
                 ));
             }
         }
+        m.check_sizes(origin)?;
         Ok(m)
     }
+
+    /// Checks every declared size against the shard format ([`super::format`] module doc), so
+    /// that nothing is downloaded on the word of a manifest that cannot be right: the embedding
+    /// width is in 1..=[`super::format::MAX_DIM`], each tile's Gaussian count fits the header's
+    /// 32-bit field and its byte size is one the format allows for that count, width, dtype (or
+    /// mixture slots) and the manifest's scene and model ids: any header length from the
+    /// smallest for those ids up to the decoders' limit (1 MiB, a multiple of 8), plus the
+    /// payload of one of the 16 combinations of display sections. A mixture scene's codebook is
+    /// checked the same way (an f16 dense shard of `atoms` rows).
+    ///
+    /// Errors: [`Error::Format`] naming `origin` and the first tile that disagrees.
+    pub fn check_sizes(&self, origin: &str) -> Result<()> {
+        use super::format::{MAX_DIM, expected_payload, header_len_for, payload_with_rows};
+        let bad = |m: String| {
+            Error::format(
+                origin,
+                format!(
+                    "{m}; the manifest is damaged or not from a slag partitioner: re-partition"
+                ),
+            )
+        };
+        if self.dim == 0 || self.dim > MAX_DIM {
+            return Err(bad(format!(
+                "embedding dim {} outside 1..={MAX_DIM}",
+                self.dim
+            )));
+        }
+        let d = self.dim as u64;
+        let (scene, model) = (self.scene_id.len(), self.model.len());
+        let dense_header = header_len_for(scene, model, false) as u64;
+        let check = |what: String,
+                     bytes: u64,
+                     count: u64,
+                     min_header: u64,
+                     payload: &dyn Fn(u8) -> u64| {
+            if count > u32::MAX as u64 {
+                return Err(bad(format!(
+                    "{what} declares {count} Gaussians, more than a shard's 32-bit count"
+                )));
+            }
+            if shard_len_allowed(bytes, min_header, payload) {
+                return Ok(());
+            }
+            Err(bad(format!(
+                "{what} declares {bytes} bytes, but a shard of {count} Gaussians of this scene is \
+                 {}..={} bytes",
+                min_header + payload(0),
+                super::format::MAX_HEADER_LEN as u64 + payload(super::format::KNOWN_FLAGS)
+            )))
+        };
+        match &self.mixture {
+            None => {
+                for t in &self.tiles {
+                    let n = t.count;
+                    let payload = |f: u8| expected_payload(self.dtype, f, n, d);
+                    check(
+                        format!("tile {} ({:?}, dim {d})", t.id, self.dtype),
+                        t.bytes,
+                        n,
+                        dense_header,
+                        &payload,
+                    )?;
+                }
+            }
+            Some(x) => {
+                let header = header_len_for(scene, model, true) as u64;
+                let s = x.slots as u64;
+                for t in &self.tiles {
+                    let n = t.count;
+                    let payload = |f: u8| payload_with_rows(f, n, 6 * n * s);
+                    check(
+                        format!("tile {} (mixture, {s} slots)", t.id),
+                        t.bytes,
+                        n,
+                        header,
+                        &payload,
+                    )?;
+                }
+                let a = x.atoms as u64;
+                let payload = |f: u8| expected_payload(Dtype::F16, f, a, d);
+                check(
+                    format!("the codebook ({a} rows of dim {d})"),
+                    x.codebook_bytes,
+                    a,
+                    dense_header,
+                    &payload,
+                )?;
+            }
+        }
+        Ok(())
+    }
+
     /// R-tree over this manifest's tile footprints.
     pub fn tile_index(&self) -> TileIndex {
         TileIndex::new(&self.tiles)
@@ -364,6 +465,26 @@ impl Manifest {
     pub fn to_json(&self) -> Vec<u8> {
         serde_json::to_vec_pretty(self).unwrap_or_default()
     }
+}
+
+/// True when `bytes` = a header length in `min_header..=MAX_HEADER_LEN` (a multiple of 8) plus
+/// `payload(flags)` for some combination of the display-section flags.
+fn shard_len_allowed(bytes: u64, min_header: u64, payload: &dyn Fn(u8) -> u64) -> bool {
+    (0..=super::format::KNOWN_FLAGS).any(|flags| {
+        bytes.checked_sub(payload(flags)).is_some_and(|h| {
+            h >= min_header && h <= super::format::MAX_HEADER_LEN as u64 && h.is_multiple_of(8)
+        })
+    })
+}
+
+/// The refusal of a manifest of more than [`MAX_MANIFEST_BYTES`] (`len`: its size, or at least
+/// what was read of it, from `origin`): [`Error::Limit`] [`crate::Resource::ManifestBytes`].
+pub fn manifest_too_large(len: u64, origin: &str) -> Error {
+    Error::limit(
+        crate::Resource::ManifestBytes,
+        format!("{len} bytes of manifest from {origin}"),
+        format!("{MAX_MANIFEST_BYTES} bytes"),
+    )
 }
 
 /// Largest `f32` ≤ `v`.
@@ -500,7 +621,22 @@ mod tests {
         }
     }
 
+    /// A manifest of scene `s`, model `m`, one tile of one 4-d f16 Gaussian (or mixture row of
+    /// the section's slots), every byte size the one the writers give.
     fn manifest(mixture: Option<MixtureInfo>) -> Manifest {
+        use crate::shards::format::{expected_payload, header_len_for, payload_with_rows};
+        let mixture = mixture.map(|m| MixtureInfo {
+            codebook_bytes: header_len_for(1, 1, false) as u64
+                + expected_payload(Dtype::F16, 0, m.atoms as u64, 4),
+            ..m
+        });
+        let mut tile = tile(0, [0.0, 0.0], [1.0, 1.0]);
+        tile.bytes = match &mixture {
+            None => header_len_for(1, 1, false) as u64 + expected_payload(Dtype::F16, 0, 1, 4),
+            Some(m) => {
+                header_len_for(1, 1, true) as u64 + payload_with_rows(0, 1, 6 * m.slots as u64)
+            }
+        };
         Manifest {
             format: MANIFEST_FORMAT.into(),
             manifest_version: if mixture.is_some() {
@@ -519,8 +655,72 @@ mod tests {
             mixture,
             max_per_shard: 10,
             total_gaussians: 1,
-            tiles: vec![tile(0, [0.0, 0.0], [1.0, 1.0])],
+            tiles: vec![tile],
         }
+    }
+
+    #[test]
+    fn declared_sizes_must_be_ones_the_shard_format_allows() {
+        for m in [
+            manifest(None),
+            manifest(Some(MixtureInfo {
+                slots: 8,
+                atoms: 300,
+                codebook_bytes: 0,
+                codebook_checksum: "0badf00d".into(),
+            })),
+        ] {
+            Manifest::from_json(&m.to_json(), "t").expect("the writers' sizes");
+            // Display sections (here scales + opacities: 16 bytes a row) and a padded header
+            // are allowed; one byte more or less, a huge size or count is not.
+            let mut with_display = m.clone();
+            with_display.tiles[0].bytes += 16;
+            let mut padded = m.clone();
+            padded.tiles[0].bytes += 64;
+            for ok in [with_display, padded] {
+                Manifest::from_json(&ok.to_json(), "t").expect("allowed");
+            }
+            let mut cases = Vec::new();
+            for bytes in [
+                m.tiles[0].bytes + 1,
+                m.tiles[0].bytes - 1,
+                1_000_000_000_000,
+                0,
+            ] {
+                let mut b = m.clone();
+                b.tiles[0].bytes = bytes;
+                cases.push(b);
+            }
+            let mut count = m.clone();
+            count.tiles[0].count = 1 << 40;
+            cases.push(count);
+            let mut dim = m.clone();
+            dim.dim = 0;
+            cases.push(dim);
+            if let Some(x) = &m.mixture {
+                let mut cb = m.clone();
+                cb.mixture.as_mut().expect("m").codebook_bytes = x.codebook_bytes * 1000;
+                cases.push(cb);
+            }
+            for b in cases {
+                let e = Manifest::from_json(&b.to_json(), "t").expect_err("refused");
+                let msg = e.to_string();
+                assert!(matches!(e, Error::Format { .. }), "{msg}");
+                assert!(msg.contains("re-partition"), "{msg}");
+            }
+        }
+        let huge = vec![b' '; MAX_MANIFEST_BYTES as usize + 1];
+        let e = Manifest::from_json(&huge, "t").expect_err("too large");
+        assert!(
+            matches!(
+                e,
+                Error::Limit {
+                    resource: crate::Resource::ManifestBytes,
+                    ..
+                }
+            ),
+            "{e}"
+        );
     }
 
     #[test]
@@ -535,12 +735,12 @@ mod tests {
         let info = MixtureInfo {
             slots: 8,
             atoms: 300,
-            codebook_bytes: 1234,
+            codebook_bytes: 0,
             codebook_checksum: "0badf00d".into(),
         };
-        let mix = manifest(Some(info.clone()));
+        let mix = manifest(Some(info));
         let back = Manifest::from_json(&mix.to_json(), "t").expect("v2");
-        assert_eq!(back.mixture, Some(info.clone()));
+        assert_eq!(back.mixture, mix.mixture);
         // Version and section must agree, the checksum must be hex, slots in range.
         let mut v1_with_section = mix.clone();
         v1_with_section.manifest_version = MANIFEST_VERSION;

@@ -15,7 +15,8 @@
 //!   `{"answers": [QueryAnswer | {"error": …}, …]}` in order;
 //! - `POST /fetch` with `{"center": [x, y] | [x, y, z], "radius": r, "prune": bool,
 //!   "frame": "map" | "scene"}` (map metres by default when the manifest has a transform) → fetches
-//!   from the server of the last fetch (or `"server"`) into the store this process holds, then
+//!   from the server of the last fetch (or `"server"`; with the body's `"token"`, else
+//!   [`ServeOptions::shard_token`]) into the store this process holds, then
 //!   reloads; `POST /reload` reloads the store.
 //!
 //! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
@@ -109,6 +110,9 @@ pub struct ServeOptions {
     pub max_matches: usize,
     /// Header-read / idle timeout, write timeout and connection limit of the server.
     pub limits: ServerLimits,
+    /// Bearer token `POST /fetch` sends to the shard server when its body gives none (`None`:
+    /// no token).
+    pub shard_token: Option<String>,
 }
 
 impl ServeOptions {
@@ -128,6 +132,7 @@ impl ServeOptions {
             scan_queue: DEFAULT_SCAN_QUEUE,
             max_matches: DEFAULT_MAX_MATCHES,
             limits: ServerLimits::default(),
+            shard_token: None,
         }
     }
 
@@ -845,7 +850,7 @@ async fn fetch_post(
         jobs: 4,
         retries: 3,
         timeout: Duration::from_secs(30),
-        token: b.token,
+        token: b.token.or_else(|| state.opts.shard_token.clone()),
         progress: false,
         frame,
     };
@@ -854,6 +859,20 @@ async fn fetch_post(
             Ok(()) => axum::Json(summary).into_response(),
             Err(e) => error(status_of(&e), e.to_string()),
         },
+        // The shard server wants a token this server did not send or that it refused: say
+        // where the token comes from.
+        Err(
+            e @ Error::Network {
+                status: Some(401 | 403),
+                ..
+            },
+        ) => error(
+            status_of(&e),
+            format!(
+                "{e}; send \"token\" in the body, or start slag-edge serve with the shard \
+                 server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
+            ),
+        ),
         Err(e) => error(status_of(&e), e.to_string()),
     }
 }

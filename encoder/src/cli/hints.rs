@@ -65,7 +65,10 @@ pub fn hint_for(e: &Error) -> Option<String> {
             | Resource::RasterPixels => {
                 Some("lower --raster-scale (fewer pixels per view), or add GPU memory".into())
             }
-            Resource::Memory | Resource::ShardGaussians => slag_shards::cli::hint_for(e),
+            Resource::Memory
+            | Resource::ShardGaussians
+            | Resource::DiskSpace
+            | Resource::ManifestBytes => slag_shards::cli::hint_for(e),
         },
         Error::Param { name, .. } => param_flag(name)
             .map(str::to_string)
