@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 use slag_common::similarity;
-use slag_encoder::query::{QueryOutput, QueryParams};
+use slag_encoder::query::{QueryOutput, QueryParams, Smooth};
 
 use super::EpArg;
 
@@ -43,6 +43,13 @@ pub struct QueryArgs {
     /// ONNX Runtime execution provider.
     #[arg(long, value_enum, default_value_t = EpArg::Cpu)]
     pub ep: EpArg,
+    /// `segment`: score each Gaussian with its geometric segment's mean cosine (the
+    /// open-vocabulary analogue of prediction filtering); `none`: its own.
+    #[arg(long, value_enum, default_value_t = Smooth::None)]
+    pub smooth: Smooth,
+    /// Segments for --smooth segment; default segments.safetensors beside --embeddings.
+    #[arg(long, value_name = "FILE")]
+    pub segments: Option<PathBuf>,
 }
 
 fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
@@ -70,6 +77,8 @@ impl From<&QueryArgs> for QueryParams {
             highlight_out: a.highlight_out.clone(),
             highlight_rgb: a.highlight_rgb,
             ep: a.ep,
+            smooth: a.smooth,
+            segments: a.segments.clone(),
         }
     }
 }
@@ -104,6 +113,8 @@ mod tests {
             highlight_out: None,
             highlight_rgb: [1.0, 0.0, 1.0],
             ep: EpArg::Cpu,
+            smooth: Smooth::None,
+            segments: None,
         }
     }
 
