@@ -188,8 +188,8 @@ mod tests {
         // The 3D form: rows of one segment get one class.
         let predicted: Vec<u8> = raw.iter().map(|r| r.unwrap_or(0)).collect();
         let filtered = filter_rows(&predicted, &segments).unwrap();
-        for k in 0..n {
-            assert_eq!(filtered[k], truth[k] as u8);
+        for (f, t) in filtered.iter().zip(&truth) {
+            assert_eq!(*f as usize, *t);
         }
         assert!(majority_table(&scores, &observed, &segments[1..], c).is_err());
     }
