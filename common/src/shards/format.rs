@@ -1519,6 +1519,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::unwrap_used)]
     fn segments_make_version_3_and_round_trip() {
         let ids = [4u32, 9, 2];
         let means = [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]];
