@@ -194,6 +194,7 @@ pub struct EncodeArgs {
     /// filtering, the shards and `&smooth=segment`).
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub segments: OnOff,
+    /// The segmentation's settings (`--segment-*`).
     #[command(flatten)]
     pub segment: SegmentArgs,
 }
