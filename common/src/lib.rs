@@ -34,6 +34,7 @@ pub mod prompt;
 pub mod rng;
 mod safetensors_io;
 pub mod scene;
+pub mod segments;
 pub mod shards;
 pub mod similarity;
 pub mod term;

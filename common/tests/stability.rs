@@ -104,6 +104,7 @@ fn round_trip(v: &[f32], dtype: Dtype) -> slag_common::Result<Vec<f32>> {
         opacities: None,
         rotations: None,
         sh_dc: None,
+        segments: None,
     })?;
     Ok(decode_shard(&bytes).expect("decode").vectors)
 }
@@ -128,6 +129,7 @@ fn extreme_stored_vectors_give_typed_errors_or_finite_results() {
         opacities: None,
         rotations: None,
         sh_dc: None,
+        segments: None,
     })
     .unwrap();
     match decode_shard_stored(&bytes).unwrap().vectors {

@@ -95,6 +95,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         })
         .unwrap();
         infos.push(TileInfo {

@@ -418,6 +418,7 @@ mod tests {
             opacities: display.then(|| (0..n).map(|i| -1.0 + i as f32 * 0.5).collect()),
             rotations: display.then(|| (0..n).map(q).collect()),
             sh_dc: display.then(|| (0..n).map(|i| [0.1 * i as f32, -0.4, 0.9]).collect()),
+            segments: None,
             ids,
         }
     }

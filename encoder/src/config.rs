@@ -39,6 +39,31 @@ pub struct EncodeConfig {
     pub output: OutputConfig,
     /// Threads, GPUs and the ONNX Runtime execution provider (no effect on the result).
     pub execution: ExecutionConfig,
+    /// Geometric segments of the Gaussians, written beside the embeddings as
+    /// `segments.safetensors` (on by default; [`crate::segments`]).
+    pub segments: SegmentsConfig,
+}
+
+/// Whether and how `encode` segments the scene's Gaussians (Felzenszwalb–Huttenlocher over a
+/// k-NN graph of the means, geometry only: [`crate::segments`]). The segments are used by
+/// prediction filtering (`eval-colors --prediction-filtering`), carried in the shards, and
+/// smooth query scores (`&smooth=segment`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentsConfig {
+    /// Write `segments.safetensors` (default on).
+    pub enabled: bool,
+    /// The segmentation's settings ([`crate::segments::SegmentParams::default`]).
+    pub params: crate::segments::SegmentParams,
+}
+
+impl Default for SegmentsConfig {
+    fn default() -> Self {
+        SegmentsConfig {
+            enabled: true,
+            params: crate::segments::SegmentParams::default(),
+        }
+    }
 }
 
 impl EncodeConfig {

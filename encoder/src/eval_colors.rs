@@ -15,6 +15,7 @@ use slag_common::camera;
 use slag_common::embeddings::Embeddings;
 use slag_common::onnx::ExecutionProvider;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
+use slag_common::segments::Segments;
 use slag_common::text::TextEncoder;
 
 use crate::config::RasterBackend;
@@ -55,6 +56,12 @@ pub struct EvalColorsConfig {
     /// ([`run_held_out`] only; listed under `variants` by path). Forms beside the main embeddings
     /// are scored too: `embeddings-level{0,1,2}.safetensors` and `mixture.safetensors`.
     pub compare: Vec<PathBuf>,
+    /// Also score with prediction filtering (SLAG PF, [`crate::prediction_filtering`]): the 3D
+    /// score with each segment's majority class, and in the held-out pass the tables `argmax`,
+    /// `pf-majority` and `pf-mean` under `variants`.
+    pub prediction_filtering: bool,
+    /// The segments for PF; `None`: `segments.safetensors` beside the embeddings.
+    pub segments: Option<PathBuf>,
 }
 
 impl EvalColorsConfig {
@@ -74,6 +81,8 @@ impl EvalColorsConfig {
             raster_scale: None,
             rasterizer: RasterBackend::Gpu,
             compare: Vec::new(),
+            prediction_filtering: false,
+            segments: None,
         }
     }
 }
@@ -149,6 +158,64 @@ fn colour_3d(i: &Inputs) -> anyhow::Result<eval::ColourEval> {
     Ok(eval::evaluate(&gt, &i.emb, &predicted, &i.classes.names)?)
 }
 
+/// The segments PF uses, checked against the scene.
+fn load_segments(a: &EvalColorsConfig, scene_gaussians: usize) -> anyhow::Result<Segments> {
+    let path = a.segments.clone().unwrap_or_else(|| {
+        a.embeddings
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join(slag_common::segments::FILE_NAME)
+    });
+    let s = Segments::read(&path)
+        .with_context(|| format!("prediction filtering needs segments ({})", path.display()))?;
+    if s.len() != scene_gaussians {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "{} segments {} Gaussians but the scene has {scene_gaussians}; segment the .ply \
+                 the embeddings were made from",
+                path.display(),
+                s.len()
+            ),
+        )
+        .into());
+    }
+    Ok(s)
+}
+
+/// The 3D score with prediction filtering: each segment's majority class for its Gaussians.
+fn colour_3d_pf(i: &Inputs, segments: &Segments) -> anyhow::Result<eval::ColourEval> {
+    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
+    let predicted = eval::assign(&i.emb, &i.text_embeds)?;
+    let rows = segments.gather(&i.emb.ids)?;
+    let filtered = crate::prediction_filtering::filter_rows(&predicted, &rows)?;
+    Ok(eval::evaluate(&gt, &i.emb, &filtered, &i.classes.names)?)
+}
+
+/// `eval-colors --prediction-filtering` without `--held-out`: the 3D score without and with PF.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ColourEvalPf {
+    /// Each Gaussian's own class.
+    pub without_pf: eval::ColourEval,
+    /// Each segment's majority class.
+    pub with_pf: eval::ColourEval,
+    /// Segments of the scene.
+    pub segments: u32,
+}
+
+/// The 3D evaluation without and with prediction filtering.
+///
+/// Errors: as [`run`], and the segments unreadable or of another scene.
+pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
+    let inputs = load_inputs(a)?;
+    let segments = load_segments(a, inputs.gaussians.len())?;
+    Ok(ColourEvalPf {
+        without_pf: colour_3d(&inputs)?,
+        with_pf: colour_3d_pf(&inputs, &segments)?,
+        segments: segments.segment_count,
+    })
+}
+
 /// The 3D evaluation (`eval-colors` without `--held-out`; serialisable to JSON).
 ///
 /// Errors: [`Error::Param`] `color_clip` when no folder is given and `$SLAG_SHARED` is unset,
@@ -212,6 +279,9 @@ pub struct HeldOutOutput {
     pub held_out: HeldOutEval,
     /// The 3D per-Gaussian score (secondary line), as `eval-colors` without `--held-out`.
     pub colour_3d: eval::ColourEval,
+    /// With `--prediction-filtering`: the 3D score with each segment's majority class.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub colour_3d_pf: Option<eval::ColourEval>,
 }
 
 /// `every` and `raster_scale` from the report.json beside `embeddings`, if there is one.
@@ -287,6 +357,15 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     })?;
     let inputs = load_inputs(a)?;
     let colour_3d = colour_3d(&inputs)?;
+    let segments = if a.prediction_filtering {
+        Some(load_segments(a, inputs.gaussians.len())?)
+    } else {
+        None
+    };
+    let colour_3d_pf = match &segments {
+        Some(s) => Some(colour_3d_pf(&inputs, s)?),
+        None => None,
+    };
     let t0 = Instant::now();
     let views = camera::load_views(&a.scene)?;
     let held = heldout::held_out_indices(views.len(), every)?;
@@ -321,13 +400,52 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             .with_context(|| format!("oracle lifting of view {}", v.name))?;
     }
     let oracle_scores = oracle.scores();
-    let variants = crate::heldout_variants::variant_tables(
+    let mut variants = crate::heldout_variants::variant_tables(
         &a.embeddings,
         &a.compare,
         &slag_scores,
         &inputs.text_embeds,
         n,
     )?;
+    if let Some(s) = &segments {
+        let mut observed = vec![false; n];
+        for &id in &inputs.emb.ids {
+            if let Some(o) = observed.get_mut(id as usize) {
+                *o = true;
+            }
+        }
+        let source = a.segments.clone().unwrap_or_else(|| {
+            a.embeddings
+                .parent()
+                .unwrap_or(Path::new("."))
+                .join(slag_common::segments::FILE_NAME)
+        });
+        let own = crate::prediction_filtering::gaussian_classes(&slag_scores, &observed, c)?;
+        let tables = [
+            ("argmax", crate::prediction_filtering::one_hot(&own, c)),
+            (
+                "pf-majority",
+                crate::prediction_filtering::majority_table(
+                    &slag_scores,
+                    &observed,
+                    &s.segments,
+                    c,
+                )?,
+            ),
+            (
+                "pf-mean",
+                crate::prediction_filtering::mean_table(&slag_scores, &observed, &s.segments, c)?,
+            ),
+        ];
+        for (name, scores) in tables {
+            variants.push(crate::heldout_variants::VariantTable {
+                name: name.into(),
+                source: source.clone(),
+                scores,
+                chosen_levels: Vec::new(),
+            });
+        }
+    }
 
     // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
     let mut tally = heldout::HeldOutTally::new(c, 2 + variants.len());
@@ -385,5 +503,6 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     Ok(HeldOutOutput {
         held_out,
         colour_3d,
+        colour_3d_pf,
     })
 }

@@ -49,6 +49,9 @@ enum Command {
     Serve(slag_shards::cli::ServeArgs),
     /// Write a scene's manifest.json + shard files for any static host or object store.
     Export(slag_shards::cli::ExportArgs),
+    /// Geometric segments of a scene's Gaussians (Felzenszwalb–Huttenlocher over a k-NN graph
+    /// of the means, geometry only) -> segments.safetensors, without re-encoding.
+    Segment(cli::segment::SegmentCmdArgs),
     /// Write a synthetic terrain scene of any size (ply + images + COLMAP poses) for scale tests.
     SynthScene(cli::synthetic::SynthArgs),
 }
@@ -90,6 +93,9 @@ fn main() -> std::process::ExitCode {
         Command::EvalColors(a) if a.held_out => {
             slag_encoder::eval_colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
         }
+        Command::EvalColors(a) if a.prediction_filtering => {
+            slag_encoder::eval_colors::run_pf(&a.into()).and_then(|o| print_json(&o))
+        }
         Command::EvalColors(a) => {
             slag_encoder::eval_colors::run(&a.into()).and_then(|o| print_json(&o))
         }
@@ -101,6 +107,7 @@ fn main() -> std::process::ExitCode {
         Command::Serve(a) => slag_shards::cli::run_serve(a),
         Command::Export(a) => slag_shards::cli::run_export(a),
         Command::SynthScene(a) => cli::synthetic::run(a).and_then(|o| print_json(&o)),
+        Command::Segment(a) => cli::segment::run(a).and_then(|o| print_json(&o)),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -39,6 +39,22 @@ pub struct QueryParams {
     /// How the matches are grouped into objects (gap in scene units here: the embeddings file
     /// is in the scene frame; [`slag_common::objects`]).
     pub objects: ObjectParams,
+    /// Score smoothing within geometric segments (the open-vocabulary analogue of prediction
+    /// filtering); default none.
+    pub smooth: Smooth,
+    /// Segments for [`Smooth::Segment`]; `None`: `segments.safetensors` beside the embeddings.
+    pub segments: Option<PathBuf>,
+}
+
+/// Whether a Gaussian's score is its own or smoothed within its segment.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Smooth {
+    /// Each Gaussian's own cosine (the paper's query).
+    #[default]
+    None,
+    /// Each Gaussian scores the mean cosine of its geometric segment
+    /// ([`slag_common::segments::segment_mean`]), so a segment matches or not as a whole.
+    Segment,
 }
 
 impl QueryParams {
@@ -62,6 +78,8 @@ impl QueryParams {
             highlight_rgb: [1.0, 0.0, 1.0],
             ep: ExecutionProvider::Cpu,
             objects: ObjectParams::default(),
+            smooth: Smooth::None,
+            segments: None,
         }
     }
 }
@@ -102,15 +120,18 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
-    let (all, summary) = similarity::rank(
-        &emb.ids,
-        &emb.means,
-        &emb.vectors,
-        emb.dim,
-        &q,
-        None,
-        Some(a.threshold),
-    )?;
+    let (all, summary) = match a.smooth {
+        Smooth::None => similarity::rank(
+            &emb.ids,
+            &emb.means,
+            &emb.vectors,
+            emb.dim,
+            &q,
+            None,
+            Some(a.threshold),
+        )?,
+        Smooth::Segment => rank_smoothed(a, &emb, &q)?,
+    };
     if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
         let mut hit = vec![
             false;
@@ -178,6 +199,38 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         nearest_below_threshold,
         highlighted_ply: a.highlight_out.clone(),
     })
+}
+
+/// Every Gaussian scored with its segment's mean cosine, those ≥ the threshold ranked best first
+/// (ties: lower row first).
+fn rank_smoothed(
+    a: &QueryParams,
+    emb: &Embeddings,
+    q: &[f32],
+) -> Result<(Vec<Match>, MatchSummary)> {
+    let path = a.segments.clone().unwrap_or_else(|| {
+        a.embeddings
+            .parent()
+            .unwrap_or(std::path::Path::new("."))
+            .join(slag_common::segments::FILE_NAME)
+    });
+    let rows = slag_common::segments::Segments::read(&path)?.gather(&emb.ids)?;
+    let raw = similarity::cosine_scores(&emb.vectors, emb.dim, q)?;
+    let mut scores = slag_common::segments::segment_mean(&raw, &rows)?;
+    scores
+        .iter_mut()
+        .filter(|s| **s < a.threshold)
+        .for_each(|s| *s = f32::NAN);
+    let matches: Vec<Match> = similarity::top_k(&scores, scores.len())
+        .into_iter()
+        .map(|(i, score)| Match {
+            id: emb.ids[i],
+            position: emb.means[i],
+            score,
+        })
+        .collect();
+    let summary = similarity::summarise(&matches);
+    Ok((matches, summary))
 }
 
 #[cfg(test)]

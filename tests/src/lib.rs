@@ -179,6 +179,7 @@ pub fn robot_path_with(
         to_map_points: None,
         display_ply: display.then(|| default_scene().join("point_cloud.ply")),
         dtype: dtype.parse().expect("dtype"),
+        segments: None,
         qdrant_url: None,
         qdrant_collection: None,
         qdrant_batch: 256,

@@ -55,6 +55,13 @@
 //! in place of the embeddings, then the same display sections. Dense shards stay version 1,
 //! byte for byte; the dense decoders refuse a version-2 shard with [`ShardError::MixtureRows`].
 //!
+//! **Version 3** ([`SEGMENTS_SHARD_FORMAT_VERSION`], dense shards with geometric segments):
+//! version 1's header and payload with flag bit 4 set (required at version 3, refused at 1
+//! and 2) and one more section after the display sections: 9. segment ids `u32[N]`, the
+//! scene-wide segment of each Gaussian ([`crate::segments`]). Dense shards without segments
+//! stay version 1, byte for byte; readers before version 3 refuse a version-3 shard with
+//! [`ShardError::UnsupportedVersion`] (upgrade slag-edge, or re-partition with segments off).
+//!
 //! The file is exactly `header_len + payload_len` bytes; trailing bytes are an error. The
 //! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
 //! the CRC-32 of all its bytes.
@@ -71,6 +78,12 @@ pub const SHARD_FORMAT_VERSION: u16 = 1;
 /// of dense vectors, [`super::mixture`]): version 1's header plus 8 bytes (slots, codebook
 /// checksum). Only mixture shards carry it, so dense shards are byte-identical to before.
 pub const MIXTURE_SHARD_FORMAT_VERSION: u16 = 2;
+/// Shard format version of dense shards that carry segment ids (flag bit 4, section 9 of the
+/// module doc), written by [`encode_shard`] when [`ShardInput::segments`] is given. Dense shards
+/// without segments stay version 1.
+pub const SEGMENTS_SHARD_FORMAT_VERSION: u16 = 3;
+/// Newest shard format version this crate reads.
+pub const NEWEST_SHARD_FORMAT_VERSION: u16 = SEGMENTS_SHARD_FORMAT_VERSION;
 /// Largest embedding width accepted when decoding (guards allocations on corrupted input).
 pub const MAX_DIM: u32 = 1 << 16;
 pub(super) const FIXED_HEADER: usize = 72;
@@ -85,6 +98,8 @@ pub(super) const FLAG_OPACITIES: u8 = 2;
 pub(super) const FLAG_ROTATIONS: u8 = 4;
 pub(super) const FLAG_SH_DC: u8 = 8;
 pub(super) const KNOWN_FLAGS: u8 = FLAG_SCALES | FLAG_OPACITIES | FLAG_ROTATIONS | FLAG_SH_DC;
+/// Segment ids present (version 3 only, where it is required).
+pub(super) const FLAG_SEGMENTS: u8 = 16;
 
 /// Storage type of the embedding vectors in a shard.
 #[derive(
@@ -186,7 +201,7 @@ pub enum ShardError {
     BadMagic,
     /// A format version this crate does not read.
     #[error(
-        "shard format version {0}, this slag reads {SHARD_FORMAT_VERSION}; upgrade slag or re-export"
+        "shard format version {0}, this slag reads 1 to {NEWEST_SHARD_FORMAT_VERSION}; upgrade slag or re-export"
     )]
     UnsupportedVersion(u16),
     /// A stored CRC-32 does not match the bytes.
@@ -259,6 +274,9 @@ pub struct Shard {
     pub rotations: Option<Vec<[f32; 4]>>,
     /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
     pub sh_dc: Option<Vec<[f32; 3]>>,
+    /// Optional scene-wide geometric segment id of each Gaussian ([`crate::segments`]), `[N]`;
+    /// present in version-3 shards only.
+    pub segments: Option<Vec<u32>>,
 }
 
 impl Shard {
@@ -296,6 +314,9 @@ pub struct ShardInput<'a> {
     pub rotations: Option<&'a [[f32; 4]]>,
     /// Optional SH DC colour (`f_dc_0..2`) `[N]`.
     pub sh_dc: Option<&'a [[f32; 3]]>,
+    /// Optional scene-wide segment ids `[N]` ([`crate::segments`]); when given, the shard is
+    /// written as version [`SEGMENTS_SHARD_FORMAT_VERSION`].
+    pub segments: Option<&'a [u32]>,
 }
 
 pub(super) fn align(n: usize, a: usize) -> usize {
@@ -378,9 +399,10 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         || input.opacities.is_some_and(|o| o.len() != n)
         || input.rotations.is_some_and(|r| r.len() != n)
         || input.sh_dc.is_some_and(|c| c.len() != n)
+        || input.segments.is_some_and(|c| c.len() != n)
     {
         return Err(inconsistent(
-            "scales/opacities/rotations/SH DC length differs from the id count".into(),
+            "scales/opacities/rotations/SH DC/segments length differs from the id count".into(),
         ));
     }
     if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
@@ -440,16 +462,25 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
         }
     }
     p.resize(align(p.len(), 4), 0);
-    let flags = write_display(
+    let mut flags = write_display(
         &mut p,
         input.scales,
         input.opacities,
         input.rotations,
         input.sh_dc,
     );
+    if let Some(seg) = input.segments {
+        flags |= FLAG_SEGMENTS;
+        seg.iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
     Ok(assemble(
         &HeaderFields {
-            version: SHARD_FORMAT_VERSION,
+            version: if input.segments.is_some() {
+                SEGMENTS_SHARD_FORMAT_VERSION
+            } else {
+                SHARD_FORMAT_VERSION
+            },
             dtype: input.dtype,
             flags,
             dim: d as u32,
@@ -574,6 +605,8 @@ pub struct ShardLayout {
     pub rotations: bool,
     /// SH DC section present (flag bit 3).
     pub sh_dc: bool,
+    /// Segment ids present (flag bit 4, version 3).
+    pub segments: bool,
     /// Scene id length in bytes (UTF-8).
     pub scene_id_len: usize,
     /// Embedding model id length in bytes (UTF-8).
@@ -590,6 +623,7 @@ impl ShardLayout {
             opacities: input.opacities.is_some(),
             rotations: input.rotations.is_some(),
             sh_dc: input.sh_dc.is_some(),
+            segments: input.segments.is_some(),
             scene_id_len: input.scene_id.len(),
             model_len: input.model.len(),
         }
@@ -600,6 +634,7 @@ impl ShardLayout {
             | (if self.opacities { FLAG_OPACITIES } else { 0 })
             | (if self.rotations { FLAG_ROTATIONS } else { 0 })
             | (if self.sh_dc { FLAG_SH_DC } else { 0 })
+            | (if self.segments { FLAG_SEGMENTS } else { 0 })
     }
 
     /// Header bytes (`header_len`: 72 fixed + ids + CRC, padded to a multiple of 8).
@@ -616,6 +651,7 @@ impl ShardLayout {
         b += if self.scales { 12 } else { 0 };
         b += if self.opacities { 4 } else { 0 };
         b += if self.rotations { 16 } else { 0 };
+        b += if self.segments { 4 } else { 0 };
         b + if self.sh_dc { 12 } else { 0 }
     }
 
@@ -732,7 +768,10 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
         return Err(ShardError::BadMagic);
     }
     let version = r.u16()?;
-    if version != SHARD_FORMAT_VERSION && version != MIXTURE_SHARD_FORMAT_VERSION {
+    if version != SHARD_FORMAT_VERSION
+        && version != MIXTURE_SHARD_FORMAT_VERSION
+        && version != SEGMENTS_SHARD_FORMAT_VERSION
+    {
         return Err(ShardError::UnsupportedVersion(version));
     }
     let dtype_code = r.arr::<1>()?[0];
@@ -796,8 +835,18 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
         .to_string();
     let dtype = Dtype::from_code(dtype_code)
         .ok_or_else(|| ShardError::Malformed(format!("unknown dtype code {dtype_code}")))?;
-    if flags & !KNOWN_FLAGS != 0 {
+    let known = if version == SEGMENTS_SHARD_FORMAT_VERSION {
+        KNOWN_FLAGS | FLAG_SEGMENTS
+    } else {
+        KNOWN_FLAGS
+    };
+    if flags & !known != 0 {
         return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
+    }
+    if version == SEGMENTS_SHARD_FORMAT_VERSION && flags & FLAG_SEGMENTS == 0 {
+        return Err(ShardError::Malformed(
+            "format version 3 without its segments section (flag bit 4)".into(),
+        ));
     }
     if dim == 0 || dim > MAX_DIM {
         return Err(ShardError::Malformed(format!(
@@ -863,6 +912,9 @@ pub(super) fn payload_with_rows(flags: u8, n: u64, row_bytes: u64) -> u64 {
     }
     if flags & FLAG_SH_DC != 0 {
         len += 12 * n;
+    }
+    if flags & FLAG_SEGMENTS != 0 {
+        len += 4 * n;
     }
     len
 }
@@ -942,6 +994,9 @@ pub struct StoredShard {
     pub rotations: Option<Vec<[f32; 4]>>,
     /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
     pub sh_dc: Option<Vec<[f32; 3]>>,
+    /// Optional scene-wide geometric segment id of each Gaussian ([`crate::segments`]), `[N]`;
+    /// present in version-3 shards only.
+    pub segments: Option<Vec<u32>>,
 }
 
 /// Decodes a shard, verifying magic, version, both CRCs and every length, and dequantises the
@@ -961,6 +1016,7 @@ pub fn decode_shard(bytes: &[u8]) -> Result<Shard, ShardError> {
         opacities: s.opacities,
         rotations: s.rotations,
         sh_dc: s.sh_dc,
+        segments: s.segments,
     })
 }
 
@@ -1031,6 +1087,7 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
         opacities: display.opacities,
         rotations: display.rotations,
         sh_dc: display.sh_dc,
+        segments: display.segments,
     })
 }
 
@@ -1057,6 +1114,7 @@ pub(super) struct DisplaySections {
     pub opacities: Option<Vec<f32>>,
     pub rotations: Option<Vec<[f32; 4]>>,
     pub sh_dc: Option<Vec<[f32; 3]>>,
+    pub segments: Option<Vec<u32>>,
 }
 
 /// Reads the display sections the flags announce, in layout order.
@@ -1090,11 +1148,17 @@ pub(super) fn read_display(
     } else {
         None
     };
+    let segments = if flags & FLAG_SEGMENTS != 0 {
+        Some(read_u32s(r, n)?)
+    } else {
+        None
+    };
     Ok(DisplaySections {
         scales,
         opacities,
         rotations,
         sh_dc,
+        segments,
     })
 }
 
@@ -1235,6 +1299,7 @@ mod tests {
             opacities: c.opacities.as_deref(),
             rotations: c.rotations.as_deref(),
             sh_dc: c.sh_dc.as_deref(),
+            segments: None,
         })
         .expect("valid input encodes")
     }
@@ -1291,6 +1356,7 @@ mod tests {
                 opacities: c.opacities.as_deref(),
                 rotations: c.rotations.as_deref(),
                 sh_dc: c.sh_dc.as_deref(),
+                segments: None,
             };
             let layout = ShardLayout::of_input(&input);
             let n = c.ids.len() as u64;
@@ -1426,6 +1492,7 @@ mod tests {
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         });
         assert!(matches!(r, Err(Error::Internal(_))));
         let r = encode_shard(&ShardInput {
@@ -1441,7 +1508,82 @@ mod tests {
             opacities: None,
             rotations: Some(&[]),
             sh_dc: None,
+            segments: None,
         });
         assert!(matches!(r, Err(Error::Internal(_))));
+    }
+
+    /// Sets header byte `at` to `v` and re-seals the header CRC.
+    fn patch_header(bytes: &mut [u8], at: usize, v: u8) {
+        bytes[at] = v;
+        let hl = u32::from_le_bytes([bytes[20], bytes[21], bytes[22], bytes[23]]) as usize;
+        let crc = crc32fast::hash(&bytes[..hl - 4]);
+        bytes[hl - 4..hl].copy_from_slice(&crc.to_le_bytes());
+    }
+
+    #[test]
+    #[allow(clippy::unwrap_used)]
+    fn segments_make_version_3_and_round_trip() {
+        let ids = [4u32, 9, 2];
+        let means = [[0.0, 1.0, 2.0], [3.0, 4.0, 5.0], [6.0, 7.0, 8.0]];
+        let vectors = [1.0, 0.0, 0.0, 1.0, 0.6, 0.8];
+        let segments = [7u32, 7, 0];
+        let scales = [[0.1f32; 3]; 3];
+        let opacities = [0.5f32; 3];
+        for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+            for display in [false, true] {
+                let input = ShardInput {
+                    scene_id: "scene",
+                    model: "m",
+                    tile_id: 3,
+                    dim: 2,
+                    dtype,
+                    ids: &ids,
+                    means: &means,
+                    vectors: &vectors,
+                    scales: display.then_some(&scales[..]),
+                    opacities: display.then_some(&opacities[..]),
+                    rotations: None,
+                    sh_dc: None,
+                    segments: Some(&segments),
+                };
+                let bytes = encode_shard(&input).unwrap();
+                assert_eq!(
+                    bytes.len() as u64,
+                    ShardLayout::of_input(&input).shard_len(3)
+                );
+                let s = decode_shard(&bytes).unwrap();
+                assert_eq!(s.header.version, SEGMENTS_SHARD_FORMAT_VERSION);
+                assert_eq!(s.segments.as_deref(), Some(&segments[..]));
+                assert_eq!(s.ids, ids);
+                assert_eq!(s.scales.is_some(), display);
+                // Without segments: version 1, and no segments read back.
+                let v1 = encode_shard(&ShardInput {
+                    segments: None,
+                    ..input
+                })
+                .unwrap();
+                let s1 = decode_shard(&v1).unwrap();
+                assert_eq!(s1.header.version, SHARD_FORMAT_VERSION);
+                assert_eq!(s1.segments, None);
+                assert_eq!(bytes.len() - v1.len(), 12);
+                // Version 3 without its flag, version 1 with it, and version 4: refused.
+                let mut no_flag = bytes.clone();
+                patch_header(&mut no_flag, 11, bytes[11] & !FLAG_SEGMENTS);
+                assert!(matches!(
+                    decode_shard(&no_flag),
+                    Err(ShardError::Malformed(_))
+                ));
+                let mut v1_flag = v1.clone();
+                patch_header(&mut v1_flag, 11, v1[11] | FLAG_SEGMENTS);
+                assert!(matches!(
+                    decode_shard(&v1_flag),
+                    Err(ShardError::Malformed(_))
+                ));
+                let mut v4 = bytes.clone();
+                patch_header(&mut v4, 8, 4);
+                assert_eq!(decode_shard(&v4), Err(ShardError::UnsupportedVersion(4)));
+            }
+        }
     }
 }

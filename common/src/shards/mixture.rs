@@ -387,6 +387,7 @@ pub fn encode_codebook(
         opacities: None,
         rotations: None,
         sh_dc: None,
+        segments: None,
     })
 }
 

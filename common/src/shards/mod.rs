@@ -19,9 +19,10 @@ pub mod synthetic;
 pub mod tiles;
 
 pub use format::{
-    Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard,
-    ShardError, ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors, decode_header,
-    decode_shard, decode_shard_stored, encode_shard, shard_checksum,
+    Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, NEWEST_SHARD_FORMAT_VERSION,
+    SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError,
+    ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors, decode_header, decode_shard,
+    decode_shard_stored, encode_shard, shard_checksum,
 };
 pub use frame::{Frames, MAP_FRAME, MapSource, SCENE_FRAME, SceneToMap};
 pub use mixture::{
@@ -61,6 +62,11 @@ pub trait GaussianSource: Sync {
     /// Optional SH DC colour (`f_dc_0..2`) of row `i`, for display; stored like
     /// [`GaussianSource::display_rotation`].
     fn display_sh_dc(&self, _i: usize) -> Option<[f32; 3]> {
+        None
+    }
+    /// Optional scene-wide geometric segment id of row `i` ([`crate::segments`]). When `Some`
+    /// for row 0, partitioning stores segment ids in every shard (format version 3).
+    fn segment(&self, _i: usize) -> Option<u32> {
         None
     }
 }
@@ -218,6 +224,69 @@ impl<S: GaussianSource> GaussianSource for WithDisplay<'_, S> {
     fn display_sh_dc(&self, i: usize) -> Option<[f32; 3]> {
         let id = *self.inner.ids().get(i)? as usize;
         self.sh_dc?.get(id).copied()
+    }
+    fn segment(&self, i: usize) -> Option<u32> {
+        self.inner.segment(i)
+    }
+}
+
+/// A [`GaussianSource`] plus the scene's geometric segments ([`crate::segments::Segments`],
+/// indexed by Gaussian id), so shards carry each row's segment id (format version 3).
+#[derive(Debug, Clone, Copy)]
+pub struct WithSegments<'a, S> {
+    /// The embeddings (possibly with display columns).
+    pub inner: &'a S,
+    /// Segment id of every `.ply` Gaussian.
+    pub segments: &'a crate::segments::Segments,
+}
+
+impl<'a, S: GaussianSource> WithSegments<'a, S> {
+    /// Wraps `inner`; checks every id indexes `segments`.
+    ///
+    /// Errors: an id out of range (the segments come from another `.ply`;
+    /// [`crate::Error::Mismatch`]).
+    pub fn new(inner: &'a S, segments: &'a crate::segments::Segments) -> crate::Result<Self> {
+        if let Some(id) = inner.ids().iter().find(|&&id| segments.of(id).is_none()) {
+            return Err(crate::Error::mismatch(
+                crate::Mismatched::Scene,
+                format!(
+                    "Gaussian id {id} but the segments cover {} Gaussians; segment the .ply the \
+                     embeddings were made from",
+                    segments.len()
+                ),
+            ));
+        }
+        Ok(WithSegments { inner, segments })
+    }
+}
+
+impl<S: GaussianSource> GaussianSource for WithSegments<'_, S> {
+    fn ids(&self) -> &[u32] {
+        self.inner.ids()
+    }
+    fn means(&self) -> &[[f32; 3]] {
+        self.inner.means()
+    }
+    fn dim(&self) -> usize {
+        self.inner.dim()
+    }
+    fn model(&self) -> &str {
+        self.inner.model()
+    }
+    fn vector_into(&self, i: usize, out: &mut [f32]) {
+        self.inner.vector_into(i, out)
+    }
+    fn display(&self, i: usize) -> Option<([f32; 3], f32)> {
+        self.inner.display(i)
+    }
+    fn display_rotation(&self, i: usize) -> Option<[f32; 4]> {
+        self.inner.display_rotation(i)
+    }
+    fn display_sh_dc(&self, i: usize) -> Option<[f32; 3]> {
+        self.inner.display_sh_dc(i)
+    }
+    fn segment(&self, i: usize) -> Option<u32> {
+        self.segments.of(*self.inner.ids().get(i)?)
     }
 }
 

@@ -263,7 +263,9 @@ pub struct Manifest {
     pub format: String,
     /// Manifest schema version ([`MANIFEST_VERSION`]).
     pub manifest_version: u32,
-    /// Shard byte-layout version ([`super::SHARD_FORMAT_VERSION`]).
+    /// Shard byte-layout version ([`super::SHARD_FORMAT_VERSION`]; dense shards with segment
+    /// ids [`super::SEGMENTS_SHARD_FORMAT_VERSION`]; mixture shards
+    /// [`super::MIXTURE_SHARD_FORMAT_VERSION`]).
     pub shard_format_version: u16,
     /// Scene id (`[A-Za-z0-9_.-]`, 1..=64, not starting with `.`).
     pub scene_id: String,
@@ -322,17 +324,19 @@ impl Manifest {
             ));
         }
         let mixture = m.manifest_version == MIXTURE_MANIFEST_VERSION;
-        let shard_version = if mixture {
-            super::format::MIXTURE_SHARD_FORMAT_VERSION
+        // Dense shards are version 1, or 3 when they carry segment ids.
+        let shard_version_ok = if mixture {
+            m.shard_format_version == super::format::MIXTURE_SHARD_FORMAT_VERSION
         } else {
-            super::SHARD_FORMAT_VERSION
+            m.shard_format_version == super::SHARD_FORMAT_VERSION
+                || m.shard_format_version == super::SEGMENTS_SHARD_FORMAT_VERSION
         };
-        if mixture != m.mixture.is_some() || m.shard_format_version != shard_version {
+        if mixture != m.mixture.is_some() || !shard_version_ok {
             return Err(Error::format(
                 origin,
                 format!(
                     "manifest v{} with shard format {} {} a mixture section; v{MANIFEST_VERSION} \
-                     (shard format 1) describes dense shards, v{MIXTURE_MANIFEST_VERSION} (shard \
+                     (shard format 1, or 3 with segments) describes dense shards, v{MIXTURE_MANIFEST_VERSION} (shard \
                      format 2) mixture shards and their codebook: re-partition",
                     m.manifest_version,
                     m.shard_format_version,

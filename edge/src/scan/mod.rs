@@ -36,7 +36,7 @@ pub use bench::{BenchArgs, run_bench};
 pub use bench_mixture::synthetic_mixture;
 pub use kernels::{MAX_QUERIES, avx2_fma_available};
 pub use select::{Hit, TopK};
-pub use store::VectorStore;
+pub use store::{NO_SEGMENT, VectorStore};
 
 pub use kernels::{SimdLevel, simd_level};
 

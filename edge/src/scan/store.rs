@@ -22,6 +22,9 @@ use super::mixture::MixtureRows;
 /// instead ([`MixtureRows`]): [`VectorStore::vectors`] is then empty, [`VectorStore::dtype`]
 /// says f16 (the stored weights and codebook), and the scan scores each row as the exact cosine
 /// of its reconstruction.
+///
+/// Rows from shards that carry geometric segments (format version 3) keep each Gaussian's
+/// scene-wide segment id ([`VectorStore::segments`]).
 #[derive(Debug, Clone)]
 pub struct VectorStore {
     dim: usize,
@@ -29,7 +32,12 @@ pub struct VectorStore {
     means: Vec<[f32; 3]>,
     vectors: StoredVectors,
     mixture: Option<MixtureRows>,
+    /// `[N]` segment ids once any pushed shard had them ([`NO_SEGMENT`] for rows without).
+    segments: Option<Vec<u32>>,
 }
+
+/// Segment id of a row whose shard carried none, in a store that holds other rows' segments.
+pub use slag_common::segments::NO_SEGMENT;
 
 fn empty_vectors(dtype: Dtype) -> StoredVectors {
     match dtype {
@@ -121,6 +129,10 @@ impl VectorStore {
         self.means
             .try_reserve_exact(rows)
             .map_err(|e| refused("means", e))?;
+        if let Some(s) = &mut self.segments {
+            s.try_reserve_exact(rows)
+                .map_err(|e| refused("segments", e))?;
+        }
         let vectors = |e| refused("vectors", e);
         if let Some(m) = &mut self.mixture {
             return m.try_reserve(rows).map_err(vectors);
@@ -155,6 +167,7 @@ impl VectorStore {
             means: Vec::new(),
             vectors: empty_vectors(dtype),
             mixture: None,
+            segments: None,
         })
     }
 
@@ -213,6 +226,7 @@ impl VectorStore {
             )));
         }
         m.push_checked(&shard);
+        self.push_segments(None, shard.ids.len());
         self.ids.extend_from_slice(&shard.ids);
         self.means.extend_from_slice(&shard.means);
         Ok(())
@@ -265,7 +279,8 @@ impl VectorStore {
             StoredVectors::I8 { scales, .. } => scales.len() == n,
             _ => true,
         };
-        if shard.means.len() != n || !values_ok || !scales_ok {
+        let segments_ok = shard.segments.as_ref().is_none_or(|s| s.len() == n);
+        if shard.means.len() != n || !values_ok || !scales_ok || !segments_ok {
             return Err(Error::Invalid(format!(
                 "shard (tile {}) is inconsistent: {} ids, {} means, {} vector values for dim {}; \
                  re-download it",
@@ -276,6 +291,8 @@ impl VectorStore {
                 self.dim
             )));
         }
+        // Checked: the dtype match below cannot fail, so the segments stay in step.
+        self.push_segments(shard.segments.as_deref(), n);
         self.ids.extend_from_slice(&shard.ids);
         self.means.extend_from_slice(&shard.means);
         match (&mut self.vectors, shard.vectors) {
@@ -352,9 +369,36 @@ impl VectorStore {
                 }
             }
         }
+        self.push_segments(None, n);
         self.ids.extend_from_slice(ids);
         self.means.extend_from_slice(means);
         Ok(())
+    }
+
+    /// Appends the segment ids of `n` new rows (`segments`, or [`NO_SEGMENT`] each): starts the
+    /// column (earlier rows [`NO_SEGMENT`]) at the first rows that have segments. Call before
+    /// `ids` grows.
+    fn push_segments(&mut self, segments: Option<&[u32]>, n: usize) {
+        match (&mut self.segments, segments) {
+            (None, None) => {}
+            (Some(col), None) => col.extend(std::iter::repeat_n(NO_SEGMENT, n)),
+            (Some(col), Some(s)) => col.extend_from_slice(s),
+            (None, Some(s)) => {
+                let mut col = Vec::with_capacity(self.ids.capacity().max(self.ids.len() + n));
+                col.resize(self.ids.len(), NO_SEGMENT);
+                col.extend_from_slice(s);
+                self.segments = Some(col);
+            }
+        }
+    }
+
+    /// Scene-wide geometric segment id of every row, `[N]` (in [`VectorStore::ids`] order), when
+    /// any loaded shard carried segments (format version 3); rows from shards without them are
+    /// [`NO_SEGMENT`]. `None` when no row has a segment. Rows of one segment are one surface
+    /// patch of the scene (Felzenszwalb–Huttenlocher over the Gaussians' geometry, made by the
+    /// encoder); ids are comparable across shards of one partition.
+    pub fn segments(&self) -> Option<&[u32]> {
+        self.segments.as_deref()
     }
 
     /// Embedding width D.
@@ -395,11 +439,13 @@ impl VectorStore {
         }
     }
 
-    /// Bytes held by the store's live data: rows + ids (4 B) + means (12 B) per Gaussian.
+    /// Bytes held by the store's live data: rows + ids (4 B) + means (12 B) per Gaussian, plus
+    /// segment ids (4 B) when the store has them.
     /// Vector capacity slack beyond the length is not counted (it is at most what the last
     /// shard appended).
     pub fn memory_bytes(&self) -> usize {
-        self.vector_bytes() + self.len() * (4 + 12)
+        let segments = if self.segments.is_some() { 4 } else { 0 };
+        self.vector_bytes() + self.len() * (4 + 12 + segments)
     }
 
     /// Bytes per Gaussian: `dtype.bytes_per_vector(dim) + 16` (id + mean); for a mixture store

@@ -72,6 +72,7 @@ fn store_via_shards_reserved(
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         })
         .expect("encode");
         store
@@ -448,6 +449,7 @@ fn push_shard_rejects_mismatches_and_leaves_the_store_unchanged() {
                 opacities: None,
                 rotations: None,
                 sh_dc: None,
+                segments: None,
             })
             .expect("encode"),
         )
@@ -627,4 +629,52 @@ fn reserved_stores_fill_in_place_and_equal_unreserved_ones() {
     let msg = e.to_string();
     assert!(msg.contains("radius") && !msg.contains("--"), "{msg}");
     assert_eq!(store.len(), 10);
+}
+
+/// Segment ids travel from version-3 shards into the store, row for row; rows of a shard without
+/// segments read `NO_SEGMENT`, and a store of shards without segments has none.
+#[test]
+fn store_keeps_segment_ids_per_row() {
+    let d = 2;
+    let shard = |tile: u64, ids: &[u32], segments: Option<&[u32]>| {
+        let means: Vec<[f32; 3]> = ids.iter().map(|&i| [i as f32, 0.0, 0.0]).collect();
+        let vectors: Vec<f32> = ids.iter().flat_map(|_| [1.0, 0.0]).collect();
+        let bytes = encode_shard(&ShardInput {
+            scene_id: "test",
+            model: "test-model",
+            tile_id: tile,
+            dim: d,
+            dtype: Dtype::F16,
+            ids,
+            means: &means,
+            vectors: &vectors,
+            scales: None,
+            opacities: None,
+            rotations: None,
+            sh_dc: None,
+            segments,
+        })
+        .expect("encode");
+        decode_shard_stored(&bytes).expect("decode")
+    };
+    let mut plain = VectorStore::new(d, Dtype::F16).expect("store");
+    plain.push_shard(shard(0, &[1, 2], None)).expect("push");
+    assert_eq!(plain.segments(), None);
+
+    let mut store = VectorStore::new(d, Dtype::F16).expect("store");
+    store.push_shard(shard(0, &[1, 2], None)).expect("push");
+    store
+        .push_shard(shard(1, &[5, 6, 7], Some(&[4, 4, 9])))
+        .expect("push");
+    store.push_shard(shard(2, &[8], None)).expect("push");
+    store.push_shard(shard(3, &[9], Some(&[4]))).expect("push");
+    let no = store::NO_SEGMENT;
+    assert_eq!(store.segments(), Some(&[no, no, 4, 4, 9, no, 4][..]));
+    assert_eq!(store.segments().map(<[u32]>::len), Some(store.len()));
+    // A shard whose segments disagree with its rows is refused and leaves the store unchanged.
+    let mut bad = shard(4, &[10, 11], Some(&[1, 2]));
+    bad.segments = Some(vec![1]);
+    assert!(store.push_shard(bad).is_err());
+    assert_eq!(store.len(), 7);
+    assert_eq!(store.segments().map(<[u32]>::len), Some(7));
 }

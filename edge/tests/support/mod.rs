@@ -110,6 +110,7 @@ pub fn grid_scene(
                 opacities: display.as_ref().map(|d| d.1.as_slice()),
                 rotations: display.as_ref().map(|d| d.2.as_slice()),
                 sh_dc: display.as_ref().map(|d| d.3.as_slice()),
+                segments: None,
             })
             .unwrap();
             let lo = [i as f64 * TILE as f64, j as f64 * TILE as f64];

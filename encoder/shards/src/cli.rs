@@ -93,6 +93,12 @@ pub struct PartitionArgs {
     /// Embedding storage in the shards: f32, f16 or int8 (per-vector scale).
     #[arg(long, default_value = "f16")]
     pub dtype: Dtype,
+    /// Geometric segments (`segments.safetensors` of `slag-encoder segment` / `encode`): every
+    /// shard then carries each Gaussian's scene-wide segment id (shard format 3; slag-edge
+    /// before it refuses such shards). Default: `segments.safetensors` beside --embeddings
+    /// when it exists; `off`: none (shard format 1).
+    #[arg(long, value_name = "FILE|off", conflicts_with_all = ["synthetic", "mixture"])]
+    pub segments: Option<PathBuf>,
     /// After partitioning, upsert every Gaussian (vector + payload id, x, y, z, tile) into this
     /// Qdrant server (gRPC URL, e.g. http://localhost:6334). The collection is recreated.
     #[arg(long)]
@@ -186,6 +192,54 @@ impl PartitionArgs {
     }
 }
 
+/// The segments `--segments` names for the embeddings at `embeddings`: the file given, the
+/// `segments.safetensors` beside the embeddings when it exists, or none (`off`).
+fn resolve_segments(
+    args: &PartitionArgs,
+    embeddings: &std::path::Path,
+) -> anyhow::Result<Option<slag_common::segments::Segments>> {
+    let path = match &args.segments {
+        Some(p) if p.as_os_str() == "off" => return Ok(None),
+        Some(p) => p.clone(),
+        None => {
+            let beside = embeddings
+                .parent()
+                .unwrap_or(std::path::Path::new("."))
+                .join(slag_common::segments::FILE_NAME);
+            if !beside.exists() {
+                return Ok(None);
+            }
+            beside
+        }
+    };
+    let s = slag_common::segments::Segments::read(&path)?;
+    eprintln!(
+        "segments: {} ({} segments over {} Gaussians)",
+        path.display(),
+        s.segment_count,
+        s.len()
+    );
+    Ok(Some(s))
+}
+
+/// [`partition_source`] with the segments wrapped around `src` when there are any.
+fn partition_with_segments(
+    args: &PartitionArgs,
+    src: &impl GaussianSource,
+    segments: Option<&slag_common::segments::Segments>,
+    up: UpChoice,
+    to_map: Option<SceneToMap>,
+    scene_gaussians: Option<u64>,
+) -> anyhow::Result<(Manifest, StorageReport)> {
+    match segments {
+        Some(s) => {
+            let src = slag_common::shards::WithSegments::new(src, s)?;
+            partition_source(args, &src, up, to_map, scene_gaussians)
+        }
+        None => partition_source(args, src, up, to_map, scene_gaussians),
+    }
+}
+
 /// Resolves the cap for `src`, opens `--store` and partitions `src` into it, then prints and
 /// (with `--report`) writes the [`StorageReport`]. `scene_gaussians`: the source scene's
 /// Gaussian count if known. A cap that cannot hold one Gaussian fails before the store is opened.
@@ -230,6 +284,7 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     };
     let to_map = args.scene_to_map()?;
     let emb = Embeddings::read(path)?;
+    let segments = resolve_segments(args, path)?;
     let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
     // The embeddings file records the source .ply's Gaussian count (0 in files without it).
@@ -246,9 +301,18 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
             let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
             drop(g);
             let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
-            partition_source(args, &src, up, to_map.clone(), scene_gaussians)?
+            partition_with_segments(
+                args,
+                &src,
+                segments.as_ref(),
+                up,
+                to_map.clone(),
+                scene_gaussians,
+            )?
         }
-        None => partition_source(args, &emb, up, to_map, scene_gaussians)?,
+        None => {
+            partition_with_segments(args, &emb, segments.as_ref(), up, to_map, scene_gaussians)?
+        }
     };
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(

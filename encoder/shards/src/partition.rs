@@ -20,8 +20,9 @@ use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
     MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo, MixtureLayout,
-    MixtureShardInput, SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo,
-    encode_codebook, encode_mixture_shard, encode_shard, shard_checksum, valid_scene_id,
+    MixtureShardInput, SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SceneToMap, ShardInput,
+    ShardLayout, TileInfo, encode_codebook, encode_mixture_shard, encode_shard, shard_checksum,
+    valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -120,6 +121,7 @@ pub fn shard_layout(src: &impl GaussianSource, scene_id: &str, dtype: Dtype) -> 
         opacities: display,
         rotations: display && src.display_rotation(0).is_some(),
         sh_dc: display && src.display_sh_dc(0).is_some(),
+        segments: !src.ids().is_empty() && src.segment(0).is_some(),
         scene_id_len: scene_id.len(),
         model_len: src.model().len(),
     }
@@ -281,6 +283,7 @@ struct TileColumns {
     display: Option<(Vec<[f32; 3]>, Vec<f32>)>,
     rotations: Option<Vec<[f32; 4]>>,
     sh_dc: Option<Vec<[f32; 3]>>,
+    segments: Option<Vec<u32>>,
 }
 
 impl TileColumns {
@@ -326,12 +329,22 @@ fn tile_columns(src: &impl GaussianSource, plan: &TilePlan) -> TileColumns {
             .map(|&r| src.display_sh_dc(r as usize).unwrap_or([0.0; 3]))
             .collect()
     });
+    let segments: Option<Vec<u32>> = (n > 0 && src.segment(0).is_some()).then(|| {
+        plan.rows
+            .iter()
+            .map(|&r| {
+                src.segment(r as usize)
+                    .unwrap_or(slag_common::segments::NO_SEGMENT)
+            })
+            .collect()
+    });
     TileColumns {
         ids,
         means,
         display,
         rotations,
         sh_dc,
+        segments,
     }
 }
 
@@ -364,6 +377,7 @@ pub fn encode_tile(
         opacities: c.display.as_ref().map(|d| d.1.as_slice()),
         rotations: c.rotations.as_deref(),
         sh_dc: c.sh_dc.as_deref(),
+        segments: c.segments.as_deref(),
     })?;
     Ok((c.info(plan, &bytes), bytes))
 }
@@ -533,7 +547,11 @@ fn manifest_of(
     Manifest {
         format: MANIFEST_FORMAT.into(),
         manifest_version: MANIFEST_VERSION,
-        shard_format_version: SHARD_FORMAT_VERSION,
+        shard_format_version: if !src.ids().is_empty() && src.segment(0).is_some() {
+            SEGMENTS_SHARD_FORMAT_VERSION
+        } else {
+            SHARD_FORMAT_VERSION
+        },
         scene_id: params.scene_id.clone(),
         generation: 0,
         model: src.model().to_string(),

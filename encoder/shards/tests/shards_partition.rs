@@ -276,6 +276,7 @@ fn a_byte_budget_caps_shards_of_every_dtype_and_f16_fills_it() {
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         })
         .expect("encode");
         assert!(big.len() as u64 > budget, "{dtype:?}: {} rows fit", k);

@@ -13,9 +13,10 @@ use slag_common::onnx::ExecutionProvider as EpArg;
 use slag_encoder::aggregate::MaskWeighting;
 use slag_encoder::config::{
     AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
-    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig,
+    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
 };
 use slag_encoder::levels::MaskOverlap;
+use slag_encoder::segments::SegmentParams;
 
 /// `--precision`: stored precision of the embeddings.
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
@@ -24,6 +25,50 @@ pub enum PrecisionArg {
     F16,
     /// 4 bytes per component.
     F32,
+}
+
+/// `--segments`: write the geometric segments or not.
+#[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
+pub enum OnOff {
+    /// Write them.
+    On,
+    /// Do not.
+    Off,
+}
+
+/// The settings of the geometric segmentation (`encode` and `segment`), one flag to one field
+/// of [`SegmentParams`]; defaults are its defaults.
+#[derive(Debug, Clone, Args)]
+pub struct SegmentArgs {
+    /// Segmentation: nearest neighbours per Gaussian in the graph.
+    #[arg(long, default_value_t = SegmentParams::default().neighbours)]
+    pub segment_neighbours: usize,
+    /// Segmentation: Felzenszwalb–Huttenlocher scale τ (larger = larger segments).
+    #[arg(long, default_value_t = SegmentParams::default().threshold)]
+    pub segment_threshold: f32,
+    /// Segmentation: segments below this many Gaussians merge into a neighbour.
+    #[arg(long, default_value_t = SegmentParams::default().min_size)]
+    pub segment_min_size: usize,
+    /// Segmentation: longest graph edge, scene units (also the tiles' halo); default 10 × the
+    /// median of the Gaussians' largest standard deviation.
+    #[arg(long, value_name = "LENGTH")]
+    pub segment_max_edge: Option<f32>,
+    /// Segmentation: most Gaussians per tile (bounds the graph's memory).
+    #[arg(long, default_value_t = SegmentParams::default().tile_gaussians)]
+    pub segment_tile_gaussians: usize,
+}
+
+impl From<&SegmentArgs> for SegmentParams {
+    fn from(a: &SegmentArgs) -> Self {
+        SegmentParams {
+            neighbours: a.segment_neighbours,
+            threshold: a.segment_threshold,
+            min_size: a.segment_min_size,
+            max_edge: a.segment_max_edge,
+            tile_gaussians: a.segment_tile_gaussians,
+            ..SegmentParams::default()
+        }
+    }
 }
 
 /// Arguments of `encode` (the CLI contract of the encoder issue).
@@ -153,6 +198,13 @@ pub struct EncodeArgs {
     /// No progress bars.
     #[arg(long)]
     pub quiet: bool,
+    /// Also write the Gaussians' geometric segments (`segments.safetensors`, for prediction
+    /// filtering, the shards and `&smooth=segment`).
+    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    pub segments: OnOff,
+    /// The segmentation's settings (`--segment-*`).
+    #[command(flatten)]
+    pub segment: SegmentArgs,
 }
 
 /// `--mixture-keep`: a slot count (0: no mixture file).
@@ -229,6 +281,10 @@ impl From<&EncodeArgs> for EncodeConfig {
                 threads: a.threads,
                 gpus: a.gpus,
                 front_workers: a.front_workers,
+            },
+            segments: SegmentsConfig {
+                enabled: a.segments == OnOff::On,
+                params: SegmentParams::from(&a.segment),
             },
         }
     }

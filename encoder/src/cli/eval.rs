@@ -62,6 +62,14 @@ pub struct EvalArgs {
     /// `mixture.safetensors` (`encode --mixture-keep`).
     #[arg(long, value_name = "EMBEDDINGS")]
     pub compare: Vec<PathBuf>,
+    /// Prediction filtering (SLAG PF): also score each geometric segment's majority class (3D
+    /// score; with --held-out the tables `argmax`, `pf-majority`, `pf-mean` under `variants`).
+    /// Needs the segments of `slag-encoder segment` (--segments).
+    #[arg(long, visible_alias = "pf")]
+    pub prediction_filtering: bool,
+    /// Segments for --prediction-filtering; default segments.safetensors beside --embeddings.
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub segments: Option<PathBuf>,
 }
 
 impl From<&EvalArgs> for EvalColorsConfig {
@@ -79,6 +87,8 @@ impl From<&EvalArgs> for EvalColorsConfig {
             raster_scale: a.raster_scale,
             rasterizer: a.rasterizer,
             compare: a.compare.clone(),
+            prediction_filtering: a.prediction_filtering,
+            segments: a.segments.clone(),
         }
     }
 }

@@ -8,6 +8,7 @@ pub mod eval;
 pub mod hints;
 pub mod query;
 pub mod render;
+pub mod segment;
 pub mod synthetic;
 
 /// `--ep`: ONNX Runtime execution provider, the same value type in every binary.

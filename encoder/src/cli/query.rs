@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use clap::Args;
 use slag_common::objects::{self, ObjectParams};
 use slag_common::similarity;
-use slag_encoder::query::{QueryOutput, QueryParams};
+use slag_encoder::query::{QueryOutput, QueryParams, Smooth};
 
 use super::EpArg;
 
@@ -56,6 +56,13 @@ pub struct QueryArgs {
     /// Smallest object, in matching Gaussians.
     #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
     pub object_min_gaussians: usize,
+    /// `segment`: score each Gaussian with its geometric segment's mean cosine (the
+    /// open-vocabulary analogue of prediction filtering); `none`: its own.
+    #[arg(long, value_enum, default_value_t = Smooth::None)]
+    pub smooth: Smooth,
+    /// Segments for --smooth segment; default segments.safetensors beside --embeddings.
+    #[arg(long, value_name = "FILE")]
+    pub segments: Option<PathBuf>,
 }
 
 fn parse_xyz(s: &str) -> Result<[f32; 3], String> {
@@ -101,6 +108,8 @@ impl From<&QueryArgs> for QueryParams {
                 max_objects: a.max_objects,
                 near: a.near,
             },
+            smooth: a.smooth,
+            segments: a.segments.clone(),
         }
     }
 }
@@ -139,6 +148,8 @@ mod tests {
             near: None,
             object_gap: objects::DEFAULT_GAP,
             object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
+            smooth: Smooth::None,
+            segments: None,
         }
     }
 

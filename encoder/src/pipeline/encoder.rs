@@ -51,6 +51,10 @@ impl Encoder {
     /// complete is written), I/O on the outputs.
     pub fn run(&self) -> Result<Report> {
         let c = &self.config;
+        if c.segments.enabled {
+            // Refused before the encode, not after it.
+            c.segments.params.validate()?;
+        }
         let threads = build::setup_threads(c);
         let scene = build::scene_input(c);
         let gpus = build::gpu_count(c);
@@ -79,6 +83,29 @@ impl Encoder {
                 "CLIP service"
             );
         }
+        if c.segments.enabled {
+            write_segments(c)?;
+        }
         Ok(report)
     }
+}
+
+/// Segments the scene's Gaussians ([`crate::segments`]) and writes
+/// `<out>/segments.safetensors` (atomically).
+///
+/// Errors: the `.ply` unreadable, the segmentation's errors, I/O.
+fn write_segments(c: &EncodeConfig) -> Result<crate::segments::SegmentStats> {
+    let ply = c.ply();
+    let g = slag_common::scene::load_ply(&ply, slag_common::scene::PlyLoadOptions::default())?;
+    let (segments, stats) =
+        crate::segments::segment(&g, &c.segments.params, &ply.display().to_string())?;
+    segments.write(&c.output.dir.join(slag_common::segments::FILE_NAME))?;
+    tracing::info!(
+        segments = stats.segments,
+        gaussians = stats.gaussians,
+        tiles = stats.tiles,
+        seconds = stats.seconds,
+        "geometric segments written"
+    );
+    Ok(stats)
 }

@@ -91,6 +91,7 @@ fn layout(c: &Case) -> MixtureLayout {
             opacities: c.display,
             rotations: c.display,
             sh_dc: false,
+            segments: false,
             scene_id_len: "scene-a".len(),
             model_len: "color-clip".len(),
         },
@@ -175,6 +176,7 @@ fn dense_shards_and_other_versions_get_specific_errors() {
         opacities: None,
         rotations: None,
         sh_dc: None,
+        segments: None,
     })
     .unwrap();
     assert_eq!(decode_header(&dense).unwrap().version, SHARD_FORMAT_VERSION);
@@ -197,11 +199,11 @@ fn dense_shards_and_other_versions_get_specific_errors() {
         weights: vec![1.0, 0.0],
         display: false,
     };
-    let mut v3 = encode(&c);
-    v3[8] = 3;
+    let mut v4 = encode(&c);
+    v4[8] = 4;
     assert_eq!(
-        decode_mixture_shard(&v3),
-        Err(ShardError::UnsupportedVersion(3))
+        decode_mixture_shard(&v4),
+        Err(ShardError::UnsupportedVersion(4))
     );
 }
 

@@ -1,0 +1,205 @@
+//! Prediction filtering (SLAG PF): per-Gaussian class predictions made uniform over the scene's
+//! geometric segments ([`crate::segments`]), as the paper does with ScanNet's Segmentator
+//! segments: every segment takes the majority class of its Gaussians.
+//!
+//! The score tables here are `[scene Gaussians × C]`, row `k` for `.ply` Gaussian `k` (the
+//! layout of [`crate::heldout::gaussian_scores`]); `observed[k]` says whether Gaussian `k` has an
+//! embedding. Unobserved Gaussians do not vote, and receive their segment's answer when the
+//! segment has observed members (a segment without any stays at zero, as unobserved Gaussians are
+//! without PF). Three tables are scored by `eval-colors --held-out --prediction-filtering`:
+//!
+//! - `argmax`: each observed Gaussian's own class as a one-hot row (the control: PF's one-hot
+//!   rendering without segments);
+//! - `pf-majority`: the paper's PF, the segment's majority class one-hot;
+//! - `pf-mean`: the open-vocabulary analogue, each class score averaged over the segment's
+//!   observed Gaussians.
+
+use std::collections::HashMap;
+
+use slag_common::segments::majority_per_segment;
+use slag_common::{Error, Result};
+
+/// Each Gaussian's class: the argmax of its row (ties to the smaller class) when observed.
+///
+/// Errors: `scores` not `observed.len() × classes` ([`Error::Internal`]).
+pub fn gaussian_classes(
+    scores: &[f32],
+    observed: &[bool],
+    classes: usize,
+) -> Result<Vec<Option<u8>>> {
+    check(scores, observed.len(), classes)?;
+    Ok(scores
+        .chunks_exact(classes)
+        .zip(observed)
+        .map(|(row, &o)| {
+            o.then(|| {
+                let mut best = 0usize;
+                for (c, &v) in row.iter().enumerate() {
+                    if v > row[best] {
+                        best = c;
+                    }
+                }
+                best as u8
+            })
+        })
+        .collect())
+}
+
+fn check(scores: &[f32], n: usize, classes: usize) -> Result<()> {
+    if classes == 0 || classes > 256 || scores.len() != n * classes {
+        return Err(Error::internal(format!(
+            "score table of {} values for {n} Gaussians × {classes} classes",
+            scores.len()
+        )));
+    }
+    Ok(())
+}
+
+/// One-hot rows of `classes` (`None`: a zero row), `[N × C]`.
+pub fn one_hot(classes: &[Option<u8>], c: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; classes.len() * c];
+    for (k, cl) in classes.iter().enumerate() {
+        if let Some(cl) = cl
+            && (*cl as usize) < c
+        {
+            t[k * c + *cl as usize] = 1.0;
+        }
+    }
+    t
+}
+
+/// The paper's PF: one-hot rows of each segment's majority class over its observed Gaussians.
+///
+/// Errors: tables whose sizes disagree ([`Error::Internal`]).
+pub fn majority_table(
+    scores: &[f32],
+    observed: &[bool],
+    segments: &[u32],
+    classes: usize,
+) -> Result<Vec<f32>> {
+    let own = gaussian_classes(scores, observed, classes)?;
+    Ok(one_hot(&majority_per_segment(&own, segments)?, classes))
+}
+
+/// Segment-mean scores: each class score averaged over the segment's observed Gaussians.
+///
+/// Errors: tables whose sizes disagree ([`Error::Internal`]).
+pub fn mean_table(
+    scores: &[f32],
+    observed: &[bool],
+    segments: &[u32],
+    classes: usize,
+) -> Result<Vec<f32>> {
+    check(scores, observed.len(), classes)?;
+    if segments.len() != observed.len() {
+        return Err(Error::internal(format!(
+            "{} segment ids for {} Gaussians",
+            segments.len(),
+            observed.len()
+        )));
+    }
+    let mut sums: HashMap<u32, (Vec<f64>, u32)> = HashMap::new();
+    for (k, (&s, &o)) in segments.iter().zip(observed).enumerate() {
+        if o {
+            let e = sums.entry(s).or_insert_with(|| (vec![0.0; classes], 0));
+            for (acc, &v) in e.0.iter_mut().zip(&scores[k * classes..(k + 1) * classes]) {
+                *acc += v as f64;
+            }
+            e.1 += 1;
+        }
+    }
+    let mut out = vec![0.0f32; scores.len()];
+    for (k, s) in segments.iter().enumerate() {
+        if let Some((sum, n)) = sums.get(s) {
+            for (o, &v) in out[k * classes..(k + 1) * classes].iter_mut().zip(sum) {
+                *o = (v / *n as f64) as f32;
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The same per-Gaussian classes with PF applied, for the 3D score ([`crate::eval::evaluate`]):
+/// `predicted[i]` is the class of embeddings row `i`, `row_segments[i]` its segment.
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn filter_rows(predicted: &[u8], row_segments: &[u32]) -> Result<Vec<u8>> {
+    let own: Vec<Option<u8>> = predicted.iter().map(|&c| Some(c)).collect();
+    Ok(majority_per_segment(&own, row_segments)?
+        .into_iter()
+        .zip(predicted)
+        .map(|(m, &p)| m.unwrap_or(p))
+        .collect())
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A synthetic scene: 3 segments of 50 Gaussians whose true classes are 0, 1, 2; a noisy
+    /// labelling gets 30 % of each segment wrong (deterministically), and a few Gaussians are
+    /// unobserved. PF restores the truth everywhere, and every segment's Gaussians share a class.
+    #[test]
+    fn pf_restores_the_majority_of_a_noisy_labelling() {
+        let (c, per) = (3usize, 50usize);
+        let n = c * per;
+        let segments: Vec<u32> = (0..n).map(|k| (k / per) as u32).collect();
+        let truth: Vec<usize> = (0..n).map(|k| k / per).collect();
+        let observed: Vec<bool> = (0..n).map(|k| k % 17 != 3).collect();
+        let mut scores = vec![0.0f32; n * c];
+        let mut wrong = 0;
+        for k in 0..n {
+            // Every 10 Gaussians, 3 get the next class: 30 % noise.
+            let label = if k % 10 < 3 {
+                (truth[k] + 1) % c
+            } else {
+                truth[k]
+            };
+            wrong += usize::from(label != truth[k]);
+            scores[k * c + label] = 0.3;
+            scores[k * c + (label + 2) % c] = 0.1;
+        }
+        assert!(wrong >= n / 4);
+        let raw = gaussian_classes(&scores, &observed, c).unwrap();
+        assert!(
+            raw.iter()
+                .zip(&truth)
+                .filter(|(r, t)| **r == Some(**t as u8))
+                .count()
+                < n * 3 / 4
+        );
+        let pf = majority_table(&scores, &observed, &segments, c).unwrap();
+        let mean = mean_table(&scores, &observed, &segments, c).unwrap();
+        for k in 0..n {
+            let row = &pf[k * c..(k + 1) * c];
+            assert_eq!(
+                row[truth[k]], 1.0,
+                "Gaussian {k} (observed {})",
+                observed[k]
+            );
+            assert_eq!(row.iter().sum::<f32>(), 1.0);
+            // The segment mean ranks the true class first too, and is the same in a segment.
+            let m = &mean[k * c..(k + 1) * c];
+            let best = (0..c).max_by(|&a, &b| m[a].total_cmp(&m[b])).unwrap();
+            assert_eq!(best, truth[k]);
+            assert_eq!(m, &mean[(k / per) * per * c..((k / per) * per + 1) * c]);
+        }
+        // The 3D form: rows of one segment get one class.
+        let predicted: Vec<u8> = raw.iter().map(|r| r.unwrap_or(0)).collect();
+        let filtered = filter_rows(&predicted, &segments).unwrap();
+        for (f, t) in filtered.iter().zip(&truth) {
+            assert_eq!(*f as usize, *t);
+        }
+        assert!(majority_table(&scores, &observed, &segments[1..], c).is_err());
+    }
+
+    #[test]
+    fn a_segment_without_observed_gaussians_stays_empty() {
+        let scores = vec![0.5, 0.1, 0.0, 0.0];
+        let pf = majority_table(&scores, &[true, false], &[0, 1], 2).unwrap();
+        assert_eq!(pf, vec![1.0, 0.0, 0.0, 0.0]);
+        let mean = mean_table(&scores, &[true, false], &[0, 1], 2).unwrap();
+        assert_eq!(mean, vec![0.5, 0.1, 0.0, 0.0]);
+    }
+}

@@ -1,0 +1,756 @@
+//! Geometric segments of the Gaussians (the paper's prediction-filtering segments): a
+//! Felzenszwalb–Huttenlocher graph segmentation (Felzenszwalb & Huttenlocher, "Efficient
+//! Graph-Based Image Segmentation", IJCV 2004) run, as ScanNet's Segmentator runs it over a mesh,
+//! over a k-nearest-neighbour graph of the Gaussian means (`rstar`).
+//!
+//! # Graph and weights (geometry only, never colour)
+//!
+//! Each Gaussian `i` has a centre `μ_i`, standard deviations `σ_i` (sorted `σ_min ≤ σ_mid ≤
+//! σ_max`, scene units) and a rotation `q_i` (w, x, y, z). Its normal `n_i` is its shortest axis,
+//! `R(q_i) e_argmin σ`, sign-free; its flatness `f_i = 1 − σ_min/σ_mid ∈ [0, 1]` says how well
+//! that normal is defined (a disk: 1, a sphere: 0). Every Gaussian is joined to its
+//! [`SegmentParams::neighbours`] nearest means (ties broken by Gaussian id), edges longer than
+//! [`SegmentParams::max_edge`] dropped. The weight of edge `(i, j)`, `d = |μ_i − μ_j|`,
+//! `r = σ_max`:
+//!
+//! `w = w_n (1 − |n_i·n_j|) min(f_i, f_j) + w_d max(0, d − 2(r_i + r_j)) / (r_i + r_j)
+//!    + w_s |ln(r_i / r_j)|`
+//!
+//! (normal term: Segmentator's `1 − n_i·n_j` made sign-free, as a splat's axis has no side;
+//! distance term: zero while the two splats overlap at 2σ, then the gap in units of their size;
+//! shape term: the ratio of their sizes).
+//!
+//! # Segmentation
+//!
+//! Edges in ascending `(w, i, j)` order; components `C1 ∋ i`, `C2 ∋ j` merge when
+//! `w ≤ min(Int(C1) + τ/|C1|, Int(C2) + τ/|C2|)` (`Int`: the largest weight of the component's
+//! spanning tree, `τ` = [`SegmentParams::threshold`]); then, as Segmentator does, the edges once
+//! more in the same order, merging wherever either side has fewer than
+//! [`SegmentParams::min_size`] Gaussians. Ids are numbered by each segment's smallest Gaussian
+//! id ([`slag_common::segments::canonical_ids`]): the result is deterministic, whatever the
+//! thread count.
+//!
+//! # Bounded memory: tiles with a halo
+//!
+//! The graph is never held whole. The Gaussians are cut into tiles of at most
+//! [`SegmentParams::tile_gaussians`] by median splits on the two world axes of largest extent;
+//! each tile's k-NN is computed over the tile plus a halo of width `max_edge` around it, which
+//! holds every neighbour an edge can reach, so each Gaussian's edges are exactly those of the
+//! whole scene. Per tile, the edges inside it run the merge criterion; the edges that cross a tile
+//! border are kept (a few per border Gaussian) and run it afterwards in a second union-find pass
+//! over the same components (their `Int` and sizes carried over); the minimum-size pass then
+//! goes over each tile's edges again (recomputed, not stored) and the border edges last. Memory:
+//! 40 bytes per Gaussian for the whole scene (means, normals, flatness, size, tile, union-find)
+//! plus one tile's tree and edges and the border edges.
+//!
+//! With one tile this is exactly the algorithm above. With several, it is exactly the same
+//! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
+//! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
+//! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use rstar::RTree;
+use rstar::primitives::GeomWithData;
+use serde::{Deserialize, Serialize};
+use slag_common::scene::Gaussians;
+use slag_common::segments::{Segments, canonical_ids};
+use slag_common::{Error, Result};
+
+/// Settings of the segmentation; [`SegmentParams::default`] are the documented defaults.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentParams {
+    /// Nearest neighbours per Gaussian in the graph, k (default 10).
+    pub neighbours: usize,
+    /// Felzenszwalb–Huttenlocher scale τ: a component of size |C| accepts an edge up to
+    /// `Int(C) + τ/|C|`; larger → larger, fewer segments (default 0.5).
+    pub threshold: f32,
+    /// Segments below this many Gaussians are merged into a neighbour (default 20, as
+    /// Segmentator's `segMinVerts`).
+    pub min_size: usize,
+    /// Longest edge, scene units; also the tiles' halo width. `None` (default): 10 × the median
+    /// of the Gaussians' largest standard deviation.
+    pub max_edge: Option<f32>,
+    /// Weight of the normal term `w_n` (default 1).
+    pub normal_weight: f32,
+    /// Weight of the distance (gap) term `w_d` (default 1).
+    pub distance_weight: f32,
+    /// Weight of the shape (size-ratio) term `w_s` (default 0.1).
+    pub shape_weight: f32,
+    /// Most Gaussians per tile (default 2,000,000); bounds the memory of the k-NN graph.
+    pub tile_gaussians: usize,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        SegmentParams {
+            neighbours: 10,
+            threshold: 0.5,
+            min_size: 20,
+            max_edge: None,
+            normal_weight: 1.0,
+            distance_weight: 1.0,
+            shape_weight: 0.1,
+            tile_gaussians: 2_000_000,
+        }
+    }
+}
+
+impl SegmentParams {
+    /// Checks every setting.
+    ///
+    /// Errors: [`Error::Param`] naming the setting (`neighbours`, `threshold`, `max_edge`,
+    /// `tile_gaussians`, a weight) when outside its domain.
+    pub fn validate(&self) -> Result<()> {
+        if self.neighbours == 0 || self.neighbours > 256 {
+            return Err(Error::param(
+                "neighbours",
+                self.neighbours,
+                "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
+            ));
+        }
+        if !(self.threshold.is_finite() && self.threshold >= 0.0) {
+            return Err(Error::param(
+                "threshold",
+                self.threshold,
+                "a finite scale τ ≥ 0 (e.g. 0.5)",
+            ));
+        }
+        if let Some(m) = self.max_edge
+            && !(m.is_finite() && m > 0.0)
+        {
+            return Err(Error::param(
+                "max_edge",
+                m,
+                "a positive length in scene units",
+            ));
+        }
+        for (name, w) in [
+            ("normal_weight", self.normal_weight),
+            ("distance_weight", self.distance_weight),
+            ("shape_weight", self.shape_weight),
+        ] {
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(Error::param(name, w, "a finite weight ≥ 0"));
+            }
+        }
+        if self.tile_gaussians < self.neighbours + 1 {
+            return Err(Error::param(
+                "tile_gaussians",
+                self.tile_gaussians,
+                format!(
+                    "more than neighbours ({}) Gaussians per tile",
+                    self.neighbours
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What one segmentation did (for logs and reports).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SegmentStats {
+    /// Gaussians segmented.
+    pub gaussians: usize,
+    /// Segments made.
+    pub segments: u32,
+    /// Tiles the scene was cut into.
+    pub tiles: usize,
+    /// Edges of the graph (each undirected edge once).
+    pub edges: u64,
+    /// Of those, edges across tile borders.
+    pub border_edges: u64,
+    /// The longest edge used (scene units): the given or derived `max_edge`.
+    pub max_edge: f32,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+/// Per-Gaussian geometry the weights need.
+struct Geometry {
+    normals: Vec<[f32; 3]>,
+    flatness: Vec<f32>,
+    size: Vec<f32>,
+}
+
+fn geometry(g: &Gaussians) -> Geometry {
+    let per: Vec<([f32; 3], f32, f32)> = g
+        .scales
+        .par_iter()
+        .zip(&g.rotations)
+        .map(|(s, q)| {
+            let mut order = [0usize, 1, 2];
+            order.sort_by(|&a, &b| s[a].total_cmp(&s[b]).then(a.cmp(&b)));
+            let (lo, mid, hi) = (s[order[0]], s[order[1]], s[order[2]]);
+            let flat = if mid > 0.0 && lo.is_finite() && mid.is_finite() {
+                (1.0 - lo / mid).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            (axis(q, order[0]), flat, hi.max(0.0))
+        })
+        .collect();
+    Geometry {
+        normals: per.iter().map(|p| p.0).collect(),
+        flatness: per.iter().map(|p| p.1).collect(),
+        size: per.iter().map(|p| p.2).collect(),
+    }
+}
+
+/// Column `a` of the rotation matrix of the quaternion `q` = (w, x, y, z), normalised first.
+fn axis(q: &[f32; 4], a: usize) -> [f32; 3] {
+    let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    if !(n.is_finite() && n > 0.0) {
+        let mut e = [0.0; 3];
+        e[a] = 1.0;
+        return e;
+    }
+    let (w, x, y, z) = (q[0] / n, q[1] / n, q[2] / n, q[3] / n);
+    match a {
+        0 => [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y + w * z),
+            2.0 * (x * z - w * y),
+        ],
+        1 => [
+            2.0 * (x * y - w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z + w * x),
+        ],
+        _ => [
+            2.0 * (x * z + w * y),
+            2.0 * (y * z - w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    }
+}
+
+/// An undirected edge `(i, j)`, `i < j`, with its weight; ordered by `(w, i, j)` (weights are
+/// ≥ 0, so their bit patterns order like the values).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+struct Edge {
+    w: u32,
+    i: u32,
+    j: u32,
+}
+
+impl Edge {
+    fn weight(&self) -> f32 {
+        f32::from_bits(self.w)
+    }
+}
+
+fn weight(p: &SegmentParams, geo: &Geometry, i: usize, j: usize, d: f32) -> f32 {
+    let (ni, nj) = (geo.normals[i], geo.normals[j]);
+    let dot = (ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2])
+        .abs()
+        .min(1.0);
+    let normal = (1.0 - dot) * geo.flatness[i].min(geo.flatness[j]);
+    let (ri, rj) = (geo.size[i], geo.size[j]);
+    let sum = (ri + rj).max(f32::MIN_POSITIVE);
+    let gap = (d - 2.0 * (ri + rj)).max(0.0) / sum;
+    let shape = if ri > 0.0 && rj > 0.0 {
+        (ri / rj).ln().abs()
+    } else {
+        0.0
+    };
+    let w = p.normal_weight * normal + p.distance_weight * gap + p.shape_weight * shape;
+    if w.is_finite() { w.max(0.0) } else { f32::MAX }
+}
+
+/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
+struct Forest {
+    parent: Vec<u32>,
+    size: Vec<u32>,
+    int: Vec<f32>,
+}
+
+impl Forest {
+    fn new(n: usize) -> Self {
+        Forest {
+            parent: (0..n as u32).collect(),
+            size: vec![1; n],
+            int: vec![0.0; n],
+        }
+    }
+    fn find(&mut self, mut x: u32) -> u32 {
+        let mut root = x;
+        while self.parent[root as usize] != root {
+            root = self.parent[root as usize];
+        }
+        while self.parent[x as usize] != root {
+            let next = self.parent[x as usize];
+            self.parent[x as usize] = root;
+            x = next;
+        }
+        root
+    }
+    /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
+    /// so the result does not depend on anything but the edge order); `Int` of the union is
+    /// the largest of `w` and both sides'.
+    fn join(&mut self, a: u32, b: u32, w: f32) {
+        let (sa, sb) = (self.size[a as usize], self.size[b as usize]);
+        let (big, small) = if sa > sb || (sa == sb && a < b) {
+            (a, b)
+        } else {
+            (b, a)
+        };
+        self.parent[small as usize] = big;
+        self.size[big as usize] = sa + sb;
+        let int = self.int[a as usize].max(self.int[b as usize]).max(w);
+        self.int[big as usize] = int;
+    }
+    /// The merge criterion over `edges` in their order.
+    fn criterion_pass(&mut self, edges: &[Edge], tau: f32) {
+        for e in edges {
+            let (a, b) = (self.find(e.i), self.find(e.j));
+            if a == b {
+                continue;
+            }
+            let w = e.weight();
+            let ta = self.int[a as usize] + tau / self.size[a as usize] as f32;
+            let tb = self.int[b as usize] + tau / self.size[b as usize] as f32;
+            if w <= ta.min(tb) {
+                self.join(a, b, w);
+            }
+        }
+    }
+    /// The minimum-size pass over `edges` in their order.
+    fn min_size_pass(&mut self, edges: &[Edge], min_size: usize) {
+        for e in edges {
+            let (a, b) = (self.find(e.i), self.find(e.j));
+            if a != b
+                && ((self.size[a as usize] as usize) < min_size
+                    || (self.size[b as usize] as usize) < min_size)
+            {
+                self.join(a, b, e.weight());
+            }
+        }
+    }
+}
+
+/// Tiles: median splits on the two world axes of largest extent until each holds at most
+/// `cap` Gaussians. Returns each Gaussian's tile and each tile's rectangle `(lo, hi)` on those
+/// axes (bounds of its Gaussians).
+#[allow(clippy::type_complexity)]
+fn plan_tiles(means: &[[f32; 3]], cap: usize) -> ([usize; 2], Vec<u32>, Vec<([f32; 2], [f32; 2])>) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for m in means {
+        for a in 0..3 {
+            lo[a] = lo[a].min(m[a]);
+            hi[a] = hi[a].max(m[a]);
+        }
+    }
+    let mut axes = [0usize, 1, 2];
+    axes.sort_by(|&a, &b| (hi[b] - lo[b]).total_cmp(&(hi[a] - lo[a])).then(a.cmp(&b)));
+    let ax = [axes[0], axes[1]];
+    let mut perm: Vec<u32> = (0..means.len() as u32).collect();
+    let mut tile_of = vec![0u32; means.len()];
+    let mut rects = Vec::new();
+    let mut stack = vec![(0usize, perm.len())];
+    while let Some((a, b)) = stack.pop() {
+        if a == b {
+            continue;
+        }
+        let rows = &mut perm[a..b];
+        let (mut rlo, mut rhi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+        for &r in rows.iter() {
+            for k in 0..2 {
+                rlo[k] = rlo[k].min(means[r as usize][ax[k]]);
+                rhi[k] = rhi[k].max(means[r as usize][ax[k]]);
+            }
+        }
+        if rows.len() <= cap {
+            let t = rects.len() as u32;
+            rows.iter().for_each(|&r| tile_of[r as usize] = t);
+            rects.push((rlo, rhi));
+            continue;
+        }
+        let k = if rhi[0] - rlo[0] >= rhi[1] - rlo[1] {
+            0
+        } else {
+            1
+        };
+        let mid = rows.len() / 2;
+        rows.select_nth_unstable_by(mid, |&x, &y| {
+            means[x as usize][ax[k]]
+                .total_cmp(&means[y as usize][ax[k]])
+                .then(x.cmp(&y))
+        });
+        stack.push((a + mid, b));
+        stack.push((a, a + mid));
+    }
+    (ax, tile_of, rects)
+}
+
+/// The graph's edges of tile `t`: inner edges (both ends in the tile), ascending, and border
+/// edges (one end outside), unordered.
+#[allow(clippy::too_many_arguments)]
+fn tile_edges(
+    t: u32,
+    means: &[[f32; 3]],
+    tile_of: &[u32],
+    ax: [usize; 2],
+    rect: ([f32; 2], [f32; 2]),
+    geo: &Geometry,
+    p: &SegmentParams,
+    h: f32,
+) -> (Vec<Edge>, Vec<Edge>) {
+    let (lo, hi) = rect;
+    let inside = |m: &[f32; 3]| (0..2).all(|k| m[ax[k]] >= lo[k] - h && m[ax[k]] <= hi[k] + h);
+    let members: Vec<u32> = (0..means.len() as u32)
+        .into_par_iter()
+        .filter(|&i| tile_of[i as usize] == t || inside(&means[i as usize]))
+        .collect();
+    let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
+        members
+            .iter()
+            .map(|&i| GeomWithData::new(means[i as usize], i))
+            .collect(),
+    );
+    let k = p.neighbours;
+    let h2 = h * h;
+    let (inner, border): (Vec<Vec<Edge>>, Vec<Vec<Edge>>) = members
+        .par_iter()
+        .filter(|&&i| tile_of[i as usize] == t)
+        .map(|&i| {
+            let mi = means[i as usize];
+            // The k nearest other Gaussians within h, ties by id: take every candidate up to the
+            // k-th distance, including all that tie with it, then sort by (distance, id).
+            let mut cand: Vec<(f32, u32)> = Vec::with_capacity(k + 4);
+            for (g, d2) in tree.nearest_neighbor_iter_with_distance_2(&mi) {
+                if d2 > h2 {
+                    break;
+                }
+                if cand.len() > k && d2 > cand[k].0 {
+                    break;
+                }
+                cand.push((d2, g.data));
+            }
+            cand.retain(|c| c.1 != i);
+            cand.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            cand.truncate(k);
+            let (mut inn, mut bor) = (Vec::new(), Vec::new());
+            for (d2, j) in cand {
+                let w = weight(p, geo, i as usize, j as usize, d2.sqrt());
+                let e = Edge {
+                    w: w.to_bits(),
+                    i: i.min(j),
+                    j: i.max(j),
+                };
+                if tile_of[j as usize] == t {
+                    inn.push(e);
+                } else {
+                    bor.push(e);
+                }
+            }
+            (inn, bor)
+        })
+        .unzip();
+    let mut inner: Vec<Edge> = inner.into_iter().flatten().collect();
+    inner.par_sort_unstable();
+    inner.dedup();
+    (inner, border.into_iter().flatten().collect())
+}
+
+/// `max_edge` for `p` and `geo`: the given one, or 10 × the median largest standard deviation.
+fn resolve_max_edge(p: &SegmentParams, geo: &Geometry) -> f32 {
+    if let Some(m) = p.max_edge {
+        return m;
+    }
+    let mut s: Vec<f32> = geo.size.iter().copied().filter(|v| v.is_finite()).collect();
+    if s.is_empty() {
+        return 1.0;
+    }
+    let mid = s.len() / 2;
+    s.select_nth_unstable_by(mid, f32::total_cmp);
+    let m = 10.0 * s[mid];
+    if m.is_finite() && m > 0.0 { m } else { 1.0 }
+}
+
+/// Segments the Gaussians of `g` (module doc) and records `source_ply` in the result.
+///
+/// Errors: [`Error::Param`] for settings [`SegmentParams::validate`] refuses, a scene of more
+/// than `u32::MAX - 1` Gaussians ([`Error::Limit`]), arrays that disagree ([`Error::Internal`]),
+/// non-finite means ([`Error::Invalid`]).
+pub fn segment(
+    g: &Gaussians,
+    p: &SegmentParams,
+    source_ply: &str,
+) -> Result<(Segments, SegmentStats)> {
+    p.validate()?;
+    let t0 = Instant::now();
+    let n = g.len();
+    if n >= u32::MAX as usize {
+        return Err(Error::limit(
+            slag_common::Resource::ShardGaussians,
+            n,
+            u32::MAX - 1,
+        ));
+    }
+    if g.scales.len() != n || g.rotations.len() != n {
+        return Err(Error::internal(format!(
+            "{n} means, {} scales, {} rotations",
+            g.scales.len(),
+            g.rotations.len()
+        )));
+    }
+    if let Some(i) = g
+        .means
+        .iter()
+        .position(|m| m.iter().any(|v| !v.is_finite()))
+    {
+        return Err(Error::Invalid(format!(
+            "mean of Gaussian {i} is not finite"
+        )));
+    }
+    let geo = geometry(g);
+    let h = resolve_max_edge(p, &geo);
+    let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    let mut forest = Forest::new(n);
+    let mut border: Vec<Edge> = Vec::new();
+    let mut edges = 0u64;
+    for (t, rect) in rects.iter().enumerate() {
+        let (inner, b) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+        forest.criterion_pass(&inner, p.threshold);
+        edges += inner.len() as u64;
+        border.extend(b);
+    }
+    border.par_sort_unstable();
+    border.dedup();
+    edges += border.len() as u64;
+    forest.criterion_pass(&border, p.threshold);
+    if p.min_size > 1 {
+        for (t, rect) in rects.iter().enumerate() {
+            let (inner, _) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+            forest.min_size_pass(&inner, p.min_size);
+        }
+        forest.min_size_pass(&border, p.min_size);
+    }
+    let roots: Vec<u32> = (0..n as u32).map(|i| forest.find(i)).collect();
+    let (segments, segment_count) = canonical_ids(&roots);
+    let stats = SegmentStats {
+        gaussians: n,
+        segments: segment_count,
+        tiles: rects.len(),
+        edges,
+        border_edges: border.len() as u64,
+        max_edge: h,
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    let parameters = serde_json::to_string(&serde_json::json!({
+        "params": p, "max_edge_used": h, "tiles": rects.len(),
+    }))
+    .unwrap_or_default();
+    Ok((
+        Segments {
+            segments,
+            segment_count,
+            source_ply: source_ply.to_string(),
+            parameters,
+        },
+        stats,
+    ))
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    /// A scene of flat Gaussians on planes: the floor z = 0 over `[0, 4]²`, a wall x = 0 over
+    /// `y, z ∈ [0, 2]`, and a box (its top face at z = 1 over `[2.5, 3.5]²`) floating apart,
+    /// on a grid of spacing 0.1 with a little deterministic jitter. Returns the Gaussians and
+    /// each one's surface (0 floor, 1 wall, 2 box top).
+    fn planes() -> (Gaussians, Vec<u8>) {
+        let mut g = Gaussians::default();
+        let mut label = Vec::new();
+        let mut s = 7u64;
+        let mut jitter = || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((s >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.01
+        };
+        // Rotations taking the local z axis (smallest scale) to the plane's normal.
+        let z_up = [1.0, 0.0, 0.0, 0.0];
+        let x_normal = [0.5f32.sqrt(), 0.0, 0.5f32.sqrt(), 0.0]; // z → x
+        let mut push = |m: [f32; 3], q: [f32; 4], l: u8, g: &mut Gaussians| {
+            g.means.push(m);
+            g.scales.push([0.05, 0.05, 0.002]);
+            g.rotations.push(q);
+            g.opacities.push(0.9);
+            label.push(l);
+        };
+        for a in 0..40 {
+            for b in 0..40 {
+                let m = [
+                    a as f32 * 0.1 + 0.05 + jitter(),
+                    b as f32 * 0.1 + 0.05 + jitter(),
+                    jitter(),
+                ];
+                push(m, z_up, 0, &mut g);
+            }
+        }
+        for a in 0..20 {
+            for b in 0..20 {
+                let m = [
+                    jitter(),
+                    a as f32 * 0.1 + 0.05 + jitter(),
+                    b as f32 * 0.1 + 0.15 + jitter(),
+                ];
+                push(m, x_normal, 1, &mut g);
+            }
+        }
+        for a in 0..10 {
+            for b in 0..10 {
+                let m = [
+                    2.5 + a as f32 * 0.1 + jitter(),
+                    2.5 + b as f32 * 0.1 + jitter(),
+                    1.0 + jitter(),
+                ];
+                push(m, z_up, 2, &mut g);
+            }
+        }
+        (g, label)
+    }
+
+    fn params() -> SegmentParams {
+        SegmentParams {
+            max_edge: Some(0.5),
+            ..SegmentParams::default()
+        }
+    }
+
+    #[test]
+    fn planes_become_their_own_segments() {
+        let (g, label) = planes();
+        let (s, stats) = segment(&g, &params(), "planes").unwrap();
+        assert_eq!(stats.tiles, 1);
+        // Each surface is one segment, and no segment mixes surfaces.
+        for l in 0..3u8 {
+            let ids: std::collections::BTreeSet<u32> = (0..g.len())
+                .filter(|&i| label[i] == l)
+                .map(|i| s.segments[i])
+                .collect();
+            assert_eq!(ids.len(), 1, "surface {l} split into {ids:?}");
+        }
+        assert_eq!(s.segment_count, 3, "{stats:?}");
+        s.validate().unwrap();
+    }
+
+    #[test]
+    fn deterministic_over_thread_counts() {
+        let (g, _) = planes();
+        let p = SegmentParams {
+            tile_gaussians: 500,
+            ..params()
+        };
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let a = one.install(|| segment(&g, &p, "x").unwrap().0);
+        let b = segment(&g, &p, "x").unwrap().0;
+        assert_eq!(a, b);
+    }
+
+    /// The tiled result equals the same two passes over the whole graph with the edges in
+    /// tile-grouped order (every tile's inner edges, then the border edges): the statement of
+    /// the module doc, and one tile equals the untiled algorithm.
+    #[test]
+    fn tiles_equal_the_tile_grouped_order() {
+        let (mut g, _) = planes();
+        // Rough normals so that segments straddle tile borders.
+        for (i, q) in g.rotations.iter_mut().enumerate() {
+            let t = (i % 7) as f32 * 0.15;
+            *q = [t.cos(), t.sin(), 0.0, 0.0];
+        }
+        let p = SegmentParams {
+            tile_gaussians: 400,
+            threshold: 0.2,
+            ..params()
+        };
+        let (tiled, stats) = segment(&g, &p, "x").unwrap();
+        assert!(stats.tiles > 4 && stats.border_edges > 0, "{stats:?}");
+        // Reference: the whole graph from one tile, reordered by the tiling.
+        let geo = geometry(&g);
+        let h = resolve_max_edge(&p, &geo);
+        let (ax1, one, r1) = plan_tiles(&g.means, usize::MAX);
+        let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h);
+        assert!(none.is_empty());
+        let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+        let mut order: Vec<Edge> = Vec::new();
+        for t in 0..rects.len() as u32 {
+            order.extend(
+                all.iter()
+                    .filter(|e| tile_of[e.i as usize] == t && tile_of[e.j as usize] == t),
+            );
+        }
+        order.extend(
+            all.iter()
+                .filter(|e| tile_of[e.i as usize] != tile_of[e.j as usize]),
+        );
+        assert_eq!(order.len() as u64, stats.edges);
+        let mut f = Forest::new(g.len());
+        f.criterion_pass(&order, p.threshold);
+        f.min_size_pass(&order, p.min_size);
+        let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
+        assert_eq!(canonical_ids(&roots).0, tiled.segments);
+        // One tile: the ascending order itself.
+        let single = SegmentParams {
+            tile_gaussians: usize::MAX,
+            ..p
+        };
+        let (untiled, _) = segment(&g, &single, "x").unwrap();
+        let mut f = Forest::new(g.len());
+        f.criterion_pass(&all, p.threshold);
+        f.min_size_pass(&all, p.min_size);
+        let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
+        assert_eq!(canonical_ids(&roots).0, untiled.segments);
+    }
+
+    #[test]
+    fn clean_planes_do_not_depend_on_tiles() {
+        let (g, _) = planes();
+        let a = segment(&g, &params(), "x").unwrap().0;
+        let b = segment(
+            &g,
+            &SegmentParams {
+                tile_gaussians: 300,
+                ..params()
+            },
+            "x",
+        )
+        .unwrap()
+        .0;
+        // The same segments (the recorded parameters differ: the tile count).
+        assert_eq!(a.segments, b.segments);
+        assert_eq!(a.segment_count, 3);
+    }
+
+    #[test]
+    fn bad_settings_are_refused() {
+        let (g, _) = planes();
+        for p in [
+            SegmentParams {
+                neighbours: 0,
+                ..params()
+            },
+            SegmentParams {
+                threshold: f32::NAN,
+                ..params()
+            },
+            SegmentParams {
+                max_edge: Some(-1.0),
+                ..params()
+            },
+        ] {
+            assert!(matches!(segment(&g, &p, "x"), Err(Error::Param { .. })));
+        }
+    }
+}
