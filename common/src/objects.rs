@@ -177,7 +177,11 @@ pub fn group_objects(m: &Matches<'_>, p: &ObjectParams) -> Result<Objects> {
     let mut uf = UnionFind::new(n);
     if let Some(segs) = m.segments {
         let mut first: HashMap<u32, usize> = HashMap::new();
+        // Rows without a segment (`NO_SEGMENT`, from shards that carry none) join by gap only.
         for (i, &s) in segs.iter().enumerate() {
+            if s == crate::segments::NO_SEGMENT {
+                continue;
+            }
             let f = *first.entry(s).or_insert(i);
             uf.union(f, i);
         }

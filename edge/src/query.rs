@@ -726,8 +726,8 @@ pub fn run_query_framed(
         })
         .collect();
     let summary = summarise(&all);
-    // Geometric segments are not in the store yet: spatial grouping.
-    let grouped = answer_objects(&hits, &all, display, None, &q.objects)?;
+    // Matches of one geometric segment join one object when the shards carry segments.
+    let grouped = answer_objects(&hits, &all, display, store.segments(), &q.objects)?;
     let mut matches = all;
     matches.truncate(q.top_k);
     let mut match_objects = grouped.member_of;

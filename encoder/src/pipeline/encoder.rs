@@ -66,6 +66,11 @@ impl Encoder {
         let Fronts {
             stages, services, ..
         } = fronts;
+        // Segments depend on the geometry alone: written before the encode, so that
+        // `report.json`, written last by the pool, still marks a complete output folder.
+        if c.segments.enabled {
+            write_segments(c)?;
+        }
         let report = super::encode_pool(
             &scene,
             stages,
@@ -83,9 +88,6 @@ impl Encoder {
                 "CLIP service"
             );
         }
-        if c.segments.enabled {
-            write_segments(c)?;
-        }
         Ok(report)
     }
 }
@@ -99,7 +101,9 @@ fn write_segments(c: &EncodeConfig) -> Result<crate::segments::SegmentStats> {
     let g = slag_common::scene::load_ply(&ply, slag_common::scene::PlyLoadOptions::default())?;
     let (segments, stats) =
         crate::segments::segment(&g, &c.segments.params, &ply.display().to_string())?;
-    segments.write(&c.output.dir.join(slag_common::segments::FILE_NAME))?;
+    let dir = &c.output.dir;
+    std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
+    segments.write(&dir.join(slag_common::segments::FILE_NAME))?;
     tracing::info!(
         segments = stats.segments,
         gaussians = stats.gaussians,
