@@ -11,9 +11,11 @@
 //! a little texture), so masks follow the colour patches the Gaussians carry.
 //!
 //! With objects ([`write_synthetic_scene_with_objects`], `synth-scene --objects K`): K boxes of
-//! known colour, size and position stand on the terrain (the ground truth of the answer's
-//! objects, [`object_layout`], written to `objects.json`). The terrain is then one gray patch
-//! (gray is no object's colour), the boxes are hollow shells of Gaussians on their top and four
+//! known colour, size and position stand on the ground (the ground truth of the answer's
+//! objects, [`object_layout`], written to `objects.json`). The terrain is then one flat gray patch
+//! at z = 0, the plane the images ray-cast, so the Gaussians and the images show the same ground
+//! and every box stands on it with its whole sides in view (gray is no object's colour); the
+//! boxes are hollow shells of Gaussians on their top and four
 //! sides (the terrain's spacing, discs lying in each face), and the images ray-cast the boxes
 //! before the ground.
 
@@ -76,7 +78,7 @@ impl Default for SyntheticSceneParams {
 /// Palette index of the terrain when the scene has objects: gray.
 pub const GROUND_WITH_OBJECTS: usize = 10;
 
-/// A box standing on the terrain, axis-aligned, its base at the terrain height of its centre.
+/// A box standing on the flat ground of a scene with objects, axis-aligned, its base at z = 0.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct PlacedObject {
     /// Colour: index into [`PALETTE`] (color-clip's class order), never gray.
@@ -96,9 +98,9 @@ pub const COLOUR_NAMES: [&str; 12] = [
 ];
 
 impl PlacedObject {
-    /// The box `[min xyz, max xyz]`, scene frame, on a terrain of side `extent`.
-    pub fn aabb(&self, extent: f64) -> [[f64; 3]; 2] {
-        let z0 = height(self.center[0], self.center[1], extent);
+    /// The box `[min xyz, max xyz]`, scene frame.
+    pub fn aabb(&self) -> [[f64; 3]; 2] {
+        let z0 = 0.0;
         [
             [
                 self.center[0] - self.size[0] / 2.0,
@@ -169,14 +171,14 @@ pub fn terrain_gaussians(p: &SyntheticSceneParams) -> Gaussians {
     terrain_gaussians_with_objects(p, &[])
 }
 
-/// [`terrain_gaussians`] with `objects` standing on it: the terrain is gray, terrain Gaussians
-/// under a box are left out, and each box is a shell of discs on its top and four sides at the
+/// [`terrain_gaussians`] with `objects` standing on it: the terrain is flat (z = 0, the ground
+/// the images ray-cast) and gray, terrain Gaussians under a box are left out, and each box is a shell of discs on its top and four sides at the
 /// terrain's spacing `extent / √N` (appended after the terrain, deterministic in `p.seed`).
 pub fn terrain_gaussians_with_objects(
     p: &SyntheticSceneParams,
     objects: &[PlacedObject],
 ) -> Gaussians {
-    let boxes: Vec<[[f64; 3]; 2]> = objects.iter().map(|o| o.aabb(p.extent)).collect();
+    let boxes: Vec<[[f64; 3]; 2]> = objects.iter().map(|o| o.aabb()).collect();
     let under_a_box = |x: f64, y: f64| {
         boxes
             .iter()
@@ -196,7 +198,11 @@ pub fn terrain_gaussians_with_objects(
             for _ in 0..len {
                 let x = (rng.next_f64() - 0.5) * p.extent;
                 let y = (rng.next_f64() - 0.5) * p.extent;
-                let z = height(x, y, p.extent);
+                let z = if objects.is_empty() {
+                    height(x, y, p.extent)
+                } else {
+                    0.0
+                };
                 let s = spacing * (0.6 + 0.8 * rng.next_f64());
                 // A disc lying on the ground: thin along z, random spin about z.
                 let a = rng.next_f64() * std::f64::consts::PI;
@@ -257,7 +263,7 @@ type Disc = ([f32; 3], [f32; 3], [f32; 4], f32, [f32; 3]);
 fn box_shell(o: &PlacedObject, p: &SyntheticSceneParams, spacing: f64, k: u64) -> Vec<Disc> {
     const SH_C0: f64 = 0.282_094_791_773_878_14;
     let h = std::f64::consts::FRAC_1_SQRT_2 as f32;
-    let b = o.aabb(p.extent);
+    let b = o.aabb();
     let mut rng = SplitMix64::new(p.seed ^ 0x0B1E_C7 ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut out = Vec::new();
     // (fixed axis, fixed value, the two spanned axes, rotation taking local z to the normal)
@@ -339,10 +345,7 @@ fn focal(p: &SyntheticSceneParams) -> f64 {
 /// The image of view `i`: per pixel, the colour of the ground patch its ray meets (plane z = 0),
 /// with a faint per-Gaussian-spacing texture; pixels above the horizon are sky white.
 fn render_image(i: usize, p: &SyntheticSceneParams, objects: &[PlacedObject]) -> image::RgbImage {
-    let boxes: Vec<([[f64; 3]; 2], usize)> = objects
-        .iter()
-        .map(|o| (o.aabb(p.extent), o.colour))
-        .collect();
+    let boxes: Vec<([[f64; 3]; 2], usize)> = objects.iter().map(|o| (o.aabb(), o.colour)).collect();
     let (r, c) = camera(i, p);
     let rt = r.transpose();
     let f = focal(p);
@@ -475,7 +478,7 @@ pub fn write_synthetic_scene_with_objects(
             .map(|o| {
                 serde_json::json!({
                     "colour": o.colour, "name": o.name, "center": o.center, "size": o.size,
-                    "aabb": o.aabb(p.extent),
+                    "aabb": o.aabb(),
                 })
             })
             .collect();
