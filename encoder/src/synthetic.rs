@@ -264,7 +264,7 @@ fn box_shell(o: &PlacedObject, p: &SyntheticSceneParams, spacing: f64, k: u64) -
     const SH_C0: f64 = 0.282_094_791_773_878_14;
     let h = std::f64::consts::FRAC_1_SQRT_2 as f32;
     let b = o.aabb();
-    let mut rng = SplitMix64::new(p.seed ^ 0x0B1E_C7 ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut rng = SplitMix64::new(p.seed ^ 0x000B_1EC7 ^ k.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut out = Vec::new();
     // (fixed axis, fixed value, the two spanned axes, rotation taking local z to the normal)
     let faces: [(usize, f64, [usize; 2], [f32; 4]); 5] = [
