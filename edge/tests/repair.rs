@@ -53,6 +53,7 @@ fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
                 bbox: None,
                 index: None,
                 frame: None,
+                ..Default::default()
             }
             .validate_for(0.28, Interface::Cli)
             .unwrap();
@@ -62,6 +63,7 @@ fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
                 None,
                 &text,
                 &negatives,
+                None,
                 None,
                 &q,
             )
@@ -253,6 +255,7 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
         opacities: false,
         rotations: false,
         sh_dc: false,
+        segments: false,
         scene_id_len: 4,
         model_len: "color-clip".len(),
     };
