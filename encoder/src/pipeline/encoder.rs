@@ -66,11 +66,6 @@ impl Encoder {
         let Fronts {
             stages, services, ..
         } = fronts;
-        // Segments depend on the geometry alone: written before the encode, so that
-        // `report.json`, written last by the pool, still marks a complete output folder.
-        if c.segments.enabled {
-            write_segments(c)?;
-        }
         let report = super::encode_pool(
             &scene,
             stages,
@@ -87,6 +82,12 @@ impl Encoder {
                 run_s = st.run_s,
                 "CLIP service"
             );
+        }
+        // Written after a successful encode only, so that a failed or killed run leaves nothing
+        // that looks complete; an optional file of its own (atomic): `partition` without it
+        // simply stores no segments.
+        if c.segments.enabled {
+            write_segments(c)?;
         }
         Ok(report)
     }
