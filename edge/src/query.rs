@@ -237,6 +237,17 @@ fn json_field(v: &serde_json::Value) -> Option<String> {
     }
 }
 
+/// A JSON array of numbers as the comma-separated form the query string uses (`[1, 2, 3]` →
+/// `"1,2,3"`); `None` for anything else.
+fn comma_list(v: &serde_json::Value) -> Option<String> {
+    v.as_array().map(|a| {
+        a.iter()
+            .map(|x| x.to_string())
+            .collect::<Vec<_>>()
+            .join(",")
+    })
+}
+
 impl RawQuery {
     /// From a JSON object; numbers and strings are both accepted, unknown keys rejected.
     ///
@@ -256,31 +267,11 @@ impl RawQuery {
                 "top_k" => q.top_k = val,
                 "threshold" => q.threshold = val,
                 "mode" => q.mode = val,
-                "bbox" => {
-                    q.bbox = match v {
-                        serde_json::Value::Array(a) => Some(
-                            a.iter()
-                                .map(|x| x.to_string())
-                                .collect::<Vec<_>>()
-                                .join(","),
-                        ),
-                        _ => val,
-                    }
-                }
+                "bbox" => q.bbox = comma_list(v).or(val),
                 "index" => q.index = val,
                 "frame" => q.frame = val,
                 "max_objects" => q.max_objects = val,
-                "near" => {
-                    q.near = match v {
-                        serde_json::Value::Array(a) => Some(
-                            a.iter()
-                                .map(|x| x.to_string())
-                                .collect::<Vec<_>>()
-                                .join(","),
-                        ),
-                        _ => val,
-                    }
-                }
+                "near" => q.near = comma_list(v).or(val),
                 "object_gap" => q.object_gap = val,
                 "object_min_gaussians" => q.object_min_gaussians = val,
                 other => {
