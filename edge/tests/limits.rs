@@ -357,5 +357,9 @@ async fn a_threshold_answer_holds_only_the_matches_it_returns() {
     let a = slag_edge::serve::compact_answer(a);
     assert_eq!(a.matches.len(), 3);
     assert!(a.matches.capacity() < 80, "{}", a.matches.capacity());
-    assert!(a.match_objects.capacity() < 80, "{}", a.match_objects.capacity());
+    assert!(
+        a.match_objects.capacity() < 80,
+        "{}",
+        a.match_objects.capacity()
+    );
 }
