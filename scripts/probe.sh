@@ -7,7 +7,7 @@
 # Prints `case | expected | observed | pass/fail` with RSS figures; exits 1 if a case fails.
 #
 #   bash scripts/probe.sh             # release binaries (built here), 60,000 Gaussians, 2,000 stalls
-#   bash scripts/probe.sh --short     # 8,000 Gaussians, 300 stalls (about a minute; CI)
+#   bash scripts/probe.sh --short     # 8,000 Gaussians, 300 stalls, store cases (about 75 s; CI)
 #   bash scripts/probe.sh --debug     # take target/debug binaries (built by cargo test) instead
 #   bash scripts/probe.sh --skip-store   # leave out the store damage cases
 #   SLAG_PROBE_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2 bash scripts/probe.sh --rss-only
