@@ -7,11 +7,13 @@
 # Prints `case | expected | observed | pass/fail` with RSS figures; exits 1 if a case fails.
 #
 #   bash scripts/probe.sh             # release binaries (built here), 60,000 Gaussians, 2,000 stalls
-#   bash scripts/probe.sh --short     # 8,000 Gaussians, 300 stalls (about a minute; CI)
+#   bash scripts/probe.sh --short     # 8,000 Gaussians, 300 stalls, store cases (about 75 s; CI)
 #   bash scripts/probe.sh --debug     # take target/debug binaries (built by cargo test) instead
 #   bash scripts/probe.sh --skip-store   # leave out the store damage cases
 #   SLAG_PROBE_PRELOAD=/usr/lib/x86_64-linux-gnu/libjemalloc.so.2 bash scripts/probe.sh --rss-only
-#                                     # memory cases only, the edge under another allocator
+#                                     # memory cases only, the edge under another allocator (for
+#                                     # a binary on the system allocator: slag-edge's own Rust heap
+#                                     # is jemalloc, which LD_PRELOAD does not replace)
 #   SLAG_EDGE_BIN=... SLAG_SHARDS_BIN=... bash scripts/probe.sh   # probe other binaries
 set -euo pipefail
 cd "$(dirname "$0")/.."

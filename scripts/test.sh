@@ -19,7 +19,7 @@ mkdir -p "${CARGO_TARGET_DIR:-target}"
 echo "test: disk before the build: $(disk_free)" >&2
 native=0
 cargo test --workspace --locked --no-fail-fast "$@" || native=$?
-[ "${SLAG_SKIP_PROBE:-0}" = 1 ] || bash scripts/probe.sh --short --debug --skip-store || native=$?
+[ "${SLAG_SKIP_PROBE:-0}" = 1 ] || bash scripts/probe.sh --short --debug || native=$?
 echo "test: disk after the native tests: $(disk_free)" >&2
 cross=0
 if [ "${SLAG_SKIP_CROSS:-0}" = 1 ]; then

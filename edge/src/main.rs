@@ -25,6 +25,14 @@ use slag_edge::query::{FrameChoice, Interface, OnnxTextEmbedder, RawQuery, TextE
 use slag_edge::serve::{AppState, HnswBackend, ServeOptions};
 use slag_edge::store::EdgeStore;
 
+/// The Rust heap of `slag-edge`: jemalloc with background purging (pages freed after a large
+/// answer go back to the kernel within its decay time, about 10 s, even when no request follows;
+/// glibc malloc kept them). ONNX Runtime and other C/C++ libraries keep the system allocator.
+/// See docs/guide/robot-limits.md, "Memory".
+#[cfg(target_os = "linux")]
+#[global_allocator]
+static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
+
 /// slag-edge: download the shards around the robot and answer text queries over HTTP.
 #[derive(Parser)]
 #[command(version, about)]

@@ -323,3 +323,43 @@ fn a_blank_token_in_the_environment_refuses_to_start() {
         assert!(err.contains("hint:"), "{err}");
     }
 }
+
+/// An answer holds only the matches it returns: a threshold query collects every match above its
+/// threshold (80 here), and a batch's answers must not keep that capacity until it is sent.
+#[tokio::test]
+async fn a_threshold_answer_holds_only_the_matches_it_returns() {
+    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
+    let server = shard_server(grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1), None).await;
+    let (_dir, store) = fetch_grid(&server.url, 100.0).await;
+    let engine = slag_edge::engine::Engine::load(&store, "grid", false).unwrap();
+    let text = BasisEmbedder::new(8);
+    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
+    let q = RawQuery {
+        text: Some("t0".into()),
+        top_k: Some("3".into()),
+        threshold: Some("-1".into()),
+        ..Default::default()
+    }
+    .validate_for(0.28, Interface::Cli)
+    .unwrap();
+    let a = slag_edge::query::run_query_framed(
+        &engine.store,
+        &engine.manifest.model,
+        None,
+        &text,
+        &negatives,
+        None,
+        Some(&engine.display),
+        &q,
+    )
+    .unwrap();
+    assert_eq!(a.summary.count, 80, "every Gaussian passes threshold -1");
+    let a = slag_edge::serve::compact_answer(a);
+    assert_eq!(a.matches.len(), 3);
+    assert!(a.matches.capacity() < 80, "{}", a.matches.capacity());
+    assert!(
+        a.match_objects.capacity() < 80,
+        "{}",
+        a.match_objects.capacity()
+    );
+}

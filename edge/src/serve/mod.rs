@@ -618,6 +618,7 @@ pub(crate) async fn answer(
                         Some(&e.display),
                         q,
                     )
+                    .map(compact_answer)
                 })
                 .collect::<Vec<_>>();
             st.admission.record(t0.elapsed());
@@ -634,6 +635,18 @@ pub(crate) async fn answer(
                 .collect(),
         },
     )
+}
+
+/// `a` holding only what it returns (its lists' capacity shrunk to their length). A threshold
+/// query collects every match above its threshold (for the summary and the objects) and returns
+/// the `top_k` best, so its lists can keep the capacity of all of them: up to the scene's
+/// Gaussian count × 20 bytes per answer, held by every answer of a batch until the batch is
+/// sent. Compacted, a batch holds at most [`ServeOptions::max_matches`] matches in all.
+pub fn compact_answer(mut a: query::QueryAnswer) -> query::QueryAnswer {
+    a.matches.shrink_to_fit();
+    a.match_objects.shrink_to_fit();
+    a.objects.shrink_to_fit();
+    a
 }
 
 /// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
