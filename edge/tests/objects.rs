@@ -273,6 +273,15 @@ async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
     let server = shard_server(scene, None).await;
     let (_dir, store) = fetch_grid(&server.url, 1000.0).await;
     let m = store.manifest("grid").unwrap().unwrap();
+    // Shards with segments (format version 3) verify as stored: a later fetch keeps them.
+    for t in &m.tiles {
+        let st = store.check_stored(&m, t).unwrap();
+        assert!(
+            matches!(st, slag_edge::store::Stored::Verified),
+            "tile {}: {st:?}",
+            t.id
+        );
+    }
     let embedder = Arc::new(BasisEmbedder::new(12));
     let q = embedder.vector("t0");
     // Reference: raw score of every Gaussian, then its segment's mean (f64).
