@@ -19,11 +19,16 @@
 //!    members give the same id whatever their rank), the centroid weighted by `max(score, 0) ×
 //!    opacity` (opacity = the sigmoid of the stored pre-sigmoid opacity, or 1 where the caller
 //!    has none, so then the weight is the score alone; the plain mean where every weight is 0), the
-//!    AABB and the PCA oriented box of the member means, the count and the max and mean score.
-//!    Boxes bound the Gaussians' means, not their ellipsoids.
-//! 4. **Order.** By mean score, best first (the mean is not moved by one stray high-scoring
-//!    member; ties: more Gaussians, then the id); with [`ObjectParams::near`], by distance from
-//!    that point to the centroid, nearest first. At most [`ObjectParams::max_objects`] are kept.
+//!    AABB and the PCA oriented box of the member means, the count, the max and mean score and
+//!    the score mass `Σ max(score, 0) × opacity` (the sum of the centroid's weights). Boxes bound
+//!    the Gaussians' means, not their ellipsoids.
+//! 4. **Order.** By score mass, largest first (ties: more Gaussians, then the id); with
+//!    [`ObjectParams::near`], by distance from that point to the centroid, nearest first. At most
+//!    [`ObjectParams::max_objects`] are kept. The mass grows with how much of the scene answers
+//!    the prompt and how well: a mean or a max score ranks a group of a dozen faint, confident
+//!    Gaussians (often floaters of low opacity) above the large object the prompt names, while
+//!    the mass counts each Gaussian as much as it is seen (its opacity) and agrees with the
+//!    prompt (its score).
 
 use std::collections::HashMap;
 
@@ -67,6 +72,9 @@ pub struct SceneObject {
     pub max_score: f32,
     /// Mean score of the members.
     pub mean_score: f32,
+    /// Score mass `Σ max(score, 0) × opacity` over the members (opacity 1 where none is known):
+    /// the objects' order without `near` (module doc).
+    pub score_mass: f32,
 }
 
 /// How matches become objects (module doc).
@@ -215,8 +223,8 @@ pub fn group_objects(m: &Matches<'_>, p: &ObjectParams) -> Result<Objects> {
                 .then(a.0.id.cmp(&b.0.id))
         }),
         None => described.sort_by(|a, b| {
-            b.0.mean_score
-                .total_cmp(&a.0.mean_score)
+            b.0.score_mass
+                .total_cmp(&a.0.score_mass)
                 .then(b.0.gaussians.cmp(&a.0.gaussians))
                 .then(a.0.id.cmp(&b.0.id))
         }),
@@ -385,6 +393,7 @@ fn describe(m: &Matches<'_>, members: &[usize]) -> SceneObject {
         gaussians: members.len(),
         max_score,
         mean_score: (score_sum / n) as f32,
+        score_mass: wsum as f32,
     }
 }
 
@@ -550,10 +559,11 @@ mod tests {
         let o = run(&pos, &scores, None, &wide());
         assert_eq!(o.objects.len(), 2);
         assert_eq!((o.groups, o.suppressed), (2, 3));
-        // Sorted by mean score: the second blob first.
+        // Sorted by score mass (400 × 0.3 = 120 < 300 × 0.5 = 150): the second blob first.
         let (a, b) = (&o.objects[0], &o.objects[1]);
         assert_eq!((a.gaussians, b.gaussians), (300, 400));
         assert!((a.mean_score - 0.5).abs() < 1e-6 && (b.max_score - 0.3).abs() < 1e-6);
+        assert!((a.score_mass - 150.0).abs() < 1e-3 && (b.score_mass - 120.0).abs() < 1e-3);
         for (o, c, h) in [
             (a, [3.0, 1.0, 0.0], [0.2; 3]),
             (b, [0.0; 3], [0.5, 0.2, 0.1]),
@@ -681,6 +691,52 @@ mod tests {
         assert_eq!(one.objects, vec![o.objects[0].clone()]);
         assert_eq!(one.groups, 2);
         assert_eq!(one.member_of.iter().filter(|m| m.is_some()).count(), 50);
+    }
+
+    #[test]
+    fn a_large_object_outranks_a_tiny_confident_cluster() {
+        let mut rng = SplitMix64::new(12);
+        // A chair-sized object: 600 Gaussians at score 0.35, opaque; and 12 Gaussians at 0.9,
+        // half transparent (a floater), 3 m away.
+        let mut pos = blob(&mut rng, [0.0; 3], [0.2, 0.2, 0.3], 600);
+        pos.extend(blob(&mut rng, [3.0, 0.0, 1.0], [0.02; 3], 12));
+        let mut scores = vec![0.35f32; 600];
+        scores.extend([0.9f32; 12]);
+        let mut opacity = vec![0.95f32; 600];
+        opacity.extend([0.5f32; 12]);
+        let ids: Vec<u32> = (0..612).collect();
+        let o = group_objects(
+            &Matches {
+                ids: &ids,
+                positions: &pos,
+                scores: &scores,
+                opacities: Some(&opacity),
+                segments: None,
+            },
+            &ObjectParams::default(),
+        )
+        .unwrap();
+        assert_eq!(o.objects.len(), 2);
+        let (first, second) = (&o.objects[0], &o.objects[1]);
+        // The large object first, although the cluster's mean and max score are higher.
+        assert_eq!((first.gaussians, second.gaussians), (600, 12));
+        assert!(second.mean_score > first.mean_score && second.max_score > first.max_score);
+        assert!(
+            (first.score_mass - 600.0 * 0.35 * 0.95).abs() < 0.05,
+            "{first:?}"
+        );
+        assert!(
+            (second.score_mass - 12.0 * 0.9 * 0.5).abs() < 1e-3,
+            "{second:?}"
+        );
+        // Mass, not count: 60 Gaussians at 0.9 opaque (54) outrank 100 at 0.3 (30).
+        let mut pos = blob(&mut rng, [0.0; 3], [0.1; 3], 100);
+        pos.extend(blob(&mut rng, [3.0, 0.0, 0.0], [0.1; 3], 60));
+        let mut scores = vec![0.3f32; 100];
+        scores.extend([0.9f32; 60]);
+        let o = run(&pos, &scores, None, &ObjectParams::default());
+        assert_eq!(o.objects[0].gaussians, 60);
+        assert!((o.objects[0].score_mass - 54.0).abs() < 1e-3);
     }
 
     #[test]

@@ -230,7 +230,9 @@ pub fn majority_per_segment(classes: &[Option<u8>], segments: &[u32]) -> Result<
 
 /// Smooths per-row scores within segments (the open-vocabulary analogue of prediction
 /// filtering): each row's score becomes the mean of its segment's scores over the rows given.
-/// Rows whose segment is [`NO_SEGMENT`] keep their own score.
+/// Rows whose segment is [`NO_SEGMENT`] keep their own score. NaN scores (a row without a
+/// score) take no part in their segment's mean and stay NaN; a segment whose scores are all NaN
+/// keeps them.
 ///
 /// `scores[i]` and `segments[i]` describe the same row, `[N]`. Means are accumulated in f64.
 ///
@@ -245,7 +247,7 @@ pub fn segment_mean(scores: &[f32], segments: &[u32]) -> Result<Vec<f32>> {
     }
     let mut sums: std::collections::HashMap<u32, (f64, u32)> = std::collections::HashMap::new();
     for (&x, &s) in scores.iter().zip(segments) {
-        if s != NO_SEGMENT {
+        if s != NO_SEGMENT && !x.is_nan() {
             let e = sums.entry(s).or_insert((0.0, 0));
             e.0 += x as f64;
             e.1 += 1;
@@ -255,10 +257,38 @@ pub fn segment_mean(scores: &[f32], segments: &[u32]) -> Result<Vec<f32>> {
         .iter()
         .zip(segments)
         .map(|(&x, s)| match sums.get(s) {
-            Some(&(sum, n)) if *s != NO_SEGMENT => (sum / n as f64) as f32,
+            Some(&(sum, n)) if *s != NO_SEGMENT && !x.is_nan() => (sum / n as f64) as f32,
             _ => x,
         })
         .collect())
+}
+
+/// Ranks rows by their segment-smoothed score: the one query path that `slag-encoder query
+/// --smooth segment` and slag-edge's `smooth=segment` share.
+///
+/// `raw[i]` is row `i`'s own score (cosine or relevancy; NaN: none) and `segments[i]` its
+/// segment, both `[N]` over every row the caller holds, so a segment's mean does not depend on
+/// which rows the caller then keeps. Each row is scored with [`segment_mean`]; the rows with
+/// `keep(i)` whose smoothed score is `>= threshold` (every kept row for `None`) are returned as
+/// `(row, smoothed score)`, best first (ties: lower row first), at most `top_k` (all for
+/// `None`). NaN scores are never returned.
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn rank_smoothed(
+    raw: &[f32],
+    segments: &[u32],
+    threshold: Option<f32>,
+    top_k: Option<usize>,
+    keep: impl Fn(usize) -> bool,
+) -> Result<Vec<(usize, f32)>> {
+    let mut smoothed = segment_mean(raw, segments)?;
+    for (i, s) in smoothed.iter_mut().enumerate() {
+        if !keep(i) || threshold.is_some_and(|t| *s < t) {
+            *s = f32::NAN;
+        }
+    }
+    let k = top_k.unwrap_or(smoothed.len());
+    Ok(crate::similarity::top_k(&smoothed, k))
 }
 
 #[cfg(test)]
@@ -305,5 +335,25 @@ mod tests {
         let m = segment_mean(&[1.0, 0.0, 0.5, 0.2], &[4, 4, NO_SEGMENT, 9]).unwrap();
         assert_eq!(m, vec![0.5, 0.5, 0.5, 0.2]);
         assert!(segment_mean(&[1.0], &[]).is_err());
+        // A NaN score takes no part in its segment's mean and stays NaN.
+        let m = segment_mean(&[f32::NAN, 0.2, 0.4], &[1, 1, 1]).unwrap();
+        assert!(m[0].is_nan() && (m[1] - 0.3).abs() < 1e-7 && (m[2] - 0.3).abs() < 1e-7);
+    }
+
+    #[test]
+    fn rank_smoothed_thresholds_and_keeps_the_smoothed_scores() {
+        // Segment 0: one high row among low ones (mean 0.3); segment 1: uniform 0.5; row 5 alone.
+        let raw = [0.9, 0.0, 0.0, 0.5, 0.5, 0.35];
+        let segs = [0, 0, 0, 1, 1, NO_SEGMENT];
+        let all = rank_smoothed(&raw, &segs, None, None, |_| true).unwrap();
+        let rows: Vec<usize> = all.iter().map(|h| h.0).collect();
+        assert_eq!(rows, vec![3, 4, 5, 0, 1, 2]);
+        assert!((all[3].1 - 0.3).abs() < 1e-7);
+        // The raw 0.9 no longer passes 0.32; the unsegmented row keeps its own 0.35.
+        let t = rank_smoothed(&raw, &segs, Some(0.32), None, |_| true).unwrap();
+        assert_eq!(t.iter().map(|h| h.0).collect::<Vec<_>>(), vec![3, 4, 5]);
+        // keep() drops rows after the mean: row 4 dropped, row 3 still scores its segment's 0.5.
+        let k = rank_smoothed(&raw, &segs, Some(0.32), Some(1), |i| i != 4).unwrap();
+        assert_eq!(k, vec![(3, 0.5)]);
     }
 }

@@ -258,6 +258,10 @@ struct QueryArgs {
     /// Smallest object, in matching Gaussians (default 10).
     #[arg(long)]
     object_min_gaussians: Option<String>,
+    /// none | segment: score each Gaussian with the mean score of its geometric segment (the
+    /// open-vocabulary form of the paper's prediction filtering; needs shards with segments).
+    #[arg(long)]
+    smooth: Option<String>,
 }
 
 fn text_embedder(
@@ -606,6 +610,7 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
         near: a.near,
         object_gap: a.object_gap,
         object_min_gaussians: a.object_min_gaussians,
+        smooth: a.smooth,
     }
     .validate_for(PAPER_THRESHOLD, Interface::Cli)?;
     params.frame = a.frame.into();
@@ -705,6 +710,10 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "near" => "pass --near X,Y,Z".into(),
             "object_gap" => "pass --object-gap D".into(),
             "object_min_gaussians" => "pass --object-min-gaussians N".into(),
+            "smooth" if message.contains("no geometric segments") => {
+                "leave out --smooth, or partition the scene with segments and fetch again".into()
+            }
+            "smooth" => "pass --smooth none|segment (segment with the exact scan)".into(),
             "frame" => {
                 "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
             }

@@ -176,6 +176,21 @@ pub enum IndexKind {
     Hnsw,
 }
 
+/// How a Gaussian's score is formed before the threshold and the ranking.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Smooth {
+    /// Each Gaussian's own score (the paper's query).
+    #[default]
+    None,
+    /// Each Gaussian scores the mean score of its geometric segment over every loaded Gaussian
+    /// of that segment (the open-vocabulary analogue of the paper's prediction filtering,
+    /// [`slag_common::segments::rank_smoothed`], as `slag-encoder query --smooth segment`), so a
+    /// segment matches or not as a whole. Needs shards with segments (format version 3 or 4);
+    /// Gaussians of shards without segments keep their own score.
+    Segment,
+}
+
 /// A validated query.
 #[derive(Debug, Clone, PartialEq)]
 pub struct QueryParams {
@@ -197,6 +212,8 @@ pub struct QueryParams {
     /// How the matches are grouped into the answer's `objects` (gap, minimum size, order,
     /// number; [`slag_common::objects`]).
     pub objects: ObjectParams,
+    /// Score smoothing within geometric segments (default none).
+    pub smooth: Smooth,
 }
 
 /// Raw query fields as they arrive (`GET /query?text=…&top_k=…` or a `POST /query` JSON item).
@@ -226,6 +243,9 @@ pub struct RawQuery {
     pub object_gap: Option<String>,
     /// Smallest object in matching Gaussians, integer ≥ 1 (default 10).
     pub object_min_gaussians: Option<String>,
+    /// `none` | `segment`: score each Gaussian with its geometric segment's mean score
+    /// ([`Smooth`]; default none).
+    pub smooth: Option<String>,
 }
 
 /// A JSON value that may be a number or a string (for `POST /query` bodies).
@@ -274,13 +294,14 @@ impl RawQuery {
                 "near" => q.near = comma_list(v).or(val),
                 "object_gap" => q.object_gap = val,
                 "object_min_gaussians" => q.object_min_gaussians = val,
+                "smooth" => q.smooth = val,
                 other => {
                     return Err(Error::query(
                         "query",
                         format!(
                             "unknown query field {other:?}; use text, top_k, threshold, mode, \
                              bbox, index, frame, max_objects, near, object_gap, \
-                             object_min_gaussians"
+                             object_min_gaussians, smooth"
                         ),
                     ));
                 }
@@ -390,6 +411,19 @@ impl RawQuery {
             Some(f) => return bad("frame", format!("frame {f:?}: use map or scene")),
         };
         let objects = self.object_params()?;
+        let smooth = match self.smooth.as_deref().map(str::trim) {
+            None | Some("none") => Smooth::None,
+            Some("segment") => Smooth::Segment,
+            Some(m) => return bad("smooth", format!("smooth {m:?}: use none or segment")),
+        };
+        if smooth == Smooth::Segment && index == IndexKind::Hnsw {
+            return bad(
+                "smooth",
+                "smooth=segment needs every Gaussian's score (a segment's mean), which the \
+                 approximate index does not give; use index=exact"
+                    .into(),
+            );
+        }
         Ok(QueryParams {
             text,
             top_k,
@@ -399,6 +433,7 @@ impl RawQuery {
             index,
             frame,
             objects,
+            smooth,
         })
     }
 }
@@ -484,6 +519,9 @@ pub struct QueryAnswer {
     pub top_k: usize,
     /// Index that answered.
     pub index: IndexKind,
+    /// Score smoothing applied: `"none"`, or `"segment"` (every score, `matches`, `summary` and
+    /// `objects` included, is its geometric segment's mean score).
+    pub smooth: Smooth,
     /// Frame of every coordinate in this answer (match positions, summary AABB and centroid)
     /// and of the query's `bbox`: `"map"` (the robot's map frame, metres, through the manifest's
     /// scene-to-map transform) or `"scene"` (the reconstruction's frame, scene units).
@@ -495,8 +533,8 @@ pub struct QueryAnswer {
     /// The matches grouped into objects ([`slag_common::objects::group_objects`]), built over
     /// the same matches as `summary`: every match above the threshold, not only the returned
     /// `top_k`; without a threshold (`threshold=none`, where every Gaussian "matches") over the
-    /// returned `top_k` best. Sorted by mean score, or by distance from `near`; at most
-    /// `max_objects`.
+    /// returned `top_k` best. Sorted by score mass (`score_mass`), or by distance from `near`;
+    /// at most `max_objects`.
     pub objects: Vec<SceneObject>,
     /// Per entry of `matches`: the index in `objects` of its object (`None`: in no returned
     /// object). Not serialised; `GET /query.ply?color_by=object` paints with it.
@@ -653,7 +691,48 @@ pub fn run_query_framed(
         }
         Ok(hits)
     };
+    // smooth=segment: every row's own score first, then its segment's mean over every loaded
+    // row of the segment (so the box does not change a segment's score), then the boxes, the
+    // threshold and the top-k on the smoothed scores.
+    let smoothing = match q.smooth {
+        Smooth::None => None,
+        Smooth::Segment => {
+            let segments = store.segments().ok_or_else(|| {
+                Error::query(
+                    "smooth",
+                    "smooth=segment: this scene's shards carry no geometric segments; \
+                     partition the scene with its segments.safetensors (`slag-encoder encode` \
+                     writes it, `slag-encoder partition` picks it up beside --embeddings: shard \
+                     format version 3) and fetch again, or leave smooth out",
+                )
+            })?;
+            Some((scan::scores(store, &queries, combine)?, segments))
+        }
+    };
+    let smoothed = |top_k: Option<usize>, threshold: Option<f32>| -> Result<Vec<scan::Hit>> {
+        let Some((raw, segments)) = &smoothing else {
+            return Ok(Vec::new());
+        };
+        let inside = |row: usize| {
+            bbox.is_none_or(|(lo, hi)| {
+                let m = store.means()[row];
+                (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
+            }) && map_box.is_none_or(|b| in_box(position(row), &b))
+        };
+        Ok(
+            slag_common::segments::rank_smoothed(raw, segments, threshold, top_k, inside)?
+                .into_iter()
+                .map(|(row, score)| scan::Hit { row, score })
+                .collect(),
+        )
+    };
+    let ranked_k = if q.threshold.is_some() {
+        None
+    } else {
+        Some(q.top_k)
+    };
     let hits = match q.index {
+        _ if smoothing.is_some() => smoothed(ranked_k, q.threshold)?,
         // Threshold queries collect every match for the summary; ranked-only ones keep a
         // bounded top-k heap.
         IndexKind::Exact => exact(
@@ -723,7 +802,9 @@ pub fn run_query_framed(
     matches.truncate(q.top_k);
     let mut match_objects = grouped.member_of;
     match_objects.truncate(matches.len());
-    let best_score_below_threshold = if matches.is_empty() && q.index == IndexKind::Exact {
+    let best_score_below_threshold = if matches.is_empty() && smoothing.is_some() {
+        smoothed(Some(1), None)?.first().map(|h| h.score)
+    } else if matches.is_empty() && q.index == IndexKind::Exact {
         exact(Some(1), None)?.first().map(|h| h.score)
     } else {
         None
@@ -736,6 +817,7 @@ pub fn run_query_framed(
         threshold: q.threshold,
         top_k: q.top_k,
         index: q.index,
+        smooth: q.smooth,
         frame: if map.is_some() {
             MAP_FRAME
         } else {

@@ -55,9 +55,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use slag_common::shards::{
-    CODEBOOK_TILE, Codebook, Dtype, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureShard,
-    SHARD_FORMAT_VERSION, StoredShard, TileInfo, decode_codebook, decode_header,
-    decode_mixture_shard, decode_shard_stored, shard_checksum, valid_scene_id,
+    CODEBOOK_TILE, Codebook, Dtype, Manifest, MixtureShard, SHARD_FORMAT_VERSION, StoredShard,
+    TileInfo, decode_codebook, decode_header, decode_mixture_shard, decode_shard_stored,
+    shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -713,10 +713,12 @@ impl EdgeStore {
             .mixture
             .as_ref()
             .filter(|_| tile.id == CODEBOOK_TILE);
+        // Shards are of the manifest's format version (1 or 3 dense, 2 or 4 mixture; the
+        // manifest's own check keeps it to those), the codebook always version 1.
         let (version, dtype) = match (&manifest.mixture, codebook) {
-            (Some(_), None) => (MIXTURE_SHARD_FORMAT_VERSION, Dtype::F16),
+            (Some(_), None) => (manifest.shard_format_version, Dtype::F16),
             (Some(_), Some(_)) => (SHARD_FORMAT_VERSION, Dtype::F16),
-            (None, _) => (SHARD_FORMAT_VERSION, manifest.dtype),
+            (None, _) => (manifest.shard_format_version, manifest.dtype),
         };
         if h.version != version
             || h.scene_id != manifest.scene_id

@@ -8,7 +8,7 @@ mod support;
 use std::process::{Command, Output};
 
 use slag_common::shards::Dtype;
-use support::{grid_scene, shard_server};
+use support::{grid_scene, grid_scene_segmented, shard_server};
 
 /// The slag-edge binary as a command (through `$SLAG_TEST_RUNNER`, e.g. qemu, when set).
 fn slag_edge_command() -> Command {
@@ -353,4 +353,127 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
         );
     }
     assert!(!store.exists());
+}
+
+/// `slag-edge query --smooth segment`: each score is the mean of its segment's scores (checked
+/// against the unsmoothed scores of the same store); a store without segments is refused with
+/// a hint.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn query_smooth_segment_from_the_command_line() {
+    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
+        assert!(
+            std::env::var_os("SLAG_SKIP_ORT").is_some(),
+            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
+        );
+        return;
+    }
+    let (tm, tok) = (
+        fixture("clip/color-clip-textual.onnx"),
+        fixture("clip/clip-tokenizer.json"),
+    );
+    // Tile 0 only (20 Gaussians, ids 0..20), four segments of five (id % 4).
+    let segmented = grid_scene_segmented("grid", 3, 3, 20, 512, Dtype::F16, 1, &|id| id % 4);
+    let dir = tempfile::tempdir().unwrap();
+    let mut stores = Vec::new();
+    for (name, scene) in [
+        ("segmented", segmented),
+        ("plain", grid_scene("grid", 3, 3, 20, 512, Dtype::F16, 1)),
+    ] {
+        let server = shard_server(scene, None).await;
+        let store = dir.path().join(name).display().to_string();
+        let (s, u) = (store.clone(), server.url.clone());
+        let out = tokio::task::spawn_blocking(move || {
+            slag_edge(&[
+                "fetch", "--from", &u, "--scene", "grid", "--center", "0,0", "--radius", "5",
+                "--store", &s,
+            ])
+        })
+        .await
+        .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        stores.push(store);
+    }
+    let query = |store: &str, extra: &[&str]| {
+        let mut args: Vec<String> = [
+            "query",
+            "--store",
+            store,
+            "--scene",
+            "grid",
+            "--text-model",
+            tm.as_str(),
+            "--tokenizer",
+            tok.as_str(),
+            "--text",
+            "red",
+            "--top-k",
+            "20",
+            "--threshold",
+            "none",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        slag_edge(&refs)
+    };
+    let scores = |out: &Output| -> Vec<(u64, f64)> {
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let a: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let mut v: Vec<(u64, f64)> = a["matches"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| (m["id"].as_u64().unwrap(), m["score"].as_f64().unwrap()))
+            .collect();
+        v.sort_by_key(|x| x.0);
+        v
+    };
+    let plain = scores(&query(&stores[0], &[]));
+    let smooth_out = query(&stores[0], &["--smooth", "segment"]);
+    let a: serde_json::Value = serde_json::from_slice(&smooth_out.stdout).unwrap_or_default();
+    assert_eq!(
+        a["smooth"],
+        "segment",
+        "{}",
+        String::from_utf8_lossy(&smooth_out.stderr)
+    );
+    let smoothed = scores(&smooth_out);
+    assert_eq!(plain.len(), 20);
+    assert_eq!(
+        smoothed.iter().map(|s| s.0).collect::<Vec<_>>(),
+        plain.iter().map(|s| s.0).collect::<Vec<_>>()
+    );
+    for seg in 0..4u64 {
+        let own: Vec<f64> = plain
+            .iter()
+            .filter(|p| p.0 % 4 == seg)
+            .map(|p| p.1)
+            .collect();
+        let mean = own.iter().sum::<f64>() / own.len() as f64;
+        // The fixture's scores differ within a segment, so an unsmoothed answer cannot pass.
+        assert!(own.iter().any(|s| (s - mean).abs() > 1e-4), "{own:?}");
+        for s in smoothed.iter().filter(|s| s.0 % 4 == seg) {
+            assert!((s.1 - mean).abs() < 1e-5, "id {}: {} vs {mean}", s.0, s.1);
+        }
+    }
+    // No segments in the store: refused, with what to do.
+    let out = query(&stores[1], &["--smooth", "segment"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("no geometric segments") && err.contains("hint: leave out --smooth"),
+        "{err}"
+    );
+    let out = query(&stores[1], &["--smooth", "mean"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("pass --smooth none|segment"));
 }

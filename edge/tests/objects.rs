@@ -16,7 +16,9 @@ use slag_common::scene::{PlyLoadOptions, SH_C0, load_ply};
 use slag_common::shards::{Dtype, decode_shard};
 use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::view::object_colour;
-use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, fetch_grid, grid_scene, grid_scene_segmented, serve_on_loopback, shard_server,
+};
 
 const PER_TILE: usize = 60;
 
@@ -94,6 +96,11 @@ async fn objects_follow_an_independent_reference_through_every_route() {
             (status, r.json::<serde_json::Value>().await.unwrap())
         }
     };
+    // The HTTP API reference's example answer: `SLAG_EXAMPLE_OUT=FILE` writes it.
+    if let Some(out) = std::env::var_os("SLAG_EXAMPLE_OUT") {
+        let (_, ex) = get("/query?text=t0&object_gap=3&top_k=2".into()).await;
+        std::fs::write(out, serde_json::to_string_pretty(&ex).unwrap()).unwrap();
+    }
     // Tiles are 9 units wide with ~1 unit between Gaussians: a gap of 3 joins a tile, not two.
     let (status, a) = get("/query?text=t0&object_gap=3&top_k=5".into()).await;
     assert_eq!(status, 200, "{a}");
@@ -142,6 +149,11 @@ async fn objects_follow_an_independent_reference_through_every_route() {
         let mean = r.iter().map(|m| m.2).sum::<f64>() / r.len() as f64;
         assert!((f(&o["max_score"]) - max).abs() < 1e-5);
         assert!((f(&o["mean_score"]) - mean).abs() < 1e-5);
+        let mass: f64 = r.iter().map(|m| m.2.max(0.0) * m.3).sum();
+        assert!(
+            (f(&o["score_mass"]) - mass).abs() < 1e-3 * mass,
+            "tile {tile} mass"
+        );
         // The oriented box holds every member.
         let obb = &o["obb"];
         for m in r {
@@ -153,8 +165,8 @@ async fn objects_follow_an_independent_reference_through_every_route() {
             }
         }
     }
-    // Sorted by mean score.
-    assert!(f(&objects[0]["mean_score"]) >= f(&objects[1]["mean_score"]));
+    // Sorted by score mass (score × opacity summed over the members).
+    assert!(f(&objects[0]["score_mass"]) >= f(&objects[1]["score_mass"]));
     // near: the object nearest to the point first, whatever its score.
     for (p, tile) in [("35,25,0", 11u64), ("1,1,0", 0)] {
         let (_, n) = get(format!("/query?text=t0&object_gap=3&near={p}")).await;
@@ -233,4 +245,213 @@ async fn objects_follow_an_independent_reference_through_every_route() {
         .await
         .unwrap();
     assert_eq!(r.status(), 400);
+}
+
+/// Segment of Gaussian `id` in the smoothing fixture: the first 20 Gaussians of tile 0 share one
+/// segment with all of tile 1 (which does not match "t0"); every other tile is one segment.
+fn smoothing_segment(id: u32) -> u32 {
+    let tile = id / PER_TILE as u32;
+    if tile == 1 || id < 20 { 0 } else { 100 + tile }
+}
+
+/// `smooth=segment` over HTTP: every score is its segment's mean over the loaded Gaussians,
+/// checked against a reference from the decoded shards; the smoothing changes which Gaussians
+/// match (tile 0's first 20 match alone, not in their segment); typed 400s for a bad value, for
+/// `index=hnsw`, and for a scene without segments.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
+    let scene = grid_scene_segmented(
+        "grid",
+        4,
+        3,
+        PER_TILE,
+        12,
+        Dtype::F32,
+        1,
+        &smoothing_segment,
+    );
+    let server = shard_server(scene, None).await;
+    let (_dir, store) = fetch_grid(&server.url, 1000.0).await;
+    let m = store.manifest("grid").unwrap().unwrap();
+    // Shards with segments (format version 3) verify as stored: a later fetch keeps them.
+    for t in &m.tiles {
+        let st = store.check_stored(&m, t).unwrap();
+        assert!(
+            matches!(st, slag_edge::store::Stored::Verified),
+            "tile {}: {st:?}",
+            t.id
+        );
+    }
+    let embedder = Arc::new(BasisEmbedder::new(12));
+    let q = embedder.vector("t0");
+    // Reference: raw score of every Gaussian, then its segment's mean (f64).
+    let mut raw: Vec<(u32, f64)> = Vec::new();
+    for t in &m.tiles {
+        let s = decode_shard(&store.shard_bytes("grid", t).unwrap().unwrap()).unwrap();
+        assert_eq!(s.segments.as_ref().map(Vec::len), Some(s.ids.len()));
+        for i in 0..s.ids.len() {
+            let score: f64 = s
+                .vector(i)
+                .iter()
+                .zip(&q)
+                .map(|(a, b)| *a as f64 * *b as f64)
+                .sum();
+            raw.push((s.ids[i], score));
+        }
+    }
+    let mut sums: std::collections::HashMap<u32, (f64, f64)> = Default::default();
+    for &(id, sc) in &raw {
+        let e = sums.entry(smoothing_segment(id)).or_default();
+        e.0 += sc;
+        e.1 += 1.0;
+    }
+    let smoothed = |id: u32| {
+        let (s, n) = sums[&smoothing_segment(id)];
+        s / n
+    };
+    let mut want: Vec<(u32, f64)> = raw
+        .iter()
+        .map(|&(id, _)| (id, smoothed(id)))
+        .filter(|&(_, s)| s >= 0.28)
+        .collect();
+    want.sort_by_key(|w| w.0);
+    let raw_hits: Vec<u32> = raw.iter().filter(|r| r.1 >= 0.28).map(|r| r.0).collect();
+    // The fixture does what it is for: tile 0's first 20 match on their own scores only.
+    assert!((0..20).all(|id| raw_hits.contains(&id)), "{raw_hits:?}");
+    assert!(want.iter().all(|w| w.0 >= 20) && want.len() == raw_hits.len() - 20);
+
+    let state = AppState::new(
+        store,
+        embedder,
+        ServeOptions {
+            threshold: 0.28,
+            hnsw: false,
+            request_timeout: Duration::from_secs(10),
+            ..ServeOptions::new("grid")
+        },
+    )
+    .unwrap();
+    let url = serve_on_loopback(state).await;
+    let client = reqwest::Client::new();
+    let get = |path: String| {
+        let client = client.clone();
+        let url = url.clone();
+        async move {
+            let r = client.get(format!("{url}{path}")).send().await.unwrap();
+            let status = r.status().as_u16();
+            (status, r.json::<serde_json::Value>().await.unwrap())
+        }
+    };
+    let ids_scores = |a: &serde_json::Value| -> Vec<(u32, f64)> {
+        let mut v: Vec<(u32, f64)> = a["matches"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| {
+                (
+                    m["id"].as_u64().unwrap() as u32,
+                    m["score"].as_f64().unwrap(),
+                )
+            })
+            .collect();
+        v.sort_by_key(|w| w.0);
+        v
+    };
+    let (status, a) = get("/query?text=t0&smooth=segment&top_k=10000&object_gap=3".into()).await;
+    assert_eq!(status, 200, "{a}");
+    assert_eq!(a["smooth"], "segment");
+    let got = ids_scores(&a);
+    assert_eq!(
+        got.iter().map(|g| g.0).collect::<Vec<_>>(),
+        want.iter().map(|w| w.0).collect::<Vec<_>>()
+    );
+    for (g, w) in got.iter().zip(&want) {
+        assert!((g.1 - w.1).abs() < 1e-5, "id {}: {} vs {}", g.0, g.1, w.1);
+    }
+    assert_eq!(a["summary"]["count"].as_u64().unwrap() as usize, want.len());
+    let in_objects: u64 = a["objects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|o| o["gaussians"].as_u64().unwrap())
+        .sum();
+    assert_eq!(in_objects as usize, want.len(), "{a:#}");
+    // Without smoothing: each Gaussian's own score, tile 0's first 20 included.
+    let (_, plain) = get("/query?text=t0&top_k=10000".into()).await;
+    assert_eq!(plain["smooth"], "none");
+    let plain_ids: Vec<u32> = ids_scores(&plain).iter().map(|p| p.0).collect();
+    assert_eq!(
+        plain_ids,
+        raw_hits
+            .iter()
+            .copied()
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect::<Vec<_>>()
+    );
+    // A box over tile 0 only: its segment's scores still come from every loaded Gaussian.
+    let (_, boxed) =
+        get("/query?text=t0&smooth=segment&top_k=10000&bbox=-1,-1,-1,9.5,9.5,2".into()).await;
+    let b = ids_scores(&boxed);
+    assert!(
+        !b.is_empty() && b.iter().all(|g| g.0 < PER_TILE as u32 && g.0 >= 20),
+        "{boxed:#}"
+    );
+    for g in &b {
+        assert!((g.1 - smoothed(g.0)).abs() < 1e-5);
+    }
+    // POST: the same field.
+    let r = client
+        .post(format!("{url}/query"))
+        .json(
+            &serde_json::json!({"queries": [{"text": "t0", "smooth": "segment", "top_k": 10000}]}),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let body: serde_json::Value = r.json().await.unwrap();
+    let post: Vec<u32> = ids_scores(&body["answers"][0])
+        .iter()
+        .map(|p| p.0)
+        .collect();
+    assert_eq!(post, want.iter().map(|w| w.0).collect::<Vec<_>>());
+    // Typed refusals.
+    for (q, needle) in [
+        ("smooth=mean", "use none or segment"),
+        ("smooth=segment&index=hnsw", "index=exact"),
+    ] {
+        let (status, e) = get(format!("/query?text=t0&{q}")).await;
+        assert_eq!(status, 400, "{q}: {e}");
+        let msg = e["error"].as_str().unwrap();
+        assert!(msg.contains("smooth") && msg.contains(needle), "{q}: {e}");
+    }
+
+    // A scene whose shards carry no segments: 400 saying what to do.
+    let plain_server = shard_server(grid_scene("grid", 2, 2, 20, 12, Dtype::F32, 1), None).await;
+    let (_dir2, plain_store) = fetch_grid(&plain_server.url, 1000.0).await;
+    let state = AppState::new(
+        plain_store,
+        Arc::new(BasisEmbedder::new(12)),
+        ServeOptions {
+            threshold: 0.28,
+            hnsw: false,
+            request_timeout: Duration::from_secs(10),
+            ..ServeOptions::new("grid")
+        },
+    )
+    .unwrap();
+    let url2 = serve_on_loopback(state).await;
+    let r = client
+        .get(format!("{url2}/query?text=t0&smooth=segment"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    let e: serde_json::Value = r.json().await.unwrap();
+    let msg = e["error"].as_str().unwrap();
+    assert!(
+        msg.contains("no geometric segments") && msg.contains("leave smooth out"),
+        "{msg}"
+    );
 }

@@ -72,6 +72,7 @@ fn params(mode: ScoreMode, threshold: Option<f32>) -> QueryParams {
         index: IndexKind::Exact,
         frame: Default::default(),
         objects: Default::default(),
+        smooth: Default::default(),
     }
 }
 

@@ -47,7 +47,8 @@ pub struct QueryParams {
 }
 
 /// Whether a Gaussian's score is its own or smoothed within its segment.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Smooth {
     /// Each Gaussian's own cosine (the paper's query).
     #[default]
@@ -93,6 +94,8 @@ pub struct QueryOutput {
     pub model: String,
     /// The cosine threshold applied.
     pub threshold: f32,
+    /// The score smoothing applied (`none` or `segment`).
+    pub smooth: Smooth,
     /// Gaussians above the threshold (all of them, for the summary).
     pub summary: MatchSummary,
     /// Every match above the threshold grouped into objects, scene frame
@@ -120,17 +123,24 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
-    let (all, summary) = match a.smooth {
-        Smooth::None => similarity::rank(
-            &emb.ids,
-            &emb.means,
-            &emb.vectors,
-            emb.dim,
-            &q,
-            None,
-            Some(a.threshold),
-        )?,
-        Smooth::Segment => rank_smoothed(a, &emb, &q)?,
+    // With smoothing the segments are read anyway: the objects then join matches of one segment.
+    let (all, summary, match_segments) = match a.smooth {
+        Smooth::None => {
+            let (all, summary) = similarity::rank(
+                &emb.ids,
+                &emb.means,
+                &emb.vectors,
+                emb.dim,
+                &q,
+                None,
+                Some(a.threshold),
+            )?;
+            (all, summary, None)
+        }
+        Smooth::Segment => {
+            let (all, summary, segments) = rank_smoothed(a, &emb, &q)?;
+            (all, summary, Some(segments))
+        }
     };
     if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
         let mut hit = vec![
@@ -171,7 +181,7 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
             positions: &positions,
             scores: &scores,
             opacities: opacities.as_deref(),
-            segments: None,
+            segments: match_segments.as_deref(),
         },
         &a.objects,
     )?;
@@ -193,6 +203,7 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         query: a.text.clone(),
         model: emb.model.clone(),
         threshold: a.threshold,
+        smooth: a.smooth,
         summary,
         objects: grouped.objects,
         matches: all.into_iter().take(a.top_k).collect(),
@@ -202,12 +213,12 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
 }
 
 /// Every Gaussian scored with its segment's mean cosine, those ≥ the threshold ranked best first
-/// (ties: lower row first).
+/// (ties: lower row first), with the segment of each match.
 fn rank_smoothed(
     a: &QueryParams,
     emb: &Embeddings,
     q: &[f32],
-) -> Result<(Vec<Match>, MatchSummary)> {
+) -> Result<(Vec<Match>, MatchSummary, Vec<u32>)> {
     let path = a.segments.clone().unwrap_or_else(|| {
         a.embeddings
             .parent()
@@ -216,12 +227,10 @@ fn rank_smoothed(
     });
     let rows = slag_common::segments::Segments::read(&path)?.gather(&emb.ids)?;
     let raw = similarity::cosine_scores(&emb.vectors, emb.dim, q)?;
-    let mut scores = slag_common::segments::segment_mean(&raw, &rows)?;
-    scores
-        .iter_mut()
-        .filter(|s| **s < a.threshold)
-        .for_each(|s| *s = f32::NAN);
-    let matches: Vec<Match> = similarity::top_k(&scores, scores.len())
+    let ranked =
+        slag_common::segments::rank_smoothed(&raw, &rows, Some(a.threshold), None, |_| true)?;
+    let segments = ranked.iter().map(|&(i, _)| rows[i]).collect();
+    let matches: Vec<Match> = ranked
         .into_iter()
         .map(|(i, score)| Match {
             id: emb.ids[i],
@@ -230,7 +239,7 @@ fn rank_smoothed(
         })
         .collect();
     let summary = similarity::summarise(&matches);
-    Ok((matches, summary))
+    Ok((matches, summary, segments))
 }
 
 #[cfg(test)]

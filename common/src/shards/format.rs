@@ -62,6 +62,12 @@
 //! stay version 1, byte for byte; readers before version 3 refuse a version-3 shard with
 //! [`ShardError::UnsupportedVersion`] (upgrade slag-edge, or re-partition with segments off).
 //!
+//! **Version 4** ([`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`], mixture shards with geometric
+//! segments): version 2's header and payload with flag bit 4 set (required at version 4) and the
+//! same segment-id section 9 after the display sections. Mixture shards without segments stay
+//! version 2, byte for byte; readers before version 4 refuse a version-4 shard with
+//! [`ShardError::UnsupportedVersion`].
+//!
 //! The file is exactly `header_len + payload_len` bytes; trailing bytes are an error. The
 //! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
 //! the CRC-32 of all its bytes.
@@ -82,8 +88,22 @@ pub const MIXTURE_SHARD_FORMAT_VERSION: u16 = 2;
 /// module doc), written by [`encode_shard`] when [`ShardInput::segments`] is given. Dense shards
 /// without segments stay version 1.
 pub const SEGMENTS_SHARD_FORMAT_VERSION: u16 = 3;
+/// Shard format version of *mixture* shards that carry segment ids (version 2's layout with flag
+/// bit 4 and section 9), written by `encode_mixture_shard` when its input has segments. Mixture
+/// shards without segments stay version 2.
+pub const MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION: u16 = 4;
 /// Newest shard format version this crate reads.
-pub const NEWEST_SHARD_FORMAT_VERSION: u16 = SEGMENTS_SHARD_FORMAT_VERSION;
+pub const NEWEST_SHARD_FORMAT_VERSION: u16 = MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION;
+
+/// Whether shards of format `version` hold codebook mixture rows (versions 2 and 4).
+pub fn is_mixture_version(version: u16) -> bool {
+    version == MIXTURE_SHARD_FORMAT_VERSION || version == MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
+}
+
+/// Whether shards of format `version` carry segment ids (versions 3 and 4).
+pub fn has_segments_version(version: u16) -> bool {
+    version == SEGMENTS_SHARD_FORMAT_VERSION || version == MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
+}
 /// Largest embedding width accepted when decoding (guards allocations on corrupted input).
 pub const MAX_DIM: u32 = 1 << 16;
 pub(super) const FIXED_HEADER: usize = 72;
@@ -771,6 +791,7 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
     if version != SHARD_FORMAT_VERSION
         && version != MIXTURE_SHARD_FORMAT_VERSION
         && version != SEGMENTS_SHARD_FORMAT_VERSION
+        && version != MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
     {
         return Err(ShardError::UnsupportedVersion(version));
     }
@@ -791,7 +812,7 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
     let payload_crc = r.u32()?;
     let s = r.u16()? as usize;
     let m = r.u16()? as usize;
-    let (fixed, mixture) = if version == MIXTURE_SHARD_FORMAT_VERSION {
+    let (fixed, mixture) = if is_mixture_version(version) {
         (
             FIXED_HEADER + MIXTURE_HEADER_EXTRA,
             Some((r.u32()?, r.u32()?)),
@@ -835,7 +856,7 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
         .to_string();
     let dtype = Dtype::from_code(dtype_code)
         .ok_or_else(|| ShardError::Malformed(format!("unknown dtype code {dtype_code}")))?;
-    let known = if version == SEGMENTS_SHARD_FORMAT_VERSION {
+    let known = if has_segments_version(version) {
         KNOWN_FLAGS | FLAG_SEGMENTS
     } else {
         KNOWN_FLAGS
@@ -843,10 +864,10 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
     if flags & !known != 0 {
         return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
     }
-    if version == SEGMENTS_SHARD_FORMAT_VERSION && flags & FLAG_SEGMENTS == 0 {
-        return Err(ShardError::Malformed(
-            "format version 3 without its segments section (flag bit 4)".into(),
-        ));
+    if has_segments_version(version) && flags & FLAG_SEGMENTS == 0 {
+        return Err(ShardError::Malformed(format!(
+            "format version {version} without its segments section (flag bit 4)"
+        )));
     }
     if dim == 0 || dim > MAX_DIM {
         return Err(ShardError::Malformed(format!(
@@ -1037,9 +1058,9 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
             return Err(match bytes.get(8..10) {
                 Some(&[a, b])
                     if bytes.starts_with(&SHARD_MAGIC)
-                        && u16::from_le_bytes([a, b]) == MIXTURE_SHARD_FORMAT_VERSION =>
+                        && is_mixture_version(u16::from_le_bytes([a, b])) =>
                 {
-                    ShardError::UnsupportedVersion(MIXTURE_SHARD_FORMAT_VERSION)
+                    ShardError::UnsupportedVersion(u16::from_le_bytes([a, b]))
                 }
                 _ => e,
             });

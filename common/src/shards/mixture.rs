@@ -11,7 +11,10 @@
 //! 2. means `f32[N][3]` (world frame, scene units);
 //! 3. atoms `u32[N][S]`: codebook row of each slot, [`UNUSED`] for an empty slot;
 //! 4. weights `f16[N][S]` (0 in empty slots), then zero padding to a 4-byte boundary;
-//! 5. the display sections of version 1 (flag bits 0–3), unchanged.
+//! 5. the display sections of version 1 (flag bits 0–3), unchanged;
+//! 6. with segments (format version [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`], flag bit 4): the
+//!    scene-wide segment id of each Gaussian `u32[N]` ([`crate::segments`]), as in a dense
+//!    version-3 shard. Without segments the shard stays version 2, byte for byte.
 //!
 //! A Gaussian's embedding is `v = Σ_s weights[s] · codebook[atoms[s]]`; its cosine with a query
 //! `q` is `(Σ_s weights[s] · (q·codebook[atoms[s]])) / ‖v‖`, so a query costs one dot product per
@@ -27,8 +30,9 @@
 use half::f16;
 
 use super::format::{
-    Aabb, Dtype, F16_MAX, HeaderFields, MAX_DIM, MIXTURE_SHARD_FORMAT_VERSION, ParsedHeader,
-    Reader, ShardError, ShardHeader, ShardInput, ShardLayout, align, assemble, checked_payload,
+    Aabb, Dtype, F16_MAX, FLAG_SEGMENTS, HeaderFields, MAX_DIM,
+    MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION, ParsedHeader, Reader,
+    ShardError, ShardHeader, ShardInput, ShardLayout, align, assemble, checked_payload,
     decode_shard_stored, encode_shard, header_len_for, le_f32s, parse_header, payload_with_rows,
     read_display, read_f16s, read_u32s, triples, write_display,
 };
@@ -75,12 +79,16 @@ pub struct MixtureShardInput<'a> {
     pub rotations: Option<&'a [[f32; 4]]>,
     /// Optional SH DC colour (`f_dc_0..2`) `[N]`.
     pub sh_dc: Option<&'a [[f32; 3]]>,
+    /// Optional scene-wide segment ids `[N]` ([`crate::segments`]); when given, the shard is
+    /// written as version [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`].
+    pub segments: Option<&'a [u32]>,
 }
 
 /// A decoded mixture shard ([`decode_mixture_shard`]): rows as stored.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MixtureShard {
-    /// Header fields (`version` = [`MIXTURE_SHARD_FORMAT_VERSION`], `dtype` f16, `dim` = D).
+    /// Header fields (`version` = [`MIXTURE_SHARD_FORMAT_VERSION`], or
+    /// [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`] with segments; `dtype` f16, `dim` = D).
     pub header: ShardHeader,
     /// Slots per Gaussian S.
     pub slots: u32,
@@ -102,6 +110,9 @@ pub struct MixtureShard {
     pub rotations: Option<Vec<[f32; 4]>>,
     /// Optional SH DC colour `[N]`, for display.
     pub sh_dc: Option<Vec<[f32; 3]>>,
+    /// Optional scene-wide geometric segment id of each Gaussian `[N]` ([`crate::segments`]);
+    /// present in version-4 shards only.
+    pub segments: Option<Vec<u32>>,
 }
 
 /// Payload bytes of the atom and weight sections of `n` rows of `slots` slots (before padding).
@@ -147,9 +158,10 @@ pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<
         || input.opacities.is_some_and(|v| v.len() != n)
         || input.rotations.is_some_and(|v| v.len() != n)
         || input.sh_dc.is_some_and(|v| v.len() != n)
+        || input.segments.is_some_and(|v| v.len() != n)
     {
         return Err(Error::internal(
-            "encode_mixture_shard: a display column's length differs from the id count",
+            "encode_mixture_shard: a display or segments column's length differs from the id count",
         ));
     }
     if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
@@ -187,16 +199,25 @@ pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<
         .iter()
         .for_each(|&w| p.extend_from_slice(&f16::from_f32(w).to_le_bytes()));
     p.resize(align(p.len(), 4), 0);
-    let flags = write_display(
+    let mut flags = write_display(
         &mut p,
         input.scales,
         input.opacities,
         input.rotations,
         input.sh_dc,
     );
+    if let Some(seg) = input.segments {
+        flags |= FLAG_SEGMENTS;
+        seg.iter()
+            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    }
     Ok(assemble(
         &HeaderFields {
-            version: MIXTURE_SHARD_FORMAT_VERSION,
+            version: if input.segments.is_some() {
+                MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
+            } else {
+                MIXTURE_SHARD_FORMAT_VERSION
+            },
             dtype: Dtype::F16,
             flags,
             dim: d as u32,
@@ -276,6 +297,7 @@ pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
         opacities: display.opacities,
         rotations: display.rotations,
         sh_dc: display.sh_dc,
+        segments: display.segments,
     })
 }
 
@@ -406,8 +428,13 @@ pub fn decode_codebook(bytes: &[u8]) -> Result<Codebook, ShardError> {
     if h.dtype != Dtype::F16 {
         return not(format!("dtype {:?}, codebooks are f16", h.dtype));
     }
-    if s.scales.is_some() || s.opacities.is_some() || s.rotations.is_some() || s.sh_dc.is_some() {
-        return not("it carries display sections".into());
+    if s.scales.is_some()
+        || s.opacities.is_some()
+        || s.rotations.is_some()
+        || s.sh_dc.is_some()
+        || s.segments.is_some()
+    {
+        return not("it carries display or segment sections".into());
     }
     if s.ids.iter().enumerate().any(|(i, &id)| id as usize != i) {
         return not("row ids are not 0..A in order".into());

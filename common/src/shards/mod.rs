@@ -19,10 +19,11 @@ pub mod synthetic;
 pub mod tiles;
 
 pub use format::{
-    Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, NEWEST_SHARD_FORMAT_VERSION,
-    SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError,
-    ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors, decode_header, decode_shard,
-    decode_shard_stored, encode_shard, shard_checksum,
+    Aabb, Dtype, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
+    NEWEST_SHARD_FORMAT_VERSION, SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC,
+    Shard, ShardError, ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors,
+    decode_header, decode_shard, decode_shard_stored, encode_shard, has_segments_version,
+    is_mixture_version, shard_checksum,
 };
 pub use frame::{Frames, MAP_FRAME, MapSource, SCENE_FRAME, SceneToMap};
 pub use mixture::{

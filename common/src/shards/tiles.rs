@@ -265,7 +265,8 @@ pub struct Manifest {
     pub manifest_version: u32,
     /// Shard byte-layout version ([`super::SHARD_FORMAT_VERSION`]; dense shards with segment
     /// ids [`super::SEGMENTS_SHARD_FORMAT_VERSION`]; mixture shards
-    /// [`super::MIXTURE_SHARD_FORMAT_VERSION`]).
+    /// [`super::MIXTURE_SHARD_FORMAT_VERSION`], with segment ids
+    /// [`super::MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`]).
     pub shard_format_version: u16,
     /// Scene id (`[A-Za-z0-9_.-]`, 1..=64, not starting with `.`).
     pub scene_id: String,
@@ -324,9 +325,9 @@ impl Manifest {
             ));
         }
         let mixture = m.manifest_version == MIXTURE_MANIFEST_VERSION;
-        // Dense shards are version 1, or 3 when they carry segment ids.
+        // Dense shards are version 1, or 3 when they carry segment ids; mixture shards 2, or 4.
         let shard_version_ok = if mixture {
-            m.shard_format_version == super::format::MIXTURE_SHARD_FORMAT_VERSION
+            super::is_mixture_version(m.shard_format_version)
         } else {
             m.shard_format_version == super::SHARD_FORMAT_VERSION
                 || m.shard_format_version == super::SEGMENTS_SHARD_FORMAT_VERSION
@@ -337,7 +338,7 @@ impl Manifest {
                 format!(
                     "manifest v{} with shard format {} {} a mixture section; v{MANIFEST_VERSION} \
                      (shard format 1, or 3 with segments) describes dense shards, v{MIXTURE_MANIFEST_VERSION} (shard \
-                     format 2) mixture shards and their codebook: re-partition",
+                     format 2, or 4 with segments) mixture shards and their codebook: re-partition",
                     m.manifest_version,
                     m.shard_format_version,
                     if m.mixture.is_some() {

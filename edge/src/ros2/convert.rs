@@ -364,6 +364,7 @@ mod tests {
             gaussians: 10,
             max_score: 0.75,
             mean_score: 0.5,
+            score_mass: 5.0,
         };
         let h = Header {
             stamp: Time { sec: 5, nanosec: 6 },

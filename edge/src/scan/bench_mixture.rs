@@ -93,6 +93,7 @@ pub fn synthetic_mixture(
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         };
         for (a, w, m) in rows {
             shard.atoms.extend(a);

@@ -333,6 +333,7 @@ mod tests {
             opacities: None,
             rotations: None,
             sh_dc: None,
+            segments: None,
         };
         assert!(matches!(
             store.push_mixture_shard(shard(vec![0, 1], 0xdef)),

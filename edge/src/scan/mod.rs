@@ -322,6 +322,81 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
         .into_sorted()
 }
 
+/// The score of every row (`[N]`, row order; NaN for a row without one, e.g. a mixture row of
+/// zero norm): the same scores as [`scan`] with the same queries and combiner, without any
+/// selection. For queries that need every score before selecting, such as the segment smoothing
+/// of `smooth=segment` ([`slag_common::segments::rank_smoothed`]). Work: one pass over the store
+/// on all rayon threads; memory: the `[N]` output plus one chunk's dot products per task.
+///
+/// Errors: as [`scan`] for the queries and the combiner (a query of the wrong width
+/// [`Error::Mismatch`], non-finite values [`Error::Query`], no queries, more than
+/// [`MAX_QUERIES`] or Q > 1 without a combiner [`Error::Param`]).
+pub fn scores(
+    store: &VectorStore,
+    queries: &[&[f32]],
+    combine: Option<Combiner<'_>>,
+) -> Result<Vec<f32>, Error> {
+    check_queries(store.dim(), queries)?;
+    if queries.len() > 1 && combine.is_none() {
+        return Err(Error::param(
+            "combine",
+            "none",
+            format!(
+                "a score combiner (e.g. lerf_relevancy) for {} queries, or one query",
+                queries.len()
+            ),
+        ));
+    }
+    let q = queries;
+    Ok(match q.len() {
+        1 => scores_q::<1>(store, [q[0]], combine),
+        2 => scores_q::<2>(store, [q[0], q[1]], combine),
+        3 => scores_q::<3>(store, [q[0], q[1], q[2]], combine),
+        4 => scores_q::<4>(store, [q[0], q[1], q[2], q[3]], combine),
+        5 => scores_q::<5>(store, [q[0], q[1], q[2], q[3], q[4]], combine),
+        6 => scores_q::<6>(store, [q[0], q[1], q[2], q[3], q[4], q[5]], combine),
+        7 => scores_q::<7>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6]], combine),
+        _ => scores_q::<8>(
+            store,
+            [q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7]],
+            combine,
+        ),
+    })
+}
+
+fn scores_q<const Q: usize>(
+    store: &VectorStore,
+    qs: [&[f32]; Q],
+    combine: Option<Combiner<'_>>,
+) -> Vec<f32> {
+    let d = store.dim();
+    let queries = kernels::Queries::new(qs);
+    let mix = store.mixture().map(|m| (m, m.project(&queries)));
+    let mut out = vec![f32::NAN; store.len()];
+    out.par_chunks_mut(CHUNK_ROWS).enumerate().for_each_init(
+        Vec::new,
+        |dots: &mut Vec<[f32; Q]>, (c, chunk)| {
+            let start = c * CHUNK_ROWS;
+            let end = start + chunk.len();
+            dots.clear();
+            dots.resize(end - start, [f32::NAN; Q]);
+            match &mix {
+                Some((m, proj)) => m.scan_chunk::<Q>(proj, start, end, None, dots),
+                None => {
+                    kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &queries, None, dots)
+                }
+            }
+            for (s, row) in chunk.iter_mut().zip(dots.iter()) {
+                *s = match combine {
+                    None => row[0],
+                    Some(f) => f(row),
+                };
+            }
+        },
+    );
+    out
+}
+
 /// The baseline a user would write first: single thread, each row dequantised to a fresh `f32`
 /// vector ([`VectorStore::row_f32`]; borrowed as is for f32 stores), a scalar
 /// `iter().zip().map().sum()` dot, every score collected into an `[N]` vector, a full sort, then

@@ -23,8 +23,8 @@ use super::mixture::MixtureRows;
 /// says f16 (the stored weights and codebook), and the scan scores each row as the exact cosine
 /// of its reconstruction.
 ///
-/// Rows from shards that carry geometric segments (format version 3) keep each Gaussian's
-/// scene-wide segment id ([`VectorStore::segments`]).
+/// Rows from shards that carry geometric segments (format version 3, or 4 for mixture shards)
+/// keep each Gaussian's scene-wide segment id ([`VectorStore::segments`]).
 #[derive(Debug, Clone)]
 pub struct VectorStore {
     dim: usize,
@@ -217,16 +217,22 @@ impl VectorStore {
             ));
         };
         m.check(&shard)?;
-        if shard.means.len() != shard.ids.len() {
+        if shard.means.len() != shard.ids.len()
+            || shard
+                .segments
+                .as_ref()
+                .is_some_and(|s| s.len() != shard.ids.len())
+        {
             return Err(Error::Invalid(format!(
-                "mixture shard (tile {}) has {} ids but {} means; re-download it",
+                "mixture shard (tile {}) has {} ids but {} means or another number of segment \
+                 ids; re-download it",
                 shard.header.tile_id,
                 shard.ids.len(),
                 shard.means.len()
             )));
         }
         m.push_checked(&shard);
-        self.push_segments(None, shard.ids.len());
+        self.push_segments(shard.segments.as_deref(), shard.ids.len());
         self.ids.extend_from_slice(&shard.ids);
         self.means.extend_from_slice(&shard.means);
         Ok(())

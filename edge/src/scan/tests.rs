@@ -678,3 +678,111 @@ fn store_keeps_segment_ids_per_row() {
     assert_eq!(store.len(), 7);
     assert_eq!(store.segments().map(<[u32]>::len), Some(7));
 }
+
+#[test]
+fn scores_equal_the_scan_row_by_row() {
+    // 4500 rows (three rayon chunks), every dtype and a mixture store; one query and five with a
+    // combiner.
+    let mut stores: Vec<(String, VectorStore)> = DTYPES
+        .iter()
+        .map(|&dt| (format!("{dt:?}"), store_via_shards(4500, 24, dt, 11)))
+        .collect();
+    stores.push(("mixture".into(), mixture_store(4500, 24, 64, 4, 3, None)));
+    for (name, store) in &stores {
+        for q in [1usize, 5] {
+            let qv = queries(q, 24, 40 + q as u64);
+            let qs: Vec<&[f32]> = qv.iter().map(|v| v.as_slice()).collect();
+            let f = contrast as fn(&[f32]) -> f32;
+            let combine: Option<Combiner<'_>> = (q > 1).then_some(&f as Combiner<'_>);
+            let all = scores(store, &qs, combine).expect("scores");
+            assert_eq!(all.len(), store.len());
+            let req = ScanRequest {
+                queries: &qs,
+                top_k: None,
+                threshold: Some(f32::NEG_INFINITY),
+                bbox: None,
+                combine,
+            };
+            let hits = scan(store, &req).expect("scan");
+            assert_eq!(hits.len(), store.len(), "{name} q={q}");
+            for h in hits {
+                assert_eq!(
+                    all[h.row].to_bits(),
+                    h.score.to_bits(),
+                    "{name} q={q} row {}",
+                    h.row
+                );
+            }
+        }
+        // Five queries without a combiner: refused as by the scan.
+        let qv = queries(5, 24, 1);
+        let qs: Vec<&[f32]> = qv.iter().map(|v| v.as_slice()).collect();
+        assert!(scores(store, &qs, None).is_err());
+    }
+}
+
+/// A mixture store of `n` rows over a random codebook of `atoms` rows of width `d`, `slots`
+/// slots per row (the last slot of every third row empty), through the shard codec.
+fn mixture_store(
+    n: usize,
+    d: usize,
+    atoms: usize,
+    slots: usize,
+    seed: u64,
+    segments: Option<&[u32]>,
+) -> VectorStore {
+    use slag_common::shards::{MixtureShardInput, decode_mixture_shard, encode_mixture_shard};
+    let mut s = seed;
+    let book: Vec<f32> = queries(atoms, d, seed).into_iter().flatten().collect();
+    let book: Vec<f32> = book
+        .iter()
+        .map(|&x| half::f16::from_f32(x).to_f32())
+        .collect();
+    let mut atoms_of = Vec::with_capacity(n * slots);
+    let mut weights = Vec::with_capacity(n * slots);
+    for i in 0..n {
+        for k in 0..slots {
+            if k == slots - 1 && i % 3 == 0 {
+                atoms_of.push(slag_common::shards::mixture::UNUSED);
+                weights.push(0.0);
+            } else {
+                atoms_of.push(((lcg(&mut s) * atoms as f32) as u32).min(atoms as u32 - 1));
+                weights.push(0.05 + lcg(&mut s));
+            }
+        }
+    }
+    let ids: Vec<u32> = (0..n as u32).collect();
+    let means: Vec<[f32; 3]> = (0..n).map(|i| [i as f32, 0.0, 0.0]).collect();
+    let bytes = encode_mixture_shard(&MixtureShardInput {
+        scene_id: "test",
+        model: "test-model",
+        tile_id: 0,
+        dim: d,
+        slots,
+        codebook_crc: 0,
+        ids: &ids,
+        means: &means,
+        atoms: &atoms_of,
+        weights: &weights,
+        scales: None,
+        opacities: None,
+        rotations: None,
+        sh_dc: None,
+        segments,
+    })
+    .expect("encode");
+    let mut store = VectorStore::new_mixture(d, slots, book, 0).expect("store");
+    store
+        .push_mixture_shard(decode_mixture_shard(&bytes).expect("decode"))
+        .expect("push");
+    store
+}
+
+#[test]
+fn mixture_shards_with_segments_give_each_row_its_segment() {
+    let segments: Vec<u32> = (0..50u32).map(|i| i / 10).collect();
+    let store = mixture_store(50, 8, 16, 3, 5, Some(&segments));
+    assert_eq!(store.segments(), Some(&segments[..]));
+    let plain = mixture_store(50, 8, 16, 3, 5, None);
+    assert_eq!(plain.segments(), None);
+}

@@ -72,6 +72,45 @@ pub fn grid_scene(
     dtype: Dtype,
     generation: u64,
 ) -> TestScene {
+    grid_scene_with(scene, nx, ny, per_tile, dim, dtype, generation, None)
+}
+
+/// [`grid_scene`] whose shards carry geometric segments (shard format version 3): Gaussian id
+/// `i` in segment `segment_of(i)`.
+#[allow(clippy::too_many_arguments)]
+pub fn grid_scene_segmented(
+    scene: &str,
+    nx: usize,
+    ny: usize,
+    per_tile: usize,
+    dim: usize,
+    dtype: Dtype,
+    generation: u64,
+    segment_of: &dyn Fn(u32) -> u32,
+) -> TestScene {
+    grid_scene_with(
+        scene,
+        nx,
+        ny,
+        per_tile,
+        dim,
+        dtype,
+        generation,
+        Some(segment_of),
+    )
+}
+
+#[allow(clippy::too_many_arguments)]
+fn grid_scene_with(
+    scene: &str,
+    nx: usize,
+    ny: usize,
+    per_tile: usize,
+    dim: usize,
+    dtype: Dtype,
+    generation: u64,
+    segment_of: Option<&dyn Fn(u32) -> u32>,
+) -> TestScene {
     let mut seed = 7 + generation;
     let mut tiles = Vec::new();
     let mut shards = HashMap::new();
@@ -96,6 +135,8 @@ pub fn grid_scene(
                 vectors.extend(v.iter().map(|x| x / n));
             }
             let display = id.is_multiple_of(2).then(|| display_attrs(&ids));
+            let segments: Option<Vec<u32>> =
+                segment_of.map(|f| ids.iter().map(|&i| f(i)).collect());
             let bytes = encode_shard(&ShardInput {
                 scene_id: scene,
                 model: "color-clip",
@@ -110,7 +151,7 @@ pub fn grid_scene(
                 opacities: display.as_ref().map(|d| d.1.as_slice()),
                 rotations: display.as_ref().map(|d| d.2.as_slice()),
                 sh_dc: display.as_ref().map(|d| d.3.as_slice()),
-                segments: None,
+                segments: segments.as_deref(),
             })
             .unwrap();
             let lo = [i as f64 * TILE as f64, j as f64 * TILE as f64];
@@ -129,7 +170,11 @@ pub fn grid_scene(
     let manifest = Manifest {
         format: MANIFEST_FORMAT.into(),
         manifest_version: MANIFEST_VERSION,
-        shard_format_version: SHARD_FORMAT_VERSION,
+        shard_format_version: if segment_of.is_some() {
+            slag_common::shards::SEGMENTS_SHARD_FORMAT_VERSION
+        } else {
+            SHARD_FORMAT_VERSION
+        },
         scene_id: scene.into(),
         generation,
         model: "color-clip".into(),

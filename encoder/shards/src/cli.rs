@@ -94,10 +94,10 @@ pub struct PartitionArgs {
     #[arg(long, default_value = "f16")]
     pub dtype: Dtype,
     /// Geometric segments (`segments.safetensors` of `slag-encoder segment` / `encode`): every
-    /// shard then carries each Gaussian's scene-wide segment id (shard format 3; slag-edge
-    /// before it refuses such shards). Default: `segments.safetensors` beside --embeddings
-    /// when it exists; `off`: none (shard format 1).
-    #[arg(long, value_name = "FILE|off", conflicts_with_all = ["synthetic", "mixture"])]
+    /// shard then carries each Gaussian's scene-wide segment id (shard format 3, mixture shards
+    /// 4; a slag-edge before it refuses such shards). Default: `segments.safetensors` beside
+    /// --embeddings (or --mixture) when it exists; `off`: none (shard format 1, mixture 2).
+    #[arg(long, value_name = "FILE|off", conflicts_with = "synthetic")]
     pub segments: Option<PathBuf>,
     /// After partitioning, upsert every Gaussian (vector + payload id, x, y, z, tile) into this
     /// Qdrant server (gRPC URL, e.g. http://localhost:6334). The collection is recreated.
@@ -192,8 +192,8 @@ impl PartitionArgs {
     }
 }
 
-/// The segments `--segments` names for the embeddings at `embeddings`: the file given, the
-/// `segments.safetensors` beside the embeddings when it exists, or none (`off`).
+/// The segments `--segments` names for the embeddings (or mixture) file at `embeddings`: the
+/// file given, the `segments.safetensors` beside it when it exists, or none (`off`).
 fn resolve_segments(
     args: &PartitionArgs,
     embeddings: &std::path::Path,
@@ -365,6 +365,9 @@ fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow
         Some(s) => full.truncated(s)?,
         None => full,
     };
+    // The segments beside the mixture file (the encoder writes both into OUT/), as for dense
+    // embeddings: the shards then carry them (format version 4).
+    let segments = resolve_segments(args, path)?;
     let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
     let (m, report) = match &args.display_ply {
@@ -377,9 +380,9 @@ fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow
             let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
             drop(g);
             let src = slag_common::shards::WithDisplay::from_columns(&mix, &cols)?;
-            partition_mixture_source(args, &src, &mix, up, to_map, Some(n))?
+            mixture_with_segments(args, &src, &mix, segments.as_ref(), up, to_map, Some(n))?
         }
-        None => partition_mixture_source(args, &mix, &mix, up, to_map, None)?,
+        None => mixture_with_segments(args, &mix, &mix, segments.as_ref(), up, to_map, None)?,
     };
     println!(
         "scene {} generation {}: {} Gaussians as mixtures of {} slots over {} codebook rows in {} \
@@ -397,6 +400,25 @@ fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow
         t.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// [`partition_mixture_source`] with the segments wrapped around `src` when there are any.
+fn mixture_with_segments(
+    args: &PartitionArgs,
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    segments: Option<&slag_common::segments::Segments>,
+    up: UpChoice,
+    to_map: Option<SceneToMap>,
+    scene_gaussians: Option<u64>,
+) -> anyhow::Result<(Manifest, StorageReport)> {
+    match segments {
+        Some(s) => {
+            let src = slag_common::shards::WithSegments::new(src, s)?;
+            partition_mixture_source(args, &src, mix, up, to_map, scene_gaussians)
+        }
+        None => partition_mixture_source(args, src, mix, up, to_map, scene_gaussians),
+    }
 }
 
 /// [`partition_source`] for a mixture: `src` gives ids, means and display columns of `mix`'s

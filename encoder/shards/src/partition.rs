@@ -19,10 +19,10 @@ use rayon::prelude::*;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
-    MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo, MixtureLayout,
-    MixtureShardInput, SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SceneToMap, ShardInput,
-    ShardLayout, TileInfo, encode_codebook, encode_mixture_shard, encode_shard, shard_checksum,
-    valid_scene_id,
+    MIXTURE_MANIFEST_VERSION, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
+    Manifest, MixtureInfo, MixtureLayout, MixtureShardInput, SEGMENTS_SHARD_FORMAT_VERSION,
+    SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo, encode_codebook,
+    encode_mixture_shard, encode_shard, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -417,6 +417,7 @@ pub fn encode_mixture_tile(
         opacities: c.display.as_ref().map(|d| d.1.as_slice()),
         rotations: c.rotations.as_deref(),
         sh_dc: c.sh_dc.as_deref(),
+        segments: c.segments.as_deref(),
     })?;
     Ok((c.info(plan, &bytes), bytes))
 }
@@ -485,7 +486,12 @@ pub fn partition_mixture_with(
     })?;
     let mut m = manifest_of(src, params, ground, tiles, Dtype::F16);
     m.manifest_version = MIXTURE_MANIFEST_VERSION;
-    m.shard_format_version = MIXTURE_SHARD_FORMAT_VERSION;
+    // Mixture shards carry segment ids (format version 4) when the source has them.
+    m.shard_format_version = if !src.ids().is_empty() && src.segment(0).is_some() {
+        MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
+    } else {
+        MIXTURE_SHARD_FORMAT_VERSION
+    };
     m.mixture = Some(MixtureInfo {
         slots: mix.keep as u32,
         atoms: mix.codebook_len() as u32,

@@ -168,3 +168,51 @@ fn stores_and_exports_carry_the_codebook_and_qdrant_refuses_mixtures() {
     assert!(dense.mixture.is_none());
     assert!(store.codebook("mix").expect("read").is_none());
 }
+
+#[test]
+fn mixture_shards_carry_the_segments_of_their_gaussians() {
+    use slag_common::segments::{Segments, canonical_ids};
+    use slag_common::shards::{
+        MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION, WithSegments,
+    };
+    let mix = mixture(900, 40, 8).truncated(2).expect("cut");
+    // Ids are 0, 2, 4, … (mixture()): segments over the .ply's 1800 Gaussians, 7 ids each.
+    let (segments, segment_count) = canonical_ids(&(0..1800u32).map(|i| i / 7).collect::<Vec<_>>());
+    let segs = Segments {
+        segments,
+        segment_count,
+        ..Default::default()
+    };
+    let src = WithSegments::new(&mix, &segs).expect("segments cover the ids");
+    let layout = mixture_layout(&src, "mix", mix.keep);
+    let mut shards = Vec::new();
+    let (m, _) = partition_mixture_with(&src, &mix, &params(250), |t, b| {
+        shards.push((t.clone(), b));
+        Ok(())
+    })
+    .expect("partition");
+    assert_eq!(
+        m.shard_format_version,
+        MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
+    );
+    assert!(shards.len() > 2);
+    let mut seen = 0;
+    for (t, b) in &shards {
+        assert_eq!(b.len() as u64, layout.shard_len(t.count));
+        let s = decode_mixture_shard(b).expect("shard");
+        assert_eq!(s.header.version, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION);
+        let got = s.segments.as_ref().expect("segments in the shard");
+        for (r, id) in s.ids.iter().enumerate() {
+            assert_eq!(got[r], id / 7, "Gaussian {id}");
+            seen += 1;
+        }
+    }
+    assert_eq!(seen, mix.len());
+    // Without segments: version 2 and no segment section, as before.
+    let (m, _) = partition_mixture_with(&mix, &mix, &params(250), |_, b| {
+        assert!(decode_mixture_shard(&b).expect("shard").segments.is_none());
+        Ok(())
+    })
+    .expect("partition");
+    assert_eq!(m.shard_format_version, MIXTURE_SHARD_FORMAT_VERSION);
+}

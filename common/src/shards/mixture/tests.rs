@@ -15,6 +15,8 @@ struct Case {
     atoms: Vec<u32>,
     weights: Vec<f32>,
     display: bool,
+    /// Segment ids (`id % 5`) in the shard (format version 4).
+    segments: bool,
 }
 
 fn case() -> impl Strategy<Value = Case> {
@@ -24,8 +26,9 @@ fn case() -> impl Strategy<Value = Case> {
         1usize..24,
         any::<u64>(),
         any::<bool>(),
+        any::<bool>(),
     )
-        .prop_map(|(n, slots, dim, seed, display)| {
+        .prop_map(|(n, slots, dim, seed, display, segments)| {
             let mut s = seed | 1;
             let mut next = move || {
                 s ^= s << 13;
@@ -54,6 +57,7 @@ fn case() -> impl Strategy<Value = Case> {
                 atoms,
                 weights,
                 display,
+                segments,
             }
         })
 }
@@ -63,6 +67,7 @@ fn encode(c: &Case) -> Vec<u8> {
     let scales = vec![[0.1f32, -0.2, 0.3]; n];
     let opac = vec![0.5f32; n];
     let rot = vec![[1.0f32, 0.0, 0.0, 0.0]; n];
+    let segments: Vec<u32> = c.ids.iter().map(|i| i % 5).collect();
     encode_mixture_shard(&MixtureShardInput {
         scene_id: "scene-a",
         model: "color-clip",
@@ -78,6 +83,7 @@ fn encode(c: &Case) -> Vec<u8> {
         opacities: c.display.then_some(opac.as_slice()),
         rotations: c.display.then_some(rot.as_slice()),
         sh_dc: None,
+        segments: c.segments.then_some(segments.as_slice()),
     })
     .unwrap()
 }
@@ -91,7 +97,7 @@ fn layout(c: &Case) -> MixtureLayout {
             opacities: c.display,
             rotations: c.display,
             sh_dc: false,
-            segments: false,
+            segments: c.segments,
             scene_id_len: "scene-a".len(),
             model_len: "color-clip".len(),
         },
@@ -104,7 +110,13 @@ proptest! {
     fn mixture_shards_round_trip(c in case()) {
         let bytes = encode(&c);
         let s = decode_mixture_shard(&bytes).unwrap();
-        prop_assert_eq!(s.header.version, MIXTURE_SHARD_FORMAT_VERSION);
+        // Segments make it version 4; without them it stays version 2.
+        prop_assert_eq!(
+            s.header.version,
+            if c.segments { MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION } else { MIXTURE_SHARD_FORMAT_VERSION }
+        );
+        let want: Option<Vec<u32>> = c.segments.then(|| c.ids.iter().map(|i| i % 5).collect());
+        prop_assert_eq!(&s.segments, &want);
         prop_assert_eq!(s.header.dtype, Dtype::F16);
         prop_assert_eq!(s.header.dim as usize, c.dim);
         prop_assert_eq!(s.header.tile_id, 7);
@@ -198,12 +210,39 @@ fn dense_shards_and_other_versions_get_specific_errors() {
         atoms: vec![0, UNUSED],
         weights: vec![1.0, 0.0],
         display: false,
+        segments: false,
     };
+    let mut v5 = encode(&c);
+    v5[8] = 5;
+    assert_eq!(
+        decode_mixture_shard(&v5),
+        Err(ShardError::UnsupportedVersion(5))
+    );
+    // A version-2 shard claiming version 4 lacks the required segments flag: refused (the
+    // header CRC is recomputed so that the version check is what refuses it).
     let mut v4 = encode(&c);
     v4[8] = 4;
-    assert_eq!(
+    let hl = u32::from_le_bytes([v4[20], v4[21], v4[22], v4[23]]) as usize;
+    let crc = crc32fast::hash(&v4[..hl - 4]);
+    v4[hl - 4..hl].copy_from_slice(&crc.to_le_bytes());
+    assert!(matches!(
         decode_mixture_shard(&v4),
-        Err(ShardError::UnsupportedVersion(4))
+        Err(ShardError::Malformed(m)) if m.contains("format version 4 without its segments")
+    ));
+    // With segments: version 4, which the dense decoders refuse as mixture rows, not corruption.
+    let seg = Case {
+        segments: true,
+        ..c
+    };
+    let bytes = encode(&seg);
+    assert_eq!(decode_header(&bytes).unwrap().version, 4);
+    assert_eq!(
+        decode_mixture_shard(&bytes).unwrap().segments,
+        Some(vec![0])
+    );
+    assert_eq!(
+        decode_shard(&bytes),
+        Err(ShardError::MixtureRows { tile_id: 7 })
     );
 }
 
@@ -224,8 +263,15 @@ fn bad_mixture_input_is_refused_before_writing() {
         opacities: None,
         rotations: None,
         sh_dc: None,
+        segments: None,
     };
     assert!(encode_mixture_shard(&base).is_ok());
+    let mut seg = base;
+    seg.segments = Some(&[1, 2]);
+    assert!(matches!(
+        encode_mixture_shard(&seg),
+        Err(Error::Internal(_))
+    ));
     let mut w = base;
     w.weights = &[1e6, 0.0];
     assert!(matches!(encode_mixture_shard(&w), Err(Error::Invalid(_))));
