@@ -194,18 +194,12 @@ pub(super) fn chunk_impl<const Q: usize, const FMA: bool>(
     out: &mut [[f32; Q]],
     convert: impl Fn(&[f16], &mut [f32]) + Copy,
 ) {
-    let RowSpan {
-        d,
-        start,
-        end,
-        keep,
-    } = span;
-    let kept = |i: usize| keep.is_none_or(|k| k(i));
+    let RowSpan { d, start, end, .. } = span;
     match vectors {
         StoredVectors::F32(v) => {
             let rows = v[start * d..end * d].chunks_exact(d);
             for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
-                if kept(start + r) {
+                if span.keeps(start + r) {
                     dots_f32::<Q, FMA>(row, qs, o);
                 }
             }
@@ -214,7 +208,7 @@ pub(super) fn chunk_impl<const Q: usize, const FMA: bool>(
             let mut buf = [0.0f32; BLOCK];
             let rows = v[start * d..end * d].chunks_exact(d);
             for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
-                if kept(start + r) {
+                if span.keeps(start + r) {
                     dots_f16::<Q, FMA>(row, qs, &mut buf, o, convert);
                 }
             }
@@ -224,7 +218,7 @@ pub(super) fn chunk_impl<const Q: usize, const FMA: bool>(
             let rows = q[start * d..end * d].chunks_exact(d);
             let rows = rows.zip(&scales[start..end]).zip(out.iter_mut());
             for (r, ((row, &s), o)) in rows.enumerate() {
-                if kept(start + r) {
+                if span.keeps(start + r) {
                     dots_i8::<Q, FMA>(row, s, qs, &mut buf, o);
                 }
             }

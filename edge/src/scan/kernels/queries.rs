@@ -58,6 +58,14 @@ pub struct RowSpan<'a> {
     pub keep: Option<Keep<'a>>,
 }
 
+impl RowSpan<'_> {
+    /// `true` when row `i` is to be scored (no filter, or `keep(i)`).
+    #[inline(always)]
+    pub fn keeps(&self, i: usize) -> bool {
+        self.keep.is_none_or(|k| k(i))
+    }
+}
+
 /// Splits every query (`[d]`, finite) into three int8 vectors `a, b, c` and steps
 /// `[s1, s2, s3]` with `y ≈ s1·a + s2·b + s3·c` (`simd` module doc). Returns the terms as one
 /// `[Q · 3 · d]` vector (query-major, then term) and the steps per query. A zero query gives

@@ -257,13 +257,7 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
     qs: &[&[f32]; Q],
     out: &mut [[f32; Q]],
 ) {
-    let RowSpan {
-        d,
-        start,
-        end,
-        keep,
-    } = span;
-    let kept = |i: usize| keep.is_none_or(|k| k(i));
+    let RowSpan { d, start, end, .. } = span;
     // One query over f32 / int8 rows: several rows per step (measured faster there; for f16 the
     // one-row loop measured faster, `slag-edge bench`).
     if Q == 1 && !matches!(vectors, StoredVectors::F16(_)) {
@@ -279,7 +273,7 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
                 for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
                     let i = start + r;
                     prefetch_row::<S, f32>(v, i * d, d);
-                    if kept(i) {
+                    if span.keeps(i) {
                         *o = dots_q::<S, f32, Q>(row, qs);
                     }
                 }
@@ -289,7 +283,7 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
                 for (r, (row, o)) in rows.zip(out.iter_mut()).enumerate() {
                     let i = start + r;
                     prefetch_row::<S, f16>(v, i * d, d);
-                    if kept(i) {
+                    if span.keeps(i) {
                         *o = dots_q::<S, f16, Q>(row, qs);
                     }
                 }
@@ -300,7 +294,7 @@ unsafe fn chunk_body<S: Simd, const Q: usize>(
                 for (r, ((row, &s), o)) in rows.enumerate() {
                     let i = start + r;
                     prefetch_row::<S, i8>(q, i * d, d);
-                    if kept(i) {
+                    if span.keeps(i) {
                         let mut x = dots_q::<S, i8, Q>(row, qs);
                         for v in &mut x {
                             *v *= s;
@@ -325,13 +319,8 @@ unsafe fn chunk_q1<S: Simd, const Q: usize>(
     qs: &[&[f32]; Q],
     out: &mut [[f32; Q]],
 ) {
-    let RowSpan {
-        d,
-        start,
-        end,
-        keep,
-    } = span;
-    let kept = |i: usize| keep.is_none_or(|k| k(i));
+    let RowSpan { d, start, end, .. } = span;
+    let kept = |i: usize| span.keeps(i);
     let q = qs[0];
     /// Scores rows `start..end` of `v` (row `i` scaled by `scale(i)`) into `out`.
     #[inline(always)]

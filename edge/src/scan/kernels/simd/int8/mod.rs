@@ -147,13 +147,7 @@ unsafe fn chunk_i8_split<K: I8Dot, const Q: usize, const R: usize>(
     qs: &Queries<'_, Q>,
     out: &mut [[f32; Q]],
 ) {
-    let RowSpan {
-        d,
-        start,
-        end,
-        keep,
-    } = span;
-    let kept = |i: usize| keep.is_none_or(|k| k(i));
+    let RowSpan { d, start, end, .. } = span;
     let body = d - d % K::W;
     let split = qs.split(d);
     let (terms, steps) = (&split.terms, &split.steps);
@@ -181,7 +175,7 @@ unsafe fn chunk_i8_split<K: I8Dot, const Q: usize, const R: usize>(
         }
         let mut any = false;
         for r in 0..R {
-            any |= kept(i + r);
+            any |= span.keeps(i + r);
         }
         if any {
             let mut rows: [&[i8]; R] = [&[]; R];
@@ -191,7 +185,7 @@ unsafe fn chunk_i8_split<K: I8Dot, const Q: usize, const R: usize>(
             // SAFETY: the CPU has `K` (caller).
             let sums = unsafe { i8_sums::<K, Q, R>(rows, &tq, &offs, body) };
             for r in 0..R {
-                if kept(i + r) {
+                if span.keeps(i + r) {
                     finish(i + r, &sums[r], &mut out[i + r - start]);
                 }
             }
@@ -199,7 +193,7 @@ unsafe fn chunk_i8_split<K: I8Dot, const Q: usize, const R: usize>(
         i += R;
     }
     while i < end {
-        if kept(i) {
+        if span.keeps(i) {
             // SAFETY: the CPU has `K` (caller).
             let sums = unsafe { i8_sums::<K, Q, 1>([row(i)], &tq, &offs, body) };
             finish(i, &sums[0], &mut out[i - start]);
