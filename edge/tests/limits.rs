@@ -7,7 +7,7 @@
 mod support;
 
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::shards::Dtype;

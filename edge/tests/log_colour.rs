@@ -5,7 +5,7 @@
 mod support;
 
 use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 
 use slag_common::shards::Dtype;
 use support::{fixture, grid_scene, shard_server};

@@ -4,7 +4,7 @@
 //! `SLAG_SHARD_TOKEN` refused at start-up.
 #![allow(clippy::unwrap_used)]
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::shards::synthetic::SyntheticScene;
