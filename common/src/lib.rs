@@ -17,6 +17,8 @@
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 //! | [`term`] | whether log lines may carry colour codes (a terminal, `NO_COLOR`) |
+//! | `testing` | raw-socket clients for the HTTP servers' integration tests (feature `testing`) |
+//! | [`util`] | the process's resident memory and the machine's available memory (`/proc`) |
 
 pub mod auth;
 pub mod camera;
@@ -38,7 +40,10 @@ pub mod segments;
 pub mod shards;
 pub mod similarity;
 pub mod term;
+#[cfg(feature = "testing")]
+pub mod testing;
 #[cfg(feature = "onnx")]
 pub mod text;
+pub mod util;
 
 pub use error::{Error, ErrorKind, Mismatched, Resource, Result};

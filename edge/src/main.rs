@@ -10,6 +10,8 @@
 //! - `slag-edge bench`: scan kernels against the memory-bandwidth floor, and the HNSW backends at
 //!   equal recall.
 
+mod bench;
+
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -81,7 +83,7 @@ enum Command {
     Check(ServeArgs),
     /// Benchmark the scan kernels (f32/f16/int8, top-k, threshold, LERF) against the
     /// memory-bandwidth floor of the same bytes and a naive f32 scan; prints a Markdown table.
-    Bench(slag_edge::scan::BenchArgs),
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -765,7 +767,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Query(a) => run_query(a),
         Command::Check(a) => run_check(a),
         Command::Bench(a) => {
-            println!("{}", slag_edge::scan::run_bench(&a)?);
+            println!("{}", bench::run_bench(&a)?);
             Ok(())
         }
     }

@@ -8,21 +8,7 @@ mod support;
 use std::process::{Command, Output};
 
 use slag_common::shards::Dtype;
-use support::{grid_scene, grid_scene_segmented, shard_server};
-
-/// The slag-edge binary as a command (through `$SLAG_TEST_RUNNER`, e.g. qemu, when set).
-fn slag_edge_command() -> Command {
-    let bin = env!("CARGO_BIN_EXE_slag-edge");
-    match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    }
-}
+use support::{fixture, grid_scene, grid_scene_segmented, shard_server, slag_edge_command};
 
 fn slag_edge(args: &[&str]) -> Output {
     slag_edge_command()
@@ -30,14 +16,6 @@ fn slag_edge(args: &[&str]) -> Output {
         .env("RUST_LOG", "warn")
         .output()
         .unwrap()
-}
-
-fn fixture(rel: &str) -> String {
-    slag_common::paths::source_tree_shared_dir()
-        .join("fixtures")
-        .join(rel)
-        .display()
-        .to_string()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -82,11 +60,7 @@ async fn fetch_check_and_query_from_the_command_line() {
         fixture("clip/color-clip-textual.onnx"),
         fixture("clip/clip-tokenizer.json"),
     );
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        assert!(
-            std::env::var_os("SLAG_SKIP_ORT").is_some(),
-            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
-        );
+    if support::skip_without_ort() {
         return;
     }
     let s = store.clone();

@@ -35,16 +35,7 @@ fn params(url: &str, radius: f64) -> FetchParams {
 
 /// `slag-edge` (through `$SLAG_TEST_RUNNER` when set), not yet started.
 fn slag_edge(args: &[&str]) -> Command {
-    let bin = env!("CARGO_BIN_EXE_slag-edge");
-    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    };
+    let mut cmd = support::slag_edge_command();
     cmd.args(args)
         .env("RUST_LOG", "error")
         .env_remove("SLAG_FAULT_EXIT_AT")

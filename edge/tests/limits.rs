@@ -7,10 +7,11 @@
 mod support;
 
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::shards::Dtype;
+use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
 use slag_edge::serve::{AppState, ServeOptions};
 use support::{BasisEmbedder, GateEmbedder, fetch_grid, grid_scene, shard_server, wait_until};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -31,51 +32,6 @@ fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
         header_timeout: Duration::from_secs(header_s),
         write_timeout: Duration::from_secs(5),
         max_connections,
-    }
-}
-
-/// Sends `raw` on a fresh connection and reads until the server closes it (at most 30 s):
-/// (status, headers, body).
-async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
-    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-    s.write_all(raw).await.unwrap();
-    let mut out = Vec::new();
-    tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
-        .await
-        .expect("the server answers and closes within 30 s")
-        .unwrap();
-    let text = String::from_utf8_lossy(&out).into_owned();
-    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let status = head.split(' ').nth(1).unwrap_or("0").parse().unwrap_or(0);
-    (status, head.to_string(), body.to_string())
-}
-
-fn get(path: &str, extra: &str) -> Vec<u8> {
-    format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{extra}\r\n").into_bytes()
-}
-
-/// The JSON error body with `status`.
-fn assert_json_error(status: u16, head: &str, body: &str) {
-    assert!(
-        head.to_ascii_lowercase()
-            .contains("content-type: application/json"),
-        "{status}: {head}"
-    );
-    let v: serde_json::Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body}"));
-    assert_eq!(v["status"], status, "{v}");
-    assert!(!v["error"].as_str().unwrap().is_empty(), "{v}");
-}
-
-/// Waits (at most `bound`) until the server closes `s`; returns how long that took.
-async fn closed_within(s: &mut tokio::net::TcpStream, bound: Duration) -> Duration {
-    let t0 = Instant::now();
-    let mut buf = [0u8; 1024];
-    loop {
-        match tokio::time::timeout(bound.saturating_sub(t0.elapsed()), s.read(&mut buf)).await {
-            Ok(Ok(0) | Err(_)) => return t0.elapsed(),
-            Ok(Ok(_)) => {}
-            Err(_) => panic!("the connection is still open after {bound:?}"),
-        }
     }
 }
 
@@ -291,17 +247,8 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
 
 #[test]
 fn a_blank_token_in_the_environment_refuses_to_start() {
-    let bin = env!("CARGO_BIN_EXE_slag-edge");
     for blank in ["", "   "] {
-        let mut c = match std::env::var("SLAG_TEST_RUNNER") {
-            Ok(r) if !r.trim().is_empty() => {
-                let mut parts = r.split_whitespace();
-                let mut c = std::process::Command::new(parts.next().unwrap());
-                c.args(parts).arg(bin);
-                c
-            }
-            _ => std::process::Command::new(bin),
-        };
+        let mut c = support::slag_edge_command();
         let out = c
             .args(["serve", "--scene", "grid", "--store", "/nonexistent/store"])
             .args([

@@ -5,46 +5,21 @@
 mod support;
 
 use std::io::{BufRead, BufReader};
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 
 use slag_common::shards::Dtype;
-use support::{grid_scene, shard_server};
-
-fn fixture(rel: &str) -> String {
-    slag_common::paths::source_tree_shared_dir()
-        .join("fixtures")
-        .join(rel)
-        .display()
-        .to_string()
-}
+use support::{fixture, grid_scene, shard_server};
 
 /// Runs `serve` with stderr piped until it logs that it listens, then stops it: the log line is
 /// there and holds no escape sequence.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serve_logs_without_colour_codes_into_a_pipe() {
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        assert!(
-            std::env::var_os("SLAG_SKIP_ORT").is_some(),
-            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
-        );
+    if support::skip_without_ort() {
         return;
     }
     // Under qemu (cross build) the binary is started through `$SLAG_TEST_RUNNER`.
-    let runner: Vec<String> = std::env::var("SLAG_TEST_RUNNER")
-        .unwrap_or_default()
-        .split_whitespace()
-        .map(str::to_owned)
-        .collect();
     let command = |args: &[&str]| {
-        let bin = env!("CARGO_BIN_EXE_slag-edge");
-        let mut c = match runner.split_first() {
-            Some((r, rest)) => {
-                let mut c = Command::new(r);
-                c.args(rest).arg(bin);
-                c
-            }
-            None => Command::new(bin),
-        };
+        let mut c = support::slag_edge_command();
         c.args(args).env("RUST_LOG", "info").env_remove("NO_COLOR");
         c
     };

@@ -19,7 +19,7 @@ use slag_common::{Error, Resource};
 use slag_edge::fetch::{Center, FetchParams, FetchSummary, fetch};
 use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
 use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, grid_scene, serve_on_loopback, shard_server};
+use support::{BasisEmbedder, fixture, grid_scene, serve_on_loopback, shard_server};
 
 fn params(url: &str) -> FetchParams {
     FetchParams {
@@ -356,16 +356,7 @@ async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
 
 /// `slag-edge` (through `$SLAG_TEST_RUNNER` when set), not yet started.
 fn slag_edge(args: &[&str]) -> Command {
-    let bin = env!("CARGO_BIN_EXE_slag-edge");
-    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    };
+    let mut cmd = support::slag_edge_command();
     cmd.args(args)
         .env("RUST_LOG", "warn")
         .env_remove("SLAG_FAULT_EXIT_AT")
@@ -546,21 +537,9 @@ async fn post_fetch_sends_the_configured_shard_token() {
     }
 }
 
-fn fixture(rel: &str) -> String {
-    slag_common::paths::source_tree_shared_dir()
-        .join("fixtures")
-        .join(rel)
-        .display()
-        .to_string()
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn check_fails_naming_missing_corrupt_and_zero_shards() {
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        assert!(
-            std::env::var_os("SLAG_SKIP_ORT").is_some(),
-            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
-        );
+    if support::skip_without_ort() {
         return;
     }
     // 512-d so that color-clip's text tower fits the stored embeddings.

@@ -106,6 +106,9 @@ pub fn has_segments_version(version: u16) -> bool {
 }
 /// Largest embedding width accepted when decoding (guards allocations on corrupted input).
 pub const MAX_DIM: u32 = 1 << 16;
+/// Most slots per Gaussian a mixture shard may hold (guards allocations on corrupted input; the
+/// encoder keeps 16 at most in practice).
+pub const MAX_SLOTS: u32 = 256;
 pub(super) const FIXED_HEADER: usize = 72;
 /// Largest `header_len` the decoders accept (bytes): writers pad the header to a multiple of 8
 /// only, readers allow up to this much.
@@ -880,10 +883,10 @@ pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
                 "mixture shard with weight dtype {dtype:?}; mixture weights are f16"
             )));
         }
-        if slots == 0 || slots > super::mixture::MAX_SLOTS {
+        if slots == 0 || slots > MAX_SLOTS {
             return Err(ShardError::Malformed(format!(
                 "mixture slots {slots} outside 1..={}",
-                super::mixture::MAX_SLOTS
+                MAX_SLOTS
             )));
         }
     }

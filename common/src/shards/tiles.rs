@@ -352,8 +352,7 @@ impl Manifest {
         if let Some(x) = &m.mixture {
             let hex = x.codebook_checksum.len() == 8
                 && u32::from_str_radix(&x.codebook_checksum, 16).is_ok();
-            if !hex || x.slots == 0 || x.slots > super::mixture::MAX_SLOTS || m.dtype != Dtype::F16
-            {
+            if !hex || x.slots == 0 || x.slots > super::format::MAX_SLOTS || m.dtype != Dtype::F16 {
                 return Err(Error::format(
                     origin,
                     format!(
@@ -362,7 +361,7 @@ impl Manifest {
                         x.slots,
                         x.codebook_checksum,
                         m.dtype,
-                        super::mixture::MAX_SLOTS
+                        super::format::MAX_SLOTS
                     ),
                 ));
             }

@@ -206,7 +206,17 @@ impl MixtureRows {
             .for_each(|(b, out)| {
                 let start = b * PROJECT_ROWS;
                 let end = start + out.len();
-                kernels::scan_chunk::<Q>(&self.codebook, self.dim, start, end, qs, None, out);
+                kernels::scan_chunk::<Q>(
+                    &self.codebook,
+                    kernels::RowSpan {
+                        d: self.dim,
+                        start,
+                        end,
+                        keep: None,
+                    },
+                    qs,
+                    out,
+                );
             });
         proj
     }
@@ -245,8 +255,7 @@ impl MixtureRows {
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
-    use super::super::bench_mixture::synthetic_mixture;
-    use super::super::store::random_centres;
+    use super::super::synthetic::{random_centres, synthetic_mixture};
     use super::super::{ScanRequest, VectorStore, lerf_relevancy, scan};
     use slag_common::Error;
 

@@ -12,28 +12,23 @@
 //! - [`hnsw::ApproxIndex`]: the approximate (HNSW) index behind `index=hnsw`, backend
 //!   `instant-distance` (always built) or `qdrant-edge` (cargo feature `qdrant-edge`), picked at
 //!   run time ([`hnsw::HnswBackend`]);
-//! - [`mod@bench`]: the scan benchmark ([`run_bench`]).
+//! - [`kernels`]: the inner loops (portable and per instruction set) and their dispatch;
+//! - [`synthetic`]: deterministic synthetic stores for tests and the benchmark (`slag-edge bench`).
 //!
 //! Memory: a scan allocates only per-thread selection state (O(k) for top-k) and its output; it
 //! never copies or dequantises the store.
 
-pub mod bench;
-mod bench_mixture;
 pub mod hnsw;
-mod kernels;
+pub mod kernels;
 pub mod mixture;
-#[cfg(feature = "qdrant-edge")]
-mod qdrant_cmp;
 pub mod select;
-mod simd;
 mod store;
+pub mod synthetic;
 
 use rayon::prelude::*;
 use slag_common::Error;
 use slag_common::shards::StoredVectors;
 
-pub use bench::{BenchArgs, run_bench};
-pub use bench_mixture::synthetic_mixture;
 pub use kernels::{MAX_QUERIES, avx2_fma_available};
 pub use select::{Hit, TopK};
 pub use store::{NO_SEGMENT, VectorStore};
@@ -41,7 +36,7 @@ pub use store::{NO_SEGMENT, VectorStore};
 pub use kernels::{SimdLevel, simd_level};
 
 /// Rows handed to one rayon task (a few hundred KiB to 4 MiB of rows at D = 512).
-const CHUNK_ROWS: usize = 2048;
+pub const CHUNK_ROWS: usize = 2048;
 
 /// Combines the `Q` dot products of one row (`[Q]`, in the order of
 /// [`ScanRequest::queries`]) into the row's score.
@@ -300,11 +295,13 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
                     Some((m, proj)) => m.scan_chunk::<Q>(proj, start, end, keep, &mut dots),
                     None => kernels::scan_chunk::<Q>(
                         store.vectors(),
-                        d,
-                        start,
-                        end,
+                        kernels::RowSpan {
+                            d,
+                            start,
+                            end,
+                            keep,
+                        },
                         &queries,
-                        keep,
                         &mut dots,
                     ),
                 }

@@ -9,6 +9,7 @@ use slag_common::shards::format::quantize_i8;
 use slag_common::shards::{Dtype, MixtureShard, StoredShard, StoredVectors};
 
 use super::mixture::MixtureRows;
+use super::synthetic::{fast_normal, random_centres, uniform};
 
 /// All embedding rows held by the robot, concatenated shard after shard, kept in the stored type
 /// (no f32 copy): `f32` = 4 B per value, `f16` = 2 B per value, `int8` = 1 B per value + one
@@ -588,41 +589,4 @@ impl VectorStore {
             .collect();
         Ok(store)
     }
-}
-
-/// `clusters` random unit directions `[clusters * dim]`.
-pub(crate) fn random_centres(dim: usize, clusters: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed ^ 0xC3C3_5EED;
-    let mut c = vec![0.0f32; dim * clusters];
-    for row in c.chunks_exact_mut(dim) {
-        let mut norm = 0.0f32;
-        for x in row.iter_mut() {
-            *x = normal(&mut s);
-            norm += *x * *x;
-        }
-        let inv = norm.sqrt().recip();
-        row.iter_mut().for_each(|x| *x *= inv);
-    }
-    c
-}
-
-/// Uniform in `[0, 1)` with 24 random bits.
-pub(crate) fn uniform(s: &mut u64) -> f32 {
-    (splitmix(s) >> 40) as f32 / (1u64 << 24) as f32
-}
-
-/// Approximately standard normal (Irwin–Hall sum of 4 uniforms from one SplitMix64 draw,
-/// rescaled to unit variance): cheap enough to generate gigabytes of rows.
-pub(crate) fn fast_normal(s: &mut u64) -> f32 {
-    let z = splitmix(s);
-    let sum: u32 = (0..4).map(|k| ((z >> (16 * k)) & 0xFFFF) as u32).sum();
-    // Mean of 4 U(0,1) is 2, variance 4/12.
-    (sum as f32 / 65536.0 - 2.0) * 3.0f32.sqrt()
-}
-
-/// Standard normal (Box–Muller, one of the pair).
-pub(crate) fn normal(s: &mut u64) -> f32 {
-    let u1 = uniform(s).max(1e-7);
-    let u2 = uniform(s);
-    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
 }

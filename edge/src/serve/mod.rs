@@ -539,14 +539,6 @@ async fn health(State(state): State<Arc<AppState>>) -> Response {
     .into_response()
 }
 
-/// Resident set size of this process in bytes (Linux `/proc/self/status`), if readable.
-pub fn rss_bytes() -> Option<u64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
 async fn stats(State(state): State<Arc<AppState>>) -> Response {
     let e = state.engine();
     let edge = state.edge.clone();
@@ -575,7 +567,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
             "bytes_per_gaussian": if n > 0 { e.store.memory_bytes() as f64 / n as f64 } else { 0.0 },
             "hnsw_bytes": e.hnsw.as_ref().map(|h| h.memory_bytes()),
             "hnsw_backend": e.hnsw.as_ref().map(|h| h.backend().name()),
-            "process_rss_bytes": rss_bytes(),
+            "process_rss_bytes": slag_common::util::rss_bytes(),
         },
         "store_disk_bytes": disk,
         "last_fetch": record,

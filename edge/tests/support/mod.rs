@@ -523,3 +523,41 @@ pub async fn wait_until(what: &str, mut cond: impl AsyncFnMut() -> bool) {
         tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
+
+/// The `slag-edge` binary as a command, not yet started: through `$SLAG_TEST_RUNNER` (e.g. qemu
+/// under the cross build) when that is set and not blank.
+pub fn slag_edge_command() -> std::process::Command {
+    let bin = env!("CARGO_BIN_EXE_slag-edge");
+    let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
+    let mut parts = runner.split_whitespace();
+    match parts.next() {
+        Some(r) => {
+            let mut c = std::process::Command::new(r);
+            c.args(parts).arg(bin);
+            c
+        }
+        None => std::process::Command::new(bin),
+    }
+}
+
+/// A file under `../shared/fixtures` (e.g. `clip/clip-tokenizer.json`), as a string argument.
+pub fn fixture(rel: &str) -> String {
+    slag_common::paths::source_tree_shared_dir()
+        .join("fixtures")
+        .join(rel)
+        .display()
+        .to_string()
+}
+
+/// `true` when ONNX Runtime is not set up and the caller is to skip: only allowed with
+/// `SLAG_SKIP_ORT` set; without it a missing `ORT_DYLIB_PATH` fails the test with the remedy.
+pub fn skip_without_ort() -> bool {
+    if std::env::var_os("ORT_DYLIB_PATH").is_some() {
+        return false;
+    }
+    assert!(
+        std::env::var_os("SLAG_SKIP_ORT").is_some(),
+        "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
+    );
+    true
+}

@@ -4,11 +4,12 @@
 //! `SLAG_SHARD_TOKEN` refused at start-up.
 #![allow(clippy::unwrap_used)]
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame};
+use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
 use slag_shards::partition::{PartitionParams, UpChoice};
 use slag_shards::store::{ShardStore, partition_into_store};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -50,48 +51,6 @@ async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::
         .unwrap();
     });
     (rx.await.unwrap().to_string(), dir)
-}
-
-/// Sends `raw` on a fresh connection, reads until the server closes it: (status, head, body).
-async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
-    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
-    s.write_all(raw).await.unwrap();
-    let mut out = Vec::new();
-    tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
-        .await
-        .expect("answered and closed within 30 s")
-        .unwrap();
-    let text = String::from_utf8_lossy(&out).into_owned();
-    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let status = head.split(' ').nth(1).unwrap_or("0").parse().unwrap_or(0);
-    (status, head.to_string(), body.to_string())
-}
-
-fn get(path: &str, extra: &str) -> Vec<u8> {
-    format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{extra}\r\n").into_bytes()
-}
-
-fn assert_json_error(status: u16, head: &str, body: &str) {
-    assert!(
-        head.to_ascii_lowercase()
-            .contains("content-type: application/json"),
-        "{status}: {head}"
-    );
-    let v: serde_json::Value = serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {body}"));
-    assert_eq!(v["status"], status, "{v}");
-    assert!(!v["error"].as_str().unwrap().is_empty(), "{v}");
-}
-
-async fn closed_within(s: &mut tokio::net::TcpStream, bound: Duration) {
-    let t0 = Instant::now();
-    let mut buf = [0u8; 4096];
-    loop {
-        match tokio::time::timeout(bound.saturating_sub(t0.elapsed()), s.read(&mut buf)).await {
-            Ok(Ok(0) | Err(_)) => return,
-            Ok(Ok(_)) => {}
-            Err(_) => panic!("the connection is still open after {bound:?}"),
-        }
-    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

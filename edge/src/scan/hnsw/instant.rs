@@ -138,17 +138,7 @@ impl HnswIndex {
     /// Errors: as [`crate::scan::scan`] for a query of the wrong width or with non-finite values;
     /// [`Error::Param`] `top_k` for `k > ef_search` (rebuild with `ef_search >= k`).
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        crate::scan::check_queries(self.dim, &[query])?;
-        if k > self.ef_search {
-            return Err(Error::param(
-                "top_k",
-                k,
-                format!(
-                    "at most the index's ef_search {} (rebuild with ef_search >= {k})",
-                    self.ef_search
-                ),
-            ));
-        }
+        super::check_query(self.dim, self.ef_search, query, k, "rebuild with ef_search")?;
         let q = RowPoint {
             data: query.into(),
             row: 0,

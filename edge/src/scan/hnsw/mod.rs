@@ -19,7 +19,7 @@
 
 mod instant;
 #[cfg(feature = "qdrant-edge")]
-pub(super) mod qdrant;
+pub mod qdrant;
 
 use std::path::PathBuf;
 
@@ -314,6 +314,27 @@ impl ApproxIndex {
             ApproxIndex::QdrantEdge(i) => i.memory_bytes(),
         }
     }
+}
+
+/// The checks of every backend's query before it searches: the query's width and values (as the
+/// exact scan checks them), and `k` at most the beam `ef_search` ([`Error::Param`] `top_k`, whose
+/// remedy reads `"{remedy} >= k"`, e.g. "rebuild with ef_search").
+fn check_query(
+    dim: usize,
+    ef_search: usize,
+    query: &[f32],
+    k: usize,
+    remedy: &str,
+) -> Result<(), Error> {
+    super::check_queries(dim, &[query])?;
+    if k > ef_search {
+        return Err(Error::param(
+            "top_k",
+            k,
+            format!("at most the index's ef_search {ef_search} ({remedy} >= {k})"),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

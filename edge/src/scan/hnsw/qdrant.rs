@@ -44,11 +44,11 @@ fn qdrant_err(dir: &Path, step: &str, e: impl std::fmt::Display) -> Error {
 }
 
 /// Upserts rows `range` of `rows` into `shard` (as f32, point id = row index), in batches of
-/// [`UPSERT_BATCH`]. Shared with the bench's exact Qdrant Edge shards (`qdrant_cmp.rs`).
+/// [`UPSERT_BATCH`]. Shared with the exact Qdrant Edge shards of `slag-edge bench --qdrant`.
 ///
 /// Errors: [`Error::Internal`] for a row index past the store (a caller bug); [`Error::Io`] when
 /// Qdrant Edge refuses the batch.
-pub(in crate::scan) fn upsert(
+pub fn upsert(
     shard: &EdgeShard,
     dir: &Path,
     rows: &VectorStore,
@@ -237,17 +237,7 @@ impl QdrantHnsw {
     ///
     /// Errors: as [`super::ApproxIndex::query`].
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        crate::scan::check_queries(self.dim, &[query])?;
-        if k > self.ef_search {
-            return Err(Error::param(
-                "top_k",
-                k,
-                format!(
-                    "at most the index's ef_search {} (raise ef_search to >= {k})",
-                    self.ef_search
-                ),
-            ));
-        }
+        super::check_query(self.dim, self.ef_search, query, k, "raise ef_search to")?;
         if k == 0 || self.len == 0 {
             return Ok(Vec::new());
         }

@@ -1,5 +1,5 @@
 //! The HNSW table of `slag-edge bench`: every approximate-index backend of
-//! [`crate::scan::hnsw`] on the same synthetic f32 store and the same queries, over a sweep of
+//! `slag_edge::scan::hnsw` on the same synthetic f32 store and the same queries, over a sweep of
 //! search beams, so the backends can be read at equal recall.
 //!
 //! Per built index: build seconds, the index's bytes ([`ApproxIndex::memory_bytes`]) and the
@@ -15,10 +15,11 @@ use std::time::Instant;
 
 use slag_common::shards::Dtype;
 
+use slag_edge::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
+use slag_edge::scan::synthetic::random_centres;
+use slag_edge::scan::{ScanRequest, VectorStore, scan};
+
 use super::{BenchArgs, CLUSTERS, fmt_size, make_query, median};
-use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
-use crate::scan::store::random_centres;
-use crate::scan::{ScanRequest, VectorStore, scan};
 
 /// Bytes per row a graph adds beside the row's f32 copy, for the memory guard (instant-distance
 /// M = 32: 64 + upper-layer u32 links ≈ 260 B), with margin.
@@ -47,7 +48,7 @@ struct Measured {
 }
 
 fn rss() -> Option<i64> {
-    crate::serve::rss_bytes().and_then(|b| i64::try_from(b).ok())
+    slag_common::util::rss_bytes().and_then(|b| i64::try_from(b).ok())
 }
 
 /// The backends of the table: `--hnsw-backends`, plus qdrant-edge with `--qdrant`.

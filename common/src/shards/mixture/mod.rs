@@ -38,11 +38,8 @@ use super::format::{
 };
 use crate::Error;
 
+pub use super::format::MAX_SLOTS;
 pub use crate::mixture::UNUSED;
-
-/// Most slots per Gaussian a mixture shard may hold (guards allocations on corrupted input; the
-/// encoder keeps 16 at most in practice).
-pub const MAX_SLOTS: u32 = 256;
 
 /// Tile id of the codebook file (no spatial tile has it: partition numbers tiles from 0).
 pub const CODEBOOK_TILE: u64 = u64::MAX;

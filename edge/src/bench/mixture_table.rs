@@ -5,105 +5,13 @@
 use std::collections::HashSet;
 use std::time::Instant;
 
-use half::f16;
 use rayon::prelude::*;
-use slag_common::rng::splitmix64 as splitmix;
-use slag_common::shards::{Aabb, Dtype, MIXTURE_SHARD_FORMAT_VERSION, MixtureShard, ShardHeader};
+use slag_common::shards::Dtype;
+use slag_edge::scan::synthetic::synthetic_mixture;
+use slag_edge::scan::{Combiner, ScanRequest, VectorStore, lerf_relevancy, scan};
 
-use super::store::{fast_normal, uniform};
-use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, scan};
-
-/// Rows generated (and pushed) per block.
+/// Rows copied per block.
 const BLOCK: usize = 1 << 16;
-
-/// A synthetic mixture store of `n` rows over `atoms` codebook rows of width `dim`: atom `j`
-/// lies in cluster `j mod clusters` (`normalise(centre + 0.75 · g / √D)`, as the dense synthetic
-/// rows), each row mixes `slots` distinct atoms of one random cluster with random weights in
-/// [0.05, 1) (f16, decreasing); means uniform in a 100 m cube, ids `0..n`.
-///
-/// Errors: as [`VectorStore::new_mixture`] and [`VectorStore::push_mixture_shard`] (e.g. fewer
-/// atoms per cluster than slots).
-pub fn synthetic_mixture(
-    n: usize,
-    dim: usize,
-    atoms: usize,
-    slots: usize,
-    centres: &[f32],
-    clusters: usize,
-    seed: u64,
-) -> anyhow::Result<VectorStore> {
-    anyhow::ensure!(
-        clusters > 0 && atoms >= clusters * slots,
-        "--mixture-atoms {atoms} must be at least {clusters} clusters × {slots} slots"
-    );
-    let mut book = vec![0.0f32; atoms * dim];
-    book.par_chunks_mut(dim).enumerate().for_each(|(j, row)| {
-        let mut s = seed ^ (j as u64).wrapping_mul(0xA24B_AED4_963E_E407) ^ 0xB00C;
-        let c = j % clusters;
-        let sigma = 0.75 / (dim as f32).sqrt();
-        for (x, &m) in row.iter_mut().zip(&centres[c * dim..(c + 1) * dim]) {
-            *x = m + sigma * fast_normal(&mut s);
-        }
-        let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
-        row.iter_mut()
-            .for_each(|x| *x = f16::from_f32(*x / norm).to_f32());
-    });
-    let mut store = VectorStore::new_mixture(dim, slots, book, 0)?;
-    store.reserve(n)?;
-    let per_cluster = atoms / clusters;
-    for start in (0..n).step_by(BLOCK) {
-        let end = (start + BLOCK).min(n);
-        let rows: Vec<(Vec<u32>, Vec<f16>, [f32; 3])> = (start..end)
-            .into_par_iter()
-            .map(|i| {
-                let mut s = seed ^ (i as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93) ^ 0x313;
-                let c = (splitmix(&mut s) % clusters as u64) as usize;
-                let mut picked: Vec<u32> = Vec::with_capacity(slots);
-                while picked.len() < slots {
-                    let r = (splitmix(&mut s) % per_cluster as u64) as usize;
-                    let a = (c + clusters * r) as u32;
-                    if !picked.contains(&a) {
-                        picked.push(a);
-                    }
-                }
-                let mut w: Vec<f32> = (0..slots).map(|_| 0.05 + 0.95 * uniform(&mut s)).collect();
-                w.sort_by(|x, y| y.total_cmp(x));
-                let mean = [0, 1, 2].map(|_| 100.0 * uniform(&mut s) - 50.0);
-                (picked, w.into_iter().map(f16::from_f32).collect(), mean)
-            })
-            .collect();
-        let mut shard = MixtureShard {
-            header: ShardHeader {
-                version: MIXTURE_SHARD_FORMAT_VERSION,
-                scene_id: "synthetic".into(),
-                model: "synthetic".into(),
-                dim: dim as u32,
-                dtype: Dtype::F16,
-                count: (end - start) as u32,
-                aabb: Aabb::default(),
-                tile_id: (start / BLOCK) as u64,
-            },
-            slots: slots as u32,
-            codebook_crc: 0,
-            ids: (start as u32..end as u32).collect(),
-            means: Vec::with_capacity(end - start),
-            atoms: Vec::with_capacity((end - start) * slots),
-            weights: Vec::with_capacity((end - start) * slots),
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
-            segments: None,
-        };
-        for (a, w, m) in rows {
-            shard.atoms.extend(a);
-            shard.weights.extend(w);
-            shard.means.push(m);
-        }
-        store.push_mixture_shard(shard)?;
-    }
-    Ok(store)
-}
 
 /// The same rows as `mix` (reconstructed, unit norm) in a dense store of `dtype`.
 fn dense_copy(mix: &VectorStore, dtype: Dtype) -> anyhow::Result<VectorStore> {
@@ -217,6 +125,13 @@ pub(super) fn mixture_table(b: &MixtureBench<'_>) -> anyhow::Result<String> {
             ));
             continue;
         }
+        anyhow::ensure!(
+            b.clusters > 0 && b.atoms >= b.clusters * b.slots,
+            "--mixture-atoms {} must be at least {} clusters × {} slots",
+            b.atoms,
+            b.clusters,
+            b.slots
+        );
         let t = Instant::now();
         let mix = synthetic_mixture(n, b.dim, b.atoms, b.slots, b.centres, b.clusters, b.seed)?;
         let gen_s = t.elapsed().as_secs_f64();

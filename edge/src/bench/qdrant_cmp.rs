@@ -13,7 +13,7 @@
 //!   disabled (`m = 0`), so this is Qdrant's quantized full scan.
 //!
 //! Qdrant Edge's HNSW is not built here: the bench's HNSW table builds it through the edge's own
-//! approximate-index type (`super::hnsw::ApproxIndex`, backend `qdrant-edge`).
+//! approximate-index type (`slag_edge::scan::hnsw::ApproxIndex`, backend `qdrant-edge`).
 //!
 //! The exact shards are built as two optimised segments of N/2 points each (Qdrant searches
 //! segments in parallel on its `max_search_threads` pool, which is set to the bench's thread
@@ -32,7 +32,7 @@ use qdrant_edge::{
     VectorStorageDatatype, WithPayloadInterface, WithVector,
 };
 
-use super::VectorStore;
+use slag_edge::scan::VectorStore;
 
 /// How a Qdrant Edge shard stores and searches the rows.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -160,7 +160,7 @@ pub(super) fn build(
     let mut start = 0;
     while start < n {
         let end = (start + per_segment).min(n);
-        super::hnsw::qdrant::upsert(&shard, &dir, rows, start..end)?;
+        slag_edge::scan::hnsw::qdrant::upsert(&shard, &dir, rows, start..end)?;
         shard
             .optimize()
             .map_err(|e| anyhow::anyhow!("Qdrant Edge optimize: {e}"))?;

@@ -1,20 +1,29 @@
 //! The scan benchmark behind `slag-edge bench`: exact scan vs memory-bandwidth floor vs the naive
-//! baseline, per store size and dtype, plus an HNSW table (`bench/hnsw_table.rs`: every
-//! approximate-index backend over a sweep of search beams). All ratios come from one run on one
-//! machine.
+//! baseline, per store size and dtype, plus an HNSW table (`hnsw_table.rs`: every
+//! approximate-index backend over a sweep of search beams), a mixture table (`mixture_table.rs`),
+//! an objects table (`objects_table.rs`) and, with `--qdrant`, Qdrant Edge side by side
+//! (`qdrant_cmp.rs`). All ratios come from one run on one machine.
+//!
+//! Part of the `slag-edge` binary, not of the `slag_edge` library: it measures the library's
+//! scans from outside, through their public API.
 
 use std::time::Instant;
 
 use rayon::prelude::*;
 use slag_common::shards::{Dtype, StoredVectors};
 
-use super::hnsw::HnswBackend;
-use super::kernels::{self, SimdLevel};
-use super::store::{normal, random_centres};
-use super::{Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan};
+use slag_edge::scan::hnsw::HnswBackend;
+use slag_edge::scan::kernels::{self, SimdLevel};
+use slag_edge::scan::synthetic::{normal, random_centres};
+use slag_edge::scan::{
+    CHUNK_ROWS, Combiner, ScanRequest, VectorStore, lerf_relevancy, naive_scan_f32, scan,
+};
 
 mod hnsw_table;
+mod mixture_table;
 mod objects_table;
+#[cfg(feature = "qdrant-edge")]
+mod qdrant_cmp;
 
 /// Clusters of the synthetic store (directions; each query targets one of them).
 const CLUSTERS: usize = 64;
@@ -156,10 +165,7 @@ fn parse_backend(s: &str) -> Result<HnswBackend, String> {
 }
 
 fn mem_available_bytes() -> Option<f64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024.0)
+    slag_common::util::mem_available_bytes().map(|b| b as f64)
 }
 
 fn cpu_name() -> String {
@@ -228,7 +234,7 @@ fn vector_byte_slices(store: &VectorStore) -> Vec<&[u8]> {
 
 /// Best-of-3 time (ms) of a parallel read of every vector byte, split in the scan's chunks.
 fn floor_ms(store: &VectorStore) -> f64 {
-    let chunk = (super::CHUNK_ROWS * store.dtype().bytes_per_vector(store.dim())).max(4096);
+    let chunk = (CHUNK_ROWS * store.dtype().bytes_per_vector(store.dim())).max(4096);
     let slices = vector_byte_slices(store);
     let mut best = f64::INFINITY;
     let mut sink = 0u64;
@@ -559,8 +565,8 @@ fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
     }
     if args.mixture_atoms > 0 {
         out.push('\n');
-        out.push_str(&super::bench_mixture::mixture_table(
-            &super::bench_mixture::MixtureBench {
+        out.push_str(&mixture_table::mixture_table(
+            &mixture_table::MixtureBench {
                 sizes: &args.sizes,
                 dim,
                 atoms: args.mixture_atoms,
@@ -651,14 +657,15 @@ fn mean_iou(
 
 #[cfg(feature = "qdrant-edge")]
 mod qdrant {
-    //! The Qdrant Edge rows of the report (see `super::super::qdrant_cmp`).
+    //! The Qdrant Edge rows of the report (see `super::qdrant_cmp`).
     use std::collections::HashSet;
     use std::time::Instant;
 
     use slag_common::shards::Dtype;
 
-    use super::super::qdrant_cmp::{self, Kind};
-    use super::super::{ScanRequest, VectorStore, scan};
+    use slag_edge::scan::{ScanRequest, VectorStore, scan};
+
+    use super::qdrant_cmp::{self, Kind};
     use super::{BenchArgs, CLUSTERS, QRow, mean_iou, median};
 
     fn base(args: &BenchArgs) -> std::path::PathBuf {
@@ -788,7 +795,8 @@ mod qdrant {
 
     use slag_common::shards::Dtype;
 
-    use super::super::VectorStore;
+    use slag_edge::scan::VectorStore;
+
     use super::{BenchArgs, QRow};
 
     pub(super) fn exact_rows(
@@ -813,16 +821,13 @@ fn kernel_pass<const Q: usize>(
 ) -> f64 {
     out.resize(store.len(), [0.0; Q]);
     let t = Instant::now();
-    kernels::scan_chunk_at::<Q>(
-        level,
-        store.vectors(),
-        store.dim(),
-        0,
-        store.len(),
-        qs,
-        None,
-        out,
-    );
+    let span = kernels::RowSpan {
+        d: store.dim(),
+        start: 0,
+        end: store.len(),
+        keep: None,
+    };
+    kernels::scan_chunk_at::<Q>(level, store.vectors(), span, qs, out);
     let e = t.elapsed().as_secs_f64();
     std::hint::black_box(&out);
     e
@@ -877,8 +882,8 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
 mod tests {
     use super::*;
 
-    /// The benchmark from a test binary (the CLI lives in the lead's `main.rs`):
-    /// `SLAG_BENCH_ARGS="--sizes 1M,2M" cargo test --workspace --lib \
+    /// The benchmark from a test binary:
+    /// `SLAG_BENCH_ARGS="--sizes 1M,2M" cargo test --workspace --bin slag-edge \
     ///   --config 'profile.dev.package.slag-edge.opt-level=3' -- --ignored bench_from_env --nocapture`.
     #[test]
     #[ignore = "benchmark: generates gigabyte stores; run explicitly"]
