@@ -1,61 +1,16 @@
-//! Step 1, the `project` kernel (`project.wgsl`: EWA projection of every Gaussian to a splat
-//! and its tile rectangle), and step 2 on the CPU: tile binning and the depth sort.
+//! The host reference of step 2: tile binning and the depth sort on the CPU, in f64 depths
+//! ([`bin_and_sort`]), the order the GPU's binning and radix sort (`sort.rs`, `sort.wgsl`)
+//! reproduces with f32 depths; the tests compare the two, and `cargo bench --bench binsort`
+//! times it.
 
 use rayon::prelude::*;
 use slag_common::camera::WorldToCamera;
 use slag_common::{Error, Resource, Result};
 
 use super::super::project::camera_point;
-use super::buffers::{storage, storage_init};
-use super::{Binned, GROUPS_X, GpuRasterizer, SEED_SALT, View};
-
-impl GpuRasterizer {
-    /// Runs the projection kernel and reads back every Gaussian's packed tile rectangle
-    /// (`[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled).
-    pub(super) fn project(&self, view: &View) -> Result<Vec<[u32; 2]>> {
-        let groups = self.n.div_ceil(256);
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        if groups > 0 {
-            let bg = self.bind(
-                &self.pipelines.project,
-                &[
-                    (0, &view.params_buf),
-                    (1, &self.means_opac),
-                    (2, &self.scales),
-                    (3, &self.quats),
-                    (4, &self.splats),
-                    (5, &self.isect),
-                ],
-            );
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipelines.project);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(groups.min(GROUPS_X), groups.div_ceil(GROUPS_X), 1);
-        }
-        let isect_bytes = self.n as u64 * 8;
-        let read = self.submit_and_read(enc, &[(&self.isect, 0, isect_bytes)])?;
-        let isect: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0]);
-        Ok(isect)
-    }
-
-    /// Uploads the binned view (tile ranges, sorted ids) and allocates the per-pixel offsets
-    /// and the scan's block sums.
-    pub(super) fn upload_bins(&self, view: &View, ranges: &[[u32; 2]], ids: &[u32]) -> Binned {
-        let b = Binned {
-            ranges: storage_init(&self.device, "tile_ranges", bytemuck::cast_slice(ranges)),
-            sorted_ids: storage_init(&self.device, "sorted_ids", bytemuck::cast_slice(ids)),
-            offsets: storage(&self.device, "offsets", (view.n_pix as u64 + 1) * 4),
-            block_sums: storage(&self.device, "block_sums", (view.n_blocks as u64 + 1) * 4),
-            dummy: storage(&self.device, "dummy", 16),
-        };
-        self.noise(&b.offsets, SEED_SALT + 2);
-        self.noise(&b.block_sums, SEED_SALT + 3);
-        b
-    }
-}
 
 /// Tile binning on the CPU: every (tile, Gaussian) intersection of the Gaussians' tile rects
-/// (from the GPU projection; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
+/// (as the GPU projection computes them; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
 /// ordered by `(tile, depth, id)`. The depth is the f64 camera-frame z of [`camera_point`]
 /// (bit-identical to the CPU reference's; positive f64 bit patterns sort like their values), so
 /// both rasterizers order every tile identically, exact ties included (by id). Returns per-tile
