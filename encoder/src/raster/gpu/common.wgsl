@@ -28,11 +28,6 @@ struct Params {
     rot2: vec4<f32>,     // row 2, translation.z
     focal: vec4<f32>,    // fx, fy, cx, cy (pixels)
     lims: vec4<f32>,     // jacobian clamp: lim_x_pos, lim_x_neg, lim_y_pos, lim_y_neg
-    // The sort depth t.z = R₂·μ + T.z of the world-frame means, in two-float precision: row 2 of
-    // the world-to-camera rotation (xyz) and T.z (w) rounded to f32 (depth_hi), and the f64
-    // remainders rounded to f32 (depth_lo).
-    depth_hi: vec4<f32>,
-    depth_lo: vec4<f32>,
     width: u32,
     height: u32,
     tiles_x: u32,
@@ -82,5 +77,5 @@ const SCAN_BLOCK: u32 = 1024u;
 @group(0) @binding(9) var<storage, read_write> out_ids: array<u32>;
 @group(0) @binding(10) var<storage, read_write> out_weights: array<f32>;
 @group(0) @binding(11) var<storage, read_write> block_sums: array<u32>;
-// The Gaussians' world-frame means as given (x, y, z per Gaussian), for the sort depth.
-@group(0) @binding(19) var<storage, read> depth_means: array<f32>;
+// Per Gaussian its sort depth: the host's f64 camera-frame depth rounded to f32 (gpu/sort.rs).
+@group(0) @binding(19) var<storage, read> sort_depths: array<f32>;

@@ -15,9 +15,11 @@
 //!    per-Gaussian splat (mean2d, opacity, and `Σ2D⁻¹` in eigen form: major axis, `1/√λ` of both
 //!    axes, so that `½dᵀΣ⁻¹d` is a sum of two squares, without the f32 cancellation of the conic
 //!    form for needles and sheets) and its tile rect, kept on the GPU, and its number of tiles.
-//!    The splat also carries the sort depth: `t.z` from the world-frame means in two-float
-//!    arithmetic, rounded once to f32 (the host's f64 depth rounded to f32, except within about
-//!    `2^-44` of its largest term of a rounding boundary).
+//!    The splat also carries the sort depth: the f64 camera-frame depth of
+//!    [`super::project::camera_point`] rounded to f32, computed on the host (one multiply-add per
+//!    Gaussian and axis, in parallel) and uploaded, 4 bytes per Gaussian: the GPU's own f32 `t.z`
+//!    can be a few f32 steps off, and a two-float evaluation in WGSL is not safe from the
+//!    drivers' algebraic rewriting.
 //! 2. Tile binning and depth sort **on the GPU** ([`sort`], `sort.wgsl`): an exclusive prefix sum
 //!    of the tile counts (the `scan_*` kernels) gives each Gaussian its slots; only the total (one
 //!    u32) is read back, to size the buffers. The `emit` kernel writes one 64-bit key per
@@ -25,8 +27,8 @@
 //!    in id order; a stable LSD radix sort (4 bits a pass, 8 passes over the depth and as many
 //!    over the tile id as the grid needs) orders them by (tile, depth), equal f32 depths by id;
 //!    `tile_bounds` finds each tile's `[start, end)` range. The blend kernels read the sorted ids
-//!    and the ranges where they lie. [`project::bin_and_sort`] (the same order with f64 depths)
-//!    is the host reference the tests compare with.
+//!    and the ranges where they lie. [`project::bin_and_sort`] (the same order) is the host
+//!    reference the tests compare with.
 //! 3. `blend` kernel, one 16×16 workgroup per tile, splats streamed through shared memory in
 //!    batches of 256 (gsplat `rasterize_to_pixels`), front to back, stopping a pixel at `T < 1e-4`
 //!    and the whole tile once every pixel has stopped. Run twice: a count pass (contributors per
@@ -106,8 +108,6 @@ struct Params {
     rot2: [f32; 4],
     focal: [f32; 4],
     lims: [f32; 4],
-    depth_hi: [f32; 4],
-    depth_lo: [f32; 4],
     width: u32,
     height: u32,
     tiles_x: u32,
@@ -126,9 +126,9 @@ struct Params {
     pad1: u32,
 }
 
-// `Params` is a WGSL uniform (common.wgsl): 7 vec4<f32> then 16 u32, 176 bytes, no padding.
+// `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 16 u32, 144 bytes, no padding.
 // A field added on one side only changes the size or breaks the test below.
-const _: () = assert!(std::mem::size_of::<Params>() == 176);
+const _: () = assert!(std::mem::size_of::<Params>() == 144);
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
 /// including submission and readback waits), or their sum over runs ([`PhaseTimings::add`]).
@@ -138,8 +138,9 @@ const _: () = assert!(std::mem::size_of::<Params>() == 176);
 pub struct PhaseTimings {
     /// Projection kernel, the scan of the tile counts and the readback of their total.
     pub project_ms: f64,
-    /// Tile binning and depth sort: recording and submitting the GPU passes (the device's time
-    /// for them shows in the next phase's wall).
+    /// Tile binning and depth sort, host side: the f32 sort depths (computed on the host, one
+    /// multiply-add per Gaussian and axis) and recording and submitting the GPU passes (the
+    /// device's time for them shows in the next phase's wall).
     pub bin_sort_ms: f64,
     /// Count pass, prefix sum, offsets readback.
     pub count_scan_ms: f64,
@@ -187,6 +188,8 @@ pub struct GpuRasterizer {
     name: String,
     limits: wgpu::Limits,
     n: u32,
+    /// Means kept on the host for the sort depth (`camera_point` in f64, rounded to f32).
+    means: Vec<[f32; 3]>,
     /// World-frame centre the uploaded means are relative to (f64; see the module docs, step 0).
     origin: glam::DVec3,
     means_opac: wgpu::Buffer,
@@ -194,8 +197,8 @@ pub struct GpuRasterizer {
     quats: wgpu::Buffer,
     splats: wgpu::Buffer,
     isect: wgpu::Buffer,
-    /// The world-frame means as given, 3 f32 per Gaussian, for the sort depth.
-    depth_means: wgpu::Buffer,
+    /// Per Gaussian its sort depth of the view (f32), written by the host.
+    sort_depths: wgpu::Buffer,
     /// Per Gaussian its number of tiles, scanned into its first intersection slot (`n + 1`
     /// words, the total last), and the scan's block sums.
     tile_counts: wgpu::Buffer,
@@ -459,7 +462,7 @@ impl GpuRasterizer {
         let quats = storage_init(&device, "quats", bytemuck::cast_slice(&qu));
         let splats = storage(&device, "splats", n as u64 * 32);
         let isect = storage(&device, "isect", n as u64 * 8);
-        let depth_means = storage_init(&device, "depth_means", bytemuck::cast_slice(&gaussians.means));
+        let sort_depths = storage(&device, "sort_depths", n as u64 * 4);
         let tile_counts = storage(&device, "tile_counts", (n as u64 + 1) * 4);
         let tile_count_sums = storage(
             &device,
@@ -501,13 +504,14 @@ impl GpuRasterizer {
             name,
             limits,
             n: n32,
+            means: gaussians.means.clone(),
             origin,
             means_opac,
             scales,
             quats,
             splats,
             isect,
-            depth_means,
+            sort_depths,
             tile_counts,
             tile_count_sums,
             sort: None,
@@ -608,11 +612,13 @@ impl GpuRasterizer {
         // 1. Projection, the Gaussians' tile counts and their total.
         let mut clock = std::time::Instant::now();
         let mut timings = PhaseTimings::default();
+        self.upload_sort_depths(w2c);
+        let depth_ms = lap(&mut clock);
         let total = self.project_count(&view)?;
         timings.project_ms = lap(&mut clock);
         // 2. Binning and depth sort on the GPU (recorded and submitted; no wait).
         let binned = self.sort_tiles(&view, total)?;
-        timings.bin_sort_ms = lap(&mut clock);
+        timings.bin_sort_ms = depth_ms + lap(&mut clock);
 
         // 3'. Label sums instead of per-pixel lists: only the compact records are read back.
         if let Some(labels) = labels {
@@ -673,19 +679,12 @@ impl GpuRasterizer {
             [c.x as f32, c.y as f32, c.z as f32, ti as f32]
         };
         let lims = jacobian_limits(k).map(|v| v as f32);
-        // The sort depth's row R₂ and T.z of the world frame as f32 pairs hi + lo (project.wgsl).
-        let d = w2c.rotation.row(2);
-        let depth = [d.x, d.y, d.z, w2c.translation.z];
-        let depth_hi = depth.map(|v| v as f32);
-        let depth_lo = [0, 1, 2, 3].map(|i| (depth[i] - f64::from(depth_hi[i])) as f32);
         let params = Params {
             rot0: row(0, t.x),
             rot1: row(1, t.y),
             rot2: row(2, t.z),
             focal: [k.fx as f32, k.fy as f32, k.cx as f32, k.cy as f32],
             lims,
-            depth_hi,
-            depth_lo,
             width: k.width,
             height: k.height,
             tiles_x,
@@ -855,7 +854,7 @@ mod tests {
                 u32s += 1;
             }
         }
-        assert_eq!((vec4s, u32s), (7, 16), "{body}");
+        assert_eq!((vec4s, u32s), (5, 16), "{body}");
         assert_eq!(16 * vec4s + 4 * u32s, std::mem::size_of::<super::Params>());
     }
 }

@@ -12,8 +12,8 @@ use super::super::project::camera_point;
 /// Tile binning on the CPU: every (tile, Gaussian) intersection of the Gaussians' tile rects
 /// (as the GPU projection computes them; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
 /// ordered by `(tile, depth, id)`. The depth is the f64 camera-frame z of [`camera_point`]
-/// (bit-identical to the CPU reference's; positive f64 bit patterns sort like their values), so
-/// both rasterizers order every tile identically, exact ties included (by id). Returns per-tile
+/// rounded to f32 (the key of the CPU rasterizer and of the GPU's radix sort; positive f32 bit
+/// patterns sort like their values), so all order every tile identically, equal f32 depths by id. Returns per-tile
 /// `[start, end)` ranges into the sorted Gaussian ids (`n_tiles` ranges, tiles row-major with
 /// `tiles_x` per row).
 ///
@@ -147,10 +147,11 @@ fn checked_total(total: u64) -> Result<u64> {
     Ok(total)
 }
 
-/// Gaussian `id`'s sort key within a tile: the f64 bits of its camera-frame depth (clamped at 0)
-/// above its id, so keys order by depth, exact ties by id.
+/// Gaussian `id`'s sort key within a tile: the bits of its f64 camera-frame depth (clamped at 0)
+/// rounded to f32, above its id, so keys order by depth, equal f32 depths by id (the GPU's radix
+/// sort uses the same f32 depths).
 fn depth_key(id: usize, means: &[[f32; 3]], w2c: &WorldToCamera) -> u128 {
-    let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
+    let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0) as f32;
     ((depth.to_bits() as u128) << 32) | id as u128
 }
 

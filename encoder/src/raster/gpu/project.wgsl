@@ -7,34 +7,6 @@ fn culled(i: u32) {
     offsets[i] = 0u;
 }
 
-// (s, e): s = a + b rounded, e the exact rounding error (Knuth's two-sum; no products, so no
-// contraction into fma can change it).
-fn two_sum(a: f32, b: f32) -> vec2<f32> {
-    let s = a + b;
-    let bb = s - a;
-    return vec2<f32>(s, (a - (s - bb)) + (b - bb));
-}
-
-// The sort depth of Gaussian i: t.z = R₂·μ + T.z from its world-frame mean (depth_means) in
-// two-float arithmetic (each product's error exact by fma, the sum's by two-sum), rounded once to
-// f32. Its error is about 2^-44 of the largest term, so it is the host's f64 depth
-// (project::camera_point) rounded to f32 except within that distance of a rounding boundary; the
-// kernel's own t.z (origin-relative, plain f32) may be off by a few f32 steps, which would reorder
-// close depths.
-fn sort_depth(i: u32) -> f32 {
-    let m = vec3<f32>(depth_means[3u * i], depth_means[3u * i + 1u], depth_means[3u * i + 2u]);
-    var hi = params.depth_hi.w;
-    var lo = params.depth_lo.w;
-    for (var c = 0u; c < 3u; c++) {
-        let p = params.depth_hi[c] * m[c];
-        let p_err = fma(params.depth_hi[c], m[c], -p);
-        let s = two_sum(hi, p);
-        hi = s.x;
-        lo += s.y + p_err + params.depth_lo[c] * m[c];
-    }
-    return hi + lo;
-}
-
 fn all_finite(v: vec4<f32>) -> bool {
     // |v| <= max finite f32 is false for NaN and inf.
     return all(abs(v) <= vec4<f32>(3.4028235e38));
@@ -150,7 +122,7 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     let y0 = u32(clamp(floor((mean2d.y - radius) / 16.0), 0.0, tyf));
     let x1 = u32(clamp(ceil((mean2d.x + radius) / 16.0), 0.0, txf));
     let y1 = u32(clamp(ceil((mean2d.y + radius) / 16.0), 0.0, tyf));
-    splats[i] = Splat(vec4<f32>(mean2d, mo.w, sort_depth(i)), axes);
+    splats[i] = Splat(vec4<f32>(mean2d, mo.w, sort_depths[i]), axes);
     isect[i] = vec2<u32>(x0 | (y0 << 16u), x1 | (y1 << 16u));
     var tiles = 0u;
     if (x1 > x0 && y1 > y0) {

@@ -4,22 +4,25 @@
 //! Gaussians' tile counts; a stable LSD radix sort (4 bits a pass: the depth's 32 bits, then only
 //! the tile-id bits the view's grid needs) orders them by (tile, depth), equal f32 depths by id;
 //! the tile ranges are found on the device. Only the total number of intersections (one u32,
-//! with an overflow flag) is read back, to size the sort buffers; nothing else of the binning
-//! touches the host.
+//! with an overflow flag) is read back, to size the sort buffers; the host's share is the f32
+//! sort depths ([`GpuRasterizer::upload_sort_depths`], 4 bytes per Gaussian) and recording the
+//! passes.
 //!
-//! The order equals the host reference's ([`super::project::bin_and_sort`], f64 depths) except
-//! where two Gaussians' depths round to the same f32 (there the id decides) or lie within about
-//! `2^-44` of their largest term of an f32 rounding boundary (see `sort_depth` in
-//! `project.wgsl`).
+//! The depth is the host's f64 camera-frame depth rounded to f32 (uploaded per view, 4 bytes a
+//! Gaussian), so the order equals the host reference's ([`super::project::bin_and_sort`], the
+//! same keys) exactly, and the CPU rasterizer's.
 //!
 //! Buffers, per view (grown when a view needs more, then kept): keys `8 B` and values `4 B` per
 //! intersection, twice (ping-pong), each a single binding, so a view's intersections are at most
 //! `max_storage_buffer_binding_size / 8` ([`Error::Limit`] `GpuBinding` beyond); the radix
 //! histogram `64 B` per 1024 intersections; the tile ranges `8 B` per tile.
 
+use rayon::prelude::*;
+use slag_common::camera::WorldToCamera;
 use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
+use super::super::project::camera_point;
 use super::buffers::storage;
 use super::{Binned, GROUPS_X, GpuRasterizer, Params, SCAN_BLOCK, SEED_SALT, View};
 
@@ -92,6 +95,24 @@ impl GpuRasterizer {
         }
     }
 
+    /// The view's sort depths, computed on the host and queued for upload (the one per-view host
+    /// computation of the binning: one f64 multiply-add per Gaussian and axis, in parallel, and
+    /// 4 bytes per Gaussian to the device): [`camera_point`]'s f64 depth, clamped at 0, rounded
+    /// to f32, the key of [`super::project::bin_and_sort`] and of the CPU rasterizer. (The
+    /// kernel's own f32 `t.z` can be a few f32 steps off the f64 value, and a two-float
+    /// evaluation in WGSL is not safe from the drivers' algebraic rewriting.)
+    pub(super) fn upload_sort_depths(&self, w2c: &WorldToCamera) {
+        if self.n > 0 {
+            let depths: Vec<f32> = self
+                .means
+                .par_iter()
+                .map(|m| camera_point(m.map(f64::from), w2c).z.max(0.0) as f32)
+                .collect();
+            self.queue
+                .write_buffer(&self.sort_depths, 0, bytemuck::cast_slice(&depths));
+        }
+    }
+
     /// Step 1 and the count of step 2: the projection kernel (splats, tile rects and every
     /// Gaussian's tile count), the exclusive scan of the counts, and the readback of their total
     /// (the view's intersections: 8 bytes with the overflow flag).
@@ -120,7 +141,7 @@ impl GpuRasterizer {
                         (4, &self.splats),
                         (5, &self.isect),
                         (8, &self.tile_counts),
-                        (19, &self.depth_means),
+                        (19, &self.sort_depths),
                     ],
                 );
                 let (x, y) = groups_2d(groups);
@@ -165,7 +186,9 @@ impl GpuRasterizer {
         {
             return b;
         }
-        let capacity = (keys + keys / 4).min(self.max_binding() / KEY_BYTES).max(keys);
+        let capacity = (keys + keys / 4)
+            .min(self.max_binding() / KEY_BYTES)
+            .max(keys);
         let hist_words = u64::from(RADIX_DIGITS) * capacity.div_ceil(u64::from(RADIX_BLOCK));
         let hist_blocks = hist_words.div_ceil(u64::from(SCAN_BLOCK));
         let d = &self.device;
@@ -238,7 +261,10 @@ impl GpuRasterizer {
             let (bx, by) = groups_2d(sort_blocks);
             for (i, pbuf) in params.iter().enumerate() {
                 let (src, dst) = (i % 2, 1 - i % 2);
-                let bg = self.bind(&p.radix_count, &[(0, pbuf), (8, &sb.hist), (14, &sb.keys[src])]);
+                let bg = self.bind(
+                    &p.radix_count,
+                    &[(0, pbuf), (8, &sb.hist), (14, &sb.keys[src])],
+                );
                 pass.set_pipeline(&p.radix_count);
                 pass.set_bind_group(0, &bg, &[]);
                 pass.dispatch_workgroups(bx, by, 1);
@@ -279,7 +305,11 @@ impl GpuRasterizer {
             sorted_ids: sb.vals[last].clone(),
             sorted_keys: sb.keys[last].clone(),
             offsets: storage(&self.device, "offsets", (u64::from(view.n_pix) + 1) * 4),
-            block_sums: storage(&self.device, "block_sums", (u64::from(view.n_blocks) + 1) * 4),
+            block_sums: storage(
+                &self.device,
+                "block_sums",
+                (u64::from(view.n_blocks) + 1) * 4,
+            ),
             dummy: storage(&self.device, "dummy", 16),
         };
         self.noise(&binned.offsets, SEED_SALT + 2);
@@ -303,6 +333,7 @@ impl GpuRasterizer {
         let view = self.begin_view(k, w2c)?;
         self.noise(&self.splats, SEED_SALT);
         self.noise(&self.isect, SEED_SALT + 1);
+        self.upload_sort_depths(w2c);
         let total = self.project_count(&view)?;
         let b = self.sort_tiles(&view, total)?;
         let n = u64::from(total);
