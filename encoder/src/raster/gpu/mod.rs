@@ -344,7 +344,8 @@ pub fn adapter_names() -> Result<Vec<String>> {
 impl GpuRasterizer {
     /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
     /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
-    /// scratch).
+    /// scratch: splat, tile rect, tile count, sort depth; the sort's buffers, `24 B` per tile
+    /// intersection, are allocated for the first view and grown when a view needs more).
     ///
     /// Errors: [`Error::Gpu`] when no Vulkan adapter exists (install `mesa-vulkan-drivers`), the
     /// device cannot be created, or the scene exceeds the device's buffer limits;
