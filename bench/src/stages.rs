@@ -97,9 +97,9 @@ pub struct TorchClip {
 pub struct RasterPhases {
     /// Views timed.
     pub views: usize,
-    /// Projection kernel + tile-rect readback.
+    /// Projection kernel, tile-count scan and the total's readback.
     pub project_ms: f64,
-    /// Host tile binning and depth sort.
+    /// Tile binning and depth sort, host side (sort depths, recording the GPU passes).
     pub bin_sort_ms: f64,
     /// Count pass, prefix sum, offsets readback.
     pub count_scan_ms: f64,
@@ -440,7 +440,7 @@ pub fn markdown(
     if phases.views > 0 {
         s += &format!(
             "\nRaster phases of the per-pixel-list path (top-K), the rasterizer alone over {} views (ms / view): projection {:.1}, \
-             host tile binning + depth sort {:.1}, count + prefix sum {:.1}, write + readback \
+             binning + depth sort (host side) {:.1}, count + prefix sum {:.1}, write + readback \
              {:.1}; whole call {:.1}. {:.2} M entries and {:.0} pixels per view.\n",
             phases.views,
             phases.project_ms,

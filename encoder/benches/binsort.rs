@@ -1,4 +1,4 @@
-//! Host tile binning + depth sort of the GPU rasterizer (step 2 of `raster::gpu`): the chunked
+//! Host tile binning + depth sort, the reference of the GPU rasterizer's step 2 (`raster::gpu`): the chunked
 //! counting sort (`bin_and_sort`) against one global sort of 128-bit keys
 //! (`bin_and_sort_reference`), on synthetic tile rects shaped like the 2M-Gaussian, 250-view scene
 //! of docs/results/gpu-models.md (raster 495 × 371 at scale 0.5: 31 × 24 tiles, 1–4 × 1–3 tiles per

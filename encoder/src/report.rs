@@ -480,7 +480,7 @@ pub struct WorkerShare {
     /// write) as `total` minus their maximum.
     pub last_s: f64,
     /// A rasterizer's phases summed over its images, in ms (GPU rasterizer only; `None` for
-    /// front workers): where its per-image time goes (project, host binning and sort,
+    /// front workers): where its per-image time goes (project, binning and sort on the GPU,
     /// count/scan, write or label sums, each with its readback).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub raster_phases_ms: Option<crate::raster::PhaseTimings>,

@@ -13,7 +13,7 @@ use super::{PixelWeights, WeightRasterizer, validate_raster};
 
 /// Reference implementation of the weight rasterizer in f64: project every Gaussian
 /// ([`project_gaussian`]), bin it into every 16×16 tile its radius box touches, sort each tile's
-/// list by `(depth, id)`, then blend front to back per pixel. Tiles run in parallel (rayon); each
+/// list by `(depth rounded to f32, id)` (the GPU's sort key), then blend front to back per pixel. Tiles run in parallel (rayon); each
 /// tile is a plain per-pixel loop.
 #[derive(Debug, Clone)]
 pub struct CpuRasterizer {
@@ -59,13 +59,13 @@ impl WeightRasterizer for CpuRasterizer {
         validate_raster(k)?;
         let splats = self.project_all(k, w2c);
         let (tx, ty) = tile_grid(k.width, k.height);
-        let mut bins: Vec<Vec<(f64, u32)>> = vec![Vec::new(); (tx * ty) as usize];
+        let mut bins: Vec<Vec<(f32, u32)>> = vec![Vec::new(); (tx * ty) as usize];
         for (id, s) in splats.iter().enumerate() {
             let Some(s) = s else { continue };
             let [x0, y0, x1, y1] = tile_rect(s.mean2d, s.radius, tx, ty);
             for y in y0..y1 {
                 for x in x0..x1 {
-                    bins[(y * tx + x) as usize].push((s.depth, id as u32));
+                    bins[(y * tx + x) as usize].push((s.depth as f32, id as u32));
                 }
             }
         }

@@ -1,10 +1,14 @@
 // slag weight rasterizer kernels (see gpu/mod.rs): the declarations every kernel shares; the module is
-// this file joined with label_sums.wgsl, project.wgsl, blend.wgsl and scan.wgsl, in that order.
+// this file joined with label_sums.wgsl, project.wgsl, blend.wgsl, scan.wgsl and sort.wgsl, in that
+// order.
 // f32 mirror of project.rs; gsplat 1.x conventions.
 //
 // Entry points, in dispatch order:
-//   project      one thread per Gaussian: EWA projection -> splats[] (mean2d, opacity, axes) and
-//                isect[] (packed tile rect) read back for CPU binning.
+//   project      one thread per Gaussian: EWA projection -> splats[] (mean2d, opacity, depth, axes),
+//                isect[] (packed tile rect) and offsets[i] (its number of tiles).
+//   scan_*       (over the Gaussians' tile counts) exclusive offsets, total intersections.
+//   emit, radix_count, scan_*, radix_scatter, tile_bounds   tile binning and depth sort
+//                (sort.wgsl): the intersections' (tile, depth) keys radix-sorted, tile ranges.
 //   blend        one 16x16 workgroup per tile, shared-memory batches of 256 splats (gsplat's
 //                rasterize_to_pixels scheme). params.mode == 0: count contributors per pixel into
 //                offsets[p]; mode == 1: write ids/weights into [offsets[p], offsets[p+1]), shifted
@@ -15,7 +19,8 @@
 //                (label_sums.wgsl; 64-bit fixed point, integer atomics: exact and independent of
 //                thread order), so only those records are read back.
 //   scan_local, scan_blocks, scan_add   exclusive prefix sum of offsets[0..n_pixels] in place,
-//                total written to offsets[n_pixels].
+//                total written to offsets[n_pixels] (n_pixels is the length of whatever is scanned:
+//                pixels' contributor counts, Gaussians' tile counts or a radix histogram).
 
 struct Params {
     rot0: vec4<f32>,     // world-to-camera rotation row 0 (xyz), translation.x (w)
@@ -35,10 +40,14 @@ struct Params {
     tile_y0: u32,        // blend, blend_sums: first tile row of this dispatch (a band of rows)
     out_base: u32,       // blend write: entry index of out_ids[0] / out_weights[0]
     out_cap: u32,        // blend_sums: records that fit in records[] after its 4-word header
+    n_keys: u32,         // sort: (Gaussian, tile) intersections of the view
+    shift: u32,          // radix passes: bit of the 64-bit key where this pass's 4-bit digit starts
+    pad0: u32,
+    pad1: u32,
 }
 
 struct Splat {
-    xy_opac: vec4<f32>,  // mean2d.x, mean2d.y, opacity, unused
+    xy_opac: vec4<f32>,  // mean2d.x, mean2d.y, opacity, sort depth (f32, sort.wgsl's key)
     // The inverse 2D covariance in eigen form: unit major axis u (xy), 1/sqrt(λ_major) (z),
     // 1/sqrt(λ_minor) (w); ½dᵀΣ⁻¹d = ½((u·d)²/λ_major + (u⊥·d)²/λ_minor). A sum of squares: no
     // f32 cancellation for needles and sheets, where the (a, b, c) conic form loses ~1e-3 of σ
@@ -68,3 +77,5 @@ const SCAN_BLOCK: u32 = 1024u;
 @group(0) @binding(9) var<storage, read_write> out_ids: array<u32>;
 @group(0) @binding(10) var<storage, read_write> out_weights: array<f32>;
 @group(0) @binding(11) var<storage, read_write> block_sums: array<u32>;
+// Per Gaussian its sort depth: the host's f64 camera-frame depth rounded to f32 (gpu/sort.rs).
+@group(0) @binding(19) var<storage, read> sort_depths: array<f32>;

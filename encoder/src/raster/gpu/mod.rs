@@ -14,17 +14,21 @@
 //! 1. `project` kernel, one thread per Gaussian: the EWA projection of [`super::project`] in f32 →
 //!    per-Gaussian splat (mean2d, opacity, and `Σ2D⁻¹` in eigen form: major axis, `1/√λ` of both
 //!    axes, so that `½dᵀΣ⁻¹d` is a sum of two squares, without the f32 cancellation of the conic
-//!    form for needles and sheets) kept on the GPU, and an 8-byte tile rect read
-//!    back.
-//! 2. Tile binning and depth sort **on the CPU** (per Gaussian, never per pixel): every
-//!    (tile, Gaussian) intersection gets the key `(tile, depth, id)`, ordered by a counting sort
-//!    by tile (chunks of Gaussians in parallel) and a sort of each tile's keys
-//!    ([`project::bin_and_sort`]; 1.24–1.28× faster than one global sort on 2 cores, `cargo
-//!    bench -p slag-encoder --bench binsort`), which gives the per-tile ranges. The depth is computed on the host in f64 by the same function as the CPU
-//!    reference ([`camera_point`]), so the order is bit-identical to the reference's, near-ties
-//!    included; the id makes keys unique, so the order is deterministic. Moving this to the GPU (a
-//!    radix sort of the keys, as gsplat does) is the next step for very large scenes; there the
-//!    depth would become f32 and exact-tie order would still be fixed by the id.
+//!    form for needles and sheets) and its tile rect, kept on the GPU, and its number of tiles.
+//!    The splat also carries the sort depth: the f64 camera-frame depth of
+//!    [`super::project::camera_point`] rounded to f32, computed on the host (one multiply-add per
+//!    Gaussian and axis, in parallel) and uploaded, 4 bytes per Gaussian: the GPU's own f32 `t.z`
+//!    can be a few f32 steps off, and a two-float evaluation in WGSL is not safe from the
+//!    drivers' algebraic rewriting.
+//! 2. Tile binning and depth sort **on the GPU** ([`sort`], `sort.wgsl`): an exclusive prefix sum
+//!    of the tile counts (the `scan_*` kernels) gives each Gaussian its slots; only the total (one
+//!    u32) is read back, to size the buffers. The `emit` kernel writes one 64-bit key per
+//!    (tile, Gaussian) intersection, `tile << 32 | f32 depth bits`, with the Gaussian id as value,
+//!    in id order; a stable LSD radix sort (4 bits a pass, 8 passes over the depth and as many
+//!    over the tile id as the grid needs) orders them by (tile, depth), equal f32 depths by id;
+//!    `tile_bounds` finds each tile's `[start, end)` range. The blend kernels read the sorted ids
+//!    and the ranges where they lie. [`project::bin_and_sort`] (the same order) is the host
+//!    reference the tests compare with.
 //! 3. `blend` kernel, one 16×16 workgroup per tile, splats streamed through shared memory in
 //!    batches of 256 (gsplat `rasterize_to_pixels`), front to back, stopping a pixel at `T < 1e-4`
 //!    and the whole tile once every pixel has stopped. Run twice: a count pass (contributors per
@@ -52,8 +56,9 @@
 //! offsets array) exceeds them is an [`Error::Limit`] naming the limit (the command line adds
 //! that `--raster-scale` lowers the need).
 //!
-//! One file per pass, each beside its WGSL: [`project`] (step 1, `project.wgsl`, and the CPU
-//! binning of step 2), `count_scan` (step 3a, the count mode of `blend.wgsl` + `scan.wgsl`),
+//! One file per pass, each beside its WGSL: [`project`] (the host reference of step 2,
+//! [`project::bin_and_sort`]), `sort` (steps 1 and 2: `project.wgsl`, `scan.wgsl`, `sort.wgsl`),
+//! `count_scan` (step 3a, the count mode of `blend.wgsl` + `scan.wgsl`),
 //! `write` (step 3b, the banded write mode of `blend.wgsl`), `label_sums` (step 3', the
 //! `blend_sums` kernel of `label_sums.wgsl`), `buffers` (storage, readback, noise fill). `common.wgsl`
 //! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
@@ -71,11 +76,12 @@ mod buffers;
 mod count_scan;
 mod label_sums;
 pub mod project;
+mod sort;
 mod write;
 
 use buffers::{OutBuffers, storage, storage_init};
 use label_sums::{INITIAL_LABEL_RECORDS, RecordBuffers};
-use project::bin_and_sort;
+use sort::SortBuffers;
 
 /// The kernels: the WGSL files beside this module, joined (common declarations first).
 const SHADER: &str = concat!(
@@ -84,6 +90,7 @@ const SHADER: &str = concat!(
     include_str!("project.wgsl"),
     include_str!("blend.wgsl"),
     include_str!("scan.wgsl"),
+    include_str!("sort.wgsl"),
 );
 /// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
 const GROUPS_X: u32 = 32768;
@@ -113,11 +120,15 @@ struct Params {
     tile_y0: u32,
     out_base: u32,
     out_cap: u32,
+    n_keys: u32,
+    shift: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
-// `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 12 u32, 128 bytes, no padding.
+// `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 16 u32, 144 bytes, no padding.
 // A field added on one side only changes the size or breaks the test below.
-const _: () = assert!(std::mem::size_of::<Params>() == 128);
+const _: () = assert!(std::mem::size_of::<Params>() == 144);
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
 /// including submission and readback waits), or their sum over runs ([`PhaseTimings::add`]).
@@ -125,9 +136,11 @@ const _: () = assert!(std::mem::size_of::<Params>() == 128);
 /// the host).
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct PhaseTimings {
-    /// Projection kernel + tile-rect readback.
+    /// Projection kernel, the scan of the tile counts and the readback of their total.
     pub project_ms: f64,
-    /// Host binning and depth sort.
+    /// Tile binning and depth sort, host side: the f32 sort depths (computed on the host, one
+    /// multiply-add per Gaussian and axis) and recording and submitting the GPU passes (the
+    /// device's time for them shows in the next phase's wall).
     pub bin_sort_ms: f64,
     /// Count pass, prefix sum, offsets readback.
     pub count_scan_ms: f64,
@@ -159,6 +172,10 @@ struct Pipelines {
     scan_local: wgpu::ComputePipeline,
     scan_blocks: wgpu::ComputePipeline,
     scan_add: wgpu::ComputePipeline,
+    emit: wgpu::ComputePipeline,
+    radix_count: wgpu::ComputePipeline,
+    radix_scatter: wgpu::ComputePipeline,
+    tile_bounds: wgpu::ComputePipeline,
 }
 
 /// 3DGS weight rasterizer on a wgpu device (see the module docs for the kernel sequence).
@@ -171,7 +188,7 @@ pub struct GpuRasterizer {
     name: String,
     limits: wgpu::Limits,
     n: u32,
-    /// Means kept on the host for the f64 sort depth ([`camera_point`]).
+    /// Means kept on the host for the sort depth (`camera_point` in f64, rounded to f32).
     means: Vec<[f32; 3]>,
     /// World-frame centre the uploaded means are relative to (f64; see the module docs, step 0).
     origin: glam::DVec3,
@@ -180,6 +197,14 @@ pub struct GpuRasterizer {
     quats: wgpu::Buffer,
     splats: wgpu::Buffer,
     isect: wgpu::Buffer,
+    /// Per Gaussian its sort depth of the view (f32), written by the host.
+    sort_depths: wgpu::Buffer,
+    /// Per Gaussian its number of tiles, scanned into its first intersection slot (`n + 1`
+    /// words, the total last), and the scan's block sums.
+    tile_counts: wgpu::Buffer,
+    tile_count_sums: wgpu::Buffer,
+    /// The sort's buffers, kept across views (grown on demand).
+    sort: Option<SortBuffers>,
     pipelines: Pipelines,
     noise_seed: Option<u64>,
     band_limit: Option<u64>,
@@ -220,12 +245,14 @@ struct View {
     params_buf: wgpu::Buffer,
 }
 
-/// The buffers of a binned view (step 2's output on the device): tile ranges, depth-sorted ids,
-/// the per-pixel counts / CSR offsets with the scan's block sums, and the placeholders bound
-/// where a mode needs no buffer.
+/// The buffers of a binned view (step 2's output on the device): tile ranges, depth-sorted ids
+/// and keys (`n_keys` of them), the per-pixel counts / CSR offsets with the scan's block sums,
+/// and the placeholders bound where a mode needs no buffer.
 struct Binned {
     ranges: wgpu::Buffer,
     sorted_ids: wgpu::Buffer,
+    #[cfg_attr(not(test), allow(dead_code))]
+    sorted_keys: wgpu::Buffer,
     offsets: wgpu::Buffer,
     block_sums: wgpu::Buffer,
     dummy: wgpu::Buffer,
@@ -317,7 +344,8 @@ pub fn adapter_names() -> Result<Vec<String>> {
 impl GpuRasterizer {
     /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
     /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
-    /// scratch).
+    /// scratch: splat, tile rect, tile count, sort depth; the sort's buffers, `24 B` per tile
+    /// intersection, are allocated for the first view and grown when a view needs more).
     ///
     /// Errors: [`Error::Gpu`] when no Vulkan adapter exists (install `mesa-vulkan-drivers`), the
     /// device cannot be created, or the scene exceeds the device's buffer limits;
@@ -435,6 +463,13 @@ impl GpuRasterizer {
         let quats = storage_init(&device, "quats", bytemuck::cast_slice(&qu));
         let splats = storage(&device, "splats", n as u64 * 32);
         let isect = storage(&device, "isect", n as u64 * 8);
+        let sort_depths = storage(&device, "sort_depths", n as u64 * 4);
+        let tile_counts = storage(&device, "tile_counts", (n as u64 + 1) * 4);
+        let tile_count_sums = storage(
+            &device,
+            "tile_count_sums",
+            (u64::from(n32.div_ceil(SCAN_BLOCK)) + 1) * 4,
+        );
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("slag-raster kernels"),
             source: wgpu::ShaderSource::Wgsl(SHADER.into()),
@@ -456,6 +491,10 @@ impl GpuRasterizer {
             scan_local: pipe("scan_local"),
             scan_blocks: pipe("scan_blocks"),
             scan_add: pipe("scan_add"),
+            emit: pipe("emit"),
+            radix_count: pipe("radix_count"),
+            radix_scatter: pipe("radix_scatter"),
+            tile_bounds: pipe("tile_bounds"),
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_err("creating the rasterizer kernels/buffers failed", e));
@@ -473,6 +512,10 @@ impl GpuRasterizer {
             quats,
             splats,
             isect,
+            sort_depths,
+            tile_counts,
+            tile_count_sums,
+            sort: None,
             pipelines,
             noise_seed: None,
             band_limit: None,
@@ -567,17 +610,16 @@ impl GpuRasterizer {
         self.noise(&self.splats, SEED_SALT);
         self.noise(&self.isect, SEED_SALT + 1);
 
-        // 1. Projection.
+        // 1. Projection, the Gaussians' tile counts and their total.
         let mut clock = std::time::Instant::now();
         let mut timings = PhaseTimings::default();
-        let isect = self.project(&view)?;
+        self.upload_sort_depths(w2c);
+        let depth_ms = lap(&mut clock);
+        let total = self.project_count(&view)?;
         timings.project_ms = lap(&mut clock);
-        // 2. CPU binning + sort (per Gaussian work only).
-        let (ranges, sorted_ids) =
-            bin_and_sort(&isect, &self.means, w2c, view.tiles_x, view.n_tiles)?;
-        self.check_size("tile intersections", sorted_ids.len() as u64 * 4, k)?;
-        timings.bin_sort_ms = lap(&mut clock);
-        let binned = self.upload_bins(&view, &ranges, &sorted_ids);
+        // 2. Binning and depth sort on the GPU (recorded and submitted; no wait).
+        let binned = self.sort_tiles(&view, total)?;
+        timings.bin_sort_ms = depth_ms + lap(&mut clock);
 
         // 3'. Label sums instead of per-pixel lists: only the compact records are read back.
         if let Some(labels) = labels {
@@ -656,6 +698,10 @@ impl GpuRasterizer {
             tile_y0: 0,
             out_base: 0,
             out_cap: 0,
+            n_keys: 0,
+            shift: 0,
+            pad0: 0,
+            pad1: 0,
         };
         let params_buf = self
             .device
@@ -809,7 +855,7 @@ mod tests {
                 u32s += 1;
             }
         }
-        assert_eq!((vec4s, u32s), (5, 12), "{body}");
+        assert_eq!((vec4s, u32s), (5, 16), "{body}");
         assert_eq!(16 * vec4s + 4 * u32s, std::mem::size_of::<super::Params>());
     }
 }

@@ -1,64 +1,19 @@
-//! Step 1, the `project` kernel (`project.wgsl`: EWA projection of every Gaussian to a splat
-//! and its tile rectangle), and step 2 on the CPU: tile binning and the depth sort.
+//! The host reference of step 2: tile binning and the depth sort on the CPU, in f64 depths
+//! ([`bin_and_sort`]), the order the GPU's binning and radix sort (`sort.rs`, `sort.wgsl`)
+//! reproduces with f32 depths; the tests compare the two, and `cargo bench --bench binsort`
+//! times it.
 
 use rayon::prelude::*;
 use slag_common::camera::WorldToCamera;
 use slag_common::{Error, Resource, Result};
 
 use super::super::project::camera_point;
-use super::buffers::{storage, storage_init};
-use super::{Binned, GROUPS_X, GpuRasterizer, SEED_SALT, View};
-
-impl GpuRasterizer {
-    /// Runs the projection kernel and reads back every Gaussian's packed tile rectangle
-    /// (`[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled).
-    pub(super) fn project(&self, view: &View) -> Result<Vec<[u32; 2]>> {
-        let groups = self.n.div_ceil(256);
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        if groups > 0 {
-            let bg = self.bind(
-                &self.pipelines.project,
-                &[
-                    (0, &view.params_buf),
-                    (1, &self.means_opac),
-                    (2, &self.scales),
-                    (3, &self.quats),
-                    (4, &self.splats),
-                    (5, &self.isect),
-                ],
-            );
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipelines.project);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(groups.min(GROUPS_X), groups.div_ceil(GROUPS_X), 1);
-        }
-        let isect_bytes = self.n as u64 * 8;
-        let read = self.submit_and_read(enc, &[(&self.isect, 0, isect_bytes)])?;
-        let isect: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0]);
-        Ok(isect)
-    }
-
-    /// Uploads the binned view (tile ranges, sorted ids) and allocates the per-pixel offsets
-    /// and the scan's block sums.
-    pub(super) fn upload_bins(&self, view: &View, ranges: &[[u32; 2]], ids: &[u32]) -> Binned {
-        let b = Binned {
-            ranges: storage_init(&self.device, "tile_ranges", bytemuck::cast_slice(ranges)),
-            sorted_ids: storage_init(&self.device, "sorted_ids", bytemuck::cast_slice(ids)),
-            offsets: storage(&self.device, "offsets", (view.n_pix as u64 + 1) * 4),
-            block_sums: storage(&self.device, "block_sums", (view.n_blocks as u64 + 1) * 4),
-            dummy: storage(&self.device, "dummy", 16),
-        };
-        self.noise(&b.offsets, SEED_SALT + 2);
-        self.noise(&b.block_sums, SEED_SALT + 3);
-        b
-    }
-}
 
 /// Tile binning on the CPU: every (tile, Gaussian) intersection of the Gaussians' tile rects
-/// (from the GPU projection; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
+/// (as the GPU projection computes them; `isect[k]` packed `[x0 | y0 << 16, x1 | y1 << 16]`, empty when culled)
 /// ordered by `(tile, depth, id)`. The depth is the f64 camera-frame z of [`camera_point`]
-/// (bit-identical to the CPU reference's; positive f64 bit patterns sort like their values), so
-/// both rasterizers order every tile identically, exact ties included (by id). Returns per-tile
+/// rounded to f32 (the key of the CPU rasterizer and of the GPU's radix sort; positive f32 bit
+/// patterns sort like their values), so all order every tile identically, equal f32 depths by id. Returns per-tile
 /// `[start, end)` ranges into the sorted Gaussian ids (`n_tiles` ranges, tiles row-major with
 /// `tiles_x` per row).
 ///
@@ -192,10 +147,11 @@ fn checked_total(total: u64) -> Result<u64> {
     Ok(total)
 }
 
-/// Gaussian `id`'s sort key within a tile: the f64 bits of its camera-frame depth (clamped at 0)
-/// above its id, so keys order by depth, exact ties by id.
+/// Gaussian `id`'s sort key within a tile: the bits of its f64 camera-frame depth (clamped at 0)
+/// rounded to f32, above its id, so keys order by depth, equal f32 depths by id (the GPU's radix
+/// sort uses the same f32 depths).
 fn depth_key(id: usize, means: &[[f32; 3]], w2c: &WorldToCamera) -> u128 {
-    let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0);
+    let depth = camera_point(means[id].map(f64::from), w2c).z.max(0.0) as f32;
     ((depth.to_bits() as u128) << 32) | id as u128
 }
 

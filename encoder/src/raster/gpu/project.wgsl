@@ -1,8 +1,10 @@
-// `project` (gpu/project.rs): one thread per Gaussian, EWA projection to a splat + tile rect.
+// `project` (gpu/project.rs): one thread per Gaussian, EWA projection to a splat + tile rect, and
+// its number of tiles into offsets[i] (scanned into the intersections' offsets, sort.wgsl).
 
 fn culled(i: u32) {
     splats[i] = Splat(vec4<f32>(0.0), vec4<f32>(0.0));
     isect[i] = vec2<u32>(0u);
+    offsets[i] = 0u;
 }
 
 fn all_finite(v: vec4<f32>) -> bool {
@@ -120,7 +122,12 @@ fn project(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     let y0 = u32(clamp(floor((mean2d.y - radius) / 16.0), 0.0, tyf));
     let x1 = u32(clamp(ceil((mean2d.x + radius) / 16.0), 0.0, txf));
     let y1 = u32(clamp(ceil((mean2d.y + radius) / 16.0), 0.0, tyf));
-    splats[i] = Splat(vec4<f32>(mean2d, mo.w, 0.0), axes);
+    splats[i] = Splat(vec4<f32>(mean2d, mo.w, sort_depths[i]), axes);
     isect[i] = vec2<u32>(x0 | (y0 << 16u), x1 | (y1 << 16u));
+    var tiles = 0u;
+    if (x1 > x0 && y1 > y0) {
+        tiles = (x1 - x0) * (y1 - y0); // at most the grid's tiles
+    }
+    offsets[i] = tiles;
 }
 

@@ -1,5 +1,15 @@
-// `scan_local`, `scan_blocks`, `scan_add` (gpu/count_scan.rs): exclusive prefix sum of the counts.
+// `scan_local`, `scan_blocks`, `scan_add` (gpu/count_scan.rs, gpu/sort.rs): exclusive prefix sum
+// of offsets[0..params.n_pixels] in place (the pixels' contributor counts, the Gaussians' tile
+// counts or a radix histogram), the total to offsets[n_pixels]. Sums saturate at 2^32 - 1, which
+// scan_blocks reports as an overflow (the outputs are then meaningless and the host refuses the
+// view). Buffers: offsets n_pixels + 1 words, block_sums n_blocks + 1 words.
 var<workgroup> sh_scan: array<u32, 256>;
+
+// a + b, or 2^32 - 1 when that overflows.
+fn sat_add(a: u32, b: u32) -> u32 {
+    let s = a + b;
+    return select(s, 0xFFFFFFFFu, s < a);
+}
 
 // Inclusive Hillis-Steele scan of sh_scan[0..256]; every invocation of the workgroup calls it.
 fn scan_shared(lid: u32) {
@@ -10,7 +20,7 @@ fn scan_shared(lid: u32) {
             v = sh_scan[lid - off];
         }
         workgroupBarrier();
-        sh_scan[lid] += v;
+        sh_scan[lid] = sat_add(sh_scan[lid], v);
     }
     workgroupBarrier();
 }
@@ -26,7 +36,7 @@ fn scan_local(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_i
         if (block < params.n_blocks && base + i < params.n_pixels) {
             v[i] = offsets[base + i];
         }
-        sum += v[i];
+        sum = sat_add(sum, v[i]);
     }
     sh_scan[lid] = sum;
     scan_shared(lid);
@@ -43,9 +53,7 @@ fn scan_local(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_i
 }
 
 // One workgroup: exclusive scan of block_sums[0..n_blocks] in place; total to offsets[n_pixels];
-// block_sums[n_blocks] = 1 if the total overflowed u32, else 0. A pixel has at most 2345
-// contributors (each kept splat has alpha >= 1/255 and T stays >= 1e-4), so a block total is
-// < 2.5e6 and a 1024-block chunk total < 2.6e9 < 2^32: only the running carry can overflow.
+// block_sums[n_blocks] = 1 if the total reached 2^32 - 1 (a saturated sum), else 0.
 @compute @workgroup_size(256)
 fn scan_blocks(@builtin(local_invocation_index) lid: u32) {
     var carry = 0u;
@@ -58,7 +66,7 @@ fn scan_blocks(@builtin(local_invocation_index) lid: u32) {
             if (base + i < params.n_blocks) {
                 v[i] = block_sums[base + i];
             }
-            sum += v[i];
+            sum = sat_add(sum, v[i]);
         }
         sh_scan[lid] = sum;
         scan_shared(lid);
@@ -69,11 +77,10 @@ fn scan_blocks(@builtin(local_invocation_index) lid: u32) {
             }
             run += v[i];
         }
-        let total = sh_scan[255];
-        if (carry + total < carry) {
+        carry = sat_add(carry, sh_scan[255]);
+        if (carry == 0xFFFFFFFFu) {
             overflow = 1u;
         }
-        carry += total;
         // Everyone has read sh_scan[255] before the next chunk overwrites sh_scan.
         workgroupBarrier();
     }
