@@ -245,6 +245,41 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
     assert_eq!(b.await.unwrap(), 200);
 }
 
+/// A batch whose request timed out stops at the query it is on: the scan slot is free for the
+/// next request at once, not after every query of the abandoned batch.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_timed_out_batch_stops_scanning_and_frees_the_slot() {
+    let gate = Arc::new(GateEmbedder::new(8));
+    let _open = gate.open_on_drop();
+    let opts = ServeOptions {
+        max_scans: 1,
+        request_timeout: Duration::from_millis(500),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(gate.clone(), opts).await;
+    let client = reqwest::Client::new();
+    let q: Vec<_> = (1..=5)
+        .map(|i| serde_json::json!({"text": format!("t{i}")}))
+        .collect();
+    let r = client
+        .post(format!("http://{addr}/query"))
+        .json(&serde_json::json!({ "queries": q }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 408);
+    assert_eq!(gate.entered(), ["t1"]);
+    // t1 finishes; t2..t5 must not start, and the next request gets the slot.
+    gate.release(2);
+    let r = client
+        .get(format!("http://{addr}/query?text=t9"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(gate.entered(), ["t1", "t9"]);
+}
+
 #[test]
 fn a_blank_token_in_the_environment_refuses_to_start() {
     for blank in ["", "   "] {

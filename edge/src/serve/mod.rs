@@ -47,11 +47,12 @@
 //! gets **503 Service Unavailable** with a `Retry-After` header (whole seconds, at least 1: the
 //! estimated time to drain the queue, from a moving average of recent scan times) and a JSON
 //! error, so the latency of accepted requests stays bounded by the queue length. A waiting
-//! request that reaches the request timeout gets 408 and leaves the queue. `GET /stats` reports
-//! the gate under `"scans"`.
+//! request that reaches the request timeout gets 408 and leaves the queue; a running batch that
+//! reaches it gets 408 and stops after the query it is on, freeing its scan slot. `GET /stats`
+//! reports the gate under `"scans"`.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
@@ -591,6 +592,11 @@ pub(crate) async fn answer(
     let permit = state.admission.admit().await?;
     let st = state.clone();
     let n = qs.len();
+    // The request timeout (or a client gone) drops this future while the blocking task runs:
+    // the guard then marks the batch abandoned, and the task skips the queries it has not begun,
+    // so a timed-out batch frees the scan slot after its current query instead of its last.
+    let abandoned = Arc::new(AtomicBool::new(false));
+    let _guard = AbandonOnDrop(abandoned.clone());
     Ok(
         match tokio::task::spawn_blocking(move || {
             let _permit = permit;
@@ -600,6 +606,11 @@ pub(crate) async fn answer(
             let answers = qs
                 .iter()
                 .map(|q| {
+                    if abandoned.load(Ordering::Relaxed) {
+                        return Err(Error::internal(
+                            "query skipped: its request timed out or its client left",
+                        ));
+                    }
                     query::run_query_framed(
                         &e.store,
                         &e.manifest.model,
@@ -627,6 +638,15 @@ pub(crate) async fn answer(
                 .collect(),
         },
     )
+}
+
+/// Sets its flag when dropped: [`answer`]'s batch was abandoned (see there).
+struct AbandonOnDrop(Arc<AtomicBool>);
+
+impl Drop for AbandonOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
 }
 
 /// `a` holding only what it returns (its lists' capacity shrunk to their length). A threshold
