@@ -107,7 +107,7 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
         .table
         .clone()
         .unwrap_or_else(|| base.output.dir.join("scaling.md"));
-    slag_common::embeddings::write_atomic(&path, md.as_bytes())?;
+    slag_common::io::write_atomic(&path, md.as_bytes())?;
     Ok(md)
 }
 

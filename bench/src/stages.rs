@@ -507,6 +507,6 @@ pub fn run(a: &StagesArgs) -> anyhow::Result<String> {
         torch.as_ref(),
         &command,
     );
-    slag_common::embeddings::write_atomic(&a.table, md.as_bytes())?;
+    slag_common::io::write_atomic(&a.table, md.as_bytes())?;
     Ok(md)
 }

@@ -10,6 +10,7 @@
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
 //! | [`prompt`] | limits on text prompts shared by every query interface |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`io`] | atomic file writes (`.partial`, fsync, rename), used by every format |
 //! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
@@ -25,6 +26,7 @@ pub mod embeddings;
 pub mod error;
 #[cfg(feature = "server")]
 pub mod http;
+pub mod io;
 pub mod mixture;
 pub mod objects;
 #[cfg(feature = "onnx")]

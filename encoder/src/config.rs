@@ -15,7 +15,7 @@ use slag_common::embeddings::StoredPrecision;
 use slag_common::onnx::{ExecutionProvider, Placement};
 
 use crate::aggregate::MaskWeighting;
-use crate::levels::MaskOverlap;
+use crate::aggregate::MaskOverlap;
 
 /// Everything one encode run needs besides the models' and scene's files themselves.
 ///

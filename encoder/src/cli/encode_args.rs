@@ -15,7 +15,7 @@ use slag_encoder::config::{
     AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
     MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
 };
-use slag_encoder::levels::MaskOverlap;
+use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::segments::SegmentParams;
 
 /// `--precision`: stored precision of the embeddings.

@@ -1,12 +1,12 @@
 //! `slag-encoder eval-colors`: colour mIoU of an embeddings file with color-clip (the accuracy
 //! instrument of every speed/accuracy trade), per Gaussian or with `--held-out` per pixel of the
-//! views the encoder never saw ([`slag_encoder::eval_colors`]).
+//! views the encoder never saw ([`slag_encoder::eval::colors`]).
 
 use std::path::PathBuf;
 
 use clap::Args;
 use slag_encoder::config::RasterBackend;
-use slag_encoder::eval_colors::EvalColorsConfig;
+use slag_encoder::eval::colors::EvalColorsConfig;
 
 use super::EpArg;
 
