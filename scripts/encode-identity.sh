@@ -8,9 +8,13 @@
 #   bash scripts/encode-identity.sh /tmp/after      # on the new one
 #   diff /tmp/before/sha256sums /tmp/after/sha256sums && echo identical
 #
+# Every run has one front worker: with several, the images reach the contribution store in the
+# order the workers finish them, which changes the order of the mixture's codebook rows (and
+# may change the last bits of the f64 sums), so two runs of the same binary differ there.
+#
 # The runs:
-#   demo     the demo's encode (scripts/demo.sh): color-sam masks, GPU rasterizer (lavapipe without
-#            a GPU), the default mixture (4 slots) and segments
+#   demo     the demo's encode (scripts/demo.sh) with one front worker: color-sam masks, GPU
+#            rasterizer (lavapipe without a GPU), the default mixture (4 slots) and segments
 #   levels   color-sam masks, --levels (one file per SAM level), CPU rasterizer, f32, --overlap all,
 #            --mask-weighting area, mixture with 8 slots, no segments
 #   cluster  `encode-cluster` with one process (graph masks, CPU rasterizer, f32; one process so
@@ -34,8 +38,8 @@ SAM=(--masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx"
 CLIP=(--clip-visual "$F/clip/color-clip-visual.onnx")
 
 rm -rf "$OUT/demo" "$OUT/levels" "$OUT/cluster"
-"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --quiet --out "$OUT/demo"
-"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --quiet --levels --rasterizer cpu \
+"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --out "$OUT/demo"
+"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --levels --rasterizer cpu \
   --precision f32 --overlap all --mask-weighting area --mixture-keep 8 --segments off \
   --every 2 --out "$OUT/levels"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')

@@ -14,7 +14,7 @@ use slag_encoder::config::{EncodeConfig, GpuCount};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
 
-use crate::encode_args::EncodeArgs;
+use slag_encoder::args::EncodeArgs;
 
 /// Arguments of `slag-bench scaling`.
 #[derive(Debug, Clone, clap::Args)]

@@ -24,7 +24,7 @@ use slag_encoder::pipeline::Encoder;
 use slag_encoder::raster::{GpuRasterizer, WeightRasterizer, raster_intrinsics};
 use slag_encoder::report::Report;
 
-use crate::encode_args::EncodeArgs;
+use slag_encoder::args::EncodeArgs;
 
 /// Arguments of `slag-bench stages`: the encode arguments plus where the floors come from.
 #[derive(Debug, Clone, clap::Args)]

@@ -13,12 +13,14 @@
 //! on an embeddings file, [`eval::synthetic`] makes scenes for scale tests.
 //!
 //! The `slag-encoder` binary's subcommands (in `src/cli/`, private to the binary) only turn
-//! their flags into these types: everything they run is here.
+//! their flags into these types: everything they run is here. [`args`] holds the flags that
+//! other binaries share (`encode`'s) and the flag values mapped to the library's types.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
 
 pub mod aggregate;
+pub mod args;
 pub mod clip;
 pub mod config;
 pub mod distributed;

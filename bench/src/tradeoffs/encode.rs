@@ -4,9 +4,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use slag_common::embeddings::StoredPrecision;
+use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::aggregate::MaskWeighting;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::StageTimings;
 

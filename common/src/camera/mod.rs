@@ -132,7 +132,6 @@ fn discover(scene_dir: &Path) -> Result<Vec<View>> {
     ))
 }
 
-
 /// Keeps every `every`-th view (indices 0, N, 2N, ... of the name-sorted list), the paper's 1:N
 /// image subsampling. `every` = 0 is treated as 1.
 pub fn subsample(views: Vec<View>, every: usize) -> Vec<View> {

@@ -54,17 +54,7 @@ pub struct ImageStageParams {
 }
 
 /// How a pixel covered by several masks contributes (`encode --overlap`).
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskOverlap {
     /// To every mask that covers it (the paper's `a_kj = Σ_{p∈M_j} w_kp`).
@@ -98,17 +88,7 @@ pub fn restrict_to_finest(masks_of: &mut [Vec<u32>], masks: &[Mask]) {
 /// is multiplied by a factor `g_j` before the reduction, so that
 /// `E_k = Σ g_j a_kj E_j / Σ g_j a_kj` (and the stored total weight is `Σ g_j a_kj`). Training
 /// free and single pass: `g_j` depends only on the mask.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskWeighting {
     /// `g_j = 1`: the paper's mean.
@@ -235,7 +215,12 @@ pub fn pixel_labels(masks: &[Mask], width: u32, height: u32) -> PixelLabels {
 /// is cut to its finest mask ([`restrict_to_finest`]); with [`MaskOverlap::All`] it is kept whole.
 /// The one place the rule is applied, for the host image stage ([`image_contribution`]) and for
 /// labels summed on the rasterizer's device alike.
-pub fn overlap_labels(masks: &[Mask], width: u32, height: u32, overlap: MaskOverlap) -> PixelLabels {
+pub fn overlap_labels(
+    masks: &[Mask],
+    width: u32,
+    height: u32,
+    overlap: MaskOverlap,
+) -> PixelLabels {
     let mut labels = pixel_labels(masks, width, height);
     if overlap == MaskOverlap::Finest {
         restrict_to_finest(&mut labels.masks_of, masks);

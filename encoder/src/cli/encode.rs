@@ -5,7 +5,7 @@ use slag_encoder::config::EncodeConfig;
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
 
-pub use super::encode_args::EncodeArgs;
+pub use slag_encoder::args::EncodeArgs;
 
 /// Runs `encode` and returns the report it wrote.
 ///

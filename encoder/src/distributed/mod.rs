@@ -378,8 +378,7 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     report.parameters.cluster_addresses = Some(cluster.addresses.clone());
     report.timings = timings;
     report.counts = counts;
-    let report =
-        files.write_report(report, job.params.precision, Some(cluster_stats), None)?;
+    let report = files.write_report(report, job.params.precision, Some(cluster_stats), None)?;
     Ok(Some(report))
 }
 

@@ -19,8 +19,8 @@ use slag_common::segments::Segments;
 use slag_common::text::TextEncoder;
 
 use crate::config::RasterBackend;
-use crate::pipeline::build::make_rasterizer;
 use crate::eval::{self, heldout};
+use crate::pipeline::build::make_rasterizer;
 
 /// What `eval-colors` evaluates and with which models.
 #[derive(Debug, Clone, PartialEq)]

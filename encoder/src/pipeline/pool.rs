@@ -104,7 +104,9 @@ pub(crate) fn run_pool(
         .iter()
         .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, params.raster_scale))
         .collect::<Result<Vec<_>>>()?;
+    // Under the pipeline's target, where the README's sample output shows this line.
     tracing::info!(
+        target: "slag_encoder::pipeline",
         gaussians = gaussians.len(),
         views = views.len(),
         fronts = fronts.len(),
@@ -301,8 +303,10 @@ pub(crate) fn run_pool(
                         let entries = out.contribution.entries.len();
                         let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
                         if !level_stores.is_empty() {
-                            let parts =
-                                crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
+                            let parts = crate::aggregate::levels::split_by_level(
+                                &out.contribution,
+                                &mask_levels,
+                            )?;
                             for (part, ls) in parts.into_iter().zip(level_stores) {
                                 ls.lock()
                                     .map_err(|_| {
