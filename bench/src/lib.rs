@@ -13,12 +13,9 @@
 //!   against each other in one run, plus the embeddings write.
 //!
 //! The binary `slag-bench` exposes each study as a subcommand (`slag-bench tradeoffs …`).
-//! `stages` and `scaling` take `slag-encoder encode`'s flags: [`encode_args`] is the encoder
-//! binary's own flag definition (its source file, included here, since the encoder library does
-//! not expose its command line), converted into a `slag_encoder::config::EncodeConfig`.
+//! `stages` and `scaling` take `slag-encoder encode`'s flags: `slag_encoder::args::EncodeArgs`,
+//! the encoder's own flag definition, converted into a `slag_encoder::config::EncodeConfig`.
 
-#[path = "../../encoder/src/cli/encode_args.rs"]
-pub mod encode_args;
 pub mod machine;
 pub mod reduce;
 pub mod scaling;

@@ -14,7 +14,7 @@ use slag_encoder::config::{EncodeConfig, GpuCount};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
 
-use crate::encode_args::EncodeArgs;
+use slag_encoder::args::EncodeArgs;
 
 /// Arguments of `slag-bench scaling`.
 #[derive(Debug, Clone, clap::Args)]
@@ -107,7 +107,7 @@ pub fn run(a: &ScalingArgs) -> anyhow::Result<String> {
         .table
         .clone()
         .unwrap_or_else(|| base.output.dir.join("scaling.md"));
-    slag_common::embeddings::write_atomic(&path, md.as_bytes())?;
+    slag_common::io::write_atomic(&path, md.as_bytes())?;
     Ok(md)
 }
 

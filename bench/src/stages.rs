@@ -24,7 +24,7 @@ use slag_encoder::pipeline::Encoder;
 use slag_encoder::raster::{GpuRasterizer, WeightRasterizer, raster_intrinsics};
 use slag_encoder::report::Report;
 
-use crate::encode_args::EncodeArgs;
+use slag_encoder::args::EncodeArgs;
 
 /// Arguments of `slag-bench stages`: the encode arguments plus where the floors come from.
 #[derive(Debug, Clone, clap::Args)]
@@ -507,6 +507,6 @@ pub fn run(a: &StagesArgs) -> anyhow::Result<String> {
         torch.as_ref(),
         &command,
     );
-    slag_common::embeddings::write_atomic(&a.table, md.as_bytes())?;
+    slag_common::io::write_atomic(&a.table, md.as_bytes())?;
     Ok(md)
 }

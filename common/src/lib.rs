@@ -10,9 +10,11 @@
 //! | [`similarity`] | cosine scoring of text against per-Gaussian embeddings |
 //! | [`prompt`] | limits on text prompts shared by every query interface |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
+//! | [`io`] | atomic file writes (`.partial`, fsync, rename), used by every format |
 //! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
+//! | `cli` | command-line values shared by the binaries (`--ep`), behind the `clap` feature |
 //! | [`doc_flags`] | checks the command lines the manual shows against the binaries' `--help` |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
@@ -22,11 +24,14 @@
 
 pub mod auth;
 pub mod camera;
+#[cfg(all(feature = "clap", feature = "onnx"))]
+pub mod cli;
 pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
 #[cfg(feature = "server")]
 pub mod http;
+pub mod io;
 pub mod mixture;
 pub mod objects;
 #[cfg(feature = "onnx")]

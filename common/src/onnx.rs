@@ -22,10 +22,8 @@ use crate::{Error, Result};
 /// Which ONNX Runtime execution provider runs a model: what the user asks for (`--ep`), and, with
 /// [`OnnxModel::provider`], what actually runs it (never [`ExecutionProvider::Auto`] there).
 ///
-/// With the `clap` feature it is also the `--ep` value of every binary (`cpu`, `cuda`,
-/// `tensorrt`, `auto`).
+/// The binaries' `--ep` is `slag_common::cli::EpArg` (feature `clap`), mapped to this.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum ExecutionProvider {
     /// The default CPU provider.
@@ -41,7 +39,6 @@ pub enum ExecutionProvider {
     /// fp16 engines cached beside the model (`<model>.trt-cache/`); nodes TensorRT cannot take
     /// fall back to CUDA. An error where TensorRT does not register.
     #[serde(rename = "tensorrt")]
-    #[cfg_attr(feature = "clap", value(name = "tensorrt"))]
     TensorRt,
     /// CUDA when the loaded runtime has it and it registers on the GPU, otherwise the CPU, with one
     /// log line per process saying why.

@@ -10,7 +10,7 @@ use half::f16;
 use safetensors::SafeTensors;
 use safetensors::tensor::{Dtype, TensorView};
 
-use crate::embeddings::write_atomic;
+use crate::io::write_atomic;
 use crate::{Error, Result};
 
 /// What a slag safetensors file must declare in its `__metadata__`, and the words its errors use.

@@ -18,7 +18,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use slag_common::onnx::ExecutionProvider as EpArg;
+use slag_common::cli::EpArg;
 use slag_common::similarity::PAPER_THRESHOLD;
 use slag_common::text::TextEncoder;
 use slag_edge::config::{ServeConfig, read_token};
@@ -271,7 +271,7 @@ fn text_embedder(
     tokenizer: &std::path::Path,
     ep: EpArg,
 ) -> anyhow::Result<Arc<dyn TextEmbedder>> {
-    let enc = TextEncoder::new(model, tokenizer, ep)?;
+    let enc = TextEncoder::new(model, tokenizer, ep.into())?;
     let name = model
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())

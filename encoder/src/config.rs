@@ -14,8 +14,8 @@ use serde::{Deserialize, Serialize};
 use slag_common::embeddings::StoredPrecision;
 use slag_common::onnx::{ExecutionProvider, Placement};
 
+use crate::aggregate::MaskOverlap;
 use crate::aggregate::MaskWeighting;
-use crate::levels::MaskOverlap;
 
 /// Everything one encode run needs besides the models' and scene's files themselves.
 ///
@@ -209,13 +209,12 @@ impl Default for SceneConfig {
 }
 
 /// Where the masks come from (stage: masks).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskSource {
     /// SAM automatic mask generation over [`SamConfig::encoder`] / [`SamConfig::decoder`]
     /// (the default, as in the paper).
     #[default]
-    #[value(help = "SAM automatic mask generation over `--sam-encoder` / `--sam-decoder`")]
     Sam,
     /// Felzenszwalb-Huttenlocher graph segmentation (no model, fast, CPU).
     Graph,
@@ -360,7 +359,7 @@ pub struct ClipConfig {
 }
 
 /// Which weight rasterizer runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum RasterBackend {
     /// wgpu compute (Vulkan: a GPU, or Mesa lavapipe on CPU-only machines).

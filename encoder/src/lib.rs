@@ -7,25 +7,24 @@
 //! [`config::EncodeConfig`] holds every setting of a run, grouped by those stages;
 //! [`pipeline::Encoder`] checks and runs it over a scene, [`report`] records what ran.
 //! [`distributed::ClusterEncoder`] runs the same map/reduce over several processes (timely
-//! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] measures colour
-//! mIoU with color-clip per Gaussian, [`heldout`] per pixel of views never encoded (2D
-//! held-out), [`eval_colors`] runs both on an embeddings file.
+//! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] holds evaluation
+//! and research apart from the stages: colour mIoU with color-clip per Gaussian,
+//! [`eval::heldout`] per pixel of views never encoded (2D held-out), [`eval::colors`] runs both
+//! on an embeddings file, [`eval::synthetic`] makes scenes for scale tests.
 //!
 //! The `slag-encoder` binary's subcommands (in `src/cli/`, private to the binary) only turn
-//! their flags into these types: everything they run is here.
+//! their flags into these types: everything they run is here. [`args`] holds the flags that
+//! other binaries share (`encode`'s) and the flag values mapped to the library's types.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
 
 pub mod aggregate;
+pub mod args;
 pub mod clip;
 pub mod config;
 pub mod distributed;
 pub mod eval;
-pub mod eval_colors;
-pub mod heldout;
-pub mod heldout_variants;
-pub mod levels;
 pub mod masks;
 pub mod pipeline;
 pub mod prediction_filtering;
@@ -33,6 +32,4 @@ pub mod preprocess;
 pub mod query;
 pub mod raster;
 pub mod report;
-pub mod robust;
 pub mod segments;
-pub mod synthetic;

@@ -91,13 +91,13 @@ fn main() -> std::process::ExitCode {
         }),
         Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) if a.held_out => {
-            slag_encoder::eval_colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
+            slag_encoder::eval::colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
         }
         Command::EvalColors(a) if a.prediction_filtering => {
-            slag_encoder::eval_colors::run_pf(&a.into()).and_then(|o| print_json(&o))
+            slag_encoder::eval::colors::run_pf(&a.into()).and_then(|o| print_json(&o))
         }
         Command::EvalColors(a) => {
-            slag_encoder::eval_colors::run(&a.into()).and_then(|o| print_json(&o))
+            slag_encoder::eval::colors::run(&a.into()).and_then(|o| print_json(&o))
         }
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {

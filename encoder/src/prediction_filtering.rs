@@ -3,7 +3,7 @@
 //! segments: every segment takes the majority class of its Gaussians.
 //!
 //! The score tables here are `[scene Gaussians × C]`, row `k` for `.ply` Gaussian `k` (the
-//! layout of [`crate::heldout::gaussian_scores`]); `observed[k]` says whether Gaussian `k` has an
+//! layout of [`crate::eval::heldout::gaussian_scores`]); `observed[k]` says whether Gaussian `k` has an
 //! embedding. Unobserved Gaussians do not vote, and receive their segment's answer when the
 //! segment has observed members (a segment without any stays at zero, as unobserved Gaussians are
 //! without PF). Three tables are scored by `eval-colors --held-out --prediction-filtering`:

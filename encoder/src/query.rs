@@ -47,7 +47,7 @@ pub struct QueryParams {
 }
 
 /// Whether a Gaussian's score is its own or smoothed within its segment.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Smooth {
     /// Each Gaussian's own cosine (the paper's query).

@@ -271,7 +271,7 @@ pub struct Parameters {
     /// [`crate::config::AggregateConfig::mixture_keep`].
     pub mixture_keep: Option<usize>,
     /// [`crate::config::AggregateConfig::overlap`].
-    pub overlap: crate::levels::MaskOverlap,
+    pub overlap: crate::aggregate::MaskOverlap,
     /// [`crate::config::RasterConfig::scale`].
     pub raster_scale: f64,
     /// [`crate::config::SamConfig::box_nms_thresh`].
@@ -579,7 +579,7 @@ mod tests {
                 sam_pred_iou_thresh: f64::from(0.88f32),
                 mask_weighting: crate::aggregate::MaskWeighting::None,
                 min_weight: 1e-6,
-                overlap: crate::levels::MaskOverlap::Finest,
+                overlap: crate::aggregate::MaskOverlap::Finest,
                 raster_scale: 0.5,
                 threads: 2,
                 ..Default::default()

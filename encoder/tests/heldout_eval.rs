@@ -8,9 +8,9 @@
 
 mod support;
 
+use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::eval_colors::{EvalColorsConfig, run_held_out};
-use slag_encoder::levels::MaskOverlap;
+use slag_encoder::eval::colors::{EvalColorsConfig, run_held_out};
 use slag_encoder::pipeline::Encoder;
 use support::{ort_available, shared};
 

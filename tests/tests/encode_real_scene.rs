@@ -5,7 +5,7 @@
 #![allow(clippy::unwrap_used)]
 
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::eval_colors::EvalColorsConfig;
+use slag_encoder::eval::colors::EvalColorsConfig;
 use slag_tests::{color_sam, encode, fixture, graph_config, shared};
 
 fn snowmiku() -> std::path::PathBuf {
@@ -17,7 +17,7 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         color_clip: Some(shared().join("fixtures/clip")),
         ..EvalColorsConfig::new(snowmiku(), out.join("embeddings.safetensors"))
     };
-    slag_encoder::eval_colors::run(&a).expect("eval-colors")
+    slag_encoder::eval::colors::run(&a).expect("eval-colors")
 }
 
 /// The CI subset: every 12th image (9 views), raster scale 0.25.

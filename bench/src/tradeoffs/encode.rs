@@ -4,9 +4,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use slag_common::embeddings::StoredPrecision;
+use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::aggregate::MaskWeighting;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::levels::MaskOverlap;
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::StageTimings;
 
@@ -263,7 +263,7 @@ pub fn run_point(
         contributors_per_pixel: r.counts.contributors_per_pixel,
         stages: r.timings,
     };
-    slag_common::embeddings::write_atomic(&record_path, &serde_json::to_vec_pretty(&rec)?)?;
+    slag_common::io::write_atomic(&record_path, &serde_json::to_vec_pretty(&rec)?)?;
     Ok((rec, false))
 }
 

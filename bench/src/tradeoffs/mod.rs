@@ -382,7 +382,7 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
                     scan_ms,
                     sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
                 };
-                slag_common::embeddings::write_atomic(
+                slag_common::io::write_atomic(
                     &dir.join(encode::EVAL_FILE),
                     &serde_json::to_vec(&e)?,
                 )?;
@@ -509,8 +509,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let md = output::markdown(&header, &rows, &footprint);
     let csv_path = a.out.join("tradeoffs.csv");
     let md_path = a.out.join("tradeoffs.md");
-    slag_common::embeddings::write_atomic(&csv_path, csv.as_bytes())?;
-    slag_common::embeddings::write_atomic(&md_path, md.as_bytes())?;
+    slag_common::io::write_atomic(&csv_path, csv.as_bytes())?;
+    slag_common::io::write_atomic(&md_path, md.as_bytes())?;
     Ok(format!(
         "wrote {} and {} ({} points, {:.0} s)",
         md_path.display(),

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
 
-use crate::Result;
+use crate::{Error, Result};
 
 /// Pinhole intrinsics in pixels, for an image of `width` x `height`.
 /// Pixel centres are at integer + 0.5 (COLMAP convention: the top-left pixel's centre is (0.5, 0.5)).
@@ -90,7 +90,46 @@ pub struct View {
 /// `colmap image_undistorter`); truncated binary files, unknown camera ids, duplicate names, bad
 /// numbers ([`crate::Error::Format`]); I/O.
 pub fn load_views(scene_dir: &Path) -> Result<Vec<View>> {
-    sources::load(scene_dir)
+    discover(scene_dir)
+}
+
+/// Which file of `scene_dir` describes its posed images (COLMAP binary, then text, in `sparse/0`
+/// then `sparse`; then `transforms.json`), read by its reader.
+fn discover(scene_dir: &Path) -> Result<Vec<View>> {
+    if !scene_dir.is_dir() {
+        return Err(Error::io(
+            scene_dir,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "scene folder not found"),
+        ));
+    }
+    let images = scene_dir.join("images");
+    let mut looked: Vec<PathBuf> = Vec::new();
+    for sparse in [scene_dir.join("sparse").join("0"), scene_dir.join("sparse")] {
+        let (cb, ib) = (sparse.join("cameras.bin"), sparse.join("images.bin"));
+        if cb.is_file() && ib.is_file() {
+            return colmap::load_binary(&cb, &ib, &images);
+        }
+        let (ct, it) = (sparse.join("cameras.txt"), sparse.join("images.txt"));
+        if ct.is_file() && it.is_file() {
+            return colmap::load_text(&ct, &it, &images);
+        }
+        looked.extend([cb, ib, ct, it]);
+    }
+    let transforms = scene_dir.join("transforms.json");
+    if transforms.is_file() {
+        return nerfstudio::load(&transforms, scene_dir);
+    }
+    looked.push(transforms);
+    let list: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
+    Err(Error::format(
+        scene_dir,
+        format!(
+            "no camera poses found; looked for a COLMAP model (cameras.bin + images.bin or \
+             cameras.txt + images.txt) and a nerfstudio transforms.json: {}. Run COLMAP (then \
+             `colmap image_undistorter`) or `ns-process-data` on the images first",
+            list.join(", ")
+        ),
+    ))
 }
 
 /// Keeps every `every`-th view (indices 0, N, 2N, ... of the name-sorted list), the paper's 1:N

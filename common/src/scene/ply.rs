@@ -715,7 +715,7 @@ pub(super) fn write_highlighted(
             rec[off..off + size].fill(0);
         }
     }
-    crate::embeddings::write_atomic(dst, &bytes)
+    crate::io::write_atomic(dst, &bytes)
 }
 
 /// See [`super::float_vertex_header`].
@@ -784,7 +784,7 @@ pub(super) fn write(path: &Path, g: &Gaussians) -> Result<()> {
             .for_each(|&s| put((s as f64).max(1e-30).ln()));
         g.rotations[i].iter().for_each(|&q| put(q as f64));
     }
-    crate::embeddings::write_atomic(path, &bytes)
+    crate::io::write_atomic(path, &bytes)
 }
 
 #[cfg(test)]

@@ -461,7 +461,7 @@ fn report_partition(
     println!("{report}");
     if let Some(path) = &args.report {
         let json = serde_json::to_vec_pretty(&report).context("report JSON")?;
-        slag_common::embeddings::write_atomic(path, &json)?;
+        slag_common::io::write_atomic(path, &json)?;
     }
     Ok(report)
 }

@@ -49,25 +49,46 @@ pub struct ImageStageParams {
     /// Specificity weighting of each mask's `a_kj` (default: none, the paper's rule).
     pub mask_weighting: MaskWeighting,
     /// Which of the masks covering a pixel receive its weights (default: all, the paper's
-    /// rule; [`crate::levels::MaskOverlap`]).
-    pub overlap: crate::levels::MaskOverlap,
+    /// rule; [`MaskOverlap`]).
+    pub overlap: MaskOverlap,
+}
+
+/// How a pixel covered by several masks contributes (`encode --overlap`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MaskOverlap {
+    /// To every mask that covers it (the paper's `a_kj = Σ_{p∈M_j} w_kp`).
+    #[default]
+    All,
+    /// Only to the smallest covering mask (fewest pixels; ties: the lower mask index).
+    Finest,
+}
+
+/// Restricts every pixel label's mask set to its smallest mask ([`MaskOverlap::Finest`]).
+///
+/// `masks_of[s]` lists the masks covering the pixels of label `s` (as
+/// [`crate::aggregate::PixelLabels`] holds them); afterwards each non-empty set holds exactly one
+/// mask: the one of least [`Mask::area`] (ties: the lower index). Mask indices outside `masks`
+/// are dropped.
+pub fn restrict_to_finest(masks_of: &mut [Vec<u32>], masks: &[Mask]) {
+    for set in masks_of.iter_mut() {
+        let finest = set
+            .iter()
+            .copied()
+            .filter_map(|j| masks.get(j as usize).map(|m| (m.area, j)))
+            .min();
+        set.clear();
+        if let Some((_, j)) = finest {
+            set.push(j);
+        }
+    }
 }
 
 /// Specificity weighting of the image stage (`encode --mask-weighting`): every `a_kj` of mask `j`
 /// is multiplied by a factor `g_j` before the reduction, so that
 /// `E_k = Σ g_j a_kj E_j / Σ g_j a_kj` (and the stored total weight is `Σ g_j a_kj`). Training
 /// free and single pass: `g_j` depends only on the mask.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum MaskWeighting {
     /// `g_j = 1`: the paper's mean.
@@ -190,6 +211,23 @@ pub fn pixel_labels(masks: &[Mask], width: u32, height: u32) -> PixelLabels {
     PixelLabels { labels, masks_of }
 }
 
+/// [`pixel_labels`] under the overlap rule: with [`MaskOverlap::Finest`] each label's mask set
+/// is cut to its finest mask ([`restrict_to_finest`]); with [`MaskOverlap::All`] it is kept whole.
+/// The one place the rule is applied, for the host image stage ([`image_contribution`]) and for
+/// labels summed on the rasterizer's device alike.
+pub fn overlap_labels(
+    masks: &[Mask],
+    width: u32,
+    height: u32,
+    overlap: MaskOverlap,
+) -> PixelLabels {
+    let mut labels = pixel_labels(masks, width, height);
+    if overlap == MaskOverlap::Finest {
+        restrict_to_finest(&mut labels.masks_of, masks);
+    }
+    labels
+}
+
 /// Checks the image stage's inputs: one embedding of width `dim` per mask, masks of one size.
 pub(crate) fn check_image_inputs(
     masks: &[Mask],
@@ -268,11 +306,8 @@ pub fn image_contribution(
     }
     let PixelLabels {
         labels: pixel_sig,
-        mut masks_of,
-    } = pixel_labels(masks, w, h);
-    if params.overlap == crate::levels::MaskOverlap::Finest {
-        crate::levels::restrict_to_finest(&mut masks_of, masks);
-    }
+        masks_of,
+    } = overlap_labels(masks, w, h, params.overlap);
 
     // Σ_p w_kp per (Gaussian, label), row bands in parallel, f64 sums.
     let band = (h as usize)

@@ -19,17 +19,21 @@
 //! image), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
 //! reduction, spilling to disk beyond a budget), [`reduce`] (the f64 reduction to `E_k`, in
 //! memory or streamed to the embeddings file) and [`mixture`] (the same reduction kept as a sparse
-//! mixture). The rasterizer is driven by the pipeline's back stage
+//! mixture). Beyond the paper's mean: [`levels`] (SAM's granularity levels reduced apart, and
+//! combined at query time) and [`robust`] (the weighted mode of a Gaussian's mask embeddings
+//! instead of their mean). The rasterizer is driven by the pipeline's back stage
 //! ([`crate::pipeline::view_contribution`]), not from here: this module is the paper's math only.
 
 pub mod image;
+pub mod levels;
 pub mod mixture;
 pub mod reduce;
+pub mod robust;
 pub mod store;
 
 pub use image::{
-    Entry, ImageContribution, ImageStageParams, MaskWeighting, PixelLabels, image_contribution,
-    pixel_labels,
+    Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
+    image_contribution, overlap_labels, pixel_labels,
 };
 pub use mixture::reduce_mixture;
 pub use reduce::{ReduceParams, Reduced, Streamed, reduce, reduce_each, reduce_to_writer};

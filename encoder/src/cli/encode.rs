@@ -5,7 +5,7 @@ use slag_encoder::config::EncodeConfig;
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
 
-pub use super::encode_args::EncodeArgs;
+pub use slag_encoder::args::EncodeArgs;
 
 /// Runs `encode` and returns the report it wrote.
 ///
@@ -154,7 +154,7 @@ mod tests {
             a.mask_weighting,
             slag_encoder::aggregate::MaskWeighting::Area
         );
-        assert_eq!(a.overlap, slag_encoder::levels::MaskOverlap::All);
+        assert_eq!(a.overlap, slag_encoder::aggregate::MaskOverlap::All);
         assert_eq!(a.min_weight, 0.01);
         assert_eq!(
             (a.contribution_memory_mb, a.accumulator_memory_mb),

@@ -1,12 +1,12 @@
 //! `slag-encoder eval-colors`: colour mIoU of an embeddings file with color-clip (the accuracy
 //! instrument of every speed/accuracy trade), per Gaussian or with `--held-out` per pixel of the
-//! views the encoder never saw ([`slag_encoder::eval_colors`]).
+//! views the encoder never saw ([`slag_encoder::eval::colors`]).
 
 use std::path::PathBuf;
 
 use clap::Args;
-use slag_encoder::config::RasterBackend;
-use slag_encoder::eval_colors::EvalColorsConfig;
+use slag_encoder::args::RasterArg;
+use slag_encoder::eval::colors::EvalColorsConfig;
 
 use super::EpArg;
 
@@ -54,8 +54,8 @@ pub struct EvalArgs {
     #[arg(long)]
     pub raster_scale: Option<f64>,
     /// Weight rasterizer for the held-out renders and the oracle.
-    #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
-    pub rasterizer: RasterBackend,
+    #[arg(long, value_enum, default_value_t = RasterArg::Gpu)]
+    pub rasterizer: RasterArg,
     /// More embeddings files of the same scene and --every to score in the same held-out pass
     /// (held-out only; listed under `variants` by path). Forms beside the main embeddings are
     /// scored too: `embeddings-level{0,1,2}.safetensors` (`encode --levels`) and
@@ -82,10 +82,10 @@ impl From<&EvalArgs> for EvalColorsConfig {
             clip_textual: a.clip_textual.clone(),
             tokenizer: a.tokenizer.clone(),
             classes: a.classes.clone(),
-            ep: a.ep,
+            ep: a.ep.into(),
             every: a.every,
             raster_scale: a.raster_scale,
-            rasterizer: a.rasterizer,
+            rasterizer: a.rasterizer.into(),
             compare: a.compare.clone(),
             prediction_filtering: a.prediction_filtering,
             segments: a.segments.clone(),

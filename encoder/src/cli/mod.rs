@@ -3,7 +3,6 @@
 
 pub mod cluster;
 pub mod encode;
-pub mod encode_args;
 pub mod eval;
 pub mod hints;
 pub mod query;
@@ -12,6 +11,6 @@ pub mod segment;
 pub mod synthetic;
 
 /// `--ep`: ONNX Runtime execution provider, the same value type in every binary.
-pub use slag_common::onnx::ExecutionProvider as EpArg;
+pub use slag_common::cli::EpArg;
 
 pub use slag_shards::cli::init_logging;

@@ -7,7 +7,8 @@ use std::path::PathBuf;
 use clap::Args;
 use slag_common::objects::{self, ObjectParams};
 use slag_common::similarity;
-use slag_encoder::query::{QueryOutput, QueryParams, Smooth};
+use slag_encoder::args::SmoothArg;
+use slag_encoder::query::{QueryOutput, QueryParams};
 
 use super::EpArg;
 
@@ -58,8 +59,8 @@ pub struct QueryArgs {
     pub object_min_gaussians: usize,
     /// `segment`: score each Gaussian with its geometric segment's mean cosine (the
     /// open-vocabulary analogue of prediction filtering); `none`: its own.
-    #[arg(long, value_enum, default_value_t = Smooth::None)]
-    pub smooth: Smooth,
+    #[arg(long, value_enum, default_value_t = SmoothArg::None)]
+    pub smooth: SmoothArg,
     /// Segments for --smooth segment; default segments.safetensors beside --embeddings.
     #[arg(long, value_name = "FILE")]
     pub segments: Option<PathBuf>,
@@ -101,14 +102,14 @@ impl From<&QueryArgs> for QueryParams {
             ply: a.ply.clone(),
             highlight_out: a.highlight_out.clone(),
             highlight_rgb: a.highlight_rgb,
-            ep: a.ep,
+            ep: a.ep.into(),
             objects: ObjectParams {
                 gap: a.object_gap,
                 min_gaussians: a.object_min_gaussians,
                 max_objects: a.max_objects,
                 near: a.near,
             },
-            smooth: a.smooth,
+            smooth: a.smooth.into(),
             segments: a.segments.clone(),
         }
     }
@@ -148,7 +149,7 @@ mod tests {
             near: None,
             object_gap: objects::DEFAULT_GAP,
             object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
-            smooth: Smooth::None,
+            smooth: SmoothArg::None,
             segments: None,
         }
     }

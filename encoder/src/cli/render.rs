@@ -9,7 +9,7 @@ use clap::Args;
 use slag_common::camera;
 use slag_common::scene::{self, PlyLoadOptions};
 
-use slag_encoder::config::RasterBackend;
+use slag_encoder::args::RasterArg;
 use slag_encoder::raster::WeightRasterizer;
 
 /// Arguments of `render`.
@@ -28,8 +28,8 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 1.0)]
     pub raster_scale: f64,
     /// Weight rasterizer.
-    #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
-    pub rasterizer: RasterBackend,
+    #[arg(long, value_enum, default_value_t = RasterArg::Gpu)]
+    pub rasterizer: RasterArg,
     /// Output PNG.
     #[arg(long)]
     pub out: PathBuf,
@@ -70,7 +70,7 @@ pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
             .with_context(|| format!("no view named {:?} in {}", a.view, a.scene.display()))?,
     };
     let mut r: Box<dyn WeightRasterizer> =
-        slag_encoder::pipeline::build::make_rasterizer(a.rasterizer, &gaussians)?;
+        slag_encoder::pipeline::build::make_rasterizer(a.rasterizer.into(), &gaussians)?;
     let intr = slag_encoder::raster::raster_intrinsics(&view.intrinsics, a.raster_scale)?;
     let weights = r.rasterize(&intr, &view.world_to_camera)?;
     let img = slag_encoder::raster::colour::render_colour(

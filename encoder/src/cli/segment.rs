@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use clap::Args;
 use slag_encoder::segments::{SegmentParams, SegmentStats, segment};
 
-use super::encode_args::SegmentArgs;
+use slag_encoder::args::SegmentArgs;
 
 /// Arguments of `segment`.
 #[derive(Debug, Clone, Args)]

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use slag_encoder::synthetic::{
+use slag_encoder::eval::synthetic::{
     SyntheticSceneParams, SyntheticSummary, object_layout, write_synthetic_scene_with_objects,
 };
 

@@ -1,14 +1,17 @@
 //! Where a process sits in the cluster and what every process runs: [`ClusterConfig`] (host
 //! file), [`ClusterJob`], the per-worker [`Stages`].
 
-#[allow(unused_imports)]
-use super::gather::*;
-#[allow(unused_imports)]
-use super::map::*;
-#[allow(unused_imports)]
-use super::reduce::*;
-#[allow(unused_imports)]
-use super::*;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
+
+use crate::masks::MaskGenerator;
+use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput};
+use crate::raster::WeightRasterizer;
+use crate::report::Report;
 
 /// The per-image stage implementations of one worker process.
 pub struct Stages {

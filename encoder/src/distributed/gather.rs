@@ -1,26 +1,12 @@
 //! The gather side: worker 0 collects every partition's rows and summaries ([`ToGather`]) and
 //! assembles `embeddings.safetensors` and the report.
 
-#[allow(unused_imports)]
-use super::map::*;
-#[allow(unused_imports)]
-use super::reduce::*;
-#[allow(unused_imports)]
-use super::*;
+use slag_common::embeddings::Embeddings;
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
 
-/// Reduce → gather records, all routed to worker 0.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub(super) enum ToGather {
-    Rows {
-        partition: u32,
-        ids: Vec<u32>,
-        vectors: Vec<f32>,
-        total_weights: Vec<f32>,
-    },
-    Part(PartSummary),
-    Map(MapStats),
-    Abort(String),
-}
+use super::records::{MapStats, PartSummary, ToGather};
+use crate::report::{ClusterOutputs, ClusterPartition, ClusterWorker, Counts, StageTimings};
 
 /// What worker 0 receives.
 #[derive(Default)]

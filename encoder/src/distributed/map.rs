@@ -1,72 +1,19 @@
 //! The map side: each worker encodes its images (masks → CLIP → raster → `a_kj`) and splits
 //! each image's `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
 
-#[allow(unused_imports)]
-use super::gather::*;
-#[allow(unused_imports)]
-use super::reduce::*;
-#[allow(unused_imports)]
-use super::*;
+use std::cell::RefCell;
+use std::time::Instant;
 
-/// Timings and counts of one map worker, summed over its images.
-#[derive(Debug, Clone, Default, Serialize, Deserialize)]
-pub(super) struct MapStats {
-    pub(super) worker: u32,
-    /// Wall-clock seconds of the map loop.
-    pub(super) wall_s: f64,
-    /// The images' work (the same struct `encode`'s back workers sum). Not `#[serde(flatten)]`:
-    /// timely's exchange uses bincode, which cannot decode flattened structs.
-    pub(super) work: crate::report::ImageWork,
-}
+use slag_common::Result;
+use slag_common::scene::Gaussians;
+use timely::container::CapacityContainerBuilder;
+use timely::dataflow::InputHandle;
 
-/// What a job must agree on across processes (a mismatch means processes got other arguments).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub(super) struct JobKey {
-    pub(super) gaussians: u64,
-    pub(super) views: u64,
-    pub(super) dim: u64,
-    pub(super) fingerprint: String,
-}
-
-/// One image's share of partition `partition`: `a_kj` over local ids `k / P`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub(super) struct ImagePart {
-    pub(super) partition: u32,
-    pub(super) image: u32,
-    pub(super) dim: u32,
-    /// `[M * dim]` the image's mask embeddings `E_j`.
-    pub(super) mask_embeddings: Vec<f32>,
-    /// Local Gaussian ids (global id / P), ascending.
-    pub(super) local_ids: Vec<u32>,
-    pub(super) masks: Vec<u32>,
-    pub(super) weights: Vec<f32>,
-}
-
-/// Map → reduce records, routed by `partition`.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub(super) enum ToReducer {
-    Image(ImagePart),
-    Done {
-        partition: u32,
-        worker: u32,
-        images: u64,
-        job: Option<JobKey>,
-        stats: Option<MapStats>,
-    },
-    Abort {
-        partition: u32,
-        message: String,
-    },
-}
-
-impl ToReducer {
-    pub(super) fn partition(&self) -> u32 {
-        match self {
-            ToReducer::Image(p) => p.partition,
-            ToReducer::Done { partition, .. } | ToReducer::Abort { partition, .. } => *partition,
-        }
-    }
-}
+use super::FAULT_EXIT_STATUS;
+use super::config::{ClusterJob, Stages};
+use super::records::{ImagePart, JobKey, MapStats, ToReducer};
+use crate::aggregate::ImageContribution;
+use crate::pipeline::{back_stage, front_stage};
 
 /// The fingerprint of the parameters every process must share.
 pub(super) fn job_key(

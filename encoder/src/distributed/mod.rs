@@ -60,36 +60,31 @@ use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use serde::{Deserialize, Serialize};
-use slag_common::embeddings::{Embeddings, write_atomic};
-use slag_common::scene::Gaussians;
+use slag_common::embeddings::Embeddings;
 use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
-use timely::dataflow::InputHandle;
 use timely::dataflow::channels::pact::Exchange;
 use timely::dataflow::operators::Operator;
 
-use crate::aggregate::{self, ContributionStore, Entry, ImageContribution, ReduceParams};
-use crate::masks::MaskGenerator;
-use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput, back_stage, front_stage};
-use crate::raster::WeightRasterizer;
-use crate::report::{
-    ClusterOutputs, ClusterPartition, ClusterWorker, Counts, Outputs, Report, StageTimings,
-};
+use crate::aggregate::ContributionStore;
+use crate::pipeline::finish::OutputFiles;
+use crate::report::Report;
 
 mod config;
 mod encoder;
 mod gather;
 mod map;
+mod records;
 mod reduce;
 
 pub use config::{ClusterConfig, ClusterJob, StageFactory, Stages};
 pub use encoder::ClusterEncoder;
-use gather::*;
-use map::*;
-use reduce::*;
+use gather::{Gathered, WorkerOutcome, assemble};
+use map::{Input, job_key, map_side};
+use records::{MapStats, ToGather, ToReducer};
+use reduce::PartitionReducer;
 
 /// Exit status of a process that lost a peer process (its TCP connection failed) or hit an
 /// internal panic: the job failed, wrote no output, and is to be rerun.
@@ -371,13 +366,8 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         source_ply: job.scene.ply.display().to_string(),
         ..embeddings
     };
-    let emb_path = out.join("embeddings.safetensors");
-    let report_path = out.join("report.json");
-    // A stale report must not vouch for embeddings being replaced.
-    if report_path.exists() {
-        std::fs::remove_file(&report_path).map_err(|e| Error::io(&report_path, e))?;
-    }
-    embeddings.write(&emb_path, job.params.precision)?;
+    let files = OutputFiles::begin(&out)?;
+    embeddings.write(&files.embeddings, job.params.precision)?;
     timings.write = t0.elapsed().as_secs_f64();
     timings.total = t_total.elapsed().as_secs_f64();
     let mut report = models_header;
@@ -386,27 +376,23 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     report.models.clip_model_id = clip_model_id;
     report.models.masks = masks;
     report.parameters.cluster_addresses = Some(cluster.addresses.clone());
-    let emb_bytes = std::fs::metadata(&emb_path).map(|m| m.len()).unwrap_or(0);
     report.timings = timings;
     report.counts = counts;
-    report.outputs = Outputs {
-        cluster: Some(cluster_stats),
-        embeddings: emb_path,
-        embeddings_bytes: emb_bytes,
-        forms: None,
-        precision: job.params.precision,
-        report: report_path.clone(),
-    };
-    let json =
-        serde_json::to_vec_pretty(&report).map_err(|e| Error::internal(format!("report: {e}")))?;
-    write_atomic(&report_path, &json)?;
+    let report = files.write_report(report, job.params.precision, Some(cluster_stats), None)?;
     Ok(Some(report))
 }
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
+    use std::time::Duration;
+
+    use slag_common::scene::Gaussians;
+
+    use super::map::split;
+    use super::records::JobKey;
     use super::*;
+    use crate::aggregate::{self, Entry, ImageContribution, ReduceParams};
 
     #[test]
     fn hosts_file_is_parsed_and_checked() {

@@ -1,28 +1,13 @@
 //! The reduce side: [`PartitionReducer`] collects its partition's `a_kj` from every worker,
 //! checks completeness, and runs `aggregate::reduce` over its local ids.
 
-#[allow(unused_imports)]
-use super::gather::*;
-#[allow(unused_imports)]
-use super::map::*;
-#[allow(unused_imports)]
-use super::*;
+use std::time::Instant;
+
+use super::records::{JobKey, MapStats, PartSummary, ToGather, ToReducer};
+use crate::aggregate::{self, ContributionStore, Entry, ImageContribution, ReduceParams};
 
 /// Rows per gather record (worker 0 receives each partition in chunks of this many Gaussians).
 pub(super) const ROWS_PER_RECORD: usize = 4096;
-
-/// What one partition reports when it has reduced.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub(super) struct PartSummary {
-    pub(super) partition: u32,
-    pub(super) rows: u64,
-    pub(super) images: u64,
-    pub(super) entries: u64,
-    pub(super) chunks: u64,
-    pub(super) spilled: u64,
-    pub(super) reduce_s: f64,
-    pub(super) job: JobKey,
-}
 
 /// The reduce side of one partition.
 pub(super) struct PartitionReducer {

@@ -622,7 +622,7 @@ fn gpu_label_sums_equal_the_host_image_stage() {
         // weighted on the host like the list path's.
         if seed == 1 {
             let fine = ImageStageParams {
-                overlap: crate::levels::MaskOverlap::Finest,
+                overlap: crate::aggregate::MaskOverlap::Finest,
                 mask_weighting: crate::aggregate::MaskWeighting::Area,
                 ..params
             };

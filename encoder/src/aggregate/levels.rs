@@ -11,63 +11,22 @@
 //!   ([`split_by_level`]) and reduced separately, giving one `E_k^l` per level `l` and Gaussian
 //!   (`embeddings-level{l}.safetensors`, each an ordinary embeddings file). At query time the
 //!   level answers that scores highest ([`LevelRule`]).
-//! - **Finest mask per pixel** (`encode --overlap finest`): a pixel covered by several masks
-//!   contributes its blend weights only to the smallest of them ([`restrict_to_finest`]), so
+//! - **Finest mask per pixel** (`encode --overlap finest`, in the image stage: [`super::MaskOverlap`]):
+//!   a pixel covered by several masks contributes its blend weights only to the smallest of them
+//!   ([`super::image::restrict_to_finest`]), so
 //!   `a_kj = Σ_{p ∈ M_j, j = finest(p)} w_kp` and the masks partition the covered pixels. Each
 //!   Gaussian's embedding then mixes only the most specific segments that contain it.
 
 use slag_common::{Error, Result};
 
-use crate::aggregate::{Entry, ImageContribution};
-use crate::masks::Mask;
+use super::image::{Entry, ImageContribution};
 
 /// Number of SAM granularity levels (multimask channels 1..=3).
 pub const LEVELS: usize = 3;
 
-/// How a pixel covered by several masks contributes (`encode --overlap`).
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    clap::ValueEnum,
-)]
-#[serde(rename_all = "kebab-case")]
-pub enum MaskOverlap {
-    /// To every mask that covers it (the paper's `a_kj = Σ_{p∈M_j} w_kp`).
-    #[default]
-    All,
-    /// Only to the smallest covering mask (fewest pixels; ties: the lower mask index).
-    Finest,
-}
-
-/// Restricts every pixel label's mask set to its smallest mask ([`MaskOverlap::Finest`]).
-///
-/// `masks_of[s]` lists the masks covering the pixels of label `s` (as
-/// [`crate::aggregate::PixelLabels`] holds them); afterwards each non-empty set holds exactly one
-/// mask: the one of least [`Mask::area`] (ties: the lower index). Mask indices outside `masks`
-/// are dropped.
-pub fn restrict_to_finest(masks_of: &mut [Vec<u32>], masks: &[Mask]) {
-    for set in masks_of.iter_mut() {
-        let finest = set
-            .iter()
-            .copied()
-            .filter_map(|j| masks.get(j as usize).map(|m| (m.area, j)))
-            .min();
-        set.clear();
-        if let Some((_, j)) = finest {
-            set.push(j);
-        }
-    }
-}
-
 /// Splits one image's contribution by mask level: part `l` holds the masks of level `l` (in
 /// their original order, renumbered from 0) with their embeddings, and the entries of those
-/// masks (still sorted by (Gaussian, mask)). `levels[j]` is mask `j`'s level ([`Mask::level`]).
+/// masks (still sorted by (Gaussian, mask)). `levels[j]` is mask `j`'s level ([`crate::masks::Mask::level`]).
 ///
 /// Errors: a mask without a level ([`Error::Param`] `levels`: the generator has none, per-level
 /// embeddings need SAM masks); `levels` not one per mask of `c`, a level ≥ [`LEVELS`]
@@ -152,7 +111,7 @@ impl LevelRule {
 }
 
 /// Combines per-level score tables into one: `per_level[l]` is `[N × C]` (as
-/// [`crate::heldout::gaussian_scores`] returns, 0 rows for Gaussians without that level's
+/// [`crate::eval::heldout::gaussian_scores`] returns, 0 rows for Gaussians without that level's
 /// embedding), `has_level[l][k]` whether Gaussian `k` has level `l`, and `fallback` the `[N × C]`
 /// table of the mean `E_k` used where the chosen level is missing. Returns `[N × C]` and, for
 /// [`LevelRule::Select`], the level chosen per class (empty otherwise).
@@ -251,6 +210,8 @@ pub fn combine_levels(
 #[allow(clippy::unwrap_used)] // tests fail loudly on purpose
 mod tests {
     use super::*;
+    use crate::aggregate::image::{MaskOverlap, restrict_to_finest};
+    use crate::masks::Mask;
 
     fn mask(area: u32) -> Mask {
         let mut px = vec![0u8; 100];

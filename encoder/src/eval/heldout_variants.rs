@@ -18,8 +18,8 @@ use slag_common::embeddings::Embeddings;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::{Error, Result};
 
-use crate::heldout::{PixelScore, gaussian_scores};
-use crate::levels::{LEVELS, LevelRule, combine_levels};
+use crate::aggregate::levels::{LEVELS, LevelRule, combine_levels};
+use crate::eval::heldout::{PixelScore, gaussian_scores};
 
 /// Concentration of the mode variant (`mixture-mode-S*`, [`crate::robust`]).
 const MODE_KAPPA: f32 = 10.0;
@@ -190,7 +190,11 @@ pub fn variant_tables(
         }
         {
             let kappa = MODE_KAPPA;
-            let modes = crate::robust::mixture_modes(&m, kappa, crate::robust::MODE_ITERATIONS)?;
+            let modes = crate::aggregate::robust::mixture_modes(
+                &m,
+                kappa,
+                crate::aggregate::robust::MODE_ITERATIONS,
+            )?;
             let e = Embeddings {
                 ids: m.gaussian_ids.clone(),
                 means: m.means.clone(),

@@ -1,22 +1,19 @@
 //! The flags of `slag-encoder encode` ([`EncodeArgs`]) and their conversion into the library's
-//! [`EncodeConfig`], one flag to one field.
-//!
-//! `slag-bench stages` and `slag-bench scaling` take the same flags: they include this file
-//! (`#[path]`), so it names the library only through `slag_encoder::` and `slag_common::` paths
-//! and holds nothing but the flags and their conversion.
+//! [`EncodeConfig`], one flag to one field. `slag-bench stages` and `slag-bench scaling` take
+//! the same flags.
 
 use std::path::PathBuf;
 
 use clap::{Args, ValueEnum};
+use slag_common::cli::EpArg;
 use slag_common::embeddings::StoredPrecision;
-use slag_common::onnx::ExecutionProvider as EpArg;
-use slag_encoder::aggregate::MaskWeighting;
-use slag_encoder::config::{
-    AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MaskSource,
-    MasksConfig, OutputConfig, RasterBackend, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
+
+use super::values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg};
+use crate::config::{
+    AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MasksConfig,
+    OutputConfig, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
 };
-use slag_encoder::levels::MaskOverlap;
-use slag_encoder::segments::SegmentParams;
+use crate::segments::SegmentParams;
 
 /// `--precision`: stored precision of the embeddings.
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
@@ -71,7 +68,7 @@ impl From<&SegmentArgs> for SegmentParams {
     }
 }
 
-/// Arguments of `encode` (the CLI contract of the encoder issue).
+/// Arguments of `encode`.
 #[derive(Debug, Clone, Args)]
 pub struct EncodeArgs {
     /// Scene folder: point_cloud.ply (or --ply), images/, and sparse/0 (COLMAP) or transforms.json.
@@ -81,8 +78,8 @@ pub struct EncodeArgs {
     #[arg(long)]
     pub ply: Option<PathBuf>,
     /// Mask source.
-    #[arg(long, value_enum, default_value_t = MaskSource::Sam)]
-    pub masks: MaskSource,
+    #[arg(long, value_enum, default_value_t = MaskSourceArg::Sam)]
+    pub masks: MaskSourceArg,
     /// SAM image encoder ONNX (pixel_values f32[1,3,1024,1024] -> image_embeddings).
     #[arg(long, required_if_eq("masks", "sam"))]
     pub sam_encoder: Option<PathBuf>,
@@ -132,8 +129,8 @@ pub struct EncodeArgs {
     #[arg(long, default_value_t = 0.5)]
     pub raster_scale: f64,
     /// Weight rasterizer.
-    #[arg(long, value_enum, default_value_t = RasterBackend::Gpu)]
-    pub rasterizer: RasterBackend,
+    #[arg(long, value_enum, default_value_t = RasterArg::Gpu)]
+    pub rasterizer: RasterArg,
     /// ONNX Runtime execution provider for SAM and CLIP: `auto` = CUDA where the loaded ONNX
     /// Runtime has it and a GPU answers, else the CPU (one line says why).
     #[arg(long, value_enum, default_value_t = EpArg::Auto)]
@@ -161,13 +158,13 @@ pub struct EncodeArgs {
     /// (image pixels / mask area: small masks count more), sam-score (SAM predicted IoU ×
     /// stability). Measured held-out in docs/results/tradeoffs.md: area adds +0.004 over --overlap
     /// finest with SAM masks but costs 0.032 with graph masks, so it is not the default.
-    #[arg(long, value_enum, default_value_t = MaskWeighting::None)]
-    pub mask_weighting: MaskWeighting,
+    #[arg(long, value_enum, default_value_t = MaskWeightingArg::None)]
+    pub mask_weighting: MaskWeightingArg,
     /// Which masks a pixel covered by several gives its blend weights to: finest (the default:
     /// only the smallest covering mask, so each Gaussian mixes only its most specific segments)
     /// or all (the paper's a_kj). `--overlap all --mask-weighting none` is the paper's mean.
-    #[arg(long, value_enum, default_value_t = MaskOverlap::Finest)]
-    pub overlap: MaskOverlap,
+    #[arg(long, value_enum, default_value_t = OverlapArg::Finest)]
+    pub overlap: OverlapArg,
     /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
     /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
     /// level's masks only (LangSplat's levels; needs --masks sam).
@@ -214,10 +211,10 @@ fn parse_keep(s: &str) -> Result<usize, String> {
 }
 
 /// `--mixture-keep` as the one-process encode reads it: unset → the library's default
-/// ([`slag_encoder::config::DEFAULT_MIXTURE_KEEP`]), 0 → none.
+/// ([`crate::config::DEFAULT_MIXTURE_KEEP`]), 0 → none.
 fn mixture_keep(flag: Option<usize>) -> Option<usize> {
     match flag {
-        None => Some(slag_encoder::config::DEFAULT_MIXTURE_KEEP),
+        None => Some(crate::config::DEFAULT_MIXTURE_KEEP),
         Some(0) => None,
         Some(k) => Some(k),
     }
@@ -232,7 +229,7 @@ impl From<&EncodeArgs> for EncodeConfig {
                 every: a.every,
             },
             masks: MasksConfig {
-                source: a.masks,
+                source: a.masks.into(),
                 sam: SamConfig {
                     encoder: a.sam_encoder.clone(),
                     decoder: a.sam_decoder.clone(),
@@ -255,12 +252,12 @@ impl From<&EncodeArgs> for EncodeConfig {
             },
             raster: RasterConfig {
                 scale: a.raster_scale,
-                backend: a.rasterizer,
+                backend: a.rasterizer.into(),
             },
             aggregate: AggregateConfig {
                 top_k_per_pixel: a.top_k_per_pixel,
-                mask_weighting: a.mask_weighting,
-                overlap: a.overlap,
+                mask_weighting: a.mask_weighting.into(),
+                overlap: a.overlap.into(),
                 levels: a.levels,
                 min_weight: a.min_weight,
                 contribution_memory_mb: a.contribution_memory_mb,
@@ -276,7 +273,7 @@ impl From<&EncodeArgs> for EncodeConfig {
                 progress: !a.quiet,
             },
             execution: ExecutionConfig {
-                ep: a.ep,
+                ep: a.ep.into(),
                 gpu_mem_limit_gb: a.gpu_mem_limit_gb,
                 threads: a.threads,
                 gpus: a.gpus,

@@ -18,6 +18,16 @@
 //!   `IoU_c = |pred = c ∧ gt = c| / |pred = c ∨ gt = c|`; `miou` averages `IoU_c` over the classes
 //!   holding at least [`MIOU_MIN_CLASS_FRACTION`] of the opaque Gaussians (rarer classes make the
 //!   mean noisy; they are still reported individually).
+//!
+//! The rest of evaluation and research, apart from the paper's stages: [`heldout`] (2D accuracy
+//! on views never encoded), [`heldout_variants`] (the aggregation variants scored in the same
+//! pass), [`colors`] (`slag-encoder eval-colors`: both protocols on an embeddings file) and
+//! [`synthetic`] (synthetic scenes of any size for scale tests).
+
+pub mod colors;
+pub mod heldout;
+pub mod heldout_variants;
+pub mod synthetic;
 
 use std::path::Path;
 

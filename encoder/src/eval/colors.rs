@@ -2,7 +2,7 @@
 //! the accuracy instrument of every speed/accuracy trade).
 //!
 //! [`run`]: the 3D score of [`crate::eval`] (each Gaussian's class against the prototype nearest
-//! its SH-DC colour). [`run_held_out`]: the 2D protocol of [`crate::heldout`] on the views the
+//! its SH-DC colour). [`run_held_out`]: the 2D protocol of [`crate::eval::heldout`] on the views the
 //! encoder never saw, with the majority-class and pixel-lifting-oracle baselines, and the 3D
 //! score as a secondary line.
 
@@ -19,8 +19,8 @@ use slag_common::segments::Segments;
 use slag_common::text::TextEncoder;
 
 use crate::config::RasterBackend;
+use crate::eval::{self, heldout};
 use crate::pipeline::build::make_rasterizer;
-use crate::{eval, heldout};
 
 /// What `eval-colors` evaluates and with which models.
 #[derive(Debug, Clone, PartialEq)]
@@ -225,7 +225,7 @@ pub fn run(a: &EvalColorsConfig) -> anyhow::Result<eval::ColourEval> {
     colour_3d(&load_inputs(a)?)
 }
 
-/// The 2D held-out evaluation ([`crate::heldout`]); serialises to `eval-colors --held-out`'s
+/// The 2D held-out evaluation ([`crate::eval::heldout`]); serialises to `eval-colors --held-out`'s
 /// `held_out` object.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct HeldOutEval {
@@ -266,8 +266,8 @@ pub struct HeldOutEval {
     /// slag's mIoU / the oracle's.
     pub slag_over_oracle: Option<f64>,
     /// Other predictors scored on the same pixels: `--compare` files and the stored forms
-    /// beside the embeddings (per-level embeddings, mixture), see [`crate::heldout_variants`].
-    pub variants: Vec<crate::heldout_variants::VariantScore>,
+    /// beside the embeddings (per-level embeddings, mixture), see [`crate::eval::heldout_variants`].
+    pub variants: Vec<crate::eval::heldout_variants::VariantScore>,
     /// Wall time of the held-out evaluation (renders, oracle, scoring), seconds.
     pub seconds: f64,
 }
@@ -311,7 +311,7 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
     ))
 }
 
-/// Runs `eval-colors --held-out` (the 2D protocol of [`crate::heldout`], plus the 3D score).
+/// Runs `eval-colors --held-out` (the 2D protocol of [`crate::eval::heldout`], plus the 3D score).
 ///
 /// Errors: [`Error::Param`] `every` when it is unknown (no report.json beside the embeddings and
 /// none given), contradicts the report, is < 2 or holds out no view; [`Error::Param`]
@@ -400,7 +400,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             .with_context(|| format!("oracle lifting of view {}", v.name))?;
     }
     let oracle_scores = oracle.scores();
-    let mut variants = crate::heldout_variants::variant_tables(
+    let mut variants = crate::eval::heldout_variants::variant_tables(
         &a.embeddings,
         &a.compare,
         &slag_scores,
@@ -438,7 +438,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             ),
         ];
         for (name, scores) in tables {
-            variants.push(crate::heldout_variants::VariantTable {
+            variants.push(crate::eval::heldout_variants::VariantTable {
                 name: name.into(),
                 source: source.clone(),
                 scores,

@@ -1,0 +1,41 @@
+//! Command-line values shared by the binaries (the `clap` feature): the library's own types
+//! derive no command-line traits; each value here maps to one with `From`.
+
+use crate::onnx::ExecutionProvider;
+
+/// `--ep`: the ONNX Runtime execution provider ([`ExecutionProvider`]), the same value in every
+/// binary (`cpu`, `cuda`, `tensorrt`, `auto`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum EpArg {
+    /// The default CPU provider.
+    #[default]
+    Cpu,
+    /// NVIDIA CUDA (only where the loaded ONNX Runtime build has it: PyPI's `onnxruntime-gpu`,
+    /// `scripts/setup.sh --gpu`).
+    ///
+    /// Requesting CUDA from a runtime without it is an error ([`Error::Inference`]), never a
+    /// silent fallback to the CPU: a run that was meant for a GPU should not quietly take hours.
+    Cuda,
+    /// NVIDIA TensorRT (where TensorRT 10 and the runtime's TensorRT provider are installed),
+    /// fp16 engines cached beside the model (`<model>.trt-cache/`); nodes TensorRT cannot take
+    /// fall back to CUDA. An error where TensorRT does not register.
+    #[value(name = "tensorrt")]
+    TensorRt,
+    /// CUDA when the loaded runtime has it and it registers on the GPU, otherwise the CPU, with one
+    /// log line per process saying why.
+    Auto,
+}
+
+#[cfg(doc)]
+use crate::Error;
+
+impl From<EpArg> for ExecutionProvider {
+    fn from(a: EpArg) -> Self {
+        match a {
+            EpArg::Cpu => ExecutionProvider::Cpu,
+            EpArg::Cuda => ExecutionProvider::Cuda,
+            EpArg::TensorRt => ExecutionProvider::TensorRt,
+            EpArg::Auto => ExecutionProvider::Auto,
+        }
+    }
+}

@@ -1,0 +1,205 @@
+//! The end of an encode: the reduction of every image's `a_kj` to `E_k` streamed into
+//! `embeddings.safetensors`, the optional forms (per-level files, the mixture), and
+//! `report.json`, written last so that its presence means the run completed.
+//!
+//! [`OutputFiles`] is the writing order both encoders keep: this process's ([`finish`]) and the
+//! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+use slag_common::io::write_atomic;
+use slag_common::{Error, Result};
+
+use super::pool::Pooled;
+use super::{EncodeParams, SceneInput};
+use crate::aggregate;
+use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
+
+/// The two files every encode writes into its output folder: the embeddings, then the report,
+/// last.
+pub(crate) struct OutputFiles {
+    /// `<out>/embeddings.safetensors`.
+    pub(crate) embeddings: PathBuf,
+    /// `<out>/report.json`.
+    pub(crate) report: PathBuf,
+}
+
+impl OutputFiles {
+    /// The files of `out_dir`. A report of an earlier run there is removed first: it must not
+    /// vouch for embeddings while they are being replaced.
+    ///
+    /// Errors: I/O removing it.
+    pub(crate) fn begin(out_dir: &Path) -> Result<Self> {
+        let files = OutputFiles {
+            embeddings: out_dir.join("embeddings.safetensors"),
+            report: out_dir.join("report.json"),
+        };
+        remove_stale(&files.report)?;
+        Ok(files)
+    }
+
+    /// Records the outputs in `report` (the embeddings' size read back from disk; `cluster` and
+    /// `forms` as given) and writes it to `report.json` atomically: the run's last file.
+    ///
+    /// Errors: the report cannot be serialised ([`Error::Internal`]), I/O.
+    pub(crate) fn write_report(
+        &self,
+        mut report: Report,
+        precision: StoredPrecision,
+        cluster: Option<ClusterOutputs>,
+        forms: Option<FormOutputs>,
+    ) -> Result<Report> {
+        let embeddings_bytes = std::fs::metadata(&self.embeddings)
+            .map(|m| m.len())
+            .unwrap_or(0);
+        report.outputs = Outputs {
+            cluster,
+            embeddings: self.embeddings.clone(),
+            embeddings_bytes,
+            forms,
+            precision,
+            report: self.report.clone(),
+        };
+        let json = serde_json::to_vec_pretty(&report)
+            .map_err(|e| Error::internal(format!("report: {e}")))?;
+        write_atomic(&self.report, &json)?;
+        Ok(report)
+    }
+}
+
+/// Removes `path` if it exists: a file of an earlier run that this run does not write (a level
+/// file, the mixture) must not sit beside this run's report.
+///
+/// Errors: I/O.
+pub(crate) fn remove_stale(path: &Path) -> Result<()> {
+    if path.exists() {
+        std::fs::remove_file(path).map_err(|e| Error::io(path, e))?;
+    }
+    Ok(())
+}
+
+/// Reduces what the pool left ([`Pooled`]) and writes the outputs of `scene`'s encode into
+/// [`EncodeParams::out_dir`]: `embeddings.safetensors`, the level files with
+/// [`EncodeParams::levels`], `mixture.safetensors` with [`EncodeParams::mixture_keep`], each
+/// atomically, then `report.json` (`report` completed with the models, the workers' shares,
+/// timings counted from `t_total` and counts).
+///
+/// Errors: the reduction's, I/O on the outputs; nothing that looks complete is left then.
+pub(crate) fn finish(
+    scene: &SceneInput,
+    pooled: Pooled,
+    params: &EncodeParams,
+    mut report: Report,
+    t_total: Instant,
+) -> Result<Report> {
+    let Pooled {
+        gaussians,
+        dim,
+        model_id,
+        mask_name,
+        fronts,
+        rasterizers,
+        store,
+        level_stores,
+        timings: mut t,
+        mut counts,
+        workers,
+        queue,
+    } = pooled;
+    let models = &mut report.models;
+    models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
+    models.rasterizers = Some(rasterizers);
+    models.front_workers = Some(fronts);
+    models.clip_model_id = model_id.clone();
+    models.masks = mask_name;
+    report.workers = workers;
+
+    let files = OutputFiles::begin(&params.out_dir)?;
+    // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
+    let t0 = Instant::now();
+    let writer = EmbeddingsWriter::create(&files.embeddings, dim, params.precision)?;
+    let aggregate::Streamed {
+        chunks,
+        writer,
+        reduce_s,
+    } = aggregate::reduce_to_writer(&store, &gaussians.means, dim, params.reduce, writer)?;
+    let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
+    t.reduce = reduce_s;
+    counts.spilled_images = store.spilled();
+    counts.reduce_chunks = chunks;
+    counts.observed = writer.len();
+    counts.observed_fraction = writer.len() as f64 / gaussians.len().max(1) as f64;
+    // The compressed form (shared codebook of mask embeddings + top-S weights), if asked for.
+    let t0 = Instant::now();
+    let mixture = params
+        .mixture_keep
+        .map(|keep| {
+            let (n, p) = (gaussians.len(), params.reduce);
+            aggregate::reduce_mixture(&store, n, dim, p, keep, &model_id, &gaussians.means)
+        })
+        .transpose()?;
+    let mixture_s = t0.elapsed().as_secs_f64();
+    drop(store);
+    // Granularity kept apart: one ordinary embeddings file per level.
+    let t0 = Instant::now();
+    let mut level_files = Vec::new();
+    for l in 0..aggregate::levels::LEVELS {
+        let path = params
+            .out_dir
+            .join(format!("embeddings-level{l}.safetensors"));
+        match level_stores.get(l) {
+            Some(ls) => {
+                let w = EmbeddingsWriter::create(&path, dim, params.precision)?;
+                let streamed =
+                    aggregate::reduce_to_writer(ls, &gaussians.means, dim, params.reduce, w)?;
+                let rows = streamed.writer.len();
+                streamed.writer.finish(
+                    &model_id,
+                    gaussians.len() as u64,
+                    &scene.ply.display().to_string(),
+                )?;
+                let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+                level_files.push(LevelOutput {
+                    bytes,
+                    level: l,
+                    observed: rows,
+                    path,
+                });
+            }
+            None => remove_stale(&path)?,
+        }
+    }
+    drop(level_stores);
+    let levels_s = t0.elapsed().as_secs_f64();
+
+    let t0 = Instant::now();
+    writer.finish(
+        &model_id,
+        gaussians.len() as u64,
+        &scene.ply.display().to_string(),
+    )?;
+    let mix_path = params.out_dir.join("mixture.safetensors");
+    match &mixture {
+        Some(m) => m.write(&mix_path)?,
+        None => remove_stale(&mix_path)?,
+    }
+    t.write = write_tail_s + t0.elapsed().as_secs_f64();
+    t.total = t_total.elapsed().as_secs_f64();
+    counts.peak_rss_bytes = crate::report::peak_rss_bytes();
+    counts.queue = Some(queue);
+    report.timings = t;
+    report.counts = counts;
+    let has_levels = !level_files.is_empty();
+    let forms = FormOutputs {
+        levels: has_levels.then_some(level_files),
+        levels_reduce_s: has_levels.then_some(levels_s),
+        mixture: mixture.as_ref().map(|_| mix_path),
+        mixture_bytes_per_gaussian: mixture.as_ref().map(|m| m.bytes_per_gaussian()),
+        mixture_codebook_rows: mixture.as_ref().map(|m| m.codebook_len()),
+        mixture_keep: mixture.as_ref().map(|m| m.keep),
+        mixture_reduce_s: mixture.as_ref().map(|_| mixture_s),
+    };
+    files.write_report(report, params.precision, None, Some(forms))
+}

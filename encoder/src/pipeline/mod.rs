@@ -1,0 +1,454 @@
+//! The encode pipeline: for each posed image, masks → CLIP crop embeddings → weight raster →
+//! image-stage aggregation, then the reduction over all images and the output files.
+//!
+//! Two threads overlap the stages: the *front* thread decodes image i+1, generates its masks and
+//! embeds its crops while the *back* thread rasterizes image i and computes its `a_kj`
+//! (a bounded channel of depth 2 keeps memory flat). Every per-image step is independent, as in
+//! the paper; only the reduction sees all images.
+//!
+//! [`Encoder`] runs a [`crate::config::EncodeConfig`]: [`build`] turns the config into the stage
+//! instances (mask generators, front workers with their shared GPU models, rasterizers), the
+//! [`EncodeParams`] and the report's header, and [`encode_pool`] runs them: the worker pool
+//! (`pool`: fronts, queues, the first error), then the finish (`finish`: the reduction, the
+//! level and mixture files, the writes, the report last). This file holds the per-image stages
+//! both encoders share (`front_stage`, `back_stage`, [`view_contribution`]).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use image::RgbImage;
+use slag_common::camera::{self, Intrinsics, View, WorldToCamera};
+use slag_common::embeddings::StoredPrecision;
+use slag_common::scene::{self, Gaussians, PlyLoadOptions};
+use slag_common::{Error, Result};
+
+use crate::aggregate::{self, ImageContribution, ImageStageParams, ReduceParams};
+use crate::masks::compact::CompactMask;
+use crate::masks::{Mask, MaskGenerator};
+use crate::raster::WeightRasterizer;
+pub use crate::report::WorkerShare;
+use crate::report::{ImageWork, Report};
+
+pub mod build;
+mod encoder;
+pub(crate) mod finish;
+mod pool;
+
+pub use encoder::Encoder;
+pub use pool::FrontStages;
+
+/// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
+/// `E_j = CLIP(crop_j(I ⊙ M_j))`).
+pub trait CropEmbedder: Send {
+    /// Model id recorded in the outputs (e.g. the ONNX file stem).
+    fn model_id(&self) -> &str;
+    /// Embedding width D.
+    fn dim(&self) -> usize;
+    /// `[masks.len()]` vectors of length [`CropEmbedder::dim`].
+    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>>;
+}
+
+/// Where the scene comes from and what to encode.
+#[derive(Debug, Clone)]
+pub struct SceneInput {
+    /// Scene folder with `images/` and `sparse/0` or `transforms.json`.
+    pub dir: PathBuf,
+    /// The `.ply` (default `<dir>/point_cloud.ply`).
+    pub ply: PathBuf,
+    /// Keep every N-th view (paper: 1:20 on large scenes).
+    pub every: usize,
+}
+
+impl SceneInput {
+    /// `dir` with the default `.ply` location.
+    pub fn new(dir: &Path, ply: Option<&Path>, every: usize) -> Self {
+        let ply = ply
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| dir.join("point_cloud.ply"));
+        Self {
+            dir: dir.to_path_buf(),
+            ply,
+            every,
+        }
+    }
+
+    /// Loads the Gaussians (geometry only: the weights never need SH colours) and the views.
+    pub fn load(&self) -> Result<(Gaussians, Vec<View>, usize)> {
+        if !self.dir.is_dir() {
+            return Err(Error::param(
+                "scene",
+                self.dir.display(),
+                "an existing scene folder holding point_cloud.ply, images/ and sparse/0 or \
+                 transforms.json",
+            ));
+        }
+        let gaussians = scene::load_ply(&self.ply, PlyLoadOptions::default())?;
+        let views = camera::load_views(&self.dir)?;
+        let total = views.len();
+        Ok((gaussians, camera::subsample(views, self.every), total))
+    }
+}
+
+/// Parameters of one encode run besides the stage implementations.
+#[derive(Debug, Clone)]
+pub struct EncodeParams {
+    /// Raster resolution relative to the images (`--raster-scale`, 0 < s ≤ 1 typical).
+    pub raster_scale: f64,
+    /// Image-stage knobs.
+    pub image_stage: ImageStageParams,
+    /// Reduction knobs.
+    pub reduce: ReduceParams,
+    /// Bytes of image contributions kept in memory before spilling to disk.
+    pub contribution_budget_bytes: usize,
+    /// Stored precision of the embeddings.
+    pub precision: StoredPrecision,
+    /// Output folder (`embeddings.safetensors`, `report.json`).
+    pub out_dir: PathBuf,
+    /// Show progress bars (stderr).
+    pub progress: bool,
+    /// Also write `<out>/mixture.safetensors`: the embeddings as a shared codebook of mask
+    /// embeddings plus each Gaussian's `S` largest `a_kj` ([`aggregate::reduce_mixture`]);
+    /// `None` = dense file only.
+    pub mixture_keep: Option<usize>,
+    /// Also write `<out>/embeddings-level{l}.safetensors` for each SAM granularity level `l`
+    /// (0 subpart, 1 part, 2 whole; [`crate::levels`]): the same reduction over the `a_kj` of
+    /// that level's masks only. Needs masks with levels (SAM).
+    pub levels: bool,
+}
+
+/// One image after the front stages: its masks and mask embeddings (passed from the front to the
+/// back thread of [`encode_pool`]; the map side of `distributed` uses it in place).
+pub(crate) struct FrontItem {
+    /// Index of the view in the scene's view list.
+    pub view: usize,
+    /// SAM (or graph) masks of the image, run-length encoded while the image waits between the
+    /// stages ([`CompactMask`]; [`back_stage`] expands them right before the raster call).
+    pub masks: Vec<CompactMask>,
+    /// `[masks.len() * D]` CLIP crop embeddings `E_j`, row-major.
+    pub embeddings: Vec<f32>,
+    /// Seconds spent decoding the image.
+    pub decode_s: f64,
+    /// Seconds spent generating masks.
+    pub masks_s: f64,
+    /// Seconds spent embedding the crops.
+    pub clip_s: f64,
+}
+
+impl FrontItem {
+    /// Bytes the item holds (masks' runs and metadata, embeddings): what it costs while it
+    /// waits in the queue between the stages.
+    pub(crate) fn bytes(&self) -> usize {
+        std::mem::size_of::<Self>()
+            + self.masks.iter().map(CompactMask::bytes).sum::<usize>()
+            + self.embeddings.capacity() * std::mem::size_of::<f32>()
+    }
+}
+
+/// The front stages of `view` (number `index` of the scene's views): decode ([`read_image`]),
+/// masks, CLIP crop embeddings.
+///
+/// Errors: those of the stages; [`Error::Internal`] when CLIP does not return one `dim`-wide
+/// vector per mask.
+pub(crate) fn front_stage(
+    view: &View,
+    index: usize,
+    masks: &mut dyn MaskGenerator,
+    crops: &mut dyn CropEmbedder,
+    dim: usize,
+) -> Result<FrontItem> {
+    let t0 = Instant::now();
+    let img = read_image(view)?;
+    let t1 = Instant::now();
+    let m = masks.generate(&img)?;
+    let t2 = Instant::now();
+    let e = crops.embed(&img, &m)?;
+    let t3 = Instant::now();
+    if e.len() != m.len() || e.iter().any(|v| v.len() != dim) {
+        return Err(Error::internal(format!(
+            "{}: CLIP returned {} vectors for {} masks",
+            view.name,
+            e.len(),
+            m.len()
+        )));
+    }
+    Ok(FrontItem {
+        view: index,
+        masks: crate::masks::compact::compact_all(&m),
+        embeddings: e.concat(),
+        decode_s: (t1 - t0).as_secs_f64(),
+        masks_s: (t2 - t1).as_secs_f64(),
+        clip_s: (t3 - t2).as_secs_f64(),
+    })
+}
+
+/// One image after the back stages: its `a_kj` contribution and what producing it cost.
+pub(crate) struct BackOut {
+    /// The image's contribution to the reduction.
+    pub contribution: ImageContribution,
+    /// Seconds in the rasterizer (with GPU label sums: the pass and its readback).
+    pub raster_s: f64,
+    /// Seconds of the host side of the image stage ([`view_contribution`]).
+    pub contribution_s: f64,
+    /// Pixels the contributions were counted over (all, or those covered by a mask when the
+    /// rasterizer summed per label; [`ViewStats`]).
+    pub pixels: u64,
+    /// `(pixel, Gaussian)` contributions over those pixels.
+    pub raster_entries: u64,
+    /// Whether the sums were made on the GPU ([`ViewStats::device_sums`]).
+    pub device_sums: bool,
+}
+
+impl BackOut {
+    /// This image's [`ImageWork`]: its front times (`decode_s`, `masks_s`, `clip_s`), its
+    /// `n_masks` masks and `entries` non-zero `a_kj`, and the back stage's own measurements.
+    pub(crate) fn work(
+        &self,
+        decode_s: f64,
+        masks_s: f64,
+        clip_s: f64,
+        n_masks: usize,
+        entries: usize,
+    ) -> ImageWork {
+        ImageWork {
+            images: 1,
+            decode_s,
+            masks_s,
+            clip_s,
+            raster_s: self.raster_s,
+            image_aggregate_s: self.contribution_s,
+            masks: n_masks as u64,
+            entries: entries as u64,
+            raster_pixels: self.pixels,
+            raster_entries: self.raster_entries,
+            device_sum_views: u64::from(self.device_sums),
+        }
+    }
+}
+
+/// What [`view_contribution`] measured of one view.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ViewStats {
+    /// Seconds in the rasterizer (with label sums: the GPU pass and its readback).
+    pub raster_s: f64,
+    /// Seconds in the host side of the image stage (labels, expansion, or the host sums).
+    pub aggregate_s: f64,
+    /// Raster pixels.
+    pub pixels: usize,
+    /// (pixel, Gaussian) contributions: all of them on the list path, those of pixels covered by
+    /// a mask on the label-sum path.
+    pub contributions: u64,
+    /// Pixels the contributions were counted over (all, or the labelled ones).
+    pub counted_pixels: usize,
+    /// Whether the rasterizer summed per label on its device ([`WeightRasterizer::label_sums`]).
+    pub device_sums: bool,
+}
+
+/// Raster + image stage of one view: the [`ImageContribution`] of `masks` (full resolution) and
+/// their embeddings. Without `top_k_per_pixel` and with a rasterizer that sums per label on its
+/// device (the GPU rasterizer), only the per-(Gaussian, label) sums leave the device (SLAG's
+/// `a_kj = Σ_{p∈M_j} w_kp` with masks expanded from labels on the host); otherwise the per-pixel
+/// lists are rasterized and summed by [`image_contribution`]. Both give the same `a_kj` up to
+/// the device path's 2^-32 fixed point per weight.
+///
+/// Errors: as [`image_contribution`] and the rasterizer's.
+pub fn view_contribution(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    masks: &[Mask],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+    params: ImageStageParams,
+) -> Result<(ImageContribution, ViewStats)> {
+    aggregate::image::check_image_inputs(masks, &mask_embeddings, dim)?;
+    let pixels = intrinsics.width as usize * intrinsics.height as usize;
+    if params.top_k_per_pixel.is_none() && !masks.is_empty() {
+        let t0 = Instant::now();
+        let labels =
+            aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap);
+        let t1 = Instant::now();
+        if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
+            let t2 = Instant::now();
+            let mut entries = aggregate::image::expand_labels(
+                sums.sums.iter().map(|e| (e.gaussian, e.label, e.weight())),
+                &labels.masks_of,
+            );
+            aggregate::image::weight_entries(&mut entries, masks, params.mask_weighting);
+            let stats = ViewStats {
+                raster_s: (t2 - t1).as_secs_f64(),
+                aggregate_s: (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
+                pixels,
+                contributions: sums.contributions,
+                counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
+                device_sums: true,
+            };
+            let c = ImageContribution {
+                dim,
+                mask_embeddings,
+                entries,
+            };
+            return Ok((c, stats));
+        }
+    }
+    let t0 = Instant::now();
+    let weights = rasterizer.rasterize(intrinsics, world_to_camera)?;
+    let t1 = Instant::now();
+    let c = aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?;
+    let stats = ViewStats {
+        raster_s: (t1 - t0).as_secs_f64(),
+        aggregate_s: t1.elapsed().as_secs_f64(),
+        pixels,
+        contributions: weights.ids.len() as u64,
+        counted_pixels: pixels,
+        device_sums: false,
+    };
+    Ok((c, stats))
+}
+
+/// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
+/// ([`view_contribution`]: GPU label sums, or weights then the host image stage).
+///
+/// Errors: those of the rasterizer and the image stage; [`Error::Internal`] for a view index out
+/// of range of `views` or `raster_intrinsics` (an internal error).
+pub(crate) fn back_stage(
+    rasterizer: &mut dyn WeightRasterizer,
+    views: &[View],
+    raster_intrinsics: &[Intrinsics],
+    item: FrontItem,
+    dim: usize,
+    image_stage: ImageStageParams,
+) -> Result<BackOut> {
+    let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
+        return Err(Error::internal(format!(
+            "image {} has no view or raster intrinsics ({} views, {} intrinsics)",
+            item.view,
+            views.len(),
+            raster_intrinsics.len()
+        )));
+    };
+    let masks = crate::masks::compact::expand_all(&item.masks);
+    let (contribution, vs) = view_contribution(
+        rasterizer,
+        k,
+        &view.world_to_camera,
+        &masks,
+        item.embeddings,
+        dim,
+        image_stage,
+    )?;
+    Ok(BackOut {
+        contribution,
+        raster_s: vs.raster_s,
+        contribution_s: vs.aggregate_s,
+        pixels: vs.counted_pixels as u64,
+        raster_entries: vs.contributions,
+        device_sums: vs.device_sums,
+    })
+}
+
+/// The error for a scene of which no view is left to encode: `every` skips them all
+/// ([`Error::Param`] `every`), or the scene has none.
+pub(crate) fn no_views(scene: &SceneInput, views_total: usize) -> Error {
+    if views_total == 0 {
+        Error::Invalid(format!("{}: the scene has no views", scene.dir.display()))
+    } else {
+        Error::param(
+            "every",
+            scene.every,
+            format!("a step that keeps at least one of the scene's {views_total} views"),
+        )
+    }
+}
+
+/// Reads an image and checks it against the camera's intrinsics.
+pub fn read_image(view: &View) -> Result<RgbImage> {
+    // Pillow-exact JPEG decoding, so SAM/CLIP inputs match the Python reference pipeline.
+    let img = crate::preprocess::load_rgb(&view.image_path)?;
+    let (w, h) = (view.intrinsics.width, view.intrinsics.height);
+    if img.dimensions() != (w, h) {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::ImageSize,
+            format!(
+                "{} is {}x{} but its camera is {w}x{h}: images/ must hold the (undistorted) \
+                 images the camera model describes",
+                view.image_path.display(),
+                img.width(),
+                img.height()
+            ),
+        ));
+    }
+    Ok(img)
+}
+
+/// Runs the whole Semantic Embedding stage on `scene` and writes
+/// `<out>/embeddings.safetensors` (+ `<out>/mixture.safetensors` with
+/// [`EncodeParams::mixture_keep`]) + `<out>/report.json` (each atomically; the report last, so a
+/// report's presence means the run completed).
+///
+/// One front worker and one rasterizer: [`encode_pool`] with a single worker on each side.
+pub fn encode(
+    scene: &SceneInput,
+    masks: Box<dyn MaskGenerator>,
+    crops: Box<dyn CropEmbedder>,
+    make_rasterizer: impl FnOnce(&Gaussians) -> Result<Box<dyn WeightRasterizer>>,
+    params: &EncodeParams,
+    report: Report,
+) -> Result<Report> {
+    encode_pool(
+        scene,
+        vec![FrontStages::new(masks, crops)],
+        |g: &Gaussians| Ok(vec![make_rasterizer(g)?]),
+        params,
+        report,
+    )
+}
+/// The encode over a pool of workers ([`pool::run_pool`]: `fronts.len()` front threads,
+/// decode → masks → CLIP crops, and one back thread per rasterizer that `make_rasterizers`
+/// returns, raster → `a_kj`), then the one reduction over all images and the output files
+/// ([`finish::finish`]): `<out>/embeddings.safetensors`, the optional forms, `<out>/report.json`
+/// last.
+///
+/// Scheduling is dynamic at both ends: front workers take the next unclaimed view from a shared
+/// counter, and back workers take the next finished front item from one bounded queue (depth
+/// 2 × rasterizers), so an image with many masks or a slow GPU holds up only its own worker
+/// (the paper saw large stragglers with a static split). The per-image contributions of all
+/// workers go to one [`aggregate::ContributionStore`]; the reduction (`E_k`, f64) runs once at the end, so
+/// the result equals a one-worker run up to the f64 summation order.
+///
+/// Errors: the first error of any worker stops the others (no output is written); otherwise as
+/// [`encode`]. All fronts must embed with the same model (same `model_id` and `dim`).
+pub fn encode_pool(
+    scene: &SceneInput,
+    fronts: Vec<FrontStages>,
+    make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+    params: &EncodeParams,
+    report: Report,
+) -> Result<Report> {
+    let t_total = Instant::now();
+    let pooled = pool::run_pool(scene, fronts, make_rasterizers, params, t_total)?;
+    finish::finish(scene, pooled, params, report, t_total)
+}
+
+impl CropEmbedder for crate::clip::ClipHandle {
+    fn model_id(&self) -> &str {
+        crate::clip::ClipHandle::model_id(self)
+    }
+    fn dim(&self) -> usize {
+        crate::clip::ClipHandle::dim(self)
+    }
+    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+        self.embed_masks(image, masks)
+    }
+}
+
+impl CropEmbedder for crate::clip::ClipVisual {
+    fn model_id(&self) -> &str {
+        crate::clip::ClipVisual::model_id(self)
+    }
+    fn dim(&self) -> usize {
+        crate::clip::ClipVisual::dim(self)
+    }
+    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+        self.embed_masks(image, masks)
+    }
+}

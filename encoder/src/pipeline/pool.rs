@@ -1,0 +1,501 @@
+//! The encode's worker pool: front threads (decode → masks → CLIP crops) and one back thread per
+//! rasterizer (raster → `a_kj`), the bounded queues between them, and the first error, which
+//! stops every worker. What it leaves ([`Pooled`]: every image's `a_kj`, what the workers
+//! measured) goes to [`super::finish`].
+
+use std::sync::mpsc;
+use std::time::Instant;
+
+use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
+
+use super::{CropEmbedder, EncodeParams, FrontItem, SceneInput, back_stage, front_stage, no_views};
+use crate::aggregate::ContributionStore;
+use crate::masks::MaskGenerator;
+use crate::raster::WeightRasterizer;
+use crate::report::{Counts, ImageWork, QueueStats, StageTimings, WorkerShare};
+
+/// What the worker pool leaves for the finish ([`super::finish::finish`]): the scene's
+/// Gaussians, every image's `a_kj` (and, with [`EncodeParams::levels`], per SAM level), the
+/// models' names and what the workers measured.
+pub(crate) struct Pooled {
+    /// The scene's Gaussians (the reduction needs their means).
+    pub gaussians: Gaussians,
+    /// Embedding width D.
+    pub dim: usize,
+    /// The crop embedder's model id.
+    pub model_id: String,
+    /// The mask generator's name.
+    pub mask_name: String,
+    /// Front workers that ran.
+    pub fronts: usize,
+    /// The rasterizers' names, one per back worker.
+    pub rasterizers: Vec<String>,
+    /// Every image's contribution.
+    pub store: ContributionStore,
+    /// Per SAM level `l`, every image's contribution of that level's masks; empty without
+    /// [`EncodeParams::levels`].
+    pub level_stores: Vec<ContributionStore>,
+    /// Stage timings so far (scene load, the per-image stages).
+    pub timings: StageTimings,
+    /// Counts so far (views, Gaussians, masks, entries).
+    pub counts: Counts,
+    /// Each worker's share of the run.
+    pub workers: Vec<WorkerShare>,
+    /// Occupancy of the queues between the stages.
+    pub queue: QueueStats,
+}
+
+/// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
+/// CLIP crops, on the CPU / ONNX Runtime) and one back thread per rasterizer returned by
+/// `make_rasterizers` (one per GPU: raster → `a_kj`), that leave every
+/// image's `a_kj` for the one reduction over all images ([`super::finish`]).
+///
+/// Scheduling is dynamic at both ends: front workers take the next unclaimed view from a shared
+/// counter, and back workers take the next finished front item from one bounded queue (depth
+/// 2 × rasterizers), so an image with many masks or a slow GPU holds up only its own worker
+/// (the paper saw large stragglers with a static split). The per-image contributions of all
+/// workers go to one [`ContributionStore`]; the reduction (`E_k`, f64) runs once at the end, so
+/// the result equals a one-worker run up to the f64 summation order.
+///
+/// `t_total` is the run's start (the workers' [`WorkerShare`] times count from it).
+///
+/// Errors: the first error of any worker stops the others; the scene's and the rasterizers'
+/// set-up errors. All fronts must embed with the same model (same `model_id` and `dim`).
+pub(crate) fn run_pool(
+    scene: &SceneInput,
+    fronts: Vec<FrontStages>,
+    make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+    params: &EncodeParams,
+    t_total: Instant,
+) -> Result<Pooled> {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use std::sync::{Arc, Mutex};
+
+    let mut t = StageTimings::default();
+    let Some(first) = fronts.first() else {
+        return Err(Error::param("fronts", 0, "at least one front worker"));
+    };
+    let dim = first.crops.dim();
+    let model_id = first.crops.model_id().to_string();
+    let mask_name = first.masks.name().to_string();
+    if let Some(f) = fronts
+        .iter()
+        .find(|f| f.crops.dim() != dim || f.crops.model_id() != model_id)
+    {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
+                f.crops.model_id(),
+                f.crops.dim()
+            ),
+        ));
+    }
+    let t0 = Instant::now();
+    let (gaussians, views, views_total) = scene.load()?;
+    t.load_scene = t0.elapsed().as_secs_f64();
+    if views.is_empty() {
+        return Err(no_views(scene, views_total));
+    }
+    // Raster intrinsics of every view, checked (scale range, raster size) before any image work.
+    let raster_intrinsics = views
+        .iter()
+        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, params.raster_scale))
+        .collect::<Result<Vec<_>>>()?;
+    // Under the pipeline's target, where the README's sample output shows this line.
+    tracing::info!(
+        target: "slag_encoder::pipeline",
+        gaussians = gaussians.len(),
+        views = views.len(),
+        fronts = fronts.len(),
+        "scene loaded"
+    );
+    let n_fronts = fronts.len();
+    let multi = MultiProgress::with_draw_target(if params.progress {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
+    });
+    let bar_front = bar(&multi, views.len(), "masks + CLIP");
+    let bar_back = bar(&multi, views.len(), "raster + a_kj");
+    let spill_dir = params.out_dir.join(".contributions.partial");
+    let store = Mutex::new(ContributionStore::new(
+        params.contribution_budget_bytes,
+        spill_dir,
+    ));
+    // One more store per granularity level with `levels` (the same entries, split by level).
+    let level_stores: Vec<Mutex<ContributionStore>> = if params.levels {
+        (0..crate::aggregate::levels::LEVELS)
+            .map(|l| {
+                Mutex::new(ContributionStore::new(
+                    params.contribution_budget_bytes,
+                    params
+                        .out_dir
+                        .join(format!(".contributions-level{l}.partial")),
+                ))
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut counts = Counts {
+        views_total,
+        views_used: views.len(),
+        gaussians: gaussians.len(),
+        ..Default::default()
+    };
+
+    // What the back workers add up (under one lock, once per image).
+    let totals = Mutex::new(ImageWork::default());
+    let next_view = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let first_error: Mutex<Option<Error>> = Mutex::new(None);
+    let fail = |e: Error| {
+        failed.store(true, Ordering::SeqCst);
+        if let Ok(mut slot) = first_error.lock() {
+            slot.get_or_insert(e);
+        }
+    };
+    // One queue for all rasterizers, or, when the fronts are bound to GPUs, one queue per GPU so
+    // an image stays on the GPU whose SAM and CLIP made its masks. Each queue holds two finished
+    // images per rasterizer it feeds (the unbound fronts' queue: two per front, at most 8).
+    let bound_gpus = fronts.iter().filter_map(|f| f.gpu).max().map(|g| g + 1);
+    let (n_queues, capacity) = match bound_gpus {
+        Some(n) => (n, 2),
+        None => (1, (2 * fronts.len()).clamp(2, 8)),
+    };
+    let mut txs = Vec::with_capacity(n_queues);
+    let mut rxs = Vec::with_capacity(n_queues);
+    for _ in 0..n_queues {
+        let (tx, rx) = mpsc::sync_channel::<FrontItem>(capacity);
+        txs.push(tx);
+        rxs.push(Arc::new(Mutex::new(rx)));
+    }
+    let mut shares: Vec<WorkerShare> = Vec::new();
+    let mut raster_names: Vec<String> = Vec::new();
+    // What waits between the stages: images handed to a queue (a front blocked on a full queue
+    // included) and not yet taken by a back worker, and their bytes.
+    let queue = QueueGauge::default();
+
+    // The fronts start first; the rasterizers are set up (device, upload of the Gaussians) while
+    // the first images go through SAM and CLIP, so that set-up is off the critical path.
+    std::thread::scope(|s| {
+        let mut handles = Vec::new();
+        for (w, mut front) in fronts.into_iter().enumerate() {
+            let tx = txs[front.gpu.unwrap_or(0) % n_queues].clone();
+            let (views, next_view, failed, fail, bar_front, queue) =
+                (&views, &next_view, &failed, &fail, &bar_front, &queue);
+            handles.push(s.spawn(move || {
+                let mut share = WorkerShare {
+                    name: format!("front-{w}"),
+                    ..Default::default()
+                };
+                while !failed.load(Ordering::SeqCst) {
+                    let i = next_view.fetch_add(1, Ordering::SeqCst);
+                    let Some(view) = views.get(i) else { break };
+                    let t0 = Instant::now();
+                    if share.images == 0 {
+                        share.first_s = (t0 - t_total).as_secs_f64();
+                    }
+                    let item = front_stage(view, i, &mut *front.masks, &mut *front.crops, dim);
+                    share.busy_s += t0.elapsed().as_secs_f64();
+                    share.last_s = t_total.elapsed().as_secs_f64();
+                    bar_front.inc(1);
+                    match item {
+                        Ok(item) => {
+                            share.images += 1;
+                            let bytes = item.bytes();
+                            queue.enter(bytes);
+                            if tx.send(item).is_err() {
+                                queue.leave(bytes);
+                                break;
+                            }
+                        }
+                        Err(e) => {
+                            fail(e);
+                            break;
+                        }
+                    }
+                }
+                share
+            }));
+        }
+        // The back workers hold the only receivers: when every front is done, the queue closes.
+        drop(txs);
+        let rasterizers = match make_rasterizers(&gaussians) {
+            Ok(r) if r.is_empty() => {
+                fail(Error::param("rasterizers", 0, "at least one rasterizer"));
+                Vec::new()
+            }
+            Ok(r) if r.len() < bound_gpus.unwrap_or(1) => {
+                fail(Error::internal(format!(
+                    "front workers are bound to {} GPUs but there are {} rasterizers",
+                    bound_gpus.unwrap_or(1),
+                    r.len()
+                )));
+                Vec::new()
+            }
+            Ok(r) => r,
+            Err(e) => {
+                fail(e);
+                Vec::new()
+            }
+        };
+        raster_names = rasterizers.iter().map(|r| r.name().to_string()).collect();
+        for (g, mut rasterizer) in rasterizers.into_iter().enumerate() {
+            let rx = Arc::clone(&rxs[g % n_queues]);
+            let name = format!("raster-{g} {}", raster_names[g]);
+            let (views, raster_intrinsics, failed, fail, bar_back, store, totals) = (
+                &views,
+                &raster_intrinsics,
+                &failed,
+                &fail,
+                &bar_back,
+                &store,
+                &totals,
+            );
+            let (level_stores, queue) = (&level_stores, &queue);
+            handles.push(s.spawn(move || {
+                let mut share = WorkerShare {
+                    name,
+                    ..Default::default()
+                };
+                // Each rasterizer's host work (binning sort, readback, a_kj sums) runs on a rayon
+                // pool of its own, so that it never queues behind the front workers' jobs (SAM
+                // post-processing, crops) in the global pool: the back is the pipeline's
+                // critical path.
+                let pool = back_pool(g);
+                let mut run = || loop {
+                    // Take the next finished front item; the lock is held only while waiting.
+                    let item = match rx.lock() {
+                        Ok(rx) => rx.recv(),
+                        Err(_) => break,
+                    };
+                    let Ok(item) = item else { break };
+                    queue.leave(item.bytes());
+                    if failed.load(Ordering::SeqCst) {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    if share.images == 0 {
+                        share.first_s = (t0 - t_total).as_secs_f64();
+                    }
+                    let res = (|| -> Result<()> {
+                        let (view, n_masks) = (item.view, item.masks.len());
+                        let (decode_s, masks_s, clip_s) =
+                            (item.decode_s, item.masks_s, item.clip_s);
+                        let mask_levels: Vec<Option<u8>> =
+                            item.masks.iter().map(|m| m.level).collect();
+                        let out = back_stage(
+                            &mut *rasterizer,
+                            views,
+                            raster_intrinsics,
+                            item,
+                            dim,
+                            params.image_stage,
+                        )?;
+                        if let Some(p) = rasterizer.last_phases() {
+                            share.raster_phases_ms.get_or_insert_default().add(&p);
+                        }
+                        let t1 = Instant::now();
+                        let entries = out.contribution.entries.len();
+                        let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
+                        if !level_stores.is_empty() {
+                            let parts = crate::aggregate::levels::split_by_level(
+                                &out.contribution,
+                                &mask_levels,
+                            )?;
+                            for (part, ls) in parts.into_iter().zip(level_stores) {
+                                ls.lock()
+                                    .map_err(|_| {
+                                        Error::internal(
+                                            "contribution store poisoned by a panicked worker",
+                                        )
+                                    })?
+                                    .push(part)?;
+                            }
+                        }
+                        store
+                            .lock()
+                            .map_err(|_| {
+                                Error::internal("contribution store poisoned by a panicked worker")
+                            })?
+                            .push(out.contribution)?;
+                        let push_s = t1.elapsed().as_secs_f64();
+                        work.image_aggregate_s += push_s;
+                        if let Ok(mut tt) = totals.lock() {
+                            tt.add(&work);
+                        }
+                        if let Some(view) = views.get(view) {
+                            tracing::debug!(view = %view.name, masks = n_masks, "image done");
+                        }
+                        Ok(())
+                    })();
+                    share.busy_s += t0.elapsed().as_secs_f64();
+                    bar_back.inc(1);
+                    share.last_s = t_total.elapsed().as_secs_f64();
+                    match res {
+                        Ok(()) => share.images += 1,
+                        Err(e) => {
+                            fail(e);
+                            break;
+                        }
+                    }
+                };
+                match &pool {
+                    Some(pool) => pool.install(run),
+                    None => run(),
+                }
+                share
+            }));
+        }
+        // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
+        drop(rxs);
+        for h in handles {
+            match h.join() {
+                Ok(share) => shares.push(share),
+                Err(_) => fail(Error::internal("an encode worker thread panicked")),
+            }
+        }
+    });
+    if let Some(e) = first_error.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
+    let store = store.into_inner().map_err(poisoned)?;
+    let tt = totals.into_inner().unwrap_or_default();
+    if store.len() != views.len() {
+        return Err(Error::internal(format!(
+            "only {} of {} images reached the reduction",
+            store.len(),
+            views.len()
+        )));
+    }
+    let level_stores = level_stores
+        .into_iter()
+        .map(|ls| ls.into_inner().map_err(poisoned))
+        .collect::<Result<Vec<_>>>()?;
+    tt.fill(&mut t, &mut counts);
+    bar_front.finish();
+    bar_back.finish();
+    Ok(Pooled {
+        gaussians,
+        dim,
+        model_id,
+        mask_name,
+        fronts: n_fronts,
+        rasterizers: raster_names,
+        store,
+        level_stores,
+        timings: t,
+        counts,
+        workers: shares,
+        queue: queue.stats(n_queues * capacity),
+    })
+}
+
+/// The rayon pool of back worker `g`: as many threads as the global pool (at least 2). Each
+/// rasterizer alternates between its GPU passes and host work (binning sort, `a_kj` sums), one
+/// image at a time; full pools let a host phase use the cores the other rasterizers leave idle
+/// while they wait on their GPUs (a pool of `threads / GPUs` could stretch it). Measured: the
+/// per-image back cost grows with the GPUs either way (4 H200s, quarter pools: raster +27 % over
+/// 1 GPU; 2 H200s, full pools: +12 %), see docs/results/gpu-models.md. Idle rayon threads sleep, so the
+/// extra threads cost no CPU. `None` (with a warning) when the
+/// OS refuses the threads; the worker then uses the global pool, which is correct, only slower
+/// under load.
+fn back_pool(g: usize) -> Option<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(rayon::current_num_threads().max(2))
+        .thread_name(move |i| format!("slag-raster-{g}-{i}"))
+        .build()
+        .map_err(|e| {
+            tracing::warn!(error = %e, "no rayon pool for rasterizer {g}; using the global pool")
+        })
+        .ok()
+}
+
+fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
+    let style =
+        ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar());
+    multi.add(
+        ProgressBar::new(len as u64)
+            .with_style(style)
+            .with_prefix(label.to_string()),
+    )
+}
+
+/// Occupancy of the queues between the front and the back stages of [`run_pool`]: images
+/// handed over and not yet taken (a front waiting for a free slot counts: its image is held),
+/// their bytes ([`FrontItem::bytes`]), and the high-water marks of both.
+#[derive(Default)]
+struct QueueGauge {
+    items: std::sync::atomic::AtomicUsize,
+    bytes: std::sync::atomic::AtomicUsize,
+    high_items: std::sync::atomic::AtomicUsize,
+    high_bytes: std::sync::atomic::AtomicUsize,
+    largest_item: std::sync::atomic::AtomicUsize,
+}
+
+impl QueueGauge {
+    /// An image of `bytes` is handed to a queue.
+    fn enter(&self, bytes: usize) {
+        use std::sync::atomic::Ordering::SeqCst;
+        let n = self.items.fetch_add(1, SeqCst) + 1;
+        self.high_items.fetch_max(n, SeqCst);
+        let b = self.bytes.fetch_add(bytes, SeqCst) + bytes;
+        self.high_bytes.fetch_max(b, SeqCst);
+        self.largest_item.fetch_max(bytes, SeqCst);
+    }
+
+    /// An image of `bytes` left its queue (taken by a back worker, or never sent).
+    fn leave(&self, bytes: usize) {
+        use std::sync::atomic::Ordering::SeqCst;
+        // Saturating: a leave can never outnumber its enter, but a gauge must not wrap.
+        let _ = self
+            .items
+            .fetch_update(SeqCst, SeqCst, |v| Some(v.saturating_sub(1)));
+        let _ = self
+            .bytes
+            .fetch_update(SeqCst, SeqCst, |v| Some(v.saturating_sub(bytes)));
+    }
+
+    /// The report's view of the gauge; `capacity` = the queues' slots together.
+    fn stats(&self, capacity: usize) -> QueueStats {
+        use std::sync::atomic::Ordering::SeqCst;
+        QueueStats {
+            capacity_items: capacity,
+            high_water_bytes: self.high_bytes.load(SeqCst) as u64,
+            high_water_items: self.high_items.load(SeqCst),
+            largest_item_bytes: self.largest_item.load(SeqCst) as u64,
+        }
+    }
+}
+
+/// The stage instances of one *front* worker: a mask generator and a crop embedder (their own
+/// ONNX Runtime sessions on the CPU, or handles to the sessions of their GPU). [`run_pool`]
+/// runs one thread per entry.
+pub struct FrontStages {
+    /// SAM (or graph) masks of one image.
+    pub masks: Box<dyn MaskGenerator>,
+    /// CLIP embeddings of the masks' crops.
+    pub crops: Box<dyn CropEmbedder>,
+    /// The GPU whose models this worker uses, if any: its images then go to that GPU's
+    /// rasterizer (rasterizer `gpu`), so one pipeline's SAM, CLIP and raster share a GPU.
+    /// `None`: any rasterizer takes them.
+    pub gpu: Option<usize>,
+}
+
+impl FrontStages {
+    /// A worker bound to no GPU.
+    pub fn new(masks: Box<dyn MaskGenerator>, crops: Box<dyn CropEmbedder>) -> Self {
+        FrontStages {
+            masks,
+            crops,
+            gpu: None,
+        }
+    }
+}
