@@ -379,9 +379,17 @@ fn scores_q<const Q: usize>(
             dots.resize(end - start, [f32::NAN; Q]);
             match &mix {
                 Some((m, proj)) => m.scan_chunk::<Q>(proj, start, end, None, dots),
-                None => {
-                    kernels::scan_chunk::<Q>(store.vectors(), d, start, end, &queries, None, dots)
-                }
+                None => kernels::scan_chunk::<Q>(
+                    store.vectors(),
+                    kernels::RowSpan {
+                        d,
+                        start,
+                        end,
+                        keep: None,
+                    },
+                    &queries,
+                    dots,
+                ),
             }
             for (s, row) in chunk.iter_mut().zip(dots.iter()) {
                 *s = match combine {
