@@ -55,9 +55,9 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use slag_common::shards::{
-    CODEBOOK_TILE, Codebook, Dtype, Manifest, MixtureShard, SHARD_FORMAT_VERSION, StoredShard,
-    TileInfo, decode_codebook, decode_header, decode_mixture_shard, decode_shard_stored,
-    shard_checksum, valid_scene_id,
+    CODEBOOK_TILE, Codebook, Dtype, Manifest, MixtureShard, SHARD_FORMAT_VERSION, ShardHeader,
+    StoredShard, TileInfo, decode_codebook, decode_header, decode_mixture_shard,
+    decode_shard_stored, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
@@ -433,6 +433,47 @@ fn shard_error(origin: &str, e: slag_common::shards::ShardError) -> Error {
     }
 }
 
+/// What a shard header `h` gets wrong against its manifest entry: scene, tile, model, dim,
+/// `dtype` and count, and the format `version` when one is given; `None` when all agree. The
+/// message names both sides.
+fn header_disagreement(
+    h: &ShardHeader,
+    manifest: &Manifest,
+    tile: &TileInfo,
+    version: Option<u16>,
+    dtype: Dtype,
+) -> Option<String> {
+    if version.is_none_or(|v| h.version == v)
+        && h.scene_id == manifest.scene_id
+        && h.tile_id == tile.id
+        && h.model == manifest.model
+        && h.dim == manifest.dim
+        && h.dtype == dtype
+        && h.count as u64 == tile.count
+    {
+        return None;
+    }
+    let (hv, mv) = match version {
+        Some(v) => (format!("version {}, ", h.version), format!("version {v}, ")),
+        None => (String::new(), String::new()),
+    };
+    Some(format!(
+        "header ({hv}scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) disagrees with the \
+         manifest ({mv}scene {}, tile {}, model {}, dim {}, {dtype:?}, {} Gaussians)",
+        h.scene_id,
+        h.tile_id,
+        h.model,
+        h.dim,
+        h.dtype,
+        h.count,
+        manifest.scene_id,
+        tile.id,
+        manifest.model,
+        manifest.dim,
+        tile.count
+    ))
+}
+
 /// Checks downloaded bytes against the manifest entry and the manifest itself: length, whole-shard
 /// CRC-32, and a full decode whose header names the same scene, tile, model, dim and dtype.
 ///
@@ -443,33 +484,8 @@ pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Resul
     // Another version is not corruption: a shard from a newer (or older) slag, typed apart so
     // that fetch does not download it again and the message names the version.
     let shard = decode_shard_stored(bytes).map_err(|e| shard_error(&origin, e))?;
-    let h = &shard.header;
-    if h.scene_id != manifest.scene_id
-        || h.tile_id != tile.id
-        || h.model != manifest.model
-        || h.dim != manifest.dim
-        || h.dtype != manifest.dtype
-        || h.count as u64 != tile.count
-    {
-        return Err(Error::format(
-            &origin,
-            format!(
-                "header (scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) disagrees with \
-                 the manifest (scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians)",
-                h.scene_id,
-                h.tile_id,
-                h.model,
-                h.dim,
-                h.dtype,
-                h.count,
-                manifest.scene_id,
-                tile.id,
-                manifest.model,
-                manifest.dim,
-                manifest.dtype,
-                tile.count
-            ),
-        ));
+    if let Some(m) = header_disagreement(&shard.header, manifest, tile, None, manifest.dtype) {
+        return Err(Error::format(&origin, m));
     }
     Ok(shard)
 }
@@ -720,31 +736,8 @@ impl EdgeStore {
             (Some(_), Some(_)) => (SHARD_FORMAT_VERSION, Dtype::F16),
             (None, _) => (manifest.shard_format_version, manifest.dtype),
         };
-        if h.version != version
-            || h.scene_id != manifest.scene_id
-            || h.tile_id != tile.id
-            || h.model != manifest.model
-            || h.dim != manifest.dim
-            || h.dtype != dtype
-            || h.count as u64 != tile.count
-        {
-            return damaged(format!(
-                "header (version {}, scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) \
-                 disagrees with the manifest (version {version}, scene {}, tile {}, model {}, \
-                 dim {}, {dtype:?}, {} Gaussians)",
-                h.version,
-                h.scene_id,
-                h.tile_id,
-                h.model,
-                h.dim,
-                h.dtype,
-                h.count,
-                manifest.scene_id,
-                tile.id,
-                manifest.model,
-                manifest.dim,
-                tile.count
-            ));
+        if let Some(m) = header_disagreement(&h, manifest, tile, Some(version), dtype) {
+            return damaged(m);
         }
         Ok(Stored::Verified)
     }

@@ -253,7 +253,8 @@ async fn a_timed_out_batch_stops_scanning_and_frees_the_slot() {
     let _open = gate.open_on_drop();
     let opts = ServeOptions {
         max_scans: 1,
-        request_timeout: Duration::from_millis(500),
+        // Long enough for the follow-up query on a loaded machine; the batch's 408 waits it out.
+        request_timeout: Duration::from_secs(3),
         ..ServeOptions::new("grid")
     };
     let (addr, _dir) = edge(gate.clone(), opts).await;
