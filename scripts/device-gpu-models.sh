@@ -22,6 +22,7 @@
 #                                            # Gaussians, 250 views x 250k a_kj, D 512): both loop
 #                                            # orders of the reduction + the f16 write (CPU only)
 # Files under /root survive between calls while the machine is held. Results go to $OUT.
+# SLAG_ENCODER=PATH runs another slag-encoder build (e.g. a base to compare with, in the same call).
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
 if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
@@ -31,7 +32,7 @@ export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVL
 export XDG_RUNTIME_DIR=/tmp PYTHONPATH=/root/site PYTHONUNBUFFERED=1 SLAG_EXPORT_NO_CHECK=1
 # shellcheck disable=SC1091
 source /root/og/assemble.sh
-R=${OUT:-/tmp/out}; W=/root/work; M=/root/models; B=/root/bin/slag-encoder; BB=/root/bin/slag-bench
+R=${OUT:-/tmp/out}; W=/root/work; M=/root/models; B=${SLAG_ENCODER:-/root/bin/slag-encoder}; BB=/root/bin/slag-bench
 mkdir -p "$R" "$W" "$M" /root/bin
 if [ -d .devcarry ]; then
   for z in .devcarry/*.zst; do [ -f "$z" ] && LD_LIBRARY_PATH=/root/og /root/og/zstd -dqf "$z" -o "/root/bin/$(basename "$z" .zst)"; done

@@ -7,7 +7,93 @@ use rustc_hash::FxHashMap;
 use slag_common::{Error, Result};
 
 use crate::masks::Mask;
-use crate::raster::PixelWeights;
+use crate::masks::compact::CompactMask;
+use crate::raster::{LabelSums, PixelWeights};
+
+/// What the image stage reads of a mask at its image's full resolution: its size, box, area and
+/// SAM scores, and which pixels of a row are inside. Implemented by [`Mask`] (a byte per pixel)
+/// and [`CompactMask`] (runs), which give the same answers, so that the labels of an image are
+/// made from the compact masks without expanding them.
+pub trait ImageMask: Sync {
+    /// `(width, height)` of the mask's image, pixels.
+    fn size(&self) -> (u32, u32);
+    /// As [`Mask::bbox_xywh`].
+    fn bbox_xywh(&self) -> [u32; 4];
+    /// As [`Mask::area`].
+    fn area(&self) -> u32;
+    /// As [`Mask::predicted_iou`] and [`Mask::stability_score`].
+    fn scores(&self) -> (f32, f32);
+    /// Calls `hit(x)` for each `(x, sx)` of `cols` (`sx` ascending, `< width`) whose pixel
+    /// `(sx, sy)` is inside the mask (`sy < height`).
+    fn row_hits(&self, sy: u32, cols: impl Iterator<Item = (usize, u32)>, hit: impl FnMut(usize));
+}
+
+impl ImageMask for Mask {
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn bbox_xywh(&self) -> [u32; 4] {
+        self.bbox_xywh
+    }
+    fn area(&self) -> u32 {
+        self.area
+    }
+    fn scores(&self) -> (f32, f32) {
+        (self.predicted_iou, self.stability_score)
+    }
+    fn row_hits(
+        &self,
+        sy: u32,
+        cols: impl Iterator<Item = (usize, u32)>,
+        mut hit: impl FnMut(usize),
+    ) {
+        let row = sy as usize * self.width as usize;
+        for (x, sx) in cols {
+            if self.pixels.get(row + sx as usize).is_some_and(|&v| v != 0) {
+                hit(x);
+            }
+        }
+    }
+}
+
+impl ImageMask for CompactMask {
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+    fn bbox_xywh(&self) -> [u32; 4] {
+        self.bbox_xywh
+    }
+    fn area(&self) -> u32 {
+        self.area
+    }
+    fn scores(&self) -> (f32, f32) {
+        (self.predicted_iou, self.stability_score)
+    }
+    fn row_hits(
+        &self,
+        sy: u32,
+        cols: impl Iterator<Item = (usize, u32)>,
+        mut hit: impl FnMut(usize),
+    ) {
+        // Runs are ascending and never cross a row end: walk the row's runs with the columns.
+        let row = u64::from(sy) * u64::from(self.width);
+        let mut r = self
+            .runs
+            .partition_point(|&(start, len)| u64::from(start) + u64::from(len) <= row);
+        for (x, sx) in cols {
+            let p = row + u64::from(sx);
+            while r < self.runs.len() && u64::from(self.runs[r].0) + u64::from(self.runs[r].1) <= p
+            {
+                r += 1;
+            }
+            match self.runs.get(r) {
+                Some(&(start, _)) if u64::from(start) <= p => hit(x),
+                Some(_) => {}
+                None => break,
+            }
+        }
+    }
+}
 
 /// One non-zero `a_kj` of an image: Gaussian `gaussian` received total blend weight `weight`
 /// (units: pixels at the raster resolution) inside mask `mask`.
@@ -70,12 +156,12 @@ pub enum MaskOverlap {
 /// [`crate::aggregate::PixelLabels`] holds them); afterwards each non-empty set holds exactly one
 /// mask: the one of least [`Mask::area`] (ties: the lower index). Mask indices outside `masks`
 /// are dropped.
-pub fn restrict_to_finest(masks_of: &mut [Vec<u32>], masks: &[Mask]) {
+pub fn restrict_to_finest<M: ImageMask>(masks_of: &mut [Vec<u32>], masks: &[M]) {
     for set in masks_of.iter_mut() {
         let finest = set
             .iter()
             .copied()
-            .filter_map(|j| masks.get(j as usize).map(|m| (m.area, j)))
+            .filter_map(|j| masks.get(j as usize).map(|m| (m.area(), j)))
             .min();
         set.clear();
         if let Some((_, j)) = finest {
@@ -105,14 +191,16 @@ pub enum MaskWeighting {
 impl MaskWeighting {
     /// The factor `g_j` of `mask` (finite, > 0; non-finite or non-positive SAM scores give
     /// `f32::MIN_POSITIVE`).
-    pub fn factor(self, mask: &Mask) -> f32 {
+    pub fn factor(self, mask: &impl ImageMask) -> f32 {
         match self {
             MaskWeighting::None => 1.0,
             MaskWeighting::Area => {
-                (mask.width as f64 * mask.height as f64 / mask.area.max(1) as f64) as f32
+                let (w, h) = mask.size();
+                (w as f64 * h as f64 / mask.area().max(1) as f64) as f32
             }
             MaskWeighting::SamScore => {
-                let g = mask.predicted_iou * mask.stability_score;
+                let (iou, stability) = mask.scores();
+                let g = iou * stability;
                 if g.is_finite() && g > 0.0 {
                     g
                 } else {
@@ -125,12 +213,24 @@ impl MaskWeighting {
 
 /// Multiplies every entry's `a_kj` by its mask's [`MaskWeighting::factor`].
 pub(crate) fn weight_entries(entries: &mut [Entry], masks: &[Mask], weighting: MaskWeighting) {
+    apply_mask_factors(entries, &mask_factors(masks, weighting));
+}
+
+/// Every mask's [`MaskWeighting::factor`] (`[M]`), or nothing for [`MaskWeighting::None`].
+pub(crate) fn mask_factors<M: ImageMask>(masks: &[M], weighting: MaskWeighting) -> Vec<f32> {
     if weighting == MaskWeighting::None {
+        return Vec::new();
+    }
+    masks.iter().map(|m| weighting.factor(m)).collect()
+}
+
+/// Multiplies every entry's `a_kj` by `factors[mask]` ([`mask_factors`]; empty: unchanged).
+pub(crate) fn apply_mask_factors(entries: &mut [Entry], factors: &[f32]) {
+    if factors.is_empty() {
         return;
     }
-    let g: Vec<f32> = masks.iter().map(|m| weighting.factor(m)).collect();
     for e in entries {
-        if let Some(&f) = g.get(e.mask as usize) {
+        if let Some(&f) = factors.get(e.mask as usize) {
             e.weight *= f;
         }
     }
@@ -138,31 +238,30 @@ pub(crate) fn weight_entries(entries: &mut [Entry], masks: &[Mask], weighting: M
 
 /// Resamples full-resolution masks onto the raster grid (`width` x `height`) by nearest sampling at
 /// raster pixel centres, and returns per-pixel mask-membership bitsets (`words` u64 per pixel).
-fn membership(masks: &[Mask], width: u32, height: u32) -> (usize, Vec<u64>) {
+fn membership<M: ImageMask>(masks: &[M], width: u32, height: u32) -> (usize, Vec<u64>) {
     let words = masks.len().div_ceil(64).max(1);
     let mut bits = vec![0u64; width as usize * height as usize * words];
     bits.par_chunks_mut(width as usize * words)
         .enumerate()
         .for_each(|(y, row)| {
             for (j, m) in masks.iter().enumerate() {
-                let sy =
-                    (((y as f64 + 0.5) * m.height as f64 / height as f64) as u32).min(m.height - 1);
-                let [bx, by, bw, bh] = m.bbox_xywh;
+                let (mw, mh) = m.size();
+                let sy = (((y as f64 + 0.5) * mh as f64 / height as f64) as u32).min(mh - 1);
+                let [bx, by, bw, bh] = m.bbox_xywh();
                 if sy < by || sy > by + bh {
                     continue;
                 }
                 // Raster columns whose centre can sample inside the bbox.
-                let x0 = ((bx as f64 * width as f64 / m.width as f64) - 1.0).max(0.0) as usize;
-                let x1 = ((((bx + bw + 1) as f64) * width as f64 / m.width as f64).ceil() as usize
-                    + 1)
-                .min(width as usize);
-                for x in x0..x1 {
-                    let sx = (((x as f64 + 0.5) * m.width as f64 / width as f64) as u32)
-                        .min(m.width - 1);
-                    if sx >= bx && sx <= bx + bw && m.pixels[(sy * m.width + sx) as usize] != 0 {
-                        row[x * words + j / 64] |= 1u64 << (j % 64);
-                    }
-                }
+                let x0 = ((bx as f64 * width as f64 / mw as f64) - 1.0).max(0.0) as usize;
+                let x1 = ((((bx + bw + 1) as f64) * width as f64 / mw as f64).ceil() as usize + 1)
+                    .min(width as usize);
+                let cols = (x0..x1)
+                    .map(|x| {
+                        let sx = (((x as f64 + 0.5) * mw as f64 / width as f64) as u32).min(mw - 1);
+                        (x, sx)
+                    })
+                    .filter(|&(_, sx)| sx >= bx && sx <= bx + bw);
+                m.row_hits(sy, cols, |x| row[x * words + j / 64] |= 1u64 << (j % 64));
             }
         });
     (words, bits)
@@ -183,7 +282,7 @@ pub struct PixelLabels {
 /// The labels of the raster grid `width × height` for full-resolution `masks` (nearest sampling
 /// at raster pixel centres, as [`image_contribution`] does). Labels are numbered in row-major
 /// order of first appearance, so they are deterministic.
-pub fn pixel_labels(masks: &[Mask], width: u32, height: u32) -> PixelLabels {
+pub fn pixel_labels<M: ImageMask>(masks: &[M], width: u32, height: u32) -> PixelLabels {
     if masks.is_empty() || width == 0 || height == 0 {
         return PixelLabels {
             labels: vec![0; width as usize * height as usize],
@@ -215,8 +314,8 @@ pub fn pixel_labels(masks: &[Mask], width: u32, height: u32) -> PixelLabels {
 /// is cut to its finest mask ([`restrict_to_finest`]); with [`MaskOverlap::All`] it is kept whole.
 /// The one place the rule is applied, for the host image stage ([`image_contribution`]) and for
 /// labels summed on the rasterizer's device alike.
-pub fn overlap_labels(
-    masks: &[Mask],
+pub fn overlap_labels<M: ImageMask>(
+    masks: &[M],
     width: u32,
     height: u32,
     overlap: MaskOverlap,
@@ -229,8 +328,8 @@ pub fn overlap_labels(
 }
 
 /// Checks the image stage's inputs: one embedding of width `dim` per mask, masks of one size.
-pub(crate) fn check_image_inputs(
-    masks: &[Mask],
+pub(crate) fn check_image_inputs<M: ImageMask>(
+    masks: &[M],
     mask_embeddings: &[f32],
     dim: usize,
 ) -> Result<()> {
@@ -241,46 +340,85 @@ pub(crate) fn check_image_inputs(
             mask_embeddings.len()
         )));
     }
-    if let Some(m) = masks
-        .iter()
-        .find(|m| (m.width, m.height) != (masks[0].width, masks[0].height))
-    {
+    if let Some(m) = masks.iter().find(|m| m.size() != masks[0].size()) {
+        let ((w, h), (w0, h0)) = (m.size(), masks[0].size());
         return Err(Error::mismatch(
             slag_common::Mismatched::ImageSize,
-            format!(
-                "masks of one image differ in size ({}x{} vs {}x{})",
-                m.width, m.height, masks[0].width, masks[0].height
-            ),
+            format!("masks of one image differ in size ({w}x{h} vs {w0}x{h0})"),
         ));
     }
     Ok(())
 }
 
-/// `a_kj` from per-(Gaussian, label) sums sorted by (Gaussian, label): `a_kj = Σ_{s ∋ j} sum_ks`,
-/// added in that order (deterministic), zero sums dropped; sorted by (Gaussian, mask).
-pub(crate) fn expand_labels(
-    sums: impl IntoIterator<Item = (u32, u32, f64)>,
+/// `a_kj` from per-(Gaussian, label) sums sorted by (Gaussian, label), one per key:
+/// `a_kj = Σ_{s ∋ j} sum_ks`, added in label order (deterministic), zero sums dropped; sorted by
+/// (Gaussian, mask). `sum_of(&sums[i])` gives the i-th `(Gaussian, label, sum)`.
+///
+/// Every Gaussian's labels expand into a small per-Gaussian list, so there is no image-wide
+/// table; runs of whole Gaussians are expanded in parallel and joined in order, so the result
+/// does not depend on the number of threads.
+pub(crate) fn expand_labels<T: Sync>(
+    sums: &[T],
+    sum_of: impl Fn(&T) -> (u32, u32, f64) + Sync,
     masks_of: &[Vec<u32>],
 ) -> Vec<Entry> {
-    let mut per_kj: FxHashMap<u64, f64> = FxHashMap::default();
-    for (k, s, v) in sums {
-        for &j in masks_of.get(s as usize).map_or(&[][..], Vec::as_slice) {
-            *per_kj
-                .entry((u64::from(k) << 32) | u64::from(j))
-                .or_insert(0.0) += v;
+    // Chunk starts at Gaussian boundaries, about 64k sums each.
+    const CHUNK: usize = 1 << 16;
+    let gaussian = |i: usize| sum_of(&sums[i]).0;
+    let mut starts = vec![0usize];
+    let mut at = CHUNK;
+    while at < sums.len() {
+        let g = gaussian(at - 1);
+        while at < sums.len() && gaussian(at) == g {
+            at += 1;
         }
+        if at < sums.len() {
+            starts.push(at);
+        }
+        at += CHUNK;
     }
-    let mut entries: Vec<Entry> = per_kj
-        .into_iter()
-        .filter(|&(_, v)| v > 0.0)
-        .map(|(key, v)| Entry {
-            gaussian: (key >> 32) as u32,
-            mask: key as u32,
-            weight: v as f32,
+    starts.push(sums.len());
+    let parts: Vec<Vec<Entry>> = starts
+        .par_windows(2)
+        .map(|w| {
+            let mut out = Vec::with_capacity(w[1] - w[0]);
+            let mut per_mask: Vec<(u32, f64)> = Vec::new();
+            let mut i = w[0];
+            while i < w[1] {
+                let k = gaussian(i);
+                per_mask.clear();
+                while i < w[1] && gaussian(i) == k {
+                    let (_, s, v) = sum_of(&sums[i]);
+                    for &j in masks_of.get(s as usize).map_or(&[][..], Vec::as_slice) {
+                        per_mask.push((j, v));
+                    }
+                    i += 1;
+                }
+                // Stable: one mask's terms keep their label order.
+                per_mask.sort_by_key(|&(j, _)| j);
+                for run in per_mask.chunk_by(|a, b| a.0 == b.0) {
+                    let a = run.iter().fold(0.0f64, |acc, &(_, v)| acc + v);
+                    if a > 0.0 {
+                        out.push(Entry {
+                            gaussian: k,
+                            mask: run[0].0,
+                            weight: a as f32,
+                        });
+                    }
+                }
+            }
+            out
         })
         .collect();
-    entries.par_sort_unstable_by_key(|e| (e.gaussian, e.mask));
-    entries
+    parts.concat()
+}
+
+/// `a_kj` from a rasterizer's label-sum records ([`LabelSums::records`]: any order, a key
+/// repeated once per tile): the records are sorted and the sums of one key added (exact
+/// integers, [`LabelSums::reduced`]), then expanded as [`expand_labels`] does.
+pub(crate) fn expand_label_records(sums: LabelSums, masks_of: &[Vec<u32>]) -> Vec<Entry> {
+    let records = sums.reduced();
+    expand_labels(&records, |r| (r.gaussian, r.label, r.weight()), masks_of)
 }
 
 /// The image stage: `a_kj = Σ_{p∈M_j} w_kp` for every Gaussian k and mask j of one image.
@@ -356,8 +494,8 @@ pub fn image_contribution(
     let mut sums: Vec<(u64, f64)> = merged.into_iter().collect();
     sums.par_sort_unstable_by_key(|e| e.0);
     let mut entries = expand_labels(
-        sums.into_iter()
-            .map(|(key, v)| ((key >> 32) as u32, key as u32, v)),
+        &sums,
+        |&(key, v)| ((key >> 32) as u32, key as u32, v),
         &masks_of,
     );
     weight_entries(&mut entries, masks, params.mask_weighting);
@@ -366,4 +504,149 @@ pub fn image_contribution(
         mask_embeddings,
         entries,
     })
+}
+
+#[cfg(test)]
+mod expand_tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::raster::LabelSum;
+
+    /// A small deterministic generator (xorshift), so the test needs no seed crate.
+    fn next(state: &mut u64) -> u64 {
+        *state ^= *state << 13;
+        *state ^= *state >> 7;
+        *state ^= *state << 17;
+        *state
+    }
+
+    /// Label-sum records in shuffled order, keys repeated (as the GPU's per-tile records are),
+    /// over enough Gaussians that the expansion runs in several parallel chunks, against a
+    /// sequential reference: per (Gaussian, mask), the f64 sums of the reduced label sums added
+    /// in label order.
+    #[test]
+    fn label_records_expand_like_the_sequential_reference_in_any_order() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        // Labels 1..=40 over 12 masks, each label a set of 1–3 masks (overlapping masks).
+        let mut masks_of = vec![Vec::new()];
+        for _ in 0..40 {
+            let mut set: Vec<u32> = (0..1 + next(&mut state) % 3)
+                .map(|_| (next(&mut state) % 12) as u32)
+                .collect();
+            set.sort_unstable();
+            set.dedup();
+            masks_of.push(set);
+        }
+        let mut records = Vec::new();
+        for gaussian in 0..60_000u32 {
+            for _ in 0..next(&mut state) % 5 {
+                let label = 1 + (next(&mut state) % 40) as u32;
+                // 1–3 records of the key, some with a zero sum.
+                for _ in 0..1 + next(&mut state) % 3 {
+                    let sum = if next(&mut state) % 7 == 0 {
+                        0
+                    } else {
+                        next(&mut state) % (1 << 36)
+                    };
+                    records.push(LabelSum {
+                        gaussian,
+                        label,
+                        sum,
+                    });
+                }
+            }
+        }
+        assert!(records.len() > 2 * (1 << 16), "several chunks");
+        // Reference: exact integer sums per key, then masks in (Gaussian, label) order.
+        let mut per_key: BTreeMap<(u32, u32), u64> = BTreeMap::new();
+        for r in &records {
+            *per_key.entry((r.gaussian, r.label)).or_insert(0) += r.sum;
+        }
+        let mut per_kj: BTreeMap<(u32, u32), f64> = BTreeMap::new();
+        for (&(k, s), &sum) in &per_key {
+            let v = sum as f64 / 4_294_967_296.0;
+            for &j in &masks_of[s as usize] {
+                *per_kj.entry((k, j)).or_insert(0.0) += v;
+            }
+        }
+        let expected: Vec<Entry> = per_kj
+            .into_iter()
+            .filter(|&(_, v)| v > 0.0)
+            .map(|((gaussian, mask), v)| Entry {
+                gaussian,
+                mask,
+                weight: v as f32,
+            })
+            .collect();
+        // Shuffle (Fisher–Yates) so that the order the records arrive in is arbitrary.
+        for i in (1..records.len()).rev() {
+            records.swap(i, (next(&mut state) % (i as u64 + 1)) as usize);
+        }
+        let sums = LabelSums {
+            records,
+            contributions: 0,
+        };
+        let got = expand_label_records(sums, &masks_of);
+        assert_eq!(got.len(), expected.len());
+        for (g, e) in got.iter().zip(&expected) {
+            assert_eq!((g.gaussian, g.mask), (e.gaussian, e.mask));
+            assert_eq!(g.weight.to_bits(), e.weight.to_bits(), "{g:?} vs {e:?}");
+        }
+    }
+
+    /// No sums, or sums whose labels have no masks: no entries.
+    #[test]
+    fn empty_and_maskless_label_sums_give_no_entries() {
+        let none: Vec<(u32, u32, f64)> = Vec::new();
+        assert!(expand_labels(&none, |&t| t, &[Vec::new()]).is_empty());
+        let maskless = [(3, 1, 0.5), (4, 2, 0.25)];
+        assert!(expand_labels(&maskless, |&t| t, &[Vec::new(), Vec::new()]).is_empty());
+    }
+
+    /// Labels made from run-length masks equal those made from the expanded masks, at raster
+    /// sizes below, at and above the masks' (odd sizes, masks touching the borders, overlaps),
+    /// and so do the finest-mask rule and the weighting factors that read the same fields.
+    #[test]
+    fn compact_masks_label_like_expanded_masks() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let (w, h) = (97u32, 61u32);
+        let masks: Vec<Mask> = (0..70)
+            .map(|i| {
+                let (cx, cy) = (
+                    (next(&mut state) % 97) as i64,
+                    (next(&mut state) % 61) as i64,
+                );
+                let r = 3 + (next(&mut state) % 30) as i64;
+                let pixels = (0..h as i64)
+                    .flat_map(|y| (0..w as i64).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        // Discs, and every 5th mask a ring with holes in it.
+                        let d = (x - cx).pow(2) + (y - cy).pow(2);
+                        u8::from(d <= r * r && (i % 5 != 0 || d >= (r / 2).pow(2)))
+                    })
+                    .collect();
+                let mut m = Mask::from_pixels(w, h, pixels).expect("non-empty disc");
+                m.predicted_iou = 0.5 + (i as f32) / 200.0;
+                m.stability_score = 0.9;
+                m
+            })
+            .collect();
+        let compact: Vec<CompactMask> = masks.iter().map(CompactMask::new).collect();
+        for (rw, rh) in [(48, 30), (97, 61), (131, 90), (7, 5)] {
+            for overlap in [MaskOverlap::All, MaskOverlap::Finest] {
+                assert_eq!(
+                    overlap_labels(&compact, rw, rh, overlap),
+                    overlap_labels(&masks, rw, rh, overlap),
+                    "{rw}x{rh} {overlap:?}"
+                );
+            }
+        }
+        for weighting in [MaskWeighting::Area, MaskWeighting::SamScore] {
+            assert_eq!(
+                mask_factors(&compact, weighting),
+                mask_factors(&masks, weighting)
+            );
+        }
+    }
 }

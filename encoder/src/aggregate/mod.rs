@@ -32,7 +32,7 @@ pub mod robust;
 pub mod store;
 
 pub use image::{
-    Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
+    Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels,
 };
 pub use mixture::reduce_mixture;

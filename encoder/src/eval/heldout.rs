@@ -220,7 +220,7 @@ impl OracleLifting {
             )
         };
         if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels)? {
-            for s in &sums.sums {
+            for s in &sums.reduced() {
                 let (k, c) = (s.gaussian as usize, s.label as usize - 1);
                 if k >= n || c >= self.classes {
                     return Err(outside(s.gaussian));

@@ -1,9 +1,9 @@
 //! The encode pipeline: for each posed image, masks → CLIP crop embeddings → weight raster →
 //! image-stage aggregation, then the reduction over all images and the output files.
 //!
-//! Two threads overlap the stages: the *front* thread decodes image i+1, generates its masks and
-//! embeds its crops while the *back* thread rasterizes image i and computes its `a_kj`
-//! (a bounded channel of depth 2 keeps memory flat). Every per-image step is independent, as in
+//! Threads overlap the stages: a *front* thread decodes image i+2, generates its masks and
+//! embeds its crops while the *raster* thread rasterizes image i+1 and the *image* thread turns
+//! image i's label sums into its `a_kj` (bounded channels between them keep memory flat). Every per-image step is independent, as in
 //! the paper; only the reduction sees all images.
 //!
 //! [`Encoder`] runs a [`crate::config::EncodeConfig`]: [`build`] turns the config into the stage
@@ -22,6 +22,7 @@ use slag_common::embeddings::StoredPrecision;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::{Error, Result};
 
+use crate::aggregate::image::ImageMask;
 use crate::aggregate::{self, ImageContribution, ImageStageParams, ReduceParams};
 use crate::masks::compact::CompactMask;
 use crate::masks::{Mask, MaskGenerator};
@@ -122,7 +123,8 @@ pub(crate) struct FrontItem {
     /// Index of the view in the scene's view list.
     pub view: usize,
     /// SAM (or graph) masks of the image, run-length encoded while the image waits between the
-    /// stages ([`CompactMask`]; [`back_stage`] expands them right before the raster call).
+    /// stages ([`CompactMask`]; [`back_stage`] labels them from their runs and expands them only for
+    /// the per-pixel lists).
     pub masks: Vec<CompactMask>,
     /// `[masks.len() * D]` CLIP crop embeddings `E_j`, row-major.
     pub embeddings: Vec<f32>,
@@ -250,6 +252,10 @@ pub struct ViewStats {
 /// lists are rasterized and summed by [`image_contribution`]. Both give the same `a_kj` up to
 /// the device path's 2^-32 fixed point per weight.
 ///
+/// Its three parts, [`prepare_view`] (the labels), [`raster_view`] (the rasterizer's) and
+/// [`finish_view`] (the reduction and expansion), run one after the other here; the encoder runs
+/// them on three threads per rasterizer, so that the rasterizer never waits for host work.
+///
 /// Errors: as [`image_contribution`] and the rasterizer's.
 pub fn view_contribution(
     rasterizer: &mut dyn WeightRasterizer,
@@ -261,47 +267,143 @@ pub fn view_contribution(
     params: ImageStageParams,
 ) -> Result<(ImageContribution, ViewStats)> {
     aggregate::image::check_image_inputs(masks, &mask_embeddings, dim)?;
+    let prepared = prepare_view(intrinsics, masks, params);
+    let r = raster_view(rasterizer, intrinsics, world_to_camera, prepared)?;
+    finish_view(r, masks, mask_embeddings, dim, params)
+}
+
+/// What a rasterizer made of one view ([`raster_view`]), for the host side of its image stage
+/// ([`finish_view`]).
+pub(crate) struct RasteredView {
+    out: Rastered,
+    stats: ViewStats,
+}
+
+enum Rastered {
+    /// The device's per-(Gaussian, label) sums, the labels' masks and the masks' weighting
+    /// factors ([`aggregate::image::mask_factors`]).
+    Sums {
+        sums: crate::raster::LabelSums,
+        masks_of: Vec<Vec<u32>>,
+        factors: Vec<f32>,
+    },
+    /// Per-pixel lists, for [`image_contribution`].
+    Weights(crate::raster::PixelWeights),
+}
+
+/// The pixel labels of one view and what the image stage needs of its masks afterwards, made
+/// before the view reaches its rasterizer ([`prepare_view`]).
+pub(crate) struct PreparedView {
+    /// `None`: the per-pixel lists are needed (`top_k_per_pixel`, or no masks).
+    labels: Option<aggregate::PixelLabels>,
+    /// [`aggregate::image::mask_factors`] of the masks.
+    factors: Vec<f32>,
+    /// Seconds the labels took.
+    labels_s: f64,
+}
+
+/// The first, host-only part of [`view_contribution`]: the pixel labels of `masks` at the raster
+/// size of `intrinsics`, unless `top_k_per_pixel` needs the per-pixel lists.
+pub(crate) fn prepare_view<M: ImageMask>(
+    intrinsics: &Intrinsics,
+    masks: &[M],
+    params: ImageStageParams,
+) -> PreparedView {
+    let t0 = Instant::now();
+    let labels = (params.top_k_per_pixel.is_none() && !masks.is_empty()).then(|| {
+        aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap)
+    });
+    PreparedView {
+        labels,
+        factors: aggregate::image::mask_factors(masks, params.mask_weighting),
+        labels_s: t0.elapsed().as_secs_f64(),
+    }
+}
+
+/// The rasterizer's part of [`view_contribution`]: the device's label sums of the prepared
+/// labels, or the per-pixel lists when the rasterizer has no label sums or there are no labels.
+/// `stats.aggregate_s` holds the labels' host time so far.
+///
+/// Errors: the rasterizer's.
+pub(crate) fn raster_view(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    prepared: PreparedView,
+) -> Result<RasteredView> {
     let pixels = intrinsics.width as usize * intrinsics.height as usize;
-    if params.top_k_per_pixel.is_none() && !masks.is_empty() {
-        let t0 = Instant::now();
-        let labels =
-            aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap);
-        let t1 = Instant::now();
-        if let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)? {
-            let t2 = Instant::now();
-            let mut entries = aggregate::image::expand_labels(
-                sums.sums.iter().map(|e| (e.gaussian, e.label, e.weight())),
-                &labels.masks_of,
-            );
-            aggregate::image::weight_entries(&mut entries, masks, params.mask_weighting);
-            let stats = ViewStats {
-                raster_s: (t2 - t1).as_secs_f64(),
-                aggregate_s: (t1 - t0).as_secs_f64() + t2.elapsed().as_secs_f64(),
-                pixels,
-                contributions: sums.contributions,
-                counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
-                device_sums: true,
-            };
-            let c = ImageContribution {
-                dim,
-                mask_embeddings,
-                entries,
-            };
-            return Ok((c, stats));
-        }
+    let PreparedView {
+        labels,
+        factors,
+        labels_s,
+    } = prepared;
+    let t0 = Instant::now();
+    if let Some(labels) = labels
+        && let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)?
+    {
+        let stats = ViewStats {
+            raster_s: t0.elapsed().as_secs_f64(),
+            aggregate_s: labels_s,
+            pixels,
+            contributions: sums.contributions,
+            counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
+            device_sums: true,
+        };
+        let out = Rastered::Sums {
+            sums,
+            masks_of: labels.masks_of,
+            factors,
+        };
+        return Ok(RasteredView { out, stats });
     }
     let t0 = Instant::now();
     let weights = rasterizer.rasterize(intrinsics, world_to_camera)?;
-    let t1 = Instant::now();
-    let c = aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?;
     let stats = ViewStats {
-        raster_s: (t1 - t0).as_secs_f64(),
-        aggregate_s: t1.elapsed().as_secs_f64(),
+        raster_s: t0.elapsed().as_secs_f64(),
+        aggregate_s: labels_s,
         pixels,
         contributions: weights.ids.len() as u64,
         counted_pixels: pixels,
         device_sums: false,
     };
+    Ok(RasteredView {
+        out: Rastered::Weights(weights),
+        stats,
+    })
+}
+
+/// The host's half of [`view_contribution`]: the label sums reduced and expanded to masks, or
+/// the per-pixel lists summed per mask; `masks` are needed only for the lists.
+///
+/// Errors: as [`image_contribution`].
+pub(crate) fn finish_view(
+    r: RasteredView,
+    masks: &[Mask],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+    params: ImageStageParams,
+) -> Result<(ImageContribution, ViewStats)> {
+    let t0 = Instant::now();
+    let mut stats = r.stats;
+    let c = match r.out {
+        Rastered::Sums {
+            sums,
+            masks_of,
+            factors,
+        } => {
+            let mut entries = aggregate::image::expand_label_records(sums, &masks_of);
+            aggregate::image::apply_mask_factors(&mut entries, &factors);
+            ImageContribution {
+                dim,
+                mask_embeddings,
+                entries,
+            }
+        }
+        Rastered::Weights(weights) => {
+            aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?
+        }
+    };
+    stats.aggregate_s += t0.elapsed().as_secs_f64();
     Ok((c, stats))
 }
 
@@ -318,6 +420,31 @@ pub(crate) fn back_stage(
     dim: usize,
     image_stage: ImageStageParams,
 ) -> Result<BackOut> {
+    let prepared = back_prepare(views, raster_intrinsics, item, dim, image_stage)?;
+    let raster = back_raster(rasterizer, prepared)?;
+    back_finish(raster, dim, image_stage)
+}
+
+/// A [`FrontItem`] with its view's camera and labels, ready for its rasterizer
+/// ([`back_prepare`]).
+pub(crate) struct BackPrepared {
+    item: FrontItem,
+    intrinsics: Intrinsics,
+    world_to_camera: WorldToCamera,
+    prepared: PreparedView,
+}
+
+/// The first part of [`back_stage`]: the item's view and its pixel labels, made from the masks'
+/// runs (not expanded).
+///
+/// Errors: as [`back_stage`], without the rasterizer's.
+pub(crate) fn back_prepare(
+    views: &[View],
+    raster_intrinsics: &[Intrinsics],
+    item: FrontItem,
+    dim: usize,
+    image_stage: ImageStageParams,
+) -> Result<BackPrepared> {
     let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
         return Err(Error::internal(format!(
             "image {} has no view or raster intrinsics ({} views, {} intrinsics)",
@@ -326,16 +453,52 @@ pub(crate) fn back_stage(
             raster_intrinsics.len()
         )));
     };
-    let masks = crate::masks::compact::expand_all(&item.masks);
-    let (contribution, vs) = view_contribution(
-        rasterizer,
-        k,
-        &view.world_to_camera,
-        &masks,
-        item.embeddings,
-        dim,
-        image_stage,
-    )?;
+    aggregate::image::check_image_inputs(&item.masks, &item.embeddings, dim)?;
+    let prepared = prepare_view(k, &item.masks, image_stage);
+    Ok(BackPrepared {
+        item,
+        intrinsics: *k,
+        world_to_camera: view.world_to_camera,
+        prepared,
+    })
+}
+
+/// The rasterizer's part of [`back_stage`] ([`raster_view`]): what [`back_finish`] completes.
+pub(crate) struct BackRaster {
+    /// The front's item (its masks compact, its embeddings).
+    pub item: FrontItem,
+    rastered: RasteredView,
+}
+
+/// The rasterizer's part of [`back_stage`].
+///
+/// Errors: the rasterizer's.
+pub(crate) fn back_raster(
+    rasterizer: &mut dyn WeightRasterizer,
+    p: BackPrepared,
+) -> Result<BackRaster> {
+    let rastered = raster_view(rasterizer, &p.intrinsics, &p.world_to_camera, p.prepared)?;
+    Ok(BackRaster {
+        item: p.item,
+        rastered,
+    })
+}
+
+/// The host's half of [`back_stage`] ([`finish_view`]).
+///
+/// Errors: as [`back_stage`].
+pub(crate) fn back_finish(
+    r: BackRaster,
+    dim: usize,
+    image_stage: ImageStageParams,
+) -> Result<BackOut> {
+    let BackRaster { item, rastered } = r;
+    // Only the per-pixel lists need the masks' pixels.
+    let masks = match rastered.out {
+        Rastered::Weights(_) => crate::masks::compact::expand_all(&item.masks),
+        Rastered::Sums { .. } => Vec::new(),
+    };
+    let (contribution, vs) = finish_view(rastered, &masks, item.embeddings, dim, image_stage)?;
     Ok(BackOut {
         contribution,
         raster_s: vs.raster_s,

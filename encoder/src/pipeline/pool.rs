@@ -1,16 +1,20 @@
-//! The encode's worker pool: front threads (decode → masks → CLIP crops) and one back thread per
-//! rasterizer (raster → `a_kj`), the bounded queues between them, and the first error, which
-//! stops every worker. What it leaves ([`Pooled`]: every image's `a_kj`, what the workers
-//! measured) goes to [`super::finish`].
+//! The encode's worker pool: front threads (decode → masks → CLIP crops), two back threads per
+//! rasterizer (its raster thread: masks to labels and the GPU's label sums; its image thread: the
+//! host side of `a_kj`, the reduction and expansion of the sums), the bounded queues between
+//! //! them, and the first error, which stops every worker. What it leaves ([`Pooled`]: every
+//! image's `a_kj`, what the workers measured) goes to [`super::finish`].
 
-use std::sync::mpsc;
+use std::sync::{Mutex, mpsc};
 use std::time::Instant;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
-use super::{CropEmbedder, EncodeParams, FrontItem, SceneInput, back_stage, front_stage, no_views};
+use super::{
+    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, SceneInput, back_finish,
+    back_prepare, back_raster, front_stage, no_views,
+};
 use crate::aggregate::ContributionStore;
 use crate::masks::MaskGenerator;
 use crate::raster::WeightRasterizer;
@@ -70,8 +74,8 @@ pub(crate) fn run_pool(
     params: &EncodeParams,
     t_total: Instant,
 ) -> Result<Pooled> {
+    use std::sync::Arc;
     use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-    use std::sync::{Arc, Mutex};
 
     let mut t = StageTimings::default();
     let Some(first) = fronts.first() else {
@@ -257,98 +261,141 @@ pub(crate) fn run_pool(
                 &totals,
             );
             let (level_stores, queue) = (&level_stores, &queue);
+            // Each rasterizer's host work (labels, readback, the a_kj reduction and expansion)
+            // runs on a rayon pool of its own, so that it never queues behind the front workers'
+            // jobs (SAM post-processing, crops) in the global pool.
+            let pool = Arc::new(back_pool(g));
+            // Three threads per rasterizer, a view handed on from one to the next through a
+            // channel of one (a view's labels or label sums, a few MB): the prepare thread makes
+            // the next view's pixel labels, the raster thread runs the GPU, the image thread
+            // reduces and expands the last view's sums. The GPU never waits for host work.
+            let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
+            let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
+            let prepare_pool = Arc::clone(&pool);
             handles.push(s.spawn(move || {
-                let mut share = WorkerShare {
-                    name,
-                    ..Default::default()
-                };
-                // Each rasterizer's host work (binning sort, readback, a_kj sums) runs on a rayon
-                // pool of its own, so that it never queues behind the front workers' jobs (SAM
-                // post-processing, crops) in the global pool: the back is the pipeline's
-                // critical path.
-                let pool = back_pool(g);
-                let mut run = || loop {
-                    // Take the next finished front item; the lock is held only while waiting.
-                    let item = match rx.lock() {
-                        Ok(rx) => rx.recv(),
-                        Err(_) => break,
+                let run = move || {
+                    let mut share = WorkerShare {
+                        name: format!("prepare-{g}"),
+                        ..Default::default()
                     };
-                    let Ok(item) = item else { break };
-                    queue.leave(item.bytes());
-                    if failed.load(Ordering::SeqCst) {
-                        break;
-                    }
-                    let t0 = Instant::now();
-                    if share.images == 0 {
-                        share.first_s = (t0 - t_total).as_secs_f64();
-                    }
-                    let res = (|| -> Result<()> {
-                        let (view, n_masks) = (item.view, item.masks.len());
-                        let (decode_s, masks_s, clip_s) =
-                            (item.decode_s, item.masks_s, item.clip_s);
-                        let mask_levels: Vec<Option<u8>> =
-                            item.masks.iter().map(|m| m.level).collect();
-                        let out = back_stage(
-                            &mut *rasterizer,
-                            views,
-                            raster_intrinsics,
-                            item,
-                            dim,
-                            params.image_stage,
-                        )?;
-                        if let Some(p) = rasterizer.last_phases() {
-                            share.raster_phases_ms.get_or_insert_default().add(&p);
-                        }
-                        let t1 = Instant::now();
-                        let entries = out.contribution.entries.len();
-                        let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
-                        if !level_stores.is_empty() {
-                            let parts = crate::aggregate::levels::split_by_level(
-                                &out.contribution,
-                                &mask_levels,
-                            )?;
-                            for (part, ls) in parts.into_iter().zip(level_stores) {
-                                ls.lock()
-                                    .map_err(|_| {
-                                        Error::internal(
-                                            "contribution store poisoned by a panicked worker",
-                                        )
-                                    })?
-                                    .push(part)?;
-                            }
-                        }
-                        store
-                            .lock()
-                            .map_err(|_| {
-                                Error::internal("contribution store poisoned by a panicked worker")
-                            })?
-                            .push(out.contribution)?;
-                        let push_s = t1.elapsed().as_secs_f64();
-                        work.image_aggregate_s += push_s;
-                        if let Ok(mut tt) = totals.lock() {
-                            tt.add(&work);
-                        }
-                        if let Some(view) = views.get(view) {
-                            tracing::debug!(view = %view.name, masks = n_masks, "image done");
-                        }
-                        Ok(())
-                    })();
-                    share.busy_s += t0.elapsed().as_secs_f64();
-                    bar_back.inc(1);
-                    share.last_s = t_total.elapsed().as_secs_f64();
-                    match res {
-                        Ok(()) => share.images += 1,
-                        Err(e) => {
-                            fail(e);
+                    loop {
+                        // Take the next finished front item; the lock is held only while waiting.
+                        let item = match rx.lock() {
+                            Ok(rx) => rx.recv(),
+                            Err(_) => break,
+                        };
+                        let Ok(item) = item else { break };
+                        queue.leave(item.bytes());
+                        if failed.load(Ordering::SeqCst) {
                             break;
                         }
+                        let t0 = Instant::now();
+                        if share.images == 0 {
+                            share.first_s = (t0 - t_total).as_secs_f64();
+                        }
+                        let out =
+                            back_prepare(views, raster_intrinsics, item, dim, params.image_stage);
+                        share.busy_s += t0.elapsed().as_secs_f64();
+                        share.last_s = t_total.elapsed().as_secs_f64();
+                        match out {
+                            Ok(out) => {
+                                share.images += 1;
+                                // A closed channel: a later thread failed and said why.
+                                if to_raster.send(out).is_err() {
+                                    break;
+                                }
+                            }
+                            Err(e) => {
+                                fail(e);
+                                break;
+                            }
+                        }
                     }
+                    share
                 };
-                match &pool {
+                match &*prepare_pool {
                     Some(pool) => pool.install(run),
                     None => run(),
                 }
-                share
+            }));
+            let raster_pool = Arc::clone(&pool);
+            handles.push(s.spawn(move || {
+                let run = move || {
+                    let mut share = WorkerShare {
+                        name,
+                        ..Default::default()
+                    };
+                    for prepared in from_prepare.iter() {
+                        if failed.load(Ordering::SeqCst) {
+                            break;
+                        }
+                        let t0 = Instant::now();
+                        if share.images == 0 {
+                            share.first_s = (t0 - t_total).as_secs_f64();
+                        }
+                        let out = back_raster(&mut *rasterizer, prepared);
+                        if let Some(p) = rasterizer.last_phases() {
+                            share.raster_phases_ms.get_or_insert_default().add(&p);
+                        }
+                        share.busy_s += t0.elapsed().as_secs_f64();
+                        share.last_s = t_total.elapsed().as_secs_f64();
+                        match out {
+                            Ok(out) => {
+                                share.images += 1;
+                                if to_image.send(out).is_err() {
+                                    break;
+                                }
+                            }
+                            Err(e) => {
+                                fail(e);
+                                break;
+                            }
+                        }
+                    }
+                    share
+                };
+                match &*raster_pool {
+                    Some(pool) => pool.install(run),
+                    None => run(),
+                }
+            }));
+            handles.push(s.spawn(move || {
+                // The receiver moves into the closure (it may not be shared between threads).
+                let run = move || {
+                    let mut share = WorkerShare {
+                        name: format!("image-{g}"),
+                        ..Default::default()
+                    };
+                    for raster in from_raster.iter() {
+                        if failed.load(Ordering::SeqCst) {
+                            break;
+                        }
+                        let t0 = Instant::now();
+                        if share.images == 0 {
+                            share.first_s = (t0 - t_total).as_secs_f64();
+                        }
+                        let view = raster.item.view;
+                        let res = finish_image(raster, dim, params, store, level_stores, totals);
+                        if let Some(view) = views.get(view) {
+                            tracing::debug!(view = %view.name, "image done");
+                        }
+                        share.busy_s += t0.elapsed().as_secs_f64();
+                        bar_back.inc(1);
+                        share.last_s = t_total.elapsed().as_secs_f64();
+                        match res {
+                            Ok(()) => share.images += 1,
+                            Err(e) => {
+                                fail(e);
+                                break;
+                            }
+                        }
+                    }
+                    share
+                };
+                match &*pool {
+                    Some(pool) => pool.install(run),
+                    None => run(),
+                }
             }));
         }
         // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
@@ -396,9 +443,44 @@ pub(crate) fn run_pool(
     })
 }
 
+/// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj`, split by
+/// level with `levels`, pushed to the stores, and its work added to `totals`.
+///
+/// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock.
+fn finish_image(
+    raster: BackRaster,
+    dim: usize,
+    params: &EncodeParams,
+    store: &Mutex<ContributionStore>,
+    level_stores: &[Mutex<ContributionStore>],
+    totals: &Mutex<ImageWork>,
+) -> Result<()> {
+    let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
+    let item = &raster.item;
+    let (n_masks, decode_s, masks_s, clip_s) =
+        (item.masks.len(), item.decode_s, item.masks_s, item.clip_s);
+    let mask_levels: Vec<Option<u8>> = item.masks.iter().map(|m| m.level).collect();
+    let out = back_finish(raster, dim, params.image_stage)?;
+    let t1 = Instant::now();
+    let entries = out.contribution.entries.len();
+    let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
+    if !level_stores.is_empty() {
+        let parts = crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
+        for (part, ls) in parts.into_iter().zip(level_stores) {
+            ls.lock().map_err(poisoned)?.push(part)?;
+        }
+    }
+    store.lock().map_err(poisoned)?.push(out.contribution)?;
+    work.image_aggregate_s += t1.elapsed().as_secs_f64();
+    if let Ok(mut tt) = totals.lock() {
+        tt.add(&work);
+    }
+    Ok(())
+}
+
 /// The rayon pool of back worker `g`: as many threads as the global pool (at least 2). Each
-/// rasterizer alternates between its GPU passes and host work (binning sort, `a_kj` sums), one
-/// image at a time; full pools let a host phase use the cores the other rasterizers leave idle
+/// rasterizer's two threads (GPU passes with their host part; the `a_kj` reduction and
+/// expansion) share it; full pools let a host phase use the cores the other rasterizers leave idle
 /// while they wait on their GPUs (a pool of `threads / GPUs` could stretch it). Measured: the
 /// per-image back cost grows with the GPUs either way (4 H200s, quarter pools: raster +27 % over
 /// 1 GPU; 2 H200s, full pools: +12 %), see docs/results/gpu-models.md. Idle rayon threads sleep, so the

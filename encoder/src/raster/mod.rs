@@ -26,6 +26,7 @@ pub use colour::{psnr, render_colour};
 pub use cpu::CpuRasterizer;
 pub use gpu::{GpuRasterizer, PhaseTimings};
 
+use rayon::prelude::*;
 use slag_common::camera::Intrinsics;
 use slag_common::{Error, Result};
 
@@ -97,7 +98,8 @@ pub trait WeightRasterizer: Send {
     /// Gaussian k and label l ≠ 0 with a contribution: the image stage's `a_kj` before masks are
     /// expanded from labels (see [`crate::pipeline::view_contribution`]), without the per-pixel
     /// lists ever leaving the device. `labels` is `[height × width]` row-major at the raster size
-    /// of `intrinsics`, 0 = no label. Sums sorted by (Gaussian, label), one entry per key.
+    /// of `intrinsics`, 0 = no label. The sums may come in any order, a key several times
+    /// ([`LabelSums::records`]).
     ///
     /// `Ok(None)`: this rasterizer has no such path (the caller rasterizes and sums on the
     /// host; the default). The GPU rasterizer always sums, at any scene size (compact
@@ -138,8 +140,11 @@ pub struct LabelSum {
 /// One view's [`WeightRasterizer::label_sums`].
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct LabelSums {
-    /// Sorted by (Gaussian, label), one entry per key.
-    pub sums: Vec<LabelSum>,
+    /// The sums as the rasterizer made them: in any order, and a (Gaussian, label) key may
+    /// stand several times (the GPU writes one record per tile); [`LabelSums::reduced`] sorts
+    /// and adds them. Left unreduced so that the reduction runs on the image stage's thread,
+    /// off the rasterizer's.
+    pub records: Vec<LabelSum>,
     /// Contributions (pixel, Gaussian) summed: those of labelled pixels only.
     pub contributions: u64,
 }
@@ -148,6 +153,24 @@ impl LabelSum {
     /// The sum in pixels (`sum / 2^32`).
     pub fn weight(&self) -> f64 {
         self.sum as f64 / 4_294_967_296.0
+    }
+}
+
+impl LabelSums {
+    /// The records sorted by (Gaussian, label), the sums of one key added (integers: exact, so
+    /// the result does not depend on the records' order), one entry per key.
+    pub fn reduced(self) -> Vec<LabelSum> {
+        let mut records = self.records;
+        records.par_sort_unstable_by_key(|e| (u64::from(e.gaussian) << 32) | u64::from(e.label));
+        records.dedup_by(|next, kept| {
+            if (next.gaussian, next.label) == (kept.gaussian, kept.label) {
+                kept.sum += next.sum;
+                true
+            } else {
+                false
+            }
+        });
+        records
     }
 }
 

@@ -1,7 +1,8 @@
 //! Step 3', the `blend_sums` kernel (`label_sums.wgsl`): per-(Gaussian, label) sums of the blend
 //! weights, accumulated per tile in workgroup memory and written as compact records, one per
 //! (tile intersection, tile label) with a non-zero sum, instead of per-pixel lists; only the
-//! records are read back and reduced by (Gaussian, label) on the host.
+//! records are read back; the image stage reduces them by (Gaussian, label) on the host
+//! ([`LabelSums::reduced`]), off the rasterizer's thread.
 //!
 //! Bounded by construction: a band of tile rows writes at most one record per labelled
 //! contribution and per (intersection, label of its tile), and the kernel counts the records it
@@ -9,7 +10,6 @@
 //! exactly its count, or, past one binding, split into smaller bands. No table can overflow, and
 //! there is no fallback to the per-pixel lists at any scene size.
 
-use rayon::prelude::*;
 use slag_common::{Error, Resource, Result};
 
 use super::super::{LabelSum, LabelSums};
@@ -38,20 +38,6 @@ fn decode_records(words: &[u32], out: &mut Vec<LabelSum>) {
         label: w[1],
         sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
     }));
-}
-
-/// `records` sorted by (Gaussian, label), the sums of one key added (integers: exact).
-fn reduce_records(mut records: Vec<LabelSum>) -> Vec<LabelSum> {
-    records.par_sort_unstable_by_key(|e| (e.gaussian, e.label));
-    records.dedup_by(|next, kept| {
-        if (next.gaussian, next.label) == (kept.gaussian, kept.label) {
-            kept.sum += next.sum;
-            true
-        } else {
-            false
-        }
-    });
-    records
 }
 
 impl GpuRasterizer {
@@ -192,12 +178,9 @@ impl GpuRasterizer {
         self.label_out = kept;
         self.label_retries = retries;
         self.label_record_count = records.len() as u64;
-        let t = std::time::Instant::now();
-        let sums = reduce_records(records);
-        host += t.elapsed();
         Ok((
             LabelSums {
-                sums,
+                records,
                 contributions,
             },
             host.as_secs_f64() * 1e3,
@@ -227,7 +210,11 @@ mod tests {
         ];
         let mut out = Vec::new();
         decode_records(&words, &mut out);
-        let sums = reduce_records(out);
+        let sums = LabelSums {
+            records: out,
+            contributions: 0,
+        }
+        .reduced();
         assert_eq!(
             sums,
             vec![

@@ -48,8 +48,9 @@
 //!    sum). A view's records are at most one per (tile intersection, tile label) and one per
 //!    labelled contribution, and the kernel counts them: a band of tile rows that did not fit
 //!    its buffer is re-run with room for exactly its count, or split when that exceeds one
-//!    binding. Nothing overflows, at any scene size; the host sorts the records by (Gaussian,
-//!    label) and adds those of one key (the same key from several tiles).
+//!    binding. Nothing overflows, at any scene size; the image stage sorts the records by
+//!    (Gaussian, label) and adds those of one key (the same key from several tiles), on its own
+//!    thread ([`super::LabelSums::reduced`]).
 //!
 //! Output buffers are sized from the counts and checked against the device's
 //! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
@@ -132,7 +133,7 @@ const _: () = assert!(std::mem::size_of::<Params>() == 144);
 
 /// Wall-clock milliseconds of the phases of the last [`GpuRasterizer`] run (host-observed,
 /// including submission and readback waits), or their sum over runs ([`PhaseTimings::add`]).
-/// With GPU label sums, `write_ms` is the label-sum pass and its readback (`reduce_ms` of it on
+/// With GPU label sums, `write_ms` is the label-sum pass and its readback (`records_ms` of it on
 /// the host).
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
 pub struct PhaseTimings {
@@ -146,9 +147,10 @@ pub struct PhaseTimings {
     pub count_scan_ms: f64,
     /// Write pass(es) + ids/weights readback, or the label-sum pass + records readback.
     pub write_ms: f64,
-    /// Label sums: the host's copy, sort and reduction of the records by (Gaussian, label).
-    pub reduce_ms: f64,
-    /// Host computation in the rasterizer's critical path (`bin_sort_ms + reduce_ms`): wall ms
+    /// Label sums: the host's copy of the records out of the mapped readback buffer (their
+    /// reduction by (Gaussian, label) is the image stage's, on another thread).
+    pub records_ms: f64,
+    /// Host computation in the rasterizer's critical path (`bin_sort_ms + records_ms`): wall ms
     /// of work on the host's cores (rayon), excluding waits for the device.
     pub host_ms: f64,
 }
@@ -160,7 +162,7 @@ impl PhaseTimings {
         self.bin_sort_ms += o.bin_sort_ms;
         self.count_scan_ms += o.count_scan_ms;
         self.write_ms += o.write_ms;
-        self.reduce_ms += o.reduce_ms;
+        self.records_ms += o.records_ms;
         self.host_ms += o.host_ms;
     }
 }
@@ -624,10 +626,10 @@ impl GpuRasterizer {
         // 3'. Label sums instead of per-pixel lists: only the compact records are read back.
         if let Some(labels) = labels {
             self.out = kept;
-            let (sums, reduce_ms) = self.label_sums_pass(&mut view, &binned, labels)?;
+            let (sums, records_ms) = self.label_sums_pass(&mut view, &binned, labels)?;
             timings.write_ms = lap(&mut clock);
-            timings.reduce_ms = reduce_ms;
-            timings.host_ms = timings.bin_sort_ms + reduce_ms;
+            timings.records_ms = records_ms;
+            timings.host_ms = timings.bin_sort_ms + records_ms;
             self.timings = timings;
             return Ok(RunOutput::Sums(sums));
         }
