@@ -218,11 +218,7 @@ fn dense_shards_and_other_versions_get_specific_errors() {
         ids: &[1, 2],
         means: &[[0.0; 3]; 2],
         vectors: &[0.5; 8],
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
-        segments: None,
+        ..Default::default()
     })
     .unwrap();
     assert_eq!(decode_header(&dense).unwrap().version, SHARD_FORMAT_VERSION);
@@ -293,11 +289,7 @@ fn bad_mixture_input_is_refused_before_writing() {
         means: &[[0.0; 3]],
         atoms: &[0, UNUSED],
         weights: &[1.0, 0.0],
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
-        segments: None,
+        ..Default::default()
     };
     assert!(encode_mixture_shard(&base).is_ok());
     let mut seg = base;
