@@ -72,10 +72,9 @@ impl DisplayAttrs {
         Self::default()
     }
 
-    /// Appends the rows of one shard (call in the order the shards are pushed into the scan
-    /// store). Columns of the wrong length (not produced by [`slag_common::shards::decode_shard`])
-    /// are treated as absent.
-    /// Dense ([`StoredShard`]) and mixture shards carry the same display sections.
+    /// Appends the rows of one shard, dense or mixture (call in the order the shards are pushed
+    /// into the scan store). Columns of the wrong length (not produced by
+    /// [`slag_common::shards::decode_shard`]) are treated as absent.
     pub fn push_shard(&mut self, s: &impl ShardDisplay) {
         let (ids, means, display) = s.display_rows();
         let DisplaySlices {
