@@ -262,13 +262,7 @@ impl EmbeddingsWriter {
         if dim == 0 {
             return Err(Error::param("dim", dim, "an embedding width of at least 1"));
         }
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        }
-        let mut tmp = path.as_os_str().to_owned();
-        tmp.push(".partial");
-        let partial = std::path::PathBuf::from(tmp);
-        let mut f = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
+        let (partial, mut f) = crate::io::create_partial(path)?;
         // The header region stays a hole until finish; a crash leaves only `<path>.partial`.
         f.seek(SeekFrom::Start(HEADER_RESERVE))
             .map_err(|e| Error::io(&partial, e))?;

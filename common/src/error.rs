@@ -302,6 +302,22 @@ pub enum Resource {
     ManifestBytes,
 }
 
+impl Resource {
+    /// Every resource, in declaration order (for front ends that map each to a remedy, and their
+    /// tests).
+    pub const ALL: [Resource; 9] = [
+        Self::GpuBinding,
+        Self::GpuDispatch,
+        Self::GpuMemory,
+        Self::RasterEntries,
+        Self::RasterPixels,
+        Self::Memory,
+        Self::ShardGaussians,
+        Self::DiskSpace,
+        Self::ManifestBytes,
+    ];
+}
+
 /// The property on which two inputs disagree ([`Error::Mismatch`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Mismatched {
@@ -389,15 +405,7 @@ mod tests {
                 ..
             }
         ));
-        for r in [
-            Resource::GpuBinding,
-            Resource::GpuDispatch,
-            Resource::GpuMemory,
-            Resource::RasterEntries,
-            Resource::RasterPixels,
-            Resource::Memory,
-            Resource::ShardGaussians,
-        ] {
+        for r in Resource::ALL {
             let e = Error::limit(r, "2 G", "1 G");
             assert_eq!(e.kind(), ErrorKind::Environment);
             assert!(!e.to_string().contains("--"), "{e}");

@@ -302,26 +302,26 @@ async fn head_limits(req: Request, next: Next) -> Response {
     next.run(req).await
 }
 
+/// The value of header `name` of `r` as text; empty when absent or not visible ASCII.
+fn header_text(r: &Response, name: header::HeaderName) -> &str {
+    r.headers()
+        .get(name)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+}
+
 async fn json_error_body(r: Response) -> Response {
     let status = r.status();
     if !(status.is_client_error() || status.is_server_error()) {
         return r;
     }
-    let is_json = r
-        .headers()
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.starts_with("application/json"));
+    let is_json = header_text(&r, header::CONTENT_TYPE).starts_with("application/json");
     if is_json {
         return r;
     }
     let message = match status {
         StatusCode::METHOD_NOT_ALLOWED => {
-            let allow = r
-                .headers()
-                .get(header::ALLOW)
-                .and_then(|v| v.to_str().ok())
-                .unwrap_or("");
+            let allow = header_text(&r, header::ALLOW);
             format!("method not allowed on this route; use {allow}")
         }
         StatusCode::REQUEST_TIMEOUT => {
@@ -333,11 +333,7 @@ async fn json_error_body(r: Response) -> Response {
             "request body too large; send a smaller body (fewer queries per batch)".to_string()
         }
         StatusCode::RANGE_NOT_SATISFIABLE => {
-            let range = r
-                .headers()
-                .get(header::CONTENT_RANGE)
-                .and_then(|v| v.to_str().ok())
-                .unwrap_or("");
+            let range = header_text(&r, header::CONTENT_RANGE);
             format!("range not satisfiable ({range}); ask for bytes within the file's length")
         }
         s => s.canonical_reason().unwrap_or("error").to_string(),

@@ -780,50 +780,18 @@ mod tests {
             opacities: None,
             segments: None,
         };
-        for (p, name) in [
-            (
-                ObjectParams {
-                    gap: 0.0,
-                    ..Default::default()
-                },
-                "gap",
-            ),
-            (
-                ObjectParams {
-                    gap: f32::NAN,
-                    ..Default::default()
-                },
-                "gap",
-            ),
-            (
-                ObjectParams {
-                    min_gaussians: 0,
-                    ..Default::default()
-                },
-                "min_gaussians",
-            ),
-            (
-                ObjectParams {
-                    max_objects: 0,
-                    ..Default::default()
-                },
-                "max_objects",
-            ),
-            (
-                ObjectParams {
-                    max_objects: 1001,
-                    ..Default::default()
-                },
-                "max_objects",
-            ),
-            (
-                ObjectParams {
-                    near: Some([0.0, f32::INFINITY, 0.0]),
-                    ..Default::default()
-                },
-                "near",
-            ),
-        ] {
+        // One bad field at a time, the rest default.
+        let cases: [(fn(&mut ObjectParams), &str); 6] = [
+            (|p| p.gap = 0.0, "gap"),
+            (|p| p.gap = f32::NAN, "gap"),
+            (|p| p.min_gaussians = 0, "min_gaussians"),
+            (|p| p.max_objects = 0, "max_objects"),
+            (|p| p.max_objects = 1001, "max_objects"),
+            (|p| p.near = Some([0.0, f32::INFINITY, 0.0]), "near"),
+        ];
+        for (set, name) in cases {
+            let mut p = ObjectParams::default();
+            set(&mut p);
             match group_objects(&m, &p) {
                 Err(Error::Param { name: n, .. }) => assert_eq!(n, name),
                 other => panic!("{p:?}: {other:?}"),

@@ -747,20 +747,15 @@ pub fn check_signature(
     let list = |v: Vec<String>| format!("[{}]", v.join(", "));
     let expected_in = list(inputs.iter().map(TensorSpec::describe).collect());
     let expected_out = list(outputs.iter().map(TensorSpec::describe).collect());
-    let found_in = list(
-        session
-            .inputs()
-            .iter()
-            .map(|o| describe_found(o.name(), o.dtype()))
-            .collect(),
-    );
-    let found_out = list(
-        session
-            .outputs()
-            .iter()
-            .map(|o| describe_found(o.name(), o.dtype()))
-            .collect(),
-    );
+    let found = |outlets: &[ort::value::Outlet]| {
+        list(
+            outlets
+                .iter()
+                .map(|o| describe_found(o.name(), o.dtype()))
+                .collect(),
+        )
+    };
+    let (found_in, found_out) = (found(session.inputs()), found(session.outputs()));
     Err(Error::model(
         path,
         format!(

@@ -75,30 +75,33 @@ mod tests {
     fn matches_the_published_reference_outputs() {
         // First outputs of Vigna's splitmix64.c for seeds 0 and 1234567 (the latter are the
         // test vectors quoted with the algorithm).
-        let mut r = SplitMix64::new(0);
-        let got: Vec<u64> = (0..5).map(|_| r.next_u64()).collect();
-        assert_eq!(
-            got,
-            [
-                0xE220_A839_7B1D_CDAF,
-                0x6E78_9E6A_A1B9_65F4,
-                0x06C4_5D18_8009_454F,
-                0xF88B_B8A8_724C_81EC,
-                0x1B39_896A_51A8_749B,
-            ]
-        );
-        let mut r = SplitMix64::new(1_234_567);
-        let got: Vec<u64> = (0..5).map(|_| r.next_u64()).collect();
-        assert_eq!(
-            got,
-            [
-                6_457_827_717_110_365_317,
-                3_203_168_211_198_807_973,
-                9_817_491_932_198_370_423,
-                4_593_380_528_125_082_431,
-                16_408_922_859_458_223_821,
-            ]
-        );
+        let cases: [(u64, [u64; 5]); 2] = [
+            (
+                0,
+                [
+                    0xE220_A839_7B1D_CDAF,
+                    0x6E78_9E6A_A1B9_65F4,
+                    0x06C4_5D18_8009_454F,
+                    0xF88B_B8A8_724C_81EC,
+                    0x1B39_896A_51A8_749B,
+                ],
+            ),
+            (
+                1_234_567,
+                [
+                    6_457_827_717_110_365_317,
+                    3_203_168_211_198_807_973,
+                    9_817_491_932_198_370_423,
+                    4_593_380_528_125_082_431,
+                    16_408_922_859_458_223_821,
+                ],
+            ),
+        ];
+        for (seed, want) in cases {
+            let mut r = SplitMix64::new(seed);
+            let got: Vec<u64> = (0..5).map(|_| r.next_u64()).collect();
+            assert_eq!(got, want, "seed {seed}");
+        }
     }
 
     #[test]

@@ -91,11 +91,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
             ids: &ids,
             means: &means,
             vectors: &vectors,
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
-            segments: None,
+            ..Default::default()
         })
         .unwrap();
         infos.push(TileInfo {

@@ -104,26 +104,31 @@ pub use slag_common::auth::read_token_file as read_token;
 mod tests {
     use super::*;
 
+    /// [`ServeConfig::read`] of a file holding `text`.
+    fn read_config(text: &str) -> Result<ServeConfig> {
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), text).unwrap();
+        ServeConfig::read(file.path())
+    }
+
     #[test]
     fn example_config_parses_and_unknown_keys_are_rejected() {
-        let dir = tempfile::tempdir().unwrap();
-        let p = dir.path().join("edge.toml");
-        std::fs::write(
-            &p,
+        let c = read_config(
             "store = \"/s\"\nscene = \"site\"\naddr = \"0.0.0.0:8080\"\nthreshold = 0.3\nhnsw = true\n\
              hnsw_backend = \"qdrant-edge\"\n",
         )
         .unwrap();
-        let c = ServeConfig::read(&p).unwrap();
         assert_eq!(c.scene.as_deref(), Some("site"));
         assert_eq!(c.threshold, Some(0.3));
         assert_eq!(c.hnsw, Some(true));
         assert_eq!(c.hnsw_backend.as_deref(), Some("qdrant-edge"));
-        std::fs::write(&p, "scene = \"a\"\nradius = 3\n").unwrap();
-        let e = ServeConfig::read(&p).unwrap_err().to_string();
+        let e = read_config("scene = \"a\"\nradius = 3\n")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("radius"), "{e}");
-        std::fs::write(&p, "").unwrap();
-        assert!(read_token(&p).is_err());
+        // An empty token file is refused.
+        let empty = tempfile::NamedTempFile::new().unwrap();
+        assert!(read_token(empty.path()).is_err());
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! `slag-edge query`/`bench` and the examples use it directly.
 
 use slag_common::Result;
-use slag_common::shards::Manifest;
+use slag_common::shards::{Manifest, MixtureShard, StoredShard};
 
 use crate::scan::VectorStore;
 use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
@@ -86,12 +86,12 @@ impl Engine {
         store.reserve(usize::try_from(rows).unwrap_or(usize::MAX))?;
         let mut display = crate::view::DisplayAttrs::new();
         let load = if store.is_mixture() {
-            edge.load_mixture_shards(&manifest, |s| {
-                display.push_mixture_shard(&s);
+            edge.load_shards(&manifest, |s: MixtureShard| {
+                display.push_shard(&s);
                 store.push_mixture_shard(s)
             })?
         } else {
-            edge.load_shards(&manifest, |s| {
+            edge.load_shards(&manifest, |s: StoredShard| {
                 display.push_shard(&s);
                 store.push_shard(s)
             })?

@@ -292,22 +292,42 @@ impl std::fmt::Display for FetchSummary {
 /// Exit status used by the fault hook (128 + SIGKILL, what a shell reports for `kill -9`).
 pub const FAULT_EXIT_STATUS: i32 = 137;
 
+/// A fault-injection counter (module doc): counts the calls of one hook and fires at the n-th,
+/// n from the environment variable `var` (unset, empty, 0 or not a number: never).
+struct FaultCounter {
+    var: &'static str,
+    at: std::sync::OnceLock<Option<u64>>,
+    count: std::sync::atomic::AtomicU64,
+}
+
+impl FaultCounter {
+    const fn new(var: &'static str) -> Self {
+        FaultCounter {
+            var,
+            at: std::sync::OnceLock::new(),
+            count: std::sync::atomic::AtomicU64::new(0),
+        }
+    }
+
+    /// Counts one call; `Some(n)` when it is the n-th, the one `var` names. Unset, it costs one
+    /// atomic load.
+    fn hit(&self) -> Option<u64> {
+        let at = (*self.at.get_or_init(|| {
+            std::env::var(self.var)
+                .ok()
+                .and_then(|v| v.trim().parse::<u64>().ok())
+                .filter(|&n| n > 0)
+        }))?;
+        let n = self.count.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+        (n == at).then_some(at)
+    }
+}
+
 /// The fault hook (module doc): counts durability boundaries and exits the process with
 /// [`FAULT_EXIT_STATUS`] at the one named by `SLAG_FAULT_EXIT_AT`. `what` is logged to stderr.
 pub fn fault_boundary(what: &str) {
-    use std::sync::OnceLock;
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static AT: OnceLock<Option<u64>> = OnceLock::new();
-    static COUNT: AtomicU64 = AtomicU64::new(0);
-    let Some(at) = *AT.get_or_init(|| {
-        std::env::var("SLAG_FAULT_EXIT_AT")
-            .ok()
-            .and_then(|v| v.trim().parse::<u64>().ok())
-            .filter(|&n| n > 0)
-    }) else {
-        return;
-    };
-    if COUNT.fetch_add(1, Ordering::SeqCst) + 1 == at {
+    static EXIT_AT: FaultCounter = FaultCounter::new("SLAG_FAULT_EXIT_AT");
+    if let Some(at) = EXIT_AT.hit() {
         eprintln!("SLAG_FAULT_EXIT_AT={at}: exiting at boundary {at} ({what})");
         std::process::exit(FAULT_EXIT_STATUS);
     }
@@ -317,23 +337,12 @@ pub fn fault_boundary(what: &str) {
 /// `SLAG_FAULT_ENOSPC_AT`, returns the error a full disk gives (`ENOSPC`) instead of writing.
 /// Unset, it costs one atomic load per write.
 pub fn fault_enospc() -> std::io::Result<()> {
-    use std::sync::OnceLock;
-    use std::sync::atomic::{AtomicU64, Ordering};
-    static AT: OnceLock<Option<u64>> = OnceLock::new();
-    static COUNT: AtomicU64 = AtomicU64::new(0);
-    let Some(at) = *AT.get_or_init(|| {
-        std::env::var("SLAG_FAULT_ENOSPC_AT")
-            .ok()
-            .and_then(|v| v.trim().parse::<u64>().ok())
-            .filter(|&n| n > 0)
-    }) else {
-        return Ok(());
-    };
-    if COUNT.fetch_add(1, Ordering::SeqCst) + 1 == at {
+    static ENOSPC_AT: FaultCounter = FaultCounter::new("SLAG_FAULT_ENOSPC_AT");
+    match ENOSPC_AT.hit() {
         // ENOSPC on Linux (28).
-        return Err(std::io::Error::from_raw_os_error(28));
+        Some(_) => Err(std::io::Error::from_raw_os_error(28)),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 fn url_join(server: &str, path: &str) -> String {

@@ -145,17 +145,22 @@ const FETCH_COPY: &str = "fetch.json";
 
 /// Writes `bytes` to `path` atomically: a `.tmp` file beside it, synced, renamed, folder synced.
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("json.tmp");
+    write_durably(path, &path.with_extension("json.tmp"), bytes)
+}
+
+/// Writes `bytes` to `tmp` (a path in `path`'s folder), syncs it, renames it to `path` and syncs
+/// the folder. On a write error `tmp` is removed; a crash leaves at most `tmp`.
+fn write_durably(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<()> {
     let write = || -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
+        let mut f = std::fs::File::create(tmp)?;
         f.write_all(bytes)?;
         f.sync_all()
     };
     write().map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(&tmp, e)
+        let _ = std::fs::remove_file(tmp);
+        Error::io(tmp, e)
     })?;
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+    std::fs::rename(tmp, path).map_err(|e| Error::io(path, e))?;
     match path.parent() {
         Some(dir) => sync_dir(dir),
         None => Ok(()),
@@ -472,6 +477,27 @@ fn header_disagreement(
         manifest.dim,
         tile.count
     ))
+}
+
+/// A decoded shard type [`EdgeStore::load_shards`] reads: [`StoredShard`] (dense manifests) or
+/// [`MixtureShard`] (mixture manifests).
+pub trait LoadableShard: Sized {
+    /// Verifies the stored bytes of `tile` against `manifest` and decodes them.
+    ///
+    /// Errors: as [`verify_shard`] / [`verify_mixture_shard`].
+    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self>;
+}
+
+impl LoadableShard for StoredShard {
+    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self> {
+        verify_shard(manifest, tile, bytes)
+    }
+}
+
+impl LoadableShard for MixtureShard {
+    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self> {
+        verify_mixture_shard(manifest, tile, bytes)
+    }
 }
 
 /// Checks downloaded bytes against the manifest entry and the manifest itself: length, whole-shard
@@ -1044,19 +1070,9 @@ impl EdgeStore {
     pub fn commit_shard(&self, manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
         verify_any_shard(manifest, tile, bytes)?;
         let path = self.shard_path(&manifest.scene_id, tile)?;
-        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
+        self.ensure_scene_dir(&manifest.scene_id)?;
         let tmp = path.with_extension(format!("{SHARD_EXTENSION}.tmp"));
-        let write = || -> std::io::Result<()> {
-            let mut f = std::fs::File::create(&tmp)?;
-            f.write_all(bytes)?;
-            f.sync_all()
-        };
-        write().map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            Error::io(&tmp, e)
-        })?;
-        std::fs::rename(&tmp, &path).map_err(|e| Error::io(&path, e))?;
-        sync_dir(&dir)
+        write_durably(&path, &tmp, bytes)
     }
 
     /// Verifies a complete, synced partial download `part` ([`verify_shard`]) and moves it into
@@ -1182,39 +1198,17 @@ impl EdgeStore {
     }
 
     /// Reads the stored shards of `manifest` one file at a time, in manifest tile order: each is
-    /// read, verified ([`verify_shard`]), its file bytes freed, and the decoded shard handed to
-    /// `f`, so a caller that copies the rows elsewhere holds at most one shard (file bytes plus
-    /// decoded copy) besides its own copy. Tiles without a file count as absent; corrupted ones
-    /// and files that cannot be read are logged, listed in [`SceneLoad::rejected`] and skipped.
+    /// read, verified ([`LoadableShard::verify`]: [`verify_shard`] for a dense manifest's
+    /// [`StoredShard`]s, [`verify_mixture_shard`] for a mixture manifest's [`MixtureShard`]s), its
+    /// file bytes freed, and the decoded shard handed to `f`, so a caller that copies the rows
+    /// elsewhere holds at most one shard (file bytes plus decoded copy) besides its own copy.
+    /// Tiles without a file count as absent; corrupted ones and files that cannot be read are
+    /// logged, listed in [`SceneLoad::rejected`] and skipped.
     ///
     /// Errors: the first error `f` returns.
-    pub fn load_shards(
+    pub fn load_shards<S: LoadableShard>(
         &self,
         manifest: &Manifest,
-        f: impl FnMut(StoredShard) -> Result<()>,
-    ) -> Result<SceneLoad> {
-        self.load_verified(manifest, verify_shard, f)
-    }
-
-    /// [`Self::load_shards`] for a mixture manifest: each stored shard read, verified
-    /// ([`verify_mixture_shard`]), its bytes freed, and handed to `f`; corrupted ones are logged,
-    /// listed in [`SceneLoad::rejected`] and skipped.
-    ///
-    /// Errors: the first error `f` returns.
-    pub fn load_mixture_shards(
-        &self,
-        manifest: &Manifest,
-        f: impl FnMut(MixtureShard) -> Result<()>,
-    ) -> Result<SceneLoad> {
-        self.load_verified(manifest, verify_mixture_shard, f)
-    }
-
-    /// The loop of [`Self::load_shards`] and [`Self::load_mixture_shards`], with the shard
-    /// type's `verify`.
-    fn load_verified<S>(
-        &self,
-        manifest: &Manifest,
-        verify: fn(&Manifest, &TileInfo, &[u8]) -> Result<S>,
         mut f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let mut load = SceneLoad::default();
@@ -1237,7 +1231,7 @@ impl EdgeStore {
                     continue;
                 }
             };
-            let verified = verify(manifest, tile, &bytes);
+            let verified = S::verify(manifest, tile, &bytes);
             drop(bytes);
             match verified {
                 Ok(s) => {

@@ -13,7 +13,7 @@
 use std::collections::HashSet;
 
 use slag_common::scene::SH_C0;
-use slag_common::shards::StoredShard;
+use slag_common::shards::{DisplaySlices, MixtureShard, StoredShard};
 use slag_common::{Error, Result};
 
 /// Highlight colour of matches when none is given: magenta (linear display RGB in 0..1).
@@ -47,47 +47,42 @@ pub struct DisplayAttrs {
     present: Vec<u8>,
 }
 
+/// A decoded shard whose rows [`DisplayAttrs::push_shard`] reads: dense ([`StoredShard`]) and
+/// mixture ([`MixtureShard`]) shards alike.
+pub trait ShardDisplay {
+    /// Ids `[N]`, means `[N]` (world frame) and the display sections.
+    fn display_rows(&self) -> (&[u32], &[[f32; 3]], DisplaySlices<'_>);
+}
+
+impl ShardDisplay for StoredShard {
+    fn display_rows(&self) -> (&[u32], &[[f32; 3]], DisplaySlices<'_>) {
+        (&self.ids, &self.means, self.display())
+    }
+}
+
+impl ShardDisplay for MixtureShard {
+    fn display_rows(&self) -> (&[u32], &[[f32; 3]], DisplaySlices<'_>) {
+        (&self.ids, &self.means, self.display())
+    }
+}
+
 impl DisplayAttrs {
     /// No Gaussians.
     pub fn new() -> Self {
         Self::default()
     }
 
-    /// Appends the rows of one shard (call in the order the shards are pushed into the scan
-    /// store). Columns of the wrong length (not produced by [`slag_common::shards::decode_shard`])
-    /// are treated as absent.
-    pub fn push_shard(&mut self, s: &StoredShard) {
-        self.push_columns(
-            &s.ids,
-            &s.means,
-            s.scales.as_deref(),
-            s.opacities.as_deref(),
-            s.rotations.as_deref(),
-            s.sh_dc.as_deref(),
-        );
-    }
-
-    /// [`Self::push_shard`] for a mixture shard (the same display sections).
-    pub fn push_mixture_shard(&mut self, s: &slag_common::shards::MixtureShard) {
-        self.push_columns(
-            &s.ids,
-            &s.means,
-            s.scales.as_deref(),
-            s.opacities.as_deref(),
-            s.rotations.as_deref(),
-            s.sh_dc.as_deref(),
-        );
-    }
-
-    fn push_columns(
-        &mut self,
-        ids: &[u32],
-        means: &[[f32; 3]],
-        scales: Option<&[[f32; 3]]>,
-        opacities: Option<&[f32]>,
-        rotations: Option<&[[f32; 4]]>,
-        sh_dc: Option<&[[f32; 3]]>,
-    ) {
+    /// Appends the rows of one shard, dense or mixture (call in the order the shards are pushed
+    /// into the scan store). Columns of the wrong length (not produced by
+    /// [`slag_common::shards::decode_shard`]) are treated as absent.
+    pub fn push_shard(&mut self, s: &impl ShardDisplay) {
+        let (ids, means, display) = s.display_rows();
+        let DisplaySlices {
+            scales,
+            opacities,
+            rotations,
+            sh_dc,
+        } = display;
         let n = ids.len().min(means.len());
         let ok = |len: usize| len == n;
         let scales = scales.filter(|v| ok(v.len()));

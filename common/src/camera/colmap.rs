@@ -140,50 +140,34 @@ fn read(path: &Path) -> Result<Vec<u8>> {
 
 /// Reads `cameras.bin` + `images.bin`; image paths are `images_dir/<name>`.
 pub(super) fn load_binary(cameras: &Path, images: &Path, images_dir: &Path) -> Result<Vec<View>> {
-    let bytes = read(cameras)?;
-    let mut c = Cursor {
-        path: cameras,
-        bytes: &bytes,
-        pos: 0,
-    };
-    let n = c.u64("the camera count")?;
-    let mut cams = HashMap::new();
-    for k in 0..n {
-        let what = format!("camera #{k}");
-        let id = c.i32(&what)?;
-        let model_id = c.i32(&what)?;
+    let cams = read_records(cameras, "camera", |c, what| {
+        let id = c.i32(what)?;
+        let model_id = c.i32(what)?;
         let (_, model, np) = MODELS.iter().find(|m| m.0 == model_id).ok_or_else(|| {
             Error::format(
                 cameras,
                 format!("camera {id}: unknown COLMAP model id {model_id}"),
             )
         })?;
-        let w = c.u64(&what)?;
-        let h = c.u64(&what)?;
+        let w = c.u64(what)?;
+        let h = c.u64(what)?;
         let params = (0..*np)
-            .map(|_| c.f64(&what))
+            .map(|_| c.f64(what))
             .collect::<Result<Vec<f64>>>()?;
-        cams.insert(
+        Ok((
             id as i64,
             intrinsics(cameras, id as i64, model, w, h, &params)?,
-        );
-    }
-    let bytes = read(images)?;
-    let mut c = Cursor {
-        path: images,
-        bytes: &bytes,
-        pos: 0,
-    };
-    let n = c.u64("the image count")?;
-    let mut views = Vec::new();
-    for k in 0..n {
-        let what = format!("image #{k}");
-        let _id = c.i32(&what)?;
+        ))
+    })?
+    .into_iter()
+    .collect::<HashMap<i64, Intrinsics>>();
+    let views = read_records(images, "image", |c, what| {
+        let _id = c.i32(what)?;
         let mut v = [0f64; 7];
         for x in &mut v {
-            *x = c.f64(&what)?;
+            *x = c.f64(what)?;
         }
-        let cam_id = c.i32(&what)? as i64;
+        let cam_id = c.i32(what)? as i64;
         let rest = &c.bytes[c.pos..];
         let len = rest.iter().position(|&b| b == 0).ok_or_else(|| {
             Error::format(
@@ -195,7 +179,7 @@ pub(super) fn load_binary(cameras: &Path, images: &Path, images_dir: &Path) -> R
             .map_err(|_| Error::format(images, format!("the name of {what} is not UTF-8")))?
             .to_string();
         c.pos += len + 1;
-        let points = c.u64(&what)?;
+        let points = c.u64(what)?;
         let skip = usize::try_from(points)
             .ok()
             .and_then(|p| p.checked_mul(24))
@@ -206,9 +190,32 @@ pub(super) fn load_binary(cameras: &Path, images: &Path, images_dir: &Path) -> R
                 )
             })?;
         c.take(skip, &format!("the 2D points of {what}"))?;
-        views.push(view(images, &cams, cam_id, name, &v, images_dir)?);
-    }
+        view(images, &cams, cam_id, name, &v, images_dir)
+    })?;
     sort_views(images, views)
+}
+
+/// Reads a COLMAP binary file of `path`: a u64 record count, then the records, each read by
+/// `record` (given the cursor and a name such as "camera #3" for messages).
+///
+/// Errors: I/O; [`Error::Format`] for a truncated file and whatever `record` returns.
+fn read_records<T>(
+    path: &Path,
+    kind: &str,
+    mut record: impl FnMut(&mut Cursor<'_>, &str) -> Result<T>,
+) -> Result<Vec<T>> {
+    let bytes = read(path)?;
+    let mut c = Cursor {
+        path,
+        bytes: &bytes,
+        pos: 0,
+    };
+    let n = c.u64(&format!("the {kind} count"))?;
+    let mut records = Vec::new();
+    for k in 0..n {
+        records.push(record(&mut c, &format!("{kind} #{k}"))?);
+    }
+    Ok(records)
 }
 
 fn view(
@@ -250,19 +257,25 @@ fn num<T: std::str::FromStr>(
     })
 }
 
+/// The next record of a COLMAP text file: skips blank and `#` comment lines of `lines`
+/// (`(index, line)` pairs) and returns the record's 1-based line number and its tokens.
+fn next_record<'t>(
+    lines: &mut impl Iterator<Item = (usize, &'t str)>,
+) -> Option<(usize, std::str::SplitAsciiWhitespace<'t>)> {
+    lines.find_map(|(i, line)| {
+        let line = line.trim();
+        (!line.is_empty() && !line.starts_with('#')).then(|| (i + 1, line.split_ascii_whitespace()))
+    })
+}
+
 /// Reads `cameras.txt` + `images.txt` (COLMAP text format; `#` comments; images.txt has two lines
 /// per image, the second being the possibly empty 2D-point list).
 pub(super) fn load_text(cameras: &Path, images: &Path, images_dir: &Path) -> Result<Vec<View>> {
     let text = read(cameras)?;
     let text = String::from_utf8_lossy(&text);
     let mut cams = HashMap::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let ln = i + 1;
-        let mut t = line.split_ascii_whitespace();
+    let mut lines = text.lines().enumerate();
+    while let Some((ln, mut t)) = next_record(&mut lines) {
         let id: i64 = num(cameras, ln, t.next(), "CAMERA_ID")?;
         let model = t.next().unwrap_or("");
         if !MODELS.iter().any(|m| m.1 == model) {
@@ -282,13 +295,7 @@ pub(super) fn load_text(cameras: &Path, images: &Path, images_dir: &Path) -> Res
     let text = String::from_utf8_lossy(&text);
     let mut lines = text.lines().enumerate();
     let mut views = Vec::new();
-    while let Some((i, line)) = lines.next() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let ln = i + 1;
-        let mut t = line.split_ascii_whitespace();
+    while let Some((ln, mut t)) = next_record(&mut lines) {
         let _id: i64 = num(images, ln, t.next(), "IMAGE_ID")?;
         let mut v = [0f64; 7];
         for (x, what) in v.iter_mut().zip(["QW", "QX", "QY", "QZ", "TX", "TY", "TZ"]) {

@@ -102,6 +102,16 @@ impl Header {
     fn find(&self, name: &str) -> Option<&Property> {
         self.props.iter().find(|p| p.name == name)
     }
+
+    /// `(byte offset in a vertex record, byte size)` of every property whose name starts with
+    /// `prefix`, in header order.
+    fn byte_ranges(&self, prefix: &str) -> Vec<(usize, usize)> {
+        self.props
+            .iter()
+            .filter(|p| p.name.starts_with(prefix))
+            .map(|p| (p.offset, p.ty.size()))
+            .collect()
+    }
 }
 
 struct ElementDecl {
@@ -676,12 +686,7 @@ pub(super) fn write_highlighted(
         }
         dc.push((p.offset, p.ty));
     }
-    let rest: Vec<(usize, usize)> = header
-        .props
-        .iter()
-        .filter(|p| p.name.starts_with("f_rest_"))
-        .map(|p| (p.offset, p.ty.size()))
-        .collect();
+    let rest = header.byte_ranges("f_rest_");
     let start = header.header_len + header.skip_before;
     let end = header
         .vertex_count
@@ -955,6 +960,57 @@ mod tests {
         (dir, p)
     }
 
+    /// Asserts that `bytes` (written to a temporary file) load, with colours, as `rows` of
+    /// `props` ([`check`]).
+    fn assert_loads_as(bytes: &[u8], props: &[(String, ScalarType)], rows: &[Vec<f64>]) {
+        let (_d, p) = write_tmp(bytes);
+        let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
+        check(&g, props, rows, true);
+    }
+
+    /// Asserts that `bytes` (written to a temporary file) do not load with `opts`, and that the
+    /// error message names every one of `names` (the vertex, the property...).
+    fn assert_load_error(bytes: &[u8], opts: PlyLoadOptions, names: &[&str]) {
+        let (_d, p) = write_tmp(bytes);
+        let msg = load_ply(&p, opts)
+            .expect_err("a bad .ply must not load")
+            .to_string();
+        for name in names {
+            assert!(msg.contains(name), "{name:?} not in {msg}");
+        }
+    }
+
+    /// For a file whose only fault is in the colours: asserts that it loads without colours, and
+    /// [`assert_load_error`] with them.
+    fn assert_colour_error(bytes: &[u8], names: &[&str]) {
+        let (_d, p) = write_tmp(bytes);
+        assert!(load_ply(&p, PlyLoadOptions { colours: false }).is_ok());
+        assert_load_error(bytes, PlyLoadOptions { colours: true }, names);
+    }
+
+    /// Index of property `name` in `props`.
+    fn column(props: &[(String, ScalarType)], name: &str) -> usize {
+        props
+            .iter()
+            .position(|(n, _)| n == name)
+            .unwrap_or_else(|| panic!("no property {name}"))
+    }
+
+    /// `rows` of `props` as a `.ply` in each of [`ENCODINGS`].
+    fn each_encoding<'a>(
+        props: &'a [(String, ScalarType)],
+        rows: &'a [Vec<f64>],
+    ) -> impl Iterator<Item = (Encoding, Vec<u8>)> + 'a {
+        ENCODINGS
+            .into_iter()
+            .map(move |enc| (enc, encode(enc, &refs(props), rows)))
+    }
+
+    /// `rows` of `props` as a binary little-endian `.ply`.
+    fn binary_le(props: &[(String, ScalarType)], rows: &[Vec<f64>]) -> Vec<u8> {
+        encode(Encoding::BinaryLe, &refs(props), rows)
+    }
+
     fn refs(props: &[(String, ScalarType)]) -> Vec<(&str, ScalarType)> {
         props.iter().map(|(n, t)| (n.as_str(), *t)).collect()
     }
@@ -995,12 +1051,10 @@ mod tests {
             }
         }
         let mut rows = rows(&props, 23, 5);
-        let xi = props.iter().position(|(n, _)| n == "x").expect("x");
+        let xi = column(&props, "x");
         rows[3][xi] = 1.0 + 1e-12; // only representable as double
-        for enc in ENCODINGS {
-            let (_d, p) = write_tmp(&encode(enc, &refs(&props), &rows));
-            let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
-            check(&g, &props, &rows, true);
+        for (_, bytes) in each_encoding(&props, &rows) {
+            assert_loads_as(&bytes, &props, &rows);
         }
     }
 
@@ -1013,10 +1067,7 @@ mod tests {
             (Encoding::Ascii, f64::NAN),
         ] {
             let mut rows = rows(&props, 10, 3);
-            let s1 = props
-                .iter()
-                .position(|(n, _)| n == "scale_1")
-                .expect("scale_1");
+            let s1 = column(&props, "scale_1");
             rows[7][s1] = bad;
             let (_d, p) = write_tmp(&encode(enc, &refs(&props), &rows));
             let err = load_ply(&p, PlyLoadOptions::default()).expect_err("must fail");
@@ -1026,17 +1077,9 @@ mod tests {
         }
         // A NaN in an SH column matters only when colours are loaded.
         let mut rows = rows(&props, 4, 3);
-        let dc = props
-            .iter()
-            .position(|(n, _)| n == "f_dc_2")
-            .expect("f_dc_2");
+        let dc = column(&props, "f_dc_2");
         rows[2][dc] = f64::NAN;
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        assert!(load_ply(&p, PlyLoadOptions { colours: false }).is_ok());
-        let msg = load_ply(&p, PlyLoadOptions { colours: true })
-            .expect_err("nan")
-            .to_string();
-        assert!(msg.contains("vertex 2") && msg.contains("f_dc_2"), "{msg}");
+        assert_colour_error(&binary_le(&props, &rows), &["vertex 2", "f_dc_2"]);
     }
 
     #[test]
@@ -1059,9 +1102,9 @@ mod tests {
             .collect();
         for (name, value) in [("y", 1e39), ("f_dc_1", -4e38)] {
             let mut rows = rows(&props, 3, 5);
-            let k = props.iter().position(|(n, _)| n == name).expect("column");
+            let k = column(&props, name);
             rows[2][k] = value;
-            let bytes = encode(Encoding::BinaryLe, &refs(&props), &rows);
+            let bytes = binary_le(&props, &rows);
             let err = crate::scene::load_ply_bytes(&bytes, path, PlyLoadOptions { colours: true })
                 .expect_err("beyond f32");
             assert!(err.to_string().contains("vertex 2"), "{err}");
@@ -1076,22 +1119,14 @@ mod tests {
         // Enough vertices for several parallel slices per chunk.
         let props = inria_props(1);
         let mut rows = rows(&props, 100_000, 77);
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
-        check(&g, &props, &rows, true);
-        let op = props
-            .iter()
-            .position(|(n, _)| n == "opacity")
-            .expect("opacity");
+        assert_loads_as(&binary_le(&props, &rows), &props, &rows);
+        let op = column(&props, "opacity");
         rows[90_000][op] = f64::NAN;
         rows[50_000][op] = f64::INFINITY;
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        let msg = load_ply(&p, PlyLoadOptions::default())
-            .expect_err("nan")
-            .to_string();
-        assert!(
-            msg.contains("vertex 50000") && msg.contains("opacity"),
-            "{msg}"
+        assert_load_error(
+            &binary_le(&props, &rows),
+            PlyLoadOptions::default(),
+            &["vertex 50000", "opacity"],
         );
     }
 
@@ -1100,19 +1135,13 @@ mod tests {
         let props = inria_props(0);
         let mut rows = rows(&props, 6, 9);
         for k in 0..4 {
-            let r = props
-                .iter()
-                .position(|(n, _)| n == &format!("rot_{k}"))
-                .expect("rot");
+            let r = column(&props, &format!("rot_{k}"));
             rows[4][r] = 0.0;
         }
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        let msg = load_ply(&p, PlyLoadOptions::default())
-            .expect_err("zero quat")
-            .to_string();
-        assert!(
-            msg.contains("vertex 4") && msg.contains("quaternion"),
-            "{msg}"
+        assert_load_error(
+            &binary_le(&props, &rows),
+            PlyLoadOptions::default(),
+            &["vertex 4", "quaternion"],
         );
     }
 
@@ -1123,23 +1152,18 @@ mod tests {
             .filter(|(n, _)| n != "rot_3")
             .collect();
         let rows = rows(&props, 3, 1);
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        let msg = load_ply(&p, PlyLoadOptions::default())
-            .expect_err("missing")
-            .to_string();
-        assert!(msg.contains("rot_3"), "{msg}");
+        assert_load_error(
+            &binary_le(&props, &rows),
+            PlyLoadOptions::default(),
+            &["rot_3"],
+        );
         // Colours requested from a geometry-only file.
         let props: Vec<_> = inria_props(0)
             .into_iter()
             .filter(|(n, _)| !n.starts_with("f_dc"))
             .collect();
         let rows = self::rows(&props, 3, 1);
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        assert!(load_ply(&p, PlyLoadOptions { colours: false }).is_ok());
-        let msg = load_ply(&p, PlyLoadOptions { colours: true })
-            .expect_err("no dc")
-            .to_string();
-        assert!(msg.contains("f_dc_0"), "{msg}");
+        assert_colour_error(&binary_le(&props, &rows), &["f_dc_0"]);
     }
 
     #[test]
@@ -1149,25 +1173,17 @@ mod tests {
             .filter(|(n, _)| n != "f_rest_8" && n != "f_rest_7")
             .collect();
         let rows = rows(&props, 3, 1);
-        let (_d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
-        assert!(load_ply(&p, PlyLoadOptions { colours: false }).is_ok());
-        let msg = load_ply(&p, PlyLoadOptions { colours: true })
-            .expect_err("7 rest")
-            .to_string();
-        assert!(msg.contains("7 `f_rest_*`"), "{msg}");
+        assert_colour_error(&binary_le(&props, &rows), &["7 `f_rest_*`"]);
     }
 
     #[test]
     fn list_property_is_rejected() {
         let text = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n\
                     property list uchar int vertex_indices\nend_header\n1 1 0\n";
-        let (_d, p) = write_tmp(text.as_bytes());
-        let msg = load_ply(&p, PlyLoadOptions::default())
-            .expect_err("list")
-            .to_string();
-        assert!(
-            msg.contains("vertex_indices") && msg.contains("list"),
-            "{msg}"
+        assert_load_error(
+            text.as_bytes(),
+            PlyLoadOptions::default(),
+            &["vertex_indices", "list"],
         );
     }
 
@@ -1175,8 +1191,7 @@ mod tests {
     fn truncated_body_is_a_format_error() {
         let props = inria_props(2);
         let rows = rows(&props, 20, 2);
-        for enc in ENCODINGS {
-            let bytes = encode(enc, &refs(&props), &rows);
+        for (enc, bytes) in each_encoding(&props, &rows) {
             for cut in [1usize, 17, bytes.len() / 3] {
                 let mut end = bytes.len() - cut;
                 if enc == Encoding::Ascii {
@@ -1202,8 +1217,7 @@ mod tests {
     fn scalar_element_before_vertex_is_skipped() {
         let props = inria_props(0);
         let rows = rows(&props, 5, 4);
-        for enc in ENCODINGS {
-            let body = encode(enc, &refs(&props), &rows);
+        for (enc, body) in each_encoding(&props, &rows) {
             // Insert `element camera 2` (two floats each) before the vertex element.
             let text = String::from_utf8_lossy(
                 &body[..body
@@ -1232,9 +1246,7 @@ mod tests {
                 + 11;
             bytes.extend_from_slice(&pre[pre_header..]);
             bytes.extend_from_slice(&body[header_len..]);
-            let (_d, p) = write_tmp(&bytes);
-            let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
-            check(&g, &props, &rows, true);
+            assert_loads_as(&bytes, &props, &rows);
         }
     }
 
@@ -1284,12 +1296,7 @@ mod tests {
             let header = parse_header(&src, &mut &src_bytes[..]).expect("header");
             let start = header.header_len;
             assert_eq!(out[..start], src_bytes[..start]);
-            let sh_offsets: Vec<(usize, usize)> = header
-                .props
-                .iter()
-                .filter(|p| p.name.starts_with("f_"))
-                .map(|p| (p.offset, p.ty.size()))
-                .collect();
+            let sh_offsets = header.byte_ranges("f_");
             for i in 0..rows.len() {
                 let a = &src_bytes[start + i * header.stride..start + (i + 1) * header.stride];
                 let b = &out[start + i * header.stride..start + (i + 1) * header.stride];
@@ -1346,7 +1353,7 @@ mod tests {
             .filter(|(n, _)| !n.starts_with("f_dc"))
             .collect();
         let rows = self::rows(&props, 3, 1);
-        let (d, p) = write_tmp(&encode(Encoding::BinaryLe, &refs(&props), &rows));
+        let (d, p) = write_tmp(&binary_le(&props, &rows));
         let dst = d.path().join("o.ply");
         assert!(write_highlighted_ply(&p, &dst, |_| None).is_err());
         assert!(!dst.exists());
@@ -1367,9 +1374,7 @@ mod tests {
                 r[10] += 100.0; // keep the quaternion away from zero
             }
             let enc = if be { Encoding::BinaryBe } else { Encoding::BinaryLe };
-            let (_d, p) = write_tmp(&encode(enc, &refs(&props), &rows));
-            let g = load_ply(&p, PlyLoadOptions { colours: true }).expect("loads");
-            check(&g, &props, &rows, true);
+            assert_loads_as(&encode(enc, &refs(&props), &rows), &props, &rows);
         }
     }
 }

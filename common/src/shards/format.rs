@@ -310,8 +310,9 @@ impl Shard {
     }
 }
 
-/// Borrowed content to encode into one shard (see [`encode_shard`]).
-#[derive(Debug, Clone, Copy)]
+/// Borrowed content to encode into one shard (see [`encode_shard`]). `Default`: no rows, no
+/// optional sections, dtype [`Dtype::F16`], `dim` 0 (set it).
+#[derive(Debug, Clone, Copy, Default)]
 pub struct ShardInput<'a> {
     /// Scene id (≤ 65535 bytes UTF-8).
     pub scene_id: &'a str,
@@ -388,6 +389,154 @@ pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
 /// as infinity.
 pub const F16_MAX: f32 = 65504.0;
 
+/// The columns a dense and a mixture shard input share: the header strings and tile, the ids
+/// and means, and the optional display and segment sections (everything but the embedding
+/// rows). `what` names the encoder in messages.
+#[derive(Clone, Copy)]
+pub(super) struct ShardColumns<'a> {
+    pub what: &'static str,
+    pub scene_id: &'a str,
+    pub model: &'a str,
+    pub tile_id: u64,
+    pub dim: usize,
+    pub ids: &'a [u32],
+    pub means: &'a [[f32; 3]],
+    pub display: DisplaySlices<'a>,
+    pub segments: Option<&'a [u32]>,
+}
+
+/// The optional display sections of one shard, borrowed, each `[N]` when present (INRIA `.ply`
+/// conventions): what a viewer draws besides the means.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct DisplaySlices<'a> {
+    /// Log-scales `[N]`.
+    pub scales: Option<&'a [[f32; 3]]>,
+    /// Pre-sigmoid opacities `[N]`.
+    pub opacities: Option<&'a [f32]>,
+    /// Normalised rotations (w, x, y, z) `[N]`.
+    pub rotations: Option<&'a [[f32; 4]]>,
+    /// SH DC colour (`f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`) `[N]`.
+    pub sh_dc: Option<&'a [[f32; 3]]>,
+}
+
+/// The [`ShardColumns`] of a [`ShardInput`] or a mixture shard input (their shared fields have
+/// the same names), for the encoder named `$what`.
+macro_rules! shard_columns {
+    ($input:expr, $what:expr) => {
+        $crate::shards::format::ShardColumns {
+            what: $what,
+            scene_id: $input.scene_id,
+            model: $input.model,
+            tile_id: $input.tile_id,
+            dim: $input.dim,
+            ids: $input.ids,
+            means: $input.means,
+            display: $crate::shards::DisplaySlices {
+                scales: $input.scales,
+                opacities: $input.opacities,
+                rotations: $input.rotations,
+                sh_dc: $input.sh_dc,
+            },
+            segments: $input.segments,
+        }
+    };
+}
+pub(super) use shard_columns;
+
+/// How one shard kind stores its embedding rows (payload section 3) and marks them in the header.
+pub(super) struct RowSection {
+    /// Header dtype.
+    pub dtype: Dtype,
+    /// Format version without and with the segments section.
+    pub versions: [u16; 2],
+    /// The mixture header extension `(slots, codebook checksum)`, for mixture shards.
+    pub mixture: Option<(u32, u32)>,
+    /// Payload bytes per row of the section (for the allocation).
+    pub bytes_per_row: usize,
+}
+
+impl ShardColumns<'_> {
+    /// Errors: `dim` outside 1..=[`MAX_DIM`] ([`Error::Param`]), N above `u32::MAX`
+    /// ([`Error::Limit`]).
+    pub(super) fn check_shape(&self) -> crate::Result<()> {
+        if self.dim == 0 || self.dim > MAX_DIM as usize {
+            return Err(Error::param(
+                "dim",
+                self.dim,
+                format!("an embedding width in 1..={MAX_DIM}"),
+            ));
+        }
+        let n = self.ids.len();
+        if u32::try_from(n).is_err() {
+            return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
+        }
+        Ok(())
+    }
+
+    /// Errors: a display or segments column whose length differs from the ids'
+    /// ([`Error::Internal`]); ids longer than 65535 bytes or a non-finite mean
+    /// ([`Error::Invalid`]).
+    pub(super) fn check_columns(&self) -> crate::Result<()> {
+        let n = self.ids.len();
+        let d = &self.display;
+        if d.scales.is_some_and(|v| v.len() != n)
+            || d.opacities.is_some_and(|v| v.len() != n)
+            || d.rotations.is_some_and(|v| v.len() != n)
+            || d.sh_dc.is_some_and(|v| v.len() != n)
+            || self.segments.is_some_and(|v| v.len() != n)
+        {
+            return Err(Error::internal(format!(
+                "{}: a display or segments column's length differs from the id count",
+                self.what
+            )));
+        }
+        let bad = |m: &str| Err(Error::Invalid(format!("{}: {m}", self.what)));
+        if self.scene_id.len() > u16::MAX as usize || self.model.len() > u16::MAX as usize {
+            return bad("scene or model id longer than 65535 bytes");
+        }
+        if self.means.iter().flatten().any(|x| !x.is_finite()) {
+            return bad("non-finite mean; fix the encoder output");
+        }
+        Ok(())
+    }
+
+    /// The shard (module-doc layout): header, then ids, means, the row section `write_rows`
+    /// appends, zero padding to 4 bytes, the display sections and the segments. The caller has
+    /// run both checks.
+    pub(super) fn encode(
+        &self,
+        rows: &RowSection,
+        write_rows: impl FnOnce(&mut Vec<u8>),
+    ) -> Vec<u8> {
+        let n = self.ids.len();
+        let mut p: Vec<u8> = Vec::with_capacity(n * (16 + rows.bytes_per_row) + 4);
+        put_le(&mut p, self.ids, u32::to_le_bytes);
+        put_le(&mut p, self.means.as_flattened(), f32::to_le_bytes);
+        write_rows(&mut p);
+        p.resize(align(p.len(), 4), 0);
+        let mut flags = write_display(&mut p, &self.display);
+        if let Some(seg) = self.segments {
+            flags |= FLAG_SEGMENTS;
+            put_le(&mut p, seg, u32::to_le_bytes);
+        }
+        assemble(
+            &HeaderFields {
+                version: rows.versions[usize::from(self.segments.is_some())],
+                dtype: rows.dtype,
+                flags,
+                dim: self.dim as u32,
+                count: n as u32,
+                tile_id: self.tile_id,
+                aabb: Aabb::of_points(self.means.iter().copied()).unwrap_or_default(),
+                scene_id: self.scene_id,
+                model: self.model,
+                mixture: rows.mixture,
+            },
+            p,
+        )
+    }
+}
+
 /// Encodes one shard (layout in the module doc).
 ///
 /// Errors: array lengths that disagree with N and D ([`Error::Internal`]), `dim` of 0 or above
@@ -397,45 +546,20 @@ pub const F16_MAX: f32 = 65504.0;
 /// beyond the f16 range ([`F16_MAX`]; [`Error::Param`] `dtype`).
 /// f16 values are rounded to nearest (subnormal halves below 6.1e-5, zero below 2^-25).
 pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
-    let n = input.ids.len();
-    let d = input.dim;
-    let bad = |m: String| Error::Invalid(format!("encode_shard: {m}"));
-    let inconsistent = |m: String| Error::internal(format!("encode_shard: {m}"));
-    if d == 0 || d > MAX_DIM as usize {
-        return Err(Error::param(
-            "dim",
-            d,
-            format!("an embedding width in 1..={MAX_DIM}"),
-        ));
-    }
-    if u32::try_from(n).is_err() {
-        return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
-    }
+    let columns = shard_columns!(input, "encode_shard");
+    columns.check_shape()?;
+    let (n, d) = (input.ids.len(), input.dim);
     if input.means.len() != n || input.vectors.len() != n * d {
-        return Err(inconsistent(format!(
-            "{n} ids but {} means and {} vector values for dim {d}",
+        return Err(Error::internal(format!(
+            "encode_shard: {n} ids but {} means and {} vector values for dim {d}",
             input.means.len(),
             input.vectors.len()
         )));
     }
-    if input.scales.is_some_and(|s| s.len() != n)
-        || input.opacities.is_some_and(|o| o.len() != n)
-        || input.rotations.is_some_and(|r| r.len() != n)
-        || input.sh_dc.is_some_and(|c| c.len() != n)
-        || input.segments.is_some_and(|c| c.len() != n)
-    {
-        return Err(inconsistent(
-            "scales/opacities/rotations/SH DC/segments length differs from the id count".into(),
-        ));
-    }
-    if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
-        return Err(bad("scene or model id longer than 65535 bytes".into()));
-    }
-    if input.means.iter().flatten().any(|x| !x.is_finite())
-        || input.vectors.iter().any(|x| !x.is_finite())
-    {
-        return Err(bad(
-            "non-finite mean or embedding value; fix the encoder output".into(),
+    columns.check_columns()?;
+    if input.vectors.iter().any(|x| !x.is_finite()) {
+        return Err(Error::Invalid(
+            "encode_shard: non-finite embedding value; fix the encoder output".into(),
         ));
     }
     if input.dtype == Dtype::F16
@@ -453,24 +577,14 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
             ),
         ));
     }
-    let aabb = Aabb::of_points(input.means.iter().copied()).unwrap_or_default();
-
-    // Payload.
-    let mut p: Vec<u8> = Vec::with_capacity(n * (16 + input.dtype.bytes_per_vector(d)) + 4);
-    input
-        .ids
-        .iter()
-        .for_each(|i| p.extend_from_slice(&i.to_le_bytes()));
-    input
-        .means
-        .iter()
-        .flatten()
-        .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    match input.dtype {
-        Dtype::F32 => input
-            .vectors
-            .iter()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes())),
+    let rows = RowSection {
+        dtype: input.dtype,
+        versions: [SHARD_FORMAT_VERSION, SEGMENTS_SHARD_FORMAT_VERSION],
+        mixture: None,
+        bytes_per_row: input.dtype.bytes_per_vector(d),
+    };
+    Ok(columns.encode(&rows, |p| match input.dtype {
+        Dtype::F32 => put_le(p, input.vectors, f32::to_le_bytes),
         Dtype::F16 => input
             .vectors
             .iter()
@@ -483,74 +597,34 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
             }
             p.extend_from_slice(&q);
         }
-    }
-    p.resize(align(p.len(), 4), 0);
-    let mut flags = write_display(
-        &mut p,
-        input.scales,
-        input.opacities,
-        input.rotations,
-        input.sh_dc,
-    );
-    if let Some(seg) = input.segments {
-        flags |= FLAG_SEGMENTS;
-        seg.iter()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    }
-    Ok(assemble(
-        &HeaderFields {
-            version: if input.segments.is_some() {
-                SEGMENTS_SHARD_FORMAT_VERSION
-            } else {
-                SHARD_FORMAT_VERSION
-            },
-            dtype: input.dtype,
-            flags,
-            dim: d as u32,
-            count: n as u32,
-            tile_id: input.tile_id,
-            aabb,
-            scene_id: input.scene_id,
-            model: input.model,
-            mixture: None,
-        },
-        p,
-    ))
+    }))
 }
 
 /// Appends the display sections given (layout order) to a payload; returns their flag bits.
-pub(super) fn write_display(
-    p: &mut Vec<u8>,
-    scales: Option<&[[f32; 3]]>,
-    opacities: Option<&[f32]>,
-    rotations: Option<&[[f32; 4]]>,
-    sh_dc: Option<&[[f32; 3]]>,
-) -> u8 {
+pub(super) fn write_display(p: &mut Vec<u8>, display: &DisplaySlices<'_>) -> u8 {
+    let sections = [
+        (FLAG_SCALES, display.scales.map(<[[f32; 3]]>::as_flattened)),
+        (FLAG_OPACITIES, display.opacities),
+        (
+            FLAG_ROTATIONS,
+            display.rotations.map(<[[f32; 4]]>::as_flattened),
+        ),
+        (FLAG_SH_DC, display.sh_dc.map(<[[f32; 3]]>::as_flattened)),
+    ];
     let mut flags = 0u8;
-    if let Some(sc) = scales {
-        flags |= FLAG_SCALES;
-        sc.iter()
-            .flatten()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    }
-    if let Some(op) = opacities {
-        flags |= FLAG_OPACITIES;
-        op.iter()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    }
-    if let Some(rot) = rotations {
-        flags |= FLAG_ROTATIONS;
-        rot.iter()
-            .flatten()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    }
-    if let Some(dc) = sh_dc {
-        flags |= FLAG_SH_DC;
-        dc.iter()
-            .flatten()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
+    for (bit, values) in sections {
+        if let Some(values) = values {
+            flags |= bit;
+            put_le(p, values, f32::to_le_bytes);
+        }
     }
     flags
+}
+
+/// Appends `values` to `p` as their little-endian bytes (`le`, e.g. `f32::to_le_bytes`: the
+/// payload's byte order).
+pub(super) fn put_le<T: Copy, const K: usize>(p: &mut Vec<u8>, values: &[T], le: fn(T) -> [u8; K]) {
+    values.iter().for_each(|&x| p.extend_from_slice(&le(x)));
 }
 
 /// The header fields [`assemble`] writes.
@@ -1023,6 +1097,18 @@ pub struct StoredShard {
     pub segments: Option<Vec<u32>>,
 }
 
+impl StoredShard {
+    /// The display sections the shard carries.
+    pub fn display(&self) -> DisplaySlices<'_> {
+        DisplaySlices {
+            scales: self.scales.as_deref(),
+            opacities: self.opacities.as_deref(),
+            rotations: self.rotations.as_deref(),
+            sh_dc: self.sh_dc.as_deref(),
+        }
+    }
+}
+
 /// Decodes a shard, verifying magic, version, both CRCs and every length, and dequantises the
 /// vectors to `f32` (see [`decode_shard_stored`] to keep them as stored).
 ///
@@ -1069,41 +1155,27 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
             });
         }
     };
-    let ParsedHeader {
-        header,
-        header_len,
-        flags,
-        payload_len,
-        payload_crc,
-        ..
-    } = parsed;
-    let (n, d) = (header.count as u64, header.dim as u64);
-    let expected = expected_payload(header.dtype, flags, n, d);
-    let payload = checked_payload(
-        bytes,
-        header_len,
-        payload_len,
-        payload_crc,
-        expected,
-        || format!("{n} Gaussians of dim {d} ({:?})", header.dtype),
-    )?;
-    let (n, d) = (n as usize, d as usize);
-    let mut r = Reader { b: payload, at: 0 };
-    let ids = read_u32s(&mut r, n)?;
-    let means = triples(le_f32s(r.take(12 * n)?));
-    let vectors = match header.dtype {
-        Dtype::F32 => StoredVectors::F32(le_f32s(r.take(4 * n * d)?)),
-        Dtype::F16 => StoredVectors::F16(read_f16s(&mut r, n * d)?),
-        Dtype::I8 => {
-            let scales = le_f32s(r.take(4 * n)?);
-            let q = r.take(n * d)?.iter().map(|&b| b as i8).collect();
-            StoredVectors::I8 { q, scales }
-        }
-    };
-    r.at = align(r.at, 4);
-    let display = read_display(&mut r, flags, n)?;
+    let (dtype, n, d) = (
+        parsed.header.dtype,
+        parsed.header.count as u64,
+        parsed.header.dim,
+    );
+    let expected = expected_payload(dtype, parsed.flags, n, d as u64);
+    let what = || format!("{n} Gaussians of dim {d} ({dtype:?})");
+    let d = d as usize;
+    let (ids, means, vectors, display) = read_payload(bytes, &parsed, expected, what, |r, n| {
+        Ok(match dtype {
+            Dtype::F32 => StoredVectors::F32(le_f32s(r.take(4 * n * d)?)),
+            Dtype::F16 => StoredVectors::F16(read_f16s(r, n * d)?),
+            Dtype::I8 => {
+                let scales = le_f32s(r.take(4 * n)?);
+                let q = r.take(n * d)?.iter().map(|&b| b as i8).collect();
+                StoredVectors::I8 { q, scales }
+            }
+        })
+    })?;
     Ok(StoredShard {
-        header,
+        header: parsed.header,
         ids,
         means,
         vectors,
@@ -1113,6 +1185,39 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
         sh_dc: display.sh_dc,
         segments: display.segments,
     })
+}
+
+/// Ids, means, the row section and the display and segment sections of a shard payload
+/// ([`read_payload`]).
+pub(super) type Payload<R> = (Vec<u32>, Vec<[f32; 3]>, R, DisplaySections);
+
+/// Checks the payload of the shard `bytes` whose header is `parsed` ([`checked_payload`]:
+/// `expected` bytes, `what` describing the rows for the message) and reads it in layout order:
+/// ids, means, the row section (`read_rows`, given the row count), padding to 4 bytes, the
+/// display and segment sections the flags announce.
+pub(super) fn read_payload<'b, R>(
+    bytes: &'b [u8],
+    parsed: &ParsedHeader,
+    expected: u64,
+    what: impl FnOnce() -> String,
+    read_rows: impl FnOnce(&mut Reader<'b>, usize) -> Result<R, ShardError>,
+) -> Result<Payload<R>, ShardError> {
+    let payload = checked_payload(
+        bytes,
+        parsed.header_len,
+        parsed.payload_len,
+        parsed.payload_crc,
+        expected,
+        what,
+    )?;
+    let n = parsed.header.count as usize;
+    let mut r = Reader { b: payload, at: 0 };
+    let ids = read_u32s(&mut r, n)?;
+    let means = triples(le_f32s(r.take(12 * n)?));
+    let rows = read_rows(&mut r, n)?;
+    r.at = align(r.at, 4);
+    let display = read_display(&mut r, parsed.flags, n)?;
+    Ok((ids, means, rows, display))
 }
 
 /// `n` little-endian `u32`s.
@@ -1228,6 +1333,27 @@ pub(super) fn checked_payload(
     Ok(payload)
 }
 
+/// `(length, CRC-32 of every byte but the header's own CRC field)` of an encoded shard, for
+/// golden tests. (The CRC of a whole shard does not see its header: a CRC over a block that ends
+/// with its own CRC is a constant.)
+#[cfg(test)]
+pub(super) fn fingerprint(bytes: &[u8]) -> (usize, u32) {
+    let hl = u32::from_le_bytes([bytes[20], bytes[21], bytes[22], bytes[23]]) as usize;
+    let mut h = crc32fast::Hasher::new();
+    h.update(&bytes[..hl - 4]);
+    h.update(&bytes[hl..]);
+    (bytes.len(), h.finalize())
+}
+
+/// Asserts that `r` is a checksum error of `section` (`"header"` or `"payload"`).
+#[cfg(test)]
+pub(super) fn assert_checksum_error<T: std::fmt::Debug>(r: Result<T, ShardError>, section: &str) {
+    match r {
+        Err(ShardError::Checksum { section: s, .. }) if s == section => {}
+        other => panic!("expected a {section} checksum error, got {other:?}"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1257,60 +1383,48 @@ mod tests {
         tile: u64,
     }
 
-    fn case() -> impl Strategy<Value = Case> {
-        (0usize..20, 1usize..40).prop_flat_map(|(n, dim)| {
-            (
-                proptest::collection::vec(any::<u32>(), n),
-                proptest::collection::vec(prop::array::uniform3(-1e4f32..1e4), n),
-                proptest::collection::vec(proptest::collection::vec(-1.0f32..1.0, dim), n),
-                proptest::option::of(proptest::collection::vec(
-                    prop::array::uniform3(-10f32..3.0),
-                    n,
-                )),
-                proptest::option::of(proptest::collection::vec(-8f32..8.0, n)),
-                proptest::option::of(proptest::collection::vec(
-                    prop::array::uniform4(-1f32..1.0),
-                    n,
-                )),
-                proptest::option::of(proptest::collection::vec(
-                    prop::array::uniform3(-2f32..2.0),
-                    n,
-                )),
-                "[a-z0-9_-]{0,12}",
-                "\\PC{0,10}",
-                any::<u64>(),
-            )
-                .prop_map(
-                    move |(
-                        ids,
-                        means,
-                        vecs,
-                        scales,
-                        opacities,
-                        rotations,
-                        sh_dc,
-                        scene,
-                        model,
-                        tile,
-                    )| Case {
-                        ids,
-                        means,
-                        vectors: vecs.into_iter().flat_map(unit).collect(),
-                        dim,
-                        scales,
-                        opacities,
-                        rotations,
-                        sh_dc,
-                        scene,
-                        model,
-                        tile,
-                    },
-                )
-        })
+    prop_compose! {
+        fn case()(n in 0usize..20, dim in 1usize..40)(
+            ids in proptest::collection::vec(any::<u32>(), n),
+            means in proptest::collection::vec(prop::array::uniform3(-1e4f32..1e4), n),
+            rows in proptest::collection::vec(proptest::collection::vec(-1.0f32..1.0, dim), n),
+            scales in proptest::option::of(proptest::collection::vec(
+                prop::array::uniform3(-10f32..3.0),
+                n,
+            )),
+            opacities in proptest::option::of(proptest::collection::vec(-8f32..8.0, n)),
+            rotations in proptest::option::of(proptest::collection::vec(
+                prop::array::uniform4(-1f32..1.0),
+                n,
+            )),
+            sh_dc in proptest::option::of(proptest::collection::vec(
+                prop::array::uniform3(-2f32..2.0),
+                n,
+            )),
+            scene in "[a-z0-9_-]{0,12}",
+            model in "\\PC{0,10}",
+            tile in any::<u64>(),
+            dim in Just(dim),
+        ) -> Case {
+            let vectors = rows.into_iter().flat_map(unit).collect();
+            Case {
+                ids,
+                means,
+                vectors,
+                dim,
+                scales,
+                opacities,
+                rotations,
+                sh_dc,
+                scene,
+                model,
+                tile,
+            }
+        }
     }
 
-    fn encode(c: &Case, dtype: Dtype) -> Vec<u8> {
-        encode_shard(&ShardInput {
+    fn input(c: &Case, dtype: Dtype) -> ShardInput<'_> {
+        ShardInput {
             scene_id: &c.scene,
             model: &c.model,
             tile_id: c.tile,
@@ -1324,8 +1438,11 @@ mod tests {
             rotations: c.rotations.as_deref(),
             sh_dc: c.sh_dc.as_deref(),
             segments: None,
-        })
-        .expect("valid input encodes")
+        }
+    }
+
+    fn encode(c: &Case, dtype: Dtype) -> Vec<u8> {
+        encode_shard(&input(c, dtype)).expect("valid input encodes")
     }
 
     fn dtype() -> impl Strategy<Value = Dtype> {
@@ -1367,22 +1484,7 @@ mod tests {
 
         #[test]
         fn layout_predicts_the_encoded_length(c in case(), dt in dtype(), budget in 0u64..4000) {
-            let input = ShardInput {
-                scene_id: &c.scene,
-                model: &c.model,
-                tile_id: c.tile,
-                dim: c.dim,
-                dtype: dt,
-                ids: &c.ids,
-                means: &c.means,
-                vectors: &c.vectors,
-                scales: c.scales.as_deref(),
-                opacities: c.opacities.as_deref(),
-                rotations: c.rotations.as_deref(),
-                sh_dc: c.sh_dc.as_deref(),
-                segments: None,
-            };
-            let layout = ShardLayout::of_input(&input);
+            let layout = ShardLayout::of_input(&input(&c, dt));
             let n = c.ids.len() as u64;
             let len = encode(&c, dt).len() as u64;
             prop_assert_eq!(layout.shard_len(n), len);
@@ -1468,22 +1570,10 @@ mod tests {
         b[8] = 1;
         let last = b.len() - 1;
         b[last] ^= 0x40;
-        assert!(matches!(
-            decode_shard(&b),
-            Err(ShardError::Checksum {
-                section: "payload",
-                ..
-            })
-        ));
+        assert_checksum_error(decode_shard(&b), "payload");
         b[last] ^= 0x40;
         b[30] ^= 1; // inside the tile id/AABB
-        assert!(matches!(
-            decode_shard(&b),
-            Err(ShardError::Checksum {
-                section: "header",
-                ..
-            })
-        ));
+        assert_checksum_error(decode_shard(&b), "header");
         b[30] ^= 1;
         // The shard carries opacities (bit 1) and rotations (bit 2) in that order.
         let s = decode_shard_stored(&b).expect("valid");
@@ -1503,39 +1593,84 @@ mod tests {
 
     #[test]
     fn rejects_bad_encoder_input() {
-        let r = encode_shard(&ShardInput {
+        let one_row = ShardInput {
             scene_id: "s",
             model: "m",
-            tile_id: 0,
-            dim: 2,
-            dtype: Dtype::F32,
-            ids: &[1],
-            means: &[[0.0; 3]],
-            vectors: &[1.0],
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
-            segments: None,
-        });
-        assert!(matches!(r, Err(Error::Internal(_))));
-        let r = encode_shard(&ShardInput {
-            scene_id: "s",
-            model: "m",
-            tile_id: 0,
             dim: 1,
             dtype: Dtype::F32,
             ids: &[1],
             means: &[[0.0; 3]],
             vectors: &[1.0],
-            scales: None,
-            opacities: None,
-            rotations: Some(&[]),
-            sh_dc: None,
-            segments: None,
-        });
-        assert!(matches!(r, Err(Error::Internal(_))));
+            ..ShardInput::default()
+        };
+        assert!(encode_shard(&one_row).is_ok());
+        // One vector value for a width of 2; a rotation column shorter than the ids.
+        for bad in [
+            ShardInput { dim: 2, ..one_row },
+            ShardInput {
+                rotations: Some(&[]),
+                ..one_row
+            },
+        ] {
+            assert!(matches!(encode_shard(&bad), Err(Error::Internal(_))));
+        }
     }
+
+    /// The bytes on disk do not drift: the [`fingerprint`] of shards of fixed content (every
+    /// dtype, with and without the display and segment sections) as this format writes them.
+    #[test]
+    fn encoded_bytes_are_stable() {
+        let ids = [3u32, 1, 4, 1_000_000];
+        let means = [
+            [0.5, -1.0, 2.0],
+            [1e3, 0.0, -7.25],
+            [0.0; 3],
+            [-3.0, 4.0, 5.5],
+        ];
+        let vectors: Vec<f32> = (0..12).map(|i| (i as f32 * 0.7).sin()).collect();
+        let scales = [[0.1f32, -0.2, 0.3]; 4];
+        let opacities = [0.5f32, -1.0, 2.0, 0.0];
+        let rotations = [[1.0f32, 0.0, 0.0, 0.0]; 4];
+        let sh_dc = [[0.25f32, -0.5, 1.0]; 4];
+        let segments = [7u32, 7, 0, 2];
+        let mut got = Vec::new();
+        for dtype in [Dtype::F32, Dtype::F16, Dtype::I8] {
+            let plain = ShardInput {
+                scene_id: "scene-a",
+                model: "color-clip",
+                tile_id: 9,
+                dim: 3,
+                dtype,
+                ids: &ids,
+                means: &means,
+                vectors: &vectors,
+                ..ShardInput::default()
+            };
+            let full = ShardInput {
+                scales: Some(&scales),
+                opacities: Some(&opacities),
+                rotations: Some(&rotations),
+                sh_dc: Some(&sh_dc),
+                segments: Some(&segments),
+                ..plain
+            };
+            for input in [plain, full] {
+                let bytes = encode_shard(&input).expect("encodes");
+                got.push(fingerprint(&bytes));
+            }
+        }
+        assert_eq!(got, GOLDEN_DENSE, "{got:x?}");
+    }
+
+    /// [`fingerprint`]s per dtype (f32, f16, int8), plain then with every optional section.
+    const GOLDEN_DENSE: [(usize, u32); 6] = [
+        (208, 0x8c3a_61c0),
+        (400, 0x999d_9623),
+        (184, 0xc1f3_21b0),
+        (376, 0x76bf_5c33),
+        (188, 0x9e19_6dea),
+        (380, 0x4959_02a9),
+    ];
 
     /// Sets header byte `at` to `v` and re-seals the header CRC.
     fn patch_header(bytes: &mut [u8], at: usize, v: u8) {

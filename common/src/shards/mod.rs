@@ -19,11 +19,11 @@ pub mod synthetic;
 pub mod tiles;
 
 pub use format::{
-    Aabb, Dtype, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
-    NEWEST_SHARD_FORMAT_VERSION, SEGMENTS_SHARD_FORMAT_VERSION, SHARD_FORMAT_VERSION, SHARD_MAGIC,
-    Shard, ShardError, ShardHeader, ShardInput, ShardLayout, StoredShard, StoredVectors,
-    decode_header, decode_shard, decode_shard_stored, encode_shard, has_segments_version,
-    is_mixture_version, shard_checksum,
+    Aabb, DisplaySlices, Dtype, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION,
+    MIXTURE_SHARD_FORMAT_VERSION, NEWEST_SHARD_FORMAT_VERSION, SEGMENTS_SHARD_FORMAT_VERSION,
+    SHARD_FORMAT_VERSION, SHARD_MAGIC, Shard, ShardError, ShardHeader, ShardInput, ShardLayout,
+    StoredShard, StoredVectors, decode_header, decode_shard, decode_shard_stored, encode_shard,
+    has_segments_version, is_mixture_version, shard_checksum,
 };
 pub use frame::{Frames, MAP_FRAME, MapSource, SCENE_FRAME, SceneToMap};
 pub use mixture::{
@@ -198,22 +198,30 @@ impl<'a, S: GaussianSource> WithDisplay<'a, S> {
     }
 }
 
+/// The row methods of [`GaussianSource`] (ids, means, width, model, vectors) forwarded to
+/// `self.inner`: a wrapper that only adds columns implements the rest.
+macro_rules! forward_rows_to_inner {
+    () => {
+        fn ids(&self) -> &[u32] {
+            self.inner.ids()
+        }
+        fn means(&self) -> &[[f32; 3]] {
+            self.inner.means()
+        }
+        fn dim(&self) -> usize {
+            self.inner.dim()
+        }
+        fn model(&self) -> &str {
+            self.inner.model()
+        }
+        fn vector_into(&self, i: usize, out: &mut [f32]) {
+            self.inner.vector_into(i, out)
+        }
+    };
+}
+
 impl<S: GaussianSource> GaussianSource for WithDisplay<'_, S> {
-    fn ids(&self) -> &[u32] {
-        self.inner.ids()
-    }
-    fn means(&self) -> &[[f32; 3]] {
-        self.inner.means()
-    }
-    fn dim(&self) -> usize {
-        self.inner.dim()
-    }
-    fn model(&self) -> &str {
-        self.inner.model()
-    }
-    fn vector_into(&self, i: usize, out: &mut [f32]) {
-        self.inner.vector_into(i, out)
-    }
+    forward_rows_to_inner!();
     fn display(&self, i: usize) -> Option<([f32; 3], f32)> {
         let id = *self.inner.ids().get(i)? as usize;
         Some((*self.scales.get(id)?, *self.opacities.get(id)?))
@@ -262,21 +270,7 @@ impl<'a, S: GaussianSource> WithSegments<'a, S> {
 }
 
 impl<S: GaussianSource> GaussianSource for WithSegments<'_, S> {
-    fn ids(&self) -> &[u32] {
-        self.inner.ids()
-    }
-    fn means(&self) -> &[[f32; 3]] {
-        self.inner.means()
-    }
-    fn dim(&self) -> usize {
-        self.inner.dim()
-    }
-    fn model(&self) -> &str {
-        self.inner.model()
-    }
-    fn vector_into(&self, i: usize, out: &mut [f32]) {
-        self.inner.vector_into(i, out)
-    }
+    forward_rows_to_inner!();
     fn display(&self, i: usize) -> Option<([f32; 3], f32)> {
         self.inner.display(i)
     }
@@ -291,19 +285,37 @@ impl<S: GaussianSource> GaussianSource for WithSegments<'_, S> {
     }
 }
 
+/// The column methods of [`GaussianSource`] for a type that holds them as fields: ids in field
+/// `$ids`, `means`, `dim`, and the model id in field `$model` (or a fixed string).
+macro_rules! columns_from_fields {
+    (ids: $ids:ident, model: $model:ident) => {
+        $crate::shards::columns_from_fields!(ids: $ids);
+        fn model(&self) -> &str {
+            &self.$model
+        }
+    };
+    (ids: $ids:ident, model = $model:literal) => {
+        $crate::shards::columns_from_fields!(ids: $ids);
+        fn model(&self) -> &str {
+            $model
+        }
+    };
+    (ids: $ids:ident) => {
+        fn ids(&self) -> &[u32] {
+            &self.$ids
+        }
+        fn means(&self) -> &[[f32; 3]] {
+            &self.means
+        }
+        fn dim(&self) -> usize {
+            self.dim
+        }
+    };
+}
+pub(crate) use columns_from_fields;
+
 impl GaussianSource for Embeddings {
-    fn ids(&self) -> &[u32] {
-        &self.ids
-    }
-    fn means(&self) -> &[[f32; 3]] {
-        &self.means
-    }
-    fn dim(&self) -> usize {
-        self.dim
-    }
-    fn model(&self) -> &str {
-        &self.model
-    }
+    columns_from_fields!(ids: ids, model: model);
     fn vector_into(&self, i: usize, out: &mut [f32]) {
         out.copy_from_slice(self.vector(i));
     }
@@ -312,18 +324,7 @@ impl GaussianSource for Embeddings {
 /// The reconstructed rows of a mixture (`Σ_s weights · codebook[atoms]`, unit norm up to f16
 /// rounding): a mixture can be partitioned densely (e.g. for Qdrant) like any embeddings file.
 impl GaussianSource for crate::mixture::MixtureEmbeddings {
-    fn ids(&self) -> &[u32] {
-        &self.gaussian_ids
-    }
-    fn means(&self) -> &[[f32; 3]] {
-        &self.means
-    }
-    fn dim(&self) -> usize {
-        self.dim
-    }
-    fn model(&self) -> &str {
-        &self.model_id
-    }
+    columns_from_fields!(ids: gaussian_ids, model: model_id);
     fn vector_into(&self, i: usize, out: &mut [f32]) {
         out.iter_mut().for_each(|v| *v = 0.0);
         self.add_vector_into(i, out);

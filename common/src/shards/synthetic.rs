@@ -90,18 +90,7 @@ impl SyntheticScene {
 }
 
 impl GaussianSource for SyntheticScene {
-    fn ids(&self) -> &[u32] {
-        &self.ids
-    }
-    fn means(&self) -> &[[f32; 3]] {
-        &self.means
-    }
-    fn dim(&self) -> usize {
-        self.dim
-    }
-    fn model(&self) -> &str {
-        "synthetic"
-    }
+    super::columns_from_fields!(ids: ids, model = "synthetic");
     fn vector_into(&self, i: usize, out: &mut [f32]) {
         let mut s = self.seed.wrapping_mul(0x100_0000_01B3) ^ (i as u64).wrapping_mul(0x9E37_79B9);
         let mut norm = 0.0f32;

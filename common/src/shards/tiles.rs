@@ -807,13 +807,8 @@ mod tests {
         let a = n.any_orthonormal_vector();
         let b = n.cross(a);
         let mut pts = Vec::new();
-        let mut s = 12345u64;
-        let mut rnd = || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 11) as f64 / (1u64 << 53) as f64 - 0.5
-        };
+        let mut rng = crate::rng::SplitMix64::new(12345);
+        let mut rnd = || rng.range(-0.5, 0.5);
         for _ in 0..2000 {
             let p = a * 100.0 * rnd() + b * 100.0 * rnd() + n * rnd() + DVec3::new(3.0, 4.0, 5.0);
             pts.push([p.x as f32, p.y as f32, p.z as f32]);

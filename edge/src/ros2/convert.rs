@@ -265,25 +265,8 @@ mod tests {
     use super::*;
 
     fn rotate(q: &Quaternion, v: [f64; 3]) -> [f64; 3] {
-        // v' = q v q*, expanded.
-        let (x, y, z, w) = (q.x, q.y, q.z, q.w);
-        let m = [
-            [
-                1.0 - 2.0 * (y * y + z * z),
-                2.0 * (x * y - z * w),
-                2.0 * (x * z + y * w),
-            ],
-            [
-                2.0 * (x * y + z * w),
-                1.0 - 2.0 * (x * x + z * z),
-                2.0 * (y * z - x * w),
-            ],
-            [
-                2.0 * (x * z - y * w),
-                2.0 * (y * z + x * w),
-                1.0 - 2.0 * (x * x + y * y),
-            ],
-        ];
+        // v' = q v q* = R(q) v.
+        let m = slag_common::shards::frame::quaternion_to_matrix([q.w, q.x, q.y, q.z]);
         [0, 1, 2].map(|i| (0..3).map(|j| m[i][j] * v[j]).sum())
     }
 

@@ -178,6 +178,28 @@ fn check_queries(dim: usize, queries: &[&[f32]]) -> Result<(), Error> {
     Ok(())
 }
 
+/// `$f::<Q>($store, [the Q queries], $extra)` with `Q = $queries.len()` (1..=[`MAX_QUERIES`],
+/// checked by the caller): the scan kernels are compiled once per query count.
+macro_rules! per_query_count {
+    ($f:ident, $store:expr, $queries:expr, $extra:expr) => {{
+        let q: &[&[f32]] = $queries;
+        match q.len() {
+            1 => $f::<1>($store, [q[0]], $extra),
+            2 => $f::<2>($store, [q[0], q[1]], $extra),
+            3 => $f::<3>($store, [q[0], q[1], q[2]], $extra),
+            4 => $f::<4>($store, [q[0], q[1], q[2], q[3]], $extra),
+            5 => $f::<5>($store, [q[0], q[1], q[2], q[3], q[4]], $extra),
+            6 => $f::<6>($store, [q[0], q[1], q[2], q[3], q[4], q[5]], $extra),
+            7 => $f::<7>($store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6]], $extra),
+            _ => $f::<8>(
+                $store,
+                [q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7]],
+                $extra,
+            ),
+        }
+    }};
+}
+
 /// Exact scan of every row (see the module doc): returns the selected rows, best first
 /// (higher score, then lower row), deterministic for any thread count.
 ///
@@ -221,17 +243,7 @@ pub fn scan(store: &VectorStore, req: &ScanRequest<'_>) -> Result<Vec<Hit>, Erro
             "min <= max on every axis, no NaN",
         ));
     }
-    let q = req.queries;
-    Ok(match q.len() {
-        1 => scan_q::<1>(store, [q[0]], req),
-        2 => scan_q::<2>(store, [q[0], q[1]], req),
-        3 => scan_q::<3>(store, [q[0], q[1], q[2]], req),
-        4 => scan_q::<4>(store, [q[0], q[1], q[2], q[3]], req),
-        5 => scan_q::<5>(store, [q[0], q[1], q[2], q[3], q[4]], req),
-        6 => scan_q::<6>(store, [q[0], q[1], q[2], q[3], q[4], q[5]], req),
-        7 => scan_q::<7>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6]], req),
-        _ => scan_q::<8>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7]], req),
-    })
+    Ok(per_query_count!(scan_q, store, req.queries, req))
 }
 
 fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanRequest<'_>) -> Vec<Hit> {
@@ -344,21 +356,7 @@ pub fn scores(
             ),
         ));
     }
-    let q = queries;
-    Ok(match q.len() {
-        1 => scores_q::<1>(store, [q[0]], combine),
-        2 => scores_q::<2>(store, [q[0], q[1]], combine),
-        3 => scores_q::<3>(store, [q[0], q[1], q[2]], combine),
-        4 => scores_q::<4>(store, [q[0], q[1], q[2], q[3]], combine),
-        5 => scores_q::<5>(store, [q[0], q[1], q[2], q[3], q[4]], combine),
-        6 => scores_q::<6>(store, [q[0], q[1], q[2], q[3], q[4], q[5]], combine),
-        7 => scores_q::<7>(store, [q[0], q[1], q[2], q[3], q[4], q[5], q[6]], combine),
-        _ => scores_q::<8>(
-            store,
-            [q[0], q[1], q[2], q[3], q[4], q[5], q[6], q[7]],
-            combine,
-        ),
-    })
+    Ok(per_query_count!(scores_q, store, queries, combine))
 }
 
 fn scores_q<const Q: usize>(

@@ -68,11 +68,7 @@ fn store_via_shards_reserved(
             ids: &ids[start..end],
             means: &means[start..end],
             vectors: &vectors[start * d..end * d],
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
-            segments: None,
+            ..Default::default()
         })
         .expect("encode");
         store
@@ -445,11 +441,7 @@ fn push_shard_rejects_mismatches_and_leaves_the_store_unchanged() {
                 ids: s.ids(),
                 means: s.means(),
                 vectors: &v,
-                scales: None,
-                opacities: None,
-                rotations: None,
-                sh_dc: None,
-                segments: None,
+                ..Default::default()
             })
             .expect("encode"),
         )
@@ -648,11 +640,8 @@ fn store_keeps_segment_ids_per_row() {
             ids,
             means: &means,
             vectors: &vectors,
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
             segments,
+            ..Default::default()
         })
         .expect("encode");
         decode_shard_stored(&bytes).expect("decode")
@@ -764,11 +753,8 @@ fn mixture_store(
         means: &means,
         atoms: &atoms_of,
         weights: &weights,
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
         segments,
+        ..Default::default()
     })
     .expect("encode");
     let mut store = VectorStore::new_mixture(d, slots, book, 0).expect("store");

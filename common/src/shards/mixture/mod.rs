@@ -30,11 +30,10 @@
 use half::f16;
 
 use super::format::{
-    Aabb, Dtype, F16_MAX, FLAG_SEGMENTS, HeaderFields, MAX_DIM,
-    MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION, ParsedHeader, Reader,
-    ShardError, ShardHeader, ShardInput, ShardLayout, align, assemble, checked_payload,
-    decode_shard_stored, encode_shard, header_len_for, le_f32s, parse_header, payload_with_rows,
-    read_display, read_f16s, read_u32s, triples, write_display,
+    Dtype, F16_MAX, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
+    RowSection, ShardError, ShardHeader, ShardInput, ShardLayout, decode_shard_stored,
+    encode_shard, header_len_for, parse_header, payload_with_rows, put_le, read_f16s, read_payload,
+    read_u32s, shard_columns,
 };
 use crate::Error;
 
@@ -44,8 +43,9 @@ pub use crate::mixture::UNUSED;
 /// Tile id of the codebook file (no spatial tile has it: partition numbers tiles from 0).
 pub const CODEBOOK_TILE: u64 = u64::MAX;
 
-/// Borrowed content of one mixture shard ([`encode_mixture_shard`]).
-#[derive(Debug, Clone, Copy)]
+/// Borrowed content of one mixture shard ([`encode_mixture_shard`]). `Default`: no rows, no
+/// optional sections, `dim` and `slots` 0 (set them).
+#[derive(Debug, Clone, Copy, Default)]
 pub struct MixtureShardInput<'a> {
     /// Scene id (≤ 65535 bytes UTF-8).
     pub scene_id: &'a str,
@@ -53,7 +53,7 @@ pub struct MixtureShardInput<'a> {
     pub model: &'a str,
     /// Tile id.
     pub tile_id: u64,
-    /// Embedding width D of the codebook rows (1..=[`MAX_DIM`]).
+    /// Embedding width D of the codebook rows (1..=[`MAX_DIM`](super::format::MAX_DIM)).
     pub dim: usize,
     /// Slots per Gaussian S (1..=[`MAX_SLOTS`]).
     pub slots: usize,
@@ -120,28 +120,20 @@ fn mixture_row_bytes(n: u64, slots: u64) -> u64 {
 /// Encodes one mixture shard (module-doc layout).
 ///
 /// Errors: array lengths that disagree with N and S ([`Error::Internal`]), `dim` outside
-/// 1..=[`MAX_DIM`] or `slots` outside 1..=[`MAX_SLOTS`] ([`Error::Param`]), N above `u32::MAX`
-/// ([`Error::Limit`]), ids longer than 65535 bytes, non-finite means or weights, a weight beyond
-/// the f16 range, or an empty slot with a non-zero weight ([`Error::Invalid`]).
+/// 1..=[`MAX_DIM`](super::format::MAX_DIM) or `slots` outside 1..=[`MAX_SLOTS`]
+/// ([`Error::Param`]), N above `u32::MAX` ([`Error::Limit`]), ids longer than 65535 bytes,
+/// non-finite means or weights, a weight beyond the f16 range, or an empty slot with a non-zero
+/// weight ([`Error::Invalid`]).
 pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<u8>> {
-    let (n, d, s) = (input.ids.len(), input.dim, input.slots);
-    let bad = |m: String| Error::Invalid(format!("encode_mixture_shard: {m}"));
-    if d == 0 || d > MAX_DIM as usize {
-        return Err(Error::param(
-            "dim",
-            d,
-            format!("an embedding width in 1..={MAX_DIM}"),
-        ));
-    }
+    let columns = shard_columns!(input, "encode_mixture_shard");
+    columns.check_shape()?;
+    let (n, s) = (input.ids.len(), input.slots);
     if s == 0 || s > MAX_SLOTS as usize {
         return Err(Error::param(
             "mixture_slots",
             s,
             format!("1..={MAX_SLOTS} slots per Gaussian"),
         ));
-    }
-    if u32::try_from(n).is_err() {
-        return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
     }
     if input.means.len() != n || input.atoms.len() != n * s || input.weights.len() != n * s {
         return Err(Error::internal(format!(
@@ -151,22 +143,8 @@ pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<
             input.weights.len()
         )));
     }
-    if input.scales.is_some_and(|v| v.len() != n)
-        || input.opacities.is_some_and(|v| v.len() != n)
-        || input.rotations.is_some_and(|v| v.len() != n)
-        || input.sh_dc.is_some_and(|v| v.len() != n)
-        || input.segments.is_some_and(|v| v.len() != n)
-    {
-        return Err(Error::internal(
-            "encode_mixture_shard: a display or segments column's length differs from the id count",
-        ));
-    }
-    if input.scene_id.len() > u16::MAX as usize || input.model.len() > u16::MAX as usize {
-        return Err(bad("scene or model id longer than 65535 bytes".into()));
-    }
-    if input.means.iter().flatten().any(|x| !x.is_finite()) {
-        return Err(bad("non-finite mean; fix the encoder output".into()));
-    }
+    columns.check_columns()?;
+    let bad = |m: String| Error::Invalid(format!("encode_mixture_shard: {m}"));
     for (&a, &w) in input.atoms.iter().zip(input.weights) {
         if !f16::from_f32(w).is_finite() {
             return Err(bad(format!(
@@ -177,56 +155,22 @@ pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<
             return Err(bad(format!("an empty slot carries weight {w}")));
         }
     }
-    let mut p: Vec<u8> = Vec::with_capacity(n * (16 + 6 * s) + 4);
-    input
-        .ids
-        .iter()
-        .for_each(|i| p.extend_from_slice(&i.to_le_bytes()));
-    input
-        .means
-        .iter()
-        .flatten()
-        .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    input
-        .atoms
-        .iter()
-        .for_each(|a| p.extend_from_slice(&a.to_le_bytes()));
-    input
-        .weights
-        .iter()
-        .for_each(|&w| p.extend_from_slice(&f16::from_f32(w).to_le_bytes()));
-    p.resize(align(p.len(), 4), 0);
-    let mut flags = write_display(
-        &mut p,
-        input.scales,
-        input.opacities,
-        input.rotations,
-        input.sh_dc,
-    );
-    if let Some(seg) = input.segments {
-        flags |= FLAG_SEGMENTS;
-        seg.iter()
-            .for_each(|x| p.extend_from_slice(&x.to_le_bytes()));
-    }
-    Ok(assemble(
-        &HeaderFields {
-            version: if input.segments.is_some() {
-                MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
-            } else {
-                MIXTURE_SHARD_FORMAT_VERSION
-            },
-            dtype: Dtype::F16,
-            flags,
-            dim: d as u32,
-            count: n as u32,
-            tile_id: input.tile_id,
-            aabb: Aabb::of_points(input.means.iter().copied()).unwrap_or_default(),
-            scene_id: input.scene_id,
-            model: input.model,
-            mixture: Some((s as u32, input.codebook_crc)),
-        },
-        p,
-    ))
+    let rows = RowSection {
+        dtype: Dtype::F16,
+        versions: [
+            MIXTURE_SHARD_FORMAT_VERSION,
+            MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION,
+        ],
+        mixture: Some((s as u32, input.codebook_crc)),
+        bytes_per_row: 6 * s,
+    };
+    Ok(columns.encode(&rows, |p| {
+        put_le(p, input.atoms, u32::to_le_bytes);
+        input
+            .weights
+            .iter()
+            .for_each(|&w| p.extend_from_slice(&f16::from_f32(w).to_le_bytes()));
+    }))
 }
 
 /// Decodes a mixture shard, verifying magic, version, both CRCs and every length, and that each
@@ -237,39 +181,23 @@ pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<
 /// a dense (version 1) shard ([`ShardError::Malformed`]); never panics and never allocates more
 /// than the input length implies.
 pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
-    let ParsedHeader {
-        header,
-        header_len,
-        flags,
-        payload_len,
-        payload_crc,
-        mixture,
-    } = parse_header(bytes)?;
-    let Some((slots, codebook_crc)) = mixture else {
+    let parsed = parse_header(bytes)?;
+    let Some((slots, codebook_crc)) = parsed.mixture else {
         return Err(ShardError::Malformed(format!(
             "a dense shard (format version {}) where a mixture shard was expected; the manifest \
              and its shards disagree, fetch again",
-            header.version
+            parsed.header.version
         )));
     };
-    let n = header.count as u64;
-    let expected = payload_with_rows(flags, n, mixture_row_bytes(n, slots as u64));
-    let payload = checked_payload(
-        bytes,
-        header_len,
-        payload_len,
-        payload_crc,
-        expected,
-        || format!("{n} Gaussians of {slots} mixture slots"),
-    )?;
-    let (n, s) = (n as usize, slots as usize);
-    let mut r = Reader { b: payload, at: 0 };
-    let ids = read_u32s(&mut r, n)?;
-    let means = triples(le_f32s(r.take(12 * n)?));
-    let atoms = read_u32s(&mut r, n * s)?;
-    let weights = read_f16s(&mut r, n * s)?;
-    r.at = align(r.at, 4);
-    let display = read_display(&mut r, flags, n)?;
+    let n = parsed.header.count as u64;
+    let expected = payload_with_rows(parsed.flags, n, mixture_row_bytes(n, slots as u64));
+    let what = || format!("{n} Gaussians of {slots} mixture slots");
+    let s = slots as usize;
+    let (ids, means, (atoms, weights), display) =
+        read_payload(bytes, &parsed, expected, what, |r, n| {
+            let atoms = read_u32s(r, n * s)?;
+            Ok((atoms, read_f16s(r, n * s)?))
+        })?;
     for (&a, &w) in atoms.iter().zip(&weights) {
         if !w.is_finite() {
             return Err(ShardError::Malformed(format!(
@@ -283,7 +211,7 @@ pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
         }
     }
     Ok(MixtureShard {
-        header,
+        header: parsed.header,
         slots,
         codebook_crc,
         ids,
@@ -296,6 +224,18 @@ pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
         sh_dc: display.sh_dc,
         segments: display.segments,
     })
+}
+
+impl MixtureShard {
+    /// The display sections the shard carries.
+    pub fn display(&self) -> super::DisplaySlices<'_> {
+        super::DisplaySlices {
+            scales: self.scales.as_deref(),
+            opacities: self.opacities.as_deref(),
+            rotations: self.rotations.as_deref(),
+            sh_dc: self.sh_dc.as_deref(),
+        }
+    }
 }
 
 /// Size model of the mixture shards of one partition (the mixture counterpart of
@@ -402,11 +342,7 @@ pub fn encode_codebook(
         ids: &ids,
         means: &vec![[0.0; 3]; a],
         vectors: rows,
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
-        segments: None,
+        ..ShardInput::default()
     })
 }
 

@@ -1,7 +1,9 @@
 #![allow(clippy::unwrap_used)]
 
 use super::*;
-use crate::shards::format::{SHARD_FORMAT_VERSION, decode_header, decode_shard};
+use crate::shards::format::{
+    SHARD_FORMAT_VERSION, assert_checksum_error, decode_header, decode_shard, fingerprint,
+};
 use crate::shards::{StoredVectors, shard_checksum};
 use proptest::prelude::*;
 
@@ -87,6 +89,38 @@ fn encode(c: &Case) -> Vec<u8> {
     })
     .unwrap()
 }
+
+/// The bytes on disk do not drift: the [`fingerprint`] of mixture shards of fixed content
+/// ([`encode`]: plain, then with the display and segment sections) as this format writes them.
+#[test]
+fn encoded_bytes_are_stable() {
+    let plain = Case {
+        dim: 8,
+        slots: 2,
+        ids: vec![3, 1, 4],
+        means: vec![[0.5, -1.0, 2.0], [1e3, 0.0, -7.25], [0.0; 3]],
+        atoms: vec![0, 2, 1, UNUSED, 5, 4],
+        weights: vec![0.75, 0.25, 1.0, 0.0, -0.5, 0.125],
+        display: false,
+        segments: false,
+    };
+    let full = Case {
+        display: true,
+        segments: true,
+        ..plain.clone()
+    };
+    let got: Vec<(usize, u32)> = [plain, full]
+        .iter()
+        .map(|c| {
+            let bytes = encode(c);
+            fingerprint(&bytes)
+        })
+        .collect();
+    assert_eq!(got, GOLDEN_MIXTURE, "{got:x?}");
+}
+
+/// [`fingerprint`]s: plain (version 2), then with the optional sections (version 4).
+const GOLDEN_MIXTURE: [(usize, u32); 2] = [(188, 0x2722_3d72), (296, 0xda00_5978)];
 
 fn layout(c: &Case) -> MixtureLayout {
     MixtureLayout {
@@ -184,11 +218,7 @@ fn dense_shards_and_other_versions_get_specific_errors() {
         ids: &[1, 2],
         means: &[[0.0; 3]; 2],
         vectors: &[0.5; 8],
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
-        segments: None,
+        ..Default::default()
     })
     .unwrap();
     assert_eq!(decode_header(&dense).unwrap().version, SHARD_FORMAT_VERSION);
@@ -259,11 +289,7 @@ fn bad_mixture_input_is_refused_before_writing() {
         means: &[[0.0; 3]],
         atoms: &[0, UNUSED],
         weights: &[1.0, 0.0],
-        scales: None,
-        opacities: None,
-        rotations: None,
-        sh_dc: None,
-        segments: None,
+        ..Default::default()
     };
     assert!(encode_mixture_shard(&base).is_ok());
     let mut seg = base;
@@ -317,13 +343,7 @@ fn codebooks_round_trip_and_corruption_is_typed() {
     let mut bad = bytes.clone();
     let last = bad.len() - 1;
     bad[last] ^= 0x40;
-    assert!(matches!(
-        decode_codebook(&bad),
-        Err(ShardError::Checksum {
-            section: "payload",
-            ..
-        })
-    ));
+    assert_checksum_error(decode_codebook(&bad), "payload");
     assert_ne!(shard_checksum(&bad), shard_checksum(&bytes));
     // Rows of another width are not a codebook of that width.
     assert!(encode_codebook("s", "m", 4, &rows).is_err());

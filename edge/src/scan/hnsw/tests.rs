@@ -117,16 +117,20 @@ fn bad_parameters_are_typed_errors() {
             }
         }
     }
+    // Every backend: k beyond the beam, and a query of another width.
+    for b in HnswBackend::ALL.into_iter().filter(|b| b.available()) {
+        let index = ApproxIndex::build(&store, b, &params(10)).expect("index");
+        match index.query(&[0.1; 8], 11) {
+            Err(Error::Param { name: "top_k", .. }) => {}
+            other => panic!("{b}: expected Param top_k, got {other:?}"),
+        }
+        match index.query(&[0.1; 7], 5) {
+            Err(Error::Mismatch { .. }) => {}
+            other => panic!("{b}: expected Mismatch, got {other:?}"),
+        }
+    }
     let mut index =
         ApproxIndex::build(&store, HnswBackend::InstantDistance, &params(10)).expect("index");
-    assert!(matches!(
-        index.query(&[0.1; 8], 11),
-        Err(Error::Param { name: "top_k", .. })
-    ));
-    assert!(matches!(
-        index.query(&[0.1; 7], 5),
-        Err(Error::Mismatch { .. })
-    ));
     // instant-distance's beam is fixed at build time.
     assert!(index.set_ef_search(10).is_ok());
     assert!(matches!(

@@ -127,20 +127,50 @@ fn kernels_match_f64_reference_for_odd_widths() {
 }
 
 /// Scores `rows` (`[n * d]` as f64 values of the stored type) against `qs` in f64.
+/// Row `i` (width `d`) of `rows`, dequantised to f64.
+fn row_f64(rows: &StoredVectors, d: usize, i: usize) -> Vec<f64> {
+    match rows {
+        StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
+        StoredVectors::F16(v) => v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect(),
+        StoredVectors::I8 { q, scales } => q[i * d..][..d]
+            .iter()
+            .map(|&x| x as f64 * scales[i] as f64)
+            .collect(),
+    }
+}
+
+/// f32 rounding bound of the dot of `row` with `q`: `1e-5 · Σ|x_j·q_j| + 1e-6 · Σ|x_j| · max|q|`.
+fn f32_dot_tolerance(row: &[f64], q: &[f32]) -> f64 {
+    let abs: f64 = row.iter().zip(q).map(|(x, &y)| (x * y as f64).abs()).sum();
+    let l1: f64 = row.iter().map(|x| x.abs()).sum();
+    let m = q.iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
+    1e-5 * abs + 1e-6 * l1 * m
+}
+
+/// The dots of every row of `rows` (width `d`) with `queries`, computed at `level`: `[N][Q]`.
+fn dots_at<const Q: usize>(
+    level: SimdLevel,
+    rows: &StoredVectors,
+    d: usize,
+    queries: &Queries<'_, Q>,
+) -> Vec<[f32; Q]> {
+    let n = rows.values() / d;
+    let mut out = vec![[f32::NAN; Q]; n];
+    let span = RowSpan {
+        d,
+        start: 0,
+        end: n,
+        keep: None,
+    };
+    scan_chunk_at::<Q>(level, rows, span, queries, &mut out);
+    out
+}
+
 fn reference(rows: &StoredVectors, d: usize, qs: &[Vec<f32>]) -> Vec<Vec<f64>> {
     let n = rows.values() / d.max(1);
     (0..n)
         .map(|i| {
-            let row: Vec<f64> = match rows {
-                StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
-                StoredVectors::F16(v) => {
-                    v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
-                }
-                StoredVectors::I8 { q, scales } => q[i * d..][..d]
-                    .iter()
-                    .map(|&x| x as f64 * scales[i] as f64)
-                    .collect(),
-            };
+            let row = row_f64(rows, d, i);
             qs.iter().map(|q| ref_dot(row.iter().copied(), q)).collect()
         })
         .collect()
@@ -156,43 +186,14 @@ fn check_levels<const Q: usize>(
     let n = rows.values() / d;
     let qs: [&[f32]; Q] = std::array::from_fn(|q| qv[q].as_slice());
     let want = reference(rows, d, qv);
-    let row_f64 = |i: usize| -> Vec<f64> {
-        match rows {
-            StoredVectors::F32(v) => v[i * d..][..d].iter().map(|&x| x as f64).collect(),
-            StoredVectors::F16(v) => v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect(),
-            StoredVectors::I8 { q, scales } => q[i * d..][..d]
-                .iter()
-                .map(|&x| x as f64 * scales[i] as f64)
-                .collect(),
-        }
-    };
     for level in SimdLevel::available_levels() {
-        let mut out = vec![[f32::NAN; Q]; n];
-        scan_chunk_at::<Q>(
-            level,
-            rows,
-            RowSpan {
-                d,
-                start: 0,
-                end: n,
-                keep: None,
-            },
-            &Queries::new(qs),
-            &mut out,
-        );
+        let out = dots_at(level, rows, d, &Queries::new(qs));
         let got: Vec<(usize, [f32; Q])> = out.into_iter().enumerate().collect();
         proptest::prop_assert_eq!(got.len(), n);
         for (i, dots) in got {
-            let row = row_f64(i);
+            let row = row_f64(rows, d, i);
             for q in 0..Q {
-                let abs: f64 = row
-                    .iter()
-                    .zip(&qv[q])
-                    .map(|(x, &y)| (x * y as f64).abs())
-                    .sum();
-                let l1: f64 = row.iter().map(|x| x.abs()).sum();
-                let m = qv[q].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
-                let tol = 1e-5 * abs + 1e-6 * l1 * m + 1e-30;
+                let tol = f32_dot_tolerance(&row, &qv[q]) + 1e-30;
                 let err = (dots[q] as f64 - want[i][q]).abs();
                 proptest::prop_assert!(
                     err <= tol,
@@ -257,57 +258,15 @@ fn same_as_baseline<const Q: usize>(rows: &StoredVectors, d: usize, qv: &[Vec<f3
     let n = rows.values() / d;
     let qs: [&[f32]; Q] = std::array::from_fn(|q| qv[q].as_slice());
     let queries = Queries::new(qs);
-    let mut base = vec![[0.0f32; Q]; n];
-    scan_chunk_at::<Q>(
-        SimdLevel::Baseline,
-        rows,
-        RowSpan {
-            d,
-            start: 0,
-            end: n,
-            keep: None,
-        },
-        &queries,
-        &mut base,
-    );
+    let base = dots_at(SimdLevel::Baseline, rows, d, &queries);
     for level in SimdLevel::available_levels() {
-        let mut got = vec![[0.0f32; Q]; n];
-        scan_chunk_at::<Q>(
-            level,
-            rows,
-            RowSpan {
-                d,
-                start: 0,
-                end: n,
-                keep: None,
-            },
-            &queries,
-            &mut got,
-        );
+        let got = dots_at(level, rows, d, &queries);
         for i in 0..n {
             for q in 0..Q {
                 let (a, b) = (got[i][q], base[i][q]);
                 let ok = if a.is_finite() && b.is_finite() {
-                    let row: Vec<f64> = match rows {
-                        StoredVectors::F32(v) => {
-                            v[i * d..][..d].iter().map(|&x| x as f64).collect()
-                        }
-                        StoredVectors::F16(v) => {
-                            v[i * d..][..d].iter().map(|x| x.to_f32() as f64).collect()
-                        }
-                        StoredVectors::I8 { q: b8, scales } => b8[i * d..][..d]
-                            .iter()
-                            .map(|&x| x as f64 * scales[i] as f64)
-                            .collect(),
-                    };
-                    let abs: f64 = row
-                        .iter()
-                        .zip(&qv[q])
-                        .map(|(x, &y)| (x * y as f64).abs())
-                        .sum();
-                    let l1: f64 = row.iter().map(|x| x.abs()).sum();
-                    let m = qv[q].iter().fold(0.0f64, |a, &y| a.max((y as f64).abs()));
-                    ((a - b) as f64).abs() <= 2e-5 * abs + 2e-6 * l1 * m + 1e-30
+                    let row = row_f64(rows, d, i);
+                    ((a - b) as f64).abs() <= 2.0 * f32_dot_tolerance(&row, &qv[q]) + 1e-30
                 } else {
                     (a.is_nan() && b.is_nan()) || a == b
                 };

@@ -85,38 +85,27 @@ trait Elem: Copy {
     unsafe fn load<S: Simd>(p: *const Self) -> S::V;
 }
 
-impl Elem for f32 {
-    #[inline(always)]
-    fn to_f32(self) -> f32 {
-        self
-    }
-    #[inline(always)]
-    unsafe fn load<S: Simd>(p: *const Self) -> S::V {
-        // SAFETY: forwarded contract.
-        unsafe { S::load_f32(p) }
-    }
+/// `impl Elem for $t`: widening `$to_f32` and the vector load `Simd::$load`.
+macro_rules! impl_elem {
+    ($($t:ty => $to_f32:expr, $load:ident;)+) => {$(
+        impl Elem for $t {
+            #[inline(always)]
+            fn to_f32(self) -> f32 {
+                $to_f32(self)
+            }
+            #[inline(always)]
+            unsafe fn load<S: Simd>(p: *const Self) -> S::V {
+                // SAFETY: forwarded contract.
+                unsafe { S::$load(p) }
+            }
+        }
+    )+};
 }
-impl Elem for f16 {
-    #[inline(always)]
-    fn to_f32(self) -> f32 {
-        f16::to_f32(self)
-    }
-    #[inline(always)]
-    unsafe fn load<S: Simd>(p: *const Self) -> S::V {
-        // SAFETY: forwarded contract.
-        unsafe { S::load_f16(p) }
-    }
-}
-impl Elem for i8 {
-    #[inline(always)]
-    fn to_f32(self) -> f32 {
-        self as f32
-    }
-    #[inline(always)]
-    unsafe fn load<S: Simd>(p: *const Self) -> S::V {
-        // SAFETY: forwarded contract.
-        unsafe { S::load_i8(p) }
-    }
+
+impl_elem! {
+    f32 => std::convert::identity, load_f32;
+    f16 => f16::to_f32, load_f16;
+    i8 => f32::from, load_i8;
 }
 
 /// `out[q] = Σ_j row[j] · qs[q][j]` for every query, `U` blocks of `W` in flight.
