@@ -17,7 +17,8 @@ use slag_common::shards::{Dtype, decode_shard};
 use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::view::object_colour;
 use support::{
-    BasisEmbedder, fetch_grid, grid_scene, grid_scene_segmented, serve_on_loopback, shard_server,
+    BasisEmbedder, Grid, fetch_grid, grid_scene, grid_scene_segmented, serve_on_loopback,
+    shard_server,
 };
 
 const PER_TILE: usize = 60;
@@ -260,16 +261,8 @@ fn smoothing_segment(id: u32) -> u32 {
 /// `index=hnsw`, and for a scene without segments.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
-    let scene = grid_scene_segmented(
-        "grid",
-        4,
-        3,
-        PER_TILE,
-        12,
-        Dtype::F32,
-        1,
-        &smoothing_segment,
-    );
+    let grid = Grid("grid", 4, 3, PER_TILE, 12, Dtype::F32, 1);
+    let scene = grid_scene_segmented(grid, &smoothing_segment);
     let server = shard_server(scene, None).await;
     let (_dir, store) = fetch_grid(&server.url, 1000.0).await;
     let m = store.manifest("grid").unwrap().unwrap();
