@@ -13,23 +13,17 @@ use std::time::{Duration, Instant};
 
 use slag_common::Error;
 use slag_common::shards::{Dtype, Manifest, TileInfo, shard_checksum};
-use slag_edge::fetch::{Center, FAULT_EXIT_STATUS, FetchParams, fetch};
+use slag_edge::fetch::{FAULT_EXIT_STATUS, FetchParams, fetch};
 use slag_edge::store::{EdgeStore, verify_shard};
-use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, fetch_grid, grid_fetch_params, grid_scene, partial_files, serve_on_loopback,
+    shard_server, temp_store,
+};
 
 fn params(url: &str, radius: f64) -> FetchParams {
     FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
-        center: Center::Ground([0.0, 0.0]),
-        radius,
-        prune: false,
         jobs: 1,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
+        ..grid_fetch_params(url, radius)
     }
 }
 
@@ -173,7 +167,7 @@ async fn fetch_killed_at_every_durability_boundary_leaves_a_consistent_store_and
         assert_eq!(m, m2, "n={n}");
         assert_eq!((shards.len(), load.rejected.len()), (4, 0), "n={n}");
         assert_eq!(store.stored_shards("grid").unwrap().len(), 4, "n={n}");
-        assert_eq!(std::fs::read_dir(dir.join("partial")).unwrap().count(), 0);
+        assert_eq!(partial_files(&dir), 0);
     }
     // Four tiles: at least one write, one sync and one commit each, plus the two manifest
     // boundaries, were each hit by a kill.
@@ -240,8 +234,7 @@ async fn a_stalled_download_times_out_with_the_url_and_resumes() {
     let len = scene.shards[&0].len();
     let server = shard_server(scene, None).await;
     server.state.stall.lock().unwrap().insert(0, len / 2);
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     let mut p = params(&server.url, 100.0);
     p.timeout = Duration::from_secs(1);
     let err = fetch(&store, &p).await.unwrap_err();
@@ -279,8 +272,7 @@ async fn a_shard_of_a_future_format_version_is_refused_naming_the_version() {
         .unwrap()
         .checksum = sum;
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url, 100.0))
         .await
         .unwrap_err();
@@ -338,8 +330,7 @@ async fn a_shard_corrupted_in_the_store_is_not_served_and_is_reported() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_ids_and_checksums_never_leave_the_partial_folder() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let partial = dir.path().join("partial");
     for (scene, checksum) in [
         ("../../etc", "0000abcd"),

@@ -16,25 +16,16 @@ use std::time::Duration;
 
 use slag_common::shards::{Dtype, MAX_MANIFEST_BYTES, ShardLayout, TileInfo};
 use slag_common::{Error, Resource};
-use slag_edge::fetch::{Center, FetchParams, FetchSummary, fetch};
+use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
 use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
 use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, fixture, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, fixture, grid_fetch_params, grid_scene, partial_files, serve_on_loopback,
+    shard_server, temp_store,
+};
 
 fn params(url: &str) -> FetchParams {
-    FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
-        center: Center::Ground([0.0, 0.0]),
-        radius: 100.0,
-        prune: false,
-        jobs: 2,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
-    }
+    grid_fetch_params(url, 100.0)
 }
 
 /// The answers to one prompt per tile direction (every match, no threshold) from what the store
@@ -178,8 +169,7 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         .into_iter()
         .flat_map(|p| cases.map(|c| (p, c)))
     {
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (dir, store) = temp_store();
         let first = fetch(&store, &params(&server.url)).await.unwrap();
         assert_eq!(first.downloaded, 4);
         let (want, rejected) = answers(&store);
@@ -204,12 +194,7 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         let q = quarantined(dir.path());
         let expect_q = set_aside + usize::from(name == "stale partial");
         assert_eq!(q.len(), expect_q, "{name}: {q:?}");
-        assert_eq!(
-            std::fs::read_dir(dir.path().join("partial"))
-                .unwrap()
-                .count(),
-            0
-        );
+        assert_eq!(partial_files(dir.path()), 0);
         // A second fetch finds everything verified.
         let again = fetch(&store, &p).await.unwrap();
         assert_eq!(
@@ -225,8 +210,7 @@ async fn a_manifest_declaring_sizes_the_format_does_not_allow_is_refused_before_
     let mut scene = grid_scene("grid", 2, 1, 10, 8, Dtype::F16, 1);
     scene.manifest.tiles[1].bytes = 1_000_000_000_000;
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, Error::Format { .. }), "{msg}");
@@ -235,12 +219,7 @@ async fn a_manifest_declaring_sizes_the_format_does_not_allow_is_refused_before_
         "{msg}"
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("partial"))
-            .unwrap()
-            .count(),
-        0
-    );
+    assert_eq!(partial_files(dir.path()), 0);
     assert!(store.manifest("grid").unwrap().is_none());
 }
 
@@ -265,8 +244,7 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
     t.count = u32::MAX as u64;
     t.bytes = layout.shard_len(t.count);
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
     assert!(
@@ -284,12 +262,7 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
         "{msg}"
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("partial"))
-            .unwrap()
-            .count(),
-        0
-    );
+    assert_eq!(partial_files(dir.path()), 0);
 }
 
 /// Serves `GET /v1/scenes/grid/manifest` as 200 MB of JSON whitespace, with or without a
@@ -328,8 +301,7 @@ async fn huge_manifest_server(
 async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
     for content_length in [true, false] {
         let (url, sent) = huge_manifest_server(content_length).await;
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (_dir, store) = temp_store();
         let err = fetch(&store, &params(&url)).await.unwrap_err();
         let msg = err.to_string();
         assert!(
@@ -402,11 +374,7 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(err.contains("No space left on device"), "{err}");
-    assert_eq!(
-        std::fs::read_dir(store.join("partial")).unwrap().count(),
-        0,
-        "{err}"
-    );
+    assert_eq!(partial_files(&store), 0, "{err}");
     {
         let edge = EdgeStore::open(&store).unwrap();
         assert!(edge.manifest("grid").unwrap().is_none());
@@ -499,8 +467,7 @@ async fn post_fetch_sends_the_configured_shard_token() {
     )
     .await;
     for configured in [Some("s3cret"), None] {
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (_dir, store) = temp_store();
         let mut p = params(&server.url);
         p.token = Some("s3cret".into());
         p.radius = 5.0;
