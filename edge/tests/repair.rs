@@ -10,18 +10,19 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use slag_common::shards::{Dtype, MAX_MANIFEST_BYTES, ShardLayout, TileInfo};
 use slag_common::{Error, Resource};
 use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
-use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
+use slag_edge::query::RawQuery;
 use slag_edge::store::EdgeStore;
 use support::{
-    BasisEmbedder, fixture, grid_fetch_params, grid_scene, partial_files, serve_on_loopback,
-    shard_server, temp_store,
+    BasisEmbedder, exact_answer, fixture, grid_fetch_params, grid_scene, output_blocking,
+    partial_files, serve_on_loopback, shard_server, slag_edge_with_log, success_json, temp_store,
+    text_model_args,
 };
 
 fn params(url: &str) -> FetchParams {
@@ -32,8 +33,6 @@ fn params(url: &str) -> FetchParams {
 /// serves, plus what loading rejected.
 fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
     let engine = slag_edge::engine::Engine::load(store, "grid", false).unwrap();
-    let text = BasisEmbedder::new(8);
-    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
     let out = (0..4)
         .map(|t| {
             let q = RawQuery {
@@ -45,20 +44,8 @@ fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
                 index: None,
                 frame: None,
                 ..Default::default()
-            }
-            .validate_for(0.28, Interface::Cli)
-            .unwrap();
-            let a = slag_edge::query::run_query_framed(
-                &engine.store,
-                &engine.manifest.model,
-                None,
-                &text,
-                &negatives,
-                None,
-                None,
-                &q,
-            )
-            .unwrap();
+            };
+            let a = exact_answer(&engine, 8, q, false);
             serde_json::to_value(&a.matches).unwrap()
         })
         .collect();
@@ -328,20 +315,7 @@ async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
 
 /// `slag-edge` (through `$SLAG_TEST_RUNNER` when set), not yet started.
 fn slag_edge(args: &[&str]) -> Command {
-    let mut cmd = support::slag_edge_command();
-    cmd.args(args)
-        .env("RUST_LOG", "warn")
-        .env_remove("SLAG_FAULT_EXIT_AT")
-        .env_remove("SLAG_FAULT_ENOSPC_AT")
-        .env_remove("SLAG_SHARD_TOKEN");
-    cmd
-}
-
-async fn run(cmd: Command) -> Output {
-    let mut cmd = cmd;
-    tokio::task::spawn_blocking(move || cmd.output().unwrap())
-        .await
-        .unwrap()
+    slag_edge_with_log(args, "warn")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -350,27 +324,11 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let s = store.display().to_string();
-    let args = [
-        "fetch",
-        "--from",
-        &server.url,
-        "--scene",
-        "grid",
-        "--center",
-        "0,0",
-        "--radius",
-        "100",
-        "--store",
-        &s,
-        "--jobs",
-        "2",
-        "--retries",
-        "0",
-        "--json",
-    ];
+    let fetch = support::fetch_args(&server.url, &s, "100");
+    let args = [&fetch[..], &["--jobs", "2", "--retries", "0", "--json"]].concat();
     let mut cmd = slag_edge(&args);
     cmd.env("SLAG_FAULT_ENOSPC_AT", "3");
-    let out = run(cmd).await;
+    let out = output_blocking(cmd).await;
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(err.contains("No space left on device"), "{err}");
@@ -379,13 +337,7 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
         let edge = EdgeStore::open(&store).unwrap();
         assert!(edge.manifest("grid").unwrap().is_none());
     }
-    let out = run(slag_edge(&args)).await;
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let summary = success_json(&output_blocking(slag_edge(&args)).await);
     assert_eq!(summary["selected"], 4);
     assert_eq!(
         summary["downloaded"].as_u64().unwrap() + summary["skipped"].as_u64().unwrap(),
@@ -517,17 +469,7 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
     );
     let check = |store: &Path| {
         let s = store.display().to_string();
-        slag_edge(&[
-            "check",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            &tm,
-            "--tokenizer",
-            &tok,
-        ])
+        slag_edge(&text_model_args("check", &s, "grid", [&tm, &tok]))
     };
     /// (name, damage, what the problems must name; none: ok).
     type Case = (&'static str, fn(&EdgeStore), &'static [&'static str]);
@@ -566,15 +508,10 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
             fetch(&store, &params(&server.url)).await.unwrap();
             damage(&store);
         }
-        let out = run(check(dir.path())).await;
+        let out = output_blocking(check(dir.path())).await;
         let report: serde_json::Value = serde_json::from_slice(&out.stdout)
             .unwrap_or_else(|e| panic!("{name}: {e}: {}", String::from_utf8_lossy(&out.stderr)));
-        let problems: Vec<&str> = report["problems"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|p| p.as_str().unwrap())
-            .collect();
+        let problems: Vec<String> = serde_json::from_value(report["problems"].clone()).unwrap();
         assert_eq!(report["ok"], expect.is_empty(), "{name}: {report}");
         assert_eq!(out.status.success(), expect.is_empty(), "{name}: {report}");
         for e in expect {

@@ -670,3 +670,38 @@ pub async fn serve_store(
 ) -> String {
     serve_on_loopback(AppState::new(store, embedder, options).unwrap()).await
 }
+
+/// A new, empty edge store in a temporary folder (removed when the folder is dropped).
+pub fn temp_store() -> (tempfile::TempDir, EdgeStore) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = EdgeStore::open(dir.path()).unwrap();
+    (dir, store)
+}
+
+/// Answers `raw` (validated as the CLI validates it, paper threshold 0.28) over `engine`'s
+/// exact scan with a [`BasisEmbedder`] of `dim` and the canonical negatives; with `display`,
+/// the engine's display attributes go into the answer.
+pub fn exact_answer(
+    engine: &slag_edge::engine::Engine,
+    dim: usize,
+    raw: slag_edge::query::RawQuery,
+    display: bool,
+) -> slag_edge::query::QueryAnswer {
+    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, run_query_framed};
+    let text = BasisEmbedder::new(dim);
+    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
+    let q = raw.validate_for(0.28, Interface::Cli).unwrap();
+    let display = display.then_some(&engine.display);
+    let model = &engine.manifest.model;
+    run_query_framed(
+        &engine.store,
+        model,
+        None,
+        &text,
+        &negatives,
+        None,
+        display,
+        &q,
+    )
+    .unwrap()
+}
