@@ -7,6 +7,7 @@ mod support;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
+use serde::Deserialize;
 use slag_common::shards::{Dtype, decode_shard};
 use slag_edge::serve::{AppState, HnswBackend, ServeOptions};
 use support::{
@@ -128,12 +129,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
         )
         .await;
         for m in a["matches"].as_array().unwrap() {
-            let p: Vec<f64> = m["position"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|x| x.as_f64().unwrap())
-                .collect();
+            let p = Vec::<f64>::deserialize(&m["position"]).unwrap();
             assert!(
                 p[0] >= 10.0 && p[0] <= 15.0 && p[1] >= 10.0 && p[1] <= 15.0,
                 "{p:?}"

@@ -10,6 +10,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
@@ -55,11 +56,7 @@ fn cosine(a: &[f32], b: &[f64]) -> f64 {
 }
 
 fn f64s(v: &Value) -> Vec<f64> {
-    v.as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_f64().unwrap())
-        .collect()
+    Vec::<f64>::deserialize(v).unwrap()
 }
 
 #[test]
@@ -144,20 +141,10 @@ fn clip_text_reproduces_open_clip_tokens_and_embeddings() {
         ExecutionProvider::Cpu,
     )
     .unwrap();
-    let texts: Vec<&str> = reference["texts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t.as_str().unwrap())
-        .collect();
+    let texts = Vec::<&str>::deserialize(&reference["texts"]).unwrap();
     let ids = text.tokenize(&texts).unwrap();
     for (i, row) in ids.iter().enumerate() {
-        let want: Vec<i64> = reference["input_ids"][i]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_i64().unwrap())
-            .collect();
+        let want = Vec::<i64>::deserialize(&reference["input_ids"][i]).unwrap();
         assert_eq!(row, &want, "token ids of {:?}", texts[i]);
     }
     let embs = text.encode(&texts).unwrap();
@@ -188,12 +175,7 @@ fn color_clip_red_crop_is_closest_to_red() {
     }
     let clip_dir = shared().join("fixtures/clip");
     let meta = json(clip_dir.join("color-clip.json"));
-    let classes: Vec<&str> = meta["classes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|c| c.as_str().unwrap())
-        .collect();
+    let classes = Vec::<&str>::deserialize(&meta["classes"]).unwrap();
     let mut text = TextEncoder::new(
         &clip_dir.join("color-clip-textual.onnx"),
         &clip_dir.join("clip-tokenizer.json"),
@@ -244,42 +226,37 @@ fn clip_rejects_wrong_models_and_bad_batches() {
         return;
     }
     let clip_dir = shared().join("fixtures/clip");
-    let err = ClipVisual::new(
-        &clip_dir.join("tiny-clip-textual.onnx"),
-        ExecutionProvider::Cpu,
-        4,
-    )
-    .err()
-    .expect("a text tower is not a visual tower");
+    let visual = |model: &str, ep, batch| ClipVisual::new(&clip_dir.join(model), ep, batch);
+    // The error of a text encoder from (model, tokenizer), which must fail.
+    let text_refused = |model: &str, tokenizer: &str, why: &str| {
+        let (model, tokenizer) = (clip_dir.join(model), clip_dir.join(tokenizer));
+        let text = TextEncoder::new(&model, &tokenizer, ExecutionProvider::Cpu);
+        text.err().unwrap_or_else(|| panic!("{why}"))
+    };
+    let err = visual("tiny-clip-textual.onnx", ExecutionProvider::Cpu, 4)
+        .err()
+        .expect("a text tower is not a visual tower");
     assert!(
         matches!(&err, Error::Model { message, .. } if message.contains("found inputs [input_ids: i64[?,77]]")),
         "{err}"
     );
-    let err = TextEncoder::new(
-        &clip_dir.join("tiny-clip-visual.onnx"),
-        &clip_dir.join("clip-tokenizer.json"),
-        ExecutionProvider::Cpu,
-    )
-    .err()
-    .expect("a visual tower is not a text tower");
+    let err = text_refused(
+        "tiny-clip-visual.onnx",
+        "clip-tokenizer.json",
+        "a visual tower is not a text tower",
+    );
     assert!(
         matches!(&err, Error::Model { message, .. } if message.contains("CLIP text tower")),
         "{err}"
     );
-    let err = TextEncoder::new(
-        &clip_dir.join("tiny-clip-textual.onnx"),
-        &clip_dir.join("color-clip.json"),
-        ExecutionProvider::Cpu,
-    )
-    .err()
-    .expect("not a tokenizer");
+    let err = text_refused(
+        "tiny-clip-textual.onnx",
+        "color-clip.json",
+        "not a tokenizer",
+    );
     assert!(matches!(err, Error::Format { .. }), "{err}");
     assert!(matches!(
-        ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Cpu,
-            0
-        ),
+        visual("tiny-clip-visual.onnx", ExecutionProvider::Cpu, 0),
         Err(Error::Param {
             name: "clip_batch",
             ..
@@ -288,13 +265,9 @@ fn clip_rejects_wrong_models_and_bad_batches() {
 
     // CUDA on a runtime without it: a typed error, not a silent CPU fallback.
     if !slag_common::onnx::cuda_available().unwrap() {
-        let err = ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Cuda,
-            4,
-        )
-        .err()
-        .expect("CUDA is not available in this ONNX Runtime");
+        let err = visual("tiny-clip-visual.onnx", ExecutionProvider::Cuda, 4)
+            .err()
+            .expect("CUDA is not available in this ONNX Runtime");
         let Error::Inference {
             provider,
             device,
@@ -309,12 +282,7 @@ fn clip_rejects_wrong_models_and_bad_batches() {
         assert!(message.contains("built without it"), "{message}");
         assert!(remedy.contains("setup.sh --gpu"), "{remedy}");
         // `--ep auto` on the same runtime falls back to the CPU and says so (once).
-        let auto = ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Auto,
-            4,
-        )
-        .unwrap();
+        let auto = visual("tiny-clip-visual.onnx", ExecutionProvider::Auto, 4).unwrap();
         assert_eq!(auto.provider(), ExecutionProvider::Cpu);
         assert_eq!(auto.device_label(), "cpu");
     }

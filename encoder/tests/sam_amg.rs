@@ -10,6 +10,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
@@ -149,12 +150,7 @@ fn sam_amg_reproduces_segment_anything_reference() {
 
         for (k, rm) in refs.iter().enumerate() {
             let (_, _, rpx) = rle_to_pixels(&rm["rle"]);
-            let rb: Vec<i64> = rm["bbox_xywh"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| v.as_i64().unwrap())
-                .collect();
+            let rb = Vec::<i64>::deserialize(&rm["bbox_xywh"]).unwrap();
             // Candidates: boxes within 2 px in every coordinate, best IoU among them.
             let best = masks
                 .iter()
@@ -246,15 +242,23 @@ fn sam_rejects_models_of_the_wrong_role() {
     }
     let sam_dir = shared().join("fixtures/sam-amg");
     let clip = shared().join("fixtures/clip/tiny-clip-visual.onnx");
-    let err = SamAutomaticMaskGenerator::new(
+    // The error of a generator from (encoder, decoder), which must fail.
+    let refused = |encoder: &Path, decoder: &str, why: &str| {
+        let decoder = sam_dir.join(decoder);
+        let sam = SamAutomaticMaskGenerator::new(
+            encoder,
+            &decoder,
+            ExecutionProvider::Cpu,
+            0,
+            SamParams::default(),
+        );
+        sam.err().unwrap_or_else(|| panic!("{why}"))
+    };
+    let err = refused(
         &clip,
-        &sam_dir.join("color-sam-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("a CLIP model is not a SAM encoder");
+        "color-sam-decoder.onnx",
+        "a CLIP model is not a SAM encoder",
+    );
     let Error::Model { path, message } = &err else {
         panic!("expected Error::Model, got {err}")
     };
@@ -268,29 +272,22 @@ fn sam_rejects_models_of_the_wrong_role() {
         "{message}"
     );
     // Encoder passed as decoder.
-    let err = SamAutomaticMaskGenerator::new(
-        &sam_dir.join("color-sam-encoder.onnx"),
-        &sam_dir.join("color-sam-encoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("an encoder is not a decoder");
+    let encoder = sam_dir.join("color-sam-encoder.onnx");
+    let err = refused(
+        &encoder,
+        "color-sam-encoder.onnx",
+        "an encoder is not a decoder",
+    );
     assert!(
         matches!(&err, Error::Model { message, .. } if message.contains("SAM mask decoder")),
         "{err}"
     );
     // Missing file.
-    let err = SamAutomaticMaskGenerator::new(
+    let err = refused(
         &sam_dir.join("nope.onnx"),
-        &sam_dir.join("color-sam-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("missing model");
+        "color-sam-decoder.onnx",
+        "missing model",
+    );
     assert!(matches!(err, Error::Io { .. }), "{err}");
 }
 

@@ -400,7 +400,11 @@ pub async fn fetch_grid(url: &str, radius: f64) -> (tempfile::TempDir, EdgeStore
 
 /// Serves `state` on an ephemeral loopback port in the background; returns `http://ADDR`.
 pub async fn serve_on_loopback(state: AppState) -> String {
-    let state = Arc::new(state);
+    serve_shared_on_loopback(Arc::new(state)).await
+}
+
+/// [`serve_on_loopback`] for a state that something else (the ROS 2 node) shares.
+pub async fn serve_shared_on_loopback(state: Arc<AppState>) -> String {
     let (tx, rx) = tokio::sync::oneshot::channel();
     tokio::spawn(async move {
         slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
