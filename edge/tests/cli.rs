@@ -22,6 +22,16 @@ async fn slag_edge_async(args: &[&str]) -> Output {
     output_blocking(slag_edge_with_log(args, "warn")).await
 }
 
+/// `stderr` is two lines: `error: …` naming `error`, then `hint: …` holding each of `hint`.
+fn assert_error_then_hint(stderr: &str, error: &str, hint: &[&str]) {
+    let lines: Vec<&str> = stderr.trim().lines().collect();
+    assert_eq!(lines.len(), 2, "{stderr}");
+    let error_line = lines[0].starts_with("error: ") && lines[0].contains(error);
+    assert!(error_line, "{stderr}");
+    let hint_line = lines[1].starts_with("hint: ") && hint.iter().all(|h| lines[1].contains(h));
+    assert!(hint_line, "{stderr}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fetch_check_and_query_from_the_command_line() {
     // 512-d so that color-clip's text tower fits the stored embeddings.
@@ -109,16 +119,7 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
     assert!(!e.to_lowercase().contains("backtrace"), "{e}");
     // One line for the error (the library's words: the store parameter), one for the CLI's hint
     // (the fetch command to run).
-    let lines: Vec<&str> = e.trim().lines().collect();
-    assert_eq!(lines.len(), 2, "{e}");
-    assert!(
-        lines[0].starts_with("error: ") && lines[0].contains("no-store"),
-        "{e}"
-    );
-    assert!(
-        lines[1].starts_with("hint: ") && lines[1].contains("slag-edge fetch"),
-        "{e}"
-    );
+    assert_error_then_hint(&e, "no-store", &["slag-edge fetch"]);
     assert!(
         !store.exists(),
         "slag-edge query created {}",
@@ -193,18 +194,8 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
     assert!(e.contains("without --hnsw"), "{e}");
     if !cfg!(feature = "qdrant-edge") {
         let e = serve(&["--hnsw", "--hnsw-backend", "qdrant-edge"]);
-        let lines: Vec<&str> = e.trim().lines().collect();
-        assert_eq!(lines.len(), 2, "{e}");
-        assert!(
-            lines[0].starts_with("error: ") && lines[0].contains("cargo feature `qdrant-edge`"),
-            "{e}"
-        );
-        assert!(
-            lines[1].starts_with("hint: ")
-                && lines[1].contains("--hnsw-backend instant-distance")
-                && lines[1].contains("--features qdrant-edge"),
-            "{e}"
-        );
+        let hint = ["--hnsw-backend instant-distance", "--features qdrant-edge"];
+        assert_error_then_hint(&e, "cargo feature `qdrant-edge`", &hint);
     }
     assert!(!store.exists());
 }

@@ -68,6 +68,14 @@ fn shard_path(store: &EdgeStore, tile: u64) -> PathBuf {
     store.shard_path("grid", t).unwrap()
 }
 
+/// `err` is the typed refusal of a `resource` limit.
+fn assert_limit(err: &Error, resource: Resource) {
+    assert!(
+        matches!(err, Error::Limit { resource: r, .. } if *r == resource),
+        "{err}"
+    );
+}
+
 /// A damage done to a complete store of the 2 × 2 grid, and what the repairing fetch must
 /// report: (tiles set aside, tiles downloaded).
 type Damage = fn(&EdgeStore) -> (usize, usize);
@@ -234,16 +242,7 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
     let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
-    assert!(
-        matches!(
-            err,
-            Error::Limit {
-                resource: Resource::DiskSpace,
-                ..
-            }
-        ),
-        "{msg}"
-    );
+    assert_limit(&err, Resource::DiskSpace);
     assert!(
         msg.contains(&dir.path().join("partial").display().to_string()),
         "{msg}"
@@ -291,16 +290,7 @@ async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
         let (_dir, store) = temp_store();
         let err = fetch(&store, &params(&url)).await.unwrap_err();
         let msg = err.to_string();
-        assert!(
-            matches!(
-                err,
-                Error::Limit {
-                    resource: Resource::ManifestBytes,
-                    ..
-                }
-            ),
-            "{msg}"
-        );
+        assert_limit(&err, Resource::ManifestBytes);
         assert!(msg.contains(&MAX_MANIFEST_BYTES.to_string()), "{msg}");
         // The reader stopped at the cap (the server may have queued a few more chunks).
         if !content_length {
