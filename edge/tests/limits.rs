@@ -30,6 +30,15 @@ async fn edge(
     (url.trim_start_matches("http://").to_string(), dir)
 }
 
+/// [`edge`] with the basis embedder and `limits`, every other option at its default.
+async fn edge_with_limits(limits: ServerLimits) -> (String, tempfile::TempDir) {
+    let opts = ServeOptions {
+        limits,
+        ..ServeOptions::new("grid")
+    };
+    edge(Arc::new(BasisEmbedder::new(8)), opts).await
+}
+
 fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
     ServerLimits {
         header_timeout: Duration::from_secs(header_s),
@@ -40,11 +49,7 @@ fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
-    let opts = ServeOptions {
-        limits: limits(1, 64),
-        ..ServeOptions::new("grid")
-    };
-    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let (addr, _dir) = edge_with_limits(limits(1, 64)).await;
     // One header line, then nothing (the probe's stalled socket).
     let mut stalled = tokio::net::TcpStream::connect(&addr).await.unwrap();
     stalled
@@ -69,11 +74,7 @@ async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_answers_while_stalled_sockets_hold_every_connection_slot() {
-    let opts = ServeOptions {
-        limits: limits(1, 8),
-        ..ServeOptions::new("grid")
-    };
-    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let (addr, _dir) = edge_with_limits(limits(1, 8)).await;
     let mut stalled = Vec::new();
     for _ in 0..24 {
         let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
@@ -128,8 +129,7 @@ async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_error_the_server_sends_has_the_json_body() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         request_timeout: Duration::from_millis(500),
         ..ServeOptions::new("grid")
@@ -179,8 +179,7 @@ async fn every_error_the_server_sends_has_the_json_body() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn retry_after_covers_the_scan_that_is_still_running() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         max_scans: 1,
         scan_queue: 1,
@@ -221,8 +220,7 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
 /// next request at once, not after every query of the abandoned batch.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_timed_out_batch_stops_scanning_and_frees_the_slot() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         max_scans: 1,
         // Long enough for the follow-up query on a loaded machine; the batch's 408 waits it out.

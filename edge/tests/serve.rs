@@ -336,8 +336,7 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
     let scene = grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1);
     let server = shard_server(scene, None).await;
     let (_dir, store) = fetch_grid(&server.url, 100.0).await;
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let state = AppState::new(
         store,
         gate.clone(),

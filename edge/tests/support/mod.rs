@@ -390,8 +390,7 @@ impl TextEmbedder for BasisEmbedder {
 /// Fetches scene `grid` from the shard server at `url` (disc around the ground origin of
 /// `radius`, 2 jobs, no retries) into a new store in a temporary folder.
 pub async fn fetch_grid(url: &str, radius: f64) -> (tempfile::TempDir, EdgeStore) {
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     fetch(&store, &grid_fetch_params(url, radius))
         .await
         .unwrap();
@@ -434,6 +433,13 @@ impl GateEmbedder {
             tokens: Mutex::new(0),
             cv: Condvar::new(),
         }
+    }
+    /// A shared gate of `dim` and the guard that opens it for good when dropped
+    /// ([`Self::open_on_drop`]).
+    pub fn with_guard(dim: usize) -> (Arc<Self>, OpenOnDrop) {
+        let gate = Arc::new(GateEmbedder::new(dim));
+        let open = gate.open_on_drop();
+        (gate, open)
     }
     /// Lets `n` more gated prompts through.
     pub fn release(&self, n: usize) {
