@@ -87,13 +87,7 @@ fn transforms_json(views: &[View], per_frame_intrinsics: bool) -> serde_json::Va
             let m = [[x.x, y.x, z.x, c.x], [x.y, y.y, z.y, c.y], [x.z, y.z, z.z, c.z], [0.0, 0.0, 0.0, 1.0]];
             let mut f = serde_json::json!({ "file_path": format!("./images/{}", v.name), "transform_matrix": m });
             if per_frame_intrinsics {
-                let k = v.intrinsics;
-                f["fl_x"] = k.fx.into();
-                f["fl_y"] = k.fy.into();
-                f["cx"] = k.cx.into();
-                f["cy"] = k.cy.into();
-                f["w"] = k.width.into();
-                f["h"] = k.height.into();
+                put_intrinsics(&mut f, &v.intrinsics);
             }
             f
         })
@@ -101,14 +95,19 @@ fn transforms_json(views: &[View], per_frame_intrinsics: bool) -> serde_json::Va
     let k = views[0].intrinsics;
     let mut top = serde_json::json!({ "camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames });
     if !per_frame_intrinsics {
-        top["fl_x"] = k.fx.into();
-        top["fl_y"] = k.fy.into();
-        top["cx"] = k.cx.into();
-        top["cy"] = k.cy.into();
-        top["w"] = k.width.into();
-        top["h"] = k.height.into();
+        put_intrinsics(&mut top, &k);
     }
     top
+}
+
+/// Writes `k` into a transforms.json object (a frame or the top level) under nerfstudio's keys.
+fn put_intrinsics(json: &mut serde_json::Value, k: &slag_common::camera::Intrinsics) {
+    json["fl_x"] = k.fx.into();
+    json["fl_y"] = k.fy.into();
+    json["cx"] = k.cx.into();
+    json["cy"] = k.cy.into();
+    json["w"] = k.width.into();
+    json["h"] = k.height.into();
 }
 
 #[test]

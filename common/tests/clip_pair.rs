@@ -16,15 +16,15 @@ fn clip_dir() -> PathBuf {
     slag_common::paths::source_tree_shared_dir().join("fixtures/clip")
 }
 
+/// Whether ONNX Runtime is set up; without it the test may only skip when `SLAG_SKIP_ORT` is set.
 fn ort_ready() -> bool {
-    if std::env::var_os("ORT_DYLIB_PATH").is_some() {
-        return true;
-    }
+    let ready = std::env::var_os("ORT_DYLIB_PATH").is_some();
+    let remedy = "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)";
     assert!(
-        std::env::var_os("SLAG_SKIP_ORT").is_some(),
-        "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
+        ready || std::env::var_os("SLAG_SKIP_ORT").is_some(),
+        "{remedy}"
     );
-    false
+    ready
 }
 
 fn varint(mut v: usize, out: &mut Vec<u8>) {
@@ -49,6 +49,16 @@ fn with_metadata(src: &Path, dst: &Path, key: &str, value: &str) {
     field(0x12, value.as_bytes(), &mut entry);
     field((14 << 3) | 2, &entry, &mut bytes);
     std::fs::write(dst, bytes).unwrap();
+}
+
+/// A copy of the tiny-clip text tower at `dst` whose metadata gives the CLIP pair id `id`.
+fn tiny_textual_with_pair_id(dst: &Path, id: &str) {
+    with_metadata(
+        &clip_dir().join("tiny-clip-textual.onnx"),
+        dst,
+        CLIP_PAIR_ID_KEY,
+        id,
+    );
 }
 
 fn text_encoder(model: &Path) -> TextEncoder {
@@ -89,12 +99,7 @@ fn metadata_id_is_preferred_over_the_file_name() {
     let dir = tempfile::tempdir().unwrap();
     // Named like the color-clip text tower, but its metadata says it belongs to another model.
     let renamed = dir.path().join("color-clip-textual.onnx");
-    with_metadata(
-        &clip_dir().join("tiny-clip-textual.onnx"),
-        &renamed,
-        CLIP_PAIR_ID_KEY,
-        "ViT-B-16/openai/0123abcd",
-    );
+    tiny_textual_with_pair_id(&renamed, "ViT-B-16/openai/0123abcd");
     let t = text_encoder(&renamed);
     assert_eq!(t.pair_id(), "ViT-B-16/openai/0123abcd");
     t.check_pair("ViT-B-16/openai/0123abcd").unwrap();
@@ -111,11 +116,6 @@ fn metadata_id_is_preferred_over_the_file_name() {
     assert_eq!(onnx::clip_pair_id(&s, &renamed), "ViT-B-16/openai/0123abcd");
     // An empty metadata value falls back to the file name.
     let empty = dir.path().join("mine_textual.onnx");
-    with_metadata(
-        &clip_dir().join("tiny-clip-textual.onnx"),
-        &empty,
-        CLIP_PAIR_ID_KEY,
-        " ",
-    );
+    tiny_textual_with_pair_id(&empty, " ");
     assert_eq!(text_encoder(&empty).pair_id(), "mine");
 }

@@ -8,14 +8,28 @@ mod support;
 use std::process::{Command, Output};
 
 use slag_common::shards::Dtype;
-use support::{fixture, grid_scene, grid_scene_segmented, shard_server, slag_edge_command};
+use support::{
+    Grid, assert_success, fetch_args, fixture, grid_scene, grid_scene_segmented, output_blocking,
+    shard_server, slag_edge_command, slag_edge_with_log, success_json, text_model_args,
+};
 
 fn slag_edge(args: &[&str]) -> Output {
-    slag_edge_command()
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap()
+    slag_edge_with_log(args, "warn").output().unwrap()
+}
+
+/// `slag-edge ARGS` run to completion off the test's runtime (which serves the shards).
+async fn slag_edge_async(args: &[&str]) -> Output {
+    output_blocking(slag_edge_with_log(args, "warn")).await
+}
+
+/// `stderr` is two lines: `error: …` naming `error`, then `hint: …` holding each of `hint`.
+fn assert_error_then_hint(stderr: &str, error: &str, hint: &[&str]) {
+    let lines: Vec<&str> = stderr.trim().lines().collect();
+    assert_eq!(lines.len(), 2, "{stderr}");
+    let error_line = lines[0].starts_with("error: ") && lines[0].contains(error);
+    assert!(error_line, "{stderr}");
+    let hint_line = lines[1].starts_with("hint: ") && hint.iter().all(|h| lines[1].contains(h));
+    assert!(hint_line, "{stderr}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -26,33 +40,16 @@ async fn fetch_check_and_query_from_the_command_line() {
     let store = dir.path().join("store").display().to_string();
     let url = server.url.clone();
 
-    let (s, u) = (store.clone(), url.clone());
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "fetch", "--from", &u, "--scene", "grid", "--center", "0,0", "--radius", "5",
-            "--store", &s, "--json",
-        ])
-    })
-    .await
-    .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let fetch = [fetch_args(&url, &store, "5"), vec!["--json"]].concat();
+    let summary = success_json(&slag_edge_async(&fetch).await);
     assert_eq!(summary["selected"], 1);
     assert_eq!(summary["gaussians"], 20);
 
     // Bad input: non-zero exit and a message naming the flag.
-    let (s, u) = (store.clone(), url.clone());
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "fetch", "--from", &u, "--scene", "grid", "--center", "0,zero", "--store", &s,
-        ])
-    })
-    .await
-    .unwrap();
+    let bad = [
+        "fetch", "--from", &url, "--scene", "grid", "--center", "0,zero", "--store", &store,
+    ];
+    let out = slag_edge_async(&bad).await;
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--center"));
 
@@ -63,82 +60,22 @@ async fn fetch_check_and_query_from_the_command_line() {
     if support::skip_without_ort() {
         return;
     }
-    let s = store.clone();
-    let (tm2, tok2) = (tm.clone(), tok.clone());
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "check",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            &tm2,
-            "--tokenizer",
-            &tok2,
-        ])
-    })
-    .await
-    .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let report = success_json(
+        &slag_edge_async(&text_model_args("check", &store, "grid", [&tm, &tok])).await,
     );
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["gaussians"], 20);
     assert_eq!(report["text_dim"], 512);
 
-    let s = store.clone();
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "query",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            &tm,
-            "--tokenizer",
-            &tok,
-            "--text",
-            "red",
-            "--top-k",
-            "5",
-            "--threshold",
-            "none",
-        ])
-    })
-    .await
-    .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let a: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let query = text_model_args("query", &store, "grid", [&tm, &tok]);
+    let ranked = ["--text", "red", "--top-k", "5", "--threshold", "none"];
+    let a = success_json(&slag_edge_async(&[&query[..], &ranked].concat()).await);
     assert_eq!(a["matches"].as_array().unwrap().len(), 5);
     assert_eq!(a["searched"], 20);
 
     // A text tower of another CLIP model (tiny-clip) than the stored one (color-clip): refused.
-    let (s, tok3) = (store.clone(), fixture("clip/clip-tokenizer.json"));
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "query",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            &fixture("clip/tiny-clip-textual.onnx"),
-            "--tokenizer",
-            &tok3,
-            "--text",
-            "red",
-        ])
-    })
-    .await
-    .unwrap();
+    let tiny = fixture("clip/tiny-clip-textual.onnx");
+    let query = text_model_args("query", &store, "grid", [&tiny, &tok]);
+    let out = slag_edge_async(&[&query[..], &["--text", "red"]].concat()).await;
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         !out.status.success() && err.contains("`tiny-clip`") && err.contains("`color-clip`"),
@@ -146,22 +83,8 @@ async fn fetch_check_and_query_from_the_command_line() {
     );
 
     // A scene that was never fetched: non-zero exit, the message says to run fetch.
-    let out = tokio::task::spawn_blocking(move || {
-        slag_edge(&[
-            "check",
-            "--store",
-            &store,
-            "--scene",
-            "nope",
-            "--text-model",
-            "x",
-            "--tokenizer",
-            "y",
-        ])
-    })
-    .await
-    .unwrap();
-    assert!(!out.status.success());
+    let check = text_model_args("check", &store, "nope", ["x", "y"]);
+    assert!(!slag_edge_async(&check).await.status.success());
 }
 
 /// Failed queries: no store folder is created, each refusal gives the CLI's own hint, and an error
@@ -173,21 +96,10 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
     let s = store.display().to_string();
     let run = |text: &str, extra: &[&str], backtrace: bool| {
         let mut cmd = slag_edge_command();
-        cmd.args([
-            "query",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            "m.onnx",
-            "--tokenizer",
-            "t.json",
-            "--text",
-            text,
-        ])
-        .args(extra)
-        .env("RUST_LOG", "warn");
+        cmd.args(text_model_args("query", &s, "grid", ["m.onnx", "t.json"]))
+            .args(["--text", text])
+            .args(extra)
+            .env("RUST_LOG", "warn");
         if backtrace {
             cmd.env("RUST_BACKTRACE", "1");
         } else {
@@ -207,16 +119,7 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
     assert!(!e.to_lowercase().contains("backtrace"), "{e}");
     // One line for the error (the library's words: the store parameter), one for the CLI's hint
     // (the fetch command to run).
-    let lines: Vec<&str> = e.trim().lines().collect();
-    assert_eq!(lines.len(), 2, "{e}");
-    assert!(
-        lines[0].starts_with("error: ") && lines[0].contains("no-store"),
-        "{e}"
-    );
-    assert!(
-        lines[1].starts_with("hint: ") && lines[1].contains("slag-edge fetch"),
-        "{e}"
-    );
+    assert_error_then_hint(&e, "no-store", &["slag-edge fetch"]);
     assert!(
         !store.exists(),
         "slag-edge query created {}",
@@ -251,19 +154,8 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
             break;
         }
         let out = Command::new(bin)
-            .args([
-                sub,
-                "--store",
-                &s,
-                "--scene",
-                "grid",
-                "--text-model",
-                "m.onnx",
-                "--tokenizer",
-                "t.json",
-                "--addr",
-                "127.0.0.1:0",
-            ])
+            .args(text_model_args(sub, &s, "grid", ["m.onnx", "t.json"]))
+            .args(["--addr", "127.0.0.1:0"])
             .env("RUST_LOG", "warn")
             .output()
             .unwrap();
@@ -285,19 +177,8 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
     let store = dir.path().join("no-store");
     let s = store.display().to_string();
     let serve = |extra: &[&str]| {
-        let mut args = vec![
-            "serve",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            "m.onnx",
-            "--tokenizer",
-            "t.json",
-            "--addr",
-            "127.0.0.1:0",
-        ];
+        let mut args = text_model_args("serve", &s, "grid", ["m.onnx", "t.json"]);
+        args.extend_from_slice(&["--addr", "127.0.0.1:0"]);
         args.extend_from_slice(extra);
         let out = slag_edge(&args);
         assert!(!out.status.success());
@@ -313,18 +194,8 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
     assert!(e.contains("without --hnsw"), "{e}");
     if !cfg!(feature = "qdrant-edge") {
         let e = serve(&["--hnsw", "--hnsw-backend", "qdrant-edge"]);
-        let lines: Vec<&str> = e.trim().lines().collect();
-        assert_eq!(lines.len(), 2, "{e}");
-        assert!(
-            lines[0].starts_with("error: ") && lines[0].contains("cargo feature `qdrant-edge`"),
-            "{e}"
-        );
-        assert!(
-            lines[1].starts_with("hint: ")
-                && lines[1].contains("--hnsw-backend instant-distance")
-                && lines[1].contains("--features qdrant-edge"),
-            "{e}"
-        );
+        let hint = ["--hnsw-backend instant-distance", "--features qdrant-edge"];
+        assert_error_then_hint(&e, "cargo feature `qdrant-edge`", &hint);
     }
     assert!(!store.exists());
 }
@@ -334,11 +205,7 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
 /// a hint.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn query_smooth_segment_from_the_command_line() {
-    if std::env::var_os("ORT_DYLIB_PATH").is_none() {
-        assert!(
-            std::env::var_os("SLAG_SKIP_ORT").is_some(),
-            "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
-        );
+    if support::skip_without_ort() {
         return;
     }
     let (tm, tok) = (
@@ -346,7 +213,7 @@ async fn query_smooth_segment_from_the_command_line() {
         fixture("clip/clip-tokenizer.json"),
     );
     // Tile 0 only (20 Gaussians, ids 0..20), four segments of five (id % 4).
-    let segmented = grid_scene_segmented("grid", 3, 3, 20, 512, Dtype::F16, 1, &|id| id % 4);
+    let segmented = grid_scene_segmented(Grid("grid", 3, 3, 20, 512, Dtype::F16, 1), &|id| id % 4);
     let dir = tempfile::tempdir().unwrap();
     let mut stores = Vec::new();
     for (name, scene) in [
@@ -355,54 +222,17 @@ async fn query_smooth_segment_from_the_command_line() {
     ] {
         let server = shard_server(scene, None).await;
         let store = dir.path().join(name).display().to_string();
-        let (s, u) = (store.clone(), server.url.clone());
-        let out = tokio::task::spawn_blocking(move || {
-            slag_edge(&[
-                "fetch", "--from", &u, "--scene", "grid", "--center", "0,0", "--radius", "5",
-                "--store", &s,
-            ])
-        })
-        .await
-        .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let out = slag_edge_async(&fetch_args(&server.url, &store, "5")).await;
+        assert_success(&out, name);
         stores.push(store);
     }
     let query = |store: &str, extra: &[&str]| {
-        let mut args: Vec<String> = [
-            "query",
-            "--store",
-            store,
-            "--scene",
-            "grid",
-            "--text-model",
-            tm.as_str(),
-            "--tokenizer",
-            tok.as_str(),
-            "--text",
-            "red",
-            "--top-k",
-            "20",
-            "--threshold",
-            "none",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
-        slag_edge(&refs)
+        let query = text_model_args("query", store, "grid", [&tm, &tok]);
+        let ranked = ["--text", "red", "--top-k", "20", "--threshold", "none"];
+        slag_edge(&[&query[..], &ranked, extra].concat())
     };
     let scores = |out: &Output| -> Vec<(u64, f64)> {
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let a: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        let a = success_json(out);
         let mut v: Vec<(u64, f64)> = a["matches"]
             .as_array()
             .unwrap()

@@ -13,55 +13,29 @@ use std::time::{Duration, Instant};
 
 use slag_common::Error;
 use slag_common::shards::{Dtype, Manifest, TileInfo, shard_checksum};
-use slag_edge::fetch::{Center, FAULT_EXIT_STATUS, FetchParams, fetch};
+use slag_edge::fetch::{FAULT_EXIT_STATUS, FetchParams, fetch};
 use slag_edge::store::{EdgeStore, verify_shard};
-use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, assert_success, fetch_grid, grid_fetch_params, grid_scene, output_blocking,
+    partial_files, send_json, serve_on_loopback, shard_server, slag_edge_with_log, temp_store,
+};
 
 fn params(url: &str, radius: f64) -> FetchParams {
     FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
-        center: Center::Ground([0.0, 0.0]),
-        radius,
-        prune: false,
         jobs: 1,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
+        ..grid_fetch_params(url, radius)
     }
 }
 
 /// `slag-edge` (through `$SLAG_TEST_RUNNER` when set), not yet started.
 fn slag_edge(args: &[&str]) -> Command {
-    let mut cmd = support::slag_edge_command();
-    cmd.args(args)
-        .env("RUST_LOG", "error")
-        .env_remove("SLAG_FAULT_EXIT_AT")
-        .env_remove("SLAG_SHARD_TOKEN");
-    cmd
+    slag_edge_with_log(args, "error")
 }
 
+/// The whole grid, one job, no retries, the summary as JSON.
 fn fetch_args<'a>(url: &'a str, store: &'a str) -> Vec<&'a str> {
-    vec![
-        "fetch",
-        "--from",
-        url,
-        "--scene",
-        "grid",
-        "--center",
-        "0,0",
-        "--radius",
-        "100",
-        "--store",
-        store,
-        "--jobs",
-        "1",
-        "--retries",
-        "0",
-        "--json",
-    ]
+    let one_try = ["--jobs", "1", "--retries", "0", "--json"];
+    [support::fetch_args(url, store, "100"), one_try.to_vec()].concat()
 }
 
 fn copy_dir(from: &Path, to: &Path) {
@@ -133,15 +107,9 @@ async fn fetch_killed_at_every_durability_boundary_leaves_a_consistent_store_and
         copy_dir(&template, &dir);
         let store_s = dir.display().to_string();
         let url = s2.url.clone();
-        let s = store_s.clone();
-        let out = tokio::task::spawn_blocking(move || {
-            slag_edge(&fetch_args(&url, &s))
-                .env("SLAG_FAULT_EXIT_AT", n.to_string())
-                .output()
-                .unwrap()
-        })
-        .await
-        .unwrap();
+        let mut killed_at_n = slag_edge(&fetch_args(&url, &store_s));
+        killed_at_n.env("SLAG_FAULT_EXIT_AT", n.to_string());
+        let out = output_blocking(killed_at_n).await;
         if out.status.success() {
             break;
         }
@@ -158,22 +126,14 @@ async fn fetch_killed_at_every_durability_boundary_leaves_a_consistent_store_and
             .unwrap();
         // A plain rerun completes with every tile of generation 2.
         let url = s2.url.clone();
-        let out = tokio::task::spawn_blocking(move || {
-            slag_edge(&fetch_args(&url, &store_s)).output().unwrap()
-        })
-        .await
-        .unwrap();
-        assert!(
-            out.status.success(),
-            "n={n}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let out = output_blocking(slag_edge(&fetch_args(&url, &store_s))).await;
+        assert_success(&out, &format!("n={n}"));
         let store = EdgeStore::open(&dir).unwrap();
         let (m, shards, load) = store.load_scene("grid").unwrap();
         assert_eq!(m, m2, "n={n}");
         assert_eq!((shards.len(), load.rejected.len()), (4, 0), "n={n}");
         assert_eq!(store.stored_shards("grid").unwrap().len(), 4, "n={n}");
-        assert_eq!(std::fs::read_dir(dir.join("partial")).unwrap().count(), 0);
+        assert_eq!(partial_files(&dir), 0);
     }
     // Four tiles: at least one write, one sync and one commit each, plus the two manifest
     // boundaries, were each hit by a kill.
@@ -240,8 +200,7 @@ async fn a_stalled_download_times_out_with_the_url_and_resumes() {
     let len = scene.shards[&0].len();
     let server = shard_server(scene, None).await;
     server.state.stall.lock().unwrap().insert(0, len / 2);
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     let mut p = params(&server.url, 100.0);
     p.timeout = Duration::from_secs(1);
     let err = fetch(&store, &p).await.unwrap_err();
@@ -279,8 +238,7 @@ async fn a_shard_of_a_future_format_version_is_refused_naming_the_version() {
         .unwrap()
         .checksum = sum;
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url, 100.0))
         .await
         .unwrap_err();
@@ -319,12 +277,7 @@ async fn a_shard_corrupted_in_the_store_is_not_served_and_is_reported() {
     )
     .unwrap();
     let url = serve_on_loopback(state).await;
-    let stats: serde_json::Value = reqwest::get(format!("{url}/stats"))
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let (_, stats) = send_json(reqwest::Client::new().get(format!("{url}/stats"))).await;
     let rejected = stats["shards_rejected"].as_array().unwrap();
     assert_eq!(rejected.len(), 1, "{stats}");
     let msg = rejected[0].as_str().unwrap();
@@ -338,8 +291,7 @@ async fn a_shard_corrupted_in_the_store_is_not_served_and_is_reported() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_ids_and_checksums_never_leave_the_partial_folder() {
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let partial = dir.path().join("partial");
     for (scene, checksum) in [
         ("../../etc", "0000abcd"),

@@ -5,27 +5,18 @@
 mod support;
 
 use std::sync::atomic::Ordering;
-use std::time::Duration;
 
 use slag_common::Error;
 use slag_common::shards::Dtype;
 use slag_edge::fetch::{Center, FetchParams, fetch};
-use slag_edge::store::EdgeStore;
-use support::{grid_scene, shard_server};
+use support::{grid_fetch_params, grid_scene, partial_files, shard_server, stored_ids, temp_store};
 
 fn params(url: &str, center: [f64; 2], radius: f64) -> FetchParams {
+    let center = Center::Ground(center);
     FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
-        center: Center::Ground(center),
-        radius,
-        prune: false,
+        center,
         jobs: 3,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
+        ..grid_fetch_params(url, radius)
     }
 }
 
@@ -46,23 +37,11 @@ fn expected_tiles(c: [f64; 2], r: f64, nx: usize, ny: usize) -> Vec<u64> {
     v
 }
 
-fn stored_ids(store: &EdgeStore) -> Vec<u64> {
-    let mut v: Vec<u64> = store
-        .stored_shards("grid")
-        .unwrap()
-        .into_iter()
-        .map(|s| s.0)
-        .collect();
-    v.sort_unstable();
-    v
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn fetch_selects_by_radius_is_incremental_and_prunes_only_when_asked() {
     let scene = grid_scene("grid", 5, 5, 40, 8, Dtype::F16, 1);
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
 
     let s1 = fetch(&store, &params(&server.url, [4.0, 4.0], 8.0))
         .await
@@ -129,8 +108,7 @@ async fn interrupted_download_resumes_with_a_range_request_and_is_never_visible_
         .lock()
         .unwrap()
         .insert(0, tile0_len / 3);
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let p = params(&server.url, [4.0, 4.0], 1.0); // tile 0 only
 
     let err = fetch(&store, &p).await.unwrap_err();
@@ -151,12 +129,7 @@ async fn interrupted_download_resumes_with_a_range_request_and_is_never_visible_
     assert_eq!(s.bytes_received as usize, tile0_len - have);
     assert_eq!(server.state.range_requests.load(Ordering::SeqCst), 1);
     assert_eq!(stored_ids(&store), vec![0]);
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("partial"))
-            .unwrap()
-            .count(),
-        0
-    );
+    assert_eq!(partial_files(dir.path()), 0);
     let (_, shards, load) = store.load_scene("grid").unwrap();
     assert_eq!(shards.len(), 1);
     assert!(load.rejected.is_empty());
@@ -179,8 +152,7 @@ async fn a_corrupt_server_copy_is_rejected_and_never_stored() {
     let scene = grid_scene("grid", 2, 1, 50, 8, Dtype::I8, 1);
     let server = shard_server(scene, None).await;
     server.state.corrupt.lock().unwrap().insert(1);
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url, [0.0, 0.0], 100.0))
         .await
         .unwrap_err();
@@ -201,8 +173,7 @@ async fn a_corrupt_server_copy_is_rejected_and_never_stored() {
 async fn a_new_generation_switches_atomically_and_drops_the_old_one() {
     let g1 = grid_scene("grid", 2, 2, 30, 8, Dtype::F16, 1);
     let server = shard_server(g1, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
     fetch(&store, &params(&server.url, [0.0, 0.0], 100.0))
         .await
         .unwrap();
@@ -242,8 +213,7 @@ async fn bad_requests_fail_with_messages_that_say_what_to_do() {
         Some("s3cret".into()),
     )
     .await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (_dir, store) = temp_store();
 
     let e = fetch(&store, &params(&server.url, [0.0, 0.0], 5.0))
         .await

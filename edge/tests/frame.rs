@@ -6,14 +6,16 @@
 mod support;
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use slag_common::shards::{Dtype, MapSource, SceneToMap, decode_shard, frame};
 use slag_edge::fetch::{Center, FetchParams, fetch, select_tiles};
 use slag_edge::query::FrameChoice;
 use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, TestScene, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, TestScene, error_message, grid_fetch_params, grid_scene, match_ids, send,
+    send_json, serve_on_loopback, shard_server, stored_ids, temp_store,
+};
 
 /// A yaw of 35° about z, scale 2.5, a UTM-like translation: the map's z is the scene's up (z).
 fn yaw_transform() -> SceneToMap {
@@ -46,30 +48,14 @@ fn with_map(mut s: TestScene, t: &SceneToMap) -> TestScene {
 }
 
 fn params(url: &str, center: Center, radius: f64, frame: FrameChoice) -> FetchParams {
+    let (prune, jobs) = (true, 3);
     FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
         center,
-        radius,
-        prune: true,
-        jobs: 3,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
+        prune,
+        jobs,
         frame,
+        ..grid_fetch_params(url, radius)
     }
-}
-
-fn stored_ids(store: &EdgeStore) -> Vec<u64> {
-    let mut v: Vec<u64> = store
-        .stored_shards("grid")
-        .unwrap()
-        .into_iter()
-        .map(|s| s.0)
-        .collect();
-    v.sort_unstable();
-    v
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -154,19 +140,10 @@ async fn a_radius_in_metres_selects_the_tiles_of_the_same_radius_in_scene_units_
         assert!(checked > 10, "the cases selected too few tiles ({checked})");
     }
     // A map frame asked of a manifest without a transform is a typed error, before any download.
-    let d = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(d.path()).unwrap();
-    let e = fetch(
-        &store,
-        &params(
-            &plain.url,
-            Center::Ground([0.0, 0.0]),
-            5.0,
-            FrameChoice::Map,
-        ),
-    )
-    .await
-    .unwrap_err();
+    let (_d, store) = temp_store();
+    let origin = Center::Ground([0.0, 0.0]);
+    let map_frame = params(&plain.url, origin, 5.0, FrameChoice::Map);
+    let e = fetch(&store, &map_frame).await.unwrap_err();
     assert!(
         matches!(e, slag_common::Error::Query { field: "frame", .. })
             && e.to_string().contains("no map frame"),
@@ -188,19 +165,14 @@ async fn serve_with_map(t: &SceneToMap) -> Served {
         None,
     )
     .await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
-    fetch(
-        &store,
-        &params(
-            &server.url,
-            Center::Ground([0.0, 0.0]),
-            1000.0,
-            FrameChoice::Scene,
-        ),
-    )
-    .await
-    .unwrap();
+    let (dir, store) = temp_store();
+    let whole = params(
+        &server.url,
+        Center::Ground([0.0, 0.0]),
+        1000.0,
+        FrameChoice::Scene,
+    );
+    fetch(&store, &whole).await.unwrap();
     let m = store.manifest("grid").unwrap().unwrap();
     let shards = m
         .tiles
@@ -222,13 +194,7 @@ async fn serve_with_map(t: &SceneToMap) -> Served {
 }
 
 async fn get(s: &Served, path: &str) -> (u16, serde_json::Value) {
-    let r = s
-        .client
-        .get(format!("{}{path}", s.url))
-        .send()
-        .await
-        .unwrap();
-    (r.status().as_u16(), r.json().await.unwrap())
+    send_json(s.client.get(format!("{}{path}", s.url))).await
 }
 
 fn pos(m: &serde_json::Value) -> [f32; 3] {
@@ -293,13 +259,7 @@ async fn answers_are_in_the_map_frame_by_default_and_bbox_is_read_in_it() {
     for extra in ["&threshold=none&top_k=25", "&threshold=-1&top_k=25"] {
         let (st, c) = get(&s, &format!("/query?text=t4&bbox={bbox}{extra}")).await;
         assert_eq!(st, 200, "{c}");
-        let got: Vec<u32> = c["matches"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|m| m["id"].as_u64().unwrap() as u32)
-            .collect();
-        assert_eq!(got, want, "{extra}");
+        assert_eq!(match_ids(&c), want, "{extra}");
         assert!(
             c["matches"]
                 .as_array()
@@ -310,19 +270,14 @@ async fn answers_are_in_the_map_frame_by_default_and_bbox_is_read_in_it() {
     }
     // /query.ply says which frame its vertices are in.
     for (q, want) in [("", "map"), ("&frame=scene", "scene")] {
-        let r = s
-            .client
-            .get(format!("{}/query.ply?text=t4{q}", s.url))
-            .send()
-            .await
-            .unwrap();
+        let r = send(s.client.get(format!("{}/query.ply?text=t4{q}", s.url))).await;
         assert_eq!(r.status().as_u16(), 200);
         assert_eq!(r.headers()["x-slag-frame"], want);
     }
     // Bad frame names are a 400 naming the field.
     let (st, e) = get(&s, "/query?text=t4&frame=utm").await;
     assert_eq!(st, 400);
-    assert!(e["error"].as_str().unwrap().contains("frame"), "{e}");
+    assert!(error_message(&e).contains("frame"), "{e}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -335,7 +290,7 @@ async fn blank_and_too_long_prompts_get_the_http_hints() {
         "/query.ply?text=+",
     ] {
         let (st, e) = get(&s, q).await;
-        let m = e["error"].as_str().unwrap();
+        let m = error_message(&e);
         assert_eq!(st, 400, "{q}: {e}");
         assert!(
             m.contains("missing query text") && m.contains("/query?text=chair"),
@@ -345,17 +300,16 @@ async fn blank_and_too_long_prompts_get_the_http_hints() {
     let long = "a".repeat(slag_common::prompt::MAX_PROMPT_BYTES + 1);
     let (st, e) = get(&s, &format!("/query?text={long}")).await;
     assert_eq!(st, 400);
-    assert!(e["error"].as_str().unwrap().contains("at most 1000"), "{e}");
-    let r = s
-        .client
-        .post(format!("{}/query", s.url))
-        .json(&serde_json::json!({"queries": [{"text": "t1"}, {"text": " "}]}))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 400);
-    let e: serde_json::Value = r.json().await.unwrap();
-    let m = e["error"].as_str().unwrap();
+    assert!(error_message(&e).contains("at most 1000"), "{e}");
+    let blank_second = serde_json::json!({"queries": [{"text": "t1"}, {"text": " "}]});
+    let (st, e) = send_json(
+        s.client
+            .post(format!("{}/query", s.url))
+            .json(&blank_second),
+    )
+    .await;
+    assert_eq!(st, 400);
+    let m = error_message(&e);
     assert!(
         m.contains("queries[1]") && m.contains(r#"{"text": "chair"}"#) && !m.contains("/query?"),
         "{m}"

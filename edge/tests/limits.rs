@@ -13,7 +13,10 @@ use slag_common::http::ServerLimits;
 use slag_common::shards::Dtype;
 use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
 use slag_edge::serve::{AppState, ServeOptions};
-use support::{BasisEmbedder, GateEmbedder, fetch_grid, grid_scene, shard_server, wait_until};
+use support::{
+    BasisEmbedder, GateEmbedder, error_message, exact_answer, fetch_grid, grid_scene,
+    header_number, send, send_json, shard_server, wait_until,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Serves a 2×2-tile grid scene with `opts` (scene "grid", dimension 8); returns `host:port`.
@@ -27,6 +30,15 @@ async fn edge(
     (url.trim_start_matches("http://").to_string(), dir)
 }
 
+/// [`edge`] with the basis embedder and `limits`, every other option at its default.
+async fn edge_with_limits(limits: ServerLimits) -> (String, tempfile::TempDir) {
+    let opts = ServeOptions {
+        limits,
+        ..ServeOptions::new("grid")
+    };
+    edge(Arc::new(BasisEmbedder::new(8)), opts).await
+}
+
 fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
     ServerLimits {
         header_timeout: Duration::from_secs(header_s),
@@ -37,11 +49,7 @@ fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
-    let opts = ServeOptions {
-        limits: limits(1, 64),
-        ..ServeOptions::new("grid")
-    };
-    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let (addr, _dir) = edge_with_limits(limits(1, 64)).await;
     // One header line, then nothing (the probe's stalled socket).
     let mut stalled = tokio::net::TcpStream::connect(&addr).await.unwrap();
     stalled
@@ -66,11 +74,7 @@ async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_answers_while_stalled_sockets_hold_every_connection_slot() {
-    let opts = ServeOptions {
-        limits: limits(1, 8),
-        ..ServeOptions::new("grid")
-    };
-    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let (addr, _dir) = edge_with_limits(limits(1, 8)).await;
     let mut stalled = Vec::new();
     for _ in 0..24 {
         let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
@@ -100,53 +104,32 @@ async fn one_request_cannot_ask_for_more_matches_than_the_cap() {
             .collect();
         serde_json::json!({ "queries": q })
     };
-    let r = client
-        .post(format!("http://{addr}/query"))
-        .json(&batch(100, 3))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    let v: serde_json::Value = r.json().await.unwrap();
+    let post =
+        |addr: &str, body| send_json(client.post(format!("http://{addr}/query")).json(&body));
+    let (status, v) = post(&addr, batch(100, 3)).await;
+    assert_eq!(status, 200);
     assert_eq!(v["answers"].as_array().unwrap().len(), 3, "{v}");
     assert_eq!(v["answers"][0]["matches"].as_array().unwrap().len(), 80);
     // 4 × 100 > 300: refused before any scan, naming the limit.
-    let r = client
-        .post(format!("http://{addr}/query"))
-        .json(&batch(100, 4))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 400);
-    let v: serde_json::Value = r.json().await.unwrap();
-    let m = v["error"].as_str().unwrap();
+    let (status, v) = post(&addr, batch(100, 4)).await;
+    assert_eq!(status, 400);
+    let m = error_message(&v);
     assert!(
         m.contains("max_matches") && m.contains("300") && m.contains("400"),
         "{m}"
     );
-    let r = client
-        .get(format!("http://{addr}/query?text=a&top_k=301"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("http://{addr}/query?text=a&top_k=301"))).await;
     assert_eq!(r.status(), 400);
     // The 3.6 KB request of the probe (64 × top_k 10000, no threshold) under the default cap.
     let (addr2, _dir2) = edge(Arc::new(BasisEmbedder::new(8)), ServeOptions::new("grid")).await;
-    let r = client
-        .post(format!("http://{addr2}/query"))
-        .json(&batch(10_000, 64))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 400);
-    let v: serde_json::Value = r.json().await.unwrap();
-    assert!(v["error"].as_str().unwrap().contains("20000"), "{v}");
+    let (status, v) = post(&addr2, batch(10_000, 64)).await;
+    assert_eq!(status, 400);
+    assert!(error_message(&v).contains("20000"), "{v}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_error_the_server_sends_has_the_json_body() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         request_timeout: Duration::from_millis(500),
         ..ServeOptions::new("grid")
@@ -196,8 +179,7 @@ async fn every_error_the_server_sends_has_the_json_body() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn retry_after_covers_the_scan_that_is_still_running() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         max_scans: 1,
         scan_queue: 1,
@@ -206,35 +188,24 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
     };
     let (addr, _dir) = edge(gate.clone(), opts).await;
     let client = reqwest::Client::new();
-    let send = |text: &str| {
+    let spawn_query = |text: &str| {
         let (c, u) = (client.clone(), format!("http://{addr}/query?text={text}"));
-        tokio::spawn(async move { c.get(u).send().await.unwrap().status().as_u16() })
+        tokio::spawn(async move { send(c.get(u)).await.status().as_u16() })
     };
     // The first scan ever runs for 3 s (no scan has finished: no moving average yet).
-    let a = send("t1");
+    let a = spawn_query("t1");
     wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
     tokio::time::sleep(Duration::from_secs(3)).await;
-    let b = send("t2");
-    let stats = async || -> serde_json::Value {
-        let r = client
-            .get(format!("http://{addr}/stats"))
-            .send()
+    let b = spawn_query("t2");
+    let stats = async || {
+        send_json(client.get(format!("http://{addr}/stats")))
             .await
-            .unwrap();
-        r.json().await.unwrap()
+            .1
     };
     wait_until("t2 waits", async || stats().await["scans"]["waiting"] == 1).await;
-    let r = client
-        .get(format!("http://{addr}/query?text=t3"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("http://{addr}/query?text=t3"))).await;
     assert_eq!(r.status(), 503);
-    let retry: u64 = r.headers()["retry-after"]
-        .to_str()
-        .unwrap()
-        .parse()
-        .unwrap();
+    let retry = header_number(&r, "retry-after");
     // Two scans ahead (the running one and t2), each taking at least the 3 s t1 has run.
     assert!(
         retry >= 6,
@@ -249,8 +220,7 @@ async fn retry_after_covers_the_scan_that_is_still_running() {
 /// next request at once, not after every query of the abandoned batch.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_timed_out_batch_stops_scanning_and_frees_the_slot() {
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let opts = ServeOptions {
         max_scans: 1,
         // Long enough for the follow-up query on a loaded machine; the batch's 408 waits it out.
@@ -262,21 +232,17 @@ async fn a_timed_out_batch_stops_scanning_and_frees_the_slot() {
     let q: Vec<_> = (1..=5)
         .map(|i| serde_json::json!({"text": format!("t{i}")}))
         .collect();
-    let r = client
-        .post(format!("http://{addr}/query"))
-        .json(&serde_json::json!({ "queries": q }))
-        .send()
-        .await
-        .unwrap();
+    let r = send(
+        client
+            .post(format!("http://{addr}/query"))
+            .json(&serde_json::json!({ "queries": q })),
+    )
+    .await;
     assert_eq!(r.status(), 408);
     assert_eq!(gate.entered(), ["t1"]);
     // t1 finishes; t2..t5 must not start, and the next request gets the slot.
     gate.release(2);
-    let r = client
-        .get(format!("http://{addr}/query?text=t9"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("http://{addr}/query?text=t9"))).await;
     assert_eq!(r.status(), 200);
     assert_eq!(gate.entered(), ["t1", "t9"]);
 }
@@ -311,31 +277,17 @@ fn a_blank_token_in_the_environment_refuses_to_start() {
 /// threshold (80 here), and a batch's answers must not keep that capacity until it is sent.
 #[tokio::test]
 async fn a_threshold_answer_holds_only_the_matches_it_returns() {
-    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
+    use slag_edge::query::RawQuery;
     let server = shard_server(grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1), None).await;
     let (_dir, store) = fetch_grid(&server.url, 100.0).await;
     let engine = slag_edge::engine::Engine::load(&store, "grid", false).unwrap();
-    let text = BasisEmbedder::new(8);
-    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
     let q = RawQuery {
         text: Some("t0".into()),
         top_k: Some("3".into()),
         threshold: Some("-1".into()),
         ..Default::default()
-    }
-    .validate_for(0.28, Interface::Cli)
-    .unwrap();
-    let a = slag_edge::query::run_query_framed(
-        &engine.store,
-        &engine.manifest.model,
-        None,
-        &text,
-        &negatives,
-        None,
-        Some(&engine.display),
-        &q,
-    )
-    .unwrap();
+    };
+    let a = exact_answer(&engine, 8, q, true);
     assert_eq!(a.summary.count, 80, "every Gaussian passes threshold -1");
     let a = slag_edge::serve::compact_answer(a);
     assert_eq!(a.matches.len(), 3);

@@ -8,7 +8,9 @@ use std::io::{BufRead, BufReader};
 use std::process::Stdio;
 
 use slag_common::shards::Dtype;
-use support::{fixture, grid_scene, shard_server};
+use support::{
+    assert_success, fetch_args, fixture, grid_scene, output_blocking, shard_server, text_model_args,
+};
 
 /// Runs `serve` with stderr piped until it logs that it listens, then stops it: the log line is
 /// there and holds no escape sequence.
@@ -27,49 +29,19 @@ async fn serve_logs_without_colour_codes_into_a_pipe() {
     let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store").display().to_string();
-    let mut fetch = command(&[
-        "fetch",
-        "--from",
-        &server.url,
-        "--scene",
-        "grid",
-        "--center",
-        "0,0",
-        "--radius",
-        "100",
-        "--store",
-        &store,
-    ]);
-    let out = tokio::task::spawn_blocking(move || fetch.output().unwrap())
-        .await
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let fetch = command(&fetch_args(&server.url, &store, "100"));
+    assert_success(&output_blocking(fetch).await, "fetch");
 
     let (tm, tok) = (
         fixture("clip/color-clip-textual.onnx"),
         fixture("clip/clip-tokenizer.json"),
     );
-    let mut child = command(&[
-        "serve",
-        "--store",
-        &store,
-        "--scene",
-        "grid",
-        "--text-model",
-        &tm,
-        "--tokenizer",
-        &tok,
-        "--addr",
-        "127.0.0.1:0",
-    ])
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .unwrap();
+    let serve = text_model_args("serve", &store, "grid", [&tm, &tok]);
+    let mut child = command(&[&serve[..], &["--addr", "127.0.0.1:0"]].concat())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     let stderr = child.stderr.take().unwrap();
     let log = tokio::task::spawn_blocking(move || {
         let mut log = String::new();

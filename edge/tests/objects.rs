@@ -10,14 +10,13 @@
 mod support;
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use slag_common::scene::{PlyLoadOptions, SH_C0, load_ply};
 use slag_common::shards::{Dtype, decode_shard};
-use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::view::object_colour;
 use support::{
-    BasisEmbedder, fetch_grid, grid_scene, grid_scene_segmented, serve_on_loopback, shard_server,
+    BasisEmbedder, Grid, error_message, fetch_grid, grid_scene, grid_scene_segmented,
+    grid_serve_options, send, send_json, serve_store, shard_server,
 };
 
 const PER_TILE: usize = 60;
@@ -50,18 +49,7 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     assert_eq!(shards.len(), 12);
     let embedder = Arc::new(BasisEmbedder::new(12));
     let q = embedder.vector("t0");
-    let state = AppState::new(
-        store,
-        embedder,
-        ServeOptions {
-            threshold: 0.28,
-            hnsw: false,
-            request_timeout: Duration::from_secs(10),
-            ..ServeOptions::new("grid")
-        },
-    )
-    .unwrap();
-    let url = serve_on_loopback(state).await;
+    let url = serve_store(store, embedder, grid_serve_options(None, false)).await;
     let client = reqwest::Client::new();
 
     // The reference, per tile.
@@ -87,15 +75,7 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     assert_eq!(tiles, vec![0, 11], "the fixture's two matching tiles");
     assert!(shards[0].opacities.is_some() && shards[11].opacities.is_none());
 
-    let get = |path: String| {
-        let client = client.clone();
-        let url = url.clone();
-        async move {
-            let r = client.get(format!("{url}{path}")).send().await.unwrap();
-            let status = r.status().as_u16();
-            (status, r.json::<serde_json::Value>().await.unwrap())
-        }
-    };
+    let get = |path: String| send_json(client.get(format!("{url}{path}")));
     // The HTTP API reference's example answer: `SLAG_EXAMPLE_OUT=FILE` writes it.
     if let Some(out) = std::env::var_os("SLAG_EXAMPLE_OUT") {
         let (_, ex) = get("/query?text=t0&object_gap=3&top_k=2".into()).await;
@@ -108,10 +88,7 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     assert_eq!(objects.len(), 2, "{a:#}");
     // Built over every match, not the 5 returned.
     assert_eq!(a["matches"].as_array().unwrap().len(), 5);
-    let total: u64 = objects
-        .iter()
-        .map(|o| o["gaussians"].as_u64().unwrap())
-        .sum();
+    let total = gaussians_in_objects(&a);
     assert_eq!(total, a["summary"]["count"].as_u64().unwrap());
     let f = |v: &serde_json::Value| v.as_f64().unwrap();
     // The tile whose first match lies in the object's AABB.
@@ -179,16 +156,10 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     let (_, d) = get("/query?text=t0".into()).await;
     assert_eq!(d["objects"].as_array().unwrap().len(), 0);
     // POST: the same objects; numbers and arrays accepted.
-    let r = client
-        .post(format!("{url}/query"))
-        .json(
-            &serde_json::json!({"queries": [{"text": "t0", "object_gap": 3, "near": [35, 25, 0]}]}),
-        )
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    let b: serde_json::Value = r.json().await.unwrap();
+    let batch =
+        serde_json::json!({"queries": [{"text": "t0", "object_gap": 3, "near": [35, 25, 0]}]});
+    let (status, b) = send_json(client.post(format!("{url}/query")).json(&batch)).await;
+    assert_eq!(status, 200, "{b}");
     let post = b["answers"][0]["objects"]
         .as_array()
         .unwrap_or_else(|| panic!("{b:#}"));
@@ -209,17 +180,12 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     ] {
         let (status, e) = get(format!("/query?text=t0&{q}")).await;
         assert_eq!(status, 400, "{q}: {e}");
-        assert!(e["error"].as_str().unwrap().contains(field), "{q}: {e}");
+        assert!(error_message(&e).contains(field), "{q}: {e}");
     }
 
     // /query.ply?color_by=object: each object's matches in its colour, rows in store order.
-    let r = client
-        .get(format!(
-            "{url}/query.ply?text=t0&object_gap=3&color_by=object"
-        ))
-        .send()
-        .await
-        .unwrap();
+    let ply = "/query.ply?text=t0&object_gap=3&color_by=object";
+    let r = send(client.get(format!("{url}{ply}"))).await;
     assert_eq!(r.status(), 200);
     assert_eq!(r.headers()["x-slag-objects"], "2");
     let dir = tempfile::tempdir().unwrap();
@@ -239,11 +205,7 @@ async fn objects_follow_an_independent_reference_through_every_route() {
             }
         }
     }
-    let r = client
-        .get(format!("{url}/query.ply?text=t0&color_by=tile"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("{url}/query.ply?text=t0&color_by=tile"))).await;
     assert_eq!(r.status(), 400);
 }
 
@@ -260,16 +222,8 @@ fn smoothing_segment(id: u32) -> u32 {
 /// `index=hnsw`, and for a scene without segments.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
-    let scene = grid_scene_segmented(
-        "grid",
-        4,
-        3,
-        PER_TILE,
-        12,
-        Dtype::F32,
-        1,
-        &smoothing_segment,
-    );
+    let grid = Grid("grid", 4, 3, PER_TILE, 12, Dtype::F32, 1);
+    let scene = grid_scene_segmented(grid, &smoothing_segment);
     let server = shard_server(scene, None).await;
     let (_dir, store) = fetch_grid(&server.url, 1000.0).await;
     let m = store.manifest("grid").unwrap().unwrap();
@@ -320,28 +274,9 @@ async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
     assert!((0..20).all(|id| raw_hits.contains(&id)), "{raw_hits:?}");
     assert!(want.iter().all(|w| w.0 >= 20) && want.len() == raw_hits.len() - 20);
 
-    let state = AppState::new(
-        store,
-        embedder,
-        ServeOptions {
-            threshold: 0.28,
-            hnsw: false,
-            request_timeout: Duration::from_secs(10),
-            ..ServeOptions::new("grid")
-        },
-    )
-    .unwrap();
-    let url = serve_on_loopback(state).await;
+    let url = serve_store(store, embedder, grid_serve_options(None, false)).await;
     let client = reqwest::Client::new();
-    let get = |path: String| {
-        let client = client.clone();
-        let url = url.clone();
-        async move {
-            let r = client.get(format!("{url}{path}")).send().await.unwrap();
-            let status = r.status().as_u16();
-            (status, r.json::<serde_json::Value>().await.unwrap())
-        }
-    };
+    let get = |path: String| send_json(client.get(format!("{url}{path}")));
     let ids_scores = |a: &serde_json::Value| -> Vec<(u32, f64)> {
         let mut v: Vec<(u32, f64)> = a["matches"]
             .as_array()
@@ -369,12 +304,7 @@ async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
         assert!((g.1 - w.1).abs() < 1e-5, "id {}: {} vs {}", g.0, g.1, w.1);
     }
     assert_eq!(a["summary"]["count"].as_u64().unwrap() as usize, want.len());
-    let in_objects: u64 = a["objects"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|o| o["gaussians"].as_u64().unwrap())
-        .sum();
+    let in_objects = gaussians_in_objects(&a);
     assert_eq!(in_objects as usize, want.len(), "{a:#}");
     // Without smoothing: each Gaussian's own score, tile 0's first 20 included.
     let (_, plain) = get("/query?text=t0&top_k=10000".into()).await;
@@ -401,16 +331,10 @@ async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
         assert!((g.1 - smoothed(g.0)).abs() < 1e-5);
     }
     // POST: the same field.
-    let r = client
-        .post(format!("{url}/query"))
-        .json(
-            &serde_json::json!({"queries": [{"text": "t0", "smooth": "segment", "top_k": 10000}]}),
-        )
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let batch =
+        serde_json::json!({"queries": [{"text": "t0", "smooth": "segment", "top_k": 10000}]});
+    let (status, body) = send_json(client.post(format!("{url}/query")).json(&batch)).await;
+    assert_eq!(status, 200, "{body}");
     let post: Vec<u32> = ids_scores(&body["answers"][0])
         .iter()
         .map(|p| p.0)
@@ -423,35 +347,29 @@ async fn smooth_segment_scores_each_gaussian_with_its_segment_mean() {
     ] {
         let (status, e) = get(format!("/query?text=t0&{q}")).await;
         assert_eq!(status, 400, "{q}: {e}");
-        let msg = e["error"].as_str().unwrap();
+        let msg = error_message(&e);
         assert!(msg.contains("smooth") && msg.contains(needle), "{q}: {e}");
     }
 
     // A scene whose shards carry no segments: 400 saying what to do.
     let plain_server = shard_server(grid_scene("grid", 2, 2, 20, 12, Dtype::F32, 1), None).await;
     let (_dir2, plain_store) = fetch_grid(&plain_server.url, 1000.0).await;
-    let state = AppState::new(
-        plain_store,
-        Arc::new(BasisEmbedder::new(12)),
-        ServeOptions {
-            threshold: 0.28,
-            hnsw: false,
-            request_timeout: Duration::from_secs(10),
-            ..ServeOptions::new("grid")
-        },
-    )
-    .unwrap();
-    let url2 = serve_on_loopback(state).await;
-    let r = client
-        .get(format!("{url2}/query?text=t0&smooth=segment"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 400);
-    let e: serde_json::Value = r.json().await.unwrap();
-    let msg = e["error"].as_str().unwrap();
+    let options = grid_serve_options(None, false);
+    let url2 = serve_store(plain_store, Arc::new(BasisEmbedder::new(12)), options).await;
+    let (status, e) = send_json(client.get(format!("{url2}/query?text=t0&smooth=segment"))).await;
+    assert_eq!(status, 400);
+    let msg = error_message(&e);
     assert!(
         msg.contains("no geometric segments") && msg.contains("leave smooth out"),
         "{msg}"
     );
+}
+
+/// The Gaussians of all of an answer's `objects`.
+fn gaussians_in_objects(answer: &serde_json::Value) -> u64 {
+    let objects = answer["objects"].as_array().unwrap();
+    objects
+        .iter()
+        .map(|o| o["gaussians"].as_u64().unwrap())
+        .sum()
 }

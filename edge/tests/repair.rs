@@ -10,39 +10,29 @@
 mod support;
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use slag_common::shards::{Dtype, MAX_MANIFEST_BYTES, ShardLayout, TileInfo};
 use slag_common::{Error, Resource};
-use slag_edge::fetch::{Center, FetchParams, FetchSummary, fetch};
-use slag_edge::query::{CANONICAL_NEGATIVES, Interface, RawQuery, TextEmbedder};
+use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
+use slag_edge::query::RawQuery;
 use slag_edge::store::EdgeStore;
-use support::{BasisEmbedder, fixture, grid_scene, serve_on_loopback, shard_server};
+use support::{
+    BasisEmbedder, exact_answer, fixture, grid_fetch_params, grid_scene, output_blocking,
+    partial_files, serve_on_loopback, shard_server, slag_edge_with_log, success_json, temp_store,
+    text_model_args,
+};
 
 fn params(url: &str) -> FetchParams {
-    FetchParams {
-        server: url.into(),
-        scene: "grid".into(),
-        center: Center::Ground([0.0, 0.0]),
-        radius: 100.0,
-        prune: false,
-        jobs: 2,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
-    }
+    grid_fetch_params(url, 100.0)
 }
 
 /// The answers to one prompt per tile direction (every match, no threshold) from what the store
 /// serves, plus what loading rejected.
 fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
     let engine = slag_edge::engine::Engine::load(store, "grid", false).unwrap();
-    let text = BasisEmbedder::new(8);
-    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
     let out = (0..4)
         .map(|t| {
             let q = RawQuery {
@@ -54,20 +44,8 @@ fn answers(store: &EdgeStore) -> (Vec<serde_json::Value>, Vec<String>) {
                 index: None,
                 frame: None,
                 ..Default::default()
-            }
-            .validate_for(0.28, Interface::Cli)
-            .unwrap();
-            let a = slag_edge::query::run_query_framed(
-                &engine.store,
-                &engine.manifest.model,
-                None,
-                &text,
-                &negatives,
-                None,
-                None,
-                &q,
-            )
-            .unwrap();
+            };
+            let a = exact_answer(&engine, 8, q, false);
             serde_json::to_value(&a.matches).unwrap()
         })
         .collect();
@@ -88,6 +66,14 @@ fn shard_path(store: &EdgeStore, tile: u64) -> PathBuf {
     let m = store.manifest("grid").unwrap().unwrap();
     let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
     store.shard_path("grid", t).unwrap()
+}
+
+/// `err` is the typed refusal of a `resource` limit.
+fn assert_limit(err: &Error, resource: Resource) {
+    assert!(
+        matches!(err, Error::Limit { resource: r, .. } if *r == resource),
+        "{err}"
+    );
 }
 
 /// A damage done to a complete store of the 2 × 2 grid, and what the repairing fetch must
@@ -178,8 +164,7 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         .into_iter()
         .flat_map(|p| cases.map(|c| (p, c)))
     {
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (dir, store) = temp_store();
         let first = fetch(&store, &params(&server.url)).await.unwrap();
         assert_eq!(first.downloaded, 4);
         let (want, rejected) = answers(&store);
@@ -204,12 +189,7 @@ async fn every_damage_is_repaired_by_one_fetch_and_the_answers_equal_the_referen
         let q = quarantined(dir.path());
         let expect_q = set_aside + usize::from(name == "stale partial");
         assert_eq!(q.len(), expect_q, "{name}: {q:?}");
-        assert_eq!(
-            std::fs::read_dir(dir.path().join("partial"))
-                .unwrap()
-                .count(),
-            0
-        );
+        assert_eq!(partial_files(dir.path()), 0);
         // A second fetch finds everything verified.
         let again = fetch(&store, &p).await.unwrap();
         assert_eq!(
@@ -225,8 +205,7 @@ async fn a_manifest_declaring_sizes_the_format_does_not_allow_is_refused_before_
     let mut scene = grid_scene("grid", 2, 1, 10, 8, Dtype::F16, 1);
     scene.manifest.tiles[1].bytes = 1_000_000_000_000;
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
     assert!(matches!(err, Error::Format { .. }), "{msg}");
@@ -235,12 +214,7 @@ async fn a_manifest_declaring_sizes_the_format_does_not_allow_is_refused_before_
         "{msg}"
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("partial"))
-            .unwrap()
-            .count(),
-        0
-    );
+    assert_eq!(partial_files(dir.path()), 0);
     assert!(store.manifest("grid").unwrap().is_none());
 }
 
@@ -265,31 +239,16 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
     t.count = u32::MAX as u64;
     t.bytes = layout.shard_len(t.count);
     let server = shard_server(scene, None).await;
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
+    let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();
     let msg = err.to_string();
-    assert!(
-        matches!(
-            err,
-            Error::Limit {
-                resource: Resource::DiskSpace,
-                ..
-            }
-        ),
-        "{msg}"
-    );
+    assert_limit(&err, Resource::DiskSpace);
     assert!(
         msg.contains(&dir.path().join("partial").display().to_string()),
         "{msg}"
     );
     assert_eq!(server.state.requests.load(Ordering::SeqCst), 0);
-    assert_eq!(
-        std::fs::read_dir(dir.path().join("partial"))
-            .unwrap()
-            .count(),
-        0
-    );
+    assert_eq!(partial_files(dir.path()), 0);
 }
 
 /// Serves `GET /v1/scenes/grid/manifest` as 200 MB of JSON whitespace, with or without a
@@ -328,20 +287,10 @@ async fn huge_manifest_server(
 async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
     for content_length in [true, false] {
         let (url, sent) = huge_manifest_server(content_length).await;
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (_dir, store) = temp_store();
         let err = fetch(&store, &params(&url)).await.unwrap_err();
         let msg = err.to_string();
-        assert!(
-            matches!(
-                err,
-                Error::Limit {
-                    resource: Resource::ManifestBytes,
-                    ..
-                }
-            ),
-            "{msg}"
-        );
+        assert_limit(&err, Resource::ManifestBytes);
         assert!(msg.contains(&MAX_MANIFEST_BYTES.to_string()), "{msg}");
         // The reader stopped at the cap (the server may have queued a few more chunks).
         if !content_length {
@@ -356,20 +305,7 @@ async fn a_200_mb_manifest_is_refused_without_reading_it_whole() {
 
 /// `slag-edge` (through `$SLAG_TEST_RUNNER` when set), not yet started.
 fn slag_edge(args: &[&str]) -> Command {
-    let mut cmd = support::slag_edge_command();
-    cmd.args(args)
-        .env("RUST_LOG", "warn")
-        .env_remove("SLAG_FAULT_EXIT_AT")
-        .env_remove("SLAG_FAULT_ENOSPC_AT")
-        .env_remove("SLAG_SHARD_TOKEN");
-    cmd
-}
-
-async fn run(cmd: Command) -> Output {
-    let mut cmd = cmd;
-    tokio::task::spawn_blocking(move || cmd.output().unwrap())
-        .await
-        .unwrap()
+    slag_edge_with_log(args, "warn")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -378,46 +314,20 @@ async fn a_full_disk_mid_download_removes_the_partial_files_and_a_rerun_complete
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let s = store.display().to_string();
-    let args = [
-        "fetch",
-        "--from",
-        &server.url,
-        "--scene",
-        "grid",
-        "--center",
-        "0,0",
-        "--radius",
-        "100",
-        "--store",
-        &s,
-        "--jobs",
-        "2",
-        "--retries",
-        "0",
-        "--json",
-    ];
+    let fetch = support::fetch_args(&server.url, &s, "100");
+    let args = [&fetch[..], &["--jobs", "2", "--retries", "0", "--json"]].concat();
     let mut cmd = slag_edge(&args);
     cmd.env("SLAG_FAULT_ENOSPC_AT", "3");
-    let out = run(cmd).await;
+    let out = output_blocking(cmd).await;
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(err.contains("No space left on device"), "{err}");
-    assert_eq!(
-        std::fs::read_dir(store.join("partial")).unwrap().count(),
-        0,
-        "{err}"
-    );
+    assert_eq!(partial_files(&store), 0, "{err}");
     {
         let edge = EdgeStore::open(&store).unwrap();
         assert!(edge.manifest("grid").unwrap().is_none());
     }
-    let out = run(slag_edge(&args)).await;
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let summary = success_json(&output_blocking(slag_edge(&args)).await);
     assert_eq!(summary["selected"], 4);
     assert_eq!(
         summary["downloaded"].as_u64().unwrap() + summary["skipped"].as_u64().unwrap(),
@@ -499,8 +409,7 @@ async fn post_fetch_sends_the_configured_shard_token() {
     )
     .await;
     for configured in [Some("s3cret"), None] {
-        let dir = tempfile::tempdir().unwrap();
-        let store = EdgeStore::open(dir.path()).unwrap();
+        let (_dir, store) = temp_store();
         let mut p = params(&server.url);
         p.token = Some("s3cret".into());
         p.radius = 5.0;
@@ -550,17 +459,7 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
     );
     let check = |store: &Path| {
         let s = store.display().to_string();
-        slag_edge(&[
-            "check",
-            "--store",
-            &s,
-            "--scene",
-            "grid",
-            "--text-model",
-            &tm,
-            "--tokenizer",
-            &tok,
-        ])
+        slag_edge(&text_model_args("check", &s, "grid", [&tm, &tok]))
     };
     /// (name, damage, what the problems must name; none: ok).
     type Case = (&'static str, fn(&EdgeStore), &'static [&'static str]);
@@ -599,15 +498,10 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
             fetch(&store, &params(&server.url)).await.unwrap();
             damage(&store);
         }
-        let out = run(check(dir.path())).await;
+        let out = output_blocking(check(dir.path())).await;
         let report: serde_json::Value = serde_json::from_slice(&out.stdout)
             .unwrap_or_else(|e| panic!("{name}: {e}: {}", String::from_utf8_lossy(&out.stderr)));
-        let problems: Vec<&str> = report["problems"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|p| p.as_str().unwrap())
-            .collect();
+        let problems: Vec<String> = serde_json::from_value(report["problems"].clone()).unwrap();
         assert_eq!(report["ok"], expect.is_empty(), "{name}: {report}");
         assert_eq!(out.status.success(), expect.is_empty(), "{name}: {report}");
         for e in expect {

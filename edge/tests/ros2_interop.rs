@@ -27,7 +27,9 @@ use std::time::Duration;
 use slag_common::shards::Dtype;
 use slag_edge::ros2::{Ros2Counts, Ros2Options};
 use slag_edge::serve::{AppState, ServeOptions};
-use support::{BasisEmbedder, fetch_grid, grid_scene, shard_server, wait_until};
+use support::{
+    BasisEmbedder, fetch_grid, grid_scene, serve_shared_on_loopback, shard_server, wait_until,
+};
 
 /// The venv's python, or `None` (with the reason printed) when the install is impossible.
 fn python() -> Option<String> {
@@ -103,16 +105,8 @@ async fn start(nx: usize, per_tile: usize, dim: usize) -> Node {
         domain_id: 1 + (pid % 200) as u16,
     };
     let node = slag_edge::ros2::start(state.clone(), options.clone()).unwrap();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(async move {
-        slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
-            let _ = tx.send(a);
-        })
-        .await
-        .unwrap();
-    });
     Node {
-        url: format!("http://{}", rx.await.unwrap()),
+        url: serve_shared_on_loopback(state).await,
         options,
         counters: node.counters,
         _dir: dir,

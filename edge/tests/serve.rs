@@ -6,13 +6,14 @@ mod support;
 
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
 
+use serde::Deserialize;
 use slag_common::shards::{Dtype, decode_shard};
 use slag_edge::serve::{AppState, HnswBackend, ServeOptions};
 use support::{
-    BasisEmbedder, GateEmbedder, TestScene, fetch_grid, grid_scene, serve_on_loopback,
-    shard_server, wait_until,
+    BasisEmbedder, GateEmbedder, TestScene, error_message, fetch_grid, grid_scene,
+    grid_serve_options, header_number, match_ids, send, send_json, serve_on_loopback, shard_server,
+    wait_until,
 };
 
 struct Edge {
@@ -34,18 +35,7 @@ async fn start(scene: TestScene, radius: f64, token: Option<&str>) -> (Edge, Vec
             .collect()
     };
     let embedder = Arc::new(BasisEmbedder::new(dim));
-    let state = AppState::new(
-        store,
-        embedder.clone(),
-        ServeOptions {
-            token: token.map(str::to_string),
-            threshold: 0.28,
-            hnsw: true,
-            request_timeout: Duration::from_secs(10),
-            ..ServeOptions::new("grid")
-        },
-    )
-    .unwrap();
+    let state = AppState::new(store, embedder.clone(), grid_serve_options(token, true)).unwrap();
     (
         Edge {
             url: serve_on_loopback(state).await,
@@ -92,23 +82,7 @@ fn reference(
 }
 
 async fn get_json(e: &Edge, path: &str) -> (u16, serde_json::Value) {
-    let r = e
-        .client
-        .get(format!("{}{path}", e.url))
-        .send()
-        .await
-        .unwrap();
-    let status = r.status().as_u16();
-    (status, r.json().await.unwrap())
-}
-
-fn ids(v: &serde_json::Value) -> Vec<u32> {
-    v["matches"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|m| m["id"].as_u64().unwrap() as u32)
-        .collect()
+    send_json(e.client.get(format!("{}{path}", e.url))).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -126,7 +100,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
             a["summary"]["count"].as_u64().unwrap() as usize,
             above.len()
         );
-        let got = ids(&a);
+        let got = match_ids(&a);
         assert_eq!(got.len(), above.len().min(100));
         // Same ranking up to near-ties (f32 kernel vs f64 reference).
         for (m, w) in a["matches"].as_array().unwrap().iter().zip(&above) {
@@ -146,7 +120,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
         // top_k + threshold=none: the k best of everything.
         let (_, a) = get_json(&e, "/query?text=t4&top_k=7&threshold=none").await;
         let best: Vec<u32> = want.iter().take(7).map(|w| w.0).collect();
-        assert_eq!(ids(&a), best, "{dtype:?}");
+        assert_eq!(match_ids(&a), best, "{dtype:?}");
 
         // bbox keeps only Gaussians inside.
         let (_, a) = get_json(
@@ -155,12 +129,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
         )
         .await;
         for m in a["matches"].as_array().unwrap() {
-            let p: Vec<f64> = m["position"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|x| x.as_f64().unwrap())
-                .collect();
+            let p = Vec::<f64>::deserialize(&m["position"]).unwrap();
             assert!(
                 p[0] >= 10.0 && p[0] <= 15.0 && p[1] >= 10.0 && p[1] <= 15.0,
                 "{p:?}"
@@ -170,7 +139,7 @@ async fn query_answers_match_an_independent_reference_for_every_dtype() {
             .iter()
             .filter(|w| (10.0..=15.0).contains(&w.1[0]) && (10.0..=15.0).contains(&w.1[1]))
             .count();
-        assert_eq!(ids(&a).len(), inside);
+        assert_eq!(match_ids(&a).len(), inside);
 
         // Relevancy against the canonical negatives (all map to the background basis here).
         let negs: Vec<Vec<f32>> = (0..4).map(|_| e.embedder.vector("object")).collect();
@@ -201,31 +170,28 @@ async fn batches_hnsw_stats_health_and_errors() {
     )
     .await;
     let auth = |r: reqwest::RequestBuilder| r.bearer_auth("tok");
+    // A request with the token, answered 200: its JSON body.
+    let authed_json = async |r: reqwest::RequestBuilder| {
+        let (status, body) = send_json(auth(r)).await;
+        assert_eq!(status, 200, "{body}");
+        body
+    };
 
     // Health needs no token; everything else does.
     let (s, h) = get_json(&e, "/health").await;
     assert_eq!((s, h["status"].as_str()), (200, Some("ok")));
     let (s, err) = get_json(&e, "/query?text=t1").await;
     assert_eq!(s, 401, "{err}");
-    assert!(err["error"].as_str().unwrap().contains("Bearer"));
-    let r = e
-        .client
-        .get(format!("{}/query?text=t1", e.url))
-        .bearer_auth("wrong")
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 401);
+    assert!(error_message(&err).contains("Bearer"));
+    let wrong = e.client.get(format!("{}/query?text=t1", e.url));
+    assert_eq!(
+        send(wrong.bearer_auth("wrong")).await.status().as_u16(),
+        401
+    );
 
     // Stats: what was fetched within 12 units of the origin: tiles 0, 1 and 3 (tile 4's corner
     // (10, 10) is 14.1 away).
-    let st: serde_json::Value = auth(e.client.get(format!("{}/stats", e.url)))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let st = authed_json(e.client.get(format!("{}/stats", e.url))).await;
     assert_eq!(st["shards_loaded"], 3);
     assert_eq!(st["shards_absent"], 6);
     assert_eq!(st["gaussians"], 240);
@@ -239,52 +205,23 @@ async fn batches_hnsw_stats_health_and_errors() {
         {"text": "t0", "top_k": 3, "threshold": "none"},
         {"text": "t4", "mode": "relevancy", "top_k": 2},
     ]});
-    let b: serde_json::Value = auth(e.client.post(format!("{}/query", e.url)))
-        .json(&body)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let b = authed_json(e.client.post(format!("{}/query", e.url)).json(&body)).await;
     let answers = b["answers"].as_array().unwrap();
     assert_eq!(answers.len(), 2);
-    let single: serde_json::Value = auth(
+    let single = authed_json(
         e.client
             .get(format!("{}/query?text=t0&top_k=3&threshold=none", e.url)),
     )
-    .send()
-    .await
-    .unwrap()
-    .json()
-    .await
-    .unwrap();
-    assert_eq!(ids(&answers[0]), ids(&single));
+    .await;
+    assert_eq!(match_ids(&answers[0]), match_ids(&single));
     assert_eq!(answers[1]["mode"], "relevancy");
 
     // HNSW: top-k answered by the approximate index agrees with the exact one here.
-    let h: serde_json::Value = auth(e.client.get(format!(
-        "{}/query?text=t1&index=hnsw&top_k=10&threshold=none",
-        e.url
-    )))
-    .send()
-    .await
-    .unwrap()
-    .json()
-    .await
-    .unwrap();
-    let x: serde_json::Value = auth(
-        e.client
-            .get(format!("{}/query?text=t1&top_k=10&threshold=none", e.url)),
-    )
-    .send()
-    .await
-    .unwrap()
-    .json()
-    .await
-    .unwrap();
+    let top10 = "/query?text=t1&top_k=10&threshold=none";
+    let h = authed_json(e.client.get(format!("{}{top10}&index=hnsw", e.url))).await;
+    let x = authed_json(e.client.get(format!("{}{top10}", e.url))).await;
     assert_eq!(h["index"], "hnsw");
-    let (hi, xi) = (ids(&h), ids(&x));
+    let (hi, xi) = (match_ids(&h), match_ids(&x));
     let common = hi.iter().filter(|i| xi.contains(i)).count();
     assert!(common >= 9, "hnsw recall@10 {common}/10");
 
@@ -299,43 +236,24 @@ async fn batches_hnsw_stats_health_and_errors() {
         ("/query?text=t1&colour=red", 400, "colour"),
         ("/nope", 404, "no such route"),
     ] {
-        let r = auth(e.client.get(format!("{}{path}", e.url)))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), status, "{path}");
-        let v: serde_json::Value = r.json().await.unwrap();
-        assert!(v["error"].as_str().unwrap().contains(needle), "{path}: {v}");
+        let (s, v) = send_json(auth(e.client.get(format!("{}{path}", e.url)))).await;
+        assert_eq!(s, status, "{path}");
+        assert!(error_message(&v).contains(needle), "{path}: {v}");
     }
     let too_many: Vec<_> = (0..65).map(|_| serde_json::json!({"text": "t1"})).collect();
-    let r = auth(e.client.post(format!("{}/query", e.url)))
-        .json(&serde_json::json!({ "queries": too_many }))
-        .send()
-        .await
-        .unwrap();
+    let post = || auth(e.client.post(format!("{}/query", e.url)));
+    let r = send(post().json(&serde_json::json!({ "queries": too_many }))).await;
     assert_eq!(r.status().as_u16(), 400);
-    let r = auth(e.client.post(format!("{}/query", e.url)))
-        .json(&serde_json::json!({"queries": [{"text": "t1"}, {"text": "t1", "top_k": 0}]}))
-        .send()
-        .await
-        .unwrap();
+    let second_bad = serde_json::json!({"queries": [{"text": "t1"}, {"text": "t1", "top_k": 0}]});
+    let r = send(post().json(&second_bad)).await;
     assert_eq!(r.status().as_u16(), 400);
     assert!(r.text().await.unwrap().contains("queries[1]"));
     let big = "x".repeat(100 * 1024);
-    let r = auth(e.client.post(format!("{}/query", e.url)))
-        .header("content-type", "application/json")
-        .body(big)
-        .send()
-        .await
-        .unwrap();
+    let r = send(post().header("content-type", "application/json").body(big)).await;
     assert_eq!(r.status().as_u16(), 413);
     // The server closes a connection whose body it refused, so ask on a fresh connection (a pooled
     // one can race with that close: seen under qemu as hyper's IncompleteMessage).
-    let r = reqwest::Client::new()
-        .get(format!("{}/health", e.url))
-        .send()
-        .await
-        .unwrap();
+    let r = send(reqwest::Client::new().get(format!("{}/health", e.url))).await;
     assert_eq!(r.status().as_u16(), 200);
 
     // The prompt is embedded once per query (negatives once at start-up).
@@ -378,9 +296,9 @@ async fn hnsw_backends_answer_like_the_exact_scan_or_are_refused_at_start_up() {
         let url = serve_on_loopback(state).await;
         let client = reqwest::Client::new();
         let get = async |path: String| -> serde_json::Value {
-            let r = client.get(format!("{url}{path}")).send().await.unwrap();
-            assert_eq!(r.status().as_u16(), 200, "{path}");
-            r.json().await.unwrap()
+            let (status, body) = send_json(client.get(format!("{url}{path}"))).await;
+            assert_eq!(status, 200, "{path}");
+            body
         };
         let st = get("/stats".into()).await;
         assert_eq!(st["memory"]["hnsw_backend"], backend.name());
@@ -391,7 +309,7 @@ async fn hnsw_backends_answer_like_the_exact_scan_or_are_refused_at_start_up() {
             .await;
             let x = get(format!("/query?text={t}&top_k=10&threshold=none")).await;
             assert_eq!(h["index"], "hnsw");
-            assert_eq!(ids(&h), ids(&x), "{backend} {t}");
+            assert_eq!(match_ids(&h), match_ids(&x), "{backend} {t}");
             let scores = |v: &serde_json::Value| -> Vec<f64> {
                 v["matches"]
                     .as_array()
@@ -418,8 +336,7 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
     let scene = grid_scene("grid", 2, 2, 20, 8, Dtype::F32, 1);
     let server = shard_server(scene, None).await;
     let (_dir, store) = fetch_grid(&server.url, 100.0).await;
-    let gate = Arc::new(GateEmbedder::new(8));
-    let _open = gate.open_on_drop();
+    let (gate, _open) = GateEmbedder::with_guard(8);
     let state = AppState::new(
         store,
         gate.clone(),
@@ -432,27 +349,19 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
     .unwrap();
     let url = serve_on_loopback(state).await;
     let client = reqwest::Client::new();
-    let stats = async || -> serde_json::Value {
-        let r = client.get(format!("{url}/stats")).send().await.unwrap();
-        r.json().await.unwrap()
-    };
-    let send = |text: &str| {
+    let stats =
+        async || -> serde_json::Value { send_json(client.get(format!("{url}/stats"))).await.1 };
+    let spawn_query = |text: &str| {
         let (c, u) = (client.clone(), format!("{url}/query?text={text}"));
-        tokio::spawn(async move {
-            let r = c.get(u).send().await.unwrap();
-            (
-                r.status().as_u16(),
-                r.json::<serde_json::Value>().await.unwrap(),
-            )
-        })
+        tokio::spawn(async move { send_json(c.get(u)).await })
     };
 
     // t1 holds the only scan permit (its prompt waits at the gate); t2 then t3 queue behind it.
-    let a = send("t1");
+    let a = spawn_query("t1");
     wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
-    let b = send("t2");
+    let b = spawn_query("t2");
     wait_until("t2 waits", async || stats().await["scans"]["waiting"] == 1).await;
-    let c = send("t3");
+    let c = spawn_query("t3");
     wait_until("t3 waits", async || stats().await["scans"]["waiting"] == 2).await;
     let s = stats().await;
     assert_eq!(s["scans"]["running"], 1, "{s}");
@@ -460,17 +369,9 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
 
     // The queue is full: a fourth query is turned away at once with 503 and Retry-After, as is a
     // batch; a bad query is still answered 400 (validation comes before the queue).
-    let r = client
-        .get(format!("{url}/query?text=t4"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("{url}/query?text=t4"))).await;
     assert_eq!(r.status().as_u16(), 503);
-    let retry: u64 = r.headers()["retry-after"]
-        .to_str()
-        .unwrap()
-        .parse()
-        .unwrap();
+    let retry = header_number(&r, "retry-after");
     assert!(retry >= 1, "Retry-After {retry}");
     let body: serde_json::Value = r.json().await.unwrap();
     assert_eq!(body["status"], 503);
@@ -478,19 +379,11 @@ async fn scans_run_one_at_a_time_in_arrival_order_and_a_full_queue_answers_503()
         body["error"].as_str().unwrap().contains("retry after"),
         "{body}"
     );
-    let r = client
-        .post(format!("{url}/query"))
-        .json(&serde_json::json!({"queries": [{"text": "t5"}]}))
-        .send()
-        .await
-        .unwrap();
+    let batch = serde_json::json!({"queries": [{"text": "t5"}]});
+    let r = send(client.post(format!("{url}/query")).json(&batch)).await;
     assert_eq!(r.status().as_u16(), 503);
     assert!(r.headers().contains_key("retry-after"));
-    let r = client
-        .get(format!("{url}/query?text=t6&top_k=0"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(client.get(format!("{url}/query?text=t6&top_k=0"))).await;
     assert_eq!(r.status().as_u16(), 400);
 
     // Released one at a time, the queued queries run in arrival order, each only after the one
@@ -551,36 +444,21 @@ async fn a_bad_query_is_400_and_a_panicked_query_task_500() {
     .unwrap();
     let url = serve_on_loopback(state).await;
     let client = reqwest::Client::new();
-    let get = |path: String| {
-        let (client, url) = (client.clone(), url.clone());
-        async move {
-            let r = client.get(format!("{url}{path}")).send().await.unwrap();
-            let status = r.status().as_u16();
-            let v: serde_json::Value = r.json().await.unwrap();
-            (status, v)
-        }
-    };
+    let get = |path: String| send_json(client.get(format!("{url}{path}")));
     let (s, v) = get("/query?text=t1&top_k=0".into()).await;
     assert_eq!(s, 400, "{v}");
     assert_eq!(v["status"], 400);
-    assert!(v["error"].as_str().unwrap().contains("top_k"), "{v}");
+    assert!(error_message(&v).contains("top_k"), "{v}");
     let (s, v) = get("/query?text=boom".into()).await;
     assert_eq!(s, 500, "{v}");
-    let msg = v["error"].as_str().unwrap();
+    let msg = error_message(&v);
     assert!(
         msg.contains("internal fault") && msg.contains("query task failed"),
         "{msg}"
     );
     // A batch answers the panicked item's status in place, like any other error.
-    let b: serde_json::Value = client
-        .post(format!("{url}/query"))
-        .json(&serde_json::json!({"queries": [{"text": "boom"}]}))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let boom = serde_json::json!({"queries": [{"text": "boom"}]});
+    let (_, b) = send_json(client.post(format!("{url}/query")).json(&boom)).await;
     assert_eq!(b["answers"][0]["status"], 500, "{b}");
     // Still serving.
     let (s, v) = get("/query?text=t1&top_k=1&threshold=none".into()).await;

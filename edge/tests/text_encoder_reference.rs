@@ -6,26 +6,18 @@
 //! correctly on aarch64.
 //!
 //! Needs ONNX Runtime: `. scripts/setup.sh` exports `ORT_DYLIB_PATH`; without it the test fails
-//! (SLAG_SKIP_ORT=1 skips it, for quick local runs).
+//! (SLAG_SKIP_ORT set skips it, for quick local runs).
 
 #![allow(clippy::unwrap_used)]
 
+mod support;
+
 use std::path::PathBuf;
 
+use serde::Deserialize;
 use serde_json::Value;
 use slag_common::onnx::ExecutionProvider;
 use slag_common::text::TextEncoder;
-
-fn ort_available() -> bool {
-    if std::env::var_os("ORT_DYLIB_PATH").is_some() {
-        return true;
-    }
-    if std::env::var("SLAG_SKIP_ORT").as_deref() == Ok("1") {
-        eprintln!("SKIPPED (SLAG_SKIP_ORT=1): ORT_DYLIB_PATH is not set");
-        return false;
-    }
-    panic!("ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1 to skip)");
-}
 
 fn clip_dir() -> PathBuf {
     slag_common::paths::source_tree_shared_dir().join("fixtures/clip")
@@ -40,7 +32,7 @@ fn cosine(a: &[f32], b: &[f64]) -> f64 {
 
 #[test]
 fn text_encoder_reproduces_open_clip() {
-    if !ort_available() {
+    if support::skip_without_ort() {
         return;
     }
     let reference: Value =
@@ -51,32 +43,17 @@ fn text_encoder_reproduces_open_clip() {
         ExecutionProvider::Cpu,
     )
     .unwrap();
-    let texts: Vec<&str> = reference["texts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t.as_str().unwrap())
-        .collect();
+    let texts = Vec::<&str>::deserialize(&reference["texts"]).unwrap();
     assert!(!texts.is_empty());
     let ids = text.tokenize(&texts).unwrap();
     for (i, row) in ids.iter().enumerate() {
-        let want: Vec<i64> = reference["input_ids"][i]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_i64().unwrap())
-            .collect();
+        let want = Vec::<i64>::deserialize(&reference["input_ids"][i]).unwrap();
         assert_eq!(row, &want, "token ids of {:?}", texts[i]);
     }
     let embs = text.encode(&texts).unwrap();
     assert_eq!(embs.len(), texts.len());
     for (i, e) in embs.iter().enumerate() {
-        let want: Vec<f64> = reference["text_embeds"][i]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_f64().unwrap())
-            .collect();
+        let want = Vec::<f64>::deserialize(&reference["text_embeds"][i]).unwrap();
         assert_eq!(e.len(), want.len(), "embedding width of {:?}", texts[i]);
         let cos = cosine(e, &want);
         assert!(cos >= 0.999, "text {:?}: cosine {cos}", texts[i]);

@@ -7,12 +7,14 @@ mod support;
 
 use std::collections::HashSet;
 use std::sync::Arc;
-use std::time::Duration;
 
 use slag_common::scene::{PlyLoadOptions, SH_C0, load_ply};
 use slag_common::shards::{Dtype, decode_shard};
-use slag_edge::serve::{AppState, ServeOptions};
-use support::{BasisEmbedder, fetch_grid, grid_scene, serve_on_loopback, shard_server};
+use slag_edge::serve::AppState;
+use support::{
+    BasisEmbedder, fetch_grid, grid_scene, grid_serve_options, header_number, match_ids, send,
+    serve_on_loopback, shard_server,
+};
 
 struct Edge {
     url: String,
@@ -40,13 +42,7 @@ async fn start(token: Option<&str>) -> Edge {
     let state = AppState::new(
         store,
         Arc::new(BasisEmbedder::new(8)),
-        ServeOptions {
-            token: token.map(str::to_string),
-            threshold: 0.28,
-            hnsw: false,
-            request_timeout: Duration::from_secs(10),
-            ..ServeOptions::new("grid")
-        },
+        grid_serve_options(token, false),
     )
     .unwrap()
     .with_web_dir(Some(web.path().to_path_buf()));
@@ -56,6 +52,18 @@ async fn start(token: Option<&str>) -> Edge {
         shards,
         _dir: dir,
         web,
+    }
+}
+
+impl Edge {
+    /// `GET {url}{path}` with the bearer token when given.
+    async fn get(&self, path: &str, token: Option<&str>) -> reqwest::Response {
+        let req = self.client.get(format!("{}{path}", self.url));
+        send(match token {
+            Some(t) => req.bearer_auth(t),
+            None => req,
+        })
+        .await
     }
 }
 
@@ -70,32 +78,17 @@ async fn query_ply_paints_exactly_the_matches_in_store_order() {
     let ids: Vec<u32> = e.shards.iter().flat_map(|s| s.ids.clone()).collect();
     let mut any_match = false;
     for text in ["t0", "t3", "t5", "nothing-like-it"] {
-        let json: serde_json::Value = e
-            .client
-            .get(format!("{}/query?text={text}&top_k=10000", e.url))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        let want: HashSet<u32> = json["matches"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|m| m["id"].as_u64().unwrap() as u32)
-            .collect();
+        let r = e
+            .get(&format!("/query?text={text}&top_k=10000"), None)
+            .await;
+        let json: serde_json::Value = r.json().await.unwrap();
+        let want: HashSet<u32> = match_ids(&json).into_iter().collect();
         assert_eq!(
             want.len() as u64,
             json["summary"]["count"].as_u64().unwrap()
         );
         any_match |= !want.is_empty();
-        let r = e
-            .client
-            .get(format!("{}/query.ply?text={text}", e.url))
-            .send()
-            .await
-            .unwrap();
+        let r = e.get(&format!("/query.ply?text={text}"), None).await;
         assert_eq!(r.status(), 200);
         let h = r.headers().clone();
         assert_eq!(h["content-type"], "application/octet-stream");
@@ -172,28 +165,14 @@ async fn query_ply_validates_like_query_and_styles() {
         "text=t1&dim=2",
         "text=t1&bogus=1",
     ] {
-        let r = e
-            .client
-            .get(format!("{}/query.ply?{q}", e.url))
-            .send()
-            .await
-            .unwrap();
+        let r = e.get(&format!("/query.ply?{q}"), None).await;
         assert_eq!(r.status(), 400, "{q}");
         let j: serde_json::Value = r.json().await.unwrap();
         assert!(j["error"].is_string());
     }
-    let r = e
-        .client
-        .get(format!("{}/query.ply?text=t1&color=00ff00&dim=0", e.url))
-        .send()
-        .await
-        .unwrap();
+    let r = e.get("/query.ply?text=t1&color=00ff00&dim=0", None).await;
     assert_eq!(r.status(), 200);
-    let n: usize = r.headers()["x-slag-matches"]
-        .to_str()
-        .unwrap()
-        .parse()
-        .unwrap();
+    let n = header_number(&r, "x-slag-matches") as usize;
     let p = e.web.path().join("g.ply");
     std::fs::write(&p, r.bytes().await.unwrap()).unwrap();
     let g = load_ply(&p, PlyLoadOptions { colours: true }).unwrap();
@@ -214,7 +193,7 @@ async fn query_ply_validates_like_query_and_styles() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn page_is_public_and_data_needs_the_token() {
     let e = start(Some("s3cret")).await;
-    let page = e.client.get(format!("{}/", e.url)).send().await.unwrap();
+    let page = e.get("/", None).await;
     assert_eq!(page.status(), 200);
     assert!(
         page.headers()["content-type"]
@@ -224,43 +203,36 @@ async fn page_is_public_and_data_needs_the_token() {
     );
     let html = page.text().await.unwrap();
     assert!(html.contains("/app.js") && html.contains("web-vendor.sh"));
-    let js = e
-        .client
-        .get(format!("{}/app.js", e.url))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(js.status(), 200);
-    assert!(js.text().await.unwrap().contains("/query.ply"));
-    let v = e
-        .client
-        .get(format!("{}/vendor/three.module.js", e.url))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(v.status(), 200);
-    assert_eq!(v.text().await.unwrap(), "export {};");
-    let missing = e
-        .client
-        .get(format!("{}/vendor/gaussian-splats-3d.module.js", e.url))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(missing.status(), 404);
-    assert!(missing.text().await.unwrap().contains("web-vendor.sh"));
-    let no = e
-        .client
-        .get(format!("{}/query.ply?text=t1", e.url))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(no.status(), 401);
-    let yes = e
-        .client
-        .get(format!("{}/query.ply?text=t1", e.url))
-        .bearer_auth("s3cret")
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(yes.status(), 200);
+    // (path, token, status, body): the page's script and vendor files need no token (the one
+    // installed is served as written), a vendor file not installed is a 404 saying how to get it,
+    // the data needs the token.
+    let cases = [
+        ("/app.js", None, 200, Body::Has("/query.ply")),
+        ("/vendor/three.module.js", None, 200, Body::Is("export {};")),
+        (
+            "/vendor/gaussian-splats-3d.module.js",
+            None,
+            404,
+            Body::Has("web-vendor.sh"),
+        ),
+        ("/query.ply?text=t1", None, 401, Body::Any),
+        ("/query.ply?text=t1", Some("s3cret"), 200, Body::Any),
+    ];
+    for (path, token, status, body) in cases {
+        let r = e.get(path, token).await;
+        assert_eq!(r.status(), status, "{path} {token:?}");
+        let text = r.text().await.unwrap();
+        match body {
+            Body::Is(want) => assert_eq!(text, want, "{path}"),
+            Body::Has(part) => assert!(text.contains(part), "{path}: {text}"),
+            Body::Any => {}
+        }
+    }
+}
+
+/// What a response body must be.
+enum Body {
+    Is(&'static str),
+    Has(&'static str),
+    Any,
 }

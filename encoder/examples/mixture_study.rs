@@ -230,14 +230,12 @@ fn main() -> anyhow::Result<()> {
         }
         ab / (aa.sqrt() * bb.sqrt())
     };
-    let cos: Vec<f64> = (0..n)
-        .map(|i| {
-            cos_of(
-                &exact.vectors[i * dim..(i + 1) * dim],
-                &f16v[i * dim..(i + 1) * dim],
-            )
-        })
-        .collect();
+    // Per Gaussian: the cosine of its exact row with the same row of `other` (n rows of `dim`).
+    let row_cosines = |other: &[f32]| -> Vec<f64> {
+        let rows = exact.vectors.chunks_exact(dim).zip(other.chunks_exact(dim));
+        rows.take(n).map(|(a, b)| cos_of(a, b)).collect()
+    };
+    let cos = row_cosines(&f16v);
     let scores: Vec<Vec<f32>> = prompts
         .iter()
         .map(|q| cosine_scores(&f16v, dim, q))
@@ -265,14 +263,7 @@ fn main() -> anyhow::Result<()> {
         let secs = t0.elapsed().as_secs_f64();
         anyhow::ensure!(mix.gaussian_ids == exact.ids, "observed sets differ");
         let dense = mix.to_dense();
-        let cos: Vec<f64> = (0..n)
-            .map(|i| {
-                cos_of(
-                    &exact.vectors[i * dim..(i + 1) * dim],
-                    &dense[i * dim..(i + 1) * dim],
-                )
-            })
-            .collect();
+        let cos = row_cosines(&dense);
         let refs: Vec<&[f32]> = prompts.iter().map(Vec::as_slice).collect();
         let scores = mix.scores_many(&refs)?;
         row(

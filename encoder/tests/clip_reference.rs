@@ -10,6 +10,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
@@ -19,32 +20,16 @@ use slag_encoder::masks::Mask;
 use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
 
 mod support;
-use support::{ort_available, shared};
+use support::{ort_fixtures, rle_to_pixels, shared};
 
 fn json(path: PathBuf) -> Value {
     serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()
 }
 
-/// segment_anything's `rle_to_mask`: uncompressed COCO RLE, column-major, runs start with 0s.
+/// The reference mask of a COCO RLE ([`rle_to_pixels`]).
 fn rle_to_mask(rle: &Value) -> Mask {
-    let size = rle["size"].as_array().unwrap();
-    let (h, w) = (
-        size[0].as_u64().unwrap() as usize,
-        size[1].as_u64().unwrap() as usize,
-    );
-    let mut px = vec![0u8; h * w];
-    let (mut idx, mut val) = (0usize, 0u8);
-    for c in rle["counts"].as_array().unwrap() {
-        let c = c.as_u64().unwrap() as usize;
-        for k in idx..idx + c {
-            let (x, y) = (k / h, k % h);
-            px[y * w + x] = val;
-        }
-        idx += c;
-        val ^= 1;
-    }
-    assert_eq!(idx, h * w, "RLE counts must cover the image");
-    Mask::from_pixels(w as u32, h as u32, px).expect("reference masks are non-empty")
+    let (w, h, px) = rle_to_pixels(rle);
+    Mask::from_pixels(w, h, px).expect("reference masks are non-empty")
 }
 
 fn cosine(a: &[f32], b: &[f64]) -> f64 {
@@ -55,19 +40,14 @@ fn cosine(a: &[f32], b: &[f64]) -> f64 {
 }
 
 fn f64s(v: &Value) -> Vec<f64> {
-    v.as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_f64().unwrap())
-        .collect()
+    Vec::<f64>::deserialize(v).unwrap()
 }
 
 #[test]
 fn clip_crops_reproduce_open_clip_reference() {
-    if !ort_available() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
         return;
-    }
-    let clip_dir = shared().join("fixtures/clip");
+    };
     let reference = json(clip_dir.join("reference.json"));
     let sam_ref = json(shared().join("fixtures/sam-amg/reference.json"));
     let mut visual = ClipVisual::new(
@@ -133,10 +113,9 @@ fn clip_crops_reproduce_open_clip_reference() {
 
 #[test]
 fn clip_text_reproduces_open_clip_tokens_and_embeddings() {
-    if !ort_available() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
         return;
-    }
-    let clip_dir = shared().join("fixtures/clip");
+    };
     let reference = json(clip_dir.join("reference.json"));
     let mut text = TextEncoder::new(
         &clip_dir.join("tiny-clip-textual.onnx"),
@@ -144,20 +123,10 @@ fn clip_text_reproduces_open_clip_tokens_and_embeddings() {
         ExecutionProvider::Cpu,
     )
     .unwrap();
-    let texts: Vec<&str> = reference["texts"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t.as_str().unwrap())
-        .collect();
+    let texts = Vec::<&str>::deserialize(&reference["texts"]).unwrap();
     let ids = text.tokenize(&texts).unwrap();
     for (i, row) in ids.iter().enumerate() {
-        let want: Vec<i64> = reference["input_ids"][i]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_i64().unwrap())
-            .collect();
+        let want = Vec::<i64>::deserialize(&reference["input_ids"][i]).unwrap();
         assert_eq!(row, &want, "token ids of {:?}", texts[i]);
     }
     let embs = text.encode(&texts).unwrap();
@@ -183,17 +152,11 @@ fn clip_text_reproduces_open_clip_tokens_and_embeddings() {
 
 #[test]
 fn color_clip_red_crop_is_closest_to_red() {
-    if !ort_available() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
         return;
-    }
-    let clip_dir = shared().join("fixtures/clip");
+    };
     let meta = json(clip_dir.join("color-clip.json"));
-    let classes: Vec<&str> = meta["classes"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|c| c.as_str().unwrap())
-        .collect();
+    let classes = Vec::<&str>::deserialize(&meta["classes"]).unwrap();
     let mut text = TextEncoder::new(
         &clip_dir.join("color-clip-textual.onnx"),
         &clip_dir.join("clip-tokenizer.json"),
@@ -238,48 +201,39 @@ fn color_clip_red_crop_is_closest_to_red() {
     }
 }
 
+/// `err` is an [`Error::Model`] whose message holds `part`.
+fn assert_model_error(err: &Error, part: &str) {
+    assert!(
+        matches!(err, Error::Model { message, .. } if message.contains(part)),
+        "{err}"
+    );
+}
+
 #[test]
 fn clip_rejects_wrong_models_and_bad_batches() {
-    if !ort_available() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
         return;
-    }
-    let clip_dir = shared().join("fixtures/clip");
-    let err = ClipVisual::new(
-        &clip_dir.join("tiny-clip-textual.onnx"),
-        ExecutionProvider::Cpu,
-        4,
-    )
-    .err()
-    .expect("a text tower is not a visual tower");
-    assert!(
-        matches!(&err, Error::Model { message, .. } if message.contains("found inputs [input_ids: i64[?,77]]")),
-        "{err}"
-    );
-    let err = TextEncoder::new(
-        &clip_dir.join("tiny-clip-visual.onnx"),
-        &clip_dir.join("clip-tokenizer.json"),
-        ExecutionProvider::Cpu,
-    )
-    .err()
-    .expect("a visual tower is not a text tower");
-    assert!(
-        matches!(&err, Error::Model { message, .. } if message.contains("CLIP text tower")),
-        "{err}"
-    );
-    let err = TextEncoder::new(
-        &clip_dir.join("tiny-clip-textual.onnx"),
-        &clip_dir.join("color-clip.json"),
-        ExecutionProvider::Cpu,
-    )
-    .err()
-    .expect("not a tokenizer");
+    };
+    let visual = |model: &str, ep, batch| ClipVisual::new(&clip_dir.join(model), ep, batch);
+    // The error of a text encoder from (model, tokenizer), which must fail.
+    let text_refused = |model: &str, tokenizer: &str| {
+        let (m, t) = (clip_dir.join(model), clip_dir.join(tokenizer));
+        let text = TextEncoder::new(&m, &t, ExecutionProvider::Cpu);
+        text.err()
+            .unwrap_or_else(|| panic!("{model} with {tokenizer} must be refused"))
+    };
+    let err = visual("tiny-clip-textual.onnx", ExecutionProvider::Cpu, 4)
+        .err()
+        .expect("a text tower is not a visual tower");
+    assert_model_error(&err, "found inputs [input_ids: i64[?,77]]");
+    // A visual tower is not a text tower.
+    let err = text_refused("tiny-clip-visual.onnx", "clip-tokenizer.json");
+    assert_model_error(&err, "CLIP text tower");
+    // A model card is not a tokenizer.
+    let err = text_refused("tiny-clip-textual.onnx", "color-clip.json");
     assert!(matches!(err, Error::Format { .. }), "{err}");
     assert!(matches!(
-        ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Cpu,
-            0
-        ),
+        visual("tiny-clip-visual.onnx", ExecutionProvider::Cpu, 0),
         Err(Error::Param {
             name: "clip_batch",
             ..
@@ -288,13 +242,9 @@ fn clip_rejects_wrong_models_and_bad_batches() {
 
     // CUDA on a runtime without it: a typed error, not a silent CPU fallback.
     if !slag_common::onnx::cuda_available().unwrap() {
-        let err = ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Cuda,
-            4,
-        )
-        .err()
-        .expect("CUDA is not available in this ONNX Runtime");
+        let err = visual("tiny-clip-visual.onnx", ExecutionProvider::Cuda, 4)
+            .err()
+            .expect("CUDA is not available in this ONNX Runtime");
         let Error::Inference {
             provider,
             device,
@@ -309,12 +259,7 @@ fn clip_rejects_wrong_models_and_bad_batches() {
         assert!(message.contains("built without it"), "{message}");
         assert!(remedy.contains("setup.sh --gpu"), "{remedy}");
         // `--ep auto` on the same runtime falls back to the CPU and says so (once).
-        let auto = ClipVisual::new(
-            &clip_dir.join("tiny-clip-visual.onnx"),
-            ExecutionProvider::Auto,
-            4,
-        )
-        .unwrap();
+        let auto = visual("tiny-clip-visual.onnx", ExecutionProvider::Auto, 4).unwrap();
         assert_eq!(auto.provider(), ExecutionProvider::Cpu);
         assert_eq!(auto.device_label(), "cpu");
     }
@@ -325,10 +270,9 @@ fn clip_rejects_wrong_models_and_bad_batches() {
 /// requests; how many share a run depends on timing and is printed).
 #[test]
 fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
-    if !ort_available() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
         return;
-    }
-    let clip_dir = shared().join("fixtures/clip");
+    };
     let model = clip_dir.join("color-clip-visual.onnx");
     let img = image::RgbImage::from_fn(64, 48, |x, y| {
         image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x + y) * 2) as u8])

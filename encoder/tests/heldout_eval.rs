@@ -12,7 +12,7 @@ use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
 use slag_encoder::eval::colors::{EvalColorsConfig, run_held_out};
 use slag_encoder::pipeline::Encoder;
-use support::{ort_available, shared};
+use support::{ort_tempdir, shared};
 
 fn mini() -> std::path::PathBuf {
     std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
@@ -55,10 +55,9 @@ fn eval_args(embeddings: std::path::PathBuf, compare: Vec<std::path::PathBuf>) -
 /// the mean clearly.
 #[test]
 fn default_aggregation_beats_the_mean_on_held_out_views() {
-    if !ort_available() {
+    let Some(dir) = ort_tempdir() else {
         return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
+    };
     let fixtures = shared().join("fixtures/sam-amg");
     let mut sam = MasksConfig::sam(
         fixtures.join("color-sam-encoder.onnx"),
@@ -112,10 +111,9 @@ fn default_aggregation_beats_the_mean_on_held_out_views() {
 /// blend weights, must reach at least slag.
 #[test]
 fn held_out_protocol_on_snowmiku_mini() {
-    if !ort_available() {
+    let Some(dir) = ort_tempdir() else {
         return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
+    };
     let out = dir.path().join("out");
     encode_mini(mini_config(&out, MasksConfig::graph()));
 

@@ -21,7 +21,7 @@ use slag_encoder::eval::synthetic::{
 };
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::query::{QueryParams, run};
-use support::{ort_available, shared};
+use support::{ort_tempdir, shared};
 
 const EXTENT: f64 = 60.0;
 
@@ -53,10 +53,9 @@ fn shell_centroid(o: &PlacedObject) -> [f64; 3] {
 
 #[test]
 fn placed_objects_come_back_with_their_positions_and_boxes() {
-    if !ort_available() {
+    let Some(dir) = ort_tempdir() else {
         return;
-    }
-    let dir = tempfile::tempdir().expect("tempdir");
+    };
     let scene = dir.path().join("scene");
     let p = SyntheticSceneParams {
         gaussians: 40_000,

@@ -10,6 +10,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
@@ -18,31 +19,16 @@ use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::preprocess::sam_pixel_values;
 
 mod support;
-use support::{ort_available, shared};
+use support::{ort_fixtures, rle_to_pixels, shared};
 
-/// segment_anything's `rle_to_mask`: uncompressed COCO RLE, column-major, runs start with 0s.
-fn rle_to_pixels(rle: &Value) -> (u32, u32, Vec<u8>) {
-    let size = rle["size"].as_array().unwrap();
-    let (h, w) = (
-        size[0].as_u64().unwrap() as usize,
-        size[1].as_u64().unwrap() as usize,
+/// The generator of `dir/{model}-encoder.onnx` and `dir/{model}-decoder.onnx` on the CPU.
+fn cpu_generator(dir: &Path, model: &str, params: SamParams) -> SamAutomaticMaskGenerator {
+    let (encoder, decoder) = (
+        format!("{model}-encoder.onnx"),
+        format!("{model}-decoder.onnx"),
     );
-    let mut col_major = vec![0u8; h * w];
-    let (mut idx, mut val) = (0usize, 0u8);
-    for c in rle["counts"].as_array().unwrap() {
-        let c = c.as_u64().unwrap() as usize;
-        col_major[idx..idx + c].fill(val);
-        idx += c;
-        val ^= 1;
-    }
-    assert_eq!(idx, h * w, "RLE counts must cover the image");
-    let mut px = vec![0u8; h * w];
-    for x in 0..w {
-        for y in 0..h {
-            px[y * w + x] = col_major[x * h + y];
-        }
-    }
-    (w as u32, h as u32, px)
+    let cpu = ExecutionProvider::Cpu;
+    SamAutomaticMaskGenerator::new(&dir.join(encoder), &dir.join(decoder), cpu, 0, params).unwrap()
 }
 
 fn iou(a: &[u8], b: &[u8]) -> f64 {
@@ -70,10 +56,9 @@ fn assert_mask_valid(m: &Mask, w: u32, h: u32) {
 
 #[test]
 fn sam_amg_reproduces_segment_anything_reference() {
-    if !ort_available() {
+    let Some(dir) = ort_fixtures("sam-amg") else {
         return;
-    }
-    let dir = shared().join("fixtures/sam-amg");
+    };
     let reference: Value =
         serde_json::from_slice(&std::fs::read(dir.join("reference.json")).unwrap()).unwrap();
     let p = &reference["params"];
@@ -97,14 +82,7 @@ fn sam_amg_reproduces_segment_anything_reference() {
             "default {key}"
         );
     }
-    let mut sam = SamAutomaticMaskGenerator::new(
-        &dir.join("color-sam-encoder.onnx"),
-        &dir.join("color-sam-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        params,
-    )
-    .unwrap();
+    let mut sam = cpu_generator(&dir, "color-sam", params);
     assert_eq!(sam.name(), "sam");
     for r in reference["images"].as_array().unwrap() {
         let name = r["image"].as_str().unwrap();
@@ -149,12 +127,7 @@ fn sam_amg_reproduces_segment_anything_reference() {
 
         for (k, rm) in refs.iter().enumerate() {
             let (_, _, rpx) = rle_to_pixels(&rm["rle"]);
-            let rb: Vec<i64> = rm["bbox_xywh"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| v.as_i64().unwrap())
-                .collect();
+            let rb = Vec::<i64>::deserialize(&rm["bbox_xywh"]).unwrap();
             // Candidates: boxes within 2 px in every coordinate, best IoU among them.
             let best = masks
                 .iter()
@@ -204,10 +177,9 @@ fn sam_amg_reproduces_segment_anything_reference() {
 
 #[test]
 fn sam_tiny_random_runs_end_to_end() {
-    if !ort_available() {
+    let Some(dir) = ort_fixtures("sam-amg") else {
         return;
-    }
-    let dir = shared().join("fixtures/sam-amg");
+    };
     let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_003919.jpg"));
     // Thresholds at 0 keep every non-empty candidate, so the real decoder's full output path
     // (all three channels, several batches, NMS) is exercised. A 4x4 grid in batches of 6 (the
@@ -219,14 +191,7 @@ fn sam_tiny_random_runs_end_to_end() {
         stability_score_thresh: 0.0,
         ..SamParams::default()
     };
-    let mut sam = SamAutomaticMaskGenerator::new(
-        &dir.join("sam-tiny-random-encoder.onnx"),
-        &dir.join("sam-tiny-random-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        params,
-    )
-    .unwrap();
+    let mut sam = cpu_generator(&dir, "sam-tiny-random", params);
     let t = Instant::now();
     let masks = sam.generate(&img).unwrap();
     eprintln!(
@@ -241,20 +206,22 @@ fn sam_tiny_random_runs_end_to_end() {
 
 #[test]
 fn sam_rejects_models_of_the_wrong_role() {
-    if !ort_available() {
+    let Some(sam_dir) = ort_fixtures("sam-amg") else {
         return;
-    }
-    let sam_dir = shared().join("fixtures/sam-amg");
+    };
     let clip = shared().join("fixtures/clip/tiny-clip-visual.onnx");
-    let err = SamAutomaticMaskGenerator::new(
+    // The error of a generator from (encoder, decoder), which must fail.
+    let refused = |encoder: &Path, decoder: &str, why: &str| {
+        let decoder = sam_dir.join(decoder);
+        let cpu = ExecutionProvider::Cpu;
+        let sam = SamAutomaticMaskGenerator::new(encoder, &decoder, cpu, 0, SamParams::default());
+        sam.err().unwrap_or_else(|| panic!("{why}"))
+    };
+    let err = refused(
         &clip,
-        &sam_dir.join("color-sam-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("a CLIP model is not a SAM encoder");
+        "color-sam-decoder.onnx",
+        "a CLIP model is not a SAM encoder",
+    );
     let Error::Model { path, message } = &err else {
         panic!("expected Error::Model, got {err}")
     };
@@ -268,29 +235,22 @@ fn sam_rejects_models_of_the_wrong_role() {
         "{message}"
     );
     // Encoder passed as decoder.
-    let err = SamAutomaticMaskGenerator::new(
-        &sam_dir.join("color-sam-encoder.onnx"),
-        &sam_dir.join("color-sam-encoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("an encoder is not a decoder");
+    let encoder = sam_dir.join("color-sam-encoder.onnx");
+    let err = refused(
+        &encoder,
+        "color-sam-encoder.onnx",
+        "an encoder is not a decoder",
+    );
     assert!(
         matches!(&err, Error::Model { message, .. } if message.contains("SAM mask decoder")),
         "{err}"
     );
     // Missing file.
-    let err = SamAutomaticMaskGenerator::new(
+    let err = refused(
         &sam_dir.join("nope.onnx"),
-        &sam_dir.join("color-sam-decoder.onnx"),
-        ExecutionProvider::Cpu,
-        0,
-        SamParams::default(),
-    )
-    .err()
-    .expect("missing model");
+        "color-sam-decoder.onnx",
+        "missing model",
+    );
     assert!(matches!(err, Error::Io { .. }), "{err}");
 }
 
@@ -301,10 +261,9 @@ fn sam_rejects_models_of_the_wrong_role() {
 #[test]
 fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
     use slag_encoder::masks::sam::MaskPostprocess;
-    if !ort_available() {
+    let Some(dir) = ort_fixtures("sam-amg") else {
         return;
-    }
-    let dir = shared().join("fixtures/sam-amg");
+    };
     let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_004040.jpg"));
     let run = |postprocess| {
         let params = SamParams {
@@ -315,14 +274,7 @@ fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
             postprocess,
             ..SamParams::default()
         };
-        let mut sam = SamAutomaticMaskGenerator::new(
-            &dir.join("color-sam-encoder.onnx"),
-            &dir.join("color-sam-decoder.onnx"),
-            ExecutionProvider::Cpu,
-            0,
-            params,
-        )
-        .unwrap();
+        let mut sam = cpu_generator(&dir, "color-sam", params);
         sam.generate(&img).unwrap(); // warm-up
         let t = Instant::now();
         let m = sam.generate(&img).unwrap();

@@ -71,6 +71,14 @@ fn camera_at(centre: DVec3) -> WorldToCamera {
     }
 }
 
+/// The camera at the world origin with the world's axes (OpenCV: looking down +z).
+fn camera_at_origin() -> WorldToCamera {
+    WorldToCamera {
+        rotation: DMat3::IDENTITY,
+        translation: DVec3::ZERO,
+    }
+}
+
 fn default_camera() -> WorldToCamera {
     camera_at(DVec3::new(0.1, -0.2, -EXTENT))
 }
@@ -213,6 +221,23 @@ fn render_both_within(
     (cpu, gpu_out)
 }
 
+/// The CPU raster and (unless the GPU part is skipped) the GPU one, by name, after
+/// [`render_both`]'s checks; prints the two's agreement.
+fn rasters(
+    g: &Gaussians,
+    k: &Intrinsics,
+    w2c: &WorldToCamera,
+    label: &str,
+) -> Vec<(&'static str, PixelWeights)> {
+    let (cpu, gpu_out) = render_both(g, k, w2c, label);
+    let mut rasters = vec![("cpu", cpu)];
+    if let Some((w, a)) = gpu_out {
+        eprintln!("{label}: {a:?}");
+        rasters.push(("gpu", w));
+    }
+    rasters
+}
+
 /// Ids that appear anywhere in a raster.
 fn drawn(w: &PixelWeights) -> std::collections::BTreeSet<u32> {
     w.ids.iter().copied().collect()
@@ -280,19 +305,12 @@ fn extreme_scales_have_their_closed_form_weights() {
     // (σ_2D of millions of pixels: exp(-½dᵀΣ⁻¹d) = 1 to ~1e-12); one of σ = 1e-6 x extent
     // projects to the low-pass splat alone: α = o·exp(-½ d²/0.3).
     let k = intrinsics();
-    let w2c = WorldToCamera {
-        rotation: DMat3::IDENTITY,
-        translation: DVec3::ZERO,
-    };
+    let w2c = camera_at_origin();
     let q = [1.0, 0.0, 0.0, 0.0];
     for (scale, label) in [(EXTENT * 1e4, "huge"), (EXTENT * 1e-6, "tiny")] {
         let mut g = Gaussians::default();
         push(&mut g, [0.0, 0.0, 3.0], [scale as f32; 3], q, 0.6);
-        let (cpu, gpu_out) = render_both(&g, &k, &w2c, label);
-        let mut rasters = vec![("cpu", cpu)];
-        if let Some((w, _)) = gpu_out {
-            rasters.push(("gpu", w));
-        }
+        let rasters = rasters(&g, &k, &w2c, label);
         for (name, w) in &rasters {
             let mut worst = 0f64;
             for y in 0..k.height {
@@ -382,10 +400,7 @@ fn opacities_near_zero_and_one_clamp_and_skip() {
         cy: 36.5,
         ..intrinsics()
     };
-    let w2c = WorldToCamera {
-        rotation: DMat3::IDENTITY,
-        translation: DVec3::ZERO,
-    };
+    let w2c = camera_at_origin();
     let q = [1.0, 0.0, 0.0, 0.0];
     let sigmoid = |x: f64| (1.0 / (1.0 + (-x).exp())) as f32;
     // Side by side, 12 px apart (no overlap): ids 0..4.
@@ -400,12 +415,7 @@ fn opacities_near_zero_and_one_clamp_and_skip() {
     push(&mut g, [0.0, 0.0, 3.0], [0.05; 3], q, 1.0 - 1e-7);
     push(&mut g, [0.0, 0.0, 3.5], [0.05; 3], q, 0.5);
     push(&mut g, [0.0, 0.0, 4.0], [0.05; 3], q, 1.0 - 1e-7);
-    let (cpu, gpu_out) = render_both(&g, &k, &w2c, "opacities");
-    let mut rasters = vec![("cpu", cpu)];
-    if let Some((w, a)) = gpu_out {
-        eprintln!("opacities: {a:?}");
-        rasters.push(("gpu", w));
-    }
+    let rasters = rasters(&g, &k, &w2c, "opacities");
     for (name, w) in &rasters {
         let ids = drawn(w);
         // α = o·exp(-σ) ≤ 1.2e-7 < 1/255: never drawn.
@@ -433,10 +443,7 @@ fn opacities_near_zero_and_one_clamp_and_skip() {
 #[test]
 fn degenerate_covariances_are_low_pass_regularised_and_bad_quaternions_culled() {
     let k = intrinsics();
-    let w2c = WorldToCamera {
-        rotation: DMat3::IDENTITY,
-        translation: DVec3::ZERO,
-    };
+    let w2c = camera_at_origin();
     let u = [0.9238795f32, 0.0, 0.3826834, 0.0]; // 45° about y, unit
     // (scale, quaternion, opacity, expected drawn, what)
     type Case = ([f32; 3], [f32; 4], f32, bool, &'static str);
@@ -480,12 +487,7 @@ fn degenerate_covariances_are_low_pass_regularised_and_bad_quaternions_culled() 
     for (i, (s, q, o, _, _)) in cases.iter().enumerate() {
         push(&mut g, pos(i), *s, *q, *o);
     }
-    let (cpu, gpu_out) = render_both(&g, &k, &w2c, "degenerate");
-    let mut rasters = vec![("cpu", cpu)];
-    if let Some((w, a)) = gpu_out {
-        eprintln!("degenerate covariances: {a:?}");
-        rasters.push(("gpu", w));
-    }
+    let rasters = rasters(&g, &k, &w2c, "degenerate");
     for (name, w) in &rasters {
         let ids = drawn(w);
         for (i, (_, _, _, expect, what)) in cases.iter().enumerate() {
@@ -548,10 +550,7 @@ fn non_unit_quaternions_give_the_unit_quaternions_weights() {
 #[test]
 fn gaussians_behind_or_on_the_camera_plane_are_not_drawn() {
     let k = intrinsics();
-    let w2c = WorldToCamera {
-        rotation: DMat3::IDENTITY,
-        translation: DVec3::ZERO,
-    };
+    let w2c = camera_at_origin();
     let q = [1.0, 0.0, 0.0, 0.0];
     let mut g = Gaussians::default();
     // Camera-frame depths: behind, on the plane, between the plane and the near plane 0.01.
@@ -563,11 +562,7 @@ fn gaussians_behind_or_on_the_camera_plane_are_not_drawn() {
     }
     let control = g.len() as u32;
     push(&mut g, [0.0, 0.0, 0.5], [0.01; 3], q, 0.9); // in front: drawn (the test can fail)
-    let (cpu, gpu_out) = render_both(&g, &k, &w2c, "behind");
-    let mut rasters = vec![("cpu", cpu)];
-    if let Some((w, _)) = gpu_out {
-        rasters.push(("gpu", w));
-    }
+    let rasters = rasters(&g, &k, &w2c, "behind");
     for (name, w) in &rasters {
         assert_eq!(
             drawn(w).into_iter().collect::<Vec<_>>(),

@@ -54,6 +54,29 @@ pub fn color_sam(points_per_side: u32) -> MasksConfig {
     m
 }
 
+/// An encode of `scene` into `out` through real-architecture models with random weights: the
+/// CLIP visual tower `clip_visual`, SAM `[encoder, decoder]` on an 8 × 8 point grid with every
+/// filter off (random weights predict low IoU), every `every`-th view at raster scale 0.25, no
+/// progress bars.
+pub fn random_weights_config(
+    scene: PathBuf,
+    clip_visual: PathBuf,
+    sam: [PathBuf; 2],
+    every: usize,
+    out: &Path,
+) -> EncodeConfig {
+    let mut config = EncodeConfig::new(scene, clip_visual, out);
+    let [encoder, decoder] = sam;
+    config.masks = MasksConfig::sam(encoder, decoder);
+    config.masks.sam.points_per_side = 8;
+    config.masks.sam.pred_iou_thresh = 0.0;
+    config.masks.sam.stability_score_thresh = 0.0;
+    config.scene.every = every;
+    config.raster.scale = 0.25;
+    config.output.progress = false;
+    config
+}
+
 /// Runs `config` as `slag-encoder encode` does: checked by [`Encoder::new`], then run.
 pub fn encode(config: EncodeConfig) -> anyhow::Result<Report> {
     Ok(Encoder::new(config)?.run()?)
@@ -246,4 +269,22 @@ pub fn robot_path_with(
             edge_url,
         }
     })
+}
+
+/// The runtime the end-to-end tests spawn their servers on: multi-threaded, 2 workers, I/O and
+/// timers enabled.
+pub fn test_runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .expect("a tokio runtime")
+}
+
+/// Sends `req` and asserts the answer's status is `status`; returns the response (a transport
+/// error fails the test).
+pub async fn send_expecting(req: reqwest::RequestBuilder, status: u16) -> reqwest::Response {
+    let r = req.send().await.expect("the request reaches the server");
+    assert_eq!(r.status().as_u16(), status, "{}", r.url());
+    r
 }

@@ -13,9 +13,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
-use slag_encoder::config::{EncodeConfig, MasksConfig};
 use slag_encoder::query::QueryParams;
-use slag_tests::{default_scene, encode, fixture};
+use slag_tests::{default_scene, encode, fixture, random_weights_config};
 
 fn python() -> String {
     std::env::var("SLAG_PYTHON").unwrap_or_else(|_| "python3".into())
@@ -112,17 +111,12 @@ fn exported_models_encode_and_query() {
     }
 
     let out = p("out");
-    let mut config = EncodeConfig::new(default_scene(), p("clip/tiny-random-visual.onnx"), &out);
-    config.masks = MasksConfig::sam(
+    let sam = [
         p("sam/sam-tiny-encoder.onnx"),
         p("sam/sam-tiny-decoder.onnx"),
-    );
-    config.masks.sam.points_per_side = 8;
-    config.masks.sam.pred_iou_thresh = 0.0;
-    config.masks.sam.stability_score_thresh = 0.0;
-    config.scene.every = 6;
-    config.raster.scale = 0.25;
-    config.output.progress = false;
+    ];
+    let visual = p("clip/tiny-random-visual.onnx");
+    let config = random_weights_config(default_scene(), visual, sam, 6, &out);
     let t = Instant::now();
     let report = encode(config).expect("encode");
     let t_encode = t.elapsed().as_secs_f64();

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use slag_edge::fetch::Center;
 use slag_encoder::query::QueryParams;
-use slag_tests::{fixture, robot_fetch_params, robot_path};
+use slag_tests::{fixture, robot_fetch_params, robot_path, send_expecting, test_runtime};
 
 fn local_query(
     emb: &std::path::Path,
@@ -81,11 +81,7 @@ fn assert_same_summary(a: &serde_json::Value, b: &serde_json::Value) {
 
 #[test]
 fn encode_partition_serve_fetch_serve_query_matches_the_local_query() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = test_runtime();
     // f32 shards: the edge sees exactly the values of the embeddings file.
     let robot = robot_path(&rt, "f32", false, Duration::from_secs(60), None);
     let (emb, manifest, edge, edge_url) = (
@@ -166,12 +162,7 @@ fn encode_partition_serve_fetch_serve_query_matches_the_local_query() {
         let s = slag_edge::fetch::fetch(&edge, &params).await.unwrap();
         assert!(s.selected >= 1 && s.selected < manifest.tiles.len());
         assert_eq!(s.evicted, manifest.tiles.len() - s.selected);
-        let r = client
-            .post(format!("{edge_url}/reload"))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 200);
+        send_expecting(client.post(format!("{edge_url}/reload")), 200).await;
         let kept: HashSet<u64> = {
             let (_, shards, _) = edge.load_scene("snowmiku-mini").unwrap();
             shards

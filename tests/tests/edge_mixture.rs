@@ -14,7 +14,9 @@ use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::MIXTURE_MANIFEST_VERSION;
 use slag_edge::engine::Engine;
 use slag_edge::scan::{ScanRequest, lerf_relevancy, scan};
-use slag_tests::{Shards, fixture, robot_fetch_params, robot_path_with};
+use slag_tests::{
+    Shards, fixture, robot_fetch_params, robot_path_with, send_expecting, test_runtime,
+};
 
 fn text_embedding(text: &str) -> Vec<f32> {
     let mut enc = slag_common::text::TextEncoder::new(
@@ -28,11 +30,7 @@ fn text_embedding(text: &str) -> Vec<f32> {
 
 #[test]
 fn mixture_shards_are_served_with_the_scores_of_the_mixture_file() {
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = test_runtime();
     let robot = robot_path_with(
         &rt,
         Shards::Mixture {
@@ -131,13 +129,8 @@ fn mixture_shards_are_served_with_the_scores_of_the_mixture_file() {
         let client = reqwest::Client::new();
         let url = &robot.edge_url;
         // GET /query: the 100 best "red" Gaussians with the reference's scores.
-        let r = client
-            .get(format!("{url}/query?text=red&top_k=100&threshold=none"))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 200);
-        let a: serde_json::Value = r.json().await.unwrap();
+        let red = client.get(format!("{url}/query?text=red&top_k=100&threshold=none"));
+        let a: serde_json::Value = send_expecting(red, 200).await.json().await.unwrap();
         let matches = a["matches"].as_array().unwrap();
         assert_eq!(matches.len(), 100);
         let mut best: Vec<f32> = reference["red"].values().copied().collect();
@@ -149,20 +142,11 @@ fn mixture_shards_are_served_with_the_scores_of_the_mixture_file() {
             assert!((score - want).abs() < 1e-5, "rank order: {score} vs {want}");
         }
         // Relevancy mode answers over mixture rows too.
-        let r = client
-            .get(format!("{url}/query?text=pink&mode=relevancy&top_k=10"))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 200);
+        let pink = client.get(format!("{url}/query?text=pink&mode=relevancy&top_k=10"));
+        send_expecting(pink, 200).await;
         // HNSW is not built over mixtures: a 400 that says why.
-        let r = client
-            .get(format!("{url}/query?text=pink&index=hnsw"))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 400);
-        let body = r.text().await.unwrap();
+        let hnsw = client.get(format!("{url}/query?text=pink&index=hnsw"));
+        let body = send_expecting(hnsw, 400).await.text().await.unwrap();
         assert!(
             body.contains("mixture") && body.contains("index=exact"),
             "{body}"

@@ -11,6 +11,15 @@ use slag_encoder::pipeline::{self, FrontStages};
 use slag_encoder::raster::WeightRasterizer;
 use slag_tests::{color_clip_visual, encode, graph_config};
 
+/// A temporary folder holding the small synthetic scene in `scene/`; returns the folder and that
+/// scene's path.
+fn folder_with_small_scene() -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    small_scene(&scene);
+    (dir, scene)
+}
+
 fn small_scene(dir: &std::path::Path) {
     let p = SyntheticSceneParams {
         gaussians: 40_000,
@@ -43,9 +52,7 @@ fn config(scene: &std::path::Path, out: &std::path::Path) -> slag_encoder::confi
 
 #[test]
 fn pool_of_fronts_and_rasterizers_equals_one_worker() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene");
-    small_scene(&scene);
+    let (dir, scene) = folder_with_small_scene();
     let one = dir.path().join("one");
     let mut one_front = config(&scene, &one);
     one_front.execution.front_workers = Some(1);
@@ -109,18 +116,11 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         "the spill path was not exercised"
     );
     // Every image was done exactly once, by one front and one rasterizer.
-    let fronts: usize = r2
-        .workers
-        .iter()
-        .filter(|w| w.name.starts_with("front"))
-        .map(|w| w.images)
-        .sum();
-    let backs: usize = r2
-        .workers
-        .iter()
-        .filter(|w| w.name.starts_with("raster"))
-        .map(|w| w.images)
-        .sum();
+    let images_of = |kind: &str| -> usize {
+        let workers = r2.workers.iter().filter(|w| w.name.starts_with(kind));
+        workers.map(|w| w.images).sum()
+    };
+    let (fronts, backs) = (images_of("front"), images_of("raster"));
     assert_eq!((fronts, backs, r2.workers.len()), (7, 7, 5));
     // Fill and drain times lie inside the wall clock, in order, for every worker that worked.
     for w in r2.workers.iter().filter(|w| w.images > 0) {
@@ -219,9 +219,7 @@ impl MaskGenerator for GatedMasks {
 
 #[test]
 fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene");
-    small_scene(&scene);
+    let (dir, scene) = folder_with_small_scene();
     let out = dir.path().join("out");
     let clip = || {
         Box::new(
@@ -283,9 +281,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
 /// returns the error; nothing is written.
 #[test]
 fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene");
-    small_scene(&scene);
+    let (dir, scene) = folder_with_small_scene();
     let clip_path = color_clip_visual();
     let fronts = |gpus: &[Option<usize>]| -> Vec<FrontStages> {
         gpus.iter()

@@ -4,9 +4,9 @@
 
 #![allow(clippy::unwrap_used)]
 
-use slag_encoder::config::{EncodeConfig, MasksConfig};
+use slag_encoder::config::EncodeConfig;
 use slag_encoder::eval::colors::EvalColorsConfig;
-use slag_tests::{color_sam, encode, fixture, graph_config, shared};
+use slag_tests::{color_sam, encode, fixture, graph_config, random_weights_config, shared};
 
 fn snowmiku() -> std::path::PathBuf {
     shared().join("scenes/snowmiku")
@@ -18,6 +18,14 @@ fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
         ..EvalColorsConfig::new(snowmiku(), out.join("embeddings.safetensors"))
     };
     slag_encoder::eval::colors::run(&a).expect("eval-colors")
+}
+
+/// The colour evaluation of the encode in `out` (printed, labelled `masks`) reaches `floor`.
+fn assert_miou_floor(out: &std::path::Path, masks: &str, floor: f64) {
+    let e = eval(out);
+    eprintln!("{masks} subset: {}", serde_json::to_string(&e).unwrap());
+    let miou = e.miou.expect("mIoU defined");
+    assert!(miou >= floor, "{masks}: mIoU {miou} below floor {floor}");
 }
 
 /// The CI subset: every 12th image (9 views), raster scale 0.25.
@@ -37,13 +45,7 @@ fn color_sam_and_color_clip_reach_the_miou_floor() {
     assert_eq!(report.counts.views_used, 9);
     assert!(report.counts.observed > 0);
     assert!(out.join("report.json").exists());
-    let e = eval(&out);
-    eprintln!("color-sam subset: {}", serde_json::to_string(&e).unwrap());
-    let miou = e.miou.expect("mIoU defined");
-    assert!(
-        miou >= MIOU_FLOOR_SAM,
-        "mIoU {miou} below floor {MIOU_FLOOR_SAM}"
-    );
+    assert_miou_floor(&out, "color-sam", MIOU_FLOOR_SAM);
 }
 
 #[test]
@@ -51,30 +53,16 @@ fn graph_segmenter_and_color_clip_reach_the_miou_floor() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
     encode(subset(graph_config(&snowmiku(), &out))).expect("encode");
-    let e = eval(&out);
-    eprintln!("graph subset: {}", serde_json::to_string(&e).unwrap());
-    let miou = e.miou.expect("mIoU defined");
-    assert!(
-        miou >= MIOU_FLOOR_GRAPH,
-        "mIoU {miou} below floor {MIOU_FLOOR_GRAPH}"
-    );
+    assert_miou_floor(&out, "graph", MIOU_FLOOR_GRAPH);
 }
 
 #[test]
 fn real_architecture_models_run_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let mut config = EncodeConfig::new(snowmiku(), fixture("clip/tiny-clip-visual.onnx"), &out);
-    config.masks = MasksConfig::sam(
-        fixture("sam-amg/sam-tiny-random-encoder.onnx"),
-        fixture("sam-amg/sam-tiny-random-decoder.onnx"),
-    );
-    config.masks.sam.points_per_side = 8;
-    config.masks.sam.pred_iou_thresh = 0.0;
-    config.masks.sam.stability_score_thresh = 0.0;
-    config.scene.every = 48;
-    config.raster.scale = 0.25;
-    config.output.progress = false;
+    let sam = ["encoder", "decoder"].map(|p| fixture(&format!("sam-amg/sam-tiny-random-{p}.onnx")));
+    let visual = fixture("clip/tiny-clip-visual.onnx");
+    let config = random_weights_config(snowmiku(), visual, sam, 48, &out);
     let report = encode(config).expect("encode");
     assert_eq!(report.counts.views_used, 3);
     assert!(

@@ -7,7 +7,7 @@ use std::time::Duration;
 use slag_common::Error;
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GroundFrame};
-use slag_edge::fetch::{Center, FetchParams, fetch};
+use slag_edge::fetch::{FetchParams, fetch};
 use slag_edge::store::EdgeStore;
 use slag_shards::partition::{PartitionParams, UpChoice};
 use slag_shards::store::{ShardStore, partition_into_store};
@@ -40,18 +40,14 @@ async fn fetch_needs_the_shard_servers_token() {
     ));
     let url = format!("http://{}", rx.await.unwrap());
     let edge = EdgeStore::open(&dir.path().join("edge")).unwrap();
+    // The whole scene, without retries (a refused token is final).
+    let (jobs, retries, timeout) = (2, 0, Duration::from_secs(10));
     let mut p = FetchParams {
-        server: url,
         scene: "lab".into(),
-        center: Center::Ground([0.0, 0.0]),
-        radius: 1e6,
-        prune: false,
-        jobs: 2,
-        retries: 0,
-        timeout: Duration::from_secs(10),
-        token: None,
-        progress: false,
-        frame: Default::default(),
+        jobs,
+        retries,
+        timeout,
+        ..slag_tests::robot_fetch_params(&url)
     };
     for token in [None, Some("tok-4"), Some("TOK-42")] {
         p.token = token.map(str::to_string);

@@ -14,7 +14,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use slag_tests::robot_path;
+use slag_tests::{robot_path, test_runtime};
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -80,11 +80,7 @@ fn page_renders_pink_matches_highlighted_in_headless_chromium() {
         eprintln!("SKIPPED: {msg}");
         return;
     }
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = test_runtime();
     let robot = robot_path(
         &rt,
         "f16",

@@ -63,6 +63,18 @@ pub fn display_attrs(ids: &[u32]) -> Display {
     )
 }
 
+/// A grid scene's shape: (scene id, tiles along x, tiles along y, Gaussians per tile, vector
+/// dimension, stored dtype, manifest generation).
+pub struct Grid<'a>(
+    pub &'a str,
+    pub usize,
+    pub usize,
+    pub usize,
+    pub usize,
+    pub Dtype,
+    pub u64,
+);
+
 pub fn grid_scene(
     scene: &str,
     nx: usize,
@@ -72,45 +84,17 @@ pub fn grid_scene(
     dtype: Dtype,
     generation: u64,
 ) -> TestScene {
-    grid_scene_with(scene, nx, ny, per_tile, dim, dtype, generation, None)
+    grid_scene_with(Grid(scene, nx, ny, per_tile, dim, dtype, generation), None)
 }
 
 /// [`grid_scene`] whose shards carry geometric segments (shard format version 3): Gaussian id
 /// `i` in segment `segment_of(i)`.
-#[allow(clippy::too_many_arguments)]
-pub fn grid_scene_segmented(
-    scene: &str,
-    nx: usize,
-    ny: usize,
-    per_tile: usize,
-    dim: usize,
-    dtype: Dtype,
-    generation: u64,
-    segment_of: &dyn Fn(u32) -> u32,
-) -> TestScene {
-    grid_scene_with(
-        scene,
-        nx,
-        ny,
-        per_tile,
-        dim,
-        dtype,
-        generation,
-        Some(segment_of),
-    )
+pub fn grid_scene_segmented(grid: Grid, segment_of: &dyn Fn(u32) -> u32) -> TestScene {
+    grid_scene_with(grid, Some(segment_of))
 }
 
-#[allow(clippy::too_many_arguments)]
-fn grid_scene_with(
-    scene: &str,
-    nx: usize,
-    ny: usize,
-    per_tile: usize,
-    dim: usize,
-    dtype: Dtype,
-    generation: u64,
-    segment_of: Option<&dyn Fn(u32) -> u32>,
-) -> TestScene {
+fn grid_scene_with(grid: Grid, segment_of: Option<&dyn Fn(u32) -> u32>) -> TestScene {
+    let Grid(scene, nx, ny, per_tile, dim, dtype, generation) = grid;
     let mut seed = 7 + generation;
     let mut tiles = Vec::new();
     let mut shards = HashMap::new();
@@ -406,32 +390,20 @@ impl TextEmbedder for BasisEmbedder {
 /// Fetches scene `grid` from the shard server at `url` (disc around the ground origin of
 /// `radius`, 2 jobs, no retries) into a new store in a temporary folder.
 pub async fn fetch_grid(url: &str, radius: f64) -> (tempfile::TempDir, EdgeStore) {
-    let dir = tempfile::tempdir().unwrap();
-    let store = EdgeStore::open(dir.path()).unwrap();
-    fetch(
-        &store,
-        &FetchParams {
-            server: url.into(),
-            scene: "grid".into(),
-            center: Center::Ground([0.0, 0.0]),
-            radius,
-            prune: false,
-            jobs: 2,
-            retries: 0,
-            timeout: Duration::from_secs(10),
-            token: None,
-            progress: false,
-            frame: Default::default(),
-        },
-    )
-    .await
-    .unwrap();
+    let (dir, store) = temp_store();
+    fetch(&store, &grid_fetch_params(url, radius))
+        .await
+        .unwrap();
     (dir, store)
 }
 
 /// Serves `state` on an ephemeral loopback port in the background; returns `http://ADDR`.
 pub async fn serve_on_loopback(state: AppState) -> String {
-    let state = Arc::new(state);
+    serve_shared_on_loopback(Arc::new(state)).await
+}
+
+/// [`serve_on_loopback`] for a state that something else (the ROS 2 node) shares.
+pub async fn serve_shared_on_loopback(state: Arc<AppState>) -> String {
     let (tx, rx) = tokio::sync::oneshot::channel();
     tokio::spawn(async move {
         slag_edge::serve::serve(state, "127.0.0.1:0".parse().unwrap(), |a| {
@@ -461,6 +433,13 @@ impl GateEmbedder {
             tokens: Mutex::new(0),
             cv: Condvar::new(),
         }
+    }
+    /// A shared gate of `dim` and the guard that opens it for good when dropped
+    /// ([`Self::open_on_drop`]).
+    pub fn with_guard(dim: usize) -> (Arc<Self>, OpenOnDrop) {
+        let gate = Arc::new(GateEmbedder::new(dim));
+        let open = gate.open_on_drop();
+        (gate, open)
     }
     /// Lets `n` more gated prompts through.
     pub fn release(&self, n: usize) {
@@ -560,4 +539,179 @@ pub fn skip_without_ort() -> bool {
         "ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1)"
     );
     true
+}
+
+/// The fetch parameters the tests start from: scene `grid` from `url`, a disc of `radius` around
+/// the ground origin, 2 jobs, no retries, a 10 s timeout, no pruning, no token.
+pub fn grid_fetch_params(url: &str, radius: f64) -> FetchParams {
+    FetchParams {
+        server: url.into(),
+        scene: "grid".into(),
+        center: Center::Ground([0.0, 0.0]),
+        radius,
+        prune: false,
+        jobs: 2,
+        retries: 0,
+        timeout: Duration::from_secs(10),
+        token: None,
+        progress: false,
+        frame: Default::default(),
+    }
+}
+
+/// The ids of the shards of scene `grid` in `store`, ascending.
+pub fn stored_ids(store: &EdgeStore) -> Vec<u64> {
+    let mut v: Vec<u64> = store
+        .stored_shards("grid")
+        .unwrap()
+        .into_iter()
+        .map(|s| s.0)
+        .collect();
+    v.sort_unstable();
+    v
+}
+
+/// How many files the store at `root` holds in `partial/` (downloads not yet committed).
+pub fn partial_files(root: &std::path::Path) -> usize {
+    std::fs::read_dir(root.join("partial")).unwrap().count()
+}
+
+/// `slag-edge ARGS` ([`slag_edge_command`]) logging at `rust_log`, without the fault-injection
+/// and shard-token variables of the test's own environment; not yet started.
+pub fn slag_edge_with_log(args: &[&str], rust_log: &str) -> std::process::Command {
+    let mut cmd = slag_edge_command();
+    cmd.args(args)
+        .env("RUST_LOG", rust_log)
+        .env_remove("SLAG_FAULT_EXIT_AT")
+        .env_remove("SLAG_FAULT_ENOSPC_AT")
+        .env_remove("SLAG_SHARD_TOKEN");
+    cmd
+}
+
+/// Runs `cmd` to completion on a blocking thread, so that the test's runtime keeps serving.
+pub async fn output_blocking(mut cmd: std::process::Command) -> std::process::Output {
+    tokio::task::spawn_blocking(move || cmd.output().unwrap())
+        .await
+        .unwrap()
+}
+
+/// Panics with `what` and the command's stderr unless it exited with status 0.
+pub fn assert_success(out: &std::process::Output, what: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{what}: {err}");
+}
+
+/// The command's stdout as JSON, once [`assert_success`] holds.
+pub fn success_json(out: &std::process::Output) -> serde_json::Value {
+    assert_success(out, "slag-edge failed");
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// `fetch --from URL --scene grid --center 0,0 --radius RADIUS --store STORE`.
+pub fn fetch_args<'a>(url: &'a str, store: &'a str, radius: &'a str) -> Vec<&'a str> {
+    let scene = ["--scene", "grid", "--center", "0,0", "--radius", radius];
+    [&["fetch", "--from", url][..], &scene, &["--store", store]].concat()
+}
+
+/// `SUB --store STORE --scene SCENE --text-model TEXT_MODEL --tokenizer TOKENIZER` (check,
+/// query, serve); `model` is `[TEXT_MODEL, TOKENIZER]`.
+pub fn text_model_args<'a>(
+    sub: &'a str,
+    store: &'a str,
+    scene: &'a str,
+    model: [&'a str; 2],
+) -> Vec<&'a str> {
+    let [text_model, tokenizer] = model;
+    let store = [sub, "--store", store, "--scene", scene];
+    [
+        &store[..],
+        &["--text-model", text_model, "--tokenizer", tokenizer],
+    ]
+    .concat()
+}
+
+/// Sends `req` (a transport error fails the test).
+pub async fn send(req: reqwest::RequestBuilder) -> reqwest::Response {
+    req.send().await.unwrap()
+}
+
+/// Sends `req`; the answer's status and its body as JSON.
+pub async fn send_json(req: reqwest::RequestBuilder) -> (u16, serde_json::Value) {
+    let r = send(req).await;
+    (r.status().as_u16(), r.json().await.unwrap())
+}
+
+/// The `error` message of a JSON error body.
+pub fn error_message(body: &serde_json::Value) -> &str {
+    body["error"].as_str().unwrap()
+}
+
+/// The ids of an answer's `matches`, in answer order.
+pub fn match_ids(answer: &serde_json::Value) -> Vec<u32> {
+    let matches = answer["matches"].as_array().unwrap();
+    matches
+        .iter()
+        .map(|m| m["id"].as_u64().unwrap() as u32)
+        .collect()
+}
+
+/// A response header that holds a number (`retry-after`, `x-slag-matches`).
+pub fn header_number(r: &reqwest::Response, name: &str) -> u64 {
+    r.headers()[name].to_str().unwrap().parse().unwrap()
+}
+
+/// The serve options most tests use: scene `grid`, the paper's threshold 0.28, a 10 s request
+/// timeout, the bearer `token` when given, the approximate index when `hnsw`.
+pub fn grid_serve_options(token: Option<&str>, hnsw: bool) -> slag_edge::serve::ServeOptions {
+    slag_edge::serve::ServeOptions {
+        token: token.map(str::to_string),
+        threshold: 0.28,
+        hnsw,
+        request_timeout: Duration::from_secs(10),
+        ..slag_edge::serve::ServeOptions::new("grid")
+    }
+}
+
+/// Serves `store` with `embedder` and `options` on loopback ([`serve_on_loopback`]).
+pub async fn serve_store(
+    store: EdgeStore,
+    embedder: Arc<dyn TextEmbedder>,
+    options: slag_edge::serve::ServeOptions,
+) -> String {
+    serve_on_loopback(AppState::new(store, embedder, options).unwrap()).await
+}
+
+/// A new, empty edge store in a temporary folder (removed when the folder is dropped).
+pub fn temp_store() -> (tempfile::TempDir, EdgeStore) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = EdgeStore::open(dir.path()).unwrap();
+    (dir, store)
+}
+
+/// Answers `raw` (validated as the CLI validates it, paper threshold 0.28) over `engine`'s
+/// exact scan with a [`BasisEmbedder`] of `dim` and the canonical negatives; with `display`,
+/// the engine's display attributes go into the answer.
+pub fn exact_answer(
+    engine: &slag_edge::engine::Engine,
+    dim: usize,
+    raw: slag_edge::query::RawQuery,
+    display: bool,
+) -> slag_edge::query::QueryAnswer {
+    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, run_query_framed};
+    let text = BasisEmbedder::new(dim);
+    let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
+    let q = raw.validate_for(0.28, Interface::Cli).unwrap();
+    let display = display.then_some(&engine.display);
+    let model = &engine.manifest.model;
+    run_query_framed(
+        &engine.store,
+        model,
+        None,
+        &text,
+        &negatives,
+        None,
+        display,
+        &q,
+    )
+    .unwrap()
 }

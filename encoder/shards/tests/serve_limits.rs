@@ -4,14 +4,12 @@
 //! `SLAG_SHARD_TOKEN` refused at start-up.
 #![allow(clippy::unwrap_used)]
 
+mod support;
+
 use std::time::Duration;
 
 use slag_common::http::ServerLimits;
-use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GroundFrame};
 use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
-use slag_shards::partition::{PartitionParams, UpChoice};
-use slag_shards::store::{ShardStore, partition_into_store};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 fn limits(header_s: u64, write_s: u64, max_connections: usize) -> ServerLimits {
@@ -24,17 +22,7 @@ fn limits(header_s: u64, write_s: u64, max_connections: usize) -> ServerLimits {
 
 /// A served store of one small scene `lab`; returns `host:port`.
 async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::TempDir) {
-    let dir = tempfile::tempdir().unwrap();
-    let store = ShardStore::open(dir.path()).unwrap();
-    let scene = SyntheticScene::new(300, 8, 2, 20.0, 5);
-    let p = PartitionParams {
-        scene_id: "lab".into(),
-        max_per_shard: 100,
-        up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
-        dtype: Dtype::F16,
-        to_map: None,
-    };
-    partition_into_store(&store, &scene, &p).unwrap();
+    let (dir, store) = support::lab_store();
     let (tx, rx) = tokio::sync::oneshot::channel();
     let token = token.map(str::to_string);
     tokio::spawn(async move {

@@ -2,12 +2,9 @@
 //! it), path-traversal scene and shard ids (400, never a file path), token file parsing.
 #![allow(clippy::unwrap_used)]
 
-use std::io::{Read, Write};
+mod support;
 
-use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GroundFrame};
-use slag_shards::partition::{PartitionParams, UpChoice};
-use slag_shards::store::{ShardStore, partition_into_store};
+use std::io::{Read, Write};
 
 /// One `GET` over a fresh connection: (status, headers text, body).
 fn get(addr: std::net::SocketAddr, path: &str, auth: Option<&str>) -> (u16, String, Vec<u8>) {
@@ -27,17 +24,7 @@ fn get(addr: std::net::SocketAddr, path: &str, auth: Option<&str>) -> (u16, Stri
 }
 
 fn start(token: Option<&str>) -> (std::net::SocketAddr, tempfile::TempDir) {
-    let dir = tempfile::tempdir().unwrap();
-    let store = ShardStore::open(dir.path()).unwrap();
-    let scene = SyntheticScene::new(300, 8, 2, 20.0, 5);
-    let p = PartitionParams {
-        scene_id: "lab".into(),
-        max_per_shard: 100,
-        up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
-        dtype: Dtype::F16,
-        to_map: None,
-    };
-    partition_into_store(&store, &scene, &p).unwrap();
+    let (dir, store) = support::lab_store();
     let token = token.map(str::to_string);
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {

@@ -1,4 +1,5 @@
 //! Helpers shared by the encoder's integration tests.
+#![allow(dead_code, clippy::unwrap_used)]
 
 use std::path::PathBuf;
 
@@ -19,4 +20,42 @@ pub fn ort_available() -> bool {
         return false;
     }
     panic!("ORT_DYLIB_PATH is not set: run `. scripts/setup.sh` (or set SLAG_SKIP_ORT=1 to skip)");
+}
+
+/// segment_anything's `rle_to_mask`: uncompressed COCO RLE (`{"size": [h, w], "counts": [..]}`,
+/// column-major, runs start with 0s) as (width, height, row-major 0/1 pixels).
+pub fn rle_to_pixels(rle: &serde_json::Value) -> (u32, u32, Vec<u8>) {
+    let size = rle["size"].as_array().unwrap();
+    let (h, w) = (
+        size[0].as_u64().unwrap() as usize,
+        size[1].as_u64().unwrap() as usize,
+    );
+    let mut col_major = vec![0u8; h * w];
+    let (mut idx, mut val) = (0usize, 0u8);
+    for c in rle["counts"].as_array().unwrap() {
+        let c = c.as_u64().unwrap() as usize;
+        col_major[idx..idx + c].fill(val);
+        idx += c;
+        val ^= 1;
+    }
+    assert_eq!(idx, h * w, "RLE counts must cover the image");
+    let mut px = vec![0u8; h * w];
+    for x in 0..w {
+        for y in 0..h {
+            px[y * w + x] = col_major[x * h + y];
+        }
+    }
+    (w as u32, h as u32, px)
+}
+
+/// `shared/fixtures/{name}` when the ONNX Runtime tests are to run ([`ort_available`]); `None`:
+/// skip the test.
+pub fn ort_fixtures(name: &str) -> Option<PathBuf> {
+    ort_available().then(|| shared().join("fixtures").join(name))
+}
+
+/// A new temporary folder when the ONNX Runtime tests are to run ([`ort_available`]); `None`:
+/// skip the test.
+pub fn ort_tempdir() -> Option<tempfile::TempDir> {
+    ort_available().then(|| tempfile::tempdir().expect("tempdir"))
 }
