@@ -267,7 +267,7 @@ pub fn view_contribution(
     params: ImageStageParams,
 ) -> Result<(ImageContribution, ViewStats)> {
     aggregate::image::check_image_inputs(masks, &mask_embeddings, dim)?;
-    let prepared = prepare_view(intrinsics, masks, params);
+    let prepared = prepare_view(intrinsics, world_to_camera, masks, params, None);
     let r = raster_view(rasterizer, intrinsics, world_to_camera, prepared)?;
     finish_view(r, masks, mask_embeddings, dim, params)
 }
@@ -296,6 +296,8 @@ enum Rastered {
 pub(crate) struct PreparedView {
     /// `None`: the per-pixel lists are needed (`top_k_per_pixel`, or no masks).
     labels: Option<aggregate::PixelLabels>,
+    /// The rasterizer's host work of the view, done ahead ([`WeightRasterizer::view_precompute`]).
+    precomputed: Option<crate::raster::PrecomputedView>,
     /// [`aggregate::image::mask_factors`] of the masks.
     factors: Vec<f32>,
     /// Seconds the labels took.
@@ -303,18 +305,26 @@ pub(crate) struct PreparedView {
 }
 
 /// The first, host-only part of [`view_contribution`]: the pixel labels of `masks` at the raster
-/// size of `intrinsics`, unless `top_k_per_pixel` needs the per-pixel lists.
+/// size of `intrinsics`, unless `top_k_per_pixel` needs the per-pixel lists, and with labels the
+/// rasterizer's own host work of the view (`precompute`, [`WeightRasterizer::view_precompute`]).
 pub(crate) fn prepare_view<M: ImageMask>(
     intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
     masks: &[M],
     params: ImageStageParams,
+    precompute: Option<&dyn crate::raster::ViewPrecompute>,
 ) -> PreparedView {
     let t0 = Instant::now();
     let labels = (params.top_k_per_pixel.is_none() && !masks.is_empty()).then(|| {
         aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap)
     });
+    let precomputed = labels
+        .as_ref()
+        .and(precompute)
+        .map(|p| p.precompute(world_to_camera));
     PreparedView {
         labels,
+        precomputed,
         factors: aggregate::image::mask_factors(masks, params.mask_weighting),
         labels_s: t0.elapsed().as_secs_f64(),
     }
@@ -334,12 +344,18 @@ pub(crate) fn raster_view(
     let pixels = intrinsics.width as usize * intrinsics.height as usize;
     let PreparedView {
         labels,
+        precomputed,
         factors,
         labels_s,
     } = prepared;
     let t0 = Instant::now();
     if let Some(labels) = labels
-        && let Some(sums) = rasterizer.label_sums(intrinsics, world_to_camera, &labels.labels)?
+        && let Some(sums) = rasterizer.label_sums_precomputed(
+            intrinsics,
+            world_to_camera,
+            &labels.labels,
+            precomputed,
+        )?
     {
         let stats = ViewStats {
             raster_s: t0.elapsed().as_secs_f64(),
@@ -420,7 +436,7 @@ pub(crate) fn back_stage(
     dim: usize,
     image_stage: ImageStageParams,
 ) -> Result<BackOut> {
-    let prepared = back_prepare(views, raster_intrinsics, item, dim, image_stage)?;
+    let prepared = back_prepare(views, raster_intrinsics, item, dim, image_stage, None)?;
     let raster = back_raster(rasterizer, prepared)?;
     back_finish(raster, dim, image_stage)
 }
@@ -435,7 +451,7 @@ pub(crate) struct BackPrepared {
 }
 
 /// The first part of [`back_stage`]: the item's view and its pixel labels, made from the masks'
-/// runs (not expanded).
+/// runs (not expanded), and the rasterizer's host work of the view (`precompute`).
 ///
 /// Errors: as [`back_stage`], without the rasterizer's.
 pub(crate) fn back_prepare(
@@ -444,6 +460,7 @@ pub(crate) fn back_prepare(
     item: FrontItem,
     dim: usize,
     image_stage: ImageStageParams,
+    precompute: Option<&dyn crate::raster::ViewPrecompute>,
 ) -> Result<BackPrepared> {
     let (Some(view), Some(k)) = (views.get(item.view), raster_intrinsics.get(item.view)) else {
         return Err(Error::internal(format!(
@@ -454,7 +471,13 @@ pub(crate) fn back_prepare(
         )));
     };
     aggregate::image::check_image_inputs(&item.masks, &item.embeddings, dim)?;
-    let prepared = prepare_view(k, &item.masks, image_stage);
+    let prepared = prepare_view(
+        k,
+        &view.world_to_camera,
+        &item.masks,
+        image_stage,
+        precompute,
+    );
     Ok(BackPrepared {
         item,
         intrinsics: *k,

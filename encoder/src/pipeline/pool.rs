@@ -267,11 +267,12 @@ pub(crate) fn run_pool(
             let pool = Arc::new(back_pool(g));
             // Three threads per rasterizer, a view handed on from one to the next through a
             // channel of one (a view's labels or label sums, a few MB): the prepare thread makes
-            // the next view's pixel labels, the raster thread runs the GPU, the image thread
+            // the next view's pixel labels and sort depths, the raster thread runs the GPU, the image thread
             // reduces and expands the last view's sums. The GPU never waits for host work.
             let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
             let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
             let prepare_pool = Arc::clone(&pool);
+            let precompute = rasterizer.view_precompute();
             handles.push(s.spawn(move || {
                 let run = move || {
                     let mut share = WorkerShare {
@@ -293,8 +294,14 @@ pub(crate) fn run_pool(
                         if share.images == 0 {
                             share.first_s = (t0 - t_total).as_secs_f64();
                         }
-                        let out =
-                            back_prepare(views, raster_intrinsics, item, dim, params.image_stage);
+                        let out = back_prepare(
+                            views,
+                            raster_intrinsics,
+                            item,
+                            dim,
+                            params.image_stage,
+                            precompute.as_deref(),
+                        );
                         share.busy_s += t0.elapsed().as_secs_f64();
                         share.last_s = t_total.elapsed().as_secs_f64();
                         match out {

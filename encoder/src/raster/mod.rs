@@ -27,6 +27,8 @@ pub use cpu::CpuRasterizer;
 pub use gpu::{GpuRasterizer, PhaseTimings};
 
 use rayon::prelude::*;
+use std::sync::Arc;
+
 use slag_common::camera::Intrinsics;
 use slag_common::{Error, Result};
 
@@ -114,6 +116,25 @@ pub trait WeightRasterizer: Send {
         let _ = (intrinsics, world_to_camera, labels);
         Ok(None)
     }
+    /// The host work of a view that this rasterizer lets another thread do before the view
+    /// reaches it ([`ViewPrecompute`]), so that its own thread only drives the device: the GPU
+    /// rasterizer's sort depths. `None` (the default): there is none.
+    fn view_precompute(&self) -> Option<Arc<dyn ViewPrecompute>> {
+        None
+    }
+    /// [`Self::label_sums`] with the view's host work done ahead ([`ViewPrecompute::precompute`]
+    /// for this `world_to_camera`; work made for another view is not used). The default
+    /// ignores it.
+    fn label_sums_precomputed(
+        &mut self,
+        intrinsics: &Intrinsics,
+        world_to_camera: &slag_common::camera::WorldToCamera,
+        labels: &[u32],
+        precomputed: Option<PrecomputedView>,
+    ) -> Result<Option<LabelSums>> {
+        let _ = precomputed;
+        self.label_sums(intrinsics, world_to_camera, labels)
+    }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;
     /// Phase timings of the last successful [`Self::rasterize`] or [`Self::label_sums`] run,
@@ -123,11 +144,31 @@ pub trait WeightRasterizer: Send {
     }
 }
 
+/// A rasterizer's per-view host work, done on the caller's thread
+/// ([`WeightRasterizer::view_precompute`]).
+pub trait ViewPrecompute: Send + Sync {
+    /// What the rasterizer needs of the view `world_to_camera` (world-to-camera, COLMAP
+    /// convention).
+    fn precompute(&self, world_to_camera: &slag_common::camera::WorldToCamera) -> PrecomputedView;
+}
+
+/// A view's host work done ahead ([`ViewPrecompute::precompute`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PrecomputedView {
+    /// The view it was made for.
+    pub world_to_camera: slag_common::camera::WorldToCamera,
+    /// `[N]` per Gaussian its sort depth: the f64 camera-frame depth clamped at 0, rounded to
+    /// f32 (the key the rasterizers order a tile by, with the Gaussian id).
+    pub sort_depths: Vec<f32>,
+}
+
 /// One per-label sum of blend weights ([`WeightRasterizer::label_sums`]): Gaussian `gaussian`
 /// received `Σ w_kp` over the pixels labelled `label`, in exact 64-bit fixed point with 32
 /// fractional bits (each `w_kp` truncated to a multiple of 2^-32 before the sum; units: pixels
-/// at the raster resolution).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// at the raster resolution). `repr(C)`, 16 bytes: on a little-endian host the layout of the GPU's
+/// records (Gaussian, label, low and high word of the sum), so a readback is one copy.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct LabelSum {
     /// Gaussian index (source `.ply` order).
     pub gaussian: u32,

@@ -867,3 +867,35 @@ fn gpu_sort_of_empty_views_has_no_intersections() {
         );
     }
 }
+
+/// Sort depths made ahead on another thread ([`WeightRasterizer::view_precompute`]) give the
+/// same label sums as depths made by the rasterizer itself; depths made for another view are
+/// not used (the sums stay this view's); the CPU rasterizer has none to offer.
+#[test]
+fn precomputed_sort_depths_give_the_same_label_sums() {
+    let g = random_scene(23, 800);
+    let (k, w2c) = test_camera(23);
+    let (_, other) = test_camera(24);
+    assert!(CpuRasterizer::new(&g).view_precompute().is_none());
+    let Some(mut gpu) = gpu(&g) else { return };
+    let labels: Vec<u32> = (0..k.width * k.height).map(|p| 1 + p % 3).collect();
+    let own = gpu
+        .label_sums(&k, &w2c, &labels)
+        .expect("own depths")
+        .expect("gpu sums")
+        .reduced();
+    assert!(!own.is_empty());
+    let pre = gpu
+        .view_precompute()
+        .expect("the GPU rasterizer precomputes");
+    let ahead = pre.precompute(&w2c);
+    assert_eq!(ahead.sort_depths.len(), g.len());
+    for p in [ahead, pre.precompute(&other)] {
+        let sums = gpu
+            .label_sums_precomputed(&k, &w2c, &labels, Some(p))
+            .expect("precomputed depths")
+            .expect("gpu sums")
+            .reduced();
+        assert_eq!(sums, own);
+    }
+}

@@ -79,3 +79,45 @@ const SCAN_BLOCK: u32 = 1024u;
 @group(0) @binding(11) var<storage, read_write> block_sums: array<u32>;
 // Per Gaussian its sort depth: the host's f64 camera-frame depth rounded to f32 (gpu/sort.rs).
 @group(0) @binding(19) var<storage, read> sort_depths: array<f32>;
+
+// The blend loops' shared steps (`blend`, `blend_sums`).
+
+// Whether every pixel of the tile has stopped, read at the top of a batch (uniform across the
+// workgroup; call in uniform control flow).
+fn all_stopped(lid: u32) -> bool {
+    workgroupBarrier();
+    if (lid == 0u) {
+        done_snapshot = atomicLoad(&done_count);
+    }
+    return workgroupUniformLoad(&done_snapshot) >= BATCH;
+}
+
+// Thread `lid` loads the splat at `idx` of the tile's depth-sorted list (when `idx < end`) into
+// the workgroup batch.
+fn load_splat(idx: u32, end: u32, lid: u32) {
+    if (idx < end) {
+        let g = sorted_ids[idx];
+        let s = splats[g];
+        sh_xy_opac[lid] = s.xy_opac;
+        sh_axes[lid] = s.axes;
+        sh_id[lid] = g;
+    }
+}
+
+// α of batch splat `k` at the pixel centre (pxc, pyc): ½dᵀΣ⁻¹d in eigen form (Splat.axes; the same
+// σ as project.rs's conic form), α = min(ALPHA_MAX, opacity·exp(-σ)); 0 when the splat does not
+// contribute (σ < 0 or α < ALPHA_MIN).
+fn splat_alpha(k: u32, pxc: f32, pyc: f32) -> f32 {
+    let xo = sh_xy_opac[k];
+    let ax = sh_axes[k];
+    let dx = xo.x - pxc;
+    let dy = xo.y - pyc;
+    let pa = (ax.x * dx + ax.y * dy) * ax.z;
+    let pb = (ax.x * dy - ax.y * dx) * ax.w;
+    let sigma = 0.5 * (pa * pa + pb * pb);
+    let alpha = min(ALPHA_MAX, xo.z * exp(-sigma));
+    if (sigma < 0.0 || alpha < ALPHA_MIN) {
+        return 0.0;
+    }
+    return alpha;
+}

@@ -31,13 +31,24 @@ pub(super) struct RecordBuffers {
     capacity: u64,
 }
 
-/// Appends the records in `words` (4 words each: Gaussian, label, low, high) to `out`.
-fn decode_records(words: &[u32], out: &mut Vec<LabelSum>) {
-    out.extend(words.chunks_exact(4).map(|w| LabelSum {
-        gaussian: w[0],
-        label: w[1],
-        sum: (u64::from(w[3]) << 32) | u64::from(w[2]),
-    }));
+/// Appends the records in `bytes` (4 little-endian words each: Gaussian, label, low and high word
+/// of the sum; a trailing partial record is ignored) to `out`: one copy where the host is
+/// little-endian ([`LabelSum`] has the records' layout there).
+fn decode_records(bytes: &[u8], out: &mut Vec<LabelSum>) {
+    let n = bytes.len() / RECORD_BYTES as usize;
+    let bytes = &bytes[..n * RECORD_BYTES as usize];
+    if cfg!(target_endian = "little") {
+        let start = out.len();
+        out.resize(start + n, <LabelSum as bytemuck::Zeroable>::zeroed());
+        bytemuck::cast_slice_mut::<LabelSum, u8>(&mut out[start..]).copy_from_slice(bytes);
+    } else {
+        let word = |c: &[u8]| u32::from_le_bytes([c[0], c[1], c[2], c[3]]);
+        out.extend(bytes.chunks_exact(16).map(|r| LabelSum {
+            gaussian: word(&r[0..4]),
+            label: word(&r[4..8]),
+            sum: (u64::from(word(&r[12..16])) << 32) | u64::from(word(&r[8..12])),
+        }));
+    }
 }
 
 impl GpuRasterizer {
@@ -167,8 +178,7 @@ impl GpuRasterizer {
                 enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
                 self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
                     let t = std::time::Instant::now();
-                    let words: Vec<u32> = bytemuck::pod_collect_to_vec(bytes);
-                    decode_records(&words, &mut records);
+                    decode_records(bytes, &mut records);
                     host += t.elapsed();
                 })?;
             }
@@ -209,7 +219,9 @@ mod tests {
             1, // (3, 1) again: 2^32 + 1
         ];
         let mut out = Vec::new();
-        decode_records(&words, &mut out);
+        let mut bytes: Vec<u8> = words.iter().flat_map(|w: &u32| w.to_le_bytes()).collect();
+        bytes.push(7); // a trailing partial record is ignored
+        decode_records(&bytes, &mut out);
         let sums = LabelSums {
             records: out,
             contributions: 0,

@@ -89,23 +89,11 @@ fn blend_sums(
     let pyc = f32(py) + 0.5;
     let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
     for (var b = 0u; b < n_batches; b++) {
-        workgroupBarrier();
-        if (lid == 0u) {
-            done_snapshot = atomicLoad(&done_count);
-        }
-        let n_done = workgroupUniformLoad(&done_snapshot);
-        if (n_done >= BATCH) {
+        if (all_stopped(lid)) {
             break;
         }
         let start = range.x + b * BATCH;
-        let idx = start + lid;
-        if (idx < range.y) {
-            let g = sorted_ids[idx];
-            let s = splats[g];
-            sh_xy_opac[lid] = s.xy_opac;
-            sh_axes[lid] = s.axes;
-            sh_id[lid] = g;
-        }
+        load_splat(start + lid, range.y, lid);
         workgroupBarrier();
         let n_here = min(BATCH, range.y - start);
         for (var s0 = 0u; s0 < n_here; s0 += per) {
@@ -118,16 +106,8 @@ fn blend_sums(
             workgroupBarrier();
             if (!done) {
                 for (var k = s0; k < s1; k++) {
-                    let xo = sh_xy_opac[k];
-                    let ax = sh_axes[k];
-                    let dx = xo.x - pxc;
-                    let dy = xo.y - pyc;
-                    // ½dᵀΣ⁻¹d in eigen form, as in `blend`.
-                    let pa = (ax.x * dx + ax.y * dy) * ax.z;
-                    let pb = (ax.x * dy - ax.y * dx) * ax.w;
-                    let sigma = 0.5 * (pa * pa + pb * pb);
-                    let alpha = min(ALPHA_MAX, xo.z * exp(-sigma));
-                    if (sigma < 0.0 || alpha < ALPHA_MIN) {
+                    let alpha = splat_alpha(k, pxc, pyc);
+                    if (alpha < ALPHA_MIN) {
                         continue;
                     }
                     let next_t = t_acc * (1.0 - alpha);

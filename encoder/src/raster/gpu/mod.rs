@@ -17,7 +17,8 @@
 //!    form for needles and sheets) and its tile rect, kept on the GPU, and its number of tiles.
 //!    The splat also carries the sort depth: the f64 camera-frame depth of
 //!    [`super::project::camera_point`] rounded to f32, computed on the host (one multiply-add per
-//!    Gaussian and axis, in parallel) and uploaded, 4 bytes per Gaussian: the GPU's own f32 `t.z`
+//!    Gaussian and axis, in parallel; ahead of the view, on the caller's thread, where it asks
+//!    through [`WeightRasterizer::view_precompute`]) and uploaded, 4 bytes per Gaussian: the GPU's own f32 `t.z`
 //!    can be a few f32 steps off, and a two-float evaluation in WGSL is not safe from the
 //!    drivers' algebraic rewriting.
 //! 2. Tile binning and depth sort **on the GPU** ([`sort`], `sort.wgsl`): an exclusive prefix sum
@@ -65,13 +66,17 @@
 //! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
 //! layout, constants and bindings; the shader module is the files joined in that order.
 
+use std::sync::Arc;
+
 use slag_common::camera::{Intrinsics, WorldToCamera};
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
 use super::project::{jacobian_limits, tile_grid};
-use super::{LabelSums, PixelWeights, WeightRasterizer, validate_raster};
+use super::{
+    LabelSums, PixelWeights, PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
+};
 
 mod buffers;
 mod count_scan;
@@ -190,8 +195,11 @@ pub struct GpuRasterizer {
     name: String,
     limits: wgpu::Limits,
     n: u32,
-    /// Means kept on the host for the sort depth (`camera_point` in f64, rounded to f32).
-    means: Vec<[f32; 3]>,
+    /// Means kept on the host for the sort depth (`camera_point` in f64, rounded to f32),
+    /// shared with [`WeightRasterizer::view_precompute`].
+    means: Arc<Vec<[f32; 3]>>,
+    /// The next view's sort depths made ahead ([`WeightRasterizer::label_sums_precomputed`]).
+    precomputed: Option<PrecomputedView>,
     /// World-frame centre the uploaded means are relative to (f64; see the module docs, step 0).
     origin: glam::DVec3,
     means_opac: wgpu::Buffer,
@@ -507,7 +515,8 @@ impl GpuRasterizer {
             name,
             limits,
             n: n32,
-            means: gaussians.means.clone(),
+            means: Arc::new(gaussians.means.clone()),
+            precomputed: None,
             origin,
             means_opac,
             scales,
@@ -828,6 +837,25 @@ impl WeightRasterizer for GpuRasterizer {
                 "rasterizer returned weights for a sums run",
             )),
         }
+    }
+
+    fn view_precompute(&self) -> Option<Arc<dyn ViewPrecompute>> {
+        Some(Arc::new(sort::SortDepthsAhead {
+            means: Arc::clone(&self.means),
+        }))
+    }
+
+    fn label_sums_precomputed(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: &[u32],
+        precomputed: Option<PrecomputedView>,
+    ) -> Result<Option<LabelSums>> {
+        self.precomputed = precomputed;
+        let out = self.label_sums(k, w2c, labels);
+        self.precomputed = None;
+        out
     }
 
     fn name(&self) -> &str {

@@ -5,8 +5,8 @@
 //! the tile-id bits the view's grid needs) orders them by (tile, depth), equal f32 depths by id;
 //! the tile ranges are found on the device. Only the total number of intersections (one u32,
 //! with an overflow flag) is read back, to size the sort buffers; the host's share is the f32
-//! sort depths ([`GpuRasterizer::upload_sort_depths`], 4 bytes per Gaussian) and recording the
-//! passes.
+//! sort depths ([`sort_depths`], 4 bytes per Gaussian, made ahead on the encoder's prepare thread
+//! through [`SortDepthsAhead`]) and recording the passes.
 //!
 //! The depth is the host's f64 camera-frame depth rounded to f32 (uploaded per view, 4 bytes a
 //! Gaussian), so the order equals the host reference's ([`super::project::bin_and_sort`], the
@@ -17,14 +17,43 @@
 //! `max_storage_buffer_binding_size / 8` ([`Error::Limit`] `GpuBinding` beyond); the radix
 //! histogram `64 B` per 1024 intersections; the tile ranges `8 B` per tile.
 
+use std::sync::Arc;
+
 use rayon::prelude::*;
 use slag_common::camera::WorldToCamera;
 use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
 use super::super::project::camera_point;
+use super::super::{PrecomputedView, ViewPrecompute};
 use super::buffers::storage;
 use super::{Binned, GROUPS_X, GpuRasterizer, Params, SCAN_BLOCK, SEED_SALT, View};
+
+/// `[N]` sort depths of `means` in the view `w2c`: [`camera_point`]'s f64 depth, clamped at 0,
+/// rounded to f32 (one f64 multiply-add per Gaussian and axis, in parallel), the key of
+/// [`super::project::bin_and_sort`] and of the CPU rasterizer. (The kernel's own f32 `t.z` can be
+/// a few f32 steps off the f64 value, and a two-float evaluation in WGSL is not safe from the
+/// drivers' algebraic rewriting.)
+pub(super) fn sort_depths(means: &[[f32; 3]], w2c: &WorldToCamera) -> Vec<f32> {
+    means
+        .par_iter()
+        .map(|m| camera_point(m.map(f64::from), w2c).z.max(0.0) as f32)
+        .collect()
+}
+
+/// The GPU rasterizer's [`ViewPrecompute`]: a view's sort depths, made on the caller's thread.
+pub(super) struct SortDepthsAhead {
+    pub(super) means: Arc<Vec<[f32; 3]>>,
+}
+
+impl ViewPrecompute for SortDepthsAhead {
+    fn precompute(&self, w2c: &WorldToCamera) -> PrecomputedView {
+        PrecomputedView {
+            world_to_camera: *w2c,
+            sort_depths: sort_depths(&self.means, w2c),
+        }
+    }
+}
 
 /// Keys per workgroup of the radix passes (`RADIX_BLOCK` in sort.wgsl).
 const RADIX_BLOCK: u32 = 1024;
@@ -95,19 +124,18 @@ impl GpuRasterizer {
         }
     }
 
-    /// The view's sort depths, computed on the host and queued for upload (the one per-view host
-    /// computation of the binning: one f64 multiply-add per Gaussian and axis, in parallel, and
-    /// 4 bytes per Gaussian to the device): [`camera_point`]'s f64 depth, clamped at 0, rounded
-    /// to f32, the key of [`super::project::bin_and_sort`] and of the CPU rasterizer. (The
-    /// kernel's own f32 `t.z` can be a few f32 steps off the f64 value, and a two-float
-    /// evaluation in WGSL is not safe from the drivers' algebraic rewriting.)
-    pub(super) fn upload_sort_depths(&self, w2c: &WorldToCamera) {
+    /// The view's sort depths ([`sort_depths`]) queued for upload (4 bytes per Gaussian): those
+    /// made ahead on another thread ([`WeightRasterizer::label_sums_precomputed`]) when they are
+    /// this view's, else computed here.
+    pub(super) fn upload_sort_depths(&mut self, w2c: &WorldToCamera) {
+        let ahead = self.precomputed.take();
         if self.n > 0 {
-            let depths: Vec<f32> = self
-                .means
-                .par_iter()
-                .map(|m| camera_point(m.map(f64::from), w2c).z.max(0.0) as f32)
-                .collect();
+            let depths = match ahead {
+                Some(p) if p.world_to_camera == *w2c && p.sort_depths.len() == self.means.len() => {
+                    p.sort_depths
+                }
+                _ => sort_depths(&self.means, w2c),
+            };
             self.queue
                 .write_buffer(&self.sort_depths, 0, bytemuck::cast_slice(&depths));
         }
