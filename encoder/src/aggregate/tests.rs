@@ -2,6 +2,7 @@
 #![allow(clippy::unwrap_used)]
 
 use super::*;
+use crate::aggregate::image::entries;
 use crate::masks::Mask;
 use crate::raster::PixelWeights;
 use rustc_hash::FxHashMap;
@@ -191,28 +192,7 @@ fn reduction_is_the_weighted_mean_and_flags_unobserved() {
         .push(ImageContribution {
             dim,
             mask_embeddings: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
-            entries: vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 1,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 1,
-                    weight: 3.0,
-                },
-                Entry {
-                    gaussian: 3,
-                    mask: 0,
-                    weight: 1e-9,
-                },
-            ],
+            entries: entries(&[(0, 0, 1.0), (0, 1, 1.0), (2, 1, 3.0), (3, 0, 1e-9)]),
         })
         .unwrap();
     // Image 2: mask e_z. Gaussian 0: a=2.
@@ -220,11 +200,7 @@ fn reduction_is_the_weighted_mean_and_flags_unobserved() {
         .push(ImageContribution {
             dim,
             mask_embeddings: vec![0.0, 0.0, 1.0],
-            entries: vec![Entry {
-                gaussian: 0,
-                mask: 0,
-                weight: 2.0,
-            }],
+            entries: entries(&[(0, 0, 2.0)]),
         })
         .unwrap();
     let r = reduce(&store, 5, dim, ReduceParams::default()).unwrap();
@@ -420,33 +396,13 @@ fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
         .push(ImageContribution {
             dim,
             mask_embeddings: vec![1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
-            entries: vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 1,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 1,
-                    mask: 2,
-                    weight: 1e-9,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 2,
-                    weight: 2.0,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 0,
-                    weight: 0.5,
-                },
-            ],
+            entries: entries(&[
+                (0, 0, 1.0),
+                (0, 1, 1.0),
+                (1, 2, 1e-9),
+                (2, 2, 2.0),
+                (2, 0, 0.5),
+            ]),
         })
         .unwrap();
     let means = vec![[0.0; 3]; 4];
