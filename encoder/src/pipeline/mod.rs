@@ -59,15 +59,18 @@ pub struct SceneInput {
     pub every: usize,
 }
 
+/// A scene folder's `.ply`: `ply` when given, else `<dir>/point_cloud.ply` (the INRIA layout).
+pub fn scene_ply(dir: &Path, ply: Option<&Path>) -> PathBuf {
+    ply.map(Path::to_path_buf)
+        .unwrap_or_else(|| dir.join("point_cloud.ply"))
+}
+
 impl SceneInput {
-    /// `dir` with the default `.ply` location.
+    /// `dir` with the default `.ply` location ([`scene_ply`]).
     pub fn new(dir: &Path, ply: Option<&Path>, every: usize) -> Self {
-        let ply = ply
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| dir.join("point_cloud.ply"));
         Self {
             dir: dir.to_path_buf(),
-            ply,
+            ply: scene_ply(dir, ply),
             every,
         }
     }
