@@ -23,6 +23,7 @@ pub mod aggregate;
 pub mod args;
 pub mod clip;
 pub mod config;
+mod disjoint_sets;
 pub mod distributed;
 pub mod eval;
 pub mod masks;

@@ -58,6 +58,8 @@ use slag_common::scene::Gaussians;
 use slag_common::segments::{Segments, canonical_ids};
 use slag_common::{Error, Result};
 
+use crate::disjoint_sets::DisjointSets;
+
 /// Settings of the segmentation; [`SegmentParams::default`] are the documented defaults.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -263,7 +265,7 @@ fn weight(p: &SegmentParams, geo: &Geometry, i: usize, j: usize, d: f32) -> f32 
 
 /// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
 struct Forest {
-    parent: Vec<u32>,
+    sets: DisjointSets,
     size: Vec<u32>,
     int: Vec<f32>,
 }
@@ -271,22 +273,13 @@ struct Forest {
 impl Forest {
     fn new(n: usize) -> Self {
         Forest {
-            parent: (0..n as u32).collect(),
+            sets: DisjointSets::new(n),
             size: vec![1; n],
             int: vec![0.0; n],
         }
     }
-    fn find(&mut self, mut x: u32) -> u32 {
-        let mut root = x;
-        while self.parent[root as usize] != root {
-            root = self.parent[root as usize];
-        }
-        while self.parent[x as usize] != root {
-            let next = self.parent[x as usize];
-            self.parent[x as usize] = root;
-            x = next;
-        }
-        root
+    fn find(&mut self, x: u32) -> u32 {
+        self.sets.find(x)
     }
     /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
     /// so the result does not depend on anything but the edge order); `Int` of the union is
@@ -298,7 +291,7 @@ impl Forest {
         } else {
             (b, a)
         };
-        self.parent[small as usize] = big;
+        self.sets.attach(small, big);
         self.size[big as usize] = sa + sb;
         let int = self.int[a as usize].max(self.int[b as usize]).max(w);
         self.int[big as usize] = int;

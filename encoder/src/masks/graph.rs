@@ -36,6 +36,7 @@ use image::RgbImage;
 use slag_common::{Error, Result};
 
 use super::{Mask, MaskGenerator};
+use crate::disjoint_sets::DisjointSets;
 
 /// Parameters of [`segment_labels`] / [`GraphSegmenter`].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -475,7 +476,7 @@ fn radix_sort_by_weight(v: &mut Vec<u64>) {
 
 /// Disjoint-set forest with union by rank and path compression, tracking component sizes.
 struct Forest {
-    parent: Vec<u32>,
+    sets: DisjointSets,
     rank: Vec<u8>,
     size: Vec<u32>,
 }
@@ -483,24 +484,14 @@ struct Forest {
 impl Forest {
     fn new(n: usize) -> Self {
         Forest {
-            parent: (0..n as u32).collect(),
+            sets: DisjointSets::new(n),
             rank: vec![0; n],
             size: vec![1; n],
         }
     }
 
     fn find(&mut self, x: u32) -> u32 {
-        let mut root = x;
-        while self.parent[root as usize] != root {
-            root = self.parent[root as usize];
-        }
-        let mut x = x;
-        while self.parent[x as usize] != root {
-            let next = self.parent[x as usize];
-            self.parent[x as usize] = root;
-            x = next;
-        }
-        root
+        self.sets.find(x)
     }
 
     /// Joins two distinct roots; returns the new root.
@@ -510,7 +501,7 @@ impl Forest {
         } else {
             (a, b)
         };
-        self.parent[b as usize] = a;
+        self.sets.attach(b, a);
         self.size[a as usize] += self.size[b as usize];
         if self.rank[a as usize] == self.rank[b as usize] {
             self.rank[a as usize] += 1;
