@@ -263,38 +263,37 @@ fn weight(p: &SegmentParams, geo: &Geometry, i: usize, j: usize, d: f32) -> f32 
     if w.is_finite() { w.max(0.0) } else { f32::MAX }
 }
 
-/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
-struct Forest {
-    sets: DisjointSets,
-    size: Vec<u32>,
-    int: Vec<f32>,
+/// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
+/// of its minimum spanning tree.
+#[derive(Clone, Copy)]
+struct Component {
+    size: u32,
+    int: f32,
 }
 
+/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
+type Forest = DisjointSets<Component>;
+
 impl Forest {
-    fn new(n: usize) -> Self {
-        Forest {
-            sets: DisjointSets::new(n),
-            size: vec![1; n],
-            int: vec![0.0; n],
-        }
-    }
-    fn find(&mut self, x: u32) -> u32 {
-        self.sets.find(x)
+    /// Every Gaussian of `n` its own component.
+    fn singletons(n: usize) -> Self {
+        DisjointSets::new(n, Component { size: 1, int: 0.0 })
     }
     /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
     /// so the result does not depend on anything but the edge order); `Int` of the union is
     /// the largest of `w` and both sides'.
     fn join(&mut self, a: u32, b: u32, w: f32) {
-        let (sa, sb) = (self.size[a as usize], self.size[b as usize]);
-        let (big, small) = if sa > sb || (sa == sb && a < b) {
+        let (ca, cb) = (self.component(a), self.component(b));
+        let (big, small) = if ca.size > cb.size || (ca.size == cb.size && a < b) {
             (a, b)
         } else {
             (b, a)
         };
-        self.sets.attach(small, big);
-        self.size[big as usize] = sa + sb;
-        let int = self.int[a as usize].max(self.int[b as usize]).max(w);
-        self.int[big as usize] = int;
+        let merged = Component {
+            size: ca.size + cb.size,
+            int: ca.int.max(cb.int).max(w),
+        };
+        self.attach(small, big, merged);
     }
     /// The merge criterion over `edges` in their order.
     fn criterion_pass(&mut self, edges: &[Edge], tau: f32) {
@@ -304,8 +303,9 @@ impl Forest {
                 continue;
             }
             let w = e.weight();
-            let ta = self.int[a as usize] + tau / self.size[a as usize] as f32;
-            let tb = self.int[b as usize] + tau / self.size[b as usize] as f32;
+            let (ca, cb) = (self.component(a), self.component(b));
+            let ta = ca.int + tau / ca.size as f32;
+            let tb = cb.int + tau / cb.size as f32;
             if w <= ta.min(tb) {
                 self.join(a, b, w);
             }
@@ -316,8 +316,8 @@ impl Forest {
         for e in edges {
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
-                && ((self.size[a as usize] as usize) < min_size
-                    || (self.size[b as usize] as usize) < min_size)
+                && ((self.component(a).size as usize) < min_size
+                    || (self.component(b).size as usize) < min_size)
             {
                 self.join(a, b, e.weight());
             }
@@ -504,7 +504,7 @@ pub fn segment(
     let geo = geometry(g);
     let h = resolve_max_edge(p, &geo);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
-    let mut forest = Forest::new(n);
+    let mut forest = Forest::singletons(n);
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for (t, rect) in rects.iter().enumerate() {
@@ -689,7 +689,7 @@ mod tests {
                 .filter(|e| tile_of[e.i as usize] != tile_of[e.j as usize]),
         );
         assert_eq!(order.len() as u64, stats.edges);
-        let mut f = Forest::new(g.len());
+        let mut f = Forest::singletons(g.len());
         f.criterion_pass(&order, p.threshold);
         f.min_size_pass(&order, p.min_size);
         let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
@@ -700,7 +700,7 @@ mod tests {
             ..p
         };
         let (untiled, _) = segment(&g, &single, "x").unwrap();
-        let mut f = Forest::new(g.len());
+        let mut f = Forest::singletons(g.len());
         f.criterion_pass(&all, p.threshold);
         f.min_size_pass(&all, p.min_size);
         let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();

@@ -252,7 +252,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
     let mut edges = build_edges(&smooth, w, h);
     radix_sort_by_weight(&mut edges);
 
-    let mut forest = Forest::new(n);
+    let mut forest = Forest::singletons(n);
     let mut thresh = vec![params.k; n];
     for &e in &edges {
         let weight = (e >> 32) as f32 * (1.0 / WEIGHT_SCALE);
@@ -261,7 +261,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
         let b = forest.find(q);
         if a != b && weight <= thresh[a as usize] && weight <= thresh[b as usize] {
             let r = forest.join(a, b);
-            thresh[r as usize] = weight + params.k / forest.size[r as usize] as f32;
+            thresh[r as usize] = weight + params.k / forest.size(r) as f32;
         }
     }
     // Post-pass: only edges with an endpoint in a component below `min_size` can merge
@@ -271,7 +271,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
         let small: Vec<bool> = (0..n as u32)
             .map(|p| {
                 let r = forest.find(p);
-                forest.size[r as usize] < min_size
+                forest.size(r) < min_size
             })
             .collect();
         for &e in &edges {
@@ -281,8 +281,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
             }
             let a = forest.find(p);
             let b = forest.find(q);
-            if a != b && (forest.size[a as usize] < min_size || forest.size[b as usize] < min_size)
-            {
+            if a != b && (forest.size(a) < min_size || forest.size(b) < min_size) {
                 forest.join(a, b);
             }
         }
@@ -474,38 +473,40 @@ fn radix_sort_by_weight(v: &mut Vec<u64>) {
     }
 }
 
-/// Disjoint-set forest with union by rank and path compression, tracking component sizes.
-struct Forest {
-    sets: DisjointSets,
-    rank: Vec<u8>,
-    size: Vec<u32>,
+/// A component of the pixel graph: its union-by-rank rank and its pixel count.
+#[derive(Clone, Copy)]
+struct Component {
+    rank: u8,
+    size: u32,
 }
 
+/// Disjoint-set forest with union by rank and path compression, tracking component sizes.
+type Forest = DisjointSets<Component>;
+
 impl Forest {
-    fn new(n: usize) -> Self {
-        Forest {
-            sets: DisjointSets::new(n),
-            rank: vec![0; n],
-            size: vec![1; n],
-        }
+    /// Every pixel of `n` its own component.
+    fn singletons(n: usize) -> Self {
+        DisjointSets::new(n, Component { rank: 0, size: 1 })
     }
 
-    fn find(&mut self, x: u32) -> u32 {
-        self.sets.find(x)
+    /// Pixels in the component of root `root`.
+    fn size(&self, root: u32) -> u32 {
+        self.component(root).size
     }
 
     /// Joins two distinct roots; returns the new root.
     fn join(&mut self, a: u32, b: u32) -> u32 {
-        let (a, b) = if self.rank[a as usize] < self.rank[b as usize] {
-            (b, a)
+        let (ca, cb) = (self.component(a), self.component(b));
+        let (a, b, ra, rb) = if ca.rank < cb.rank {
+            (b, a, cb.rank, ca.rank)
         } else {
-            (a, b)
+            (a, b, ca.rank, cb.rank)
         };
-        self.sets.attach(b, a);
-        self.size[a as usize] += self.size[b as usize];
-        if self.rank[a as usize] == self.rank[b as usize] {
-            self.rank[a as usize] += 1;
-        }
+        let merged = Component {
+            rank: if ra == rb { ra + 1 } else { ra },
+            size: ca.size + cb.size,
+        };
+        self.attach(b, a, merged);
         a
     }
 }
