@@ -74,6 +74,29 @@ fn miou_str(m: Option<f64>) -> String {
     m.map_or_else(|| "na".into(), |v| format!("{v:.4}"))
 }
 
+/// A column of a markdown table: its title and whether its cells are right-aligned (numbers).
+type Column = (&'static str, bool);
+
+/// Appends a markdown table to `s`: the titles of `columns`, the alignment row, then one line
+/// per row of cells (as many as `columns`).
+fn push_table(s: &mut String, columns: &[Column], rows: impl IntoIterator<Item = Vec<String>>) {
+    let line = |s: &mut String, cells: &[&str]| {
+        s.push_str("| ");
+        s.push_str(&cells.join(" | "));
+        s.push_str(" |\n");
+    };
+    line(s, &columns.iter().map(|c| c.0).collect::<Vec<_>>());
+    s.push('|');
+    for &(_, right) in columns {
+        s.push_str(if right { "---:|" } else { "---|" });
+    }
+    s.push('\n');
+    for cells in rows {
+        debug_assert_eq!(cells.len(), columns.len());
+        line(s, &cells.iter().map(String::as_str).collect::<Vec<_>>());
+    }
+}
+
 /// The CSV text: a header line of [`CSV_COLUMNS`], then one line per row.
 pub fn csv(rows: &[Row]) -> String {
     let mut s = CSV_COLUMNS.join(",");
@@ -196,37 +219,55 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          another, so they exceed the wall time). ★ = on the Pareto front of (encode time, \
          colour mIoU). Embeddings are evaluated as f32.\n"
     );
-    s += "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n";
-    s += "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n";
-    for (i, r) in rows
+    let encode_rows = rows
         .iter()
         .enumerate()
         .filter(|(_, r)| r.section == "encode")
-    {
-        let star = if front.contains(&i) { " ★" } else { "" };
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {} | {} | {} | {} | {} | {:.1}{star} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {:.3} ({}) | {:.2} |",
-            r.point,
-            r.knob,
-            r.masks,
-            r.every,
-            r.views,
-            r.raster_scale,
-            r.top_k,
-            r.encode_s,
-            r.stages.masks,
-            r.stages.clip,
-            r.stages.raster,
-            r.stages.image_aggregate,
-            r.stages.reduce,
-            r.observed,
-            miou_str(r.colour_miou),
-            r.iou,
-            r.iou_prompts,
-            r.query_ms
-        );
-    }
+        .map(|(i, r)| {
+            let star = if front.contains(&i) { " ★" } else { "" };
+            vec![
+                format!("`{}`", r.point),
+                r.knob.clone(),
+                r.masks.clone(),
+                r.every.to_string(),
+                r.views.to_string(),
+                r.raster_scale.to_string(),
+                r.top_k.clone(),
+                format!("{:.1}{star}", r.encode_s),
+                format!("{:.1}", r.stages.masks),
+                format!("{:.1}", r.stages.clip),
+                format!("{:.1}", r.stages.raster),
+                format!("{:.1}", r.stages.image_aggregate),
+                format!("{:.2}", r.stages.reduce),
+                r.observed.to_string(),
+                miou_str(r.colour_miou),
+                format!("{:.3} ({})", r.iou, r.iou_prompts),
+                format!("{:.2}", r.query_ms),
+            ]
+        });
+    push_table(
+        &mut s,
+        &[
+            ("point", false),
+            ("knob", false),
+            ("masks", false),
+            ("every", true),
+            ("views", true),
+            ("raster", true),
+            ("top-K", true),
+            ("encode s", true),
+            ("masks s", true),
+            ("CLIP s", true),
+            ("raster s", true),
+            ("a_kj s", true),
+            ("reduce s", true),
+            ("observed", true),
+            ("colour mIoU", true),
+            ("IoU vs ref (prompts)", true),
+            ("f32 scan ms", true),
+        ],
+        encode_rows,
+    );
 
     // Storage.
     let _ = writeln!(s, "\n## Stored precision (baseline run's embeddings)\n");
@@ -243,22 +284,30 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          per codebook row, then S multiply-adds per Gaussian) plus the threshold, and its build \
          time the cut.\n"
     );
-    s += "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n";
-    s += "|---|---|---:|---:|---:|---:|---:|\n";
-    for r in rows.iter().filter(|r| r.section == "storage") {
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {:.1} | {:.3} | {:.2} | {} | {:.4} ({}) |",
-            r.point,
-            r.storage,
-            r.bytes_per_gaussian,
-            r.build_s,
-            r.query_ms,
+    let storage_rows = rows.iter().filter(|r| r.section == "storage").map(|r| {
+        vec![
+            format!("`{}`", r.point),
+            r.storage.clone(),
+            format!("{:.1}", r.bytes_per_gaussian),
+            format!("{:.3}", r.build_s),
+            format!("{:.2}", r.query_ms),
             miou_str(r.colour_miou),
-            r.iou,
-            r.iou_prompts
-        );
-    }
+            format!("{:.4} ({})", r.iou, r.iou_prompts),
+        ]
+    });
+    push_table(
+        &mut s,
+        &[
+            ("point", false),
+            ("storage", false),
+            ("bytes / Gaussian", true),
+            ("build s", true),
+            ("scan ms", true),
+            ("colour mIoU", true),
+            ("IoU vs f32 (prompts)", true),
+        ],
+        storage_rows,
+    );
 
     // Index.
     let _ = writeln!(s, "\n## Exact scan vs approximate index (HNSW)\n");
@@ -271,41 +320,153 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          many rows tie there); *set IoU*: the top-{k} id sets compared as returned.\n",
         k = h.index_top_k
     );
-    s += "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n";
-    s += "|---|---|---:|---:|---:|---:|---:|---:|\n";
-    for r in rows.iter().filter(|r| r.section == "index") {
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {} | {:.2} | {:.1} | {:.3} | {:.4} | {:.4} ({}) |",
-            r.point,
-            r.index,
-            r.observed,
-            r.build_s,
-            r.bytes_per_gaussian,
-            r.query_ms,
-            r.iou,
-            r.set_iou,
-            r.iou_prompts
-        );
-    }
+    let index_rows = rows.iter().filter(|r| r.section == "index").map(|r| {
+        vec![
+            format!("`{}`", r.point),
+            r.index.clone(),
+            r.observed.to_string(),
+            format!("{:.2}", r.build_s),
+            format!("{:.1}", r.bytes_per_gaussian),
+            format!("{:.3}", r.query_ms),
+            format!("{:.4}", r.iou),
+            format!("{:.4} ({})", r.set_iou, r.iou_prompts),
+        ]
+    });
+    push_table(
+        &mut s,
+        &[
+            ("point", false),
+            ("index", false),
+            ("rows", true),
+            ("build s", true),
+            ("bytes / Gaussian", true),
+            ("top-k ms", true),
+            ("recall vs exact", true),
+            ("set IoU (prompts)", true),
+        ],
+        index_rows,
+    );
 
     // Footprint.
     let _ = writeln!(s, "\n## Model only what the scene requires\n");
     let dense = footprint.first().map_or(1, |f| f.bytes.max(1));
-    s += "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n";
-    s += "|---|---:|---:|---:|---:|---|\n";
-    for f in footprint {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {:.2} | {:.3} | {} |",
-            f.form,
-            f.gaussians,
-            f.bytes,
-            f.bytes as f64 / (1u64 << 20) as f64,
-            f.bytes as f64 / dense as f64,
-            f.detail
-        );
-    }
+    let footprint_rows = footprint.iter().map(|f| {
+        vec![
+            f.form.clone(),
+            f.gaussians.to_string(),
+            f.bytes.to_string(),
+            format!("{:.2}", f.bytes as f64 / (1u64 << 20) as f64),
+            format!("{:.3}", f.bytes as f64 / dense as f64),
+            f.detail.clone(),
+        ]
+    });
+    push_table(
+        &mut s,
+        &[
+            ("stored form", false),
+            ("Gaussians", true),
+            ("bytes", true),
+            ("MiB", true),
+            ("vs dense", true),
+            ("detail", false),
+        ],
+        footprint_rows,
+    );
     s += "\n## Recommendations\n\n<!-- recommendations: hand-written from the tables above -->\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(section: &str, point: &str, colour_miou: Option<f64>) -> Row {
+        Row {
+            section: section.into(),
+            point: point.into(),
+            knob: "baseline".into(),
+            masks: "graph".into(),
+            every: 4,
+            raster_scale: 0.5,
+            top_k: "all".into(),
+            storage: "f16".into(),
+            index: "hnsw".into(),
+            views: 12,
+            observed: 1234,
+            encode_s: 10.25,
+            stages: slag_encoder::report::StageTimings {
+                masks: 1.5,
+                clip: 2.25,
+                raster: 3.125,
+                image_aggregate: 0.5,
+                reduce: 0.0625,
+                ..Default::default()
+            },
+            build_s: 0.123456,
+            bytes_per_gaussian: 1040.04,
+            query_ms: 2.345,
+            colour_miou,
+            iou: 0.987654,
+            set_iou: 0.876543,
+            iou_kind: "f32 cos>=0.28".into(),
+            iou_prompts: 11,
+        }
+    }
+
+    /// The table lines of [`markdown`] (every line starting with `|`).
+    fn table_lines() -> Vec<String> {
+        let h = Header {
+            command: "slag-bench tradeoffs".into(),
+            machine: MachineInfo::detect(),
+            note: None,
+            scene: "mini".into(),
+            scene_gaussians: 5000,
+            threshold: 0.28,
+            repeats: 1,
+            index_top_k: 100,
+            skipped: Vec::new(),
+            study_s: 60.0,
+        };
+        let rows = [
+            row("encode", "graph-e4", Some(0.5)),
+            row("storage", "store-f16", Some(0.25)),
+            row("index", "hnsw", None),
+        ];
+        let footprint = [FootprintRow {
+            form: "dense f32".into(),
+            gaussians: 5000,
+            bytes: 3 << 20,
+            detail: "one tensor".into(),
+        }];
+        markdown(&h, &rows, &footprint)
+            .lines()
+            .filter(|l| l.starts_with('|'))
+            .map(str::to_string)
+            .collect()
+    }
+
+    #[test]
+    fn markdown_tables_have_one_cell_per_column() {
+        let lines = table_lines();
+        let expected = [
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| `graph-e4` | baseline | graph | 4 | 12 | 0.5 | all | 10.2 ★ | 1.5 | 2.2 | 3.1 | 0.5 | 0.06 | 1234 | 0.5000 | 0.988 (11) | 2.35 |",
+            "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |",
+            "|---|---|---:|---:|---:|---:|---:|",
+            "| `store-f16` | f16 | 1040.0 | 0.123 | 2.35 | 0.2500 | 0.9877 (11) |",
+            "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+            "| `hnsw` | hnsw | 1234 | 0.12 | 1040.0 | 2.345 | 0.9877 | 0.8765 (11) |",
+            "| stored form | Gaussians | bytes | MiB | vs dense | detail |",
+            "|---|---:|---:|---:|---:|---|",
+            "| dense f32 | 5000 | 3145728 | 3.00 | 1.000 | one tensor |",
+        ];
+        assert_eq!(lines, expected);
+        for table in lines.chunks(3) {
+            let cells = |l: &str| l.matches('|').count();
+            assert_eq!(cells(&table[0]), cells(&table[1]), "{table:?}");
+            assert_eq!(cells(&table[0]), cells(&table[2]), "{table:?}");
+        }
+    }
 }

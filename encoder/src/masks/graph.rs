@@ -605,19 +605,26 @@ mod tests {
         ]
     }
 
+    /// Segments [`scene`]'s rectangles (noise ±`noise`) with `params` and asserts that it finds
+    /// the background and the 5 rectangles, each with a best IoU of at least `min_iou`.
+    fn assert_rectangles_recovered(noise: i32, params: &GraphParams, min_iou: f64) {
+        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), noise);
+        let (labels, count) = segment_labels(&img, params).unwrap();
+        assert_eq!(count, 6, "background + 5 rectangles with {params:?}");
+        let ious = best_ious(&gt, &labels, count);
+        assert!(
+            ious.iter().all(|&i| i >= min_iou),
+            "IoUs {ious:?} with {params:?}"
+        );
+    }
+
     #[test]
     fn clean_rectangles_are_recovered_exactly() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 0);
-        let params = RECT_PARAMS;
-        let (labels, count) = segment_labels(&img, &params).unwrap();
-        assert_eq!(count, 6, "background + 5 rectangles");
-        let ious = best_ious(&gt, &labels, count);
-        assert!(ious.iter().all(|&i| i == 1.0), "IoUs {ious:?}");
+        assert_rectangles_recovered(0, &RECT_PARAMS, 1.0);
     }
 
     #[test]
     fn unsmoothed_rectangles_are_recovered_exactly_for_any_k() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 0);
         for k in [50.0, 500.0, 5000.0] {
             let params = GraphParams {
                 sigma: 0.0,
@@ -625,21 +632,13 @@ mod tests {
                 min_size: 1,
                 max_side: None,
             };
-            let (labels, count) = segment_labels(&img, &params).unwrap();
-            assert_eq!(count, 6, "k {k}");
-            let ious = best_ious(&gt, &labels, count);
-            assert!(ious.iter().all(|&i| i == 1.0), "k {k}: IoUs {ious:?}");
+            assert_rectangles_recovered(0, &params, 1.0);
         }
     }
 
     #[test]
     fn noisy_rectangles_are_recovered() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 12);
-        let params = RECT_PARAMS;
-        let (labels, count) = segment_labels(&img, &params).unwrap();
-        assert_eq!(count, 6, "background + 5 rectangles");
-        let ious = best_ious(&gt, &labels, count);
-        assert!(ious.iter().all(|&i| i >= 0.99), "IoUs {ious:?}");
+        assert_rectangles_recovered(12, &RECT_PARAMS, 0.99);
     }
 
     #[test]
