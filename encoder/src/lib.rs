@@ -21,6 +21,7 @@
 
 pub mod aggregate;
 pub mod args;
+mod check;
 pub mod clip;
 pub mod config;
 mod disjoint_sets;

@@ -58,6 +58,7 @@ use slag_common::scene::Gaussians;
 use slag_common::segments::{Segments, canonical_ids};
 use slag_common::{Error, Result};
 
+use crate::check::require;
 use crate::disjoint_sets::DisjointSets;
 
 /// Settings of the segmentation; [`SegmentParams::default`] are the documented defaults.
@@ -106,49 +107,36 @@ impl SegmentParams {
     /// Errors: [`Error::Param`] naming the setting (`neighbours`, `threshold`, `max_edge`,
     /// `tile_gaussians`, a weight) when outside its domain.
     pub fn validate(&self) -> Result<()> {
-        if self.neighbours == 0 || self.neighbours > 256 {
-            return Err(Error::param(
-                "neighbours",
-                self.neighbours,
-                "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
-            ));
-        }
-        if !(self.threshold.is_finite() && self.threshold >= 0.0) {
-            return Err(Error::param(
-                "threshold",
-                self.threshold,
-                "a finite scale τ ≥ 0 (e.g. 0.5)",
-            ));
-        }
-        if let Some(m) = self.max_edge
-            && !(m.is_finite() && m > 0.0)
-        {
-            return Err(Error::param(
-                "max_edge",
-                m,
-                "a positive length in scene units",
-            ));
+        let (k, tau) = (self.neighbours, self.threshold);
+        require(
+            (1..=256).contains(&k),
+            "neighbours",
+            k,
+            "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
+        )?;
+        require(
+            tau.is_finite() && tau >= 0.0,
+            "threshold",
+            tau,
+            "a finite scale τ ≥ 0 (e.g. 0.5)",
+        )?;
+        if let Some(m) = self.max_edge {
+            let ok = m.is_finite() && m > 0.0;
+            require(ok, "max_edge", m, "a positive length in scene units")?;
         }
         for (name, w) in [
             ("normal_weight", self.normal_weight),
             ("distance_weight", self.distance_weight),
             ("shape_weight", self.shape_weight),
         ] {
-            if !(w.is_finite() && w >= 0.0) {
-                return Err(Error::param(name, w, "a finite weight ≥ 0"));
-            }
+            require(w.is_finite() && w >= 0.0, name, w, "a finite weight ≥ 0")?;
         }
-        if self.tile_gaussians < self.neighbours + 1 {
-            return Err(Error::param(
-                "tile_gaussians",
-                self.tile_gaussians,
-                format!(
-                    "more than neighbours ({}) Gaussians per tile",
-                    self.neighbours
-                ),
-            ));
-        }
-        Ok(())
+        require(
+            self.tile_gaussians > k,
+            "tile_gaussians",
+            self.tile_gaussians,
+            format!("more than neighbours ({k}) Gaussians per tile"),
+        )
     }
 }
 

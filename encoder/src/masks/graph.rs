@@ -36,6 +36,7 @@ use image::RgbImage;
 use slag_common::{Error, Result};
 
 use super::{Mask, MaskGenerator};
+use crate::check::require;
 use crate::disjoint_sets::DisjointSets;
 
 /// Parameters of [`segment_labels`] / [`GraphSegmenter`].
@@ -70,28 +71,25 @@ impl Default for GraphParams {
 
 impl GraphParams {
     fn validate(&self) -> Result<()> {
-        if !(self.sigma.is_finite() && self.sigma >= 0.0) {
-            return Err(Error::param(
-                "graph_sigma",
-                self.sigma,
-                "a finite smoothing sigma >= 0 (default 0.8)",
-            ));
-        }
-        if !(self.k.is_finite() && self.k > 0.0) {
-            return Err(Error::param(
-                "graph_k",
-                self.k,
-                "a finite threshold scale k > 0 (default 500)",
-            ));
-        }
-        if self.max_side == Some(0) {
-            return Err(Error::param(
-                "graph_max_side",
-                0,
-                "a positive longer side in pixels, or none",
-            ));
-        }
-        Ok(())
+        let (sigma, k) = (self.sigma, self.k);
+        require(
+            sigma.is_finite() && sigma >= 0.0,
+            "graph_sigma",
+            sigma,
+            "a finite smoothing sigma >= 0 (default 0.8)",
+        )?;
+        require(
+            k.is_finite() && k > 0.0,
+            "graph_k",
+            k,
+            "a finite threshold scale k > 0 (default 500)",
+        )?;
+        require(
+            self.max_side != Some(0),
+            "graph_max_side",
+            0,
+            "a positive longer side in pixels, or none",
+        )
     }
 }
 
