@@ -74,26 +74,14 @@ fn miou_str(m: Option<f64>) -> String {
     m.map_or_else(|| "na".into(), |v| format!("{v:.4}"))
 }
 
-/// A column of a markdown table: its title and whether its cells are right-aligned (numbers).
-type Column = (&'static str, bool);
-
-/// Appends a markdown table to `s`: the titles of `columns`, the alignment row, then one line
-/// per row of cells (as many as `columns`).
-fn push_table(s: &mut String, columns: &[Column], rows: impl IntoIterator<Item = Vec<String>>) {
-    let line = |s: &mut String, cells: &[&str]| {
+/// Appends a markdown table to `s`: `header` (its title line and its alignment line, each
+/// ending in a newline), then one line per row of cells (one per column of `header`).
+fn push_table(s: &mut String, header: &str, rows: impl IntoIterator<Item = Vec<String>>) {
+    s.push_str(header);
+    for cells in rows {
         s.push_str("| ");
         s.push_str(&cells.join(" | "));
         s.push_str(" |\n");
-    };
-    line(s, &columns.iter().map(|c| c.0).collect::<Vec<_>>());
-    s.push('|');
-    for &(_, right) in columns {
-        s.push_str(if right { "---:|" } else { "---|" });
-    }
-    s.push('\n');
-    for cells in rows {
-        debug_assert_eq!(cells.len(), columns.len());
-        line(s, &cells.iter().map(String::as_str).collect::<Vec<_>>());
     }
 }
 
@@ -247,25 +235,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         });
     push_table(
         &mut s,
-        &[
-            ("point", false),
-            ("knob", false),
-            ("masks", false),
-            ("every", true),
-            ("views", true),
-            ("raster", true),
-            ("top-K", true),
-            ("encode s", true),
-            ("masks s", true),
-            ("CLIP s", true),
-            ("raster s", true),
-            ("a_kj s", true),
-            ("reduce s", true),
-            ("observed", true),
-            ("colour mIoU", true),
-            ("IoU vs ref (prompts)", true),
-            ("f32 scan ms", true),
-        ],
+        concat!(
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        ),
         encode_rows,
     );
 
@@ -297,15 +270,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     });
     push_table(
         &mut s,
-        &[
-            ("point", false),
-            ("storage", false),
-            ("bytes / Gaussian", true),
-            ("build s", true),
-            ("scan ms", true),
-            ("colour mIoU", true),
-            ("IoU vs f32 (prompts)", true),
-        ],
+        concat!(
+            "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n",
+            "|---|---|---:|---:|---:|---:|---:|\n"
+        ),
         storage_rows,
     );
 
@@ -334,16 +302,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     });
     push_table(
         &mut s,
-        &[
-            ("point", false),
-            ("index", false),
-            ("rows", true),
-            ("build s", true),
-            ("bytes / Gaussian", true),
-            ("top-k ms", true),
-            ("recall vs exact", true),
-            ("set IoU (prompts)", true),
-        ],
+        concat!(
+            "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n",
+            "|---|---|---:|---:|---:|---:|---:|---:|\n"
+        ),
         index_rows,
     );
 
@@ -362,14 +324,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     });
     push_table(
         &mut s,
-        &[
-            ("stored form", false),
-            ("Gaussians", true),
-            ("bytes", true),
-            ("MiB", true),
-            ("vs dense", true),
-            ("detail", false),
-        ],
+        concat!(
+            "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n",
+            "|---|---:|---:|---:|---:|---|\n"
+        ),
         footprint_rows,
     );
     s += "\n## Recommendations\n\n<!-- recommendations: hand-written from the tables above -->\n";

@@ -149,12 +149,8 @@ impl SamParams {
             ("stability_score_thresh", self.stability_score_thresh),
             ("box_nms_thresh", self.box_nms_thresh),
         ] {
-            require(
-                (0.0..=1.0).contains(&v),
-                name,
-                v,
-                "a SAM threshold in [0, 1]",
-            )?;
+            let in_unit_interval = (0.0..=1.0).contains(&v);
+            require(in_unit_interval, name, v, "a SAM threshold in [0, 1]")?;
         }
         for (name, v) in [
             ("stability_score_offset", self.stability_score_offset),
