@@ -74,9 +74,20 @@ fn miou_str(m: Option<f64>) -> String {
     m.map_or_else(|| "na".into(), |v| format!("{v:.4}"))
 }
 
-/// Appends a markdown table to `s`: `header` (its title line and its alignment line, each
-/// ending in a newline), then one line per row of cells (one per column of `header`).
-fn push_table(s: &mut String, header: &str, rows: impl IntoIterator<Item = Vec<String>>) {
+/// Appends a section of tables to `s`: a blank line, `## heading`, the `intro` paragraph if
+/// any, then a markdown table: `header` (its title line and its alignment line, each ending in a
+/// newline) and one line per row of cells (one per column of `header`).
+fn push_section(
+    s: &mut String,
+    heading: &str,
+    intro: Option<&str>,
+    header: &str,
+    rows: impl IntoIterator<Item = Vec<String>>,
+) {
+    let _ = writeln!(s, "\n## {heading}\n");
+    if let Some(intro) = intro {
+        let _ = writeln!(s, "{intro}\n");
+    }
     s.push_str(header);
     for cells in rows {
         s.push_str("| ");
@@ -189,24 +200,20 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     let _ = writeln!(
         s,
         "- Query latency: one prompt's exact scan (`slag_edge::scan`, cos ≥ {t}, all cores), \
-         median over 12 prompts × {r} repeats after one untimed run per prompt.\n",
+         median over 12 prompts × {r} repeats after one untimed run per prompt.",
         t = h.threshold,
         r = h.repeats
     );
 
     // Encode sweep.
     let front = pareto_front(rows);
-    let _ = writeln!(s, "## Encode sweep (one factor at a time)\n");
-    let _ = writeln!(
-        s,
-        "Baseline: graph masks, every 4th image, raster scale 0.5, all contributors per pixel. \
+    let encode_intro = "Baseline: graph masks, every 4th image, raster scale 0.5, all contributors per pixel. \
          **Reference** (for *IoU vs ref*): graph masks, every image, raster scale 0.5, all \
          contributors: the costliest graph configuration of the sweep besides raster 1.0 at 4× \
          the raster cost. Mask sources are compared at every 8th image. Stage columns are \
          seconds summed over images (decode/masks/CLIP on one thread overlap raster/a_kj on \
          another, so they exceed the wall time). ★ = on the Pareto front of (encode time, \
-         colour mIoU). Embeddings are evaluated as f32.\n"
-    );
+         colour mIoU). Embeddings are evaluated as f32.";
     let encode_rows = rows
         .iter()
         .enumerate()
@@ -233,8 +240,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
                 format!("{:.2}", r.query_ms),
             ]
         });
-    push_table(
+    push_section(
         &mut s,
+        "Encode sweep (one factor at a time)",
+        Some(encode_intro),
         concat!(
             "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
@@ -243,10 +252,7 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     );
 
     // Storage.
-    let _ = writeln!(s, "\n## Stored precision (baseline run's embeddings)\n");
-    let _ = writeln!(
-        s,
-        "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
+    let storage_intro = "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
          row with an f32 scale). Bytes per Gaussian = vector + 4 B id + 12 B mean. *Build* = \
          seconds to convert the f32 rows. Colour mIoU from the dequantised rows; IoU against the \
          exact f32 answer (`slag_common::similarity::cosine_scores` on the f32 rows). \
@@ -255,8 +261,7 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          with keep S up to f16 rounding of the weights); bytes as written (f16 codebook amortised \
          over the Gaussians + S × 6 B + 16 B); its query is `MixtureEmbeddings::scores` (one dot \
          per codebook row, then S multiply-adds per Gaussian) plus the threshold, and its build \
-         time the cut.\n"
-    );
+         time the cut.";
     let storage_rows = rows.iter().filter(|r| r.section == "storage").map(|r| {
         vec![
             format!("`{}`", r.point),
@@ -268,8 +273,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             format!("{:.4} ({})", r.iou, r.iou_prompts),
         ]
     });
-    push_table(
+    push_section(
         &mut s,
+        "Stored precision (baseline run's embeddings)",
+        Some(storage_intro),
         concat!(
             "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n",
             "|---|---|---:|---:|---:|---:|---:|\n"
@@ -278,14 +285,12 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     );
 
     // Index.
-    let _ = writeln!(s, "\n## Exact scan vs approximate index (HNSW)\n");
-    let _ = writeln!(
-        s,
+    let index_intro = format!(
         "Top-{k} per prompt on the baseline's f32 rows (HNSW: instant-distance, M 32, ef_search \
          = k; rows: the indexed ones). HNSW bytes add the index (its f32 copy of the rows and the \
          graph) to the store's. *Recall*: the fraction of HNSW's k rows scoring at least the \
          exact k-th best score (ties counted: color-clip rows are mixtures of 12 prototypes, so \
-         many rows tie there); *set IoU*: the top-{k} id sets compared as returned.\n",
+         many rows tie there); *set IoU*: the top-{k} id sets compared as returned.",
         k = h.index_top_k
     );
     let index_rows = rows.iter().filter(|r| r.section == "index").map(|r| {
@@ -300,8 +305,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             format!("{:.4} ({})", r.set_iou, r.iou_prompts),
         ]
     });
-    push_table(
+    push_section(
         &mut s,
+        "Exact scan vs approximate index (HNSW)",
+        Some(&index_intro),
         concat!(
             "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n",
             "|---|---|---:|---:|---:|---:|---:|---:|\n"
@@ -310,7 +317,6 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     );
 
     // Footprint.
-    let _ = writeln!(s, "\n## Model only what the scene requires\n");
     let dense = footprint.first().map_or(1, |f| f.bytes.max(1));
     let footprint_rows = footprint.iter().map(|f| {
         vec![
@@ -322,8 +328,10 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             f.detail.clone(),
         ]
     });
-    push_table(
+    push_section(
         &mut s,
+        "Model only what the scene requires",
+        None,
         concat!(
             "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n",
             "|---|---:|---:|---:|---:|---|\n"
