@@ -55,22 +55,6 @@ pub struct PartitionParams {
     pub to_map: Option<SceneToMap>,
 }
 
-impl PartitionParams {
-    /// Tiles on the scene's own x-y plane (z up: a geo-registered or synthetic scene), no map
-    /// frame.
-    ///
-    /// Errors: none in practice (`z` is an axis name); as [`GroundFrame::from_axis_name`].
-    pub fn z_up(scene_id: &str, max_per_shard: usize, dtype: Dtype) -> Result<Self> {
-        Ok(PartitionParams {
-            scene_id: scene_id.into(),
-            max_per_shard,
-            up: UpChoice::Given(GroundFrame::from_axis_name("z")?),
-            dtype,
-            to_map: None,
-        })
-    }
-}
-
 /// The ground frame whose up axis is the map's z axis seen from the scene
 /// ([`SceneToMap::map_up_in_scene`]), [`slag_common::shards::UpSource::Map`]: discs on it are
 /// horizontal discs of the map.

@@ -17,8 +17,8 @@ use qdrant_client::qdrant::{
 };
 use slag_common::embeddings::Embeddings;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, Manifest, decode_shard};
-use slag_shards::partition::{PartitionParams, partition};
+use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard};
+use slag_shards::partition::{PartitionParams, UpChoice, partition};
 use slag_shards::qdrant::{QdrantParams, upload};
 use tonic::transport::Server;
 use tonic::transport::server::TcpIncoming;
@@ -246,7 +246,13 @@ const DIM: usize = 16;
 /// the manifest and each Gaussian id's tile taken from the decoded shards.
 fn scene() -> (Embeddings, Manifest, HashMap<u32, u64>) {
     let emb = SyntheticScene::new(1000, DIM, 5, 100.0, 11).to_embeddings();
-    let params = PartitionParams::z_up("qtest", 300, Dtype::F16).expect("z up");
+    let params = PartitionParams {
+        scene_id: "qtest".into(),
+        max_per_shard: 300,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("axis")),
+        dtype: Dtype::F16,
+        to_map: None,
+    };
     let (m, shards) = partition(&emb, &params).expect("partition");
     assert!(m.tiles.len() >= 4, "{} tiles", m.tiles.len());
     let mut tile_of = HashMap::new();

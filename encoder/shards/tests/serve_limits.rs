@@ -7,10 +7,10 @@
 use std::time::Duration;
 
 use slag_common::http::ServerLimits;
-use slag_common::shards::Dtype;
 use slag_common::shards::synthetic::SyntheticScene;
+use slag_common::shards::{Dtype, GroundFrame};
 use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
-use slag_shards::partition::PartitionParams;
+use slag_shards::partition::{PartitionParams, UpChoice};
 use slag_shards::store::{ShardStore, partition_into_store};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -27,7 +27,13 @@ async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::
     let dir = tempfile::tempdir().unwrap();
     let store = ShardStore::open(dir.path()).unwrap();
     let scene = SyntheticScene::new(300, 8, 2, 20.0, 5);
-    let p = PartitionParams::z_up("lab", 100, Dtype::F16).expect("z up");
+    let p = PartitionParams {
+        scene_id: "lab".into(),
+        max_per_shard: 100,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
+        dtype: Dtype::F16,
+        to_map: None,
+    };
     partition_into_store(&store, &scene, &p).unwrap();
     let (tx, rx) = tokio::sync::oneshot::channel();
     let token = token.map(str::to_string);

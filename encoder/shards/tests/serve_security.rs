@@ -4,9 +4,9 @@
 
 use std::io::{Read, Write};
 
-use slag_common::shards::Dtype;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_shards::partition::PartitionParams;
+use slag_common::shards::{Dtype, GroundFrame};
+use slag_shards::partition::{PartitionParams, UpChoice};
 use slag_shards::store::{ShardStore, partition_into_store};
 
 /// One `GET` over a fresh connection: (status, headers text, body).
@@ -30,7 +30,13 @@ fn start(token: Option<&str>) -> (std::net::SocketAddr, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let store = ShardStore::open(dir.path()).unwrap();
     let scene = SyntheticScene::new(300, 8, 2, 20.0, 5);
-    let p = PartitionParams::z_up("lab", 100, Dtype::F16).expect("z up");
+    let p = PartitionParams {
+        scene_id: "lab".into(),
+        max_per_shard: 100,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").unwrap()),
+        dtype: Dtype::F16,
+        to_map: None,
+    };
     partition_into_store(&store, &scene, &p).unwrap();
     let token = token.map(str::to_string);
     let (tx, rx) = std::sync::mpsc::channel();

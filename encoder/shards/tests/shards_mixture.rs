@@ -3,10 +3,10 @@
 
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::shards::{
-    MIXTURE_MANIFEST_VERSION, decode_codebook, decode_mixture_shard, shard_checksum,
+    GroundFrame, MIXTURE_MANIFEST_VERSION, decode_codebook, decode_mixture_shard, shard_checksum,
 };
 use slag_shards::partition::{
-    PartitionParams, ShardCap, mixture_layout, partition_mixture_with,
+    PartitionParams, ShardCap, UpChoice, mixture_layout, partition_mixture_with,
     resolve_mixture_max_per_shard,
 };
 use slag_shards::store::{ShardStore, partition_mixture_into_store};
@@ -48,7 +48,13 @@ fn mixture(n: usize, m: usize, dim: usize) -> MixtureEmbeddings {
 }
 
 fn params(max_per_shard: usize) -> PartitionParams {
-    PartitionParams::z_up("mix", max_per_shard, slag_common::shards::Dtype::F16).expect("z up")
+    PartitionParams {
+        scene_id: "mix".into(),
+        max_per_shard,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
+        dtype: slag_common::shards::Dtype::F16,
+        to_map: None,
+    }
 }
 
 #[test]

@@ -1,8 +1,8 @@
 //! HTTP serving on loopback (127.0.0.1:0) and atomic export.
 
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, Manifest, decode_shard, shard_checksum};
-use slag_shards::partition::PartitionParams;
+use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard, shard_checksum};
+use slag_shards::partition::{PartitionParams, UpChoice};
 use slag_shards::store::{ShardStore, partition_into_store};
 use std::io::{Read, Write};
 
@@ -62,7 +62,13 @@ fn get(addr: std::net::SocketAddr, path: &str, extra: &[(&str, &str)]) -> Resp {
 fn filled_store(dir: &std::path::Path) -> (ShardStore, Manifest) {
     let store = ShardStore::open(dir).expect("open");
     let scene = SyntheticScene::new(1200, 8, 3, 40.0, 4);
-    let p = PartitionParams::z_up("lab.v1", 200, Dtype::I8).expect("z up");
+    let p = PartitionParams {
+        scene_id: "lab.v1".into(),
+        max_per_shard: 200,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
+        dtype: Dtype::I8,
+        to_map: None,
+    };
     let m = partition_into_store(&store, &scene, &p).expect("partition");
     (store, m)
 }

@@ -5,13 +5,19 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, Manifest, decode_shard, shard_checksum};
+use slag_common::shards::{Dtype, GroundFrame, Manifest, decode_shard, shard_checksum};
 use slag_common::{Error, Result};
-use slag_shards::partition::{PartitionParams, partition_with};
+use slag_shards::partition::{PartitionParams, UpChoice, partition_with};
 use slag_shards::store::{ShardStore, partition_into_store};
 
 fn params(scene: &str, max: usize, dtype: Dtype) -> PartitionParams {
-    PartitionParams::z_up(scene, max, dtype).expect("z up")
+    PartitionParams {
+        scene_id: scene.into(),
+        max_per_shard: max,
+        up: UpChoice::Given(GroundFrame::from_axis_name("z").expect("z")),
+        dtype,
+        to_map: None,
+    }
 }
 
 /// Every tile of the current manifest has a shard whose bytes match size and checksum and that
