@@ -101,7 +101,7 @@ pub fn csv(rows: &[Row]) -> String {
     let mut s = CSV_COLUMNS.join(",");
     s.push('\n');
     for r in rows {
-        let cells = [
+        let mut cells = vec![
             field(&r.section),
             field(&r.point),
             field(&r.knob),
@@ -113,14 +113,21 @@ pub fn csv(rows: &[Row]) -> String {
             field(&r.index),
             r.views.to_string(),
             r.observed.to_string(),
-            format!("{:.3}", r.encode_s),
-            format!("{:.3}", r.stages.decode),
-            format!("{:.3}", r.stages.masks),
-            format!("{:.3}", r.stages.clip),
-            format!("{:.3}", r.stages.raster),
-            format!("{:.3}", r.stages.image_aggregate),
-            format!("{:.3}", r.stages.reduce),
-            format!("{:.3}", r.build_s),
+        ];
+        // Every duration in seconds, to the millisecond: the encode, its stages, the build.
+        let st = &r.stages;
+        let seconds = [
+            r.encode_s,
+            st.decode,
+            st.masks,
+            st.clip,
+            st.raster,
+            st.image_aggregate,
+            st.reduce,
+            r.build_s,
+        ];
+        cells.extend(seconds.map(|v| format!("{v:.3}")));
+        cells.extend([
             format!("{:.2}", r.bytes_per_gaussian),
             format!("{:.3}", r.query_ms),
             miou_str(r.colour_miou),
@@ -128,7 +135,7 @@ pub fn csv(rows: &[Row]) -> String {
             format!("{:.4}", r.set_iou),
             field(&r.iou_kind),
             r.iou_prompts.to_string(),
-        ];
+        ]);
         s += &cells.join(",");
         s.push('\n');
     }
@@ -409,6 +416,19 @@ mod tests {
             .filter(|l| l.starts_with('|'))
             .map(str::to_string)
             .collect()
+    }
+
+    #[test]
+    fn csv_has_one_field_per_column() {
+        let text = csv(&[row("storage", "store-f16", None)]);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], CSV_COLUMNS.join(","));
+        assert_eq!(
+            lines[1],
+            "storage,store-f16,baseline,graph,4,0.5,all,f16,hnsw,12,1234,10.250,0.000,1.500,2.250,\
+             3.125,0.500,0.062,0.123,1040.04,2.345,na,0.9877,0.8765,f32 cos>=0.28,11"
+        );
+        assert_eq!(lines[1].split(',').count(), CSV_COLUMNS.len());
     }
 
     #[test]
