@@ -21,8 +21,10 @@
 
 pub mod aggregate;
 pub mod args;
+mod check;
 pub mod clip;
 pub mod config;
+mod disjoint_sets;
 pub mod distributed;
 pub mod eval;
 pub mod masks;

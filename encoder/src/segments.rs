@@ -58,6 +58,9 @@ use slag_common::scene::Gaussians;
 use slag_common::segments::{Segments, canonical_ids};
 use slag_common::{Error, Result};
 
+use crate::check::require;
+use crate::disjoint_sets::DisjointSets;
+
 /// Settings of the segmentation; [`SegmentParams::default`] are the documented defaults.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -104,49 +107,36 @@ impl SegmentParams {
     /// Errors: [`Error::Param`] naming the setting (`neighbours`, `threshold`, `max_edge`,
     /// `tile_gaussians`, a weight) when outside its domain.
     pub fn validate(&self) -> Result<()> {
-        if self.neighbours == 0 || self.neighbours > 256 {
-            return Err(Error::param(
-                "neighbours",
-                self.neighbours,
-                "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
-            ));
-        }
-        if !(self.threshold.is_finite() && self.threshold >= 0.0) {
-            return Err(Error::param(
-                "threshold",
-                self.threshold,
-                "a finite scale τ ≥ 0 (e.g. 0.5)",
-            ));
-        }
-        if let Some(m) = self.max_edge
-            && !(m.is_finite() && m > 0.0)
-        {
-            return Err(Error::param(
-                "max_edge",
-                m,
-                "a positive length in scene units",
-            ));
+        let (k, tau) = (self.neighbours, self.threshold);
+        require(
+            (1..=256).contains(&k),
+            "neighbours",
+            k,
+            "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
+        )?;
+        require(
+            tau.is_finite() && tau >= 0.0,
+            "threshold",
+            tau,
+            "a finite scale τ ≥ 0 (e.g. 0.5)",
+        )?;
+        if let Some(m) = self.max_edge {
+            let ok = m.is_finite() && m > 0.0;
+            require(ok, "max_edge", m, "a positive length in scene units")?;
         }
         for (name, w) in [
             ("normal_weight", self.normal_weight),
             ("distance_weight", self.distance_weight),
             ("shape_weight", self.shape_weight),
         ] {
-            if !(w.is_finite() && w >= 0.0) {
-                return Err(Error::param(name, w, "a finite weight ≥ 0"));
-            }
+            require(w.is_finite() && w >= 0.0, name, w, "a finite weight ≥ 0")?;
         }
-        if self.tile_gaussians < self.neighbours + 1 {
-            return Err(Error::param(
-                "tile_gaussians",
-                self.tile_gaussians,
-                format!(
-                    "more than neighbours ({}) Gaussians per tile",
-                    self.neighbours
-                ),
-            ));
-        }
-        Ok(())
+        require(
+            self.tile_gaussians > k,
+            "tile_gaussians",
+            self.tile_gaussians,
+            format!("more than neighbours ({k}) Gaussians per tile"),
+        )
     }
 }
 
@@ -261,47 +251,37 @@ fn weight(p: &SegmentParams, geo: &Geometry, i: usize, j: usize, d: f32) -> f32 
     if w.is_finite() { w.max(0.0) } else { f32::MAX }
 }
 
-/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
-struct Forest {
-    parent: Vec<u32>,
-    size: Vec<u32>,
-    int: Vec<f32>,
+/// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
+/// of its minimum spanning tree.
+#[derive(Clone, Copy)]
+struct Component {
+    size: u32,
+    int: f32,
 }
 
+/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
+type Forest = DisjointSets<Component>;
+
 impl Forest {
-    fn new(n: usize) -> Self {
-        Forest {
-            parent: (0..n as u32).collect(),
-            size: vec![1; n],
-            int: vec![0.0; n],
-        }
-    }
-    fn find(&mut self, mut x: u32) -> u32 {
-        let mut root = x;
-        while self.parent[root as usize] != root {
-            root = self.parent[root as usize];
-        }
-        while self.parent[x as usize] != root {
-            let next = self.parent[x as usize];
-            self.parent[x as usize] = root;
-            x = next;
-        }
-        root
+    /// Every Gaussian of `n` its own component.
+    fn singletons(n: usize) -> Self {
+        DisjointSets::new(n, Component { size: 1, int: 0.0 })
     }
     /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
     /// so the result does not depend on anything but the edge order); `Int` of the union is
     /// the largest of `w` and both sides'.
     fn join(&mut self, a: u32, b: u32, w: f32) {
-        let (sa, sb) = (self.size[a as usize], self.size[b as usize]);
-        let (big, small) = if sa > sb || (sa == sb && a < b) {
+        let (ca, cb) = (self.component(a), self.component(b));
+        let (big, small) = if ca.size > cb.size || (ca.size == cb.size && a < b) {
             (a, b)
         } else {
             (b, a)
         };
-        self.parent[small as usize] = big;
-        self.size[big as usize] = sa + sb;
-        let int = self.int[a as usize].max(self.int[b as usize]).max(w);
-        self.int[big as usize] = int;
+        let merged = Component {
+            size: ca.size + cb.size,
+            int: ca.int.max(cb.int).max(w),
+        };
+        self.attach(small, big, merged);
     }
     /// The merge criterion over `edges` in their order.
     fn criterion_pass(&mut self, edges: &[Edge], tau: f32) {
@@ -311,8 +291,9 @@ impl Forest {
                 continue;
             }
             let w = e.weight();
-            let ta = self.int[a as usize] + tau / self.size[a as usize] as f32;
-            let tb = self.int[b as usize] + tau / self.size[b as usize] as f32;
+            let (ca, cb) = (self.component(a), self.component(b));
+            let ta = ca.int + tau / ca.size as f32;
+            let tb = cb.int + tau / cb.size as f32;
             if w <= ta.min(tb) {
                 self.join(a, b, w);
             }
@@ -323,8 +304,8 @@ impl Forest {
         for e in edges {
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
-                && ((self.size[a as usize] as usize) < min_size
-                    || (self.size[b as usize] as usize) < min_size)
+                && ((self.component(a).size as usize) < min_size
+                    || (self.component(b).size as usize) < min_size)
             {
                 self.join(a, b, e.weight());
             }
@@ -511,7 +492,7 @@ pub fn segment(
     let geo = geometry(g);
     let h = resolve_max_edge(p, &geo);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
-    let mut forest = Forest::new(n);
+    let mut forest = Forest::singletons(n);
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for (t, rect) in rects.iter().enumerate() {
@@ -696,7 +677,7 @@ mod tests {
                 .filter(|e| tile_of[e.i as usize] != tile_of[e.j as usize]),
         );
         assert_eq!(order.len() as u64, stats.edges);
-        let mut f = Forest::new(g.len());
+        let mut f = Forest::singletons(g.len());
         f.criterion_pass(&order, p.threshold);
         f.min_size_pass(&order, p.min_size);
         let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
@@ -707,7 +688,7 @@ mod tests {
             ..p
         };
         let (untiled, _) = segment(&g, &single, "x").unwrap();
-        let mut f = Forest::new(g.len());
+        let mut f = Forest::singletons(g.len());
         f.criterion_pass(&all, p.threshold);
         f.min_size_pass(&all, p.min_size);
         let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();

@@ -103,11 +103,12 @@ pub fn mixture_rows(
             ..emb.clone()
         };
         let miou = ctx.colour_miou(&dense)?;
-        let (iou, n) = sets::mean_iou(&answers, &exact);
+        let agreement = sets::mean_iou(&answers, &exact);
         eprintln!(
-            "mixture S={name} (stored S {}): {:.1} B/Gaussian, IoU {iou:.4}",
+            "mixture S={name} (stored S {}): {:.1} B/Gaussian, IoU {:.4}",
             m.keep,
-            m.bytes_per_gaussian()
+            m.bytes_per_gaussian(),
+            agreement.0
         );
         footprint.push(FootprintRow {
             form: format!("mixture, S = {name} (codebook f16 + S × (u32 atom, f16 weight))"),
@@ -115,22 +116,16 @@ pub fn mixture_rows(
             bytes: m.stored_bytes() as u64,
             detail: format!("{} codebook rows, S = {}", m.codebook_len(), m.keep),
         });
-        rows.push(Row {
-            section: "storage".into(),
+        let row = Row {
             point: format!("mixture-S{name}"),
             knob: "mixture".into(),
             storage: format!("mixture-S{name}"),
-            index: "scan".into(),
             build_s,
             bytes_per_gaussian: m.bytes_per_gaussian(),
             query_ms: super::storage::median(times),
-            colour_miou: miou,
-            iou,
-            set_iou: iou,
-            iou_kind: format!("f32 cos>={}", ctx.threshold),
-            iou_prompts: n,
             ..template.clone()
-        });
+        };
+        rows.push(row.scanned_storage(ctx, miou, agreement));
     }
     Ok((rows, footprint))
 }

@@ -74,12 +74,34 @@ fn miou_str(m: Option<f64>) -> String {
     m.map_or_else(|| "na".into(), |v| format!("{v:.4}"))
 }
 
+/// Appends a section of tables to `s`: a blank line, `## heading`, the `intro` paragraph if
+/// any, then a markdown table: `header` (its title line and its alignment line, each ending in a
+/// newline) and one line per row of cells (one per column of `header`).
+fn push_section(
+    s: &mut String,
+    heading: &str,
+    intro: Option<&str>,
+    header: &str,
+    rows: impl IntoIterator<Item = Vec<String>>,
+) {
+    let _ = writeln!(s, "\n## {heading}\n");
+    if let Some(intro) = intro {
+        let _ = writeln!(s, "{intro}\n");
+    }
+    s.push_str(header);
+    for cells in rows {
+        s.push_str("| ");
+        s.push_str(&cells.join(" | "));
+        s.push_str(" |\n");
+    }
+}
+
 /// The CSV text: a header line of [`CSV_COLUMNS`], then one line per row.
 pub fn csv(rows: &[Row]) -> String {
     let mut s = CSV_COLUMNS.join(",");
     s.push('\n');
     for r in rows {
-        let cells = [
+        let mut cells = vec![
             field(&r.section),
             field(&r.point),
             field(&r.knob),
@@ -91,14 +113,21 @@ pub fn csv(rows: &[Row]) -> String {
             field(&r.index),
             r.views.to_string(),
             r.observed.to_string(),
-            format!("{:.3}", r.encode_s),
-            format!("{:.3}", r.stages.decode),
-            format!("{:.3}", r.stages.masks),
-            format!("{:.3}", r.stages.clip),
-            format!("{:.3}", r.stages.raster),
-            format!("{:.3}", r.stages.image_aggregate),
-            format!("{:.3}", r.stages.reduce),
-            format!("{:.3}", r.build_s),
+        ];
+        // Every duration in seconds, to the millisecond: the encode, its stages, the build.
+        let st = &r.stages;
+        let seconds = [
+            r.encode_s,
+            st.decode,
+            st.masks,
+            st.clip,
+            st.raster,
+            st.image_aggregate,
+            st.reduce,
+            r.build_s,
+        ];
+        cells.extend(seconds.map(|v| format!("{v:.3}")));
+        cells.extend([
             format!("{:.2}", r.bytes_per_gaussian),
             format!("{:.3}", r.query_ms),
             miou_str(r.colour_miou),
@@ -106,7 +135,7 @@ pub fn csv(rows: &[Row]) -> String {
             format!("{:.4}", r.set_iou),
             field(&r.iou_kind),
             r.iou_prompts.to_string(),
-        ];
+        ]);
         s += &cells.join(",");
         s.push('\n');
     }
@@ -178,61 +207,59 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     let _ = writeln!(
         s,
         "- Query latency: one prompt's exact scan (`slag_edge::scan`, cos ≥ {t}, all cores), \
-         median over 12 prompts × {r} repeats after one untimed run per prompt.\n",
+         median over 12 prompts × {r} repeats after one untimed run per prompt.",
         t = h.threshold,
         r = h.repeats
     );
 
     // Encode sweep.
     let front = pareto_front(rows);
-    let _ = writeln!(s, "## Encode sweep (one factor at a time)\n");
-    let _ = writeln!(
-        s,
-        "Baseline: graph masks, every 4th image, raster scale 0.5, all contributors per pixel. \
+    let encode_intro = "Baseline: graph masks, every 4th image, raster scale 0.5, all contributors per pixel. \
          **Reference** (for *IoU vs ref*): graph masks, every image, raster scale 0.5, all \
          contributors: the costliest graph configuration of the sweep besides raster 1.0 at 4× \
          the raster cost. Mask sources are compared at every 8th image. Stage columns are \
          seconds summed over images (decode/masks/CLIP on one thread overlap raster/a_kj on \
          another, so they exceed the wall time). ★ = on the Pareto front of (encode time, \
-         colour mIoU). Embeddings are evaluated as f32.\n"
-    );
-    s += "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n";
-    s += "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n";
-    for (i, r) in rows
+         colour mIoU). Embeddings are evaluated as f32.";
+    let encode_rows = rows
         .iter()
         .enumerate()
         .filter(|(_, r)| r.section == "encode")
-    {
-        let star = if front.contains(&i) { " ★" } else { "" };
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {} | {} | {} | {} | {} | {:.1}{star} | {:.1} | {:.1} | {:.1} | {:.1} | {:.2} | {} | {} | {:.3} ({}) | {:.2} |",
-            r.point,
-            r.knob,
-            r.masks,
-            r.every,
-            r.views,
-            r.raster_scale,
-            r.top_k,
-            r.encode_s,
-            r.stages.masks,
-            r.stages.clip,
-            r.stages.raster,
-            r.stages.image_aggregate,
-            r.stages.reduce,
-            r.observed,
-            miou_str(r.colour_miou),
-            r.iou,
-            r.iou_prompts,
-            r.query_ms
-        );
-    }
+        .map(|(i, r)| {
+            let star = if front.contains(&i) { " ★" } else { "" };
+            vec![
+                format!("`{}`", r.point),
+                r.knob.clone(),
+                r.masks.clone(),
+                r.every.to_string(),
+                r.views.to_string(),
+                r.raster_scale.to_string(),
+                r.top_k.clone(),
+                format!("{:.1}{star}", r.encode_s),
+                format!("{:.1}", r.stages.masks),
+                format!("{:.1}", r.stages.clip),
+                format!("{:.1}", r.stages.raster),
+                format!("{:.1}", r.stages.image_aggregate),
+                format!("{:.2}", r.stages.reduce),
+                r.observed.to_string(),
+                miou_str(r.colour_miou),
+                format!("{:.3} ({})", r.iou, r.iou_prompts),
+                format!("{:.2}", r.query_ms),
+            ]
+        });
+    push_section(
+        &mut s,
+        "Encode sweep (one factor at a time)",
+        Some(encode_intro),
+        concat!(
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+        ),
+        encode_rows,
+    );
 
     // Storage.
-    let _ = writeln!(s, "\n## Stored precision (baseline run's embeddings)\n");
-    let _ = writeln!(
-        s,
-        "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
+    let storage_intro = "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
          row with an f32 scale). Bytes per Gaussian = vector + 4 B id + 12 B mean. *Build* = \
          seconds to convert the f32 rows. Colour mIoU from the dequantised rows; IoU against the \
          exact f32 answer (`slag_common::similarity::cosine_scores` on the f32 rows). \
@@ -241,71 +268,191 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          with keep S up to f16 rounding of the weights); bytes as written (f16 codebook amortised \
          over the Gaussians + S × 6 B + 16 B); its query is `MixtureEmbeddings::scores` (one dot \
          per codebook row, then S multiply-adds per Gaussian) plus the threshold, and its build \
-         time the cut.\n"
-    );
-    s += "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n";
-    s += "|---|---|---:|---:|---:|---:|---:|\n";
-    for r in rows.iter().filter(|r| r.section == "storage") {
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {:.1} | {:.3} | {:.2} | {} | {:.4} ({}) |",
-            r.point,
-            r.storage,
-            r.bytes_per_gaussian,
-            r.build_s,
-            r.query_ms,
+         time the cut.";
+    let storage_rows = rows.iter().filter(|r| r.section == "storage").map(|r| {
+        vec![
+            format!("`{}`", r.point),
+            r.storage.clone(),
+            format!("{:.1}", r.bytes_per_gaussian),
+            format!("{:.3}", r.build_s),
+            format!("{:.2}", r.query_ms),
             miou_str(r.colour_miou),
-            r.iou,
-            r.iou_prompts
-        );
-    }
+            format!("{:.4} ({})", r.iou, r.iou_prompts),
+        ]
+    });
+    push_section(
+        &mut s,
+        "Stored precision (baseline run's embeddings)",
+        Some(storage_intro),
+        concat!(
+            "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n",
+            "|---|---|---:|---:|---:|---:|---:|\n"
+        ),
+        storage_rows,
+    );
 
     // Index.
-    let _ = writeln!(s, "\n## Exact scan vs approximate index (HNSW)\n");
-    let _ = writeln!(
-        s,
+    let index_intro = format!(
         "Top-{k} per prompt on the baseline's f32 rows (HNSW: instant-distance, M 32, ef_search \
          = k; rows: the indexed ones). HNSW bytes add the index (its f32 copy of the rows and the \
          graph) to the store's. *Recall*: the fraction of HNSW's k rows scoring at least the \
          exact k-th best score (ties counted: color-clip rows are mixtures of 12 prototypes, so \
-         many rows tie there); *set IoU*: the top-{k} id sets compared as returned.\n",
+         many rows tie there); *set IoU*: the top-{k} id sets compared as returned.",
         k = h.index_top_k
     );
-    s += "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n";
-    s += "|---|---|---:|---:|---:|---:|---:|---:|\n";
-    for r in rows.iter().filter(|r| r.section == "index") {
-        let _ = writeln!(
-            s,
-            "| `{}` | {} | {} | {:.2} | {:.1} | {:.3} | {:.4} | {:.4} ({}) |",
-            r.point,
-            r.index,
-            r.observed,
-            r.build_s,
-            r.bytes_per_gaussian,
-            r.query_ms,
-            r.iou,
-            r.set_iou,
-            r.iou_prompts
-        );
-    }
+    let index_rows = rows.iter().filter(|r| r.section == "index").map(|r| {
+        vec![
+            format!("`{}`", r.point),
+            r.index.clone(),
+            r.observed.to_string(),
+            format!("{:.2}", r.build_s),
+            format!("{:.1}", r.bytes_per_gaussian),
+            format!("{:.3}", r.query_ms),
+            format!("{:.4}", r.iou),
+            format!("{:.4} ({})", r.set_iou, r.iou_prompts),
+        ]
+    });
+    push_section(
+        &mut s,
+        "Exact scan vs approximate index (HNSW)",
+        Some(&index_intro),
+        concat!(
+            "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n",
+            "|---|---|---:|---:|---:|---:|---:|---:|\n"
+        ),
+        index_rows,
+    );
 
     // Footprint.
-    let _ = writeln!(s, "\n## Model only what the scene requires\n");
     let dense = footprint.first().map_or(1, |f| f.bytes.max(1));
-    s += "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n";
-    s += "|---|---:|---:|---:|---:|---|\n";
-    for f in footprint {
-        let _ = writeln!(
-            s,
-            "| {} | {} | {} | {:.2} | {:.3} | {} |",
-            f.form,
-            f.gaussians,
-            f.bytes,
-            f.bytes as f64 / (1u64 << 20) as f64,
-            f.bytes as f64 / dense as f64,
-            f.detail
-        );
-    }
+    let footprint_rows = footprint.iter().map(|f| {
+        vec![
+            f.form.clone(),
+            f.gaussians.to_string(),
+            f.bytes.to_string(),
+            format!("{:.2}", f.bytes as f64 / (1u64 << 20) as f64),
+            format!("{:.3}", f.bytes as f64 / dense as f64),
+            f.detail.clone(),
+        ]
+    });
+    push_section(
+        &mut s,
+        "Model only what the scene requires",
+        None,
+        concat!(
+            "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n",
+            "|---|---:|---:|---:|---:|---|\n"
+        ),
+        footprint_rows,
+    );
     s += "\n## Recommendations\n\n<!-- recommendations: hand-written from the tables above -->\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(section: &str, point: &str, colour_miou: Option<f64>) -> Row {
+        Row {
+            section: section.into(),
+            point: point.into(),
+            knob: "baseline".into(),
+            masks: "graph".into(),
+            every: 4,
+            raster_scale: 0.5,
+            top_k: "all".into(),
+            storage: "f16".into(),
+            index: "hnsw".into(),
+            views: 12,
+            observed: 1234,
+            encode_s: 10.25,
+            stages: slag_encoder::report::StageTimings {
+                masks: 1.5,
+                clip: 2.25,
+                raster: 3.125,
+                image_aggregate: 0.5,
+                reduce: 0.0625,
+                ..Default::default()
+            },
+            build_s: 0.123456,
+            bytes_per_gaussian: 1040.04,
+            query_ms: 2.345,
+            colour_miou,
+            iou: 0.987654,
+            set_iou: 0.876543,
+            iou_kind: "f32 cos>=0.28".into(),
+            iou_prompts: 11,
+        }
+    }
+
+    /// The table lines of [`markdown`] (every line starting with `|`).
+    fn table_lines() -> Vec<String> {
+        let h = Header {
+            command: "slag-bench tradeoffs".into(),
+            machine: MachineInfo::detect(),
+            note: None,
+            scene: "mini".into(),
+            scene_gaussians: 5000,
+            threshold: 0.28,
+            repeats: 1,
+            index_top_k: 100,
+            skipped: Vec::new(),
+            study_s: 60.0,
+        };
+        let rows = [
+            row("encode", "graph-e4", Some(0.5)),
+            row("storage", "store-f16", Some(0.25)),
+            row("index", "hnsw", None),
+        ];
+        let footprint = [FootprintRow {
+            form: "dense f32".into(),
+            gaussians: 5000,
+            bytes: 3 << 20,
+            detail: "one tensor".into(),
+        }];
+        markdown(&h, &rows, &footprint)
+            .lines()
+            .filter(|l| l.starts_with('|'))
+            .map(str::to_string)
+            .collect()
+    }
+
+    #[test]
+    fn csv_has_one_field_per_column() {
+        let text = csv(&[row("storage", "store-f16", None)]);
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], CSV_COLUMNS.join(","));
+        assert_eq!(
+            lines[1],
+            "storage,store-f16,baseline,graph,4,0.5,all,f16,hnsw,12,1234,10.250,0.000,1.500,2.250,\
+             3.125,0.500,0.062,0.123,1040.04,2.345,na,0.9877,0.8765,f32 cos>=0.28,11"
+        );
+        assert_eq!(lines[1].split(',').count(), CSV_COLUMNS.len());
+    }
+
+    #[test]
+    fn markdown_tables_have_one_cell_per_column() {
+        let lines = table_lines();
+        let expected = [
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| `graph-e4` | baseline | graph | 4 | 12 | 0.5 | all | 10.2 ★ | 1.5 | 2.2 | 3.1 | 0.5 | 0.06 | 1234 | 0.5000 | 0.988 (11) | 2.35 |",
+            "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |",
+            "|---|---|---:|---:|---:|---:|---:|",
+            "| `store-f16` | f16 | 1040.0 | 0.123 | 2.35 | 0.2500 | 0.9877 (11) |",
+            "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+            "| `hnsw` | hnsw | 1234 | 0.12 | 1040.0 | 2.345 | 0.9877 | 0.8765 (11) |",
+            "| stored form | Gaussians | bytes | MiB | vs dense | detail |",
+            "|---|---:|---:|---:|---:|---|",
+            "| dense f32 | 5000 | 3145728 | 3.00 | 1.000 | one tensor |",
+        ];
+        assert_eq!(lines, expected);
+        for table in lines.chunks(3) {
+            let cells = |l: &str| l.matches('|').count();
+            assert_eq!(cells(&table[0]), cells(&table[1]), "{table:?}");
+            assert_eq!(cells(&table[0]), cells(&table[2]), "{table:?}");
+        }
+    }
 }

@@ -119,25 +119,41 @@ pub fn storage_rows(
         let (ms, answer) = scan_latency(&store, &ctx.prompts, ctx.threshold, o.repeats)?;
         let deq = with_vectors(emb, store.vectors().to_f32(emb.dim));
         let miou = ctx.colour_miou(&deq)?;
-        let (iou, n) = sets::mean_iou(&answer, &exact);
-        rows.push(Row {
-            section: "storage".into(),
+        let row = Row {
             point: format!("store-{name}"),
             knob: "dtype".into(),
             storage: name.into(),
-            index: "scan".into(),
             build_s,
             bytes_per_gaussian: store.bytes_per_gaussian() as f64,
             query_ms: ms,
-            colour_miou: miou,
+            ..template.clone()
+        };
+        rows.push(row.scanned_storage(ctx, miou, sets::mean_iou(&answer, &exact)));
+    }
+    Ok(rows)
+}
+
+impl Row {
+    /// This row as a `storage` point, a stored form of the rows queried by the exact threshold
+    /// scan: its colour mIoU and `(mean IoU, prompts averaged)` of its answers at
+    /// `ctx.threshold` against the exact f32 answers.
+    pub(super) fn scanned_storage(
+        self,
+        ctx: &EvalContext,
+        colour_miou: Option<f64>,
+        (iou, prompts): (f64, usize),
+    ) -> Row {
+        Row {
+            section: "storage".into(),
+            index: "scan".into(),
+            colour_miou,
             iou,
             set_iou: iou,
             iou_kind: format!("f32 cos>={}", ctx.threshold),
-            iou_prompts: n,
-            ..template.clone()
-        });
+            iou_prompts: prompts,
+            ..self
+        }
     }
-    Ok(rows)
 }
 
 /// Index points: the exact f32 top-k scan vs an HNSW index over the same rows (every n-th row

@@ -27,12 +27,14 @@
 //! buffer (the value sled holds), shared by every connection answering it and by ranges of it:
 //! no copy per connection, so a client that reads slowly holds no shard of its own.
 
+use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::Arc;
 
 use axum::Router;
 use axum::body::Bytes;
-use axum::extract::{Path, State};
+use axum::extract::{FromRequestParts, Path, State};
+use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -176,13 +178,26 @@ fn internal(e: slag_common::Error) -> Response {
     error(status, e.to_string())
 }
 
-fn bad_scene(scene: &str) -> Option<Response> {
-    (!valid_scene_id(scene)).then(|| {
-        error(
-            StatusCode::BAD_REQUEST,
-            format!("invalid scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."),
-        )
-    })
+/// The `{scene}` segment of a route, checked by [`valid_scene_id`]: any other id is answered
+/// 400 before the handler runs (and is never used to look anything up).
+struct SceneId(String);
+
+impl<S: Send + Sync> FromRequestParts<S> for SceneId {
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Response> {
+        let Path(mut params) = Path::<HashMap<String, String>>::from_request_parts(parts, state)
+            .await
+            .map_err(IntoResponse::into_response)?;
+        let scene = params.remove("scene").unwrap_or_default();
+        if !valid_scene_id(&scene) {
+            return Err(error(
+                StatusCode::BAD_REQUEST,
+                format!("invalid scene id {scene:?}: use 1-64 characters of A-Z a-z 0-9 _ - ."),
+            ));
+        }
+        Ok(SceneId(scene))
+    }
 }
 
 async fn scenes(State(store): State<Arc<ShardStore>>) -> Response {
@@ -207,12 +222,9 @@ fn none_match(headers: &HeaderMap, etag: &str) -> bool {
 
 async fn manifest(
     State(store): State<Arc<ShardStore>>,
-    Path(scene): Path<String>,
+    SceneId(scene): SceneId,
     headers: HeaderMap,
 ) -> Response {
-    if let Some(r) = bad_scene(&scene) {
-        return r;
-    }
     let m = match store.manifest(&scene) {
         Ok(Some(m)) => m,
         Ok(None) => return error(StatusCode::NOT_FOUND, format!("unknown scene {scene:?}")),
@@ -298,12 +310,10 @@ fn parse_range(v: &str, len: u64) -> RangeReq {
 
 async fn shard(
     State(store): State<Arc<ShardStore>>,
-    Path((scene, id)): Path<(String, String)>,
+    SceneId(scene): SceneId,
+    Path((_, id)): Path<(String, String)>,
     headers: HeaderMap,
 ) -> Response {
-    if let Some(r) = bad_scene(&scene) {
-        return r;
-    }
     let tile = match (id.len() <= 20 && id.bytes().all(|b| b.is_ascii_digit()))
         .then(|| id.parse::<u64>().ok())
         .flatten()
@@ -331,12 +341,9 @@ async fn shard(
 
 async fn codebook(
     State(store): State<Arc<ShardStore>>,
-    Path(scene): Path<String>,
+    SceneId(scene): SceneId,
     headers: HeaderMap,
 ) -> Response {
-    if let Some(r) = bad_scene(&scene) {
-        return r;
-    }
     match store.codebook(&scene) {
         Ok(Some(b)) => file_response(b, &headers),
         Ok(None) => error(

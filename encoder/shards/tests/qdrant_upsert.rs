@@ -10,7 +10,7 @@
 mod support;
 
 use std::collections::{BTreeMap, BTreeSet, HashMap};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use qdrant_client::qdrant::{
     self as q, collections_server::Collections, collections_server::CollectionsServer,
@@ -39,6 +39,13 @@ struct Log {
     existing: BTreeSet<String>,
     /// Requests a real server would reject.
     violations: Vec<String>,
+}
+
+/// What a real server requires of the collection a call names.
+#[derive(Clone, Copy)]
+enum Collection {
+    Exists,
+    Absent,
 }
 
 #[derive(Clone)]
@@ -75,6 +82,30 @@ impl Mock {
     fn violation(&self, msg: String) -> Status {
         self.log.lock().expect("log").violations.push(msg.clone());
         Status::failed_precondition(msg)
+    }
+
+    /// [`Self::enter`] for a call on collection `name`, then the log, locked, when `name` is as
+    /// the call `requires`; else the violation "`action` missing (or existing) collection
+    /// `name`" is recorded and answered as a real server would.
+    fn enter_collection<T>(
+        &self,
+        req: &Request<T>,
+        method: &'static str,
+        name: &str,
+        requires: Collection,
+        action: &str,
+    ) -> Result<MutexGuard<'_, Log>, Status> {
+        self.enter(req, method, name)?;
+        let log = self.log.lock().expect("log");
+        let unmet = match requires {
+            Collection::Exists => (!log.existing.contains(name)).then_some("missing"),
+            Collection::Absent => log.existing.contains(name).then_some("existing"),
+        };
+        if let Some(state) = unmet {
+            drop(log);
+            return Err(self.violation(format!("{action} {state} collection {name}")));
+        }
+        Ok(log)
     }
 }
 
@@ -126,12 +157,9 @@ service!(Collections, {
         r: Request<q::DeleteCollection>,
     ) -> Result<Response<q::CollectionOperationResponse>, Status> {
         let name = r.get_ref().collection_name.clone();
-        self.enter(&r, "delete_collection", &name)?;
-        let mut log = self.log.lock().expect("log");
-        if !log.existing.remove(&name) {
-            drop(log);
-            return Err(self.violation(format!("delete of missing collection {name}")));
-        }
+        let mut log =
+            self.enter_collection(&r, "delete_collection", &name, Collection::Exists, "delete of")?;
+        log.existing.remove(&name);
         log.deleted.push(name);
         Ok(Response::new(q::CollectionOperationResponse { result: true, time: 0.0 }))
     }
@@ -140,12 +168,10 @@ service!(Collections, {
         r: Request<q::CreateCollection>,
     ) -> Result<Response<q::CollectionOperationResponse>, Status> {
         let name = r.get_ref().collection_name.clone();
-        self.enter(&r, "create_collection", &name)?;
-        let mut log = self.log.lock().expect("log");
-        if !log.existing.insert(name.clone()) {
-            drop(log);
-            return Err(self.violation(format!("create over existing collection {name}")));
-        }
+        let requires = Collection::Absent;
+        let mut log =
+            self.enter_collection(&r, "create_collection", &name, requires, "create over")?;
+        log.existing.insert(name.clone());
         log.creates.push(r.into_inner());
         Ok(Response::new(q::CollectionOperationResponse { result: true, time: 0.0 }))
     }
@@ -159,12 +185,8 @@ service!(Points, {
         r: Request<q::UpsertPoints>,
     ) -> Result<Response<q::PointsOperationResponse>, Status> {
         let name = r.get_ref().collection_name.clone();
-        self.enter(&r, "upsert", &name)?;
-        let mut log = self.log.lock().expect("log");
-        if !log.existing.contains(&name) {
-            drop(log);
-            return Err(self.violation(format!("upsert into missing collection {name}")));
-        }
+        let mut log =
+            self.enter_collection(&r, "upsert", &name, Collection::Exists, "upsert into")?;
         log.upserts.push(r.into_inner());
         Ok(Response::new(q::PointsOperationResponse {
             result: Some(q::UpdateResult {
@@ -185,12 +207,8 @@ service!(Snapshots, {
         r: Request<q::CreateSnapshotRequest>,
     ) -> Result<Response<q::CreateSnapshotResponse>, Status> {
         let name = r.get_ref().collection_name.clone();
-        self.enter(&r, "create_snapshot", &name)?;
-        let mut log = self.log.lock().expect("log");
-        if !log.existing.contains(&name) {
-            drop(log);
-            return Err(self.violation(format!("snapshot of missing collection {name}")));
-        }
+        let mut log =
+            self.enter_collection(&r, "create_snapshot", &name, Collection::Exists, "snapshot of")?;
         log.snapshots.push(name.clone());
         Ok(Response::new(q::CreateSnapshotResponse {
             snapshot_description: Some(q::SnapshotDescription {

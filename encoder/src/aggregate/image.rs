@@ -107,6 +107,19 @@ pub struct Entry {
     pub weight: f32,
 }
 
+/// Test shorthand: `(gaussian, mask, weight)` triples as [`Entry`]s, in the order given.
+#[cfg(test)]
+pub(crate) fn entries(triples: &[(u32, u32, f32)]) -> Vec<Entry> {
+    triples
+        .iter()
+        .map(|&(gaussian, mask, weight)| Entry {
+            gaussian,
+            mask,
+            weight,
+        })
+        .collect()
+}
+
 /// Everything one image contributes to the reduction.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct ImageContribution {

@@ -210,7 +210,7 @@ pub fn combine_levels(
 #[allow(clippy::unwrap_used)] // tests fail loudly on purpose
 mod tests {
     use super::*;
-    use crate::aggregate::image::{MaskOverlap, restrict_to_finest};
+    use crate::aggregate::image::{MaskOverlap, entries, restrict_to_finest};
     use crate::masks::Mask;
 
     fn mask(area: u32) -> Mask {
@@ -273,64 +273,15 @@ mod tests {
             dim,
             // masks 0..4 with embeddings [j, j]
             mask_embeddings: (0..4).flat_map(|j| [j as f32, j as f32]).collect(),
-            entries: vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 2,
-                    weight: 2.0,
-                },
-                Entry {
-                    gaussian: 1,
-                    mask: 1,
-                    weight: 3.0,
-                },
-                Entry {
-                    gaussian: 1,
-                    mask: 3,
-                    weight: 4.0,
-                },
-            ],
+            entries: entries(&[(0, 0, 1.0), (0, 2, 2.0), (1, 1, 3.0), (1, 3, 4.0)]),
         };
         let levels = [Some(0), Some(2), Some(0), Some(1)];
         let parts = split_by_level(&c, &levels).unwrap();
         assert_eq!(parts[0].mask_embeddings, vec![0.0, 0.0, 2.0, 2.0]);
-        assert_eq!(
-            parts[0].entries,
-            vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 1,
-                    weight: 2.0
-                },
-            ]
-        );
+        assert_eq!(parts[0].entries, entries(&[(0, 0, 1.0), (0, 1, 2.0)]));
         assert_eq!(parts[1].mask_embeddings, vec![3.0, 3.0]);
-        assert_eq!(
-            parts[1].entries,
-            vec![Entry {
-                gaussian: 1,
-                mask: 0,
-                weight: 4.0
-            }]
-        );
-        assert_eq!(
-            parts[2].entries,
-            vec![Entry {
-                gaussian: 1,
-                mask: 0,
-                weight: 3.0
-            }]
-        );
+        assert_eq!(parts[1].entries, entries(&[(1, 0, 4.0)]));
+        assert_eq!(parts[2].entries, entries(&[(1, 0, 3.0)]));
         let total: usize = parts.iter().map(|p| p.entries.len()).sum();
         assert_eq!(total, c.entries.len());
         assert!(split_by_level(&c, &[Some(0); 3]).is_err());

@@ -4,7 +4,7 @@
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::{Error, Result};
 
-use super::reduce::accumulate;
+use super::reduce::{Pass, accumulate};
 use super::*;
 
 /// The same reduction as [`reduce`], kept in mixture form ([`MixtureEmbeddings`]): a shared
@@ -58,7 +58,6 @@ pub fn reduce_mixture(
     }
     let slots_estimate = keep.min(64);
     let per_gaussian = (dim + 1) * 8 + std::mem::size_of::<Vec<(f32, u32)>>() + slots_estimate * 8;
-    let chunk = (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
     let mut codebook: Vec<f32> = Vec::new();
     let mut image_offsets: Vec<u32> = Vec::new();
     let mut parts = SparseMixture {
@@ -68,11 +67,7 @@ pub fn reduce_mixture(
         ..Default::default()
     };
     accumulate(
-        store,
-        n_gaussians,
-        dim,
-        chunk,
-        params.image_major,
+        Pass::new(store, n_gaussians, dim, params, per_gaussian),
         |first_chunk, image, c| {
             if first_chunk {
                 let rows = codebook.len() / dim.max(1);

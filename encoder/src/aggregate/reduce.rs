@@ -102,20 +102,14 @@ pub fn reduce_each(
     params: ReduceParams,
     mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
 ) -> Result<usize> {
-    let per_gaussian = (dim + 1) * 8;
-    let mut chunk =
-        (params.accumulator_budget_bytes / per_gaussian).clamp(1024, n_gaussians.max(1024));
+    let mut pass = Pass::new(store, n_gaussians, dim, params, (dim + 1) * 8);
     if store.spilled() == 0 && !params.image_major {
         // The block-major loop needs no chunk-wide accumulator: smaller chunks (at least 8 of
         // them, of at least 64 Ki Gaussians) only let the writer overlap more of the work.
-        chunk = chunk.min(n_gaussians.div_ceil(8).max(1 << 16));
+        pass.chunk = pass.chunk.min(n_gaussians.div_ceil(8).max(1 << 16));
     }
     accumulate(
-        store,
-        n_gaussians,
-        dim,
-        chunk,
-        params.image_major,
+        pass,
         |_, _, _| Ok(0),
         |_: &mut (), _, _| {},
         |sums| {
@@ -245,6 +239,40 @@ impl<T: Clone + Default> ChunkSums<T> {
     }
 }
 
+/// What one [`accumulate`] pass reduces: every contribution of `store` over Gaussian ids
+/// `0..n_gaussians` of width `dim`, `chunk` ids at a time, in the loop order `image_major`
+/// ([`ReduceParams::image_major`]).
+#[derive(Clone, Copy)]
+pub(super) struct Pass<'a> {
+    pub(super) store: &'a ContributionStore,
+    pub(super) n_gaussians: usize,
+    pub(super) dim: usize,
+    pub(super) chunk: usize,
+    pub(super) image_major: bool,
+}
+
+impl<'a> Pass<'a> {
+    /// A pass whose chunk holds as many Gaussians as `params.accumulator_budget_bytes` allows at
+    /// `per_gaussian` accumulator bytes each (at least 1024, at most the scene rounded up to
+    /// 1024).
+    pub(super) fn new(
+        store: &'a ContributionStore,
+        n_gaussians: usize,
+        dim: usize,
+        params: ReduceParams,
+        per_gaussian: usize,
+    ) -> Self {
+        Pass {
+            store,
+            n_gaussians,
+            dim,
+            chunk: (params.accumulator_budget_bytes / per_gaussian)
+                .clamp(1024, n_gaussians.max(1024)),
+            image_major: params.image_major,
+        }
+    }
+}
+
 /// The f64 accumulation shared by [`reduce_each`] and [`reduce_mixture`]: for each chunk of
 /// `chunk` Gaussian ids, visits every contribution ([`ContributionStore::for_each`] order) and adds
 /// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian; `finish` turns each run of final
@@ -268,18 +296,20 @@ impl<T: Clone + Default> ChunkSums<T> {
 /// `on_entry(extra, entry, tag)` sees every entry with its Gaussian's extra, in the per-Gaussian
 /// order above. The first error of a width mismatch or `on_image` is returned and no part of
 /// that chunk is handed on (spill-file I/O errors come first). Returns the number of chunks.
-#[allow(clippy::too_many_arguments)]
 pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
-    store: &ContributionStore,
-    n_gaussians: usize,
-    dim: usize,
-    chunk: usize,
-    image_major: bool,
+    pass: Pass<'_>,
     mut on_image: impl FnMut(bool, usize, &ImageContribution) -> Result<u32>,
     on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
     finish: impl Fn(&ChunkSums<T>) -> B + Sync,
     mut done: impl FnMut(Vec<B>) -> Result<()>,
 ) -> Result<usize> {
+    let Pass {
+        store,
+        n_gaussians,
+        dim,
+        chunk,
+        image_major,
+    } = pass;
     let width_check = |c: &ImageContribution| {
         if c.dim != dim {
             return Err(Error::mismatch(

@@ -125,6 +125,19 @@ impl ContributionStore {
     }
 }
 
+#[cfg(test)]
+impl ContributionStore {
+    /// Test shorthand: a store with no memory limit holding `images` in order (nothing spills).
+    #[allow(clippy::unwrap_used)] // an unlimited store never spills, so never fails to push
+    pub(crate) fn in_memory(images: impl IntoIterator<Item = ImageContribution>) -> Self {
+        let mut store = Self::new(usize::MAX, std::env::temp_dir().join("unused"));
+        for c in images {
+            store.push(c).unwrap();
+        }
+        store
+    }
+}
+
 impl Drop for ContributionStore {
     fn drop(&mut self) {
         for p in &self.spilled {

@@ -2,6 +2,7 @@
 #![allow(clippy::unwrap_used)]
 
 use super::*;
+use crate::aggregate::image::entries;
 use crate::masks::Mask;
 use crate::raster::PixelWeights;
 use rustc_hash::FxHashMap;
@@ -185,48 +186,20 @@ fn top_k_keeps_largest_contributors() {
 #[test]
 fn reduction_is_the_weighted_mean_and_flags_unobserved() {
     let dim = 3;
-    let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
-    // Image 1: masks e_x and e_y. Gaussian 0: a=1 in both; Gaussian 2: a=3 in e_y only.
-    store
-        .push(ImageContribution {
+    let store = ContributionStore::in_memory([
+        // Image 1: masks e_x and e_y. Gaussian 0: a=1 in both; Gaussian 2: a=3 in e_y only.
+        ImageContribution {
             dim,
             mask_embeddings: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
-            entries: vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 1,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 1,
-                    weight: 3.0,
-                },
-                Entry {
-                    gaussian: 3,
-                    mask: 0,
-                    weight: 1e-9,
-                },
-            ],
-        })
-        .unwrap();
-    // Image 2: mask e_z. Gaussian 0: a=2.
-    store
-        .push(ImageContribution {
+            entries: entries(&[(0, 0, 1.0), (0, 1, 1.0), (2, 1, 3.0), (3, 0, 1e-9)]),
+        },
+        // Image 2: mask e_z. Gaussian 0: a=2.
+        ImageContribution {
             dim,
             mask_embeddings: vec![0.0, 0.0, 1.0],
-            entries: vec![Entry {
-                gaussian: 0,
-                mask: 0,
-                weight: 2.0,
-            }],
-        })
-        .unwrap();
+            entries: entries(&[(0, 0, 2.0)]),
+        },
+    ]);
     let r = reduce(&store, 5, dim, ReduceParams::default()).unwrap();
     assert_eq!(r.ids, vec![0, 2]); // 1 and 4 unseen, 3 below the threshold
     let n = (1.0f64 + 1.0 + 4.0).sqrt();
@@ -414,41 +387,18 @@ fn both_loop_orders_give_the_same_sums_bit_for_bit() {
 #[test]
 fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
     let dim = 3;
-    let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
     // Gaussian 0: a=1 on e_x and on -e_x (cancels: unobserved); 1: tiny weight; 2: e_y.
-    store
-        .push(ImageContribution {
-            dim,
-            mask_embeddings: vec![1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
-            entries: vec![
-                Entry {
-                    gaussian: 0,
-                    mask: 0,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 0,
-                    mask: 1,
-                    weight: 1.0,
-                },
-                Entry {
-                    gaussian: 1,
-                    mask: 2,
-                    weight: 1e-9,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 2,
-                    weight: 2.0,
-                },
-                Entry {
-                    gaussian: 2,
-                    mask: 0,
-                    weight: 0.5,
-                },
-            ],
-        })
-        .unwrap();
+    let store = ContributionStore::in_memory([ImageContribution {
+        dim,
+        mask_embeddings: vec![1.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+        entries: entries(&[
+            (0, 0, 1.0),
+            (0, 1, 1.0),
+            (1, 2, 1e-9),
+            (2, 2, 2.0),
+            (2, 0, 0.5),
+        ]),
+    }]);
     let means = vec![[0.0; 3]; 4];
     let p = ReduceParams::default();
     let exact = reduce(&store, 4, dim, p).unwrap();
@@ -525,11 +475,7 @@ mod mixture_props {
             seed in any::<u64>(),
         ) {
             let contribs = random_store(n, images, dim, seed);
-            let mut store =
-                ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
-            for c in &contribs {
-                store.push(c.clone()).unwrap();
-            }
+            let store = ContributionStore::in_memory(contribs.iter().cloned());
             let means = vec![[0.5f32; 3]; n as usize];
             let p = ReduceParams::default();
             let exact = reduce(&store, n as usize, dim, p).unwrap();

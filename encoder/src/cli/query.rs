@@ -66,28 +66,30 @@ pub struct QueryArgs {
     pub segments: Option<PathBuf>,
 }
 
-fn parse_xyz(s: &str) -> Result<[f32; 3], String> {
+/// Three comma-separated numbers that all pass `valid`, else `expected` (what to write instead)
+/// with the text given.
+fn parse_triple(s: &str, valid: impl Fn(f32) -> bool, expected: &str) -> Result<[f32; 3], String> {
     let v: Vec<f32> = s
         .split(',')
         .map(|p| p.trim().parse::<f32>())
         .collect::<Result<_, _>>()
         .map_err(|e| e.to_string())?;
     match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
-        _ => Err(format!("expected x,y,z (three finite numbers), got {s:?}")),
+        [a, b, c] if v.iter().all(|&x| valid(x)) => Ok([a, b, c]),
+        _ => Err(format!("expected {expected}, got {s:?}")),
     }
 }
 
+fn parse_xyz(s: &str) -> Result<[f32; 3], String> {
+    parse_triple(s, f32::is_finite, "x,y,z (three finite numbers)")
+}
+
 fn parse_rgb(s: &str) -> Result<[f32; 3], String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f32>())
-        .collect::<Result<_, _>>()
-        .map_err(|e| e.to_string())?;
-    match v[..] {
-        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
-        _ => Err(format!("expected r,g,b with components in 0..1, got {s:?}")),
-    }
+    parse_triple(
+        s,
+        |c| (0.0..=1.0).contains(&c),
+        "r,g,b with components in 0..1",
+    )
 }
 
 impl From<&QueryArgs> for QueryParams {

@@ -10,6 +10,7 @@ use slag_common::camera;
 use slag_common::scene::{self, PlyLoadOptions};
 
 use slag_encoder::args::RasterArg;
+use slag_encoder::pipeline::scene_ply;
 use slag_encoder::raster::WeightRasterizer;
 
 /// Arguments of `render`.
@@ -54,10 +55,7 @@ pub struct RenderOutput {
 
 /// Runs `render`.
 pub fn run(a: &RenderArgs) -> anyhow::Result<RenderOutput> {
-    let ply = a
-        .ply
-        .clone()
-        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
+    let ply = scene_ply(&a.scene, a.ply.as_deref());
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let views = camera::load_views(&a.scene)?;
     let view = match a.view.parse::<usize>() {

@@ -408,6 +408,14 @@ mod tests {
         assert!(err.to_string().contains("host:port"), "{err}");
     }
 
+    /// `images` pseudo-random image contributions (seeds 1, 2, …) of `masks` masks each over
+    /// `n` Gaussians.
+    fn contributions(images: u64, n: usize, masks: u32, dim: usize) -> Vec<ImageContribution> {
+        (1..=images)
+            .map(|seed| contribution(seed, n as u32, masks, dim))
+            .collect()
+    }
+
     /// Pseudo-random contribution of one image: sorted unique (gaussian, mask) entries.
     fn contribution(seed: u64, n: u32, masks: u32, dim: usize) -> ImageContribution {
         let mut s = seed.wrapping_mul(0x9e3779b97f4a7c15) | 1;
@@ -519,13 +527,8 @@ mod tests {
     #[test]
     fn partitioned_reduction_equals_the_single_process_reduction() {
         let (n, dim) = (5000usize, 8);
-        let images: Vec<ImageContribution> = (0..7)
-            .map(|i| contribution(i + 1, n as u32, 5, dim))
-            .collect();
-        let mut store = ContributionStore::new(usize::MAX, std::env::temp_dir().join("unused"));
-        for c in &images {
-            store.push(c.clone()).unwrap();
-        }
+        let images = contributions(7, n, 5, dim);
+        let store = ContributionStore::in_memory(images.iter().cloned());
         let single = aggregate::reduce(&store, n, dim, ReduceParams::default()).unwrap();
         assert!(
             single.ids.len() > n / 2 && single.ids.len() < n,
@@ -549,9 +552,7 @@ mod tests {
     #[test]
     fn incomplete_or_inconsistent_jobs_are_refused() {
         let (n, dim) = (600usize, 4);
-        let images: Vec<ImageContribution> = (0..5)
-            .map(|i| contribution(i + 1, n as u32, 3, dim))
-            .collect();
+        let images = contributions(5, n, 3, dim);
         let err = |tamper: &dyn Fn(&mut Vec<ToReducer>)| {
             distributed(&images, n, 3, tamper).unwrap_err().to_string()
         };

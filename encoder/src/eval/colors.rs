@@ -21,6 +21,7 @@ use slag_common::text::TextEncoder;
 use crate::config::RasterBackend;
 use crate::eval::{self, heldout};
 use crate::pipeline::build::make_rasterizer;
+use crate::pipeline::scene_ply;
 
 /// What `eval-colors` evaluates and with which models.
 #[derive(Debug, Clone, PartialEq)]
@@ -119,10 +120,7 @@ fn load_inputs(a: &EvalColorsConfig) -> anyhow::Result<Inputs> {
         }
     };
     let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json")?)?;
-    let ply = a
-        .ply
-        .clone()
-        .unwrap_or_else(|| a.scene.join("point_cloud.ply"));
+    let ply = scene_ply(&a.scene, a.ply.as_deref());
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let emb = Embeddings::read(&a.embeddings)?;
     if emb.scene_gaussians != gaussians.len() as u64 {

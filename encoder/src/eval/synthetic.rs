@@ -28,6 +28,8 @@ use slag_common::rng::SplitMix64;
 use slag_common::scene::{Gaussians, ShCoeffs, write_ply};
 use slag_common::{Error, Result};
 
+use crate::check::require;
+
 /// The 12 colour-clip colours (sRGB in [0, 1]) painting the terrain's 4 × 3 patches, in
 /// color-clip's class order: red orange yellow green teal blue purple pink brown white gray black.
 pub const PALETTE: [[f32; 3]; 12] = [
@@ -442,21 +444,20 @@ pub fn write_synthetic_scene_with_objects(
         ("width", p.width as usize),
         ("height", p.height as usize),
     ] {
-        if v == 0 {
-            return Err(Error::param(
-                name,
-                0,
-                "at least 1 (a synthetic scene needs Gaussians, views and a non-empty image size)",
-            ));
-        }
+        require(
+            v > 0,
+            name,
+            0,
+            "at least 1 (a synthetic scene needs Gaussians, views and a non-empty image size)",
+        )?;
     }
-    if !(p.extent.is_finite() && p.extent > 0.0) {
-        return Err(Error::param(
-            "extent",
-            p.extent,
-            "a positive number of metres",
-        ));
-    }
+    let extent = p.extent;
+    require(
+        extent.is_finite() && extent > 0.0,
+        "extent",
+        extent,
+        "a positive number of metres",
+    )?;
     let images = dir.join("images");
     let sparse = dir.join("sparse").join("0");
     for d in [&images, &sparse] {

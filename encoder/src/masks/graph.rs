@@ -36,6 +36,8 @@ use image::RgbImage;
 use slag_common::{Error, Result};
 
 use super::{Mask, MaskGenerator};
+use crate::check::require;
+use crate::disjoint_sets::DisjointSets;
 
 /// Parameters of [`segment_labels`] / [`GraphSegmenter`].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -69,28 +71,25 @@ impl Default for GraphParams {
 
 impl GraphParams {
     fn validate(&self) -> Result<()> {
-        if !(self.sigma.is_finite() && self.sigma >= 0.0) {
-            return Err(Error::param(
-                "graph_sigma",
-                self.sigma,
-                "a finite smoothing sigma >= 0 (default 0.8)",
-            ));
-        }
-        if !(self.k.is_finite() && self.k > 0.0) {
-            return Err(Error::param(
-                "graph_k",
-                self.k,
-                "a finite threshold scale k > 0 (default 500)",
-            ));
-        }
-        if self.max_side == Some(0) {
-            return Err(Error::param(
-                "graph_max_side",
-                0,
-                "a positive longer side in pixels, or none",
-            ));
-        }
-        Ok(())
+        let (sigma, k) = (self.sigma, self.k);
+        require(
+            sigma.is_finite() && sigma >= 0.0,
+            "graph_sigma",
+            sigma,
+            "a finite smoothing sigma >= 0 (default 0.8)",
+        )?;
+        require(
+            k.is_finite() && k > 0.0,
+            "graph_k",
+            k,
+            "a finite threshold scale k > 0 (default 500)",
+        )?;
+        require(
+            self.max_side != Some(0),
+            "graph_max_side",
+            0,
+            "a positive longer side in pixels, or none",
+        )
     }
 }
 
@@ -251,7 +250,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
     let mut edges = build_edges(&smooth, w, h);
     radix_sort_by_weight(&mut edges);
 
-    let mut forest = Forest::new(n);
+    let mut forest = Forest::singletons(n);
     let mut thresh = vec![params.k; n];
     for &e in &edges {
         let weight = (e >> 32) as f32 * (1.0 / WEIGHT_SCALE);
@@ -260,7 +259,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
         let b = forest.find(q);
         if a != b && weight <= thresh[a as usize] && weight <= thresh[b as usize] {
             let r = forest.join(a, b);
-            thresh[r as usize] = weight + params.k / forest.size[r as usize] as f32;
+            thresh[r as usize] = weight + params.k / forest.size(r) as f32;
         }
     }
     // Post-pass: only edges with an endpoint in a component below `min_size` can merge
@@ -270,7 +269,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
         let small: Vec<bool> = (0..n as u32)
             .map(|p| {
                 let r = forest.find(p);
-                forest.size[r as usize] < min_size
+                forest.size(r) < min_size
             })
             .collect();
         for &e in &edges {
@@ -280,8 +279,7 @@ fn segment_raw(image: &RgbImage, params: &GraphParams) -> Vec<u32> {
             }
             let a = forest.find(p);
             let b = forest.find(q);
-            if a != b && (forest.size[a as usize] < min_size || forest.size[b as usize] < min_size)
-            {
+            if a != b && (forest.size(a) < min_size || forest.size(b) < min_size) {
                 forest.join(a, b);
             }
         }
@@ -473,48 +471,40 @@ fn radix_sort_by_weight(v: &mut Vec<u64>) {
     }
 }
 
-/// Disjoint-set forest with union by rank and path compression, tracking component sizes.
-struct Forest {
-    parent: Vec<u32>,
-    rank: Vec<u8>,
-    size: Vec<u32>,
+/// A component of the pixel graph: its union-by-rank rank and its pixel count.
+#[derive(Clone, Copy)]
+struct Component {
+    rank: u8,
+    size: u32,
 }
 
+/// Disjoint-set forest with union by rank and path compression, tracking component sizes.
+type Forest = DisjointSets<Component>;
+
 impl Forest {
-    fn new(n: usize) -> Self {
-        Forest {
-            parent: (0..n as u32).collect(),
-            rank: vec![0; n],
-            size: vec![1; n],
-        }
+    /// Every pixel of `n` its own component.
+    fn singletons(n: usize) -> Self {
+        DisjointSets::new(n, Component { rank: 0, size: 1 })
     }
 
-    fn find(&mut self, x: u32) -> u32 {
-        let mut root = x;
-        while self.parent[root as usize] != root {
-            root = self.parent[root as usize];
-        }
-        let mut x = x;
-        while self.parent[x as usize] != root {
-            let next = self.parent[x as usize];
-            self.parent[x as usize] = root;
-            x = next;
-        }
-        root
+    /// Pixels in the component of root `root`.
+    fn size(&self, root: u32) -> u32 {
+        self.component(root).size
     }
 
     /// Joins two distinct roots; returns the new root.
     fn join(&mut self, a: u32, b: u32) -> u32 {
-        let (a, b) = if self.rank[a as usize] < self.rank[b as usize] {
-            (b, a)
+        let (ca, cb) = (self.component(a), self.component(b));
+        let (a, b, ra, rb) = if ca.rank < cb.rank {
+            (b, a, cb.rank, ca.rank)
         } else {
-            (a, b)
+            (a, b, ca.rank, cb.rank)
         };
-        self.parent[b as usize] = a;
-        self.size[a as usize] += self.size[b as usize];
-        if self.rank[a as usize] == self.rank[b as usize] {
-            self.rank[a as usize] += 1;
-        }
+        let merged = Component {
+            rank: if ra == rb { ra + 1 } else { ra },
+            size: ca.size + cb.size,
+        };
+        self.attach(b, a, merged);
         a
     }
 }
@@ -613,19 +603,26 @@ mod tests {
         ]
     }
 
+    /// Segments [`scene`]'s rectangles (noise ±`noise`) with `params` and asserts that it finds
+    /// the background and the 5 rectangles, each with a best IoU of at least `min_iou`.
+    fn assert_rectangles_recovered(noise: i32, params: &GraphParams, min_iou: f64) {
+        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), noise);
+        let (labels, count) = segment_labels(&img, params).unwrap();
+        assert_eq!(count, 6, "background + 5 rectangles with {params:?}");
+        let ious = best_ious(&gt, &labels, count);
+        assert!(
+            ious.iter().all(|&i| i >= min_iou),
+            "IoUs {ious:?} with {params:?}"
+        );
+    }
+
     #[test]
     fn clean_rectangles_are_recovered_exactly() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 0);
-        let params = RECT_PARAMS;
-        let (labels, count) = segment_labels(&img, &params).unwrap();
-        assert_eq!(count, 6, "background + 5 rectangles");
-        let ious = best_ious(&gt, &labels, count);
-        assert!(ious.iter().all(|&i| i == 1.0), "IoUs {ious:?}");
+        assert_rectangles_recovered(0, &RECT_PARAMS, 1.0);
     }
 
     #[test]
     fn unsmoothed_rectangles_are_recovered_exactly_for_any_k() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 0);
         for k in [50.0, 500.0, 5000.0] {
             let params = GraphParams {
                 sigma: 0.0,
@@ -633,21 +630,13 @@ mod tests {
                 min_size: 1,
                 max_side: None,
             };
-            let (labels, count) = segment_labels(&img, &params).unwrap();
-            assert_eq!(count, 6, "k {k}");
-            let ious = best_ious(&gt, &labels, count);
-            assert!(ious.iter().all(|&i| i == 1.0), "k {k}: IoUs {ious:?}");
+            assert_rectangles_recovered(0, &params, 1.0);
         }
     }
 
     #[test]
     fn noisy_rectangles_are_recovered() {
-        let (img, gt) = rectangles(160, 120, [128, 128, 128], &scene(), 12);
-        let params = RECT_PARAMS;
-        let (labels, count) = segment_labels(&img, &params).unwrap();
-        assert_eq!(count, 6, "background + 5 rectangles");
-        let ious = best_ious(&gt, &labels, count);
-        assert!(ious.iter().all(|&i| i >= 0.99), "IoUs {ious:?}");
+        assert_rectangles_recovered(12, &RECT_PARAMS, 0.99);
     }
 
     #[test]

@@ -37,6 +37,7 @@ use slag_common::onnx::{self, ElemType, ExecutionProvider, OnnxModel, Placement,
 use slag_common::{Error, Result};
 
 use super::{Mask, MaskGenerator};
+use crate::check::require;
 use crate::preprocess::{SAM_IMAGE_SIZE, sam_pixel_values, sam_preprocess_shape};
 
 /// `SamAutomaticMaskGenerator` parameters (segment_anything 1.0 names and semantics).
@@ -129,36 +130,33 @@ impl SamParams {
     /// [`Error::Param`] (named by the field) for zero counts or non-finite / out-of-range
     /// thresholds.
     pub fn validate(&self) -> Result<()> {
-        if self.points_per_side == 0 || self.points_per_side > 1024 {
-            return Err(Error::param(
-                "points_per_side",
-                self.points_per_side,
-                "SAM points per side in 1..=1024",
-            ));
-        }
-        if self.points_per_batch == 0 {
-            return Err(Error::param(
-                "points_per_batch",
-                0,
-                "at least 1 SAM point prompt per batch",
-            ));
-        }
+        let side = self.points_per_side;
+        require(
+            (1..=1024).contains(&side),
+            "points_per_side",
+            side,
+            "SAM points per side in 1..=1024",
+        )?;
+        let batch = self.points_per_batch;
+        require(
+            batch > 0,
+            "points_per_batch",
+            batch,
+            "at least 1 SAM point prompt per batch",
+        )?;
         for (name, v) in [
             ("pred_iou_thresh", self.pred_iou_thresh),
             ("stability_score_thresh", self.stability_score_thresh),
             ("box_nms_thresh", self.box_nms_thresh),
         ] {
-            if !(0.0..=1.0).contains(&v) {
-                return Err(Error::param(name, v, "a SAM threshold in [0, 1]"));
-            }
+            let in_unit_interval = (0.0..=1.0).contains(&v);
+            require(in_unit_interval, name, v, "a SAM threshold in [0, 1]")?;
         }
         for (name, v) in [
             ("stability_score_offset", self.stability_score_offset),
             ("mask_threshold", self.mask_threshold),
         ] {
-            if !v.is_finite() {
-                return Err(Error::param(name, v, "a finite SAM logit offset"));
-            }
+            require(v.is_finite(), name, v, "a finite SAM logit offset")?;
         }
         Ok(())
     }

@@ -60,15 +60,18 @@ pub struct SceneInput {
     pub every: usize,
 }
 
+/// A scene folder's `.ply`: `ply` when given, else `<dir>/point_cloud.ply` (the INRIA layout).
+pub fn scene_ply(dir: &Path, ply: Option<&Path>) -> PathBuf {
+    ply.map(Path::to_path_buf)
+        .unwrap_or_else(|| dir.join("point_cloud.ply"))
+}
+
 impl SceneInput {
-    /// `dir` with the default `.ply` location.
+    /// `dir` with the default `.ply` location ([`scene_ply`]).
     pub fn new(dir: &Path, ply: Option<&Path>, every: usize) -> Self {
-        let ply = ply
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| dir.join("point_cloud.ply"));
         Self {
             dir: dir.to_path_buf(),
-            ply,
+            ply: scene_ply(dir, ply),
             every,
         }
     }
@@ -615,26 +618,23 @@ pub fn encode_pool(
     finish::finish(scene, pooled, params, report, t_total)
 }
 
-impl CropEmbedder for crate::clip::ClipHandle {
-    fn model_id(&self) -> &str {
-        crate::clip::ClipHandle::model_id(self)
-    }
-    fn dim(&self) -> usize {
-        crate::clip::ClipHandle::dim(self)
-    }
-    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
-        self.embed_masks(image, masks)
-    }
+/// [`CropEmbedder`] for the CLIP front-ends that have the same inherent `model_id`, `dim` and
+/// `embed_masks`: a worker's own session ([`crate::clip::ClipVisual`]) and a handle to a GPU's
+/// shared CLIP service ([`crate::clip::ClipHandle`]).
+macro_rules! crop_embedder_by_inherent_methods {
+    ($($clip:ty),+) => {$(
+        impl CropEmbedder for $clip {
+            fn model_id(&self) -> &str {
+                <$clip>::model_id(self)
+            }
+            fn dim(&self) -> usize {
+                <$clip>::dim(self)
+            }
+            fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
+                self.embed_masks(image, masks)
+            }
+        }
+    )+};
 }
 
-impl CropEmbedder for crate::clip::ClipVisual {
-    fn model_id(&self) -> &str {
-        crate::clip::ClipVisual::model_id(self)
-    }
-    fn dim(&self) -> usize {
-        crate::clip::ClipVisual::dim(self)
-    }
-    fn embed(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
-        self.embed_masks(image, masks)
-    }
-}
+crop_embedder_by_inherent_methods!(crate::clip::ClipHandle, crate::clip::ClipVisual);

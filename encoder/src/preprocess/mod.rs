@@ -219,28 +219,17 @@ pub fn resize_rgb(img: &RgbImage, width: u32, height: u32, filter: Filter) -> Re
     // Pillow (ImagingResampleInner, since 13.0): the vertical pass runs first when the height
     // shrinks by more than twice as many pixels as the width does.
     let vertical_first = ih > oh && (ih - oh) as i64 > (iw as i64 - ow as i64) * 2;
+    // Each pass is skipped (`None`) when its side keeps its size; the argument is the other
+    // side's length as it enters the pass.
+    let vertical = |px: &[u8], w: usize| (oh != ih).then(|| vertical_pass(px, w, ih, oh, filter));
+    let horizontal =
+        |px: &[u8], h: usize| (ow != iw).then(|| horizontal_pass(px, iw, h, ow, filter));
     let out = if vertical_first {
-        let tmp = if oh != ih {
-            vertical_pass(src, iw, ih, oh, filter)
-        } else {
-            src.to_vec()
-        };
-        if ow != iw {
-            horizontal_pass(&tmp, iw, oh, ow, filter)
-        } else {
-            tmp
-        }
+        let tmp = vertical(src, iw).unwrap_or_else(|| src.to_vec());
+        horizontal(&tmp, oh).unwrap_or(tmp)
     } else {
-        let tmp = if ow != iw {
-            horizontal_pass(src, iw, ih, ow, filter)
-        } else {
-            src.to_vec()
-        };
-        if oh != ih {
-            vertical_pass(&tmp, ow, ih, oh, filter)
-        } else {
-            tmp
-        }
+        let tmp = horizontal(src, ih).unwrap_or_else(|| src.to_vec());
+        vertical(&tmp, ow).unwrap_or(tmp)
     };
     RgbImage::from_raw(width, height, out)
         .ok_or_else(|| Error::internal("resize buffer size mismatch"))
