@@ -4,19 +4,8 @@
 # then colour mIoU. Expects .devcarry/ (release slag-encoder, scene/ with a geometry+DC .ply,
 # shared/fixtures/) and .gl/ (Vulkan loader debs). Results go to $OUT (reports, eval JSON, log).
 set -uo pipefail
-for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
-if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
-  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-fi
-ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')
-export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
-echo "ORT: $ORT_LIB  cores: $(nproc)"
-B=.devcarry/slag-encoder; S=.devcarry/scene; F=.devcarry/shared/fixtures
-R=${OUT:-/tmp/out}; W=/tmp/slag-work; mkdir -p "$R" "$W"
-SAM=(--masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx --sam-decoder $F/sam-amg/color-sam-decoder.onnx
-     --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5)
-CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
+# shellcheck source=scripts/device-snowmiku-env.sh
+. scripts/device-snowmiku-env.sh
 one() { # name, args...
   local name=$1; shift
   echo "### $name: $*"

@@ -8,19 +8,8 @@
 # geometry+DC .ply, shared/fixtures/{sam-amg,clip}) and .gl/ (Vulkan loader debs), as
 # scripts/device-bench.sh. Reports, eval JSON and the log go to $OUT.
 set -uo pipefail
-for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
-if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
-  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-fi
-ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')
-export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared
-nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
-echo "ORT: $ORT_LIB  cores: $(nproc)  date: $(date -u +%FT%TZ)"
-B=.devcarry/slag-encoder; S=.devcarry/scene; F=.devcarry/shared/fixtures
-R=${OUT:-/tmp/out}; W=/tmp/slag-work; mkdir -p "$R" "$W"
-SAM=(--masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx --sam-decoder $F/sam-amg/color-sam-decoder.onnx
-     --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5)
-CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
+# shellcheck source=scripts/device-snowmiku-env.sh
+. scripts/device-snowmiku-env.sh
 encode() { # name, args...
   local name=$1; shift
   echo "### encode $name: $*"

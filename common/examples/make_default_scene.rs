@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use glam::{DQuat, DVec3};
 use image::codecs::jpeg::JpegEncoder;
 use image::imageops::FilterType;
-use slag_common::camera::{Intrinsics, View, load_views, subsample};
+use slag_common::camera::{Intrinsics, View, colmap, load_views, subsample};
 use slag_common::scene::{Gaussians, PlyLoadOptions, ShCoeffs, load_ply, write_ply};
 
 /// Keep views 0, 8, 16, ... of the name-sorted list.
@@ -75,20 +75,7 @@ fn main() -> Res<()> {
             q = -q;
         }
         let t = v.world_to_camera.translation;
-        writeln!(
-            images_txt,
-            "{} {} {} {} {} {} {} {} {} {}\n",
-            i + 1,
-            q.w,
-            q.x,
-            q.y,
-            q.z,
-            t.x,
-            t.y,
-            t.z,
-            cam + 1,
-            v.name
-        )?;
+        images_txt.push_str(&colmap::images_txt_entry(i + 1, q, t, cam + 1, &v.name));
     }
     let mut cameras_txt = String::from(
         "# Camera list with one line of data per camera:\n\

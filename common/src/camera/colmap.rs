@@ -15,6 +15,23 @@ use super::sources::{UNDISTORT_HINT, sort_views};
 use super::{Intrinsics, View, WorldToCamera};
 use crate::{Error, Result};
 
+/// One image of a COLMAP `images.txt` (the format this module reads): its line `IMAGE_ID, QW, QX,
+/// QY, QZ, TX, TY, TZ, CAMERA_ID, NAME` and an empty `POINTS2D[]` line. `(rotation, translation)`
+/// is world-to-camera, rotation as a unit quaternion (w, x, y, z); ids are 1-based.
+pub fn images_txt_entry(
+    image_id: usize,
+    rotation: DQuat,
+    translation: DVec3,
+    camera_id: usize,
+    name: &str,
+) -> String {
+    let (q, t) = (rotation, translation);
+    format!(
+        "{image_id} {} {} {} {} {} {} {} {camera_id} {name}\n\n",
+        q.w, q.x, q.y, q.z, t.x, t.y, t.z
+    )
+}
+
 /// COLMAP camera models: (model_id, name, number of parameters).
 const MODELS: [(i32, &str, usize); 12] = [
     (0, "SIMPLE_PINHOLE", 3),

@@ -144,6 +144,6 @@ pub fn subsample(views: Vec<View>, every: usize) -> Vec<View> {
         .collect()
 }
 
-mod colmap;
+pub mod colmap;
 mod nerfstudio;
 mod sources;

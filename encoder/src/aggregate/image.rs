@@ -28,19 +28,26 @@ pub trait ImageMask: Sync {
     fn row_hits(&self, sy: u32, cols: impl Iterator<Item = (usize, u32)>, hit: impl FnMut(usize));
 }
 
+/// The metadata accessors of [`ImageMask`], the same fields on [`Mask`] and [`CompactMask`].
+macro_rules! image_mask_fields {
+    () => {
+        fn size(&self) -> (u32, u32) {
+            (self.width, self.height)
+        }
+        fn bbox_xywh(&self) -> [u32; 4] {
+            self.bbox_xywh
+        }
+        fn area(&self) -> u32 {
+            self.area
+        }
+        fn scores(&self) -> (f32, f32) {
+            (self.predicted_iou, self.stability_score)
+        }
+    };
+}
+
 impl ImageMask for Mask {
-    fn size(&self) -> (u32, u32) {
-        (self.width, self.height)
-    }
-    fn bbox_xywh(&self) -> [u32; 4] {
-        self.bbox_xywh
-    }
-    fn area(&self) -> u32 {
-        self.area
-    }
-    fn scores(&self) -> (f32, f32) {
-        (self.predicted_iou, self.stability_score)
-    }
+    image_mask_fields!();
     fn row_hits(
         &self,
         sy: u32,
@@ -57,18 +64,7 @@ impl ImageMask for Mask {
 }
 
 impl ImageMask for CompactMask {
-    fn size(&self) -> (u32, u32) {
-        (self.width, self.height)
-    }
-    fn bbox_xywh(&self) -> [u32; 4] {
-        self.bbox_xywh
-    }
-    fn area(&self) -> u32 {
-        self.area
-    }
-    fn scores(&self) -> (f32, f32) {
-        (self.predicted_iou, self.stability_score)
-    }
+    image_mask_fields!();
     fn row_hits(
         &self,
         sy: u32,

@@ -24,6 +24,7 @@ use std::path::Path;
 
 use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
+use slag_common::camera::colmap;
 use slag_common::rng::SplitMix64;
 use slag_common::scene::{Gaussians, ShCoeffs, write_ply};
 use slag_common::{Error, Result};
@@ -508,17 +509,8 @@ pub fn write_synthetic_scene_with_objects(
         let (r, c) = camera(i, p);
         let q = DQuat::from_mat3(&r).normalize();
         let t = -(r * c);
-        poses.push_str(&format!(
-            "{} {} {} {} {} {} {} {} 1 view_{i:04}.png\n\n",
-            i + 1,
-            q.w,
-            q.x,
-            q.y,
-            q.z,
-            t.x,
-            t.y,
-            t.z
-        ));
+        let name = format!("view_{i:04}.png");
+        poses.push_str(&colmap::images_txt_entry(i + 1, q, t, 1, &name));
     }
     write_file(&images_txt, poses.as_bytes())?;
     let ply_bytes = std::fs::metadata(&ply)

@@ -4,6 +4,7 @@
 //! //! them, and the first error, which stops every worker. What it leaves ([`Pooled`]: every
 //! image's `a_kj`, what the workers measured) goes to [`super::finish`].
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, mpsc};
 use std::time::Instant;
 
@@ -75,7 +76,7 @@ pub(crate) fn run_pool(
     t_total: Instant,
 ) -> Result<Pooled> {
     use std::sync::Arc;
-    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    use std::sync::atomic::AtomicUsize;
 
     let mut t = StageTimings::default();
     let Some(first) = fronts.first() else {
@@ -275,49 +276,19 @@ pub(crate) fn run_pool(
             let precompute = rasterizer.view_precompute();
             handles.push(s.spawn(move || {
                 let run = move || {
-                    let mut share = WorkerShare {
-                        name: format!("prepare-{g}"),
-                        ..Default::default()
-                    };
-                    loop {
-                        // Take the next finished front item; the lock is held only while waiting.
-                        let item = match rx.lock() {
-                            Ok(rx) => rx.recv(),
-                            Err(_) => break,
-                        };
-                        let Ok(item) = item else { break };
+                    // Take the next finished front item; the lock is held only while waiting.
+                    let items = std::iter::from_fn(|| {
+                        let item = rx.lock().ok()?.recv().ok()?;
                         queue.leave(item.bytes());
-                        if failed.load(Ordering::SeqCst) {
-                            break;
-                        }
-                        let t0 = Instant::now();
-                        if share.images == 0 {
-                            share.first_s = (t0 - t_total).as_secs_f64();
-                        }
-                        let out = back_prepare(
-                            views,
-                            raster_intrinsics,
-                            item,
-                            dim,
-                            params.image_stage,
-                            precompute.as_deref(),
-                        );
-                        share.busy_s += t0.elapsed().as_secs_f64();
-                        share.last_s = t_total.elapsed().as_secs_f64();
-                        match out {
-                            Ok(out) => {
-                                share.images += 1;
-                                // A closed channel: a later thread failed and said why.
-                                if to_raster.send(out).is_err() {
-                                    break;
-                                }
-                            }
-                            Err(e) => {
-                                fail(e);
-                                break;
-                            }
-                        }
-                    }
+                        Some(item)
+                    });
+                    let step = |item, _: &mut WorkerShare| {
+                        let pre = precompute.as_deref();
+                        back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
+                    };
+                    let send = |out| to_raster.send(out).is_ok();
+                    let mut share = stage_share(format!("prepare-{g}"));
+                    stage_loop(&mut share, t_total, failed, fail, items, step, send);
                     share
                 };
                 match &*prepare_pool {
@@ -328,37 +299,17 @@ pub(crate) fn run_pool(
             let raster_pool = Arc::clone(&pool);
             handles.push(s.spawn(move || {
                 let run = move || {
-                    let mut share = WorkerShare {
-                        name,
-                        ..Default::default()
-                    };
-                    for prepared in from_prepare.iter() {
-                        if failed.load(Ordering::SeqCst) {
-                            break;
-                        }
-                        let t0 = Instant::now();
-                        if share.images == 0 {
-                            share.first_s = (t0 - t_total).as_secs_f64();
-                        }
+                    let step = |prepared, share: &mut WorkerShare| {
                         let out = back_raster(&mut *rasterizer, prepared);
                         if let Some(p) = rasterizer.last_phases() {
                             share.raster_phases_ms.get_or_insert_default().add(&p);
                         }
-                        share.busy_s += t0.elapsed().as_secs_f64();
-                        share.last_s = t_total.elapsed().as_secs_f64();
-                        match out {
-                            Ok(out) => {
-                                share.images += 1;
-                                if to_image.send(out).is_err() {
-                                    break;
-                                }
-                            }
-                            Err(e) => {
-                                fail(e);
-                                break;
-                            }
-                        }
-                    }
+                        out
+                    };
+                    let send = |out| to_image.send(out).is_ok();
+                    let mut share = stage_share(name);
+                    let prepared = from_prepare.iter();
+                    stage_loop(&mut share, t_total, failed, fail, prepared, step, send);
                     share
                 };
                 match &*raster_pool {
@@ -369,34 +320,18 @@ pub(crate) fn run_pool(
             handles.push(s.spawn(move || {
                 // The receiver moves into the closure (it may not be shared between threads).
                 let run = move || {
-                    let mut share = WorkerShare {
-                        name: format!("image-{g}"),
-                        ..Default::default()
-                    };
-                    for raster in from_raster.iter() {
-                        if failed.load(Ordering::SeqCst) {
-                            break;
-                        }
-                        let t0 = Instant::now();
-                        if share.images == 0 {
-                            share.first_s = (t0 - t_total).as_secs_f64();
-                        }
+                    let step = |raster: BackRaster, _: &mut WorkerShare| {
                         let view = raster.item.view;
                         let res = finish_image(raster, dim, params, store, level_stores, totals);
                         if let Some(view) = views.get(view) {
                             tracing::debug!(view = %view.name, "image done");
                         }
-                        share.busy_s += t0.elapsed().as_secs_f64();
                         bar_back.inc(1);
-                        share.last_s = t_total.elapsed().as_secs_f64();
-                        match res {
-                            Ok(()) => share.images += 1,
-                            Err(e) => {
-                                fail(e);
-                                break;
-                            }
-                        }
-                    }
+                        res
+                    };
+                    let mut share = stage_share(format!("image-{g}"));
+                    let rastered = from_raster.iter();
+                    stage_loop(&mut share, t_total, failed, fail, rastered, step, |()| true);
                     share
                 };
                 match &*pool {
@@ -448,6 +383,52 @@ pub(crate) fn run_pool(
         workers: shares,
         queue: queue.stats(n_queues * capacity),
     })
+}
+
+/// A back thread's [`WorkerShare`], named.
+fn stage_share(name: String) -> WorkerShare {
+    WorkerShare {
+        name,
+        ..Default::default()
+    }
+}
+
+/// One back thread's loop: each input (until `inputs` ends or the pool has failed) goes through
+/// `step`, its time is counted in `share`, and its output is handed on (`send` false: the next
+/// thread is gone, having said why); the first error goes to `fail` and ends the loop.
+fn stage_loop<I, O>(
+    share: &mut WorkerShare,
+    t_total: Instant,
+    failed: &AtomicBool,
+    fail: &impl Fn(Error),
+    inputs: impl Iterator<Item = I>,
+    mut step: impl FnMut(I, &mut WorkerShare) -> Result<O>,
+    mut send: impl FnMut(O) -> bool,
+) {
+    for input in inputs {
+        if failed.load(Ordering::SeqCst) {
+            break;
+        }
+        let t0 = Instant::now();
+        if share.images == 0 {
+            share.first_s = (t0 - t_total).as_secs_f64();
+        }
+        let out = step(input, share);
+        share.busy_s += t0.elapsed().as_secs_f64();
+        share.last_s = t_total.elapsed().as_secs_f64();
+        match out {
+            Ok(out) => {
+                share.images += 1;
+                if !send(out) {
+                    break;
+                }
+            }
+            Err(e) => {
+                fail(e);
+                break;
+            }
+        }
+    }
 }
 
 /// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj`, split by

@@ -13,32 +13,28 @@ fn blend(
     @builtin(local_invocation_id) lid3: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let ty = wid.y + params.tile_y0;
-    let tile = ty * params.tiles_x + wid.x;
-    let px = wid.x * TILE + lid3.x;
-    let py = ty * TILE + lid3.y;
-    let inside = px < params.width && py < params.height;
-    let pix = py * params.width + px;
+    let tp = tile_pixel(wid, lid3);
+    let pix = tp.py * params.width + tp.px;
     let write = params.mode == 1u;
     if (lid == 0u) {
-        sh_range = tile_ranges[tile];
+        sh_range = tile_ranges[tp.tile];
         atomicStore(&done_count, 0u);
     }
     let range = workgroupUniformLoad(&sh_range);
     var out = 0u;
     var out_end = 0u;
-    if (write && inside) {
+    if (write && tp.inside) {
         out = offsets[pix] - params.out_base;
         out_end = offsets[pix + 1u] - params.out_base;
     }
     var t_acc = 1.0;
     var count = 0u;
-    var done = !inside;
+    var done = !tp.inside;
     if (done) {
         atomicAdd(&done_count, 1u);
     }
-    let pxc = f32(px) + 0.5;
-    let pyc = f32(py) + 0.5;
+    let pxc = f32(tp.px) + 0.5;
+    let pyc = f32(tp.py) + 0.5;
     let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
     for (var b = 0u; b < n_batches; b++) {
         if (all_stopped(lid)) {
@@ -76,7 +72,7 @@ fn blend(
             }
         }
     }
-    if (params.mode == 0u && inside) {
+    if (params.mode == 0u && tp.inside) {
         offsets[pix] = count;
     }
 }

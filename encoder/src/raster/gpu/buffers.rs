@@ -3,8 +3,8 @@
 
 use std::sync::mpsc;
 
-use slag_common::Result;
 use slag_common::rng::SplitMix64;
+use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
 use super::{GpuRasterizer, gpu_err};
@@ -20,6 +20,15 @@ pub(super) fn storage_init(device: &wgpu::Device, label: &str, data: &[u8]) -> w
             | wgpu::BufferUsages::COPY_SRC
             | wgpu::BufferUsages::COPY_DST,
     })
+}
+
+/// The overflow flag of a scan (`scan.wgsl`: the word after the block sums, read back as
+/// `flag`): non-zero is [`Error::Limit`] `RasterEntries` for `what`, past `limit`.
+pub(super) fn scan_overflow(flag: &[u8], what: String, limit: &str) -> Result<()> {
+    if flag.iter().take(4).any(|&b| b != 0) {
+        return Err(Error::limit(Resource::RasterEntries, what, limit));
+    }
+    Ok(())
 }
 
 pub(super) fn storage(device: &wgpu::Device, label: &str, size: u64) -> wgpu::Buffer {

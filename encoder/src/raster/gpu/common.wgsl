@@ -82,6 +82,22 @@ const SCAN_BLOCK: u32 = 1024u;
 
 // The blend loops' shared steps (`blend`, `blend_sums`).
 
+// The pixel of thread `lid3` in the tile of workgroup `wid` (tile rows from params.tile_y0: the
+// dispatch's band).
+struct TilePixel {
+    tile: u32,
+    px: u32,
+    py: u32,
+    inside: bool, // within the raster (edge tiles reach past it)
+}
+
+fn tile_pixel(wid: vec3<u32>, lid3: vec3<u32>) -> TilePixel {
+    let ty = wid.y + params.tile_y0;
+    let px = wid.x * TILE + lid3.x;
+    let py = ty * TILE + lid3.y;
+    return TilePixel(ty * params.tiles_x + wid.x, px, py, px < params.width && py < params.height);
+}
+
 // Whether every pixel of the tile has stopped, read at the top of a batch (uniform across the
 // workgroup; call in uniform control flow).
 fn all_stopped(lid: u32) -> bool {

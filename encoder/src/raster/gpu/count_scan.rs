@@ -1,8 +1,9 @@
 //! Step 3a: the count mode of the `blend` kernel (`blend.wgsl`, contributors per pixel) and the
 //! exclusive prefix sum over pixels (`scan.wgsl`), giving the CSR offsets of the view.
 
-use slag_common::{Error, Resource, Result};
+use slag_common::Result;
 
+use super::buffers::scan_overflow;
 use super::{Binned, GROUPS_X, GpuRasterizer, View};
 
 impl GpuRasterizer {
@@ -44,17 +45,14 @@ impl GpuRasterizer {
             ],
         )?;
         let offsets: Vec<u32> = bytemuck::pod_collect_to_vec(&read[0]);
-        let overflow = u32::from_le_bytes([read[1][0], read[1][1], read[1][2], read[1][3]]);
-        if overflow != 0 {
-            return Err(Error::limit(
-                Resource::RasterEntries,
-                format!(
-                    "more than 2^32 for the {}x{} weight raster",
-                    view.k.width, view.k.height
-                ),
-                "2^32",
-            ));
-        }
+        scan_overflow(
+            &read[1],
+            format!(
+                "more than 2^32 for the {}x{} weight raster",
+                view.k.width, view.k.height
+            ),
+            "2^32",
+        )?;
         Ok(offsets)
     }
 }

@@ -35,18 +35,14 @@ fn blend_sums(
     @builtin(local_invocation_id) lid3: vec3<u32>,
     @builtin(local_invocation_index) lid: u32,
 ) {
-    let ty = wid.y + params.tile_y0;
-    let tile = ty * params.tiles_x + wid.x;
-    let px = wid.x * TILE + lid3.x;
-    let py = ty * TILE + lid3.y;
-    let inside = px < params.width && py < params.height;
+    let tp = tile_pixel(wid, lid3);
     var label = 0u;
-    if (inside) {
-        label = labels[py * params.width + px];
+    if (tp.inside) {
+        label = labels[tp.py * params.width + tp.px];
     }
     sh_pix_label[lid] = label;
     if (lid == 0u) {
-        sh_range = tile_ranges[tile];
+        sh_range = tile_ranges[tp.tile];
         atomicStore(&done_count, 0u);
         atomicStore(&sh_n_labels, 0u);
     }
@@ -81,12 +77,12 @@ fn blend_sums(
     let range = workgroupUniformLoad(&sh_range);
     var t_acc = 1.0;
     var count = 0u;
-    var done = !inside || label == 0u;
+    var done = !tp.inside || label == 0u;
     if (done) {
         atomicAdd(&done_count, 1u);
     }
-    let pxc = f32(px) + 0.5;
-    let pyc = f32(py) + 0.5;
+    let pxc = f32(tp.px) + 0.5;
+    let pyc = f32(tp.py) + 0.5;
     let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
     for (var b = 0u; b < n_batches; b++) {
         if (all_stopped(lid)) {

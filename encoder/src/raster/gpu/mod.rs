@@ -790,16 +790,17 @@ fn unit_quaternion(q: [f32; 4]) -> Option<[f32; 4]> {
 }
 
 impl GpuRasterizer {
-    /// [`Self::run`] inside validation and out-of-memory error scopes.
-    fn run_scoped(
+    /// `run` (GPU work for the view `k`) inside validation and out-of-memory error scopes: an
+    /// out-of-memory error is [`Error::Limit`] `GpuMemory` naming the view's size, a validation
+    /// error an internal GPU error.
+    fn in_error_scopes<T>(
         &mut self,
         k: &Intrinsics,
-        w2c: &WorldToCamera,
-        labels: Option<&[u32]>,
-    ) -> Result<RunOutput> {
+        run: impl FnOnce(&mut Self) -> Result<T>,
+    ) -> Result<T> {
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let out = self.run(k, w2c, labels);
+        let out = run(self);
         if let Some(e) = pollster::block_on(oom.pop()) {
             let _ = pollster::block_on(scope.pop());
             return Err(Error::limit(
@@ -817,7 +818,7 @@ impl GpuRasterizer {
 
 impl WeightRasterizer for GpuRasterizer {
     fn rasterize(&mut self, k: &Intrinsics, w2c: &WorldToCamera) -> Result<PixelWeights> {
-        match self.run_scoped(k, w2c, None)? {
+        match self.in_error_scopes(k, |r| r.run(k, w2c, None))? {
             RunOutput::Weights(w) => Ok(w),
             RunOutput::Sums(_) => Err(Error::internal(
                 "rasterizer returned sums for a weights run",
@@ -831,7 +832,7 @@ impl WeightRasterizer for GpuRasterizer {
         w2c: &WorldToCamera,
         labels: &[u32],
     ) -> Result<Option<LabelSums>> {
-        match self.run_scoped(k, w2c, Some(labels))? {
+        match self.in_error_scopes(k, |r| r.run(k, w2c, Some(labels)))? {
             RunOutput::Sums(s) => Ok(Some(s)),
             RunOutput::Weights(_) => Err(Error::internal(
                 "rasterizer returned weights for a sums run",

@@ -20,13 +20,13 @@
 use std::sync::Arc;
 
 use rayon::prelude::*;
+use slag_common::Result;
 use slag_common::camera::WorldToCamera;
-use slag_common::{Error, Resource, Result};
 use wgpu::util::DeviceExt;
 
 use super::super::project::camera_point;
 use super::super::{PrecomputedView, ViewPrecompute};
-use super::buffers::storage;
+use super::buffers::{scan_overflow, storage};
 use super::{Binned, GROUPS_X, GpuRasterizer, Params, SCAN_BLOCK, SEED_SALT, View};
 
 /// `[N]` sort depths of `means` in the view `w2c`: [`camera_point`]'s f64 depth, clamped at 0,
@@ -192,18 +192,15 @@ impl GpuRasterizer {
                 (&self.tile_count_sums, u64::from(n_blocks) * 4, 4),
             ],
         )?;
-        let word = |b: &[u8]| u32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-        if word(&read[1]) != 0 {
-            return Err(Error::limit(
-                Resource::RasterEntries,
-                format!(
-                    "2^32 - 1 or more tile intersections in the {}x{} view",
-                    view.k.width, view.k.height
-                ),
-                "2^32 - 1",
-            ));
-        }
-        Ok(word(&read[0]))
+        scan_overflow(
+            &read[1],
+            format!(
+                "2^32 - 1 or more tile intersections in the {}x{} view",
+                view.k.width, view.k.height
+            ),
+            "2^32 - 1",
+        )?;
+        Ok(bytemuck::pod_read_unaligned(&read[0][..4]))
     }
 
     /// `kept` if it holds `keys` intersections, else new sort buffers for them plus a quarter
