@@ -272,72 +272,67 @@ pub(crate) fn run_pool(
             // reduces and expands the last view's sums. The GPU never waits for host work.
             let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
             let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
-            let prepare_pool = Arc::clone(&pool);
             let precompute = rasterizer.view_precompute();
+            let prepare_pool = Arc::clone(&pool);
             handles.push(s.spawn(move || {
-                let run = move || {
-                    // Take the next finished front item; the lock is held only while waiting.
-                    let items = std::iter::from_fn(|| {
-                        let item = rx.lock().ok()?.recv().ok()?;
-                        queue.leave(item.bytes());
-                        Some(item)
-                    });
-                    let step = |item, _: &mut WorkerShare| {
-                        let pre = precompute.as_deref();
-                        back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
-                    };
-                    let send = |out| to_raster.send(out).is_ok();
-                    let mut share = stage_share(format!("prepare-{g}"));
-                    stage_loop(&mut share, t_total, failed, fail, items, step, send);
-                    share
+                // Take the next finished front item; the lock is held only while waiting.
+                let items = std::iter::from_fn(|| {
+                    let item = rx.lock().ok()?.recv().ok()?;
+                    queue.leave(item.bytes());
+                    Some(item)
+                });
+                let step = |item, _: &mut WorkerShare| {
+                    let pre = precompute.as_deref();
+                    back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
                 };
-                match &*prepare_pool {
-                    Some(pool) => pool.install(run),
-                    None => run(),
-                }
+                let send = |out| to_raster.send(out).is_ok();
+                let mut share = stage_share(format!("prepare-{g}"));
+                let pool = prepare_pool.as_ref().as_ref();
+                stage_loop(&mut share, t_total, failed, fail, pool, items, step, send);
+                share
             }));
             let raster_pool = Arc::clone(&pool);
             handles.push(s.spawn(move || {
-                let run = move || {
-                    let step = |prepared, share: &mut WorkerShare| {
-                        let out = back_raster(&mut *rasterizer, prepared);
-                        if let Some(p) = rasterizer.last_phases() {
-                            share.raster_phases_ms.get_or_insert_default().add(&p);
-                        }
-                        out
-                    };
-                    let send = |out| to_image.send(out).is_ok();
-                    let mut share = stage_share(name);
-                    let prepared = from_prepare.iter();
-                    stage_loop(&mut share, t_total, failed, fail, prepared, step, send);
-                    share
+                let step = |prepared, share: &mut WorkerShare| {
+                    let out = back_raster(&mut *rasterizer, prepared);
+                    if let Some(p) = rasterizer.last_phases() {
+                        share.raster_phases_ms.get_or_insert_default().add(&p);
+                    }
+                    out
                 };
-                match &*raster_pool {
-                    Some(pool) => pool.install(run),
-                    None => run(),
-                }
+                let send = |out| to_image.send(out).is_ok();
+                let mut share = stage_share(name);
+                let prepared = from_prepare.iter();
+                let pool = raster_pool.as_ref().as_ref();
+                stage_loop(
+                    &mut share, t_total, failed, fail, pool, prepared, step, send,
+                );
+                share
             }));
             handles.push(s.spawn(move || {
-                // The receiver moves into the closure (it may not be shared between threads).
-                let run = move || {
-                    let step = |raster: BackRaster, _: &mut WorkerShare| {
-                        let view = raster.item.view;
-                        let res = finish_image(raster, dim, params, store, level_stores, totals);
-                        if let Some(view) = views.get(view) {
-                            tracing::debug!(view = %view.name, "image done");
-                        }
-                        bar_back.inc(1);
-                        res
-                    };
-                    let mut share = stage_share(format!("image-{g}"));
-                    let rastered = from_raster.iter();
-                    stage_loop(&mut share, t_total, failed, fail, rastered, step, |()| true);
-                    share
+                let step = |raster: BackRaster, _: &mut WorkerShare| {
+                    let view = raster.item.view;
+                    let res = finish_image(raster, dim, params, store, level_stores, totals);
+                    if let Some(view) = views.get(view) {
+                        tracing::debug!(view = %view.name, "image done");
+                    }
+                    bar_back.inc(1);
+                    res
                 };
-                match &*pool {
-                    Some(pool) => pool.install(run),
-                    None => run(),
-                }
+                let mut share = stage_share(format!("image-{g}"));
+                let rastered = from_raster.iter();
+                let pool = pool.as_ref().as_ref();
+                stage_loop(
+                    &mut share,
+                    t_total,
+                    failed,
+                    fail,
+                    pool,
+                    rastered,
+                    step,
+                    |()| true,
+                );
+                share
             }));
         }
         // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
@@ -394,17 +389,24 @@ fn stage_share(name: String) -> WorkerShare {
 }
 
 /// One back thread's loop: each input (until `inputs` ends or the pool has failed) goes through
-/// `step`, its time is counted in `share`, and its output is handed on (`send` false: the next
-/// thread is gone, having said why); the first error goes to `fail` and ends the loop.
-fn stage_loop<I, O>(
+/// `step`, inside the rasterizer's rayon `pool` (so that its parallel work never queues behind
+/// the front workers' jobs in the global pool), its time is counted in `share`, and its output
+/// is handed on (`send` false: the next thread is gone, having said why); the first error goes
+/// to `fail` and ends the loop. The loop itself runs on the calling thread, not in the pool: the
+/// three threads of a rasterizer share one pool, which may have only two threads.
+#[allow(clippy::too_many_arguments)]
+fn stage_loop<I, O: Send>(
     share: &mut WorkerShare,
     t_total: Instant,
     failed: &AtomicBool,
     fail: &impl Fn(Error),
+    pool: Option<&rayon::ThreadPool>,
     inputs: impl Iterator<Item = I>,
-    mut step: impl FnMut(I, &mut WorkerShare) -> Result<O>,
+    mut step: impl FnMut(I, &mut WorkerShare) -> Result<O> + Send,
     mut send: impl FnMut(O) -> bool,
-) {
+) where
+    I: Send,
+{
     for input in inputs {
         if failed.load(Ordering::SeqCst) {
             break;
@@ -413,7 +415,10 @@ fn stage_loop<I, O>(
         if share.images == 0 {
             share.first_s = (t0 - t_total).as_secs_f64();
         }
-        let out = step(input, share);
+        let out = match pool {
+            Some(pool) => pool.install(|| step(input, share)),
+            None => step(input, share),
+        };
         share.busy_s += t0.elapsed().as_secs_f64();
         share.last_s = t_total.elapsed().as_secs_f64();
         match out {
