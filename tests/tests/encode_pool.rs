@@ -115,13 +115,14 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         r2.counts.spilled_images > 0,
         "the spill path was not exercised"
     );
-    // Every image was done exactly once, by one front and one rasterizer.
+    // Every image was done exactly once, by one front and by one rasterizer's three back threads
+    // (prepare, raster, image): 3 fronts + 2 × 3 back threads.
     let images_of = |kind: &str| -> usize {
         let workers = r2.workers.iter().filter(|w| w.name.starts_with(kind));
         workers.map(|w| w.images).sum()
     };
-    let (fronts, backs) = (images_of("front"), images_of("raster"));
-    assert_eq!((fronts, backs, r2.workers.len()), (7, 7, 5));
+    let per_kind = ["front", "prepare", "raster", "image"].map(images_of);
+    assert_eq!((per_kind, r2.workers.len()), ([7, 7, 7, 7], 9));
     // Fill and drain times lie inside the wall clock, in order, for every worker that worked.
     for w in r2.workers.iter().filter(|w| w.images > 0) {
         assert!(
