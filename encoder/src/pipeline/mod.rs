@@ -1,9 +1,10 @@
 //! The encode pipeline: for each posed image, masks → CLIP crop embeddings → weight raster →
 //! image-stage aggregation, then the reduction over all images and the output files.
 //!
-//! Threads overlap the stages: a *front* thread decodes image i+2, generates its masks and
-//! embeds its crops while the *raster* thread rasterizes image i+1 and the *image* thread turns
-//! image i's label sums into its `a_kj` (bounded channels between them keep memory flat). Every per-image step is independent, as in
+//! Threads overlap the stages: a *front* thread decodes image i+3, generates its masks and
+//! embeds its crops while a rasterizer's *prepare* thread labels image i+2's pixels, its *raster*
+//! thread rasterizes image i+1 and its *image* thread turns image i's label sums into its `a_kj`
+//! (bounded channels between them keep memory flat). Every per-image step is independent, as in
 //! the paper; only the reduction sees all images.
 //!
 //! [`Encoder`] runs a [`crate::config::EncodeConfig`]: [`build`] turns the config into the stage

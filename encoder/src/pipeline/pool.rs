@@ -1,8 +1,8 @@
-//! The encode's worker pool: front threads (decode → masks → CLIP crops), two back threads per
-//! rasterizer (its raster thread: masks to labels and the GPU's label sums; its image thread: the
-//! host side of `a_kj`, the reduction and expansion of the sums), the bounded queues between
-//! //! them, and the first error, which stops every worker. What it leaves ([`Pooled`]: every
-//! image's `a_kj`, what the workers measured) goes to [`super::finish`].
+//! The encode's worker pool: front threads (decode → masks → CLIP crops), three back threads per
+//! rasterizer (prepare: the masks' pixel labels and the sort depths; raster: the GPU's label
+//! sums; image: the host side of `a_kj`, the reduction and expansion of the sums), the bounded
+//! queues between them, and the first error, which stops every worker. What it leaves
+//! ([`Pooled`]: every image's `a_kj`, what the workers measured) goes to [`super::finish`].
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, mpsc};
@@ -268,8 +268,9 @@ pub(crate) fn run_pool(
             let pool = Arc::new(back_pool(g));
             // Three threads per rasterizer, a view handed on from one to the next through a
             // channel of one (a view's labels or label sums, a few MB): the prepare thread makes
-            // the next view's pixel labels and sort depths, the raster thread runs the GPU, the image thread
-            // reduces and expands the last view's sums. The GPU never waits for host work.
+            // the next view's pixel labels and sort depths, the raster thread runs the GPU, the
+            // image thread reduces and expands the last view's sums. The GPU never waits for host
+            // work.
             let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
             let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
             let precompute = rasterizer.view_precompute();
