@@ -165,8 +165,8 @@ pub struct PrecomputedView {
 /// One per-label sum of blend weights ([`WeightRasterizer::label_sums`]): Gaussian `gaussian`
 /// received `Σ w_kp` over the pixels labelled `label`, in exact 64-bit fixed point with 32
 /// fractional bits (each `w_kp` truncated to a multiple of 2^-32 before the sum; units: pixels
-/// at the raster resolution). `repr(C)`, 16 bytes: on a little-endian host the layout of the GPU's
-/// records (Gaussian, label, low and high word of the sum), so a readback is one copy.
+/// at the raster resolution). `repr(C)`, 16 bytes: the layout of the GPU's records (Gaussian,
+/// label, low and high word of the sum) on a little-endian host, so a readback is one copy.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct LabelSum {

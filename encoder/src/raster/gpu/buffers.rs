@@ -68,7 +68,7 @@ pub(super) struct OutBuffers {
 
 /// Appends the little-endian `T`s in `bytes` to `dst` (one copy when `bytes` is aligned for `T`,
 /// as mapped ranges are; element by element otherwise).
-fn extend_pod<T: bytemuck::Pod>(dst: &mut Vec<T>, bytes: &[u8]) {
+pub(super) fn extend_pod<T: bytemuck::Pod>(dst: &mut Vec<T>, bytes: &[u8]) {
     match bytemuck::try_cast_slice::<u8, T>(bytes) {
         Ok(s) => dst.extend_from_slice(s),
         Err(_) => dst.extend(

@@ -13,7 +13,7 @@
 use slag_common::{Error, Resource, Result};
 
 use super::super::{LabelSum, LabelSums};
-use super::buffers::{storage, storage_init};
+use super::buffers::{extend_pod, storage, storage_init};
 use super::{Binned, GpuRasterizer, SEED_SALT, View};
 
 /// Record capacity of a new rasterizer's buffer (4 MiB); grown per view as needed and kept.
@@ -32,23 +32,11 @@ pub(super) struct RecordBuffers {
 }
 
 /// Appends the records in `bytes` (4 little-endian words each: Gaussian, label, low and high word
-/// of the sum; a trailing partial record is ignored) to `out`: one copy where the host is
-/// little-endian ([`LabelSum`] has the records' layout there).
+/// of the sum, [`LabelSum`]'s layout; a trailing partial record is ignored) to `out`: one copy
+/// when `bytes` is aligned ([`extend_pod`]).
 fn decode_records(bytes: &[u8], out: &mut Vec<LabelSum>) {
-    let n = bytes.len() / RECORD_BYTES as usize;
-    let bytes = &bytes[..n * RECORD_BYTES as usize];
-    if cfg!(target_endian = "little") {
-        let start = out.len();
-        out.resize(start + n, <LabelSum as bytemuck::Zeroable>::zeroed());
-        bytemuck::cast_slice_mut::<LabelSum, u8>(&mut out[start..]).copy_from_slice(bytes);
-    } else {
-        let word = |c: &[u8]| u32::from_le_bytes([c[0], c[1], c[2], c[3]]);
-        out.extend(bytes.chunks_exact(16).map(|r| LabelSum {
-            gaussian: word(&r[0..4]),
-            label: word(&r[4..8]),
-            sum: (u64::from(word(&r[12..16])) << 32) | u64::from(word(&r[8..12])),
-        }));
-    }
+    let whole = bytes.len() / RECORD_BYTES as usize * RECORD_BYTES as usize;
+    extend_pod(out, &bytes[..whole]);
 }
 
 impl GpuRasterizer {
