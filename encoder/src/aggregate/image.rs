@@ -595,6 +595,7 @@ mod expand_tests {
         let sums = LabelSums {
             records,
             contributions: 0,
+            sorted: false,
         };
         let got = expand_label_records(sums, &masks_of);
         assert_eq!(got.len(), expected.len());

@@ -181,13 +181,15 @@ pub struct LabelSum {
 /// One view's [`WeightRasterizer::label_sums`].
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct LabelSums {
-    /// The sums as the rasterizer made them: in any order, and a (Gaussian, label) key may
-    /// stand several times (the GPU writes one record per tile); [`LabelSums::reduced`] sorts
-    /// and adds them. Left unreduced so that the reduction runs on the image stage's thread,
-    /// off the rasterizer's.
+    /// The sums as the rasterizer made them: unless [`LabelSums::sorted`], in any order, and a
+    /// (Gaussian, label) key may stand several times (the GPU writes one record per tile and
+    /// reduces a band of tile rows at a time); [`LabelSums::reduced`] sorts and adds them.
     pub records: Vec<LabelSum>,
     /// Contributions (pixel, Gaussian) summed: those of labelled pixels only.
     pub contributions: u64,
+    /// `records` are already sorted by (Gaussian, label), one per key (the GPU reduced the
+    /// whole view in one band): [`LabelSums::reduced`] returns them as they are.
+    pub sorted: bool,
 }
 
 impl LabelSum {
@@ -202,6 +204,9 @@ impl LabelSums {
     /// the result does not depend on the records' order), one entry per key.
     pub fn reduced(self) -> Vec<LabelSum> {
         let mut records = self.records;
+        if self.sorted {
+            return records;
+        }
         records.par_sort_unstable_by_key(|e| (u64::from(e.gaussian) << 32) | u64::from(e.label));
         records.dedup_by(|next, kept| {
             if (next.gaussian, next.label) == (kept.gaussian, kept.label) {

@@ -899,3 +899,59 @@ fn precomputed_sort_depths_give_the_same_label_sums() {
         assert_eq!(sums, own);
     }
 }
+
+/// The label-sum records reduced on the device equal the host's reduction of the records as
+/// the kernel wrote them, bit for bit and in the same (Gaussian, label) order: over a view in
+/// one band (returned as sorted) and split into bands (merged on the host), with label counts
+/// that take one to three radix passes over the label bits, and a repeated view reusing the
+/// kept buffers.
+#[test]
+fn device_reduced_label_sums_equal_the_host_reduction() {
+    let g = random_scene(31, 1500);
+    let (k, w2c) = test_camera(31);
+    let Some(mut gpu) = gpu(&g) else { return };
+    for labels_in_use in [3u32, 40, 700] {
+        // Stripes and a checkerboard of labels: many labels per tile, some pixels unlabelled.
+        let labels: Vec<u32> = (0..k.width * k.height)
+            .map(|p| {
+                let (x, y) = (p % k.width, p / k.width);
+                if (x + 3 * y) % 11 == 0 {
+                    0
+                } else {
+                    1 + (x / 3 + y * 7) % labels_in_use
+                }
+            })
+            .collect();
+        gpu.set_label_reduce_on_device(false);
+        let raw = gpu
+            .label_sums(&k, &w2c, &labels)
+            .expect("raw records")
+            .expect("gpu sums");
+        assert!(!raw.sorted, "raw records are not reduced");
+        let written = gpu.last_label_records();
+        let reference = raw.clone().reduced();
+        assert!(
+            (reference.len() as u64) < written,
+            "{labels_in_use} labels: some keys span several tiles"
+        );
+        gpu.set_label_reduce_on_device(true);
+        for _ in 0..2 {
+            let dev = gpu
+                .label_sums(&k, &w2c, &labels)
+                .expect("device reduce")
+                .expect("gpu sums");
+            assert!(dev.sorted, "{labels_in_use} labels: one band is returned reduced");
+            assert_eq!(dev.contributions, raw.contributions);
+            assert_eq!(dev.records, reference, "{labels_in_use} labels");
+        }
+        // Bands of tile rows: each reduced on the device, their keys merged on the host.
+        gpu.set_label_records(16, Some(written / 3));
+        let banded = gpu
+            .label_sums(&k, &w2c, &labels)
+            .expect("banded")
+            .expect("gpu sums");
+        assert!(!banded.sorted, "{labels_in_use} labels: several bands");
+        assert_eq!(banded.reduced(), reference, "{labels_in_use} labels: banded");
+        gpu.set_label_records(1 << 16, None);
+    }
+}

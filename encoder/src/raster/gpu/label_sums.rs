@@ -99,6 +99,9 @@ impl GpuRasterizer {
         let mut records = Vec::new();
         let mut contributions = 0u64;
         let mut retries = 0u32;
+        let (mut written, mut bands) = (0u64, 0u32);
+        // The radix passes of the device reduction cover the label bits up to the largest.
+        let max_label = labels.iter().copied().max().unwrap_or(0);
         let mut host = std::time::Duration::ZERO;
         let mut rows = view.tiles_y;
         let mut r0 = 0u32;
@@ -160,10 +163,25 @@ impl GpuRasterizer {
                 continue;
             }
             contributions += (u64::from(header[2]) << 32) | u64::from(header[1]);
+            written += wanted;
             if wanted > 0 {
-                let bytes = wanted * RECORD_BYTES;
+                bands += 1;
                 let mut enc = self.device.create_command_encoder(&Default::default());
-                enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+                // One record per key (reduced on the device), or the records as written.
+                let bytes = match self.reduce_on_device {
+                    true => {
+                        let (reduced, keys) =
+                            self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+                        let bytes = u64::from(keys) * RECORD_BYTES;
+                        enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
+                        bytes
+                    }
+                    false => {
+                        let bytes = wanted * RECORD_BYTES;
+                        enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+                        bytes
+                    }
+                };
                 self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
                     let t = std::time::Instant::now();
                     decode_records(bytes, &mut records);
@@ -175,11 +193,13 @@ impl GpuRasterizer {
         }
         self.label_out = kept;
         self.label_retries = retries;
-        self.label_record_count = records.len() as u64;
+        self.label_record_count = written;
         Ok((
             LabelSums {
                 records,
                 contributions,
+                // Keys of several bands may repeat across them.
+                sorted: self.reduce_on_device && bands <= 1,
             },
             host.as_secs_f64() * 1e3,
         ))
@@ -213,6 +233,7 @@ mod tests {
         let sums = LabelSums {
             records: out,
             contributions: 0,
+            sorted: false,
         }
         .reduced();
         assert_eq!(

@@ -49,9 +49,11 @@
 //!    sum). A view's records are at most one per (tile intersection, tile label) and one per
 //!    labelled contribution, and the kernel counts them: a band of tile rows that did not fit
 //!    its buffer is re-run with room for exactly its count, or split when that exceeds one
-//!    binding. Nothing overflows, at any scene size; the image stage sorts the records by
-//!    (Gaussian, label) and adds those of one key (the same key from several tiles), on its own
-//!    thread ([`super::LabelSums::reduced`]).
+//!    binding. Nothing overflows, at any scene size. The records of a band are then reduced on
+//!    the device ([`reduce`], `reduce.wgsl`): radix-sorted by (Gaussian, label) and the sums of
+//!    one key (the same key from several tiles) added, so one record per key is read back,
+//!    sorted. A view of several bands leaves the merge of their keys to the image stage
+//!    ([`super::LabelSums::reduced`]), on its own thread.
 //!
 //! Output buffers are sized from the counts and checked against the device's
 //! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
@@ -82,6 +84,7 @@ mod buffers;
 mod count_scan;
 mod label_sums;
 pub mod project;
+mod reduce;
 mod sort;
 mod write;
 
@@ -97,6 +100,7 @@ const SHADER: &str = concat!(
     include_str!("blend.wgsl"),
     include_str!("scan.wgsl"),
     include_str!("sort.wgsl"),
+    include_str!("reduce.wgsl"),
 );
 /// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
 const GROUPS_X: u32 = 32768;
@@ -183,6 +187,9 @@ struct Pipelines {
     radix_count: wgpu::ComputePipeline,
     radix_scatter: wgpu::ComputePipeline,
     tile_bounds: wgpu::ComputePipeline,
+    record_keys: wgpu::ComputePipeline,
+    record_heads: wgpu::ComputePipeline,
+    record_sums: wgpu::ComputePipeline,
 }
 
 /// 3DGS weight rasterizer on a wgpu device (see the module docs for the kernel sequence).
@@ -230,8 +237,13 @@ pub struct GpuRasterizer {
     label_out: Option<RecordBuffers>,
     /// Re-runs of a band (it did not fit its buffer) in the last label-sum view.
     label_retries: u32,
-    /// Records read back in the last label-sum view.
+    /// Records the `blend_sums` kernel wrote in the last label-sum view (all bands).
     label_record_count: u64,
+    /// The device reduction's buffers, kept across views ([`reduce`]).
+    reduce: Option<reduce::ReduceBuffers>,
+    /// Whether the label-sum records are reduced on the device before the readback (the
+    /// default) or read back as written (testing aid, [`Self::set_label_reduce_on_device`]).
+    reduce_on_device: bool,
 }
 
 /// What one [`GpuRasterizer::run`] produced.
@@ -505,6 +517,9 @@ impl GpuRasterizer {
             radix_count: pipe("radix_count"),
             radix_scatter: pipe("radix_scatter"),
             tile_bounds: pipe("tile_bounds"),
+            record_keys: pipe("record_keys"),
+            record_heads: pipe("record_heads"),
+            record_sums: pipe("record_sums"),
         };
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_err("creating the rasterizer kernels/buffers failed", e));
@@ -537,6 +552,8 @@ impl GpuRasterizer {
             label_out: None,
             label_retries: 0,
             label_record_count: 0,
+            reduce: None,
+            reduce_on_device: true,
         })
     }
 
@@ -564,13 +581,20 @@ impl GpuRasterizer {
         self.label_out = None;
     }
 
+    /// Testing aid: reduce the label-sum records by (Gaussian, label) on the device before the
+    /// readback (`true`, the default) or read them back as the `blend_sums` kernel wrote them,
+    /// one per tile (`false`). The sums after [`LabelSums::reduced`] do not depend on it.
+    pub fn set_label_reduce_on_device(&mut self, on: bool) {
+        self.reduce_on_device = on;
+    }
+
     /// Band re-runs (a band did not fit its records buffer) of the last label-sum view.
     pub fn last_label_retries(&self) -> u32 {
         self.label_retries
     }
 
-    /// Records (one per tile intersection and tile label with a non-zero sum) read back in the
-    /// last label-sum view.
+    /// Records (one per tile intersection and tile label with a non-zero sum) the `blend_sums`
+    /// kernel wrote in the last label-sum view, before any reduction.
     pub fn last_label_records(&self) -> u64 {
         self.label_record_count
     }

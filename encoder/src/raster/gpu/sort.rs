@@ -65,8 +65,8 @@ const KEY_BYTES: u64 = 8;
 /// The sort's key and value buffers (ping-pong pairs) and the radix histogram with its scan's
 /// block sums, kept across views.
 pub(super) struct SortBuffers {
-    keys: [wgpu::Buffer; 2],
-    vals: [wgpu::Buffer; 2],
+    pub(super) keys: [wgpu::Buffer; 2],
+    pub(super) vals: [wgpu::Buffer; 2],
     hist: wgpu::Buffer,
     hist_sums: wgpu::Buffer,
     /// Intersections each key / value buffer holds.
@@ -82,13 +82,20 @@ pub(super) fn radix_shifts(n_tiles: u32) -> Vec<u32> {
 }
 
 /// A 2D dispatch of `groups` workgroups (x at most [`GROUPS_X`]).
-fn groups_2d(groups: u32) -> (u32, u32) {
+pub(super) fn groups_2d(groups: u32) -> (u32, u32) {
     (groups.min(GROUPS_X), groups.div_ceil(GROUPS_X))
+}
+
+impl SortBuffers {
+    /// Keys (and values) each buffer holds.
+    pub(super) fn capacity(&self) -> u64 {
+        self.capacity
+    }
 }
 
 impl GpuRasterizer {
     /// A uniform buffer holding `p`.
-    fn uniform(&self, p: &Params) -> wgpu::Buffer {
+    pub(super) fn uniform(&self, p: &Params) -> wgpu::Buffer {
         self.device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("params"),
@@ -99,7 +106,7 @@ impl GpuRasterizer {
 
     /// Records the exclusive scan (`scan.wgsl`) of `data[0..params.n_pixels]` in place, total to
     /// `data[n_pixels]`, overflow flag to `sums[params.n_blocks]`.
-    fn encode_scan(
+    pub(super) fn encode_scan(
         &self,
         pass: &mut wgpu::ComputePass<'_>,
         params: &wgpu::Buffer,
@@ -205,7 +212,7 @@ impl GpuRasterizer {
 
     /// `kept` if it holds `keys` intersections, else new sort buffers for them plus a quarter
     /// (at most one binding).
-    fn sort_buffers(&self, kept: Option<SortBuffers>, keys: u64) -> SortBuffers {
+    pub(super) fn sort_buffers(&self, kept: Option<SortBuffers>, keys: u64) -> SortBuffers {
         if let Some(b) = kept
             && b.capacity >= keys
         {
@@ -223,6 +230,69 @@ impl GpuRasterizer {
             hist: storage(d, "radix_histogram", (hist_words + 1) * 4),
             hist_sums: storage(d, "radix_block_sums", (hist_blocks + 1) * 4),
             capacity,
+        }
+    }
+
+    /// One uniform per radix pass over `n_keys` keys, at the bit offsets `shifts` (the rest of
+    /// `base`: the view's fields).
+    pub(super) fn radix_params(
+        &self,
+        n_keys: u32,
+        shifts: &[u32],
+        base: &Params,
+    ) -> Vec<wgpu::Buffer> {
+        let hist_len = RADIX_DIGITS * n_keys.div_ceil(RADIX_BLOCK);
+        shifts
+            .iter()
+            .map(|&shift| {
+                self.uniform(&Params {
+                    n_keys,
+                    shift,
+                    n_pixels: hist_len,
+                    n_blocks: hist_len.div_ceil(SCAN_BLOCK),
+                    ..*base
+                })
+            })
+            .collect()
+    }
+
+    /// Records the stable LSD radix sort of `sb.keys[0]` / `sb.vals[0]` (`n_keys` of them), one
+    /// pass per uniform of [`Self::radix_params`] (count, scan of the histogram, scatter), ping-
+    /// pong between the two buffers: the result is in buffer `params.len() % 2`.
+    pub(super) fn encode_radix_passes(
+        &self,
+        pass: &mut wgpu::ComputePass<'_>,
+        sb: &SortBuffers,
+        n_keys: u32,
+        params: &[wgpu::Buffer],
+    ) {
+        let hist_len = RADIX_DIGITS * n_keys.div_ceil(RADIX_BLOCK);
+        let p = &self.pipelines;
+        let (bx, by) = groups_2d(n_keys.div_ceil(RADIX_BLOCK));
+        for (i, pbuf) in params.iter().enumerate() {
+            let (src, dst) = (i % 2, 1 - i % 2);
+            let bg = self.bind(
+                &p.radix_count,
+                &[(0, pbuf), (8, &sb.hist), (14, &sb.keys[src])],
+            );
+            pass.set_pipeline(&p.radix_count);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(bx, by, 1);
+            self.encode_scan(pass, pbuf, &sb.hist, &sb.hist_sums, hist_len.div_ceil(SCAN_BLOCK));
+            let bg = self.bind(
+                &p.radix_scatter,
+                &[
+                    (0, pbuf),
+                    (8, &sb.hist),
+                    (14, &sb.keys[src]),
+                    (15, &sb.vals[src]),
+                    (16, &sb.keys[dst]),
+                    (17, &sb.vals[dst]),
+                ],
+            );
+            pass.set_pipeline(&p.radix_scatter);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(bx, by, 1);
         }
     }
 
@@ -246,21 +316,8 @@ impl GpuRasterizer {
         self.noise(&sb.hist, SEED_SALT + 14);
         let ranges = storage(&self.device, "tile_ranges", u64::from(view.n_tiles) * 8);
         self.noise(&ranges, SEED_SALT + 15);
-        let sort_blocks = total.div_ceil(RADIX_BLOCK);
-        let hist_len = RADIX_DIGITS * sort_blocks;
         let shifts = radix_shifts(view.n_tiles);
-        let params: Vec<wgpu::Buffer> = shifts
-            .iter()
-            .map(|&shift| {
-                self.uniform(&Params {
-                    n_keys: total,
-                    shift,
-                    n_pixels: hist_len,
-                    n_blocks: hist_len.div_ceil(SCAN_BLOCK),
-                    ..view.params
-                })
-            })
-            .collect();
+        let params = self.radix_params(total, &shifts, &view.params);
         // The sorted keys and ids end in the buffer the last pass wrote.
         let last = shifts.len() % 2;
         let mut enc = self.device.create_command_encoder(&Default::default());
@@ -283,38 +340,7 @@ impl GpuRasterizer {
             pass.set_pipeline(&p.emit);
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(x, y, 1);
-            let (bx, by) = groups_2d(sort_blocks);
-            for (i, pbuf) in params.iter().enumerate() {
-                let (src, dst) = (i % 2, 1 - i % 2);
-                let bg = self.bind(
-                    &p.radix_count,
-                    &[(0, pbuf), (8, &sb.hist), (14, &sb.keys[src])],
-                );
-                pass.set_pipeline(&p.radix_count);
-                pass.set_bind_group(0, &bg, &[]);
-                pass.dispatch_workgroups(bx, by, 1);
-                self.encode_scan(
-                    &mut pass,
-                    pbuf,
-                    &sb.hist,
-                    &sb.hist_sums,
-                    hist_len.div_ceil(SCAN_BLOCK),
-                );
-                let bg = self.bind(
-                    &p.radix_scatter,
-                    &[
-                        (0, pbuf),
-                        (8, &sb.hist),
-                        (14, &sb.keys[src]),
-                        (15, &sb.vals[src]),
-                        (16, &sb.keys[dst]),
-                        (17, &sb.vals[dst]),
-                    ],
-                );
-                pass.set_pipeline(&p.radix_scatter);
-                pass.set_bind_group(0, &bg, &[]);
-                pass.dispatch_workgroups(bx, by, 1);
-            }
+            self.encode_radix_passes(&mut pass, &sb, total, &params);
             let bg = self.bind(
                 &p.tile_bounds,
                 &[(0, &params[0]), (14, &sb.keys[last]), (18, &ranges)],
