@@ -288,6 +288,37 @@ pub struct PixelLabels {
     pub masks_of: Vec<Vec<u32>>,
 }
 
+impl PixelLabels {
+    /// The same labelling with labels of equal mask sets merged into one (numbered in label
+    /// order; a label of no mask becomes 0), so that every label stands for a distinct set. The
+    /// `a_kj` are the same sums over the same pixels; under [`MaskOverlap::Finest`] (every set one
+    /// mask) there is then one label per mask that owns a pixel, instead of one per signature:
+    /// fewer labels per tile and fewer (Gaussian, label) sums on the device. Labels from
+    /// [`pixel_labels`] alone are distinct sets already and come back unchanged.
+    pub fn merged(self) -> PixelLabels {
+        let PixelLabels {
+            mut labels,
+            masks_of: sets,
+        } = self;
+        let mut remap = vec![0u32; sets.len()];
+        let mut ids: FxHashMap<&[u32], u32> = FxHashMap::default();
+        let mut masks_of = vec![Vec::new()];
+        for (s, set) in sets.iter().enumerate().skip(1) {
+            if set.is_empty() {
+                continue;
+            }
+            remap[s] = *ids.entry(set.as_slice()).or_insert_with(|| {
+                masks_of.push(set.clone());
+                (masks_of.len() - 1) as u32
+            });
+        }
+        labels
+            .par_iter_mut()
+            .for_each(|l| *l = remap.get(*l as usize).copied().unwrap_or(0));
+        PixelLabels { labels, masks_of }
+    }
+}
+
 /// The labels of the raster grid `width × height` for full-resolution `masks` (nearest sampling
 /// at raster pixel centres, as [`image_contribution`] does). Labels are numbered in row-major
 /// order of first appearance, so they are deterministic.
@@ -602,6 +633,61 @@ mod expand_tests {
         for (g, e) in got.iter().zip(&expected) {
             assert_eq!((g.gaussian, g.mask), (e.gaussian, e.mask));
             assert_eq!(g.weight.to_bits(), e.weight.to_bits(), "{g:?} vs {e:?}");
+        }
+    }
+
+    /// Merged labels cover every pixel with the same mask set as before, no two labels share a
+    /// set, and under the finest rule there is one label per mask that owns a pixel.
+    #[test]
+    fn merged_labels_keep_each_pixels_masks_and_number_the_distinct_sets() {
+        let mut state = 0x51ed_270b_c0ff_ee11u64;
+        let (w, h) = (64u32, 48u32);
+        let masks: Vec<Mask> = (0..30)
+            .map(|_| {
+                let (x0, y0) = (
+                    (next(&mut state) % 56) as u32,
+                    (next(&mut state) % 40) as u32,
+                );
+                let (mw, mh) = (
+                    2 + (next(&mut state) % 30) as u32,
+                    2 + (next(&mut state) % 30) as u32,
+                );
+                let pixels = (0..w * h)
+                    .map(|p| {
+                        u8::from(
+                            (x0..x0 + mw).contains(&(p % w)) && (y0..y0 + mh).contains(&(p / w)),
+                        )
+                    })
+                    .collect();
+                Mask::from_pixels(w, h, pixels).expect("non-empty box")
+            })
+            .collect();
+        for overlap in [MaskOverlap::All, MaskOverlap::Finest] {
+            let labels = overlap_labels(&masks, w, h, overlap);
+            let merged = labels.clone().merged();
+            assert_eq!(merged.labels.len(), labels.labels.len());
+            for (m, l) in merged.labels.iter().zip(&labels.labels) {
+                assert_eq!(
+                    merged.masks_of[*m as usize], labels.masks_of[*l as usize],
+                    "{overlap:?}"
+                );
+            }
+            let distinct: std::collections::HashSet<&Vec<u32>> = merged.masks_of.iter().collect();
+            assert_eq!(
+                distinct.len(),
+                merged.masks_of.len(),
+                "{overlap:?}: sets repeat"
+            );
+            match overlap {
+                // Signatures are distinct sets already.
+                MaskOverlap::All => assert_eq!(merged, labels),
+                MaskOverlap::Finest => {
+                    let owners: std::collections::HashSet<u32> =
+                        labels.masks_of.iter().flatten().copied().collect();
+                    assert_eq!(merged.masks_of.len(), owners.len() + 1);
+                    assert!(merged.masks_of.len() < labels.masks_of.len(), "some merged");
+                }
+            }
         }
     }
 

@@ -302,7 +302,7 @@ pub(crate) struct PreparedView {
     labels: Option<aggregate::PixelLabels>,
     /// The rasterizer's host work of the view, done ahead ([`WeightRasterizer::view_precompute`]).
     precomputed: Option<crate::raster::PrecomputedView>,
-    /// [`aggregate::image::mask_factors`] of the masks.
+    /// [`aggregate::image::mask_factors`] of the masks, with labels (empty without).
     factors: Vec<f32>,
     /// Seconds the labels took.
     labels_s: f64,
@@ -319,17 +319,24 @@ pub(crate) fn prepare_view<M: ImageMask>(
     precompute: Option<&dyn crate::raster::ViewPrecompute>,
 ) -> PreparedView {
     let t0 = Instant::now();
+    // Labels of equal mask sets merged: integer sums on the device, so the a_kj are the same.
     let labels = (params.top_k_per_pixel.is_none() && !masks.is_empty()).then(|| {
         aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap)
+            .merged()
     });
     let precomputed = labels
         .as_ref()
         .and(precompute)
         .map(|p| p.precompute(world_to_camera));
+    // Only the label sums read the factors here; the per-pixel lists' image stage makes its own.
+    let factors = match labels {
+        Some(_) => aggregate::image::mask_factors(masks, params.mask_weighting),
+        None => Vec::new(),
+    };
     PreparedView {
         labels,
         precomputed,
-        factors: aggregate::image::mask_factors(masks, params.mask_weighting),
+        factors,
         labels_s: t0.elapsed().as_secs_f64(),
     }
 }

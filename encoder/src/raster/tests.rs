@@ -940,7 +940,10 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
                 .label_sums(&k, &w2c, &labels)
                 .expect("device reduce")
                 .expect("gpu sums");
-            assert!(dev.sorted, "{labels_in_use} labels: one band is returned reduced");
+            assert!(
+                dev.sorted,
+                "{labels_in_use} labels: one band is returned reduced"
+            );
             assert_eq!(dev.contributions, raw.contributions);
             assert_eq!(dev.records, reference, "{labels_in_use} labels");
         }
@@ -951,7 +954,11 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
             .expect("banded")
             .expect("gpu sums");
         assert!(!banded.sorted, "{labels_in_use} labels: several bands");
-        assert_eq!(banded.reduced(), reference, "{labels_in_use} labels: banded");
+        assert_eq!(
+            banded.reduced(),
+            reference,
+            "{labels_in_use} labels: banded"
+        );
         gpu.set_label_records(1 << 16, None);
     }
 }

@@ -178,7 +178,13 @@ impl GpuRasterizer {
                     }
                     false => {
                         let bytes = wanted * RECORD_BYTES;
-                        enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+                        enc.copy_buffer_to_buffer(
+                            &out.records,
+                            HEADER_BYTES,
+                            &out.staging,
+                            0,
+                            bytes,
+                        );
                         bytes
                     }
                 };

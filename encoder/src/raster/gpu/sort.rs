@@ -278,7 +278,13 @@ impl GpuRasterizer {
             pass.set_pipeline(&p.radix_count);
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(bx, by, 1);
-            self.encode_scan(pass, pbuf, &sb.hist, &sb.hist_sums, hist_len.div_ceil(SCAN_BLOCK));
+            self.encode_scan(
+                pass,
+                pbuf,
+                &sb.hist,
+                &sb.hist_sums,
+                hist_len.div_ceil(SCAN_BLOCK),
+            );
             let bg = self.bind(
                 &p.radix_scatter,
                 &[
