@@ -35,9 +35,9 @@ pub use image::{
     Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels,
 };
-pub use mixture::reduce_mixture;
+pub use mixture::{reduce_mixture, reduce_mixture_sparse};
 pub use reduce::{ReduceParams, Reduced, Streamed, reduce, reduce_each, reduce_to_writer};
-pub use store::ContributionStore;
+pub use store::{ContributionStore, MaskColumn, StoredImage};
 
 #[cfg(test)]
 mod tests;
