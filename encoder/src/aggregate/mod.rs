@@ -36,7 +36,10 @@ pub use image::{
     image_contribution, overlap_labels, pixel_labels,
 };
 pub use mixture::{reduce_mixture, reduce_mixture_sparse};
-pub use reduce::{ReduceParams, Reduced, Streamed, reduce, reduce_each, reduce_to_writer};
+pub use reduce::{
+    OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
+    reduce_to_writer,
+};
 pub use store::{ContributionStore, MaskColumn, StoredImage};
 
 #[cfg(test)]
