@@ -9,9 +9,13 @@ process, read at the last sample) is printed too: a peak shorter than the sampli
 
     python3 scripts/rss-timeline.py --out /tmp/rss.tsv -- slag-encoder encode ...
 
-`--out` writes the samples (seconds since start, RSS bytes) as tab-separated lines.
+`--out` writes the samples (seconds since start, RSS bytes) as tab-separated lines. With
+`--report OUT/report.json` (the encode's), the peak is also split by phase: before the tail, the
+tail (reduction, mixture, level files, write: the report's last seconds, counted from its
+`timings.total`, which starts near the process start) and after the report (`encode`'s segments).
 """
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -48,6 +52,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--every", type=float, default=0.05, help="sampling step, seconds")
     ap.add_argument("--out", help="write the samples here (seconds, RSS bytes)")
+    ap.add_argument("--report", help="the encode's report.json: split the peak by phase")
     ap.add_argument("cmd", nargs=argparse.REMAINDER)
     a = ap.parse_args()
     cmd = a.cmd[1:] if a.cmd[:1] == ["--"] else a.cmd
@@ -77,7 +82,39 @@ def main():
             f"{len(samples)} samples",
             file=sys.stderr,
         )
+    if a.report and samples:
+        phases(samples, a.report)
     return p.returncode
+
+
+def phases(samples, report):
+    """Prints the peak RSS before the encode's tail, in it, and after the report was written."""
+    try:
+        with open(report) as f:
+            r = json.load(f)
+    except (OSError, ValueError) as e:
+        print(f"rss-timeline: no phases ({report}: {e})", file=sys.stderr)
+        return
+    t, out = r["timings"], r.get("outputs", {})
+    forms = out.get("forms") or out
+    tail = (
+        t["reduce"]
+        + t["write"]
+        + (forms.get("mixture_reduce_s") or 0)
+        + (forms.get("levels_reduce_s") or 0)
+    )
+    end = t["total"]
+    windows = [("before the tail", 0, end - tail), ("tail", end - tail, end), ("after", end, 1e18)]
+    gib = 2**30
+    for name, lo, hi in windows:
+        w = [s for s in samples if lo <= s[0] < hi]
+        if w:
+            ts, peak = max(w, key=lambda s: s[1])
+            print(
+                f"rss-timeline: {name} ({lo:.1f}..{min(hi, samples[-1][0]):.1f} s): "
+                f"peak {peak / gib:.3f} GiB at {ts:.1f} s",
+                file=sys.stderr,
+            )
 
 
 if __name__ == "__main__":
