@@ -43,6 +43,26 @@ pub fn reduce_mixture(
     model_id: &str,
     means: &[[f32; 3]],
 ) -> Result<MixtureEmbeddings> {
+    let sparse = reduce_mixture_sparse(store, n_gaussians, dim, params, keep, model_id, means)?;
+    MixtureEmbeddings::from_sparse(sparse)
+}
+
+/// The part of [`reduce_mixture`] that reads `store`: the codebook (every mask embedding, `[M *
+/// D]` f32) and each observed Gaussian's `keep` largest `(atom, a_kj)` as a [`SparseMixture`]
+/// (`[N]` ids and means, `[N + 1]` offsets, up to `N × keep` atoms and f64 weights), before
+/// [`MixtureEmbeddings::from_sparse`] builds the stored form. The encoder's tail drops the store
+/// in between, so that the build's buffers never add to the `a_kj` entries.
+///
+/// Errors: those of [`reduce_mixture`] but [`MixtureEmbeddings::from_sparse`]'s.
+pub fn reduce_mixture_sparse(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+    keep: usize,
+    model_id: &str,
+    means: &[[f32; 3]],
+) -> Result<SparseMixture> {
     if keep == 0 {
         return Err(Error::param(
             "mixture_keep",
@@ -105,7 +125,7 @@ pub fn reduce_mixture(
         },
     )?;
     parts.codebook = codebook;
-    MixtureEmbeddings::from_sparse(parts)
+    Ok(parts)
 }
 
 /// Keeps the `keep` largest `(a, atom)` of one Gaussian (ties: the lower atom). Atoms arrive in

@@ -35,9 +35,12 @@ pub use image::{
     Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels,
 };
-pub use mixture::reduce_mixture;
-pub use reduce::{ReduceParams, Reduced, Streamed, reduce, reduce_each, reduce_to_writer};
-pub use store::ContributionStore;
+pub use mixture::{reduce_mixture, reduce_mixture_sparse};
+pub use reduce::{
+    OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
+    reduce_to_writer,
+};
+pub use store::{ContributionStore, MaskColumn, StoredImage};
 
 #[cfg(test)]
 mod tests;

@@ -91,8 +91,10 @@ pub fn reduce(
 /// `[B]`, unit vectors `[B * dim]`, `Σ a_kj` `[B]`, `chunks` 0; one run per block of Gaussians), owned, so
 /// that a sink may pass them to a writer thread and overlap the write with the next chunk's
 /// accumulation. Memory: the f64 accumulators (one chunk's, ≤ `params.accumulator_budget_bytes`,
-/// on the image-major path; one block's per thread otherwise) plus one chunk's output, whatever
-/// the scene size. Returns the number of chunks.
+/// on the image-major path; one block's per thread otherwise) plus one chunk's output (at most
+/// [`OUTPUT_CHUNK_BYTES`] on the block-major path, [`output_chunk_rows`] Gaussians; about half the
+/// accumulator budget on the image-major path), whatever the scene size. Returns the number of
+/// chunks.
 ///
 /// Errors: a contribution of another width ([`Error::Mismatch`]); spill-file I/O; `sink`'s errors.
 pub fn reduce_each(
@@ -104,9 +106,10 @@ pub fn reduce_each(
 ) -> Result<usize> {
     let mut pass = Pass::new(store, n_gaussians, dim, params, (dim + 1) * 8);
     if store.spilled() == 0 && !params.image_major {
-        // The block-major loop needs no chunk-wide accumulator: smaller chunks (at least 8 of
-        // them, of at least 64 Ki Gaussians) only let the writer overlap more of the work.
-        pass.chunk = pass.chunk.min(n_gaussians.div_ceil(8).max(1 << 16));
+        // The block-major loop needs no chunk-wide accumulator, so its chunk is sized by its
+        // output instead: a chunk's rows are what a sink holds while the next chunks are
+        // accumulated (the streamed tail holds up to three).
+        pass.chunk = pass.chunk.min(output_chunk_rows(dim));
     }
     accumulate(
         pass,
@@ -128,6 +131,19 @@ pub fn reduce_each(
     )
 }
 
+/// Bytes of output rows (unit vectors in f32, ids, total weights) of one chunk of the
+/// Gaussian-block-major reduction ([`reduce_each`]).
+pub const OUTPUT_CHUNK_BYTES: usize = 64 << 20;
+
+/// Gaussians per chunk of the Gaussian-block-major reduction at width `dim`: as many whole blocks
+/// of 128 Gaussians as [`OUTPUT_CHUNK_BYTES`] holds rows of `4 · dim + 8` bytes (32,640 at
+/// D = 512), at least one block. The chunk size changes no value: each Gaussian's sums run in the
+/// same order whatever the chunking.
+pub fn output_chunk_rows(dim: usize) -> usize {
+    let rows = OUTPUT_CHUNK_BYTES / (4 * dim + 8);
+    (rows / REDUCE_BLOCK).max(1) * REDUCE_BLOCK
+}
+
 /// What [`reduce_to_writer`] leaves: the writer with every observed row pushed (call
 /// [`EmbeddingsWriter::finish`]), the number of chunks, and the reduction's wall time in seconds
 /// until its last chunk was handed to the writer thread.
@@ -143,7 +159,8 @@ pub struct Streamed {
 
 /// [`reduce_each`] streamed into `writer` (the encoder's tail): a writer thread converts and
 /// writes the runs of chunk c while chunk c + 1 is accumulated; at most one chunk waits in
-/// between, so memory stays at the accumulators plus two chunks' output. `means` are all
+/// between, so memory stays at the accumulators plus three chunks' output (being written,
+/// waiting, being accumulated: 3 × [`OUTPUT_CHUNK_BYTES`] on the block-major path). `means` are all
 /// Gaussian centres (`[N]`, world frame, `.ply` order), written beside each row.
 ///
 /// Errors: those of [`reduce_each`]; the writer's (I/O, non-finite rows), which take precedence
@@ -298,7 +315,7 @@ impl<'a> Pass<'a> {
 /// that chunk is handed on (spill-file I/O errors come first). Returns the number of chunks.
 pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
     pass: Pass<'_>,
-    mut on_image: impl FnMut(bool, usize, &ImageContribution) -> Result<u32>,
+    mut on_image: impl FnMut(bool, usize, &StoredImage) -> Result<u32>,
     on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
     finish: impl Fn(&ChunkSums<T>) -> B + Sync,
     mut done: impl FnMut(Vec<B>) -> Result<()>,
@@ -310,7 +327,7 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
         chunk,
         image_major,
     } = pass;
-    let width_check = |c: &ImageContribution| {
+    let width_check = |c: &StoredImage| {
         if c.dim != dim {
             return Err(Error::mismatch(
                 slag_common::Mismatched::EmbeddingWidth,
@@ -399,7 +416,7 @@ const REDUCE_BLOCK: usize = 128;
 #[allow(clippy::too_many_arguments)]
 #[inline]
 fn add_entries<T>(
-    c: &ImageContribution,
+    c: &StoredImage,
     g0: u32,
     dim: usize,
     nb: &mut [f64],
@@ -409,16 +426,59 @@ fn add_entries<T>(
     on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
 ) {
     let g1 = g0 + db.len() as u32;
-    let lo = c.entries.partition_point(|e| e.gaussian < g0);
-    let hi = lo + c.entries[lo..].partition_point(|e| e.gaussian < g1);
-    for e in &c.entries[lo..hi] {
-        let r = (e.gaussian - g0) as usize;
-        let a = e.weight as f64;
-        db[r] += a;
-        let ej = &c.mask_embeddings[e.mask as usize * dim..(e.mask as usize + 1) * dim];
-        for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
-            *acc += a * v as f64;
+    let lo = c.gaussians.partition_point(|&g| g < g0);
+    let hi = lo + c.gaussians[lo..].partition_point(|&g| g < g1);
+    let run = Run {
+        gaussians: &c.gaussians[lo..hi],
+        weights: &c.weights[lo..hi],
+        mask_embeddings: &c.mask_embeddings,
+        g0,
+        dim,
+    };
+    match &c.masks {
+        MaskColumn::U8(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
+        MaskColumn::U16(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
+        MaskColumn::U32(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
+    }
+}
+
+/// The entries of one image that fall in one block of Gaussians ([`add_entries`]).
+struct Run<'a> {
+    gaussians: &'a [u32],
+    weights: &'a [f32],
+    mask_embeddings: &'a [f32],
+    g0: u32,
+    dim: usize,
+}
+
+impl Run<'_> {
+    /// Adds the run's entries, `masks` being their mask indices, in entry order.
+    #[inline]
+    fn add<M: Copy + Into<u32>, T>(
+        &self,
+        masks: &[M],
+        nb: &mut [f64],
+        db: &mut [f64],
+        xb: &mut [T],
+        tag: u32,
+        on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
+    ) {
+        let dim = self.dim;
+        for ((&gaussian, &mask), &weight) in self.gaussians.iter().zip(masks).zip(self.weights) {
+            let mask: u32 = mask.into();
+            let r = (gaussian - self.g0) as usize;
+            let a = weight as f64;
+            db[r] += a;
+            let ej = &self.mask_embeddings[mask as usize * dim..(mask as usize + 1) * dim];
+            for (acc, &v) in nb[r * dim..(r + 1) * dim].iter_mut().zip(ej) {
+                *acc += a * v as f64;
+            }
+            let e = Entry {
+                gaussian,
+                mask,
+                weight,
+            };
+            on_entry(&mut xb[r], &e, tag);
         }
-        on_entry(&mut xb[r], e, tag);
     }
 }

@@ -1,5 +1,5 @@
-//! Every image's `a_kj` kept until the reduction: in memory up to a budget, spilled to raw
-//! little-endian files beyond it.
+//! Every image's `a_kj` kept until the reduction: in memory up to a budget, as columns with the
+//! narrowest mask index that fits ([`StoredImage`]), spilled to raw little-endian files beyond it.
 
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
@@ -8,12 +8,120 @@ use slag_common::{Error, Result};
 
 use super::*;
 
+/// One image's contribution as the store holds it: the [`ImageContribution`]'s entries split into
+/// columns, the mask indices in the narrowest unsigned type that holds the image's mask count
+/// (one byte up to 256 masks), so that an `a_kj` takes 9 to 12 bytes instead of
+/// [`Entry`]'s 12. Same values, same (Gaussian, mask) order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredImage {
+    /// Embedding width D.
+    pub dim: usize,
+    /// `[M * D]` mask embeddings `E_j`.
+    pub mask_embeddings: Vec<f32>,
+    /// `[E]` Gaussian index of each `a_kj`, ascending.
+    pub gaussians: Vec<u32>,
+    /// `[E]` mask index of each `a_kj` within the image.
+    pub masks: MaskColumn,
+    /// `[E]` the `a_kj`.
+    pub weights: Vec<f32>,
+}
+
+/// The mask indices of a [`StoredImage`], in the narrowest type that holds the largest.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MaskColumn {
+    /// Every index below 256.
+    U8(Vec<u8>),
+    /// Every index below 65,536.
+    U16(Vec<u16>),
+    /// Any index.
+    U32(Vec<u32>),
+}
+
+impl MaskColumn {
+    /// The indices of `entries`, in the narrowest type that holds them all.
+    fn of(entries: &[Entry]) -> Self {
+        let most = entries.iter().map(|e| e.mask).max().unwrap_or(0);
+        if most <= u8::MAX as u32 {
+            MaskColumn::U8(entries.iter().map(|e| e.mask as u8).collect())
+        } else if most <= u16::MAX as u32 {
+            MaskColumn::U16(entries.iter().map(|e| e.mask as u16).collect())
+        } else {
+            MaskColumn::U32(entries.iter().map(|e| e.mask).collect())
+        }
+    }
+
+    /// Bytes of one index.
+    fn width(&self) -> usize {
+        match self {
+            MaskColumn::U8(_) => 1,
+            MaskColumn::U16(_) => 2,
+            MaskColumn::U32(_) => 4,
+        }
+    }
+}
+
+impl StoredImage {
+    /// The columns of `c` (its entries are freed).
+    pub fn from_contribution(c: ImageContribution) -> Self {
+        let ImageContribution {
+            dim,
+            mask_embeddings,
+            entries,
+        } = c;
+        let masks = MaskColumn::of(&entries);
+        let gaussians = entries.iter().map(|e| e.gaussian).collect();
+        let weights = entries.iter().map(|e| e.weight).collect();
+        StoredImage {
+            dim,
+            mask_embeddings,
+            gaussians,
+            masks,
+            weights,
+        }
+    }
+
+    /// Number of `a_kj` held.
+    pub fn len(&self) -> usize {
+        self.gaussians.len()
+    }
+
+    /// True when the image has no `a_kj`.
+    pub fn is_empty(&self) -> bool {
+        self.gaussians.is_empty()
+    }
+
+    /// Entry `i` (`i < len()`), as the image stage made it.
+    #[inline]
+    pub fn entry(&self, i: usize) -> Entry {
+        let mask = match &self.masks {
+            MaskColumn::U8(m) => m[i] as u32,
+            MaskColumn::U16(m) => m[i] as u32,
+            MaskColumn::U32(m) => m[i],
+        };
+        Entry {
+            gaussian: self.gaussians[i],
+            mask,
+            weight: self.weights[i],
+        }
+    }
+
+    /// Bytes held in memory: the mask embeddings and `4 + 4 + (1, 2 or 4)` bytes an `a_kj`.
+    pub fn bytes(&self) -> usize {
+        self.mask_embeddings.len() * 4 + self.len() * (8 + self.masks.width())
+    }
+}
+
 /// Holds image contributions until the reduction, in memory up to a budget and spilled to files
 /// in `spill_dir` beyond it (little-endian raw records), so scenes of any size complete.
+///
+/// The budget counts each image as [`ImageContribution::bytes`] (12 bytes an `a_kj`), the size it
+/// arrives in; in memory it is held as a [`StoredImage`] (9 bytes an `a_kj` with at most 256 masks
+/// an image), so the memory held stays below the budget. Which images spill depends on that count
+/// only, and with it the order in which the reduction visits them.
 pub struct ContributionStore {
     budget_bytes: usize,
     used_bytes: usize,
-    pub(super) in_memory: Vec<ImageContribution>,
+    pub(super) in_memory: Vec<StoredImage>,
     spilled: Vec<PathBuf>,
     spill_dir: PathBuf,
 }
@@ -45,14 +153,22 @@ impl ContributionStore {
     }
     /// Total `a_kj` entries held in memory.
     pub fn entries_in_memory(&self) -> usize {
-        self.in_memory.iter().map(|c| c.entries.len()).sum()
+        self.in_memory.iter().map(StoredImage::len).sum()
     }
 
-    /// Adds one image's contribution.
+    /// Bytes the in-memory contributions hold ([`StoredImage::bytes`]).
+    pub fn bytes_in_memory(&self) -> usize {
+        self.in_memory.iter().map(StoredImage::bytes).sum()
+    }
+
+    /// Adds one image's contribution: kept in memory as a [`StoredImage`] while the budget (counted
+    /// at [`ImageContribution::bytes`]) allows, else written to a spill file.
+    ///
+    /// Errors: I/O writing the spill file.
     pub fn push(&mut self, c: ImageContribution) -> Result<()> {
         if self.used_bytes + c.bytes() <= self.budget_bytes {
             self.used_bytes += c.bytes();
-            self.in_memory.push(c);
+            self.in_memory.push(StoredImage::from_contribution(c));
             return Ok(());
         }
         std::fs::create_dir_all(&self.spill_dir).map_err(|e| Error::io(&self.spill_dir, e))?;
@@ -78,7 +194,7 @@ impl ContributionStore {
         Ok(())
     }
 
-    fn read_spilled(path: &Path) -> Result<ImageContribution> {
+    fn read_spilled(path: &Path) -> Result<StoredImage> {
         let io = |e| Error::io(path, e);
         let mut r = BufReader::new(std::fs::File::open(path).map_err(io)?);
         let mut b8 = [0u8; 8];
@@ -100,7 +216,7 @@ impl ContributionStore {
         let mut buf = vec![0u8; nn * 12];
         r.read_exact(&mut buf).map_err(io)?;
         let u = |c: &[u8]| u32::from_le_bytes([c[0], c[1], c[2], c[3]]);
-        let entries = buf
+        let entries: Vec<Entry> = buf
             .chunks_exact(12)
             .map(|c| Entry {
                 gaussian: u(&c[0..4]),
@@ -108,15 +224,19 @@ impl ContributionStore {
                 weight: f32::from_bits(u(&c[8..12])),
             })
             .collect();
-        Ok(ImageContribution {
+        drop(buf);
+        Ok(StoredImage::from_contribution(ImageContribution {
             dim,
             mask_embeddings,
             entries,
-        })
+        }))
     }
 
-    /// Calls `f` on every contribution (spilled ones are read back one at a time).
-    pub fn for_each(&self, mut f: impl FnMut(&ImageContribution)) -> Result<()> {
+    /// Calls `f` on every contribution: the in-memory ones, then the spilled ones (read back one
+    /// at a time), each in push order.
+    ///
+    /// Errors: I/O reading a spill file.
+    pub fn for_each(&self, mut f: impl FnMut(&StoredImage)) -> Result<()> {
         self.in_memory.iter().for_each(&mut f);
         for p in &self.spilled {
             f(&Self::read_spilled(p)?);

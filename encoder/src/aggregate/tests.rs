@@ -526,3 +526,108 @@ mod mixture_props {
         }
     }
 }
+
+#[test]
+fn store_keeps_entries_as_narrow_columns_and_reduces_them_alike() {
+    let dim = 2;
+    // One image per mask-index width: the last mask is e_x, every other one e_y.
+    for (masks, width) in [(3u32, 1usize), (300, 2), (70_000, 4)] {
+        let mut mask_embeddings = vec![0.0f32; masks as usize * dim];
+        for j in 0..masks as usize {
+            mask_embeddings[j * dim + usize::from(j + 1 < masks as usize)] = 1.0;
+        }
+        let last = masks - 1;
+        let c = ImageContribution {
+            dim,
+            mask_embeddings,
+            // Gaussian 0: a=1 in the last mask (e_x), a=3 in mask 0 (e_y); Gaussian 5: a=2 in
+            // the last mask only.
+            entries: entries(&[(0, 0, 3.0), (0, last, 1.0), (5, last, 2.0)]),
+        };
+        let stored = StoredImage::from_contribution(c.clone());
+        assert_eq!(stored.len(), 3);
+        let back: Vec<Entry> = (0..stored.len()).map(|i| stored.entry(i)).collect();
+        assert_eq!(back, c.entries, "{masks} masks");
+        assert_eq!(
+            stored.bytes(),
+            masks as usize * dim * 4 + 3 * (8 + width),
+            "{masks} masks"
+        );
+
+        let dir = tempfile::tempdir().unwrap();
+        let mut spilling = ContributionStore::new(0, dir.path().join("s"));
+        spilling.push(c.clone()).unwrap();
+        assert_eq!(spilling.spilled(), 1);
+        let in_memory = ContributionStore::in_memory([c]);
+        let p = ReduceParams::default();
+        let r = reduce(&in_memory, 6, dim, p).unwrap();
+        assert_eq!(r.ids, vec![0, 5]);
+        let n = 10f64.sqrt();
+        assert_eq!(
+            r.vectors,
+            vec![(1.0 / n) as f32, (3.0 / n) as f32, 1.0, 0.0]
+        );
+        assert_eq!(r.total_weights, vec![4.0, 2.0]);
+        assert_eq!(reduce(&spilling, 6, dim, p).unwrap(), r, "{masks} masks");
+    }
+}
+
+#[test]
+fn reduction_chunks_by_output_size_with_the_same_values() {
+    let dim = 512;
+    let rows = output_chunk_rows(dim);
+    assert_eq!(rows % 128, 0);
+    assert!(rows * (4 * dim + 8) <= OUTPUT_CHUNK_BYTES);
+    let n = 2 * rows + 100;
+    // Gaussians on both sides of each chunk edge, in two images.
+    let edge = |k: usize| [k - 1, k, k + 1].map(|g| g as u32);
+    let ids: Vec<u32> = [edge(rows), edge(2 * rows), [0, 1, n as u32 - 1]]
+        .concat()
+        .into_iter()
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    let image = |seed: u64| ImageContribution {
+        dim,
+        mask_embeddings: unit_rows(2, dim, seed),
+        entries: entries(
+            &ids.iter()
+                .enumerate()
+                .map(|(i, &g)| (g, (i % 2) as u32, 0.5 + i as f32 + seed as f32))
+                .collect::<Vec<_>>(),
+        ),
+    };
+    let store = ContributionStore::in_memory([image(1), image(2)]);
+    let p = ReduceParams::default();
+    let mut chunks = Vec::new();
+    let n_chunks = reduce_each(&store, n, dim, p, |parts| {
+        chunks.push(Reduced::concat(parts));
+        Ok(())
+    })
+    .unwrap();
+    assert_eq!(n_chunks, 3);
+    assert_eq!(chunks.len(), 3);
+    // The chunks hold ids of their own range, ascending, and together every observed one.
+    for (c, part) in chunks.iter().enumerate() {
+        assert!(part.ids.iter().all(|&k| (k as usize) / rows == c));
+    }
+    let streamed = Reduced::concat(chunks);
+    assert_eq!(streamed.ids, ids);
+    // One chunk of the image-major loop (its accumulator budget holds the whole scene): the same
+    // values bit for bit.
+    let one = reduce(
+        &store,
+        n,
+        dim,
+        ReduceParams {
+            image_major: true,
+            ..p
+        },
+    )
+    .unwrap();
+    assert_eq!(one.chunks, 1);
+    assert_eq!(
+        (streamed.ids, streamed.vectors, streamed.total_weights),
+        (one.ids, one.vectors, one.total_weights)
+    );
+}

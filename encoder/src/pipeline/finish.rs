@@ -116,6 +116,12 @@ pub(crate) fn finish(
     models.masks = mask_name;
     report.workers = workers;
 
+    // Only the centres are written from here on: the rest of the geometry is let go first.
+    let means = {
+        let g = gaussians;
+        g.means
+    };
+    let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
     // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
     let t0 = Instant::now();
@@ -124,24 +130,29 @@ pub(crate) fn finish(
         chunks,
         writer,
         reduce_s,
-    } = aggregate::reduce_to_writer(&store, &gaussians.means, dim, params.reduce, writer)?;
+    } = aggregate::reduce_to_writer(&store, &means, dim, params.reduce, writer)?;
     let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
     t.reduce = reduce_s;
     counts.spilled_images = store.spilled();
     counts.reduce_chunks = chunks;
     counts.observed = writer.len();
-    counts.observed_fraction = writer.len() as f64 / gaussians.len().max(1) as f64;
-    // The compressed form (shared codebook of mask embeddings + top-S weights), if asked for.
+    counts.observed_fraction = writer.len() as f64 / n_gaussians.max(1) as f64;
+    // The compressed form (shared codebook of mask embeddings + top-S weights), if asked for:
+    // its kept a_kj are gathered while the store is there, and the stored form is built after
+    // the store's entries are freed.
     let t0 = Instant::now();
-    let mixture = params
+    let sparse = params
         .mixture_keep
         .map(|keep| {
-            let (n, p) = (gaussians.len(), params.reduce);
-            aggregate::reduce_mixture(&store, n, dim, p, keep, &model_id, &gaussians.means)
+            let p = params.reduce;
+            aggregate::reduce_mixture_sparse(&store, n_gaussians, dim, p, keep, &model_id, &means)
         })
         .transpose()?;
-    let mixture_s = t0.elapsed().as_secs_f64();
     drop(store);
+    let mixture = sparse
+        .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
+        .transpose()?;
+    let mixture_s = t0.elapsed().as_secs_f64();
     // Granularity kept apart: one ordinary embeddings file per level.
     let t0 = Instant::now();
     let mut level_files = Vec::new();
@@ -152,12 +163,11 @@ pub(crate) fn finish(
         match level_stores.get(l) {
             Some(ls) => {
                 let w = EmbeddingsWriter::create(&path, dim, params.precision)?;
-                let streamed =
-                    aggregate::reduce_to_writer(ls, &gaussians.means, dim, params.reduce, w)?;
+                let streamed = aggregate::reduce_to_writer(ls, &means, dim, params.reduce, w)?;
                 let rows = streamed.writer.len();
                 streamed.writer.finish(
                     &model_id,
-                    gaussians.len() as u64,
+                    n_gaussians as u64,
                     &scene.ply.display().to_string(),
                 )?;
                 let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
@@ -177,7 +187,7 @@ pub(crate) fn finish(
     let t0 = Instant::now();
     writer.finish(
         &model_id,
-        gaussians.len() as u64,
+        n_gaussians as u64,
         &scene.ply.display().to_string(),
     )?;
     let mix_path = params.out_dir.join("mixture.safetensors");
