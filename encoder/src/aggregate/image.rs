@@ -330,23 +330,59 @@ pub fn pixel_labels<M: ImageMask>(masks: &[M], width: u32, height: u32) -> Pixel
         };
     }
     let (words, bits) = membership(masks, width, height);
-    let mut sig_of: FxHashMap<&[u64], u32> = FxHashMap::default();
-    let mut masks_of: Vec<Vec<u32>> = vec![Vec::new()];
-    let labels = bits
-        .chunks_exact(words)
-        .map(|set| {
-            if set.iter().all(|&b| b == 0) {
-                return 0;
-            }
-            *sig_of.entry(set).or_insert_with(|| {
-                let members = (0..masks.len() as u32)
-                    .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
-                    .collect();
-                masks_of.push(members);
-                (masks_of.len() - 1) as u32
-            })
+    // Bands of rows in parallel, each numbering its signatures by first appearance; the bands'
+    // numbers are then joined in band order, which is the row-major order of first appearance.
+    let band_pixels = width as usize
+        * (height as usize)
+            .div_ceil(rayon::current_num_threads() * 4)
+            .max(1);
+    let bands: Vec<(Vec<u32>, Vec<&[u64]>)> = bits
+        .par_chunks(band_pixels * words)
+        .map(|band| {
+            let mut local: FxHashMap<&[u64], u32> = FxHashMap::default();
+            let mut sets: Vec<&[u64]> = Vec::new();
+            let labels = band
+                .chunks_exact(words)
+                .map(|set| {
+                    if set.iter().all(|&b| b == 0) {
+                        return 0;
+                    }
+                    *local.entry(set).or_insert_with(|| {
+                        sets.push(set);
+                        sets.len() as u32
+                    })
+                })
+                .collect();
+            (labels, sets)
         })
         .collect();
+    let mut sig_of: FxHashMap<&[u64], u32> = FxHashMap::default();
+    let mut masks_of: Vec<Vec<u32>> = vec![Vec::new()];
+    let remaps: Vec<Vec<u32>> = bands
+        .iter()
+        .map(|(_, sets)| {
+            let mut remap = vec![0u32];
+            for &set in sets {
+                remap.push(*sig_of.entry(set).or_insert_with(|| {
+                    let members = (0..masks.len() as u32)
+                        .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
+                        .collect();
+                    masks_of.push(members);
+                    (masks_of.len() - 1) as u32
+                }));
+            }
+            remap
+        })
+        .collect();
+    let mut labels = vec![0u32; width as usize * height as usize];
+    labels
+        .par_chunks_mut(band_pixels)
+        .zip(bands.par_iter().zip(remaps.par_iter()))
+        .for_each(|(out, ((local, _), remap))| {
+            for (o, &l) in out.iter_mut().zip(local) {
+                *o = remap[l as usize];
+            }
+        });
     PixelLabels { labels, masks_of }
 }
 
@@ -634,6 +670,53 @@ mod expand_tests {
             assert_eq!((g.gaussian, g.mask), (e.gaussian, e.mask));
             assert_eq!(g.weight.to_bits(), e.weight.to_bits(), "{g:?} vs {e:?}");
         }
+    }
+
+    /// Pixel labels against a sequential reference at the masks' own size (each pixel's set is
+    /// the masks covering it; labels numbered by row-major first appearance), over enough rows
+    /// that the parallel bands split the image.
+    #[test]
+    fn pixel_labels_number_sets_in_row_major_order_of_first_appearance() {
+        let mut state = 0x0dd5_eed5_1234_5678u64;
+        let (w, h) = (37u32, 301u32);
+        let masks: Vec<Mask> = (0..70)
+            .map(|_| {
+                let (x0, y0) = (
+                    (next(&mut state) % 30) as u32,
+                    (next(&mut state) % 290) as u32,
+                );
+                let (mw, mh) = (
+                    1 + (next(&mut state) % 12) as u32,
+                    1 + (next(&mut state) % 60) as u32,
+                );
+                let pixels = (0..w * h)
+                    .map(|p| {
+                        u8::from(
+                            (x0..x0 + mw).contains(&(p % w)) && (y0..y0 + mh).contains(&(p / w)),
+                        )
+                    })
+                    .collect();
+                Mask::from_pixels(w, h, pixels).expect("non-empty box")
+            })
+            .collect();
+        let mut ids: std::collections::HashMap<Vec<u32>, u32> = Default::default();
+        let mut masks_of = vec![Vec::new()];
+        let labels: Vec<u32> = (0..(w * h) as usize)
+            .map(|p| {
+                let set: Vec<u32> = (0..masks.len() as u32)
+                    .filter(|&j| masks[j as usize].pixels[p] != 0)
+                    .collect();
+                if set.is_empty() {
+                    return 0;
+                }
+                *ids.entry(set.clone()).or_insert_with(|| {
+                    masks_of.push(set);
+                    (masks_of.len() - 1) as u32
+                })
+            })
+            .collect();
+        assert!(masks_of.len() > 50, "many distinct sets");
+        assert_eq!(pixel_labels(&masks, w, h), PixelLabels { labels, masks_of });
     }
 
     /// Merged labels cover every pixel with the same mask set as before, no two labels share a

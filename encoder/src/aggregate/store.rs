@@ -38,15 +38,16 @@ pub enum MaskColumn {
 }
 
 impl MaskColumn {
-    /// The indices of `entries`, in the narrowest type that holds them all.
+    /// The indices of `entries`, in the narrowest type that holds them all (in parallel).
     fn of(entries: &[Entry]) -> Self {
-        let most = entries.iter().map(|e| e.mask).max().unwrap_or(0);
+        use rayon::prelude::*;
+        let most = entries.par_iter().map(|e| e.mask).max().unwrap_or(0);
         if most <= u8::MAX as u32 {
-            MaskColumn::U8(entries.iter().map(|e| e.mask as u8).collect())
+            MaskColumn::U8(entries.par_iter().map(|e| e.mask as u8).collect())
         } else if most <= u16::MAX as u32 {
-            MaskColumn::U16(entries.iter().map(|e| e.mask as u16).collect())
+            MaskColumn::U16(entries.par_iter().map(|e| e.mask as u16).collect())
         } else {
-            MaskColumn::U32(entries.iter().map(|e| e.mask).collect())
+            MaskColumn::U32(entries.par_iter().map(|e| e.mask).collect())
         }
     }
 
@@ -61,16 +62,17 @@ impl MaskColumn {
 }
 
 impl StoredImage {
-    /// The columns of `c` (its entries are freed).
+    /// The columns of `c` (its entries are freed), made in parallel on the current rayon pool.
     pub fn from_contribution(c: ImageContribution) -> Self {
+        use rayon::prelude::*;
         let ImageContribution {
             dim,
             mask_embeddings,
             entries,
         } = c;
         let masks = MaskColumn::of(&entries);
-        let gaussians = entries.iter().map(|e| e.gaussian).collect();
-        let weights = entries.iter().map(|e| e.weight).collect();
+        let gaussians = entries.par_iter().map(|e| e.gaussian).collect();
+        let weights = entries.par_iter().map(|e| e.weight).collect();
         StoredImage {
             dim,
             mask_embeddings,
@@ -103,6 +105,12 @@ impl StoredImage {
             mask,
             weight: self.weights[i],
         }
+    }
+
+    /// Bytes of the [`ImageContribution`] it was made from ([`ImageContribution::bytes`]: 12 an
+    /// `a_kj`), what the store's budget counts.
+    pub fn arrival_bytes(&self) -> usize {
+        self.mask_embeddings.len() * 4 + self.len() * std::mem::size_of::<Entry>()
     }
 
     /// Bytes held in memory: the mask embeddings and `4 + 4 + (1, 2 or 4)` bytes an `a_kj`.
@@ -166,9 +174,18 @@ impl ContributionStore {
     ///
     /// Errors: I/O writing the spill file.
     pub fn push(&mut self, c: ImageContribution) -> Result<()> {
-        if self.used_bytes + c.bytes() <= self.budget_bytes {
-            self.used_bytes += c.bytes();
-            self.in_memory.push(StoredImage::from_contribution(c));
+        self.push_stored(StoredImage::from_contribution(c))
+    }
+
+    /// [`Self::push`] of a contribution already in the store's columns
+    /// ([`StoredImage::from_contribution`], made by the caller outside any lock around the store).
+    /// The budget counts it at its [`ImageContribution::bytes`] ([`StoredImage::arrival_bytes`]).
+    ///
+    /// Errors: I/O writing the spill file.
+    pub fn push_stored(&mut self, c: StoredImage) -> Result<()> {
+        if self.used_bytes + c.arrival_bytes() <= self.budget_bytes {
+            self.used_bytes += c.arrival_bytes();
+            self.in_memory.push(c);
             return Ok(());
         }
         std::fs::create_dir_all(&self.spill_dir).map_err(|e| Error::io(&self.spill_dir, e))?;
@@ -180,11 +197,11 @@ impl ContributionStore {
         let mut put = |v: u64| f.write_all(&v.to_le_bytes());
         put(c.dim as u64).map_err(io)?;
         put(c.mask_embeddings.len() as u64).map_err(io)?;
-        put(c.entries.len() as u64).map_err(io)?;
+        put(c.len() as u64).map_err(io)?;
         for v in &c.mask_embeddings {
             f.write_all(&v.to_le_bytes()).map_err(io)?;
         }
-        for e in &c.entries {
+        for e in (0..c.len()).map(|i| c.entry(i)) {
             f.write_all(&e.gaussian.to_le_bytes()).map_err(io)?;
             f.write_all(&e.mask.to_le_bytes()).map_err(io)?;
             f.write_all(&e.weight.to_le_bytes()).map_err(io)?;

@@ -464,7 +464,9 @@ fn finish_image(
             ls.lock().map_err(poisoned)?.push(part)?;
         }
     }
-    store.lock().map_err(poisoned)?.push(out.contribution)?;
+    // Into the store's columns here, in parallel, not under its lock.
+    let stored = crate::aggregate::store::StoredImage::from_contribution(out.contribution);
+    store.lock().map_err(poisoned)?.push_stored(stored)?;
     work.image_aggregate_s += t1.elapsed().as_secs_f64();
     if let Ok(mut tt) = totals.lock() {
         tt.add(&work);
