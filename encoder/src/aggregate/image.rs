@@ -330,59 +330,23 @@ pub fn pixel_labels<M: ImageMask>(masks: &[M], width: u32, height: u32) -> Pixel
         };
     }
     let (words, bits) = membership(masks, width, height);
-    // Bands of rows in parallel, each numbering its signatures by first appearance; the bands'
-    // numbers are then joined in band order, which is the row-major order of first appearance.
-    let band_pixels = width as usize
-        * (height as usize)
-            .div_ceil(rayon::current_num_threads() * 4)
-            .max(1);
-    let bands: Vec<(Vec<u32>, Vec<&[u64]>)> = bits
-        .par_chunks(band_pixels * words)
-        .map(|band| {
-            let mut local: FxHashMap<&[u64], u32> = FxHashMap::default();
-            let mut sets: Vec<&[u64]> = Vec::new();
-            let labels = band
-                .chunks_exact(words)
-                .map(|set| {
-                    if set.iter().all(|&b| b == 0) {
-                        return 0;
-                    }
-                    *local.entry(set).or_insert_with(|| {
-                        sets.push(set);
-                        sets.len() as u32
-                    })
-                })
-                .collect();
-            (labels, sets)
-        })
-        .collect();
     let mut sig_of: FxHashMap<&[u64], u32> = FxHashMap::default();
     let mut masks_of: Vec<Vec<u32>> = vec![Vec::new()];
-    let remaps: Vec<Vec<u32>> = bands
-        .iter()
-        .map(|(_, sets)| {
-            let mut remap = vec![0u32];
-            for &set in sets {
-                remap.push(*sig_of.entry(set).or_insert_with(|| {
-                    let members = (0..masks.len() as u32)
-                        .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
-                        .collect();
-                    masks_of.push(members);
-                    (masks_of.len() - 1) as u32
-                }));
+    let labels = bits
+        .chunks_exact(words)
+        .map(|set| {
+            if set.iter().all(|&b| b == 0) {
+                return 0;
             }
-            remap
+            *sig_of.entry(set).or_insert_with(|| {
+                let members = (0..masks.len() as u32)
+                    .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
+                    .collect();
+                masks_of.push(members);
+                (masks_of.len() - 1) as u32
+            })
         })
         .collect();
-    let mut labels = vec![0u32; width as usize * height as usize];
-    labels
-        .par_chunks_mut(band_pixels)
-        .zip(bands.par_iter().zip(remaps.par_iter()))
-        .for_each(|(out, ((local, _), remap))| {
-            for (o, &l) in out.iter_mut().zip(local) {
-                *o = remap[l as usize];
-            }
-        });
     PixelLabels { labels, masks_of }
 }
 
@@ -673,8 +637,7 @@ mod expand_tests {
     }
 
     /// Pixel labels against a sequential reference at the masks' own size (each pixel's set is
-    /// the masks covering it; labels numbered by row-major first appearance), over enough rows
-    /// that the parallel bands split the image.
+    /// the masks covering it; labels numbered by row-major first appearance).
     #[test]
     fn pixel_labels_number_sets_in_row_major_order_of_first_appearance() {
         let mut state = 0x0dd5_eed5_1234_5678u64;
