@@ -464,7 +464,7 @@ fn finish_image(
             ls.lock().map_err(poisoned)?.push(part)?;
         }
     }
-    // Into the store's columns here, in parallel, not under its lock.
+    // Into the store's columns here, not under the store's lock.
     let stored = crate::aggregate::store::StoredImage::from_contribution(out.contribution);
     store.lock().map_err(poisoned)?.push_stored(stored)?;
     work.image_aggregate_s += t1.elapsed().as_secs_f64();

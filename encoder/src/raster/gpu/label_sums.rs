@@ -1,8 +1,9 @@
 //! Step 3', the `blend_sums` kernel (`label_sums.wgsl`): per-(Gaussian, label) sums of the blend
 //! weights, accumulated per tile in workgroup memory and written as compact records, one per
-//! (tile intersection, tile label) with a non-zero sum, instead of per-pixel lists; only the
-//! records are read back; the image stage reduces them by (Gaussian, label) on the host
-//! ([`LabelSums::reduced`]), off the rasterizer's thread.
+//! (tile intersection, tile label) with a non-zero sum, instead of per-pixel lists; the records
+//! of a band are reduced by (Gaussian, label) on the device ([`super::reduce`]) and only the
+//! reduced records are read back (a view of several bands leaves the merge of their keys to
+//! [`LabelSums::reduced`], on the image stage's thread).
 //!
 //! Bounded by construction: a band of tile rows writes at most one record per labelled
 //! contribution and per (intersection, label of its tile), and the kernel counts the records it
@@ -74,7 +75,8 @@ impl GpuRasterizer {
     /// counted by the kernel; a band that did not fit is re-run with room for its count, or split
     /// when its count exceeds one binding.
     ///
-    /// Returns the sums and the host's milliseconds copying, sorting and reducing the records.
+    /// Returns the sums (sorted and one per key when the view took one band and the device
+    /// reduced it) and the host's milliseconds copying the records out of the readback buffer.
     ///
     /// Errors: `labels` not one per raster pixel ([`Error::Internal`]); one row of tiles whose
     /// records exceed one binding ([`Error::Limit`]); device failures.
@@ -168,25 +170,16 @@ impl GpuRasterizer {
                 bands += 1;
                 let mut enc = self.device.create_command_encoder(&Default::default());
                 // One record per key (reduced on the device), or the records as written.
-                let bytes = match self.reduce_on_device {
-                    true => {
-                        let (reduced, keys) =
-                            self.reduce_records(view, &out.records, wanted as u32, max_label)?;
-                        let bytes = u64::from(keys) * RECORD_BYTES;
-                        enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
-                        bytes
-                    }
-                    false => {
-                        let bytes = wanted * RECORD_BYTES;
-                        enc.copy_buffer_to_buffer(
-                            &out.records,
-                            HEADER_BYTES,
-                            &out.staging,
-                            0,
-                            bytes,
-                        );
-                        bytes
-                    }
+                let bytes = if self.reduce_on_device {
+                    let (reduced, keys) =
+                        self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+                    let bytes = u64::from(keys) * RECORD_BYTES;
+                    enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
+                    bytes
+                } else {
+                    let bytes = wanted * RECORD_BYTES;
+                    enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+                    bytes
                 };
                 self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
                     let t = std::time::Instant::now();
