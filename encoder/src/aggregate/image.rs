@@ -636,6 +636,14 @@ mod expand_tests {
         }
     }
 
+    /// A `w × h` mask of the box `[x0, y0, width, height]` (pixels, clipped to the image).
+    fn box_mask(w: u32, h: u32, [x0, y0, mw, mh]: [u32; 4]) -> Mask {
+        let pixels = (0..w * h)
+            .map(|p| u8::from((x0..x0 + mw).contains(&(p % w)) && (y0..y0 + mh).contains(&(p / w))))
+            .collect();
+        Mask::from_pixels(w, h, pixels).expect("non-empty box")
+    }
+
     /// Pixel labels against a sequential reference at the masks' own size (each pixel's set is
     /// the masks covering it; labels numbered by row-major first appearance).
     #[test]
@@ -652,14 +660,7 @@ mod expand_tests {
                     1 + (next(&mut state) % 12) as u32,
                     1 + (next(&mut state) % 60) as u32,
                 );
-                let pixels = (0..w * h)
-                    .map(|p| {
-                        u8::from(
-                            (x0..x0 + mw).contains(&(p % w)) && (y0..y0 + mh).contains(&(p / w)),
-                        )
-                    })
-                    .collect();
-                Mask::from_pixels(w, h, pixels).expect("non-empty box")
+                box_mask(w, h, [x0, y0, mw, mh])
             })
             .collect();
         let mut ids: std::collections::HashMap<Vec<u32>, u32> = Default::default();
@@ -698,14 +699,7 @@ mod expand_tests {
                     2 + (next(&mut state) % 30) as u32,
                     2 + (next(&mut state) % 30) as u32,
                 );
-                let pixels = (0..w * h)
-                    .map(|p| {
-                        u8::from(
-                            (x0..x0 + mw).contains(&(p % w)) && (y0..y0 + mh).contains(&(p / w)),
-                        )
-                    })
-                    .collect();
-                Mask::from_pixels(w, h, pixels).expect("non-empty box")
+                box_mask(w, h, [x0, y0, mw, mh])
             })
             .collect();
         for overlap in [MaskOverlap::All, MaskOverlap::Finest] {
