@@ -66,20 +66,24 @@ pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
     let x1 = x.saturating_add(w).min(iw - 1);
     let y1 = y.saturating_add(h).min(ih - 1);
     let (cw, ch) = (x1 - x + 1, y1 - y + 1);
-    let mut out = RgbImage::new(cw, ch);
-    for yy in 0..ch {
-        for xx in 0..cw {
-            let (sx, sy) = (x + xx, y + yy);
-            let inside = mask.pixels[(sy * iw + sx) as usize] != 0;
-            let p = if inside {
-                *image.get_pixel(sx, sy)
-            } else {
-                image::Rgb([255, 255, 255])
-            };
-            out.put_pixel(xx, yy, p);
+    let (x, y, iw, cwu) = (x as usize, y as usize, iw as usize, cw as usize);
+    let src = image.as_raw();
+    let mut out = vec![255u8; cwu * ch as usize * 3];
+    for (yy, orow) in out.chunks_exact_mut(cwu * 3).enumerate() {
+        let start = (y + yy) * iw + x;
+        let inside = &mask.pixels[start..start + cwu];
+        let irow = &src[start * 3..(start + cwu) * 3];
+        for ((o, i), &m) in orow
+            .chunks_exact_mut(3)
+            .zip(irow.chunks_exact(3))
+            .zip(inside)
+        {
+            if m != 0 {
+                o.copy_from_slice(i);
+            }
         }
     }
-    Ok(out)
+    RgbImage::from_raw(cw, ch, out).ok_or_else(|| Error::internal("crop buffer size mismatch"))
 }
 
 /// The CLIP image tower over ONNX (`pixel_values f32[B,3,224,224] → one f32[B,D] output`, e.g.

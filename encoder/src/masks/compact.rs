@@ -36,9 +36,8 @@ pub struct CompactMask {
 impl CompactMask {
     /// Encodes `mask` (any pixel value other than 0 is inside; [`CompactMask::expand`] writes 1).
     ///
-    /// Only the rows and columns of the mask's bounding box are scanned when the box is
-    /// consistent with the pixels; a mask whose `pixels` do not have `width * height` values is
-    /// encoded over the values it has.
+    /// Every pixel is scanned (the box is not trusted); a mask whose `pixels` do not have
+    /// `width * height` values is encoded over the values it has.
     pub fn new(mask: &Mask) -> Self {
         let w = mask.width as usize;
         let mut runs = Vec::new();
@@ -100,9 +99,10 @@ impl CompactMask {
     }
 }
 
-/// Encodes every mask of an image ([`CompactMask::new`]), in order.
+/// Encodes every mask of an image ([`CompactMask::new`]), in order, in parallel (rayon).
 pub fn compact_all(masks: &[Mask]) -> Vec<CompactMask> {
-    masks.iter().map(CompactMask::new).collect()
+    use rayon::prelude::*;
+    masks.par_iter().map(CompactMask::new).collect()
 }
 
 /// Expands every mask of an image ([`CompactMask::expand`]), in order.

@@ -415,7 +415,7 @@ impl SamAutomaticMaskGenerator {
         transformed: &[[f32; 2]],
         (h, w): (u32, u32),
         upsampler: &LowResUpsampler,
-    ) -> Result<Vec<Candidate>> {
+    ) -> Result<(Vec<Candidate>, f64)> {
         let n = points.len();
         let mut coords = Vec::with_capacity(n * 4);
         let mut labels = Vec::with_capacity(n * 2);
@@ -463,11 +463,8 @@ impl SamAutomaticMaskGenerator {
             .session_mut()
             .run_with_options(inputs, &options)
             .map_err(|e| errs.error("decoder run", &e))?;
-        tracing::trace!(
-            prompts = n,
-            run_s = t.elapsed().as_secs_f64(),
-            "SAM decoder batch"
-        );
+        let run_s = t.elapsed().as_secs_f64();
+        tracing::trace!(prompts = n, run_s, "SAM decoder batch");
         let (ishape, ious) = outputs["iou_predictions"]
             .try_extract_tensor::<f32>()
             .map_err(|e| errs.unexpected(format!("decoder iou_predictions are not f32: {e}")))?;
@@ -483,6 +480,7 @@ impl SamAutomaticMaskGenerator {
             .collect();
         let (hu, wu) = (h as usize, w as usize);
         let plane = hu * wu;
+        let tf = std::time::Instant::now();
         let cands: Vec<Option<Candidate>> = if low_res {
             let (lshape, lows) = outputs["low_res_masks"]
                 .try_extract_tensor::<f32>()
@@ -495,14 +493,10 @@ impl SamAutomaticMaskGenerator {
             let lp = 256 * 256;
             jobs.par_iter()
                 .map_init(
-                    || (vec![0f32; 256 * wu], vec![0f32; plane]),
-                    |(rows, full), &(i, c)| {
-                        upsampler.upsample(
-                            &lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp],
-                            rows,
-                            full,
-                        );
-                        candidate(full, wu, p, ious[i * 4 + c], points[i], c)
+                    || upsampler.scratch(),
+                    |scratch, &(i, c)| {
+                        let low = &lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp];
+                        upsampler.candidate(low, scratch, p, ious[i * 4 + c], points[i], c)
                     },
                 )
                 .collect()
@@ -524,7 +518,12 @@ impl SamAutomaticMaskGenerator {
                 })
                 .collect()
         };
-        Ok(cands.into_iter().flatten().collect())
+        tracing::trace!(
+            jobs = jobs.len(),
+            filter_s = tf.elapsed().as_secs_f64(),
+            "SAM candidates"
+        );
+        Ok((cands.into_iter().flatten().collect(), run_s))
     }
 
     /// All masks of `image`, in SAM AMG order (NMS order: descending predicted IoU).
@@ -557,38 +556,53 @@ impl SamAutomaticMaskGenerator {
         let mut cands = Vec::new();
         let bs = self.params.batch_for(h, w);
         let t1 = std::time::Instant::now();
+        let mut decoder_run_s = 0.0;
         for (pts, tr) in points.chunks(bs).zip(transformed.chunks(bs)) {
-            cands.extend(self.decode_batch(&embedding, pts, tr, (h, w), &upsampler)?);
+            let (batch, run_s) = self.decode_batch(&embedding, pts, tr, (h, w), &upsampler)?;
+            cands.extend(batch);
+            decoder_run_s += run_s;
         }
         let t_decode = t1.elapsed();
+        let t2 = std::time::Instant::now();
         let keep = nms(&cands, self.params.box_nms_thresh);
+        let t_nms = t2.elapsed();
+        let plane = w as usize * h as usize;
+        let out: Vec<Mask> = keep
+            .par_iter()
+            .map(|&i| {
+                let c = &cands[i];
+                let mut pixels = vec![0u8; plane];
+                for (chunk, &word) in pixels.chunks_mut(64).zip(&c.bits) {
+                    if word != 0 {
+                        for (k, px) in chunk.iter_mut().enumerate() {
+                            *px = ((word >> k) & 1) as u8;
+                        }
+                    }
+                }
+                let [x0, y0, x1, y1] = c.bbox;
+                Mask {
+                    width: w,
+                    height: h,
+                    pixels,
+                    bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
+                    area: c.area,
+                    predicted_iou: c.iou,
+                    stability_score: c.stability,
+                    point: Some([c.point[0] as f32, c.point[1] as f32]),
+                    level: Some(c.channel - 1),
+                }
+            })
+            .collect();
         tracing::debug!(
             encode_s = t_encode.as_secs_f64(),
             decode_and_filter_s = t_decode.as_secs_f64(),
+            decoder_run_s,
+            nms_s = t_nms.as_secs_f64(),
+            masks_s = (t2.elapsed() - t_nms).as_secs_f64(),
             candidates = cands.len(),
-            kept = keep.len(),
+            kept = out.len(),
             "SAM automatic mask generation"
         );
-        let plane = w as usize * h as usize;
-        let mut out = Vec::with_capacity(keep.len());
-        for i in keep {
-            let c = &cands[i];
-            let pixels: Vec<u8> = (0..plane)
-                .map(|k| ((c.bits[k / 64] >> (k % 64)) & 1) as u8)
-                .collect();
-            let [x0, y0, x1, y1] = c.bbox;
-            out.push(Mask {
-                width: w,
-                height: h,
-                pixels,
-                bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
-                area: c.area,
-                predicted_iou: c.iou,
-                stability_score: c.stability,
-                point: Some([c.point[0] as f32, c.point[1] as f32]),
-                level: Some(c.channel - 1),
-            });
-        }
         Ok(out)
     }
 }
@@ -655,6 +669,39 @@ type Taps = ([u16; 4], [f32; 4]);
 pub struct LowResUpsampler {
     x: Vec<Taps>,
     y: Vec<Taps>,
+    /// Per block of [`BLOCK`] output columns: the lowest and highest low-resolution column any
+    /// of their taps reads.
+    x_spans: Vec<(usize, usize)>,
+    /// The same per block of [`BLOCK`] output rows.
+    y_spans: Vec<(usize, usize)>,
+}
+
+/// Side of the square blocks of full-resolution pixels that
+/// [`LowResUpsampler::candidate`] decides at once from their low-resolution taps.
+const BLOCK: usize = 16;
+
+/// Per block of [`BLOCK`] outputs, the lowest and highest low-resolution index of their taps.
+fn tap_spans(taps: &[Taps]) -> Vec<(usize, usize)> {
+    taps.chunks(BLOCK)
+        .map(|block| {
+            let idx = || {
+                block
+                    .iter()
+                    .flat_map(|(i, _)| i.iter().map(|&v| usize::from(v)))
+            };
+            (idx().min().unwrap_or(0), idx().max().unwrap_or(0))
+        })
+        .collect()
+}
+
+/// Scratch of [`LowResUpsampler::candidate`], reused across the candidates of one thread.
+struct CandidateScratch {
+    /// The row pass (256 × `w`), filled lazily per (low-res row, block column).
+    rows: Vec<f32>,
+    /// Whether `rows` holds (low-res row, block column) for the current map: 256 × blocks.
+    done: Vec<bool>,
+    /// A full-resolution map (`h × w`), for maps with non-finite logits only.
+    full: Vec<f32>,
 }
 
 /// PyTorch's linear taps for `out` samples over `in_` samples (`align_corners=False`).
@@ -695,10 +742,153 @@ impl LowResUpsampler {
     /// ([`sam_preprocess_shape`]).
     pub fn new((h, w): (u32, u32), (new_h, new_w): (u32, u32)) -> Self {
         let kept = |n: u32| (n as usize).clamp(1, SAM_IMAGE_SIZE as usize);
+        let x = composed_taps(kept(new_w), w as usize);
+        let y = composed_taps(kept(new_h), h as usize);
         LowResUpsampler {
-            x: composed_taps(kept(new_w), w as usize),
-            y: composed_taps(kept(new_h), h as usize),
+            x_spans: tap_spans(&x),
+            y_spans: tap_spans(&y),
+            x,
+            y,
         }
+    }
+
+    /// Empty scratch for [`LowResUpsampler::candidate`] (allocated on first use).
+    fn scratch(&self) -> CandidateScratch {
+        CandidateScratch {
+            rows: Vec::new(),
+            done: Vec::new(),
+            full: Vec::new(),
+        }
+    }
+
+    /// One low-resolution logit map (256 × 256) → its candidate, exactly as
+    /// [`LowResUpsampler::upsample`] followed by the full-resolution filter would give it (same
+    /// stability score, box, area and pixels, bit for bit), without upsampling most pixels.
+    ///
+    /// Each output pixel is a convex combination of at most 16 low-resolution logits. The image
+    /// is cut into [`BLOCK`] × [`BLOCK`] blocks; a block whose taps' minimum lies above a
+    /// threshold (or whose maximum lies below it) by more than a margin of 1e-4 relative to
+    /// the logits' magnitude, far beyond f32 rounding of the 4 + 4 tap sums, is on one side of
+    /// it at every pixel. Blocks decided for all three thresholds (`mask_threshold` and ±
+    /// `stability_score_offset`) are counted whole; the others (the masks' borders) are
+    /// upsampled with the same arithmetic as [`LowResUpsampler::upsample`]. A map with a
+    /// non-finite logit is upsampled whole.
+    fn candidate(
+        &self,
+        low: &[f32],
+        scratch: &mut CandidateScratch,
+        p: &SamParams,
+        iou: f32,
+        point: [f64; 2],
+        channel: usize,
+    ) -> Option<Candidate> {
+        let (w, h) = (self.x.len(), self.y.len());
+        if low.iter().any(|v| !v.is_finite()) {
+            scratch.rows.resize(256 * w, 0.0);
+            scratch.full.resize(h * w, 0.0);
+            self.upsample(low, &mut scratch.rows, &mut scratch.full);
+            return candidate(&scratch.full, w, p, iou, point, channel);
+        }
+        let (thr, off) = (p.mask_threshold, p.stability_score_offset);
+        // union, mask, intersection: the comparisons of `candidate`.
+        let levels = [thr - off, thr, thr + off];
+        let nbx = self.x_spans.len();
+        scratch.rows.resize(256 * w, 0.0);
+        scratch.done.clear();
+        scratch.done.resize(256 * nbx, false);
+        let mut bits = vec![0u64; (w * h).div_ceil(64)];
+        let (mut inter, mut union) = (0u32, 0u32);
+        let (mut x0, mut y0, mut x1, mut y1, mut area) = (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
+        let mut inside = |xa: usize, xb: usize, y: usize, bits: &mut [u64]| {
+            // Pixels xa..xb of row y are inside the mask.
+            set_bits(bits, y * w + xa, xb - xa);
+            x0 = x0.min(xa as u32);
+            x1 = x1.max((xb - 1) as u32);
+            y0 = y0.min(y as u32);
+            y1 = y1.max(y as u32);
+            area += (xb - xa) as u32;
+        };
+        let mut block = [0f32; BLOCK];
+        for (by, &(ry0, ry1)) in self.y_spans.iter().enumerate() {
+            let ys = by * BLOCK..((by + 1) * BLOCK).min(h);
+            for (bx, &(cx0, cx1)) in self.x_spans.iter().enumerate() {
+                let xs = bx * BLOCK..((bx + 1) * BLOCK).min(w);
+                let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
+                for r in ry0..=ry1 {
+                    // All logits are finite here: plain comparisons are the minimum and maximum.
+                    for &v in &low[r * 256 + cx0..=r * 256 + cx1] {
+                        mn = if v < mn { v } else { mn };
+                        mx = if v > mx { v } else { mx };
+                    }
+                }
+                let margin = 1e-4 * (1.0 + mn.abs().max(mx.abs()));
+                let above = levels.map(|t| mn - margin > t);
+                let below = levels.map(|t| mx + margin < t);
+                let n = (ys.len() * xs.len()) as u32;
+                if (0..3).all(|k| above[k] || below[k]) {
+                    union += if above[0] { n } else { 0 };
+                    inter += if above[2] { n } else { 0 };
+                    if above[1] {
+                        for y in ys.clone() {
+                            inside(xs.start, xs.end, y, &mut bits);
+                        }
+                    }
+                    continue;
+                }
+                for r in ry0..=ry1 {
+                    if !std::mem::replace(&mut scratch.done[r * nbx + bx], true) {
+                        let src = &low[r * 256..(r + 1) * 256];
+                        let out = &mut scratch.rows[r * w..(r + 1) * w];
+                        for x in xs.clone() {
+                            let (idx, wt) = &self.x[x];
+                            out[x] = wt[0] * src[idx[0] as usize]
+                                + wt[1] * src[idx[1] as usize]
+                                + wt[2] * src[idx[2] as usize]
+                                + wt[3] * src[idx[3] as usize];
+                        }
+                    }
+                }
+                for y in ys.clone() {
+                    let (idx, wt) = &self.y[y];
+                    let row = |k: usize| &scratch.rows[idx[k] as usize * w..][..w];
+                    let (r0, r1, r2, r3) = (row(0), row(1), row(2), row(3));
+                    for (o, x) in block.iter_mut().zip(xs.clone()) {
+                        *o = wt[0] * r0[x] + wt[1] * r1[x] + wt[2] * r2[x] + wt[3] * r3[x];
+                    }
+                    let mut run: Option<usize> = None;
+                    for (i, &v) in block[..xs.len()].iter().enumerate() {
+                        union += u32::from(v > levels[0]);
+                        inter += u32::from(v > levels[2]);
+                        match (v > levels[1], run) {
+                            (true, None) => run = Some(xs.start + i),
+                            (false, Some(a)) => {
+                                inside(a, xs.start + i, y, &mut bits);
+                                run = None;
+                            }
+                            _ => {}
+                        }
+                    }
+                    if let Some(a) = run {
+                        inside(a, xs.end, y, &mut bits);
+                    }
+                }
+            }
+        }
+        // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
+        let stability = inter as f32 / union as f32;
+        if stability.is_nan() || stability < p.stability_score_thresh {
+            return None;
+        }
+        let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
+        Some(Candidate {
+            bits,
+            bbox,
+            area,
+            iou,
+            stability,
+            point,
+            channel: channel as u8,
+        })
     }
 
     /// Upsamples one 256 × 256 logit map into `full` (`h × w`), using `rows` (256 × `w`) as
@@ -721,6 +911,22 @@ impl LowResUpsampler {
                 out[x] = wt[0] * r0[x] + wt[1] * r1[x] + wt[2] * r2[x] + wt[3] * r3[x];
             }
         }
+    }
+}
+
+/// Sets bits `start..start + len` of a row-major bitset.
+fn set_bits(bits: &mut [u64], start: usize, len: usize) {
+    let (mut k, end) = (start, start + len);
+    while k < end {
+        let (word, bit) = (k / 64, k % 64);
+        let n = (64 - bit).min(end - k);
+        let ones = if n == 64 {
+            u64::MAX
+        } else {
+            ((1u64 << n) - 1) << bit
+        };
+        bits[word] |= ones;
+        k += n;
     }
 }
 
@@ -855,5 +1061,116 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    /// Deterministic uniform floats in [0, 1) (splitmix64).
+    fn uniform(seed: u64) -> impl FnMut() -> f32 {
+        let mut state = seed;
+        move || {
+            state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// A 256 × 256 logit map: blobs (smooth, SAM-like, ±20) or a sharp-edged step map with
+    /// plateaus (color-sam-like), from `seed`.
+    fn logit_map(seed: u64, sharp: bool) -> Vec<f32> {
+        let mut u = uniform(seed);
+        let blobs: Vec<[f32; 4]> = (0..6)
+            .map(|_| [u() * 256.0, u() * 256.0, 8.0 + u() * 60.0, u() * 2.0 - 0.7])
+            .collect();
+        (0..256 * 256)
+            .map(|k| {
+                let (x, y) = ((k % 256) as f32, (k / 256) as f32);
+                let v: f32 = blobs
+                    .iter()
+                    .map(|b| {
+                        b[3] * (-((x - b[0]).powi(2) + (y - b[1]).powi(2)) / (b[2] * b[2])).exp()
+                    })
+                    .sum();
+                if sharp {
+                    if v > 0.1 { 12.0 } else { -12.0 }
+                } else {
+                    40.0 * v - 1.0
+                }
+            })
+            .collect()
+    }
+
+    fn assert_same(a: Option<Candidate>, b: Option<Candidate>, what: &str) {
+        match (a, b) {
+            (None, None) => {}
+            (Some(a), Some(b)) => {
+                assert_eq!(a.bbox, b.bbox, "{what}: box");
+                assert_eq!(a.area, b.area, "{what}: area");
+                assert_eq!(
+                    a.stability.to_bits(),
+                    b.stability.to_bits(),
+                    "{what}: stability"
+                );
+                assert!(a.bits == b.bits, "{what}: pixels");
+                assert_eq!(
+                    (a.iou, a.channel, a.point),
+                    (b.iou, b.channel, b.point),
+                    "{what}"
+                );
+            }
+            (a, b) => panic!("{what}: kept {} vs {}", a.is_some(), b.is_some()),
+        }
+    }
+
+    #[test]
+    fn block_decided_candidates_equal_the_full_upsampling() {
+        let params = |thr: f32, off: f32, stab: f32| SamParams {
+            mask_threshold: thr,
+            stability_score_offset: off,
+            stability_score_thresh: stab,
+            ..SamParams::default()
+        };
+        let mut maps: Vec<(String, Vec<f32>)> = (0..6)
+            .map(|s| (format!("map {s}"), logit_map(s, s % 3 == 2)))
+            .collect();
+        for v in [0.0f32, 1.0, -1.0, 1e-6, 1.0 - 1e-6, 5.0] {
+            maps.push((format!("constant {v}"), vec![v; 256 * 256]));
+        }
+        let mut ramp = logit_map(9, false);
+        ramp[1234] = f32::NAN;
+        maps.push(("NaN logit".into(), ramp));
+        let mut inf = logit_map(10, true);
+        inf[40_000] = f32::INFINITY;
+        maps.push(("infinite logit".into(), inf));
+        let sizes = [
+            (742u32, 990u32),
+            (990, 742),
+            (1024, 1024),
+            (17, 31),
+            (1500, 2000),
+            (1, 1),
+        ];
+        for (h, w) in sizes {
+            let up = LowResUpsampler::new((h, w), sam_preprocess_shape(h, w, SAM_IMAGE_SIZE));
+            let (mut rows, mut full) = (vec![0f32; 256 * w as usize], vec![0f32; (h * w) as usize]);
+            let mut scratch = up.scratch();
+            for p in [
+                params(0.0, 1.0, 0.0),
+                params(0.0, 1.0, 0.9),
+                params(0.3, 0.0, 0.5),
+                params(-2.0, 4.0, 0.0),
+            ] {
+                for (name, low) in &maps {
+                    up.upsample(low, &mut rows, &mut full);
+                    let want = candidate(&full, w as usize, &p, 0.9, [1.5, 2.5], 2);
+                    let got = up.candidate(low, &mut scratch, &p, 0.9, [1.5, 2.5], 2);
+                    let what = format!(
+                        "{name}, {w}x{h}, threshold {} offset {}",
+                        p.mask_threshold, p.stability_score_offset
+                    );
+                    assert_same(got, want, &what);
+                }
+            }
+        }
     }
 }

@@ -344,12 +344,14 @@ pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
         center_offset(w, CLIP_IMAGE_SIZE),
         center_offset(h, CLIP_IMAGE_SIZE),
     );
+    let (rw, raw) = (resized.width() as usize, resized.as_raw());
+    let (x0, y0) = (x0 as usize, y0 as usize);
     for c in 0..3 {
         let plane = &mut out[c * s * s..(c + 1) * s * s];
-        for y in 0..s {
-            for x in 0..s {
-                let v = resized.get_pixel(x0 + x as u32, y0 + y as u32).0[c];
-                plane[y * s + x] = (f32::from(v) / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c];
+        for (y, prow) in plane.chunks_exact_mut(s).enumerate() {
+            let row = &raw[((y0 + y) * rw + x0) * 3..][..s * 3];
+            for (o, px) in prow.iter_mut().zip(row.chunks_exact(3)) {
+                *o = (f32::from(px[c]) / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c];
             }
         }
     }
