@@ -111,7 +111,7 @@ e2e)
   # RSS over time (rss-e2e-*.tsv: seconds, bytes): where the peak falls against the report's phases.
   python3 scripts/rss-timeline.py --out "$R/rss-e2e-$prec.tsv" --report "$W/e2e/report.json" -- \
     /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
-    "${MA[@]}" $(clipm $prec) --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
+    "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
   cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
   ;;

@@ -94,6 +94,8 @@ pub struct ClipVisual {
     input_name: String,
     model_id: String,
     dim: usize,
+    /// Whether every run is padded to `batch_size` rows (GPU providers; see `run_batch`).
+    fixed_batch: bool,
 }
 
 impl ClipVisual {
@@ -149,12 +151,14 @@ impl ClipVisual {
             _ => None,
         };
         let model_id = onnx::clip_pair_id(loaded.session(), model);
+        let fixed_batch = loaded.provider() != ExecutionProvider::Cpu;
         let mut clip = ClipVisual {
             model: loaded,
             batch_size,
             input_name,
             model_id,
             dim: 0,
+            fixed_batch,
         };
         clip.dim = match declared {
             Some(d) => d as usize,
@@ -190,6 +194,13 @@ impl ClipVisual {
         self.batch_size
     }
 
+    /// Whether short runs are padded to the batch size (on by default on GPU providers, off on
+    /// the CPU). Results do not depend on it beyond the provider's rounding; turning it on on
+    /// the CPU is for tests.
+    pub fn set_fixed_batch(&mut self, on: bool) {
+        self.fixed_batch = on;
+    }
+
     /// Embeds preprocessed pixels `f32[n,3,224,224]`: `n` L2-normalised rows of the model's width,
     /// in runs of at most the batch size.
     ///
@@ -212,12 +223,30 @@ impl ClipVisual {
         Ok(out)
     }
 
+    /// Runs one batch of at most `batch_size` crops.
+    ///
+    /// On a GPU provider every run has exactly `batch_size` rows: a short batch is padded with
+    /// zero images whose rows are dropped. The tower then sees one input shape for the whole
+    /// encode, and its convolution plans are built once, in the first run. Building a cuDNN
+    /// plan for a new batch size in the middle of an encode, while SAM's sessions run on other
+    /// threads of the same GPU, failed with CUDA error 901 ("operation failed due to a previous
+    /// error during capture") under ONNX Runtime 1.31.
     fn run_batch(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
-        let n = pixels.len() / (3 * s * s);
+        let per = 3 * s * s;
+        let n = pixels.len() / per;
+        let padded;
+        let (pixels, rows) = if self.fixed_batch && n < self.batch_size {
+            let mut buf = vec![0f32; self.batch_size * per];
+            buf[..pixels.len()].copy_from_slice(pixels);
+            padded = buf;
+            (padded.as_slice(), self.batch_size)
+        } else {
+            (pixels, n)
+        };
         let errs = self.model.errors();
         let path = self.model.path().to_path_buf();
-        let input = TensorRef::from_array_view(([n, 3, s, s], pixels))
+        let input = TensorRef::from_array_view(([rows, 3, s, s], pixels))
             .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
         let outputs = self
             .model
@@ -227,13 +256,13 @@ impl ClipVisual {
         let (shape, data) = outputs[0]
             .try_extract_tensor::<f32>()
             .map_err(|e| errs.unexpected(format!("CLIP output is not f32: {e}")))?;
-        if shape.len() != 2 || shape[0] != n as i64 || shape[1] <= 0 {
+        if shape.len() != 2 || shape[0] != rows as i64 || shape[1] <= 0 {
             return Err(errs.unexpected(format!(
-                "CLIP visual returned shape {shape:?} for {n} images, expected [{n}, D]"
+                "CLIP visual returned shape {shape:?} for {rows} images, expected [{rows}, D]"
             )));
         }
         let d = shape[1] as usize;
-        let mut out: Vec<Vec<f32>> = data.chunks_exact(d).map(<[f32]>::to_vec).collect();
+        let mut out: Vec<Vec<f32>> = data.chunks_exact(d).take(n).map(<[f32]>::to_vec).collect();
         for v in &mut out {
             l2_normalize(v, &path)?;
         }
@@ -253,8 +282,18 @@ impl ClipVisual {
 
     /// Moves the tower onto its own thread, which runs the crops of every [`ClipHandle`] in shared
     /// batches (see [`ClipService`]).
-    pub fn into_service(self) -> ClipService {
-        ClipService::start(self)
+    ///
+    /// On a GPU provider one full batch of mid-grey images runs first, on the calling thread, so
+    /// the tower's plans exist before the front workers start (see `run_batch`).
+    ///
+    /// # Errors
+    /// [`Error::Inference`] when that first run fails.
+    pub fn into_service(mut self) -> Result<ClipService> {
+        if self.fixed_batch {
+            let per = 3 * (CLIP_IMAGE_SIZE as usize).pow(2);
+            self.run_batch(&vec![0.5f32; self.batch_size * per])?;
+        }
+        Ok(ClipService::start(self))
     }
 }
 

@@ -293,9 +293,11 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
             .collect()
     };
     let mut direct = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
-    let service = ClipVisual::new(&model, ExecutionProvider::Cpu, 64)
-        .unwrap()
-        .into_service();
+    // The service pads every run to its batch size, as it does on a GPU (one input shape for
+    // the whole encode); the padded rows must not change the real ones.
+    let mut padded = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
+    padded.set_fixed_batch(true);
+    let service = padded.into_service().unwrap();
     let requests = 24u32;
     std::thread::scope(|s| {
         let hs: Vec<_> = (0..4u32)

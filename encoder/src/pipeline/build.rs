@@ -318,7 +318,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         });
     }
     let provider = clip0.provider();
-    let mut services = vec![clip0.into_service()];
+    let mut services = vec![clip0.into_service()?];
     let mut sams = Vec::new();
     let mut providers = Vec::new();
     for g in 0..gpus {
@@ -328,7 +328,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
                 &c.placement(g as u32, gpu_threads),
                 gpu_batch,
             )?;
-            services.push(clip.into_service());
+            services.push(clip.into_service()?);
         }
         let sam = match c.masks.source {
             MaskSource::Sam => {
