@@ -317,12 +317,7 @@ impl OnnxModel {
                 );
             }
             eps.push(cuda.build().error_on_failure());
-            // The GPU runs the graph; the session's CPU thread pool only runs the few host ops.
-            // Spinning pool threads would wait on it at full speed between runs, taking cores
-            // from the host work beside the model (mask filtering, crops, the lifting threads).
             builder = builder
-                .with_intra_op_spinning(false)
-                .map_err(|e| model_err("cannot turn off intra-op spinning", &e))?
                 .with_execution_providers(eps)
                 .map_err(|e| inference_err(format!("the provider did not register: {e}")))?;
         }
