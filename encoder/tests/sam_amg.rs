@@ -14,7 +14,7 @@ use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
-use slag_encoder::masks::sam::{SamAutomaticMaskGenerator, SamParams};
+use slag_encoder::masks::sam::{MaskPostprocess, SamAutomaticMaskGenerator, SamParams};
 use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::preprocess::sam_pixel_values;
 
@@ -260,7 +260,6 @@ fn sam_rejects_models_of_the_wrong_role() {
 /// 1 px, stability within 1e-3, on color-sam with every filter at 0 (every candidate kept).
 #[test]
 fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
-    use slag_encoder::masks::sam::MaskPostprocess;
     let Some(dir) = ort_fixtures("sam-amg") else {
         return;
     };
@@ -307,4 +306,42 @@ fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
             "mask {k}"
         );
     }
+}
+
+/// A decoder cut down to `iou_predictions` and `low_res_masks` by
+/// `scripts/sam-decoder-low-res.py` (`tests/fixtures/color-sam-decoder-low-res.onnx`, from
+/// shared's color-sam decoder) gives the same masks as the full decoder, bit for bit, and
+/// refuses the graph's own post-processing, which reads the output it no longer has.
+#[test]
+fn low_res_decoder_gives_the_full_decoders_masks() {
+    let Some(dir) = ort_fixtures("sam-amg") else {
+        return;
+    };
+    let low_res_decoder =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-sam-decoder-low-res.onnx");
+    let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_003919.jpg"));
+    let params = SamParams {
+        points_per_side: 8,
+        ..SamParams::default()
+    };
+    let encoder = dir.join("color-sam-encoder.onnx");
+    let cpu = ExecutionProvider::Cpu;
+    let mut full = cpu_generator(&dir, "color-sam", params.clone());
+    let mut low =
+        SamAutomaticMaskGenerator::new(&encoder, &low_res_decoder, cpu, 0, params.clone()).unwrap();
+    let (a, b) = (full.generate(&img).unwrap(), low.generate(&img).unwrap());
+    assert!(a.len() > 5, "too few masks to compare: {}", a.len());
+    assert_eq!(a, b);
+
+    let graph = SamParams {
+        postprocess: MaskPostprocess::Graph,
+        ..params
+    };
+    let err = SamAutomaticMaskGenerator::new(&encoder, &low_res_decoder, cpu, 0, graph)
+        .err()
+        .expect("the graph post-processing needs the full decoder");
+    assert!(
+        matches!(&err, Error::Param { name: "postprocess", expected, .. } if expected.contains("full decoder")),
+        "{err}"
+    );
 }

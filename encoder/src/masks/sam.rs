@@ -214,6 +214,13 @@ const DECODER_OUTPUTS: &[TensorSpec] = &[
     TensorSpec::named("iou_predictions", ElemType::F32, &[-1, 4]),
     TensorSpec::named("low_res_masks", ElemType::F32, &[-1, 4, 256, 256]),
 ];
+/// The outputs of a decoder cut down to what [`MaskPostprocess::LowRes`] reads
+/// (`scripts/sam-decoder-low-res.py`): without the full-resolution `masks`, which ONNX Runtime
+/// would otherwise compute on every call.
+const DECODER_OUTPUTS_LOW_RES: &[TensorSpec] = &[
+    TensorSpec::named("iou_predictions", ElemType::F32, &[-1, 4]),
+    TensorSpec::named("low_res_masks", ElemType::F32, &[-1, 4, 256, 256]),
+];
 
 /// A candidate mask that passed the score filters, kept bit-packed until NMS.
 struct Candidate {
@@ -322,15 +329,40 @@ impl SamAutomaticMaskGenerator {
              (scripts/export-models.py sam)",
         )?;
         let dec = OnnxModel::load(decoder, placement)?;
-        onnx::check_signature(
+        let low_res_only = onnx::check_signature(
             dec.session(),
             decoder,
             "SAM mask decoder",
             DECODER_INPUTS,
-            DECODER_OUTPUTS,
-            "pass a SAM decoder exported with segment_anything's SamOnnxModel \
-             (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py sam",
-        )?;
+            DECODER_OUTPUTS_LOW_RES,
+            "",
+        )
+        .is_ok();
+        if !low_res_only {
+            onnx::check_signature(
+                dec.session(),
+                decoder,
+                "SAM mask decoder",
+                DECODER_INPUTS,
+                DECODER_OUTPUTS,
+                "pass a SAM decoder exported with segment_anything's SamOnnxModel \
+                 (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py \
+                 sam, or one cut down to iou_predictions and low_res_masks by \
+                 scripts/sam-decoder-low-res.py",
+            )?;
+        }
+        if low_res_only && params.postprocess == MaskPostprocess::Graph {
+            return Err(Error::param(
+                "postprocess",
+                "graph",
+                format!(
+                    "the low-resolution post-processing: {} has no full-resolution `masks` \
+                     output (cut down by scripts/sam-decoder-low-res.py); pass the full decoder \
+                     for MaskPostprocess::Graph",
+                    decoder.display()
+                ),
+            ));
+        }
         let providers = (enc.provider(), dec.provider());
         let device = enc.device_label();
         Ok(SamAutomaticMaskGenerator {
