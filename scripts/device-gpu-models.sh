@@ -13,6 +13,8 @@
 #                                            # MASKMODEL=DIR: timing model + mask model: ViT-H
 #                                            # runs on every image for its cost, DIR's color-sam
 #                                            # 16x16 (0.8/0.5) masks (~84 / image) go downstream
+#                                            # LOWRES=1: both SAM decoders cut down by
+#                                            # scripts/sam-decoder-low-res.py (needs python onnx)
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -102,9 +104,16 @@ e2e)
   prec=${PREC:-f16}
   MA=("${SAMARGS[@]}" $(samm $prec vit_h))
   if [ -n "${MASKMODEL:-}" ]; then
+    dec=("$MASKMODEL/color-sam-decoder.onnx" "$M/$prec/sam-vit_h-decoder.onnx")
+    if [ "${LOWRES:-0}" = 1 ]; then
+      # Both decoders cut down to iou_predictions + low_res_masks (same masks, less GPU work).
+      python3 scripts/sam-decoder-low-res.py "${dec[0]}" /root/color-sam-decoder-low-res.onnx
+      python3 scripts/sam-decoder-low-res.py "${dec[1]}" "$M/$prec/sam-vit_h-decoder-low-res.onnx"
+      dec=(/root/color-sam-decoder-low-res.onnx "$M/$prec/sam-vit_h-decoder-low-res.onnx")
+    fi
     MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
-      --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "$MASKMODEL/color-sam-decoder.onnx"
-      --sam-timing-encoder "$M/$prec/sam-vit_h-encoder.onnx" --sam-timing-decoder "$M/$prec/sam-vit_h-decoder.onnx")
+      --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "${dec[0]}"
+      --sam-timing-encoder "$M/$prec/sam-vit_h-encoder.onnx" --sam-timing-decoder "${dec[1]}")
     echo "### timing model SAM ViT-H $prec, mask model color-sam 16x16 (0.8/0.5)"
   fi
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
