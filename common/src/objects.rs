@@ -781,7 +781,8 @@ mod tests {
             segments: None,
         };
         // One bad field at a time, the rest default.
-        let cases: [(fn(&mut ObjectParams), &str); 6] = [
+        type Breaks = fn(&mut ObjectParams);
+        let cases: [(Breaks, &str); 6] = [
             (|p| p.gap = 0.0, "gap"),
             (|p| p.gap = f32::NAN, "gap"),
             (|p| p.min_gaussians = 0, "min_gaussians"),

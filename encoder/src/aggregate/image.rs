@@ -584,7 +584,7 @@ mod expand_tests {
                 let label = 1 + (next(&mut state) % 40) as u32;
                 // 1–3 records of the key, some with a zero sum.
                 for _ in 0..1 + next(&mut state) % 3 {
-                    let sum = if next(&mut state) % 7 == 0 {
+                    let sum = if next(&mut state).is_multiple_of(7) {
                         0
                     } else {
                         next(&mut state) % (1 << 36)
