@@ -17,11 +17,14 @@
 //!    `>= stability_score_thresh`; masks = logits `> mask_threshold`; boxes (xyxy, inclusive max).
 //!    The full-resolution logits are not taken from the graph's `masks` output (`P × 4 × H × W`
 //!    f32, 750 MB for 256 prompts at 990×742): the decoder is asked for `iou_predictions` and
-//!    `low_res_masks` only, and the logits of the candidates that pass the predicted-IoU filter
-//!    are upsampled on the host ([`LowResUpsampler`]) exactly as `SamOnnxModel.mask_postprocessing`
-//!    does (bilinear 256 → 1024, crop to the resized image, bilinear to `H × W`, both with
-//!    `align_corners=False`), composed into one separable 4-tap filter per axis
-//!    ([`MaskPostprocess::LowRes`], the default; [`MaskPostprocess::Graph`] keeps the old path);
+//!    `low_res_masks` only (ONNX Runtime still computes `masks` unless the decoder is cut down
+//!    by `scripts/sam-decoder-low-res.py`, which slag accepts), and the logits of the candidates
+//!    that pass the predicted-IoU filter are upsampled on the host ([`LowResUpsampler`]) exactly
+//!    as `SamOnnxModel.mask_postprocessing` does (bilinear 256 → 1024, crop to the resized
+//!    image, bilinear to `H × W`, both with `align_corners=False`), composed into one separable
+//!    4-tap filter per axis, and only in the 16 × 16 blocks near a threshold: the others are
+//!    decided from their taps, with the same result bit for bit ([`MaskPostprocess::LowRes`],
+//!    the default; [`MaskPostprocess::Graph`] keeps the old path);
 //! 5. greedy box NMS (torchvision `nms`, IoU `> box_nms_thresh` suppresses, boxes areas
 //!    `(x1 - x0) * (y1 - y0)`, f32), scores = predicted IoU; the output keeps NMS order (descending
 //!    predicted IoU), as `SamAutomaticMaskGenerator.generate` does.
