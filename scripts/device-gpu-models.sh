@@ -7,6 +7,8 @@
 #   scripts/device-gpu-models.sh prep        # wheels, binaries, real-size random-weight exports:
 #                                            # SAM ViT-B and ViT-H, CLIP ViT-B/16, f32 and fp16;
 #                                            # device facts (rates, FLOPs); torch fp16/fp32 peers
+#                                            # DECF16=1: also SAM with a half-precision mask
+#                                            # decoder (--fp16-decoder) in models/f16d
 #   scripts/device-gpu-models.sh stages      # slag-bench stages per model, CUDA and CPU
 #   scripts/device-gpu-models.sh e2e [N] [V] # synthetic scene of N Gaussians (2M), V views (250)
 #                                            # at 990x742: ViT-H 16x16 + CLIP ViT-B/16 on CUDA
@@ -15,6 +17,7 @@
 #                                            # 16x16 (0.8/0.5) masks (~84 / image) go downstream
 #                                            # LOWRES=1: both SAM decoders cut down by
 #                                            # scripts/sam-decoder-low-res.py (needs python onnx)
+#                                            # DECDIR=f16d: ViT-H's half-precision decoder
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -57,6 +60,12 @@ prep)
     python3 scripts/export-models.py sam --kind $k --random --fp16 "$M/f16" > "$R/export-$k-fp16.json" 2>"$R/export-$k-fp16.err" || tail -5 "$R/export-$k-fp16.err"
     echo "exported $k ($(( $(date +%s) - t0 )) s)"
   done
+  if [ "${DECF16:-0}" = 1 ]; then
+    # The decoders with a half-precision mask decoder too (export-models.py --fp16-decoder).
+    for k in ${KINDS:-vit_b vit_h}; do
+      python3 scripts/export-models.py sam --kind $k --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-$k-fp16d.json" 2>"$R/export-$k-fp16d.err" || tail -5 "$R/export-$k-fp16d.err"
+    done
+  fi
   [ "${QUICK:-0}" = 1 ] || python3 scripts/export-models.py clip --model ViT-B-16 --random "$M/f32" > "$R/export-clip.json" 2>&1 | tail -3
   python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 "$M/f16" > "$R/export-clip-fp16.json" 2>&1 | tail -3
   fi
@@ -104,12 +113,12 @@ e2e)
   prec=${PREC:-f16}
   MA=("${SAMARGS[@]}" $(samm $prec vit_h))
   if [ -n "${MASKMODEL:-}" ]; then
-    dec=("$MASKMODEL/color-sam-decoder.onnx" "$M/$prec/sam-vit_h-decoder.onnx")
+    dec=("$MASKMODEL/color-sam-decoder.onnx" "$M/${DECDIR:-$prec}/sam-vit_h-decoder.onnx")
     if [ "${LOWRES:-0}" = 1 ]; then
       # Both decoders cut down to iou_predictions + low_res_masks (same masks, less GPU work).
       python3 scripts/sam-decoder-low-res.py "${dec[0]}" /root/color-sam-decoder-low-res.onnx
-      python3 scripts/sam-decoder-low-res.py "${dec[1]}" "$M/$prec/sam-vit_h-decoder-low-res.onnx"
-      dec=(/root/color-sam-decoder-low-res.onnx "$M/$prec/sam-vit_h-decoder-low-res.onnx")
+      python3 scripts/sam-decoder-low-res.py "${dec[1]}" "$M/${DECDIR:-$prec}/sam-vit_h-decoder-low-res.onnx"
+      dec=(/root/color-sam-decoder-low-res.onnx "$M/${DECDIR:-$prec}/sam-vit_h-decoder-low-res.onnx")
     fi
     MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
       --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "${dec[0]}"

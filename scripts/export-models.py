@@ -26,7 +26,13 @@ clip writes OUT_DIR/NAME-visual.onnx (pixel_values f32[B,3,224,224] -> image_emb
 
 --fp16: weights and compute in half precision, graph inputs and outputs still f32 (a cast inside
 the graph), so slag's signatures are unchanged. Meant for the CUDA execution provider; the SAM
-decoder stays f32 (it is small and its prompt coordinates need f32).
+decoder stays f32 (it is small and its prompt coordinates need f32) unless --fp16-decoder.
+
+--fp16-decoder (sam): the decoder's mask decoder (two-way transformer, upscaling, hypernetwork
+and IoU heads) in half precision too. The prompt encoding (the points' positional encoding) and
+the mask post-processing stay f32, and so do the graph's inputs and outputs. Its weights are a
+few MB, but with many prompts per call its activations are large: on a GPU, half precision
+runs it on the tensor cores.
 """
 import argparse
 import hashlib
@@ -194,6 +200,20 @@ def tiny_sam(modeling, torch):
                         pixel_mean=[123.675, 116.28, 103.53], pixel_std=[58.395, 57.12, 57.375])
 
 
+def half_decoder(mask_decoder):
+    """Converts segment_anything's MaskDecoder to half precision in place, behind f32
+    `predict_masks` inputs and outputs (what SamOnnxModel calls): the prompt encoder's f32
+    embeddings are cast on the way in, the masks and IoU predictions back on the way out."""
+    mask_decoder.half()
+    predict = mask_decoder.predict_masks
+
+    def predict_masks(**kw):
+        masks, iou = predict(**{k: v.half() for k, v in kw.items()})
+        return masks.float(), iou.float()
+
+    mask_decoder.predict_masks = predict_masks
+
+
 def export_sam(a):
     torch = need("torch", "torch")
     need("onnx", "onnx")
@@ -225,8 +245,10 @@ def export_sam(a):
     enc_path = out / f"sam-{a.kind}-encoder.onnx"
     dec_path = out / f"sam-{a.kind}-decoder.onnx"
 
-    # Decoder first, in f32, before the encoder is converted to half precision.
+    # Decoder first, before the encoder is converted to half precision.
     torch.backends.mha.set_fastpath_enabled(False) if hasattr(torch.backends, "mha") else None
+    if a.fp16_decoder:
+        half_decoder(sam.mask_decoder)
     dummy = {"image_embeddings": torch.randn(1, 256, 64, 64),
              "point_coords": torch.randint(0, 1024, (2, 2, 2), dtype=torch.float),
              "point_labels": torch.tensor([[1, -1], [1, -1]], dtype=torch.float),
@@ -257,7 +279,7 @@ def export_sam(a):
     source = f"checkpoint {Path(a.checkpoint).name}" if a.checkpoint else f"random (seed {a.seed})"
     for p, role in ((enc_path, "encoder"), (dec_path, "decoder")):
         set_metadata(p, {"slag.sam_kind": a.kind, "slag.sam_role": role, "slag.weights": source,
-                         "slag.fp16": str(bool(a.fp16 and role == "encoder")).lower()})
+                         "slag.fp16": str(bool(a.fp16 if role == "encoder" else a.fp16_decoder)).lower()})
     expect_enc = ([("pixel_values", "float32", [1, 3, 1024, 1024])],
                   [("image_embeddings", "float32", [1, 256, 64, 64])])
     got = io_signature(enc_path)
@@ -270,6 +292,7 @@ def export_sam(a):
     shapes = check_with_ort(enc_path, {"pixel_values": torch.zeros(1, 3, 1024, 1024).numpy()})
     print(json.dumps({"encoder": str(enc_path), "decoder": str(dec_path), "kind": a.kind,
                       "weights": source, "fp16_encoder": bool(a.fp16),
+                      "fp16_decoder": bool(a.fp16_decoder),
                       "files": file_sizes([enc_path, dec_path]),
                       "onnxruntime_check": shapes}, indent=1))
 
@@ -455,6 +478,8 @@ def main():
     w.add_argument("--checkpoint", help="official checkpoint, e.g. " + SAM_CHECKPOINTS["vit_h"])
     w.add_argument("--random", action="store_true", help="random weights (timing, tests)")
     s.add_argument("--fp16", action="store_true", help="half-precision encoder, f32 I/O")
+    s.add_argument("--fp16-decoder", action="store_true",
+                   help="half-precision mask decoder (prompt encoding f32), f32 I/O")
     s.add_argument("--external-data", action="store_true",
                    help="encoder weights in ENCODER.onnx.data even when small (always over 2 GB)")
     s.add_argument("--seed", type=int, default=0)

@@ -345,3 +345,45 @@ fn low_res_decoder_gives_the_full_decoders_masks() {
         "{err}"
     );
 }
+
+/// Four generators sharing one generator's sessions ([`SamAutomaticMaskGenerator::share`], as
+/// the front workers of a GPU do) on four threads give every image the masks it gets alone: a
+/// decoder call's outputs stay intact while other threads run the session.
+#[test]
+fn shared_sessions_give_every_image_its_own_masks() {
+    let Some(dir) = ort_fixtures("sam-amg") else {
+        return;
+    };
+    let names = ["20240212_003919.jpg", "20240212_004040.jpg"];
+    let images: Vec<_> = names
+        .iter()
+        .map(|n| load_rgb(&shared().join("scenes/snowmiku/images").join(n)))
+        .collect();
+    let params = SamParams {
+        points_per_side: 6,
+        points_per_batch: 9,
+        ..SamParams::default()
+    };
+    let mut one = cpu_generator(&dir, "color-sam", params.clone());
+    let expected: Vec<_> = images.iter().map(|i| one.generate(i).unwrap()).collect();
+    assert!(expected.iter().all(|m| m.len() > 3), "too few masks to compare");
+    assert_ne!(expected[0], expected[1], "the images must differ");
+    let shared_sam = cpu_generator(&dir, "color-sam", params);
+    std::thread::scope(|s| {
+        let runs: Vec<_> = (0..4)
+            .map(|t| {
+                let mut sam = shared_sam.share();
+                let (images, expected) = (&images, &expected);
+                s.spawn(move || {
+                    for round in 0..3 {
+                        let k = (t + round) % images.len();
+                        assert_eq!(sam.generate(&images[k]).unwrap(), expected[k], "image {k}");
+                    }
+                })
+            })
+            .collect();
+        for r in runs {
+            r.join().unwrap();
+        }
+    });
+}

@@ -241,7 +241,8 @@ struct Candidate {
 /// The SAM encoder and decoder sessions of one GPU (or of the CPU), shared by every
 /// [`SamAutomaticMaskGenerator`] made with [`SamAutomaticMaskGenerator::share`]: one session per
 /// model per GPU, whatever the number of front workers. Each session's runs are serialised by its
-/// lock; the encoder of one image and the decoder of another run at the same time.
+/// lock, held for the run alone (a decoder call's candidates are filtered after the lock is
+/// released); the encoder of one image and the decoder of another run at the same time.
 pub struct SamModels {
     encoder: Mutex<OnnxModel>,
     decoder: Mutex<OnnxModel>,
@@ -494,13 +495,22 @@ impl SamAutomaticMaskGenerator {
         let options = RunOptions::new()
             .map_err(|e| errs.error("cannot create run options", &e))?
             .with_outputs(selector);
-        let outputs = dec
+        let mut outputs = dec
             .session_mut()
             .run_with_options(inputs, &options)
             .map_err(|e| errs.error("decoder run", &e))?;
         let run_s = t.elapsed().as_secs_f64();
+        // The outputs own their host memory: the session is free for another front's call
+        // while this call's candidates are filtered.
+        let iou_value = outputs.remove("iou_predictions");
+        let masks_value = outputs.remove(if low_res { "low_res_masks" } else { "masks" });
+        drop(outputs);
+        drop(dec);
+        let missing = |name: &str| errs.unexpected(format!("the decoder returned no {name}"));
+        let iou_value = iou_value.ok_or_else(|| missing("iou_predictions"))?;
+        let masks_value = masks_value.ok_or_else(|| missing("masks"))?;
         tracing::trace!(prompts = n, run_s, "SAM decoder batch");
-        let (ishape, ious) = outputs["iou_predictions"]
+        let (ishape, ious) = iou_value
             .try_extract_tensor::<f32>()
             .map_err(|e| errs.unexpected(format!("decoder iou_predictions are not f32: {e}")))?;
         if **ishape != [n as i64, 4] {
@@ -517,7 +527,7 @@ impl SamAutomaticMaskGenerator {
         let plane = hu * wu;
         let tf = std::time::Instant::now();
         let cands: Vec<Option<Candidate>> = if low_res {
-            let (lshape, lows) = outputs["low_res_masks"]
+            let (lshape, lows) = masks_value
                 .try_extract_tensor::<f32>()
                 .map_err(|e| errs.unexpected(format!("decoder low_res_masks are not f32: {e}")))?;
             if **lshape != [n as i64, 4, 256, 256] {
@@ -536,7 +546,7 @@ impl SamAutomaticMaskGenerator {
                 )
                 .collect()
         } else {
-            let (mshape, masks) = outputs["masks"]
+            let (mshape, masks) = masks_value
                 .try_extract_tensor::<f32>()
                 .map_err(|e| errs.unexpected(format!("decoder masks are not f32: {e}")))?;
             if **mshape != [n as i64, 4, i64::from(h), i64::from(w)] {
