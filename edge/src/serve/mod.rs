@@ -755,7 +755,7 @@ async fn query_post(
     #[derive(serde::Serialize)]
     #[serde(untagged)]
     enum Item {
-        Answer(query::QueryAnswer),
+        Answer(Box<query::QueryAnswer>),
         Error { error: String, status: u16 },
     }
     #[derive(serde::Serialize)]
@@ -765,7 +765,7 @@ async fn query_post(
     let answers = answers
         .into_iter()
         .map(|r| match r {
-            Ok(a) => Item::Answer(a),
+            Ok(a) => Item::Answer(Box::new(a)),
             Err(e) => Item::Error {
                 error: e.to_string(),
                 status: status_of(&e).as_u16(),
