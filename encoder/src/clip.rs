@@ -225,33 +225,22 @@ impl ClipVisual {
 
     /// Runs one batch of at most `batch_size` crops.
     ///
-    /// On a GPU provider every run has one of three sizes ([`gpu_run_sizes`]: the batch
-    /// size, its half, its quarter): a short batch is padded to the smallest that holds it
-    /// with zero images whose rows are dropped. The tower then sees three input shapes for the
-    /// whole encode, and its convolution plans are built before the encode, in the warm-up
-    /// runs of [`Self::into_service`]. Building a cuDNN plan for a new batch size in the middle
-    /// of an encode, while SAM's sessions run on other threads of the same GPU, failed with
-    /// CUDA error 901 ("operation failed due to a previous error during capture") under ONNX
-    /// Runtime 1.31. The smaller sizes spare the GPU most of the padding of an image's last,
-    /// short batch (e.g. 83 crops: runs of 64 and 32 rows, not 64 and 64).
+    /// On a GPU provider every run has exactly `batch_size` rows: a short batch is padded with
+    /// zero images whose rows are dropped. The tower then sees one input shape for the whole
+    /// encode, and its convolution plans are built once, in the first run. Building a cuDNN
+    /// plan for a new batch size in the middle of an encode, while SAM's sessions run on other
+    /// threads of the same GPU, failed with CUDA error 901 ("operation failed due to a previous
+    /// error during capture") under ONNX Runtime 1.31.
     fn run_batch(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
         let per = 3 * s * s;
         let n = pixels.len() / per;
         let padded;
-        let target = if self.fixed_batch {
-            gpu_run_sizes(self.batch_size)
-                .into_iter()
-                .find(|&r| r >= n)
-                .unwrap_or(n)
-        } else {
-            n
-        };
-        let (pixels, rows) = if target > n {
-            let mut buf = vec![0f32; target * per];
+        let (pixels, rows) = if self.fixed_batch && n < self.batch_size {
+            let mut buf = vec![0f32; self.batch_size * per];
             buf[..pixels.len()].copy_from_slice(pixels);
             padded = buf;
-            (padded.as_slice(), target)
+            (padded.as_slice(), self.batch_size)
         } else {
             (pixels, n)
         };
@@ -294,32 +283,18 @@ impl ClipVisual {
     /// Moves the tower onto its own thread, which runs the crops of every [`ClipHandle`] in shared
     /// batches (see [`ClipService`]).
     ///
-    /// On a GPU provider one batch of mid-grey images of each run size runs first, on the
-    /// calling thread, so the tower's plans exist before the front workers start (see
-    /// `run_batch`).
+    /// On a GPU provider one full batch of mid-grey images runs first, on the calling thread, so
+    /// the tower's plans exist before the front workers start (see `run_batch`).
     ///
     /// # Errors
-    /// [`Error::Inference`] when one of those runs fails.
+    /// [`Error::Inference`] when that first run fails.
     pub fn into_service(mut self) -> Result<ClipService> {
         if self.fixed_batch {
             let per = 3 * (CLIP_IMAGE_SIZE as usize).pow(2);
-            for rows in gpu_run_sizes(self.batch_size) {
-                self.run_batch(&vec![0.5f32; rows * per])?;
-            }
+            self.run_batch(&vec![0.5f32; self.batch_size * per])?;
         }
         Ok(ClipService::start(self))
     }
-}
-
-/// The row counts a GPU run of a tower with batch size `batch` may have: the batch size, its
-/// half and its quarter (those of at least one row), ascending and distinct.
-fn gpu_run_sizes(batch: usize) -> Vec<usize> {
-    let mut sizes: Vec<usize> = [batch / 4, batch / 2, batch]
-        .into_iter()
-        .filter(|&r| r > 0)
-        .collect();
-    sizes.dedup();
-    sizes
 }
 
 /// `f32[masks.len(), 3, 224, 224]`: CLIP's input for the white-background crops of `masks`,
@@ -558,15 +533,6 @@ impl ClipHandle {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn gpu_runs_have_the_batch_its_half_or_its_quarter() {
-        assert_eq!(gpu_run_sizes(64), [16, 32, 64]);
-        assert_eq!(gpu_run_sizes(6), [1, 3, 6]);
-        assert_eq!(gpu_run_sizes(3), [1, 3]);
-        assert_eq!(gpu_run_sizes(2), [1, 2]);
-        assert_eq!(gpu_run_sizes(1), [1]);
-    }
 
     #[test]
     fn crop_is_inclusive_bbox_with_white_outside() {

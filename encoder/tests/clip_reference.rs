@@ -293,8 +293,8 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
             .collect()
     };
     let mut direct = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
-    // The service pads every run to one of three sizes, as it does on a GPU (three input
-    // shapes for the whole encode); the padded rows must not change the real ones.
+    // The service pads every run to its batch size, as it does on a GPU (one input shape for
+    // the whole encode); the padded rows must not change the real ones.
     let mut padded = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
     padded.set_fixed_batch(true);
     let service = padded.into_service().unwrap();
