@@ -35,7 +35,9 @@ pub use image::{
     Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels,
 };
-pub use mixture::{reduce_mixture, reduce_mixture_sparse};
+pub use mixture::{
+    StreamedMixture, reduce_mixture, reduce_mixture_sparse, reduce_to_writer_with_mixture,
+};
 pub use reduce::{
     OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
     reduce_to_writer,
