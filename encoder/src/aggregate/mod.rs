@@ -13,7 +13,8 @@
 //! accumulator stays within a memory budget however large the scene, and declares a Gaussian
 //! *unobserved* (no embedding) when `Σ a_kj` is below a threshold or the weighted mean vanishes.
 //! [`reduce_mixture`] runs the same reduction but keeps each `E_k` as a sparse mixture of the
-//! shared mask embeddings (`slag_common::mixture`), the compressed storage form.
+//! shared mask embeddings (`slag_common::mixture`), the compressed storage form;
+//! [`reduce_to_writer_with_mixture`] gives both forms from one pass (the encoder's tail).
 //!
 //! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
 //! image), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the

@@ -1,6 +1,7 @@
 //! The end of an encode: the reduction of every image's `a_kj` to `E_k` streamed into
-//! `embeddings.safetensors`, the optional forms (per-level files, the mixture), and
-//! `report.json`, written last so that its presence means the run completed.
+//! `embeddings.safetensors` (the mixture form gathered in the same pass), the optional forms
+//! (per-level files, the mixture), and `report.json`, written last so that its presence means
+//! the run completed.
 //!
 //! [`OutputFiles`] is the writing order both encoders keep: this process's ([`finish`]) and the
 //! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
