@@ -11,14 +11,21 @@
 //! Each order runs the encoder's tail as `encode` does ([`reduce_to_writer`]: the reduction with
 //! the f16 write overlapped on a writer thread, then the file's finish); both must write the same
 //! bytes, which the run checks before it prints a ratio.
+//! With `--mixture-keep K` the tail with the mixture form is timed too (default loop order): the
+//! embeddings' pass followed by the mixture's own pass, against the one pass that feeds both
+//! ([`reduce_to_writer_with_mixture`]); the two must write the same bytes and gather the same
+//! mixture, which the run checks.
+//!
 //! Store shape: `images` views, each with `entries_per_image` distinct Gaussians drawn uniformly
 //! from `gaussians` (ids in `.ply` order carry no spatial order, so a view's ids are scattered),
 //! each entry in one of `masks_per_image` masks, with random unit mask embeddings of width `dim`.
 
 use anyhow::{Context, ensure};
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+use slag_common::mixture::SparseMixture;
 use slag_encoder::aggregate::{
-    ContributionStore, Entry, ImageContribution, ReduceParams, reduce_to_writer,
+    ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_sparse,
+    reduce_to_writer, reduce_to_writer_with_mixture,
 };
 use std::time::Instant;
 
@@ -49,6 +56,12 @@ pub struct ReduceArgs {
     /// Skip the image-major loop (profiling the default one alone).
     #[arg(long)]
     pub block_major_only: bool,
+    /// Also time the tail with the mixture form keeping this many `a_kj` per Gaussian
+    /// (`encode --mixture-keep`), in the default loop order: two passes (`reduce_to_writer`, then
+    /// `reduce_mixture_sparse`) against the one fused pass (`reduce_to_writer_with_mixture`),
+    /// which must give the same embeddings bytes and mixture.
+    #[arg(long)]
+    pub mixture_keep: Option<usize>,
     /// Seed of the synthetic store.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
@@ -150,6 +163,109 @@ fn tail(
     })
 }
 
+/// One run of the tail with the mixture form: the embeddings streamed to an f16 file and the
+/// mixture's sparse parts (not the stored form's build, which both ways share).
+struct MixtureTail {
+    /// Seconds of the embeddings' reduction (for the fused pass: the shared reduction less the
+    /// mixture's gathering, as `encode` reports `timings.reduce`).
+    reduce_s: f64,
+    /// Seconds that only the mixture costs (two passes: its whole pass; fused: gathering its
+    /// kept `a_kj` between chunks, as `encode` reports `mixture_reduce_s` less the build).
+    mixture_s: f64,
+    /// Seconds from the start until the embeddings' rows are written and the sparse parts ready.
+    total_s: f64,
+    sparse: SparseMixture,
+}
+
+/// The tail with the mixture form, as two passes (`fused` false) or one.
+fn mixture_tail(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    a: &ReduceArgs,
+    params: ReduceParams,
+    keep: usize,
+    fused: bool,
+    path: &std::path::Path,
+) -> anyhow::Result<MixtureTail> {
+    let t = Instant::now();
+    let writer = EmbeddingsWriter::create(path, a.dim, StoredPrecision::F16)?;
+    let (streamed, sparse, reduce_s, mixture_s) = if fused {
+        let m = reduce_to_writer_with_mixture(store, means, a.dim, params, writer, keep, "m")?;
+        let reduce_s = m.streamed.reduce_s - m.gather_s;
+        (m.streamed, m.sparse, reduce_s, m.gather_s)
+    } else {
+        let s = reduce_to_writer(store, means, a.dim, params, writer)?;
+        let reduce_s = s.reduce_s;
+        let t = Instant::now();
+        let n = means.len();
+        let sparse = reduce_mixture_sparse(store, n, a.dim, params, keep, "m", means)?;
+        (s, sparse, reduce_s, t.elapsed().as_secs_f64())
+    };
+    let total_s = t.elapsed().as_secs_f64();
+    streamed
+        .writer
+        .finish("synthetic", a.gaussians as u64, "synthetic")?;
+    Ok(MixtureTail {
+        reduce_s,
+        mixture_s,
+        total_s,
+        sparse,
+    })
+}
+
+/// The two-pass and the fused mixture tails measured against each other; returns the Markdown
+/// table, after checking that both wrote the same embeddings and gathered the same mixture.
+fn mixture_study(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    a: &ReduceArgs,
+    params: ReduceParams,
+    keep: usize,
+    dir: &std::path::Path,
+) -> anyhow::Result<String> {
+    let ways = [(false, "two passes"), (true, "one fused pass")];
+    let mut best: Vec<Option<MixtureTail>> = vec![None, None];
+    for _ in 0..a.repeats {
+        for (i, &(fused, _)) in ways.iter().enumerate() {
+            let path = dir.join(format!("mixture{i}.safetensors"));
+            let run = mixture_tail(store, means, a, params, keep, fused, &path)?;
+            if best[i].as_ref().is_none_or(|b| run.total_s < b.total_s) {
+                best[i] = Some(run);
+            }
+        }
+    }
+    ensure!(
+        same_bytes(
+            &dir.join("mixture0.safetensors"),
+            &dir.join("mixture1.safetensors")
+        )?,
+        "the fused tail wrote other embeddings than the two passes"
+    );
+    let best: Vec<MixtureTail> = best.into_iter().collect::<Option<_>>().context("no run")?;
+    ensure!(
+        best[0].sparse == best[1].sparse,
+        "the fused tail gathered another mixture than the two passes"
+    );
+    let atoms = best[1].sparse.atoms.len();
+    let mut table = format!(
+        "mixture tail, keep {keep} ({atoms} kept a_kj), default loop order; both ways wrote the \
+         same embeddings and gathered the same mixture; best of {} runs each\n\n\
+         | tail | embeddings reduce s | mixture's own s | total s | speed-up |\n\
+         |---|---:|---:|---:|---:|\n",
+        a.repeats
+    );
+    for ((_, name), b) in ways.iter().zip(&best) {
+        table += &format!(
+            "| {name} | {:.2} | {:.2} | {:.2} | {:.2} |\n",
+            b.reduce_s,
+            b.mixture_s,
+            b.total_s,
+            best[0].total_s / b.total_s
+        );
+    }
+    Ok(table)
+}
+
 /// True when the two files hold the same bytes.
 fn same_bytes(a: &std::path::Path, b: &std::path::Path) -> anyhow::Result<bool> {
     use std::io::Read;
@@ -234,6 +350,10 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
             base_tail / b.tail_s,
             b.finish_s
         );
+    }
+    if let Some(keep) = a.mixture_keep {
+        table += "\n";
+        table += &mixture_study(&store, &means, a, base, keep, dir.path())?;
     }
     Ok(format!(
         "reduce: {} Gaussians ({} observed), {} images, {} a_kj entries, D = {}, {} chunk(s), \

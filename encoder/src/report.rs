@@ -25,6 +25,8 @@ pub struct StageTimings {
     pub image_aggregate: f64,
     /// Reduction over images (`E_k`), wall clock until its last chunk was handed to the writer
     /// (the writer thread converts and writes each chunk while the next one is accumulated).
+    /// With the mixture form, the same pass also selects each Gaussian's kept `a_kj` (counted
+    /// here); the moving of them into the mixture's rows is in `outputs.mixture_reduce_s`.
     pub reduce: f64,
     /// Writing the output files, wall clock after the reduction: the last chunk's write, the
     /// mixture file and the embeddings file's assembly and fsync (what the overlap left).
@@ -324,7 +326,11 @@ pub struct FormOutputs {
     pub mixture_codebook_rows: Option<usize>,
     /// Slots per Gaussian of the mixture.
     pub mixture_keep: Option<usize>,
-    /// Seconds reducing the mixture.
+    /// Seconds of the tail that only the mixture costs, disjoint from `timings.reduce`: moving
+    /// each chunk's kept `a_kj` into the sparse rows during the reduction (which computes the
+    /// sums once for both forms; the per-entry top-`keep` selection runs inside it and is
+    /// counted in `timings.reduce`), then freeing the contributions and building the stored
+    /// form (codebook and weights rounded to f16).
     pub mixture_reduce_s: Option<f64>,
 }
 

@@ -13,7 +13,8 @@
 //! accumulator stays within a memory budget however large the scene, and declares a Gaussian
 //! *unobserved* (no embedding) when `Σ a_kj` is below a threshold or the weighted mean vanishes.
 //! [`reduce_mixture`] runs the same reduction but keeps each `E_k` as a sparse mixture of the
-//! shared mask embeddings (`slag_common::mixture`), the compressed storage form.
+//! shared mask embeddings (`slag_common::mixture`), the compressed storage form;
+//! [`reduce_to_writer_with_mixture`] gives both forms from one pass (the encoder's tail).
 //!
 //! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
 //! image), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
@@ -35,7 +36,9 @@ pub use image::{
     Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels,
 };
-pub use mixture::{reduce_mixture, reduce_mixture_sparse};
+pub use mixture::{
+    StreamedMixture, reduce_mixture, reduce_mixture_sparse, reduce_to_writer_with_mixture,
+};
 pub use reduce::{
     OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
     reduce_to_writer,

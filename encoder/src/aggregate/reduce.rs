@@ -104,29 +104,11 @@ pub fn reduce_each(
     params: ReduceParams,
     mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
 ) -> Result<usize> {
-    let mut pass = Pass::new(store, n_gaussians, dim, params, (dim + 1) * 8);
-    if store.spilled() == 0 && !params.image_major {
-        // The block-major loop needs no chunk-wide accumulator, so its chunk is sized by its
-        // output instead: a chunk's rows are what a sink holds while the next chunks are
-        // accumulated (the streamed tail holds up to three).
-        pass.chunk = pass.chunk.min(output_chunk_rows(dim));
-    }
     accumulate(
-        pass,
+        Pass::streamed(store, n_gaussians, dim, params, (dim + 1) * 8),
         |_, _, _| Ok(0),
         |_: &mut (), _, _| {},
-        |sums| {
-            let mut out = Reduced {
-                chunks: 0,
-                ..Default::default()
-            };
-            for (r, row, norm, d) in sums.observed(params.min_total_weight) {
-                out.ids.push((sums.start + r) as u32);
-                out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
-                out.total_weights.push(d as f32);
-            }
-            out
-        },
+        |sums| sums.reduced(params.min_total_weight),
         &mut sink,
     )
 }
@@ -172,6 +154,40 @@ pub fn reduce_to_writer(
     params: ReduceParams,
     writer: EmbeddingsWriter,
 ) -> Result<Streamed> {
+    stream_to_writer(
+        Pass::streamed(store, means.len(), dim, params, (dim + 1) * 8),
+        params.min_total_weight,
+        means,
+        writer,
+        |_, _, _| Ok(0),
+        |_: &mut (), _, _| {},
+        |_, _| (),
+        |_| Ok(()),
+    )
+}
+
+/// The body of [`reduce_to_writer`], with a side product: one [`accumulate`] pass whose every
+/// run of final sums is turned into the observed rows ([`ChunkSums::reduced`], sent to the writer
+/// thread) and into a side part by `side_part(sums, rows)` (in parallel, as `accumulate`'s
+/// `finish`; `rows` are the run's observed rows, so the side sees exactly the Gaussians written);
+/// `side(parts)` then receives the chunk's side parts in ascending id order on the calling thread,
+/// after the chunk's rows were handed to the writer. `on_image` and `on_entry` are
+/// [`accumulate`]'s hooks. The mixture rides on this ([`super::reduce_to_writer_with_mixture`]):
+/// one f64 reduction feeds both outputs.
+///
+/// Errors: those of [`accumulate`], `side`'s, and the writer's (I/O, non-finite rows, means
+/// missing), which take precedence over the reduction's "writer stopped" error they cause.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn stream_to_writer<T: Clone + Default + Send, S: Send>(
+    pass: Pass<'_>,
+    min_total_weight: f64,
+    means: &[[f32; 3]],
+    writer: EmbeddingsWriter,
+    on_image: impl FnMut(bool, usize, &StoredImage) -> Result<u32>,
+    on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
+    side_part: impl Fn(&mut ChunkSums<T>, &Reduced) -> S + Sync,
+    mut side: impl FnMut(Vec<S>) -> Result<()>,
+) -> Result<Streamed> {
     let t0 = std::time::Instant::now();
     std::thread::scope(|s| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<Reduced>>(1);
@@ -189,10 +205,22 @@ pub fn reduce_to_writer(
             }
             Ok(writer)
         });
-        let reduced = reduce_each(store, means.len(), dim, params, |runs| {
-            tx.send(runs)
-                .map_err(|_| Error::internal("the embeddings writer stopped early"))
-        });
+        let reduced = accumulate(
+            pass,
+            on_image,
+            on_entry,
+            |sums| {
+                let rows = sums.reduced(min_total_weight);
+                let part = side_part(sums, &rows);
+                (rows, part)
+            },
+            |parts| {
+                let (runs, sides): (Vec<Reduced>, Vec<S>) = parts.into_iter().unzip();
+                tx.send(runs)
+                    .map_err(|_| Error::internal("the embeddings writer stopped early"))?;
+                side(sides)
+            },
+        );
         let reduce_s = t0.elapsed().as_secs_f64();
         drop(tx);
         let writer = handle
@@ -232,6 +260,19 @@ impl<T: Clone + Default> ChunkSums<T> {
         self.den.resize(len, 0.0);
         self.extra.clear();
         self.extra.resize(len, T::default());
+    }
+
+    /// The observed rows of the run ([`ChunkSums::observed`]) as a [`Reduced`]: ids `[B]`, the
+    /// unit vectors `Σ a E / ‖Σ a E‖` rounded to f32 `[B * D]`, `Σ a` rounded to f32 `[B]`,
+    /// `chunks` 0.
+    pub(super) fn reduced(&self, min_total_weight: f64) -> Reduced {
+        let mut out = Reduced::default();
+        for (r, row, norm, d) in self.observed(min_total_weight) {
+            out.ids.push((self.start + r) as u32);
+            out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
+            out.total_weights.push(d as f32);
+        }
+        out
     }
 
     /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`.
@@ -288,12 +329,33 @@ impl<'a> Pass<'a> {
             image_major: params.image_major,
         }
     }
+
+    /// [`Pass::new`] for a pass whose output is streamed chunk by chunk ([`reduce_each`],
+    /// [`reduce_to_writer`]): on the block-major path (no spilled contribution, not
+    /// [`ReduceParams::image_major`]) there is no chunk-wide accumulator, so the chunk is sized by
+    /// its output instead, at most [`output_chunk_rows`] Gaussians: a chunk's rows are what a
+    /// sink holds while the next chunks are accumulated (the streamed tail holds up to three).
+    pub(super) fn streamed(
+        store: &'a ContributionStore,
+        n_gaussians: usize,
+        dim: usize,
+        params: ReduceParams,
+        per_gaussian: usize,
+    ) -> Self {
+        let mut pass = Self::new(store, n_gaussians, dim, params, per_gaussian);
+        if store.spilled() == 0 && !params.image_major {
+            pass.chunk = pass.chunk.min(output_chunk_rows(dim));
+        }
+        pass
+    }
 }
 
-/// The f64 accumulation shared by [`reduce_each`] and [`reduce_mixture`]: for each chunk of
-/// `chunk` Gaussian ids, visits every contribution ([`ContributionStore::for_each`] order) and adds
-/// `a_kj` to `Σ a` and `a_kj · E_j` to `Σ a E` of its Gaussian; `finish` turns each run of final
-/// sums into a part (in parallel), and `done` receives the chunk's parts in ascending id order.
+/// The f64 accumulation shared by [`reduce_each`], [`reduce_mixture`] and the fused tail
+/// ([`super::reduce_to_writer_with_mixture`]): for each chunk of `chunk` Gaussian ids, visits every
+/// contribution ([`ContributionStore::for_each`] order) and adds `a_kj` to `Σ a` and `a_kj · E_j`
+/// to `Σ a E` of its Gaussian; `finish` turns each run of final sums into a part (in parallel; it
+/// may take the extras out, the sums are reset before their next use), and `done` receives the
+/// chunk's parts in ascending id order.
 /// Within a Gaussian the sums always run in contribution, then entry order, so every caller and
 /// both loop orders below get bit-identical f64 values.
 ///
@@ -317,7 +379,7 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
     pass: Pass<'_>,
     mut on_image: impl FnMut(bool, usize, &StoredImage) -> Result<u32>,
     on_entry: impl Fn(&mut T, &Entry, u32) + Sync,
-    finish: impl Fn(&ChunkSums<T>) -> B + Sync,
+    finish: impl Fn(&mut ChunkSums<T>) -> B + Sync,
     mut done: impl FnMut(Vec<B>) -> Result<()>,
 ) -> Result<usize> {
     let Pass {
@@ -402,7 +464,7 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
             if let Some(e) = failure {
                 return Err(e);
             }
-            done(vec![finish(&sums)])?;
+            done(vec![finish(&mut sums)])?;
         }
     }
     Ok(chunks)

@@ -384,6 +384,146 @@ fn both_loop_orders_give_the_same_sums_bit_for_bit() {
     }
 }
 
+/// The embeddings file (f32 rows, so that every bit of the reduction shows) and the mixture's
+/// sparse parts of the two separate passes, `reduce_to_writer` then `reduce_mixture_sparse`.
+fn separate_tail(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    p: ReduceParams,
+    keep: usize,
+    path: &Path,
+) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
+    use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+    let w = EmbeddingsWriter::create(path, dim, StoredPrecision::F32).unwrap();
+    let s = reduce_to_writer(store, means, dim, p, w).unwrap();
+    s.writer
+        .finish("m", means.len() as u64, "scene.ply")
+        .unwrap();
+    let n = means.len();
+    let sparse = reduce_mixture_sparse(store, n, dim, p, keep, "m", means).unwrap();
+    (std::fs::read(path).unwrap(), sparse)
+}
+
+/// The same outputs from the one fused pass, `reduce_to_writer_with_mixture`.
+fn fused_tail(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    p: ReduceParams,
+    keep: usize,
+    path: &Path,
+) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
+    use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+    let w = EmbeddingsWriter::create(path, dim, StoredPrecision::F32).unwrap();
+    let m = reduce_to_writer_with_mixture(store, means, dim, p, w, keep, "m").unwrap();
+    assert!(m.gather_s >= 0.0 && m.gather_s <= m.streamed.reduce_s);
+    let s = m.streamed;
+    s.writer
+        .finish("m", means.len() as u64, "scene.ply")
+        .unwrap();
+    (std::fs::read(path).unwrap(), m.sparse)
+}
+
+#[test]
+fn fused_tail_writes_exactly_what_the_two_passes_write() {
+    let (n, dim) = (5000u32, 16);
+    let dir = tempfile::tempdir().unwrap();
+    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.5, -1.0]).collect();
+    let in_memory = mixture_store(n, dim, usize::MAX, &dir.path().join("mem"));
+    let half = in_memory.bytes_in_memory() / 2;
+    let mixed = mixture_store(n, dim, half, &dir.path().join("mixed"));
+    let spilled = mixture_store(n, dim, 0, &dir.path().join("spilled"));
+    assert_eq!(in_memory.spilled(), 0);
+    assert!(mixed.spilled() > 0 && mixed.spilled() < mixed.len());
+    assert_eq!(spilled.spilled(), spilled.len());
+    let exact = reduce(&in_memory, n as usize, dim, ReduceParams::default()).unwrap();
+    assert!(exact.ids.len() > 1000 && exact.ids.len() < n as usize);
+    // One chunk; chunks of 1024 Gaussians; chunks whose edges differ between the embeddings'
+    // pass and the mixture's (whose accumulator is wider per Gaussian).
+    let budgets = [usize::MAX / 2, 1024 * (dim + 1) * 8, 2500 * (dim + 1) * 8];
+    // 4 images x 3 overlapping masks: at most 12 atoms per Gaussian.
+    let keeps = [1, 3, 12, usize::MAX];
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    for (name, store) in [
+        ("in memory", &in_memory),
+        ("mixed", &mixed),
+        ("spilled", &spilled),
+    ] {
+        for budget in budgets {
+            for image_major in [false, true] {
+                let p = ReduceParams {
+                    accumulator_budget_bytes: budget,
+                    image_major,
+                    ..Default::default()
+                };
+                for keep in keeps {
+                    let case =
+                        format!("{name}, budget {budget}, image-major {image_major}, keep {keep}");
+                    let (file_a, sparse_a) = separate_tail(store, &means, dim, p, keep, &a);
+                    let (file_b, sparse_b) = fused_tail(store, &means, dim, p, keep, &b);
+                    assert!(file_a == file_b, "embeddings differ: {case}");
+                    assert_eq!(sparse_a, sparse_b, "{case}");
+                    assert_eq!(sparse_b.gaussian_ids, exact.ids, "{case}");
+                    // keep below the atom counts cuts rows; above them it keeps them whole.
+                    let longest = sparse_b.offsets.windows(2).map(|w| w[1] - w[0]).max();
+                    let longest = longest.unwrap();
+                    assert!(longest <= keep, "{case}");
+                    assert!(
+                        if keep <= 3 {
+                            longest == keep
+                        } else {
+                            longest > 3
+                        },
+                        "{case}"
+                    );
+                    // The stored forms, as `encode` writes them, byte for byte.
+                    let ma =
+                        slag_common::mixture::MixtureEmbeddings::from_sparse(sparse_a).unwrap();
+                    let mb =
+                        slag_common::mixture::MixtureEmbeddings::from_sparse(sparse_b).unwrap();
+                    ma.write(&a).unwrap();
+                    mb.write(&b).unwrap();
+                    assert!(
+                        std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+                        "{case}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn fused_tail_rejects_what_the_mixture_rejects() {
+    use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+    let (n, dim) = (300u32, 8);
+    let dir = tempfile::tempdir().unwrap();
+    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.0, 0.0]).collect();
+    let mut store = mixture_store(n, dim, usize::MAX, &dir.path().join("s"));
+    let path = dir.path().join("e.safetensors");
+    let p = ReduceParams::default();
+    let writer = || EmbeddingsWriter::create(&path, dim, StoredPrecision::F16).unwrap();
+    assert!(matches!(
+        reduce_to_writer_with_mixture(&store, &means, dim, p, writer(), 0, "m"),
+        Err(Error::Param {
+            name: "mixture_keep",
+            ..
+        })
+    ));
+    store
+        .push(ImageContribution {
+            dim: dim + 1,
+            mask_embeddings: vec![0.0; dim + 1],
+            entries: vec![],
+        })
+        .unwrap();
+    assert!(matches!(
+        reduce_to_writer_with_mixture(&store, &means, dim, p, writer(), 4, "m"),
+        Err(Error::Mismatch { .. })
+    ));
+}
+
 #[test]
 fn mixture_observes_what_reduce_observes_and_rejects_bad_input() {
     let dim = 3;

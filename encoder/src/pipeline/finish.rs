@@ -1,6 +1,7 @@
 //! The end of an encode: the reduction of every image's `a_kj` to `E_k` streamed into
-//! `embeddings.safetensors`, the optional forms (per-level files, the mixture), and
-//! `report.json`, written last so that its presence means the run completed.
+//! `embeddings.safetensors` (the mixture form gathered in the same pass), the optional forms
+//! (per-level files, the mixture), and `report.json`, written last so that its presence means
+//! the run completed.
 //!
 //! [`OutputFiles`] is the writing order both encoders keep: this process's ([`finish`]) and the
 //! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
@@ -124,35 +125,45 @@ pub(crate) fn finish(
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
     // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
+    // With the mixture, the same pass also keeps each Gaussian's largest a_kj and the codebook
+    // (one f64 reduction for both forms).
     let t0 = Instant::now();
     let writer = EmbeddingsWriter::create(&files.embeddings, dim, params.precision)?;
+    let p = params.reduce;
+    let (streamed, sparse, gather_s) = match params.mixture_keep {
+        Some(keep) => {
+            let m = aggregate::reduce_to_writer_with_mixture(
+                &store, &means, dim, p, writer, keep, &model_id,
+            )?;
+            (m.streamed, Some(m.sparse), m.gather_s)
+        }
+        None => (
+            aggregate::reduce_to_writer(&store, &means, dim, p, writer)?,
+            None,
+            0.0,
+        ),
+    };
     let aggregate::Streamed {
         chunks,
         writer,
         reduce_s,
-    } = aggregate::reduce_to_writer(&store, &means, dim, params.reduce, writer)?;
+    } = streamed;
     let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
-    t.reduce = reduce_s;
+    // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
+    // as the mixture's, not the reduction's: the tail's phases stay disjoint.
+    t.reduce = reduce_s - gather_s;
     counts.spilled_images = store.spilled();
     counts.reduce_chunks = chunks;
     counts.observed = writer.len();
     counts.observed_fraction = writer.len() as f64 / n_gaussians.max(1) as f64;
-    // The compressed form (shared codebook of mask embeddings + top-S weights), if asked for:
-    // its kept a_kj are gathered while the store is there, and the stored form is built after
-    // the store's entries are freed.
+    // The mixture's stored form is built after the store's entries are freed, so that its
+    // buffers never add to them.
     let t0 = Instant::now();
-    let sparse = params
-        .mixture_keep
-        .map(|keep| {
-            let p = params.reduce;
-            aggregate::reduce_mixture_sparse(&store, n_gaussians, dim, p, keep, &model_id, &means)
-        })
-        .transpose()?;
     drop(store);
     let mixture = sparse
         .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
         .transpose()?;
-    let mixture_s = t0.elapsed().as_secs_f64();
+    let mixture_s = gather_s + t0.elapsed().as_secs_f64();
     // Granularity kept apart: one ordinary embeddings file per level.
     let t0 = Instant::now();
     let mut level_files = Vec::new();
