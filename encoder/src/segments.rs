@@ -48,6 +48,7 @@
 //! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
 //! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -369,7 +370,8 @@ fn plan_tiles(means: &[[f32; 3]], cap: usize) -> ([usize; 2], Vec<u32>, Vec<([f3
 }
 
 /// The graph's edges of tile `t`: inner edges (both ends in the tile), ascending, and border
-/// edges (one end outside), unordered.
+/// edges (one end outside), unordered. Once `stop` is set the remaining Gaussians get no edges:
+/// the caller discards such a partial result.
 #[allow(clippy::too_many_arguments)]
 fn tile_edges(
     t: u32,
@@ -380,6 +382,7 @@ fn tile_edges(
     geo: &Geometry,
     p: &SegmentParams,
     h: f32,
+    stop: &AtomicBool,
 ) -> (Vec<Edge>, Vec<Edge>) {
     let (lo, hi) = rect;
     let inside = |m: &[f32; 3]| (0..2).all(|k| m[ax[k]] >= lo[k] - h && m[ax[k]] <= hi[k] + h);
@@ -399,6 +402,9 @@ fn tile_edges(
         .par_iter()
         .filter(|&&i| tile_of[i as usize] == t)
         .map(|&i| {
+            if stop.load(Ordering::Relaxed) {
+                return (Vec::new(), Vec::new());
+            }
             let mi = means[i as usize];
             // The k nearest other Gaussians within h, ties by id: take every candidate up to the
             // k-th distance, including all that tie with it, then sort by (distance, id).
@@ -455,6 +461,9 @@ fn resolve_max_edge(p: &SegmentParams, geo: &Geometry) -> f32 {
 
 /// Segments the Gaussians of `g` (module doc) and records `source_ply` in the result.
 ///
+/// Runs on the current rayon pool (the global one, or the pool whose `install` calls it); the
+/// result does not depend on its thread count.
+///
 /// Errors: [`Error::Param`] for settings [`SegmentParams::validate`] refuses, a scene of more
 /// than `u32::MAX - 1` Gaussians ([`Error::Limit`]), arrays that disagree ([`Error::Internal`]),
 /// non-finite means ([`Error::Invalid`]).
@@ -463,7 +472,24 @@ pub fn segment(
     p: &SegmentParams,
     source_ply: &str,
 ) -> Result<(Segments, SegmentStats)> {
+    segment_unless_stopped(g, p, source_ply, &AtomicBool::new(false))?
+        .ok_or_else(|| Error::internal("the segmentation stopped without being asked to"))
+}
+
+/// [`segment`], given up as soon as `stop` is set (another thread sets it when the result is no
+/// longer wanted, e.g. the encode it runs beside failed): `Ok(None)` then. `stop` is read
+/// between the stages and for every Gaussian of the k-nearest-neighbour search, so the
+/// segmentation ends within about one Gaussian's search per thread or one union-find pass.
+///
+/// Errors: those of [`segment`].
+pub fn segment_unless_stopped(
+    g: &Gaussians,
+    p: &SegmentParams,
+    source_ply: &str,
+    stop: &AtomicBool,
+) -> Result<Option<(Segments, SegmentStats)>> {
     p.validate()?;
+    let stopped = || stop.load(Ordering::Relaxed);
     let t0 = Instant::now();
     let n = g.len();
     if n >= u32::MAX as usize {
@@ -490,13 +516,19 @@ pub fn segment(
         )));
     }
     let geo = geometry(g);
+    if stopped() {
+        return Ok(None);
+    }
     let h = resolve_max_edge(p, &geo);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
     let mut forest = Forest::singletons(n);
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for (t, rect) in rects.iter().enumerate() {
-        let (inner, b) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+        let (inner, b) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop);
+        if stopped() {
+            return Ok(None);
+        }
         forest.criterion_pass(&inner, p.threshold);
         edges += inner.len() as u64;
         border.extend(b);
@@ -504,10 +536,16 @@ pub fn segment(
     border.par_sort_unstable();
     border.dedup();
     edges += border.len() as u64;
+    if stopped() {
+        return Ok(None);
+    }
     forest.criterion_pass(&border, p.threshold);
     if p.min_size > 1 {
         for (t, rect) in rects.iter().enumerate() {
-            let (inner, _) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+            let (inner, _) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop);
+            if stopped() {
+                return Ok(None);
+            }
             forest.min_size_pass(&inner, p.min_size);
         }
         forest.min_size_pass(&border, p.min_size);
@@ -527,7 +565,7 @@ pub fn segment(
         "params": p, "max_edge_used": h, "tiles": rects.len(),
     }))
     .unwrap_or_default();
-    Ok((
+    Ok(Some((
         Segments {
             segments,
             segment_count,
@@ -535,7 +573,7 @@ pub fn segment(
             parameters,
         },
         stats,
-    ))
+    )))
 }
 
 #[cfg(test)]
@@ -662,7 +700,8 @@ mod tests {
         let geo = geometry(&g);
         let h = resolve_max_edge(&p, &geo);
         let (ax1, one, r1) = plan_tiles(&g.means, usize::MAX);
-        let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h);
+        let go = AtomicBool::new(false);
+        let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h, &go);
         assert!(none.is_empty());
         let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
         let mut order: Vec<Edge> = Vec::new();
@@ -712,6 +751,22 @@ mod tests {
         // The same segments (the recorded parameters differ: the tile count).
         assert_eq!(a.segments, b.segments);
         assert_eq!(a.segment_count, 3);
+    }
+
+    #[test]
+    fn a_set_stop_gives_no_result() {
+        let (g, _) = planes();
+        let stop = AtomicBool::new(true);
+        assert!(
+            segment_unless_stopped(&g, &params(), "x", &stop)
+                .unwrap()
+                .is_none()
+        );
+        let go = AtomicBool::new(false);
+        let (s, _) = segment_unless_stopped(&g, &params(), "x", &go)
+            .unwrap()
+            .unwrap();
+        assert_eq!(s, segment(&g, &params(), "x").unwrap().0);
     }
 
     #[test]
