@@ -49,6 +49,7 @@
 //! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -459,6 +460,50 @@ fn resolve_max_edge(p: &SegmentParams, geo: &Geometry) -> f32 {
     if m.is_finite() && m > 0.0 { m } else { 1.0 }
 }
 
+/// Where [`segment_with`] runs its parallel stages, and whether it should give up. Another
+/// thread may change both while it runs: the encode that runs a segmentation beside itself
+/// starts it on a small pool, widens it when the encode is done, and stops it when the encode
+/// failed.
+#[derive(Debug, Default)]
+pub struct SegmentControl {
+    stop: AtomicBool,
+    pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
+}
+
+impl SegmentControl {
+    /// Stages on `pool`; `None`: on the pool of the calling thread (rayon's global pool, or the
+    /// one whose `install` runs the caller).
+    pub fn new(pool: Option<rayon::ThreadPool>) -> Self {
+        SegmentControl {
+            stop: AtomicBool::new(false),
+            pool: Mutex::new(pool.map(Arc::new)),
+        }
+    }
+
+    /// The stages that start from now on run on `pool` (those under way finish where they are).
+    pub fn set_pool(&self, pool: rayon::ThreadPool) {
+        *self.pool.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(pool));
+    }
+
+    /// Asks the segmentation to give up: [`segment_with`] returns `Ok(None)` soon after.
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Runs `op` on the current pool choice.
+    pub fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        let pool = self.pool.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        match pool {
+            Some(p) => p.install(op),
+            None => op(),
+        }
+    }
+}
+
 /// Segments the Gaussians of `g` (module doc) and records `source_ply` in the result.
 ///
 /// Runs on the current rayon pool (the global one, or the pool whose `install` calls it); the
@@ -472,24 +517,26 @@ pub fn segment(
     p: &SegmentParams,
     source_ply: &str,
 ) -> Result<(Segments, SegmentStats)> {
-    segment_unless_stopped(g, p, source_ply, &AtomicBool::new(false))?
+    segment_with(g, p, source_ply, &SegmentControl::default())?
         .ok_or_else(|| Error::internal("the segmentation stopped without being asked to"))
 }
 
-/// [`segment`], given up as soon as `stop` is set (another thread sets it when the result is no
-/// longer wanted, e.g. the encode it runs beside failed): `Ok(None)` then. `stop` is read
-/// between the stages and for every Gaussian of the k-nearest-neighbour search, so the
-/// segmentation ends within about one Gaussian's search per thread or one union-find pass.
+/// [`segment`] with its parallel stages on `ctl`'s pool of the moment (the serial union-find
+/// passes run on the calling thread), given up once [`SegmentControl::stop`] was called:
+/// `Ok(None)` then. The stop is looked at between the stages and for every Gaussian of the
+/// k-nearest-neighbour search, so it takes effect within about one union-find pass. The result
+/// is [`segment`]'s, whatever the pools.
 ///
 /// Errors: those of [`segment`].
-pub fn segment_unless_stopped(
+pub fn segment_with(
     g: &Gaussians,
     p: &SegmentParams,
     source_ply: &str,
-    stop: &AtomicBool,
+    ctl: &SegmentControl,
 ) -> Result<Option<(Segments, SegmentStats)>> {
     p.validate()?;
-    let stopped = || stop.load(Ordering::Relaxed);
+    let stopped = || ctl.stopped();
+    let stop = &ctl.stop;
     let t0 = Instant::now();
     let n = g.len();
     if n >= u32::MAX as usize {
@@ -515,7 +562,7 @@ pub fn segment_unless_stopped(
             "mean of Gaussian {i} is not finite"
         )));
     }
-    let geo = geometry(g);
+    let geo = ctl.run(|| geometry(g));
     if stopped() {
         return Ok(None);
     }
@@ -525,7 +572,8 @@ pub fn segment_unless_stopped(
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for (t, rect) in rects.iter().enumerate() {
-        let (inner, b) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop);
+        let (inner, b) =
+            ctl.run(|| tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop));
         if stopped() {
             return Ok(None);
         }
@@ -533,7 +581,7 @@ pub fn segment_unless_stopped(
         edges += inner.len() as u64;
         border.extend(b);
     }
-    border.par_sort_unstable();
+    ctl.run(|| border.par_sort_unstable());
     border.dedup();
     edges += border.len() as u64;
     if stopped() {
@@ -542,7 +590,8 @@ pub fn segment_unless_stopped(
     forest.criterion_pass(&border, p.threshold);
     if p.min_size > 1 {
         for (t, rect) in rects.iter().enumerate() {
-            let (inner, _) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop);
+            let (inner, _) =
+                ctl.run(|| tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop));
             if stopped() {
                 return Ok(None);
             }
@@ -754,19 +803,28 @@ mod tests {
     }
 
     #[test]
-    fn a_set_stop_gives_no_result() {
+    fn a_stop_gives_no_result_and_pools_do_not_change_it() {
         let (g, _) = planes();
-        let stop = AtomicBool::new(true);
-        assert!(
-            segment_unless_stopped(&g, &params(), "x", &stop)
+        let p = SegmentParams {
+            tile_gaussians: 500,
+            ..params()
+        };
+        let stopped = SegmentControl::default();
+        stopped.stop();
+        assert!(segment_with(&g, &p, "x", &stopped).unwrap().is_none());
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
                 .unwrap()
-                .is_none()
-        );
-        let go = AtomicBool::new(false);
-        let (s, _) = segment_unless_stopped(&g, &params(), "x", &go)
-            .unwrap()
-            .unwrap();
-        assert_eq!(s, segment(&g, &params(), "x").unwrap().0);
+        };
+        let ctl = SegmentControl::new(Some(pool(1)));
+        let narrow = segment_with(&g, &p, "x", &ctl).unwrap().unwrap().0;
+        ctl.set_pool(pool(3));
+        let wide = segment_with(&g, &p, "x", &ctl).unwrap().unwrap().0;
+        let plain = segment(&g, &p, "x").unwrap().0;
+        assert_eq!(narrow, plain);
+        assert_eq!(wide, plain);
     }
 
     #[test]

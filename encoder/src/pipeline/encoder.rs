@@ -49,8 +49,8 @@ impl Encoder {
     /// [`crate::config::ExecutionConfig::threads`] unless the process already has one.
     ///
     /// The segments are computed beside the encode, from the start, on a pool of their own
-    /// (a quarter of the threads, `pipeline::segment_task`), and written only once the encode
-    /// has succeeded: a failed or killed encode leaves no segments file. When the segmentation
+    /// (a quarter of the threads, all of them for what is left once the encode is done:
+    /// `pipeline::segment_task`), and written only once the encode has succeeded: a failed or killed encode leaves no segments file. When the segmentation
     /// fails, the encode still finishes and writes its complete outputs (the embeddings do not
     /// depend on the segments), and the run then returns the segmentation's error with no
     /// segments file: `slag-encoder segment` makes it later without re-encoding.
@@ -103,17 +103,22 @@ impl Encoder {
         // that looks complete; an optional file of its own (atomic): `partition` without it
         // simply stores no segments.
         if let Some(task) = segments {
-            write_segments(c, task)?;
+            write_segments(c, task, threads)?;
         }
         Ok(report)
     }
 }
 
-/// Waits for `task` and writes its segments to `<out>/segments.safetensors` (atomically).
+/// Waits for `task` (on `threads` threads from now on, if it is still running) and writes its
+/// segments to `<out>/segments.safetensors` (atomically).
 ///
 /// Errors: the segmentation's ([`SegmentTask::finish`]), I/O.
-fn write_segments(c: &EncodeConfig, task: SegmentTask) -> Result<crate::segments::SegmentStats> {
-    let done = task.finish()?;
+fn write_segments(
+    c: &EncodeConfig,
+    task: SegmentTask,
+    threads: usize,
+) -> Result<crate::segments::SegmentStats> {
+    let done = task.finish(threads)?;
     let dir = &c.output.dir;
     std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
     done.segments
@@ -125,6 +130,7 @@ fn write_segments(c: &EncodeConfig, task: SegmentTask) -> Result<crate::segments
         tiles = stats.tiles,
         seconds = stats.seconds,
         threads = done.threads,
+        widened_to = done.widened_to,
         waited_s = done.waited_s,
         "geometric segments written"
     );
