@@ -85,7 +85,8 @@ fn encode_writes_the_segments_of_slag_encoder_segment() {
 fn failed_encode_writes_no_segments() {
     let dir = tempfile::tempdir().unwrap();
     // A copy of the scene whose last image has the wrong size: the encode fails at its last
-    // view, when the segmentation (a fraction of the encode's time) is done.
+    // view, usually after the segmentation beside it is done (a failure at the first view, with
+    // the segmentation stopped, is tests/tests/encode_bad_input.rs's).
     let copy = dir.path().join("scene");
     for sub in ["images", "sparse/0"] {
         std::fs::create_dir_all(copy.join(sub)).unwrap();
