@@ -12,7 +12,8 @@ process, read at the last sample) is printed too: a peak shorter than the sampli
 `--out` writes the samples (seconds since start, RSS bytes) as tab-separated lines. With
 `--report OUT/report.json` (the encode's), the peak is also split by phase: before the tail, the
 tail (reduction, mixture, level files, write: the report's last seconds, counted from its
-`timings.total`, which starts near the process start) and after the report (`encode`'s segments).
+`timings.total`, which starts near the process start) and after the report (`encode` waiting
+for its geometric segments, when they outlast the encode they run beside, and writing them).
 """
 import argparse
 import json

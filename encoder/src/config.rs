@@ -470,7 +470,8 @@ pub struct ExecutionConfig {
     /// Cap of each model session's CUDA memory arena, GiB; `None` (default): no cap beyond the
     /// card.
     pub gpu_mem_limit_gb: Option<f64>,
-    /// Worker threads (ONNX Runtime intra-op and CPU stages); `None` (default): all cores.
+    /// Worker threads (ONNX Runtime intra-op and CPU stages; the geometric segments run beside
+    /// the encode on a quarter of them, at least one); `None` (default): all cores.
     pub threads: Option<usize>,
     /// GPUs to rasterize on (default 1); ignored with [`RasterBackend::Cpu`].
     pub gpus: GpuCount,

@@ -48,6 +48,8 @@
 //! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
 //! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -369,7 +371,8 @@ fn plan_tiles(means: &[[f32; 3]], cap: usize) -> ([usize; 2], Vec<u32>, Vec<([f3
 }
 
 /// The graph's edges of tile `t`: inner edges (both ends in the tile), ascending, and border
-/// edges (one end outside), unordered.
+/// edges (one end outside), unordered. Once `stop` is set the remaining Gaussians get no edges:
+/// the caller discards such a partial result.
 #[allow(clippy::too_many_arguments)]
 fn tile_edges(
     t: u32,
@@ -380,6 +383,7 @@ fn tile_edges(
     geo: &Geometry,
     p: &SegmentParams,
     h: f32,
+    stop: &AtomicBool,
 ) -> (Vec<Edge>, Vec<Edge>) {
     let (lo, hi) = rect;
     let inside = |m: &[f32; 3]| (0..2).all(|k| m[ax[k]] >= lo[k] - h && m[ax[k]] <= hi[k] + h);
@@ -399,6 +403,9 @@ fn tile_edges(
         .par_iter()
         .filter(|&&i| tile_of[i as usize] == t)
         .map(|&i| {
+            if stop.load(Ordering::Relaxed) {
+                return (Vec::new(), Vec::new());
+            }
             let mi = means[i as usize];
             // The k nearest other Gaussians within h, ties by id: take every candidate up to the
             // k-th distance, including all that tie with it, then sort by (distance, id).
@@ -453,7 +460,54 @@ fn resolve_max_edge(p: &SegmentParams, geo: &Geometry) -> f32 {
     if m.is_finite() && m > 0.0 { m } else { 1.0 }
 }
 
+/// Where [`segment_with`] runs its parallel stages, and whether it should give up. Another
+/// thread may change both while it runs: the encode that runs a segmentation beside itself
+/// starts it on a small pool, widens it when the encode is done, and stops it when the encode
+/// failed.
+#[derive(Debug, Default)]
+pub struct SegmentControl {
+    stop: AtomicBool,
+    pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
+}
+
+impl SegmentControl {
+    /// Stages on `pool`; `None`: on the pool of the calling thread (rayon's global pool, or the
+    /// one whose `install` runs the caller).
+    pub fn new(pool: Option<rayon::ThreadPool>) -> Self {
+        SegmentControl {
+            stop: AtomicBool::new(false),
+            pool: Mutex::new(pool.map(Arc::new)),
+        }
+    }
+
+    /// The stages that start from now on run on `pool` (those under way finish where they are).
+    pub fn set_pool(&self, pool: rayon::ThreadPool) {
+        *self.pool.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(pool));
+    }
+
+    /// Asks the segmentation to give up: [`segment_with`] returns `Ok(None)` soon after.
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Runs `op` on the current pool choice.
+    pub fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        let pool = self.pool.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        match pool {
+            Some(p) => p.install(op),
+            None => op(),
+        }
+    }
+}
+
 /// Segments the Gaussians of `g` (module doc) and records `source_ply` in the result.
+///
+/// Runs on the current rayon pool (the global one, or the pool whose `install` calls it); the
+/// result does not depend on its thread count.
 ///
 /// Errors: [`Error::Param`] for settings [`SegmentParams::validate`] refuses, a scene of more
 /// than `u32::MAX - 1` Gaussians ([`Error::Limit`]), arrays that disagree ([`Error::Internal`]),
@@ -463,7 +517,26 @@ pub fn segment(
     p: &SegmentParams,
     source_ply: &str,
 ) -> Result<(Segments, SegmentStats)> {
+    segment_with(g, p, source_ply, &SegmentControl::default())?
+        .ok_or_else(|| Error::internal("the segmentation stopped without being asked to"))
+}
+
+/// [`segment`] with its parallel stages on `ctl`'s pool of the moment (the serial union-find
+/// passes run on the calling thread), given up once [`SegmentControl::stop`] was called:
+/// `Ok(None)` then. The stop is looked at between the stages and for every Gaussian of the
+/// k-nearest-neighbour search, so it takes effect within about one union-find pass. The result
+/// is [`segment`]'s, whatever the pools.
+///
+/// Errors: those of [`segment`].
+pub fn segment_with(
+    g: &Gaussians,
+    p: &SegmentParams,
+    source_ply: &str,
+    ctl: &SegmentControl,
+) -> Result<Option<(Segments, SegmentStats)>> {
     p.validate()?;
+    let stopped = || ctl.stopped();
+    let stop = &ctl.stop;
     let t0 = Instant::now();
     let n = g.len();
     if n >= u32::MAX as usize {
@@ -489,25 +562,39 @@ pub fn segment(
             "mean of Gaussian {i} is not finite"
         )));
     }
-    let geo = geometry(g);
+    let geo = ctl.run(|| geometry(g));
+    if stopped() {
+        return Ok(None);
+    }
     let h = resolve_max_edge(p, &geo);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
     let mut forest = Forest::singletons(n);
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for (t, rect) in rects.iter().enumerate() {
-        let (inner, b) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+        let (inner, b) =
+            ctl.run(|| tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop));
+        if stopped() {
+            return Ok(None);
+        }
         forest.criterion_pass(&inner, p.threshold);
         edges += inner.len() as u64;
         border.extend(b);
     }
-    border.par_sort_unstable();
+    ctl.run(|| border.par_sort_unstable());
     border.dedup();
     edges += border.len() as u64;
+    if stopped() {
+        return Ok(None);
+    }
     forest.criterion_pass(&border, p.threshold);
     if p.min_size > 1 {
         for (t, rect) in rects.iter().enumerate() {
-            let (inner, _) = tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h);
+            let (inner, _) =
+                ctl.run(|| tile_edges(t as u32, &g.means, &tile_of, ax, *rect, &geo, p, h, stop));
+            if stopped() {
+                return Ok(None);
+            }
             forest.min_size_pass(&inner, p.min_size);
         }
         forest.min_size_pass(&border, p.min_size);
@@ -527,7 +614,7 @@ pub fn segment(
         "params": p, "max_edge_used": h, "tiles": rects.len(),
     }))
     .unwrap_or_default();
-    Ok((
+    Ok(Some((
         Segments {
             segments,
             segment_count,
@@ -535,7 +622,7 @@ pub fn segment(
             parameters,
         },
         stats,
-    ))
+    )))
 }
 
 #[cfg(test)]
@@ -662,7 +749,8 @@ mod tests {
         let geo = geometry(&g);
         let h = resolve_max_edge(&p, &geo);
         let (ax1, one, r1) = plan_tiles(&g.means, usize::MAX);
-        let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h);
+        let go = AtomicBool::new(false);
+        let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h, &go);
         assert!(none.is_empty());
         let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
         let mut order: Vec<Edge> = Vec::new();
@@ -712,6 +800,31 @@ mod tests {
         // The same segments (the recorded parameters differ: the tile count).
         assert_eq!(a.segments, b.segments);
         assert_eq!(a.segment_count, 3);
+    }
+
+    #[test]
+    fn a_stop_gives_no_result_and_pools_do_not_change_it() {
+        let (g, _) = planes();
+        let p = SegmentParams {
+            tile_gaussians: 500,
+            ..params()
+        };
+        let stopped = SegmentControl::default();
+        stopped.stop();
+        assert!(segment_with(&g, &p, "x", &stopped).unwrap().is_none());
+        let pool = |n| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(n)
+                .build()
+                .unwrap()
+        };
+        let ctl = SegmentControl::new(Some(pool(1)));
+        let narrow = segment_with(&g, &p, "x", &ctl).unwrap().unwrap().0;
+        ctl.set_pool(pool(3));
+        let wide = segment_with(&g, &p, "x", &ctl).unwrap().unwrap().0;
+        let plain = segment(&g, &p, "x").unwrap().0;
+        assert_eq!(narrow, plain);
+        assert_eq!(wide, plain);
     }
 
     #[test]

@@ -43,7 +43,14 @@ fn image_of_the_wrong_size_is_a_clear_error_and_writes_nothing() {
     let out = dir.path().join("out");
     let err = format!("{:#}", encode_graph(&scene, &out).unwrap_err());
     assert!(err.contains("100x80") && err.contains("camera"), "{err}");
-    assert!(!out.join("embeddings.safetensors").exists() && !out.join("report.json").exists());
+    // The segments, computed beside the encode (stopped here), are not written either.
+    for name in [
+        "embeddings.safetensors",
+        "report.json",
+        "segments.safetensors",
+    ] {
+        assert!(!out.join(name).exists(), "{name}");
+    }
 }
 
 #[test]

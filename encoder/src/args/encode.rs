@@ -138,7 +138,8 @@ pub struct EncodeArgs {
     /// Cap of each model session's CUDA memory arena, GiB (default: no cap beyond the card).
     #[arg(long, value_name = "GIB")]
     pub gpu_mem_limit_gb: Option<f64>,
-    /// Worker threads (ONNX Runtime intra-op and CPU stages); default: all cores.
+    /// Worker threads (ONNX Runtime intra-op and CPU stages; a quarter of them segment the
+    /// Gaussians beside the encode, see --segments); default: all cores.
     #[arg(long)]
     pub threads: Option<usize>,
     /// GPUs to rasterize on: a count or `all` (every discrete GPU; one wgpu device and one back
@@ -196,7 +197,8 @@ pub struct EncodeArgs {
     #[arg(long)]
     pub quiet: bool,
     /// Also write the Gaussians' geometric segments (`segments.safetensors`, for prediction
-    /// filtering, the shards and `&smooth=segment`).
+    /// filtering, the shards and `&smooth=segment`): computed beside the encode, written after it
+    /// succeeded.
     #[arg(long, value_enum, default_value_t = OnOff::On)]
     pub segments: OnOff,
     /// The segmentation's settings (`--segment-*`).

@@ -3,6 +3,7 @@
 use slag_common::Result;
 
 use super::build::{self, Fronts};
+use super::segment_task::SegmentTask;
 use crate::config::{ConfigError, EncodeConfig};
 use crate::report::Report;
 
@@ -43,12 +44,21 @@ impl Encoder {
 
     /// Runs the encode and returns the report it wrote beside the embeddings
     /// (`embeddings.safetensors`, `report.json`, and the optional forms, each atomically, the
-    /// report last). Sets rayon's global pool to [`crate::config::ExecutionConfig::threads`]
-    /// unless the process already has one.
+    /// report last), then, with [`crate::config::SegmentsConfig::enabled`],
+    /// `segments.safetensors`. Sets rayon's global pool to
+    /// [`crate::config::ExecutionConfig::threads`] unless the process already has one.
+    ///
+    /// The segments are computed beside the encode, from the start, on a pool of their own
+    /// (a quarter of the threads, all of them for what is left once the encode is done:
+    /// `pipeline::segment_task`), and written only once the encode has succeeded: a failed or killed encode leaves no segments file. When the segmentation
+    /// fails, the encode still finishes and writes its complete outputs (the embeddings do not
+    /// depend on the segments), and the run then returns the segmentation's error with no
+    /// segments file: `slag-encoder segment` makes it later without re-encoding.
     ///
     /// Errors: unreadable scene or models, no GPU for the GPU rasterizer, a resource limit of
     /// the rasterizer ([`slag_common::Error::Limit`]), any worker's error (nothing that looks
-    /// complete is written), I/O on the outputs.
+    /// complete is written), I/O on the outputs; after the encode's outputs, the
+    /// segmentation's errors ([`crate::segments::segment`]).
     pub fn run(&self) -> Result<Report> {
         let c = &self.config;
         if c.segments.enabled {
@@ -56,6 +66,12 @@ impl Encoder {
             c.segments.params.validate()?;
         }
         let threads = build::setup_threads(c);
+        // Started before anything else; dropped (stopped and joined) on any early return.
+        let segments = if c.segments.enabled {
+            Some(SegmentTask::start(c, threads)?)
+        } else {
+            None
+        };
         let scene = build::scene_input(c);
         let gpus = build::gpu_count(c);
         let fronts = build::build_fronts(c, gpus, threads)?;
@@ -86,30 +102,36 @@ impl Encoder {
         // Written after a successful encode only, so that a failed or killed run leaves nothing
         // that looks complete; an optional file of its own (atomic): `partition` without it
         // simply stores no segments.
-        if c.segments.enabled {
-            write_segments(c)?;
+        if let Some(task) = segments {
+            write_segments(c, task, threads)?;
         }
         Ok(report)
     }
 }
 
-/// Segments the scene's Gaussians ([`crate::segments`]) and writes
-/// `<out>/segments.safetensors` (atomically).
+/// Waits for `task` (on `threads` threads from now on, if it is still running) and writes its
+/// segments to `<out>/segments.safetensors` (atomically).
 ///
-/// Errors: the `.ply` unreadable, the segmentation's errors, I/O.
-fn write_segments(c: &EncodeConfig) -> Result<crate::segments::SegmentStats> {
-    let ply = c.ply();
-    let g = slag_common::scene::load_ply(&ply, slag_common::scene::PlyLoadOptions::default())?;
-    let (segments, stats) =
-        crate::segments::segment(&g, &c.segments.params, &ply.display().to_string())?;
+/// Errors: the segmentation's ([`SegmentTask::finish`]), I/O.
+fn write_segments(
+    c: &EncodeConfig,
+    task: SegmentTask,
+    threads: usize,
+) -> Result<crate::segments::SegmentStats> {
+    let done = task.finish(threads)?;
     let dir = &c.output.dir;
     std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
-    segments.write(&dir.join(slag_common::segments::FILE_NAME))?;
+    done.segments
+        .write(&dir.join(slag_common::segments::FILE_NAME))?;
+    let stats = done.stats;
     tracing::info!(
         segments = stats.segments,
         gaussians = stats.gaussians,
         tiles = stats.tiles,
         seconds = stats.seconds,
+        threads = done.threads,
+        widened_to = done.widened_to,
+        waited_s = done.waited_s,
         "geometric segments written"
     );
     Ok(stats)

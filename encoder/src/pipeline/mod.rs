@@ -35,6 +35,7 @@ pub mod build;
 mod encoder;
 pub(crate) mod finish;
 mod pool;
+pub(crate) mod segment_task;
 
 pub use encoder::Encoder;
 pub use pool::FrontStages;

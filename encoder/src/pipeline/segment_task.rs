@@ -1,0 +1,157 @@
+//! The geometric segments ([`crate::segments`]) computed beside the encode: they depend on the
+//! Gaussians' geometry alone, not on the embeddings, so [`Encoder::run`](super::Encoder::run)
+//! starts them before the fronts are built and collects them after the encode.
+//!
+//! The segmentation's parallel stages run on a rayon pool of its own, [`segment_threads`]
+//! threads, so the encode's host work (SAM post-processing on the global pool, the rasterizer
+//! threads, the label and `a_kj` threads) keeps the rest of the cores; if it outlasts the encode
+//! (a large scene, few views), its remaining stages get all the threads. It reloads the `.ply`
+//! itself (the encode's copy lives inside the worker pool) and holds its memory only while it
+//! runs; when that overlaps the encode's peak (its tail), the two add up (docs/guide/lifting.md,
+//! memory model).
+//!
+//! Nothing is written here: the caller writes `segments.safetensors` after the encode
+//! succeeded. A task dropped without [`SegmentTask::finish`] (the encode failed) is stopped
+//! ([`SegmentControl::stop`]) and joined, so no thread outlives the run.
+
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use slag_common::segments::Segments;
+use slag_common::{Error, Result};
+
+use crate::config::EncodeConfig;
+use crate::segments::{SegmentControl, SegmentStats};
+
+/// Threads of the segmentation's pool while the encode runs, for an encode of `threads` threads
+/// ([`crate::config::ExecutionConfig::resolved_threads`]): a quarter of them, at least one (4 of
+/// 16 host cores), so the encode keeps three quarters of the cores. A segmentation still
+/// running when the encode is done gets all `threads` for the stages left
+/// ([`SegmentTask::finish`]).
+pub fn segment_threads(threads: usize) -> usize {
+    (threads / 4).max(1)
+}
+
+/// What a segmentation thread hands back: `None` when it was stopped.
+type Outcome = Result<Option<(Segments, SegmentStats)>>;
+
+/// A segmentation running on a thread of its own, its parallel stages on a pool of its own.
+/// Dropping it unfinished stops it and waits for its thread.
+pub struct SegmentTask {
+    ctl: Arc<SegmentControl>,
+    handle: Option<JoinHandle<Outcome>>,
+    threads: usize,
+}
+
+/// What [`SegmentTask::finish`] returns.
+pub struct Segmented {
+    /// The segments, for `segments.safetensors`.
+    pub segments: Segments,
+    /// The segmentation's own figures (its `seconds` run beside the encode).
+    pub stats: SegmentStats,
+    /// Threads of its pool while the encode ran.
+    pub threads: usize,
+    /// Threads it was given when it outlasted the encode; `None`: it was done by then.
+    pub widened_to: Option<usize>,
+    /// Seconds the caller waited for it after the encode (0 when it was already done).
+    pub waited_s: f64,
+}
+
+impl SegmentTask {
+    /// Loads `c`'s `.ply` and segments it with `c.segments.params`, on a thread of its own with
+    /// its parallel stages on a new pool of [`segment_threads`]`(threads)` threads; returns at
+    /// once.
+    ///
+    /// Errors: [`Error::Internal`] when the thread or its pool cannot be started (the
+    /// segmentation's own errors come from [`SegmentTask::finish`]).
+    pub fn start(c: &EncodeConfig, threads: usize) -> Result<Self> {
+        let threads = segment_threads(threads);
+        let ply = c.ply();
+        let params = c.segments.params;
+        let ctl = Arc::new(SegmentControl::new(Some(pool(threads)?)));
+        let shared = Arc::clone(&ctl);
+        let handle = std::thread::Builder::new()
+            .name("slag-segments".into())
+            .spawn(move || -> Outcome {
+                let out = shared
+                    .run(|| {
+                        slag_common::scene::load_ply(
+                            &ply,
+                            slag_common::scene::PlyLoadOptions::default(),
+                        )
+                    })
+                    .and_then(|g| {
+                        crate::segments::segment_with(
+                            &g,
+                            &params,
+                            &ply.display().to_string(),
+                            &shared,
+                        )
+                    });
+                if let Err(e) = &out {
+                    // Said at once; the run fails with it after the encode.
+                    tracing::error!(
+                        "geometric segments failed ({e}); the encode goes on, then the run fails"
+                    );
+                }
+                out
+            })
+            .map_err(|e| Error::internal(format!("segmentation thread: {e}")))?;
+        Ok(SegmentTask {
+            ctl,
+            handle: Some(handle),
+            threads,
+        })
+    }
+
+    /// Waits for the segmentation and returns its result. When it is still running, its stages
+    /// from now on run on a new pool of `threads` threads (the encode's, idle now).
+    ///
+    /// Errors: the segmentation's ([`crate::segments::segment`], the `.ply` unreadable),
+    /// [`Error::Internal`] when its thread panicked or a pool cannot be started.
+    pub fn finish(mut self, threads: usize) -> Result<Segmented> {
+        let t0 = Instant::now();
+        let handle = self
+            .handle
+            .take()
+            .ok_or_else(|| Error::internal("segmentation already collected"))?;
+        let widened_to = if handle.is_finished() || threads <= self.threads {
+            None
+        } else {
+            self.ctl.set_pool(pool(threads)?);
+            Some(threads)
+        };
+        let out = handle
+            .join()
+            .map_err(|_| Error::internal("the segmentation thread panicked"))??;
+        let (segments, stats) =
+            out.ok_or_else(|| Error::internal("the segmentation stopped unasked"))?;
+        Ok(Segmented {
+            segments,
+            stats,
+            threads: self.threads,
+            widened_to,
+            waited_s: t0.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+/// A rayon pool of `threads` threads named `slag-segments-<i>`.
+fn pool(threads: usize) -> Result<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("slag-segments-{i}"))
+        .build()
+        .map_err(|e| Error::internal(format!("segmentation thread pool: {e}")))
+}
+
+impl Drop for SegmentTask {
+    fn drop(&mut self) {
+        if let Some(h) = self.handle.take() {
+            self.ctl.stop();
+            // Its result is unwanted; a panic there has nothing left to spoil.
+            let _ = h.join();
+        }
+    }
+}
