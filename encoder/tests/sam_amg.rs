@@ -366,7 +366,10 @@ fn shared_sessions_give_every_image_its_own_masks() {
     };
     let mut one = cpu_generator(&dir, "color-sam", params.clone());
     let expected: Vec<_> = images.iter().map(|i| one.generate(i).unwrap()).collect();
-    assert!(expected.iter().all(|m| m.len() > 3), "too few masks to compare");
+    assert!(
+        expected.iter().all(|m| m.len() > 3),
+        "too few masks to compare"
+    );
     assert_ne!(expected[0], expected[1], "the images must differ");
     let shared_sam = cpu_generator(&dir, "color-sam", params);
     std::thread::scope(|s| {

@@ -50,10 +50,11 @@ impl Encoder {
     ///
     /// The segments are computed beside the encode, from the start, on a pool of their own
     /// (a quarter of the threads, all of them for what is left once the encode is done:
-    /// `pipeline::segment_task`), and written only once the encode has succeeded: a failed or killed encode leaves no segments file. When the segmentation
-    /// fails, the encode still finishes and writes its complete outputs (the embeddings do not
-    /// depend on the segments), and the run then returns the segmentation's error with no
-    /// segments file: `slag-encoder segment` makes it later without re-encoding.
+    /// `pipeline::segment_task`), and written only once the encode has succeeded: a failed or
+    /// killed encode leaves no segments file. When the segmentation fails, the encode still
+    /// finishes and writes its complete outputs (the embeddings do not depend on the
+    /// segments), and the run then returns the segmentation's error with no segments file:
+    /// `slag-encoder segment` makes it later without re-encoding.
     ///
     /// Errors: unreadable scene or models, no GPU for the GPU rasterizer, a resource limit of
     /// the rasterizer ([`slag_common::Error::Limit`]), any worker's error (nothing that looks
