@@ -89,6 +89,10 @@ impl SegmentTask {
                             &shared,
                         )
                     });
+                // The graph's many small allocations were freed in this pool's malloc arenas,
+                // which glibc keeps for reuse: given back, so that the encode's peak does not
+                // carry them (1.9 GiB at 2M Gaussians on an H100 host).
+                release_freed_heap();
                 if let Err(e) = &out {
                     // Said at once; the run fails with it after the encode.
                     tracing::error!(
@@ -136,6 +140,21 @@ impl SegmentTask {
         })
     }
 }
+
+/// Returns the free pages of every malloc arena to the system (glibc's `malloc_trim(0)`); a
+/// no-op on other C libraries.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[allow(unsafe_code)]
+fn release_freed_heap() {
+    // SAFETY: malloc_trim has no preconditions; it takes each arena's lock itself, so other
+    // threads may allocate meanwhile.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn release_freed_heap() {}
 
 /// A rayon pool of `threads` threads named `slag-segments-<i>`.
 fn pool(threads: usize) -> Result<rayon::ThreadPool> {
