@@ -286,6 +286,76 @@ fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionS
     store
 }
 
+/// The images of [`mixture_store`], pushed in `order` with their index as the key.
+fn keyed_store(n: u32, dim: usize, budget: usize, dir: &Path, order: &[u64]) -> ContributionStore {
+    let mut store = ContributionStore::new(budget, dir.to_path_buf());
+    for &key in order {
+        let seed = key + 1;
+        let pw = weights(30, 20, n, seed);
+        let masks = vec![
+            mask(30, 20, |x, _| x < 15),
+            mask(30, 20, |_, y| y < 12),
+            mask(30, 20, |x, y| (x + 2 * y) % 5 < 2),
+        ];
+        let emb = unit_rows(masks.len(), dim, seed * 31);
+        let c = image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap();
+        store
+            .push_stored_as(key, store::StoredImage::from_contribution(c))
+            .unwrap();
+    }
+    store
+}
+
+#[test]
+fn the_tail_writes_the_same_bytes_whatever_order_the_views_arrive_in() {
+    let (n, dim) = (3000u32, 16);
+    let dir = tempfile::tempdir().unwrap();
+    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.25, 3.0]).collect();
+    let p = ReduceParams::default();
+    let reference = keyed_store(n, dim, usize::MAX, &dir.path().join("ref"), &[0, 1, 2, 3]);
+    // The same as pushing without keys, in view order.
+    let (want_file, want_mix) = fused_tail(&reference, &means, dim, p, 3, &dir.path().join("w"));
+    let (plain_file, plain_mix) = fused_tail(
+        &mixture_store(n, dim, usize::MAX, &dir.path().join("plain")),
+        &means,
+        dim,
+        p,
+        3,
+        &dir.path().join("p"),
+    );
+    assert!(plain_file == want_file);
+    assert_eq!(plain_mix, want_mix);
+    let half = reference.bytes_in_memory() / 2;
+    for order in [[0u64, 1, 2, 3], [3, 1, 0, 2], [2, 3, 1, 0], [1, 0, 3, 2]] {
+        for budget in [usize::MAX, half, 0] {
+            let store = keyed_store(n, dim, budget, &dir.path().join("s"), &order);
+            if budget == 0 {
+                assert_eq!(store.spilled(), 4);
+            }
+            // One accumulator chunk, and chunks of 1024 Gaussians.
+            for accumulator in [usize::MAX / 2, 1024 * (dim + 1) * 8] {
+                let p = ReduceParams {
+                    accumulator_budget_bytes: accumulator,
+                    ..p
+                };
+                let (file, mix) = fused_tail(&store, &means, dim, p, 3, &dir.path().join("o"));
+                let case = format!("order {order:?}, budget {budget}, accumulator {accumulator}");
+                assert!(file == want_file, "embeddings differ: {case}");
+                assert_eq!(mix.codebook.len(), want_mix.codebook.len(), "{case}");
+                let first = mix
+                    .codebook
+                    .iter()
+                    .zip(&want_mix.codebook)
+                    .position(|(a, b)| a != b);
+                assert!(first.is_none(), "codebook differs at {first:?}: {case}");
+                assert!(mix.atoms == want_mix.atoms, "atoms differ: {case}");
+                assert!(mix == want_mix, "mixture differs: {case}");
+            }
+            drop(store);
+        }
+    }
+}
+
 #[test]
 fn mixture_with_every_atom_kept_reproduces_reduce() {
     let (n, dim) = (3000u32, 16);
