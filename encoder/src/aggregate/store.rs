@@ -130,21 +130,12 @@ impl StoredImage {
 /// The budget counts each image as [`ImageContribution::bytes`] (12 bytes an `a_kj`), the size it
 /// arrives in; in memory it is held as a [`StoredImage`] (9 bytes an `a_kj` with at most 256 masks
 /// an image), so the memory held stays below the budget. Which images spill depends on that count
-/// and on the order they arrive in.
-///
-/// Each image has a key ([`ContributionStore::push_stored_as`]: the encoder gives the view's
-/// index; [`ContributionStore::push`] the push count), and the reduction visits the images in key
-/// order wherever they are held: its sums, and so the output's bytes, do not depend on the order
-/// in which parallel workers finished the views.
+/// only, and with it the order in which the reduction visits them.
 pub struct ContributionStore {
     budget_bytes: usize,
     used_bytes: usize,
-    /// In key order.
     pub(super) in_memory: Vec<StoredImage>,
-    in_memory_keys: Vec<u64>,
-    /// In key order.
     spilled: Vec<PathBuf>,
-    spilled_keys: Vec<u64>,
     spill_dir: PathBuf,
 }
 
@@ -156,9 +147,7 @@ impl ContributionStore {
             budget_bytes,
             used_bytes: 0,
             in_memory: Vec::new(),
-            in_memory_keys: Vec::new(),
             spilled: Vec::new(),
-            spilled_keys: Vec::new(),
             spill_dir,
         }
     }
@@ -199,28 +188,9 @@ impl ContributionStore {
     ///
     /// Errors: I/O writing the spill file.
     pub fn push_stored(&mut self, c: StoredImage) -> Result<()> {
-        let key = self.next_key();
-        self.push_stored_as(key, c)
-    }
-
-    /// The key [`Self::push`] gives: one above the largest so far (0 for the first).
-    fn next_key(&self) -> u64 {
-        let last = |keys: &[u64]| keys.last().map(|k| k + 1);
-        last(&self.in_memory_keys)
-            .max(last(&self.spilled_keys))
-            .unwrap_or(0)
-    }
-
-    /// [`Self::push_stored`] with the key `key` that orders it for the reduction (the encoder
-    /// passes the view's index; equal keys keep their push order).
-    ///
-    /// Errors: I/O writing the spill file.
-    pub fn push_stored_as(&mut self, key: u64, c: StoredImage) -> Result<()> {
         if self.used_bytes + c.arrival_bytes() <= self.budget_bytes {
             self.used_bytes += c.arrival_bytes();
-            let at = self.in_memory_keys.partition_point(|&k| k <= key);
-            self.in_memory.insert(at, c);
-            self.in_memory_keys.insert(at, key);
+            self.in_memory.push(c);
             return Ok(());
         }
         std::fs::create_dir_all(&self.spill_dir).map_err(|e| Error::io(&self.spill_dir, e))?;
@@ -242,9 +212,7 @@ impl ContributionStore {
             f.write_all(&e.weight.to_le_bytes()).map_err(io)?;
         }
         f.flush().map_err(io)?;
-        let at = self.spilled_keys.partition_point(|&k| k <= key);
-        self.spilled.insert(at, path);
-        self.spilled_keys.insert(at, key);
+        self.spilled.push(path);
         Ok(())
     }
 
@@ -286,22 +254,14 @@ impl ContributionStore {
         }))
     }
 
-    /// Calls `f` on every contribution in key order (spilled ones read back one at a time; of
-    /// equal keys, the in-memory ones first).
+    /// Calls `f` on every contribution: the in-memory ones, then the spilled ones (read back one
+    /// at a time), each in push order.
     ///
     /// Errors: I/O reading a spill file.
     pub fn for_each(&self, mut f: impl FnMut(&StoredImage)) -> Result<()> {
-        let (mut m, mut s) = (0, 0);
-        while m < self.in_memory.len() || s < self.spilled.len() {
-            let memory_next = s == self.spilled.len()
-                || (m < self.in_memory.len() && self.in_memory_keys[m] <= self.spilled_keys[s]);
-            if memory_next {
-                f(&self.in_memory[m]);
-                m += 1;
-            } else {
-                f(&Self::read_spilled(&self.spilled[s])?);
-                s += 1;
-            }
+        self.in_memory.iter().for_each(&mut f);
+        for p in &self.spilled {
+            f(&Self::read_spilled(p)?);
         }
         Ok(())
     }

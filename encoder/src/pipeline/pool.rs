@@ -451,8 +451,6 @@ fn finish_image(
 ) -> Result<()> {
     let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
     let item = &raster.item;
-    // Keyed by the view, so the reduction sums in view order whatever order the views finish in.
-    let key = item.view as u64;
     let (n_masks, decode_s, masks_s, clip_s) =
         (item.masks.len(), item.decode_s, item.masks_s, item.clip_s);
     let mask_levels: Vec<Option<u8>> = item.masks.iter().map(|m| m.level).collect();
@@ -463,16 +461,12 @@ fn finish_image(
     if !level_stores.is_empty() {
         let parts = crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
         for (part, ls) in parts.into_iter().zip(level_stores) {
-            let part = crate::aggregate::store::StoredImage::from_contribution(part);
-            ls.lock().map_err(poisoned)?.push_stored_as(key, part)?;
+            ls.lock().map_err(poisoned)?.push(part)?;
         }
     }
     // Into the store's columns here, not under the store's lock.
     let stored = crate::aggregate::store::StoredImage::from_contribution(out.contribution);
-    store
-        .lock()
-        .map_err(poisoned)?
-        .push_stored_as(key, stored)?;
+    store.lock().map_err(poisoned)?.push_stored(stored)?;
     work.image_aggregate_s += t1.elapsed().as_secs_f64();
     if let Ok(mut tt) = totals.lock() {
         tt.add(&work);
