@@ -13,27 +13,17 @@
 #![allow(clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, ExitStatus};
+use std::process::{Child, ExitStatus};
 use std::time::{Duration, Instant};
 
 use slag_common::embeddings::Embeddings;
 
+mod support;
+use support::slag_encoder;
+
 /// Exit status of a process that lost a peer (`slag_encoder::distributed::EXIT_PEER_LOST`).
 const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
 const TIMEOUT: Duration = Duration::from_secs(180);
-
-fn command() -> Command {
-    let bin = env!("CARGO_BIN_EXE_slag-encoder");
-    match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    }
-}
 
 /// The encode arguments shared by every run: 7 of the 13 views, raster scale 0.25, f32 output.
 fn encode_args(out: &Path) -> Vec<String> {
@@ -94,7 +84,7 @@ struct Proc {
 fn spawn(i: usize, hosts: &Path, out: &Path, dir: &Path, tag: &str, fault: Option<u32>) -> Proc {
     let log = dir.join(format!("{tag}-{i}.log"));
     let f = std::fs::File::create(&log).unwrap();
-    let mut c = command();
+    let mut c = slag_encoder();
     c.args(["encode-cluster", "--process", &i.to_string(), "--hosts"])
         .arg(hosts)
         .args(["--connect-timeout", "120"])
@@ -214,7 +204,7 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     let out = dir.path().join("cluster");
 
     // Reference: one process.
-    let o = command()
+    let o = slag_encoder()
         .arg("encode")
         .args(encode_args(&single_out))
         .output()

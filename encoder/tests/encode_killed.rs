@@ -3,8 +3,10 @@
 //! `embeddings.safetensors` (the embeddings are written to `.partial`, synced and renamed).
 #![allow(clippy::unwrap_used)]
 
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
+
+mod support;
 
 #[test]
 fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
@@ -13,16 +15,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
-    let bin = env!("CARGO_BIN_EXE_slag-encoder");
-    let mut cmd = match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    };
+    let mut cmd = support::slag_encoder();
     // A zero contribution budget spills every image's a_kj to disk as soon as it is computed,
     // so the run writes into OUT early and keeps writing until the end.
     let mut child = cmd

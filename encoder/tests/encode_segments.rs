@@ -4,25 +4,14 @@
 #![allow(clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod support;
+use support::slag_encoder;
 
 /// `data/snowmiku-mini` (60k Gaussians, 13 views).
 fn scene() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
-}
-
-/// `slag-encoder` (through `$SLAG_TEST_RUNNER` when set, e.g. qemu for a cross build).
-fn slag_encoder() -> Command {
-    let bin = env!("CARGO_BIN_EXE_slag-encoder");
-    match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => Command::new(bin),
-    }
 }
 
 /// `slag-encoder encode` of `scene` into `out` with the default segments (on): graph masks,
