@@ -18,6 +18,9 @@
 #                                            # LOWRES=1: both SAM decoders cut down by
 #                                            # scripts/sam-decoder-low-res.py (needs python onnx)
 #                                            # DECDIR=f16d: ViT-H's half-precision decoder
+#   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
+#                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
+#                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -30,9 +33,7 @@
 # SLAG_ENCODER=PATH runs another slag-encoder build (e.g. a base to compare with, in the same call).
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
-if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
-  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-fi
+VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES  # the NVIDIA ICD that works headless
 export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 export XDG_RUNTIME_DIR=/tmp PYTHONPATH=/root/site PYTHONUNBUFFERED=1 SLAG_EXPORT_NO_CHECK=1
 # shellcheck disable=SC1091
@@ -49,7 +50,7 @@ echo "cores: $(nproc)  ORT: $ORT_DYLIB_PATH"
 mode=${1:-prep}
 SAMARGS=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0)
 samm() { echo --sam-encoder "$M/$1/sam-$2-encoder.onnx" --sam-decoder "$M/$1/sam-$2-decoder.onnx"; }
-clipm() { echo --clip-visual "$M/$1/"*visual*.onnx; }
+clipm() { echo --clip-visual "$M/${CLIPDIR:-$1}/"*visual*.onnx; }
 case "$mode" in
 prep)
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
@@ -132,6 +133,42 @@ e2e)
     "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
   cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
+  ;;
+models)
+  # The per-model table: slag's ONNX Runtime sessions one model at a time (`slag-bench models` on
+  # data/snowmiku-mini's real images: CLIP on graph-mask crops at batch 64, SAM ViT-H per image
+  # with 256 prompts), beside torch fp16 in the same call, and ONNX Runtime's per-node profile of
+  # each CLIP tower. CLIP variants: f32 (the reference of the cosines), fp16 (the plain export),
+  # fp16 + fused (export-models.py --fuse), f32 + fused.
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  for v in "f32:" "f16:--fp16" "f16fuse:--fp16 --fuse" "f32fuse:--fuse"; do
+    d=${v%%:*}
+    [ -f "$M/$d/ViT-B-16-random-visual.onnx" ] && continue
+    # shellcheck disable=SC2086
+    python3 scripts/export-models.py clip --model ViT-B-16 --random ${v#*:} "$M/$d" > "$R/export-clip-$d.json" 2> "$R/export-clip-$d.err" \
+      || tail -3 "$R/export-clip-$d.err"
+  done
+  # SAM ViT-H fp16 with the fp16 decoder (the e2e's), its decoder doing the image's work once
+  # per call (f16d: broadcast products; f16e: copied to the prompts) and once per prompt as
+  # segment_anything traces it (f16r, the earlier export): same weights.
+  if [ ! -f "$M/f16d/sam-vit_h-decoder-low-res.onnx" ]; then
+    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-vith.json" 2> "$R/export-vith.err" || tail -3 "$R/export-vith.err"
+    for v in f16r:repeated f16e:expanded; do
+      python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --decoder-only --image-work "${v#*:}" "$M/${v%%:*}" > "$R/export-vith-${v%%:*}.json" 2> "$R/export-vith-${v%%:*}.err" || tail -3 "$R/export-vith-${v%%:*}.err"
+    done
+    for d in f16d f16r f16e; do python3 scripts/sam-decoder-low-res.py "$M/$d/sam-vit_h-decoder.onnx" "$M/$d/sam-vit_h-decoder-low-res.onnx"; done
+    mkdir -p "$M/f16"; ln -sf "$M/f16d/sam-vit_h-encoder.onnx" "$M/f16/sam-vit_h-encoder.onnx"
+  fi
+  CL=(); for d in f32 f16 f16fuse f32fuse; do CL+=(--clip-visual "$M/$d/ViT-B-16-random-visual.onnx"); done
+  SA=(); for d in f16r f16d f16e; do SA+=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/$d/sam-vit_h-decoder-low-res.onnx"); done
+  echo "### slag-bench models: CLIP ViT-B/16 x4, SAM ViT-H fp16 (256 prompts in 1 call, then in 4)"
+  "$BB" models --scene data/snowmiku-mini --images 8 "${CL[@]}" "${SA[@]}" --repeats ${REPEATS:-5} > "$R/models.md" 2> "$R/models.jsonl"; echo "exit $?"
+  "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 64 --repeats ${REPEATS:-5} > "$R/models-pb64.md" 2>> "$R/models.jsonl"; echo "exit $?"
+  cat "$R/models.md" "$R/models-pb64.md"
+  rm -rf "$W/prof"; mkdir -p "$W/prof"
+  SLAG_ORT_PROFILE=$W/prof/p "$BB" models --scene data/snowmiku-mini --images 2 "${CL[@]}" "${SA[@]}" --repeats 3 > /dev/null 2>&1
+  python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
+  SAM_KINDS=vit_h python3 scripts/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -14
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do

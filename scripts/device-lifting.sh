@@ -4,7 +4,7 @@
 # ONNX files in .devcarry-lifting/ (carried with .gl). VIEWS (32) and EVERY (2) set the workload.
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
-[ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ] && export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES  # the NVIDIA ICD that works headless
 C=$PWD/.devcarry-lifting; R=${OUT:-/tmp/out}; W=/root/lw; mkdir -p $W/bin $R
 for b in main lifting; do [ -f $C/slag-encoder-$b.gz ] && gunzip -c $C/slag-encoder-$b.gz > $W/bin/$b && chmod +x $W/bin/$b; done
 gunzip -c $C/libonnxruntime.so.gz > $W/libonnxruntime.so; export ORT_DYLIB_PATH=$W/libonnxruntime.so

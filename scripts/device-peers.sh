@@ -21,9 +21,7 @@
 set -uo pipefail
 CARRY=${CARRY:-.devcarry}
 for f in .gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
-if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
-  export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-fi
+VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES  # the NVIDIA ICD that works headless
 export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 export XDG_RUNTIME_DIR=/tmp PYTHONUNBUFFERED=1
 R=${OUT:-/tmp/out}; W=/root/work; B=/root/bin/slag-encoder; FX=$CARRY

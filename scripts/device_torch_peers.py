@@ -1,6 +1,6 @@
 """torch on the GPU as the peer of each model stage of slag-encoder: SAM ViT-B / ViT-H
 image encoder (one 1024x1024 image), SAM's prompt decoder (256 prompts = a 16x16 grid, the
-multimask output, low-resolution masks only, as slag asks for), CLIP ViT-B/16 image tower (54 and
+multimask output, low-resolution masks only, as slag asks for), CLIP ViT-B/16 image tower (54, 64 and
 256 crops). fp16 and fp32, random weights, CUDA events, median of 20 after 5 warm-ups. Runs on
 a GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI.
 
@@ -9,6 +9,7 @@ a GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI
 
 import copy
 import json
+import os
 import sys
 
 import timm
@@ -35,7 +36,7 @@ def ms(fn, reps=20, warm=5):
 out = {"gpu": torch.cuda.get_device_name(0), "torch": torch.__version__}
 torch.manual_seed(0)
 with torch.inference_mode():
-    for kind in ["vit_b", "vit_h"]:
+    for kind in os.environ.get("SAM_KINDS", "vit_b vit_h").split():
         sam = sam_model_registry[kind](checkpoint=None).eval().cuda()
         for name in ["fp16", "fp32"]:
             # fp16: the encoder's weights in half precision; the decoder under autocast (its
@@ -62,7 +63,7 @@ with torch.inference_mode():
     clip = timm.create_model("vit_base_patch16_clip_224", pretrained=False, num_classes=512).eval().cuda()
     for dt, name in [(torch.float16, "fp16"), (torch.float32, "fp32")]:
         m = clip.to(dt)
-        for b in [54, 256]:
+        for b in [54, 64, 256]:
             x = torch.randn(b, 3, 224, 224, device="cuda", dtype=dt)
             out[f"clip_vitb16_{b}_{name}_ms"] = ms(lambda: m(x))
             print("clip", b, name, out[f"clip_vitb16_{b}_{name}_ms"], flush=True)

@@ -6,7 +6,7 @@ for MobileSAM also mobilesam-mirror and timm. onnxruntime is optional: when impo
 exported file is run once as a check.
 
     export-models.py sam --kind vit_b|vit_l|vit_h|vit_t|tiny [--checkpoint FILE | --random] [--fp16] OUT_DIR
-    export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] OUT_DIR
+    export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] [--fuse] OUT_DIR
 
 sam  writes OUT_DIR/sam-KIND-encoder.onnx (pixel_values f32[1,3,1024,1024] -> image_embeddings
      f32[1,256,64,64]; ViT-H, anything over 2 GB, or with --external-data: its weights in
@@ -27,6 +27,17 @@ clip writes OUT_DIR/NAME-visual.onnx (pixel_values f32[B,3,224,224] -> image_emb
 --fp16: weights and compute in half precision, graph inputs and outputs still f32 (a cast inside
 the graph), so slag's signatures are unchanged. Meant for the CUDA execution provider; the SAM
 decoder stays f32 (it is small and its prompt coordinates need f32) unless --fp16-decoder.
+
+--fuse (clip): the image tower with ONNX Runtime's fused kernels: each self-attention block is
+exported as one com.microsoft MultiHeadAttention node (flash / memory-efficient attention on
+CUDA), the patch embedding as one matrix product instead of a 3-channel convolution, then, when onnxruntime is importable, its transformer optimizer fuses LayerNorm, the
+residual add + LayerNorm and the bias + GELU. Same signature and weights; the export's check
+compares the f32 tower with torch on random pixels (cosine). MultiHeadAttention runs in half
+precision on CUDA only: check an --fp16 --fuse tower on the GPU (`slag-bench models`).
+
+The SAM decoder does the image's own work once per call, not once per prompt (see
+share_image_work: the same function, checked against segment_anything's in torch at export);
+--image-work repeated exports it as segment_anything traces it.
 
 --fp16-decoder (sam): the decoder's mask decoder (two-way transformer, upscaling, hypernetwork
 and IoU heads) in half precision too. The prompt encoding (the points' positional encoding) and
@@ -70,7 +81,7 @@ def need(module, pip_name):
 
 
 def onnx_export(torch, module, args, path, input_names, output_names, dynamic_axes=None,
-                external=False):
+                external=False, custom_opsets=None):
     """Legacy (TorchScript) exporter, opset 17, into a temporary folder (the exporter may scatter
     one file per tensor for models over 2 GB); then one .onnx, plus one .data file when large."""
     import onnx
@@ -81,7 +92,8 @@ def onnx_export(torch, module, args, path, input_names, output_names, dynamic_ax
         with torch.no_grad():
             torch.onnx.export(module, args, str(raw), input_names=input_names,
                               output_names=output_names, dynamic_axes=dynamic_axes,
-                              opset_version=OPSET, dynamo=False)
+                              opset_version=OPSET, dynamo=False,
+                              custom_opsets=custom_opsets or {})
         size = sum(f.stat().st_size for f in Path(tmp).iterdir())
         model = onnx.load(str(raw))  # also reads external tensors, if any
         data = path.with_name(path.name + ".data")
@@ -94,6 +106,98 @@ def onnx_export(torch, module, args, path, input_names, output_names, dynamic_ax
         else:
             onnx.save_model(model, str(path))
     return path
+
+
+def fuse_attention(torch, tower):
+    """Replaces every self-attention `nn.MultiheadAttention` of `tower` (open_clip's visual
+    transformer) by one ONNX Runtime `com.microsoft::MultiHeadAttention` node in the export: the
+    packed q/k/v projection stays a MatMul, the attention itself becomes one fused kernel (flash
+    or memory-efficient attention on CUDA) instead of ~20 nodes of reshapes, transposes, two
+    matrix products and a softmax. In torch the same module computes scaled-dot-product
+    attention, so the export's own check against torch still applies. Returns the count."""
+
+    class Mha(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, q, k, v, heads):
+            b, s, d = q.shape
+            q, k, v = (t.reshape(b, s, heads, d // heads).transpose(1, 2) for t in (q, k, v))
+            o = torch.nn.functional.scaled_dot_product_attention(q, k, v)
+            return o.transpose(1, 2).reshape(b, s, d)
+
+        @staticmethod
+        def symbolic(g, q, k, v, heads):
+            out = g.op("com.microsoft::MultiHeadAttention", q, k, v, num_heads_i=heads)
+            out.setType(q.type())
+            return out
+
+    class FusedAttention(torch.nn.Module):
+        def __init__(self, mha):
+            super().__init__()
+            self.weight, self.bias = mha.in_proj_weight, mha.in_proj_bias
+            self.out_proj, self.heads = mha.out_proj, mha.num_heads
+
+        def forward(self, q_x, k_x, v_x, need_weights=False, attn_mask=None):
+            if attn_mask is not None or k_x is not q_x or v_x is not q_x:
+                raise ValueError("fused attention covers unmasked self-attention only")
+            q, k, v = torch.nn.functional.linear(q_x, self.weight, self.bias).chunk(3, dim=-1)
+            return self.out_proj(Mha.apply(q, k, v, self.heads)), None
+
+    count = 0
+    for block in tower.transformer.resblocks:
+        mha = getattr(block, "attn", None)
+        if not isinstance(mha, torch.nn.MultiheadAttention):
+            continue
+        if not (mha.batch_first and mha._qkv_same_embed_dim and mha.in_proj_bias is not None):
+            die("--fuse needs batch-first self-attention with a packed q/k/v projection "
+                "(open_clip >= 2.24); this model's attention differs")
+        block.attn = FusedAttention(mha)
+        count += 1
+    if count == 0:
+        die("--fuse found no attention block to fuse in this model's visual tower")
+    return count
+
+
+def patch_embedding_as_matmul(torch, tower):
+    """Replaces the image tower's patch embedding (`conv1`: a convolution whose kernel equals
+    its stride, so the patches do not overlap) by the same product written as one matrix
+    product: each 16x16x3 patch flattened against the kernel flattened. The convolution gives
+    cuDNN a 3-channel input, a poor case for its fp16 kernels; the matrix product runs on the
+    tensor cores like the rest of the tower. Same function, same weights."""
+
+    class PatchMatMul(torch.nn.Module):
+        def __init__(self, conv):
+            super().__init__()
+            if conv.bias is not None or conv.kernel_size != conv.stride or conv.padding != (0, 0):
+                die("--fuse expects a bias-free patch convolution with kernel = stride")
+            self.weight, self.p = conv.weight, conv.kernel_size[0]
+
+        def forward(self, x):
+            b, c, h, w = x.shape
+            p, gh, gw = self.p, h // self.p, w // self.p
+            x = x.reshape(b, c, gh, p, gw, p).permute(0, 2, 4, 1, 3, 5).reshape(b, gh * gw, c * p * p)
+            y = x @ self.weight.reshape(self.weight.shape[0], -1).t()
+            return y.permute(0, 2, 1).reshape(b, -1, gh, gw)
+
+    tower.conv1 = PatchMatMul(tower.conv1)
+
+
+def ort_fusions(path, heads, width):
+    """ONNX Runtime's transformer optimizer over an export, in place: LayerNormalization,
+    SkipLayerNormalization (residual add + LayerNorm) and BiasGelu (the bias add + erf GELU) as
+    single contrib kernels. Returns the operators it fused, or None without onnxruntime."""
+    try:
+        from onnxruntime.transformers import optimizer
+        from onnxruntime.transformers.fusion_options import FusionOptions
+    except ImportError:
+        print("export-models: onnxruntime not importable: LayerNorm / GELU fusions skipped",
+              file=sys.stderr)
+        return None
+    opt = optimizer.optimize_model(str(path), model_type="vit", num_heads=heads,
+                                   hidden_size=width, optimization_options=FusionOptions("vit"),
+                                   opt_level=0, use_gpu=True)
+    fused = {k: v for k, v in opt.get_fused_operator_statistics().items() if v}
+    opt.save_model_to_file(str(path))
+    return fused
 
 
 def set_metadata(path, props):
@@ -214,6 +318,81 @@ def half_decoder(mask_decoder):
     mask_decoder.predict_masks = predict_masks
 
 
+def share_image_work(mask_decoder, expand=False):
+    """Replaces segment_anything's `MaskDecoder.predict_masks` (what SamOnnxModel calls) with
+    the same computation that does the image's own work once per call instead of once per
+    prompt. The original copies the image embedding and its positional encoding once per prompt
+    (`repeat_interleave`) before the two-way transformer. Every prompt then projects the same
+    4096 image tokens again in the first block: the keys and values of its token-to-image
+    attention and the queries of its image-to-token attention. Here the transformer gets the
+    image with batch 1; those three projections run once, and the attention products broadcast
+    over the prompts (MatMul broadcasts a batch of 1). The image tokens become per-prompt only
+    after the first block's image-to-token update, as in the original. The result is the same
+    function (the same products and sums per element). Works on any SamOnnxModel decoder whose
+    mask input is one per call ([1,1,256,256], as SamOnnxModel's is)."""
+    import torch
+
+    dec = mask_decoder
+
+    def predict_masks(image_embeddings, image_pe, sparse_prompt_embeddings,
+                      dense_prompt_embeddings):
+        prompts = sparse_prompt_embeddings.size(0)
+        output_tokens = torch.cat([dec.iou_token.weight, dec.mask_tokens.weight], dim=0)
+        output_tokens = output_tokens.unsqueeze(0).expand(prompts, -1, -1)
+        tokens = torch.cat((output_tokens, sparse_prompt_embeddings), dim=1)
+        src = image_embeddings + dense_prompt_embeddings  # [1, C, h, w]: shared by the prompts
+        _, c, h, w = src.shape
+        hs, src = dec.transformer(src, image_pe, tokens)  # src: [prompts, h*w, C]
+        iou_token_out = hs[:, 0, :]
+        mask_tokens_out = hs[:, 1:(1 + dec.num_mask_tokens), :]
+        src = src.transpose(1, 2).reshape(prompts, c, h, w)
+        upscaled = dec.output_upscaling(src)
+        hyper_in = torch.stack([dec.output_hypernetworks_mlps[i](mask_tokens_out[:, i, :])
+                                for i in range(dec.num_mask_tokens)], dim=1)
+        b, c2, h2, w2 = upscaled.shape
+        masks = (hyper_in @ upscaled.view(b, c2, h2 * w2)).view(b, -1, h2, w2)
+        return masks, dec.iou_prediction_head(iou_token_out)
+
+    dec.predict_masks = predict_masks
+    if expand:
+        # Each attention's projections still run once on the batch-1 image tokens, then are
+        # copied out to the prompts (Expand) before the products, so that every matrix product
+        # has equal batches on both sides instead of a broadcast one.
+        import math
+
+        def expanded(a, q, k, v):
+            q, k, v = a.q_proj(q), a.k_proj(k), a.v_proj(v)
+            b = max(q.shape[0], k.shape[0], v.shape[0])
+            q, k, v = (a._separate_heads(t.expand(b, -1, -1), a.num_heads) for t in (q, k, v))
+            attn = torch.softmax(q @ k.permute(0, 1, 3, 2) / math.sqrt(q.shape[-1]), dim=-1)
+            return a.out_proj(a._recombine_heads(attn @ v))
+
+        for layer in dec.transformer.layers:
+            for a in (layer.self_attn, layer.cross_attn_token_to_image,
+                      layer.cross_attn_image_to_token):
+                a.forward = partial(expanded, a)
+
+
+def check_shared_decoder(torch, sam, SamOnnxModel, expand):
+    """Applies `share_image_work` and checks it in torch against the decoder as traced before,
+    on random embeddings and 7 prompts (f32): returns the largest absolute difference of the
+    low-resolution mask logits and of the IoU predictions; dies above 1e-4."""
+    g = torch.Generator().manual_seed(2)
+    feeds = (torch.randn(1, 256, 64, 64, generator=g),
+             torch.cat([torch.rand(7, 1, 2, generator=g) * 1024, torch.zeros(7, 1, 2)], 1),
+             torch.tensor([[1.0, -1.0]]).repeat(7, 1), torch.zeros(1, 1, 256, 256),
+             torch.tensor([0.0]), torch.tensor([742.0, 990.0]))
+    with torch.no_grad():
+        _, iou_ref, low_ref = SamOnnxModel(sam, return_single_mask=False)(*feeds)
+        share_image_work(sam.mask_decoder, expand)
+        _, iou, low = SamOnnxModel(sam, return_single_mask=False)(*feeds)
+    diff = {"low_res_masks_max_abs_diff": float((low - low_ref).abs().max()),
+            "iou_predictions_max_abs_diff": float((iou - iou_ref).abs().max())}
+    if max(diff.values()) > 1e-4:
+        die(f"the decoder that shares the image's work differs from segment_anything's: {diff}")
+    return diff
+
+
 def export_sam(a):
     torch = need("torch", "torch")
     need("onnx", "onnx")
@@ -247,6 +426,9 @@ def export_sam(a):
 
     # Decoder first, before the encoder is converted to half precision.
     torch.backends.mha.set_fastpath_enabled(False) if hasattr(torch.backends, "mha") else None
+    shared_check = None
+    if a.image_work != "repeated":
+        shared_check = check_shared_decoder(torch, sam, SamOnnxModel, a.image_work == "expanded")
     if a.fp16_decoder:
         half_decoder(sam.mask_decoder)
     dummy = {"image_embeddings": torch.randn(1, 256, 64, 64),
@@ -272,28 +454,33 @@ def export_sam(a):
                 return self.enc(pixel_values.half()).float()
             return self.enc(pixel_values)
 
-    enc = Encoder(sam.image_encoder, a.fp16).eval()
-    onnx_export(torch, enc, (torch.zeros(1, 3, 1024, 1024),), enc_path,
-                input_names=["pixel_values"], output_names=["image_embeddings"],
-                external=a.external_data)
+    if not a.decoder_only:
+        enc = Encoder(sam.image_encoder, a.fp16).eval()
+        onnx_export(torch, enc, (torch.zeros(1, 3, 1024, 1024),), enc_path,
+                    input_names=["pixel_values"], output_names=["image_embeddings"],
+                    external=a.external_data)
     source = f"checkpoint {Path(a.checkpoint).name}" if a.checkpoint else f"random (seed {a.seed})"
-    for p, role in ((enc_path, "encoder"), (dec_path, "decoder")):
+    files = [dec_path] if a.decoder_only else [enc_path, dec_path]
+    for p in files:
+        role = "encoder" if p == enc_path else "decoder"
         set_metadata(p, {"slag.sam_kind": a.kind, "slag.sam_role": role, "slag.weights": source,
                          "slag.fp16": str(bool(a.fp16 if role == "encoder" else a.fp16_decoder)).lower()})
     expect_enc = ([("pixel_values", "float32", [1, 3, 1024, 1024])],
                   [("image_embeddings", "float32", [1, 256, 64, 64])])
-    got = io_signature(enc_path)
-    if not signature_ok(got, expect_enc):
+    got = None if a.decoder_only else io_signature(enc_path)
+    if got is not None and not signature_ok(got, expect_enc):
         die(f"{enc_path}: unexpected signature {got}")
     ins, outs = io_signature(dec_path)
     names = ([n for n, _, _ in ins], [n for n, _, _ in outs])
     if names != (list(dummy), ["masks", "iou_predictions", "low_res_masks"]):
         die(f"{dec_path}: unexpected signature {ins} -> {outs}")
-    shapes = check_with_ort(enc_path, {"pixel_values": torch.zeros(1, 3, 1024, 1024).numpy()})
-    print(json.dumps({"encoder": str(enc_path), "decoder": str(dec_path), "kind": a.kind,
+    shapes = None if a.decoder_only else check_with_ort(
+        enc_path, {"pixel_values": torch.zeros(1, 3, 1024, 1024).numpy()})
+    print(json.dumps({"encoder": None if a.decoder_only else str(enc_path),
+                      "decoder": str(dec_path), "kind": a.kind,
                       "weights": source, "fp16_encoder": bool(a.fp16),
-                      "fp16_decoder": bool(a.fp16_decoder),
-                      "files": file_sizes([enc_path, dec_path]),
+                      "fp16_decoder": bool(a.fp16_decoder), "decoder_shares_image_work": shared_check,
+                      "files": file_sizes(files),
                       "onnxruntime_check": shapes}, indent=1))
 
 
@@ -397,8 +584,11 @@ def export_clip(a):
     vis_path, txt_path = out / f"{name}-visual.onnx", out / f"{name}-textual.onnx"
     tok_path, info_path = out / "clip-tokenizer.json", out / f"{name}.json"
     ids = tok(CHECK_TEXTS)
+    # Real-valued pixels (not zeros, which hide wrong indexing) for the image tower's check.
+    check_pixels = torch.rand(3, 3, 224, 224, generator=torch.Generator().manual_seed(1)) * 4 - 2
     with torch.no_grad():
         ref_txt = model.encode_text(ids, normalize=False).float()
+        ref_vis = model.encode_image(check_pixels, normalize=False).float()
     image_size = model.visual.image_size
     image_size = image_size[0] if isinstance(image_size, (tuple, list)) else image_size
     if image_size != 224:
@@ -424,16 +614,30 @@ def export_clip(a):
             return self.m.encode_text(input_ids, normalize=False).float()
 
     batch = {0: "batch"}
-    onnx_export(torch, Visual(model, a.fp16), (torch.zeros(2, 3, 224, 224),), vis_path,
+    visual = Visual(model, a.fp16)
+    fused = None
+    if a.fuse:
+        import copy
+        visual = Visual(copy.deepcopy(model), a.fp16)  # the text tower keeps the plain blocks
+        heads = fuse_attention(torch, visual.m.visual)
+        patch_embedding_as_matmul(torch, visual.m.visual)
+        fused = {"MultiHeadAttention": heads, "patch embedding as MatMul": 1}
+    onnx_export(torch, visual, (torch.zeros(2, 3, 224, 224),), vis_path,
                 input_names=["pixel_values"], output_names=["image_embeds"],
-                dynamic_axes={"pixel_values": batch, "image_embeds": batch})
+                dynamic_axes={"pixel_values": batch, "image_embeds": batch},
+                custom_opsets={"com.microsoft": 1} if a.fuse else None)
+    if a.fuse:
+        width = visual.m.visual.transformer.width
+        more = ort_fusions(vis_path, visual.m.visual.transformer.resblocks[0].attn.heads, width)
+        fused.update(more or {})
     onnx_export(torch, Textual(model), (torch.zeros(2, 77, dtype=torch.long),), txt_path,
                 input_names=["input_ids"], output_names=["text_embeds"],
                 dynamic_axes={"input_ids": batch, "text_embeds": batch})
     common = {"slag.clip_pair_id": pair_id, "slag.open_clip_model": a.model,
               "slag.pretrained": tag, "slag.weights_sha256": digest,
               "slag.fp16": str(bool(a.fp16)).lower(), "slag.tokenizer": tok_path.name}
-    set_metadata(vis_path, {**common, "slag.clip_tower": "visual"})
+    set_metadata(vis_path, {**common, "slag.clip_tower": "visual",
+                            "slag.fused": json.dumps(fused) if fused else "none"})
     set_metadata(txt_path, {**common, "slag.clip_tower": "textual"})
     dim = ref_txt.shape[1]
     for p, want in ((vis_path, ([("pixel_values", "float32", [-1, 3, 224, 224])],
@@ -455,10 +659,13 @@ def export_clip(a):
     elif txt_shapes is not None:
         ort_check = {"text": txt_shapes}
     if txt_shapes is not None:
-        ort_check["visual"] = check_with_ort(
-            vis_path, {"pixel_values": np.zeros((3, 3, 224, 224), np.float32)})
+        ort_check["visual"] = check_with_ort(vis_path, {"pixel_values": check_pixels.numpy()})
+        if isinstance(ort_check["visual"], list):
+            got, ref = check_with_ort.last[0], ref_vis.numpy()
+            cos = (got * ref).sum(1) / (np.linalg.norm(got, axis=1) * np.linalg.norm(ref, axis=1))
+            ort_check["visual_cosine_min_vs_torch_f32"] = float(cos.min())
     info = {"open_clip_model": a.model, "pretrained": tag, "clip_pair_id": pair_id,
-            "weights_sha256": digest, "fp16": bool(a.fp16), "dim": dim,
+            "weights_sha256": digest, "fp16": bool(a.fp16), "fused": fused, "dim": dim,
             "visual": vis_path.name, "textual": txt_path.name, "tokenizer": tok_path.name,
             "check": {"texts": CHECK_TEXTS, "input_ids": ids.tolist()},
             "onnxruntime_check": ort_check,
@@ -480,6 +687,12 @@ def main():
     s.add_argument("--fp16", action="store_true", help="half-precision encoder, f32 I/O")
     s.add_argument("--fp16-decoder", action="store_true",
                    help="half-precision mask decoder (prompt encoding f32), f32 I/O")
+    s.add_argument("--decoder-only", action="store_true",
+                   help="write the decoder alone (the encoder does not depend on decoder flags)")
+    s.add_argument("--image-work", choices=["shared", "expanded", "repeated"], default="shared",
+                   help="the decoder's per-image work: once per call, products broadcast over "
+                        "the prompts (shared), once per call then copied to the prompts "
+                        "(expanded), or once per prompt as segment_anything traces it (repeated)")
     s.add_argument("--external-data", action="store_true",
                    help="encoder weights in ENCODER.onnx.data even when small (always over 2 GB)")
     s.add_argument("--seed", type=int, default=0)
@@ -490,6 +703,8 @@ def main():
     w.add_argument("--pretrained", help="open_clip pretrained tag, e.g. openai (downloads)")
     w.add_argument("--random", action="store_true", help="random weights (timing, tests)")
     c.add_argument("--fp16", action="store_true", help="half-precision towers, f32 I/O")
+    c.add_argument("--fuse", action="store_true",
+                   help="image tower with ONNX Runtime's fused attention, LayerNorm and GELU")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("out", metavar="OUT_DIR")
     a = p.parse_args()

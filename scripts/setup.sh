@@ -14,7 +14,8 @@
 # pip-installed into ~/.cache/slag/cudaMAJOR. SLAG_ORT_GPU_DIR=DIR uses an already assembled folder
 # (libonnxruntime.so[.VERSION] + libonnxruntime_providers_{cuda,shared}.so, e.g. /root/og from
 # ../shared/tools/ort-gpu-chunks.sh on a machine without network) and only adds the CUDA libraries
-# of torch. Without a GPU nothing here changes (CI's path).
+# of torch. VK_DRIVER_FILES names the NVIDIA Vulkan driver file that works without a display
+# (scripts/vulkan-icd.sh). Without a GPU nothing here changes (CI's path).
 set -euo pipefail
 SLAG_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 export SLAG_SHARED=${SLAG_SHARED:-$(cd "$SLAG_ROOT/.." && pwd)/shared}
@@ -135,6 +136,12 @@ PY
   export LD_LIBRARY_PATH=$ORT_GPU_DIR${_cudalibs:+:$_cudalibs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
   export ORT_DYLIB_PATH=$_ortlib
   echo "setup: GPU: ONNX Runtime CUDA provider from $ORT_GPU_DIR, CUDA $cuda_major libraries from ${_cudafrom:-nowhere}" >&2
+  # The NVIDIA Vulkan driver file that works without a display (scripts/vulkan-icd.sh says why).
+  _icd=$(bash "$SLAG_ROOT/scripts/vulkan-icd.sh" || true)
+  if [ -n "$_icd" ]; then
+    export VK_DRIVER_FILES=$_icd
+    echo "setup: GPU: Vulkan driver file $VK_DRIVER_FILES" >&2
+  fi
   unset -f slag_torch_cuda_libs
 fi
 echo "setup: ORT_DYLIB_PATH=$ORT_DYLIB_PATH SLAG_SHARED=$SLAG_SHARED" >&2

@@ -9,6 +9,8 @@
 //! - [`stages`]: each encoder stage's time per image against its floor (FLOPs at the measured
 //!   matrix rate, bytes at the measured bandwidths) on the machine it runs on.
 //! - [`scaling`]: the same encode on 1, 2, 4 … GPUs of one host: speed-up and efficiency.
+//! - [`models`]: each ONNX model of the encode (CLIP tower, SAM encoder and decoder) timed alone
+//!   as the encoder runs it, and model variants checked against the first on the same inputs.
 //! - [`reduce`]: the reduction over images (the encoder's serial tail) in its two loop orders,
 //!   against each other in one run, plus the embeddings write.
 //!
@@ -17,6 +19,7 @@
 //! the encoder's own flag definition, converted into a `slag_encoder::config::EncodeConfig`.
 
 pub mod machine;
+pub mod models;
 pub mod reduce;
 pub mod scaling;
 pub mod stages;

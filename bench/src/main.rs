@@ -23,6 +23,9 @@ enum Command {
     /// The reduction over images in its two loop orders on a synthetic store of a real scene's
     /// size (same sums bit for bit), plus the embeddings write.
     Reduce(Box<slag_bench::reduce::ReduceArgs>),
+    /// Each ONNX model of the encode (CLIP tower per crop, SAM encoder and decoder per image)
+    /// timed alone on real images, and variants of a model compared with the first.
+    Models(Box<slag_bench::models::ModelsArgs>),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -36,6 +39,7 @@ fn main() -> anyhow::Result<()> {
         Command::Stages(a) => println!("{}", slag_bench::stages::run(&a)?),
         Command::Scaling(a) => println!("{}", slag_bench::scaling::run(&a)?),
         Command::Reduce(a) => println!("{}", slag_bench::reduce::run(&a)?),
+        Command::Models(a) => println!("{}", slag_bench::models::run(&a)?),
     }
     Ok(())
 }

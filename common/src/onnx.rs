@@ -94,6 +94,12 @@ impl Placement {
     }
 }
 
+/// Environment variable that turns on ONNX Runtime's profiler for every session: its value is a
+/// path prefix, and each session writes `PREFIX-<model folder>-<model file stem>_<date>.json` (Chrome trace
+/// format: one event per node run, with its provider and duration) when it ends. For finding
+/// where a model's time goes; it slows the runs down.
+pub const PROFILE_ENV: &str = "SLAG_ORT_PROFILE";
+
 /// Environment variable naming the ONNX Runtime shared library (`libonnxruntime.so`).
 pub const ORT_DYLIB_ENV: &str = "ORT_DYLIB_PATH";
 
@@ -281,6 +287,21 @@ impl OnnxModel {
             builder = builder
                 .with_intra_threads(placement.intra_threads)
                 .map_err(|e| model_err("cannot set the intra-op thread count", &e))?;
+        }
+        if let Some(prefix) = std::env::var_os(PROFILE_ENV).filter(|p| !p.is_empty()) {
+            // ONNX Runtime appends the date and `.json` to the prefix; the model's folder and
+            // file stem keep the traces of several models apart.
+            let stem = path.file_stem().unwrap_or_default().to_string_lossy();
+            let folder = path
+                .parent()
+                .and_then(Path::file_name)
+                .unwrap_or_default()
+                .to_string_lossy();
+            let mut prefix = PathBuf::from(prefix);
+            prefix.as_mut_os_string().push(format!("-{folder}-{stem}"));
+            builder = builder
+                .with_profiling(&prefix)
+                .map_err(|e| model_err("cannot turn on ONNX Runtime's profiler", &e))?;
         }
         if matches!(ep, ExecutionProvider::Cuda | ExecutionProvider::TensorRt) {
             let available = match ep {

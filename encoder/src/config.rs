@@ -269,8 +269,9 @@ pub struct SamConfig {
     pub decoder: Option<PathBuf>,
     /// Point grid: points per image side (default 32, segment_anything's).
     pub points_per_side: u32,
-    /// Prompts per decoder call (default 64; memory only, not the result).
-    pub points_per_batch: usize,
+    /// Prompts per decoder call (memory and speed, not the result); `None` (the default): the
+    /// whole grid in one call on a GPU, 64 on the CPU ([`crate::masks::sam::SamParams::batch_for`]).
+    pub points_per_batch: Option<usize>,
     /// Filter: minimum predicted IoU (default 0.88, segment_anything's).
     pub pred_iou_thresh: f32,
     /// Filter: minimum stability score (default 0.95, segment_anything's).
@@ -292,7 +293,7 @@ impl Default for SamConfig {
             encoder: None,
             decoder: None,
             points_per_side: 32,
-            points_per_batch: 64,
+            points_per_batch: None,
             pred_iou_thresh: 0.88,
             stability_score_thresh: 0.95,
             box_nms_thresh: 0.7,

@@ -279,7 +279,7 @@ pub struct Parameters {
     /// [`crate::config::SamConfig::box_nms_thresh`].
     pub sam_box_nms_thresh: f64,
     /// [`crate::config::SamConfig::points_per_batch`].
-    pub sam_points_per_batch: usize,
+    pub sam_points_per_batch: Option<usize>,
     /// [`crate::config::SamConfig::points_per_side`].
     pub sam_points_per_side: u32,
     /// [`crate::config::SamConfig::pred_iou_thresh`].

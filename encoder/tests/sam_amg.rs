@@ -67,9 +67,11 @@ fn sam_amg_reproduces_segment_anything_reference() {
         p["points_per_side"].as_u64(),
         Some(u64::from(params.points_per_side))
     );
+    // The reference ran segment_anything's CPU default, slag's default on the CPU.
+    assert_eq!(params.points_per_batch, None);
     assert_eq!(
         p["points_per_batch"].as_u64(),
-        Some(params.points_per_batch as u64)
+        Some(slag_encoder::masks::sam::CPU_POINTS_PER_BATCH as u64)
     );
     for (key, v) in [
         ("pred_iou_thresh", params.pred_iou_thresh),
@@ -186,7 +188,7 @@ fn sam_tiny_random_runs_end_to_end() {
     // last one partial) keeps the CPU run short; the full 16x16 timing is in the report.
     let params = SamParams {
         points_per_side: 4,
-        points_per_batch: 6,
+        points_per_batch: Some(6),
         pred_iou_thresh: 0.0,
         stability_score_thresh: 0.0,
         ..SamParams::default()
@@ -267,7 +269,7 @@ fn low_res_postprocess_matches_the_graphs_full_resolution_masks() {
     let run = |postprocess| {
         let params = SamParams {
             points_per_side: 6,
-            points_per_batch: 16,
+            points_per_batch: Some(16),
             pred_iou_thresh: 0.0,
             stability_score_thresh: 0.0,
             postprocess,
@@ -361,7 +363,7 @@ fn shared_sessions_give_every_image_its_own_masks() {
         .collect();
     let params = SamParams {
         points_per_side: 6,
-        points_per_batch: 9,
+        points_per_batch: Some(9),
         ..SamParams::default()
     };
     let mut one = cpu_generator(&dir, "color-sam", params.clone());

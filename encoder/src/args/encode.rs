@@ -97,9 +97,10 @@ pub struct EncodeArgs {
     /// SAM point grid: points per image side (segment_anything's default 32).
     #[arg(long, default_value_t = 32)]
     pub sam_points_per_side: u32,
-    /// SAM prompts per decoder call.
-    #[arg(long, default_value_t = 64)]
-    pub sam_points_per_batch: usize,
+    /// SAM prompts per decoder call [default: the whole grid in one call when the decoder runs
+    /// on a GPU, 64 on the CPU].
+    #[arg(long)]
+    pub sam_points_per_batch: Option<usize>,
     /// SAM filter: minimum predicted IoU (segment_anything's default 0.88).
     #[arg(long, default_value_t = 0.88)]
     pub sam_pred_iou_thresh: f32,

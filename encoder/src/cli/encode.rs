@@ -129,7 +129,7 @@ mod tests {
             (Some(700.0), Some(90))
         );
         let s = &c.masks.sam;
-        assert_eq!((s.points_per_side, s.points_per_batch), (8, 16));
+        assert_eq!((s.points_per_side, s.points_per_batch), (8, Some(16)));
         assert_eq!(
             (
                 s.pred_iou_thresh,

@@ -68,6 +68,7 @@
 //! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
 //! layout, constants and bindings; the shader module is the files joined in that order.
 
+use std::path::Path;
 use std::sync::Arc;
 
 use slag_common::camera::{Intrinsics, WorldToCamera};
@@ -82,6 +83,7 @@ use super::{
 
 mod buffers;
 mod count_scan;
+pub mod icd;
 mod label_sums;
 pub mod project;
 mod reduce;
@@ -308,14 +310,32 @@ fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
 /// (case-insensitive substring) if set, else ranked discrete, integrated, virtual, other, CPU
 /// (Mesa lavapipe), in enumeration order within a rank.
 ///
-/// Errors: [`Error::Gpu`] when there is no Vulkan adapter (install a driver) or none matches
-/// `$SLAG_WGPU_ADAPTER` (the message lists what exists).
+/// Errors: [`Error::Gpu`] when there is no Vulkan adapter (install a driver), when an NVIDIA
+/// driver is loaded but Vulkan offers only CPU adapters or none (the message gives the exact fix,
+/// see [`icd`]; naming a CPU adapter in `$SLAG_WGPU_ADAPTER` runs on it anyway), or when none
+/// matches `$SLAG_WGPU_ADAPTER` (the message lists what exists).
 fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
     let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
     let names: Vec<String> = adapters
         .iter()
         .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
         .collect();
+    let wanted = std::env::var(ADAPTER_ENV).ok();
+    // An NVIDIA host whose Vulkan offers no GPU: name the exact fix instead of running on
+    // Mesa's CPU driver a hundred times slower (unless the CPU adapter was asked for by name).
+    let only_cpu = adapters
+        .iter()
+        .all(|a| a.get_info().device_type == wgpu::DeviceType::Cpu);
+    if only_cpu
+        && wanted.is_none()
+        && let Some(hint) = icd::no_gpu_adapter_hint(
+            &names.join(", "),
+            Path::new("/"),
+            icd::nvidia_driver_present(),
+        )
+    {
+        return Err(Error::Gpu(hint));
+    }
     if adapters.is_empty() {
         return Err(Error::Gpu(
             "no Vulkan adapter found; install a Vulkan driver (on Debian/Ubuntu without a GPU: \
@@ -323,7 +343,7 @@ fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
                 .into(),
         ));
     }
-    if let Ok(want) = std::env::var(ADAPTER_ENV) {
+    if let Some(want) = wanted {
         let want_l = want.to_lowercase();
         let matching: Vec<wgpu::Adapter> = adapters
             .into_iter()
