@@ -30,7 +30,7 @@ decoder stays f32 (it is small and its prompt coordinates need f32) unless --fp1
 
 --fuse (clip): the image tower with ONNX Runtime's fused kernels: each self-attention block is
 exported as one com.microsoft MultiHeadAttention node (flash / memory-efficient attention on
-CUDA), the patch embedding as one matrix product instead of a 3-channel convolution, then, when onnxruntime is importable, its transformer optimizer fuses LayerNorm, the
+CUDA), then, when onnxruntime is importable, its transformer optimizer fuses LayerNorm, the
 residual add + LayerNorm and the bias + GELU. Same signature and weights; the export's check
 compares the f32 tower with torch on random pixels (cosine). MultiHeadAttention runs in half
 precision on CUDA only: check an --fp16 --fuse tower on the GPU (`slag-bench models`).
@@ -155,30 +155,6 @@ def fuse_attention(torch, tower):
     if count == 0:
         die("--fuse found no attention block to fuse in this model's visual tower")
     return count
-
-
-def patch_embedding_as_matmul(torch, tower):
-    """Replaces the image tower's patch embedding (`conv1`: a convolution whose kernel equals
-    its stride, so the patches do not overlap) by the same product written as one matrix
-    product: each 16x16x3 patch flattened against the kernel flattened. The convolution gives
-    cuDNN a 3-channel input, a poor case for its fp16 kernels; the matrix product runs on the
-    tensor cores like the rest of the tower. Same function, same weights."""
-
-    class PatchMatMul(torch.nn.Module):
-        def __init__(self, conv):
-            super().__init__()
-            if conv.bias is not None or conv.kernel_size != conv.stride or conv.padding != (0, 0):
-                die("--fuse expects a bias-free patch convolution with kernel = stride")
-            self.weight, self.p = conv.weight, conv.kernel_size[0]
-
-        def forward(self, x):
-            b, c, h, w = x.shape
-            p, gh, gw = self.p, h // self.p, w // self.p
-            x = x.reshape(b, c, gh, p, gw, p).permute(0, 2, 4, 1, 3, 5).reshape(b, gh * gw, c * p * p)
-            y = x @ self.weight.reshape(self.weight.shape[0], -1).t()
-            return y.permute(0, 2, 1).reshape(b, -1, gh, gw)
-
-    tower.conv1 = PatchMatMul(tower.conv1)
 
 
 def ort_fusions(path, heads, width):
@@ -620,8 +596,7 @@ def export_clip(a):
         import copy
         visual = Visual(copy.deepcopy(model), a.fp16)  # the text tower keeps the plain blocks
         heads = fuse_attention(torch, visual.m.visual)
-        patch_embedding_as_matmul(torch, visual.m.visual)
-        fused = {"MultiHeadAttention": heads, "patch embedding as MatMul": 1}
+        fused = {"MultiHeadAttention": heads}
     onnx_export(torch, visual, (torch.zeros(2, 3, 224, 224),), vis_path,
                 input_names=["pixel_values"], output_names=["image_embeds"],
                 dynamic_axes={"pixel_values": batch, "image_embeds": batch},
