@@ -27,9 +27,11 @@
 //! # Timeouts, connections and answer size
 //!
 //! [`serve`] runs [`slag_common::http::serve`] under [`ServeOptions::limits`]: a header-read
-//! timeout that is also the idle keep-alive timeout, a write timeout that drops a client that
-//! stopped reading its answer, and a connection limit kept below the open-file limit (lowered
-//! with a warning at start-up where it is not). One request may ask for at most
+//! timeout that is also the idle keep-alive timeout, a body-read deadline (a body still
+//! incomplete then gets 408 and its connection is closed), a write timeout that drops a client
+//! that stopped reading its answer, a connection limit kept below the open-file limit (lowered
+//! with a warning at start-up where it is not) and a share of it per remote address (one more
+//! connection from an address at its share gets 429). One request may ask for at most
 //! [`ServeOptions::max_matches`] matches in all (default [`DEFAULT_MAX_MATCHES`]): the sum of
 //! `top_k` over a `POST /query` batch, or one query's `top_k` (a threshold query returns at most
 //! its `top_k` best matches too). More is refused with 400 naming the limit, before any scan, so
