@@ -699,6 +699,9 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
             "scene_id" => "pass --scene NAME".into(),
             "radius" => "pass --radius R, a finite number ≥ 0".into(),
+            "server" => "pass --from http://HOST:PORT without user or password, and the shard \
+                         server's token with --token or SLAG_SHARD_TOKEN"
+                .into(),
             "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
                                \"instant-distance\"` in --config), or use a slag-edge built with \
                                `cargo build --release -p slag-edge --features qdrant-edge`"

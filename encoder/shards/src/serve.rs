@@ -85,16 +85,13 @@ async fn require_token(
     req: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
-    let authorization = req
-        .headers()
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok());
-    if slag_common::auth::authorized(authorization, &token) {
+    // Exactly one Authorization header: with two, which one counts would be a guess.
+    if slag_common::auth::authorized_once(req.headers().get_all(header::AUTHORIZATION), &token) {
         return next.run(req).await;
     }
     let mut r = error(
         StatusCode::UNAUTHORIZED,
-        "missing or wrong bearer token: send Authorization: Bearer <token> (slag-edge fetch \
+        "missing or wrong bearer token: send one Authorization: Bearer <token> header (slag-edge fetch \
          --token, or SLAG_SHARD_TOKEN)"
             .into(),
     );

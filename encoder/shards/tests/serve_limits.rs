@@ -93,6 +93,23 @@ async fn one_address_cannot_take_every_connection_slot() {
     assert_json_error(429, &head, &body);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_authorization_headers_get_401() {
+    let (addr, _dir) = start(Some("tok"), limits(10, 5, 64)).await;
+    let one = "Authorization: Bearer tok\r\n";
+    let (status, _, body) = exchange(&addr, &get("/v1/scenes", one)).await;
+    assert_eq!(status, 200, "{body}");
+    for two in [
+        format!("{one}{one}"),
+        format!("{one}Authorization: Bearer wrong\r\n"),
+        format!("Authorization: Bearer wrong\r\n{one}"),
+    ] {
+        let (status, head, body) = exchange(&addr, &get("/v1/scenes", &two)).await;
+        assert_eq!(status, 401, "{two}: {body}");
+        assert_json_error(401, &head, &body);
+    }
+}
+
 /// A client that stops reading is dropped after the write timeout instead of holding its
 /// answer: the body is cut short. Served by the same loop as the store routes
 /// ([`slag_common::http::serve`]), with a body larger than the socket buffers can hold.
