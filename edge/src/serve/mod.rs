@@ -88,8 +88,8 @@ pub const DEFAULT_SCAN_QUEUE: usize = 32;
 /// largest `top_k` of one query ([`query::MAX_TOP_K`]); about 2 MB of JSON.
 pub const DEFAULT_MAX_MATCHES: usize = 20_000;
 
-/// Server settings.
-#[derive(Debug, Clone)]
+/// Server settings. Its `Debug` form shows whether each token is set, never the token.
+#[derive(Clone)]
 pub struct ServeOptions {
     /// Scene to serve.
     pub scene: String,
@@ -116,6 +116,25 @@ pub struct ServeOptions {
     /// Bearer token `POST /fetch` sends to the shard server when its body gives none (`None`:
     /// no token).
     pub shard_token: Option<String>,
+}
+
+impl std::fmt::Debug for ServeOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let secret = |t: &Option<String>| t.as_ref().map(|_| "***");
+        f.debug_struct("ServeOptions")
+            .field("scene", &self.scene)
+            .field("token", &secret(&self.token))
+            .field("threshold", &self.threshold)
+            .field("hnsw", &self.hnsw)
+            .field("hnsw_backend", &self.hnsw_backend)
+            .field("request_timeout", &self.request_timeout)
+            .field("max_scans", &self.max_scans)
+            .field("scan_queue", &self.scan_queue)
+            .field("max_matches", &self.max_matches)
+            .field("limits", &self.limits)
+            .field("shard_token", &secret(&self.shard_token))
+            .finish()
+    }
 }
 
 impl ServeOptions {
@@ -1002,8 +1021,39 @@ async fn fetch_post(
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod status_tests {
     use super::*;
+
+    #[test]
+    fn the_debug_form_of_the_options_shows_no_token() {
+        let o = ServeOptions {
+            token: Some("edge-secret".into()),
+            shard_token: Some("shard-secret".into()),
+            ..ServeOptions::new("s")
+        };
+        let d = format!("{o:?}");
+        assert!(!d.contains("secret") && d.contains("***"), "{d}");
+    }
+
+    #[test]
+    fn query_strings_are_strict_utf8() {
+        let p = query_pairs(Some("text=caf%C3%A9+noir&top_k=3&x=50%")).unwrap();
+        assert_eq!(p["text"], "café noir");
+        assert_eq!(p["x"], "50%");
+        assert!(query_pairs(None).unwrap().is_empty());
+        for (q, field) in [
+            ("text=%FF", "text"),
+            ("top_k=1&text=a%C3", "text"),
+            ("%FF=1", "query"),
+            ("text=a&text=b", "text"),
+        ] {
+            match query_pairs(Some(q)) {
+                Err(Error::Query { field: f, .. }) => assert_eq!(f, field, "{q}"),
+                other => panic!("{q}: {other:?}"),
+            }
+        }
+    }
 
     #[test]
     fn client_faults_4xx_server_faults_5xx() {
