@@ -196,7 +196,9 @@ pub fn check_connection_limit(
 /// connections finish their request (idle ones close at once).
 ///
 /// The connection limit is applied as given: check it first with [`check_connection_limit`].
-/// Errors on accepting a connection (a peer that reset, the rare descriptor shortage) are logged
+/// Each remote address holds at most `max_connections_per_ip` of its slots (one more connection
+/// from it is answered 429 and closed), and every request body must end within `body_timeout`
+/// of its head (module doc). Errors on accepting a connection (a peer that reset, the rare descriptor shortage) are logged
 /// and the loop goes on after a short pause; the function itself does not fail.
 pub async fn serve(
     listener: tokio::net::TcpListener,
