@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Hostile-client probe of `slag-shards serve` and `slag-edge serve` on loopback (127.0.0.1 only).
+"""Hostile-client probe of `slag-shards serve` and `slag-edge serve` on loopback (127.0.0.1, and
+127.0.0.2 as a second client).
 
 Run through scripts/probe.sh, which builds or takes the binaries and makes the fixture. Every case
 is bounded in time and count; prints `case | expected | observed | pass/fail` and RSS figures, and
@@ -18,6 +19,9 @@ import threading
 import time
 
 HOST = "127.0.0.1"
+# A second loopback address: a well-behaved client beside the flooding one on HOST (Linux routes
+# all of 127.0.0.0/8 to lo). The servers give each address its own share of the slots.
+OTHER = "127.0.0.2"
 TOKEN = "probe-token"
 ROWS = []
 FIVEXX = [0]
@@ -88,9 +92,12 @@ class Peak:
         return self.peak
 
 
-def request(port, method, path, body=None, headers=None, timeout=60.0, raw=None):
-    """One request on a fresh connection: (status, headers dict lower-case, body bytes)."""
-    s = socket.create_connection((HOST, port), timeout=timeout)
+def request(port, method, path, body=None, headers=None, timeout=60.0, raw=None, source=None):
+    """One request on a fresh connection: (status, headers dict lower-case, body bytes).
+    `source`: the local address to connect from (OTHER is another client to the servers'
+    per-address share of the connection slots)."""
+    s = socket.create_connection((HOST, port), timeout=timeout,
+                                 source_address=(source, 0) if source else None)
     try:
         if raw is None:
             h = {"Host": f"{HOST}:{port}", "Connection": "close"}
@@ -251,6 +258,131 @@ def post_raw(port, body):
             f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n").encode() + body
 
 
+# ---- Stalled bodies, credentials in URLs, strict inputs (self-contained cases) ----------------
+
+# With the token, so the request gets past authentication and its body is read.
+STALLED_BODY = (f"POST /query HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer {TOKEN}\r\n"
+                "Content-Type: application/json\r\nContent-Length: 60000\r\n\r\n"
+                '{"queries": ').encode()
+SECRET = "probe-password-7c1e"
+
+
+def stall_bodies(port, n, head):
+    """`n` connections that each send `head` (a whole request head and the first bytes of its
+    body) and then nothing. Connections the server refuses at once (its per-address share) are
+    kept too: they count as closed. Returns the sockets."""
+    socks = []
+    for _ in range(n):
+        s = socket.socket()
+        s.settimeout(10)
+        try:
+            s.connect((HOST, port))
+            s.sendall(head)
+        except OSError:
+            pass
+        socks.append(s)
+    return socks
+
+
+def timed_status(port, path, source, headers=None):
+    """(status or 'error …', seconds) of one GET from `source`."""
+    t0 = time.time()
+    try:
+        st = request(port, "GET", path, headers=headers, timeout=60, source=source)[0]
+    except OSError as e:
+        st = f"error {e.__class__.__name__}"
+    return st, time.time() - t0
+
+
+def case_stalled_bodies(ep, sp, n, other):
+    """`n` stalled request bodies (a whole head announcing 60,000 bytes, 12 sent) from HOST:
+    /health from another address answers in under 1 s, the same address is answered at once too
+    (429 while its share is full), and every stalled body is closed within the body timeout
+    (3 s in the probe) plus a margin. Then the same against the shard server."""
+    socks = stall_bodies(ep, n, STALLED_BODY)
+    hs, h_s = timed_status(ep, "/health", other)
+    same, same_s = timed_status(ep, "/health", HOST)
+    closed, took = count_closed(socks, 20)
+    row(f"{n} stalled bodies, edge",
+        f"/health from {other} 200 in < 1 s; from {HOST} answered in < 1 s (429 while its share "
+        "is full); all closed by the body timeout",
+        f"/health {hs} after {h_s:.2f} s; same address {same} after {same_s:.2f} s; "
+        f"{closed}/{len(socks)} closed in {took:.0f} s",
+        hs == 200 and h_s < 1.0 and same in (200, 429) and same_s < 1.0 and closed == len(socks))
+    head = STALLED_BODY.replace(b"POST /query", b"GET /v1/scenes")
+    socks = stall_bodies(sp, n // 2, head)
+    ss, s_s = timed_status(sp, "/v1/scenes", other, headers=auth())
+    closed, took = count_closed(socks, 20)
+    row(f"{n // 2} stalled bodies, shard server",
+        f"/v1/scenes from {other} 200 in < 1 s; all closed by the body timeout",
+        f"/v1/scenes {ss} after {s_s:.2f} s; {closed}/{len(socks)} closed in {took:.0f} s",
+        ss == 200 and s_s < 1.0 and closed == len(socks))
+
+
+def store_holds(root, needles):
+    """Files under `root` that hold one of `needles` (bytes search), as relative paths."""
+    found = []
+    for d, _, files in os.walk(root):
+        for f in files:
+            p = os.path.join(d, f)
+            try:
+                data = open(p, "rb").read()
+            except OSError:
+                continue
+            if any(x.encode() in data for x in needles):
+                found.append(os.path.relpath(p, root))
+    return found
+
+
+def case_credentials(edge_bin, ep, sp, store, work):
+    """A shard-server URL with a password, through POST /fetch and `slag-edge fetch --from`:
+    refused (400 / exit != 0) without the password in the answer; neither the password nor the
+    bearer token in /stats or any file of the store (fetch.json included)."""
+    url = f"http://robot:{SECRET}@{HOST}:{sp}"
+    body = json.dumps({"center": [0, 0], "radius": 100000, "server": url}).encode()
+    st, _, b = request(ep, "POST", "/fetch", body=body,
+                       headers=auth({"Content-Type": "application/json"}), timeout=120)
+    stats = request(ep, "GET", "/stats", headers=auth())[2].decode("utf-8", "replace")
+    shown = [w for w, x in [("password", SECRET), ("token", TOKEN)] if x in stats]
+    stored = store_holds(store, [SECRET, TOKEN])
+    row("POST /fetch, server URL with a password",
+        "400; password and token in neither the answer, /stats nor the store (fetch.json)",
+        f"{st}; answer {'shows' if SECRET.encode() in b else 'hides'} the password; /stats "
+        f"shows {shown or 'neither'}; stored in {stored or 'no file'}",
+        st == 400 and SECRET.encode() not in b and not shown and not stored)
+    d = os.path.join(work, "cred-store")
+    r = subprocess.run([edge_bin, "fetch", "--from", url, "--scene", "probe", "--center", "0,0",
+                        "--radius", "100000", "--store", d],
+                       env={**os.environ, "SLAG_SHARD_TOKEN": TOKEN}, capture_output=True,
+                       text=True, timeout=120)
+    stored = store_holds(d, [SECRET]) if os.path.isdir(d) else []
+    row("slag-edge fetch --from URL with a password",
+        "refused; password not printed, not stored",
+        f"exit {r.returncode}; output {'shows' if SECRET in r.stdout + r.stderr else 'hides'} "
+        f"the password; stored in {stored or 'no file'}",
+        r.returncode != 0 and SECRET not in r.stdout + r.stderr and not stored)
+
+
+def case_strict_inputs(ep, sp):
+    """`text` that is not a JSON string, query strings that are not UTF-8, two Authorization
+    headers on both servers."""
+    for kind, text in [("object", {"a": 1}), ("array", ["red"]), ("true", True), ("number", 5)]:
+        body = json.dumps({"queries": [{"text": text}]}).encode()
+        st, _, b = request(ep, "POST", "/query", body=body,
+                           headers=auth({"Content-Type": "application/json"}))
+        row(f"text as a JSON {kind}", "400 naming text", f"{st} {b[:90]!r}",
+            st == 400 and b"text" in b)
+    for path in ["/query?text=%FF", "/query?text=caf%C3", "/query.ply?text=%FF"]:
+        st, _, b = request(ep, "GET", path, headers=auth())
+        row(f"GET {path}", "400 naming text (not U+FFFD)", f"{st} {b[:90]!r}",
+            st == 400 and b"text" in b)
+    two = f"Authorization: Bearer {TOKEN}\r\n" * 2
+    for port, name, path in [(ep, "edge", "/stats"), (sp, "shards", "/v1/scenes")]:
+        raw = f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{two}\r\n".encode()
+        st = request(port, "GET", path, raw=raw)[0]
+        row(f"two Authorization headers, {name}", "401", str(st), st == 401)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--edge", required=True)
@@ -277,6 +409,10 @@ def main():
     timeouts_e = ["--header-timeout", "3", "--write-timeout", "3"] if new_flags else []
     timeouts_s = (["--header-timeout", "3", "--write-timeout", "3"]
                   if supports(a.shards, "serve", "--header-timeout") else [])
+    if supports(a.edge, "serve", "--body-timeout"):
+        timeouts_e += ["--body-timeout", "3"]
+    if supports(a.shards, "serve", "--body-timeout"):
+        timeouts_s += ["--body-timeout", "3"]
     print(f"probe: {'short' if a.short else 'full'}; {n_stall} stalled sockets; edge "
           f"{'with' if new_flags else 'without'} timeout flags", flush=True)
 
@@ -297,8 +433,13 @@ def main():
     edge = start(edge_cmd, edge_env, nofile=1024, log=log)
     assert wait_up(ep, "/health", edge), "edge server did not start"
 
-    def query(text, k=20):
-        st, _, b = request(ep, "GET", f"/query?text={text}&top_k={k}", headers=auth())
+    # The well-behaved client's address: OTHER where the servers share slots per address (a
+    # flood from HOST then leaves it its share), else HOST as before.
+    other = OTHER if new_flags and supports(a.edge, "serve", "--max-connections-per-ip") else None
+
+    def query(text, k=20, source=None):
+        st, _, b = request(ep, "GET", f"/query?text={text}&top_k={k}", headers=auth(),
+                           source=source)
         return st, ([m["id"] for m in json.loads(b)["matches"]] if st == 200 else None)
 
     reference = {t: query(t)[1] for t in ["red", "a chair", "blue"]}
@@ -310,24 +451,25 @@ def main():
     socks = [] if a.rss_only else stalled(ep, n_stall, b"GET /health HTTP/1.1\r\nHost: x\r\n")
     t0 = time.time()
     try:
-        hs, _, _ = request(ep, "GET", "/health", timeout=60)
+        hs, _, _ = request(ep, "GET", "/health", timeout=60, source=other)
     except OSError as e:
         hs = f"error {e.__class__.__name__}"
     h_s = time.time() - t0
     try:
-        qs, ids = query("red")
+        qs, ids = query("red", source=other)
     except OSError as e:
         qs, ids = f"error {e.__class__.__name__}", None
     closed, took = count_closed(socks, 30)
     row("stalled sockets, edge (ulimit -n 1024)",
-        f"/health and a query 200 while {n_stall} sockets stall; all closed by the header timeout",
+        f"/health and a query 200 (from {other or HOST}) while {n_stall} sockets stall; all "
+        "closed by the header timeout",
         f"/health {hs} after {h_s:.1f} s, query {qs}; {closed}/{len(socks)} closed in {took:.0f} s",
         hs == 200 and qs == 200 and ids == reference["red"] and closed == len(socks))
 
     # 2. The same against the shard server.
     socks = [] if a.rss_only else stalled(sp, n_stall // 2, b"GET /v1/scenes HTTP/1.1\r\nHost: x\r\n")
     try:
-        ss, _, _ = request(sp, "GET", "/v1/scenes", headers=auth(), timeout=60)
+        ss, _, _ = request(sp, "GET", "/v1/scenes", headers=auth(), timeout=60, source=other)
     except OSError as e:
         ss = f"error {e.__class__.__name__}"
     closed, took = count_closed(socks, 30)
@@ -451,6 +593,11 @@ def main():
     st_s = request(sp, "GET", "/v1/scenes", headers={"Authorization": f"BEARER {TOKEN}"})[0]
     row("bearer scheme case", "'bearer' / 'BEARER' accepted (RFC 9110)", f"edge {st_e}, shards {st_s}",
         st_e == 200 and st_s == 200)
+
+    # 8b. Stalled bodies, credentials in URLs, strict inputs (functions above).
+    case_stalled_bodies(ep, sp, n_stall, other or HOST)
+    case_credentials(a.edge, ep, sp, f"{W}/edge", W)
+    case_strict_inputs(ep, sp)
 
     # 9. Answers unchanged, memory back.
     same = all(query(t)[1] == ids_ for t, ids_ in reference.items())

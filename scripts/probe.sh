@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# Hostile-client probe of the two servers on loopback (127.0.0.1 only), bounded in time and count:
-# stalled sockets under `ulimit -n 1024`, the 3.6 KB request that asks for 640,000 matches, slow
-# readers on both servers, error bodies (405/413/414/431/416), the bearer scheme's case, blank
-# tokens, and the store's damage cases (flipped bytes, truncated, appended, swapped shard files, a
+# Hostile-client probe of the two servers on loopback (127.0.0.0/8 only), bounded in time and count:
+# stalled sockets under `ulimit -n 1024` (the well-behaved client on a second loopback address,
+# 127.0.0.2), stalled request bodies (/health latency from another address; every one closed by
+# the body timeout), the 3.6 KB request that asks for 640,000 matches, slow readers on both
+# servers, error bodies (405/413/414/431/416), the bearer scheme's case, two Authorization
+# headers, a shard-server URL with a password (refused; not in /stats or the store), a `text`
+# that is not a JSON string, query strings that are not UTF-8, blank tokens, and the store's
+# damage cases (flipped bytes, truncated, appended, swapped shard files, a
 # directory in place of one: one `slag-edge fetch` must repair, `slag-edge check` must tell).
 # Prints `case | expected | observed | pass/fail` with RSS figures; exits 1 if a case fails.
 #

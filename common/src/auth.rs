@@ -71,6 +71,68 @@ pub fn authorized(authorization: Option<&str>, expected: &str) -> bool {
     )
 }
 
+/// `true` when the request's `Authorization` header values (every one, in order: e.g.
+/// `HeaderMap::get_all`) are exactly one, of visible ASCII, that carries `expected`
+/// ([`authorized`]). Two headers are refused whatever they hold: which one a proxy or a server
+/// reads first differs, so accepting either would let a request pass one check and be judged by
+/// another value.
+pub fn authorized_once<V: AsRef<[u8]>>(
+    values: impl IntoIterator<Item = V>,
+    expected: &str,
+) -> bool {
+    let mut values = values.into_iter();
+    let (Some(only), None) = (values.next(), values.next()) else {
+        // None, or two or more: still one comparison's time for a uniform answer.
+        token_matches(b"", expected.trim().as_bytes());
+        return false;
+    };
+    let visible = only
+        .as_ref()
+        .iter()
+        .all(|&b| b == b'\t' || (b' '..=b'~').contains(&b));
+    let text = std::str::from_utf8(only.as_ref()).ok().filter(|_| visible);
+    authorized(text, expected)
+}
+
+/// Where the user information of `url` (`user:password` in `scheme://user:password@host/…`) is:
+/// the byte range before the authority's last `@`, or `None` when it has none.
+fn userinfo_range(url: &str) -> Option<std::ops::Range<usize>> {
+    let start = url.find("://").map_or(0, |i| i + 3);
+    let rest = &url[start..];
+    let end = rest.find(['/', '?', '#']).unwrap_or(rest.len());
+    let at = rest[..end].rfind('@')?;
+    Some(start..start + at)
+}
+
+/// `url` with its user information (`user:password@`), if any, replaced by `***`:
+/// `http://robot:secret@host:8090/x` → `http://***@host:8090/x`. For showing a URL that came
+/// from outside (a message, a log line, a record written by an older version).
+pub fn redact_url(url: &str) -> std::borrow::Cow<'_, str> {
+    match userinfo_range(url) {
+        None => std::borrow::Cow::Borrowed(url),
+        Some(r) => std::borrow::Cow::Owned(format!("{}***{}", &url[..r.start], &url[r.end..])),
+    }
+}
+
+/// Refuses a server URL that carries a user name or password (`http://robot:secret@host:port`):
+/// a secret in a URL ends up in logs, status pages and saved records, so the shard server's
+/// token travels as a bearer token (a token file or variable) instead. `name` is the parameter's
+/// name for the error (`server`).
+///
+/// Errors: [`Error::Param`] `name`, its value the URL with the user information redacted
+/// ([`redact_url`]), never the secret.
+pub fn refuse_credentials_in_url(url: &str, name: &'static str) -> Result<()> {
+    if userinfo_range(url).is_none() {
+        return Ok(());
+    }
+    Err(Error::param(
+        name,
+        redact_url(url),
+        "a URL without a user name or password (http://host:port); give the server's token \
+         as a bearer token instead",
+    ))
+}
+
 /// Constant-time comparison of the presented and configured tokens (byte strings).
 pub fn token_matches(presented: &[u8], expected: &[u8]) -> bool {
     // Lengths compared in full (a `as u8` truncation would accept a token with 256 extra bytes).
@@ -128,6 +190,49 @@ mod tests {
         assert!(!authorized(None, "s3cret"));
         assert!(!authorized(Some("Bearer "), "s3cret"));
         assert_eq!(presented_token(Some("Token x")), "");
+    }
+
+    #[test]
+    fn exactly_one_authorization_header_is_accepted() {
+        assert!(authorized_once(["Bearer s3cret"], "s3cret"));
+        assert!(!authorized_once(
+            ["Bearer s3cret", "Bearer s3cret"],
+            "s3cret"
+        ));
+        assert!(!authorized_once(
+            ["Bearer wrong", "Bearer s3cret"],
+            "s3cret"
+        ));
+        assert!(!authorized_once(Vec::<&str>::new(), "s3cret"));
+        assert!(!authorized_once([&b"Bearer s3cret\xff"[..]], "s3cret"));
+    }
+
+    #[test]
+    fn credentials_in_a_url_are_refused_and_never_shown() {
+        for ok in [
+            "http://127.0.0.1:8090",
+            "https://host/path@not-userinfo",
+            "http://host:1/?q=a@b",
+        ] {
+            assert!(refuse_credentials_in_url(ok, "server").is_ok(), "{ok}");
+            assert_eq!(redact_url(ok), ok);
+        }
+        for bad in [
+            "http://robot:secret@127.0.0.1:8090",
+            "http://secret@host/",
+            "HTTP://robot:secret@host:1/v1?x=y",
+            "http://robot:se@cret@host",
+        ] {
+            let e = refuse_credentials_in_url(bad, "server").unwrap_err();
+            assert!(matches!(e, Error::Param { name: "server", .. }), "{e}");
+            let m = e.to_string();
+            assert!(!m.contains("secret") && !m.contains("cret"), "{m}");
+            assert!(m.contains("***@") && m.contains("token"), "{m}");
+        }
+        assert_eq!(
+            redact_url("http://robot:secret@host:8090/x"),
+            "http://***@host:8090/x"
+        );
     }
 
     #[test]

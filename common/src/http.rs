@@ -12,12 +12,28 @@
 //! - **Write timeout** ([`ServerLimits::write_timeout`], default [`DEFAULT_WRITE_TIMEOUT`]): a
 //!   write to the socket that cannot make progress for this long (a client that stopped reading
 //!   its answer) closes the connection and frees the answer (`tokio-io-timeout`).
+//! - **Body-read timeout** ([`ServerLimits::body_timeout`], default [`DEFAULT_BODY_TIMEOUT`]):
+//!   the whole request body must arrive within this time of the request head, at the header
+//!   timeout's pace (a deadline, not a per-read timer, so a body sent one byte at a time cannot
+//!   stretch it). A body still incomplete at the deadline fails the request: the answer is 408
+//!   with the JSON body and `Connection: close`, and the connection closes, freeing its slot.
+//!   A request the handler answers without reading its body does not wait for the body either:
+//!   hyper closes the connection after the answer instead of draining a stalled body.
 //! - **Connection limit** ([`ServerLimits::max_connections`], default
 //!   [`DEFAULT_MAX_CONNECTIONS`]): at most this many connections are open; the next one waits in
 //!   the kernel's listen queue until one closes (it is not accepted, so it holds no descriptor of
 //!   this process). [`check_connection_limit`] keeps the limit [`FD_HEADROOM`] descriptors below
 //!   the process's open-file limit (`ulimit -n`, systemd's `LimitNOFILE`), clamping it with a
 //!   warning where it is not.
+//! - **Share of one remote address** ([`ServerLimits::max_connections_per_ip`], default
+//!   [`DEFAULT_MAX_CONNECTIONS_PER_IP`]): at most this many of the connection slots are held by
+//!   one remote address (an IPv4 address, or an IPv6 /64 prefix, which one host usually holds
+//!   whole: [`address_key`]). One more connection from that address is accepted, answered **429
+//!   Too Many Requests** with `Retry-After: 1` and the JSON body, and closed at once, so one
+//!   client that floods the server with stalled sockets cannot take the slots of the others.
+//!   The share is checked after `accept` (the address is not known before), so the refused
+//!   connection costs one descriptor for the time of one write. Clients behind one NAT address
+//!   share one share: raise the setting for such a site.
 //! - **Request line and headers**: a request whose target is longer than [`MAX_URI_BYTES`] gets
 //!   414 and one whose header block is larger than [`MAX_HEADER_BYTES`] gets 431, both with the
 //!   JSON body. Beyond hyper's own parser limits (a target over 64 KiB, more than 100 headers)
@@ -29,9 +45,13 @@
 //! application/json` ([`error_response`]). [`json_errors`] adds the layers that make it so for the
 //! answers axum and tower-http produce themselves (405 with `Allow`, 408, 413, 416, 414, 431).
 
+use std::collections::HashMap;
 use std::future::Future;
-use std::net::SocketAddr;
-use std::sync::Arc;
+use std::net::{IpAddr, Ipv6Addr, SocketAddr};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
 use std::time::Duration;
 
 use axum::Router;
@@ -48,8 +68,14 @@ use crate::{Error, Result};
 pub const DEFAULT_HEADER_TIMEOUT: Duration = Duration::from_secs(10);
 /// Default write timeout: 30 s without progress on a socket write.
 pub const DEFAULT_WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+/// Default body-read timeout: 10 s from the request head to the end of its body, the header
+/// timeout's pace.
+pub const DEFAULT_BODY_TIMEOUT: Duration = Duration::from_secs(10);
 /// Default connection limit: 512 open connections.
 pub const DEFAULT_MAX_CONNECTIONS: usize = 512;
+/// Default share of the connection slots one remote address may hold: 64 (an eighth of
+/// [`DEFAULT_MAX_CONNECTIONS`]; a browser opens 6, a robot's nodes a handful).
+pub const DEFAULT_MAX_CONNECTIONS_PER_IP: usize = 64;
 /// Descriptors kept free for the process's own files (store, database, model, logs) below the
 /// open-file limit: the connection limit must be at most `RLIMIT_NOFILE − FD_HEADROOM`.
 pub const FD_HEADROOM: u64 = 64;
@@ -65,8 +91,14 @@ pub struct ServerLimits {
     pub header_timeout: Duration,
     /// Time a socket write may make no progress before the connection is closed.
     pub write_timeout: Duration,
+    /// Time from the end of a request head to the end of its body; a body still incomplete
+    /// then gets 408 and its connection is closed.
+    pub body_timeout: Duration,
     /// Connections open at once (≥ 1).
     pub max_connections: usize,
+    /// Connections one remote address ([`address_key`]) may hold at once (≥ 1; at most
+    /// `max_connections` is used); one more is answered 429 and closed.
+    pub max_connections_per_ip: usize,
 }
 
 impl Default for ServerLimits {
@@ -74,7 +106,9 @@ impl Default for ServerLimits {
         ServerLimits {
             header_timeout: DEFAULT_HEADER_TIMEOUT,
             write_timeout: DEFAULT_WRITE_TIMEOUT,
+            body_timeout: DEFAULT_BODY_TIMEOUT,
             max_connections: DEFAULT_MAX_CONNECTIONS,
+            max_connections_per_ip: DEFAULT_MAX_CONNECTIONS_PER_IP,
         }
     }
 }
@@ -82,17 +116,23 @@ impl Default for ServerLimits {
 impl ServerLimits {
     /// Checks the settings.
     ///
-    /// Errors: [`Error::Param`] `header_timeout` / `write_timeout` of zero, `max_connections`
-    /// of zero.
+    /// Errors: [`Error::Param`] `header_timeout` / `write_timeout` / `body_timeout` of zero,
+    /// `max_connections` / `max_connections_per_ip` of zero.
     pub fn validate(&self) -> Result<()> {
-        if self.header_timeout.is_zero() {
-            return Err(Error::param("header_timeout", "0", "a duration > 0 s"));
-        }
-        if self.write_timeout.is_zero() {
-            return Err(Error::param("write_timeout", "0", "a duration > 0 s"));
+        for (name, t) in [
+            ("header_timeout", self.header_timeout),
+            ("write_timeout", self.write_timeout),
+            ("body_timeout", self.body_timeout),
+        ] {
+            if t.is_zero() {
+                return Err(Error::param(name, "0", "a duration > 0 s"));
+            }
         }
         if self.max_connections == 0 {
             return Err(Error::param("max_connections", 0, "at least 1"));
+        }
+        if self.max_connections_per_ip == 0 {
+            return Err(Error::param("max_connections_per_ip", 0, "at least 1"));
         }
         Ok(())
     }
@@ -156,7 +196,9 @@ pub fn check_connection_limit(
 /// connections finish their request (idle ones close at once).
 ///
 /// The connection limit is applied as given: check it first with [`check_connection_limit`].
-/// Errors on accepting a connection (a peer that reset, the rare descriptor shortage) are logged
+/// Each remote address holds at most `max_connections_per_ip` of its slots (one more connection
+/// from it is answered 429 and closed), and every request body must end within `body_timeout`
+/// of its head (module doc). Errors on accepting a connection (a peer that reset, the rare descriptor shortage) are logged
 /// and the loop goes on after a short pause; the function itself does not fail.
 pub async fn serve(
     listener: tokio::net::TcpListener,
@@ -165,6 +207,10 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send,
 ) {
     let permits = Arc::new(tokio::sync::Semaphore::new(limits.max_connections.max(1)));
+    let shares = Arc::new(AddressShares::new(
+        limits.max_connections_per_ip.min(limits.max_connections),
+    ));
+    let router = with_body_deadline(router, limits.body_timeout);
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
     loop {
@@ -187,10 +233,15 @@ pub async fn serve(
             },
             () = &mut shutdown => break,
         };
+        let Some(share) = shares.open(peer.ip()) else {
+            refuse_over_share(&stream, peer, shares.max);
+            continue;
+        };
         let router = router.clone();
         let mut stop = stop_rx.clone();
         tokio::spawn(async move {
             let _permit = permit;
+            let _share = share;
             serve_connection(stream, peer, router, limits, &mut stop).await;
         });
     }
@@ -200,6 +251,176 @@ pub async fn serve(
     let _ = permits
         .acquire_many(limits.max_connections.max(1) as u32)
         .await;
+}
+
+/// The key one remote address's share is counted under: an IPv4 address (an IPv4-mapped IPv6
+/// address counts as its IPv4 address), or the /64 prefix of an IPv6 address (one host, or one
+/// network's SLAAC addresses, usually holds a whole /64: counting single IPv6 addresses would
+/// give it 2^64 shares).
+pub fn address_key(ip: IpAddr) -> IpAddr {
+    match ip.to_canonical() {
+        IpAddr::V6(v6) => {
+            let prefix = u128::from(v6) & !((1u128 << 64) - 1);
+            IpAddr::V6(Ipv6Addr::from(prefix))
+        }
+        v4 => v4,
+    }
+}
+
+/// Connections open per remote address ([`address_key`]), each at most `max`.
+struct AddressShares {
+    open: Mutex<HashMap<IpAddr, usize>>,
+    max: usize,
+}
+
+/// One connection's place in its address's share; given back when dropped.
+struct AddressShare {
+    shares: Arc<AddressShares>,
+    key: IpAddr,
+}
+
+impl AddressShares {
+    fn new(max: usize) -> AddressShares {
+        AddressShares {
+            open: Mutex::new(HashMap::new()),
+            max: max.max(1),
+        }
+    }
+
+    /// A place for one more connection from `ip`; `None` when its address already holds `max`.
+    fn open(self: &Arc<Self>, ip: IpAddr) -> Option<AddressShare> {
+        let key = address_key(ip);
+        let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        let n = open.entry(key).or_insert(0);
+        if *n >= self.max {
+            return None;
+        }
+        *n += 1;
+        Some(AddressShare {
+            shares: self.clone(),
+            key,
+        })
+    }
+}
+
+impl Drop for AddressShare {
+    fn drop(&mut self) {
+        let mut open = self.shares.open.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = open.get_mut(&self.key) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                open.remove(&self.key);
+            }
+        }
+    }
+}
+
+/// Answers a connection over its address's share: 429 with `Retry-After: 1`, the JSON body and
+/// `Connection: close`, written without waiting (a full socket buffer drops the answer, not the
+/// loop), then the connection is closed as `stream` drops.
+fn refuse_over_share(stream: &tokio::net::TcpStream, peer: SocketAddr, max: usize) {
+    let status = StatusCode::TOO_MANY_REQUESTS;
+    let body = serde_json::json!({
+        "error": format!(
+            "too many connections from {}: at most {max} at once per address; close idle \
+             connections or reuse one (keep-alive), then retry",
+            address_key(peer.ip())
+        ),
+        "status": status.as_u16(),
+    })
+    .to_string();
+    let answer = format!(
+        "HTTP/1.1 429 Too Many Requests\r\ncontent-type: application/json\r\n\
+         content-length: {}\r\nretry-after: 1\r\nconnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    let _ = stream.try_write(answer.as_bytes());
+    // What the client already sent is read and dropped, so that closing sends FIN rather than
+    // a reset that could discard the answer before the client reads it.
+    let mut sink = [0u8; 4096];
+    for _ in 0..4 {
+        if !matches!(stream.try_read(&mut sink), Ok(n) if n > 0) {
+            break;
+        }
+    }
+    tracing::debug!("connection {peer}: refused, its address holds {max} connections");
+}
+
+/// `router` with the body-read deadline (module doc): every request body must end within
+/// `timeout` of the request head, else the answer is 408 with `Connection: close`.
+fn with_body_deadline(router: Router, timeout: Duration) -> Router {
+    router.layer(axum::middleware::from_fn(
+        move |req: Request, next: Next| body_deadline(timeout, req, next),
+    ))
+}
+
+async fn body_deadline(timeout: Duration, req: Request, next: Next) -> Response {
+    use axum::body::HttpBody;
+    if req.body().is_end_stream() {
+        return next.run(req).await;
+    }
+    let expired = Arc::new(AtomicBool::new(false));
+    let deadline = tokio::time::Instant::now() + timeout;
+    let req = req.map(|inner| {
+        axum::body::Body::new(DeadlineBody {
+            inner,
+            sleep: Box::pin(tokio::time::sleep_until(deadline)),
+            expired: expired.clone(),
+        })
+    });
+    let answer = next.run(req).await;
+    if !expired.load(Ordering::SeqCst) {
+        return answer;
+    }
+    let mut r = error_response(
+        StatusCode::REQUEST_TIMEOUT,
+        format!(
+            "the request body did not arrive within {} s of the request head; send the \
+             whole body at once",
+            timeout.as_secs_f64()
+        ),
+    );
+    r.headers_mut()
+        .insert(header::CONNECTION, HeaderValue::from_static("close"));
+    r
+}
+
+/// A request body that fails once its deadline passes before it has ended.
+struct DeadlineBody {
+    inner: axum::body::Body,
+    sleep: Pin<Box<tokio::time::Sleep>>,
+    expired: Arc<AtomicBool>,
+}
+
+impl axum::body::HttpBody for DeadlineBody {
+    type Data = axum::body::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<std::result::Result<hyper::body::Frame<Self::Data>, Self::Error>>> {
+        let this = &mut *self;
+        if let Poll::Ready(frame) = Pin::new(&mut this.inner).poll_frame(cx) {
+            return Poll::Ready(frame);
+        }
+        if this.sleep.as_mut().poll(cx).is_ready() {
+            this.expired.store(true, Ordering::SeqCst);
+            return Poll::Ready(Some(Err(axum::Error::new(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                "request body timed out",
+            )))));
+        }
+        Poll::Pending
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> hyper::body::SizeHint {
+        self.inner.size_hint()
+    }
 }
 
 async fn accept_error(e: &std::io::Error) {
@@ -378,6 +599,34 @@ mod tests {
             ..l
         };
         assert!(check_connection_limit(zero, None).is_err());
+    }
+
+    #[test]
+    fn one_share_per_ipv4_address_and_per_ipv6_64_prefix() {
+        let ip = |s: &str| s.parse::<IpAddr>().unwrap();
+        assert_eq!(address_key(ip("10.0.0.7")), ip("10.0.0.7"));
+        assert_eq!(address_key(ip("::ffff:10.0.0.7")), ip("10.0.0.7"));
+        assert_eq!(
+            address_key(ip("2001:db8:1:2:aaaa::1")),
+            ip("2001:db8:1:2::")
+        );
+        assert_eq!(
+            address_key(ip("2001:db8:1:2:ffff::9")),
+            address_key(ip("2001:db8:1:2::5"))
+        );
+        assert_ne!(address_key(ip("2001:db8:1:3::1")), ip("2001:db8:1:2::"));
+        let shares = Arc::new(AddressShares::new(2));
+        let a = shares.open(ip("10.0.0.7")).unwrap();
+        let _b = shares.open(ip("10.0.0.7")).unwrap();
+        assert!(shares.open(ip("10.0.0.7")).is_none());
+        assert!(shares.open(ip("10.0.0.8")).is_some());
+        drop(a);
+        assert!(shares.open(ip("10.0.0.7")).is_some());
+        let zero = ServerLimits {
+            body_timeout: Duration::ZERO,
+            ..ServerLimits::default()
+        };
+        assert!(zero.validate().is_err());
     }
 
     #[test]

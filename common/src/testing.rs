@@ -15,6 +15,44 @@ use tokio::net::TcpStream;
 pub async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
     let mut s = TcpStream::connect(addr).await.expect("connect");
     s.write_all(raw).await.expect("send the request");
+    read_answer(&mut s).await
+}
+
+/// [`exchange`] from the local address `source` (another loopback address such as 127.0.0.2 is
+/// another client to the server's per-address share).
+///
+/// Panics as [`exchange`].
+pub async fn exchange_from(
+    source: std::net::IpAddr,
+    addr: &str,
+    raw: &[u8],
+) -> (u16, String, String) {
+    let mut s = connect_from(source, addr).await;
+    s.write_all(raw).await.expect("send the request");
+    read_answer(&mut s).await
+}
+
+/// A connection to `addr` (`ip:port`) from the local address `source` (any port).
+///
+/// Panics when `addr` is not `ip:port` or the connection fails.
+pub async fn connect_from(source: std::net::IpAddr, addr: &str) -> TcpStream {
+    let to: std::net::SocketAddr = addr.parse().expect("addr is ip:port");
+    let sock = if source.is_ipv4() {
+        tokio::net::TcpSocket::new_v4()
+    } else {
+        tokio::net::TcpSocket::new_v6()
+    }
+    .expect("socket");
+    sock.bind(std::net::SocketAddr::new(source, 0))
+        .expect("bind the source address");
+    sock.connect(to).await.expect("connect")
+}
+
+/// Reads an answer until the server closes `s` (at most 30 s): (status, head, body). Status 0
+/// when the answer has no status line.
+///
+/// Panics when the read fails or the connection stays open for 30 s.
+pub async fn read_answer(s: &mut TcpStream) -> (u16, String, String) {
     let mut out = Vec::new();
     tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
         .await

@@ -23,6 +23,8 @@
 //! header_timeout = 10   # seconds to send a request head; also the idle keep-alive timeout
 //! write_timeout = 30    # seconds a write to a client may stall before it is dropped
 //! max_connections = 512 # open connections; keep below LimitNOFILE - 64
+//! body_timeout = 10     # seconds a request body has to arrive after its head
+//! max_connections_per_ip = 64   # connections one address may hold; one more gets 429
 //! ```
 //!
 //! The DDS domain is `ROS_DOMAIN_ID` from the environment, as for every ROS 2 node.
@@ -83,6 +85,12 @@ pub struct ServeConfig {
     /// Connections open at once (`slag_common::http::DEFAULT_MAX_CONNECTIONS`, 512, when
     /// absent); lowered with a warning to the open-file limit minus 64.
     pub max_connections: Option<usize>,
+    /// Body-read timeout, seconds: a request body must arrive within it of the request head
+    /// (`slag_common::http::DEFAULT_BODY_TIMEOUT`, 10 s, when absent).
+    pub body_timeout: Option<f64>,
+    /// Connections one remote address may hold at once
+    /// (`slag_common::http::DEFAULT_MAX_CONNECTIONS_PER_IP`, 64, when absent).
+    pub max_connections_per_ip: Option<usize>,
 }
 
 impl ServeConfig {
@@ -150,5 +158,7 @@ mod tests {
         assert_eq!(c.header_timeout, Some(10.0));
         assert_eq!(c.write_timeout, Some(30.0));
         assert_eq!(c.max_connections, Some(512));
+        assert_eq!(c.body_timeout, Some(10.0));
+        assert_eq!(c.max_connections_per_ip, Some(64));
     }
 }

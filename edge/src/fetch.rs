@@ -471,7 +471,8 @@ pub async fn fetch_manifest(
 
 /// Runs a fetch (steps in the module doc).
 ///
-/// Errors: bad parameters ([`Error::Param`]), the server ([`Error::Network`]), a manifest too
+/// Errors: bad parameters ([`Error::Param`]; `server` for a URL with a user name or password,
+/// [`slag_common::auth::refuse_credentials_in_url`]), the server ([`Error::Network`]), a manifest too
 /// large or whose sizes the shard format does not allow ([`Error::Limit`], [`Error::Format`]),
 /// not enough free disk space for what is to be downloaded ([`Error::Limit`]
 /// [`slag_common::Resource::DiskSpace`], naming the folder), a shard that fails verification
@@ -503,6 +504,8 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
 
 /// [`fetch`] without the clean-up of partial files after a failure.
 async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+    // Before anything is logged, requested or recorded: a secret in the URL would be all three.
+    slag_common::auth::refuse_credentials_in_url(&p.server, "server")?;
     if !valid_scene_id(&p.scene) {
         return Err(Error::param(
             "scene_id",

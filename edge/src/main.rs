@@ -193,6 +193,14 @@ struct ServeArgs {
     /// below the open-file limit (ulimit -n, LimitNOFILE), lowered with a warning where not.
     #[arg(long)]
     max_connections: Option<usize>,
+    /// Seconds a request body has to arrive after its head; later gets 408 and the connection
+    /// is closed (default 10).
+    #[arg(long)]
+    body_timeout: Option<f64>,
+    /// Connections one remote address (IPv4 address, IPv6 /64) may hold at once; one more is
+    /// answered 429 and closed (default 64).
+    #[arg(long)]
+    max_connections_per_ip: Option<usize>,
     /// Serve the web page from this folder instead of the compiled-in one: its `index.html` and
     /// `app.js` where present, and the viewer bundles from its `vendor/` (made by `bash
     /// scripts/web-vendor.sh`). Default: the page and viewer compiled into this binary.
@@ -391,10 +399,18 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             Some(s) => timeout(s, "--write-timeout")?,
             None => d.write_timeout,
         },
+        body_timeout: match a.body_timeout.or(c.body_timeout) {
+            Some(s) => timeout(s, "--body-timeout")?,
+            None => d.body_timeout,
+        },
         max_connections: a
             .max_connections
             .or(c.max_connections)
             .unwrap_or(d.max_connections),
+        max_connections_per_ip: a
+            .max_connections_per_ip
+            .or(c.max_connections_per_ip)
+            .unwrap_or(d.max_connections_per_ip),
     };
     limits.validate()?;
     let shard_token = match (
@@ -683,6 +699,9 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
             "scene_id" => "pass --scene NAME".into(),
             "radius" => "pass --radius R, a finite number ≥ 0".into(),
+            "server" => "pass --from http://HOST:PORT without user or password, and the shard \
+                         server's token with --token or SLAG_SHARD_TOKEN"
+                .into(),
             "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
                                \"instant-distance\"` in --config), or use a slag-edge built with \
                                `cargo build --release -p slag-edge --features qdrant-edge`"
@@ -700,6 +719,10 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
                 .into(),
             "header_timeout" => "pass --header-timeout SECONDS".into(),
             "write_timeout" => "pass --write-timeout SECONDS".into(),
+            "body_timeout" => "pass --body-timeout SECONDS".into(),
+            "max_connections_per_ip" => "pass --max-connections-per-ip N (or \
+                                         `max_connections_per_ip` in --config)"
+                .into(),
             _ => return None,
         },
         Error::Query { field, message } => match *field {

@@ -257,6 +257,26 @@ fn json_field(v: &serde_json::Value) -> Option<String> {
     }
 }
 
+/// The prompt of a JSON query: a JSON string only. Anything else (an object, an array, a
+/// number, a boolean, null) is refused rather than turned into text and answered: the client
+/// meant something else, and the answer would be for a prompt nobody typed.
+///
+/// Errors: [`Error::Query`] `text` naming the JSON type that was sent.
+fn text_field(v: &serde_json::Value) -> Result<String> {
+    let kind = match v {
+        serde_json::Value::String(s) => return Ok(s.clone()),
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::Object(_) => "an object",
+    };
+    Err(Error::query(
+        "text",
+        format!("text is {kind}; send the prompt as a JSON string, like \"text\": \"chair\""),
+    ))
+}
+
 /// A JSON array of numbers as the comma-separated form the query string uses (`[1, 2, 3]` →
 /// `"1,2,3"`); `None` for anything else.
 fn comma_list(v: &serde_json::Value) -> Option<String> {
@@ -283,7 +303,7 @@ impl RawQuery {
         for (k, v) in obj {
             let val = json_field(v);
             match k.as_str() {
-                "text" => q.text = val,
+                "text" => q.text = Some(text_field(v)?),
                 "top_k" => q.top_k = val,
                 "threshold" => q.threshold = val,
                 "mode" => q.mode = val,

@@ -39,12 +39,113 @@ async fn edge_with_limits(limits: ServerLimits) -> (String, tempfile::TempDir) {
     edge(Arc::new(BasisEmbedder::new(8)), opts).await
 }
 
+/// Limits with one address allowed every slot (the global connection limit alone).
 fn limits(header_s: u64, max_connections: usize) -> ServerLimits {
     ServerLimits {
         header_timeout: Duration::from_secs(header_s),
         write_timeout: Duration::from_secs(5),
         max_connections,
+        max_connections_per_ip: max_connections,
+        ..ServerLimits::default()
     }
+}
+
+/// A `POST /query` head announcing a 60,000-byte body, and the body's first 12 bytes: the
+/// probe's stalled body.
+const STALLED_BODY: &[u8] =
+    b"POST /query HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n\
+    Content-Length: 60000\r\n\r\n{\"queries\": ";
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_request_body_gets_408_and_its_connection_closes_at_the_body_timeout() {
+    // Header timeout and request timeout far beyond the body timeout: only the body-read
+    // deadline can close this connection within the bound below.
+    let opts = ServeOptions {
+        limits: ServerLimits {
+            body_timeout: Duration::from_secs(1),
+            ..limits(60, 64)
+        },
+        request_timeout: Duration::from_secs(120),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    s.write_all(STALLED_BODY).await.unwrap();
+    let answer = tokio::time::timeout(
+        Duration::from_secs(30),
+        slag_common::testing::read_answer(&mut s),
+    )
+    .await
+    .expect("the stalled body is answered within 30 s, well before the 60 s header timeout");
+    let (status, head, body) = answer;
+    assert_eq!(status, 408, "{head}\n{body}");
+    assert_json_error(408, &head, &body);
+    assert!(
+        head.to_ascii_lowercase().contains("connection: close"),
+        "{head}"
+    );
+    // The server still answers on a new connection.
+    let (status, _, body) = exchange(&addr, &get("/health", "")).await;
+    assert_eq!(status, 200, "{body}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_address_cannot_take_every_connection_slot() {
+    // 16 slots, 4 per address, timeouts far beyond the test: nothing closes a stalled socket
+    // while the test runs except the per-address share.
+    let opts = ServeOptions {
+        limits: ServerLimits {
+            header_timeout: Duration::from_secs(60),
+            body_timeout: Duration::from_secs(60),
+            max_connections: 16,
+            max_connections_per_ip: 4,
+            ..ServerLimits::default()
+        },
+        request_timeout: Duration::from_secs(120),
+        ..ServeOptions::new("grid")
+    };
+    let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
+    let flood: std::net::IpAddr = "127.0.0.1".parse().unwrap();
+    let other: std::net::IpAddr = "127.0.0.2".parse().unwrap();
+    // 24 stalled bodies from one address: more than every slot.
+    let mut stalled = Vec::new();
+    for _ in 0..24 {
+        let mut s = slag_common::testing::connect_from(flood, &addr).await;
+        let _ = s.write_all(STALLED_BODY).await;
+        stalled.push(s);
+    }
+    // Another address is answered at once: it still has its share of the slots.
+    let health = tokio::time::timeout(
+        Duration::from_secs(20),
+        slag_common::testing::exchange_from(other, &addr, &get("/health", "")),
+    )
+    .await
+    .expect("/health from another address is answered while one address floods the server");
+    assert_eq!(health.0, 200, "{}", health.2);
+    // The flooding address is told why (429 with Retry-After and the JSON body).
+    let mut s = slag_common::testing::connect_from(flood, &addr).await;
+    let (status, head, body) = slag_common::testing::read_answer(&mut s).await;
+    assert_eq!(status, 429, "{head}\n{body}");
+    assert_json_error(429, &head, &body);
+    assert!(
+        head.to_ascii_lowercase().contains("retry-after: 1"),
+        "{head}"
+    );
+    assert!(body.contains("at most 4"), "{body}");
+    // Exactly 4 of the 24 hold a slot; the other 20 were closed at once.
+    let mut open = 0;
+    for s in &mut stalled {
+        let mut buf = [0u8; 512];
+        // Still waiting for a byte after 500 ms: the server holds it (a refused one has its 429
+        // or its end of stream to read at once).
+        if tokio::time::timeout(Duration::from_millis(500), s.read(&mut buf))
+            .await
+            .is_err()
+        {
+            open += 1;
+        }
+    }
+    assert_eq!(open, 4, "stalled connections still held by the server");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

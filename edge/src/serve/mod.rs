@@ -27,9 +27,11 @@
 //! # Timeouts, connections and answer size
 //!
 //! [`serve`] runs [`slag_common::http::serve`] under [`ServeOptions::limits`]: a header-read
-//! timeout that is also the idle keep-alive timeout, a write timeout that drops a client that
-//! stopped reading its answer, and a connection limit kept below the open-file limit (lowered
-//! with a warning at start-up where it is not). One request may ask for at most
+//! timeout that is also the idle keep-alive timeout, a body-read deadline (a body still
+//! incomplete then gets 408 and its connection is closed), a write timeout that drops a client
+//! that stopped reading its answer, a connection limit kept below the open-file limit (lowered
+//! with a warning at start-up where it is not) and a share of it per remote address (one more
+//! connection from an address at its share gets 429). One request may ask for at most
 //! [`ServeOptions::max_matches`] matches in all (default [`DEFAULT_MAX_MATCHES`]): the sum of
 //! `top_k` over a `POST /query` batch, or one query's `top_k` (a threshold query returns at most
 //! its `top_k` best matches too). More is refused with 400 naming the limit, before any scan, so
@@ -57,8 +59,8 @@ use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use axum::Router;
-use axum::extract::rejection::{JsonRejection, QueryRejection};
-use axum::extract::{Query, Request, State};
+use axum::extract::rejection::JsonRejection;
+use axum::extract::{Request, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
@@ -86,8 +88,8 @@ pub const DEFAULT_SCAN_QUEUE: usize = 32;
 /// largest `top_k` of one query ([`query::MAX_TOP_K`]); about 2 MB of JSON.
 pub const DEFAULT_MAX_MATCHES: usize = 20_000;
 
-/// Server settings.
-#[derive(Debug, Clone)]
+/// Server settings. Its `Debug` form shows whether each token is set, never the token.
+#[derive(Clone)]
 pub struct ServeOptions {
     /// Scene to serve.
     pub scene: String,
@@ -114,6 +116,25 @@ pub struct ServeOptions {
     /// Bearer token `POST /fetch` sends to the shard server when its body gives none (`None`:
     /// no token).
     pub shard_token: Option<String>,
+}
+
+impl std::fmt::Debug for ServeOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let secret = |t: &Option<String>| t.as_ref().map(|_| "***");
+        f.debug_struct("ServeOptions")
+            .field("scene", &self.scene)
+            .field("token", &secret(&self.token))
+            .field("threshold", &self.threshold)
+            .field("hnsw", &self.hnsw)
+            .field("hnsw_backend", &self.hnsw_backend)
+            .field("request_timeout", &self.request_timeout)
+            .field("max_scans", &self.max_scans)
+            .field("scan_queue", &self.scan_queue)
+            .field("max_matches", &self.max_matches)
+            .field("limits", &self.limits)
+            .field("shard_token", &secret(&self.shard_token))
+            .finish()
+    }
 }
 
 impl ServeOptions {
@@ -510,16 +531,14 @@ async fn auth(
     if req.uri().path() == "/health" || web::is_public_path(req.uri().path()) {
         return next.run(req).await;
     }
-    let authorization = headers
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok());
-    if slag_common::auth::authorized(authorization, token) {
+    // Exactly one Authorization header: with two, which one counts would be a guess.
+    if slag_common::auth::authorized_once(headers.get_all(header::AUTHORIZATION), token) {
         next.run(req).await
     } else {
         state.rejected.fetch_add(1, Ordering::Relaxed);
         let mut r = error(
             StatusCode::UNAUTHORIZED,
-            "missing or wrong bearer token: send Authorization: Bearer <token>".into(),
+            "missing or wrong bearer token: send one Authorization: Bearer <token> header".into(),
         );
         r.headers_mut().insert(
             header::WWW_AUTHENTICATE,
@@ -544,11 +563,15 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
     let e = state.engine();
     let edge = state.edge.clone();
     let scene = state.opts.scene.clone();
-    let (disk, record) = tokio::task::spawn_blocking(move || {
+    let (disk, mut record) = tokio::task::spawn_blocking(move || {
         (edge.disk_bytes(), edge.fetch_record(&scene).ok().flatten())
     })
     .await
     .unwrap_or((0, None));
+    // A record written before URLs with credentials were refused may still hold one.
+    if let Some(r) = record.as_mut() {
+        r.server = slag_common::auth::redact_url(&r.server).into_owned();
+    }
     let n = e.store.len();
     axum::Json(serde_json::json!({
         "scene": state.opts.scene,
@@ -661,8 +684,100 @@ pub fn compact_answer(mut a: query::QueryAnswer) -> query::QueryAnswer {
     a
 }
 
-/// The `GET /query?…` path: decoded query-string pairs (axum's `Query`, i.e. `serde_urlencoded`)
-/// to a [`RawQuery`] (unknown keys rejected like a `POST` item).
+/// Keys of the `GET` routes' query strings, for naming the field of a refused value.
+const QUERY_KEYS: [&str; 15] = [
+    "text",
+    "top_k",
+    "threshold",
+    "mode",
+    "bbox",
+    "index",
+    "frame",
+    "max_objects",
+    "near",
+    "object_gap",
+    "object_min_gaussians",
+    "smooth",
+    "color",
+    "color_by",
+    "dim",
+];
+
+/// `%XX` escapes decoded and `+` read as a space (`application/x-www-form-urlencoded`); a `%`
+/// not followed by two hex digits stays as it is. Bytes, not text: see [`query_pairs`].
+fn percent_decode(s: &str) -> Vec<u8> {
+    let b = s.as_bytes();
+    let hex = |c: u8| (c as char).to_digit(16);
+    let mut out = Vec::with_capacity(b.len());
+    let mut i = 0;
+    while i < b.len() {
+        match (
+            b[i],
+            b.get(i + 1).copied().and_then(hex),
+            b.get(i + 2).copied().and_then(hex),
+        ) {
+            (b'%', Some(hi), Some(lo)) => {
+                out.push((hi * 16 + lo) as u8);
+                i += 3;
+            }
+            (b'+', ..) => {
+                out.push(b' ');
+                i += 1;
+            }
+            (c, ..) => {
+                out.push(c);
+                i += 1;
+            }
+        }
+    }
+    out
+}
+
+/// A query string's pairs (`a=1&b=2`), percent-decoded as **strict** UTF-8: a key or value whose
+/// bytes are not UTF-8 once decoded (`text=%FF`) is refused, never replaced by U+FFFD and
+/// answered, so every route refuses what `POST /query` and ROS 2 refuse. A key given twice is
+/// refused too (which one counts would be a guess). `None` (no `?`) is no pairs.
+///
+/// Errors: [`Error::Query`] naming the key (`query` for a key that is itself not UTF-8 or not
+/// one of the routes' keys) and saying what to send.
+pub fn query_pairs(query: Option<&str>) -> Result<std::collections::HashMap<String, String>> {
+    let mut pairs = std::collections::HashMap::new();
+    for part in query.unwrap_or("").split('&').filter(|p| !p.is_empty()) {
+        let (k, v) = part.split_once('=').unwrap_or((part, ""));
+        let key = String::from_utf8(percent_decode(k)).map_err(|_| {
+            Error::query(
+                "query",
+                "a query-string key is not UTF-8 once percent-decoded; percent-encode UTF-8 text",
+            )
+        })?;
+        let field = QUERY_KEYS
+            .iter()
+            .find(|&&f| f == key)
+            .copied()
+            .unwrap_or("query");
+        let value = String::from_utf8(percent_decode(v)).map_err(|e| {
+            let at = e.utf8_error().valid_up_to();
+            Error::query(
+                field,
+                format!(
+                    "{key}: not UTF-8 once percent-decoded (byte {:#04x} at {at}); \
+                     percent-encode the UTF-8 bytes of the text",
+                    e.as_bytes()[at]
+                ),
+            )
+        })?;
+        if pairs.insert(key.clone(), value).is_some() {
+            return Err(Error::query(
+                field,
+                format!("{key} given twice in the query string; give it once"),
+            ));
+        }
+    }
+    Ok(pairs)
+}
+
+/// The `GET /query?…` path: decoded query-string pairs ([`query_pairs`]) to a [`RawQuery`]
+/// (unknown keys rejected like a `POST` item).
 ///
 /// Errors: [`Error::Query`] naming an unknown key.
 pub fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Result<RawQuery> {
@@ -673,13 +788,9 @@ pub fn raw_from_pairs(pairs: std::collections::HashMap<String, String>) -> Resul
     RawQuery::from_json(&serde_json::Value::Object(obj))
 }
 
-async fn query_get(
-    State(state): State<Arc<AppState>>,
-    q: std::result::Result<Query<std::collections::HashMap<String, String>>, QueryRejection>,
-) -> Response {
-    let params = q
-        .map_err(|e| Error::query("query", format!("query string: {e}")))
-        .and_then(|Query(p)| raw_from_pairs(p))
+async fn query_get(State(state): State<Arc<AppState>>, uri: axum::http::Uri) -> Response {
+    let params = query_pairs(uri.query())
+        .and_then(raw_from_pairs)
         .and_then(|r| r.validate(state.opts.threshold))
         .and_then(|p| check_matches(std::slice::from_ref(&p), state.opts.max_matches).map(|()| p));
     let params = match params {
@@ -898,13 +1009,51 @@ async fn fetch_post(
                  server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
             ),
         ),
+        Err(e @ Error::Param { name: "server", .. }) => error(
+            status_of(&e),
+            format!(
+                "{e}: send \"token\" in the body, or start slag-edge serve with the shard \
+                 server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
+            ),
+        ),
         Err(e) => error(status_of(&e), e.to_string()),
     }
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used)]
 mod status_tests {
     use super::*;
+
+    #[test]
+    fn the_debug_form_of_the_options_shows_no_token() {
+        let o = ServeOptions {
+            token: Some("edge-secret".into()),
+            shard_token: Some("shard-secret".into()),
+            ..ServeOptions::new("s")
+        };
+        let d = format!("{o:?}");
+        assert!(!d.contains("secret") && d.contains("***"), "{d}");
+    }
+
+    #[test]
+    fn query_strings_are_strict_utf8() {
+        let p = query_pairs(Some("text=caf%C3%A9+noir&top_k=3&x=50%")).unwrap();
+        assert_eq!(p["text"], "café noir");
+        assert_eq!(p["x"], "50%");
+        assert!(query_pairs(None).unwrap().is_empty());
+        for (q, field) in [
+            ("text=%FF", "text"),
+            ("top_k=1&text=a%C3", "text"),
+            ("%FF=1", "query"),
+            ("text=a&text=b", "text"),
+        ] {
+            match query_pairs(Some(q)) {
+                Err(Error::Query { field: f, .. }) => assert_eq!(f, field, "{q}"),
+                other => panic!("{q}: {other:?}"),
+            }
+        }
+    }
 
     #[test]
     fn client_faults_4xx_server_faults_5xx() {

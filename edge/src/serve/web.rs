@@ -16,13 +16,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
-use axum::extract::rejection::QueryRejection;
-use axum::extract::{Query, State};
+use axum::extract::State;
 use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use slag_common::{Error, Result};
 
-use super::{AppState, error, raw_from_pairs, status_of};
+use super::{AppState, error, query_pairs, raw_from_pairs, status_of};
 use crate::view::{HighlightStyle, object_colour, painted_ply_framed, parse_colour};
 
 /// What `GET /query.ply` paints.
@@ -75,15 +74,13 @@ fn style_from_pairs(pairs: &mut HashMap<String, String>) -> Result<(HighlightSty
 /// by default when the manifest has a scene-to-map transform, `frame=scene` for the stored one).
 pub(crate) async fn query_ply(
     State(state): State<Arc<AppState>>,
-    q: std::result::Result<Query<HashMap<String, String>>, QueryRejection>,
+    uri: axum::http::Uri,
 ) -> Response {
-    let params = q
-        .map_err(|e| Error::query("query", format!("query string: {e}")))
-        .and_then(|Query(mut p)| {
-            let style = style_from_pairs(&mut p)?;
-            let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
-            Ok((params, style))
-        });
+    let params = query_pairs(uri.query()).and_then(|mut p| {
+        let style = style_from_pairs(&mut p)?;
+        let params = raw_from_pairs(p)?.validate(state.opts.threshold)?;
+        Ok((params, style))
+    });
     let (mut params, (style, by)) = match params {
         Ok(p) => p,
         Err(e) => {

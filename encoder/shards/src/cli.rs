@@ -534,6 +534,14 @@ pub struct ServeArgs {
     /// open-file limit (ulimit -n), lowered with a warning where it is not.
     #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS)]
     pub max_connections: usize,
+    /// Seconds a request body has to arrive after its head; later gets 408 and the connection
+    /// is closed.
+    #[arg(long, default_value_t = slag_common::http::DEFAULT_BODY_TIMEOUT.as_secs_f64())]
+    pub body_timeout: f64,
+    /// Connections one remote address (IPv4 address, IPv6 /64) may hold at once; one more is
+    /// answered 429 and closed.
+    #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS_PER_IP)]
+    pub max_connections_per_ip: usize,
 }
 
 impl ServeArgs {
@@ -552,7 +560,9 @@ impl ServeArgs {
         let l = slag_common::http::ServerLimits {
             header_timeout: secs(self.header_timeout, "header_timeout")?,
             write_timeout: secs(self.write_timeout, "write_timeout")?,
+            body_timeout: secs(self.body_timeout, "body_timeout")?,
             max_connections: self.max_connections,
+            max_connections_per_ip: self.max_connections_per_ip,
         };
         l.validate()?;
         Ok(l)
@@ -654,6 +664,8 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "header_timeout" => "--header-timeout SECONDS",
                 "write_timeout" => "--write-timeout SECONDS",
                 "max_connections" => "--max-connections N (or raise ulimit -n)",
+                "body_timeout" => "--body-timeout SECONDS",
+                "max_connections_per_ip" => "--max-connections-per-ip N",
                 _ => return None,
             };
             Some(format!("pass {flag}"))

@@ -22,8 +22,8 @@
 //!
 //! Every error answer, those axum produces itself included (405 with `Allow`, 414, 431, 416), has
 //! the JSON body ([`slag_common::http::json_errors`]). [`serve_with_limits`] applies the
-//! header-read / idle timeout, the write timeout and the connection limit of
-//! [`slag_common::http::ServerLimits`]. A shard or codebook is answered from the store's own
+//! header-read / idle timeout, the body-read deadline, the write timeout, the connection limit
+//! and its per-address share of [`slag_common::http::ServerLimits`]. A shard or codebook is answered from the store's own
 //! buffer (the value sled holds), shared by every connection answering it and by ranges of it:
 //! no copy per connection, so a client that reads slowly holds no shard of its own.
 
@@ -85,16 +85,13 @@ async fn require_token(
     req: axum::extract::Request,
     next: axum::middleware::Next,
 ) -> Response {
-    let authorization = req
-        .headers()
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok());
-    if slag_common::auth::authorized(authorization, &token) {
+    // Exactly one Authorization header: with two, which one counts would be a guess.
+    if slag_common::auth::authorized_once(req.headers().get_all(header::AUTHORIZATION), &token) {
         return next.run(req).await;
     }
     let mut r = error(
         StatusCode::UNAUTHORIZED,
-        "missing or wrong bearer token: send Authorization: Bearer <token> (slag-edge fetch \
+        "missing or wrong bearer token: send one Authorization: Bearer <token> header (slag-edge fetch \
          --token, or SLAG_SHARD_TOKEN)"
             .into(),
     );
@@ -128,8 +125,8 @@ pub async fn serve_with_token(
     serve_with_limits(store, addr, token, ServerLimits::default(), on_bound).await
 }
 
-/// [`serve_with_token`] under `limits`: header-read (and idle keep-alive) timeout, write
-/// timeout, connection limit ([`slag_common::http`]). The connection limit is first checked
+/// [`serve_with_token`] under `limits`: header-read (and idle keep-alive) timeout, body-read
+/// deadline, write timeout, connection limit and per-address share ([`slag_common::http`]). The connection limit is first checked
 /// against the open-file limit ([`slag_common::http::check_connection_limit`]: lowered with a
 /// warning where it leaves fewer than 64 descriptors free).
 ///

@@ -12,11 +12,14 @@ use slag_common::http::ServerLimits;
 use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+/// Limits with one address allowed every slot (the global connection limit alone).
 fn limits(header_s: u64, write_s: u64, max_connections: usize) -> ServerLimits {
     ServerLimits {
         header_timeout: Duration::from_secs(header_s),
         write_timeout: Duration::from_secs(write_s),
         max_connections,
+        max_connections_per_ip: max_connections,
+        ..ServerLimits::default()
     }
 }
 
@@ -57,6 +60,53 @@ async fn stalled_sockets_close_and_the_connection_limit_keeps_the_server_answeri
     closed_within(&mut idle, Duration::from_secs(30)).await;
     for s in &mut stalled {
         closed_within(s, Duration::from_secs(30)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_address_cannot_take_every_connection_slot() {
+    // 8 slots, 3 per address, a header timeout beyond the test: only the per-address share
+    // keeps a slot for another client.
+    let l = ServerLimits {
+        max_connections_per_ip: 3,
+        ..limits(60, 5, 8)
+    };
+    let (addr, _dir) = start(None, l).await;
+    let flood: std::net::IpAddr = "127.0.0.1".parse().unwrap();
+    let other: std::net::IpAddr = "127.0.0.2".parse().unwrap();
+    let mut stalled = Vec::new();
+    for _ in 0..16 {
+        let mut s = slag_common::testing::connect_from(flood, &addr).await;
+        let _ = s.write_all(b"GET /v1/scenes HTTP/1.1\r\n").await;
+        stalled.push(s);
+    }
+    let (status, _, body) = tokio::time::timeout(
+        Duration::from_secs(20),
+        slag_common::testing::exchange_from(other, &addr, &get("/v1/scenes", "")),
+    )
+    .await
+    .expect("another address is answered while one address floods the server");
+    assert_eq!(status, 200, "{body}");
+    let mut s = slag_common::testing::connect_from(flood, &addr).await;
+    let (status, head, body) = slag_common::testing::read_answer(&mut s).await;
+    assert_eq!(status, 429, "{head}\n{body}");
+    assert_json_error(429, &head, &body);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_authorization_headers_get_401() {
+    let (addr, _dir) = start(Some("tok"), limits(10, 5, 64)).await;
+    let one = "Authorization: Bearer tok\r\n";
+    let (status, _, body) = exchange(&addr, &get("/v1/scenes", one)).await;
+    assert_eq!(status, 200, "{body}");
+    for two in [
+        format!("{one}{one}"),
+        format!("{one}Authorization: Bearer wrong\r\n"),
+        format!("Authorization: Bearer wrong\r\n{one}"),
+    ] {
+        let (status, head, body) = exchange(&addr, &get("/v1/scenes", &two)).await;
+        assert_eq!(status, 401, "{two}: {body}");
+        assert_json_error(401, &head, &body);
     }
 }
 
