@@ -361,10 +361,15 @@ impl AppState {
         }
     }
 
+    /// Swaps `e` in unless the engine served now holds a later generation (two reloads that
+    /// finish out of order: [`Engine::seq`]).
     fn swap(&self, e: Engine) {
-        match self.engine.write() {
-            Ok(mut g) => *g = Arc::new(e),
-            Err(p) => *p.into_inner() = Arc::new(e),
+        let mut g = self
+            .engine
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if e.seq >= g.seq {
+            *g = Arc::new(e);
         }
     }
 }
@@ -541,14 +546,14 @@ async fn health(State(state): State<Arc<AppState>>) -> Response {
 }
 
 async fn stats(State(state): State<Arc<AppState>>) -> Response {
+    // Everything about the scene from the one generation the engine holds (its fetch record
+    // included), not from the store, where a fetch may be committing another.
     let e = state.engine();
     let edge = state.edge.clone();
-    let scene = state.opts.scene.clone();
-    let (disk, record) = tokio::task::spawn_blocking(move || {
-        (edge.disk_bytes(), edge.fetch_record(&scene).ok().flatten())
-    })
-    .await
-    .unwrap_or((0, None));
+    let disk = tokio::task::spawn_blocking(move || edge.disk_bytes())
+        .await
+        .unwrap_or(0);
+    let record = e.record.clone();
     let n = e.store.len();
     axum::Json(serde_json::json!({
         "scene": state.opts.scene,
