@@ -92,6 +92,42 @@ impl Engine {
     }
 }
 
+/// The engine a server answers from: one immutable [`Engine`] behind an `Arc`, swapped whole.
+/// A query takes the `Arc` ([`Self::current`]) and keeps that one generation to its end,
+/// whatever is swapped in meanwhile; of two engines offered out of order (two reloads that
+/// finish in the other order), the later generation ([`Engine::seq`]) stays.
+pub struct ServedEngine(std::sync::RwLock<std::sync::Arc<Engine>>);
+
+impl ServedEngine {
+    /// Serves `engine`.
+    pub fn new(engine: Engine) -> Self {
+        ServedEngine(std::sync::RwLock::new(std::sync::Arc::new(engine)))
+    }
+
+    /// The engine served now.
+    pub fn current(&self) -> std::sync::Arc<Engine> {
+        self.0
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Serves `engine` unless the one served now holds a later generation (a larger
+    /// [`Engine::seq`]); returns whether it was swapped in.
+    pub fn offer(&self, engine: Engine) -> bool {
+        let mut g = self
+            .0
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if engine.seq >= g.seq {
+            *g = std::sync::Arc::new(engine);
+            true
+        } else {
+            false
+        }
+    }
+}
+
 /// What [`load_generation`] read: manifest, rows, load report, display columns, fetch record,
 /// commit count.
 type Generation = (
@@ -218,4 +254,28 @@ fn build_index(
         _ => None,
     };
     Ok(hnsw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::refuse_shared_ids;
+
+    #[test]
+    fn a_gaussian_id_in_two_shards_is_refused_naming_both_tiles() {
+        assert!(refuse_shared_ids(vec![(3, 0), (1, 0), (2, 1), (7, 1)], &[10, 11], "s").is_ok());
+        let e = refuse_shared_ids(vec![(3, 0), (1, 0), (2, 1), (3, 1)], &[10, 11], "s")
+            .expect_err("id 3 twice");
+        assert!(
+            matches!(
+                &e,
+                slag_common::Error::Shard(slag_common::shards::ShardError::ManifestNotASet(_))
+            ),
+            "{e}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains("Gaussian id 3") && m.contains("tiles 10 and 11"),
+            "{m}"
+        );
+    }
 }

@@ -793,7 +793,15 @@ impl EdgeStore {
             }
         };
         if len != tile.bytes {
-            return damaged(format!("{len} bytes, the manifest says {}", tile.bytes));
+            let longer = if len > tile.bytes {
+                "longer"
+            } else {
+                "shorter"
+            };
+            return damaged(format!(
+                "{len} bytes, {longer} than the {} bytes the manifest says",
+                tile.bytes
+            ));
         }
         // Never past the stated length, whatever the file does meanwhile.
         let mut f = f.take(tile.bytes.saturating_add(1));

@@ -52,8 +52,8 @@
 //! reports the gate under `"scans"`.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use axum::Router;
@@ -68,7 +68,7 @@ use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
 
-pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M};
+pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M, ServedEngine};
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
 pub use crate::scan::hnsw::HnswBackend;
@@ -287,7 +287,7 @@ impl Admission {
 
 /// Shared server state.
 pub struct AppState {
-    engine: RwLock<Arc<Engine>>,
+    engine: ServedEngine,
     edge: EdgeStore,
     text: Arc<dyn TextEmbedder>,
     negatives: Vec<Vec<f32>>,
@@ -330,7 +330,7 @@ impl AppState {
             ));
         }
         Ok(AppState {
-            engine: RwLock::new(Arc::new(engine)),
+            engine: ServedEngine::new(engine),
             edge,
             text,
             negatives,
@@ -355,22 +355,13 @@ impl AppState {
     }
 
     pub(crate) fn engine(&self) -> Arc<Engine> {
-        match self.engine.read() {
-            Ok(g) => g.clone(),
-            Err(p) => p.into_inner().clone(),
-        }
+        self.engine.current()
     }
 
-    /// Swaps `e` in unless the engine served now holds a later generation (two reloads that
-    /// finish out of order: [`Engine::seq`]).
+    /// Swaps `e` in unless the engine served now holds a later generation
+    /// ([`ServedEngine::offer`]).
     fn swap(&self, e: Engine) {
-        let mut g = self
-            .engine
-            .write()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if e.seq >= g.seq {
-            *g = Arc::new(e);
-        }
+        self.engine.offer(e);
     }
 }
 
