@@ -2,13 +2,18 @@
 //! Gaussians of every verified shard in one [`VectorStore`] (the scan kernels' layout), their
 //! display columns, and the optional approximate (HNSW) index. [`crate::serve`] swaps a new one in on reload;
 //! `slag-edge query`/`bench` and the examples use it directly.
+//!
+//! An engine holds exactly one committed generation of the store: it is loaded under the
+//! store's generation lock ([`EdgeStore::lock_generation`]), from the tiles that generation
+//! lists ([`crate::store::Committed::tiles`]), and is immutable once built; a server swaps a
+//! whole new `Arc<Engine>` in, so a query that took one keeps it to the end.
 
 use slag_common::Result;
 use slag_common::shards::{Manifest, MixtureShard, StoredShard};
 
 use crate::scan::VectorStore;
 use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
-use crate::store::{EdgeStore, SceneLoad};
+use crate::store::{EdgeStore, FetchRecord, SceneLoad};
 
 /// HNSW build effort (`ef_construction`, both backends).
 pub const HNSW_EF_CONSTRUCTION: usize = 100;
@@ -32,6 +37,12 @@ pub struct Engine {
     pub hnsw: Option<ApproxIndex>,
     /// Display columns of the same Gaussians, same row order (for `GET /query.ply`).
     pub display: crate::view::DisplayAttrs,
+    /// Record of the fetch that committed this generation (`None` for a store rebuilt without
+    /// one).
+    pub record: Option<FetchRecord>,
+    /// The store's commit count when this generation was read ([`crate::store::Committed::seq`]):
+    /// of two engines of one process, the one with the larger count holds the later generation.
+    pub seq: u64,
 }
 
 impl Engine {
@@ -55,79 +66,216 @@ impl Engine {
     /// Errors: [`slag_common::Error::Param`] `hnsw_backend` at once (before reading the store)
     /// for a backend this binary lacks; no completed fetch, store I/O, shards of another width
     /// or type than the manifest; a mixture scene's codebook missing, truncated or corrupted
-    /// ([`slag_common::Error::Format`]: fetch again); the index build ([`ApproxIndex::build`]).
+    /// ([`slag_common::Error::Format`]: fetch again); a Gaussian id in two shards
+    /// ([`slag_common::shards::ShardError::ManifestNotASet`]); the index build
+    /// ([`ApproxIndex::build`]).
     pub fn load_with(edge: &EdgeStore, scene: &str, hnsw: Option<HnswBackend>) -> Result<Engine> {
         if let Some(b) = hnsw {
             b.require()?;
         }
-        // The manifest is read once; then one shard file at a time: read, verify, copy its rows
-        // into the scan store, drop.
-        let manifest = edge.current_manifest(scene)?;
-        let mut store = match &manifest.mixture {
-            // A mixture scene: its codebook first (verified; missing or corrupt is an error,
-            // since no row can be scored without it).
-            Some(m) => {
-                let cb = edge.codebook(&manifest)?;
-                let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
-                    slag_common::Error::format("<manifest>", "codebook checksum is not hex")
-                })?;
-                VectorStore::new_mixture(cb.dim, m.slots as usize, cb.rows, crc)?
-            }
-            None => VectorStore::new(manifest.dim as usize, manifest.dtype)?,
+        let loaded = {
+            // One committed generation, read whole while no fetch commits or evicts.
+            let _generation = edge.lock_generation();
+            load_generation(edge, scene)?
         };
-        // Room for the rows of every stored shard up front: they land in place (no reallocation,
-        // no doubling of the served memory) on transparent huge pages.
-        let mut rows = 0u64;
-        for tile in &manifest.tiles {
-            if edge.has_shard(&manifest.scene_id, tile)? {
-                rows += tile.count;
-            }
-        }
-        store.reserve(usize::try_from(rows).unwrap_or(usize::MAX))?;
-        let mut display = crate::view::DisplayAttrs::new();
-        let load = if store.is_mixture() {
-            edge.load_shards(&manifest, |s: MixtureShard| {
-                display.push_shard(&s);
-                store.push_mixture_shard(s)
-            })?
-        } else {
-            edge.load_shards(&manifest, |s: StoredShard| {
-                display.push_shard(&s);
-                store.push_shard(s)
-            })?
-        };
-        if hnsw.is_some() && store.is_mixture() {
-            tracing::warn!(
-                "scene {scene} holds codebook mixtures: no HNSW index is built over them \
-                 (index=hnsw is refused; the exact mixture scan answers)"
-            );
-        }
-        let hnsw = match hnsw {
-            Some(backend) if !store.is_empty() && !store.is_mixture() => {
-                let params = HnswParams {
-                    ef_construction: HNSW_EF_CONSTRUCTION,
-                    ef_search: HNSW_EF_SEARCH,
-                    m: HNSW_M,
-                    seed: HNSW_SEED,
-                    ..HnswParams::default()
-                };
-                let t = std::time::Instant::now();
-                let index = ApproxIndex::build(&store, backend, &params)?;
-                tracing::info!(
-                    "{backend} HNSW over {} rows built in {:.1} s",
-                    store.len(),
-                    t.elapsed().as_secs_f64()
-                );
-                Some(index)
-            }
-            _ => None,
-        };
+        let (manifest, store, load, display, record, seq) = loaded;
+        let hnsw = build_index(&store, scene, hnsw)?;
         Ok(Engine {
             manifest,
             store,
             load,
             hnsw,
             display,
+            record,
+            seq,
         })
+    }
+}
+
+/// The engine a server answers from: one immutable [`Engine`] behind an `Arc`, swapped whole.
+/// A query takes the `Arc` ([`Self::current`]) and keeps that one generation to its end,
+/// whatever is swapped in meanwhile; of two engines offered out of order (two reloads that
+/// finish in the other order), the later generation ([`Engine::seq`]) stays.
+pub struct ServedEngine(std::sync::RwLock<std::sync::Arc<Engine>>);
+
+impl ServedEngine {
+    /// Serves `engine`.
+    pub fn new(engine: Engine) -> Self {
+        ServedEngine(std::sync::RwLock::new(std::sync::Arc::new(engine)))
+    }
+
+    /// The engine served now.
+    pub fn current(&self) -> std::sync::Arc<Engine> {
+        self.0
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Serves `engine` unless the one served now holds a later generation (a larger
+    /// [`Engine::seq`]); returns whether it was swapped in.
+    pub fn offer(&self, engine: Engine) -> bool {
+        let mut g = self
+            .0
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if engine.seq >= g.seq {
+            *g = std::sync::Arc::new(engine);
+            true
+        } else {
+            false
+        }
+    }
+}
+
+/// What [`load_generation`] read: manifest, rows, load report, display columns, fetch record,
+/// commit count.
+type Generation = (
+    Manifest,
+    VectorStore,
+    SceneLoad,
+    crate::view::DisplayAttrs,
+    Option<FetchRecord>,
+    u64,
+);
+
+/// Reads the scene's committed generation (call with the generation lock held): the manifest
+/// once, then one listed shard file at a time (read, verify, copy its rows into the scan store,
+/// drop), then the check that no Gaussian id is in two shards.
+///
+/// Errors: as [`Engine::load_with`].
+fn load_generation(edge: &EdgeStore, scene: &str) -> Result<Generation> {
+    let committed = edge.committed(scene)?;
+    let manifest = &committed.manifest;
+    let mut store = match &manifest.mixture {
+        // A mixture scene: its codebook first (verified; missing or corrupt is an error,
+        // since no row can be scored without it).
+        Some(m) => {
+            let cb = edge.codebook(&manifest)?;
+            let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
+                slag_common::Error::format("<manifest>", "codebook checksum is not hex")
+            })?;
+            VectorStore::new_mixture(cb.dim, m.slots as usize, cb.rows, crc)?
+        }
+        None => VectorStore::new(manifest.dim as usize, manifest.dtype)?,
+    };
+    // Room for the rows of every stored shard up front: they land in place (no reallocation,
+    // no doubling of the served memory) on transparent huge pages.
+    let mut rows = 0u64;
+    for tile in committed.tiles() {
+        if edge.has_shard(&manifest.scene_id, tile)? {
+            rows += tile.count;
+        }
+    }
+    store.reserve(usize::try_from(rows).unwrap_or(usize::MAX))?;
+    let mut display = crate::view::DisplayAttrs::new();
+    // (Gaussian id, shard in load order) of every row and the tile of each shard, for the
+    // check that no id is in two shards.
+    let (mut ids, mut tiles) = (Vec::<(u32, u32)>::new(), Vec::<u64>::new());
+    let mut note = |ids_of: &[u32], tile: u64| {
+        let k = tiles.len() as u32;
+        tiles.push(tile);
+        ids.extend(ids_of.iter().map(|&i| (i, k)));
+    };
+    let load = if store.is_mixture() {
+        edge.load_committed(&committed, |s: MixtureShard| {
+            note(&s.ids, s.header.tile_id);
+            display.push_shard(&s);
+            store.push_mixture_shard(s)
+        })?
+    } else {
+        edge.load_committed(&committed, |s: StoredShard| {
+            note(&s.ids, s.header.tile_id);
+            display.push_shard(&s);
+            store.push_shard(s)
+        })?
+    };
+    refuse_shared_ids(ids, &tiles, scene)?;
+    Ok((
+        committed.manifest,
+        store,
+        load,
+        display,
+        committed.record,
+        committed.seq,
+    ))
+}
+
+/// Refuses rows of one Gaussian id in two shards: the manifest's tiles must partition the
+/// scene's Gaussians, or every answer counts some twice.
+///
+/// Errors: [`slag_common::shards::ShardError::ManifestNotASet`] naming the id and both tiles.
+fn refuse_shared_ids(mut ids: Vec<(u32, u32)>, tiles: &[u64], scene: &str) -> Result<()> {
+    ids.sort_unstable();
+    match ids.windows(2).find(|w| w[0].0 == w[1].0) {
+        Some(w) => Err(slag_common::Error::Shard(
+            slag_common::shards::ShardError::ManifestNotASet(format!(
+                "scene {scene}: Gaussian id {} is in the shards of tiles {} and {}",
+                w[0].0, tiles[w[0].1 as usize], tiles[w[1].1 as usize]
+            )),
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Builds the approximate index of `hnsw`'s backend over `store` (none for an empty or mixture
+/// scene): [`Engine::load_with`].
+///
+/// Errors: the index build ([`ApproxIndex::build`]).
+fn build_index(
+    store: &VectorStore,
+    scene: &str,
+    hnsw: Option<HnswBackend>,
+) -> Result<Option<ApproxIndex>> {
+    if hnsw.is_some() && store.is_mixture() {
+        tracing::warn!(
+            "scene {scene} holds codebook mixtures: no HNSW index is built over them \
+                 (index=hnsw is refused; the exact mixture scan answers)"
+        );
+    }
+    let hnsw = match hnsw {
+        Some(backend) if !store.is_empty() && !store.is_mixture() => {
+            let params = HnswParams {
+                ef_construction: HNSW_EF_CONSTRUCTION,
+                ef_search: HNSW_EF_SEARCH,
+                m: HNSW_M,
+                seed: HNSW_SEED,
+                ..HnswParams::default()
+            };
+            let t = std::time::Instant::now();
+            let index = ApproxIndex::build(store, backend, &params)?;
+            tracing::info!(
+                "{backend} HNSW over {} rows built in {:.1} s",
+                store.len(),
+                t.elapsed().as_secs_f64()
+            );
+            Some(index)
+        }
+        _ => None,
+    };
+    Ok(hnsw)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::refuse_shared_ids;
+
+    #[test]
+    fn a_gaussian_id_in_two_shards_is_refused_naming_both_tiles() {
+        assert!(refuse_shared_ids(vec![(3, 0), (1, 0), (2, 1), (7, 1)], &[10, 11], "s").is_ok());
+        let e = refuse_shared_ids(vec![(3, 0), (1, 0), (2, 1), (3, 1)], &[10, 11], "s")
+            .expect_err("id 3 twice");
+        assert!(
+            matches!(
+                &e,
+                slag_common::Error::Shard(slag_common::shards::ShardError::ManifestNotASet(_))
+            ),
+            "{e}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains("Gaussian id 3") && m.contains("tiles 10 and 11"),
+            "{m}"
+        );
     }
 }

@@ -469,7 +469,8 @@ pub async fn fetch_manifest(
     Ok(m)
 }
 
-/// Runs a fetch (steps in the module doc).
+/// Runs a fetch (steps in the module doc). Fetches into one store run one at a time; steps 5
+/// and 6 hold the store's generation lock, so a concurrent load sees one committed generation.
 ///
 /// Errors: bad parameters ([`Error::Param`]; `server` for a URL with a user name or password,
 /// [`slag_common::auth::refuse_credentials_in_url`]), the server ([`Error::Network`]), a manifest too
@@ -480,6 +481,8 @@ pub async fn fetch_manifest(
 /// and the previous manifest stays current; rerunning resumes (partial files are kept only after
 /// a network failure: module doc).
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+    // One fetch at a time per store (a second one waits): [`EdgeStore::lock_fetching`].
+    let _one = store.lock_fetching().await;
     let r = fetch_inner(store, p).await;
     if let Err(e) = &r
         && !matches!(e, Error::Network { .. })
@@ -553,6 +556,8 @@ async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary>
             for t in tiles {
                 let state = match store.check_stored(&manifest, &t)? {
                     Stored::Damaged { path, why } => {
+                        // A load in progress reads the committed generation whole.
+                        let _generation = store.lock_generation();
                         store.set_aside(&path, &why)?;
                         Stored::Damaged { path, why }
                     }
@@ -643,37 +648,18 @@ async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary>
             .duration_since(UNIX_EPOCH)
             .map(|d| d.as_secs())
             .unwrap_or(0),
+        tiles: None,
     };
-    fault_boundary("before the manifest commit");
-    {
-        let (store, manifest) = (store.clone(), manifest.clone());
-        tokio::task::spawn_blocking(move || store.commit_fetch(&manifest, &record))
-            .await
-            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
-    }
-    fault_boundary("after the manifest commit");
-
-    // Eviction: shards no manifest tile references (older generations) always; shards outside the
-    // disc only with --prune.
-    let wanted: std::collections::HashSet<(u64, u32)> = selected
-        .iter()
-        .filter_map(|t| parse_checksum(t).ok().map(|c| (t.id, c)))
-        .collect();
-    let current: std::collections::HashSet<(u64, u32)> = manifest
-        .tiles
-        .iter()
-        .filter_map(|t| parse_checksum(t).ok().map(|c| (t.id, c)))
-        .collect();
-    for (tile, checksum, _) in store.stored_shards(&p.scene)? {
-        let in_manifest = current.contains(&(tile, checksum));
-        let in_disc = wanted.contains(&(tile, checksum));
-        if !in_manifest || (p.prune && !in_disc) {
-            summary.evicted += store.remove_shard(&p.scene, tile, checksum)? as usize;
-            fault_boundary("after a shard eviction");
-        } else if !in_disc {
-            summary.kept_outside += 1;
-        }
-    }
+    let (evicted, kept_outside) = {
+        let (store, manifest, prune) = (store.clone(), manifest.clone(), p.prune);
+        tokio::task::spawn_blocking(move || {
+            commit_and_evict(&store, &manifest, &selected, record, prune)
+        })
+        .await
+        .map_err(|e| Error::internal(format!("store task failed: {e}")))??
+    };
+    summary.evicted += evicted;
+    summary.kept_outside += kept_outside;
     // Partial files of tiles now stored (a kill between a shard commit and the file's removal)
     // or of older generations; partials of this manifest's other tiles are kept for a later fetch.
     let mut keep = Vec::new();
@@ -689,6 +675,52 @@ async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary>
     store.flush()?;
     summary.store_bytes = store.disk_bytes();
     Ok(summary)
+}
+
+/// Steps 5 and 6 of the module doc under the store's generation lock
+/// ([`EdgeStore::lock_generation`]), so that a load sees the generation before or after, never
+/// between: commits `manifest` with `record` listing the tiles the new generation holds (the
+/// disc's `selected`, plus, without `prune`, the manifest's other tiles with a stored file),
+/// then evicts the shards it does not hold: older generations' always, those outside the disc
+/// with `prune`. Returns (shards evicted, tiles kept outside the disc).
+///
+/// Errors: store I/O.
+fn commit_and_evict(
+    store: &EdgeStore,
+    manifest: &Manifest,
+    selected: &[TileInfo],
+    mut record: FetchRecord,
+    prune: bool,
+) -> Result<(usize, usize)> {
+    let key = |t: &TileInfo| parse_checksum(t).ok().map(|c| (t.id, c));
+    let wanted: std::collections::HashSet<(u64, u32)> = selected.iter().filter_map(key).collect();
+    let current: std::collections::HashSet<(u64, u32)> =
+        manifest.tiles.iter().filter_map(key).collect();
+    let _generation = store.lock_generation();
+    let mut tiles: Vec<u64> = Vec::with_capacity(manifest.tiles.len());
+    for t in &manifest.tiles {
+        let in_disc = key(t).is_some_and(|k| wanted.contains(&k));
+        if in_disc || (!prune && store.has_shard(&manifest.scene_id, t)?) {
+            tiles.push(t.id);
+        }
+    }
+    tiles.sort_unstable();
+    record.tiles = Some(tiles);
+    fault_boundary("before the manifest commit");
+    store.commit_fetch(manifest, &record)?;
+    fault_boundary("after the manifest commit");
+    let (mut evicted, mut kept_outside) = (0, 0);
+    for (tile, checksum, _) in store.stored_shards(&manifest.scene_id)? {
+        let in_manifest = current.contains(&(tile, checksum));
+        let in_disc = wanted.contains(&(tile, checksum));
+        if !in_manifest || (prune && !in_disc) {
+            evicted += store.remove_shard(&manifest.scene_id, tile, checksum)? as usize;
+            fault_boundary("after a shard eviction");
+        } else if !in_disc {
+            kept_outside += 1;
+        }
+    }
+    Ok((evicted, kept_outside))
 }
 
 /// Refuses a download that cannot fit: the bytes still to come for `tiles` (their sizes less

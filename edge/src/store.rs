@@ -53,13 +53,19 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use slag_common::shards::{
-    CODEBOOK_TILE, Codebook, Dtype, Manifest, MixtureShard, SHARD_FORMAT_VERSION, ShardHeader,
-    StoredShard, TileInfo, decode_codebook, decode_header, decode_mixture_shard,
-    decode_shard_stored, shard_checksum, valid_scene_id,
+    CODEBOOK_TILE, Codebook, Dtype, MAX_MANIFEST_BYTES, Manifest, MixtureShard,
+    SHARD_FORMAT_VERSION, ShardHeader, StoredShard, TileInfo, decode_codebook, decode_header,
+    decode_mixture_shard, decode_shard_stored, shard_checksum, valid_scene_id,
 };
 use slag_common::{Error, Result};
+
+mod regular;
+pub use regular::read_regular;
+use regular::{Opened, db_not_regular, open_regular};
 
 /// sled page-cache size of the edge store (bytes). sled holds only manifests and fetch records.
 pub const SLED_CACHE_BYTES: u64 = 8 * 1024 * 1024;
@@ -79,15 +85,57 @@ pub struct FetchRecord {
     pub radius: f64,
     /// Seconds since the Unix epoch when the fetch completed.
     pub completed_unix_s: u64,
+    /// Ids of the manifest's tiles this generation holds, ascending: the disc's, plus those
+    /// outside it that were stored and kept (no pruning). A load reads exactly these shards, so
+    /// what it serves is the committed set whatever files a running fetch adds or evicts.
+    /// `None` in a record of an older slag-edge: a load then reads every stored shard of the
+    /// manifest.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tiles: Option<Vec<u64>>,
 }
 
 /// The store: shard files, a sled database of manifests, and the partial-download folder.
+///
+/// Clones share one generation lock ([`EdgeStore::lock_generation`]) and commit counter.
 #[derive(Debug, Clone)]
 pub struct EdgeStore {
     root: PathBuf,
     db: sled::Db,
     manifests: sled::Tree,
     fetches: sled::Tree,
+    generation: Arc<Mutex<()>>,
+    commits: Arc<AtomicU64>,
+    fetching: Arc<tokio::sync::Mutex<()>>,
+}
+
+/// The scene's last committed generation, as [`EdgeStore::committed`] read it under the
+/// generation lock: its manifest, its fetch record (`None` for a store rebuilt without one),
+/// and the store's commit count at the time (orders two loads of one process).
+#[derive(Debug, Clone)]
+pub struct Committed {
+    /// Manifest of the last completed fetch.
+    pub manifest: Manifest,
+    /// Record of that fetch, with the tiles the generation holds ([`FetchRecord::tiles`]).
+    pub record: Option<FetchRecord>,
+    /// Generations this process committed into the store before the read (0 for the one found
+    /// at start-up); a load of a larger count holds a later generation.
+    pub seq: u64,
+}
+
+impl Committed {
+    /// The tiles a load reads: those of [`FetchRecord::tiles`], or every tile of the manifest
+    /// for a record without the list (an older store) or no record.
+    pub fn tiles(&self) -> Vec<&TileInfo> {
+        match self.record.as_ref().and_then(|r| r.tiles.as_ref()) {
+            Some(ids) => self
+                .manifest
+                .tiles
+                .iter()
+                .filter(|t| ids.binary_search(&t.id).is_ok())
+                .collect(),
+            None => self.manifest.tiles.iter().collect(),
+        }
+    }
 }
 
 fn db_err(root: &Path, e: sled::Error) -> Error {
@@ -212,6 +260,19 @@ fn set_aside_in(root: &Path, path: &Path, why: &str) -> Result<PathBuf> {
         sync_dir(parent)?;
     }
     Ok(to)
+}
+
+/// A complete partial download (`part`, at most `max` bytes are read: [`read_regular`]).
+///
+/// Errors: [`Error::Io`] when it is gone or cannot be read, [`Error::Format`] when it is not a
+/// regular file or longer than `max`.
+fn read_partial(part: &Path, max: u64) -> Result<Vec<u8>> {
+    read_regular(part, max, "partial download")?.ok_or_else(|| {
+        Error::io(
+            part,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "partial download vanished"),
+        )
+    })
 }
 
 /// Bytes of the files under `p` (0 for what cannot be read).
@@ -557,8 +618,20 @@ impl EdgeStore {
         for sub in ["partial", "shards"] {
             std::fs::create_dir_all(root.join(sub)).map_err(|e| Error::io(root, e))?;
         }
+        // sled opens and reads its files by path: a link, FIFO or device among them would be
+        // followed or block. Such a database is set aside like a damaged one.
+        let not_regular = db_not_regular(&root.join("db"));
+        if let Some(why) = &not_regular {
+            let aside = set_aside_in(root, &root.join("db"), why)?;
+            tracing::warn!(
+                "store {}: the database folder holds what is not a regular file ({why}); set \
+                 aside as {}, rebuilding it from the manifest copies",
+                root.display(),
+                aside.display()
+            );
+        }
         let (db, rebuild) = match open_db(root) {
-            Ok(db) => (db, false),
+            Ok(db) => (db, not_regular.is_some()),
             // Damaged files (not a lock, not a disk error): set the database aside and start a
             // new one, refilled below from the manifest copies beside the shard files.
             Err(e) if db_damaged(&e) => {
@@ -594,6 +667,9 @@ impl EdgeStore {
             manifests: tree("manifests")?,
             fetches: tree("fetches")?,
             db,
+            generation: Arc::new(Mutex::new(())),
+            commits: Arc::new(AtomicU64::new(0)),
+            fetching: Arc::new(tokio::sync::Mutex::new(())),
         };
         // sled recovers a log whose data is garbage by dropping it, and opens empty: a database
         // without any scene beside manifest copies is refilled as well.
@@ -623,8 +699,13 @@ impl EdgeStore {
         for e in rd.flatten() {
             let folder = e.path();
             let copy = folder.join(MANIFEST_COPY);
-            let Ok(bytes) = std::fs::read(&copy) else {
-                continue;
+            let bytes = match read_regular(&copy, MAX_MANIFEST_BYTES, "manifest copy") {
+                Ok(Some(b)) => b,
+                Ok(None) => continue,
+                Err(e) => {
+                    tracing::warn!("not restored: {e}");
+                    continue;
+                }
             };
             let m = match Manifest::from_json(&bytes, &copy.display().to_string()) {
                 Ok(m) if self.scene_dir(&m.scene_id) == folder => m,
@@ -646,8 +727,11 @@ impl EdgeStore {
                 continue;
             }
             self.manifests.insert(key, bytes).map_err(|e| self.err(e))?;
-            if let Ok(r) = std::fs::read(folder.join(FETCH_COPY))
-                && serde_json::from_slice::<FetchRecord>(&r).is_ok()
+            if let Ok(Some(r)) = read_regular(
+                &folder.join(FETCH_COPY),
+                MAX_MANIFEST_BYTES,
+                "fetch record copy",
+            ) && serde_json::from_slice::<FetchRecord>(&r).is_ok()
             {
                 self.fetches.insert(key, r).map_err(|e| self.err(e))?;
             }
@@ -692,32 +776,35 @@ impl EdgeStore {
     pub fn check_stored(&self, manifest: &Manifest, tile: &TileInfo) -> Result<Stored> {
         use std::io::Read;
         let path = self.stored_path(manifest, tile)?;
-        let meta = match std::fs::symlink_metadata(&path) {
-            Ok(m) => m,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Stored::Missing),
-            Err(e) => return Err(Error::io(&path, e)),
-        };
         let damaged = |why: String| {
             Ok(Stored::Damaged {
                 path: path.clone(),
                 why,
             })
         };
-        if !meta.is_file() {
-            return damaged(if meta.is_dir() {
-                "a folder where a shard file belongs".into()
+        let (f, len) = match open_regular(&path).map_err(|e| Error::io(&path, e))? {
+            Opened::File(f, len) => (f, len),
+            Opened::Missing => return Ok(Stored::Missing),
+            Opened::NotRegular("a folder") => {
+                return damaged("a folder where a shard file belongs".into());
+            }
+            Opened::NotRegular(kind) => {
+                return damaged(format!("{kind}, not a regular file"));
+            }
+        };
+        if len != tile.bytes {
+            let longer = if len > tile.bytes {
+                "longer"
             } else {
-                "not a regular file".into()
-            });
-        }
-        if meta.len() != tile.bytes {
+                "shorter"
+            };
             return damaged(format!(
-                "{} bytes, the manifest says {}",
-                meta.len(),
+                "{len} bytes, {longer} than the {} bytes the manifest says",
                 tile.bytes
             ));
         }
-        let mut f = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
+        // Never past the stated length, whatever the file does meanwhile.
+        let mut f = f.take(tile.bytes.saturating_add(1));
         let mut crc = crc32fast::Hasher::new();
         let mut head: Vec<u8> = Vec::new();
         let mut buf = vec![0u8; 1 << 20];
@@ -857,7 +944,8 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`]; `part` is left for the caller to discard), file
     /// I/O.
     pub fn commit_codebook_partial(&self, manifest: &Manifest, part: &Path) -> Result<()> {
-        let bytes = std::fs::read(part).map_err(|e| Error::io(part, e))?;
+        let max = manifest.mixture.as_ref().map_or(0, |m| m.codebook_bytes);
+        let bytes = read_partial(part, max)?;
         verify_codebook(manifest, &bytes)?;
         drop(bytes);
         let Some(path) = self.codebook_path(manifest)? else {
@@ -877,15 +965,12 @@ impl EdgeStore {
         let Some(path) = self.codebook_path(manifest)? else {
             return verify_codebook(manifest, &[]);
         };
-        let bytes = match std::fs::read(&path) {
-            Ok(b) => b,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                return Err(Error::format(
-                    &path,
-                    "the mixture scene's codebook is not stored; run `slag-edge fetch` again",
-                ));
-            }
-            Err(e) => return Err(Error::io(&path, e)),
+        let max = manifest.mixture.as_ref().map_or(0, |m| m.codebook_bytes);
+        let Some(bytes) = read_regular(&path, max, "the mixture scene's codebook")? else {
+            return Err(Error::format(
+                &path,
+                "the mixture scene's codebook is not stored; run `slag-edge fetch` again",
+            ));
         };
         verify_codebook(manifest, &bytes)
     }
@@ -1036,20 +1121,23 @@ impl EdgeStore {
     ///
     /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits.
     pub fn has_shard(&self, scene: &str, tile: &TileInfo) -> Result<bool> {
-        Ok(self.shard_path(scene, tile)?.is_file())
+        Ok(std::fs::symlink_metadata(self.shard_path(scene, tile)?).is_ok_and(|m| m.is_file()))
     }
 
     /// Raw bytes of a stored shard (as downloaded; the caller decodes and verifies), `None` when
-    /// it is not stored.
+    /// it is not stored. Only a regular file is read, and at most the manifest's length
+    /// ([`read_regular`]).
     ///
-    /// Errors: [`Error::Io`] when the file exists but cannot be read.
+    /// Errors: [`Error::Format`] for a symbolic link, FIFO, device, socket or folder in the
+    /// shard's place, or a file longer than the manifest says; [`Error::Io`] when the file
+    /// exists but cannot be read.
     pub fn shard_bytes(&self, scene: &str, tile: &TileInfo) -> Result<Option<Vec<u8>>> {
         let path = self.shard_path(scene, tile)?;
-        match std::fs::read(&path) {
-            Ok(b) => Ok(Some(b)),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-            Err(e) => Err(Error::io(path, e)),
-        }
+        read_regular(
+            &path,
+            tile.bytes,
+            &format!("shard {} of scene {scene}", tile.id),
+        )
     }
 
     /// Creates the scene's shard folder (synced into its parent the first time).
@@ -1082,7 +1170,7 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; `part` is left for the
     /// caller to discard) or file I/O ([`Error::Io`]).
     pub fn commit_partial(&self, manifest: &Manifest, tile: &TileInfo, part: &Path) -> Result<()> {
-        let bytes = std::fs::read(part).map_err(|e| Error::io(part, e))?;
+        let bytes = read_partial(part, tile.bytes)?;
         verify_any_shard(manifest, tile, &bytes)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;
@@ -1092,10 +1180,44 @@ impl EdgeStore {
         sync_dir(&self.root.join("partial"))
     }
 
+    /// Holds the scene's committed generation still: while the guard lives, no other holder
+    /// commits a generation or evicts shards, and a load ([`Self::committed`] and the shard
+    /// reads after it) sees one committed generation whole. `fetch` holds it for its commit and
+    /// evictions, `Engine::load_with` for its reads; downloads run without it (a new shard file
+    /// is no part of any committed generation until the commit lists it). Shared by clones.
+    pub fn lock_generation(&self) -> MutexGuard<'_, ()> {
+        // A holder that panicked left nothing half done that the lock protects (the commit is
+        // one sled transaction): carry on.
+        self.generation
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Serialises fetches into this store (shared by clones): `fetch` holds it from its start to
+    /// its end, so a fetch started while another runs waits for it instead of evicting the
+    /// shards the other one is about to commit.
+    pub async fn lock_fetching(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.fetching.lock().await
+    }
+
+    /// The scene's last committed generation: manifest, fetch record and commit count. Call it
+    /// with [`Self::lock_generation`] held, and keep holding it while reading the shards.
+    ///
+    /// Errors: as [`Self::current_manifest`] and [`Self::fetch_record`].
+    pub fn committed(&self, scene: &str) -> Result<Committed> {
+        let seq = self.commits.load(Ordering::SeqCst);
+        Ok(Committed {
+            manifest: self.current_manifest(scene)?,
+            record: self.fetch_record(scene)?,
+            seq,
+        })
+    }
+
     /// Makes `manifest` the scene's current one and records the fetch, in one transaction, then
-    /// flushes. Called after every selected shard is committed (their files and folders synced).
-    /// Copies of both are written first beside the scene's shard files (module doc), for a
-    /// rebuild of the database: they describe shards that are all in place already.
+    /// flushes. Called after every selected shard is committed (their files and folders synced),
+    /// with [`Self::lock_generation`] held. Copies of both are written first beside the scene's
+    /// shard files (module doc), for a rebuild of the database: they describe shards that are all
+    /// in place already.
     ///
     /// Errors: store I/O, an aborted transaction ([`Error::Internal`]).
     pub fn commit_fetch(&self, manifest: &Manifest, record: &FetchRecord) -> Result<()> {
@@ -1119,6 +1241,7 @@ impl EdgeStore {
                 }
             })?;
         self.db.flush().map_err(|e| self.err(e))?;
+        self.commits.fetch_add(1, Ordering::SeqCst);
         Ok(())
     }
 
@@ -1209,10 +1332,35 @@ impl EdgeStore {
     pub fn load_shards<S: LoadableShard>(
         &self,
         manifest: &Manifest,
+        f: impl FnMut(S) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        self.load_tiles(manifest, manifest.tiles.iter(), f)
+    }
+
+    /// [`Self::load_shards`] for the tiles of one committed generation ([`Committed::tiles`]):
+    /// the manifest's other tiles count as absent, whatever files are there.
+    ///
+    /// Errors: the first error `f` returns.
+    pub fn load_committed<S: LoadableShard>(
+        &self,
+        committed: &Committed,
+        f: impl FnMut(S) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        let tiles = committed.tiles();
+        let mut load = self.load_tiles(&committed.manifest, tiles.iter().copied(), f)?;
+        load.absent_tiles += committed.manifest.tiles.len() - tiles.len();
+        Ok(load)
+    }
+
+    /// Reads `tiles` of `manifest` as [`Self::load_shards`] describes.
+    fn load_tiles<'a, S: LoadableShard>(
+        &self,
+        manifest: &Manifest,
+        tiles: impl Iterator<Item = &'a TileInfo>,
         mut f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let mut load = SceneLoad::default();
-        for tile in &manifest.tiles {
+        for tile in tiles {
             let bytes = match self.shard_bytes(&manifest.scene_id, tile) {
                 Ok(Some(b)) => b,
                 Ok(None) => {

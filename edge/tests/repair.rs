@@ -238,6 +238,7 @@ async fn a_download_larger_than_the_free_disk_space_is_refused_naming_the_folder
     let t: &mut TileInfo = &mut scene.manifest.tiles[0];
     t.count = u32::MAX as u64;
     t.bytes = layout.shard_len(t.count);
+    scene.manifest.total_gaussians = u32::MAX as u64;
     let server = shard_server(scene, None).await;
     let (dir, store) = temp_store();
     let err = fetch(&store, &params(&server.url)).await.unwrap_err();

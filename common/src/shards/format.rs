@@ -254,6 +254,15 @@ pub enum ShardError {
         /// Tile id from the header.
         tile_id: u64,
     },
+    /// A manifest whose tiles are not a set that adds up ([`super::Manifest::check_set`]): a
+    /// tile id listed twice, a tile with the codebook's id, Gaussian counts whose sum is not the
+    /// manifest's total, or (found when the shards are loaded) a Gaussian id in two shards. The
+    /// message names where the manifest came from and the rule it breaks.
+    #[error(
+        "manifest is not a set of tiles: {0}; nothing of it is stored or served: re-partition \
+         the scene on the shard server (slag-encoder partition), then fetch again"
+    )]
+    ManifestNotASet(String),
 }
 
 /// Everything the shard header says about its payload.

@@ -367,7 +367,49 @@ impl Manifest {
             }
         }
         m.check_sizes(origin)?;
+        m.check_set(origin)?;
         Ok(m)
+    }
+
+    /// Checks that the tiles form a set that adds up: no tile id listed twice (a store names a
+    /// shard file by tile id and checksum, so two entries of one id would be one file counted
+    /// twice, or two files for one tile), no tile with the id of a mixture scene's codebook
+    /// ([`super::CODEBOOK_TILE`], whose file and partial download it would share), and Gaussian
+    /// counts whose sum is `total_gaussians`. Gaussian ids are inside the shards, not the
+    /// manifest: a loader checks that no id is in two shards.
+    ///
+    /// Errors: [`crate::Error::Shard`] [`super::ShardError::ManifestNotASet`] naming `origin`,
+    /// the tile and the rule.
+    pub fn check_set(&self, origin: &str) -> Result<()> {
+        let refuse = |what: String| {
+            Err(Error::Shard(super::ShardError::ManifestNotASet(format!(
+                "{origin}: {what}"
+            ))))
+        };
+        let mut ids = std::collections::HashSet::with_capacity(self.tiles.len());
+        let mut sum = 0u64;
+        for t in &self.tiles {
+            if !ids.insert(t.id) {
+                return refuse(format!(
+                    "tile {} is listed twice (a shard would be stored and counted twice)",
+                    t.id
+                ));
+            }
+            if self.mixture.is_some() && t.id == super::CODEBOOK_TILE {
+                return refuse(format!(
+                    "tile {} has the id of the scene's codebook file",
+                    t.id
+                ));
+            }
+            sum = sum.saturating_add(t.count);
+        }
+        if sum != self.total_gaussians {
+            return refuse(format!(
+                "its tiles hold {sum} Gaussians, but total_gaussians says {}",
+                self.total_gaussians
+            ));
+        }
+        Ok(())
     }
 
     /// Checks every declared size against the shard format ([`super::format`] module doc), so
@@ -661,6 +703,53 @@ mod tests {
             total_gaussians: 1,
             tiles: vec![tile],
         }
+    }
+
+    #[test]
+    fn a_manifest_whose_tiles_are_not_a_set_that_adds_up_is_refused() {
+        let not_a_set = |m: &Manifest| match Manifest::from_json(&m.to_json(), "t") {
+            Err(Error::Shard(crate::shards::ShardError::ManifestNotASet(why))) => why,
+            other => panic!("{:?}", other.map(|_| ())),
+        };
+        let mixture = Some(MixtureInfo {
+            slots: 8,
+            atoms: 300,
+            codebook_bytes: 0,
+            codebook_checksum: "0badf00d".into(),
+        });
+        for m in [manifest(None), manifest(mixture)] {
+            Manifest::from_json(&m.to_json(), "t").expect("a set");
+            // The same tile twice (one shard file, counted twice), with the total adjusted.
+            let mut twice = m.clone();
+            twice.tiles.push(m.tiles[0].clone());
+            twice.total_gaussians = 2;
+            assert!(not_a_set(&twice).contains("tile 0 is listed twice"));
+            // Another checksum for the same id: two files for one tile.
+            twice.tiles[1].checksum = "00000001".into();
+            assert!(not_a_set(&twice).contains("listed twice"));
+            // Counts that do not add up.
+            let mut total = m.clone();
+            total.total_gaussians = 2;
+            let why = not_a_set(&total);
+            assert!(
+                why.contains("hold 1 Gaussians") && why.contains("says 2"),
+                "{why}"
+            );
+            // Two distinct tiles whose counts add up pass.
+            let mut two = m.clone();
+            let mut t1 = m.tiles[0].clone();
+            t1.id = 1;
+            two.tiles.push(t1);
+            two.total_gaussians = 2;
+            Manifest::from_json(&two.to_json(), "t").expect("two tiles");
+            // A tile with the codebook's id, in a mixture scene.
+            if m.mixture.is_some() {
+                two.tiles[1].id = crate::shards::CODEBOOK_TILE;
+                assert!(not_a_set(&two).contains("codebook"));
+            }
+        }
+        let e = Error::Shard(crate::shards::ShardError::ManifestNotASet("x".into()));
+        assert!(e.to_string().contains("re-partition"), "{e}");
     }
 
     #[test]

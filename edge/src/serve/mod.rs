@@ -54,8 +54,8 @@
 //! reports the gate under `"scans"`.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use axum::Router;
@@ -70,7 +70,7 @@ use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
 
-pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M};
+pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M, ServedEngine};
 use crate::fetch::{self, Center, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
 pub use crate::scan::hnsw::HnswBackend;
@@ -308,7 +308,7 @@ impl Admission {
 
 /// Shared server state.
 pub struct AppState {
-    engine: RwLock<Arc<Engine>>,
+    engine: ServedEngine,
     edge: EdgeStore,
     text: Arc<dyn TextEmbedder>,
     negatives: Vec<Vec<f32>>,
@@ -351,7 +351,7 @@ impl AppState {
             ));
         }
         Ok(AppState {
-            engine: RwLock::new(Arc::new(engine)),
+            engine: ServedEngine::new(engine),
             edge,
             text,
             negatives,
@@ -376,17 +376,13 @@ impl AppState {
     }
 
     pub(crate) fn engine(&self) -> Arc<Engine> {
-        match self.engine.read() {
-            Ok(g) => g.clone(),
-            Err(p) => p.into_inner().clone(),
-        }
+        self.engine.current()
     }
 
+    /// Swaps `e` in unless the engine served now holds a later generation
+    /// ([`ServedEngine::offer`]).
     fn swap(&self, e: Engine) {
-        match self.engine.write() {
-            Ok(mut g) => *g = Arc::new(e),
-            Err(p) => *p.into_inner() = Arc::new(e),
-        }
+        self.engine.offer(e);
     }
 }
 
@@ -560,14 +556,14 @@ async fn health(State(state): State<Arc<AppState>>) -> Response {
 }
 
 async fn stats(State(state): State<Arc<AppState>>) -> Response {
+    // Everything about the scene from the one generation the engine holds (its fetch record
+    // included), not from the store, where a fetch may be committing another.
     let e = state.engine();
     let edge = state.edge.clone();
-    let scene = state.opts.scene.clone();
-    let (disk, mut record) = tokio::task::spawn_blocking(move || {
-        (edge.disk_bytes(), edge.fetch_record(&scene).ok().flatten())
-    })
-    .await
-    .unwrap_or((0, None));
+    let disk = tokio::task::spawn_blocking(move || edge.disk_bytes())
+        .await
+        .unwrap_or(0);
+    let mut record = e.record.clone();
     // A record written before URLs with credentials were refused may still hold one.
     if let Some(r) = record.as_mut() {
         r.server = slag_common::auth::redact_url(&r.server).into_owned();
