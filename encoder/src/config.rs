@@ -152,6 +152,9 @@ impl EncodeConfig {
         if self.aggregate.levels {
             return unsupported(ClusterUnsupported::Levels);
         }
+        if self.scene.views.mode == crate::views::SelectionMode::Coverage {
+            return unsupported(ClusterUnsupported::CoverageSelection);
+        }
         if self.execution.gpus != GpuCount::Count(1)
             || self.execution.front_workers.is_some_and(|f| f != 1)
         {
@@ -196,6 +199,12 @@ pub struct SceneConfig {
     /// Keep every N-th view in name order (default 1 = all; the paper uses 1:20 on large
     /// scenes; 0 counts as 1).
     pub every: usize,
+    /// Hold out the views with name-sorted index ≡ ⌊N/2⌋ (mod N), the views
+    /// `eval-colors --held-out` scores, and train on all others (N ≥ 2; default `None`: none
+    /// held out beyond what [`SceneConfig::every`] skips). [`crate::views`] has the split.
+    pub hold_out_every: Option<usize>,
+    /// Which of the training views are encoded (default: all; [`crate::views::ViewSelection`]).
+    pub views: crate::views::ViewSelection,
 }
 
 impl Default for SceneConfig {
@@ -204,6 +213,8 @@ impl Default for SceneConfig {
             dir: PathBuf::new(),
             ply: None,
             every: 1,
+            hold_out_every: None,
+            views: crate::views::ViewSelection::default(),
         }
     }
 }
@@ -620,6 +631,8 @@ pub enum ClusterUnsupported {
     Levels,
     /// More than one GPU or front worker per process.
     Workers,
+    /// Coverage selection of the views ([`crate::views::SelectionMode::Coverage`]).
+    CoverageSelection,
 }
 
 /// An [`EncodeConfig`] that cannot run, found before anything is loaded.
@@ -675,6 +688,10 @@ fn cluster_unsupported(what: ClusterUnsupported) -> &'static str {
         ClusterUnsupported::Levels => {
             "a cluster encode does not write per-level embeddings yet (aggregate.levels): write \
              them with a one-process encode"
+        }
+        ClusterUnsupported::CoverageSelection => {
+            "a cluster encode does not run the coverage pass (scene.views.mode coverage): choose \
+             the views with a one-process encode, or use all or uniformly thinned views"
         }
         ClusterUnsupported::Workers => {
             "a cluster encode runs one rasterizer and one front worker per process \

@@ -10,7 +10,8 @@
 //! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] holds evaluation
 //! and research apart from the stages: colour mIoU with color-clip per Gaussian,
 //! [`eval::heldout`] per pixel of views never encoded (2D held-out), [`eval::colors`] runs both
-//! on an embeddings file, [`eval::synthetic`] makes scenes for scale tests.
+//! on an embeddings file, [`eval::synthetic`] makes scenes for scale tests. [`views`] chooses
+//! which training views an encode uses (all, uniformly thinned, or by coverage).
 //!
 //! The `slag-encoder` binary's subcommands (in `src/cli/`, private to the binary) only turn
 //! their flags into these types: everything they run is here. [`args`] holds the flags that
@@ -35,3 +36,4 @@ pub mod query;
 pub mod raster;
 pub mod report;
 pub mod segments;
+pub mod views;

@@ -103,7 +103,7 @@ impl ImageWork {
 pub struct Counts {
     /// Views in the camera source.
     pub views_total: usize,
-    /// Views encoded (after `--every`).
+    /// Views encoded (after `--every`, `--hold-out-every` and the view selection).
     pub views_used: usize,
     /// Gaussians in the `.ply`.
     pub gaussians: usize,
@@ -180,6 +180,9 @@ pub struct Report {
     pub outputs: Outputs,
     /// Each worker thread's share (images, busy seconds), fronts first, then one per rasterizer.
     pub workers: Vec<WorkerShare>,
+    /// Which views were encoded and what choosing them cost; `encode` only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub view_selection: Option<crate::views::SelectionReport>,
 }
 
 /// The report's `inputs`: what was encoded.
@@ -187,6 +190,9 @@ pub struct Report {
 pub struct Inputs {
     /// Keep every N-th view ([`crate::config::SceneConfig::every`]).
     pub every: usize,
+    /// The held-out step ([`crate::config::SceneConfig::hold_out_every`]); absent: none.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hold_out_every: Option<usize>,
     /// The `.ply` read.
     pub ply: PathBuf,
     /// The scene folder.
@@ -552,6 +558,7 @@ mod tests {
             slag_version: "0.1.0".into(),
             inputs: Inputs {
                 every: 2,
+                hold_out_every: None,
                 ply: "s/point_cloud.ply".into(),
                 scene: "s".into(),
             },

@@ -217,3 +217,44 @@ const ORACLE_FLOOR: f64 = 0.25;
 const SAM_DEFAULT_FLOOR: f64 = 0.26;
 /// Half the measured gain of 0.015 over the mean.
 const SAM_MARGIN_OVER_MEAN: f64 = 0.007;
+
+/// Coverage selection among the training views of `--hold-out-every 4` (the 10 views other
+/// than 2, 6 and 10): the report records the chosen views and the held-out pass reads the step
+/// and the encoded views from it; no held-out view is encoded.
+#[test]
+fn coverage_selection_trains_on_the_held_out_splits_training_views_only() {
+    let Some(dir) = ort_tempdir() else {
+        return;
+    };
+    let out = dir.path().join("out");
+    let mut c = mini_config(&out, MasksConfig::graph());
+    c.scene.every = 1;
+    c.scene.hold_out_every = Some(4);
+    c.scene.views.mode = slag_encoder::views::SelectionMode::Coverage;
+    c.scene.views.count = Some(5);
+    c.segments.enabled = false;
+    let report = Encoder::new(c)
+        .expect("encode config")
+        .run()
+        .expect("encode");
+    let s = report.view_selection.expect("view_selection in the report");
+    assert_eq!(s.candidates, 10);
+    assert_eq!(s.chosen.len(), 5);
+    assert_eq!(report.counts.views_used, 5);
+    assert!(s.coverage.is_some_and(|c| c.order.len() >= 5));
+
+    let r = run_held_out(&eval_args(out.join("embeddings.safetensors"), Vec::new()))
+        .expect("eval-colors --held-out");
+    let h = &r.held_out;
+    assert_eq!(h.every, 4);
+    assert_eq!(h.encoded_views, 5, "the oracle lifts the chosen views");
+    assert_eq!(
+        h.held_out_views,
+        [
+            "20240212_003936.jpg",
+            "20240212_004014.jpg",
+            "20240212_004107.jpg"
+        ]
+    );
+    assert!(s.chosen.iter().all(|v| !h.held_out_views.contains(v)));
+}

@@ -8,12 +8,13 @@ use clap::{Args, ValueEnum};
 use slag_common::cli::EpArg;
 use slag_common::embeddings::StoredPrecision;
 
-use super::values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg};
+use super::values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, ViewsArg};
 use crate::config::{
     AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MasksConfig,
     OutputConfig, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
 };
 use crate::segments::SegmentParams;
+use crate::views::{CoverageRule, ViewSelection};
 
 /// `--precision`: stored precision of the embeddings.
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
@@ -126,6 +127,37 @@ pub struct EncodeArgs {
     /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
     #[arg(long, default_value_t = 1)]
     pub every: usize,
+    /// Hold out the views with name-sorted index ≡ N/2 (mod N) for `eval-colors --held-out`
+    /// and train on all the others (N >= 2; e.g. 4 trains on 3 views of 4).
+    #[arg(long, value_name = "N")]
+    pub hold_out_every: Option<usize>,
+    /// Which training views are encoded: all, uniform (--view-count of them, evenly spaced) or
+    /// coverage (a cheap weight-raster pass, then a greedy choice; see --view-coverage-*).
+    #[arg(long, value_enum, default_value_t = ViewsArg::All)]
+    pub views: ViewsArg,
+    /// With --views uniform: exactly this many views. With --views coverage: at most this many
+    /// (the first of the greedy order).
+    #[arg(long, value_name = "N")]
+    pub view_count: Option<usize>,
+    /// --views coverage: blend weight a view must give a Gaussian to count as seeing it, in
+    /// pixels of the full-resolution image (Σ_p α·T over the view).
+    #[arg(long, value_name = "PIXELS", default_value_t = CoverageRule::default().min_weight)]
+    pub view_coverage_weight: f64,
+    /// --views coverage: distinct viewpoints that must see each observed Gaussian (fewer where
+    /// the training views have fewer).
+    #[arg(long, value_name = "K", default_value_t = CoverageRule::default().min_views)]
+    pub view_coverage_min_views: usize,
+    /// --views coverage: angle between two views' directions to a Gaussian from which they are
+    /// distinct viewpoints of it, degrees (0: any two views).
+    #[arg(long, value_name = "DEGREES", default_value_t = CoverageRule::default().min_angle_deg)]
+    pub view_coverage_angle: f64,
+    /// --views coverage: fraction of the (Gaussian, viewpoint) pairs the rule asks for that the
+    /// chosen views must give (1: all; 0.95 drops the views that add the last 5 %).
+    #[arg(long, value_name = "FRACTION", default_value_t = CoverageRule::default().target)]
+    pub view_coverage_target: f64,
+    /// --views coverage: raster resolution of the coverage pass relative to the images.
+    #[arg(long, value_name = "SCALE", default_value_t = CoverageRule::default().raster_scale)]
+    pub view_coverage_raster_scale: f64,
     /// Raster resolution relative to the images (weights are computed at this resolution).
     #[arg(long, default_value_t = 0.5)]
     pub raster_scale: f64,
@@ -230,6 +262,18 @@ impl From<&EncodeArgs> for EncodeConfig {
                 dir: a.scene.clone(),
                 ply: a.ply.clone(),
                 every: a.every,
+                hold_out_every: a.hold_out_every,
+                views: ViewSelection {
+                    mode: a.views.into(),
+                    count: a.view_count,
+                    coverage: CoverageRule {
+                        min_weight: a.view_coverage_weight,
+                        min_views: a.view_coverage_min_views,
+                        min_angle_deg: a.view_coverage_angle,
+                        target: a.view_coverage_target,
+                        raster_scale: a.view_coverage_raster_scale,
+                    },
+                },
             },
             masks: MasksConfig {
                 source: a.masks.into(),

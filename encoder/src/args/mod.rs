@@ -7,4 +7,4 @@ pub mod encode;
 pub mod values;
 
 pub use encode::{EncodeArgs, OnOff, PrecisionArg, SegmentArgs};
-pub use values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, SmoothArg};
+pub use values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, SmoothArg, ViewsArg};

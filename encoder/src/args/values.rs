@@ -1,5 +1,6 @@
 //! The values of the flags that pick a library setting (`--masks`, `--rasterizer`,
-//! `--mask-weighting`, `--overlap`, `--smooth`), each mapped to its library type with `From`.
+//! `--mask-weighting`, `--overlap`, `--smooth`, `--views`), each mapped to its library type with
+//! `From`.
 
 use crate::aggregate::{MaskOverlap, MaskWeighting};
 use crate::config::{MaskSource, RasterBackend};
@@ -108,6 +109,30 @@ impl From<SmoothArg> for Smooth {
         match a {
             SmoothArg::None => Smooth::None,
             SmoothArg::Segment => Smooth::Segment,
+        }
+    }
+}
+
+/// `--views`: which training views are encoded ([`crate::views::SelectionMode`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum ViewsArg {
+    /// Every training view.
+    #[default]
+    All,
+    /// `--view-count` training views, evenly spaced in name order.
+    Uniform,
+    /// The views a cheap weight-raster pass finds necessary: greedily, until every observed
+    /// Gaussian is seen with `--view-coverage-weight` from `--view-coverage-min-views` viewpoints
+    /// `--view-coverage-angle` apart.
+    Coverage,
+}
+
+impl From<ViewsArg> for crate::views::SelectionMode {
+    fn from(a: ViewsArg) -> Self {
+        match a {
+            ViewsArg::All => crate::views::SelectionMode::All,
+            ViewsArg::Uniform => crate::views::SelectionMode::Uniform,
+            ViewsArg::Coverage => crate::views::SelectionMode::Coverage,
         }
     }
 }

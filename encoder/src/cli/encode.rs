@@ -120,7 +120,37 @@ mod tests {
             "--mixture-keep",
             "6",
             "--quiet",
+            "--hold-out-every",
+            "4",
+            "--views",
+            "coverage",
+            "--view-count",
+            "9",
+            "--view-coverage-weight",
+            "2.5",
+            "--view-coverage-min-views",
+            "3",
+            "--view-coverage-angle",
+            "15",
+            "--view-coverage-target",
+            "0.9",
+            "--view-coverage-raster-scale",
+            "0.125",
         ]);
+        let v = &c.scene.views;
+        assert_eq!(c.scene.hold_out_every, Some(4));
+        assert_eq!(v.mode, slag_encoder::views::SelectionMode::Coverage);
+        assert_eq!(v.count, Some(9));
+        assert_eq!(
+            v.coverage,
+            slag_encoder::views::CoverageRule {
+                min_weight: 2.5,
+                min_views: 3,
+                min_angle_deg: 15.0,
+                target: 0.9,
+                raster_scale: 0.125,
+            }
+        );
         assert_eq!(c.masks.source, MaskSource::Graph);
         assert_eq!(c.scene.ply.as_deref(), Some(std::path::Path::new("p.ply")));
         assert_eq!(c.scene.every, 3);

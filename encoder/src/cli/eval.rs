@@ -40,12 +40,13 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value_t = EpArg::Cpu)]
     pub ep: EpArg,
     /// 2D held-out protocol: render the class scores into the views the encoder never saw
-    /// (index ≡ N/2 mod N for `--every N`) at full resolution and score them per pixel against the
+    /// (index ≡ N/2 mod N for `--every N` or `--hold-out-every N`) at full resolution and score them per pixel against the
     /// photos' colour classes, with the majority-class and pixel-lifting-oracle baselines.
     #[arg(long)]
     pub held_out: bool,
-    /// The encoder's `--every` (held-out only); default: `inputs.every` of the report.json
-    /// beside the embeddings.
+    /// The held-out step (held-out only): the encoder's `--hold-out-every`, else its `--every`;
+    /// default: `inputs.hold_out_every`, else `inputs.every`, of the report.json beside the
+    /// embeddings.
     #[arg(long)]
     pub every: Option<usize>,
     /// The encoder's `--raster-scale`, at which the oracle lifts the encoded views (held-out

@@ -44,6 +44,10 @@ fn config_hint(e: &ConfigError) -> &'static str {
         ConfigError::ClusterUnsupported(ClusterUnsupported::Levels) => {
             "drop --levels, or run `slag-encoder encode --levels` on one machine"
         }
+        ConfigError::ClusterUnsupported(ClusterUnsupported::CoverageSelection) => {
+            "drop --views coverage (or use --views uniform --view-count N), or run \
+             `slag-encoder encode --views coverage` on one machine"
+        }
         ConfigError::ClusterUnsupported(ClusterUnsupported::Workers) => {
             "drop --gpus / --front-workers and start one process per GPU (one line each in \
              --hosts)"
@@ -97,6 +101,15 @@ fn param_flag(name: &str) -> Option<&'static str> {
             "pass --every N (the same N to `encode` and to `eval-colors --held-out`; N >= 2 \
              holds views out)"
         }
+        "hold_out_every" => {
+            "pass --hold-out-every N with N >= 2 (the same N to `eval-colors --held-out`)"
+        }
+        "view_count" => "pass --view-count N with N >= 1 (--views uniform needs it)",
+        "view_coverage_weight" => "pass --view-coverage-weight W with W >= 0 (pixels)",
+        "view_coverage_min_views" => "pass --view-coverage-min-views K in 1..=16",
+        "view_coverage_angle" => "pass --view-coverage-angle in [0, 180) degrees",
+        "view_coverage_target" => "pass --view-coverage-target in (0, 1]",
+        "view_coverage_raster_scale" => "pass --view-coverage-raster-scale in (0, 4], e.g. 0.25",
         "scene" => {
             "pass --scene DIR holding point_cloud.ply, images/ and sparse/0 or transforms.json"
         }

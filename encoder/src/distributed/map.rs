@@ -29,10 +29,12 @@ pub(super) fn job_key(
         views: views.len() as u64,
         dim: dim as u64,
         fingerprint: format!(
-            "views {:?}..{:?} every {} raster_scale {} image_stage {:?} masks {} clip {} min_weight {}",
+            "views {:?}..{:?} every {} hold_out_every {:?} selection {:?} raster_scale {} image_stage {:?} masks {} clip {} min_weight {}",
             views.first().map(|v| &v.name),
             views.last().map(|v| &v.name),
             job.scene.every,
+            job.scene.hold_out_every,
+            job.scene.selection,
             p.raster_scale,
             p.image_stage,
             stages.masks.name(),

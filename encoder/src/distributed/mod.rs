@@ -164,7 +164,11 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     let mut scene_kept = None;
     let result = (|| -> Result<()> {
         let t_load = Instant::now();
-        let scene = job.scene.load()?;
+        let (gaussians, training, total) = job.scene.load()?;
+        // All or uniformly thinned views: coverage selection is refused before a cluster starts
+        // (`EncodeConfig::check_cluster`), so no rasterizer is needed here.
+        let (views, _) = crate::views::choose(training, &job.scene.selection, &gaussians, &mut [])?;
+        let scene = (gaussians, views, total);
         load_scene_s = t_load.elapsed().as_secs_f64();
         if scene.1.is_empty() {
             return Err(crate::pipeline::no_views(&job.scene, scene.2));

@@ -44,8 +44,9 @@ pub struct EvalColorsConfig {
     pub classes: Option<PathBuf>,
     /// ONNX Runtime execution provider of the text tower.
     pub ep: ExecutionProvider,
-    /// The encoder's `every` ([`run_held_out`] only); `None`: `inputs.every` of the report.json
-    /// beside the embeddings.
+    /// The held-out step ([`run_held_out`] only): the encoder's `every`, or its
+    /// `hold_out_every` when it held views out itself; `None`: from the report.json beside the
+    /// embeddings (`inputs.hold_out_every`, else `inputs.every`).
     pub every: Option<usize>,
     /// The encoder's raster scale, at which the oracle lifts the encoded views ([`run_held_out`]
     /// only); `None`: `parameters.raster_scale` of the report.json beside the embeddings. The
@@ -227,11 +228,13 @@ pub fn run(a: &EvalColorsConfig) -> anyhow::Result<eval::ColourEval> {
 /// `held_out` object.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct HeldOutEval {
-    /// The encoder's `--every N`; held-out views have name-sorted index ≡ ⌊N/2⌋ (mod N).
+    /// The held-out step N (the encoder's `--hold-out-every N`, else its `--every N`): held-out
+    /// views have name-sorted index ≡ ⌊N/2⌋ (mod N).
     pub every: usize,
     /// Names of the held-out views, in name order.
     pub held_out_views: Vec<String>,
-    /// Number of encoded views (index ≡ 0 mod N), which the oracle lifts.
+    /// Number of encoded views (the report's chosen views, else the training split), which the
+    /// oracle lifts.
     pub encoded_views: usize,
     /// Raster scale of the oracle's lifting (the encoder's `--raster-scale`); held-out renders
     /// are at scale 1.
@@ -282,14 +285,27 @@ pub struct HeldOutOutput {
     pub colour_3d_pf: Option<eval::ColourEval>,
 }
 
-/// `every` and `raster_scale` from the report.json beside `embeddings`, if there is one.
-fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f64>)> {
+/// What the held-out pass reads of the encoder's report.json.
+#[derive(Debug, Default)]
+struct ReportSettings {
+    /// `inputs.every`.
+    every: Option<usize>,
+    /// `inputs.hold_out_every`: the held-out step, when the encode held views out itself.
+    hold_out_every: Option<usize>,
+    /// `parameters.raster_scale`.
+    raster_scale: Option<f64>,
+    /// `view_selection.chosen`: the encoded views' names.
+    chosen: Option<Vec<String>>,
+}
+
+/// The settings of the report.json beside `embeddings`, if there is one.
+fn report_settings(embeddings: &Path) -> anyhow::Result<ReportSettings> {
     let path = embeddings
         .parent()
         .unwrap_or(Path::new("."))
         .join("report.json");
     if !path.exists() {
-        return Ok((None, None));
+        return Ok(ReportSettings::default());
     }
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
@@ -303,10 +319,75 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
             ),
         )
     })?;
-    Ok((
-        v["inputs"]["every"].as_u64().map(|e| e as usize),
-        v["parameters"]["raster_scale"].as_f64(),
-    ))
+    Ok(ReportSettings {
+        every: v["inputs"]["every"].as_u64().map(|e| e as usize),
+        hold_out_every: v["inputs"]["hold_out_every"].as_u64().map(|e| e as usize),
+        raster_scale: v["parameters"]["raster_scale"].as_f64(),
+        chosen: v["view_selection"]["chosen"].as_array().map(|a| {
+            a.iter()
+                .filter_map(|n| n.as_str().map(str::to_string))
+                .collect()
+        }),
+    })
+}
+
+/// The held-out step: the report's `hold_out_every` when the encode held views out itself
+/// (`every` given must then agree with it), else the encoder's `every` (given, or the
+/// report's).
+///
+/// Errors: [`Error::Param`] `every` when the given step contradicts the report, or none is
+/// known.
+fn held_out_step(
+    given: Option<usize>,
+    r: &ReportSettings,
+    embeddings: &Path,
+) -> slag_common::Result<usize> {
+    let (report_step, what) = match r.hold_out_every {
+        Some(h) => (Some(h), "hold_out_every"),
+        None => (r.every, "every"),
+    };
+    match (given, report_step) {
+        (Some(f), Some(r)) if f != r => Err(Error::param(
+            "every",
+            f,
+            format!(
+                "{r}, the encoder's {what} in the report beside {} (another value would hold \
+                 out views that were encoded)",
+                embeddings.display()
+            ),
+        )),
+        (Some(e), _) | (None, Some(e)) => Ok(e),
+        (None, None) => Err(Error::param(
+            "every",
+            "unknown",
+            format!(
+                "the encoder's every (and raster_scale): there is no report.json beside {}",
+                embeddings.display()
+            ),
+        )),
+    }
+}
+
+/// The views the encoder encoded, which the oracle lifts: the report's chosen views, else the
+/// training split of the report's `every` and `hold_out_every` (`every` = the held-out step
+/// without a report).
+///
+/// Errors: as [`crate::views::training_indices`].
+fn encoded_views<'a>(
+    views: &'a [camera::View],
+    r: &ReportSettings,
+    step: usize,
+) -> slag_common::Result<Vec<&'a camera::View>> {
+    if let Some(names) = &r.chosen {
+        return Ok(views.iter().filter(|v| names.contains(&v.name)).collect());
+    }
+    let every = if r.hold_out_every.is_some() {
+        r.every.unwrap_or(1)
+    } else {
+        step
+    };
+    let keep = crate::views::training_indices(views.len(), every, r.hold_out_every)?;
+    Ok(keep.iter().map(|&i| &views[i]).collect())
 }
 
 /// Runs `eval-colors --held-out` (the 2D protocol of [`crate::eval::heldout`], plus the 3D score).
@@ -316,34 +397,9 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<(Option<usize>, Option<f
 /// `raster_scale` when unknown; the scene's views or photos unreadable, rasterizer failures, and
 /// everything [`run`] refuses.
 pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
-    let (report_every, report_scale) = report_settings(&a.embeddings)?;
-    let every = match (a.every, report_every) {
-        (Some(f), Some(r)) if f != r => {
-            return Err(Error::param(
-                "every",
-                f,
-                format!(
-                    "{r}, the encoder's every in the report beside {} (another value would hold \
-                     out views that were encoded)",
-                    a.embeddings.display()
-                ),
-            )
-            .into());
-        }
-        (Some(e), _) | (None, Some(e)) => e,
-        (None, None) => {
-            return Err(Error::param(
-                "every",
-                "unknown",
-                format!(
-                    "the encoder's every (and raster_scale): there is no report.json beside {}",
-                    a.embeddings.display()
-                ),
-            )
-            .into());
-        }
-    };
-    let raster_scale = a.raster_scale.or(report_scale).ok_or_else(|| {
+    let settings = report_settings(&a.embeddings)?;
+    let every = held_out_step(a.every, &settings, &a.embeddings)?;
+    let raster_scale = a.raster_scale.or(settings.raster_scale).ok_or_else(|| {
         Error::param(
             "raster_scale",
             "unknown",
@@ -388,7 +444,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
 
     // Oracle: lift the encoded views' photo classes at the encoder's raster scale.
     let mut oracle = heldout::OracleLifting::new(n, c)?;
-    let encoded: Vec<&camera::View> = views.iter().step_by(every).collect();
+    let encoded = encoded_views(&views, &settings, every)?;
     for v in &encoded {
         let intr = crate::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
         let photo = crate::pipeline::read_image(v)?;

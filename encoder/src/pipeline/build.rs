@@ -18,7 +18,10 @@ use crate::report::{Inputs, ModelPlacement, Models, Parameters, Report};
 
 /// The scene input of `c`.
 pub(crate) fn scene_input(c: &EncodeConfig) -> SceneInput {
-    SceneInput::new(&c.scene.dir, c.scene.ply.as_deref(), c.scene.every)
+    let mut s = SceneInput::new(&c.scene.dir, c.scene.ply.as_deref(), c.scene.every);
+    s.hold_out_every = c.scene.hold_out_every;
+    s.selection = c.scene.views;
+    s
 }
 
 /// SAM's two model files, required with SAM masks.
@@ -143,6 +146,7 @@ pub fn report_header(c: &EncodeConfig, threads: usize) -> Report {
         slag_version: env!("CARGO_PKG_VERSION").to_string(),
         inputs: Inputs {
             every: scene.every,
+            hold_out_every: scene.hold_out_every,
             ply: scene.ply,
             scene: scene.dir,
         },

@@ -66,6 +66,8 @@ impl Encoder {
             // Refused before the encode, not after it.
             c.segments.params.validate()?;
         }
+        crate::views::check_hold_out(c.scene.hold_out_every)?;
+        c.scene.views.validate()?;
         let threads = build::setup_threads(c);
         // Started before anything else; dropped (stopped and joined) on any early return.
         let segments = if c.segments.enabled {

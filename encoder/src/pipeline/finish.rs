@@ -108,7 +108,9 @@ pub(crate) fn finish(
         mut counts,
         workers,
         queue,
+        selection,
     } = pooled;
+    report.view_selection = Some(selection);
     let models = &mut report.models;
     models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
     models.rasterizers = Some(rasterizers);

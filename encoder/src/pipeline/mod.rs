@@ -60,6 +60,11 @@ pub struct SceneInput {
     pub ply: PathBuf,
     /// Keep every N-th view (paper: 1:20 on large scenes).
     pub every: usize,
+    /// Hold out the views with index ≡ ⌊N/2⌋ (mod N) for the 2D held-out protocol
+    /// ([`crate::views::training_indices`]); `None`: none.
+    pub hold_out_every: Option<usize>,
+    /// Which training views are encoded ([`crate::views::choose`], run by the encode).
+    pub selection: crate::views::ViewSelection,
 }
 
 /// A scene folder's `.ply`: `ply` when given, else `<dir>/point_cloud.ply` (the INRIA layout).
@@ -75,10 +80,17 @@ impl SceneInput {
             dir: dir.to_path_buf(),
             ply: scene_ply(dir, ply),
             every,
+            hold_out_every: None,
+            selection: crate::views::ViewSelection::default(),
         }
     }
 
-    /// Loads the Gaussians (geometry only: the weights never need SH colours) and the views.
+    /// Loads the Gaussians (geometry only: the weights never need SH colours), the training
+    /// views (name-sorted: [`SceneInput::every`] and [`SceneInput::hold_out_every`] applied,
+    /// [`crate::views::training_views`]) and the scene's view count.
+    ///
+    /// Errors: no scene folder ([`Error::Param`] `scene`), unreadable `.ply` or cameras, as
+    /// [`crate::views::training_indices`].
     pub fn load(&self) -> Result<(Gaussians, Vec<View>, usize)> {
         if !self.dir.is_dir() {
             return Err(Error::param(
@@ -91,7 +103,8 @@ impl SceneInput {
         let gaussians = scene::load_ply(&self.ply, PlyLoadOptions::default())?;
         let views = camera::load_views(&self.dir)?;
         let total = views.len();
-        Ok((gaussians, camera::subsample(views, self.every), total))
+        let training = crate::views::training_views(views, self.every, self.hold_out_every)?;
+        Ok((gaussians, training, total))
     }
 }
 

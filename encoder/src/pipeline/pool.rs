@@ -50,6 +50,8 @@ pub(crate) struct Pooled {
     pub workers: Vec<WorkerShare>,
     /// Occupancy of the queues between the stages.
     pub queue: QueueStats,
+    /// Which views were encoded and what choosing them cost.
+    pub selection: crate::views::SelectionReport,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -99,11 +101,12 @@ pub(crate) fn run_pool(
         ));
     }
     let t0 = Instant::now();
-    let (gaussians, views, views_total) = scene.load()?;
+    let (gaussians, training, views_total) = scene.load()?;
     t.load_scene = t0.elapsed().as_secs_f64();
-    if views.is_empty() {
+    if training.is_empty() {
         return Err(no_views(scene, views_total));
     }
+    let (views, selection, made) = select_views(scene, &gaussians, training, make_rasterizers)?;
     // Raster intrinsics of every view, checked (scale range, raster size) before any image work.
     let raster_intrinsics = views
         .iter()
@@ -229,7 +232,7 @@ pub(crate) fn run_pool(
         }
         // The back workers hold the only receivers: when every front is done, the queue closes.
         drop(txs);
-        let rasterizers = match make_rasterizers(&gaussians) {
+        let rasterizers = match made.into_rasterizers(&gaussians) {
             Ok(r) if r.is_empty() => {
                 fail(Error::param("rasterizers", 0, "at least one rasterizer"));
                 Vec::new()
@@ -378,7 +381,67 @@ pub(crate) fn run_pool(
         counts,
         workers: shares,
         queue: queue.stats(n_queues * capacity),
+        selection,
     })
+}
+
+/// The rasterizers of a run: already made (for the coverage pass), or still to be made (while
+/// the fronts start, off the critical path).
+enum Rasterizers<F> {
+    Made(Vec<Box<dyn WeightRasterizer>>),
+    ToMake(F),
+}
+
+impl<F> Rasterizers<F>
+where
+    F: FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+{
+    /// The rasterizers, made now if they were not yet.
+    fn into_rasterizers(self, gaussians: &Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>> {
+        match self {
+            Rasterizers::Made(r) => Ok(r),
+            Rasterizers::ToMake(make) => make(gaussians),
+        }
+    }
+}
+
+/// The views the encode uses among the scene's `training` views ([`crate::views::choose`]).
+/// Coverage selection needs the rasterizers first: they are made here and handed on; otherwise
+/// `make_rasterizers` is handed on unused.
+///
+/// Errors: as [`crate::views::choose`] and `make_rasterizers`.
+fn select_views<F>(
+    scene: &SceneInput,
+    gaussians: &Gaussians,
+    training: Vec<slag_common::camera::View>,
+    make_rasterizers: F,
+) -> Result<(
+    Vec<slag_common::camera::View>,
+    crate::views::SelectionReport,
+    Rasterizers<F>,
+)>
+where
+    F: FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+{
+    if scene.selection.mode != crate::views::SelectionMode::Coverage {
+        let (views, report) = crate::views::choose(training, &scene.selection, gaussians, &mut [])?;
+        return Ok((views, report, Rasterizers::ToMake(make_rasterizers)));
+    }
+    let mut rasterizers = make_rasterizers(gaussians)?;
+    let (views, report) =
+        crate::views::choose(training, &scene.selection, gaussians, &mut rasterizers)?;
+    if let Some(c) = &report.coverage {
+        tracing::info!(
+            target: "slag_encoder::pipeline",
+            candidates = report.candidates,
+            chosen = views.len(),
+            observed = c.observed,
+            covered = c.covered,
+            pass_s = format!("{:.2}", report.pass_s),
+            "views chosen by coverage"
+        );
+    }
+    Ok((views, report, Rasterizers::Made(rasterizers)))
 }
 
 /// A back thread's [`WorkerShare`], named.

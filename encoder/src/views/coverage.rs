@@ -1,0 +1,565 @@
+//! Coverage selection: a cheap weight-raster pass over the training views, then a greedy choice
+//! of views until every observed Gaussian is seen from enough distinct viewpoints.
+//!
+//! **The pass.** Each candidate view is rasterized at [`CoverageRule::raster_scale`] (no masks,
+//! no models): every Gaussian's total blend weight in the view, `W_kv = Σ_p w_kp`, converted to
+//! pixels of the full-resolution image (÷ scale²). View `v` *sees* Gaussian `k` when
+//! `W_kv ≥` [`CoverageRule::min_weight`]. Only these sets are kept ([`ViewCoverage`]): per view
+//! the sorted Gaussian ids or a bitset of the scene, whichever is smaller, so memory is at most
+//! `views × Gaussians / 8` bytes (62.5 MB at 2M Gaussians × 250 views), never a dense weight
+//! matrix. With the GPU rasterizer the sums are the device's label sums with every pixel in one
+//! label (exact 64-bit fixed point, so a view's set does not depend on threads or order).
+//!
+//! **The rule.** Views `u` and `v` are *distinct viewpoints* of Gaussian `k` when the directions
+//! from their camera centres to `k`'s mean differ by at least [`CoverageRule::min_angle_deg`].
+//! A Gaussian is covered when [`CoverageRule::min_views`] pairwise distinct viewpoints among the
+//! chosen views see it, or, when the candidates cannot give it that many, as many as they give.
+//! Distinct directions are what make a second view worth encoding: a mask boundary or an
+//! occlusion seen from the same place is the same error twice, so a view that repeats another
+//! adds nothing (a duplicate view is never picked twice), while one from elsewhere averages it out.
+//!
+//! **The greedy.** Each step takes the view that adds the most (Gaussian, new distinct viewpoint)
+//! pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain never grows as
+//! views are chosen, so re-evaluating only the top is exact). It runs until no view adds a pair;
+//! the encode keeps the shortest prefix of that order that gives [`CoverageRule::target`] of all
+//! the pairs (and at most [`super::ViewSelection::count`] views). Gains are integer counts, so
+//! the choice is the same for any thread count.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Instant;
+
+use glam::DVec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use slag_common::camera::{Intrinsics, View, WorldToCamera};
+use slag_common::scene::Gaussians;
+use slag_common::{Error, Result};
+
+use crate::raster::WeightRasterizer;
+
+/// The stopping rule of coverage selection (module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CoverageRule {
+    /// Blend weight a view must give a Gaussian to see it: `Σ_p w_kp` over the view's pixels,
+    /// in pixels of the full-resolution image (default 1: a pixel's worth of the Gaussian).
+    pub min_weight: f64,
+    /// Distinct viewpoints that must see each observed Gaussian (default 2).
+    pub min_views: usize,
+    /// Angle between two views' directions to a Gaussian, degrees, from which they count as
+    /// distinct viewpoints of it (default 10; 0: any two views are distinct).
+    pub min_angle_deg: f64,
+    /// Fraction of the (Gaussian, viewpoint) pairs the rule asks for that the chosen views must
+    /// give, in (0, 1] (default 0.98: on snowmiku the last 2 % of the pairs took 35 of 72
+    /// views, each adding a few Gaussians seen by almost no view; 1 takes every view that adds
+    /// any pair).
+    pub target: f64,
+    /// Raster resolution of the pass relative to the images, in (0, 4] (default 0.25).
+    pub raster_scale: f64,
+}
+
+impl Default for CoverageRule {
+    fn default() -> Self {
+        CoverageRule {
+            min_weight: 1.0,
+            min_views: 2,
+            min_angle_deg: 10.0,
+            target: 0.98,
+            raster_scale: 0.25,
+        }
+    }
+}
+
+/// Most distinct viewpoints [`CoverageRule::min_views`] may ask for (the greedy keeps that many
+/// view indices per Gaussian).
+pub const MAX_MIN_VIEWS: usize = 16;
+
+impl CoverageRule {
+    /// Checks the rule's settings.
+    ///
+    /// Errors: [`Error::Param`] `view_coverage_weight` (not finite or < 0),
+    /// `view_coverage_min_views` (outside 1..=[`MAX_MIN_VIEWS`]), `view_coverage_angle` (outside
+    /// [0, 180)), `view_coverage_target` (outside (0, 1]), `view_coverage_raster_scale` (outside
+    /// (0, 4]).
+    pub fn validate(&self) -> Result<()> {
+        let w = self.min_weight;
+        if !(w.is_finite() && w >= 0.0) {
+            return Err(Error::param(
+                "view_coverage_weight",
+                w,
+                "a weight >= 0, in pixels of the full-resolution image (e.g. 1)",
+            ));
+        }
+        if !(1..=MAX_MIN_VIEWS).contains(&self.min_views) {
+            return Err(Error::param(
+                "view_coverage_min_views",
+                self.min_views,
+                format!("a count in 1..={MAX_MIN_VIEWS}"),
+            ));
+        }
+        let a = self.min_angle_deg;
+        if !(a.is_finite() && (0.0..180.0).contains(&a)) {
+            return Err(Error::param(
+                "view_coverage_angle",
+                a,
+                "an angle in [0, 180) degrees (e.g. 10; 0: any two views)",
+            ));
+        }
+        let t = self.target;
+        if !(t.is_finite() && t > 0.0 && t <= 1.0) {
+            return Err(Error::param(
+                "view_coverage_target",
+                t,
+                "a fraction in (0, 1] (1: every pair the rule asks for)",
+            ));
+        }
+        let s = self.raster_scale;
+        if !(s.is_finite() && s > 0.0 && s <= 4.0) {
+            return Err(Error::param(
+                "view_coverage_raster_scale",
+                s,
+                "a value in (0, 4], e.g. 0.25",
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The Gaussians one view sees: sorted ids, or a bitset over the scene when that is smaller.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum SeenSet {
+    Ids(Vec<u32>),
+    Bits(Vec<u64>),
+}
+
+impl SeenSet {
+    /// The set of the ascending `ids` over a scene of `n` Gaussians, in its smaller form.
+    fn new(ids: Vec<u32>, n: usize) -> Self {
+        if ids.len() * 32 <= n {
+            return SeenSet::Ids(ids);
+        }
+        let mut bits = vec![0u64; n.div_ceil(64)];
+        for id in ids {
+            bits[id as usize / 64] |= 1 << (id % 64);
+        }
+        SeenSet::Bits(bits)
+    }
+
+    /// Bytes held.
+    fn bytes(&self) -> usize {
+        match self {
+            SeenSet::Ids(v) => v.len() * 4,
+            SeenSet::Bits(v) => v.len() * 8,
+        }
+    }
+
+    /// Calls `f` with every id in `lo..hi` (`lo` a multiple of 64), ascending.
+    fn for_each_in(&self, lo: usize, hi: usize, mut f: impl FnMut(usize)) {
+        match self {
+            SeenSet::Ids(ids) => {
+                let start = ids.partition_point(|&i| (i as usize) < lo);
+                for &id in ids[start..].iter().take_while(|&&i| (i as usize) < hi) {
+                    f(id as usize);
+                }
+            }
+            SeenSet::Bits(words) => {
+                let end = hi.div_ceil(64).min(words.len());
+                for (w, &word) in words.iter().enumerate().take(end).skip(lo / 64) {
+                    let mut bits = word;
+                    while bits != 0 {
+                        let id = w * 64 + bits.trailing_zeros() as usize;
+                        if id < hi {
+                            f(id);
+                        }
+                        bits &= bits - 1;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Every id, ascending.
+    fn ids(&self, n: usize) -> Vec<usize> {
+        let mut out = Vec::new();
+        self.for_each_in(0, n, |i| out.push(i));
+        out
+    }
+}
+
+/// What the coverage pass measured: per candidate view the Gaussians it sees (weight ≥
+/// [`CoverageRule::min_weight`]), in a sparse or bitset form (module doc).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ViewCoverage {
+    gaussians: usize,
+    seen: Vec<SeenSet>,
+}
+
+impl ViewCoverage {
+    /// The Gaussians view `v` sees, ascending (for tests and tools).
+    pub fn seen_by(&self, v: usize) -> Vec<usize> {
+        self.seen
+            .get(v)
+            .map_or_else(Vec::new, |s| s.ids(self.gaussians))
+    }
+
+    /// Candidate views measured.
+    pub fn views(&self) -> usize {
+        self.seen.len()
+    }
+
+    /// Bytes the per-view sets hold.
+    pub fn bytes(&self) -> usize {
+        self.seen.iter().map(SeenSet::bytes).sum()
+    }
+}
+
+/// The coverage pass: the Gaussians each of `views` sees under `rule`, the views spread over
+/// `rasterizers` (one thread each, views taken in turn; each view's set depends on that view
+/// alone, so the result does not depend on how they were spread). `gaussians` is the scene's
+/// Gaussian count, the rasterizers' scene.
+///
+/// Errors: [`Error::Param`] `view_coverage_raster_scale` or `raster_size` for a raster the scale
+/// cannot make; the rasterizers' errors (the first one); [`Error::Param`] `rasterizers` when
+/// there is none.
+pub fn measure(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    views: &[View],
+    gaussians: usize,
+    rule: &CoverageRule,
+) -> Result<ViewCoverage> {
+    if rasterizers.is_empty() {
+        return Err(Error::param("rasterizers", 0, "at least one rasterizer"));
+    }
+    let intrinsics = views
+        .iter()
+        .map(|v| pass_intrinsics(&v.intrinsics, rule.raster_scale))
+        .collect::<Result<Vec<_>>>()?;
+    // The floor in the pass's raster pixels, as the device's 32.32 fixed point.
+    let floor = rule.min_weight * rule.raster_scale * rule.raster_scale;
+    let next = AtomicUsize::new(0);
+    let failed = AtomicBool::new(false);
+    let results: Mutex<Vec<Option<SeenSet>>> = Mutex::new(vec![None; views.len()]);
+    let first_error: Mutex<Option<Error>> = Mutex::new(None);
+    std::thread::scope(|s| {
+        for r in rasterizers.iter_mut() {
+            let (next, failed, results, first_error, intrinsics) =
+                (&next, &failed, &results, &first_error, &intrinsics);
+            s.spawn(move || {
+                while !failed.load(Ordering::SeqCst) {
+                    let i = next.fetch_add(1, Ordering::SeqCst);
+                    let (Some(v), Some(k)) = (views.get(i), intrinsics.get(i)) else {
+                        break;
+                    };
+                    match seen_ids(r.as_mut(), k, &v.world_to_camera, floor, gaussians) {
+                        Ok(ids) => {
+                            let set = SeenSet::new(ids, gaussians);
+                            if let Ok(mut out) = results.lock() {
+                                out[i] = Some(set);
+                            }
+                        }
+                        Err(e) => {
+                            failed.store(true, Ordering::SeqCst);
+                            if let Ok(mut slot) = first_error.lock() {
+                                slot.get_or_insert(e);
+                            }
+                        }
+                    }
+                }
+            });
+        }
+    });
+    if let Some(e) = first_error.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let seen = results
+        .into_inner()
+        .map_err(|_| Error::internal("coverage pass: a rasterizer thread panicked"))?
+        .into_iter()
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| Error::internal("coverage pass: a view was not rasterized"))?;
+    Ok(ViewCoverage { gaussians, seen })
+}
+
+/// The pass's raster intrinsics of a view, naming the pass's own scale in errors.
+fn pass_intrinsics(k: &Intrinsics, scale: f64) -> Result<Intrinsics> {
+    crate::raster::raster_intrinsics(k, scale).map_err(|e| match e {
+        Error::Param {
+            name: "raster_scale",
+            value,
+            expected,
+        } => Error::Param {
+            name: "view_coverage_raster_scale",
+            value,
+            expected,
+        },
+        e => e,
+    })
+}
+
+/// The ascending ids of the Gaussians whose total blend weight in one view is at least `floor`
+/// (pixels of raster `k`): the rasterizer's label sums with every pixel in label 1, or, for a
+/// rasterizer without them, its per-pixel lists summed per Gaussian (f64, pixel order).
+fn seen_ids(
+    r: &mut dyn WeightRasterizer,
+    k: &Intrinsics,
+    w2c: &WorldToCamera,
+    floor: f64,
+    gaussians: usize,
+) -> Result<Vec<u32>> {
+    let labels = vec![1u32; k.width as usize * k.height as usize];
+    if let Some(sums) = r.label_sums(k, w2c, &labels)? {
+        // Compared in the sums' own fixed point: exact.
+        let floor_fixed = (floor * 4_294_967_296.0).ceil() as u64;
+        return Ok(sums
+            .reduced()
+            .into_iter()
+            .filter(|s| s.sum >= floor_fixed.max(1))
+            .map(|s| s.gaussian)
+            .collect());
+    }
+    let w = r.rasterize(k, w2c)?;
+    let mut total = vec![0f64; gaussians];
+    for (&id, &wt) in w.ids.iter().zip(&w.weights) {
+        if let Some(t) = total.get_mut(id as usize) {
+            *t += f64::from(wt);
+        }
+    }
+    Ok(total
+        .iter()
+        .enumerate()
+        .filter(|&(_, &t)| t > 0.0 && t >= floor)
+        .map(|(i, _)| i as u32)
+        .collect())
+}
+
+/// One step of the greedy order.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct GreedyStep {
+    /// The view's name.
+    pub view: String,
+    /// (Gaussian, distinct viewpoint) pairs it added.
+    pub gain: u64,
+}
+
+/// What the coverage pass found and chose (`report.json`'s `view_selection.coverage`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CoverageOutcome {
+    /// The rule that ran.
+    pub rule: CoverageRule,
+    /// Seconds rasterizing the candidates.
+    pub raster_s: f64,
+    /// Seconds of the greedy choice.
+    pub greedy_s: f64,
+    /// Bytes of the per-view sets the greedy read.
+    pub seen_bytes: u64,
+    /// Gaussians some candidate sees (the observed ones the rule covers).
+    pub observed: usize,
+    /// (Gaussian, distinct viewpoint) pairs the rule asks for: per observed Gaussian
+    /// `min_views`, or fewer when the candidates cannot give that many.
+    pub pairs_wanted: u64,
+    /// Of those, the pairs the chosen views give.
+    pub pairs_chosen: u64,
+    /// Observed Gaussians to which the greedy assigned `min_views` distinct viewpoints among the
+    /// chosen views (a lower bound: a maximal set per Gaussian, not always the largest).
+    pub full_views: usize,
+    /// Observed Gaussians that the chosen views cover as far as the candidates allow.
+    pub covered: usize,
+    /// The whole greedy order, until no view added a pair (the chosen views are its first ones).
+    pub order: Vec<GreedyStep>,
+}
+
+/// The greedy's state: per Gaussian the candidate views counted as its distinct viewpoints
+/// (`min_views` slots, `u32::MAX` = empty, filled from the front).
+struct Viewpoints<'a> {
+    slots: Vec<u32>,
+    per: usize,
+    cos_max: f64,
+    means: &'a [[f32; 3]],
+    centres: &'a [DVec3],
+}
+
+/// Gaussians per parallel chunk of the greedy (a multiple of 64, the bitsets' word).
+const CHUNK: usize = 1 << 14;
+
+impl Viewpoints<'_> {
+    /// Whether view `v` adds a distinct viewpoint to Gaussian `g` (`slots` = `g`'s slots): `g`
+    /// has fewer than `per`, and `v`'s direction to it is at least the angle away from each.
+    fn adds(&self, g: usize, v: usize, slots: &[u32]) -> bool {
+        if slots[self.per - 1] != u32::MAX {
+            return false;
+        }
+        let m = self.means[g].map(f64::from);
+        let m = DVec3::new(m[0], m[1], m[2]);
+        let dir = (m - self.centres[v]).normalize_or_zero();
+        slots
+            .iter()
+            .take_while(|&&u| u != u32::MAX)
+            .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
+    }
+
+    /// The pairs view `v` (seeing `seen`) would add.
+    fn gain(&self, v: usize, seen: &SeenSet) -> u64 {
+        let n = self.means.len();
+        (0..n.div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let mut count = 0u64;
+                seen.for_each_in(c * CHUNK, ((c + 1) * CHUNK).min(n), |g| {
+                    let s = &self.slots[g * self.per..(g + 1) * self.per];
+                    count += u64::from(self.adds(g, v, s));
+                });
+                count
+            })
+            .sum()
+    }
+
+    /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
+    fn choose(&mut self, v: usize, seen: &SeenSet) {
+        let n = self.means.len();
+        let per = self.per;
+        let mut slots = std::mem::take(&mut self.slots);
+        slots
+            .par_chunks_mut(CHUNK * per)
+            .enumerate()
+            .for_each(|(c, chunk)| {
+                let lo = c * CHUNK;
+                seen.for_each_in(lo, (lo + CHUNK).min(n), |g| {
+                    let s = &mut chunk[(g - lo) * per..(g - lo + 1) * per];
+                    if self.adds(g, v, s)
+                        && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
+                    {
+                        *free = v as u32;
+                    }
+                });
+            });
+        self.slots = slots;
+    }
+}
+
+/// The full greedy order over the measured views (module doc): `(view index, gain)` until no
+/// view adds a pair, and the final per-Gaussian viewpoint slots (`min_views` each).
+fn greedy(
+    coverage: &ViewCoverage,
+    means: &[[f32; 3]],
+    centres: &[DVec3],
+    rule: &CoverageRule,
+) -> (Vec<(usize, u64)>, Vec<u32>) {
+    let per = rule.min_views.max(1);
+    let mut state = Viewpoints {
+        slots: vec![u32::MAX; means.len() * per],
+        per,
+        cos_max: rule.min_angle_deg.to_radians().cos(),
+        means,
+        centres,
+    };
+    // Max-heap on (gain, lowest index); the round tells whether the gain is current.
+    let mut heap: BinaryHeap<(u64, Reverse<usize>, usize)> = coverage
+        .seen
+        .iter()
+        .enumerate()
+        .map(|(v, s)| (state.gain(v, s), Reverse(v), 0))
+        .collect();
+    let mut order = Vec::new();
+    while let Some((gain, Reverse(v), round)) = heap.pop() {
+        if gain == 0 {
+            break;
+        }
+        if round == order.len() {
+            state.choose(v, &coverage.seen[v]);
+            order.push((v, gain));
+        } else {
+            heap.push((state.gain(v, &coverage.seen[v]), Reverse(v), order.len()));
+        }
+    }
+    (order, state.slots)
+}
+
+/// Coverage selection over `views` (the training views, name-sorted): the pass on
+/// `rasterizers` ([`measure`]), the greedy order, and the shortest prefix that meets
+/// `rule.target`, cut at `cap` views. Returns the chosen positions in `views`, ascending, and
+/// what the pass found.
+///
+/// Errors: as [`CoverageRule::validate`] and [`measure`]; [`Error::Param`] `views` for more
+/// than 2^32 − 1 views.
+pub fn select(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    gaussians: &Gaussians,
+    views: &[View],
+    rule: &CoverageRule,
+    cap: Option<usize>,
+) -> Result<(Vec<usize>, CoverageOutcome)> {
+    rule.validate()?;
+    if u32::try_from(views.len()).is_err() {
+        return Err(Error::param("views", views.len(), "at most 2^32 - 1 views"));
+    }
+    let t0 = Instant::now();
+    let coverage = measure(rasterizers, views, gaussians.len(), rule)?;
+    let raster_s = t0.elapsed().as_secs_f64();
+    let t1 = Instant::now();
+    let centres: Vec<DVec3> = views
+        .iter()
+        .map(|v| v.world_to_camera.camera_centre())
+        .collect();
+    let (order, slots) = greedy(&coverage, &gaussians.means, &centres, rule);
+    let wanted: u64 = order.iter().map(|&(_, g)| g).sum();
+    let mut taken = 0;
+    let mut pairs_chosen = 0u64;
+    for &(_, g) in &order {
+        if pairs_chosen as f64 >= rule.target * wanted as f64 || cap.is_some_and(|c| taken >= c) {
+            break;
+        }
+        pairs_chosen += g;
+        taken += 1;
+    }
+    let mut rank = vec![usize::MAX; views.len()];
+    for (r, &(v, _)) in order.iter().enumerate() {
+        rank[v] = r;
+    }
+    let (observed, full_views, covered) = tally(&slots, rule.min_views.max(1), &rank, taken);
+    let mut chosen: Vec<usize> = order[..taken].iter().map(|&(v, _)| v).collect();
+    chosen.sort_unstable();
+    let outcome = CoverageOutcome {
+        rule: *rule,
+        raster_s,
+        greedy_s: t1.elapsed().as_secs_f64(),
+        seen_bytes: coverage.bytes() as u64,
+        observed,
+        pairs_wanted: wanted,
+        pairs_chosen,
+        full_views,
+        covered,
+        order: order
+            .iter()
+            .map(|&(v, gain)| GreedyStep {
+                view: views[v].name.clone(),
+                gain,
+            })
+            .collect(),
+    };
+    Ok((chosen, outcome))
+}
+
+/// From the final slots (`per` per Gaussian) and each view's rank in the greedy order, with the
+/// first `taken` views chosen: (Gaussians with any viewpoint, those with `per` chosen ones, those
+/// whose every viewpoint is chosen).
+fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> (usize, usize, usize) {
+    slots
+        .par_chunks(per)
+        .map(|s| {
+            let all = s.iter().take_while(|&&u| u != u32::MAX).count();
+            let chosen = s
+                .iter()
+                .take_while(|&&u| u != u32::MAX)
+                .filter(|&&u| rank[u as usize] < taken)
+                .count();
+            (
+                usize::from(all > 0),
+                usize::from(chosen == per),
+                usize::from(all > 0 && chosen == all),
+            )
+        })
+        .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
+}

@@ -1,0 +1,274 @@
+//! Coverage selection on a synthetic scene (a ring of cameras over a terrain), with the CPU
+//! reference rasterizer.
+
+#![allow(clippy::unwrap_used)]
+
+use std::sync::OnceLock;
+
+use glam::DVec3;
+use slag_common::camera::View;
+use slag_common::scene::Gaussians;
+
+use super::*;
+use crate::eval::synthetic::{SyntheticSceneParams, write_synthetic_scene};
+use crate::pipeline::SceneInput;
+use crate::raster::{CpuRasterizer, WeightRasterizer};
+
+/// 48 views on a ring (7.5° apart), 4000 Gaussians, 96 × 72 images; written once.
+fn scene_dir() -> &'static std::path::Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let p = SyntheticSceneParams {
+            gaussians: 4000,
+            views: 48,
+            width: 96,
+            height: 72,
+            extent: 10.0,
+            seed: 7,
+        };
+        write_synthetic_scene(dir.path(), &p).unwrap();
+        dir
+    })
+    .path()
+}
+
+/// The scene with every 4th view (index ≡ 2 mod 4) held out: its Gaussians and training views.
+fn training() -> (Gaussians, Vec<View>, Vec<View>) {
+    let mut input = SceneInput::new(scene_dir(), None, 1);
+    input.hold_out_every = Some(4);
+    let (g, training, total) = input.load().unwrap();
+    assert_eq!(total, 48);
+    let all = slag_common::camera::load_views(scene_dir()).unwrap();
+    (g, training, all)
+}
+
+fn rule() -> CoverageRule {
+    CoverageRule {
+        raster_scale: 1.0,
+        target: 1.0,
+        ..CoverageRule::default()
+    }
+}
+
+fn coverage_selection() -> ViewSelection {
+    ViewSelection {
+        mode: SelectionMode::Coverage,
+        count: None,
+        coverage: rule(),
+    }
+}
+
+fn cpu(g: &Gaussians) -> Vec<Box<dyn WeightRasterizer>> {
+    vec![Box::new(CpuRasterizer::new(g))]
+}
+
+/// Angle between the directions from two camera centres to a point, degrees.
+fn angle(p: DVec3, a: DVec3, b: DVec3) -> f64 {
+    (p - a)
+        .normalize()
+        .dot((p - b).normalize())
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+#[test]
+fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
+    let (g, views, _) = training();
+    let r = rule();
+    let cov = coverage::measure(&mut cpu(&g), &views[..2], g.len(), &r).unwrap();
+    let mut raster = CpuRasterizer::new(&g);
+    for (v, view) in views[..2].iter().enumerate() {
+        let w = raster
+            .rasterize(&view.intrinsics, &view.world_to_camera)
+            .unwrap();
+        let mut total = vec![0f64; g.len()];
+        for (&id, &wt) in w.ids.iter().zip(&w.weights) {
+            total[id as usize] += f64::from(wt);
+        }
+        let want: Vec<usize> = (0..g.len()).filter(|&k| total[k] >= r.min_weight).collect();
+        assert!(!want.is_empty() && want.len() < g.len());
+        assert_eq!(cov.seen_by(v), want, "view {}", view.name);
+    }
+}
+
+#[test]
+fn coverage_covers_every_observed_gaussian_and_its_target_picks_fewer_views() {
+    let (g, training, all) = training();
+    let (chosen, report) =
+        choose(training.clone(), &coverage_selection(), &g, &mut cpu(&g)).unwrap();
+    assert_eq!(report.candidates, 36);
+    assert!(!chosen.is_empty() && chosen.len() <= training.len());
+    // At the default target the last views, each adding a few edge Gaussians, are dropped.
+    let default = ViewSelection {
+        coverage: CoverageRule {
+            raster_scale: 1.0,
+            ..CoverageRule::default()
+        },
+        ..coverage_selection()
+    };
+    let (fewer, r) = choose(training.clone(), &default, &g, &mut cpu(&g)).unwrap();
+    let o = r.coverage.unwrap();
+    assert!(
+        fewer.len() < training.len(),
+        "{} of {} views",
+        fewer.len(),
+        training.len()
+    );
+    assert!(o.pairs_chosen as f64 >= 0.98 * o.pairs_wanted as f64);
+    assert_eq!(
+        report.chosen,
+        chosen.iter().map(|v| v.name.clone()).collect::<Vec<_>>()
+    );
+    // Never a held-out view.
+    let held: Vec<&str> = crate::eval::heldout::held_out_indices(all.len(), 4)
+        .unwrap()
+        .into_iter()
+        .map(|i| all[i].name.as_str())
+        .collect();
+    assert_eq!(held.len(), 12);
+    assert!(chosen.iter().all(|v| !held.contains(&v.name.as_str())));
+
+    // The rule, checked from the pass's sets: every Gaussian some candidate sees is seen by two
+    // chosen views at least 10° apart, or no candidate could add a second viewpoint to the ones
+    // chosen (each candidate seeing it is within 10° of a chosen view seeing it).
+    let r = rule();
+    let cov = coverage::measure(&mut cpu(&g), &training, g.len(), &r).unwrap();
+    let seers = |k: usize| -> Vec<usize> {
+        (0..training.len())
+            .filter(|&v| cov.seen_by(v).binary_search(&k).is_ok())
+            .collect()
+    };
+    let centre = |v: usize| training[v].world_to_camera.camera_centre();
+    let is_chosen = |v: usize| chosen.iter().any(|c| c.name == training[v].name);
+    let (mut observed, mut two_viewpoints) = (0, 0);
+    for k in 0..g.len() {
+        let s = seers(k);
+        if s.is_empty() {
+            continue;
+        }
+        observed += 1;
+        let p = DVec3::from_array(g.means[k].map(f64::from));
+        let picked: Vec<usize> = s.iter().copied().filter(|&v| is_chosen(v)).collect();
+        assert!(!picked.is_empty(), "Gaussian {k} is seen by no chosen view");
+        let distinct_pair = picked.iter().any(|&a| {
+            picked
+                .iter()
+                .any(|&b| angle(p, centre(a), centre(b)) >= r.min_angle_deg)
+        });
+        if distinct_pair {
+            two_viewpoints += 1;
+            continue;
+        }
+        for &v in &s {
+            assert!(
+                picked
+                    .iter()
+                    .any(|&c| angle(p, centre(v), centre(c)) < r.min_angle_deg),
+                "Gaussian {k}: view {v} would add a viewpoint"
+            );
+        }
+    }
+    let outcome = report.coverage.unwrap();
+    assert_eq!(outcome.observed, observed);
+    assert_eq!(outcome.covered, observed);
+    assert_eq!(outcome.pairs_chosen, outcome.pairs_wanted);
+    assert!(
+        two_viewpoints > observed / 2,
+        "{two_viewpoints} of {observed}"
+    );
+    // The greedy counts the viewpoints it assigned (a maximal set per Gaussian, not always the
+    // largest one the chosen views hold), so its figure is a lower bound.
+    assert!(outcome.full_views <= two_viewpoints && outcome.full_views > observed / 2);
+}
+
+#[test]
+fn coverage_is_the_same_for_any_thread_count() {
+    let (g, training, _) = training();
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (_, report) =
+                choose(training.clone(), &coverage_selection(), &g, &mut cpu(&g)).unwrap();
+            let c = report.coverage.unwrap();
+            (report.chosen, c.order, c.pairs_wanted, c.full_views)
+        })
+    };
+    let one = run(1);
+    assert_eq!(run(3), one);
+    // Two rasterizers share the pass: the same sets, so the same choice.
+    let (_, report) = choose(
+        training.clone(),
+        &coverage_selection(),
+        &g,
+        &mut cpu(&g).into_iter().chain(cpu(&g)).collect::<Vec<_>>(),
+    )
+    .unwrap();
+    assert_eq!(report.chosen, one.0);
+}
+
+#[test]
+fn a_duplicate_view_is_not_picked_twice() {
+    let (g, mut training, _) = training();
+    // The first view again under another name (sorted last): the same place, the same weights.
+    let mut twin = training[0].clone();
+    twin.name = "zz-duplicate".into();
+    training.push(twin);
+    let (chosen, report) = choose(training, &coverage_selection(), &g, &mut cpu(&g)).unwrap();
+    let names: Vec<&str> = chosen.iter().map(|v| v.name.as_str()).collect();
+    let original = report.coverage.as_ref().unwrap().order[0].view.clone();
+    assert!(
+        !(names.contains(&"zz-duplicate") && names.contains(&"view_0000.png")),
+        "both copies chosen: {names:?} (first pick {original})"
+    );
+    // The duplicate never adds a pair once its twin is chosen, so the greedy never takes both.
+    let order = &report.coverage.unwrap().order;
+    let both = order
+        .iter()
+        .filter(|s| s.view == "zz-duplicate" || s.view == "view_0000.png")
+        .count();
+    assert!(both <= 1, "{order:?}");
+}
+
+#[test]
+fn a_cap_and_a_target_shorten_the_choice() {
+    let (g, training, _) = training();
+    let full = choose(training.clone(), &coverage_selection(), &g, &mut cpu(&g))
+        .unwrap()
+        .1;
+    let mut capped = coverage_selection();
+    capped.count = Some(3);
+    let (c, r) = choose(training.clone(), &capped, &g, &mut cpu(&g)).unwrap();
+    assert_eq!(c.len(), 3);
+    // The cap takes the first views of the same greedy order.
+    let mut first: Vec<String> = full.coverage.as_ref().unwrap().order[..3]
+        .iter()
+        .map(|s| s.view.clone())
+        .collect();
+    first.sort();
+    assert_eq!(r.chosen, first);
+    let mut part = coverage_selection();
+    part.coverage.target = 0.8;
+    let (c, r) = choose(training, &part, &g, &mut cpu(&g)).unwrap();
+    let o = r.coverage.unwrap();
+    assert!(c.len() < full.chosen.len());
+    assert!(o.pairs_chosen as f64 >= 0.8 * o.pairs_wanted as f64);
+}
+
+#[test]
+fn uniform_keeps_the_count_asked_for() {
+    let (g, training, _) = training();
+    let s = ViewSelection {
+        mode: SelectionMode::Uniform,
+        count: Some(5),
+        ..Default::default()
+    };
+    let (c, r) = choose(training, &s, &g, &mut []).unwrap();
+    assert_eq!(c.len(), 5);
+    assert_eq!(r.candidates, 36);
+    assert!(r.coverage.is_none());
+}
