@@ -31,6 +31,7 @@
 //! them; `--fresh` re-encodes).
 
 pub mod encode;
+pub mod heldout;
 pub mod mixture;
 pub mod output;
 pub mod sets;
@@ -42,7 +43,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use slag_common::embeddings::Embeddings;
-use slag_common::scene::{self, PlyLoadOptions};
+use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 use slag_encoder::eval;
 use slag_encoder::report::StageTimings;
@@ -150,8 +151,11 @@ pub struct Row {
     pub bytes_per_gaussian: f64,
     /// Median latency of one prompt's query, ms (threshold scan, or top-k for `index` points).
     pub query_ms: f64,
-    /// Colour mIoU (`None` for index points).
+    /// Colour mIoU, the 3D score of each Gaussian's class (`None` for index points).
     pub colour_miou: Option<f64>,
+    /// Held-out 2D mIoU on the study's held-out views ([`heldout`]); `None` for storage and
+    /// index points and for a point that encoded every view.
+    pub held_out_miou: Option<f64>,
     /// Agreement with the exact answer (see `iou_kind`): mean IoU over prompts of the matched
     /// sets; for index points the tie-aware top-k recall.
     pub iou: f64,
@@ -177,6 +181,8 @@ pub struct EvalContext {
     pub threshold: f32,
     /// Gaussians in the scene's `.ply`.
     pub scene_gaussians: usize,
+    /// The scene's Gaussians (the held-out renders rasterize them).
+    pub gaussians: Gaussians,
 }
 
 impl EvalContext {
@@ -205,6 +211,7 @@ impl EvalContext {
             gt,
             prompts,
             threshold,
+            gaussians: g,
         })
     }
 
@@ -286,9 +293,57 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
     .collect()
 }
 
-/// One encoded sweep point: its plan, run record, colour mIoU (if defined), the matched id set per
-/// colour prompt, and the median scan latency of its f32 embeddings in milliseconds.
-type EncodedPoint = (EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64);
+/// One encoded sweep point: its plan, run record and evaluation (colour and held-out mIoU, the
+/// matched id set per colour prompt, the median scan latency of its f32 embeddings).
+type EncodedPoint = (EncodePoint, EncodeRecord, encode::EvalRecord);
+
+/// The evaluation of the point encoded into `dir` with step `every`: the cached one when it is
+/// complete ([`encode::EvalRecord::is_complete`]) or the embeddings are gone (a study cut short
+/// keeps what it has), else computed from `dir/embeddings.safetensors` (the parts already cached
+/// are reused) and cached in `dir/eval.json`.
+///
+/// Errors: unreadable embeddings, embeddings of another scene or width, rasterizer failures.
+fn evaluate_point(
+    ctx: &EvalContext,
+    held: &mut heldout::HeldOutViews,
+    every: usize,
+    dir: &Path,
+    repeats: usize,
+) -> anyhow::Result<encode::EvalRecord> {
+    let emb_path = dir.join("embeddings.safetensors");
+    let names = held.names();
+    let cached = encode::cached_eval(dir, ctx.threshold);
+    if let Some(e) = &cached
+        && (e.is_complete(every, &names) || !emb_path.exists())
+    {
+        return Ok(e.clone());
+    }
+    let emb = Embeddings::read(&emb_path)?;
+    let mut e = match cached {
+        Some(e) => e,
+        None => {
+            let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
+            let (scan_ms, _) = storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
+            encode::EvalRecord {
+                threshold: ctx.threshold,
+                colour_miou: ctx.colour_miou(&emb)?,
+                scan_ms,
+                sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
+                held_out: None,
+            }
+        }
+    };
+    e.held_out = if every >= 2 {
+        Some(encode::HeldOutRecord {
+            score: held.score(&emb, &ctx.prompts)?,
+            views: names,
+        })
+    } else {
+        None
+    };
+    slag_common::io::write_atomic(&dir.join(encode::EVAL_FILE), &serde_json::to_vec(&e)?)?;
+    Ok(e)
+}
 
 /// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
 ///
@@ -334,6 +389,16 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         front_workers: a.front_workers,
     };
     let points = plan(a.quick);
+    let everys: Vec<usize> = points.iter().map(|p| p.every).collect();
+    let mut held = heldout::HeldOutViews::load(
+        &scene,
+        &ctx.gaussians,
+        &ctx.classes,
+        &everys,
+        slag_encoder::config::RasterBackend::Gpu,
+    )?;
+    let held_names = held.names();
+    let mut majority_miou = None;
     let mut encoded: Vec<EncodedPoint> = Vec::new();
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
@@ -341,9 +406,9 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         let config = p.encode_config(&scene, &fixtures, &workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
         let prior = (!a.fresh).then(|| encode::cached(&dir, &config)).flatten();
-        let prior_eval = prior
-            .as_ref()
-            .and_then(|_| encode::cached_eval(&dir, ctx.threshold));
+        let prior_eval = prior.as_ref().and_then(|_| {
+            encode::cached_eval(&dir, ctx.threshold).filter(|e| e.is_complete(p.every, &held_names))
+        });
         // The baseline's embeddings feed the storage sweep: it needs them on disk.
         let keep_emb = p.knob == "baseline" || p.mixture_keep.is_some();
         let need_emb = keep_emb || prior_eval.is_none();
@@ -369,38 +434,23 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             Some(r) if usable => (r, true),
             _ => encode::run_point(p, &scene, &fixtures, &workers, &dir, true)?,
         };
-        let ev = match encode::cached_eval(&dir, ctx.threshold) {
-            Some(e) => e,
-            None => {
-                let emb = Embeddings::read(&emb_path)?;
-                let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
-                let (scan_ms, _) =
-                    storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
-                let e = encode::EvalRecord {
-                    threshold: ctx.threshold,
-                    colour_miou: ctx.colour_miou(&emb)?,
-                    scan_ms,
-                    sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
-                };
-                slag_common::io::write_atomic(
-                    &dir.join(encode::EVAL_FILE),
-                    &serde_json::to_vec(&e)?,
-                )?;
-                e
-            }
-        };
+        let ev = evaluate_point(&ctx, &mut held, p.every, &dir, repeats)?;
+        if let Some(h) = &ev.held_out {
+            majority_miou = majority_miou.or(h.score.majority_miou);
+        }
         if !keep_emb && !a.keep_embeddings {
             std::fs::remove_file(&emb_path).ok();
         }
         eprintln!(
-            "    {:.1} s{} | observed {} | mIoU {:?} | scan {:.2} ms",
+            "    {:.1} s{} | observed {} | held-out mIoU {:?} | 3D mIoU {:?} | scan {:.2} ms",
             rec.stages.total,
             if cached { " (cached)" } else { "" },
             rec.observed,
+            ev.held_out.as_ref().and_then(|h| h.score.miou),
             ev.colour_miou,
             ev.scan_ms
         );
-        encoded.push((p.clone(), rec, ev.colour_miou, ev.sets, ev.scan_ms));
+        encoded.push((p.clone(), rec, ev));
     }
     let reference = encoded
         .iter()
@@ -417,8 +467,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let mut rows: Vec<Row> = encoded
         .iter()
         .filter(|e| e.0.knob != "mixture")
-        .map(|(p, rec, miou, answer, ms)| {
-            let (iou, n) = sets::mean_iou(answer, &reference.3);
+        .map(|(p, rec, ev)| {
+            let (iou, n) = sets::mean_iou(&ev.sets, &reference.2.sets);
             Row {
                 section: "encode".into(),
                 point: p.id(),
@@ -438,8 +488,9 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
                     slag_common::shards::Dtype::F32,
                     ctx.prompts.first().map_or(0, Vec::len),
                 ),
-                query_ms: *ms,
-                colour_miou: *miou,
+                query_ms: ev.scan_ms,
+                colour_miou: ev.colour_miou,
+                held_out_miou: ev.held_out.as_ref().and_then(|h| h.score.miou),
                 iou,
                 set_iou: iou,
                 iou_kind: format!("ref-run cos>={}", ctx.threshold),
@@ -504,6 +555,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         index_top_k,
         skipped,
         study_s: t_start.elapsed().as_secs_f64(),
+        held_out_views: held_names,
+        majority_miou,
     };
     let csv = output::csv(&rows);
     let md = output::markdown(&header, &rows, &footprint);
