@@ -5,7 +5,12 @@
 # (color-sam 16x16 at 0.8 / 0.5) and CLIP (color-clip) arguments. Expects .devcarry/ (release
 # slag-encoder, scene/ = snowmiku images + COLMAP + a geometry+DC .ply, shared/fixtures/).
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
-if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
+# The driver's own ICD file (nvidia_icd.json, naming libGLX_nvidia.so.0) fails vkCreateInstance on
+# the lent machines, so wgpu finds no adapter; an ICD file naming libEGL_nvidia.so.0 works.
+if [ -e /usr/local/nvidia/lib64/libEGL_nvidia.so.0 ]; then
+  printf '{"file_format_version":"1.0.1","ICD":{"library_path":"/usr/local/nvidia/lib64/libEGL_nvidia.so.0","api_version":"1.4.312"}}' > /tmp/icd-egl.json
+  export VK_DRIVER_FILES=/tmp/icd-egl.json
+elif [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
   export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 fi
 ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')

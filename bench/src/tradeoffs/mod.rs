@@ -1,19 +1,22 @@
 //! The speed/accuracy trade study (`slag-bench tradeoffs`).
 //!
 //! On a real scene with color-clip (whose ground truth is known: a Gaussian's colour class is the
-//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]), the study sweeps, one factor at a
-//! time around a baseline (graph masks, every 4th image, raster scale 0.5, all contributors per
-//! pixel):
+//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]; a photo pixel's class is the
+//! prototype nearest its colour), the study sweeps, one factor at a time around a baseline (graph
+//! masks, every 4th image, raster scale 0.5, all contributors per pixel):
 //!
 //! - **encode**: mask source (graph vs color-sam on an 8/16/32 grid, compared at every 8th
 //!   image), image subsampling (`--every` 1…20), raster scale (0.25…1.0), contributors kept per
-//!   pixel (top-K 1…8 vs all). Each point records encode wall time and per-stage times, observed
-//!   Gaussians, colour mIoU, the f32 scan latency of its embeddings, and its agreement with the
-//!   **reference** run (graph, every image, raster 0.5, all contributors: the costliest
-//!   graph-mask configuration of the sweep): for each of color-clip's 12 colour prompts the set
-//!   of Gaussians with cosine `>= 0.28`, IoU against the reference's set, averaged over the
-//!   prompts whose union is non-empty (a prompt empty in both runs is left out; the count of
-//!   prompts averaged is reported);
+//!   pixel (top-K 1…8 vs all), the `a_kj` rule on color-sam. Each point records encode wall time
+//!   and per-stage times, observed Gaussians, its **held-out 2D mIoU** (the accuracy axis: the
+//!   protocol of `eval-colors --held-out` on the views no point of the plan encodes, the same
+//!   pixels for every point, [`heldout`]), the 3D colour mIoU beside it, the f32 scan latency of
+//!   its embeddings, and its agreement with the **reference** run (graph, every image, raster
+//!   0.5, all contributors: the costliest graph-mask configuration of the sweep): for each of
+//!   color-clip's 12 colour prompts the set of Gaussians with cosine `>= 0.28`, IoU against the
+//!   reference's set, averaged over the prompts whose union is non-empty (a prompt empty in both
+//!   runs is left out; the count of prompts averaged is reported). The Pareto front of (encode
+//!   seconds, held-out mIoU) is marked;
 //! - **storage** (the baseline run's embeddings): f32, f16, int8 rows quantised exactly as the
 //!   shards store them (`slag_edge::scan::VectorStore::push_f32_rows` = the shard codec), with
 //!   bytes per Gaussian, exact-scan latency (median over prompts × repeats), colour mIoU from the
@@ -24,10 +27,12 @@
 //!   every Gaussian of the `.ply` against what slag stores (observed rows only, f16 file, shards
 //!   at f32/f16/int8 with their count and sizes).
 //!
-//! Outputs: `OUT/tradeoffs.csv` (one row per point, every column filled; `na` only for the colour
-//! mIoU of an index point, which returns top-k lists, not a class per Gaussian) and
+//! Outputs: `OUT/tradeoffs.csv` (one row per point, every column filled; `na` for the colour
+//! mIoU of an index point, which returns top-k lists, not a class per Gaussian, and for the
+//! held-out mIoU of storage and index points and of a point that encoded every view) and
 //! `OUT/tradeoffs.md` (header with the command and machine, one table row per CSV row, the
-//! footprint table). Encode runs are cached under `--work` (a rerun with the same arguments reuses
+//! footprint table; the hand-written text below its recommendations marker survives a new run,
+//! [`output::keep_hand_written`]). Encode runs are cached under `--work` (a rerun with the same arguments reuses
 //! them; `--fresh` re-encodes).
 
 pub mod encode;
@@ -559,9 +564,12 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         majority_miou,
     };
     let csv = output::csv(&rows);
-    let md = output::markdown(&header, &rows, &footprint);
     let csv_path = a.out.join("tradeoffs.csv");
     let md_path = a.out.join("tradeoffs.md");
+    let md = output::keep_hand_written(
+        &output::markdown(&header, &rows, &footprint),
+        std::fs::read_to_string(&md_path).ok().as_deref(),
+    );
     slag_common::io::write_atomic(&csv_path, csv.as_bytes())?;
     slag_common::io::write_atomic(&md_path, md.as_bytes())?;
     Ok(format!(

@@ -367,8 +367,25 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         ),
         footprint_rows,
     );
-    s += "\n## Recommendations\n\n<!-- recommendations: hand-written from the tables above -->\n";
+    s += "\n## Recommendations\n\n";
+    s += HAND_WRITTEN_MARKER;
+    s.push('\n');
     s
+}
+
+/// The line after which `tradeoffs.md` is written by hand; a new run keeps what follows it.
+pub const HAND_WRITTEN_MARKER: &str =
+    "<!-- recommendations: hand-written from the tables above -->";
+
+/// `generated` (a [`markdown`] document, ending in [`HAND_WRITTEN_MARKER`]) with the hand-written
+/// text that followed the marker in the `previous` document, if it had one: a new run replaces
+/// the tables and keeps the recommendations and notes written below them.
+pub fn keep_hand_written(generated: &str, previous: Option<&str>) -> String {
+    let tail = previous.and_then(|p| p.split_once(HAND_WRITTEN_MARKER).map(|(_, t)| t));
+    match (generated.split_once(HAND_WRITTEN_MARKER), tail) {
+        (Some((head, _)), Some(tail)) => format!("{head}{HAND_WRITTEN_MARKER}{tail}"),
+        _ => generated.to_string(),
+    }
 }
 
 #[cfg(test)]
@@ -441,6 +458,23 @@ mod tests {
             .filter(|l| l.starts_with('|'))
             .map(str::to_string)
             .collect()
+    }
+
+    #[test]
+    fn a_new_run_keeps_the_hand_written_tail() {
+        let new = format!("# study\n| new table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\n");
+        let old = format!(
+            "# study\n| old table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\nkeep f16.\n"
+        );
+        let merged = keep_hand_written(&new, Some(&old));
+        assert_eq!(
+            merged,
+            format!(
+                "# study\n| new table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\nkeep f16.\n"
+            )
+        );
+        assert_eq!(keep_hand_written(&new, None), new);
+        assert_eq!(keep_hand_written(&new, Some("no marker")), new);
     }
 
     #[test]
