@@ -48,9 +48,12 @@ print(line)
 objs = a.get("objects", [])
 if n:
     shown = objs[:3]
-    more = f" (first {len(shown)})" if len(objs) > len(shown) else ""
-    print(f'    {len(objs)} object{"" if len(objs) == 1 else "s"}{more}:' if objs else
-          '    no object (every group of matches is below the minimum size)')
+    head = f'    {len(objs)} object{"" if len(objs) == 1 else "s"}'
+    if len(objs) >= 20:  # the query's default --max-objects: there may be more groups
+        head += ", the most one answer returns"
+    if len(objs) > len(shown):
+        head += f"; the first {len(shown)}"
+    print(head + ":" if objs else "    no object (every group of matches is below the minimum size)")
     for k, o in enumerate(shown, 1):
         e, c = o["obb"]["extents"], o["centroid"]
         print(f'      #{k}: {o["gaussians"]:,} Gaussians, {e[0]:.2f} x {e[1]:.2f} x {e[2]:.2f}'

@@ -174,8 +174,7 @@ pub fn average_precision(overlaps: &[Vec<f64>], instances: usize, threshold: f64
     // All-point interpolation: precision at recall r is the best precision at any recall ≥ r.
     let mut ap = 0.0;
     let mut prev_recall = 0.0;
-    for k in 0..points.len() {
-        let (recall, _) = points[k];
+    for (k, &(recall, _)) in points.iter().enumerate() {
         if recall > prev_recall {
             let p = points[k..].iter().map(|x| x.1).fold(0.0, f64::max);
             ap += (recall - prev_recall) * p;
