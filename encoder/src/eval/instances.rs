@@ -551,10 +551,9 @@ mod tests {
         let means_box = |members: &[u32]| -> Aabb {
             let mut b = [[f64::INFINITY; 3], [f64::NEG_INFINITY; 3]];
             for &i in members {
-                for a in 0..3 {
-                    let v = f64::from(g.means[i as usize][a]);
-                    b[0][a] = b[0][a].min(v);
-                    b[1][a] = b[1][a].max(v);
+                for (a, &v) in g.means[i as usize].iter().enumerate() {
+                    b[0][a] = b[0][a].min(f64::from(v));
+                    b[1][a] = b[1][a].max(f64::from(v));
                 }
             }
             b
