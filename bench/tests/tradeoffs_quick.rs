@@ -132,6 +132,43 @@ fn quick_study_writes_complete_consistent_tables() {
         "a 3-view run cannot equal the 7-view reference"
     );
 
+    // Held-out 2D mIoU: every encode point (all hold views out in the quick plan) is scored on
+    // the same held-out views, within [0, 1] and above the majority-class baseline the header
+    // states; storage and index points are not scored. The Pareto front is marked on at least
+    // one encode row.
+    for r in &rows {
+        if r["section"] == "encode" {
+            let m = num(r, "held_out_miou");
+            assert!((0.0..=1.0).contains(&m), "{}: held-out {m}", r["point"]);
+        } else {
+            assert_eq!(r["held_out_miou"], "na", "{}", r["point"]);
+        }
+    }
+    let majority: f64 = md
+        .split("Majority-class baseline on them: ")
+        .nth(1)
+        .and_then(|t| {
+            t.split('.')
+                .take(2)
+                .collect::<Vec<_>>()
+                .join(".")
+                .parse()
+                .ok()
+        })
+        .expect("the header states the majority baseline");
+    assert!(
+        enc.iter().all(|r| num(r, "held_out_miou") > majority),
+        "every point beats the majority class ({majority})"
+    );
+    assert!(
+        md.contains("views that no point of the plan encodes"),
+        "the header says which views are held out"
+    );
+    assert!(
+        md.lines()
+            .any(|l| l.starts_with("| `graph-") && l.contains(" ★ |"))
+    );
+
     // Storage: bytes per Gaussian as the shard format defines them (D = 512: f32 4D + 16,
     // f16 2D + 16, int8 D + 4 + 16); f32 rows answer exactly as the f32 reference (1 up to a
     // score within f32 rounding of the threshold); f16/int8 close to it.

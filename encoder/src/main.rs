@@ -39,6 +39,9 @@ enum Command {
     /// Colour mIoU of an embeddings file made with color-clip: per Gaussian (SH-DC colour truth),
     /// or with --held-out per pixel of the views the encoder never saw (photo colour truth).
     EvalColors(cli::eval::EvalArgs),
+    /// Instance AP50 and box IoU of query answers' objects on a `synth-scene --objects` scene,
+    /// against the placed boxes.
+    EvalObjects(cli::eval_objects::EvalObjectsArgs),
     /// Render a training view through the weight rasterizer and compare it with the photo.
     Render(cli::render::RenderArgs),
     /// Run `encode` and print a per-stage timing table.
@@ -99,6 +102,7 @@ fn main() -> std::process::ExitCode {
         Command::EvalColors(a) => {
             slag_encoder::eval::colors::run(&a.into()).and_then(|o| print_json(&o))
         }
+        Command::EvalObjects(a) => cli::eval_objects::run(a).and_then(|o| print_json(&o)),
         Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {
             cli::encode::run(a).map(|r| println!("{}", slag_encoder::report::timing_table(&r)))

@@ -102,6 +102,10 @@ pub struct QueryOutput {
     /// ([`slag_common::objects::group_objects`], opacity-weighted centroids when the embeddings'
     /// scene `.ply` is given as `ply`, else score-weighted).
     pub objects: Vec<SceneObject>,
+    /// Per object of `objects` (same order), the ids of its member Gaussians, ascending (not
+    /// printed: the instance scores of [`crate::eval::instances`] compare them with the truth).
+    #[serde(skip)]
+    pub object_members: Vec<Vec<u32>>,
     /// The best `top_k` matches above the threshold, best first.
     pub matches: Vec<Match>,
     /// When nothing reaches the threshold: the `top_k` best-scoring Gaussians anyway, so the user
@@ -185,6 +189,13 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         },
         &a.objects,
     )?;
+    let mut object_members = vec![Vec::new(); grouped.objects.len()];
+    for (&id, k) in ids.iter().zip(&grouped.member_of) {
+        if let Some(m) = k.and_then(|k| object_members.get_mut(k as usize)) {
+            m.push(id);
+        }
+    }
+    object_members.iter_mut().for_each(|m| m.sort_unstable());
     let nearest_below_threshold = if all.is_empty() {
         similarity::rank(
             &emb.ids,
@@ -206,6 +217,7 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         smooth: a.smooth,
         summary,
         objects: grouped.objects,
+        object_members,
         matches: all.into_iter().take(a.top_k).collect(),
         nearest_below_threshold,
         highlighted_ply: a.highlight_out.clone(),

@@ -282,13 +282,41 @@ pub struct EvalRecord {
     pub scan_ms: f64,
     /// Per prompt, the ascending ids with cosine `>= threshold`.
     pub sets: Vec<Vec<u32>>,
+    /// The held-out 2D score and the views it was taken on (`None` for a point that encoded
+    /// every view, or an evaluation made before the study scored held-out views).
+    #[serde(default)]
+    pub held_out: Option<HeldOutRecord>,
 }
 
-/// The cached evaluation in `dir` taken at `threshold`, if any.
+/// A point's held-out score with the views it was taken on (the cache is valid only for the
+/// same views).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct HeldOutRecord {
+    /// Names of the held-out views, name order.
+    pub views: Vec<String>,
+    /// The score on them.
+    pub score: super::heldout::HeldOutScore,
+}
+
+/// The cached evaluation in `dir` taken at `threshold`, if any (complete or not, see
+/// [`EvalRecord::is_complete`]).
 pub fn cached_eval(dir: &Path, threshold: f32) -> Option<EvalRecord> {
     let bytes = std::fs::read(dir.join(EVAL_FILE)).ok()?;
     let e = serde_json::from_slice::<EvalRecord>(&bytes).ok()?;
     (e.threshold == threshold).then_some(e)
+}
+
+impl EvalRecord {
+    /// Whether this evaluation holds everything the study reports for a point encoded with
+    /// `every`: a held-out score on exactly `held_out_views` when `every >= 2` (a point that
+    /// encoded every view has none).
+    pub fn is_complete(&self, every: usize, held_out_views: &[String]) -> bool {
+        every < 2
+            || self
+                .held_out
+                .as_ref()
+                .is_some_and(|h| h.views == held_out_views)
+    }
 }
 
 /// Cache folder of a point under the study's work folder.

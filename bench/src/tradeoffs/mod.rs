@@ -1,19 +1,22 @@
 //! The speed/accuracy trade study (`slag-bench tradeoffs`).
 //!
 //! On a real scene with color-clip (whose ground truth is known: a Gaussian's colour class is the
-//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]), the study sweeps, one factor at a
-//! time around a baseline (graph masks, every 4th image, raster scale 0.5, all contributors per
-//! pixel):
+//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]; a photo pixel's class is the
+//! prototype nearest its colour), the study sweeps, one factor at a time around a baseline (graph
+//! masks, every 4th image, raster scale 0.5, all contributors per pixel):
 //!
 //! - **encode**: mask source (graph vs color-sam on an 8/16/32 grid, compared at every 8th
 //!   image), image subsampling (`--every` 1…20), raster scale (0.25…1.0), contributors kept per
-//!   pixel (top-K 1…8 vs all). Each point records encode wall time and per-stage times, observed
-//!   Gaussians, colour mIoU, the f32 scan latency of its embeddings, and its agreement with the
-//!   **reference** run (graph, every image, raster 0.5, all contributors: the costliest
-//!   graph-mask configuration of the sweep): for each of color-clip's 12 colour prompts the set
-//!   of Gaussians with cosine `>= 0.28`, IoU against the reference's set, averaged over the
-//!   prompts whose union is non-empty (a prompt empty in both runs is left out; the count of
-//!   prompts averaged is reported);
+//!   pixel (top-K 1…8 vs all), the `a_kj` rule on color-sam. Each point records encode wall time
+//!   and per-stage times, observed Gaussians, its **held-out 2D mIoU** (the accuracy axis: the
+//!   protocol of `eval-colors --held-out` on the views no point of the plan encodes, the same
+//!   pixels for every point, [`heldout`]), the 3D colour mIoU beside it, the f32 scan latency of
+//!   its embeddings, and its agreement with the **reference** run (graph, every image, raster
+//!   0.5, all contributors: the costliest graph-mask configuration of the sweep): for each of
+//!   color-clip's 12 colour prompts the set of Gaussians with cosine `>= 0.28`, IoU against the
+//!   reference's set, averaged over the prompts whose union is non-empty (a prompt empty in both
+//!   runs is left out; the count of prompts averaged is reported). The Pareto front of (encode
+//!   seconds, held-out mIoU) is marked;
 //! - **storage** (the baseline run's embeddings): f32, f16, int8 rows quantised exactly as the
 //!   shards store them (`slag_edge::scan::VectorStore::push_f32_rows` = the shard codec), with
 //!   bytes per Gaussian, exact-scan latency (median over prompts × repeats), colour mIoU from the
@@ -24,13 +27,16 @@
 //!   every Gaussian of the `.ply` against what slag stores (observed rows only, f16 file, shards
 //!   at f32/f16/int8 with their count and sizes).
 //!
-//! Outputs: `OUT/tradeoffs.csv` (one row per point, every column filled; `na` only for the colour
-//! mIoU of an index point, which returns top-k lists, not a class per Gaussian) and
+//! Outputs: `OUT/tradeoffs.csv` (one row per point, every column filled; `na` for the colour
+//! mIoU of an index point, which returns top-k lists, not a class per Gaussian, and for the
+//! held-out mIoU of storage and index points and of a point that encoded every view) and
 //! `OUT/tradeoffs.md` (header with the command and machine, one table row per CSV row, the
-//! footprint table). Encode runs are cached under `--work` (a rerun with the same arguments reuses
+//! footprint table; the hand-written text below its recommendations marker survives a new run,
+//! [`output::keep_hand_written`]). Encode runs are cached under `--work` (a rerun with the same arguments reuses
 //! them; `--fresh` re-encodes).
 
 pub mod encode;
+pub mod heldout;
 pub mod mixture;
 pub mod output;
 pub mod sets;
@@ -42,7 +48,7 @@ use std::time::Instant;
 use anyhow::Context;
 use clap::Args;
 use slag_common::embeddings::Embeddings;
-use slag_common::scene::{self, PlyLoadOptions};
+use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::text::TextEncoder;
 use slag_encoder::eval;
 use slag_encoder::report::StageTimings;
@@ -150,8 +156,11 @@ pub struct Row {
     pub bytes_per_gaussian: f64,
     /// Median latency of one prompt's query, ms (threshold scan, or top-k for `index` points).
     pub query_ms: f64,
-    /// Colour mIoU (`None` for index points).
+    /// Colour mIoU, the 3D score of each Gaussian's class (`None` for index points).
     pub colour_miou: Option<f64>,
+    /// Held-out 2D mIoU on the study's held-out views ([`heldout`]); `None` for storage and
+    /// index points and for a point that encoded every view.
+    pub held_out_miou: Option<f64>,
     /// Agreement with the exact answer (see `iou_kind`): mean IoU over prompts of the matched
     /// sets; for index points the tie-aware top-k recall.
     pub iou: f64,
@@ -177,6 +186,8 @@ pub struct EvalContext {
     pub threshold: f32,
     /// Gaussians in the scene's `.ply`.
     pub scene_gaussians: usize,
+    /// The scene's Gaussians (the held-out renders rasterize them).
+    pub gaussians: Gaussians,
 }
 
 impl EvalContext {
@@ -205,6 +216,7 @@ impl EvalContext {
             gt,
             prompts,
             threshold,
+            gaussians: g,
         })
     }
 
@@ -286,9 +298,57 @@ pub fn plan(quick: bool) -> Vec<EncodePoint> {
     .collect()
 }
 
-/// One encoded sweep point: its plan, run record, colour mIoU (if defined), the matched id set per
-/// colour prompt, and the median scan latency of its f32 embeddings in milliseconds.
-type EncodedPoint = (EncodePoint, EncodeRecord, Option<f64>, Vec<Vec<u32>>, f64);
+/// One encoded sweep point: its plan, run record and evaluation (colour and held-out mIoU, the
+/// matched id set per colour prompt, the median scan latency of its f32 embeddings).
+type EncodedPoint = (EncodePoint, EncodeRecord, encode::EvalRecord);
+
+/// The evaluation of the point encoded into `dir` with step `every`: the cached one when it is
+/// complete ([`encode::EvalRecord::is_complete`]) or the embeddings are gone (a study cut short
+/// keeps what it has), else computed from `dir/embeddings.safetensors` (the parts already cached
+/// are reused) and cached in `dir/eval.json`.
+///
+/// Errors: unreadable embeddings, embeddings of another scene or width, rasterizer failures.
+fn evaluate_point(
+    ctx: &EvalContext,
+    held: &mut heldout::HeldOutViews,
+    every: usize,
+    dir: &Path,
+    repeats: usize,
+) -> anyhow::Result<encode::EvalRecord> {
+    let emb_path = dir.join("embeddings.safetensors");
+    let names = held.names();
+    let cached = encode::cached_eval(dir, ctx.threshold);
+    if let Some(e) = &cached
+        && (e.is_complete(every, &names) || !emb_path.exists())
+    {
+        return Ok(e.clone());
+    }
+    let emb = Embeddings::read(&emb_path)?;
+    let mut e = match cached {
+        Some(e) => e,
+        None => {
+            let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
+            let (scan_ms, _) = storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
+            encode::EvalRecord {
+                threshold: ctx.threshold,
+                colour_miou: ctx.colour_miou(&emb)?,
+                scan_ms,
+                sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
+                held_out: None,
+            }
+        }
+    };
+    e.held_out = if every >= 2 {
+        Some(encode::HeldOutRecord {
+            score: held.score(&emb, &ctx.prompts)?,
+            views: names,
+        })
+    } else {
+        None
+    };
+    slag_common::io::write_atomic(&dir.join(encode::EVAL_FILE), &serde_json::to_vec(&e)?)?;
+    Ok(e)
+}
 
 /// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
 ///
@@ -334,6 +394,16 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         front_workers: a.front_workers,
     };
     let points = plan(a.quick);
+    let everys: Vec<usize> = points.iter().map(|p| p.every).collect();
+    let mut held = heldout::HeldOutViews::load(
+        &scene,
+        &ctx.gaussians,
+        &ctx.classes,
+        &everys,
+        slag_encoder::config::RasterBackend::Gpu,
+    )?;
+    let held_names = held.names();
+    let mut majority_miou = None;
     let mut encoded: Vec<EncodedPoint> = Vec::new();
     let mut skipped = Vec::new();
     for (i, p) in points.iter().enumerate() {
@@ -341,9 +411,9 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         let config = p.encode_config(&scene, &fixtures, &workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
         let prior = (!a.fresh).then(|| encode::cached(&dir, &config)).flatten();
-        let prior_eval = prior
-            .as_ref()
-            .and_then(|_| encode::cached_eval(&dir, ctx.threshold));
+        let prior_eval = prior.as_ref().and_then(|_| {
+            encode::cached_eval(&dir, ctx.threshold).filter(|e| e.is_complete(p.every, &held_names))
+        });
         // The baseline's embeddings feed the storage sweep: it needs them on disk.
         let keep_emb = p.knob == "baseline" || p.mixture_keep.is_some();
         let need_emb = keep_emb || prior_eval.is_none();
@@ -369,38 +439,23 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             Some(r) if usable => (r, true),
             _ => encode::run_point(p, &scene, &fixtures, &workers, &dir, true)?,
         };
-        let ev = match encode::cached_eval(&dir, ctx.threshold) {
-            Some(e) => e,
-            None => {
-                let emb = Embeddings::read(&emb_path)?;
-                let store = storage::store_of(&emb, slag_common::shards::Dtype::F32)?.0;
-                let (scan_ms, _) =
-                    storage::scan_latency(&store, &ctx.prompts, ctx.threshold, repeats)?;
-                let e = encode::EvalRecord {
-                    threshold: ctx.threshold,
-                    colour_miou: ctx.colour_miou(&emb)?,
-                    scan_ms,
-                    sets: sets::threshold_sets(&emb, &ctx.prompts, ctx.threshold)?,
-                };
-                slag_common::io::write_atomic(
-                    &dir.join(encode::EVAL_FILE),
-                    &serde_json::to_vec(&e)?,
-                )?;
-                e
-            }
-        };
+        let ev = evaluate_point(&ctx, &mut held, p.every, &dir, repeats)?;
+        if let Some(h) = &ev.held_out {
+            majority_miou = majority_miou.or(h.score.majority_miou);
+        }
         if !keep_emb && !a.keep_embeddings {
             std::fs::remove_file(&emb_path).ok();
         }
         eprintln!(
-            "    {:.1} s{} | observed {} | mIoU {:?} | scan {:.2} ms",
+            "    {:.1} s{} | observed {} | held-out mIoU {:?} | 3D mIoU {:?} | scan {:.2} ms",
             rec.stages.total,
             if cached { " (cached)" } else { "" },
             rec.observed,
+            ev.held_out.as_ref().and_then(|h| h.score.miou),
             ev.colour_miou,
             ev.scan_ms
         );
-        encoded.push((p.clone(), rec, ev.colour_miou, ev.sets, ev.scan_ms));
+        encoded.push((p.clone(), rec, ev));
     }
     let reference = encoded
         .iter()
@@ -417,8 +472,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
     let mut rows: Vec<Row> = encoded
         .iter()
         .filter(|e| e.0.knob != "mixture")
-        .map(|(p, rec, miou, answer, ms)| {
-            let (iou, n) = sets::mean_iou(answer, &reference.3);
+        .map(|(p, rec, ev)| {
+            let (iou, n) = sets::mean_iou(&ev.sets, &reference.2.sets);
             Row {
                 section: "encode".into(),
                 point: p.id(),
@@ -438,8 +493,9 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
                     slag_common::shards::Dtype::F32,
                     ctx.prompts.first().map_or(0, Vec::len),
                 ),
-                query_ms: *ms,
-                colour_miou: *miou,
+                query_ms: ev.scan_ms,
+                colour_miou: ev.colour_miou,
+                held_out_miou: ev.held_out.as_ref().and_then(|h| h.score.miou),
                 iou,
                 set_iou: iou,
                 iou_kind: format!("ref-run cos>={}", ctx.threshold),
@@ -504,11 +560,16 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         index_top_k,
         skipped,
         study_s: t_start.elapsed().as_secs_f64(),
+        held_out_views: held_names,
+        majority_miou,
     };
     let csv = output::csv(&rows);
-    let md = output::markdown(&header, &rows, &footprint);
     let csv_path = a.out.join("tradeoffs.csv");
     let md_path = a.out.join("tradeoffs.md");
+    let md = output::keep_hand_written(
+        &output::markdown(&header, &rows, &footprint),
+        std::fs::read_to_string(&md_path).ok().as_deref(),
+    );
     slag_common::io::write_atomic(&csv_path, csv.as_bytes())?;
     slag_common::io::write_atomic(&md_path, md.as_bytes())?;
     Ok(format!(

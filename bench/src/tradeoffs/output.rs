@@ -8,7 +8,7 @@ use super::storage::FootprintRow;
 use crate::machine::MachineInfo;
 
 /// CSV columns, in order.
-pub const CSV_COLUMNS: [&str; 26] = [
+pub const CSV_COLUMNS: [&str; 27] = [
     "section",
     "point",
     "knob",
@@ -31,6 +31,7 @@ pub const CSV_COLUMNS: [&str; 26] = [
     "bytes_per_gaussian",
     "query_ms",
     "colour_miou",
+    "held_out_miou",
     "iou",
     "set_iou",
     "iou_kind",
@@ -60,6 +61,10 @@ pub struct Header {
     pub skipped: Vec<String>,
     /// Seconds the whole study took.
     pub study_s: f64,
+    /// Names of the views every point is scored on (held out by all of them).
+    pub held_out_views: Vec<String>,
+    /// The majority-class baseline's mIoU on those views.
+    pub majority_miou: Option<f64>,
 }
 
 fn field(s: &str) -> String {
@@ -131,6 +136,7 @@ pub fn csv(rows: &[Row]) -> String {
             format!("{:.2}", r.bytes_per_gaussian),
             format!("{:.3}", r.query_ms),
             miou_str(r.colour_miou),
+            miou_str(r.held_out_miou),
             format!("{:.4}", r.iou),
             format!("{:.4}", r.set_iou),
             field(&r.iou_kind),
@@ -142,14 +148,15 @@ pub fn csv(rows: &[Row]) -> String {
     s
 }
 
-/// Indices of the encode rows on the Pareto front of (lower encode time, higher colour mIoU):
-/// no other row is at least as fast and at least as accurate while strictly better in one.
+/// Indices of the encode rows on the Pareto front of (lower encode time, higher held-out mIoU):
+/// no other row is at least as fast and at least as accurate while strictly better in one. Rows
+/// without a held-out score (every view encoded) are not on it.
 pub fn pareto_front(rows: &[Row]) -> Vec<usize> {
     let pts: Vec<(usize, f64, f64)> = rows
         .iter()
         .enumerate()
         .filter(|(_, r)| r.section == "encode")
-        .filter_map(|(i, r)| r.colour_miou.map(|m| (i, r.encode_s, m)))
+        .filter_map(|(i, r)| r.held_out_miou.map(|m| (i, r.encode_s, m)))
         .collect();
     pts.iter()
         .filter(|&&(i, t, m)| {
@@ -206,6 +213,19 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
     );
     let _ = writeln!(
         s,
+        "- **Held-out mIoU** (the accuracy axis): the protocol of `slag-encoder eval-colors \
+         --held-out` (renders at full resolution of class scores cos(E_k, text), argmax per \
+         pixel against the photo's nearest colour class, pixels of rendered alpha ≥ 0.5, mIoU \
+         over the classes with ≥ 1% of the counted pixels) on the {n} views that no point of \
+         the plan encodes (index ≢ 0 modulo every step of 2 or more), the same pixels for every \
+         point: {names}. Majority-class baseline on them: {maj}. A point encoded from every view \
+         has none held out (`na`).",
+        n = h.held_out_views.len(),
+        names = h.held_out_views.join(", "),
+        maj = miou_str(h.majority_miou)
+    );
+    let _ = writeln!(
+        s,
         "- Query latency: one prompt's exact scan (`slag_edge::scan`, cos ≥ {t}, all cores), \
          median over 12 prompts × {r} repeats after one untimed run per prompt.",
         t = h.threshold,
@@ -220,7 +240,8 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
          the raster cost. Mask sources are compared at every 8th image. Stage columns are \
          seconds summed over images (decode/masks/CLIP on one thread overlap raster/a_kj on \
          another, so they exceed the wall time). ★ = on the Pareto front of (encode time, \
-         colour mIoU). Embeddings are evaluated as f32.";
+         held-out mIoU). *3D mIoU*: the colour mIoU of each Gaussian's class, beside it. \
+         Embeddings are evaluated as f32.";
     let encode_rows = rows
         .iter()
         .enumerate()
@@ -242,6 +263,7 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
                 format!("{:.1}", r.stages.image_aggregate),
                 format!("{:.2}", r.stages.reduce),
                 r.observed.to_string(),
+                miou_str(r.held_out_miou),
                 miou_str(r.colour_miou),
                 format!("{:.3} ({})", r.iou, r.iou_prompts),
                 format!("{:.2}", r.query_ms),
@@ -252,8 +274,8 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         "Encode sweep (one factor at a time)",
         Some(encode_intro),
         concat!(
-            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
-            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | held-out mIoU | 3D mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
         ),
         encode_rows,
     );
@@ -345,8 +367,25 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         ),
         footprint_rows,
     );
-    s += "\n## Recommendations\n\n<!-- recommendations: hand-written from the tables above -->\n";
+    s += "\n## Recommendations\n\n";
+    s += HAND_WRITTEN_MARKER;
+    s.push('\n');
     s
+}
+
+/// The line after which `tradeoffs.md` is written by hand; a new run keeps what follows it.
+pub const HAND_WRITTEN_MARKER: &str =
+    "<!-- recommendations: hand-written from the tables above -->";
+
+/// `generated` (a [`markdown`] document, ending in [`HAND_WRITTEN_MARKER`]) with the hand-written
+/// text that followed the marker in the `previous` document, if it had one: a new run replaces
+/// the tables and keeps the recommendations and notes written below them.
+pub fn keep_hand_written(generated: &str, previous: Option<&str>) -> String {
+    let tail = previous.and_then(|p| p.split_once(HAND_WRITTEN_MARKER).map(|(_, t)| t));
+    match (generated.split_once(HAND_WRITTEN_MARKER), tail) {
+        (Some((head, _)), Some(tail)) => format!("{head}{HAND_WRITTEN_MARKER}{tail}"),
+        _ => generated.to_string(),
+    }
 }
 
 #[cfg(test)]
@@ -379,6 +418,7 @@ mod tests {
             bytes_per_gaussian: 1040.04,
             query_ms: 2.345,
             colour_miou,
+            held_out_miou: colour_miou.map(|m| m + 0.125),
             iou: 0.987654,
             set_iou: 0.876543,
             iou_kind: "f32 cos>=0.28".into(),
@@ -399,6 +439,8 @@ mod tests {
             index_top_k: 100,
             skipped: Vec::new(),
             study_s: 60.0,
+            held_out_views: vec!["a.jpg".into(), "b.jpg".into()],
+            majority_miou: Some(0.1),
         };
         let rows = [
             row("encode", "graph-e4", Some(0.5)),
@@ -419,6 +461,44 @@ mod tests {
     }
 
     #[test]
+    fn a_new_run_keeps_the_hand_written_tail() {
+        let new = format!("# study\n| new table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\n");
+        let old = format!(
+            "# study\n| old table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\nkeep f16.\n"
+        );
+        let merged = keep_hand_written(&new, Some(&old));
+        assert_eq!(
+            merged,
+            format!(
+                "# study\n| new table |\n## Recommendations\n\n{HAND_WRITTEN_MARKER}\nkeep f16.\n"
+            )
+        );
+        assert_eq!(keep_hand_written(&new, None), new);
+        assert_eq!(keep_hand_written(&new, Some("no marker")), new);
+    }
+
+    #[test]
+    fn the_front_is_taken_on_held_out_miou() {
+        // (encode s, held-out, 3D): `a` has the best 3D score but a slower, worse held-out
+        // score than `c`; `d` has no held-out score (every view encoded).
+        let points = [
+            ("a", 10.0, Some(0.30), 0.9),
+            ("b", 2.0, Some(0.20), 0.1),
+            ("c", 5.0, Some(0.40), 0.2),
+            ("d", 1.0, None, 0.8),
+        ];
+        let rows: Vec<Row> = points
+            .iter()
+            .map(|&(p, t, held, m3)| Row {
+                encode_s: t,
+                held_out_miou: held,
+                ..row("encode", p, Some(m3))
+            })
+            .collect();
+        assert_eq!(pareto_front(&rows), vec![1, 2]);
+    }
+
+    #[test]
     fn csv_has_one_field_per_column() {
         let text = csv(&[row("storage", "store-f16", None)]);
         let lines: Vec<&str> = text.lines().collect();
@@ -426,7 +506,7 @@ mod tests {
         assert_eq!(
             lines[1],
             "storage,store-f16,baseline,graph,4,0.5,all,f16,hnsw,12,1234,10.250,0.000,1.500,2.250,\
-             3.125,0.500,0.062,0.123,1040.04,2.345,na,0.9877,0.8765,f32 cos>=0.28,11"
+             3.125,0.500,0.062,0.123,1040.04,2.345,na,na,0.9877,0.8765,f32 cos>=0.28,11"
         );
         assert_eq!(lines[1].split(',').count(), CSV_COLUMNS.len());
     }
@@ -435,9 +515,9 @@ mod tests {
     fn markdown_tables_have_one_cell_per_column() {
         let lines = table_lines();
         let expected = [
-            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | colour mIoU | IoU vs ref (prompts) | f32 scan ms |",
-            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
-            "| `graph-e4` | baseline | graph | 4 | 12 | 0.5 | all | 10.2 ★ | 1.5 | 2.2 | 3.1 | 0.5 | 0.06 | 1234 | 0.5000 | 0.988 (11) | 2.35 |",
+            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | held-out mIoU | 3D mIoU | IoU vs ref (prompts) | f32 scan ms |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| `graph-e4` | baseline | graph | 4 | 12 | 0.5 | all | 10.2 ★ | 1.5 | 2.2 | 3.1 | 0.5 | 0.06 | 1234 | 0.6250 | 0.5000 | 0.988 (11) | 2.35 |",
             "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |",
             "|---|---|---:|---:|---:|---:|---:|",
             "| `store-f16` | f16 | 1040.0 | 0.123 | 2.35 | 0.2500 | 0.9877 (11) |",

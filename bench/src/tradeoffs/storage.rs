@@ -147,6 +147,7 @@ impl Row {
             section: "storage".into(),
             index: "scan".into(),
             colour_miou,
+            held_out_miou: None,
             iou,
             set_iou: iou,
             iou_kind: format!("f32 cos>={}", ctx.threshold),
@@ -231,6 +232,7 @@ pub fn index_rows(
         storage: "f32".into(),
         observed: store.len(),
         colour_miou: None,
+        held_out_miou: None,
         iou_kind: format!("f32 top-{k} recall, ties counted"),
         ..template.clone()
     };

@@ -4,6 +4,7 @@
 pub mod cluster;
 pub mod encode;
 pub mod eval;
+pub mod eval_objects;
 pub mod hints;
 pub mod query;
 pub mod render;

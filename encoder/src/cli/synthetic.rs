@@ -5,7 +5,8 @@ use std::path::PathBuf;
 use clap::Args;
 
 use slag_encoder::eval::synthetic::{
-    SyntheticSceneParams, SyntheticSummary, object_layout, write_synthetic_scene_with_objects,
+    SyntheticSceneParams, SyntheticSummary, object_layout, touching_layout,
+    write_synthetic_scene_with_objects,
 };
 
 /// Arguments of `synth-scene`.
@@ -36,6 +37,10 @@ pub struct SynthArgs {
     /// far apart first), the ground truth of query answers' objects; written to objects.json.
     #[arg(long)]
     pub objects: Option<usize>,
+    /// With --objects: boxes of different colours in touching pairs (sharing a wall, all on the
+    /// ground) instead of far apart; the ground truth of instance AP (`eval-objects`).
+    #[arg(long, requires = "objects")]
+    pub touching: bool,
 }
 
 /// Parses `30M`, `500K` or a plain count.
@@ -64,6 +69,7 @@ pub fn run(a: &SynthArgs) -> anyhow::Result<SyntheticSummary> {
         seed: a.seed,
     };
     let objects = match a.objects {
+        Some(k) if a.touching => touching_layout(k, a.extent)?,
         Some(k) => object_layout(k, a.extent)?,
         None => Vec::new(),
     };

@@ -56,6 +56,42 @@ pub fn held_out_indices(n_views: usize, every: usize) -> Result<Vec<usize>> {
     Ok((0..n_views).filter(|i| i % every == every / 2).collect())
 }
 
+/// Name-sorted indices of the views that none of several encodes saw, for comparing encodes made
+/// with different steps on the same held-out pixels: the indices `i < n_views` with
+/// `i mod every ≠ 0` for every step in `everys` (each encode keeps `i ≡ 0 (mod every)`,
+/// [`slag_common::camera::subsample`]). With one step `N` this is a superset of
+/// [`held_out_indices`]`(n_views, N)`.
+///
+/// Errors ([`Error::Param`] `every`): a step below 2 (that encode saw every view), no step, or
+/// no view left unencoded (a scene of too few views for these steps).
+pub fn held_out_for_all(n_views: usize, everys: &[usize]) -> Result<Vec<usize>> {
+    if let Some(&e) = everys.iter().find(|&&e| e < 2) {
+        return Err(Error::param(
+            "every",
+            e,
+            "2 or more for every encode compared: an encode of every view leaves none held out",
+        ));
+    }
+    if everys.is_empty() {
+        return Err(Error::param(
+            "every",
+            "none",
+            "at least one encode step (2 or more) to hold views out from",
+        ));
+    }
+    let held: Vec<usize> = (0..n_views)
+        .filter(|i| everys.iter().all(|e| i % e != 0))
+        .collect();
+    if held.is_empty() {
+        return Err(Error::param(
+            "every",
+            format!("{everys:?}"),
+            format!("steps that leave a view of the {n_views} unencoded by all of them"),
+        ));
+    }
+    Ok(held)
+}
+
 /// The class of every raster pixel of a `width × height` grid from the full-resolution photo:
 /// nearest sampling at raster pixel centres (as the encoder resamples masks), then the class of
 /// the nearest prototype to the pixel's RGB in `[0, 1]`. Returns `[height × width]` row-major.
@@ -554,6 +590,31 @@ mod tests {
                 held_out_indices(10, every),
                 Err(Error::Param { name: "every", .. })
             ));
+        }
+    }
+
+    #[test]
+    fn views_held_out_for_all_steps_are_encoded_by_none() {
+        let held = held_out_for_all(21, &[2, 6, 5]).unwrap();
+        assert_eq!(held, vec![1, 3, 7, 9, 11, 13, 17, 19]);
+        for every in [2, 6, 5] {
+            let encoded: Vec<usize> = (0..21).step_by(every).collect();
+            assert!(held.iter().all(|i| !encoded.contains(i)), "step {every}");
+        }
+        // One step: the eval-colors split is a subset.
+        let one = held_out_for_all(13, &[4]).unwrap();
+        assert!(
+            held_out_indices(13, 4)
+                .unwrap()
+                .iter()
+                .all(|i| one.contains(i))
+        );
+        for (n, bad) in [(6, &[1usize, 4][..]), (6, &[]), (1, &[2])] {
+            let e = held_out_for_all(n, bad).unwrap_err();
+            assert!(
+                matches!(e, Error::Param { name: "every", .. }),
+                "{bad:?}: {e}"
+            );
         }
     }
 

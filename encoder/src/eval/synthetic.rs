@@ -17,7 +17,9 @@
 //! and every box stands on it with its whole sides in view (gray is no object's colour); the
 //! boxes are hollow shells of Gaussians on their top and four
 //! sides (the terrain's spacing, discs lying in each face), and the images ray-cast the boxes
-//! before the ground.
+//! before the ground. [`touching_layout`] (`synth-scene --objects K --touching`) places boxes of
+//! different colours side by side, sharing a wall: a wall inside a neighbour is never seen and
+//! holds no Gaussians.
 
 use std::io::Write;
 use std::path::Path;
@@ -156,6 +158,42 @@ pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
         .collect())
 }
 
+/// The first `k` (1..=[`MAX_OBJECTS`]) objects of a layout of **touching** boxes on a terrain of
+/// side `extent`: three pairs, each of two colours, standing on the ground side by side so that
+/// they share part of a wall (red beside blue along x, yellow beside green along y, orange
+/// beside purple along x), boxes of 6–10 % of the extent with different heights (the taller's
+/// wall shows above the lower one), pairs ≥ 0.1·extent apart, all within 0.25·extent of
+/// the centre along each axis. The ground truth of instance AP on objects that touch each other and the ground.
+///
+/// Errors: [`Error::Param`] `objects` for `k` outside 1..=[`MAX_OBJECTS`].
+pub fn touching_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
+    if !(1..=MAX_OBJECTS).contains(&k) {
+        return Err(Error::param(
+            "objects",
+            k,
+            format!("a number of objects in 1..={MAX_OBJECTS}"),
+        ));
+    }
+    // (colour, centre / extent, size / extent); each second box's wall lies on its partner's.
+    let table: [(usize, [f64; 2], [f64; 3]); MAX_OBJECTS] = [
+        (0, [-0.20, -0.15], [0.10, 0.08, 0.05]),
+        (5, [-0.11, -0.15], [0.08, 0.08, 0.07]),
+        (2, [0.15, 0.10], [0.10, 0.10, 0.04]),
+        (3, [0.15, 0.19], [0.08, 0.08, 0.06]),
+        (1, [0.12, -0.20], [0.08, 0.06, 0.06]),
+        (6, [0.19, -0.20], [0.06, 0.06, 0.04]),
+    ];
+    Ok(table[..k]
+        .iter()
+        .map(|&(colour, c, sz)| PlacedObject {
+            colour,
+            name: COLOUR_NAMES[colour],
+            center: c.map(|v| v * extent),
+            size: sz.map(|v| v * extent),
+        })
+        .collect())
+}
+
 /// Terrain height at (x, y): amplitude 2 % of the extent, wavelength 1/6 of it.
 fn height(x: f64, y: f64, extent: f64) -> f64 {
     let l = extent / (6.0 * std::f64::consts::TAU);
@@ -181,6 +219,16 @@ pub fn terrain_gaussians_with_objects(
     p: &SyntheticSceneParams,
     objects: &[PlacedObject],
 ) -> Gaussians {
+    scene_with_instances(p, objects).0
+}
+
+/// [`terrain_gaussians_with_objects`] and, per object (same order), the range of its shell's
+/// Gaussians in the returned vertex order: the ground truth of instance scores. A wall of a box
+/// that lies inside another box (two boxes touching) holds no Gaussians: it is never seen.
+pub fn scene_with_instances(
+    p: &SyntheticSceneParams,
+    objects: &[PlacedObject],
+) -> (Gaussians, Vec<std::ops::Range<usize>>) {
     let boxes: Vec<[[f64; 3]; 2]> = objects.iter().map(|o| o.aabb()).collect();
     let under_a_box = |x: f64, y: f64| {
         boxes
@@ -240,11 +288,26 @@ pub fn terrain_gaussians_with_objects(
         sh: None,
     };
     let mut dc = Vec::with_capacity(n * 3);
-    let shells = objects
+    let terrain: Vec<Disc> = parts.into_iter().flatten().collect();
+    let mut ranges = Vec::with_capacity(objects.len());
+    let mut start = terrain.len();
+    let shells: Vec<Disc> = objects
         .iter()
         .enumerate()
-        .flat_map(|(k, o)| box_shell(o, p, spacing, k as u64));
-    for (m, s, r, o, d) in parts.into_iter().flatten().chain(shells) {
+        .flat_map(|(k, o)| {
+            let others: Vec<[[f64; 3]; 2]> = boxes
+                .iter()
+                .enumerate()
+                .filter(|&(j, _)| j != k)
+                .map(|(_, b)| *b)
+                .collect();
+            let shell = box_shell(o, p, spacing, k as u64, &others);
+            ranges.push(start..start + shell.len());
+            start += shell.len();
+            shell
+        })
+        .collect();
+    for (m, s, r, o, d) in terrain.into_iter().chain(shells) {
         g.means.push(m);
         g.scales.push(s);
         g.rotations.push(r);
@@ -255,15 +318,22 @@ pub fn terrain_gaussians_with_objects(
         degree: 0,
         coeffs: dc,
     });
-    g
+    (g, ranges)
 }
 
 /// One Gaussian of a synthetic scene: mean, scales, rotation (w, x, y, z), opacity, SH DC.
 type Disc = ([f32; 3], [f32; 3], [f32; 4], f32, [f32; 3]);
 
 /// The discs of one box's top and four sides, on a jittered grid of step `spacing`, each lying
-/// in its face (thin along the face normal), coloured like the box.
-fn box_shell(o: &PlacedObject, p: &SyntheticSceneParams, spacing: f64, k: u64) -> Vec<Disc> {
+/// in its face (thin along the face normal), coloured like the box; discs inside one of the
+/// `others` boxes (a wall shared with a touching box) are left out.
+fn box_shell(
+    o: &PlacedObject,
+    p: &SyntheticSceneParams,
+    spacing: f64,
+    k: u64,
+    others: &[[[f64; 3]; 2]],
+) -> Vec<Disc> {
     const SH_C0: f64 = 0.282_094_791_773_878_14;
     let h = std::f64::consts::FRAC_1_SQRT_2 as f32;
     let b = o.aabb();
@@ -294,6 +364,14 @@ fn box_shell(o: &PlacedObject, p: &SyntheticSceneParams, spacing: f64, k: u64) -
                 let dc = PALETTE[o.colour]
                     .map(|c| (((c as f64 * jitter).min(1.0) - 0.5) / SH_C0) as f32);
                 let opacity = (0.6 + 0.35 * rng.next_f64()) as f32;
+                // Shared walls: the partner's face lies on the same plane, up to rounding.
+                let tol = 1e-6 * p.extent;
+                let hidden = others
+                    .iter()
+                    .any(|b| (0..3).all(|a| m[a] >= b[0][a] - tol && m[a] <= b[1][a] + tol));
+                if hidden {
+                    continue;
+                }
                 out.push((
                     m.map(|x| x as f32),
                     [s as f32, s as f32, (s * 0.1) as f32],
@@ -416,7 +494,8 @@ pub fn write_synthetic_scene(dir: &Path, p: &SyntheticSceneParams) -> Result<Syn
 
 /// [`write_synthetic_scene`] with `objects` standing on the terrain (module doc); with objects,
 /// `objects.json` (their list, [`PlacedObject`] fields plus `aabb`, the true box in the scene
-/// frame) is written too. `point_cloud.ply` then holds the terrain's Gaussians outside the boxes'
+/// frame, and `gaussians`, `[start, end)` of the box's Gaussians in `point_cloud.ply`'s vertex
+/// order, [`scene_with_instances`]) is written too. `point_cloud.ply` then holds the terrain's Gaussians outside the boxes'
 /// footprints and the boxes' shells.
 ///
 /// Errors: as [`write_synthetic_scene`]; [`Error::Param`] `objects` for an object of gray (the
@@ -469,7 +548,7 @@ pub fn write_synthetic_scene_with_objects(
     if images_txt.exists() {
         std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
     }
-    let g = terrain_gaussians_with_objects(p, objects);
+    let (g, instances) = scene_with_instances(p, objects);
     let gaussians = g.len();
     let ply = dir.join("point_cloud.ply");
     write_ply(&ply, &g)?;
@@ -477,10 +556,11 @@ pub fn write_synthetic_scene_with_objects(
     if !objects.is_empty() {
         let truth: Vec<serde_json::Value> = objects
             .iter()
-            .map(|o| {
+            .zip(&instances)
+            .map(|(o, r)| {
                 serde_json::json!({
                     "colour": o.colour, "name": o.name, "center": o.center, "size": o.size,
-                    "aabb": o.aabb(),
+                    "aabb": o.aabb(), "gaussians": [r.start, r.end],
                 })
             })
             .collect();
