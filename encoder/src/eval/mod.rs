@@ -27,6 +27,7 @@
 pub mod colors;
 pub mod heldout;
 pub mod heldout_variants;
+pub mod segment_quality;
 pub mod synthetic;
 
 use std::path::Path;

@@ -108,6 +108,7 @@ pub(crate) fn finish(
         mut counts,
         workers,
         queue,
+        mask_record: _,
     } = pooled;
     let models = &mut report.models;
     models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
