@@ -138,7 +138,10 @@ pub fn weighted_table(
     classes: usize,
 ) -> Result<Vec<f32>> {
     let own = gaussian_classes(scores, observed, classes)?;
-    Ok(one_hot(&weighted_majority(&own, weights, segments)?, classes))
+    Ok(one_hot(
+        &weighted_majority(&own, weights, segments)?,
+        classes,
+    ))
 }
 
 /// Each row's margin: its best score minus its second best.

@@ -149,7 +149,10 @@ impl SegmentParams {
         ] {
             require(w.is_finite() && w >= 0.0, name, w, "a finite weight ≥ 0")?;
         }
-        for (name, v) in [("mask_unknown", self.mask_unknown), ("mask_veto", self.mask_veto)] {
+        for (name, v) in [
+            ("mask_unknown", self.mask_unknown),
+            ("mask_veto", self.mask_veto),
+        ] {
             require((0.0..=1.0).contains(&v), name, v, "a share in [0, 1]")?;
         }
         require(
@@ -527,8 +530,8 @@ fn edges_of_tile(
             let (mut inn, mut bor) = (Vec::new(), Vec::new());
             for j in nb.of(i as usize) {
                 let (a, b) = (means[i as usize], means[j as usize]);
-                let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2))
-                    .sqrt();
+                let d =
+                    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
                 let e = Edge {
                     w: w.weight(i as usize, j as usize, d).to_bits(),
                     i: i.min(j),
@@ -1030,7 +1033,11 @@ mod tests {
         };
         let stopped = SegmentControl::default();
         stopped.stop();
-        assert!(segment_with(&g, &p, "x", &stopped, || None).unwrap().is_none());
+        assert!(
+            segment_with(&g, &p, "x", &stopped, || None)
+                .unwrap()
+                .is_none()
+        );
         let pool = |n| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(n)
@@ -1079,7 +1086,10 @@ mod tests {
             g.opacities.push(0.9);
             inst.push(l);
         };
-        let boxes = [([1.0f32, 1.0], [2.0f32, 2.0], 0.6f32), ([2.0, 1.0], [3.0, 2.0], 0.4)];
+        let boxes = [
+            ([1.0f32, 1.0], [2.0f32, 2.0], 0.6f32),
+            ([2.0, 1.0], [3.0, 2.0], 0.4),
+        ];
         for a in 0..40 {
             for b in 0..40 {
                 let (x, y) = (a as f32 * 0.1 + 0.05, b as f32 * 0.1 + 0.05);
@@ -1145,7 +1155,11 @@ mod tests {
                         l = inst[o.data as usize];
                     }
                 }
-                let mask = if l == 0 { u32::from(m[0] > cut) + 10 } else { l };
+                let mask = if l == 0 {
+                    u32::from(m[0] > cut) + 10
+                } else {
+                    l
+                };
                 (i, mask, 1.0 + (i as usize * 7 + v) as f32 % 5.0)
             });
             r.add_view(v, entries);
@@ -1183,7 +1197,11 @@ mod tests {
             masked.segment_count
         );
         // The ground is not shredded by its two moving masks, nor a box by the bleeding.
-        assert!(masked.segment_count <= 16, "{} segments", masked.segment_count);
+        assert!(
+            masked.segment_count <= 16,
+            "{} segments",
+            masked.segment_count
+        );
         // Tiles and thread counts do not change the result.
         let tiled = SegmentParams {
             tile_gaussians: 500,
@@ -1193,8 +1211,14 @@ mod tests {
             .num_threads(1)
             .build()
             .unwrap();
-        let a = one.install(|| segment(&g, &tiled, "x", Some(Arc::clone(&record))).unwrap().0);
-        let b = segment(&g, &tiled, "x", Some(Arc::clone(&record))).unwrap().0;
+        let a = one.install(|| {
+            segment(&g, &tiled, "x", Some(Arc::clone(&record)))
+                .unwrap()
+                .0
+        });
+        let b = segment(&g, &tiled, "x", Some(Arc::clone(&record)))
+            .unwrap()
+            .0;
         assert_eq!(a, b);
         // A record of another scene is refused.
         let other = Arc::new(MaskRecord::new(3, 4, 6).unwrap());
@@ -1221,7 +1245,10 @@ mod tests {
                 ..params()
             },
         ] {
-            assert!(matches!(segment(&g, &p, "x", None), Err(Error::Param { .. })));
+            assert!(matches!(
+                segment(&g, &p, "x", None),
+                Err(Error::Param { .. })
+            ));
         }
     }
 }

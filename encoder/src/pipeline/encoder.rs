@@ -126,10 +126,7 @@ impl Encoder {
 /// `slag-encoder segment` on this encode later.
 ///
 /// Errors: I/O.
-fn write_mask_record(
-    c: &EncodeConfig,
-    r: &slag_common::mask_record::MaskRecord,
-) -> Result<()> {
+fn write_mask_record(c: &EncodeConfig, r: &slag_common::mask_record::MaskRecord) -> Result<()> {
     let dir = &c.output.dir;
     std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
     r.write(&dir.join(slag_common::mask_record::FILE_NAME))?;

@@ -17,10 +17,10 @@ use super::{
     back_prepare, back_raster, front_stage, no_views,
 };
 use crate::aggregate::ContributionStore;
-use slag_common::mask_record::MaskRecord;
 use crate::masks::MaskGenerator;
 use crate::raster::WeightRasterizer;
 use crate::report::{Counts, ImageWork, QueueStats, StageTimings, WorkerShare};
+use slag_common::mask_record::MaskRecord;
 
 /// What the worker pool leaves for the finish ([`super::finish::finish`]): the scene's
 /// Gaussians, every image's `a_kj` (and, with [`EncodeParams::levels`], per SAM level), the
