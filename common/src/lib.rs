@@ -32,6 +32,7 @@ pub mod error;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;
+pub mod mask_record;
 pub mod mixture;
 pub mod objects;
 #[cfg(feature = "onnx")]

@@ -12,7 +12,12 @@
 //!   rendering without segments);
 //! - `pf-majority`: the paper's PF, the segment's majority class one-hot;
 //! - `pf-mean`: the open-vocabulary analogue, each class score averaged over the segment's
-//!   observed Gaussians.
+//!   observed Gaussians;
+//! - `pf-weighted`: the majority with each Gaussian's vote weighted by its total blend weight
+//!   `Σ_j a_kj` (how much the encoded views saw of it), one-hot;
+//! - `pf-confident`: a Gaussian whose own class is clear keeps it: one whose score margin (best
+//!   class score minus the second) is at least the median margin of the observed Gaussians keeps
+//!   its own class, the others (and the unobserved) take `pf-weighted`'s segment class, one-hot.
 
 use std::collections::HashMap;
 
@@ -79,6 +84,121 @@ pub fn majority_table(
 ) -> Result<Vec<f32>> {
     let own = gaussian_classes(scores, observed, classes)?;
     Ok(one_hot(&majority_per_segment(&own, segments)?, classes))
+}
+
+/// Each segment's class by votes weighted by `weights[k]` (≥ 0; non-finite counts 0) over its
+/// observed Gaussians of known class (ties to the smaller class); `None` for a segment
+/// without votes. One entry per Gaussian.
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn weighted_majority(
+    own: &[Option<u8>],
+    weights: &[f32],
+    segments: &[u32],
+) -> Result<Vec<Option<u8>>> {
+    if own.len() != segments.len() || weights.len() != segments.len() {
+        return Err(Error::internal(format!(
+            "{} classes, {} weights, {} segment ids",
+            own.len(),
+            weights.len(),
+            segments.len()
+        )));
+    }
+    let mut votes: HashMap<u32, [f64; 256]> = HashMap::new();
+    for ((c, &w), &s) in own.iter().zip(weights).zip(segments) {
+        if let Some(c) = c {
+            let w = if w.is_finite() { w.max(0.0) } else { 0.0 };
+            votes.entry(s).or_insert([0.0; 256])[*c as usize] += w as f64;
+        }
+    }
+    let winner: HashMap<u32, u8> = votes
+        .into_iter()
+        .filter_map(|(s, v)| {
+            let mut best = 0usize;
+            for c in 1..256 {
+                if v[c] > v[best] {
+                    best = c;
+                }
+            }
+            (v[best] > 0.0).then_some((s, best as u8))
+        })
+        .collect();
+    Ok(segments.iter().map(|s| winner.get(s).copied()).collect())
+}
+
+/// `pf-weighted` (module doc): one-hot rows of each segment's class by votes weighted by
+/// `weights` (`[N]`, e.g. `Σ_j a_kj`).
+///
+/// Errors: tables whose sizes disagree ([`Error::Internal`]).
+pub fn weighted_table(
+    scores: &[f32],
+    observed: &[bool],
+    weights: &[f32],
+    segments: &[u32],
+    classes: usize,
+) -> Result<Vec<f32>> {
+    let own = gaussian_classes(scores, observed, classes)?;
+    Ok(one_hot(
+        &weighted_majority(&own, weights, segments)?,
+        classes,
+    ))
+}
+
+/// Each row's margin: its best score minus its second best.
+fn margins(scores: &[f32], classes: usize) -> Vec<f32> {
+    scores
+        .chunks_exact(classes)
+        .map(|row| {
+            let (mut a, mut b) = (f32::NEG_INFINITY, f32::NEG_INFINITY);
+            for &v in row {
+                if v > a {
+                    b = a;
+                    a = v;
+                } else if v > b {
+                    b = v;
+                }
+            }
+            if b.is_finite() { a - b } else { 0.0 }
+        })
+        .collect()
+}
+
+/// `pf-confident` (module doc): observed Gaussians with a margin at least the observed median
+/// keep their own class; the rest take the segment's `weights`-weighted class. One-hot rows.
+///
+/// Errors: tables whose sizes disagree ([`Error::Internal`]).
+pub fn confident_table(
+    scores: &[f32],
+    observed: &[bool],
+    weights: &[f32],
+    segments: &[u32],
+    classes: usize,
+) -> Result<Vec<f32>> {
+    let own = gaussian_classes(scores, observed, classes)?;
+    let seg = weighted_majority(&own, weights, segments)?;
+    let m = margins(scores, classes);
+    let mut seen: Vec<f32> = m
+        .iter()
+        .zip(observed)
+        .filter(|(_, o)| **o)
+        .map(|(v, _)| *v)
+        .collect();
+    let median = if seen.is_empty() {
+        f32::INFINITY
+    } else {
+        let mid = seen.len() / 2;
+        *seen.select_nth_unstable_by(mid, f32::total_cmp).1
+    };
+    let chosen: Vec<Option<u8>> = own
+        .iter()
+        .zip(&seg)
+        .zip(&m)
+        .map(|((o, s), &mk)| match o {
+            Some(c) if mk >= median => Some(*c),
+            _ => s.or(*o),
+        })
+        .collect();
+    Ok(one_hot(&chosen, classes))
 }
 
 /// Segment-mean scores: each class score averaged over the segment's observed Gaussians.
@@ -192,6 +312,32 @@ mod tests {
             assert_eq!(*f as usize, *t);
         }
         assert!(majority_table(&scores, &observed, &segments[1..], c).is_err());
+    }
+
+    #[test]
+    fn weighted_and_confident_votes() {
+        // One segment of 4 observed Gaussians, 2 classes: three weak votes for class 0, one
+        // strong vote for class 1 that also has the largest margin.
+        let scores = vec![
+            0.30, 0.29, //
+            0.31, 0.30, //
+            0.32, 0.30, //
+            0.10, 0.90, //
+        ];
+        let observed = [true; 4];
+        let segments = [0u32; 4];
+        let weights = [1.0, 1.0, 1.0, 10.0];
+        let major = majority_table(&scores, &observed, &segments, 2).unwrap();
+        assert!(major.chunks(2).all(|r| r == [1.0, 0.0]));
+        let w = weighted_table(&scores, &observed, &weights, &segments, 2).unwrap();
+        assert!(w.chunks(2).all(|r| r == [0.0, 1.0]));
+        // Confident: margins 0.01, 0.01, 0.02, 0.8; median (upper middle) 0.02: Gaussians 2
+        // and 3 keep their own classes, 0 and 1 take the weighted vote (class 1).
+        let c = confident_table(&scores, &observed, &[1.0; 4], &segments, 2).unwrap();
+        assert_eq!(c, vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 1.0]);
+        let c = confident_table(&scores, &observed, &weights, &segments, 2).unwrap();
+        assert_eq!(c, vec![0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0]);
+        assert!(weighted_table(&scores, &observed, &weights[1..], &segments, 2).is_err());
     }
 
     #[test]

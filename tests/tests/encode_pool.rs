@@ -93,6 +93,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         progress: false,
         mixture_keep: None,
         levels: false,
+        mask_record_slots: None,
     };
     let scene_in = pipeline::SceneInput::new(&scene, None, 1);
     let r2 = pipeline::encode_pool(
@@ -259,6 +260,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         progress: false,
         mixture_keep: None,
         levels: false,
+        mask_record_slots: None,
     };
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),
@@ -313,6 +315,7 @@ fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
         progress: false,
         mixture_keep: None,
         levels: false,
+        mask_record_slots: None,
     };
     let input = pipeline::SceneInput::new(&scene, None, 1);
 

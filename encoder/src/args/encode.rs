@@ -54,6 +54,17 @@ pub struct SegmentArgs {
     /// Segmentation: most Gaussians per tile (bounds the graph's memory).
     #[arg(long, default_value_t = SegmentParams::default().tile_gaussians)]
     pub segment_tile_gaussians: usize,
+    /// Segmentation: weight of the mask term (an edge whose ends fall in different SAM masks in
+    /// the views that see both gets this much added; 0 = geometry only).
+    #[arg(long, default_value_t = SegmentParams::default().mask_weight)]
+    pub segment_mask_weight: f32,
+    /// Segmentation: mask disagreement assumed for neighbours that share no recorded view.
+    #[arg(long, default_value_t = SegmentParams::default().mask_unknown)]
+    pub segment_mask_unknown: f32,
+    /// Segmentation: small segments do not merge across an edge whose mask disagreement exceeds
+    /// this (1 = they merge across anything).
+    #[arg(long, default_value_t = SegmentParams::default().mask_veto)]
+    pub segment_mask_veto: f32,
 }
 
 impl From<&SegmentArgs> for SegmentParams {
@@ -64,6 +75,9 @@ impl From<&SegmentArgs> for SegmentParams {
             min_size: a.segment_min_size,
             max_edge: a.segment_max_edge,
             tile_gaussians: a.segment_tile_gaussians,
+            mask_weight: a.segment_mask_weight,
+            mask_unknown: a.segment_mask_unknown,
+            mask_veto: a.segment_mask_veto,
             ..SegmentParams::default()
         }
     }

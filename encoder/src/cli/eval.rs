@@ -63,14 +63,20 @@ pub struct EvalArgs {
     /// `mixture.safetensors` (`encode --mixture-keep`).
     #[arg(long, value_name = "EMBEDDINGS")]
     pub compare: Vec<PathBuf>,
-    /// Prediction filtering (SLAG PF): also score each geometric segment's majority class (3D
-    /// score; with --held-out the tables `argmax`, `pf-majority`, `pf-mean` under `variants`).
+    /// Prediction filtering (SLAG PF): also score each segment's majority class (3D score), and
+    /// measure the segments (purity against the colour classes, count and sizes); with
+    /// --held-out the tables `argmax`, `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident`
+    /// under `variants`.
     /// Needs the segments of `slag-encoder segment` (--segments).
     #[arg(long, visible_alias = "pf")]
     pub prediction_filtering: bool,
     /// Segments for --prediction-filtering; default segments.safetensors beside --embeddings.
     #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
     pub segments: Option<PathBuf>,
+    /// More segments files of the same scene, measured (purity, sizes) and, with --held-out,
+    /// filtered in the same pass (variants named `pf-…@<folder>/<stem>`).
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub more_segments: Vec<PathBuf>,
 }
 
 impl From<&EvalArgs> for EvalColorsConfig {
@@ -90,6 +96,7 @@ impl From<&EvalArgs> for EvalColorsConfig {
             compare: a.compare.clone(),
             prediction_filtering: a.prediction_filtering,
             segments: a.segments.clone(),
+            more_segments: a.more_segments.clone(),
         }
     }
 }

@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use clap::Args;
+use slag_common::mask_record::{self, MaskRecord};
 use slag_encoder::segments::{SegmentParams, SegmentStats, segment};
 
 use slag_encoder::args::SegmentArgs;
@@ -21,6 +22,13 @@ pub struct SegmentCmdArgs {
     /// `eval-colors --prediction-filtering` look for it there).
     #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
+    /// The encode's masks' record (the segmentation's mask term); default
+    /// mask-record.safetensors beside --out when it exists, else geometry only (with a warning).
+    #[arg(long, value_name = "FILE", conflicts_with = "geometry_only")]
+    pub mask_record: Option<PathBuf>,
+    /// Segment from the geometry alone, even when a masks' record is beside --out.
+    #[arg(long)]
+    pub geometry_only: bool,
     #[command(flatten)]
     pub segment: SegmentArgs,
 }
@@ -34,7 +42,36 @@ pub fn run(a: &SegmentCmdArgs) -> anyhow::Result<SegmentStats> {
     };
     let g = slag_common::scene::load_ply(&ply, slag_common::scene::PlyLoadOptions::default())?;
     let params = SegmentParams::from(&a.segment);
-    let (segments, stats) = segment(&g, &params, &ply.display().to_string())?;
+    let record = mask_record(a)?.map(std::sync::Arc::new);
+    let (segments, stats) = segment(&g, &params, &ply.display().to_string(), record)?;
     segments.write(&a.out)?;
     Ok(stats)
+}
+
+/// The masks' record `a` asks for: `--mask-record`, else the one beside `--out`, else none.
+fn mask_record(a: &SegmentCmdArgs) -> anyhow::Result<Option<MaskRecord>> {
+    if a.geometry_only {
+        return Ok(None);
+    }
+    let path = match &a.mask_record {
+        Some(p) => p.clone(),
+        None => {
+            let beside = a
+                .out
+                .parent()
+                .unwrap_or(std::path::Path::new("."))
+                .join(mask_record::FILE_NAME);
+            if !beside.exists() {
+                tracing::warn!(
+                    "no {} beside {}: segments from the geometry alone (pass --mask-record FILE, \
+                     or re-encode to get one)",
+                    mask_record::FILE_NAME,
+                    a.out.display()
+                );
+                return Ok(None);
+            }
+            beside
+        }
+    };
+    Ok(Some(MaskRecord::read(&path)?))
 }

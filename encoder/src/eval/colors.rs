@@ -64,6 +64,9 @@ pub struct EvalColorsConfig {
     pub prediction_filtering: bool,
     /// The segments for PF; `None`: `segments.safetensors` beside the embeddings.
     pub segments: Option<PathBuf>,
+    /// More segmentations of the same scene, measured and (held-out) filtered beside the main
+    /// one in the same pass; their variants are named `…@<parent folder>/<file stem>`.
+    pub more_segments: Vec<PathBuf>,
 }
 
 impl EvalColorsConfig {
@@ -85,6 +88,7 @@ impl EvalColorsConfig {
             compare: Vec::new(),
             prediction_filtering: false,
             segments: None,
+            more_segments: Vec::new(),
         }
     }
 }
@@ -157,14 +161,24 @@ fn colour_3d(i: &Inputs) -> anyhow::Result<eval::ColourEval> {
     Ok(eval::evaluate(&gt, &i.emb, &predicted, &i.classes.names)?)
 }
 
-/// The segments PF uses, checked against the scene.
-fn load_segments(a: &EvalColorsConfig, scene_gaussians: usize) -> anyhow::Result<Segments> {
-    let path = a.segments.clone().unwrap_or_else(|| {
+/// The main segments' path: `--segments`, else beside the embeddings.
+fn main_segments_path(a: &EvalColorsConfig) -> PathBuf {
+    a.segments.clone().unwrap_or_else(|| {
         a.embeddings
             .parent()
             .unwrap_or(Path::new("."))
             .join(slag_common::segments::FILE_NAME)
-    });
+    })
+}
+
+/// The segments PF uses, checked against the scene.
+fn load_segments(a: &EvalColorsConfig, scene_gaussians: usize) -> anyhow::Result<Segments> {
+    read_segments(&main_segments_path(a), scene_gaussians)
+}
+
+/// The segments at `path`, checked against the scene.
+fn read_segments(path: &Path, scene_gaussians: usize) -> anyhow::Result<Segments> {
+    let path = path.to_path_buf();
     let s = Segments::read(&path)
         .with_context(|| format!("prediction filtering needs segments ({})", path.display()))?;
     if s.len() != scene_gaussians {
@@ -200,6 +214,75 @@ pub struct ColourEvalPf {
     pub with_pf: eval::ColourEval,
     /// Segments of the scene.
     pub segments: u32,
+    /// The segments measured against the colour truth: the main ones, then `more_segments`.
+    pub segment_quality: Vec<SegmentQuality>,
+}
+
+/// One segmentation measured against the colour classes
+/// ([`crate::eval::segment_quality`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SegmentQuality {
+    /// The segments file.
+    pub source: PathBuf,
+    /// Segment purity over the observed Gaussians that have a true class (the class of the
+    /// prototype nearest their SH-DC colour).
+    pub purity: crate::eval::segment_quality::Purity,
+    /// Segment count and sizes (all Gaussians of the scene).
+    pub sizes: crate::eval::segment_quality::SizeDistribution,
+}
+
+/// Each observed Gaussian's true class as a label (`None`: unobserved or without a class).
+fn observed_truth(i: &Inputs) -> anyhow::Result<Vec<Option<u32>>> {
+    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
+    let mut labels = vec![None; gt.len()];
+    for &id in &i.emb.ids {
+        if let (Some(l), Some(t)) = (labels.get_mut(id as usize), gt.get(id as usize)) {
+            *l = t.map(u32::from);
+        }
+    }
+    Ok(labels)
+}
+
+/// Measures `segments` from `source` against the observed Gaussians' colour classes, and says
+/// so on stderr.
+fn segment_quality(
+    i: &Inputs,
+    source: &Path,
+    segments: &Segments,
+) -> anyhow::Result<SegmentQuality> {
+    use crate::eval::segment_quality::{purity, size_distribution};
+    let q = SegmentQuality {
+        source: source.to_path_buf(),
+        purity: purity(&observed_truth(i)?, &segments.segments)?,
+        sizes: size_distribution(&segments.segments),
+    };
+    eprintln!(
+        "segments {}: purity {:.4} over {} observed Gaussians; {} segments, sizes min {} median \
+         {} mean {:.1} p90 {} max {} (largest {:.1} % of the Gaussians)",
+        source.display(),
+        q.purity.purity,
+        q.purity.counted,
+        q.sizes.segments,
+        q.sizes.min,
+        q.sizes.median,
+        q.sizes.mean,
+        q.sizes.p90,
+        q.sizes.max,
+        100.0 * q.sizes.largest_share
+    );
+    Ok(q)
+}
+
+/// The main segments and `more_segments`, each with its path.
+fn all_segments(
+    a: &EvalColorsConfig,
+    scene_gaussians: usize,
+) -> anyhow::Result<Vec<(PathBuf, Segments)>> {
+    let mut out = vec![(main_segments_path(a), load_segments(a, scene_gaussians)?)];
+    for p in &a.more_segments {
+        out.push((p.clone(), read_segments(p, scene_gaussians)?));
+    }
+    Ok(out)
 }
 
 /// The 3D evaluation without and with prediction filtering.
@@ -207,11 +290,17 @@ pub struct ColourEvalPf {
 /// Errors: as [`run`], and the segments unreadable or of another scene.
 pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
     let inputs = load_inputs(a)?;
-    let segments = load_segments(a, inputs.gaussians.len())?;
+    let all = all_segments(a, inputs.gaussians.len())?;
+    let segment_quality = all
+        .iter()
+        .map(|(p, s)| segment_quality(&inputs, p, s))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let segments = &all[0].1;
     Ok(ColourEvalPf {
         without_pf: colour_3d(&inputs)?,
-        with_pf: colour_3d_pf(&inputs, &segments)?,
+        with_pf: colour_3d_pf(&inputs, segments)?,
         segments: segments.segment_count,
+        segment_quality,
     })
 }
 
@@ -283,6 +372,9 @@ pub struct HeldOutOutput {
     /// With `--prediction-filtering`: the 3D score with each segment's majority class.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub colour_3d_pf: Option<eval::ColourEval>,
+    /// With `--prediction-filtering`: each segmentation measured against the colour truth.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub segment_quality: Vec<SegmentQuality>,
 }
 
 /// What the held-out pass reads of the encoder's report.json.
@@ -411,15 +503,19 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     })?;
     let inputs = load_inputs(a)?;
     let colour_3d = colour_3d(&inputs)?;
-    let segments = if a.prediction_filtering {
-        Some(load_segments(a, inputs.gaussians.len())?)
+    let segment_sets = if a.prediction_filtering {
+        all_segments(a, inputs.gaussians.len())?
     } else {
-        None
+        Vec::new()
     };
-    let colour_3d_pf = match &segments {
-        Some(s) => Some(colour_3d_pf(&inputs, s)?),
+    let colour_3d_pf = match segment_sets.first() {
+        Some((_, s)) => Some(colour_3d_pf(&inputs, s)?),
         None => None,
     };
+    let segment_quality = segment_sets
+        .iter()
+        .map(|(p, s)| segment_quality(&inputs, p, s))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     let t0 = Instant::now();
     let views = camera::load_views(&a.scene)?;
     let held = heldout::held_out_indices(views.len(), every)?;
@@ -461,44 +557,9 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         &inputs.text_embeds,
         n,
     )?;
-    if let Some(s) = &segments {
-        let mut observed = vec![false; n];
-        for &id in &inputs.emb.ids {
-            if let Some(o) = observed.get_mut(id as usize) {
-                *o = true;
-            }
-        }
-        let source = a.segments.clone().unwrap_or_else(|| {
-            a.embeddings
-                .parent()
-                .unwrap_or(Path::new("."))
-                .join(slag_common::segments::FILE_NAME)
-        });
-        let own = crate::prediction_filtering::gaussian_classes(&slag_scores, &observed, c)?;
-        let tables = [
-            ("argmax", crate::prediction_filtering::one_hot(&own, c)),
-            (
-                "pf-majority",
-                crate::prediction_filtering::majority_table(
-                    &slag_scores,
-                    &observed,
-                    &s.segments,
-                    c,
-                )?,
-            ),
-            (
-                "pf-mean",
-                crate::prediction_filtering::mean_table(&slag_scores, &observed, &s.segments, c)?,
-            ),
-        ];
-        for (name, scores) in tables {
-            variants.push(crate::eval::heldout_variants::VariantTable {
-                name: name.into(),
-                source: source.clone(),
-                scores,
-                chosen_levels: Vec::new(),
-            });
-        }
+    if !segment_sets.is_empty() {
+        let pf = pf_tables(&inputs, &slag_scores, &variants, &segment_sets, c)?;
+        variants.extend(pf);
     }
 
     // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
@@ -558,5 +619,97 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         held_out,
         colour_3d,
         colour_3d_pf,
+        segment_quality,
     })
+}
+
+/// The prediction-filtering tables of the held-out pass: `argmax` (the control), then per
+/// segmentation `pf-majority`, `pf-mean`, `pf-weighted` and `pf-confident` over slag's dense
+/// scores, and `pf-weighted` and `pf-confident` over the mixture's mean form when it is among
+/// `variants` (the stored default). The first segmentation's names are bare; the others' get
+/// `@<parent folder>/<file stem>`.
+fn pf_tables(
+    inputs: &Inputs,
+    slag_scores: &[f32],
+    variants: &[crate::eval::heldout_variants::VariantTable],
+    segment_sets: &[(PathBuf, Segments)],
+    c: usize,
+) -> anyhow::Result<Vec<crate::eval::heldout_variants::VariantTable>> {
+    use crate::eval::heldout_variants::VariantTable;
+    use crate::prediction_filtering as pf;
+    let n = inputs.gaussians.len();
+    let mut observed = vec![false; n];
+    let mut sum_a = vec![0.0f32; n];
+    for (row, &id) in inputs.emb.ids.iter().enumerate() {
+        if let Some(o) = observed.get_mut(id as usize) {
+            *o = true;
+            sum_a[id as usize] = inputs.emb.total_weights.get(row).copied().unwrap_or(0.0);
+        }
+    }
+    let table = |name: String, source: &Path, scores: Vec<f32>| VariantTable {
+        name,
+        source: source.to_path_buf(),
+        scores,
+        chosen_levels: Vec::new(),
+    };
+    let own = pf::gaussian_classes(slag_scores, &observed, c)?;
+    let mut out = vec![table(
+        "argmax".into(),
+        &segment_sets[0].0,
+        pf::one_hot(&own, c),
+    )];
+    let mixture = variants
+        .iter()
+        .find(|v| v.name.starts_with("mixture-mean-S") && v.source.ends_with("mixture.safetensors"))
+        .map(|v| (v.name.clone(), v.scores.clone()));
+    for (k, (path, s)) in segment_sets.iter().enumerate() {
+        let tag = if k == 0 {
+            String::new()
+        } else {
+            let parent = path
+                .parent()
+                .and_then(|p| p.file_name())
+                .map(|p| p.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let stem = path
+                .file_stem()
+                .map(|p| p.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            format!("@{parent}/{stem}")
+        };
+        let seg = &s.segments;
+        out.push(table(
+            format!("pf-majority{tag}"),
+            path,
+            pf::majority_table(slag_scores, &observed, seg, c)?,
+        ));
+        out.push(table(
+            format!("pf-mean{tag}"),
+            path,
+            pf::mean_table(slag_scores, &observed, seg, c)?,
+        ));
+        out.push(table(
+            format!("pf-weighted{tag}"),
+            path,
+            pf::weighted_table(slag_scores, &observed, &sum_a, seg, c)?,
+        ));
+        out.push(table(
+            format!("pf-confident{tag}"),
+            path,
+            pf::confident_table(slag_scores, &observed, &sum_a, seg, c)?,
+        ));
+        if let Some((name, scores)) = &mixture {
+            out.push(table(
+                format!("{name}+pf-weighted{tag}"),
+                path,
+                pf::weighted_table(scores, &observed, &sum_a, seg, c)?,
+            ));
+            out.push(table(
+                format!("{name}+pf-confident{tag}"),
+                path,
+                pf::confident_table(scores, &observed, &sum_a, seg, c)?,
+            ));
+        }
+    }
+    Ok(out)
 }

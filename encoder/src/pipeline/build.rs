@@ -214,6 +214,10 @@ pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
         progress: c.output.progress,
         mixture_keep: a.mixture_keep,
         levels: a.levels,
+        mask_record_slots: c
+            .segments
+            .enabled
+            .then_some(slag_common::mask_record::DEFAULT_SLOTS),
     }
 }
 

@@ -69,12 +69,15 @@ impl Encoder {
         crate::views::check_hold_out(c.scene.hold_out_every)?;
         c.scene.views.validate()?;
         let threads = build::setup_threads(c);
-        // Started before anything else; dropped (stopped and joined) on any early return.
+        // Started before anything else; dropped (stopped and joined) on any early return. It
+        // builds its neighbour graph at once and weighs it when the masks' record comes.
+        let (record_tx, record_rx) = std::sync::mpsc::channel();
         let segments = if c.segments.enabled {
-            Some(SegmentTask::start(c, threads)?)
+            Some(SegmentTask::start(c, threads, record_rx)?)
         } else {
             None
         };
+        let mut record = None;
         let scene = build::scene_input(c);
         let gpus = build::gpu_count(c);
         let fronts = build::build_fronts(c, gpus, threads)?;
@@ -85,13 +88,19 @@ impl Encoder {
         let Fronts {
             stages, services, ..
         } = fronts;
-        let report = super::encode_pool(
+        let report = super::encode_pool_with(
             &scene,
             stages,
             |g| build::make_rasterizers(c, g),
             &params,
             header,
+            |r| {
+                // A segmentation that already failed has hung up: it needs no record then.
+                let _ = record_tx.send(std::sync::Arc::clone(&r));
+                record = Some(r);
+            },
         )?;
+        drop(record_tx);
         for s in &services {
             let st = s.stats();
             tracing::info!(
@@ -105,11 +114,31 @@ impl Encoder {
         // Written after a successful encode only, so that a failed or killed run leaves nothing
         // that looks complete; an optional file of its own (atomic): `partition` without it
         // simply stores no segments.
+        if let Some(r) = &record {
+            write_mask_record(c, r)?;
+        }
         if let Some(task) = segments {
             write_segments(c, task, threads)?;
         }
         Ok(report)
     }
+}
+
+/// Writes the masks' record to `<out>/mask-record.safetensors` (atomically), for
+/// `slag-encoder segment` on this encode later.
+///
+/// Errors: I/O.
+fn write_mask_record(c: &EncodeConfig, r: &slag_common::mask_record::MaskRecord) -> Result<()> {
+    let dir = &c.output.dir;
+    std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
+    r.write(&dir.join(slag_common::mask_record::FILE_NAME))?;
+    tracing::info!(
+        gaussians = r.len(),
+        slots = r.slots,
+        bytes_per_gaussian = r.bytes_per_gaussian(),
+        "masks' record written"
+    );
+    Ok(())
 }
 
 /// Waits for `task` (on `threads` threads from now on, if it is still running) and writes its

@@ -109,6 +109,7 @@ pub(crate) fn finish(
         workers,
         queue,
         selection,
+        mask_record: _,
     } = pooled;
     report.view_selection = Some(selection);
     let models = &mut report.models;

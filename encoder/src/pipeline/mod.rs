@@ -133,6 +133,9 @@ pub struct EncodeParams {
     /// (0 subpart, 1 part, 2 whole; [`crate::levels`]): the same reduction over the `a_kj` of
     /// that level's masks only. Needs masks with levels (SAM).
     pub levels: bool,
+    /// Keep the masks' record ([`slag_common::mask_record`]) with this many views per Gaussian
+    /// (the segmentation's mask term; 8 bytes per slot and Gaussian); `None`: not kept.
+    pub mask_record_slots: Option<usize>,
 }
 
 /// One image after the front stages: its masks and mask embeddings (passed from the front to the
@@ -635,8 +638,26 @@ pub fn encode_pool(
     params: &EncodeParams,
     report: Report,
 ) -> Result<Report> {
+    encode_pool_with(scene, fronts, make_rasterizers, params, report, |_| {})
+}
+
+/// [`encode_pool`] that hands the masks' record (with [`EncodeParams::mask_record_slots`]) to
+/// `on_record` as soon as the last view is done, before the reduction.
+///
+/// Errors: as [`encode_pool`].
+pub fn encode_pool_with(
+    scene: &SceneInput,
+    fronts: Vec<FrontStages>,
+    make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+    params: &EncodeParams,
+    report: Report,
+    on_record: impl FnOnce(std::sync::Arc<slag_common::mask_record::MaskRecord>),
+) -> Result<Report> {
     let t_total = Instant::now();
-    let pooled = pool::run_pool(scene, fronts, make_rasterizers, params, t_total)?;
+    let mut pooled = pool::run_pool(scene, fronts, make_rasterizers, params, t_total)?;
+    if let Some(r) = pooled.mask_record.take() {
+        on_record(std::sync::Arc::new(r));
+    }
     finish::finish(scene, pooled, params, report, t_total)
 }
 

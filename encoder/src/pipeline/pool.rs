@@ -20,6 +20,7 @@ use crate::aggregate::ContributionStore;
 use crate::masks::MaskGenerator;
 use crate::raster::WeightRasterizer;
 use crate::report::{Counts, ImageWork, QueueStats, StageTimings, WorkerShare};
+use slag_common::mask_record::MaskRecord;
 
 /// What the worker pool leaves for the finish ([`super::finish::finish`]): the scene's
 /// Gaussians, every image's `a_kj` (and, with [`EncodeParams::levels`], per SAM level), the
@@ -52,6 +53,8 @@ pub(crate) struct Pooled {
     pub queue: QueueStats,
     /// Which views were encoded and what choosing them cost.
     pub selection: crate::views::SelectionReport,
+    /// The masks' record, with [`EncodeParams::mask_record_slots`].
+    pub mask_record: Option<MaskRecord>,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -147,6 +150,14 @@ pub(crate) fn run_pool(
             .collect()
     } else {
         Vec::new()
+    };
+    let record = match params.mask_record_slots {
+        Some(slots) => Some(Mutex::new(MaskRecord::new(
+            gaussians.len(),
+            slots,
+            views.len(),
+        )?)),
+        None => None,
     };
     let mut counts = Counts {
         views_total,
@@ -264,7 +275,7 @@ pub(crate) fn run_pool(
                 &store,
                 &totals,
             );
-            let (level_stores, queue) = (&level_stores, &queue);
+            let (level_stores, queue, record) = (&level_stores, &queue, &record);
             // Each rasterizer's host work (labels, readback, the a_kj reduction and expansion)
             // runs on a rayon pool of its own, so that it never queues behind the front workers'
             // jobs (SAM post-processing, crops) in the global pool.
@@ -316,7 +327,12 @@ pub(crate) fn run_pool(
             handles.push(s.spawn(move || {
                 let step = |raster: BackRaster, _: &mut WorkerShare| {
                     let view = raster.item.view;
-                    let res = finish_image(raster, dim, params, store, level_stores, totals);
+                    let sinks = Sinks {
+                        store,
+                        level_stores,
+                        record: record.as_ref(),
+                    };
+                    let res = finish_image(raster, dim, params, sinks, totals);
                     if let Some(view) = views.get(view) {
                         tracing::debug!(view = %view.name, "image done");
                     }
@@ -382,6 +398,13 @@ pub(crate) fn run_pool(
         workers: shares,
         queue: queue.stats(n_queues * capacity),
         selection,
+        mask_record: match record {
+            Some(r) => Some(
+                r.into_inner()
+                    .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))?,
+            ),
+            None => None,
+        },
     })
 }
 
@@ -504,22 +527,43 @@ fn stage_loop<I, O: Send>(
 /// level with `levels`, pushed to the stores, and its work added to `totals`.
 ///
 /// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock.
+/// Where an image's `a_kj` go: the contribution store, the per-level stores, the masks' record.
+struct Sinks<'a> {
+    store: &'a Mutex<ContributionStore>,
+    level_stores: &'a [Mutex<ContributionStore>],
+    record: Option<&'a Mutex<MaskRecord>>,
+}
+
 fn finish_image(
     raster: BackRaster,
     dim: usize,
     params: &EncodeParams,
-    store: &Mutex<ContributionStore>,
-    level_stores: &[Mutex<ContributionStore>],
+    sinks: Sinks,
     totals: &Mutex<ImageWork>,
 ) -> Result<()> {
+    let Sinks {
+        store,
+        level_stores,
+        record,
+    } = sinks;
     let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
     let item = &raster.item;
     let (n_masks, decode_s, masks_s, clip_s) =
         (item.masks.len(), item.decode_s, item.masks_s, item.clip_s);
     let mask_levels: Vec<Option<u8>> = item.masks.iter().map(|m| m.level).collect();
+    let raster_view = item.view;
     let out = back_finish(raster, dim, params.image_stage)?;
     let t1 = Instant::now();
     let entries = out.contribution.entries.len();
+    if let Some(record) = record {
+        // Each Gaussian's dominant mask here, found outside the record's lock.
+        let dominant = dominant_masks(&out.contribution.entries);
+        let view = raster_view;
+        record
+            .lock()
+            .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))?
+            .add_view(view, dominant);
+    }
     let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
     if !level_stores.is_empty() {
         let parts = crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
@@ -535,6 +579,23 @@ fn finish_image(
         tt.add(&work);
     }
     Ok(())
+}
+
+/// Each Gaussian's mask of largest `a_kj` in `entries` (sorted by Gaussian), ties to the
+/// smaller mask, as `(gaussian, mask, a_kj)`.
+fn dominant_masks(entries: &[crate::aggregate::Entry]) -> Vec<(u32, u32, f32)> {
+    let mut out: Vec<(u32, u32, f32)> = Vec::new();
+    for e in entries {
+        match out.last_mut() {
+            Some(d) if d.0 == e.gaussian => {
+                if e.weight > d.2 || (e.weight == d.2 && e.mask < d.1) {
+                    *d = (e.gaussian, e.mask, e.weight);
+                }
+            }
+            _ => out.push((e.gaussian, e.mask, e.weight)),
+        }
+    }
+    out
 }
 
 /// The rayon pool of back worker `g`: as many threads as the global pool (at least 2). Each

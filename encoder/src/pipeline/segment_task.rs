@@ -1,5 +1,5 @@
-//! The geometric segments ([`crate::segments`]) computed beside the encode: they depend on the
-//! Gaussians' geometry alone, not on the embeddings, so [`Encoder::run`](super::Encoder::run)
+//! The segments ([`crate::segments`]) computed beside the encode: they depend on the Gaussians'
+//! geometry and the masks' record, not on the embeddings, so [`Encoder::run`](super::Encoder::run)
 //! starts them before the fronts are built and collects them after the encode.
 //!
 //! The segmentation's parallel stages run on a rayon pool of its own, [`segment_threads`]
@@ -10,14 +10,19 @@
 //! runs; when that overlaps the encode's peak (its tail), the two add up (docs/guide/lifting.md,
 //! memory model).
 //!
+//! The mask term of the weights needs every view's masks: the k-NN search runs from the start,
+//! the weights and the merge passes once the encode hands over its masks' record (after its
+//! last view, while it reduces the embeddings).
+//!
 //! Nothing is written here: the caller writes `segments.safetensors` after the encode
 //! succeeded. A task dropped without [`SegmentTask::finish`] (the encode failed) is stopped
 //! ([`SegmentControl::stop`]) and joined, so no thread outlives the run.
 
-use std::sync::Arc;
+use std::sync::{Arc, mpsc};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
+use slag_common::mask_record::MaskRecord;
 use slag_common::segments::Segments;
 use slag_common::{Error, Result};
 
@@ -61,11 +66,17 @@ pub struct Segmented {
 impl SegmentTask {
     /// Loads `c`'s `.ply` and segments it with `c.segments.params`, on a thread of its own with
     /// its parallel stages on a new pool of [`segment_threads`]`(threads)` threads; returns at
-    /// once.
+    /// once. The neighbour graph is built at once; the weights wait for the masks' record that
+    /// the encode sends on `masks` when its last view is done (a closed channel: geometry
+    /// only).
     ///
     /// Errors: [`Error::Internal`] when the thread or its pool cannot be started (the
     /// segmentation's own errors come from [`SegmentTask::finish`]).
-    pub fn start(c: &EncodeConfig, threads: usize) -> Result<Self> {
+    pub fn start(
+        c: &EncodeConfig,
+        threads: usize,
+        masks: mpsc::Receiver<Arc<MaskRecord>>,
+    ) -> Result<Self> {
         let threads = segment_threads(threads);
         let ply = c.ply();
         let params = c.segments.params;
@@ -87,6 +98,7 @@ impl SegmentTask {
                             &params,
                             &ply.display().to_string(),
                             &shared,
+                            || wait_for_record(&masks, &shared),
                         )
                     });
                 // The graph's many small allocations were freed in this pool's malloc arenas,
@@ -138,6 +150,22 @@ impl SegmentTask {
             widened_to,
             waited_s: t0.elapsed().as_secs_f64(),
         })
+    }
+}
+
+/// The record from `masks`, waited for until it comes, the channel closes (`None`) or the
+/// segmentation is stopped (`None`; the caller then sees the stop).
+fn wait_for_record(
+    masks: &mpsc::Receiver<Arc<MaskRecord>>,
+    ctl: &SegmentControl,
+) -> Option<Arc<MaskRecord>> {
+    loop {
+        match masks.recv_timeout(std::time::Duration::from_millis(50)) {
+            Ok(r) => return Some(r),
+            Err(mpsc::RecvTimeoutError::Disconnected) => return None,
+            Err(mpsc::RecvTimeoutError::Timeout) if ctl.is_stopped() => return None,
+            Err(mpsc::RecvTimeoutError::Timeout) => {}
+        }
     }
 }
 

@@ -1,0 +1,340 @@
+//! The masks' record (`mask-record.safetensors`, beside `embeddings.safetensors`): for each
+//! Gaussian of the source `.ply`, the mask that held most of its blend weight in each of its
+//! [`MaskRecord::slots`] best-seen views. The segmentation (`slag_encoder::segments`) reads it to
+//! weigh the edges of its neighbour graph by multi-view mask co-membership; `encode` keeps it so
+//! that `slag-encoder segment` can redo the segments of an existing encode without its masks.
+//!
+//! A *view's dominant mask* for Gaussian `k` is `argmax_j a_kj` over the view's masks (ties to
+//! the smaller mask index), `a_kj = Σ_{p∈M_j} w_kp` the blend weight it received inside mask `j`
+//! (pixels at the raster resolution). The record keeps, per Gaussian, the `slots` views with
+//! the largest such `a_kj`, ties to the smaller view index: a top-`slots` of a fixed set, so the
+//! record does not depend on the order in which views arrive (nor on the thread count).
+//!
+//! Tensors (`N` Gaussians, `S` slots; slot order: `a_kj` descending, then view ascending; unused
+//! slots last):
+//! - `views` U16 `[N, S]` — view index in the encode's view list, [`EMPTY_VIEW`] when unused;
+//! - `masks` U16 `[N, S]` — the dominant mask's index within that view's masks;
+//! - `weights` F32 `[N, S]` — its `a_kj` (raster pixels), 0 when unused.
+//!
+//! 8 bytes per slot: 64 bytes per Gaussian with the default 8 slots (128 MB at 2M Gaussians, in
+//! memory while the encode runs and on disk). Views beyond index 65,534 and masks beyond index
+//! 65,535 of one view are not recorded (such an encode's record is partial; the segmentation
+//! treats the missing views as unseen).
+//!
+//! Metadata: `format = "slag-mask-record"`, `version = "1"`, `scene_gaussians` (N), `slots` (S),
+//! `views` (the encode's view count).
+
+use std::path::Path;
+
+use safetensors::tensor::Dtype;
+
+use crate::safetensors_io::{self, FileKind, le_f32};
+use crate::{Error, Result};
+
+/// Format identifier stored in the metadata.
+pub const FORMAT: &str = "slag-mask-record";
+/// Current format version.
+pub const VERSION: &str = "1";
+/// File name the encoder writes beside `embeddings.safetensors`.
+pub const FILE_NAME: &str = "mask-record.safetensors";
+/// View index of an unused slot.
+pub const EMPTY_VIEW: u16 = u16::MAX;
+/// Slots per Gaussian that `encode` keeps.
+pub const DEFAULT_SLOTS: usize = 8;
+
+const KIND: FileKind = FileKind {
+    format: FORMAT,
+    version: VERSION,
+    noun: "mask record",
+    file_name: FILE_NAME,
+    rewrite_with: "slag-encoder encode (it writes the record beside the embeddings)",
+};
+
+/// One recorded view of a Gaussian: the view, its dominant mask there, and that mask's `a_kj`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MaskSlot {
+    /// View index in the encode's view list.
+    pub view: u16,
+    /// Dominant mask's index within the view's masks.
+    pub mask: u16,
+    /// Its `a_kj`, raster pixels.
+    pub weight: f32,
+}
+
+/// Every Gaussian's dominant mask in its best-seen views (module doc).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct MaskRecord {
+    /// Slots per Gaussian, S.
+    pub slots: usize,
+    /// Views of the encode.
+    pub view_count: usize,
+    /// `[N * S]` view per slot ([`EMPTY_VIEW`] when unused).
+    pub views: Vec<u16>,
+    /// `[N * S]` dominant mask per slot.
+    pub masks: Vec<u16>,
+    /// `[N * S]` its `a_kj`; 0 when unused.
+    pub weights: Vec<f32>,
+}
+
+impl MaskRecord {
+    /// An empty record of `gaussians` Gaussians with `slots` slots each, for an encode of
+    /// `view_count` views.
+    ///
+    /// Errors: [`Error::Param`] `slots` outside 1..=64.
+    pub fn new(gaussians: usize, slots: usize, view_count: usize) -> Result<Self> {
+        if !(1..=64).contains(&slots) {
+            return Err(Error::param("slots", slots, "1 to 64 views per Gaussian"));
+        }
+        Ok(MaskRecord {
+            slots,
+            view_count,
+            views: vec![EMPTY_VIEW; gaussians * slots],
+            masks: vec![0; gaussians * slots],
+            weights: vec![0.0; gaussians * slots],
+        })
+    }
+
+    /// Gaussians N.
+    pub fn len(&self) -> usize {
+        self.views.len().checked_div(self.slots).unwrap_or(0)
+    }
+
+    /// True for a record of no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes held per Gaussian (8 per slot).
+    pub fn bytes_per_gaussian(&self) -> usize {
+        self.slots * 8
+    }
+
+    /// The used slots of Gaussian `k` (`a_kj` descending); empty beyond the scene.
+    pub fn of(&self, k: usize) -> impl Iterator<Item = MaskSlot> + '_ {
+        let s = self.slots;
+        let range = if k < self.len() {
+            k * s..(k + 1) * s
+        } else {
+            0..0
+        };
+        range
+            .filter(|&i| self.views[i] != EMPTY_VIEW)
+            .map(|i| MaskSlot {
+                view: self.views[i],
+                mask: self.masks[i],
+                weight: self.weights[i],
+            })
+    }
+
+    /// Adds one view's `a_kj`: `entries` are `(gaussian, mask, a_kj)` sorted by Gaussian (any
+    /// mask order). Each Gaussian's dominant mask (largest `a_kj`, ties to the smaller mask)
+    /// enters its slots when it beats the weakest (module doc for the order). Views beyond
+    /// index 65,534, masks beyond 65,535, Gaussians beyond N and non-positive or non-finite
+    /// weights are skipped.
+    pub fn add_view(&mut self, view: usize, entries: impl IntoIterator<Item = (u32, u32, f32)>) {
+        let Ok(view) = u16::try_from(view) else {
+            return;
+        };
+        if view == EMPTY_VIEW {
+            return;
+        }
+        let mut current: Option<(u32, u32, f32)> = None;
+        for (g, m, w) in entries {
+            if !(w.is_finite() && w > 0.0) {
+                continue;
+            }
+            match current {
+                Some((cg, cm, cw)) if cg == g => {
+                    if w > cw || (w == cw && m < cm) {
+                        current = Some((g, m, w));
+                    }
+                }
+                Some(done) => {
+                    self.insert(view, done);
+                    current = Some((g, m, w));
+                }
+                None => current = Some((g, m, w)),
+            }
+        }
+        if let Some(done) = current {
+            self.insert(view, done);
+        }
+    }
+
+    fn insert(&mut self, view: u16, (g, m, w): (u32, u32, f32)) {
+        let (Ok(mask), true) = (u16::try_from(m), (g as usize) < self.len()) else {
+            return;
+        };
+        let s = self.slots;
+        let base = g as usize * s;
+        let better = |i: usize| -> bool {
+            let (v, wi) = (self.views[base + i], self.weights[base + i]);
+            v == EMPTY_VIEW || w > wi || (w == wi && view < v)
+        };
+        let Some(pos) = (0..s).find(|&i| better(i)) else {
+            return;
+        };
+        for i in (pos + 1..s).rev() {
+            self.views[base + i] = self.views[base + i - 1];
+            self.masks[base + i] = self.masks[base + i - 1];
+            self.weights[base + i] = self.weights[base + i - 1];
+        }
+        self.views[base + pos] = view;
+        self.masks[base + pos] = mask;
+        self.weights[base + pos] = w;
+    }
+
+    /// Multi-view mask co-membership of Gaussians `i` and `j`: over the views both record, the
+    /// share of evidence for *different* dominant masks, each shared view counting
+    /// `min(a_i, a_j)`. `None` when they record no common view.
+    pub fn disagreement(&self, i: usize, j: usize) -> Option<f32> {
+        let (mut agree, mut differ) = (0.0f32, 0.0f32);
+        for a in self.of(i) {
+            if let Some(b) = self.of(j).find(|b| b.view == a.view) {
+                let w = a.weight.min(b.weight);
+                if a.mask == b.mask {
+                    agree += w;
+                } else {
+                    differ += w;
+                }
+            }
+        }
+        let total = agree + differ;
+        (total > 0.0 && total.is_finite()).then(|| differ / total)
+    }
+
+    /// Writes the file atomically (`<path>.partial`, fsync, rename).
+    ///
+    /// Errors: arrays whose lengths disagree ([`Error::Internal`]); I/O.
+    pub fn write(&self, path: &Path) -> Result<()> {
+        let n = self.len();
+        if self.masks.len() != self.views.len()
+            || self.weights.len() != self.views.len()
+            || self.views.len() != n * self.slots
+        {
+            return Err(Error::internal("mask record arrays of different lengths"));
+        }
+        let weights: Vec<u8> = self.weights.iter().flat_map(|w| w.to_le_bytes()).collect();
+        let views: Vec<u8> = self.views.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let masks: Vec<u8> = self.masks.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let shape = vec![n, self.slots];
+        let tensors = vec![
+            ("views", Dtype::U16, shape.clone(), views.as_slice()),
+            ("masks", Dtype::U16, shape.clone(), masks.as_slice()),
+            ("weights", Dtype::F32, shape, weights.as_slice()),
+        ];
+        let meta = [
+            ("format", FORMAT.to_string()),
+            ("version", VERSION.to_string()),
+            ("scene_gaussians", n.to_string()),
+            ("slots", self.slots.to_string()),
+            ("views", self.view_count.to_string()),
+        ];
+        safetensors_io::write(path, tensors, &meta)
+    }
+
+    /// Reads a file written by [`MaskRecord::write`].
+    ///
+    /// Errors ([`Error::Format`] naming the file): not safetensors, another format or version,
+    /// tensors missing or of other shapes; I/O.
+    pub fn read(path: &Path) -> Result<MaskRecord> {
+        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let file = safetensors_io::open(path, &bytes, &KIND)?;
+        let v = file.tensor_of(path, "views", Dtype::U16)?;
+        let m = file.tensor_of(path, "masks", Dtype::U16)?;
+        let w = file.tensor_of(path, "weights", Dtype::F32)?;
+        let shape = v.shape().to_vec();
+        if shape.len() != 2 || m.shape() != shape || w.shape() != shape || shape[1] == 0 {
+            return Err(Error::format(
+                path,
+                format!(
+                    "views {:?}, masks {:?}, weights {:?}: expected three [N, S] tensors",
+                    v.shape(),
+                    m.shape(),
+                    w.shape()
+                ),
+            ));
+        }
+        let u16s = |b: &[u8]| -> Vec<u16> {
+            b.chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect()
+        };
+        Ok(MaskRecord {
+            slots: shape[1],
+            view_count: file
+                .meta
+                .get("views")
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(0),
+            views: u16s(v.data()),
+            masks: u16s(m.data()),
+            weights: le_f32(w.data()),
+        })
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keeps_the_dominant_mask_of_the_best_views_in_any_arrival_order() {
+        // Gaussian 0 seen in 4 views with 2 slots; view 2 and view 0 weigh most.
+        let views = [
+            (0usize, vec![(0u32, 3u32, 5.0f32), (0, 4, 7.0), (1, 1, 1.0)]),
+            (1, vec![(0, 0, 2.0), (1, 2, 3.0)]),
+            (2, vec![(0, 9, 9.0), (0, 1, 9.0)]),
+            (3, vec![(0, 5, 7.0)]),
+        ];
+        let mut a = MaskRecord::new(2, 2, 4).unwrap();
+        let mut b = MaskRecord::new(2, 2, 4).unwrap();
+        for (v, e) in &views {
+            a.add_view(*v, e.iter().copied());
+        }
+        for (v, e) in views.iter().rev() {
+            b.add_view(*v, e.iter().copied());
+        }
+        assert_eq!(a, b);
+        let g0: Vec<MaskSlot> = a.of(0).collect();
+        // View 2: masks 1 and 9 tie at 9.0 → mask 1; views 0 and 3 tie at 7.0 → view 0.
+        assert_eq!(
+            g0,
+            vec![
+                MaskSlot {
+                    view: 2,
+                    mask: 1,
+                    weight: 9.0
+                },
+                MaskSlot {
+                    view: 0,
+                    mask: 4,
+                    weight: 7.0
+                }
+            ]
+        );
+        assert_eq!(a.of(1).count(), 2);
+        assert_eq!(a.of(7).count(), 0);
+        // Gaussians 0 and 1 share view 0 (masks 4 vs 1: differ) only.
+        assert_eq!(a.disagreement(0, 1), Some(1.0));
+        assert_eq!(a.bytes_per_gaussian(), 16);
+    }
+
+    #[test]
+    fn round_trips_through_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut r = MaskRecord::new(3, 4, 2).unwrap();
+        r.add_view(0, [(0, 1, 2.0), (2, 7, 1.0)]);
+        r.add_view(1, [(0, 1, 3.0), (2, 6, 1.0)]);
+        let path = dir.path().join(FILE_NAME);
+        r.write(&path).unwrap();
+        let back = MaskRecord::read(&path).unwrap();
+        assert_eq!(back, r);
+        assert_eq!(back.disagreement(0, 2), Some(1.0));
+        assert_eq!(back.disagreement(0, 1), None);
+        std::fs::write(&path, b"not safetensors").unwrap();
+        assert!(matches!(MaskRecord::read(&path), Err(Error::Format { .. })));
+        assert!(MaskRecord::new(1, 0, 1).is_err());
+    }
+}
