@@ -159,6 +159,7 @@ models)
     for d in f16d f16r f16e; do python3 scripts/sam-decoder-low-res.py "$M/$d/sam-vit_h-decoder.onnx" "$M/$d/sam-vit_h-decoder-low-res.onnx"; done
     mkdir -p "$M/f16"; ln -sf "$M/f16d/sam-vit_h-encoder.onnx" "$M/f16/sam-vit_h-encoder.onnx"
   fi
+  [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0  # the models for e2e, no timing
   CL=(); for d in f32 f16 f16fuse f32fuse; do CL+=(--clip-visual "$M/$d/ViT-B-16-random-visual.onnx"); done
   SA=(); for d in f16r f16d f16e; do SA+=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/$d/sam-vit_h-decoder-low-res.onnx"); done
   echo "### slag-bench models: CLIP ViT-B/16 x4, SAM ViT-H fp16 (256 prompts in 1 call, then in 4)"
