@@ -381,6 +381,171 @@ def case_strict_inputs(ep, sp):
         raw = f"GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{two}\r\n".encode()
         st = request(port, "GET", path, raw=raw)[0]
         row(f"two Authorization headers, {name}", "401", str(st), st == 401)
+def store_integrity_cases(a, W, sp, port, short):
+    """The store's integrity cases: reload racing fetch (every state seen is a committed one), a
+    manifest that lists a tile twice (refused before anything is stored), a FIFO, a symlink to
+    /dev/zero and a dangling symlink in place of a shard (check, query and serve answer without
+    hanging or reading past the manifest's size; check reports each; one fetch repairs each).
+    Servers on `port` and `port + 1`; `sp` is the shard server's port."""
+    fetch_env = {**os.environ, "SLAG_SHARD_TOKEN": TOKEN, "RUST_LOG": "warn"}
+    check_cmd = [a.edge, "check", "--scene", "probe", "--text-model", a.text_model,
+                 "--tokenizer", a.tokenizer]
+
+    def fetch(store, radius, url=f"http://{HOST}:{sp}"):
+        return subprocess.run([a.edge, "fetch", "--from", url, "--scene", "probe", "--center",
+                               "0,0", "--radius", str(radius), "--store", store],
+                              env=fetch_env, capture_output=True, text=True, timeout=120)
+
+    # Reload racing fetch: fetch loops (a pruning small disc, then the full one), reload and
+    # query loops; every answer, /stats and /health must report one of the committed counts.
+    d = f"{W}/integrity-race"
+    shutil.rmtree(d, ignore_errors=True)
+    shutil.copytree(f"{W}/edge-pristine", d)
+    srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--addr", f"{HOST}:{port}",
+                 "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+                {"SLAG_EDGE_TOKEN": TOKEN})
+    assert wait_up(port, "/health", srv), "edge server (race) did not start"
+    committed, seen, stop_flag = set(), [], [False]
+    _, _, b = request(port, "GET", "/stats", headers=auth())
+    committed.add(json.loads(b)["gaussians"])
+
+    def watch(path, field):
+        while not stop_flag[0]:
+            try:
+                st, _, body = request(port, "GET", path, headers=auth(), timeout=30)
+                if st == 200:
+                    seen.append(json.loads(body)[field])
+            except (OSError, ValueError):
+                pass
+
+    def reloads():
+        while not stop_flag[0]:
+            try:
+                request(port, "POST", "/reload", body=b"", headers=auth(), timeout=60)
+            except OSError:
+                pass
+
+    threads = [threading.Thread(target=watch, args=p, daemon=True) for p in
+               [("/query?text=red&top_k=1&threshold=none", "searched"),
+                ("/stats", "gaussians"), ("/health", "gaussians")]]
+    threads.append(threading.Thread(target=reloads, daemon=True))
+    for t in threads:
+        t.start()
+    fetch_errors = 0
+    peak = Peak(srv.pid)
+    t0 = time.time()
+    for _ in range(3 if short else 15):
+        for radius, prune in [(1, True), (100000, False)]:
+            body = json.dumps({"center": [0, 0], "radius": radius, "prune": prune,
+                               "token": TOKEN}).encode()
+            st, _, b = request(port, "POST", "/fetch", body=body,
+                               headers={**auth(), "Content-Type": "application/json"}, timeout=120)
+            if st != 200:
+                fetch_errors += 1
+                continue
+            s = json.loads(b)
+            # The committed state: the disc's Gaussians with pruning; without, every tile stored.
+            committed.add(s["gaussians"] if prune else max(committed))
+    stop_flag[0] = True
+    for t in threads:
+        t.join(70)
+    strays = sorted({n for n in seen if n not in committed})
+    row("store: reload racing fetch (pruning small disc, full disc)",
+        "every answer, /stats and /health from a committed state",
+        f"{len(seen)} answers in {time.time() - t0:.0f} s, states {sorted(set(seen))}, committed "
+        f"{sorted(committed)}, {fetch_errors} fetch errors, peak RSS {peak.done():.0f} MB",
+        not strays and fetch_errors == 0 and len(seen) > 0)
+    stop(srv)
+
+    # A manifest that lists a tile twice: refused, nothing stored.
+    _, _, mb = request(sp, "GET", "/v1/scenes/probe/manifest", headers=auth())
+    m = json.loads(mb)
+    m["tiles"].append(m["tiles"][0])
+    doctored = json.dumps(m).encode()
+    lsock = socket.socket()
+    lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    lsock.bind((HOST, port + 1))
+    lsock.listen(8)
+
+    def serve_doctored():
+        while True:
+            try:
+                c, _ = lsock.accept()
+            except OSError:
+                return
+            try:
+                c.settimeout(5)
+                c.recv(65536)
+                c.sendall(b"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: "
+                          + str(len(doctored)).encode() + b"\r\nConnection: close\r\n\r\n"
+                          + doctored)
+            except OSError:
+                pass
+            finally:
+                c.close()
+
+    threading.Thread(target=serve_doctored, daemon=True).start()
+    d = f"{W}/integrity-dup"
+    shutil.rmtree(d, ignore_errors=True)
+    r = fetch(d, 100000, url=f"http://{HOST}:{port + 1}")
+    shards_written = sum(len(f) for _, _, f in os.walk(f"{d}/shards")) if os.path.isdir(d) else 0
+    lsock.close()
+    row("store: manifest listing a tile twice", "fetch refused, nothing stored",
+        f"fetch exit {r.returncode} ({(r.stderr.strip().splitlines() or [''])[-1][:90]}), "
+        f"{shards_written} files stored",
+        r.returncode != 0 and "twice" in r.stderr and shards_written == 0)
+
+    # A FIFO, a symlink to /dev/zero, a dangling symlink in place of a shard file.
+    shard_dir = None
+    for root, _, files in os.walk(f"{W}/edge-pristine/shards"):
+        if any(f.endswith(".shard") for f in files):
+            shard_dir = root
+    name = sorted(f for f in os.listdir(shard_dir) if f.endswith(".shard"))[0]
+    rel = os.path.relpath(f"{shard_dir}/{name}", f"{W}/edge-pristine")
+    pristine = open(f"{shard_dir}/{name}", "rb").read()
+    for kind in ["fifo", "/dev/zero", "dangling symlink"]:
+        d = f"{W}/integrity-{kind.strip('/').replace('/', '-').replace(' ', '-')}"
+        shutil.rmtree(d, ignore_errors=True)
+        shutil.copytree(f"{W}/edge-pristine", d)
+        os.remove(f"{d}/{rel}")
+        if kind == "fifo":
+            os.mkfifo(f"{d}/{rel}")
+        elif kind == "/dev/zero":
+            os.symlink("/dev/zero", f"{d}/{rel}")
+        else:
+            os.symlink(f"{d}/nowhere.shard", f"{d}/{rel}")
+        obs, ok = [], True
+        try:
+            c0 = subprocess.run(check_cmd + ["--store", d], capture_output=True, text=True,
+                                timeout=60)
+            named = "where a regular file belongs" in c0.stdout
+            obs.append(f"check exit {c0.returncode}{' naming it' if named else ''}")
+            ok &= c0.returncode != 0 and named
+        except subprocess.TimeoutExpired:
+            obs.append("check HUNG")
+            ok = False
+        srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--addr",
+                     f"{HOST}:{port}", "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+                    {"SLAG_EDGE_TOKEN": TOKEN})
+        peak = Peak(srv.pid)
+        up = wait_up(port, "/health", srv, secs=60)
+        qs = request(port, "GET", "/query?text=red&top_k=1", headers=auth(), timeout=30)[0] \
+            if up else 0
+        rss = peak.done()
+        stop(srv)
+        obs.append(f"serve /health {'200' if up else 'NO ANSWER'}, query {qs}, peak RSS "
+                   f"{rss:.0f} MB")
+        ok &= up and qs == 200 and rss < 1024
+        r = fetch(d, 100000)
+        restored = (os.path.isfile(f"{d}/{rel}") and not os.path.islink(f"{d}/{rel}")
+                    and open(f"{d}/{rel}", "rb").read() == pristine)
+        c1 = subprocess.run(check_cmd + ["--store", d], capture_output=True, text=True,
+                            timeout=60)
+        obs.append(f"fetch exit {r.returncode}, file {'restored' if restored else 'NOT restored'}"
+                   f", check after exit {c1.returncode}")
+        ok &= r.returncode == 0 and restored and c1.returncode == 0
+        row(f"store: {kind} in place of a shard file",
+            "check/serve answer and name it; RSS bounded; one fetch repairs", "; ".join(obs), ok)
 
 
 def main():
@@ -681,6 +846,10 @@ def main():
             f"check before exit {c0.returncode}, fetch exit {fr.returncode}, "
             f"check after exit {c1.returncode}, files {'restored' if repaired else 'NOT restored'}",
             c0.returncode != 0 and fr.returncode == 0 and c1.returncode == 0 and repaired)
+    # 12. Store integrity: one committed generation under fetch and reload, a manifest that is a
+    # set, regular files only.
+    if not a.skip_store:
+        store_integrity_cases(a, W, sp, ep + 20, a.short)
     stop(shards)
     row("5xx answers over the probe", "0", str(FIVEXX[0]), FIVEXX[0] == 0)
 

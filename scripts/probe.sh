@@ -7,7 +7,10 @@
 # headers, a shard-server URL with a password (refused; not in /stats or the store), a `text`
 # that is not a JSON string, query strings that are not UTF-8, blank tokens, and the store's
 # damage cases (flipped bytes, truncated, appended, swapped shard files, a
-# directory in place of one: one `slag-edge fetch` must repair, `slag-edge check` must tell).
+# directory in place of one: one `slag-edge fetch` must repair, `slag-edge check` must tell), and the store's
+# integrity (reload racing fetch serves only committed states; a manifest listing a tile twice is
+# refused; a FIFO, a link to /dev/zero, a dangling link in a shard's place: check, query and
+# serve answer, RSS stays bounded, one fetch repairs).
 # Prints `case | expected | observed | pass/fail` with RSS figures; exits 1 if a case fails.
 #
 #   bash scripts/probe.sh             # release binaries (built here), 60,000 Gaussians, 2,000 stalls

@@ -128,6 +128,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
         center: [0.0, 0.0],
         radius: 1e9,
         completed_unix_s: 0,
+        tiles: None,
     };
     store.commit_fetch(&manifest, &record).unwrap();
     println!(

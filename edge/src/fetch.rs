@@ -924,14 +924,23 @@ async fn try_download(
                 let _ = std::fs::remove_file(part);
             });
         }
+        // Never through a link (set aside above; O_NOFOLLOW closes the gap since).
         let f = tokio::fs::OpenOptions::new()
             .append(true)
+            .custom_flags(libc::O_NOFOLLOW)
             .open(part)
             .await
             .map_err(io)?;
         (f, have, true)
     } else if status.is_success() {
-        let f = tokio::fs::File::create(part).await.map_err(io)?;
+        let f = tokio::fs::OpenOptions::new()
+            .write(true)
+            .create(true)
+            .truncate(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(part)
+            .await
+            .map_err(io)?;
         (f, 0, false)
     } else {
         let body = resp.text().await.unwrap_or_default();

@@ -200,7 +200,18 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// the folder. On a write error `tmp` is removed; a crash leaves at most `tmp`.
 fn write_durably(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<()> {
     let write = || -> std::io::Result<()> {
-        let mut f = std::fs::File::create(tmp)?;
+        use std::os::unix::fs::OpenOptionsExt;
+        // A new file: whatever is at `tmp` (a leftover, or a link planted there) is removed, not
+        // written through.
+        match std::fs::remove_file(tmp) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
+            _ => {}
+        }
+        let mut f = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(tmp)?;
         f.write_all(bytes)?;
         f.sync_all()
     };

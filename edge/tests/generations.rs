@@ -94,22 +94,23 @@ async fn answers_stats_and_health_come_from_committed_generations_under_fetch_an
         })
     };
     let client = reqwest::Client::new();
-    for cycle in 0..3 {
+    let post_fetch = async |radius: f64, prune: bool| {
+        let body = serde_json::json!({"center": [0.0, 0.0], "radius": radius, "prune": prune});
+        let r = client
+            .post(format!("{url}/fetch"))
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        let status = r.status();
+        assert_eq!(status, 200, "{}", r.text().await.unwrap());
+    };
+    for _ in 0..3 {
+        // In turn, then two at once (the second waits for the first).
         for (radius, prune) in [(SMALL, true), (FULL, false), (SMALL, false)] {
-            let body = serde_json::json!({"center": [0.0, 0.0], "radius": radius, "prune": prune});
-            let r = client
-                .post(format!("{url}/fetch"))
-                .json(&body)
-                .send()
-                .await
-                .unwrap();
-            assert_eq!(
-                r.status(),
-                200,
-                "cycle {cycle}: {}",
-                r.text().await.unwrap()
-            );
+            post_fetch(radius, prune).await;
         }
+        tokio::join!(post_fetch(SMALL, true), post_fetch(FULL, false));
     }
     stop.store(true, Ordering::SeqCst);
     let reloads = reloads.await.unwrap();
