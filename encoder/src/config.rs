@@ -280,8 +280,8 @@ pub struct SamConfig {
     pub decoder: Option<PathBuf>,
     /// Point grid: points per image side (default 32, segment_anything's).
     pub points_per_side: u32,
-    /// Prompts per decoder call (memory and speed, not the result); `None` (the default): the
-    /// whole grid in one call on a GPU, 64 on the CPU ([`crate::masks::sam::SamParams::batch_for`]).
+    /// Prompts per decoder call (memory and speed, not the result); `None` (the default): 128
+    /// on a GPU, 64 on the CPU ([`crate::masks::sam::SamParams::batch_for`]).
     pub points_per_batch: Option<usize>,
     /// Filter: minimum predicted IoU (default 0.88, segment_anything's).
     pub pred_iou_thresh: f32,

@@ -112,8 +112,8 @@ pub struct EncodeArgs {
     /// SAM point grid: points per image side (segment_anything's default 32).
     #[arg(long, default_value_t = 32)]
     pub sam_points_per_side: u32,
-    /// SAM prompts per decoder call [default: the whole grid in one call when the decoder runs
-    /// on a GPU, 64 on the CPU].
+    /// SAM prompts per decoder call [default: 128 when the decoder runs on a GPU, 64 on the
+    /// CPU].
     #[arg(long)]
     pub sam_points_per_batch: Option<usize>,
     /// SAM filter: minimum predicted IoU (segment_anything's default 0.88).

@@ -53,10 +53,8 @@ pub struct SamParams {
     pub points_per_side: u32,
     /// Prompts per decoder call. Results do not depend on it; memory and speed do (one call
     /// holds `points_per_batch * 4` low-resolution, or full-resolution, f32 logit maps). `None`:
-    /// every prompt of the image in one call when the decoder runs on a GPU (the decoder then
-    /// runs its per-image work once per image; on an H100, ViT-H's fp16 decoder took 120.6 ms
-    /// for 256 prompts in one call against 173.3 ms in four calls of 64), and
-    /// [`CPU_POINTS_PER_BATCH`] on the CPU. See [`SamParams::batch_for`].
+    /// [`GPU_POINTS_PER_BATCH`] when the decoder runs on a GPU, [`CPU_POINTS_PER_BATCH`] on the
+    /// CPU. See [`SamParams::batch_for`].
     #[serde(default)]
     pub points_per_batch: Option<usize>,
     /// Keep masks whose predicted IoU is `>` this.
@@ -93,8 +91,8 @@ pub fn decoder_bytes_per_prompt(h: u32, w: u32) -> usize {
 
 impl SamParams {
     /// Prompts per decoder call on an image of `h × w` pixels with the decoder on a GPU
-    /// (`on_gpu`) or not: `points_per_batch`, or when it is `None` every prompt of the grid on
-    /// a GPU and [`CPU_POINTS_PER_BATCH`] on the CPU; capped by
+    /// (`on_gpu`) or not: `points_per_batch`, or when it is `None` [`GPU_POINTS_PER_BATCH`] on
+    /// a GPU (at most the grid) and [`CPU_POINTS_PER_BATCH`] on the CPU; capped by
     /// [`SamParams::decoder_batch_bytes`] (at least 1).
     pub fn batch_for(&self, h: u32, w: u32, on_gpu: bool) -> usize {
         let cap = self
@@ -103,7 +101,7 @@ impl SamParams {
         let grid = (self.points_per_side as usize).pow(2);
         let wanted = match self.points_per_batch {
             Some(n) => n,
-            None if on_gpu => grid,
+            None if on_gpu => grid.min(GPU_POINTS_PER_BATCH),
             None => CPU_POINTS_PER_BATCH,
         };
         wanted.min(cap).max(1)
@@ -112,6 +110,13 @@ impl SamParams {
 
 /// Prompts per decoder call on the CPU when none is asked for (segment_anything's default).
 pub const CPU_POINTS_PER_BATCH: usize = 64;
+
+/// Prompts per decoder call on a GPU when none is asked for. Fewer, larger calls keep the GPU
+/// busier, and a decoder that does the image's work once per call (scripts/export-models.py)
+/// does it for more prompts at a time; larger calls also hold larger outputs on the host. On an
+/// H100 (2M Gaussians, 250 views, ViT-H fp16 timing model, 4 fronts, one run each) 128 gave an
+/// encode of 45.9 s at 6.82 GiB peak RSS, 256 gave 46.1 s at 8.47 GiB.
+pub const GPU_POINTS_PER_BATCH: usize = 128;
 
 /// Where AMG's full-resolution mask logits come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -1088,10 +1093,15 @@ mod tests {
             CPU_POINTS_PER_BATCH,
             "CPU: 64 by default"
         );
+        assert_eq!(p.batch_for(742, 990, true), GPU_POINTS_PER_BATCH);
+        let small = SamParams {
+            points_per_side: 8,
+            ..SamParams::default()
+        };
         assert_eq!(
-            p.batch_for(742, 990, true),
-            256,
-            "GPU: the whole 16 x 16 grid in one call"
+            small.batch_for(742, 990, true),
+            64,
+            "never more than the grid"
         );
         let asked = SamParams {
             points_per_batch: Some(100),
