@@ -643,7 +643,7 @@ mod tests {
                 "rasterizer": "wgpu", "clip_model_id": "color-clip-visual", "masks": "graph",
             });
             let mut parameters = serde_json::json!({
-                "raster_scale": 0.5, "sam_points_per_side": 0, "sam_points_per_batch": 0,
+                "raster_scale": 0.5, "sam_points_per_side": 0, "sam_points_per_batch": null,
                 "sam_pred_iou_thresh": 0.88f32, "sam_stability_score_thresh": 0.0,
                 "sam_box_nms_thresh": 0.0, "graph_k": 700.0f32, "graph_min_size": null,
                 "clip_batch": null, "top_k_per_pixel": null, "mask_weighting": "none",

@@ -49,9 +49,12 @@ fn encode_writes_the_segments_of_slag_encoder_segment() {
         String::from_utf8_lossy(&run.stderr)
     );
     let alone = dir.path().join("alone.safetensors");
+    // The segmentation alone, from the masks' record the encode kept, gives the same file.
     let seg = slag_encoder()
         .args(["segment", "--scene"])
         .arg(scene())
+        .arg("--mask-record")
+        .arg(out.join(slag_common::mask_record::FILE_NAME))
         .arg("--out")
         .arg(&alone)
         .output()
