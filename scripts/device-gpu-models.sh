@@ -18,9 +18,12 @@
 #                                            # LOWRES=1: both SAM decoders cut down by
 #                                            # scripts/sam-decoder-low-res.py (needs python onnx)
 #                                            # DECDIR=f16d: ViT-H's half-precision decoder
+#                                            # ENCDIR=f16x: the fused-attention encoder (sam mode)
 #   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
+#   scripts/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder;
+#                                            # ORT profiles; torch fp16 + its CUDA profile
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -123,7 +126,7 @@ e2e)
     fi
     MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
       --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "${dec[0]}"
-      --sam-timing-encoder "$M/$prec/sam-vit_h-encoder.onnx" --sam-timing-decoder "${dec[1]}")
+      --sam-timing-encoder "$M/${ENCDIR:-$prec}/sam-vit_h-encoder.onnx" --sam-timing-decoder "${dec[1]}")
     echo "### timing model SAM ViT-H $prec, mask model color-sam 16x16 (0.8/0.5)"
   fi
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
@@ -170,6 +173,33 @@ models)
   SLAG_ORT_PROFILE=$W/prof/p "$BB" models --scene data/snowmiku-mini --images 2 "${CL[@]}" "${SA[@]}" --repeats 3 > /dev/null 2>&1
   python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
   SAM_KINDS=vit_h python3 scripts/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -14
+  ;;
+sam)
+  # SAM ViT-H fp16 (fp16 decoder, the image's work once per call, cut to its low-res outputs):
+  # the plain encoder (f16d) beside the one with fused attention (f16x: export-models.py --fuse),
+  # same weights; `slag-bench models` times both pairs and compares the second's masks with the
+  # first's; ONNX Runtime's per-node profiles; torch fp16 in the same call, and torch's own CUDA profile of its decoder.
+  # EXPORT_ONLY=1: the exports alone (they take most of a call).
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  if [ ! -f "$M/f16d/sam-vit_h-decoder-low-res.onnx" ]; then
+    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-vith.json" 2> "$R/export-vith.err" || tail -3 "$R/export-vith.err"
+    python3 scripts/sam-decoder-low-res.py "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res.onnx"
+  fi
+  if [ ! -f "$M/f16x/sam-vit_h-encoder.onnx" ]; then
+    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
+    grep -A14 fused_encoder "$R/export-vith-fused.json"
+  fi
+  [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
+  SA=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
+      --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx")
+  echo "### slag-bench models: SAM ViT-H fp16, plain vs fused encoder, 256 prompts per call"
+  timeout 200 "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 256 --repeats ${REPEATS:-5} > "$R/sam-256.md" 2>> "$R/sam.jsonl"; echo "exit $?"
+  cat "$R/sam-256.md"
+  rm -rf "$W/prof"; mkdir -p "$W/prof"
+  SLAG_ORT_PROFILE=$W/prof/p timeout 100 "$BB" models --scene data/snowmiku-mini --images 2 "${SA[@]}" --repeats 3 > /dev/null 2>&1
+  python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
+  SAM_KINDS=vit_h TORCH_PROFILE=1 timeout 120 python3 scripts/device_torch_peers.py "$R/torch-peers.json" > "$R/torch-peers.txt" 2>&1
+  grep -vE "^clip|^ *\{|^ *\}|^ *\"" "$R/torch-peers.txt" | cut -c1-160 | head -70
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do

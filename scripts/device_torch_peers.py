@@ -5,6 +5,9 @@ multimask output, low-resolution masks only, as slag asks for), CLIP ViT-B/16 im
 a GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI.
 
     python3 scripts/device_torch_peers.py OUT.json
+
+SAM_KINDS (default "vit_b vit_h") picks the SAM models; TORCH_PROFILE=1 also prints torch's
+per-operator CUDA time of the fp16 encoder and decoder.
 """
 
 import copy
@@ -57,6 +60,16 @@ with torch.inference_mode():
 
             out[f"sam_{kind}_decoder_256_{name}_ms"] = ms(dec)
             print(kind, name, out[f"sam_{kind}_encoder_{name}_ms"], out[f"sam_{kind}_decoder_256_{name}_ms"], flush=True)
+            if os.environ.get("TORCH_PROFILE") == "1" and name == "fp16":
+                # Where the GPU's time goes, by operator (CUDA time of 5 calls each).
+                from torch.profiler import ProfilerActivity, profile
+                for what, fn in [("encoder", lambda: enc(x)), ("decoder_256", dec)]:
+                    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+                        for _ in range(5):
+                            fn()
+                        torch.cuda.synchronize()
+                    print(f"### torch profile: SAM {kind} {what} fp16, 5 calls")
+                    print(prof.key_averages().table(sort_by="cuda_time_total", row_limit=18, max_name_column_width=60))
             del enc
         del sam
         torch.cuda.empty_cache()

@@ -5,7 +5,7 @@ Needs python3 with, from PyPI: torch, onnx, segment-anything==1.0 (SAM), open-cl
 for MobileSAM also mobilesam-mirror and timm. onnxruntime is optional: when importable, every
 exported file is run once as a check.
 
-    export-models.py sam --kind vit_b|vit_l|vit_h|vit_t|tiny [--checkpoint FILE | --random] [--fp16] OUT_DIR
+    export-models.py sam --kind vit_b|vit_l|vit_h|vit_t|tiny [--checkpoint FILE | --random] [--fp16] [--fuse] OUT_DIR
     export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] [--fuse] OUT_DIR
 
 sam  writes OUT_DIR/sam-KIND-encoder.onnx (pixel_values f32[1,3,1024,1024] -> image_embeddings
@@ -34,6 +34,12 @@ CUDA), then, when onnxruntime is importable, its transformer optimizer fuses Lay
 residual add + LayerNorm and the bias + GELU. Same signature and weights; the export's check
 compares the f32 tower with torch on random pixels (cosine). MultiHeadAttention runs in half
 precision on CUDA only: check an --fp16 --fuse tower on the GPU (`slag-bench models`).
+
+--fuse (sam): the image encoder's attention, relative positions included, as one
+com.microsoft MultiHeadAttention node per block (the bias folded into widened query and key
+vectors: see fuse_sam_attention). ONNX Runtime's offline transformer optimizer is not run on it
+(on ViT-H it did not finish in 8 minutes); the session's own graph optimisations apply. The
+export checks the fused encoder against segment_anything's in torch (f32) before exporting.
 
 The SAM decoder does the image's own work once per call, not once per prompt (see
 share_image_work: the same function, checked against segment_anything's in torch at export);
@@ -155,6 +161,107 @@ def fuse_attention(torch, tower):
     if count == 0:
         die("--fuse found no attention block to fuse in this model's visual tower")
     return count
+
+
+def fuse_sam_attention(torch, encoder):
+    """Replaces the attention of every block of segment_anything's `ImageEncoderViT` by one
+    ONNX Runtime `com.microsoft::MultiHeadAttention` node in the export, relative positions
+    included, so that flash attention can run it on CUDA without writing the attention matrix.
+
+    SAM adds a decomposed relative-position bias to the scaled scores (MViTv2):
+    s_ij = scale·q_i·k_j + q_i·Rh[h_i, h_j] + q_i·Rw[w_i, w_j], with (h, w) the token's row and
+    column in its window (14 × 14) or in the whole 64 × 64 grid (global blocks). Both bias terms
+    are dot products of a per-query vector with a one-hot per-key vector, so s_ij is one dot
+    product of widened vectors: q'_i = [scale·q_i, q_i·Rh[h_i]ᵀ, q_i·Rw[w_i]ᵀ, 0…] and
+    k'_j = [k_j, onehot(h_j), onehot(w_j), 0…], zero-padded to a multiple of 8 (head size
+    80 + 14 + 14 → 112 in windows, 80 + 64 + 64 = 208 in global blocks for ViT-H); the values
+    are zero-padded to the same size and the padding dropped after. Attention with scale 1 over
+    (q', k', v') is then exactly SAM's attention with its bias, and no bias tensor
+    (heads × 4096 × 4096 in a global block) is ever formed. In torch the replacement computes
+    scaled-dot-product attention on the same widened vectors, so the export's check against
+    torch applies; `check_fused_sam_encoder` compares it with the original. Returns the count."""
+    import torch.nn.functional as F
+    from segment_anything.modeling.image_encoder import get_rel_pos
+
+    class Mha(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, q, k, v, heads):
+            b, s, _ = q.shape
+            q, k, v = (t.reshape(b, s, heads, -1).transpose(1, 2) for t in (q, k, v))
+            o = F.scaled_dot_product_attention(q, k, v, scale=1.0)
+            return o.transpose(1, 2).reshape(b, s, -1)
+
+        @staticmethod
+        def symbolic(g, q, k, v, heads):
+            out = g.op("com.microsoft::MultiHeadAttention", q, k, v, num_heads_i=heads,
+                       scale_f=1.0)
+            out.setType(q.type())
+            return out
+
+    class FusedRelPosAttention(torch.nn.Module):
+        def __init__(self, att):
+            super().__init__()
+            self.qkv, self.proj, self.heads, self.scale = att.qkv, att.proj, att.num_heads, att.scale
+            self.rel_pos_h, self.rel_pos_w = att.rel_pos_h, att.rel_pos_w
+
+        def forward(self, x):
+            b, h, w, c = x.shape
+            n = self.heads
+            d = c // n
+            q, k, v = self.qkv(x).reshape(b, h, w, 3, n, d).unbind(3)  # each [b, h, w, n, d]
+            rh = get_rel_pos(h, h, self.rel_pos_h).to(q.dtype)  # [h (query row), h (key row), d]
+            rw = get_rel_pos(w, w, self.rel_pos_w).to(q.dtype)  # [w, w, d]
+            # q·Rh[h_i]ᵀ as one batched product per query row, q·Rw[w_i]ᵀ per query column.
+            rel_h = (q.permute(1, 0, 2, 3, 4).reshape(h, b * w * n, d) @ rh.transpose(1, 2))
+            rel_h = rel_h.reshape(h, b, w, n, h).permute(1, 0, 2, 3, 4)  # [b, h, w, n, h]
+            rel_w = (q.permute(2, 0, 1, 3, 4).reshape(w, b * h * n, d) @ rw.transpose(1, 2))
+            rel_w = rel_w.reshape(w, b, h, n, w).permute(1, 2, 0, 3, 4)  # [b, h, w, n, w]
+            width = d + h + w
+            pad = -width % 8
+            one_h = torch.eye(h, dtype=q.dtype, device=q.device)[:, None, None, :]
+            one_w = torch.eye(w, dtype=q.dtype, device=q.device)[None, :, None, :]
+            kh = one_h.expand(h, w, n, h).unsqueeze(0).expand(b, h, w, n, h)
+            kw = one_w.expand(h, w, n, w).unsqueeze(0).expand(b, h, w, n, w)
+            zq = q.new_zeros(b, h, w, n, pad)
+            qw = torch.cat([q * self.scale, rel_h, rel_w, zq], dim=-1)
+            kw_ = torch.cat([k, kh, kw, zq], dim=-1)
+            vw = torch.cat([v, v.new_zeros(b, h, w, n, width + pad - d)], dim=-1)
+            s = h * w
+            o = Mha.apply(*(t.reshape(b, s, n * (width + pad)) for t in (qw, kw_, vw)), n)
+            o = o.reshape(b, h, w, n, width + pad)[..., :d].reshape(b, h, w, c)
+            return self.proj(o)
+
+    count = 0
+    for block in getattr(encoder, "blocks", []):
+        att = getattr(block, "attn", None)
+        if not getattr(att, "use_rel_pos", False):
+            die("--fuse (sam) needs attention with relative positions (segment_anything's "
+                "ImageEncoderViT); this encoder's attention differs")
+        block.attn = FusedRelPosAttention(att)
+        count += 1
+    if count == 0:
+        die("--fuse (sam) found no attention block in this image encoder")
+    return count
+
+
+def check_fused_sam_encoder(torch, encoder, fused_encoder):
+    """Runs segment_anything's image encoder and the fused one (f32; on the GPU when torch has
+    one, else the CPU) on the same random pixels; returns the largest absolute difference of the
+    image embeddings and their scale; dies when the difference exceeds 1e-3 of the embeddings'
+    largest magnitude."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(1, 3, 1024, 1024, generator=g)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    with torch.no_grad():
+        ref = encoder.to(device)(x.to(device)).cpu()
+        got = fused_encoder.to(device)(x.to(device)).cpu()
+        encoder.to("cpu"), fused_encoder.to("cpu")
+    diff, scale = float((got - ref).abs().max()), float(ref.abs().max())
+    if not diff <= 1e-3 * max(scale, 1e-6):
+        die(f"the fused SAM encoder differs from segment_anything's: max |diff| {diff} "
+            f"(embeddings up to {scale})")
+    return {"image_embeddings_max_abs_diff": diff, "image_embeddings_max_abs": scale}
 
 
 def ort_fusions(path, heads, width):
@@ -430,6 +537,15 @@ def export_sam(a):
                 return self.enc(pixel_values.half()).float()
             return self.enc(pixel_values)
 
+    fused = None
+    if a.fuse and not a.decoder_only:
+        import copy
+
+        image_encoder = copy.deepcopy(sam.image_encoder)
+        blocks = fuse_sam_attention(torch, image_encoder)
+        fused = {"attention_blocks": blocks,
+                 "check_f32": check_fused_sam_encoder(torch, sam.image_encoder, image_encoder)}
+        sam.image_encoder = image_encoder.eval()
     if not a.decoder_only:
         enc = Encoder(sam.image_encoder, a.fp16).eval()
         onnx_export(torch, enc, (torch.zeros(1, 3, 1024, 1024),), enc_path,
@@ -440,6 +556,7 @@ def export_sam(a):
     for p in files:
         role = "encoder" if p == enc_path else "decoder"
         set_metadata(p, {"slag.sam_kind": a.kind, "slag.sam_role": role, "slag.weights": source,
+                         "slag.fused_attention": str(bool(fused and role == "encoder")).lower(),
                          "slag.fp16": str(bool(a.fp16 if role == "encoder" else a.fp16_decoder)).lower()})
     expect_enc = ([("pixel_values", "float32", [1, 3, 1024, 1024])],
                   [("image_embeddings", "float32", [1, 256, 64, 64])])
@@ -456,6 +573,7 @@ def export_sam(a):
                       "decoder": str(dec_path), "kind": a.kind,
                       "weights": source, "fp16_encoder": bool(a.fp16),
                       "fp16_decoder": bool(a.fp16_decoder), "decoder_shares_image_work": shared_check,
+                      "fused_encoder": fused,
                       "files": file_sizes(files),
                       "onnxruntime_check": shapes}, indent=1))
 
@@ -668,6 +786,9 @@ def main():
                    help="the decoder's per-image work: once per call, products broadcast over "
                         "the prompts (shared), once per call then copied to the prompts "
                         "(expanded), or once per prompt as segment_anything traces it (repeated)")
+    s.add_argument("--fuse", action="store_true",
+                   help="encoder attention (relative positions included) as ONNX Runtime's "
+                        "fused MultiHeadAttention")
     s.add_argument("--external-data", action="store_true",
                    help="encoder weights in ENCODER.onnx.data even when small (always over 2 GB)")
     s.add_argument("--seed", type=int, default=0)

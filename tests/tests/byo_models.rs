@@ -174,3 +174,50 @@ fn exported_models_encode_and_query() {
             .map(|m| m.score)
     );
 }
+
+/// `export-models.py sam --fuse`: the encoder whose attention (relative positions folded into
+/// widened queries and keys) is one fused node per block gives the image embeddings of the plain
+/// export, run by ONNX Runtime on the CPU on a real image, same weights (same seed).
+#[test]
+fn fused_sam_encoder_matches_the_plain_export() {
+    if let Some(why) = skip_reason() {
+        eprintln!("SKIPPED fused_sam_encoder_matches_the_plain_export: {why}");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    export(&["sam", "--kind", "tiny", &s("plain")]);
+    export(&["sam", "--kind", "tiny", "--fuse", &s("fused")]);
+    let views = slag_common::camera::load_views(&default_scene()).unwrap();
+    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let (pixels, _) = slag_encoder::preprocess::sam_pixel_values(&image).unwrap();
+    let placement =
+        slag_common::onnx::Placement::new(slag_common::onnx::ExecutionProvider::Cpu, 0, 0);
+    let embed = |path: String| -> Vec<f32> {
+        let mut model = slag_common::onnx::OnnxModel::load(Path::new(&path), &placement).unwrap();
+        let input =
+            ort::value::TensorRef::from_array_view(([1usize, 3, 1024, 1024], pixels.as_slice()))
+                .unwrap();
+        let out = model
+            .session_mut()
+            .run(ort::inputs!["pixel_values" => input])
+            .unwrap();
+        out["image_embeddings"]
+            .try_extract_tensor::<f32>()
+            .unwrap()
+            .1
+            .to_vec()
+    };
+    let plain = embed(s("plain/sam-tiny-encoder.onnx"));
+    let fused = embed(s("fused/sam-tiny-encoder.onnx"));
+    assert_eq!(plain.len(), 256 * 64 * 64);
+    let scale = plain.iter().fold(0f32, |m, v| m.max(v.abs()));
+    let diff = plain
+        .iter()
+        .zip(&fused)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        scale > 0.0 && diff <= 1e-4 * scale,
+        "max |diff| {diff} at scale {scale}"
+    );
+}
