@@ -151,7 +151,7 @@ fn load_generation(edge: &EdgeStore, scene: &str) -> Result<Generation> {
         // A mixture scene: its codebook first (verified; missing or corrupt is an error,
         // since no row can be scored without it).
         Some(m) => {
-            let cb = edge.codebook(&manifest)?;
+            let cb = edge.codebook(manifest)?;
             let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
                 slag_common::Error::format("<manifest>", "codebook checksum is not hex")
             })?;
