@@ -8,7 +8,7 @@
 
 mod support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 use slag_common::Error;
@@ -17,8 +17,8 @@ use slag_edge::engine::Engine;
 use slag_edge::fetch::fetch;
 use slag_edge::store::{EdgeStore, FetchRecord, Stored};
 use support::{
-    fixture, grid_fetch_params, grid_scene, output_blocking, shard_server, slag_edge_with_log,
-    temp_store, text_model_args,
+    fixture, grid_fetch_params, grid_scene, open_after_drop, output_blocking, shard_path,
+    shard_server, slag_edge_with_log, temp_store, text_model_args,
 };
 
 /// `err` is the refusal of a manifest that is not a set.
@@ -27,12 +27,6 @@ fn assert_not_a_set(err: &Error, what: &str) {
         matches!(err, Error::Shard(ShardError::ManifestNotASet(_))),
         "{what}: {err}"
     );
-}
-
-fn shard_path(store: &EdgeStore, tile: u64) -> PathBuf {
-    let m = store.manifest("grid").unwrap().unwrap();
-    let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
-    store.shard_path("grid", t).unwrap()
 }
 
 /// Loads the scene on a blocking thread, failing (instead of hanging) after 20 s.
@@ -182,22 +176,6 @@ async fn what_is_not_a_regular_shard_file_is_reported_never_followed_and_one_fet
             .unwrap()
             .count();
         assert_eq!(q, 1, "case {i}");
-    }
-}
-
-/// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
-fn open_after_drop(root: &Path) -> EdgeStore {
-    let t0 = std::time::Instant::now();
-    loop {
-        match EdgeStore::open(root) {
-            Err(e)
-                if e.to_string().contains("could not acquire lock")
-                    && t0.elapsed() < Duration::from_secs(20) =>
-            {
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            other => break other.unwrap(),
-        }
     }
 }
 

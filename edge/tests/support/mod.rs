@@ -571,6 +571,29 @@ pub fn stored_ids(store: &EdgeStore) -> Vec<u64> {
     v
 }
 
+/// The path of tile `tile`'s shard of scene `grid` in `store`.
+pub fn shard_path(store: &EdgeStore, tile: u64) -> std::path::PathBuf {
+    let m = store.manifest("grid").unwrap().unwrap();
+    let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
+    store.shard_path("grid", t).unwrap()
+}
+
+/// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
+pub fn open_after_drop(root: &std::path::Path) -> EdgeStore {
+    let t0 = std::time::Instant::now();
+    loop {
+        match EdgeStore::open(root) {
+            Err(e)
+                if e.to_string().contains("could not acquire lock")
+                    && t0.elapsed() < Duration::from_secs(20) =>
+            {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            other => break other.unwrap(),
+        }
+    }
+}
+
 /// How many files the store at `root` holds in `partial/` (downloads not yet committed).
 pub fn partial_files(root: &std::path::Path) -> usize {
     std::fs::read_dir(root.join("partial")).unwrap().count()
