@@ -19,8 +19,8 @@ use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
 use slag_edge::query::RawQuery;
 use slag_edge::store::EdgeStore;
 use support::{
-    BasisEmbedder, exact_answer, fixture, grid_fetch_params, grid_scene, open_after_drop,
-    output_blocking, partial_files, serve_on_loopback, shard_path, shard_server,
+    BasisEmbedder, color_clip_text_model, exact_answer, grid_fetch_params, grid_scene,
+    open_after_drop, output_blocking, partial_files, serve_on_loopback, shard_path, shard_server,
     slag_edge_with_log, success_json, temp_store, text_model_args,
 };
 
@@ -431,10 +431,7 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
     }
     // 512-d so that color-clip's text tower fits the stored embeddings.
     let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     let check = |store: &Path| {
         let s = store.display().to_string();
         slag_edge(&text_model_args("check", &s, "grid", [&tm, &tok]))

@@ -528,6 +528,15 @@ pub fn fixture(rel: &str) -> String {
         .to_string()
 }
 
+/// color-clip's text tower and the CLIP tokenizer (fixtures), as `[TEXT_MODEL, TOKENIZER]` of
+/// [`text_model_args`]: a 512-d text tower, for scenes of 512-d embeddings.
+pub fn color_clip_text_model() -> [String; 2] {
+    [
+        fixture("clip/color-clip-textual.onnx"),
+        fixture("clip/clip-tokenizer.json"),
+    ]
+}
+
 /// `true` when ONNX Runtime is not set up and the caller is to skip: only allowed with
 /// `SLAG_SKIP_ORT` set; without it a missing `ORT_DYLIB_PATH` fails the test with the remedy.
 pub fn skip_without_ort() -> bool {
