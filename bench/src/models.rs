@@ -71,14 +71,9 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// Plain cosine of `a` and `b`: [`centred_cosine`] about a zero mean.
 fn cosine(a: &[f32], b: &[f32]) -> f64 {
-    let (mut ab, mut aa, mut bb) = (0f64, 0f64, 0f64);
-    for (&x, &y) in a.iter().zip(b) {
-        ab += f64::from(x) * f64::from(y);
-        aa += f64::from(x) * f64::from(x);
-        bb += f64::from(y) * f64::from(y);
-    }
-    ab / (aa.sqrt() * bb.sqrt()).max(1e-30)
+    centred_cosine(a, b, std::iter::repeat(0.0))
 }
 
 /// The mean of equal-length rows.
@@ -94,10 +89,10 @@ fn mean_row(rows: &[Vec<f32>]) -> Vec<f64> {
     m
 }
 
-/// Cosine of `a − mean` and `b − mean`.
-fn centred_cosine(a: &[f32], b: &[f32], mean: &[f64]) -> f64 {
+/// Cosine of `a − mean` and `b − mean`, summed in f64 (`mean` yields one value per component).
+fn centred_cosine(a: &[f32], b: &[f32], mean: impl IntoIterator<Item = f64>) -> f64 {
     let (mut ab, mut aa, mut bb) = (0f64, 0f64, 0f64);
-    for ((&x, &y), &m) in a.iter().zip(b).zip(mean) {
+    for ((&x, &y), m) in a.iter().zip(b).zip(mean) {
         let (x, y) = (f64::from(x) - m, f64::from(y) - m);
         ab += x * y;
         aa += x * x;
@@ -224,7 +219,7 @@ fn clip_rows(
                 let cc: Vec<f64> = r
                     .iter()
                     .zip(&emb)
-                    .map(|(x, y)| centred_cosine(x, y, &mean))
+                    .map(|(x, y)| centred_cosine(x, y, mean.iter().copied()))
                     .collect();
                 (min_median(c), min_median(cc))
             }

@@ -481,9 +481,34 @@ pub async fn fetch_manifest(
 /// and the previous manifest stays current; rerunning resumes (partial files are kept only after
 /// a network failure: module doc).
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+    fetch_classified(store, p).await.map_err(|f| f.error)
+}
+
+/// A failed [`fetch_classified`]: the error [`fetch`] returns, and whether it is the shard
+/// server's manifest that was refused.
+#[derive(Debug)]
+pub struct FetchFailure {
+    /// What went wrong, as [`fetch`] returns it.
+    pub error: Error,
+    /// The manifest the shard server sent was refused by [`fetch_manifest`]: not a manifest,
+    /// too large, sizes the shard format does not allow, not a set of tiles, another scene's.
+    /// The server's fault, not this side's; nothing was downloaded. `false` for a network
+    /// failure ([`Error::Network`] says that already) and every later step.
+    pub bad_manifest: bool,
+}
+
+/// [`fetch`], telling a manifest the shard server sent that cannot be used from every other
+/// failure ([`FetchFailure::bad_manifest`]).
+///
+/// Errors: as [`fetch`].
+pub async fn fetch_classified(
+    store: &EdgeStore,
+    p: &FetchParams,
+) -> std::result::Result<FetchSummary, FetchFailure> {
     // One fetch at a time per store (a second one waits): [`EdgeStore::lock_fetching`].
     let _one = store.lock_fetching().await;
-    let r = fetch_inner(store, p).await;
+    let mut bad_manifest = false;
+    let r = fetch_inner(store, p, &mut bad_manifest).await;
     if let Err(e) = &r
         && !matches!(e, Error::Network { .. })
     {
@@ -502,11 +527,19 @@ pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
             Err(c) => tracing::warn!("partial downloads not removed: {c}"),
         }
     }
-    r
+    r.map_err(|error| FetchFailure {
+        error,
+        bad_manifest,
+    })
 }
 
-/// [`fetch`] without the clean-up of partial files after a failure.
-async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
+/// [`fetch`] without the clean-up of partial files after a failure; sets `bad_manifest` when
+/// [`fetch_manifest`] refuses what the server sent.
+async fn fetch_inner(
+    store: &EdgeStore,
+    p: &FetchParams,
+    bad_manifest: &mut bool,
+) -> Result<FetchSummary> {
     // Before anything is logged, requested or recorded: a secret in the URL would be all three.
     slag_common::auth::refuse_credentials_in_url(&p.server, "server")?;
     if !valid_scene_id(&p.scene) {
@@ -527,7 +560,9 @@ async fn fetch_inner(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary>
         return Err(Error::param("jobs", 0, "at least 1 download at a time"));
     }
     let client = client(p.timeout)?;
-    let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref()).await?;
+    let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref())
+        .await
+        .inspect_err(|e| *bad_manifest = !matches!(e, Error::Network { .. }))?;
     let (center, scene_radius, frame) = selection_disc(&manifest, p.center, p.radius, p.frame)?;
     let selected = select_tiles(&manifest, p.center, p.radius, p.frame)?;
 

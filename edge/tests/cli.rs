@@ -9,8 +9,9 @@ use std::process::{Command, Output};
 
 use slag_common::shards::Dtype;
 use support::{
-    Grid, assert_success, fetch_args, fixture, grid_scene, grid_scene_segmented, output_blocking,
-    shard_server, slag_edge_command, slag_edge_with_log, success_json, text_model_args,
+    Grid, assert_success, color_clip_text_model, fetch_args, fixture, grid_scene,
+    grid_scene_segmented, output_blocking, shard_server, slag_edge_command, slag_edge_with_log,
+    success_json, text_model_args,
 };
 
 fn slag_edge(args: &[&str]) -> Output {
@@ -53,10 +54,7 @@ async fn fetch_check_and_query_from_the_command_line() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--center"));
 
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     if support::skip_without_ort() {
         return;
     }
@@ -208,10 +206,7 @@ async fn query_smooth_segment_from_the_command_line() {
     if support::skip_without_ort() {
         return;
     }
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     // Tile 0 only (20 Gaussians, ids 0..20), four segments of five (id % 4).
     let segmented = grid_scene_segmented(Grid("grid", 3, 3, 20, 512, Dtype::F16, 1), &|id| id % 4);
     let dir = tempfile::tempdir().unwrap();

@@ -9,7 +9,8 @@ use std::process::Stdio;
 
 use slag_common::shards::Dtype;
 use support::{
-    assert_success, fetch_args, fixture, grid_scene, output_blocking, shard_server, text_model_args,
+    assert_success, color_clip_text_model, fetch_args, grid_scene, output_blocking, shard_server,
+    text_model_args,
 };
 
 /// Runs `serve` with stderr piped until it logs that it listens, then stops it: the log line is
@@ -32,10 +33,7 @@ async fn serve_logs_without_colour_codes_into_a_pipe() {
     let fetch = command(&fetch_args(&server.url, &store, "100"));
     assert_success(&output_blocking(fetch).await, "fetch");
 
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     let serve = text_model_args("serve", &store, "grid", [&tm, &tok]);
     let mut child = command(&[&serve[..], &["--addr", "127.0.0.1:0"]].concat())
         .stdout(Stdio::null())

@@ -9,10 +9,9 @@
 
 mod support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
 
 use slag_common::shards::{Dtype, MAX_MANIFEST_BYTES, ShardLayout, TileInfo};
 use slag_common::{Error, Resource};
@@ -20,9 +19,9 @@ use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
 use slag_edge::query::RawQuery;
 use slag_edge::store::EdgeStore;
 use support::{
-    BasisEmbedder, exact_answer, fixture, grid_fetch_params, grid_scene, output_blocking,
-    partial_files, serve_on_loopback, shard_server, slag_edge_with_log, success_json, temp_store,
-    text_model_args,
+    BasisEmbedder, color_clip_text_model, exact_answer, grid_fetch_params, grid_scene,
+    open_after_drop, output_blocking, partial_files, serve_on_loopback, shard_path, shard_server,
+    slag_edge_with_log, success_json, temp_store, text_model_args,
 };
 
 fn params(url: &str) -> FetchParams {
@@ -60,12 +59,6 @@ fn quarantined(dir: &Path) -> Vec<String> {
                 .collect()
         })
         .unwrap_or_default()
-}
-
-fn shard_path(store: &EdgeStore, tile: u64) -> PathBuf {
-    let m = store.manifest("grid").unwrap().unwrap();
-    let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
-    store.shard_path("grid", t).unwrap()
 }
 
 /// `err` is the typed refusal of a `resource` limit.
@@ -386,22 +379,6 @@ fn damage_db(root: &Path, only_data: bool) {
     walk(&root.join("db"), only_data);
 }
 
-/// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
-fn open_after_drop(root: &Path) -> EdgeStore {
-    let t0 = std::time::Instant::now();
-    loop {
-        match EdgeStore::open(root) {
-            Err(e)
-                if e.to_string().contains("could not acquire lock")
-                    && t0.elapsed() < Duration::from_secs(20) =>
-            {
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            other => break other.unwrap(),
-        }
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn post_fetch_sends_the_configured_shard_token() {
     let server = shard_server(
@@ -454,10 +431,7 @@ async fn check_fails_naming_missing_corrupt_and_zero_shards() {
     }
     // 512-d so that color-clip's text tower fits the stored embeddings.
     let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     let check = |store: &Path| {
         let s = store.display().to_string();
         slag_edge(&text_model_args("check", &s, "grid", [&tm, &tok]))

@@ -1,5 +1,6 @@
 //! The store's integrity rules: a manifest must be a set (no tile listed twice, counts that add
-//! up), refused before anything is stored, on fetch and on load; the store reads only regular
+//! up), refused before anything is stored, on fetch and on load (`POST /fetch` of such a
+//! manifest, or of one in another format, answers 502); the store reads only regular
 //! files: a FIFO, a symbolic link (to `/dev/zero`, dangling, or to a valid shard outside the
 //! store) or a longer file in a shard's place is reported at once, never followed or read past
 //! the manifest's length, and one fetch replaces it with the real shard; a database folder
@@ -8,7 +9,8 @@
 
 mod support;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use slag_common::Error;
@@ -17,8 +19,9 @@ use slag_edge::engine::Engine;
 use slag_edge::fetch::fetch;
 use slag_edge::store::{EdgeStore, FetchRecord, Stored};
 use support::{
-    fixture, grid_fetch_params, grid_scene, output_blocking, shard_server, slag_edge_with_log,
-    temp_store, text_model_args,
+    BasisEmbedder, color_clip_text_model, error_message, grid_fetch_params, grid_scene,
+    grid_serve_options, open_after_drop, output_blocking, send_json, serve_store, shard_path,
+    shard_server, slag_edge_with_log, temp_store, text_model_args,
 };
 
 /// `err` is the refusal of a manifest that is not a set.
@@ -27,12 +30,6 @@ fn assert_not_a_set(err: &Error, what: &str) {
         matches!(err, Error::Shard(ShardError::ManifestNotASet(_))),
         "{what}: {err}"
     );
-}
-
-fn shard_path(store: &EdgeStore, tile: u64) -> PathBuf {
-    let m = store.manifest("grid").unwrap().unwrap();
-    let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
-    store.shard_path("grid", t).unwrap()
 }
 
 /// Loads the scene on a blocking thread, failing (instead of hanging) after 20 s.
@@ -98,6 +95,54 @@ async fn a_manifest_that_is_not_a_set_is_refused_before_anything_is_stored() {
         matches!(&err, Error::Shard(ShardError::ManifestNotASet(m)) if m.contains("listed twice")),
         "{err}"
     );
+}
+
+/// `POST /fetch` from a shard server whose manifest cannot be used (not a set of tiles, or of
+/// another format) is the shard server's fault: 502, saying that its manifest is bad; the scene
+/// fetched before keeps answering.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn post_fetch_of_a_bad_manifest_is_502_naming_the_shard_servers_manifest() {
+    let server = shard_server(grid_scene("grid", 2, 2, 25, 8, Dtype::F16, 1), None).await;
+    let (_dir, store) = temp_store();
+    fetch(&store, &grid_fetch_params(&server.url, 100.0))
+        .await
+        .unwrap();
+    let url = serve_store(
+        store,
+        Arc::new(BasisEmbedder::new(8)),
+        grid_serve_options(None, false),
+    )
+    .await;
+    let good = server.state.scene.read().unwrap().manifest.clone();
+    let mut twice = good.clone();
+    twice.tiles.push(good.tiles[0].clone());
+    let mut foreign = good.clone();
+    foreign.format = "not-a-slag-manifest".into();
+    let client = reqwest::Client::new();
+    for (name, doctored, cause) in [
+        ("a tile twice", twice, "not a set of tiles"),
+        ("another format", foreign, "not-a-slag-manifest"),
+    ] {
+        server.state.scene.write().unwrap().manifest = doctored;
+        let (status, v) = send_json(
+            client
+                .post(format!("{url}/fetch"))
+                .json(&serde_json::json!({"center": [0.0, 0.0], "radius": 100.0})),
+        )
+        .await;
+        assert_eq!(
+            (status, &v["status"]),
+            (502, &serde_json::json!(502)),
+            "{name}: {v}"
+        );
+        let m = error_message(&v);
+        assert!(
+            m.contains("shard server's manifest is bad") && m.contains(cause),
+            "{name}: {m}"
+        );
+        let (status, v) = send_json(client.get(format!("{url}/query?text=t0"))).await;
+        assert_eq!(status, 200, "{name}: {v}");
+    }
 }
 
 /// A thing put in place of tile 0's shard file: its name, and how it is made at `path`
@@ -185,22 +230,6 @@ async fn what_is_not_a_regular_shard_file_is_reported_never_followed_and_one_fet
     }
 }
 
-/// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
-fn open_after_drop(root: &Path) -> EdgeStore {
-    let t0 = std::time::Instant::now();
-    loop {
-        match EdgeStore::open(root) {
-            Err(e)
-                if e.to_string().contains("could not acquire lock")
-                    && t0.elapsed() < Duration::from_secs(20) =>
-            {
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            other => break other.unwrap(),
-        }
-    }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_database_folder_holding_a_link_or_a_fifo_is_set_aside_and_rebuilt() {
     let server = shard_server(grid_scene("grid", 2, 2, 25, 8, Dtype::F16, 1), None).await;
@@ -248,10 +277,7 @@ async fn check_names_every_entry_that_is_not_a_regular_verified_shard_without_ha
     }
     // 512-d so that color-clip's text tower fits the stored embeddings.
     let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
-    let (tm, tok) = (
-        fixture("clip/color-clip-textual.onnx"),
-        fixture("clip/clip-tokenizer.json"),
-    );
+    let [tm, tok] = color_clip_text_model();
     for (i, (kind, replace)) in replacements().into_iter().enumerate() {
         let dir = tempfile::tempdir().unwrap();
         let outside = tempfile::tempdir().unwrap();

@@ -30,6 +30,25 @@ struct Edge {
     client: reqwest::Client,
 }
 
+impl Edge {
+    /// `POST /fetch` with the JSON `body`: the status and the JSON answer.
+    async fn post_fetch(&self, body: serde_json::Value) -> (u16, serde_json::Value) {
+        send_json(self.client.post(format!("{}/fetch", self.url)).json(&body)).await
+    }
+
+    /// The body of `GET /stats`, as text.
+    async fn stats(&self) -> String {
+        self.client
+            .get(format!("{}/stats", self.url))
+            .send()
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap()
+    }
+}
+
 /// A shard server that wants [`SHARD_TOKEN`], a store fetched from it, and the edge serving
 /// that store with `token`.
 async fn start(token: Option<&str>) -> Edge {
@@ -95,24 +114,17 @@ async fn a_fetch_url_with_credentials_is_refused_and_no_secret_is_shown_or_store
     let e = start(None).await;
     let host = e.shards.trim_start_matches("http://");
     let with_credentials = format!("http://robot:{SECRET}@{host}");
-    let (status, v) = send_json(e.client.post(format!("{}/fetch", e.url)).json(
-        &serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "server": with_credentials}),
-    ))
-    .await;
+    let (status, v) = e
+        .post_fetch(
+            serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "server": with_credentials}),
+        )
+        .await;
     assert_eq!(status, 400, "{v}");
     let m = error_message(&v);
     assert!(m.contains("server") && m.contains("token"), "{m}");
     assert!(!m.contains(SECRET), "{m}");
     // Nothing saved: the last fetch is still the one without credentials.
-    let stats = e
-        .client
-        .get(format!("{}/stats", e.url))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let stats = e.stats().await;
     assert!(
         !stats.contains(SECRET) && !stats.contains(SHARD_TOKEN),
         "{stats}"
@@ -122,22 +134,14 @@ async fn a_fetch_url_with_credentials_is_refused_and_no_secret_is_shown_or_store
     assert_no_secret_stored(e.dir.path());
 
     // A fetch with the token in the body: it works, and the token is neither shown nor stored.
-    let (status, v) =
-        send_json(e.client.post(format!("{}/fetch", e.url)).json(
-            &serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "token": SHARD_TOKEN}),
-        ))
+    let (status, v) = e
+        .post_fetch(
+            serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "token": SHARD_TOKEN}),
+        )
         .await;
     assert_eq!(status, 200, "{v}");
     assert!(!v.to_string().contains(SHARD_TOKEN), "{v}");
-    let stats = e
-        .client
-        .get(format!("{}/stats", e.url))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let stats = e.stats().await;
     assert!(!stats.contains(SHARD_TOKEN), "{stats}");
     assert_no_secret_stored(e.dir.path());
 }

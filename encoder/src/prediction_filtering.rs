@@ -36,18 +36,20 @@ pub fn gaussian_classes(
     Ok(scores
         .chunks_exact(classes)
         .zip(observed)
-        .map(|(row, &o)| {
-            o.then(|| {
-                let mut best = 0usize;
-                for (c, &v) in row.iter().enumerate() {
-                    if v > row[best] {
-                        best = c;
-                    }
-                }
-                best as u8
-            })
-        })
+        .map(|(row, &o)| o.then(|| argmax(row) as u8))
         .collect())
+}
+
+/// Index of the first largest value of `v` (ties to the smaller index; a NaN never wins), 0 for
+/// an empty `v`.
+fn argmax<T: PartialOrd>(v: &[T]) -> usize {
+    let mut best = 0usize;
+    for (i, x) in v.iter().enumerate() {
+        if *x > v[best] {
+            best = i;
+        }
+    }
+    best
 }
 
 fn check(scores: &[f32], n: usize, classes: usize) -> Result<()> {
@@ -73,6 +75,20 @@ pub fn one_hot(classes: &[Option<u8>], c: usize) -> Vec<f32> {
     t
 }
 
+/// One-hot rows of the classes `vote` chooses from each Gaussian's own class
+/// ([`gaussian_classes`]): the form of every one-hot PF table.
+///
+/// Errors: `scores` not `observed.len() × classes`, or `vote`'s ([`Error::Internal`]).
+fn vote_table(
+    scores: &[f32],
+    observed: &[bool],
+    classes: usize,
+    vote: impl FnOnce(&[Option<u8>]) -> Result<Vec<Option<u8>>>,
+) -> Result<Vec<f32>> {
+    let own = gaussian_classes(scores, observed, classes)?;
+    Ok(one_hot(&vote(&own)?, classes))
+}
+
 /// The paper's PF: one-hot rows of each segment's majority class over its observed Gaussians.
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
@@ -82,8 +98,9 @@ pub fn majority_table(
     segments: &[u32],
     classes: usize,
 ) -> Result<Vec<f32>> {
-    let own = gaussian_classes(scores, observed, classes)?;
-    Ok(one_hot(&majority_per_segment(&own, segments)?, classes))
+    vote_table(scores, observed, classes, |own| {
+        majority_per_segment(own, segments)
+    })
 }
 
 /// Each segment's class by votes weighted by `weights[k]` (≥ 0; non-finite counts 0) over its
@@ -114,12 +131,7 @@ pub fn weighted_majority(
     let winner: HashMap<u32, u8> = votes
         .into_iter()
         .filter_map(|(s, v)| {
-            let mut best = 0usize;
-            for c in 1..256 {
-                if v[c] > v[best] {
-                    best = c;
-                }
-            }
+            let best = argmax(&v);
             (v[best] > 0.0).then_some((s, best as u8))
         })
         .collect();
@@ -137,11 +149,9 @@ pub fn weighted_table(
     segments: &[u32],
     classes: usize,
 ) -> Result<Vec<f32>> {
-    let own = gaussian_classes(scores, observed, classes)?;
-    Ok(one_hot(
-        &weighted_majority(&own, weights, segments)?,
-        classes,
-    ))
+    vote_table(scores, observed, classes, |own| {
+        weighted_majority(own, weights, segments)
+    })
 }
 
 /// Each row's margin: its best score minus its second best.
@@ -174,31 +184,31 @@ pub fn confident_table(
     segments: &[u32],
     classes: usize,
 ) -> Result<Vec<f32>> {
-    let own = gaussian_classes(scores, observed, classes)?;
-    let seg = weighted_majority(&own, weights, segments)?;
-    let m = margins(scores, classes);
-    let mut seen: Vec<f32> = m
-        .iter()
-        .zip(observed)
-        .filter(|(_, o)| **o)
-        .map(|(v, _)| *v)
-        .collect();
-    let median = if seen.is_empty() {
-        f32::INFINITY
-    } else {
-        let mid = seen.len() / 2;
-        *seen.select_nth_unstable_by(mid, f32::total_cmp).1
-    };
-    let chosen: Vec<Option<u8>> = own
-        .iter()
-        .zip(&seg)
-        .zip(&m)
-        .map(|((o, s), &mk)| match o {
-            Some(c) if mk >= median => Some(*c),
-            _ => s.or(*o),
-        })
-        .collect();
-    Ok(one_hot(&chosen, classes))
+    vote_table(scores, observed, classes, |own| {
+        let seg = weighted_majority(own, weights, segments)?;
+        let m = margins(scores, classes);
+        let mut seen: Vec<f32> = m
+            .iter()
+            .zip(observed)
+            .filter(|(_, o)| **o)
+            .map(|(v, _)| *v)
+            .collect();
+        let median = if seen.is_empty() {
+            f32::INFINITY
+        } else {
+            let mid = seen.len() / 2;
+            *seen.select_nth_unstable_by(mid, f32::total_cmp).1
+        };
+        Ok(own
+            .iter()
+            .zip(&seg)
+            .zip(&m)
+            .map(|((o, s), &mk)| match o {
+                Some(c) if mk >= median => Some(*c),
+                _ => s.or(*o),
+            })
+            .collect())
+    })
 }
 
 /// Segment-mean scores: each class score averaged over the segment's observed Gaussians.

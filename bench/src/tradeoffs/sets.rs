@@ -3,23 +3,11 @@
 use slag_common::Result;
 use slag_common::embeddings::Embeddings;
 
-/// IoU `|a ∩ b| / |a ∪ b|` of two ascending, duplicate-free id lists; `None` when both are empty
-/// (the union is empty: no evidence either way).
+/// IoU `|a ∩ b| / |a ∪ b|` of two ascending, duplicate-free id lists
+/// ([`slag_encoder::eval::instances::member_iou`]); `None` when both are empty (the union is
+/// empty: no evidence either way).
 pub fn iou_sorted(a: &[u32], b: &[u32]) -> Option<f64> {
-    let (mut i, mut j, mut inter) = (0usize, 0usize, 0usize);
-    while i < a.len() && j < b.len() {
-        match a[i].cmp(&b[j]) {
-            std::cmp::Ordering::Less => i += 1,
-            std::cmp::Ordering::Greater => j += 1,
-            std::cmp::Ordering::Equal => {
-                inter += 1;
-                i += 1;
-                j += 1;
-            }
-        }
-    }
-    let union = a.len() + b.len() - inter;
-    (union > 0).then(|| inter as f64 / union as f64)
+    (!(a.is_empty() && b.is_empty())).then(|| slag_encoder::eval::instances::member_iou(a, b))
 }
 
 /// Mean IoU over prompts, `answers[p]` against `reference[p]` (both ascending id lists per

@@ -71,7 +71,7 @@ use slag_common::{Error, ErrorKind, Result};
 pub mod web;
 
 pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M, ServedEngine};
-use crate::fetch::{self, Center, FetchParams};
+use crate::fetch::{self, Center, FetchFailure, FetchParams};
 use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
 pub use crate::scan::hnsw::HnswBackend;
 use crate::store::EdgeStore;
@@ -986,7 +986,23 @@ async fn fetch_post(
         progress: false,
         frame,
     };
-    match fetch::fetch(&state.edge, &params).await {
+    let fetched = fetch::fetch_classified(&state.edge, &params).await;
+    // What the shard server sent as its manifest cannot be used: its fault (502), not this
+    // side's.
+    if let Err(FetchFailure {
+        error: e,
+        bad_manifest: true,
+    }) = &fetched
+    {
+        return error(
+            StatusCode::BAD_GATEWAY,
+            format!(
+                "the shard server's manifest is bad, so nothing was fetched and the scene served \
+                 before keeps answering: {e}"
+            ),
+        );
+    }
+    match fetched.map_err(|f| f.error) {
         Ok(summary) => match reload_engine(&state).await {
             Ok(()) => axum::Json(summary).into_response(),
             Err(e) => error(status_of(&e), e.to_string()),

@@ -184,7 +184,9 @@ mod tests {
                 .expect("missing")
                 .is_none()
         );
-        let cases: [(&str, &dyn Fn(&Path)); 4] = [
+        /// A kind of entry that is not a regular file, and how to make one at a path.
+        type Case<'a> = (&'a str, &'a dyn Fn(&Path));
+        let cases: [Case<'_>; 4] = [
             ("symbolic link", &|p| {
                 std::os::unix::fs::symlink("/dev/zero", p).expect("link")
             }),

@@ -528,6 +528,15 @@ pub fn fixture(rel: &str) -> String {
         .to_string()
 }
 
+/// color-clip's text tower and the CLIP tokenizer (fixtures), as `[TEXT_MODEL, TOKENIZER]` of
+/// [`text_model_args`]: a 512-d text tower, for scenes of 512-d embeddings.
+pub fn color_clip_text_model() -> [String; 2] {
+    [
+        fixture("clip/color-clip-textual.onnx"),
+        fixture("clip/clip-tokenizer.json"),
+    ]
+}
+
 /// `true` when ONNX Runtime is not set up and the caller is to skip: only allowed with
 /// `SLAG_SKIP_ORT` set; without it a missing `ORT_DYLIB_PATH` fails the test with the remedy.
 pub fn skip_without_ort() -> bool {
@@ -569,6 +578,29 @@ pub fn stored_ids(store: &EdgeStore) -> Vec<u64> {
         .collect();
     v.sort_unstable();
     v
+}
+
+/// The path of tile `tile`'s shard of scene `grid` in `store`.
+pub fn shard_path(store: &EdgeStore, tile: u64) -> std::path::PathBuf {
+    let m = store.manifest("grid").unwrap().unwrap();
+    let t = m.tiles.iter().find(|t| t.id == tile).unwrap();
+    store.shard_path("grid", t).unwrap()
+}
+
+/// Opens the store, waiting for a dropped database's flusher thread to let go of its lock.
+pub fn open_after_drop(root: &std::path::Path) -> EdgeStore {
+    let t0 = std::time::Instant::now();
+    loop {
+        match EdgeStore::open(root) {
+            Err(e)
+                if e.to_string().contains("could not acquire lock")
+                    && t0.elapsed() < Duration::from_secs(20) =>
+            {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            other => break other.unwrap(),
+        }
+    }
 }
 
 /// How many files the store at `root` holds in `partial/` (downloads not yet committed).

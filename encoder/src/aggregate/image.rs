@@ -644,6 +644,17 @@ mod expand_tests {
         Mask::from_pixels(w, h, pixels).expect("non-empty box")
     }
 
+    /// A [`box_mask`] of `w × h` at a random corner `(x0, y0)` with `x0 < at[0]`, `y0 < at[1]`,
+    /// of random size `(min + r % span[0], min + r % span[1])`.
+    fn random_box(state: &mut u64, w: u32, h: u32, at: [u64; 2], min: u32, span: [u64; 2]) -> Mask {
+        let (x0, y0) = ((next(state) % at[0]) as u32, (next(state) % at[1]) as u32);
+        let (mw, mh) = (
+            min + (next(state) % span[0]) as u32,
+            min + (next(state) % span[1]) as u32,
+        );
+        box_mask(w, h, [x0, y0, mw, mh])
+    }
+
     /// Pixel labels against a sequential reference at the masks' own size (each pixel's set is
     /// the masks covering it; labels numbered by row-major first appearance).
     #[test]
@@ -651,17 +662,7 @@ mod expand_tests {
         let mut state = 0x0dd5_eed5_1234_5678u64;
         let (w, h) = (37u32, 301u32);
         let masks: Vec<Mask> = (0..70)
-            .map(|_| {
-                let (x0, y0) = (
-                    (next(&mut state) % 30) as u32,
-                    (next(&mut state) % 290) as u32,
-                );
-                let (mw, mh) = (
-                    1 + (next(&mut state) % 12) as u32,
-                    1 + (next(&mut state) % 60) as u32,
-                );
-                box_mask(w, h, [x0, y0, mw, mh])
-            })
+            .map(|_| random_box(&mut state, w, h, [30, 290], 1, [12, 60]))
             .collect();
         let mut ids: std::collections::HashMap<Vec<u32>, u32> = Default::default();
         let mut masks_of = vec![Vec::new()];
@@ -690,17 +691,7 @@ mod expand_tests {
         let mut state = 0x51ed_270b_c0ff_ee11u64;
         let (w, h) = (64u32, 48u32);
         let masks: Vec<Mask> = (0..30)
-            .map(|_| {
-                let (x0, y0) = (
-                    (next(&mut state) % 56) as u32,
-                    (next(&mut state) % 40) as u32,
-                );
-                let (mw, mh) = (
-                    2 + (next(&mut state) % 30) as u32,
-                    2 + (next(&mut state) % 30) as u32,
-                );
-                box_mask(w, h, [x0, y0, mw, mh])
-            })
+            .map(|_| random_box(&mut state, w, h, [56, 40], 2, [30, 30]))
             .collect();
         for overlap in [MaskOverlap::All, MaskOverlap::Finest] {
             let labels = overlap_labels(&masks, w, h, overlap);

@@ -124,13 +124,13 @@ impl PlacedObject {
 /// Largest `k` of [`object_layout`].
 pub const MAX_OBJECTS: usize = 6;
 
-/// The first `k` (1..=[`MAX_OBJECTS`]) objects of a fixed layout on a terrain of side `extent`:
-/// boxes of 6–12 % of the extent, in red (twice: opposite corners, 0.57·extent apart), blue,
-/// yellow, green and purple, at least 0.2·extent apart (edge to edge ≥ 0.1·extent), all within
-/// 0.3·extent of the centre so every view of the ring sees them.
+/// One box of a layout: colour (index into [`COLOUR_NAMES`]), centre / extent, size / extent.
+type ObjectRow = (usize, [f64; 2], [f64; 3]);
+
+/// The first `k` (1..=[`MAX_OBJECTS`]) boxes of `table`, scaled to a terrain of side `extent`.
 ///
 /// Errors: [`Error::Param`] `objects` for `k` outside 1..=[`MAX_OBJECTS`].
-pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
+fn place(table: &[ObjectRow; MAX_OBJECTS], k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
     if !(1..=MAX_OBJECTS).contains(&k) {
         return Err(Error::param(
             "objects",
@@ -138,15 +138,6 @@ pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
             format!("a number of objects in 1..={MAX_OBJECTS}"),
         ));
     }
-    // (colour, centre / extent, size / extent)
-    let table: [(usize, [f64; 2], [f64; 3]); MAX_OBJECTS] = [
-        (0, [-0.2, -0.2], [0.10, 0.07, 0.05]),
-        (0, [0.2, 0.2], [0.08, 0.08, 0.04]),
-        (5, [0.2, -0.2], [0.07, 0.12, 0.05]),
-        (2, [-0.2, 0.2], [0.10, 0.10, 0.03]),
-        (3, [0.0, 0.0], [0.08, 0.06, 0.07]),
-        (6, [0.0, 0.25], [0.06, 0.06, 0.04]),
-    ];
     Ok(table[..k]
         .iter()
         .map(|&(colour, c, sz)| PlacedObject {
@@ -158,6 +149,25 @@ pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
         .collect())
 }
 
+/// The first `k` (1..=[`MAX_OBJECTS`]) objects of a fixed layout on a terrain of side `extent`:
+/// boxes of 6–12 % of the extent, in red (twice: opposite corners, 0.57·extent apart), blue,
+/// yellow, green and purple, at least 0.2·extent apart (edge to edge ≥ 0.1·extent), all within
+/// 0.3·extent of the centre so every view of the ring sees them.
+///
+/// Errors: [`Error::Param`] `objects` for `k` outside 1..=[`MAX_OBJECTS`].
+pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
+    // (colour, centre / extent, size / extent)
+    let table: [ObjectRow; MAX_OBJECTS] = [
+        (0, [-0.2, -0.2], [0.10, 0.07, 0.05]),
+        (0, [0.2, 0.2], [0.08, 0.08, 0.04]),
+        (5, [0.2, -0.2], [0.07, 0.12, 0.05]),
+        (2, [-0.2, 0.2], [0.10, 0.10, 0.03]),
+        (3, [0.0, 0.0], [0.08, 0.06, 0.07]),
+        (6, [0.0, 0.25], [0.06, 0.06, 0.04]),
+    ];
+    place(&table, k, extent)
+}
+
 /// The first `k` (1..=[`MAX_OBJECTS`]) objects of a layout of **touching** boxes on a terrain of
 /// side `extent`: three pairs, each of two colours, standing on the ground side by side so that
 /// they share part of a wall (red beside blue along x, yellow beside green along y, orange
@@ -167,15 +177,8 @@ pub fn object_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
 ///
 /// Errors: [`Error::Param`] `objects` for `k` outside 1..=[`MAX_OBJECTS`].
 pub fn touching_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
-    if !(1..=MAX_OBJECTS).contains(&k) {
-        return Err(Error::param(
-            "objects",
-            k,
-            format!("a number of objects in 1..={MAX_OBJECTS}"),
-        ));
-    }
     // (colour, centre / extent, size / extent); each second box's wall lies on its partner's.
-    let table: [(usize, [f64; 2], [f64; 3]); MAX_OBJECTS] = [
+    let table: [ObjectRow; MAX_OBJECTS] = [
         (0, [-0.20, -0.15], [0.10, 0.08, 0.05]),
         (5, [-0.11, -0.15], [0.08, 0.08, 0.07]),
         (2, [0.15, 0.10], [0.10, 0.10, 0.04]),
@@ -183,15 +186,7 @@ pub fn touching_layout(k: usize, extent: f64) -> Result<Vec<PlacedObject>> {
         (1, [0.12, -0.20], [0.08, 0.06, 0.06]),
         (6, [0.19, -0.20], [0.06, 0.06, 0.04]),
     ];
-    Ok(table[..k]
-        .iter()
-        .map(|&(colour, c, sz)| PlacedObject {
-            colour,
-            name: COLOUR_NAMES[colour],
-            center: c.map(|v| v * extent),
-            size: sz.map(|v| v * extent),
-        })
-        .collect())
+    place(&table, k, extent)
 }
 
 /// Terrain height at (x, y): amplitude 2 % of the extent, wavelength 1/6 of it.
