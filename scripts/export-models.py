@@ -114,6 +114,32 @@ def onnx_export(torch, module, args, path, input_names, output_names, dynamic_ax
     return path
 
 
+def multi_head_attention(torch):
+    """A torch function that exports as one ONNX Runtime `com.microsoft::MultiHeadAttention`
+    node: `apply(q, k, v, heads, scale)` with q, k, v `[batch, tokens, heads * head_size]` (one
+    head size for all three), `scale` a float or None (1/sqrt(head_size), the node's default).
+    In torch it computes scaled-dot-product attention, so an export's check against torch
+    still applies."""
+
+    class Mha(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, q, k, v, heads, scale):
+            b, s, d = q.shape
+            q, k, v = (t.reshape(b, s, heads, d // heads).transpose(1, 2) for t in (q, k, v))
+            o = torch.nn.functional.scaled_dot_product_attention(q, k, v, scale=scale)
+            return o.transpose(1, 2).reshape(b, s, d)
+
+        @staticmethod
+        def symbolic(g, q, k, v, heads, scale):
+            attrs = {"num_heads_i": heads} if scale is None else {"num_heads_i": heads,
+                                                                  "scale_f": scale}
+            out = g.op("com.microsoft::MultiHeadAttention", q, k, v, **attrs)
+            out.setType(q.type())
+            return out
+
+    return Mha
+
+
 def fuse_attention(torch, tower):
     """Replaces every self-attention `nn.MultiheadAttention` of `tower` (open_clip's visual
     transformer) by one ONNX Runtime `com.microsoft::MultiHeadAttention` node in the export: the
@@ -122,19 +148,7 @@ def fuse_attention(torch, tower):
     matrix products and a softmax. In torch the same module computes scaled-dot-product
     attention, so the export's own check against torch still applies. Returns the count."""
 
-    class Mha(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, q, k, v, heads):
-            b, s, d = q.shape
-            q, k, v = (t.reshape(b, s, heads, d // heads).transpose(1, 2) for t in (q, k, v))
-            o = torch.nn.functional.scaled_dot_product_attention(q, k, v)
-            return o.transpose(1, 2).reshape(b, s, d)
-
-        @staticmethod
-        def symbolic(g, q, k, v, heads):
-            out = g.op("com.microsoft::MultiHeadAttention", q, k, v, num_heads_i=heads)
-            out.setType(q.type())
-            return out
+    Mha = multi_head_attention(torch)
 
     class FusedAttention(torch.nn.Module):
         def __init__(self, mha):
@@ -146,7 +160,7 @@ def fuse_attention(torch, tower):
             if attn_mask is not None or k_x is not q_x or v_x is not q_x:
                 raise ValueError("fused attention covers unmasked self-attention only")
             q, k, v = torch.nn.functional.linear(q_x, self.weight, self.bias).chunk(3, dim=-1)
-            return self.out_proj(Mha.apply(q, k, v, self.heads)), None
+            return self.out_proj(Mha.apply(q, k, v, self.heads, None)), None
 
     count = 0
     for block in tower.transformer.resblocks:
@@ -180,23 +194,9 @@ def fuse_sam_attention(torch, encoder):
     (heads × 4096 × 4096 in a global block) is ever formed. In torch the replacement computes
     scaled-dot-product attention on the same widened vectors, so the export's check against
     torch applies; `check_fused_sam_encoder` compares it with the original. Returns the count."""
-    import torch.nn.functional as F
     from segment_anything.modeling.image_encoder import get_rel_pos
 
-    class Mha(torch.autograd.Function):
-        @staticmethod
-        def forward(ctx, q, k, v, heads):
-            b, s, _ = q.shape
-            q, k, v = (t.reshape(b, s, heads, -1).transpose(1, 2) for t in (q, k, v))
-            o = F.scaled_dot_product_attention(q, k, v, scale=1.0)
-            return o.transpose(1, 2).reshape(b, s, -1)
-
-        @staticmethod
-        def symbolic(g, q, k, v, heads):
-            out = g.op("com.microsoft::MultiHeadAttention", q, k, v, num_heads_i=heads,
-                       scale_f=1.0)
-            out.setType(q.type())
-            return out
+    Mha = multi_head_attention(torch)
 
     class FusedRelPosAttention(torch.nn.Module):
         def __init__(self, att):
@@ -227,7 +227,7 @@ def fuse_sam_attention(torch, encoder):
             kw_ = torch.cat([k, kh, kw, zq], dim=-1)
             vw = torch.cat([v, v.new_zeros(b, h, w, n, width + pad - d)], dim=-1)
             s = h * w
-            o = Mha.apply(*(t.reshape(b, s, n * (width + pad)) for t in (qw, kw_, vw)), n)
+            o = Mha.apply(*(t.reshape(b, s, n * (width + pad)) for t in (qw, kw_, vw)), n, 1.0)
             o = o.reshape(b, h, w, n, width + pad)[..., :d].reshape(b, h, w, c)
             return self.proj(o)
 
