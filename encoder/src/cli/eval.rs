@@ -77,6 +77,11 @@ pub struct EvalArgs {
     /// filtered in the same pass (variants named `pf-…@<folder>/<stem>`).
     #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
     pub more_segments: Vec<PathBuf>,
+    /// The encode's masks' record, measured against the colour classes with --prediction-filtering
+    /// (mask purity, and how its disagreement separates neighbours of different classes); default
+    /// mask-record.safetensors beside --embeddings when it exists.
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub mask_record: Option<PathBuf>,
 }
 
 impl From<&EvalArgs> for EvalColorsConfig {
@@ -97,6 +102,7 @@ impl From<&EvalArgs> for EvalColorsConfig {
             prediction_filtering: a.prediction_filtering,
             segments: a.segments.clone(),
             more_segments: a.more_segments.clone(),
+            mask_record: a.mask_record.clone(),
         }
     }
 }
