@@ -65,6 +65,10 @@ pub struct SegmentArgs {
     /// this (1 = they merge across anything).
     #[arg(long, default_value_t = SegmentParams::default().mask_veto)]
     pub segment_mask_veto: f32,
+    /// Segmentation: two segments never join when their regions' mask disagreement (their
+    /// Gaussians' recorded masks pooled per view) exceeds this (1 = no region veto).
+    #[arg(long, default_value_t = SegmentParams::default().region_veto)]
+    pub segment_region_veto: f32,
 }
 
 impl From<&SegmentArgs> for SegmentParams {
@@ -78,6 +82,7 @@ impl From<&SegmentArgs> for SegmentParams {
             mask_weight: a.segment_mask_weight,
             mask_unknown: a.segment_mask_unknown,
             mask_veto: a.segment_mask_veto,
+            region_veto: a.segment_region_veto,
             ..SegmentParams::default()
         }
     }
