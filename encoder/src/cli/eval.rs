@@ -82,6 +82,14 @@ pub struct EvalArgs {
     /// mask-record.safetensors beside --embeddings when it exists.
     #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
     pub mask_record: Option<PathBuf>,
+    /// With --held-out --prediction-filtering: write each Gaussian's lifted photo class (the
+    /// oracle's class of most weight; one byte per Gaussian, 255 = none) to this file.
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub photo_classes_out: Option<PathBuf>,
+    /// With --prediction-filtering (3D): also measure the segments' purity against the lifted
+    /// photo classes of this file (written by --photo-classes-out on the same encode).
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub photo_classes: Option<PathBuf>,
 }
 
 impl From<&EvalArgs> for EvalColorsConfig {
@@ -103,6 +111,8 @@ impl From<&EvalArgs> for EvalColorsConfig {
             segments: a.segments.clone(),
             more_segments: a.more_segments.clone(),
             mask_record: a.mask_record.clone(),
+            photo_classes_out: a.photo_classes_out.clone(),
+            photo_classes: a.photo_classes.clone(),
         }
     }
 }

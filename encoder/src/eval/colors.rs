@@ -71,6 +71,55 @@ pub struct EvalColorsConfig {
     /// ([`crate::eval::segment_limits`]); `None`: `mask-record.safetensors` beside the
     /// embeddings when it exists.
     pub mask_record: Option<PathBuf>,
+    /// [`run_held_out`] writes the lifted photo classes here ([`write_photo_classes`]).
+    pub photo_classes_out: Option<PathBuf>,
+    /// [`run_pf`] measures the segments against the lifted photo classes of this file (written
+    /// by a held-out pass of the same encode).
+    pub photo_classes: Option<PathBuf>,
+}
+
+/// Unlabelled Gaussian in a photo-classes file.
+pub const NO_PHOTO_CLASS: u8 = u8::MAX;
+
+/// Writes each Gaussian's lifted photo class as one byte per Gaussian, scene order
+/// ([`NO_PHOTO_CLASS`]: the oracle gave it no weight); no header.
+///
+/// Errors: I/O; a class above 254 ([`Error::Internal`]).
+pub fn write_photo_classes(path: &Path, classes: &[Option<u32>]) -> anyhow::Result<()> {
+    let bytes = classes
+        .iter()
+        .map(|c| match c {
+            None => Ok(NO_PHOTO_CLASS),
+            Some(k) if *k < u32::from(NO_PHOTO_CLASS) => Ok(*k as u8),
+            Some(k) => Err(Error::internal(format!(
+                "photo class {k} does not fit a byte"
+            ))),
+        })
+        .collect::<slag_common::Result<Vec<u8>>>()?;
+    std::fs::write(path, bytes).map_err(|e| Error::io(path, e))?;
+    Ok(())
+}
+
+/// Reads a file of [`write_photo_classes`] for a scene of `n` Gaussians.
+///
+/// Errors: I/O; a file of another length ([`Error::Mismatch`]).
+pub fn read_photo_classes(path: &Path, n: usize) -> anyhow::Result<Vec<Option<u32>>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if bytes.len() != n {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "{} holds {} photo classes but the scene has {n} Gaussians",
+                path.display(),
+                bytes.len()
+            ),
+        )
+        .into());
+    }
+    Ok(bytes
+        .into_iter()
+        .map(|b| (b != NO_PHOTO_CLASS).then_some(u32::from(b)))
+        .collect())
 }
 
 impl EvalColorsConfig {
@@ -94,6 +143,8 @@ impl EvalColorsConfig {
             segments: None,
             more_segments: Vec::new(),
             mask_record: None,
+            photo_classes_out: None,
+            photo_classes: None,
         }
     }
 }
@@ -223,6 +274,10 @@ pub struct ColourEvalPf {
     pub segment_quality: Vec<SegmentQuality>,
     /// What limits purity on this scene: the truth's local agreement, the masks' purity.
     pub segment_limits: SegmentLimits,
+    /// With `photo_classes`: each segmentation's purity against the lifted photo classes, in
+    /// the order of `segment_quality`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub photo_purity: Vec<crate::eval::segment_quality::Purity>,
 }
 
 /// One segmentation measured against the colour classes
@@ -424,7 +479,26 @@ pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
         .map(|(p, s)| segment_quality(&inputs, p, s))
         .collect::<anyhow::Result<Vec<_>>>()?;
     let segments = &all[0].1;
+    let photo_purity = match &a.photo_classes {
+        Some(p) => {
+            let lifted = read_photo_classes(p, inputs.gaussians.len())?;
+            let mut out = Vec::new();
+            for (path, s) in &all {
+                let q = crate::eval::segment_quality::purity(&lifted, &s.segments)?;
+                eprintln!(
+                    "segments {}: purity {:.4} against the lifted photo classes of {}",
+                    path.display(),
+                    q.purity,
+                    p.display()
+                );
+                out.push(q);
+            }
+            out
+        }
+        None => Vec::new(),
+    };
     Ok(ColourEvalPf {
+        photo_purity,
         without_pf: colour_3d(&inputs)?,
         with_pf: colour_3d_pf(&inputs, segments)?,
         segments: segments.segment_count,
@@ -523,6 +597,10 @@ pub struct PhotoTruthQuality {
     pub neighbour_agreement: Vec<crate::eval::segment_limits::NeighbourAgreement>,
     /// Purity of each segmentation against them.
     pub purity: Vec<crate::eval::segment_quality::Purity>,
+    /// The masks' record against them (as [`SegmentLimits`]), when there is one.
+    pub mask_purity: Option<crate::eval::segment_limits::MaskPurity>,
+    /// The record's disagreement on same- and different-class neighbours (k = 10).
+    pub mask_evidence: Option<crate::eval::segment_limits::MaskEvidence>,
 }
 
 /// Each Gaussian's class of most lifted weight (`None`: the oracle gave it none); ties to the
@@ -543,12 +621,16 @@ fn lifted_classes(scores: &[f32], c: usize) -> Vec<Option<u32>> {
 
 /// [`PhotoTruthQuality`] of `segment_sets`, said on stderr too.
 fn photo_truth_quality(
+    a: &EvalColorsConfig,
     inputs: &Inputs,
     oracle_scores: &[f32],
     c: usize,
     segment_sets: &[(PathBuf, Segments)],
 ) -> anyhow::Result<PhotoTruthQuality> {
     let lifted = lifted_classes(oracle_scores, c);
+    if let Some(p) = &a.photo_classes_out {
+        write_photo_classes(p, &lifted)?;
+    }
     let colour = observed_truth(inputs)?;
     let both: Vec<bool> = lifted
         .iter()
@@ -580,11 +662,33 @@ fn photo_truth_quality(
             n.k, n.same_share, n.local_majority, agree
         );
     }
+    let (mut mask_purity, mut mask_evidence) = (None, None);
+    if let Some(p) = mask_record_path(a) {
+        use crate::eval::segment_limits as lim;
+        let record = slag_common::mask_record::MaskRecord::read(&p)?;
+        let mp = lim::mask_purity(&lifted, &record)?;
+        let ev = lim::mask_evidence(&inputs.gaussians.means, &lifted, &record, 10)?;
+        eprintln!(
+            "masks' record against the lifted photo classes: mask purity {:.4} (best view) / \
+             {:.4} (all slots); disagreement same class {:.3} (> 0.5: {:.3}), different class \
+             {:.3} (> 0.5: {:.3})",
+            mp.best_view,
+            mp.all_slots,
+            ev.same_label.mean_disagreement,
+            ev.same_label.over_half,
+            ev.different_label.mean_disagreement,
+            ev.different_label.over_half
+        );
+        mask_purity = Some(mp);
+        mask_evidence = Some(ev);
+    }
     Ok(PhotoTruthQuality {
         labelled: lifted.iter().filter(|l| l.is_some()).count(),
         agrees_with_colour_truth: agree,
         neighbour_agreement,
         purity,
+        mask_purity,
+        mask_evidence,
     })
 }
 
@@ -765,6 +869,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         None
     } else {
         Some(photo_truth_quality(
+            a,
             &inputs,
             &oracle_scores,
             c,
@@ -934,4 +1039,25 @@ fn pf_tables(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lifted_classes_take_the_heaviest_and_round_trip() {
+        // Three Gaussians, three classes: class 2, none, class 0 (ties to the smaller).
+        let scores = [0.1, 0.2, 0.9, 0.0, 0.0, 0.0, 0.5, 0.5, 0.1];
+        let lifted = lifted_classes(&scores, 3);
+        assert_eq!(lifted, vec![Some(2), None, Some(0)]);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("photo.u8");
+        write_photo_classes(&p, &lifted).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), vec![2, NO_PHOTO_CLASS, 0]);
+        assert_eq!(read_photo_classes(&p, 3).unwrap(), lifted);
+        assert!(read_photo_classes(&p, 4).is_err());
+        assert!(write_photo_classes(&p, &[Some(255)]).is_err());
+    }
 }
