@@ -95,7 +95,6 @@ impl From<&SegmentArgs> for SegmentParams {
             normal_weight: a.segment_normal_weight,
             distance_weight: a.segment_distance_weight,
             shape_weight: a.segment_shape_weight,
-            ..SegmentParams::default()
         }
     }
 }
