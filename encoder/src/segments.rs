@@ -30,6 +30,19 @@
 //! id ([`slag_common::segments::canonical_ids`]): the result is deterministic, whatever the
 //! thread count.
 //!
+//! # Region mask profiles (optional veto)
+//!
+//! With a masks' record and [`SegmentParams::region_veto`] below 1, each component also carries
+//! a *mask profile*: its Gaussians' recorded `(view, dominant mask, a_kj)` entries summed per
+//! `(view, mask)` (at most 64 entries, the heaviest kept; ties to the smaller key). The region
+//! disagreement of two profiles is, over the views both hold, `1 − Σ_v W_v · Σ_m min(p_a(m|v),
+//! p_b(m|v)) / Σ_v W_v` with `p(m|v)` a profile's share of its view-`v` weight in mask `m` and
+//! `W_v = min(W_a(v), W_b(v))` (no shared view: no veto). Neither pass joins two components
+//! whose disagreement exceeds the veto. Memory: 8 bytes per profile entry, at most the record's
+//! (64 bytes per Gaussian with 8 slots) plus a vector header per Gaussian. Off by default: on
+//! snowmiku it made more, smaller segments but no purer ones than a smaller minimum size does at
+//! the same count (docs/results/prediction-filtering.md).
+//!
 //! # Bounded memory: tiles with a halo
 //!
 //! The graph is never held whole. The Gaussians are cut into tiles of at most
@@ -98,6 +111,10 @@ pub struct SegmentParams {
     /// (default 0.5: a border seen in more than half the shared evidence); 1: it joins
     /// anything, as without masks.
     pub mask_veto: f32,
+    /// Two segments never join, in either pass, when their *regions'* mask disagreement exceeds
+    /// this (module doc, "Region mask profiles"); default 1: no region veto (on snowmiku it
+    /// gave no purer segments than smaller segments do). Used only with a masks' record.
+    pub region_veto: f32,
 }
 
 impl Default for SegmentParams {
@@ -114,6 +131,7 @@ impl Default for SegmentParams {
             mask_weight: 1.0,
             mask_unknown: 0.5,
             mask_veto: 0.5,
+            region_veto: 1.0,
         }
     }
 }
@@ -152,6 +170,7 @@ impl SegmentParams {
         for (name, v) in [
             ("mask_unknown", self.mask_unknown),
             ("mask_veto", self.mask_veto),
+            ("region_veto", self.region_veto),
         ] {
             require((0.0..=1.0).contains(&v), name, v, "a share in [0, 1]")?;
         }
@@ -345,7 +364,13 @@ impl Forest {
         self.attach(small, big, merged);
     }
     /// The merge criterion over `edges` in their order.
+    #[cfg(test)]
     fn criterion_pass(&mut self, edges: &[Edge], tau: f32) {
+        self.criterion_pass_in(edges, tau, None);
+    }
+    /// The merge criterion over `edges` in their order; with `regions`, two components whose
+    /// regions' masks disagree are never joined, and a join merges their profiles.
+    fn criterion_pass_in(&mut self, edges: &[Edge], tau: f32, mut regions: Option<&mut Regions>) {
         for e in edges {
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a == b {
@@ -355,25 +380,165 @@ impl Forest {
             let (ca, cb) = (self.component(a), self.component(b));
             let ta = ca.int + tau / ca.size as f32;
             let tb = cb.int + tau / cb.size as f32;
-            if w <= ta.min(tb) {
-                self.join(a, b, w);
+            if w <= ta.min(tb) && regions.as_deref().is_none_or(|r| r.allows(a, b)) {
+                self.join_regions(a, b, w, regions.as_deref_mut());
             }
+        }
+    }
+    /// [`Forest::join`], and the profiles of `regions` merged into the new root.
+    fn join_regions(&mut self, a: u32, b: u32, w: f32, regions: Option<&mut Regions>) {
+        self.join(a, b, w);
+        if let Some(r) = regions {
+            let root = self.find(a);
+            r.absorb(root, if root == a { b } else { a });
         }
     }
     /// The minimum-size pass over `edges` in their order.
     /// Edges that `allowed` refuses are skipped (a mask border).
+    #[cfg(test)]
     fn min_size_pass(&mut self, edges: &[Edge], min_size: usize, allowed: impl Fn(&Edge) -> bool) {
+        self.min_size_pass_in(edges, min_size, allowed, None);
+    }
+    /// [`Forest::min_size_pass`]; with `regions`, as [`Forest::criterion_pass_in`].
+    fn min_size_pass_in(
+        &mut self,
+        edges: &[Edge],
+        min_size: usize,
+        allowed: impl Fn(&Edge) -> bool,
+        mut regions: Option<&mut Regions>,
+    ) {
         for e in edges {
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
                 && allowed(e)
                 && ((self.component(a).size as usize) < min_size
                     || (self.component(b).size as usize) < min_size)
+                && regions.as_deref().is_none_or(|r| r.allows(a, b))
             {
-                self.join(a, b, e.weight());
+                self.join_regions(a, b, e.weight(), regions.as_deref_mut());
             }
         }
     }
+}
+
+/// Most entries of one region's mask profile ([`Regions`]); beyond it the lightest go.
+const PROFILE_CAP: usize = 64;
+
+/// Each component's *mask profile* (module doc, "Region mask profiles"): the record's
+/// `(view, mask, a_kj)` entries of its Gaussians, summed per `(view, mask)`, sorted by
+/// `(view, mask)`, at most [`PROFILE_CAP`] entries (the heaviest; ties to the smaller key).
+/// Indexed by union-find root; a non-root's profile is empty.
+struct Regions {
+    profiles: Vec<Vec<(u16, u16, f32)>>,
+    veto: f32,
+}
+
+impl Regions {
+    /// Every Gaussian its own region, with its recorded slots.
+    fn new(record: &MaskRecord, veto: f32) -> Self {
+        let profiles = (0..record.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut p: Vec<(u16, u16, f32)> =
+                    record.of(i).map(|s| (s.view, s.mask, s.weight)).collect();
+                p.sort_by_key(|e| (e.0, e.1));
+                p
+            })
+            .collect();
+        Regions { profiles, veto }
+    }
+
+    /// Whether the regions of roots `a` and `b` may join: unless their disagreement exceeds
+    /// the veto (no shared view: they may).
+    fn allows(&self, a: u32, b: u32) -> bool {
+        self.veto >= 1.0
+            || region_disagreement(&self.profiles[a as usize], &self.profiles[b as usize])
+                .is_none_or(|d| d <= self.veto)
+    }
+
+    /// Root `into` took root `from` in: its profile is the sum of both.
+    fn absorb(&mut self, into: u32, from: u32) {
+        let b = std::mem::take(&mut self.profiles[from as usize]);
+        let a = std::mem::take(&mut self.profiles[into as usize]);
+        self.profiles[into as usize] = merge_profiles(&a, &b);
+    }
+}
+
+/// The sum of two profiles (sorted by `(view, mask)`), cut to the [`PROFILE_CAP`] heaviest.
+fn merge_profiles(a: &[(u16, u16, f32)], b: &[(u16, u16, f32)]) -> Vec<(u16, u16, f32)> {
+    let mut out: Vec<(u16, u16, f32)> = Vec::with_capacity(a.len() + b.len());
+    let (mut i, mut j) = (0, 0);
+    while i < a.len() || j < b.len() {
+        let take_a = j >= b.len() || (i < a.len() && (a[i].0, a[i].1) <= (b[j].0, b[j].1));
+        let e = if take_a {
+            i += 1;
+            a[i - 1]
+        } else {
+            j += 1;
+            b[j - 1]
+        };
+        match out.last_mut() {
+            Some(l) if (l.0, l.1) == (e.0, e.1) => l.2 += e.2,
+            _ => out.push(e),
+        }
+    }
+    if out.len() > PROFILE_CAP {
+        out.sort_by(|x, y| y.2.total_cmp(&x.2).then((x.0, x.1).cmp(&(y.0, y.1))));
+        out.truncate(PROFILE_CAP);
+        out.sort_by_key(|e| (e.0, e.1));
+    }
+    out
+}
+
+/// The mask disagreement of two regions' profiles, in `[0, 1]`: over the views both hold, one
+/// minus the overlap `Σ_m min(p_a(m | v), p_b(m | v))` of their mask distributions, each view
+/// counting `min(W_a(v), W_b(v))` (its total weight in either). `None` without a shared view.
+fn region_disagreement(a: &[(u16, u16, f32)], b: &[(u16, u16, f32)]) -> Option<f32> {
+    let view_total = |p: &[(u16, u16, f32)], from: usize| -> (u16, f32, usize) {
+        let v = p[from].0;
+        let mut k = from;
+        let mut t = 0.0;
+        while k < p.len() && p[k].0 == v {
+            t += p[k].2;
+            k += 1;
+        }
+        (v, t, k)
+    };
+    let (mut i, mut j) = (0, 0);
+    let (mut agree, mut total) = (0.0f32, 0.0f32);
+    while i < a.len() && j < b.len() {
+        let (va, ta, ea) = view_total(a, i);
+        let (vb, tb, eb) = view_total(b, j);
+        if va < vb {
+            i = ea;
+            continue;
+        }
+        if vb < va {
+            j = eb;
+            continue;
+        }
+        if ta > 0.0 && tb > 0.0 {
+            let mut overlap = 0.0f32;
+            let (mut x, mut y) = (i, j);
+            while x < ea && y < eb {
+                match a[x].1.cmp(&b[y].1) {
+                    std::cmp::Ordering::Less => x += 1,
+                    std::cmp::Ordering::Greater => y += 1,
+                    std::cmp::Ordering::Equal => {
+                        overlap += (a[x].2 / ta).min(b[y].2 / tb);
+                        x += 1;
+                        y += 1;
+                    }
+                }
+            }
+            let w = ta.min(tb);
+            agree += w * overlap.min(1.0);
+            total += w;
+        }
+        i = ea;
+        j = eb;
+    }
+    (total > 0.0 && total.is_finite()).then(|| (1.0 - agree / total).clamp(0.0, 1.0))
 }
 
 /// Tiles: median splits on the two world axes of largest extent until each holds at most
@@ -817,6 +982,10 @@ fn merge(
     tiles: usize,
 ) -> (Option<Forest>, u64, u64) {
     let mut forest = Forest::singletons(g.len());
+    let mut regions = w
+        .masks
+        .filter(|_| p.region_veto < 1.0)
+        .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
     let mut border: Vec<Edge> = Vec::new();
     let mut edges = 0u64;
     for t in 0..tiles {
@@ -824,14 +993,14 @@ fn merge(
         if ctl.stopped() {
             return (None, edges, 0);
         }
-        forest.criterion_pass(&inner, p.threshold);
+        forest.criterion_pass_in(&inner, p.threshold, regions.as_mut());
         edges += inner.len() as u64;
         border.extend(b);
     }
     ctl.run(|| border.par_sort_unstable());
     border.dedup();
     edges += border.len() as u64;
-    forest.criterion_pass(&border, p.threshold);
+    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
     if p.min_size > 1 {
         let allowed = |e: &Edge| w.may_absorb(e);
         for t in 0..tiles {
@@ -839,9 +1008,9 @@ fn merge(
             if ctl.stopped() {
                 return (None, edges, border.len() as u64);
             }
-            forest.min_size_pass(&inner, p.min_size, allowed);
+            forest.min_size_pass_in(&inner, p.min_size, allowed, regions.as_mut());
         }
-        forest.min_size_pass(&border, p.min_size, allowed);
+        forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
     }
     (Some(forest), edges, border.len() as u64)
 }
@@ -1135,6 +1304,12 @@ mod tests {
     /// Gaussian within 0.1 of another instance takes that instance's mask in one view of three
     /// (masks bleeding over a border).
     fn record_of(g: &Gaussians, inst: &[u32]) -> MaskRecord {
+        record_bleeding(g, inst, 3, 0.011)
+    }
+
+    /// [`record_of`] with the bleeding as a parameter: a Gaussian within `sqrt(r2)` of another
+    /// instance takes its mask in one view of `every`.
+    fn record_bleeding(g: &Gaussians, inst: &[u32], every: usize, r2: f32) -> MaskRecord {
         let n = g.len();
         let mut r = MaskRecord::new(n, 4, 6).unwrap();
         let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
@@ -1147,9 +1322,9 @@ mod tests {
             let entries = (0..n as u32).map(|i| {
                 let m = g.means[i as usize];
                 let mut l = inst[i as usize];
-                if v % 3 == (i as usize) % 3 {
+                if v % every == (i as usize) % every {
                     let near = tree
-                        .locate_within_distance(m, 0.011)
+                        .locate_within_distance(m, r2)
                         .find(|o| inst[o.data as usize] != l);
                     if let Some(o) = near {
                         l = inst[o.data as usize];
@@ -1229,6 +1404,72 @@ mod tests {
     }
 
     #[test]
+    fn region_profiles_sum_cap_and_disagree() {
+        let a = vec![(0u16, 1u16, 2.0f32), (0, 2, 2.0), (3, 1, 1.0)];
+        let b = vec![(0u16, 1u16, 1.0f32), (1, 5, 4.0)];
+        let m = merge_profiles(&a, &b);
+        assert_eq!(m, vec![(0, 1, 3.0), (0, 2, 2.0), (1, 5, 4.0), (3, 1, 1.0)]);
+        // Same distribution in the one shared view: no disagreement; disjoint masks: 1.
+        assert_eq!(region_disagreement(&a, &a), Some(0.0));
+        let other = vec![(0u16, 7u16, 5.0f32)];
+        assert_eq!(region_disagreement(&a, &other), Some(1.0));
+        // View 0: a is half mask 1, b all mask 1: overlap 0.5 (view 3 and 1 not shared).
+        assert_eq!(region_disagreement(&a, &b), Some(0.5));
+        assert_eq!(region_disagreement(&a, &[(9, 0, 1.0)]), None);
+        assert_eq!(region_disagreement(&a, &[]), None);
+        // The cap keeps the heaviest entries, in (view, mask) order.
+        let many: Vec<(u16, u16, f32)> = (0..100u16).map(|k| (k, 0, f32::from(k))).collect();
+        let capped = merge_profiles(&many, &[]);
+        assert_eq!(capped.len(), PROFILE_CAP);
+        assert_eq!(capped[0].0 as usize, 100 - PROFILE_CAP);
+        assert!(capped.windows(2).all(|w| w[0].0 < w[1].0));
+    }
+
+    /// The region veto on its own: with the edges weighed by geometry alone (mask weight 0,
+    /// no pairwise veto), the coplanar walls of the two touching boxes join; with the region
+    /// veto, segments whose Gaussians' recorded masks disagree stay apart. Off (1), it changes
+    /// nothing.
+    #[test]
+    fn the_region_veto_keeps_regions_of_different_masks_apart() {
+        use crate::eval::segment_quality::purity;
+        let (g, inst) = touching_boxes();
+        let labels: Vec<Option<u32>> = inst.iter().map(|&l| Some(l)).collect();
+        let record = Arc::new(record_bleeding(&g, &inst, 3, 0.0));
+        let run = |region_veto: f32, tiles: usize| {
+            let p = SegmentParams {
+                region_veto,
+                mask_weight: 0.0,
+                mask_veto: 1.0,
+                tile_gaussians: tiles,
+                ..params()
+            };
+            let (s, _) = segment(&g, &p, "boxes", Some(Arc::clone(&record))).unwrap();
+            (purity(&labels, &s.segments).unwrap().purity, s)
+        };
+        let (off, o) = run(1.0, usize::MAX);
+        let (geometric, _) = segment(&g, &params(), "boxes", None).unwrap();
+        assert_eq!(
+            o.segments, geometric.segments,
+            "region veto 1 is geometry alone here"
+        );
+        let (on, r) = run(0.5, usize::MAX);
+        assert!(off < 0.97, "geometry alone: purity {off}");
+        assert!(
+            on >= 0.99 && r.segment_count <= 40,
+            "region veto: purity {on} ({} segments); off {off} ({})",
+            r.segment_count,
+            o.segment_count
+        );
+        // Deterministic over thread counts with tiles.
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        let a = one.install(|| run(0.5, 500).1);
+        assert_eq!(a, run(0.5, 500).1);
+    }
+
+    #[test]
     fn bad_settings_are_refused() {
         let (g, _) = planes();
         for p in [
@@ -1242,6 +1483,10 @@ mod tests {
             },
             SegmentParams {
                 max_edge: Some(-1.0),
+                ..params()
+            },
+            SegmentParams {
+                region_veto: 1.5,
                 ..params()
             },
         ] {

@@ -65,6 +65,19 @@ pub struct SegmentArgs {
     /// this (1 = they merge across anything).
     #[arg(long, default_value_t = SegmentParams::default().mask_veto)]
     pub segment_mask_veto: f32,
+    /// Segmentation: two segments never join when their regions' mask disagreement (their
+    /// Gaussians' recorded masks pooled per view) exceeds this (1 = no region veto).
+    #[arg(long, default_value_t = SegmentParams::default().region_veto)]
+    pub segment_region_veto: f32,
+    /// Segmentation: weight of the normal term (splats' shortest axes).
+    #[arg(long, default_value_t = SegmentParams::default().normal_weight)]
+    pub segment_normal_weight: f32,
+    /// Segmentation: weight of the gap term (distance beyond the splats' 2σ overlap).
+    #[arg(long, default_value_t = SegmentParams::default().distance_weight)]
+    pub segment_distance_weight: f32,
+    /// Segmentation: weight of the shape term (ratio of the splats' sizes).
+    #[arg(long, default_value_t = SegmentParams::default().shape_weight)]
+    pub segment_shape_weight: f32,
 }
 
 impl From<&SegmentArgs> for SegmentParams {
@@ -78,7 +91,10 @@ impl From<&SegmentArgs> for SegmentParams {
             mask_weight: a.segment_mask_weight,
             mask_unknown: a.segment_mask_unknown,
             mask_veto: a.segment_mask_veto,
-            ..SegmentParams::default()
+            region_veto: a.segment_region_veto,
+            normal_weight: a.segment_normal_weight,
+            distance_weight: a.segment_distance_weight,
+            shape_weight: a.segment_shape_weight,
         }
     }
 }

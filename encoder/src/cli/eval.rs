@@ -77,6 +77,19 @@ pub struct EvalArgs {
     /// filtered in the same pass (variants named `pf-…@<folder>/<stem>`).
     #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
     pub more_segments: Vec<PathBuf>,
+    /// The encode's masks' record, measured against the colour classes with --prediction-filtering
+    /// (mask purity, and how its disagreement separates neighbours of different classes); default
+    /// mask-record.safetensors beside --embeddings when it exists.
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub mask_record: Option<PathBuf>,
+    /// With --held-out --prediction-filtering: write each Gaussian's lifted photo class (the
+    /// oracle's class of most weight; one byte per Gaussian, 255 = none) to this file.
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub photo_classes_out: Option<PathBuf>,
+    /// With --prediction-filtering (3D): also measure the segments' purity against the lifted
+    /// photo classes of this file (written by --photo-classes-out on the same encode).
+    #[arg(long, value_name = "FILE", requires = "prediction_filtering")]
+    pub photo_classes: Option<PathBuf>,
 }
 
 impl From<&EvalArgs> for EvalColorsConfig {
@@ -97,6 +110,9 @@ impl From<&EvalArgs> for EvalColorsConfig {
             prediction_filtering: a.prediction_filtering,
             segments: a.segments.clone(),
             more_segments: a.more_segments.clone(),
+            mask_record: a.mask_record.clone(),
+            photo_classes_out: a.photo_classes_out.clone(),
+            photo_classes: a.photo_classes.clone(),
         }
     }
 }

@@ -67,6 +67,59 @@ pub struct EvalColorsConfig {
     /// More segmentations of the same scene, measured and (held-out) filtered beside the main
     /// one in the same pass; their variants are named `…@<parent folder>/<file stem>`.
     pub more_segments: Vec<PathBuf>,
+    /// The encode's masks' record, measured against the colour truth beside the segments
+    /// ([`crate::eval::segment_limits`]); `None`: `mask-record.safetensors` beside the
+    /// embeddings when it exists.
+    pub mask_record: Option<PathBuf>,
+    /// [`run_held_out`] writes the lifted photo classes here ([`write_photo_classes`]).
+    pub photo_classes_out: Option<PathBuf>,
+    /// [`run_pf`] measures the segments against the lifted photo classes of this file (written
+    /// by a held-out pass of the same encode).
+    pub photo_classes: Option<PathBuf>,
+}
+
+/// Unlabelled Gaussian in a photo-classes file.
+pub const NO_PHOTO_CLASS: u8 = u8::MAX;
+
+/// Writes each Gaussian's lifted photo class as one byte per Gaussian, scene order
+/// ([`NO_PHOTO_CLASS`]: the oracle gave it no weight); no header.
+///
+/// Errors: I/O; a class above 254 ([`Error::Internal`]).
+pub fn write_photo_classes(path: &Path, classes: &[Option<u32>]) -> anyhow::Result<()> {
+    let bytes = classes
+        .iter()
+        .map(|c| match c {
+            None => Ok(NO_PHOTO_CLASS),
+            Some(k) if *k < u32::from(NO_PHOTO_CLASS) => Ok(*k as u8),
+            Some(k) => Err(Error::internal(format!(
+                "photo class {k} does not fit a byte"
+            ))),
+        })
+        .collect::<slag_common::Result<Vec<u8>>>()?;
+    std::fs::write(path, bytes).map_err(|e| Error::io(path, e))?;
+    Ok(())
+}
+
+/// Reads a file of [`write_photo_classes`] for a scene of `n` Gaussians.
+///
+/// Errors: I/O; a file of another length ([`Error::Mismatch`]).
+pub fn read_photo_classes(path: &Path, n: usize) -> anyhow::Result<Vec<Option<u32>>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if bytes.len() != n {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "{} holds {} photo classes but the scene has {n} Gaussians",
+                path.display(),
+                bytes.len()
+            ),
+        )
+        .into());
+    }
+    Ok(bytes
+        .into_iter()
+        .map(|b| (b != NO_PHOTO_CLASS).then_some(u32::from(b)))
+        .collect())
 }
 
 impl EvalColorsConfig {
@@ -89,6 +142,9 @@ impl EvalColorsConfig {
             prediction_filtering: false,
             segments: None,
             more_segments: Vec::new(),
+            mask_record: None,
+            photo_classes_out: None,
+            photo_classes: None,
         }
     }
 }
@@ -216,6 +272,12 @@ pub struct ColourEvalPf {
     pub segments: u32,
     /// The segments measured against the colour truth: the main ones, then `more_segments`.
     pub segment_quality: Vec<SegmentQuality>,
+    /// What limits purity on this scene: the truth's local agreement, the masks' purity.
+    pub segment_limits: SegmentLimits,
+    /// With `photo_classes`: each segmentation's purity against the lifted photo classes, in
+    /// the order of `segment_quality`.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub photo_purity: Vec<crate::eval::segment_quality::Purity>,
 }
 
 /// One segmentation measured against the colour classes
@@ -229,6 +291,104 @@ pub struct SegmentQuality {
     pub purity: crate::eval::segment_quality::Purity,
     /// Segment count and sizes (all Gaussians of the scene).
     pub sizes: crate::eval::segment_quality::SizeDistribution,
+    /// Purity per segment-size decade.
+    pub purity_by_size: Vec<crate::eval::segment_limits::SizePurity>,
+    /// Purity with each observed Gaussian counted by its total blend weight `Σ a_kj` (the
+    /// embeddings' `total_weights`), and over the most-seen Gaussians; beside `purity`, not
+    /// instead of it.
+    pub purity_by_weight: crate::eval::segment_limits::WeightedPurity,
+}
+
+/// What limits segment purity on this scene ([`crate::eval::segment_limits`]), independent of
+/// any segmentation but the masks'.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SegmentLimits {
+    /// The colour truth's own local agreement, k = 8 and 16 (observed Gaussians).
+    pub neighbour_agreement: Vec<crate::eval::segment_limits::NeighbourAgreement>,
+    /// The masks' record, when there is one.
+    pub mask_record: Option<PathBuf>,
+    /// Purity of the record's dominant masks against the colour truth.
+    pub mask_purity: Option<crate::eval::segment_limits::MaskPurity>,
+    /// The record's disagreement on same-class and different-class neighbours (k = 10).
+    pub mask_evidence: Option<crate::eval::segment_limits::MaskEvidence>,
+}
+
+/// The total blend weight of each observed Gaussian (`None`: unobserved), scene order.
+fn observed_weights(i: &Inputs) -> Vec<Option<f32>> {
+    let mut w = vec![None; i.gaussians.len()];
+    for (&id, &t) in i.emb.ids.iter().zip(&i.emb.total_weights) {
+        if let Some(x) = w.get_mut(id as usize) {
+            *x = Some(t);
+        }
+    }
+    w
+}
+
+/// The masks' record to measure: `mask_record`, else the one beside the embeddings if any.
+fn mask_record_path(a: &EvalColorsConfig) -> Option<PathBuf> {
+    a.mask_record.clone().or_else(|| {
+        let p = a
+            .embeddings
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join(slag_common::mask_record::FILE_NAME);
+        p.exists().then_some(p)
+    })
+}
+
+/// [`SegmentLimits`] of the scene, said on stderr too.
+fn segment_limits(a: &EvalColorsConfig, i: &Inputs) -> anyhow::Result<SegmentLimits> {
+    use crate::eval::segment_limits::{mask_evidence, mask_purity, neighbour_agreement};
+    let labels = observed_truth(i)?;
+    let means = &i.gaussians.means;
+    let agreement = neighbour_agreement(means, &labels, &[8, 16])?;
+    for n in &agreement {
+        eprintln!(
+            "colour truth, k = {}: {:.4} of the nearest neighbours share a Gaussian's class; \
+             {:.4} of the Gaussians hold their ball's majority; pairs of different classes: {}",
+            n.k,
+            n.same_share,
+            n.local_majority,
+            n.different_pairs
+                .iter()
+                .map(|&(a, b, s)| format!(
+                    "{}/{} {:.3}",
+                    i.classes.names[a as usize], i.classes.names[b as usize], s
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    let path = mask_record_path(a);
+    let (mut purity, mut evidence) = (None, None);
+    if let Some(p) = &path {
+        let record = slag_common::mask_record::MaskRecord::read(p)?;
+        let mp = mask_purity(&labels, &record)?;
+        let ev = mask_evidence(means, &labels, &record, 10)?;
+        eprintln!(
+            "masks' record {}: mask purity {:.4} (best view) / {:.4} (all slots) over {} masks; \
+             disagreement same class {:.3} (> 0.5: {:.3}, unknown {:.3}), different class {:.3} \
+             (> 0.5: {:.3}, unknown {:.3})",
+            p.display(),
+            mp.best_view,
+            mp.all_slots,
+            mp.masks,
+            ev.same_label.mean_disagreement,
+            ev.same_label.over_half,
+            ev.same_label.unknown,
+            ev.different_label.mean_disagreement,
+            ev.different_label.over_half,
+            ev.different_label.unknown
+        );
+        purity = Some(mp);
+        evidence = Some(ev);
+    }
+    Ok(SegmentLimits {
+        neighbour_agreement: agreement,
+        mask_record: path,
+        mask_purity: purity,
+        mask_evidence: evidence,
+    })
 }
 
 /// Each observed Gaussian's true class as a label (`None`: unobserved or without a class).
@@ -250,11 +410,15 @@ fn segment_quality(
     source: &Path,
     segments: &Segments,
 ) -> anyhow::Result<SegmentQuality> {
+    use crate::eval::segment_limits::{purity_by_size, weighted_purity};
     use crate::eval::segment_quality::{purity, size_distribution};
+    let labels = observed_truth(i)?;
     let q = SegmentQuality {
         source: source.to_path_buf(),
-        purity: purity(&observed_truth(i)?, &segments.segments)?,
+        purity: purity(&labels, &segments.segments)?,
         sizes: size_distribution(&segments.segments),
+        purity_by_size: purity_by_size(&labels, &segments.segments)?,
+        purity_by_weight: weighted_purity(&labels, &segments.segments, &observed_weights(i))?,
     };
     eprintln!(
         "segments {}: purity {:.4} over {} observed Gaussians; {} segments, sizes min {} median \
@@ -269,6 +433,25 @@ fn segment_quality(
         q.sizes.p90,
         q.sizes.max,
         100.0 * q.sizes.largest_share
+    );
+    eprintln!(
+        "  by blend weight: {:.4}; top half {:.4}, top quarter {:.4}, bottom half {:.4}; by size: {}",
+        q.purity_by_weight.weighted,
+        q.purity_by_weight.top_half,
+        q.purity_by_weight.top_quarter,
+        q.purity_by_weight.bottom_half,
+        q.purity_by_size
+            .iter()
+            .filter(|b| b.counted > 0)
+            .map(|b| format!(
+                "{}–{}: {:.3} ({} G)",
+                b.from,
+                b.to.map_or("∞".to_string(), |t| t.to_string()),
+                b.purity,
+                b.counted
+            ))
+            .collect::<Vec<_>>()
+            .join(", ")
     );
     Ok(q)
 }
@@ -296,11 +479,31 @@ pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
         .map(|(p, s)| segment_quality(&inputs, p, s))
         .collect::<anyhow::Result<Vec<_>>>()?;
     let segments = &all[0].1;
+    let photo_purity = match &a.photo_classes {
+        Some(p) => {
+            let lifted = read_photo_classes(p, inputs.gaussians.len())?;
+            let mut out = Vec::new();
+            for (path, s) in &all {
+                let q = crate::eval::segment_quality::purity(&lifted, &s.segments)?;
+                eprintln!(
+                    "segments {}: purity {:.4} against the lifted photo classes of {}",
+                    path.display(),
+                    q.purity,
+                    p.display()
+                );
+                out.push(q);
+            }
+            out
+        }
+        None => Vec::new(),
+    };
     Ok(ColourEvalPf {
+        photo_purity,
         without_pf: colour_3d(&inputs)?,
         with_pf: colour_3d_pf(&inputs, segments)?,
         segments: segments.segment_count,
         segment_quality,
+        segment_limits: segment_limits(a, &inputs)?,
     })
 }
 
@@ -375,6 +578,118 @@ pub struct HeldOutOutput {
     /// With `--prediction-filtering`: each segmentation measured against the colour truth.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub segment_quality: Vec<SegmentQuality>,
+    /// With `--prediction-filtering`: each segmentation measured against the *photo* classes the
+    /// oracle lifts (each Gaussian's class of most lifted weight, `argmax_c h_kc`, over the
+    /// Gaussians the oracle saw), the truth of the held-out pixels; the segments' files in the
+    /// order of `segment_quality`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub photo_truth: Option<PhotoTruthQuality>,
+}
+
+/// Segments against the lifted photo classes ([`HeldOutOutput::photo_truth`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct PhotoTruthQuality {
+    /// Gaussians with a lifted class.
+    pub labelled: usize,
+    /// Share of the Gaussians with both truths whose lifted photo class is their SH-DC class.
+    pub agrees_with_colour_truth: f64,
+    /// The lifted classes' local agreement, k = 8 and 16.
+    pub neighbour_agreement: Vec<crate::eval::segment_limits::NeighbourAgreement>,
+    /// Purity of each segmentation against them.
+    pub purity: Vec<crate::eval::segment_quality::Purity>,
+    /// The masks' record against them (as [`SegmentLimits`]), when there is one.
+    pub mask_purity: Option<crate::eval::segment_limits::MaskPurity>,
+    /// The record's disagreement on same- and different-class neighbours (k = 10).
+    pub mask_evidence: Option<crate::eval::segment_limits::MaskEvidence>,
+}
+
+/// Each Gaussian's class of most lifted weight (`None`: the oracle gave it none); ties to the
+/// smaller class. `scores` is [`heldout::OracleLifting::scores`], `[n × c]`.
+fn lifted_classes(scores: &[f32], c: usize) -> Vec<Option<u32>> {
+    scores
+        .chunks_exact(c)
+        .map(|h| {
+            let (best, v) =
+                h.iter().enumerate().fold(
+                    (0usize, 0.0f32),
+                    |b, (k, &v)| if v > b.1 { (k, v) } else { b },
+                );
+            (v > 0.0).then_some(best as u32)
+        })
+        .collect()
+}
+
+/// [`PhotoTruthQuality`] of `segment_sets`, said on stderr too.
+fn photo_truth_quality(
+    a: &EvalColorsConfig,
+    inputs: &Inputs,
+    oracle_scores: &[f32],
+    c: usize,
+    segment_sets: &[(PathBuf, Segments)],
+) -> anyhow::Result<PhotoTruthQuality> {
+    let lifted = lifted_classes(oracle_scores, c);
+    if let Some(p) = &a.photo_classes_out {
+        write_photo_classes(p, &lifted)?;
+    }
+    let colour = observed_truth(inputs)?;
+    let both: Vec<bool> = lifted
+        .iter()
+        .zip(&colour)
+        .filter(|(a, b)| a.is_some() && b.is_some())
+        .map(|(a, b)| a == b)
+        .collect();
+    let agree = both.iter().filter(|&&x| x).count() as f64 / both.len().max(1) as f64;
+    let neighbour_agreement = crate::eval::segment_limits::neighbour_agreement(
+        &inputs.gaussians.means,
+        &lifted,
+        &[8, 16],
+    )?;
+    let purity = segment_sets
+        .iter()
+        .map(|(_, s)| crate::eval::segment_quality::purity(&lifted, &s.segments))
+        .collect::<slag_common::Result<Vec<_>>>()?;
+    for ((p, _), q) in segment_sets.iter().zip(&purity) {
+        eprintln!(
+            "segments {}: purity {:.4} against the lifted photo classes",
+            p.display(),
+            q.purity
+        );
+    }
+    for n in &neighbour_agreement {
+        eprintln!(
+            "lifted photo classes, k = {}: {:.4} of the nearest neighbours share a Gaussian's \
+             class; {:.4} hold their ball's majority; {:.4} equal the SH-DC class",
+            n.k, n.same_share, n.local_majority, agree
+        );
+    }
+    let (mut mask_purity, mut mask_evidence) = (None, None);
+    if let Some(p) = mask_record_path(a) {
+        use crate::eval::segment_limits as lim;
+        let record = slag_common::mask_record::MaskRecord::read(&p)?;
+        let mp = lim::mask_purity(&lifted, &record)?;
+        let ev = lim::mask_evidence(&inputs.gaussians.means, &lifted, &record, 10)?;
+        eprintln!(
+            "masks' record against the lifted photo classes: mask purity {:.4} (best view) / \
+             {:.4} (all slots); disagreement same class {:.3} (> 0.5: {:.3}), different class \
+             {:.3} (> 0.5: {:.3})",
+            mp.best_view,
+            mp.all_slots,
+            ev.same_label.mean_disagreement,
+            ev.same_label.over_half,
+            ev.different_label.mean_disagreement,
+            ev.different_label.over_half
+        );
+        mask_purity = Some(mp);
+        mask_evidence = Some(ev);
+    }
+    Ok(PhotoTruthQuality {
+        labelled: lifted.iter().filter(|l| l.is_some()).count(),
+        agrees_with_colour_truth: agree,
+        neighbour_agreement,
+        purity,
+        mask_purity,
+        mask_evidence,
+    })
 }
 
 /// What the held-out pass reads of the encoder's report.json.
@@ -550,6 +865,17 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             .with_context(|| format!("oracle lifting of view {}", v.name))?;
     }
     let oracle_scores = oracle.scores();
+    let photo_truth = if segment_sets.is_empty() {
+        None
+    } else {
+        Some(photo_truth_quality(
+            a,
+            &inputs,
+            &oracle_scores,
+            c,
+            &segment_sets,
+        )?)
+    };
     let mut variants = crate::eval::heldout_variants::variant_tables(
         &a.embeddings,
         &a.compare,
@@ -620,6 +946,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         colour_3d,
         colour_3d_pf,
         segment_quality,
+        photo_truth,
     })
 }
 
@@ -712,4 +1039,25 @@ fn pf_tables(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lifted_classes_take_the_heaviest_and_round_trip() {
+        // Three Gaussians, three classes: class 2, none, class 0 (ties to the smaller).
+        let scores = [0.1, 0.2, 0.9, 0.0, 0.0, 0.0, 0.5, 0.5, 0.1];
+        let lifted = lifted_classes(&scores, 3);
+        assert_eq!(lifted, vec![Some(2), None, Some(0)]);
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("photo.u8");
+        write_photo_classes(&p, &lifted).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), vec![2, NO_PHOTO_CLASS, 0]);
+        assert_eq!(read_photo_classes(&p, 3).unwrap(), lifted);
+        assert!(read_photo_classes(&p, 4).is_err());
+        assert!(write_photo_classes(&p, &[Some(255)]).is_err());
+    }
 }

@@ -28,6 +28,7 @@ pub mod colors;
 pub mod heldout;
 pub mod heldout_variants;
 pub mod instances;
+pub mod segment_limits;
 pub mod segment_quality;
 pub mod synthetic;
 
