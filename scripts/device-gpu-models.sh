@@ -19,10 +19,13 @@
 #                                            # scripts/sam-decoder-low-res.py (needs python onnx)
 #                                            # DECDIR=f16d: ViT-H's half-precision decoder
 #                                            # ENCDIR=f16x: the fused-attention encoder (sam mode)
+#                                            # F16M=1: ViT-H's low-res decoder returns f16
+#                                            # multimask channels (--f16-multimask)
 #   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
-#   scripts/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder;
+#   scripts/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder,
+#                                            # f32 4-channel vs f16 multimask low-res logits;
 #                                            # ORT profiles; torch fp16 + its CUDA profile
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
@@ -121,8 +124,9 @@ e2e)
     if [ "${LOWRES:-0}" = 1 ]; then
       # Both decoders cut down to iou_predictions + low_res_masks (same masks, less GPU work).
       python3 scripts/sam-decoder-low-res.py "${dec[0]}" /root/color-sam-decoder-low-res.onnx
-      python3 scripts/sam-decoder-low-res.py "${dec[1]}" "$M/${DECDIR:-$prec}/sam-vit_h-decoder-low-res.onnx"
-      dec=(/root/color-sam-decoder-low-res.onnx "$M/${DECDIR:-$prec}/sam-vit_h-decoder-low-res.onnx")
+      low=$M/${DECDIR:-$prec}/sam-vit_h-decoder-low-res${F16M:+-f16m}.onnx
+      python3 scripts/sam-decoder-low-res.py ${F16M:+--f16-multimask} "${dec[1]}" "$low"
+      dec=(/root/color-sam-decoder-low-res.onnx "$low")
     fi
     MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
       --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "${dec[0]}"
@@ -189,11 +193,15 @@ sam)
     python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
     grep -A14 fused_encoder "$R/export-vith-fused.json"
   fi
+  # The same decoder returning only the multimask channels of its low-res logits, in f16.
+  f16m=$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx
+  [ -f "$f16m" ] || python3 scripts/sam-decoder-low-res.py --f16-multimask "$M/f16d/sam-vit_h-decoder.onnx" "$f16m"
   [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
   SA=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
-      --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx")
-  echo "### slag-bench models: SAM ViT-H fp16, plain vs fused encoder, 256 prompts per call"
-  timeout 200 "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 256 --repeats ${REPEATS:-5} > "$R/sam-256.md" 2>> "$R/sam.jsonl"; echo "exit $?"
+      --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
+      --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$f16m")
+  echo "### slag-bench models: SAM ViT-H fp16, plain vs fused encoder, f32 vs f16 multimask logits, 256 prompts per call"
+  timeout 300 "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 256 --repeats ${REPEATS:-5} > "$R/sam-256.md" 2>> "$R/sam.jsonl"; echo "exit $?"
   cat "$R/sam-256.md"
   rm -rf "$W/prof"; mkdir -p "$W/prof"
   SLAG_ORT_PROFILE=$W/prof/p timeout 100 "$BB" models --scene data/snowmiku-mini --images 2 "${SA[@]}" --repeats 3 > /dev/null 2>&1

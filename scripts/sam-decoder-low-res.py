@@ -11,7 +11,15 @@ outputs need (onnx.utils.extract_model). The six inputs stay, `orig_im_size` unu
 drops in wherever the full decoder does, with identical masks; `--sam-postprocess graph` refuses
 it. Works on any SamOnnxModel export (ViT-B/L/H, MobileSAM; f32 or fp16), under 2 GB.
 
-usage: python3 scripts/sam-decoder-low-res.py sam-vit_h-decoder.onnx sam-vit_h-decoder-low-res.onnx
+--f16-multimask (for a decoder that computes its mask logits in f16, `export-models.py sam
+--fp16-decoder`): `low_res_masks` becomes f16[P, 3, 256, 256], the multimask channels 1..3
+only (automatic mask generation never reads channel 0) taken before the decoder's last cast to
+f32. The values are the decoder's own, bit for bit; what each call copies from the GPU to the
+host shrinks from 4 x 4 to 3 x 2 bytes per logit (268 MB -> 101 MB for 256 prompts). A decoder
+whose logits are f32 is refused: rounding them to f16 would move mask borders.
+
+usage: python3 scripts/sam-decoder-low-res.py [--f16-multimask] IN.onnx OUT.onnx
+  e.g. sam-vit_h-decoder.onnx sam-vit_h-decoder-low-res.onnx
 needs: pip install onnx
 """
 import sys
@@ -21,12 +29,49 @@ INPUTS = ["image_embeddings", "point_coords", "point_labels", "mask_input", "has
 OUTPUTS = ["iou_predictions", "low_res_masks"]
 
 
+def f16_multimask(model, path):
+    """Rewrites `model` (already cut to OUTPUTS) in place so that `low_res_masks` is the f16
+    tensor its final Cast widens, sliced to channels 1..3; exits when the logits are not f16."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+    import numpy as np
+
+    g = model.graph
+    producer = next((n for n in g.node if "low_res_masks" in n.output), None)
+    inferred = onnx.shape_inference.infer_shapes(model)
+    types = {v.name: v.type.tensor_type.elem_type
+             for v in list(inferred.graph.value_info) + list(inferred.graph.input)}
+    to = next((a.i for a in producer.attribute if a.name == "to"), None) if producer else None
+    if (producer is None or producer.op_type != "Cast" or to != TensorProto.FLOAT
+            or types.get(producer.input[0]) != TensorProto.FLOAT16):
+        sys.exit(f"{path}: its low_res_masks are not an f16 tensor cast to f32 at the end, so "
+                 "--f16-multimask would round them; export the decoder with "
+                 "`export-models.py sam --fp16-decoder`, or leave the flag out")
+    half = producer.input[0]
+    if any(half in n.input for n in g.node if n is not producer) or any(
+            o.name == half for o in g.output):
+        sys.exit(f"{path}: the f16 logits feed other nodes too; this decoder's graph is not "
+                 "SamOnnxModel's")
+    g.node.remove(producer)
+    consts = {"lrm_starts": [1], "lrm_ends": [4], "lrm_axes": [1]}
+    g.initializer.extend(numpy_helper.from_array(np.array(v, dtype=np.int64), name=k)
+                         for k, v in consts.items())
+    g.node.append(helper.make_node("Slice", [half, *consts], ["low_res_masks"],
+                                   name="low_res_masks_multimask_f16"))
+    out = next(o for o in g.output if o.name == "low_res_masks")
+    out.type.tensor_type.elem_type = TensorProto.FLOAT16
+    out.type.tensor_type.shape.dim[1].ClearField("dim_param")
+    out.type.tensor_type.shape.dim[1].dim_value = 3
+    onnx.checker.check_model(model)
+
+
 def main(argv):
-    if len(argv) != 3:
+    args = [a for a in argv[1:] if a != "--f16-multimask"]
+    if len(args) != 2 or any(a.startswith("--") for a in args):
         sys.exit(__doc__)
     import onnx
     import onnx.utils
-    src, dst = argv[1], argv[2]
+    src, dst = args
     model = onnx.load(src)
     have_in = [i.name for i in model.graph.input]
     have_out = [o.name for o in model.graph.output]
@@ -45,8 +90,11 @@ def main(argv):
         ins = sorted(out.graph.input, key=lambda i: order[i.name])
         del out.graph.input[:]
         out.graph.input.extend(ins)
-        onnx.save(out, dst)
-    print(f"{dst}: {len(out.graph.node)} nodes (from {len(model.graph.node)}), outputs {OUTPUTS}")
+    if "--f16-multimask" in argv:
+        f16_multimask(out, src)
+    onnx.save(out, dst)
+    print(f"{dst}: {len(out.graph.node)} nodes (from {len(model.graph.node)}), outputs "
+          f"{[(o.name, onnx.TensorProto.DataType.Name(o.type.tensor_type.elem_type)) for o in out.graph.output]}")
 
 
 if __name__ == "__main__":

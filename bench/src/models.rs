@@ -247,6 +247,8 @@ fn clip_rows(
 /// One decoder pass's outputs for the comparison: predicted IoUs and low-res mask signs.
 struct Decoded {
     ious: Vec<f32>,
+    /// Signs of the multimask channels 1..=3 (what automatic mask generation reads), 3 maps of
+    /// 256 × 256 per prompt, whether the decoder returns 4 channels in f32 or 3 in f16.
     positive: Vec<bool>,
     /// Seconds inside the decoder's session runs (outputs on the host included).
     run_s: f64,
@@ -424,8 +426,27 @@ fn decode(
         run_s += t.elapsed().as_secs_f64();
         let (_, iou) = outputs["iou_predictions"].try_extract_tensor::<f32>()?;
         ious.extend_from_slice(iou);
-        let (_, low) = outputs["low_res_masks"].try_extract_tensor::<f32>()?;
-        positive.extend(low.iter().map(|&v| v > 0.0));
+        let low = &outputs["low_res_masks"];
+        const LP: usize = 256 * 256;
+        if let Ok((shape, low)) = low.try_extract_tensor::<f32>() {
+            ensure!(
+                **shape == [n as i64, 4, 256, 256],
+                "low_res_masks of shape {shape:?}"
+            );
+            // Channel 0 (the single-mask output) is left out, as automatic generation does.
+            for prompt in low.chunks(4 * LP) {
+                positive.extend(prompt[LP..].iter().map(|&v| v > 0.0));
+            }
+        } else {
+            let (shape, low) = low
+                .try_extract_tensor::<half::f16>()
+                .context("low_res_masks are neither f32 nor f16")?;
+            ensure!(
+                **shape == [n as i64, 3, 256, 256],
+                "low_res_masks of shape {shape:?}"
+            );
+            positive.extend(low.iter().map(|&v| v.to_f32() > 0.0));
+        }
     }
     Ok(Decoded {
         ious,

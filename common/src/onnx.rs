@@ -635,6 +635,8 @@ pub fn check_clip_pair(embeddings_id: &str, text_id: &str, text_path: &Path) -> 
 pub enum ElemType {
     /// 32-bit float.
     F32,
+    /// 16-bit (IEEE half) float.
+    F16,
     /// 64-bit signed integer.
     I64,
 }
@@ -643,12 +645,15 @@ impl ElemType {
     fn matches(self, t: TensorElementType) -> bool {
         matches!(
             (self, t),
-            (ElemType::F32, TensorElementType::Float32) | (ElemType::I64, TensorElementType::Int64)
+            (ElemType::F32, TensorElementType::Float32)
+                | (ElemType::F16, TensorElementType::Float16)
+                | (ElemType::I64, TensorElementType::Int64)
         )
     }
     fn as_str(self) -> &'static str {
         match self {
             ElemType::F32 => "f32",
+            ElemType::F16 => "f16",
             ElemType::I64 => "i64",
         }
     }

@@ -221,3 +221,75 @@ fn fused_sam_encoder_matches_the_plain_export() {
         "max |diff| {diff} at scale {scale}"
     );
 }
+
+/// `sam-decoder-low-res.py --f16-multimask` on an `--fp16-decoder` export: slag reads the f16,
+/// three-channel `low_res_masks` and generates the same masks (pixels, boxes, predicted IoUs) as
+/// from the same decoder cut without the flag (f32, four channels), on a real image with ONNX
+/// Runtime on the CPU. Loose score thresholds, so that the random-weight tiny decoder keeps
+/// masks to compare.
+#[test]
+fn f16_multimask_decoder_gives_the_same_masks() {
+    use slag_encoder::masks::MaskGenerator;
+    use slag_encoder::masks::sam::{LowResLogits, SamAutomaticMaskGenerator, SamParams};
+    if let Some(why) = skip_reason() {
+        eprintln!("SKIPPED f16_multimask_decoder_gives_the_same_masks: {why}");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    export(&["sam", "--kind", "tiny", "--fp16-decoder", &s("m")]);
+    let cut = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/sam-decoder-low-res.py");
+    for (flag, out) in [(None, "f32.onnx"), (Some("--f16-multimask"), "f16.onnx")] {
+        let o = Command::new(python())
+            .arg(&cut)
+            .args(flag)
+            .args([s("m/sam-tiny-decoder.onnx"), s(out)])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    // An f32 decoder is refused: its logits would be rounded.
+    export(&["sam", "--kind", "tiny", "--decoder-only", &s("f32dec")]);
+    let o = Command::new(python())
+        .arg(&cut)
+        .args([
+            "--f16-multimask",
+            &s("f32dec/sam-tiny-decoder.onnx"),
+            &s("x.onnx"),
+        ])
+        .output()
+        .unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--fp16-decoder"));
+
+    let views = slag_common::camera::load_views(&default_scene()).unwrap();
+    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let params = SamParams {
+        points_per_side: 8,
+        pred_iou_thresh: 0.0,
+        stability_score_thresh: 0.0,
+        stability_score_offset: 0.05,
+        ..SamParams::default()
+    };
+    let run = |decoder: &str, layout: LowResLogits| {
+        let mut g = SamAutomaticMaskGenerator::new(
+            Path::new(&s("m/sam-tiny-encoder.onnx")),
+            Path::new(&s(decoder)),
+            slag_common::onnx::ExecutionProvider::Cpu,
+            0,
+            params.clone(),
+        )
+        .unwrap();
+        assert_eq!(g.models().low_res_logits(), layout);
+        g.generate(&image).unwrap()
+    };
+    let four = run("f32.onnx", LowResLogits::F32AllChannels);
+    let three = run("f16.onnx", LowResLogits::F16Multimask);
+    assert!(!four.is_empty(), "the tiny decoder kept no mask to compare");
+    assert_eq!(four.len(), three.len());
+    for (a, b) in four.iter().zip(&three) {
+        assert_eq!(a.bbox_xywh, b.bbox_xywh);
+        assert_eq!(a.area, b.area);
+        assert_eq!(a.predicted_iou.to_bits(), b.predicted_iou.to_bits());
+        assert!(a.pixels == b.pixels);
+    }
+}

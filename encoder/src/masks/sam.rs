@@ -18,7 +18,9 @@
 //!    The full-resolution logits are not taken from the graph's `masks` output (`P × 4 × H × W`
 //!    f32, 750 MB for 256 prompts at 990×742): the decoder is asked for `iou_predictions` and
 //!    `low_res_masks` only (ONNX Runtime still computes `masks` unless the decoder is cut down
-//!    by `scripts/sam-decoder-low-res.py`, which slag accepts), and the logits of the candidates
+//!    by `scripts/sam-decoder-low-res.py`, which slag accepts; with `--f16-multimask` it returns
+//!    only channels 1..=3 of `low_res_masks`, as f16, 37.5 % of the bytes to copy from the GPU,
+//!    see [`LowResLogits`]), and the logits of the candidates
 //!    that pass the predicted-IoU filter are upsampled on the host ([`LowResUpsampler`]) exactly
 //!    as `SamOnnxModel.mask_postprocessing` does (bilinear 256 → 1024, crop to the resized
 //!    image, bilinear to `H × W`, both with `align_corners=False`), composed into one separable
@@ -245,6 +247,43 @@ const DECODER_OUTPUTS_LOW_RES: &[TensorSpec] = &[
     TensorSpec::named("iou_predictions", ElemType::F32, &[-1, 4]),
     TensorSpec::named("low_res_masks", ElemType::F32, &[-1, 4, 256, 256]),
 ];
+/// The outputs of a low-resolution decoder cut with `--f16-multimask`: the multimask channels
+/// 1..=3 only, in half precision.
+const DECODER_OUTPUTS_LOW_RES_F16: &[TensorSpec] = &[
+    TensorSpec::named("iou_predictions", ElemType::F32, &[-1, 4]),
+    TensorSpec::named("low_res_masks", ElemType::F16, &[-1, 3, 256, 256]),
+];
+
+/// How a decoder lays out its `low_res_masks` (the 256 × 256 mask logits per prompt), read
+/// from its signature when it is loaded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LowResLogits {
+    /// `f32[P, 4, 256, 256]`: SamOnnxModel's own output (channel 0 is the single-mask output,
+    /// which automatic mask generation does not use).
+    F32AllChannels,
+    /// `f16[P, 3, 256, 256]`: the multimask channels 1..=3 only, in half precision, from
+    /// `scripts/sam-decoder-low-res.py --f16-multimask` on a decoder that computes its logits
+    /// in f16 (`export-models.py sam --fp16-decoder`), so the values are the same and a
+    /// quarter of the channels and half of each value's bytes never leave the GPU.
+    F16Multimask,
+}
+
+impl LowResLogits {
+    /// Channels per prompt in the output.
+    fn channels(self) -> usize {
+        match self {
+            LowResLogits::F32AllChannels => 4,
+            LowResLogits::F16Multimask => 3,
+        }
+    }
+    /// Index of multimask channel `c` (1..=3) of prompt `i` in the output's map order.
+    fn map_index(self, i: usize, c: usize) -> usize {
+        match self {
+            LowResLogits::F32AllChannels => i * 4 + c,
+            LowResLogits::F16Multimask => i * 3 + c - 1,
+        }
+    }
+}
 
 /// A candidate mask that passed the score filters, kept bit-packed until NMS.
 struct Candidate {
@@ -270,6 +309,8 @@ pub struct SamModels {
     /// Providers that actually run the encoder and decoder, and where (`cuda:0`).
     providers: (ExecutionProvider, ExecutionProvider),
     device: String,
+    /// The decoder's `low_res_masks` layout.
+    low_res_logits: LowResLogits,
 }
 
 impl SamModels {
@@ -280,6 +321,10 @@ impl SamModels {
     /// Where they run: `cpu`, `cuda:0`, ...
     pub fn device(&self) -> &str {
         &self.device
+    }
+    /// The decoder's `low_res_masks` layout.
+    pub fn low_res_logits(&self) -> LowResLogits {
+        self.low_res_logits
     }
 }
 
@@ -354,15 +399,19 @@ impl SamAutomaticMaskGenerator {
              (scripts/export-models.py sam)",
         )?;
         let dec = OnnxModel::load(decoder, placement)?;
-        let low_res_only = onnx::check_signature(
-            dec.session(),
-            decoder,
-            "SAM mask decoder",
-            DECODER_INPUTS,
-            DECODER_OUTPUTS_LOW_RES,
-            "",
-        )
-        .is_ok();
+        let low_res_as = |outputs| {
+            onnx::check_signature(
+                dec.session(),
+                decoder,
+                "SAM mask decoder",
+                DECODER_INPUTS,
+                outputs,
+                "",
+            )
+            .is_ok()
+        };
+        let f16_multimask = low_res_as(DECODER_OUTPUTS_LOW_RES_F16);
+        let low_res_only = f16_multimask || low_res_as(DECODER_OUTPUTS_LOW_RES);
         if !low_res_only {
             onnx::check_signature(
                 dec.session(),
@@ -373,7 +422,7 @@ impl SamAutomaticMaskGenerator {
                 "pass a SAM decoder exported with segment_anything's SamOnnxModel \
                  (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py \
                  sam, or one cut down to iou_predictions and low_res_masks by \
-                 scripts/sam-decoder-low-res.py",
+                 scripts/sam-decoder-low-res.py [--f16-multimask]",
             )?;
         }
         if low_res_only && params.postprocess == MaskPostprocess::Graph {
@@ -396,6 +445,11 @@ impl SamAutomaticMaskGenerator {
                 decoder: Mutex::new(dec),
                 providers,
                 device,
+                low_res_logits: if f16_multimask {
+                    LowResLogits::F16Multimask
+                } else {
+                    LowResLogits::F32AllChannels
+                },
             }),
             params,
         })
@@ -548,20 +602,14 @@ impl SamAutomaticMaskGenerator {
         let plane = hu * wu;
         let tf = std::time::Instant::now();
         let cands: Vec<Option<Candidate>> = if low_res {
-            let (lshape, lows) = masks_value
-                .try_extract_tensor::<f32>()
-                .map_err(|e| errs.unexpected(format!("decoder low_res_masks are not f32: {e}")))?;
-            if **lshape != [n as i64, 4, 256, 256] {
-                return Err(errs.unexpected(format!(
-                    "decoder returned low_res_masks of shape {lshape:?}, expected [{n}, 4, 256, 256]"
-                )));
-            }
-            let lp = 256 * 256;
+            let layout = self.models.low_res_logits;
+            let lows = LowResMaps::extract(&masks_value, layout, n)
+                .map_err(|m| errs.unexpected(format!("decoder low_res_masks: {m}")))?;
             jobs.par_iter()
                 .map_init(
-                    || upsampler.scratch(),
-                    |scratch, &(i, c)| {
-                        let low = &lows[(i * 4 + c) * lp..(i * 4 + c + 1) * lp];
+                    || (upsampler.scratch(), Vec::new()),
+                    |(scratch, widened), &(i, c)| {
+                        let low = lows.map(layout.map_index(i, c), widened);
                         upsampler.candidate(low, scratch, p, ious[i * 4 + c], points[i], c)
                     },
                 )
@@ -759,6 +807,50 @@ fn tap_spans(taps: &[Taps]) -> Vec<(usize, usize)> {
             (idx().min().unwrap_or(0), idx().max().unwrap_or(0))
         })
         .collect()
+}
+
+/// The `low_res_masks` of one decoder call, borrowed from the output tensor.
+enum LowResMaps<'a> {
+    F32(&'a [f32]),
+    F16(&'a [half::f16]),
+}
+
+impl<'a> LowResMaps<'a> {
+    /// The maps of `value` for `n` prompts laid out as `layout`; the message says what differs.
+    fn extract(
+        value: &'a DynValue,
+        layout: LowResLogits,
+        n: usize,
+    ) -> std::result::Result<Self, String> {
+        let want = [n as i64, layout.channels() as i64, 256, 256];
+        let (shape, maps) = match layout {
+            LowResLogits::F32AllChannels => value
+                .try_extract_tensor::<f32>()
+                .map(|(s, d)| (s, LowResMaps::F32(d)))
+                .map_err(|e| format!("not f32: {e}"))?,
+            LowResLogits::F16Multimask => value
+                .try_extract_tensor::<half::f16>()
+                .map(|(s, d)| (s, LowResMaps::F16(d)))
+                .map_err(|e| format!("not f16: {e}"))?,
+        };
+        if **shape != want {
+            return Err(format!("shape {shape:?}, expected {want:?}"));
+        }
+        Ok(maps)
+    }
+
+    /// Map `k` (256 × 256) as f32: borrowed, or widened from f16 into `scratch` (exact).
+    fn map<'s>(&'s self, k: usize, scratch: &'s mut Vec<f32>) -> &'s [f32] {
+        const LP: usize = 256 * 256;
+        match self {
+            LowResMaps::F32(d) => &d[k * LP..(k + 1) * LP],
+            LowResMaps::F16(d) => {
+                scratch.clear();
+                scratch.extend(d[k * LP..(k + 1) * LP].iter().map(|v| v.to_f32()));
+                scratch
+            }
+        }
+    }
 }
 
 /// Scratch of [`LowResUpsampler::candidate`], reused across the candidates of one thread.
