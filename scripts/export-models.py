@@ -199,47 +199,36 @@ def fuse_sam_attention(torch, encoder):
     Mha = multi_head_attention(torch)
 
     class FusedRelPosAttention(torch.nn.Module):
-        """Sizes are Python integers and the key's one-hot part a constant buffer, so that the
-        export holds no shape arithmetic and builds nothing on the host per run: the grid side
-        (14 in a window, 64 in a global block) is read from the relative-position table
-        (2·side − 1 rows), the batch (1, or the windows of one image) stays -1 in reshapes."""
-
         def __init__(self, att):
             super().__init__()
             self.qkv, self.proj, self.heads, self.scale = att.qkv, att.proj, att.num_heads, att.scale
-            self.side = side = (att.rel_pos_h.shape[0] + 1) // 2
-            if att.rel_pos_w.shape[0] != att.rel_pos_h.shape[0]:
-                die("--fuse (sam) needs square attention grids (equal row and column tables)")
-            self.dim = d = att.qkv.in_features // att.num_heads
-            self.width = width = d + 2 * side
-            self.pad = -width % 8
-            with torch.no_grad():
-                self.register_buffer("rh", get_rel_pos(side, side, att.rel_pos_h).clone())
-                self.register_buffer("rw", get_rel_pos(side, side, att.rel_pos_w).clone())
-                # k'_j's widening for the key at (h_j, w_j): [0 (d), onehot(h_j), onehot(w_j), 0…].
-                eye = torch.eye(side)
-                key = torch.zeros(side, side, 1, width + self.pad)
-                key[:, :, 0, d:d + side] = eye[:, None, :]
-                key[:, :, 0, d + side:width] = eye[None, :, :]
-                self.register_buffer("key_widening", key)
+            self.rel_pos_h, self.rel_pos_w = att.rel_pos_h, att.rel_pos_w
 
         def forward(self, x):
-            h = w = self.side
-            n, d, c = self.heads, self.dim, self.heads * self.dim
-            wide = self.width + self.pad
-            f = torch.nn.functional
-            q, k, v = self.qkv(x).reshape(-1, h, w, 3, n, d).unbind(3)  # each [b, h, w, n, d]
+            b, h, w, c = x.shape
+            n = self.heads
+            d = c // n
+            q, k, v = self.qkv(x).reshape(b, h, w, 3, n, d).unbind(3)  # each [b, h, w, n, d]
+            rh = get_rel_pos(h, h, self.rel_pos_h).to(q.dtype)  # [h (query row), h (key row), d]
+            rw = get_rel_pos(w, w, self.rel_pos_w).to(q.dtype)  # [w, w, d]
             # q·Rh[h_i]ᵀ as one batched product per query row, q·Rw[w_i]ᵀ per query column.
-            rel_h = q.permute(1, 0, 2, 3, 4).reshape(h, -1, d) @ self.rh.transpose(1, 2)
-            rel_h = rel_h.reshape(h, -1, w, n, h).permute(1, 0, 2, 3, 4)  # [b, h, w, n, h]
-            rel_w = q.permute(2, 0, 1, 3, 4).reshape(w, -1, d) @ self.rw.transpose(1, 2)
-            rel_w = rel_w.reshape(w, -1, h, n, w).permute(1, 2, 0, 3, 4)  # [b, h, w, n, w]
-            qw = f.pad(torch.cat([q * self.scale, rel_h, rel_w], dim=-1), (0, self.pad))
-            kw = f.pad(k, (0, wide - d)) + self.key_widening
-            vw = f.pad(v, (0, wide - d))
+            rel_h = (q.permute(1, 0, 2, 3, 4).reshape(h, b * w * n, d) @ rh.transpose(1, 2))
+            rel_h = rel_h.reshape(h, b, w, n, h).permute(1, 0, 2, 3, 4)  # [b, h, w, n, h]
+            rel_w = (q.permute(2, 0, 1, 3, 4).reshape(w, b * h * n, d) @ rw.transpose(1, 2))
+            rel_w = rel_w.reshape(w, b, h, n, w).permute(1, 2, 0, 3, 4)  # [b, h, w, n, w]
+            width = d + h + w
+            pad = -width % 8
+            one_h = torch.eye(h, dtype=q.dtype, device=q.device)[:, None, None, :]
+            one_w = torch.eye(w, dtype=q.dtype, device=q.device)[None, :, None, :]
+            kh = one_h.expand(h, w, n, h).unsqueeze(0).expand(b, h, w, n, h)
+            kw = one_w.expand(h, w, n, w).unsqueeze(0).expand(b, h, w, n, w)
+            zq = q.new_zeros(b, h, w, n, pad)
+            qw = torch.cat([q * self.scale, rel_h, rel_w, zq], dim=-1)
+            kw_ = torch.cat([k, kh, kw, zq], dim=-1)
+            vw = torch.cat([v, v.new_zeros(b, h, w, n, width + pad - d)], dim=-1)
             s = h * w
-            o = Mha.apply(*(t.reshape(-1, s, n * wide) for t in (qw, kw, vw)), n, 1.0)
-            o = o.reshape(-1, h, w, n, wide)[..., :d].reshape(-1, h, w, c)
+            o = Mha.apply(*(t.reshape(b, s, n * (width + pad)) for t in (qw, kw_, vw)), n, 1.0)
+            o = o.reshape(b, h, w, n, width + pad)[..., :d].reshape(b, h, w, c)
             return self.proj(o)
 
     count = 0
