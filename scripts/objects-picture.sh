@@ -6,6 +6,8 @@
 # join one object), then draw the objects' oriented boxes over the scene (scripts/plot_objects.py).
 #
 # Usage: scripts/objects-picture.sh BINARY SCENE OUT.png [PROMPT ...]   (default prompts: pink brown)
+# MASKS=sam encodes instead with color-sam 16x16 (pred-IoU 0.8, stability 0.5) at every 4th view,
+# the encode of docs/results/prediction-filtering.md, whose segments carry the mask term of SAM masks.
 # Needs $SLAG_SHARED and ONNX Runtime (`. scripts/setup.sh`), numpy and matplotlib.
 # WORK (default /tmp/slag-objects-picture) keeps the encode; an existing encode there is reused.
 # MAX_OBJECTS (default 10) boxes are drawn per prompt.
@@ -18,7 +20,14 @@ HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 mkdir -p "$W"
 if [ ! -e "$W/enc/segments.safetensors" ]; then
   t0=$(date +%s)
-  "$B" encode --scene "$S" --masks graph --clip-visual "$F/color-clip-visual.onnx" --every 2 \
+  if [ "${MASKS:-graph}" = sam ]; then
+    A=$SLAG_SHARED/fixtures/sam-amg
+    MASK_ARGS=(--masks sam --sam-encoder "$A/color-sam-encoder.onnx" --sam-decoder "$A/color-sam-decoder.onnx"
+      --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 --every 4)
+  else
+    MASK_ARGS=(--masks graph --every 2)
+  fi
+  "$B" encode --scene "$S" "${MASK_ARGS[@]}" --clip-visual "$F/color-clip-visual.onnx" \
     --raster-scale 0.5 --quiet --out "$W/enc" > "$W/encode.log" 2>&1 || { tail -n 5 "$W/encode.log"; exit 1; }
   echo "encode: $(( $(date +%s) - t0 )) s"
 fi
