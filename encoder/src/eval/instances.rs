@@ -22,6 +22,13 @@
 //! - **Box IoU** ([`InstanceScore::mean_box_iou`]): per ground-truth instance, the 3D IoU of its
 //!   true box with the box of the best-overlapping prediction of its class (0 when there is
 //!   none), averaged over the instances.
+//! - **The segments against the instances** ([`SegmentsAgainstInstances`]): the segments that
+//!   `--smooth segment` joins into objects, measured on their own with every placed box one
+//!   label and all other Gaussians (the ground) another: instance purity (the share of Gaussians
+//!   whose segment's majority label is theirs, [`crate::eval::segment_quality::purity`]), the
+//!   same over the boxes' Gaussians only, and boundary recall (of the neighbour pairs that cross
+//!   an instance border, the share that crosses a segment border,
+//!   [`crate::eval::segment_quality::boundary_recall`]).
 
 use std::path::{Path, PathBuf};
 
@@ -319,11 +326,35 @@ pub struct SmoothScore {
     pub score: InstanceScore,
 }
 
+/// Neighbours per Gaussian for [`SegmentsAgainstInstances::boundary_recall`].
+pub const BOUNDARY_NEIGHBOURS: usize = 8;
+
+/// The segments measured against the ground-truth instances (module doc).
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SegmentsAgainstInstances {
+    /// The segments file.
+    pub source: PathBuf,
+    /// Segments in it.
+    pub segments: u32,
+    /// Purity over every Gaussian of the scene: each placed box one label, the rest (the
+    /// ground) one more.
+    pub purity: crate::eval::segment_quality::Purity,
+    /// Purity over the placed boxes' Gaussians only, the ground left out: whether boxes of
+    /// different classes share segments.
+    pub object_purity: crate::eval::segment_quality::Purity,
+    /// Boundary recall over each Gaussian's [`BOUNDARY_NEIGHBOURS`] nearest neighbours within
+    /// the object gap (scene units).
+    pub boundary_recall: crate::eval::segment_quality::BoundaryRecall,
+}
+
 /// What `eval-objects` prints.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ObjectsEval {
     /// Placed objects (ground-truth instances).
     pub instances: usize,
+    /// The segments against the instances, when a segments file is given or lies beside the
+    /// embeddings (`segments.safetensors`).
+    pub segments: Option<SegmentsAgainstInstances>,
     /// The grouping used (gap, minimum, maximum objects).
     pub object_gap: f32,
     /// Smallest object returned, Gaussians.
@@ -428,9 +459,96 @@ pub fn evaluate_synthetic_objects(c: &EvalObjectsConfig) -> Result<ObjectsEval> 
     }
     Ok(ObjectsEval {
         instances: truth.len(),
+        segments: segments_against_instances(c, &truth)?,
         object_gap: c.objects.gap,
         object_min_gaussians: c.objects.min_gaussians,
         runs,
+    })
+}
+
+/// Measures the segments of `c` (its `segments`, else `segments.safetensors` beside the
+/// embeddings; `None` when neither exists) against `truth` on the scene's Gaussians.
+///
+/// Errors: an unreadable segments file or `.ply`; segments of another Gaussian count than the
+/// scene's ([`Error::Invalid`]: segment the scene the embeddings were made from).
+fn segments_against_instances(
+    c: &EvalObjectsConfig,
+    truth: &[TruthInstance],
+) -> Result<Option<SegmentsAgainstInstances>> {
+    let path = c.segments.clone().unwrap_or_else(|| {
+        c.embeddings
+            .parent()
+            .unwrap_or(Path::new("."))
+            .join(slag_common::segments::FILE_NAME)
+    });
+    if c.segments.is_none() && !path.exists() {
+        return Ok(None);
+    }
+    let segments = slag_common::segments::Segments::read(&path)?;
+    let gaussians = slag_common::scene::load_ply(
+        &c.scene.join("point_cloud.ply"),
+        slag_common::scene::PlyLoadOptions { colours: false },
+    )?;
+    Ok(Some(measure_segments(
+        &path,
+        &segments,
+        &gaussians.means,
+        truth,
+        c.objects.gap,
+    )?))
+}
+
+/// [`SegmentsAgainstInstances`] of `segments` (read from `source`) for Gaussians at `means`
+/// (scene units) whose instances are `truth`; neighbours within `radius` count for boundary
+/// recall.
+///
+/// Errors: segments and means of different counts, or an instance member past the end
+/// ([`Error::Invalid`]).
+pub fn measure_segments(
+    source: &Path,
+    segments: &slag_common::segments::Segments,
+    means: &[[f32; 3]],
+    truth: &[TruthInstance],
+    radius: f32,
+) -> Result<SegmentsAgainstInstances> {
+    use crate::eval::segment_quality::{boundary_recall, purity};
+    let n = means.len();
+    if segments.segments.len() != n {
+        return Err(Error::Invalid(format!(
+            "{} segments {} Gaussians but the scene has {n}; segment the scene the embeddings \
+             were made from",
+            source.display(),
+            segments.segments.len()
+        )));
+    }
+    let ground = truth.len() as u32;
+    let mut labels = vec![Some(ground); n];
+    for (k, t) in truth.iter().enumerate() {
+        for &m in &t.members {
+            let slot = labels.get_mut(m as usize).ok_or_else(|| {
+                Error::Invalid(format!(
+                    "instance {k} ({}) names Gaussian {m} of {n}: the scene's objects.json does \
+                     not belong to its point_cloud.ply",
+                    t.class
+                ))
+            })?;
+            *slot = Some(k as u32);
+        }
+    }
+    let objects_only: Vec<Option<u32>> =
+        labels.iter().map(|l| l.filter(|&l| l != ground)).collect();
+    Ok(SegmentsAgainstInstances {
+        source: source.to_path_buf(),
+        segments: segments.segment_count,
+        purity: purity(&labels, &segments.segments)?,
+        object_purity: purity(&objects_only, &segments.segments)?,
+        boundary_recall: boundary_recall(
+            means,
+            &labels,
+            &segments.segments,
+            BOUNDARY_NEIGHBOURS,
+            radius,
+        )?,
     })
 }
 
@@ -454,6 +572,68 @@ mod tests {
             aabb,
             members,
         }
+    }
+
+    /// Two touching boxes (x in 0..1 and 1..2, on a 0.1 grid) on a strip of ground below them
+    /// (z = −0.1): Gaussians 0..200 box A, 200..400 box B, 400..600 ground.
+    fn touching_scene() -> (Vec<[f32; 3]>, Vec<TruthInstance>) {
+        let mut means = Vec::new();
+        for (x0, z) in [(0.0f32, 0.0f32), (1.0, 0.0)] {
+            for i in 0..10 {
+                for j in 0..20 {
+                    means.push([x0 + i as f32 * 0.1, j as f32 * 0.1, z]);
+                }
+            }
+        }
+        for i in 0..20 {
+            for j in 0..10 {
+                means.push([i as f32 * 0.1, j as f32 * 0.2, -0.1]);
+            }
+        }
+        let aabb = [[0.0; 3], [1.0; 3]];
+        (
+            means,
+            vec![truth("red", aabb, 0..200), truth("blue", aabb, 200..400)],
+        )
+    }
+
+    fn segs(segments: Vec<u32>) -> slag_common::segments::Segments {
+        let segment_count = segments.iter().max().map_or(0, |m| m + 1);
+        slag_common::segments::Segments {
+            segments,
+            segment_count,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn segments_are_measured_against_the_instances_and_the_ground() {
+        let (means, truth) = touching_scene();
+        let p = Path::new("s.safetensors");
+        // One segment per box and one for the ground: pure, every border a segment border.
+        let exact = segs((0..600).map(|i| i / 200).collect());
+        let m = measure_segments(p, &exact, &means, &truth, 0.15).unwrap();
+        assert_eq!(
+            (m.segments, m.purity.counted, m.object_purity.counted),
+            (3, 600, 400)
+        );
+        assert_eq!((m.purity.purity, m.object_purity.purity), (1.0, 1.0));
+        assert!(m.boundary_recall.boundary_pairs > 0);
+        assert_eq!(m.boundary_recall.recall, 1.0);
+        // The two boxes joined (the failure touching objects invite): half of the boxes'
+        // Gaussians are impure, the border between them is lost; the ground stays apart.
+        let merged = segs((0..600).map(|i| u32::from(i >= 400)).collect());
+        let j = measure_segments(p, &merged, &means, &truth, 0.15).unwrap();
+        assert_eq!(j.object_purity.purity, 0.5);
+        assert!((j.purity.purity - 400.0 / 600.0).abs() < 1e-12);
+        assert!(j.boundary_recall.recall > 0.0 && j.boundary_recall.recall < 1.0);
+        // Everything one segment: only the largest label is pure, no border is kept.
+        let one = segs(vec![0; 600]);
+        let o = measure_segments(p, &one, &means, &truth, 0.15).unwrap();
+        assert_eq!(o.boundary_recall.recall, 0.0);
+        // Segments of another scene are refused.
+        let e = measure_segments(p, &segs(vec![0; 10]), &means, &truth, 0.15).unwrap_err();
+        assert!(e.to_string().contains("segment the scene"), "{e}");
     }
 
     #[test]
