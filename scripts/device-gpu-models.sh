@@ -57,6 +57,16 @@ mode=${1:-prep}
 SAMARGS=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0)
 samm() { echo --sam-encoder "$M/$1/sam-$2-encoder.onnx" --sam-decoder "$M/$1/sam-$2-decoder.onnx"; }
 clipm() { echo --clip-visual "$M/${CLIPDIR:-$1}/"*visual*.onnx; }
+# SAM ViT-H fp16 with the fp16 decoder (the image's work once per call) in $M/f16d, its decoder
+# cut to the low-res outputs, and the same cut returning f16 multimask logits (-f16m).
+vith_f16d() {
+  if [ ! -f "$M/f16d/sam-vit_h-decoder-low-res.onnx" ]; then
+    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-vith.json" 2> "$R/export-vith.err" || tail -3 "$R/export-vith.err"
+    python3 scripts/sam-decoder-low-res.py "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res.onnx"
+  fi
+  [ -f "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx" ] || python3 scripts/sam-decoder-low-res.py --f16-multimask \
+    "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx"
+}
 case "$mode" in
 prep)
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
@@ -158,12 +168,12 @@ models)
   # SAM ViT-H fp16 with the fp16 decoder (the e2e's), its decoder doing the image's work once
   # per call (f16d: broadcast products; f16e: copied to the prompts) and once per prompt as
   # segment_anything traces it (f16r, the earlier export): same weights.
-  if [ ! -f "$M/f16d/sam-vit_h-decoder-low-res.onnx" ]; then
-    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-vith.json" 2> "$R/export-vith.err" || tail -3 "$R/export-vith.err"
+  vith_f16d
+  if [ ! -f "$M/f16r/sam-vit_h-decoder-low-res.onnx" ]; then
     for v in f16r:repeated f16e:expanded; do
       python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --decoder-only --image-work "${v#*:}" "$M/${v%%:*}" > "$R/export-vith-${v%%:*}.json" 2> "$R/export-vith-${v%%:*}.err" || tail -3 "$R/export-vith-${v%%:*}.err"
     done
-    for d in f16d f16r f16e; do python3 scripts/sam-decoder-low-res.py "$M/$d/sam-vit_h-decoder.onnx" "$M/$d/sam-vit_h-decoder-low-res.onnx"; done
+    for d in f16r f16e; do python3 scripts/sam-decoder-low-res.py "$M/$d/sam-vit_h-decoder.onnx" "$M/$d/sam-vit_h-decoder-low-res.onnx"; done
     mkdir -p "$M/f16"; ln -sf "$M/f16d/sam-vit_h-encoder.onnx" "$M/f16/sam-vit_h-encoder.onnx"
   fi
   [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0  # the models for e2e, no timing
@@ -185,17 +195,12 @@ sam)
   # first's; ONNX Runtime's per-node profiles; torch fp16 in the same call, and torch's own CUDA profile of its decoder.
   # EXPORT_ONLY=1: the exports alone (they take most of a call).
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
-  if [ ! -f "$M/f16d/sam-vit_h-decoder-low-res.onnx" ]; then
-    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder "$M/f16d" > "$R/export-vith.json" 2> "$R/export-vith.err" || tail -3 "$R/export-vith.err"
-    python3 scripts/sam-decoder-low-res.py "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res.onnx"
-  fi
+  vith_f16d
   if [ ! -f "$M/f16x/sam-vit_h-encoder.onnx" ]; then
     python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
     grep -A14 fused_encoder "$R/export-vith-fused.json"
   fi
-  # The same decoder returning only the multimask channels of its low-res logits, in f16.
   f16m=$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx
-  [ -f "$f16m" ] || python3 scripts/sam-decoder-low-res.py --f16-multimask "$M/f16d/sam-vit_h-decoder.onnx" "$f16m"
   [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
   SA=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
       --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
