@@ -636,8 +636,50 @@ pub fn run_query_framed(
 ) -> Result<QueryAnswer> {
     let map = answer_frame(q.frame, to_map)?;
     let t0 = Instant::now();
+    let phi = prompt_embedding(store, embedding_model, text, &q.text)?;
+    let t_text = t0.elapsed().as_secs_f64() * 1e3;
+    let t1 = Instant::now();
+    let scoring = Scoring::new(store, &phi, negatives, q)?;
+    let boxes = QueryBoxes::new(store.means(), map, q.bbox);
+    let hits = select_hits(store, hnsw, &phi, &scoring, &boxes, q)?;
+    let found = assemble_matches(store, &scoring, &boxes, &hits, display, q)?;
+    Ok(QueryAnswer {
+        query: q.text.clone(),
+        embedding_model: embedding_model.to_string(),
+        text_model: text.name(),
+        mode: q.mode,
+        threshold: q.threshold,
+        top_k: q.top_k,
+        index: q.index,
+        smooth: q.smooth,
+        frame: boxes.frame(),
+        matches: found.matches,
+        summary: found.summary,
+        objects: found.objects,
+        match_objects: found.match_objects,
+        best_score_below_threshold: found.best_score_below_threshold,
+        searched: store.len(),
+        timings_ms: Timings {
+            text: t_text,
+            scan: t1.elapsed().as_secs_f64() * 1e3,
+        },
+    })
+}
+
+/// The prompt's unit embedding, `[D]` with `D = store.dim()`: `text` embeds `prompt`, an
+/// embedding of another width than the stored Gaussians is refused, then the embedding is
+/// scaled to unit norm ([`unit_prompt_embedding`]).
+///
+/// Errors: as [`run_query_framed`] for the text encoding ([`Error::Model`]), the width
+/// ([`Error::Mismatch`]) and the norm ([`Error::Query`]).
+fn prompt_embedding(
+    store: &VectorStore,
+    embedding_model: &str,
+    text: &dyn TextEmbedder,
+    prompt: &str,
+) -> Result<Vec<f32>> {
     let phi = text
-        .embed(&[q.text.as_str()])?
+        .embed(&[prompt])?
         .into_iter()
         .next()
         .ok_or_else(|| Error::internal("text encoder returned nothing"))?;
@@ -653,207 +695,358 @@ pub fn run_query_framed(
             ),
         ));
     }
-    let phi = unit_prompt_embedding(phi)?;
-    let t_text = t0.elapsed().as_secs_f64() * 1e3;
-    let t1 = Instant::now();
-    let mut queries: Vec<&[f32]> = vec![&phi];
-    let relevancy: scan::Combiner<'_> = &scan::lerf_relevancy;
-    let combine = match q.mode {
-        ScoreMode::Cosine => None,
-        ScoreMode::Relevancy => {
-            queries.extend(negatives.iter().map(Vec::as_slice));
-            Some(relevancy)
+    unit_prompt_embedding(phi)
+}
+
+/// How one query scores the store's rows.
+struct Scoring<'a> {
+    /// The scan's query vectors, `[D]` each: the unit prompt, then in relevancy mode the
+    /// canonical negatives.
+    queries: Vec<&'a [f32]>,
+    /// Combines a row's dot products into its score (`None`: the cosine with the prompt;
+    /// relevancy: [`scan::lerf_relevancy`]).
+    combine: Option<scan::Combiner<'a>>,
+    /// With smooth=segment: every row's own score and segment.
+    smoothing: Option<SegmentScores<'a>>,
+}
+
+/// What smooth=segment smooths: every row's own score (`[N]`, cosine or relevancy) and every
+/// row's geometric segment id (`[N]`).
+struct SegmentScores<'a> {
+    raw: Vec<f32>,
+    segments: &'a [u32],
+}
+
+impl<'a> Scoring<'a> {
+    /// The scan's queries and combiner for `q.mode` (`phi` the unit prompt, `negatives` the
+    /// embeddings of [`CANONICAL_NEGATIVES`]) and, with smooth=segment, every row's own score
+    /// (one pass over the store).
+    ///
+    /// Errors: [`Error::Query`] `smooth` when smooth=segment and the shards carry no segments;
+    /// as [`scan::scores`].
+    fn new(
+        store: &'a VectorStore,
+        phi: &'a [f32],
+        negatives: &'a [Vec<f32>],
+        q: &QueryParams,
+    ) -> Result<Self> {
+        let mut queries: Vec<&[f32]> = vec![phi];
+        let relevancy: scan::Combiner<'_> = &scan::lerf_relevancy;
+        let combine = match q.mode {
+            ScoreMode::Cosine => None,
+            ScoreMode::Relevancy => {
+                queries.extend(negatives.iter().map(Vec::as_slice));
+                Some(relevancy)
+            }
+        };
+        let smoothing = match q.smooth {
+            Smooth::None => None,
+            Smooth::Segment => {
+                let segments = store.segments().ok_or_else(|| {
+                    Error::query(
+                        "smooth",
+                        "smooth=segment: this scene's shards carry no geometric segments; \
+                         partition the scene with its segments.safetensors (`slag-encoder \
+                         encode` writes it, `slag-encoder partition` picks it up beside \
+                         --embeddings: shard format version 3) and fetch again, or leave smooth \
+                         out",
+                    )
+                })?;
+                let raw = scan::scores(store, &queries, combine)?;
+                Some(SegmentScores { raw, segments })
+            }
+        };
+        Ok(Scoring {
+            queries,
+            combine,
+            smoothing,
+        })
+    }
+}
+
+/// A query's boxes and answer frame.
+struct QueryBoxes<'a> {
+    /// The store's row means, `[N]`, scene frame.
+    means: &'a [[f32; 3]],
+    /// The answer frame's scene-to-map transform (`None`: answers in the scene frame).
+    to_map: Option<&'a SceneToMap>,
+    /// The box the scan keeps, `[lo, hi]` in the scene frame: the query's `bbox`, or with a map
+    /// transform the scene box around the map box's corners, widened by one ulp.
+    scene_box: Option<[[f32; 3]; 2]>,
+    /// The query's `bbox` in the map frame (with a map transform only), applied exactly to each
+    /// row the scan keeps.
+    map_box: Option<[[f32; 3]; 2]>,
+}
+
+impl<'a> QueryBoxes<'a> {
+    /// The boxes of the query's `bbox` (in the answer frame) over rows with scene-frame `means`,
+    /// answering in the map frame through `to_map` when given.
+    fn new(
+        means: &'a [[f32; 3]],
+        to_map: Option<&'a SceneToMap>,
+        bbox: Option<[[f32; 3]; 2]>,
+    ) -> Self {
+        let (scene_box, map_box) = match (bbox, to_map) {
+            (None, _) => (None, None),
+            (Some(b), None) => (Some(b), None),
+            (Some(b), Some(t)) => {
+                let (lo, hi) = t.map_box_in_scene(b[0].map(f64::from), b[1].map(f64::from));
+                let lo = lo.map(|v| (v as f32).next_down());
+                let hi = hi.map(|v| (v as f32).next_up());
+                (Some([lo, hi]), Some(b))
+            }
+        };
+        QueryBoxes {
+            means,
+            to_map,
+            scene_box,
+            map_box,
         }
-    };
-    // Position of a row in the answer's frame.
-    let position = |row: usize| -> [f32; 3] {
-        let m = store.means()[row];
-        match map {
+    }
+
+    /// The answer frame's name ([`MAP_FRAME`] or [`SCENE_FRAME`]).
+    fn frame(&self) -> &'static str {
+        if self.to_map.is_some() {
+            MAP_FRAME
+        } else {
+            SCENE_FRAME
+        }
+    }
+
+    /// Position of store row `row` in the answer frame.
+    fn position(&self, row: usize) -> [f32; 3] {
+        let m = self.means[row];
+        match self.to_map {
             Some(t) => t.to_map_f32(m),
             None => m,
         }
-    };
-    // The scan's box (scene frame) and, in the map frame, the exact box applied afterwards.
-    let (bbox, map_box) = match (q.bbox, map) {
-        (None, _) => (None, None),
-        (Some(b), None) => (Some((b[0], b[1])), None),
-        (Some(b), Some(t)) => {
-            let (lo, hi) = t.map_box_in_scene(b[0].map(f64::from), b[1].map(f64::from));
-            let lo = lo.map(|v| (v as f32).next_down());
-            let hi = hi.map(|v| (v as f32).next_up());
-            (Some((lo, hi)), Some(b))
-        }
-    };
-    let keep = |h: &scan::Hit| map_box.is_none_or(|b| in_box(position(h.row), &b));
-    // Exact scan honouring the map box: rows are kept by the scan's scene box, then by the map
-    // box; a top-k-only scan then collects every row of the scene box (threshold −inf) so the
-    // map box cannot leave it short.
-    let exact = |top_k: Option<usize>, threshold: Option<f32>| -> Result<Vec<scan::Hit>> {
-        let (top_k_scan, thr_scan) = match (map_box, threshold) {
-            (None, _) => (top_k, threshold),
-            (Some(_), Some(t)) => (None, Some(t)),
-            (Some(_), None) => (None, Some(f32::NEG_INFINITY)),
-        };
-        let req = ScanRequest {
-            queries: &queries,
-            top_k: top_k_scan,
-            threshold: thr_scan,
-            bbox,
-            combine,
-        };
-        let mut hits = scan::scan(store, &req)?;
-        if map_box.is_some() {
-            hits.retain(|h| keep(h));
-            hits.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.row.cmp(&b.row)));
-            if let Some(k) = top_k {
-                hits.truncate(k);
-            }
-        }
-        Ok(hits)
-    };
-    // smooth=segment: every row's own score first, then its segment's mean over every loaded
-    // row of the segment (so the box does not change a segment's score), then the boxes, the
-    // threshold and the top-k on the smoothed scores.
-    let smoothing = match q.smooth {
-        Smooth::None => None,
-        Smooth::Segment => {
-            let segments = store.segments().ok_or_else(|| {
-                Error::query(
-                    "smooth",
-                    "smooth=segment: this scene's shards carry no geometric segments; \
-                     partition the scene with its segments.safetensors (`slag-encoder encode` \
-                     writes it, `slag-encoder partition` picks it up beside --embeddings: shard \
-                     format version 3) and fetch again, or leave smooth out",
-                )
-            })?;
-            Some((scan::scores(store, &queries, combine)?, segments))
-        }
-    };
-    let smoothed = |top_k: Option<usize>, threshold: Option<f32>| -> Result<Vec<scan::Hit>> {
-        let Some((raw, segments)) = &smoothing else {
-            return Ok(Vec::new());
-        };
-        let inside = |row: usize| {
-            bbox.is_none_or(|(lo, hi)| {
-                let m = store.means()[row];
-                (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
-            }) && map_box.is_none_or(|b| in_box(position(row), &b))
-        };
-        Ok(
-            slag_common::segments::rank_smoothed(raw, segments, threshold, top_k, inside)?
-                .into_iter()
-                .map(|(row, score)| scan::Hit { row, score })
-                .collect(),
-        )
-    };
+    }
+
+    /// The scan's scene-frame box as a [`ScanRequest`] takes it, `(lo, hi)`.
+    fn scan_box(&self) -> Option<([f32; 3], [f32; 3])> {
+        self.scene_box.map(|[lo, hi]| (lo, hi))
+    }
+
+    /// Whether row `row`'s mean lies in the scan's scene-frame box (true without a box).
+    fn in_scene_box(&self, row: usize) -> bool {
+        self.scene_box.is_none_or(|b| in_box(self.means[row], &b))
+    }
+
+    /// Whether row `row`'s position lies in the exact map-frame box (true without a map box).
+    fn in_map_box(&self, row: usize) -> bool {
+        self.map_box.is_none_or(|b| in_box(self.position(row), &b))
+    }
+
+    /// Whether row `row` lies in both boxes.
+    fn inside(&self, row: usize) -> bool {
+        self.in_scene_box(row) && self.in_map_box(row)
+    }
+
+    /// Whether a hit the scan kept (inside the scene box) lies in the map box too.
+    fn keep(&self, hit: &scan::Hit) -> bool {
+        self.in_map_box(hit.row)
+    }
+}
+
+/// The query's hits, best first: smooth=segment's smoothed scores, else the exact scan or the
+/// approximate index. Threshold queries collect every match for the summary; ranked-only ones
+/// keep a bounded top-k heap.
+///
+/// Errors: as [`smoothed_hits`], [`exact_hits`] and [`hnsw_hits`].
+fn select_hits(
+    store: &VectorStore,
+    hnsw: Option<&scan::hnsw::ApproxIndex>,
+    phi: &[f32],
+    scoring: &Scoring<'_>,
+    boxes: &QueryBoxes<'_>,
+    q: &QueryParams,
+) -> Result<Vec<scan::Hit>> {
     let ranked_k = if q.threshold.is_some() {
         None
     } else {
         Some(q.top_k)
     };
-    let hits = match q.index {
-        _ if smoothing.is_some() => smoothed(ranked_k, q.threshold)?,
-        // Threshold queries collect every match for the summary; ranked-only ones keep a
-        // bounded top-k heap.
-        IndexKind::Exact => exact(
-            if q.threshold.is_some() {
-                None
-            } else {
-                Some(q.top_k)
-            },
-            q.threshold,
-        )?,
-        IndexKind::Hnsw => {
-            if store.is_mixture() {
-                return Err(Error::query(
-                    "index",
-                    "index=hnsw is not available for this scene: its rows are codebook \
-                     mixtures, over which no HNSW index is built; use index=exact (the exact \
-                     mixture scan)",
-                ));
-            }
-            let index = hnsw.ok_or_else(|| {
-                Error::query(
-                    "index",
-                    "index=hnsw needs the approximate index, which this server was started \
-                     without; use index=exact",
-                )
-            })?;
-            if q.mode != ScoreMode::Cosine {
-                return Err(Error::query(
-                    "index",
-                    "index=hnsw answers cosine queries only; use index=exact for relevancy",
-                ));
-            }
-            if q.top_k > index.ef_search() {
-                return Err(Error::query(
-                    "index",
-                    format!(
-                        "index=hnsw answers top_k ≤ {} (its ef_search); ask fewer or use \
-                         index=exact",
-                        index.ef_search()
-                    ),
-                ));
-            }
-            let mut hits = index.query(&phi, q.top_k)?;
-            hits.retain(|h| {
-                q.threshold.is_none_or(|t| h.score >= t)
-                    && bbox.is_none_or(|(lo, hi)| {
-                        let m = store.means()[h.row];
-                        (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
-                    })
-                    && keep(h)
-            });
-            hits
-        }
+    match (&scoring.smoothing, q.index) {
+        (Some(s), _) => smoothed_hits(s, boxes, ranked_k, q.threshold),
+        (None, IndexKind::Exact) => exact_hits(store, scoring, boxes, ranked_k, q.threshold),
+        (None, IndexKind::Hnsw) => hnsw_hits(store, hnsw, phi, boxes, q),
+    }
+}
+
+/// The exact scan's hits, ranked, honouring the map box: rows are kept by the scan's scene box
+/// (and `top_k` / `threshold`), then by the map box; a top-k-only scan then collects every row
+/// of the scene box (threshold −inf) so the map box cannot leave it short, and the top-k is cut
+/// after.
+///
+/// Errors: as [`scan::scan`].
+fn exact_hits(
+    store: &VectorStore,
+    scoring: &Scoring<'_>,
+    boxes: &QueryBoxes<'_>,
+    top_k: Option<usize>,
+    threshold: Option<f32>,
+) -> Result<Vec<scan::Hit>> {
+    let (top_k_scan, thr_scan) = match (boxes.map_box, threshold) {
+        (None, _) => (top_k, threshold),
+        (Some(_), Some(t)) => (None, Some(t)),
+        (Some(_), None) => (None, Some(f32::NEG_INFINITY)),
     };
+    let req = ScanRequest {
+        queries: &scoring.queries,
+        top_k: top_k_scan,
+        threshold: thr_scan,
+        bbox: boxes.scan_box(),
+        combine: scoring.combine,
+    };
+    let mut hits = scan::scan(store, &req)?;
+    if boxes.map_box.is_some() {
+        hits.retain(|h| boxes.keep(h));
+        hits.sort_by(scan::select::rank_cmp);
+        if let Some(k) = top_k {
+            hits.truncate(k);
+        }
+    }
+    Ok(hits)
+}
+
+/// smooth=segment's hits, ranked: each row scores its segment's mean over every loaded row of
+/// the segment (so the boxes do not change a segment's score), then the boxes, the `threshold`
+/// and the `top_k` apply to the smoothed scores.
+///
+/// Errors: as [`slag_common::segments::rank_smoothed`].
+fn smoothed_hits(
+    s: &SegmentScores<'_>,
+    boxes: &QueryBoxes<'_>,
+    top_k: Option<usize>,
+    threshold: Option<f32>,
+) -> Result<Vec<scan::Hit>> {
+    let inside = |row: usize| boxes.inside(row);
+    Ok(
+        slag_common::segments::rank_smoothed(&s.raw, s.segments, threshold, top_k, inside)?
+            .into_iter()
+            .map(|(row, score)| scan::Hit { row, score })
+            .collect(),
+    )
+}
+
+/// The approximate index's hits: the prompt's top-k neighbours, then those at or above the
+/// threshold and inside both boxes.
+///
+/// Errors: [`Error::Query`] `index`, checked in this order, when the rows are codebook
+/// mixtures, the server has no index, the query is not cosine, or the top-k exceeds the index's
+/// ef_search; as the index's query.
+fn hnsw_hits(
+    store: &VectorStore,
+    hnsw: Option<&scan::hnsw::ApproxIndex>,
+    phi: &[f32],
+    boxes: &QueryBoxes<'_>,
+    q: &QueryParams,
+) -> Result<Vec<scan::Hit>> {
+    if store.is_mixture() {
+        return Err(Error::query(
+            "index",
+            "index=hnsw is not available for this scene: its rows are codebook \
+             mixtures, over which no HNSW index is built; use index=exact (the exact \
+             mixture scan)",
+        ));
+    }
+    let index = hnsw.ok_or_else(|| {
+        Error::query(
+            "index",
+            "index=hnsw needs the approximate index, which this server was started \
+             without; use index=exact",
+        )
+    })?;
+    if q.mode != ScoreMode::Cosine {
+        return Err(Error::query(
+            "index",
+            "index=hnsw answers cosine queries only; use index=exact for relevancy",
+        ));
+    }
+    if q.top_k > index.ef_search() {
+        return Err(Error::query(
+            "index",
+            format!(
+                "index=hnsw answers top_k ≤ {} (its ef_search); ask fewer or use \
+                 index=exact",
+                index.ef_search()
+            ),
+        ));
+    }
+    let mut hits = index.query(phi, q.top_k)?;
+    hits.retain(|h| q.threshold.is_none_or(|t| h.score >= t) && boxes.inside(h.row));
+    Ok(hits)
+}
+
+/// The matched part of an answer; positions in the answer frame.
+struct AnswerMatches {
+    matches: Vec<Match>,
+    summary: MatchSummary,
+    objects: Vec<SceneObject>,
+    match_objects: Vec<Option<u32>>,
+    best_score_below_threshold: Option<f32>,
+}
+
+/// The answer's matches from the ranked `hits`: every hit as a match (position in the answer
+/// frame), the summary and the objects over all of them, then the matches (and their object
+/// indices) cut to the top-k; when none is left, the best score below the threshold
+/// ([`best_score`]).
+///
+/// Errors: as [`answer_objects`], then as [`best_score`].
+fn assemble_matches(
+    store: &VectorStore,
+    scoring: &Scoring<'_>,
+    boxes: &QueryBoxes<'_>,
+    hits: &[scan::Hit],
+    display: Option<&DisplayAttrs>,
+    q: &QueryParams,
+) -> Result<AnswerMatches> {
     let all: Vec<Match> = hits
         .iter()
         .map(|h| Match {
             id: store.ids()[h.row],
-            position: position(h.row),
+            position: boxes.position(h.row),
             score: h.score,
         })
         .collect();
     let summary = summarise(&all);
     // Matches of one geometric segment join one object when the shards carry segments.
-    let grouped = answer_objects(&hits, &all, display, store.segments(), &q.objects)?;
+    let grouped = answer_objects(hits, &all, display, store.segments(), &q.objects)?;
     let mut matches = all;
     matches.truncate(q.top_k);
     let mut match_objects = grouped.member_of;
     match_objects.truncate(matches.len());
-    let best_score_below_threshold = if matches.is_empty() && smoothing.is_some() {
-        smoothed(Some(1), None)?.first().map(|h| h.score)
-    } else if matches.is_empty() && q.index == IndexKind::Exact {
-        exact(Some(1), None)?.first().map(|h| h.score)
+    let best_score_below_threshold = if matches.is_empty() {
+        best_score(store, scoring, boxes, q.index)?
     } else {
         None
     };
-    Ok(QueryAnswer {
-        query: q.text.clone(),
-        embedding_model: embedding_model.to_string(),
-        text_model: text.name(),
-        mode: q.mode,
-        threshold: q.threshold,
-        top_k: q.top_k,
-        index: q.index,
-        smooth: q.smooth,
-        frame: if map.is_some() {
-            MAP_FRAME
-        } else {
-            SCENE_FRAME
-        },
+    Ok(AnswerMatches {
         matches,
         summary,
         objects: grouped.objects,
         match_objects,
         best_score_below_threshold,
-        searched: store.len(),
-        timings_ms: Timings {
-            text: t_text,
-            scan: t1.elapsed().as_secs_f64() * 1e3,
-        },
     })
+}
+
+/// The best score over the searched Gaussians inside the boxes, whatever the threshold (for an
+/// answer without matches): smooth=segment's or the exact scan's top 1; `None` for the
+/// approximate index.
+///
+/// Errors: as [`smoothed_hits`] and [`exact_hits`].
+fn best_score(
+    store: &VectorStore,
+    scoring: &Scoring<'_>,
+    boxes: &QueryBoxes<'_>,
+    index: IndexKind,
+) -> Result<Option<f32>> {
+    let best = match (&scoring.smoothing, index) {
+        (Some(s), _) => smoothed_hits(s, boxes, Some(1), None)?,
+        (None, IndexKind::Exact) => exact_hits(store, scoring, boxes, Some(1), None)?,
+        (None, IndexKind::Hnsw) => return Ok(None),
+    };
+    Ok(best.first().map(|h| h.score))
 }
 
 /// The objects of a query's matches: `hits` (store rows) and `all` (the same matches, answer
