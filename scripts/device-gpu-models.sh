@@ -27,6 +27,10 @@
 #   scripts/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder,
 #                                            # f32 4-channel vs f16 multimask low-res logits;
 #                                            # ORT profiles; torch fp16 + its CUDA profile
+#   scripts/device-gpu-models.sh graphs      # per model: host copies vs IO binding vs CUDA graph
+#                                            # (device_ort_cuda_graph.py; carry .pyort/)
+#   scripts/device-gpu-models.sh clipu8      # CLIP fp16 fused: f32 pixel_values vs u8 pixels
+#                                            # (clip-u8-pixels.py), slag-bench models
 #   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
 #   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
@@ -213,6 +217,47 @@ sam)
   python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
   SAM_KINDS=vit_h TORCH_PROFILE=1 timeout 120 python3 scripts/device_torch_peers.py "$R/torch-peers.json" > "$R/torch-peers.txt" 2>&1
   grep -vE "^clip|^ *\{|^ *\}|^ *\"" "$R/torch-peers.txt" | cut -c1-160 | head -70
+  ;;
+graphs)
+  # Where each model's run goes on the CUDA provider (scripts/device_ort_cuda_graph.py): host
+  # copies, per-node launches (IO binding without and with a captured CUDA graph), the GPU.
+  # Needs .pyort/ort.tar.xz (onnxruntime-gpu 1.31.1's Python package without its two large
+  # libraries, which come from /root/og). Models: CLIP ViT-B/16 fp16 fused, SAM ViT-H fp16 with
+  # the fused encoder and the fp16 decoder cut to low-res outputs (f32; f16 multimask).
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  if [ ! -d /root/pyort/onnxruntime ]; then
+    mkdir -p /root/pyort && tar xJf .pyort/ort.tar.xz -C /root/pyort
+    ln -sf /root/og/libonnxruntime_providers_cuda.so /root/og/libonnxruntime.so.1.31.1 /root/pyort/onnxruntime/capi/
+  fi
+  t0=$(date +%s)
+  [ -f "$M/f16fuse/ViT-B-16-random-visual.onnx" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
+  X=$M/f16x
+  if [ ! -f "$X/sam-vit_h-decoder-low-res-f16m.onnx" ]; then
+    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$X" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
+    python3 scripts/sam-decoder-low-res.py "$X/sam-vit_h-decoder.onnx" "$X/sam-vit_h-decoder-low-res.onnx"
+    python3 scripts/sam-decoder-low-res.py --f16-multimask "$X/sam-vit_h-decoder.onnx" "$X/sam-vit_h-decoder-low-res-f16m.onnx"
+  fi
+  echo "exports: $(( $(date +%s) - t0 )) s"
+  [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
+  PYTHONPATH=/root/pyort:/root/site timeout 400 python3 scripts/device_ort_cuda_graph.py --repeats ${REPEATS:-10} \
+    "$M/f16fuse/ViT-B-16-random-visual.onnx:batch=64" "$X/sam-vit_h-encoder.onnx" \
+    "$X/sam-vit_h-decoder-low-res.onnx:num_prompts=256,num_points=2" \
+    "$X/sam-vit_h-decoder-low-res-f16m.onnx:num_prompts=256,num_points=2" \
+    "$X/sam-vit_h-decoder-low-res-f16m.onnx:num_prompts=128,num_points=2" 2>&1 | grep -v "^\s*$" | tee "$R/graphs.txt" | cut -c1-600
+  ;;
+clipu8)
+  # CLIP ViT-B/16 fp16 fused with f32 pixel_values (normalised on the host) against the same
+  # file given byte input (scripts/clip-u8-pixels.py): slag-bench models on real crops, twice,
+  # the second call with the towers in the other order.
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  F=$M/f16fuse/ViT-B-16-random-visual.onnx; U=$M/f16fuse-u8/ViT-B-16-random-visual.onnx
+  [ -f "$F" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
+  [ -f "$U" ] || { mkdir -p "$M/f16fuse-u8" && python3 scripts/clip-u8-pixels.py "$F" "$U"; }
+  for order in "$F $U" "$U $F"; do
+    set -- $order
+    "$BB" models --scene data/snowmiku-mini --images 8 --clip-visual "$1" --clip-visual "$2" \
+      --repeats ${REPEATS:-5} 2>> "$R/clipu8.jsonl"; echo "exit $?"
+  done | tee "$R/clipu8.md"
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do

@@ -6,7 +6,7 @@ for MobileSAM also mobilesam-mirror and timm. onnxruntime is optional: when impo
 exported file is run once as a check.
 
     export-models.py sam --kind vit_b|vit_l|vit_h|vit_t|tiny [--checkpoint FILE | --random] [--fp16] [--fuse] OUT_DIR
-    export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] [--fuse] OUT_DIR
+    export-models.py clip --model ViT-B-16|tiny [--pretrained TAG | --random] [--fp16] [--fuse] [--u8-pixels] OUT_DIR
 
 sam  writes OUT_DIR/sam-KIND-encoder.onnx (pixel_values f32[1,3,1024,1024] -> image_embeddings
      f32[1,256,64,64]; ViT-H, anything over 2 GB, or with --external-data: its weights in
@@ -34,6 +34,10 @@ CUDA), then, when onnxruntime is importable, its transformer optimizer fuses Lay
 residual add + LayerNorm and the bias + GELU. Same signature and weights; the export's check
 compares the f32 tower with torch on random pixels (cosine). MultiHeadAttention runs in half
 precision on CUDA only: check an --fp16 --fuse tower on the GPU (`slag-bench models`).
+
+--u8-pixels (clip): the image tower takes `pixels u8[B,3,224,224]` (the resized crop's RGB bytes)
+and scales and normalises them in its graph (scripts/clip-u8-pixels.py); slag then copies a
+quarter of the bytes to the GPU per crop. Same embeddings. Recommended on a GPU.
 
 --fuse (sam): the image encoder's attention, relative positions included, as one
 com.microsoft MultiHeadAttention node per block (the bias folded into widened query and key
@@ -77,6 +81,17 @@ SAM_CHECKPOINTS = {  # the official file names (segment-anything / MobileSAM rel
 def die(msg):
     print(f"export-models: {msg}", file=sys.stderr)
     sys.exit(2)
+
+
+def sibling_script(file_name):
+    """A script of this folder with a hyphenated name, imported as a module."""
+    import importlib.util
+
+    path = Path(__file__).resolve().with_name(file_name)
+    spec = importlib.util.spec_from_file_location(path.stem.replace("-", "_"), path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def need(module, pip_name):
@@ -678,8 +693,15 @@ def export_clip(a):
     vis_path, txt_path = out / f"{name}-visual.onnx", out / f"{name}-textual.onnx"
     tok_path, info_path = out / "clip-tokenizer.json", out / f"{name}.json"
     ids = tok(CHECK_TEXTS)
-    # Real-valued pixels (not zeros, which hide wrong indexing) for the image tower's check.
-    check_pixels = torch.rand(3, 3, 224, 224, generator=torch.Generator().manual_seed(1)) * 4 - 2
+    # Real-valued pixels (not zeros, which hide wrong indexing) for the image tower's check;
+    # with --u8-pixels, random bytes and the tower's reference on their normalised values.
+    gen = torch.Generator().manual_seed(1)
+    check_bytes = torch.randint(0, 256, (3, 3, 224, 224), dtype=torch.uint8, generator=gen)
+    u8 = sibling_script("clip-u8-pixels.py")
+    mean = torch.tensor(u8.MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(u8.STD).view(1, 3, 1, 1)
+    check_pixels = ((check_bytes.float() / 255 - mean) / std if a.u8_pixels
+                    else torch.rand(3, 3, 224, 224, generator=gen) * 4 - 2)
     with torch.no_grad():
         ref_txt = model.encode_text(ids, normalize=False).float()
         ref_vis = model.encode_image(check_pixels, normalize=False).float()
@@ -732,8 +754,15 @@ def export_clip(a):
     set_metadata(vis_path, {**common, "slag.clip_tower": "visual",
                             "slag.fused": json.dumps(fused) if fused else "none"})
     set_metadata(txt_path, {**common, "slag.clip_tower": "textual"})
+    if a.u8_pixels:
+        import onnx
+
+        m = onnx.load(str(vis_path))
+        u8.u8_pixels(m)
+        onnx.save(m, str(vis_path))
     dim = ref_txt.shape[1]
-    for p, want in ((vis_path, ([("pixel_values", "float32", [-1, 3, 224, 224])],
+    vis_in = ("pixels", "uint8") if a.u8_pixels else ("pixel_values", "float32")
+    for p, want in ((vis_path, ([(*vis_in, [-1, 3, 224, 224])],
                                 [("image_embeds", "float32", [-1, dim])])),
                     (txt_path, ([("input_ids", "int64", [-1, 77])],
                                 [("text_embeds", "float32", [-1, dim])]))):
@@ -752,13 +781,16 @@ def export_clip(a):
     elif txt_shapes is not None:
         ort_check = {"text": txt_shapes}
     if txt_shapes is not None:
-        ort_check["visual"] = check_with_ort(vis_path, {"pixel_values": check_pixels.numpy()})
+        feeds = ({"pixels": check_bytes.numpy()} if a.u8_pixels
+                 else {"pixel_values": check_pixels.numpy()})
+        ort_check["visual"] = check_with_ort(vis_path, feeds)
         if isinstance(ort_check["visual"], list):
             got, ref = check_with_ort.last[0], ref_vis.numpy()
             cos = (got * ref).sum(1) / (np.linalg.norm(got, axis=1) * np.linalg.norm(ref, axis=1))
             ort_check["visual_cosine_min_vs_torch_f32"] = float(cos.min())
     info = {"open_clip_model": a.model, "pretrained": tag, "clip_pair_id": pair_id,
-            "weights_sha256": digest, "fp16": bool(a.fp16), "fused": fused, "dim": dim,
+            "weights_sha256": digest, "fp16": bool(a.fp16), "fused": fused,
+            "pixels": "u8" if a.u8_pixels else "f32", "dim": dim,
             "visual": vis_path.name, "textual": txt_path.name, "tokenizer": tok_path.name,
             "check": {"texts": CHECK_TEXTS, "input_ids": ids.tolist()},
             "onnxruntime_check": ort_check,
@@ -801,6 +833,9 @@ def main():
     c.add_argument("--fp16", action="store_true", help="half-precision towers, f32 I/O")
     c.add_argument("--fuse", action="store_true",
                    help="image tower with ONNX Runtime's fused attention, LayerNorm and GELU")
+    c.add_argument("--u8-pixels", action="store_true",
+                   help="image tower input pixels u8[B,3,224,224]: CLIP's scaling and "
+                        "normalisation in the graph (scripts/clip-u8-pixels.py)")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("out", metavar="OUT_DIR")
     a = p.parse_args()

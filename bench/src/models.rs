@@ -2,9 +2,10 @@
 //! variants of one model checked against the first on the same inputs.
 //!
 //! - CLIP image towers (`--clip-visual`, repeatable): the white-background crops of real masks
-//!   (the graph segmenter's, on `--images` views of `--scene`), cut and preprocessed as
-//!   `encode` does, run `--batch` crops at a time (short batches padded, as on a GPU); reported
-//!   per crop. Every tower after the first is compared with the first crop by crop (cosine of
+//!   (the graph segmenter's, on `--images` views of `--scene`), cut and resized as `encode`
+//!   does, run `--batch` crops at a time (short batches padded, as on a GPU); reported per crop,
+//!   CLIP's normalisation on the host included for a tower whose input is f32 (a tower with
+//!   byte input does it in its graph). Every tower after the first is compared with the first crop by crop (cosine of
 //!   the L2-normalised embeddings).
 //! - SAM (`--sam-encoder` / `--sam-decoder`, paired in order): the image encoder per image on the
 //!   same views, and the prompt decoder per image for the `--points-per-side`² grid in runs of
@@ -23,7 +24,7 @@ use ort::session::Session;
 use ort::value::TensorRef;
 use slag_common::camera::load_views;
 use slag_common::onnx::{OnnxModel, Placement};
-use slag_encoder::clip::{ClipVisual, crop_pixels};
+use slag_encoder::clip::{ClipVisual, VisualInput, crop_pixels};
 use slag_encoder::masks::MaskGenerator;
 use slag_encoder::masks::graph::{GraphParams, GraphSegmenter};
 use slag_encoder::preprocess::{load_rgb, sam_pixel_values};
@@ -178,10 +179,10 @@ fn clip_rows(
     )?;
     writeln!(
         out,
-        "| CLIP image tower | ms per crop | ms per batch | cosine to the first: min / median | \
-         centred on the first's mean: min / median |"
+        "| CLIP image tower | input | ms per crop | ms per batch | cosine to the first: min / \
+         median | centred on the first's mean: min / median |"
     )?;
-    writeln!(out, "|---|---:|---:|---:|---:|")?;
+    writeln!(out, "|---|---|---:|---:|---:|---:|")?;
     let mut reference: Option<Vec<Vec<f32>>> = None;
     let mut notes = String::new();
     for path in &a.clip_visual {
@@ -226,14 +227,18 @@ fn clip_rows(
         };
         writeln!(
             out,
-            "| {} | {per_crop_ms:.4} | {:.2} | {cos} | {centred} |",
+            "| {} | {} | {per_crop_ms:.4} | {:.2} | {cos} | {centred} |",
             path.display(),
+            match clip.input() {
+                VisualInput::U8Pixels => "u8 pixels",
+                VisualInput::F32PixelValues => "f32, normalised on the host",
+            },
             per_crop_ms * crops as f64 / batches as f64
         )?;
         eprintln!(
             "{}",
             serde_json::json!({"model": path, "kind": "clip_visual", "crops": crops,
-                "batch": a.batch, "ms_per_crop": per_crop_ms, "cosine_to_first": cos,
+                "batch": a.batch, "input": clip.input(), "ms_per_crop": per_crop_ms, "cosine_to_first": cos,
                 "centred_cosine_to_first": centred})
         );
         if reference.is_none() {

@@ -639,6 +639,8 @@ pub enum ElemType {
     F16,
     /// 64-bit signed integer.
     I64,
+    /// Unsigned byte (e.g. pixels 0..=255).
+    U8,
 }
 
 impl ElemType {
@@ -648,6 +650,7 @@ impl ElemType {
             (ElemType::F32, TensorElementType::Float32)
                 | (ElemType::F16, TensorElementType::Float16)
                 | (ElemType::I64, TensorElementType::Int64)
+                | (ElemType::U8, TensorElementType::Uint8)
         )
     }
     fn as_str(self) -> &'static str {
@@ -655,6 +658,7 @@ impl ElemType {
             ElemType::F32 => "f32",
             ElemType::F16 => "f16",
             ElemType::I64 => "i64",
+            ElemType::U8 => "u8",
         }
     }
 }
@@ -735,6 +739,8 @@ fn describe_found(name: &str, ty: &ValueType) -> String {
             let t = match t {
                 TensorElementType::Float32 => "f32".to_string(),
                 TensorElementType::Int64 => "i64".to_string(),
+                TensorElementType::Float16 => "f16".to_string(),
+                TensorElementType::Uint8 => "u8".to_string(),
                 other => format!("{other:?}"),
             };
             format!("{name}: {t}{}", dims_str(shape))

@@ -1,11 +1,14 @@
 //! CLIP image embeddings of mask crops (SLAG: `E_j` = CLIP embedding of mask `M_j`'s crop).
 //!
 //! The crop is the paper's: the mask's bounding box (inclusive, SAM/COCO `xywh`), pixels outside
-//! the mask set to white (255). Each crop gets open_clip's preprocessing
-//! ([`crate::preprocess::clip_pixel_values`]: shortest side 224 with PIL bicubic, centre crop,
-//! CLIP mean/std), crops run through the visual tower in batches, and every output is
-//! L2-normalised. On a GPU one [`ClipService`] per GPU owns the tower and batches the crops of
-//! every front worker's images together.
+//! the mask set to white (255). Each crop gets open_clip's preprocessing: shortest side 224 with
+//! PIL bicubic and centre crop, as bytes ([`crate::preprocess::clip_pixels`]), then CLIP's
+//! mean/std ([`crate::preprocess::clip_normalize`]), on the host for a tower whose input is
+//! `pixel_values f32[B,3,224,224]`, in the graph for one whose input is `pixels
+//! u8[B,3,224,224]` (`scripts/clip-u8-pixels.py`; a quarter of the bytes to copy to a GPU).
+//! Crops run through the visual tower in batches, and every output is L2-normalised. On a GPU
+//! one [`ClipService`] per GPU owns the tower and batches the crops of every front worker's
+//! images together.
 
 use std::path::Path;
 use std::sync::{Arc, Mutex, mpsc};
@@ -19,13 +22,30 @@ use slag_common::text::l2_normalize;
 use slag_common::{Error, Result};
 
 use crate::masks::Mask;
-use crate::preprocess::{CLIP_IMAGE_SIZE, clip_pixel_values};
+use crate::preprocess::{CLIP_IMAGE_SIZE, CLIP_PIXELS, clip_normalize, clip_pixels};
 
 const VISUAL_INPUTS: &[TensorSpec] = &[TensorSpec::named(
     "pixel_values",
     ElemType::F32,
     &[-1, 3, 224, 224],
 )];
+const VISUAL_INPUTS_U8: &[TensorSpec] = &[TensorSpec::named(
+    "pixels",
+    ElemType::U8,
+    &[-1, 3, 224, 224],
+)];
+
+/// What a CLIP image tower takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VisualInput {
+    /// `pixel_values f32[B,3,224,224]`: normalised with CLIP's mean/std on the host (every
+    /// export of `scripts/export-models.py clip` without `--u8-pixels`, the fixtures).
+    F32PixelValues,
+    /// `pixels u8[B,3,224,224]`: the crop's RGB bytes; the graph scales and normalises
+    /// (`scripts/clip-u8-pixels.py`, `export-models.py clip --u8-pixels`).
+    U8Pixels,
+}
 const VISUAL_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, -1])];
 
 /// The white-background bounding-box crop of `mask` in `image` (the paper's CLIP input):
@@ -86,12 +106,14 @@ pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
     RgbImage::from_raw(cw, ch, out).ok_or_else(|| Error::internal("crop buffer size mismatch"))
 }
 
-/// The CLIP image tower over ONNX (`pixel_values f32[B,3,224,224] → one f32[B,D] output`, e.g.
-/// open_clip's `encode_image` without normalisation).
+/// The CLIP image tower over ONNX (`pixel_values f32[B,3,224,224]` or `pixels u8[B,3,224,224]`
+/// ([`VisualInput`]) → one f32[B,D] output, e.g. open_clip's `encode_image` without
+/// normalisation).
 pub struct ClipVisual {
     model: OnnxModel,
     batch_size: usize,
     input_name: String,
+    input: VisualInput,
     model_id: String,
     dim: usize,
     /// Whether every run is padded to `batch_size` rows (GPU providers; see `run_batch`).
@@ -136,15 +158,27 @@ impl ClipVisual {
             ));
         }
         let loaded = OnnxModel::load(model, placement)?;
-        onnx::check_signature(
+        let takes_bytes = onnx::check_signature(
             loaded.session(),
             model,
             "CLIP image tower",
-            VISUAL_INPUTS,
+            VISUAL_INPUTS_U8,
             VISUAL_OUTPUTS,
-            "pass a CLIP visual model exported with input pixel_values f32[B,3,224,224] and one \
-             output image_embeds f32[B,D] (e.g. open_clip encode_image; scripts/export-models.py clip)",
-        )?;
+            "",
+        )
+        .is_ok();
+        if !takes_bytes {
+            onnx::check_signature(
+                loaded.session(),
+                model,
+                "CLIP image tower",
+                VISUAL_INPUTS,
+                VISUAL_OUTPUTS,
+                "pass a CLIP visual model exported with input pixel_values f32[B,3,224,224] (or \
+                 pixels u8[B,3,224,224], scripts/clip-u8-pixels.py) and one output image_embeds \
+                 f32[B,D] (e.g. open_clip encode_image; scripts/export-models.py clip)",
+            )?;
+        }
         let input_name = loaded.session().inputs()[0].name().to_string();
         let declared = match loaded.session().outputs()[0].dtype() {
             ort::value::ValueType::Tensor { shape, .. } => shape.last().copied().filter(|&d| d > 0),
@@ -156,6 +190,11 @@ impl ClipVisual {
             model: loaded,
             batch_size,
             input_name,
+            input: if takes_bytes {
+                VisualInput::U8Pixels
+            } else {
+                VisualInput::F32PixelValues
+            },
             model_id,
             dim: 0,
             fixed_batch,
@@ -163,7 +202,7 @@ impl ClipVisual {
         clip.dim = match declared {
             Some(d) => d as usize,
             // Dynamic width: one probe run on a mid-grey image.
-            None => clip.embed_pixels(&vec![0.5f32; 3 * 224 * 224])?[0].len(),
+            None => clip.embed_pixels(&vec![128u8; CLIP_PIXELS])?[0].len(),
         };
         Ok(clip)
     }
@@ -189,6 +228,11 @@ impl ClipVisual {
         self.model.provider()
     }
 
+    /// What the tower takes (bytes, or values normalised on the host).
+    pub fn input(&self) -> VisualInput {
+        self.input
+    }
+
     /// Crops per run.
     pub fn batch_size(&self) -> usize {
         self.batch_size
@@ -201,15 +245,15 @@ impl ClipVisual {
         self.fixed_batch = on;
     }
 
-    /// Embeds preprocessed pixels `f32[n,3,224,224]`: `n` L2-normalised rows of the model's width,
-    /// in runs of at most the batch size.
+    /// Embeds crops `u8[n,3,224,224]` made by [`crate::preprocess::clip_pixels`] (or
+    /// [`crop_pixels`]): `n` L2-normalised rows of the model's width, in runs of at most the
+    /// batch size.
     ///
     /// # Errors
     /// [`Error::Internal`] for a buffer that is not a whole number of images, [`Error::Inference`]
     /// when the run fails, [`Error::Model`] for a wrong output or an embedding of zero norm.
-    pub fn embed_pixels(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
-        let s = CLIP_IMAGE_SIZE as usize;
-        let per = 3 * s * s;
+    pub fn embed_pixels(&mut self, pixels: &[u8]) -> Result<Vec<Vec<f32>>> {
+        let per = CLIP_PIXELS;
         if !pixels.len().is_multiple_of(per) {
             return Err(Error::internal(format!(
                 "CLIP pixel buffer of {} values is not a multiple of 3*224*224",
@@ -231,13 +275,13 @@ impl ClipVisual {
     /// plan for a new batch size in the middle of an encode, while SAM's sessions run on other
     /// threads of the same GPU, failed with CUDA error 901 ("operation failed due to a previous
     /// error during capture") under ONNX Runtime 1.31.
-    fn run_batch(&mut self, pixels: &[f32]) -> Result<Vec<Vec<f32>>> {
+    fn run_batch(&mut self, pixels: &[u8]) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
-        let per = 3 * s * s;
+        let per = CLIP_PIXELS;
         let n = pixels.len() / per;
         let padded;
         let (pixels, rows) = if self.fixed_batch && n < self.batch_size {
-            let mut buf = vec![0f32; self.batch_size * per];
+            let mut buf = vec![0u8; self.batch_size * per];
             buf[..pixels.len()].copy_from_slice(pixels);
             padded = buf;
             (padded.as_slice(), self.batch_size)
@@ -246,13 +290,27 @@ impl ClipVisual {
         };
         let errs = self.model.errors();
         let path = self.model.path().to_path_buf();
-        let input = TensorRef::from_array_view(([rows, 3, s, s], pixels))
-            .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
-        let outputs = self
-            .model
-            .session_mut()
-            .run(ort::inputs![self.input_name.as_str() => input])
-            .map_err(|e| errs.error("CLIP visual run", &e))?;
+        let values;
+        let name = self.input_name.as_str();
+        let session = self.model.session_mut();
+        let run = match self.input {
+            VisualInput::U8Pixels => {
+                let input = TensorRef::from_array_view(([rows, 3, s, s], pixels))
+                    .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
+                session.run(ort::inputs![name => input])
+            }
+            VisualInput::F32PixelValues => {
+                let mut buf = vec![0f32; pixels.len()];
+                buf.par_chunks_mut(per)
+                    .zip(pixels.par_chunks(per))
+                    .try_for_each(|(o, b)| clip_normalize(b, o))?;
+                values = buf;
+                let input = TensorRef::from_array_view(([rows, 3, s, s], values.as_slice()))
+                    .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
+                session.run(ort::inputs![name => input])
+            }
+        };
+        let outputs = run.map_err(|e| errs.error("CLIP visual run", &e))?;
         let (shape, data) = outputs[0]
             .try_extract_tensor::<f32>()
             .map_err(|e| errs.unexpected(format!("CLIP output is not f32: {e}")))?;
@@ -290,32 +348,30 @@ impl ClipVisual {
     /// [`Error::Inference`] when that first run fails.
     pub fn into_service(mut self) -> Result<ClipService> {
         if self.fixed_batch {
-            let per = 3 * (CLIP_IMAGE_SIZE as usize).pow(2);
-            self.run_batch(&vec![0.5f32; self.batch_size * per])?;
+            self.run_batch(&vec![128u8; self.batch_size * CLIP_PIXELS])?;
         }
         Ok(ClipService::start(self))
     }
 }
 
-/// `f32[masks.len(), 3, 224, 224]`: CLIP's input for the white-background crops of `masks`,
-/// cut and preprocessed in parallel (rayon).
+/// `u8[masks.len(), 3, 224, 224]`: the white-background crops of `masks`, resized and
+/// centre-cropped for CLIP ([`clip_pixels`]), cut in parallel (rayon).
 ///
 /// # Errors
-/// As [`crop`] and [`clip_pixel_values`].
-pub fn crop_pixels(image: &RgbImage, masks: &[Mask]) -> Result<Vec<f32>> {
-    let s = CLIP_IMAGE_SIZE as usize;
-    let per = 3 * s * s;
-    let mut pixels = vec![0f32; masks.len() * per];
+/// As [`crop`] and [`clip_pixels`].
+pub fn crop_pixels(image: &RgbImage, masks: &[Mask]) -> Result<Vec<u8>> {
+    let per = CLIP_PIXELS;
+    let mut pixels = vec![0u8; masks.len() * per];
     pixels
         .par_chunks_mut(per)
         .zip(masks.par_iter())
-        .try_for_each(|(buf, m)| clip_pixel_values(&crop(image, m)?, buf))?;
+        .try_for_each(|(buf, m)| clip_pixels(&crop(image, m)?, buf))?;
     Ok(pixels)
 }
 
 /// One front worker's crops waiting for the tower.
 struct Request {
-    pixels: Vec<f32>,
+    pixels: Vec<u8>,
     reply: mpsc::SyncSender<Result<Vec<Vec<f32>>>>,
 }
 
@@ -356,7 +412,7 @@ impl ClipService {
             clip.provider(),
         );
         let st = Arc::clone(&stats);
-        let per = 3 * (CLIP_IMAGE_SIZE as usize).pow(2);
+        let per = CLIP_PIXELS;
         let spawned = std::thread::Builder::new()
             .name(format!("clip-{device}"))
             .spawn(move || {
@@ -376,8 +432,11 @@ impl ClipService {
                     let result = if reqs.len() == 1 {
                         clip.embed_pixels(&reqs[0].pixels)
                     } else {
-                        let all: Vec<f32> =
-                            reqs.iter().flat_map(|r| r.pixels.iter().copied()).collect();
+                        let all: Vec<u8> = reqs
+                            .iter()
+                            .map(|r| r.pixels.as_slice())
+                            .collect::<Vec<_>>()
+                            .concat();
                         clip.embed_pixels(&all)
                     };
                     if let Ok(mut s) = st.lock() {

@@ -363,7 +363,8 @@ pub const CLIP_BATCH_CPU: usize = 32;
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ClipConfig {
-    /// CLIP visual tower ONNX (`pixel_values f32[B,3,224,224] -> [B,D]`). Required.
+    /// CLIP visual tower ONNX (`pixel_values f32[B,3,224,224]`, or `pixels u8[B,3,224,224]` from
+    /// `scripts/clip-u8-pixels.py`, `-> [B,D]`). Required.
     pub visual: PathBuf,
     /// Crops per CLIP batch; `None` (default): [`CLIP_BATCH_GPU`] on a GPU provider,
     /// [`CLIP_BATCH_CPU`] on the CPU.

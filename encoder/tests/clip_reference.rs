@@ -15,7 +15,7 @@ use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
 use slag_common::text::TextEncoder;
-use slag_encoder::clip::{ClipVisual, crop};
+use slag_encoder::clip::{ClipVisual, VisualInput, crop};
 use slag_encoder::masks::Mask;
 use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
 
@@ -109,6 +109,63 @@ fn clip_crops_reproduce_open_clip_reference() {
         }
     }
     assert_eq!(done, crops.len());
+}
+
+/// A tower with byte input (`tests/fixtures/color-clip-visual-u8.onnx`: `scripts/clip-u8-pixels.py`
+/// on shared's color-clip image tower, CLIP's scaling and normalisation moved into the graph)
+/// gives the embeddings of the f32 tower it came from, on
+/// the crops of real masks, alone, with short batches padded and through the service; and it
+/// keeps the f32 tower's CLIP pair id.
+#[test]
+fn u8_pixel_tower_gives_the_f32_towers_embeddings() {
+    let Some(clip_dir) = ort_fixtures("clip") else {
+        return;
+    };
+    let sam_ref = json(shared().join("fixtures/sam-amg/reference.json"));
+    let image_ref = &sam_ref["images"][0];
+    let img = load_rgb(
+        &shared()
+            .join("scenes/snowmiku/images")
+            .join(image_ref["image"].as_str().unwrap()),
+    )
+    .unwrap();
+    let masks: Vec<Mask> = image_ref["masks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .take(11)
+        .map(|m| rle_to_mask(&m["rle"]))
+        .collect();
+    let f32_path = clip_dir.join("color-clip-visual.onnx");
+    let u8_path =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-clip-visual-u8.onnx");
+    let mut plain = ClipVisual::new(&f32_path, ExecutionProvider::Cpu, 4).unwrap();
+    let mut bytes = ClipVisual::new(&u8_path, ExecutionProvider::Cpu, 4).unwrap();
+    assert_eq!(plain.input(), VisualInput::F32PixelValues);
+    assert_eq!(bytes.input(), VisualInput::U8Pixels);
+    assert_eq!(bytes.model_id(), plain.model_id());
+    let want = plain.embed_masks(&img, &masks).unwrap();
+    bytes.set_fixed_batch(true); // 11 crops: the last batch of 3 is padded to 4
+    let got = bytes.embed_masks(&img, &masks).unwrap();
+    let service = ClipVisual::new(&u8_path, ExecutionProvider::Cpu, 4)
+        .unwrap()
+        .into_service()
+        .unwrap();
+    let served = service.handle().embed_masks(&img, &masks).unwrap();
+    assert_eq!(want.len(), masks.len());
+    let max_diff = |a: &[Vec<f32>], b: &[Vec<f32>]| {
+        a.iter()
+            .zip(b)
+            .flat_map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p - q).abs()))
+            .fold(0f32, f32::max)
+    };
+    // Crops that differ give different embeddings, so equal rows are not a constant answer.
+    assert!(max_diff(&want[..1], &want[1..2]) > 1e-3);
+    for (what, rows) in [("alone, padded", &got), ("through the service", &served)] {
+        assert_eq!(rows.len(), want.len(), "{what}");
+        let d = max_diff(&want, rows);
+        assert!(d <= 1e-6, "{what}: max |Δ| {d}");
+    }
 }
 
 #[test]

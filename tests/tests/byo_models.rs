@@ -293,3 +293,52 @@ fn f16_multimask_decoder_gives_the_same_masks() {
         assert!(a.pixels == b.pixels);
     }
 }
+
+/// `export-models.py clip --u8-pixels`: the image tower that takes the crops' bytes and
+/// normalises them in its graph gives the embeddings of the plain export (same weights, same
+/// seed) on the crops of real masks, with ONNX Runtime on the CPU, and records the same CLIP
+/// pair id.
+#[test]
+fn u8_pixels_clip_export_gives_the_same_embeddings() {
+    use slag_encoder::clip::{ClipVisual, VisualInput};
+    use slag_encoder::masks::MaskGenerator;
+    if let Some(why) = skip_reason() {
+        eprintln!("SKIPPED u8_pixels_clip_export_gives_the_same_embeddings: {why}");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    export(&["clip", "--model", "tiny", "--random", &s("plain")]);
+    export(&[
+        "clip",
+        "--model",
+        "tiny",
+        "--random",
+        "--u8-pixels",
+        &s("u8"),
+    ]);
+    let views = slag_common::camera::load_views(&default_scene()).unwrap();
+    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let mut seg = slag_encoder::masks::graph::GraphSegmenter::new(Default::default());
+    let masks = seg.generate(&image).unwrap();
+    assert!(
+        masks.len() >= 2,
+        "the graph segmenter found {} masks",
+        masks.len()
+    );
+    let cpu = slag_common::onnx::ExecutionProvider::Cpu;
+    let mut plain =
+        ClipVisual::new(Path::new(&s("plain/tiny-random-visual.onnx")), cpu, 8).unwrap();
+    let mut bytes = ClipVisual::new(Path::new(&s("u8/tiny-random-visual.onnx")), cpu, 8).unwrap();
+    assert_eq!(bytes.input(), VisualInput::U8Pixels);
+    assert_eq!(plain.input(), VisualInput::F32PixelValues);
+    assert_eq!(bytes.model_id(), plain.model_id());
+    let want = plain.embed_masks(&image, &masks).unwrap();
+    let got = bytes.embed_masks(&image, &masks).unwrap();
+    let diff = want
+        .iter()
+        .zip(&got)
+        .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+        .fold(0f32, f32::max);
+    assert!(diff <= 1e-5, "max |Δ| {diff} over {} crops", masks.len());
+}

@@ -147,7 +147,8 @@ pub struct EncodeArgs {
     /// Graph segmenter: minimum segment size, pixels.
     #[arg(long)]
     pub graph_min_size: Option<u32>,
-    /// CLIP visual tower ONNX (pixel_values f32[B,3,224,224] -> [B,D]).
+    /// CLIP visual tower ONNX (pixel_values f32[B,3,224,224], or pixels u8[B,3,224,224] from
+    /// scripts/clip-u8-pixels.py, -> [B,D]).
     #[arg(long)]
     pub clip_visual: PathBuf,
     /// Crops per CLIP batch (default: 64 on a GPU provider, where the batched service ran

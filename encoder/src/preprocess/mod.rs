@@ -17,7 +17,7 @@
 //! On top of it:
 //! - [`sam_pixel_values`]: segment_anything's `ResizeLongestSide(1024).apply_image` (PIL
 //!   bilinear), `(x - pixel_mean) / pixel_std`, zero padding to 1024x1024 → `f32[1,3,1024,1024]`.
-//! - [`clip_pixel_values`]: open_clip's `ViT-B-32` preprocessing: torchvision `Resize(224)`
+//! - [`clip_pixel_values`] ([`clip_pixels`] + [`clip_normalize`]): open_clip's `ViT-B-32` preprocessing: torchvision `Resize(224)`
 //!   (shortest side, PIL bicubic), `CenterCrop(224)`, `ToTensor`, `Normalize(CLIP mean, std)` →
 //!   `f32[3,224,224]`.
 
@@ -316,16 +316,31 @@ fn center_offset(len: u32, crop: u32) -> u32 {
 }
 
 /// open_clip preprocessing of one crop into `out` = `f32[3, 224, 224]` (channel-major RGB):
-/// resize shortest side to 224 (PIL bicubic), centre crop 224 (torchvision rounding), `/255`,
-/// `(x - mean) / std`.
+/// [`clip_pixels`], then [`clip_normalize`] (`/255`, `(x - mean) / std`).
+///
+/// # Errors
+/// As [`clip_pixels`]; [`Error::Internal`] for an `out` of the wrong length.
+pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
+    let mut bytes = vec![0u8; CLIP_PIXELS];
+    clip_pixels(img, &mut bytes)?;
+    clip_normalize(&bytes, out)
+}
+
+/// Values in one CLIP crop, `3 × 224 × 224`.
+pub const CLIP_PIXELS: usize = 3 * (CLIP_IMAGE_SIZE as usize) * (CLIP_IMAGE_SIZE as usize);
+
+/// The geometric half of open_clip's preprocessing, one crop into `out` = `u8[3, 224, 224]`
+/// (channel-major RGB bytes): resize the shortest side to 224 (PIL bicubic, rounded to bytes as
+/// PIL does), centre crop 224 (torchvision rounding). [`clip_normalize`] is the other half; a
+/// CLIP tower with byte input (`scripts/clip-u8-pixels.py`) does it in its graph.
 ///
 /// # Errors
 /// [`Error::Invalid`] for an empty image, [`Error::Internal`] for an `out` of the wrong length.
-pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
+pub fn clip_pixels(img: &RgbImage, out: &mut [u8]) -> Result<()> {
     let s = CLIP_IMAGE_SIZE as usize;
-    if out.len() != 3 * s * s {
+    if out.len() != CLIP_PIXELS {
         return Err(Error::internal(format!(
-            "CLIP input buffer has {} values, expected 3*224*224",
+            "CLIP crop buffer has {} values, expected 3*224*224",
             out.len()
         )));
     }
@@ -351,8 +366,36 @@ pub fn clip_pixel_values(img: &RgbImage, out: &mut [f32]) -> Result<()> {
         for (y, prow) in plane.chunks_exact_mut(s).enumerate() {
             let row = &raw[((y0 + y) * rw + x0) * 3..][..s * 3];
             for (o, px) in prow.iter_mut().zip(row.chunks_exact(3)) {
-                *o = (f32::from(px[c]) / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c];
+                *o = px[c];
             }
+        }
+    }
+    Ok(())
+}
+
+/// CLIP's scaling and normalisation of crops made by [`clip_pixels`]: `bytes` = `u8[n, 3, 224,
+/// 224]` into `out` = `f32[n, 3, 224, 224]`, `(x / 255 - mean[c]) / std[c]` in f32 (open_clip's
+/// `ToTensor` + `Normalize`; the same operations as `scripts/clip-u8-pixels.py`'s graph).
+///
+/// # Errors
+/// [`Error::Internal`] when the lengths differ or are not whole crops.
+pub fn clip_normalize(bytes: &[u8], out: &mut [f32]) -> Result<()> {
+    if bytes.len() != out.len() || !bytes.len().is_multiple_of(CLIP_PIXELS) {
+        return Err(Error::internal(format!(
+            "CLIP normalisation of {} bytes into {} values: both must be the same whole number \
+             of 3*224*224 crops",
+            bytes.len(),
+            out.len()
+        )));
+    }
+    let plane = CLIP_PIXELS / 3;
+    let table: [[f32; 256]; 3] = std::array::from_fn(|c| {
+        std::array::from_fn(|v| (v as f32 / 255.0 - CLIP_MEAN[c]) / CLIP_STD[c])
+    });
+    for (i, (o, b)) in out.chunks_mut(plane).zip(bytes.chunks(plane)).enumerate() {
+        let t = &table[i % 3];
+        for (o, &b) in o.iter_mut().zip(b) {
+            *o = t[usize::from(b)];
         }
     }
     Ok(())
