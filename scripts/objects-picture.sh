@@ -2,8 +2,8 @@
 # The picture of the objects that `slag-encoder query` returns on a real scene, for two prompts,
 # with geometric segments: encode the scene (graph masks, the color-clip stand-in, every second
 # view, raster scale 0.5; the encode writes segments.safetensors), query each prompt with
-# `--smooth segment` (each Gaussian scored with its segment's mean cosine; matches of one segment
-# join one object), then draw the objects' oriented boxes over the scene (scripts/plot_objects.py).
+# `--smooth segment` (each Gaussian scored with its segment's mean cosine; objects are the matches
+# within the gap of each other), then draw the objects' oriented boxes over the scene (scripts/plot_objects.py).
 #
 # Usage: scripts/objects-picture.sh BINARY SCENE OUT.png [PROMPT ...]   (default prompts: pink brown)
 # MASKS=sam encodes instead with color-sam 16x16 (pred-IoU 0.8, stability 0.5) at every 4th view,

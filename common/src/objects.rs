@@ -6,13 +6,15 @@
 //!
 //! [`group_objects`] turns the matches of one query into [`SceneObject`]s:
 //! 1. **Grouping.** Matches are linked by single linkage: two matches whose means lie within
-//!    [`ObjectParams::gap`] of each other (Euclidean, answer frame) are in the same group. When the
-//!    scene carries geometric segments (a `u32` segment id per Gaussian), matches of the same
-//!    segment are linked too, so an object is the union of the matched segments that touch
-//!    (within the gap); a segment is never split. The links are found exactly on a uniform grid of
-//!    cell side `gap / √3` (two means in one cell are within the gap; cells up to two apart are
-//!    compared pair by pair until one link is found), and the groups are the connected components
-//!    (union-find), which do not depend on the order of the matches.
+//!    [`ObjectParams::gap`] of each other (Euclidean, answer frame) are in the same group. The
+//!    links are found exactly on a uniform grid of cell side `gap / √3` (two means in one cell
+//!    are within the gap; cells up to two apart are compared pair by pair until one link is
+//!    found), and the groups are the connected components (union-find), which do not depend on
+//!    the order of the matches. Geometric segments decide which Gaussians match (score smoothing,
+//!    [`crate::segments`]), not which matches form one object: linking the matches of one segment
+//!    as well joined touching regions of one colour on snowmiku into an object of a quarter of
+//!    the scene (5.8 × 4.1 × 2.1 scene units for "pink", against 2.7 × 1.7 × 0.8 by the gap
+//!    alone) and changed nothing on the synthetic touching objects (docs/results/objects.md).
 //! 2. **Suppression.** Groups of fewer than [`ObjectParams::min_gaussians`] matches are dropped
 //!    (stray matches; counted in [`Objects::suppressed`]).
 //! 3. **Description.** Per group: the id (FNV-1a 64 of the members' sorted Gaussian ids: the same
@@ -148,8 +150,6 @@ pub struct Matches<'a> {
     /// Opacities in 0..=1 (the sigmoid of the stored pre-sigmoid opacity; 1 for a Gaussian
     /// without one); `None`: the centroid is weighted by score alone.
     pub opacities: Option<&'a [f32]>,
-    /// Geometric segment id of each match; `None` when the scene has no segments.
-    pub segments: Option<&'a [u32]>,
 }
 
 /// The objects of one query.
@@ -173,27 +173,12 @@ pub struct Objects {
 pub fn group_objects(m: &Matches<'_>, p: &ObjectParams) -> Result<Objects> {
     p.validate()?;
     let n = m.ids.len();
-    if m.positions.len() != n
-        || m.scores.len() != n
-        || m.opacities.is_some_and(|o| o.len() != n)
-        || m.segments.is_some_and(|s| s.len() != n)
-    {
+    if m.positions.len() != n || m.scores.len() != n || m.opacities.is_some_and(|o| o.len() != n) {
         return Err(Error::internal(
-            "group_objects: ids, positions, scores, opacities and segments differ in length",
+            "group_objects: ids, positions, scores and opacities differ in length",
         ));
     }
     let mut uf = UnionFind::new(n);
-    if let Some(segs) = m.segments {
-        let mut first: HashMap<u32, usize> = HashMap::new();
-        // Rows without a segment (`NO_SEGMENT`, from shards that carry none) join by gap only.
-        for (i, &s) in segs.iter().enumerate() {
-            if s == crate::segments::NO_SEGMENT {
-                continue;
-            }
-            let f = *first.entry(s).or_insert(i);
-            uf.union(f, i);
-        }
-    }
     link_within_gap(m.positions, p.gap, &mut uf);
     // Components, members in input order; components ordered by their first member.
     let mut comp_of_root: HashMap<usize, usize> = HashMap::new();
@@ -477,7 +462,7 @@ mod tests {
             .collect()
     }
 
-    fn run(pos: &[[f32; 3]], scores: &[f32], segs: Option<&[u32]>, p: &ObjectParams) -> Objects {
+    fn run(pos: &[[f32; 3]], scores: &[f32], p: &ObjectParams) -> Objects {
         let ids: Vec<u32> = (0..pos.len() as u32).map(|i| i * 7 + 3).collect();
         group_objects(
             &Matches {
@@ -485,7 +470,6 @@ mod tests {
                 positions: pos,
                 scores,
                 opacities: None,
-                segments: segs,
             },
             p,
         )
@@ -556,7 +540,7 @@ mod tests {
         let mut scores = vec![0.3f32; 400];
         scores.extend(vec![0.5f32; 300]);
         scores.extend([0.9, 0.9, 0.9]);
-        let o = run(&pos, &scores, None, &wide());
+        let o = run(&pos, &scores, &wide());
         assert_eq!(o.objects.len(), 2);
         assert_eq!((o.groups, o.suppressed), (2, 3));
         // Sorted by score mass (400 × 0.3 = 120 < 300 × 0.5 = 150): the second blob first.
@@ -594,7 +578,7 @@ mod tests {
             .into_iter()
             .map(|p| [c * p[0] - s * p[1] + 5.0, s * p[0] + c * p[1], p[2] + 1.0])
             .collect();
-        let o = run(&pos, &vec![0.4; 2000], None, &ObjectParams::default());
+        let o = run(&pos, &vec![0.4; 2000], &ObjectParams::default());
         let b = &o.objects[0].obb;
         assert!(
             (b.axes[0][0] - c).abs() < 0.02 && (b.axes[0][1] - s).abs() < 0.02,
@@ -618,46 +602,12 @@ mod tests {
     }
 
     #[test]
-    fn segments_join_and_separate_as_documented() {
-        let mut rng = SplitMix64::new(3);
-        // Two blobs 2 apart: one segment id spanning both joins them into one object.
-        let mut pos = blob(&mut rng, [0.0; 3], [0.2; 3], 100);
-        pos.extend(blob(&mut rng, [2.0, 0.0, 0.0], [0.2; 3], 100));
-        let scores = vec![0.5f32; 200];
-        let same = vec![7u32; 200];
-        let o = run(&pos, &scores, Some(&same), &ObjectParams::default());
-        assert_eq!(o.objects.len(), 1);
-        assert_eq!(o.objects[0].gaussians, 200);
-        // Distinct segments per blob: two objects, as without segments.
-        let two: Vec<u32> = (0..200).map(|i| if i < 100 { 1 } else { 2 }).collect();
-        assert_eq!(
-            run(&pos, &scores, Some(&two), &ObjectParams::default())
-                .objects
-                .len(),
-            2
-        );
-        assert_eq!(
-            run(&pos, &scores, None, &ObjectParams::default())
-                .objects
-                .len(),
-            2
-        );
-        // Segments of a few matches each, scattered beyond the gap, are suppressed unless their
-        // segment gathers enough of them.
-        let sparse: Vec<[f32; 3]> = (0..12).map(|i| [i as f32, 5.0, 0.0]).collect();
-        let p = ObjectParams::default();
-        assert!(run(&sparse, &[0.5; 12], None, &p).objects.is_empty());
-        let o = run(&sparse, &[0.5; 12], Some(&[4; 12]), &p);
-        assert_eq!(o.objects.len(), 1);
-    }
-
-    #[test]
     fn ids_are_stable_and_order_independent_and_near_sorts_by_distance() {
         let mut rng = SplitMix64::new(2);
         let mut pos = blob(&mut rng, [0.0; 3], [0.2; 3], 50);
         pos.extend(blob(&mut rng, [5.0, 0.0, 0.0], [0.2; 3], 50));
         let scores: Vec<f32> = (0..100).map(|i| if i < 50 { 0.6 } else { 0.4 }).collect();
-        let o = run(&pos, &scores, None, &wide());
+        let o = run(&pos, &scores, &wide());
         // Reversed input order: same ids, same objects.
         let ids: Vec<u32> = (0..100u32).map(|i| i * 7 + 3).rev().collect();
         let rpos: Vec<[f32; 3]> = pos.iter().rev().copied().collect();
@@ -668,7 +618,6 @@ mod tests {
                 positions: &rpos,
                 scores: &rscores,
                 opacities: None,
-                segments: None,
             },
             &wide(),
         )
@@ -680,14 +629,14 @@ mod tests {
             near: Some([6.0, 0.0, 0.0]),
             ..wide()
         };
-        let n = run(&pos, &scores, None, &p);
+        let n = run(&pos, &scores, &p);
         assert_eq!(n.objects[0].id, o.objects[1].id);
         // max_objects keeps the first.
         let p = ObjectParams {
             max_objects: 1,
             ..wide()
         };
-        let one = run(&pos, &scores, None, &p);
+        let one = run(&pos, &scores, &p);
         assert_eq!(one.objects, vec![o.objects[0].clone()]);
         assert_eq!(one.groups, 2);
         assert_eq!(one.member_of.iter().filter(|m| m.is_some()).count(), 50);
@@ -711,7 +660,6 @@ mod tests {
                 positions: &pos,
                 scores: &scores,
                 opacities: Some(&opacity),
-                segments: None,
             },
             &ObjectParams::default(),
         )
@@ -734,7 +682,7 @@ mod tests {
         pos.extend(blob(&mut rng, [3.0, 0.0, 0.0], [0.1; 3], 60));
         let mut scores = vec![0.3f32; 100];
         scores.extend([0.9f32; 60]);
-        let o = run(&pos, &scores, None, &ObjectParams::default());
+        let o = run(&pos, &scores, &ObjectParams::default());
         assert_eq!(o.objects[0].gaussians, 60);
         assert!((o.objects[0].score_mass - 54.0).abs() < 1e-3);
     }
@@ -754,7 +702,6 @@ mod tests {
                     positions: &pos,
                     scores,
                     opacities: op,
-                    segments: None,
                 },
                 &p,
             )
@@ -778,7 +725,6 @@ mod tests {
             positions: &[[0.0; 3]],
             scores: &[0.5],
             opacities: None,
-            segments: None,
         };
         // One bad field at a time, the rest default.
         type Breaks = fn(&mut ObjectParams);
@@ -812,7 +758,6 @@ mod tests {
             positions: &[],
             scores: &[],
             opacities: None,
-            segments: None,
         };
         assert_eq!(
             group_objects(&none, &ObjectParams::default()).unwrap(),

@@ -1010,8 +1010,7 @@ fn assemble_matches(
         })
         .collect();
     let summary = summarise(&all);
-    // Matches of one geometric segment join one object when the shards carry segments.
-    let grouped = answer_objects(hits, &all, display, store.segments(), &q.objects)?;
+    let grouped = answer_objects(hits, &all, display, &q.objects)?;
     let mut matches = all;
     matches.truncate(q.top_k);
     let mut match_objects = grouped.member_of;
@@ -1052,16 +1051,14 @@ fn best_score(
 /// The objects of a query's matches: `hits` (store rows) and `all` (the same matches, answer
 /// frame) grouped by [`objects::group_objects`] with the opacity of each row from `display`
 /// (the sigmoid of the stored pre-sigmoid opacity; 1 for rows whose shard has none, or all rows
-/// without `display`: the centroid is then weighted by score) and, when the scene has geometric
-/// segments, `row_segments[row]` the segment id of each store row (`None`: spatial grouping
-/// only).
+/// without `display`: the centroid is then weighted by score). Objects are spatial groups: the
+/// segments, where the scene has them, act through the scores (`smooth=segment`).
 ///
 /// Errors: as [`objects::group_objects`].
 pub fn answer_objects(
     hits: &[scan::Hit],
     all: &[Match],
     display: Option<&DisplayAttrs>,
-    row_segments: Option<&[u32]>,
     p: &ObjectParams,
 ) -> Result<objects::Objects> {
     let positions: Vec<[f32; 3]> = all.iter().map(|m| m.position).collect();
@@ -1072,25 +1069,12 @@ pub fn answer_objects(
             .map(|h| d.opacity(h.row).unwrap_or(1.0))
             .collect()
     });
-    let segments: Option<Vec<u32>> = match row_segments {
-        Some(s) => Some(
-            hits.iter()
-                .map(|h| {
-                    s.get(h.row).copied().ok_or_else(|| {
-                        Error::internal("answer_objects: fewer segment ids than store rows")
-                    })
-                })
-                .collect::<Result<_>>()?,
-        ),
-        None => None,
-    };
     objects::group_objects(
         &objects::Matches {
             ids: &ids,
             positions: &positions,
             scores: &scores,
             opacities: opacities.as_deref(),
-            segments: segments.as_deref(),
         },
         p,
     )

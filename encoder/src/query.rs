@@ -127,24 +127,17 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
-    // With smoothing the segments are read anyway: the objects then join matches of one segment.
-    let (all, summary, match_segments) = match a.smooth {
-        Smooth::None => {
-            let (all, summary) = similarity::rank(
-                &emb.ids,
-                &emb.means,
-                &emb.vectors,
-                emb.dim,
-                &q,
-                None,
-                Some(a.threshold),
-            )?;
-            (all, summary, None)
-        }
-        Smooth::Segment => {
-            let (all, summary, segments) = rank_smoothed(a, &emb, &q)?;
-            (all, summary, Some(segments))
-        }
+    let (all, summary) = match a.smooth {
+        Smooth::None => similarity::rank(
+            &emb.ids,
+            &emb.means,
+            &emb.vectors,
+            emb.dim,
+            &q,
+            None,
+            Some(a.threshold),
+        )?,
+        Smooth::Segment => rank_smoothed(a, &emb, &q)?,
     };
     if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
         let mut hit = vec![
@@ -185,7 +178,6 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
             positions: &positions,
             scores: &scores,
             opacities: opacities.as_deref(),
-            segments: match_segments.as_deref(),
         },
         &a.objects,
     )?;
@@ -225,12 +217,12 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
 }
 
 /// Every Gaussian scored with its segment's mean cosine, those ≥ the threshold ranked best first
-/// (ties: lower row first), with the segment of each match.
+/// (ties: lower row first).
 fn rank_smoothed(
     a: &QueryParams,
     emb: &Embeddings,
     q: &[f32],
-) -> Result<(Vec<Match>, MatchSummary, Vec<u32>)> {
+) -> Result<(Vec<Match>, MatchSummary)> {
     let path = a.segments.clone().unwrap_or_else(|| {
         a.embeddings
             .parent()
@@ -241,7 +233,6 @@ fn rank_smoothed(
     let raw = similarity::cosine_scores(&emb.vectors, emb.dim, q)?;
     let ranked =
         slag_common::segments::rank_smoothed(&raw, &rows, Some(a.threshold), None, |_| true)?;
-    let segments = ranked.iter().map(|&(i, _)| rows[i]).collect();
     let matches: Vec<Match> = ranked
         .into_iter()
         .map(|(i, score)| Match {
@@ -251,7 +242,7 @@ fn rank_smoothed(
         })
         .collect();
     let summary = similarity::summarise(&matches);
-    Ok((matches, summary, segments))
+    Ok((matches, summary))
 }
 
 #[cfg(test)]

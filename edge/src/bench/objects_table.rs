@@ -66,7 +66,6 @@ pub(super) fn table(args: &BenchArgs) -> anyhow::Result<String> {
         positions: &pos,
         scores: &scores,
         opacities: Some(&opacities),
-        segments: None,
     };
     let p = ObjectParams::default();
     let mut ts = Vec::new();

@@ -30,7 +30,7 @@ pub struct EvalObjectsArgs {
     #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
     pub object_min_gaussians: usize,
     /// Score smoothing of the queries, one score per value (repeat the flag: `--smooth none
-    /// --smooth segment`); `segment` makes objects unions of geometric segments.
+    /// --smooth segment`); `segment` scores each Gaussian with its geometric segment's mean.
     #[arg(long, value_enum, default_values_t = [SmoothArg::None])]
     pub smooth: Vec<SmoothArg>,
     /// Segments for --smooth segment; default segments.safetensors beside --embeddings.

@@ -306,8 +306,7 @@ pub struct EvalObjectsConfig {
     pub color_clip: PathBuf,
     /// How matches are grouped into objects (scene units).
     pub objects: ObjectParams,
-    /// Scored once per entry: each Gaussian's own score, and/or its segment's mean (objects are
-    /// then unions of segments).
+    /// Scored once per entry: each Gaussian's own score, and/or its segment's mean.
     pub smooth: Vec<Smooth>,
     /// Segments for [`Smooth::Segment`]; `None`: `segments.safetensors` beside the embeddings.
     pub segments: Option<PathBuf>,
