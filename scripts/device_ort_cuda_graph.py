@@ -72,8 +72,9 @@ def session(path, graph):
     return ort.InferenceSession(path, opts, providers=[prov])
 
 
-def bound_runner(sess, feeds):
-    """IO binding with the inputs copied to the GPU once and the outputs kept there."""
+def bind(sess, feeds):
+    """IO binding with the inputs copied to the GPU once and the outputs left there; the
+    binding and the device values it holds."""
     b = sess.io_binding()
     keep = []
     for name, x in feeds.items():
@@ -82,25 +83,26 @@ def bound_runner(sess, feeds):
         b.bind_ortvalue_input(name, v)
     for o in sess.get_outputs():
         b.bind_output(o.name, DEV, 0)
-    ro = ort.RunOptions()
+    return b, keep
 
+
+def runner(sess, b):
     def run():
-        sess.run_with_iobinding(b, ro)
+        sess.run_with_iobinding(b)
         b.synchronize_outputs()
-    return run, keep
+    return run
+
+
+def bound_runner(sess, feeds):
+    """Inputs on the GPU, outputs left there."""
+    b, keep = bind(sess, feeds)
+    return runner(sess, b), keep
 
 
 def graph_runner(sess, feeds):
     """IO binding at fixed GPU addresses (inputs and outputs preallocated), as CUDA graphs need."""
-    b = sess.io_binding()
-    keep = []
-    for name, x in feeds.items():
-        v = ort.OrtValue.ortvalue_from_numpy(x, DEV, 0)
-        keep.append(v)
-        b.bind_ortvalue_input(name, v)
+    b, keep = bind(sess, feeds)
     # One plain bound run gives the output shapes; then bind preallocated outputs.
-    for o in sess.get_outputs():
-        b.bind_output(o.name, DEV, 0)
     sess.run_with_iobinding(b)
     shapes = [(o.name, v.shape(), v.data_type()) for o, v in zip(sess.get_outputs(),
                                                                  b.get_outputs())]
@@ -110,11 +112,7 @@ def graph_runner(sess, feeds):
         v = ort.OrtValue.ortvalue_from_shape_and_type(shape, t, DEV, 0)
         keep.append(v)
         b.bind_ortvalue_output(name, v)
-
-    def run():
-        sess.run_with_iobinding(b)
-        b.synchronize_outputs()
-    return run, keep
+    return runner(sess, b), keep
 
 
 def main():
