@@ -34,6 +34,7 @@ const VISUAL_INPUTS_U8: &[TensorSpec] = &[TensorSpec::named(
     ElemType::U8,
     &[-1, 3, 224, 224],
 )];
+const VISUAL_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, -1])];
 
 /// What a CLIP image tower takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -46,7 +47,6 @@ pub enum VisualInput {
     /// (`scripts/clip-u8-pixels.py`, `export-models.py clip --u8-pixels`).
     U8Pixels,
 }
-const VISUAL_OUTPUTS: &[TensorSpec] = &[TensorSpec::any_name(ElemType::F32, &[-1, -1])];
 
 /// The white-background bounding-box crop of `mask` in `image` (the paper's CLIP input):
 /// `np.where(mask, image, 255)[y:y+h+1, x:x+w+1]` with `[x, y, w, h] = mask.bbox_xywh`, the box
