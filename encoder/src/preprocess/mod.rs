@@ -17,9 +17,9 @@
 //! On top of it:
 //! - [`sam_pixel_values`]: segment_anything's `ResizeLongestSide(1024).apply_image` (PIL
 //!   bilinear), `(x - pixel_mean) / pixel_std`, zero padding to 1024x1024 → `f32[1,3,1024,1024]`.
-//! - [`clip_pixel_values`] ([`clip_pixels`] + [`clip_normalize`]): open_clip's `ViT-B-32` preprocessing: torchvision `Resize(224)`
-//!   (shortest side, PIL bicubic), `CenterCrop(224)`, `ToTensor`, `Normalize(CLIP mean, std)` →
-//!   `f32[3,224,224]`.
+//! - [`clip_pixel_values`] ([`clip_pixels`] + [`clip_normalize`]): open_clip's `ViT-B-32`
+//!   preprocessing: torchvision `Resize(224)` (shortest side, PIL bicubic), `CenterCrop(224)`,
+//!   `ToTensor`, `Normalize(CLIP mean, std)` → `f32[3,224,224]`.
 
 use std::path::Path;
 
