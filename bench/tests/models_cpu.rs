@@ -41,10 +41,13 @@ fn models_times_each_model_and_compares_variants_with_the_first() {
     };
     let tiny = f.join("clip/tiny-clip-visual.onnx");
     let color = f.join("clip/color-clip-visual.onnx");
+    // color-clip given byte input by scripts/clip-u8-pixels.py.
+    let color_u8 = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../encoder/tests/fixtures/color-clip-visual-u8.onnx");
     let args = ModelsArgs {
         scene: PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini"),
         images: 1,
-        clip_visual: vec![tiny.clone(), tiny.clone(), color],
+        clip_visual: vec![tiny.clone(), tiny.clone(), color, color_u8],
         batch: 16,
         sam_encoder: vec![f.join("sam-amg/sam-tiny-random-encoder.onnx"); 2],
         sam_decoder: vec![f.join("sam-amg/sam-tiny-random-decoder.onnx"); 2],
@@ -55,20 +58,25 @@ fn models_times_each_model_and_compares_variants_with_the_first() {
     };
     let out = run(&args).unwrap();
     let first = row(&out, "tiny-clip-visual", 0);
-    assert_eq!(first[3], "reference");
+    assert_eq!(first[1], "f32, normalised on the host");
     assert_eq!(first[4], "reference");
-    let ms: f64 = first[1].parse().unwrap();
+    assert_eq!(first[5], "reference");
+    let ms: f64 = first[2].parse().unwrap();
     assert!(ms > 0.0, "ms per crop {ms}");
     let same = row(&out, "tiny-clip-visual", 1);
-    let (min, med) = same[3].split_once(" / ").unwrap();
+    let (min, med) = same[4].split_once(" / ").unwrap();
     assert!(min.parse::<f64>().unwrap() > 0.99999, "{same:?}");
     assert!(med.parse::<f64>().unwrap() > 0.99999, "{same:?}");
     // color-clip answers colours, not tiny-clip's random features: far from cosine 1.
     let other = row(&out, "color-clip-visual", 0);
-    let (min, _) = other[4].split_once(" / ").unwrap();
+    let (min, _) = other[5].split_once(" / ").unwrap();
     assert!(min.parse::<f64>().unwrap() < 0.9, "{other:?}");
-    let (min, _) = same[4].split_once(" / ").unwrap();
+    let (min, _) = same[5].split_once(" / ").unwrap();
     assert!(min.parse::<f64>().unwrap() > 0.99999, "{same:?}");
+    // The byte tower is timed with its own input and gives color-clip's embeddings.
+    let bytes = row(&out, "color-clip-visual-u8", 0);
+    assert_eq!(bytes[1], "u8 pixels");
+    assert_eq!(bytes[4], other[4], "{bytes:?} against {other:?}");
     // SAM: the same decoder twice agrees exactly (IoU difference 0, mask IoU 1).
     let sam = row(&out, "sam-tiny-random-decoder", 1);
     assert!(sam[1].parse::<f64>().unwrap() > 0.0 && sam[2].parse::<f64>().unwrap() > 0.0);
