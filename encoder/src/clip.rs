@@ -247,22 +247,51 @@ impl ClipVisual {
 
     /// Embeds crops `u8[n,3,224,224]` made by [`crate::preprocess::clip_pixels`] (or
     /// [`crop_pixels`]): `n` L2-normalised rows of the model's width, in runs of at most the
-    /// batch size.
+    /// batch size. An f32 tower's values are normalised here, one batch at a time.
     ///
     /// # Errors
     /// [`Error::Internal`] for a buffer that is not a whole number of images, [`Error::Inference`]
     /// when the run fails, [`Error::Model`] for a wrong output or an embedding of zero norm.
     pub fn embed_pixels(&mut self, pixels: &[u8]) -> Result<Vec<Vec<f32>>> {
-        let per = CLIP_PIXELS;
-        if !pixels.len().is_multiple_of(per) {
-            return Err(Error::internal(format!(
-                "CLIP pixel buffer of {} values is not a multiple of 3*224*224",
-                pixels.len()
-            )));
-        }
+        let per = whole_crops(pixels.len())?;
         let mut out = Vec::with_capacity(pixels.len() / per);
         for chunk in pixels.chunks(self.batch_size * per) {
-            out.extend(self.run_batch(chunk)?);
+            let rows = match self.input {
+                VisualInput::U8Pixels => self.run_batch(Batch::Bytes(chunk))?,
+                VisualInput::F32PixelValues => {
+                    let values = normalized(chunk)?;
+                    self.run_batch(Batch::Values(&values))?
+                }
+            };
+            out.extend(rows);
+        }
+        Ok(out)
+    }
+
+    /// Embeds crops already in the tower's input form ([`Crops::for_tower`]), in runs of at
+    /// most the batch size.
+    ///
+    /// # Errors
+    /// As [`ClipVisual::embed_pixels`]; [`Error::Internal`] for crops of the other form.
+    fn embed_crops(&mut self, crops: &Crops) -> Result<Vec<Vec<f32>>> {
+        let step = self.batch_size * CLIP_PIXELS;
+        let mut out = Vec::with_capacity(crops.count());
+        match (crops, self.input) {
+            (Crops::Bytes(b), VisualInput::U8Pixels) => {
+                for chunk in b.chunks(step) {
+                    out.extend(self.run_batch(Batch::Bytes(chunk))?);
+                }
+            }
+            (Crops::Values(v), VisualInput::F32PixelValues) => {
+                for chunk in v.chunks(step) {
+                    out.extend(self.run_batch(Batch::Values(chunk))?);
+                }
+            }
+            (_, input) => {
+                return Err(Error::internal(format!(
+                    "crops prepared for another CLIP tower input than {input:?}"
+                )));
+            }
         }
         Ok(out)
     }
@@ -275,37 +304,28 @@ impl ClipVisual {
     /// plan for a new batch size in the middle of an encode, while SAM's sessions run on other
     /// threads of the same GPU, failed with CUDA error 901 ("operation failed due to a previous
     /// error during capture") under ONNX Runtime 1.31.
-    fn run_batch(&mut self, pixels: &[u8]) -> Result<Vec<Vec<f32>>> {
+    fn run_batch(&mut self, batch: Batch<'_>) -> Result<Vec<Vec<f32>>> {
         let s = CLIP_IMAGE_SIZE as usize;
-        let per = CLIP_PIXELS;
-        let n = pixels.len() / per;
-        let padded;
-        let (pixels, rows) = if self.fixed_batch && n < self.batch_size {
-            let mut buf = vec![0u8; self.batch_size * per];
-            buf[..pixels.len()].copy_from_slice(pixels);
-            padded = buf;
-            (padded.as_slice(), self.batch_size)
+        let n = batch.count();
+        let rows = if self.fixed_batch {
+            n.max(self.batch_size)
         } else {
-            (pixels, n)
+            n
         };
         let errs = self.model.errors();
         let path = self.model.path().to_path_buf();
-        let values;
         let name = self.input_name.as_str();
         let session = self.model.session_mut();
-        let run = match self.input {
-            VisualInput::U8Pixels => {
-                let input = TensorRef::from_array_view(([rows, 3, s, s], pixels))
+        let run = match batch {
+            Batch::Bytes(b) => {
+                let b = padded(b, rows);
+                let input = TensorRef::from_array_view(([rows, 3, s, s], b.as_ref()))
                     .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
                 session.run(ort::inputs![name => input])
             }
-            VisualInput::F32PixelValues => {
-                let mut buf = vec![0f32; pixels.len()];
-                buf.par_chunks_mut(per)
-                    .zip(pixels.par_chunks(per))
-                    .try_for_each(|(o, b)| clip_normalize(b, o))?;
-                values = buf;
-                let input = TensorRef::from_array_view(([rows, 3, s, s], values.as_slice()))
+            Batch::Values(v) => {
+                let v = padded(v, rows);
+                let input = TensorRef::from_array_view(([rows, 3, s, s], v.as_ref()))
                     .map_err(|e| errs.error("cannot build the CLIP input", &e))?;
                 session.run(ort::inputs![name => input])
             }
@@ -348,7 +368,7 @@ impl ClipVisual {
     /// [`Error::Inference`] when that first run fails.
     pub fn into_service(mut self) -> Result<ClipService> {
         if self.fixed_batch {
-            self.run_batch(&vec![128u8; self.batch_size * CLIP_PIXELS])?;
+            self.embed_pixels(&vec![128u8; self.batch_size * CLIP_PIXELS])?;
         }
         Ok(ClipService::start(self))
     }
@@ -369,9 +389,121 @@ pub fn crop_pixels(image: &RgbImage, masks: &[Mask]) -> Result<Vec<u8>> {
     Ok(pixels)
 }
 
+/// The crop size in values, after checking that `len` values are whole crops.
+///
+/// # Errors
+/// [`Error::Internal`] otherwise.
+fn whole_crops(len: usize) -> Result<usize> {
+    if len.is_multiple_of(CLIP_PIXELS) {
+        Ok(CLIP_PIXELS)
+    } else {
+        Err(Error::internal(format!(
+            "CLIP pixel buffer of {len} values is not a multiple of 3*224*224"
+        )))
+    }
+}
+
+/// `bytes` (whole crops of [`clip_pixels`]) scaled and normalised for an f32 tower, crops in
+/// parallel (rayon).
+///
+/// # Errors
+/// As [`clip_normalize`].
+fn normalized(bytes: &[u8]) -> Result<Vec<f32>> {
+    let per = whole_crops(bytes.len())?;
+    let mut values = vec![0f32; bytes.len()];
+    values
+        .par_chunks_mut(per)
+        .zip(bytes.par_chunks(per))
+        .try_for_each(|(o, b)| clip_normalize(b, o))?;
+    Ok(values)
+}
+
+/// `buf` with zero crops appended up to `rows` crops (borrowed when it has them already).
+fn padded<T: Copy + Default>(buf: &[T], rows: usize) -> std::borrow::Cow<'_, [T]> {
+    let want = rows * CLIP_PIXELS;
+    if buf.len() >= want {
+        return std::borrow::Cow::Borrowed(buf);
+    }
+    let mut v = Vec::with_capacity(want);
+    v.extend_from_slice(buf);
+    v.resize(want, T::default());
+    std::borrow::Cow::Owned(v)
+}
+
+/// One run's crops, borrowed, in a tower's input form.
+#[derive(Clone, Copy)]
+enum Batch<'a> {
+    Bytes(&'a [u8]),
+    Values(&'a [f32]),
+}
+
+impl Batch<'_> {
+    fn count(&self) -> usize {
+        match self {
+            Batch::Bytes(b) => b.len() / CLIP_PIXELS,
+            Batch::Values(v) => v.len() / CLIP_PIXELS,
+        }
+    }
+}
+
+/// Crops in the form their tower takes: bytes for a byte tower, CLIP-normalised values for an
+/// f32 tower. Front workers make them, so the service thread only concatenates and runs.
+enum Crops {
+    Bytes(Vec<u8>),
+    Values(Vec<f32>),
+}
+
+impl Crops {
+    /// `pixels` (whole crops of [`clip_pixels`]) for a tower taking `input`; an f32 tower's are
+    /// normalised here, on the calling thread's rayon pool.
+    ///
+    /// # Errors
+    /// As [`clip_normalize`].
+    fn for_tower(input: VisualInput, pixels: Vec<u8>) -> Result<Crops> {
+        Ok(match input {
+            VisualInput::U8Pixels => Crops::Bytes(pixels),
+            VisualInput::F32PixelValues => Crops::Values(normalized(&pixels)?),
+        })
+    }
+
+    fn count(&self) -> usize {
+        match self {
+            Crops::Bytes(b) => b.len() / CLIP_PIXELS,
+            Crops::Values(v) => v.len() / CLIP_PIXELS,
+        }
+    }
+
+    /// The crops of `reqs` in order, as one buffer (moved, not copied, for one request).
+    ///
+    /// # Errors
+    /// [`Error::Internal`] for requests of different forms.
+    fn concat(reqs: &mut [Request]) -> Result<Crops> {
+        if let [one] = reqs {
+            return Ok(std::mem::replace(&mut one.crops, Crops::Bytes(Vec::new())));
+        }
+        let mut bytes = Vec::new();
+        let mut values = Vec::new();
+        for r in reqs.iter() {
+            match &r.crops {
+                Crops::Bytes(b) => bytes.extend_from_slice(b),
+                Crops::Values(v) => values.extend_from_slice(v),
+            }
+        }
+        match (bytes.is_empty(), values.is_empty()) {
+            (_, true) => Ok(Crops::Bytes(bytes)),
+            (true, false) => Ok(Crops::Values(values)),
+            (false, false) => Err(Error::internal(
+                "CLIP requests of one tower in both byte and value form",
+            )),
+        }
+    }
+}
+
 /// One front worker's crops waiting for the tower.
 struct Request {
-    pixels: Vec<u8>,
+    crops: Crops,
+    /// Crops in this request (`crops` is moved out when it runs alone).
+    count: usize,
     reply: mpsc::SyncSender<Result<Vec<Vec<f32>>>>,
 }
 
@@ -399,46 +531,38 @@ pub struct ClipService {
     device: String,
     provider: ExecutionProvider,
     stats: Arc<Mutex<ClipServiceStats>>,
+    input: VisualInput,
 }
 
 impl ClipService {
     fn start(mut clip: ClipVisual) -> Self {
         let (tx, rx) = mpsc::channel::<Request>();
         let stats = Arc::new(Mutex::new(ClipServiceStats::default()));
-        let (model_id, dim, device, provider) = (
+        let (model_id, dim, device, provider, input) = (
             clip.model_id.clone(),
             clip.dim,
             clip.device_label(),
             clip.provider(),
+            clip.input,
         );
         let st = Arc::clone(&stats);
-        let per = CLIP_PIXELS;
         let spawned = std::thread::Builder::new()
             .name(format!("clip-{device}"))
             .spawn(move || {
                 while let Ok(first) = rx.recv() {
+                    let mut n = first.count;
                     let mut reqs = vec![first];
-                    let mut n = reqs[0].pixels.len() / per;
                     while n < clip.batch_size {
                         match rx.try_recv() {
                             Ok(r) => {
-                                n += r.pixels.len() / per;
+                                n += r.count;
                                 reqs.push(r);
                             }
                             Err(_) => break,
                         }
                     }
                     let t = Instant::now();
-                    let result = if reqs.len() == 1 {
-                        clip.embed_pixels(&reqs[0].pixels)
-                    } else {
-                        let all: Vec<u8> = reqs
-                            .iter()
-                            .map(|r| r.pixels.as_slice())
-                            .collect::<Vec<_>>()
-                            .concat();
-                        clip.embed_pixels(&all)
-                    };
+                    let result = Crops::concat(&mut reqs).and_then(|c| clip.embed_crops(&c));
                     if let Ok(mut s) = st.lock() {
                         s.runs += n.div_ceil(clip.batch_size) as u64;
                         s.crops += n as u64;
@@ -448,8 +572,7 @@ impl ClipService {
                         Ok(mut rows) => {
                             // Hand each request its rows, in order.
                             for r in reqs.into_iter().rev() {
-                                let k = r.pixels.len() / per;
-                                let mine = rows.split_off(rows.len() - k);
+                                let mine = rows.split_off(rows.len() - r.count);
                                 let _ = r.reply.send(Ok(mine));
                             }
                         }
@@ -472,6 +595,7 @@ impl ClipService {
             device,
             provider,
             stats,
+            input,
         }
     }
 
@@ -482,6 +606,7 @@ impl ClipService {
             model_id: self.model_id.clone(),
             dim: self.dim,
             device: self.device.clone(),
+            input: self.input,
         }
     }
 
@@ -549,6 +674,7 @@ pub struct ClipHandle {
     model_id: String,
     dim: usize,
     device: String,
+    input: VisualInput,
 }
 
 impl ClipHandle {
@@ -565,7 +691,8 @@ impl ClipHandle {
         &self.device
     }
 
-    /// As [`ClipVisual::embed_masks`], through the service.
+    /// As [`ClipVisual::embed_masks`], through the service. The crops are cut and, for an f32
+    /// tower, normalised on the calling thread, so the service's thread only runs the tower.
     ///
     /// # Errors
     /// As [`ClipVisual::embed_masks`]; [`Error::Invalid`] if the service thread is gone.
@@ -573,7 +700,8 @@ impl ClipHandle {
         if masks.is_empty() {
             return Ok(Vec::new());
         }
-        let pixels = crop_pixels(image, masks)?;
+        let crops = Crops::for_tower(self.input, crop_pixels(image, masks)?)?;
+        let count = crops.count();
         let (reply, answer) = mpsc::sync_channel(1);
         let gone = || {
             Error::Invalid(format!(
@@ -582,7 +710,11 @@ impl ClipHandle {
             ))
         };
         self.tx
-            .send(Request { pixels, reply })
+            .send(Request {
+                crops,
+                count,
+                reply,
+            })
             .map_err(|_| gone())?;
         answer.recv().map_err(|_| gone())?
     }

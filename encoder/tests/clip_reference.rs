@@ -324,13 +324,21 @@ fn clip_rejects_wrong_models_and_bad_batches() {
 
 /// One CLIP service shared by several front workers (threads) returns, for every worker, exactly
 /// the rows a private tower gives for its crops, in order (runs may hold crops of several
-/// requests; how many share a run depends on timing and is printed).
+/// requests; how many share a run depends on timing and is printed). Both tower inputs: an f32
+/// tower (the fronts normalise their crops) and a byte tower (the fronts send bytes).
 #[test]
 fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
     let Some(clip_dir) = ort_fixtures("clip") else {
         return;
     };
-    let model = clip_dir.join("color-clip-visual.onnx");
+    let u8_model =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-clip-visual-u8.onnx");
+    for model in [clip_dir.join("color-clip-visual.onnx"), u8_model] {
+        service_returns_each_worker_its_rows(&model);
+    }
+}
+
+fn service_returns_each_worker_its_rows(model: &std::path::Path) {
     let img = image::RgbImage::from_fn(64, 48, |x, y| {
         image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x + y) * 2) as u8])
     });
@@ -349,10 +357,10 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
             })
             .collect()
     };
-    let mut direct = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
+    let mut direct = ClipVisual::new(model, ExecutionProvider::Cpu, 64).unwrap();
     // The service pads every run to its batch size, as it does on a GPU (one input shape for
     // the whole encode); the padded rows must not change the real ones.
-    let mut padded = ClipVisual::new(&model, ExecutionProvider::Cpu, 64).unwrap();
+    let mut padded = ClipVisual::new(model, ExecutionProvider::Cpu, 64).unwrap();
     padded.set_fixed_batch(true);
     let service = padded.into_service().unwrap();
     let requests = 24u32;
@@ -388,8 +396,10 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
     });
     let st = service.stats();
     eprintln!(
-        "CLIP service: {} runs for {requests} requests, {} crops",
-        st.runs, st.crops
+        "CLIP service ({:?}): {} runs for {requests} requests, {} crops",
+        direct.input(),
+        st.runs,
+        st.crops
     );
     assert_eq!(
         st.crops,
