@@ -21,6 +21,9 @@
 #                                            # ENCDIR=f16x: the fused-attention encoder (sam mode)
 #                                            # F16M=1: ViT-H's low-res decoder returns f16
 #                                            # multimask channels (--f16-multimask)
+#                                            # TAG=NAME: the run's files named e2e-PREC-NAME
+#                                            # EXTRA="--sam-mask-model-on-cpu": the mask model
+#                                            # on the CPU, only ViT-H's inference on the GPU
 #   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
@@ -132,6 +135,18 @@ e2e)
   fi
   cp /root/big/report-synth.json "$R/synth.json"
   prec=${PREC:-f16}
+  # The models this run names, exported here if an earlier call did not (DECDIR=f16d: ViT-H
+  # fp16 with its fp16 decoder; CLIPDIR=f16fuse[-u8]: CLIP fp16 fused [taking bytes]).
+  if [ "${DECDIR:-}" = f16d ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+    vith_f16d
+  fi
+  case "${CLIPDIR:-}" in f16fuse|f16fuse-u8)
+    F=$M/f16fuse/ViT-B-16-random-visual.onnx
+    [ -f "$F" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
+    [ "$CLIPDIR" = f16fuse-u8 ] && [ ! -f "$M/f16fuse-u8/ViT-B-16-random-visual.onnx" ] && mkdir -p "$M/f16fuse-u8" && python3 scripts/clip-u8-pixels.py "$F" "$M/f16fuse-u8/ViT-B-16-random-visual.onnx" ;;
+  esac
+  t=$prec${TAG:+-$TAG}
   MA=("${SAMARGS[@]}" $(samm $prec vit_h))
   if [ -n "${MASKMODEL:-}" ]; then
     dec=("$MASKMODEL/color-sam-decoder.onnx" "$M/${DECDIR:-$prec}/sam-vit_h-decoder.onnx")
@@ -149,11 +164,11 @@ e2e)
   fi
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
   # RSS over time (rss-e2e-*.tsv: seconds, bytes): where the peak falls against the report's phases.
-  python3 scripts/rss-timeline.py --out "$R/rss-e2e-$prec.tsv" --report "$W/e2e/report.json" -- \
+  python3 scripts/rss-timeline.py --out "$R/rss-e2e-$t.tsv" --report "$W/e2e/report.json" -- \
     /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
-    "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$prec.txt" 2>&1
-  echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$prec.txt" | tail -40
-  cp "$W/e2e/report.json" "$R/report-e2e-$prec.json" 2>/dev/null
+    "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$t.txt" 2>&1
+  echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$t.txt" | tail -${LINES_SHOWN:-40}
+  cp "$W/e2e/report.json" "$R/report-e2e-$t.json" 2>/dev/null
   ;;
 models)
   # The per-model table: slag's ONNX Runtime sessions one model at a time (`slag-bench models` on
@@ -258,6 +273,8 @@ clipu8)
     "$BB" models --scene data/snowmiku-mini --images 8 --clip-visual "$1" --clip-visual "$2" \
       --repeats ${REPEATS:-5} 2>> "$R/clipu8.jsonl"; echo "exit $?"
   done | tee "$R/clipu8.md"
+  # torch fp16's ViT-B/16 image tower on the same GPU (inputs already on it), the peer of the table.
+  SAM_KINDS="" python3 scripts/device_torch_peers.py "$R/torch-clip.json" 2>&1 | tail -6
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do
