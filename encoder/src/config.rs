@@ -121,9 +121,6 @@ impl EncodeConfig {
             ) {
                 (Some(_), None) => return missing(Field::SamTimingDecoder),
                 (None, Some(_)) => return missing(Field::SamTimingEncoder),
-                (None, None) if self.masks.sam.mask_model_on_cpu => {
-                    return missing(Field::SamTimingEncoder);
-                }
                 _ => {}
             }
         }
@@ -299,12 +296,6 @@ pub struct SamConfig {
     pub timing_encoder: Option<PathBuf>,
     /// The timing model's prompt decoder ONNX (see [`SamConfig::timing_encoder`]).
     pub timing_decoder: Option<PathBuf>,
-    /// Benchmarks only, with a timing model on a GPU: the mask model ([`SamConfig::encoder`] /
-    /// [`SamConfig::decoder`]) runs on the CPU, one copy per front worker with its share of the
-    /// cores, so that the stand-in's own inference takes no GPU time that the real model's
-    /// workload would not take. Its filters and mask post-processing (what the kept masks of a
-    /// real SAM cost) run as before. Default false (both models on the GPU).
-    pub mask_model_on_cpu: bool,
 }
 
 impl Default for SamConfig {
@@ -319,7 +310,6 @@ impl Default for SamConfig {
             box_nms_thresh: 0.7,
             timing_encoder: None,
             timing_decoder: None,
-            mask_model_on_cpu: false,
         }
     }
 }
@@ -807,21 +797,6 @@ mod tests {
                 field: Field::SceneDir
             })
         );
-        // The mask model on the CPU only means something beside a timing model.
-        let mut c = EncodeConfig {
-            masks: MasksConfig::sam("sam-enc.onnx", "sam-dec.onnx"),
-            ..EncodeConfig::new("s", "c.onnx", "o")
-        };
-        c.masks.sam.mask_model_on_cpu = true;
-        assert_eq!(
-            c.validate(),
-            Err(ConfigError::Missing {
-                field: Field::SamTimingEncoder
-            })
-        );
-        c.masks.sam.timing_encoder = Some("vit_h-enc.onnx".into());
-        c.masks.sam.timing_decoder = Some("vit_h-dec.onnx".into());
-        assert!(c.validate().is_ok());
     }
 
     /// Changes one setting.

@@ -125,11 +125,6 @@ pub struct EncodeArgs {
     /// The timing model's SAM prompt decoder (see --sam-timing-encoder).
     #[arg(long, requires = "sam_timing_encoder")]
     pub sam_timing_decoder: Option<PathBuf>,
-    /// Benchmarks, with a timing model on a GPU: run the mask model (--sam-encoder /
-    /// --sam-decoder) on the CPU, one copy per front worker, so that only the timing model's
-    /// inference takes GPU time; the mask model's filters and post-processing still run.
-    #[arg(long, requires = "sam_timing_encoder")]
-    pub sam_mask_model_on_cpu: bool,
     /// SAM point grid: points per image side (segment_anything's default 32).
     #[arg(long, default_value_t = 32)]
     pub sam_points_per_side: u32,
@@ -323,7 +318,6 @@ impl From<&EncodeArgs> for EncodeConfig {
                     box_nms_thresh: a.sam_box_nms_thresh,
                     timing_encoder: a.sam_timing_encoder.clone(),
                     timing_decoder: a.sam_timing_decoder.clone(),
-                    mask_model_on_cpu: a.sam_mask_model_on_cpu,
                 },
                 graph: GraphConfig {
                     k: a.graph_k,

@@ -84,15 +84,8 @@ fn with_timing(
     };
     match timing {
         Some(t) => {
-            let on = if masks.models().providers().0 == ExecutionProvider::Cpu
-                && t.models().providers().0 != ExecutionProvider::Cpu
-            {
-                " (mask model on the cpu)"
-            } else {
-                ""
-            };
             let name = format!(
-                "sam timing={} masks={}{on}",
+                "sam timing={} masks={}",
                 stem(c.masks.sam.timing_encoder.as_deref()),
                 stem(c.masks.sam.encoder.as_deref())
             );
@@ -142,29 +135,6 @@ fn build_masks_within(
             c.masks.graph.params(),
         )),
     })
-}
-
-/// The mask model of a timing pair on the CPU for one of `fronts` front workers
-/// ([`crate::config::SamConfig::mask_model_on_cpu`]): its own sessions with `threads / fronts`
-/// intra-op threads and its share of [`SAM_CPU_DECODER_BYTES`].
-///
-/// Errors: its models missing or unloadable.
-fn cpu_mask_model(
-    c: &EncodeConfig,
-    fronts: usize,
-    threads: usize,
-) -> Result<crate::masks::sam::SamAutomaticMaskGenerator> {
-    let (enc, dec) = sam_paths(c)?;
-    let params = crate::masks::sam::SamParams {
-        decoder_batch_bytes: Some(SAM_CPU_DECODER_BYTES / fronts.max(1)),
-        ..c.masks.sam.params()
-    };
-    crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-        enc,
-        dec,
-        &slag_common::onnx::Placement::cpu((threads / fronts.max(1)).max(1)),
-        params,
-    )
 }
 
 /// The report's inputs, models and parameters sections for `c` run with `threads` threads
@@ -403,9 +373,6 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
     for w in 0..n {
         let g = w % gpus;
         let masks: Box<dyn MaskGenerator> = match &sams[g] {
-            Some((_, Some(timing))) if c.masks.sam.mask_model_on_cpu => {
-                with_timing(c, cpu_mask_model(c, n, threads)?, Some(timing.share()))
-            }
             Some((sam, timing)) => with_timing(c, sam.share(), timing.as_ref().map(|t| t.share())),
             None => build_masks(c, 1)?,
         };
