@@ -22,8 +22,7 @@
 #                                            # F16M=1: ViT-H's low-res decoder returns f16
 #                                            # multimask channels (--f16-multimask)
 #                                            # TAG=NAME: the run's files named e2e-PREC-NAME
-#                                            # EXTRA="--sam-mask-model-on-cpu": the mask model
-#                                            # on the CPU, only ViT-H's inference on the GPU
+#                                            # EXTRA="ARGS": more slag-encoder bench arguments
 #   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
