@@ -4,11 +4,12 @@
 //! queues between them, and the first error, which stops every worker. What it leaves
 //! ([`Pooled`]: every image's `a_kj`, what the workers measured) goes to [`super::finish`].
 
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Mutex, mpsc};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, mpsc};
 use std::time::Instant;
 
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
+use slag_common::camera::{Intrinsics, View};
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
@@ -80,29 +81,8 @@ pub(crate) fn run_pool(
     params: &EncodeParams,
     t_total: Instant,
 ) -> Result<Pooled> {
-    use std::sync::Arc;
-    use std::sync::atomic::AtomicUsize;
-
     let mut t = StageTimings::default();
-    let Some(first) = fronts.first() else {
-        return Err(Error::param("fronts", 0, "at least one front worker"));
-    };
-    let dim = first.crops.dim();
-    let model_id = first.crops.model_id().to_string();
-    let mask_name = first.masks.name().to_string();
-    if let Some(f) = fronts
-        .iter()
-        .find(|f| f.crops.dim() != dim || f.crops.model_id() != model_id)
-    {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::EmbeddingWidth,
-            format!(
-                "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
-                f.crops.model_id(),
-                f.crops.dim()
-            ),
-        ));
-    }
+    let model = FrontModel::of(&fronts)?;
     let t0 = Instant::now();
     let (gaussians, training, views_total) = scene.load()?;
     t.load_scene = t0.elapsed().as_secs_f64();
@@ -129,283 +109,469 @@ pub(crate) fn run_pool(
     } else {
         ProgressDrawTarget::hidden()
     });
-    let bar_front = bar(&multi, views.len(), "masks + CLIP");
-    let bar_back = bar(&multi, views.len(), "raster + a_kj");
-    let spill_dir = params.out_dir.join(".contributions.partial");
-    let store = Mutex::new(ContributionStore::new(
-        params.contribution_budget_bytes,
-        spill_dir,
-    ));
-    // One more store per granularity level with `levels` (the same entries, split by level).
-    let level_stores: Vec<Mutex<ContributionStore>> = if params.levels {
-        (0..crate::aggregate::levels::LEVELS)
-            .map(|l| {
-                Mutex::new(ContributionStore::new(
-                    params.contribution_budget_bytes,
-                    params
-                        .out_dir
-                        .join(format!(".contributions-level{l}.partial")),
-                ))
-            })
-            .collect()
-    } else {
-        Vec::new()
+    let shared = Shared {
+        views: &views,
+        raster_intrinsics: &raster_intrinsics,
+        params,
+        dim: model.dim,
+        t_total,
+        next_view: AtomicUsize::new(0),
+        failure: Failure::default(),
+        queue: QueueGauge::default(),
+        totals: Mutex::new(ImageWork::default()),
+        sinks: PoolSinks::new(params, gaussians.len(), views.len())?,
+        bar_front: bar(&multi, views.len(), "masks + CLIP"),
+        bar_back: bar(&multi, views.len(), "raster + a_kj"),
     };
-    let record = match params.mask_record_slots {
-        Some(slots) => Some(Mutex::new(MaskRecord::new(
-            gaussians.len(),
-            slots,
-            views.len(),
-        )?)),
-        None => None,
-    };
+    let queues = Queues::for_fronts(&fronts);
+    let (slots, bound_gpus) = (queues.slots(), queues.bound_gpus);
+    let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
+        checked_rasterizers(made.into_rasterizers(&gaussians), bound_gpus)
+    });
+    let left = shared.finish(slots)?;
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
         gaussians: gaussians.len(),
         ..Default::default()
     };
+    left.totals.fill(&mut t, &mut counts);
+    Ok(Pooled {
+        gaussians,
+        dim: model.dim,
+        model_id: model.model_id,
+        mask_name: model.mask_name,
+        fronts: n_fronts,
+        rasterizers,
+        store: left.store,
+        level_stores: left.level_stores,
+        timings: t,
+        counts,
+        workers,
+        queue: left.queue,
+        selection,
+        mask_record: left.mask_record,
+    })
+}
 
-    // What the back workers add up (under one lock, once per image).
-    let totals = Mutex::new(ImageWork::default());
-    let next_view = AtomicUsize::new(0);
-    let failed = AtomicBool::new(false);
-    let first_error: Mutex<Option<Error>> = Mutex::new(None);
-    let fail = |e: Error| {
-        failed.store(true, Ordering::SeqCst);
-        if let Ok(mut slot) = first_error.lock() {
+/// The embedding model every front worker uses, and the first front's mask generator.
+struct FrontModel {
+    dim: usize,
+    model_id: String,
+    mask_name: String,
+}
+
+impl FrontModel {
+    /// Errors: [`Error::Param`] for no fronts; [`Error::Mismatch`] when fronts embed with
+    /// different models (model id or width `D`).
+    fn of(fronts: &[FrontStages]) -> Result<Self> {
+        let Some(first) = fronts.first() else {
+            return Err(Error::param("fronts", 0, "at least one front worker"));
+        };
+        let dim = first.crops.dim();
+        let model_id = first.crops.model_id().to_string();
+        if let Some(f) = fronts
+            .iter()
+            .find(|f| f.crops.dim() != dim || f.crops.model_id() != model_id)
+        {
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "front workers embed with different models ({model_id}, D={dim} vs {}, D={})",
+                    f.crops.model_id(),
+                    f.crops.dim()
+                ),
+            ));
+        }
+        Ok(FrontModel {
+            dim,
+            model_id,
+            mask_name: first.masks.name().to_string(),
+        })
+    }
+}
+
+/// The first error of any worker, and whether there was one (every worker checks between
+/// images and stops).
+#[derive(Default)]
+struct Failure {
+    failed: AtomicBool,
+    first: Mutex<Option<Error>>,
+}
+
+impl Failure {
+    /// Records `e` unless an earlier error is recorded; every worker stops at its next check.
+    fn fail(&self, e: Error) {
+        self.failed.store(true, Ordering::SeqCst);
+        if let Ok(mut slot) = self.first.lock() {
             slot.get_or_insert(e);
         }
-    };
-    // One queue for all rasterizers, or, when the fronts are bound to GPUs, one queue per GPU so
-    // an image stays on the GPU whose SAM and CLIP made its masks. Each queue holds two finished
-    // images per rasterizer it feeds (the unbound fronts' queue: two per front, at most 8).
-    let bound_gpus = fronts.iter().filter_map(|f| f.gpu).max().map(|g| g + 1);
-    let (n_queues, capacity) = match bound_gpus {
-        Some(n) => (n, 2),
-        None => (1, (2 * fronts.len()).clamp(2, 8)),
-    };
-    let mut txs = Vec::with_capacity(n_queues);
-    let mut rxs = Vec::with_capacity(n_queues);
-    for _ in 0..n_queues {
-        let (tx, rx) = mpsc::sync_channel::<FrontItem>(capacity);
-        txs.push(tx);
-        rxs.push(Arc::new(Mutex::new(rx)));
     }
-    let mut shares: Vec<WorkerShare> = Vec::new();
-    let mut raster_names: Vec<String> = Vec::new();
-    // What waits between the stages: images handed to a queue (a front blocked on a full queue
-    // included) and not yet taken by a back worker, and their bytes.
-    let queue = QueueGauge::default();
 
-    // The fronts start first; the rasterizers are set up (device, upload of the Gaussians) while
-    // the first images go through SAM and CLIP, so that set-up is off the critical path.
+    fn has_failed(&self) -> bool {
+        self.failed.load(Ordering::SeqCst)
+    }
+
+    /// Errors: the first recorded error.
+    fn into_result(self) -> Result<()> {
+        match self.first.into_inner().ok().flatten() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
+/// Where the image stage's `a_kj` go: the contribution store; with [`EncodeParams::levels`] one
+/// store per granularity level (the same entries, split by level); with
+/// [`EncodeParams::mask_record_slots`] the masks' record.
+struct PoolSinks {
+    store: Mutex<ContributionStore>,
+    level_stores: Vec<Mutex<ContributionStore>>,
+    record: Option<Mutex<MaskRecord>>,
+}
+
+impl PoolSinks {
+    /// Empty sinks for `n_views` views of `n_gaussians` Gaussians; the stores spill under
+    /// [`EncodeParams::out_dir`].
+    ///
+    /// Errors: the masks' record's ([`MaskRecord::new`]).
+    fn new(params: &EncodeParams, n_gaussians: usize, n_views: usize) -> Result<Self> {
+        let store = |name: String| {
+            Mutex::new(ContributionStore::new(
+                params.contribution_budget_bytes,
+                params.out_dir.join(name),
+            ))
+        };
+        let level_stores = if params.levels {
+            (0..crate::aggregate::levels::LEVELS)
+                .map(|l| store(format!(".contributions-level{l}.partial")))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let record = match params.mask_record_slots {
+            Some(slots) => Some(Mutex::new(MaskRecord::new(n_gaussians, slots, n_views)?)),
+            None => None,
+        };
+        Ok(PoolSinks {
+            store: store(".contributions.partial".to_string()),
+            level_stores,
+            record,
+        })
+    }
+}
+
+/// What every worker of [`run_pool`] shares: the views and settings, the next unclaimed view,
+/// the first error, the queues' gauge, the image stage's sinks and totals, the progress bars.
+struct Shared<'a> {
+    views: &'a [View],
+    raster_intrinsics: &'a [Intrinsics],
+    params: &'a EncodeParams,
+    dim: usize,
+    t_total: Instant,
+    next_view: AtomicUsize,
+    failure: Failure,
+    queue: QueueGauge,
+    /// What the back workers add up (under one lock, once per image).
+    totals: Mutex<ImageWork>,
+    sinks: PoolSinks,
+    bar_front: ProgressBar,
+    bar_back: ProgressBar,
+}
+
+/// What the workers leave ([`Shared::finish`]).
+struct WorkersLeft {
+    store: ContributionStore,
+    level_stores: Vec<ContributionStore>,
+    mask_record: Option<MaskRecord>,
+    totals: ImageWork,
+    queue: QueueStats,
+}
+
+impl Shared<'_> {
+    /// What the workers left, the queues' occupancy over their `slots`; the progress bars end.
+    ///
+    /// Errors: the first worker error; [`Error::Internal`] for a store or record poisoned by a
+    /// panicked worker, or when not every view reached the store.
+    fn finish(self, slots: usize) -> Result<WorkersLeft> {
+        self.failure.into_result()?;
+        let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
+        let PoolSinks {
+            store,
+            level_stores,
+            record,
+        } = self.sinks;
+        let store = store.into_inner().map_err(poisoned)?;
+        if store.len() != self.views.len() {
+            return Err(Error::internal(format!(
+                "only {} of {} images reached the reduction",
+                store.len(),
+                self.views.len()
+            )));
+        }
+        let level_stores = level_stores
+            .into_iter()
+            .map(|ls| ls.into_inner().map_err(poisoned))
+            .collect::<Result<Vec<_>>>()?;
+        let mask_record = record
+            .map(|r| {
+                r.into_inner()
+                    .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))
+            })
+            .transpose()?;
+        self.bar_front.finish();
+        self.bar_back.finish();
+        Ok(WorkersLeft {
+            store,
+            level_stores,
+            mask_record,
+            totals: self.totals.into_inner().unwrap_or_default(),
+            queue: self.queue.stats(slots),
+        })
+    }
+}
+
+/// The bounded queues from the fronts to the back workers: one for all rasterizers, or, when
+/// the fronts are bound to GPUs, one per GPU so an image stays on the GPU whose SAM and CLIP
+/// made its masks. Each queue holds two finished images per rasterizer it feeds (the unbound
+/// fronts' queue: two per front, at most 8).
+struct Queues {
+    senders: Vec<mpsc::SyncSender<FrontItem>>,
+    receivers: Vec<Arc<Mutex<mpsc::Receiver<FrontItem>>>>,
+    capacity: usize,
+    /// How many GPUs the fronts are bound to, if they are.
+    bound_gpus: Option<usize>,
+}
+
+impl Queues {
+    fn for_fronts(fronts: &[FrontStages]) -> Self {
+        let bound_gpus = fronts.iter().filter_map(|f| f.gpu).max().map(|g| g + 1);
+        let (n, capacity) = match bound_gpus {
+            Some(n) => (n, 2),
+            None => (1, (2 * fronts.len()).clamp(2, 8)),
+        };
+        let (senders, receivers) = (0..n)
+            .map(|_| {
+                let (tx, rx) = mpsc::sync_channel::<FrontItem>(capacity);
+                (tx, Arc::new(Mutex::new(rx)))
+            })
+            .unzip();
+        Queues {
+            senders,
+            receivers,
+            capacity,
+            bound_gpus,
+        }
+    }
+
+    /// The queues' slots together.
+    fn slots(&self) -> usize {
+        self.receivers.len() * self.capacity
+    }
+}
+
+/// `made`, checked: at least one rasterizer, and one for each GPU the fronts are bound to.
+///
+/// Errors: `made`'s; [`Error::Param`] for none; [`Error::Internal`] for too few.
+fn checked_rasterizers(
+    made: Result<Vec<Box<dyn WeightRasterizer>>>,
+    bound_gpus: Option<usize>,
+) -> Result<Vec<Box<dyn WeightRasterizer>>> {
+    let r = made?;
+    if r.is_empty() {
+        return Err(Error::param("rasterizers", 0, "at least one rasterizer"));
+    }
+    if r.len() < bound_gpus.unwrap_or(1) {
+        return Err(Error::internal(format!(
+            "front workers are bound to {} GPUs but there are {} rasterizers",
+            bound_gpus.unwrap_or(1),
+            r.len()
+        )));
+    }
+    Ok(r)
+}
+
+/// Runs every worker to the end of the views or the first error, and returns their shares
+/// (fronts first) and the rasterizers' names. The fronts start first; `rasterizers` makes the
+/// rasterizers (device, upload of the Gaussians) while the first images go through SAM and
+/// CLIP, so that set-up is off the critical path; its error stops the run like a worker's.
+fn run_workers(
+    shared: &Shared<'_>,
+    fronts: Vec<FrontStages>,
+    queues: Queues,
+    rasterizers: impl FnOnce() -> Result<Vec<Box<dyn WeightRasterizer>>>,
+) -> (Vec<WorkerShare>, Vec<String>) {
+    let Queues {
+        senders, receivers, ..
+    } = queues;
+    let n_queues = receivers.len();
     std::thread::scope(|s| {
         let mut handles = Vec::new();
         for (w, mut front) in fronts.into_iter().enumerate() {
-            let tx = txs[front.gpu.unwrap_or(0) % n_queues].clone();
-            let (views, next_view, failed, fail, bar_front, queue) =
-                (&views, &next_view, &failed, &fail, &bar_front, &queue);
-            handles.push(s.spawn(move || {
-                let mut share = WorkerShare {
-                    name: format!("front-{w}"),
-                    ..Default::default()
-                };
-                while !failed.load(Ordering::SeqCst) {
-                    let i = next_view.fetch_add(1, Ordering::SeqCst);
-                    let Some(view) = views.get(i) else { break };
-                    let t0 = Instant::now();
-                    if share.images == 0 {
-                        share.first_s = (t0 - t_total).as_secs_f64();
-                    }
-                    let item = front_stage(view, i, &mut *front.masks, &mut *front.crops, dim);
-                    share.busy_s += t0.elapsed().as_secs_f64();
-                    share.last_s = t_total.elapsed().as_secs_f64();
-                    bar_front.inc(1);
-                    match item {
-                        Ok(item) => {
-                            share.images += 1;
-                            let bytes = item.bytes();
-                            queue.enter(bytes);
-                            if tx.send(item).is_err() {
-                                queue.leave(bytes);
-                                break;
-                            }
-                        }
-                        Err(e) => {
-                            fail(e);
-                            break;
-                        }
-                    }
-                }
-                share
-            }));
+            let tx = senders[front.gpu.unwrap_or(0) % n_queues].clone();
+            handles.push(s.spawn(move || front_loop(w, &mut front, &tx, shared)));
         }
         // The back workers hold the only receivers: when every front is done, the queue closes.
-        drop(txs);
-        let rasterizers = match made.into_rasterizers(&gaussians) {
-            Ok(r) if r.is_empty() => {
-                fail(Error::param("rasterizers", 0, "at least one rasterizer"));
-                Vec::new()
-            }
-            Ok(r) if r.len() < bound_gpus.unwrap_or(1) => {
-                fail(Error::internal(format!(
-                    "front workers are bound to {} GPUs but there are {} rasterizers",
-                    bound_gpus.unwrap_or(1),
-                    r.len()
-                )));
-                Vec::new()
-            }
-            Ok(r) => r,
-            Err(e) => {
-                fail(e);
-                Vec::new()
-            }
-        };
-        raster_names = rasterizers.iter().map(|r| r.name().to_string()).collect();
-        for (g, mut rasterizer) in rasterizers.into_iter().enumerate() {
-            let rx = Arc::clone(&rxs[g % n_queues]);
-            let name = format!("raster-{g} {}", raster_names[g]);
-            let (views, raster_intrinsics, failed, fail, bar_back, store, totals) = (
-                &views,
-                &raster_intrinsics,
-                &failed,
-                &fail,
-                &bar_back,
-                &store,
-                &totals,
-            );
-            let (level_stores, queue, record) = (&level_stores, &queue, &record);
-            // Each rasterizer's host work (labels, readback, the a_kj reduction and expansion)
-            // runs on a rayon pool of its own, so that it never queues behind the front workers'
-            // jobs (SAM post-processing, crops) in the global pool.
-            let pool = Arc::new(back_pool(g));
-            // Three threads per rasterizer, a view handed on from one to the next through a
-            // channel of one (a view's labels or label sums, a few MB): the prepare thread makes
-            // the next view's pixel labels and sort depths, the raster thread runs the GPU, the
-            // image thread reduces and expands the last view's sums. The GPU never waits for host
-            // work.
-            let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
-            let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
-            let precompute = rasterizer.view_precompute();
-            let prepare_pool = Arc::clone(&pool);
-            handles.push(s.spawn(move || {
-                // Take the next finished front item; the lock is held only while waiting.
-                let items = std::iter::from_fn(|| {
-                    let item = rx.lock().ok()?.recv().ok()?;
-                    queue.leave(item.bytes());
-                    Some(item)
-                });
-                let step = |item, _: &mut WorkerShare| {
-                    let pre = precompute.as_deref();
-                    back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
-                };
-                let send = |out| to_raster.send(out).is_ok();
-                let mut share = stage_share(format!("prepare-{g}"));
-                let pool = prepare_pool.as_ref().as_ref();
-                stage_loop(&mut share, t_total, failed, fail, pool, items, step, send);
-                share
-            }));
-            let raster_pool = Arc::clone(&pool);
-            handles.push(s.spawn(move || {
-                let step = |prepared, share: &mut WorkerShare| {
-                    let out = back_raster(&mut *rasterizer, prepared);
-                    if let Some(p) = rasterizer.last_phases() {
-                        share.raster_phases_ms.get_or_insert_default().add(&p);
-                    }
-                    out
-                };
-                let send = |out| to_image.send(out).is_ok();
-                let mut share = stage_share(name);
-                let prepared = from_prepare.iter();
-                let pool = raster_pool.as_ref().as_ref();
-                stage_loop(
-                    &mut share, t_total, failed, fail, pool, prepared, step, send,
-                );
-                share
-            }));
-            handles.push(s.spawn(move || {
-                let step = |raster: BackRaster, _: &mut WorkerShare| {
-                    let view = raster.item.view;
-                    let sinks = Sinks {
-                        store,
-                        level_stores,
-                        record: record.as_ref(),
-                    };
-                    let res = finish_image(raster, dim, params, sinks, totals);
-                    if let Some(view) = views.get(view) {
-                        tracing::debug!(view = %view.name, "image done");
-                    }
-                    bar_back.inc(1);
-                    res
-                };
-                let mut share = stage_share(format!("image-{g}"));
-                let rastered = from_raster.iter();
-                let pool = pool.as_ref().as_ref();
-                stage_loop(
-                    &mut share,
-                    t_total,
-                    failed,
-                    fail,
-                    pool,
-                    rastered,
-                    step,
-                    |()| true,
-                );
-                share
-            }));
+        drop(senders);
+        let rasterizers = rasterizers().unwrap_or_else(|e| {
+            shared.failure.fail(e);
+            Vec::new()
+        });
+        let names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
+        for (g, rasterizer) in rasterizers.into_iter().enumerate() {
+            let rx = Arc::clone(&receivers[g % n_queues]);
+            let name = format!("raster-{g} {}", names[g]);
+            handles.extend(spawn_back(s, g, rasterizer, rx, name, shared));
         }
         // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
-        drop(rxs);
+        drop(receivers);
+        let mut shares = Vec::with_capacity(handles.len());
         for h in handles {
             match h.join() {
                 Ok(share) => shares.push(share),
-                Err(_) => fail(Error::internal("an encode worker thread panicked")),
+                Err(_) => shared
+                    .failure
+                    .fail(Error::internal("an encode worker thread panicked")),
             }
         }
-    });
-    if let Some(e) = first_error.into_inner().ok().flatten() {
-        return Err(e);
-    }
-    let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
-    let store = store.into_inner().map_err(poisoned)?;
-    let tt = totals.into_inner().unwrap_or_default();
-    if store.len() != views.len() {
-        return Err(Error::internal(format!(
-            "only {} of {} images reached the reduction",
-            store.len(),
-            views.len()
-        )));
-    }
-    let level_stores = level_stores
-        .into_iter()
-        .map(|ls| ls.into_inner().map_err(poisoned))
-        .collect::<Result<Vec<_>>>()?;
-    tt.fill(&mut t, &mut counts);
-    bar_front.finish();
-    bar_back.finish();
-    Ok(Pooled {
-        gaussians,
-        dim,
-        model_id,
-        mask_name,
-        fronts: n_fronts,
-        rasterizers: raster_names,
-        store,
-        level_stores,
-        timings: t,
-        counts,
-        workers: shares,
-        queue: queue.stats(n_queues * capacity),
-        selection,
-        mask_record: match record {
-            Some(r) => Some(
-                r.into_inner()
-                    .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))?,
-            ),
-            None => None,
-        },
+        (shares, names)
     })
+}
+
+/// Front worker `w`'s loop: claims the next view, runs its masks and CLIP crops
+/// ([`front_stage`]) and hands the item to its queue `tx`, until the views are done, the queue
+/// is gone, or a worker failed (its own error is recorded).
+fn front_loop(
+    w: usize,
+    front: &mut FrontStages,
+    tx: &mpsc::SyncSender<FrontItem>,
+    shared: &Shared<'_>,
+) -> WorkerShare {
+    let mut share = stage_share(format!("front-{w}"));
+    while !shared.failure.has_failed() {
+        let i = shared.next_view.fetch_add(1, Ordering::SeqCst);
+        let Some(view) = shared.views.get(i) else {
+            break;
+        };
+        let t0 = Instant::now();
+        if share.images == 0 {
+            share.first_s = (t0 - shared.t_total).as_secs_f64();
+        }
+        let item = front_stage(view, i, &mut *front.masks, &mut *front.crops, shared.dim);
+        share.busy_s += t0.elapsed().as_secs_f64();
+        share.last_s = shared.t_total.elapsed().as_secs_f64();
+        shared.bar_front.inc(1);
+        match item {
+            Ok(item) => {
+                share.images += 1;
+                let bytes = item.bytes();
+                shared.queue.enter(bytes);
+                if tx.send(item).is_err() {
+                    shared.queue.leave(bytes);
+                    break;
+                }
+            }
+            Err(e) => {
+                shared.failure.fail(e);
+                break;
+            }
+        }
+    }
+    share
+}
+
+/// The three back threads of rasterizer `g`, a view handed on from one to the next through a
+/// channel of one (a view's labels or label sums, a few MB): *prepare* takes the next front item
+/// from `rx` and makes its pixel labels and sort depths, *raster* (named `name`) runs the GPU,
+/// *image* reduces and expands the last view's sums into the sinks. The GPU never waits for host
+/// work. Their host work runs on a rayon pool of the rasterizer's own ([`back_pool`]), so that
+/// it never queues behind the front workers' jobs (SAM post-processing, crops) in the global
+/// pool.
+fn spawn_back<'scope>(
+    s: &'scope std::thread::Scope<'scope, '_>,
+    g: usize,
+    mut rasterizer: Box<dyn WeightRasterizer>,
+    rx: Arc<Mutex<mpsc::Receiver<FrontItem>>>,
+    name: String,
+    shared: &'scope Shared<'_>,
+) -> [std::thread::ScopedJoinHandle<'scope, WorkerShare>; 3] {
+    let (views, raster_intrinsics, params, dim, t_total) = (
+        shared.views,
+        shared.raster_intrinsics,
+        shared.params,
+        shared.dim,
+        shared.t_total,
+    );
+    let failure = &shared.failure;
+    let pool = Arc::new(back_pool(g));
+    let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
+    let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
+    let precompute = rasterizer.view_precompute();
+    let prepare_pool = Arc::clone(&pool);
+    let prepare = s.spawn(move || {
+        // Take the next finished front item; the lock is held only while waiting.
+        let items = std::iter::from_fn(|| {
+            let item = rx.lock().ok()?.recv().ok()?;
+            shared.queue.leave(item.bytes());
+            Some(item)
+        });
+        let step = |item, _: &mut WorkerShare| {
+            let pre = precompute.as_deref();
+            back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
+        };
+        let send = |out| to_raster.send(out).is_ok();
+        let mut share = stage_share(format!("prepare-{g}"));
+        let pool = prepare_pool.as_ref().as_ref();
+        stage_loop(&mut share, t_total, failure, pool, items, step, send);
+        share
+    });
+    let raster_pool = Arc::clone(&pool);
+    let raster = s.spawn(move || {
+        let step = |prepared, share: &mut WorkerShare| {
+            let out = back_raster(&mut *rasterizer, prepared);
+            if let Some(p) = rasterizer.last_phases() {
+                share.raster_phases_ms.get_or_insert_default().add(&p);
+            }
+            out
+        };
+        let send = |out| to_image.send(out).is_ok();
+        let mut share = stage_share(name);
+        let pool = raster_pool.as_ref().as_ref();
+        stage_loop(
+            &mut share,
+            t_total,
+            failure,
+            pool,
+            from_prepare.iter(),
+            step,
+            send,
+        );
+        share
+    });
+    let image = s.spawn(move || {
+        let step = |raster: BackRaster, _: &mut WorkerShare| {
+            let view = raster.item.view;
+            let res = finish_image(raster, dim, params, &shared.sinks, &shared.totals);
+            if let Some(view) = views.get(view) {
+                tracing::debug!(view = %view.name, "image done");
+            }
+            shared.bar_back.inc(1);
+            res
+        };
+        let mut share = stage_share(format!("image-{g}"));
+        let pool = pool.as_ref().as_ref();
+        stage_loop(
+            &mut share,
+            t_total,
+            failure,
+            pool,
+            from_raster.iter(),
+            step,
+            |()| true,
+        );
+        share
+    });
+    [prepare, raster, image]
 }
 
 /// The rasterizers of a run: already made (for the coverage pass), or still to be made (while
@@ -479,14 +645,12 @@ fn stage_share(name: String) -> WorkerShare {
 /// `step`, inside the rasterizer's rayon `pool` (so that its parallel work never queues behind
 /// the front workers' jobs in the global pool), its time is counted in `share`, and its output
 /// is handed on (`send` false: the next thread is gone, having said why); the first error goes
-/// to `fail` and ends the loop. The loop itself runs on the calling thread, not in the pool: the
+/// to `failure` and ends the loop. The loop itself runs on the calling thread, not in the pool: the
 /// three threads of a rasterizer share one pool, which may have only two threads.
-#[allow(clippy::too_many_arguments)]
 fn stage_loop<I, O: Send>(
     share: &mut WorkerShare,
     t_total: Instant,
-    failed: &AtomicBool,
-    fail: &impl Fn(Error),
+    failure: &Failure,
     pool: Option<&rayon::ThreadPool>,
     inputs: impl Iterator<Item = I>,
     mut step: impl FnMut(I, &mut WorkerShare) -> Result<O> + Send,
@@ -495,7 +659,7 @@ fn stage_loop<I, O: Send>(
     I: Send,
 {
     for input in inputs {
-        if failed.load(Ordering::SeqCst) {
+        if failure.has_failed() {
             break;
         }
         let t0 = Instant::now();
@@ -516,32 +680,26 @@ fn stage_loop<I, O: Send>(
                 }
             }
             Err(e) => {
-                fail(e);
+                failure.fail(e);
                 break;
             }
         }
     }
 }
 
-/// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj`, split by
-/// level with `levels`, pushed to the stores, and its work added to `totals`.
+/// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj` pushed to
+/// the sinks (split by level with `levels`; each Gaussian's dominant mask to the masks' record),
+/// and its work added to `totals`.
 ///
 /// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock.
-/// Where an image's `a_kj` go: the contribution store, the per-level stores, the masks' record.
-struct Sinks<'a> {
-    store: &'a Mutex<ContributionStore>,
-    level_stores: &'a [Mutex<ContributionStore>],
-    record: Option<&'a Mutex<MaskRecord>>,
-}
-
 fn finish_image(
     raster: BackRaster,
     dim: usize,
     params: &EncodeParams,
-    sinks: Sinks,
+    sinks: &PoolSinks,
     totals: &Mutex<ImageWork>,
 ) -> Result<()> {
-    let Sinks {
+    let PoolSinks {
         store,
         level_stores,
         record,
