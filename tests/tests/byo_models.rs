@@ -44,6 +44,27 @@ fn skip_reason() -> Option<String> {
     None
 }
 
+/// A folder for the test `test`'s exports (removed with it), or `None` when it cannot run here,
+/// having printed why (`SKIPPED <test>: ...`).
+fn exports_for(test: &str) -> Option<tempfile::TempDir> {
+    if let Some(why) = skip_reason() {
+        eprintln!("SKIPPED {test}: {why}");
+        return None;
+    }
+    Some(tempfile::tempdir().unwrap())
+}
+
+/// `rel` under `dir`, as a command-line argument.
+fn under(dir: &tempfile::TempDir, rel: &str) -> String {
+    dir.path().join(rel).display().to_string()
+}
+
+/// The first view of the embedded scene.
+fn first_view_image() -> image::RgbImage {
+    let views = slag_common::camera::load_views(&default_scene()).unwrap();
+    slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap()
+}
+
 fn export(args: &[&str]) -> f64 {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/export-models.py");
     let t = Instant::now();
@@ -70,13 +91,11 @@ fn query_args(emb: &Path, textual: &Path, tokenizer: &Path, text: &str) -> Query
 
 #[test]
 fn exported_models_encode_and_query() {
-    if let Some(why) = skip_reason() {
-        eprintln!("SKIPPED exported_models_encode_and_query: {why}");
+    let Some(dir) = exports_for("exported_models_encode_and_query") else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
+    };
     let p = |rel: &str| -> PathBuf { dir.path().join(rel) };
-    let s = |rel: &str| p(rel).display().to_string();
+    let s = |rel: &str| under(&dir, rel);
     let t_sam = export(&["sam", "--kind", "tiny", "--external-data", &s("sam")]);
     let t_clip = export(&["clip", "--model", "tiny", "--random", &s("clip")]);
     let t_other = export(&[
@@ -180,16 +199,13 @@ fn exported_models_encode_and_query() {
 /// export, run by ONNX Runtime on the CPU on a real image, same weights (same seed).
 #[test]
 fn fused_sam_encoder_matches_the_plain_export() {
-    if let Some(why) = skip_reason() {
-        eprintln!("SKIPPED fused_sam_encoder_matches_the_plain_export: {why}");
+    let Some(dir) = exports_for("fused_sam_encoder_matches_the_plain_export") else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    };
+    let s = |rel: &str| under(&dir, rel);
     export(&["sam", "--kind", "tiny", &s("plain")]);
     export(&["sam", "--kind", "tiny", "--fuse", &s("fused")]);
-    let views = slag_common::camera::load_views(&default_scene()).unwrap();
-    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let image = first_view_image();
     let (pixels, _) = slag_encoder::preprocess::sam_pixel_values(&image).unwrap();
     let placement =
         slag_common::onnx::Placement::new(slag_common::onnx::ExecutionProvider::Cpu, 0, 0);
@@ -231,12 +247,10 @@ fn fused_sam_encoder_matches_the_plain_export() {
 fn f16_multimask_decoder_gives_the_same_masks() {
     use slag_encoder::masks::MaskGenerator;
     use slag_encoder::masks::sam::{LowResLogits, SamAutomaticMaskGenerator, SamParams};
-    if let Some(why) = skip_reason() {
-        eprintln!("SKIPPED f16_multimask_decoder_gives_the_same_masks: {why}");
+    let Some(dir) = exports_for("f16_multimask_decoder_gives_the_same_masks") else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    };
+    let s = |rel: &str| under(&dir, rel);
     export(&["sam", "--kind", "tiny", "--fp16-decoder", &s("m")]);
     let cut = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/sam-decoder-low-res.py");
     for (flag, out) in [(None, "f32.onnx"), (Some("--f16-multimask"), "f16.onnx")] {
@@ -261,8 +275,7 @@ fn f16_multimask_decoder_gives_the_same_masks() {
         .unwrap();
     assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--fp16-decoder"));
 
-    let views = slag_common::camera::load_views(&default_scene()).unwrap();
-    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let image = first_view_image();
     let params = SamParams {
         points_per_side: 8,
         pred_iou_thresh: 0.0,
@@ -302,12 +315,10 @@ fn f16_multimask_decoder_gives_the_same_masks() {
 fn u8_pixels_clip_export_gives_the_same_embeddings() {
     use slag_encoder::clip::{ClipVisual, VisualInput};
     use slag_encoder::masks::MaskGenerator;
-    if let Some(why) = skip_reason() {
-        eprintln!("SKIPPED u8_pixels_clip_export_gives_the_same_embeddings: {why}");
+    let Some(dir) = exports_for("u8_pixels_clip_export_gives_the_same_embeddings") else {
         return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let s = |rel: &str| dir.path().join(rel).display().to_string();
+    };
+    let s = |rel: &str| under(&dir, rel);
     export(&["clip", "--model", "tiny", "--random", &s("plain")]);
     export(&[
         "clip",
@@ -317,8 +328,7 @@ fn u8_pixels_clip_export_gives_the_same_embeddings() {
         "--u8-pixels",
         &s("u8"),
     ]);
-    let views = slag_common::camera::load_views(&default_scene()).unwrap();
-    let image = slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap();
+    let image = first_view_image();
     let mut seg = slag_encoder::masks::graph::GraphSegmenter::new(Default::default());
     let masks = seg.generate(&image).unwrap();
     assert!(

@@ -172,6 +172,98 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     assert!(many.join("report.json").exists());
 }
 
+/// Front workers with graph masks and color-clip on the CPU, bound to the GPUs `gpus` names.
+fn graph_fronts(gpus: &[Option<usize>]) -> Vec<FrontStages> {
+    gpus.iter()
+        .map(|&gpu| FrontStages {
+            masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
+                Default::default(),
+            )),
+            crops: Box::new(
+                slag_encoder::clip::ClipVisual::with_threads(
+                    &color_clip_visual(),
+                    slag_common::onnx::ExecutionProvider::Cpu,
+                    32,
+                    1,
+                )
+                .unwrap(),
+            ),
+            gpu,
+        })
+        .collect()
+}
+
+/// The pool's settings for a run into `out`: raster scale 0.5, f16 rows, no side outputs.
+fn pool_params(out: &std::path::Path) -> pipeline::EncodeParams {
+    pipeline::EncodeParams {
+        raster_scale: 0.5,
+        image_stage: Default::default(),
+        reduce: Default::default(),
+        contribution_budget_bytes: 1 << 30,
+        precision: slag_common::embeddings::StoredPrecision::F16,
+        out_dir: out.to_path_buf(),
+        progress: false,
+        mixture_keep: None,
+        levels: false,
+        mask_record_slots: None,
+    }
+}
+
+/// `n` GPU rasterizers over `g` (wgpu devices on one adapter).
+fn rasterizers(
+    n: usize,
+    g: &slag_common::scene::Gaussians,
+) -> slag_common::Result<Vec<Box<dyn WeightRasterizer>>> {
+    (0..n)
+        .map(|_| {
+            Ok(Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>)
+        })
+        .collect()
+}
+
+/// Fronts bound to GPUs hand their images to their own GPU's rasterizer only (one queue per
+/// GPU, two slots each), and the result equals an unbound run's.
+#[test]
+fn fronts_bound_to_gpus_feed_their_own_gpus_rasterizer() {
+    let (dir, scene) = folder_with_small_scene();
+    let input = pipeline::SceneInput::new(&scene, None, 1);
+    let run = |gpus: &[Option<usize>], name: &str| {
+        let out = dir.path().join(name);
+        let r = pipeline::encode_pool(
+            &input,
+            graph_fronts(gpus),
+            |g: &slag_common::scene::Gaussians| rasterizers(2, g),
+            &pool_params(&out),
+            Default::default(),
+        )
+        .unwrap();
+        (
+            r,
+            Embeddings::read(&out.join("embeddings.safetensors")).unwrap(),
+        )
+    };
+    let (bound, e_bound) = run(&[Some(0), Some(1), Some(1)], "bound");
+    let (free, e_free) = run(&[None, None, None], "free");
+    let images = |name: &str| -> usize {
+        let w = bound.workers.iter().find(|w| w.name.starts_with(name));
+        w.unwrap_or_else(|| panic!("no worker {name}")).images
+    };
+    assert_eq!(images("front-0") + images("front-1") + images("front-2"), 7);
+    for (g, fronts) in [
+        (0, images("front-0")),
+        (1, images("front-1") + images("front-2")),
+    ] {
+        for stage in ["prepare", "raster", "image"] {
+            assert_eq!(images(&format!("{stage}-{g}")), fronts, "{stage}-{g}");
+        }
+    }
+    assert_eq!(bound.counts.queue.as_ref().unwrap().capacity_items, 4);
+    assert_eq!(free.counts.queue.as_ref().unwrap().capacity_items, 6);
+    assert_eq!(bound.counts.entries, free.counts.entries);
+    let d = max_abs_diff(&e_bound, &e_free);
+    assert!(d <= 1e-3, "max |Δ| {d} (f16 rows)");
+}
+
 /// Set once the failing front has failed; the other front waits for it before its first image,
 /// so the failure happens while the pool runs whatever the scheduling (on a loaded machine the
 /// healthy front could otherwise take every image before the failing one reached its `n`-th).
@@ -265,11 +357,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),
         fronts,
-        |g: &slag_common::scene::Gaussians| {
-            Ok(vec![
-                Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>
-            ])
-        },
+        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
         &params,
         Default::default(),
     )
@@ -285,38 +373,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
 #[test]
 fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
     let (dir, scene) = folder_with_small_scene();
-    let clip_path = color_clip_visual();
-    let fronts = |gpus: &[Option<usize>]| -> Vec<FrontStages> {
-        gpus.iter()
-            .map(|&gpu| FrontStages {
-                masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
-                    Default::default(),
-                )),
-                crops: Box::new(
-                    slag_encoder::clip::ClipVisual::with_threads(
-                        &clip_path,
-                        slag_common::onnx::ExecutionProvider::Cpu,
-                        32,
-                        1,
-                    )
-                    .unwrap(),
-                ),
-                gpu,
-            })
-            .collect()
-    };
-    let params = |out: &std::path::Path| pipeline::EncodeParams {
-        raster_scale: 0.5,
-        image_stage: Default::default(),
-        reduce: Default::default(),
-        contribution_budget_bytes: 1 << 30,
-        precision: slag_common::embeddings::StoredPrecision::F16,
-        out_dir: out.to_path_buf(),
-        progress: false,
-        mixture_keep: None,
-        levels: false,
-        mask_record_slots: None,
-    };
+    let (fronts, params) = (graph_fronts, pool_params);
     let input = pipeline::SceneInput::new(&scene, None, 1);
 
     let out = dir.path().join("out-err");
@@ -339,11 +396,7 @@ fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
     let err = pipeline::encode_pool(
         &input,
         fronts(&[Some(0), Some(1)]),
-        |g: &slag_common::scene::Gaussians| {
-            Ok(vec![
-                Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>
-            ])
-        },
+        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
         &params(&out),
         Default::default(),
     )
