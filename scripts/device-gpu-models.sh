@@ -297,6 +297,8 @@ scaling)
   for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json" 2>/dev/null; done; true
   ;;
 esac
-# At most 8 files come back from a call: pack the results into one archive.
-(cd "$R" && shopt -s nullglob && f=(*) && [ ${#f[@]} -gt 6 ] && tar czf "results-$mode.tgz" --exclude='*.tgz' "${f[@]}" && rm -f -- "${f[@]}")
+# At most 8 files come back from a call: pack the results into one archive (one per run, so
+# that a second run in the same call neither overwrites nor removes the first one's).
+(cd "$R" && shopt -s nullglob && f=() && for x in *; do [[ $x == *.tgz ]] || f+=("$x"); done &&
+  [ ${#f[@]} -gt 6 ] && tar czf "results-$mode${TAG:+-$TAG}-$(date +%s).tgz" "${f[@]}" && rm -f -- "${f[@]}")
 
