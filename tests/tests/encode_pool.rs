@@ -62,23 +62,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
 
     // Three fronts and two rasterizers (two wgpu devices on the same adapter), built by hand.
     let many = dir.path().join("many");
-    let fronts = (0..3)
-        .map(|_| FrontStages {
-            masks: Box::new(slag_encoder::masks::graph::GraphSegmenter::new(
-                Default::default(),
-            )),
-            crops: Box::new(
-                slag_encoder::clip::ClipVisual::with_threads(
-                    &color_clip_visual(),
-                    slag_common::onnx::ExecutionProvider::Cpu,
-                    32,
-                    1,
-                )
-                .unwrap(),
-            ),
-            gpu: None,
-        })
-        .collect();
+    let fronts = graph_fronts(&[None, None, None]);
     let params = pipeline::EncodeParams {
         raster_scale: 0.5,
         image_stage: Default::default(),
@@ -99,14 +83,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     let r2 = pipeline::encode_pool(
         &scene_in,
         fronts,
-        |g: &slag_common::scene::Gaussians| {
-            Ok((0..2)
-                .map(|_| {
-                    Box::new(slag_encoder::raster::GpuRasterizer::new(g).unwrap())
-                        as Box<dyn WeightRasterizer>
-                })
-                .collect())
-        },
+        |g: &slag_common::scene::Gaussians| rasterizers(2, g),
         &params,
         Default::default(),
     )
