@@ -73,9 +73,18 @@ vith_f16d() {
   [ -f "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx" ] || python3 scripts/sam-decoder-low-res.py --f16-multimask \
     "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx"
 }
+# The carried wheels (segment_anything, open_clip_torch, ftfy, wcwidth) into /root/site.
+wheels() { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl; }
+# CLIP ViT-B/16 fp16 fused ($M/f16fuse) and the same file given byte input ($M/f16fuse-u8,
+# scripts/clip-u8-pixels.py), each exported unless an earlier call left it.
+clip_f16fuse() {
+  local f=$M/f16fuse/ViT-B-16-random-visual.onnx u=$M/f16fuse-u8/ViT-B-16-random-visual.onnx
+  [ -f "$f" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
+  [ -f "$u" ] || { mkdir -p "$M/f16fuse-u8" && python3 scripts/clip-u8-pixels.py "$f" "$u"; }
+}
 case "$mode" in
 prep)
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  wheels
   t0=$(date +%s)
   if [ ! -f "$M/f16/sam-vit_h-encoder.onnx" ]; then
   for k in ${KINDS:-vit_b vit_h}; do
@@ -137,14 +146,10 @@ e2e)
   # The models this run names, exported here if an earlier call did not (DECDIR=f16d: ViT-H
   # fp16 with its fp16 decoder; CLIPDIR=f16fuse[-u8]: CLIP fp16 fused [taking bytes]).
   if [ "${DECDIR:-}" = f16d ]; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+    wheels
     vith_f16d
   fi
-  case "${CLIPDIR:-}" in f16fuse|f16fuse-u8)
-    F=$M/f16fuse/ViT-B-16-random-visual.onnx
-    [ -f "$F" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
-    [ "$CLIPDIR" = f16fuse-u8 ] && [ ! -f "$M/f16fuse-u8/ViT-B-16-random-visual.onnx" ] && mkdir -p "$M/f16fuse-u8" && python3 scripts/clip-u8-pixels.py "$F" "$M/f16fuse-u8/ViT-B-16-random-visual.onnx" ;;
-  esac
+  case "${CLIPDIR:-}" in f16fuse|f16fuse-u8) clip_f16fuse ;; esac
   t=$prec${TAG:+-$TAG}
   MA=("${SAMARGS[@]}" $(samm $prec vit_h))
   if [ -n "${MASKMODEL:-}" ]; then
@@ -175,7 +180,7 @@ models)
   # with 256 prompts), beside torch fp16 in the same call, and ONNX Runtime's per-node profile of
   # each CLIP tower. CLIP variants: f32 (the reference of the cosines), fp16 (the plain export),
   # fp16 + fused (export-models.py --fuse), f32 + fused.
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  wheels
   for v in "f32:" "f16:--fp16" "f16fuse:--fp16 --fuse" "f32fuse:--fuse"; do
     d=${v%%:*}
     [ -f "$M/$d/ViT-B-16-random-visual.onnx" ] && continue
@@ -212,7 +217,7 @@ sam)
   # same weights; `slag-bench models` times both pairs and compares the second's masks with the
   # first's; ONNX Runtime's per-node profiles; torch fp16 in the same call, and torch's own CUDA profile of its decoder.
   # EXPORT_ONLY=1: the exports alone (they take most of a call).
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  wheels
   vith_f16d
   if [ ! -f "$M/f16x/sam-vit_h-encoder.onnx" ]; then
     python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
@@ -238,13 +243,13 @@ graphs)
   # Needs .pyort/ort.tar.xz (onnxruntime-gpu 1.31.1's Python package without its two large
   # libraries, which come from /root/og). Models: CLIP ViT-B/16 fp16 fused, SAM ViT-H fp16 with
   # the fused encoder and the fp16 decoder cut to low-res outputs (f32; f16 multimask).
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  wheels
   if [ ! -d /root/pyort/onnxruntime ]; then
     mkdir -p /root/pyort && tar xJf .pyort/ort.tar.xz -C /root/pyort
     ln -sf /root/og/libonnxruntime_providers_cuda.so /root/og/libonnxruntime.so.1.31.1 /root/pyort/onnxruntime/capi/
   fi
   t0=$(date +%s)
-  [ -f "$M/f16fuse/ViT-B-16-random-visual.onnx" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
+  clip_f16fuse
   X=$M/f16x
   if [ ! -f "$X/sam-vit_h-decoder-low-res-f16m.onnx" ]; then
     python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$X" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
@@ -263,10 +268,9 @@ clipu8)
   # CLIP ViT-B/16 fp16 fused with f32 pixel_values (normalised on the host) against the same
   # file given byte input (scripts/clip-u8-pixels.py): slag-bench models on real crops, twice,
   # the second call with the towers in the other order.
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl
+  wheels
+  clip_f16fuse
   F=$M/f16fuse/ViT-B-16-random-visual.onnx; U=$M/f16fuse-u8/ViT-B-16-random-visual.onnx
-  [ -f "$F" ] || python3 scripts/export-models.py clip --model ViT-B-16 --random --fp16 --fuse "$M/f16fuse" > "$R/export-clip.json" 2> "$R/export-clip.err" || tail -3 "$R/export-clip.err"
-  [ -f "$U" ] || { mkdir -p "$M/f16fuse-u8" && python3 scripts/clip-u8-pixels.py "$F" "$U"; }
   for order in "$F $U" "$U $F"; do
     set -- $order
     "$BB" models --scene data/snowmiku-mini --images 8 --clip-visual "$1" --clip-visual "$2" \
