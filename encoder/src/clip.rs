@@ -274,24 +274,17 @@ impl ClipVisual {
     /// # Errors
     /// As [`ClipVisual::embed_pixels`]; [`Error::Internal`] for crops of the other form.
     fn embed_crops(&mut self, crops: &Crops) -> Result<Vec<Vec<f32>>> {
-        let step = self.batch_size * CLIP_PIXELS;
-        let mut out = Vec::with_capacity(crops.count());
-        match (crops, self.input) {
-            (Crops::Bytes(b), VisualInput::U8Pixels) => {
-                for chunk in b.chunks(step) {
-                    out.extend(self.run_batch(Batch::Bytes(chunk))?);
-                }
-            }
-            (Crops::Values(v), VisualInput::F32PixelValues) => {
-                for chunk in v.chunks(step) {
-                    out.extend(self.run_batch(Batch::Values(chunk))?);
-                }
-            }
-            (_, input) => {
-                return Err(Error::internal(format!(
-                    "crops prepared for another CLIP tower input than {input:?}"
-                )));
-            }
+        let all = crops.batch();
+        if all.input() != self.input {
+            return Err(Error::internal(format!(
+                "crops prepared for another CLIP tower input than {:?}",
+                self.input
+            )));
+        }
+        let n = all.count();
+        let mut out = Vec::with_capacity(n);
+        for start in (0..n).step_by(self.batch_size) {
+            out.extend(self.run_batch(all.crops(start..n.min(start + self.batch_size)))?);
         }
         Ok(out)
     }
@@ -437,11 +430,28 @@ enum Batch<'a> {
     Values(&'a [f32]),
 }
 
-impl Batch<'_> {
+impl<'a> Batch<'a> {
     fn count(&self) -> usize {
         match self {
             Batch::Bytes(b) => b.len() / CLIP_PIXELS,
             Batch::Values(v) => v.len() / CLIP_PIXELS,
+        }
+    }
+
+    /// The tower input this form is for.
+    fn input(&self) -> VisualInput {
+        match self {
+            Batch::Bytes(_) => VisualInput::U8Pixels,
+            Batch::Values(_) => VisualInput::F32PixelValues,
+        }
+    }
+
+    /// Crops `range` (crop indices) of these.
+    fn crops(self, range: std::ops::Range<usize>) -> Batch<'a> {
+        let values = range.start * CLIP_PIXELS..range.end * CLIP_PIXELS;
+        match self {
+            Batch::Bytes(b) => Batch::Bytes(&b[values]),
+            Batch::Values(v) => Batch::Values(&v[values]),
         }
     }
 }
@@ -466,10 +476,11 @@ impl Crops {
         })
     }
 
-    fn count(&self) -> usize {
+    /// The crops, borrowed.
+    fn batch(&self) -> Batch<'_> {
         match self {
-            Crops::Bytes(b) => b.len() / CLIP_PIXELS,
-            Crops::Values(v) => v.len() / CLIP_PIXELS,
+            Crops::Bytes(b) => Batch::Bytes(b),
+            Crops::Values(v) => Batch::Values(v),
         }
     }
 
@@ -701,7 +712,7 @@ impl ClipHandle {
             return Ok(Vec::new());
         }
         let crops = Crops::for_tower(self.input, crop_pixels(image, masks)?)?;
-        let count = crops.count();
+        let count = crops.batch().count();
         let (reply, answer) = mpsc::sync_channel(1);
         let gone = || {
             Error::Invalid(format!(
