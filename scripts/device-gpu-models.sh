@@ -39,13 +39,10 @@
 #   scripts/device-gpu-models.sh clipbatch   # CLIP ViT-B/16 fp16 on CUDA at --clip-batch 8..128
 #                                            # (snowmiku every 2nd view, graph masks, 4 fronts)
 #   scripts/device-gpu-models.sh reduce      # slag-bench reduce at the e2e scene's size (2M
-#                                            # Gaussians, 250 views, 242M a_kj in 83 masks a view,
-#                                            # D 512): the block-major loop in the default shape
-#                                            # and SHAPES="1024x64,128x512,...", the tail with the
-#                                            # mixture; CPU only
+#                                            # Gaussians, 250 views x 250k a_kj, D 512): both loop
+#                                            # orders of the reduction + the f16 write (CPU only)
 # Files under /root survive between calls while the machine is held. Results go to $OUT.
-# SLAG_ENCODER=PATH / SLAG_BENCH=PATH run another slag-encoder / slag-bench build (e.g. a base to
-# compare with, in the same call).
+# SLAG_ENCODER=PATH runs another slag-encoder build (e.g. a base to compare with, in the same call).
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
 VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES  # the NVIDIA ICD that works headless
@@ -53,7 +50,7 @@ export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVL
 export XDG_RUNTIME_DIR=/tmp PYTHONPATH=/root/site PYTHONUNBUFFERED=1 SLAG_EXPORT_NO_CHECK=1
 # shellcheck disable=SC1091
 source /root/og/assemble.sh
-R=${OUT:-/tmp/out}; W=/root/work; M=/root/models; B=${SLAG_ENCODER:-/root/bin/slag-encoder}; BB=${SLAG_BENCH:-/root/bin/slag-bench}
+R=${OUT:-/tmp/out}; W=/root/work; M=/root/models; B=${SLAG_ENCODER:-/root/bin/slag-encoder}; BB=/root/bin/slag-bench
 mkdir -p "$R" "$W" "$M" /root/bin
 if [ -d .devcarry ]; then
   for z in .devcarry/*.zst; do [ -f "$z" ] && LD_LIBRARY_PATH=/root/og /root/og/zstd -dqf "$z" -o "/root/bin/$(basename "$z" .zst)"; done
@@ -291,15 +288,9 @@ clipbatch)
   done
   ;;
 reduce)
-  # The tail alone on the e2e scene's size: 2M Gaussians, 250 views, 1,323,328 entries drawn per
-  # view in 83 masks (242M a_kj after merging), D 512; the default loop shape and SHAPES
-  # (slag-bench reduce --shapes), and the tail with the mixture (keep 4) as encode runs it.
-  # SLAG_BENCH=PATH: another slag-bench build (a base, which may not know --shapes: leave SHAPES
-  # unset for it).
-  echo "### slag-bench reduce${TAG:+ ($TAG)}, 2M Gaussians, 250 views x 1,323,328 drawn entries, 83 masks, D 512"
-  "$BB" reduce --gaussians 2000000 --images 250 --entries-per-image 1323328 --masks-per-image 83 --dim 512 \
-    --block-major-only --repeats ${REPEATS:-2} --mixture-keep 4 ${SHAPES:+--shapes $SHAPES} \
-    > "$R/reduce${TAG:+-$TAG}.md" 2>&1; echo "exit $?"; cat "$R/reduce${TAG:+-$TAG}.md"
+  echo "### slag-bench reduce, 2M Gaussians, 250 views x 250k entries, D 512"
+  "$BB" reduce --gaussians 2000000 --images 250 --entries-per-image 250000 --dim 512 --repeats 1 \
+    > "$R/reduce.md" 2>&1; echo "exit $?"; cat "$R/reduce.md"
   ;;
 scaling)
   counts=${2:-1,2}; prec=${PREC:-f16}

@@ -24,7 +24,7 @@ use anyhow::{Context, ensure};
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
 use slag_common::mixture::SparseMixture;
 use slag_encoder::aggregate::{
-    BlockShape, ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_sparse,
+    ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_sparse,
     reduce_to_writer, reduce_to_writer_with_mixture,
 };
 use std::time::Instant;
@@ -56,11 +56,6 @@ pub struct ReduceArgs {
     /// Skip the image-major loop (profiling the default one alone).
     #[arg(long)]
     pub block_major_only: bool,
-    /// Shapes of the block-major loop to time against each other, comma-separated
-    /// `GAUSSIANSxDIMS` with an optional `g` (Gaussian by Gaussian), e.g. `128x512,1024x64,128x512g`
-    /// (default: the default shape alone). Every shape must write the same bytes.
-    #[arg(long, value_delimiter = ',', value_parser = parse_shape)]
-    pub shapes: Vec<BlockShape>,
     /// Also time the tail with the mixture form keeping this many `a_kj` per Gaussian
     /// (`encode --mixture-keep`), in the default loop order: two passes (`reduce_to_writer`, then
     /// `reduce_mixture_sparse`) against the one fused pass (`reduce_to_writer_with_mixture`),
@@ -70,25 +65,6 @@ pub struct ReduceArgs {
     /// Seed of the synthetic store.
     #[arg(long, default_value_t = 7)]
     pub seed: u64,
-}
-
-/// `GAUSSIANSxDIMS[g]` as a [`BlockShape`].
-fn parse_shape(s: &str) -> Result<BlockShape, String> {
-    let (body, by_gaussian) = match s.strip_suffix('g') {
-        Some(b) => (b, true),
-        None => (s, false),
-    };
-    let bad = || format!("shape {s:?}: expected GAUSSIANSxDIMS[g], e.g. 1024x64 or 128x512g");
-    let (g, d) = body.split_once('x').ok_or_else(bad)?;
-    let (gaussians, slice_dims) = (g.parse().map_err(|_| bad())?, d.parse().map_err(|_| bad())?);
-    if gaussians == 0 || slice_dims == 0 {
-        return Err(bad());
-    }
-    Ok(BlockShape {
-        gaussians,
-        slice_dims,
-        by_gaussian,
-    })
 }
 
 /// SplitMix64: a small deterministic generator for the synthetic store.
@@ -323,28 +299,17 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
         accumulator_budget_bytes: a.accumulator_memory_mb << 20,
         ..Default::default()
     };
-    let shapes = if a.shapes.is_empty() {
-        vec![BlockShape::default()]
+    let orders: &[(bool, &str)] = if a.block_major_only {
+        &[(false, "Gaussian-block-major (default)")]
     } else {
-        a.shapes.clone()
+        &[
+            (true, "image-major (spilled path)"),
+            (false, "Gaussian-block-major (default)"),
+        ]
     };
-    let mut orders: Vec<(bool, BlockShape, String)> = Vec::new();
-    if !a.block_major_only {
-        orders.push((true, BlockShape::default(), "image-major (spilled path)".into()));
-    }
-    for &shape in &shapes {
-        let name = format!(
-            "Gaussian-block-major, {} Gaussians × {} dims{}{}",
-            shape.gaussians,
-            shape.slice_dims,
-            if shape.by_gaussian { ", by Gaussian" } else { "" },
-            if shape == BlockShape::default() { " (default)" } else { "" }
-        );
-        orders.push((false, shape, name));
-    }
     let mut best: Vec<Option<Tail>> = orders.iter().map(|_| None).collect();
     for _ in 0..a.repeats {
-        for (i, &(image_major, shape, _)) in orders.iter().enumerate() {
+        for (i, &(image_major, _)) in orders.iter().enumerate() {
             let path = dir.path().join(format!("order{i}.safetensors"));
             let run = tail(
                 &store,
@@ -352,7 +317,6 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
                 a,
                 ReduceParams {
                     image_major,
-                    shape,
                     ..base
                 },
                 &path,
@@ -362,15 +326,13 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
             }
         }
     }
-    for i in 1..orders.len() {
+    if orders.len() == 2 {
         ensure!(
             same_bytes(
                 &dir.path().join("order0.safetensors"),
-                &dir.path().join(format!("order{i}.safetensors"))
+                &dir.path().join("order1.safetensors")
             )?,
-            "{} wrote other embeddings than {}: the reduction is not order-exact",
-            orders[i].2,
-            orders[0].2
+            "the two loop orders wrote different embeddings: the reduction is not order-exact"
         );
     }
     let best: Vec<Tail> = best.into_iter().collect::<Option<_>>().context("no run")?;
@@ -379,7 +341,7 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
         "| loop order | reduce s | reduce + overlapped write s | entries/s | speed-up | file finish s |\n\
          |---|---:|---:|---:|---:|---:|\n",
     );
-    for ((_, _, name), b) in orders.iter().zip(&best) {
+    for ((_, name), b) in orders.iter().zip(&best) {
         table += &format!(
             "| {name} | {:.2} | {:.2} | {:.3e} | {:.2} | {:.2} |\n",
             b.reduce_s,
@@ -404,8 +366,8 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
         best[0].chunks,
         rayon::current_num_threads(),
         a.repeats,
-        if orders.len() > 1 {
-            "; every loop wrote the same bytes"
+        if orders.len() == 2 {
+            "; both orders wrote the same bytes"
         } else {
             ""
         },

@@ -40,7 +40,7 @@ pub use mixture::{
     StreamedMixture, reduce_mixture, reduce_mixture_sparse, reduce_to_writer_with_mixture,
 };
 pub use reduce::{
-    BlockShape, OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
+    OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,
     reduce_to_writer,
 };
 pub use store::{ContributionStore, MaskColumn, StoredImage};

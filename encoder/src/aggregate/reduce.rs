@@ -19,40 +19,6 @@ pub struct ReduceParams {
     /// against each other in one run (`slag-bench reduce`).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     pub image_major: bool,
-    /// The block-major loop's shape; changes no value, only the speed (`slag-bench reduce
-    /// --shapes` measures shapes against each other in one run).
-    #[serde(skip)]
-    pub shape: BlockShape,
-}
-
-/// The shape of the Gaussian-block-major loop ([`accumulate`]): each task sums `gaussians`
-/// Gaussians (ids `g0..g0 + gaussians`) over every image, `slice_dims` embedding dimensions at
-/// a time. The accumulator is `gaussians × slice_dims` f64 per thread; every image's mask
-/// embeddings `E_j` whose entries fall in the block are read once per block, so larger blocks
-/// read fewer rows in all (at 2M Gaussians, 250 views and 83 masks per view, blocks of 128 read
-/// about 560 GB of `E_j` over the reduction, blocks of 1024 about 80 GB), and the entries are
-/// read once per slice. `by_gaussian`: the block's entries are visited Gaussian by Gaussian
-/// (all images' entries of one Gaussian, in image then entry order, its row staying in the L1
-/// cache) instead of image by image; `slice_dims` is then ignored (whole rows).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct BlockShape {
-    /// Gaussians per task (at least 1).
-    pub gaussians: usize,
-    /// Embedding dimensions per visit of the block's entries (at least 1; `D` or more: whole rows).
-    pub slice_dims: usize,
-    /// Visit the block's entries Gaussian by Gaussian.
-    pub by_gaussian: bool,
-}
-
-impl Default for BlockShape {
-    /// 1024 Gaussians by 64 dimensions: a 512 KiB accumulator, which stays in a core's L2 cache.
-    fn default() -> Self {
-        Self {
-            gaussians: 1024,
-            slice_dims: 64,
-            by_gaussian: false,
-        }
-    }
 }
 
 impl Default for ReduceParams {
@@ -61,7 +27,6 @@ impl Default for ReduceParams {
             min_total_weight: 1e-6,
             accumulator_budget_bytes: 2 << 30,
             image_major: false,
-            shape: BlockShape::default(),
         }
     }
 }
@@ -153,12 +118,12 @@ pub fn reduce_each(
 pub const OUTPUT_CHUNK_BYTES: usize = 64 << 20;
 
 /// Gaussians per chunk of the Gaussian-block-major reduction at width `dim`: as many whole blocks
-/// of 1024 Gaussians (the default [`BlockShape`]) as [`OUTPUT_CHUNK_BYTES`] holds rows of
-/// `4 · dim + 8` bytes (31,744 at D = 512), at least one block. The chunk size changes no value: each Gaussian's sums run in the
+/// of 128 Gaussians as [`OUTPUT_CHUNK_BYTES`] holds rows of `4 · dim + 8` bytes (32,640 at
+/// D = 512), at least one block. The chunk size changes no value: each Gaussian's sums run in the
 /// same order whatever the chunking.
 pub fn output_chunk_rows(dim: usize) -> usize {
     let rows = OUTPUT_CHUNK_BYTES / (4 * dim + 8);
-    (rows / 1024).max(1) * 1024
+    (rows / REDUCE_BLOCK).max(1) * REDUCE_BLOCK
 }
 
 /// What [`reduce_to_writer`] leaves: the writer with every observed row pushed (call
@@ -342,7 +307,6 @@ pub(super) struct Pass<'a> {
     pub(super) dim: usize,
     pub(super) chunk: usize,
     pub(super) image_major: bool,
-    pub(super) shape: BlockShape,
 }
 
 impl<'a> Pass<'a> {
@@ -363,11 +327,6 @@ impl<'a> Pass<'a> {
             chunk: (params.accumulator_budget_bytes / per_gaussian)
                 .clamp(1024, n_gaussians.max(1024)),
             image_major: params.image_major,
-            shape: BlockShape {
-                gaussians: params.shape.gaussians.max(1),
-                slice_dims: params.shape.slice_dims.max(1),
-                by_gaussian: params.shape.by_gaussian,
-            },
         }
     }
 
@@ -402,12 +361,10 @@ impl<'a> Pass<'a> {
 ///
 /// Loop order ([`ReduceParams::image_major`]):
 /// - *Gaussian-block-major* (default when no contribution is spilled): rayon over blocks of
-///   [`BlockShape::gaussians`] Gaussians, each block visiting every image's entries of its id
-///   range once for `Σ a` and once per slice of [`BlockShape::slice_dims`] dimensions for
-///   `Σ a E`, into its thread's slice accumulator (512 KiB by default, reused), which stays in
-///   the core's cache while all images are added ([`add_block`]); `finish` runs per block. The
-///   memory traffic is a few reads of the entries and one read of each image's mask embeddings
-///   per block.
+///   [`REDUCE_BLOCK`] Gaussians, each block visiting every image's entries of its id range into
+///   its thread's accumulator (`REDUCE_BLOCK × D` f64, 512 KiB at D = 512, reused from block to
+///   block), which stays in the core's cache while all images are added; `finish` runs per
+///   block. The memory traffic is one read of the entries and mask embeddings.
 /// - *Image-major* (spilled contributions, streamed from disk one at a time): a chunk-sized
 ///   accumulator; for each image, rayon over blocks of 1024 Gaussians; every entry reads and
 ///   writes its Gaussian's f64 row in memory; `finish` runs once on the whole chunk.
@@ -431,7 +388,6 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
         dim,
         chunk,
         image_major,
-        shape,
     } = pass;
     let width_check = |c: &StoredImage| {
         if c.dim != dim {
@@ -464,17 +420,17 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
                 tags.push(on_image(start == 0, image, c)?);
             }
             let parts: Vec<B> = (start..end)
-                .step_by(shape.gaussians)
+                .step_by(REDUCE_BLOCK)
                 .collect::<Vec<_>>()
                 .into_par_iter()
-                .map_init(
-                    || (empty(), BlockScratch::default()),
-                    |(sums, scratch), g0| {
-                        sums.reset(g0, shape.gaussians.min(end - g0));
-                        add_block(images, &tags, shape, sums, scratch, &on_entry);
-                        finish(sums)
-                    },
-                )
+                .map_init(empty, |sums, g0| {
+                    sums.reset(g0, REDUCE_BLOCK.min(end - g0));
+                    for (c, &tag) in images.iter().zip(&tags) {
+                        let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
+                        add_entries(c, g0 as u32, dim, num, den, extra, tag, &on_entry);
+                    }
+                    finish(sums)
+                })
                 .collect();
             done(parts)?;
         } else {
@@ -501,9 +457,8 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
                     .zip(sums.extra.par_chunks_mut(BLOCK))
                     .enumerate()
                     .for_each(|(b, ((num, den), extra))| {
-                        let run = Run::of(c, (start + b * BLOCK) as u32, den.len());
-                        run.add_totals(den, extra, tag, &on_entry);
-                        run.add_slice(0, dim, num);
+                        let g0 = (start + b * BLOCK) as u32;
+                        add_entries(c, g0, dim, num, den, extra, tag, &on_entry);
                     });
             })?;
             if let Some(e) = failure {
@@ -515,182 +470,93 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
     Ok(chunks)
 }
 
-/// Per-thread buffer of the block-major path, reused from block to block.
-#[derive(Default)]
-struct BlockScratch {
-    /// `[B * w]` the current slice's sums `Σ a_kj E_j[s0..s0 + w]`, row-major by Gaussian.
-    slice: Vec<f64>,
-}
+/// Gaussians per task of the Gaussian-block-major reduction ([`accumulate`]).
+const REDUCE_BLOCK: usize = 128;
 
-/// Adds every image's entries of the block `sums` (Gaussians `sums.start..+len`) to its sums:
-/// first `Σ a` and the extras (one visit, entry hook in per-Gaussian order), then `Σ a E` slice by
-/// slice of `shape.slice_dims` dimensions, each slice summed in `scratch.slice` and copied into its
-/// columns of `sums.num`. Every value sees the same additions in the same order as an unsliced
-/// loop (one rounded product, one rounded sum per element), so the bits do not depend on the
-/// slicing.
-fn add_block<T>(
-    images: &[StoredImage],
-    tags: &[u32],
-    shape: BlockShape,
-    sums: &mut ChunkSums<T>,
-    scratch: &mut BlockScratch,
+/// Adds one image's entries for Gaussians `g0..g0 + db.len()` (its entries are sorted by
+/// Gaussian) to that block's sums: `db[r] += a`, `nb[r·D..(r+1)·D] += a · E_j`, in entry order.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn add_entries<T>(
+    c: &StoredImage,
+    g0: u32,
+    dim: usize,
+    nb: &mut [f64],
+    db: &mut [f64],
+    xb: &mut [T],
+    tag: u32,
     on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
 ) {
-    let (dim, len, g0) = (sums.dim, sums.den.len(), sums.start as u32);
-    let runs: Vec<Run<'_>> = images.iter().map(|c| Run::of(c, g0, len)).collect();
-    for (run, &tag) in runs.iter().zip(tags) {
-        run.add_totals(&mut sums.den, &mut sums.extra, tag, on_entry);
-    }
-    if shape.by_gaussian {
-        sum_by_gaussian(&runs, dim, &mut sums.num);
-        return;
-    }
-    for s0 in (0..dim).step_by(shape.slice_dims) {
-        let w = shape.slice_dims.min(dim - s0);
-        scratch.slice.clear();
-        scratch.slice.resize(len * w, 0.0);
-        for run in &runs {
-            run.add_slice(s0, w, &mut scratch.slice);
-        }
-        for (row, part) in sums
-            .num
-            .chunks_exact_mut(dim)
-            .zip(scratch.slice.chunks_exact(w))
-        {
-            row[s0..s0 + w].copy_from_slice(part);
-        }
+    let g1 = g0 + db.len() as u32;
+    let lo = c.gaussians.partition_point(|&g| g < g0);
+    let hi = lo + c.gaussians[lo..].partition_point(|&g| g < g1);
+    let run = Run {
+        gaussians: &c.gaussians[lo..hi],
+        weights: &c.weights[lo..hi],
+        mask_embeddings: &c.mask_embeddings,
+        g0,
+        dim,
+    };
+    match &c.masks {
+        MaskColumn::U8(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
+        MaskColumn::U16(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
+        MaskColumn::U32(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
     }
 }
 
-/// The entries of one image that fall in one block of Gaussians (its entries are sorted by
-/// Gaussian, so they are one contiguous range).
+/// The entries of one image that fall in one block of Gaussians ([`add_entries`]).
 struct Run<'a> {
-    image: &'a StoredImage,
-    lo: usize,
-    hi: usize,
+    gaussians: &'a [u32],
+    weights: &'a [f32],
+    mask_embeddings: &'a [f32],
     g0: u32,
+    dim: usize,
 }
 
-impl<'a> Run<'a> {
-    /// The entries of `c` for Gaussians `g0..g0 + len`.
-    fn of(c: &'a StoredImage, g0: u32, len: usize) -> Self {
-        let g1 = g0 + len as u32;
-        let lo = c.gaussians.partition_point(|&g| g < g0);
-        let hi = lo + c.gaussians[lo..].partition_point(|&g| g < g1);
-        Run {
-            image: c,
-            lo,
-            hi,
-            g0,
-        }
-    }
-
-    /// `db[r] += a` and `on_entry(xb[r], entry, tag)` for each entry, in entry order (`r` its
-    /// Gaussian's row in the block).
+impl Run<'_> {
+    /// Adds the run's entries, `masks` being their mask indices, in entry order.
     #[inline]
-    fn add_totals<T>(
+    fn add<M: Copy + Into<u32>, T>(
         &self,
+        masks: &[M],
+        nb: &mut [f64],
         db: &mut [f64],
         xb: &mut [T],
         tag: u32,
         on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
     ) {
-        let gaussians = &self.image.gaussians[self.lo..self.hi];
-        let weights = &self.image.weights[self.lo..self.hi];
-        let mut visit = |gaussian: u32, mask: u32, weight: f32| {
+        let dim = self.dim;
+        for ((&gaussian, &mask), &weight) in self.gaussians.iter().zip(masks).zip(self.weights) {
+            let mask: u32 = mask.into();
             let r = (gaussian - self.g0) as usize;
-            db[r] += weight as f64;
+            let a = weight as f64;
+            db[r] += a;
+            let ej = &self.mask_embeddings[mask as usize * dim..(mask as usize + 1) * dim];
+            add_scaled(&mut nb[r * dim..(r + 1) * dim], a, ej);
             let e = Entry {
                 gaussian,
                 mask,
                 weight,
             };
             on_entry(&mut xb[r], &e, tag);
-        };
-        match &self.image.masks {
-            MaskColumn::U8(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
-            MaskColumn::U16(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
-            MaskColumn::U32(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
         }
-    }
-
-    /// `acc[r·w..(r+1)·w] += a · E_j[s0..s0 + w]` for each entry, in entry order: the slice
-    /// `s0..s0 + w` of the block's `Σ a E` (`acc` is `[B * w]`). A portable build targets
-    /// x86-64's baseline (SSE2: two f64 per instruction); where the CPU has AVX-512 or AVX2
-    /// (checked at run time, cached by std) the whole entry loop is compiled for eight or four,
-    /// chosen once per call. Every path gives the same bits ([`add_scaled_portable`]).
-    #[inline]
-    fn add_slice(&self, s0: usize, w: usize, acc: &mut [f64]) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                // SAFETY: the CPU has AVX-512F (checked just above).
-                #[allow(unsafe_code)]
-                unsafe {
-                    self.add_slice_avx512(s0, w, acc)
-                };
-                return;
-            }
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has AVX2 (checked just above).
-                #[allow(unsafe_code)]
-                unsafe {
-                    self.add_slice_avx2(s0, w, acc)
-                };
-                return;
-            }
-        }
-        self.add_slice_portable(s0, w, acc);
-    }
-
-    /// [`Run::add_slice`] for the build's baseline target.
-    #[inline(always)]
-    fn add_slice_portable(&self, s0: usize, w: usize, acc: &mut [f64]) {
-        let dim = self.image.dim;
-        let e = &self.image.mask_embeddings;
-        let gaussians = &self.image.gaussians[self.lo..self.hi];
-        let weights = &self.image.weights[self.lo..self.hi];
-        let mut visit = |gaussian: u32, mask: u32, weight: f32| {
-            let r = (gaussian - self.g0) as usize;
-            let row = mask as usize * dim + s0;
-            add_scaled_portable(&mut acc[r * w..(r + 1) * w], weight as f64, &e[row..row + w]);
-        };
-        match &self.image.masks {
-            MaskColumn::U8(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
-            MaskColumn::U16(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
-            MaskColumn::U32(m) => each_entry(gaussians, &m[self.lo..self.hi], weights, &mut visit),
-        }
-    }
-
-    /// [`Run::add_slice`] compiled for AVX-512F.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx512f")]
-    fn add_slice_avx512(&self, s0: usize, w: usize, acc: &mut [f64]) {
-        self.add_slice_portable(s0, w, acc);
-    }
-
-    /// [`Run::add_slice`] compiled for AVX2.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    fn add_slice_avx2(&self, s0: usize, w: usize, acc: &mut [f64]) {
-        self.add_slice_portable(s0, w, acc);
     }
 }
 
-/// `num[r·D..(r+1)·D] += a · E_j` for every entry of `runs` (one block's runs, `num` its
-/// `[B * D]` sums), Gaussian by Gaussian: for each row, every run's entries of that Gaussian in
-/// run order, then entry order (each run's cursor only moves forward, its entries being sorted by
-/// Gaussian), so the row stays in the L1 cache while all its entries are added. The same order
-/// per value as the image-by-image loop, hence the same bits. The instruction set is chosen once
-/// per call, as in [`Run::add_slice`].
-fn sum_by_gaussian(runs: &[Run<'_>], dim: usize, num: &mut [f64]) {
+/// `acc[i] += a · e[i]` in f64 for every `i` (`acc` and `e` of one length): the reduction's inner
+/// loop, 512 multiply-adds per `a_kj` entry. A portable build targets x86-64's baseline (SSE2: two
+/// f64 per instruction); where the CPU has AVX-512 or AVX2 (checked at run time, cached by std)
+/// the same loop is compiled for eight or four. Each element is still one rounded product then
+/// one rounded sum (Rust never fuses them into an FMA), so every path gives the same bits.
+#[inline]
+pub(super) fn add_scaled(acc: &mut [f64], a: f64, e: &[f32]) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU has AVX-512F (checked just above).
             #[allow(unsafe_code)]
             unsafe {
-                sum_by_gaussian_avx512(runs, dim, num)
+                add_scaled_avx512(acc, a, e)
             };
             return;
         }
@@ -698,75 +564,34 @@ fn sum_by_gaussian(runs: &[Run<'_>], dim: usize, num: &mut [f64]) {
             // SAFETY: the CPU has AVX2 (checked just above).
             #[allow(unsafe_code)]
             unsafe {
-                sum_by_gaussian_avx2(runs, dim, num)
+                add_scaled_avx2(acc, a, e)
             };
             return;
         }
     }
-    sum_by_gaussian_portable(runs, dim, num);
+    add_scaled_portable(acc, a, e);
 }
 
-/// [`sum_by_gaussian`] for the build's baseline target.
-#[inline(always)]
-fn sum_by_gaussian_portable(runs: &[Run<'_>], dim: usize, num: &mut [f64]) {
-    let Some(g0) = runs.first().map(|r| r.g0) else {
-        return;
-    };
-    let mut cursors: Vec<usize> = runs.iter().map(|r| r.lo).collect();
-    for (r, acc) in num.chunks_exact_mut(dim).enumerate() {
-        let g = g0 + r as u32;
-        for (run, c) in runs.iter().zip(cursors.iter_mut()) {
-            let image = run.image;
-            while *c < run.hi && image.gaussians[*c] == g {
-                let m = match &image.masks {
-                    MaskColumn::U8(m) => m[*c] as usize,
-                    MaskColumn::U16(m) => m[*c] as usize,
-                    MaskColumn::U32(m) => m[*c] as usize,
-                };
-                let a = f64::from(image.weights[*c]);
-                add_scaled_portable(acc, a, &image.mask_embeddings[m * dim..(m + 1) * dim]);
-                *c += 1;
-            }
-        }
-    }
-}
-
-/// [`sum_by_gaussian`] compiled for AVX-512F.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn sum_by_gaussian_avx512(runs: &[Run<'_>], dim: usize, num: &mut [f64]) {
-    sum_by_gaussian_portable(runs, dim, num);
-}
-
-/// [`sum_by_gaussian`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn sum_by_gaussian_avx2(runs: &[Run<'_>], dim: usize, num: &mut [f64]) {
-    sum_by_gaussian_portable(runs, dim, num);
-}
-
-/// `visit(gaussian, mask, weight)` for each entry of the three columns, in order.
-#[inline(always)]
-fn each_entry<M: Copy + Into<u32>>(
-    gaussians: &[u32],
-    masks: &[M],
-    weights: &[f32],
-    visit: &mut impl FnMut(u32, u32, f32),
-) {
-    for ((&g, &m), &a) in gaussians.iter().zip(masks).zip(weights) {
-        visit(g, m.into(), a);
-    }
-}
-
-/// `acc[i] += a · e[i]` in f64 for every `i` (`acc` and `e` of one length): the reduction's inner
-/// loop, one multiply-add per dimension of each `a_kj` entry. Each element is one rounded
-/// product then one rounded sum (Rust never fuses them into an FMA), so the loop gives the same
-/// bits whatever instruction set it is compiled for ([`Run::add_slice`]).
-#[inline(always)]
+/// [`add_scaled`] for the build's baseline target.
+#[inline]
 fn add_scaled_portable(acc: &mut [f64], a: f64, e: &[f32]) {
     for (x, &v) in acc.iter_mut().zip(e) {
         *x += a * f64::from(v);
     }
+}
+
+/// [`add_scaled`] compiled for AVX-512F (the vectoriser widens the portable loop).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn add_scaled_avx512(acc: &mut [f64], a: f64, e: &[f32]) {
+    add_scaled_portable(acc, a, e);
+}
+
+/// [`add_scaled`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn add_scaled_avx2(acc: &mut [f64], a: f64, e: &[f32]) {
+    add_scaled_portable(acc, a, e);
 }
 
 #[cfg(test)]
@@ -774,16 +599,15 @@ fn add_scaled_portable(acc: &mut [f64], a: f64, e: &[f32]) {
 mod simd_tests {
     use super::*;
 
-    /// Every path the CPU offers gives the portable loop's bits, for widths around the vector
-    /// widths, whole rows and inner slices, and values across f32's range (subnormal, huge,
-    /// signed zeros), with entries of two masks on three Gaussians, one of them twice.
+    /// Every path the CPU offers gives the portable loop's bits, for lengths around the vector
+    /// widths and values across f32's range (subnormal, huge, signed zeros).
     #[test]
     fn every_instruction_set_adds_the_same_bits() {
         let mut rng = slag_common::rng::SplitMix64::new(7);
         let specials = [0.0f32, -0.0, 1e-40, -3.4e38, 3.4e38, 1.0, -1.0, 6.1e-5];
-        for dim in [1usize, 3, 4, 7, 8, 9, 15, 16, 17, 63, 64, 65, 512, 513] {
-            for scale in [1e-38f32, 1e-3, 0.37, 1.0, 1e30, -2.5] {
-                let mask_embeddings: Vec<f32> = (0..2 * dim)
+        for len in [0usize, 1, 3, 4, 7, 8, 9, 15, 16, 17, 63, 512, 513] {
+            for scale in [1e-300f64, 1e-3, 0.37, 1.0, 1e30, -2.5] {
+                let e: Vec<f32> = (0..len)
                     .map(|i| {
                         if i % 5 == 0 {
                             specials[i / 5 % specials.len()]
@@ -792,45 +616,28 @@ mod simd_tests {
                         }
                     })
                     .collect();
-                let image = StoredImage {
-                    dim,
-                    mask_embeddings,
-                    gaussians: vec![4, 5, 5, 6],
-                    masks: MaskColumn::U8(vec![0, 1, 0, 1]),
-                    weights: vec![scale, 0.5, -scale, 3.0],
-                };
-                let run = Run::of(&image, 4, 3);
-                for (s0, w) in [(0, dim), (dim / 3, dim - dim / 3 - dim / 4)] {
-                    let start: Vec<f64> = (0..3 * w).map(|_| rng.next_f64() * 1e3 - 5e2).collect();
-                    let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                    let mut want = start.clone();
-                    for (k, r) in [(0usize, 0usize), (1, 1), (2, 1), (3, 2)] {
-                        let m = [0, 1, 0, 1][k] * dim + s0;
-                        let a = f64::from(image.weights[k]);
-                        add_scaled_portable(&mut want[r * w..(r + 1) * w], a, &image.mask_embeddings[m..m + w]);
+                let start: Vec<f64> = (0..len).map(|_| rng.next_f64() * 1e3 - 5e2).collect();
+                let mut want = start.clone();
+                add_scaled_portable(&mut want, scale, &e);
+                let mut got = start.clone();
+                add_scaled(&mut got, scale, &e);
+                let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "len {len}, a {scale}");
+                #[cfg(target_arch = "x86_64")]
+                {
+                    #[allow(unsafe_code)]
+                    if std::arch::is_x86_feature_detected!("avx2") {
+                        let mut v = start.clone();
+                        // SAFETY: checked just above.
+                        unsafe { add_scaled_avx2(&mut v, scale, &e) };
+                        assert_eq!(bits(&v), bits(&want), "avx2, len {len}, a {scale}");
                     }
-                    let mut got = start.clone();
-                    run.add_slice(s0, w, &mut got);
-                    assert_eq!(bits(&got), bits(&want), "D {dim}, slice {s0}+{w}, a {scale}");
-                    let mut got = start.clone();
-                    run.add_slice_portable(s0, w, &mut got);
-                    assert_eq!(bits(&got), bits(&want), "portable, D {dim}, a {scale}");
-                    #[cfg(target_arch = "x86_64")]
-                    {
-                        #[allow(unsafe_code)]
-                        if std::arch::is_x86_feature_detected!("avx2") {
-                            let mut v = start.clone();
-                            // SAFETY: checked just above.
-                            unsafe { run.add_slice_avx2(s0, w, &mut v) };
-                            assert_eq!(bits(&v), bits(&want), "avx2, D {dim}, a {scale}");
-                        }
-                        #[allow(unsafe_code)]
-                        if std::arch::is_x86_feature_detected!("avx512f") {
-                            let mut v = start.clone();
-                            // SAFETY: checked just above.
-                            unsafe { run.add_slice_avx512(s0, w, &mut v) };
-                            assert_eq!(bits(&v), bits(&want), "avx512, D {dim}, a {scale}");
-                        }
+                    #[allow(unsafe_code)]
+                    if std::arch::is_x86_feature_detected!("avx512f") {
+                        let mut v = start;
+                        // SAFETY: checked just above.
+                        unsafe { add_scaled_avx512(&mut v, scale, &e) };
+                        assert_eq!(bits(&v), bits(&want), "avx512, len {len}, a {scale}");
                     }
                 }
             }
