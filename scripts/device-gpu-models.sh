@@ -302,7 +302,10 @@ scaling)
   ;;
 esac
 # At most 8 files come back from a call: pack the results into one archive (one per run, so
-# that a second run in the same call neither overwrites nor removes the first one's).
+# that a second run in the same call neither overwrites nor removes the first one's). A run
+# with a TAG is one of several in a call: its files are always packed, so that each archive
+# holds its own run's files only.
 (cd "$R" && shopt -s nullglob && f=() && for x in *; do [[ $x == *.tgz ]] || f+=("$x"); done &&
-  [ ${#f[@]} -gt 6 ] && tar czf "results-$mode${TAG:+-$TAG}-$(date +%s).tgz" "${f[@]}" && rm -f -- "${f[@]}")
+  { [ ${#f[@]} -gt 6 ] || { [ -n "${TAG:-}" ] && [ ${#f[@]} -gt 0 ]; }; } &&
+  tar czf "results-$mode${TAG:+-$TAG}-$(date +%s).tgz" "${f[@]}" && rm -f -- "${f[@]}")
 

@@ -3,7 +3,10 @@
 # encode the training views three ways with color-sam 16×16 (pred-IoU 0.8, stability 0.5),
 # color-clip and raster 0.5: all of them, the ones coverage selection picks (at most COUNT), and
 # COUNT evenly spaced ones (`--views uniform`, the same count); then `eval-colors --held-out` on
-# each. Prints encode wall, views, pass seconds and held-out mIoU per run.
+# each. Prints encode wall, views, pass seconds and held-out mIoU per run. RUNS picks the runs
+# (default "coverage uniform all"); a run named everyE encodes every E-th view (`--every E`; with
+# the hold-out of every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives
+# coverage the same count).
 # Usage: scripts/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
 set -uo pipefail
 B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}
@@ -17,6 +20,8 @@ for name in ${RUNS:-coverage uniform all}; do
     all) V=(--views all) ;;
     coverage) V=(--views coverage --view-count "$COUNT") ;;
     uniform) V=(--views uniform --view-count "$COUNT") ;;
+    every*) V=(--every "${name#every}") ;;
+    *) echo "unknown run $name (coverage, uniform, all, everyE)" >&2; exit 2 ;;
   esac
   t0=$(date +%s.%N)
   "$B" encode --scene "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 \
