@@ -39,6 +39,18 @@
 //!   JSON body. Beyond hyper's own parser limits (a target over 64 KiB, more than 100 headers)
 //!   hyper answers 414 / 431 itself, with an empty body, before any handler runs.
 //!
+//! # TLS
+//!
+//! [`serve_with_tls`] with a [`ServerTls`] speaks HTTPS (module [`crate::tls`]) on the same loop:
+//! the connection limit, the per-address share, the header-read, body and write timeouts all hold
+//! for TLS connections. The TLS handshake must end within the header-read timeout (a deadline: a
+//! client that stalls its handshake, or sends it one byte at a time, is closed then and frees
+//! its slot), and the request head then has the header-read timeout again. A connection over its
+//! address's share gets its 429 over TLS: the refusal runs the handshake (under the same
+//! deadline) in one of at most [`TLS_REFUSALS`] refusal slots of its own, apart from the
+//! connection slots; when all are busy the connection is closed without an answer. SIGHUP reads
+//! the certificate and key files again ([`crate::tls::reload_on_hangup`]).
+//!
 //! # Error bodies
 //!
 //! Every error answer is `{"error": message, "status": code}` with `Content-Type:
@@ -62,6 +74,7 @@ use axum::response::{IntoResponse, Response};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::service::TowerToHyperService;
 
+use crate::tls::ServerTls;
 use crate::{Error, Result};
 
 /// Default header-read (and idle keep-alive) timeout: 10 s.
@@ -79,6 +92,9 @@ pub const DEFAULT_MAX_CONNECTIONS_PER_IP: usize = 64;
 /// Descriptors kept free for the process's own files (store, database, model, logs) below the
 /// open-file limit: the connection limit must be at most `RLIMIT_NOFILE − FD_HEADROOM`.
 pub const FD_HEADROOM: u64 = 64;
+/// TLS connections over their address's share that may be in their refusal (handshake, 429,
+/// close) at once (module doc, "TLS"); these hold descriptors of the [`FD_HEADROOM`].
+pub const TLS_REFUSALS: usize = 16;
 /// Longest request target (path and query) answered; longer gets 414: 8 KiB.
 pub const MAX_URI_BYTES: usize = 8 * 1024;
 /// Largest header block (names and values) answered; larger gets 431: 16 KiB.
@@ -193,25 +209,48 @@ pub fn check_connection_limit(
 }
 
 /// Serves `router` on `listener` under `limits` until `shutdown` completes, then lets open
-/// connections finish their request (idle ones close at once).
-///
-/// The connection limit is applied as given: check it first with [`check_connection_limit`].
-/// Each remote address holds at most `max_connections_per_ip` of its slots (one more connection
-/// from it is answered 429 and closed), and every request body must end within `body_timeout`
-/// of its head (module doc). Errors on accepting a connection (a peer that reset, the rare descriptor shortage) are logged
-/// and the loop goes on after a short pause; the function itself does not fail.
+/// connections finish their request (idle ones close at once). Plain HTTP: [`serve_with_tls`]
+/// without TLS.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     router: Router,
     limits: ServerLimits,
     shutdown: impl Future<Output = ()> + Send,
 ) {
+    serve_with_tls(listener, router, limits, None, shutdown).await;
+}
+
+/// Serves `router` on `listener` under `limits`, over TLS with `tls` (module doc, "TLS"), until
+/// `shutdown` completes, then lets open connections finish their request (idle ones close at
+/// once). With `tls`, `SIGHUP` reloads its certificate while the loop runs.
+///
+/// The connection limit is applied as given: check it first with [`check_connection_limit`].
+/// Each remote address holds at most `max_connections_per_ip` of its slots (one more connection
+/// from it is answered 429 and closed), and every request body must end within `body_timeout`
+/// of its head (module doc). Errors on accepting a connection (a peer that reset, the rare
+/// descriptor shortage) are logged and the loop goes on after a short pause; a failed TLS
+/// handshake closes its connection (logged at debug level); the function itself does not fail.
+pub async fn serve_with_tls(
+    listener: tokio::net::TcpListener,
+    router: Router,
+    limits: ServerLimits,
+    tls: Option<Arc<ServerTls>>,
+    shutdown: impl Future<Output = ()> + Send,
+) {
     let permits = Arc::new(tokio::sync::Semaphore::new(limits.max_connections.max(1)));
+    let refusals = Arc::new(tokio::sync::Semaphore::new(TLS_REFUSALS));
     let shares = Arc::new(AddressShares::new(
         limits.max_connections_per_ip.min(limits.max_connections),
     ));
     let router = with_body_deadline(router, limits.body_timeout);
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    if let Some(t) = &tls {
+        let mut stop = stop_rx.clone();
+        crate::tls::reload_on_hangup(t.clone(), async move {
+            let _ = stop.wait_for(|s| *s).await;
+        });
+    }
+    let acceptor = tls.as_ref().map(|t| t.acceptor());
     let mut shutdown = std::pin::pin!(shutdown);
     loop {
         // A free connection slot first: at the limit the next connection stays in the kernel's
@@ -234,15 +273,27 @@ pub async fn serve(
             () = &mut shutdown => break,
         };
         let Some(share) = shares.open(peer.ip()) else {
-            refuse_over_share(&stream, peer, shares.max);
+            match &acceptor {
+                None => refuse_over_share(&stream, peer, shares.max),
+                Some(a) => refuse_over_share_tls(stream, peer, shares.max, a, &refusals, limits),
+            }
             continue;
         };
         let router = router.clone();
         let mut stop = stop_rx.clone();
+        let acceptor = acceptor.clone();
         tokio::spawn(async move {
             let _permit = permit;
             let _share = share;
-            serve_connection(stream, peer, router, limits, &mut stop).await;
+            let io = timed(stream, limits);
+            match acceptor {
+                None => serve_connection(io, peer, router, limits, &mut stop).await,
+                Some(a) => {
+                    if let Some(io) = handshake(&a, io, peer, limits).await {
+                        serve_connection(io, peer, router, limits, &mut stop).await;
+                    }
+                }
+            }
         });
     }
     drop(listener);
@@ -251,6 +302,40 @@ pub async fn serve(
     let _ = permits
         .acquire_many(limits.max_connections.max(1) as u32)
         .await;
+}
+
+/// A connection's socket with the write timeout (module doc), no Nagle delay.
+type Timed = Pin<Box<tokio_io_timeout::TimeoutStream<tokio::net::TcpStream>>>;
+
+fn timed(stream: tokio::net::TcpStream, limits: ServerLimits) -> Timed {
+    let _ = stream.set_nodelay(true);
+    let mut io = tokio_io_timeout::TimeoutStream::new(stream);
+    io.set_write_timeout(Some(limits.write_timeout));
+    Box::pin(io)
+}
+
+/// The server side of a TLS handshake on `io`, which must end within the header-read timeout
+/// (a deadline); `None` (logged at debug level) when it fails or does not end in time.
+async fn handshake(
+    acceptor: &tokio_rustls::TlsAcceptor,
+    io: Timed,
+    peer: SocketAddr,
+    limits: ServerLimits,
+) -> Option<tokio_rustls::server::TlsStream<Timed>> {
+    match tokio::time::timeout(limits.header_timeout, acceptor.accept(io)).await {
+        Ok(Ok(s)) => Some(s),
+        Ok(Err(e)) => {
+            tracing::debug!("connection {peer}: TLS handshake failed: {e}");
+            None
+        }
+        Err(_) => {
+            tracing::debug!(
+                "connection {peer}: no TLS handshake within {} s",
+                limits.header_timeout.as_secs_f64()
+            );
+            None
+        }
+    }
 }
 
 /// The key one remote address's share is counted under: an IPv4 address (an IPv4-mapped IPv6
@@ -315,10 +400,9 @@ impl Drop for AddressShare {
     }
 }
 
-/// Answers a connection over its address's share: 429 with `Retry-After: 1`, the JSON body and
-/// `Connection: close`, written without waiting (a full socket buffer drops the answer, not the
-/// loop), then the connection is closed as `stream` drops.
-fn refuse_over_share(stream: &tokio::net::TcpStream, peer: SocketAddr, max: usize) {
+/// The 429 answer to a connection over its address's share (`Retry-After: 1`, the JSON body,
+/// `Connection: close`), as bytes on the wire.
+fn over_share_answer(peer: SocketAddr, max: usize) -> String {
     let status = StatusCode::TOO_MANY_REQUESTS;
     let body = serde_json::json!({
         "error": format!(
@@ -329,12 +413,18 @@ fn refuse_over_share(stream: &tokio::net::TcpStream, peer: SocketAddr, max: usiz
         "status": status.as_u16(),
     })
     .to_string();
-    let answer = format!(
+    format!(
         "HTTP/1.1 429 Too Many Requests\r\ncontent-type: application/json\r\n\
          content-length: {}\r\nretry-after: 1\r\nconnection: close\r\n\r\n{body}",
         body.len()
-    );
-    let _ = stream.try_write(answer.as_bytes());
+    )
+}
+
+/// Answers a connection over its address's share: [`over_share_answer`], written without waiting
+/// (a full socket buffer drops the answer, not the loop), then the connection is closed as
+/// `stream` drops.
+fn refuse_over_share(stream: &tokio::net::TcpStream, peer: SocketAddr, max: usize) {
+    let _ = stream.try_write(over_share_answer(peer, max).as_bytes());
     // What the client already sent is read and dropped, so that closing sends FIN rather than
     // a reset that could discard the answer before the client reads it.
     let mut sink = [0u8; 4096];
@@ -344,6 +434,44 @@ fn refuse_over_share(stream: &tokio::net::TcpStream, peer: SocketAddr, max: usiz
         }
     }
     tracing::debug!("connection {peer}: refused, its address holds {max} connections");
+}
+
+/// [`refuse_over_share`] over TLS (module doc, "TLS"): in a refusal slot of its own, the
+/// handshake under the header-read deadline, the 429 under the write timeout, then close; with
+/// no refusal slot free the connection is closed at once.
+fn refuse_over_share_tls(
+    stream: tokio::net::TcpStream,
+    peer: SocketAddr,
+    max: usize,
+    acceptor: &tokio_rustls::TlsAcceptor,
+    refusals: &Arc<tokio::sync::Semaphore>,
+    limits: ServerLimits,
+) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let Ok(slot) = refusals.clone().try_acquire_owned() else {
+        tracing::debug!("connection {peer}: closed, its address holds {max} connections");
+        return;
+    };
+    let acceptor = acceptor.clone();
+    tokio::spawn(async move {
+        let _slot = slot;
+        let Some(mut tls) = handshake(&acceptor, timed(stream, limits), peer, limits).await else {
+            return;
+        };
+        let answer = over_share_answer(peer, max);
+        let _ = tokio::time::timeout(limits.write_timeout, async {
+            tls.write_all(answer.as_bytes()).await?;
+            tls.shutdown().await
+        })
+        .await;
+        // As in `refuse_over_share`: read what the client sent so that closing sends FIN.
+        let mut sink = [0u8; 4096];
+        let _ = tokio::time::timeout(Duration::from_millis(200), async {
+            while matches!(tls.read(&mut sink).await, Ok(n) if n > 0) {}
+        })
+        .await;
+        tracing::debug!("connection {peer}: refused, its address holds {max} connections");
+    });
 }
 
 /// `router` with the body-read deadline (module doc): every request body must end within
@@ -435,17 +563,16 @@ async fn accept_error(e: &std::io::Error) {
     tokio::time::sleep(Duration::from_millis(100)).await;
 }
 
-async fn serve_connection(
-    stream: tokio::net::TcpStream,
+async fn serve_connection<I>(
+    io: I,
     peer: SocketAddr,
     router: Router,
     limits: ServerLimits,
     stop: &mut tokio::sync::watch::Receiver<bool>,
-) {
-    let _ = stream.set_nodelay(true);
-    let mut io = tokio_io_timeout::TimeoutStream::new(stream);
-    io.set_write_timeout(Some(limits.write_timeout));
-    let io = TokioIo::new(Box::pin(io));
+) where
+    I: tokio::io::AsyncRead + tokio::io::AsyncWrite + Send + Unpin + 'static,
+{
+    let io = TokioIo::new(io);
     let service = TowerToHyperService::new(router);
     let mut builder = hyper::server::conn::http1::Builder::new();
     builder

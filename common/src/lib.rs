@@ -20,6 +20,7 @@
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 //! | [`term`] | whether log lines may carry colour codes (a terminal, `NO_COLOR`) |
 //! | `testing` | raw-socket clients for the HTTP servers' integration tests (feature `testing`) |
+//! | `tls` | the servers' TLS certificate (PEM, reloadable) and the no-token-in-clear-text rule (feature `server`) |
 //! | [`util`] | the process's resident memory and the machine's available memory (`/proc`) |
 
 pub mod auth;
@@ -50,6 +51,8 @@ pub mod term;
 pub mod testing;
 #[cfg(feature = "onnx")]
 pub mod text;
+#[cfg(feature = "server")]
+pub mod tls;
 pub mod util;
 
 pub use error::{Error, ErrorKind, Mismatched, Resource, Result};

@@ -1,11 +1,14 @@
 //! Raw-socket clients for the integration tests of the HTTP servers (`slag-edge serve`, the shard
 //! server): one request on a fresh connection, the JSON error body, and waiting for the server
-//! to close a connection. Behind the `testing` feature, which only dev-dependencies turn on;
-//! these helpers panic (with what went wrong) instead of returning errors.
+//! to close a connection; over TLS too, with a private CA and server certificates made at test
+//! time ([`TestCa`]). Behind the `testing` feature, which only dev-dependencies turn on; these
+//! helpers panic (with what went wrong) instead of returning errors.
 
 use std::time::{Duration, Instant};
 
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use std::sync::Arc;
+
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
 /// Sends `raw` on a fresh connection to `addr` (`host:port`) and reads until the server closes
@@ -52,7 +55,7 @@ pub async fn connect_from(source: std::net::IpAddr, addr: &str) -> TcpStream {
 /// when the answer has no status line.
 ///
 /// Panics when the read fails or the connection stays open for 30 s.
-pub async fn read_answer(s: &mut TcpStream) -> (u16, String, String) {
+pub async fn read_answer(s: &mut (impl AsyncRead + Unpin)) -> (u16, String, String) {
     let mut out = Vec::new();
     tokio::time::timeout(Duration::from_secs(30), s.read_to_end(&mut out))
         .await
@@ -85,7 +88,7 @@ pub fn assert_json_error(status: u16, head: &str, body: &str) {
 
 /// Waits (at most `bound`) until the server closes `s`, reading and dropping what it sends;
 /// returns how long that took. Panics when the connection is still open after `bound`.
-pub async fn closed_within(s: &mut TcpStream, bound: Duration) -> Duration {
+pub async fn closed_within(s: &mut (impl AsyncRead + Unpin), bound: Duration) -> Duration {
     let t0 = Instant::now();
     let mut buf = [0u8; 4096];
     loop {
@@ -95,4 +98,159 @@ pub async fn closed_within(s: &mut TcpStream, bound: Duration) -> Duration {
             Err(_) => panic!("the connection is still open after {bound:?}"),
         }
     }
+}
+
+/// A private certificate authority made at test time (ECDSA P-256), and server certificates it
+/// issues for `localhost` and 127.0.0.1.
+pub struct TestCa {
+    issuer: rcgen::Issuer<'static, rcgen::KeyPair>,
+    /// The CA's certificate, PEM (what `--ca-cert` is given).
+    pub pem: String,
+    /// The CA's certificate, DER.
+    pub der: Vec<u8>,
+}
+
+/// A server certificate of a [`TestCa`]: PEM chain and key, and the certificate's DER (what a
+/// client sees as the peer's certificate).
+pub struct ServerCert {
+    /// The certificate, PEM.
+    pub cert_pem: String,
+    /// Its private key, PEM (PKCS#8).
+    pub key_pem: String,
+    /// The certificate, DER.
+    pub der: Vec<u8>,
+}
+
+impl TestCa {
+    /// A new CA named `name`.
+    ///
+    /// Panics when rcgen fails.
+    pub fn new(name: &str) -> TestCa {
+        let key = rcgen::KeyPair::generate().expect("CA key");
+        let mut params = rcgen::CertificateParams::new(Vec::<String>::new()).expect("CA params");
+        params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+        params
+            .distinguished_name
+            .push(rcgen::DnType::CommonName, name);
+        params.key_usages = vec![
+            rcgen::KeyUsagePurpose::KeyCertSign,
+            rcgen::KeyUsagePurpose::CrlSign,
+            rcgen::KeyUsagePurpose::DigitalSignature,
+        ];
+        let cert = params.self_signed(&key).expect("CA certificate");
+        TestCa {
+            pem: cert.pem(),
+            der: cert.der().to_vec(),
+            issuer: rcgen::Issuer::new(params, key),
+        }
+    }
+
+    /// A server certificate for `localhost` and 127.0.0.1 with serial number `serial`.
+    ///
+    /// Panics when rcgen fails.
+    pub fn server_cert(&self, serial: u64) -> ServerCert {
+        let key = rcgen::KeyPair::generate().expect("server key");
+        let mut params =
+            rcgen::CertificateParams::new(vec!["localhost".to_string(), "127.0.0.1".to_string()])
+                .expect("server params");
+        params.serial_number = Some(rcgen::SerialNumber::from(serial));
+        params
+            .distinguished_name
+            .push(rcgen::DnType::CommonName, "localhost");
+        let cert = params
+            .signed_by(&key, &self.issuer)
+            .expect("server certificate");
+        ServerCert {
+            cert_pem: cert.pem(),
+            key_pem: key.serialize_pem(),
+            der: cert.der().to_vec(),
+        }
+    }
+}
+
+impl ServerCert {
+    /// Writes the certificate and key to `cert.pem` and `key.pem` in `dir` (replacing them);
+    /// returns both paths.
+    ///
+    /// Panics when a write fails.
+    pub fn write(&self, dir: &std::path::Path) -> (std::path::PathBuf, std::path::PathBuf) {
+        let (cert, key) = (dir.join("cert.pem"), dir.join("key.pem"));
+        std::fs::write(&cert, &self.cert_pem).expect("write cert.pem");
+        std::fs::write(&key, &self.key_pem).expect("write key.pem");
+        (cert, key)
+    }
+}
+
+/// A TLS client configuration (rustls, ring) that trusts only the CA certificate `ca_der`,
+/// offers ALPN `http/1.1` and never resumes a session (every connection runs a full handshake
+/// and sees the certificate the server presents now).
+///
+/// Panics when the certificate is not one.
+pub fn tls_client_config(ca_der: &[u8]) -> Arc<rustls::ClientConfig> {
+    let mut roots = rustls::RootCertStore::empty();
+    roots
+        .add(rustls::pki_types::CertificateDer::from(ca_der.to_vec()))
+        .expect("a CA certificate");
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .expect("TLS versions")
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    config.resumption = rustls::client::Resumption::disabled();
+    Arc::new(config)
+}
+
+/// A TLS connection to `addr` (`ip:port`) as server `localhost`.
+///
+/// Panics when the connection or the handshake fails.
+pub async fn tls_connect(
+    addr: &str,
+    config: &Arc<rustls::ClientConfig>,
+) -> tokio_rustls::client::TlsStream<TcpStream> {
+    try_tls_connect(addr, config)
+        .await
+        .unwrap_or_else(|e| panic!("TLS handshake with {addr}: {e}"))
+}
+
+/// [`tls_connect`], the handshake's error returned.
+///
+/// Panics when the TCP connection fails.
+pub async fn try_tls_connect(
+    addr: &str,
+    config: &Arc<rustls::ClientConfig>,
+) -> std::io::Result<tokio_rustls::client::TlsStream<TcpStream>> {
+    let tcp = TcpStream::connect(addr).await.expect("connect");
+    let name = rustls::pki_types::ServerName::try_from("localhost").expect("server name");
+    tokio_rustls::TlsConnector::from(config.clone())
+        .connect(name, tcp)
+        .await
+}
+
+/// The DER certificate the server presented on `s`.
+///
+/// Panics when it presented none.
+pub fn peer_certificate(s: &tokio_rustls::client::TlsStream<TcpStream>) -> Vec<u8> {
+    s.get_ref()
+        .1
+        .peer_certificates()
+        .and_then(|c| c.first())
+        .expect("the server presented a certificate")
+        .to_vec()
+}
+
+/// [`exchange`] over TLS: (status, head, body) and the certificate the server presented.
+///
+/// Panics as [`exchange`] and [`tls_connect`].
+pub async fn exchange_tls(
+    addr: &str,
+    config: &Arc<rustls::ClientConfig>,
+    raw: &[u8],
+) -> (u16, String, String, Vec<u8>) {
+    let mut s = tls_connect(addr, config).await;
+    let cert = peer_certificate(&s);
+    s.write_all(raw).await.expect("send the request");
+    let (status, head, body) = read_answer(&mut s).await;
+    (status, head, body, cert)
 }

@@ -523,7 +523,20 @@ pub struct ServeArgs {
     /// SLAG_SHARD_TOKEN); without either the server is open.
     #[arg(long)]
     pub token_file: Option<PathBuf>,
-    /// Seconds a connection has to send a whole request head; also the idle keep-alive timeout.
+    /// Serve HTTPS with this PEM certificate chain (the server's certificate first, then its
+    /// intermediates); needs --tls-key. SIGHUP reads both files again (new connections get the
+    /// new certificate; a file that does not load is refused and the old one stays).
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert (PKCS#8, RSA or EC).
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
+    /// the path can read it. Without it, a token with a non-loopback --bind needs --tls-cert.
+    #[arg(long)]
+    pub allow_plain_http: bool,
+    /// Seconds a connection has to send a whole request head (and to finish its TLS
+    /// handshake); also the idle keep-alive timeout.
     #[arg(long, default_value_t = slag_common::http::DEFAULT_HEADER_TIMEOUT.as_secs_f64())]
     pub header_timeout: f64,
     /// Seconds a write to a client may make no progress (a client that stopped reading) before
@@ -569,6 +582,21 @@ impl ServeArgs {
     }
 }
 
+impl ServeArgs {
+    /// The TLS certificate and key of `--tls-cert` / `--tls-key`, `None` without them.
+    ///
+    /// Errors: as [`slag_common::tls::ServerTls::load`] (unreadable files, no PEM certificate or
+    /// key, a key of another certificate).
+    pub fn tls(&self) -> slag_common::Result<Option<std::sync::Arc<slag_common::tls::ServerTls>>> {
+        match (&self.tls_cert, &self.tls_key) {
+            (Some(c), Some(k)) => Ok(Some(std::sync::Arc::new(
+                slag_common::tls::ServerTls::load(c, k)?,
+            ))),
+            _ => Ok(None),
+        }
+    }
+}
+
 /// The shard server's token: `--token-file` (first line, trimmed) else env `SLAG_SHARD_TOKEN`.
 ///
 /// Errors: unreadable or blank token file ([`slag_common::Error::Io`] / `Format`); a
@@ -587,6 +615,13 @@ pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<
 pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     let token = serve_token(args.token_file.as_deref())?;
     let limits = args.limits()?;
+    let tls = args.tls()?;
+    slag_common::tls::check_token_transport(
+        args.bind,
+        token.is_some(),
+        tls.is_some(),
+        args.allow_plain_http,
+    )?;
     let store = ShardStore::open(&args.store)?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
     let guarded = if token.is_some() {
@@ -594,12 +629,14 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     } else {
         ""
     };
-    rt.block_on(crate::serve::serve_with_limits(
+    let scheme = if tls.is_some() { "https" } else { "http" };
+    rt.block_on(crate::serve::serve_with_tls(
         store,
         args.bind,
         token,
         limits,
-        |a| println!("serving on http://{a}/v1/scenes{guarded}"),
+        tls,
+        |a| println!("serving on {scheme}://{a}/v1/scenes{guarded}"),
     ))?;
     Ok(())
 }
@@ -666,6 +703,11 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "max_connections" => "--max-connections N (or raise ulimit -n)",
                 "body_timeout" => "--body-timeout SECONDS",
                 "max_connections_per_ip" => "--max-connections-per-ip N",
+                "plain_http" => {
+                    "--tls-cert FILE --tls-key FILE (HTTPS), or bind a loopback address \
+                     (--bind 127.0.0.1:PORT), or --allow-plain-http to send the token in clear \
+                     text anyway"
+                }
                 _ => return None,
             };
             Some(format!("pass {flag}"))

@@ -23,7 +23,8 @@
 //! Every error answer, those axum produces itself included (405 with `Allow`, 414, 431, 416), has
 //! the JSON body ([`slag_common::http::json_errors`]). [`serve_with_limits`] applies the
 //! header-read / idle timeout, the body-read deadline, the write timeout, the connection limit
-//! and its per-address share of [`slag_common::http::ServerLimits`]. A shard or codebook is answered from the store's own
+//! and its per-address share of [`slag_common::http::ServerLimits`]; [`serve_with_tls`] the same
+//! over HTTPS (`--tls-cert` / `--tls-key`; `SIGHUP` reloads the certificate). A shard or codebook is answered from the store's own
 //! buffer (the value sled holds), shared by every connection answering it and by ranges of it:
 //! no copy per connection, so a client that reads slowly holds no shard of its own.
 
@@ -139,6 +140,22 @@ pub async fn serve_with_limits(
     limits: ServerLimits,
     on_bound: impl FnOnce(SocketAddr),
 ) -> slag_common::Result<()> {
+    serve_with_tls(store, addr, token, limits, None, on_bound).await
+}
+
+/// [`serve_with_limits`] over HTTPS with `tls` (plain HTTP with `None`): the same limits and
+/// timeouts, the TLS handshake within the header-read timeout, and `SIGHUP` reading the
+/// certificate and key again ([`slag_common::tls`]).
+///
+/// Errors: as [`serve_with_limits`].
+pub async fn serve_with_tls(
+    store: ShardStore,
+    addr: SocketAddr,
+    token: Option<String>,
+    limits: ServerLimits,
+    tls: Option<Arc<slag_common::tls::ServerTls>>,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
     let (limits, warning) =
         slag_common::http::check_connection_limit(limits, slag_common::http::open_files_limit())?;
     if let Some(w) = warning {
@@ -151,7 +168,8 @@ pub async fn serve_with_limits(
         .local_addr()
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
-    slag_common::http::serve(listener, router_with_token(store, token), limits, async {
+    let router = router_with_token(store, token);
+    slag_common::http::serve_with_tls(listener, router, limits, tls, async {
         let _ = tokio::signal::ctrl_c().await;
     })
     .await;
