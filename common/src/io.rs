@@ -1,18 +1,32 @@
-//! File writing shared by every format: a whole file written atomically.
+//! File writing shared by every format: a whole file written atomically, and folder syncs.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use crate::fault::boundary_in;
 use crate::{Error, Result};
 
-/// Writes `bytes` to `path` atomically (`<path>.partial`, fsync, rename). Creates parent folders.
+/// Writes `bytes` to `path` atomically (`<path>.partial`, fsync, rename, the folder synced).
+/// Creates parent folders. Each step is a durability boundary (`io.write_atomic:write`,
+/// `:fsync`, `:rename`, `:dir_sync`; [`crate::fault`]): a crash leaves the old file or the new
+/// one at `path`, at most with a `.partial` beside it.
+///
+/// Errors: [`Error::Io`] naming the file or folder that failed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    const SITE: &str = "io.write_atomic";
     let (tmp, mut f) = create_partial(path)?;
-    f.write_all(bytes)
-        .and_then(|_| f.sync_all())
-        .map_err(|e| Error::io(&tmp, e))?;
+    f.write_all(bytes).map_err(|e| Error::io(&tmp, e))?;
+    boundary_in(SITE, "write");
+    f.sync_all().map_err(|e| Error::io(&tmp, e))?;
+    boundary_in(SITE, "fsync");
     drop(f);
-    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))
+    std::fs::rename(&tmp, path).map_err(|e| Error::io(path, e))?;
+    boundary_in(SITE, "rename");
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        sync_dir(dir)?;
+        boundary_in(SITE, "dir_sync");
+    }
+    Ok(())
 }
 
 /// Creates (truncating) `<path>.partial`, the file an atomic write fills before renaming it to
@@ -28,4 +42,17 @@ pub fn create_partial(path: &Path) -> Result<(PathBuf, std::fs::File)> {
     let partial = PathBuf::from(partial);
     let f = std::fs::File::create(&partial).map_err(|e| Error::io(&partial, e))?;
     Ok((partial, f))
+}
+
+/// Syncs a folder so that the renames, creations and removals inside it survive a power loss.
+/// A file system that cannot sync a folder (`EINVAL`) is accepted: the rename itself is still
+/// atomic.
+///
+/// Errors: [`Error::Io`] naming the folder.
+pub fn sync_dir(dir: &Path) -> Result<()> {
+    match std::fs::File::open(dir).and_then(|d| d.sync_all()) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => Ok(()),
+        Err(e) => Err(Error::io(dir, e)),
+    }
 }

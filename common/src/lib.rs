@@ -11,6 +11,7 @@
 //! | [`prompt`] | limits on text prompts shared by every query interface |
 //! | [`embeddings`] | the per-Gaussian embeddings file (safetensors) |
 //! | [`io`] | atomic file writes (`.partial`, fsync, rename), used by every format |
+//! | [`fault`] | fault injection at durability boundaries (crash tests: `SLAG_FAULT_EXIT_AT`, `SLAG_FAULT_LIST`) |
 //! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
@@ -30,6 +31,7 @@ pub mod cli;
 pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
+pub mod fault;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;

@@ -92,6 +92,58 @@ impl Engine {
     }
 }
 
+/// What `slag-edge check` finds in the store for one scene (everything it checks but the text
+/// model): the scene loaded as [`Engine::load`] loads it, and the problems that make the check
+/// fail, each naming what is wrong: a stored shard that fails verification (corrupt, not
+/// served), a tile of the last fetch's disc missing from the store, a scene without a Gaussian.
+pub struct StoreCheck {
+    /// The committed generation, loaded (no approximate index).
+    pub engine: Engine,
+    /// Tiles of the last fetch's disc without a stored file ([`EdgeStore::missing_tiles`]).
+    pub missing: Vec<u64>,
+    /// Entries in the store's `quarantine/` and their bytes ([`EdgeStore::quarantine_usage`]).
+    pub set_aside: (usize, u64),
+    /// One line per problem; empty when the committed generation is complete and valid.
+    pub problems: Vec<String>,
+}
+
+impl StoreCheck {
+    /// Loads `scene` from `edge` and lists its problems (type doc).
+    ///
+    /// Errors: as [`Engine::load`] (no completed fetch, store I/O, a bad stored manifest, a
+    /// mixture scene's codebook missing or corrupt): the caller reports them as a problem too.
+    pub fn run(edge: &EdgeStore, scene: &str) -> Result<StoreCheck> {
+        let engine = Engine::load(edge, scene, false)?;
+        let missing = edge.missing_tiles(&engine.manifest)?;
+        let m = &engine.manifest;
+        let mut problems: Vec<String> = engine
+            .load
+            .rejected
+            .iter()
+            .map(|r| format!("corrupt shard, not served: {r}"))
+            .collect();
+        for id in &missing {
+            problems.push(format!(
+                "shard {id} of the fetched disc is missing from the store"
+            ));
+        }
+        if engine.store.is_empty() {
+            problems.push(format!(
+                "scene {} has no Gaussians to serve ({} of its {} tiles stored)",
+                m.scene_id,
+                engine.load.loaded_tiles.len(),
+                m.tiles.len()
+            ));
+        }
+        Ok(StoreCheck {
+            set_aside: edge.quarantine_usage(),
+            engine,
+            missing,
+            problems,
+        })
+    }
+}
+
 /// The engine a server answers from: one immutable [`Engine`] behind an `Arc`, swapped whole.
 /// A query takes the `Arc` ([`Self::current`]) and keeps that one generation to its end,
 /// whatever is swapped in meanwhile; of two engines offered out of order (two reloads that

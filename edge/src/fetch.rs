@@ -30,14 +30,23 @@
 //!
 //! # Fault injection (tests only)
 //!
-//! With `SLAG_FAULT_EXIT_AT=<n>` in the environment the process exits with status 137 (as if
-//! SIGKILLed) at the n-th durability boundary of the run (1-based), counted in one place,
-//! [`fault_boundary`]: after each chunk written to a partial file, after each partial-file sync,
-//! after each shard commit (the verified partial file renamed into `shards/`), before and after
-//! the manifest commit, and after each shard eviction. `edge/tests/faults.rs`
-//! kills a fetch at every boundary in turn and checks that the store stays consistent. Unset
-//! (the normal case) it costs one atomic load per boundary. With `SLAG_FAULT_ENOSPC_AT=<n>` the
-//! n-th write to a partial file fails as if the disk were full ([`fault_enospc`]).
+//! Every step of a fetch that changes the disk is a durability boundary of
+//! [`slag_common::fault`], named `site:step`: `fetch.partial:create` (a partial file opened
+//! empty), `fetch.partial:write` (each chunk written), `fetch.partial:fsync`, `fetch.partial:
+//! remove_oversized`; in the store ([`EdgeStore`]) the verified partial file's `rename` into
+//! `shards/` and the folder syncs (`store.commit_shard:*`, `store.commit_codebook:*`), the
+//! scene folder's creation, a damaged file set aside (`store.set_aside:*`), the manifest and
+//! fetch-record copies (`store.manifest_copy:*`, `store.fetch_record_copy:*`: write, fsync,
+//! rename, folder sync), the sled transaction and flush of the commit
+//! (`store.commit_fetch:transaction`, `:flush`), each eviction (`store.evict_shard:remove`,
+//! `store.evict_codebook:remove`), each partial file cleaned away and the final flush; and
+//! `fetch:before_commit`, the moment every shard of the new generation is in place and nothing
+//! is committed yet. With `SLAG_FAULT_EXIT_AT=<n>` the process exits with status 137 (as if
+//! SIGKILLed) at the n-th boundary; with `SLAG_FAULT_LIST=<path>` it lists the boundaries it
+//! passes; `edge/tests/crash_points.rs` stops a fetch (and a `serve` fetching through
+//! `POST /fetch`) at every one in turn and checks what a restart serves. Unset (the normal
+//! case) each costs one atomic load. With `SLAG_FAULT_ENOSPC_AT=<n>` the n-th write to a partial
+//! file fails as if the disk were full ([`slag_common::fault::enospc`]).
 //!
 //! # Partial files after a failure
 //!
@@ -53,6 +62,7 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use futures_util::{StreamExt, TryStreamExt};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use slag_common::fault::boundary;
 use slag_common::shards::{
     CODEBOOK_TILE, MAP_FRAME, MAX_MANIFEST_BYTES, Manifest, SCENE_FRAME, TileInfo,
     manifest_too_large, valid_scene_id,
@@ -286,62 +296,6 @@ impl std::fmt::Display for FetchSummary {
                 String::new()
             }
         )
-    }
-}
-
-/// Exit status used by the fault hook (128 + SIGKILL, what a shell reports for `kill -9`).
-pub const FAULT_EXIT_STATUS: i32 = 137;
-
-/// A fault-injection counter (module doc): counts the calls of one hook and fires at the n-th,
-/// n from the environment variable `var` (unset, empty, 0 or not a number: never).
-struct FaultCounter {
-    var: &'static str,
-    at: std::sync::OnceLock<Option<u64>>,
-    count: std::sync::atomic::AtomicU64,
-}
-
-impl FaultCounter {
-    const fn new(var: &'static str) -> Self {
-        FaultCounter {
-            var,
-            at: std::sync::OnceLock::new(),
-            count: std::sync::atomic::AtomicU64::new(0),
-        }
-    }
-
-    /// Counts one call; `Some(n)` when it is the n-th, the one `var` names. Unset, it costs one
-    /// atomic load.
-    fn hit(&self) -> Option<u64> {
-        let at = (*self.at.get_or_init(|| {
-            std::env::var(self.var)
-                .ok()
-                .and_then(|v| v.trim().parse::<u64>().ok())
-                .filter(|&n| n > 0)
-        }))?;
-        let n = self.count.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
-        (n == at).then_some(at)
-    }
-}
-
-/// The fault hook (module doc): counts durability boundaries and exits the process with
-/// [`FAULT_EXIT_STATUS`] at the one named by `SLAG_FAULT_EXIT_AT`. `what` is logged to stderr.
-pub fn fault_boundary(what: &str) {
-    static EXIT_AT: FaultCounter = FaultCounter::new("SLAG_FAULT_EXIT_AT");
-    if let Some(at) = EXIT_AT.hit() {
-        eprintln!("SLAG_FAULT_EXIT_AT={at}: exiting at boundary {at} ({what})");
-        std::process::exit(FAULT_EXIT_STATUS);
-    }
-}
-
-/// The disk-full hook (module doc): the n-th partial-file write of the process, n from
-/// `SLAG_FAULT_ENOSPC_AT`, returns the error a full disk gives (`ENOSPC`) instead of writing.
-/// Unset, it costs one atomic load per write.
-pub fn fault_enospc() -> std::io::Result<()> {
-    static ENOSPC_AT: FaultCounter = FaultCounter::new("SLAG_FAULT_ENOSPC_AT");
-    match ENOSPC_AT.hit() {
-        // ENOSPC on Linux (28).
-        Some(_) => Err(std::io::Error::from_raw_os_error(28)),
-        None => Ok(()),
     }
 }
 
@@ -741,16 +695,14 @@ fn commit_and_evict(
     }
     tiles.sort_unstable();
     record.tiles = Some(tiles);
-    fault_boundary("before the manifest commit");
+    boundary("fetch:before_commit");
     store.commit_fetch(manifest, &record)?;
-    fault_boundary("after the manifest commit");
     let (mut evicted, mut kept_outside) = (0, 0);
     for (tile, checksum, _) in store.stored_shards(&manifest.scene_id)? {
         let in_manifest = current.contains(&(tile, checksum));
         let in_disc = wanted.contains(&(tile, checksum));
         if !in_manifest || (prune && !in_disc) {
             evicted += store.remove_shard(&manifest.scene_id, tile, checksum)? as usize;
-            fault_boundary("after a shard eviction");
         } else if !in_disc {
             kept_outside += 1;
         }
@@ -865,7 +817,6 @@ async fn download_tile(
                 };
                 match committed {
                     Ok(()) => {
-                        fault_boundary("after a shard commit");
                         return Ok((resumed, counts.received));
                     }
                     Err(Error::Format { path, message }) => {
@@ -897,9 +848,10 @@ async fn download_tile(
     }
 }
 
-/// Appends one received chunk to a partial file (through the disk-full hook, [`fault_enospc`]).
+/// Appends one received chunk to a partial file (through the disk-full hook,
+/// [`slag_common::fault::enospc`]).
 async fn write_chunk(file: &mut tokio::fs::File, chunk: &[u8]) -> std::io::Result<()> {
-    fault_enospc()?;
+    slag_common::fault::enospc()?;
     file.write_all(chunk).await
 }
 
@@ -926,6 +878,7 @@ async fn try_download(
         Ok(m) if m.len() <= tile.bytes => m.len(),
         Ok(_) => {
             tokio::fs::remove_file(part).await.map_err(io)?;
+            boundary("fetch.partial:remove_oversized");
             0
         }
         Err(_) => 0,
@@ -976,6 +929,7 @@ async fn try_download(
             .open(part)
             .await
             .map_err(io)?;
+        boundary("fetch.partial:create");
         (f, 0, false)
     } else {
         let body = resp.text().await.unwrap_or_default();
@@ -1018,14 +972,14 @@ async fn try_download(
             let _ = tokio::fs::remove_file(part).await;
             return Err(io(e));
         }
-        fault_boundary("after a partial-file write");
+        boundary("fetch.partial:write");
         counts.received += chunk.len() as u64;
         counts.shown += chunk.len() as u64;
         pb.inc(chunk.len() as u64);
     }
     file.flush().await.map_err(io)?;
     file.sync_data().await.map_err(io)?;
-    fault_boundary("after a partial-file sync");
+    boundary("fetch.partial:fsync");
     if written != tile.bytes {
         return Err(transient(Error::network(
             url,

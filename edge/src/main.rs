@@ -530,13 +530,8 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
             None
         }
     };
-    let engine = EdgeStore::open_existing(&r.store)
-        .map_err(anyhow::Error::from)
-        .and_then(|edge| {
-            let engine = slag_edge::engine::Engine::load(&edge, &r.opts.scene, false)?;
-            let missing = edge.missing_tiles(&engine.manifest)?;
-            Ok((engine, missing, edge.quarantine_usage()))
-        });
+    let check = EdgeStore::open_existing(&r.store)
+        .and_then(|edge| slag_edge::engine::StoreCheck::run(&edge, &r.opts.scene));
     let mut report = serde_json::json!({
         "text_model": r.text_model,
         "text_load_and_first_prompt_ms": text_ms,
@@ -549,26 +544,12 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     if let Some((v, _)) = &text {
         report["text_dim"] = v.first().map_or(0, Vec::len).into();
     }
-    match &engine {
+    match check {
         Err(e) => problems.push(format!("store: {e:#}")),
-        Ok((engine, missing, (set_aside, set_aside_bytes))) => {
+        Ok(check) => {
+            problems.extend(check.problems);
+            let engine = &check.engine;
             let m = &engine.manifest;
-            for rejected in &engine.load.rejected {
-                problems.push(format!("corrupt shard, not served: {rejected}"));
-            }
-            for id in missing {
-                problems.push(format!(
-                    "shard {id} of the fetched disc is missing from the store"
-                ));
-            }
-            if engine.store.is_empty() {
-                problems.push(format!(
-                    "scene {} has no Gaussians to serve ({} of its {} tiles stored)",
-                    m.scene_id,
-                    engine.load.loaded_tiles.len(),
-                    m.tiles.len()
-                ));
-            }
             if let Some((v, text)) = &text {
                 if let Err(e) = text.check_pair(&m.model) {
                     problems.push(format!("text model: {e}"));
@@ -582,6 +563,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
                     ));
                 }
             }
+            let (set_aside, set_aside_bytes) = check.set_aside;
             let fields = serde_json::json!({
                 "generation": m.generation,
                 "embedding_model": m.model,
@@ -589,7 +571,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
                 "shards_loaded": engine.load.loaded_tiles.len(),
                 "shards_absent": engine.load.absent_tiles,
                 "shards_rejected": engine.load.rejected,
-                "shards_missing": missing,
+                "shards_missing": check.missing,
                 "gaussians": engine.store.len(),
                 "vector_memory_bytes": engine.store.memory_bytes(),
                 "set_aside": set_aside,

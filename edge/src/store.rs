@@ -56,6 +56,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use slag_common::fault::{boundary, boundary_in};
+use slag_common::io::sync_dir;
 use slag_common::shards::{
     CODEBOOK_TILE, Codebook, Dtype, MAX_MANIFEST_BYTES, Manifest, MixtureShard,
     SHARD_FORMAT_VERSION, ShardHeader, StoredShard, TileInfo, decode_codebook, decode_header,
@@ -191,21 +193,25 @@ const MANIFEST_COPY: &str = "manifest.json";
 /// Name of the fetch-record copy in a scene's shard folder (module doc).
 const FETCH_COPY: &str = "fetch.json";
 
-/// Writes `bytes` to `path` atomically: a `.tmp` file beside it, synced, renamed, folder synced.
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    write_durably(path, &path.with_extension("json.tmp"), bytes)
+/// Writes `bytes` to `path` atomically: a `.tmp` file beside it, synced, renamed, folder synced;
+/// `site` names its durability boundaries ([`write_durably`]).
+fn write_atomic(path: &Path, site: &str, bytes: &[u8]) -> Result<()> {
+    write_durably(path, &path.with_extension("json.tmp"), site, bytes)
 }
 
 /// Writes `bytes` to `tmp` (a path in `path`'s folder), syncs it, renames it to `path` and syncs
-/// the folder. On a write error `tmp` is removed; a crash leaves at most `tmp`.
-fn write_durably(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<()> {
+/// the folder. On a write error `tmp` is removed; a crash leaves at most `tmp`. Each step is a
+/// durability boundary named `site:` + `remove_stale_tmp`, `write`, `fsync`, `rename`,
+/// `dir_sync` ([`slag_common::fault`]).
+fn write_durably(path: &Path, tmp: &Path, site: &str, bytes: &[u8]) -> Result<()> {
     let write = || -> std::io::Result<()> {
         use std::os::unix::fs::OpenOptionsExt;
         // A new file: whatever is at `tmp` (a leftover, or a link planted there) is removed, not
         // written through.
         match std::fs::remove_file(tmp) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e),
-            _ => {}
+            Err(_) => {}
+            Ok(()) => boundary_in(site, "remove_stale_tmp"),
         }
         let mut f = std::fs::OpenOptions::new()
             .write(true)
@@ -213,17 +219,22 @@ fn write_durably(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<()> {
             .custom_flags(libc::O_NOFOLLOW)
             .open(tmp)?;
         f.write_all(bytes)?;
-        f.sync_all()
+        boundary_in(site, "write");
+        f.sync_all()?;
+        boundary_in(site, "fsync");
+        Ok(())
     };
     write().map_err(|e| {
         let _ = std::fs::remove_file(tmp);
         Error::io(tmp, e)
     })?;
     std::fs::rename(tmp, path).map_err(|e| Error::io(path, e))?;
-    match path.parent() {
-        Some(dir) => sync_dir(dir),
-        None => Ok(()),
+    boundary_in(site, "rename");
+    if let Some(dir) = path.parent() {
+        sync_dir(dir)?;
+        boundary_in(site, "dir_sync");
     }
+    Ok(())
 }
 
 /// Bytes of the file header kept while a stored file is checksummed: the header decoder reads
@@ -266,9 +277,12 @@ fn set_aside_in(root: &Path, path: &Path, why: &str) -> Result<PathBuf> {
             std::io::Error::new(e.kind(), format!("setting it aside ({why}) failed: {e}")),
         )
     })?;
+    boundary("store.set_aside:rename");
     sync_dir(&q)?;
+    boundary("store.set_aside:quarantine_dir_sync");
     if let Some(parent) = path.parent() {
         sync_dir(parent)?;
+        boundary("store.set_aside:dir_sync");
     }
     Ok(to)
 }
@@ -303,16 +317,6 @@ fn dir_bytes(p: &Path) -> u64 {
 /// Lower-case hex of `bytes`.
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-/// Syncs a folder so that the renames and creations inside it survive a power loss.
-fn sync_dir(dir: &Path) -> Result<()> {
-    match std::fs::File::open(dir).and_then(|d| d.sync_all()) {
-        Ok(()) => Ok(()),
-        // Some file systems cannot sync a folder; the rename itself is still atomic.
-        Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => Ok(()),
-        Err(e) => Err(Error::io(dir, e)),
-    }
 }
 
 /// `tile:016x-checksum:08x.shard` → `(tile, checksum)`.
@@ -738,6 +742,7 @@ impl EdgeStore {
                 continue;
             }
             self.manifests.insert(key, bytes).map_err(|e| self.err(e))?;
+            boundary("store.rebuild:insert_manifest");
             if let Ok(Some(r)) = read_regular(
                 &folder.join(FETCH_COPY),
                 MAX_MANIFEST_BYTES,
@@ -745,10 +750,12 @@ impl EdgeStore {
             ) && serde_json::from_slice::<FetchRecord>(&r).is_ok()
             {
                 self.fetches.insert(key, r).map_err(|e| self.err(e))?;
+                boundary("store.rebuild:insert_fetch_record");
             }
             scenes.push(m.scene_id);
         }
         self.db.flush().map_err(|e| self.err(e))?;
+        boundary("store.rebuild:flush");
         scenes.sort();
         Ok(scenes)
     }
@@ -962,10 +969,21 @@ impl EdgeStore {
         let Some(path) = self.codebook_path(manifest)? else {
             return Err(Error::internal("commit_codebook_partial: a dense manifest"));
         };
-        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
-        std::fs::rename(part, &path).map_err(|e| Error::io(&path, e))?;
+        self.move_into_place(&manifest.scene_id, part, &path, "store.commit_codebook")
+    }
+
+    /// Renames the verified partial download `part` to `path` in the scene's folder, then syncs
+    /// both folders; `site` names the durability boundaries (`rename`, `dir_sync`,
+    /// `partial_dir_sync`).
+    fn move_into_place(&self, scene: &str, part: &Path, path: &Path, site: &str) -> Result<()> {
+        let dir = self.ensure_scene_dir(scene)?;
+        std::fs::rename(part, path).map_err(|e| Error::io(path, e))?;
+        boundary_in(site, "rename");
         sync_dir(&dir)?;
-        sync_dir(&self.root.join("partial"))
+        boundary_in(site, "dir_sync");
+        sync_dir(&self.root.join("partial"))?;
+        boundary_in(site, "partial_dir_sync");
+        Ok(())
     }
 
     /// Reads and verifies the stored codebook of a mixture manifest ([`verify_codebook`]).
@@ -1002,6 +1020,7 @@ impl EdgeStore {
                 && keep.and_then(|k| k.file_name()) != Some(e.file_name().as_os_str());
             if ours {
                 std::fs::remove_file(e.path()).map_err(|err| Error::io(e.path(), err))?;
+                boundary("store.evict_codebook:remove");
                 removed += 1;
             }
         }
@@ -1056,6 +1075,7 @@ impl EdgeStore {
                 continue;
             }
             if std::fs::remove_file(e.path()).is_ok() {
+                boundary("store.clean_partials:remove_partial");
                 removed += 1;
             }
         }
@@ -1064,6 +1084,7 @@ impl EdgeStore {
                 if e.file_name().to_string_lossy().ends_with(".tmp")
                     && std::fs::remove_file(e.path()).is_ok()
                 {
+                    boundary("store.clean_partials:remove_tmp");
                     removed += 1;
                 }
             }
@@ -1156,7 +1177,9 @@ impl EdgeStore {
         let dir = self.scene_dir(scene);
         if !dir.is_dir() {
             std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+            boundary("store.scene_dir:create");
             sync_dir(&self.root.join("shards"))?;
+            boundary("store.scene_dir:dir_sync");
         }
         Ok(dir)
     }
@@ -1171,7 +1194,7 @@ impl EdgeStore {
         let path = self.shard_path(&manifest.scene_id, tile)?;
         self.ensure_scene_dir(&manifest.scene_id)?;
         let tmp = path.with_extension(format!("{SHARD_EXTENSION}.tmp"));
-        write_durably(&path, &tmp, bytes)
+        write_durably(&path, &tmp, "store.write_shard", bytes)
     }
 
     /// Verifies a complete, synced partial download `part` ([`verify_shard`]) and moves it into
@@ -1185,10 +1208,7 @@ impl EdgeStore {
         verify_any_shard(manifest, tile, &bytes)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;
-        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
-        std::fs::rename(part, &path).map_err(|e| Error::io(&path, e))?;
-        sync_dir(&dir)?;
-        sync_dir(&self.root.join("partial"))
+        self.move_into_place(&manifest.scene_id, part, &path, "store.commit_shard")
     }
 
     /// Holds the scene's committed generation still: while the guard lives, no other holder
@@ -1236,8 +1256,8 @@ impl EdgeStore {
         let m = manifest.to_json();
         let r = serde_json::to_vec(record).unwrap_or_default();
         let dir = self.ensure_scene_dir(&manifest.scene_id)?;
-        write_atomic(&dir.join(MANIFEST_COPY), &m)?;
-        write_atomic(&dir.join(FETCH_COPY), &r)?;
+        write_atomic(&dir.join(MANIFEST_COPY), "store.manifest_copy", &m)?;
+        write_atomic(&dir.join(FETCH_COPY), "store.fetch_record_copy", &r)?;
         let key = manifest.scene_id.as_bytes();
         (&self.manifests, &self.fetches)
             .transaction(|(tm, tf)| {
@@ -1251,7 +1271,9 @@ impl EdgeStore {
                     Error::internal("store transaction aborted")
                 }
             })?;
+        boundary("store.commit_fetch:transaction");
         self.db.flush().map_err(|e| self.err(e))?;
+        boundary("store.commit_fetch:flush");
         self.commits.fetch_add(1, Ordering::SeqCst);
         Ok(())
     }
@@ -1284,7 +1306,10 @@ impl EdgeStore {
             .scene_dir(scene)
             .join(format!("{tile:016x}-{checksum:08x}.{SHARD_EXTENSION}"));
         match std::fs::remove_file(&path) {
-            Ok(()) => Ok(true),
+            Ok(()) => {
+                boundary("store.evict_shard:remove");
+                Ok(true)
+            }
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
             Err(e) => Err(Error::io(path, e)),
         }
@@ -1295,7 +1320,10 @@ impl EdgeStore {
     /// Errors: store I/O.
     pub fn flush(&self) -> Result<()> {
         self.db.flush().map_err(|e| self.err(e))?;
-        sync_dir(&self.root.join("shards"))
+        boundary("store.flush:db");
+        sync_dir(&self.root.join("shards"))?;
+        boundary("store.flush:dir_sync");
+        Ok(())
     }
 
     /// Bytes the store uses on disk (shard files, sled files, partial downloads, quarantine).

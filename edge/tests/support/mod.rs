@@ -616,6 +616,7 @@ pub fn slag_edge_with_log(args: &[&str], rust_log: &str) -> std::process::Comman
         .env("RUST_LOG", rust_log)
         .env_remove("SLAG_FAULT_EXIT_AT")
         .env_remove("SLAG_FAULT_ENOSPC_AT")
+        .env_remove("SLAG_FAULT_LIST")
         .env_remove("SLAG_SHARD_TOKEN");
     cmd
 }

@@ -14,9 +14,17 @@
 //! previous generation current and intact; leftovers of the unfinished generation are removed by
 //! the next writer of that scene. One writer per scene at a time (sled locks the folder against
 //! other processes).
+//!
+//! Every sled step that changes the store is a durability boundary of [`slag_common::fault`]
+//! (crash tests): `shards.writer:remove_leftover` (each key of an unfinished generation removed),
+//! `shards.put_shard:insert`, `shards.put_codebook:insert`, `shards.commit:flush_shards`,
+//! `shards.commit:flush_codebooks`, `shards.commit:transaction`, `shards.commit:flush`,
+//! `shards.commit:remove_old` (each key of an older generation removed) and
+//! `shards.commit:flush_removals`.
 
 use std::path::Path;
 
+use slag_common::fault::boundary;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::{GaussianSource, Manifest, TileInfo, shard_checksum, valid_scene_id};
 use slag_common::{Error, Result};
@@ -229,7 +237,9 @@ impl ShardStore {
     pub fn writer(&self, scene: &str) -> Result<SceneWriter<'_>> {
         check_scene(scene)?;
         let current = self.current_generation(scene)?;
-        self.remove_generations(scene, |g| Some(g) != current)?;
+        self.remove_generations(scene, "shards.writer:remove_leftover", |g| {
+            Some(g) != current
+        })?;
         Ok(SceneWriter {
             store: self,
             scene: scene.to_string(),
@@ -237,8 +247,14 @@ impl ShardStore {
         })
     }
 
-    /// Deletes every stored generation of `scene` for which `drop(generation)` is true.
-    fn remove_generations(&self, scene: &str, drop: impl Fn(u64) -> bool) -> Result<()> {
+    /// Deletes every stored generation of `scene` for which `drop(generation)` is true; `name`
+    /// names the durability boundary after each removal.
+    fn remove_generations(
+        &self,
+        scene: &str,
+        name: &str,
+        drop: impl Fn(u64) -> bool,
+    ) -> Result<()> {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
         for tree in [&self.shards, &self.tiles, &self.manifests, &self.codebooks] {
@@ -247,6 +263,7 @@ impl ShardStore {
                 let g = k.get(p.len()..p.len() + 8).and_then(be_u64);
                 if g.is_some_and(&drop) {
                     tree.remove(k).map_err(db_err)?;
+                    boundary(name);
                 }
             }
         }
@@ -284,6 +301,7 @@ impl SceneWriter<'_> {
             .shards
             .insert(tile_key(&self.scene, self.generation, tile), bytes)
             .map_err(db_err)?;
+        boundary("shards.put_shard:insert");
         Ok(())
     }
 
@@ -295,6 +313,7 @@ impl SceneWriter<'_> {
             .codebooks
             .insert(prefix(&self.scene, self.generation), bytes)
             .map_err(db_err)?;
+        boundary("shards.put_codebook:insert");
         Ok(())
     }
 
@@ -359,7 +378,9 @@ impl SceneWriter<'_> {
         let s = self.store;
         // Shards and codebook must be durable before the pointer flip can be.
         s.shards.flush().map_err(db_err)?;
+        boundary("shards.commit:flush_shards");
         s.codebooks.flush().map_err(db_err)?;
+        boundary("shards.commit:flush_codebooks");
         let g = self.generation;
         (&s.manifests, &s.tiles, &s.current)
             .transaction(|(m, t, c)| {
@@ -374,8 +395,12 @@ impl SceneWriter<'_> {
                 TransactionError::Storage(e) => db_err(e),
                 TransactionError::Abort(()) => Error::internal("store transaction aborted"),
             })?;
+        boundary("shards.commit:transaction");
         s.flush()?;
-        s.remove_generations(&self.scene, |old| old != g)?;
+        boundary("shards.commit:flush");
+        s.remove_generations(&self.scene, "shards.commit:remove_old", |old| old != g)?;
+        s.flush()?;
+        boundary("shards.commit:flush_removals");
         Ok(manifest)
     }
 }

@@ -91,7 +91,7 @@ use reduce::PartitionReducer;
 pub const EXIT_PEER_LOST: i32 = 3;
 
 /// Exit status of the fault hook (`SLAG_FAULT_EXIT_AFTER_IMAGES`): 128 + SIGKILL.
-pub const FAULT_EXIT_STATUS: i32 = 137;
+pub const FAULT_EXIT_STATUS: i32 = slag_common::fault::FAULT_EXIT_STATUS;
 
 /// Runs one worker: builds the dataflow (identically on every worker), the map side, then steps
 /// until the dataflow completed; worker 0 assembles the output.

@@ -1,0 +1,399 @@
+//! A crash at every durability boundary of the robot's writes ([`slag_common::fault`]): a store
+//! holds generation A of scene `grid`; a fetch of generation B (every shard new, A's evicted
+//! after the commit, one damaged entry set aside on the way) is stopped at boundary n for every
+//! n = 1..=N, N counted by one run under `SLAG_FAULT_LIST`. After each stop the store is opened
+//! again, as a restart would, and
+//! - the check of `slag-edge check` ([`StoreCheck`]) passes exactly when the committed generation
+//!   is complete and verified (found independently, file by file), and a crash never leaves one
+//!   incomplete;
+//! - the answers are exactly generation A's or exactly generation B's reference answers, the one
+//!   the check names, never a mix and never nothing;
+//! - one fetch repairs: the check passes and the answers are B's.
+//!
+//! The same for `slag-edge serve` stopped inside `POST /fetch` (the fetch, then the reload; a
+//! reload itself writes nothing). Under qemu (cross build) binaries start through
+//! `$SLAG_TEST_RUNNER`.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list};
+use slag_common::shards::Dtype;
+use slag_edge::engine::{Engine, StoreCheck};
+use slag_edge::fetch::fetch;
+use slag_edge::query::RawQuery;
+use slag_edge::store::{EdgeStore, Stored};
+use support::{
+    TestScene, exact_answer, grid_fetch_params, grid_scene, output_blocking, shard_server,
+    slag_edge_with_log,
+};
+
+/// Prompts asked of every state: one per tile direction and the background.
+const PROMPTS: [&str; 5] = ["t0", "t1", "t2", "t3", "anything"];
+
+/// What a store answers: per prompt the matches, summary and objects of the exact scan.
+fn answers(engine: &Engine, dim: usize) -> Vec<serde_json::Value> {
+    PROMPTS
+        .iter()
+        .map(|p| {
+            let raw = RawQuery {
+                text: Some(p.to_string()),
+                top_k: Some("1000".into()),
+                ..RawQuery::default()
+            };
+            let a = serde_json::to_value(exact_answer(engine, dim, raw, false)).unwrap();
+            serde_json::json!([a["matches"], a["summary"], a["objects"], a["searched"]])
+        })
+        .collect()
+}
+
+/// The reference answers of generations A (1) and B (2) of a scene of width `dim`.
+#[derive(Clone)]
+struct Refs {
+    dim: usize,
+    by_generation: BTreeMap<u64, Vec<serde_json::Value>>,
+}
+
+/// Two generations of a 2×2 grid, each with every shard different, served from loopback; a
+/// store holding A; the reference answers of A and B.
+struct Scenario {
+    refs: Refs,
+    url_b: String,
+    template: PathBuf,
+    tmp: tempfile::TempDir,
+}
+
+impl Scenario {
+    async fn new(dim: usize) -> Scenario {
+        let scene = |g| grid_scene("grid", 2, 2, 6, dim, Dtype::F16, g);
+        let (a, b): (TestScene, TestScene) = (scene(1), scene(2));
+        let tmp = tempfile::tempdir().unwrap();
+        let mut refs = BTreeMap::new();
+        let mut url_b = String::new();
+        for (g, s) in [(1, a), (2, b)] {
+            let server = shard_server(s, None).await;
+            let dir = tmp.path().join(format!("gen{g}"));
+            let store = EdgeStore::open(&dir).unwrap();
+            fetch(&store, &grid_fetch_params(&server.url, 100.0))
+                .await
+                .unwrap();
+            let engine = Engine::load(&store, "grid", false).unwrap();
+            refs.insert(g, answers(&engine, dim));
+            // The server's task lives as long as the test's runtime.
+            url_b = server.url;
+        }
+        assert_ne!(refs[&1], refs[&2], "A and B must answer differently");
+        // The template holds A, plus a folder where one of B's partial downloads goes: the
+        // fetch sets it aside (a damaged entry repaired on the way).
+        let template = tmp.path().join("gen1");
+        {
+            let store = EdgeStore::open(&template).unwrap();
+            let part = store.partial_path("grid", &scene(2).manifest.tiles[1]);
+            std::fs::create_dir_all(part).unwrap();
+        }
+        Scenario {
+            refs: Refs {
+                dim,
+                by_generation: refs,
+            },
+            url_b,
+            template,
+            tmp,
+        }
+    }
+
+    /// A copy of the template store in a new folder under the scenario's.
+    fn copy(&self, name: &str) -> PathBuf {
+        let to = self.tmp.path().join(name);
+        copy_dir(&self.template, &to);
+        to
+    }
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+/// The committed generation's tiles all stored and verified, file by file (independently of
+/// [`StoreCheck`]); `None` when no generation is committed.
+fn committed_complete(store: &EdgeStore) -> Option<bool> {
+    let c = store.committed("grid").ok()?;
+    let mut tiles = c.tiles();
+    let codebook = slag_edge::store::codebook_tile(&c.manifest);
+    tiles.extend(codebook.as_ref());
+    Some(tiles.iter().all(|t| {
+        matches!(
+            store.check_stored(&c.manifest, t).unwrap(),
+            Stored::Verified
+        )
+    }))
+}
+
+/// Opens the store at `dir` as a restart would, checks it and compares its answers with the
+/// references: returns the generation it serves. `at` names the crash point in messages.
+fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
+    let store = EdgeStore::open_existing(dir).unwrap_or_else(|e| panic!("{at}: {e}"));
+    let complete = committed_complete(&store);
+    assert_eq!(
+        complete,
+        Some(true),
+        "{at}: the committed generation is lost or incomplete"
+    );
+    let check = StoreCheck::run(&store, "grid").unwrap_or_else(|e| panic!("{at}: {e}"));
+    assert!(check.problems.is_empty(), "{at}: {:?}", check.problems);
+    let g = check.engine.manifest.generation;
+    let want = refs
+        .by_generation
+        .get(&g)
+        .unwrap_or_else(|| panic!("{at}: generation {g}"));
+    assert!(
+        answers(&check.engine, refs.dim) == *want,
+        "{at}: the answers are not exactly generation {g}'s"
+    );
+    g
+}
+
+/// One fetch of B into `dir`, in this process; then the check passes and B answers.
+async fn repair(s: &Scenario, dir: &Path, at: &str) {
+    let store = EdgeStore::open_existing(dir).unwrap();
+    fetch(&store, &grid_fetch_params(&s.url_b, 100.0))
+        .await
+        .unwrap_or_else(|e| panic!("{at}: repair: {e}"));
+    drop(store);
+    let g = compare_blocking(&s.refs, dir, &format!("{at}, after the repair")).await;
+    assert_eq!(g, 2, "{at}: the repair did not commit B");
+}
+
+/// [`restart_and_compare`] on a blocking thread.
+async fn compare_blocking(refs: &Refs, dir: &Path, at: &str) -> u64 {
+    let (refs, dir, at) = (refs.clone(), dir.to_path_buf(), at.to_string());
+    tokio::task::spawn_blocking(move || restart_and_compare(&refs, &dir, &at))
+        .await
+        .unwrap()
+}
+
+/// The boundary a process stopped at, from its stderr (`… exiting at boundary n (name)`).
+fn stopped_at(stderr: &[u8]) -> Option<String> {
+    let text = String::from_utf8_lossy(stderr);
+    let line = text.lines().find(|l| l.contains("exiting at boundary"))?;
+    let name = line.rsplit_once('(')?.1.strip_suffix(')')?;
+    Some(name.to_string())
+}
+
+/// `slag-edge fetch` of B into `store`: the whole grid, one job, no retries.
+fn fetch_b(s: &Scenario, store: &Path) -> Command {
+    let store = store.display().to_string();
+    let one = ["--jobs", "1", "--retries", "0"];
+    slag_edge_with_log(
+        &[support::fetch_args(&s.url_b, &store, "100"), one.to_vec()].concat(),
+        "error",
+    )
+}
+
+/// Tally of one enumeration: states served after each stop (generation → count), boundary
+/// names stopped at.
+#[derive(Default)]
+struct Tally {
+    served: BTreeMap<u64, usize>,
+    names: BTreeSet<String>,
+    points: usize,
+}
+
+impl Tally {
+    fn report(&self, what: &str, listed: &[String]) {
+        let distinct: BTreeSet<&String> = listed.iter().collect();
+        println!(
+            "crash points of {what}: {} stopped (of {} listed, {} distinct names); after the \
+             restart generation A served {} times, B {} times, mixed or lost 0",
+            self.points,
+            listed.len(),
+            distinct.len(),
+            self.served.get(&1).copied().unwrap_or(0),
+            self.served.get(&2).copied().unwrap_or(0)
+        );
+        for n in &self.names {
+            println!("  {n}");
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
+    let s = Scenario::new(8).await;
+    // Count: one run lists every boundary it passes.
+    let list = s.tmp.path().join("fetch-boundaries.txt");
+    let dir = s.copy("count");
+    let mut counting = fetch_b(&s, &dir);
+    counting.env(LIST_VAR, &list);
+    support::assert_success(&output_blocking(counting).await, "counting run");
+    let listed = read_list(&list).unwrap();
+    let n_points = listed.len();
+    assert!(n_points > 20, "{listed:?}");
+    let mut tally = Tally::default();
+    for n in 1..=n_points {
+        let dir = s.copy(&format!("fetch{n}"));
+        let mut stopped = fetch_b(&s, &dir);
+        stopped.env(EXIT_AT_VAR, n.to_string());
+        let out = output_blocking(stopped).await;
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
+        let name = stopped_at(&out.stderr).unwrap_or_else(|| panic!("n={n}: {err}"));
+        assert_eq!(
+            name,
+            listed[n - 1],
+            "n={n}: the runs pass the boundaries in another order"
+        );
+        let at = format!("fetch stopped at {n} ({name})");
+        let g = compare_blocking(&s.refs, &dir, &at).await;
+        *tally.served.entry(g).or_default() += 1;
+        tally.names.insert(name);
+        tally.points += 1;
+        repair(&s, &dir, &at).await;
+    }
+    tally.report("slag-edge fetch", &listed);
+    // Both sides of the commit were reached: before it A is served, after it B.
+    assert!(tally.served.get(&1).is_some() && tally.served.get(&2).is_some());
+    for must in [
+        "fetch.partial:write",
+        "fetch.partial:fsync",
+        "store.commit_shard:rename",
+        "store.set_aside:rename",
+        "store.manifest_copy:rename",
+        "store.commit_fetch:transaction",
+        "store.evict_shard:remove",
+    ] {
+        assert!(
+            tally.names.contains(must),
+            "{must} never reached: {listed:?}"
+        );
+    }
+    // The check is not vacuous: a committed generation missing one file, or holding one with a
+    // flipped byte, is incomplete and the check names the tile.
+    let dir = s.copy("control");
+    let store = EdgeStore::open_existing(&dir).unwrap();
+    let m = store.current_manifest("grid").unwrap();
+    std::fs::remove_file(store.shard_path("grid", &m.tiles[0]).unwrap()).unwrap();
+    let bent = store.shard_path("grid", &m.tiles[3]).unwrap();
+    let mut bytes = std::fs::read(&bent).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x10;
+    std::fs::write(&bent, bytes).unwrap();
+    assert_eq!(committed_complete(&store), Some(false));
+    let problems = StoreCheck::run(&store, "grid").unwrap().problems;
+    assert_eq!(problems.len(), 2, "{problems:?}");
+    assert!(
+        problems[0].contains("shard 3") && problems[0].contains("corrupt"),
+        "{problems:?}"
+    );
+    assert!(
+        problems[1].contains("shard 0") && problems[1].contains("missing"),
+        "{problems:?}"
+    );
+}
+
+/// A started `slag-edge serve`: the child, its base URL, and the reader of the rest of its
+/// stderr (joined when it ends).
+struct Server {
+    child: std::process::Child,
+    url: String,
+    stderr: std::thread::JoinHandle<Vec<String>>,
+}
+
+/// `slag-edge serve` of the store at `dir` with the color-clip text tower and the variable
+/// `env`, once it listens.
+fn start_serve(dir: &Path, env: (&str, String)) -> Server {
+    let [model, tokenizer] = support::color_clip_text_model();
+    let store = dir.display().to_string();
+    let mut args = support::text_model_args("serve", &store, "grid", [&model, &tokenizer]);
+    args.extend(["--addr", "127.0.0.1:0"]);
+    let mut cmd = slag_edge_with_log(&args, "error");
+    cmd.env(env.0, env.1);
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(child.stderr.take().unwrap()).lines();
+    let url = loop {
+        let line = lines
+            .next()
+            .unwrap_or_else(|| panic!("serve exited before listening"))
+            .unwrap();
+        if let Some(a) = line.split("listening on ").nth(1) {
+            break a.trim().to_string();
+        }
+    };
+    // The rest of stderr (the stop's line) is read until the child ends.
+    let stderr = std::thread::spawn(move || lines.map_while(|l| l.ok()).collect());
+    Server { child, url, stderr }
+}
+
+/// `POST /fetch` of B (the whole grid) to the server at `addr`; `None` when the server died
+/// before it answered.
+async fn post_fetch(addr: &str, url_b: &str) -> Option<u16> {
+    let body = serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "server": url_b});
+    reqwest::Client::new()
+        .post(format!("{addr}/fetch"))
+        .json(&body)
+        .send()
+        .await
+        .ok()
+        .map(|r| r.status().as_u16())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() {
+    if support::skip_without_ort() {
+        return;
+    }
+    // 512-d: the width of the color-clip text tower the server starts with.
+    let s = Scenario::new(512).await;
+    let list = s.tmp.path().join("serve-boundaries.txt");
+    let dir = s.copy("count");
+    let mut server = start_serve(&dir, (LIST_VAR, list.display().to_string()));
+    assert_eq!(post_fetch(&server.url, &s.url_b).await, Some(200));
+    server.child.kill().unwrap();
+    server.child.wait().unwrap();
+    let listed = read_list(&list).unwrap();
+    let n_points = listed.len();
+    assert!(n_points > 20, "{listed:?}");
+    let mut tally = Tally::default();
+    for n in 1..=n_points {
+        let dir = s.copy(&format!("serve{n}"));
+        let Server {
+            mut child,
+            url,
+            stderr,
+        } = start_serve(&dir, (EXIT_AT_VAR, n.to_string()));
+        let answered = post_fetch(&url, &s.url_b).await;
+        let (status, err) = tokio::task::spawn_blocking(move || {
+            (child.wait().unwrap(), stderr.join().unwrap().join("\n"))
+        })
+        .await
+        .unwrap();
+        assert_eq!(answered, None, "n={n}: the server answered: {err}");
+        assert_eq!(status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
+        let name = stopped_at(err.as_bytes()).unwrap_or_else(|| panic!("n={n}: {err}"));
+        let at = format!("serve stopped at {n} ({name})");
+        let g = compare_blocking(&s.refs, &dir, &at).await;
+        *tally.served.entry(g).or_default() += 1;
+        tally.names.insert(name);
+        tally.points += 1;
+        repair(&s, &dir, &at).await;
+    }
+    tally.report("slag-edge serve, POST /fetch", &listed);
+    assert!(tally.served.get(&1).is_some() && tally.served.get(&2).is_some());
+}
