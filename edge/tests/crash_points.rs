@@ -265,7 +265,7 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
     }
     tally.report("slag-edge fetch", &listed);
     // Both sides of the commit were reached: before it A is served, after it B.
-    assert!(tally.served.get(&1).is_some() && tally.served.get(&2).is_some());
+    assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
     for must in [
         "fetch.partial:write",
         "fetch.partial:fsync",
@@ -395,5 +395,5 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         repair(&s, &dir, &at).await;
     }
     tally.report("slag-edge serve, POST /fetch", &listed);
-    assert!(tally.served.get(&1).is_some() && tally.served.get(&2).is_some());
+    assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
 }
