@@ -1,0 +1,156 @@
+//! The Felzenszwalb–Huttenlocher passes (module doc, "Segmentation"): the union-find forest
+//! with each component's size and `Int`, and the two passes over the tiles' edges.
+
+use rayon::prelude::*;
+use slag_common::scene::Gaussians;
+
+use super::graph::{Neighbours, edges_of_tile};
+use super::regions::Regions;
+use super::weights::{Edge, Weigher};
+use super::{SegmentControl, SegmentParams};
+use crate::disjoint_sets::DisjointSets;
+
+/// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
+/// of its minimum spanning tree.
+#[derive(Clone, Copy)]
+pub(super) struct Component {
+    size: u32,
+    int: f32,
+}
+
+/// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
+pub(super) type Forest = DisjointSets<Component>;
+
+impl Forest {
+    /// Every Gaussian of `n` its own component.
+    pub(super) fn singletons(n: usize) -> Self {
+        DisjointSets::new(n, Component { size: 1, int: 0.0 })
+    }
+    /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
+    /// so the result does not depend on anything but the edge order); `Int` of the union is
+    /// the largest of `w` and both sides'.
+    fn join(&mut self, a: u32, b: u32, w: f32) {
+        let (ca, cb) = (self.component(a), self.component(b));
+        let (big, small) = if ca.size > cb.size || (ca.size == cb.size && a < b) {
+            (a, b)
+        } else {
+            (b, a)
+        };
+        let merged = Component {
+            size: ca.size + cb.size,
+            int: ca.int.max(cb.int).max(w),
+        };
+        self.attach(small, big, merged);
+    }
+    /// The merge criterion over `edges` in their order.
+    #[cfg(test)]
+    pub(super) fn criterion_pass(&mut self, edges: &[Edge], tau: f32) {
+        self.criterion_pass_in(edges, tau, None);
+    }
+    /// The merge criterion over `edges` in their order; with `regions`, two components whose
+    /// regions' masks disagree are never joined, and a join merges their profiles.
+    pub(super) fn criterion_pass_in(
+        &mut self,
+        edges: &[Edge],
+        tau: f32,
+        mut regions: Option<&mut Regions>,
+    ) {
+        for e in edges {
+            let (a, b) = (self.find(e.i), self.find(e.j));
+            if a == b {
+                continue;
+            }
+            let w = e.weight();
+            let (ca, cb) = (self.component(a), self.component(b));
+            let ta = ca.int + tau / ca.size as f32;
+            let tb = cb.int + tau / cb.size as f32;
+            if w <= ta.min(tb) && regions.as_deref().is_none_or(|r| r.allows(a, b)) {
+                self.join_regions(a, b, w, regions.as_deref_mut());
+            }
+        }
+    }
+    /// [`Forest::join`], and the profiles of `regions` merged into the new root.
+    fn join_regions(&mut self, a: u32, b: u32, w: f32, regions: Option<&mut Regions>) {
+        self.join(a, b, w);
+        if let Some(r) = regions {
+            let root = self.find(a);
+            r.absorb(root, if root == a { b } else { a });
+        }
+    }
+    /// The minimum-size pass over `edges` in their order.
+    /// Edges that `allowed` refuses are skipped (a mask border).
+    #[cfg(test)]
+    pub(super) fn min_size_pass(
+        &mut self,
+        edges: &[Edge],
+        min_size: usize,
+        allowed: impl Fn(&Edge) -> bool,
+    ) {
+        self.min_size_pass_in(edges, min_size, allowed, None);
+    }
+    /// [`Forest::min_size_pass`]; with `regions`, as [`Forest::criterion_pass_in`].
+    pub(super) fn min_size_pass_in(
+        &mut self,
+        edges: &[Edge],
+        min_size: usize,
+        allowed: impl Fn(&Edge) -> bool,
+        mut regions: Option<&mut Regions>,
+    ) {
+        for e in edges {
+            let (a, b) = (self.find(e.i), self.find(e.j));
+            if a != b
+                && allowed(e)
+                && ((self.component(a).size as usize) < min_size
+                    || (self.component(b).size as usize) < min_size)
+                && regions.as_deref().is_none_or(|r| r.allows(a, b))
+            {
+                self.join_regions(a, b, e.weight(), regions.as_deref_mut());
+            }
+        }
+    }
+}
+
+/// The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc): the forest
+/// (`None` once stopped), the edge count and the border-edge count.
+pub(super) fn merge(
+    g: &Gaussians,
+    p: &SegmentParams,
+    ctl: &SegmentControl,
+    w: &Weigher,
+    nb: &Neighbours,
+    tile_of: &[u32],
+    tiles: usize,
+) -> (Option<Forest>, u64, u64) {
+    let mut forest = Forest::singletons(g.len());
+    let mut regions = w
+        .masks
+        .filter(|_| p.region_veto < 1.0)
+        .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
+    let mut border: Vec<Edge> = Vec::new();
+    let mut edges = 0u64;
+    for t in 0..tiles {
+        let (inner, b) = ctl.run(|| edges_of_tile(t as u32, &g.means, tile_of, nb, w));
+        if ctl.stopped() {
+            return (None, edges, 0);
+        }
+        forest.criterion_pass_in(&inner, p.threshold, regions.as_mut());
+        edges += inner.len() as u64;
+        border.extend(b);
+    }
+    ctl.run(|| border.par_sort_unstable());
+    border.dedup();
+    edges += border.len() as u64;
+    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
+    if p.min_size > 1 {
+        let allowed = |e: &Edge| w.may_absorb(e);
+        for t in 0..tiles {
+            let (inner, _) = ctl.run(|| edges_of_tile(t as u32, &g.means, tile_of, nb, w));
+            if ctl.stopped() {
+                return (None, edges, border.len() as u64);
+            }
+            forest.min_size_pass_in(&inner, p.min_size, allowed, regions.as_mut());
+        }
+        forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
+    }
+    (Some(forest), edges, border.len() as u64)
+}

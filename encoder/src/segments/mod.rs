@@ -1,0 +1,397 @@
+//! Geometric segments of the Gaussians (the paper's prediction-filtering segments): a
+//! Felzenszwalb–Huttenlocher graph segmentation (Felzenszwalb & Huttenlocher, "Efficient
+//! Graph-Based Image Segmentation", IJCV 2004) run, as ScanNet's Segmentator runs it over a mesh,
+//! over a k-nearest-neighbour graph of the Gaussian means (`rstar`).
+//!
+//! # Graph and weights (geometry only, never colour)
+//!
+//! Each Gaussian `i` has a centre `μ_i`, standard deviations `σ_i` (sorted `σ_min ≤ σ_mid ≤
+//! σ_max`, scene units) and a rotation `q_i` (w, x, y, z). Its normal `n_i` is its shortest axis,
+//! `R(q_i) e_argmin σ`, sign-free; its flatness `f_i = 1 − σ_min/σ_mid ∈ [0, 1]` says how well
+//! that normal is defined (a disk: 1, a sphere: 0). Every Gaussian is joined to its
+//! [`SegmentParams::neighbours`] nearest means (ties broken by Gaussian id), edges longer than
+//! [`SegmentParams::max_edge`] dropped. The weight of edge `(i, j)`, `d = |μ_i − μ_j|`,
+//! `r = σ_max`:
+//!
+//! `w = w_n (1 − |n_i·n_j|) min(f_i, f_j) + w_d max(0, d − 2(r_i + r_j)) / (r_i + r_j)
+//!    + w_s |ln(r_i / r_j)|`
+//!
+//! (normal term: Segmentator's `1 − n_i·n_j` made sign-free, as a splat's axis has no side;
+//! distance term: zero while the two splats overlap at 2σ, then the gap in units of their size;
+//! shape term: the ratio of their sizes).
+//!
+//! # Segmentation
+//!
+//! Edges in ascending `(w, i, j)` order; components `C1 ∋ i`, `C2 ∋ j` merge when
+//! `w ≤ min(Int(C1) + τ/|C1|, Int(C2) + τ/|C2|)` (`Int`: the largest weight of the component's
+//! spanning tree, `τ` = [`SegmentParams::threshold`]); then, as Segmentator does, the edges once
+//! more in the same order, merging wherever either side has fewer than
+//! [`SegmentParams::min_size`] Gaussians. Ids are numbered by each segment's smallest Gaussian
+//! id ([`slag_common::segments::canonical_ids`]): the result is deterministic, whatever the
+//! thread count.
+//!
+//! # Region mask profiles (optional veto)
+//!
+//! With a masks' record and [`SegmentParams::region_veto`] below 1, each component also carries
+//! a *mask profile*: its Gaussians' recorded `(view, dominant mask, a_kj)` entries summed per
+//! `(view, mask)` (at most 64 entries, the heaviest kept; ties to the smaller key). The region
+//! disagreement of two profiles is, over the views both hold, `1 − Σ_v W_v · Σ_m min(p_a(m|v),
+//! p_b(m|v)) / Σ_v W_v` with `p(m|v)` a profile's share of its view-`v` weight in mask `m` and
+//! `W_v = min(W_a(v), W_b(v))` (no shared view: no veto). Neither pass joins two components
+//! whose disagreement exceeds the veto. Memory: 8 bytes per profile entry, at most the record's
+//! (64 bytes per Gaussian with 8 slots) plus a vector header per Gaussian. Off by default: on
+//! snowmiku it made more, smaller segments but no purer ones than a smaller minimum size does at
+//! the same count (docs/results/prediction-filtering.md).
+//!
+//! # Bounded memory: tiles with a halo
+//!
+//! The graph is never held whole. The Gaussians are cut into tiles of at most
+//! [`SegmentParams::tile_gaussians`] by median splits on the two world axes of largest extent;
+//! each tile's k-NN is computed over the tile plus a halo of width `max_edge` around it, which
+//! holds every neighbour an edge can reach, so each Gaussian's edges are exactly those of the
+//! whole scene. Per tile, the edges inside it run the merge criterion; the edges that cross a tile
+//! border are kept (a few per border Gaussian) and run it afterwards in a second union-find pass
+//! over the same components (their `Int` and sizes carried over); the minimum-size pass then
+//! goes over each tile's edges again (recomputed, not stored) and the border edges last. Memory:
+//! 40 bytes per Gaussian for the whole scene (means, normals, flatness, size, tile, union-find)
+//! plus one tile's tree and edges and the border edges.
+//!
+//! With one tile this is exactly the algorithm above. With several, it is exactly the same
+//! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
+//! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
+//! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
+
+mod forest;
+mod graph;
+mod regions;
+#[cfg(test)]
+mod tests;
+mod tiles;
+mod weights;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use slag_common::mask_record::MaskRecord;
+use slag_common::scene::Gaussians;
+use slag_common::segments::{Segments, canonical_ids};
+use slag_common::{Error, Result};
+
+use crate::check::require;
+use forest::merge;
+use graph::{neighbour_graph, resolve_max_edge};
+use tiles::plan_tiles;
+use weights::{Weigher, geometry};
+
+/// Settings of the segmentation; [`SegmentParams::default`] are the documented defaults.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SegmentParams {
+    /// Nearest neighbours per Gaussian in the graph, k (default 10).
+    pub neighbours: usize,
+    /// Felzenszwalb–Huttenlocher scale τ: a component of size |C| accepts an edge up to
+    /// `Int(C) + τ/|C|`; larger → larger, fewer segments (default 0.5).
+    pub threshold: f32,
+    /// Segments below this many Gaussians are merged into a neighbour (default 20, as
+    /// Segmentator's `segMinVerts`).
+    pub min_size: usize,
+    /// Longest edge, scene units; also the tiles' halo width. `None` (default): 10 × the median
+    /// of the Gaussians' largest standard deviation.
+    pub max_edge: Option<f32>,
+    /// Weight of the normal term `w_n` (default 1).
+    pub normal_weight: f32,
+    /// Weight of the distance (gap) term `w_d` (default 1).
+    pub distance_weight: f32,
+    /// Weight of the shape (size-ratio) term `w_s` (default 0.1).
+    pub shape_weight: f32,
+    /// Most Gaussians per tile (default 2,000,000); bounds the memory of the k-NN graph.
+    pub tile_gaussians: usize,
+    /// Weight of the mask term `w_m`: an edge whose ends fall in different masks in every view
+    /// that records both gets `w_m` added (default 1; 0: geometry only). Used only with a
+    /// masks' record.
+    pub mask_weight: f32,
+    /// The mask disagreement assumed for an edge whose ends share no recorded view (default
+    /// 0.5: no evidence either way).
+    pub mask_unknown: f32,
+    /// The minimum-size pass does not join across an edge whose mask disagreement exceeds this
+    /// (default 0.5: a border seen in more than half the shared evidence); 1: it joins
+    /// anything, as without masks.
+    pub mask_veto: f32,
+    /// Two segments never join, in either pass, when their *regions'* mask disagreement exceeds
+    /// this (module doc, "Region mask profiles"); default 1: no region veto (on snowmiku it
+    /// gave no purer segments than smaller segments do). Used only with a masks' record.
+    pub region_veto: f32,
+}
+
+impl Default for SegmentParams {
+    fn default() -> Self {
+        SegmentParams {
+            neighbours: 10,
+            threshold: 0.5,
+            min_size: 20,
+            max_edge: None,
+            normal_weight: 1.0,
+            distance_weight: 1.0,
+            shape_weight: 0.1,
+            tile_gaussians: 2_000_000,
+            mask_weight: 1.0,
+            mask_unknown: 0.5,
+            mask_veto: 0.5,
+            region_veto: 1.0,
+        }
+    }
+}
+
+impl SegmentParams {
+    /// Checks every setting.
+    ///
+    /// Errors: [`Error::Param`] naming the setting (`neighbours`, `threshold`, `max_edge`,
+    /// `tile_gaussians`, a weight) when outside its domain.
+    pub fn validate(&self) -> Result<()> {
+        let (k, tau) = (self.neighbours, self.threshold);
+        require(
+            (1..=256).contains(&k),
+            "neighbours",
+            k,
+            "1 to 256 nearest neighbours per Gaussian (e.g. 10)",
+        )?;
+        require(
+            tau.is_finite() && tau >= 0.0,
+            "threshold",
+            tau,
+            "a finite scale τ ≥ 0 (e.g. 0.5)",
+        )?;
+        if let Some(m) = self.max_edge {
+            let ok = m.is_finite() && m > 0.0;
+            require(ok, "max_edge", m, "a positive length in scene units")?;
+        }
+        for (name, w) in [
+            ("normal_weight", self.normal_weight),
+            ("distance_weight", self.distance_weight),
+            ("shape_weight", self.shape_weight),
+            ("mask_weight", self.mask_weight),
+        ] {
+            require(w.is_finite() && w >= 0.0, name, w, "a finite weight ≥ 0")?;
+        }
+        for (name, v) in [
+            ("mask_unknown", self.mask_unknown),
+            ("mask_veto", self.mask_veto),
+            ("region_veto", self.region_veto),
+        ] {
+            require((0.0..=1.0).contains(&v), name, v, "a share in [0, 1]")?;
+        }
+        require(
+            self.tile_gaussians > k,
+            "tile_gaussians",
+            self.tile_gaussians,
+            format!("more than neighbours ({k}) Gaussians per tile"),
+        )
+    }
+}
+
+/// What one segmentation did (for logs and reports).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SegmentStats {
+    /// Gaussians segmented.
+    pub gaussians: usize,
+    /// Segments made.
+    pub segments: u32,
+    /// Tiles the scene was cut into.
+    pub tiles: usize,
+    /// Edges of the graph (each undirected edge once).
+    pub edges: u64,
+    /// Of those, edges across tile borders.
+    pub border_edges: u64,
+    /// The longest edge used (scene units): the given or derived `max_edge`.
+    pub max_edge: f32,
+    /// Slots per Gaussian of the masks' record the edges were weighed with; `None`: geometry
+    /// only.
+    pub mask_record: Option<usize>,
+    /// Wall time, seconds.
+    pub seconds: f64,
+}
+
+/// Where [`segment_with`] runs its parallel stages, and whether it should give up. Another
+/// thread may change both while it runs: the encode that runs a segmentation beside itself
+/// starts it on a small pool, widens it when the encode is done, and stops it when the encode
+/// failed.
+#[derive(Debug, Default)]
+pub struct SegmentControl {
+    stop: AtomicBool,
+    pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
+}
+
+impl SegmentControl {
+    /// Stages on `pool`; `None`: on the pool of the calling thread (rayon's global pool, or the
+    /// one whose `install` runs the caller).
+    pub fn new(pool: Option<rayon::ThreadPool>) -> Self {
+        SegmentControl {
+            stop: AtomicBool::new(false),
+            pool: Mutex::new(pool.map(Arc::new)),
+        }
+    }
+
+    /// The stages that start from now on run on `pool` (those under way finish where they are).
+    pub fn set_pool(&self, pool: rayon::ThreadPool) {
+        *self.pool.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(pool));
+    }
+
+    /// Asks the segmentation to give up: [`segment_with`] returns `Ok(None)` soon after.
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+
+    fn stopped(&self) -> bool {
+        self.stop.load(Ordering::Relaxed)
+    }
+
+    /// Whether [`SegmentControl::stop`] was called.
+    pub fn is_stopped(&self) -> bool {
+        self.stopped()
+    }
+
+    /// Runs `op` on the current pool choice.
+    pub fn run<R: Send>(&self, op: impl FnOnce() -> R + Send) -> R {
+        let pool = self.pool.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        match pool {
+            Some(p) => p.install(op),
+            None => op(),
+        }
+    }
+}
+
+/// Segments the Gaussians of `g` (module doc) and records `source_ply` in the result; with
+/// `masks` (the encode's masks' record of the same `.ply`), the edges carry the mask term.
+///
+/// Runs on the current rayon pool (the global one, or the pool whose `install` calls it); the
+/// result does not depend on its thread count.
+///
+/// Errors: [`Error::Param`] for settings [`SegmentParams::validate`] refuses, a scene of more
+/// than `u32::MAX - 1` Gaussians ([`Error::Limit`]), arrays that disagree ([`Error::Internal`]),
+/// non-finite means ([`Error::Invalid`]), a record of another scene ([`Error::Mismatch`]).
+pub fn segment(
+    g: &Gaussians,
+    p: &SegmentParams,
+    source_ply: &str,
+    masks: Option<Arc<MaskRecord>>,
+) -> Result<(Segments, SegmentStats)> {
+    let ctl = SegmentControl::default();
+    segment_with(g, p, source_ply, &ctl, || masks)?
+        .ok_or_else(|| Error::internal("the segmentation stopped without being asked to"))
+}
+
+/// [`segment`] with its parallel stages on `ctl`'s pool of the moment (the serial union-find
+/// passes run on the calling thread), given up once [`SegmentControl::stop`] was called:
+/// `Ok(None)` then. The stop is looked at between the stages and for every Gaussian of the
+/// k-nearest-neighbour search, so it takes effect within about one union-find pass. The result
+/// is [`segment`]'s, whatever the pools.
+///
+/// `masks` is called once the neighbour graph is built (the k-NN search, the costly part, runs
+/// before): the encode hands over its record there when its last view is done. It may block;
+/// `None`: geometry only.
+///
+/// Errors: those of [`segment`].
+pub fn segment_with(
+    g: &Gaussians,
+    p: &SegmentParams,
+    source_ply: &str,
+    ctl: &SegmentControl,
+    masks: impl FnOnce() -> Option<Arc<MaskRecord>>,
+) -> Result<Option<(Segments, SegmentStats)>> {
+    p.validate()?;
+    let t0 = Instant::now();
+    let n = g.len();
+    check_scene(g)?;
+    let geo = ctl.run(|| geometry(g));
+    if ctl.stopped() {
+        return Ok(None);
+    }
+    let h = resolve_max_edge(p, &geo);
+    let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    let Some(nb) = neighbour_graph(g, p, ctl, h, ax, &tile_of, &rects) else {
+        return Ok(None);
+    };
+    let record = masks();
+    if ctl.stopped() {
+        return Ok(None);
+    }
+    if let Some(r) = &record
+        && r.len() != n
+    {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "the masks' record holds {} Gaussians but the scene has {n}: use the record \
+                 of an encode of this .ply",
+                r.len()
+            ),
+        ));
+    }
+    let w = Weigher {
+        p,
+        geo: &geo,
+        masks: record.as_deref(),
+    };
+    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &nb, &tile_of, rects.len());
+    let mut forest = match forest {
+        Some(f) => f,
+        None => return Ok(None),
+    };
+    let roots: Vec<u32> = (0..n as u32).map(|i| forest.find(i)).collect();
+    let (segments, segment_count) = canonical_ids(&roots);
+    let stats = SegmentStats {
+        gaussians: n,
+        segments: segment_count,
+        tiles: rects.len(),
+        edges,
+        border_edges,
+        max_edge: h,
+        mask_record: record.as_ref().map(|r| r.slots),
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    let parameters = serde_json::to_string(&serde_json::json!({
+        "params": p, "max_edge_used": h, "tiles": rects.len(),
+        "mask_record_slots": record.as_ref().map(|r| r.slots),
+    }))
+    .unwrap_or_default();
+    Ok(Some((
+        Segments {
+            segments,
+            segment_count,
+            source_ply: source_ply.to_string(),
+            parameters,
+        },
+        stats,
+    )))
+}
+
+/// The checks of [`segment`] on the scene's arrays.
+fn check_scene(g: &Gaussians) -> Result<()> {
+    let n = g.len();
+    if n >= u32::MAX as usize {
+        return Err(Error::limit(
+            slag_common::Resource::ShardGaussians,
+            n,
+            u32::MAX - 1,
+        ));
+    }
+    if g.scales.len() != n || g.rotations.len() != n {
+        return Err(Error::internal(format!(
+            "{n} means, {} scales, {} rotations",
+            g.scales.len(),
+            g.rotations.len()
+        )));
+    }
+    if let Some(i) = g
+        .means
+        .iter()
+        .position(|m| m.iter().any(|v| !v.is_finite()))
+    {
+        return Err(Error::Invalid(format!(
+            "mean of Gaussian {i} is not finite"
+        )));
+    }
+    Ok(())
+}
