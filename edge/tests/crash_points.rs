@@ -1,6 +1,7 @@
 //! A crash at every durability boundary of the robot's writes ([`slag_common::fault`]): a store
 //! holds generation A of scene `grid`; a fetch of generation B (every shard new, A's evicted
-//! after the commit, one damaged entry set aside on the way) is stopped at boundary n for every
+//! after the commit, one damaged entry set aside on the way, leftovers of interrupted downloads
+//! and writes cleaned away at the end) is stopped at boundary n for every
 //! n = 1..=N, N counted by one run under `SLAG_FAULT_LIST`. After each stop the store is opened
 //! again, as a restart would, and
 //! - the check of `slag-edge check` ([`StoreCheck`]) passes exactly when the committed generation
@@ -95,6 +96,13 @@ impl Scenario {
             let store = EdgeStore::open(&template).unwrap();
             let part = store.partial_path("grid", &scene(2).manifest.tiles[1]);
             std::fs::create_dir_all(part).unwrap();
+            // Leftovers the fetch cleans away once B is committed: a partial download of an
+            // older generation and the temporary file of an interrupted shard write.
+            std::fs::write(template.join("partial/grid-0-0badc0de.part"), b"old").unwrap();
+            let tmp_file = store
+                .scene_dir("grid")
+                .join("0000000000000000-0badc0de.shard.tmp");
+            std::fs::write(tmp_file, b"half").unwrap();
         }
         Scenario {
             refs: Refs {
@@ -274,6 +282,8 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
         "store.manifest_copy:rename",
         "store.commit_fetch:transaction",
         "store.evict_shard:remove",
+        "store.clean_partials:remove_partial",
+        "store.clean_partials:remove_tmp",
     ] {
         assert!(
             tally.names.contains(must),
