@@ -139,6 +139,19 @@ pub enum Error {
     /// The GPU (wgpu) could not be used or a kernel failed.
     #[error("gpu: {0}")]
     Gpu(String),
+    /// A shard manifest, its signature or a file it lists that the trusted publisher's key does
+    /// not vouch for ([`crate::shards::signature`]): unsigned, signed by another key, changed
+    /// after signing, a tile whose SHA-256 differs from the signed one, or an older generation
+    /// than the one already accepted. `what` says which; nothing of it is used (HTTP 502).
+    #[error("{origin}: refused, {what}: {message}")]
+    Untrusted {
+        /// Which check failed.
+        what: Untrusted,
+        /// The URL or file the refused bytes came from.
+        origin: String,
+        /// What differs, and what to do.
+        message: String,
+    },
     /// A network peer (shard server, Qdrant) could not be reached or answered with an error.
     #[error("{url}: {message}")]
     Network {
@@ -232,7 +245,7 @@ impl Error {
         match self {
             Error::Param { .. } | Error::Query { .. } | Error::Invalid(_) => ErrorKind::UserInput,
             Error::ModelMismatch { .. } | Error::Mismatch { .. } => ErrorKind::Conflict,
-            Error::Network { .. } => ErrorKind::Upstream,
+            Error::Network { .. } | Error::Untrusted { .. } => ErrorKind::Upstream,
             Error::Io { .. }
             | Error::Format { .. }
             | Error::Unsupported { .. }
@@ -248,6 +261,18 @@ impl Error {
     /// ([`ErrorKind::UserInput`]).
     pub fn is_user_input(&self) -> bool {
         self.kind() == ErrorKind::UserInput
+    }
+    /// A refusal of what a trusted key does not vouch for ([`Error::Untrusted`]).
+    pub fn untrusted(
+        what: Untrusted,
+        origin: impl Into<String>,
+        message: impl Into<String>,
+    ) -> Self {
+        Error::Untrusted {
+            what,
+            origin: origin.into(),
+            message: message.into(),
+        }
     }
     /// A model error for `path`.
     pub fn model(path: impl Into<PathBuf>, message: impl Into<String>) -> Self {
@@ -333,6 +358,38 @@ pub enum Mismatched {
     /// The scene: embeddings, pixel weights, ground truth or a manifest made from another scene
     /// (another Gaussian count, an id beyond it). Use the inputs of one `.ply`.
     Scene,
+}
+
+/// Which check of a signed manifest failed ([`Error::Untrusted`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Untrusted {
+    /// No signature where a trusted key requires one (the server has none for the manifest).
+    Unsigned,
+    /// The signature names another key than the trusted one.
+    OtherKey,
+    /// The signature does not verify: the manifest bytes changed after signing, or the
+    /// signature file is damaged.
+    BadSignature,
+    /// A signed manifest that does not name the SHA-256 of every file it lists, so the
+    /// signature would not cover their content.
+    Unhashed,
+    /// A tile (or codebook) whose SHA-256 differs from the one the signed manifest names.
+    ContentHash,
+    /// A signed manifest of an older generation than the one the store already holds (a replay).
+    Replay,
+}
+
+impl std::fmt::Display for Untrusted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Untrusted::Unsigned => "no signature",
+            Untrusted::OtherKey => "signed by another key",
+            Untrusted::BadSignature => "bad signature",
+            Untrusted::Unhashed => "signed manifest without SHA-256",
+            Untrusted::ContentHash => "SHA-256 differs from the signed manifest",
+            Untrusted::Replay => "older generation (replay)",
+        })
+    }
 }
 
 impl std::fmt::Display for Resource {

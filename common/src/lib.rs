@@ -57,4 +57,4 @@ pub mod text;
 pub mod tls;
 pub mod util;
 
-pub use error::{Error, ErrorKind, Mismatched, Resource, Result};
+pub use error::{Error, ErrorKind, Mismatched, Resource, Result, Untrusted};

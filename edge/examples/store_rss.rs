@@ -101,6 +101,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
             count: per_tile as u64,
             bytes: bytes.len() as u64,
             checksum: format!("{:08x}", shard_checksum(&bytes)),
+            sha256: None,
         });
         shards.push(bytes);
     }

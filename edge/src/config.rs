@@ -11,6 +11,7 @@
 //! threshold = 0.28
 //! token_file = "/etc/slag/token"
 //! shard_token_file = "/etc/slag/shard-token"   # POST /fetch's token (else env SLAG_SHARD_TOKEN)
+//! trusted_key = "/etc/slag/manifest-key.pub.pem"  # POST /fetch refuses unsigned maps; check verifies
 //! hnsw = false
 //! hnsw_backend = "instant-distance"   # or "qdrant-edge" (binary built with --features qdrant-edge)
 //! max_scans = 1         # scans at once (each uses every core)
@@ -56,6 +57,9 @@ pub struct ServeConfig {
     /// File holding the shard server's bearer token, sent by `POST /fetch` (else env
     /// `SLAG_SHARD_TOKEN`).
     pub shard_token_file: Option<PathBuf>,
+    /// The publisher's Ed25519 public key (PEM): `POST /fetch` accepts only manifests it signed
+    /// (`crate::fetch::FetchParams::trusted_key`); `check` verifies the store with it.
+    pub trusted_key: Option<PathBuf>,
     /// Build the HNSW index.
     pub hnsw: Option<bool>,
     /// Its backend: `instant-distance` or `qdrant-edge` (parsed by

@@ -28,6 +28,22 @@
 //! 6. shards that no manifest references any more (an older generation) are dropped; shards of the
 //!    current manifest outside the disc are kept unless [`FetchParams::prune`] is set.
 //!
+//! # Signed manifests
+//!
+//! With [`FetchParams::trusted_key`] the manifest must come with the publisher's signature
+//! (`GET {server}/v1/scenes/{scene}/manifest.sig`, [`slag_common::shards::signature`]) over its
+//! exact bytes, which name the generation and every file's SHA-256. Before anything is
+//! downloaded the fetch refuses ([`Error::Untrusted`], naming what failed) a manifest without a
+//! signature, signed by another key, changed after signing, without a SHA-256 for every file,
+//! or of an older generation than the store holds (a replay). Each download is checked against
+//! its SHA-256 before it is committed (a tile rewritten on the way, or another scene's tile,
+//! is refused), and stored files the fetch would keep are hashed too
+//! ([`EdgeStore::check_stored_signed`]). On any refusal nothing of the new generation is
+//! committed: the store keeps its last committed generation. The manifest's bytes and
+//! signature are committed with the generation ([`EdgeStore::commit_fetch_signed`]), so
+//! `slag-edge check` can verify them again offline. Without a trusted key nothing of this is
+//! asked or checked (the manifest's CRC-32s only).
+//!
 //! # Fault injection (tests only)
 //!
 //! Every step of a fetch that changes the disk is a durability boundary of
@@ -37,7 +53,8 @@
 //! `shards/` and the folder syncs (`store.commit_shard:*`, `store.commit_codebook:*`), the
 //! scene folder's creation, a damaged file set aside (`store.set_aside:*`), the manifest and
 //! fetch-record copies (`store.manifest_copy:*`, `store.fetch_record_copy:*`: write, fsync,
-//! rename, folder sync), the sled transaction and flush of the commit
+//! rename, folder sync; for a signed fetch `store.signature_copy:*` too, or its removal by an
+//! unsigned one), the sled transaction and flush of the commit
 //! (`store.commit_fetch:transaction`, `:flush`), each eviction (`store.evict_shard:remove`,
 //! `store.evict_codebook:remove`), each partial file cleaned away and the final flush; and
 //! `fetch:before_commit`, the moment every shard of the new generation is in place and nothing
@@ -71,7 +88,8 @@ use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
 use crate::query::{FrameChoice, answer_frame};
-use crate::store::{EdgeStore, FetchRecord, Stored, codebook_tile, parse_checksum};
+use crate::store::{EdgeStore, FetchRecord, SignedManifest, Stored, codebook_tile, parse_checksum};
+use slag_common::shards::signature::{self, MAX_SIGNATURE_BYTES, TrustedKey};
 
 /// The disc to select, on the manifest's ground plane: `(centre (g0, g1), radius in scene
 /// units, frame name)`. In the map frame (module doc of [`Center`]) the centre is mapped back by
@@ -218,6 +236,10 @@ pub struct FetchParams {
     pub token: Option<String>,
     /// Draw a progress bar on stderr (when it is a terminal).
     pub progress: bool,
+    /// The publisher's public key: only a manifest it signed, and files matching that
+    /// manifest's SHA-256s, are accepted (module doc, "Signed manifests"). `None`: unsigned
+    /// manifests are accepted as they are.
+    pub trusted_key: Option<TrustedKey>,
 }
 
 /// What a fetch did.
@@ -381,29 +403,61 @@ pub async fn fetch_manifest(
     scene: &str,
     token: Option<&str>,
 ) -> Result<Manifest> {
-    let url = url_join(server, &format!("v1/scenes/{scene}/manifest"));
-    let mut req = client.get(&url);
+    fetch_manifest_bytes(client, server, scene, token)
+        .await
+        .map(|(_, m)| m)
+}
+
+/// GETs `url` (with the bearer `token`) and reads its body, refusing more than `cap` bytes
+/// with `too_large(bytes seen)`: streamed with the cap, so a server that sends more is cut off
+/// there, whatever its Content-Length said. Returns the status and the body.
+///
+/// Errors: [`Error::Network`]; `too_large`'s error.
+async fn get_capped(
+    client: &reqwest::Client,
+    url: &str,
+    token: Option<&str>,
+    cap: u64,
+    too_large: impl Fn(u64) -> Error,
+) -> Result<(reqwest::StatusCode, Vec<u8>)> {
+    let mut req = client.get(url);
     if let Some(t) = token {
         req = req.bearer_auth(t);
     }
-    let resp = req.send().await.map_err(|e| net_error(&url, e).error)?;
+    let resp = req.send().await.map_err(|e| net_error(url, e).error)?;
     let status = resp.status();
     if let Some(len) = resp.content_length()
-        && len > MAX_MANIFEST_BYTES
+        && len > cap
     {
-        return Err(manifest_too_large(len, &url));
+        return Err(too_large(len));
     }
-    // Streamed with a cap: a server that sends more than the limit is cut off there, whatever
-    // its Content-Length said.
     let mut body = Vec::new();
     let mut stream = resp.bytes_stream();
     while let Some(chunk) = stream.next().await {
-        let chunk = chunk.map_err(|e| net_error(&url, e).error)?;
-        if (body.len() + chunk.len()) as u64 > MAX_MANIFEST_BYTES {
-            return Err(manifest_too_large((body.len() + chunk.len()) as u64, &url));
+        let chunk = chunk.map_err(|e| net_error(url, e).error)?;
+        if (body.len() + chunk.len()) as u64 > cap {
+            return Err(too_large((body.len() + chunk.len()) as u64));
         }
         body.extend_from_slice(&chunk);
     }
+    Ok((status, body))
+}
+
+/// [`fetch_manifest`], also returning the manifest's bytes exactly as the server sent them
+/// (what a signature covers).
+///
+/// Errors: as [`fetch_manifest`].
+pub async fn fetch_manifest_bytes(
+    client: &reqwest::Client,
+    server: &str,
+    scene: &str,
+    token: Option<&str>,
+) -> Result<(Vec<u8>, Manifest)> {
+    let url = url_join(server, &format!("v1/scenes/{scene}/manifest"));
+    let (status, body) = get_capped(client, &url, token, MAX_MANIFEST_BYTES, |n| {
+        manifest_too_large(n, &url)
+    })
+    .await?;
     if !status.is_success() {
         return Err(status_error(&url, status, &String::from_utf8_lossy(&body)).error);
     }
@@ -420,7 +474,64 @@ pub async fn fetch_manifest(
     for t in &m.tiles {
         parse_checksum(t)?;
     }
-    Ok(m)
+    Ok((body, m))
+}
+
+/// The scene's manifest, and with [`FetchParams::trusted_key`] its verified signature (module
+/// doc, "Signed manifests"): the signature file is fetched, checked against the manifest's
+/// exact bytes, the manifest must name every file's SHA-256, and its generation must not be
+/// older than the one `store` holds.
+///
+/// Errors: as [`fetch_manifest`]; [`Error::Untrusted`] naming the failed check.
+pub async fn fetch_trusted_manifest(
+    client: &reqwest::Client,
+    store: &EdgeStore,
+    p: &FetchParams,
+) -> Result<(Manifest, Option<SignedManifest>)> {
+    let token = p.token.as_deref();
+    let (bytes, manifest) = fetch_manifest_bytes(client, &p.server, &p.scene, token).await?;
+    let Some(key) = &p.trusted_key else {
+        return Ok((manifest, None));
+    };
+    let origin = url_join(&p.server, &format!("v1/scenes/{}/manifest", p.scene));
+    let sig_url = format!("{origin}.sig");
+    let (status, sig) = get_capped(client, &sig_url, token, MAX_SIGNATURE_BYTES, |n| {
+        Error::untrusted(
+            slag_common::Untrusted::BadSignature,
+            &sig_url,
+            format!("{n} bytes, more than a signature file ({MAX_SIGNATURE_BYTES})"),
+        )
+    })
+    .await?;
+    if status == reqwest::StatusCode::NOT_FOUND {
+        return Err(Error::untrusted(
+            slag_common::Untrusted::Unsigned,
+            &origin,
+            format!(
+                "the server has no signature for generation {} ({sig_url} answered 404), and a \
+                 trusted key is required: the publisher has to sign the scene with its key; to \
+                 accept an unsigned map, fetch without a trusted key",
+                manifest.generation
+            ),
+        ));
+    }
+    if !status.is_success() {
+        return Err(status_error(&sig_url, status, &String::from_utf8_lossy(&sig)).error);
+    }
+    key.verify(&bytes, &sig, &origin)?;
+    signature::check_hashes(&manifest, &origin)?;
+    // A stored manifest that no longer parses (a damaged store) does not block the fetch that
+    // repairs it.
+    if let Ok(Some(held)) = store.manifest(&p.scene) {
+        signature::check_generation(&p.scene, held.generation, manifest.generation, &origin)?;
+    }
+    Ok((
+        manifest,
+        Some(SignedManifest {
+            bytes,
+            signature: sig,
+        }),
+    ))
 }
 
 /// Runs a fetch (steps in the module doc). Fetches into one store run one at a time; steps 5
@@ -470,6 +581,10 @@ pub async fn fetch_classified(
         let scene = p.scene.clone();
         let cleaned = tokio::task::spawn_blocking(move || store.clean_partials(&scene, &[])).await;
         match cleaned {
+            // A refusal by the trusted key is reported once, as the error itself.
+            Ok(Ok(n)) if n > 0 && matches!(e, Error::Untrusted { .. }) => {
+                tracing::debug!("removed {n} partial download(s) of scene {}", p.scene)
+            }
             Ok(Ok(n)) if n > 0 => {
                 tracing::warn!(
                     "removed {n} partial download(s) of scene {} after: {e}",
@@ -514,9 +629,10 @@ async fn fetch_inner(
         return Err(Error::param("jobs", 0, "at least 1 download at a time"));
     }
     let client = client(p.timeout)?;
-    let manifest = fetch_manifest(&client, &p.server, &p.scene, p.token.as_deref())
+    let (manifest, signed) = fetch_trusted_manifest(&client, store, p)
         .await
         .inspect_err(|e| *bad_manifest = !matches!(e, Error::Network { .. }))?;
+    let hashed = signed.is_some();
     let (center, scene_radius, frame) = selection_disc(&manifest, p.center, p.radius, p.frame)?;
     let selected = select_tiles(&manifest, p.center, p.radius, p.frame)?;
 
@@ -543,7 +659,7 @@ async fn fetch_inner(
         tokio::task::spawn_blocking(move || {
             let mut out = Vec::with_capacity(tiles.len());
             for t in tiles {
-                let state = match store.check_stored(&manifest, &t)? {
+                let state = match store.check_stored_signed(&manifest, &t, hashed)? {
                     Stored::Damaged { path, why } => {
                         // A load in progress reads the committed generation whole.
                         let _generation = store.lock_generation();
@@ -642,7 +758,7 @@ async fn fetch_inner(
     let (evicted, kept_outside) = {
         let (store, manifest, prune) = (store.clone(), manifest.clone(), p.prune);
         tokio::task::spawn_blocking(move || {
-            commit_and_evict(&store, &manifest, &selected, record, prune)
+            commit_and_evict(&store, &manifest, signed.as_ref(), &selected, record, prune)
         })
         .await
         .map_err(|e| Error::internal(format!("store task failed: {e}")))??
@@ -668,7 +784,8 @@ async fn fetch_inner(
 
 /// Steps 5 and 6 of the module doc under the store's generation lock
 /// ([`EdgeStore::lock_generation`]), so that a load sees the generation before or after, never
-/// between: commits `manifest` with `record` listing the tiles the new generation holds (the
+/// between: commits `manifest` (as `signed`'s bytes with their signature, when fetched with a
+/// trusted key) with `record` listing the tiles the new generation holds (the
 /// disc's `selected`, plus, without `prune`, the manifest's other tiles with a stored file),
 /// then evicts the shards it does not hold: older generations' always, those outside the disc
 /// with `prune`. Returns (shards evicted, tiles kept outside the disc).
@@ -677,6 +794,7 @@ async fn fetch_inner(
 fn commit_and_evict(
     store: &EdgeStore,
     manifest: &Manifest,
+    signed: Option<&SignedManifest>,
     selected: &[TileInfo],
     mut record: FetchRecord,
     prune: bool,
@@ -696,7 +814,7 @@ fn commit_and_evict(
     tiles.sort_unstable();
     record.tiles = Some(tiles);
     boundary("fetch:before_commit");
-    store.commit_fetch(manifest, &record)?;
+    store.commit_fetch_signed(manifest, signed, &record)?;
     let (mut evicted, mut kept_outside) = (0, 0);
     for (tile, checksum, _) in store.stored_shards(&manifest.scene_id)? {
         let in_manifest = current.contains(&(tile, checksum));
@@ -775,6 +893,7 @@ async fn download_tile(
         )
     };
     let part = store.partial_path(&manifest.scene_id, tile);
+    let signed = p.trusted_key.is_some();
     // A folder (or anything but a plain file) where the partial file belongs: set aside.
     if let Ok(m) = tokio::fs::symlink_metadata(&part).await
         && !m.is_file()
@@ -807,9 +926,9 @@ async fn download_tile(
                         (store.clone(), manifest.clone(), tile.clone(), part.clone());
                     tokio::task::spawn_blocking(move || {
                         if is_codebook {
-                            store.commit_codebook_partial(&manifest, &part)
+                            store.commit_codebook_partial_checked(&manifest, &part, signed)
                         } else {
-                            store.commit_partial(&manifest, &tile, &part)
+                            store.commit_partial_checked(&manifest, &tile, &part, signed)
                         }
                     })
                     .await

@@ -123,6 +123,12 @@ struct FetchArgs {
     /// Bearer token of the shard server.
     #[arg(long, env = "SLAG_SHARD_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// The publisher's Ed25519 public key (PEM, `manifest-key.pub.pem` of `slag-shards
+    /// keygen`): refuse a manifest it did not sign, a tile whose SHA-256 differs from the signed
+    /// manifest, and an older generation than the store holds. Without it, unsigned maps are
+    /// accepted.
+    #[arg(long, value_name = "FILE")]
+    trusted_key: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -161,6 +167,11 @@ struct ServeArgs {
     /// SLAG_SHARD_TOKEN).
     #[arg(long)]
     shard_token_file: Option<PathBuf>,
+    /// The publisher's Ed25519 public key (PEM): POST /fetch then refuses what it did not sign
+    /// (as `fetch --trusted-key`), and `check` verifies the stored signature and every stored
+    /// file's SHA-256 with it.
+    #[arg(long, value_name = "FILE")]
+    trusted_key: Option<PathBuf>,
     /// Build the approximate HNSW index at load (queries pick it with index=hnsw).
     #[arg(long)]
     hnsw: bool,
@@ -319,6 +330,7 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
             .transpose()?,
         progress: true,
         frame: a.frame.into(),
+        trusted_key: trusted_key(a.trusted_key.as_deref())?,
     };
     let summary = runtime()?.block_on(slag_edge::fetch::fetch(&store, &params))?;
     if a.json {
@@ -327,6 +339,14 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
         println!("{summary}");
     }
     Ok(())
+}
+
+/// The publisher's public key of `--trusted-key FILE` (or `trusted_key` in the config), if given.
+fn trusted_key(
+    path: Option<&std::path::Path>,
+) -> slag_common::Result<Option<slag_common::shards::signature::TrustedKey>> {
+    path.map(slag_common::shards::signature::TrustedKey::read_pem)
+        .transpose()
 }
 
 /// Everything `serve` needs, resolved from flags over the config file.
@@ -442,6 +462,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let opts = ServeOptions {
         scene,
         token,
+        trusted_key: trusted_key(a.trusted_key.or(c.trusted_key).as_deref())?,
         threshold,
         hnsw,
         hnsw_backend,
@@ -530,8 +551,12 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
             None
         }
     };
-    let check = EdgeStore::open_existing(&r.store)
-        .and_then(|edge| slag_edge::engine::StoreCheck::run(&edge, &r.opts.scene));
+    let mut signature = None;
+    let check = EdgeStore::open_existing(&r.store).and_then(|edge| {
+        let check = slag_edge::engine::StoreCheck::run(&edge, &r.opts.scene)?;
+        signature = Some(edge.verify_signed(&r.opts.scene, r.opts.trusted_key.as_ref()));
+        Ok(check)
+    });
     let mut report = serde_json::json!({
         "text_model": r.text_model,
         "text_load_and_first_prompt_ms": text_ms,
@@ -582,6 +607,9 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
             }
         }
     }
+    if let Some(s) = signature {
+        report["signature"] = signature_report(s, r.opts.trusted_key.as_ref(), &mut problems);
+    }
     report["ok"] = problems.is_empty().into();
     report["problems"] = problems.clone().into();
     println!("{}", serde_json::to_string_pretty(&report)?);
@@ -593,6 +621,56 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
         problems.join("; ")
     );
     Ok(())
+}
+
+/// `check`'s words on the store's signature ([`EdgeStore::verify_signed`]): plainly whether the
+/// committed generation is signed, by which key, and whether `trusted` verified it and every
+/// stored file's SHA-256; a failed verification, or an unsigned store where a key is trusted,
+/// is added to `problems`.
+fn signature_report(
+    check: slag_common::Result<slag_edge::store::SignatureCheck>,
+    trusted: Option<&slag_common::shards::signature::TrustedKey>,
+    problems: &mut Vec<String>,
+) -> serde_json::Value {
+    let (status, detail) = match &check {
+        Err(e) => {
+            problems.push(format!("signature: {e}"));
+            ("refused", e.to_string())
+        }
+        Ok(c) if !c.signed => {
+            let text = "unsigned: the store holds no signature of the publisher, so nothing \
+                        shows that the map is the one published (fetch with --trusted-key to \
+                        require one)";
+            if trusted.is_some() {
+                problems.push(format!(
+                    "the store is unsigned but --trusted-key is given: fetch again with it"
+                ));
+            }
+            ("unsigned", text.to_string())
+        }
+        Ok(c) if !c.verified => (
+            "signed, not verified",
+            format!(
+                "signed by key {}; not verified here: pass --trusted-key to check it",
+                c.key_id.as_deref().unwrap_or("?")
+            ),
+        ),
+        Ok(c) => (
+            "verified",
+            format!(
+                "signed by the trusted key {}; the signature and the SHA-256 of {} stored \
+                 file(s) match",
+                c.key_id.as_deref().unwrap_or("?"),
+                c.files_hashed
+            ),
+        ),
+    };
+    serde_json::json!({
+        "status": status,
+        "detail": detail,
+        "key_id": check.as_ref().ok().and_then(|c| c.key_id.clone()),
+        "files_hashed": check.as_ref().map_or(0, |c| c.files_hashed),
+    })
 }
 
 fn run_query(a: QueryArgs) -> anyhow::Result<()> {
@@ -761,8 +839,37 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             _ => return None,
         },
         Error::Internal(_) => "rerun with --verbose and report the command and its output".into(),
+        Error::Untrusted { what, .. } => untrusted_hint(*what).into(),
         _ => return None,
     })
+}
+
+/// [`hint_for`] of a refusal by the trusted key ([`slag_common::Error::Untrusted`]).
+fn untrusted_hint(what: slag_common::Untrusted) -> &'static str {
+    use slag_common::Untrusted;
+    match what {
+        Untrusted::Unsigned => {
+            "the publisher signs with `slag-shards partition --signing-key` (or `serve \
+             --signing-key`); to accept an unsigned map, fetch without --trusted-key"
+        }
+        Untrusted::OtherKey => {
+            "pass the publisher's public key with --trusted-key (`slag-shards keygen` printed \
+             its key id)"
+        }
+        Untrusted::BadSignature | Untrusted::ContentHash => {
+            "the server's copy is not what the publisher signed: fetch from the publisher's \
+             server (--from) over a path you trust; the store keeps serving its last good \
+             generation"
+        }
+        Untrusted::Unhashed => {
+            "have the publisher partition again with this slag and --signing-key (it writes \
+             every tile's SHA-256)"
+        }
+        Untrusted::Replay => {
+            "the store keeps its newer generation; if the publisher really started a new shard \
+             store, fetch into a new --store"
+        }
+    }
 }
 
 fn run(command: Command) -> anyhow::Result<()> {

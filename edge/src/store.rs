@@ -17,8 +17,10 @@
 //!   an HTTP `Range` request). A download is renamed into `DIR/shards/` only after its full bytes
 //!   match the manifest checksum and decode (both CRCs, header scene/tile/model/dim/dtype) — a
 //!   reader never sees a partial shard;
-//! - `DIR/shards/<scene-hex>/manifest.json` and `fetch.json`: copies of the scene's current
-//!   manifest and [`FetchRecord`], written (atomically) with every completed fetch, from which a
+//!   - `signatures`: key `scene` → the signature file of that manifest, for a fetch with a
+//!     trusted key (module `signed`: the manifest is then kept as the exact bytes served);
+//! - `DIR/shards/<scene-hex>/manifest.json` and `fetch.json` (and `manifest.sig` when signed):
+//!   copies of the scene's current manifest and [`FetchRecord`] (and signature), written (atomically) with every completed fetch, from which a
 //!   damaged database is rebuilt ([`EdgeStore::open`]: when sled reports its files damaged, the
 //!   database is set aside and a new one refilled; a database that opens holding no scene, as
 //!   sled leaves one whose data file was garbage, is refilled too);
@@ -66,8 +68,10 @@ use slag_common::shards::{
 use slag_common::{Error, Result};
 
 mod regular;
+mod signed;
 pub use regular::read_regular;
 use regular::{Opened, db_not_regular, open_regular};
+pub use signed::{SignatureCheck, SignedManifest};
 
 /// sled page-cache size of the edge store (bytes). sled holds only manifests and fetch records.
 pub const SLED_CACHE_BYTES: u64 = 8 * 1024 * 1024;
@@ -370,6 +374,7 @@ pub fn codebook_tile(manifest: &Manifest) -> Option<TileInfo> {
         count: m.atoms as u64,
         bytes: m.codebook_bytes,
         checksum: m.codebook_checksum.clone(),
+        sha256: m.codebook_sha256.clone(),
     })
 }
 
@@ -743,6 +748,7 @@ impl EdgeStore {
             }
             self.manifests.insert(key, bytes).map_err(|e| self.err(e))?;
             boundary("store.rebuild:insert_manifest");
+            self.restore_signature(&folder, key)?;
             if let Ok(Some(r)) = read_regular(
                 &folder.join(FETCH_COPY),
                 MAX_MANIFEST_BYTES,
@@ -962,8 +968,24 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`]; `part` is left for the caller to discard), file
     /// I/O.
     pub fn commit_codebook_partial(&self, manifest: &Manifest, part: &Path) -> Result<()> {
+        self.commit_codebook_partial_checked(manifest, part, false)
+    }
+
+    /// [`Self::commit_codebook_partial`], first checking the codebook's SHA-256 against a
+    /// signed manifest when `signed`.
+    ///
+    /// Errors: as [`Self::commit_codebook_partial`]; [`Error::Untrusted`] for another SHA-256.
+    pub fn commit_codebook_partial_checked(
+        &self,
+        manifest: &Manifest,
+        part: &Path,
+        signed: bool,
+    ) -> Result<()> {
         let max = manifest.mixture.as_ref().map_or(0, |m| m.codebook_bytes);
         let bytes = read_partial(part, max)?;
+        if signed && let Some(t) = codebook_tile(manifest) {
+            signed::check_download(manifest, &t, &bytes)?;
+        }
         verify_codebook(manifest, &bytes)?;
         drop(bytes);
         let Some(path) = self.codebook_path(manifest)? else {
@@ -1204,7 +1226,24 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; `part` is left for the
     /// caller to discard) or file I/O ([`Error::Io`]).
     pub fn commit_partial(&self, manifest: &Manifest, tile: &TileInfo, part: &Path) -> Result<()> {
+        self.commit_partial_checked(manifest, tile, part, false)
+    }
+
+    /// [`Self::commit_partial`], first checking the shard's SHA-256 against a signed manifest
+    /// when `signed` (before its CRC-32, so that any other bytes are named as such).
+    ///
+    /// Errors: as [`Self::commit_partial`]; [`Error::Untrusted`] for another SHA-256.
+    pub fn commit_partial_checked(
+        &self,
+        manifest: &Manifest,
+        tile: &TileInfo,
+        part: &Path,
+        signed: bool,
+    ) -> Result<()> {
         let bytes = read_partial(part, tile.bytes)?;
+        if signed {
+            signed::check_download(manifest, tile, &bytes)?;
+        }
         verify_any_shard(manifest, tile, &bytes)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;
@@ -1252,30 +1291,7 @@ impl EdgeStore {
     ///
     /// Errors: store I/O, an aborted transaction ([`Error::Internal`]).
     pub fn commit_fetch(&self, manifest: &Manifest, record: &FetchRecord) -> Result<()> {
-        use sled::Transactional;
-        let m = manifest.to_json();
-        let r = serde_json::to_vec(record).unwrap_or_default();
-        let dir = self.ensure_scene_dir(&manifest.scene_id)?;
-        write_atomic(&dir.join(MANIFEST_COPY), "store.manifest_copy", &m)?;
-        write_atomic(&dir.join(FETCH_COPY), "store.fetch_record_copy", &r)?;
-        let key = manifest.scene_id.as_bytes();
-        (&self.manifests, &self.fetches)
-            .transaction(|(tm, tf)| {
-                tm.insert(key, m.as_slice())?;
-                tf.insert(key, r.as_slice())?;
-                Ok::<(), sled::transaction::ConflictableTransactionError<()>>(())
-            })
-            .map_err(|e| match e {
-                sled::transaction::TransactionError::Storage(e) => self.err(e),
-                sled::transaction::TransactionError::Abort(()) => {
-                    Error::internal("store transaction aborted")
-                }
-            })?;
-        boundary("store.commit_fetch:transaction");
-        self.db.flush().map_err(|e| self.err(e))?;
-        boundary("store.commit_fetch:flush");
-        self.commits.fetch_add(1, Ordering::SeqCst);
-        Ok(())
+        self.commit_fetch_signed(manifest, None, record)
     }
 
     /// Stored shards of `scene` as `(tile id, checksum, bytes on disk)`, in no particular order.

@@ -205,6 +205,7 @@ async fn hostile_ids_and_checksums_never_leave_the_partial_folder() {
             count: 1,
             bytes: 1,
             checksum: checksum.into(),
+            sha256: None,
         };
         let p = store.partial_path(scene, &t);
         assert_eq!(p.parent(), Some(partial.as_path()), "{p:?}");

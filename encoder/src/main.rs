@@ -52,6 +52,8 @@ enum Command {
     Serve(slag_shards::cli::ServeArgs),
     /// Write a scene's manifest.json + shard files for any static host or object store.
     Export(slag_shards::cli::ExportArgs),
+    /// Write a new Ed25519 key pair for signing manifests (--signing-key).
+    Keygen(slag_shards::cli::KeygenArgs),
     /// Geometric segments of a scene's Gaussians (Felzenszwalb–Huttenlocher over a k-NN graph
     /// of the means, geometry only) -> segments.safetensors, without re-encoding.
     Segment(cli::segment::SegmentCmdArgs),
@@ -110,6 +112,7 @@ fn main() -> std::process::ExitCode {
         Command::Partition(a) => slag_shards::cli::run_partition(a),
         Command::Serve(a) => slag_shards::cli::run_serve(a),
         Command::Export(a) => slag_shards::cli::run_export(a),
+        Command::Keygen(a) => slag_shards::cli::run_keygen(a),
         Command::SynthScene(a) => cli::synthetic::run(a).and_then(|o| print_json(&o)),
         Command::Segment(a) => cli::segment::run(a).and_then(|o| print_json(&o)),
     };

@@ -116,6 +116,7 @@ pub fn robot_fetch_params(shard_url: &str) -> slag_edge::fetch::FetchParams {
         timeout: std::time::Duration::from_secs(30),
         token: None,
         progress: false,
+        trusted_key: None,
         frame: Default::default(),
     }
 }
@@ -209,6 +210,7 @@ pub fn robot_path_with(
         qdrant_int8: false,
         qdrant_snapshot_per_tile: false,
         qdrant_api_key: None,
+        signing_key: None,
     })
     .expect("partition");
     rt.block_on(async {

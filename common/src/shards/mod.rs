@@ -6,6 +6,8 @@
 //!   [`TileIndex::select_tiles`] (closed-disc radius selection on the ground plane);
 //! - [`mixture`]: mixture shards (codebook atom indices and weights per Gaussian, format
 //!   version 2) and the scene's codebook file;
+//! - [`signature`]: the publisher's Ed25519 key pair, detached manifest signatures and the
+//!   SHA-256 of every listed file;
 //! - [`frame`]: the scene-to-map similarity transform ([`SceneToMap`]) recorded in the manifest;
 //! - [`synthetic`]: deterministic synthetic scenes for tests and scale measurements;
 //! - [`GaussianSource`]: what partitioning reads (implemented by
@@ -15,6 +17,7 @@ pub(crate) mod eigen;
 pub mod format;
 pub mod frame;
 pub mod mixture;
+pub mod signature;
 pub mod synthetic;
 pub mod tiles;
 

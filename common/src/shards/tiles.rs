@@ -213,6 +213,12 @@ pub struct TileInfo {
     pub bytes: u64,
     /// CRC-32 of the whole shard ([`super::shard_checksum`]), 8 lowercase hex digits.
     pub checksum: String,
+    /// SHA-256 of the whole shard, 64 lowercase hex digits ([`super::signature::sha256_hex`]):
+    /// what a signed manifest vouches for. Absent in manifests written before it existed (and
+    /// not written then): readers that predate it ignore it; a fetch with a trusted key refuses
+    /// a signed manifest without it ([`super::signature::check_hashes`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sha256: Option<String>,
 }
 
 impl TileInfo {
@@ -254,6 +260,10 @@ pub struct MixtureInfo {
     /// CRC-32 of the whole codebook file ([`super::shard_checksum`]), 8 lowercase hex digits;
     /// every shard's header names the same value.
     pub codebook_checksum: String,
+    /// SHA-256 of the whole codebook file, 64 lowercase hex digits, as
+    /// [`TileInfo::sha256`] (absent in manifests written before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub codebook_sha256: Option<String>,
 }
 
 /// The scene's shard catalogue (`manifest.json`, `GET /v1/scenes/{scene}/manifest`).
@@ -647,6 +657,7 @@ mod tests {
             count: 1,
             bytes: 1,
             checksum: String::new(),
+            sha256: None,
         }
     }
 
@@ -716,6 +727,7 @@ mod tests {
             atoms: 300,
             codebook_bytes: 0,
             codebook_checksum: "0badf00d".into(),
+            codebook_sha256: None,
         });
         for m in [manifest(None), manifest(mixture)] {
             Manifest::from_json(&m.to_json(), "t").expect("a set");
@@ -761,6 +773,7 @@ mod tests {
                 atoms: 300,
                 codebook_bytes: 0,
                 codebook_checksum: "0badf00d".into(),
+                codebook_sha256: None,
             })),
         ] {
             Manifest::from_json(&m.to_json(), "t").expect("the writers' sizes");
@@ -830,6 +843,7 @@ mod tests {
             atoms: 300,
             codebook_bytes: 0,
             codebook_checksum: "0badf00d".into(),
+            codebook_sha256: None,
         };
         let mix = manifest(Some(info));
         let back = Manifest::from_json(&mix.to_json(), "t").expect("v2");

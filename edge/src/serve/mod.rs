@@ -17,7 +17,10 @@
 //!   "frame": "map" | "scene"}` (map metres by default when the manifest has a transform) → fetches
 //!   from the server of the last fetch (or `"server"`; with the body's `"token"`, else
 //!   [`ServeOptions::shard_token`]) into the store this process holds, then
-//!   reloads; `POST /reload` reloads the store.
+//!   reloads; `POST /reload` reloads the store. With [`ServeOptions::trusted_key`] the fetch
+//!   accepts only what the publisher signed ([`crate::fetch`], "Signed manifests"): a refusal
+//!   is answered 502 naming the failed check, logged as one error line, counted in `/stats`
+//!   (`fetch_refusals`, `last_refusal`), and the scene served before keeps answering.
 //!
 //! Bad parameters → 400 naming the field; a missing/wrong bearer token (when configured) → 401;
 //! bodies over [`MAX_BODY_BYTES`] → 413; requests over the timeout → 408; a method a route does
@@ -116,6 +119,9 @@ pub struct ServeOptions {
     /// Bearer token `POST /fetch` sends to the shard server when its body gives none (`None`:
     /// no token).
     pub shard_token: Option<String>,
+    /// The publisher's public key `POST /fetch` requires signatures of
+    /// ([`FetchParams::trusted_key`]); `None`: unsigned maps are accepted.
+    pub trusted_key: Option<slag_common::shards::signature::TrustedKey>,
 }
 
 impl std::fmt::Debug for ServeOptions {
@@ -133,6 +139,10 @@ impl std::fmt::Debug for ServeOptions {
             .field("max_matches", &self.max_matches)
             .field("limits", &self.limits)
             .field("shard_token", &secret(&self.shard_token))
+            .field(
+                "trusted_key",
+                &self.trusted_key.as_ref().map(|k| k.key_id()),
+            )
             .finish()
     }
 }
@@ -155,6 +165,7 @@ impl ServeOptions {
             max_matches: DEFAULT_MAX_MATCHES,
             limits: ServerLimits::default(),
             shard_token: None,
+            trusted_key: None,
         }
     }
 
@@ -319,6 +330,37 @@ pub struct AppState {
     started: Instant,
     fetching: tokio::sync::Mutex<()>,
     admission: Admission,
+    refusals: Refusals,
+}
+
+/// Fetches refused because the trusted key did not vouch for what the server sent
+/// ([`Error::Untrusted`]), for `/stats`.
+#[derive(Default)]
+struct Refusals {
+    count: AtomicU64,
+    last: std::sync::Mutex<Option<String>>,
+}
+
+impl Refusals {
+    /// Counts `e` and keeps its message as the last refusal; logs it as one error line.
+    fn note(&self, scene: &str, e: &Error) {
+        tracing::error!("fetch of scene {scene} refused, still serving the generation before: {e}");
+        self.count.fetch_add(1, Ordering::Relaxed);
+        *self
+            .last
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(e.to_string());
+    }
+
+    /// `{"fetch_refusals": n, "last_refusal": message | null}`.
+    fn stats(&self) -> (u64, Option<String>) {
+        let last = self
+            .last
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone();
+        (self.count.load(Ordering::Relaxed), last)
+    }
 }
 
 impl AppState {
@@ -361,6 +403,7 @@ impl AppState {
             fetching: tokio::sync::Mutex::new(()),
             web_dir: None,
             admission: Admission::new(opts.max_scans, opts.scan_queue),
+            refusals: Refusals::default(),
             opts,
         })
     }
@@ -569,6 +612,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         r.server = slag_common::auth::redact_url(&r.server).into_owned();
     }
     let n = e.store.len();
+    let (fetch_refusals, last_refusal) = state.refusals.stats();
     axum::Json(serde_json::json!({
         "scene": state.opts.scene,
         "generation": e.manifest.generation,
@@ -591,6 +635,9 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         },
         "store_disk_bytes": disk,
         "last_fetch": record,
+        "signed_fetches": state.opts.trusted_key.as_ref().map(|k| k.key_id()),
+        "fetch_refusals": fetch_refusals,
+        "last_refusal": last_refusal,
         "queries_served": state.queries.load(Ordering::Relaxed),
         "requests_rejected": state.rejected.load(Ordering::Relaxed),
         "prompt_cache_entries": state.text.cached(),
@@ -985,8 +1032,14 @@ async fn fetch_post(
         token: b.token.or_else(|| state.opts.shard_token.clone()),
         progress: false,
         frame,
+        trusted_key: state.opts.trusted_key.clone(),
     };
     let fetched = fetch::fetch_classified(&state.edge, &params).await;
+    if let Err(f) = &fetched
+        && matches!(f.error, Error::Untrusted { .. })
+    {
+        state.refusals.note(&state.opts.scene, &f.error);
+    }
     // What the shard server sent as its manifest cannot be used: its fault (502), not this
     // side's.
     if let Err(FetchFailure {

@@ -147,6 +147,7 @@ fn grid_scene_with(grid: Grid, segment_of: Option<&dyn Fn(u32) -> u32>) -> TestS
                 count: per_tile as u64,
                 bytes: bytes.len() as u64,
                 checksum: format!("{:08x}", shard_checksum(&bytes)),
+                sha256: Some(slag_common::shards::signature::sha256_hex(&bytes)),
             });
             shards.insert(id, bytes);
         }
@@ -191,6 +192,9 @@ pub struct ServerState {
     pub slow: Mutex<Option<(usize, std::time::Duration)>>,
     /// Tile → send this many bytes of every response, then stall (never finish, never close).
     pub stall: Mutex<HashMap<u64, usize>>,
+    /// The body of `GET .../manifest.sig` (404 when `None`): a signature of the manifest's
+    /// `to_json()` bytes, which the manifest route sends.
+    pub signature: RwLock<Option<Vec<u8>>>,
 }
 
 pub struct ShardServer {
@@ -208,9 +212,11 @@ pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServe
         token,
         slow: Mutex::new(None),
         stall: Mutex::new(HashMap::new()),
+        signature: RwLock::new(None),
     });
     let app = axum::Router::new()
         .route("/v1/scenes/{scene}/manifest", get(manifest))
+        .route("/v1/scenes/{scene}/manifest.sig", get(manifest_signature))
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
         .with_state(state.clone());
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -249,6 +255,17 @@ async fn manifest(
         return (StatusCode::NOT_FOUND, "no such scene").into_response();
     }
     s.manifest.to_json().into_response()
+}
+
+async fn manifest_signature(
+    State(state): State<Arc<ServerState>>,
+    Path(scene): Path<String>,
+) -> Response {
+    let known = state.scene.read().unwrap().manifest.scene_id == scene;
+    match state.signature.read().unwrap().clone() {
+        Some(sig) if known => sig.into_response(),
+        _ => (StatusCode::NOT_FOUND, "no signature").into_response(),
+    }
 }
 
 async fn shard(
@@ -564,6 +581,7 @@ pub fn grid_fetch_params(url: &str, radius: f64) -> FetchParams {
         timeout: Duration::from_secs(10),
         token: None,
         progress: false,
+        trusted_key: None,
         frame: Default::default(),
     }
 }

@@ -1,5 +1,5 @@
-//! `partition`, `serve` and `export` subcommands (clap `Args` + run functions), shared by the
-//! `slag-shards` binary and `slag-encoder` (same names and flags).
+//! `partition`, `serve`, `export` and `keygen` subcommands (clap `Args` + run functions), shared
+//! by the `slag-shards` binary and `slag-encoder` (same names and flags).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -13,8 +13,9 @@ use crate::partition::{
     DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice, mixture_layout,
     resolve_max_per_shard, resolve_mixture_max_per_shard, shard_layout, storage_report,
 };
-use crate::store::{ShardStore, partition_into_store, partition_mixture_into_store};
+use crate::store::{ShardStore, partition_into_store_signed, partition_mixture_into_store_signed};
 use slag_common::mixture::MixtureEmbeddings;
+use slag_common::shards::signature::SigningKey;
 
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
 #[derive(Debug, Clone, clap::Args)]
@@ -119,6 +120,11 @@ pub struct PartitionArgs {
     /// Qdrant API key.
     #[arg(long, env = "QDRANT_API_KEY", hide_env_values = true)]
     pub qdrant_api_key: Option<String>,
+    /// Sign the manifest with this Ed25519 private key (PKCS#8 PEM, from `keygen`): the
+    /// signature is stored with the generation and served as `manifest.sig`, so robots that
+    /// trust the public key (`slag-edge fetch --trusted-key`) refuse anything else.
+    #[arg(long, value_name = "FILE")]
+    pub signing_key: Option<PathBuf>,
 }
 
 impl PartitionArgs {
@@ -252,6 +258,7 @@ fn partition_source(
 ) -> anyhow::Result<(Manifest, StorageReport)> {
     let layout = shard_layout(src, &args.scene, args.dtype);
     let max_per_shard = resolve_max_per_shard(&layout, args.shard_cap()?)?;
+    let key = load_signing_key(args.signing_key.as_deref())?;
     let store = &ShardStore::open(&args.store)?;
     let params = PartitionParams {
         scene_id: args.scene.clone(),
@@ -260,7 +267,7 @@ fn partition_source(
         dtype: args.dtype,
         to_map,
     };
-    let m = partition_into_store(store, src, &params).context("partition")?;
+    let m = partition_into_store_signed(store, src, &params, key.as_ref()).context("partition")?;
     let report = report_partition(args, store, &m, scene_gaussians)?;
     Ok((m, report))
 }
@@ -271,8 +278,12 @@ fn partition_source(
 /// Errors: unreadable embeddings, invalid parameters (a `--max-shard-mb` smaller than one
 /// Gaussian's shard, `--max-per-shard 0`), store failures.
 pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
-    // Reject a bad --max-shard-mb before reading a large input.
+    // Reject a bad --max-shard-mb or signing key before reading a large input.
     args.shard_cap()?;
+    if let Some(p) = &args.signing_key {
+        SigningKey::read_pem(p)?;
+        warn_if_readable(p);
+    }
     if let Some(spec) = &args.synthetic {
         return run_partition_synthetic(args, spec);
     }
@@ -433,6 +444,7 @@ fn partition_mixture_source(
 ) -> anyhow::Result<(Manifest, StorageReport)> {
     let layout = mixture_layout(src, &args.scene, mix.keep);
     let max_per_shard = resolve_mixture_max_per_shard(&layout, args.shard_cap()?)?;
+    let key = load_signing_key(args.signing_key.as_deref())?;
     let store = &ShardStore::open(&args.store)?;
     let params = PartitionParams {
         scene_id: args.scene.clone(),
@@ -441,7 +453,8 @@ fn partition_mixture_source(
         dtype: Dtype::F16,
         to_map,
     };
-    let m = partition_mixture_into_store(store, src, mix, &params).context("partition")?;
+    let m = partition_mixture_into_store_signed(store, src, mix, &params, key.as_ref())
+        .context("partition")?;
     let report = report_partition(args, store, &m, scene_gaussians)?;
     Ok((m, report))
 }
@@ -555,6 +568,11 @@ pub struct ServeArgs {
     /// answered 429 and closed.
     #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS_PER_IP)]
     pub max_connections_per_ip: usize,
+    /// Sign every manifest served (`GET /v1/scenes/{scene}/manifest.sig`) with this Ed25519
+    /// private key (PKCS#8 PEM, from `keygen`), also those partitioned unsigned; stored
+    /// signatures are then not served. Without it, stored signatures are served.
+    #[arg(long, value_name = "FILE")]
+    pub signing_key: Option<PathBuf>,
 }
 
 impl ServeArgs {
@@ -622,6 +640,10 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
         tls.is_some(),
         args.allow_plain_http,
     )?;
+    let key = load_signing_key(args.signing_key.as_deref())?;
+    if let Some(p) = &args.signing_key {
+        warn_if_readable(p);
+    }
     let store = ShardStore::open(&args.store)?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
     let guarded = if token.is_some() {
@@ -630,13 +652,18 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
         ""
     };
     let scheme = if tls.is_some() { "https" } else { "http" };
-    rt.block_on(crate::serve::serve_with_tls(
+    let signed = match &key {
+        Some(k) => format!(", manifests signed by key {}", k.key_id()),
+        None => String::new(),
+    };
+    rt.block_on(crate::serve::serve_with_tls_signed(
         store,
         args.bind,
         token,
         limits,
         tls,
-        |a| println!("serving on {scheme}://{a}/v1/scenes{guarded}"),
+        key,
+        |a| println!("serving on {scheme}://{a}/v1/scenes{guarded}{signed}"),
     ))?;
     Ok(())
 }
@@ -655,14 +682,22 @@ pub struct ExportArgs {
     /// Replace an existing output folder.
     #[arg(long)]
     pub force: bool,
+    /// Write `manifest.sig` signed with this Ed25519 private key (PKCS#8 PEM, from `keygen`)
+    /// instead of the signature stored with the generation.
+    #[arg(long, value_name = "FILE")]
+    pub signing_key: Option<PathBuf>,
 }
 
 /// Runs `export`.
 ///
 /// Errors: unknown scene, existing folder without --force, I/O.
 pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
+    let key = load_signing_key(args.signing_key.as_deref())?;
+    if let Some(p) = &args.signing_key {
+        warn_if_readable(p);
+    }
     let store = ShardStore::open(&args.store)?;
-    let m = crate::export::export(&store, &args.scene, &args.dir, args.force)?;
+    let m = crate::export::export_signed(&store, &args.scene, &args.dir, args.force, key.as_ref())?;
     println!(
         "exported {} shards of {} (generation {}) to {}",
         m.tiles.len(),
@@ -671,6 +706,48 @@ pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
         args.dir.display()
     );
     Ok(())
+}
+
+/// `slag-shards keygen`: a new Ed25519 key pair for signing manifests.
+#[derive(Debug, Clone, clap::Args)]
+pub struct KeygenArgs {
+    /// Folder to write `manifest-key.pem` (private, mode 0600: keep it on the publisher) and
+    /// `manifest-key.pub.pem` (public: give it to the robots) into; created if missing. Existing
+    /// key files are never overwritten.
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// Runs `keygen`: writes the pair and prints both paths and the key id.
+///
+/// Errors: key files already in the folder ([`slag_common::Error::Param`] `key_out`), I/O.
+pub fn run_keygen(args: &KeygenArgs) -> anyhow::Result<()> {
+    let files = slag_common::shards::signature::keygen(&args.out)?;
+    println!(
+        "key {}: private key {} (mode 0600, keep it on the publisher: partition / serve / \
+         export --signing-key), public key {} (for the robots: slag-edge --trusted-key)",
+        files.key_id,
+        files.private.display(),
+        files.public.display()
+    );
+    Ok(())
+}
+
+/// The private key of a `--signing-key` flag, if given.
+///
+/// Errors: as [`SigningKey::read_pem`].
+fn load_signing_key(path: Option<&std::path::Path>) -> slag_common::Result<Option<SigningKey>> {
+    path.map(SigningKey::read_pem).transpose()
+}
+
+/// Logs a warning when the private key file at `path` may be read by other users.
+fn warn_if_readable(path: &std::path::Path) {
+    if let Some(mode) = slag_common::shards::signature::readable_by_others(path) {
+        tracing::warn!(
+            "{}: the private signing key may be read by other users (mode {mode:o}); chmod 600 it",
+            path.display()
+        );
+    }
 }
 
 /// What the command line adds to an error of the shard stage (`e` or an error it wraps): the
@@ -708,6 +785,7 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                      (--bind 127.0.0.1:PORT), or --allow-plain-http to send the token in clear \
                      text anyway"
                 }
+                "key_out" => "another --out DIR (keygen never overwrites a key pair)",
                 _ => return None,
             };
             Some(format!("pass {flag}"))

@@ -4,7 +4,10 @@
 //! Layout: `DIR/manifest.json` (the same JSON as `GET /v1/scenes/{scene}/manifest`) and
 //! `DIR/shards/{id}` (the same bytes as `GET /v1/scenes/{scene}/shards/{id}`), plus, for a
 //! mixture scene, `DIR/codebook` (`GET /v1/scenes/{scene}/codebook`), so serving `DIR` at
-//! `/v1/scenes/{scene}/` reproduces the shard URLs.
+//! `/v1/scenes/{scene}/` reproduces the shard URLs. `manifest.json` holds the exact bytes the
+//! store holds; beside it `DIR/manifest.sig` (`GET /v1/scenes/{scene}/manifest.sig`) is their
+//! signature: the one stored with a signed generation, or a new one by the export's own signing
+//! key when given ([`export_signed`]); no `manifest.sig` for an unsigned scene without a key.
 //!
 //! Atomic: everything is written into a hidden sibling `.DIR.partial-<pid>` (each file fsynced,
 //! `manifest.json` last), then renamed to `DIR`. A killed export leaves at most that hidden
@@ -14,6 +17,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use slag_common::shards::signature::SigningKey;
 use slag_common::shards::{Manifest, shard_checksum};
 use slag_common::{Error, Result};
 
@@ -47,13 +51,31 @@ fn sibling(dir: &Path, tag: &str) -> Result<PathBuf> {
 /// during export or is corrupted; [`Error::Format`]), I/O. On error nothing is left at `dir`
 /// (or the previous `dir` is unchanged) and the temporary folder is removed.
 pub fn export(store: &ShardStore, scene: &str, dir: &Path, force: bool) -> Result<Manifest> {
-    let manifest = store.manifest(scene)?.ok_or_else(|| {
+    export_signed(store, scene, dir, force, None)
+}
+
+/// [`export`], the manifest signed with `key` when given (module doc).
+///
+/// Errors: as [`export`].
+pub fn export_signed(
+    store: &ShardStore,
+    scene: &str,
+    dir: &Path,
+    force: bool,
+    key: Option<&SigningKey>,
+) -> Result<Manifest> {
+    let stored = store.stored_manifest(scene)?.ok_or_else(|| {
         Error::param(
             "scene",
             format!("{scene:?}"),
             "a scene of the store (partition it into the store first)",
         )
     })?;
+    let manifest = Manifest::from_json(&stored.bytes, &format!("store manifest {scene}"))?;
+    let signature = match key {
+        Some(k) => Some(k.sign(&stored.bytes).to_json()),
+        None => stored.signature.as_ref().map(|s| s.to_vec()),
+    };
     if dir.exists() && !force {
         return Err(Error::io(
             dir,
@@ -70,14 +92,22 @@ pub fn export(store: &ShardStore, scene: &str, dir: &Path, force: bool) -> Resul
     if tmp.exists() {
         std::fs::remove_dir_all(&tmp).map_err(|e| Error::io(&tmp, e))?;
     }
-    let result = write_tree(store, &manifest, &tmp).and_then(|_| publish(&tmp, dir));
+    let signed = (stored.bytes.as_ref(), signature.as_deref());
+    let result = write_tree(store, &manifest, signed, &tmp).and_then(|_| publish(&tmp, dir));
     if result.is_err() {
         let _ = std::fs::remove_dir_all(&tmp);
     }
     result.map(|_| manifest)
 }
 
-fn write_tree(store: &ShardStore, manifest: &Manifest, tmp: &Path) -> Result<()> {
+/// Writes the export into `tmp`: shards, codebook, then `(manifest bytes, signature)`, the
+/// manifest last.
+fn write_tree(
+    store: &ShardStore,
+    manifest: &Manifest,
+    (json, signature): (&[u8], Option<&[u8]>),
+    tmp: &Path,
+) -> Result<()> {
     let shards = tmp.join("shards");
     std::fs::create_dir_all(&shards).map_err(|e| Error::io(&shards, e))?;
     for t in &manifest.tiles {
@@ -117,7 +147,10 @@ fn write_tree(store: &ShardStore, manifest: &Manifest, tmp: &Path) -> Result<()>
         }
         write_synced(&tmp.join("codebook"), &bytes)?;
     }
-    write_synced(&tmp.join("manifest.json"), &manifest.to_json())?;
+    if let Some(sig) = signature {
+        write_synced(&tmp.join("manifest.sig"), sig)?;
+    }
+    write_synced(&tmp.join("manifest.json"), json)?;
     for d in [&shards, tmp] {
         if let Ok(f) = std::fs::File::open(d) {
             let _ = f.sync_all();

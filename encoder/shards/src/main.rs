@@ -1,5 +1,5 @@
-//! `slag-shards`: the shard stage on its own (`partition`, `serve`, `export`), the same
-//! subcommands and flags as `slag-encoder partition|serve|export`, without the encoder's GPU and
+//! `slag-shards`: the shard stage on its own (`partition`, `serve`, `export`, `keygen`), the same
+//! subcommands and flags as `slag-encoder partition|serve|export|keygen`, without the encoder's GPU and
 //! ONNX Runtime dependencies: what a shard host needs.
 
 use clap::{Parser, Subcommand};
@@ -28,6 +28,8 @@ enum Command {
     Serve(cli::ServeArgs),
     /// Write a scene's manifest.json + shard files for any static host or object store.
     Export(cli::ExportArgs),
+    /// Write a new Ed25519 key pair for signing manifests (--signing-key).
+    Keygen(cli::KeygenArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -37,6 +39,7 @@ fn main() -> std::process::ExitCode {
         Command::Partition(a) => cli::run_partition(a),
         Command::Serve(a) => cli::run_serve(a),
         Command::Export(a) => cli::run_export(a),
+        Command::Keygen(a) => cli::run_keygen(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

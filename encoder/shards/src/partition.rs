@@ -17,6 +17,7 @@
 
 use rayon::prelude::*;
 use slag_common::mixture::MixtureEmbeddings;
+use slag_common::shards::signature::sha256_hex;
 use slag_common::shards::{
     Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
     MIXTURE_MANIFEST_VERSION, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
@@ -296,6 +297,7 @@ impl TileColumns {
             count: self.ids.len() as u64,
             bytes: bytes.len() as u64,
             checksum: format!("{:08x}", shard_checksum(bytes)),
+            sha256: Some(sha256_hex(bytes)),
         }
     }
 }
@@ -497,6 +499,7 @@ pub fn partition_mixture_with(
         atoms: mix.codebook_len() as u32,
         codebook_bytes: codebook.len() as u64,
         codebook_checksum: format!("{crc:08x}"),
+        codebook_sha256: Some(sha256_hex(&codebook)),
     });
     Ok((m, codebook))
 }

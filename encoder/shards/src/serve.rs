@@ -2,8 +2,14 @@
 //!
 //! Routes:
 //! - `GET /v1/scenes` → `{"scenes": [..]}`;
-//! - `GET /v1/scenes/{scene}/manifest` → the current [`Manifest`] as JSON (strong `ETag` = CRC-32
-//!   of the JSON, `If-None-Match` → 304);
+//! - `GET /v1/scenes/{scene}/manifest` → the current manifest's JSON, the exact bytes the store
+//!   holds (and its signature covers), strong `ETag` = CRC-32 of the JSON, `If-None-Match` → 304;
+//! - `GET /v1/scenes/{scene}/manifest.sig` → the detached signature of those bytes
+//!   ([`slag_common::shards::signature::ManifestSignature`], JSON): the one stored with a
+//!   generation partitioned with a signing key, or, when the server has a signing key of its own
+//!   ([`router_signed`], `serve --signing-key`), a signature by that key (it then signs every
+//!   manifest it serves, stored signatures aside). 404 when the manifest is unsigned and the
+//!   server has no key;
 //! - `GET /v1/scenes/{scene}/shards/{id}` → shard bytes (`application/octet-stream`), strong
 //!   `ETag` = `"<crc32 hex>"` (the manifest checksum), `If-None-Match` → 304, single
 //!   `Range: bytes=a-b | a- | -n` → 206 with `Content-Range`, unsatisfiable → 416 with
@@ -40,15 +46,30 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use slag_common::http::ServerLimits;
+use slag_common::shards::signature::SigningKey;
 use slag_common::shards::{shard_checksum, valid_scene_id};
 
 use crate::store::ShardStore;
 
 /// Builds the router over `store`.
 pub fn router(store: ShardStore) -> Router {
+    router_signed(store, None)
+}
+
+/// [`router`] whose `manifest.sig` route signs every manifest it serves with `key` when given
+/// (module doc).
+pub fn router_signed(store: ShardStore, key: Option<SigningKey>) -> Router {
+    let signer = Arc::new(Signer {
+        store: store.clone(),
+        key,
+    });
     Router::new()
         .route("/v1/scenes", get(scenes))
         .route("/v1/scenes/{scene}/manifest", get(manifest))
+        .route(
+            "/v1/scenes/{scene}/manifest.sig",
+            get(signature).with_state(signer),
+        )
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
         .route("/v1/scenes/{scene}/codebook", get(codebook))
         .fallback(|| async {
@@ -70,7 +91,16 @@ pub fn router(store: ShardStore) -> Router {
 /// The JSON error layers ([`slag_common::http::json_errors`]) are outermost, so a 401 or 405
 /// and an overlong request all get the JSON body.
 pub fn router_with_token(store: ShardStore, token: Option<String>) -> Router {
-    let r = router(store);
+    router_with_token_signed(store, token, None)
+}
+
+/// [`router_with_token`] over [`router_signed`].
+pub fn router_with_token_signed(
+    store: ShardStore,
+    token: Option<String>,
+    key: Option<SigningKey>,
+) -> Router {
+    let r = router_signed(store, key);
     let r = match token {
         None => r,
         Some(t) => r.layer(axum::middleware::from_fn_with_state(
@@ -156,6 +186,22 @@ pub async fn serve_with_tls(
     tls: Option<Arc<slag_common::tls::ServerTls>>,
     on_bound: impl FnOnce(SocketAddr),
 ) -> slag_common::Result<()> {
+    serve_with_tls_signed(store, addr, token, limits, tls, None, on_bound).await
+}
+
+/// [`serve_with_tls`] whose `manifest.sig` route signs every manifest with `key` when given
+/// ([`router_signed`]).
+///
+/// Errors: as [`serve_with_limits`].
+pub async fn serve_with_tls_signed(
+    store: ShardStore,
+    addr: SocketAddr,
+    token: Option<String>,
+    limits: ServerLimits,
+    tls: Option<Arc<slag_common::tls::ServerTls>>,
+    key: Option<SigningKey>,
+    on_bound: impl FnOnce(SocketAddr),
+) -> slag_common::Result<()> {
     let (limits, warning) =
         slag_common::http::check_connection_limit(limits, slag_common::http::open_files_limit())?;
     if let Some(w) = warning {
@@ -168,7 +214,7 @@ pub async fn serve_with_tls(
         .local_addr()
         .map_err(|e| slag_common::Error::io(addr.to_string(), e))?;
     on_bound(local);
-    let router = router_with_token(store, token);
+    let router = router_with_token_signed(store, token, key);
     slag_common::http::serve_with_tls(listener, router, limits, tls, async {
         let _ = tokio::signal::ctrl_c().await;
     })
@@ -240,12 +286,11 @@ async fn manifest(
     SceneId(scene): SceneId,
     headers: HeaderMap,
 ) -> Response {
-    let m = match store.manifest(&scene) {
-        Ok(Some(m)) => m,
+    let json = match store.stored_manifest(&scene) {
+        Ok(Some(m)) => Bytes::from_owner(m.bytes),
         Ok(None) => return error(StatusCode::NOT_FOUND, format!("unknown scene {scene:?}")),
         Err(e) => return internal(e),
     };
-    let json = m.to_json();
     let etag = format!("\"{:08x}\"", shard_checksum(&json));
     let etag_h = HeaderValue::from_str(&etag).unwrap_or(HeaderValue::from_static("\"0\""));
     if none_match(&headers, &etag) {
@@ -261,6 +306,44 @@ async fn manifest(
             (header::ETAG, etag_h),
         ],
         json,
+    )
+        .into_response()
+}
+
+/// The state of the `manifest.sig` route: the store and the server's own signing key, if any.
+struct Signer {
+    store: ShardStore,
+    key: Option<SigningKey>,
+}
+
+/// `GET /v1/scenes/{scene}/manifest.sig` (module doc).
+async fn signature(State(signer): State<Arc<Signer>>, SceneId(scene): SceneId) -> Response {
+    let m = match signer.store.stored_manifest(&scene) {
+        Ok(Some(m)) => m,
+        Ok(None) => return error(StatusCode::NOT_FOUND, format!("unknown scene {scene:?}")),
+        Err(e) => return internal(e),
+    };
+    let body = match (&signer.key, m.signature) {
+        (Some(k), _) => Bytes::from(k.sign(&m.bytes).to_json()),
+        (None, Some(s)) => Bytes::from_owner(s),
+        (None, None) => {
+            return error(
+                StatusCode::NOT_FOUND,
+                format!(
+                    "scene {scene:?} generation {} is not signed: partition it with a signing \
+                     key, or serve with one",
+                    m.generation
+                ),
+            );
+        }
+    };
+    (
+        StatusCode::OK,
+        [(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/json"),
+        )],
+        body,
     )
         .into_response()
 }

@@ -6,11 +6,14 @@
 //! - `tiles`: scene/generation/tile → [`TileInfo`] JSON (the tile index);
 //! - `shards`: scene/generation/tile → shard bytes;
 //! - `codebooks`: scene/generation → codebook file bytes (mixture scenes only,
-//!   [`slag_common::shards::mixture`]).
+//!   [`slag_common::shards::mixture`]);
+//! - `signatures`: scene/generation → the detached signature of that generation's manifest
+//!   bytes ([`slag_common::shards::signature`]), for generations committed with a signing key
+//!   ([`SceneWriter::commit_signed`]).
 //!
 //! Writes are versioned: a [`SceneWriter`] puts shards under a fresh generation nobody reads,
-//! then [`SceneWriter::commit`] inserts the manifest, the tile index and the current pointer in
-//! one sled transaction over three trees and flushes. A crash before that transaction leaves the
+//! then [`SceneWriter::commit`] inserts the manifest, the tile index, the signature (when signed)
+//! and the current pointer in one sled transaction over four trees and flushes. A crash before that transaction leaves the
 //! previous generation current and intact; leftovers of the unfinished generation are removed by
 //! the next writer of that scene. One writer per scene at a time (sled locks the folder against
 //! other processes).
@@ -26,6 +29,7 @@ use std::path::Path;
 
 use slag_common::fault::boundary;
 use slag_common::mixture::MixtureEmbeddings;
+use slag_common::shards::signature::SigningKey;
 use slag_common::shards::{GaussianSource, Manifest, TileInfo, shard_checksum, valid_scene_id};
 use slag_common::{Error, Result};
 use sled::Transactional;
@@ -42,6 +46,20 @@ pub struct ShardStore {
     tiles: sled::Tree,
     shards: sled::Tree,
     codebooks: sled::Tree,
+    signatures: sled::Tree,
+}
+
+/// The current manifest of a scene as stored: its exact JSON bytes (what is served and signed),
+/// its generation, and its signature file when the generation was signed.
+#[derive(Debug, Clone)]
+pub struct StoredManifest {
+    /// Committed generation.
+    pub generation: u64,
+    /// The manifest JSON exactly as stored, served and signed.
+    pub bytes: sled::IVec,
+    /// The signature file of `bytes` ([`slag_common::shards::signature::ManifestSignature`]),
+    /// `None` for a generation committed unsigned.
+    pub signature: Option<sled::IVec>,
 }
 
 impl std::fmt::Debug for ShardStore {
@@ -94,6 +112,7 @@ impl ShardStore {
             tiles: tree("tiles")?,
             shards: tree("shards")?,
             codebooks: tree("codebooks")?,
+            signatures: tree("signatures")?,
             db,
         })
     }
@@ -134,6 +153,30 @@ impl ShardStore {
                 format!("scene {scene} generation {g} has no manifest"),
             )),
         }
+    }
+
+    /// The current manifest of `scene` as stored ([`StoredManifest`]: exact bytes, checked to
+    /// parse, and signature); `None` for an unknown scene.
+    ///
+    /// Errors: as [`Self::manifest`].
+    pub fn stored_manifest(&self, scene: &str) -> Result<Option<StoredManifest>> {
+        check_scene(scene)?;
+        let Some(g) = self.current_generation(scene)? else {
+            return Ok(None);
+        };
+        let Some(bytes) = self.manifests.get(prefix(scene, g)).map_err(db_err)? else {
+            return Err(Error::format(
+                "<store>",
+                format!("scene {scene} generation {g} has no manifest"),
+            ));
+        };
+        Manifest::from_json(&bytes, &format!("store manifest {scene}@{g}"))?;
+        let signature = self.signatures.get(prefix(scene, g)).map_err(db_err)?;
+        Ok(Some(StoredManifest {
+            generation: g,
+            bytes,
+            signature,
+        }))
     }
 
     /// Raw bytes of shard `tile` in the current generation of `scene`; `None` if unknown.
@@ -219,7 +262,13 @@ impl ShardStore {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
         let mut gens = std::collections::BTreeSet::new();
-        for tree in [&self.shards, &self.tiles, &self.manifests, &self.codebooks] {
+        for tree in [
+            &self.shards,
+            &self.tiles,
+            &self.manifests,
+            &self.codebooks,
+            &self.signatures,
+        ] {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 if let Some(g) = k.get(p.len()..p.len() + 8).and_then(be_u64) {
@@ -257,7 +306,13 @@ impl ShardStore {
     ) -> Result<()> {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
-        for tree in [&self.shards, &self.tiles, &self.manifests, &self.codebooks] {
+        for tree in [
+            &self.shards,
+            &self.tiles,
+            &self.manifests,
+            &self.codebooks,
+            &self.signatures,
+        ] {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 let g = k.get(p.len()..p.len() + 8).and_then(be_u64);
@@ -324,7 +379,20 @@ impl SceneWriter<'_> {
     ///
     /// Errors: scene mismatch or missing/mismatching shards ([`Error::Internal`]: the writer's
     /// contract), storage errors.
-    pub fn commit(self, mut manifest: Manifest) -> Result<Manifest> {
+    pub fn commit(self, manifest: Manifest) -> Result<Manifest> {
+        self.commit_signed(manifest, None)
+    }
+
+    /// [`Self::commit`], signing the manifest's exact JSON bytes (generation set) with `key` when
+    /// given; the signature is stored in the same transaction as the manifest and the current
+    /// pointer, so a signed generation is never visible without its signature.
+    ///
+    /// Errors: as [`Self::commit`].
+    pub fn commit_signed(
+        self,
+        mut manifest: Manifest,
+        key: Option<&SigningKey>,
+    ) -> Result<Manifest> {
         if manifest.scene_id != self.scene {
             return Err(Error::internal(format!(
                 "manifest is for scene {} but writer for {}",
@@ -365,6 +433,7 @@ impl SceneWriter<'_> {
         }
         manifest.generation = self.generation;
         let json = manifest.to_json();
+        let signature = key.map(|k| k.sign(&json).to_json());
         let tile_entries: Vec<(Vec<u8>, Vec<u8>)> = manifest
             .tiles
             .iter()
@@ -382,9 +451,12 @@ impl SceneWriter<'_> {
         s.codebooks.flush().map_err(db_err)?;
         boundary("shards.commit:flush_codebooks");
         let g = self.generation;
-        (&s.manifests, &s.tiles, &s.current)
-            .transaction(|(m, t, c)| {
+        (&s.manifests, &s.tiles, &s.current, &s.signatures)
+            .transaction(|(m, t, c, sig)| {
                 m.insert(prefix(&self.scene, g), json.as_slice())?;
+                if let Some(signed) = &signature {
+                    sig.insert(prefix(&self.scene, g), signed.as_slice())?;
+                }
                 for (k, v) in &tile_entries {
                     t.insert(k.as_slice(), v.as_slice())?;
                 }
@@ -414,9 +486,22 @@ pub fn partition_into_store(
     src: &impl GaussianSource,
     params: &PartitionParams,
 ) -> Result<Manifest> {
+    partition_into_store_signed(store, src, params, None)
+}
+
+/// [`partition_into_store`], the manifest signed with `key` when given
+/// ([`SceneWriter::commit_signed`]).
+///
+/// Errors: as [`partition_into_store`].
+pub fn partition_into_store_signed(
+    store: &ShardStore,
+    src: &impl GaussianSource,
+    params: &PartitionParams,
+    key: Option<&SigningKey>,
+) -> Result<Manifest> {
     let mut w = store.writer(&params.scene_id)?;
     let manifest = partition_with(src, params, |info, bytes| w.put_shard(info.id, &bytes))?;
-    w.commit(manifest)
+    w.commit_signed(manifest, key)
 }
 
 /// Partitions the mixture `mix` (rows, ids and display columns from `src`, see
@@ -430,11 +515,24 @@ pub fn partition_mixture_into_store(
     mix: &MixtureEmbeddings,
     params: &PartitionParams,
 ) -> Result<Manifest> {
+    partition_mixture_into_store_signed(store, src, mix, params, None)
+}
+
+/// [`partition_mixture_into_store`], the manifest signed with `key` when given.
+///
+/// Errors: as [`partition_mixture_into_store`].
+pub fn partition_mixture_into_store_signed(
+    store: &ShardStore,
+    src: &impl GaussianSource,
+    mix: &MixtureEmbeddings,
+    params: &PartitionParams,
+    key: Option<&SigningKey>,
+) -> Result<Manifest> {
     let mut w = store.writer(&params.scene_id)?;
     let (manifest, codebook) =
         partition_mixture_with(src, mix, params, |info, bytes| w.put_shard(info.id, &bytes))?;
     w.put_codebook(&codebook)?;
-    w.commit(manifest)
+    w.commit_signed(manifest, key)
 }
 
 fn db_err(e: sled::Error) -> Error {

@@ -72,19 +72,7 @@ fn filled_store(dir: &std::path::Path) -> (ShardStore, Manifest) {
 fn manifest_and_shards_over_loopback() {
     let dir = tempfile::tempdir().expect("tmp");
     let (store, m) = filled_store(dir.path());
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let rt = tokio::runtime::Runtime::new().expect("runtime");
-        rt.block_on(async move {
-            let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-                .await
-                .expect("bind");
-            tx.send(listener.local_addr().expect("addr"))
-                .expect("send addr");
-            axum::serve(listener, slag_shards::serve::router(store)).await
-        })
-    });
-    let addr = rx.recv().expect("server address");
+    let addr = serve_signed(store, None);
 
     // Manifest.
     let r = get(addr, "/v1/scenes/lab.v1/manifest", &[]);
@@ -216,4 +204,98 @@ fn export_is_complete_and_atomic() {
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .collect();
     assert_eq!(leftovers, vec!["lab".to_string()]);
+}
+
+/// Serves `store` with `key` on loopback in a thread of its own; returns the address.
+fn serve_signed(
+    store: ShardStore,
+    key: Option<slag_common::shards::signature::SigningKey>,
+) -> std::net::SocketAddr {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Runtime::new().expect("runtime");
+        rt.block_on(async move {
+            let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+                .await
+                .expect("bind");
+            tx.send(listener.local_addr().expect("addr"))
+                .expect("send addr");
+            axum::serve(listener, slag_shards::serve::router_signed(store, key)).await
+        })
+    });
+    rx.recv().expect("server address")
+}
+
+#[test]
+fn a_signed_partition_serves_and_exports_a_signature_of_the_exact_manifest_bytes() {
+    use slag_common::shards::signature::{SigningKey, sha256_hex};
+    let dir = tempfile::tempdir().expect("tmp");
+    let store = ShardStore::open(&dir.path().join("store")).expect("open");
+    let key = SigningKey::read_pem(
+        &slag_common::shards::signature::keygen(&dir.path().join("keys"))
+            .expect("keygen")
+            .private,
+    )
+    .expect("key");
+    let scene = SyntheticScene::new(1200, 8, 3, 40.0, 4);
+    let p = support::z_up_params("lab.v1", 200, Dtype::I8);
+    slag_shards::store::partition_into_store_signed(&store, &scene, &p, Some(&key))
+        .expect("partition");
+    let stored = store
+        .stored_manifest("lab.v1")
+        .expect("read")
+        .expect("scene");
+    assert!(stored.signature.is_some());
+    let unsigned = ShardStore::open(&dir.path().join("unsigned")).expect("open");
+    partition_into_store(&unsigned, &scene, &p).expect("partition");
+
+    let addr = serve_signed(store.clone(), None);
+    let manifest = get(addr, "/v1/scenes/lab.v1/manifest", &[]);
+    let sig = get(addr, "/v1/scenes/lab.v1/manifest.sig", &[]);
+    assert_eq!((manifest.status, sig.status), (200, 200));
+    assert_eq!(manifest.body, stored.bytes.to_vec());
+    key.public()
+        .verify(&manifest.body, &sig.body, "http")
+        .expect("the stored signature covers the served bytes");
+    // Every tile names the SHA-256 of the shard served for it.
+    let m = Manifest::from_json(&manifest.body, "http").expect("manifest");
+    for t in &m.tiles {
+        let shard = get(addr, &format!("/v1/scenes/lab.v1/shards/{}", t.id), &[]);
+        assert_eq!(t.sha256.as_deref(), Some(sha256_hex(&shard.body).as_str()));
+    }
+
+    // An unsigned store: no signature, unless the server signs with its own key.
+    let addr = serve_signed(unsigned.clone(), None);
+    assert_eq!(get(addr, "/v1/scenes/lab.v1/manifest.sig", &[]).status, 404);
+    let server_key = SigningKey::read_pem(
+        &slag_common::shards::signature::keygen(&dir.path().join("server-keys"))
+            .expect("keygen")
+            .private,
+    )
+    .expect("key");
+    let server_public = server_key.public();
+    let addr = serve_signed(unsigned.clone(), Some(server_key));
+    let manifest = get(addr, "/v1/scenes/lab.v1/manifest", &[]);
+    let sig = get(addr, "/v1/scenes/lab.v1/manifest.sig", &[]);
+    assert_eq!(sig.status, 200);
+    server_public
+        .verify(&manifest.body, &sig.body, "http")
+        .expect("signed by the server's key");
+    assert!(
+        key.public()
+            .verify(&manifest.body, &sig.body, "http")
+            .is_err()
+    );
+
+    // Export: manifest.sig beside manifest.json, over its exact bytes.
+    let out = dir.path().join("export");
+    slag_shards::export::export(&store, "lab.v1", &out, false).expect("export");
+    let json = std::fs::read(out.join("manifest.json")).expect("manifest.json");
+    let sig = std::fs::read(out.join("manifest.sig")).expect("manifest.sig");
+    key.public()
+        .verify(&json, &sig, "export")
+        .expect("export signature");
+    let out = dir.path().join("export-unsigned");
+    slag_shards::export::export(&unsigned, "lab.v1", &out, false).expect("export");
+    assert!(!out.join("manifest.sig").exists());
 }

@@ -1,0 +1,392 @@
+//! Signed manifests end to end on loopback: a fetch with a trusted key refuses a tile rewritten
+//! with its CRC-32 made consistent, a rewritten manifest, a manifest signed by another key, an
+//! unsigned one, an older signed generation and a tile swapped in from another scene, each with
+//! its typed error; the store keeps its last good generation and `serve` keeps answering from it
+//! (`/stats` counts the refusals); `check`'s offline verification finds a stored file changed
+//! on disk.
+#![allow(missing_docs, clippy::unwrap_used)]
+
+mod support;
+
+use std::sync::Arc;
+
+use slag_common::shards::signature::{SigningKey, TrustedKey, sha256_hex};
+use slag_common::shards::{Dtype, decode_shard};
+use slag_common::{Error, Untrusted};
+use slag_edge::fetch::{FetchParams, fetch};
+use slag_edge::serve::{AppState, ServeOptions};
+use slag_edge::store::EdgeStore;
+use support::{
+    BasisEmbedder, ServerState, TestScene, grid_fetch_params, grid_scene, send_json,
+    serve_on_loopback, shard_server, temp_store,
+};
+
+/// Gaussians per tile and embedding width of the grid scenes here.
+const PER_TILE: usize = 10;
+const DIM: usize = 8;
+
+/// Scene `id` (3×3 tiles), generation `generation`.
+fn scene(id: &str, generation: u64) -> TestScene {
+    grid_scene(id, 3, 3, PER_TILE, DIM, Dtype::F16, generation)
+}
+
+/// Puts `scene` on the server with `key`'s signature of the manifest bytes it serves (none
+/// with `None`).
+fn publish(state: &ServerState, scene: TestScene, key: Option<&SigningKey>) {
+    let sig = key.map(|k| k.sign(&scene.manifest.to_json()).to_json());
+    *state.scene.write().unwrap() = scene;
+    *state.signature.write().unwrap() = sig;
+}
+
+/// Recomputes a dense shard's payload and header CRC-32s (format module doc: payload CRC at
+/// offset 64, header CRC in the header's last 4 bytes).
+fn fix_inner_crcs(b: &mut [u8]) {
+    let hl = u32::from_le_bytes(b[20..24].try_into().unwrap()) as usize;
+    let payload = crc32fast::hash(&b[hl..]);
+    b[64..68].copy_from_slice(&payload.to_le_bytes());
+    let header = crc32fast::hash(&b[..hl - 4]);
+    b[hl - 4..hl].copy_from_slice(&header.to_le_bytes());
+}
+
+/// Flips bits among those of the bytes at `free` so that the whole file's CRC-32 (after
+/// [`fix_inner_crcs`]) is `target`: CRC-32 is affine over GF(2), so is the whole map, and 64
+/// free bits solve its 32 equations.
+fn force_crc(b: &mut [u8], free: &[usize], target: u32) {
+    let crc_of = |b: &mut [u8]| {
+        fix_inner_crcs(b);
+        crc32fast::hash(b)
+    };
+    let base = crc_of(b);
+    let bits: Vec<(usize, u8)> = free
+        .iter()
+        .flat_map(|&i| (0..8).map(move |k| (i, 1u8 << k)))
+        .collect();
+    // Rows: (effect on the CRC, which bits were combined).
+    let mut rows: Vec<(u32, Vec<bool>)> = bits
+        .iter()
+        .enumerate()
+        .map(|(n, &(i, m))| {
+            b[i] ^= m;
+            let d = crc_of(b) ^ base;
+            b[i] ^= m;
+            let mut used = vec![false; bits.len()];
+            used[n] = true;
+            (d, used)
+        })
+        .collect();
+    // Gaussian elimination: one row per pivot bit of the CRC.
+    let mut pivots: Vec<(u32, Vec<bool>)> = Vec::new();
+    for bit in (0..32).rev() {
+        let Some(p) = rows.iter().position(|r| r.0 >> bit & 1 == 1) else {
+            continue;
+        };
+        let pivot = rows.swap_remove(p);
+        for r in rows.iter_mut().chain(pivots.iter_mut()) {
+            if r.0 >> bit & 1 == 1 {
+                r.0 ^= pivot.0;
+                r.1.iter_mut().zip(&pivot.1).for_each(|(a, b)| *a ^= b);
+            }
+        }
+        pivots.push(pivot);
+    }
+    let mut want = base ^ target;
+    let mut flip = vec![false; bits.len()];
+    for (d, used) in &pivots {
+        if want & (1 << (31 - d.leading_zeros())) != 0 {
+            want ^= d;
+            flip.iter_mut().zip(used).for_each(|(a, b)| *a ^= b);
+        }
+    }
+    assert_eq!(want, 0, "the free bits do not reach every CRC value");
+    for (n, &(i, m)) in bits.iter().enumerate() {
+        if flip[n] {
+            b[i] ^= m;
+        }
+    }
+    assert_eq!(crc_of(b), target);
+}
+
+/// Tile 0 of `scene` rewritten: its first Gaussian's embedding replaced (basis direction 5),
+/// the low mantissa bytes of its last Gaussian's embedding adjusted so that the shard still
+/// decodes with valid inner CRCs and has the whole-file CRC-32 the manifest lists.
+fn rewrite_tile(scene: &TestScene) -> Vec<u8> {
+    let mut b = scene.shards[&0].clone();
+    let hl = u32::from_le_bytes(b[20..24].try_into().unwrap()) as usize;
+    // Payload: ids u32[N], means f32[N][3], then the f16 embeddings.
+    let emb = hl + 16 * PER_TILE;
+    for k in 0..DIM {
+        let v = half::f16::from_f32(if k == 5 { 1.0 } else { 0.0 });
+        b[emb + 2 * k..emb + 2 * k + 2].copy_from_slice(&v.to_le_bytes());
+    }
+    let last = emb + 2 * DIM * (PER_TILE - 1);
+    let free: Vec<usize> = (0..DIM).map(|k| last + 2 * k).collect();
+    let target = u32::from_str_radix(&scene.manifest.tiles[0].checksum, 16).unwrap();
+    force_crc(&mut b, &free, target);
+    b
+}
+
+/// A fetch of the whole grid from `url` that trusts `key`.
+fn signed_params(url: &str, key: &TrustedKey) -> FetchParams {
+    FetchParams {
+        trusted_key: Some(key.clone()),
+        ..grid_fetch_params(url, 100.0)
+    }
+}
+
+/// The edge under test: its store, and `serve` over it with `key` trusted for `POST /fetch`.
+struct Edge {
+    store: EdgeStore,
+    url: String,
+    client: reqwest::Client,
+    _dir: tempfile::TempDir,
+}
+
+impl Edge {
+    async fn start(shards: &str, key: &TrustedKey) -> Edge {
+        let (dir, store) = temp_store();
+        fetch(&store, &signed_params(shards, key)).await.unwrap();
+        let opts = ServeOptions {
+            trusted_key: Some(key.clone()),
+            ..ServeOptions::new("grid")
+        };
+        let state = AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap();
+        Edge {
+            store,
+            url: serve_on_loopback(state).await,
+            client: reqwest::Client::new(),
+            _dir: dir,
+        }
+    }
+
+    /// `POST /fetch` of the whole grid from `shards`: status and body.
+    async fn post_fetch(&self, shards: &str) -> (u16, serde_json::Value) {
+        let body = serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "server": shards});
+        send_json(self.client.post(format!("{}/fetch", self.url)).json(&body)).await
+    }
+
+    async fn stats(&self) -> serde_json::Value {
+        send_json(self.client.get(format!("{}/stats", self.url)))
+            .await
+            .1
+    }
+
+    /// The store's committed generation, and that serve still answers from `generation`.
+    async fn assert_serving(&self, generation: u64) {
+        let committed = {
+            let _g = self.store.lock_generation();
+            self.store.committed("grid").unwrap()
+        };
+        assert_eq!(committed.manifest.generation, generation);
+        assert_eq!(committed.tiles().len(), 9);
+        let stats = self.stats().await;
+        assert_eq!(stats["generation"], generation, "{stats}");
+        assert_eq!(stats["shards_loaded"], 9, "{stats}");
+        let (status, answer) = send_json(
+            self.client
+                .get(format!("{}/query?text=t4&top_k=5", self.url)),
+        )
+        .await;
+        assert_eq!(status, 200, "{answer}");
+        assert_eq!(
+            answer["matches"].as_array().map(Vec::len),
+            Some(5),
+            "{answer}"
+        );
+    }
+
+    /// Fetches from `shards` with the library (typed error) and through `POST /fetch`; both
+    /// are refused with `what`, and the store keeps serving `generation`. Returns the message.
+    async fn refused(
+        &self,
+        shards: &str,
+        key: &TrustedKey,
+        what: Untrusted,
+        generation: u64,
+    ) -> String {
+        let e = fetch(&self.store, &signed_params(shards, key))
+            .await
+            .unwrap_err();
+        match &e {
+            Error::Untrusted { what: w, .. } => assert_eq!(*w, what, "{e}"),
+            other => panic!("expected a {what:?} refusal, got {other}"),
+        }
+        self.assert_serving(generation).await;
+        let before = self.stats().await["fetch_refusals"].as_u64().unwrap();
+        let (status, body) = self.post_fetch(shards).await;
+        assert_eq!(status, 502, "{body}");
+        assert!(
+            body["error"].as_str().unwrap().contains(&what.to_string()),
+            "{body}"
+        );
+        let stats = self.stats().await;
+        assert_eq!(stats["fetch_refusals"], before + 1, "{stats}");
+        assert!(
+            stats["last_refusal"].as_str().unwrap().contains("refused"),
+            "{stats}"
+        );
+        self.assert_serving(generation).await;
+        e.to_string()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trusted_key_refuses_every_tampering_and_the_last_good_generation_keeps_serving() {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let edge = Edge::start(&server.url, &trusted).await;
+    edge.assert_serving(1).await;
+    let mut seen = Vec::new();
+
+    // 1. A tile rewritten, its CRC-32 (and inner CRCs) made consistent: the manifest and its
+    // signature are the publisher's; only the SHA-256 tells.
+    let good = scene("grid", 2);
+    let forged = rewrite_tile(&good);
+    assert_ne!(forged, good.shards[&0]);
+    decode_shard(&forged).unwrap();
+    let t0 = &good.manifest.tiles[0];
+    // Without the SHA-256 the rewritten tile passes every check an unsigned fetch makes.
+    slag_edge::store::verify_shard(&good.manifest, t0, &forged).unwrap();
+    let mut tampered = scene("grid", 2);
+    tampered.shards.insert(0, forged.clone());
+    publish(&server.state, tampered, Some(&publisher));
+    seen.push((
+        "rewritten tile (CRC-32 made consistent)",
+        edge.refused(&server.url, &trusted, Untrusted::ContentHash, 1)
+            .await,
+    ));
+
+    // 2. The manifest rewritten to match the rewritten tile, served with the publisher's
+    // signature of the original.
+    let mut tampered = scene("grid", 2);
+    let sig = publisher.sign(&tampered.manifest.to_json()).to_json();
+    tampered.manifest.tiles[0].sha256 = Some(sha256_hex(&forged));
+    tampered.shards.insert(0, forged.clone());
+    publish(&server.state, tampered, None);
+    *server.state.signature.write().unwrap() = Some(sig);
+    seen.push((
+        "rewritten manifest",
+        edge.refused(&server.url, &trusted, Untrusted::BadSignature, 1)
+            .await,
+    ));
+
+    // 3. Signed by another key.
+    let other = SigningKey::generate();
+    publish(&server.state, scene("grid", 2), Some(&other));
+    seen.push((
+        "manifest signed by another key",
+        edge.refused(&server.url, &trusted, Untrusted::OtherKey, 1)
+            .await,
+    ));
+
+    // 4. No signature at all.
+    publish(&server.state, scene("grid", 2), None);
+    seen.push((
+        "manifest without signature",
+        edge.refused(&server.url, &trusted, Untrusted::Unsigned, 1)
+            .await,
+    ));
+
+    // 5. A tile of another scene (same publisher, same length) in place of tile 0.
+    let elsewhere = scene("grix", 2);
+    assert_eq!(elsewhere.shards[&0].len(), good.shards[&0].len());
+    let mut swapped = scene("grid", 2);
+    swapped.shards.insert(0, elsewhere.shards[&0].clone());
+    publish(&server.state, swapped, Some(&publisher));
+    seen.push((
+        "tile swapped in from another scene",
+        edge.refused(&server.url, &trusted, Untrusted::ContentHash, 1)
+            .await,
+    ));
+
+    // The publisher's generation 2 is accepted...
+    publish(&server.state, scene("grid", 2), Some(&publisher));
+    let (status, body) = edge.post_fetch(&server.url).await;
+    assert_eq!(status, 200, "{body}");
+    edge.assert_serving(2).await;
+    // ... and kept with its signature: verified again offline, every stored file hashed.
+    let check = edge.store.verify_signed("grid", Some(&trusted)).unwrap();
+    assert!(
+        check.signed && check.verified && check.files_hashed == 9,
+        "{check:?}"
+    );
+
+    // 6. Generation 1 again, validly signed: a replay.
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    seen.push((
+        "older signed generation (replay)",
+        edge.refused(&server.url, &trusted, Untrusted::Replay, 2)
+            .await,
+    ));
+    assert_eq!(edge.stats().await["fetch_refusals"], 6);
+    for (case, message) in &seen {
+        println!("{case}: {message}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    // Unsigned: fetched without a key, the store says so.
+    let (_dir, store) = temp_store();
+    fetch(&store, &grid_fetch_params(&server.url, 100.0))
+        .await
+        .unwrap();
+    let check = store.verify_signed("grid", Some(&trusted)).unwrap();
+    assert!(!check.signed && !check.verified, "{check:?}");
+    // Signed: verified without a key only as far as naming the key.
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    let check = store.verify_signed("grid", None).unwrap();
+    assert_eq!(check.key_id, Some(trusted.key_id()));
+    assert!(check.signed && !check.verified, "{check:?}");
+    assert_eq!(
+        store
+            .verify_signed("grid", Some(&trusted))
+            .unwrap()
+            .files_hashed,
+        9
+    );
+    // Another trusted key: refused.
+    let e = store
+        .verify_signed("grid", Some(&SigningKey::generate().public()))
+        .unwrap_err();
+    assert!(
+        matches!(
+            e,
+            Error::Untrusted {
+                what: Untrusted::OtherKey,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    // A stored shard rewritten in place with its CRC-32 kept: the CRC check passes, the
+    // SHA-256 does not.
+    let s = scene("grid", 1);
+    let path = support::shard_path(&store, 0);
+    std::fs::write(&path, rewrite_tile(&s)).unwrap();
+    let e = store.verify_signed("grid", Some(&trusted)).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            Error::Untrusted {
+                what: Untrusted::ContentHash,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("tile 0"), "{e}");
+    // A signed fetch sets the rewritten file aside and downloads the tile again.
+    let summary = fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    assert_eq!((summary.set_aside, summary.downloaded), (1, 1), "{summary}");
+    store.verify_signed("grid", Some(&trusted)).unwrap();
+}
