@@ -77,6 +77,11 @@ fn mixture_partitions_hold_every_row_within_the_byte_cap() {
         info.codebook_checksum,
         format!("{:08x}", shard_checksum(&codebook))
     );
+    // The signed manifest names the codebook's SHA-256 as it does each tile's.
+    assert_eq!(
+        info.codebook_sha256.as_deref(),
+        Some(slag_common::shards::signature::sha256_hex(&codebook).as_str())
+    );
     let book = decode_codebook(&codebook).expect("codebook");
     assert_eq!(book.rows, mix.codebook);
     assert!(shards.len() > 2, "{} shards", shards.len());
