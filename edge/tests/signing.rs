@@ -3,7 +3,7 @@
 //! unsigned one, an older signed generation and a tile swapped in from another scene, each with
 //! its typed error; the store keeps its last good generation and `serve` keeps answering from it
 //! (`/stats` counts the refusals); `check`'s offline verification finds a stored file changed
-//! on disk.
+//! on disk; a mixture scene's codebook is held to its SHA-256 like a tile.
 #![allow(missing_docs, clippy::unwrap_used)]
 
 mod support;
@@ -389,4 +389,125 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
         .unwrap();
     assert_eq!((summary.set_aside, summary.downloaded), (1, 1), "{summary}");
     store.verify_signed("grid", Some(&trusted)).unwrap();
+}
+
+/// A mixture scene of 2 tiles × 4 Gaussians, 2 slots each, over a codebook of 4 basis rows
+/// (rotated by `generation`, so each generation's codebook has other bytes), signed by `key`:
+/// the scene and its codebook file.
+fn mixture_scene(generation: u64, key: &SigningKey) -> (TestScene, Vec<u8>, Vec<u8>) {
+    use slag_common::shards::{
+        MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, MixtureInfo, MixtureShardInput,
+        TileInfo, encode_codebook, encode_mixture_shard, shard_checksum,
+    };
+    let rows: Vec<f32> = (0..4)
+        .flat_map(|k| (0..DIM).map(move |d| (d == (k + generation as usize) % DIM) as u8 as f32))
+        .collect();
+    let codebook = encode_codebook("grid", "color-clip", DIM, &rows).unwrap();
+    let crc = shard_checksum(&codebook);
+    let mut s = scene("grid", generation);
+    s.manifest.tiles.truncate(2);
+    s.shards.clear();
+    for t in &mut s.manifest.tiles {
+        let ids: Vec<u32> = (0..4).map(|i| (t.id * 4 + i) as u32).collect();
+        let means: Vec<[f32; 3]> = ids
+            .iter()
+            .map(|&i| [t.id as f32 * 10.0 + i as f32, 1.0, 0.0])
+            .collect();
+        let atoms: Vec<u32> = ids.iter().flat_map(|&i| [i % 4, (i + 1) % 4]).collect();
+        let weights: Vec<f32> = ids.iter().flat_map(|_| [0.7, 0.3]).collect();
+        let bytes = encode_mixture_shard(&MixtureShardInput {
+            scene_id: "grid",
+            model: "color-clip",
+            tile_id: t.id,
+            dim: DIM,
+            slots: 2,
+            codebook_crc: crc,
+            ids: &ids,
+            means: &means,
+            atoms: &atoms,
+            weights: &weights,
+            ..Default::default()
+        })
+        .unwrap();
+        *t = TileInfo {
+            count: 4,
+            bytes: bytes.len() as u64,
+            checksum: format!("{:08x}", shard_checksum(&bytes)),
+            sha256: Some(sha256_hex(&bytes)),
+            aabb: slag_common::shards::Aabb::of_points(means.iter().copied()).unwrap(),
+            ..t.clone()
+        };
+        s.shards.insert(t.id, bytes);
+    }
+    s.manifest.manifest_version = MIXTURE_MANIFEST_VERSION;
+    s.manifest.shard_format_version = MIXTURE_SHARD_FORMAT_VERSION;
+    s.manifest.total_gaussians = 8;
+    s.manifest.mixture = Some(MixtureInfo {
+        slots: 2,
+        atoms: 4,
+        codebook_bytes: codebook.len() as u64,
+        codebook_checksum: format!("{crc:08x}"),
+        codebook_sha256: Some(sha256_hex(&codebook)),
+    });
+    let sig = key.sign(&s.manifest.to_json()).to_json();
+    (s, codebook, sig)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    let serve = |(s, codebook, sig): (TestScene, Vec<u8>, Vec<u8>)| {
+        *server.state.scene.write().unwrap() = s;
+        *server.state.codebook.write().unwrap() = Some(codebook);
+        *server.state.signature.write().unwrap() = Some(sig);
+    };
+    serve(mixture_scene(1, &publisher));
+    let (_dir, store) = temp_store();
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    let check = store.verify_signed("grid", Some(&trusted)).unwrap();
+    assert_eq!(
+        check.files_hashed, 3,
+        "two shards and the codebook: {check:?}"
+    );
+    // Generation 2 with a byte of its codebook changed on the way.
+    let (s, mut codebook, sig) = mixture_scene(2, &publisher);
+    let n = codebook.len();
+    codebook[n - 3] ^= 0x40;
+    serve((s, codebook, sig));
+    let e = fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(
+            e,
+            Error::Untrusted {
+                what: Untrusted::ContentHash,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().contains("the codebook"), "{e}");
+    let committed = {
+        let _g = store.lock_generation();
+        store.committed("grid").unwrap()
+    };
+    assert_eq!(committed.manifest.generation, 1);
+    store.codebook(&committed.manifest).unwrap();
+    // The genuine generation 2 is accepted.
+    serve(mixture_scene(2, &publisher));
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    assert_eq!(
+        store
+            .verify_signed("grid", Some(&trusted))
+            .unwrap()
+            .files_hashed,
+        3
+    );
 }

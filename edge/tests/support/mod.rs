@@ -195,6 +195,8 @@ pub struct ServerState {
     /// The body of `GET .../manifest.sig` (404 when `None`): a signature of the manifest's
     /// `to_json()` bytes, which the manifest route sends.
     pub signature: RwLock<Option<Vec<u8>>>,
+    /// The body of `GET .../codebook` (404 when `None`): a mixture scene's codebook file.
+    pub codebook: RwLock<Option<Vec<u8>>>,
 }
 
 pub struct ShardServer {
@@ -213,10 +215,12 @@ pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServe
         slow: Mutex::new(None),
         stall: Mutex::new(HashMap::new()),
         signature: RwLock::new(None),
+        codebook: RwLock::new(None),
     });
     let app = axum::Router::new()
         .route("/v1/scenes/{scene}/manifest", get(manifest))
         .route("/v1/scenes/{scene}/manifest.sig", get(manifest_signature))
+        .route("/v1/scenes/{scene}/codebook", get(codebook))
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
         .with_state(state.clone());
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -265,6 +269,14 @@ async fn manifest_signature(
     match state.signature.read().unwrap().clone() {
         Some(sig) if known => sig.into_response(),
         _ => (StatusCode::NOT_FOUND, "no signature").into_response(),
+    }
+}
+
+async fn codebook(State(state): State<Arc<ServerState>>, Path(scene): Path<String>) -> Response {
+    let known = state.scene.read().unwrap().manifest.scene_id == scene;
+    match state.codebook.read().unwrap().clone() {
+        Some(b) if known => b.into_response(),
+        _ => (StatusCode::NOT_FOUND, "no codebook").into_response(),
     }
 }
 
