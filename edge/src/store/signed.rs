@@ -12,10 +12,10 @@
 use std::path::Path;
 use std::sync::atomic::Ordering;
 
+use slag_common::fault::boundary;
 use slag_common::shards::signature::{
     ManifestSignature, TrustedKey, check_hashes, compare_sha256, sha256_reader,
 };
-use slag_common::fault::boundary;
 use slag_common::shards::{Manifest, TileInfo};
 use slag_common::{Error, Result};
 
