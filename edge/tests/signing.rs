@@ -511,3 +511,106 @@ async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
         3
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_command_lines_fetch_with_a_trusted_key_and_check_says_whether_the_store_is_signed() {
+    use support::{
+        color_clip_text_model, fetch_args, output_blocking, slag_edge_with_log, success_json,
+        text_model_args,
+    };
+    let run = async |args: Vec<&str>| output_blocking(slag_edge_with_log(&args, "warn")).await;
+    let dir = tempfile::tempdir().unwrap();
+    let keys = slag_common::shards::signature::keygen(&dir.path().join("keys")).unwrap();
+    let publisher = SigningKey::read_pem(&keys.private).unwrap();
+    let public = keys.public.display().to_string();
+    // 512-d so that color-clip's text tower fits the stored embeddings.
+    let grid = grid_scene("grid", 2, 2, 5, 512, Dtype::F16, 1);
+    let server = shard_server(grid_scene("grid", 2, 2, 5, 512, Dtype::F16, 1), None).await;
+    let (signed, unsigned) = (dir.path().join("signed"), dir.path().join("unsigned"));
+    let (signed, unsigned) = (signed.display().to_string(), unsigned.display().to_string());
+
+    // Unsigned server: a fetch that trusts the key is refused (error, then hint), one without
+    // it is today's fetch.
+    let with_key = [
+        &fetch_args(&server.url, &signed, "100")[..],
+        &["--trusted-key", &public],
+    ]
+    .concat();
+    let out = run(with_key.clone()).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = stderr.trim().lines().collect();
+    assert!(!out.status.success(), "{stderr}");
+    assert_eq!(lines.len(), 2, "{stderr}");
+    assert!(
+        lines[0].starts_with("error: ") && lines[0].contains("refused, no signature"),
+        "{stderr}"
+    );
+    assert!(
+        lines[1].starts_with("hint: ") && lines[1].contains("--signing-key"),
+        "{stderr}"
+    );
+    success_json(
+        &run([&fetch_args(&server.url, &unsigned, "100")[..], &["--json"]].concat()).await,
+    );
+
+    // Signed by the publisher: fetched; another key's signature: refused, naming the flag.
+    publish(&server.state, grid, Some(&publisher));
+    success_json(&run([&with_key[..], &["--json"]].concat()).await);
+    *server.state.signature.write().unwrap() = Some(
+        SigningKey::generate()
+            .sign(&server.state.scene.read().unwrap().manifest.to_json())
+            .to_json(),
+    );
+    let out = run(with_key.clone()).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("refused, signed by another key"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("hint: pass the publisher's public key with --trusted-key"),
+        "{stderr}"
+    );
+
+    let [tm, tok] = color_clip_text_model();
+    if support::skip_without_ort() {
+        return;
+    }
+    let check = |store: &str, key: bool| {
+        let mut args = text_model_args("check", store, "grid", [&tm, &tok]);
+        if key {
+            args.extend(["--trusted-key", public.as_str()]);
+        }
+        args.into_iter()
+            .map(str::to_string)
+            .collect::<Vec<String>>()
+    };
+    let report = |args: Vec<String>| async move {
+        let out = run(args.iter().map(String::as_str).collect()).await;
+        (
+            out.status.success(),
+            serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap(),
+        )
+    };
+    let (ok, r) = report(check(&signed, true)).await;
+    assert!(ok, "{r}");
+    assert_eq!(r["signature"]["status"], "verified", "{r}");
+    assert_eq!(r["signature"]["files_hashed"], 4, "{r}");
+    let (ok, r) = report(check(&signed, false)).await;
+    assert!(ok, "{r}");
+    assert_eq!(r["signature"]["status"], "signed, not verified", "{r}");
+    let (ok, r) = report(check(&unsigned, false)).await;
+    assert!(ok, "{r}");
+    assert_eq!(r["signature"]["status"], "unsigned", "{r}");
+    assert!(
+        r["signature"]["detail"]
+            .as_str()
+            .unwrap()
+            .starts_with("unsigned"),
+        "{r}"
+    );
+    // A trusted key and an unsigned store: a problem.
+    let (ok, r) = report(check(&unsigned, true)).await;
+    assert!(!ok, "{r}");
+    assert!(r["problems"].to_string().contains("unsigned"), "{r}");
+}
