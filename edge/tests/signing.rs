@@ -492,6 +492,7 @@ async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
         "{e}"
     );
     assert!(e.to_string().contains("the codebook"), "{e}");
+    println!("codebook changed on the way: {e}");
     let committed = {
         let _g = store.lock_generation();
         store.committed("grid").unwrap()
