@@ -542,7 +542,8 @@ pub async fn fetch_trusted_manifest(
 /// large or whose sizes the shard format does not allow ([`Error::Limit`], [`Error::Format`]),
 /// not enough free disk space for what is to be downloaded ([`Error::Limit`]
 /// [`slag_common::Resource::DiskSpace`], naming the folder), a shard that fails verification
-/// twice ([`Error::Format`]), store I/O. On error the store keeps every shard completed so far
+/// twice ([`Error::Format`]), with [`FetchParams::trusted_key`] a manifest or file the key does
+/// not vouch for ([`Error::Untrusted`], module doc "Signed manifests"), store I/O. On error the store keeps every shard completed so far
 /// and the previous manifest stays current; rerunning resumes (partial files are kept only after
 /// a network failure: module doc).
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
@@ -556,7 +557,8 @@ pub struct FetchFailure {
     /// What went wrong, as [`fetch`] returns it.
     pub error: Error,
     /// The manifest the shard server sent was refused by [`fetch_manifest`]: not a manifest,
-    /// too large, sizes the shard format does not allow, not a set of tiles, another scene's.
+    /// too large, sizes the shard format does not allow, not a set of tiles, another scene's, or
+    /// (with a trusted key) not signed by it, without SHA-256s or of an older generation.
     /// The server's fault, not this side's; nothing was downloaded. `false` for a network
     /// failure ([`Error::Network`] says that already) and every later step.
     pub bad_manifest: bool,
