@@ -488,11 +488,43 @@ pub async fn fetch_trusted_manifest(
     store: &EdgeStore,
     p: &FetchParams,
 ) -> Result<(Manifest, Option<SignedManifest>)> {
-    let token = p.token.as_deref();
-    let (bytes, manifest) = fetch_manifest_bytes(client, &p.server, &p.scene, token).await?;
     let Some(key) = &p.trusted_key else {
+        let token = p.token.as_deref();
+        let (_, manifest) = fetch_manifest_bytes(client, &p.server, &p.scene, token).await?;
         return Ok((manifest, None));
     };
+    // The publisher may commit a generation between the two requests, so that the signature
+    // is of the other generation's bytes: one more pair settles it.
+    let (manifest, signed) = match fetch_signed_manifest(client, p, key).await {
+        Err(Error::Untrusted {
+            what: slag_common::Untrusted::BadSignature,
+            ..
+        }) => fetch_signed_manifest(client, p, key).await?,
+        r => r?,
+    };
+    let origin = url_join(&p.server, &format!("v1/scenes/{}/manifest", p.scene));
+    signature::check_hashes(&manifest, &origin)?;
+    // A stored manifest that no longer parses (a damaged store) does not block the fetch that
+    // repairs it.
+    if let Ok(Some(held)) = store.manifest(&p.scene) {
+        signature::check_generation(&p.scene, held.generation, manifest.generation, &origin)?;
+    }
+    Ok((manifest, Some(signed)))
+}
+
+/// One request for the manifest and one for its signature
+/// (`GET {server}/v1/scenes/{scene}/manifest.sig`), the signature checked with `key` against the
+/// manifest's exact bytes.
+///
+/// Errors: as [`fetch_manifest`]; [`Error::Untrusted`] for no signature (404), another key's,
+/// or one that does not hold.
+async fn fetch_signed_manifest(
+    client: &reqwest::Client,
+    p: &FetchParams,
+    key: &TrustedKey,
+) -> Result<(Manifest, SignedManifest)> {
+    let token = p.token.as_deref();
+    let (bytes, manifest) = fetch_manifest_bytes(client, &p.server, &p.scene, token).await?;
     let origin = url_join(&p.server, &format!("v1/scenes/{}/manifest", p.scene));
     let sig_url = format!("{origin}.sig");
     let (status, sig) = get_capped(client, &sig_url, token, MAX_SIGNATURE_BYTES, |n| {
@@ -519,18 +551,12 @@ pub async fn fetch_trusted_manifest(
         return Err(status_error(&sig_url, status, &String::from_utf8_lossy(&sig)).error);
     }
     key.verify(&bytes, &sig, &origin)?;
-    signature::check_hashes(&manifest, &origin)?;
-    // A stored manifest that no longer parses (a damaged store) does not block the fetch that
-    // repairs it.
-    if let Ok(Some(held)) = store.manifest(&p.scene) {
-        signature::check_generation(&p.scene, held.generation, manifest.generation, &origin)?;
-    }
     Ok((
         manifest,
-        Some(SignedManifest {
+        SignedManifest {
             bytes,
             signature: sig,
-        }),
+        },
     ))
 }
 
@@ -543,9 +569,9 @@ pub async fn fetch_trusted_manifest(
 /// not enough free disk space for what is to be downloaded ([`Error::Limit`]
 /// [`slag_common::Resource::DiskSpace`], naming the folder), a shard that fails verification
 /// twice ([`Error::Format`]), with [`FetchParams::trusted_key`] a manifest or file the key does
-/// not vouch for ([`Error::Untrusted`], module doc "Signed manifests"), store I/O. On error the store keeps every shard completed so far
-/// and the previous manifest stays current; rerunning resumes (partial files are kept only after
-/// a network failure: module doc).
+/// not vouch for ([`Error::Untrusted`], module doc "Signed manifests"), store I/O. On error the
+/// store keeps every shard completed so far and the previous manifest stays current; rerunning
+/// resumes (partial files are kept only after a network failure: module doc).
 pub async fn fetch(store: &EdgeStore, p: &FetchParams) -> Result<FetchSummary> {
     fetch_classified(store, p).await.map_err(|f| f.error)
 }

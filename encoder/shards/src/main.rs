@@ -1,6 +1,6 @@
 //! `slag-shards`: the shard stage on its own (`partition`, `serve`, `export`, `keygen`), the same
-//! subcommands and flags as `slag-encoder partition|serve|export|keygen`, without the encoder's GPU and
-//! ONNX Runtime dependencies: what a shard host needs.
+//! subcommands and flags as `slag-encoder partition|serve|export|keygen`, without the encoder's
+//! GPU and ONNX Runtime dependencies: what a shard host needs.
 
 use clap::{Parser, Subcommand};
 use slag_shards::cli;
