@@ -24,14 +24,17 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
 use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list};
-use slag_common::shards::Dtype;
+use slag_common::rng::SplitMix64;
+use slag_common::shards::{
+    Dtype, MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo,
+    MixtureShardInput, decode_shard_stored, encode_codebook, encode_mixture_shard, shard_checksum,
+};
 use slag_edge::engine::{Engine, StoreCheck};
 use slag_edge::fetch::fetch;
 use slag_edge::query::RawQuery;
 use slag_edge::store::{EdgeStore, Stored};
 use support::{
-    TestScene, exact_answer, grid_fetch_params, grid_scene, output_blocking, shard_server,
-    slag_edge_with_log,
+    exact_answer, grid_fetch_params, grid_scene, output_blocking, shard_server, slag_edge_with_log,
 };
 
 /// Prompts asked of every state: one per tile direction and the background.
@@ -69,24 +72,120 @@ struct Scenario {
     tmp: tempfile::TempDir,
 }
 
+/// The form of both generations: dense shards of width `dim`, or mixture shards over a
+/// codebook (8-d).
+#[derive(Clone, Copy)]
+enum Form {
+    Dense(usize),
+    Mixture,
+}
+
+/// Generation `g` of scene `grid` in `form`, served on loopback: its manifest and the URL.
+async fn serve_generation(form: Form, g: u64) -> (Manifest, String) {
+    match form {
+        Form::Dense(dim) => {
+            let scene = grid_scene("grid", 2, 2, 6, dim, Dtype::F16, g);
+            let m = scene.manifest.clone();
+            (m, shard_server(scene, None).await.url)
+        }
+        Form::Mixture => {
+            let (m, files) = mixture_grid(g);
+            (m, serve_files(files).await)
+        }
+    }
+}
+
+/// Generation `g` of scene `grid` as mixture shards: the dense grid's tiles, ids and means, each
+/// Gaussian mixing two of six codebook rows (drawn from seed `g`); the manifest and the files by
+/// URL path below `/v1/scenes/grid/` (`manifest`, `shards/<id>`, `codebook`).
+fn mixture_grid(g: u64) -> (Manifest, BTreeMap<String, Vec<u8>>) {
+    let (dim, rows) = (8, 6);
+    let dense = grid_scene("grid", 2, 2, 6, dim, Dtype::F16, g);
+    let mut r = SplitMix64::new(g);
+    let book: Vec<f32> = (0..rows * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
+    let codebook = encode_codebook("grid", "color-clip", dim, &book).unwrap();
+    let crc = shard_checksum(&codebook);
+    let mut m = dense.manifest.clone();
+    let mut files = BTreeMap::new();
+    for t in &mut m.tiles {
+        let s = decode_shard_stored(&dense.shards[&t.id]).unwrap();
+        let n = s.ids.len();
+        let atoms: Vec<u32> = (0..n)
+            .flat_map(|i| [i % rows, (i + 1 + t.id as usize) % rows].map(|a| a as u32))
+            .collect();
+        let weights: Vec<f32> = (0..2 * n).map(|_| r.range(0.2, 1.0) as f32).collect();
+        let bytes = encode_mixture_shard(&MixtureShardInput {
+            scene_id: "grid",
+            model: "color-clip",
+            tile_id: t.id,
+            dim,
+            slots: 2,
+            codebook_crc: crc,
+            ids: &s.ids,
+            means: &s.means,
+            atoms: &atoms,
+            weights: &weights,
+            ..Default::default()
+        })
+        .unwrap();
+        t.bytes = bytes.len() as u64;
+        t.checksum = format!("{:08x}", shard_checksum(&bytes));
+        files.insert(format!("shards/{}", t.id), bytes);
+    }
+    m.manifest_version = MIXTURE_MANIFEST_VERSION;
+    m.shard_format_version = MIXTURE_SHARD_FORMAT_VERSION;
+    m.mixture = Some(MixtureInfo {
+        slots: 2,
+        atoms: rows as u32,
+        codebook_bytes: codebook.len() as u64,
+        codebook_checksum: format!("{crc:08x}"),
+    });
+    files.insert("codebook".into(), codebook);
+    files.insert("manifest".into(), m.to_json());
+    (m, files)
+}
+
+/// Serves `files` (path below `/v1/scenes/grid/` → bytes) on loopback; returns the base URL.
+async fn serve_files(files: BTreeMap<String, Vec<u8>>) -> String {
+    let files = std::sync::Arc::new(files);
+    let app = axum::Router::new().route(
+        "/v1/scenes/grid/{*path}",
+        axum::routing::get(
+            |axum::extract::Path(path): axum::extract::Path<String>| async move {
+                use axum::response::IntoResponse;
+                match files.get(&path) {
+                    Some(b) => b.clone().into_response(),
+                    None => axum::http::StatusCode::NOT_FOUND.into_response(),
+                }
+            },
+        ),
+    );
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move { axum::serve(listener, app).await.unwrap() });
+    format!("http://{addr}")
+}
+
 impl Scenario {
-    async fn new(dim: usize) -> Scenario {
-        let scene = |g| grid_scene("grid", 2, 2, 6, dim, Dtype::F16, g);
-        let (a, b): (TestScene, TestScene) = (scene(1), scene(2));
+    async fn new(form: Form) -> Scenario {
+        let dim = match form {
+            Form::Dense(dim) => dim,
+            Form::Mixture => 8,
+        };
         let tmp = tempfile::tempdir().unwrap();
         let mut refs = BTreeMap::new();
         let mut url_b = String::new();
-        for (g, s) in [(1, a), (2, b)] {
-            let server = shard_server(s, None).await;
+        let mut manifest_b = None;
+        for g in [1, 2] {
+            let (m, url) = serve_generation(form, g).await;
             let dir = tmp.path().join(format!("gen{g}"));
             let store = EdgeStore::open(&dir).unwrap();
-            fetch(&store, &grid_fetch_params(&server.url, 100.0))
-                .await
-                .unwrap();
+            let server = grid_fetch_params(&url, 100.0);
+            fetch(&store, &server).await.unwrap();
             let engine = Engine::load(&store, "grid", false).unwrap();
             refs.insert(g, answers(&engine, dim));
             // The server's task lives as long as the test's runtime.
-            url_b = server.url;
+            (url_b, manifest_b) = (url, Some(m));
         }
         assert_ne!(refs[&1], refs[&2], "A and B must answer differently");
         // The template holds A, plus a folder where one of B's partial downloads goes: the
@@ -94,7 +193,7 @@ impl Scenario {
         let template = tmp.path().join("gen1");
         {
             let store = EdgeStore::open(&template).unwrap();
-            let part = store.partial_path("grid", &scene(2).manifest.tiles[1]);
+            let part = store.partial_path("grid", &manifest_b.unwrap().tiles[1]);
             std::fs::create_dir_all(part).unwrap();
             // Leftovers the fetch cleans away once B is committed: a partial download of an
             // older generation and the temporary file of an interrupted shard write.
@@ -153,7 +252,12 @@ fn committed_complete(store: &EdgeStore) -> Option<bool> {
 /// Opens the store at `dir` as a restart would, checks it and compares its answers with the
 /// references: returns the generation it serves. `at` names the crash point in messages.
 fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
-    let store = EdgeStore::open_existing(dir).unwrap_or_else(|e| panic!("{at}: {e}"));
+    assert!(
+        dir.join("db").is_dir(),
+        "{at}: the store's database is gone"
+    );
+    // After a repair in this process, its dropped database may hold the lock a moment longer.
+    let store = support::open_after_drop(dir);
     let complete = committed_complete(&store);
     assert_eq!(
         complete,
@@ -176,7 +280,7 @@ fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
 
 /// One fetch of B into `dir`, in this process; then the check passes and B answers.
 async fn repair(s: &Scenario, dir: &Path, at: &str) {
-    let store = EdgeStore::open_existing(dir).unwrap();
+    let store = support::open_after_drop(dir);
     fetch(&store, &grid_fetch_params(&s.url_b, 100.0))
         .await
         .unwrap_or_else(|e| panic!("{at}: repair: {e}"));
@@ -238,13 +342,13 @@ impl Tally {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
-    let s = Scenario::new(8).await;
+/// Stops a fetch of B at every boundary of `s` in turn (module doc); returns the tally and the
+/// boundaries the counting run listed.
+async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
     // Count: one run lists every boundary it passes.
-    let list = s.tmp.path().join("fetch-boundaries.txt");
-    let dir = s.copy("count");
-    let mut counting = fetch_b(&s, &dir);
+    let list = s.tmp.path().join(format!("{what}-boundaries.txt"));
+    let dir = s.copy(&format!("{what}-count"));
+    let mut counting = fetch_b(s, &dir);
     counting.env(LIST_VAR, &list);
     support::assert_success(&output_blocking(counting).await, "counting run");
     let listed = read_list(&list).unwrap();
@@ -252,8 +356,8 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
     assert!(n_points > 20, "{listed:?}");
     let mut tally = Tally::default();
     for n in 1..=n_points {
-        let dir = s.copy(&format!("fetch{n}"));
-        let mut stopped = fetch_b(&s, &dir);
+        let dir = s.copy(&format!("{what}{n}"));
+        let mut stopped = fetch_b(s, &dir);
         stopped.env(EXIT_AT_VAR, n.to_string());
         let out = output_blocking(stopped).await;
         let err = String::from_utf8_lossy(&out.stderr);
@@ -264,16 +368,23 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
             listed[n - 1],
             "n={n}: the runs pass the boundaries in another order"
         );
-        let at = format!("fetch stopped at {n} ({name})");
+        let at = format!("{what} stopped at {n} ({name})");
         let g = compare_blocking(&s.refs, &dir, &at).await;
         *tally.served.entry(g).or_default() += 1;
         tally.names.insert(name);
         tally.points += 1;
-        repair(&s, &dir, &at).await;
+        repair(s, &dir, &at).await;
     }
-    tally.report("slag-edge fetch", &listed);
     // Both sides of the commit were reached: before it A is served, after it B.
     assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
+    (tally, listed)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
+    let s = Scenario::new(Form::Dense(8)).await;
+    let (tally, listed) = enumerate_fetch(&s, "fetch").await;
+    tally.report("slag-edge fetch", &listed);
     for must in [
         "fetch.partial:write",
         "fetch.partial:fsync",
@@ -370,7 +481,7 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         return;
     }
     // 512-d: the width of the color-clip text tower the server starts with.
-    let s = Scenario::new(512).await;
+    let s = Scenario::new(Form::Dense(512)).await;
     let list = s.tmp.path().join("serve-boundaries.txt");
     let dir = s.copy("count");
     let mut server = start_serve(&dir, (LIST_VAR, list.display().to_string()));
@@ -406,4 +517,23 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
     }
     tally.report("slag-edge serve, POST /fetch", &listed);
     assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
+    // Both generations are mixture scenes with their own codebooks: B's is downloaded and
+    // committed before its shards, A's evicted after the commit.
+    let s = Scenario::new(Form::Mixture).await;
+    let (tally, listed) = enumerate_fetch(&s, "mixture").await;
+    tally.report("slag-edge fetch of a mixture scene", &listed);
+    for must in [
+        "store.commit_codebook:rename",
+        "store.commit_codebook:dir_sync",
+        "store.evict_codebook:remove",
+    ] {
+        assert!(
+            tally.names.contains(must),
+            "{must} never reached: {listed:?}"
+        );
+    }
 }
