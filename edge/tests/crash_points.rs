@@ -25,6 +25,7 @@ use std::process::{Command, Stdio};
 
 use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list};
 use slag_common::rng::SplitMix64;
+use slag_common::shards::signature::sha256_hex;
 use slag_common::shards::{
     Dtype, MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo,
     MixtureShardInput, decode_shard_stored, encode_codebook, encode_mixture_shard, shard_checksum,
@@ -130,6 +131,7 @@ fn mixture_grid(g: u64) -> (Manifest, BTreeMap<String, Vec<u8>>) {
         .unwrap();
         t.bytes = bytes.len() as u64;
         t.checksum = format!("{:08x}", shard_checksum(&bytes));
+        t.sha256 = Some(sha256_hex(&bytes));
         files.insert(format!("shards/{}", t.id), bytes);
     }
     m.manifest_version = MIXTURE_MANIFEST_VERSION;
@@ -139,6 +141,7 @@ fn mixture_grid(g: u64) -> (Manifest, BTreeMap<String, Vec<u8>>) {
         atoms: rows as u32,
         codebook_bytes: codebook.len() as u64,
         codebook_checksum: format!("{crc:08x}"),
+        codebook_sha256: Some(sha256_hex(&codebook)),
     });
     files.insert("codebook".into(), codebook);
     files.insert("manifest".into(), m.to_json());
