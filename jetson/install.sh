@@ -128,6 +128,13 @@ if [ ! -e "$ETC/edge.toml" ]; then
   say "wrote $ETC/edge.toml (edit scene/addr/ep there)"
 else
   say "kept $ETC/edge.toml"
+  # slag-edge refuses a token over plain HTTP on a non-loopback addr unless allowed: say so for
+  # a config from before that rule.
+  if ! grep -Eq '^[[:space:]]*(tls_cert|allow_plain_http)[[:space:]]*=' "$ETC/edge.toml"; then
+    say "note: $ETC/edge.toml sets neither tls_cert nor allow_plain_http; with token_file and a"
+    say "      non-loopback addr slag-edge serve will not start: add tls_cert and tls_key (HTTPS)"
+    say "      or allow_plain_http = true (see $here/edge.toml)"
+  fi
 fi
 if [ ! -e "$ETC/edge.env" ]; then
   {

@@ -99,7 +99,7 @@ impl ServerTls {
         let fingerprint = certified
             .cert
             .first()
-            .map(|c| fingerprint(c))
+            .map(|c| fingerprint(c.as_ref()))
             .unwrap_or_default();
         *self.current.0.write().unwrap_or_else(|p| p.into_inner()) = Arc::new(certified);
         Ok(fingerprint)
@@ -109,7 +109,11 @@ impl ServerTls {
     /// colon-separated upper-case hex (`AB:CD:…`), as `openssl x509 -fingerprint -sha256` shows it.
     pub fn fingerprint(&self) -> String {
         let current = self.current.0.read().unwrap_or_else(|p| p.into_inner());
-        current.cert.first().map(fingerprint).unwrap_or_default()
+        current
+            .cert
+            .first()
+            .map(|c| fingerprint(c.as_ref()))
+            .unwrap_or_default()
     }
 
     /// The certificate file.
@@ -124,8 +128,8 @@ impl ServerTls {
 }
 
 /// The SHA-256 fingerprint of a DER certificate, as [`ServerTls::fingerprint`] writes it.
-pub fn fingerprint(der: &CertificateDer<'_>) -> String {
-    let digest = ring::digest::digest(&ring::digest::SHA256, der.as_ref());
+pub fn fingerprint(der: &[u8]) -> String {
+    let digest = ring::digest::digest(&ring::digest::SHA256, der);
     let hex: Vec<String> = digest.as_ref().iter().map(|b| format!("{b:02X}")).collect();
     hex.join(":")
 }

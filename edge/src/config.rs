@@ -26,6 +26,10 @@
 //! max_connections = 512 # open connections; keep below LimitNOFILE - 64
 //! body_timeout = 10     # seconds a request body has to arrive after its head
 //! max_connections_per_ip = 64   # connections one address may hold; one more gets 429
+//! tls_cert = "/etc/slag/tls/cert.pem"   # HTTPS: PEM chain; SIGHUP / POST /reload re-read it
+//! tls_key = "/etc/slag/tls/key.pem"
+//! allow_plain_http = false   # true: a token over plain HTTP on a non-loopback addr
+//! ca_cert = "/etc/slag/shard-ca.pem"    # POST /fetch: a private CA for an https:// server
 //! ```
 //!
 //! The DDS domain is `ROS_DOMAIN_ID` from the environment, as for every ROS 2 node.
@@ -95,6 +99,16 @@ pub struct ServeConfig {
     /// Connections one remote address may hold at once
     /// (`slag_common::http::DEFAULT_MAX_CONNECTIONS_PER_IP`, 64, when absent).
     pub max_connections_per_ip: Option<usize>,
+    /// HTTPS: the PEM certificate chain (with `tls_key`).
+    pub tls_cert: Option<PathBuf>,
+    /// HTTPS: the PEM private key of `tls_cert`.
+    pub tls_key: Option<PathBuf>,
+    /// Allow a bearer token over plain HTTP on a non-loopback address (refused when absent or
+    /// false: `slag_common::tls::check_token_transport`).
+    pub allow_plain_http: Option<bool>,
+    /// A private CA certificate (PEM) `POST /fetch` trusts for an `https://` shard server, in
+    /// addition to the built-in roots.
+    pub ca_cert: Option<PathBuf>,
 }
 
 impl ServeConfig {
@@ -164,5 +178,7 @@ mod tests {
         assert_eq!(c.max_connections, Some(512));
         assert_eq!(c.body_timeout, Some(10.0));
         assert_eq!(c.max_connections_per_ip, Some(64));
+        assert_eq!(c.allow_plain_http, Some(true));
+        assert_eq!((c.tls_cert, c.tls_key, c.ca_cert), (None, None, None));
     }
 }

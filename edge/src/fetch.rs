@@ -215,6 +215,9 @@ impl std::str::FromStr for Center {
 pub struct FetchParams {
     /// Shard server base URL, e.g. `http://10.0.0.2:8090`.
     pub server: String,
+    /// A private CA's certificate(s), PEM, trusted for an `https://` server in addition to the
+    /// built-in roots ([`client_trusting`]); `None`: the built-in roots alone.
+    pub ca_cert: Option<std::path::PathBuf>,
     /// Scene id.
     pub scene: String,
     /// Disc centre.
@@ -345,6 +348,17 @@ fn permanent(error: Error) -> Attempt {
 }
 
 fn net_error(url: &str, e: reqwest::Error) -> Attempt {
+    let causes = slag_common::error::causes_once(&e);
+    if e.is_connect() && causes.contains("certificate") {
+        // Not transient: the same certificate fails the same way on every retry.
+        return permanent(Error::network(
+            url,
+            format!(
+                "the server's TLS certificate is not trusted for this address; trust the \
+                 certificate of the CA that issued it ({causes})"
+            ),
+        ));
+    }
     let what = if e.is_timeout() {
         "timed out; check the link or raise the timeout"
     } else if e.is_connect() {
@@ -352,7 +366,7 @@ fn net_error(url: &str, e: reqwest::Error) -> Attempt {
     } else {
         "transfer failed"
     };
-    transient(Error::network(url, format!("{what} ({e})")))
+    transient(Error::network(url, format!("{what} ({causes})")))
 }
 
 fn status_error(url: &str, status: reqwest::StatusCode, body: &str) -> Attempt {
@@ -384,11 +398,40 @@ fn status_error(url: &str, status: reqwest::StatusCode, body: &str) -> Attempt {
 ///
 /// Errors: [`Error::Internal`] if the TLS backend cannot be initialised.
 pub fn client(timeout: Duration) -> Result<reqwest::Client> {
-    reqwest::Client::builder()
+    client_trusting(timeout, None)
+}
+
+/// [`client`] that also trusts the CA certificates in the PEM file `ca_cert` for `https://`
+/// servers: in addition to the built-in roots (Mozilla's list, compiled in), so a public server
+/// still verifies; the server's name (or IP address) must be in its certificate either way.
+///
+/// Errors: [`Error::Io`] when `ca_cert` cannot be read, [`Error::Format`] when it holds no PEM
+/// certificate; [`Error::Internal`] if the TLS backend cannot be initialised.
+pub fn client_trusting(
+    timeout: Duration,
+    ca_cert: Option<&std::path::Path>,
+) -> Result<reqwest::Client> {
+    let mut b = reqwest::Client::builder()
         .connect_timeout(timeout)
         .read_timeout(timeout)
-        .user_agent(concat!("slag-edge/", env!("CARGO_PKG_VERSION")))
-        .build()
+        .user_agent(concat!("slag-edge/", env!("CARGO_PKG_VERSION")));
+    if let Some(path) = ca_cert {
+        let pem = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+        let certs = reqwest::Certificate::from_pem_bundle(&pem)
+            .ok()
+            .filter(|c| !c.is_empty())
+            .ok_or_else(|| {
+                Error::format(
+                    path,
+                    "no PEM certificate (-----BEGIN CERTIFICATE-----): pass the CA certificate \
+                     that issued the shard server's certificate",
+                )
+            })?;
+        for c in certs {
+            b = b.add_root_certificate(c);
+        }
+    }
+    b.build()
         .map_err(|e| Error::internal(format!("HTTP client: {e}")))
 }
 
@@ -656,7 +699,7 @@ async fn fetch_inner(
     if p.jobs == 0 {
         return Err(Error::param("jobs", 0, "at least 1 download at a time"));
     }
-    let client = client(p.timeout)?;
+    let client = client_trusting(p.timeout, p.ca_cert.as_deref())?;
     let (manifest, signed) = fetch_trusted_manifest(&client, store, p)
         .await
         .inspect_err(|e| *bad_manifest = !matches!(e, Error::Network { .. }))?;

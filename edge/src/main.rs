@@ -129,6 +129,10 @@ struct FetchArgs {
     /// accepted.
     #[arg(long, value_name = "FILE")]
     trusted_key: Option<PathBuf>,
+    /// A private CA's certificate (PEM; several may follow each other) to trust for an https://
+    /// --from, in addition to the built-in public roots.
+    #[arg(long, value_name = "FILE")]
+    ca_cert: Option<PathBuf>,
     /// Print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -172,6 +176,21 @@ struct ServeArgs {
     /// file's SHA-256 with it.
     #[arg(long, value_name = "FILE")]
     trusted_key: Option<PathBuf>,
+    /// Serve HTTPS with this PEM certificate chain (the server's certificate first, then its
+    /// intermediates); needs --tls-key. SIGHUP and POST /reload read both files again.
+    #[arg(long, value_name = "FILE")]
+    tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert (PKCS#8, RSA or EC).
+    #[arg(long, value_name = "FILE")]
+    tls_key: Option<PathBuf>,
+    /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
+    /// the path can read it. Without it, a token with a non-loopback --addr needs --tls-cert.
+    #[arg(long)]
+    allow_plain_http: bool,
+    /// A private CA's certificate (PEM) that POST /fetch trusts for an https:// shard server, in
+    /// addition to the built-in public roots.
+    #[arg(long, value_name = "FILE")]
+    ca_cert: Option<PathBuf>,
     /// Build the approximate HNSW index at load (queries pick it with index=hnsw).
     #[arg(long)]
     hnsw: bool,
@@ -316,6 +335,7 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
     let store = EdgeStore::open(&a.store)?;
     let params = FetchParams {
         server: a.server,
+        ca_cert: a.ca_cert,
         scene: a.scene,
         center: a.center,
         radius: a.radius,
@@ -362,12 +382,38 @@ struct Resolved {
     ros2: Option<slag_edge::ros2::Ros2Options>,
 }
 
+/// The TLS certificate of `serve` (flags over the config file), `None` without one.
+fn resolve_tls(
+    a: &ServeArgs,
+    c: &ServeConfig,
+) -> anyhow::Result<Option<Arc<slag_common::tls::ServerTls>>> {
+    let cert = a.tls_cert.as_ref().or(c.tls_cert.as_ref());
+    let key = a.tls_key.as_ref().or(c.tls_key.as_ref());
+    match (cert, key) {
+        (None, None) => Ok(None),
+        (Some(cert), Some(key)) => Ok(Some(Arc::new(slag_common::tls::ServerTls::load(
+            cert, key,
+        )?))),
+        (Some(_), None) => anyhow::bail!(
+            "--tls-cert without --tls-key: pass the certificate's private key with --tls-key \
+             (or `tls_key` in --config)"
+        ),
+        (None, Some(_)) => anyhow::bail!(
+            "--tls-key without --tls-cert: pass the certificate chain with --tls-cert (or \
+             `tls_cert` in --config)"
+        ),
+    }
+}
+
 fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let web_dir = a.web_dir.clone();
     let c = match &a.config {
         Some(p) => ServeConfig::read(p)?,
         None => ServeConfig::default(),
     };
+    let tls = resolve_tls(&a, &c)?;
+    let allow_plain_http = a.allow_plain_http || c.allow_plain_http.unwrap_or(false);
+    let ca_cert = a.ca_cert.clone().or(c.ca_cert.clone());
     let need = |v: Option<PathBuf>, flag: &str| {
         v.with_context(|| {
             format!(
@@ -409,6 +455,12 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         Some(p) => Some(read_token(&p)?),
         None => env_token,
     };
+    slag_common::tls::check_token_transport(
+        addr,
+        token.is_some(),
+        tls.is_some(),
+        allow_plain_http,
+    )?;
     let d = slag_common::http::ServerLimits::default();
     let limits = slag_common::http::ServerLimits {
         header_timeout: match a.header_timeout.or(c.header_timeout) {
@@ -481,6 +533,8 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
             .unwrap_or(slag_edge::serve::DEFAULT_MAX_MATCHES),
         limits,
         shard_token,
+        tls,
+        ca_cert,
     };
     anyhow::ensure!(opts.max_matches >= 1, "--max-matches must be at least 1");
     anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
@@ -513,6 +567,11 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
     let r = resolve(a)?;
     let edge = EdgeStore::open_existing(&r.store)?;
     let text = text_embedder(&r.text_model, &r.tokenizer, r.ep)?;
+    let scheme = if r.opts.tls.is_some() {
+        "https"
+    } else {
+        "http"
+    };
     let state = Arc::new(AppState::new(edge, text, r.opts)?.with_web_dir(r.web_dir));
     let rt = runtime()?;
     if let Some(o) = r.ros2 {
@@ -526,8 +585,8 @@ fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
         );
     }
     rt.block_on(slag_edge::serve::serve(state, r.addr, |bound| {
-        tracing::info!("listening on http://{bound}");
-        eprintln!("slag-edge: listening on http://{bound}");
+        tracing::info!("listening on {scheme}://{bound}");
+        eprintln!("slag-edge: listening on {scheme}://{bound}");
     }))?;
     Ok(())
 }
@@ -565,6 +624,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
         "scene": r.opts.scene,
         "addr": r.addr,
         "token": r.opts.token.is_some(),
+        "tls_certificate_sha256": r.opts.tls.as_ref().map(|t| t.fingerprint()),
     });
     if let Some((v, _)) = &text {
         report["text_dim"] = v.first().map_or(0, Vec::len).into();
@@ -783,6 +843,11 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
             "max_connections_per_ip" => "pass --max-connections-per-ip N (or \
                                          `max_connections_per_ip` in --config)"
                 .into(),
+            "plain_http" => "pass --tls-cert FILE --tls-key FILE (HTTPS; `tls_cert` and \
+                             `tls_key` in --config), or listen on a loopback address (--addr \
+                             127.0.0.1:PORT), or pass --allow-plain-http (`allow_plain_http = \
+                             true`) to send the token in clear text anyway"
+                .into(),
             _ => return None,
         },
         Error::Query { field, message } => match *field {
@@ -831,6 +896,16 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
         Error::Network {
             status: Some(404), ..
         } => "check --scene, or run fetch again if the scene was re-partitioned".into(),
+        Error::Network {
+            status: None,
+            message,
+            ..
+        } if message.contains("TLS certificate") => {
+            "pass --ca-cert FILE with the CA certificate that issued the shard server's \
+             certificate (`ca_cert` in serve's --config for POST /fetch), and a --from whose \
+             host name or IP address the certificate names"
+                .into()
+        }
         Error::Inference { message, .. } => match inference_cause(message) {
             InferenceCause::ProviderMissing => "use --ep cpu or --ep auto".into(),
             InferenceCause::Other => {

@@ -107,6 +107,7 @@ pub struct RobotPath {
 pub fn robot_fetch_params(shard_url: &str) -> slag_edge::fetch::FetchParams {
     slag_edge::fetch::FetchParams {
         server: shard_url.into(),
+        ca_cert: None,
         scene: "snowmiku-mini".into(),
         center: slag_edge::fetch::Center::Ground([0.0, 0.0]),
         radius: 1e6,

@@ -40,6 +40,15 @@
 //! its `top_k` best matches too). More is refused with 400 naming the limit, before any scan, so
 //! the largest answer one request can build is bounded.
 //!
+//! # TLS
+//!
+//! With [`ServeOptions::tls`] the same loop speaks HTTPS ([`slag_common::tls`]: rustls, ALPN
+//! `http/1.1`, every limit and timeout above also for TLS connections, the handshake within the
+//! header-read timeout). `SIGHUP` and `POST /reload` read the certificate and key files again:
+//! new connections get the new certificate, open ones finish with theirs; a file that does not
+//! load is refused (logged, and `POST /reload` answers the error) and the certificate in use
+//! stays. `POST /reload` answers the new certificate's `tls_certificate_sha256`.
+//!
 //! # Admission control
 //!
 //! Every scan (`GET`/`POST /query`, `GET /query.ply`) passes a FIFO gate ([`Admission`]: a fair
@@ -122,6 +131,12 @@ pub struct ServeOptions {
     /// The publisher's public key `POST /fetch` requires signatures of
     /// ([`FetchParams::trusted_key`]); `None`: unsigned maps are accepted.
     pub trusted_key: Option<slag_common::shards::signature::TrustedKey>,
+    /// Serve HTTPS with this certificate (`None`: plain HTTP); `SIGHUP` and `POST /reload` read
+    /// its files again (module doc, "TLS").
+    pub tls: Option<Arc<slag_common::tls::ServerTls>>,
+    /// A private CA (PEM) `POST /fetch` trusts beside the built-in roots for an `https://` shard
+    /// server ([`FetchParams::ca_cert`]).
+    pub ca_cert: Option<std::path::PathBuf>,
 }
 
 impl std::fmt::Debug for ServeOptions {
@@ -143,12 +158,15 @@ impl std::fmt::Debug for ServeOptions {
                 "trusted_key",
                 &self.trusted_key.as_ref().map(|k| k.key_id()),
             )
+            .field("tls", &self.tls)
+            .field("ca_cert", &self.ca_cert)
             .finish()
     }
 }
 
 impl ServeOptions {
-    /// Options for `scene` with the defaults of `slag-edge serve`: no token, threshold 0.28
+    /// Options for `scene` with the defaults of `slag-edge serve`: no token, plain HTTP, no
+    /// private CA, threshold 0.28
     /// (the paper's), no HNSW (backend instant-distance when enabled), 30 s request timeout,
     /// [`DEFAULT_MAX_SCANS`], [`DEFAULT_SCAN_QUEUE`], [`DEFAULT_MAX_MATCHES`] and the default
     /// [`ServerLimits`].
@@ -166,6 +184,8 @@ impl ServeOptions {
             limits: ServerLimits::default(),
             shard_token: None,
             trusted_key: None,
+            tls: None,
+            ca_cert: None,
         }
     }
 
@@ -497,7 +517,8 @@ pub async fn serve(
         .local_addr()
         .map_err(|e| Error::io(addr.to_string(), e))?;
     on_bound(local);
-    slag_common::http::serve(listener, router(state), limits, shutdown()).await;
+    let tls = state.opts.tls.clone();
+    slag_common::http::serve_with_tls(listener, router(state), limits, tls, shutdown()).await;
     Ok(())
 }
 
@@ -942,17 +963,31 @@ async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
     Ok(())
 }
 
+/// `POST /reload`: the store, then the TLS certificate when serving HTTPS (module doc, "TLS").
 async fn reload(State(state): State<Arc<AppState>>) -> Response {
-    match reload_engine(&state).await {
-        Ok(()) => {
-            let e = state.engine();
-            axum::Json(serde_json::json!({
-                "reloaded": true, "gaussians": e.store.len(), "shards": e.load.loaded_tiles.len()
-            }))
-            .into_response()
-        }
-        Err(e) => error(status_of(&e), e.to_string()),
+    if let Err(e) = reload_engine(&state).await {
+        return error(status_of(&e), e.to_string());
     }
+    let e = state.engine();
+    let mut answer = serde_json::json!({
+        "reloaded": true, "gaussians": e.store.len(), "shards": e.load.loaded_tiles.len()
+    });
+    if let Some(tls) = &state.opts.tls {
+        match slag_common::tls::log_reload(tls, "POST /reload") {
+            Ok(f) => answer["tls_certificate_sha256"] = f.into(),
+            Err(e) => {
+                return error(
+                    status_of(&e),
+                    format!(
+                        "the store was reloaded, the TLS certificate was not and the one in use \
+                         stays (SHA-256 {}): {e}",
+                        tls.fingerprint()
+                    ),
+                );
+            }
+        }
+    }
+    axum::Json(answer).into_response()
 }
 
 /// `POST /fetch` body.
@@ -1022,6 +1057,7 @@ async fn fetch_post(
     let _guard = state.fetching.lock().await;
     let params = FetchParams {
         server,
+        ca_cert: state.opts.ca_cert.clone(),
         scene: state.opts.scene.clone(),
         center,
         radius: b.radius,

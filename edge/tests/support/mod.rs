@@ -205,6 +205,41 @@ pub struct ShardServer {
 }
 
 pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServer {
+    let (state, app) = shard_router(scene, token);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr: SocketAddr = listener.local_addr().unwrap();
+    tokio::spawn(async move {
+        axum::serve(listener, app).await.unwrap();
+    });
+    ShardServer {
+        url: format!("http://{addr}"),
+        state,
+    }
+}
+
+/// [`shard_server`] over HTTPS with `tls` (the servers' own loop, default limits); its URL is
+/// `https://127.0.0.1:PORT`.
+pub async fn shard_server_tls(
+    scene: TestScene,
+    tls: Arc<slag_common::tls::ServerTls>,
+) -> ShardServer {
+    let (state, app) = shard_router(scene, None);
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr: SocketAddr = listener.local_addr().unwrap();
+    tokio::spawn(slag_common::http::serve_with_tls(
+        listener,
+        app,
+        slag_common::http::ServerLimits::default(),
+        Some(tls),
+        std::future::pending(),
+    ));
+    ShardServer {
+        url: format!("https://{addr}"),
+        state,
+    }
+}
+
+fn shard_router(scene: TestScene, token: Option<String>) -> (Arc<ServerState>, axum::Router) {
     let state = Arc::new(ServerState {
         scene: RwLock::new(scene),
         requests: AtomicUsize::new(0),
@@ -223,15 +258,7 @@ pub async fn shard_server(scene: TestScene, token: Option<String>) -> ShardServe
         .route("/v1/scenes/{scene}/codebook", get(codebook))
         .route("/v1/scenes/{scene}/shards/{id}", get(shard))
         .with_state(state.clone());
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let addr: SocketAddr = listener.local_addr().unwrap();
-    tokio::spawn(async move {
-        axum::serve(listener, app).await.unwrap();
-    });
-    ShardServer {
-        url: format!("http://{addr}"),
-        state,
-    }
+    (state, app)
 }
 
 fn authorized(state: &ServerState, headers: &HeaderMap) -> bool {
@@ -533,9 +560,10 @@ pub async fn wait_until(what: &str, mut cond: impl AsyncFnMut() -> bool) {
 }
 
 /// The `slag-edge` binary as a command, not yet started: through `$SLAG_TEST_RUNNER` (e.g. qemu
-/// under the cross build) when that is set and not blank.
+/// under the cross build) when that is set and not blank. (Read with `option_env!` so that an
+/// example may include these fixtures: cargo sets the variable for tests only.)
 pub fn slag_edge_command() -> std::process::Command {
-    let bin = env!("CARGO_BIN_EXE_slag-edge");
+    let bin = option_env!("CARGO_BIN_EXE_slag-edge").expect("a test of the slag-edge package");
     let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
     let mut parts = runner.split_whitespace();
     match parts.next() {
@@ -584,6 +612,7 @@ pub fn skip_without_ort() -> bool {
 pub fn grid_fetch_params(url: &str, radius: f64) -> FetchParams {
     FetchParams {
         server: url.into(),
+        ca_cert: None,
         scene: "grid".into(),
         center: Center::Ground([0.0, 0.0]),
         radius,

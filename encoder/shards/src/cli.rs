@@ -598,9 +598,7 @@ impl ServeArgs {
         l.validate()?;
         Ok(l)
     }
-}
 
-impl ServeArgs {
     /// The TLS certificate and key of `--tls-cert` / `--tls-key`, `None` without them.
     ///
     /// Errors: as [`slag_common::tls::ServerTls::load`] (unreadable files, no PEM certificate or

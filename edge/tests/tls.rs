@@ -1,0 +1,226 @@
+//! `slag-edge` and TLS, with a CA and server certificates made at test time: `serve` answers
+//! queries over HTTPS and `POST /reload` swaps the certificate for new connections while an
+//! answer in flight completes (a bad file is refused and the certificate in use stays); `fetch`
+//! from an HTTPS shard server with a private CA (`--ca-cert`) and its refusal without it; a
+//! bearer token refused over plain HTTP off loopback unless `--allow-plain-http`; a bad
+//! certificate file refused at start-up.
+#![allow(clippy::unwrap_used)]
+
+mod support;
+
+use std::sync::Arc;
+
+use slag_common::Error;
+use slag_common::shards::Dtype;
+use slag_common::testing::TestCa;
+use slag_common::tls::{ServerTls, fingerprint};
+use slag_edge::fetch::{FetchParams, fetch};
+use slag_edge::serve::{AppState, ServeOptions};
+use support::{
+    GateEmbedder, assert_success, fetch_args, fetch_grid, grid_fetch_params, grid_scene,
+    grid_serve_options, output_blocking, serve_on_loopback, shard_server, shard_server_tls,
+    slag_edge_with_log, temp_store, wait_until,
+};
+
+/// A client that trusts only `ca`, reports the server's certificate (`TlsInfo`) and, new for
+/// every request, never resumes an older session.
+fn https(ca: &TestCa) -> reqwest::Client {
+    reqwest::Client::builder()
+        .add_root_certificate(reqwest::Certificate::from_pem(ca.pem.as_bytes()).unwrap())
+        .tls_built_in_root_certs(false)
+        .tls_info(true)
+        .build()
+        .unwrap()
+}
+
+/// The certificate (DER) the server presented for `r`.
+fn peer(r: &reqwest::Response) -> Vec<u8> {
+    let info = r.extensions().get::<reqwest::tls::TlsInfo>().unwrap();
+    info.peer_certificate().unwrap().to_vec()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn post_reload_swaps_the_certificate_while_an_answer_in_flight_completes() {
+    let ca = TestCa::new("slag edge test CA");
+    let (first, second) = (ca.server_cert(1), ca.server_cert(2));
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = first.write(certs.path());
+    let tls = Arc::new(ServerTls::load(&cert_file, &key_file).unwrap());
+    let shards = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    let (_dir, store) = fetch_grid(&shards.url, 100.0).await;
+    let (gate, _open) = GateEmbedder::with_guard(8);
+    let opts = ServeOptions {
+        tls: Some(tls),
+        ..grid_serve_options(None, false)
+    };
+    let state = AppState::new(store, gate.clone(), opts).unwrap();
+    let url = serve_on_loopback(state)
+        .await
+        .replace("http://", "https://");
+    let health = async || {
+        let r = https(&ca)
+            .get(format!("{url}/health"))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200);
+        peer(&r)
+    };
+    assert_eq!(health().await, first.der);
+
+    // t1 waits at the gate: an answer in flight on a connection of the first certificate.
+    let held = {
+        let (client, u) = (https(&ca), format!("{url}/query?text=t1&top_k=3"));
+        tokio::spawn(async move { client.get(u).send().await.unwrap() })
+    };
+    wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
+
+    second.write(certs.path());
+    let r = https(&ca)
+        .post(format!("{url}/reload"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let body: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(
+        body["tls_certificate_sha256"],
+        fingerprint(&second.der),
+        "{body}"
+    );
+    assert_eq!(health().await, second.der);
+
+    gate.release(1);
+    let answer = held.await.unwrap();
+    assert_eq!(answer.status(), 200);
+    assert_eq!(peer(&answer), first.der);
+    let answer: serde_json::Value = answer.json().await.unwrap();
+    assert_eq!(answer["matches"].as_array().unwrap().len(), 3, "{answer}");
+
+    // A certificate file that does not load: refused, and the certificate in use stays.
+    std::fs::write(&cert_file, "not a certificate\n").unwrap();
+    let r = https(&ca)
+        .post(format!("{url}/reload"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 500);
+    let body: serde_json::Value = r.json().await.unwrap();
+    let message = body["error"].as_str().unwrap();
+    assert!(
+        message.contains("stays") && message.contains("cert.pem"),
+        "{message}"
+    );
+    assert_eq!(health().await, second.der);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fetch_over_https_trusts_the_ca_given_and_refuses_a_server_without_it() {
+    let ca = TestCa::new("slag shard test CA");
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = ca.server_cert(7).write(certs.path());
+    let tls = Arc::new(ServerTls::load(&cert_file, &key_file).unwrap());
+    let shards = shard_server_tls(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), tls).await;
+    let ca_file = certs.path().join("ca.pem");
+    std::fs::write(&ca_file, &ca.pem).unwrap();
+
+    let (_dir, store) = temp_store();
+    let without = fetch(&store, &grid_fetch_params(&shards.url, 100.0)).await;
+    match without {
+        Err(Error::Network {
+            status: None,
+            message,
+            ..
+        }) => assert!(message.contains("TLS certificate"), "{message}"),
+        other => panic!("fetched from an untrusted server: {other:?}"),
+    }
+    let p = FetchParams {
+        ca_cert: Some(ca_file.clone()),
+        ..grid_fetch_params(&shards.url, 100.0)
+    };
+    let summary = fetch(&store, &p).await.unwrap();
+    assert_eq!(summary.selected, 4, "{summary:?}");
+    assert_eq!(summary.downloaded, 4, "{summary:?}");
+
+    // The command line: refused with the flag to pass, then fetched with it.
+    let dir = tempfile::tempdir().unwrap();
+    let edge_store = dir.path().join("store").display().to_string();
+    let args = fetch_args(&shards.url, &edge_store, "100");
+    let out = output_blocking(slag_edge_with_log(&args, "warn")).await;
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "fetched without the CA: {err}");
+    assert!(err.contains("--ca-cert"), "{err}");
+    let ca_arg = ca_file.display().to_string();
+    let with_ca = [&args[..], &["--ca-cert", &ca_arg]].concat();
+    assert_success(
+        &output_blocking(slag_edge_with_log(&with_ca, "warn")).await,
+        "fetch --ca-cert",
+    );
+}
+
+/// `slag-edge serve` on `addr` with the bearer token `tok` (environment) and `extra` flags,
+/// over a store that does not exist: what it printed when it stopped.
+async fn serve_stderr(addr: &str, extra: &[&str]) -> String {
+    let args = [
+        &[
+            "serve",
+            "--scene",
+            "grid",
+            "--store",
+            "/nonexistent/store",
+            "--text-model",
+            "m.onnx",
+            "--tokenizer",
+            "t.json",
+            "--addr",
+            addr,
+        ][..],
+        extra,
+    ]
+    .concat();
+    let mut cmd = slag_edge_with_log(&args, "warn");
+    cmd.env("SLAG_EDGE_TOKEN", "tok");
+    let out = output_blocking(cmd).await;
+    assert!(
+        !out.status.success(),
+        "served from a store that does not exist"
+    );
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_token_over_plain_http_off_loopback_needs_allow_plain_http() {
+    let err = serve_stderr("0.0.0.0:0", &[]).await;
+    for needed in ["0.0.0.0", "--tls-cert", "--tls-key", "--allow-plain-http"] {
+        assert!(err.contains(needed), "{needed}: {err}");
+    }
+    // Allowed explicitly, or on loopback: it goes on to open the store.
+    for (addr, extra) in [
+        ("0.0.0.0:0", &["--allow-plain-http"][..]),
+        ("127.0.0.1:0", &[]),
+        ("[::1]:0", &[]),
+    ] {
+        let err = serve_stderr(addr, extra).await;
+        assert!(!err.contains("plain_http"), "{addr} {extra:?}: {err}");
+        assert!(
+            err.contains("/nonexistent/store"),
+            "{addr} {extra:?}: {err}"
+        );
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bad_certificate_file_refuses_to_start_naming_the_file() {
+    let ca = TestCa::new("slag edge test CA");
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = ca.server_cert(1).write(certs.path());
+    std::fs::write(&key_file, "-----BEGIN PRIVATE KEY-----\nAAAA\n").unwrap();
+    let (c, k) = (
+        cert_file.display().to_string(),
+        key_file.display().to_string(),
+    );
+    let err = serve_stderr("127.0.0.1:0", &["--tls-cert", &c, "--tls-key", &k]).await;
+    assert!(err.contains(&k) && err.contains("private key"), "{err}");
+    let err = serve_stderr("127.0.0.1:0", &["--tls-cert", &c]).await;
+    assert!(err.contains("--tls-key"), "{err}");
+}
