@@ -31,6 +31,7 @@
 //!    `(x1 - x0) * (y1 - y0)`, f32), scores = predicted IoU; the output keeps NMS order (descending
 //!    predicted IoU), as `SamAutomaticMaskGenerator.generate` does.
 
+use std::ops::Range;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -738,41 +739,91 @@ fn candidate(
         inter += u32::from(v > thr + off);
         union += u32::from(v > thr - off);
     }
-    // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
-    let stability = inter as f32 / union as f32;
-    if stability.is_nan() || stability < p.stability_score_thresh {
-        return None;
-    }
-    let mut bits = vec![0u64; logits.len().div_ceil(64)];
-    let (mut x0, mut y0, mut x1, mut y1, mut area) = (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
+    let stability = stability_score(inter, union, p)?;
+    let mut mask = MaskPixels::new(w, logits.len());
     for (y, row) in logits.chunks_exact(w).enumerate() {
         for (x, &v) in row.iter().enumerate() {
             if v > thr {
-                let k = y * w + x;
-                bits[k / 64] |= 1 << (k % 64);
-                x0 = x0.min(x as u32);
-                x1 = x1.max(x as u32);
-                y0 = y0.min(y as u32);
-                y1 = y1.max(y as u32);
-                area += 1;
+                mask.run(x, x + 1, y);
             }
         }
     }
-    // batched_mask_to_box gives [0,0,0,0] for an empty mask.
-    let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
-    Some(Candidate {
-        bits,
-        bbox,
-        area,
-        iou,
-        stability,
-        point,
-        channel: channel as u8,
-    })
+    Some(mask.candidate(iou, stability, point, channel))
+}
+
+/// segment_anything's `calculate_stability_score` from the pixel counts above the upper
+/// (`inter`) and the lower (`union`) threshold, or `None` when it fails
+/// [`SamParams::stability_score_thresh`].
+fn stability_score(inter: u32, union: u32, p: &SamParams) -> Option<f32> {
+    // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
+    let stability = inter as f32 / union as f32;
+    (!stability.is_nan() && stability >= p.stability_score_thresh).then_some(stability)
+}
+
+/// A candidate's mask as its pixels are found: its bits (row-major, `w` per row), its box and
+/// its area.
+struct MaskPixels {
+    w: usize,
+    bits: Vec<u64>,
+    /// Smallest and largest column inside.
+    x: [u32; 2],
+    /// Smallest and largest row inside.
+    y: [u32; 2],
+    area: u32,
+}
+
+impl MaskPixels {
+    /// An empty mask of `pixels` pixels, `w` per row.
+    fn new(w: usize, pixels: usize) -> Self {
+        MaskPixels {
+            w,
+            bits: vec![0u64; pixels.div_ceil(64)],
+            x: [u32::MAX, 0],
+            y: [u32::MAX, 0],
+            area: 0,
+        }
+    }
+
+    /// Pixels `xa..xb` (`xa < xb`) of row `y` are inside the mask.
+    fn run(&mut self, xa: usize, xb: usize, y: usize) {
+        set_bits(&mut self.bits, y * self.w + xa, xb - xa);
+        self.x = [self.x[0].min(xa as u32), self.x[1].max((xb - 1) as u32)];
+        self.y = [self.y[0].min(y as u32), self.y[1].max(y as u32)];
+        self.area += (xb - xa) as u32;
+    }
+
+    /// The candidate of this mask with its scores, from multimask output `channel`.
+    fn candidate(self, iou: f32, stability: f32, point: [f64; 2], channel: usize) -> Candidate {
+        // batched_mask_to_box gives [0,0,0,0] for an empty mask.
+        let bbox = if self.area == 0 {
+            [0; 4]
+        } else {
+            [self.x[0], self.y[0], self.x[1], self.y[1]]
+        };
+        Candidate {
+            bits: self.bits,
+            bbox,
+            area: self.area,
+            iou,
+            stability,
+            point,
+            channel: channel as u8,
+        }
+    }
 }
 
 /// Taps of one output coordinate: up to four `(low-res index, weight)` pairs.
 type Taps = ([u16; 4], [f32; 4]);
+
+/// One output sample of the row pass: the taps `t` applied to the low-resolution row `src`.
+#[inline]
+fn row_tap(t: &Taps, src: &[f32]) -> f32 {
+    let (idx, wt) = t;
+    wt[0] * src[idx[0] as usize]
+        + wt[1] * src[idx[1] as usize]
+        + wt[2] * src[idx[2] as usize]
+        + wt[3] * src[idx[3] as usize]
+}
 
 /// `SamOnnxModel.mask_postprocessing` on the host: 256 × 256 low-resolution logits → bilinear
 /// (`align_corners=False`) to 1024 × 1024 → crop to the resized image `new_h × new_w` → bilinear
@@ -851,6 +902,14 @@ impl<'a> LowResMaps<'a> {
             }
         }
     }
+}
+
+/// Pixels of one logit map above the lower (`union`) and the upper (`inter`) threshold of the
+/// stability score.
+#[derive(Default)]
+struct PixelCounts {
+    union: u32,
+    inter: u32,
 }
 
 /// Scratch of [`LowResUpsampler::candidate`], reused across the candidates of one thread.
@@ -951,103 +1010,127 @@ impl LowResUpsampler {
         let (thr, off) = (p.mask_threshold, p.stability_score_offset);
         // union, mask, intersection: the comparisons of `candidate`.
         let levels = [thr - off, thr, thr + off];
-        let nbx = self.x_spans.len();
         scratch.rows.resize(256 * w, 0.0);
         scratch.done.clear();
-        scratch.done.resize(256 * nbx, false);
-        let mut bits = vec![0u64; (w * h).div_ceil(64)];
-        let (mut inter, mut union) = (0u32, 0u32);
-        let (mut x0, mut y0, mut x1, mut y1, mut area) = (u32::MAX, u32::MAX, 0u32, 0u32, 0u32);
-        let mut inside = |xa: usize, xb: usize, y: usize, bits: &mut [u64]| {
-            // Pixels xa..xb of row y are inside the mask.
-            set_bits(bits, y * w + xa, xb - xa);
-            x0 = x0.min(xa as u32);
-            x1 = x1.max((xb - 1) as u32);
-            y0 = y0.min(y as u32);
-            y1 = y1.max(y as u32);
-            area += (xb - xa) as u32;
-        };
-        let mut block = [0f32; BLOCK];
-        for (by, &(ry0, ry1)) in self.y_spans.iter().enumerate() {
+        scratch.done.resize(256 * self.x_spans.len(), false);
+        let mut mask = MaskPixels::new(w, w * h);
+        let mut counts = PixelCounts::default();
+        for by in 0..self.y_spans.len() {
             let ys = by * BLOCK..((by + 1) * BLOCK).min(h);
-            for (bx, &(cx0, cx1)) in self.x_spans.iter().enumerate() {
+            for bx in 0..self.x_spans.len() {
                 let xs = bx * BLOCK..((bx + 1) * BLOCK).min(w);
-                let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
-                for r in ry0..=ry1 {
-                    // All logits are finite here: plain comparisons are the minimum and maximum.
-                    for &v in &low[r * 256 + cx0..=r * 256 + cx1] {
-                        mn = if v < mn { v } else { mn };
-                        mx = if v > mx { v } else { mx };
-                    }
-                }
-                let margin = 1e-4 * (1.0 + mn.abs().max(mx.abs()));
-                let above = levels.map(|t| mn - margin > t);
-                let below = levels.map(|t| mx + margin < t);
-                let n = (ys.len() * xs.len()) as u32;
-                if (0..3).all(|k| above[k] || below[k]) {
-                    union += if above[0] { n } else { 0 };
-                    inter += if above[2] { n } else { 0 };
-                    if above[1] {
-                        for y in ys.clone() {
-                            inside(xs.start, xs.end, y, &mut bits);
-                        }
-                    }
-                    continue;
-                }
-                for r in ry0..=ry1 {
-                    if !std::mem::replace(&mut scratch.done[r * nbx + bx], true) {
-                        let src = &low[r * 256..(r + 1) * 256];
-                        let out = &mut scratch.rows[r * w..(r + 1) * w];
-                        for x in xs.clone() {
-                            let (idx, wt) = &self.x[x];
-                            out[x] = wt[0] * src[idx[0] as usize]
-                                + wt[1] * src[idx[1] as usize]
-                                + wt[2] * src[idx[2] as usize]
-                                + wt[3] * src[idx[3] as usize];
-                        }
-                    }
-                }
-                for y in ys.clone() {
-                    let (idx, wt) = &self.y[y];
-                    let row = |k: usize| &scratch.rows[idx[k] as usize * w..][..w];
-                    let (r0, r1, r2, r3) = (row(0), row(1), row(2), row(3));
-                    for (o, x) in block.iter_mut().zip(xs.clone()) {
-                        *o = wt[0] * r0[x] + wt[1] * r1[x] + wt[2] * r2[x] + wt[3] * r3[x];
-                    }
-                    let mut run: Option<usize> = None;
-                    for (i, &v) in block[..xs.len()].iter().enumerate() {
-                        union += u32::from(v > levels[0]);
-                        inter += u32::from(v > levels[2]);
-                        match (v > levels[1], run) {
-                            (true, None) => run = Some(xs.start + i),
-                            (false, Some(a)) => {
-                                inside(a, xs.start + i, y, &mut bits);
-                                run = None;
+                match self.block_sides(low, by, bx, &levels) {
+                    Some(above) => {
+                        let n = (ys.len() * xs.len()) as u32;
+                        counts.union += if above[0] { n } else { 0 };
+                        counts.inter += if above[2] { n } else { 0 };
+                        if above[1] {
+                            for y in ys.clone() {
+                                mask.run(xs.start, xs.end, y);
                             }
-                            _ => {}
                         }
                     }
-                    if let Some(a) = run {
-                        inside(a, xs.end, y, &mut bits);
+                    None => {
+                        self.row_pass(low, scratch, by, bx, xs.clone());
+                        self.threshold_block(
+                            &scratch.rows,
+                            &levels,
+                            (ys.clone(), xs),
+                            &mut mask,
+                            &mut counts,
+                        );
                     }
                 }
             }
         }
-        // torch: int32 / int32 -> f32; 0 / 0 = NaN fails the `>=` filter like SAM's.
-        let stability = inter as f32 / union as f32;
-        if stability.is_nan() || stability < p.stability_score_thresh {
-            return None;
+        let stability = stability_score(counts.inter, counts.union, p)?;
+        Some(mask.candidate(iou, stability, point, channel))
+    }
+
+    /// Block `(by, bx)`'s side of each of the three `levels` when its taps' bounds decide it
+    /// at every pixel (`true`: above), or `None` when any level must be computed pixel by pixel.
+    fn block_sides(
+        &self,
+        low: &[f32],
+        by: usize,
+        bx: usize,
+        levels: &[f32; 3],
+    ) -> Option<[bool; 3]> {
+        let ((ry0, ry1), (cx0, cx1)) = (self.y_spans[by], self.x_spans[bx]);
+        let (mut mn, mut mx) = (f32::INFINITY, f32::NEG_INFINITY);
+        for r in ry0..=ry1 {
+            // All logits are finite here: plain comparisons are the minimum and maximum.
+            for &v in &low[r * 256 + cx0..=r * 256 + cx1] {
+                mn = if v < mn { v } else { mn };
+                mx = if v > mx { v } else { mx };
+            }
         }
-        let bbox = if area == 0 { [0; 4] } else { [x0, y0, x1, y1] };
-        Some(Candidate {
-            bits,
-            bbox,
-            area,
-            iou,
-            stability,
-            point,
-            channel: channel as u8,
-        })
+        let margin = 1e-4 * (1.0 + mn.abs().max(mx.abs()));
+        let above = levels.map(|t| mn - margin > t);
+        let below = levels.map(|t| mx + margin < t);
+        (0..3).all(|k| above[k] || below[k]).then_some(above)
+    }
+
+    /// The row pass of output columns `xs` (block column `bx`) over the low-resolution rows
+    /// that block row `by` reads, into `scratch.rows`, for the rows not done yet.
+    fn row_pass(
+        &self,
+        low: &[f32],
+        scratch: &mut CandidateScratch,
+        by: usize,
+        bx: usize,
+        xs: Range<usize>,
+    ) {
+        let (w, nbx) = (self.x.len(), self.x_spans.len());
+        let (ry0, ry1) = self.y_spans[by];
+        for r in ry0..=ry1 {
+            if !std::mem::replace(&mut scratch.done[r * nbx + bx], true) {
+                let src = &low[r * 256..(r + 1) * 256];
+                let out = &mut scratch.rows[r * w..(r + 1) * w];
+                for x in xs.clone() {
+                    out[x] = row_tap(&self.x[x], src);
+                }
+            }
+        }
+    }
+
+    /// The column pass of the block `(ys, xs)` from the row pass `rows`, each pixel compared
+    /// with the three `levels`: counted into `counts`, and set in `mask` when above the middle
+    /// one.
+    fn threshold_block(
+        &self,
+        rows: &[f32],
+        levels: &[f32; 3],
+        (ys, xs): (Range<usize>, Range<usize>),
+        mask: &mut MaskPixels,
+        counts: &mut PixelCounts,
+    ) {
+        let w = self.x.len();
+        let mut block = [0f32; BLOCK];
+        for y in ys {
+            let (idx, wt) = &self.y[y];
+            let row = |k: usize| &rows[idx[k] as usize * w..][..w];
+            let (r0, r1, r2, r3) = (row(0), row(1), row(2), row(3));
+            for (o, x) in block.iter_mut().zip(xs.clone()) {
+                *o = wt[0] * r0[x] + wt[1] * r1[x] + wt[2] * r2[x] + wt[3] * r3[x];
+            }
+            let mut run: Option<usize> = None;
+            for (i, &v) in block[..xs.len()].iter().enumerate() {
+                counts.union += u32::from(v > levels[0]);
+                counts.inter += u32::from(v > levels[2]);
+                match (v > levels[1], run) {
+                    (true, None) => run = Some(xs.start + i),
+                    (false, Some(a)) => {
+                        mask.run(a, xs.start + i, y);
+                        run = None;
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(a) = run {
+                mask.run(a, xs.end, y);
+            }
+        }
     }
 
     /// Upsamples one 256 × 256 logit map into `full` (`h × w`), using `rows` (256 × `w`) as
@@ -1056,11 +1139,8 @@ impl LowResUpsampler {
         let w = self.x.len();
         for (r, out) in rows.chunks_exact_mut(w).enumerate().take(256) {
             let src = &low[r * 256..(r + 1) * 256];
-            for (o, (idx, wt)) in out.iter_mut().zip(&self.x) {
-                *o = wt[0] * src[idx[0] as usize]
-                    + wt[1] * src[idx[1] as usize]
-                    + wt[2] * src[idx[2] as usize]
-                    + wt[3] * src[idx[3] as usize];
+            for (o, t) in out.iter_mut().zip(&self.x) {
+                *o = row_tap(t, src);
             }
         }
         for (out, (idx, wt)) in full.chunks_exact_mut(w).zip(&self.y) {
