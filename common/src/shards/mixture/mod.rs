@@ -32,8 +32,8 @@ use half::f16;
 use super::format::{
     Dtype, F16_MAX, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
     RowSection, ShardError, ShardHeader, ShardInput, ShardLayout, decode_shard_stored,
-    encode_shard, header_len_for, parse_header, payload_with_rows, put_le, read_f16s, read_payload,
-    read_u32s, shard_columns,
+    decoded_shard, encode_shard, header_len_for, parse_header, payload_with_rows, put_le,
+    read_f16s, read_payload, read_u32s, shard_input,
 };
 use crate::Error;
 
@@ -43,73 +43,47 @@ pub use crate::mixture::UNUSED;
 /// Tile id of the codebook file (no spatial tile has it: partition numbers tiles from 0).
 pub const CODEBOOK_TILE: u64 = u64::MAX;
 
-/// Borrowed content of one mixture shard ([`encode_mixture_shard`]). `Default`: no rows, no
-/// optional sections, `dim` and `slots` 0 (set them).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct MixtureShardInput<'a> {
-    /// Scene id (≤ 65535 bytes UTF-8).
-    pub scene_id: &'a str,
-    /// Embedding model id (≤ 65535 bytes UTF-8).
-    pub model: &'a str,
-    /// Tile id.
-    pub tile_id: u64,
-    /// Embedding width D of the codebook rows (1..=[`MAX_DIM`](super::format::MAX_DIM)).
-    pub dim: usize,
-    /// Slots per Gaussian S (1..=[`MAX_SLOTS`]).
-    pub slots: usize,
-    /// CRC-32 of the scene's codebook file ([`super::shard_checksum`] of [`encode_codebook`]'s
-    /// bytes).
-    pub codebook_crc: u32,
-    /// Source-`.ply` indices `[N]`.
-    pub ids: &'a [u32],
-    /// Centres `[N]`, world frame, scene units.
-    pub means: &'a [[f32; 3]],
-    /// `[N * S]` codebook rows, [`UNUSED`] for an empty slot.
-    pub atoms: &'a [u32],
-    /// `[N * S]` weights (stored as f16, rounded to nearest), 0 in empty slots.
-    pub weights: &'a [f32],
-    /// Optional log-scales `[N]`.
-    pub scales: Option<&'a [[f32; 3]]>,
-    /// Optional pre-sigmoid opacities `[N]`.
-    pub opacities: Option<&'a [f32]>,
-    /// Optional normalised rotations (w, x, y, z) `[N]`.
-    pub rotations: Option<&'a [[f32; 4]]>,
-    /// Optional SH DC colour (`f_dc_0..2`) `[N]`.
-    pub sh_dc: Option<&'a [[f32; 3]]>,
-    /// Optional scene-wide segment ids `[N]` ([`crate::segments`]); when given, the shard is
-    /// written as version [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`].
-    pub segments: Option<&'a [u32]>,
+shard_input! {
+    /// Borrowed content of one mixture shard ([`encode_mixture_shard`]). `Default`: no rows, no
+    /// optional sections, `dim` and `slots` 0 (set them).
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct MixtureShardInput<'a> {
+        header {
+            /// Slots per Gaussian S (1..=[`MAX_SLOTS`]).
+            pub slots: usize,
+            /// CRC-32 of the scene's codebook file ([`super::shard_checksum`] of
+            /// [`encode_codebook`]'s bytes).
+            pub codebook_crc: u32,
+        }
+        rows {
+            /// `[N * S]` codebook rows, [`UNUSED`] for an empty slot.
+            pub atoms: &'a [u32],
+            /// `[N * S]` weights (stored as f16, rounded to nearest), 0 in empty slots.
+            pub weights: &'a [f32],
+        }
+    }
 }
 
-/// A decoded mixture shard ([`decode_mixture_shard`]): rows as stored.
-#[derive(Debug, Clone, PartialEq)]
-pub struct MixtureShard {
-    /// Header fields (`version` = [`MIXTURE_SHARD_FORMAT_VERSION`], or
-    /// [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`] with segments; `dtype` f16, `dim` = D).
-    pub header: ShardHeader,
-    /// Slots per Gaussian S.
-    pub slots: u32,
-    /// CRC-32 of the codebook file these rows index.
-    pub codebook_crc: u32,
-    /// Source-`.ply` indices `[N]`.
-    pub ids: Vec<u32>,
-    /// Centres `[N]`, world frame, scene units.
-    pub means: Vec<[f32; 3]>,
-    /// `[N * S]` codebook rows, [`UNUSED`] for an empty slot.
-    pub atoms: Vec<u32>,
-    /// `[N * S]` weights, finite, 0 in empty slots.
-    pub weights: Vec<f16>,
-    /// Optional log-scales `[N]`, for display.
-    pub scales: Option<Vec<[f32; 3]>>,
-    /// Optional pre-sigmoid opacities `[N]`, for display.
-    pub opacities: Option<Vec<f32>>,
-    /// Optional normalised rotations (w, x, y, z) `[N]`, for display.
-    pub rotations: Option<Vec<[f32; 4]>>,
-    /// Optional SH DC colour `[N]`, for display.
-    pub sh_dc: Option<Vec<[f32; 3]>>,
-    /// Optional scene-wide geometric segment id of each Gaussian `[N]` ([`crate::segments`]);
-    /// present in version-4 shards only.
-    pub segments: Option<Vec<u32>>,
+decoded_shard! {
+    /// A decoded mixture shard ([`decode_mixture_shard`]): rows as stored.
+    #[derive(Debug, Clone, PartialEq)]
+    pub struct MixtureShard {
+        header {
+            /// Header fields (`version` = [`MIXTURE_SHARD_FORMAT_VERSION`], or
+            /// [`MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION`] with segments; `dtype` f16, `dim` = D).
+            pub header: ShardHeader,
+            /// Slots per Gaussian S.
+            pub slots: u32,
+            /// CRC-32 of the codebook file these rows index.
+            pub codebook_crc: u32,
+        }
+        rows {
+            /// `[N * S]` codebook rows, [`UNUSED`] for an empty slot.
+            pub atoms: Vec<u32>,
+            /// `[N * S]` weights, finite, 0 in empty slots.
+            pub weights: Vec<f16>,
+        }
+    }
 }
 
 /// Payload bytes of the atom and weight sections of `n` rows of `slots` slots (before padding).
@@ -125,7 +99,7 @@ fn mixture_row_bytes(n: u64, slots: u64) -> u64 {
 /// non-finite means or weights, a weight beyond the f16 range, or an empty slot with a non-zero
 /// weight ([`Error::Invalid`]).
 pub fn encode_mixture_shard(input: &MixtureShardInput<'_>) -> crate::Result<Vec<u8>> {
-    let columns = shard_columns!(input, "encode_mixture_shard");
+    let columns = input.columns("encode_mixture_shard");
     columns.check_shape()?;
     let (n, s) = (input.ids.len(), input.slots);
     if s == 0 || s > MAX_SLOTS as usize {
@@ -224,18 +198,6 @@ pub fn decode_mixture_shard(bytes: &[u8]) -> Result<MixtureShard, ShardError> {
         sh_dc: display.sh_dc,
         segments: display.segments,
     })
-}
-
-impl MixtureShard {
-    /// The display sections the shard carries.
-    pub fn display(&self) -> super::DisplaySlices<'_> {
-        super::DisplaySlices {
-            scales: self.scales.as_deref(),
-            opacities: self.opacities.as_deref(),
-            rotations: self.rotations.as_deref(),
-            sh_dc: self.sh_dc.as_deref(),
-        }
-    }
 }
 
 /// Size model of the mixture shards of one partition (the mixture counterpart of

@@ -72,9 +72,19 @@
 //! checksum a server publishes for a whole shard (manifest, HTTP `ETag`) is [`shard_checksum`],
 //! the CRC-32 of all its bytes.
 
+mod columns;
+mod header;
+
 use half::f16;
 
 use crate::Error;
+pub use columns::DisplaySlices;
+pub(super) use columns::{
+    RowSection, ShardColumns, decoded_shard, put_le, read_f16s, read_payload, read_u32s,
+    shard_input,
+};
+use header::le_f32s;
+pub(super) use header::{header_len_for, parse_header};
 
 /// Magic bytes opening every shard.
 pub const SHARD_MAGIC: [u8; 8] = *b"SLAGSHRD";
@@ -286,29 +296,19 @@ pub struct ShardHeader {
     pub tile_id: u64,
 }
 
-/// A decoded shard: the Gaussians of one tile. Vectors are held as f32 (dequantised).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Shard {
-    /// Header fields.
-    pub header: ShardHeader,
-    /// Source-`.ply` indices. `[N]`.
-    pub ids: Vec<u32>,
-    /// Centres, world frame. `[N]`.
-    pub means: Vec<[f32; 3]>,
-    /// `[N * D]` row-major embeddings, dequantised to f32.
-    pub vectors: Vec<f32>,
-    /// Optional log-scales (INRIA `.ply` convention), `[N]`, for display.
-    pub scales: Option<Vec<[f32; 3]>>,
-    /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
-    pub opacities: Option<Vec<f32>>,
-    /// Optional normalised rotations, quaternions (w, x, y, z) (INRIA `rot_0..3`), `[N]`, for
-    /// display.
-    pub rotations: Option<Vec<[f32; 4]>>,
-    /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
-    pub sh_dc: Option<Vec<[f32; 3]>>,
-    /// Optional scene-wide geometric segment id of each Gaussian ([`crate::segments`]), `[N]`;
-    /// present in version-3 shards only.
-    pub segments: Option<Vec<u32>>,
+decoded_shard! {
+    /// A decoded shard: the Gaussians of one tile. Vectors are held as f32 (dequantised).
+    #[derive(Debug, Clone, PartialEq)]
+    pub struct Shard {
+        header {
+            /// Header fields.
+            pub header: ShardHeader,
+        }
+        rows {
+            /// `[N * D]` row-major embeddings, dequantised to f32.
+            pub vectors: Vec<f32>,
+        }
+    }
 }
 
 impl Shard {
@@ -319,37 +319,20 @@ impl Shard {
     }
 }
 
-/// Borrowed content to encode into one shard (see [`encode_shard`]). `Default`: no rows, no
-/// optional sections, dtype [`Dtype::F16`], `dim` 0 (set it).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct ShardInput<'a> {
-    /// Scene id (≤ 65535 bytes UTF-8).
-    pub scene_id: &'a str,
-    /// Embedding model id (≤ 65535 bytes UTF-8).
-    pub model: &'a str,
-    /// Tile id.
-    pub tile_id: u64,
-    /// Embedding width D (1..=[`MAX_DIM`]).
-    pub dim: usize,
-    /// Storage type to write.
-    pub dtype: Dtype,
-    /// Source-`.ply` indices `[N]`.
-    pub ids: &'a [u32],
-    /// Centres `[N]`, world frame.
-    pub means: &'a [[f32; 3]],
-    /// `[N * D]` f32 row-major vectors (normally unit norm; any finite values encode).
-    pub vectors: &'a [f32],
-    /// Optional log-scales `[N]`.
-    pub scales: Option<&'a [[f32; 3]]>,
-    /// Optional pre-sigmoid opacities `[N]`.
-    pub opacities: Option<&'a [f32]>,
-    /// Optional normalised rotations (w, x, y, z) `[N]`.
-    pub rotations: Option<&'a [[f32; 4]]>,
-    /// Optional SH DC colour (`f_dc_0..2`) `[N]`.
-    pub sh_dc: Option<&'a [[f32; 3]]>,
-    /// Optional scene-wide segment ids `[N]` ([`crate::segments`]); when given, the shard is
-    /// written as version [`SEGMENTS_SHARD_FORMAT_VERSION`].
-    pub segments: Option<&'a [u32]>,
+shard_input! {
+    /// Borrowed content to encode into one shard (see [`encode_shard`]). `Default`: no rows, no
+    /// optional sections, dtype [`Dtype::F16`], `dim` 0 (set it).
+    #[derive(Debug, Clone, Copy, Default)]
+    pub struct ShardInput<'a> {
+        header {
+            /// Storage type to write.
+            pub dtype: Dtype,
+        }
+        rows {
+            /// `[N * D]` f32 row-major vectors (normally unit norm; any finite values encode).
+            pub vectors: &'a [f32],
+        }
+    }
 }
 
 pub(super) fn align(n: usize, a: usize) -> usize {
@@ -398,154 +381,6 @@ pub fn quantize_i8(v: &[f32], out: &mut Vec<u8>) -> f32 {
 /// as infinity.
 pub const F16_MAX: f32 = 65504.0;
 
-/// The columns a dense and a mixture shard input share: the header strings and tile, the ids
-/// and means, and the optional display and segment sections (everything but the embedding
-/// rows). `what` names the encoder in messages.
-#[derive(Clone, Copy)]
-pub(super) struct ShardColumns<'a> {
-    pub what: &'static str,
-    pub scene_id: &'a str,
-    pub model: &'a str,
-    pub tile_id: u64,
-    pub dim: usize,
-    pub ids: &'a [u32],
-    pub means: &'a [[f32; 3]],
-    pub display: DisplaySlices<'a>,
-    pub segments: Option<&'a [u32]>,
-}
-
-/// The optional display sections of one shard, borrowed, each `[N]` when present (INRIA `.ply`
-/// conventions): what a viewer draws besides the means.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct DisplaySlices<'a> {
-    /// Log-scales `[N]`.
-    pub scales: Option<&'a [[f32; 3]]>,
-    /// Pre-sigmoid opacities `[N]`.
-    pub opacities: Option<&'a [f32]>,
-    /// Normalised rotations (w, x, y, z) `[N]`.
-    pub rotations: Option<&'a [[f32; 4]]>,
-    /// SH DC colour (`f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`) `[N]`.
-    pub sh_dc: Option<&'a [[f32; 3]]>,
-}
-
-/// The [`ShardColumns`] of a [`ShardInput`] or a mixture shard input (their shared fields have
-/// the same names), for the encoder named `$what`.
-macro_rules! shard_columns {
-    ($input:expr, $what:expr) => {
-        $crate::shards::format::ShardColumns {
-            what: $what,
-            scene_id: $input.scene_id,
-            model: $input.model,
-            tile_id: $input.tile_id,
-            dim: $input.dim,
-            ids: $input.ids,
-            means: $input.means,
-            display: $crate::shards::DisplaySlices {
-                scales: $input.scales,
-                opacities: $input.opacities,
-                rotations: $input.rotations,
-                sh_dc: $input.sh_dc,
-            },
-            segments: $input.segments,
-        }
-    };
-}
-pub(super) use shard_columns;
-
-/// How one shard kind stores its embedding rows (payload section 3) and marks them in the header.
-pub(super) struct RowSection {
-    /// Header dtype.
-    pub dtype: Dtype,
-    /// Format version without and with the segments section.
-    pub versions: [u16; 2],
-    /// The mixture header extension `(slots, codebook checksum)`, for mixture shards.
-    pub mixture: Option<(u32, u32)>,
-    /// Payload bytes per row of the section (for the allocation).
-    pub bytes_per_row: usize,
-}
-
-impl ShardColumns<'_> {
-    /// Errors: `dim` outside 1..=[`MAX_DIM`] ([`Error::Param`]), N above `u32::MAX`
-    /// ([`Error::Limit`]).
-    pub(super) fn check_shape(&self) -> crate::Result<()> {
-        if self.dim == 0 || self.dim > MAX_DIM as usize {
-            return Err(Error::param(
-                "dim",
-                self.dim,
-                format!("an embedding width in 1..={MAX_DIM}"),
-            ));
-        }
-        let n = self.ids.len();
-        if u32::try_from(n).is_err() {
-            return Err(Error::limit(crate::Resource::ShardGaussians, n, u32::MAX));
-        }
-        Ok(())
-    }
-
-    /// Errors: a display or segments column whose length differs from the ids'
-    /// ([`Error::Internal`]); ids longer than 65535 bytes or a non-finite mean
-    /// ([`Error::Invalid`]).
-    pub(super) fn check_columns(&self) -> crate::Result<()> {
-        let n = self.ids.len();
-        let d = &self.display;
-        if d.scales.is_some_and(|v| v.len() != n)
-            || d.opacities.is_some_and(|v| v.len() != n)
-            || d.rotations.is_some_and(|v| v.len() != n)
-            || d.sh_dc.is_some_and(|v| v.len() != n)
-            || self.segments.is_some_and(|v| v.len() != n)
-        {
-            return Err(Error::internal(format!(
-                "{}: a display or segments column's length differs from the id count",
-                self.what
-            )));
-        }
-        let bad = |m: &str| Err(Error::Invalid(format!("{}: {m}", self.what)));
-        if self.scene_id.len() > u16::MAX as usize || self.model.len() > u16::MAX as usize {
-            return bad("scene or model id longer than 65535 bytes");
-        }
-        if self.means.iter().flatten().any(|x| !x.is_finite()) {
-            return bad("non-finite mean; fix the encoder output");
-        }
-        Ok(())
-    }
-
-    /// The shard (module-doc layout): header, then ids, means, the row section `write_rows`
-    /// appends, zero padding to 4 bytes, the display sections and the segments. The caller has
-    /// run both checks.
-    pub(super) fn encode(
-        &self,
-        rows: &RowSection,
-        write_rows: impl FnOnce(&mut Vec<u8>),
-    ) -> Vec<u8> {
-        let n = self.ids.len();
-        let mut p: Vec<u8> = Vec::with_capacity(n * (16 + rows.bytes_per_row) + 4);
-        put_le(&mut p, self.ids, u32::to_le_bytes);
-        put_le(&mut p, self.means.as_flattened(), f32::to_le_bytes);
-        write_rows(&mut p);
-        p.resize(align(p.len(), 4), 0);
-        let mut flags = write_display(&mut p, &self.display);
-        if let Some(seg) = self.segments {
-            flags |= FLAG_SEGMENTS;
-            put_le(&mut p, seg, u32::to_le_bytes);
-        }
-        assemble(
-            &HeaderFields {
-                version: rows.versions[usize::from(self.segments.is_some())],
-                dtype: rows.dtype,
-                flags,
-                dim: self.dim as u32,
-                count: n as u32,
-                tile_id: self.tile_id,
-                aabb: Aabb::of_points(self.means.iter().copied()).unwrap_or_default(),
-                scene_id: self.scene_id,
-                model: self.model,
-                mixture: rows.mixture,
-            },
-            p,
-        )
-    }
-}
-
 /// Encodes one shard (layout in the module doc).
 ///
 /// Errors: array lengths that disagree with N and D ([`Error::Internal`]), `dim` of 0 or above
@@ -555,7 +390,7 @@ impl ShardColumns<'_> {
 /// beyond the f16 range ([`F16_MAX`]; [`Error::Param`] `dtype`).
 /// f16 values are rounded to nearest (subnormal halves below 6.1e-5, zero below 2^-25).
 pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
-    let columns = shard_columns!(input, "encode_shard");
+    let columns = input.columns("encode_shard");
     columns.check_shape()?;
     let (n, d) = (input.ids.len(), input.dim);
     if input.means.len() != n || input.vectors.len() != n * d {
@@ -607,90 +442,6 @@ pub fn encode_shard(input: &ShardInput<'_>) -> crate::Result<Vec<u8>> {
             p.extend_from_slice(&q);
         }
     }))
-}
-
-/// Appends the display sections given (layout order) to a payload; returns their flag bits.
-pub(super) fn write_display(p: &mut Vec<u8>, display: &DisplaySlices<'_>) -> u8 {
-    let sections = [
-        (FLAG_SCALES, display.scales.map(<[[f32; 3]]>::as_flattened)),
-        (FLAG_OPACITIES, display.opacities),
-        (
-            FLAG_ROTATIONS,
-            display.rotations.map(<[[f32; 4]]>::as_flattened),
-        ),
-        (FLAG_SH_DC, display.sh_dc.map(<[[f32; 3]]>::as_flattened)),
-    ];
-    let mut flags = 0u8;
-    for (bit, values) in sections {
-        if let Some(values) = values {
-            flags |= bit;
-            put_le(p, values, f32::to_le_bytes);
-        }
-    }
-    flags
-}
-
-/// Appends `values` to `p` as their little-endian bytes (`le`, e.g. `f32::to_le_bytes`: the
-/// payload's byte order).
-pub(super) fn put_le<T: Copy, const K: usize>(p: &mut Vec<u8>, values: &[T], le: fn(T) -> [u8; K]) {
-    values.iter().for_each(|&x| p.extend_from_slice(&le(x)));
-}
-
-/// The header fields [`assemble`] writes.
-pub(super) struct HeaderFields<'a> {
-    pub version: u16,
-    pub dtype: Dtype,
-    pub flags: u8,
-    pub dim: u32,
-    pub count: u32,
-    pub tile_id: u64,
-    pub aabb: Aabb,
-    pub scene_id: &'a str,
-    pub model: &'a str,
-    /// Version 2: `(slots, codebook checksum)`.
-    pub mixture: Option<(u32, u32)>,
-}
-
-/// Header bytes for the string lengths and version (a multiple of 8).
-pub(super) fn header_len_for(scene_len: usize, model_len: usize, mixture: bool) -> usize {
-    let fixed = FIXED_HEADER + if mixture { MIXTURE_HEADER_EXTRA } else { 0 };
-    align(fixed + scene_len + model_len + 4, 8)
-}
-
-/// Header (module-doc layout; the mixture extension for version 2) followed by `payload`. The
-/// caller has checked the string lengths (≤ 65535 bytes).
-pub(super) fn assemble(f: &HeaderFields<'_>, p: Vec<u8>) -> Vec<u8> {
-    let (s, m) = (f.scene_id.len(), f.model.len());
-    let header_len = header_len_for(s, m, f.mixture.is_some());
-    let mut h: Vec<u8> = Vec::with_capacity(header_len + p.len());
-    h.extend_from_slice(&SHARD_MAGIC);
-    h.extend_from_slice(&f.version.to_le_bytes());
-    h.push(f.dtype.code());
-    h.push(f.flags);
-    h.extend_from_slice(&f.dim.to_le_bytes());
-    h.extend_from_slice(&f.count.to_le_bytes());
-    h.extend_from_slice(&(header_len as u32).to_le_bytes());
-    h.extend_from_slice(&f.tile_id.to_le_bytes());
-    f.aabb
-        .min
-        .iter()
-        .chain(&f.aabb.max)
-        .for_each(|x| h.extend_from_slice(&x.to_le_bytes()));
-    h.extend_from_slice(&(p.len() as u64).to_le_bytes());
-    h.extend_from_slice(&crc32fast::hash(&p).to_le_bytes());
-    h.extend_from_slice(&(s as u16).to_le_bytes());
-    h.extend_from_slice(&(m as u16).to_le_bytes());
-    if let Some((slots, crc)) = f.mixture {
-        h.extend_from_slice(&slots.to_le_bytes());
-        h.extend_from_slice(&crc.to_le_bytes());
-    }
-    h.extend_from_slice(f.scene_id.as_bytes());
-    h.extend_from_slice(f.model.as_bytes());
-    h.resize(header_len - 4, 0);
-    let hcrc = crc32fast::hash(&h);
-    h.extend_from_slice(&hcrc.to_le_bytes());
-    h.extend_from_slice(&p);
-    h
 }
 
 /// Size model of the shards of one partition: everything that fixes a shard's byte length apart
@@ -791,208 +542,6 @@ pub fn shard_checksum(bytes: &[u8]) -> u32 {
     crc32fast::hash(bytes)
 }
 
-/// Little-endian cursor that never panics.
-pub(super) struct Reader<'a> {
-    pub(super) b: &'a [u8],
-    pub(super) at: usize,
-}
-
-impl<'a> Reader<'a> {
-    pub(super) fn take(&mut self, n: usize) -> Result<&'a [u8], ShardError> {
-        let end = self
-            .at
-            .checked_add(n)
-            .filter(|&e| e <= self.b.len())
-            .ok_or(ShardError::Truncated {
-                needed: self.at as u64 + n as u64,
-                got: self.b.len() as u64,
-            })?;
-        let s = &self.b[self.at..end];
-        self.at = end;
-        Ok(s)
-    }
-    fn arr<const K: usize>(&mut self) -> Result<[u8; K], ShardError> {
-        let s = self.take(K)?;
-        let mut a = [0u8; K];
-        a.copy_from_slice(s);
-        Ok(a)
-    }
-    fn u16(&mut self) -> Result<u16, ShardError> {
-        Ok(u16::from_le_bytes(self.arr()?))
-    }
-    pub(super) fn u32(&mut self) -> Result<u32, ShardError> {
-        Ok(u32::from_le_bytes(self.arr()?))
-    }
-    fn u64(&mut self) -> Result<u64, ShardError> {
-        Ok(u64::from_le_bytes(self.arr()?))
-    }
-    fn f32(&mut self) -> Result<f32, ShardError> {
-        Ok(f32::from_le_bytes(self.arr()?))
-    }
-}
-
-pub(super) fn le_f32s(b: &[u8]) -> Vec<f32> {
-    b.chunks_exact(4)
-        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect()
-}
-
-pub(super) fn triples(v: Vec<f32>) -> Vec<[f32; 3]> {
-    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
-}
-
-/// A parsed, CRC-checked header ([`parse_header`]).
-pub(super) struct ParsedHeader {
-    /// The header fields.
-    pub header: ShardHeader,
-    /// Offset of the payload.
-    pub header_len: usize,
-    /// Optional-section flags.
-    pub flags: u8,
-    /// Payload bytes the header announces.
-    pub payload_len: u64,
-    /// CRC-32 of the payload the header records.
-    pub payload_crc: u32,
-    /// Version 2 only: `(slots S, codebook checksum)`.
-    pub mixture: Option<(u32, u32)>,
-}
-
-/// Decodes and fully validates the header only (checks magic, version, header CRC, lengths
-/// against `bytes.len()`); returns the header, `header_len`, flags and payload CRC.
-pub(super) fn parse_header(bytes: &[u8]) -> Result<ParsedHeader, ShardError> {
-    if bytes.len() < FIXED_HEADER {
-        if bytes.len() >= 8 && bytes[..8] != SHARD_MAGIC {
-            return Err(ShardError::BadMagic);
-        }
-        return Err(ShardError::Truncated {
-            needed: FIXED_HEADER as u64,
-            got: bytes.len() as u64,
-        });
-    }
-    let mut r = Reader { b: bytes, at: 0 };
-    if r.arr::<8>()? != SHARD_MAGIC {
-        return Err(ShardError::BadMagic);
-    }
-    let version = r.u16()?;
-    if version != SHARD_FORMAT_VERSION
-        && version != MIXTURE_SHARD_FORMAT_VERSION
-        && version != SEGMENTS_SHARD_FORMAT_VERSION
-        && version != MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION
-    {
-        return Err(ShardError::UnsupportedVersion(version));
-    }
-    let dtype_code = r.arr::<1>()?[0];
-    let flags = r.arr::<1>()?[0];
-    let dim = r.u32()?;
-    let count = r.u32()?;
-    let header_len = r.u32()? as usize;
-    let tile_id = r.u64()?;
-    let mut aabb = Aabb::default();
-    for a in 0..3 {
-        aabb.min[a] = r.f32()?;
-    }
-    for a in 0..3 {
-        aabb.max[a] = r.f32()?;
-    }
-    let payload_len = r.u64()?;
-    let payload_crc = r.u32()?;
-    let s = r.u16()? as usize;
-    let m = r.u16()? as usize;
-    let (fixed, mixture) = if is_mixture_version(version) {
-        (
-            FIXED_HEADER + MIXTURE_HEADER_EXTRA,
-            Some((r.u32()?, r.u32()?)),
-        )
-    } else {
-        (FIXED_HEADER, None)
-    };
-    if !header_len.is_multiple_of(8)
-        || header_len < align(fixed + s + m + 4, 8)
-        || header_len > MAX_HEADER_LEN
-    {
-        return Err(ShardError::Malformed(format!(
-            "header length {header_len} inconsistent"
-        )));
-    }
-    if bytes.len() < header_len {
-        return Err(ShardError::Truncated {
-            needed: header_len as u64,
-            got: bytes.len() as u64,
-        });
-    }
-    let stored = u32::from_le_bytes([
-        bytes[header_len - 4],
-        bytes[header_len - 3],
-        bytes[header_len - 2],
-        bytes[header_len - 1],
-    ]);
-    let computed = crc32fast::hash(&bytes[..header_len - 4]);
-    if stored != computed {
-        return Err(ShardError::Checksum {
-            section: "header",
-            stored,
-            computed,
-        });
-    }
-    let scene_id = std::str::from_utf8(r.take(s)?)
-        .map_err(|_| ShardError::Malformed("scene id is not UTF-8".into()))?
-        .to_string();
-    let model = std::str::from_utf8(r.take(m)?)
-        .map_err(|_| ShardError::Malformed("model id is not UTF-8".into()))?
-        .to_string();
-    let dtype = Dtype::from_code(dtype_code)
-        .ok_or_else(|| ShardError::Malformed(format!("unknown dtype code {dtype_code}")))?;
-    let known = if has_segments_version(version) {
-        KNOWN_FLAGS | FLAG_SEGMENTS
-    } else {
-        KNOWN_FLAGS
-    };
-    if flags & !known != 0 {
-        return Err(ShardError::Malformed(format!("unknown flags {flags:#04x}")));
-    }
-    if has_segments_version(version) && flags & FLAG_SEGMENTS == 0 {
-        return Err(ShardError::Malformed(format!(
-            "format version {version} without its segments section (flag bit 4)"
-        )));
-    }
-    if dim == 0 || dim > MAX_DIM {
-        return Err(ShardError::Malformed(format!(
-            "embedding dim {dim} outside 1..={MAX_DIM}"
-        )));
-    }
-    if let Some((slots, _)) = mixture {
-        if dtype != Dtype::F16 {
-            return Err(ShardError::Malformed(format!(
-                "mixture shard with weight dtype {dtype:?}; mixture weights are f16"
-            )));
-        }
-        if slots == 0 || slots > MAX_SLOTS {
-            return Err(ShardError::Malformed(format!(
-                "mixture slots {slots} outside 1..={}",
-                MAX_SLOTS
-            )));
-        }
-    }
-    let header = ShardHeader {
-        version,
-        scene_id,
-        model,
-        dim,
-        dtype,
-        count,
-        aabb,
-        tile_id,
-    };
-    Ok(ParsedHeader {
-        header,
-        header_len,
-        flags,
-        payload_len,
-        payload_crc,
-        mixture,
-    })
-}
-
 /// Expected payload length for the header fields (u64, overflow-free for u32 N and D ≤ 2^16).
 pub(super) fn expected_payload(dtype: Dtype, flags: u8, n: u64, d: u64) -> u64 {
     let vec_bytes = match dtype {
@@ -1081,39 +630,17 @@ impl StoredVectors {
     }
 }
 
-/// A decoded shard with its vectors kept in the stored type ([`decode_shard_stored`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct StoredShard {
-    /// Header fields.
-    pub header: ShardHeader,
-    /// Source-`.ply` indices. `[N]`.
-    pub ids: Vec<u32>,
-    /// Centres, world frame. `[N]`.
-    pub means: Vec<[f32; 3]>,
-    /// `[N * D]` embeddings as stored.
-    pub vectors: StoredVectors,
-    /// Optional log-scales (INRIA `.ply` convention), `[N]`, for display.
-    pub scales: Option<Vec<[f32; 3]>>,
-    /// Optional pre-sigmoid opacities (INRIA `.ply` convention), `[N]`, for display.
-    pub opacities: Option<Vec<f32>>,
-    /// Optional normalised rotations, quaternions (w, x, y, z) (INRIA `rot_0..3`), `[N]`, for
-    /// display.
-    pub rotations: Option<Vec<[f32; 4]>>,
-    /// Optional SH DC colour (INRIA `f_dc_0..2`, `rgb = 0.5 + SH_C0 * f_dc`), `[N]`, for display.
-    pub sh_dc: Option<Vec<[f32; 3]>>,
-    /// Optional scene-wide geometric segment id of each Gaussian ([`crate::segments`]), `[N]`;
-    /// present in version-3 shards only.
-    pub segments: Option<Vec<u32>>,
-}
-
-impl StoredShard {
-    /// The display sections the shard carries.
-    pub fn display(&self) -> DisplaySlices<'_> {
-        DisplaySlices {
-            scales: self.scales.as_deref(),
-            opacities: self.opacities.as_deref(),
-            rotations: self.rotations.as_deref(),
-            sh_dc: self.sh_dc.as_deref(),
+decoded_shard! {
+    /// A decoded shard with its vectors kept in the stored type ([`decode_shard_stored`]).
+    #[derive(Debug, Clone, PartialEq)]
+    pub struct StoredShard {
+        header {
+            /// Header fields.
+            pub header: ShardHeader,
+        }
+        rows {
+            /// `[N * D]` embeddings as stored.
+            pub vectors: StoredVectors,
         }
     }
 }
@@ -1194,152 +721,6 @@ pub fn decode_shard_stored(bytes: &[u8]) -> Result<StoredShard, ShardError> {
         sh_dc: display.sh_dc,
         segments: display.segments,
     })
-}
-
-/// Ids, means, the row section and the display and segment sections of a shard payload
-/// ([`read_payload`]).
-pub(super) type Payload<R> = (Vec<u32>, Vec<[f32; 3]>, R, DisplaySections);
-
-/// Checks the payload of the shard `bytes` whose header is `parsed` ([`checked_payload`]:
-/// `expected` bytes, `what` describing the rows for the message) and reads it in layout order:
-/// ids, means, the row section (`read_rows`, given the row count), padding to 4 bytes, the
-/// display and segment sections the flags announce.
-pub(super) fn read_payload<'b, R>(
-    bytes: &'b [u8],
-    parsed: &ParsedHeader,
-    expected: u64,
-    what: impl FnOnce() -> String,
-    read_rows: impl FnOnce(&mut Reader<'b>, usize) -> Result<R, ShardError>,
-) -> Result<Payload<R>, ShardError> {
-    let payload = checked_payload(
-        bytes,
-        parsed.header_len,
-        parsed.payload_len,
-        parsed.payload_crc,
-        expected,
-        what,
-    )?;
-    let n = parsed.header.count as usize;
-    let mut r = Reader { b: payload, at: 0 };
-    let ids = read_u32s(&mut r, n)?;
-    let means = triples(le_f32s(r.take(12 * n)?));
-    let rows = read_rows(&mut r, n)?;
-    r.at = align(r.at, 4);
-    let display = read_display(&mut r, parsed.flags, n)?;
-    Ok((ids, means, rows, display))
-}
-
-/// `n` little-endian `u32`s.
-pub(super) fn read_u32s(r: &mut Reader<'_>, n: usize) -> Result<Vec<u32>, ShardError> {
-    Ok(r.take(4 * n)?
-        .chunks_exact(4)
-        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-        .collect())
-}
-
-/// `n` little-endian IEEE halves.
-pub(super) fn read_f16s(r: &mut Reader<'_>, n: usize) -> Result<Vec<f16>, ShardError> {
-    Ok(r.take(2 * n)?
-        .chunks_exact(2)
-        .map(|c| f16::from_le_bytes([c[0], c[1]]))
-        .collect())
-}
-
-/// The optional display sections of a payload ([`read_display`]).
-#[derive(Debug, Default)]
-pub(super) struct DisplaySections {
-    pub scales: Option<Vec<[f32; 3]>>,
-    pub opacities: Option<Vec<f32>>,
-    pub rotations: Option<Vec<[f32; 4]>>,
-    pub sh_dc: Option<Vec<[f32; 3]>>,
-    pub segments: Option<Vec<u32>>,
-}
-
-/// Reads the display sections the flags announce, in layout order.
-pub(super) fn read_display(
-    r: &mut Reader<'_>,
-    flags: u8,
-    n: usize,
-) -> Result<DisplaySections, ShardError> {
-    let scales = if flags & FLAG_SCALES != 0 {
-        Some(triples(le_f32s(r.take(12 * n)?)))
-    } else {
-        None
-    };
-    let opacities = if flags & FLAG_OPACITIES != 0 {
-        Some(le_f32s(r.take(4 * n)?))
-    } else {
-        None
-    };
-    let rotations = if flags & FLAG_ROTATIONS != 0 {
-        Some(
-            le_f32s(r.take(16 * n)?)
-                .chunks_exact(4)
-                .map(|c| [c[0], c[1], c[2], c[3]])
-                .collect(),
-        )
-    } else {
-        None
-    };
-    let sh_dc = if flags & FLAG_SH_DC != 0 {
-        Some(triples(le_f32s(r.take(12 * n)?)))
-    } else {
-        None
-    };
-    let segments = if flags & FLAG_SEGMENTS != 0 {
-        Some(read_u32s(r, n)?)
-    } else {
-        None
-    };
-    Ok(DisplaySections {
-        scales,
-        opacities,
-        rotations,
-        sh_dc,
-        segments,
-    })
-}
-
-/// Checks the payload length against `expected`, the file length and the payload CRC; returns
-/// the payload. `what` describes the rows for the message.
-pub(super) fn checked_payload(
-    bytes: &[u8],
-    header_len: usize,
-    payload_len: u64,
-    payload_crc: u32,
-    expected: u64,
-    what: impl FnOnce() -> String,
-) -> Result<&[u8], ShardError> {
-    if payload_len != expected {
-        return Err(ShardError::Malformed(format!(
-            "payload length {payload_len} but {} need {expected}",
-            what()
-        )));
-    }
-    let total = header_len as u64 + payload_len;
-    if (bytes.len() as u64) < total {
-        return Err(ShardError::Truncated {
-            needed: total,
-            got: bytes.len() as u64,
-        });
-    }
-    if (bytes.len() as u64) > total {
-        return Err(ShardError::Malformed(format!(
-            "{} trailing bytes after the payload",
-            bytes.len() as u64 - total
-        )));
-    }
-    let payload = &bytes[header_len..];
-    let computed = crc32fast::hash(payload);
-    if computed != payload_crc {
-        return Err(ShardError::Checksum {
-            section: "payload",
-            stored: payload_crc,
-            computed,
-        });
-    }
-    // Lengths are now proven to fit in memory (they sum to bytes.len()).
-    Ok(payload)
 }
 
 /// `(length, CRC-32 of every byte but the header's own CRC field)` of an encoded shard, for
