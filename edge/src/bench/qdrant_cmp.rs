@@ -26,13 +26,13 @@ use std::time::Instant;
 
 use anyhow::Context;
 use qdrant_edge::{
-    DEFAULT_VECTOR_NAME, Distance, EdgeConfig, EdgeOptimizersConfig, EdgeShard, EdgeVectorParams,
-    HnswIndexConfig, Memory, NamedQuery, PointId, QuantizationConfig, QuantizationSearchParams,
-    QueryEnum, ScalarQuantizationConfig, ScalarType, SearchParams, SearchRequestBuilder,
-    VectorStorageDatatype, WithPayloadInterface, WithVector,
+    Distance, EdgeShard, EdgeVectorParams, Memory, PointId, QuantizationConfig,
+    QuantizationSearchParams, ScalarQuantizationConfig, ScalarType, SearchParams,
+    VectorStorageDatatype,
 };
 
 use slag_edge::scan::VectorStore;
+use slag_edge::scan::hnsw::qdrant;
 
 /// How a Qdrant Edge shard stores and searches the rows.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -108,18 +108,8 @@ pub(super) fn build(
     let n = rows.len();
     let dim = rows.dim();
     let t = Instant::now();
-    #[allow(deprecated)] // `on_disk` has no replacement field to leave unset but this one
-    let hnsw = HnswIndexConfig {
-        m: 0,
-        // Unused without a graph; Qdrant's default.
-        ef_construct: 100,
-        full_scan_threshold: 1,
-        max_indexing_threads: threads,
-        on_disk: None,
-        memory: Some(Memory::Pinned),
-        payload_m: None,
-        inline_storage: None,
-    };
+    // No graph (`m = 0`); `ef_construct` unused without one (Qdrant's default).
+    let hnsw = qdrant::pinned_hnsw_config(0, 100, threads);
     let mut vp = EdgeVectorParams::builder(dim, Distance::Dot).hnsw_config(hnsw);
     vp = match kind {
         Kind::F32 => vp.datatype(VectorStorageDatatype::Float32),
@@ -143,24 +133,13 @@ pub(super) fn build(
     let per_segment = n.div_ceil(segments.max(1));
     // Large enough for one segment, too small for two: the merge optimiser leaves them apart.
     let max_segment_kb = (per_segment * bytes_per_row).div_ceil(1024) * 3 / 2 + 1;
-    let config = EdgeConfig::builder()
-        .vector(DEFAULT_VECTOR_NAME, vp.build())
-        .hnsw_config(hnsw)
-        .optimizers(EdgeOptimizersConfig {
-            default_segment_number: Some(segments.max(1) + 2),
-            max_segment_size: Some(max_segment_kb),
-            indexing_threshold: Some(1),
-            ..EdgeOptimizersConfig::default()
-        })
-        .wal_enabled(false)
-        .max_search_threads(threads.max(1))
-        .build();
+    let config = qdrant::shard_config(vp.build(), hnsw, segments.max(1), max_segment_kb, threads);
     let shard = EdgeShard::new(&dir, config)
         .map_err(|e| anyhow::anyhow!("creating Qdrant Edge shard {}: {e}", dir.display()))?;
     let mut start = 0;
     while start < n {
         let end = (start + per_segment).min(n);
-        slag_edge::scan::hnsw::qdrant::upsert(&shard, &dir, rows, start..end)?;
+        qdrant::upsert(&shard, &dir, rows, start..end)?;
         shard
             .optimize()
             .map_err(|e| anyhow::anyhow!("Qdrant Edge optimize: {e}"))?;
@@ -200,26 +179,12 @@ impl Shard {
 
     /// Number of segments the shard ended with.
     pub(super) fn segments(&self) -> usize {
-        self.shard
-            .as_ref()
-            .and_then(|s| s.info().ok())
-            .map_or(0, |i| i.segments_count)
+        self.shard.as_ref().map_or(0, qdrant::segment_count)
     }
 
     /// Top-`k` rows for `q` (ids are row indices).
     pub(super) fn search(&self, q: &[f32], k: usize) -> anyhow::Result<Vec<usize>> {
-        let params = self.params.clone();
-        let req = SearchRequestBuilder::new(
-            QueryEnum::Nearest(NamedQuery {
-                query: q.to_vec().into(),
-                using: None,
-            }),
-            k,
-        )
-        .params(params)
-        .with_payload(WithPayloadInterface::Bool(false))
-        .with_vector(WithVector::Bool(false))
-        .build();
+        let req = qdrant::nearest_request(q, k, self.params.clone());
         let shard = self
             .shard
             .as_ref()

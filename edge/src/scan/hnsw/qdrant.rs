@@ -17,7 +17,7 @@ use qdrant_edge::external::serde_json::Value as JsonValue;
 use qdrant_edge::{
     DEFAULT_VECTOR_NAME, Distance, EdgeConfig, EdgeOptimizersConfig, EdgeShard, EdgeVectorParams,
     HnswIndexConfig, Memory, NamedQuery, PointId, PointInsertOperations, PointOperations,
-    PointStruct, QueryEnum, SearchParams, SearchRequestBuilder, UpdateOperation,
+    PointStruct, QueryEnum, SearchParams, SearchRequest, SearchRequestBuilder, UpdateOperation,
     VectorStorageDatatype, WithPayloadInterface, WithVector,
 };
 use slag_common::Error;
@@ -96,6 +96,70 @@ fn folder_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
+/// The graph settings of a shard held in RAM (`Memory::Pinned`) whose graph is always used
+/// (`full_scan_threshold` 1 KB): `m` links per node (0: no graph, full scans), `ef_construct`,
+/// `threads` indexing threads. Shared with the exact shards of `slag-edge bench --qdrant`.
+#[allow(deprecated)] // `on_disk` has no replacement field to leave unset but this one
+pub fn pinned_hnsw_config(m: usize, ef_construct: usize, threads: usize) -> HnswIndexConfig {
+    HnswIndexConfig {
+        m,
+        ef_construct,
+        full_scan_threshold: 1,
+        max_indexing_threads: threads,
+        on_disk: None,
+        memory: Some(Memory::Pinned),
+        payload_m: None,
+        inline_storage: None,
+    }
+}
+
+/// The configuration of a shard of one unnamed vector `vectors` with the graph `hnsw`, no WAL,
+/// `threads` search threads, and an optimiser that keeps `segments` segments of at most
+/// `max_segment_kb` KiB apart (it starts `segments + 2` appendable ones and indexes from the
+/// first point). Shared with the exact shards of `slag-edge bench --qdrant`.
+pub fn shard_config(
+    vectors: EdgeVectorParams,
+    hnsw: HnswIndexConfig,
+    segments: usize,
+    max_segment_kb: usize,
+    threads: usize,
+) -> EdgeConfig {
+    EdgeConfig::builder()
+        .vector(DEFAULT_VECTOR_NAME, vectors)
+        .hnsw_config(hnsw)
+        .optimizers(EdgeOptimizersConfig {
+            default_segment_number: Some(segments + 2),
+            max_segment_size: Some(max_segment_kb),
+            indexing_threshold: Some(1),
+            ..EdgeOptimizersConfig::default()
+        })
+        .wal_enabled(false)
+        .max_search_threads(threads.max(1))
+        .build()
+}
+
+/// The search for the `k` points nearest to `query` (`[D]`, by the shard's distance) under
+/// `params`, ids and scores only (no payload, no vectors). Shared with `slag-edge bench
+/// --qdrant`.
+pub fn nearest_request(query: &[f32], k: usize, params: SearchParams) -> SearchRequest {
+    SearchRequestBuilder::new(
+        QueryEnum::Nearest(NamedQuery {
+            query: query.to_vec().into(),
+            using: None,
+        }),
+        k,
+    )
+    .params(params)
+    .with_payload(WithPayloadInterface::Bool(false))
+    .with_vector(WithVector::Bool(false))
+    .build()
+}
+
+/// Segments of `shard` now (0 when Qdrant Edge cannot say).
+pub fn segment_count(shard: &EdgeShard) -> usize {
+    shard.info().map_or(0, |i| i.segments_count)
+}
+
 /// Qdrant Edge's HNSW over every row of one store (module doc).
 pub struct QdrantHnsw {
     /// `None` only while dropping: the shard is closed before its folder is removed.
@@ -142,17 +206,7 @@ impl QdrantHnsw {
         };
         let n = store.len();
         let dim = store.dim();
-        #[allow(deprecated)] // `on_disk` has no replacement field to leave unset but this one
-        let hnsw = HnswIndexConfig {
-            m: params.m,
-            ef_construct: params.ef_construction.max(4),
-            full_scan_threshold: 1,
-            max_indexing_threads: threads,
-            on_disk: None,
-            memory: Some(Memory::Pinned),
-            payload_m: None,
-            inline_storage: None,
-        };
+        let hnsw = pinned_hnsw_config(params.m, params.ef_construction.max(4), threads);
         let vectors = EdgeVectorParams::builder(dim, Distance::Dot)
             .hnsw_config(hnsw)
             .datatype(VectorStorageDatatype::Float32)
@@ -160,18 +214,7 @@ impl QdrantHnsw {
         // One segment: large enough for every row (1.5× margin), so the optimiser never splits
         // or merges.
         let max_segment_kb = (n * 4 * dim).div_ceil(1024) * 3 / 2 + 1;
-        let config = EdgeConfig::builder()
-            .vector(DEFAULT_VECTOR_NAME, vectors)
-            .hnsw_config(hnsw)
-            .optimizers(EdgeOptimizersConfig {
-                default_segment_number: Some(3),
-                max_segment_size: Some(max_segment_kb),
-                indexing_threshold: Some(1),
-                ..EdgeOptimizersConfig::default()
-            })
-            .wal_enabled(false)
-            .max_search_threads(threads.max(1))
-            .build();
+        let config = shard_config(vectors, hnsw, 1, max_segment_kb, threads);
         let shard = EdgeShard::new(&dir, config).map_err(|e| qdrant_err(&dir, "create", e))?;
         // From here on the folder is ours: dropping `index` on an error removes it.
         let mut index = QdrantHnsw {
@@ -219,10 +262,7 @@ impl QdrantHnsw {
 
     /// Segments of the shard (1 after a build; for the bench's report).
     pub fn segments(&self) -> usize {
-        self.shard
-            .as_ref()
-            .and_then(|s| s.info().ok())
-            .map_or(0, |i| i.segments_count)
+        self.shard.as_ref().map_or(0, segment_count)
     }
 
     /// Bytes the shard's files occupy after the build (`du`): the indexed segment's f32 vectors
@@ -246,17 +286,7 @@ impl QdrantHnsw {
             exact: false,
             ..SearchParams::default()
         };
-        let req = SearchRequestBuilder::new(
-            QueryEnum::Nearest(NamedQuery {
-                query: query.to_vec().into(),
-                using: None,
-            }),
-            k,
-        )
-        .params(params)
-        .with_payload(WithPayloadInterface::Bool(false))
-        .with_vector(WithVector::Bool(false))
-        .build();
+        let req = nearest_request(query, k, params);
         let found = self
             .shard()?
             .search(req)
