@@ -27,48 +27,28 @@ fn blend(
         out = offsets[pix] - params.out_base;
         out_end = offsets[pix + 1u] - params.out_base;
     }
-    var t_acc = 1.0;
     var count = 0u;
-    var done = !tp.inside;
-    if (done) {
-        atomicAdd(&done_count, 1u);
-    }
-    let pxc = f32(tp.px) + 0.5;
-    let pyc = f32(tp.py) + 0.5;
-    let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
+    var walk = walk_start(tp, !tp.inside);
+    let n_batches = batch_count(range);
     for (var b = 0u; b < n_batches; b++) {
         if (all_stopped(lid)) {
             break;
         }
-        let start = range.x + b * BATCH;
-        load_splat(start + lid, range.y, lid);
-        workgroupBarrier();
-        let n_here = min(BATCH, range.y - start);
-        if (!done) {
-            for (var k = 0u; k < n_here; k++) {
-                let alpha = splat_alpha(k, pxc, pyc);
-                if (alpha < ALPHA_MIN) {
-                    continue;
-                }
-                let next_t = t_acc * (1.0 - alpha);
-                if (next_t < T_MIN) {
-                    done = true;
-                    break;
-                }
-                if (write) {
-                    // Bounded by the count pass's range: never writes outside this pixel's slots.
-                    if (out < out_end) {
-                        out_ids[out] = sh_id[k];
-                        out_weights[out] = alpha * t_acc;
-                        out += 1u;
-                    }
-                } else {
-                    count += 1u;
-                }
-                t_acc = next_t;
+        let n_here = load_batch(range, b, lid);
+        for (var k = 0u; k < n_here && !walk.done; k++) {
+            let weight = walk_step(&walk, k);
+            if (weight == 0.0) {
+                continue;
             }
-            if (done) {
-                atomicAdd(&done_count, 1u);
+            if (write) {
+                // Bounded by the count pass's range: never writes outside this pixel's slots.
+                if (out < out_end) {
+                    out_ids[out] = sh_id[k];
+                    out_weights[out] = weight;
+                    out += 1u;
+                }
+            } else {
+                count += 1u;
             }
         }
     }

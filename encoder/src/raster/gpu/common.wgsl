@@ -137,3 +137,56 @@ fn splat_alpha(k: u32, pxc: f32, pyc: f32) -> f32 {
     }
     return alpha;
 }
+
+// One pixel's front-to-back walk over its tile's depth-sorted splats: the transmittance T so far,
+// whether the walk has stopped (T would fall below T_MIN, or the pixel takes no part), and the
+// pixel centre.
+struct Walk {
+    t: f32,
+    done: bool,
+    pxc: f32,
+    pyc: f32,
+}
+
+// The walk of pixel `tp` at T = 1; `skip`: the pixel takes no part (done, and counted in
+// done_count, at once). Call after done_count was reset and a barrier.
+fn walk_start(tp: TilePixel, skip: bool) -> Walk {
+    if (skip) {
+        atomicAdd(&done_count, 1u);
+    }
+    return Walk(1.0, skip, f32(tp.px) + 0.5, f32(tp.py) + 0.5);
+}
+
+// Batches of BATCH splats in the tile's range.
+fn batch_count(range: vec2<u32>) -> u32 {
+    return (range.y - range.x + BATCH - 1u) / BATCH;
+}
+
+// Loads batch `b` of the tile's range into the workgroup arrays; returns how many splats it
+// holds (call in uniform control flow).
+fn load_batch(range: vec2<u32>, b: u32, lid: u32) -> u32 {
+    let start = range.x + b * BATCH;
+    load_splat(start + lid, range.y, lid);
+    workgroupBarrier();
+    return min(BATCH, range.y - start);
+}
+
+// The blend weight α·T of batch splat `k` at the walk's pixel, the walk moved past it: 0 when
+// the splat does not contribute (α < ALPHA_MIN; T unchanged) or when T would fall below T_MIN
+// (the walk is then done, and counted in done_count). A contributing weight is > 0 (α ≥ 1/255,
+// T ≥ T_MIN).
+fn walk_step(w: ptr<function, Walk>, k: u32) -> f32 {
+    let alpha = splat_alpha(k, (*w).pxc, (*w).pyc);
+    if (alpha < ALPHA_MIN) {
+        return 0.0;
+    }
+    let next_t = (*w).t * (1.0 - alpha);
+    if (next_t < T_MIN) {
+        (*w).done = true;
+        atomicAdd(&done_count, 1u);
+        return 0.0;
+    }
+    let weight = alpha * (*w).t;
+    (*w).t = next_t;
+    return weight;
+}

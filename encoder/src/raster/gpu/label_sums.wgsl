@@ -75,23 +75,14 @@ fn blend_sums(
     }
     let per = ACC_SLOTS / n_labels; // splats per sub-batch, >= 2
     let range = workgroupUniformLoad(&sh_range);
-    var t_acc = 1.0;
     var count = 0u;
-    var done = !tp.inside || label == 0u;
-    if (done) {
-        atomicAdd(&done_count, 1u);
-    }
-    let pxc = f32(tp.px) + 0.5;
-    let pyc = f32(tp.py) + 0.5;
-    let n_batches = (range.y - range.x + BATCH - 1u) / BATCH;
+    var walk = walk_start(tp, !tp.inside || label == 0u);
+    let n_batches = batch_count(range);
     for (var b = 0u; b < n_batches; b++) {
         if (all_stopped(lid)) {
             break;
         }
-        let start = range.x + b * BATCH;
-        load_splat(start + lid, range.y, lid);
-        workgroupBarrier();
-        let n_here = min(BATCH, range.y - start);
+        let n_here = load_batch(range, b, lid);
         for (var s0 = 0u; s0 < n_here; s0 += per) {
             let s1 = min(s0 + per, n_here);
             let slots = (s1 - s0) * n_labels;
@@ -100,30 +91,19 @@ fn blend_sums(
                 atomicStore(&acc_hi[i], 0u);
             }
             workgroupBarrier();
-            if (!done) {
-                for (var k = s0; k < s1; k++) {
-                    let alpha = splat_alpha(k, pxc, pyc);
-                    if (alpha < ALPHA_MIN) {
-                        continue;
-                    }
-                    let next_t = t_acc * (1.0 - alpha);
-                    if (next_t < T_MIN) {
-                        done = true;
-                        break;
-                    }
-                    // w·2^32 truncated (w <= ALPHA_MAX < 1), added with carry into the high word.
-                    let slot = (k - s0) * n_labels + li;
-                    let lo = u32(min(alpha * t_acc * 4294967296.0, 4294967040.0));
-                    let old = atomicAdd(&acc_lo[slot], lo);
-                    if (old > 0xFFFFFFFFu - lo) {
-                        atomicAdd(&acc_hi[slot], 1u);
-                    }
-                    count += 1u;
-                    t_acc = next_t;
+            for (var k = s0; k < s1 && !walk.done; k++) {
+                let weight = walk_step(&walk, k);
+                if (weight == 0.0) {
+                    continue;
                 }
-                if (done) {
-                    atomicAdd(&done_count, 1u);
+                // w·2^32 truncated (w <= ALPHA_MAX < 1), added with carry into the high word.
+                let slot = (k - s0) * n_labels + li;
+                let lo = u32(min(weight * 4294967296.0, 4294967040.0));
+                let old = atomicAdd(&acc_lo[slot], lo);
+                if (old > 0xFFFFFFFFu - lo) {
+                    atomicAdd(&acc_hi[slot], 1u);
                 }
+                count += 1u;
             }
             workgroupBarrier();
             for (var i = lid; i < slots; i += BATCH) {
