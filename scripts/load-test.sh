@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Load test of `slag-edge serve` on loopback (issue: robustness under load): a synthetic scene of
+# Load test of `slag-edge serve` on loopback (robustness under load): a synthetic scene of
 # N Gaussians (default 1,000,000 × 512, f16 shards) is partitioned, served by `slag-encoder serve`,
 # fetched by `slag-edge fetch`, then `slag-edge serve` takes `wrk` load with a mix of valid and
 # invalid queries (scripts/load/mix.lua). Prints requests/s, p50/p90/p99 latency, status classes,

@@ -6,8 +6,8 @@
 //! reduction to `E_k` and the write).
 //!
 //! Efficiency follows the usual definition: `t(g0)·g0 / (t(g)·g)` with `g0` the first count
-//! (normally 1). Each count is one run (the issue asks for one run each); the encode's outputs go
-//! to `--out`/g<N>/.
+//! (normally 1). Each count is one run, not the best of several (repeat the command to see the spread); the
+//! encode's outputs go to `--out`/g<N>/.
 
 use anyhow::Context;
 use slag_encoder::config::{EncodeConfig, GpuCount};

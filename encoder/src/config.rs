@@ -45,7 +45,8 @@ pub struct EncodeConfig {
 }
 
 /// Whether and how `encode` segments the scene's Gaussians (Felzenszwalb–Huttenlocher over a
-/// k-NN graph of the means, geometry only: [`crate::segments`]). The segments are used by
+/// k-NN graph of the means, its edges weighed by geometry and the encode's masks:
+/// [`crate::segments`]). The segments are used by
 /// prediction filtering (`eval-colors --prediction-filtering`), carried in the shards, and
 /// smooth query scores (`&smooth=segment`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -55,7 +55,8 @@ enum Command {
     /// Write a new Ed25519 key pair for signing manifests (--signing-key).
     Keygen(slag_shards::cli::KeygenArgs),
     /// Geometric segments of a scene's Gaussians (Felzenszwalb–Huttenlocher over a k-NN graph
-    /// of the means, geometry only) -> segments.safetensors, without re-encoding.
+    /// of the means; its edges also weigh the encode's masks when a masks' record is given or
+    /// beside --out) -> segments.safetensors, without re-encoding.
     Segment(cli::segment::SegmentCmdArgs),
     /// Write a synthetic terrain scene of any size (ply + images + COLMAP poses) for scale tests.
     SynthScene(cli::synthetic::SynthArgs),
