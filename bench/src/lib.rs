@@ -4,7 +4,7 @@
 //!   known): the knobs a user turns (mask source, image subsampling, raster resolution,
 //!   contributors kept per pixel, stored precision, exact scan vs HNSW) against encode time,
 //!   query latency, bytes per Gaussian and accuracy; writes `tradeoffs.{md,csv}` (the plot is
-//!   drawn from the CSV by `scripts/plot_tradeoffs.py`).
+//!   drawn from the CSV by `scripts/lab/plot_tradeoffs.py`).
 //!
 //! - [`stages`]: each encoder stage's time per image against its floor (FLOPs at the measured
 //!   matrix rate, bytes at the measured bandwidths) on the machine it runs on.

@@ -16,7 +16,7 @@ enum Command {
     /// OUT/tradeoffs.md and OUT/tradeoffs.csv.
     Tradeoffs(Box<slag_bench::tradeoffs::TradeoffArgs>),
     /// Each encoder stage's time per image against its floor on this machine (needs the facts
-    /// JSON of scripts/device_facts.py; see scripts/device-scaling.sh stages).
+    /// JSON of scripts/lab/device_facts.py; see scripts/lab/device-scaling.sh stages).
     Stages(Box<slag_bench::stages::StagesArgs>),
     /// The same encode on 1, 2, 4 … GPUs of this host: speed-up and efficiency table.
     Scaling(Box<slag_bench::scaling::ScalingArgs>),

@@ -5,8 +5,8 @@
 //! rasterizer alone over `--raster-views` views for the phase breakdown of its per-pixel-list
 //! path
 //! ([`slag_encoder::raster::PhaseTimings`]). The floors come from a facts file measured on the same
-//! machine by `scripts/device_facts.py` (matrix rate, copy bandwidths, each ONNX model's FLOPs)
-//! and, optionally, the torch timing of the same CLIP model from `scripts/device_clip_vs_torch.py`.
+//! machine by `scripts/lab/device_facts.py` (matrix rate, copy bandwidths, each ONNX model's FLOPs)
+//! and, optionally, the torch timing of the same CLIP model from `scripts/lab/device_clip_vs_torch.py`.
 //!
 //! A stage's floor is its work at the machine's measured ceiling: FLOPs at the fp16 matrix rate
 //! (SAM, CLIP: what the model would take on the GPU with perfect kernels), bytes at a measured
@@ -32,10 +32,10 @@ pub struct StagesArgs {
     /// The encode run that is timed (same flags as `slag-encoder encode`).
     #[command(flatten)]
     pub encode: EncodeArgs,
-    /// Facts of this machine (JSON from `scripts/device_facts.py`: rates and model FLOPs).
+    /// Facts of this machine (JSON from `scripts/lab/device_facts.py`: rates and model FLOPs).
     #[arg(long)]
     pub facts: PathBuf,
-    /// torch timing of the CLIP model (JSON from `scripts/device_clip_vs_torch.py`), if measured.
+    /// torch timing of the CLIP model (JSON from `scripts/lab/device_clip_vs_torch.py`), if measured.
     #[arg(long)]
     pub torch: Option<PathBuf>,
     /// Views rasterized alone (evenly spaced) for the raster phase breakdown; 0 skips it.
@@ -46,7 +46,7 @@ pub struct StagesArgs {
     pub table: PathBuf,
 }
 
-/// Rates and model sizes measured on the machine (`scripts/device_facts.py`'s output).
+/// Rates and model sizes measured on the machine (`scripts/lab/device_facts.py`'s output).
 #[derive(Debug, Clone, serde::Deserialize)]
 pub struct Facts {
     /// GPU name (torch).
@@ -77,7 +77,7 @@ pub struct ModelFacts {
     pub gflop: f64,
 }
 
-/// torch timing of a CLIP visual tower (`scripts/device_clip_vs_torch.py`'s JSON).
+/// torch timing of a CLIP visual tower (`scripts/lab/device_clip_vs_torch.py`'s JSON).
 #[derive(Debug, Clone, serde::Deserialize)]
 pub struct TorchClip {
     /// File name of the ONNX export of the same model.

@@ -29,7 +29,7 @@
 //! payload fields, vectors, snapshots); a live server is too heavy for CI. Once, a Qdrant 1.18.3
 //! server built from source took the snowmiku upload (119,792 points, 8 tile collections and
 //! snapshots, one restored) and its REST API agreed with slag's files on every point, payload,
-//! vector and snapshot (`docs/results/qdrant-live.md`, `scripts/qdrant-live-check.py`). One server-side
+//! vector and snapshot (`docs/results/qdrant-live.md`, `scripts/lab/qdrant-live-check.py`). One server-side
 //! detail: Qdrant keeps payloads as JSON text and reads them back with serde_json's default float
 //! parser, so 31,065 of the 359,376 `x`/`y`/`z` doubles (8.6 %) came back one f64 ulp away from
 //! the widened f32 sent; narrowed to f32 every one is the mean, bit for bit.

@@ -10,7 +10,7 @@ per-node launches, or the GPU's own work. For each model, median wall time per r
 host - bound is the copies; bound - graph is the launch overhead; graph is close to the GPU's
 own time. GPU machine only (onnxruntime-gpu's Python package, numpy); not part of CI.
 
-usage: python3 scripts/device_ort_cuda_graph.py [--repeats N] MODEL.onnx[:dim=value,...] ...
+usage: python3 scripts/lab/device_ort_cuda_graph.py [--repeats N] MODEL.onnx[:dim=value,...] ...
   dims name a dynamic axis (e.g. batch=64, num_prompts=256, num_points=2); unnamed ones are 1.
 Prints one JSON line per model and a Markdown table.
 """

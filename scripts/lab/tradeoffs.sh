@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # The speed/accuracy trade study, reproducible by one command:
-#   bash scripts/tradeoffs.sh [--quick] [more slag-bench tradeoffs arguments]
+#   bash scripts/lab/tradeoffs.sh [--quick] [more slag-bench tradeoffs arguments]
 # builds slag-bench (release; SLAG_BENCH_PROFILE=dev uses the dev build), runs
 # `slag-bench tradeoffs` on ../shared/scenes/snowmiku (or the embedded mini scene with --quick),
 # writes docs/results/tradeoffs.{md,csv}, then plots docs/results/tradeoffs.png with matplotlib from a venv
 # (~/.cache/slag/venv-plot, created on first use). Encode runs are cached under
 # target/slag-bench/ (pass --fresh to redo them, --cached-only to tabulate a run cut short).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 export ORT_DYLIB_PATH="${ORT_DYLIB_PATH:-/opt/ort/libonnxruntime.so}"
 if [ ! -f "$ORT_DYLIB_PATH" ] && [ -f scripts/setup.sh ]; then
     # shellcheck disable=SC1091
@@ -36,5 +36,5 @@ if [ ! -x "$VENV/bin/python3" ] || ! "$VENV/bin/python3" -c 'import matplotlib' 
     python3 -m venv "$VENV"
     "$VENV/bin/pip" install --quiet matplotlib
 fi
-"$VENV/bin/python3" scripts/plot_tradeoffs.py "$OUT/tradeoffs.csv" "$OUT/tradeoffs.png"
+"$VENV/bin/python3" scripts/lab/plot_tradeoffs.py "$OUT/tradeoffs.csv" "$OUT/tradeoffs.png"
 echo "wrote $OUT/tradeoffs.md, $OUT/tradeoffs.csv, $OUT/tradeoffs.png"

@@ -1,4 +1,4 @@
-"""gsplat's lifting cost on a slag scene, beside slag's own (run by scripts/device-peers.sh).
+"""gsplat's lifting cost on a slag scene, beside slag's own (run by scripts/lab/device-peers.sh).
 
     python3 device_peers.py SCENE OUT.json [--every N] [--raster-scale S] [--labels L]
                             [--repeats R] [--slag-report report.json]

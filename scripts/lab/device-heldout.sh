@@ -6,10 +6,10 @@
 # S = 1, 2, 4, 8, 16 and its max form in one render pass, with the majority and pixel-oracle
 # baselines. Expects .devcarry/ (release slag-encoder, scene/ = snowmiku images + COLMAP + a
 # geometry+DC .ply, shared/fixtures/{sam-amg,clip}) and .gl/ (Vulkan loader debs), as
-# scripts/device-bench.sh. Reports, eval JSON and the log go to $OUT.
+# scripts/lab/device-bench.sh. Reports, eval JSON and the log go to $OUT.
 set -uo pipefail
-# shellcheck source=scripts/device-snowmiku-env.sh
-. scripts/device-snowmiku-env.sh
+# shellcheck source=scripts/lab/device-snowmiku-env.sh
+. scripts/lab/device-snowmiku-env.sh
 encode() { # name, args...
   local name=$1; shift
   echo "### encode $name: $*"

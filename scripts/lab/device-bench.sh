@@ -4,8 +4,8 @@
 # then colour mIoU. Expects .devcarry/ (release slag-encoder, scene/ with a geometry+DC .ply,
 # shared/fixtures/) and .gl/ (Vulkan loader debs). Results go to $OUT (reports, eval JSON, log).
 set -uo pipefail
-# shellcheck source=scripts/device-snowmiku-env.sh
-. scripts/device-snowmiku-env.sh
+# shellcheck source=scripts/lab/device-snowmiku-env.sh
+. scripts/lab/device-snowmiku-env.sh
 one() { # name, args...
   local name=$1; shift
   echo "### $name: $*"

@@ -7,7 +7,7 @@ command and its descendants) every `--every` seconds, and prints the sampled pea
 write are the run's last seconds). The kernel's own high-water mark (VmHWM, the largest of any one
 process, read at the last sample) is printed too: a peak shorter than the sampling step shows there only.
 
-    python3 scripts/rss-timeline.py --out /tmp/rss.tsv -- slag-encoder encode ...
+    python3 scripts/lab/rss-timeline.py --out /tmp/rss.tsv -- slag-encoder encode ...
 
 `--out` writes the samples (seconds since start, RSS bytes) as tab-separated lines. With
 `--report OUT/report.json` (the encode's), the peak is also split by phase: before the tail, the

@@ -3,9 +3,9 @@
 # with geometric segments: encode the scene (graph masks, the color-clip stand-in, every second
 # view, raster scale 0.5; the encode writes segments.safetensors), query each prompt with
 # `--smooth segment` (each Gaussian scored with its segment's mean cosine; objects are the matches
-# within the gap of each other), then draw the objects' oriented boxes over the scene (scripts/plot_objects.py).
+# within the gap of each other), then draw the objects' oriented boxes over the scene (scripts/lab/plot_objects.py).
 #
-# Usage: scripts/objects-picture.sh BINARY SCENE OUT.png [PROMPT ...]   (default prompts: pink brown)
+# Usage: scripts/lab/objects-picture.sh BINARY SCENE OUT.png [PROMPT ...]   (default prompts: pink brown)
 # MASKS=sam encodes instead with color-sam 16x16 (pred-IoU 0.8, stability 0.5) at every 4th view,
 # the encode of docs/results/prediction-filtering.md, whose segments carry the mask term of SAM masks.
 # Needs $SLAG_SHARED and ONNX Runtime (`. scripts/setup.sh`), numpy and matplotlib.

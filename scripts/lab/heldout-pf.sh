@@ -3,7 +3,7 @@
 # color-sam (16×16, pred-IoU 0.8, stability 0.5), both with color-clip at --every 4, raster 0.5
 # (the encode also writes segments.safetensors), then `eval-colors --held-out
 # --prediction-filtering`, which scores slag with and without PF on the same pixels.
-# Usage: scripts/heldout-pf.sh BINARY SCENE OUTDIR   (needs $SLAG_SHARED and ONNX Runtime)
+# Usage: scripts/lab/heldout-pf.sh BINARY SCENE OUTDIR   (needs $SLAG_SHARED and ONNX Runtime)
 set -uo pipefail
 B=$1; S=$2; R=$3; W=${WORK:-/tmp/slag-pf}
 F=$SLAG_SHARED/fixtures

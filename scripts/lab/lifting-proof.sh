@@ -4,9 +4,9 @@
 # with color-sam masks (16x16 points, pred-IoU 0.8, stability 0.5) must take the GPU path
 # (`counts.device_sum_views` of report.json) on every view. Prints the masks per image and the
 # raster phases, and exits non-zero otherwise.
-#   bash scripts/lifting-proof.sh [WORK_DIR]      # SLAG_ENCODER=path/to/slag-encoder to pick a build
+#   bash scripts/lab/lifting-proof.sh [WORK_DIR]      # SLAG_ENCODER=path/to/slag-encoder to pick a build
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 # shellcheck disable=SC1091
 . scripts/setup.sh
 B=${SLAG_ENCODER:-target/debug/slag-encoder}

@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
 # Runs on a multi-GPU machine (x86_64, NVIDIA, no Rust toolchain); NOT part of CI.
-#   scripts/device-scaling.sh scaling [GPU_COUNTS]   # slag-bench scaling: same scene on 1,2,4 GPUs
-#   scripts/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
-#   scripts/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
+#   scripts/lab/device-scaling.sh scaling [GPU_COUNTS]   # slag-bench scaling: same scene on 1,2,4 GPUs
+#   scripts/lab/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
+#   scripts/lab/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
 #                                                    # on one GPU, peak host + GPU memory
-#   scripts/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
+#   scripts/lab/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
 #                                                    # (color-clip all views; ViT-B/16 and color-sam
 #                                                    # every 8th view); rates from device_facts.py
-#   scripts/device-scaling.sh stages-color [FRONTS]  # the color-clip stage table again per front count
-#   scripts/device-scaling.sh tradeoffs IDS          # slag-bench tradeoffs --cached-only --encode IDS
+#   scripts/lab/device-scaling.sh stages-color [FRONTS]  # the color-clip stage table again per front count
+#   scripts/lab/device-scaling.sh tradeoffs IDS          # slag-bench tradeoffs --cached-only --encode IDS
 #                                                    # on the snowmiku copy; the work folder's records
 #                                                    # go back as tw.tgz and come in as .devwork/tw.tgz
 # Expects .devcarry/ (release slag-encoder, scene/ = snowmiku geometry + DC .ply and images,
-# shared/fixtures/) and .gl/ (Vulkan loader debs), as scripts/device-bench.sh. Reports, logs and
+# shared/fixtures/) and .gl/ (Vulkan loader debs), as scripts/lab/device-bench.sh. Reports, logs and
 # timing tables go to $OUT.
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null; done; ldconfig
@@ -68,7 +68,7 @@ EOF
   ;;
 clip)
   echo "### CLIP ViT-B/16 (random weights): torch on the GPU vs ONNX Runtime, batch 32"
-  python3 scripts/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
+  python3 scripts/lab/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
   echo "### slag-encoder with that model (graph masks, every 8th view, 1 GPU)"
   "$B" bench --scene .devcarry/scene --masks graph --clip-visual "$W/clip/vitb16-clip-visual.onnx" \
     --every 8 --raster-scale 0.5 --quiet --out "$W/clip-run" 2>&1 | grep -v XDG_RUNTIME | tee "$R/clip-run.txt"
@@ -76,10 +76,10 @@ clip)
   ;;
 stages)
   echo "### facts: rates of this machine, FLOPs of the models; torch vs ORT for CLIP ViT-B/16"
-  python3 scripts/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
+  python3 scripts/lab/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
   V=$W/clip/vitb16-clip-visual.onnx
   cp "$W/clip/clip-vs-torch.json" "$R/"
-  python3 scripts/device_facts.py "$R/facts.json" $F/clip/color-clip-visual.onnx \
+  python3 scripts/lab/device_facts.py "$R/facts.json" $F/clip/color-clip-visual.onnx \
     $F/sam-amg/color-sam-encoder.onnx $F/sam-amg/color-sam-decoder.onnx "$V" | tee "$R/facts.txt"
   S=(--scene .devcarry/scene --raster-scale 1.0 --quiet --facts "$R/facts.json")
   echo "### stages: graph masks, color-clip, all views"

@@ -3,7 +3,7 @@ runs), same model, same batch of 32 crops. Runs on a GPU machine (torch + timm +
 there); NOT part of CI. Writes OUT/vitb16-clip-visual.onnx (for `slag-encoder bench --clip-visual`)
 and prints a small table.
 
-    python3 scripts/device_clip_vs_torch.py OUT_DIR
+    python3 scripts/lab/device_clip_vs_torch.py OUT_DIR
 """
 
 import os

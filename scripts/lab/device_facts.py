@@ -1,7 +1,7 @@
 """Measured rates of a GPU machine and FLOPs of ONNX models: the floors of
 `slag-bench stages`. Runs there (torch, onnx and numpy are installed); NOT part of CI.
 
-    python3 scripts/device_facts.py OUT.json [MODEL.onnx ...]
+    python3 scripts/lab/device_facts.py OUT.json [MODEL.onnx ...]
 
 Writes OUT.json:
   gpu                    name of GPU 0 (torch)

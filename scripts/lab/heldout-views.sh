@@ -7,7 +7,7 @@
 # (default "coverage uniform all"); a run named everyE encodes every E-th view (`--every E`; with
 # the hold-out of every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives
 # coverage the same count).
-# Usage: scripts/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
+# Usage: scripts/lab/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
 set -uo pipefail
 B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}
 F=$SLAG_SHARED/fixtures

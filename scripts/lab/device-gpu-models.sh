@@ -4,13 +4,13 @@
 # /root/og (../shared/tools/ort-gpu-chunks.sh: four carries), and carried: .whl/ (segment_anything,
 # open_clip_torch, ftfy, wcwidth wheels), .devcarry/ (zstd-compressed release slag-encoder and
 # slag-bench, scene/ = snowmiku images + COLMAP + a geometry+DC .ply) and .gl/ (Vulkan loader debs).
-#   scripts/device-gpu-models.sh prep        # wheels, binaries, real-size random-weight exports:
+#   scripts/lab/device-gpu-models.sh prep        # wheels, binaries, real-size random-weight exports:
 #                                            # SAM ViT-B and ViT-H, CLIP ViT-B/16, f32 and fp16;
 #                                            # device facts (rates, FLOPs); torch fp16/fp32 peers
 #                                            # DECF16=1: also SAM with a half-precision mask
 #                                            # decoder (--fp16-decoder) in models/f16d
-#   scripts/device-gpu-models.sh stages      # slag-bench stages per model, CUDA and CPU
-#   scripts/device-gpu-models.sh e2e [N] [V] # synthetic scene of N Gaussians (2M), V views (250)
+#   scripts/lab/device-gpu-models.sh stages      # slag-bench stages per model, CUDA and CPU
+#   scripts/lab/device-gpu-models.sh e2e [N] [V] # synthetic scene of N Gaussians (2M), V views (250)
 #                                            # at 990x742: ViT-H 16x16 + CLIP ViT-B/16 on CUDA
 #                                            # MASKMODEL=DIR: timing model + mask model: ViT-H
 #                                            # runs on every image for its cost, DIR's color-sam
@@ -23,22 +23,22 @@
 #                                            # multimask channels (--f16-multimask)
 #                                            # TAG=NAME: the run's files named e2e-PREC-NAME
 #                                            # EXTRA="ARGS": more slag-encoder bench arguments
-#   scripts/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
+#   scripts/lab/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
-#   scripts/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder,
+#   scripts/lab/device-gpu-models.sh sam         # SAM ViT-H fp16: plain vs fused-attention encoder,
 #                                            # f32 4-channel vs f16 multimask low-res logits;
 #                                            # ORT profiles; torch fp16 + its CUDA profile
-#   scripts/device-gpu-models.sh graphs      # per model: host copies vs IO binding vs CUDA graph
+#   scripts/lab/device-gpu-models.sh graphs      # per model: host copies vs IO binding vs CUDA graph
 #                                            # (device_ort_cuda_graph.py; carry .pyort/)
-#   scripts/device-gpu-models.sh clipu8      # CLIP fp16 fused: f32 pixel_values vs u8 pixels
+#   scripts/lab/device-gpu-models.sh clipu8      # CLIP fp16 fused: f32 pixel_values vs u8 pixels
 #                                            # (clip-u8-pixels.py), slag-bench models
-#   scripts/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
+#   scripts/lab/device-gpu-models.sh fronts      # 8 front workers on CUDA (crashed before sessions
 #                                            # were shared per GPU)
-#   scripts/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
-#   scripts/device-gpu-models.sh clipbatch   # CLIP ViT-B/16 fp16 on CUDA at --clip-batch 8..128
+#   scripts/lab/device-gpu-models.sh scaling [C] # slag-bench scaling --counts C (1,2) on the e2e scene
+#   scripts/lab/device-gpu-models.sh clipbatch   # CLIP ViT-B/16 fp16 on CUDA at --clip-batch 8..128
 #                                            # (snowmiku every 2nd view, graph masks, 4 fronts)
-#   scripts/device-gpu-models.sh reduce      # slag-bench reduce at the e2e scene's size (2M
+#   scripts/lab/device-gpu-models.sh reduce      # slag-bench reduce at the e2e scene's size (2M
 #                                            # Gaussians, 250 views x 250k a_kj, D 512): both loop
 #                                            # orders of the reduction + the f16 write (CPU only)
 # Files under /root survive between calls while the machine is held. Results go to $OUT.
@@ -103,10 +103,10 @@ prep)
   fi
   ls -la "$M"/f32 "$M"/f16
   [ "${QUICK:-0}" = 1 ] && exit 0
-  python3 scripts/device_facts.py "$R/facts.json" "$M"/f32/sam-vit_b-encoder.onnx \
+  python3 scripts/lab/device_facts.py "$R/facts.json" "$M"/f32/sam-vit_b-encoder.onnx \
     "$M"/f32/sam-vit_b-decoder.onnx $(ls "$M"/f32/*visual*.onnx) > "$R/facts.log" 2>&1 || tail -5 "$R/facts.log"
   cp "$R/facts.json" /root/facts.json
-  python3 scripts/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -12
+  python3 scripts/lab/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -12
   cp "$R/torch-peers.json" /root/torch-peers.json
   ;;
 stages)
@@ -168,7 +168,7 @@ e2e)
   fi
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
   # RSS over time (rss-e2e-*.tsv: seconds, bytes): where the peak falls against the report's phases.
-  python3 scripts/rss-timeline.py --out "$R/rss-e2e-$t.tsv" --report "$W/e2e/report.json" -- \
+  python3 scripts/lab/rss-timeline.py --out "$R/rss-e2e-$t.tsv" --report "$W/e2e/report.json" -- \
     /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
     "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$t.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$t.txt" | tail -${LINES_SHOWN:-40}
@@ -208,8 +208,8 @@ models)
   cat "$R/models.md" "$R/models-pb64.md"
   rm -rf "$W/prof"; mkdir -p "$W/prof"
   SLAG_ORT_PROFILE=$W/prof/p "$BB" models --scene data/snowmiku-mini --images 2 "${CL[@]}" "${SA[@]}" --repeats 3 > /dev/null 2>&1
-  python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
-  SAM_KINDS=vit_h python3 scripts/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -14
+  python3 scripts/lab/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
+  SAM_KINDS=vit_h python3 scripts/lab/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -14
   ;;
 sam)
   # SAM ViT-H fp16 (fp16 decoder, the image's work once per call, cut to its low-res outputs):
@@ -233,12 +233,12 @@ sam)
   cat "$R/sam-256.md"
   rm -rf "$W/prof"; mkdir -p "$W/prof"
   SLAG_ORT_PROFILE=$W/prof/p timeout 100 "$BB" models --scene data/snowmiku-mini --images 2 "${SA[@]}" --repeats 3 > /dev/null 2>&1
-  python3 scripts/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
-  SAM_KINDS=vit_h TORCH_PROFILE=1 timeout 120 python3 scripts/device_torch_peers.py "$R/torch-peers.json" > "$R/torch-peers.txt" 2>&1
+  python3 scripts/lab/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
+  SAM_KINDS=vit_h TORCH_PROFILE=1 timeout 120 python3 scripts/lab/device_torch_peers.py "$R/torch-peers.json" > "$R/torch-peers.txt" 2>&1
   grep -vE "^clip|^ *\{|^ *\}|^ *\"" "$R/torch-peers.txt" | cut -c1-160 | head -70
   ;;
 graphs)
-  # Where each model's run goes on the CUDA provider (scripts/device_ort_cuda_graph.py): host
+  # Where each model's run goes on the CUDA provider (scripts/lab/device_ort_cuda_graph.py): host
   # copies, per-node launches (IO binding without and with a captured CUDA graph), the GPU.
   # Needs .pyort/ort.tar.xz (onnxruntime-gpu 1.31.1's Python package without its two large
   # libraries, which come from /root/og). Models: CLIP ViT-B/16 fp16 fused, SAM ViT-H fp16 with
@@ -258,7 +258,7 @@ graphs)
   fi
   echo "exports: $(( $(date +%s) - t0 )) s"
   [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
-  PYTHONPATH=/root/pyort:/root/site timeout 400 python3 scripts/device_ort_cuda_graph.py --repeats ${REPEATS:-10} \
+  PYTHONPATH=/root/pyort:/root/site timeout 400 python3 scripts/lab/device_ort_cuda_graph.py --repeats ${REPEATS:-10} \
     "$M/f16fuse/ViT-B-16-random-visual.onnx:batch=64" "$X/sam-vit_h-encoder.onnx" \
     "$X/sam-vit_h-decoder-low-res.onnx:num_prompts=256,num_points=2" \
     "$X/sam-vit_h-decoder-low-res-f16m.onnx:num_prompts=256,num_points=2" \
@@ -277,7 +277,7 @@ clipu8)
       --repeats ${REPEATS:-5} 2>> "$R/clipu8.jsonl"; echo "exit $?"
   done | tee "$R/clipu8.md"
   # torch fp16's ViT-B/16 image tower on the same GPU (inputs already on it), the peer of the table.
-  SAM_KINDS="" python3 scripts/device_torch_peers.py "$R/torch-clip.json" 2>&1 | tail -6
+  SAM_KINDS="" python3 scripts/lab/device_torch_peers.py "$R/torch-clip.json" 2>&1 | tail -6
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do

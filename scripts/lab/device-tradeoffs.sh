@@ -3,20 +3,20 @@
 # every encode point scored by held-out 2D mIoU (the views no point encodes) with the 3D colour
 # mIoU beside it. One device call is limited to 10 minutes, so the plan runs in parts that share
 # one work folder (target/slag-bench/snowmiku-device, kept while the machine stays warm):
-#   bash scripts/device-tradeoffs.sh graph        # the 14 graph-mask points (baseline, reference, …)
-#   bash scripts/device-tradeoffs.sh sam          # color-sam 8/16/32 at every 8th view
-#   bash scripts/device-tradeoffs.sh aggregation  # color-sam 16x16 at every 4th view, 4 a_kj rules
-#   bash scripts/device-tradeoffs.sh table        # tabulate (encodes nothing) + the plot's CSV
-#   bash scripts/device-tradeoffs.sh all          # everything in one call (when time allows)
+#   bash scripts/lab/device-tradeoffs.sh graph        # the 14 graph-mask points (baseline, reference, …)
+#   bash scripts/lab/device-tradeoffs.sh sam          # color-sam 8/16/32 at every 8th view
+#   bash scripts/lab/device-tradeoffs.sh aggregation  # color-sam 16x16 at every 4th view, 4 a_kj rules
+#   bash scripts/lab/device-tradeoffs.sh table        # tabulate (encodes nothing) + the plot's CSV
+#   bash scripts/lab/device-tradeoffs.sh all          # everything in one call (when time allows)
 # Each part writes $OUT/tradeoffs/tradeoffs.{md,csv} of what the work folder holds so far, and
 # $OUT/tw.tgz (the points' record/eval/report JSON): on a fresh machine, carry it back as
 # .devwork/tw.tgz and the next part continues from it (the baseline's embeddings are then
 # re-encoded: pass `graph` again first).
 # Expects .devcarry/ (release slag-bench, scene/ = snowmiku images + COLMAP + a geometry+DC .ply,
-# shared/fixtures/{sam-amg,clip}) and .gl/ (Vulkan loader debs), as scripts/device-heldout.sh.
+# shared/fixtures/{sam-amg,clip}) and .gl/ (Vulkan loader debs), as scripts/lab/device-heldout.sh.
 set -uo pipefail
-# shellcheck source=scripts/device-snowmiku-env.sh
-. scripts/device-snowmiku-env.sh
+# shellcheck source=scripts/lab/device-snowmiku-env.sh
+. scripts/lab/device-snowmiku-env.sh
 BB=.devcarry/slag-bench
 TW=target/slag-bench/snowmiku-device; mkdir -p "$TW"
 [ -f .devwork/tw.tgz ] && [ ! -f "$TW/.restored" ] && tar xzf .devwork/tw.tgz -C "$TW" && touch "$TW/.restored"

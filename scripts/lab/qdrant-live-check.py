@@ -2,7 +2,7 @@
 """Checks what `slag-encoder partition --qdrant-url` wrote into a live Qdrant server, with the
 server's own REST API only (no qdrant-client), against slag's own files.
 
-    python3 scripts/qdrant-live-check.py --rest http://127.0.0.1:6333 --collection snowmiku \
+    python3 scripts/lab/qdrant-live-check.py --rest http://127.0.0.1:6333 --collection snowmiku \
         --embeddings out/snowmiku/embeddings.safetensors --export out/snowmiku-export \
         [--tiles] [--restore-dir DIR] [--int8]
 

@@ -4,8 +4,8 @@
 # of every output file except report.json (it carries timings) to OUT/sha256sums. A refactor that
 # changes no behaviour leaves that file identical:
 #
-#   bash scripts/encode-identity.sh /tmp/before     # on the old commit
-#   bash scripts/encode-identity.sh /tmp/after      # on the new one
+#   bash scripts/lab/encode-identity.sh /tmp/before     # on the old commit
+#   bash scripts/lab/encode-identity.sh /tmp/after      # on the new one
 #   diff /tmp/before/sha256sums /tmp/after/sha256sums && echo identical
 #
 # Every run has one front worker: with several, the images reach the contribution store in the
@@ -21,7 +21,7 @@
 #            that the order of the reduction's sums is fixed)
 # BIN (default target/debug/slag-encoder, built here when absent) picks the binary.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:?usage: encode-identity.sh OUT_DIR}
 . scripts/setup.sh
 F=$SLAG_SHARED/fixtures

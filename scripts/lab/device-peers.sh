@@ -6,15 +6,15 @@
 # where the machine has zstd), libonnxruntime.so.gz (ONNX Runtime's CPU library of the build), gsplat-*.whl
 # (`pip download gsplat==1.5.3 --no-deps`; torch, jaxtyping, ninja, numpy, rich are on the
 # machine), the fixtures color-sam-encoder.onnx, color-sam-decoder.onnx, color-clip-visual.onnx,
-# and device_peers.py (scripts/); plus .gl/ (the Vulkan loader debs, README "GPU machine").
+# and device_peers.py (scripts/lab/); plus .gl/ (the Vulkan loader debs, README "GPU machine").
 #
-#   scripts/device-peers.sh peers [N] [V] [EVERY]
+#   scripts/lab/device-peers.sh peers [N] [V] [EVERY]
 #       synth-scene of N Gaussians (2M), V views (250) at 990x742; slag-encoder bench on every
 #       EVERY-th view (5) with color-sam 16x16 (0.8 / 0.5) masks + color-clip, raster 0.5, GPU
 #       raster; then gsplat on the same scene, views and raster size: forward RGB render, forward
 #       + backward of a 1-channel render and of a 64-label render (a_kj of 64 disjoint masks),
 #       and the ratios slag / gsplat. gsplat's CUDA compiles (JIT, sm_90) while the scene is made.
-#   scripts/device-peers.sh memory [N] [V] [EVERY] [FRONTS...]
+#   scripts/lab/device-peers.sh memory [N] [V] [EVERY] [FRONTS...]
 #       the same scene and masks, once per front-worker count (default 1 8): peak RSS
 #       (/usr/bin/time and report.json), queue high-water marks, masks per image.
 # Results (reports, logs, peers.json) go to $OUT, packed into one archive.

@@ -4,7 +4,7 @@ multimask output, low-resolution masks only, as slag asks for), CLIP ViT-B/16 im
 256 crops). fp16 and fp32, random weights, CUDA events, median of 20 after 5 warm-ups. Runs on
 a GPU machine (torch, timm; segment_anything carried as a wheel); NOT part of CI.
 
-    python3 scripts/device_torch_peers.py OUT.json
+    python3 scripts/lab/device_torch_peers.py OUT.json
 
 SAM_KINDS (default "vit_b vit_h") picks the SAM models; TORCH_PROFILE=1 also prints torch's
 per-operator CUDA time of the fp16 encoder and decoder.

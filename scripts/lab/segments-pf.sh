@@ -14,7 +14,7 @@
 # their purity against the lifted photo classes). Writes OUTDIR/table.md (one table per split)
 # and keeps every JSON under OUTDIR/e<N>/.
 #
-# Usage: scripts/segments-pf.sh BINARY SCENE OUTDIR [EVERY ...]     (default EVERY: 4 5)
+# Usage: scripts/lab/segments-pf.sh BINARY SCENE OUTDIR [EVERY ...]     (default EVERY: 4 5)
 #   BINARY  a release slag-encoder;  SCENE  e.g. ../shared/scenes/snowmiku
 # Needs: $SLAG_SHARED (fixtures/sam-amg, fixtures/clip) and ONNX Runtime ($ORT_DYLIB_PATH, or the
 # Python package `onnxruntime`, whose library is then used). On an NVIDIA host without a display
@@ -32,7 +32,7 @@ if [ -z "${ORT_DYLIB_PATH:-}" ]; then
   export ORT_DYLIB_PATH
 fi
 if [ -z "${VK_DRIVER_FILES:-}" ] && command -v nvidia-smi > /dev/null; then
-  VK_DRIVER_FILES=$(bash "$here/vulkan-icd.sh") && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
+  VK_DRIVER_FILES=$(bash "$here/../vulkan-icd.sh") && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
 fi
 mkdir -p "$R"
 echo "# Segments and PF, held-out protocol ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder))" > "$R/table.md"
