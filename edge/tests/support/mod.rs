@@ -563,7 +563,9 @@ pub async fn wait_until(what: &str, mut cond: impl AsyncFnMut() -> bool) {
 /// under the cross build) when that is set and not blank. (Read with `option_env!` so that an
 /// example may include these fixtures: cargo sets the variable for tests only.)
 pub fn slag_edge_command() -> std::process::Command {
-    let bin = option_env!("CARGO_BIN_EXE_slag-edge").expect("a test of the slag-edge package");
+    let Some(bin) = option_env!("CARGO_BIN_EXE_slag-edge") else {
+        panic!("the slag-edge binary is known to the tests of the slag-edge package only");
+    };
     let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
     let mut parts = runner.split_whitespace();
     match parts.next() {
