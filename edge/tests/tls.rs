@@ -1,6 +1,7 @@
 //! `slag-edge` and TLS, with a CA and server certificates made at test time: `serve` answers
-//! queries over HTTPS and `POST /reload` swaps the certificate for new connections while an
-//! answer in flight completes (a bad file is refused and the certificate in use stays); `fetch`
+//! queries over HTTPS and `POST /reload` (and, for the binary, `SIGHUP`) swaps the certificate for
+//! new connections while an answer in flight completes (a bad file is refused and the
+//! certificate in use stays); `fetch`
 //! from an HTTPS shard server with a private CA (`--ca-cert`) and its refusal without it; a
 //! bearer token refused over plain HTTP off loopback unless `--allow-plain-http`; a bad
 //! certificate file refused at start-up.
@@ -223,4 +224,70 @@ async fn a_bad_certificate_file_refuses_to_start_naming_the_file() {
     assert!(err.contains(&k) && err.contains("private key"), "{err}");
     let err = serve_stderr("127.0.0.1:0", &["--tls-cert", &c]).await;
     assert!(err.contains("--tls-key"), "{err}");
+}
+
+/// The binary: `serve --tls-cert --tls-key` answers a query over HTTPS and `SIGHUP` gives new
+/// connections the certificate written since. Needs ONNX Runtime (the color-clip text tower).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_binary_serves_https_and_reloads_its_certificate_on_sighup() {
+    use std::io::{BufRead, BufReader};
+    if support::skip_without_ort() {
+        return;
+    }
+    let ca = TestCa::new("slag edge test CA");
+    let (first, second) = (ca.server_cert(1), ca.server_cert(2));
+    let certs = tempfile::tempdir().unwrap();
+    let (c, k) = first.write(certs.path());
+    let (c, k) = (c.display().to_string(), k.display().to_string());
+    let shards = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store").display().to_string();
+    let fetch = slag_edge_with_log(&fetch_args(&shards.url, &store, "100"), "warn");
+    assert_success(&output_blocking(fetch).await, "fetch");
+    let [tm, tok] = support::color_clip_text_model();
+    let serve = support::text_model_args("serve", &store, "grid", [&tm, &tok]);
+    let tls = ["--addr", "127.0.0.1:0", "--tls-cert", &c, "--tls-key", &k];
+    let mut child = slag_edge_with_log(&[&serve[..], &tls].concat(), "info")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let url = tokio::task::spawn_blocking(move || {
+        let mut lines = BufReader::new(stderr).lines().map_while(|l| l.ok());
+        let line = lines
+            .find(|l| l.contains("listening on https://"))
+            .expect("serve logs its address");
+        // Keep reading so that the child never blocks on a full pipe.
+        std::thread::spawn(move || lines.for_each(drop));
+        let at = line.find("https://").unwrap();
+        line[at..].trim().to_string()
+    })
+    .await
+    .unwrap();
+    let r = https(&ca)
+        .get(format!("{url}/query?text=pink&top_k=2&threshold=none"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(peer(&r), first.der);
+
+    second.write(certs.path());
+    let hup = std::process::Command::new("kill")
+        .args(["-HUP", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(hup.success());
+    wait_until("SIGHUP reloads the certificate", async || {
+        let r = https(&ca)
+            .get(format!("{url}/health"))
+            .send()
+            .await
+            .unwrap();
+        peer(&r) == second.der
+    })
+    .await;
+    let _ = child.kill();
+    let _ = child.wait();
 }
