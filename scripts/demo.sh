@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 F=$SLAG_SHARED/fixtures
 SCENE=${SCENE:-data/snowmiku-mini}
 OUT=${OUT:-out/demo}
-cargo build --release --locked -p slag-encoder
+cargo build --release --locked -p slag-encoder-cli
 BIN=target/release/slag-encoder
 $BIN encode --scene "$SCENE" --masks sam \
   --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" \

@@ -7,15 +7,16 @@
 //! [`config::EncodeConfig`] holds every setting of a run, grouped by those stages;
 //! [`pipeline::Encoder`] checks and runs it over a scene, [`report`] records what ran.
 //! [`distributed::ClusterEncoder`] runs the same map/reduce over several processes (timely
-//! dataflow cluster). [`query`] checks a text prompt against the result; [`eval`] holds evaluation
-//! and research apart from the stages: colour mIoU with color-clip per Gaussian,
-//! [`eval::heldout`] per pixel of views never encoded (2D held-out), [`eval::colors`] runs both
-//! on an embeddings file, [`eval::synthetic`] makes scenes for scale tests. [`views`] chooses
-//! which training views an encode uses (all, uniformly thinned, or by coverage).
+//! dataflow cluster). [`query`] checks a text prompt against the result; [`synthetic`] makes
+//! scenes of any size (with placed objects and their true boxes) for scale tests and benches.
+//! [`views`] chooses which training views an encode uses (all, uniformly thinned, or by
+//! coverage) and which views the 2D held-out protocol keeps back.
 //!
-//! The `slag-encoder` binary's subcommands (in `src/cli/`, private to the binary) only turn
-//! their flags into these types: everything they run is here. [`args`] holds the flags that
-//! other binaries share (`encode`'s) and the flag values mapped to the library's types.
+//! Evaluation (colour mIoU, 2D held-out, instance AP50, segment quality) is the crate
+//! `slag-eval` (`eval/`), which depends on this library, never the other way. The `slag-encoder`
+//! binary is the package `slag-encoder-cli` (`encoder/cli/`): its subcommands only turn their
+//! flags into these types and slag-eval's. [`args`] holds the flags that other binaries share
+//! (`encode`'s) and the flag values mapped to the library's types.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
@@ -27,7 +28,6 @@ pub mod clip;
 pub mod config;
 mod disjoint_sets;
 pub mod distributed;
-pub mod eval;
 pub mod masks;
 pub mod pipeline;
 pub mod prediction_filtering;
@@ -36,4 +36,5 @@ pub mod query;
 pub mod raster;
 pub mod report;
 pub mod segments;
+pub mod synthetic;
 pub mod views;

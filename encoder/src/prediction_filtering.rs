@@ -3,7 +3,7 @@
 //! segments: every segment takes the majority class of its Gaussians.
 //!
 //! The score tables here are `[scene Gaussians × C]`, row `k` for `.ply` Gaussian `k` (the
-//! layout of [`crate::eval::heldout::gaussian_scores`]); `observed[k]` says whether Gaussian `k` has an
+//! layout of `slag_eval::heldout::gaussian_scores`); `observed[k]` says whether Gaussian `k` has an
 //! embedding. Unobserved Gaussians do not vote, and receive their segment's answer when the
 //! segment has observed members (a segment without any stays at zero, as unobserved Gaussians are
 //! without PF). Three tables are scored by `eval-colors --held-out --prediction-filtering`:
@@ -249,7 +249,7 @@ pub fn mean_table(
     Ok(out)
 }
 
-/// The same per-Gaussian classes with PF applied, for the 3D score ([`crate::eval::evaluate`]):
+/// The same per-Gaussian classes with PF applied, for the 3D score (`slag_eval::evaluate`):
 /// `predicted[i]` is the class of embeddings row `i`, `row_segments[i]` its segment.
 ///
 /// Errors: lengths that differ ([`Error::Internal`]).

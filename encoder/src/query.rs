@@ -103,7 +103,7 @@ pub struct QueryOutput {
     /// scene `.ply` is given as `ply`, else score-weighted).
     pub objects: Vec<SceneObject>,
     /// Per object of `objects` (same order), the ids of its member Gaussians, ascending (not
-    /// printed: the instance scores of [`crate::eval::instances`] compare them with the truth).
+    /// printed: the instance scores of `slag_eval::instances` compare them with the truth).
     #[serde(skip)]
     pub object_members: Vec<Vec<u32>>,
     /// The best `top_k` matches above the threshold, best first.

@@ -16,11 +16,11 @@ mod support;
 
 use slag_common::objects::ObjectParams;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::eval::synthetic::{
-    PlacedObject, SyntheticSceneParams, object_layout, write_synthetic_scene_with_objects,
-};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::query::{QueryParams, run};
+use slag_encoder::synthetic::{
+    PlacedObject, SyntheticSceneParams, object_layout, write_synthetic_scene_with_objects,
+};
 use support::{ort_tempdir, shared};
 
 const EXTENT: f64 = 60.0;

@@ -5,10 +5,10 @@
 #![allow(clippy::unwrap_used)]
 
 use slag_common::embeddings::Embeddings;
-use slag_encoder::eval::synthetic::{SyntheticSceneParams, write_synthetic_scene};
 use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::pipeline::{self, FrontStages};
 use slag_encoder::raster::WeightRasterizer;
+use slag_encoder::synthetic::{SyntheticSceneParams, write_synthetic_scene};
 use slag_tests::{color_clip_visual, encode, graph_config};
 
 /// A temporary folder holding the small synthetic scene in `scene/`; returns the folder and that

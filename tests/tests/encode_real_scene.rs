@@ -5,19 +5,19 @@
 #![allow(clippy::unwrap_used)]
 
 use slag_encoder::config::EncodeConfig;
-use slag_encoder::eval::colors::EvalColorsConfig;
+use slag_eval::colors::EvalColorsConfig;
 use slag_tests::{color_sam, encode, fixture, graph_config, random_weights_config, shared};
 
 fn snowmiku() -> std::path::PathBuf {
     shared().join("scenes/snowmiku")
 }
 
-fn eval(out: &std::path::Path) -> slag_encoder::eval::ColourEval {
+fn eval(out: &std::path::Path) -> slag_eval::ColourEval {
     let a = EvalColorsConfig {
         color_clip: Some(shared().join("fixtures/clip")),
         ..EvalColorsConfig::new(snowmiku(), out.join("embeddings.safetensors"))
     };
-    slag_encoder::eval::colors::run(&a).expect("eval-colors")
+    slag_eval::colors::run(&a).expect("eval-colors")
 }
 
 /// The colour evaluation of the encode in `out` (printed, labelled `masks`) reaches `floor`.

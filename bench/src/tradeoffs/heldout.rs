@@ -1,14 +1,14 @@
 //! The study's accuracy axis: held-out 2D mIoU, the protocol of `slag-encoder eval-colors
-//! --held-out` ([`slag_encoder::eval::heldout`]) on one set of views shared by every point.
+//! --held-out` ([`slag_eval::heldout`]) on one set of views shared by every point.
 //!
 //! `eval-colors --held-out` holds out the views `i ≡ ⌊N/2⌋ (mod N)` of an encode made with
 //! `--every N`; the study's points use different steps, so their splits differ, and a point with
 //! `--every 2` encodes views another point holds out. The study therefore holds out the views
-//! that **no** point of its plan encodes ([`heldout::held_out_for_all`] over the plan's steps of 2
-//! or more) and scores every point on exactly those pixels: renders at full resolution, class
-//! scores `cos(E_k, text_c)` blended with `w_kp`, argmax, pixels of rendered alpha ≥
-//! [`heldout::ALPHA_MIN`], mIoU over the classes holding ≥ 1 % of the counted pixels. A point
-//! encoded from every view (`--every 1`) leaves none held out and gets no held-out score.
+//! that **no** point of its plan encodes ([`slag_encoder::views::held_out_for_all`] over the
+//! plan's steps of 2 or more) and scores every point on exactly those pixels: renders at full
+//! resolution, class scores `cos(E_k, text_c)` blended with `w_kp`, argmax, pixels of rendered
+//! alpha ≥ [`heldout::ALPHA_MIN`], mIoU over the classes holding ≥ 1 % of the counted pixels. A
+//! point encoded from every view (`--every 1`) leaves none held out and gets no held-out score.
 
 use std::path::Path;
 
@@ -17,8 +17,8 @@ use slag_common::camera::{self, View};
 use slag_common::embeddings::Embeddings;
 use slag_common::scene::Gaussians;
 use slag_encoder::config::RasterBackend;
-use slag_encoder::eval::{ColorClasses, heldout};
 use slag_encoder::raster::WeightRasterizer;
+use slag_eval::{ColorClasses, heldout};
 
 /// The held-out views of a study, their photo classes, and the rasterizer that renders them.
 pub struct HeldOutViews {
@@ -61,7 +61,7 @@ impl HeldOutViews {
         steps.sort_unstable();
         steps.dedup();
         let all = camera::load_views(scene)?;
-        let held = heldout::held_out_for_all(all.len(), &steps)?;
+        let held = slag_encoder::views::held_out_for_all(all.len(), &steps)?;
         let views: Vec<View> = all
             .into_iter()
             .enumerate()

@@ -1,7 +1,7 @@
 //! The speed/accuracy trade study (`slag-bench tradeoffs`).
 //!
 //! On a real scene with color-clip (whose ground truth is known: a Gaussian's colour class is the
-//! prototype nearest its SH-DC colour, [`slag_encoder::eval`]; a photo pixel's class is the
+//! prototype nearest its SH-DC colour, [`slag_eval`]; a photo pixel's class is the
 //! prototype nearest its colour), the study sweeps, one factor at a time around a baseline (graph
 //! masks, every 4th image, raster scale 0.5, all contributors per pixel):
 //!
@@ -50,8 +50,8 @@ use clap::Args;
 use slag_common::embeddings::Embeddings;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::text::TextEncoder;
-use slag_encoder::eval;
 use slag_encoder::report::StageTimings;
+use slag_eval as eval;
 
 pub use encode::{Aggregation, EncodePoint, EncodeRecord, MaskChoice};
 

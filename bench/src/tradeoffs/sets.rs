@@ -4,10 +4,10 @@ use slag_common::Result;
 use slag_common::embeddings::Embeddings;
 
 /// IoU `|a ∩ b| / |a ∪ b|` of two ascending, duplicate-free id lists
-/// ([`slag_encoder::eval::instances::member_iou`]); `None` when both are empty (the union is
+/// ([`slag_eval::instances::member_iou`]); `None` when both are empty (the union is
 /// empty: no evidence either way).
 pub fn iou_sorted(a: &[u32], b: &[u32]) -> Option<f64> {
-    (!(a.is_empty() && b.is_empty())).then(|| slag_encoder::eval::instances::member_iou(a, b))
+    (!(a.is_empty() && b.is_empty())).then(|| slag_eval::instances::member_iou(a, b))
 }
 
 /// Mean IoU over prompts, `answers[p]` against `reference[p]` (both ascending id lists per

@@ -111,7 +111,7 @@ impl LevelRule {
 }
 
 /// Combines per-level score tables into one: `per_level[l]` is `[N × C]` (as
-/// [`crate::eval::heldout::gaussian_scores`] returns, 0 rows for Gaussians without that level's
+/// `slag_eval::heldout::gaussian_scores` returns, 0 rows for Gaussians without that level's
 /// embedding), `has_level[l][k]` whether Gaussian `k` has level `l`, and `fallback` the `[N × C]`
 /// table of the mean `E_k` used where the chosen level is missing. Returns `[N × C]` and, for
 /// [`LevelRule::Select`], the level chosen per class (empty otherwise).

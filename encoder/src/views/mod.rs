@@ -7,10 +7,11 @@
 //! | setting | training views |
 //! |---|---|
 //! | `every = E` | `i ≡ 0 (mod E)` (E = 1: all) |
-//! | `hold_out_every = N` | additionally `i ≢ ⌊N/2⌋ (mod N)`: the held-out views of [`crate::eval::heldout`] are never encoded |
+//! | `hold_out_every = N` | additionally `i ≢ ⌊N/2⌋ (mod N)`: the held-out views ([`held_out_indices`]) are never encoded |
 //!
 //! The selection then picks among the training views only, so a held-out view is never encoded
-//! whatever the selection does.
+//! whatever the selection does. The held-out views are scored by `slag-eval`'s 2D held-out
+//! protocol (`slag-encoder eval-colors --held-out`).
 
 use std::time::Instant;
 
@@ -76,7 +77,7 @@ impl ViewSelection {
 
 /// Name-sorted indices of the training views among `n_views` views: `i ≡ 0 (mod every)` (0 counts
 /// as 1) and, with `hold_out_every = Some(N)`, `i ≢ ⌊N/2⌋ (mod N)` (the views
-/// [`crate::eval::heldout::held_out_indices`] holds out).
+/// [`held_out_indices`] holds out).
 ///
 /// Errors: [`Error::Param`] `hold_out_every` for N < 2 (nothing would be held out).
 pub fn training_indices(
@@ -90,6 +91,59 @@ pub fn training_indices(
         .filter(|i| i % every == 0)
         .filter(|i| hold_out_every.is_none_or(|n| i % n != n / 2))
         .collect())
+}
+
+/// Name-sorted indices of the held-out views for the encoder's step `every` among `n_views`
+/// views: the indices `i ≡ ⌊every/2⌋ (mod every)`. The encoder keeps `i ≡ 0 (mod every)`
+/// ([`slag_common::camera::subsample`]), so these were never encoded.
+///
+/// Errors ([`Error::Param`] `every`): `every < 2` (every view was encoded, none is held out).
+pub fn held_out_indices(n_views: usize, every: usize) -> Result<Vec<usize>> {
+    if every < 2 {
+        return Err(Error::param(
+            "every",
+            every,
+            "2 or more (e.g. 4): every view was encoded, so none is held out; encode with that \
+             step and evaluate with the same one",
+        ));
+    }
+    Ok((0..n_views).filter(|i| i % every == every / 2).collect())
+}
+
+/// Name-sorted indices of the views that none of several encodes saw, for comparing encodes made
+/// with different steps on the same held-out pixels: the indices `i < n_views` with
+/// `i mod every ≠ 0` for every step in `everys` (each encode keeps `i ≡ 0 (mod every)`,
+/// [`slag_common::camera::subsample`]). With one step `N` this is a superset of
+/// [`held_out_indices`]`(n_views, N)`.
+///
+/// Errors ([`Error::Param`] `every`): a step below 2 (that encode saw every view), no step, or
+/// no view left unencoded (a scene of too few views for these steps).
+pub fn held_out_for_all(n_views: usize, everys: &[usize]) -> Result<Vec<usize>> {
+    if let Some(&e) = everys.iter().find(|&&e| e < 2) {
+        return Err(Error::param(
+            "every",
+            e,
+            "2 or more for every encode compared: an encode of every view leaves none held out",
+        ));
+    }
+    if everys.is_empty() {
+        return Err(Error::param(
+            "every",
+            "none",
+            "at least one encode step (2 or more) to hold views out from",
+        ));
+    }
+    let held: Vec<usize> = (0..n_views)
+        .filter(|i| everys.iter().all(|e| i % e != 0))
+        .collect();
+    if held.is_empty() {
+        return Err(Error::param(
+            "every",
+            format!("{everys:?}"),
+            format!("steps that leave a view of the {n_views} unencoded by all of them"),
+        ));
+    }
+    Ok(held)
 }
 
 /// Checks a held-out step (`hold_out_every`): `None` or at least 2.
@@ -212,12 +266,55 @@ mod split_tests {
     use super::*;
 
     #[test]
+    fn held_out_views_are_never_encoded() {
+        assert_eq!(held_out_indices(13, 4).unwrap(), vec![2, 6, 10]);
+        assert_eq!(held_out_indices(10, 3).unwrap(), vec![1, 4, 7]);
+        assert_eq!(held_out_indices(5, 2).unwrap(), vec![1, 3]);
+        for every in 2..9 {
+            for i in held_out_indices(97, every).unwrap() {
+                assert_ne!(i % every, 0, "view {i} is encoded with every = {every}");
+            }
+        }
+        for every in [0, 1] {
+            assert!(matches!(
+                held_out_indices(10, every),
+                Err(Error::Param { name: "every", .. })
+            ));
+        }
+    }
+
+    #[test]
+    fn views_held_out_for_all_steps_are_encoded_by_none() {
+        let held = held_out_for_all(21, &[2, 6, 5]).unwrap();
+        assert_eq!(held, vec![1, 3, 7, 9, 11, 13, 17, 19]);
+        for every in [2, 6, 5] {
+            let encoded: Vec<usize> = (0..21).step_by(every).collect();
+            assert!(held.iter().all(|i| !encoded.contains(i)), "step {every}");
+        }
+        // One step: the eval-colors split is a subset.
+        let one = held_out_for_all(13, &[4]).unwrap();
+        assert!(
+            held_out_indices(13, 4)
+                .unwrap()
+                .iter()
+                .all(|i| one.contains(i))
+        );
+        for (n, bad) in [(6, &[1usize, 4][..]), (6, &[]), (1, &[2])] {
+            let e = held_out_for_all(n, bad).unwrap_err();
+            assert!(
+                matches!(e, Error::Param { name: "every", .. }),
+                "{bad:?}: {e}"
+            );
+        }
+    }
+
+    #[test]
     fn the_split_never_trains_on_a_held_out_view() {
         // 13 views, hold out every 4th from index 2: 2, 6, 10.
         let t = training_indices(13, 1, Some(4)).unwrap();
         assert_eq!(t, vec![0, 1, 3, 4, 5, 7, 8, 9, 11, 12]);
         for n in 2..9 {
-            let held = crate::eval::heldout::held_out_indices(97, n).unwrap();
+            let held = held_out_indices(97, n).unwrap();
             let train = training_indices(97, 1, Some(n)).unwrap();
             assert_eq!(held.len() + train.len(), 97);
             assert!(held.iter().all(|h| !train.contains(h)), "N = {n}");

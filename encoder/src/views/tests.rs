@@ -10,9 +10,9 @@ use slag_common::camera::View;
 use slag_common::scene::Gaussians;
 
 use super::*;
-use crate::eval::synthetic::{SyntheticSceneParams, write_synthetic_scene};
 use crate::pipeline::SceneInput;
 use crate::raster::{CpuRasterizer, WeightRasterizer};
+use crate::synthetic::{SyntheticSceneParams, write_synthetic_scene};
 
 /// 48 views on a ring (7.5° apart), 4000 Gaussians, 96 × 72 images; written once.
 fn scene_dir() -> &'static std::path::Path {
@@ -122,7 +122,7 @@ fn coverage_covers_every_observed_gaussian_and_its_target_picks_fewer_views() {
         chosen.iter().map(|v| v.name.clone()).collect::<Vec<_>>()
     );
     // Never a held-out view.
-    let held: Vec<&str> = crate::eval::heldout::held_out_indices(all.len(), 4)
+    let held: Vec<&str> = super::held_out_indices(all.len(), 4)
         .unwrap()
         .into_iter()
         .map(|i| all[i].name.as_str())

@@ -8,21 +8,6 @@ pub fn shared() -> PathBuf {
     slag_common::paths::source_tree_shared_dir()
 }
 
-/// `slag-encoder` (this crate's binary), run through `$SLAG_TEST_RUNNER` when it is set (e.g.
-/// `qemu-aarch64 -L /usr/aarch64-linux-gnu` for a cross build).
-pub fn slag_encoder() -> std::process::Command {
-    let bin = env!("CARGO_BIN_EXE_slag-encoder");
-    match std::env::var("SLAG_TEST_RUNNER") {
-        Ok(r) if !r.trim().is_empty() => {
-            let mut parts = r.split_whitespace();
-            let mut c = std::process::Command::new(parts.next().unwrap());
-            c.args(parts).arg(bin);
-            c
-        }
-        _ => std::process::Command::new(bin),
-    }
-}
-
 /// Whether the ONNX Runtime tests should run. They need `ORT_DYLIB_PATH` (scripts/setup.sh
 /// exports it); a missing runtime fails the test loudly, unless `SLAG_SKIP_ORT=1` asks to skip
 /// (for quick local runs without ONNX Runtime), so CI can never pass them vacuously.

@@ -4,7 +4,7 @@
 //!
 //! - A **ground-truth instance** is a set of the scene's Gaussians with a class and a true
 //!   axis-aligned box (on `synth-scene --objects`: one placed box, its shell's Gaussians,
-//!   [`crate::eval::synthetic::PlacedObject`]).
+//!   [`slag_encoder::synthetic::PlacedObject`]).
 //! - A **predicted instance** is one object of the answer to the prompt naming its class
 //!   ([`slag_common::objects::SceneObject`]): its member Gaussians, its box (the AABB of the
 //!   members' means) and a confidence (the object's `score_mass`, the answer's own order).
@@ -25,18 +25,17 @@
 //! - **The segments against the instances** ([`SegmentsAgainstInstances`]): the segments that
 //!   `--smooth segment` joins into objects, measured on their own with every placed box one
 //!   label and all other Gaussians (the ground) another: instance purity (the share of Gaussians
-//!   whose segment's majority label is theirs, [`crate::eval::segment_quality::purity`]), the
+//!   whose segment's majority label is theirs, [`crate::segment_quality::purity`]), the
 //!   same over the boxes' Gaussians only, and boundary recall (of the neighbour pairs that cross
 //!   an instance border, the share that crosses a segment border,
-//!   [`crate::eval::segment_quality::boundary_recall`]).
+//!   [`crate::segment_quality::boundary_recall`]).
 
 use std::path::{Path, PathBuf};
 
 use slag_common::objects::ObjectParams;
 use slag_common::onnx::ExecutionProvider;
 use slag_common::{Error, Result};
-
-use crate::query::{QueryParams, Smooth};
+use slag_encoder::query::{QueryParams, Smooth};
 
 /// An axis-aligned box `[min xyz, max xyz]`, scene frame, scene units.
 pub type Aabb = [[f64; 3]; 2];
@@ -337,13 +336,13 @@ pub struct SegmentsAgainstInstances {
     pub segments: u32,
     /// Purity over every Gaussian of the scene: each placed box one label, the rest (the
     /// ground) one more.
-    pub purity: crate::eval::segment_quality::Purity,
+    pub purity: crate::segment_quality::Purity,
     /// Purity over the placed boxes' Gaussians only, the ground left out: whether boxes of
     /// different classes share segments.
-    pub object_purity: crate::eval::segment_quality::Purity,
+    pub object_purity: crate::segment_quality::Purity,
     /// Boundary recall over each Gaussian's [`BOUNDARY_NEIGHBOURS`] nearest neighbours within
     /// the object gap (scene units).
-    pub boundary_recall: crate::eval::segment_quality::BoundaryRecall,
+    pub boundary_recall: crate::segment_quality::BoundaryRecall,
 }
 
 /// What `eval-objects` prints.
@@ -439,7 +438,7 @@ pub fn evaluate_synthetic_objects(c: &EvalObjectsConfig) -> Result<ObjectsEval> 
                     class.as_str(),
                 )
             };
-            let answer = crate::query::run(&q)?;
+            let answer = slag_encoder::query::run(&q)?;
             counts.push((class.clone(), answer.objects.len()));
             predictions.extend(answer.objects.iter().zip(answer.object_members).map(
                 |(o, members)| PredictedInstance {
@@ -510,7 +509,7 @@ pub fn measure_segments(
     truth: &[TruthInstance],
     radius: f32,
 ) -> Result<SegmentsAgainstInstances> {
-    use crate::eval::segment_quality::{boundary_recall, purity};
+    use crate::segment_quality::{boundary_recall, purity};
     let n = means.len();
     if segments.segments.len() != n {
         return Err(Error::Invalid(format!(
@@ -686,7 +685,9 @@ mod tests {
     }
     #[test]
     fn touching_boxes_perfect_predictions_score_1_and_a_merged_pair_less() {
-        use crate::eval::synthetic::{SyntheticSceneParams, scene_with_instances, touching_layout};
+        use slag_encoder::synthetic::{
+            SyntheticSceneParams, scene_with_instances, touching_layout,
+        };
         let p = SyntheticSceneParams {
             gaussians: 4000,
             views: 1,

@@ -1,4 +1,4 @@
-//! What limits segment purity ([`crate::eval::segment_quality`]) on a scene with a per-Gaussian
+//! What limits segment purity ([`crate::segment_quality`]) on a scene with a per-Gaussian
 //! ground truth (`eval-colors --prediction-filtering`: the colour classes).
 //!
 //! - [`neighbour_agreement`]: how much the truth itself agrees locally. For each labelled
@@ -231,7 +231,7 @@ pub struct WeightedPurity {
 /// Purity of `segments` against `labels` with each Gaussian counted by `weights` (`None` or a
 /// non-finite or negative weight: not counted); the segments' majority labels are the unweighted
 /// ones over all labelled Gaussians (as in
-/// [`crate::eval::segment_quality::purity`]).
+/// [`crate::segment_quality::purity`]).
 ///
 /// Errors: lengths that differ ([`Error::Internal`]).
 pub fn weighted_purity(

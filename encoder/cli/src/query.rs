@@ -10,7 +10,7 @@ use slag_common::similarity;
 use slag_encoder::args::SmoothArg;
 use slag_encoder::query::{QueryOutput, QueryParams};
 
-use super::EpArg;
+use crate::EpArg;
 
 /// Arguments of `query`.
 #[derive(Debug, Clone, Args)]

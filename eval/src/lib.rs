@@ -21,8 +21,14 @@
 //!
 //! The rest of evaluation and research, apart from the paper's stages: [`heldout`] (2D accuracy
 //! on views never encoded), [`heldout_variants`] (the aggregation variants scored in the same
-//! pass), [`colors`] (`slag-encoder eval-colors`: both protocols on an embeddings file) and
-//! [`synthetic`] (synthetic scenes of any size for scale tests).
+//! pass), [`colors`] (`slag-encoder eval-colors`: both protocols on an embeddings file),
+//! [`instances`] (`slag-encoder eval-objects`: instance AP50 and box IoU of query answers' objects
+//! on a synthetic scene with placed boxes), [`segment_quality`] and [`segment_limits`] (geometric
+//! segments against per-Gaussian labels, and what limits their purity).
+//!
+//! This crate depends on the encoder's library (`slag_encoder`: the rasterizer, the training
+//! split [`slag_encoder::views::held_out_indices`], the synthetic scenes
+//! [`slag_encoder::synthetic`]), never the other way: the encode pipeline carries no evaluation.
 
 pub mod colors;
 pub mod heldout;
@@ -30,7 +36,6 @@ pub mod heldout_variants;
 pub mod instances;
 pub mod segment_limits;
 pub mod segment_quality;
-pub mod synthetic;
 
 use std::path::Path;
 

@@ -7,7 +7,7 @@ use std::process::Command;
 
 #[test]
 fn the_manual_shows_only_flags_that_exist() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let help = |args: &[&str]| {
         let out = Command::new(env!("CARGO_BIN_EXE_slag-encoder"))
             .args(args)

@@ -2,7 +2,7 @@
 //! the accuracy instrument of every speed/accuracy trade).
 //!
 //! [`run`]: the 3D score of [`crate::eval`] (each Gaussian's class against the prototype nearest
-//! its SH-DC colour). [`run_held_out`]: the 2D protocol of [`crate::eval::heldout`] on the views the
+//! its SH-DC colour). [`run_held_out`]: the 2D protocol of [`crate::heldout`] on the views the
 //! encoder never saw, with the majority-class and pixel-lifting-oracle baselines, and the 3D
 //! score as a secondary line.
 
@@ -17,11 +17,11 @@ use slag_common::onnx::ExecutionProvider;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::segments::Segments;
 use slag_common::text::TextEncoder;
+use slag_encoder::config::RasterBackend;
+use slag_encoder::pipeline::build::make_rasterizer;
+use slag_encoder::pipeline::scene_ply;
 
-use crate::config::RasterBackend;
-use crate::eval::{self, heldout};
-use crate::pipeline::build::make_rasterizer;
-use crate::pipeline::scene_ply;
+use crate::heldout;
 
 /// What `eval-colors` evaluates and with which models.
 #[derive(Debug, Clone, PartialEq)]
@@ -58,9 +58,9 @@ pub struct EvalColorsConfig {
     /// ([`run_held_out`] only; listed under `variants` by path). Forms beside the main embeddings
     /// are scored too: `embeddings-level{0,1,2}.safetensors` and `mixture.safetensors`.
     pub compare: Vec<PathBuf>,
-    /// Also score with prediction filtering (SLAG PF, [`crate::prediction_filtering`]): the 3D
-    /// score with each segment's majority class, and in the held-out pass the tables `argmax`,
-    /// `pf-majority` and `pf-mean` under `variants`.
+    /// Also score with prediction filtering (SLAG PF, [`slag_encoder::prediction_filtering`]):
+    /// the 3D score with each segment's majority class, and in the held-out pass the tables
+    /// `argmax`, `pf-majority` and `pf-mean` under `variants`.
     pub prediction_filtering: bool,
     /// The segments for PF; `None`: `segments.safetensors` beside the embeddings.
     pub segments: Option<PathBuf>,
@@ -68,7 +68,7 @@ pub struct EvalColorsConfig {
     /// one in the same pass; their variants are named `…@<parent folder>/<file stem>`.
     pub more_segments: Vec<PathBuf>,
     /// The encode's masks' record, measured against the colour truth beside the segments
-    /// ([`crate::eval::segment_limits`]); `None`: `mask-record.safetensors` beside the
+    /// ([`crate::segment_limits`]); `None`: `mask-record.safetensors` beside the
     /// embeddings when it exists.
     pub mask_record: Option<PathBuf>,
     /// [`run_held_out`] writes the lifted photo classes here ([`write_photo_classes`]).
@@ -151,7 +151,7 @@ impl EvalColorsConfig {
 
 /// What every evaluation needs: the classes, the scene, the embeddings and the class texts.
 struct Inputs {
-    classes: eval::ColorClasses,
+    classes: crate::ColorClasses,
     gaussians: Gaussians,
     emb: Embeddings,
     text_embeds: Vec<Vec<f32>>,
@@ -180,7 +180,7 @@ fn load_inputs(a: &EvalColorsConfig) -> anyhow::Result<Inputs> {
             None => Ok(clip_dir()?.join(name)),
         }
     };
-    let classes = eval::ColorClasses::load(&or(&a.classes, "color-clip.json")?)?;
+    let classes = crate::ColorClasses::load(&or(&a.classes, "color-clip.json")?)?;
     let ply = scene_ply(&a.scene, a.ply.as_deref());
     let gaussians = scene::load_ply(&ply, PlyLoadOptions { colours: true })?;
     let emb = Embeddings::read(&a.embeddings)?;
@@ -211,10 +211,10 @@ fn load_inputs(a: &EvalColorsConfig) -> anyhow::Result<Inputs> {
     })
 }
 
-fn colour_3d(i: &Inputs) -> anyhow::Result<eval::ColourEval> {
-    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
-    let predicted = eval::assign(&i.emb, &i.text_embeds)?;
-    Ok(eval::evaluate(&gt, &i.emb, &predicted, &i.classes.names)?)
+fn colour_3d(i: &Inputs) -> anyhow::Result<crate::ColourEval> {
+    let gt = crate::ground_truth(&i.classes, &i.gaussians)?;
+    let predicted = crate::assign(&i.emb, &i.text_embeds)?;
+    Ok(crate::evaluate(&gt, &i.emb, &predicted, &i.classes.names)?)
 }
 
 /// The main segments' path: `--segments`, else beside the embeddings.
@@ -253,21 +253,21 @@ fn read_segments(path: &Path, scene_gaussians: usize) -> anyhow::Result<Segments
 }
 
 /// The 3D score with prediction filtering: each segment's majority class for its Gaussians.
-fn colour_3d_pf(i: &Inputs, segments: &Segments) -> anyhow::Result<eval::ColourEval> {
-    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
-    let predicted = eval::assign(&i.emb, &i.text_embeds)?;
+fn colour_3d_pf(i: &Inputs, segments: &Segments) -> anyhow::Result<crate::ColourEval> {
+    let gt = crate::ground_truth(&i.classes, &i.gaussians)?;
+    let predicted = crate::assign(&i.emb, &i.text_embeds)?;
     let rows = segments.gather(&i.emb.ids)?;
-    let filtered = crate::prediction_filtering::filter_rows(&predicted, &rows)?;
-    Ok(eval::evaluate(&gt, &i.emb, &filtered, &i.classes.names)?)
+    let filtered = slag_encoder::prediction_filtering::filter_rows(&predicted, &rows)?;
+    Ok(crate::evaluate(&gt, &i.emb, &filtered, &i.classes.names)?)
 }
 
 /// `eval-colors --prediction-filtering` without `--held-out`: the 3D score without and with PF.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ColourEvalPf {
     /// Each Gaussian's own class.
-    pub without_pf: eval::ColourEval,
+    pub without_pf: crate::ColourEval,
     /// Each segment's majority class.
-    pub with_pf: eval::ColourEval,
+    pub with_pf: crate::ColourEval,
     /// Segments of the scene.
     pub segments: u32,
     /// The segments measured against the colour truth: the main ones, then `more_segments`.
@@ -277,40 +277,40 @@ pub struct ColourEvalPf {
     /// With `photo_classes`: each segmentation's purity against the lifted photo classes, in
     /// the order of `segment_quality`.
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub photo_purity: Vec<crate::eval::segment_quality::Purity>,
+    pub photo_purity: Vec<crate::segment_quality::Purity>,
 }
 
 /// One segmentation measured against the colour classes
-/// ([`crate::eval::segment_quality`]).
+/// ([`crate::segment_quality`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SegmentQuality {
     /// The segments file.
     pub source: PathBuf,
     /// Segment purity over the observed Gaussians that have a true class (the class of the
     /// prototype nearest their SH-DC colour).
-    pub purity: crate::eval::segment_quality::Purity,
+    pub purity: crate::segment_quality::Purity,
     /// Segment count and sizes (all Gaussians of the scene).
-    pub sizes: crate::eval::segment_quality::SizeDistribution,
+    pub sizes: crate::segment_quality::SizeDistribution,
     /// Purity per segment-size decade.
-    pub purity_by_size: Vec<crate::eval::segment_limits::SizePurity>,
+    pub purity_by_size: Vec<crate::segment_limits::SizePurity>,
     /// Purity with each observed Gaussian counted by its total blend weight `Σ a_kj` (the
     /// embeddings' `total_weights`), and over the most-seen Gaussians; beside `purity`, not
     /// instead of it.
-    pub purity_by_weight: crate::eval::segment_limits::WeightedPurity,
+    pub purity_by_weight: crate::segment_limits::WeightedPurity,
 }
 
-/// What limits segment purity on this scene ([`crate::eval::segment_limits`]), independent of
+/// What limits segment purity on this scene ([`crate::segment_limits`]), independent of
 /// any segmentation but the masks'.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SegmentLimits {
     /// The colour truth's own local agreement, k = 8 and 16 (observed Gaussians).
-    pub neighbour_agreement: Vec<crate::eval::segment_limits::NeighbourAgreement>,
+    pub neighbour_agreement: Vec<crate::segment_limits::NeighbourAgreement>,
     /// The masks' record, when there is one.
     pub mask_record: Option<PathBuf>,
     /// Purity of the record's dominant masks against the colour truth.
-    pub mask_purity: Option<crate::eval::segment_limits::MaskPurity>,
+    pub mask_purity: Option<crate::segment_limits::MaskPurity>,
     /// The record's disagreement on same-class and different-class neighbours (k = 10).
-    pub mask_evidence: Option<crate::eval::segment_limits::MaskEvidence>,
+    pub mask_evidence: Option<crate::segment_limits::MaskEvidence>,
 }
 
 /// The total blend weight of each observed Gaussian (`None`: unobserved), scene order.
@@ -338,7 +338,7 @@ fn mask_record_path(a: &EvalColorsConfig) -> Option<PathBuf> {
 
 /// [`SegmentLimits`] of the scene, said on stderr too.
 fn segment_limits(a: &EvalColorsConfig, i: &Inputs) -> anyhow::Result<SegmentLimits> {
-    use crate::eval::segment_limits::{mask_evidence, mask_purity, neighbour_agreement};
+    use crate::segment_limits::{mask_evidence, mask_purity, neighbour_agreement};
     let labels = observed_truth(i)?;
     let means = &i.gaussians.means;
     let agreement = neighbour_agreement(means, &labels, &[8, 16])?;
@@ -393,7 +393,7 @@ fn segment_limits(a: &EvalColorsConfig, i: &Inputs) -> anyhow::Result<SegmentLim
 
 /// Each observed Gaussian's true class as a label (`None`: unobserved or without a class).
 fn observed_truth(i: &Inputs) -> anyhow::Result<Vec<Option<u32>>> {
-    let gt = eval::ground_truth(&i.classes, &i.gaussians)?;
+    let gt = crate::ground_truth(&i.classes, &i.gaussians)?;
     let mut labels = vec![None; gt.len()];
     for &id in &i.emb.ids {
         if let (Some(l), Some(t)) = (labels.get_mut(id as usize), gt.get(id as usize)) {
@@ -410,8 +410,8 @@ fn segment_quality(
     source: &Path,
     segments: &Segments,
 ) -> anyhow::Result<SegmentQuality> {
-    use crate::eval::segment_limits::{purity_by_size, weighted_purity};
-    use crate::eval::segment_quality::{purity, size_distribution};
+    use crate::segment_limits::{purity_by_size, weighted_purity};
+    use crate::segment_quality::{purity, size_distribution};
     let labels = observed_truth(i)?;
     let q = SegmentQuality {
         source: source.to_path_buf(),
@@ -484,7 +484,7 @@ pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
             let lifted = read_photo_classes(p, inputs.gaussians.len())?;
             let mut out = Vec::new();
             for (path, s) in &all {
-                let q = crate::eval::segment_quality::purity(&lifted, &s.segments)?;
+                let q = crate::segment_quality::purity(&lifted, &s.segments)?;
                 eprintln!(
                     "segments {}: purity {:.4} against the lifted photo classes of {}",
                     path.display(),
@@ -512,11 +512,11 @@ pub fn run_pf(a: &EvalColorsConfig) -> anyhow::Result<ColourEvalPf> {
 /// Errors: [`Error::Param`] `color_clip` when no folder is given and `$SLAG_SHARED` is unset,
 /// [`Error::Param`] `ply` for embeddings of another scene; the color-clip files or the scene
 /// unreadable.
-pub fn run(a: &EvalColorsConfig) -> anyhow::Result<eval::ColourEval> {
+pub fn run(a: &EvalColorsConfig) -> anyhow::Result<crate::ColourEval> {
     colour_3d(&load_inputs(a)?)
 }
 
-/// The 2D held-out evaluation ([`crate::eval::heldout`]); serialises to `eval-colors --held-out`'s
+/// The 2D held-out evaluation ([`crate::heldout`]); serialises to `eval-colors --held-out`'s
 /// `held_out` object.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct HeldOutEval {
@@ -559,8 +559,8 @@ pub struct HeldOutEval {
     /// slag's mIoU / the oracle's.
     pub slag_over_oracle: Option<f64>,
     /// Other predictors scored on the same pixels: `--compare` files and the stored forms
-    /// beside the embeddings (per-level embeddings, mixture), see [`crate::eval::heldout_variants`].
-    pub variants: Vec<crate::eval::heldout_variants::VariantScore>,
+    /// beside the embeddings (per-level embeddings, mixture), see [`crate::heldout_variants`].
+    pub variants: Vec<crate::heldout_variants::VariantScore>,
     /// Wall time of the held-out evaluation (renders, oracle, scoring), seconds.
     pub seconds: f64,
 }
@@ -571,10 +571,10 @@ pub struct HeldOutOutput {
     /// The 2D held-out protocol (primary).
     pub held_out: HeldOutEval,
     /// The 3D per-Gaussian score (secondary line), as `eval-colors` without `--held-out`.
-    pub colour_3d: eval::ColourEval,
+    pub colour_3d: crate::ColourEval,
     /// With `--prediction-filtering`: the 3D score with each segment's majority class.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub colour_3d_pf: Option<eval::ColourEval>,
+    pub colour_3d_pf: Option<crate::ColourEval>,
     /// With `--prediction-filtering`: each segmentation measured against the colour truth.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub segment_quality: Vec<SegmentQuality>,
@@ -594,13 +594,13 @@ pub struct PhotoTruthQuality {
     /// Share of the Gaussians with both truths whose lifted photo class is their SH-DC class.
     pub agrees_with_colour_truth: f64,
     /// The lifted classes' local agreement, k = 8 and 16.
-    pub neighbour_agreement: Vec<crate::eval::segment_limits::NeighbourAgreement>,
+    pub neighbour_agreement: Vec<crate::segment_limits::NeighbourAgreement>,
     /// Purity of each segmentation against them.
-    pub purity: Vec<crate::eval::segment_quality::Purity>,
+    pub purity: Vec<crate::segment_quality::Purity>,
     /// The masks' record against them (as [`SegmentLimits`]), when there is one.
-    pub mask_purity: Option<crate::eval::segment_limits::MaskPurity>,
+    pub mask_purity: Option<crate::segment_limits::MaskPurity>,
     /// The record's disagreement on same- and different-class neighbours (k = 10).
-    pub mask_evidence: Option<crate::eval::segment_limits::MaskEvidence>,
+    pub mask_evidence: Option<crate::segment_limits::MaskEvidence>,
 }
 
 /// Each Gaussian's class of most lifted weight (`None`: the oracle gave it none); ties to the
@@ -639,14 +639,11 @@ fn photo_truth_quality(
         .map(|(a, b)| a == b)
         .collect();
     let agree = both.iter().filter(|&&x| x).count() as f64 / both.len().max(1) as f64;
-    let neighbour_agreement = crate::eval::segment_limits::neighbour_agreement(
-        &inputs.gaussians.means,
-        &lifted,
-        &[8, 16],
-    )?;
+    let neighbour_agreement =
+        crate::segment_limits::neighbour_agreement(&inputs.gaussians.means, &lifted, &[8, 16])?;
     let purity = segment_sets
         .iter()
-        .map(|(_, s)| crate::eval::segment_quality::purity(&lifted, &s.segments))
+        .map(|(_, s)| crate::segment_quality::purity(&lifted, &s.segments))
         .collect::<slag_common::Result<Vec<_>>>()?;
     for ((p, _), q) in segment_sets.iter().zip(&purity) {
         eprintln!(
@@ -664,7 +661,7 @@ fn photo_truth_quality(
     }
     let (mut mask_purity, mut mask_evidence) = (None, None);
     if let Some(p) = mask_record_path(a) {
-        use crate::eval::segment_limits as lim;
+        use crate::segment_limits as lim;
         let record = slag_common::mask_record::MaskRecord::read(&p)?;
         let mp = lim::mask_purity(&lifted, &record)?;
         let ev = lim::mask_evidence(&inputs.gaussians.means, &lifted, &record, 10)?;
@@ -779,7 +776,7 @@ fn held_out_step(
 /// training split of the report's `every` and `hold_out_every` (`every` = the held-out step
 /// without a report).
 ///
-/// Errors: as [`crate::views::training_indices`].
+/// Errors: as [`slag_encoder::views::training_indices`].
 fn encoded_views<'a>(
     views: &'a [camera::View],
     r: &ReportSettings,
@@ -793,11 +790,11 @@ fn encoded_views<'a>(
     } else {
         step
     };
-    let keep = crate::views::training_indices(views.len(), every, r.hold_out_every)?;
+    let keep = slag_encoder::views::training_indices(views.len(), every, r.hold_out_every)?;
     Ok(keep.iter().map(|&i| &views[i]).collect())
 }
 
-/// Runs `eval-colors --held-out` (the 2D protocol of [`crate::eval::heldout`], plus the 3D score).
+/// Runs `eval-colors --held-out` (the 2D protocol of [`crate::heldout`], plus the 3D score).
 ///
 /// Errors: [`Error::Param`] `every` when it is unknown (no report.json beside the embeddings and
 /// none given), contradicts the report, is < 2 or holds out no view; [`Error::Param`]
@@ -833,7 +830,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         .collect::<anyhow::Result<Vec<_>>>()?;
     let t0 = Instant::now();
     let views = camera::load_views(&a.scene)?;
-    let held = heldout::held_out_indices(views.len(), every)?;
+    let held = slag_encoder::views::held_out_indices(views.len(), every)?;
     if held.is_empty() {
         return Err(Error::param(
             "every",
@@ -857,8 +854,8 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     let mut oracle = heldout::OracleLifting::new(n, c)?;
     let encoded = encoded_views(&views, &settings, every)?;
     for v in &encoded {
-        let intr = crate::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
-        let photo = crate::pipeline::read_image(v)?;
+        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
+        let photo = slag_encoder::pipeline::read_image(v)?;
         let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
         oracle
             .add_view(rasterizer.as_mut(), &intr, &v.world_to_camera, &truth)
@@ -876,7 +873,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             &segment_sets,
         )?)
     };
-    let mut variants = crate::eval::heldout_variants::variant_tables(
+    let mut variants = crate::heldout_variants::variant_tables(
         &a.embeddings,
         &a.compare,
         &slag_scores,
@@ -894,11 +891,11 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     tables.extend(variants.iter().map(|v| v.scores.as_slice()));
     for &i in &held {
         let v = &views[i];
-        let intr = crate::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
+        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
         let weights = rasterizer
             .rasterize(&intr, &v.world_to_camera)
             .with_context(|| format!("rendering held-out view {}", v.name))?;
-        let photo = crate::pipeline::read_image(v)?;
+        let photo = slag_encoder::pipeline::read_image(v)?;
         let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
         tally.add_view(&weights, &truth, &tables, n)?;
         tracing::info!("held-out view {} scored", v.name);
@@ -924,7 +921,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         alpha_min: heldout::ALPHA_MIN,
         pixels: tally.pixels,
         counted_pixels: tally.counted(),
-        miou_min_class_fraction: eval::MIOU_MIN_CLASS_FRACTION,
+        miou_min_class_fraction: crate::MIOU_MIN_CLASS_FRACTION,
         miou_classes: slag
             .classes
             .iter()
@@ -958,12 +955,12 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
 fn pf_tables(
     inputs: &Inputs,
     slag_scores: &[f32],
-    variants: &[crate::eval::heldout_variants::VariantTable],
+    variants: &[crate::heldout_variants::VariantTable],
     segment_sets: &[(PathBuf, Segments)],
     c: usize,
-) -> anyhow::Result<Vec<crate::eval::heldout_variants::VariantTable>> {
-    use crate::eval::heldout_variants::VariantTable;
-    use crate::prediction_filtering as pf;
+) -> anyhow::Result<Vec<crate::heldout_variants::VariantTable>> {
+    use crate::heldout_variants::VariantTable;
+    use slag_encoder::prediction_filtering as pf;
     let n = inputs.gaussians.len();
     let mut observed = vec![false; n];
     let mut sum_a = vec![0.0f32; n];

@@ -5,22 +5,22 @@
 //! Protocol (`slag-encoder eval-colors --held-out`):
 //!
 //! - **Views.** The encoder keeps views with name-sorted index `i ≡ 0 (mod N)` (`--every N`); the
-//!   held-out views are those with `i ≡ ⌊N/2⌋ (mod N)` ([`held_out_indices`]), so none of them was
-//!   encoded (`N ≥ 2`).
+//!   held-out views are those with `i ≡ ⌊N/2⌋ (mod N)`
+//!   ([`slag_encoder::views::held_out_indices`]), so none of them was encoded (`N ≥ 2`).
 //! - **Scores.** Each Gaussian carries one score per class, `s_kc = cos(E_k, text_c)`
 //!   ([`gaussian_scores`]); Gaussians without an embedding (unobserved) carry 0.
 //! - **Render.** Every held-out view is rasterized at full resolution with slag's weight
 //!   rasterizer and the scores are composited with the same front-to-back α-blend as the colour
-//!   render ([`crate::raster::colour`]): `S_pc = Σ_k w_kp · s_kc` with `w_kp = α·T`. The pixel's
-//!   rendered alpha is `Σ_k w_kp` (all contributors, observed or not).
+//!   render ([`slag_encoder::raster::colour`]): `S_pc = Σ_k w_kp · s_kc` with `w_kp = α·T`. The
+//!   pixel's rendered alpha is `Σ_k w_kp` (all contributors, observed or not).
 //! - **Prediction.** `argmax_c S_pc` (ties → the lower class index).
 //! - **Truth.** The class whose prototype is nearest (squared RGB distance, RGB in `[0, 1]` =
 //!   8-bit value / 255, ties → the lower index) to the photo's pixel colour
-//!   ([`crate::eval::ColorClasses::nearest`], the same 12 prototypes as `color-clip.json`).
+//!   ([`crate::ColorClasses::nearest`], the same 12 prototypes as `color-clip.json`).
 //! - **Counted pixels.** Only pixels whose rendered alpha is ≥ [`ALPHA_MIN`].
 //! - **Score.** Intersections and unions per class are summed over all held-out views;
 //!   `IoU_c = |pred = c ∧ truth = c| / |pred = c ∨ truth = c|`; the mIoU averages the classes that
-//!   hold ≥ [`crate::eval::MIOU_MIN_CLASS_FRACTION`] of the counted pixels (by truth).
+//!   hold ≥ [`crate::MIOU_MIN_CLASS_FRACTION`] of the counted pixels (by truth).
 //! - **Baselines** (same pixels, same classes): the *majority class* (every counted pixel gets the
 //!   class most frequent among the counted pixels' truth), and the *pixel-level lifting oracle*
 //!   ([`OracleLifting`]): each Gaussian gets `h_kc = Σ_p w_kp · [class(photo_p) = c]` over the
@@ -32,65 +32,12 @@ use rayon::prelude::*;
 use slag_common::camera::{Intrinsics, WorldToCamera};
 use slag_common::embeddings::Embeddings;
 use slag_common::{Error, Result};
+use slag_encoder::raster::{PixelWeights, WeightRasterizer};
 
-use crate::eval::{ColorClasses, MIOU_MIN_CLASS_FRACTION};
-use crate::raster::{PixelWeights, WeightRasterizer};
+use crate::{ColorClasses, MIOU_MIN_CLASS_FRACTION};
 
 /// A pixel is counted when its rendered alpha `Σ_k w_kp` is at least this.
 pub const ALPHA_MIN: f32 = 0.5;
-
-/// Name-sorted indices of the held-out views for the encoder's step `every` among `n_views` views: the
-/// indices `i ≡ ⌊every/2⌋ (mod every)`. The encoder keeps `i ≡ 0 (mod every)`
-/// ([`slag_common::camera::subsample`]), so these were never encoded.
-///
-/// Errors ([`Error::Param`] `every`): `every < 2` (every view was encoded, none is held out).
-pub fn held_out_indices(n_views: usize, every: usize) -> Result<Vec<usize>> {
-    if every < 2 {
-        return Err(Error::param(
-            "every",
-            every,
-            "2 or more (e.g. 4): every view was encoded, so none is held out; encode with that \
-             step and evaluate with the same one",
-        ));
-    }
-    Ok((0..n_views).filter(|i| i % every == every / 2).collect())
-}
-
-/// Name-sorted indices of the views that none of several encodes saw, for comparing encodes made
-/// with different steps on the same held-out pixels: the indices `i < n_views` with
-/// `i mod every ≠ 0` for every step in `everys` (each encode keeps `i ≡ 0 (mod every)`,
-/// [`slag_common::camera::subsample`]). With one step `N` this is a superset of
-/// [`held_out_indices`]`(n_views, N)`.
-///
-/// Errors ([`Error::Param`] `every`): a step below 2 (that encode saw every view), no step, or
-/// no view left unencoded (a scene of too few views for these steps).
-pub fn held_out_for_all(n_views: usize, everys: &[usize]) -> Result<Vec<usize>> {
-    if let Some(&e) = everys.iter().find(|&&e| e < 2) {
-        return Err(Error::param(
-            "every",
-            e,
-            "2 or more for every encode compared: an encode of every view leaves none held out",
-        ));
-    }
-    if everys.is_empty() {
-        return Err(Error::param(
-            "every",
-            "none",
-            "at least one encode step (2 or more) to hold views out from",
-        ));
-    }
-    let held: Vec<usize> = (0..n_views)
-        .filter(|i| everys.iter().all(|e| i % e != 0))
-        .collect();
-    if held.is_empty() {
-        return Err(Error::param(
-            "every",
-            format!("{everys:?}"),
-            format!("steps that leave a view of the {n_views} unencoded by all of them"),
-        ));
-    }
-    Ok(held)
-}
 
 /// The class of every raster pixel of a `width × height` grid from the full-resolution photo:
 /// nearest sampling at raster pixel centres (as the encoder resamples masks), then the class of
@@ -573,49 +520,6 @@ mod tests {
             w.offsets.push(w.ids.len() as u32);
         }
         w
-    }
-
-    #[test]
-    fn held_out_views_are_never_encoded() {
-        assert_eq!(held_out_indices(13, 4).unwrap(), vec![2, 6, 10]);
-        assert_eq!(held_out_indices(10, 3).unwrap(), vec![1, 4, 7]);
-        assert_eq!(held_out_indices(5, 2).unwrap(), vec![1, 3]);
-        for every in 2..9 {
-            for i in held_out_indices(97, every).unwrap() {
-                assert_ne!(i % every, 0, "view {i} is encoded with every = {every}");
-            }
-        }
-        for every in [0, 1] {
-            assert!(matches!(
-                held_out_indices(10, every),
-                Err(Error::Param { name: "every", .. })
-            ));
-        }
-    }
-
-    #[test]
-    fn views_held_out_for_all_steps_are_encoded_by_none() {
-        let held = held_out_for_all(21, &[2, 6, 5]).unwrap();
-        assert_eq!(held, vec![1, 3, 7, 9, 11, 13, 17, 19]);
-        for every in [2, 6, 5] {
-            let encoded: Vec<usize> = (0..21).step_by(every).collect();
-            assert!(held.iter().all(|i| !encoded.contains(i)), "step {every}");
-        }
-        // One step: the eval-colors split is a subset.
-        let one = held_out_for_all(13, &[4]).unwrap();
-        assert!(
-            held_out_indices(13, 4)
-                .unwrap()
-                .iter()
-                .all(|i| one.contains(i))
-        );
-        for (n, bad) in [(6, &[1usize, 4][..]), (6, &[]), (1, &[2])] {
-            let e = held_out_for_all(n, bad).unwrap_err();
-            assert!(
-                matches!(e, Error::Param { name: "every", .. }),
-                "{bad:?}: {e}"
-            );
-        }
     }
 
     #[test]

@@ -9,19 +9,20 @@
 //!   back to its mean `E_k`.
 //! - `mixture.safetensors` beside the main file (`encode --mixture-keep S`): the mixture's mean
 //!   form (`MixtureEmbeddings::scores`), the mean over each Gaussian's top 1, 2, 4, 8 masks only,
-//!   the robust mode of [`crate::robust`], and its *max* form, the highest cosine over a Gaussian's
-//!   top-`s` mask embeddings (`MixtureEmbeddings::max_atom_scores`), for `s` in 1, 2, 4, 8, S.
+//!   the robust mode of [`slag_encoder::aggregate::robust`], and its *max* form, the highest
+//!   cosine over a Gaussian's top-`s` mask embeddings (`MixtureEmbeddings::max_atom_scores`), for
+//!   `s` in 1, 2, 4, 8, S.
 
 use std::path::{Path, PathBuf};
 
 use slag_common::embeddings::Embeddings;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::{Error, Result};
+use slag_encoder::aggregate::levels::{LEVELS, LevelRule, combine_levels};
 
-use crate::aggregate::levels::{LEVELS, LevelRule, combine_levels};
-use crate::eval::heldout::{PixelScore, gaussian_scores};
+use crate::heldout::{PixelScore, gaussian_scores};
 
-/// Concentration of the mode variant (`mixture-mode-S*`, [`crate::robust`]).
+/// Concentration of the mode variant (`mixture-mode-S*`, [`slag_encoder::aggregate::robust`]).
 const MODE_KAPPA: f32 = 10.0;
 
 /// One predictor's `[scene Gaussians × C]` class-score table, before scoring.
@@ -190,10 +191,10 @@ pub fn variant_tables(
         }
         {
             let kappa = MODE_KAPPA;
-            let modes = crate::aggregate::robust::mixture_modes(
+            let modes = slag_encoder::aggregate::robust::mixture_modes(
                 &m,
                 kappa,
-                crate::aggregate::robust::MODE_ITERATIONS,
+                slag_encoder::aggregate::robust::MODE_ITERATIONS,
             )?;
             let e = Embeddings {
                 ids: m.gaussian_ids.clone(),

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use slag_encoder::eval::synthetic::{
+use slag_encoder::synthetic::{
     SyntheticSceneParams, SyntheticSummary, object_layout, touching_layout,
     write_synthetic_scene_with_objects,
 };

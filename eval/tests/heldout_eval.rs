@@ -6,12 +6,13 @@
 //!
 //! Needs ONNX Runtime (color-clip): `. scripts/setup.sh`; SLAG_SKIP_ORT=1 skips.
 
+#[path = "../../encoder/tests/support/mod.rs"]
 mod support;
 
 use slag_encoder::aggregate::MaskOverlap;
 use slag_encoder::config::{EncodeConfig, MasksConfig};
-use slag_encoder::eval::colors::{EvalColorsConfig, run_held_out};
 use slag_encoder::pipeline::Encoder;
+use slag_eval::colors::{EvalColorsConfig, run_held_out};
 use support::{ort_tempdir, shared};
 
 fn mini() -> std::path::PathBuf {

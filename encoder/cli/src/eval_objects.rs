@@ -1,14 +1,14 @@
 //! `slag-encoder eval-objects`: instance AP50 and box IoU of the objects in query answers on a
-//! `synth-scene --objects` scene, against the placed boxes ([`slag_encoder::eval::instances`]).
+//! `synth-scene --objects` scene, against the placed boxes ([`slag_eval::instances`]).
 
 use std::path::PathBuf;
 
 use clap::Args;
 use slag_common::objects::{self, ObjectParams};
 use slag_encoder::args::SmoothArg;
-use slag_encoder::eval::instances::{EvalObjectsConfig, ObjectsEval, evaluate_synthetic_objects};
+use slag_eval::instances::{EvalObjectsConfig, ObjectsEval, evaluate_synthetic_objects};
 
-use super::EpArg;
+use crate::EpArg;
 
 /// Arguments of `eval-objects`.
 #[derive(Debug, Clone, Args)]

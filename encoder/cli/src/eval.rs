@@ -1,14 +1,14 @@
 //! `slag-encoder eval-colors`: colour mIoU of an embeddings file with color-clip (the accuracy
 //! instrument of every speed/accuracy trade), per Gaussian or with `--held-out` per pixel of the
-//! views the encoder never saw ([`slag_encoder::eval::colors`]).
+//! views the encoder never saw ([`slag_eval::colors`]).
 
 use std::path::PathBuf;
 
 use clap::Args;
 use slag_encoder::args::RasterArg;
-use slag_encoder::eval::colors::EvalColorsConfig;
+use slag_eval::colors::EvalColorsConfig;
 
-use super::EpArg;
+use crate::EpArg;
 
 /// Arguments of `eval-colors`.
 #[derive(Debug, Clone, Args)]

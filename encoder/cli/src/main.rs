@@ -5,10 +5,24 @@
 //! (colour mIoU with color-clip), `render` (validate the rasterizer against a photo), `bench`
 //! (per-stage timings), `partition` / `serve` / `export` (spatial shards), `synth-scene`
 //! (synthetic scenes of any size).
+//!
+//! One module per subcommand, each turning its flags into the library's typed configuration
+//! (`slag_encoder`, `slag_eval`, `slag_shards`) and calling it; `main` only dispatches.
 
 use clap::{Parser, Subcommand};
 
-mod cli;
+mod cluster;
+mod encode;
+mod eval;
+mod eval_objects;
+mod hints;
+mod query;
+mod render;
+mod segment;
+mod synthetic;
+
+/// `--ep`: ONNX Runtime execution provider, the same value type in every binary.
+use slag_common::cli::EpArg;
 
 /// slag-encoder: per-Gaussian CLIP embeddings for 3D Gaussian Splatting scenes (SLAG).
 ///
@@ -31,21 +45,21 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Embed a scene: masks -> CLIP crops -> weight raster -> aggregation -> embeddings.safetensors.
-    Encode(cli::encode::EncodeArgs),
+    Encode(encode::EncodeArgs),
     /// `encode` as one process of a timely dataflow cluster (same arguments on every process).
-    EncodeCluster(cli::cluster::EncodeClusterArgs),
+    EncodeCluster(cluster::EncodeClusterArgs),
     /// Rank the Gaussians of an embeddings file against a text prompt.
-    Query(cli::query::QueryArgs),
+    Query(query::QueryArgs),
     /// Colour mIoU of an embeddings file made with color-clip: per Gaussian (SH-DC colour truth),
     /// or with --held-out per pixel of the views the encoder never saw (photo colour truth).
-    EvalColors(cli::eval::EvalArgs),
+    EvalColors(eval::EvalArgs),
     /// Instance AP50 and box IoU of query answers' objects on a `synth-scene --objects` scene,
     /// against the placed boxes.
-    EvalObjects(cli::eval_objects::EvalObjectsArgs),
+    EvalObjects(eval_objects::EvalObjectsArgs),
     /// Render a training view through the weight rasterizer and compare it with the photo.
-    Render(cli::render::RenderArgs),
+    Render(render::RenderArgs),
     /// Run `encode` and print a per-stage timing table.
-    Bench(cli::encode::EncodeArgs),
+    Bench(encode::EncodeArgs),
     /// Cut an embeddings file into spatial shards (ground-plane k-d tiles) in a sled store.
     Partition(slag_shards::cli::PartitionArgs),
     /// Serve a store's manifests and shards over HTTP (ETag, Range).
@@ -57,9 +71,9 @@ enum Command {
     /// Geometric segments of a scene's Gaussians (Felzenszwalb–Huttenlocher over a k-NN graph
     /// of the means; its edges also weigh the encode's masks when a masks' record is given or
     /// beside --out) -> segments.safetensors, without re-encoding.
-    Segment(cli::segment::SegmentCmdArgs),
+    Segment(segment::SegmentCmdArgs),
     /// Write a synthetic terrain scene of any size (ply + images + COLMAP poses) for scale tests.
-    SynthScene(cli::synthetic::SynthArgs),
+    SynthScene(synthetic::SynthArgs),
 }
 
 fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
@@ -69,9 +83,9 @@ fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
 
 fn main() -> std::process::ExitCode {
     let args = Cli::parse();
-    cli::init_logging(args.global.verbose);
+    slag_shards::cli::init_logging(args.global.verbose);
     let result = match &args.command {
-        Command::Encode(a) => cli::encode::run(a).map(|r| {
+        Command::Encode(a) => encode::run(a).map(|r| {
             eprintln!(
                 "encoded {} of {} Gaussians ({:.1}%) from {} views in {:.1} s -> {}",
                 r.counts.observed,
@@ -82,7 +96,7 @@ fn main() -> std::process::ExitCode {
                 a.out.join("embeddings.safetensors").display()
             );
         }),
-        Command::EncodeCluster(a) => cli::cluster::run(a).map(|r| match r {
+        Command::EncodeCluster(a) => cluster::run(a).map(|r| match r {
             Some(r) => eprintln!(
                 "encoded {} of {} Gaussians ({:.1}%) from {} views on {} processes in {:.1} s -> {}",
                 r.counts.observed,
@@ -95,33 +109,33 @@ fn main() -> std::process::ExitCode {
             ),
             None => eprintln!("process {}: job completed (process 0 wrote the outputs)", a.process),
         }),
-        Command::Query(a) => cli::query::run(a).and_then(|o| print_json(&o)),
+        Command::Query(a) => query::run(a).and_then(|o| print_json(&o)),
         Command::EvalColors(a) if a.held_out => {
-            slag_encoder::eval::colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
+            slag_eval::colors::run_held_out(&a.into()).and_then(|o| print_json(&o))
         }
         Command::EvalColors(a) if a.prediction_filtering => {
-            slag_encoder::eval::colors::run_pf(&a.into()).and_then(|o| print_json(&o))
+            slag_eval::colors::run_pf(&a.into()).and_then(|o| print_json(&o))
         }
         Command::EvalColors(a) => {
-            slag_encoder::eval::colors::run(&a.into()).and_then(|o| print_json(&o))
+            slag_eval::colors::run(&a.into()).and_then(|o| print_json(&o))
         }
-        Command::EvalObjects(a) => cli::eval_objects::run(a).and_then(|o| print_json(&o)),
-        Command::Render(a) => cli::render::run(a).and_then(|o| print_json(&o)),
+        Command::EvalObjects(a) => eval_objects::run(a).and_then(|o| print_json(&o)),
+        Command::Render(a) => render::run(a).and_then(|o| print_json(&o)),
         Command::Bench(a) => {
-            cli::encode::run(a).map(|r| println!("{}", slag_encoder::report::timing_table(&r)))
+            encode::run(a).map(|r| println!("{}", slag_encoder::report::timing_table(&r)))
         }
         Command::Partition(a) => slag_shards::cli::run_partition(a),
         Command::Serve(a) => slag_shards::cli::run_serve(a),
         Command::Export(a) => slag_shards::cli::run_export(a),
         Command::Keygen(a) => slag_shards::cli::run_keygen(a),
-        Command::SynthScene(a) => cli::synthetic::run(a).and_then(|o| print_json(&o)),
-        Command::Segment(a) => cli::segment::run(a).and_then(|o| print_json(&o)),
+        Command::SynthScene(a) => synthetic::run(a).and_then(|o| print_json(&o)),
+        Command::Segment(a) => segment::run(a).and_then(|o| print_json(&o)),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
-            if let Some(h) = cli::hints::hint(&e) {
+            if let Some(h) = hints::hint(&e) {
                 eprintln!("hint: {h}");
             }
             std::process::ExitCode::FAILURE

@@ -10,7 +10,7 @@ use slag_encoder::config::EncodeConfig;
 use slag_encoder::distributed::{ClusterConfig, ClusterEncoder};
 use slag_encoder::report::Report;
 
-use super::encode::EncodeArgs;
+use crate::encode::EncodeArgs;
 
 /// Arguments of `encode-cluster`: the cluster placement plus every `encode` argument.
 #[derive(Debug, Clone, Args)]
@@ -43,7 +43,7 @@ fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
 /// Runs this process's part of the job; the report on process 0, `None` on the others.
 ///
 /// Errors: what a cluster cannot honour ([`slag_encoder::config::ConfigError`], before the host
-/// file is read; [`super::hint`] names the flags), then cluster, model and encode errors.
+/// file is read; [`crate::hints::hint`] names the flags), then cluster, model and encode errors.
 pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
     let encoder = ClusterEncoder::new(cluster_config(a))?;
     let cluster = ClusterConfig::from_hosts_file(
@@ -111,7 +111,7 @@ mod tests {
                     // The library names the setting, the command line the flag.
                     let msg = e.to_string();
                     assert!(!msg.contains("--"), "{bad:?}: {msg}");
-                    let hint = super::super::hints::hint(&anyhow::Error::new(e));
+                    let hint = crate::hints::hint(&anyhow::Error::new(e));
                     assert!(
                         hint.as_deref().is_some_and(|h| h.contains(bad[0])),
                         "{bad:?}: hint {hint:?} names the flag"
