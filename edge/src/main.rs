@@ -405,6 +405,73 @@ fn resolve_tls(
     }
 }
 
+/// The bearer token clients must send (`--token-file`, else env `SLAG_EDGE_TOKEN`), refused over
+/// plain HTTP on a non-loopback `addr` unless allowed
+/// ([`slag_common::tls::check_token_transport`]). A blank token from any source is refused: it
+/// must never start the server open.
+fn resolve_token(
+    token_file: Option<&std::path::Path>,
+    addr: std::net::SocketAddr,
+    tls: bool,
+    allow_plain_http: bool,
+) -> anyhow::Result<Option<String>> {
+    let env_token = slag_common::auth::env_token("SLAG_EDGE_TOKEN")?;
+    let token = match token_file {
+        Some(p) => Some(read_token(p)?),
+        None => env_token,
+    };
+    slag_common::tls::check_token_transport(addr, token.is_some(), tls, allow_plain_http)?;
+    Ok(token)
+}
+
+/// The server's connection limits and timeouts (flags over the config file over the defaults).
+fn resolve_limits(
+    a: &ServeArgs,
+    c: &ServeConfig,
+) -> anyhow::Result<slag_common::http::ServerLimits> {
+    let d = slag_common::http::ServerLimits::default();
+    let limits = slag_common::http::ServerLimits {
+        header_timeout: match a.header_timeout.or(c.header_timeout) {
+            Some(s) => timeout(s, "--header-timeout")?,
+            None => d.header_timeout,
+        },
+        write_timeout: match a.write_timeout.or(c.write_timeout) {
+            Some(s) => timeout(s, "--write-timeout")?,
+            None => d.write_timeout,
+        },
+        body_timeout: match a.body_timeout.or(c.body_timeout) {
+            Some(s) => timeout(s, "--body-timeout")?,
+            None => d.body_timeout,
+        },
+        max_connections: a
+            .max_connections
+            .or(c.max_connections)
+            .unwrap_or(d.max_connections),
+        max_connections_per_ip: a
+            .max_connections_per_ip
+            .or(c.max_connections_per_ip)
+            .unwrap_or(d.max_connections_per_ip),
+    };
+    limits.validate()?;
+    Ok(limits)
+}
+
+/// The shard server's token `POST /fetch` sends: `--shard-token-file`, else env
+/// `SLAG_SHARD_TOKEN` (refused when blank).
+fn resolve_shard_token(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<Option<String>> {
+    if let Some(p) = a.shard_token_file.as_ref().or(c.shard_token_file.as_ref()) {
+        return Ok(Some(read_token(p)?));
+    }
+    let Ok(t) = std::env::var("SLAG_SHARD_TOKEN") else {
+        return Ok(None);
+    };
+    anyhow::ensure!(
+        !t.trim().is_empty(),
+        "SLAG_SHARD_TOKEN is set but blank: set it to the shard server's token, or unset it"
+    );
+    Ok(Some(t.trim().to_string()))
+}
+
 fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let web_dir = a.web_dir.clone();
     let c = match &a.config {
@@ -412,7 +479,8 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         None => ServeConfig::default(),
     };
     let tls = resolve_tls(&a, &c)?;
-    let allow_plain_http = a.allow_plain_http || c.allow_plain_http.unwrap_or(false);
+    let limits = resolve_limits(&a, &c)?;
+    let shard_token = resolve_shard_token(&a, &c)?;
     let ca_cert = a.ca_cert.clone().or(c.ca_cert.clone());
     let need = |v: Option<PathBuf>, flag: &str| {
         v.with_context(|| {
@@ -449,56 +517,12 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         threshold.is_finite() && (-1.0..=1.0).contains(&threshold),
         "--threshold {threshold}: use a cosine in -1..=1"
     );
-    // A blank token from any source is refused: it must never start the server open.
-    let env_token = slag_common::auth::env_token("SLAG_EDGE_TOKEN")?;
-    let token = match a.token_file.or(c.token_file) {
-        Some(p) => Some(read_token(&p)?),
-        None => env_token,
-    };
-    slag_common::tls::check_token_transport(
+    let token = resolve_token(
+        a.token_file.as_deref().or(c.token_file.as_deref()),
         addr,
-        token.is_some(),
         tls.is_some(),
-        allow_plain_http,
+        a.allow_plain_http || c.allow_plain_http.unwrap_or(false),
     )?;
-    let d = slag_common::http::ServerLimits::default();
-    let limits = slag_common::http::ServerLimits {
-        header_timeout: match a.header_timeout.or(c.header_timeout) {
-            Some(s) => timeout(s, "--header-timeout")?,
-            None => d.header_timeout,
-        },
-        write_timeout: match a.write_timeout.or(c.write_timeout) {
-            Some(s) => timeout(s, "--write-timeout")?,
-            None => d.write_timeout,
-        },
-        body_timeout: match a.body_timeout.or(c.body_timeout) {
-            Some(s) => timeout(s, "--body-timeout")?,
-            None => d.body_timeout,
-        },
-        max_connections: a
-            .max_connections
-            .or(c.max_connections)
-            .unwrap_or(d.max_connections),
-        max_connections_per_ip: a
-            .max_connections_per_ip
-            .or(c.max_connections_per_ip)
-            .unwrap_or(d.max_connections_per_ip),
-    };
-    limits.validate()?;
-    let shard_token = match (
-        a.shard_token_file.or(c.shard_token_file),
-        std::env::var("SLAG_SHARD_TOKEN").ok(),
-    ) {
-        (Some(p), _) => Some(read_token(&p)?),
-        (None, Some(t)) => {
-            anyhow::ensure!(
-                !t.trim().is_empty(),
-                "SLAG_SHARD_TOKEN is set but blank: set it to the shard server's token, or unset it"
-            );
-            Some(t.trim().to_string())
-        }
-        (None, None) => None,
-    };
     let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
     let hnsw_backend = match a.hnsw_backend.or(c.hnsw_backend) {
         None => HnswBackend::default(),
