@@ -37,6 +37,10 @@ pub const LIST_VAR: &str = "SLAG_FAULT_LIST";
 /// Variable naming the partial-file write that fails as if the disk were full (module doc).
 pub const ENOSPC_AT_VAR: &str = "SLAG_FAULT_ENOSPC_AT";
 
+/// What a process stopped by `SLAG_FAULT_EXIT_AT` writes to stderr before the boundary's number
+/// and, in parentheses, its name ([`stopped_at`] reads it back).
+const EXIT_MESSAGE: &str = "exiting at boundary";
+
 /// The boundary hook's settings, read from the environment on first use.
 struct Boundaries {
     exit_at: Option<u64>,
@@ -110,7 +114,7 @@ fn pass(b: &Boundaries, site: &str, step: Option<&str>) {
         let _ = f.write_all(format!("{n} {name}\n").as_bytes());
     }
     if b.exit_at == Some(n) {
-        eprintln!("{EXIT_AT_VAR}={n}: exiting at boundary {n} ({name})");
+        eprintln!("{EXIT_AT_VAR}={n}: {EXIT_MESSAGE} {n} ({name})");
         std::process::exit(FAULT_EXIT_STATUS);
     }
 }
@@ -148,4 +152,28 @@ pub fn read_list(path: &std::path::Path) -> crate::Result<Vec<String>> {
         .filter(|(n, _)| n.parse::<u64>().is_ok())
         .map(|(_, name)| name.to_string())
         .collect())
+}
+
+/// The name of the boundary at which a process stopped under `SLAG_FAULT_EXIT_AT`, read from its
+/// stderr; `None` when it holds no such line (the process did not stop at a boundary).
+pub fn stopped_at(stderr: &str) -> Option<String> {
+    let line = stderr.lines().find(|l| l.contains(EXIT_MESSAGE))?;
+    Some(line.rsplit_once('(')?.1.strip_suffix(')')?.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{EXIT_AT_VAR, EXIT_MESSAGE, read_list, stopped_at};
+
+    #[test]
+    fn the_stop_line_names_its_boundary_and_lists_read_back_in_order() {
+        let err = format!("INFO x\n{EXIT_AT_VAR}=3: {EXIT_MESSAGE} 3 (store.flush:db)\n");
+        assert_eq!(stopped_at(&err).as_deref(), Some("store.flush:db"));
+        assert_eq!(stopped_at("exited normally"), None);
+        let dir = tempfile::tempdir().expect("tmp");
+        let p = dir.path().join("list.txt");
+        assert!(read_list(&p).expect("missing reads as empty").is_empty());
+        std::fs::write(&p, "1 a:write\nnot a line\n2 a:fsync\n").expect("write");
+        assert_eq!(read_list(&p).expect("read"), ["a:write", "a:fsync"]);
+    }
 }

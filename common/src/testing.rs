@@ -254,3 +254,19 @@ pub async fn exchange_tls(
     let (status, head, body) = read_answer(&mut s).await;
     (status, head, body, cert)
 }
+
+/// Copies the folder `from` (files and subfolders, recursively) to `to`, creating it: a store
+/// copied before each run of a test that changes it.
+///
+/// Panics when a file cannot be read or written.
+pub fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).expect("create the copy's folder");
+    for e in std::fs::read_dir(from).expect("list the folder") {
+        let e = e.expect("read a folder entry");
+        if e.file_type().expect("file type").is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else {
+            std::fs::copy(e.path(), to.join(e.file_name())).expect("copy a file");
+        }
+    }
+}

@@ -23,13 +23,14 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list};
+use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list, stopped_at};
 use slag_common::rng::SplitMix64;
 use slag_common::shards::signature::sha256_hex;
 use slag_common::shards::{
     Dtype, MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo,
     MixtureShardInput, decode_shard_stored, encode_codebook, encode_mixture_shard, shard_checksum,
 };
+use slag_common::testing::copy_dir;
 use slag_edge::engine::{Engine, StoreCheck};
 use slag_edge::fetch::fetch;
 use slag_edge::query::RawQuery;
@@ -225,18 +226,6 @@ impl Scenario {
     }
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
-}
-
 /// The committed generation's tiles all stored and verified, file by file (independently of
 /// [`StoreCheck`]); `None` when no generation is committed.
 fn committed_complete(store: &EdgeStore) -> Option<bool> {
@@ -300,14 +289,6 @@ async fn compare_blocking(refs: &Refs, dir: &Path, at: &str) -> u64 {
         .unwrap()
 }
 
-/// The boundary a process stopped at, from its stderr (`… exiting at boundary n (name)`).
-fn stopped_at(stderr: &[u8]) -> Option<String> {
-    let text = String::from_utf8_lossy(stderr);
-    let line = text.lines().find(|l| l.contains("exiting at boundary"))?;
-    let name = line.rsplit_once('(')?.1.strip_suffix(')')?;
-    Some(name.to_string())
-}
-
 /// `slag-edge fetch` of B into `store`: the whole grid, one job, no retries.
 fn fetch_b(s: &Scenario, store: &Path) -> Command {
     let store = store.display().to_string();
@@ -327,7 +308,24 @@ struct Tally {
     points: usize,
 }
 
+/// The boundaries a counting run listed in `path`: more than 20, or the seam lost some.
+fn listed(path: &Path) -> Vec<String> {
+    let listed = read_list(path).unwrap();
+    assert!(listed.len() > 20, "{listed:?}");
+    listed
+}
+
 impl Tally {
+    /// Panics unless every boundary of `names` was stopped at.
+    fn assert_reached(&self, names: &[&str], listed: &[String]) {
+        for must in names {
+            assert!(
+                self.names.contains(*must),
+                "{must} never reached: {listed:?}"
+            );
+        }
+    }
+
     fn report(&self, what: &str, listed: &[String]) {
         let distinct: BTreeSet<&String> = listed.iter().collect();
         println!(
@@ -354,9 +352,8 @@ async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
     let mut counting = fetch_b(s, &dir);
     counting.env(LIST_VAR, &list);
     support::assert_success(&output_blocking(counting).await, "counting run");
-    let listed = read_list(&list).unwrap();
+    let listed = listed(&list);
     let n_points = listed.len();
-    assert!(n_points > 20, "{listed:?}");
     let mut tally = Tally::default();
     for n in 1..=n_points {
         let dir = s.copy(&format!("{what}{n}"));
@@ -365,7 +362,7 @@ async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
         let out = output_blocking(stopped).await;
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
-        let name = stopped_at(&out.stderr).unwrap_or_else(|| panic!("n={n}: {err}"));
+        let name = stopped_at(&err).unwrap_or_else(|| panic!("n={n}: {err}"));
         assert_eq!(
             name,
             listed[n - 1],
@@ -388,22 +385,20 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
     let s = Scenario::new(Form::Dense(8)).await;
     let (tally, listed) = enumerate_fetch(&s, "fetch").await;
     tally.report("slag-edge fetch", &listed);
-    for must in [
-        "fetch.partial:write",
-        "fetch.partial:fsync",
-        "store.commit_shard:rename",
-        "store.set_aside:rename",
-        "store.manifest_copy:rename",
-        "store.commit_fetch:transaction",
-        "store.evict_shard:remove",
-        "store.clean_partials:remove_partial",
-        "store.clean_partials:remove_tmp",
-    ] {
-        assert!(
-            tally.names.contains(must),
-            "{must} never reached: {listed:?}"
-        );
-    }
+    tally.assert_reached(
+        &[
+            "fetch.partial:write",
+            "fetch.partial:fsync",
+            "store.commit_shard:rename",
+            "store.set_aside:rename",
+            "store.manifest_copy:rename",
+            "store.commit_fetch:transaction",
+            "store.evict_shard:remove",
+            "store.clean_partials:remove_partial",
+            "store.clean_partials:remove_tmp",
+        ],
+        &listed,
+    );
     // The check is not vacuous: a committed generation missing one file, or holding one with a
     // flipped byte, is incomplete and the check names the tile.
     let dir = s.copy("control");
@@ -491,9 +486,8 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
     assert_eq!(post_fetch(&server.url, &s.url_b).await, Some(200));
     server.child.kill().unwrap();
     server.child.wait().unwrap();
-    let listed = read_list(&list).unwrap();
+    let listed = listed(&list);
     let n_points = listed.len();
-    assert!(n_points > 20, "{listed:?}");
     let mut tally = Tally::default();
     for n in 1..=n_points {
         let dir = s.copy(&format!("serve{n}"));
@@ -510,7 +504,7 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         .unwrap();
         assert_eq!(answered, None, "n={n}: the server answered: {err}");
         assert_eq!(status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
-        let name = stopped_at(err.as_bytes()).unwrap_or_else(|| panic!("n={n}: {err}"));
+        let name = stopped_at(&err).unwrap_or_else(|| panic!("n={n}: {err}"));
         let at = format!("serve stopped at {n} ({name})");
         let g = compare_blocking(&s.refs, &dir, &at).await;
         *tally.served.entry(g).or_default() += 1;
@@ -529,14 +523,12 @@ async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_r
     let s = Scenario::new(Form::Mixture).await;
     let (tally, listed) = enumerate_fetch(&s, "mixture").await;
     tally.report("slag-edge fetch of a mixture scene", &listed);
-    for must in [
-        "store.commit_codebook:rename",
-        "store.commit_codebook:dir_sync",
-        "store.evict_codebook:remove",
-    ] {
-        assert!(
-            tally.names.contains(must),
-            "{must} never reached: {listed:?}"
-        );
-    }
+    tally.assert_reached(
+        &[
+            "store.commit_codebook:rename",
+            "store.commit_codebook:dir_sync",
+            "store.evict_codebook:remove",
+        ],
+        &listed,
+    );
 }

@@ -12,10 +12,11 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list};
+use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list, stopped_at};
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::rng::SplitMix64;
 use slag_common::shards::Manifest;
+use slag_common::testing::copy_dir;
 
 const SCENE: &str = "crash";
 
@@ -113,25 +114,6 @@ fn served(store: &Path) -> (u64, Served) {
     (m.generation, Served { manifest, files })
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
-}
-
-/// The boundary a process stopped at, from its stderr (`… exiting at boundary n (name)`).
-fn stopped_at(stderr: &[u8]) -> Option<String> {
-    let text = String::from_utf8_lossy(stderr);
-    let line = text.lines().find(|l| l.contains("exiting at boundary"))?;
-    Some(line.rsplit_once('(')?.1.strip_suffix(')')?.to_string())
-}
-
 fn assert_success(out: &std::process::Output, what: &str) {
     assert!(
         out.status.success(),
@@ -221,7 +203,7 @@ fn a_partition_stopped_at_every_boundary_serves_a_or_b_and_a_rerun_commits_b() {
         let out = stopped.output().unwrap();
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
-        let name = stopped_at(&out.stderr).unwrap_or_else(|| panic!("n={n}: {err}"));
+        let name = stopped_at(&err).unwrap_or_else(|| panic!("n={n}: {err}"));
         assert_eq!(name, listed[n - 1], "n={n}");
         let (g, now) = served(&dir);
         if now == ref_a {
