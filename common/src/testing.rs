@@ -181,6 +181,9 @@ impl ServerCert {
     }
 }
 
+/// A TLS client configuration of [`tls_client_config`] (for tests that do not depend on rustls).
+pub type TlsClient = Arc<rustls::ClientConfig>;
+
 /// A TLS client configuration (rustls, ring) that trusts only the CA certificate `ca_der`,
 /// offers ALPN `http/1.1` and never resumes a session (every connection runs a full handshake
 /// and sees the certificate the server presents now).

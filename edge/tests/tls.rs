@@ -68,6 +68,15 @@ async fn post_reload_swaps_the_certificate_while_an_answer_in_flight_completes()
         peer(&r)
     };
     assert_eq!(health().await, first.der);
+    let reload = async || {
+        let r = https(&ca)
+            .post(format!("{url}/reload"))
+            .send()
+            .await
+            .unwrap();
+        let status = r.status().as_u16();
+        (status, r.json::<serde_json::Value>().await.unwrap())
+    };
 
     // t1 waits at the gate: an answer in flight on a connection of the first certificate.
     let held = {
@@ -77,13 +86,8 @@ async fn post_reload_swaps_the_certificate_while_an_answer_in_flight_completes()
     wait_until("t1 is scanning", async || gate.entered() == ["t1"]).await;
 
     second.write(certs.path());
-    let r = https(&ca)
-        .post(format!("{url}/reload"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = reload().await;
+    assert_eq!(status, 200);
     assert_eq!(
         body["tls_certificate_sha256"],
         fingerprint(&second.der),
@@ -100,13 +104,8 @@ async fn post_reload_swaps_the_certificate_while_an_answer_in_flight_completes()
 
     // A certificate file that does not load: refused, and the certificate in use stays.
     std::fs::write(&cert_file, "not a certificate\n").unwrap();
-    let r = https(&ca)
-        .post(format!("{url}/reload"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status(), 500);
-    let body: serde_json::Value = r.json().await.unwrap();
+    let (status, body) = reload().await;
+    assert_eq!(status, 500);
     let message = body["error"].as_str().unwrap();
     assert!(
         message.contains("stays") && message.contains("cert.pem"),

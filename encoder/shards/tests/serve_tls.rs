@@ -15,8 +15,8 @@ use std::time::{Duration, Instant};
 
 use slag_common::http::ServerLimits;
 use slag_common::testing::{
-    TestCa, assert_json_error, closed_within, exchange_tls, get_request as get, peer_certificate,
-    read_answer, tls_client_config, tls_connect,
+    TestCa, TlsClient, assert_json_error, closed_within, exchange_tls, get_request as get,
+    peer_certificate, read_answer, tls_client_config, tls_connect,
 };
 use slag_common::tls::ServerTls;
 use tokio::io::AsyncWriteExt;
@@ -42,27 +42,29 @@ async fn start(tls: Arc<ServerTls>, limits: ServerLimits) -> (String, tempfile::
     (rx.await.unwrap().to_string(), dir)
 }
 
-/// A CA, a certificate of it written to a new folder, and the server's TLS loaded from it.
-fn certified() -> (TestCa, Vec<u8>, Arc<ServerTls>, tempfile::TempDir) {
+/// The lab store served over TLS under `limits` with a certificate of a new CA: the address, a
+/// client trusting that CA, the certificate (DER), and the folders to keep.
+async fn start_certified(
+    limits: ServerLimits,
+) -> (String, TlsClient, Vec<u8>, [tempfile::TempDir; 2]) {
     let ca = TestCa::new("slag test CA");
     let cert = ca.server_cert(1);
-    let dir = tempfile::tempdir().unwrap();
-    let (c, k) = cert.write(dir.path());
+    let certs = tempfile::tempdir().unwrap();
+    let (c, k) = cert.write(certs.path());
     let tls = Arc::new(ServerTls::load(&c, &k).unwrap());
-    (ca, cert.der, tls, dir)
+    let (addr, dir) = start(tls, limits).await;
+    (addr, tls_client_config(&ca.der), cert.der, [certs, dir])
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn https_answers_and_a_stalled_handshake_is_closed_and_frees_its_slot() {
-    let (ca, der, tls, _certs) = certified();
-    let limits = ServerLimits {
+    let (addr, client, der, _dirs) = start_certified(ServerLimits {
         header_timeout: Duration::from_secs(1),
         max_connections: 1,
         max_connections_per_ip: 1,
         ..ServerLimits::default()
-    };
-    let (addr, _dir) = start(tls, limits).await;
-    let client = tls_client_config(&ca.der);
+    })
+    .await;
     let (status, _, body, cert) = exchange_tls(&addr, &client, &get("/v1/scenes", "")).await;
     assert_eq!(status, 200, "{body}");
     assert!(body.contains("lab"), "{body}");
@@ -92,15 +94,13 @@ async fn https_answers_and_a_stalled_handshake_is_closed_and_frees_its_slot() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_address_over_its_share_gets_its_429_over_tls() {
-    let (ca, _, tls, _certs) = certified();
-    let limits = ServerLimits {
+    let (addr, client, _, _dirs) = start_certified(ServerLimits {
         header_timeout: Duration::from_secs(30),
         max_connections: 8,
         max_connections_per_ip: 2,
         ..ServerLimits::default()
-    };
-    let (addr, _dir) = start(tls, limits).await;
-    let client = tls_client_config(&ca.der);
+    })
+    .await;
     let _held = [
         tls_connect(&addr, &client).await,
         tls_connect(&addr, &client).await,
