@@ -25,7 +25,9 @@ use std::process::{Command, Stdio};
 
 use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list, stopped_at};
 use slag_common::rng::SplitMix64;
-use slag_common::shards::signature::sha256_hex;
+use slag_common::shards::signature::{
+    PRIVATE_KEY_FILE, PUBLIC_KEY_FILE, SigningKey, TrustedKey, keygen, sha256_hex,
+};
 use slag_common::shards::{
     Dtype, MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo,
     MixtureShardInput, decode_shard_stored, encode_codebook, encode_mixture_shard, shard_checksum,
@@ -63,6 +65,16 @@ fn answers(engine: &Engine, dim: usize) -> Vec<serde_json::Value> {
 struct Refs {
     dim: usize,
     by_generation: BTreeMap<u64, Vec<serde_json::Value>>,
+    /// The publisher's public key file when the manifests are signed.
+    trusted: Option<PathBuf>,
+}
+
+/// The parameters of a fetch of the whole grid from `url`, trusting the key in `trusted`.
+fn params(url: &str, trusted: Option<&Path>) -> slag_edge::fetch::FetchParams {
+    slag_edge::fetch::FetchParams {
+        trusted_key: trusted.map(|p| TrustedKey::read_pem(p).unwrap()),
+        ..grid_fetch_params(url, 100.0)
+    }
 }
 
 /// Two generations of a 2×2 grid, each with every shard different, served from loopback; a
@@ -74,21 +86,30 @@ struct Scenario {
     tmp: tempfile::TempDir,
 }
 
-/// The form of both generations: dense shards of width `dim`, or mixture shards over a
-/// codebook (8-d).
-#[derive(Clone, Copy)]
+/// The form of both generations: dense shards of width `dim`, mixture shards over a codebook
+/// (8-d), or dense 8-d shards whose manifests are signed with the key pair in a folder.
+#[derive(Clone)]
 enum Form {
     Dense(usize),
     Mixture,
+    Signed(PathBuf),
 }
 
 /// Generation `g` of scene `grid` in `form`, served on loopback: its manifest and the URL.
-async fn serve_generation(form: Form, g: u64) -> (Manifest, String) {
+async fn serve_generation(form: &Form, g: u64) -> (Manifest, String) {
     match form {
         Form::Dense(dim) => {
-            let scene = grid_scene("grid", 2, 2, 6, dim, Dtype::F16, g);
+            let scene = grid_scene("grid", 2, 2, 6, *dim, Dtype::F16, g);
             let m = scene.manifest.clone();
             (m, shard_server(scene, None).await.url)
+        }
+        Form::Signed(keys) => {
+            let scene = grid_scene("grid", 2, 2, 6, 8, Dtype::F16, g);
+            let m = scene.manifest.clone();
+            let key = SigningKey::read_pem(&keys.join(PRIVATE_KEY_FILE)).unwrap();
+            let server = shard_server(scene, None).await;
+            *server.state.signature.write().unwrap() = Some(key.sign(&m.to_json()).to_json());
+            (m, server.url)
         }
         Form::Mixture => {
             let (m, files) = mixture_grid(g);
@@ -172,20 +193,25 @@ async fn serve_files(files: BTreeMap<String, Vec<u8>>) -> String {
 
 impl Scenario {
     async fn new(form: Form) -> Scenario {
-        let dim = match form {
-            Form::Dense(dim) => dim,
-            Form::Mixture => 8,
+        let dim = match &form {
+            Form::Dense(dim) => *dim,
+            Form::Mixture | Form::Signed(_) => 8,
+        };
+        let trusted = match &form {
+            Form::Signed(keys) => Some(keys.join(PUBLIC_KEY_FILE)),
+            _ => None,
         };
         let tmp = tempfile::tempdir().unwrap();
         let mut refs = BTreeMap::new();
         let mut url_b = String::new();
         let mut manifest_b = None;
         for g in [1, 2] {
-            let (m, url) = serve_generation(form, g).await;
+            let (m, url) = serve_generation(&form, g).await;
             let dir = tmp.path().join(format!("gen{g}"));
             let store = EdgeStore::open(&dir).unwrap();
-            let server = grid_fetch_params(&url, 100.0);
-            fetch(&store, &server).await.unwrap();
+            fetch(&store, &params(&url, trusted.as_deref()))
+                .await
+                .unwrap();
             let engine = Engine::load(&store, "grid", false).unwrap();
             refs.insert(g, answers(&engine, dim));
             // The server's task lives as long as the test's runtime.
@@ -211,6 +237,7 @@ impl Scenario {
             refs: Refs {
                 dim,
                 by_generation: refs,
+                trusted,
             },
             url_b,
             template,
@@ -257,6 +284,14 @@ fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
         "{at}: the committed generation is lost or incomplete"
     );
     let check = StoreCheck::run(&store, "grid").unwrap_or_else(|e| panic!("{at}: {e}"));
+    if let Some(k) = &refs.trusted {
+        // The committed generation is signed by the trusted key, its signature over exactly
+        // the committed manifest, and every file holds the bytes the manifest hashes.
+        let key = TrustedKey::read_pem(k).unwrap();
+        store
+            .verify_signed("grid", Some(&key))
+            .unwrap_or_else(|e| panic!("{at}: {e}"));
+    }
     assert!(check.problems.is_empty(), "{at}: {:?}", check.problems);
     let g = check.engine.manifest.generation;
     let want = refs
@@ -273,7 +308,7 @@ fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
 /// One fetch of B into `dir`, in this process; then the check passes and B answers.
 async fn repair(s: &Scenario, dir: &Path, at: &str) {
     let store = support::open_after_drop(dir);
-    fetch(&store, &grid_fetch_params(&s.url_b, 100.0))
+    fetch(&store, &params(&s.url_b, s.refs.trusted.as_deref()))
         .await
         .unwrap_or_else(|e| panic!("{at}: repair: {e}"));
     drop(store);
@@ -292,11 +327,13 @@ async fn compare_blocking(refs: &Refs, dir: &Path, at: &str) -> u64 {
 /// `slag-edge fetch` of B into `store`: the whole grid, one job, no retries.
 fn fetch_b(s: &Scenario, store: &Path) -> Command {
     let store = store.display().to_string();
-    let one = ["--jobs", "1", "--retries", "0"];
-    slag_edge_with_log(
-        &[support::fetch_args(&s.url_b, &store, "100"), one.to_vec()].concat(),
-        "error",
-    )
+    let mut args = support::fetch_args(&s.url_b, &store, "100");
+    args.extend(["--jobs", "1", "--retries", "0"]);
+    let key = s.refs.trusted.as_ref().map(|k| k.display().to_string());
+    if let Some(k) = &key {
+        args.extend(["--trusted-key", k]);
+    }
+    slag_edge_with_log(&args, "error")
 }
 
 /// Tally of one enumeration: states served after each stop (generation → count), boundary
@@ -528,6 +565,25 @@ async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_r
             "store.commit_codebook:rename",
             "store.commit_codebook:dir_sync",
             "store.evict_codebook:remove",
+        ],
+        &listed,
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_signed_fetch_stopped_at_every_boundary_serves_a_verified_a_or_b() {
+    // Both generations signed by one publisher, fetched with its public key trusted: after
+    // every stop the committed generation's signature verifies over exactly its manifest.
+    let keys = tempfile::tempdir().unwrap();
+    keygen(keys.path()).unwrap();
+    let s = Scenario::new(Form::Signed(keys.path().to_path_buf())).await;
+    let (tally, listed) = enumerate_fetch(&s, "signed").await;
+    tally.report("slag-edge fetch --trusted-key", &listed);
+    tally.assert_reached(
+        &[
+            "store.signature_copy:write",
+            "store.signature_copy:rename",
+            "store.commit_fetch:transaction",
         ],
         &listed,
     );
