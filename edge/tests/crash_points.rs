@@ -11,8 +11,10 @@
 //!   the check names, never a mix and never nothing;
 //! - one fetch repairs: the check passes and the answers are B's.
 //!
-//! The same for `slag-edge serve` stopped inside `POST /fetch` (the fetch, then the reload; a
-//! reload itself writes nothing). Under qemu (cross build) binaries start through
+//! The same for a mixture scene (B's codebook committed, A's evicted), for signed manifests
+//! fetched with the publisher's key trusted (the committed generation's signature verifies after
+//! every stop), and for `slag-edge serve` stopped inside `POST /fetch` (the fetch, then the
+//! reload; a reload itself writes nothing). Under qemu (cross build) binaries start through
 //! `$SLAG_TEST_RUNNER`.
 #![allow(clippy::unwrap_used)]
 
