@@ -14,7 +14,12 @@
 //! The same for a mixture scene (B's codebook committed, A's evicted), for signed manifests
 //! fetched with the publisher's key trusted (the committed generation's signature verifies after
 //! every stop), and for `slag-edge serve` stopped inside `POST /fetch` (the fetch, then the
-//! reload; a reload itself writes nothing). Under qemu (cross build) binaries start through
+//! reload; a reload itself writes nothing). Two more starts are stopped only at the boundaries
+//! the others do not pass, and after the commit: a scene's first fetch into an empty store
+//! holding an oversized partial download (the check then says honestly that the store holds no
+//! fetch of the scene, or B is served), and a store holding a signed A whose database is
+//! damaged, fetching an unsigned B (the database rebuilt from the copies at open, A's signature
+//! copy removed at the commit). Under qemu (cross build) binaries start through
 //! `$SLAG_TEST_RUNNER`, and the `serve` run, which loads the text model at every start, is
 //! skipped there.
 #![allow(clippy::unwrap_used)]
@@ -68,8 +73,11 @@ fn answers(engine: &Engine, dim: usize) -> Vec<serde_json::Value> {
 struct Refs {
     dim: usize,
     by_generation: BTreeMap<u64, Vec<serde_json::Value>>,
-    /// The publisher's public key file when the manifests are signed.
+    /// The publisher's public key file when B's manifest is signed.
     trusted: Option<PathBuf>,
+    /// The generation committed before the fetch: 1 (A), or 0 when the store holds no scene
+    /// (a first fetch).
+    old: u64,
 }
 
 /// The parameters of a fetch of the whole grid from `url`, trusting the key in `trusted`.
@@ -90,12 +98,36 @@ struct Scenario {
 }
 
 /// The form of both generations: dense shards of width `dim`, mixture shards over a codebook
-/// (8-d), or dense 8-d shards whose manifests are signed with the key pair in a folder.
+/// (8-d), dense 8-d shards whose manifests are signed with the key pair in a folder, or the same
+/// with only A's manifest signed (a store moving from a signed manifest to an unsigned one).
 #[derive(Clone)]
 enum Form {
     Dense(usize),
     Mixture,
     Signed(PathBuf),
+    SignedA(PathBuf),
+}
+
+impl Form {
+    /// The publisher's public key file when generation `g` is signed.
+    fn trusted(&self, g: u64) -> Option<PathBuf> {
+        match self {
+            Form::Signed(keys) => Some(keys.join(PUBLIC_KEY_FILE)),
+            Form::SignedA(keys) if g == 1 => Some(keys.join(PUBLIC_KEY_FILE)),
+            _ => None,
+        }
+    }
+}
+
+/// The store a fetch of B starts from: holding A, with a damaged entry and leftovers to clean
+/// away (module doc); empty, with an oversized partial download of one of B's tiles (a scene's
+/// first fetch); or holding A with its database damaged (rebuilt from the manifest copies when
+/// the fetch opens it).
+#[derive(Clone, Copy, PartialEq)]
+enum Start {
+    HoldingA,
+    Empty,
+    DamagedDb,
 }
 
 /// Generation `g` of scene `grid` in `form`, served on loopback: its manifest and the URL.
@@ -106,12 +138,15 @@ async fn serve_generation(form: &Form, g: u64) -> (Manifest, String) {
             let m = scene.manifest.clone();
             (m, shard_server(scene, None).await.url)
         }
-        Form::Signed(keys) => {
+        Form::Signed(keys) | Form::SignedA(keys) => {
             let scene = grid_scene("grid", 2, 2, 6, 8, Dtype::F16, g);
             let m = scene.manifest.clone();
             let key = SigningKey::read_pem(&keys.join(PRIVATE_KEY_FILE)).unwrap();
             let server = shard_server(scene, None).await;
-            *server.state.signature.write().unwrap() = Some(key.sign(&m.to_json()).to_json());
+            if form.trusted(g).is_some() {
+                *server.state.signature.write().unwrap() =
+                    Some(key.sign(&m.to_json()).to_json());
+            }
             (m, server.url)
         }
         Form::Mixture => {
@@ -195,14 +230,10 @@ async fn serve_files(files: BTreeMap<String, Vec<u8>>) -> String {
 }
 
 impl Scenario {
-    async fn new(form: Form) -> Scenario {
+    async fn new(form: Form, start: Start) -> Scenario {
         let dim = match &form {
             Form::Dense(dim) => *dim,
-            Form::Mixture | Form::Signed(_) => 8,
-        };
-        let trusted = match &form {
-            Form::Signed(keys) => Some(keys.join(PUBLIC_KEY_FILE)),
-            _ => None,
+            Form::Mixture | Form::Signed(_) | Form::SignedA(_) => 8,
         };
         let tmp = tempfile::tempdir().unwrap();
         let mut refs = BTreeMap::new();
@@ -212,7 +243,7 @@ impl Scenario {
             let (m, url) = serve_generation(&form, g).await;
             let dir = tmp.path().join(format!("gen{g}"));
             let store = EdgeStore::open(&dir).unwrap();
-            fetch(&store, &params(&url, trusted.as_deref()))
+            fetch(&store, &params(&url, form.trusted(g).as_deref()))
                 .await
                 .unwrap();
             let engine = Engine::load(&store, "grid", false).unwrap();
@@ -221,12 +252,16 @@ impl Scenario {
             (url_b, manifest_b) = (url, Some(m));
         }
         assert_ne!(refs[&1], refs[&2], "A and B must answer differently");
-        // The template holds A, plus a folder where one of B's partial downloads goes: the
-        // fetch sets it aside (a damaged entry repaired on the way).
-        let template = tmp.path().join("gen1");
-        {
+        let manifest_b = manifest_b.unwrap();
+        let template = match start {
+            Start::Empty => empty_template(tmp.path(), &manifest_b),
+            Start::HoldingA | Start::DamagedDb => tmp.path().join("gen1"),
+        };
+        if start != Start::Empty {
+            // A, plus a folder where one of B's partial downloads goes: the fetch sets it
+            // aside (a damaged entry repaired on the way).
             let store = EdgeStore::open(&template).unwrap();
-            let part = store.partial_path("grid", &manifest_b.unwrap().tiles[1]);
+            let part = store.partial_path("grid", &manifest_b.tiles[1]);
             std::fs::create_dir_all(part).unwrap();
             // Leftovers the fetch cleans away once B is committed: a partial download of an
             // older generation and the temporary file of an interrupted shard write.
@@ -236,11 +271,15 @@ impl Scenario {
                 .join("0000000000000000-0badc0de.shard.tmp");
             std::fs::write(tmp_file, b"half").unwrap();
         }
+        if start == Start::DamagedDb {
+            support::damage_db(&template, false);
+        }
         Scenario {
             refs: Refs {
                 dim,
                 by_generation: refs,
-                trusted,
+                trusted: form.trusted(2),
+                old: if start == Start::Empty { 0 } else { 1 },
             },
             url_b,
             template,
@@ -254,6 +293,17 @@ impl Scenario {
         copy_dir(&self.template, &to);
         to
     }
+}
+
+/// An empty store under `tmp` whose `partial/` holds a download of B's tile 1 longer than the
+/// tile (the fetch removes it and starts over).
+fn empty_template(tmp: &Path, manifest_b: &Manifest) -> PathBuf {
+    let dir = tmp.join("empty");
+    let store = EdgeStore::open(&dir).unwrap();
+    let tile = &manifest_b.tiles[1];
+    let oversized = vec![7u8; tile.bytes as usize + 9];
+    std::fs::write(store.partial_path("grid", tile), oversized).unwrap();
+    dir
 }
 
 /// The committed generation's tiles all stored and verified, file by file (independently of
@@ -281,6 +331,17 @@ fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
     // After a repair in this process, its dropped database may hold the lock a moment longer.
     let store = support::open_after_drop(dir);
     let complete = committed_complete(&store);
+    if complete.is_none() && refs.old == 0 {
+        // A first fetch stopped before its commit: the check says, honestly, that the store
+        // holds no fetch of the scene.
+        let err = StoreCheck::run(&store, "grid").err();
+        let msg = err.map(|e| e.to_string()).unwrap_or_default();
+        assert!(
+            msg.contains("no completed fetch") && msg.contains("grid"),
+            "{at}: the check of a store without the scene: {msg:?}"
+        );
+        return 0;
+    }
     assert_eq!(
         complete,
         Some(true),
@@ -368,14 +429,17 @@ impl Tally {
 
     fn report(&self, what: &str, listed: &[String]) {
         let distinct: BTreeSet<&String> = listed.iter().collect();
+        let served = |g| self.served.get(&g).copied().unwrap_or(0);
         println!(
             "crash points of {what}: {} stopped (of {} listed, {} distinct names); after the \
-             restart generation A served {} times, B {} times, mixed or lost 0",
+             restart no scene (first fetch) {} times, generation A served {} times, B {} times, \
+             mixed or lost 0",
             self.points,
             listed.len(),
             distinct.len(),
-            self.served.get(&1).copied().unwrap_or(0),
-            self.served.get(&2).copied().unwrap_or(0)
+            served(0),
+            served(1),
+            served(2)
         );
         for n in &self.names {
             println!("  {n}");
@@ -383,9 +447,10 @@ impl Tally {
     }
 }
 
-/// Stops a fetch of B at every boundary of `s` in turn (module doc); returns the tally and the
-/// boundaries the counting run listed.
-async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
+/// Stops a fetch of B at every boundary of `s` in turn (module doc), or only at those whose name
+/// starts with one of `only` when it is not empty; returns the tally and the boundaries the
+/// counting run listed.
+async fn enumerate_fetch(s: &Scenario, what: &str, only: &[&str]) -> (Tally, Vec<String>) {
     // Count: one run lists every boundary it passes.
     let list = s.tmp.path().join(format!("{what}-boundaries.txt"));
     let dir = s.copy(&format!("{what}-count"));
@@ -396,6 +461,9 @@ async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
     let n_points = listed.len();
     let mut tally = Tally::default();
     for n in 1..=n_points {
+        if !only.is_empty() && !only.iter().any(|p| listed[n - 1].starts_with(p)) {
+            continue;
+        }
         let dir = s.copy(&format!("{what}{n}"));
         let mut stopped = fetch_b(s, &dir);
         stopped.env(EXIT_AT_VAR, n.to_string());
@@ -415,15 +483,20 @@ async fn enumerate_fetch(s: &Scenario, what: &str) -> (Tally, Vec<String>) {
         tally.points += 1;
         repair(s, &dir, &at).await;
     }
-    // Both sides of the commit were reached: before it A is served, after it B.
-    assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
+    // Both sides of the commit were reached: before it the old state is served, after it B.
+    assert!(
+        tally.served.contains_key(&s.refs.old) && tally.served.contains_key(&2),
+        "{what}: served {:?}, stopped at {:?} of {listed:?}",
+        tally.served,
+        tally.names
+    );
     (tally, listed)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
-    let s = Scenario::new(Form::Dense(8)).await;
-    let (tally, listed) = enumerate_fetch(&s, "fetch").await;
+    let s = Scenario::new(Form::Dense(8), Start::HoldingA).await;
+    let (tally, listed) = enumerate_fetch(&s, "fetch", &[]).await;
     tally.report("slag-edge fetch", &listed);
     tally.assert_reached(
         &[
@@ -525,7 +598,7 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         return;
     }
     // 512-d: the width of the color-clip text tower the server starts with.
-    let s = Scenario::new(Form::Dense(512)).await;
+    let s = Scenario::new(Form::Dense(512), Start::HoldingA).await;
     let list = s.tmp.path().join("serve-boundaries.txt");
     let dir = s.copy("count");
     let mut server = start_serve(&dir, (LIST_VAR, list.display().to_string()));
@@ -566,8 +639,8 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
 async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
     // Both generations are mixture scenes with their own codebooks: B's is downloaded and
     // committed before its shards, A's evicted after the commit.
-    let s = Scenario::new(Form::Mixture).await;
-    let (tally, listed) = enumerate_fetch(&s, "mixture").await;
+    let s = Scenario::new(Form::Mixture, Start::HoldingA).await;
+    let (tally, listed) = enumerate_fetch(&s, "mixture", &[]).await;
     tally.report("slag-edge fetch of a mixture scene", &listed);
     tally.assert_reached(
         &[
@@ -585,8 +658,8 @@ async fn a_signed_fetch_stopped_at_every_boundary_serves_a_verified_a_or_b() {
     // every stop the committed generation's signature verifies over exactly its manifest.
     let keys = tempfile::tempdir().unwrap();
     keygen(keys.path()).unwrap();
-    let s = Scenario::new(Form::Signed(keys.path().to_path_buf())).await;
-    let (tally, listed) = enumerate_fetch(&s, "signed").await;
+    let s = Scenario::new(Form::Signed(keys.path().to_path_buf()), Start::HoldingA).await;
+    let (tally, listed) = enumerate_fetch(&s, "signed", &[]).await;
     tally.report("slag-edge fetch --trusted-key", &listed);
     tally.assert_reached(
         &[
@@ -596,4 +669,48 @@ async fn a_signed_fetch_stopped_at_every_boundary_serves_a_verified_a_or_b() {
         ],
         &listed,
     );
+}
+
+/// Stops a fetch of B in `s` only at the boundaries named in `reached` and after the commit
+/// (`store.commit_fetch:flush`, where B is served), checks each stop as [`enumerate_fetch`]
+/// does, reports as `what` and panics unless every one of `reached` was stopped at.
+async fn enumerate_only(s: &Scenario, what: &str, reached: &[&str]) {
+    let only = [reached, &["store.commit_fetch:flush"]].concat();
+    let (tally, listed) = enumerate_fetch(s, what, &only).await;
+    tally.report(what, &listed);
+    tally.assert_reached(reached, &listed);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_first_fetch_stopped_at_its_new_boundaries_serves_no_scene_or_b() {
+    // An empty store: the scene's folder is created, and a partial download longer than its
+    // tile removed. Stopped there (and after the commit), the check says the store holds no
+    // fetch of the scene, or B is served; one fetch repairs.
+    let s = Scenario::new(Form::Dense(8), Start::Empty).await;
+    let reached = [
+        "fetch.partial:remove_oversized",
+        "store.scene_dir:create",
+        "store.scene_dir:dir_sync",
+    ];
+    enumerate_only(&s, "slag-edge fetch into an empty store", &reached).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fetch_into_a_damaged_database_stopped_at_the_rebuild_serves_a_or_b() {
+    // A signed A in a store whose database is damaged: the fetch (of an unsigned B, no trusted
+    // key) rebuilds the database from the manifest, fetch-record and signature copies when it
+    // opens the store, and its commit removes A's signature copy.
+    let keys = tempfile::tempdir().unwrap();
+    keygen(keys.path()).unwrap();
+    let form = Form::SignedA(keys.path().to_path_buf());
+    let s = Scenario::new(form, Start::DamagedDb).await;
+    let reached = [
+        "store.rebuild:insert_manifest",
+        "store.rebuild:insert_signature",
+        "store.rebuild:insert_fetch_record",
+        "store.rebuild:flush",
+        "store.signature_copy:remove",
+        "store.signature_copy:dir_sync",
+    ];
+    enumerate_only(&s, "slag-edge fetch into a damaged database", &reached).await;
 }

@@ -340,7 +340,7 @@ async fn a_damaged_database_is_rebuilt_from_the_manifest_copies() {
             fetch(&store, &params(&server.url)).await.unwrap();
             (answers(&store).0, store.manifest("grid").unwrap().unwrap())
         };
-        damage_db(dir.path(), only_data);
+        support::damage_db(dir.path(), only_data);
         let store = open_after_drop(dir.path());
         assert_eq!(store.manifest("grid").unwrap().as_ref(), Some(&manifest));
         assert!(store.fetch_record("grid").unwrap().is_some());
@@ -359,24 +359,6 @@ async fn a_damaged_database_is_rebuilt_from_the_manifest_copies() {
         let s = fetch(&store, &params(&server.url)).await.unwrap();
         assert_eq!((s.skipped, s.downloaded), (4, 0));
     }
-}
-
-/// Overwrites the sled files under `root/db` (or only its data file `db`) with a repeating
-/// garbage pattern of the same length.
-fn damage_db(root: &Path, only_data: bool) {
-    fn walk(p: &Path, only_data: bool) {
-        for e in std::fs::read_dir(p).unwrap().flatten() {
-            let path = e.path();
-            if path.is_dir() {
-                walk(&path, only_data);
-            } else if !only_data || e.file_name() == "db" {
-                let len = std::fs::metadata(&path).unwrap().len() as usize;
-                let junk: Vec<u8> = (0..len.max(64)).map(|i| (i * 131 % 251) as u8).collect();
-                std::fs::write(&path, junk).unwrap();
-            }
-        }
-    }
-    walk(&root.join("db"), only_data);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -809,3 +809,21 @@ pub fn exact_answer(
     )
     .unwrap()
 }
+
+/// Overwrites the sled files under `root/db` (or only its data file `db`) with a repeating
+/// garbage pattern of the same length.
+pub fn damage_db(root: &std::path::Path, only_data: bool) {
+    fn walk(p: &std::path::Path, only_data: bool) {
+        for e in std::fs::read_dir(p).unwrap().flatten() {
+            let path = e.path();
+            if path.is_dir() {
+                walk(&path, only_data);
+            } else if !only_data || e.file_name() == "db" {
+                let len = std::fs::metadata(&path).unwrap().len() as usize;
+                let junk: Vec<u8> = (0..len.max(64)).map(|i| (i * 131 % 251) as u8).collect();
+                std::fs::write(&path, junk).unwrap();
+            }
+        }
+    }
+    walk(&root.join("db"), only_data);
+}
