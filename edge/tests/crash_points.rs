@@ -18,8 +18,8 @@
 //! the others do not pass, and after the commit: a scene's first fetch into an empty store
 //! holding an oversized partial download (the check then says honestly that the store holds no
 //! fetch of the scene, or B is served), and a store holding a signed A whose database is
-//! damaged, fetching an unsigned B (the database rebuilt from the copies at open, A's signature
-//! copy removed at the commit). Under qemu (cross build) binaries start through
+//! damaged, fetching an unsigned B (the database rebuilt from the copies at open, stale
+//! temporary copies removed and A's signature copy removed at the commit). Under qemu (cross build) binaries start through
 //! `$SLAG_TEST_RUNNER`, and the `serve` run, which loads the text model at every start, is
 //! skipped there.
 #![allow(clippy::unwrap_used)]
@@ -270,6 +270,13 @@ impl Scenario {
                 .scene_dir("grid")
                 .join("0000000000000000-0badc0de.shard.tmp");
             std::fs::write(tmp_file, b"half").unwrap();
+            if start == Start::DamagedDb {
+                // Half-written copies of an earlier interrupted commit, removed before B's
+                // copies are written.
+                for stale in ["manifest.json.tmp", "fetch.json.tmp"] {
+                    std::fs::write(store.scene_dir("grid").join(stale), b"{").unwrap();
+                }
+            }
         }
         if start == Start::DamagedDb {
             support::damage_db(&template, false);
@@ -699,7 +706,7 @@ async fn a_first_fetch_stopped_at_its_new_boundaries_serves_no_scene_or_b() {
 async fn a_fetch_into_a_damaged_database_stopped_at_the_rebuild_serves_a_or_b() {
     // A signed A in a store whose database is damaged: the fetch (of an unsigned B, no trusted
     // key) rebuilds the database from the manifest, fetch-record and signature copies when it
-    // opens the store, and its commit removes A's signature copy.
+    // opens the store, and its commit removes stale temporary copies and A's signature copy.
     let keys = tempfile::tempdir().unwrap();
     keygen(keys.path()).unwrap();
     let form = Form::SignedA(keys.path().to_path_buf());
@@ -711,6 +718,8 @@ async fn a_fetch_into_a_damaged_database_stopped_at_the_rebuild_serves_a_or_b() 
         "store.rebuild:flush",
         "store.signature_copy:remove",
         "store.signature_copy:dir_sync",
+        "store.manifest_copy:remove_stale_tmp",
+        "store.fetch_record_copy:remove_stale_tmp",
     ];
     enumerate_only(&s, "slag-edge fetch into a damaged database", &reached).await;
 }
