@@ -726,9 +726,10 @@ fn signature_report(
                         shows that the map is the one published (fetch with --trusted-key to \
                         require one)";
             if trusted.is_some() {
-                problems.push(format!(
+                problems.push(
                     "the store is unsigned but --trusted-key is given: fetch again with it"
-                ));
+                        .to_string(),
+                );
             }
             ("unsigned", text.to_string())
         }
