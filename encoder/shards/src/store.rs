@@ -262,13 +262,7 @@ impl ShardStore {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
         let mut gens = std::collections::BTreeSet::new();
-        for tree in [
-            &self.shards,
-            &self.tiles,
-            &self.manifests,
-            &self.codebooks,
-            &self.signatures,
-        ] {
+        for tree in self.generation_trees() {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 if let Some(g) = k.get(p.len()..p.len() + 8).and_then(be_u64) {
@@ -277,6 +271,17 @@ impl ShardStore {
             }
         }
         Ok(gens.into_iter().collect())
+    }
+
+    /// The trees whose keys are `scene \0 generation …`: every per-generation record of a scene.
+    fn generation_trees(&self) -> [&sled::Tree; 5] {
+        [
+            &self.shards,
+            &self.tiles,
+            &self.manifests,
+            &self.codebooks,
+            &self.signatures,
+        ]
     }
 
     /// Starts writing a new generation of `scene`, first removing leftovers of generations that
@@ -306,13 +311,7 @@ impl ShardStore {
     ) -> Result<()> {
         let mut p = scene.as_bytes().to_vec();
         p.push(0);
-        for tree in [
-            &self.shards,
-            &self.tiles,
-            &self.manifests,
-            &self.codebooks,
-            &self.signatures,
-        ] {
+        for tree in self.generation_trees() {
             for kv in tree.scan_prefix(&p) {
                 let (k, _) = kv.map_err(db_err)?;
                 let g = k.get(p.len()..p.len() + 8).and_then(be_u64);
