@@ -371,7 +371,7 @@ pub fn stage_rows(
         ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
         floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
     });
-    let dim = (r.outputs.embeddings_bytes as f64 / (c.observed.max(1) as f64 * 2.0)).round();
+    let dim = embedding_dim(r);
     let reduce_bytes = c.entries as f64 * AKJ_BYTES + c.observed as f64 * dim * 8.0 * 2.0;
     rows.push(StageRow {
         stage: "reduce (E_k), whole run / images".into(),
@@ -509,4 +509,19 @@ pub fn run(a: &StagesArgs) -> anyhow::Result<String> {
     );
     slag_common::io::write_atomic(&a.table, md.as_bytes())?;
     Ok(md)
+}
+
+/// The embedding width D of `r`'s run: from the dense file's size (f16 rows) when it was written,
+/// else from the mixture file's header; 0 when neither can be read.
+fn embedding_dim(r: &Report) -> f64 {
+    if r.outputs.embeddings_bytes > 0 {
+        let rows = r.counts.observed.max(1) as f64;
+        return (r.outputs.embeddings_bytes as f64 / (rows * 2.0)).round();
+    }
+    r.outputs
+        .forms
+        .as_ref()
+        .and_then(|f| f.mixture.as_ref())
+        .and_then(|p| slag_common::mixture::MixtureEmbeddings::read(p).ok())
+        .map_or(0.0, |m| m.dim as f64)
 }

@@ -136,6 +136,9 @@ impl EncodeConfig {
         if self.execution.gpus == GpuCount::Count(0) {
             return Err(ConfigError::NotPositive { field: Field::Gpus });
         }
+        if !self.output.dense && self.aggregate.mixture_keep.is_none() {
+            return Err(ConfigError::NoEmbeddingsOutput);
+        }
         Ok(())
     }
 
@@ -149,6 +152,9 @@ impl EncodeConfig {
         let unsupported = |what| Err(ConfigError::ClusterUnsupported(what));
         if self.aggregate.mixture_keep.is_some() {
             return unsupported(ClusterUnsupported::Mixture);
+        }
+        if !self.output.dense {
+            return unsupported(ClusterUnsupported::NoDense);
         }
         if self.aggregate.levels {
             return unsupported(ClusterUnsupported::Levels);
@@ -430,9 +436,10 @@ pub struct AggregateConfig {
     /// Memory for the reduction's f64 accumulator, MiB (default 2048; larger scenes are reduced
     /// in chunks).
     pub accumulator_memory_mb: usize,
-    /// Also write `mixture.safetensors`: a shared codebook of the mask embeddings plus each
-    /// Gaussian's S largest `a_kj` (S ≥ 1); default [`DEFAULT_MIXTURE_KEEP`]; `None`: dense
-    /// embeddings only (what a cluster encode needs, [`EncodeConfig::check_cluster`]).
+    /// Write `mixture.safetensors`: a shared codebook of the mask embeddings plus each
+    /// Gaussian's S largest `a_kj` (S ≥ 1); default [`DEFAULT_MIXTURE_KEEP`] (the default
+    /// output); `None`: no mixture, which needs [`OutputConfig::dense`] (what a cluster encode
+    /// writes, [`EncodeConfig::check_cluster`]).
     pub mixture_keep: Option<usize>,
 }
 
@@ -455,8 +462,16 @@ impl Default for AggregateConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OutputConfig {
-    /// Output folder (`embeddings.safetensors`, `report.json`, the optional forms). Required.
+    /// Output folder (`mixture.safetensors`, `segments.safetensors`, `report.json`, the
+    /// optional forms). Required.
     pub dir: PathBuf,
+    /// Also write the dense embeddings `embeddings.safetensors`: one `E_k` row of D values per
+    /// observed Gaussian in [`OutputConfig::precision`] (about 1 KiB a Gaussian at f16 and
+    /// D = 512, against 52–68 bytes for the mixture). Default off: the mixture, the segments and
+    /// the report are what the shards, the servers and the queries need; the dense file is for
+    /// tools that read `E_k` rows directly (`eval-colors`, `eval-objects`, the Qdrant upload
+    /// without expansion) and is the only form a cluster encode writes.
+    pub dense: bool,
     /// Stored precision of the embeddings (default f16).
     pub precision: StoredPrecision,
     /// Progress bars on stderr (default on).
@@ -469,6 +484,7 @@ impl Default for OutputConfig {
             dir: PathBuf::new(),
             precision: StoredPrecision::F16,
             progress: true,
+            dense: false,
         }
     }
 }
@@ -635,6 +651,9 @@ pub enum ClusterUnsupported {
     Workers,
     /// Coverage selection of the views ([`crate::views::SelectionMode::Coverage`]).
     CoverageSelection,
+    /// Outputs without the dense embeddings ([`OutputConfig::dense`] off): a cluster encode
+    /// writes only the dense file.
+    NoDense,
 }
 
 /// An [`EncodeConfig`] that cannot run, found before anything is loaded.
@@ -662,6 +681,13 @@ pub enum ConfigError {
     /// A setting a cluster encode cannot honour.
     #[error("{}", cluster_unsupported(*.0))]
     ClusterUnsupported(ClusterUnsupported),
+    /// Neither embeddings form is asked for: the run would write no embeddings at all.
+    #[error(
+        "no embeddings output: aggregate.mixture_keep is none and output.dense is off; keep the \
+         mixture (aggregate.mixture_keep S >= 1, the default) or ask for the dense file \
+         (output.dense)"
+    )]
+    NoEmbeddingsOutput,
 }
 
 fn missing_what(field: Field) -> &'static str {
@@ -686,6 +712,10 @@ fn cluster_unsupported(what: ClusterUnsupported) -> &'static str {
         ClusterUnsupported::Mixture => {
             "a cluster encode does not write the mixture form yet: set aggregate.mixture_keep \
              to none (dense embeddings only), or write the mixture with a one-process encode"
+        }
+        ClusterUnsupported::NoDense => {
+            "a cluster encode writes the dense embeddings only: set output.dense, or \
+             write the mixture with a one-process encode"
         }
         ClusterUnsupported::Levels => {
             "a cluster encode does not write per-level embeddings yet (aggregate.levels): write \
@@ -726,6 +756,7 @@ mod tests {
     fn cluster_config() -> EncodeConfig {
         let mut c = graph_config();
         c.aggregate.mixture_keep = None;
+        c.output.dense = true;
         c
     }
 
@@ -745,6 +776,7 @@ mod tests {
         assert!(c.output.progress);
         assert_eq!(c.scene.every, 1);
         assert_eq!(c.aggregate.mixture_keep, Some(DEFAULT_MIXTURE_KEEP));
+        assert!(!c.output.dense, "the dense file is written only when asked");
         assert_eq!(c.ply(), Path::new("s/point_cloud.ply"));
     }
 
@@ -788,6 +820,11 @@ mod tests {
         let e = c.validate().unwrap_err();
         assert!(e.to_string().contains("aggregate.mixture_keep"), "{e}");
         assert!(!e.to_string().contains("--"), "no flag names: {e}");
+        let mut c = graph_config();
+        c.aggregate.mixture_keep = None;
+        assert_eq!(c.validate(), Err(ConfigError::NoEmbeddingsOutput));
+        c.output.dense = true;
+        assert!(c.validate().is_ok(), "the dense file alone is an output");
         let c = EncodeConfig {
             masks: MasksConfig::graph(),
             ..Default::default()

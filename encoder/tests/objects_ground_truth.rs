@@ -74,6 +74,8 @@ fn placed_objects_come_back_with_their_positions_and_boxes() {
     c.masks = MasksConfig::graph();
     c.raster.scale = 0.5;
     c.output.progress = false;
+    // The floors below were set on the dense rows.
+    c.output.dense = true;
     c.execution.threads = Some(2);
     Encoder::new(c).expect("config").run().expect("encode");
 

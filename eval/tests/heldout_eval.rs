@@ -19,7 +19,8 @@ fn mini() -> std::path::PathBuf {
     std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
 }
 
-/// An encode of snowmiku-mini at `every` 4, raster 0.5, with color-clip and `masks`.
+/// An encode of snowmiku-mini at `every` 4, raster 0.5, with color-clip and `masks`, the dense
+/// embeddings (what `eval-colors` reads) beside the mixture.
 fn mini_config(out: &std::path::Path, masks: MasksConfig) -> EncodeConfig {
     let clip = shared().join("fixtures/clip/color-clip-visual.onnx");
     let mut c = EncodeConfig::new(mini(), clip, out);
@@ -27,6 +28,7 @@ fn mini_config(out: &std::path::Path, masks: MasksConfig) -> EncodeConfig {
     c.scene.every = 4;
     c.raster.scale = 0.5;
     c.output.progress = false;
+    c.output.dense = true;
     c
 }
 

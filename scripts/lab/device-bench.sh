@@ -9,7 +9,7 @@ set -uo pipefail
 one() { # name, args...
   local name=$1; shift
   echo "### $name: $*"
-  "$B" bench --scene $S "$@" --quiet --out $W/$name 2>&1 | grep -v XDG_RUNTIME
+  "$B" bench --scene $S "$@" --dense --quiet --out $W/$name 2>&1 | grep -v XDG_RUNTIME
   cp $W/$name/report.json "$R/report-$name.json"
   "$B" eval-colors --scene $S --embeddings $W/$name/embeddings.safetensors > "$R/eval-$name.json" 2>/dev/null
   python3 -c "import json,sys; e=json.load(open('$R/eval-$name.json')); print('$name mIoU', round(e['miou'],4), 'acc', round(e['accuracy'],4), 'observed', round(e['observed_fraction'],4), {c['name']: round(c['iou'],3) for c in e['classes'] if c['in_miou']})"

@@ -14,7 +14,7 @@ encode() { # name, args...
   local name=$1; shift
   echo "### encode $name: $*"
   local t0=$(date +%s%N)
-  "$B" bench --scene $S "$@" --quiet --out $W/$name > $W/$name.log 2>&1 || tail -n 5 $W/$name.log
+  "$B" bench --scene $S "$@" --dense --quiet --out $W/$name > $W/$name.log 2>&1 || tail -n 5 $W/$name.log
   echo "$name wall_s $(( ($(date +%s%N) - t0) / 1000000 ))e-3"
   mkdir -p "$R/reports"; cp $W/$name/report.json "$R/reports/report-$name.json"
 }

@@ -24,7 +24,7 @@ for name in ${RUNS:-coverage uniform all}; do
     *) echo "unknown run $name (coverage, uniform, all, everyE)" >&2; exit 2 ;;
   esac
   t0=$(date +%s.%N)
-  "$B" encode --scene "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 \
+  "$B" encode --scene "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 --dense \
     --segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s.%N)
   "$B" eval-colors --held-out --scene "$S" --embeddings "$W/$name/embeddings.safetensors" \

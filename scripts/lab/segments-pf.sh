@@ -44,7 +44,7 @@ for N in "${EVERYS[@]}"; do
     "$B" encode --scene "$S" --masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" \
       --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" --sam-points-per-side 16 \
       --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
-      --clip-visual "$F/clip/color-clip-visual.onnx" --every "$N" --raster-scale 0.5 --quiet \
+      --clip-visual "$F/clip/color-clip-visual.onnx" --every "$N" --raster-scale 0.5 --dense --quiet \
       --out "$E" > "$D/encode.log" 2>&1
     echo "every $N: encode $(( $(date +%s) - t0 )) s"
   fi

@@ -33,11 +33,13 @@ pub fn color_clip_visual() -> PathBuf {
 }
 
 /// The tests' usual encode of `scene` into `out`: graph masks and color-clip, no progress bars,
-/// every other setting at the command line's default. Change fields before [`encode`].
+/// the dense embeddings beside the default outputs (the tests read `E_k` rows), every other
+/// setting at the command line's default. Change fields before [`encode`].
 pub fn graph_config(scene: &Path, out: &Path) -> EncodeConfig {
     let mut c = EncodeConfig::new(scene, color_clip_visual(), out);
     c.masks = MasksConfig::graph();
     c.output.progress = false;
+    c.output.dense = true;
     c
 }
 
@@ -57,7 +59,7 @@ pub fn color_sam(points_per_side: u32) -> MasksConfig {
 /// An encode of `scene` into `out` through real-architecture models with random weights: the
 /// CLIP visual tower `clip_visual`, SAM `[encoder, decoder]` on an 8 × 8 point grid with every
 /// filter off (random weights predict low IoU), every `every`-th view at raster scale 0.25, no
-/// progress bars.
+/// progress bars, the dense embeddings beside the default outputs.
 pub fn random_weights_config(
     scene: PathBuf,
     clip_visual: PathBuf,
@@ -74,6 +76,7 @@ pub fn random_weights_config(
     config.scene.every = every;
     config.raster.scale = 0.25;
     config.output.progress = false;
+    config.output.dense = true;
     config
 }
 

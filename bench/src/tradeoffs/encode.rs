@@ -174,6 +174,8 @@ impl EncodePoint {
         c.execution.front_workers = workers.front_workers;
         c.output.precision = StoredPrecision::F32;
         c.output.progress = false;
+        // The study scores the dense rows and sizes them against the mixture.
+        c.output.dense = true;
         c
     }
 }

@@ -15,7 +15,7 @@ use crate::encode::EncodeArgs;
 /// Arguments of `encode-cluster`: the cluster placement plus every `encode` argument.
 #[derive(Debug, Clone, Args)]
 pub struct EncodeClusterArgs {
-    /// This process's index: line `I` (0-based) of --hosts; process 0 writes OUT/embeddings.safetensors and OUT/report.json.
+    /// This process's index: line `I` (0-based) of --hosts; process 0 writes OUT/embeddings.safetensors (a cluster encode writes the dense file) and OUT/report.json.
     #[arg(long)]
     pub process: usize,
     /// Host file, the same for every process: one host:port per line (the address each process listens on).
@@ -29,14 +29,15 @@ pub struct EncodeClusterArgs {
     pub encode: EncodeArgs,
 }
 
-/// The encode settings of a cluster run: as `encode`'s, except that an unset `--mixture-keep`
-/// means no mixture file (a cluster encode writes dense embeddings only; asking for the mixture
-/// is refused by [`ClusterEncoder::new`]).
+/// The encode settings of a cluster run: as `encode`'s, except that a cluster encode writes the
+/// dense embeddings (with or without `--dense`) and an unset `--mixture-keep` means no mixture
+/// file (asking for the mixture is refused by [`ClusterEncoder::new`]).
 fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
     let mut config = EncodeConfig::from(&a.encode);
     if a.encode.mixture_keep.is_none() {
         config.aggregate.mixture_keep = None;
     }
+    config.output.dense = true;
     config
 }
 

@@ -62,6 +62,19 @@ mod tests {
             dense.aggregate.mixture_keep, None,
             "0: dense embeddings only"
         );
+        assert!(
+            dense.output.dense,
+            "--mixture-keep 0 keeps writing the dense file"
+        );
+        assert!(dense.validate().is_ok());
+        assert!(!c.output.dense, "the dense file is written only when asked");
+        let both = parse(&["--masks", "graph", "--dense"]);
+        assert!(both.output.dense);
+        assert_eq!(
+            both.aggregate.mixture_keep,
+            Some(slag_encoder::config::DEFAULT_MIXTURE_KEEP),
+            "--dense adds the dense file to the mixture"
+        );
     }
 
     #[test]

@@ -206,6 +206,7 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     // Reference: one process.
     let o = slag_encoder()
         .arg("encode")
+        .arg("--dense")
         .args(encode_args(&single_out))
         .output()
         .unwrap();

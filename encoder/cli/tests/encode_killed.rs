@@ -32,6 +32,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
             "cpu",
             "--contribution-memory-mb",
             "0",
+            "--dense",
         ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())

@@ -23,6 +23,7 @@ fn encode(scene: &Path, out: &Path) -> Output {
         .args([
             "encode",
             "--quiet",
+            "--dense",
             "--masks",
             "graph",
             "--rasterizer",

@@ -64,10 +64,40 @@ pub fn reduce_mixture_sparse(
     model_id: &str,
     means: &[[f32; 3]],
 ) -> Result<SparseMixture> {
+    sparse_pass(store, n_gaussians, dim, params, keep, model_id, means).map(|(sparse, _)| sparse)
+}
+
+/// [`reduce_mixture_sparse`] over all `means` (`[N]`, world frame, `.ply` order), also returning
+/// the number of Gaussian-id chunks the pass took: the encoder's tail when only the mixture is
+/// written, so that no dense `E_k` row is made.
+///
+/// Errors: those of [`reduce_mixture_sparse`].
+pub fn reduce_mixture_chunks(
+    store: &ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    params: ReduceParams,
+    keep: usize,
+    model_id: &str,
+) -> Result<(SparseMixture, usize)> {
+    sparse_pass(store, means.len(), dim, params, keep, model_id, means)
+}
+
+/// The one pass of [`reduce_mixture_sparse`] and [`reduce_mixture_chunks`]: the sparse parts
+/// and the number of chunks.
+fn sparse_pass(
+    store: &ContributionStore,
+    n_gaussians: usize,
+    dim: usize,
+    params: ReduceParams,
+    keep: usize,
+    model_id: &str,
+    means: &[[f32; 3]],
+) -> Result<(SparseMixture, usize)> {
     let (mut codebook, mut gather) = Gather::new(n_gaussians, dim, keep, model_id, means)?;
     let (min_total_weight, per_gaussian) =
         (params.min_total_weight, Gather::per_gaussian(dim, keep));
-    accumulate(
+    let chunks = accumulate(
         Pass::new(store, n_gaussians, dim, params, per_gaussian),
         |first_chunk, image, c| codebook.on_image(first_chunk, image, c),
         |top: &mut Vec<(f32, u32)>, e, offset| push_top(top, keep, e.weight, offset + e.mask),
@@ -84,7 +114,7 @@ pub fn reduce_mixture_sparse(
             Ok(())
         },
     )?;
-    Ok(gather.finish(codebook))
+    Ok((gather.finish(codebook), chunks))
 }
 
 /// What [`reduce_to_writer_with_mixture`] leaves: the embeddings as [`reduce_to_writer`] leaves

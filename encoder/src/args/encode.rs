@@ -247,14 +247,23 @@ pub struct EncodeArgs {
     /// Stored precision of the embeddings.
     #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
     pub precision: PrecisionArg,
-    /// Also write OUT/mixture.safetensors: a shared codebook of the mask embeddings plus each
-    /// Gaussian's S largest a_kj (the compressed form the shards carry by default; the mean of a
-    /// Gaussian's 4 strongest masks was the best held-out point, docs/results/tradeoffs.md). Default 4
-    /// for `encode`; 0 writes dense embeddings only; `encode-cluster` writes none unless asked
-    /// (and then refuses: one-process encodes only).
+    /// Write OUT/mixture.safetensors (an output by default): a shared codebook of the mask
+    /// embeddings plus each Gaussian's S largest a_kj (the compressed form the shards carry by
+    /// default; the mean of a Gaussian's 4 strongest masks was the best held-out point,
+    /// docs/results/tradeoffs.md). Default 4 for `encode`; 0 writes no mixture and then implies
+    /// --dense; `encode-cluster` writes none unless asked (and then refuses: one-process encodes
+    /// only).
     #[arg(long, value_name = "S", value_parser = parse_keep)]
     pub mixture_keep: Option<usize>,
-    /// Output folder (embeddings.safetensors, report.json).
+    /// Also write the dense embeddings OUT/embeddings.safetensors: one E_k row of D values per
+    /// observed Gaussian at --precision (about 1 KiB a Gaussian at f16 and D = 512, 31 GB at 30M
+    /// Gaussians). Off by default: the mixture, the segments and the report are enough for
+    /// `partition`, `serve` and `query`; `eval-colors`, `eval-objects` and an upload to Qdrant
+    /// without expansion read the dense file.
+    #[arg(long)]
+    pub dense: bool,
+    /// Output folder (mixture.safetensors, segments.safetensors, report.json; with --dense
+    /// embeddings.safetensors).
     #[arg(long)]
     pub out: PathBuf,
     /// No progress bars.
@@ -270,7 +279,7 @@ pub struct EncodeArgs {
     pub segment: SegmentArgs,
 }
 
-/// `--mixture-keep`: a slot count (0: no mixture file).
+/// `--mixture-keep`: a slot count (0: no mixture file, dense embeddings only).
 fn parse_keep(s: &str) -> Result<usize, String> {
     s.parse::<usize>()
         .map_err(|e| format!("{e}; pass a slot count (0: dense embeddings only)"))
@@ -349,6 +358,8 @@ impl From<&EncodeArgs> for EncodeConfig {
                     PrecisionArg::F32 => StoredPrecision::F32,
                 },
                 progress: !a.quiet,
+                // `--mixture-keep 0` keeps its meaning "dense embeddings only".
+                dense: a.dense || a.mixture_keep == Some(0),
             },
             execution: ExecutionConfig {
                 ep: a.ep.into(),

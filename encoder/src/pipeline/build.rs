@@ -211,6 +211,7 @@ pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
         contribution_budget_bytes: a.contribution_memory_mb << 20,
         precision: c.output.precision,
         out_dir: c.output.dir.clone(),
+        dense: c.output.dense,
         progress: c.output.progress,
         mixture_keep: a.mixture_keep,
         levels: a.levels,

@@ -121,13 +121,17 @@ pub struct EncodeParams {
     pub contribution_budget_bytes: usize,
     /// Stored precision of the embeddings.
     pub precision: StoredPrecision,
-    /// Output folder (`embeddings.safetensors`, `report.json`).
+    /// Output folder (`mixture.safetensors`, `report.json`; with [`EncodeParams::dense`]
+    /// `embeddings.safetensors`).
     pub out_dir: PathBuf,
+    /// Write the dense embeddings `<out>/embeddings.safetensors`; off: only the mixture form
+    /// (then [`EncodeParams::mixture_keep`] must be set), and no dense row is ever made.
+    pub dense: bool,
     /// Show progress bars (stderr).
     pub progress: bool,
     /// Also write `<out>/mixture.safetensors`: the embeddings as a shared codebook of mask
     /// embeddings plus each Gaussian's `S` largest `a_kj` ([`aggregate::reduce_mixture`]);
-    /// `None` = dense file only.
+    /// `None` = dense file only (needs [`EncodeParams::dense`]).
     pub mixture_keep: Option<usize>,
     /// Also write `<out>/embeddings-level{l}.safetensors` for each SAM granularity level `l`
     /// (0 subpart, 1 part, 2 whole; [`crate::levels`]): the same reduction over the `a_kj` of
@@ -594,9 +598,9 @@ pub fn read_image(view: &View) -> Result<RgbImage> {
     Ok(img)
 }
 
-/// Runs the whole Semantic Embedding stage on `scene` and writes
-/// `<out>/embeddings.safetensors` (+ `<out>/mixture.safetensors` with
-/// [`EncodeParams::mixture_keep`]) + `<out>/report.json` (each atomically; the report last, so a
+/// Runs the whole Semantic Embedding stage on `scene` and writes `<out>/mixture.safetensors`
+/// with [`EncodeParams::mixture_keep`], `<out>/embeddings.safetensors` with
+/// [`EncodeParams::dense`], and `<out>/report.json` (each atomically; the report last, so a
 /// report's presence means the run completed).
 ///
 /// One front worker and one rasterizer: [`encode_pool`] with a single worker on each side.
