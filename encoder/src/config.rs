@@ -441,6 +441,26 @@ pub struct AggregateConfig {
     /// output); `None`: no mixture, which needs [`OutputConfig::dense`] (what a cluster encode
     /// writes, [`EncodeConfig::check_cluster`]).
     pub mixture_keep: Option<usize>,
+    /// Where the reduction to `E_k` runs (default [`ReduceOn::Auto`]).
+    pub reduce_on: ReduceOn,
+    /// Device memory the label sums kept for the device reduction may take, MiB (default
+    /// 16384: 16 B per (Gaussian, label) key of every view).
+    pub device_reduce_memory_mb: usize,
+}
+
+/// Where the reduction `E_k = Σ a_kj E_j / Σ a_kj` runs (`encode --reduce`). Both give the same
+/// observed Gaussians, kept pairs and masks' record, and `E_k` within f64 round-off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum ReduceOn {
+    /// On the GPU where it can (one GPU rasterizer, a device with f64, no `--levels`), else on
+    /// the host.
+    #[default]
+    Auto,
+    /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot.
+    Device,
+    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU.
+    Host,
 }
 
 impl Default for AggregateConfig {
@@ -454,6 +474,8 @@ impl Default for AggregateConfig {
             contribution_memory_mb: 4096,
             accumulator_memory_mb: 2048,
             mixture_keep: Some(DEFAULT_MIXTURE_KEEP),
+            reduce_on: ReduceOn::Auto,
+            device_reduce_memory_mb: 16384,
         }
     }
 }

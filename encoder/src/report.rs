@@ -119,8 +119,11 @@ pub struct Counts {
     pub contributors_per_pixel: f64,
     /// Image contributions spilled to disk (memory budget exceeded).
     pub spilled_images: usize,
-    /// Chunks the reduction used.
+    /// Chunks the reduction used (tiles of Gaussians on the device).
     pub reduce_chunks: usize,
+    /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
+    /// host, so `entries` counts none.
+    pub device_reduce: bool,
     /// Views whose `a_kj` were summed on the GPU per (Gaussian, mask-set label)
     /// ([`crate::pipeline::view_contribution`]); the others went through per-pixel lists.
     pub device_sum_views: usize,

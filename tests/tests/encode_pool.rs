@@ -79,6 +79,8 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         mixture_keep: None,
         levels: false,
         mask_record_slots: None,
+        reduce_on: slag_encoder::config::ReduceOn::Auto,
+        device_reduce_budget_bytes: 1 << 30,
     };
     let scene_in = pipeline::SceneInput::new(&scene, None, 1);
     let r2 = pipeline::encode_pool(
@@ -185,6 +187,8 @@ fn pool_params(out: &std::path::Path) -> pipeline::EncodeParams {
         mixture_keep: None,
         levels: false,
         mask_record_slots: None,
+        reduce_on: slag_encoder::config::ReduceOn::Auto,
+        device_reduce_budget_bytes: 1 << 30,
     }
 }
 
@@ -333,6 +337,8 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         mixture_keep: None,
         levels: false,
         mask_record_slots: None,
+        reduce_on: slag_encoder::config::ReduceOn::Auto,
+        device_reduce_budget_bytes: 1 << 30,
     };
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),

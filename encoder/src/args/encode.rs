@@ -244,6 +244,14 @@ pub struct EncodeArgs {
     /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks).
     #[arg(long, default_value_t = 2048)]
     pub accumulator_memory_mb: usize,
+    /// Where E_k is reduced: auto (on the GPU where it can: one GPU, f64, no --levels), device
+    /// (on the GPU, also lavapipe; an error where it cannot), or host (the CPU, in f64).
+    #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
+    pub reduce: crate::config::ReduceOn,
+    /// Device memory for the label sums kept for the GPU reduction, MiB (16 B per Gaussian and
+    /// pixel label of each view).
+    #[arg(long, default_value_t = 16384)]
+    pub device_reduce_memory_mb: usize,
     /// Stored precision of the embeddings.
     #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
     pub precision: PrecisionArg,
@@ -350,6 +358,8 @@ impl From<&EncodeArgs> for EncodeConfig {
                 contribution_memory_mb: a.contribution_memory_mb,
                 accumulator_memory_mb: a.accumulator_memory_mb,
                 mixture_keep: mixture_keep(a.mixture_keep),
+                reduce_on: a.reduce,
+                device_reduce_memory_mb: a.device_reduce_memory_mb,
             },
             output: OutputConfig {
                 dir: a.out.clone(),

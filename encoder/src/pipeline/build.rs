@@ -219,6 +219,8 @@ pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
             .segments
             .enabled
             .then_some(slag_common::mask_record::DEFAULT_SLOTS),
+        reduce_on: a.reduce_on,
+        device_reduce_budget_bytes: (a.device_reduce_memory_mb as u64) << 20,
     }
 }
 

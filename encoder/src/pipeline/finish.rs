@@ -16,6 +16,8 @@ use slag_common::{Error, Result};
 use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
+use crate::raster::{DeviceReduce, WeightRasterizer};
+use slag_common::mixture::SparseMixture;
 use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
 
 /// The two files every encode writes into its output folder: the embeddings, then the report,
@@ -110,6 +112,7 @@ pub(crate) fn finish(
         queue,
         selection,
         mask_record: _,
+        device,
     } = pooled;
     report.view_selection = Some(selection);
     let models = &mut report.models;
@@ -133,14 +136,20 @@ pub(crate) fn finish(
     let t0 = Instant::now();
     let writer = EmbeddingsWriter::create(&files.embeddings, dim, params.precision)?;
     let p = params.reduce;
-    let (streamed, sparse, gather_s) = match params.mixture_keep {
-        Some(keep) => {
+    let (streamed, sparse, gather_s) = match (device, params.mixture_keep) {
+        (Some(mut rasterizer), _) => {
+            let (streamed, sparse) =
+                reduce_on_device(&mut *rasterizer, &means, dim, params, writer, &model_id)?;
+            counts.device_reduce = true;
+            (streamed, sparse, 0.0)
+        }
+        (None, Some(keep)) => {
             let m = aggregate::reduce_to_writer_with_mixture(
                 &store, &means, dim, p, writer, keep, &model_id,
             )?;
             (m.streamed, Some(m.sparse), m.gather_s)
         }
-        None => (
+        (None, None) => (
             aggregate::reduce_to_writer(&store, &means, dim, p, writer)?,
             None,
             0.0,
@@ -226,4 +235,68 @@ pub(crate) fn finish(
         mixture_reduce_s: mixture.as_ref().map(|_| mixture_s),
     };
     files.write_report(report, params.precision, None, Some(forms))
+}
+
+/// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]):
+/// each tile's unit rows pushed to `writer` (with `means`, the Gaussians' centres), and with
+/// [`EncodeParams::mixture_keep`] the kept pairs gathered into the mixture's sparse rows over the
+/// codebook of the kept views' mask embeddings. `Streamed::reduce_s` counts the reduction
+/// without the writer's pushes.
+///
+/// Errors: the device's; the writer's (I/O, non-finite rows); a Gaussian id without a mean
+/// ([`Error::Internal`]).
+fn reduce_on_device(
+    rasterizer: &mut dyn WeightRasterizer,
+    means: &[[f32; 3]],
+    dim: usize,
+    params: &EncodeParams,
+    mut writer: EmbeddingsWriter,
+    model_id: &str,
+) -> Result<(aggregate::Streamed, Option<SparseMixture>)> {
+    let t0 = Instant::now();
+    let p = DeviceReduce {
+        min_total_weight: params.reduce.min_total_weight,
+        keep: params.mixture_keep.unwrap_or(1),
+        dense: true,
+    };
+    let mut sparse = params.mixture_keep.map(|_| SparseMixture {
+        dim,
+        model_id: model_id.to_string(),
+        offsets: vec![0],
+        ..Default::default()
+    });
+    let mut write_s = 0.0;
+    let mut run_means: Vec<[f32; 3]> = Vec::new();
+    let out = rasterizer.reduce_kept(&p, &mut |tile| {
+        run_means.clear();
+        for &k in &tile.ids {
+            run_means.push(*means.get(k as usize).ok_or_else(|| {
+                Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
+            })?);
+        }
+        let t = Instant::now();
+        writer.push(&tile.ids, &run_means, &tile.rows, &tile.total_weights)?;
+        write_s += t.elapsed().as_secs_f64();
+        if let Some(s) = sparse.as_mut() {
+            for ((&k, mean), kept) in tile.ids.iter().zip(&run_means).zip(tile.kept) {
+                s.gaussian_ids.push(k);
+                s.means.push(*mean);
+                for (a, atom) in kept {
+                    s.atoms.push(atom);
+                    s.weights.push(a as f64);
+                }
+                s.offsets.push(s.atoms.len());
+            }
+        }
+        Ok(())
+    })?;
+    if let Some(s) = sparse.as_mut() {
+        s.codebook = out.codebook;
+    }
+    let streamed = aggregate::Streamed {
+        writer,
+        chunks: out.tiles,
+        reduce_s: t0.elapsed().as_secs_f64() - write_s,
+    };
+    Ok((streamed, sparse))
 }

@@ -34,7 +34,7 @@ use crate::report::{ImageWork, Report};
 pub mod build;
 mod encoder;
 pub(crate) mod finish;
-mod pool;
+pub(crate) mod pool;
 pub(crate) mod segment_task;
 
 pub use encoder::Encoder;
@@ -140,6 +140,10 @@ pub struct EncodeParams {
     /// Keep the masks' record ([`slag_common::mask_record`]) with this many views per Gaussian
     /// (the segmentation's mask term; 8 bytes per slot and Gaussian); `None`: not kept.
     pub mask_record_slots: Option<usize>,
+    /// Where the reduction runs ([`crate::config::ReduceOn`]).
+    pub reduce_on: crate::config::ReduceOn,
+    /// Device memory the label sums kept for the device reduction may take, bytes.
+    pub device_reduce_budget_bytes: u64,
 }
 
 /// One image after the front stages: its masks and mask embeddings (passed from the front to the
@@ -210,8 +214,11 @@ pub(crate) fn front_stage(
 
 /// One image after the back stages: its `a_kj` contribution and what producing it cost.
 pub(crate) struct BackOut {
-    /// The image's contribution to the reduction.
+    /// The image's contribution to the reduction (empty when its sums stayed on the device).
     pub contribution: ImageContribution,
+    /// When the sums stayed on the device: each Gaussian's dominant mask of the view, for the
+    /// masks' record.
+    pub dominant: Option<Vec<(u32, u32, f32)>>,
     /// Seconds in the rasterizer (with GPU label sums: the pass and its readback).
     pub raster_s: f64,
     /// Seconds of the host side of the image stage ([`view_contribution`]).
@@ -293,8 +300,8 @@ pub fn view_contribution(
 ) -> Result<(ImageContribution, ViewStats)> {
     aggregate::image::check_image_inputs(masks, &mask_embeddings, dim)?;
     let prepared = prepare_view(intrinsics, world_to_camera, masks, params, None);
-    let r = raster_view(rasterizer, intrinsics, world_to_camera, prepared)?;
-    finish_view(r, masks, mask_embeddings, dim, params)
+    let r = raster_view(rasterizer, intrinsics, world_to_camera, prepared, None)?;
+    finish_view(r, masks, mask_embeddings, dim, params).map(|(c, _, stats)| (c, stats))
 }
 
 /// What a rasterizer made of one view ([`raster_view`]), for the host side of its image stage
@@ -314,6 +321,18 @@ enum Rastered {
     },
     /// Per-pixel lists, for [`image_contribution`].
     Weights(crate::raster::PixelWeights),
+    /// The sums stayed on the device for the device reduction
+    /// ([`WeightRasterizer::label_sums_kept`]); with the masks' record, each Gaussian's dominant
+    /// mask of the view.
+    Kept { dominant: Vec<(u32, u32, f32)> },
+}
+
+/// The device reduction's inputs of a view ([`raster_view`]): its mask embeddings and whether
+/// the masks' record wants the dominant masks.
+#[derive(Clone, Copy)]
+pub(crate) struct KeepView<'a> {
+    pub(crate) embeddings: &'a [f32],
+    pub(crate) dominant: bool,
 }
 
 /// The pixel labels of one view and what the image stage needs of its masks afterwards, made
@@ -363,8 +382,9 @@ pub(crate) fn prepare_view<M: ImageMask>(
 }
 
 /// The rasterizer's part of [`view_contribution`]: the device's label sums of the prepared
-/// labels, or the per-pixel lists when the rasterizer has no label sums or there are no labels.
-/// `stats.aggregate_s` holds the labels' host time so far.
+/// labels (kept on the device with `keep`, when the rasterizer keeps them), or the per-pixel
+/// lists when the rasterizer has no label sums or there are no labels. `stats.aggregate_s` holds
+/// the labels' host time so far.
 ///
 /// Errors: the rasterizer's.
 pub(crate) fn raster_view(
@@ -372,15 +392,44 @@ pub(crate) fn raster_view(
     intrinsics: &Intrinsics,
     world_to_camera: &WorldToCamera,
     prepared: PreparedView,
+    keep: Option<KeepView<'_>>,
 ) -> Result<RasteredView> {
     let pixels = intrinsics.width as usize * intrinsics.height as usize;
     let PreparedView {
         labels,
-        precomputed,
+        mut precomputed,
         factors,
         labels_s,
     } = prepared;
     let t0 = Instant::now();
+    if let (Some(labels), Some(keep)) = (&labels, keep)
+        && let Some(view) = rasterizer.label_sums_kept(
+            intrinsics,
+            world_to_camera,
+            &labels.labels,
+            // Taken: a rasterizer that keeps nothing falls back without it (only slower).
+            precomputed.take(),
+            crate::raster::KeptMasks {
+                masks_of: &labels.masks_of,
+                factors: &factors,
+                embeddings: keep.embeddings,
+                dominant: keep.dominant,
+            },
+        )?
+    {
+        let stats = ViewStats {
+            raster_s: t0.elapsed().as_secs_f64(),
+            aggregate_s: labels_s,
+            pixels,
+            contributions: view.contributions,
+            counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
+            device_sums: true,
+        };
+        let out = Rastered::Kept {
+            dominant: view.dominant,
+        };
+        return Ok(RasteredView { out, stats });
+    }
     if let Some(labels) = labels
         && let Some(sums) = rasterizer.label_sums_precomputed(
             intrinsics,
@@ -421,7 +470,8 @@ pub(crate) fn raster_view(
 }
 
 /// The host's half of [`view_contribution`]: the label sums reduced and expanded to masks, or
-/// the per-pixel lists summed per mask; `masks` are needed only for the lists.
+/// the per-pixel lists summed per mask; `masks` are needed only for the lists. A view kept on
+/// the device gives an empty contribution and its dominant masks.
 ///
 /// Errors: as [`image_contribution`].
 pub(crate) fn finish_view(
@@ -430,9 +480,10 @@ pub(crate) fn finish_view(
     mask_embeddings: Vec<f32>,
     dim: usize,
     params: ImageStageParams,
-) -> Result<(ImageContribution, ViewStats)> {
+) -> Result<(ImageContribution, Option<Vec<(u32, u32, f32)>>, ViewStats)> {
     let t0 = Instant::now();
     let mut stats = r.stats;
+    let mut dominant = None;
     let c = match r.out {
         Rastered::Sums {
             sums,
@@ -450,9 +501,17 @@ pub(crate) fn finish_view(
         Rastered::Weights(weights) => {
             aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?
         }
+        Rastered::Kept { dominant: d } => {
+            dominant = Some(d);
+            ImageContribution {
+                dim,
+                mask_embeddings: Vec::new(),
+                entries: Vec::new(),
+            }
+        }
     };
     stats.aggregate_s += t0.elapsed().as_secs_f64();
-    Ok((c, stats))
+    Ok((c, dominant, stats))
 }
 
 /// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
@@ -469,7 +528,7 @@ pub(crate) fn back_stage(
     image_stage: ImageStageParams,
 ) -> Result<BackOut> {
     let prepared = back_prepare(views, raster_intrinsics, item, dim, image_stage, None)?;
-    let raster = back_raster(rasterizer, prepared)?;
+    let raster = back_raster(rasterizer, prepared, None)?;
     back_finish(raster, dim, image_stage)
 }
 
@@ -525,14 +584,20 @@ pub(crate) struct BackRaster {
     rastered: RasteredView,
 }
 
-/// The rasterizer's part of [`back_stage`].
+/// The rasterizer's part of [`back_stage`]; `keep_dominant`: `Some` when the rasterizer keeps
+/// the sums on its device (whether the masks' record wants the dominant masks).
 ///
 /// Errors: the rasterizer's.
 pub(crate) fn back_raster(
     rasterizer: &mut dyn WeightRasterizer,
     p: BackPrepared,
+    keep_dominant: Option<bool>,
 ) -> Result<BackRaster> {
-    let rastered = raster_view(rasterizer, &p.intrinsics, &p.world_to_camera, p.prepared)?;
+    let keep = keep_dominant.map(|dominant| KeepView {
+        embeddings: &p.item.embeddings,
+        dominant,
+    });
+    let rastered = raster_view(rasterizer, &p.intrinsics, &p.world_to_camera, p.prepared, keep)?;
     Ok(BackRaster {
         item: p.item,
         rastered,
@@ -551,11 +616,13 @@ pub(crate) fn back_finish(
     // Only the per-pixel lists need the masks' pixels.
     let masks = match rastered.out {
         Rastered::Weights(_) => crate::masks::compact::expand_all(&item.masks),
-        Rastered::Sums { .. } => Vec::new(),
+        Rastered::Sums { .. } | Rastered::Kept { .. } => Vec::new(),
     };
-    let (contribution, vs) = finish_view(rastered, &masks, item.embeddings, dim, image_stage)?;
+    let (contribution, dominant, vs) =
+        finish_view(rastered, &masks, item.embeddings, dim, image_stage)?;
     Ok(BackOut {
         contribution,
+        dominant,
         raster_s: vs.raster_s,
         contribution_s: vs.aggregate_s,
         pixels: vs.counted_pixels as u64,

@@ -56,6 +56,9 @@ pub(crate) struct Pooled {
     pub selection: crate::views::SelectionReport,
     /// The masks' record, with [`EncodeParams::mask_record_slots`].
     pub mask_record: Option<MaskRecord>,
+    /// The rasterizer that kept every view's sums on its device, for the device reduction
+    /// ([`WeightRasterizer::reduce_kept`]); `None`: the store holds the `a_kj`.
+    pub device: Option<Box<dyn WeightRasterizer>>,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -120,6 +123,7 @@ pub(crate) fn run_pool(
         queue: QueueGauge::default(),
         totals: Mutex::new(ImageWork::default()),
         sinks: PoolSinks::new(params, gaussians.len(), views.len())?,
+        device: Mutex::new(Vec::new()),
         bar_front: bar(&multi, views.len(), "masks + CLIP"),
         bar_back: bar(&multi, views.len(), "raster + a_kj"),
     };
@@ -151,6 +155,7 @@ pub(crate) fn run_pool(
         queue: left.queue,
         selection,
         mask_record: left.mask_record,
+        device: left.device,
     })
 }
 
@@ -275,6 +280,8 @@ struct Shared<'a> {
     /// What the back workers add up (under one lock, once per image).
     totals: Mutex<ImageWork>,
     sinks: PoolSinks,
+    /// The rasterizers that kept their views' sums on the device, handed back at their end.
+    device: Mutex<Vec<Box<dyn WeightRasterizer>>>,
     bar_front: ProgressBar,
     bar_back: ProgressBar,
 }
@@ -284,6 +291,7 @@ struct WorkersLeft {
     store: ContributionStore,
     level_stores: Vec<ContributionStore>,
     mask_record: Option<MaskRecord>,
+    device: Option<Box<dyn WeightRasterizer>>,
     totals: ImageWork,
     queue: QueueStats,
 }
@@ -319,12 +327,20 @@ impl Shared<'_> {
                     .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))
             })
             .transpose()?;
+        let mut device = self
+            .device
+            .into_inner()
+            .map_err(|_| Error::internal("kept rasterizers poisoned by a panicked worker"))?;
+        if device.len() > 1 {
+            return Err(Error::internal("more than one rasterizer kept its sums"));
+        }
         self.bar_front.finish();
         self.bar_back.finish();
         Ok(WorkersLeft {
             store,
             level_stores,
             mask_record,
+            device: device.pop(),
             totals: self.totals.into_inner().unwrap_or_default(),
             queue: self.queue.stats(slots),
         })
@@ -418,10 +434,12 @@ fn run_workers(
             Vec::new()
         });
         let names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
+        let n_rasterizers = names.len();
         for (g, rasterizer) in rasterizers.into_iter().enumerate() {
             let rx = Arc::clone(&receivers[g % n_queues]);
             let name = format!("raster-{g} {}", names[g]);
-            handles.extend(spawn_back(s, g, rasterizer, rx, name, shared));
+            let only = n_rasterizers == 1;
+            handles.extend(spawn_back(s, g, rasterizer, rx, name, only, shared));
         }
         // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
         drop(receivers);
@@ -493,6 +511,7 @@ fn spawn_back<'scope>(
     mut rasterizer: Box<dyn WeightRasterizer>,
     rx: Arc<Mutex<mpsc::Receiver<FrontItem>>>,
     name: String,
+    only: bool,
     shared: &'scope Shared<'_>,
 ) -> [std::thread::ScopedJoinHandle<'scope, WorkerShare>; 3] {
     let (views, raster_intrinsics, params, dim, t_total) = (
@@ -527,8 +546,15 @@ fn spawn_back<'scope>(
     });
     let raster_pool = Arc::clone(&pool);
     let raster = s.spawn(move || {
+        let keep = match keep_on_device(&mut *rasterizer, params, dim, only) {
+            Ok(keep) => keep,
+            Err(e) => {
+                failure.fail(e);
+                None
+            }
+        };
         let step = |prepared, share: &mut WorkerShare| {
-            let out = back_raster(&mut *rasterizer, prepared);
+            let out = back_raster(&mut *rasterizer, prepared, keep);
             if let Some(p) = rasterizer.last_phases() {
                 share.raster_phases_ms.get_or_insert_default().add(&p);
             }
@@ -546,6 +572,11 @@ fn spawn_back<'scope>(
             step,
             send,
         );
+        if keep.is_some()
+            && let Ok(mut device) = shared.device.lock()
+        {
+            device.push(rasterizer);
+        }
         share
     });
     let image = s.spawn(move || {
@@ -572,6 +603,34 @@ fn spawn_back<'scope>(
         share
     });
     [prepare, raster, image]
+}
+
+/// Whether `rasterizer` keeps its views' sums on the device for the device reduction
+/// ([`crate::config::ReduceOn`]): `Some(whether the masks' record wants the dominant masks)`,
+/// or `None` for the host reduction. The device reduction needs the run's only rasterizer
+/// (`only`), a device with f64, and no per-level files.
+///
+/// Errors: `--reduce device` where it cannot run ([`Error::Param`] `reduce`).
+fn keep_on_device(
+    rasterizer: &mut dyn WeightRasterizer,
+    params: &EncodeParams,
+    dim: usize,
+    only: bool,
+) -> Result<Option<bool>> {
+    use crate::config::ReduceOn;
+    let forced = params.reduce_on == ReduceOn::Device;
+    let possible = params.reduce_on != ReduceOn::Host && only && !params.levels;
+    let keeps =
+        possible && rasterizer.keep_on_device(dim, params.device_reduce_budget_bytes, forced);
+    if forced && !keeps {
+        return Err(Error::param(
+            "reduce",
+            "device",
+            "a run with one GPU rasterizer whose device has f64, and no --levels \
+             (or --reduce host)",
+        ));
+    }
+    Ok(keeps.then_some(params.mask_record_slots.is_some()))
 }
 
 /// The rasterizers of a run: already made (for the coverage pass), or still to be made (while
@@ -714,8 +773,12 @@ fn finish_image(
     let t1 = Instant::now();
     let entries = out.contribution.entries.len();
     if let Some(record) = record {
-        // Each Gaussian's dominant mask here, found outside the record's lock.
-        let dominant = dominant_masks(&out.contribution.entries);
+        // Each Gaussian's dominant mask here (or from the device), found outside the record's
+        // lock.
+        let dominant = match &out.dominant {
+            Some(d) => d.clone(),
+            None => dominant_masks(&out.contribution.entries),
+        };
         let view = raster_view;
         record
             .lock()
@@ -741,7 +804,7 @@ fn finish_image(
 
 /// Each Gaussian's mask of largest `a_kj` in `entries` (sorted by Gaussian), ties to the
 /// smaller mask, as `(gaussian, mask, a_kj)`.
-fn dominant_masks(entries: &[crate::aggregate::Entry]) -> Vec<(u32, u32, f32)> {
+pub(crate) fn dominant_masks(entries: &[crate::aggregate::Entry]) -> Vec<(u32, u32, f32)> {
     let mut out: Vec<(u32, u32, f32)> = Vec::new();
     for e in entries {
         match out.last_mut() {

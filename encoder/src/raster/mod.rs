@@ -135,6 +135,47 @@ pub trait WeightRasterizer: Send {
         let _ = precomputed;
         self.label_sums(intrinsics, world_to_camera, labels)
     }
+    /// Starts keeping every labelled view's sums on the device for the device reduction
+    /// ([`Self::label_sums_kept`], then [`Self::reduce_kept`]): `dim` is the embedding width,
+    /// `budget_bytes` the most device memory the kept sums may take, `on_cpu_adapter` whether a
+    /// CPU device (lavapipe) may keep them too. Returns whether this rasterizer keeps them; the
+    /// default (and a device without f64) does not, and the encoder reduces on the host.
+    fn keep_on_device(&mut self, dim: usize, budget_bytes: u64, on_cpu_adapter: bool) -> bool {
+        let _ = (dim, budget_bytes, on_cpu_adapter);
+        false
+    }
+    /// [`Self::label_sums_precomputed`] whose sums stay on the device, with the view's masks
+    /// (`masks`) for their expansion at the reduction: nothing per `a_kj` is read back. Returns
+    /// the view's contributions and, with [`KeptMasks::dominant`], each Gaussian's dominant mask
+    /// for the masks' record; `Ok(None)` when this rasterizer does not keep sums
+    /// ([`Self::keep_on_device`]).
+    ///
+    /// Errors: as [`Self::label_sums`]; the kept sums would pass the budget ([`Error::Limit`]
+    /// `GpuMemory`).
+    fn label_sums_kept(
+        &mut self,
+        intrinsics: &Intrinsics,
+        world_to_camera: &slag_common::camera::WorldToCamera,
+        labels: &[u32],
+        precomputed: Option<PrecomputedView>,
+        masks: KeptMasks<'_>,
+    ) -> Result<Option<KeptView>> {
+        let _ = (intrinsics, world_to_camera, labels, precomputed, masks);
+        Ok(None)
+    }
+    /// The device reduction of every kept view (`E_k`, its kept mixture pairs, the unobserved
+    /// rule: the host reduction's, see [`gpu`]'s `ek` module), tile by tile of Gaussian ids
+    /// ascending into `sink`; the kept sums are freed.
+    ///
+    /// Errors: nothing kept (the default: [`Error::Internal`]); device failures; `sink`'s.
+    fn reduce_kept(
+        &mut self,
+        params: &DeviceReduce,
+        sink: &mut dyn FnMut(KeptTile) -> Result<()>,
+    ) -> Result<KeptReduced> {
+        let _ = (params, sink);
+        Err(Error::internal("this rasterizer keeps no sums on its device"))
+    }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;
     /// Phase timings of the last successful [`Self::rasterize`] or [`Self::label_sums`] run,
@@ -142,6 +183,65 @@ pub trait WeightRasterizer: Send {
     fn last_phases(&self) -> Option<PhaseTimings> {
         None
     }
+}
+
+/// One view's masks as the device reduction expands its label sums
+/// ([`WeightRasterizer::label_sums_kept`]).
+#[derive(Debug, Clone, Copy)]
+pub struct KeptMasks<'a> {
+    /// `[L]` the masks of each pixel label (label 0: none), as [`crate::aggregate::PixelLabels`]
+    /// holds them.
+    pub masks_of: &'a [Vec<u32>],
+    /// `[M]` each mask's weighting factor (`aggregate::image::mask_factors`); empty: all 1.
+    pub factors: &'a [f32],
+    /// `[M × D]` the masks' CLIP embeddings `E_j`, row-major.
+    pub embeddings: &'a [f32],
+    /// Also find each Gaussian's dominant mask of the view (the masks' record).
+    pub dominant: bool,
+}
+
+/// What [`WeightRasterizer::label_sums_kept`] returns of a view.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct KeptView {
+    /// `(pixel, Gaussian)` contributions over labelled pixels.
+    pub contributions: u64,
+    /// With [`KeptMasks::dominant`]: `(Gaussian, mask, a_kj)` per Gaussian of the view, the
+    /// mask of largest `a_kj` (ties: the smaller mask), Gaussians ascending.
+    pub dominant: Vec<(u32, u32, f32)>,
+}
+
+/// Knobs of the device reduction ([`WeightRasterizer::reduce_kept`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DeviceReduce {
+    /// `aggregate::ReduceParams::min_total_weight`: below it a Gaussian is unobserved.
+    pub min_total_weight: f64,
+    /// Kept `(a_kj, codebook row)` pairs per Gaussian (the mixture's `S`), 1 to 32.
+    pub keep: usize,
+    /// Also return the unit rows `E_k` (the dense file).
+    pub dense: bool,
+}
+
+/// One tile of the device reduction: its observed Gaussians, ascending.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct KeptTile {
+    /// `[B]` Gaussian ids.
+    pub ids: Vec<u32>,
+    /// `[B]` `Σ_i Σ_j a_kj`, rounded to f32.
+    pub total_weights: Vec<f32>,
+    /// `[B]` the kept `(a_kj, codebook row)` pairs, at most `keep` each (unordered).
+    pub kept: Vec<Vec<(f32, u32)>>,
+    /// With [`DeviceReduce::dense`]: `[B × D]` the unit `E_k`, f32; else empty.
+    pub rows: Vec<f32>,
+}
+
+/// What [`WeightRasterizer::reduce_kept`] leaves besides the tiles.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct KeptReduced {
+    /// Tiles the reduction used.
+    pub tiles: usize,
+    /// `[M × D]` every kept view's mask embeddings in keeping order: the codebook the kept
+    /// pairs' rows index.
+    pub codebook: Vec<f32>,
 }
 
 /// A rasterizer's per-view host work, done on the caller's thread

@@ -962,3 +962,104 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
         gpu.set_label_records(1 << 16, None);
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// the device reduction
+
+/// The device reduction (label sums kept on the device, reduced there in tiles) gives the host
+/// pipeline's results: the same observed Gaussians, `Σ a_kj`, unit `E_k` within f64 round-off,
+/// the same kept mixture pairs and the same dominant masks, with overlapping masks, area
+/// weighting, several views and tiles of a few blocks of Gaussians.
+#[test]
+fn device_reduction_equals_the_host_reduction() {
+    use crate::aggregate::{
+        ContributionStore, ImageStageParams, MaskWeighting, ReduceParams, reduce,
+        reduce_mixture_sparse,
+    };
+    use crate::pipeline::view_contribution;
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let Some(mut host_gpu) = gpu(&g) else { return };
+    let Some(mut dev) = gpu(&g) else { return };
+    let dim = 70; // two values per thread for some threads of the 64-wide workgroup
+    assert!(
+        dev.keep_on_device(dim, 1 << 30, true),
+        "the device (lavapipe in CI) has f64: it keeps the label sums"
+    );
+    dev.set_reduce_tile_bytes(Some(100_000));
+    let params = ImageStageParams {
+        mask_weighting: MaskWeighting::Area,
+        ..Default::default()
+    };
+    let mut store = ContributionStore::new(1 << 30, std::env::temp_dir());
+    let mut dominants = Vec::new();
+    for seed in 0..5u64 {
+        let (k, w2c) = test_camera(seed);
+        let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
+        let mut r = SplitMix64::new(seed ^ 0xE3B);
+        let emb: Vec<f32> = (0..masks.len() * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
+        let (c, _) =
+            view_contribution(&mut host_gpu, &k, &w2c, &masks, emb.clone(), dim, params).unwrap();
+        let labels = crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap)
+            .merged();
+        let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
+        let kept = KeptMasks {
+            masks_of: &labels.masks_of,
+            factors: &factors,
+            embeddings: &emb,
+            dominant: true,
+        };
+        let view = dev
+            .label_sums_kept(&k, &w2c, &labels.labels, None, kept)
+            .unwrap()
+            .expect("kept");
+        assert_eq!(view.dominant, crate::pipeline::pool::dominant_masks(&c.entries), "view {seed}");
+        dominants.push(view.dominant);
+        store.push(c).unwrap();
+    }
+    let rp = ReduceParams::default();
+    let host = reduce(&store, n, dim, rp).unwrap();
+    let keep = 3;
+    let means = g.means.clone();
+    let sparse = reduce_mixture_sparse(&store, n, dim, rp, keep, "m", &means).unwrap();
+    let p = DeviceReduce {
+        min_total_weight: rp.min_total_weight,
+        keep,
+        dense: true,
+    };
+    let mut tiles = Vec::new();
+    let out = dev.reduce_kept(&p, &mut |t| {
+        tiles.push(t);
+        Ok(())
+    });
+    let out = out.unwrap();
+    assert!(out.tiles >= 2, "{} tiles: the small tile budget splits the scene", out.tiles);
+    assert_eq!(out.codebook, sparse.codebook, "the codebook rows in view order");
+    let ids: Vec<u32> = tiles.iter().flat_map(|t| t.ids.clone()).collect();
+    assert!(host.ids.len() > 100, "{} observed Gaussians: too few to test", host.ids.len());
+    let missing: Vec<&u32> = host.ids.iter().filter(|k| !ids.contains(k)).take(10).collect();
+    assert_eq!(ids.len(), host.ids.len(), "observed Gaussians; first missing {missing:?}");
+    assert_eq!(ids, host.ids, "observed Gaussians");
+    let totals: Vec<f32> = tiles.iter().flat_map(|t| t.total_weights.clone()).collect();
+    for (d, h) in totals.iter().zip(&host.total_weights) {
+        assert!((d - h).abs() <= 1e-6 * h.abs(), "Σ a {d} vs host {h}");
+    }
+    let rows: Vec<f32> = tiles.iter().flat_map(|t| t.rows.clone()).collect();
+    for (d, h) in rows.iter().zip(&host.vectors) {
+        assert!((d - h).abs() <= 2e-7, "E_k value {d} vs host {h}");
+    }
+    let kept: Vec<Vec<(f32, u32)>> = tiles.into_iter().flat_map(|t| t.kept).collect();
+    for (i, row) in kept.iter().enumerate() {
+        let (a, b) = (sparse.offsets[i], sparse.offsets[i + 1]);
+        let mut dev_row: Vec<(u32, f64)> = row.iter().map(|&(w, j)| (j, w as f64)).collect();
+        let mut host_row: Vec<(u32, f64)> = sparse.atoms[a..b]
+            .iter()
+            .copied()
+            .zip(sparse.weights[a..b].iter().copied())
+            .collect();
+        dev_row.sort_by_key(|x| x.0);
+        host_row.sort_by_key(|x| x.0);
+        assert_eq!(dev_row, host_row, "kept pairs of Gaussian {}", ids[i]);
+    }
+    assert!(dominants.iter().all(|d| !d.is_empty()));
+}

@@ -168,6 +168,16 @@ impl GpuRasterizer {
             written += wanted;
             if wanted > 0 {
                 bands += 1;
+                if let Some((id, dominant)) = self.keeping {
+                    // Kept on the device for the device reduction: nothing read back.
+                    let (reduced, keys) =
+                        self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+                    let heads = self.keep_band(id, &reduced, keys, dominant)?;
+                    self.kept_heads.extend(heads);
+                    kept = Some(out);
+                    r0 = r1;
+                    continue;
+                }
                 let mut enc = self.device.create_command_encoder(&Default::default());
                 // One record per key (reduced on the device), or the records as written.
                 let bytes = if self.reduce_on_device {

@@ -78,11 +78,13 @@ use wgpu::util::DeviceExt;
 
 use super::project::{jacobian_limits, tile_grid};
 use super::{
-    LabelSums, PixelWeights, PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
+    DeviceReduce, KeptMasks, KeptReduced, KeptTile, KeptView, LabelSums, PixelWeights,
+    PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
 };
 
 mod buffers;
 mod count_scan;
+pub mod ek;
 pub mod icd;
 mod label_sums;
 pub mod project;
@@ -246,6 +248,16 @@ pub struct GpuRasterizer {
     /// Whether the label-sum records are reduced on the device before the readback (the
     /// default) or read back as written (testing aid, [`Self::set_label_reduce_on_device`]).
     reduce_on_device: bool,
+    /// The adapter is a CPU device (lavapipe).
+    cpu_adapter: bool,
+    /// The kept views of the device reduction ([`ek`]), once keeping started.
+    kept: Option<ek::Kept>,
+    /// While a kept view runs: its id, and whether its dominant masks are wanted.
+    keeping: Option<(u32, bool)>,
+    /// The dominant masks of the kept view's bands so far.
+    kept_heads: Vec<(u32, u32, f32)>,
+    /// Testing aid: bytes of one tile of the device reduction ([`Self::set_reduce_tile_bytes`]).
+    reduce_tile_bytes: Option<u64>,
 }
 
 /// What one [`GpuRasterizer::run`] produced.
@@ -461,7 +473,8 @@ impl GpuRasterizer {
         let limits = adapter.limits();
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("slag-raster"),
-            required_features: wgpu::Features::empty(),
+            // f64 for the device reduction (ek.wgsl), where the adapter has it.
+            required_features: adapter.features() & wgpu::Features::SHADER_F64,
             required_limits: limits.clone(),
             ..Default::default()
         }))
@@ -574,6 +587,11 @@ impl GpuRasterizer {
             label_record_count: 0,
             reduce: None,
             reduce_on_device: true,
+            cpu_adapter: info.device_type == wgpu::DeviceType::Cpu,
+            kept: None,
+            keeping: None,
+            kept_heads: Vec::new(),
+            reduce_tile_bytes: None,
         })
     }
 
@@ -901,6 +919,49 @@ impl WeightRasterizer for GpuRasterizer {
         let out = self.label_sums(k, w2c, labels);
         self.precomputed = None;
         out
+    }
+
+    fn keep_on_device(&mut self, dim: usize, budget_bytes: u64, on_cpu_adapter: bool) -> bool {
+        if self.cpu_adapter && !on_cpu_adapter {
+            return false;
+        }
+        self.kept.is_some() || self.start_keeping(dim, budget_bytes)
+    }
+
+    fn label_sums_kept(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        labels: &[u32],
+        precomputed: Option<PrecomputedView>,
+        masks: KeptMasks<'_>,
+    ) -> Result<Option<KeptView>> {
+        if self.kept.is_none() || !self.reduce_on_device {
+            return Ok(None);
+        }
+        let id = self.begin_kept_view(&masks)?;
+        self.keeping = Some((id, masks.dominant));
+        self.kept_heads.clear();
+        self.precomputed = precomputed;
+        let out = self.label_sums(k, w2c, labels);
+        self.precomputed = None;
+        self.keeping = None;
+        let sums = out?.ok_or_else(|| Error::internal("no sums from a kept view"))?;
+        let mut dominant = std::mem::take(&mut self.kept_heads);
+        // A view of several bands: its bands' Gaussians interleave; keep them ascending.
+        dominant.sort_by_key(|d| d.0);
+        Ok(Some(KeptView {
+            contributions: sums.contributions,
+            dominant,
+        }))
+    }
+
+    fn reduce_kept(
+        &mut self,
+        params: &DeviceReduce,
+        sink: &mut dyn FnMut(KeptTile) -> Result<()>,
+    ) -> Result<KeptReduced> {
+        self.reduce_kept_tiles(params, sink)
     }
 
     fn name(&self) -> &str {

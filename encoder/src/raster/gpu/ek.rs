@@ -1,0 +1,591 @@
+//! The device reduction `E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj` (`ek.wgsl`): every labelled view's
+//! device-reduced label sums stay on the device ([`GpuRasterizer::keep_label_sums`]) with the
+//! view's label table and its masks' codebook rows, and at the end the Gaussians are reduced in
+//! tiles ([`GpuRasterizer::reduce_kept`]): the same terms as the host's image stage and f64
+//! reduction (`aggregate::image::expand_labels`, `aggregate::reduce`), the same unobserved rule,
+//! the same kept pairs as the mixture's, without any `a_kj` crossing to the host.
+//!
+//! Memory on the device: each view's reduced records (16 B per (Gaussian, label) key), kept until
+//! the end, counted against a budget ([`DeviceReduce::budget_bytes`]); at the end, per tile, its
+//! records again with the sort's buffers (about 40 B a record) and the tile's outputs. On the
+//! host: 4 B per view and block of [`BLOCK_GAUSSIANS`] Gaussians, the label tables and the
+//! codebook (`M × D` f32).
+//!
+//! The kernels need f64 (wgpu `SHADER_F64`): a device without it keeps no views, and the encoder
+//! reduces on the host.
+
+use slag_common::{Error, Resource, Result};
+
+use super::buffers::{storage, storage_init};
+use super::reduce::record_radix_shifts;
+use super::sort::{SortBuffers, groups_2d};
+use super::{GROUPS_X, GpuRasterizer, Params};
+use crate::raster::{DeviceReduce, KeptMasks, KeptReduced, KeptTile};
+
+/// Gaussians per block of a view's record index (`ek.wgsl` `BLOCK_GAUSSIANS`): tiles of the
+/// reduction are whole blocks.
+pub(super) const BLOCK_GAUSSIANS: u32 = 4096;
+/// Widest embedding the kernel holds in registers (`ek.wgsl`: 64 threads × 16).
+pub const MAX_DIM: usize = 1024;
+/// Most kept pairs per Gaussian (`ek.wgsl` `MAX_KEEP`).
+pub const MAX_KEEP: usize = 32;
+/// Most bytes of one tile's outputs (meta, kept pairs, rows) and of its records.
+const TILE_BYTES: u64 = 1 << 30;
+
+/// The uniform of `ek.wgsl` (`EkParams`): an f64 then 10 u32, 48 bytes.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct EkParams {
+    min_total_weight: f64,
+    n_records: u32,
+    g0: u32,
+    n_tile: u32,
+    dim: u32,
+    keep: u32,
+    n_segments: u32,
+    groups_x: u32,
+    dense: u32,
+    n_blocks: u32,
+    pad0: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<EkParams>() == 48);
+
+/// One band of a kept view: its reduced records on the device and where each block of
+/// Gaussians starts among them.
+struct KeptPart {
+    records: wgpu::Buffer,
+    /// The view (an index into [`Kept::views`]).
+    view: u32,
+    /// `[blocks + 1]`: index of the first record of each block of [`BLOCK_GAUSSIANS`], `n` last.
+    starts: Vec<u32>,
+}
+
+/// Every kept view, and the kernels that reduce them.
+pub(super) struct Kept {
+    block_starts: wgpu::ComputePipeline,
+    ek_reduce: wgpu::ComputePipeline,
+    dominant: wgpu::ComputePipeline,
+    dim: usize,
+    budget: u64,
+    bytes: u64,
+    parts: Vec<KeptPart>,
+    /// The views' label tables, one after the other (layout: see [`push_table`]).
+    tables: Vec<u32>,
+    /// Per view: the base of its table in `tables`, its first codebook row.
+    views: Vec<[u32; 2]>,
+    /// `[M × D]` every kept view's mask embeddings, in view order.
+    codebook: Vec<f32>,
+}
+
+/// Appends one view's label table to `tables` and returns its base: `[n_labels, factors
+/// offset, n_labels + 1 mask offsets, the masks of every label, one f32 factor (bits) per
+/// mask]`, offsets relative to the base. Without factors every mask's is 1.
+fn push_table(tables: &mut Vec<u32>, masks: &KeptMasks<'_>, n_masks: usize) -> Result<u32> {
+    let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
+    let base = u32::try_from(tables.len()).map_err(|_| too_big())?;
+    let n_labels = masks.masks_of.len();
+    let header = 2 + n_labels + 1;
+    let n_entries: usize = masks.masks_of.iter().map(Vec::len).sum();
+    let factors_at = header + n_entries;
+    let mut table = Vec::with_capacity(factors_at + n_masks);
+    table.extend([n_labels as u32, factors_at as u32]);
+    let mut at = header;
+    for set in masks.masks_of {
+        table.push(at as u32);
+        at += set.len();
+    }
+    table.push(at as u32);
+    for set in masks.masks_of {
+        table.extend_from_slice(set);
+    }
+    for j in 0..n_masks {
+        let f = masks.factors.get(j).copied().unwrap_or(1.0);
+        table.push(f.to_bits());
+    }
+    tables.extend_from_slice(&table);
+    u32::try_from(tables.len()).map_err(|_| too_big())?;
+    Ok(base)
+}
+
+/// The dominant masks the `dominant` kernel wrote (4 words per record: Gaussian, mask, a bits,
+/// 0; Gaussian `u32::MAX` where no Gaussian starts), in record order: Gaussians ascending.
+fn dominant_heads(bytes: &[u8]) -> Vec<(u32, u32, f32)> {
+    let words: Vec<[u32; 4]> = bytemuck::pod_collect_to_vec(bytes);
+    words
+        .iter()
+        .filter(|w| w[0] != u32::MAX)
+        .map(|w| (w[0], w[1], f32::from_bits(w[2])))
+        .collect()
+}
+
+/// A tile of the reduction: blocks `[b0, b1)` and, per part, its records there.
+struct Tile {
+    g0: u32,
+    n_tile: u32,
+    /// Per part with records: (part, first record, count).
+    ranges: Vec<(usize, u32, u32)>,
+    records: u64,
+}
+
+impl GpuRasterizer {
+    /// Starts keeping every labelled view's sums on the device for [`Self::reduce_kept`]
+    /// (`dim`: the embedding width, at most [`MAX_DIM`]; `budget_bytes`: the most device memory
+    /// the kept records may take). Returns whether it does: the device needs f64 and the label
+    /// sums reduced on the device.
+    pub(super) fn start_keeping(&mut self, dim: usize, budget_bytes: u64) -> bool {
+        if !self.device.features().contains(wgpu::Features::SHADER_F64)
+            || !self.reduce_on_device
+            || dim == 0
+            || dim > MAX_DIM
+        {
+            return false;
+        }
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("slag-ek kernels"),
+                source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
+            });
+        let pipe = |entry: &str| {
+            self.device
+                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: None,
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+        };
+        let (block_starts, ek_reduce, dominant) =
+            (pipe("block_starts"), pipe("ek_reduce"), pipe("dominant"));
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            tracing::warn!(error = %e, "the device reduction's kernels do not build here; reducing on the host");
+            return false;
+        }
+        self.kept = Some(Kept {
+            block_starts,
+            ek_reduce,
+            dominant,
+            dim,
+            budget: budget_bytes,
+            bytes: 0,
+            parts: Vec::new(),
+            tables: Vec::new(),
+            views: Vec::new(),
+            codebook: Vec::new(),
+        });
+        true
+    }
+
+    /// Registers the next kept view's masks (label table, factors, embeddings) and returns its
+    /// id, which [`Self::keep_band`] tags its records with.
+    ///
+    /// Errors: embeddings not `M × D` ([`Error::Internal`]: the image stage checked them); tables or codebook past 2^32.
+    pub(super) fn begin_kept_view(&mut self, masks: &KeptMasks<'_>) -> Result<u32> {
+        let Some(kept) = self.kept.as_mut() else {
+            return Err(Error::internal("a kept view without keeping started"));
+        };
+        let dim = kept.dim;
+        if masks.embeddings.len() % dim != 0 {
+            return Err(Error::internal(format!(
+                "{} mask embedding values are not rows of {dim}",
+                masks.embeddings.len()
+            )));
+        }
+        let n_masks = masks.embeddings.len() / dim;
+        let base = push_table(&mut kept.tables, masks, n_masks)?;
+        let row = u32::try_from(kept.codebook.len() / dim)
+            .map_err(|_| Error::Invalid("more than 2^32 kept mask embeddings".into()))?;
+        kept.codebook.extend_from_slice(masks.embeddings);
+        let id = kept.views.len() as u32;
+        kept.views.push([base, row]);
+        Ok(id)
+    }
+
+    /// Keeps the `n` reduced records of one band of view `view` (in `reduced`, sorted by
+    /// (Gaussian, label)) on the device, with the index of where each block of Gaussians starts;
+    /// with `dominant`, also returns each Gaussian's dominant mask of the band for the masks'
+    /// record (`(Gaussian, mask, a_kj)`, Gaussians ascending; `aggregate`'s rule: the largest
+    /// `a_kj`, ties to the smaller mask).
+    ///
+    /// Errors: the kept records would pass the budget ([`Error::Limit`] `GpuMemory`, naming the
+    /// flag that raises it); device failures.
+    pub(super) fn keep_band(
+        &mut self,
+        view: u32,
+        reduced: &wgpu::Buffer,
+        n: u32,
+        dominant: bool,
+    ) -> Result<Vec<(u32, u32, f32)>> {
+        let bytes = u64::from(n) * 16;
+        let Some(kept) = self.kept.as_ref() else {
+            return Err(Error::internal("a kept band without keeping started"));
+        };
+        if kept.bytes + bytes > kept.budget {
+            return Err(Error::limit(
+                Resource::GpuMemory,
+                format!(
+                    "{} MiB of label sums kept on the device for the reduction",
+                    (kept.bytes + bytes) >> 20
+                ),
+                format!(
+                    "{} MiB (--device-reduce-memory-mb; or --reduce host)",
+                    kept.budget >> 20
+                ),
+            ));
+        }
+        let records = storage(&self.device, "kept_records", bytes);
+        let blocks = self.n.div_ceil(BLOCK_GAUSSIANS);
+        let starts_bytes = (u64::from(blocks) + 1) * 4;
+        let starts_buf = storage(&self.device, "kept_block_starts", starts_bytes);
+        let dom_bytes = if dominant { u64::from(n) * 16 } else { 4 };
+        let dom = storage(&self.device, "kept_dominant", dom_bytes);
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        if n > 0 {
+            enc.copy_buffer_to_buffer(reduced, 0, &records, 0, bytes);
+            let params = self.ek_uniform(&EkParams {
+                n_records: n,
+                n_blocks: blocks,
+                groups_x: GROUPS_X,
+                pad0: kept.views.get(view as usize).map_or(0, |v| v[0]),
+                ..bytemuck::Zeroable::zeroed()
+            });
+            let tables = dominant.then(|| {
+                storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(&kept.tables))
+            });
+            let (x, y) = groups_2d(n.div_ceil(256));
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            let bg = self.bind(
+                &kept.block_starts,
+                &[(0, &params), (1, &records), (2, &starts_buf)],
+            );
+            pass.set_pipeline(&kept.block_starts);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+            if let Some(tables) = &tables {
+                let bg = self.bind(
+                    &kept.dominant,
+                    &[(0, &params), (1, &records), (4, tables), (7, &dom)],
+                );
+                pass.set_pipeline(&kept.dominant);
+                pass.set_bind_group(0, &bg, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        let mut reads = vec![(&starts_buf, 0, starts_bytes)];
+        if dominant && n > 0 {
+            reads.push((&dom, 0, dom_bytes));
+        }
+        let read = self.submit_and_read(enc, &reads)?;
+        let starts: Vec<u32> = if n > 0 {
+            bytemuck::pod_collect_to_vec(&read[0][..starts_bytes as usize])
+        } else {
+            vec![0; blocks as usize + 1]
+        };
+        let heads = match read.get(1) {
+            Some(bytes) => dominant_heads(&bytes[..dom_bytes as usize]),
+            None => Vec::new(),
+        };
+        let kept = self.kept.as_mut().ok_or_else(|| Error::internal("keeping stopped"))?;
+        kept.bytes += bytes;
+        kept.parts.push(KeptPart {
+            records,
+            view,
+            starts,
+        });
+        Ok(heads)
+    }
+
+    /// Testing aid: the most bytes of one tile's records and outputs (default 1 GiB, and at
+    /// most one binding); a tile holds at least one block of Gaussians whatever it says.
+    pub fn set_reduce_tile_bytes(&mut self, bytes: Option<u64>) {
+        self.reduce_tile_bytes = bytes;
+    }
+
+    fn ek_uniform(&self, p: &EkParams) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        self.device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("ek_params"),
+                contents: bytemuck::bytes_of(p),
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+    }
+
+    /// The tiles of the reduction: runs of whole blocks whose records fit one tile buffer and
+    /// whose outputs (`out_per_gaussian` bytes each) fit `tile_bytes` (at least one block).
+    ///
+    /// Errors: one block holds more records than a tile can ([`Error::Limit`] `GpuBinding`).
+    fn kept_tiles(&self, kept: &Kept, out_per_gaussian: u64, tile_bytes: u64) -> Result<Vec<Tile>> {
+        let blocks = self.n.div_ceil(BLOCK_GAUSSIANS) as usize;
+        let record_cap = (self.max_binding().min(tile_bytes) / 16).saturating_sub(1);
+        let gaussian_cap = (self.max_binding().min(tile_bytes) / out_per_gaussian.max(1))
+            .max(u64::from(BLOCK_GAUSSIANS));
+        let block_records = |b: usize| -> u64 {
+            kept.parts
+                .iter()
+                .map(|p| u64::from(p.starts[b + 1] - p.starts[b]))
+                .sum()
+        };
+        let mut tiles = Vec::new();
+        let mut b0 = 0usize;
+        while b0 < blocks {
+            let mut b1 = b0;
+            let mut records = 0u64;
+            while b1 < blocks {
+                let more = block_records(b1);
+                let gaussians = (b1 + 1 - b0) as u64 * u64::from(BLOCK_GAUSSIANS);
+                if b1 > b0 && (records + more > record_cap || gaussians > gaussian_cap) {
+                    break;
+                }
+                if more > record_cap {
+                    return Err(Error::limit(
+                        Resource::GpuBinding,
+                        format!("{more} kept label sums for {BLOCK_GAUSSIANS} Gaussians"),
+                        format!("{record_cap} per tile of the device reduction"),
+                    ));
+                }
+                records += more;
+                b1 += 1;
+            }
+            let g0 = b0 as u32 * BLOCK_GAUSSIANS;
+            let g1 = (b1 as u32 * BLOCK_GAUSSIANS).min(self.n);
+            let ranges = kept
+                .parts
+                .iter()
+                .enumerate()
+                .filter_map(|(i, p)| {
+                    let (s, e) = (p.starts[b0], p.starts[b1]);
+                    (e > s).then_some((i, s, e - s))
+                })
+                .collect();
+            tiles.push(Tile {
+                g0,
+                n_tile: g1 - g0,
+                ranges,
+                records,
+            });
+            b0 = b1;
+        }
+        Ok(tiles)
+    }
+
+    /// Reduces every kept view (see the module docs), tile by tile of Gaussian ids ascending,
+    /// handing each tile's observed Gaussians to `sink`; keeping stops and the kept records are
+    /// freed. Returns the number of tiles and the codebook.
+    ///
+    /// Errors: nothing kept ([`Error::Internal`]); `p.keep` above [`MAX_KEEP`] ([`Error::Param`]);
+    /// device failures; `sink`'s.
+    pub(super) fn reduce_kept_tiles(
+        &mut self,
+        p: &DeviceReduce,
+        sink: &mut dyn FnMut(KeptTile) -> Result<()>,
+    ) -> Result<KeptReduced> {
+        let Some(kept) = self.kept.take() else {
+            return Err(Error::internal("the device reduction has no kept views"));
+        };
+        if p.keep == 0 || p.keep > MAX_KEEP {
+            return Err(Error::param(
+                "mixture_keep",
+                p.keep,
+                format!("1 to {MAX_KEEP} for the device reduction (or --reduce host)"),
+            ));
+        }
+        let dim = kept.dim;
+        let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
+        let out_per_gaussian = 8 + p.keep as u64 * 8 + if p.dense { dim as u64 * 4 } else { 0 };
+        let tiles = self.kept_tiles(&kept, out_per_gaussian, tile_bytes)?;
+        let tables = storage_init(&self.device, "ek_tables", bytemuck::cast_slice(&kept.tables));
+        let codebook = storage_init(
+            &self.device,
+            "ek_codebook",
+            bytemuck::cast_slice(&kept.codebook),
+        );
+        let shared = TileShared {
+            kept: &kept,
+            tables: &tables,
+            codebook: &codebook,
+            p,
+        };
+        let mut sort: Option<SortBuffers> = None;
+        for tile in &tiles {
+            let out = self.reduce_tile(&shared, tile, &mut sort)?;
+            sink(out)?;
+        }
+        Ok(KeptReduced {
+            tiles: tiles.len(),
+            codebook: kept.codebook,
+        })
+    }
+
+    /// One tile: its records gathered view by view, sorted by Gaussian, reduced, read back.
+    fn reduce_tile(
+        &self,
+        s: &TileShared<'_>,
+        tile: &Tile,
+        sort: &mut Option<SortBuffers>,
+    ) -> Result<KeptTile> {
+        let (kept, p, dim) = (s.kept, s.p, s.kept.dim);
+        let n_tile = u64::from(tile.n_tile);
+        let n = tile.records as u32;
+        // The tile's records after a 4-word header (the layout record_keys reads), and per part
+        // its segment: first record, view, table base, codebook row.
+        let recs = storage(&self.device, "ek_tile_records", 16 + tile.records * 16);
+        let mut segs: Vec<[u32; 4]> = Vec::with_capacity(tile.ranges.len().max(1));
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        let mut at = 0u32;
+        for &(i, first, count) in &tile.ranges {
+            let part = &kept.parts[i];
+            let [base, row] = kept.views[part.view as usize];
+            segs.push([at, part.view, base, row]);
+            enc.copy_buffer_to_buffer(
+                &part.records,
+                u64::from(first) * 16,
+                &recs,
+                16 + u64::from(at) * 16,
+                u64::from(count) * 16,
+            );
+            at += count;
+        }
+        if segs.is_empty() {
+            segs.push([0; 4]);
+        }
+        let segs_buf = storage_init(&self.device, "ek_segments", bytemuck::cast_slice(&segs));
+        let meta = storage(&self.device, "ek_meta", n_tile * 8);
+        let kept_out = storage(&self.device, "ek_kept", n_tile * p.keep as u64 * 8);
+        let rows = storage(
+            &self.device,
+            "ek_rows",
+            if p.dense { n_tile * dim as u64 * 4 } else { 4 },
+        );
+        for b in [&meta, &kept_out, &rows] {
+            enc.clear_buffer(b, 0, None);
+        }
+        let order = if n > 0 {
+            Some(self.sort_tile(&mut enc, &recs, n, sort)?)
+        } else {
+            None
+        };
+        if let Some(order) = &order {
+            let params = self.ek_uniform(&EkParams {
+                min_total_weight: p.min_total_weight,
+                n_records: n,
+                g0: tile.g0,
+                n_tile: tile.n_tile,
+                dim: dim as u32,
+                keep: p.keep as u32,
+                n_segments: segs.len() as u32,
+                groups_x: GROUPS_X,
+                dense: u32::from(p.dense),
+                n_blocks: 0,
+                pad0: 0,
+            });
+            let bg = self.bind(
+                &kept.ek_reduce,
+                &[
+                    (0, &params),
+                    (1, &recs),
+                    (2, order),
+                    (3, &segs_buf),
+                    (4, s.tables),
+                    (5, s.codebook),
+                    (6, &meta),
+                    (7, &kept_out),
+                    (8, &rows),
+                ],
+            );
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&kept.ek_reduce);
+            pass.set_bind_group(0, &bg, &[]);
+            let (x, y) = groups_2d(n);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+        let mut reads = vec![(&meta, 0, n_tile * 8), (&kept_out, 0, n_tile * p.keep as u64 * 8)];
+        if p.dense {
+            reads.push((&rows, 0, n_tile * dim as u64 * 4));
+        }
+        let read = self.submit_and_read(enc, &reads)?;
+        Ok(tile_output(tile, p, dim, &read))
+    }
+
+    /// Records the stable sort of the tile's `n` records by Gaussian (the raster module's
+    /// `record_keys` and radix passes over the Gaussian-id bits only) and returns the buffer of
+    /// sorted record indices.
+    fn sort_tile(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        recs: &wgpu::Buffer,
+        n: u32,
+        kept: &mut Option<SortBuffers>,
+    ) -> Result<wgpu::Buffer> {
+        let sb = self.sort_buffers(kept.take(), u64::from(n));
+        let shifts = record_radix_shifts(0, self.n);
+        let base = Params {
+            n_keys: n,
+            n_pixels: n,
+            groups_x: GROUPS_X,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        let radix = self.radix_params(n, &shifts, &base);
+        let params = self.uniform(&base);
+        let (x, y) = groups_2d(n.div_ceil(256));
+        {
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            let p = &self.pipelines;
+            let bg = self.bind(
+                &p.record_keys,
+                &[(0, &params), (13, recs), (16, &sb.keys[0]), (17, &sb.vals[0])],
+            );
+            pass.set_pipeline(&p.record_keys);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+            self.encode_radix_passes(&mut pass, &sb, n, &radix);
+        }
+        let order = sb.vals[shifts.len() % 2].clone();
+        *kept = Some(sb);
+        Ok(order)
+    }
+}
+
+/// What every tile of one reduction shares.
+struct TileShared<'a> {
+    kept: &'a Kept,
+    tables: &'a wgpu::Buffer,
+    codebook: &'a wgpu::Buffer,
+    p: &'a DeviceReduce,
+}
+
+/// The observed Gaussians of a tile from its read-back outputs (`read`: meta, kept pairs, and
+/// with `p.dense` the rows).
+fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[Vec<u8>]) -> KeptTile {
+    let n_tile = tile.n_tile as usize;
+    // Read-back bytes carry no alignment: copied out, not cast in place.
+    let meta: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0][..n_tile * 8]);
+    let pairs: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[1][..n_tile * p.keep * 8]);
+    let rows: Vec<f32> = if p.dense {
+        bytemuck::pod_collect_to_vec(&read[2][..n_tile * dim * 4])
+    } else {
+        Vec::new()
+    };
+    let mut out = KeptTile::default();
+    for (i, m) in meta.iter().enumerate() {
+        if m[0] != 1 {
+            continue;
+        }
+        out.ids.push(tile.g0 + i as u32);
+        out.total_weights.push(f32::from_bits(m[1]));
+        let kept = pairs[i * p.keep..(i + 1) * p.keep]
+            .iter()
+            .filter(|s| s[0] != u32::MAX)
+            .map(|s| (f32::from_bits(s[1]), s[0]))
+            .collect();
+        out.kept.push(kept);
+        if p.dense {
+            out.rows.extend_from_slice(&rows[i * dim..(i + 1) * dim]);
+        }
+    }
+    out
+}

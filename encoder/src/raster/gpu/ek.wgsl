@@ -1,0 +1,346 @@
+// The device reduction E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj (gpu/ek.rs), a shader module of its own
+// because it needs f64 (wgpu's SHADER_F64): the raster module compiles on devices without it.
+//
+// Each labelled view leaves its device-reduced label sums on the device (records sorted by
+// (Gaussian, label), one per key: Gaussian, label, low and high word of the 2^-32 fixed-point sum),
+// with its label table (the masks of each pixel label, the masks' weighting factors) and the base
+// of its masks in the codebook. Nothing per entry is read back.
+//
+//   block_starts   one thread per record of one view: starts[b] = index of the first record whose
+//                  Gaussian is at or after b·BLOCK_GAUSSIANS (starts[n_blocks] = n), so that the
+//                  host cuts any tile of whole blocks out of every view without reading records.
+//   ek_reduce      at the end, per tile of Gaussians: the tile's records of every view copied
+//                  into one buffer (after a 4-word header, view by view), stably radix-sorted by
+//                  Gaussian (sort.wgsl, by the raster module: record_keys + radix passes), then one
+//                  64-wide workgroup per sorted record that starts a Gaussian's run: the run's
+//                  records, view by view, expanded to the view's masks exactly as the host's image
+//                  stage does (aggregate::image::expand_labels: per mask, ascending, the f64 sum of
+//                  the sums of the labels holding it, rounded to f32, times the mask's factor),
+//                  then added as the host's reduction does (aggregate::reduce: Σ a and Σ a·E_j in
+//                  f64, a f32 widened, each thread D/64 dimensions in registers), the `keep`
+//                  largest (a, codebook row) kept as aggregate::mixture's push_top keeps them, the
+//                  norm summed over the workgroup, the unobserved rule applied, and the Gaussian's
+//                  results written: meta (observed, Σ a as f32), kept pairs, and with `dense` the
+//                  unit row E_k in f32.
+
+const BLOCK_GAUSSIANS: u32 = 4096u;
+const WG: u32 = 64u;
+// Most dimensions per thread (D ≤ WG · MAX_PER_THREAD = 1024) and most kept pairs.
+const MAX_PER_THREAD: u32 = 16u;
+const MAX_KEEP: u32 = 32u;
+const UNUSED: u32 = 0xffffffffu;
+
+struct EkParams {
+    min_total_weight: f64,
+    n_records: u32,      // records of the tile (block_starts: of the view)
+    g0: u32,             // first Gaussian of the tile
+    n_tile: u32,         // Gaussians of the tile
+    dim: u32,
+    keep: u32,
+    n_segments: u32,     // segments (view parts) of the tile
+    groups_x: u32,       // x extent of the 2D dispatch
+    dense: u32,          // 1: write the unit rows
+    n_blocks: u32,       // block_starts: blocks of BLOCK_GAUSSIANS over the scene
+    pad0: u32,
+}
+
+@group(0) @binding(0) var<uniform> ep: EkParams;
+// The tile's records after a 4-word header (block_starts: one view's records, no header).
+@group(0) @binding(1) var<storage, read> recs: array<vec4<u32>>;
+// ek_reduce: record indices sorted by Gaussian (stable). block_starts: the starts written.
+@group(0) @binding(2) var<storage, read_write> order: array<u32>;
+// Per segment: first record (tile index), view id, label-table base, codebook base.
+@group(0) @binding(3) var<storage, read> segs: array<vec4<u32>>;
+// Label tables: at a view's base, n_labels + 1 offsets (relative to the base), the masks of
+// every label, then at base + tables[base + n_labels] ... see ek.rs (ViewTable) for the layout.
+@group(0) @binding(4) var<storage, read> tables: array<u32>;
+@group(0) @binding(5) var<storage, read> codebook: array<f32>;
+// Per tile Gaussian: observed (0/1), Σ a as f32 bits.
+@group(0) @binding(6) var<storage, read_write> gmeta: array<vec2<u32>>;
+// Per tile Gaussian, `keep` slots: codebook row (UNUSED when empty), a as f32 bits.
+@group(0) @binding(7) var<storage, read_write> kept: array<vec2<u32>>;
+// With `dense`: per tile Gaussian, the unit row E_k (dim f32).
+@group(0) @binding(8) var<storage, read_write> rows: array<f32>;
+
+var<workgroup> norm_part: array<f64, 64>;
+
+fn flat_group(wid: vec3<u32>) -> u32 {
+    return wid.y * ep.groups_x + wid.x;
+}
+
+@compute @workgroup_size(256)
+fn block_starts(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let r = flat_group(wid) * 256u + lid;
+    if (r >= ep.n_records) {
+        return;
+    }
+    let b = recs[r].x / BLOCK_GAUSSIANS;
+    var first = 0u;
+    if (r > 0u) {
+        first = recs[r - 1u].x / BLOCK_GAUSSIANS + 1u;
+    }
+    for (var bb = first; bb <= b; bb++) {
+        order[bb] = r;
+    }
+    if (r + 1u == ep.n_records) {
+        for (var bb = b + 1u; bb <= ep.n_blocks; bb++) {
+            order[bb] = ep.n_records;
+        }
+    }
+}
+
+// The tile record at sorted position i.
+fn rec_at(i: u32) -> vec4<u32> {
+    return recs[order[i] + 1u];
+}
+
+// The segment of tile record r: the last segment starting at or before r (an empty segment
+// starts where the next one does, so the last wins).
+fn segment_of(r: u32) -> u32 {
+    var lo = 0u;
+    var hi = ep.n_segments;
+    while (hi - lo > 1u) {
+        let mid = (lo + hi) / 2u;
+        if (segs[mid].x <= r) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    return lo;
+}
+
+// The label sum of record `rec` in pixels (2^-32 fixed point to f64: one rounding, as u64 → f64).
+fn record_weight(rec: vec4<u32>) -> f64 {
+    return (f64(rec.w) * 4294967296.0lf + f64(rec.z)) / 4294967296.0lf;
+}
+
+// Masks of `label` in the table at `base`: [first, end) indices into tables[].
+fn label_masks(base: u32, label: u32) -> vec2<u32> {
+    let n_labels = tables[base];
+    if (label >= n_labels) {
+        return vec2<u32>(0u, 0u);
+    }
+    let off = base + 2u;
+    return vec2<u32>(base + tables[off + label], base + tables[off + label + 1u]);
+}
+
+// The smallest mask above `after` (all masks when `first`) among the labels of sorted records
+// [p, q) of one view, or UNUSED.
+fn next_mask(p: u32, q: u32, base: u32, after: u32, first: bool) -> u32 {
+    var best = UNUSED;
+    for (var i = p; i < q; i++) {
+        let m = label_masks(base, rec_at(i).y);
+        for (var t = m.x; t < m.y; t++) {
+            let j = tables[t];
+            if ((first || j > after) && j < best) {
+                best = j;
+            }
+        }
+    }
+    return best;
+}
+
+// Σ, in record order, of the sums of the records of [p, q) whose label holds mask j (f64).
+fn mask_sum(p: u32, q: u32, base: u32, j: u32) -> f64 {
+    var a = 0.0lf;
+    for (var i = p; i < q; i++) {
+        let rec = rec_at(i);
+        let m = label_masks(base, rec.y);
+        for (var t = m.x; t < m.y; t++) {
+            if (tables[t] == j) {
+                a += record_weight(rec);
+            }
+        }
+    }
+    return a;
+}
+
+// The factor of mask j of the view whose table is at `base`.
+fn mask_factor(base: u32, j: u32) -> f32 {
+    let factors = base + tables[base + 1u];
+    return bitcast<f32>(tables[factors + j]);
+}
+
+@compute @workgroup_size(64)
+fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    // No early return: the norm's workgroup sum needs every thread at its barriers, in uniform
+    // control flow. Every thread reads the same records, so `head` agrees across the workgroup.
+    let i0 = flat_group(wid);
+    var k = 0u;
+    var head = false;
+    if (i0 < ep.n_records) {
+        k = rec_at(i0).x;
+        head = i0 == 0u || rec_at(i0 - 1u).x != k;
+    }
+    var acc: array<f64, 16>;
+    for (var t = 0u; t < MAX_PER_THREAD; t++) {
+        acc[t] = 0.0lf;
+    }
+    var den = 0.0lf;
+    var kept_a: array<f32, 32>;
+    var kept_atom: array<u32, 32>;
+    var n_kept = 0u;
+    if (head) {
+        var end = i0 + 1u;
+        while (end < ep.n_records && rec_at(end).x == k) {
+            end++;
+        }
+        var p = i0;
+        while (p < end) {
+            // One view's records of this Gaussian (a view's parts share its id): [p, q).
+            let seg = segs[segment_of(order[p])];
+            var q = p + 1u;
+            while (q < end && segs[segment_of(order[q])].y == seg.y) {
+                q++;
+            }
+            let base = seg.z;
+            var j = next_mask(p, q, base, 0u, true);
+            while (j != UNUSED) {
+                let a64 = mask_sum(p, q, base, j);
+                if (a64 > 0.0lf) {
+                    let a = f32(a64) * mask_factor(base, j);
+                    let atom = seg.w + j;
+                    let wa = f64(a);
+                    den += wa;
+                    let row = atom * ep.dim;
+                    for (var t = 0u; t < MAX_PER_THREAD; t++) {
+                        let d = lid + t * WG;
+                        if (d < ep.dim) {
+                            acc[t] += wa * f64(codebook[row + d]);
+                        }
+                    }
+                    // push_top: fill, then replace the weakest (least a; of equal a, the
+                    // larger row) by a stronger pair.
+                    if (n_kept < ep.keep) {
+                        kept_a[n_kept] = a;
+                        kept_atom[n_kept] = atom;
+                        n_kept++;
+                    } else {
+                        var w = 0u;
+                        for (var s = 1u; s < n_kept; s++) {
+                            let weaker = kept_a[s] < kept_a[w]
+                                || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
+                            if (weaker) {
+                                w = s;
+                            }
+                        }
+                        if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
+                            kept_a[w] = a;
+                            kept_atom[w] = atom;
+                        }
+                    }
+                }
+                j = next_mask(p, q, base, j, false);
+            }
+            p = q;
+        }
+    }
+    var sq = 0.0lf;
+    for (var t = 0u; t < MAX_PER_THREAD; t++) {
+        sq += acc[t] * acc[t];
+    }
+    norm_part[lid] = sq;
+    workgroupBarrier();
+    for (var stride = 32u; stride > 0u; stride = stride / 2u) {
+        if (lid < stride) {
+            norm_part[lid] += norm_part[lid + stride];
+        }
+        workgroupBarrier();
+    }
+    let norm = sqrt(norm_part[0]);
+    // Unobserved (nothing written; meta, kept and rows were cleared): Σ a NaN or below the
+    // threshold, or the norm not finite or at most 1e-9·Σ a.
+    let finite = norm == norm && norm <= 1.7976931348623157e308lf;
+    let observed = head && den >= ep.min_total_weight && finite && norm > 1e-9lf * den;
+    let kl = k - ep.g0;
+    if (observed && lid == 0u) {
+        gmeta[kl] = vec2<u32>(1u, bitcast<u32>(f32(den)));
+        for (var s = 0u; s < ep.keep; s++) {
+            if (s < n_kept) {
+                kept[kl * ep.keep + s] = vec2<u32>(kept_atom[s], bitcast<u32>(kept_a[s]));
+            } else {
+                kept[kl * ep.keep + s] = vec2<u32>(UNUSED, 0u);
+            }
+        }
+    }
+    if (observed && ep.dense == 1u) {
+        for (var t = 0u; t < MAX_PER_THREAD; t++) {
+            let d = lid + t * WG;
+            if (d < ep.dim) {
+                rows[kl * ep.dim + d] = f32(acc[t] / norm);
+            }
+        }
+    }
+}
+
+// The masks' record's view data (slag_common::mask_record), from one kept view's records (no
+// header, no order; ep.n_records of them, table at ep.pad0): one thread per record; the first
+// record of each Gaussian writes the Gaussian's dominant mask of the view, argmax_j a_kj with
+// a_kj as ek_reduce makes it (ties: the smaller mask), as (Gaussian, mask, a bits) at its own
+// index; every other record writes (UNUSED, 0, 0). Output in `kept` (as vec2 pairs: 2 per
+// record, (Gaussian, mask) then (a bits, 0)).
+fn view_next_mask(p: u32, q: u32, base: u32, after: u32, first: bool) -> u32 {
+    var best = UNUSED;
+    for (var i = p; i < q; i++) {
+        let m = label_masks(base, recs[i].y);
+        for (var t = m.x; t < m.y; t++) {
+            let j = tables[t];
+            if ((first || j > after) && j < best) {
+                best = j;
+            }
+        }
+    }
+    return best;
+}
+
+fn view_mask_sum(p: u32, q: u32, base: u32, j: u32) -> f64 {
+    var a = 0.0lf;
+    for (var i = p; i < q; i++) {
+        let rec = recs[i];
+        let m = label_masks(base, rec.y);
+        for (var t = m.x; t < m.y; t++) {
+            if (tables[t] == j) {
+                a += record_weight(rec);
+            }
+        }
+    }
+    return a;
+}
+
+@compute @workgroup_size(256)
+fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let r = flat_group(wid) * 256u + lid;
+    if (r >= ep.n_records) {
+        return;
+    }
+    let k = recs[r].x;
+    kept[2u * r] = vec2<u32>(UNUSED, 0u);
+    kept[2u * r + 1u] = vec2<u32>(0u, 0u);
+    if (r > 0u && recs[r - 1u].x == k) {
+        return;
+    }
+    var end = r + 1u;
+    while (end < ep.n_records && recs[end].x == k) {
+        end++;
+    }
+    let base = ep.pad0;
+    var best_j = UNUSED;
+    var best_a = 0.0;
+    var j = view_next_mask(r, end, base, 0u, true);
+    while (j != UNUSED) {
+        let a64 = view_mask_sum(r, end, base, j);
+        if (a64 > 0.0lf) {
+            let a = f32(a64) * mask_factor(base, j);
+            if (best_j == UNUSED || a > best_a) {
+                best_j = j;
+                best_a = a;
+            }
+        }
+        j = view_next_mask(r, end, base, j, false);
+    }
+    if (best_j != UNUSED) {
+        kept[2u * r] = vec2<u32>(k, best_j);
+        kept[2u * r + 1u] = vec2<u32>(bitcast<u32>(best_a), 0u);
+    }
+}
