@@ -4,6 +4,9 @@
 #   scripts/lab/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
 #   scripts/lab/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
 #                                                    # on one GPU, peak host + GPU memory
+#   scripts/lab/device-scaling.sh reduce [N] [VIEWS] [MODES]  # synthetic terrain (default 30M, 16 views),
+#                                                    # one bench per --reduce mode in MODES (default
+#                                                    # host,auto,auto), GNU time and GPU memory each
 #   scripts/lab/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
 #                                                    # (color-clip all views; ViT-B/16 and color-sam
 #                                                    # every 8th view); rates from device_facts.py
@@ -65,6 +68,41 @@ for line in open(sys.argv[1]):
         peak[p[0]] = max(peak.get(p[0], 0), int(p[1]))
 print("peak GPU memory used (MiB):", peak)
 EOF
+  ;;
+reduce)
+  n=${2:-30M}; v=${3:-16}; modes=${4:-host,auto,auto}
+  echo "### synth-scene $n Gaussians, $v views; bench with --reduce in $modes"
+  /usr/bin/env time -v true >/dev/null 2>&1 && T=(/usr/bin/env time -v) || T=()
+  "$B" synth-scene --gaussians "$n" --views "$v" --out "$W/big" > /dev/null
+  i=0
+  for m in ${modes//,/ }; do
+    i=$((i+1))
+    gpu_mem_watch "$W/gpu-mem-$i.csv" & watch=$!
+    start=$(date +%s.%N)
+    "${T[@]}" "$B" bench --scene "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 \
+      --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --reduce "$m" --quiet \
+      --out "$W/out-$i" > "$W/run-$i.txt" 2>&1
+    wall=$(python3 -c "import time; print(round(time.time()-$start,1))")
+    kill $watch 2>/dev/null
+    python3 - "$W/out-$i/report.json" "$W/run-$i.txt" "$W/gpu-mem-$i.csv" "$m" "$wall" <<'EOF2' | tee -a "$R/reduce.txt"
+import json, re, sys
+rep, log, mem, mode, wall = sys.argv[1:]
+r = json.load(open(rep))
+t, c = r["timings"], r["counts"]
+rss = re.search(r"Maximum resident set size \(kbytes\): (\d+)", open(log).read())
+peak = 0
+for line in open(mem):
+    p = [x.strip() for x in line.split(",")]
+    if len(p) == 2 and p[1].isdigit():
+        peak = max(peak, int(p[1]))
+keys = [k for k in t if isinstance(t[k], (int, float))]
+print(f"--reduce {mode}: process wall {wall} s, device_reduce {c.get('device_reduce')}, "
+      f"peak RSS {int(rss.group(1)) / 2**20 if rss else -1:.2f} GiB, peak GPU {peak} MiB, "
+      f"observed {c['observed']}, chunks {c['reduce_chunks']}")
+print("  " + ", ".join(f"{k} {t[k]:.2f}" for k in keys))
+EOF2
+    grep -v XDG_RUNTIME "$W/run-$i.txt" | tail -40 > "$R/run-$i-$m.txt"
+  done
   ;;
 clip)
   echo "### CLIP ViT-B/16 (random weights): torch on the GPU vs ONNX Runtime, batch 32"

@@ -393,3 +393,35 @@ fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
     );
     assert!(!out.join("embeddings.safetensors").exists());
 }
+
+/// The reduction on the GPU (the label sums kept on the device, reduced there in f64; lavapipe
+/// in CI) writes what the host's f64 reduction writes: the same observed Gaussians and `E_k`
+/// within f64 round-off, and byte for byte the same mixture, masks' record and segments.
+#[test]
+fn the_device_reduction_writes_what_the_host_reduction_writes() {
+    use slag_encoder::config::ReduceOn;
+    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+        return;
+    }
+    let (dir, scene) = folder_with_small_scene();
+    let run = |name: &str, reduce_on: ReduceOn| {
+        let out = dir.path().join(name);
+        let mut c = config(&scene, &out);
+        c.execution.front_workers = Some(1);
+        c.aggregate.reduce_on = reduce_on;
+        (encode(c).unwrap(), out)
+    };
+    let (host, host_dir) = run("host", ReduceOn::Host);
+    let (dev, dev_dir) = run("device", ReduceOn::Device);
+    assert!(!host.counts.device_reduce && dev.counts.device_reduce);
+    assert!(host.counts.entries > 0 && dev.counts.entries == 0, "no a_kj reached the host");
+    assert_eq!(dev.counts.observed, host.counts.observed);
+    assert!(host.counts.observed > 1000, "{} observed", host.counts.observed);
+    let load = |d: &std::path::Path| Embeddings::read(&d.join("embeddings.safetensors")).unwrap();
+    let diff = max_abs_diff(&load(&host_dir), &load(&dev_dir));
+    assert!(diff <= 1e-6, "E_k differ by {diff}");
+    for file in ["mixture.safetensors", "mask-record.safetensors", "segments.safetensors"] {
+        let read = |d: &std::path::Path| std::fs::read(d.join(file)).unwrap();
+        assert!(read(&host_dir) == read(&dev_dir), "{file} differs");
+    }
+}
