@@ -382,7 +382,7 @@ fn box_shell(
 
 /// Distance along the ray `c + t·d` to the first face of box `b` it enters (slab method), `None`
 /// when it misses or the box is behind.
-fn ray_box(c: DVec3, d: DVec3, b: &[[f64; 3]; 2]) -> Option<f64> {
+pub(crate) fn ray_box(c: DVec3, d: DVec3, b: &[[f64; 3]; 2]) -> Option<f64> {
     let (mut t0, mut t1) = (0f64, f64::INFINITY);
     for a in 0..3 {
         let (o, di) = (c[a], d[a]);
@@ -401,7 +401,7 @@ fn ray_box(c: DVec3, d: DVec3, b: &[[f64; 3]; 2]) -> Option<f64> {
 
 /// One view: world-to-camera rotation (rows = camera x right, y down, z forward in world
 /// coordinates) and camera centre, world frame.
-fn camera(i: usize, p: &SyntheticSceneParams) -> (DMat3, DVec3) {
+pub(crate) fn camera(i: usize, p: &SyntheticSceneParams) -> (DMat3, DVec3) {
     let a = std::f64::consts::TAU * i as f64 / p.views.max(1) as f64;
     let r = 0.35 * p.extent;
     let centre = DVec3::new(r * a.cos(), r * a.sin(), 0.6 * p.extent);
@@ -414,7 +414,7 @@ fn camera(i: usize, p: &SyntheticSceneParams) -> (DMat3, DVec3) {
 }
 
 /// Focal length (pixels) giving a 60° horizontal field of view.
-fn focal(p: &SyntheticSceneParams) -> f64 {
+pub(crate) fn focal(p: &SyntheticSceneParams) -> f64 {
     p.width as f64 / (2.0 * (30f64).to_radians().tan())
 }
 
@@ -513,36 +513,8 @@ pub fn write_synthetic_scene_with_objects(
             ));
         }
     }
-    for (name, v) in [
-        ("gaussians", p.gaussians),
-        ("views", p.views),
-        ("width", p.width as usize),
-        ("height", p.height as usize),
-    ] {
-        require(
-            v > 0,
-            name,
-            0,
-            "at least 1 (a synthetic scene needs Gaussians, views and a non-empty image size)",
-        )?;
-    }
-    let extent = p.extent;
-    require(
-        extent.is_finite() && extent > 0.0,
-        "extent",
-        extent,
-        "a positive number of metres",
-    )?;
-    let images = dir.join("images");
-    let sparse = dir.join("sparse").join("0");
-    for d in [&images, &sparse] {
-        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
-    }
-    // Stale poses first: an interrupted rewrite must not look complete.
-    let images_txt = sparse.join("images.txt");
-    if images_txt.exists() {
-        std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
-    }
+    check_params(p)?;
+    let (images, sparse, images_txt) = scene_folders(dir)?;
     let (g, instances) = scene_with_instances(p, objects);
     let gaussians = g.len();
     let ply = dir.join("point_cloud.ply");
@@ -569,25 +541,8 @@ pub fn write_synthetic_scene_with_objects(
             .save(&path)
             .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
     }
-    let f = focal(p);
-    let cameras = format!(
-        "# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n1 PINHOLE {} {} {f} {f} {} {}\n",
-        p.width,
-        p.height,
-        p.width as f64 / 2.0,
-        p.height as f64 / 2.0
-    );
-    write_file(&sparse.join("cameras.txt"), cameras.as_bytes())?;
-    write_file(&sparse.join("points3D.txt"), b"# no points\n")?;
-    let mut poses = String::from("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n");
-    for i in 0..p.views {
-        let (r, c) = camera(i, p);
-        let q = DQuat::from_mat3(&r).normalize();
-        let t = -(r * c);
-        let name = format!("view_{i:04}.png");
-        poses.push_str(&colmap::images_txt_entry(i + 1, q, t, 1, &name));
-    }
-    write_file(&images_txt, poses.as_bytes())?;
+    write_cameras(&sparse, p)?;
+    write_file(&images_txt, poses(p).as_bytes())?;
     let ply_bytes = std::fs::metadata(&ply)
         .map_err(|e| Error::io(&ply, e))?
         .len();
@@ -598,7 +553,84 @@ pub fn write_synthetic_scene_with_objects(
     })
 }
 
-fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
+/// Writes `cameras.txt` (one PINHOLE camera of [`focal`]) and an empty `points3D.txt` into
+/// `sparse` (`sparse/0`).
+pub(crate) fn write_cameras(sparse: &Path, p: &SyntheticSceneParams) -> Result<()> {
+    let f = focal(p);
+    let cameras = format!(
+        "# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n1 PINHOLE {} {} {f} {f} {} {}\n",
+        p.width,
+        p.height,
+        p.width as f64 / 2.0,
+        p.height as f64 / 2.0
+    );
+    write_file(&sparse.join("cameras.txt"), cameras.as_bytes())?;
+    write_file(&sparse.join("points3D.txt"), b"# no points\n")
+}
+
+/// Creates `dir/images` and `dir/sparse/0` and removes a stale `sparse/0/images.txt` (an
+/// interrupted rewrite must not look complete); returns the two folders and that file's path,
+/// written last.
+///
+/// Errors: I/O naming the path.
+pub(crate) fn scene_folders(
+    dir: &Path,
+) -> Result<(std::path::PathBuf, std::path::PathBuf, std::path::PathBuf)> {
+    let images = dir.join("images");
+    let sparse = dir.join("sparse").join("0");
+    for d in [&images, &sparse] {
+        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+    }
+    // Stale poses first: an interrupted rewrite must not look complete.
+    let images_txt = sparse.join("images.txt");
+    if images_txt.exists() {
+        std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
+    }
+    Ok((images, sparse, images_txt))
+}
+
+/// Checks a scene's size: Gaussians, views and the image size at least 1, a finite positive
+/// extent.
+///
+/// Errors: [`Error::Param`] naming the field.
+pub(crate) fn check_params(p: &SyntheticSceneParams) -> Result<()> {
+    for (name, v) in [
+        ("gaussians", p.gaussians),
+        ("views", p.views),
+        ("width", p.width as usize),
+        ("height", p.height as usize),
+    ] {
+        require(
+            v > 0,
+            name,
+            0,
+            "at least 1 (a synthetic scene needs Gaussians, views and a non-empty image size)",
+        )?;
+    }
+    let extent = p.extent;
+    require(
+        extent.is_finite() && extent > 0.0,
+        "extent",
+        extent,
+        "a positive number of metres",
+    )?;
+    Ok(())
+}
+
+/// The text of `images.txt`: every view of the ring ([`camera`]), `view_XXXX.png`.
+pub(crate) fn poses(p: &SyntheticSceneParams) -> String {
+    let mut poses = String::from("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n");
+    for i in 0..p.views {
+        let (r, c) = camera(i, p);
+        let q = DQuat::from_mat3(&r).normalize();
+        let t = -(r * c);
+        let name = format!("view_{i:04}.png");
+        poses.push_str(&colmap::images_txt_entry(i + 1, q, t, 1, &name));
+    }
+    poses
+}
+
+pub(crate) fn write_file(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut f = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
     f.write_all(bytes).map_err(|e| Error::io(path, e))?;
     f.sync_all().map_err(|e| Error::io(path, e))

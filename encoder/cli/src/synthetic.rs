@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
+use slag_encoder::object_scene::{self, Texture, room_layout, write_room_scene};
 use slag_encoder::synthetic::{
     SyntheticSceneParams, SyntheticSummary, object_layout, touching_layout,
     write_synthetic_scene_with_objects,
@@ -39,8 +40,29 @@ pub struct SynthArgs {
     pub objects: Option<usize>,
     /// With --objects: boxes of different colours in touching pairs (sharing a wall, all on the
     /// ground) instead of far apart; the ground truth of instance AP (`eval-objects`).
-    #[arg(long, requires = "objects")]
+    #[arg(long, requires = "objects", conflicts_with = "room")]
     pub touching: bool,
+    /// With --objects K (1..=10): a room instead of a terrain: boxes, cylinders and spheres of
+    /// known class on a gray floor and against white walls, some touching, with textured
+    /// surfaces; --extent is the room's side; writes truth.json (every Gaussian's class and
+    /// object) beside objects.json.
+    #[arg(long, requires = "objects")]
+    pub room: bool,
+    /// With --room: share of an object's surface cells (speckles) in another class's colour.
+    #[arg(long, requires = "room", default_value_t = object_scene::DEFAULT_SPECKLES)]
+    pub speckles: f64,
+    /// With --room: side of a speckle cell, scene units; default extent / 60.
+    #[arg(long, requires = "room")]
+    pub speckle_size: Option<f64>,
+    /// With --room: share of each stripe period in the object's stripe colour.
+    #[arg(long, requires = "room", default_value_t = object_scene::DEFAULT_STRIPES)]
+    pub stripes: f64,
+    /// With --room: height of one stripe period, scene units; default extent / 24.
+    #[arg(long, requires = "room")]
+    pub stripe_period: Option<f64>,
+    /// With --room: shading strength (faces towards the light lighter, away darker), 0..=1.
+    #[arg(long, requires = "room", default_value_t = object_scene::DEFAULT_SHADING)]
+    pub shading: f64,
 }
 
 /// Parses `30M`, `500K` or a plain count.
@@ -68,6 +90,18 @@ pub fn run(a: &SynthArgs) -> anyhow::Result<SyntheticSummary> {
         extent: a.extent,
         seed: a.seed,
     };
+    if let (true, Some(k)) = (a.room, a.objects) {
+        let defaults = Texture::for_extent(a.extent);
+        let texture = Texture {
+            speckles: a.speckles,
+            speckle_size: a.speckle_size.unwrap_or(defaults.speckle_size),
+            stripes: a.stripes,
+            stripe_period: a.stripe_period.unwrap_or(defaults.stripe_period),
+            shading: a.shading,
+        };
+        let objects = room_layout(k, a.extent)?;
+        return Ok(write_room_scene(&a.out, &p, &objects, &texture)?);
+    }
     let objects = match a.objects {
         Some(k) if a.touching => touching_layout(k, a.extent)?,
         Some(k) => object_layout(k, a.extent)?,
