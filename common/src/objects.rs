@@ -15,6 +15,9 @@
 //!    as well joined touching regions of one colour on snowmiku into an object of a quarter of
 //!    the scene (5.8 × 4.1 × 2.1 scene units for "pink", against 2.7 × 1.7 × 0.8 by the gap
 //!    alone) and changed nothing on the synthetic touching objects (docs/results/objects.md).
+//!    The gap is [`ObjectParams::gap`] when given, else derived from the matches' own spacing
+//!    ([`derived_gap`]: a multiple of their median nearest-neighbour distance), so a scene
+//!    of any scale or density finds its objects without a gap chosen for it.
 //! 2. **Suppression.** Groups of fewer than [`ObjectParams::min_gaussians`] matches are dropped
 //!    (stray matches; counted in [`Objects::suppressed`]).
 //! 3. **Description.** Per group: the id (FNV-1a 64 of the members' sorted Gaussian ids: the same
@@ -36,8 +39,15 @@ use std::collections::HashMap;
 
 use crate::{Error, Result};
 
-/// Default single-linkage gap, answer-frame units (metres in the map frame).
-pub const DEFAULT_GAP: f32 = 0.1;
+/// Single-linkage gap used when the matches give no spacing to derive one from (fewer than two
+/// distinct means), answer-frame units (metres in the map frame).
+pub const FALLBACK_GAP: f32 = 0.1;
+/// The derived gap ([`derived_gap`]) is this multiple of the matches' median nearest-neighbour
+/// distance.
+pub const GAP_SPACING_MULTIPLE: f32 = 4.0;
+/// At most this many matches (evenly spread over the input order) are asked for their nearest
+/// neighbour when the gap is derived; the neighbours are searched among all matches.
+pub const GAP_SAMPLE: usize = 4096;
 /// Default minimum number of matching Gaussians of an object; smaller groups are dropped.
 pub const DEFAULT_MIN_GAUSSIANS: usize = 10;
 /// Default number of objects returned.
@@ -83,8 +93,9 @@ pub struct SceneObject {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ObjectParams {
     /// Single-linkage distance between two matches' means, answer-frame units (metres in the
-    /// map frame); finite and > 0. Default [`DEFAULT_GAP`].
-    pub gap: f32,
+    /// map frame); finite and > 0. `None` (the default): derived from the matches' own spacing,
+    /// [`derived_gap`].
+    pub gap: Option<f32>,
     /// Smallest object, in matching Gaussians (≥ 1). Default [`DEFAULT_MIN_GAUSSIANS`].
     pub min_gaussians: usize,
     /// Objects returned, 1..=[`MAX_OBJECTS_LIMIT`]. Default [`DEFAULT_MAX_OBJECTS`].
@@ -97,7 +108,7 @@ pub struct ObjectParams {
 impl Default for ObjectParams {
     fn default() -> Self {
         ObjectParams {
-            gap: DEFAULT_GAP,
+            gap: None,
             min_gaussians: DEFAULT_MIN_GAUSSIANS,
             max_objects: DEFAULT_MAX_OBJECTS,
             near: None,
@@ -110,10 +121,10 @@ impl ObjectParams {
     ///
     /// Errors: [`Error::Param`] naming `gap`, `min_gaussians`, `max_objects` or `near`.
     pub fn validate(&self) -> Result<()> {
-        if !(self.gap.is_finite() && self.gap > 0.0) {
+        if let Some(gap) = self.gap.filter(|g| !(g.is_finite() && *g > 0.0)) {
             return Err(Error::param(
                 "gap",
-                self.gap,
+                gap,
                 "a finite distance > 0 in the answer's frame (metres in the map frame)",
             ));
         }
@@ -164,6 +175,8 @@ pub struct Objects {
     pub suppressed: usize,
     /// Groups at or above the minimum (returned or not).
     pub groups: usize,
+    /// The single-linkage gap used: [`ObjectParams::gap`], or the one derived from the matches.
+    pub gap: f32,
 }
 
 /// Groups `m` into objects (module doc).
@@ -178,8 +191,9 @@ pub fn group_objects(m: &Matches<'_>, p: &ObjectParams) -> Result<Objects> {
             "group_objects: ids, positions, scores and opacities differ in length",
         ));
     }
+    let gap = p.gap.unwrap_or_else(|| derived_gap(m.positions));
     let mut uf = UnionFind::new(n);
-    link_within_gap(m.positions, p.gap, &mut uf);
+    link_within_gap(m.positions, gap, &mut uf);
     // Components, members in input order; components ordered by their first member.
     let mut comp_of_root: HashMap<usize, usize> = HashMap::new();
     let mut comps: Vec<Vec<usize>> = Vec::new();
@@ -228,7 +242,44 @@ pub fn group_objects(m: &Matches<'_>, p: &ObjectParams) -> Result<Objects> {
         member_of,
         suppressed,
         groups,
+        gap,
     })
+}
+
+/// The single-linkage gap of a set of means (answer frame): [`GAP_SPACING_MULTIPLE`] × the
+/// median distance from a match to its nearest other match (over at most [`GAP_SAMPLE`]
+/// matches, evenly spread over the input order, their neighbours searched among all of them;
+/// coincident means are skipped), so that the matches of one surface, whose holes are a few
+/// neighbour spacings wide, link into one object at any scene scale and density; and objects
+/// further apart than a few spacings stay apart. [`FALLBACK_GAP`] when fewer than two distinct
+/// finite means are given.
+pub fn derived_gap(positions: &[[f32; 3]]) -> f32 {
+    use rstar::RTree;
+    let finite: Vec<[f32; 3]> = positions
+        .iter()
+        .copied()
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .collect();
+    if finite.len() < 2 {
+        return FALLBACK_GAP;
+    }
+    let tree = RTree::bulk_load(finite.clone());
+    let step = finite.len().div_ceil(GAP_SAMPLE).max(1);
+    let mut nearest: Vec<f32> = finite
+        .iter()
+        .step_by(step)
+        .filter_map(|q| {
+            tree.nearest_neighbor_iter(q)
+                .map(|p| dist2(*p, *q).sqrt())
+                .find(|&d| d > 0.0)
+        })
+        .collect();
+    if nearest.is_empty() {
+        return FALLBACK_GAP;
+    }
+    let mid = nearest.len() / 2;
+    let median = *nearest.select_nth_unstable_by(mid, f32::total_cmp).1;
+    median * GAP_SPACING_MULTIPLE
 }
 
 fn dist2(a: [f32; 3], b: [f32; 3]) -> f32 {
@@ -479,7 +530,7 @@ mod tests {
     /// Default parameters with a gap of 0.25: the test blobs' points are 0.05–0.11 apart.
     fn wide() -> ObjectParams {
         ObjectParams {
-            gap: 0.25,
+            gap: Some(0.25),
             ..ObjectParams::default()
         }
     }
@@ -729,8 +780,8 @@ mod tests {
         // One bad field at a time, the rest default.
         type Breaks = fn(&mut ObjectParams);
         let cases: [(Breaks, &str); 6] = [
-            (|p| p.gap = 0.0, "gap"),
-            (|p| p.gap = f32::NAN, "gap"),
+            (|p| p.gap = Some(0.0), "gap"),
+            (|p| p.gap = Some(f32::NAN), "gap"),
             (|p| p.min_gaussians = 0, "min_gaussians"),
             (|p| p.max_objects = 0, "max_objects"),
             (|p| p.max_objects = 1001, "max_objects"),
@@ -761,7 +812,52 @@ mod tests {
         };
         assert_eq!(
             group_objects(&none, &ObjectParams::default()).unwrap(),
-            Objects::default()
+            Objects {
+                gap: FALLBACK_GAP,
+                ..Objects::default()
+            }
         );
+    }
+
+    #[test]
+    fn the_derived_gap_follows_the_scene_spacing_and_a_given_gap_wins() {
+        // Two 20 × 20 sheets of points at spacing `s`, 30 spacings apart, at two scales: the
+        // derived gap links each sheet and keeps the two apart, at either scale.
+        for s in [0.01f32, 5.0] {
+            let mut pos = Vec::new();
+            for x0 in [0.0f32, 50.0 * s] {
+                for i in 0..20 {
+                    for j in 0..20 {
+                        pos.push([x0 + i as f32 * s, j as f32 * s, 0.0]);
+                    }
+                }
+            }
+            let gap = derived_gap(&pos);
+            assert!(
+                (gap - GAP_SPACING_MULTIPLE * s).abs() < 1e-3 * s,
+                "spacing {s}: gap {gap}"
+            );
+            let ids: Vec<u32> = (0..pos.len() as u32).collect();
+            let scores = vec![0.5; pos.len()];
+            let m = Matches {
+                ids: &ids,
+                positions: &pos,
+                scores: &scores,
+                opacities: None,
+            };
+            let o = group_objects(&m, &ObjectParams::default()).unwrap();
+            assert_eq!(o.objects.len(), 2, "spacing {s}");
+            assert_eq!(o.gap, gap);
+            // An explicit gap wins: one smaller than the spacing leaves only single points.
+            let tight = ObjectParams {
+                gap: Some(0.5 * s),
+                ..ObjectParams::default()
+            };
+            let t = group_objects(&m, &tight).unwrap();
+            assert_eq!((t.objects.len(), t.gap), (0, 0.5 * s));
+        }
+        // Nothing to derive from: the fallback.
+        assert_eq!(derived_gap(&[]), FALLBACK_GAP);
+        assert_eq!(derived_gap(&[[1.0; 3], [1.0; 3]]), FALLBACK_GAP);
     }
 }

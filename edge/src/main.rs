@@ -292,7 +292,8 @@ struct QueryArgs {
     /// x,y,z (answer's frame): sort objects by distance from this point.
     #[arg(long, allow_hyphen_values = true)]
     near: Option<String>,
-    /// Single-linkage gap between an object's matches, answer-frame units (default 0.1).
+    /// Single-linkage gap between an object's matches, answer-frame units (default: 4 × the
+    /// matches' median nearest-neighbour distance).
     #[arg(long)]
     object_gap: Option<String>,
     /// Smallest object, in matching Gaussians (default 10).

@@ -239,7 +239,7 @@ pub struct RawQuery {
     /// `x,y,z` in the answer's frame: objects sorted by distance of their centroid from it.
     pub near: Option<String>,
     /// Single-linkage gap of the objects, answer-frame units (metres in the map frame), > 0
-    /// (default 0.1).
+    /// (default: derived from the matches' spacing, `slag_common::objects::derived_gap`).
     pub object_gap: Option<String>,
     /// Smallest object in matching Gaussians, integer ≥ 1 (default 10).
     pub object_min_gaussians: Option<String>,
@@ -498,8 +498,9 @@ impl RawQuery {
         if let Some(s) = self.object_gap.as_deref().map(str::trim) {
             p.gap = s
                 .parse::<f32>()
+                .map(Some)
                 .ok()
-                .filter(|g| g.is_finite() && *g > 0.0)
+                .filter(|g| g.is_some_and(|g| g.is_finite() && g > 0.0))
                 .ok_or_else(|| {
                     Error::query(
                         "object_gap",

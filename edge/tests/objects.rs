@@ -152,9 +152,13 @@ async fn objects_follow_an_independent_reference_through_every_route() {
     let (_, one) = get("/query?text=t0&object_gap=3&max_objects=1".into()).await;
     assert_eq!(one["objects"].as_array().unwrap().len(), 1);
     assert_eq!(one["objects"][0], objects[0]);
-    // The default gap (0.1) is below this scene's spacing: every match alone, all suppressed.
+    // Without object_gap the gap is derived from the matches' spacing: the same two tiles.
     let (_, d) = get("/query?text=t0".into()).await;
-    assert_eq!(d["objects"].as_array().unwrap().len(), 0);
+    assert_eq!(d["objects"].as_array().unwrap().len(), 2, "{d:#}");
+    assert_eq!(gaussians_in_objects(&d), total);
+    // A gap below the spacing leaves every match alone, all suppressed: a given gap wins.
+    let (_, t) = get("/query?text=t0&object_gap=0.01".into()).await;
+    assert_eq!(t["objects"].as_array().unwrap().len(), 0);
     // POST: the same objects; numbers and arrays accepted.
     let batch =
         serde_json::json!({"queries": [{"text": "t0", "object_gap": 3, "near": [35, 25, 0]}]});

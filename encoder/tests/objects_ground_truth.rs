@@ -86,7 +86,7 @@ fn placed_objects_come_back_with_their_positions_and_boxes() {
         let truth: Vec<&PlacedObject> = placed.iter().filter(|o| o.name == colour).collect();
         let q = QueryParams {
             objects: ObjectParams {
-                gap: 1.0,
+                gap: Some(1.0),
                 ..ObjectParams::default()
             },
             ply: Some(scene.join("point_cloud.ply")),

@@ -691,7 +691,7 @@ fn photo_truth_quality(
 
 /// What the held-out pass reads of the encoder's report.json.
 #[derive(Debug, Default)]
-struct ReportSettings {
+pub(crate) struct ReportSettings {
     /// `inputs.every`.
     every: Option<usize>,
     /// `inputs.hold_out_every`: the held-out step, when the encode held views out itself.
@@ -703,7 +703,7 @@ struct ReportSettings {
 }
 
 /// The settings of the report.json beside `embeddings`, if there is one.
-fn report_settings(embeddings: &Path) -> anyhow::Result<ReportSettings> {
+pub(crate) fn report_settings(embeddings: &Path) -> anyhow::Result<ReportSettings> {
     let path = embeddings
         .parent()
         .unwrap_or(Path::new("."))
@@ -741,7 +741,7 @@ fn report_settings(embeddings: &Path) -> anyhow::Result<ReportSettings> {
 ///
 /// Errors: [`Error::Param`] `every` when the given step contradicts the report, or none is
 /// known.
-fn held_out_step(
+pub(crate) fn held_out_step(
     given: Option<usize>,
     r: &ReportSettings,
     embeddings: &Path,
@@ -777,7 +777,7 @@ fn held_out_step(
 /// without a report).
 ///
 /// Errors: as [`slag_encoder::views::training_indices`].
-fn encoded_views<'a>(
+pub(crate) fn encoded_views<'a>(
     views: &'a [camera::View],
     r: &ReportSettings,
     step: usize,
@@ -881,7 +881,14 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         n,
     )?;
     if !segment_sets.is_empty() {
-        let pf = pf_tables(&inputs, &slag_scores, &variants, &segment_sets, c)?;
+        let pf = crate::pf_variants::pf_tables(
+            &inputs.emb,
+            n,
+            &slag_scores,
+            &variants,
+            &segment_sets,
+            c,
+        )?;
         variants.extend(pf);
     }
 
@@ -945,97 +952,6 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         segment_quality,
         photo_truth,
     })
-}
-
-/// The prediction-filtering tables of the held-out pass: `argmax` (the control), then per
-/// segmentation `pf-majority`, `pf-mean`, `pf-weighted` and `pf-confident` over slag's dense
-/// scores, and `pf-weighted` and `pf-confident` over the mixture's mean form when it is among
-/// `variants` (the stored default). The first segmentation's names are bare; the others' get
-/// `@<parent folder>/<file stem>`.
-fn pf_tables(
-    inputs: &Inputs,
-    slag_scores: &[f32],
-    variants: &[crate::heldout_variants::VariantTable],
-    segment_sets: &[(PathBuf, Segments)],
-    c: usize,
-) -> anyhow::Result<Vec<crate::heldout_variants::VariantTable>> {
-    use crate::heldout_variants::VariantTable;
-    use slag_encoder::prediction_filtering as pf;
-    let n = inputs.gaussians.len();
-    let mut observed = vec![false; n];
-    let mut sum_a = vec![0.0f32; n];
-    for (row, &id) in inputs.emb.ids.iter().enumerate() {
-        if let Some(o) = observed.get_mut(id as usize) {
-            *o = true;
-            sum_a[id as usize] = inputs.emb.total_weights.get(row).copied().unwrap_or(0.0);
-        }
-    }
-    let table = |name: String, source: &Path, scores: Vec<f32>| VariantTable {
-        name,
-        source: source.to_path_buf(),
-        scores,
-        chosen_levels: Vec::new(),
-    };
-    let own = pf::gaussian_classes(slag_scores, &observed, c)?;
-    let mut out = vec![table(
-        "argmax".into(),
-        &segment_sets[0].0,
-        pf::one_hot(&own, c),
-    )];
-    let mixture = variants
-        .iter()
-        .find(|v| v.name.starts_with("mixture-mean-S") && v.source.ends_with("mixture.safetensors"))
-        .map(|v| (v.name.clone(), v.scores.clone()));
-    for (k, (path, s)) in segment_sets.iter().enumerate() {
-        let tag = if k == 0 {
-            String::new()
-        } else {
-            let parent = path
-                .parent()
-                .and_then(|p| p.file_name())
-                .map(|p| p.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            let stem = path
-                .file_stem()
-                .map(|p| p.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            format!("@{parent}/{stem}")
-        };
-        let seg = &s.segments;
-        out.push(table(
-            format!("pf-majority{tag}"),
-            path,
-            pf::majority_table(slag_scores, &observed, seg, c)?,
-        ));
-        out.push(table(
-            format!("pf-mean{tag}"),
-            path,
-            pf::mean_table(slag_scores, &observed, seg, c)?,
-        ));
-        out.push(table(
-            format!("pf-weighted{tag}"),
-            path,
-            pf::weighted_table(slag_scores, &observed, &sum_a, seg, c)?,
-        ));
-        out.push(table(
-            format!("pf-confident{tag}"),
-            path,
-            pf::confident_table(slag_scores, &observed, &sum_a, seg, c)?,
-        ));
-        if let Some((name, scores)) = &mixture {
-            out.push(table(
-                format!("{name}+pf-weighted{tag}"),
-                path,
-                pf::weighted_table(scores, &observed, &sum_a, seg, c)?,
-            ));
-            out.push(table(
-                format!("{name}+pf-confident{tag}"),
-                path,
-                pf::confident_table(scores, &observed, &sum_a, seg, c)?,
-            ));
-        }
-    }
-    Ok(out)
 }
 
 #[cfg(test)]

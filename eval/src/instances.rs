@@ -353,8 +353,9 @@ pub struct ObjectsEval {
     /// The segments against the instances, when a segments file is given or lies beside the
     /// embeddings (`segments.safetensors`).
     pub segments: Option<SegmentsAgainstInstances>,
-    /// The grouping used (gap, minimum, maximum objects).
-    pub object_gap: f32,
+    /// The single-linkage gap given; `None`: each answer derived its own from its matches'
+    /// spacing ([`slag_common::objects::derived_gap`]).
+    pub object_gap: Option<f32>,
     /// Smallest object returned, Gaussians.
     pub object_min_gaussians: usize,
     /// One score per smoothing asked for.
@@ -492,7 +493,9 @@ fn segments_against_instances(
         &segments,
         &gaussians.means,
         truth,
-        c.objects.gap,
+        c.objects
+            .gap
+            .unwrap_or_else(|| slag_common::objects::derived_gap(&gaussians.means)),
     )?))
 }
 

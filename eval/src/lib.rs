@@ -34,6 +34,8 @@ pub mod colors;
 pub mod heldout;
 pub mod heldout_variants;
 pub mod instances;
+pub mod object_truth;
+pub mod pf_variants;
 pub mod segment_limits;
 pub mod segment_quality;
 

@@ -82,7 +82,7 @@ pub(super) fn table(args: &BenchArgs) -> anyhow::Result<String> {
          in a 10 × 8 × 3 m room; gap {} m, minimum {} Gaussians; one thread, median of {} runs)\n\n",
         fmt_size(n),
         STRAY * 100.0,
-        p.gap,
+        o.gap,
         p.min_gaussians,
         args.queries
     );

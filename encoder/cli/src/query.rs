@@ -51,9 +51,10 @@ pub struct QueryArgs {
     /// x,y,z (scene frame): sort objects by distance from this point instead of by score.
     #[arg(long, allow_hyphen_values = true, value_parser = parse_xyz)]
     pub near: Option<[f32; 3]>,
-    /// Single-linkage gap between an object's matches, scene units.
-    #[arg(long, default_value_t = objects::DEFAULT_GAP)]
-    pub object_gap: f32,
+    /// Single-linkage gap between an object's matches, scene units; default: 4 × the matches'
+    /// median nearest-neighbour distance (the scene's own spacing).
+    #[arg(long)]
+    pub object_gap: Option<f32>,
     /// Smallest object, in matching Gaussians.
     #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
     pub object_min_gaussians: usize,
@@ -149,7 +150,7 @@ mod tests {
             ep: EpArg::Cpu,
             max_objects: objects::DEFAULT_MAX_OBJECTS,
             near: None,
-            object_gap: objects::DEFAULT_GAP,
+            object_gap: None,
             object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
             smooth: SmoothArg::None,
             segments: None,
