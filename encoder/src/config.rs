@@ -453,7 +453,7 @@ pub struct AggregateConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum ReduceOn {
-    /// On the GPU where it can (one GPU rasterizer, a device with f64, no `--levels`), else on
+    /// On the GPU where it can (GPU rasterizers with f64, no `--levels`), else on
     /// the host.
     #[default]
     Auto,

@@ -244,7 +244,7 @@ pub struct EncodeArgs {
     /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks).
     #[arg(long, default_value_t = 2048)]
     pub accumulator_memory_mb: usize,
-    /// Where E_k is reduced: auto (on the GPU where it can: one GPU, f64, no --levels), device
+    /// Where E_k is reduced: auto (on the GPU where it can: GPUs with f64, no --levels), device
     /// (on the GPU, also lavapipe; an error where it cannot), or host (the CPU, in f64).
     #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
     pub reduce: crate::config::ReduceOn,

@@ -136,7 +136,7 @@ pub(crate) fn finish(
     let t0 = Instant::now();
     let writer = EmbeddingsWriter::create(&files.embeddings, dim, params.precision)?;
     let p = params.reduce;
-    let (streamed, sparse, gather_s) = match (device, params.mixture_keep) {
+    let (streamed, sparse, gather_s) = match (one_device(device)?, params.mixture_keep) {
         (Some(mut rasterizer), _) => {
             let (streamed, sparse) =
                 reduce_on_device(&mut *rasterizer, &means, dim, params, writer, &model_id)?;
@@ -235,6 +235,25 @@ pub(crate) fn finish(
         mixture_reduce_s: mixture.as_ref().map(|_| mixture_s),
     };
     files.write_report(report, params.precision, None, Some(forms))
+}
+
+/// The rasterizers that kept their views on their devices, as one: the first, with every other
+/// one's views imported ([`WeightRasterizer::import_kept`]); `None` without any.
+///
+/// Errors: the devices' (reading the others' sums back).
+fn one_device(
+    device: Vec<Box<dyn WeightRasterizer>>,
+) -> Result<Option<Box<dyn WeightRasterizer>>> {
+    let mut rasterizers = device.into_iter();
+    let Some(mut first) = rasterizers.next() else {
+        return Ok(None);
+    };
+    for mut other in rasterizers {
+        if let Some(kept) = other.export_kept()? {
+            first.import_kept(kept)?;
+        }
+    }
+    Ok(Some(first))
 }
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]):

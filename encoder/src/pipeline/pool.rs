@@ -56,9 +56,9 @@ pub(crate) struct Pooled {
     pub selection: crate::views::SelectionReport,
     /// The masks' record, with [`EncodeParams::mask_record_slots`].
     pub mask_record: Option<MaskRecord>,
-    /// The rasterizer that kept every view's sums on its device, for the device reduction
-    /// ([`WeightRasterizer::reduce_kept`]); `None`: the store holds the `a_kj`.
-    pub device: Option<Box<dyn WeightRasterizer>>,
+    /// The rasterizers that kept their views' sums on their devices, for the device reduction
+    /// ([`WeightRasterizer::reduce_kept`]); empty: the store holds the `a_kj`.
+    pub device: Vec<Box<dyn WeightRasterizer>>,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -291,7 +291,7 @@ struct WorkersLeft {
     store: ContributionStore,
     level_stores: Vec<ContributionStore>,
     mask_record: Option<MaskRecord>,
-    device: Option<Box<dyn WeightRasterizer>>,
+    device: Vec<Box<dyn WeightRasterizer>>,
     totals: ImageWork,
     queue: QueueStats,
 }
@@ -327,20 +327,17 @@ impl Shared<'_> {
                     .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))
             })
             .transpose()?;
-        let mut device = self
+        let device = self
             .device
             .into_inner()
             .map_err(|_| Error::internal("kept rasterizers poisoned by a panicked worker"))?;
-        if device.len() > 1 {
-            return Err(Error::internal("more than one rasterizer kept its sums"));
-        }
         self.bar_front.finish();
         self.bar_back.finish();
         Ok(WorkersLeft {
             store,
             level_stores,
             mask_record,
-            device: device.pop(),
+            device,
             totals: self.totals.into_inner().unwrap_or_default(),
             queue: self.queue.stats(slots),
         })
@@ -434,12 +431,10 @@ fn run_workers(
             Vec::new()
         });
         let names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
-        let n_rasterizers = names.len();
         for (g, rasterizer) in rasterizers.into_iter().enumerate() {
             let rx = Arc::clone(&receivers[g % n_queues]);
             let name = format!("raster-{g} {}", names[g]);
-            let only = n_rasterizers == 1;
-            handles.extend(spawn_back(s, g, rasterizer, rx, name, only, shared));
+            handles.extend(spawn_back(s, g, rasterizer, rx, name, shared));
         }
         // Without rasterizers (their set-up failed) the fronts see the queues close and stop.
         drop(receivers);
@@ -511,7 +506,6 @@ fn spawn_back<'scope>(
     mut rasterizer: Box<dyn WeightRasterizer>,
     rx: Arc<Mutex<mpsc::Receiver<FrontItem>>>,
     name: String,
-    only: bool,
     shared: &'scope Shared<'_>,
 ) -> [std::thread::ScopedJoinHandle<'scope, WorkerShare>; 3] {
     let (views, raster_intrinsics, params, dim, t_total) = (
@@ -546,7 +540,7 @@ fn spawn_back<'scope>(
     });
     let raster_pool = Arc::clone(&pool);
     let raster = s.spawn(move || {
-        let keep = match keep_on_device(&mut *rasterizer, params, dim, only) {
+        let keep = match keep_on_device(&mut *rasterizer, params, dim) {
             Ok(keep) => keep,
             Err(e) => {
                 failure.fail(e);
@@ -607,27 +601,26 @@ fn spawn_back<'scope>(
 
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction
 /// ([`crate::config::ReduceOn`]): `Some(whether the masks' record wants the dominant masks)`,
-/// or `None` for the host reduction. The device reduction needs the run's only rasterizer
-/// (`only`), a device with f64, and no per-level files.
+/// or `None` for the host reduction. The device reduction needs GPU rasterizers whose devices
+/// have f64, and no per-level files; on several GPUs each keeps its own views and one reduces
+/// them all.
 ///
 /// Errors: `--reduce device` where it cannot run ([`Error::Param`] `reduce`).
 fn keep_on_device(
     rasterizer: &mut dyn WeightRasterizer,
     params: &EncodeParams,
     dim: usize,
-    only: bool,
 ) -> Result<Option<bool>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
-    let possible = params.reduce_on != ReduceOn::Host && only && !params.levels;
+    let possible = params.reduce_on != ReduceOn::Host && !params.levels;
     let keeps =
         possible && rasterizer.keep_on_device(dim, params.device_reduce_budget_bytes, forced);
     if forced && !keeps {
         return Err(Error::param(
             "reduce",
             "device",
-            "a run with one GPU rasterizer whose device has f64, and no --levels \
-             (or --reduce host)",
+            "GPU rasterizers whose devices have f64, and no --levels (or --reduce host)",
         ));
     }
     Ok(keeps.then_some(params.mask_record_slots.is_some()))

@@ -176,6 +176,22 @@ pub trait WeightRasterizer: Send {
         let _ = (params, sink);
         Err(Error::internal("this rasterizer keeps no sums on its device"))
     }
+    /// Every view this rasterizer kept, as host data for another rasterizer's
+    /// [`Self::import_kept`] (a run on several GPUs reduces on one); keeping stops. `None`: it
+    /// kept nothing (the default).
+    ///
+    /// Errors: device failures reading the sums back.
+    fn export_kept(&mut self) -> Result<Option<KeptExport>> {
+        Ok(None)
+    }
+    /// Adds the views another rasterizer kept ([`Self::export_kept`]) to this one's, for one
+    /// [`Self::reduce_kept`] over all of them.
+    ///
+    /// Errors: this rasterizer keeps nothing (the default: [`Error::Internal`]).
+    fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
+        let _ = kept;
+        Err(Error::internal("this rasterizer keeps no sums on its device"))
+    }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;
     /// Phase timings of the last successful [`Self::rasterize`] or [`Self::label_sums`] run,
@@ -232,6 +248,19 @@ pub struct KeptTile {
     pub kept: Vec<Vec<(f32, u32)>>,
     /// With [`DeviceReduce::dense`]: `[B × D]` the unit `E_k`, f32; else empty.
     pub rows: Vec<f32>,
+}
+
+/// The views one rasterizer kept on its device, as host data ([`WeightRasterizer::export_kept`]):
+/// per view its label table and codebook rows, per kept band its records and block index.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct KeptExport {
+    /// Embedding width D.
+    pub(crate) dim: usize,
+    /// Per view: its label table (the device reduction's layout, offsets relative to its start)
+    /// and its masks' embeddings `[M × D]`.
+    pub(crate) views: Vec<(Vec<u32>, Vec<f32>)>,
+    /// Per band: its view, its records (16 bytes each), where each block of Gaussians starts.
+    pub(crate) parts: Vec<(u32, Vec<u8>, Vec<u32>)>,
 }
 
 /// What [`WeightRasterizer::reduce_kept`] leaves besides the tiles.

@@ -969,7 +969,8 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
 /// The device reduction (label sums kept on the device, reduced there in tiles) gives the host
 /// pipeline's results: the same observed Gaussians, `Σ a_kj`, unit `E_k` within f64 round-off,
 /// the same kept mixture pairs and the same dominant masks, with overlapping masks, area
-/// weighting, several views and tiles of a few blocks of Gaussians.
+/// weighting, several views and tiles of a few blocks of Gaussians, and with the last views kept
+/// on a second device whose views the first imports (a run on several GPUs).
 #[test]
 fn device_reduction_equals_the_host_reduction() {
     use crate::aggregate::{
@@ -981,11 +982,13 @@ fn device_reduction_equals_the_host_reduction() {
     let g = random_scene(11, n);
     let Some(mut host_gpu) = gpu(&g) else { return };
     let Some(mut dev) = gpu(&g) else { return };
+    let Some(mut second) = gpu(&g) else { return };
     let dim = 70; // two values per thread for some threads of the 64-wide workgroup
     assert!(
         dev.keep_on_device(dim, 1 << 30, true),
         "the device (lavapipe in CI) has f64: it keeps the label sums"
     );
+    assert!(second.keep_on_device(dim, 1 << 30, true));
     dev.set_reduce_tile_bytes(Some(100_000));
     let params = ImageStageParams {
         mask_weighting: MaskWeighting::Area,
@@ -1009,7 +1012,8 @@ fn device_reduction_equals_the_host_reduction() {
             embeddings: &emb,
             dominant: true,
         };
-        let view = dev
+        let keeper = if seed < 3 { &mut dev } else { &mut second };
+        let view = keeper
             .label_sums_kept(&k, &w2c, &labels.labels, None, kept)
             .unwrap()
             .expect("kept");
@@ -1027,6 +1031,9 @@ fn device_reduction_equals_the_host_reduction() {
         keep,
         dense: true,
     };
+    dev.import_kept(second.export_kept().unwrap().expect("views kept"))
+        .unwrap();
+    assert!(second.export_kept().unwrap().is_none(), "keeping stopped");
     let mut tiles = Vec::new();
     let out = dev.reduce_kept(&p, &mut |t| {
         tiles.push(t);

@@ -20,7 +20,7 @@ use super::buffers::{storage, storage_init};
 use super::reduce::record_radix_shifts;
 use super::sort::{SortBuffers, groups_2d};
 use super::{GROUPS_X, GpuRasterizer, Params};
-use crate::raster::{DeviceReduce, KeptMasks, KeptReduced, KeptTile};
+use crate::raster::{DeviceReduce, KeptExport, KeptMasks, KeptReduced, KeptTile};
 
 /// Gaussians per block of a view's record index (`ek.wgsl` `BLOCK_GAUSSIANS`): tiles of the
 /// reduction are whole blocks.
@@ -55,6 +55,8 @@ const _: () = assert!(std::mem::size_of::<EkParams>() == 48);
 /// Gaussians starts among them.
 struct KeptPart {
     records: wgpu::Buffer,
+    /// Records held.
+    n: u32,
     /// The view (an index into [`Kept::views`]).
     view: u32,
     /// `[blocks + 1]`: index of the first record of each block of [`BLOCK_GAUSSIANS`], `n` last.
@@ -293,10 +295,90 @@ impl GpuRasterizer {
         kept.bytes += bytes;
         kept.parts.push(KeptPart {
             records,
+            n,
             view,
             starts,
         });
         Ok(heads)
+    }
+
+    /// Every kept view as host data ([`KeptExport`]), for another device's reduction; keeping
+    /// stops here. `None` when nothing was kept.
+    ///
+    /// Errors: device failures reading the records back.
+    pub(super) fn export_kept_views(&mut self) -> Result<Option<KeptExport>> {
+        let Some(kept) = self.kept.take() else {
+            return Ok(None);
+        };
+        let dim = kept.dim;
+        let n_views = kept.views.len();
+        let views = (0..n_views)
+            .map(|v| {
+                let [base, row] = kept.views[v];
+                let (table_end, row_end) = match kept.views.get(v + 1) {
+                    Some(&[b, r]) => (b as usize, r as usize),
+                    None => (kept.tables.len(), kept.codebook.len() / dim),
+                };
+                (
+                    kept.tables[base as usize..table_end].to_vec(),
+                    kept.codebook[row as usize * dim..row_end * dim].to_vec(),
+                )
+            })
+            .collect();
+        let enc = self.device.create_command_encoder(&Default::default());
+        let reads: Vec<(&wgpu::Buffer, u64, u64)> = kept
+            .parts
+            .iter()
+            .map(|p| (&p.records, 0, u64::from(p.n) * 16))
+            .collect();
+        let read = self.submit_and_read(enc, &reads)?;
+        let parts = kept
+            .parts
+            .into_iter()
+            .zip(read)
+            .map(|(p, mut bytes)| {
+                bytes.truncate(p.n as usize * 16);
+                (p.view, bytes, p.starts)
+            })
+            .collect();
+        Ok(Some(KeptExport { dim, views, parts }))
+    }
+
+    /// Adds another device's kept views ([`Self::export_kept_views`]) to this one's, after its
+    /// own: their records uploaded, their tables and codebook rows appended.
+    ///
+    /// Errors: keeping not started here, or another width ([`Error::Internal`]); tables or
+    /// codebook past 2^32.
+    pub(super) fn import_kept_views(&mut self, e: KeptExport) -> Result<()> {
+        let Some(kept) = self.kept.as_mut() else {
+            return Err(Error::internal("importing kept views without keeping started"));
+        };
+        if kept.dim != e.dim {
+            return Err(Error::internal(format!(
+                "kept views of width {} imported into a reduction of width {}",
+                e.dim, kept.dim
+            )));
+        }
+        let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
+        let first_view = kept.views.len() as u32;
+        for (table, rows) in e.views {
+            let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
+            let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
+            kept.tables.extend_from_slice(&table);
+            kept.codebook.extend_from_slice(&rows);
+            kept.views.push([base, row]);
+        }
+        for (view, bytes, starts) in e.parts {
+            let n = (bytes.len() / 16) as u32;
+            kept.bytes += bytes.len() as u64;
+            kept.parts.push(KeptPart {
+                records: storage_init(&self.device, "kept_records", &bytes),
+                n,
+                view: first_view + view,
+                starts,
+            });
+        }
+        Ok(())
     }
 
     /// Testing aid: the most bytes of one tile's records and outputs (default 1 GiB, and at

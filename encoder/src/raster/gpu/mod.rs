@@ -78,7 +78,7 @@ use wgpu::util::DeviceExt;
 
 use super::project::{jacobian_limits, tile_grid};
 use super::{
-    DeviceReduce, KeptMasks, KeptReduced, KeptTile, KeptView, LabelSums, PixelWeights,
+    DeviceReduce, KeptExport, KeptMasks, KeptReduced, KeptTile, KeptView, LabelSums, PixelWeights,
     PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
 };
 
@@ -962,6 +962,14 @@ impl WeightRasterizer for GpuRasterizer {
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
         self.reduce_kept_tiles(params, sink)
+    }
+
+    fn export_kept(&mut self) -> Result<Option<KeptExport>> {
+        self.export_kept_views()
+    }
+
+    fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
+        self.import_kept_views(kept)
     }
 
     fn name(&self) -> &str {
