@@ -100,6 +100,9 @@ print(f"--reduce {mode}: process wall {wall} s, device_reduce {c.get('device_red
       f"peak RSS {int(rss.group(1)) / 2**20 if rss else -1:.2f} GiB, peak GPU {peak} MiB, "
       f"observed {c['observed']}, chunks {c['reduce_chunks']}")
 print("  " + ", ".join(f"{k} {t[k]:.2f}" for k in keys))
+for line in open(log):
+    if "segments written" in line or "error" in line.lower():
+        print("  " + line.strip()[-300:])
 EOF2
     grep -v XDG_RUNTIME "$W/run-$i.txt" | tail -40 > "$R/run-$i-$m.txt"
   done
