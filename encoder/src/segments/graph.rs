@@ -2,6 +2,7 @@
 //! its halo (module doc, "Bounded memory: tiles with a halo"), and its edges with their weights.
 
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
 
 use rayon::prelude::*;
 use rstar::RTree;
@@ -9,7 +10,7 @@ use rstar::primitives::GeomWithData;
 use slag_common::scene::Gaussians;
 
 use super::weights::{Edge, Geometry, Weigher};
-use super::{SegmentControl, SegmentParams};
+use super::{SegmentControl, SegmentParams, SegmentTimings};
 
 /// Each Gaussian's neighbours in the graph: `k` slots per Gaussian, the nearest other means
 /// within `max_edge` in ascending `(distance, id)` order, [`NO_NEIGHBOUR`] in unused slots.
@@ -102,7 +103,9 @@ pub(super) fn edges_of_tile(
     tile_of: &[u32],
     nb: &Neighbours,
     w: &Weigher,
+    st: &mut SegmentTimings,
 ) -> (Vec<Edge>, Vec<Edge>) {
+    let clock = Instant::now();
     let (inner, border): (Vec<Vec<Edge>>, Vec<Vec<Edge>>) = (0..means.len() as u32)
         .into_par_iter()
         .filter(|&i| tile_of[i as usize] == t)
@@ -127,9 +130,13 @@ pub(super) fn edges_of_tile(
         })
         .unzip();
     let mut inner: Vec<Edge> = inner.into_iter().flatten().collect();
+    let border: Vec<Edge> = border.into_iter().flatten().collect();
+    st.weights += clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
     inner.par_sort_unstable();
     inner.dedup();
-    (inner, border.into_iter().flatten().collect())
+    st.sort += clock.elapsed().as_secs_f64();
+    (inner, border)
 }
 
 /// The graph's edges of tile `t` (k-NN and weights in one go; the tests' reference).
@@ -156,7 +163,7 @@ pub(super) fn tile_edges(
         geo,
         masks: None,
     };
-    edges_of_tile(t, means, tile_of, &nb, &w)
+    edges_of_tile(t, means, tile_of, &nb, &w, &mut SegmentTimings::default())
 }
 
 /// `max_edge` for `p` and `geo`: the given one, or 10 × the median largest standard deviation.

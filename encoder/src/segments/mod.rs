@@ -211,6 +211,39 @@ pub struct SegmentStats {
     pub mask_record: Option<usize>,
     /// Wall time, seconds.
     pub seconds: f64,
+    /// Where the wall time went, stage by stage.
+    pub stages: SegmentTimings,
+}
+
+/// Wall seconds of each stage of one segmentation (module doc), for the reports: where the
+/// time of a segmentation that outlasts the encode goes.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct SegmentTimings {
+    /// Each Gaussian's normal, flatness and size.
+    pub geometry: f64,
+    /// The tiles' plan (median splits).
+    pub tiles: f64,
+    /// The k-nearest-neighbour search of the means.
+    pub neighbours: f64,
+    /// Waiting for the masks' record (the encode's last view).
+    pub record_wait: f64,
+    /// The edges and their weights (the mask term included), both passes.
+    pub weights: f64,
+    /// Sorting the edges, both passes.
+    pub sort: f64,
+    /// The merge-criterion pass (union-find), the border edges' included.
+    pub criterion: f64,
+    /// The minimum-size pass (union-find).
+    pub min_size: f64,
+    /// Each Gaussian's root and the canonical ids.
+    pub ids: f64,
+}
+
+/// Seconds since `t`, and `t` reset to now.
+fn lap(t: &mut Instant) -> f64 {
+    let s = t.elapsed().as_secs_f64();
+    *t = Instant::now();
+    s
 }
 
 /// Where [`segment_with`] runs its parallel stages, and whether it should give up. Another
@@ -304,16 +337,22 @@ pub fn segment_with(
     let t0 = Instant::now();
     let n = g.len();
     check_scene(g)?;
+    let mut st = SegmentTimings::default();
+    let mut t = Instant::now();
     let geo = ctl.run(|| geometry(g));
     if ctl.stopped() {
         return Ok(None);
     }
     let h = resolve_max_edge(p, &geo);
+    st.geometry = lap(&mut t);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    st.tiles = lap(&mut t);
     let Some(nb) = neighbour_graph(g, p, ctl, h, ax, &tile_of, &rects) else {
         return Ok(None);
     };
+    st.neighbours = lap(&mut t);
     let record = masks();
+    st.record_wait = lap(&mut t);
     if ctl.stopped() {
         return Ok(None);
     }
@@ -334,13 +373,16 @@ pub fn segment_with(
         geo: &geo,
         masks: record.as_deref(),
     };
-    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &nb, &tile_of, rects.len());
+    let (forest, edges, border_edges) =
+        merge(g, p, ctl, &w, &nb, &tile_of, rects.len(), &mut st);
     let mut forest = match forest {
         Some(f) => f,
         None => return Ok(None),
     };
+    t = Instant::now();
     let roots: Vec<u32> = (0..n as u32).map(|i| forest.find(i)).collect();
     let (segments, segment_count) = canonical_ids(&roots);
+    st.ids = lap(&mut t);
     let stats = SegmentStats {
         gaussians: n,
         segments: segment_count,
@@ -350,6 +392,7 @@ pub fn segment_with(
         max_edge: h,
         mask_record: record.as_ref().map(|r| r.slots),
         seconds: t0.elapsed().as_secs_f64(),
+        stages: st,
     };
     let parameters = serde_json::to_string(&serde_json::json!({
         "params": p, "max_edge_used": h, "tiles": rects.len(),
