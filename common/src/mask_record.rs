@@ -188,11 +188,21 @@ impl MaskRecord {
     /// share of evidence for *different* dominant masks, each shared view counting
     /// `min(a_i, a_j)`. `None` when they record no common view.
     pub fn disagreement(&self, i: usize, j: usize) -> Option<f32> {
+        let s = self.slots;
+        let (n, (a, b)) = (self.len(), (i * s, j * s));
+        if i >= n || j >= n {
+            return None;
+        }
+        let (va, vb) = (&self.views[a..a + s], &self.views[b..b + s]);
         let (mut agree, mut differ) = (0.0f32, 0.0f32);
-        for a in self.of(i) {
-            if let Some(b) = self.of(j).find(|b| b.view == a.view) {
-                let w = a.weight.min(b.weight);
-                if a.mask == b.mask {
+        for (x, &view) in va.iter().enumerate() {
+            if view == EMPTY_VIEW {
+                continue;
+            }
+            // The first slot of `j` with the same view (the edges' hot loop: plain slices).
+            if let Some(y) = vb.iter().position(|&v| v == view) {
+                let w = self.weights[a + x].min(self.weights[b + y]);
+                if self.masks[a + x] == self.masks[b + y] {
                     agree += w;
                 } else {
                     differ += w;

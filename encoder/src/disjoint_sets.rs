@@ -19,6 +19,20 @@ impl<C: Copy> DisjointSets<C> {
         }
     }
 
+    /// The sets given by each element's parent (a root is its own) and the data of each root
+    /// (at its index; the other entries are not read).
+    pub(crate) fn from_parts(parent: Vec<u32>, components: Vec<C>) -> Self {
+        DisjointSets { parent, components }
+    }
+
+    /// Each element's root and the data array (meaningful at the roots).
+    pub(crate) fn into_roots(mut self) -> (Vec<u32>, Vec<C>) {
+        let roots = (0..self.parent.len() as u32)
+            .map(|x| self.find(x))
+            .collect();
+        (roots, self.components)
+    }
+
     /// The root of `x`'s set; points every element on the path from `x` straight at it.
     pub(crate) fn find(&mut self, x: u32) -> u32 {
         let mut root = x;

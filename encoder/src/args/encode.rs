@@ -47,7 +47,7 @@ pub struct SegmentArgs {
     /// Segmentation: segments below this many Gaussians merge into a neighbour.
     #[arg(long, default_value_t = SegmentParams::default().min_size)]
     pub segment_min_size: usize,
-    /// Segmentation: longest graph edge, scene units (also the tiles' halo); default 10 × the
+    /// Segmentation: longest graph edge, scene units; default 10 × the
     /// median of the Gaussians' largest standard deviation.
     #[arg(long, value_name = "LENGTH")]
     pub segment_max_edge: Option<f32>,

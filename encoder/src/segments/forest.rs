@@ -1,15 +1,8 @@
-//! The Felzenszwalb–Huttenlocher passes (module doc, "Segmentation"): the union-find forest
-//! with each component's size and `Int`, and the two passes over the tiles' edges.
+//! The Felzenszwalb–Huttenlocher passes (module doc, "Segmentation") over a list of edges: the
+//! union-find forest with each component's size and `Int`.
 
-use std::time::Instant;
-
-use rayon::prelude::*;
-use slag_common::scene::Gaussians;
-
-use super::graph::{Neighbours, edges_of_tile};
 use super::regions::Regions;
-use super::weights::{Edge, Weigher};
-use super::{SegmentControl, SegmentParams, SegmentTimings};
+use super::weights::Edge;
 use crate::disjoint_sets::DisjointSets;
 
 /// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
@@ -110,63 +103,4 @@ impl Forest {
             }
         }
     }
-}
-
-/// The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc): the forest
-/// (`None` once stopped), the edge count and the border-edge count; their stages' seconds
-/// added to `st`.
-#[allow(clippy::too_many_arguments)]
-pub(super) fn merge(
-    g: &Gaussians,
-    p: &SegmentParams,
-    ctl: &SegmentControl,
-    w: &Weigher,
-    nb: &Neighbours,
-    tile_of: &[u32],
-    tiles: usize,
-    st: &mut SegmentTimings,
-) -> (Option<Forest>, u64, u64) {
-    let mut forest = Forest::singletons(g.len());
-    let mut regions = w
-        .masks
-        .filter(|_| p.region_veto < 1.0)
-        .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
-    let mut border: Vec<Edge> = Vec::new();
-    let mut edges = 0u64;
-    for t in 0..tiles {
-        let (inner, b) = ctl.run(|| edges_of_tile(t as u32, &g.means, tile_of, nb, w, st));
-        if ctl.stopped() {
-            return (None, edges, 0);
-        }
-        let clock = Instant::now();
-        forest.criterion_pass_in(&inner, p.threshold, regions.as_mut());
-        st.criterion += clock.elapsed().as_secs_f64();
-        edges += inner.len() as u64;
-        border.extend(b);
-    }
-    let clock = Instant::now();
-    ctl.run(|| border.par_sort_unstable());
-    border.dedup();
-    st.sort += clock.elapsed().as_secs_f64();
-    let clock = Instant::now();
-    edges += border.len() as u64;
-    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
-    st.criterion += clock.elapsed().as_secs_f64();
-    if p.min_size > 1 {
-        let allowed = |e: &Edge| w.may_absorb(e);
-        for t in 0..tiles {
-            let (inner, _) =
-                ctl.run(|| edges_of_tile(t as u32, &g.means, tile_of, nb, w, st));
-            if ctl.stopped() {
-                return (None, edges, border.len() as u64);
-            }
-            let clock = Instant::now();
-            forest.min_size_pass_in(&inner, p.min_size, allowed, regions.as_mut());
-            st.min_size += clock.elapsed().as_secs_f64();
-        }
-        let clock = Instant::now();
-        forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
-        st.min_size += clock.elapsed().as_secs_f64();
-    }
-    (Some(forest), edges, border.len() as u64)
 }

@@ -43,26 +43,41 @@
 //! snowmiku it made more, smaller segments but no purer ones than a smaller minimum size does at
 //! the same count (docs/results/prediction-filtering.md).
 //!
-//! # Bounded memory: tiles with a halo
+//! # Neighbours: a grid
 //!
-//! The graph is never held whole. The Gaussians are cut into tiles of at most
-//! [`SegmentParams::tile_gaussians`] by median splits on the two world axes of largest extent;
-//! each tile's k-NN is computed over the tile plus a halo of width `max_edge` around it, which
-//! holds every neighbour an edge can reach, so each Gaussian's edges are exactly those of the
-//! whole scene. Per tile, the edges inside it run the merge criterion; the edges that cross a tile
-//! border are kept (a few per border Gaussian) and run it afterwards in a second union-find pass
-//! over the same components (their `Int` and sizes carried over); the minimum-size pass then
-//! goes over each tile's edges again (recomputed, not stored) and the border edges last. Memory:
-//! 40 bytes per Gaussian for the whole scene (means, normals, flatness, size, tile, union-find)
-//! plus one tile's tree and edges and the border edges.
+//! The k-NN search bins the means into cubic cells and scans the cells around each mean, shell
+//! after shell, until no cell left can hold a nearer mean: exact, the same
+//! neighbours as any exact search (same `d²`, ties by id), in time about linear in the
+//! Gaussians. Memory: 44 bytes per Gaussian for the result, 24 more while it runs.
+//!
+//! # Bounded memory and parallel passes: tiles
+//!
+//! The edges are never held whole. The Gaussians are cut into tiles of at most
+//! [`SegmentParams::tile_gaussians`] by median splits on the two world axes of largest extent.
+//! Per tile, the edges inside it run the merge criterion; the edges that cross a tile border
+//! are kept (a few per border Gaussian) and run it afterwards in a second union-find pass over
+//! the same components (their `Int` and sizes carried over); the minimum-size pass then goes
+//! over each tile's edges again and the border edges last. As a tile's inner edges join only
+//! its own Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
+//! (`passes.rs`); the minimum-size pass needs only the inner edges still between two components
+//! after their tile's pass (kept from it), as it would skip the others. Memory: 48 bytes per
+//! Gaussian for the whole scene (normals, flatness, size, tile, its place in the tile,
+//! union-find) plus the neighbours, the edges of the tiles in flight (at most 1 GiB, about 70
+//! bytes per Gaussian of a tile) and the border edges and those kept.
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same
 //! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
 //! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
-//! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement.
+//! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement. Neither
+//! the tiles in parallel nor the thread count change a single id
+//! (`tests::ids_do_not_depend_on_threads`).
 
 mod forest;
 mod graph;
+mod grid;
+mod passes;
+#[cfg(test)]
+mod reference;
 mod regions;
 #[cfg(test)]
 mod tests;
@@ -76,12 +91,14 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 use slag_common::mask_record::MaskRecord;
 use slag_common::scene::Gaussians;
-use slag_common::segments::{Segments, canonical_ids};
+use slag_common::segments::Segments;
+#[cfg(test)]
+use slag_common::segments::canonical_ids;
 use slag_common::{Error, Result};
 
 use crate::check::require;
-use forest::merge;
 use graph::{neighbour_graph, resolve_max_edge};
+use passes::merge;
 use tiles::plan_tiles;
 use weights::{Weigher, geometry};
 
@@ -97,7 +114,7 @@ pub struct SegmentParams {
     /// Segments below this many Gaussians are merged into a neighbour (default 20, as
     /// Segmentator's `segMinVerts`).
     pub min_size: usize,
-    /// Longest edge, scene units; also the tiles' halo width. `None` (default): 10 × the median
+    /// Longest edge, scene units. `None` (default): 10 × the median
     /// of the Gaussians' largest standard deviation.
     pub max_edge: Option<f32>,
     /// Weight of the normal term `w_n` (default 1).
@@ -106,7 +123,8 @@ pub struct SegmentParams {
     pub distance_weight: f32,
     /// Weight of the shape (size-ratio) term `w_s` (default 0.1).
     pub shape_weight: f32,
-    /// Most Gaussians per tile (default 2,000,000); bounds the memory of the k-NN graph.
+    /// Most Gaussians per tile (default 2,000,000); bounds the memory of the edges, and sets
+    /// how many union-find passes run in parallel (one per tile).
     pub tile_gaussians: usize,
     /// Weight of the mask term `w_m`: an edge whose ends fall in different masks in every view
     /// that records both gets `w_m` added (default 1; 0: geometry only). Used only with a
@@ -227,12 +245,14 @@ pub struct SegmentTimings {
     pub neighbours: f64,
     /// Waiting for the masks' record (the encode's last view).
     pub record_wait: f64,
-    /// The edges and their weights (the mask term included), both passes.
+    /// The edges and their weights (the mask term included), summed over the tiles.
     pub weights: f64,
-    /// Sorting the edges, both passes.
+    /// Sorting the edges, summed over the tiles, and the border edges.
     pub sort: f64,
-    /// The merge-criterion pass (union-find), the border edges' included.
+    /// The merge-criterion pass (union-find), summed over the tiles, and the border edges'.
     pub criterion: f64,
+    /// The tiles' edges and criterion passes, which run in parallel (wall time).
+    pub tile_passes: f64,
     /// The minimum-size pass (union-find).
     pub min_size: f64,
     /// Each Gaussian's root and the canonical ids.
@@ -315,10 +335,10 @@ pub fn segment(
         .ok_or_else(|| Error::internal("the segmentation stopped without being asked to"))
 }
 
-/// [`segment`] with its parallel stages on `ctl`'s pool of the moment (the serial union-find
-/// passes run on the calling thread), given up once [`SegmentControl::stop`] was called:
-/// `Ok(None)` then. The stop is looked at between the stages and for every Gaussian of the
-/// k-nearest-neighbour search, so it takes effect within about one union-find pass. The result
+/// [`segment`] with its parallel stages on `ctl`'s pool of the moment (the border edges' and
+/// the minimum-size union-find passes run on the calling thread), given up once
+/// [`SegmentControl::stop`] was called: `Ok(None)` then. The stop is looked at between the
+/// stages, for every cell of the k-nearest-neighbour search and between waves of tiles. The result
 /// is [`segment`]'s, whatever the pools.
 ///
 /// `masks` is called once the neighbour graph is built (the k-NN search, the costly part, runs
@@ -345,9 +365,9 @@ pub fn segment_with(
     }
     let h = resolve_max_edge(p, &geo);
     st.geometry = lap(&mut t);
-    let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
     st.tiles = lap(&mut t);
-    let Some(nb) = neighbour_graph(g, p, ctl, h, ax, &tile_of, &rects) else {
+    let Some(nb) = ctl.run(|| neighbour_graph(&g.means, p, h, &ctl.stop)) else {
         return Ok(None);
     };
     st.neighbours = lap(&mut t);
@@ -373,15 +393,14 @@ pub fn segment_with(
         geo: &geo,
         masks: record.as_deref(),
     };
-    let (forest, edges, border_edges) =
-        merge(g, p, ctl, &w, &nb, &tile_of, rects.len(), &mut st);
-    let mut forest = match forest {
+    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &nb, &tile_of, rects.len(), &mut st);
+    let forest = match forest {
         Some(f) => f,
         None => return Ok(None),
     };
     t = Instant::now();
-    let roots: Vec<u32> = (0..n as u32).map(|i| forest.find(i)).collect();
-    let (segments, segment_count) = canonical_ids(&roots);
+    let (roots, _) = forest.into_roots();
+    let (segments, segment_count) = canonical_root_ids(&roots);
     st.ids = lap(&mut t);
     let stats = SegmentStats {
         gaussians: n,
@@ -408,6 +427,25 @@ pub fn segment_with(
         },
         stats,
     )))
+}
+
+/// [`canonical_ids`] of union-find roots (each below `roots.len()`), its map an array: the
+/// same ids, numbered by each segment's smallest Gaussian id.
+fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
+    let mut map = vec![u32::MAX; roots.len()];
+    let mut next = 0u32;
+    let ids = roots
+        .iter()
+        .map(|&r| {
+            let id = &mut map[r as usize];
+            if *id == u32::MAX {
+                *id = next;
+                next += 1;
+            }
+            *id
+        })
+        .collect();
+    (ids, next)
 }
 
 /// The checks of [`segment`] on the scene's arrays.

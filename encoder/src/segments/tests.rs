@@ -3,7 +3,8 @@
 use std::sync::atomic::AtomicBool;
 
 use super::forest::Forest;
-use super::graph::tile_edges;
+use super::graph::NO_NEIGHBOUR;
+use super::reference;
 use super::regions::{PROFILE_CAP, merge_profiles, region_disagreement};
 use super::weights::Edge;
 use super::*;
@@ -124,12 +125,7 @@ fn tiles_equal_the_tile_grouped_order() {
     let (tiled, stats) = segment(&g, &p, "x", None).unwrap();
     assert!(stats.tiles > 4 && stats.border_edges > 0, "{stats:?}");
     // Reference: the whole graph from one tile, reordered by the tiling.
-    let geo = geometry(&g);
-    let h = resolve_max_edge(&p, &geo);
-    let (ax1, one, r1) = plan_tiles(&g.means, usize::MAX);
-    let go = AtomicBool::new(false);
-    let (all, none) = tile_edges(0, &g.means, &one, ax1, r1[0], &geo, &p, h, &go);
-    assert!(none.is_empty());
+    let all = reference::all_edges(&g, &p);
     let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
     let mut order: Vec<Edge> = Vec::new();
     for t in 0..rects.len() as u32 {
@@ -258,4 +254,171 @@ fn bad_settings_are_refused() {
             Err(Error::Param { .. })
         ));
     }
+}
+
+/// A scene that tries the search's corners: a lattice (many exactly tied distances, ties by
+/// id), duplicated means, a crowded clump (finer cells), isolated Gaussians beyond
+/// `max_edge`, and varied sizes and normals.
+fn corners() -> Gaussians {
+    let mut g = Gaussians::default();
+    let mut s = 11u64;
+    let mut rnd = move || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let push = |m: [f32; 3], r: f32, q: [f32; 4], g: &mut Gaussians| {
+        g.means.push(m);
+        g.scales.push([0.05 * r, 0.04 * r, 0.01 * r]);
+        g.rotations.push(q);
+        g.opacities.push(0.9);
+    };
+    for a in 0..30 {
+        for b in 0..30 {
+            let q = [1.0, 0.1 * (a % 3) as f32, 0.0, 0.1 * (b % 4) as f32];
+            push([a as f32 * 0.1, b as f32 * 0.1, 0.0], 1.0, q, &mut g);
+        }
+    }
+    for i in 0..200 {
+        let m = g.means[i * 3];
+        push(m, 1.5, [1.0, 0.0, 0.3, 0.0], &mut g);
+    }
+    for _ in 0..1500 {
+        let m = [1.0 + 0.02 * rnd(), 1.0 + 0.02 * rnd(), 0.5 + 0.02 * rnd()];
+        let q = [rnd(), rnd(), rnd(), rnd()];
+        push(m, 0.2 + rnd(), q, &mut g);
+    }
+    for i in 0..40 {
+        let m = [10.0 + i as f32 * 3.0, -5.0, 2.0 * rnd()];
+        push(m, 1.0, [1.0, 0.0, 0.0, 0.0], &mut g);
+    }
+    for _ in 0..2000 {
+        let m = [4.0 * rnd(), 4.0 * rnd(), 0.3 * rnd()];
+        let q = [rnd(), rnd(), rnd(), rnd()];
+        push(m, 0.5 + rnd(), q, &mut g);
+    }
+    g
+}
+
+/// A masks' record of `g` over 6 views: masks by strips of the plane, each view its own.
+fn strips_record(g: &Gaussians) -> slag_common::mask_record::MaskRecord {
+    let mut r = slag_common::mask_record::MaskRecord::new(g.len(), 4, 6).unwrap();
+    for v in 0..6usize {
+        let entries = (0..g.len() as u32)
+            .filter(|&i| (i as usize + v) % 3 != 0)
+            .map(|i| {
+                let m = g.means[i as usize];
+                let mask = ((m[0] + 0.3 * v as f32) / 0.7).floor().max(0.0) as u32;
+                (i, mask, 0.1 + 0.1 * ((i as usize * 7 + v) % 9) as f32)
+            });
+        r.add_view(v, entries);
+    }
+    r
+}
+
+#[test]
+fn grid_neighbours_equal_the_tree_search() {
+    let g = corners();
+    for (k, h) in [(10, 0.5f32), (3, 0.05), (24, 2.0)] {
+        let p = SegmentParams {
+            neighbours: k,
+            max_edge: Some(h),
+            tile_gaussians: usize::MAX,
+            ..params()
+        };
+        let (ax, one, rects) = plan_tiles(&g.means, usize::MAX);
+        let tree = reference::neighbour_graph(&g, &p, h, ax, &one, &rects);
+        let go = AtomicBool::new(false);
+        let grid = graph::neighbour_graph(&g.means, &p, h, &go).unwrap();
+        let mut lonely = 0;
+        for i in 0..g.len() {
+            let a: Vec<u32> = tree.of(i).collect();
+            assert_eq!(
+                a,
+                grid.of(i).collect::<Vec<u32>>(),
+                "Gaussian {i}, k {k}, h {h}"
+            );
+            lonely += usize::from(a.len() < k);
+        }
+        assert!(
+            lonely > 0 && lonely < g.len(),
+            "k {k}, h {h}: {lonely} short lists"
+        );
+    }
+    assert_eq!(NO_NEIGHBOUR, u32::MAX);
+}
+
+#[test]
+fn ids_equal_the_previous_implementation() {
+    let g = corners();
+    let record = std::sync::Arc::new(strips_record(&g));
+    let base = SegmentParams {
+        max_edge: Some(0.4),
+        threshold: 0.3,
+        tile_gaussians: 700,
+        ..params()
+    };
+    for (p, masks) in [
+        (base, None),
+        (base, Some(&record)),
+        (
+            SegmentParams {
+                region_veto: 0.6,
+                ..base
+            },
+            Some(&record),
+        ),
+        (
+            SegmentParams {
+                tile_gaussians: usize::MAX,
+                ..base
+            },
+            Some(&record),
+        ),
+        (
+            SegmentParams {
+                min_size: 1,
+                ..base
+            },
+            None,
+        ),
+    ] {
+        let (s, stats) = segment(&g, &p, "x", masks.cloned()).unwrap();
+        let want = reference::segment_ids(&g, &p, masks.map(|r| &**r));
+        assert_eq!(s.segments, want, "{p:?}, record: {}", masks.is_some());
+        assert!(stats.segments > 3, "{stats:?}");
+        if p.tile_gaussians == 700 {
+            assert!(stats.tiles > 4 && stats.border_edges > 0, "{stats:?}");
+        }
+    }
+}
+
+#[test]
+fn ids_do_not_depend_on_threads() {
+    let g = corners();
+    let record = std::sync::Arc::new(strips_record(&g));
+    let p = SegmentParams {
+        max_edge: Some(0.4),
+        threshold: 0.3,
+        tile_gaussians: 500,
+        ..params()
+    };
+    let on = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| segment(&g, &p, "x", Some(record.clone())).unwrap().0)
+    };
+    let one = on(1);
+    assert!(one.segment_count > 3);
+    assert_eq!(on(2), one);
+    assert_eq!(on(7), one);
+}
+
+#[test]
+fn root_ids_are_the_canonical_ids() {
+    let roots: Vec<u32> = (0..500u32).map(|i| (i * 7919 % 97) * 5 % 500).collect();
+    assert_eq!(canonical_root_ids(&roots), canonical_ids(&roots));
 }

@@ -1,4 +1,4 @@
-//! The tiles that bound the graph's memory (module doc, "Bounded memory: tiles with a halo").
+//! The tiles that bound the edges' memory (module doc, "Bounded memory and parallel passes: tiles").
 
 /// Tiles: median splits on the two world axes of largest extent until each holds at most
 /// `cap` Gaussians. Returns each Gaussian's tile and each tile's rectangle `(lo, hi)` on those

@@ -1,0 +1,317 @@
+//! The exact k-nearest-neighbour search of the means over a uniform grid of cubic cells
+//! (module doc, "Graph and weights"): every Gaussian's `k` nearest other means within
+//! `max_edge`, in ascending `(d², id)` order, `d²` computed as `(dx² + dy²) + dz²` in `f32`
+//! with `dx = m_j − m_i` (the R*-tree search this replaces computed it so; the same `d²` gives
+//! the same neighbours, ties included).
+//!
+//! The means are sorted by cell (cells of side `c`, by default `max_edge / 4`, smaller where
+//! that would put many means in a cell); a search scans the 3 × 3 × 3 cells around its own,
+//! then further shells of cells, until the `k`-th distance found is shorter than the distance
+//! to any cell not yet scanned (or that distance exceeds `max_edge`). Memory: 24 bytes per
+//! Gaussian while it runs (cell order, the means in that order, the cell keys) plus the cells'
+//! index, besides the result.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+
+use super::graph::{NO_NEIGHBOUR, Neighbours};
+
+/// Cells per axis at most: a cell's coordinates fit 21 bits of its 63-bit key.
+const AXIS_CELLS: f64 = (1u64 << 21) as f64 - 2.0;
+
+/// Means per occupied cell above which the cells are made smaller.
+const CROWDED: f64 = 32.0;
+
+/// Cell key → cell index.
+type CellIndex = FxHashMap<u64, u32>;
+
+/// The means sorted by cell.
+struct Grid {
+    /// Cell side, scene units.
+    side: f64,
+    /// Corner of cell (0, 0, 0).
+    origin: [f64; 3],
+    /// Gaussian ids in cell order (ascending id within a cell).
+    order: Vec<u32>,
+    /// The means in cell order.
+    points: Vec<[f32; 3]>,
+    /// Cell `c` holds `order[starts[c]..starts[c + 1]]`.
+    starts: Vec<u32>,
+    /// Each occupied cell's integer coordinates.
+    cells: Vec<[i64; 3]>,
+    /// The largest cell coordinate on each axis.
+    last: [i64; 3],
+    index: CellIndex,
+}
+
+fn cell_of(m: &[f32; 3], origin: &[f64; 3], side: f64) -> [i64; 3] {
+    std::array::from_fn(|a| ((f64::from(m[a]) - origin[a]) / side).floor() as i64)
+}
+
+fn key(c: [i64; 3]) -> u64 {
+    ((c[0] as u64) << 42) | ((c[1] as u64) << 21) | c[2] as u64
+}
+
+/// The means' bounding box.
+fn bounds(means: &[[f32; 3]]) -> ([f64; 3], [f64; 3]) {
+    let (lo, hi) = means
+        .par_iter()
+        .fold(
+            || ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+            |(mut lo, mut hi), m| {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(m[a]);
+                    hi[a] = hi[a].max(m[a]);
+                }
+                (lo, hi)
+            },
+        )
+        .reduce(
+            || ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+            |(l1, h1), (l2, h2)| {
+                (
+                    std::array::from_fn(|a| l1[a].min(l2[a])),
+                    std::array::from_fn(|a| h1[a].max(h2[a])),
+                )
+            },
+        );
+    (lo.map(f64::from), hi.map(f64::from))
+}
+
+impl Grid {
+    /// The means binned into cells of side `max_edge / 4`, halved (down to `max_edge / 16`)
+    /// while an occupied cell holds more than [`CROWDED`] means on average; never more than
+    /// [`AXIS_CELLS`] cells per axis.
+    fn build(means: &[[f32; 3]], max_edge: f32) -> Grid {
+        let (lo, hi) = bounds(means);
+        let extent = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+        let floor = (extent / AXIS_CELLS).max(f64::MIN_POSITIVE);
+        let mut side = (f64::from(max_edge) / 4.0).max(floor);
+        let mut keyed = Self::keyed(means, &lo, side);
+        for _ in 0..2 {
+            let occupied = 1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count();
+            let finer = (side / 2.0).max(floor);
+            if (means.len() as f64) <= CROWDED * occupied as f64 || finer >= side {
+                break;
+            }
+            side = finer;
+            keyed = Self::keyed(means, &lo, side);
+        }
+        Self::from_keyed(means, lo, side, keyed)
+    }
+
+    /// Every mean's cell key and id, sorted.
+    fn keyed(means: &[[f32; 3]], origin: &[f64; 3], side: f64) -> Vec<(u64, u32)> {
+        let mut keyed: Vec<(u64, u32)> = means
+            .par_iter()
+            .enumerate()
+            .map(|(i, m)| (key(cell_of(m, origin, side)), i as u32))
+            .collect();
+        keyed.par_sort_unstable();
+        keyed
+    }
+
+    fn from_keyed(means: &[[f32; 3]], origin: [f64; 3], side: f64, keyed: Vec<(u64, u32)>) -> Grid {
+        let mut starts = Vec::new();
+        let mut cells = Vec::new();
+        let mut index = CellIndex::default();
+        for (pos, w) in keyed.iter().enumerate() {
+            if pos == 0 || keyed[pos - 1].0 != w.0 {
+                index.insert(w.0, cells.len() as u32);
+                starts.push(pos as u32);
+                cells.push(cell_of(&means[w.1 as usize], &origin, side));
+            }
+        }
+        starts.push(keyed.len() as u32);
+        let last = std::array::from_fn(|a| cells.iter().map(|c| c[a]).max().unwrap_or(0));
+        let order: Vec<u32> = keyed.into_par_iter().map(|(_, i)| i).collect();
+        let points = order.par_iter().map(|&i| means[i as usize]).collect();
+        Grid {
+            side,
+            origin,
+            order,
+            points,
+            starts,
+            cells,
+            last,
+            index,
+        }
+    }
+
+    /// The positions (in cell order) of the means of the cell at `c`; empty when unoccupied.
+    fn span(&self, c: [i64; 3]) -> std::ops::Range<usize> {
+        if c.iter().any(|&v| !(0..1 << 21).contains(&v)) {
+            return 0..0;
+        }
+        match self.index.get(&key(c)) {
+            Some(&k) => self.starts[k as usize] as usize..self.starts[k as usize + 1] as usize,
+            None => 0..0,
+        }
+    }
+}
+
+/// The `k` smallest `(d², id)` keys seen, ascending.
+struct Nearest {
+    k: usize,
+    best: Vec<u64>,
+}
+
+impl Nearest {
+    fn offer(&mut self, d2: f32, j: u32) {
+        let key = (u64::from(d2.to_bits()) << 32) | u64::from(j);
+        if self.best.len() == self.k {
+            if key >= self.best[self.k - 1] {
+                return;
+            }
+            self.best.pop();
+        }
+        let at = self.best.partition_point(|&b| b < key);
+        self.best.insert(at, key);
+    }
+    /// The `k`-th smallest `d²` so far, when `k` were seen.
+    fn kth(&self) -> Option<f32> {
+        (self.best.len() == self.k).then(|| f32::from_bits((self.best[self.k - 1] >> 32) as u32))
+    }
+}
+
+/// `d²` exactly as the module doc says.
+fn distance_2(a: &[f32; 3], b: &[f32; 3]) -> f32 {
+    let (dx, dy, dz) = (b[0] - a[0], b[1] - a[1], b[2] - a[2]);
+    dx * dx + dy * dy + dz * dz
+}
+
+/// Every Gaussian's `k` nearest other means within `max_edge` (module doc). Once `stop` is set
+/// the remaining Gaussians get none: the caller discards such a partial result.
+pub(super) fn neighbours(
+    means: &[[f32; 3]],
+    k: usize,
+    max_edge: f32,
+    stop: &AtomicBool,
+) -> Neighbours {
+    let grid = Grid::build(means, max_edge);
+    let h2 = max_edge * max_edge;
+    let mut ids = vec![NO_NEIGHBOUR; means.len() * k];
+    let mut parts: Vec<(usize, &mut [u32])> = Vec::with_capacity(grid.cells.len());
+    let mut rest: &mut [u32] = &mut ids;
+    for c in 0..grid.cells.len() {
+        let len = (grid.starts[c + 1] - grid.starts[c]) as usize * k;
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(len);
+        parts.push((c, head));
+        rest = tail;
+    }
+    parts.into_par_iter().for_each(|(c, out)| {
+        if !stop.load(Ordering::Relaxed) {
+            search_cell(&grid, c, k, h2, out);
+        }
+    });
+    let mut pos_of = vec![0u32; means.len()];
+    for (pos, &i) in grid.order.iter().enumerate() {
+        pos_of[i as usize] = pos as u32;
+    }
+    Neighbours {
+        k,
+        ids,
+        pos_of: Some(pos_of),
+    }
+}
+
+/// The neighbours of every mean of cell `c` into `out`, `k` slots each, in cell order.
+fn search_cell(grid: &Grid, c: usize, k: usize, h2: f32, out: &mut [u32]) {
+    let at = grid.cells[c];
+    let mut block = Vec::with_capacity(27);
+    for dx in -1..=1 {
+        for dy in -1..=1 {
+            for dz in -1..=1 {
+                let s = grid.span([at[0] + dx, at[1] + dy, at[2] + dz]);
+                if !s.is_empty() {
+                    block.push(s);
+                }
+            }
+        }
+    }
+    let own = grid.starts[c] as usize..grid.starts[c + 1] as usize;
+    let mut near = Nearest {
+        k,
+        best: Vec::with_capacity(k + 1),
+    };
+    for (pos, slots) in own.zip(out.chunks_mut(k)) {
+        let (i, p) = (grid.order[pos], grid.points[pos]);
+        near.best.clear();
+        for s in &block {
+            offer_span(grid, s.clone(), i, &p, h2, &mut near);
+        }
+        let mut shell = 1;
+        while !settled(grid, &p, at, shell, &near, h2) {
+            shell += 1;
+            for cell in shell_cells(at, shell) {
+                offer_span(grid, grid.span(cell), i, &p, h2, &mut near);
+            }
+        }
+        for (slot, &b) in slots.iter_mut().zip(&near.best) {
+            *slot = b as u32;
+        }
+    }
+}
+
+/// Offers the means at positions `s` to `near`, but `i` itself and those beyond `h2`.
+fn offer_span(
+    grid: &Grid,
+    s: std::ops::Range<usize>,
+    i: u32,
+    p: &[f32; 3],
+    h2: f32,
+    near: &mut Nearest,
+) {
+    for pos in s {
+        let j = grid.order[pos];
+        if j == i {
+            continue;
+        }
+        let d2 = distance_2(p, &grid.points[pos]);
+        if d2 <= h2 {
+            near.offer(d2, j);
+        }
+    }
+}
+
+/// Whether no mean outside the cube of cells within `shell` of `at` can enter `near`: the
+/// cube holds every cell, or the `k`-th distance found is shorter than the distance from `p` to
+/// outside the cube, or that distance exceeds `max_edge` (both with a margin for rounding).
+fn settled(grid: &Grid, p: &[f32; 3], at: [i64; 3], shell: i64, near: &Nearest, h2: f32) -> bool {
+    if (0..3).all(|a| at[a] - shell <= 0 && at[a] + shell >= grid.last[a]) {
+        return true;
+    }
+    let side = grid.side;
+    let mut gap = f64::INFINITY;
+    for a in 0..3 {
+        let x = f64::from(p[a]) - grid.origin[a];
+        let lo = (at[a] - shell) as f64 * side;
+        let hi = (at[a] + shell + 1) as f64 * side;
+        gap = gap.min(x - lo).min(hi - x);
+    }
+    let gap = (gap - 1e-6 * side).max(0.0);
+    let reach = gap * gap * (1.0 - 1e-5);
+    if reach > f64::from(h2) {
+        return true;
+    }
+    near.kth().is_some_and(|d2| f64::from(d2) < reach)
+}
+
+/// The cells at Chebyshev distance exactly `shell` from `at`.
+fn shell_cells(at: [i64; 3], shell: i64) -> impl Iterator<Item = [i64; 3]> {
+    let r = shell;
+    (-r..=r).flat_map(move |dx| {
+        (-r..=r).flat_map(move |dy| {
+            let edge = dx.abs() == r || dy.abs() == r;
+            let dzs: Vec<i64> = if edge {
+                (-r..=r).collect()
+            } else {
+                vec![-r, r]
+            };
+            dzs.into_iter()
+                .map(move |dz| [at[0] + dx, at[1] + dy, at[2] + dz])
+        })
+    })
+}

@@ -1,0 +1,279 @@
+//! The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc, "Bounded
+//! memory: tiles"). A tile's inner edges join only its own Gaussians, and before the border
+//! edges every component lies in one tile: so the tiles' criterion passes are independent and
+//! run in parallel, each on a forest of its own over the tile's Gaussians (local ids keep the
+//! order of the scene's ids, so the edge order, the joins and the roots are those of one
+//! forest over the scene). Their forests then make the scene's forest, which takes the border
+//! edges and the minimum-size pass. That pass skips the inner edges whose ends were already
+//! joined after their tile's criterion pass (components only grow, so it would skip them
+//! anyway): it runs over the few edges between components, in the same order.
+
+use std::time::Instant;
+
+use rayon::prelude::*;
+use slag_common::scene::Gaussians;
+
+use super::forest::{Component, Forest};
+use super::graph::{Neighbours, TileMembers, tile_edges};
+use super::regions::Regions;
+use super::weights::{Edge, Weigher};
+use super::{SegmentControl, SegmentParams, SegmentTimings};
+
+/// Bytes of edges that the tiles in flight at once may hold (about 12 bytes per edge, up to
+/// `2k` edges per Gaussian): bounds the passes' memory whatever the thread count.
+const TILES_IN_FLIGHT_BYTES: usize = 1 << 30;
+
+/// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
+/// inner edges still between components, the border edges its Gaussians own, its edge count.
+struct TilePass {
+    roots: Vec<u32>,
+    components: Vec<Component>,
+    kept: Vec<Edge>,
+    border: Vec<Edge>,
+    inner: u64,
+    seconds: [f64; 3],
+}
+
+/// Runs tile `t`'s edges and criterion pass on a forest of its own.
+fn tile_pass(
+    t: u32,
+    g: &Gaussians,
+    p: &SegmentParams,
+    w: &Weigher,
+    nb: &Neighbours,
+    tm: &TileMembers,
+    tile_of: &[u32],
+) -> TilePass {
+    let clock = Instant::now();
+    let (mut inner, border) = tile_edges(t, &g.means, tm, tile_of, nb, w);
+    let edges_s = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    inner.par_sort_unstable();
+    let sort_s = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    let mut f = Forest::singletons(tm.members[t as usize].len());
+    f.criterion_pass_in(&inner, p.threshold, None);
+    let kept = if p.min_size > 1 {
+        inner
+            .iter()
+            .filter(|e| f.find(e.i) != f.find(e.j))
+            .copied()
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let (roots, components) = f.into_roots();
+    TilePass {
+        roots,
+        components,
+        kept,
+        border,
+        inner: inner.len() as u64,
+        seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
+    }
+}
+
+/// How many tiles run at once: the pool's threads, fewer where their edges would pass
+/// [`TILES_IN_FLIGHT_BYTES`].
+fn tiles_at_once(tm: &TileMembers, k: usize) -> usize {
+    let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
+    let bytes = (largest * 2 * k * std::mem::size_of::<Edge>()).max(1);
+    rayon::current_num_threads()
+        .min(TILES_IN_FLIGHT_BYTES / bytes)
+        .max(1)
+}
+
+/// The tiles' criterion passes: the scene's forest after them, the border edges (unordered),
+/// each tile's inner edges still between components after its pass (scene ids, in order) and
+/// the inner edges' count.
+struct Tiled {
+    forest: Forest,
+    border: Vec<Edge>,
+    kept: Vec<Vec<Edge>>,
+    inner: u64,
+}
+
+/// The two passes (module doc): the scene's forest (`None` once stopped), the edge count and
+/// the border-edge count; their stages' seconds added to `st` (the tiles', summed over tiles).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn merge(
+    g: &Gaussians,
+    p: &SegmentParams,
+    ctl: &SegmentControl,
+    w: &Weigher,
+    nb: &Neighbours,
+    tile_of: &[u32],
+    tiles: usize,
+    st: &mut SegmentTimings,
+) -> (Option<Forest>, u64, u64) {
+    let tm = TileMembers::new(tile_of, tiles);
+    let mut regions = w
+        .masks
+        .filter(|_| p.region_veto < 1.0)
+        .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
+    let clock = Instant::now();
+    let run = Run {
+        g,
+        p,
+        ctl,
+        w,
+        nb,
+        tm: &tm,
+        tile_of,
+    };
+    let tiled = match regions.as_mut() {
+        None => run.parallel_tiles(st),
+        Some(r) => run.serial_tiles(r, st),
+    };
+    let Some(Tiled {
+        mut forest,
+        mut border,
+        kept,
+        inner,
+    }) = tiled
+    else {
+        return (None, 0, 0);
+    };
+    st.tile_passes = clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    ctl.run(|| border.par_sort_unstable());
+    border.dedup();
+    st.sort += clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
+    st.criterion += clock.elapsed().as_secs_f64();
+    let clock = Instant::now();
+    if p.min_size > 1 {
+        let allowed = |e: &Edge| w.may_absorb(e);
+        for edges in kept.iter().chain(std::iter::once(&border)) {
+            forest.min_size_pass_in(edges, p.min_size, allowed, regions.as_mut());
+        }
+    }
+    st.min_size += clock.elapsed().as_secs_f64();
+    let count = inner + border.len() as u64;
+    (Some(forest), count, border.len() as u64)
+}
+
+/// What every tile's pass reads.
+struct Run<'a> {
+    g: &'a Gaussians,
+    p: &'a SegmentParams,
+    ctl: &'a SegmentControl,
+    w: &'a Weigher<'a>,
+    nb: &'a Neighbours,
+    tm: &'a TileMembers,
+    tile_of: &'a [u32],
+}
+
+impl Run<'_> {
+    /// The tiles' criterion passes, [`tiles_at_once`] at a time, each on a forest of its own;
+    /// `None` once stopped.
+    fn parallel_tiles(&self, st: &mut SegmentTimings) -> Option<Tiled> {
+        let tiles = self.tm.members.len();
+        let at_once = self.ctl.run(|| tiles_at_once(self.tm, self.p.neighbours));
+        let mut passes: Vec<TilePass> = Vec::with_capacity(tiles);
+        let order: Vec<u32> = (0..tiles as u32).collect();
+        for wave in order.chunks(at_once) {
+            let done: Vec<TilePass> = self.ctl.run(|| {
+                wave.par_iter()
+                    .map(|&t| tile_pass(t, self.g, self.p, self.w, self.nb, self.tm, self.tile_of))
+                    .collect()
+            });
+            if self.ctl.stopped() {
+                return None;
+            }
+            passes.extend(done);
+        }
+        for pass in &passes {
+            st.weights += pass.seconds[0];
+            st.sort += pass.seconds[1];
+            st.criterion += pass.seconds[2];
+        }
+        let forest = self.ctl.run(|| self.scene_forest(&passes));
+        let inner = passes.iter().map(|t| t.inner).sum();
+        let mut border = Vec::new();
+        let mut kept = Vec::with_capacity(tiles);
+        for (t, pass) in passes.into_iter().enumerate() {
+            border.extend(pass.border);
+            let m = &self.tm.members[t];
+            let global = |e: &Edge| Edge {
+                w: e.w,
+                i: m[e.i as usize],
+                j: m[e.j as usize],
+            };
+            kept.push(pass.kept.iter().map(global).collect());
+        }
+        Some(Tiled {
+            forest,
+            border,
+            kept,
+            inner,
+        })
+    }
+
+    /// The scene's forest from the tiles' own: each Gaussian's root and its component.
+    fn scene_forest(&self, passes: &[TilePass]) -> Forest {
+        let (tm, tile_of) = (self.tm, self.tile_of);
+        let (parent, components) = (0..tile_of.len())
+            .into_par_iter()
+            .map(|i| {
+                let t = tile_of[i] as usize;
+                let l = tm.local_of[i] as usize;
+                let root = tm.members[t][passes[t].roots[l] as usize];
+                (root, passes[t].components[l])
+            })
+            .unzip();
+        Forest::from_parts(parent, components)
+    }
+
+    /// The tiles' criterion passes one after the other on the scene's forest, with the
+    /// regions' veto; `None` once stopped.
+    fn serial_tiles(&self, regions: &mut Regions, st: &mut SegmentTimings) -> Option<Tiled> {
+        let tiles = self.tm.members.len();
+        let mut forest = Forest::singletons(self.g.len());
+        let (mut border, mut kept, mut inner) = (Vec::new(), Vec::with_capacity(tiles), 0);
+        for t in 0..tiles {
+            let clock = Instant::now();
+            let (mut local, b) = self.ctl.run(|| {
+                tile_edges(
+                    t as u32,
+                    &self.g.means,
+                    self.tm,
+                    self.tile_of,
+                    self.nb,
+                    self.w,
+                )
+            });
+            self.ctl.run(|| local.par_sort_unstable());
+            if self.ctl.stopped() {
+                return None;
+            }
+            st.weights += clock.elapsed().as_secs_f64();
+            let clock = Instant::now();
+            let m = &self.tm.members[t];
+            let edges: Vec<Edge> = local
+                .iter()
+                .map(|e| Edge {
+                    w: e.w,
+                    i: m[e.i as usize],
+                    j: m[e.j as usize],
+                })
+                .collect();
+            forest.criterion_pass_in(&edges, self.p.threshold, Some(regions));
+            inner += edges.len() as u64;
+            let between: Vec<Edge> = edges
+                .into_iter()
+                .filter(|e| forest.find(e.i) != forest.find(e.j))
+                .collect();
+            kept.push(between);
+            border.extend(b);
+            st.criterion += clock.elapsed().as_secs_f64();
+        }
+        Some(Tiled {
+            forest,
+            border,
+            kept,
+            inner,
+        })
+    }
+}
