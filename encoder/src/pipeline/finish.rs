@@ -257,19 +257,21 @@ fn one_device(
 }
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]):
-/// each tile's unit rows pushed to `writer` (with `means`, the Gaussians' centres), and with
+/// each tile's unit rows handed to a writer thread for `writer` (with `means`, the Gaussians'
+/// centres), so that the next tile is reduced while one is written, and with
 /// [`EncodeParams::mixture_keep`] the kept pairs gathered into the mixture's sparse rows over the
-/// codebook of the kept views' mask embeddings. `Streamed::reduce_s` counts the reduction
-/// without the writer's pushes.
+/// codebook of the kept views' mask embeddings. `Streamed::reduce_s` runs until the last tile
+/// was handed on.
 ///
-/// Errors: the device's; the writer's (I/O, non-finite rows); a Gaussian id without a mean
+/// Errors: the device's; the writer's (I/O, non-finite rows), which take precedence over the
+/// reduction's "writer stopped" error they cause; a Gaussian id without a mean
 /// ([`Error::Internal`]).
 fn reduce_on_device(
     rasterizer: &mut dyn WeightRasterizer,
     means: &[[f32; 3]],
     dim: usize,
     params: &EncodeParams,
-    mut writer: EmbeddingsWriter,
+    writer: EmbeddingsWriter,
     model_id: &str,
 ) -> Result<(aggregate::Streamed, Option<SparseMixture>)> {
     let t0 = Instant::now();
@@ -284,38 +286,60 @@ fn reduce_on_device(
         offsets: vec![0],
         ..Default::default()
     });
-    let mut write_s = 0.0;
-    let mut run_means: Vec<[f32; 3]> = Vec::new();
-    let out = rasterizer.reduce_kept(&p, &mut |tile| {
-        run_means.clear();
-        for &k in &tile.ids {
-            run_means.push(*means.get(k as usize).ok_or_else(|| {
-                Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
-            })?);
-        }
-        let t = Instant::now();
-        writer.push(&tile.ids, &run_means, &tile.rows, &tile.total_weights)?;
-        write_s += t.elapsed().as_secs_f64();
-        if let Some(s) = sparse.as_mut() {
-            for ((&k, mean), kept) in tile.ids.iter().zip(&run_means).zip(tile.kept) {
-                s.gaussian_ids.push(k);
-                s.means.push(*mean);
-                for (a, atom) in kept {
-                    s.atoms.push(atom);
-                    s.weights.push(a as f64);
-                }
-                s.offsets.push(s.atoms.len());
+    type Rows = (Vec<u32>, Vec<[f32; 3]>, Vec<f32>, Vec<f32>);
+    std::thread::scope(|s| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Rows>(1);
+        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
+            let mut writer = writer;
+            for (ids, run_means, rows, weights) in rx {
+                writer.push(&ids, &run_means, &rows, &weights)?;
             }
+            Ok(writer)
+        });
+        let reduced = rasterizer.reduce_kept(&p, &mut |tile| {
+            let run_means = tile
+                .ids
+                .iter()
+                .map(|&k| {
+                    means.get(k as usize).copied().ok_or_else(|| {
+                        Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            if let Some(s) = sparse.as_mut() {
+                push_kept(s, &tile.ids, &run_means, tile.kept);
+            }
+            tx.send((tile.ids, run_means, tile.rows, tile.total_weights))
+                .map_err(|_| Error::internal("the embeddings writer stopped early"))
+        });
+        let reduce_s = t0.elapsed().as_secs_f64();
+        drop(tx);
+        let writer = handle
+            .join()
+            .map_err(|_| Error::internal("the embeddings writer thread panicked"))??;
+        let out = reduced?;
+        if let Some(s) = sparse.as_mut() {
+            s.codebook = out.codebook;
         }
-        Ok(())
-    })?;
-    if let Some(s) = sparse.as_mut() {
-        s.codebook = out.codebook;
+        let streamed = aggregate::Streamed {
+            writer,
+            chunks: out.tiles,
+            reduce_s,
+        };
+        Ok((streamed, sparse))
+    })
+}
+
+/// Appends the observed Gaussians `ids` (ascending, with their centres `means`) and each one's
+/// kept `(a_kj, codebook row)` pairs to the mixture's sparse rows.
+fn push_kept(s: &mut SparseMixture, ids: &[u32], means: &[[f32; 3]], kept: Vec<Vec<(f32, u32)>>) {
+    for ((&k, mean), pairs) in ids.iter().zip(means).zip(kept) {
+        s.gaussian_ids.push(k);
+        s.means.push(*mean);
+        for (a, atom) in pairs {
+            s.atoms.push(atom);
+            s.weights.push(a as f64);
+        }
+        s.offsets.push(s.atoms.len());
     }
-    let streamed = aggregate::Streamed {
-        writer,
-        chunks: out.tiles,
-        reduce_s: t0.elapsed().as_secs_f64() - write_s,
-    };
-    Ok((streamed, sparse))
 }
