@@ -783,16 +783,7 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
     let text = text_embedder(&a.text_model, &a.tokenizer, a.ep)?;
     text.check_pair(&engine.manifest.model)?;
     let negatives = text.embed(&slag_edge::query::CANONICAL_NEGATIVES)?;
-    let answer = slag_edge::query::run_query_framed(
-        &engine.store,
-        &engine.manifest.model,
-        engine.manifest.frames.scene_to_map.as_ref(),
-        text.as_ref(),
-        &negatives,
-        None,
-        Some(&engine.display),
-        &params,
-    )?;
+    let answer = engine.answer(text.as_ref(), &negatives, &params)?;
     println!("{}", serde_json::to_string_pretty(&answer)?);
     Ok(())
 }

@@ -592,7 +592,7 @@ pub fn unit_prompt_embedding(phi: Vec<f32>) -> Result<Vec<f32>> {
 }
 
 /// Runs a validated query against `store`, answering in the scene frame (no map frame known):
-/// [`run_query_framed`] without a transform.
+/// [`run_query_framed`] without a transform or display columns.
 ///
 /// Errors: as [`run_query_framed`].
 pub fn run_query(
@@ -603,7 +603,39 @@ pub fn run_query(
     hnsw: Option<&scan::hnsw::ApproxIndex>,
     q: &QueryParams,
 ) -> Result<QueryAnswer> {
-    run_query_framed(store, embedding_model, None, text, negatives, hnsw, None, q)
+    let cx = QueryContext {
+        store,
+        embedding_model,
+        to_map: None,
+        text,
+        negatives,
+        hnsw,
+        display: None,
+    };
+    run_query_framed(&cx, q)
+}
+
+/// What a validated query runs against: one loaded scene's rows and what goes with them, and
+/// the prompt side. [`crate::engine::Engine::context`] builds it for a loaded generation.
+#[derive(Clone, Copy)]
+pub struct QueryContext<'a> {
+    /// The Gaussians' embeddings (`[N][D]`) and means (scene frame).
+    pub store: &'a VectorStore,
+    /// CLIP model of the stored embeddings (the manifest's), named in the answer.
+    pub embedding_model: &'a str,
+    /// The manifest's scene-to-map transform (`Frames::scene_to_map`), `None` where the scene
+    /// has none: answers are then in the scene frame.
+    pub to_map: Option<&'a SceneToMap>,
+    /// The text model that embeds the prompt (`[D]`, the stored width).
+    pub text: &'a dyn TextEmbedder,
+    /// Embeddings of [`CANONICAL_NEGATIVES`] (`[4][D]`; used in relevancy mode).
+    pub negatives: &'a [Vec<f32>],
+    /// The approximate index over `store`'s rows (either backend: same row ids and scores as the
+    /// exact scan, possibly missing rows), `None` without one.
+    pub hnsw: Option<&'a scan::hnsw::ApproxIndex>,
+    /// Display columns of the same rows (opacities weight the objects' centroids); `None`:
+    /// every row weighs 1.
+    pub display: Option<&'a DisplayAttrs>,
 }
 
 /// `lo ≤ p ≤ hi` on every axis.
@@ -611,43 +643,32 @@ fn in_box(p: [f32; 3], b: &[[f32; 3]; 2]) -> bool {
     (0..3).all(|a| p[a] >= b[0][a] && p[a] <= b[1][a])
 }
 
-/// Runs a validated query against `store` (means in the scene frame).
+/// Runs a validated query against `cx.store` (means in the scene frame).
 ///
-/// `to_map` is the manifest's scene-to-map transform (`Frames::scene_to_map`): with it, and
-/// `q.frame` auto or map, every coordinate of the answer is mapped into the map frame and
-/// `q.bbox` is read in the map frame (the scan keeps the scene box around the map box's corners,
-/// then the exact map box is applied to each kept row). `negatives` are the embeddings of
-/// [`CANONICAL_NEGATIVES`] (used in relevancy mode); `hnsw` the optional approximate index
-/// (either backend: same row ids and scores as the exact scan, possibly missing rows).
+/// With `cx.to_map`, and `q.frame` auto or map, every coordinate of the answer is mapped into
+/// the map frame and `q.bbox` is read in the map frame (the scan keeps the scene box around the
+/// map box's corners, then the exact map box is applied to each kept row). `cx.negatives` are
+/// used in relevancy mode; `cx.hnsw` answers `index=hnsw`.
 ///
 /// Errors: text encoding ([`Error::Model`]), a prompt embedding of another width than the store
 /// ([`Error::Mismatch`]) or without a direction (zero / non-finite norm, [`unit_prompt_embedding`];
 /// [`Error::Query`]), `frame=map` without a transform ([`answer_frame`]), `index=hnsw` without an
 /// index or with a relevancy or too large top-k query ([`Error::Query`] `index`).
-#[allow(clippy::too_many_arguments)]
-pub fn run_query_framed(
-    store: &VectorStore,
-    embedding_model: &str,
-    to_map: Option<&SceneToMap>,
-    text: &dyn TextEmbedder,
-    negatives: &[Vec<f32>],
-    hnsw: Option<&scan::hnsw::ApproxIndex>,
-    display: Option<&DisplayAttrs>,
-    q: &QueryParams,
-) -> Result<QueryAnswer> {
-    let map = answer_frame(q.frame, to_map)?;
+pub fn run_query_framed(cx: &QueryContext<'_>, q: &QueryParams) -> Result<QueryAnswer> {
+    let store = cx.store;
+    let map = answer_frame(q.frame, cx.to_map)?;
     let t0 = Instant::now();
-    let phi = prompt_embedding(store, embedding_model, text, &q.text)?;
+    let phi = prompt_embedding(store, cx.embedding_model, cx.text, &q.text)?;
     let t_text = t0.elapsed().as_secs_f64() * 1e3;
     let t1 = Instant::now();
-    let scoring = Scoring::new(store, &phi, negatives, q)?;
+    let scoring = Scoring::new(store, &phi, cx.negatives, q)?;
     let boxes = QueryBoxes::new(store.means(), map, q.bbox);
-    let hits = select_hits(store, hnsw, &phi, &scoring, &boxes, q)?;
-    let found = assemble_matches(store, &scoring, &boxes, &hits, display, q)?;
+    let hits = select_hits(store, cx.hnsw, &phi, &scoring, &boxes, q)?;
+    let found = assemble_matches(store, &scoring, &boxes, &hits, cx.display, q)?;
     Ok(QueryAnswer {
         query: q.text.clone(),
-        embedding_model: embedding_model.to_string(),
-        text_model: text.name(),
+        embedding_model: cx.embedding_model.to_string(),
+        text_model: cx.text.name(),
         mode: q.mode,
         threshold: q.threshold,
         top_k: q.top_k,

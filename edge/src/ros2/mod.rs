@@ -1,9 +1,9 @@
 //! `slag-edge serve --ros2`: a ROS 2 node beside the HTTP API, over DDS (RustDDS through
 //! `ros2_client`), with no ROS installation.
 //!
-//! The node answers prompts with the same [`AppState`] as `GET /query`: the same loaded engine
-//! (a reload or `POST /fetch` is seen by both), the same threshold and the same admission gate
-//! ([`crate::serve`], "Admission control"). Its topics are under the node's private namespace
+//! The node answers prompts with the same [`QueryEngine`] as `GET /query`: the same loaded
+//! generation (a reload or `POST /fetch` is seen by both), the same threshold and the same
+//! admission gate ([`crate::engine::admission`]). It knows nothing of HTTP. Its topics are under the node's private namespace
 //! (`~/x` = `<namespace>/<node>/x`):
 //!
 //! | topic | type | direction |
@@ -20,7 +20,7 @@
 //!
 //! A blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] publishes nothing: it is
 //! logged and counted ([`Ros2Counters::refused`]). Prompts wait in a queue of
-//! [`crate::serve::ServeOptions::scan_queue`] entries for the admission gate; a prompt that finds
+//! [`crate::engine::EngineOptions::scan_queue`] entries for the admission gate; a prompt that finds
 //! that queue full, or that the gate turns away because HTTP queries fill it (where HTTP answers
 //! 503), is dropped, logged and counted ([`Ros2Counters::dropped_busy`]).
 
@@ -35,8 +35,8 @@ use ros2_client::qos::{Durability, History, WhenFull};
 use ros2_client::{Context, ContextOptions, Name, NodeName, NodeOptions, QosProfile};
 use slag_common::{Error, Result};
 
+use crate::engine::QueryEngine;
 use crate::query::{Interface, QueryParams, RawQuery};
-use crate::serve::AppState;
 use msg::{Detection3DArray, MarkerArray, PointCloud2, RosMessage, StringMsg};
 
 /// Default node name.
@@ -292,12 +292,14 @@ fn dds_error(opts: &Ros2Options, what: &str, e: impl std::fmt::Display) -> Error
 }
 
 /// Starts the node on the current tokio runtime: joins the DDS domain, creates the node, its
-/// subscription and publishers, and spawns the tasks that answer prompts.
+/// subscription and publishers, and spawns the tasks that answer prompts with `engine` (a
+/// [`QueryEngine`], or the state of an HTTP server, which shares its engine).
 ///
 /// Errors: [`Error::Param`] for a bad name or frame ([`Ros2Options::check`]),
 /// [`Error::Network`] when the DDS participant or an entity cannot be created (e.g. no UDP port
 /// free in the domain's range). Panics outside a tokio runtime.
-pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
+pub fn start(engine: impl Into<QueryEngine>, options: Ros2Options) -> Result<Ros2Node> {
+    let engine = engine.into();
     let node_name = options.check()?;
     let context = Context::with_options(ContextOptions::new().domain_id(options.domain_id))
         .map_err(|e| dds_error(&options, "joining the DDS domain", e))?;
@@ -350,8 +352,8 @@ pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
         .map_err(|e| dds_error(&options, "starting the node's spinner", e))?;
     let counters = Arc::new(Ros2Counters::default());
     let (intake, mut queue) = PromptIntake::new(
-        state.opts.scan_queue,
-        state.opts.threshold,
+        engine.options().scan_queue,
+        engine.options().threshold,
         counters.clone(),
     );
     tokio::spawn(async move {
@@ -378,7 +380,7 @@ pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
     tokio::spawn(async move {
         while let Some(params) = queue.recv().await {
             let received = std::time::Instant::now();
-            match crate::serve::answer(&state, vec![params]).await {
+            match engine.query_one(params).await {
                 Err(busy) => {
                     let n = c.dropped_busy.fetch_add(1, Ordering::SeqCst) + 1;
                     tracing::warn!(
@@ -387,8 +389,8 @@ pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
                         busy.waiting
                     );
                 }
-                Ok(mut answers) => match answers.pop() {
-                    Some(Ok(a)) => {
+                Ok(answer) => match answer {
+                    Ok(a) => {
                         let stamp = msg::Time::from_system(std::time::SystemTime::now());
                         let m = convert::messages(&a, &frame_id, stamp);
                         if publishers.publish(m).await {
@@ -402,12 +404,9 @@ pub fn start(state: Arc<AppState>, options: Ros2Options) -> Result<Ros2Node> {
                             received.elapsed().as_secs_f64() * 1e3
                         );
                     }
-                    Some(Err(e)) => {
+                    Err(e) => {
                         let n = c.failed.fetch_add(1, Ordering::SeqCst) + 1;
                         tracing::warn!("ros2: query failed ({n} so far): {e}");
-                    }
-                    None => {
-                        c.failed.fetch_add(1, Ordering::SeqCst);
                     }
                 },
             }

@@ -51,14 +51,12 @@
 //!
 //! # Admission control
 //!
-//! Every scan (`GET`/`POST /query`, `GET /query.ply`) passes a FIFO gate ([`Admission`]: a fair
-//! `tokio` semaphore of [`ServeOptions::max_scans`] permits, default [`DEFAULT_MAX_SCANS`] = 1)
-//! after its parameters are validated. A scan already fans out over every core (rayon), so running
-//! two at once only interleaves them: both finish late and the order in which requests are served
-//! becomes arbitrary, which is what made the tail latency grow with the number of connections.
-//! One at a time in arrival order, a request waits for the scans ahead of it and no longer.
-//! At most [`ServeOptions::scan_queue`] (default [`DEFAULT_SCAN_QUEUE`]) requests wait; one more
-//! gets **503 Service Unavailable** with a `Retry-After` header (whole seconds, at least 1: the
+//! Every scan (`GET`/`POST /query`, `GET /query.ply`) is answered by the query engine
+//! ([`QueryEngine::query`]) and so passes its FIFO gate ([`Admission`], [`crate::engine::admission`]:
+//! [`ServeOptions::max_scans`] scans at once, default [`DEFAULT_MAX_SCANS`] = 1) after its
+//! parameters are validated; the ROS 2 node's prompts pass the same gate. At most
+//! [`ServeOptions::scan_queue`] (default [`DEFAULT_SCAN_QUEUE`]) queries wait; one more gets
+//! **503 Service Unavailable** with a `Retry-After` header (whole seconds, at least 1: the
 //! estimated time to drain the queue, from a moving average of recent scan times) and a JSON
 //! error, so the latency of accepted requests stays bounded by the queue length. A waiting
 //! request that reaches the request timeout gets 408 and leaves the queue; a running batch that
@@ -67,7 +65,7 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use axum::Router;
@@ -82,9 +80,13 @@ use slag_common::{Error, ErrorKind, Result};
 
 pub mod web;
 
-pub use crate::engine::{Engine, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M, ServedEngine};
+pub use crate::engine::{
+    Admission, Busy, DEFAULT_MAX_MATCHES, DEFAULT_MAX_SCANS, DEFAULT_SCAN_QUEUE, Engine,
+    EngineOptions, HNSW_EF_CONSTRUCTION, HNSW_EF_SEARCH, HNSW_M, QueryEngine, ServedEngine,
+    check_matches, compact_answer,
+};
 use crate::fetch::{self, Center, FetchFailure, FetchParams};
-use crate::query::{self, CANONICAL_NEGATIVES, QueryParams, RawQuery, TextEmbedder};
+use crate::query::{self, RawQuery, TextEmbedder};
 pub use crate::scan::hnsw::HnswBackend;
 use crate::store::EdgeStore;
 
@@ -92,13 +94,6 @@ use crate::store::EdgeStore;
 pub const MAX_BATCH: usize = 64;
 /// Largest request body accepted.
 pub const MAX_BODY_BYTES: usize = 64 * 1024;
-/// Scans running at once by default (module doc, "Admission control").
-pub const DEFAULT_MAX_SCANS: usize = 1;
-/// Requests waiting for a scan by default; one more gets 503.
-pub const DEFAULT_SCAN_QUEUE: usize = 32;
-/// Matches one request may ask for in all by default (Σ `top_k` over a batch): 20,000, twice the
-/// largest `top_k` of one query ([`query::MAX_TOP_K`]); about 2 MB of JSON.
-pub const DEFAULT_MAX_MATCHES: usize = 20_000;
 
 /// Server settings. Its `Debug` form shows whether each token is set, never the token.
 #[derive(Clone)]
@@ -189,167 +184,30 @@ impl ServeOptions {
         }
     }
 
-    /// The approximate index to build: `Some(hnsw_backend)` when `hnsw`.
-    fn index(&self) -> Option<HnswBackend> {
-        self.hnsw.then_some(self.hnsw_backend)
-    }
-}
-
-/// The FIFO gate scans pass (module doc, "Admission control").
-pub struct Admission {
-    permits: Arc<tokio::sync::Semaphore>,
-    max_scans: usize,
-    max_queue: usize,
-    waiting: AtomicUsize,
-    busy: AtomicU64,
-    /// Moving average of scan times, microseconds (0 until the first scan).
-    scan_us: AtomicU64,
-    /// When the oldest running scan started, microseconds after `epoch` (0: none running).
-    running_since_us: AtomicU64,
-    epoch: Instant,
-}
-
-/// A request turned away because the scan queue is full (→ 503 with `Retry-After`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Busy {
-    /// Requests waiting when it was turned away.
-    pub waiting: usize,
-    /// Seconds after which a retry is likely to be accepted (≥ 1).
-    pub retry_after_s: u64,
-}
-
-impl Busy {
-    /// The 503 answer: `Retry-After` header and a JSON error saying what to do.
-    pub fn response(&self) -> Response {
-        let mut r = error(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!(
-                "server busy: {} queries already wait for a scan; retry after {} s (Retry-After)",
-                self.waiting, self.retry_after_s
-            ),
-        );
-        r.headers_mut().insert(
-            header::RETRY_AFTER,
-            header::HeaderValue::from(self.retry_after_s),
-        );
-        r
-    }
-}
-
-/// Decrements the waiting count when a waiter leaves the queue (admitted, or cancelled by the
-/// request timeout).
-struct Waiting<'a>(&'a AtomicUsize);
-
-impl Drop for Waiting<'_> {
-    fn drop(&mut self) {
-        self.0.fetch_sub(1, Ordering::SeqCst);
-    }
-}
-
-impl Admission {
-    /// A gate of `max_scans` permits (at least 1) and a queue of `max_queue` waiters.
-    pub fn new(max_scans: usize, max_queue: usize) -> Admission {
-        let max_scans = max_scans.max(1);
-        Admission {
-            permits: Arc::new(tokio::sync::Semaphore::new(max_scans)),
-            max_scans,
-            max_queue,
-            waiting: AtomicUsize::new(0),
-            busy: AtomicU64::new(0),
-            scan_us: AtomicU64::new(0),
-            running_since_us: AtomicU64::new(0),
-            epoch: Instant::now(),
+    /// The query engine's part of these options: the scene, the approximate index to build
+    /// (`Some(hnsw_backend)` when `hnsw`), the default threshold and the admission limits.
+    pub fn engine_options(&self) -> EngineOptions {
+        EngineOptions {
+            scene: self.scene.clone(),
+            index: self.hnsw.then_some(self.hnsw_backend),
+            threshold: self.threshold,
+            max_scans: self.max_scans,
+            scan_queue: self.scan_queue,
+            max_matches: self.max_matches,
         }
     }
-
-    /// Waits (FIFO) for a scan permit.
-    ///
-    /// Errors: [`Busy`] at once when `max_queue` requests already wait.
-    pub async fn admit(&self) -> std::result::Result<tokio::sync::OwnedSemaphorePermit, Busy> {
-        if let Ok(p) = self.permits.clone().try_acquire_owned() {
-            return Ok(p);
-        }
-        let before = self.waiting.fetch_add(1, Ordering::SeqCst);
-        let _w = Waiting(&self.waiting);
-        if before >= self.max_queue {
-            self.busy.fetch_add(1, Ordering::Relaxed);
-            return Err(Busy {
-                waiting: before,
-                retry_after_s: self.retry_after_s(before),
-            });
-        }
-        // The semaphore is never closed; a closed one would mean no scan can run.
-        self.permits
-            .clone()
-            .acquire_owned()
-            .await
-            .map_err(|_| Busy {
-                waiting: before,
-                retry_after_s: 1,
-            })
-    }
-
-    /// Estimated seconds until `waiting` queued scans and the running ones are done (≥ 1): the
-    /// rounds of `max_scans` scans ahead times the time one takes, the larger of the moving
-    /// average and how long the running scan has already taken (so the first burst, before any
-    /// scan has finished, and a scan slower than the recent ones are not underestimated).
-    fn retry_after_s(&self, waiting: usize) -> u64 {
-        let mean_s = self.scan_us.load(Ordering::Relaxed) as f64 * 1e-6;
-        let since = self.running_since_us.load(Ordering::Relaxed);
-        let running_s = if since == 0 {
-            0.0
-        } else {
-            (self.epoch.elapsed().as_micros() as f64 * 1e-6 - since as f64 * 1e-6).max(0.0)
-        };
-        let scan_s = mean_s.max(running_s);
-        let rounds = (waiting + self.max_scans) as f64 / self.max_scans as f64;
-        (rounds * scan_s).ceil().max(1.0) as u64
-    }
-
-    /// Marks a scan as started (for [`Self::retry_after_s`]); the oldest running one is kept.
-    fn started(&self) {
-        let now = (self.epoch.elapsed().as_micros() as u64).max(1);
-        let _ =
-            self.running_since_us
-                .compare_exchange(0, now, Ordering::Relaxed, Ordering::Relaxed);
-    }
-
-    /// Folds one scan's duration into the moving average (weight 1/8) and clears the running
-    /// mark.
-    fn record(&self, took: Duration) {
-        self.running_since_us.store(0, Ordering::Relaxed);
-        let us = took.as_micros().min(u64::MAX as u128) as u64;
-        let old = self.scan_us.load(Ordering::Relaxed);
-        let new = if old == 0 { us } else { old - old / 8 + us / 8 };
-        self.scan_us.store(new, Ordering::Relaxed);
-    }
-
-    /// `{"max_scans", "running", "waiting", "max_queue", "rejected_busy", "mean_scan_ms"}`.
-    fn stats(&self) -> serde_json::Value {
-        serde_json::json!({
-            "max_scans": self.max_scans,
-            "running": self.max_scans - self.permits.available_permits().min(self.max_scans),
-            "waiting": self.waiting.load(Ordering::SeqCst),
-            "max_queue": self.max_queue,
-            "rejected_busy": self.busy.load(Ordering::Relaxed),
-            "mean_scan_ms": self.scan_us.load(Ordering::Relaxed) as f64 / 1e3,
-        })
-    }
 }
 
-/// Shared server state.
+/// Shared server state: the query engine and what only HTTP needs (options, counters, the
+/// fetch lock).
 pub struct AppState {
-    engine: ServedEngine,
+    engine: QueryEngine,
     edge: EdgeStore,
-    text: Arc<dyn TextEmbedder>,
-    negatives: Vec<Vec<f32>>,
     pub(crate) opts: ServeOptions,
-    queries: AtomicU64,
     pub(crate) rejected: AtomicU64,
     pub(crate) web_dir: Option<std::path::PathBuf>,
     started: Instant,
     fetching: tokio::sync::Mutex<()>,
-    admission: Admission,
     refusals: Refusals,
 }
 
@@ -393,36 +251,14 @@ impl AppState {
     /// ([`Error::ModelMismatch`]) or whose width differs from theirs.
     pub fn new(edge: EdgeStore, text: Arc<dyn TextEmbedder>, opts: ServeOptions) -> Result<Self> {
         opts.hnsw_backend.require()?;
-        let engine = Engine::load_with(&edge, &opts.scene, opts.index())?;
-        text.check_pair(&engine.manifest.model)?;
-        let negatives = text.embed(&CANONICAL_NEGATIVES)?;
-        if let Some(n) = negatives.first()
-            && n.len() != engine.store.dim()
-        {
-            return Err(Error::mismatch(
-                slag_common::Mismatched::EmbeddingWidth,
-                format!(
-                    "the text model {} gives {}-d embeddings but scene {} holds {}-d ones \
-                     from {}; serve with the CLIP text tower of that model",
-                    text.name(),
-                    n.len(),
-                    opts.scene,
-                    engine.store.dim(),
-                    engine.manifest.model
-                ),
-            ));
-        }
+        let engine = QueryEngine::new(edge.clone(), text, opts.engine_options())?;
         Ok(AppState {
-            engine: ServedEngine::new(engine),
+            engine,
             edge,
-            text,
-            negatives,
-            queries: AtomicU64::new(0),
             rejected: AtomicU64::new(0),
             started: Instant::now(),
             fetching: tokio::sync::Mutex::new(()),
             web_dir: None,
-            admission: Admission::new(opts.max_scans, opts.scan_queue),
             refusals: Refusals::default(),
             opts,
         })
@@ -438,14 +274,22 @@ impl AppState {
         self
     }
 
+    /// The generation served now.
     pub(crate) fn engine(&self) -> Arc<Engine> {
         self.engine.current()
     }
 
-    /// Swaps `e` in unless the engine served now holds a later generation
-    /// ([`ServedEngine::offer`]).
-    fn swap(&self, e: Engine) {
-        self.engine.offer(e);
+    /// The query engine this server answers from (shared with a ROS 2 node).
+    pub fn query_engine(&self) -> &QueryEngine {
+        &self.engine
+    }
+}
+
+/// The query engine of a server's state: `slag-edge serve --ros2` starts its node on the one
+/// the HTTP routes answer from ([`crate::ros2::start`]).
+impl From<Arc<AppState>> for QueryEngine {
+    fn from(state: Arc<AppState>) -> QueryEngine {
+        state.engine.clone()
     }
 }
 
@@ -548,22 +392,21 @@ pub(crate) fn error(status: StatusCode, message: String) -> Response {
     slag_common::http::error_response(status, message)
 }
 
-/// Refuses a request asking for more than `max` matches in all (module doc).
-///
-/// Errors: [`Error::Query`] `top_k` naming the sum and the limit.
-pub fn check_matches(qs: &[QueryParams], max: usize) -> Result<()> {
-    let asked: usize = qs.iter().map(|q| q.top_k).sum();
-    if asked > max {
-        return Err(Error::query(
-            "top_k",
-            format!(
-                "the request asks for {asked} matches in all (sum of top_k over its queries); \
-                 this server answers at most {max} per request (max_matches): lower top_k or \
-                 split the batch"
-            ),
-        ));
-    }
-    Ok(())
+/// The 503 answer to a query the admission gate turned away: `Retry-After` header and a JSON
+/// error saying what to do.
+pub(crate) fn busy(b: &Busy) -> Response {
+    let mut r = error(
+        StatusCode::SERVICE_UNAVAILABLE,
+        format!(
+            "server busy: {} queries already wait for a scan; retry after {} s (Retry-After)",
+            b.waiting, b.retry_after_s
+        ),
+    );
+    r.headers_mut().insert(
+        header::RETRY_AFTER,
+        header::HeaderValue::from(b.retry_after_s),
+    );
+    r
 }
 
 /// Maps a slag error to an HTTP status by who has to act ([`slag_common::Error::kind`], one
@@ -638,7 +481,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "scene": state.opts.scene,
         "generation": e.manifest.generation,
         "embedding_model": e.manifest.model,
-        "text_model": state.text.name(),
+        "text_model": state.engine.text().name(),
         "dim": e.store.dim(),
         "dtype": e.manifest.dtype,
         "tiles_in_manifest": e.manifest.tiles.len(),
@@ -659,93 +502,13 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "signed_fetches": state.opts.trusted_key.as_ref().map(|k| k.key_id()),
         "fetch_refusals": fetch_refusals,
         "last_refusal": last_refusal,
-        "queries_served": state.queries.load(Ordering::Relaxed),
+        "queries_served": state.engine.queries_served(),
         "requests_rejected": state.rejected.load(Ordering::Relaxed),
-        "prompt_cache_entries": state.text.cached(),
-        "scans": state.admission.stats(),
+        "prompt_cache_entries": state.engine.text().cached(),
+        "scans": state.engine.admission().stats(),
         "uptime_s": state.started.elapsed().as_secs(),
     }))
     .into_response()
-}
-
-/// Runs queries on the blocking pool (the scan itself fans out over rayon) once the admission
-/// gate lets them in (module doc); the permit is held until the last query of the batch is done.
-///
-/// Errors: [`Busy`] when the scan queue is full.
-pub(crate) async fn answer(
-    state: &Arc<AppState>,
-    qs: Vec<QueryParams>,
-) -> std::result::Result<Vec<Result<query::QueryAnswer>>, Busy> {
-    let permit = state.admission.admit().await?;
-    let st = state.clone();
-    let n = qs.len();
-    // The request timeout (or a client gone) drops this future while the blocking task runs:
-    // the guard then marks the batch abandoned, and the task skips the queries it has not begun,
-    // so a timed-out batch frees the scan slot after its current query instead of its last.
-    let abandoned = Arc::new(AtomicBool::new(false));
-    let _guard = AbandonOnDrop(abandoned.clone());
-    Ok(
-        match tokio::task::spawn_blocking(move || {
-            let _permit = permit;
-            st.admission.started();
-            let t0 = Instant::now();
-            let e = st.engine();
-            let answers = qs
-                .iter()
-                .map(|q| {
-                    if abandoned.load(Ordering::Relaxed) {
-                        return Err(Error::internal(
-                            "query skipped: its request timed out or its client left",
-                        ));
-                    }
-                    query::run_query_framed(
-                        &e.store,
-                        &e.manifest.model,
-                        e.manifest.frames.scene_to_map.as_ref(),
-                        st.text.as_ref(),
-                        &st.negatives,
-                        e.hnsw.as_ref(),
-                        Some(&e.display),
-                        q,
-                    )
-                    .map(compact_answer)
-                })
-                .collect::<Vec<_>>();
-            st.admission.record(t0.elapsed());
-            answers
-        })
-        .await
-        {
-            Ok(v) => {
-                state.queries.fetch_add(n as u64, Ordering::Relaxed);
-                v
-            }
-            Err(e) => (0..n)
-                .map(|_| Err(Error::internal(format!("query task failed: {e}"))))
-                .collect(),
-        },
-    )
-}
-
-/// Sets its flag when dropped: [`answer`]'s batch was abandoned (see there).
-struct AbandonOnDrop(Arc<AtomicBool>);
-
-impl Drop for AbandonOnDrop {
-    fn drop(&mut self) {
-        self.0.store(true, Ordering::Relaxed);
-    }
-}
-
-/// `a` holding only what it returns (its lists' capacity shrunk to their length). A threshold
-/// query collects every match above its threshold (for the summary and the objects) and returns
-/// the `top_k` best, so its lists can keep the capacity of all of them: up to the scene's
-/// Gaussian count × 20 bytes per answer, held by every answer of a batch until the batch is
-/// sent. Compacted, a batch holds at most [`ServeOptions::max_matches`] matches in all.
-pub fn compact_answer(mut a: query::QueryAnswer) -> query::QueryAnswer {
-    a.matches.shrink_to_fit();
-    a.match_objects.shrink_to_fit();
-    a.objects.shrink_to_fit();
-    a
 }
 
 /// Keys of the `GET` routes' query strings, for naming the field of a refused value.
@@ -856,7 +619,12 @@ async fn query_get(State(state): State<Arc<AppState>>, uri: axum::http::Uri) -> 
     let params = query_pairs(uri.query())
         .and_then(raw_from_pairs)
         .and_then(|r| r.validate(state.opts.threshold))
-        .and_then(|p| check_matches(std::slice::from_ref(&p), state.opts.max_matches).map(|()| p));
+        .and_then(|p| {
+            state
+                .engine
+                .check_matches(std::slice::from_ref(&p))
+                .map(|()| p)
+        });
     let params = match params {
         Ok(p) => p,
         Err(e) => {
@@ -864,14 +632,10 @@ async fn query_get(State(state): State<Arc<AppState>>, uri: axum::http::Uri) -> 
             return error(status_of(&e), e.to_string());
         }
     };
-    let mut answers = match answer(&state, vec![params]).await {
-        Ok(a) => a,
-        Err(busy) => return busy.response(),
-    };
-    match answers.pop() {
-        Some(Ok(a)) => axum::Json(a).into_response(),
-        Some(Err(e)) => error(status_of(&e), e.to_string()),
-        None => error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
+    match state.engine.query_one(params).await {
+        Ok(Ok(a)) => axum::Json(a).into_response(),
+        Ok(Err(e)) => error(status_of(&e), e.to_string()),
+        Err(b) => busy(&b),
     }
 }
 
@@ -919,12 +683,12 @@ async fn query_post(
             Err(e) => return bad(format!("queries[{i}]: {e}")),
         }
     }
-    if let Err(e) = check_matches(&params, state.opts.max_matches) {
+    if let Err(e) = state.engine.check_matches(&params) {
         return bad(e.to_string());
     }
-    let answers = match answer(&state, params).await {
+    let answers = match state.engine.query(params).await {
         Ok(a) => a,
-        Err(busy) => return busy.response(),
+        Err(b) => return busy(&b),
     };
     // Serialised straight from the answers (no intermediate JSON tree per match).
     #[derive(serde::Serialize)]
@@ -950,22 +714,9 @@ async fn query_post(
     axum::Json(Answers { answers }).into_response()
 }
 
-async fn reload_engine(state: &Arc<AppState>) -> Result<()> {
-    let st = state.clone();
-    let e = tokio::task::spawn_blocking(move || {
-        Engine::load_with(&st.edge, &st.opts.scene, st.opts.index())
-    })
-    .await
-    .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
-    // A newly fetched generation of another CLIP model is not swapped in.
-    state.text.check_pair(&e.manifest.model)?;
-    state.swap(e);
-    Ok(())
-}
-
 /// `POST /reload`: the store, then the TLS certificate when serving HTTPS (module doc, "TLS").
 async fn reload(State(state): State<Arc<AppState>>) -> Response {
-    if let Err(e) = reload_engine(&state).await {
+    if let Err(e) = state.engine.reload().await {
         return error(status_of(&e), e.to_string());
     }
     let e = state.engine();
@@ -1092,7 +843,7 @@ async fn fetch_post(
         );
     }
     match fetched.map_err(|f| f.error) {
-        Ok(summary) => match reload_engine(&state).await {
+        Ok(summary) => match state.engine.reload().await {
             Ok(()) => axum::Json(summary).into_response(),
             Err(e) => error(status_of(&e), e.to_string()),
         },

@@ -21,7 +21,7 @@ use axum::http::{StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use slag_common::{Error, Result};
 
-use super::{AppState, error, query_pairs, raw_from_pairs, status_of};
+use super::{AppState, busy, error, query_pairs, raw_from_pairs, status_of};
 use crate::view::{HighlightStyle, object_colour, painted_ply_framed, parse_colour};
 
 /// What `GET /query.ply` paints.
@@ -92,14 +92,10 @@ pub(crate) async fn query_ply(
     if params.threshold.is_some() {
         params.top_k = engine.store.len().max(1);
     }
-    let mut answers = match crate::serve::answer(&state, vec![params]).await {
-        Ok(a) => a,
-        Err(busy) => return busy.response(),
-    };
-    let answer = match answers.pop() {
-        Some(Ok(a)) => a,
-        Some(Err(e)) => return error(status_of(&e), e.to_string()),
-        None => return error(StatusCode::INTERNAL_SERVER_ERROR, "no answer".into()),
+    let answer = match state.query_engine().query_one(params).await {
+        Ok(Ok(a)) => a,
+        Ok(Err(e)) => return error(status_of(&e), e.to_string()),
+        Err(b) => return busy(&b),
     };
     let colours: HashMap<u32, [f32; 3]> = answer
         .matches

@@ -791,23 +791,22 @@ pub fn exact_answer(
     raw: slag_edge::query::RawQuery,
     display: bool,
 ) -> slag_edge::query::QueryAnswer {
-    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, run_query_framed};
+    use slag_edge::query::{CANONICAL_NEGATIVES, Interface, QueryContext, run_query_framed};
     let text = BasisEmbedder::new(dim);
     let negatives = text.embed(&CANONICAL_NEGATIVES).unwrap();
     let q = raw.validate_for(0.28, Interface::Cli).unwrap();
     let display = display.then_some(&engine.display);
     let model = &engine.manifest.model;
-    run_query_framed(
-        &engine.store,
-        model,
-        None,
-        &text,
-        &negatives,
-        None,
+    let cx = QueryContext {
+        store: &engine.store,
+        embedding_model: model,
+        to_map: None,
+        text: &text,
+        negatives: &negatives,
+        hnsw: None,
         display,
-        &q,
-    )
-    .unwrap()
+    };
+    run_query_framed(&cx, &q).unwrap()
 }
 
 /// Overwrites the sled files under `root/db` (or only its data file `db`) with a repeating

@@ -1,16 +1,33 @@
-//! A loaded scene, what every query runs against: the manifest of the last completed fetch, the
-//! Gaussians of every verified shard in one [`VectorStore`] (the scan kernels' layout), their
-//! display columns, and the optional approximate (HNSW) index. [`crate::serve`] swaps a new one in on reload;
-//! `slag-edge query`/`bench` and the examples use it directly.
+//! The query engine of the edge.
+//!
+//! - [`Engine`]: a loaded scene, what every query runs against: the manifest of the last
+//!   completed fetch, the Gaussians of every verified shard in one [`VectorStore`] (the scan
+//!   kernels' layout), their display columns, and the optional approximate (HNSW) index;
+//!   [`Engine::answer`] answers one validated query over it. `slag-edge query`/`bench` and the
+//!   examples use it directly.
+//! - [`QueryEngine`] ([`queries`]): the one call both interfaces make, [`QueryEngine::query`]:
+//!   admission ([`admission`]), scan, objects and answer frame against the generation served
+//!   now; [`QueryEngine::reload`] swaps a new generation in. The HTTP server
+//!   ([`crate::serve`]) and the ROS 2 node ([`crate::ros2`]) stand beside each other on it.
 //!
 //! An engine holds exactly one committed generation of the store: it is loaded under the
 //! store's generation lock ([`EdgeStore::lock_generation`]), from the tiles that generation
 //! lists ([`crate::store::Committed::tiles`]), and is immutable once built; a server swaps a
 //! whole new `Arc<Engine>` in, so a query that took one keeps it to the end.
 
+pub mod admission;
+pub mod queries;
+
+pub use admission::{Admission, Busy};
+pub use queries::{
+    DEFAULT_MAX_MATCHES, DEFAULT_MAX_SCANS, DEFAULT_SCAN_QUEUE, EngineOptions, QueryEngine,
+    check_matches, compact_answer,
+};
+
 use slag_common::Result;
 use slag_common::shards::{Manifest, MixtureShard, StoredShard};
 
+use crate::query::{QueryAnswer, QueryContext, QueryParams, TextEmbedder};
 use crate::scan::VectorStore;
 use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
 use crate::store::{EdgeStore, FetchRecord, SceneLoad};
@@ -89,6 +106,39 @@ impl Engine {
             record,
             seq,
         })
+    }
+
+    /// What a query over this generation runs against: its rows, embedding model, scene-to-map
+    /// transform, approximate index and display columns, with the prompt side (`text`, and
+    /// `negatives`: the embeddings of [`crate::query::CANONICAL_NEGATIVES`], `[4][D]`).
+    pub fn context<'a>(
+        &'a self,
+        text: &'a dyn TextEmbedder,
+        negatives: &'a [Vec<f32>],
+    ) -> QueryContext<'a> {
+        QueryContext {
+            store: &self.store,
+            embedding_model: &self.manifest.model,
+            to_map: self.manifest.frames.scene_to_map.as_ref(),
+            text,
+            negatives,
+            hnsw: self.hnsw.as_ref(),
+            display: Some(&self.display),
+        }
+    }
+
+    /// Answers the validated query `q` over this generation ([`Self::context`]): scan, objects,
+    /// and every coordinate in the answer's frame (the map frame when the manifest has a
+    /// scene-to-map transform, unless `q.frame` is scene).
+    ///
+    /// Errors: as [`crate::query::run_query_framed`].
+    pub fn answer(
+        &self,
+        text: &dyn TextEmbedder,
+        negatives: &[Vec<f32>],
+        q: &QueryParams,
+    ) -> Result<QueryAnswer> {
+        crate::query::run_query_framed(&self.context(text, negatives), q)
     }
 }
 

@@ -1,0 +1,265 @@
+//! The one query engine behind every interface: [`QueryEngine::query`] takes validated queries
+//! ([`QueryParams`]) through the admission gate ([`super::admission`]) and answers each against
+//! the generation served now ([`Engine::answer`]: scan, objects, answer frame). The HTTP server
+//! ([`crate::serve`]) and the ROS 2 node ([`crate::ros2`]) both call it; neither knows the
+//! other.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Instant;
+
+use slag_common::{Error, Result};
+
+use super::admission::{Admission, Busy};
+use super::{Engine, ServedEngine};
+use crate::query::{CANONICAL_NEGATIVES, QueryAnswer, QueryParams, TextEmbedder};
+use crate::scan::hnsw::HnswBackend;
+use crate::store::EdgeStore;
+
+/// Default of [`EngineOptions::max_scans`]: scans running at once.
+pub const DEFAULT_MAX_SCANS: usize = 1;
+/// Default of [`EngineOptions::scan_queue`]: queries that may wait for a scan.
+pub const DEFAULT_SCAN_QUEUE: usize = 32;
+/// Default of [`EngineOptions::max_matches`]: matches one request may ask for in all, twice the
+/// largest `top_k` of one query ([`crate::query::MAX_TOP_K`]); about 2 MB of JSON.
+pub const DEFAULT_MAX_MATCHES: usize = 20_000;
+
+/// What a [`QueryEngine`] serves and how it admits queries.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EngineOptions {
+    /// Scene to serve (its name in the store).
+    pub scene: String,
+    /// Approximate index to build at every load (`None`: exact scans only; `index=hnsw` is then
+    /// refused).
+    pub index: Option<HnswBackend>,
+    /// Cosine threshold of a query that gives none.
+    pub threshold: f32,
+    /// Scans running at once (≥ 1; [`super::admission`]).
+    pub max_scans: usize,
+    /// Queries that may wait for a scan; one more is turned away ([`Busy`]).
+    pub scan_queue: usize,
+    /// Matches one request may ask for in all (Σ `top_k` over a batch; [`check_matches`]).
+    pub max_matches: usize,
+}
+
+/// The query engine: the served generation ([`ServedEngine`]), the text model and the embedded
+/// canonical negatives, the admission gate and the count of queries answered. A cheap handle:
+/// clones share one engine.
+#[derive(Clone)]
+pub struct QueryEngine(Arc<Shared>);
+
+/// What the clones of one [`QueryEngine`] share.
+struct Shared {
+    served: ServedEngine,
+    edge: EdgeStore,
+    text: Arc<dyn TextEmbedder>,
+    /// Embeddings of [`CANONICAL_NEGATIVES`], `[4][D]`.
+    negatives: Vec<Vec<f32>>,
+    opts: EngineOptions,
+    admission: Admission,
+    queries: AtomicU64,
+}
+
+impl QueryEngine {
+    /// Loads `opts.scene` from `edge` (building the approximate index of `opts.index`) and
+    /// embeds the canonical negatives once.
+    ///
+    /// Errors: as [`Engine::load_with`]; a text model of another CLIP model than the stored
+    /// embeddings ([`Error::ModelMismatch`]) or whose width differs from theirs
+    /// ([`Error::Mismatch`]); the text model failing on the negatives ([`Error::Model`]).
+    pub fn new(
+        edge: EdgeStore,
+        text: Arc<dyn TextEmbedder>,
+        opts: EngineOptions,
+    ) -> Result<QueryEngine> {
+        let engine = Engine::load_with(&edge, &opts.scene, opts.index)?;
+        text.check_pair(&engine.manifest.model)?;
+        let negatives = text.embed(&CANONICAL_NEGATIVES)?;
+        if let Some(n) = negatives.first()
+            && n.len() != engine.store.dim()
+        {
+            return Err(Error::mismatch(
+                slag_common::Mismatched::EmbeddingWidth,
+                format!(
+                    "the text model {} gives {}-d embeddings but scene {} holds {}-d ones \
+                     from {}; serve with the CLIP text tower of that model",
+                    text.name(),
+                    n.len(),
+                    opts.scene,
+                    engine.store.dim(),
+                    engine.manifest.model
+                ),
+            ));
+        }
+        Ok(QueryEngine(Arc::new(Shared {
+            served: ServedEngine::new(engine),
+            edge,
+            text,
+            negatives,
+            admission: Admission::new(opts.max_scans, opts.scan_queue),
+            opts,
+            queries: AtomicU64::new(0),
+        })))
+    }
+
+    /// The generation served now (a query keeps the one it took to its end).
+    pub fn current(&self) -> Arc<Engine> {
+        self.0.served.current()
+    }
+
+    /// The engine's settings.
+    pub fn options(&self) -> &EngineOptions {
+        &self.0.opts
+    }
+
+    /// The text model prompts are embedded with.
+    pub fn text(&self) -> &dyn TextEmbedder {
+        self.0.text.as_ref()
+    }
+
+    /// The admission gate (its [`Admission::stats`] for `/stats`).
+    pub fn admission(&self) -> &Admission {
+        &self.0.admission
+    }
+
+    /// Queries answered so far (each query of a batch counts; failed ones too).
+    pub fn queries_served(&self) -> u64 {
+        self.0.queries.load(Ordering::Relaxed)
+    }
+
+    /// Refuses a request asking for more than [`EngineOptions::max_matches`] matches in all.
+    ///
+    /// Errors: as [`check_matches`].
+    pub fn check_matches(&self, qs: &[QueryParams]) -> Result<()> {
+        check_matches(qs, self.0.opts.max_matches)
+    }
+
+    /// Answers `qs` in order once the admission gate lets them in, on the blocking pool (the
+    /// scan itself fans out over rayon), each against the generation served when the batch
+    /// started ([`Engine::answer`]) and compacted ([`compact_answer`]); the scan permit is held
+    /// until the last query of the batch is done. Dropping the future (a request timeout, a
+    /// client gone) abandons the batch: queries not yet begun are skipped, so the scan slot is
+    /// freed after the current query instead of the last.
+    ///
+    /// Errors: [`Busy`] when the scan queue is full. Per query: as [`Engine::answer`];
+    /// [`Error::Internal`] for a skipped query or a failed task.
+    pub async fn query(
+        &self,
+        qs: Vec<QueryParams>,
+    ) -> std::result::Result<Vec<Result<QueryAnswer>>, Busy> {
+        let permit = self.0.admission.admit().await?;
+        let engine = self.clone();
+        let n = qs.len();
+        let abandoned = Arc::new(AtomicBool::new(false));
+        let _guard = AbandonOnDrop(abandoned.clone());
+        let answers = tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            engine.answer_batch(&qs, &abandoned)
+        })
+        .await;
+        Ok(match answers {
+            Ok(v) => {
+                self.0.queries.fetch_add(n as u64, Ordering::Relaxed);
+                v
+            }
+            Err(e) => (0..n)
+                .map(|_| Err(Error::internal(format!("query task failed: {e}"))))
+                .collect(),
+        })
+    }
+
+    /// [`Self::query`] for one query.
+    ///
+    /// Errors: as [`Self::query`].
+    pub async fn query_one(
+        &self,
+        q: QueryParams,
+    ) -> std::result::Result<Result<QueryAnswer>, Busy> {
+        let mut answers = self.query(vec![q]).await?;
+        Ok(answers
+            .pop()
+            .unwrap_or_else(|| Err(Error::internal("no answer"))))
+    }
+
+    /// Loads the scene's committed generation again (on the blocking pool, while the one served
+    /// now keeps answering) and serves it, unless the one served now is later
+    /// ([`ServedEngine::offer`]).
+    ///
+    /// Errors: as [`Engine::load_with`]; a generation of another CLIP model than the text
+    /// model's ([`Error::ModelMismatch`]: not swapped in); a failed task ([`Error::Internal`]).
+    pub async fn reload(&self) -> Result<()> {
+        let s = self.0.clone();
+        let e = tokio::task::spawn_blocking(move || {
+            Engine::load_with(&s.edge, &s.opts.scene, s.opts.index)
+        })
+        .await
+        .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;
+        self.0.text.check_pair(&e.manifest.model)?;
+        self.0.served.offer(e);
+        Ok(())
+    }
+
+    /// Runs an admitted batch against the generation served now, skipping what is left once
+    /// `abandoned` is set; times the scan for the admission gate.
+    fn answer_batch(&self, qs: &[QueryParams], abandoned: &AtomicBool) -> Vec<Result<QueryAnswer>> {
+        let s = &self.0;
+        s.admission.started();
+        let t0 = Instant::now();
+        let e = s.served.current();
+        let answers = qs
+            .iter()
+            .map(|q| {
+                if abandoned.load(Ordering::Relaxed) {
+                    return Err(Error::internal(
+                        "query skipped: its request timed out or its client left",
+                    ));
+                }
+                e.answer(s.text.as_ref(), &s.negatives, q)
+                    .map(compact_answer)
+            })
+            .collect();
+        s.admission.record(t0.elapsed());
+        answers
+    }
+}
+
+/// Sets its flag when dropped: [`QueryEngine::query`]'s batch was abandoned (see there).
+struct AbandonOnDrop(Arc<AtomicBool>);
+
+impl Drop for AbandonOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Refuses a request asking for more than `max` matches in all (the sum of `top_k` over its
+/// queries; a threshold query returns at most its `top_k` best matches too), before any scan,
+/// so the largest answer one request can build is bounded.
+///
+/// Errors: [`Error::Query`] `top_k` naming the sum and the limit.
+pub fn check_matches(qs: &[QueryParams], max: usize) -> Result<()> {
+    let asked: usize = qs.iter().map(|q| q.top_k).sum();
+    if asked > max {
+        return Err(Error::query(
+            "top_k",
+            format!(
+                "the request asks for {asked} matches in all (sum of top_k over its queries); \
+                 this server answers at most {max} per request (max_matches): lower top_k or \
+                 split the batch"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// `a` holding only what it returns (its lists' capacity shrunk to their length). A threshold
+/// query collects every match above its threshold (for the summary and the objects) and returns
+/// the `top_k` best, so its lists can keep the capacity of all of them: up to the scene's
+/// Gaussian count × 20 bytes per answer, held by every answer of a batch until the batch is
+/// sent. Compacted, a batch holds at most [`EngineOptions::max_matches`] matches in all.
+pub fn compact_answer(mut a: QueryAnswer) -> QueryAnswer {
+    a.matches.shrink_to_fit();
+    a.match_objects.shrink_to_fit();
+    a.objects.shrink_to_fit();
+    a
+}
