@@ -680,25 +680,7 @@ async fn fetch_inner(
     p: &FetchParams,
     bad_manifest: &mut bool,
 ) -> Result<FetchSummary> {
-    // Before anything is logged, requested or recorded: a secret in the URL would be all three.
-    slag_common::auth::refuse_credentials_in_url(&p.server, "server")?;
-    if !valid_scene_id(&p.scene) {
-        return Err(Error::param(
-            "scene_id",
-            format!("{:?}", p.scene),
-            "1-64 characters of A-Z a-z 0-9 _ - .",
-        ));
-    }
-    if !(p.radius.is_finite() && p.radius >= 0.0) {
-        return Err(Error::param(
-            "radius",
-            p.radius,
-            "a finite number ≥ 0 (metres with a map frame, else scene units)",
-        ));
-    }
-    if p.jobs == 0 {
-        return Err(Error::param("jobs", 0, "at least 1 download at a time"));
-    }
+    check_fetch_params(p)?;
     let client = client_trusting(p.timeout, p.ca_cert.as_deref())?;
     let (manifest, signed) = fetch_trusted_manifest(&client, store, p)
         .await
@@ -724,32 +706,117 @@ async fn fetch_inner(
     if let Some(t) = &codebook {
         summary.codebook_bytes = t.bytes;
     }
-    let (checked, manifest) = {
-        let store = store.clone();
-        let tiles: Vec<TileInfo> = codebook.iter().chain(&selected).cloned().collect();
+    let tiles: Vec<TileInfo> = codebook.iter().chain(&selected).cloned().collect();
+    let (checked, manifest) = check_stored_tiles(store, manifest, tiles, hashed).await?;
+    let (todo, codebook_todo) = plan_downloads(checked, codebook.as_ref(), &mut summary);
+    let total: u64 = todo.iter().chain(&codebook_todo).map(|t| t.bytes).sum();
+    check_free_space(store, &manifest, todo.iter().chain(&codebook_todo))?;
+    let downloads = Downloads {
+        client: &client,
+        store,
+        manifest: Arc::new(manifest),
+        p,
+        pb: progress_bar(p.progress, total, todo.len()),
+    };
+    downloads.run(codebook_todo, todo, &mut summary).await?;
+
+    let record = FetchRecord {
+        server: p.server.clone(),
+        center,
+        radius: scene_radius,
+        completed_unix_s: SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0),
+        tiles: None,
+    };
+    let manifest = downloads.manifest;
+    let (evicted, kept_outside) = {
+        let (store, manifest, prune) = (store.clone(), manifest.clone(), p.prune);
         tokio::task::spawn_blocking(move || {
-            let mut out = Vec::with_capacity(tiles.len());
-            for t in tiles {
-                let state = match store.check_stored_signed(&manifest, &t, hashed)? {
-                    Stored::Damaged { path, why } => {
-                        // A load in progress reads the committed generation whole.
-                        let _generation = store.lock_generation();
-                        store.set_aside(&path, &why)?;
-                        Stored::Damaged { path, why }
-                    }
-                    s => s,
-                };
-                out.push((t, state));
-            }
-            Ok::<_, Error>((out, manifest))
+            commit_and_evict(&store, &manifest, signed.as_ref(), &selected, record, prune)
         })
         .await
         .map_err(|e| Error::internal(format!("store task failed: {e}")))??
     };
+    summary.evicted += evicted;
+    summary.kept_outside += kept_outside;
+    summary.evicted += tidy_after_commit(store, &p.scene, &manifest)?;
+    summary.store_bytes = store.disk_bytes();
+    Ok(summary)
+}
+
+/// Refuses the parameters of a fetch before anything is logged, requested or recorded.
+///
+/// Errors: [`Error::Param`] `server` for a URL with a user name or password (a secret in the
+/// URL would be logged, requested and recorded), `scene_id`, `radius` (not finite or
+/// negative), `jobs` (0).
+fn check_fetch_params(p: &FetchParams) -> Result<()> {
+    slag_common::auth::refuse_credentials_in_url(&p.server, "server")?;
+    if !valid_scene_id(&p.scene) {
+        return Err(Error::param(
+            "scene_id",
+            format!("{:?}", p.scene),
+            "1-64 characters of A-Z a-z 0-9 _ - .",
+        ));
+    }
+    if !(p.radius.is_finite() && p.radius >= 0.0) {
+        return Err(Error::param(
+            "radius",
+            p.radius,
+            "a finite number ≥ 0 (metres with a map frame, else scene units)",
+        ));
+    }
+    if p.jobs == 0 {
+        return Err(Error::param("jobs", 0, "at least 1 download at a time"));
+    }
+    Ok(())
+}
+
+/// Step 3 of the module doc on the blocking pool: checks what the store holds for each of
+/// `tiles` against `manifest` (hashes too when `hashed`), setting a damaged file aside under the
+/// generation lock. Returns each tile with what was found, and `manifest` back.
+///
+/// Errors: store I/O; a failed task ([`Error::Internal`]).
+async fn check_stored_tiles(
+    store: &EdgeStore,
+    manifest: Manifest,
+    tiles: Vec<TileInfo>,
+    hashed: bool,
+) -> Result<(Vec<(TileInfo, Stored)>, Manifest)> {
+    let store = store.clone();
+    tokio::task::spawn_blocking(move || {
+        let mut out = Vec::with_capacity(tiles.len());
+        for t in tiles {
+            let state = match store.check_stored_signed(&manifest, &t, hashed)? {
+                Stored::Damaged { path, why } => {
+                    // A load in progress reads the committed generation whole.
+                    let _generation = store.lock_generation();
+                    store.set_aside(&path, &why)?;
+                    Stored::Damaged { path, why }
+                }
+                s => s,
+            };
+            out.push((t, state));
+        }
+        Ok::<_, Error>((out, manifest))
+    })
+    .await
+    .map_err(|e| Error::internal(format!("store task failed: {e}")))?
+}
+
+/// What to download after [`check_stored_tiles`]: the shards not verified in the store, and the
+/// codebook (`codebook`'s tile) when it is not; counts the verified shards (`skipped`) and the
+/// files set aside in `summary`.
+fn plan_downloads(
+    checked: Vec<(TileInfo, Stored)>,
+    codebook: Option<&TileInfo>,
+    summary: &mut FetchSummary,
+) -> (Vec<TileInfo>, Option<TileInfo>) {
     let mut todo = Vec::new();
     let mut codebook_todo = None;
     for (t, state) in checked {
-        let is_codebook = codebook.as_ref().is_some_and(|c| c.id == t.id);
+        let is_codebook = codebook.is_some_and(|c| c.id == t.id);
         match state {
             Stored::Verified if is_codebook => {}
             Stored::Verified => summary.skipped += 1,
@@ -763,9 +830,13 @@ async fn fetch_inner(
             }
         }
     }
-    let total: u64 = todo.iter().chain(&codebook_todo).map(|t| t.bytes).sum();
-    check_free_space(store, &manifest, todo.iter().chain(&codebook_todo))?;
-    let pb = if p.progress {
+    (todo, codebook_todo)
+}
+
+/// The progress bar of a fetch's downloads (`total` bytes, `shards` named in its message) on
+/// stderr when `show`, else hidden.
+fn progress_bar(show: bool, total: u64, shards: usize) -> ProgressBar {
+    let pb = if show {
         ProgressBar::with_draw_target(Some(total), ProgressDrawTarget::stderr())
     } else {
         ProgressBar::hidden()
@@ -777,80 +848,28 @@ async fn fetch_inner(
         .unwrap_or_else(|_| ProgressStyle::default_bar())
         .progress_chars("=> "),
     );
-    pb.set_message(format!("{} shards", todo.len()));
+    pb.set_message(format!("{shards} shards"));
+    pb
+}
 
-    let manifest = Arc::new(manifest);
-    if let Some(t) = &codebook_todo {
-        match download_tile(&client, store, &manifest, t, p, &pb).await {
-            Ok((_, received)) => summary.bytes_received += received,
-            Err(e) => {
-                pb.finish_and_clear();
-                store.flush()?;
-                return Err(e);
-            }
-        }
-    }
-    let results: Vec<Result<(bool, u64)>> = futures_util::stream::iter(todo.into_iter().map(|t| {
-        let (client, store, manifest, pb) = (&client, store, manifest.clone(), pb.clone());
-        async move { download_tile(client, store, &manifest, &t, p, &pb).await }
-    }))
-    .buffer_unordered(p.jobs)
-    .collect()
-    .await;
-    pb.finish_and_clear();
-    let mut first_error = None;
-    for r in results {
-        match r {
-            Ok((resumed, received)) => {
-                summary.downloaded += 1;
-                summary.resumed += resumed as usize;
-                summary.bytes_received += received;
-            }
-            Err(e) => {
-                first_error.get_or_insert(e);
-            }
-        }
-    }
-    if let Some(e) = first_error {
-        store.flush()?;
-        return Err(e);
-    }
-
-    let record = FetchRecord {
-        server: p.server.clone(),
-        center,
-        radius: scene_radius,
-        completed_unix_s: SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map(|d| d.as_secs())
-            .unwrap_or(0),
-        tiles: None,
-    };
-    let (evicted, kept_outside) = {
-        let (store, manifest, prune) = (store.clone(), manifest.clone(), p.prune);
-        tokio::task::spawn_blocking(move || {
-            commit_and_evict(&store, &manifest, signed.as_ref(), &selected, record, prune)
-        })
-        .await
-        .map_err(|e| Error::internal(format!("store task failed: {e}")))??
-    };
-    summary.evicted += evicted;
-    summary.kept_outside += kept_outside;
-    // Partial files of tiles now stored (a kill between a shard commit and the file's removal)
-    // or of older generations; partials of this manifest's other tiles are kept for a later fetch.
+/// After the commit: removes the partial files of tiles now stored (a kill between a shard
+/// commit and the file's removal) or of older generations, keeping those of this manifest's
+/// other tiles for a later fetch, and the codebooks of older generations (or of a scene now
+/// partitioned dense); flushes the store. Returns the codebooks removed.
+///
+/// Errors: store I/O.
+fn tidy_after_commit(store: &EdgeStore, scene: &str, manifest: &Manifest) -> Result<usize> {
     let mut keep = Vec::new();
     for t in &manifest.tiles {
-        if !store.has_shard(&p.scene, t)? {
-            keep.push(store.partial_path(&p.scene, t));
+        if !store.has_shard(scene, t)? {
+            keep.push(store.partial_path(scene, t));
         }
     }
-    // Codebooks of older generations (or of a scene now partitioned dense).
-    let current_codebook = store.codebook_path(&manifest)?;
-    summary.evicted += store.remove_other_codebooks(&p.scene, current_codebook.as_deref())?;
-    store.clean_partials(&p.scene, &keep)?;
+    let current_codebook = store.codebook_path(manifest)?;
+    let removed = store.remove_other_codebooks(scene, current_codebook.as_deref())?;
+    store.clean_partials(scene, &keep)?;
     store.flush()?;
-    summary.store_bytes = store.disk_bytes();
-    Ok(summary)
+    Ok(removed)
 }
 
 /// Steps 5 and 6 of the module doc under the store's generation lock
@@ -941,103 +960,6 @@ fn check_free_space<'a>(
     Ok(())
 }
 
-/// Downloads one tile with retries; returns `(resumed, bytes received)`.
-async fn download_tile(
-    client: &reqwest::Client,
-    store: &EdgeStore,
-    manifest: &Manifest,
-    tile: &TileInfo,
-    p: &FetchParams,
-    pb: &ProgressBar,
-) -> Result<(bool, u64)> {
-    // The codebook travels as a pseudo tile ([`codebook_tile`]): its own URL and verification.
-    let is_codebook = manifest.mixture.is_some() && tile.id == CODEBOOK_TILE;
-    let url = if is_codebook {
-        url_join(
-            &p.server,
-            &format!("v1/scenes/{}/codebook", manifest.scene_id),
-        )
-    } else {
-        url_join(
-            &p.server,
-            &format!("v1/scenes/{}/shards/{}", manifest.scene_id, tile.id),
-        )
-    };
-    let part = store.partial_path(&manifest.scene_id, tile);
-    let signed = p.trusted_key.is_some();
-    // A folder (or anything but a plain file) where the partial file belongs: set aside.
-    if let Ok(m) = tokio::fs::symlink_metadata(&part).await
-        && !m.is_file()
-    {
-        let (store, part) = (store.clone(), part.clone());
-        tokio::task::spawn_blocking(move || store.set_aside(&part, "not a partial download file"))
-            .await
-            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
-    }
-    let mut counts = Counts::default();
-    let mut resumed = false;
-    let mut attempt = 0u32;
-    let mut verify_failures = 0u32;
-    loop {
-        match try_download(
-            client,
-            &url,
-            &part,
-            tile,
-            p.token.as_deref(),
-            pb,
-            &mut counts,
-        )
-        .await
-        {
-            Ok(r) => {
-                resumed |= r;
-                let committed = {
-                    let (store, manifest, tile, part) =
-                        (store.clone(), manifest.clone(), tile.clone(), part.clone());
-                    tokio::task::spawn_blocking(move || {
-                        if is_codebook {
-                            store.commit_codebook_partial_checked(&manifest, &part, signed)
-                        } else {
-                            store.commit_partial_checked(&manifest, &tile, &part, signed)
-                        }
-                    })
-                    .await
-                    .map_err(|e| Error::internal(format!("store task failed: {e}")))?
-                };
-                match committed {
-                    Ok(()) => {
-                        return Ok((resumed, counts.received));
-                    }
-                    Err(Error::Format { path, message }) => {
-                        // Corrupted in transit or on disk: start this shard over once.
-                        let _ = tokio::fs::remove_file(&part).await;
-                        verify_failures += 1;
-                        if verify_failures > 1 {
-                            return Err(Error::Format {
-                                path,
-                                message: format!(
-                                    "{message}; downloaded twice, rejected twice: the server's \
-                                     copy disagrees with its manifest"
-                                ),
-                            });
-                        }
-                        tracing::warn!("{}: {message}; downloading again", path.display());
-                    }
-                    Err(e) => return Err(e),
-                }
-            }
-            Err(a) if a.transient && attempt < p.retries => {
-                attempt += 1;
-                let wait = Duration::from_millis(200 * 2u64.pow(attempt.min(6)));
-                tracing::warn!("{} (retry {attempt}/{} in {wait:?})", a.error, p.retries);
-                tokio::time::sleep(wait).await;
-            }
-            Err(a) => return Err(a.error),
-        }
-    }
-}
-
 /// Appends one received chunk to a partial file (through the disk-full hook,
 /// [`slag_common::fault::enospc`]).
 async fn write_chunk(file: &mut tokio::fs::File, chunk: &[u8]) -> std::io::Result<()> {
@@ -1052,42 +974,330 @@ struct Counts {
     shown: u64,
 }
 
-/// One HTTP attempt: continues `part` if it holds a prefix, otherwise starts over. On success the
-/// file holds exactly `tile.bytes` bytes (synced). Returns whether a `Range` request was honoured.
-async fn try_download(
-    client: &reqwest::Client,
-    url: &str,
-    part: &Path,
-    tile: &TileInfo,
-    token: Option<&str>,
-    pb: &ProgressBar,
-    counts: &mut Counts,
-) -> std::result::Result<bool, Attempt> {
-    let io = |e: std::io::Error| permanent(Error::io(part, e));
-    let have = match tokio::fs::symlink_metadata(part).await {
-        Ok(m) if m.len() <= tile.bytes => m.len(),
-        Ok(_) => {
-            tokio::fs::remove_file(part).await.map_err(io)?;
-            boundary("fetch.partial:remove_oversized");
-            0
+/// What every download of one fetch shares: the HTTP client, the store, the manifest, the
+/// fetch's parameters (server, token, retries, jobs, trusted key) and the progress bar.
+struct Downloads<'a> {
+    client: &'a reqwest::Client,
+    store: &'a EdgeStore,
+    manifest: Arc<Manifest>,
+    p: &'a FetchParams,
+    pb: ProgressBar,
+}
+
+impl Downloads<'_> {
+    /// Step 4 of the module doc: the codebook first (when `codebook` is due), then the shards of
+    /// `todo`, [`FetchParams::jobs`] at a time; counts what was downloaded in `summary`. On a
+    /// failure every download still finishes, the store is flushed and the first error returned.
+    ///
+    /// Errors: as [`Self::tile`]; store I/O.
+    async fn run(
+        &self,
+        codebook: Option<TileInfo>,
+        todo: Vec<TileInfo>,
+        summary: &mut FetchSummary,
+    ) -> Result<()> {
+        if let Some(t) = &codebook {
+            match self.tile(t).await {
+                Ok((_, received)) => summary.bytes_received += received,
+                Err(e) => {
+                    self.pb.finish_and_clear();
+                    self.store.flush()?;
+                    return Err(e);
+                }
+            }
         }
-        Err(_) => 0,
-    };
-    if have == tile.bytes && have > 0 {
-        return Ok(false);
+        let results: Vec<Result<(bool, u64)>> = futures_util::stream::iter(
+            todo.into_iter().map(|t| async move { self.tile(&t).await }),
+        )
+        .buffer_unordered(self.p.jobs)
+        .collect()
+        .await;
+        self.pb.finish_and_clear();
+        let mut first_error = None;
+        for r in results {
+            match r {
+                Ok((resumed, received)) => {
+                    summary.downloaded += 1;
+                    summary.resumed += resumed as usize;
+                    summary.bytes_received += received;
+                }
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+        if let Some(e) = first_error {
+            self.store.flush()?;
+            return Err(e);
+        }
+        Ok(())
     }
-    let mut req = client.get(url);
-    if let Some(t) = token {
-        req = req.bearer_auth(t);
+
+    /// Downloads one tile with retries (transient failures, [`FetchParams::retries`] times with
+    /// a growing wait) and commits it verified; a file that fails verification is downloaded
+    /// once more. Returns `(resumed, bytes received)`.
+    ///
+    /// Errors: the server ([`Error::Network`] after the retries, or at once when not transient),
+    /// a file rejected twice ([`Error::Format`]), store I/O.
+    async fn tile(&self, tile: &TileInfo) -> Result<(bool, u64)> {
+        let url = self.tile_url(tile);
+        let part = self.store.partial_path(&self.manifest.scene_id, tile);
+        self.set_aside_non_file(&part).await?;
+        let mut counts = Counts::default();
+        let mut resumed = false;
+        let mut attempt = 0u32;
+        let mut verify_failures = 0u32;
+        loop {
+            let to = TileFetch {
+                url: &url,
+                part: &part,
+                tile,
+            };
+            match self.try_download(&to, &mut counts).await {
+                Ok(r) => {
+                    resumed |= r;
+                    match self.commit(tile, &part).await? {
+                        Ok(()) => return Ok((resumed, counts.received)),
+                        Err(Error::Format { path, message }) => {
+                            // Corrupted in transit or on disk: start this shard over once.
+                            let _ = tokio::fs::remove_file(&part).await;
+                            verify_failures += 1;
+                            if verify_failures > 1 {
+                                return Err(Error::Format {
+                                    path,
+                                    message: format!(
+                                        "{message}; downloaded twice, rejected twice: the \
+                                         server's copy disagrees with its manifest"
+                                    ),
+                                });
+                            }
+                            tracing::warn!("{}: {message}; downloading again", path.display());
+                        }
+                        Err(e) => return Err(e),
+                    }
+                }
+                Err(a) if a.transient && attempt < self.p.retries => {
+                    attempt += 1;
+                    let wait = Duration::from_millis(200 * 2u64.pow(attempt.min(6)));
+                    tracing::warn!(
+                        "{} (retry {attempt}/{} in {wait:?})",
+                        a.error,
+                        self.p.retries
+                    );
+                    tokio::time::sleep(wait).await;
+                }
+                Err(a) => return Err(a.error),
+            }
+        }
     }
-    if have > 0 {
-        req = req
-            .header(reqwest::header::RANGE, format!("bytes={have}-"))
-            .header(reqwest::header::IF_RANGE, format!("\"{}\"", tile.checksum));
+
+    /// Whether `tile` is the codebook of a mixture scene, which travels as a pseudo tile
+    /// ([`codebook_tile`]): its own URL and verification.
+    fn is_codebook(&self, tile: &TileInfo) -> bool {
+        self.manifest.mixture.is_some() && tile.id == CODEBOOK_TILE
     }
-    let resp = req.send().await.map_err(|e| net_error(url, e))?;
+
+    /// The URL of `tile` (or of the codebook) on the shard server.
+    fn tile_url(&self, tile: &TileInfo) -> String {
+        let scene = &self.manifest.scene_id;
+        if self.is_codebook(tile) {
+            url_join(&self.p.server, &format!("v1/scenes/{scene}/codebook"))
+        } else {
+            url_join(
+                &self.p.server,
+                &format!("v1/scenes/{scene}/shards/{}", tile.id),
+            )
+        }
+    }
+
+    /// Sets aside a folder (or anything but a plain file) where the partial file `part` belongs.
+    ///
+    /// Errors: store I/O; a failed task ([`Error::Internal`]).
+    async fn set_aside_non_file(&self, part: &Path) -> Result<()> {
+        if let Ok(m) = tokio::fs::symlink_metadata(part).await
+            && !m.is_file()
+        {
+            let (store, part) = (self.store.clone(), part.to_path_buf());
+            tokio::task::spawn_blocking(move || {
+                store.set_aside(&part, "not a partial download file")
+            })
+            .await
+            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
+        }
+        Ok(())
+    }
+
+    /// Verifies the complete partial file `part` of `tile` and moves it into the store (on the
+    /// blocking pool; hashes too with a trusted key). The outer error is a failed task, the
+    /// inner one the commit's ([`Error::Format`] for a file that fails verification).
+    ///
+    /// Errors: [`Error::Internal`] when the task fails.
+    async fn commit(&self, tile: &TileInfo, part: &Path) -> Result<Result<()>> {
+        let is_codebook = self.is_codebook(tile);
+        let signed = self.p.trusted_key.is_some();
+        let (store, manifest, tile, part) = (
+            self.store.clone(),
+            self.manifest.clone(),
+            tile.clone(),
+            part.to_path_buf(),
+        );
+        tokio::task::spawn_blocking(move || {
+            if is_codebook {
+                store.commit_codebook_partial_checked(&manifest, &part, signed)
+            } else {
+                store.commit_partial_checked(&manifest, &tile, &part, signed)
+            }
+        })
+        .await
+        .map_err(|e| Error::internal(format!("store task failed: {e}")))
+    }
+
+    /// One HTTP attempt: continues `to.part` if it holds a prefix, otherwise starts over. On
+    /// success the file holds exactly `to.tile.bytes` bytes (synced). Returns whether a `Range`
+    /// request was honoured.
+    async fn try_download(
+        &self,
+        to: &TileFetch<'_>,
+        counts: &mut Counts,
+    ) -> std::result::Result<bool, Attempt> {
+        let tile = to.tile;
+        let have = partial_prefix(to.part, tile).await?;
+        if have == tile.bytes && have > 0 {
+            return Ok(false);
+        }
+        let mut req = self.client.get(to.url);
+        if let Some(t) = self.p.token.as_deref() {
+            req = req.bearer_auth(t);
+        }
+        if have > 0 {
+            req = req
+                .header(reqwest::header::RANGE, format!("bytes={have}-"))
+                .header(reqwest::header::IF_RANGE, format!("\"{}\"", tile.checksum));
+        }
+        let resp = req.send().await.map_err(|e| net_error(to.url, e))?;
+        let Some((file, start, resumed)) = open_partial(&resp, to, have).await? else {
+            let status = resp.status();
+            let body = resp.text().await.unwrap_or_default();
+            return Err(status_error(to.url, status, &body));
+        };
+        // Keep the bar at "bytes of this tile on disk" across resumes and restarts.
+        if start >= counts.shown {
+            self.pb.inc(start - counts.shown);
+        } else {
+            self.pb
+                .set_position(self.pb.position().saturating_sub(counts.shown - start));
+        }
+        counts.shown = start;
+        self.receive(resp, file, to, start, counts).await?;
+        Ok(resumed)
+    }
+
+    /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`), then flushes
+    /// and syncs it. Past the manifest's size the file is removed and the attempt starts over;
+    /// a write that fails (disk full) removes it too, never left to fill the disk further; a
+    /// body cut short keeps what arrived for the next attempt to resume.
+    async fn receive(
+        &self,
+        resp: reqwest::Response,
+        mut file: tokio::fs::File,
+        to: &TileFetch<'_>,
+        start: u64,
+        counts: &mut Counts,
+    ) -> std::result::Result<(), Attempt> {
+        let (url, part, tile) = (to.url, to.part, to.tile);
+        let io = |e: std::io::Error| permanent(Error::io(part, e));
+        let mut written = start;
+        let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
+        while let Some(chunk) = stream.next().await {
+            let chunk = match chunk {
+                Ok(c) => c,
+                Err(a) => {
+                    let _ = file.flush().await;
+                    let _ = file.sync_data().await;
+                    return Err(a);
+                }
+            };
+            written += chunk.len() as u64;
+            if written > tile.bytes {
+                drop(file);
+                let _ = tokio::fs::remove_file(part).await;
+                return Err(transient(Error::network(
+                    url,
+                    format!(
+                        "more than the manifest's {} bytes; starting over",
+                        tile.bytes
+                    ),
+                )));
+            }
+            if let Err(e) = write_chunk(&mut file, &chunk).await {
+                // The disk is full or failing: the partial file is removed (with those of the
+                // rest of the scene, by `fetch`), never left to fill the disk further.
+                drop(file);
+                let _ = tokio::fs::remove_file(part).await;
+                return Err(io(e));
+            }
+            boundary("fetch.partial:write");
+            counts.received += chunk.len() as u64;
+            counts.shown += chunk.len() as u64;
+            self.pb.inc(chunk.len() as u64);
+        }
+        file.flush().await.map_err(io)?;
+        file.sync_data().await.map_err(io)?;
+        boundary("fetch.partial:fsync");
+        if written != tile.bytes {
+            return Err(transient(Error::network(
+                url,
+                format!(
+                    "connection closed after {written} of {} bytes; will resume",
+                    tile.bytes
+                ),
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// One tile's download: where from, where to, what it must be.
+struct TileFetch<'a> {
+    url: &'a str,
+    part: &'a Path,
+    tile: &'a TileInfo,
+}
+
+/// The bytes the partial file `part` already holds of `tile` (0 for none); a file longer than
+/// the tile is removed and counts as none.
+///
+/// Errors: the removal ([`Error::Io`], not transient).
+async fn partial_prefix(part: &Path, tile: &TileInfo) -> std::result::Result<u64, Attempt> {
+    match tokio::fs::symlink_metadata(part).await {
+        Ok(m) if m.len() <= tile.bytes => Ok(m.len()),
+        Ok(_) => {
+            tokio::fs::remove_file(part)
+                .await
+                .map_err(|e| permanent(Error::io(part, e)))?;
+            boundary("fetch.partial:remove_oversized");
+            Ok(0)
+        }
+        Err(_) => Ok(0),
+    }
+}
+
+/// Opens `to.part` for the body of `resp`: appending after its `have` bytes when the server
+/// honoured the `Range` request (206 with the asked `Content-Range`), else created empty for a
+/// whole body (2xx). Returns `(file, bytes already in it, resumed)`; `None` for a status that
+/// is no success. Never through a link (`O_NOFOLLOW`).
+///
+/// Errors: a 206 with another `Content-Range` (the file is removed; transient: starting over),
+/// opening the file ([`Error::Io`]).
+async fn open_partial(
+    resp: &reqwest::Response,
+    to: &TileFetch<'_>,
+    have: u64,
+) -> std::result::Result<Option<(tokio::fs::File, u64, bool)>, Attempt> {
+    let (url, part) = (to.url, to.part);
+    let io = |e: std::io::Error| permanent(Error::io(part, e));
     let status = resp.status();
-    let (mut file, start, resumed) = if status == reqwest::StatusCode::PARTIAL_CONTENT && have > 0 {
+    if status == reqwest::StatusCode::PARTIAL_CONTENT && have > 0 {
         let cr = resp
             .headers()
             .get(reqwest::header::CONTENT_RANGE)
@@ -1109,7 +1319,7 @@ async fn try_download(
             .open(part)
             .await
             .map_err(io)?;
-        (f, have, true)
+        Ok(Some((f, have, true)))
     } else if status.is_success() {
         let f = tokio::fs::OpenOptions::new()
             .write(true)
@@ -1120,64 +1330,8 @@ async fn try_download(
             .await
             .map_err(io)?;
         boundary("fetch.partial:create");
-        (f, 0, false)
+        Ok(Some((f, 0, false)))
     } else {
-        let body = resp.text().await.unwrap_or_default();
-        return Err(status_error(url, status, &body));
-    };
-    // Keep the bar at "bytes of this tile on disk" across resumes and restarts.
-    if start >= counts.shown {
-        pb.inc(start - counts.shown);
-    } else {
-        pb.set_position(pb.position().saturating_sub(counts.shown - start));
+        Ok(None)
     }
-    counts.shown = start;
-    let mut written = start;
-    let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
-    while let Some(chunk) = stream.next().await {
-        let chunk = match chunk {
-            Ok(c) => c,
-            Err(a) => {
-                let _ = file.flush().await;
-                let _ = file.sync_data().await;
-                return Err(a);
-            }
-        };
-        written += chunk.len() as u64;
-        if written > tile.bytes {
-            drop(file);
-            let _ = tokio::fs::remove_file(part).await;
-            return Err(transient(Error::network(
-                url,
-                format!(
-                    "more than the manifest's {} bytes; starting over",
-                    tile.bytes
-                ),
-            )));
-        }
-        if let Err(e) = write_chunk(&mut file, &chunk).await {
-            // The disk is full or failing: the partial file is removed (with those of the rest
-            // of the scene, by `fetch`), never left to fill the disk further.
-            drop(file);
-            let _ = tokio::fs::remove_file(part).await;
-            return Err(io(e));
-        }
-        boundary("fetch.partial:write");
-        counts.received += chunk.len() as u64;
-        counts.shown += chunk.len() as u64;
-        pb.inc(chunk.len() as u64);
-    }
-    file.flush().await.map_err(io)?;
-    file.sync_data().await.map_err(io)?;
-    boundary("fetch.partial:fsync");
-    if written != tile.bytes {
-        return Err(transient(Error::network(
-            url,
-            format!(
-                "connection closed after {written} of {} bytes; will resume",
-                tile.bytes
-            ),
-        )));
-    }
-    Ok(resumed)
 }

@@ -353,72 +353,9 @@ impl RawQuery {
             Some("relevancy") => ScoreMode::Relevancy,
             Some(m) => return bad("mode", format!("mode {m:?}: use cosine or relevancy")),
         };
-        let top_k = match self.top_k.as_deref().map(str::trim) {
-            None => DEFAULT_TOP_K,
-            Some(s) => match s.parse::<usize>() {
-                Ok(k) if (1..=MAX_TOP_K).contains(&k) => k,
-                _ => {
-                    return bad(
-                        "top_k",
-                        format!("top_k {s:?}: use an integer in 1..={MAX_TOP_K}"),
-                    );
-                }
-            },
-        };
-        let (lo, hi, default) = match mode {
-            ScoreMode::Cosine => (-1.0, 1.0, cosine_default),
-            ScoreMode::Relevancy => (0.0, 1.0, RELEVANCY_THRESHOLD),
-        };
-        let threshold = match self.threshold.as_deref().map(str::trim) {
-            None => Some(default),
-            Some("none") => None,
-            Some(s) => match s.parse::<f32>() {
-                Ok(t) if t.is_finite() && (lo..=hi).contains(&t) => Some(t),
-                _ => {
-                    return bad(
-                        "threshold",
-                        format!(
-                            "threshold {s:?}: use a number in {lo}..={hi} for {mode:?} scores, or \
-                             none"
-                        ),
-                    );
-                }
-            },
-        };
-        let bbox = match self.bbox.as_deref() {
-            None => None,
-            Some(s) => {
-                let v: Vec<f32> = s
-                    .split(',')
-                    .map(|p| p.trim().parse::<f32>())
-                    .collect::<std::result::Result<_, _>>()
-                    .map_err(|_| {
-                        Error::query(
-                            "bbox",
-                            format!(
-                                "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (in the answer's \
-                                 frame)"
-                            ),
-                        )
-                    })?;
-                match v[..] {
-                    [a, b, c, d, e, f]
-                        if v.iter().all(|x| x.is_finite()) && a <= d && b <= e && c <= f =>
-                    {
-                        Some([[a, b, c], [d, e, f]])
-                    }
-                    _ => {
-                        return bad(
-                            "bbox",
-                            format!(
-                                "bbox {s:?}: need 6 finite numbers minx,miny,minz,maxx,maxy,maxz \
-                                 with min ≤ max"
-                            ),
-                        );
-                    }
-                }
-            }
-        };
+        let top_k = self.parse_top_k()?;
+        let threshold = self.parse_threshold(mode, cosine_default)?;
+        let bbox = self.parse_bbox()?;
         let index = match self.index.as_deref().map(str::trim) {
             None | Some("exact") => IndexKind::Exact,
             Some("hnsw") => IndexKind::Hnsw,
@@ -455,6 +392,82 @@ impl RawQuery {
             objects,
             smooth,
         })
+    }
+
+    /// `top_k`: [`DEFAULT_TOP_K`] when absent.
+    ///
+    /// Errors: [`Error::Query`] `top_k` for anything but an integer in `1..=MAX_TOP_K`.
+    fn parse_top_k(&self) -> Result<usize> {
+        match self.top_k.as_deref().map(str::trim) {
+            None => Ok(DEFAULT_TOP_K),
+            Some(s) => match s.parse::<usize>() {
+                Ok(k) if (1..=MAX_TOP_K).contains(&k) => Ok(k),
+                _ => Err(Error::query(
+                    "top_k",
+                    format!("top_k {s:?}: use an integer in 1..={MAX_TOP_K}"),
+                )),
+            },
+        }
+    }
+
+    /// `threshold` for `mode`'s scores: `cosine_default` (cosine) or [`RELEVANCY_THRESHOLD`]
+    /// when absent, `None` for `none`.
+    ///
+    /// Errors: [`Error::Query`] `threshold` for a value outside `-1..=1` (cosine) or `0..=1`
+    /// (relevancy), or not a number.
+    fn parse_threshold(&self, mode: ScoreMode, cosine_default: f32) -> Result<Option<f32>> {
+        let (lo, hi, default) = match mode {
+            ScoreMode::Cosine => (-1.0, 1.0, cosine_default),
+            ScoreMode::Relevancy => (0.0, 1.0, RELEVANCY_THRESHOLD),
+        };
+        match self.threshold.as_deref().map(str::trim) {
+            None => Ok(Some(default)),
+            Some("none") => Ok(None),
+            Some(s) => match s.parse::<f32>() {
+                Ok(t) if t.is_finite() && (lo..=hi).contains(&t) => Ok(Some(t)),
+                _ => Err(Error::query(
+                    "threshold",
+                    format!(
+                        "threshold {s:?}: use a number in {lo}..={hi} for {mode:?} scores, or \
+                         none"
+                    ),
+                )),
+            },
+        }
+    }
+
+    /// `bbox`: `[[minx, miny, minz], [maxx, maxy, maxz]]` in the answer's frame, `None` when
+    /// absent.
+    ///
+    /// Errors: [`Error::Query`] `bbox` for anything but 6 finite numbers with min ≤ max.
+    fn parse_bbox(&self) -> Result<Option<[[f32; 3]; 2]>> {
+        let Some(s) = self.bbox.as_deref() else {
+            return Ok(None);
+        };
+        let v: Vec<f32> = s
+            .split(',')
+            .map(|p| p.trim().parse::<f32>())
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|_| {
+                Error::query(
+                    "bbox",
+                    format!(
+                        "bbox {s:?}: use minx,miny,minz,maxx,maxy,maxz (in the answer's frame)"
+                    ),
+                )
+            })?;
+        match v[..] {
+            [a, b, c, d, e, f] if v.iter().all(|x| x.is_finite()) && a <= d && b <= e && c <= f => {
+                Ok(Some([[a, b, c], [d, e, f]]))
+            }
+            _ => Err(Error::query(
+                "bbox",
+                format!(
+                    "bbox {s:?}: need 6 finite numbers minx,miny,minz,maxx,maxy,maxz with min ≤ \
+                     max"
+                ),
+            )),
+        }
     }
 }
 

@@ -306,52 +306,12 @@ pub fn start(engine: impl Into<QueryEngine>, options: Ros2Options) -> Result<Ros
     let mut node = context
         .new_node(node_name, NodeOptions::new().enable_rosout(false))
         .map_err(|e| dds_error(&options, "creating the node", e))?;
-    let fqn = options.node_fqn();
-    let reliable = WhenFull::Wait(std::time::Duration::from_millis(100));
-    let prompt_qos = QosProfile::subscription_default()
-        .reliability_reliable(reliable)
-        .durability(Durability::Volatile)
-        .history(History::KeepLast { depth: 10 });
-    let answer_qos = QosProfile::publisher_default()
-        .reliability_reliable(reliable)
-        .durability(Durability::TransientLocal)
-        .history(History::KeepLast { depth: 1 });
-    let topic = |node: &mut ros2_client::Node,
-                 leaf: &str,
-                 ty: ros2_client::MessageTypeName,
-                 qos: &QosProfile| {
-        let name = Name::new(&fqn, leaf).map_err(|e| dds_error(&options, leaf, e))?;
-        node.create_topic(&name, ty, qos)
-            .map_err(|e| dds_error(&options, &format!("topic ~/{leaf}"), e))
-    };
-    let t_prompt = topic(&mut node, "prompt", StringMsg::type_name(), &prompt_qos)?;
-    let t_objects = topic(
-        &mut node,
-        "objects",
-        Detection3DArray::type_name(),
-        &answer_qos,
-    )?;
-    let t_matches = topic(&mut node, "matches", PointCloud2::type_name(), &answer_qos)?;
-    let t_markers = topic(&mut node, "markers", MarkerArray::type_name(), &answer_qos)?;
-    let sub = node
-        .create_subscription::<StringMsg>(&t_prompt, Some(prompt_qos.clone()))
-        .map_err(|e| dds_error(&options, "subscription ~/prompt", e))?;
-    let publishers = Publishers {
-        objects: node
-            .create_publisher::<Detection3DArray>(&t_objects, Some(answer_qos.clone()))
-            .map_err(|e| dds_error(&options, "publisher ~/objects", e))?,
-        matches: node
-            .create_publisher::<PointCloud2>(&t_matches, Some(answer_qos.clone()))
-            .map_err(|e| dds_error(&options, "publisher ~/matches", e))?,
-        markers: node
-            .create_publisher::<MarkerArray>(&t_markers, Some(answer_qos))
-            .map_err(|e| dds_error(&options, "publisher ~/markers", e))?,
-    };
+    let (sub, publishers) = endpoints(&mut node, &options)?;
     let spinner = node
         .spinner()
         .map_err(|e| dds_error(&options, "starting the node's spinner", e))?;
     let counters = Arc::new(Ros2Counters::default());
-    let (intake, mut queue) = PromptIntake::new(
+    let (intake, queue) = PromptIntake::new(
         engine.options().scan_queue,
         engine.options().threshold,
         counters.clone(),
@@ -374,44 +334,13 @@ pub fn start(engine: impl Into<QueryEngine>, options: Ros2Options) -> Result<Ros
             }
         }
     });
-    let frame_id = options.frame_id.clone();
-    let c = counters.clone();
-    // Answers queued prompts one at a time, in order, through the admission gate.
-    tokio::spawn(async move {
-        while let Some(params) = queue.recv().await {
-            let received = std::time::Instant::now();
-            match engine.query_one(params).await {
-                Err(busy) => {
-                    let n = c.dropped_busy.fetch_add(1, Ordering::SeqCst) + 1;
-                    tracing::warn!(
-                        "ros2: prompt dropped, the scan queue is full ({} waiting; {n} dropped so \
-                         far)",
-                        busy.waiting
-                    );
-                }
-                Ok(answer) => match answer {
-                    Ok(a) => {
-                        let stamp = msg::Time::from_system(std::time::SystemTime::now());
-                        let m = convert::messages(&a, &frame_id, stamp);
-                        if publishers.publish(m).await {
-                            c.answered.fetch_add(1, Ordering::SeqCst);
-                        } else {
-                            c.publish_failed.fetch_add(1, Ordering::SeqCst);
-                        }
-                        tracing::debug!(
-                            "ros2: {:?} answered in {:.1} ms",
-                            a.query,
-                            received.elapsed().as_secs_f64() * 1e3
-                        );
-                    }
-                    Err(e) => {
-                        let n = c.failed.fetch_add(1, Ordering::SeqCst) + 1;
-                        tracing::warn!("ros2: query failed ({n} so far): {e}");
-                    }
-                },
-            }
-        }
-    });
+    let answering = Answering {
+        engine,
+        publishers,
+        frame_id: options.frame_id.clone(),
+        counters: counters.clone(),
+    };
+    tokio::spawn(answering.run(queue));
     tracing::info!(
         "ros2: node {} in domain {}: subscribes {}, publishes {}, {}, {} (frame {})",
         options.node_fqn(),
@@ -423,6 +352,106 @@ pub fn start(engine: impl Into<QueryEngine>, options: Ros2Options) -> Result<Ros
         options.frame_id
     );
     Ok(Ros2Node { counters, options })
+}
+
+/// The node's topics: the `~/prompt` subscription (reliable, volatile, keep-last 10) and the
+/// publishers of `~/objects`, `~/matches` and `~/markers` (reliable, transient-local,
+/// keep-last 1).
+///
+/// Errors: [`Error::Network`] naming the topic, subscription or publisher that could not be
+/// created.
+fn endpoints(
+    node: &mut ros2_client::Node,
+    options: &Ros2Options,
+) -> Result<(ros2_client::Subscription<StringMsg>, Publishers)> {
+    let fqn = options.node_fqn();
+    let reliable = WhenFull::Wait(std::time::Duration::from_millis(100));
+    let prompt_qos = QosProfile::subscription_default()
+        .reliability_reliable(reliable)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 });
+    let answer_qos = QosProfile::publisher_default()
+        .reliability_reliable(reliable)
+        .durability(Durability::TransientLocal)
+        .history(History::KeepLast { depth: 1 });
+    let topic = |leaf: &str, ty: ros2_client::MessageTypeName, qos: &QosProfile| {
+        let name = Name::new(&fqn, leaf).map_err(|e| dds_error(options, leaf, e))?;
+        node.create_topic(&name, ty, qos)
+            .map_err(|e| dds_error(options, &format!("topic ~/{leaf}"), e))
+    };
+    let t_prompt = topic("prompt", StringMsg::type_name(), &prompt_qos)?;
+    let t_objects = topic("objects", Detection3DArray::type_name(), &answer_qos)?;
+    let t_matches = topic("matches", PointCloud2::type_name(), &answer_qos)?;
+    let t_markers = topic("markers", MarkerArray::type_name(), &answer_qos)?;
+    let sub = node
+        .create_subscription::<StringMsg>(&t_prompt, Some(prompt_qos.clone()))
+        .map_err(|e| dds_error(options, "subscription ~/prompt", e))?;
+    let publishers = Publishers {
+        objects: node
+            .create_publisher::<Detection3DArray>(&t_objects, Some(answer_qos.clone()))
+            .map_err(|e| dds_error(options, "publisher ~/objects", e))?,
+        matches: node
+            .create_publisher::<PointCloud2>(&t_matches, Some(answer_qos.clone()))
+            .map_err(|e| dds_error(options, "publisher ~/matches", e))?,
+        markers: node
+            .create_publisher::<MarkerArray>(&t_markers, Some(answer_qos))
+            .map_err(|e| dds_error(options, "publisher ~/markers", e))?,
+    };
+    Ok((sub, publishers))
+}
+
+/// What answers the queued prompts: the query engine, the publishers, the frame of what is
+/// published and the node's counters.
+struct Answering {
+    engine: QueryEngine,
+    publishers: Publishers,
+    frame_id: String,
+    counters: Arc<Ros2Counters>,
+}
+
+impl Answering {
+    /// Answers queued prompts one at a time, in order, through the admission gate, until the
+    /// queue closes.
+    async fn run(self, mut queue: tokio::sync::mpsc::Receiver<QueryParams>) {
+        while let Some(params) = queue.recv().await {
+            self.answer(params).await;
+        }
+    }
+
+    /// Answers one prompt and publishes the answer, counting what became of it: answered,
+    /// dropped (the scan queue is full), failed, or not published.
+    async fn answer(&self, params: QueryParams) {
+        let c = &self.counters;
+        let received = std::time::Instant::now();
+        match self.engine.query_one(params).await {
+            Err(busy) => {
+                let n = c.dropped_busy.fetch_add(1, Ordering::SeqCst) + 1;
+                tracing::warn!(
+                    "ros2: prompt dropped, the scan queue is full ({} waiting; {n} dropped so \
+                     far)",
+                    busy.waiting
+                );
+            }
+            Ok(Ok(a)) => {
+                let stamp = msg::Time::from_system(std::time::SystemTime::now());
+                let m = convert::messages(&a, &self.frame_id, stamp);
+                if self.publishers.publish(m).await {
+                    c.answered.fetch_add(1, Ordering::SeqCst);
+                } else {
+                    c.publish_failed.fetch_add(1, Ordering::SeqCst);
+                }
+                tracing::debug!(
+                    "ros2: {:?} answered in {:.1} ms",
+                    a.query,
+                    received.elapsed().as_secs_f64() * 1e3
+                );
+            }
+            Ok(Err(e)) => {
+                let n = c.failed.fetch_add(1, Ordering::SeqCst) + 1;
+                tracing::warn!("ros2: query failed ({n} so far): {e}");
+            }
+        }
+    }
 }
 
 /// The node's three publishers.

@@ -246,6 +246,37 @@ pub fn scan(store: &VectorStore, req: &ScanRequest<'_>) -> Result<Vec<Hit>, Erro
     Ok(per_query_count!(scan_q, store, req.queries, req))
 }
 
+/// Scores row `i` from its `Q` dot products (`combine`d, or the first without a combiner) and
+/// offers it to `acc` when it reaches `threshold` (a NaN score never does; without a threshold a
+/// top-k selection takes it, a full list never does).
+#[inline]
+fn offer_row<const Q: usize>(
+    acc: &mut Acc,
+    i: usize,
+    dots: &[f32; Q],
+    combine: Option<Combiner<'_>>,
+    threshold: Option<f32>,
+) {
+    let s = match combine {
+        None => dots[0],
+        Some(f) => f(dots),
+    };
+    if let Some(t) = threshold {
+        // NaN scores are dropped too.
+        if s.is_nan() || s < t {
+            return;
+        }
+    }
+    match acc {
+        Acc::Top(t) => t.push(i, s),
+        Acc::All(v) => {
+            if !s.is_nan() {
+                v.push(Hit { row: i, score: s })
+            }
+        }
+    }
+}
+
 fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanRequest<'_>) -> Vec<Hit> {
     let n = store.len();
     let d = store.dim();
@@ -264,26 +295,7 @@ fn scan_q<const Q: usize>(store: &VectorStore, qs: [&[f32]; Q], req: &ScanReques
             (0..3).all(|a| m[a] >= lo[a] && m[a] <= hi[a])
         }
     };
-    let offer = |acc: &mut Acc, i: usize, dots: &[f32; Q]| {
-        let s = match combine {
-            None => dots[0],
-            Some(f) => f(dots),
-        };
-        if let Some(t) = thr {
-            // NaN scores are dropped too.
-            if s.is_nan() || s < t {
-                return;
-            }
-        }
-        match acc {
-            Acc::Top(t) => t.push(i, s),
-            Acc::All(v) => {
-                if !s.is_nan() {
-                    v.push(Hit { row: i, score: s })
-                }
-            }
-        }
-    };
+    let offer = |acc: &mut Acc, i: usize, dots: &[f32; Q]| offer_row(acc, i, dots, combine, thr);
     let cr = CHUNK_ROWS;
     let chunks = n.div_ceil(cr);
     let queries = kernels::Queries::new(qs);

@@ -512,20 +512,13 @@ impl VectorStore {
                 "the address space",
             )
         })?;
-        let centres = random_centres(dim, clusters, seed);
-        let gen_row = |i: usize, out: &mut [f32]| {
-            let mut s = seed ^ (i as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93) ^ 0xA5A5;
-            let c = (splitmix(&mut s) % clusters as u64) as usize;
-            let centre = &centres[c * dim..(c + 1) * dim];
-            let sigma = 0.75 / (dim as f32).sqrt();
-            let mut norm = 0.0f32;
-            for (x, &m) in out.iter_mut().zip(centre) {
-                *x = m + sigma * fast_normal(&mut s);
-                norm += *x * *x;
-            }
-            let inv = if norm > 0.0 { norm.sqrt().recip() } else { 0.0 };
-            out.iter_mut().for_each(|x| *x *= inv);
+        let rows = SyntheticRows {
+            centres: random_centres(dim, clusters, seed),
+            clusters,
+            dim,
+            seed,
         };
+        let gen_row = |i: usize, out: &mut [f32]| rows.row(i, out);
         const ROWS: usize = 256;
         // The same layout as a served store: reserved exactly, on huge pages, then written.
         store.reserve(n)?;
@@ -576,17 +569,51 @@ impl VectorStore {
             }
         }
         store.ids = (0..n).map(|i| i as u32).collect();
-        store.means = (0..n)
-            .into_par_iter()
-            .map(|i| {
-                let mut s = seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x3EA5;
-                [
-                    100.0 * uniform(&mut s) - 50.0,
-                    100.0 * uniform(&mut s) - 50.0,
-                    100.0 * uniform(&mut s) - 50.0,
-                ]
-            })
-            .collect();
+        store.means = synthetic_means(n, seed);
         Ok(store)
     }
+}
+
+/// The rows of [`VectorStore::synthetic`]: `clusters` unit centres (`[clusters][dim]`, from
+/// `seed`), each row a centre plus Gaussian noise, normalised.
+struct SyntheticRows {
+    centres: Vec<f32>,
+    clusters: usize,
+    dim: usize,
+    seed: u64,
+}
+
+impl SyntheticRows {
+    /// Writes row `i` (`[dim]`, unit norm; zero for a zero draw) into `out`: normalise(centre +
+    /// 0.75 · g / √D), the centre and g drawn from `seed` and `i` only.
+    fn row(&self, i: usize, out: &mut [f32]) {
+        let dim = self.dim;
+        let mut s = self.seed ^ (i as u64).wrapping_mul(0xD6E8_FEB8_6659_FD93) ^ 0xA5A5;
+        let c = (splitmix(&mut s) % self.clusters as u64) as usize;
+        let centre = &self.centres[c * dim..(c + 1) * dim];
+        let sigma = 0.75 / (dim as f32).sqrt();
+        let mut norm = 0.0f32;
+        for (x, &m) in out.iter_mut().zip(centre) {
+            *x = m + sigma * fast_normal(&mut s);
+            norm += *x * *x;
+        }
+        let inv = if norm > 0.0 { norm.sqrt().recip() } else { 0.0 };
+        out.iter_mut().for_each(|x| *x *= inv);
+    }
+}
+
+/// The means of [`VectorStore::synthetic`]'s `n` rows: uniform in a 100 m cube about the
+/// origin, drawn from `seed` and the row only.
+fn synthetic_means(n: usize, seed: u64) -> Vec<[f32; 3]> {
+    (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let mut s = seed ^ (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x3EA5;
+            [
+                100.0 * uniform(&mut s) - 50.0,
+                100.0 * uniform(&mut s) - 50.0,
+                100.0 * uniform(&mut s) - 50.0,
+            ]
+        })
+        .collect()
 }

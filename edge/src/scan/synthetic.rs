@@ -36,18 +36,7 @@ pub fn synthetic_mixture(
             format!("at least {clusters} clusters × {slots} slots (and at least one cluster)"),
         ));
     }
-    let mut book = vec![0.0f32; atoms * dim];
-    book.par_chunks_mut(dim).enumerate().for_each(|(j, row)| {
-        let mut s = seed ^ (j as u64).wrapping_mul(0xA24B_AED4_963E_E407) ^ 0xB00C;
-        let c = j % clusters;
-        let sigma = 0.75 / (dim as f32).sqrt();
-        for (x, &m) in row.iter_mut().zip(&centres[c * dim..(c + 1) * dim]) {
-            *x = m + sigma * fast_normal(&mut s);
-        }
-        let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
-        row.iter_mut()
-            .for_each(|x| *x = f16::from_f32(*x / norm).to_f32());
-    });
+    let book = mixture_codebook(atoms, dim, centres, clusters, seed);
     let mut store = VectorStore::new_mixture(dim, slots, book, 0)?;
     store.reserve(n)?;
     let per_cluster = atoms / clusters;
@@ -72,37 +61,74 @@ pub fn synthetic_mixture(
                 (picked, w.into_iter().map(f16::from_f32).collect(), mean)
             })
             .collect();
-        let mut shard = MixtureShard {
-            header: ShardHeader {
-                version: MIXTURE_SHARD_FORMAT_VERSION,
-                scene_id: "synthetic".into(),
-                model: "synthetic".into(),
-                dim: dim as u32,
-                dtype: Dtype::F16,
-                count: (end - start) as u32,
-                aabb: Aabb::default(),
-                tile_id: (start / BLOCK) as u64,
-            },
-            slots: slots as u32,
-            codebook_crc: 0,
-            ids: (start as u32..end as u32).collect(),
-            means: Vec::with_capacity(end - start),
-            atoms: Vec::with_capacity((end - start) * slots),
-            weights: Vec::with_capacity((end - start) * slots),
-            scales: None,
-            opacities: None,
-            rotations: None,
-            sh_dc: None,
-            segments: None,
-        };
-        for (a, w, m) in rows {
-            shard.atoms.extend(a);
-            shard.weights.extend(w);
-            shard.means.push(m);
-        }
+        let shard = mixture_block(start, dim, slots, rows);
         store.push_mixture_shard(shard)?;
     }
     Ok(store)
+}
+
+/// The codebook of [`synthetic_mixture`], `[atoms][dim]`: atom `j` is
+/// `normalise(centre_{j mod clusters} + 0.75 · g / √D)`, rounded through f16.
+fn mixture_codebook(
+    atoms: usize,
+    dim: usize,
+    centres: &[f32],
+    clusters: usize,
+    seed: u64,
+) -> Vec<f32> {
+    let mut book = vec![0.0f32; atoms * dim];
+    book.par_chunks_mut(dim).enumerate().for_each(|(j, row)| {
+        let mut s = seed ^ (j as u64).wrapping_mul(0xA24B_AED4_963E_E407) ^ 0xB00C;
+        let c = j % clusters;
+        let sigma = 0.75 / (dim as f32).sqrt();
+        for (x, &m) in row.iter_mut().zip(&centres[c * dim..(c + 1) * dim]) {
+            *x = m + sigma * fast_normal(&mut s);
+        }
+        let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+        row.iter_mut()
+            .for_each(|x| *x = f16::from_f32(*x / norm).to_f32());
+    });
+    book
+}
+
+/// The mixture shard of one block of [`synthetic_mixture`]'s rows, the first being row `start`
+/// (tile `start / BLOCK`): each row's `slots` atoms, f16 weights and mean (scene frame).
+fn mixture_block(
+    start: usize,
+    dim: usize,
+    slots: usize,
+    rows: Vec<(Vec<u32>, Vec<f16>, [f32; 3])>,
+) -> MixtureShard {
+    let end = start + rows.len();
+    let mut shard = MixtureShard {
+        header: ShardHeader {
+            version: MIXTURE_SHARD_FORMAT_VERSION,
+            scene_id: "synthetic".into(),
+            model: "synthetic".into(),
+            dim: dim as u32,
+            dtype: Dtype::F16,
+            count: (end - start) as u32,
+            aabb: Aabb::default(),
+            tile_id: (start / BLOCK) as u64,
+        },
+        slots: slots as u32,
+        codebook_crc: 0,
+        ids: (start as u32..end as u32).collect(),
+        means: Vec::with_capacity(end - start),
+        atoms: Vec::with_capacity((end - start) * slots),
+        weights: Vec::with_capacity((end - start) * slots),
+        scales: None,
+        opacities: None,
+        rotations: None,
+        sh_dc: None,
+        segments: None,
+    };
+    for (a, w, m) in rows {
+        shard.atoms.extend(a);
+        shard.weights.extend(w);
+        shard.means.push(m);
+    }
+    shard
 }
 
 /// `clusters` random unit directions `[clusters * dim]`.

@@ -755,58 +755,72 @@ struct FetchBody {
     token: Option<String>,
 }
 
+/// `POST /fetch`: fetches into the store this process holds (one fetch at a time), then reloads
+/// (module doc).
 async fn fetch_post(
     State(state): State<Arc<AppState>>,
     body: std::result::Result<axum::Json<FetchBody>, JsonRejection>,
 ) -> Response {
+    let params = match fetch_params(&state, body) {
+        Ok(p) => p,
+        Err(m) => return error(StatusCode::BAD_REQUEST, m),
+    };
+    let _guard = state.fetching.lock().await;
+    let fetched = fetch::fetch_classified(&state.edge, &params).await;
+    if let Err(f) = &fetched
+        && matches!(f.error, Error::Untrusted { .. })
+    {
+        state.refusals.note(&state.opts.scene, &f.error);
+    }
+    match fetched {
+        Ok(summary) => match state.engine.reload().await {
+            Ok(()) => axum::Json(summary).into_response(),
+            Err(e) => error(status_of(&e), e.to_string()),
+        },
+        Err(f) => fetch_failed(f),
+    }
+}
+
+/// The fetch a `POST /fetch` body asks for: its frame, centre (2 numbers on the ground, 3 in
+/// the world), radius and pruning, from its server or the last fetch's, with its token or the
+/// server's [`ServeOptions::shard_token`], under the server's trusted key and CA.
+///
+/// Errors: the message of the 400 answer (a bad body, frame or centre; no server to fetch from).
+fn fetch_params(
+    state: &AppState,
+    body: std::result::Result<axum::Json<FetchBody>, JsonRejection>,
+) -> std::result::Result<FetchParams, String> {
     let b = match body {
         Ok(axum::Json(b)) => b,
         Err(e) => {
-            return error(
-                StatusCode::BAD_REQUEST,
-                format!("body: {e}; send {{\"center\": [x, y], \"radius\": 50}}"),
-            );
+            return Err(format!(
+                "body: {e}; send {{\"center\": [x, y], \"radius\": 50}}"
+            ));
         }
     };
     let frame = match b.frame.as_deref() {
         None | Some("auto") => query::FrameChoice::Auto,
         Some("map") => query::FrameChoice::Map,
         Some("scene") => query::FrameChoice::Scene,
-        Some(f) => {
-            return error(
-                StatusCode::BAD_REQUEST,
-                format!("frame {f:?}: use map or scene"),
-            );
-        }
+        Some(f) => return Err(format!("frame {f:?}: use map or scene")),
     };
     let center = match b.center[..] {
         [x, y] if x.is_finite() && y.is_finite() => Center::Ground([x, y]),
         [x, y, z] if [x, y, z].iter().all(|v| v.is_finite()) => Center::World([x, y, z]),
-        _ => {
-            return error(
-                StatusCode::BAD_REQUEST,
-                "center: 2 (ground) or 3 (world) finite numbers".into(),
-            );
-        }
+        _ => return Err("center: 2 (ground) or 3 (world) finite numbers".into()),
     };
-    let server = match b.server.clone().or_else(|| {
+    let last_server = || {
         state
             .edge
             .fetch_record(&state.opts.scene)
             .ok()
             .flatten()
             .map(|r| r.server)
-    }) {
-        Some(s) => s,
-        None => {
-            return error(
-                StatusCode::BAD_REQUEST,
-                "no previous fetch to take the server from: pass \"server\"".into(),
-            );
-        }
     };
-    let _guard = state.fetching.lock().await;
-    let params = FetchParams {
+    let Some(server) = b.server.clone().or_else(last_server) else {
+        return Err("no previous fetch to take the server from: pass \"server\"".into());
+    };
+    Ok(FetchParams {
         server,
         ca_cert: state.opts.ca_cert.clone(),
         scene: state.opts.scene.clone(),
@@ -820,55 +834,39 @@ async fn fetch_post(
         progress: false,
         frame,
         trusted_key: state.opts.trusted_key.clone(),
-    };
-    let fetched = fetch::fetch_classified(&state.edge, &params).await;
-    if let Err(f) = &fetched
-        && matches!(f.error, Error::Untrusted { .. })
-    {
-        state.refusals.note(&state.opts.scene, &f.error);
-    }
-    // What the shard server sent as its manifest cannot be used: its fault (502), not this
-    // side's.
-    if let Err(FetchFailure {
-        error: e,
-        bad_manifest: true,
-    }) = &fetched
-    {
-        return error(
+    })
+}
+
+/// The answer to a failed `POST /fetch`: a manifest the shard server sent that cannot be used is
+/// its fault (502, not this side's); a token the shard server wants or refused says where the
+/// token comes from; anything else by its kind ([`status_of`]).
+fn fetch_failed(f: FetchFailure) -> Response {
+    const TOKEN_HINT: &str = "send \"token\" in the body, or start slag-edge serve with the shard \
+                              server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)";
+    match f {
+        FetchFailure {
+            error: e,
+            bad_manifest: true,
+        } => error(
             StatusCode::BAD_GATEWAY,
             format!(
                 "the shard server's manifest is bad, so nothing was fetched and the scene served \
                  before keeps answering: {e}"
             ),
-        );
-    }
-    match fetched.map_err(|f| f.error) {
-        Ok(summary) => match state.engine.reload().await {
-            Ok(()) => axum::Json(summary).into_response(),
-            Err(e) => error(status_of(&e), e.to_string()),
-        },
-        // The shard server wants a token this server did not send or that it refused: say
-        // where the token comes from.
-        Err(
-            e @ Error::Network {
-                status: Some(401 | 403),
-                ..
-            },
-        ) => error(
-            status_of(&e),
-            format!(
-                "{e}; send \"token\" in the body, or start slag-edge serve with the shard \
-                 server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
-            ),
         ),
-        Err(e @ Error::Param { name: "server", .. }) => error(
-            status_of(&e),
-            format!(
-                "{e}: send \"token\" in the body, or start slag-edge serve with the shard \
-                 server's token (SLAG_SHARD_TOKEN, or shard_token_file in its config)"
-            ),
-        ),
-        Err(e) => error(status_of(&e), e.to_string()),
+        FetchFailure {
+            error:
+                e @ Error::Network {
+                    status: Some(401 | 403),
+                    ..
+                },
+            ..
+        } => error(status_of(&e), format!("{e}; {TOKEN_HINT}")),
+        FetchFailure {
+            error: e @ Error::Param { name: "server", .. },
+            ..
+        } => error(status_of(&e), format!("{e}: {TOKEN_HINT}")),
+        FetchFailure { error: e, .. } => error(status_of(&e), e.to_string()),
     }
 }
 

@@ -97,23 +97,10 @@ pub(crate) async fn query_ply(
         Ok(Err(e)) => return error(status_of(&e), e.to_string()),
         Err(b) => return busy(&b),
     };
-    let colours: HashMap<u32, [f32; 3]> = answer
-        .matches
-        .iter()
-        .enumerate()
-        .map(|(i, m)| {
-            let object = answer.match_objects.get(i).copied().flatten();
-            let rgb = match (by, object) {
-                (ColorBy::Object, Some(k)) => object_colour(k as usize),
-                _ => style.colour,
-            };
-            (m.id, rgb)
-        })
-        .collect();
-    let e2 = engine.clone();
+    let colours = match_colours(&answer, by, &style);
     let ids_n = colours.len();
-    let objects_n = answer.objects.len();
     let in_map = answer.frame == slag_common::shards::MAP_FRAME;
+    let e2 = engine.clone();
     let built = tokio::task::spawn_blocking(move || {
         let to_map = e2.manifest.frames.scene_to_map.as_ref().filter(|_| in_map);
         painted_ply_framed(&e2.display, &|id| colours.get(&id).copied(), &style, to_map)
@@ -129,18 +116,8 @@ pub(crate) async fn query_ply(
             );
         }
     };
-    let mut up = engine.manifest.ground.up;
-    if let Some(t) = engine
-        .manifest
-        .frames
-        .scene_to_map
-        .as_ref()
-        .filter(|_| in_map)
-    {
-        let r = t.rotation;
-        let u = up.map(f64::from);
-        up = [0, 1, 2].map(|i| (r[i][0] * u[0] + r[i][1] * u[1] + r[i][2] * u[2]) as f32);
-    }
+    let up = answer_up(&engine, in_map);
+    let named = |name: &'static str, value: String| (header::HeaderName::from_static(name), value);
     (
         [
             (header::CONTENT_TYPE, "application/octet-stream".to_string()),
@@ -148,30 +125,57 @@ pub(crate) async fn query_ply(
                 header::CONTENT_DISPOSITION,
                 "attachment; filename=\"query.ply\"".to_string(),
             ),
-            (
-                header::HeaderName::from_static("x-slag-matches"),
-                ids_n.to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-objects"),
-                objects_n.to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-gaussians"),
-                engine.display.len().to_string(),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-up"),
-                format!("{},{},{}", up[0], up[1], up[2]),
-            ),
-            (
-                header::HeaderName::from_static("x-slag-frame"),
-                answer.frame.to_string(),
-            ),
+            named("x-slag-matches", ids_n.to_string()),
+            named("x-slag-objects", answer.objects.len().to_string()),
+            named("x-slag-gaussians", engine.display.len().to_string()),
+            named("x-slag-up", format!("{},{},{}", up[0], up[1], up[2])),
+            named("x-slag-frame", answer.frame.to_string()),
         ],
         bytes,
     )
         .into_response()
+}
+
+/// The colour of every returned match by Gaussian id: `style.colour`, or with
+/// [`ColorBy::Object`] the colour of its object ([`object_colour`]) where it is in one.
+fn match_colours(
+    answer: &crate::query::QueryAnswer,
+    by: ColorBy,
+    style: &HighlightStyle,
+) -> HashMap<u32, [f32; 3]> {
+    answer
+        .matches
+        .iter()
+        .enumerate()
+        .map(|(i, m)| {
+            let object = answer.match_objects.get(i).copied().flatten();
+            let rgb = match (by, object) {
+                (ColorBy::Object, Some(k)) => object_colour(k as usize),
+                _ => style.colour,
+            };
+            (m.id, rgb)
+        })
+        .collect()
+}
+
+/// The up direction of the manifest's ground frame, rotated into the map frame when `in_map`
+/// and the manifest has a scene-to-map transform (a unit vector either way).
+fn answer_up(engine: &crate::engine::Engine, in_map: bool) -> [f32; 3] {
+    let up = engine.manifest.ground.up;
+    match engine
+        .manifest
+        .frames
+        .scene_to_map
+        .as_ref()
+        .filter(|_| in_map)
+    {
+        Some(t) => {
+            let r = t.rotation;
+            let u = up.map(f64::from);
+            [0, 1, 2].map(|i| (r[i][0] * u[0] + r[i][1] * u[1] + r[i][2] * u[2]) as f32)
+        }
+        None => up,
+    }
 }
 
 /// The page (`GET /`), compiled in.

@@ -798,7 +798,6 @@ impl EdgeStore {
     /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits; [`Error::Io`] when the
     /// file exists but cannot be read.
     pub fn check_stored(&self, manifest: &Manifest, tile: &TileInfo) -> Result<Stored> {
-        use std::io::Read;
         let path = self.stored_path(manifest, tile)?;
         let damaged = |why: String| {
             Ok(Stored::Damaged {
@@ -828,25 +827,8 @@ impl EdgeStore {
             ));
         }
         // Never past the stated length, whatever the file does meanwhile.
-        let mut f = f.take(tile.bytes.saturating_add(1));
-        let mut crc = crc32fast::Hasher::new();
-        let mut head: Vec<u8> = Vec::new();
-        let mut buf = vec![0u8; 1 << 20];
-        let mut total = 0u64;
-        loop {
-            let n = match f.read(&mut buf) {
-                Ok(0) => break,
-                Ok(n) => n,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
-                Err(e) => return Err(Error::io(&path, e)),
-            };
-            crc.update(&buf[..n]);
-            if head.len() < HEAD_BYTES {
-                let take = n.min(HEAD_BYTES - head.len());
-                head.extend_from_slice(&buf[..take]);
-            }
-            total += n as u64;
-        }
+        let (got, head, total) =
+            regular::crc_and_head(f, tile.bytes, HEAD_BYTES).map_err(|e| Error::io(&path, e))?;
         if total != tile.bytes {
             return damaged(format!(
                 "{total} bytes read, the manifest says {}",
@@ -854,7 +836,6 @@ impl EdgeStore {
             ));
         }
         let want = parse_checksum(tile)?;
-        let got = crc.finalize();
         if got != want {
             return damaged(format!("checksum {got:08x}, the manifest says {want:08x}"));
         }

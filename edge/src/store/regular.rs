@@ -90,6 +90,35 @@ pub(crate) fn read_bounded(f: std::fs::File, max: u64) -> std::io::Result<Vec<u8
     Ok(out)
 }
 
+/// Reads `f` to its end, but never more than `max + 1` bytes, 1 MiB at a time: the CRC-32 of
+/// every byte read, its first `head_bytes` bytes, and how many bytes were read.
+pub(crate) fn crc_and_head(
+    f: std::fs::File,
+    max: u64,
+    head_bytes: usize,
+) -> std::io::Result<(u32, Vec<u8>, u64)> {
+    let mut f = f.take(max.saturating_add(1));
+    let mut crc = crc32fast::Hasher::new();
+    let mut head: Vec<u8> = Vec::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut total = 0u64;
+    loop {
+        let n = match f.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        crc.update(&buf[..n]);
+        if head.len() < head_bytes {
+            let take = n.min(head_bytes - head.len());
+            head.extend_from_slice(&buf[..take]);
+        }
+        total += n as u64;
+    }
+    Ok((crc.finalize(), head, total))
+}
+
 /// The refusal of something at `path` that is not a regular file (`what`: the file's role,
 /// e.g. "shard 3 of scene s").
 pub(crate) fn not_regular(path: &Path, what: &str, kind: &str) -> Error {
