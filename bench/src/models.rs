@@ -24,6 +24,7 @@ use ort::session::Session;
 use ort::value::TensorRef;
 use slag_common::camera::load_views;
 use slag_common::onnx::{OnnxModel, Placement};
+use slag_common::table::Table;
 use slag_encoder::clip::{ClipVisual, VisualInput, crop_pixels};
 use slag_encoder::masks::MaskGenerator;
 use slag_encoder::masks::graph::{GraphParams, GraphSegmenter};
@@ -177,12 +178,8 @@ fn clip_rows(
         crops as f64 / images.len() as f64,
         a.batch
     )?;
-    writeln!(
-        out,
-        "| CLIP image tower | input | ms per crop | ms per batch | cosine to the first: min / \
-         median | centred on the first's mean: min / median |"
-    )?;
-    writeln!(out, "|---|---|---:|---:|---:|---:|")?;
+    let mut table = Table::with_header("CLIP image tower | input | ms per crop | ms per batch | cosine to the first: min / median | centred on the first's mean: min / median")
+    .right_from(2);
     let mut reference: Option<Vec<Vec<f32>>> = None;
     let mut notes = String::new();
     for path in &a.clip_visual {
@@ -225,16 +222,18 @@ fn clip_rows(
                 (min_median(c), min_median(cc))
             }
         };
-        writeln!(
-            out,
-            "| {} | {} | {per_crop_ms:.4} | {:.2} | {cos} | {centred} |",
-            path.display(),
+        table.row([
+            path.display().to_string(),
             match clip.input() {
                 VisualInput::U8Pixels => "u8 pixels",
                 VisualInput::F32PixelValues => "f32, normalised on the host",
-            },
-            per_crop_ms * crops as f64 / batches as f64
-        )?;
+            }
+            .to_string(),
+            format!("{per_crop_ms:.4}"),
+            format!("{:.2}", per_crop_ms * crops as f64 / batches as f64),
+            cos.clone(),
+            centred.clone(),
+        ]);
         eprintln!(
             "{}",
             serde_json::json!({"model": path, "kind": "clip_visual", "crops": crops,
@@ -245,6 +244,7 @@ fn clip_rows(
             reference = Some(emb);
         }
     }
+    out.push_str(&table.markdown());
     writeln!(out, "\n{notes}")?;
     Ok(())
 }
@@ -273,11 +273,8 @@ fn sam_rows(
         "SAM: {n} prompts per image ({}×{} grid) in runs of {}\n",
         a.points_per_side, a.points_per_side, a.prompt_batch
     )?;
-    writeln!(
-        out,
-        "| SAM encoder / decoder | encoder ms per image | decoder ms per image (session runs) | max abs Δ predicted IoU | low-res mask IoU: min / mean |"
-    )?;
-    writeln!(out, "|---|---:|---:|---:|---:|")?;
+    let mut table = Table::with_header("SAM encoder / decoder | encoder ms per image | decoder ms per image (session runs) | max abs Δ predicted IoU | low-res mask IoU: min / mean")
+    .right_from(1);
     let inputs: Vec<Vec<f32>> = images
         .iter()
         .map(|img| sam_pixel_values(img).map(|(p, _)| p))
@@ -332,12 +329,13 @@ fn sam_rows(
             Some(r) => compare(r, &decoded),
         };
         let (enc_ms, dec_ms) = (median(enc_passes) * 1e3, median(dec_passes) * 1e3);
-        writeln!(
-            out,
-            "| {} / {} | {enc_ms:.1} | {dec_ms:.1} | {d_iou} | {mask_iou} |",
-            enc_path.display(),
-            dec_path.display()
-        )?;
+        table.row([
+            format!("{} / {}", enc_path.display(), dec_path.display()),
+            format!("{enc_ms:.1}"),
+            format!("{dec_ms:.1}"),
+            d_iou.clone(),
+            mask_iou.clone(),
+        ]);
         eprintln!(
             "{}",
             serde_json::json!({"encoder": enc_path, "decoder": dec_path, "kind": "sam",
@@ -348,6 +346,7 @@ fn sam_rows(
             reference = Some(decoded);
         }
     }
+    out.push_str(&table.markdown());
     Ok(())
 }
 

@@ -23,6 +23,7 @@
 use anyhow::{Context, ensure};
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
 use slag_common::mixture::SparseMixture;
+use slag_common::table::Table;
 use slag_encoder::aggregate::{
     ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_sparse,
     reduce_to_writer, reduce_to_writer_with_mixture,
@@ -247,23 +248,23 @@ fn mixture_study(
         "the fused tail gathered another mixture than the two passes"
     );
     let atoms = best[1].sparse.atoms.len();
-    let mut table = format!(
-        "mixture tail, keep {keep} ({atoms} kept a_kj), default loop order; both ways wrote the \
-         same embeddings and gathered the same mixture; best of {} runs each\n\n\
-         | tail | embeddings reduce s | mixture's own s | total s | speed-up |\n\
-         |---|---:|---:|---:|---:|\n",
-        a.repeats
-    );
+    let mut t =
+        Table::with_header("tail | embeddings reduce s | mixture's own s | total s | speed-up")
+            .right_from(1);
     for ((_, name), b) in ways.iter().zip(&best) {
-        table += &format!(
-            "| {name} | {:.2} | {:.2} | {:.2} | {:.2} |\n",
-            b.reduce_s,
-            b.mixture_s,
-            b.total_s,
-            best[0].total_s / b.total_s
-        );
+        t.row([
+            name.to_string(),
+            format!("{:.2}", b.reduce_s),
+            format!("{:.2}", b.mixture_s),
+            format!("{:.2}", b.total_s),
+            format!("{:.2}", best[0].total_s / b.total_s),
+        ]);
     }
-    Ok(table)
+    Ok(format!(
+        "mixture tail, keep {keep} ({atoms} kept a_kj), default loop order; both ways wrote the \
+         same embeddings and gathered the same mixture; best of {} runs each\n\n{t}",
+        a.repeats
+    ))
 }
 
 /// True when the two files hold the same bytes.
@@ -337,20 +338,19 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
     }
     let best: Vec<Tail> = best.into_iter().collect::<Option<_>>().context("no run")?;
     let base_tail = best[0].tail_s;
-    let mut table = String::from(
-        "| loop order | reduce s | reduce + overlapped write s | entries/s | speed-up | file finish s |\n\
-         |---|---:|---:|---:|---:|---:|\n",
-    );
+    let mut t = Table::with_header("loop order | reduce s | reduce + overlapped write s | entries/s | speed-up | file finish s")
+    .right_from(1);
     for ((_, name), b) in orders.iter().zip(&best) {
-        table += &format!(
-            "| {name} | {:.2} | {:.2} | {:.3e} | {:.2} | {:.2} |\n",
-            b.reduce_s,
-            b.tail_s,
-            entries as f64 / b.reduce_s,
-            base_tail / b.tail_s,
-            b.finish_s
-        );
+        t.row([
+            name.to_string(),
+            format!("{:.2}", b.reduce_s),
+            format!("{:.2}", b.tail_s),
+            format!("{:.3e}", entries as f64 / b.reduce_s),
+            format!("{:.2}", base_tail / b.tail_s),
+            format!("{:.2}", b.finish_s),
+        ]);
     }
+    let mut table = t.markdown();
     if let Some(keep) = a.mixture_keep {
         table += "\n";
         table += &mixture_study(&store, &means, a, base, keep, dir.path())?;

@@ -10,6 +10,7 @@
 //! encode's outputs go to `--out`/g<N>/.
 
 use anyhow::Context;
+use slag_common::table::Table;
 use slag_encoder::config::{EncodeConfig, GpuCount};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::report::Report;
@@ -33,12 +34,10 @@ pub struct ScalingArgs {
 
 /// The scaling table of finished runs `(gpus, report)`, first entry the baseline.
 pub fn table(runs: &[(usize, Report)]) -> String {
-    let mut s = String::from(
-        "| GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU | images per GPU | first image s (last GPU) | last images end s (spread) | after the last image s |\n\
-         |---:|---:|---:|---:|---:|---|---|---:|---|---:|\n",
-    );
+    let mut table = Table::with_header("GPUs | wall s | images/s | speed-up | efficiency | raster busy % per GPU | images per GPU | first image s (last GPU) | last images end s (spread) | after the last image s")
+    .right([0, 1, 2, 3, 4, 7, 9]);
     let Some((g0, r0)) = runs.first() else {
-        return s;
+        return table.markdown();
     };
     let t0 = r0.timings.total * *g0 as f64;
     for (g, r) in runs {
@@ -62,17 +61,20 @@ pub fn table(runs: &[(usize, Report)]) -> String {
         } else {
             last_max - last_min
         };
-        s += &format!(
-            "| {g} | {t:.1} | {:.2} | {:.2} | {:.2} | {} | {} | {first:.2} | {last_max:.1} ({spread:.2}) | {:.1} |\n",
-            n / t,
-            t0 / t / *g0 as f64,
-            t0 / t / *g as f64,
+        table.row([
+            g.to_string(),
+            format!("{t:.1}"),
+            format!("{:.2}", n / t),
+            format!("{:.2}", t0 / t / *g0 as f64),
+            format!("{:.2}", t0 / t / *g as f64),
             busy.join(" "),
             imgs.join("/"),
-            t - last_max,
-        );
+            format!("{first:.2}"),
+            format!("{last_max:.1} ({spread:.2})"),
+            format!("{:.1}", t - last_max),
+        ]);
     }
-    s
+    table.markdown()
 }
 
 /// Runs the encode once per count and writes the table.

@@ -19,6 +19,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use slag_common::table::Table;
 use slag_encoder::config::{EncodeConfig, MaskSource};
 use slag_encoder::pipeline::Encoder;
 use slag_encoder::raster::{GpuRasterizer, WeightRasterizer, raster_intrinsics};
@@ -203,6 +204,44 @@ const LABEL_SLOT_BYTES: f64 = 16.0;
 /// Bytes per sparse `a_kj` record handed to the reduction (u32 Gaussian, u32 mask, f32 weight).
 const AKJ_BYTES: f64 = 12.0;
 
+/// What every stage row of one encode reads: its settings, its report, the machine's facts.
+struct StageInputs<'a> {
+    a: &'a EncodeConfig,
+    r: &'a Report,
+    facts: &'a Facts,
+    /// Views used (at least 1).
+    n: f64,
+    /// Where the models ran (the report's resolved provider, not the request).
+    ort: String,
+}
+
+impl StageInputs<'_> {
+    /// Seconds over the run → ms per image.
+    fn per(&self, s: f64) -> f64 {
+        1e3 * s / self.n
+    }
+
+    /// GFLOP per run of the model file `p`, when the facts file has it.
+    fn gflop(&self, p: &Option<PathBuf>) -> Option<f64> {
+        p.as_ref()
+            .and_then(|p| self.facts.models.get(&file_name(p)))
+            .map(|m| m.gflop)
+    }
+
+    /// The fp16 matmul ceiling, as text.
+    fn fp16_ceiling(&self) -> String {
+        format!(
+            "GPU fp16 matmul {:.0} TFLOP/s",
+            self.facts.matmul_tflops_fp16
+        )
+    }
+
+    /// ms for `gflop` GFLOP at the fp16 matmul ceiling.
+    fn fp16_floor_ms(&self, gflop: f64) -> f64 {
+        gflop * 1e9 / (self.facts.matmul_tflops_fp16 * 1e12) * 1e3
+    }
+}
+
 /// The stage rows of a finished encode: measured ms per image and floors from `facts`.
 ///
 /// `phases` gives the entries and pixels per view (from [`raster_phases`] at the same raster
@@ -214,26 +253,6 @@ pub fn stage_rows(
     phases: &RasterPhases,
     image_pixels: f64,
 ) -> Vec<StageRow> {
-    let t = &r.timings;
-    let c = &r.counts;
-    let n = c.views_used.max(1) as f64;
-    let per = |s: f64| 1e3 * s / n;
-    let gflop = |p: &Option<PathBuf>| {
-        p.as_ref()
-            .and_then(|p| facts.models.get(&file_name(p)))
-            .map(|m| m.gflop)
-    };
-    let fp16 = facts.matmul_tflops_fp16 * 1e12;
-    let mut rows = Vec::new();
-    rows.push(StageRow {
-        stage: "decode".into(),
-        runs_on: "CPU (image crate), one image per worker".into(),
-        ms_per_image: per(t.decode),
-        work: format!("{:.1} MB RGB8 written", image_pixels * 3.0 / 1e6),
-        ceiling: format!("host copy 1 thread {:.1} GB/s", facts.host_copy_1t_gbps),
-        floor_ms: Some(image_pixels * 3.0 / (facts.host_copy_1t_gbps * 1e9) * 1e3),
-    });
-    // Where the models actually ran (the report's resolved provider, not the request).
     let ort = match r.models.execution_provider {
         Some(ep) if ep != slag_common::onnx::ExecutionProvider::Cpu => {
             let fronts = r.models.front_workers.unwrap_or(1);
@@ -241,23 +260,52 @@ pub fn stage_rows(
         }
         _ => format!("ORT CPU EP, {} cores", facts.host_cores),
     };
+    let x = StageInputs {
+        a,
+        r,
+        facts,
+        n: r.counts.views_used.max(1) as f64,
+        ort,
+    };
+    let decode = StageRow {
+        stage: "decode".into(),
+        runs_on: "CPU (image crate), one image per worker".into(),
+        ms_per_image: x.per(r.timings.decode),
+        work: format!("{:.1} MB RGB8 written", image_pixels * 3.0 / 1e6),
+        ceiling: format!("host copy 1 thread {:.1} GB/s", facts.host_copy_1t_gbps),
+        floor_ms: Some(image_pixels * 3.0 / (facts.host_copy_1t_gbps * 1e9) * 1e3),
+    };
+    let [raster, akj] = raster_rows(&x, phases, image_pixels);
+    vec![
+        decode,
+        masks_row(&x),
+        clip_row(&x),
+        raster,
+        akj,
+        reduce_row(&x),
+    ]
+}
+
+/// The masks row: SAM's FLOP floor when the facts file has both its models, else no floor.
+fn masks_row(x: &StageInputs<'_>) -> StageRow {
+    let (a, r) = (x.a, x.r);
     let sam = a.masks.source == MaskSource::Sam;
-    match (gflop(&a.masks.sam.encoder), gflop(&a.masks.sam.decoder)) {
+    match (x.gflop(&a.masks.sam.encoder), x.gflop(&a.masks.sam.decoder)) {
         (Some(enc), Some(dec)) if sam => {
             let points = f64::from(a.masks.sam.points_per_side).powi(2);
             let work = enc + dec * points;
-            rows.push(StageRow {
+            StageRow {
                 stage: "masks (SAM)".into(),
-                runs_on: ort.clone(),
-                ms_per_image: per(t.masks),
+                runs_on: x.ort.clone(),
+                ms_per_image: x.per(r.timings.masks),
                 work: format!(
                     "encoder {enc:.2} + {points:.0} points × {dec:.3} GFLOP = {work:.1} GFLOP"
                 ),
-                ceiling: format!("GPU fp16 matmul {:.0} TFLOP/s", facts.matmul_tflops_fp16),
-                floor_ms: Some(work * 1e9 / fp16 * 1e3),
-            });
+                ceiling: x.fp16_ceiling(),
+                floor_ms: Some(x.fp16_floor_ms(work)),
+            }
         }
-        _ => rows.push(StageRow {
+        _ => StageRow {
             stage: format!(
                 "masks ({})",
                 if r.models.masks.is_empty() {
@@ -266,8 +314,8 @@ pub fn stage_rows(
                     &r.models.masks
                 }
             ),
-            runs_on: if sam { ort.clone() } else { "CPU".into() },
-            ms_per_image: per(t.masks),
+            runs_on: if sam { x.ort.clone() } else { "CPU".into() },
+            ms_per_image: x.per(r.timings.masks),
             work: if sam {
                 "SAM model not in the facts file: no FLOP count".into()
             } else {
@@ -275,27 +323,39 @@ pub fn stage_rows(
             },
             ceiling: "-".into(),
             floor_ms: None,
-        }),
+        },
     }
-    let crops = c.masks as f64 / n;
-    match gflop(&Some(a.clip.visual.clone())) {
-        Some(g) => rows.push(StageRow {
+}
+
+/// The CLIP row: crops per image × the visual tower's GFLOP at the fp16 ceiling.
+fn clip_row(x: &StageInputs<'_>) -> StageRow {
+    let crops = x.r.counts.masks as f64 / x.n;
+    let ms_per_image = x.per(x.r.timings.clip);
+    match x.gflop(&Some(x.a.clip.visual.clone())) {
+        Some(g) => StageRow {
             stage: "CLIP crops".into(),
-            runs_on: ort.clone(),
-            ms_per_image: per(t.clip),
+            runs_on: x.ort.clone(),
+            ms_per_image,
             work: format!("{crops:.1} crops × {g:.3} GFLOP"),
-            ceiling: format!("GPU fp16 matmul {:.0} TFLOP/s", facts.matmul_tflops_fp16),
-            floor_ms: Some(crops * g * 1e9 / fp16 * 1e3),
-        }),
-        None => rows.push(StageRow {
+            ceiling: x.fp16_ceiling(),
+            floor_ms: Some(x.fp16_floor_ms(crops * g)),
+        },
+        None => StageRow {
             stage: "CLIP crops".into(),
-            runs_on: ort,
-            ms_per_image: per(t.clip),
+            runs_on: x.ort.clone(),
+            ms_per_image,
             work: format!("{crops:.1} crops (model not in the facts file)"),
             ceiling: "-".into(),
             floor_ms: None,
-        }),
+        },
     }
+}
+
+/// The raster row (GPU traffic and readback) and the host side of the image stage, on the path
+/// the report says the views took: GPU sums per (Gaussian, label), or per-pixel lists read back.
+fn raster_rows(x: &StageInputs<'_>, phases: &RasterPhases, image_pixels: f64) -> [StageRow; 2] {
+    let (a, r, facts) = (x.a, x.r, x.facts);
+    let c = &r.counts;
     let (entries, pixels) = if phases.views > 0 {
         (phases.entries, phases.pixels)
     } else {
@@ -305,8 +365,7 @@ pub fn stage_rows(
     // The report says whether the GPU summed per (Gaussian, label) (only the sums come back) or
     // the per-pixel lists were read back (top-K, or a view the GPU declined).
     let label_path = c.device_sum_views * 2 > c.views_used;
-    let akj_per_image = c.entries as f64 / n;
-    // The raster row's GPU traffic and readback, and the host side of the image stage.
+    let akj_per_image = c.entries as f64 / x.n;
     let (raster_stage, raster_work, gpu_bytes, readback, akj_stage, akj_work, akj_bytes) =
         if label_path {
             let readback = akj_per_image * LABEL_SLOT_BYTES;
@@ -343,7 +402,7 @@ pub fn stage_rows(
                 akj_bytes,
             )
         };
-    rows.push(StageRow {
+    let raster = StageRow {
         stage: format!(
             "{raster_stage} [GPU sums on {} of {} views]",
             c.device_sum_views, c.views_used
@@ -353,7 +412,7 @@ pub fn stage_rows(
         } else {
             r.models.rasterizer.clone()
         },
-        ms_per_image: per(t.raster),
+        ms_per_image: x.per(r.timings.raster),
         work: raster_work,
         ceiling: format!(
             "GPU copy {:.0} GB/s + D2H {:.1} GB/s",
@@ -362,29 +421,60 @@ pub fn stage_rows(
         floor_ms: Some(
             (gpu_bytes / (facts.gpu_copy_gbps * 1e9) + readback / (facts.d2h_gbps * 1e9)) * 1e3,
         ),
-    });
-    rows.push(StageRow {
+    };
+    let akj = StageRow {
         stage: akj_stage.into(),
         runs_on: "CPU (rayon)".into(),
-        ms_per_image: per(t.image_aggregate),
+        ms_per_image: x.per(r.timings.image_aggregate),
         work: akj_work,
         ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
         floor_ms: Some(akj_bytes / (facts.host_copy_gbps * 1e9) * 1e3),
-    });
+    };
+    [raster, akj]
+}
+
+/// The reduction row: a_kj records and f64 accumulators touched once, over the whole run.
+fn reduce_row(x: &StageInputs<'_>) -> StageRow {
+    let (r, facts, n) = (x.r, x.facts, x.n);
+    let c = &r.counts;
     let dim = embedding_dim(r);
     let reduce_bytes = c.entries as f64 * AKJ_BYTES + c.observed as f64 * dim * 8.0 * 2.0;
-    rows.push(StageRow {
+    StageRow {
         stage: "reduce (E_k), whole run / images".into(),
         runs_on: "CPU (rayon)".into(),
-        ms_per_image: per(t.reduce),
+        ms_per_image: x.per(r.timings.reduce),
         work: format!(
             "{:.1} MB per image: a_kj records + f64 accumulators touched once",
             reduce_bytes / n / 1e6
         ),
         ceiling: format!("host copy {:.1} GB/s", facts.host_copy_gbps),
         floor_ms: Some(reduce_bytes / n / (facts.host_copy_gbps * 1e9) * 1e3),
-    });
-    rows
+    }
+}
+
+/// The stage table: one row per [`StageRow`], with its floor and measured / floor.
+fn stage_table(rows: &[StageRow]) -> Table {
+    let mut t = Table::with_header("stage | runs on | ms / image | work / image | ceiling | floor ms / image | measured / floor")
+    .right([2, 5, 6]);
+    for row in rows {
+        let (floor, frac) = match row.floor_ms {
+            Some(f) => (
+                format!("{f:.3}"),
+                format!("{:.1}", row.ms_per_image / f.max(1e-12)),
+            ),
+            None => ("-".into(), "-".into()),
+        };
+        t.row([
+            row.stage.clone(),
+            row.runs_on.clone(),
+            format!("{:.1}", row.ms_per_image),
+            row.work.clone(),
+            row.ceiling.clone(),
+            floor,
+            frac,
+        ]);
+    }
+    t
 }
 
 /// Markdown of the stage table, the raster phases and the torch comparison.
@@ -422,21 +512,7 @@ pub fn markdown(
             .map_or_else(|| "?".to_string(), |f| f.to_string()),
         r.timings.total,
     );
-    s += "| stage | runs on | ms / image | work / image | ceiling | floor ms / image | measured / floor |\n";
-    s += "|---|---|---:|---|---|---:|---:|\n";
-    for row in rows {
-        let (floor, frac) = match row.floor_ms {
-            Some(f) => (
-                format!("{f:.3}"),
-                format!("{:.1}", row.ms_per_image / f.max(1e-12)),
-            ),
-            None => ("-".into(), "-".into()),
-        };
-        s += &format!(
-            "| {} | {} | {:.1} | {} | {} | {} | {} |\n",
-            row.stage, row.runs_on, row.ms_per_image, row.work, row.ceiling, floor, frac
-        );
-    }
+    s += &stage_table(rows).markdown();
     if phases.views > 0 {
         s += &format!(
             "\nRaster phases of the per-pixel-list path (top-K), the rasterizer alone over {} views (ms / view): projection {:.1}, \

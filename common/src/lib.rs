@@ -19,6 +19,7 @@
 //! | [`doc_flags`] | checks the command lines the manual shows against the binaries' `--help` |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
+//! | [`table`] | Markdown and CSV tables of the study reports (rows measured, then written) |
 //! | [`term`] | whether log lines may carry colour codes (a terminal, `NO_COLOR`) |
 //! | `testing` | raw-socket clients for the HTTP servers' integration tests (feature `testing`) |
 //! | `tls` | the servers' TLS certificate (PEM, reloadable) and the no-token-in-clear-text rule (feature `server`) |
@@ -48,6 +49,7 @@ pub mod scene;
 pub mod segments;
 pub mod shards;
 pub mod similarity;
+pub mod table;
 pub mod term;
 #[cfg(feature = "testing")]
 pub mod testing;

@@ -350,65 +350,89 @@ fn evaluate_point(
     Ok(e)
 }
 
-/// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
-///
-/// Errors: missing scene or fixtures, any encode error, unwritable output folder.
-pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
-    let t_start = Instant::now();
-    let machine = crate::machine::MachineInfo::detect();
-    // `$SLAG_SHARED`, needed only for what --scene / --fixtures do not name.
-    let shared = || slag_common::paths::shared_dir();
-    let scene = match &a.scene {
-        Some(s) => s.clone(),
-        None if a.quick => PathBuf::from("data/snowmiku-mini"),
-        None => shared()?.join("scenes").join("snowmiku"),
-    };
-    if !scene.join("point_cloud.ply").is_file() {
-        anyhow::bail!(
-            "{} holds no point_cloud.ply; pass --scene DIR (a scene with point_cloud.ply, images/, sparse/0)",
-            scene.display()
-        );
-    }
-    let fixtures = match &a.fixtures {
-        Some(f) => f.clone(),
-        None => shared()?.join("fixtures"),
-    };
-    let scene_name = scene
-        .file_name()
-        .map(|s| s.to_string_lossy().to_string())
-        .unwrap_or_else(|| "scene".into());
-    let work = a.work.clone().unwrap_or_else(|| {
-        PathBuf::from("target").join("slag-bench").join(format!(
-            "{scene_name}{}",
-            if a.quick { "-quick" } else { "" }
-        ))
-    });
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let repeats = a.repeats.unwrap_or(if a.quick { 1 } else { 5 }).max(1);
-    let index_top_k = a.index_top_k.unwrap_or(if a.quick { 100 } else { 1000 });
-    let ctx = EvalContext::load(&scene, &fixtures, a.threshold)?;
+/// Where a study runs: its scene, fixtures and work folder, and its resolved settings.
+struct Setup {
+    scene: PathBuf,
+    fixtures: PathBuf,
+    work: PathBuf,
+    repeats: usize,
+    index_top_k: usize,
+}
 
-    // 1. Encode sweep.
+impl Setup {
+    /// Resolves the defaults of `a` (`--quick`, `$SLAG_SHARED`) and creates the output folder.
+    ///
+    /// Errors: no `.ply` in the scene, `$SLAG_SHARED` needed and unset, unwritable `--out`.
+    fn resolve(a: &TradeoffArgs) -> anyhow::Result<Self> {
+        // `$SLAG_SHARED`, needed only for what --scene / --fixtures do not name.
+        let shared = || slag_common::paths::shared_dir();
+        let scene = match &a.scene {
+            Some(s) => s.clone(),
+            None if a.quick => PathBuf::from("data/snowmiku-mini"),
+            None => shared()?.join("scenes").join("snowmiku"),
+        };
+        if !scene.join("point_cloud.ply").is_file() {
+            anyhow::bail!(
+                "{} holds no point_cloud.ply; pass --scene DIR (a scene with point_cloud.ply, images/, sparse/0)",
+                scene.display()
+            );
+        }
+        let fixtures = match &a.fixtures {
+            Some(f) => f.clone(),
+            None => shared()?.join("fixtures"),
+        };
+        let scene_name = scene
+            .file_name()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_else(|| "scene".into());
+        let work = a.work.clone().unwrap_or_else(|| {
+            PathBuf::from("target").join("slag-bench").join(format!(
+                "{scene_name}{}",
+                if a.quick { "-quick" } else { "" }
+            ))
+        });
+        std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+        Ok(Setup {
+            scene,
+            fixtures,
+            work,
+            repeats: a.repeats.unwrap_or(if a.quick { 1 } else { 5 }).max(1),
+            index_top_k: a.index_top_k.unwrap_or(if a.quick { 100 } else { 1000 }),
+        })
+    }
+}
+
+/// The encode sweep's outcome: the points encoded (or reused) and evaluated, the points left
+/// out (`--cached-only`) and the held-out majority-class baseline.
+struct Sweep {
+    encoded: Vec<EncodedPoint>,
+    skipped: Vec<String>,
+    majority_miou: Option<f64>,
+}
+
+/// 1. Encodes (or reuses) and evaluates every point of the plan.
+///
+/// Errors: encode and evaluation errors.
+fn encode_sweep(
+    a: &TradeoffArgs,
+    su: &Setup,
+    ctx: &EvalContext,
+    held: &mut heldout::HeldOutViews,
+    points: &[EncodePoint],
+) -> anyhow::Result<Sweep> {
     let workers = encode::Workers {
         threads: a.threads,
         front_workers: a.front_workers,
     };
-    let points = plan(a.quick);
-    let everys: Vec<usize> = points.iter().map(|p| p.every).collect();
-    let mut held = heldout::HeldOutViews::load(
-        &scene,
-        &ctx.gaussians,
-        &ctx.classes,
-        &everys,
-        slag_encoder::config::RasterBackend::Gpu,
-    )?;
     let held_names = held.names();
-    let mut majority_miou = None;
-    let mut encoded: Vec<EncodedPoint> = Vec::new();
-    let mut skipped = Vec::new();
+    let mut sweep = Sweep {
+        encoded: Vec::new(),
+        skipped: Vec::new(),
+        majority_miou: None,
+    };
     for (i, p) in points.iter().enumerate() {
-        let dir = encode::point_dir(&work, p);
-        let config = p.encode_config(&scene, &fixtures, &workers, &dir);
+        let dir = encode::point_dir(&su.work, p);
+        let config = p.encode_config(&su.scene, &su.fixtures, &workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
         let prior = (!a.fresh).then(|| encode::cached(&dir, &config)).flatten();
         let prior_eval = prior.as_ref().and_then(|_| {
@@ -418,30 +442,20 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         let keep_emb = p.knob == "baseline" || p.mixture_keep.is_some();
         let need_emb = keep_emb || prior_eval.is_none();
         let usable = prior.is_some() && (!need_emb || emb_path.exists());
+        let progress = format!("[{}/{}]", i + 1, points.len());
         if a.cached_only && !usable && !a.encode.contains(&p.id()) {
-            eprintln!(
-                "[{}/{}] {} not in the work folder: left out",
-                i + 1,
-                points.len(),
-                p.id()
-            );
-            skipped.push(format!("{} ({})", p.id(), p.knob));
+            eprintln!("{progress} {} not in the work folder: left out", p.id());
+            sweep.skipped.push(format!("{} ({})", p.id(), p.knob));
             continue;
         }
-        eprintln!(
-            "[{}/{}] encode {} ({})",
-            i + 1,
-            points.len(),
-            p.id(),
-            p.knob
-        );
+        eprintln!("{progress} encode {} ({})", p.id(), p.knob);
         let (rec, cached) = match prior {
             Some(r) if usable => (r, true),
-            _ => encode::run_point(p, &scene, &fixtures, &workers, &dir, true)?,
+            _ => encode::run_point(p, &su.scene, &su.fixtures, &workers, &dir, true)?,
         };
-        let ev = evaluate_point(&ctx, &mut held, p.every, &dir, repeats)?;
+        let ev = evaluate_point(ctx, held, p.every, &dir, su.repeats)?;
         if let Some(h) = &ev.held_out {
-            majority_miou = majority_miou.or(h.score.majority_miou);
+            sweep.majority_miou = sweep.majority_miou.or(h.score.majority_miou);
         }
         if !keep_emb && !a.keep_embeddings {
             std::fs::remove_file(&emb_path).ok();
@@ -455,21 +469,14 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             ev.colour_miou,
             ev.scan_ms
         );
-        encoded.push((p.clone(), rec, ev));
+        sweep.encoded.push((p.clone(), rec, ev));
     }
-    let reference = encoded
-        .iter()
-        .find(|e| e.0.knob == "reference")
-        .context("the reference point (every image) is not in the work folder; run it first")?;
-    let baseline = encoded
-        .iter()
-        .find(|e| e.0.knob == "baseline")
-        .context("the baseline point is not in the work folder; run it first")?;
-    let mixture_dir = encoded
-        .iter()
-        .find(|e| e.0.mixture_keep.is_some())
-        .map(|e| encode::point_dir(&work, &e.0));
-    let mut rows: Vec<Row> = encoded
+    Ok(sweep)
+}
+
+/// The encode rows (every encoded point but the mixture source), scored against `reference`.
+fn encode_rows(ctx: &EvalContext, encoded: &[EncodedPoint], reference: &EncodedPoint) -> Vec<Row> {
+    encoded
         .iter()
         .filter(|e| e.0.knob != "mixture")
         .map(|(p, rec, ev)| {
@@ -502,10 +509,31 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
                 iou_prompts: n,
             }
         })
-        .collect();
+        .collect()
+}
 
-    // 2. Storage and index sweep on the baseline's embeddings.
-    let base_dir = encode::point_dir(&work, &baseline.0);
+/// 2. and 3. The storage, mixture and index rows on the baseline's embeddings (appended to
+/// `rows`, whose baseline row is their template) and the footprint rows.
+///
+/// Errors: unreadable embeddings, quantisation or index errors.
+fn storage_sweep(
+    a: &TradeoffArgs,
+    su: &Setup,
+    ctx: &EvalContext,
+    sweep: &Sweep,
+    rows: &mut Vec<Row>,
+) -> anyhow::Result<Vec<storage::FootprintRow>> {
+    let baseline = sweep
+        .encoded
+        .iter()
+        .find(|e| e.0.knob == "baseline")
+        .context("the baseline point is not in the work folder; run it first")?;
+    let mixture_dir = sweep
+        .encoded
+        .iter()
+        .find(|e| e.0.mixture_keep.is_some())
+        .map(|e| encode::point_dir(&su.work, &e.0));
+    let base_dir = encode::point_dir(&su.work, &baseline.0);
     let base_emb = Embeddings::read(&base_dir.join("embeddings.safetensors"))?;
     let template = rows
         .iter()
@@ -513,8 +541,8 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         .cloned()
         .context("baseline row")?;
     let st = storage::StorageOptions {
-        repeats,
-        index_top_k,
+        repeats: su.repeats,
+        index_top_k: su.index_top_k,
         hnsw_ef_construction: a
             .hnsw_ef_construction
             .unwrap_or(if a.quick { 40 } else { 100 }),
@@ -523,7 +551,7 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             n => Some(n),
         },
     };
-    rows.extend(storage::storage_rows(&ctx, &base_emb, &template, &st)?);
+    rows.extend(storage::storage_rows(ctx, &base_emb, &template, &st)?);
     let mut mix_footprint = Vec::new();
     if let Some(dir) = &mixture_dir {
         // The mixture's exact f32 answer is its own run's dense embeddings (same observed set).
@@ -534,15 +562,42 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
             Embeddings::read(&dir.join("embeddings.safetensors"))?
         };
         let (mix_rows, fp) =
-            mixture::mixture_rows(&ctx, &dense, &mix, &MIXTURE_KEEPS, &template, repeats)?;
+            mixture::mixture_rows(ctx, &dense, &mix, &MIXTURE_KEEPS, &template, su.repeats)?;
         rows.extend(mix_rows);
         mix_footprint = fp;
     }
-    rows.extend(storage::index_rows(&ctx, &base_emb, &template, &st)?);
-
+    rows.extend(storage::index_rows(ctx, &base_emb, &template, &st)?);
     // 3. Footprint: what the scene requires vs a dense tensor.
-    let mut footprint = storage::footprint(&ctx, &scene, &base_emb, &work)?;
+    let mut footprint = storage::footprint(ctx, &su.scene, &base_emb, &su.work)?;
     footprint.extend(mix_footprint);
+    Ok(footprint)
+}
+
+/// Runs the study and writes `OUT/tradeoffs.{md,csv}`; returns a short summary for the terminal.
+///
+/// Errors: missing scene or fixtures, any encode error, unwritable output folder.
+pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
+    let t_start = Instant::now();
+    let machine = crate::machine::MachineInfo::detect();
+    let su = Setup::resolve(a)?;
+    let ctx = EvalContext::load(&su.scene, &su.fixtures, a.threshold)?;
+    let points = plan(a.quick);
+    let everys: Vec<usize> = points.iter().map(|p| p.every).collect();
+    let mut held = heldout::HeldOutViews::load(
+        &su.scene,
+        &ctx.gaussians,
+        &ctx.classes,
+        &everys,
+        slag_encoder::config::RasterBackend::Gpu,
+    )?;
+    let sweep = encode_sweep(a, &su, &ctx, &mut held, &points)?;
+    let reference = sweep
+        .encoded
+        .iter()
+        .find(|e| e.0.knob == "reference")
+        .context("the reference point (every image) is not in the work folder; run it first")?;
+    let mut rows = encode_rows(&ctx, &sweep.encoded, reference);
+    let footprint = storage_sweep(a, &su, &ctx, &sweep, &mut rows)?;
 
     // 4. Write.
     let command = std::iter::once("slag-bench".to_string())
@@ -553,15 +608,15 @@ pub fn run(a: &TradeoffArgs) -> anyhow::Result<String> {
         command,
         machine,
         note: a.note.clone(),
-        scene: scene.display().to_string(),
+        scene: su.scene.display().to_string(),
         scene_gaussians: ctx.scene_gaussians,
         threshold: ctx.threshold,
-        repeats,
-        index_top_k,
-        skipped,
+        repeats: su.repeats,
+        index_top_k: su.index_top_k,
+        skipped: sweep.skipped,
         study_s: t_start.elapsed().as_secs_f64(),
-        held_out_views: held_names,
-        majority_miou,
+        held_out_views: held.names(),
+        majority_miou: sweep.majority_miou,
     };
     let csv = output::csv(&rows);
     let csv_path = a.out.join("tradeoffs.csv");

@@ -3,6 +3,8 @@
 
 use std::fmt::Write as _;
 
+use slag_common::table::Table;
+
 use super::Row;
 use super::storage::FootprintRow;
 use crate::machine::MachineInfo;
@@ -67,55 +69,34 @@ pub struct Header {
     pub majority_miou: Option<f64>,
 }
 
-fn field(s: &str) -> String {
-    if s.contains([',', '"', '\n']) {
-        format!("\"{}\"", s.replace('"', "\"\""))
-    } else {
-        s.to_string()
-    }
-}
-
 fn miou_str(m: Option<f64>) -> String {
     m.map_or_else(|| "na".into(), |v| format!("{v:.4}"))
 }
 
 /// Appends a section of tables to `s`: a blank line, `## heading`, the `intro` paragraph if
-/// any, then a markdown table: `header` (its title line and its alignment line, each ending in a
-/// newline) and one line per row of cells (one per column of `header`).
-fn push_section(
-    s: &mut String,
-    heading: &str,
-    intro: Option<&str>,
-    header: &str,
-    rows: impl IntoIterator<Item = Vec<String>>,
-) {
+/// any, then the markdown table.
+fn push_section(s: &mut String, heading: &str, intro: Option<&str>, table: &Table) {
     let _ = writeln!(s, "\n## {heading}\n");
     if let Some(intro) = intro {
         let _ = writeln!(s, "{intro}\n");
     }
-    s.push_str(header);
-    for cells in rows {
-        s.push_str("| ");
-        s.push_str(&cells.join(" | "));
-        s.push_str(" |\n");
-    }
+    s.push_str(&table.markdown());
 }
 
 /// The CSV text: a header line of [`CSV_COLUMNS`], then one line per row.
 pub fn csv(rows: &[Row]) -> String {
-    let mut s = CSV_COLUMNS.join(",");
-    s.push('\n');
+    let mut t = Table::new(CSV_COLUMNS);
     for r in rows {
         let mut cells = vec![
-            field(&r.section),
-            field(&r.point),
-            field(&r.knob),
-            field(&r.masks),
+            r.section.clone(),
+            r.point.clone(),
+            r.knob.clone(),
+            r.masks.clone(),
             r.every.to_string(),
             r.raster_scale.to_string(),
-            field(&r.top_k),
-            field(&r.storage),
-            field(&r.index),
+            r.top_k.clone(),
+            r.storage.clone(),
+            r.index.clone(),
             r.views.to_string(),
             r.observed.to_string(),
         ];
@@ -139,13 +120,12 @@ pub fn csv(rows: &[Row]) -> String {
             miou_str(r.held_out_miou),
             format!("{:.4}", r.iou),
             format!("{:.4}", r.set_iou),
-            field(&r.iou_kind),
+            r.iou_kind.clone(),
             r.iou_prompts.to_string(),
         ]);
-        s += &cells.join(",");
-        s.push('\n');
+        t.row(cells);
     }
-    s
+    t.csv()
 }
 
 /// Indices of the encode rows on the Pareto front of (lower encode time, higher held-out mIoU):
@@ -169,6 +149,19 @@ pub fn pareto_front(rows: &[Row]) -> Vec<usize> {
 
 /// The markdown document (see the module doc).
 pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String {
+    let mut s = header_markdown(h);
+    encode_section(&mut s, rows);
+    storage_section(&mut s, rows);
+    index_section(&mut s, h, rows);
+    footprint_section(&mut s, footprint);
+    s += "\n## Recommendations\n\n";
+    s += HAND_WRITTEN_MARKER;
+    s.push('\n');
+    s
+}
+
+/// The document's title and its list of what the run was and how it scores.
+fn header_markdown(h: &Header) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "# slag speed/accuracy trade study\n");
     let _ = writeln!(
@@ -231,8 +224,11 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
         t = h.threshold,
         r = h.repeats
     );
+    s
+}
 
-    // Encode sweep.
+/// The encode sweep: one row per encode point, ★ on the Pareto front.
+fn encode_section(s: &mut String, rows: &[Row]) {
     let front = pareto_front(rows);
     let encode_intro = "Baseline: graph masks, every 4th image, raster scale 0.5, all contributors per pixel. \
          **Reference** (for *IoU vs ref*): graph masks, every image, raster scale 0.5, all \
@@ -269,18 +265,19 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
                 format!("{:.2}", r.query_ms),
             ]
         });
+    let encode_table = Table::with_header("point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | held-out mIoU | 3D mIoU | IoU vs ref (prompts) | f32 scan ms")
+    .right_from(3)
+    .with_rows(encode_rows);
     push_section(
-        &mut s,
+        s,
         "Encode sweep (one factor at a time)",
         Some(encode_intro),
-        concat!(
-            "| point | knob | masks | every | views | raster | top-K | encode s | masks s | CLIP s | raster s | a_kj s | reduce s | observed | held-out mIoU | 3D mIoU | IoU vs ref (prompts) | f32 scan ms |\n",
-            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n"
-        ),
-        encode_rows,
+        &encode_table,
     );
+}
 
-    // Storage.
+/// The stored-precision table: one row per storage point.
+fn storage_section(s: &mut String, rows: &[Row]) {
     let storage_intro = "Rows quantised exactly as the shards store them (f16 round-to-nearest; int8 symmetric per \
          row with an f32 scale). Bytes per Gaussian = vector + 4 B id + 12 B mean. *Build* = \
          seconds to convert the f32 rows. Colour mIoU from the dequantised rows; IoU against the \
@@ -302,18 +299,19 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             format!("{:.4} ({})", r.iou, r.iou_prompts),
         ]
     });
+    let storage_table = Table::with_header("point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts)")
+    .right_from(2)
+    .with_rows(storage_rows);
     push_section(
-        &mut s,
+        s,
         "Stored precision (baseline run's embeddings)",
         Some(storage_intro),
-        concat!(
-            "| point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts) |\n",
-            "|---|---|---:|---:|---:|---:|---:|\n"
-        ),
-        storage_rows,
+        &storage_table,
     );
+}
 
-    // Index.
+/// The exact scan against the approximate index: one row per index point.
+fn index_section(s: &mut String, h: &Header, rows: &[Row]) {
     let index_intro = format!(
         "Top-{k} per prompt on the baseline's f32 rows (HNSW: instant-distance, M 32, ef_search \
          = k; rows: the indexed ones). HNSW bytes add the index (its f32 copy of the rows and the \
@@ -334,18 +332,19 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             format!("{:.4} ({})", r.set_iou, r.iou_prompts),
         ]
     });
+    let index_table = Table::with_header("point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts)")
+    .right_from(2)
+    .with_rows(index_rows);
     push_section(
-        &mut s,
+        s,
         "Exact scan vs approximate index (HNSW)",
         Some(&index_intro),
-        concat!(
-            "| point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts) |\n",
-            "|---|---|---:|---:|---:|---:|---:|---:|\n"
-        ),
-        index_rows,
+        &index_table,
     );
+}
 
-    // Footprint.
+/// The footprint of each stored form against the dense one.
+fn footprint_section(s: &mut String, footprint: &[FootprintRow]) {
     let dense = footprint.first().map_or(1, |f| f.bytes.max(1));
     let footprint_rows = footprint.iter().map(|f| {
         vec![
@@ -357,20 +356,16 @@ pub fn markdown(h: &Header, rows: &[Row], footprint: &[FootprintRow]) -> String 
             f.detail.clone(),
         ]
     });
+    let footprint_table =
+        Table::with_header("stored form | Gaussians | bytes | MiB | vs dense | detail")
+            .right(1..5)
+            .with_rows(footprint_rows);
     push_section(
-        &mut s,
+        s,
         "Model only what the scene requires",
         None,
-        concat!(
-            "| stored form | Gaussians | bytes | MiB | vs dense | detail |\n",
-            "|---|---:|---:|---:|---:|---|\n"
-        ),
-        footprint_rows,
+        &footprint_table,
     );
-    s += "\n## Recommendations\n\n";
-    s += HAND_WRITTEN_MARKER;
-    s.push('\n');
-    s
 }
 
 /// The line after which `tradeoffs.md` is written by hand; a new run keeps what follows it.

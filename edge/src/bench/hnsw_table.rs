@@ -14,6 +14,7 @@ use std::collections::HashSet;
 use std::time::Instant;
 
 use slag_common::shards::Dtype;
+use slag_common::table::Table;
 
 use slag_edge::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
 use slag_edge::scan::synthetic::random_centres;
@@ -106,17 +107,13 @@ fn segments_note(index: &ApproxIndex) -> String {
     }
 }
 
-/// The HNSW section of the report (module doc), or a line saying why it was skipped.
-pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
+/// Bytes the HNSW table needs (the f32 store and every index of the sweep) and the number of
+/// indexes it builds, for the memory guard.
+fn memory_need(args: &BenchArgs, efs: &[usize], backends: &[HnswBackend]) -> (usize, f64) {
     let n = args.hnsw_size;
-    let dim = args.dim;
-    let k = args.top_k;
-    let efs = efs(args);
-    let backends = backends(args);
-    let row = n as f64 * (4 * dim) as f64;
-    let store_bytes = n as f64 * (4 * dim + 16) as f64;
-    let (mut indexes, mut need) = (0usize, store_bytes);
-    for b in &backends {
+    let row = n as f64 * (4 * args.dim) as f64;
+    let (mut indexes, mut need) = (0usize, n as f64 * (4 * args.dim + 16) as f64);
+    for b in backends {
         let (count, each) = match b {
             HnswBackend::InstantDistance => (efs.len(), row + n as f64 * GRAPH_BYTES_PER_ROW),
             HnswBackend::QdrantEdge => (args.hnsw_m.len(), QDRANT_ROW_COPIES * row),
@@ -124,6 +121,15 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
         indexes += count;
         need += count as f64 * each;
     }
+    (indexes, need)
+}
+
+/// The HNSW section of the report (module doc), or a line saying why it was skipped.
+pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
+    let n = args.hnsw_size;
+    let efs = efs(args);
+    let backends = backends(args);
+    let (indexes, need) = memory_need(args, &efs, &backends);
     if need > limit {
         return Ok(format!(
             "HNSW at {}: skipped, {indexes} indexes need {:.1} GB > limit {:.1} GB (fewer \
@@ -133,23 +139,48 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
             limit / 1e9
         ));
     }
-    let store = VectorStore::synthetic(n, dim, Dtype::F32, CLUSTERS, args.seed)?;
-    let centres = random_centres(dim, CLUSTERS, args.seed);
+    let store = VectorStore::synthetic(n, args.dim, Dtype::F32, CLUSTERS, args.seed)?;
+    let centres = random_centres(args.dim, CLUSTERS, args.seed);
     // Queries of their own (more than the scans' `--queries`: recall is a mean over them),
     // targeting the clusters round-robin.
     let qvecs: Vec<Vec<f32>> = (0..args.hnsw_queries.max(1))
-        .map(|i| make_query(&centres, dim, i * 5 + 3, args.seed))
+        .map(|i| make_query(&centres, args.dim, i * 5 + 3, args.seed))
         .collect();
     let mut exact_ms = Vec::new();
     let mut exact: Vec<HashSet<usize>> = Vec::new();
     for q in &qvecs {
         let qs = [q.as_slice()];
         let t = Instant::now();
-        let hits = scan(&store, &ScanRequest::top_k(&qs, k))?;
+        let hits = scan(&store, &ScanRequest::top_k(&qs, args.top_k))?;
         exact_ms.push(t.elapsed().as_secs_f64() * 1e3);
         exact.push(hits.iter().map(|h| h.row).collect());
     }
+    let mut built = build_all(args, &store, &backends, &efs)?;
+    let measured = measure(args, &mut built, &qvecs, &exact)?;
+    let rows = sweep_rows(&built, measured);
+    let k = args.top_k;
+    Ok(format!(
+        "HNSW at equal recall ({} × {} f32 rows, {} queries answered round-robin over every \
+         index and ef, top-{k}, recall@{k} against the exact f32 scan of the same rows; exact \
+         scan median {:.2} ms on {} threads; index MB = the index's own bytes, RSS Δ = VmRSS \
+         growth over the build):\n\n{}{}",
+        fmt_size(n),
+        args.dim,
+        qvecs.len(),
+        median(exact_ms),
+        rayon::current_num_threads(),
+        sweep_table(args, &rows),
+        equal_recall(&rows, k)
+    ))
+}
 
+/// Every index of the sweep: instant-distance once per ef, Qdrant Edge once per `m`.
+fn build_all(
+    args: &BenchArgs,
+    store: &VectorStore,
+    backends: &[HnswBackend],
+    efs: &[usize],
+) -> anyhow::Result<Vec<Built>> {
     let base = HnswParams {
         ef_construction: args.hnsw_ef_construction,
         seed: args.seed,
@@ -157,56 +188,56 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
         ..HnswParams::default()
     };
     let mut built = Vec::new();
-    for &backend in &backends {
+    for &backend in backends {
         match backend {
             HnswBackend::InstantDistance => {
-                for &ef in &efs {
+                for &ef in efs {
                     let p = HnswParams {
                         ef_search: ef,
                         ..base.clone()
                     };
-                    built.push(build(
-                        &store,
-                        backend,
-                        &p,
-                        "instant-distance, M=32".into(),
-                        vec![ef],
-                    )?);
+                    let label = "instant-distance, M=32".into();
+                    built.push(build(store, backend, &p, label, vec![ef])?);
                 }
             }
             HnswBackend::QdrantEdge => {
                 for &m in &args.hnsw_m {
                     let p = HnswParams {
                         m,
-                        ef_search: efs.last().copied().unwrap_or(k),
+                        ef_search: efs.last().copied().unwrap_or(args.top_k),
                         ..base.clone()
                     };
-                    let mut b = build(
-                        &store,
-                        backend,
-                        &p,
-                        format!("qdrant-edge, m={m}"),
-                        efs.clone(),
-                    )?;
+                    let label = format!("qdrant-edge, m={m}");
+                    let mut b = build(store, backend, &p, label, efs.to_vec())?;
                     b.label.push_str(&segments_note(&b.index));
                     built.push(b);
                 }
             }
         }
     }
+    Ok(built)
+}
 
-    // Warm-up (untimed), then every query round-robin over every (index, ef).
+/// Warm-up (untimed), then every query round-robin over every (index, ef): per index, per ef,
+/// the query times and recalls against `exact`.
+fn measure(
+    args: &BenchArgs,
+    built: &mut [Built],
+    qvecs: &[Vec<f32>],
+    exact: &[HashSet<usize>],
+) -> anyhow::Result<Vec<Vec<Measured>>> {
+    let k = args.top_k;
     let mut measured: Vec<Vec<Measured>> = built
         .iter()
         .map(|b| b.efs.iter().map(|_| Measured::default()).collect())
         .collect();
-    for b in &mut built {
+    for b in built.iter_mut() {
         for &ef in &b.efs {
             b.index.set_ef_search(ef)?;
             b.index.query(&qvecs[0], k)?;
         }
     }
-    for (q, want) in qvecs.iter().zip(&exact) {
+    for (q, want) in qvecs.iter().zip(exact) {
         for (b, m) in built.iter_mut().zip(&mut measured) {
             for (&ef, m) in b.efs.iter().zip(m.iter_mut()) {
                 b.index.set_ef_search(ef)?;
@@ -218,71 +249,95 @@ pub(super) fn table(args: &BenchArgs, limit: f64) -> anyhow::Result<String> {
             }
         }
     }
+    Ok(measured)
+}
 
-    let mut out = format!(
-        "HNSW at equal recall ({} × {dim} f32 rows, {} queries answered round-robin over every \
-         index and ef, top-{k}, recall@{k} against the exact f32 scan of the same rows; exact \
-         scan median {:.2} ms on {} threads; index MB = the index's own bytes, RSS Δ = VmRSS \
-         growth over the build):\n\n\
-         | backend | ef_construction | ef_search | build s | index MB (B/row) | RSS Δ MB | \
-         query ms (median) | recall@{k} mean | recall@{k} min |\n\
-         |---|---|---|---|---|---|---|---|---|\n",
-        fmt_size(n),
-        qvecs.len(),
-        median(exact_ms),
-        rayon::current_num_threads()
-    );
-    // (backend label, ef, ms, mean recall) for the equal-recall summary.
-    let mut points: Vec<(String, usize, f64, f64)> = Vec::new();
+/// One (index, ef) point of the sweep, summarised.
+struct SweepRow {
+    label: String,
+    ef: usize,
+    build_s: f64,
+    /// The index's own bytes.
+    bytes: usize,
+    /// VmRSS growth over the build, bytes.
+    rss_delta: Option<i64>,
+    /// Median query time.
+    ms: f64,
+    /// Mean and lowest recall@k.
+    mean: f64,
+    min: f64,
+}
+
+/// The sweep's points, in build order and ef order within an index.
+fn sweep_rows(built: &[Built], measured: Vec<Vec<Measured>>) -> Vec<SweepRow> {
+    let mut rows = Vec::new();
     for (b, m) in built.iter().zip(measured) {
-        let bytes = b.index.memory_bytes();
         for (&ef, m) in b.efs.iter().zip(m) {
-            let ms = median(m.ms);
-            let mean = m.recall.iter().sum::<f64>() / m.recall.len().max(1) as f64;
-            let min = m.recall.iter().copied().fold(f64::INFINITY, f64::min);
-            out.push_str(&format!(
-                "| {} | {} | {ef} | {:.1} | {:.0} ({}) | {} | {ms:.2} | {mean:.4} | {min:.3} |\n",
-                b.label,
-                args.hnsw_ef_construction,
-                b.build_s,
-                bytes as f64 / 1e6,
-                bytes / n.max(1),
-                b.rss_delta
-                    .map_or_else(|| "n/a".into(), |d| format!("{:.0}", d as f64 / 1e6)),
-            ));
-            points.push((b.label.clone(), ef, ms, mean));
+            rows.push(SweepRow {
+                label: b.label.clone(),
+                ef,
+                build_s: b.build_s,
+                bytes: b.index.memory_bytes(),
+                rss_delta: b.rss_delta,
+                ms: median(m.ms),
+                mean: m.recall.iter().sum::<f64>() / m.recall.len().max(1) as f64,
+                min: m.recall.iter().copied().fold(f64::INFINITY, f64::min),
+            });
         }
     }
-    out.push_str(&equal_recall(&points, k));
-    Ok(out)
+    rows
+}
+
+/// The sweep table: one row per (index, ef).
+fn sweep_table(args: &BenchArgs, rows: &[SweepRow]) -> Table {
+    let k = args.top_k;
+    let n = args.hnsw_size;
+    let mut t = Table::new([
+        "backend".to_string(),
+        "ef_construction".into(),
+        "ef_search".into(),
+        "build s".into(),
+        "index MB (B/row)".into(),
+        "RSS Δ MB".into(),
+        "query ms (median)".into(),
+        format!("recall@{k} mean"),
+        format!("recall@{k} min"),
+    ]);
+    for r in rows {
+        t.row([
+            r.label.clone(),
+            args.hnsw_ef_construction.to_string(),
+            r.ef.to_string(),
+            format!("{:.1}", r.build_s),
+            format!("{:.0} ({})", r.bytes as f64 / 1e6, r.bytes / n.max(1)),
+            r.rss_delta
+                .map_or_else(|| "n/a".into(), |d| format!("{:.0}", d as f64 / 1e6)),
+            format!("{:.2}", r.ms),
+            format!("{:.4}", r.mean),
+            format!("{:.3}", r.min),
+        ]);
+    }
+    t
 }
 
 /// For recall targets 0.99, 0.999 and 1: per index, the fastest sweep point reaching the target
 /// (measured points only, nothing interpolated).
-fn equal_recall(points: &[(String, usize, f64, f64)], k: usize) -> String {
-    let mut labels: Vec<&str> = points.iter().map(|p| p.0.as_str()).collect();
+fn equal_recall(points: &[SweepRow], k: usize) -> String {
+    let mut labels: Vec<&str> = points.iter().map(|p| p.label.as_str()).collect();
     labels.dedup();
-    let mut out = format!(
-        "\nFastest measured point per index at recall@{k} ≥ target (no interpolation):\n\n\
-         | target | {} |\n|---|{}\n",
-        labels.join(" | "),
-        "---|".repeat(labels.len())
-    );
+    let mut t = Table::new(std::iter::once("target").chain(labels.iter().copied()));
     for target in [0.99, 0.999, 1.0] {
-        let cells: Vec<String> = labels
-            .iter()
-            .map(|l| {
-                points
-                    .iter()
-                    .filter(|p| p.0 == *l && p.3 >= target)
-                    .min_by(|a, b| a.2.total_cmp(&b.2))
-                    .map_or_else(
-                        || "not reached".into(),
-                        |p| format!("{:.2} ms (ef {}, {:.4})", p.2, p.1, p.3),
-                    )
-            })
-            .collect();
-        out.push_str(&format!("| ≥ {target} | {} |\n", cells.join(" | ")));
+        let cells = labels.iter().map(|l| {
+            points
+                .iter()
+                .filter(|p| p.label == *l && p.mean >= target)
+                .min_by(|a, b| a.ms.total_cmp(&b.ms))
+                .map_or_else(
+                    || "not reached".into(),
+                    |p| format!("{:.2} ms (ef {}, {:.4})", p.ms, p.ef, p.mean),
+                )
+        });
+        t.row(std::iter::once(format!("≥ {target}")).chain(cells));
     }
-    out
+    format!("\nFastest measured point per index at recall@{k} ≥ target (no interpolation):\n\n{t}")
 }

@@ -7,8 +7,11 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 use slag_common::shards::Dtype;
+use slag_common::table::Table;
 use slag_edge::scan::synthetic::synthetic_mixture;
 use slag_edge::scan::{Combiner, ScanRequest, VectorStore, lerf_relevancy, scan};
+
+use super::{dtype_name, median};
 
 /// Rows copied per block.
 const BLOCK: usize = 1 << 16;
@@ -27,11 +30,6 @@ fn dense_copy(mix: &VectorStore, dtype: Dtype) -> anyhow::Result<VectorStore> {
         store.push_f32_rows(&mix.ids()[start..end], &mix.means()[start..end], &flat)?;
     }
     Ok(store)
-}
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// Median times (ms) of top-k, threshold (with its median hit count) and LERF (Q = 5) scans of
@@ -106,88 +104,95 @@ pub(super) struct MixtureBench<'a> {
 /// in memory, median scan times, ratios to the mixture's times and top-k IoU against the
 /// mixture's (exact) answer.
 pub(super) fn mixture_table(b: &MixtureBench<'_>) -> anyhow::Result<String> {
-    let mut out = format!(
+    let mut t = Table::with_header(
+        "N | form | disk B/Gaussian | memory B/Gaussian | gen s | top-k ms | ÷ mix | thr ms (hits) | ÷ mix | LERF Q=5 ms | top-k IoU vs mixture",
+    );
+    for &n in b.sizes {
+        for row in size_rows(b, n)? {
+            t.row(row);
+        }
+    }
+    Ok(format!(
         "Mixture rows (codebook of {} atoms × D = {}, S = {} slots, {} clusters; f16 / int8 = the \
          same Gaussians reconstructed and stored densely; disk B/Gaussian = shard row + codebook \
          file / N, memory = scan store + codebook / N; ÷ mix = time / the mixture's time; IoU = \
-         top-k rows against the mixture's):\n\n\
-         | N | form | disk B/Gaussian | memory B/Gaussian | gen s | top-k ms | ÷ mix | thr ms \
-         (hits) | ÷ mix | LERF Q=5 ms | top-k IoU vs mixture |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|\n",
+         top-k rows against the mixture's):\n\n{t}",
         b.atoms, b.dim, b.slots, b.clusters
-    );
+    ))
+}
+
+/// The table rows of size `n`: the mixture, then each dense copy that fits the memory guard (one
+/// row saying so when the mixture itself does not fit).
+fn size_rows(b: &MixtureBench<'_>, n: usize) -> anyhow::Result<Vec<Vec<String>>> {
     let (a, d, s) = (b.atoms as f64, b.dim as f64, b.slots as f64);
-    for &n in b.sizes {
-        let need = n as f64 * (16.0 + 8.0 * s) + a * d * 4.0;
-        if need > b.limit {
-            out.push_str(&format!(
-                "| {n} | mixture | skipped: memory guard | | | | | | | | |\n"
-            ));
+    let need = n as f64 * (16.0 + 8.0 * s) + a * d * 4.0;
+    if need > b.limit {
+        let mut row = vec![
+            n.to_string(),
+            "mixture".into(),
+            "skipped: memory guard".into(),
+        ];
+        row.resize(11, String::new());
+        return Ok(vec![row]);
+    }
+    anyhow::ensure!(
+        b.clusters > 0 && b.atoms >= b.clusters * b.slots,
+        "--mixture-atoms {} must be at least {} clusters × {} slots",
+        b.atoms,
+        b.clusters,
+        b.slots
+    );
+    let t = Instant::now();
+    let mix = synthetic_mixture(n, b.dim, b.atoms, b.slots, b.centres, b.clusters, b.seed)?;
+    let gen_s = t.elapsed().as_secs_f64();
+    let m = time_store(&mix, b.qvecs, b.negs, b.top_k, b.threshold)?;
+    let nf = n.max(1) as f64;
+    let mut rows = vec![vec![
+        n.to_string(),
+        format!("mixture S={}", b.slots),
+        format!("{:.1}", 16.0 + 6.0 * s + a * d * 2.0 / nf),
+        format!("{:.1}", mix.bytes_per_gaussian() as f64 + a * d * 4.0 / nf),
+        format!("{gen_s:.1}"),
+        format!("{:.2}", m.topk),
+        "1".into(),
+        format!("{:.2} ({})", m.thr, m.thr_hits),
+        "1".into(),
+        format!("{:.2}", m.lerf),
+        "1".into(),
+    ]];
+    for &dtype in b.dense {
+        let need = n as f64 * (dtype.bytes_per_vector(b.dim) + 16) as f64;
+        if dtype == Dtype::F32 || need > b.limit {
             continue;
         }
-        anyhow::ensure!(
-            b.clusters > 0 && b.atoms >= b.clusters * b.slots,
-            "--mixture-atoms {} must be at least {} clusters × {} slots",
-            b.atoms,
-            b.clusters,
-            b.slots
-        );
         let t = Instant::now();
-        let mix = synthetic_mixture(n, b.dim, b.atoms, b.slots, b.centres, b.clusters, b.seed)?;
+        let dense = dense_copy(&mix, dtype)?;
         let gen_s = t.elapsed().as_secs_f64();
-        let m = time_store(&mix, b.qvecs, b.negs, b.top_k, b.threshold)?;
-        let nf = n.max(1) as f64;
-        out.push_str(&format!(
-            "| {n} | mixture S={} | {:.1} | {:.1} | {:.1} | {:.2} | 1 | {:.2} ({}) | 1 | {:.2} | 1 |\n",
-            b.slots,
-            16.0 + 6.0 * s + a * d * 2.0 / nf,
-            mix.bytes_per_gaussian() as f64 + a * d * 4.0 / nf,
-            gen_s,
-            m.topk,
-            m.thr,
-            m.thr_hits,
-            m.lerf
-        ));
-        for &dtype in b.dense {
-            if dtype == Dtype::F32 {
-                continue;
-            }
-            let need = n as f64 * (dtype.bytes_per_vector(b.dim) + 16) as f64;
-            if need > b.limit {
-                continue;
-            }
-            let t = Instant::now();
-            let dense = dense_copy(&mix, dtype)?;
-            let gen_s = t.elapsed().as_secs_f64();
-            let r = time_store(&dense, b.qvecs, b.negs, b.top_k, b.threshold)?;
-            let iou = r
-                .sets
-                .iter()
-                .zip(&m.sets)
-                .map(|(x, y)| {
-                    let i = x.intersection(y).count();
-                    i as f64 / (x.len() + y.len() - i).max(1) as f64
-                })
-                .sum::<f64>()
-                / r.sets.len().max(1) as f64;
-            let bpg = dense.bytes_per_gaussian();
-            out.push_str(&format!(
-                "| {n} | {} | {bpg} | {bpg} | {:.1} | {:.2} | {:.2} | {:.2} ({}) | {:.2} | {:.2} | {:.4} |\n",
-                match dtype {
-                    Dtype::F32 => "f32",
-                    Dtype::F16 => "f16",
-                    Dtype::I8 => "int8",
-                },
-                gen_s,
-                r.topk,
-                r.topk / m.topk,
-                r.thr,
-                r.thr_hits,
-                r.thr / m.thr,
-                r.lerf,
-                iou
-            ));
-        }
+        let r = time_store(&dense, b.qvecs, b.negs, b.top_k, b.threshold)?;
+        let iou = r
+            .sets
+            .iter()
+            .zip(&m.sets)
+            .map(|(x, y)| {
+                let i = x.intersection(y).count();
+                i as f64 / (x.len() + y.len() - i).max(1) as f64
+            })
+            .sum::<f64>()
+            / r.sets.len().max(1) as f64;
+        let bpg = dense.bytes_per_gaussian();
+        rows.push(vec![
+            n.to_string(),
+            dtype_name(dtype).into(),
+            bpg.to_string(),
+            bpg.to_string(),
+            format!("{gen_s:.1}"),
+            format!("{:.2}", r.topk),
+            format!("{:.2}", r.topk / m.topk),
+            format!("{:.2} ({})", r.thr, r.thr_hits),
+            format!("{:.2}", r.thr / m.thr),
+            format!("{:.2}", r.lerf),
+            format!("{iou:.4}"),
+        ]);
     }
-    Ok(out)
+    Ok(rows)
 }

@@ -7,10 +7,12 @@
 //! Part of the `slag-edge` binary, not of the `slag_edge` library: it measures the library's
 //! scans from outside, through their public API.
 
+use std::collections::HashSet;
 use std::time::Instant;
 
 use rayon::prelude::*;
 use slag_common::shards::{Dtype, StoredVectors};
+use slag_common::table::Table;
 
 use slag_edge::scan::hnsw::HnswBackend;
 use slag_edge::scan::kernels::{self, SimdLevel};
@@ -297,7 +299,7 @@ struct Row {
 }
 
 /// |a ∩ b| / |a ∪ b| of two row sets (1 for two empty sets).
-fn iou(a: &std::collections::HashSet<usize>, b: &std::collections::HashSet<usize>) -> f64 {
+fn iou(a: &HashSet<usize>, b: &HashSet<usize>) -> f64 {
     let inter = a.intersection(b).count();
     let union = a.len() + b.len() - inter;
     if union == 0 {
@@ -367,233 +369,314 @@ pub fn run_bench(args: &BenchArgs) -> anyhow::Result<String> {
     pool.install(|| run_inner(args))
 }
 
-fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
-    let dim = args.dim;
-    let limit = args
-        .max_memory_gb
-        .map(|g| g * 1e9)
-        .unwrap_or_else(|| mem_available_bytes().map_or(8e9, |m| 0.75 * m));
-    let centres = random_centres(dim, CLUSTERS, args.seed);
-    let qvecs: Vec<Vec<f32>> = (0..args.queries)
-        .map(|i| make_query(&centres, dim, i * 7 + 1, args.seed))
-        .collect();
-    let negs = negatives(dim, args.seed);
-    let mut dtypes = args.dtypes.clone();
-    dtypes.sort_by_key(|d| d.code()); // f32 first: the naive baseline runs on it.
-    dtypes.dedup();
-    let mut rows = Vec::new();
-    let mut qrows: Vec<QRow> = Vec::new();
-    let mut skipped = Vec::new();
-    for &size in &args.sizes {
-        let mut naive: Option<f64> = None;
-        let mut f32_sets: Option<Vec<std::collections::HashSet<usize>>> = None;
-        for &dtype in &dtypes {
-            let need = size as f64 * (dtype.bytes_per_vector(dim) + 16) as f64;
-            if need > limit {
-                skipped.push(format!(
-                    "{} {}: needs {:.1} GB > limit {:.1} GB",
-                    fmt_size(size),
-                    dtype_name(dtype),
-                    need / 1e9,
-                    limit / 1e9
-                ));
-                continue;
-            }
-            tracing::info!("bench: generating {} {}", fmt_size(size), dtype_name(dtype));
-            let t = Instant::now();
-            let store = VectorStore::synthetic(size, dim, dtype, CLUSTERS, args.seed)?;
-            let gen_s = t.elapsed().as_secs_f64();
-            let floor = floor_ms(&store);
-            let time_q =
-                |f: &dyn Fn(&[f32]) -> anyhow::Result<usize>| -> anyhow::Result<(f64, usize)> {
-                    let mut ts = Vec::new();
-                    let mut hits = Vec::new();
-                    for q in &qvecs {
-                        let t = Instant::now();
-                        hits.push(f(q)?);
-                        ts.push(t.elapsed().as_secs_f64() * 1e3);
-                    }
-                    Ok((
-                        median(ts),
-                        median(hits.iter().map(|&h| h as f64).collect()) as usize,
-                    ))
-                };
-            let (topk, _) = time_q(&|q| {
-                let qs = [q];
-                Ok(scan(&store, &ScanRequest::top_k(&qs, args.top_k))?.len())
-            })?;
-            let (thr, thr_hits) = time_q(&|q| {
-                let qs = [q];
-                Ok(scan(&store, &ScanRequest::threshold(&qs, args.threshold))?.len())
-            })?;
-            let lerf_fn: Combiner<'_> = &lerf_relevancy;
-            let (lerf, _) = time_q(&|q| {
-                let qs: [&[f32]; 5] = [q, &negs[0], &negs[1], &negs[2], &negs[3]];
-                let req = ScanRequest {
-                    queries: &qs,
-                    top_k: Some(args.top_k),
-                    threshold: None,
-                    bbox: None,
-                    combine: Some(lerf_fn),
-                };
-                Ok(scan(&store, &req)?.len())
-            })?;
-            // Correctness and quantisation agreement (untimed): the top-k row sets.
-            let sets: Vec<std::collections::HashSet<usize>> = qvecs
-                .iter()
-                .map(|q| {
-                    let qs = [q.as_slice()];
-                    scan(&store, &ScanRequest::top_k(&qs, args.top_k))
-                        .map(|h| h.iter().map(|x| x.row).collect())
-                })
-                .collect::<Result<_, _>>()?;
-            if dtype == Dtype::F32 && size <= args.naive_max {
-                let runs = args.queries.min(3);
-                let mut ts = Vec::new();
-                for (i, q) in qvecs.iter().take(runs).enumerate() {
-                    let t = Instant::now();
-                    let hits = std::hint::black_box(naive_scan_f32(&store, q, args.top_k)?);
-                    ts.push(t.elapsed().as_secs_f64() * 1e3);
-                    let naive_set = hits.iter().map(|h| h.row).collect();
-                    anyhow::ensure!(
-                        iou(&naive_set, &sets[i]) == 1.0,
-                        "the f32 scan and the naive scan disagree on query {i}'s top-{}",
-                        args.top_k
-                    );
-                }
-                naive = Some(median(ts));
-            }
-            let agree_f32 = f32_sets.as_ref().map(|f| {
-                sets.iter().zip(f).map(|(a, b)| iou(a, b)).sum::<f64>() / sets.len().max(1) as f64
-            });
-            if dtype == Dtype::F32 {
-                f32_sets = Some(sets);
-            }
-            if args.qdrant {
-                let exact = f32_sets.as_deref().unwrap_or(&[]);
-                qrows.extend(qdrant::exact_rows(
-                    args, size, dtype, &store, &qvecs, exact,
-                )?);
-            }
-            rows.push(Row {
-                size,
-                dtype,
-                bpg: store.bytes_per_gaussian(),
-                gb: store.vector_bytes() as f64 / 1e9,
-                gen_s,
-                floor,
-                topk,
-                thr,
-                thr_hits,
-                lerf,
-                naive,
-                agree_f32: if dtype == Dtype::F32 {
-                    Some(1.0)
-                } else {
-                    agree_f32
-                },
-            });
+/// What every table of one run shares: the memory guard, the synthetic clusters and queries,
+/// and the dtypes in measuring order.
+struct Workload {
+    /// Memory guard, bytes.
+    limit: f64,
+    /// Cluster centres of the synthetic stores (`CLUSTERS × dim`).
+    centres: Vec<f32>,
+    /// The timed unit queries (`--queries` of them).
+    qvecs: Vec<Vec<f32>>,
+    /// The LERF negatives.
+    negs: Vec<Vec<f32>>,
+    /// `--dtypes`, f32 first (the naive baseline runs on it), each once.
+    dtypes: Vec<Dtype>,
+}
+
+impl Workload {
+    fn new(args: &BenchArgs) -> Self {
+        let dim = args.dim;
+        let limit = args
+            .max_memory_gb
+            .map(|g| g * 1e9)
+            .unwrap_or_else(|| mem_available_bytes().map_or(8e9, |m| 0.75 * m));
+        let centres = random_centres(dim, CLUSTERS, args.seed);
+        let qvecs: Vec<Vec<f32>> = (0..args.queries)
+            .map(|i| make_query(&centres, dim, i * 7 + 1, args.seed))
+            .collect();
+        let mut dtypes = args.dtypes.clone();
+        dtypes.sort_by_key(|d| d.code());
+        dtypes.dedup();
+        Workload {
+            limit,
+            centres,
+            qvecs,
+            negs: negatives(dim, args.seed),
+            dtypes,
         }
     }
+}
 
-    let mut out = String::new();
-    let threads = rayon::current_num_threads();
-    out.push_str(&format!(
-        "Machine: {} ({}), {} rayon threads, MemAvailable {:.1} GB, memory guard {:.1} GB\n\n",
-        cpu_name(),
-        std::env::consts::ARCH,
-        threads,
-        mem_available_bytes().unwrap_or(f64::NAN) / 1e9,
-        limit / 1e9
-    ));
-    out.push_str(&format!(
-        "SIMD level of the scans: {:?} (SLAG_SCAN_SIMD=baseline forces the portable loops).\n\n\
-         Settings: D = {dim}, top-k = {}, threshold = {}, {} timed queries (median), seed {}, \
-         {CLUSTERS}-cluster synthetic unit rows; LERF = 5 queries (prompt + 4 negatives) in one \
-         pass, top-k of lerf_relevancy.\n\n",
-        kernels::simd_level(),
-        args.top_k,
-        args.threshold,
-        args.queries,
-        args.seed
-    ));
-    out.push_str(
-        "| N | dtype | B/Gaussian | vectors GB | gen s | floor ms (GB/s) | top-k ms | GB/s | \
-         ÷floor | thr ms (hits) | LERF Q=5 ms | ÷floor | naive f32 ms (same N) | speed-up | \
-         top-k IoU vs f32 |\n",
-    );
-    out.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    for r in &rows {
-        let (naive_s, speed) = match r.naive {
-            Some(x) => (format!("{x:.0}"), format!("{:.1}×", x / r.topk)),
-            None => ("n/a".into(), "n/a".into()),
-        };
-        let agree = r
-            .agree_f32
-            .map_or_else(|| "n/a".to_string(), |a| format!("{a:.4}"));
-        out.push_str(&format!(
-            "| {} | {} | {} | {:.2} | {:.1} | {:.1} ({:.1}) | {:.1} | {:.1} | {:.2} | {:.1} ({}) | \
-             {:.1} | {:.2} | {} | {} | {} |\n",
-            fmt_size(r.size),
-            dtype_name(r.dtype),
-            r.bpg,
-            r.gb,
-            r.gen_s,
-            r.floor,
-            r.gb / (r.floor / 1e3),
-            r.topk,
-            r.gb / (r.topk / 1e3),
-            r.topk / r.floor,
-            r.thr,
-            r.thr_hits,
-            r.lerf,
-            r.lerf / r.floor,
-            naive_s,
-            speed,
-            agree
-        ));
-    }
-    if !skipped.is_empty() {
+fn run_inner(args: &BenchArgs) -> anyhow::Result<String> {
+    let w = Workload::new(args);
+    let scans = scan_rows(args, &w)?;
+    let mut out = settings_text(args, w.limit);
+    out.push_str(&scan_table(&scans.rows).markdown());
+    if !scans.skipped.is_empty() {
         out.push_str("\nSkipped (memory guard): ");
-        out.push_str(&skipped.join("; "));
+        out.push_str(&scans.skipped.join("; "));
         out.push('\n');
     }
-
-    if !qrows.is_empty() {
+    if !scans.qdrant.is_empty() {
         out.push('\n');
-        out.push_str(&qdrant_table(args, &qrows));
+        out.push_str(&qdrant_table(args, &scans.qdrant));
     }
     if args.mixture_atoms > 0 {
         out.push('\n');
         out.push_str(&mixture_table::mixture_table(
             &mixture_table::MixtureBench {
                 sizes: &args.sizes,
-                dim,
+                dim: args.dim,
                 atoms: args.mixture_atoms,
                 slots: args.mixture_slots,
-                dense: &dtypes,
+                dense: &w.dtypes,
                 top_k: args.top_k,
                 threshold: args.threshold,
-                centres: &centres,
+                centres: &w.centres,
                 clusters: CLUSTERS,
                 seed: args.seed,
-                qvecs: &qvecs,
-                negs: &negs,
-                limit,
+                qvecs: &w.qvecs,
+                negs: &w.negs,
+                limit: w.limit,
             },
         )?);
     }
     out.push('\n');
-    out.push_str(&kernel_table(args, &dtypes)?);
+    out.push_str(&kernel_table(args, &w.dtypes)?);
     if args.hnsw_size > 0 {
         out.push('\n');
-        out.push_str(&hnsw_table::table(args, limit)?);
+        out.push_str(&hnsw_table::table(args, w.limit)?);
     }
     if args.objects_matches > 0 {
         out.push('\n');
         out.push_str(&objects_table::table(args)?);
     }
     Ok(out)
+}
+
+/// The measured scan rows of every (size, dtype), the Qdrant Edge rows beside them (`--qdrant`)
+/// and the (size, dtype) pairs the memory guard skipped.
+struct ScanRows {
+    rows: Vec<Row>,
+    qdrant: Vec<QRow>,
+    skipped: Vec<String>,
+}
+
+/// Measures every (size, dtype) of `args` that fits the memory guard (f32 first at each size:
+/// its top-k sets are the others' reference and its store runs the naive baseline).
+fn scan_rows(args: &BenchArgs, w: &Workload) -> anyhow::Result<ScanRows> {
+    let mut out = ScanRows {
+        rows: Vec::new(),
+        qdrant: Vec::new(),
+        skipped: Vec::new(),
+    };
+    for &size in &args.sizes {
+        let mut naive: Option<f64> = None;
+        let mut f32_sets: Option<Vec<HashSet<usize>>> = None;
+        for &dtype in &w.dtypes {
+            let need = size as f64 * (dtype.bytes_per_vector(args.dim) + 16) as f64;
+            if need > w.limit {
+                out.skipped.push(format!(
+                    "{} {}: needs {:.1} GB > limit {:.1} GB",
+                    fmt_size(size),
+                    dtype_name(dtype),
+                    need / 1e9,
+                    w.limit / 1e9
+                ));
+                continue;
+            }
+            tracing::info!("bench: generating {} {}", fmt_size(size), dtype_name(dtype));
+            let t = Instant::now();
+            let store = VectorStore::synthetic(size, args.dim, dtype, CLUSTERS, args.seed)?;
+            let gen_s = t.elapsed().as_secs_f64();
+            let floor = floor_ms(&store);
+            let timed = time_scans(args, w, &store)?;
+            let sets = top_k_sets(args, &w.qvecs, &store)?;
+            if dtype == Dtype::F32 && size <= args.naive_max {
+                naive = Some(naive_ms(args, &w.qvecs, &store, &sets)?);
+            }
+            let agree_f32 = if dtype == Dtype::F32 {
+                Some(1.0)
+            } else {
+                mean_iou(&sets, f32_sets.as_deref().unwrap_or(&[]))
+            };
+            if dtype == Dtype::F32 {
+                f32_sets = Some(sets);
+            }
+            if args.qdrant {
+                let exact = f32_sets.as_deref().unwrap_or(&[]);
+                out.qdrant.extend(qdrant::exact_rows(
+                    args, size, dtype, &store, &w.qvecs, exact,
+                )?);
+            }
+            out.rows.push(Row {
+                size,
+                dtype,
+                bpg: store.bytes_per_gaussian(),
+                gb: store.vector_bytes() as f64 / 1e9,
+                gen_s,
+                floor,
+                topk: timed.topk,
+                thr: timed.thr,
+                thr_hits: timed.thr_hits,
+                lerf: timed.lerf,
+                naive,
+                agree_f32,
+            });
+        }
+    }
+    Ok(out)
+}
+
+/// Median times (ms) of one store's top-k, threshold and LERF scans, and the threshold's hits.
+struct ScanTimes {
+    topk: f64,
+    thr: f64,
+    thr_hits: usize,
+    lerf: f64,
+}
+
+/// Times the top-k, threshold and LERF scans of `store`, each over every query of `w`.
+fn time_scans(args: &BenchArgs, w: &Workload, store: &VectorStore) -> anyhow::Result<ScanTimes> {
+    let time_q = |f: &dyn Fn(&[f32]) -> anyhow::Result<usize>| -> anyhow::Result<(f64, usize)> {
+        let mut ts = Vec::new();
+        let mut hits = Vec::new();
+        for q in &w.qvecs {
+            let t = Instant::now();
+            hits.push(f(q)?);
+            ts.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+        Ok((
+            median(ts),
+            median(hits.iter().map(|&h| h as f64).collect()) as usize,
+        ))
+    };
+    let (topk, _) = time_q(&|q| {
+        let qs = [q];
+        Ok(scan(store, &ScanRequest::top_k(&qs, args.top_k))?.len())
+    })?;
+    let (thr, thr_hits) = time_q(&|q| {
+        let qs = [q];
+        Ok(scan(store, &ScanRequest::threshold(&qs, args.threshold))?.len())
+    })?;
+    let lerf_fn: Combiner<'_> = &lerf_relevancy;
+    let negs = &w.negs;
+    let (lerf, _) = time_q(&|q| {
+        let qs: [&[f32]; 5] = [q, &negs[0], &negs[1], &negs[2], &negs[3]];
+        let req = ScanRequest {
+            queries: &qs,
+            top_k: Some(args.top_k),
+            threshold: None,
+            bbox: None,
+            combine: Some(lerf_fn),
+        };
+        Ok(scan(store, &req)?.len())
+    })?;
+    Ok(ScanTimes {
+        topk,
+        thr,
+        thr_hits,
+        lerf,
+    })
+}
+
+/// The top-k row set of each query on `store` (untimed): correctness and quantisation agreement.
+fn top_k_sets(
+    args: &BenchArgs,
+    qvecs: &[Vec<f32>],
+    store: &VectorStore,
+) -> anyhow::Result<Vec<HashSet<usize>>> {
+    Ok(qvecs
+        .iter()
+        .map(|q| {
+            let qs = [q.as_slice()];
+            scan(store, &ScanRequest::top_k(&qs, args.top_k))
+                .map(|h| h.iter().map(|x| x.row).collect())
+        })
+        .collect::<Result<_, _>>()?)
+}
+
+/// Median time (ms) of the single-thread naive scan over up to 3 queries; fails when its top-k
+/// differs from the scan's (`sets`).
+fn naive_ms(
+    args: &BenchArgs,
+    qvecs: &[Vec<f32>],
+    store: &VectorStore,
+    sets: &[HashSet<usize>],
+) -> anyhow::Result<f64> {
+    let runs = args.queries.min(3);
+    let mut ts = Vec::new();
+    for (i, q) in qvecs.iter().take(runs).enumerate() {
+        let t = Instant::now();
+        let hits = std::hint::black_box(naive_scan_f32(store, q, args.top_k)?);
+        ts.push(t.elapsed().as_secs_f64() * 1e3);
+        let naive_set = hits.iter().map(|h| h.row).collect();
+        anyhow::ensure!(
+            iou(&naive_set, &sets[i]) == 1.0,
+            "the f32 scan and the naive scan disagree on query {i}'s top-{}",
+            args.top_k
+        );
+    }
+    Ok(median(ts))
+}
+
+/// The report's opening: machine, SIMD level and settings.
+fn settings_text(args: &BenchArgs, limit: f64) -> String {
+    format!(
+        "Machine: {} ({}), {} rayon threads, MemAvailable {:.1} GB, memory guard {:.1} GB\n\n\
+         SIMD level of the scans: {:?} (SLAG_SCAN_SIMD=baseline forces the portable loops).\n\n\
+         Settings: D = {}, top-k = {}, threshold = {}, {} timed queries (median), seed {}, \
+         {CLUSTERS}-cluster synthetic unit rows; LERF = 5 queries (prompt + 4 negatives) in one \
+         pass, top-k of lerf_relevancy.\n\n",
+        cpu_name(),
+        std::env::consts::ARCH,
+        rayon::current_num_threads(),
+        mem_available_bytes().unwrap_or(f64::NAN) / 1e9,
+        limit / 1e9,
+        kernels::simd_level(),
+        args.dim,
+        args.top_k,
+        args.threshold,
+        args.queries,
+        args.seed
+    )
+}
+
+/// `x` to 4 decimals, `n/a` when absent.
+fn opt4(x: Option<f64>) -> String {
+    x.map_or_else(|| "n/a".to_string(), |v| format!("{v:.4}"))
+}
+
+/// The scan table: one row per measured (size, dtype) (columns: [`run_bench`]).
+fn scan_table(rows: &[Row]) -> Table {
+    let mut t = Table::with_header(
+        "N | dtype | B/Gaussian | vectors GB | gen s | floor ms (GB/s) | top-k ms | GB/s | ÷floor | thr ms (hits) | LERF Q=5 ms | ÷floor | naive f32 ms (same N) | speed-up | top-k IoU vs f32",
+    );
+    for r in rows {
+        let (naive_s, speed) = match r.naive {
+            Some(x) => (format!("{x:.0}"), format!("{:.1}×", x / r.topk)),
+            None => ("n/a".into(), "n/a".into()),
+        };
+        t.row([
+            fmt_size(r.size),
+            dtype_name(r.dtype).into(),
+            r.bpg.to_string(),
+            format!("{:.2}", r.gb),
+            format!("{:.1}", r.gen_s),
+            format!("{:.1} ({:.1})", r.floor, r.gb / (r.floor / 1e3)),
+            format!("{:.1}", r.topk),
+            format!("{:.1}", r.gb / (r.topk / 1e3)),
+            format!("{:.2}", r.topk / r.floor),
+            format!("{:.1} ({})", r.thr, r.thr_hits),
+            format!("{:.1}", r.lerf),
+            format!("{:.2}", r.lerf / r.floor),
+            naive_s,
+            speed,
+            opt4(r.agree_f32),
+        ]);
+    }
+    t
 }
 
 /// One side-by-side measurement of slag and Qdrant Edge on the same rows and queries.
@@ -615,41 +698,34 @@ struct QRow {
 }
 
 fn qdrant_table(args: &BenchArgs, rows: &[QRow]) -> String {
-    let mut out = format!(
+    let mut t = Table::with_header(
+        "N | slag dtype | slag top-k ms | Qdrant Edge | Qdrant ms | Qdrant ÷ slag | slag IoU | Qdrant IoU | Qdrant build s (segments)",
+    );
+    for r in rows {
+        t.row([
+            fmt_size(r.size),
+            dtype_name(r.dtype).into(),
+            format!("{:.1}", r.slag_ms),
+            r.label.clone(),
+            format!("{:.1}", r.qdrant_ms),
+            format!("{:.2}×", r.qdrant_ms / r.slag_ms),
+            opt4(r.slag_iou),
+            opt4(r.qdrant_iou),
+            format!("{:.1} ({})", r.build_s, r.segments),
+        ]);
+    }
+    format!(
         "Qdrant Edge 0.9.0 side by side (same rows, same {} queries, top-{}, answered \
          alternately; Dot distance on unit rows; Qdrant's search pool and slag's rayon pool \
-         both {} threads; IoU = mean top-k IoU against slag's exact f32 answer):\n\n\
-         | N | slag dtype | slag top-k ms | Qdrant Edge | Qdrant ms | Qdrant ÷ slag | slag IoU | \
-         Qdrant IoU | Qdrant build s (segments) |\n|---|---|---|---|---|---|---|---|---|\n",
+         both {} threads; IoU = mean top-k IoU against slag's exact f32 answer):\n\n{t}",
         args.queries,
         args.top_k,
         rayon::current_num_threads()
-    );
-    let f = |x: Option<f64>| x.map_or_else(|| "n/a".to_string(), |v| format!("{v:.4}"));
-    for r in rows {
-        out.push_str(&format!(
-            "| {} | {} | {:.1} | {} | {:.1} | {:.2}× | {} | {} | {:.1} ({}) |\n",
-            fmt_size(r.size),
-            dtype_name(r.dtype),
-            r.slag_ms,
-            r.label,
-            r.qdrant_ms,
-            r.qdrant_ms / r.slag_ms,
-            f(r.slag_iou),
-            f(r.qdrant_iou),
-            r.build_s,
-            r.segments
-        ));
-    }
-    out
+    )
 }
 
 /// Mean IoU of `sets[i]` with `exact[i]` (`None` when `exact` is empty).
-#[cfg_attr(not(feature = "qdrant-edge"), allow(dead_code))]
-fn mean_iou(
-    sets: &[std::collections::HashSet<usize>],
-    exact: &[std::collections::HashSet<usize>],
-) -> Option<f64> {
+fn mean_iou(sets: &[HashSet<usize>], exact: &[HashSet<usize>]) -> Option<f64> {
     (!exact.is_empty()).then(|| {
         sets.iter().zip(exact).map(|(a, b)| iou(a, b)).sum::<f64>() / sets.len().max(1) as f64
     })
@@ -845,10 +921,7 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
         .collect();
     let q1 = kernels::Queries::new([qv[0].as_slice()]);
     let q5 = kernels::Queries::new([&qv[0], &qv[1], &qv[2], &qv[3], &qv[4]].map(|v| v.as_slice()));
-    let mut out = format!(
-        "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n\
-         | dtype | Q | SIMD | ns/row | row GB/s |\n|---|---|---|---|---|\n"
-    );
+    let mut t = Table::new(["dtype", "Q", "SIMD", "ns/row", "row GB/s"]);
     for &dtype in dtypes {
         let store = VectorStore::synthetic(n, dim, dtype, CLUSTERS, args.seed)?;
         let bytes = store.vector_bytes() as f64;
@@ -866,16 +939,19 @@ fn kernel_table(args: &BenchArgs, dtypes: &[Dtype]) -> anyhow::Result<String> {
                     }
                     best = best.min(t / 20.0);
                 }
-                out.push_str(&format!(
-                    "| {} | {q} | {level:?} | {:.1} | {:.1} |\n",
-                    dtype_name(dtype),
-                    best * 1e9 / n as f64,
-                    bytes / best / 1e9
-                ));
+                t.row([
+                    dtype_name(dtype).to_string(),
+                    q.to_string(),
+                    format!("{level:?}"),
+                    format!("{:.1}", best * 1e9 / n as f64),
+                    format!("{:.1}", bytes / best / 1e9),
+                ]);
             }
         }
     }
-    Ok(out)
+    Ok(format!(
+        "Kernel ceiling (1 thread, {n} rows × {dim} resident in cache, best of 5 × 20 passes):\n\n{t}"
+    ))
 }
 
 #[cfg(test)]

@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use slag_common::objects::{Matches, ObjectParams, group_objects};
 use slag_common::rng::SplitMix64;
+use slag_common::table::Table;
 
 use super::{BenchArgs, fmt_size, median};
 
@@ -77,24 +78,20 @@ pub(super) fn table(args: &BenchArgs) -> anyhow::Result<String> {
         last = Some(o);
     }
     let o = last.ok_or_else(|| anyhow::anyhow!("--queries must be at least 1"))?;
-    let mut out = format!(
+    let mut t = Table::with_header("matches | objects | groups suppressed | group_objects ms");
+    t.row([
+        fmt_size(n),
+        o.groups.to_string(),
+        o.suppressed.to_string(),
+        format!("{:.1}", median(ts)),
+    ]);
+    Ok(format!(
         "Objects: grouping {} matching Gaussians ({BOXES} box shells of 0.3–1 m, {:.0} % strays \
-         in a 10 × 8 × 3 m room; gap {} m, minimum {} Gaussians; one thread, median of {} runs)\n\n",
+         in a 10 × 8 × 3 m room; gap {} m, minimum {} Gaussians; one thread, median of {} runs)\n\n{t}",
         fmt_size(n),
         STRAY * 100.0,
         o.gap,
         p.min_gaussians,
         args.queries
-    );
-    out.push_str(
-        "| matches | objects | groups suppressed | group_objects ms |\n|---|---|---|---|\n",
-    );
-    out.push_str(&format!(
-        "| {} | {} | {} | {:.1} |\n",
-        fmt_size(n),
-        o.groups,
-        o.suppressed,
-        median(ts)
-    ));
-    Ok(out)
+    ))
 }
