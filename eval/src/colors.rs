@@ -20,6 +20,7 @@ use slag_common::text::TextEncoder;
 use slag_encoder::config::RasterBackend;
 use slag_encoder::pipeline::build::make_rasterizer;
 use slag_encoder::pipeline::scene_ply;
+use slag_encoder::raster::WeightRasterizer;
 
 use crate::heldout;
 
@@ -830,37 +831,15 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         .collect::<anyhow::Result<Vec<_>>>()?;
     let t0 = Instant::now();
     let views = camera::load_views(&a.scene)?;
-    let held = slag_encoder::views::held_out_indices(views.len(), every)?;
-    if held.is_empty() {
-        return Err(Error::param(
-            "every",
-            every,
-            format!(
-                "a smaller every: {} has {} views, none with an index ≡ {} (mod {every})",
-                a.scene.display(),
-                views.len(),
-                every / 2
-            ),
-        )
-        .into());
-    }
+    let held = held_out_of(&a.scene, views.len(), every)?;
     let n = inputs.gaussians.len();
     let c = inputs.classes.len();
     let names = &inputs.classes.names;
     let slag_scores = heldout::gaussian_scores(&inputs.emb, &inputs.text_embeds, n)?;
     let mut rasterizer = make_rasterizer(a.rasterizer, &inputs.gaussians)?;
 
-    // Oracle: lift the encoded views' photo classes at the encoder's raster scale.
-    let mut oracle = heldout::OracleLifting::new(n, c)?;
     let encoded = encoded_views(&views, &settings, every)?;
-    for v in &encoded {
-        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
-        let photo = slag_encoder::pipeline::read_image(v)?;
-        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
-        oracle
-            .add_view(rasterizer.as_mut(), &intr, &v.world_to_camera, &truth)
-            .with_context(|| format!("oracle lifting of view {}", v.name))?;
-    }
+    let oracle = lift_oracle(&inputs, rasterizer.as_mut(), &encoded, raster_scale)?;
     let oracle_scores = oracle.scores();
     let photo_truth = if segment_sets.is_empty() {
         None
@@ -893,20 +872,10 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     }
 
     // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
-    let mut tally = heldout::HeldOutTally::new(c, 2 + variants.len());
     let mut tables: Vec<&[f32]> = vec![&slag_scores, &oracle_scores];
     tables.extend(variants.iter().map(|v| v.scores.as_slice()));
-    for &i in &held {
-        let v = &views[i];
-        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
-        let weights = rasterizer
-            .rasterize(&intr, &v.world_to_camera)
-            .with_context(|| format!("rendering held-out view {}", v.name))?;
-        let photo = slag_encoder::pipeline::read_image(v)?;
-        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
-        tally.add_view(&weights, &truth, &tables, n)?;
-        tracing::info!("held-out view {} scored", v.name);
-    }
+    let held_views: Vec<&camera::View> = held.iter().map(|&i| &views[i]).collect();
+    let tally = tally_held_out(&inputs, rasterizer.as_mut(), &held_views, &tables)?;
     let slag = tally.score(&tally.predictors[0], names);
     let oracle_score = tally.score(&tally.predictors[1], names);
     let majority = tally.score(&tally.majority(), names);
@@ -952,6 +921,72 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         segment_quality,
         photo_truth,
     })
+}
+
+/// The held-out view indices of a scene of `views` views at step `every`.
+///
+/// Errors: [`Error::Param`] `every` when it holds out no view.
+fn held_out_of(scene: &Path, views: usize, every: usize) -> anyhow::Result<Vec<usize>> {
+    let held = slag_encoder::views::held_out_indices(views, every)?;
+    if held.is_empty() {
+        return Err(Error::param(
+            "every",
+            every,
+            format!(
+                "a smaller every: {} has {views} views, none with an index ≡ {} (mod {every})",
+                scene.display(),
+                every / 2
+            ),
+        )
+        .into());
+    }
+    Ok(held)
+}
+
+/// The oracle: the encoded views' photo classes lifted onto the Gaussians at the encoder's
+/// raster scale.
+///
+/// Errors: unreadable photos, rasterizer failures.
+fn lift_oracle(
+    inputs: &Inputs,
+    rasterizer: &mut dyn WeightRasterizer,
+    encoded: &[&camera::View],
+    raster_scale: f64,
+) -> anyhow::Result<heldout::OracleLifting> {
+    let mut oracle = heldout::OracleLifting::new(inputs.gaussians.len(), inputs.classes.len())?;
+    for v in encoded {
+        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, raster_scale)?;
+        let photo = slag_encoder::pipeline::read_image(v)?;
+        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
+        oracle
+            .add_view(rasterizer, &intr, &v.world_to_camera, &truth)
+            .with_context(|| format!("oracle lifting of view {}", v.name))?;
+    }
+    Ok(oracle)
+}
+
+/// Every score table of `tables` on the pixels of the held-out `views`, rendered at full
+/// resolution against each photo's classes.
+///
+/// Errors: unreadable photos, rasterizer failures, tables of another size.
+fn tally_held_out(
+    inputs: &Inputs,
+    rasterizer: &mut dyn WeightRasterizer,
+    views: &[&camera::View],
+    tables: &[&[f32]],
+) -> anyhow::Result<heldout::HeldOutTally> {
+    let mut tally = heldout::HeldOutTally::new(inputs.classes.len(), tables.len());
+    for v in views {
+        let intr = slag_encoder::raster::raster_intrinsics(&v.intrinsics, 1.0)?;
+        let weights = rasterizer
+            .rasterize(&intr, &v.world_to_camera)
+            .with_context(|| format!("rendering held-out view {}", v.name))?;
+        let photo = slag_encoder::pipeline::read_image(v)?;
+        let truth = heldout::photo_classes(&inputs.classes, &photo, intr.width, intr.height)?;
+        tally.add_view(&weights, &truth, tables, inputs.gaussians.len())?;
+        tracing::info!("held-out view {} scored", v.name);
+    }
+    Ok(tally)
 }
 
 #[cfg(test)]

@@ -94,138 +94,159 @@ pub fn variant_tables(
     texts: &[Vec<f32>],
     n: usize,
 ) -> Result<Vec<VariantTable>> {
-    let c = texts.len();
     let mut out = Vec::new();
     for path in compare {
         let e = read_same_scene(path, n)?;
-        out.push(VariantTable {
-            name: "compare".into(),
-            source: path.clone(),
-            scores: gaussian_scores(&e, texts, n)?,
-            chosen_levels: Vec::new(),
-        });
+        out.push(plain(
+            "compare".into(),
+            path,
+            gaussian_scores(&e, texts, n)?,
+        ));
     }
     let dir = embeddings_path.parent().unwrap_or(Path::new("."));
+    out.extend(level_tables(dir, mean_scores, texts, n)?);
+    let mix_path = dir.join("mixture.safetensors");
+    if mix_path.exists() {
+        out.extend(mixture_tables(&mix_path, texts, n)?);
+    }
+    Ok(out)
+}
+
+/// A variant without chosen levels.
+fn plain(name: String, source: &Path, scores: Vec<f32>) -> VariantTable {
+    VariantTable {
+        name,
+        source: source.to_path_buf(),
+        scores,
+        chosen_levels: Vec::new(),
+    }
+}
+
+/// The per-level variants (each [`LevelRule`]) when every `embeddings-level{l}.safetensors` is in
+/// `dir`; none otherwise.
+fn level_tables(
+    dir: &Path,
+    mean_scores: &[f32],
+    texts: &[Vec<f32>],
+    n: usize,
+) -> Result<Vec<VariantTable>> {
     let level_paths: Vec<PathBuf> = (0..LEVELS)
         .map(|l| dir.join(format!("embeddings-level{l}.safetensors")))
         .collect();
-    if level_paths.iter().all(|p| p.exists()) {
-        let mut tables = Vec::new();
-        let mut has = Vec::new();
-        for p in &level_paths {
-            let e = read_same_scene(p, n)?;
-            let mut h = vec![false; n];
-            for &id in &e.ids {
-                if let Some(slot) = h.get_mut(id as usize) {
-                    *slot = true;
-                }
-            }
-            tables.push(gaussian_scores(&e, texts, n)?);
-            has.push(h);
-        }
-        let rules = (0..LEVELS)
-            .map(LevelRule::Fixed)
-            .chain([LevelRule::Select, LevelRule::Max]);
-        for rule in rules {
-            let (scores, chosen) = combine_levels(&tables, &has, mean_scores, c, rule)?;
-            out.push(VariantTable {
-                name: rule.name(),
-                source: dir.to_path_buf(),
-                scores,
-                chosen_levels: chosen,
-            });
-        }
+    if !level_paths.iter().all(|p| p.exists()) {
+        return Ok(Vec::new());
     }
-    let mix_path = dir.join("mixture.safetensors");
-    if mix_path.exists() {
-        let m = MixtureEmbeddings::read(&mix_path)?;
-        let unit_texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
-        let spread = |per_class: Vec<Vec<f32>>| -> Result<Vec<f32>> {
-            let mut t = vec![0f32; n * c];
-            for (cls, col) in per_class.iter().enumerate() {
-                for (&id, &v) in m.gaussian_ids.iter().zip(col) {
-                    let slot = t.get_mut(id as usize * c + cls).ok_or_else(|| {
-                        Error::mismatch(
-                            slag_common::Mismatched::Scene,
-                            format!(
-                                "{}: Gaussian {id} outside the scene's {n}",
-                                mix_path.display()
-                            ),
-                        )
-                    })?;
-                    *slot = v;
-                }
+    let mut tables = Vec::new();
+    let mut has = Vec::new();
+    for p in &level_paths {
+        let e = read_same_scene(p, n)?;
+        let mut h = vec![false; n];
+        for &id in &e.ids {
+            if let Some(slot) = h.get_mut(id as usize) {
+                *slot = true;
             }
-            Ok(t)
-        };
+        }
+        tables.push(gaussian_scores(&e, texts, n)?);
+        has.push(h);
+    }
+    let rules = (0..LEVELS)
+        .map(LevelRule::Fixed)
+        .chain([LevelRule::Select, LevelRule::Max]);
+    let mut out = Vec::new();
+    for rule in rules {
+        let (scores, chosen) = combine_levels(&tables, &has, mean_scores, texts.len(), rule)?;
         out.push(VariantTable {
-            name: format!("mixture-mean-S{}", m.keep),
-            source: mix_path.clone(),
-            scores: spread(m.scores_many(&unit_texts)?)?,
-            chosen_levels: Vec::new(),
+            name: rule.name(),
+            source: dir.to_path_buf(),
+            scores,
+            chosen_levels: chosen,
         });
-        // The mean over each Gaussian's `s` strongest masks only (slots are ordered by weight).
-        for s in [1usize, 2, 4, 8].into_iter().filter(|&s| s < m.keep) {
-            let mut cut = m.clone();
-            for (i, (a, w)) in cut.atoms.iter_mut().zip(cut.weights.iter_mut()).enumerate() {
-                if i % m.keep >= s {
-                    *a = slag_common::mixture::UNUSED;
-                    *w = 0.0;
-                }
+    }
+    Ok(out)
+}
+
+/// The mixture's Gaussians with `vectors` (one row each) as dense embeddings of a scene of `n`.
+fn mixture_dense(m: &MixtureEmbeddings, vectors: Vec<f32>, n: usize) -> Embeddings {
+    Embeddings {
+        ids: m.gaussian_ids.clone(),
+        means: m.means.clone(),
+        dim: m.dim,
+        vectors,
+        total_weights: vec![1.0; m.len()],
+        scene_gaussians: n as u64,
+        ..Embeddings::default()
+    }
+}
+
+/// The mixture variants of `mix_path`: its mean form, the mean over each Gaussian's `s` strongest
+/// masks, its robust mode and its max form over the top `s` masks.
+fn mixture_tables(mix_path: &Path, texts: &[Vec<f32>], n: usize) -> Result<Vec<VariantTable>> {
+    let c = texts.len();
+    let m = MixtureEmbeddings::read(mix_path)?;
+    let unit_texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
+    let spread = |per_class: Vec<Vec<f32>>| -> Result<Vec<f32>> {
+        let mut t = vec![0f32; n * c];
+        for (cls, col) in per_class.iter().enumerate() {
+            for (&id, &v) in m.gaussian_ids.iter().zip(col) {
+                let slot = t.get_mut(id as usize * c + cls).ok_or_else(|| {
+                    Error::mismatch(
+                        slag_common::Mismatched::Scene,
+                        format!(
+                            "{}: Gaussian {id} outside the scene's {n}",
+                            mix_path.display()
+                        ),
+                    )
+                })?;
+                *slot = v;
             }
-            let e = Embeddings {
-                ids: m.gaussian_ids.clone(),
-                means: m.means.clone(),
-                dim: m.dim,
-                vectors: cut.to_dense(),
-                total_weights: vec![1.0; m.len()],
-                scene_gaussians: n as u64,
-                ..Embeddings::default()
-            };
-            out.push(VariantTable {
-                name: format!("mixture-mean-S{s}"),
-                source: mix_path.clone(),
-                scores: gaussian_scores(&e, texts, n)?,
-                chosen_levels: Vec::new(),
-            });
         }
-        {
-            let kappa = MODE_KAPPA;
-            let modes = slag_encoder::aggregate::robust::mixture_modes(
-                &m,
-                kappa,
-                slag_encoder::aggregate::robust::MODE_ITERATIONS,
-            )?;
-            let e = Embeddings {
-                ids: m.gaussian_ids.clone(),
-                means: m.means.clone(),
-                dim: m.dim,
-                vectors: modes,
-                total_weights: vec![1.0; m.len()],
-                scene_gaussians: n as u64,
-                ..Embeddings::default()
-            };
-            out.push(VariantTable {
-                name: format!("mixture-mode-S{}-k{kappa}", m.keep),
-                source: mix_path.clone(),
-                scores: gaussian_scores(&e, texts, n)?,
-                chosen_levels: Vec::new(),
-            });
+        Ok(t)
+    };
+    let mut out = vec![plain(
+        format!("mixture-mean-S{}", m.keep),
+        mix_path,
+        spread(m.scores_many(&unit_texts)?)?,
+    )];
+    // The mean over each Gaussian's `s` strongest masks only (slots are ordered by weight).
+    for s in [1usize, 2, 4, 8].into_iter().filter(|&s| s < m.keep) {
+        let mut cut = m.clone();
+        for (i, (a, w)) in cut.atoms.iter_mut().zip(cut.weights.iter_mut()).enumerate() {
+            if i % m.keep >= s {
+                *a = slag_common::mixture::UNUSED;
+                *w = 0.0;
+            }
         }
-        let mut tops: Vec<usize> = [1, 2, 4, 8].into_iter().filter(|&s| s < m.keep).collect();
-        tops.push(m.keep);
-        for s in tops {
-            let per_class = unit_texts
-                .iter()
-                .map(|t| m.max_atom_scores(t, s))
-                .collect::<Result<Vec<_>>>()?;
-            out.push(VariantTable {
-                name: format!("mixture-max-S{s}"),
-                source: mix_path.clone(),
-                scores: spread(per_class)?,
-                chosen_levels: Vec::new(),
-            });
-        }
+        let e = mixture_dense(&m, cut.to_dense(), n);
+        out.push(plain(
+            format!("mixture-mean-S{s}"),
+            mix_path,
+            gaussian_scores(&e, texts, n)?,
+        ));
+    }
+    let kappa = MODE_KAPPA;
+    let modes = slag_encoder::aggregate::robust::mixture_modes(
+        &m,
+        kappa,
+        slag_encoder::aggregate::robust::MODE_ITERATIONS,
+    )?;
+    let e = mixture_dense(&m, modes, n);
+    out.push(plain(
+        format!("mixture-mode-S{}-k{kappa}", m.keep),
+        mix_path,
+        gaussian_scores(&e, texts, n)?,
+    ));
+    let mut tops: Vec<usize> = [1, 2, 4, 8].into_iter().filter(|&s| s < m.keep).collect();
+    tops.push(m.keep);
+    for s in tops {
+        let per_class = unit_texts
+            .iter()
+            .map(|t| m.max_atom_scores(t, s))
+            .collect::<Result<Vec<_>>>()?;
+        out.push(plain(
+            format!("mixture-max-S{s}"),
+            mix_path,
+            spread(per_class)?,
+        ));
     }
     Ok(out)
 }
