@@ -2,7 +2,7 @@
 //! (`slag-encoder encode --every 4`, `slag-edge serve --hnsw`, …) names a subcommand and flags
 //! the binary has.
 //!
-//! Each binary's crate runs [`check`] in an integration test against its own built binary, over
+//! Each binary's crate runs [`check`] ([`check_binary`]) in an integration test against its own built binary, over
 //! `README.md` and every page of `docs/guide/` ([`manual_pages`]), so a page added later is
 //! covered without touching the test. Only code is read: fenced code blocks (with `\`
 //! continuation lines joined) and inline code spans; prose may name a flag in passing.
@@ -194,6 +194,51 @@ pub fn help_subcommands(help: &str) -> BTreeSet<String> {
         .take_while(|l| !l.trim().is_empty())
         .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
         .collect()
+}
+
+/// [`check`] against the built binary at `bin` (`binary` is its name in the manual), each help
+/// read by running it, through `$SLAG_TEST_RUNNER` when that is set (e.g. qemu under a cross
+/// build): what each binary's `docs_flags` integration test runs.
+///
+/// Errors: one message naming the binary: that it could not be started or failed on a `--help`,
+/// or [`check`]'s problems, one per line.
+pub fn check_binary(binary: &str, bin: &Path, root: &Path) -> std::result::Result<usize, String> {
+    let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
+    let failure = std::cell::RefCell::new(None::<String>);
+    let help = |args: &[&str]| {
+        let mut parts = runner.split_whitespace();
+        let mut c = match parts.next() {
+            Some(r) => {
+                let mut c = std::process::Command::new(r);
+                c.args(parts).arg(bin);
+                c
+            }
+            None => std::process::Command::new(bin),
+        };
+        match c.args(args).output() {
+            Ok(out) if out.status.success() => String::from_utf8_lossy(&out.stdout).into_owned(),
+            outcome => {
+                let why = match outcome {
+                    Ok(out) => out.status.to_string(),
+                    Err(e) => e.to_string(),
+                };
+                failure
+                    .borrow_mut()
+                    .get_or_insert(format!("`{binary} {}` failed: {why}", args.join(" ")));
+                String::new()
+            }
+        }
+    };
+    let checked = check(binary, root, &help);
+    if let Some(f) = failure.into_inner() {
+        return Err(f);
+    }
+    checked.map_err(|problems| {
+        format!(
+            "the manual shows what `{binary}` does not have:\n{}",
+            problems.join("\n")
+        )
+    })
 }
 
 /// Checks every command line of `binary` in the manual of the repository at `root` against the
