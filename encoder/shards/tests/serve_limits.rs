@@ -15,33 +15,14 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 /// Limits with one address allowed every slot (the global connection limit alone).
 fn limits(header_s: u64, write_s: u64, max_connections: usize) -> ServerLimits {
     ServerLimits {
-        header_timeout: Duration::from_secs(header_s),
         write_timeout: Duration::from_secs(write_s),
-        max_connections,
-        max_connections_per_ip: max_connections,
-        ..ServerLimits::default()
+        ..support::limits(header_s, max_connections, max_connections)
     }
 }
 
 /// A served store of one small scene `lab`; returns `host:port`.
 async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::TempDir) {
-    let (dir, store) = support::lab_store();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let token = token.map(str::to_string);
-    tokio::spawn(async move {
-        slag_shards::serve::serve_with_limits(
-            store,
-            "127.0.0.1:0".parse().unwrap(),
-            token,
-            limits,
-            |a| {
-                let _ = tx.send(a);
-            },
-        )
-        .await
-        .unwrap();
-    });
-    (rx.await.unwrap().to_string(), dir)
+    support::serve_lab(token, limits, None).await
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

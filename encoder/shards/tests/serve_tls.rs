@@ -23,23 +23,7 @@ use tokio::io::AsyncWriteExt;
 
 /// The lab store served over TLS with `tls` under `limits`; returns `127.0.0.1:port`.
 async fn start(tls: Arc<ServerTls>, limits: ServerLimits) -> (String, tempfile::TempDir) {
-    let (dir, store) = support::lab_store();
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    tokio::spawn(async move {
-        slag_shards::serve::serve_with_tls(
-            store,
-            "127.0.0.1:0".parse().unwrap(),
-            None,
-            limits,
-            Some(tls),
-            |a| {
-                let _ = tx.send(a);
-            },
-        )
-        .await
-        .unwrap();
-    });
-    (rx.await.unwrap().to_string(), dir)
+    support::serve_lab(None, limits, Some(tls)).await
 }
 
 /// The lab store served over TLS under `limits` with a certificate of a new CA: the address, a
@@ -58,13 +42,7 @@ async fn start_certified(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn https_answers_and_a_stalled_handshake_is_closed_and_frees_its_slot() {
-    let (addr, client, der, _dirs) = start_certified(ServerLimits {
-        header_timeout: Duration::from_secs(1),
-        max_connections: 1,
-        max_connections_per_ip: 1,
-        ..ServerLimits::default()
-    })
-    .await;
+    let (addr, client, der, _dirs) = start_certified(support::limits(1, 1, 1)).await;
     let (status, _, body, cert) = exchange_tls(&addr, &client, &get("/v1/scenes", "")).await;
     assert_eq!(status, 200, "{body}");
     assert!(body.contains("lab"), "{body}");
@@ -94,13 +72,7 @@ async fn https_answers_and_a_stalled_handshake_is_closed_and_frees_its_slot() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_address_over_its_share_gets_its_429_over_tls() {
-    let (addr, client, _, _dirs) = start_certified(ServerLimits {
-        header_timeout: Duration::from_secs(30),
-        max_connections: 8,
-        max_connections_per_ip: 2,
-        ..ServerLimits::default()
-    })
-    .await;
+    let (addr, client, _, _dirs) = start_certified(support::limits(30, 8, 2)).await;
     let _held = [
         tls_connect(&addr, &client).await,
         tls_connect(&addr, &client).await,
