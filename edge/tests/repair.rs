@@ -19,9 +19,9 @@ use slag_edge::fetch::{FetchParams, FetchSummary, fetch};
 use slag_edge::query::RawQuery;
 use slag_edge::store::EdgeStore;
 use support::{
-    BasisEmbedder, color_clip_text_model, exact_answer, grid_fetch_params, grid_scene,
-    open_after_drop, output_blocking, partial_files, serve_on_loopback, shard_path, shard_server,
-    slag_edge_with_log, success_json, temp_store, text_model_args,
+    BasisEmbedder, exact_answer, grid_fetch_params, grid_scene, open_after_drop, output_blocking,
+    partial_files, serve_on_loopback, shard_path, shard_server, slag_edge_with_log, success_json,
+    temp_store, text_model_args,
 };
 
 fn params(url: &str) -> FetchParams {
@@ -408,12 +408,9 @@ async fn post_fetch_sends_the_configured_shard_token() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn check_fails_naming_missing_corrupt_and_zero_shards() {
-    if support::skip_without_ort() {
+    let Some((server, [tm, tok])) = support::clip_grid_server().await else {
         return;
-    }
-    // 512-d so that color-clip's text tower fits the stored embeddings.
-    let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
-    let [tm, tok] = color_clip_text_model();
+    };
     let check = |store: &Path| {
         let s = store.display().to_string();
         slag_edge(&text_model_args("check", &s, "grid", [&tm, &tok]))

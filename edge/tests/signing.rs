@@ -229,6 +229,14 @@ impl Edge {
     }
 }
 
+/// `e` is [`Error::Untrusted`] for `what`.
+fn assert_untrusted(e: &Error, what: Untrusted) {
+    assert!(
+        matches!(e, Error::Untrusted { what: w, .. } if *w == what),
+        "{e}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_trusted_key_refuses_every_tampering_and_the_last_good_generation_keeps_serving() {
     let publisher = SigningKey::generate();
@@ -356,32 +364,14 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
     let e = store
         .verify_signed("grid", Some(&SigningKey::generate().public()))
         .unwrap_err();
-    assert!(
-        matches!(
-            e,
-            Error::Untrusted {
-                what: Untrusted::OtherKey,
-                ..
-            }
-        ),
-        "{e}"
-    );
+    assert_untrusted(&e, Untrusted::OtherKey);
     // A stored shard rewritten in place with its CRC-32 kept: the CRC check passes, the
     // SHA-256 does not.
     let s = scene("grid", 1);
     let path = support::shard_path(&store, 0);
     std::fs::write(&path, rewrite_tile(&s)).unwrap();
     let e = store.verify_signed("grid", Some(&trusted)).unwrap_err();
-    assert!(
-        matches!(
-            e,
-            Error::Untrusted {
-                what: Untrusted::ContentHash,
-                ..
-            }
-        ),
-        "{e}"
-    );
+    assert_untrusted(&e, Untrusted::ContentHash);
     assert!(e.to_string().contains("tile 0"), "{e}");
     // A signed fetch sets the rewritten file aside and downloads the tile again.
     let summary = fetch(&store, &signed_params(&server.url, &trusted))
@@ -481,16 +471,7 @@ async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
     let e = fetch(&store, &signed_params(&server.url, &trusted))
         .await
         .unwrap_err();
-    assert!(
-        matches!(
-            e,
-            Error::Untrusted {
-                what: Untrusted::ContentHash,
-                ..
-            }
-        ),
-        "{e}"
-    );
+    assert_untrusted(&e, Untrusted::ContentHash);
     assert!(e.to_string().contains("the codebook"), "{e}");
     println!("codebook changed on the way: {e}");
     let committed = {

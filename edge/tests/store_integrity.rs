@@ -19,9 +19,9 @@ use slag_edge::engine::Engine;
 use slag_edge::fetch::fetch;
 use slag_edge::store::{EdgeStore, FetchRecord, Stored};
 use support::{
-    BasisEmbedder, color_clip_text_model, error_message, grid_fetch_params, grid_scene,
-    grid_serve_options, open_after_drop, output_blocking, send_json, serve_store, shard_path,
-    shard_server, slag_edge_with_log, temp_store, text_model_args,
+    BasisEmbedder, error_message, grid_fetch_params, grid_scene, grid_serve_options,
+    open_after_drop, output_blocking, send_json, serve_store, shard_path, shard_server,
+    slag_edge_with_log, temp_store, text_model_args,
 };
 
 /// `err` is the refusal of a manifest that is not a set.
@@ -272,12 +272,9 @@ async fn a_database_folder_holding_a_link_or_a_fifo_is_set_aside_and_rebuilt() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn check_names_every_entry_that_is_not_a_regular_verified_shard_without_hanging() {
-    if support::skip_without_ort() {
+    let Some((server, [tm, tok])) = support::clip_grid_server().await else {
         return;
-    }
-    // 512-d so that color-clip's text tower fits the stored embeddings.
-    let server = shard_server(grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1), None).await;
-    let [tm, tok] = color_clip_text_model();
+    };
     for (i, (kind, replace)) in replacements().into_iter().enumerate() {
         let dir = tempfile::tempdir().unwrap();
         let outside = tempfile::tempdir().unwrap();

@@ -609,6 +609,17 @@ pub fn skip_without_ort() -> bool {
     true
 }
 
+/// A shard server of scene `grid` at 512-d (2 × 2 tiles of 10 f16 rows: color-clip's text tower
+/// fits the stored embeddings) and [`color_clip_text_model`]; `None` where [`skip_without_ort`]
+/// says to skip.
+pub async fn clip_grid_server() -> Option<(ShardServer, [String; 2])> {
+    if skip_without_ort() {
+        return None;
+    }
+    let scene = grid_scene("grid", 2, 2, 10, 512, Dtype::F16, 1);
+    Some((shard_server(scene, None).await, color_clip_text_model()))
+}
+
 /// The fetch parameters the tests start from: scene `grid` from `url`, a disc of `radius` around
 /// the ground origin, 2 jobs, no retries, a 10 s timeout, no pruning, no token.
 pub fn grid_fetch_params(url: &str, radius: f64) -> FetchParams {
