@@ -155,6 +155,21 @@ def multi_head_attention(torch):
     return Mha
 
 
+def fuse_blocks(blocks, fuse, none_found):
+    """Replaces each block's `attn` by `fuse(attn)` (a block whose `fuse` gives None keeps its
+    own); dies with `none_found` when no block was fused. Returns the count fused."""
+    count = 0
+    for block in blocks:
+        fused = fuse(getattr(block, "attn", None))
+        if fused is None:
+            continue
+        block.attn = fused
+        count += 1
+    if count == 0:
+        die(none_found)
+    return count
+
+
 def fuse_attention(torch, tower):
     """Replaces every self-attention `nn.MultiheadAttention` of `tower` (open_clip's visual
     transformer) by one ONNX Runtime `com.microsoft::MultiHeadAttention` node in the export: the
@@ -177,19 +192,16 @@ def fuse_attention(torch, tower):
             q, k, v = torch.nn.functional.linear(q_x, self.weight, self.bias).chunk(3, dim=-1)
             return self.out_proj(Mha.apply(q, k, v, self.heads, None)), None
 
-    count = 0
-    for block in tower.transformer.resblocks:
-        mha = getattr(block, "attn", None)
+    def fuse(mha):
         if not isinstance(mha, torch.nn.MultiheadAttention):
-            continue
+            return None
         if not (mha.batch_first and mha._qkv_same_embed_dim and mha.in_proj_bias is not None):
             die("--fuse needs batch-first self-attention with a packed q/k/v projection "
                 "(open_clip >= 2.24); this model's attention differs")
-        block.attn = FusedAttention(mha)
-        count += 1
-    if count == 0:
-        die("--fuse found no attention block to fuse in this model's visual tower")
-    return count
+        return FusedAttention(mha)
+
+    return fuse_blocks(tower.transformer.resblocks, fuse,
+                       "--fuse found no attention block to fuse in this model's visual tower")
 
 
 def fuse_sam_attention(torch, encoder):
@@ -246,17 +258,14 @@ def fuse_sam_attention(torch, encoder):
             o = o.reshape(b, h, w, n, width + pad)[..., :d].reshape(b, h, w, c)
             return self.proj(o)
 
-    count = 0
-    for block in getattr(encoder, "blocks", []):
-        att = getattr(block, "attn", None)
+    def fuse(att):
         if not getattr(att, "use_rel_pos", False):
             die("--fuse (sam) needs attention with relative positions (segment_anything's "
                 "ImageEncoderViT); this encoder's attention differs")
-        block.attn = FusedRelPosAttention(att)
-        count += 1
-    if count == 0:
-        die("--fuse (sam) found no attention block in this image encoder")
-    return count
+        return FusedRelPosAttention(att)
+
+    return fuse_blocks(getattr(encoder, "blocks", []), fuse,
+                       "--fuse (sam) found no attention block in this image encoder")
 
 
 def check_fused_sam_encoder(torch, encoder, fused_encoder):
