@@ -307,9 +307,10 @@ pub struct Outputs {
     /// The cluster's per-worker and per-partition shares; `encode-cluster` only.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub cluster: Option<ClusterOutputs>,
-    /// The embeddings file.
-    pub embeddings: PathBuf,
-    /// Its size, bytes.
+    /// The dense embeddings file; `null` when not written (`encode` writes it only with
+    /// [`crate::config::OutputConfig::dense`]; the mixture is then the embeddings output).
+    pub embeddings: Option<PathBuf>,
+    /// Its size, bytes (0 when not written).
     pub embeddings_bytes: u64,
     /// The optional forms (mixture, levels), each `null` when not written; `encode` only.
     #[serde(flatten)]
@@ -621,7 +622,7 @@ mod tests {
                         worker: 0,
                     }],
                 }),
-                embeddings: "o/embeddings.safetensors".into(),
+                embeddings: Some("o/embeddings.safetensors".into()),
                 embeddings_bytes: 1000,
                 forms: (!cluster).then(|| FormOutputs {
                     levels: Some(vec![LevelOutput {

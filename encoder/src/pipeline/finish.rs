@@ -1,7 +1,7 @@
-//! The end of an encode: the reduction of every image's `a_kj` to `E_k` streamed into
-//! `embeddings.safetensors` (the mixture form gathered in the same pass), the optional forms
-//! (per-level files, the mixture), and `report.json`, written last so that its presence means
-//! the run completed.
+//! The end of an encode: the reduction of every image's `a_kj` to the mixture form
+//! (`mixture.safetensors`, the default output) and, when asked, to the dense `E_k` streamed into
+//! `embeddings.safetensors` in the same pass; the per-level files; and `report.json`, written
+//! last so that its presence means the run completed.
 //!
 //! [`OutputFiles`] is the writing order both encoders keep: this process's ([`finish`]) and the
 //! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
@@ -17,11 +17,11 @@ use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, WeightRasterizer};
-use slag_common::mixture::SparseMixture;
 use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
+use slag_common::mixture::SparseMixture;
 
-/// The two files every encode writes into its output folder: the embeddings, then the report,
-/// last.
+/// The two files an encode writes into its output folder, each path whether written or not: the
+/// dense embeddings (a one-process encode writes them only when asked), then the report, last.
 pub(crate) struct OutputFiles {
     /// `<out>/embeddings.safetensors`.
     pub(crate) embeddings: PathBuf,
@@ -43,8 +43,8 @@ impl OutputFiles {
         Ok(files)
     }
 
-    /// Records the outputs in `report` (the embeddings' size read back from disk; `cluster` and
-    /// `forms` as given) and writes it to `report.json` atomically: the run's last file.
+    /// Records the outputs in `report` (the dense embeddings file and its size read back from
+    /// disk, `null` and 0 when this run did not write it; `cluster` and `forms` as given) and writes it to `report.json` atomically: the run's last file.
     ///
     /// Errors: the report cannot be serialised ([`Error::Internal`]), I/O.
     pub(crate) fn write_report(
@@ -54,12 +54,14 @@ impl OutputFiles {
         cluster: Option<ClusterOutputs>,
         forms: Option<FormOutputs>,
     ) -> Result<Report> {
-        let embeddings_bytes = std::fs::metadata(&self.embeddings)
-            .map(|m| m.len())
-            .unwrap_or(0);
+        // A dense file of an earlier run is removed before the reduction: one here is this run's.
+        let (embeddings, embeddings_bytes) = match std::fs::metadata(&self.embeddings) {
+            Ok(m) => (Some(self.embeddings.clone()), m.len()),
+            Err(_) => (None, 0),
+        };
         report.outputs = Outputs {
             cluster,
-            embeddings: self.embeddings.clone(),
+            embeddings,
             embeddings_bytes,
             forms,
             precision,
@@ -84,9 +86,9 @@ pub(crate) fn remove_stale(path: &Path) -> Result<()> {
 }
 
 /// Reduces what the pool left ([`Pooled`]) and writes the outputs of `scene`'s encode into
-/// [`EncodeParams::out_dir`]: `embeddings.safetensors`, the level files with
-/// [`EncodeParams::levels`], `mixture.safetensors` with [`EncodeParams::mixture_keep`], each
-/// atomically, then `report.json` (`report` completed with the models, the workers' shares,
+/// [`EncodeParams::out_dir`]: `mixture.safetensors` with [`EncodeParams::mixture_keep`],
+/// `embeddings.safetensors` with [`EncodeParams::dense`], the level files with
+/// [`EncodeParams::levels`], each atomically, then `report.json` (`report` completed with the models, the workers' shares,
 /// timings counted from `t_total` and counts).
 ///
 /// Errors: the reduction's, I/O on the outputs; nothing that looks complete is left then.
@@ -130,44 +132,29 @@ pub(crate) fn finish(
     };
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
-    // The reduction streams chunk by chunk into the file: the [N, D] matrix is never in memory.
-    // With the mixture, the same pass also keeps each Gaussian's largest a_kj and the codebook
-    // (one f64 reduction for both forms).
-    let t0 = Instant::now();
-    let writer = EmbeddingsWriter::create(&files.embeddings, dim, params.precision)?;
-    let p = params.reduce;
-    let (streamed, sparse, gather_s) = match (one_device(device)?, params.mixture_keep) {
-        (Some(mut rasterizer), _) => {
-            let (streamed, sparse) =
-                reduce_on_device(&mut *rasterizer, &means, dim, params, writer, &model_id)?;
+    let tail = match one_device(device)? {
+        Some(mut rasterizer) => {
             counts.device_reduce = true;
-            (streamed, sparse, 0.0)
+            reduce_on_device(
+                &mut *rasterizer,
+                &means,
+                dim,
+                params,
+                &model_id,
+                &files.embeddings,
+            )?
         }
-        (None, Some(keep)) => {
-            let m = aggregate::reduce_to_writer_with_mixture(
-                &store, &means, dim, p, writer, keep, &model_id,
-            )?;
-            (m.streamed, Some(m.sparse), m.gather_s)
-        }
-        (None, None) => (
-            aggregate::reduce_to_writer(&store, &means, dim, p, writer)?,
-            None,
-            0.0,
-        ),
+        None => reduce_outputs(&store, &means, dim, params, &model_id, &files.embeddings)?,
     };
-    let aggregate::Streamed {
-        chunks,
-        writer,
-        reduce_s,
-    } = streamed;
-    let write_tail_s = t0.elapsed().as_secs_f64() - reduce_s;
     // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
-    t.reduce = reduce_s - gather_s;
+    t.reduce = tail.reduce_s - tail.gather_s;
     counts.spilled_images = store.spilled();
-    counts.reduce_chunks = chunks;
-    counts.observed = writer.len();
-    counts.observed_fraction = writer.len() as f64 / n_gaussians.max(1) as f64;
+    counts.reduce_chunks = tail.chunks;
+    counts.observed = tail.observed;
+    counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
+    let (writer, sparse, gather_s, write_tail_s) =
+        (tail.writer, tail.sparse, tail.gather_s, tail.write_s);
     // The mixture's stored form is built after the store's entries are freed, so that its
     // buffers never add to them.
     let t0 = Instant::now();
@@ -208,11 +195,13 @@ pub(crate) fn finish(
     let levels_s = t0.elapsed().as_secs_f64();
 
     let t0 = Instant::now();
-    writer.finish(
-        &model_id,
-        n_gaussians as u64,
-        &scene.ply.display().to_string(),
-    )?;
+    if let Some(writer) = writer {
+        writer.finish(
+            &model_id,
+            n_gaussians as u64,
+            &scene.ply.display().to_string(),
+        )?;
+    }
     let mix_path = params.out_dir.join("mixture.safetensors");
     match &mixture {
         Some(m) => m.write(&mix_path)?,
@@ -241,9 +230,7 @@ pub(crate) fn finish(
 /// one's views imported ([`WeightRasterizer::import_kept`]); `None` without any.
 ///
 /// Errors: the devices' (reading the others' sums back).
-fn one_device(
-    device: Vec<Box<dyn WeightRasterizer>>,
-) -> Result<Option<Box<dyn WeightRasterizer>>> {
+fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn WeightRasterizer>>> {
     let mut rasterizers = device.into_iter();
     let Some(mut first) = rasterizers.next() else {
         return Ok(None);
@@ -257,10 +244,11 @@ fn one_device(
 }
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]):
-/// each tile's unit rows handed to a writer thread for `writer` (with `means`, the Gaussians'
-/// centres), so that the next tile is reduced while one is written, and with
+/// with [`EncodeParams::dense`] each tile's unit rows handed to a writer thread for the dense
+/// file at `embeddings` (with `means`, the Gaussians' centres), so that the next tile is reduced
+/// while one is written (without it the device makes no row), and with
 /// [`EncodeParams::mixture_keep`] the kept pairs gathered into the mixture's sparse rows over the
-/// codebook of the kept views' mask embeddings. `Streamed::reduce_s` runs until the last tile
+/// codebook of the kept views' mask embeddings. The reduction's seconds run until the last tile
 /// was handed on.
 ///
 /// Errors: the device's; the writer's (I/O, non-finite rows), which take precedence over the
@@ -271,14 +259,15 @@ fn reduce_on_device(
     means: &[[f32; 3]],
     dim: usize,
     params: &EncodeParams,
-    writer: EmbeddingsWriter,
     model_id: &str,
-) -> Result<(aggregate::Streamed, Option<SparseMixture>)> {
+    embeddings: &Path,
+) -> Result<ReducedOutputs> {
     let t0 = Instant::now();
+    let writer = dense_writer(params, dim, embeddings)?;
     let p = DeviceReduce {
         min_total_weight: params.reduce.min_total_weight,
         keep: params.mixture_keep.unwrap_or(1),
-        dense: true,
+        dense: params.dense,
     };
     let mut sparse = params.mixture_keep.map(|_| SparseMixture {
         dim,
@@ -289,10 +278,12 @@ fn reduce_on_device(
     type Rows = (Vec<u32>, Vec<[f32; 3]>, Vec<f32>, Vec<f32>);
     std::thread::scope(|s| {
         let (tx, rx) = std::sync::mpsc::sync_channel::<Rows>(1);
-        let handle = s.spawn(move || -> Result<EmbeddingsWriter> {
+        let handle = s.spawn(move || -> Result<Option<EmbeddingsWriter>> {
             let mut writer = writer;
             for (ids, run_means, rows, weights) in rx {
-                writer.push(&ids, &run_means, &rows, &weights)?;
+                if let Some(w) = writer.as_mut() {
+                    w.push(&ids, &run_means, &rows, &weights)?;
+                }
             }
             Ok(writer)
         });
@@ -321,12 +312,20 @@ fn reduce_on_device(
         if let Some(s) = sparse.as_mut() {
             s.codebook = out.codebook;
         }
-        let streamed = aggregate::Streamed {
-            writer,
-            chunks: out.tiles,
-            reduce_s,
+        let observed = match (&writer, &sparse) {
+            (Some(w), _) => w.len(),
+            (None, Some(s)) => s.gaussian_ids.len(),
+            (None, None) => 0,
         };
-        Ok((streamed, sparse))
+        Ok(ReducedOutputs {
+            writer,
+            sparse,
+            chunks: out.tiles,
+            observed,
+            reduce_s,
+            gather_s: 0.0,
+            write_s: t0.elapsed().as_secs_f64() - reduce_s,
+        })
     })
 }
 
@@ -342,4 +341,99 @@ fn push_kept(s: &mut SparseMixture, ids: &[u32], means: &[[f32; 3]], kept: Vec<V
         }
         s.offsets.push(s.atoms.len());
     }
+}
+
+/// What the tail's reduction leaves ([`reduce_outputs`]).
+struct ReducedOutputs {
+    /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
+    writer: Option<EmbeddingsWriter>,
+    /// The mixture's sparse parts; with [`EncodeParams::mixture_keep`].
+    sparse: Option<SparseMixture>,
+    /// Gaussian-id chunks of the pass.
+    chunks: usize,
+    /// Observed Gaussians (the rows of either form).
+    observed: usize,
+    /// Wall seconds of the reduction, `gather_s` included.
+    reduce_s: f64,
+    /// Seconds of it spent only on gathering the mixture's kept atoms (0 when the mixture is
+    /// the only form: then the whole pass is its reduction).
+    gather_s: f64,
+    /// Seconds of the dense write outside the reduction (0 without the dense file).
+    write_s: f64,
+}
+
+/// The tail's one f64 pass over `store`: with [`EncodeParams::dense`] the rows stream into
+/// `embeddings` (the `[N, D]` matrix is never in memory) and, with the mixture, the same pass
+/// keeps each Gaussian's largest `a_kj` and the codebook; without it only the mixture is
+/// reduced, no dense row is made, and an `embeddings` file of an earlier run is removed.
+///
+/// Errors: neither form asked for ([`Error::Invalid`]), the reduction's, I/O.
+fn reduce_outputs(
+    store: &aggregate::ContributionStore,
+    means: &[[f32; 3]],
+    dim: usize,
+    params: &EncodeParams,
+    model_id: &str,
+    embeddings: &Path,
+) -> Result<ReducedOutputs> {
+    let t0 = Instant::now();
+    let p = params.reduce;
+    let Some(writer) = dense_writer(params, dim, embeddings)? else {
+        let keep = params.mixture_keep.unwrap_or(1);
+        let (sparse, chunks) =
+            aggregate::reduce_mixture_chunks(store, means, dim, p, keep, model_id)?;
+        return Ok(ReducedOutputs {
+            writer: None,
+            observed: sparse.gaussian_ids.len(),
+            sparse: Some(sparse),
+            chunks,
+            reduce_s: t0.elapsed().as_secs_f64(),
+            gather_s: 0.0,
+            write_s: 0.0,
+        });
+    };
+    let (streamed, sparse, gather_s) = match params.mixture_keep {
+        Some(keep) => {
+            let m = aggregate::reduce_to_writer_with_mixture(
+                store, means, dim, p, writer, keep, model_id,
+            )?;
+            (m.streamed, Some(m.sparse), m.gather_s)
+        }
+        None => (
+            aggregate::reduce_to_writer(store, means, dim, p, writer)?,
+            None,
+            0.0,
+        ),
+    };
+    Ok(ReducedOutputs {
+        observed: streamed.writer.len(),
+        writer: Some(streamed.writer),
+        sparse,
+        chunks: streamed.chunks,
+        reduce_s: streamed.reduce_s,
+        gather_s,
+        write_s: t0.elapsed().as_secs_f64() - streamed.reduce_s,
+    })
+}
+
+/// The dense file's writer at `embeddings` with [`EncodeParams::dense`]; without it `None`, and
+/// a dense file of an earlier run there is removed.
+///
+/// Errors: neither form asked for ([`Error::Invalid`]), I/O.
+fn dense_writer(
+    params: &EncodeParams,
+    dim: usize,
+    embeddings: &Path,
+) -> Result<Option<EmbeddingsWriter>> {
+    if params.dense {
+        return EmbeddingsWriter::create(embeddings, dim, params.precision).map(Some);
+    }
+    if params.mixture_keep.is_none() {
+        return Err(Error::Invalid(
+            "no embeddings output: keep the mixture (mixture_keep) or ask for the dense file"
+                .into(),
+        ));
+    }
+    remove_stale(embeddings)?;
+    Ok(None)
 }
