@@ -20,12 +20,12 @@ PROMPTS=()
 for text in ${TEXT:-red pink}; do
   PROMPTS+=("$text")
   # The JSON answer is printed as before and kept in $OUT/query-<prompt>.json for the summary.
-  $BIN query --embeddings "$OUT/embeddings.safetensors" \
+  $BIN query --embeddings "$OUT/mixture.safetensors" \
     --clip-textual "$F/clip/color-clip-textual.onnx" --tokenizer "$F/clip/clip-tokenizer.json" \
     --text "$text" --top-k 5 --ply "$SCENE/point_cloud.ply" --highlight-out "$OUT/highlighted-$text.ply" \
     | tee "$OUT/query-$text.json"
 done
-echo "demo: wrote $OUT/embeddings.safetensors, $OUT/report.json, $OUT/highlighted-*.ply" >&2
+echo "demo: wrote $OUT/mixture.safetensors, $OUT/segments.safetensors, $OUT/report.json, $OUT/highlighted-*.ply" >&2
 
 # ---- summary ------------------------------------------------------------------------------------
 summary_line() { # prompt json-file

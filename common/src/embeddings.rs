@@ -172,11 +172,17 @@ impl Embeddings {
         safetensors_io::write(path, tensors, &meta)
     }
 
-    /// Reads a file written by [`Embeddings::write`] (either precision).
+    /// Reads a file written by [`Embeddings::write`] (either precision). To read the rows of
+    /// either stored form (this or the mixture), use [`crate::forms::read_rows`].
     ///
     /// Errors: not a safetensors file, another format or version, missing tensors, shapes that
-    /// disagree; each names the file.
+    /// disagree; the mixture file given, or a missing file with the mixture beside it
+    /// ([`crate::forms::dense_file_needed`]); each names the file.
     pub fn read(path: &Path) -> Result<Embeddings> {
+        // The mixture given, or only the mixture written: say how to get the dense file.
+        if let Some(e) = crate::forms::dense_file_needed(path) {
+            return Err(e);
+        }
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         let bad = |m: String| Error::format(path, m);
         let file = safetensors_io::open(path, &bytes, &KIND)?;

@@ -33,6 +33,7 @@ pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
 pub mod fault;
+pub mod forms;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;

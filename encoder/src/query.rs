@@ -13,7 +13,9 @@ use slag_common::text::TextEncoder;
 /// One prompt against one embeddings file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct QueryParams {
-    /// embeddings.safetensors written by the encoder.
+    /// The encoder's embeddings, either form ([`slag_common::forms::read_rows`]):
+    /// `mixture.safetensors` (the default output, expanded to its rows) or the dense
+    /// `embeddings.safetensors`.
     pub embeddings: PathBuf,
     /// CLIP text tower ONNX (`input_ids i64[B,77] -> [B,D]`) of the same CLIP model.
     pub clip_textual: PathBuf,
@@ -115,7 +117,8 @@ pub struct QueryOutput {
     pub highlighted_ply: Option<PathBuf>,
 }
 
-/// Ranks the Gaussians of [`QueryParams::embeddings`] against the prompt.
+/// Ranks the Gaussians of [`QueryParams::embeddings`] (the dense file or the mixture) against the
+/// prompt.
 ///
 /// Errors: a blank prompt or one over [`slag_common::prompt::MAX_PROMPT_BYTES`] (the limit of
 /// `slag-edge`; [`slag_common::Error::Query`], checked before anything is read), unreadable
@@ -123,7 +126,8 @@ pub struct QueryOutput {
 pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     slag_common::prompt::check_prompt(&a.text, "")?;
     a.objects.validate()?;
-    let emb = Embeddings::read(&a.embeddings)?;
+    // Either stored form: the mixture (the encode's default output) is expanded to its rows.
+    let emb = slag_common::forms::read_rows(&a.embeddings)?;
     let mut text = TextEncoder::new(&a.clip_textual, &a.tokenizer, a.ep)?;
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);

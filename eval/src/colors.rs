@@ -31,7 +31,8 @@ pub struct EvalColorsConfig {
     pub scene: PathBuf,
     /// The .ply the embeddings were made from; `None`: `<scene>/point_cloud.ply`.
     pub ply: Option<PathBuf>,
-    /// embeddings.safetensors written by the encoder with color-clip.
+    /// The dense embeddings.safetensors written by the encoder with color-clip (asked for with
+    /// `output.dense`; the scores use each Gaussian's `Σ a_kj`, which the mixture does not store).
     pub embeddings: PathBuf,
     /// Folder holding color-clip (`color-clip-textual.onnx`, `clip-tokenizer.json`,
     /// `color-clip.json`); `None`: `$SLAG_SHARED/fixtures/clip`. The three fields below override

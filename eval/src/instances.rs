@@ -298,7 +298,9 @@ fn best_match(t: &TruthInstance, predictions: &[PredictedInstance]) -> InstanceM
 pub struct EvalObjectsConfig {
     /// The scene folder `synth-scene --objects` wrote (`objects.json`, `point_cloud.ply`).
     pub scene: PathBuf,
-    /// embeddings.safetensors of that scene, made with color-clip.
+    /// The embeddings of that scene, made with color-clip, either form
+    /// (`slag_common::forms::read_rows`): `mixture.safetensors` or the dense
+    /// `embeddings.safetensors`.
     pub embeddings: PathBuf,
     /// Folder holding color-clip's text tower and tokenizer (`color-clip-textual.onnx`,
     /// `clip-tokenizer.json`).

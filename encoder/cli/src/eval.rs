@@ -19,7 +19,8 @@ pub struct EvalArgs {
     /// The .ply the embeddings were made from; default <scene>/point_cloud.ply.
     #[arg(long)]
     pub ply: Option<PathBuf>,
-    /// embeddings.safetensors written by `encode` with color-clip.
+    /// The dense embeddings.safetensors written by `encode --dense` with color-clip (the scores
+    /// use each Gaussian's Σa, which the mixture does not store).
     #[arg(long)]
     pub embeddings: PathBuf,
     /// Folder holding color-clip (`color-clip-textual.onnx`, `clip-tokenizer.json`,

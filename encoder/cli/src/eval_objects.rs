@@ -17,7 +17,8 @@ pub struct EvalObjectsArgs {
     /// The scene folder written by `synth-scene --objects K` (objects.json, point_cloud.ply).
     #[arg(long)]
     pub scene: PathBuf,
-    /// embeddings.safetensors of that scene, made with color-clip.
+    /// The embeddings of that scene, made with color-clip: OUT/mixture.safetensors (the default
+    /// output) or the dense OUT/embeddings.safetensors.
     #[arg(long)]
     pub embeddings: PathBuf,
     /// Folder holding color-clip-textual.onnx and clip-tokenizer.json; default

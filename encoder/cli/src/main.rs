@@ -29,7 +29,7 @@ use slag_common::cli::EpArg;
 /// Typical run (models are any SAM / CLIP ONNX exports; see docs/guide/encoding.md):
 ///   slag-encoder encode --scene SCENE --sam-encoder SAM_ENC.onnx --sam-decoder SAM_DEC.onnx
 ///       --clip-visual CLIP_VISUAL.onnx --out OUT
-///   slag-encoder query --embeddings OUT/embeddings.safetensors --clip-textual CLIP_TEXT.onnx
+///   slag-encoder query --embeddings OUT/mixture.safetensors --clip-textual CLIP_TEXT.onnx
 ///       --tokenizer clip-tokenizer.json --text "a chair"
 ///
 /// ONNX Runtime is loaded from $ORT_DYLIB_PATH (../shared/tools/install-onnxruntime.sh).
@@ -44,7 +44,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Embed a scene: masks -> CLIP crops -> weight raster -> aggregation -> embeddings.safetensors.
+    /// Embed a scene: masks -> CLIP crops -> weight raster -> aggregation -> mixture.safetensors
+    /// (+ embeddings.safetensors with --dense), segments.safetensors, report.json.
     Encode(encode::EncodeArgs),
     /// `encode` as one process of a timely dataflow cluster (same arguments on every process).
     EncodeCluster(cluster::EncodeClusterArgs),
@@ -76,6 +77,16 @@ enum Command {
     SynthScene(synthetic::SynthArgs),
 }
 
+/// The embeddings file an encode wrote: the dense file when asked for, else the mixture.
+fn written(r: &slag_encoder::report::Report) -> std::path::PathBuf {
+    let mixture = r.outputs.forms.as_ref().and_then(|f| f.mixture.clone());
+    r.outputs
+        .embeddings
+        .clone()
+        .or(mixture)
+        .unwrap_or_else(|| r.outputs.report.clone())
+}
+
 fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string_pretty(v)?);
     Ok(())
@@ -93,7 +104,7 @@ fn main() -> std::process::ExitCode {
                 100.0 * r.counts.observed_fraction,
                 r.counts.views_used,
                 r.timings.total,
-                a.out.join("embeddings.safetensors").display()
+                written(&r).display()
             );
         }),
         Command::EncodeCluster(a) => cluster::run(a).map(|r| match r {

@@ -15,7 +15,9 @@ use crate::EpArg;
 /// Arguments of `query`.
 #[derive(Debug, Clone, Args)]
 pub struct QueryArgs {
-    /// embeddings.safetensors written by `encode`.
+    /// The embeddings `encode` wrote: OUT/mixture.safetensors (the default output) or the dense
+    /// OUT/embeddings.safetensors (`encode --dense`); a missing dense file names the mixture
+    /// beside it.
     #[arg(long)]
     pub embeddings: PathBuf,
     /// CLIP text tower ONNX (input_ids i64[B,77] -> [B,D]) of the same CLIP model.

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use slag_common::embeddings::Embeddings;
+use slag_common::forms::EmbeddingsForm;
 use slag_common::shards::synthetic::SyntheticScene;
 use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap};
 
@@ -20,19 +21,24 @@ use slag_common::shards::signature::SigningKey;
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PartitionArgs {
-    /// Embeddings file written by `slag-encoder encode` (safetensors).
+    /// Embeddings written by `slag-encoder encode`, either form: OUT/mixture.safetensors (the
+    /// default output; partitioned as with --mixture) or the dense OUT/embeddings.safetensors
+    /// (`encode --dense`). A dense path that does not exist, with OUT/mixture.safetensors beside
+    /// it, partitions that mixture (said on stderr).
     #[arg(
         long,
         required_unless_present_any = ["synthetic", "mixture"],
         conflicts_with_all = ["synthetic", "mixture"]
     )]
     pub embeddings: Option<PathBuf>,
-    /// Instead of --embeddings: the mixture file of `slag-encoder encode --mixture-keep S`
-    /// (`OUT/mixture.safetensors`): the shards then hold each Gaussian's codebook slots (atom
-    /// indices + f16 weights, shard format 2) and the scene's codebook is stored beside them
-    /// (manifest version 2). Not picked up implicitly: a partition of --embeddings stays dense.
-    /// --dtype does not apply (weights and codebook are f16); not for Qdrant.
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["synthetic", "qdrant_url"])]
+    /// Instead of --embeddings: the mixture file of `slag-encoder encode` (`OUT/mixture.safetensors`,
+    /// its default output; slots per Gaussian set by `--mixture-keep S`): the shards then hold
+    /// each Gaussian's codebook slots (atom indices + f16 weights, shard format 2) and the
+    /// scene's codebook is stored beside them (manifest version 2). --dtype does not apply
+    /// (weights and codebook are f16). With --qdrant-url the mixture is expanded to dense rows
+    /// (Qdrant stores dense vectors) and partitioned dense, so the shards and Qdrant hold the
+    /// same rows.
+    #[arg(long, value_name = "FILE", conflicts_with = "synthetic")]
     pub mixture: Option<PathBuf>,
     /// With --mixture: keep only each Gaussian's S strongest slots (slots are ordered by weight),
     /// as `eval-colors --held-out` scores "S cut from 16" (8 is its best point); default: every
@@ -287,14 +293,23 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     if let Some(spec) = &args.synthetic {
         return run_partition_synthetic(args, spec);
     }
-    if let Some(path) = &args.mixture {
-        return run_partition_mixture(args, path);
-    }
-    let Some(path) = &args.embeddings else {
-        anyhow::bail!("pass --embeddings FILE (or --mixture FILE, or --synthetic N)");
+    let (path, form) = partition_input(args)?;
+    let path = &path;
+    let emb = match form {
+        EmbeddingsForm::Mixture if args.qdrant_url.is_none() => {
+            return run_partition_mixture(args, path);
+        }
+        EmbeddingsForm::Mixture => {
+            eprintln!(
+                "{}: Qdrant stores dense vectors: the mixture is expanded to its rows and \
+                 partitioned dense",
+                path.display()
+            );
+            slag_common::forms::expand_mixture(&read_mixture(args, path)?)
+        }
+        EmbeddingsForm::Dense => Embeddings::read(path)?,
     };
     let to_map = args.scene_to_map()?;
-    let emb = Embeddings::read(path)?;
     let segments = resolve_segments(args, path)?;
     let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
@@ -339,31 +354,80 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
         m.ground.up_source,
         t.elapsed().as_secs_f64()
     );
-    if let Some(url) = &args.qdrant_url {
-        let params = crate::qdrant::QdrantParams {
-            url: url.clone(),
-            collection: args
-                .qdrant_collection
-                .clone()
-                .unwrap_or_else(|| args.scene.clone()),
-            batch_size: args.qdrant_batch,
-            quantize_int8: args.qdrant_int8,
-            snapshot_per_tile: args.qdrant_snapshot_per_tile,
-            api_key: args.qdrant_api_key.clone(),
-        };
-        let t = std::time::Instant::now();
-        // Display attributes are not uploaded; the plain embeddings have the same rows.
-        let s = crate::qdrant::upload(&emb, &m, &params).context("Qdrant upload")?;
-        println!(
-            "Qdrant {url}: {} points into {} in {} batches, {} tile collections, {} snapshots, {:.1}s",
-            s.points,
-            s.collection,
-            s.batches,
-            s.tile_collections.len(),
-            s.snapshots.len(),
-            t.elapsed().as_secs_f64()
-        );
+    match &args.qdrant_url {
+        Some(url) => upload_to_qdrant(args, url, &emb, &m),
+        None => Ok(()),
     }
+}
+
+/// The embeddings `partition` reads and their form: `--mixture`, else `--embeddings` (either
+/// form, by its header; a missing dense file with `mixture.safetensors` beside it gives that
+/// mixture, said on stderr).
+///
+/// Errors: neither flag, an unreadable file or one of neither form.
+fn partition_input(args: &PartitionArgs) -> anyhow::Result<(PathBuf, EmbeddingsForm)> {
+    if let Some(path) = &args.mixture {
+        return Ok((path.clone(), EmbeddingsForm::Mixture));
+    }
+    let Some(path) = &args.embeddings else {
+        anyhow::bail!("pass --embeddings FILE (or --mixture FILE, or --synthetic N)");
+    };
+    let beside = slag_common::forms::mixture_beside(path);
+    if !path.exists() && beside.is_file() {
+        eprintln!(
+            "{} does not exist (`slag-encoder encode` writes it only with --dense): partitioning \
+             the mixture beside it, {}",
+            path.display(),
+            beside.display()
+        );
+        return Ok((beside, EmbeddingsForm::Mixture));
+    }
+    Ok((path.clone(), slag_common::forms::form_of(path)?))
+}
+
+/// The mixture at `path`, cut to `--mixture-slots` when given.
+///
+/// Errors: unreadable file, a slot count out of range.
+fn read_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<MixtureEmbeddings> {
+    let full = MixtureEmbeddings::read(path)?;
+    Ok(match args.mixture_slots {
+        Some(s) => full.truncated(s)?,
+        None => full,
+    })
+}
+
+/// Upserts `emb` (the rows `m` was partitioned from) into the Qdrant server at `url`.
+///
+/// Errors: Qdrant's, a collection or batch the server refuses.
+fn upload_to_qdrant(
+    args: &PartitionArgs,
+    url: &str,
+    emb: &Embeddings,
+    m: &Manifest,
+) -> anyhow::Result<()> {
+    let params = crate::qdrant::QdrantParams {
+        url: url.to_string(),
+        collection: args
+            .qdrant_collection
+            .clone()
+            .unwrap_or_else(|| args.scene.clone()),
+        batch_size: args.qdrant_batch,
+        quantize_int8: args.qdrant_int8,
+        snapshot_per_tile: args.qdrant_snapshot_per_tile,
+        api_key: args.qdrant_api_key.clone(),
+    };
+    let t = std::time::Instant::now();
+    // Display attributes are not uploaded; the plain embeddings have the same rows.
+    let s = crate::qdrant::upload(emb, m, &params).context("Qdrant upload")?;
+    println!(
+        "Qdrant {url}: {} points into {} in {} batches, {} tile collections, {} snapshots, {:.1}s",
+        s.points,
+        s.collection,
+        s.batches,
+        s.tile_collections.len(),
+        s.snapshots.len(),
+        t.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 
@@ -371,11 +435,7 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
 /// [`slag_common::shards::mixture`]).
 fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<()> {
     let to_map = args.scene_to_map()?;
-    let full = MixtureEmbeddings::read(path)?;
-    let mix = match args.mixture_slots {
-        Some(s) => full.truncated(s)?,
-        None => full,
-    };
+    let mix = read_mixture(args, path)?;
     // The segments beside the mixture file (the encoder writes both into OUT/), as for dense
     // embeddings: the shards then carry them (format version 4).
     let segments = resolve_segments(args, path)?;
@@ -765,7 +825,10 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "up" => "--up x|y|z|-x|-y|-z",
                 "dtype" => "--dtype f32",
                 "mixture_slots" => "--mixture-slots S (1 to the file's keep)",
-                "qdrant_url" => "--embeddings FILE for the scene you upload (not --mixture)",
+                "qdrant_url" => {
+                    "--qdrant-url to the partition of the scene you upload (it partitions a \
+                     mixture as its dense rows, the rows Qdrant stores)"
+                }
                 "max_per_shard" => "--max-per-shard N",
                 "max_shard_mib" => "--max-shard-mb MIB (or --max-per-shard N)",
                 "batch_size" => "--qdrant-batch N",
