@@ -43,7 +43,8 @@ impl Encoder {
     }
 
     /// Runs the encode and returns the report it wrote beside the embeddings
-    /// (`embeddings.safetensors`, `report.json`, and the optional forms, each atomically, the
+    /// (`mixture.safetensors`, with [`crate::config::OutputConfig::dense`]
+    /// `embeddings.safetensors`, the optional forms, and `report.json`, each atomically, the
     /// report last), then, with [`crate::config::SegmentsConfig::enabled`],
     /// `segments.safetensors`. Sets rayon's global pool to
     /// [`crate::config::ExecutionConfig::threads`] unless the process already has one.
