@@ -91,9 +91,15 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         .filter(|n| !n.starts_with('.'))
         .collect();
     names.sort();
+    // The masks' record is the segmentation's mask term, kept for `slag-encoder segment`.
     assert_eq!(
         names,
-        ["mixture.safetensors", "report.json", "segments.safetensors"],
+        [
+            "mask-record.safetensors",
+            "mixture.safetensors",
+            "report.json",
+            "segments.safetensors"
+        ],
         "the default outputs"
     );
     let report: serde_json::Value =
