@@ -183,7 +183,8 @@ pub fn room_layout(k: usize, extent: f64) -> Result<Vec<RoomObject>> {
     }
     use Shape::*;
     // (class, shape, centre / extent, size / extent, stripe class)
-    let table: [(usize, Shape, [f64; 2], [f64; 3], usize); MAX_ROOM_OBJECTS] = [
+    type Row = (usize, Shape, [f64; 2], [f64; 3], usize);
+    let table: [Row; MAX_ROOM_OBJECTS] = [
         (0, Box, [-0.45, -0.10], [0.10, 0.16, 0.10], 2),
         (5, Cylinder, [-0.355, -0.10], [0.09, 0.09, 0.12], 9),
         (2, Sphere, [0.05, 0.0], [0.10, 0.10, 0.10], 1),
@@ -460,7 +461,7 @@ fn room_gaussians(room: &Room<'_>, p: &SyntheticSceneParams) -> (Gaussians, Gaus
     let (e, h) = (room.extent, room.wall);
     let area = e * e + 4.0 * e * h + room.objects.iter().map(object_area).sum::<f64>();
     let s = (area / p.gaussians.max(1) as f64).sqrt();
-    let mut rng = SplitMix64::new(p.seed ^ 0x5EED_0F_F100_u64);
+    let mut rng = SplitMix64::new(p.seed ^ 0x005E_ED0F_F100_u64);
     let half = e / 2.0;
     let (x, y, z) = (DVec3::X, DVec3::Y, DVec3::Z);
     let floor = rect(
@@ -774,6 +775,7 @@ mod tests {
     }
 
     #[test]
+    #[allow(clippy::needless_range_loop)] // one index into the truth, the means and the colours
     fn the_room_is_written_with_its_truth_and_textured_objects() {
         let dir = tempfile::tempdir().unwrap();
         let p = params(3);

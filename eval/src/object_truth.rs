@@ -382,10 +382,9 @@ fn score_predictors(
         .map(|((name, table), cf)| PredictorScore {
             name: name.clone(),
             pixel: tally.score(cf, names),
-            gaussian: Some(three_d.score(
-                &gaussian_confusion(table, &true_class, &observed, nc),
-                names,
-            )),
+            gaussian: Some(
+                three_d.score(&gaussian_confusion(table, true_class, &observed, nc), names),
+            ),
         })
         .collect();
     predictors.push(PredictorScore {
@@ -444,7 +443,6 @@ mod tests {
             offsets: vec![0, 1, 3, 3],
             ids: vec![0, 0, 1],
             weights: vec![0.9, 0.3, 0.6],
-            ..PixelWeights::default()
         };
         let classes = [2u8, 1];
         assert_eq!(truth_map(&w, &classes, 3).unwrap(), vec![2, 1, 0]);

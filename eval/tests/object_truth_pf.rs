@@ -49,7 +49,7 @@ fn prediction_filtering_helps_on_object_truth() {
     // No masks' record: the geometry alone.
     let (geometric, _) = segment(&g, &SegmentParams::default(), "room", None).expect("segments");
     let geo = dir.path().join("geo").join("segments.safetensors");
-    std::fs::create_dir_all(geo.parent().unwrap()).unwrap();
+    std::fs::create_dir_all(dir.path().join("geo")).expect("segments folder");
     geometric.write(&geo).expect("write segments");
     let r = run_object_truth(&ObjectTruthConfig {
         scene,
