@@ -853,24 +853,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
             &segment_sets,
         )?)
     };
-    let mut variants = crate::heldout_variants::variant_tables(
-        &a.embeddings,
-        &a.compare,
-        &slag_scores,
-        &inputs.text_embeds,
-        n,
-    )?;
-    if !segment_sets.is_empty() {
-        let pf = crate::pf_variants::pf_tables(
-            &inputs.emb,
-            n,
-            &slag_scores,
-            &variants,
-            &segment_sets,
-            c,
-        )?;
-        variants.extend(pf);
-    }
+    let variants = held_out_variants(a, &inputs, &slag_scores, &segment_sets)?;
 
     // Held-out views at full resolution: slag, the oracle and the variants on the same pixels.
     let mut tables: Vec<&[f32]> = vec![&slag_scores, &oracle_scores];
@@ -922,6 +905,39 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         segment_quality,
         photo_truth,
     })
+}
+
+/// The predictors scored beside slag's: the aggregation variants
+/// ([`crate::heldout_variants::variant_tables`]), then, with segments, the prediction-filtering
+/// ones ([`crate::pf_variants::pf_tables`]).
+///
+/// Errors: those of both.
+fn held_out_variants(
+    a: &EvalColorsConfig,
+    inputs: &Inputs,
+    slag_scores: &[f32],
+    segment_sets: &[(PathBuf, Segments)],
+) -> anyhow::Result<Vec<crate::heldout_variants::VariantTable>> {
+    let n = inputs.gaussians.len();
+    let mut variants = crate::heldout_variants::variant_tables(
+        &a.embeddings,
+        &a.compare,
+        slag_scores,
+        &inputs.text_embeds,
+        n,
+    )?;
+    if !segment_sets.is_empty() {
+        let pf = crate::pf_variants::pf_tables(
+            &inputs.emb,
+            n,
+            slag_scores,
+            &variants,
+            segment_sets,
+            inputs.classes.len(),
+        )?;
+        variants.extend(pf);
+    }
+    Ok(variants)
 }
 
 /// The held-out view indices of a scene of `views` views at step `every`.
