@@ -441,7 +441,7 @@ pub struct AggregateConfig {
     /// output); `None`: no mixture, which needs [`OutputConfig::dense`] (what a cluster encode
     /// writes, [`EncodeConfig::check_cluster`]).
     pub mixture_keep: Option<usize>,
-    /// Where the reduction to `E_k` runs (default [`ReduceOn::Auto`]).
+    /// Where the reduction to `E_k` runs (default [`ReduceOn::Host`]).
     pub reduce_on: ReduceOn,
     /// Device memory the label sums kept for the device reduction may take, MiB (default
     /// 16384: 16 B per (Gaussian, label) key of every view).
@@ -453,13 +453,15 @@ pub struct AggregateConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum ReduceOn {
-    /// On the GPU where it can (GPU rasterizers with f64, no `--levels`), else on
-    /// the host.
-    #[default]
+    /// On the GPU where it can (GPU rasterizers with f64, no `--levels`) and the dense file is
+    /// not asked for (its rows would cross to the host anyway: at 30M Gaussians the host's
+    /// reduction, which overlaps their write, was the faster), else on the host.
     Auto,
     /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot.
     Device,
-    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU.
+    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU (the default
+    /// until the GPU reduction is measured faster at scale, docs/results/scaling.md).
+    #[default]
     Host,
 }
 
@@ -474,7 +476,7 @@ impl Default for AggregateConfig {
             contribution_memory_mb: 4096,
             accumulator_memory_mb: 2048,
             mixture_keep: Some(DEFAULT_MIXTURE_KEEP),
-            reduce_on: ReduceOn::Auto,
+            reduce_on: ReduceOn::Host,
             device_reduce_memory_mb: 16384,
         }
     }

@@ -404,15 +404,19 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
         return;
     }
     let (dir, scene) = folder_with_small_scene();
-    let run = |name: &str, reduce_on: ReduceOn| {
+    let run = |name: &str, reduce_on: ReduceOn, dense: bool| {
         let out = dir.path().join(name);
         let mut c = config(&scene, &out);
         c.execution.front_workers = Some(1);
         c.aggregate.reduce_on = reduce_on;
+        c.output.dense = dense;
         (encode(c).unwrap(), out)
     };
-    let (host, host_dir) = run("host", ReduceOn::Host);
-    let (dev, dev_dir) = run("device", ReduceOn::Device);
+    let (host, host_dir) = run("host", ReduceOn::Host, true);
+    let (dev, dev_dir) = run("device", ReduceOn::Device, true);
+    // Without the dense file (the default outputs) no row is made, the rest is the same.
+    let (_, mixture_dir) = run("device-mixture", ReduceOn::Device, false);
+    assert!(!mixture_dir.join("embeddings.safetensors").exists());
     assert!(!host.counts.device_reduce && dev.counts.device_reduce);
     assert!(host.counts.entries > 0 && dev.counts.entries == 0, "no a_kj reached the host");
     assert_eq!(dev.counts.observed, host.counts.observed);
@@ -423,5 +427,6 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
     for file in ["mixture.safetensors", "mask-record.safetensors", "segments.safetensors"] {
         let read = |d: &std::path::Path| std::fs::read(d.join(file)).unwrap();
         assert!(read(&host_dir) == read(&dev_dir), "{file} differs");
+        assert!(read(&host_dir) == read(&mixture_dir), "{file} differs without rows");
     }
 }

@@ -244,9 +244,10 @@ pub struct EncodeArgs {
     /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks).
     #[arg(long, default_value_t = 2048)]
     pub accumulator_memory_mb: usize,
-    /// Where E_k is reduced: auto (on the GPU where it can: GPUs with f64, no --levels), device
-    /// (on the GPU, also lavapipe; an error where it cannot), or host (the CPU, in f64).
-    #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
+    /// Where E_k is reduced: host (the CPU, in f64), device (on the GPU: the label sums stay on
+    /// the device; also lavapipe; an error where it cannot), or auto (the GPU where it can and
+    /// --dense is not asked for).
+    #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Host)]
     pub reduce: crate::config::ReduceOn,
     /// Device memory for the label sums kept for the GPU reduction, MiB (16 B per Gaussian and
     /// pixel label of each view).

@@ -613,7 +613,12 @@ fn keep_on_device(
 ) -> Result<Option<bool>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
-    let possible = params.reduce_on != ReduceOn::Host && !params.levels;
+    // With the dense file every row crosses to the host anyway: `auto` leaves it to the host.
+    let possible = match params.reduce_on {
+        ReduceOn::Host => false,
+        ReduceOn::Auto => !params.levels && !params.dense,
+        ReduceOn::Device => !params.levels,
+    };
     let keeps =
         possible && rasterizer.keep_on_device(dim, params.device_reduce_budget_bytes, forced);
     if forced && !keeps {
