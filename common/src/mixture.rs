@@ -138,6 +138,148 @@ pub struct SparseMixture {
     pub weights: Vec<f64>,
 }
 
+impl SparseMixture {
+    /// The codebook's row count M, once the parts agree with each other.
+    ///
+    /// Errors ([`Error::Invalid`]): as [`MixtureEmbeddings::from_sparse`], apart from the checks
+    /// of each row.
+    fn codebook_rows(&self) -> Result<usize> {
+        let (dim, n) = (self.dim, self.gaussian_ids.len());
+        let bad = |m: String| Err(Error::Invalid(format!("mixture: {m}")));
+        if dim == 0 || !self.codebook.len().is_multiple_of(dim) {
+            return bad(format!(
+                "codebook of {} values for dim {dim}",
+                self.codebook.len()
+            ));
+        }
+        let m = self.codebook.len() / dim;
+        if m >= UNUSED as usize {
+            return bad(format!(
+                "{m} codebook rows; at most {} fit u32 ids",
+                UNUSED - 1
+            ));
+        }
+        let (offsets, atoms, weights) = (&self.offsets, &self.atoms, &self.weights);
+        if self.means.len() != n
+            || offsets.len() != n + 1
+            || atoms.len() != weights.len()
+            || offsets.first() != Some(&0)
+            || offsets.last() != Some(&atoms.len())
+            || offsets.windows(2).any(|w| w[0] > w[1])
+        {
+            return bad(format!(
+                "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
+                self.means.len(),
+                offsets.len(),
+                atoms.len(),
+                weights.len()
+            ));
+        }
+        if self.gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
+            return bad("Gaussian ids are not strictly ascending".into());
+        }
+        if self.codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
+            return bad("non-finite codebook value or weight".into());
+        }
+        if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
+            return bad(format!("atom {a} beyond the {m} codebook rows"));
+        }
+        Ok(m)
+    }
+}
+
+/// The codebook rows some non-zero weight uses, renumbered in their original order: each of the
+/// `m` rows' new number ([`UNUSED`] for a dropped row) and the kept rows rounded to f16,
+/// `[kept, dim]` row-major.
+fn used_codebook(
+    codebook: &[f32],
+    dim: usize,
+    m: usize,
+    atoms: &[u32],
+    weights: &[f64],
+) -> (Vec<u32>, Vec<f32>) {
+    let mut new_row = vec![UNUSED; m];
+    for (i, &a) in atoms.iter().enumerate() {
+        if weights[i] != 0.0 {
+            new_row[a as usize] = 0;
+        }
+    }
+    let mut kept_rows = 0u32;
+    let mut book = Vec::new();
+    for (r, slot) in new_row.iter_mut().enumerate() {
+        if *slot == 0 {
+            *slot = kept_rows;
+            kept_rows += 1;
+            book.extend(
+                codebook[r * dim..(r + 1) * dim]
+                    .iter()
+                    .map(|&v| round_f16(v)),
+            );
+        }
+    }
+    (new_row, book)
+}
+
+/// One Gaussian's row of `(kept codebook row, a)`: ordered by decreasing `a` (ties: lower row
+/// first) and scaled by `1 / ‖Σ_s a_s · E_s‖` over the f16-rounded `book`, weights rounded to
+/// f16.
+///
+/// Errors (the message, naming the Gaussian `id`): a repeated atom, a weighted sum of zero, a
+/// weight beyond the f16 range.
+fn normalised_row(
+    mut row: Vec<(u32, f64)>,
+    book: &[f32],
+    dim: usize,
+    id: u32,
+) -> std::result::Result<Vec<(u32, f64)>, String> {
+    row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
+    let mut ids: Vec<u32> = row.iter().map(|r| r.0).collect();
+    ids.sort_unstable();
+    if ids.windows(2).any(|w| w[0] == w[1]) {
+        return Err(format!("Gaussian {id} repeats an atom"));
+    }
+    let mut acc = vec![0f64; dim];
+    for &(a, w) in &row {
+        let e = &book[a as usize * dim..(a as usize + 1) * dim];
+        acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
+    }
+    let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(format!(
+            "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
+        ));
+    }
+    let mut out = Vec::with_capacity(row.len());
+    for (a, w) in row {
+        let s = w / norm;
+        if s.abs() > MAX_WEIGHT as f64 {
+            return Err(format!(
+                "Gaussian {id}: weight {s:e} beyond the f16 range (its mask embeddings \
+                 nearly cancel out); such a Gaussian cannot be stored as a mixture, \
+                 use the dense embeddings file"
+            ));
+        }
+        out.push((a, round_f16(s as f32) as f64));
+    }
+    Ok(out)
+}
+
+/// The rows in the stored layout: `S` (the longest row, at least 1) and the `[N, S]` atoms
+/// (padded with [`UNUSED`]) and f32 weights (padded with 0).
+fn pack_rows(kept: &[Vec<(u32, f64)>]) -> (usize, Vec<u32>, Vec<f32>) {
+    let n = kept.len();
+    let keep = kept.iter().map(Vec::len).max().unwrap_or(0).max(1);
+    let mut out_atoms = vec![UNUSED; n * keep];
+    let mut out_weights = vec![0f32; n * keep];
+    for (i, row) in kept.iter().enumerate() {
+        for (s, &(a, w)) in row.iter().enumerate() {
+            out_atoms[i * keep + s] = a;
+            out_weights[i * keep + s] = w as f32;
+        }
+    }
+    (keep, out_atoms, out_weights)
+}
+
 impl MixtureEmbeddings {
     /// Builds the stored form from sparse rows: drops codebook rows no atom uses (renumbering the
     /// rest in their original order), rounds the codebook to f16, orders each row by decreasing
@@ -150,6 +292,7 @@ impl MixtureEmbeddings {
     /// zero (no direction), or a weight beyond the f16 range (the kept mask embeddings nearly
     /// cancel: `‖Σ a E‖ < Σ|a| / 65504`).
     pub fn from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
+        let m = parts.codebook_rows()?;
         let SparseMixture {
             dim,
             model_id,
@@ -160,124 +303,24 @@ impl MixtureEmbeddings {
             atoms,
             weights,
         } = parts;
-        let n = gaussian_ids.len();
-        let bad = |m: String| Err(Error::Invalid(format!("mixture: {m}")));
-        if dim == 0 || !codebook.len().is_multiple_of(dim) {
-            return bad(format!(
-                "codebook of {} values for dim {dim}",
-                codebook.len()
-            ));
-        }
-        let m = codebook.len() / dim;
-        if m >= UNUSED as usize {
-            return bad(format!(
-                "{m} codebook rows; at most {} fit u32 ids",
-                UNUSED - 1
-            ));
-        }
-        if means.len() != n
-            || offsets.len() != n + 1
-            || atoms.len() != weights.len()
-            || offsets.first() != Some(&0)
-            || offsets.last() != Some(&atoms.len())
-            || offsets.windows(2).any(|w| w[0] > w[1])
-        {
-            return bad(format!(
-                "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
-                means.len(),
-                offsets.len(),
-                atoms.len(),
-                weights.len()
-            ));
-        }
-        if gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
-            return bad("Gaussian ids are not strictly ascending".into());
-        }
-        if codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
-            return bad("non-finite codebook value or weight".into());
-        }
-        if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
-            return bad(format!("atom {a} beyond the {m} codebook rows"));
-        }
-        // Used codebook rows, renumbered in their original order.
-        let mut new_row = vec![UNUSED; m];
-        for (i, &a) in atoms.iter().enumerate() {
-            if weights[i] != 0.0 {
-                new_row[a as usize] = 0;
-            }
-        }
-        let mut kept_rows = 0u32;
-        let mut book = Vec::new();
-        for (r, slot) in new_row.iter_mut().enumerate() {
-            if *slot == 0 {
-                *slot = kept_rows;
-                kept_rows += 1;
-                book.extend(
-                    codebook[r * dim..(r + 1) * dim]
-                        .iter()
-                        .map(|&v| round_f16(v)),
-                );
-            }
-        }
+        let (new_row, book) = used_codebook(&codebook, dim, m, &atoms, &weights);
         drop(codebook);
         // Rows: sorted, de-duplicated check, normalised with the rounded codebook.
-        let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..n)
+        let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
             .into_par_iter()
             .map(|i| {
-                let mut row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
+                let row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
                     .filter(|&e| weights[e] != 0.0)
                     .map(|e| (new_row[atoms[e] as usize], weights[e]))
                     .collect();
-                row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
-                let mut ids: Vec<u32> = row.iter().map(|r| r.0).collect();
-                ids.sort_unstable();
-                if ids.windows(2).any(|w| w[0] == w[1]) {
-                    return Err(format!("Gaussian {} repeats an atom", gaussian_ids[i]));
-                }
-                let mut acc = vec![0f64; dim];
-                for &(a, w) in &row {
-                    let e = &book[a as usize * dim..(a as usize + 1) * dim];
-                    acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
-                }
-                let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
-                if !(norm.is_finite() && norm > 0.0) {
-                    return Err(format!(
-                        "Gaussian {}: its weighted mask embeddings sum to zero (no direction)",
-                        gaussian_ids[i]
-                    ));
-                }
-                let mut out = Vec::with_capacity(row.len());
-                for (a, w) in row {
-                    let s = w / norm;
-                    if s.abs() > MAX_WEIGHT as f64 {
-                        return Err(format!(
-                            "Gaussian {}: weight {s:e} beyond the f16 range (its mask embeddings \
-                             nearly cancel out); such a Gaussian cannot be stored as a mixture, \
-                             use the dense embeddings file",
-                            gaussian_ids[i]
-                        ));
-                    }
-                    out.push((a, round_f16(s as f32) as f64));
-                }
-                Ok(out)
+                normalised_row(row, &book, dim, gaussian_ids[i])
             })
             .collect();
-        let mut kept = Vec::with_capacity(n);
-        for r in rows {
-            match r {
-                Ok(r) => kept.push(r),
-                Err(m) => return bad(m),
-            }
-        }
-        let keep = kept.iter().map(Vec::len).max().unwrap_or(0).max(1);
-        let mut out_atoms = vec![UNUSED; n * keep];
-        let mut out_weights = vec![0f32; n * keep];
-        for (i, row) in kept.iter().enumerate() {
-            for (s, &(a, w)) in row.iter().enumerate() {
-                out_atoms[i * keep + s] = a;
-                out_weights[i * keep + s] = w as f32;
-            }
-        }
+        let kept = rows
+            .into_iter()
+            .collect::<std::result::Result<Vec<_>, String>>()
+            .map_err(|m| Error::Invalid(format!("mixture: {m}")))?;
+        let (keep, atoms, weights) = pack_rows(&kept);
         Ok(MixtureEmbeddings {
             dim,
             model_id,
@@ -285,8 +328,8 @@ impl MixtureEmbeddings {
             gaussian_ids,
             means,
             keep,
-            atoms: out_atoms,
-            weights: out_weights,
+            atoms,
+            weights,
         })
     }
 

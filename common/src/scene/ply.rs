@@ -121,48 +121,22 @@ struct ElementDecl {
     has_list: Option<String>,
 }
 
-/// Parses the header from `reader` (positioned at the start of the file).
-fn parse_header(path: &Path, reader: &mut impl BufRead) -> Result<Header> {
-    const MAX_HEADER: usize = 1 << 20;
-    let fmt = |m: String| Error::format(path, m);
-    let mut line = Vec::new();
-    let mut header_len = 0usize;
-    let mut encoding = None;
-    let mut elements: Vec<ElementDecl> = Vec::new();
-    let mut first = true;
-    loop {
-        line.clear();
-        let n = reader
-            .read_until(b'\n', &mut line)
-            .map_err(|e| Error::io(path, e))?;
-        if n == 0 {
-            return Err(fmt(
-                "PLY header has no `end_header` line (file truncated or not a PLY)".into(),
-            ));
-        }
-        header_len += n;
-        if header_len > MAX_HEADER {
-            return Err(fmt(
-                "PLY header longer than 1 MiB without `end_header`: not a PLY file".into(),
-            ));
-        }
-        let text = String::from_utf8_lossy(&line);
-        let text = text.trim();
-        if first {
-            if text != "ply" {
-                return Err(fmt(
-                    "not a PLY file (first line is not `ply`); pass the 3DGS `point_cloud.ply`"
-                        .into(),
-                ));
-            }
-            first = false;
-            continue;
-        }
+/// What the header lines declared, up to `end_header`.
+#[derive(Default)]
+struct Declared {
+    encoding: Option<Encoding>,
+    elements: Vec<ElementDecl>,
+}
+
+impl Declared {
+    /// Takes one header line (after the `ply` line); `Ok(true)` at `end_header`.
+    fn line(&mut self, path: &Path, text: &str) -> Result<bool> {
+        let fmt = |m: String| Error::format(path, m);
         let mut tok = text.split_ascii_whitespace();
         match tok.next() {
             None | Some("comment") | Some("obj_info") => {}
             Some("format") => {
-                encoding = Some(match tok.next() {
+                self.encoding = Some(match tok.next() {
                     Some("ascii") => Encoding::Ascii,
                     Some("binary_little_endian") => Encoding::BinaryLe,
                     Some("binary_big_endian") => Encoding::BinaryBe,
@@ -177,43 +151,115 @@ fn parse_header(path: &Path, reader: &mut impl BufRead) -> Result<Header> {
                     .next()
                     .and_then(|c| c.parse::<usize>().ok())
                     .ok_or_else(|| fmt(format!("malformed header line `{text}`")))?;
-                elements.push(ElementDecl {
+                self.elements.push(ElementDecl {
                     name,
                     count,
                     props: Vec::new(),
                     has_list: None,
                 });
             }
-            Some("property") => {
-                let el = elements.last_mut().ok_or_else(|| {
-                    fmt(format!(
-                        "header line `{text}` comes before any `element` line"
-                    ))
-                })?;
-                let ty = tok.next().unwrap_or("");
-                if ty == "list" {
-                    let name = tok.last().unwrap_or("?").to_string();
-                    el.has_list.get_or_insert(name);
-                    continue;
-                }
-                let ty = ScalarType::parse(ty).ok_or_else(|| {
-                    fmt(format!(
-                        "unknown property type `{ty}` in header line `{text}`"
-                    ))
-                })?;
-                let name = tok
-                    .next()
-                    .ok_or_else(|| fmt(format!("malformed header line `{text}`")))?
-                    .to_string();
-                el.props.push((name, ty));
-            }
-            Some("end_header") => break,
+            Some("property") => self.property(path, text, tok)?,
+            Some("end_header") => return Ok(true),
             Some(other) => {
                 return Err(fmt(format!("unknown PLY header keyword `{other}`")));
             }
         }
+        Ok(false)
     }
-    let encoding = encoding.ok_or_else(|| fmt("PLY header has no `format` line".into()))?;
+
+    /// Adds a `property` line (its words after `property` in `tok`) to the last element.
+    fn property<'a>(
+        &mut self,
+        path: &Path,
+        text: &str,
+        mut tok: impl Iterator<Item = &'a str>,
+    ) -> Result<()> {
+        let fmt = |m: String| Error::format(path, m);
+        let el = self.elements.last_mut().ok_or_else(|| {
+            fmt(format!(
+                "header line `{text}` comes before any `element` line"
+            ))
+        })?;
+        let ty = tok.next().unwrap_or("");
+        if ty == "list" {
+            let name = tok.last().unwrap_or("?").to_string();
+            el.has_list.get_or_insert(name);
+            return Ok(());
+        }
+        let ty = ScalarType::parse(ty).ok_or_else(|| {
+            fmt(format!(
+                "unknown property type `{ty}` in header line `{text}`"
+            ))
+        })?;
+        let name = tok
+            .next()
+            .ok_or_else(|| fmt(format!("malformed header line `{text}`")))?
+            .to_string();
+        el.props.push((name, ty));
+        Ok(())
+    }
+}
+
+/// Parses the header from `reader` (positioned at the start of the file).
+fn parse_header(path: &Path, reader: &mut impl BufRead) -> Result<Header> {
+    let (declared, header_len) = read_header_lines(path, reader)?;
+    let encoding = declared
+        .encoding
+        .ok_or_else(|| Error::format(path, "PLY header has no `format` line"))?;
+    vertex_header(path, encoding, declared.elements, header_len)
+}
+
+/// Reads the header lines up to `end_header`: what they declare and the header's length in
+/// bytes.
+fn read_header_lines(path: &Path, reader: &mut impl BufRead) -> Result<(Declared, usize)> {
+    const MAX_HEADER: usize = 1 << 20;
+    let fmt = |m: &str| Error::format(path, m);
+    let mut line = Vec::new();
+    let mut header_len = 0usize;
+    let mut declared = Declared::default();
+    let mut first = true;
+    loop {
+        line.clear();
+        let n = reader
+            .read_until(b'\n', &mut line)
+            .map_err(|e| Error::io(path, e))?;
+        if n == 0 {
+            return Err(fmt(
+                "PLY header has no `end_header` line (file truncated or not a PLY)",
+            ));
+        }
+        header_len += n;
+        if header_len > MAX_HEADER {
+            return Err(fmt(
+                "PLY header longer than 1 MiB without `end_header`: not a PLY file",
+            ));
+        }
+        let text = String::from_utf8_lossy(&line);
+        let text = text.trim();
+        if first {
+            if text != "ply" {
+                return Err(fmt(
+                    "not a PLY file (first line is not `ply`); pass the 3DGS `point_cloud.ply`",
+                ));
+            }
+            first = false;
+            continue;
+        }
+        if declared.line(path, text)? {
+            return Ok((declared, header_len));
+        }
+    }
+}
+
+/// The vertex element's layout: its properties' offsets, and the bytes (binary) or values
+/// (ASCII) of the scalar-only elements before it, which the body reader skips.
+fn vertex_header(
+    path: &Path,
+    encoding: Encoding,
+    elements: Vec<ElementDecl>,
+    header_len: usize,
+) -> Result<Header> {
+    let fmt = |m: String| Error::format(path, m);
     let mut skip_before = 0usize;
     for el in elements {
         if el.name == "vertex" {

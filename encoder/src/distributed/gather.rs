@@ -49,6 +49,129 @@ pub(super) struct WorkerOutcome {
     pub(super) images: u64,
 }
 
+impl Gathered {
+    /// Checks that nothing aborted and that every partition and every map worker of `peers`
+    /// reported, with all of its rows; sorts the summaries by partition and worker.
+    ///
+    /// Errors: the first abort ([`Error::Invalid`]); a missing summary, report or row
+    /// ([`Error::Internal`]).
+    fn check_complete(&mut self, peers: usize) -> Result<()> {
+        if let Some(m) = self.aborts.first() {
+            return Err(Error::Invalid(format!("the job was aborted: {m}")));
+        }
+        self.parts.sort_by_key(|s| s.partition);
+        self.stats.sort_by_key(|s| s.worker);
+        let parts_ok = self.parts.len() == peers
+            && self
+                .parts
+                .iter()
+                .enumerate()
+                .all(|(i, s)| s.partition as usize == i);
+        let stats_ok = self.stats.len() == peers
+            && self
+                .stats
+                .iter()
+                .enumerate()
+                .all(|(i, s)| s.worker as usize == i);
+        if !parts_ok || !stats_ok {
+            return Err(Error::internal(format!(
+                "incomplete job: {} of {peers} partition summaries and {} of {peers} worker \
+                 reports reached process 0",
+                self.parts.len(),
+                self.stats.len()
+            )));
+        }
+        self.rows_per_partition.resize(peers, 0);
+        for s in &self.parts {
+            if self.rows_per_partition[s.partition as usize] != s.rows {
+                return Err(Error::internal(format!(
+                    "incomplete job: partition {} reduced {} Gaussians but {} reached process 0",
+                    s.partition, s.rows, self.rows_per_partition[s.partition as usize]
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Merges the rows in ascending Gaussian id order, each with its mean from `gaussians`.
+    ///
+    /// Errors ([`Error::Internal`]): a Gaussian id twice or beyond the scene.
+    fn merge_rows(&self, gaussians: &Gaussians, dim: usize) -> Result<Embeddings> {
+        // (id, record, row) sorted by id.
+        let mut order: Vec<(u32, u32, u32)> = self
+            .rows
+            .iter()
+            .enumerate()
+            .flat_map(|(r, (ids, _, _))| {
+                ids.iter()
+                    .enumerate()
+                    .map(move |(i, &id)| (id, r as u32, i as u32))
+            })
+            .collect();
+        order.sort_unstable();
+        if order.windows(2).any(|w| w[0].0 == w[1].0)
+            || order
+                .last()
+                .is_some_and(|l| l.0 as usize >= gaussians.len())
+        {
+            return Err(Error::internal(
+                "partitions returned duplicate or out-of-range Gaussian ids",
+            ));
+        }
+        let n = order.len();
+        let mut e = Embeddings {
+            ids: Vec::with_capacity(n),
+            means: Vec::with_capacity(n),
+            dim,
+            vectors: Vec::with_capacity(n * dim),
+            total_weights: Vec::with_capacity(n),
+            ..Default::default()
+        };
+        for &(id, r, i) in &order {
+            let (_, vectors, weights) = &self.rows[r as usize];
+            let i = i as usize;
+            e.ids.push(id);
+            e.means.push(gaussians.means[id as usize]);
+            e.vectors
+                .extend_from_slice(&vectors[i * dim..(i + 1) * dim]);
+            e.total_weights.push(weights[i]);
+        }
+        Ok(e)
+    }
+
+    /// The report's per-partition and per-worker figures of a cluster of `peers` processes.
+    fn cluster_outputs(&self, peers: usize) -> ClusterOutputs {
+        ClusterOutputs {
+            partitions: self
+                .parts
+                .iter()
+                .map(|s| ClusterPartition {
+                    entries: s.entries,
+                    images: s.images,
+                    observed: s.rows,
+                    partition: s.partition,
+                    reduce_chunks: s.chunks,
+                    reduce_s: s.reduce_s,
+                    spilled_images: s.spilled,
+                })
+                .collect(),
+            processes: peers,
+            reduce_timing: "slowest partition (partitions reduce in parallel)".into(),
+            workers: self
+                .stats
+                .iter()
+                .map(|s| ClusterWorker {
+                    entries: s.work.entries,
+                    images: s.work.images,
+                    map_wall_s: s.wall_s,
+                    masks: s.work.masks,
+                    worker: s.worker,
+                })
+                .collect(),
+        }
+    }
+}
+
 /// Worker 0: checks that every partition and every map worker reported, then merges the rows in
 /// ascending Gaussian id order.
 pub(super) fn assemble(
@@ -58,38 +181,7 @@ pub(super) fn assemble(
     views_total: usize,
     load_scene_s: f64,
 ) -> Result<(Embeddings, Counts, StageTimings, ClusterOutputs)> {
-    if let Some(m) = g.aborts.first() {
-        return Err(Error::Invalid(format!("the job was aborted: {m}")));
-    }
-    g.parts.sort_by_key(|s| s.partition);
-    g.stats.sort_by_key(|s| s.worker);
-    let parts_ok = g.parts.len() == peers
-        && g.parts
-            .iter()
-            .enumerate()
-            .all(|(i, s)| s.partition as usize == i);
-    let stats_ok = g.stats.len() == peers
-        && g.stats
-            .iter()
-            .enumerate()
-            .all(|(i, s)| s.worker as usize == i);
-    if !parts_ok || !stats_ok {
-        return Err(Error::internal(format!(
-            "incomplete job: {} of {peers} partition summaries and {} of {peers} worker reports \
-             reached process 0",
-            g.parts.len(),
-            g.stats.len()
-        )));
-    }
-    g.rows_per_partition.resize(peers, 0);
-    for s in &g.parts {
-        if g.rows_per_partition[s.partition as usize] != s.rows {
-            return Err(Error::internal(format!(
-                "incomplete job: partition {} reduced {} Gaussians but {} reached process 0",
-                s.partition, s.rows, g.rows_per_partition[s.partition as usize]
-            )));
-        }
-    }
+    g.check_complete(peers)?;
     let job = g.parts[0].job.clone();
     let dim = job.dim as usize;
     if job.gaussians != gaussians.len() as u64 {
@@ -109,45 +201,8 @@ pub(super) fn assemble(
             job.views
         )));
     }
-    // Merge: (id, record, row) sorted by id.
-    let mut order: Vec<(u32, u32, u32)> = g
-        .rows
-        .iter()
-        .enumerate()
-        .flat_map(|(r, (ids, _, _))| {
-            ids.iter()
-                .enumerate()
-                .map(move |(i, &id)| (id, r as u32, i as u32))
-        })
-        .collect();
-    order.sort_unstable();
-    if order.windows(2).any(|w| w[0].0 == w[1].0)
-        || order
-            .last()
-            .is_some_and(|l| l.0 as usize >= gaussians.len())
-    {
-        return Err(Error::internal(
-            "partitions returned duplicate or out-of-range Gaussian ids",
-        ));
-    }
-    let n = order.len();
-    let mut e = Embeddings {
-        ids: Vec::with_capacity(n),
-        means: Vec::with_capacity(n),
-        dim,
-        vectors: Vec::with_capacity(n * dim),
-        total_weights: Vec::with_capacity(n),
-        ..Default::default()
-    };
-    for &(id, r, i) in &order {
-        let (_, vectors, weights) = &g.rows[r as usize];
-        let i = i as usize;
-        e.ids.push(id);
-        e.means.push(gaussians.means[id as usize]);
-        e.vectors
-            .extend_from_slice(&vectors[i * dim..(i + 1) * dim]);
-        e.total_weights.push(weights[i]);
-    }
+    let e = g.merge_rows(gaussians, dim)?;
+    let n = e.ids.len();
     let mut work = crate::report::ImageWork::default();
     g.stats.iter().for_each(|s| work.add(&s.work));
     let mut timings = StageTimings {
@@ -168,33 +223,6 @@ pub(super) fn assemble(
         ..Default::default()
     };
     work.fill(&mut timings, &mut counts);
-    let cluster = ClusterOutputs {
-        partitions: g
-            .parts
-            .iter()
-            .map(|s| ClusterPartition {
-                entries: s.entries,
-                images: s.images,
-                observed: s.rows,
-                partition: s.partition,
-                reduce_chunks: s.chunks,
-                reduce_s: s.reduce_s,
-                spilled_images: s.spilled,
-            })
-            .collect(),
-        processes: peers,
-        reduce_timing: "slowest partition (partitions reduce in parallel)".into(),
-        workers: g
-            .stats
-            .iter()
-            .map(|s| ClusterWorker {
-                entries: s.work.entries,
-                images: s.work.images,
-                map_wall_s: s.wall_s,
-                masks: s.work.masks,
-                worker: s.worker,
-            })
-            .collect(),
-    };
+    let cluster = g.cluster_outputs(peers);
     Ok((e, counts, timings, cluster))
 }

@@ -62,7 +62,9 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use slag_common::camera::View;
 use slag_common::embeddings::Embeddings;
+use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::channels::pact::Exchange;
@@ -83,7 +85,7 @@ pub use config::{ClusterConfig, ClusterJob, StageFactory, Stages};
 pub use encoder::ClusterEncoder;
 use gather::{Gathered, WorkerOutcome, assemble};
 use map::{Input, job_key, map_side};
-use records::{MapStats, ToGather, ToReducer};
+use records::{JobKey, MapStats, ToGather, ToReducer};
 use reduce::PartitionReducer;
 
 /// Exit status of a process that lost a peer process (its TCP connection failed) or hit an
@@ -107,9 +109,61 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         job.params.reduce,
         ContributionStore::new(job.params.contribution_budget_bytes, spill_dir),
     );
+    build_dataflow(worker, &mut input, reducer, &aborted, &gathered);
+
+    // Map side. Errors are broadcast as Abort so every process fails with the same message.
+    let mut map = MapOutcome {
+        stats: MapStats {
+            worker: w as u32,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let result = run_map(worker, &mut input, job, &aborted, &mut map);
+    let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
+    send_done(&mut input, peers, w, failed, &map);
+    drop(input);
+    while worker.has_dataflows() {
+        worker.step_or_park(None);
+    }
+    result?;
+    let gathered = std::mem::take(&mut *gathered.borrow_mut());
+    let images = map.stats.work.images;
+    if w != 0 {
+        if let Some(m) = aborted.borrow_mut().take() {
+            return Err(Error::Invalid(format!("the job was aborted: {m}")));
+        }
+        return Ok(WorkerOutcome {
+            output: None,
+            models: map.models,
+            images,
+        });
+    }
+    let (gaussians, _, views_total) = map
+        .scene
+        .ok_or_else(|| Error::internal("worker 0 has no scene"))?;
+    let output = assemble(gathered, peers, &gaussians, views_total, map.load_scene_s)?;
+    Ok(WorkerOutcome {
+        output: Some(output),
+        models: map.models,
+        images,
+    })
+}
+
+/// Builds the dataflow (identically on every worker): the records of `input` go to their
+/// partition's reducer, which reduces once its frontier is empty and sends its rows and
+/// summary to worker 0's `gathered`; the message of an `Abort` a reducer sees is kept in
+/// `aborted`.
+fn build_dataflow(
+    worker: &mut timely::worker::Worker,
+    input: &mut Input,
+    reducer: PartitionReducer,
+    aborted: &Rc<RefCell<Option<String>>>,
+    gathered: &Rc<RefCell<Gathered>>,
+) {
     worker.dataflow::<u64, _, _>(|scope| {
-        let aborted = Rc::clone(&aborted);
-        let gathered = Rc::clone(&gathered);
+        let aborted = Rc::clone(aborted);
+        let gathered = Rc::clone(gathered);
         input
             .to_stream(scope)
             .unary_frontier::<CapacityContainerBuilder<Vec<ToGather>>, _, _, _>(
@@ -152,49 +206,70 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
                 },
             );
     });
+}
 
-    // Map side. Errors are broadcast as Abort so every process fails with the same message.
-    let mut load_scene_s = 0.0;
-    let mut stats = MapStats {
-        worker: w as u32,
-        ..Default::default()
-    };
-    let mut models = [String::new(), String::new(), String::new()];
-    let mut key = None;
-    let mut scene_kept = None;
-    let result = (|| -> Result<()> {
-        let t_load = Instant::now();
-        let (gaussians, training, total) = job.scene.load()?;
-        // All or uniformly thinned views: coverage selection is refused before a cluster starts
-        // (`EncodeConfig::check_cluster`), so no rasterizer is needed here.
-        let (views, _) = crate::views::choose(training, &job.scene.selection, &gaussians, &mut [])?;
-        let scene = (gaussians, views, total);
-        load_scene_s = t_load.elapsed().as_secs_f64();
-        if scene.1.is_empty() {
-            return Err(crate::pipeline::no_views(&job.scene, scene.2));
-        }
-        let mut stages = (job.stages)(&scene.0)?;
-        models = [
-            stages.rasterizer.name().to_string(),
-            stages.crops.model_id().to_string(),
-            stages.masks.name().to_string(),
-        ];
-        let k = job_key(job, scene.0.len(), &scene.1, stages.crops.dim(), &stages);
-        key = Some(k.clone());
-        let r = map_side(
-            worker,
-            &mut input,
-            job,
-            &aborted,
-            &scene,
-            &mut stages,
-            &k,
-            &mut stats,
-        );
-        scene_kept = Some(scene);
-        r
-    })();
-    let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
+/// What the map side of one worker leaves for the end of the job, also when it failed.
+#[derive(Default)]
+struct MapOutcome {
+    /// Seconds to load the scene and choose its views.
+    load_scene_s: f64,
+    /// The names of the rasterizer, the CLIP model and the mask source.
+    models: [String; 3],
+    /// The job's fingerprint, once the stages are built.
+    key: Option<JobKey>,
+    /// The scene (Gaussians, chosen views, training views in all), once the map side ran.
+    scene: Option<(Gaussians, Vec<View>, usize)>,
+    /// This worker's map figures.
+    stats: MapStats,
+}
+
+/// Loads the scene, builds the stages and runs the map side of this worker, recording in `out`
+/// what the end of the job needs.
+///
+/// Errors: the scene's or the stages' ([`Error`]), no views, the map side's.
+fn run_map(
+    worker: &mut timely::worker::Worker,
+    input: &mut Input,
+    job: &ClusterJob,
+    aborted: &RefCell<Option<String>>,
+    out: &mut MapOutcome,
+) -> Result<()> {
+    let t_load = Instant::now();
+    let (gaussians, training, total) = job.scene.load()?;
+    // All or uniformly thinned views: coverage selection is refused before a cluster starts
+    // (`EncodeConfig::check_cluster`), so no rasterizer is needed here.
+    let (views, _) = crate::views::choose(training, &job.scene.selection, &gaussians, &mut [])?;
+    let scene = (gaussians, views, total);
+    out.load_scene_s = t_load.elapsed().as_secs_f64();
+    if scene.1.is_empty() {
+        return Err(crate::pipeline::no_views(&job.scene, scene.2));
+    }
+    let mut stages = (job.stages)(&scene.0)?;
+    out.models = [
+        stages.rasterizer.name().to_string(),
+        stages.crops.model_id().to_string(),
+        stages.masks.name().to_string(),
+    ];
+    let k = job_key(job, scene.0.len(), &scene.1, stages.crops.dim(), &stages);
+    out.key = Some(k.clone());
+    let r = map_side(
+        worker,
+        input,
+        job,
+        aborted,
+        &scene,
+        &mut stages,
+        &k,
+        &mut out.stats,
+    );
+    out.scene = Some(scene);
+    r
+}
+
+/// Ends this worker's map side at every partition: an `Abort` with the message of a failure,
+/// then `Done` with the images sent and the job's fingerprint (partition 0 also gets the
+/// worker's figures).
+fn send_done(input: &mut Input, peers: usize, w: usize, failed: Option<String>, map: &MapOutcome) {
     for p in 0..peers as u32 {
         if let Some(m) = &failed {
             input.send(ToReducer::Abort {
@@ -205,35 +280,11 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         input.send(ToReducer::Done {
             partition: p,
             worker: w as u32,
-            images: stats.work.images,
-            job: key.clone(),
-            stats: (p == 0).then(|| stats.clone()),
+            images: map.stats.work.images,
+            job: map.key.clone(),
+            stats: (p == 0).then(|| map.stats.clone()),
         });
     }
-    drop(input);
-    while worker.has_dataflows() {
-        worker.step_or_park(None);
-    }
-    result?;
-    let gathered = std::mem::take(&mut *gathered.borrow_mut());
-    if w != 0 {
-        if let Some(m) = aborted.borrow_mut().take() {
-            return Err(Error::Invalid(format!("the job was aborted: {m}")));
-        }
-        return Ok(WorkerOutcome {
-            output: None,
-            models,
-            images: stats.work.images,
-        });
-    }
-    let (gaussians, _, views_total) =
-        scene_kept.ok_or_else(|| Error::internal("worker 0 has no scene"))?;
-    let output = assemble(gathered, peers, &gaussians, views_total, load_scene_s)?;
-    Ok(WorkerOutcome {
-        output: Some(output),
-        models,
-        images: stats.work.images,
-    })
 }
 
 /// The spill folder of process `process` under `out` (hidden, `.partial`: never mistaken for

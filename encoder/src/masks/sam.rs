@@ -529,62 +529,9 @@ impl SamAutomaticMaskGenerator {
         upsampler: &LowResUpsampler,
     ) -> Result<(Vec<Candidate>, f64)> {
         let n = points.len();
-        let mut coords = Vec::with_capacity(n * 4);
-        let mut labels = Vec::with_capacity(n * 2);
-        for p in transformed {
-            coords.extend_from_slice(&[p[0], p[1], 0.0, 0.0]);
-            labels.extend_from_slice(&[1.0f32, -1.0]);
-        }
-        let mask_input = vec![0f32; 256 * 256];
-        let has_mask = [0f32];
-        let orig = [h as f32, w as f32];
         let low_res = self.params.postprocess == MaskPostprocess::LowRes;
-        let mut dec = lock(&self.models.decoder);
-        let errs = dec.errors();
-        let err = |e: ort::Error| errs.error("cannot build the decoder inputs", &e);
-        let emb_input: ort::session::SessionInputValue<'_> = match embedding {
-            ImageEmbedding::Host(v) => {
-                TensorRef::from_array_view(([1usize, 256, 64, 64], v.as_slice()))
-                    .map_err(err)?
-                    .into()
-            }
-            ImageEmbedding::Device(v) => v.into(),
-        };
-        let inputs = ort::inputs![
-            "image_embeddings" => emb_input,
-            "point_coords" => TensorRef::from_array_view(([n, 2, 2], coords.as_slice())).map_err(err)?,
-            "point_labels" => TensorRef::from_array_view(([n, 2], labels.as_slice())).map_err(err)?,
-            "mask_input" => TensorRef::from_array_view(([1usize, 1, 256, 256], mask_input.as_slice())).map_err(err)?,
-            "has_mask_input" => TensorRef::from_array_view(([1usize], &has_mask[..])).map_err(err)?,
-            "orig_im_size" => TensorRef::from_array_view(([2usize], &orig[..])).map_err(err)?,
-        ];
-        let t = std::time::Instant::now();
-        // The low-resolution path asks for two outputs only: ONNX Runtime then neither copies
-        // the full-resolution masks back nor keeps them.
-        let selector = if low_res {
-            OutputSelector::no_default()
-                .with("iou_predictions")
-                .with("low_res_masks")
-        } else {
-            OutputSelector::default()
-        };
-        let options = RunOptions::new()
-            .map_err(|e| errs.error("cannot create run options", &e))?
-            .with_outputs(selector);
-        let mut outputs = dec
-            .session_mut()
-            .run_with_options(inputs, &options)
-            .map_err(|e| errs.error("decoder run", &e))?;
-        let run_s = t.elapsed().as_secs_f64();
-        // The outputs own their host memory: the session is free for another front's call
-        // while this call's candidates are filtered.
-        let iou_value = outputs.remove("iou_predictions");
-        let masks_value = outputs.remove(if low_res { "low_res_masks" } else { "masks" });
-        drop(outputs);
-        drop(dec);
-        let missing = |name: &str| errs.unexpected(format!("the decoder returned no {name}"));
-        let iou_value = iou_value.ok_or_else(|| missing("iou_predictions"))?;
-        let masks_value = masks_value.ok_or_else(|| missing("masks"))?;
+        let (errs, [iou_value, masks_value], run_s) =
+            self.run_decoder(embedding, transformed, (h, w), low_res)?;
         tracing::trace!(prompts = n, run_s, "SAM decoder batch");
         let (ishape, ious) = iou_value
             .try_extract_tensor::<f32>()
@@ -639,6 +586,76 @@ impl SamAutomaticMaskGenerator {
             "SAM candidates"
         );
         Ok((cands.into_iter().flatten().collect(), run_s))
+    }
+
+    /// Runs the prompt decoder on one batch of prompts (`transformed`: points in the 1024 frame)
+    /// for an image of `(h, w)` pixels: the decoder's errors, its `[iou_predictions, masks]`
+    /// (`low_res_masks` with `low_res`) and the run's seconds. The outputs own their host
+    /// memory: the session is free for another front's call when this returns.
+    ///
+    /// Errors: [`Error::Inference`] when the run fails, [`Error::Model`] for a missing output.
+    fn run_decoder(
+        &self,
+        embedding: &ImageEmbedding,
+        transformed: &[[f32; 2]],
+        (h, w): (u32, u32),
+        low_res: bool,
+    ) -> Result<(onnx::ModelErrors, [DynValue; 2], f64)> {
+        let n = transformed.len();
+        let mut coords = Vec::with_capacity(n * 4);
+        let mut labels = Vec::with_capacity(n * 2);
+        for p in transformed {
+            coords.extend_from_slice(&[p[0], p[1], 0.0, 0.0]);
+            labels.extend_from_slice(&[1.0f32, -1.0]);
+        }
+        let mask_input = vec![0f32; 256 * 256];
+        let has_mask = [0f32];
+        let orig = [h as f32, w as f32];
+        let mut dec = lock(&self.models.decoder);
+        let errs = dec.errors();
+        let err = |e: ort::Error| errs.error("cannot build the decoder inputs", &e);
+        let emb_input: ort::session::SessionInputValue<'_> = match embedding {
+            ImageEmbedding::Host(v) => {
+                TensorRef::from_array_view(([1usize, 256, 64, 64], v.as_slice()))
+                    .map_err(err)?
+                    .into()
+            }
+            ImageEmbedding::Device(v) => v.into(),
+        };
+        let inputs = ort::inputs![
+            "image_embeddings" => emb_input,
+            "point_coords" => TensorRef::from_array_view(([n, 2, 2], coords.as_slice())).map_err(err)?,
+            "point_labels" => TensorRef::from_array_view(([n, 2], labels.as_slice())).map_err(err)?,
+            "mask_input" => TensorRef::from_array_view(([1usize, 1, 256, 256], mask_input.as_slice())).map_err(err)?,
+            "has_mask_input" => TensorRef::from_array_view(([1usize], &has_mask[..])).map_err(err)?,
+            "orig_im_size" => TensorRef::from_array_view(([2usize], &orig[..])).map_err(err)?,
+        ];
+        let t = std::time::Instant::now();
+        // The low-resolution path asks for two outputs only: ONNX Runtime then neither copies
+        // the full-resolution masks back nor keeps them.
+        let selector = if low_res {
+            OutputSelector::no_default()
+                .with("iou_predictions")
+                .with("low_res_masks")
+        } else {
+            OutputSelector::default()
+        };
+        let options = RunOptions::new()
+            .map_err(|e| errs.error("cannot create run options", &e))?
+            .with_outputs(selector);
+        let mut outputs = dec
+            .session_mut()
+            .run_with_options(inputs, &options)
+            .map_err(|e| errs.error("decoder run", &e))?;
+        let run_s = t.elapsed().as_secs_f64();
+        let iou_value = outputs.remove("iou_predictions");
+        let masks_value = outputs.remove(if low_res { "low_res_masks" } else { "masks" });
+        drop(outputs);
+        drop(dec);
+        let missing = |name: &str| errs.unexpected(format!("the decoder returned no {name}"));
+        let iou_value = iou_value.ok_or_else(|| missing("iou_predictions"))?;
+        let masks_value = masks_value.ok_or_else(|| missing("masks"))?;
+        Ok((errs, [iou_value, masks_value], run_s))
     }
 
     /// All masks of `image`, in SAM AMG order (NMS order: descending predicted IoU).

@@ -271,18 +271,133 @@ fn u16be(d: &[u8], i: usize) -> Result<usize, DecodeError> {
         .ok_or_else(|| "truncated JPEG header".to_string())
 }
 
+/// What the segments before the scan declare: tables, frame size and components.
+struct Frame {
+    /// Quantisation tables, natural order.
+    qt: [[u16; 64]; 4],
+    /// DC Huffman tables.
+    dc: Vec<Huffman>,
+    /// AC Huffman tables.
+    ac: Vec<Huffman>,
+    comps: Vec<Component>,
+    width: usize,
+    height: usize,
+    /// MCUs between restart markers (0: none).
+    restart_interval: usize,
+}
+
+impl Frame {
+    fn new() -> Frame {
+        Frame {
+            qt: [[0u16; 64]; 4],
+            dc: vec![Huffman::default(); 4],
+            ac: vec![Huffman::default(); 4],
+            comps: Vec::new(),
+            width: 0,
+            height: 0,
+            restart_interval: 0,
+        }
+    }
+
+    /// A DQT segment: one or more quantisation tables (8- or 16-bit values).
+    fn read_dqt(&mut self, seg: &[u8]) -> Result<(), DecodeError> {
+        let mut p = 0;
+        while p < seg.len() {
+            let (pq, tq) = (seg[p] >> 4, usize::from(seg[p] & 15));
+            if tq > 3 {
+                return Err("bad quantisation table id".into());
+            }
+            p += 1;
+            for k in 0..64 {
+                let v = if pq == 0 {
+                    u16::from(*seg.get(p + k).ok_or("truncated DQT")?)
+                } else {
+                    u16be(seg, p + 2 * k)? as u16
+                };
+                self.qt[tq][ZIGZAG[k]] = v;
+            }
+            p += if pq == 0 { 64 } else { 128 };
+        }
+        Ok(())
+    }
+
+    /// A DHT segment: one or more Huffman tables.
+    fn read_dht(&mut self, seg: &[u8]) -> Result<(), DecodeError> {
+        let mut p = 0;
+        while p < seg.len() {
+            let (tc, th) = (seg[p] >> 4, usize::from(seg[p] & 15));
+            let counts: [u8; 16] = seg
+                .get(p + 1..p + 17)
+                .ok_or("truncated DHT")?
+                .try_into()
+                .map_err(|_| "DHT")?;
+            let n: usize = counts.iter().map(|&c| usize::from(c)).sum();
+            let values = seg.get(p + 17..p + 17 + n).ok_or("truncated DHT")?.to_vec();
+            if th > 3 {
+                return Err("bad Huffman table id".into());
+            }
+            let h = Huffman::new(&counts, values);
+            if tc == 0 {
+                self.dc[th] = h
+            } else {
+                self.ac[th] = h
+            }
+            p += 17 + n;
+        }
+        Ok(())
+    }
+
+    /// A baseline or extended sequential SOF segment; `Ok(false)` for a precision other than 8
+    /// bits (outside this decoder's scope).
+    fn read_sof(&mut self, seg: &[u8]) -> Result<bool, DecodeError> {
+        if seg.len() < 6 || seg[0] != 8 {
+            return Ok(false);
+        }
+        self.height = u16be(seg, 1)?;
+        self.width = u16be(seg, 3)?;
+        let n = usize::from(seg[5]);
+        for k in 0..n {
+            let c = seg.get(6 + 3 * k..9 + 3 * k).ok_or("truncated SOF")?;
+            self.comps.push(Component {
+                id: c[0],
+                h: usize::from(c[1] >> 4),
+                v: usize::from(c[1] & 15),
+                tq: usize::from(c[2] & 3),
+                td: 0,
+                ta: 0,
+            });
+        }
+        Ok(true)
+    }
+
+    /// The SOS segment: each component's Huffman tables; `Ok(false)` when the scan does not
+    /// hold every component (several scans: outside this decoder's scope).
+    fn read_sos(&mut self, seg: &[u8]) -> Result<bool, DecodeError> {
+        let ns = usize::from(*seg.first().ok_or("truncated SOS")?);
+        if self.comps.is_empty() || ns != self.comps.len() {
+            return Ok(false);
+        }
+        for k in 0..ns {
+            let (cid, t) = (seg[1 + 2 * k], seg[2 + 2 * k]);
+            let c = self
+                .comps
+                .iter_mut()
+                .find(|c| c.id == cid)
+                .ok_or("unknown scan component")?;
+            c.td = usize::from(t >> 4) & 3;
+            c.ta = usize::from(t & 15) & 3;
+        }
+        Ok(true)
+    }
+}
+
 /// Decodes a JPEG stream. `Ok(None)`: a valid JPEG outside this decoder's scope (progressive,
 /// CMYK, 12-bit, unusual subsampling, several scans); `Err`: a corrupt stream.
 pub(crate) fn decode(data: &[u8]) -> Result<Option<RgbImage>, DecodeError> {
     if data.len() < 4 || data[0] != 0xFF || data[1] != 0xD8 {
         return Err("not a JPEG stream".into());
     }
-    let mut qt = [[0u16; 64]; 4];
-    let mut dc: Vec<Huffman> = vec![Huffman::default(); 4];
-    let mut ac: Vec<Huffman> = vec![Huffman::default(); 4];
-    let mut comps: Vec<Component> = Vec::new();
-    let (mut width, mut height) = (0usize, 0usize);
-    let mut restart_interval = 0usize;
+    let mut frame = Frame::new();
     let mut i = 2;
     loop {
         while i < data.len() && data[i] != 0xFF {
@@ -304,93 +419,20 @@ pub(crate) fn decode(data: &[u8]) -> Result<Option<RgbImage>, DecodeError> {
         let len = u16be(data, i)?;
         let seg = data.get(i + 2..i + len).ok_or("truncated JPEG segment")?;
         match marker {
-            0xDB => {
-                let mut p = 0;
-                while p < seg.len() {
-                    let (pq, tq) = (seg[p] >> 4, usize::from(seg[p] & 15));
-                    if tq > 3 {
-                        return Err("bad quantisation table id".into());
-                    }
-                    p += 1;
-                    for k in 0..64 {
-                        let v = if pq == 0 {
-                            u16::from(*seg.get(p + k).ok_or("truncated DQT")?)
-                        } else {
-                            u16be(seg, p + 2 * k)? as u16
-                        };
-                        qt[tq][ZIGZAG[k]] = v;
-                    }
-                    p += if pq == 0 { 64 } else { 128 };
-                }
-            }
-            0xC4 => {
-                let mut p = 0;
-                while p < seg.len() {
-                    let (tc, th) = (seg[p] >> 4, usize::from(seg[p] & 15));
-                    let counts: [u8; 16] = seg
-                        .get(p + 1..p + 17)
-                        .ok_or("truncated DHT")?
-                        .try_into()
-                        .map_err(|_| "DHT")?;
-                    let n: usize = counts.iter().map(|&c| usize::from(c)).sum();
-                    let values = seg.get(p + 17..p + 17 + n).ok_or("truncated DHT")?.to_vec();
-                    if th > 3 {
-                        return Err("bad Huffman table id".into());
-                    }
-                    let h = Huffman::new(&counts, values);
-                    if tc == 0 {
-                        dc[th] = h
-                    } else {
-                        ac[th] = h
-                    }
-                    p += 17 + n;
-                }
-            }
-            0xDD => restart_interval = u16be(seg, 0)?,
+            0xDB => frame.read_dqt(seg)?,
+            0xC4 => frame.read_dht(seg)?,
+            0xDD => frame.restart_interval = u16be(seg, 0)?,
             0xC0 | 0xC1 => {
-                if seg.len() < 6 || seg[0] != 8 {
+                if !frame.read_sof(seg)? {
                     return Ok(None);
-                }
-                height = u16be(seg, 1)?;
-                width = u16be(seg, 3)?;
-                let n = usize::from(seg[5]);
-                for k in 0..n {
-                    let c = seg.get(6 + 3 * k..9 + 3 * k).ok_or("truncated SOF")?;
-                    comps.push(Component {
-                        id: c[0],
-                        h: usize::from(c[1] >> 4),
-                        v: usize::from(c[1] & 15),
-                        tq: usize::from(c[2] & 3),
-                        td: 0,
-                        ta: 0,
-                    });
                 }
             }
             0xC2 | 0xC3 | 0xC5..=0xC7 | 0xC9..=0xCB | 0xCD..=0xCF => return Ok(None),
             0xDA => {
-                let ns = usize::from(*seg.first().ok_or("truncated SOS")?);
-                if comps.is_empty() || ns != comps.len() {
+                if !frame.read_sos(seg)? {
                     return Ok(None);
                 }
-                for k in 0..ns {
-                    let (cid, t) = (seg[1 + 2 * k], seg[2 + 2 * k]);
-                    let c = comps
-                        .iter_mut()
-                        .find(|c| c.id == cid)
-                        .ok_or("unknown scan component")?;
-                    c.td = usize::from(t >> 4) & 3;
-                    c.ta = usize::from(t & 15) & 3;
-                }
-                return decode_scan(
-                    &data[i + len..],
-                    width,
-                    height,
-                    &comps,
-                    &qt,
-                    &dc,
-                    &ac,
-                    restart_interval,
-                );
+                return decode_scan(&data[i + len..], &frame);
             }
             _ => {}
         }
@@ -398,20 +440,10 @@ pub(crate) fn decode(data: &[u8]) -> Result<Option<RgbImage>, DecodeError> {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
-fn decode_scan(
-    data: &[u8],
-    width: usize,
-    height: usize,
-    comps: &[Component],
-    qt: &[[u16; 64]; 4],
-    dc: &[Huffman],
-    ac: &[Huffman],
-    restart_interval: usize,
-) -> Result<Option<RgbImage>, DecodeError> {
-    if width == 0 || height == 0 {
-        return Err("JPEG with zero size".into());
-    }
+/// The MCU's size in blocks of the largest sampling factors, `(hmax, vmax)`: `(1, 1)` for one
+/// (non-interleaved) component; `None` for a layout outside this decoder's scope (other than
+/// greyscale or 3 components at 4:4:4 or 4:2:0).
+fn mcu_blocks(comps: &[Component]) -> Option<(usize, usize)> {
     let hmax = comps.iter().map(|c| c.h).max().unwrap_or(1);
     let vmax = comps.iter().map(|c| c.v).max().unwrap_or(1);
     let supported = match comps.len() {
@@ -425,21 +457,72 @@ fn decode_scan(
         _ => false,
     };
     if !supported || comps.iter().any(|c| c.h == 0 || c.v == 0) {
-        return Ok(None);
+        return None;
     }
     // A single-component scan is non-interleaved: MCU = one block.
-    let (hmax, vmax) = if comps.len() == 1 {
+    Some(if comps.len() == 1 {
         (1, 1)
     } else {
         (hmax, vmax)
+    })
+}
+
+/// Decodes one block's coefficients (natural order) into `coef`, the DC as a difference from
+/// the component's `pred`, which it updates.
+#[inline]
+fn decode_block(
+    bits: &mut Bits<'_>,
+    dc: &Huffman,
+    ac: &Huffman,
+    pred: &mut i32,
+    coef: &mut [i32; 64],
+) -> Result<(), DecodeError> {
+    coef.fill(0);
+    let s = u32::from(bits.decode(dc)?);
+    if s > 16 {
+        return Err("corrupt DC coefficient".into());
+    }
+    *pred += extend(bits.bits(s), s);
+    coef[0] = *pred;
+    let mut k = 1;
+    while k < 64 {
+        let rs = bits.decode(ac)?;
+        let (r, s) = (usize::from(rs >> 4), u32::from(rs & 15));
+        if s == 0 {
+            if r == 15 {
+                k += 16;
+                continue;
+            }
+            break;
+        }
+        k += r;
+        if k > 63 {
+            return Err("corrupt AC coefficients".into());
+        }
+        coef[ZIGZAG[k]] = extend(bits.bits(s), s);
+        k += 1;
+    }
+    Ok(())
+}
+
+/// A component's sample plane, padded to whole MCUs: `(row stride, rows, samples)`.
+type Plane = (usize, usize, Vec<u8>);
+
+fn decode_scan(data: &[u8], frame: &Frame) -> Result<Option<RgbImage>, DecodeError> {
+    let (width, height, comps) = (frame.width, frame.height, &frame.comps[..]);
+    if width == 0 || height == 0 {
+        return Err("JPEG with zero size".into());
+    }
+    let Some((hmax, vmax)) = mcu_blocks(comps) else {
+        return Ok(None);
     };
     let mcux = width.div_ceil(8 * hmax);
     let mcuy = height.div_ceil(8 * vmax);
-    // Per-component sample planes padded to whole MCUs.
-    let mut planes: Vec<(usize, usize, Vec<u8>)> = comps
+    let blocks = |c: &Component| if comps.len() == 1 { (1, 1) } else { (c.h, c.v) };
+    let mut planes: Vec<Plane> = comps
         .iter()
         .map(|c| {
-            let (ch, cv) = if comps.len() == 1 { (1, 1) } else { (c.h, c.v) };
+            let (ch, cv) = blocks(c);
             let (pw, ph) = (mcux * ch * 8, mcuy * cv * 8);
             (pw, ph, vec![0u8; pw * ph])
         })
@@ -453,52 +536,38 @@ fn decode_scan(
     };
     let mut pred = vec![0i32; comps.len()];
     let mut coef = [0i32; 64];
-    let total = mcux * mcuy;
-    for m in 0..total {
+    let restart_interval = frame.restart_interval;
+    for m in 0..mcux * mcuy {
         if restart_interval > 0 && m > 0 && m % restart_interval == 0 {
             bits.restart();
             pred.iter_mut().for_each(|p| *p = 0);
         }
         let (mx, my) = (m % mcux, m / mcux);
         for (ci, c) in comps.iter().enumerate() {
-            let (ch, cv) = if comps.len() == 1 { (1, 1) } else { (c.h, c.v) };
+            let (ch, cv) = blocks(c);
             for by in 0..cv {
                 for bx in 0..ch {
-                    coef.fill(0);
-                    let s = u32::from(bits.decode(&dc[c.td])?);
-                    if s > 16 {
-                        return Err("corrupt DC coefficient".into());
-                    }
-                    pred[ci] += extend(bits.bits(s), s);
-                    coef[0] = pred[ci];
-                    let mut k = 1;
-                    while k < 64 {
-                        let rs = bits.decode(&ac[c.ta])?;
-                        let (r, s) = (usize::from(rs >> 4), u32::from(rs & 15));
-                        if s == 0 {
-                            if r == 15 {
-                                k += 16;
-                                continue;
-                            }
-                            break;
-                        }
-                        k += r;
-                        if k > 63 {
-                            return Err("corrupt AC coefficients".into());
-                        }
-                        coef[ZIGZAG[k]] = extend(bits.bits(s), s);
-                        k += 1;
-                    }
+                    let (dc, ac) = (&frame.dc[c.td], &frame.ac[c.ta]);
+                    decode_block(&mut bits, dc, ac, &mut pred[ci], &mut coef)?;
                     let (pw, _, plane) = &mut planes[ci];
                     let x0 = (mx * ch + bx) * 8;
                     let y0 = (my * cv + by) * 8;
-                    idct_islow(&coef, &qt[c.tq], &mut plane[y0 * *pw + x0..], *pw);
+                    idct_islow(&coef, &frame.qt[c.tq], &mut plane[y0 * *pw + x0..], *pw);
                 }
             }
         }
     }
+    let out = planes_to_rgb(&planes, (hmax, vmax), width, height);
+    RgbImage::from_raw(width as u32, height as u32, out)
+        .map(Some)
+        .ok_or_else(|| "size".into())
+}
+
+/// Interleaved RGB of the decoded planes: grey for one plane, else Y'CbCr with the chroma
+/// upsampled (4:2:0, `mcu == (2, 2)`) or cropped (4:4:4).
+fn planes_to_rgb(planes: &[Plane], mcu: (usize, usize), width: usize, height: usize) -> Vec<u8> {
     let mut out = vec![0u8; width * height * 3];
-    if comps.len() == 1 {
+    if planes.len() == 1 {
         let (pw, _, p) = &planes[0];
         for y in 0..height {
             for x in 0..width {
@@ -507,14 +576,14 @@ fn decode_scan(
             }
         }
     } else {
-        let (cb, cr) = if (hmax, vmax) == (2, 2) {
+        let (cb, cr) = if mcu == (2, 2) {
             let (cw, chh) = (width.div_ceil(2), height.div_ceil(2));
             (
                 h2v2_fancy(&planes[1].2, planes[1].0, cw, chh, width, height),
                 h2v2_fancy(&planes[2].2, planes[2].0, cw, chh, width, height),
             )
         } else {
-            let crop = |(pw, _, p): &(usize, usize, Vec<u8>)| -> Vec<u8> {
+            let crop = |(pw, _, p): &Plane| -> Vec<u8> {
                 (0..height)
                     .flat_map(|y| p[y * pw..y * pw + width].iter().copied())
                     .collect()
@@ -524,9 +593,7 @@ fn decode_scan(
         let (pw, _, yp) = &planes[0];
         ycc_to_rgb(yp, *pw, &cb, &cr, width, height, &mut out);
     }
-    RgbImage::from_raw(width as u32, height as u32, out)
-        .map(Some)
-        .ok_or_else(|| "size".into())
+    out
 }
 
 /// libjpeg-turbo `h2v2_fancy_upsample` of a `cw` x `ch` chroma plane (row stride `stride`) to
