@@ -168,34 +168,7 @@ impl GpuRasterizer {
             written += wanted;
             if wanted > 0 {
                 bands += 1;
-                if let Some((id, dominant)) = self.keeping {
-                    // Kept on the device for the device reduction: nothing read back.
-                    let (reduced, keys) =
-                        self.reduce_records(view, &out.records, wanted as u32, max_label)?;
-                    let heads = self.keep_band(id, &reduced, keys, dominant)?;
-                    self.kept_heads.extend(heads);
-                    kept = Some(out);
-                    r0 = r1;
-                    continue;
-                }
-                let mut enc = self.device.create_command_encoder(&Default::default());
-                // One record per key (reduced on the device), or the records as written.
-                let bytes = if self.reduce_on_device {
-                    let (reduced, keys) =
-                        self.reduce_records(view, &out.records, wanted as u32, max_label)?;
-                    let bytes = u64::from(keys) * RECORD_BYTES;
-                    enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
-                    bytes
-                } else {
-                    let bytes = wanted * RECORD_BYTES;
-                    enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
-                    bytes
-                };
-                self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
-                    let t = std::time::Instant::now();
-                    decode_records(bytes, &mut records);
-                    host += t.elapsed();
-                })?;
+                host += self.band_records(view, &out, wanted, max_label, &mut records)?;
             }
             kept = Some(out);
             r0 = r1;
@@ -212,6 +185,48 @@ impl GpuRasterizer {
             },
             host.as_secs_f64() * 1e3,
         ))
+    }
+}
+
+impl GpuRasterizer {
+    /// One band's `wanted` records (in `out.records`): reduced on the device and kept there for
+    /// the device reduction while a view is kept, else read back into `records` (one per key
+    /// when reduced on the device, or as written). Returns the host's time copying them out.
+    ///
+    /// Errors: device failures; the kept sums' budget ([`GpuRasterizer::keep_band`]).
+    fn band_records(
+        &mut self,
+        view: &View,
+        out: &RecordBuffers,
+        wanted: u64,
+        max_label: u32,
+        records: &mut Vec<LabelSum>,
+    ) -> Result<std::time::Duration> {
+        let mut host = std::time::Duration::ZERO;
+        if let Some((id, dominant)) = self.keeping {
+            let (reduced, keys) = self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+            let heads = self.keep_band(id, &reduced, keys, dominant)?;
+            self.kept_heads.extend(heads);
+            return Ok(host);
+        }
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        // One record per key (reduced on the device), or the records as written.
+        let bytes = if self.reduce_on_device {
+            let (reduced, keys) = self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+            let bytes = u64::from(keys) * RECORD_BYTES;
+            enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
+            bytes
+        } else {
+            let bytes = wanted * RECORD_BYTES;
+            enc.copy_buffer_to_buffer(&out.records, HEADER_BYTES, &out.staging, 0, bytes);
+            bytes
+        };
+        self.submit_and_map(enc, &[(&out.staging, bytes)], |_, bytes| {
+            let t = std::time::Instant::now();
+            decode_records(bytes, records);
+            host += t.elapsed();
+        })?;
+        Ok(host)
     }
 }
 

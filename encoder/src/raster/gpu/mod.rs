@@ -395,6 +395,38 @@ pub fn adapter_names() -> Result<Vec<String>> {
         .collect())
 }
 
+/// The Gaussians' geometry as the kernels read it (step 0 of the module docs), uploaded: means
+/// relative to `origin` with the opacity (0 for a Gaussian the kernels must cull: a non-finite
+/// mean or scale, a zero quaternion, an opacity outside `(0, ∞)`), scales, unit quaternions;
+/// `[N × 4]` f32 each.
+fn upload_geometry(
+    device: &wgpu::Device,
+    gaussians: &Gaussians,
+    origin: glam::DVec3,
+) -> [wgpu::Buffer; 3] {
+    let n = gaussians.len();
+    let mut mo = Vec::with_capacity(n * 4);
+    let mut sc = Vec::with_capacity(n * 4);
+    let mut qu = Vec::with_capacity(n * 4);
+    for i in 0..n {
+        let m = gaussians.means[i];
+        let s = gaussians.scales[i];
+        let q = unit_quaternion(gaussians.rotations[i]);
+        let o = gaussians.opacities[i];
+        let valid =
+            m.iter().chain(&s).all(|v| v.is_finite()) && q.is_some() && o > 0.0 && o.is_finite();
+        let rel = |k: usize| (m[k] as f64 - origin[k]) as f32;
+        mo.extend_from_slice(&[rel(0), rel(1), rel(2), if valid { o } else { 0.0 }]);
+        sc.extend_from_slice(&[s[0], s[1], s[2], 0.0]);
+        qu.extend_from_slice(&q.unwrap_or([0.0; 4]));
+    }
+    [
+        storage_init(device, "means_opac", bytemuck::cast_slice(&mo)),
+        storage_init(device, "scales", bytemuck::cast_slice(&sc)),
+        storage_init(device, "quats", bytemuck::cast_slice(&qu)),
+    ]
+}
+
 impl GpuRasterizer {
     /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
     /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
@@ -496,26 +528,7 @@ impl GpuRasterizer {
         }
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let origin = scene_origin(&gaussians.means);
-        let mut mo = Vec::with_capacity(n * 4);
-        let mut sc = Vec::with_capacity(n * 4);
-        let mut qu = Vec::with_capacity(n * 4);
-        for i in 0..n {
-            let m = gaussians.means[i];
-            let s = gaussians.scales[i];
-            let q = unit_quaternion(gaussians.rotations[i]);
-            let o = gaussians.opacities[i];
-            let valid = m.iter().chain(&s).all(|v| v.is_finite())
-                && q.is_some()
-                && o > 0.0
-                && o.is_finite();
-            let rel = |k: usize| (m[k] as f64 - origin[k]) as f32;
-            mo.extend_from_slice(&[rel(0), rel(1), rel(2), if valid { o } else { 0.0 }]);
-            sc.extend_from_slice(&[s[0], s[1], s[2], 0.0]);
-            qu.extend_from_slice(&q.unwrap_or([0.0; 4]));
-        }
-        let means_opac = storage_init(&device, "means_opac", bytemuck::cast_slice(&mo));
-        let scales = storage_init(&device, "scales", bytemuck::cast_slice(&sc));
-        let quats = storage_init(&device, "quats", bytemuck::cast_slice(&qu));
+        let [means_opac, scales, quats] = upload_geometry(&device, gaussians, origin);
         let splats = storage(&device, "splats", n as u64 * 32);
         let isect = storage(&device, "isect", n as u64 * 8);
         let sort_depths = storage(&device, "sort_depths", n as u64 * 4);
