@@ -401,7 +401,19 @@ pub(crate) fn raster_view(
         factors,
         labels_s,
     } = prepared;
+    // The stats of a view summed per label on the device (kept there or read back).
+    let counted_pixels = labels
+        .as_ref()
+        .map_or(0, |l| l.labels.iter().filter(|&&l| l != 0).count());
     let t0 = Instant::now();
+    let sums_stats = |contributions| ViewStats {
+        raster_s: t0.elapsed().as_secs_f64(),
+        aggregate_s: labels_s,
+        pixels,
+        contributions,
+        counted_pixels,
+        device_sums: true,
+    };
     if let (Some(labels), Some(keep)) = (&labels, keep)
         && let Some(view) = rasterizer.label_sums_kept(
             intrinsics,
@@ -417,14 +429,7 @@ pub(crate) fn raster_view(
             },
         )?
     {
-        let stats = ViewStats {
-            raster_s: t0.elapsed().as_secs_f64(),
-            aggregate_s: labels_s,
-            pixels,
-            contributions: view.contributions,
-            counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
-            device_sums: true,
-        };
+        let stats = sums_stats(view.contributions);
         let out = Rastered::Kept {
             dominant: view.dominant,
         };
@@ -438,14 +443,7 @@ pub(crate) fn raster_view(
             precomputed,
         )?
     {
-        let stats = ViewStats {
-            raster_s: t0.elapsed().as_secs_f64(),
-            aggregate_s: labels_s,
-            pixels,
-            contributions: sums.contributions,
-            counted_pixels: labels.labels.iter().filter(|&&l| l != 0).count(),
-            device_sums: true,
-        };
+        let stats = sums_stats(sums.contributions);
         let out = Rastered::Sums {
             sums,
             masks_of: labels.masks_of,

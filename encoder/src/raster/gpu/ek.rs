@@ -150,17 +150,7 @@ impl GpuRasterizer {
                 label: Some("slag-ek kernels"),
                 source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
             });
-        let pipe = |entry: &str| {
-            self.device
-                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: None,
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-        };
+        let pipe = |entry: &str| super::compute_pipeline(&self.device, &module, entry);
         let (block_starts, ek_reduce, dominant) =
             (pipe("block_starts"), pipe("ek_reduce"), pipe("dominant"));
         if let Some(e) = pollster::block_on(scope.pop()) {
@@ -252,11 +242,14 @@ impl GpuRasterizer {
                 n_records: n,
                 n_blocks: blocks,
                 groups_x: GROUPS_X,
-                pad0: kept.views.get(view as usize).map_or(0, |v| v[0]),
+                // The view's own table alone is uploaded (at base 0), not every view's so far.
+                pad0: 0,
                 ..bytemuck::Zeroable::zeroed()
             });
+            let base = kept.views.get(view as usize).map_or(0, |v| v[0] as usize);
             let tables = dominant.then(|| {
-                storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(&kept.tables))
+                let table = kept.tables.get(base..).unwrap_or_default();
+                storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(table))
             });
             let (x, y) = groups_2d(n.div_ceil(256));
             let mut pass = enc.begin_compute_pass(&Default::default());

@@ -395,6 +395,22 @@ pub fn adapter_names() -> Result<Vec<String>> {
         .collect())
 }
 
+/// The compute pipeline of `entry` in `module`, its bind group layout derived from the shader.
+fn compute_pipeline(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    entry: &str,
+) -> wgpu::ComputePipeline {
+    device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+        label: Some(entry),
+        layout: None,
+        module,
+        entry_point: Some(entry),
+        compilation_options: Default::default(),
+        cache: None,
+    })
+}
+
 /// The Gaussians' geometry as the kernels read it (step 0 of the module docs), uploaded: means
 /// relative to `origin` with the opacity (0 for a Gaussian the kernels must cull: a non-finite
 /// mean or scale, a zero quaternion, an opacity outside `(0, ∞)`), scales, unit quaternions;
@@ -542,16 +558,7 @@ impl GpuRasterizer {
             label: Some("slag-raster kernels"),
             source: wgpu::ShaderSource::Wgsl(SHADER.into()),
         });
-        let pipe = |entry: &str| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            })
-        };
+        let pipe = |entry: &str| compute_pipeline(&device, &module, entry);
         let pipelines = Pipelines {
             project: pipe("project"),
             blend: pipe("blend"),
