@@ -327,6 +327,10 @@ enum Rastered {
     Kept { dominant: Vec<(u32, u32, f32)> },
 }
 
+/// Each Gaussian's dominant mask of one view, `(Gaussian, mask, a_kj)`, Gaussians ascending
+/// (the masks' record's input).
+pub(crate) type DominantMasks = Vec<(u32, u32, f32)>;
+
 /// The device reduction's inputs of a view ([`raster_view`]): its mask embeddings and whether
 /// the masks' record wants the dominant masks.
 #[derive(Clone, Copy)]
@@ -478,7 +482,7 @@ pub(crate) fn finish_view(
     mask_embeddings: Vec<f32>,
     dim: usize,
     params: ImageStageParams,
-) -> Result<(ImageContribution, Option<Vec<(u32, u32, f32)>>, ViewStats)> {
+) -> Result<(ImageContribution, Option<DominantMasks>, ViewStats)> {
     let t0 = Instant::now();
     let mut stats = r.stats;
     let mut dominant = None;

@@ -181,7 +181,7 @@ impl GpuRasterizer {
             return Err(Error::internal("a kept view without keeping started"));
         };
         let dim = kept.dim;
-        if masks.embeddings.len() % dim != 0 {
+        if !masks.embeddings.len().is_multiple_of(dim) {
             return Err(Error::internal(format!(
                 "{} mask embedding values are not rows of {dim}",
                 masks.embeddings.len()
