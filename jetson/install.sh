@@ -5,7 +5,7 @@
 # token. Run as root on the Jetson (see jetson/README.md for the bundle to copy over).
 #
 #   sudo ./install.sh [--prefix /usr/local] [--bin slag-edge] [--ort DIR|LIB] \
-#       [--text-model clip-textual.onnx] [--tokenizer clip-tokenizer.json] \
+#       [--clip-textual clip-textual.onnx] [--tokenizer clip-tokenizer.json] \
 #       [--etc /etc/slag] [--unit-dir /etc/systemd/system] [--no-systemd] [--start]
 #
 # Defaults look beside this script first (a bundle: slag-edge, onnxruntime/, models/), then in the
@@ -33,7 +33,7 @@ while [ $# -gt 0 ]; do
     --prefix) PREFIX=${2:?--prefix needs a directory}; shift 2 ;;
     --bin) BIN=${2:?--bin needs a file}; shift 2 ;;
     --ort) ORT=${2:?--ort needs a directory or file}; shift 2 ;;
-    --text-model) TEXT_MODEL=${2:?--text-model needs a file}; shift 2 ;;
+    --clip-textual|--text-model) TEXT_MODEL=${2:?$1 needs a file}; shift 2 ;;
     --tokenizer) TOKENIZER=${2:?--tokenizer needs a file}; shift 2 ;;
     --etc) ETC=${2:?--etc needs a directory}; shift 2 ;;
     --unit-dir) UNIT_DIR=${2:?--unit-dir needs a directory}; shift 2 ;;

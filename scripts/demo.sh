@@ -12,7 +12,7 @@ SCENE=${SCENE:-data/snowmiku-mini}
 OUT=${OUT:-out/demo}
 cargo build --release --locked -p slag-encoder-cli
 BIN=target/release/slag-encoder
-$BIN encode --scene "$SCENE" --masks sam \
+$BIN encode --scene-dir "$SCENE" --masks sam \
   --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" \
   --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
   --clip-visual "$F/clip/color-clip-visual.onnx" --out "$OUT"

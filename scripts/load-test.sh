@@ -23,12 +23,12 @@ pids=()
 cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$W"; }
 trap cleanup EXIT
 $ENC partition --synthetic "$N:512" --store "$W/shards" --scene synth --dtype "$DTYPE" --max-per-shard 65536
-$ENC serve --store "$W/shards" --bind 127.0.0.1:18090 >/dev/null &
+$ENC serve --store "$W/shards" --listen 127.0.0.1:18090 >/dev/null &
 pids+=($!)
 for _ in $(seq 50); do curl -fs http://127.0.0.1:18090/v1/scenes >/dev/null && break; sleep 0.2; done
 $EDGE fetch --from http://127.0.0.1:18090 --scene synth --center 1000,1000 --radius 100000 --store "$W/edge"
-$EDGE serve --store "$W/edge" --scene synth --addr 127.0.0.1:18080 \
-  --text-model "$F/color-clip-textual.onnx" --tokenizer "$F/clip-tokenizer.json" 2>"$W/serve.log" &
+$EDGE serve --store "$W/edge" --scene synth --listen 127.0.0.1:18080 \
+  --clip-textual "$F/color-clip-textual.onnx" --tokenizer "$F/clip-tokenizer.json" 2>"$W/serve.log" &
 SERVER=$!
 pids+=($SERVER)
 for _ in $(seq 300); do curl -fs http://127.0.0.1:18080/health >/dev/null && break; sleep 0.2; done

@@ -388,7 +388,7 @@ def store_integrity_cases(a, W, sp, port, short):
     hanging or reading past the manifest's size; check reports each; one fetch repairs each).
     Servers on `port` and `port + 1`; `sp` is the shard server's port."""
     fetch_env = {**os.environ, "SLAG_SHARD_TOKEN": TOKEN, "RUST_LOG": "warn"}
-    check_cmd = [a.edge, "check", "--scene", "probe", "--text-model", a.text_model,
+    check_cmd = [a.edge, "check", "--scene", "probe", "--clip-textual", a.text_model,
                  "--tokenizer", a.tokenizer]
 
     def fetch(store, radius, url=f"http://{HOST}:{sp}"):
@@ -401,8 +401,8 @@ def store_integrity_cases(a, W, sp, port, short):
     d = f"{W}/integrity-race"
     shutil.rmtree(d, ignore_errors=True)
     shutil.copytree(f"{W}/edge-pristine", d)
-    srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--addr", f"{HOST}:{port}",
-                 "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+    srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--listen", f"{HOST}:{port}",
+                 "--clip-textual", a.text_model, "--tokenizer", a.tokenizer],
                 {"SLAG_EDGE_TOKEN": TOKEN})
     assert wait_up(port, "/health", srv), "edge server (race) did not start"
     committed, seen, stop_flag = set(), [], [False]
@@ -524,8 +524,8 @@ def store_integrity_cases(a, W, sp, port, short):
         except subprocess.TimeoutExpired:
             obs.append("check HUNG")
             ok = False
-        srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--addr",
-                     f"{HOST}:{port}", "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+        srv = start([a.edge, "serve", "--store", d, "--scene", "probe", "--listen",
+                     f"{HOST}:{port}", "--clip-textual", a.text_model, "--tokenizer", a.tokenizer],
                     {"SLAG_EDGE_TOKEN": TOKEN})
         peak = Peak(srv.pid)
         up = wait_up(port, "/health", srv, secs=60)
@@ -581,7 +581,7 @@ def main():
     print(f"probe: {'short' if a.short else 'full'}; {n_stall} stalled sockets; edge "
           f"{'with' if new_flags else 'without'} timeout flags", flush=True)
 
-    shard_cmd = [a.shards, "serve", "--store", f"{W}/shards", "--bind", f"{HOST}:{sp}"] + timeouts_s
+    shard_cmd = [a.shards, "serve", "--store", f"{W}/shards", "--listen", f"{HOST}:{sp}"] + timeouts_s
     shards = start(shard_cmd, {"SLAG_SHARD_TOKEN": TOKEN}, nofile=1024, log=log)
     assert wait_up(sp, "/v1/scenes", shards), "shard server did not start"
     r = subprocess.run([a.edge, "fetch", "--from", f"http://{HOST}:{sp}", "--scene", "probe",
@@ -589,8 +589,8 @@ def main():
                        env={**os.environ, "SLAG_SHARD_TOKEN": TOKEN}, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     shutil.copytree(f"{W}/edge", f"{W}/edge-pristine", dirs_exist_ok=True)
-    edge_cmd = [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--addr",
-                f"{HOST}:{ep}", "--text-model", a.text_model, "--tokenizer", a.tokenizer] + timeouts_e
+    edge_cmd = [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--listen",
+                f"{HOST}:{ep}", "--clip-textual", a.text_model, "--tokenizer", a.tokenizer] + timeouts_e
     edge_env = {"SLAG_EDGE_TOKEN": TOKEN}
     if os.environ.get("SLAG_PROBE_PRELOAD"):
         edge_env["LD_PRELOAD"] = os.environ["SLAG_PROBE_PRELOAD"]
@@ -776,10 +776,10 @@ def main():
 
     # 10. Blank tokens refuse to start.
     for name, cmd, var in [
-        ("edge", [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--addr",
-                  f"{HOST}:{ep + 10}", "--text-model", a.text_model, "--tokenizer", a.tokenizer],
+        ("edge", [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--listen",
+                  f"{HOST}:{ep + 10}", "--clip-textual", a.text_model, "--tokenizer", a.tokenizer],
          "SLAG_EDGE_TOKEN"),
-        ("shards", [a.shards, "serve", "--store", f"{W}/shards-copy", "--bind", f"{HOST}:{ep + 11}"],
+        ("shards", [a.shards, "serve", "--store", f"{W}/shards-copy", "--listen", f"{HOST}:{ep + 11}"],
          "SLAG_SHARD_TOKEN"),
     ]:
         os.makedirs(f"{W}/shards-copy", exist_ok=True)
@@ -825,7 +825,7 @@ def main():
             os.remove(f0)
             os.mkdir(f0)
 
-    check_cmd = [a.edge, "check", "--scene", "probe", "--text-model", a.text_model,
+    check_cmd = [a.edge, "check", "--scene", "probe", "--clip-textual", a.text_model,
                  "--tokenizer", a.tokenizer]
     for kind in kinds:
         d = f"{W}/case-{kind}"

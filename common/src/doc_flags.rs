@@ -179,6 +179,52 @@ fn flag_name(word: &str) -> Option<String> {
     (!name.is_empty()).then(|| format!("--{name}"))
 }
 
+/// The standard output of the binary `exe` run with `args`, `None` when it exits with an error
+/// or cannot start ([`run_binary`]).
+pub fn output(exe: &str, args: &[&str]) -> Option<String> {
+    run_binary(Path::new(exe), args).ok()
+}
+
+/// The standard output of the binary `bin` run with `args`, through `$SLAG_TEST_RUNNER` when
+/// that is set (e.g. qemu under a cross build).
+///
+/// Errors: why it did not succeed (its exit status, or why it could not start).
+pub fn run_binary(bin: &Path, args: &[&str]) -> std::result::Result<String, String> {
+    let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
+    let mut parts = runner.split_whitespace();
+    let mut c = match parts.next() {
+        Some(r) => {
+            let mut c = std::process::Command::new(r);
+            c.args(parts).arg(bin);
+            c
+        }
+        None => std::process::Command::new(bin),
+    };
+    match c.args(args).output() {
+        Ok(out) if out.status.success() => Ok(String::from_utf8_lossy(&out.stdout).into_owned()),
+        Ok(out) => Err(out.status.to_string()),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
+/// Everything wrong with the command line of `binary` (its built executable `exe`), one line
+/// each: the manual's command lines of it against its `--help` ([`check_binary`] over the
+/// repository at `root`) and its flags' names ([`crate::flag_names::check`]). Empty when all is
+/// well.
+pub fn problems(binary: &str, exe: &str, root: &Path) -> Vec<String> {
+    let mut problems: Vec<String> = check_binary(binary, Path::new(exe), root)
+        .err()
+        .into_iter()
+        .collect();
+    let run = |args: &[&str]| output(exe, args);
+    problems.extend(
+        crate::flag_names::check(binary, &run)
+            .err()
+            .unwrap_or_default(),
+    );
+    problems
+}
+
 /// The `--flags` a `--help` text lists.
 pub fn help_flags(help: &str) -> BTreeSet<String> {
     help.split(|c: char| c.is_whitespace() || c == ',' || c == '[' || c == '(')
@@ -203,31 +249,14 @@ pub fn help_subcommands(help: &str) -> BTreeSet<String> {
 /// Errors: one message naming the binary: that it could not be started or failed on a `--help`,
 /// or [`check`]'s problems, one per line.
 pub fn check_binary(binary: &str, bin: &Path, root: &Path) -> std::result::Result<usize, String> {
-    let runner = std::env::var("SLAG_TEST_RUNNER").unwrap_or_default();
     let failure = std::cell::RefCell::new(None::<String>);
     let help = |args: &[&str]| {
-        let mut parts = runner.split_whitespace();
-        let mut c = match parts.next() {
-            Some(r) => {
-                let mut c = std::process::Command::new(r);
-                c.args(parts).arg(bin);
-                c
-            }
-            None => std::process::Command::new(bin),
-        };
-        match c.args(args).output() {
-            Ok(out) if out.status.success() => String::from_utf8_lossy(&out.stdout).into_owned(),
-            outcome => {
-                let why = match outcome {
-                    Ok(out) => out.status.to_string(),
-                    Err(e) => e.to_string(),
-                };
-                failure
-                    .borrow_mut()
-                    .get_or_insert(format!("`{binary} {}` failed: {why}", args.join(" ")));
-                String::new()
-            }
-        }
+        run_binary(bin, args).unwrap_or_else(|why| {
+            failure
+                .borrow_mut()
+                .get_or_insert(format!("`{binary} {}` failed: {why}", args.join(" ")));
+            String::new()
+        })
     };
     let checked = check(binary, root, &help);
     if let Some(f) = failure.into_inner() {

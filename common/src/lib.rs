@@ -17,6 +17,7 @@
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | `cli` | command-line values shared by the binaries (`--ep`), behind the `clap` feature |
 //! | [`doc_flags`] | checks the command lines the manual shows against the binaries' `--help` |
+//! | [`flag_names`] | one name per thing on the three binaries' command lines (the table and its check) |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 //! | [`table`] | Markdown and CSV tables of the study reports (rows measured, then written) |
@@ -34,6 +35,7 @@ pub mod embeddings;
 pub mod error;
 pub mod fault;
 pub mod forms;
+pub mod flag_names;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;

@@ -4,8 +4,8 @@
 //! ```toml
 //! store = "/var/lib/slag/store"
 //! scene = "site"
-//! addr = "0.0.0.0:8080"
-//! text_model = "/opt/slag/models/clip-textual.onnx"
+//! listen = "0.0.0.0:8080"
+//! clip_textual = "/opt/slag/models/clip-textual.onnx"
 //! tokenizer = "/opt/slag/models/tokenizer.json"
 //! ep = "cpu"            # or "cuda" with JetPack's ONNX Runtime
 //! threshold = 0.28
@@ -28,7 +28,7 @@
 //! max_connections_per_ip = 64   # connections one address may hold; one more gets 429
 //! tls_cert = "/etc/slag/tls/cert.pem"   # HTTPS: PEM chain; SIGHUP / POST /reload re-read it
 //! tls_key = "/etc/slag/tls/key.pem"
-//! allow_plain_http = false   # true: a token over plain HTTP on a non-loopback addr
+//! allow_plain_http = false   # true: a token over plain HTTP on a non-loopback listen address
 //! ca_cert = "/etc/slag/shard-ca.pem"    # POST /fetch: a private CA for an https:// server
 //! ```
 //!
@@ -46,10 +46,12 @@ pub struct ServeConfig {
     pub store: Option<PathBuf>,
     /// Scene id.
     pub scene: Option<String>,
-    /// Listen address, e.g. `0.0.0.0:8080`.
-    pub addr: Option<String>,
-    /// CLIP text tower ONNX.
-    pub text_model: Option<PathBuf>,
+    /// Listen address, e.g. `0.0.0.0:8080` (also read under its older key `addr`).
+    #[serde(alias = "addr")]
+    pub listen: Option<String>,
+    /// CLIP text tower ONNX (also read under its older key `text_model`).
+    #[serde(alias = "text_model")]
+    pub clip_textual: Option<PathBuf>,
     /// CLIP tokenizer (`tokenizer.json`).
     pub tokenizer: Option<PathBuf>,
     /// ONNX Runtime execution provider: `cpu` or `cuda`.
@@ -145,6 +147,10 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.scene.as_deref(), Some("site"));
+        // `addr` and `text_model` are the older keys of `listen` and `clip_textual`.
+        assert_eq!(c.listen.as_deref(), Some("0.0.0.0:8080"));
+        let old = read_config("text_model = \"t.onnx\"\n").unwrap();
+        assert_eq!(old.clip_textual, Some(PathBuf::from("t.onnx")));
         assert_eq!(c.threshold, Some(0.3));
         assert_eq!(c.hnsw, Some(true));
         assert_eq!(c.hnsw_backend.as_deref(), Some("qdrant-edge"));
@@ -160,8 +166,8 @@ mod tests {
     #[test]
     fn the_shipped_jetson_config_parses_with_every_key() {
         let c: ServeConfig = toml::from_str(include_str!("../../jetson/edge.toml")).unwrap();
-        assert!(c.store.is_some() && c.scene.is_some() && c.addr.is_some());
-        assert!(c.text_model.is_some() && c.tokenizer.is_some() && c.token_file.is_some());
+        assert!(c.store.is_some() && c.scene.is_some() && c.listen.is_some());
+        assert!(c.clip_textual.is_some() && c.tokenizer.is_some() && c.token_file.is_some());
         assert_eq!(c.ep.as_deref(), Some("cpu"));
         assert_eq!(c.threshold, Some(0.28));
         assert_eq!(c.hnsw, Some(false));

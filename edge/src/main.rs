@@ -2,7 +2,7 @@
 //!
 //! - `slag-edge fetch --from URL --scene S --center X,Y --radius 50 [--prune]`: download the shards
 //!   around the robot into the local sled store;
-//! - `slag-edge serve --addr 0.0.0.0:8080 [--config edge.toml] [--hnsw [--hnsw-backend
+//! - `slag-edge serve --listen 0.0.0.0:8080 [--config edge.toml] [--hnsw [--hnsw-backend
 //!   instant-distance|qdrant-edge]]`: answer `GET /query?text=chair`;
 //!   With `--ros2` a ROS 2 node answers prompts beside HTTP (`slag_edge::ros2`);
 //! - `slag-edge query --text chair`: the same answer on the command line, no server;
@@ -92,7 +92,7 @@ struct FetchArgs {
     #[arg(long = "from", value_name = "URL")]
     server: String,
     /// Scene id.
-    #[arg(long)]
+    #[arg(long, value_name = "NAME")]
     scene: String,
     /// Disc centre. With a map frame (the manifest has a scene-to-map transform): X,Y or X,Y,Z
     /// in the robot's map frame, metres. Without: X,Y on the manifest's ground plane, or X,Y,Z
@@ -147,13 +147,13 @@ struct ServeArgs {
     #[arg(long)]
     store: Option<PathBuf>,
     /// Scene id.
-    #[arg(long)]
+    #[arg(long, value_name = "NAME")]
     scene: Option<String>,
-    /// Listen address.
-    #[arg(long)]
+    /// Listen address (default 0.0.0.0:8080).
+    #[arg(long = "listen", aliases = ["addr", "bind"], value_name = "HOST:PORT")]
     addr: Option<String>,
     /// CLIP text tower ONNX (input_ids i64[B,77] → f32[B,D]) of the model that made the shards.
-    #[arg(long)]
+    #[arg(long = "clip-textual", alias = "text-model", value_name = "ONNX")]
     text_model: Option<PathBuf>,
     /// CLIP tokenizer (tokenizer.json).
     #[arg(long)]
@@ -184,7 +184,7 @@ struct ServeArgs {
     #[arg(long, value_name = "FILE")]
     tls_key: Option<PathBuf>,
     /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
-    /// the path can read it. Without it, a token with a non-loopback --addr needs --tls-cert.
+    /// the path can read it. Without it, a token with a non-loopback --listen needs --tls-cert.
     #[arg(long)]
     allow_plain_http: bool,
     /// A private CA's certificate (PEM) that POST /fetch trusts for an https:// shard server, in
@@ -257,10 +257,10 @@ struct QueryArgs {
     #[arg(long, default_value = "slag-store")]
     store: PathBuf,
     /// Scene id.
-    #[arg(long)]
+    #[arg(long, value_name = "NAME")]
     scene: String,
-    /// CLIP text tower ONNX.
-    #[arg(long)]
+    /// CLIP text tower ONNX of the model that made the shards.
+    #[arg(long = "clip-textual", alias = "text-model", value_name = "ONNX")]
     text_model: PathBuf,
     /// CLIP tokenizer (tokenizer.json).
     #[arg(long)]
@@ -501,11 +501,11 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         .context("--scene is required (flag or `scene` in --config)")?;
     let addr: std::net::SocketAddr = a
         .addr
-        .or(c.addr)
+        .or(c.listen)
         .unwrap_or_else(|| "0.0.0.0:8080".into())
         .parse()
-        .context("--addr: use HOST:PORT, e.g. 0.0.0.0:8080")?;
-    let text_model = need(a.text_model.or(c.text_model), "text-model")?;
+        .context("--listen: use HOST:PORT, e.g. 0.0.0.0:8080")?;
+    let text_model = need(a.text_model.or(c.clip_textual), "clip-textual")?;
     let tokenizer = need(a.tokenizer.or(c.tokenizer), "tokenizer")?;
     let ep = match (a.ep, c.ep.as_deref()) {
         (Some(e), _) => e,
@@ -861,7 +861,7 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
                                          `max_connections_per_ip` in --config)"
                 .into(),
             "plain_http" => "pass --tls-cert FILE --tls-key FILE (HTTPS; `tls_cert` and \
-                             `tls_key` in --config), or listen on a loopback address (--addr \
+                             `tls_key` in --config), or listen on a loopback address (--listen \
                              127.0.0.1:PORT), or pass --allow-plain-http (`allow_plain_http = \
                              true`) to send the token in clear text anyway"
                 .into(),

@@ -9,16 +9,16 @@ set -uo pipefail
 one() { # name, args...
   local name=$1; shift
   echo "### $name: $*"
-  "$B" bench --scene $S "$@" --dense --quiet --out $W/$name 2>&1 | grep -v XDG_RUNTIME
+  "$B" bench --scene-dir $S "$@" --dense --quiet --out $W/$name 2>&1 | grep -v XDG_RUNTIME
   cp $W/$name/report.json "$R/report-$name.json"
-  "$B" eval-colors --scene $S --embeddings $W/$name/embeddings.safetensors > "$R/eval-$name.json" 2>/dev/null
+  "$B" eval-colors --scene-dir $S --embeddings $W/$name/embeddings.safetensors > "$R/eval-$name.json" 2>/dev/null
   python3 -c "import json,sys; e=json.load(open('$R/eval-$name.json')); print('$name mIoU', round(e['miou'],4), 'acc', round(e['accuracy'],4), 'observed', round(e['observed_fraction'],4), {c['name']: round(c['iou'],3) for c in e['classes'] if c['in_miou']})"
 }
 one sam-every2-s0.5 "${SAM[@]}" "${CLIP[@]}" --every 2 --raster-scale 0.5
 one graph-every2-s0.5 --masks graph "${CLIP[@]}" --every 2 --raster-scale 0.5
 one graph-every2-s1.0 --masks graph "${CLIP[@]}" --every 2 --raster-scale 1.0
 echo "### real-architecture SAM (sam-tiny-random, 16x16, no filters) + tiny-clip, every 16th image"
-"$B" bench --scene $S --masks sam --sam-encoder $F/sam-amg/sam-tiny-random-encoder.onnx \
+"$B" bench --scene-dir $S --masks sam --sam-encoder $F/sam-amg/sam-tiny-random-encoder.onnx \
   --sam-decoder $F/sam-amg/sam-tiny-random-decoder.onnx --sam-points-per-side 16 \
   --sam-pred-iou-thresh 0 --sam-stability-score-thresh 0 --clip-visual $F/clip/tiny-clip-visual.onnx \
   --every 16 --raster-scale 0.5 --quiet --out $W/real-arch 2>&1 | grep -v XDG_RUNTIME

@@ -128,7 +128,7 @@ stages)
   ;;
 fronts)
   echo "### 8 front workers, SAM ViT-B fp16 + CLIP ViT-B/16 fp16, CUDA"
-  /usr/bin/time -v "$B" bench --scene /root/scene --ep cuda --every 4 --raster-scale 0.5 --front-workers 8 \
+  /usr/bin/time -v "$B" bench --scene-dir /root/scene --ep cuda --every 4 --raster-scale 0.5 --front-workers 8 \
     "${SAMARGS[@]}" $(samm f16 vit_b) $(clipm f16) --quiet --out "$W/fronts8" > "$R/fronts8.txt" 2>&1
   echo "exit $?"; grep -E "wall|masks|CLIP|Maximum resident|peak|execution" "$R/fronts8.txt" | head -20
   cp "$W/fronts8/report.json" "$R/report-fronts8.json" 2>/dev/null
@@ -138,7 +138,7 @@ e2e)
   if [ ! -f /root/big/report-synth.json ]; then
     echo "### synth-scene $n Gaussians, $v views 990x742"
     t0=$(date +%s.%N)
-    "$B" synth-scene --gaussians "$n" --views "$v" --width 990 --height 742 --out /root/big > /root/big-synth.json
+    "$B" synth-scene --gaussians "$n" --view-count "$v" --width 990 --height 742 --out /root/big > /root/big-synth.json
     echo "synth-scene took $(python3 -c "import time; print(round(time.time()-$t0,1))") s"; cp /root/big-synth.json /root/big/report-synth.json
   fi
   cp /root/big/report-synth.json "$R/synth.json"
@@ -169,7 +169,7 @@ e2e)
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
   # RSS over time (rss-e2e-*.tsv: seconds, bytes): where the peak falls against the report's phases.
   python3 scripts/lab/rss-timeline.py --out "$R/rss-e2e-$t.tsv" --report "$W/e2e/report.json" -- \
-    /usr/bin/time -v "$B" bench --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
+    /usr/bin/time -v "$B" bench --scene-dir /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} \
     "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/e2e" > "$R/e2e-$t.txt" 2>&1
   echo "exit $?"; grep -vE "^\s+(Page|Vol|Invol|Swaps|File|Socket|Signals|Average|Exit|Minor|Major|Percent|System|User|Elapsed)" "$R/e2e-$t.txt" | tail -${LINES_SHOWN:-40}
   cp "$W/e2e/report.json" "$R/report-e2e-$t.json" 2>/dev/null
@@ -281,7 +281,7 @@ clipu8)
   ;;
 clipbatch)
   for b in ${BATCHES:-8 16 32 64 128}; do
-    "$B" bench --scene /root/scene --ep cuda --every 2 --raster-scale 0.5 --masks graph $(clipm f16) \
+    "$B" bench --scene-dir /root/scene --ep cuda --every 2 --raster-scale 0.5 --masks graph $(clipm f16) \
       --clip-batch "$b" --quiet --out "$W/cb$b" 2>&1 | sed 's/\x1b\[[0-9;]*m//g' > "$R/clipbatch-$b.txt"
     rc=${PIPESTATUS[0]}
     echo "batch $b exit $rc | $(grep -o 'runs=[0-9]* crops=[0-9]* run_s=[0-9.]*' "$R/clipbatch-$b.txt" | tr '\n' ' ')| $(grep -E '^\| (CLIP crops|total)' "$R/clipbatch-$b.txt" | tr '\n' ' ')"
@@ -294,7 +294,7 @@ reduce)
   ;;
 scaling)
   counts=${2:-1,2}; prec=${PREC:-f16}
-  [ -f /root/big/report-synth.json ] || { "$B" synth-scene --gaussians 2M --views 250 --width 990 --height 742 --out /root/big > /root/big-synth.json && cp /root/big-synth.json /root/big/report-synth.json; }
+  [ -f /root/big/report-synth.json ] || { "$B" synth-scene --gaussians 2M --view-count 250 --width 990 --height 742 --out /root/big > /root/big-synth.json && cp /root/big-synth.json /root/big/report-synth.json; }
   echo "### scaling $counts: e2e scene, ViT-H $prec + CLIP $prec on CUDA"
   "$BB" scaling --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
     --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" 2>&1 | tail -30

@@ -14,14 +14,14 @@ encode() { # name, args...
   local name=$1; shift
   echo "### encode $name: $*"
   local t0=$(date +%s%N)
-  "$B" bench --scene $S "$@" --dense --quiet --out $W/$name > $W/$name.log 2>&1 || tail -n 5 $W/$name.log
+  "$B" bench --scene-dir $S "$@" --dense --quiet --out $W/$name > $W/$name.log 2>&1 || tail -n 5 $W/$name.log
   echo "$name wall_s $(( ($(date +%s%N) - t0) / 1000000 ))e-3"
   mkdir -p "$R/reports"; cp $W/$name/report.json "$R/reports/report-$name.json"
 }
 heldout() { # name
   local name=$1
   echo "### eval-colors --held-out $name"
-  "$B" eval-colors --held-out --scene $S --embeddings $W/$name/embeddings.safetensors \
+  "$B" eval-colors --held-out --scene-dir $S --embeddings $W/$name/embeddings.safetensors \
     --color-clip $F/clip > "$R/heldout-$name.json" 2> "$R/heldout-$name.err" || { tail -n 5 "$R/heldout-$name.err"; return; }
   python3 - "$R/heldout-$name.json" <<'PY'
 import json, sys

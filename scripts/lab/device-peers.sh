@@ -43,13 +43,13 @@ MASKS=(--masks sam --sam-encoder "$FX/color-sam-encoder.onnx" --sam-decoder "$FX
 make_scene() {
   [ -f "$scene/sparse/0/images.txt" ] && return 0
   local t0; t0=$(date +%s)
-  "$B" synth-scene --gaussians "$n" --views "$v" --width 990 --height 742 --out "$scene" > "$R/synth.json" || exit 1
+  "$B" synth-scene --gaussians "$n" --view-count "$v" --width 990 --height 742 --out "$scene" > "$R/synth.json" || exit 1
   echo "synth-scene $n Gaussians, $v views: $(( $(date +%s) - t0 )) s"
 }
 
 encode() { # name, fronts
   echo "### slag-encoder bench: $n Gaussians, every $every of $v views, color-sam 16x16 (0.8/0.5), $2 fronts"
-  /usr/bin/time -v "$B" bench --scene "$scene" "${MASKS[@]}" --front-workers "$2" --quiet \
+  /usr/bin/time -v "$B" bench --scene-dir "$scene" "${MASKS[@]}" --front-workers "$2" --quiet \
     --out "$W/$1" > "$R/$1.txt" 2>&1
   echo "exit $?"
   grep -E "^\| (masks|raster|a_kj|total)|^views|peak resident|between the stages|Maximum resident|Elapsed" "$R/$1.txt"

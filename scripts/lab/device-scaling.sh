@@ -49,11 +49,11 @@ big)
   echo "### synth-scene $n Gaussians, $v views"
   /usr/bin/env time -v true >/dev/null 2>&1 && T=(/usr/bin/env time -v) || T=()
   start=$(date +%s.%N)
-  "$B" synth-scene --gaussians "$n" --views "$v" --out "$W/big" | tee "$R/synth.json"
+  "$B" synth-scene --gaussians "$n" --view-count "$v" --out "$W/big" | tee "$R/synth.json"
   echo "synth-scene took $(python3 -c "import time; print(round(time.time()-$start,1))") s"
   du -sh "$W/big"
   gpu_mem_watch "$R/gpu-mem-big.csv" & watch=$!
-  "${T[@]}" "$B" bench --scene "$W/big" --masks graph "${CLIP[@]}" --raster-scale 0.5 --gpus 1 \
+  "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --raster-scale 0.5 --gpus 1 \
     --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --quiet --out "$W/big-out" 2>&1 \
     | grep -v XDG_RUNTIME | tee "$R/big.txt"
   kill $watch 2>/dev/null
@@ -75,14 +75,14 @@ reduce)
   /usr/bin/env time -v true >/dev/null 2>&1 && T=(/usr/bin/env time -v) || T=()
   # A warm machine keeps the scene of an earlier call with the same size.
   [ -f "$W/big-$n-$v.done" ] || { rm -rf "$W/big" && "$B" synth-scene --gaussians "$n" \
-    --views "$v" --out "$W/big" > /dev/null && touch "$W/big-$n-$v.done"; }
+    --view-count "$v" --out "$W/big" > /dev/null && touch "$W/big-$n-$v.done"; }
   i=0
   for m in ${modes//,/ }; do
     i=$((i+1))
     rm -rf "$W"/out-*  # the disk holds one 30M run's outputs (31 GB dense) at a time
     gpu_mem_watch "$W/gpu-mem-$i.csv" & watch=$!
     start=$(date +%s.%N)
-    "${T[@]}" "$B" bench --scene "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 \
+    "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 \
       --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --reduce "$m" --quiet \
       --out "$W/out-$i" > "$W/run-$i.txt" 2>&1
     wall=$(python3 -c "import time; print(round(time.time()-$start,1))")
@@ -114,7 +114,7 @@ clip)
   echo "### CLIP ViT-B/16 (random weights): torch on the GPU vs ONNX Runtime, batch 32"
   python3 scripts/lab/device_clip_vs_torch.py "$W/clip" 2>&1 | grep -v Warning | tee "$R/clip-vs-torch.txt"
   echo "### slag-encoder with that model (graph masks, every 8th view, 1 GPU)"
-  "$B" bench --scene .devcarry/scene --masks graph --clip-visual "$W/clip/vitb16-clip-visual.onnx" \
+  "$B" bench --scene-dir .devcarry/scene --masks graph --clip-visual "$W/clip/vitb16-clip-visual.onnx" \
     --every 8 --raster-scale 0.5 --quiet --out "$W/clip-run" 2>&1 | grep -v XDG_RUNTIME | tee "$R/clip-run.txt"
   cp "$W/clip-run/report.json" "$R/report-clip-run.json"
   ;;

@@ -38,13 +38,13 @@ SAM=(--masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx"
 CLIP=(--clip-visual "$F/clip/color-clip-visual.onnx")
 
 rm -rf "$OUT/demo" "$OUT/levels" "$OUT/cluster"
-"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --out "$OUT/demo"
-"$BIN" encode --scene "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --levels --rasterizer cpu \
+"$BIN" encode --scene-dir "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --out "$OUT/demo"
+"$BIN" encode --scene-dir "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --levels --rasterizer cpu \
   --precision f32 --overlap all --mask-weighting area --mixture-keep 8 --segments off \
   --every 2 --out "$OUT/levels"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
 echo "127.0.0.1:$PORT" >"$OUT/hosts.txt"
-"$BIN" encode-cluster --process 0 --hosts "$OUT/hosts.txt" --scene "$SCENE" --masks graph \
+"$BIN" encode-cluster --process 0 --hosts "$OUT/hosts.txt" --scene-dir "$SCENE" --masks graph \
   "${CLIP[@]}" --rasterizer cpu --precision f32 --every 2 --quiet --out "$OUT/cluster"
 
 (cd "$OUT" && find demo levels cluster -type f ! -name report.json | LC_ALL=C sort \

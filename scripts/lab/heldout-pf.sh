@@ -14,10 +14,10 @@ CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
 for name in graph color-sam; do
   if [ $name = graph ]; then M=(--masks graph); else M=("${SAM[@]}"); fi
   t0=$(date +%s)
-  "$B" encode --scene "$S" "${M[@]}" "${CLIP[@]}" --every 4 --raster-scale 0.5 --dense --quiet \
+  "$B" encode --scene-dir "$S" "${M[@]}" "${CLIP[@]}" --every 4 --raster-scale 0.5 --dense --quiet \
     --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s)
-  "$B" eval-colors --held-out --prediction-filtering --scene "$S" \
+  "$B" eval-colors --held-out --prediction-filtering --scene-dir "$S" \
     --embeddings "$W/$name/embeddings.safetensors" --color-clip $F/clip \
     > "$R/heldout-$name.json" 2> "$R/heldout-$name.err" || { tail -n 5 "$R/heldout-$name.err"; exit 1; }
   t2=$(date +%s)

@@ -24,10 +24,10 @@ for name in ${RUNS:-coverage uniform all}; do
     *) echo "unknown run $name (coverage, uniform, all, everyE)" >&2; exit 2 ;;
   esac
   t0=$(date +%s.%N)
-  "$B" encode --scene "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 --dense \
+  "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 --dense \
     --segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s.%N)
-  "$B" eval-colors --held-out --scene "$S" --embeddings "$W/$name/embeddings.safetensors" \
+  "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$W/$name/embeddings.safetensors" \
     --color-clip $F/clip > "$R/heldout-views-$name.json" 2> "$R/heldout-views-$name.err" \
     || { tail -n 5 "$R/heldout-views-$name.err"; exit 1; }
   cp "$W/$name/report.json" "$R/report-views-$name.json"

@@ -15,9 +15,9 @@ F=$SLAG_SHARED/fixtures
 mkdir -p "$W"
 t0=$(date +%s)
 [ -f "$W/scene/point_cloud.ply" ] ||
-  "$B" synth-scene --gaussians 2M --views 4 --width 990 --height 742 --out "$W/scene" > "$W/synth.json"
+  "$B" synth-scene --gaussians 2M --view-count 4 --width 990 --height 742 --out "$W/scene" > "$W/synth.json"
 t1=$(date +%s)
-"$B" encode --scene "$W/scene" --raster-scale 0.5 --rasterizer gpu --masks sam \
+"$B" encode --scene-dir "$W/scene" --raster-scale 0.5 --rasterizer gpu --masks sam \
   --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" \
   --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
   --clip-visual "$F/clip/color-clip-visual.onnx" --quiet --out "$W/out"

@@ -25,16 +25,16 @@ for seed in "${SEEDS[@]}"; do
     tex=(); [ "$level" = heavy ] && tex=(--speckles 0.2 --stripes 0.3 --shading 0.5)
     D=$R/$level-s$seed; S=$D/scene; E=$D/enc; mkdir -p "$D"
     t0=$(date +%s)
-    "$B" synth-scene --gaussians "$G" --views "$V" --width "$W" --height "$H" --extent "$X" \
+    "$B" synth-scene --gaussians "$G" --view-count "$V" --width "$W" --height "$H" --extent "$X" \
       --seed "$seed" --objects 10 --room "${tex[@]}" --out "$S" > "$D/scene.json"
-    "$B" encode --scene "$S" --masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" \
+    "$B" encode --scene-dir "$S" --masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" \
       --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" --sam-points-per-side 16 \
       --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
       --clip-visual "$F/clip/color-clip-visual.onnx" --hold-out-every 4 --dense --quiet \
       --out "$E" > "$D/encode.log" 2>&1
-    "$B" segment --scene "$S" --geometry-only --out "$D/geometric.safetensors" \
+    "$B" segment --scene-dir "$S" --geometry-only --out "$D/geometric.safetensors" \
       > "$D/geometric.json" 2> "$D/geometric.log"
-    "$B" eval-objects --scene "$S" --embeddings "$E/embeddings.safetensors" \
+    "$B" eval-objects --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \
       --color-clip "$F/clip" --smooth none --smooth segment --held-out \
       --more-segments "$D/geometric.safetensors" > "$D/eval.json" 2> "$D/eval.log"
     echo "$level seed $seed: $(( $(date +%s) - t0 )) s"

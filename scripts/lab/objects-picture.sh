@@ -27,7 +27,7 @@ if [ ! -e "$W/enc/segments.safetensors" ]; then
   else
     MASK_ARGS=(--masks graph --every 2)
   fi
-  "$B" encode --scene "$S" "${MASK_ARGS[@]}" --clip-visual "$F/color-clip-visual.onnx" \
+  "$B" encode --scene-dir "$S" "${MASK_ARGS[@]}" --clip-visual "$F/color-clip-visual.onnx" \
     --raster-scale 0.5 --quiet --out "$W/enc" > "$W/encode.log" 2>&1 || { tail -n 5 "$W/encode.log"; exit 1; }
   echo "encode: $(( $(date +%s) - t0 )) s"
 fi

@@ -41,7 +41,7 @@ for N in "${EVERYS[@]}"; do
   D=$R/e$N; E=$D/enc; mkdir -p "$D/seg"
   if [ -z "${SKIP_ENCODE:-}" ]; then
     t0=$(date +%s)
-    "$B" encode --scene "$S" --masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" \
+    "$B" encode --scene-dir "$S" --masks sam --sam-encoder "$F/sam-amg/color-sam-encoder.onnx" \
       --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" --sam-points-per-side 16 \
       --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
       --clip-visual "$F/clip/color-clip-visual.onnx" --every "$N" --raster-scale 0.5 --dense --quiet \
@@ -51,7 +51,7 @@ for N in "${EVERYS[@]}"; do
   rec=(--mask-record "$E/mask-record.safetensors")
   seg() { # name, flags...
     local name=$1; shift
-    "$B" segment --scene "$S" "$@" --out "$D/seg/$name.safetensors" > "$D/seg/$name.json" 2> "$D/seg/$name.log"
+    "$B" segment --scene-dir "$S" "$@" --out "$D/seg/$name.safetensors" > "$D/seg/$name.json" 2> "$D/seg/$name.log"
   }
   seg geometric --geometry-only
   seg masks "${rec[@]}"
@@ -59,12 +59,12 @@ for N in "${EVERYS[@]}"; do
   seg masks-min2 "${rec[@]}" --segment-min-size 2
   seg region "${rec[@]}" --segment-region-veto 0.5
   more=(); for n in "${NAMES[@]:1}"; do more+=(--more-segments "$D/seg/$n.safetensors"); done
-  "$B" eval-colors --scene "$S" --embeddings "$E/embeddings.safetensors" --color-clip "$F/clip" \
+  "$B" eval-colors --scene-dir "$S" --embeddings "$E/embeddings.safetensors" --color-clip "$F/clip" \
     --pf --segments "$D/seg/geometric.safetensors" "${more[@]}" "${rec[@]}" \
     > "$D/pf-3d.json" 2> "$D/pf-3d.log"
   [ -n "${SKIP_HELDOUT:-}" ] && continue
   t0=$(date +%s)
-  "$B" eval-colors --held-out --scene "$S" --embeddings "$E/embeddings.safetensors" \
+  "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \
     --color-clip "$F/clip" --pf --segments "$D/seg/geometric.safetensors" "${more[@]}" \
     --photo-classes-out "$D/photo-classes.u8" > "$D/heldout.json" 2> "$D/heldout.log"
   echo "every $N: held-out pass $(( $(date +%s) - t0 )) s"

@@ -14,7 +14,7 @@ use crate::EpArg;
 #[derive(Debug, Clone, Args)]
 pub struct EvalArgs {
     /// Scene folder (its point_cloud.ply gives the ground truth colours), or use --ply.
-    #[arg(long)]
+    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
     pub scene: PathBuf,
     /// The .ply the embeddings were made from; default <scene>/point_cloud.ply.
     #[arg(long)]
@@ -29,7 +29,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR")]
     pub color_clip: Option<PathBuf>,
     /// color-clip text tower; default <color-clip>/color-clip-textual.onnx.
-    #[arg(long)]
+    #[arg(long, alias = "text-model", value_name = "ONNX")]
     pub clip_textual: Option<PathBuf>,
     /// CLIP tokenizer; default <color-clip>/clip-tokenizer.json.
     #[arg(long)]

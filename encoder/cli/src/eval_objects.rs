@@ -15,7 +15,7 @@ use crate::EpArg;
 #[derive(Debug, Clone, Args)]
 pub struct EvalObjectsArgs {
     /// The scene folder written by `synth-scene --objects K` (objects.json, point_cloud.ply).
-    #[arg(long)]
+    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
     pub scene: PathBuf,
     /// The embeddings of that scene, made with color-clip: OUT/mixture.safetensors (the default
     /// output) or the dense OUT/embeddings.safetensors.

@@ -21,7 +21,7 @@ pub fn hint(e: &anyhow::Error) -> Option<String> {
 fn config_hint(e: &ConfigError) -> &'static str {
     match e {
         ConfigError::Missing { field } | ConfigError::NotPositive { field } => match field {
-            Field::SceneDir => "pass --scene DIR",
+            Field::SceneDir => "pass --scene-dir DIR",
             Field::ClipVisual => "pass --clip-visual CLIP_VISUAL.onnx",
             Field::OutputDir => "pass --out DIR",
             Field::SamEncoder | Field::SamDecoder => {
@@ -117,7 +117,7 @@ fn param_flag(name: &str) -> Option<&'static str> {
         "view_coverage_target" => "pass --view-coverage-target in (0, 1]",
         "view_coverage_raster_scale" => "pass --view-coverage-raster-scale in (0, 4], e.g. 0.25",
         "scene" => {
-            "pass --scene DIR holding point_cloud.ply, images/ and sparse/0 or transforms.json"
+            "pass --scene-dir DIR holding point_cloud.ply, images/ and sparse/0 or transforms.json"
         }
         "gpus" => "pass --gpus N (at most the GPUs listed)",
         "levels" => "--levels needs --masks sam; drop --levels with --masks graph",

@@ -27,7 +27,7 @@ use slag_common::cli::EpArg;
 /// slag-encoder: per-Gaussian CLIP embeddings for 3D Gaussian Splatting scenes (SLAG).
 ///
 /// Typical run (models are any SAM / CLIP ONNX exports; see docs/guide/encoding.md):
-///   slag-encoder encode --scene SCENE --sam-encoder SAM_ENC.onnx --sam-decoder SAM_DEC.onnx
+///   slag-encoder encode --scene-dir SCENE --sam-encoder SAM_ENC.onnx --sam-decoder SAM_DEC.onnx
 ///       --clip-visual CLIP_VISUAL.onnx --out OUT
 ///   slag-encoder query --embeddings OUT/mixture.safetensors --clip-textual CLIP_TEXT.onnx
 ///       --tokenizer clip-tokenizer.json --text "a chair"

@@ -21,7 +21,7 @@ pub struct QueryArgs {
     #[arg(long)]
     pub embeddings: PathBuf,
     /// CLIP text tower ONNX (input_ids i64[B,77] -> [B,D]) of the same CLIP model.
-    #[arg(long)]
+    #[arg(long, alias = "text-model", value_name = "ONNX")]
     pub clip_textual: PathBuf,
     /// CLIP BPE tokenizer (tokenizer.json for the `tokenizers` crate).
     #[arg(long)]

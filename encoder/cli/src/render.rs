@@ -17,7 +17,7 @@ use slag_encoder::raster::WeightRasterizer;
 #[derive(Debug, Clone, Args)]
 pub struct RenderArgs {
     /// Scene folder (point_cloud.ply, images/, sparse/0 or transforms.json).
-    #[arg(long)]
+    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
     pub scene: PathBuf,
     /// The .ply; default <scene>/point_cloud.ply.
     #[arg(long)]
@@ -32,7 +32,7 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = RasterArg::Gpu)]
     pub rasterizer: RasterArg,
     /// Output PNG.
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     pub out: PathBuf,
 }
 

@@ -13,7 +13,12 @@ use slag_encoder::args::SegmentArgs;
 #[derive(Debug, Clone, Args)]
 pub struct SegmentCmdArgs {
     /// Scene folder holding point_cloud.ply, or use --ply.
-    #[arg(long, required_unless_present = "ply")]
+    #[arg(
+        long = "scene-dir",
+        alias = "scene",
+        value_name = "DIR",
+        required_unless_present = "ply"
+    )]
     pub scene: Option<PathBuf>,
     /// The trained 3DGS .ply (INRIA layout); default <scene>/point_cloud.ply.
     #[arg(long)]
@@ -38,7 +43,7 @@ pub fn run(a: &SegmentCmdArgs) -> anyhow::Result<SegmentStats> {
     let ply = match (&a.ply, &a.scene) {
         (Some(p), _) => p.clone(),
         (None, Some(s)) => s.join("point_cloud.ply"),
-        (None, None) => anyhow::bail!("pass --scene DIR or --ply FILE"),
+        (None, None) => anyhow::bail!("pass --scene-dir DIR or --ply FILE"),
     };
     let g = slag_common::scene::load_ply(&ply, slag_common::scene::PlyLoadOptions::default())?;
     let params = SegmentParams::from(&a.segment);

@@ -17,7 +17,12 @@ pub struct SynthArgs {
     #[arg(long, value_parser = parse_count)]
     pub gaussians: usize,
     /// Number of posed views on the camera ring.
-    #[arg(long, default_value_t = 16)]
+    #[arg(
+        long = "view-count",
+        alias = "views",
+        value_name = "N",
+        default_value_t = 16
+    )]
     pub views: usize,
     /// Image width, pixels.
     #[arg(long, default_value_t = 990)]
@@ -32,7 +37,7 @@ pub struct SynthArgs {
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Output scene folder.
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
     /// Place K (1..=6) boxes of known colour, size and position on a gray terrain (two red ones
     /// far apart first), the ground truth of query answers' objects; written to objects.json.

@@ -54,7 +54,7 @@ pub struct PartitionArgs {
     #[arg(long)]
     pub store: PathBuf,
     /// Scene id: 1-64 characters of A-Z a-z 0-9 _ - . (used in URLs).
-    #[arg(long)]
+    #[arg(long, value_name = "NAME")]
     pub scene: String,
     /// Most MiB (2^20 bytes) of encoded shard per tile: tiles split adaptively (k-d on the
     /// ground plane) until each shard fits, the Gaussian cap following from the exact bytes per
@@ -589,8 +589,13 @@ pub struct ServeArgs {
     /// Shard store folder.
     #[arg(long)]
     pub store: PathBuf,
-    /// Address to bind.
-    #[arg(long, default_value = "127.0.0.1:8080")]
+    /// Listen address.
+    #[arg(
+        long = "listen",
+        aliases = ["bind", "addr"],
+        value_name = "HOST:PORT",
+        default_value = "127.0.0.1:8080"
+    )]
     pub bind: SocketAddr,
     /// File whose first line is the bearer token clients must send (also env
     /// SLAG_SHARD_TOKEN); without either the server is open.
@@ -605,7 +610,7 @@ pub struct ServeArgs {
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
     /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
-    /// the path can read it. Without it, a token with a non-loopback --bind needs --tls-cert.
+    /// the path can read it. Without it, a token with a non-loopback --listen needs --tls-cert.
     #[arg(long)]
     pub allow_plain_http: bool,
     /// Seconds a connection has to send a whole request head (and to finish its TLS
@@ -733,7 +738,7 @@ pub struct ExportArgs {
     #[arg(long)]
     pub store: PathBuf,
     /// Scene id.
-    #[arg(long)]
+    #[arg(long, value_name = "NAME")]
     pub scene: String,
     /// Output folder (must not exist unless --force).
     pub dir: PathBuf,
@@ -843,7 +848,7 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "max_connections_per_ip" => "--max-connections-per-ip N",
                 "plain_http" => {
                     "--tls-cert FILE --tls-key FILE (HTTPS), or bind a loopback address \
-                     (--bind 127.0.0.1:PORT), or --allow-plain-http to send the token in clear \
+                     (--listen 127.0.0.1:PORT), or --allow-plain-http to send the token in clear \
                      text anyway"
                 }
                 "key_out" => "another --out DIR (keygen never overwrites a key pair)",

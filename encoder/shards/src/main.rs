@@ -8,7 +8,7 @@ use slag_shards::cli;
 /// slag-shards: cut per-Gaussian embeddings into spatial shards, serve or export them.
 ///
 ///   slag-shards partition --embeddings OUT/embeddings.safetensors --store STORE --scene lab
-///   slag-shards serve --store STORE --addr 0.0.0.0:8090
+///   slag-shards serve --store STORE --listen 0.0.0.0:8090
 ///   slag-shards export --store STORE --scene lab DIR
 #[derive(Parser)]
 #[command(version, about, long_about, verbatim_doc_comment)]

@@ -103,7 +103,7 @@ impl From<&SegmentArgs> for SegmentParams {
 #[derive(Debug, Clone, Args)]
 pub struct EncodeArgs {
     /// Scene folder: point_cloud.ply (or --ply), images/, and sparse/0 (COLMAP) or transforms.json.
-    #[arg(long)]
+    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
     pub scene: PathBuf,
     /// The trained 3DGS .ply (INRIA layout); default <scene>/point_cloud.ply.
     #[arg(long)]
@@ -164,7 +164,7 @@ pub struct EncodeArgs {
     pub hold_out_every: Option<usize>,
     /// Which training views are encoded: all, uniform (--view-count of them, evenly spaced) or
     /// coverage (a cheap weight-raster pass, then a greedy choice; see --view-coverage-*).
-    #[arg(long, value_enum, default_value_t = ViewsArg::All)]
+    #[arg(long, value_enum, value_name = "RULE", default_value_t = ViewsArg::All)]
     pub views: ViewsArg,
     /// With --views uniform: exactly this many views. With --views coverage: at most this many
     /// (the first of the greedy order).
@@ -273,7 +273,7 @@ pub struct EncodeArgs {
     pub dense: bool,
     /// Output folder (mixture.safetensors, segments.safetensors, report.json; with --dense
     /// embeddings.safetensors).
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
     /// No progress bars.
     #[arg(long)]
@@ -281,7 +281,7 @@ pub struct EncodeArgs {
     /// Also write the Gaussians' geometric segments (`segments.safetensors`, for prediction
     /// filtering, the shards and `&smooth=segment`): computed beside the encode, written after it
     /// succeeded.
-    #[arg(long, value_enum, default_value_t = OnOff::On)]
+    #[arg(long, value_enum, value_name = "on|off", default_value_t = OnOff::On)]
     pub segments: OnOff,
     /// The segmentation's settings (`--segment-*`).
     #[command(flatten)]
