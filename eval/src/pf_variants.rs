@@ -78,27 +78,17 @@ pub fn pf_tables(
             path,
             pf::mean_table(slag_scores, &observed, seg, c)?,
         ));
-        out.push(table(
-            format!("pf-weighted{tag}"),
-            path,
-            pf::weighted_table(slag_scores, &observed, &sum_a, seg, c)?,
-        ));
-        out.push(table(
-            format!("pf-confident{tag}"),
-            path,
-            pf::confident_table(slag_scores, &observed, &sum_a, seg, c)?,
-        ));
+        // `pf-weighted` and `pf-confident` of `scores`, their names after `prefix`.
+        let mut push_weighted = |prefix: &str, scores: &[f32]| -> Result<()> {
+            let weighted = pf::weighted_table(scores, &observed, &sum_a, seg, c)?;
+            out.push(table(format!("{prefix}pf-weighted{tag}"), path, weighted));
+            let confident = pf::confident_table(scores, &observed, &sum_a, seg, c)?;
+            out.push(table(format!("{prefix}pf-confident{tag}"), path, confident));
+            Ok(())
+        };
+        push_weighted("", slag_scores)?;
         if let Some((name, scores)) = &mixture {
-            out.push(table(
-                format!("{name}+pf-weighted{tag}"),
-                path,
-                pf::weighted_table(scores, &observed, &sum_a, seg, c)?,
-            ));
-            out.push(table(
-                format!("{name}+pf-confident{tag}"),
-                path,
-                pf::confident_table(scores, &observed, &sum_a, seg, c)?,
-            ));
+            push_weighted(&format!("{name}+"), scores)?;
         }
     }
     Ok(out)

@@ -26,6 +26,8 @@ use rstar::primitives::GeomWithData;
 use slag_common::mask_record::MaskRecord;
 use slag_common::{Error, Result};
 
+use crate::segment_quality::{majority, segment_votes};
+
 fn same_length(a: usize, b: usize, what: &str) -> Result<()> {
     if a != b {
         return Err(Error::internal(format!(
@@ -37,22 +39,9 @@ fn same_length(a: usize, b: usize, what: &str) -> Result<()> {
 
 /// The majority label of each segment over its labelled Gaussians (ties to the smaller label).
 fn majorities(labels: &[Option<u32>], segments: &[u32]) -> HashMap<u32, u32> {
-    let mut votes: HashMap<u32, HashMap<u32, usize>> = HashMap::new();
-    for (l, &s) in labels.iter().zip(segments) {
-        if let Some(l) = l {
-            *votes.entry(s).or_default().entry(*l).or_default() += 1;
-        }
-    }
-    votes
+    segment_votes(labels, segments)
         .into_iter()
-        .map(|(s, v)| {
-            let best = v
-                .iter()
-                .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-                .map(|(&l, _)| l)
-                .unwrap_or(0);
-            (s, best)
-        })
+        .map(|(s, v)| (s, majority(&v).map_or(0, |(l, _)| l)))
         .collect()
 }
 
@@ -130,10 +119,7 @@ pub fn neighbour_agreement(
                 for &m in ns {
                     *votes.entry(m).or_default() += 1;
                 }
-                let best = votes
-                    .iter()
-                    .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-                    .map(|(&m, _)| m);
+                let best = majority(&votes).map(|(m, _)| m);
                 major += usize::from(best == Some(*l));
             }
             let c = counted.max(1) as f64;
@@ -306,14 +292,7 @@ pub fn mask_purity(labels: &[Option<u32>], record: &MaskRecord) -> Result<MaskPu
     }
     let major: HashMap<(u16, u16), u32> = votes
         .iter()
-        .map(|(k, v)| {
-            let best = v
-                .iter()
-                .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-                .map(|(&l, _)| l)
-                .unwrap_or(0);
-            (*k, best)
-        })
+        .map(|(k, v)| (*k, majority(v).map_or(0, |(l, _)| l)))
         .collect();
     let (mut best_n, mut best_k, mut all_n, mut all_k, mut unrecorded) = (0, 0, 0, 0, 0);
     for (i, l) in labels.iter().enumerate() {

@@ -124,26 +124,39 @@ fn same_length(a: usize, b: usize, what: &str) -> Result<()> {
     Ok(())
 }
 
-/// Purity of `segments` (one id per Gaussian) against `labels` (`None`: not counted, e.g. an
-/// unobserved Gaussian or one without a true class).
-///
-/// Errors: lengths that differ ([`Error::Internal`]).
-pub fn purity(labels: &[Option<u32>], segments: &[u32]) -> Result<Purity> {
-    same_length(labels.len(), segments.len(), "purity")?;
+/// The votes of each segment (one id per Gaussian): its labelled Gaussians counted per label.
+pub(crate) fn segment_votes(
+    labels: &[Option<u32>],
+    segments: &[u32],
+) -> HashMap<u32, HashMap<u32, usize>> {
     let mut votes: HashMap<u32, HashMap<u32, usize>> = HashMap::new();
     for (l, &s) in labels.iter().zip(segments) {
         if let Some(l) = l {
             *votes.entry(s).or_default().entry(*l).or_default() += 1;
         }
     }
+    votes
+}
+
+/// The label with the most votes and its count (ties to the smaller label); `None` without
+/// votes.
+pub(crate) fn majority(votes: &HashMap<u32, usize>) -> Option<(u32, usize)> {
+    votes
+        .iter()
+        .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
+        .map(|(&l, &c)| (l, c))
+}
+
+/// Purity of `segments` (one id per Gaussian) against `labels` (`None`: not counted, e.g. an
+/// unobserved Gaussian or one without a true class).
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn purity(labels: &[Option<u32>], segments: &[u32]) -> Result<Purity> {
+    same_length(labels.len(), segments.len(), "purity")?;
     let (mut counted, mut kept) = (0usize, 0usize);
-    for v in votes.values() {
+    for v in segment_votes(labels, segments).values() {
         let total: usize = v.values().sum();
-        let best = v
-            .iter()
-            .max_by(|a, b| a.1.cmp(b.1).then(b.0.cmp(a.0)))
-            .map(|(_, &c)| c)
-            .unwrap_or(0);
+        let best = majority(v).map_or(0, |(_, c)| c);
         counted += total;
         kept += best;
     }

@@ -97,6 +97,13 @@ fn shards(args: &[&str], env: &[(&str, &str)]) -> Child {
     c.spawn().unwrap()
 }
 
+/// `slag-shards serve` of `store` on a free loopback port over TLS with `cert` and `key` (PEM
+/// paths), started as [`shards`] starts it.
+fn serve_tls_on_loopback(store: &str, cert: &str, key: &str) -> Child {
+    let args = ["serve", "--store", store, "--bind", "127.0.0.1:0"];
+    shards(&[&args[..], &["--tls-cert", cert, "--tls-key", key]].concat(), &[])
+}
+
 /// The address of a started `serve` from its first line (`serving on SCHEME://ADDR/v1/...`).
 fn served_address(child: &mut Child) -> String {
     let mut line = String::new();
@@ -129,20 +136,7 @@ async fn sighup_swaps_the_certificate_for_new_connections_and_a_bad_file_keeps_t
     let (c, k) = first.write(certs.path());
     let (c, k) = (c.display().to_string(), k.display().to_string());
     let store = dir.path().display().to_string();
-    let mut child = shards(
-        &[
-            "serve",
-            "--store",
-            &store,
-            "--bind",
-            "127.0.0.1:0",
-            "--tls-cert",
-            &c,
-            "--tls-key",
-            &k,
-        ],
-        &[],
-    );
+    let mut child = serve_tls_on_loopback(&store, &c, &k);
     let addr = served_address(&mut child);
     let stderr = child.stderr.take().unwrap();
     let (log_tx, log_rx) = std::sync::mpsc::channel();
@@ -218,22 +212,9 @@ fn a_bad_certificate_file_refuses_to_start_naming_the_file() {
     std::fs::write(&c, "-----BEGIN CERTIFICATE-----\nAAAA\n").unwrap();
     let dir = tempfile::tempdir().unwrap();
     let (c, k) = (c.display().to_string(), k.display().to_string());
-    let out = shards(
-        &[
-            "serve",
-            "--store",
-            &dir.path().display().to_string(),
-            "--bind",
-            "127.0.0.1:0",
-            "--tls-cert",
-            &c,
-            "--tls-key",
-            &k,
-        ],
-        &[],
-    )
-    .wait_with_output()
-    .unwrap();
+    let out = serve_tls_on_loopback(&dir.path().display().to_string(), &c, &k)
+        .wait_with_output()
+        .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         !out.status.success(),
