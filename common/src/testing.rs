@@ -73,6 +73,44 @@ pub fn get_request(path: &str, extra: &str) -> Vec<u8> {
     format!("GET {path} HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{extra}\r\n").into_bytes()
 }
 
+/// `n` connections to `addr` (`host:port`) that each send only the request line
+/// `GET {path} HTTP/1.1` and then nothing: stalled request heads, each holding a connection slot
+/// until the server's header timeout closes it.
+///
+/// Panics when a connection or a send fails.
+pub async fn stalled_heads(addr: &str, n: usize, path: &str) -> Vec<TcpStream> {
+    let line = format!("GET {path} HTTP/1.1\r\n");
+    let mut stalled = Vec::with_capacity(n);
+    for _ in 0..n {
+        let mut s = TcpStream::connect(addr).await.expect("connect");
+        s.write_all(line.as_bytes())
+            .await
+            .expect("send the request line");
+        stalled.push(s);
+    }
+    stalled
+}
+
+/// Asserts that the server at `addr` answers `GET path` carrying the header line `one` (an
+/// accepted `Authorization` header, ending in `\r\n`) with 200, and answers 401 with the JSON
+/// error body when the request carries two `Authorization` headers: `one` twice, or `one` with
+/// a wrong one after or before it.
+///
+/// Panics as [`exchange`], and when an answer is not the one asserted.
+pub async fn assert_two_authorizations_refused(addr: &str, path: &str, one: &str) {
+    let (status, _, body) = exchange(addr, &get_request(path, one)).await;
+    assert_eq!(status, 200, "{body}");
+    for two in [
+        format!("{one}{one}"),
+        format!("{one}Authorization: Bearer wrong\r\n"),
+        format!("Authorization: Bearer wrong\r\n{one}"),
+    ] {
+        let (status, head, body) = exchange(addr, &get_request(path, &two)).await;
+        assert_eq!(status, 401, "{two}: {body}");
+        assert_json_error(401, &head, &body);
+    }
+}
+
 /// Asserts that an answer is the servers' JSON error body with `status`: a JSON content type,
 /// `"status": status` and a non-empty `"error"`.
 pub fn assert_json_error(status: u16, head: &str, body: &str) {

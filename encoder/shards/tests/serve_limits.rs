@@ -9,7 +9,9 @@ mod support;
 use std::time::Duration;
 
 use slag_common::http::ServerLimits;
-use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
+use slag_common::testing::{
+    assert_json_error, closed_within, exchange, get_request as get, stalled_heads,
+};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// Limits with one address allowed every slot (the global connection limit alone).
@@ -29,12 +31,7 @@ async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::
 async fn stalled_sockets_close_and_the_connection_limit_keeps_the_server_answering() {
     let (addr, _dir) = start(None, limits(1, 5, 8)).await;
     let mut idle = tokio::net::TcpStream::connect(&addr).await.unwrap();
-    let mut stalled = Vec::new();
-    for _ in 0..24 {
-        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
-        s.write_all(b"GET /v1/scenes HTTP/1.1\r\n").await.unwrap();
-        stalled.push(s);
-    }
+    let mut stalled = stalled_heads(&addr, 24, "/v1/scenes").await;
     let (status, _, body) = exchange(&addr, &get("/v1/scenes", "")).await;
     assert_eq!(status, 200, "{body}");
     assert!(body.contains("lab"), "{body}");
@@ -78,17 +75,7 @@ async fn one_address_cannot_take_every_connection_slot() {
 async fn two_authorization_headers_get_401() {
     let (addr, _dir) = start(Some("tok"), limits(10, 5, 64)).await;
     let one = "Authorization: Bearer tok\r\n";
-    let (status, _, body) = exchange(&addr, &get("/v1/scenes", one)).await;
-    assert_eq!(status, 200, "{body}");
-    for two in [
-        format!("{one}{one}"),
-        format!("{one}Authorization: Bearer wrong\r\n"),
-        format!("Authorization: Bearer wrong\r\n{one}"),
-    ] {
-        let (status, head, body) = exchange(&addr, &get("/v1/scenes", &two)).await;
-        assert_eq!(status, 401, "{two}: {body}");
-        assert_json_error(401, &head, &body);
-    }
+    slag_common::testing::assert_two_authorizations_refused(&addr, "/v1/scenes", one).await;
 }
 
 /// A client that stops reading is dropped after the write timeout instead of holding its
