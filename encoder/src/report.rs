@@ -181,11 +181,37 @@ pub struct Report {
     pub counts: Counts,
     /// Output files and sizes.
     pub outputs: Outputs,
+    /// The geometric segments computed beside the encode: where their time went and how long
+    /// the run waited for them after the embeddings were written; `encode` with segments only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub segments: Option<SegmentsOutput>,
     /// Each worker thread's share (images, busy seconds), fronts first, then one per rasterizer.
     pub workers: Vec<WorkerShare>,
     /// Which views were encoded and what choosing them cost; `encode` only.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub view_selection: Option<crate::views::SelectionReport>,
+}
+
+/// The report's `segments`: the geometric segments `encode` computes beside the encode
+/// (`Encoder::run`), written to `segments.safetensors` after the embeddings.
+/// `report.json` is written again once they are, so that it stays the run's last file.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SegmentsOutput {
+    /// The masks' record they were weighed with (`mask-record.safetensors`); `None`: geometry
+    /// only.
+    pub mask_record: Option<PathBuf>,
+    /// The segments file.
+    pub path: PathBuf,
+    /// The segmentation's own figures: segments, edges, wall seconds beside the encode, and
+    /// its stages (k-NN, weights, sort, criterion, waiting for the masks' record).
+    pub stats: crate::segments::SegmentStats,
+    /// Threads of its pool while the encode ran.
+    pub threads: usize,
+    /// Seconds the run waited for the segments after the embeddings were written: what they
+    /// add to the process's wall time (0 when they were done by then).
+    pub waited_s: f64,
+    /// Threads it was given when it outlasted the encode; `None`: it was done by then.
+    pub widened_to: Option<usize>,
 }
 
 /// The report's `inputs`: what was encoded.

@@ -87,6 +87,20 @@ fn written(r: &slag_encoder::report::Report) -> std::path::PathBuf {
         .unwrap_or_else(|| r.outputs.report.clone())
 }
 
+/// Where the encode's tail went, for its closing line: the reduction (on the GPU or the CPU),
+/// the write, and the wait for the segments after it.
+fn tail_summary(r: &slag_encoder::report::Report) -> String {
+    let place = if r.counts.device_reduce { "GPU" } else { "CPU" };
+    let mut s = format!(
+        "reduce {:.1} s on the {place}, write {:.1} s",
+        r.timings.reduce, r.timings.write
+    );
+    if let Some(seg) = &r.segments {
+        s.push_str(&format!(", segments waited {:.1} s", seg.waited_s));
+    }
+    s
+}
+
 fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
     println!("{}", serde_json::to_string_pretty(v)?);
     Ok(())
@@ -98,12 +112,13 @@ fn main() -> std::process::ExitCode {
     let result = match &args.command {
         Command::Encode(a) => encode::run(a).map(|r| {
             eprintln!(
-                "encoded {} of {} Gaussians ({:.1}%) from {} views in {:.1} s -> {}",
+                "encoded {} of {} Gaussians ({:.1}%) from {} views in {:.1} s ({}) -> {}",
                 r.counts.observed,
                 r.counts.gaussians,
                 100.0 * r.counts.observed_fraction,
                 r.counts.views_used,
                 r.timings.total,
+                tail_summary(&r),
                 written(&r).display()
             );
         }),

@@ -68,7 +68,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         .arg(&scene)
         .output()
         .unwrap());
-    ok(slag_encoder()
+    let encoded = slag_encoder()
         .args([
             "encode",
             "--quiet",
@@ -84,7 +84,9 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         .arg("--out")
         .arg(&out)
         .output()
-        .unwrap());
+        .unwrap();
+    let closing = String::from_utf8_lossy(&encoded.stderr).into_owned();
+    ok(encoded);
     let mut names: Vec<String> = std::fs::read_dir(&out)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
@@ -108,6 +110,31 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         report["outputs"]["embeddings"].is_null(),
         "{}",
         report["outputs"]
+    );
+    // The report, written again after the segments, says where the tail's time went.
+    let segments = &report["segments"];
+    assert_eq!(
+        segments["path"].as_str().map(PathBuf::from),
+        Some(out.join("segments.safetensors")),
+        "{segments}"
+    );
+    assert_eq!(
+        segments["mask_record"].as_str().map(PathBuf::from),
+        Some(out.join("mask-record.safetensors")),
+        "{segments}"
+    );
+    let stored = slag_common::segments::Segments::read(&out.join("segments.safetensors")).unwrap();
+    assert_eq!(
+        segments["stats"]["segments"].as_u64(),
+        Some(u64::from(stored.segment_count)),
+        "{segments}"
+    );
+    assert!(segments["waited_s"].as_f64().unwrap() >= 0.0, "{segments}");
+    assert!(segments["stats"]["stages"]["neighbours"].is_number(), "{segments}");
+    assert!(report["timings"]["reduce"].as_f64().unwrap() > 0.0, "{}", report["timings"]);
+    assert!(
+        closing.contains("on the CPU, write") && closing.contains("segments waited"),
+        "{closing}"
     );
     let mix =
         slag_common::mixture::MixtureEmbeddings::read(&out.join("mixture.safetensors")).unwrap();

@@ -5,7 +5,7 @@ use slag_common::Result;
 use super::build::{self, Fronts};
 use super::segment_task::SegmentTask;
 use crate::config::{ConfigError, EncodeConfig};
-use crate::report::Report;
+use crate::report::{Report, SegmentsOutput};
 
 /// One encode run of this process (the Semantic Embedding stage over a scene): front workers
 /// (decode → masks → CLIP crops) and one rasterizer per GPU (raster → `a_kj`), then the reduction
@@ -115,12 +115,21 @@ impl Encoder {
         // Written after a successful encode only, so that a failed or killed run leaves nothing
         // that looks complete; an optional file of its own (atomic): `partition` without it
         // simply stores no segments.
-        if let Some(r) = &record {
-            write_mask_record(c, r)?;
-        }
-        if let Some(task) = segments {
-            write_segments(c, task, threads)?;
-        }
+        let mask_record = match &record {
+            Some(r) => Some(write_mask_record(c, r)?),
+            None => None,
+        };
+        let Some(task) = segments else {
+            return Ok(report);
+        };
+        let mut report = report;
+        let mut segmented = write_segments(c, task, threads)?;
+        segmented.mask_record = mask_record.filter(|_| segmented.stats.mask_record.is_some());
+        report.segments = Some(segmented);
+        // Written again, with the segments: the report stays the run's last file.
+        let json = serde_json::to_vec_pretty(&report)
+            .map_err(|e| slag_common::Error::internal(format!("report: {e}")))?;
+        slag_common::io::write_atomic(&report.outputs.report, &json)?;
         Ok(report)
     }
 }
@@ -129,33 +138,37 @@ impl Encoder {
 /// `slag-encoder segment` on this encode later.
 ///
 /// Errors: I/O.
-fn write_mask_record(c: &EncodeConfig, r: &slag_common::mask_record::MaskRecord) -> Result<()> {
+fn write_mask_record(
+    c: &EncodeConfig,
+    r: &slag_common::mask_record::MaskRecord,
+) -> Result<std::path::PathBuf> {
     let dir = &c.output.dir;
     std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
-    r.write(&dir.join(slag_common::mask_record::FILE_NAME))?;
+    let path = dir.join(slag_common::mask_record::FILE_NAME);
+    r.write(&path)?;
     tracing::info!(
         gaussians = r.len(),
         slots = r.slots,
         bytes_per_gaussian = r.bytes_per_gaussian(),
         "masks' record written"
     );
-    Ok(())
+    Ok(path)
 }
 
-/// Waits for `task` (on `threads` threads from now on, if it is still running) and writes its
-/// segments to `<out>/segments.safetensors` (atomically).
+/// Waits for `task` (on `threads` threads from now on, if it is still running; a spinner
+/// shows the wait with the output's progress setting) and writes its segments to
+/// `<out>/segments.safetensors` (atomically). Returns the report's record of them, its
+/// `mask_record` left `None` for the caller.
 ///
 /// Errors: the segmentation's ([`SegmentTask::finish`]), I/O.
-fn write_segments(
-    c: &EncodeConfig,
-    task: SegmentTask,
-    threads: usize,
-) -> Result<crate::segments::SegmentStats> {
+fn write_segments(c: &EncodeConfig, task: SegmentTask, threads: usize) -> Result<SegmentsOutput> {
+    let spinner = super::pool::tail_spinner(c.output.progress, "segments", "waiting");
     let done = task.finish(threads)?;
+    spinner.finish_with_message(format!("waited {:.1} s", done.waited_s));
     let dir = &c.output.dir;
     std::fs::create_dir_all(dir).map_err(|e| slag_common::Error::io(dir, e))?;
-    done.segments
-        .write(&dir.join(slag_common::segments::FILE_NAME))?;
+    let path = dir.join(slag_common::segments::FILE_NAME);
+    done.segments.write(&path)?;
     let stats = done.stats;
     tracing::info!(
         segments = stats.segments,
@@ -167,5 +180,12 @@ fn write_segments(
         waited_s = done.waited_s,
         "geometric segments written"
     );
-    Ok(stats)
+    Ok(SegmentsOutput {
+        mask_record: None,
+        path,
+        stats,
+        threads: done.threads,
+        waited_s: done.waited_s,
+        widened_to: done.widened_to,
+    })
 }

@@ -88,8 +88,10 @@ pub(crate) fn remove_stale(path: &Path) -> Result<()> {
 /// Reduces what the pool left ([`Pooled`]) and writes the outputs of `scene`'s encode into
 /// [`EncodeParams::out_dir`]: `mixture.safetensors` with [`EncodeParams::mixture_keep`],
 /// `embeddings.safetensors` with [`EncodeParams::dense`], the level files with
-/// [`EncodeParams::levels`], each atomically, then `report.json` (`report` completed with the models, the workers' shares,
-/// timings counted from `t_total` and counts).
+/// [`EncodeParams::levels`], each atomically, then `report.json` (`report` completed with the
+/// models, the workers' shares, timings counted from `t_total` and counts). With
+/// [`EncodeParams::progress`] a spinner on stderr shows each step of the tail (the reduction,
+/// on the GPU or the CPU, then the write).
 ///
 /// Errors: the reduction's, I/O on the outputs; nothing that looks complete is left then.
 pub(crate) fn finish(
@@ -117,13 +119,12 @@ pub(crate) fn finish(
         device,
     } = pooled;
     report.view_selection = Some(selection);
+    report.workers = workers;
     let models = &mut report.models;
     models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
     models.rasterizers = Some(rasterizers);
-    models.front_workers = Some(fronts);
+    (models.front_workers, models.masks) = (Some(fronts), mask_name);
     models.clip_model_id = model_id.clone();
-    models.masks = mask_name;
-    report.workers = workers;
 
     // Only the centres are written from here on: the rest of the geometry is let go first.
     let means = {
@@ -132,98 +133,166 @@ pub(crate) fn finish(
     };
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
-    let tail = match one_device(device)? {
-        Some(mut rasterizer) => {
-            counts.device_reduce = true;
-            reduce_on_device(
-                &mut *rasterizer,
-                &means,
-                dim,
-                params,
-                &model_id,
-                &files.embeddings,
-            )?
-        }
-        None => reduce_outputs(&store, &means, dim, params, &model_id, &files.embeddings)?,
+    let out = TailInputs {
+        means: &means,
+        dim,
+        params,
+        model_id: &model_id,
+        ply: scene.ply.display().to_string(),
     };
+    let tail = reduce_tail(&out, device, &store, &files.embeddings)?;
     // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
     t.reduce = tail.reduce_s - tail.gather_s;
+    counts.device_reduce = tail.on_device;
     counts.spilled_images = store.spilled();
     counts.reduce_chunks = tail.chunks;
     counts.observed = tail.observed;
     counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
-    let (writer, sparse, gather_s, write_tail_s) =
-        (tail.writer, tail.sparse, tail.gather_s, tail.write_s);
     // The mixture's stored form is built after the store's entries are freed, so that its
     // buffers never add to them.
     let t0 = Instant::now();
     drop(store);
-    let mixture = sparse
+    let mixture = tail
+        .sparse
         .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
         .transpose()?;
-    let mixture_s = gather_s + t0.elapsed().as_secs_f64();
-    // Granularity kept apart: one ordinary embeddings file per level.
-    let t0 = Instant::now();
-    let mut level_files = Vec::new();
-    for l in 0..aggregate::levels::LEVELS {
-        let path = params
-            .out_dir
-            .join(format!("embeddings-level{l}.safetensors"));
-        match level_stores.get(l) {
-            Some(ls) => {
-                let w = EmbeddingsWriter::create(&path, dim, params.precision)?;
-                let streamed = aggregate::reduce_to_writer(ls, &means, dim, params.reduce, w)?;
-                let rows = streamed.writer.len();
-                streamed.writer.finish(
-                    &model_id,
-                    n_gaussians as u64,
-                    &scene.ply.display().to_string(),
-                )?;
-                let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-                level_files.push(LevelOutput {
-                    bytes,
-                    level: l,
-                    observed: rows,
-                    path,
-                });
-            }
-            None => remove_stale(&path)?,
-        }
-    }
+    let mixture_s = tail.gather_s + t0.elapsed().as_secs_f64();
+    let (level_files, levels_s) = write_levels(&out, &level_stores)?;
     drop(level_stores);
-    let levels_s = t0.elapsed().as_secs_f64();
 
     let t0 = Instant::now();
-    if let Some(writer) = writer {
-        writer.finish(
-            &model_id,
-            n_gaussians as u64,
-            &scene.ply.display().to_string(),
-        )?;
-    }
-    let mix_path = params.out_dir.join("mixture.safetensors");
-    match &mixture {
-        Some(m) => m.write(&mix_path)?,
-        None => remove_stale(&mix_path)?,
-    }
-    t.write = write_tail_s + t0.elapsed().as_secs_f64();
+    let mix_path = write_forms(&out, tail.writer, mixture.as_ref())?;
+    t.write = tail.write_s + t0.elapsed().as_secs_f64();
     t.total = t_total.elapsed().as_secs_f64();
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     counts.queue = Some(queue);
     report.timings = t;
     report.counts = counts;
+    let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
+    files.write_report(report, params.precision, None, Some(forms))
+}
+
+/// Finishes the dense file of `writer` (every row pushed) and writes the mixture to
+/// `<out>/mixture.safetensors`, or removes a mixture of an earlier run when there is none; a
+/// spinner shows it with [`EncodeParams::progress`]. Returns the mixture's path.
+///
+/// Errors: I/O.
+fn write_forms(
+    out: &TailInputs,
+    writer: Option<EmbeddingsWriter>,
+    mixture: Option<&slag_common::mixture::MixtureEmbeddings>,
+) -> Result<PathBuf> {
+    let spinner = super::pool::tail_spinner(out.params.progress, "write", "the outputs");
+    let t0 = Instant::now();
+    if let Some(writer) = writer {
+        writer.finish(out.model_id, out.means.len() as u64, &out.ply)?;
+    }
+    let mix_path = out.params.out_dir.join("mixture.safetensors");
+    match mixture {
+        Some(m) => m.write(&mix_path)?,
+        None => remove_stale(&mix_path)?,
+    }
+    spinner.finish_with_message(format!("the outputs: {:.1} s", t0.elapsed().as_secs_f64()));
+    Ok(mix_path)
+}
+
+/// The report's record of the optional forms: the mixture written at `mix_path` (its reduction
+/// took `mixture_s`) and the level files (`levels_s`); each `None` when not written.
+fn form_outputs(
+    mixture: Option<&slag_common::mixture::MixtureEmbeddings>,
+    mix_path: PathBuf,
+    mixture_s: f64,
+    level_files: Vec<LevelOutput>,
+    levels_s: f64,
+) -> FormOutputs {
     let has_levels = !level_files.is_empty();
-    let forms = FormOutputs {
+    FormOutputs {
         levels: has_levels.then_some(level_files),
         levels_reduce_s: has_levels.then_some(levels_s),
-        mixture: mixture.as_ref().map(|_| mix_path),
-        mixture_bytes_per_gaussian: mixture.as_ref().map(|m| m.bytes_per_gaussian()),
-        mixture_codebook_rows: mixture.as_ref().map(|m| m.codebook_len()),
-        mixture_keep: mixture.as_ref().map(|m| m.keep),
-        mixture_reduce_s: mixture.as_ref().map(|_| mixture_s),
+        mixture: mixture.map(|_| mix_path),
+        mixture_bytes_per_gaussian: mixture.map(|m| m.bytes_per_gaussian()),
+        mixture_codebook_rows: mixture.map(|m| m.codebook_len()),
+        mixture_keep: mixture.map(|m| m.keep),
+        mixture_reduce_s: mixture.map(|_| mixture_s),
+    }
+}
+
+/// What every output of the tail is made from: the Gaussians' centres `means` (`[N]`, scene
+/// units), the embedding width `dim`, the encode's parameters, the CLIP model id and the
+/// scene's `.ply` path (both recorded in each file's header).
+struct TailInputs<'a> {
+    means: &'a [[f32; 3]],
+    dim: usize,
+    params: &'a EncodeParams,
+    model_id: &'a str,
+    ply: String,
+}
+
+/// The tail's reduction: on the device when the pool kept the views there ([`one_device`],
+/// [`reduce_on_device`]), else the host's pass over `store` ([`reduce_outputs`]); a spinner
+/// shows it with [`EncodeParams::progress`].
+///
+/// Errors: the reduction's, I/O on the dense file.
+fn reduce_tail(
+    out: &TailInputs,
+    device: Vec<Box<dyn WeightRasterizer>>,
+    store: &aggregate::ContributionStore,
+    embeddings: &Path,
+) -> Result<ReducedOutputs> {
+    let place = if device.is_empty() { "CPU" } else { "GPU" };
+    let spinner = super::pool::tail_spinner(
+        out.params.progress,
+        "reduce",
+        &format!("E_k on the {place}"),
+    );
+    let (dim, params, model_id) = (out.dim, out.params, out.model_id);
+    let tail = match one_device(device)? {
+        Some(mut rasterizer) => {
+            reduce_on_device(&mut *rasterizer, out.means, dim, params, model_id, embeddings)?
+        }
+        None => reduce_outputs(store, out.means, dim, params, model_id, embeddings)?,
     };
-    files.write_report(report, params.precision, None, Some(forms))
+    spinner.finish_with_message(format!("E_k on the {place}: {:.1} s", tail.reduce_s));
+    Ok(tail)
+}
+
+/// One ordinary embeddings file per SAM granularity level, `embeddings-level{l}.safetensors`,
+/// reduced from `level_stores` (granularity kept apart; [`EncodeParams::levels`]); a level
+/// file of an earlier run that this run does not write is removed. Returns the files and the
+/// seconds they took.
+///
+/// Errors: the reduction's, I/O.
+fn write_levels(
+    out: &TailInputs,
+    level_stores: &[aggregate::ContributionStore],
+) -> Result<(Vec<LevelOutput>, f64)> {
+    let t0 = Instant::now();
+    let params = out.params;
+    let mut level_files = Vec::new();
+    for l in 0..aggregate::levels::LEVELS {
+        let path = params
+            .out_dir
+            .join(format!("embeddings-level{l}.safetensors"));
+        let Some(ls) = level_stores.get(l) else {
+            remove_stale(&path)?;
+            continue;
+        };
+        let w = EmbeddingsWriter::create(&path, out.dim, params.precision)?;
+        let streamed = aggregate::reduce_to_writer(ls, out.means, out.dim, params.reduce, w)?;
+        let rows = streamed.writer.len();
+        streamed
+            .writer
+            .finish(out.model_id, out.means.len() as u64, &out.ply)?;
+        let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+        level_files.push(LevelOutput {
+            bytes,
+            level: l,
+            observed: rows,
+            path,
+        });
+    }
+    Ok((level_files, t0.elapsed().as_secs_f64()))
 }
 
 /// The rasterizers that kept their views on their devices, as one: the first, with every other
@@ -318,6 +387,7 @@ fn reduce_on_device(
             (None, None) => 0,
         };
         Ok(ReducedOutputs {
+            on_device: true,
             writer,
             sparse,
             chunks: out.tiles,
@@ -345,6 +415,8 @@ fn push_kept(s: &mut SparseMixture, ids: &[u32], means: &[[f32; 3]], kept: Vec<V
 
 /// What the tail's reduction leaves ([`reduce_outputs`]).
 struct ReducedOutputs {
+    /// Whether the device reduced (the views were kept there) rather than the host.
+    on_device: bool,
     /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
     writer: Option<EmbeddingsWriter>,
     /// The mixture's sparse parts; with [`EncodeParams::mixture_keep`].
@@ -383,6 +455,7 @@ fn reduce_outputs(
         let (sparse, chunks) =
             aggregate::reduce_mixture_chunks(store, means, dim, p, keep, model_id)?;
         return Ok(ReducedOutputs {
+            on_device: false,
             writer: None,
             observed: sparse.gaussian_ids.len(),
             sparse: Some(sparse),
@@ -406,6 +479,7 @@ fn reduce_outputs(
         ),
     };
     Ok(ReducedOutputs {
+        on_device: false,
         observed: streamed.writer.len(),
         writer: Some(streamed.writer),
         sparse,

@@ -837,6 +837,22 @@ fn back_pool(g: usize) -> Option<rayon::ThreadPool> {
         .ok()
 }
 
+/// A spinner on stderr for one step of the encode's tail (`label`, right-aligned like the
+/// pool's bars, then `message`), ticking until it is finished; hidden unless `show`.
+pub(crate) fn tail_spinner(show: bool, label: &str, message: &str) -> ProgressBar {
+    if !show {
+        return ProgressBar::hidden();
+    }
+    let style = ProgressStyle::with_template("{prefix:>18} {spinner} {msg} {elapsed}")
+        .unwrap_or_else(|_| ProgressStyle::default_spinner());
+    let spinner = ProgressBar::new_spinner()
+        .with_style(style)
+        .with_prefix(label.to_string())
+        .with_message(message.to_string());
+    spinner.enable_steady_tick(std::time::Duration::from_millis(200));
+    spinner
+}
+
 fn bar(multi: &MultiProgress, len: usize, label: &str) -> ProgressBar {
     let style =
         ProgressStyle::with_template("{prefix:>18} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
