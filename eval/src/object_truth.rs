@@ -21,7 +21,9 @@
 //!   ([`crate::heldout_variants::variant_tables`]: the mixture's), and with segments every PF
 //!   variant per segmentation ([`crate::pf_variants::pf_tables`]), all on the same pixels.
 //! - **Segments.** Each segmentation's purity against the true classes and against the objects
-//!   (floor and walls one label each).
+//!   (floor and walls one label each), over every Gaussian and over the objects' Gaussians only
+//!   (each against its whole segment's majority, so an object that a floor segment swallows
+//!   counts as impure).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -89,6 +91,14 @@ pub struct SegmentsAgainstTruth {
     pub class_purity: crate::segment_quality::Purity,
     /// Purity against the objects (floor and walls one label each), over every Gaussian.
     pub object_purity: crate::segment_quality::Purity,
+    /// The objects' Gaussians only, each against its whole segment's majority class (floor and
+    /// walls vote, [`crate::segment_quality::purity_within`]): the share whose segment answers
+    /// their class under PF's majority. The figures over every Gaussian are dominated by the
+    /// floor and walls.
+    pub objects_class_purity: crate::segment_quality::Purity,
+    /// The same against the objects: the share of the objects' Gaussians in a segment their
+    /// own object dominates.
+    pub objects_object_purity: crate::segment_quality::Purity,
 }
 
 /// What `eval-objects --held-out` prints under `object_truth`.
@@ -417,13 +427,21 @@ fn segments_against_truth(
         };
         object_labels[r.gaussians[0]..r.gaussians[1]].fill(Some(label));
     }
+    let mut on_object = vec![false; truth.gaussians];
+    for r in truth.runs.iter().filter(|r| r.object.is_some()) {
+        on_object[r.gaussians[0]..r.gaussians[1]].fill(true);
+    }
+    use crate::segment_quality::{purity, purity_within};
     sets.iter()
         .map(|(p, s)| {
+            let seg = &s.segments;
             Ok(SegmentsAgainstTruth {
                 source: p.clone(),
                 segments: s.segment_count,
-                class_purity: crate::segment_quality::purity(&class_labels, &s.segments)?,
-                object_purity: crate::segment_quality::purity(&object_labels, &s.segments)?,
+                class_purity: purity(&class_labels, seg)?,
+                object_purity: purity(&object_labels, seg)?,
+                objects_class_purity: purity_within(&class_labels, seg, &on_object)?,
+                objects_object_purity: purity_within(&object_labels, seg, &on_object)?,
             })
         })
         .collect()

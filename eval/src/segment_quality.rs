@@ -170,6 +170,39 @@ pub fn purity(labels: &[Option<u32>], segments: &[u32]) -> Result<Purity> {
     })
 }
 
+/// Purity counted over the Gaussians with `counted[i]` only, each against the majority label of
+/// its **whole** segment (every labelled Gaussian of the segment votes, counted or not; ties to
+/// the smaller label). Over an object scene's object Gaussians this says how many of them sit in
+/// a segment that another label (the floor, a wall, a touching object) dominates, which
+/// [`purity`] over the objects' labels alone cannot see and which a purity over every Gaussian
+/// hides under the floor's and walls' share.
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn purity_within(labels: &[Option<u32>], segments: &[u32], counted: &[bool]) -> Result<Purity> {
+    same_length(labels.len(), segments.len(), "purity_within")?;
+    same_length(counted.len(), segments.len(), "purity_within (counted)")?;
+    let winner: HashMap<u32, u32> = segment_votes(labels, segments)
+        .iter()
+        .filter_map(|(&s, v)| majority(v).map(|(l, _)| (s, l)))
+        .collect();
+    let (mut n, mut kept) = (0usize, 0usize);
+    for ((l, s), _) in labels
+        .iter()
+        .zip(segments)
+        .zip(counted)
+        .filter(|(_, c)| **c)
+    {
+        if let Some(l) = l {
+            n += 1;
+            kept += usize::from(winner.get(s) == Some(l));
+        }
+    }
+    Ok(Purity {
+        purity: if n == 0 { 0.0 } else { kept as f64 / n as f64 },
+        counted: n,
+    })
+}
+
 /// Boundary recall of `segments` against `labels` (module doc).
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct BoundaryRecall {
@@ -259,6 +292,27 @@ mod tests {
         // Singletons are pure.
         assert_eq!(purity(&labels, &[0, 1, 2, 3, 4, 5]).unwrap().purity, 1.0);
         assert!(purity(&labels, &segments[1..]).is_err());
+    }
+
+    #[test]
+    fn purity_within_counts_some_against_the_whole_segments_majority() {
+        // Segment 0: an object of 2 (label 1) inside a floor of 3 (label 9); segment 1: an
+        // object of 2 (label 2) with one floor Gaussian.
+        let labels: Vec<Option<u32>> = [1, 1, 9, 9, 9, 2, 2, 9].map(Some).to_vec();
+        let segments = [0, 0, 0, 0, 0, 1, 1, 1];
+        let objects = [true, true, false, false, false, true, true, false];
+        let p = purity_within(&labels, &segments, &objects).unwrap();
+        // The first object is swallowed by the floor, the second holds its segment.
+        assert_eq!(p.counted, 4);
+        assert!((p.purity - 0.5).abs() < 1e-12);
+        // Over the objects' labels alone both would look pure.
+        let only: Vec<Option<u32>> = labels
+            .iter()
+            .zip(&objects)
+            .map(|(l, o)| if *o { *l } else { None })
+            .collect();
+        assert_eq!(purity(&only, &segments).unwrap().purity, 1.0);
+        assert!(purity_within(&labels, &segments, &objects[1..]).is_err());
     }
 
     #[test]

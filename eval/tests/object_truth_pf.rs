@@ -52,7 +52,7 @@ fn prediction_filtering_helps_on_object_truth() {
     std::fs::create_dir_all(dir.path().join("geo")).expect("segments folder");
     geometric.write(&geo).expect("write segments");
     let r = run_object_truth(&ObjectTruthConfig {
-        scene,
+        scene: scene.clone(),
         embeddings: out.join("embeddings.safetensors"),
         color_clip: clip,
         segments: vec![geo],
@@ -87,6 +87,25 @@ fn prediction_filtering_helps_on_object_truth() {
     // The segments follow the objects better than the texture does.
     let s = &r.segments[0];
     assert!(s.object_purity.purity > 0.9, "{:?}", s.object_purity);
+    // The objects' Gaussians alone, each against its whole segment: every one counted, and
+    // most in a segment their object dominates.
+    let truth = slag_encoder::object_scene::GaussianTruth::read(&scene).expect("truth");
+    let on_objects: usize = truth
+        .runs
+        .iter()
+        .filter(|r| r.object.is_some())
+        .map(|r| r.gaussians[1] - r.gaussians[0])
+        .sum();
+    eprintln!(
+        "segments over the objects' Gaussians: object purity {:.4}, class purity {:.4}",
+        s.objects_object_purity.purity, s.objects_class_purity.purity
+    );
+    assert_eq!(s.objects_object_purity.counted, on_objects);
+    assert!(
+        s.objects_object_purity.purity > 0.5,
+        "{:?}",
+        s.objects_object_purity
+    );
     // PF helps, per pixel and per Gaussian.
     assert!(
         pixel("pf-majority") >= no_pf + 0.02,

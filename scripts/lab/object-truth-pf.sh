@@ -63,7 +63,9 @@ for level in ["default", "heavy"]:
             print(f"| `{k}` | {f(k,'pixel')} | {f(k,'gaussian')} | {f(g,'pixel') if k in pf else '–'} | {f(g,'gaussian') if k in pf else '–'} |")
         for s in t["segments"]:
             print(f"\nsegments {s['source'].split('/')[-1]}: {s['segments']} segments, class purity "
-                  f"{s['class_purity']['purity']:.4f}, object purity {s['object_purity']['purity']:.4f}")
+                  f"{s['class_purity']['purity']:.4f}, object purity {s['object_purity']['purity']:.4f}; "
+                  f"over the objects' Gaussians: class {s['objects_class_purity']['purity']:.4f}, "
+                  f"object {s['objects_object_purity']['purity']:.4f}")
         for run in e["runs"]:
             sc = run["score"]
             print(f"\nobjects, smooth {run['smooth']}: AP50 {sc['ap50']:.4f}, box AP50 "
