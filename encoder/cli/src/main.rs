@@ -157,14 +157,5 @@ fn main() -> std::process::ExitCode {
         Command::SynthScene(a) => synthetic::run(a).and_then(|o| print_json(&o)),
         Command::Segment(a) => segment::run(a).and_then(|o| print_json(&o)),
     };
-    match result {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
-            if let Some(h) = hints::hint(&e) {
-                eprintln!("hint: {h}");
-            }
-            std::process::ExitCode::FAILURE
-        }
-    }
+    slag_shards::cli::exit_code(result, hints::hint)
 }

@@ -813,6 +813,25 @@ fn warn_if_readable(path: &std::path::Path) {
     }
 }
 
+/// The process's exit status for a subcommand's `result`: success, or failure after printing
+/// the error with its causes and, where `hint` has one for it, a hint (both on stderr). Shared by
+/// `slag-shards` and `slag-encoder`, each with its own hints.
+pub fn exit_code(
+    result: anyhow::Result<()>,
+    hint: impl Fn(&anyhow::Error) -> Option<String>,
+) -> std::process::ExitCode {
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
+            if let Some(h) = hint(&e) {
+                eprintln!("hint: {h}");
+            }
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
 /// What the command line adds to an error of the shard stage (`e` or an error it wraps): the
 /// flag that sets the parameter the library names ([`slag_common::Error::Param`]) or lowers the
 /// need ([`slag_common::Error::Limit`]). The library's messages name no flag.

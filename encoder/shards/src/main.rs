@@ -41,14 +41,5 @@ fn main() -> std::process::ExitCode {
         Command::Export(a) => cli::run_export(a),
         Command::Keygen(a) => cli::run_keygen(a),
     };
-    match result {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
-            if let Some(h) = cli::hint(&e) {
-                eprintln!("hint: {h}");
-            }
-            std::process::ExitCode::FAILURE
-        }
-    }
+    cli::exit_code(result, cli::hint)
 }

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use slag_common::mixture::MixtureEmbeddings;
 use slag_common::shards::signature::sha256_hex;
 use slag_common::shards::{
-    Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
+    DisplaySlices, Dtype, GaussianSource, GroundFrame, MANIFEST_FORMAT, MANIFEST_VERSION,
     MIXTURE_MANIFEST_VERSION, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
     Manifest, MixtureInfo, MixtureLayout, MixtureShardInput, SEGMENTS_SHARD_FORMAT_VERSION,
     SHARD_FORMAT_VERSION, SceneToMap, ShardInput, ShardLayout, TileInfo, encode_codebook,
@@ -288,6 +288,16 @@ struct TileColumns {
 }
 
 impl TileColumns {
+    /// The display sections, borrowed for a shard input.
+    fn display(&self) -> DisplaySlices<'_> {
+        DisplaySlices {
+            scales: self.display.as_ref().map(|d| d.0.as_slice()),
+            opacities: self.display.as_ref().map(|d| d.1.as_slice()),
+            rotations: self.rotations.as_deref(),
+            sh_dc: self.sh_dc.as_deref(),
+        }
+    }
+
     fn info(&self, plan: &TilePlan, bytes: &[u8]) -> TileInfo {
         TileInfo {
             id: plan.id,
@@ -366,7 +376,7 @@ pub fn encode_tile(
         src.vector_into(*row as usize, out);
     }
     let c = tile_columns(src, plan);
-    let bytes = encode_shard(&ShardInput {
+    let input = ShardInput {
         scene_id,
         model: src.model(),
         tile_id: plan.id,
@@ -375,12 +385,9 @@ pub fn encode_tile(
         ids: &c.ids,
         means: &c.means,
         vectors: &vectors,
-        scales: c.display.as_ref().map(|d| d.0.as_slice()),
-        opacities: c.display.as_ref().map(|d| d.1.as_slice()),
-        rotations: c.rotations.as_deref(),
-        sh_dc: c.sh_dc.as_deref(),
-        segments: c.segments.as_deref(),
-    })?;
+        ..Default::default()
+    };
+    let bytes = encode_shard(&input.with_display(c.display(), c.segments.as_deref()))?;
     Ok((c.info(plan, &bytes), bytes))
 }
 
@@ -404,7 +411,7 @@ pub fn encode_mixture_tile(
         weights.extend_from_slice(&mix.weights[slots]);
     }
     let c = tile_columns(src, plan);
-    let bytes = encode_mixture_shard(&MixtureShardInput {
+    let input = MixtureShardInput {
         scene_id,
         model: src.model(),
         tile_id: plan.id,
@@ -415,12 +422,9 @@ pub fn encode_mixture_tile(
         means: &c.means,
         atoms: &atoms,
         weights: &weights,
-        scales: c.display.as_ref().map(|d| d.0.as_slice()),
-        opacities: c.display.as_ref().map(|d| d.1.as_slice()),
-        rotations: c.rotations.as_deref(),
-        sh_dc: c.sh_dc.as_deref(),
-        segments: c.segments.as_deref(),
-    })?;
+        ..Default::default()
+    };
+    let bytes = encode_mixture_shard(&input.with_display(c.display(), c.segments.as_deref()))?;
     Ok((c.info(plan, &bytes), bytes))
 }
 

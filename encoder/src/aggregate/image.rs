@@ -644,26 +644,39 @@ mod expand_tests {
         Mask::from_pixels(w, h, pixels).expect("non-empty box")
     }
 
-    /// A [`box_mask`] of `w × h` at a random corner `(x0, y0)` with `x0 < at[0]`, `y0 < at[1]`,
-    /// of random size `(min + r % span[0], min + r % span[1])`.
-    fn random_box(state: &mut u64, w: u32, h: u32, at: [u64; 2], min: u32, span: [u64; 2]) -> Mask {
-        let (x0, y0) = ((next(state) % at[0]) as u32, (next(state) % at[1]) as u32);
-        let (mw, mh) = (
-            min + (next(state) % span[0]) as u32,
-            min + (next(state) % span[1]) as u32,
-        );
-        box_mask(w, h, [x0, y0, mw, mh])
+    /// `count` [`box_mask`]s of `w × h` drawn from the generator seeded with `seed`, each at a
+    /// random corner `(x0, y0)` with `x0 < at[0]`, `y0 < at[1]`, of random size
+    /// `(min + r % span[0], min + r % span[1])`.
+    fn random_boxes(
+        seed: u64,
+        count: usize,
+        [w, h]: [u32; 2],
+        at: [u64; 2],
+        min: u32,
+        span: [u64; 2],
+    ) -> Vec<Mask> {
+        let mut state = seed;
+        (0..count)
+            .map(|_| {
+                let (x0, y0) = (
+                    (next(&mut state) % at[0]) as u32,
+                    (next(&mut state) % at[1]) as u32,
+                );
+                let (mw, mh) = (
+                    min + (next(&mut state) % span[0]) as u32,
+                    min + (next(&mut state) % span[1]) as u32,
+                );
+                box_mask(w, h, [x0, y0, mw, mh])
+            })
+            .collect()
     }
 
     /// Pixel labels against a sequential reference at the masks' own size (each pixel's set is
     /// the masks covering it; labels numbered by row-major first appearance).
     #[test]
     fn pixel_labels_number_sets_in_row_major_order_of_first_appearance() {
-        let mut state = 0x0dd5_eed5_1234_5678u64;
         let (w, h) = (37u32, 301u32);
-        let masks: Vec<Mask> = (0..70)
-            .map(|_| random_box(&mut state, w, h, [30, 290], 1, [12, 60]))
-            .collect();
+        let masks = random_boxes(0x0dd5_eed5_1234_5678, 70, [w, h], [30, 290], 1, [12, 60]);
         let mut ids: std::collections::HashMap<Vec<u32>, u32> = Default::default();
         let mut masks_of = vec![Vec::new()];
         let labels: Vec<u32> = (0..(w * h) as usize)
@@ -688,11 +701,8 @@ mod expand_tests {
     /// set, and under the finest rule there is one label per mask that owns a pixel.
     #[test]
     fn merged_labels_keep_each_pixels_masks_and_number_the_distinct_sets() {
-        let mut state = 0x51ed_270b_c0ff_ee11u64;
         let (w, h) = (64u32, 48u32);
-        let masks: Vec<Mask> = (0..30)
-            .map(|_| random_box(&mut state, w, h, [56, 40], 2, [30, 30]))
-            .collect();
+        let masks = random_boxes(0x51ed_270b_c0ff_ee11, 30, [w, h], [56, 40], 2, [30, 30]);
         for overlap in [MaskOverlap::All, MaskOverlap::Finest] {
             let labels = overlap_labels(&masks, w, h, overlap);
             let merged = labels.clone().merged();

@@ -163,7 +163,7 @@ pub fn reduce_to_writer_with_mixture(
     let mut gather_s = 0.0;
     let per_gaussian = Gather::per_gaussian(dim, keep);
     let streamed = stream_to_writer(
-        Pass::streamed(store, n_gaussians, dim, params, per_gaussian),
+        Pass::new(store, n_gaussians, dim, params, per_gaussian).streamed(),
         params.min_total_weight,
         means,
         writer,

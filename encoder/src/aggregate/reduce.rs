@@ -105,7 +105,7 @@ pub fn reduce_each(
     mut sink: impl FnMut(Vec<Reduced>) -> Result<()>,
 ) -> Result<usize> {
     accumulate(
-        Pass::streamed(store, n_gaussians, dim, params, (dim + 1) * 8),
+        Pass::new(store, n_gaussians, dim, params, (dim + 1) * 8).streamed(),
         |_, _, _| Ok(0),
         |_: &mut (), _, _| {},
         |sums| sums.reduced(params.min_total_weight),
@@ -155,7 +155,7 @@ pub fn reduce_to_writer(
     writer: EmbeddingsWriter,
 ) -> Result<Streamed> {
     stream_to_writer(
-        Pass::streamed(store, means.len(), dim, params, (dim + 1) * 8),
+        Pass::new(store, means.len(), dim, params, (dim + 1) * 8).streamed(),
         params.min_total_weight,
         means,
         writer,
@@ -330,23 +330,16 @@ impl<'a> Pass<'a> {
         }
     }
 
-    /// [`Pass::new`] for a pass whose output is streamed chunk by chunk ([`reduce_each`],
+    /// This pass ([`Pass::new`]) for output streamed chunk by chunk ([`reduce_each`],
     /// [`reduce_to_writer`]): on the block-major path (no spilled contribution, not
     /// [`ReduceParams::image_major`]) there is no chunk-wide accumulator, so the chunk is sized by
     /// its output instead, at most [`output_chunk_rows`] Gaussians: a chunk's rows are what a
     /// sink holds while the next chunks are accumulated (the streamed tail holds up to three).
-    pub(super) fn streamed(
-        store: &'a ContributionStore,
-        n_gaussians: usize,
-        dim: usize,
-        params: ReduceParams,
-        per_gaussian: usize,
-    ) -> Self {
-        let mut pass = Self::new(store, n_gaussians, dim, params, per_gaussian);
-        if store.spilled() == 0 && !params.image_major {
-            pass.chunk = pass.chunk.min(output_chunk_rows(dim));
+    pub(super) fn streamed(mut self) -> Self {
+        if self.store.spilled() == 0 && !self.image_major {
+            self.chunk = self.chunk.min(output_chunk_rows(self.dim));
         }
-        pass
+        self
     }
 }
 

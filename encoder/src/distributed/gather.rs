@@ -41,6 +41,12 @@ impl Gathered {
     }
 }
 
+/// Whether the sorted `numbers` are exactly `0..peers`, each once (every partition or worker
+/// reported).
+fn numbers_each_once(numbers: impl ExactSizeIterator<Item = u32>, peers: usize) -> bool {
+    numbers.len() == peers && numbers.enumerate().all(|(i, n)| n as usize == i)
+}
+
 /// What a worker hands back to its process's main thread.
 pub(super) struct WorkerOutcome {
     /// Process 0 only: the assembled output and the run's counts.
@@ -61,18 +67,8 @@ impl Gathered {
         }
         self.parts.sort_by_key(|s| s.partition);
         self.stats.sort_by_key(|s| s.worker);
-        let parts_ok = self.parts.len() == peers
-            && self
-                .parts
-                .iter()
-                .enumerate()
-                .all(|(i, s)| s.partition as usize == i);
-        let stats_ok = self.stats.len() == peers
-            && self
-                .stats
-                .iter()
-                .enumerate()
-                .all(|(i, s)| s.worker as usize == i);
+        let parts_ok = numbers_each_once(self.parts.iter().map(|s| s.partition), peers);
+        let stats_ok = numbers_each_once(self.stats.iter().map(|s| s.worker), peers);
         if !parts_ok || !stats_ok {
             return Err(Error::internal(format!(
                 "incomplete job: {} of {peers} partition summaries and {} of {peers} worker \

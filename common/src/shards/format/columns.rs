@@ -91,6 +91,17 @@ macro_rules! shard_input {
         }
 
         impl<$a> $name<$a> {
+            /// This input with the optional display sections of `display` and the segment ids
+            /// `segments` (each `[N]` when present), the other fields kept.
+            pub fn with_display(
+                self,
+                display: $crate::shards::DisplaySlices<$a>,
+                segments: Option<&$a [u32]>,
+            ) -> Self {
+                let $crate::shards::DisplaySlices { scales, opacities, rotations, sh_dc } = display;
+                Self { scales, opacities, rotations, sh_dc, segments, ..self }
+            }
+
             /// The columns every shard shares, for the encoder named `what` (in messages).
             pub(in crate::shards) fn columns(
                 &self,

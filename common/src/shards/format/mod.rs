@@ -524,17 +524,31 @@ impl ShardLayout {
     /// Largest N (≤ `u32::MAX`, the format's count field) whose shard fits in `max_bytes`
     /// ([`ShardLayout::shard_len`]`(N) ≤ max_bytes`); 0 when not even one Gaussian fits.
     pub fn max_rows_within(&self, max_bytes: u64) -> u64 {
-        let (h, row) = (self.header_len(), self.bytes_per_row().max(1));
-        if max_bytes < self.shard_len(1) {
-            return 0;
-        }
-        // shard_len(n) ≤ h + n·row + 3, and row ≥ 16 > 3: at most one step down is needed.
-        let mut n = ((max_bytes - h) / row).min(u32::MAX as u64);
-        while n > 0 && self.shard_len(n) > max_bytes {
-            n -= 1;
-        }
-        n
+        rows_within(self.header_len(), self.bytes_per_row(), max_bytes, |n| {
+            self.shard_len(n)
+        })
     }
+}
+
+/// Largest N (≤ `u32::MAX`) with `shard_len(N) ≤ max_bytes`, for a layout of `header` header
+/// bytes and `row` payload bytes per Gaussian (`shard_len(n)` ≤ `header + n·row + 3`, the
+/// padding); 0 when not even one Gaussian fits. Shared by dense and mixture layouts.
+pub(super) fn rows_within(
+    header: u64,
+    row: u64,
+    max_bytes: u64,
+    shard_len: impl Fn(u64) -> u64,
+) -> u64 {
+    let row = row.max(1);
+    if max_bytes < shard_len(1) {
+        return 0;
+    }
+    // shard_len(n) ≤ header + n·row + 3, and row ≥ 16 > 3: at most one step down is needed.
+    let mut n = ((max_bytes - header) / row).min(u32::MAX as u64);
+    while n > 0 && shard_len(n) > max_bytes {
+        n -= 1;
+    }
+    n
 }
 
 /// CRC-32 (IEEE) of a whole encoded shard: the checksum the manifest lists and the HTTP `ETag`.

@@ -33,7 +33,7 @@ use super::format::{
     Dtype, F16_MAX, MIXTURE_SEGMENTS_SHARD_FORMAT_VERSION, MIXTURE_SHARD_FORMAT_VERSION,
     RowSection, ShardError, ShardHeader, ShardInput, ShardLayout, decode_shard_stored,
     decoded_shard, encode_shard, header_len_for, parse_header, payload_with_rows, put_le,
-    read_f16s, read_payload, read_u32s, shard_input,
+    read_f16s, read_payload, read_u32s, rows_within, shard_input,
 };
 use crate::Error;
 
@@ -239,15 +239,9 @@ impl MixtureLayout {
 
     /// Largest N (≤ `u32::MAX`) whose shard fits in `max_bytes`; 0 when not even one fits.
     pub fn max_rows_within(&self, max_bytes: u64) -> u64 {
-        let (h, row) = (self.header_len(), self.bytes_per_row().max(1));
-        if max_bytes < self.shard_len(1) {
-            return 0;
-        }
-        let mut n = ((max_bytes - h) / row).min(u32::MAX as u64);
-        while n > 0 && self.shard_len(n) > max_bytes {
-            n -= 1;
-        }
-        n
+        rows_within(self.header_len(), self.bytes_per_row(), max_bytes, |n| {
+            self.shard_len(n)
+        })
     }
 }
 

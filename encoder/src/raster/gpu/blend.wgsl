@@ -1,25 +1,13 @@
-// `blend` (gpu/count_scan.rs, write.rs): one 16x16 workgroup per tile. `blend_sums`
-// (label_sums.wgsl) shares its workgroup splat arrays.
-var<workgroup> sh_xy_opac: array<vec4<f32>, 256>;
-var<workgroup> sh_axes: array<vec4<f32>, 256>;
-var<workgroup> sh_id: array<u32, 256>;
-var<workgroup> sh_range: vec2<u32>;
-var<workgroup> done_count: atomic<u32>;
-var<workgroup> done_snapshot: u32;
+// `blend` (gpu/count_scan.rs, write.rs): one 16x16 workgroup per tile; its workgroup splat
+// arrays, shared with `blend_sums` (label_sums.wgsl), are declared in common.wgsl.
 
 @compute @workgroup_size(16, 16)
-fn blend(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_id) lid3: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let tp = tile_pixel(wid, lid3);
+fn blend(t: TileThread) {
+    let tp = tile_pixel(t);
+    let lid = t.lid;
     let pix = tp.py * params.width + tp.px;
     let write = params.mode == 1u;
-    if (lid == 0u) {
-        sh_range = tile_ranges[tp.tile];
-        atomicStore(&done_count, 0u);
-    }
+    tile_begin(tp, lid);
     let range = workgroupUniformLoad(&sh_range);
     var out = 0u;
     var out_end = 0u;

@@ -82,8 +82,24 @@ const SCAN_BLOCK: u32 = 1024u;
 
 // The blend loops' shared steps (`blend`, `blend_sums`).
 
-// The pixel of thread `lid3` in the tile of workgroup `wid` (tile rows from params.tile_y0: the
-// dispatch's band).
+// One workgroup's batch of splats (positions and opacities, axes, Gaussian ids), the tile's
+// range of sorted intersections, and how many of its pixels have stopped.
+var<workgroup> sh_xy_opac: array<vec4<f32>, 256>;
+var<workgroup> sh_axes: array<vec4<f32>, 256>;
+var<workgroup> sh_id: array<u32, 256>;
+var<workgroup> sh_range: vec2<u32>;
+var<workgroup> done_count: atomic<u32>;
+var<workgroup> done_snapshot: u32;
+
+// A thread of a tile's 16x16 workgroup: the blend entry points' built-in ids.
+struct TileThread {
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_id) lid3: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+}
+
+// The pixel of thread `t.lid3` in the tile of workgroup `t.wid` (tile rows from params.tile_y0:
+// the dispatch's band).
 struct TilePixel {
     tile: u32,
     px: u32,
@@ -91,11 +107,20 @@ struct TilePixel {
     inside: bool, // within the raster (edge tiles reach past it)
 }
 
-fn tile_pixel(wid: vec3<u32>, lid3: vec3<u32>) -> TilePixel {
-    let ty = wid.y + params.tile_y0;
-    let px = wid.x * TILE + lid3.x;
-    let py = ty * TILE + lid3.y;
-    return TilePixel(ty * params.tiles_x + wid.x, px, py, px < params.width && py < params.height);
+fn tile_pixel(t: TileThread) -> TilePixel {
+    let ty = t.wid.y + params.tile_y0;
+    let px = t.wid.x * TILE + t.lid3.x;
+    let py = ty * TILE + t.lid3.y;
+    return TilePixel(ty * params.tiles_x + t.wid.x, px, py, px < params.width && py < params.height);
+}
+
+// Thread 0 of the tile reads the tile's range into sh_range and resets done_count (seen by the
+// other threads after the next barrier).
+fn tile_begin(tp: TilePixel, lid: u32) {
+    if (lid == 0u) {
+        sh_range = tile_ranges[tp.tile];
+        atomicStore(&done_count, 0u);
+    }
 }
 
 // Whether every pixel of the tile has stopped, read at the top of a batch (uniform across the

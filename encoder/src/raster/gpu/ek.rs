@@ -261,9 +261,11 @@ impl GpuRasterizer {
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(x, y, 1);
             if let Some(tables) = &tables {
+                // `order` (2) is bound for the record reader `dominant` shares with ek_reduce;
+                // `dominant` reads the records unsorted, never `order`.
                 let bg = self.bind(
                     &kept.dominant,
-                    &[(0, &params), (1, &records), (4, tables), (7, &dom)],
+                    &[(0, &params), (1, &records), (2, &starts_buf), (4, tables), (7, &dom)],
                 );
                 pass.set_pipeline(&kept.dominant);
                 pass.set_bind_group(0, &bg, &[]);

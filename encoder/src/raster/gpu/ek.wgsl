@@ -125,12 +125,21 @@ fn label_masks(base: u32, label: u32) -> vec2<u32> {
     return vec2<u32>(base + tables[off + label], base + tables[off + label + 1u]);
 }
 
-// The smallest mask above `after` (all masks when `first`) among the labels of sorted records
-// [p, q) of one view, or UNUSED.
-fn next_mask(p: u32, q: u32, base: u32, after: u32, first: bool) -> u32 {
+// Record i: at sorted position i of the tile (`sorted`, ek_reduce), else recs[i] (one view's
+// records, `dominant`).
+fn record_at(i: u32, sorted: bool) -> vec4<u32> {
+    if (sorted) {
+        return rec_at(i);
+    }
+    return recs[i];
+}
+
+// The smallest mask above `after` (all masks when `first`) among the labels of records [p, q)
+// (as record_at reads them) of one view, or UNUSED.
+fn next_mask(p: u32, q: u32, base: u32, after: u32, first: bool, sorted: bool) -> u32 {
     var best = UNUSED;
     for (var i = p; i < q; i++) {
-        let m = label_masks(base, rec_at(i).y);
+        let m = label_masks(base, record_at(i, sorted).y);
         for (var t = m.x; t < m.y; t++) {
             let j = tables[t];
             if ((first || j > after) && j < best) {
@@ -141,11 +150,12 @@ fn next_mask(p: u32, q: u32, base: u32, after: u32, first: bool) -> u32 {
     return best;
 }
 
-// Σ, in record order, of the sums of the records of [p, q) whose label holds mask j (f64).
-fn mask_sum(p: u32, q: u32, base: u32, j: u32) -> f64 {
+// Σ, in record order, of the sums of the records of [p, q) (as record_at reads them) whose label
+// holds mask j (f64).
+fn mask_sum(p: u32, q: u32, base: u32, j: u32, sorted: bool) -> f64 {
     var a = 0.0lf;
     for (var i = p; i < q; i++) {
-        let rec = rec_at(i);
+        let rec = record_at(i, sorted);
         let m = label_masks(base, rec.y);
         for (var t = m.x; t < m.y; t++) {
             if (tables[t] == j) {
@@ -195,9 +205,9 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
                 q++;
             }
             let base = seg.z;
-            var j = next_mask(p, q, base, 0u, true);
+            var j = next_mask(p, q, base, 0u, true, true);
             while (j != UNUSED) {
-                let a64 = mask_sum(p, q, base, j);
+                let a64 = mask_sum(p, q, base, j, true);
                 if (a64 > 0.0lf) {
                     let a = f32(a64) * mask_factor(base, j);
                     let atom = seg.w + j;
@@ -231,7 +241,7 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
                         }
                     }
                 }
-                j = next_mask(p, q, base, j, false);
+                j = next_mask(p, q, base, j, false, true);
             }
             p = q;
         }
@@ -280,34 +290,6 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
 // a_kj as ek_reduce makes it (ties: the smaller mask), as (Gaussian, mask, a bits) at its own
 // index; every other record writes (UNUSED, 0, 0). Output in `kept` (as vec2 pairs: 2 per
 // record, (Gaussian, mask) then (a bits, 0)).
-fn view_next_mask(p: u32, q: u32, base: u32, after: u32, first: bool) -> u32 {
-    var best = UNUSED;
-    for (var i = p; i < q; i++) {
-        let m = label_masks(base, recs[i].y);
-        for (var t = m.x; t < m.y; t++) {
-            let j = tables[t];
-            if ((first || j > after) && j < best) {
-                best = j;
-            }
-        }
-    }
-    return best;
-}
-
-fn view_mask_sum(p: u32, q: u32, base: u32, j: u32) -> f64 {
-    var a = 0.0lf;
-    for (var i = p; i < q; i++) {
-        let rec = recs[i];
-        let m = label_masks(base, rec.y);
-        for (var t = m.x; t < m.y; t++) {
-            if (tables[t] == j) {
-                a += record_weight(rec);
-            }
-        }
-    }
-    return a;
-}
-
 @compute @workgroup_size(256)
 fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let r = flat_group(wid) * 256u + lid;
@@ -327,9 +309,9 @@ fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_ind
     let base = ep.pad0;
     var best_j = UNUSED;
     var best_a = 0.0;
-    var j = view_next_mask(r, end, base, 0u, true);
+    var j = next_mask(r, end, base, 0u, true, false);
     while (j != UNUSED) {
-        let a64 = view_mask_sum(r, end, base, j);
+        let a64 = mask_sum(r, end, base, j, false);
         if (a64 > 0.0lf) {
             let a = f32(a64) * mask_factor(base, j);
             if (best_j == UNUSED || a > best_a) {
@@ -337,7 +319,7 @@ fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_ind
                 best_a = a;
             }
         }
-        j = view_next_mask(r, end, base, j, false);
+        j = next_mask(r, end, base, j, false, false);
     }
     if (best_j != UNUSED) {
         kept[2u * r] = vec2<u32>(k, best_j);

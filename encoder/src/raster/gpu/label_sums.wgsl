@@ -30,20 +30,16 @@ var<workgroup> sh_n_labels: atomic<u32>;
 var<workgroup> sh_n_labels_u: u32;
 
 @compute @workgroup_size(16, 16)
-fn blend_sums(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_id) lid3: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let tp = tile_pixel(wid, lid3);
+fn blend_sums(t: TileThread) {
+    let tp = tile_pixel(t);
+    let lid = t.lid;
     var label = 0u;
     if (tp.inside) {
         label = labels[tp.py * params.width + tp.px];
     }
     sh_pix_label[lid] = label;
+    tile_begin(tp, lid);
     if (lid == 0u) {
-        sh_range = tile_ranges[tp.tile];
-        atomicStore(&done_count, 0u);
         atomicStore(&sh_n_labels, 0u);
     }
     workgroupBarrier();

@@ -66,7 +66,8 @@
 //! `write` (step 3b, the banded write mode of `blend.wgsl`), `label_sums` (step 3', the
 //! `blend_sums` kernel of `label_sums.wgsl`), `buffers` (storage, readback, noise fill). `common.wgsl`
 //! holds `Params` (mirrored by [`Params`] here, its size checked at compile time), the splat
-//! layout, constants and bindings; the shader module is the files joined in that order.
+//! layout, constants and bindings, and the two blend kernels' workgroup arrays and shared
+//! steps; the shader module is the files joined in that order.
 
 use std::path::Path;
 use std::sync::Arc;

@@ -26,6 +26,11 @@ fn flat_index(wid: vec3<u32>, lid: u32) -> u32 {
     return (wid.y * params.groups_x + wid.x) * 256u + lid;
 }
 
+// Whether sorted key i starts a run of equal keys.
+fn run_head(i: u32) -> bool {
+    return i == 0u || any(keys_in[i - 1u] != keys_in[i]);
+}
+
 @compute @workgroup_size(256)
 fn record_keys(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let r = flat_index(wid, lid);
@@ -43,8 +48,7 @@ fn record_heads(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation
     if (i >= params.n_keys) {
         return;
     }
-    let k = keys_in[i];
-    offsets[i] = select(0u, 1u, i == 0u || any(keys_in[i - 1u] != k));
+    offsets[i] = select(0u, 1u, run_head(i));
 }
 
 @compute @workgroup_size(256)
@@ -53,10 +57,10 @@ fn record_sums(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_
     if (i >= params.n_keys) {
         return;
     }
-    let k = keys_in[i];
-    if (i > 0u && all(keys_in[i - 1u] == k)) {
+    if (!run_head(i)) {
         return; // not the first record of its key
     }
+    let k = keys_in[i];
     var lo = 0u;
     var hi = 0u;
     var j = i;
