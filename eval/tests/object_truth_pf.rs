@@ -80,6 +80,11 @@ fn prediction_filtering_helps_on_object_truth() {
         three_d("pf-majority"),
         pixel("pf-mean")
     );
+    eprintln!(
+        "pf-weighted {:.4} (3D {:.4})",
+        pixel("pf-weighted"),
+        three_d("pf-weighted")
+    );
     assert!(
         no_pf > pixel("majority"),
         "slag at or below the majority class"
@@ -113,4 +118,10 @@ fn prediction_filtering_helps_on_object_truth() {
         pixel("pf-majority")
     );
     assert!(three_d("pf-majority") >= three_d("slag") + 0.02);
+    // So does the vote weighted by how much the views saw each Gaussian (Σ_j a_kj).
+    assert!(
+        pixel("pf-weighted") >= no_pf + 0.02,
+        "pf-weighted {} vs {no_pf}",
+        pixel("pf-weighted")
+    );
 }
