@@ -103,6 +103,12 @@ print(f"--reduce {mode}: process wall {wall} s, device_reduce {c.get('device_red
       f"peak RSS {int(rss.group(1)) / 2**20 if rss else -1:.2f} GiB, peak GPU {peak} MiB, "
       f"observed {c['observed']}, chunks {c['reduce_chunks']}")
 print("  " + ", ".join(f"{k} {t[k]:.2f}" for k in keys))
+seg = r.get("segments")
+if seg:
+    st = seg["stats"]
+    print(f"  segments {st['segments']} in {st['seconds']:.2f} s on {seg['threads']} threads "
+          f"(widened to {seg['widened_to']}), waited {seg['waited_s']:.2f} s; stages "
+          + ", ".join(f"{k} {v:.2f}" for k, v in st["stages"].items() if isinstance(v, (int, float))))
 for line in open(log):
     if "segments written" in line or "error" in line.lower():
         print("  " + line.strip()[-300:])
