@@ -424,6 +424,18 @@ fn listed(path: &Path) -> Vec<String> {
 }
 
 impl Tally {
+    /// Counts the stop `at` boundary `name` (`at`: which run, where) of the store at `dir`: the
+    /// generation a restart serves ([`restart_and_compare`]); then one fetch repairs it
+    /// ([`repair`]).
+    async fn check_stop(&mut self, s: &Scenario, dir: &Path, at: &str, name: String) {
+        let at = format!("{at} ({name})");
+        let g = compare_blocking(&s.refs, dir, &at).await;
+        *self.served.entry(g).or_default() += 1;
+        self.names.insert(name);
+        self.points += 1;
+        repair(s, dir, &at).await;
+    }
+
     /// Panics unless every boundary of `names` was stopped at.
     fn assert_reached(&self, names: &[&str], listed: &[String]) {
         for must in names {
@@ -483,12 +495,7 @@ async fn enumerate_fetch(s: &Scenario, what: &str, only: &[&str]) -> (Tally, Vec
             listed[n - 1],
             "n={n}: the runs pass the boundaries in another order"
         );
-        let at = format!("{what} stopped at {n} ({name})");
-        let g = compare_blocking(&s.refs, &dir, &at).await;
-        *tally.served.entry(g).or_default() += 1;
-        tally.names.insert(name);
-        tally.points += 1;
-        repair(s, &dir, &at).await;
+        tally.check_stop(s, &dir, &format!("{what} stopped at {n}"), name).await;
     }
     // Both sides of the commit were reached: before it the old state is served, after it B.
     assert!(
@@ -500,12 +507,21 @@ async fn enumerate_fetch(s: &Scenario, what: &str, only: &[&str]) -> (Tally, Vec
     (tally, listed)
 }
 
+/// Stops a fetch of B at every boundary of `s` ([`enumerate_fetch`]), reports as `label` and
+/// panics unless every one of `reached` was stopped at.
+async fn enumerate_all(s: &Scenario, what: &str, label: &str, reached: &[&str]) {
+    let (tally, listed) = enumerate_fetch(s, what, &[]).await;
+    tally.report(label, &listed);
+    tally.assert_reached(reached, &listed);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs() {
     let s = Scenario::new(Form::Dense(8), Start::HoldingA).await;
-    let (tally, listed) = enumerate_fetch(&s, "fetch", &[]).await;
-    tally.report("slag-edge fetch", &listed);
-    tally.assert_reached(
+    enumerate_all(
+        &s,
+        "fetch",
+        "slag-edge fetch",
         &[
             "fetch.partial:write",
             "fetch.partial:fsync",
@@ -517,8 +533,8 @@ async fn a_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_repairs()
             "store.clean_partials:remove_partial",
             "store.clean_partials:remove_tmp",
         ],
-        &listed,
-    );
+    )
+    .await;
     // The check is not vacuous: a committed generation missing one file, or holding one with a
     // flipped byte, is incomplete and the check names the tile.
     let dir = s.copy("control");
@@ -631,12 +647,7 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         assert_eq!(answered, None, "n={n}: the server answered: {err}");
         assert_eq!(status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
         let name = stopped_at(&err).unwrap_or_else(|| panic!("n={n}: {err}"));
-        let at = format!("serve stopped at {n} ({name})");
-        let g = compare_blocking(&s.refs, &dir, &at).await;
-        *tally.served.entry(g).or_default() += 1;
-        tally.names.insert(name);
-        tally.points += 1;
-        repair(&s, &dir, &at).await;
+        tally.check_stop(&s, &dir, &format!("serve stopped at {n}"), name).await;
     }
     tally.report("slag-edge serve, POST /fetch", &listed);
     assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
@@ -647,16 +658,12 @@ async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_r
     // Both generations are mixture scenes with their own codebooks: B's is downloaded and
     // committed before its shards, A's evicted after the commit.
     let s = Scenario::new(Form::Mixture, Start::HoldingA).await;
-    let (tally, listed) = enumerate_fetch(&s, "mixture", &[]).await;
-    tally.report("slag-edge fetch of a mixture scene", &listed);
-    tally.assert_reached(
-        &[
-            "store.commit_codebook:rename",
-            "store.commit_codebook:dir_sync",
-            "store.evict_codebook:remove",
-        ],
-        &listed,
-    );
+    let reached = [
+        "store.commit_codebook:rename",
+        "store.commit_codebook:dir_sync",
+        "store.evict_codebook:remove",
+    ];
+    enumerate_all(&s, "mixture", "slag-edge fetch of a mixture scene", &reached).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -666,16 +673,12 @@ async fn a_signed_fetch_stopped_at_every_boundary_serves_a_verified_a_or_b() {
     let keys = tempfile::tempdir().unwrap();
     keygen(keys.path()).unwrap();
     let s = Scenario::new(Form::Signed(keys.path().to_path_buf()), Start::HoldingA).await;
-    let (tally, listed) = enumerate_fetch(&s, "signed", &[]).await;
-    tally.report("slag-edge fetch --trusted-key", &listed);
-    tally.assert_reached(
-        &[
-            "store.signature_copy:write",
-            "store.signature_copy:rename",
-            "store.commit_fetch:transaction",
-        ],
-        &listed,
-    );
+    let reached = [
+        "store.signature_copy:write",
+        "store.signature_copy:rename",
+        "store.commit_fetch:transaction",
+    ];
+    enumerate_all(&s, "signed", "slag-edge fetch --trusted-key", &reached).await;
 }
 
 /// Stops a fetch of B in `s` only at the boundaries named in `reached` and after the commit

@@ -11,7 +11,9 @@ use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::shards::Dtype;
-use slag_common::testing::{assert_json_error, closed_within, exchange, get_request as get};
+use slag_common::testing::{
+    assert_json_error, closed_within, exchange, get_request as get, stalled_heads,
+};
 use slag_edge::serve::{AppState, ServeOptions};
 use support::{
     BasisEmbedder, GateEmbedder, error_message, exact_answer, fetch_grid, grid_scene,
@@ -176,12 +178,7 @@ async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_answers_while_stalled_sockets_hold_every_connection_slot() {
     let (addr, _dir) = edge_with_limits(limits(1, 8)).await;
-    let mut stalled = Vec::new();
-    for _ in 0..24 {
-        let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
-        s.write_all(b"GET /health HTTP/1.1\r\n").await.unwrap();
-        stalled.push(s);
-    }
+    let mut stalled = stalled_heads(&addr, 24, "/health").await;
     // Three times the limit stalls; slots come free as the header timeout closes them.
     let (status, _, body) = exchange(&addr, &get("/health", "")).await;
     assert_eq!(status, 200, "{body}");
