@@ -21,12 +21,10 @@
 use std::collections::HashMap;
 
 use rayon::prelude::*;
-use rstar::RTree;
-use rstar::primitives::GeomWithData;
 use slag_common::mask_record::MaskRecord;
 use slag_common::{Error, Result};
 
-use crate::segment_quality::{majority, segment_votes};
+use crate::segment_quality::{labelled_tree, majority, segment_votes};
 
 fn same_length(a: usize, b: usize, what: &str) -> Result<()> {
     if a != b {
@@ -73,12 +71,7 @@ pub fn neighbour_agreement(
     ks: &[usize],
 ) -> Result<Vec<NeighbourAgreement>> {
     same_length(labels.len(), means.len(), "neighbour agreement")?;
-    let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
-        (0..means.len())
-            .filter(|&i| labels[i].is_some())
-            .map(|i| GeomWithData::new(means[i], i as u32))
-            .collect(),
-    );
+    let tree = labelled_tree(means, labels);
     let kmax = ks.iter().copied().max().unwrap_or(0);
     // Per Gaussian: its label and its kmax nearest labelled neighbours' labels, nearest first.
     let near: Vec<(u32, Vec<u32>)> = (0..means.len())
@@ -359,12 +352,7 @@ pub fn mask_evidence(
 ) -> Result<MaskEvidence> {
     same_length(labels.len(), means.len(), "mask evidence")?;
     same_length(labels.len(), record.len(), "mask evidence record")?;
-    let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
-        (0..means.len())
-            .filter(|&i| labels[i].is_some())
-            .map(|i| GeomWithData::new(means[i], i as u32))
-            .collect(),
-    );
+    let tree = labelled_tree(means, labels);
     // [same, different] × (pairs, unknown, Σ m, over half, zero)
     type Tally = [(usize, usize, f64, usize, usize); 2];
     let add = |mut a: Tally, b: Tally| {

@@ -138,6 +138,19 @@ pub(crate) fn segment_votes(
     votes
 }
 
+/// An R-tree of the labelled Gaussians' means (`labels[i]` not `None`), each with its index.
+pub(crate) fn labelled_tree(
+    means: &[[f32; 3]],
+    labels: &[Option<u32>],
+) -> RTree<GeomWithData<[f32; 3], u32>> {
+    RTree::bulk_load(
+        (0..means.len())
+            .filter(|&i| labels[i].is_some())
+            .map(|i| GeomWithData::new(means[i], i as u32))
+            .collect(),
+    )
+}
+
 /// The label with the most votes and its count (ties to the smaller label); `None` without
 /// votes.
 pub(crate) fn majority(votes: &HashMap<u32, usize>) -> Option<(u32, usize)> {
@@ -231,12 +244,7 @@ pub fn boundary_recall(
 ) -> Result<BoundaryRecall> {
     same_length(labels.len(), segments.len(), "boundary recall")?;
     same_length(means.len(), segments.len(), "boundary recall means")?;
-    let tree: RTree<GeomWithData<[f32; 3], u32>> = RTree::bulk_load(
-        (0..means.len())
-            .filter(|&i| labels[i].is_some())
-            .map(|i| GeomWithData::new(means[i], i as u32))
-            .collect(),
-    );
+    let tree = labelled_tree(means, labels);
     let r2 = radius * radius;
     let (pairs, separated) = (0..means.len())
         .into_par_iter()
