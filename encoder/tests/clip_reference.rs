@@ -20,7 +20,7 @@ use slag_encoder::masks::Mask;
 use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
 
 mod support;
-use support::{ort_fixtures, rle_to_pixels, shared};
+use support::{ort_fixtures, rle_to_pixels, shared, test_fixture};
 
 fn json(path: PathBuf) -> Value {
     serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()
@@ -137,8 +137,7 @@ fn u8_pixel_tower_gives_the_f32_towers_embeddings() {
         .map(|m| rle_to_mask(&m["rle"]))
         .collect();
     let f32_path = clip_dir.join("color-clip-visual.onnx");
-    let u8_path =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-clip-visual-u8.onnx");
+    let u8_path = test_fixture("color-clip-visual-u8.onnx");
     let mut plain = ClipVisual::new(&f32_path, ExecutionProvider::Cpu, 4).unwrap();
     let mut bytes = ClipVisual::new(&u8_path, ExecutionProvider::Cpu, 4).unwrap();
     assert_eq!(plain.input(), VisualInput::F32PixelValues);
@@ -331,8 +330,7 @@ fn clip_service_batches_across_workers_and_returns_each_its_own_rows() {
     let Some(clip_dir) = ort_fixtures("clip") else {
         return;
     };
-    let u8_model =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-clip-visual-u8.onnx");
+    let u8_model = test_fixture("color-clip-visual-u8.onnx");
     for model in [clip_dir.join("color-clip-visual.onnx"), u8_model] {
         service_returns_each_worker_its_rows(&model);
     }

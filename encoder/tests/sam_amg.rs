@@ -19,7 +19,7 @@ use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::preprocess::sam_pixel_values;
 
 mod support;
-use support::{ort_fixtures, rle_to_pixels, shared};
+use support::{ort_fixtures, rle_to_pixels, shared, test_fixture};
 
 /// The generator of `dir/{model}-encoder.onnx` and `dir/{model}-decoder.onnx` on the CPU.
 fn cpu_generator(dir: &Path, model: &str, params: SamParams) -> SamAutomaticMaskGenerator {
@@ -319,8 +319,7 @@ fn low_res_decoder_gives_the_full_decoders_masks() {
     let Some(dir) = ort_fixtures("sam-amg") else {
         return;
     };
-    let low_res_decoder =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/color-sam-decoder-low-res.onnx");
+    let low_res_decoder = test_fixture("color-sam-decoder-low-res.onnx");
     let img = load_rgb(&shared().join("scenes/snowmiku/images/20240212_003919.jpg"));
     let params = SamParams {
         points_per_side: 8,

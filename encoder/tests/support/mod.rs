@@ -48,6 +48,13 @@ pub fn rle_to_pixels(rle: &serde_json::Value) -> (u32, u32, Vec<u8>) {
     (w as u32, h as u32, px)
 }
 
+/// `encoder/tests/fixtures/{file}`: the small models committed with the tests.
+pub fn test_fixture(file: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(file)
+}
+
 /// `shared/fixtures/{name}` when the ONNX Runtime tests are to run ([`ort_available`]); `None`:
 /// skip the test.
 pub fn ort_fixtures(name: &str) -> Option<PathBuf> {
