@@ -384,45 +384,47 @@ fn both_loop_orders_give_the_same_sums_bit_for_bit() {
     }
 }
 
-/// The embeddings file (f32 rows, so that every bit of the reduction shows) and the mixture's
-/// sparse parts of the two separate passes, `reduce_to_writer` then `reduce_mixture_sparse`.
-fn separate_tail(
-    store: &ContributionStore,
-    means: &[[f32; 3]],
+/// One case of the fused-tail comparison: a store and the reduction's parameters.
+struct TailCase<'a> {
+    store: &'a ContributionStore,
+    means: &'a [[f32; 3]],
     dim: usize,
     p: ReduceParams,
     keep: usize,
-    path: &Path,
-) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
-    use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
-    let w = EmbeddingsWriter::create(path, dim, StoredPrecision::F32).unwrap();
-    let s = reduce_to_writer(store, means, dim, p, w).unwrap();
-    s.writer
-        .finish("m", means.len() as u64, "scene.ply")
-        .unwrap();
-    let n = means.len();
-    let sparse = reduce_mixture_sparse(store, n, dim, p, keep, "m", means).unwrap();
-    (std::fs::read(path).unwrap(), sparse)
 }
 
-/// The same outputs from the one fused pass, `reduce_to_writer_with_mixture`.
-fn fused_tail(
-    store: &ContributionStore,
-    means: &[[f32; 3]],
-    dim: usize,
-    p: ReduceParams,
-    keep: usize,
-    path: &Path,
-) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
-    use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
-    let w = EmbeddingsWriter::create(path, dim, StoredPrecision::F32).unwrap();
-    let m = reduce_to_writer_with_mixture(store, means, dim, p, w, keep, "m").unwrap();
-    assert!(m.gather_s >= 0.0 && m.gather_s <= m.streamed.reduce_s);
-    let s = m.streamed;
-    s.writer
-        .finish("m", means.len() as u64, "scene.ply")
-        .unwrap();
-    (std::fs::read(path).unwrap(), m.sparse)
+impl TailCase<'_> {
+    /// An f32 embeddings writer at `path` (f32 rows, so that every bit of the reduction shows).
+    fn writer(&self, path: &Path) -> slag_common::embeddings::EmbeddingsWriter {
+        use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
+        EmbeddingsWriter::create(path, self.dim, StoredPrecision::F32).unwrap()
+    }
+
+    /// The embeddings file and the mixture's sparse parts of the two separate passes,
+    /// `reduce_to_writer` then `reduce_mixture_sparse`.
+    fn separate(&self, path: &Path) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
+        let (store, means, dim, p) = (self.store, self.means, self.dim, self.p);
+        let s = reduce_to_writer(store, means, dim, p, self.writer(path)).unwrap();
+        s.writer
+            .finish("m", means.len() as u64, "scene.ply")
+            .unwrap();
+        let n = means.len();
+        let sparse = reduce_mixture_sparse(store, n, dim, p, self.keep, "m", means).unwrap();
+        (std::fs::read(path).unwrap(), sparse)
+    }
+
+    /// The same outputs from the one fused pass, `reduce_to_writer_with_mixture`.
+    fn fused(&self, path: &Path) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
+        let w = self.writer(path);
+        let (store, means, dim, p) = (self.store, self.means, self.dim, self.p);
+        let m = reduce_to_writer_with_mixture(store, means, dim, p, w, self.keep, "m").unwrap();
+        assert!(m.gather_s >= 0.0 && m.gather_s <= m.streamed.reduce_s);
+        let s = m.streamed;
+        s.writer
+            .finish("m", means.len() as u64, "scene.ply")
+            .unwrap();
+        (std::fs::read(path).unwrap(), m.sparse)
+    }
 }
 
 #[test]
@@ -460,8 +462,15 @@ fn fused_tail_writes_exactly_what_the_two_passes_write() {
                 for keep in keeps {
                     let case =
                         format!("{name}, budget {budget}, image-major {image_major}, keep {keep}");
-                    let (file_a, sparse_a) = separate_tail(store, &means, dim, p, keep, &a);
-                    let (file_b, sparse_b) = fused_tail(store, &means, dim, p, keep, &b);
+                    let tail = TailCase {
+                        store,
+                        means: &means,
+                        dim,
+                        p,
+                        keep,
+                    };
+                    let (file_a, sparse_a) = tail.separate(&a);
+                    let (file_b, sparse_b) = tail.fused(&b);
                     assert!(file_a == file_b, "embeddings differ: {case}");
                     assert_eq!(sparse_a, sparse_b, "{case}");
                     assert_eq!(sparse_b.gaussian_ids, exact.ids, "{case}");

@@ -73,6 +73,14 @@ fn params() -> SegmentParams {
     }
 }
 
+/// [`params`] in tiles of `tile_gaussians`.
+fn params_in_tiles(tile_gaussians: usize) -> SegmentParams {
+    SegmentParams {
+        tile_gaussians,
+        ..params()
+    }
+}
+
 #[test]
 fn planes_become_their_own_segments() {
     let (g, label) = planes();
@@ -93,10 +101,7 @@ fn planes_become_their_own_segments() {
 #[test]
 fn deterministic_over_thread_counts() {
     let (g, _) = planes();
-    let p = SegmentParams {
-        tile_gaussians: 500,
-        ..params()
-    };
+    let p = params_in_tiles(500);
     let one = rayon::ThreadPoolBuilder::new()
         .num_threads(1)
         .build()
@@ -180,10 +185,7 @@ fn clean_planes_do_not_depend_on_tiles() {
 #[test]
 fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     let (g, _) = planes();
-    let p = SegmentParams {
-        tile_gaussians: 500,
-        ..params()
-    };
+    let p = params_in_tiles(500);
     let stopped = SegmentControl::default();
     stopped.stop();
     assert!(
@@ -349,16 +351,26 @@ fn grid_neighbours_equal_the_tree_search() {
     assert_eq!(NO_NEIGHBOUR, u32::MAX);
 }
 
-#[test]
-fn ids_equal_the_previous_implementation() {
+/// [`corners`] and its [`strips_record`].
+fn corners_with_record() -> (Gaussians, std::sync::Arc<slag_common::mask_record::MaskRecord>) {
     let g = corners();
     let record = std::sync::Arc::new(strips_record(&g));
-    let base = SegmentParams {
+    (g, record)
+}
+
+/// The parameters [`corners`] is segmented with, in tiles of `tile_gaussians`.
+fn corners_params(tile_gaussians: usize) -> SegmentParams {
+    SegmentParams {
         max_edge: Some(0.4),
         threshold: 0.3,
-        tile_gaussians: 700,
-        ..params()
-    };
+        ..params_in_tiles(tile_gaussians)
+    }
+}
+
+#[test]
+fn ids_equal_the_previous_implementation() {
+    let (g, record) = corners_with_record();
+    let base = corners_params(700);
     for (p, masks) in [
         (base, None),
         (base, Some(&record)),
@@ -396,14 +408,8 @@ fn ids_equal_the_previous_implementation() {
 
 #[test]
 fn ids_do_not_depend_on_threads() {
-    let g = corners();
-    let record = std::sync::Arc::new(strips_record(&g));
-    let p = SegmentParams {
-        max_edge: Some(0.4),
-        threshold: 0.3,
-        tile_gaussians: 500,
-        ..params()
-    };
+    let (g, record) = corners_with_record();
+    let p = corners_params(500);
     let on = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
