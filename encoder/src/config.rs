@@ -210,7 +210,8 @@ pub struct SceneConfig {
     /// `eval-colors --held-out` scores, and train on all others (N ≥ 2; default `None`: none
     /// held out beyond what [`SceneConfig::every`] skips). [`crate::views`] has the split.
     pub hold_out_every: Option<usize>,
-    /// Which of the training views are encoded (default: all; [`crate::views::ViewSelection`]).
+    /// Which of the training views are encoded (default: coverage selection with its own
+    /// stopping rule; [`crate::views::ViewSelection`]).
     pub views: crate::views::ViewSelection,
 }
 
@@ -746,8 +747,9 @@ fn cluster_unsupported(what: ClusterUnsupported) -> &'static str {
              them with a one-process encode"
         }
         ClusterUnsupported::CoverageSelection => {
-            "a cluster encode does not run the coverage pass (scene.views.mode coverage): choose \
-             the views with a one-process encode, or use all or uniformly thinned views"
+            "a cluster encode does not run the coverage pass (scene.views.mode coverage, the \
+             default): set scene.views.mode to all or uniform, or choose the views with a \
+             one-process encode"
         }
         ClusterUnsupported::Workers => {
             "a cluster encode runs one rasterizer and one front worker per process \
@@ -781,6 +783,7 @@ mod tests {
         let mut c = graph_config();
         c.aggregate.mixture_keep = None;
         c.output.dense = true;
+        c.scene.views.mode = crate::views::SelectionMode::All;
         c
     }
 

@@ -72,6 +72,8 @@ fn placed_objects_come_back_with_their_positions_and_boxes() {
     let clip = shared().join("fixtures/clip");
     let mut c = EncodeConfig::new(&scene, clip.join("color-clip-visual.onnx"), &out);
     c.masks = MasksConfig::graph();
+    // The floors below were set on every view.
+    c.scene.views.mode = slag_encoder::views::SelectionMode::All;
     c.raster.scale = 0.5;
     c.output.progress = false;
     // The floors below were set on the dense rows.

@@ -19,13 +19,14 @@ fn mini() -> std::path::PathBuf {
     std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
 }
 
-/// An encode of snowmiku-mini at `every` 4, raster 0.5, with color-clip and `masks`, the dense
-/// embeddings (what `eval-colors` reads) beside the mixture.
+/// An encode of snowmiku-mini at `every` 4 (every such view encoded), raster 0.5, with
+/// color-clip and `masks`, the dense embeddings (what `eval-colors` reads) beside the mixture.
 fn mini_config(out: &std::path::Path, masks: MasksConfig) -> EncodeConfig {
     let clip = shared().join("fixtures/clip/color-clip-visual.onnx");
     let mut c = EncodeConfig::new(mini(), clip, out);
     c.masks = masks;
     c.scene.every = 4;
+    c.scene.views.mode = slag_encoder::views::SelectionMode::All;
     c.raster.scale = 0.5;
     c.output.progress = false;
     c.output.dense = true;
@@ -235,6 +236,8 @@ fn coverage_selection_trains_on_the_held_out_splits_training_views_only() {
     c.scene.hold_out_every = Some(4);
     c.scene.views.mode = slag_encoder::views::SelectionMode::Coverage;
     c.scene.views.count = Some(5);
+    // Every view that adds a pair, so that the count binds.
+    c.scene.views.coverage.min_gain = 0.0;
     c.segments.enabled = false;
     let report = Encoder::new(c)
         .expect("encode config")

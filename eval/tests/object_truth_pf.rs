@@ -38,6 +38,7 @@ fn prediction_filtering_helps_on_object_truth() {
     let mut c = EncodeConfig::new(&scene, clip.join("color-clip-visual.onnx"), &out);
     c.masks = MasksConfig::graph();
     c.scene.hold_out_every = Some(4);
+    c.scene.views.mode = slag_encoder::views::SelectionMode::All;
     c.output.progress = false;
     c.output.dense = true;
     Encoder::new(c).expect("config").run().expect("encode");

@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
-# View selection on the 2D held-out protocol: hold out every 4th view (index ≡ 2 mod 4), then
-# encode the training views three ways with color-sam 16×16 (pred-IoU 0.8, stability 0.5),
+# View selection on the 2D held-out protocol: hold out every HOLD-th view (index ≡ ⌊HOLD/2⌋ mod
+# HOLD; HOLD defaults to 4), then encode the training views three ways with color-sam 16×16 (pred-IoU 0.8, stability 0.5),
 # color-clip and raster 0.5: all of them, the ones coverage selection picks (at most COUNT), and
 # COUNT evenly spaced ones (`--views uniform`, the same count); then `eval-colors --held-out` on
 # each. Prints encode wall, views, pass seconds and held-out mIoU per run. RUNS picks the runs
-# (default "coverage uniform all"); a run named everyE encodes every E-th view (`--every E`; with
+# (default "coverage uniform all"); a run named `default` passes no --views flag (the encoder's
+# default selection, its own stopping rule, COUNT unused); a run named everyE encodes every E-th view (`--every E`; with
 # the hold-out of every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives
 # coverage the same count).
 # Usage: scripts/lab/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
 set -uo pipefail
-B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}
+B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}; HOLD=${HOLD:-4}
 F=$SLAG_SHARED/fixtures
 mkdir -p "$R" "$W"
 SAM=(--masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx --sam-decoder $F/sam-amg/color-sam-decoder.onnx
@@ -18,13 +19,14 @@ CLIP=(--clip-visual $F/clip/color-clip-visual.onnx)
 for name in ${RUNS:-coverage uniform all}; do
   case $name in
     all) V=(--views all) ;;
+    default) V=() ;;
     coverage) V=(--views coverage --view-count "$COUNT") ;;
     uniform) V=(--views uniform --view-count "$COUNT") ;;
     every*) V=(--every "${name#every}") ;;
-    *) echo "unknown run $name (coverage, uniform, all, everyE)" >&2; exit 2 ;;
+    *) echo "unknown run $name (default, coverage, uniform, all, everyE)" >&2; exit 2 ;;
   esac
   t0=$(date +%s.%N)
-  "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every 4 "${V[@]}" --raster-scale 0.5 --dense \
+  "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every "$HOLD" ${V[@]+"${V[@]}"} --raster-scale 0.5 --dense \
     --segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s.%N)
   "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$W/$name/embeddings.safetensors" \

@@ -32,12 +32,14 @@ pub fn color_clip_visual() -> PathBuf {
     fixture("clip/color-clip-visual.onnx")
 }
 
-/// The tests' usual encode of `scene` into `out`: graph masks and color-clip, no progress bars,
-/// the dense embeddings beside the default outputs (the tests read `E_k` rows), every other
-/// setting at the command line's default. Change fields before [`encode`].
+/// The tests' usual encode of `scene` into `out`: graph masks and color-clip, every training
+/// view (`--views all`: the tests count and compare the views encoded), no progress bars, the
+/// dense embeddings beside the default outputs (the tests read `E_k` rows), every other setting
+/// at the command line's default. Change fields before [`encode`].
 pub fn graph_config(scene: &Path, out: &Path) -> EncodeConfig {
     let mut c = EncodeConfig::new(scene, color_clip_visual(), out);
     c.masks = MasksConfig::graph();
+    c.scene.views.mode = slag_encoder::views::SelectionMode::All;
     c.output.progress = false;
     c.output.dense = true;
     c
@@ -58,8 +60,8 @@ pub fn color_sam(points_per_side: u32) -> MasksConfig {
 
 /// An encode of `scene` into `out` through real-architecture models with random weights: the
 /// CLIP visual tower `clip_visual`, SAM `[encoder, decoder]` on an 8 × 8 point grid with every
-/// filter off (random weights predict low IoU), every `every`-th view at raster scale 0.25, no
-/// progress bars, the dense embeddings beside the default outputs.
+/// filter off (random weights predict low IoU), every `every`-th view (all of them encoded) at
+/// raster scale 0.25, no progress bars, the dense embeddings beside the default outputs.
 pub fn random_weights_config(
     scene: PathBuf,
     clip_visual: PathBuf,
@@ -74,6 +76,7 @@ pub fn random_weights_config(
     config.masks.sam.pred_iou_thresh = 0.0;
     config.masks.sam.stability_score_thresh = 0.0;
     config.scene.every = every;
+    config.scene.views.mode = slag_encoder::views::SelectionMode::All;
     config.raster.scale = 0.25;
     config.output.progress = false;
     config.output.dense = true;

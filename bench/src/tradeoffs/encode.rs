@@ -142,8 +142,8 @@ impl EncodePoint {
     }
 
     /// The encode of this point on `scene` into `out`: everything the point does not set stays
-    /// at the command line's defaults, except f32 output and no progress bars. `fixtures` is
-    /// `shared/fixtures`.
+    /// at the command line's defaults, except every view of the point's step (the study varies
+    /// the step), f32 output and no progress bars. `fixtures` is `shared/fixtures`.
     pub fn encode_config(
         &self,
         scene: &Path,
@@ -166,6 +166,7 @@ impl EncodePoint {
             }
         };
         c.scene.every = self.every;
+        c.scene.views.mode = slag_encoder::views::SelectionMode::All;
         c.raster.scale = self.raster_scale;
         c.aggregate.top_k_per_pixel = self.top_k;
         (c.aggregate.mask_weighting, c.aggregate.overlap) = self.aggregation.settings();

@@ -30,12 +30,16 @@ pub struct EncodeClusterArgs {
 }
 
 /// The encode settings of a cluster run: as `encode`'s, except that a cluster encode writes the
-/// dense embeddings (with or without `--dense`) and an unset `--mixture-keep` means no mixture
-/// file (asking for the mixture is refused by [`ClusterEncoder::new`]).
+/// dense embeddings (with or without `--dense`), an unset `--mixture-keep` means no mixture
+/// file and an unset `--views` every training view (asking for the mixture or for coverage
+/// selection is refused by [`ClusterEncoder::new`]).
 fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
     let mut config = EncodeConfig::from(&a.encode);
     if a.encode.mixture_keep.is_none() {
         config.aggregate.mixture_keep = None;
+    }
+    if a.encode.views.is_none() {
+        config.scene.views.mode = slag_encoder::views::SelectionMode::All;
     }
     config.output.dense = true;
     config
@@ -97,7 +101,10 @@ mod tests {
 
     #[test]
     fn flags_the_cluster_cannot_honour_are_refused_not_ignored() {
-        assert!(check(&parse(&[])).is_ok(), "no mixture unless asked");
+        assert!(
+            check(&parse(&[])).is_ok(),
+            "no mixture and every view unless asked"
+        );
         assert!(check(&parse(&["--mixture-keep", "0"])).is_ok());
         assert!(check(&parse(&["--gpus", "1", "--front-workers", "1"])).is_ok());
         for (bad, what) in [
@@ -105,6 +112,10 @@ mod tests {
             (&["--gpus", "2"][..], ClusterUnsupported::Workers),
             (&["--gpus", "all"][..], ClusterUnsupported::Workers),
             (&["--front-workers", "3"][..], ClusterUnsupported::Workers),
+            (
+                &["--views", "coverage"][..],
+                ClusterUnsupported::CoverageSelection,
+            ),
         ] {
             match check(&parse(bad)) {
                 Err(e @ ConfigError::ClusterUnsupported(w)) => {

@@ -54,6 +54,16 @@ mod tests {
         };
         assert_eq!(c, want);
         assert_eq!(
+            c.scene.views.mode,
+            slag_encoder::views::SelectionMode::Coverage,
+            "the views a scene needs by default"
+        );
+        let all = parse(&["--masks", "graph", "--views", "all"]);
+        assert_eq!(
+            all.scene.views.mode,
+            slag_encoder::views::SelectionMode::All
+        );
+        assert_eq!(
             c.aggregate.mixture_keep,
             Some(slag_encoder::config::DEFAULT_MIXTURE_KEEP)
         );
@@ -147,6 +157,8 @@ mod tests {
             "15",
             "--view-coverage-target",
             "0.9",
+            "--view-coverage-min-gain",
+            "0.05",
             "--view-coverage-raster-scale",
             "0.125",
         ]);
@@ -161,6 +173,7 @@ mod tests {
                 min_views: 3,
                 min_angle_deg: 15.0,
                 target: 0.9,
+                min_gain: 0.05,
                 raster_scale: 0.125,
             }
         );

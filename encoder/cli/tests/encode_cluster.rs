@@ -25,7 +25,8 @@ use support::slag_encoder;
 const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
 const TIMEOUT: Duration = Duration::from_secs(180);
 
-/// The encode arguments shared by every run: 7 of the 13 views, raster scale 0.25, f32 output.
+/// The encode arguments shared by every run: 7 of the 13 views (all of them encoded), raster
+/// scale 0.25, f32 output.
 fn encode_args(out: &Path) -> Vec<String> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
@@ -44,6 +45,8 @@ fn encode_args(out: &Path) -> Vec<String> {
         [
             "--every",
             "2",
+            "--views",
+            "all",
             "--raster-scale",
             "0.25",
             "--rasterizer",

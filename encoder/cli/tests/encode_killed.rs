@@ -33,6 +33,9 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
             "--contribution-memory-mb",
             "0",
             "--dense",
+            // Every view: a run long enough to be killed mid-way.
+            "--views",
+            "all",
         ])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())

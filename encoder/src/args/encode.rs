@@ -162,10 +162,11 @@ pub struct EncodeArgs {
     /// and train on all the others (N >= 2; e.g. 4 trains on 3 views of 4).
     #[arg(long, value_name = "N")]
     pub hold_out_every: Option<usize>,
-    /// Which training views are encoded: all, uniform (--view-count of them, evenly spaced) or
-    /// coverage (a cheap weight-raster pass, then a greedy choice; see --view-coverage-*).
-    #[arg(long, value_enum, value_name = "RULE", default_value_t = ViewsArg::All)]
-    pub views: ViewsArg,
+    /// Which training views are encoded: coverage (the default: a cheap weight-raster pass, then
+    /// a greedy choice that stops where views add little; see --view-coverage-*), all, or uniform
+    /// (--view-count of them, evenly spaced). `encode-cluster` takes all views unless asked.
+    #[arg(long, value_enum, value_name = "RULE")]
+    pub views: Option<ViewsArg>,
     /// With --views uniform: exactly this many views. With --views coverage: at most this many
     /// (the first of the greedy order).
     #[arg(long, value_name = "N")]
@@ -182,10 +183,16 @@ pub struct EncodeArgs {
     /// distinct viewpoints of it, degrees (0: any two views).
     #[arg(long, value_name = "DEGREES", default_value_t = CoverageRule::default().min_angle_deg)]
     pub view_coverage_angle: f64,
-    /// --views coverage: fraction of the (Gaussian, viewpoint) pairs the rule asks for that the
-    /// chosen views must give (1: all; 0.95 drops the views that add the last 5 %).
+    /// --views coverage: stop once the chosen views give this fraction of the (Gaussian,
+    /// viewpoint) pairs the rule asks for, each weighted by the Gaussian's footprint in pixels
+    /// (1: no bound; 0.95 drops the views that add the last 5 %).
     #[arg(long, value_name = "FRACTION", default_value_t = CoverageRule::default().target)]
     pub view_coverage_target: f64,
+    /// --views coverage: the stopping rule; keep the views of the greedy order while a view adds
+    /// at least this fraction of what the first view added (new distinct viewpoints, weighted by
+    /// the Gaussians' footprints in pixels; 0: every view that adds one).
+    #[arg(long, value_name = "FRACTION", default_value_t = CoverageRule::default().min_gain)]
+    pub view_coverage_min_gain: f64,
     /// --views coverage: raster resolution of the coverage pass relative to the images.
     #[arg(long, value_name = "SCALE", default_value_t = CoverageRule::default().raster_scale)]
     pub view_coverage_raster_scale: f64,
@@ -313,13 +320,14 @@ impl From<&EncodeArgs> for EncodeConfig {
                 every: a.every,
                 hold_out_every: a.hold_out_every,
                 views: ViewSelection {
-                    mode: a.views.into(),
+                    mode: a.views.unwrap_or_default().into(),
                     count: a.view_count,
                     coverage: CoverageRule {
                         min_weight: a.view_coverage_weight,
                         min_views: a.view_coverage_min_views,
                         min_angle_deg: a.view_coverage_angle,
                         target: a.view_coverage_target,
+                        min_gain: a.view_coverage_min_gain,
                         raster_scale: a.view_coverage_raster_scale,
                     },
                 },

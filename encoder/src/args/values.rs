@@ -117,13 +117,14 @@ impl From<SmoothArg> for Smooth {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum ViewsArg {
     /// Every training view.
-    #[default]
     All,
     /// `--view-count` training views, evenly spaced in name order.
     Uniform,
     /// The views a cheap weight-raster pass finds necessary: greedily, until every observed
     /// Gaussian is seen with `--view-coverage-weight` from `--view-coverage-min-views` viewpoints
-    /// `--view-coverage-angle` apart.
+    /// `--view-coverage-angle` apart; stops where a view adds less than
+    /// `--view-coverage-min-gain` of the first view's gain (the default).
+    #[default]
     Coverage,
 }
 

@@ -74,14 +74,19 @@ pub fn scene_ply(dir: &Path, ply: Option<&Path>) -> PathBuf {
 }
 
 impl SceneInput {
-    /// `dir` with the default `.ply` location ([`scene_ply`]).
+    /// `dir` with the default `.ply` location ([`scene_ply`]), every training view encoded
+    /// ([`crate::views::SelectionMode::All`]; an encode from an [`crate::config::EncodeConfig`]
+    /// takes its selection, coverage by default).
     pub fn new(dir: &Path, ply: Option<&Path>, every: usize) -> Self {
         Self {
             dir: dir.to_path_buf(),
             ply: scene_ply(dir, ply),
             every,
             hold_out_every: None,
-            selection: crate::views::ViewSelection::default(),
+            selection: crate::views::ViewSelection {
+                mode: crate::views::SelectionMode::All,
+                ..Default::default()
+            },
         }
     }
 

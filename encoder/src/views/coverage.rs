@@ -18,12 +18,30 @@
 //! occlusion seen from the same place is the same error twice, so a view that repeats another
 //! adds nothing (a duplicate view is never picked twice), while one from elsewhere averages it out.
 //!
-//! **The greedy.** Each step takes the view that adds the most (Gaussian, new distinct viewpoint)
-//! pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain never grows as
-//! views are chosen, so re-evaluating only the top is exact). It runs until no view adds a pair;
-//! the encode keeps the shortest prefix of that order that gives [`CoverageRule::target`] of all
-//! the pairs (and at most [`super::ViewSelection::count`] views). Gains are integer counts, so
-//! the choice is the same for any thread count.
+//! **What a pair is worth.** A Gaussian matters as much as the image area it takes: its
+//! *footprint* is its largest total blend weight in any candidate view, `F_k = max_v W_kv`
+//! (full-resolution pixels, the pass's own figures). A (Gaussian, viewpoint) pair is worth the
+//! Gaussian's footprint, so a Gaussian that no view shows on more than a pixel or two is worth
+//! a pixel or two, not as much as one that fills part of every image.
+//!
+//! **The greedy.** Each step takes the view that adds the most footprint over its new (Gaussian,
+//! distinct viewpoint) pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain
+//! never grows as views are chosen, so re-evaluating only the top is exact). It runs until no
+//! view adds a pair. Footprints are kept in fixed point (1/256 pixel) and gains are integer sums
+//! of them, so the order is the same for any thread count.
+//!
+//! **The stopping rule.** Every view costs the encode the same (its masks, crops and raster),
+//! while the gains of the greedy order only fall: the first view gives every Gaussian it shows a
+//! viewpoint, the last ones a second viewpoint to a few edge Gaussians. The encode keeps the views
+//! of the order while a view adds at least [`CoverageRule::min_gain`] of what the first view
+//! added (default 0.02: a view is encoded while it is worth at least 1/50 of the first, that is
+//! while its coverage per encoded view costs at most 50 times the first view's). Where the gains
+//! fall off a knee (a ring of near-duplicate views, a scene seen all round by a few views) this
+//! stops past the knee; where every view shows a new part of the scene, no view's gain falls
+//! that far and every view is kept. The rule reads only the scene's own coverage curve, no
+//! count. Two further bounds can stop it earlier: the footprint-weighted fraction
+//! [`CoverageRule::target`] of all the pairs (default 1: no bound) and
+//! [`super::ViewSelection::count`] views.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -52,11 +70,14 @@ pub struct CoverageRule {
     /// Angle between two views' directions to a Gaussian, degrees, from which they count as
     /// distinct viewpoints of it (default 10; 0: any two views are distinct).
     pub min_angle_deg: f64,
-    /// Fraction of the (Gaussian, viewpoint) pairs the rule asks for that the chosen views must
-    /// give, in (0, 1] (default 0.98: on snowmiku the last 2 % of the pairs took 35 of 72
-    /// views, each adding a few Gaussians seen by almost no view; 1 takes every view that adds
-    /// any pair).
+    /// Fraction of the (Gaussian, viewpoint) pairs the rule asks for, each weighted by the
+    /// Gaussian's footprint (module doc), after which no further view is chosen, in (0, 1]
+    /// (default 1: no bound; the views stop at [`CoverageRule::min_gain`]).
     pub target: f64,
+    /// The stopping rule: a view of the greedy order is kept while it adds at least this fraction
+    /// of the footprint-weighted pairs the first view added, in [0, 1] (default 0.02; 0: every
+    /// view that adds any pair).
+    pub min_gain: f64,
     /// Raster resolution of the pass relative to the images, in (0, 4] (default 0.25).
     pub raster_scale: f64,
 }
@@ -67,7 +88,8 @@ impl Default for CoverageRule {
             min_weight: 1.0,
             min_views: 2,
             min_angle_deg: 10.0,
-            target: 0.98,
+            target: 1.0,
+            min_gain: 0.02,
             raster_scale: 0.25,
         }
     }
@@ -82,8 +104,8 @@ impl CoverageRule {
     ///
     /// Errors: [`Error::Param`] `view_coverage_weight` (not finite or < 0),
     /// `view_coverage_min_views` (outside 1..=[`MAX_MIN_VIEWS`]), `view_coverage_angle` (outside
-    /// [0, 180)), `view_coverage_target` (outside (0, 1]), `view_coverage_raster_scale` (outside
-    /// (0, 4]).
+    /// [0, 180)), `view_coverage_target` (outside (0, 1]), `view_coverage_min_gain` (outside
+    /// [0, 1]), `view_coverage_raster_scale` (outside (0, 4]).
     pub fn validate(&self) -> Result<()> {
         let w = self.min_weight;
         if !(w.is_finite() && w >= 0.0) {
@@ -114,6 +136,15 @@ impl CoverageRule {
                 "view_coverage_target",
                 t,
                 "a fraction in (0, 1] (1: every pair the rule asks for)",
+            ));
+        }
+        let g = self.min_gain;
+        if !(g.is_finite() && (0.0..=1.0).contains(&g)) {
+            return Err(Error::param(
+                "view_coverage_min_gain",
+                g,
+                "a fraction in [0, 1] of the first view's gain (e.g. 0.02; 0: every view that \
+                 adds a pair)",
             ));
         }
         let s = self.raster_scale;
@@ -189,12 +220,20 @@ impl SeenSet {
     }
 }
 
+/// Fixed-point steps of a footprint per full-resolution pixel ([`ViewCoverage::footprint`]).
+pub const FOOTPRINT_STEPS_PER_PIXEL: f64 = 256.0;
+
 /// What the coverage pass measured: per candidate view the Gaussians it sees (weight ≥
-/// [`CoverageRule::min_weight`]), in a sparse or bitset form (module doc).
+/// [`CoverageRule::min_weight`]), in a sparse or bitset form, and per Gaussian its footprint
+/// (module doc).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ViewCoverage {
     gaussians: usize,
     seen: Vec<SeenSet>,
+    /// Per Gaussian the largest total blend weight a view that sees it gives it, in
+    /// 1/[`FOOTPRINT_STEPS_PER_PIXEL`] full-resolution pixels (at least 1 for a seen Gaussian,
+    /// 0 for one no view sees).
+    footprint: Vec<u64>,
 }
 
 impl ViewCoverage {
@@ -205,20 +244,29 @@ impl ViewCoverage {
             .map_or_else(Vec::new, |s| s.ids(self.gaussians))
     }
 
+    /// Gaussian `k`'s footprint: its largest total blend weight in a view that sees it,
+    /// full-resolution pixels (0 when no view sees it).
+    pub fn footprint(&self, k: usize) -> f64 {
+        self.footprint
+            .get(k)
+            .map_or(0.0, |&q| q as f64 / FOOTPRINT_STEPS_PER_PIXEL)
+    }
+
     /// Candidate views measured.
     pub fn views(&self) -> usize {
         self.seen.len()
     }
 
-    /// Bytes the per-view sets hold.
+    /// Bytes the per-view sets and the footprints hold.
     pub fn bytes(&self) -> usize {
-        self.seen.iter().map(SeenSet::bytes).sum()
+        self.seen.iter().map(SeenSet::bytes).sum::<usize>() + self.footprint.len() * 8
     }
 }
 
-/// The coverage pass: the Gaussians each of `views` sees under `rule`, the views spread over
-/// `rasterizers` (one thread each, views taken in turn; each view's set depends on that view
-/// alone, so the result does not depend on how they were spread). `gaussians` is the scene's
+/// The coverage pass: the Gaussians each of `views` sees under `rule` and their footprints, the
+/// views spread over `rasterizers` (one thread each, views taken in turn; each view's set depends
+/// on that view alone and a footprint is a maximum over views, so the result does not depend on
+/// how they were spread). `gaussians` is the scene's
 /// Gaussian count, the rasterizers' scene.
 ///
 /// Errors: [`Error::Param`] `view_coverage_raster_scale` or `raster_size` for a raster the scale
@@ -237,16 +285,24 @@ pub fn measure(
         .iter()
         .map(|v| pass_intrinsics(&v.intrinsics, rule.raster_scale))
         .collect::<Result<Vec<_>>>()?;
-    // The floor in the pass's raster pixels, as the device's 32.32 fixed point.
-    let floor = rule.min_weight * rule.raster_scale * rule.raster_scale;
+    // The floor in the pass's raster pixels; a raster pixel is 1/scale² full-resolution ones.
+    let area = rule.raster_scale * rule.raster_scale;
+    let floor = rule.min_weight * area;
     let next = AtomicUsize::new(0);
     let failed = AtomicBool::new(false);
     let results: Mutex<Vec<Option<SeenSet>>> = Mutex::new(vec![None; views.len()]);
+    let footprint = Mutex::new(vec![0u64; gaussians]);
     let first_error: Mutex<Option<Error>> = Mutex::new(None);
     std::thread::scope(|s| {
         for r in rasterizers.iter_mut() {
-            let (next, failed, results, first_error, intrinsics) =
-                (&next, &failed, &results, &first_error, &intrinsics);
+            let (next, failed, results, first_error, intrinsics, footprint) = (
+                &next,
+                &failed,
+                &results,
+                &first_error,
+                &intrinsics,
+                &footprint,
+            );
             s.spawn(move || {
                 while !failed.load(Ordering::SeqCst) {
                     let i = next.fetch_add(1, Ordering::SeqCst);
@@ -254,7 +310,14 @@ pub fn measure(
                         break;
                     };
                     match seen_ids(r.as_mut(), k, &v.world_to_camera, floor, gaussians) {
-                        Ok(ids) => {
+                        Ok(seen) => {
+                            if let Ok(mut f) = footprint.lock() {
+                                for &(id, w) in &seen {
+                                    let q = footprint_steps(w / area);
+                                    f[id as usize] = f[id as usize].max(q);
+                                }
+                            }
+                            let ids = seen.into_iter().map(|(id, _)| id).collect();
                             let set = SeenSet::new(ids, gaussians);
                             if let Ok(mut out) = results.lock() {
                                 out[i] = Some(set);
@@ -280,7 +343,19 @@ pub fn measure(
         .into_iter()
         .collect::<Option<Vec<_>>>()
         .ok_or_else(|| Error::internal("coverage pass: a view was not rasterized"))?;
-    Ok(ViewCoverage { gaussians, seen })
+    let footprint = footprint
+        .into_inner()
+        .map_err(|_| Error::internal("coverage pass: a rasterizer thread panicked"))?;
+    Ok(ViewCoverage {
+        gaussians,
+        seen,
+        footprint,
+    })
+}
+
+/// A seen Gaussian's weight in full-resolution pixels as footprint steps (at least 1).
+fn footprint_steps(pixels: f64) -> u64 {
+    ((pixels * FOOTPRINT_STEPS_PER_PIXEL).round() as u64).max(1)
 }
 
 /// The pass's raster intrinsics of a view, naming the pass's own scale in errors.
@@ -299,25 +374,27 @@ fn pass_intrinsics(k: &Intrinsics, scale: f64) -> Result<Intrinsics> {
     })
 }
 
-/// The ascending ids of the Gaussians whose total blend weight in one view is at least `floor`
-/// (pixels of raster `k`): the rasterizer's label sums with every pixel in label 1, or, for a
-/// rasterizer without them, its per-pixel lists summed per Gaussian (f64, pixel order).
+/// The Gaussians whose total blend weight in one view is at least `floor` (pixels of raster
+/// `k`), ascending by id, with that weight (raster pixels): the rasterizer's label sums with
+/// every pixel in label 1, or, for a rasterizer without them, its per-pixel lists summed per
+/// Gaussian (f64, pixel order).
 fn seen_ids(
     r: &mut dyn WeightRasterizer,
     k: &Intrinsics,
     w2c: &WorldToCamera,
     floor: f64,
     gaussians: usize,
-) -> Result<Vec<u32>> {
+) -> Result<Vec<(u32, f64)>> {
     let labels = vec![1u32; k.width as usize * k.height as usize];
     if let Some(sums) = r.label_sums(k, w2c, &labels)? {
         // Compared in the sums' own fixed point: exact.
-        let floor_fixed = (floor * 4_294_967_296.0).ceil() as u64;
+        const ONE: f64 = 4_294_967_296.0;
+        let floor_fixed = (floor * ONE).ceil() as u64;
         return Ok(sums
             .reduced()
             .into_iter()
             .filter(|s| s.sum >= floor_fixed.max(1))
-            .map(|s| s.gaussian)
+            .map(|s| (s.gaussian, s.sum as f64 / ONE))
             .collect());
     }
     let w = r.rasterize(k, w2c)?;
@@ -331,17 +408,34 @@ fn seen_ids(
         .iter()
         .enumerate()
         .filter(|&(_, &t)| t > 0.0 && t >= floor)
-        .map(|(i, _)| i as u32)
+        .map(|(i, &t)| (i as u32, t))
         .collect())
 }
 
 /// One step of the greedy order.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct GreedyStep {
     /// The view's name.
     pub view: String,
     /// (Gaussian, distinct viewpoint) pairs it added.
     pub gain: u64,
+    /// The footprints of the Gaussians of those pairs, summed: full-resolution pixels (what the
+    /// greedy ranks and the stopping rule reads).
+    pub gain_px: f64,
+}
+
+/// Why the chosen views end where they do (`report.json`'s `view_selection.coverage.stop`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CoverageStop {
+    /// The next view adds less than [`CoverageRule::min_gain`] of the first view's gain.
+    MinGain,
+    /// The chosen views give [`CoverageRule::target`] of the footprint-weighted pairs.
+    Target,
+    /// [`super::ViewSelection::count`] views are chosen.
+    Count,
+    /// Every view that adds a pair is chosen.
+    Exhausted,
 }
 
 /// What the coverage pass found and chose (`report.json`'s `view_selection.coverage`).
@@ -362,6 +456,13 @@ pub struct CoverageOutcome {
     pub pairs_wanted: u64,
     /// Of those, the pairs the chosen views give.
     pub pairs_chosen: u64,
+    /// The pairs the rule asks for, each weighted by its Gaussian's footprint: full-resolution
+    /// pixels.
+    pub pairs_wanted_px: f64,
+    /// Of those, the chosen views' share: full-resolution pixels.
+    pub pairs_chosen_px: f64,
+    /// Why the chosen views end there.
+    pub stop: CoverageStop,
     /// Observed Gaussians to which the greedy assigned `min_views` distinct viewpoints among the
     /// chosen views (a lower bound: a maximal set per Gaussian, not always the largest).
     pub full_views: usize,
@@ -379,7 +480,12 @@ struct Viewpoints<'a> {
     cos_max: f64,
     means: &'a [[f32; 3]],
     centres: &'a [DVec3],
+    /// Per Gaussian its footprint in fixed-point steps ([`ViewCoverage`]).
+    footprint: &'a [u64],
 }
+
+/// What a view adds: the footprint of its new pairs (fixed-point steps), then the pairs.
+type Gain = (u64, u64);
 
 /// Gaussians per parallel chunk of the greedy (a multiple of 64, the bitsets' word).
 const CHUNK: usize = 1 << 14;
@@ -400,20 +506,23 @@ impl Viewpoints<'_> {
             .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
     }
 
-    /// The pairs view `v` (seeing `seen`) would add.
-    fn gain(&self, v: usize, seen: &SeenSet) -> u64 {
+    /// What view `v` (seeing `seen`) would add (integer sums: exact in any order).
+    fn gain(&self, v: usize, seen: &SeenSet) -> Gain {
         let n = self.means.len();
         (0..n.div_ceil(CHUNK))
             .into_par_iter()
             .map(|c| {
-                let mut count = 0u64;
+                let (mut weight, mut count) = (0u64, 0u64);
                 seen.for_each_in(c * CHUNK, ((c + 1) * CHUNK).min(n), |g| {
                     let s = &self.slots[g * self.per..(g + 1) * self.per];
-                    count += u64::from(self.adds(g, v, s));
+                    if self.adds(g, v, s) {
+                        weight += self.footprint[g];
+                        count += 1;
+                    }
                 });
-                count
+                (weight, count)
             })
-            .sum()
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     }
 
     /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
@@ -446,7 +555,7 @@ fn greedy(
     means: &[[f32; 3]],
     centres: &[DVec3],
     rule: &CoverageRule,
-) -> (Vec<(usize, u64)>, Vec<u32>) {
+) -> (Vec<(usize, Gain)>, Vec<u32>) {
     let per = rule.min_views.max(1);
     let mut state = Viewpoints {
         slots: vec![u32::MAX; means.len() * per],
@@ -454,9 +563,10 @@ fn greedy(
         cos_max: rule.min_angle_deg.to_radians().cos(),
         means,
         centres,
+        footprint: &coverage.footprint,
     };
     // Max-heap on (gain, lowest index); the round tells whether the gain is current.
-    let mut heap: BinaryHeap<(u64, Reverse<usize>, usize)> = coverage
+    let mut heap: BinaryHeap<(Gain, Reverse<usize>, usize)> = coverage
         .seen
         .iter()
         .enumerate()
@@ -464,7 +574,7 @@ fn greedy(
         .collect();
     let mut order = Vec::new();
     while let Some((gain, Reverse(v), round)) = heap.pop() {
-        if gain == 0 {
+        if gain.1 == 0 {
             break;
         }
         if round == order.len() {
@@ -477,9 +587,33 @@ fn greedy(
     (order, state.slots)
 }
 
+/// How many views of the greedy `order` the rule keeps (module doc), cut at `cap`, and why.
+fn stop_at(
+    order: &[(usize, Gain)],
+    rule: &CoverageRule,
+    cap: Option<usize>,
+) -> (usize, CoverageStop) {
+    let wanted: u64 = order.iter().map(|&(_, g)| g.0).sum();
+    let first = order.first().map_or(0, |&(_, g)| g.0);
+    let mut chosen = 0u64;
+    for (taken, &(_, g)) in order.iter().enumerate() {
+        if cap.is_some_and(|c| taken >= c) {
+            return (taken, CoverageStop::Count);
+        }
+        if chosen as f64 >= rule.target * wanted as f64 {
+            return (taken, CoverageStop::Target);
+        }
+        if (g.0 as f64) < rule.min_gain * first as f64 {
+            return (taken, CoverageStop::MinGain);
+        }
+        chosen += g.0;
+    }
+    (order.len(), CoverageStop::Exhausted)
+}
+
 /// Coverage selection over `views` (the training views, name-sorted): the pass on
-/// `rasterizers` ([`measure`]), the greedy order, and the shortest prefix that meets
-/// `rule.target`, cut at `cap` views. Returns the chosen positions in `views`, ascending, and
+/// `rasterizers` ([`measure`]), the greedy order, and the prefix the stopping rule keeps (module
+/// doc), cut at `cap` views. Returns the chosen positions in `views`, ascending, and
 /// what the pass found.
 ///
 /// Errors: as [`CoverageRule::validate`] and [`measure`]; [`Error::Param`] `views` for more
@@ -504,16 +638,15 @@ pub fn select(
         .map(|v| v.world_to_camera.camera_centre())
         .collect();
     let (order, slots) = greedy(&coverage, &gaussians.means, &centres, rule);
-    let wanted: u64 = order.iter().map(|&(_, g)| g).sum();
-    let mut taken = 0;
-    let mut pairs_chosen = 0u64;
-    for &(_, g) in &order {
-        if pairs_chosen as f64 >= rule.target * wanted as f64 || cap.is_some_and(|c| taken >= c) {
-            break;
-        }
-        pairs_chosen += g;
-        taken += 1;
-    }
+    let (taken, stop) = stop_at(&order, rule, cap);
+    let px = |steps: u64| steps as f64 / FOOTPRINT_STEPS_PER_PIXEL;
+    let sum = |steps: &[(usize, Gain)]| {
+        steps
+            .iter()
+            .fold((0, 0), |a, &(_, g)| (a.0 + g.0, a.1 + g.1))
+    };
+    let (wanted_px, wanted) = sum(&order);
+    let (chosen_px, pairs_chosen) = sum(&order[..taken]);
     let mut rank = vec![usize::MAX; views.len()];
     for (r, &(v, _)) in order.iter().enumerate() {
         rank[v] = r;
@@ -529,13 +662,17 @@ pub fn select(
         observed,
         pairs_wanted: wanted,
         pairs_chosen,
+        pairs_wanted_px: px(wanted_px),
+        pairs_chosen_px: px(chosen_px),
+        stop,
         full_views,
         covered,
         order: order
             .iter()
-            .map(|&(v, gain)| GreedyStep {
+            .map(|&(v, (steps, gain))| GreedyStep {
                 view: views[v].name.clone(),
                 gain,
+                gain_px: px(steps),
             })
             .collect(),
     };

@@ -24,19 +24,20 @@ use crate::raster::WeightRasterizer;
 
 pub mod coverage;
 
-pub use coverage::{CoverageOutcome, CoverageRule, GreedyStep, ViewCoverage};
+pub use coverage::{CoverageOutcome, CoverageRule, CoverageStop, GreedyStep, ViewCoverage};
 
 /// How the encoded views are chosen among the training views.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum SelectionMode {
-    /// Every training view (the default).
-    #[default]
+    /// Every training view.
     All,
     /// [`ViewSelection::count`] training views, evenly spaced in name order ([`uniform`]).
     Uniform,
     /// The views a cheap weight-raster pass finds necessary to see every observed Gaussian with
-    /// enough blend weight from enough distinct viewpoints ([`coverage`]).
+    /// enough blend weight from enough distinct viewpoints, as many as the scene's own coverage
+    /// curve asks for ([`coverage`]; the default).
+    #[default]
     Coverage,
 }
 
@@ -44,7 +45,7 @@ pub enum SelectionMode {
 #[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ViewSelection {
-    /// How they are chosen (default: all).
+    /// How they are chosen (default: coverage, with its own stopping rule).
     pub mode: SelectionMode,
     /// [`SelectionMode::Uniform`]: exactly this many views (required). [`SelectionMode::Coverage`]:
     /// at most this many (the first ones of the greedy order). `None`: no cap.

@@ -43,11 +43,24 @@ fn training() -> (Gaussians, Vec<View>, Vec<View>) {
     (g, training, all)
 }
 
+/// Every view that adds a pair (no stopping rule), at full resolution.
 fn rule() -> CoverageRule {
     CoverageRule {
         raster_scale: 1.0,
         target: 1.0,
+        min_gain: 0.0,
         ..CoverageRule::default()
+    }
+}
+
+/// The default stopping rule, at full resolution.
+fn default_rule() -> ViewSelection {
+    ViewSelection {
+        coverage: CoverageRule {
+            raster_scale: 1.0,
+            ..CoverageRule::default()
+        },
+        ..coverage_selection()
     }
 }
 
@@ -79,6 +92,7 @@ fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
     let r = rule();
     let cov = coverage::measure(&mut cpu(&g), &views[..2], g.len(), &r).unwrap();
     let mut raster = CpuRasterizer::new(&g);
+    let mut footprint = vec![0f64; g.len()];
     for (v, view) in views[..2].iter().enumerate() {
         let w = raster
             .rasterize(&view.intrinsics, &view.world_to_camera)
@@ -90,7 +104,18 @@ fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
         let want: Vec<usize> = (0..g.len()).filter(|&k| total[k] >= r.min_weight).collect();
         assert!(!want.is_empty() && want.len() < g.len());
         assert_eq!(cov.seen_by(v), want, "view {}", view.name);
+        for &k in &want {
+            footprint[k] = footprint[k].max(total[k]);
+        }
     }
+    // A footprint is the largest weight of a view that sees the Gaussian (to 1/256 pixel).
+    for (k, &f) in footprint.iter().enumerate() {
+        assert!(
+            (cov.footprint(k) - f).abs() <= 0.5 / 256.0 + 1e-9,
+            "{k}: {f}"
+        );
+    }
+    assert!(footprint.iter().any(|&f| f > 4.0 * r.min_weight));
 }
 
 #[test]
@@ -100,23 +125,21 @@ fn coverage_covers_every_observed_gaussian_and_its_target_picks_fewer_views() {
         choose(training.clone(), &coverage_selection(), &g, &mut cpu(&g)).unwrap();
     assert_eq!(report.candidates, 36);
     assert!(!chosen.is_empty() && chosen.len() <= training.len());
-    // At the default target the last views, each adding a few edge Gaussians, are dropped.
-    let default = ViewSelection {
-        coverage: CoverageRule {
-            raster_scale: 1.0,
-            ..CoverageRule::default()
-        },
-        ..coverage_selection()
-    };
-    let (fewer, r) = choose(training.clone(), &default, &g, &mut cpu(&g)).unwrap();
+    // At the default rule the last views, each adding a few edge Gaussians, are dropped: the
+    // views kept are the greedy's first ones, each worth min_gain of the first or more.
+    let (fewer, r) = choose(training.clone(), &default_rule(), &g, &mut cpu(&g)).unwrap();
     let o = r.coverage.unwrap();
     assert!(
-        fewer.len() < training.len(),
+        fewer.len() < chosen.len(),
         "{} of {} views",
         fewer.len(),
-        training.len()
+        chosen.len()
     );
-    assert!(o.pairs_chosen as f64 >= 0.98 * o.pairs_wanted as f64);
+    assert_eq!(o.stop, CoverageStop::MinGain);
+    let bar = o.rule.min_gain * o.order[0].gain_px;
+    assert!(o.order[..fewer.len()].iter().all(|s| s.gain_px >= bar));
+    assert!(o.order[fewer.len()].gain_px < bar);
+    assert!(o.pairs_chosen_px < o.pairs_wanted_px && o.pairs_chosen < o.pairs_wanted);
     assert_eq!(
         report.chosen,
         chosen.iter().map(|v| v.name.clone()).collect::<Vec<_>>()
@@ -171,6 +194,7 @@ fn coverage_covers_every_observed_gaussian_and_its_target_picks_fewer_views() {
         }
     }
     let outcome = report.coverage.unwrap();
+    assert_eq!(outcome.stop, CoverageStop::Exhausted);
     assert_eq!(outcome.observed, observed);
     assert_eq!(outcome.covered, observed);
     assert_eq!(outcome.pairs_chosen, outcome.pairs_wanted);
@@ -200,6 +224,20 @@ fn coverage_is_the_same_for_any_thread_count() {
     };
     let one = run(1);
     assert_eq!(run(3), one);
+    // The default stopping rule too.
+    let default = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let (_, report) = choose(training.clone(), &default_rule(), &g, &mut cpu(&g)).unwrap();
+            (report.chosen, report.coverage.unwrap().order)
+        })
+    };
+    let d1 = default(1);
+    assert!(d1.0.len() < one.0.len());
+    assert_eq!(default(3), d1);
     // Two rasterizers share the pass: the same sets, so the same choice.
     let (_, report) = choose(
         training.clone(),
@@ -251,12 +289,72 @@ fn a_cap_and_a_target_shorten_the_choice() {
         .collect();
     first.sort();
     assert_eq!(r.chosen, first);
+    assert_eq!(r.coverage.unwrap().stop, CoverageStop::Count);
     let mut part = coverage_selection();
     part.coverage.target = 0.8;
     let (c, r) = choose(training, &part, &g, &mut cpu(&g)).unwrap();
     let o = r.coverage.unwrap();
     assert!(c.len() < full.chosen.len());
-    assert!(o.pairs_chosen as f64 >= 0.8 * o.pairs_wanted as f64);
+    assert_eq!(o.stop, CoverageStop::Target);
+    assert!(o.pairs_chosen_px >= 0.8 * o.pairs_wanted_px);
+    let before: f64 = o.order[..c.len() - 1].iter().map(|s| s.gain_px).sum();
+    assert!(before < 0.8 * o.pairs_wanted_px, "the shortest such prefix");
+}
+
+#[test]
+fn the_rule_stops_earlier_on_a_redundant_ring_than_on_a_sparse_set() {
+    let (g, _, all) = training();
+    // All 48 views of the ring (7.5° apart), and every 6th of them (45° apart): the same scene,
+    // seen all round either way.
+    let sparse: Vec<View> = all.iter().step_by(6).cloned().collect();
+    let keep = |views: &[View]| {
+        let (c, r) = choose(views.to_vec(), &default_rule(), &g, &mut cpu(&g)).unwrap();
+        (c.len(), r.coverage.unwrap())
+    };
+    let (dense_kept, dense) = keep(&all);
+    let (sparse_kept, _) = keep(&sparse);
+    let dense_share = dense_kept as f64 / all.len() as f64;
+    let sparse_share = sparse_kept as f64 / sparse.len() as f64;
+    assert!(
+        dense_share < sparse_share,
+        "ring: {dense_kept} of {}, sparse: {sparse_kept} of {}",
+        all.len(),
+        sparse.len()
+    );
+    assert_eq!(dense.stop, CoverageStop::MinGain);
+    // The ring's views past the stop each add little: less than min_gain of the first.
+    let first = dense.order[0].gain_px;
+    assert!(
+        dense.order[dense_kept..]
+            .iter()
+            .all(|s| s.gain_px < dense.rule.min_gain * first)
+    );
+}
+
+#[test]
+fn the_default_is_coverage_and_all_takes_every_view() {
+    assert_eq!(ViewSelection::default().mode, SelectionMode::Coverage);
+    assert!(CoverageRule::default().min_gain > 0.0);
+    let (g, training, _) = training();
+    let all = ViewSelection {
+        mode: SelectionMode::All,
+        ..Default::default()
+    };
+    let (c, r) = choose(training.clone(), &all, &g, &mut []).unwrap();
+    assert_eq!(c.len(), training.len());
+    assert_eq!(r.chosen.len(), 36);
+    assert!(r.coverage.is_none());
+    let bad = CoverageRule {
+        min_gain: 1.5,
+        ..CoverageRule::default()
+    };
+    assert!(matches!(
+        bad.validate(),
+        Err(slag_common::Error::Param {
+            name: "view_coverage_min_gain",
+            ..
+        })
+    ));
 }
 
 #[test]
