@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # View selection on the 2D held-out protocol: hold out every HOLD-th view (index ≡ ⌊HOLD/2⌋ mod
-# HOLD; HOLD defaults to 4), then encode the training views three ways with color-sam 16×16 (pred-IoU 0.8, stability 0.5),
-# color-clip and raster 0.5: all of them, the ones coverage selection picks (at most COUNT), and
-# COUNT evenly spaced ones (`--views uniform`, the same count); then `eval-colors --held-out` on
-# each. Prints encode wall, views, pass seconds and held-out mIoU per run. RUNS picks the runs
-# (default "coverage uniform all"); a run named `default` passes no --views flag (the encoder's
-# default selection, its own stopping rule, COUNT unused); a run named everyE encodes every E-th view (`--every E`; with
-# the hold-out of every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives
-# coverage the same count).
+# HOLD; HOLD defaults to 4), then encode the training views several ways with color-sam 16×16
+# (pred-IoU 0.8, stability 0.5), color-clip and raster 0.5: all of them, the ones coverage
+# selection picks (at most COUNT), and COUNT evenly spaced ones (`--views uniform`, the same
+# count); then `eval-colors --held-out` on each. Prints encode wall, views, pass seconds and
+# held-out mIoU per run. RUNS picks the runs (default "coverage uniform all"); a run named
+# `default` passes no --views flag (the encoder's default selection with its own stopping rule;
+# COUNT unused); a run named everyE encodes every E-th view (`--every E`; with the hold-out of
+# every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives coverage the same
+# count).
 # Usage: scripts/lab/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
 set -uo pipefail
 B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}; HOLD=${HOLD:-4}

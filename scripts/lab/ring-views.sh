@@ -5,13 +5,16 @@
 # depend on the masks or the models: the pass and the greedy see the geometry alone), raster 0.5,
 # segments off. Prints the views kept of the candidates, why the choice ended, the pass's
 # seconds, and the count the default rule gives from the recorded greedy order (a check).
-# EXTRA="ARGS" adds encode arguments (e.g. "--view-coverage-min-gain 0.05"); the scene is
-# written once into WORK (default /tmp/slag-ring).
+# EXTRA="ARGS" adds encode arguments (e.g. "--view-coverage-min-gain 0.05"); SYNTH="ARGS" adds
+# synth-scene arguments (e.g. "--width 313 --height 235" with N 200K: the same pixels per
+# Gaussian at a tenth of the work); the scene is written once into WORK (default /tmp/slag-ring).
 # Usage: scripts/lab/ring-views.sh BINARY CLIP_VISUAL.onnx [N] [V]   (needs ONNX Runtime)
 set -euo pipefail
 B=$1; CLIP=$2; N=${3:-2M}; V=${4:-250}; W=${WORK:-/tmp/slag-ring}
-S="$W/ring-$N-$V"; O="$W/out-$N-$V"
-[ -f "$S/point_cloud.ply" ] || "$B" synth-scene --gaussians "$N" --views "$V" --out "$S"
+TAG="$N-$V${SYNTH:+-$(echo "$SYNTH" | tr -c 'A-Za-z0-9.\n-' _)}"
+S="$W/ring-$TAG"; O="$W/out-$TAG"
+# shellcheck disable=SC2086
+[ -f "$S/point_cloud.ply" ] || "$B" synth-scene --gaussians "$N" --views "$V" ${SYNTH:-} --out "$S"
 rm -rf "$O"
 # shellcheck disable=SC2086
 "$B" encode --scene "$S" --masks graph --clip-visual "$CLIP" --raster-scale 0.5 --segments off \
