@@ -210,31 +210,22 @@ fn coverage_covers_every_observed_gaussian_and_its_target_picks_fewer_views() {
 #[test]
 fn coverage_is_the_same_for_any_thread_count() {
     let (g, training, _) = training();
-    let run = |threads: usize| {
+    // The choice of `selection` on `threads` rayon threads.
+    let run = |threads: usize, selection: &ViewSelection| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .build()
             .unwrap();
         pool.install(|| {
-            let (_, report) =
-                choose(training.clone(), &coverage_selection(), &g, &mut cpu(&g)).unwrap();
+            let (_, report) = choose(training.clone(), selection, &g, &mut cpu(&g)).unwrap();
             let c = report.coverage.unwrap();
             (report.chosen, c.order, c.pairs_wanted, c.full_views)
         })
     };
-    let one = run(1);
-    assert_eq!(run(3), one);
+    let one = run(1, &coverage_selection());
+    assert_eq!(run(3, &coverage_selection()), one);
     // The default stopping rule too.
-    let default = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        pool.install(|| {
-            let (_, report) = choose(training.clone(), &default_rule(), &g, &mut cpu(&g)).unwrap();
-            (report.chosen, report.coverage.unwrap().order)
-        })
-    };
+    let default = |threads: usize| run(threads, &default_rule());
     let d1 = default(1);
     assert!(d1.0.len() < one.0.len());
     assert_eq!(default(3), d1);
