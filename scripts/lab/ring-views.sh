@@ -14,10 +14,10 @@ B=$1; CLIP=$2; N=${3:-2M}; V=${4:-250}; W=${WORK:-/tmp/slag-ring}
 TAG="$N-$V${SYNTH:+-$(echo "$SYNTH" | tr -c 'A-Za-z0-9.\n-' _)}"
 S="$W/ring-$TAG"; O="$W/out-$TAG"
 # shellcheck disable=SC2086
-[ -f "$S/point_cloud.ply" ] || "$B" synth-scene --gaussians "$N" --views "$V" ${SYNTH:-} --out "$S"
+[ -f "$S/point_cloud.ply" ] || "$B" synth-scene --gaussians "$N" --view-count "$V" ${SYNTH:-} --out "$S"
 rm -rf "$O"
 # shellcheck disable=SC2086
-"$B" encode --scene "$S" --masks graph --clip-visual "$CLIP" --raster-scale 0.5 --segments off \
+"$B" encode --scene-dir "$S" --masks graph --clip-visual "$CLIP" --raster-scale 0.5 --segments off \
   --quiet --out "$O" ${EXTRA:-}
 python3 - "$O/report.json" <<'PY'
 import json, sys
