@@ -225,16 +225,15 @@ fn mixture_study(
     dir: &std::path::Path,
 ) -> anyhow::Result<String> {
     let ways = [(false, "two passes"), (true, "one fused pass")];
-    let mut best: Vec<Option<MixtureTail>> = vec![None, None];
-    for _ in 0..a.repeats {
-        for (i, &(fused, _)) in ways.iter().enumerate() {
+    let best = best_runs(
+        a.repeats,
+        &ways,
+        |i, (fused, _)| {
             let path = dir.join(format!("mixture{i}.safetensors"));
-            let run = mixture_tail(store, means, a, params, keep, fused, &path)?;
-            if best[i].as_ref().is_none_or(|b| run.total_s < b.total_s) {
-                best[i] = Some(run);
-            }
-        }
-    }
+            mixture_tail(store, means, a, params, keep, fused, &path)
+        },
+        |run| run.total_s,
+    )?;
     ensure!(
         same_bytes(
             &dir.join("mixture0.safetensors"),
@@ -242,7 +241,6 @@ fn mixture_study(
         )?,
         "the fused tail wrote other embeddings than the two passes"
     );
-    let best: Vec<MixtureTail> = best.into_iter().collect::<Option<_>>().context("no run")?;
     ensure!(
         best[0].sparse == best[1].sparse,
         "the fused tail gathered another mixture than the two passes"
@@ -265,6 +263,29 @@ fn mixture_study(
          same embeddings and gathered the same mixture; best of {} runs each\n\n{t}",
         a.repeats
     ))
+}
+
+/// The fastest of `repeats` runs of each of `ways` (by `seconds`), in the order of `ways`; the
+/// ways take turns, one run of each per round, so that a slower stretch of the machine falls on
+/// all of them. `run` gets a way's index and the way.
+///
+/// Errors: the first failed run's; no run at all (`repeats` 0 or no way).
+fn best_runs<W: Copy, T>(
+    repeats: usize,
+    ways: &[W],
+    mut run: impl FnMut(usize, W) -> anyhow::Result<T>,
+    seconds: impl Fn(&T) -> f64,
+) -> anyhow::Result<Vec<T>> {
+    let mut best: Vec<Option<T>> = ways.iter().map(|_| None).collect();
+    for _ in 0..repeats {
+        for (i, &way) in ways.iter().enumerate() {
+            let r = run(i, way)?;
+            if best[i].as_ref().is_none_or(|b| seconds(&r) < seconds(b)) {
+                best[i] = Some(r);
+            }
+        }
+    }
+    best.into_iter().collect::<Option<_>>().context("no run")
 }
 
 /// True when the two files hold the same bytes.
@@ -308,25 +329,19 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
             (false, "Gaussian-block-major (default)"),
         ]
     };
-    let mut best: Vec<Option<Tail>> = orders.iter().map(|_| None).collect();
-    for _ in 0..a.repeats {
-        for (i, &(image_major, _)) in orders.iter().enumerate() {
+    let best = best_runs(
+        a.repeats,
+        orders,
+        |i, (image_major, _)| {
             let path = dir.path().join(format!("order{i}.safetensors"));
-            let run = tail(
-                &store,
-                &means,
-                a,
-                ReduceParams {
-                    image_major,
-                    ..base
-                },
-                &path,
-            )?;
-            if best[i].as_ref().is_none_or(|b| run.tail_s < b.tail_s) {
-                best[i] = Some(run);
-            }
-        }
-    }
+            let params = ReduceParams {
+                image_major,
+                ..base
+            };
+            tail(&store, &means, a, params, &path)
+        },
+        |run| run.tail_s,
+    )?;
     if orders.len() == 2 {
         ensure!(
             same_bytes(
@@ -336,7 +351,6 @@ pub fn run(a: &ReduceArgs) -> anyhow::Result<String> {
             "the two loop orders wrote different embeddings: the reduction is not order-exact"
         );
     }
-    let best: Vec<Tail> = best.into_iter().collect::<Option<_>>().context("no run")?;
     let base_tail = best[0].tail_s;
     let mut t = Table::with_header("loop order | reduce s | reduce + overlapped write s | entries/s | speed-up | file finish s")
     .right_from(1);
