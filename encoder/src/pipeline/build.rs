@@ -288,7 +288,6 @@ pub struct Fronts {
 ///
 /// Errors: models missing or unloadable.
 pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
-    let front_workers = c.execution.front_workers;
     let gpu_threads = (threads / gpus.max(1)).max(1);
     let gpu_batch = c.clip.batch.unwrap_or(CLIP_BATCH_GPU);
     let clip0 = crate::clip::ClipVisual::with_placement(
@@ -298,35 +297,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
     )?;
     if clip0.provider() == ExecutionProvider::Cpu {
         drop(clip0);
-        let n = front_workers.unwrap_or(gpus + 1).clamp(1, threads.max(1));
-        let per_front = (threads / n).max(1);
-        let mut cpu = c.clone();
-        cpu.execution.ep = ExecutionProvider::Cpu;
-        let mut stages = Vec::with_capacity(n);
-        for _ in 0..n {
-            let masks = build_masks_within(&cpu, per_front, Some(SAM_CPU_DECODER_BYTES / n))?;
-            let clip = crate::clip::ClipVisual::with_threads(
-                &c.clip.visual,
-                ExecutionProvider::Cpu,
-                c.clip.batch.unwrap_or(CLIP_BATCH_CPU),
-                per_front,
-            )?;
-            stages.push(FrontStages::new(masks, Box::new(clip)));
-        }
-        let sam = (c.masks.source == MaskSource::Sam).then_some(ExecutionProvider::Cpu);
-        return Ok(Fronts {
-            stages,
-            services: Vec::new(),
-            providers: vec![ModelPlacement {
-                clip_batch: c.clip.batch.unwrap_or(CLIP_BATCH_CPU),
-                clip_visual: ExecutionProvider::Cpu,
-                device: "cpu".into(),
-                gpu: None,
-                sam_decoder: sam,
-                sam_encoder: sam,
-            }],
-            provider: ExecutionProvider::Cpu,
-        });
+        return cpu_fronts(c, gpus, threads);
     }
     let provider = clip0.provider();
     let mut services = vec![clip0.into_service()?];
@@ -341,22 +312,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
             )?;
             services.push(clip.into_service()?);
         }
-        let sam = match c.masks.source {
-            MaskSource::Sam => {
-                let (enc, dec) = sam_paths(c)?;
-                let placement = c.placement(g as u32, gpu_threads);
-                Some((
-                    crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-                        enc,
-                        dec,
-                        &placement,
-                        c.masks.sam.params(),
-                    )?,
-                    sam_timing(c, &placement, &c.masks.sam.params())?,
-                ))
-            }
-            MaskSource::Graph => None,
-        };
+        let sam = gpu_sam(c, g, gpu_threads)?;
         let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |(s, _)| {
             let (e, d) = s.models().providers();
             (Some(e), Some(d))
@@ -371,7 +327,11 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         });
         sams.push(sam);
     }
-    let n = front_workers.unwrap_or(4 * gpus).clamp(1, threads.max(1));
+    let n = c
+        .execution
+        .front_workers
+        .unwrap_or(4 * gpus)
+        .clamp(1, threads.max(1));
     let mut stages = Vec::with_capacity(n);
     for w in 0..n {
         let g = w % gpus;
@@ -390,5 +350,71 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         services,
         providers,
         provider,
+    })
+}
+
+/// One GPU's SAM and the copy that times its stages (with the encode's SAM timing setting).
+type GpuSam = (
+    crate::masks::sam::SamAutomaticMaskGenerator,
+    Option<crate::masks::sam::SamAutomaticMaskGenerator>,
+);
+
+/// SAM with its timing copy on GPU `g` (`gpu_threads` host threads) when `c` asks for SAM
+/// masks; `None` for graph masks ([`build_fronts`]).
+///
+/// Errors: the SAM models missing or unloadable.
+fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuSam>> {
+    if c.masks.source != MaskSource::Sam {
+        return Ok(None);
+    }
+    let (enc, dec) = sam_paths(c)?;
+    let placement = c.placement(g as u32, gpu_threads);
+    let sam = crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+        enc,
+        dec,
+        &placement,
+        c.masks.sam.params(),
+    )?;
+    Ok(Some((sam, sam_timing(c, &placement, &c.masks.sam.params())?)))
+}
+
+/// The fronts when CLIP runs on the CPU ([`build_fronts`]): every worker its own SAM and CLIP
+/// sessions with a share of the `threads` cores and of [`SAM_CPU_DECODER_BYTES`].
+///
+/// Errors: models missing or unloadable.
+fn cpu_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
+    let n = c
+        .execution
+        .front_workers
+        .unwrap_or(gpus + 1)
+        .clamp(1, threads.max(1));
+    let per_front = (threads / n).max(1);
+    let batch = c.clip.batch.unwrap_or(CLIP_BATCH_CPU);
+    let mut cpu = c.clone();
+    cpu.execution.ep = ExecutionProvider::Cpu;
+    let mut stages = Vec::with_capacity(n);
+    for _ in 0..n {
+        let masks = build_masks_within(&cpu, per_front, Some(SAM_CPU_DECODER_BYTES / n))?;
+        let clip = crate::clip::ClipVisual::with_threads(
+            &c.clip.visual,
+            ExecutionProvider::Cpu,
+            batch,
+            per_front,
+        )?;
+        stages.push(FrontStages::new(masks, Box::new(clip)));
+    }
+    let sam = (c.masks.source == MaskSource::Sam).then_some(ExecutionProvider::Cpu);
+    Ok(Fronts {
+        stages,
+        services: Vec::new(),
+        providers: vec![ModelPlacement {
+            clip_batch: batch,
+            clip_visual: ExecutionProvider::Cpu,
+            device: "cpu".into(),
+            gpu: None,
+            sam_decoder: sam,
+            sam_encoder: sam,
+        }],
+        provider: ExecutionProvider::Cpu,
     })
 }

@@ -73,7 +73,7 @@ impl Encoder {
         // Started before anything else; dropped (stopped and joined) on any early return. It
         // builds its neighbour graph at once and weighs it when the masks' record comes.
         let (record_tx, record_rx) = std::sync::mpsc::channel();
-        let segments = if c.segments.enabled {
+        let mut segments = if c.segments.enabled {
             Some(SegmentTask::start(c, threads, record_rx)?)
         } else {
             None
@@ -95,10 +95,16 @@ impl Encoder {
             |g| build::make_rasterizers(c, g),
             &params,
             header,
-            |r| {
-                // A segmentation that already failed has hung up: it needs no record then.
-                let _ = record_tx.send(std::sync::Arc::clone(&r));
-                record = Some(r);
+            |r, on_device| {
+                if let Some(r) = r {
+                    // A segmentation that already failed has hung up: it needs no record then.
+                    let _ = record_tx.send(std::sync::Arc::clone(&r));
+                    record = Some(r);
+                }
+                // The device reduces from here on: the host's cores are the segments'.
+                if let (Some(task), true) = (segments.as_mut(), on_device) {
+                    task.widen(threads);
+                }
             },
         )?;
         drop(record_tx);

@@ -716,11 +716,12 @@ pub fn encode_pool(
     params: &EncodeParams,
     report: Report,
 ) -> Result<Report> {
-    encode_pool_with(scene, fronts, make_rasterizers, params, report, |_| {})
+    encode_pool_with(scene, fronts, make_rasterizers, params, report, |_, _| {})
 }
 
-/// [`encode_pool`] that hands the masks' record (with [`EncodeParams::mask_record_slots`]) to
-/// `on_record` as soon as the last view is done, before the reduction.
+/// [`encode_pool`] that calls `on_tail` as soon as the last view is done, before the
+/// reduction, with the masks' record (with [`EncodeParams::mask_record_slots`]) and whether the
+/// reduction will run on the device (the host's cores are then free but for the write).
 ///
 /// Errors: as [`encode_pool`].
 pub fn encode_pool_with(
@@ -729,13 +730,12 @@ pub fn encode_pool_with(
     make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
     params: &EncodeParams,
     report: Report,
-    on_record: impl FnOnce(std::sync::Arc<slag_common::mask_record::MaskRecord>),
+    on_tail: impl FnOnce(Option<std::sync::Arc<slag_common::mask_record::MaskRecord>>, bool),
 ) -> Result<Report> {
     let t_total = Instant::now();
     let mut pooled = pool::run_pool(scene, fronts, make_rasterizers, params, t_total)?;
-    if let Some(r) = pooled.mask_record.take() {
-        on_record(std::sync::Arc::new(r));
-    }
+    let record = pooled.mask_record.take().map(std::sync::Arc::new);
+    on_tail(record, !pooled.device.is_empty());
     finish::finish(scene, pooled, params, report, t_total)
 }
 

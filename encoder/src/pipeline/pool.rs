@@ -19,7 +19,7 @@ use super::{
 };
 use crate::aggregate::ContributionStore;
 use crate::masks::MaskGenerator;
-use crate::raster::WeightRasterizer;
+use crate::raster::{ViewPrecompute, WeightRasterizer};
 use crate::report::{Counts, ImageWork, QueueStats, StageTimings, WorkerShare};
 use slag_common::mask_record::MaskRecord;
 
@@ -503,100 +503,114 @@ fn front_loop(
 fn spawn_back<'scope>(
     s: &'scope std::thread::Scope<'scope, '_>,
     g: usize,
-    mut rasterizer: Box<dyn WeightRasterizer>,
+    rasterizer: Box<dyn WeightRasterizer>,
     rx: Arc<Mutex<mpsc::Receiver<FrontItem>>>,
     name: String,
     shared: &'scope Shared<'_>,
 ) -> [std::thread::ScopedJoinHandle<'scope, WorkerShare>; 3] {
-    let (views, raster_intrinsics, params, dim, t_total) = (
-        shared.views,
-        shared.raster_intrinsics,
-        shared.params,
-        shared.dim,
-        shared.t_total,
-    );
-    let failure = &shared.failure;
     let pool = Arc::new(back_pool(g));
     let (to_raster, from_prepare) = mpsc::sync_channel::<BackPrepared>(1);
     let (to_image, from_raster) = mpsc::sync_channel::<BackRaster>(1);
     let precompute = rasterizer.view_precompute();
-    let prepare_pool = Arc::clone(&pool);
-    let prepare = s.spawn(move || {
-        // Take the next finished front item; the lock is held only while waiting.
-        let items = std::iter::from_fn(|| {
-            let item = rx.lock().ok()?.recv().ok()?;
-            shared.queue.leave(item.bytes());
-            Some(item)
-        });
-        let step = |item, _: &mut WorkerShare| {
-            let pre = precompute.as_deref();
-            back_prepare(views, raster_intrinsics, item, dim, params.image_stage, pre)
-        };
-        let send = |out| to_raster.send(out).is_ok();
-        let mut share = stage_share(format!("prepare-{g}"));
-        let pool = prepare_pool.as_ref().as_ref();
-        stage_loop(&mut share, t_total, failure, pool, items, step, send);
-        share
-    });
-    let raster_pool = Arc::clone(&pool);
-    let raster = s.spawn(move || {
-        let keep = match keep_on_device(&mut *rasterizer, params, dim) {
-            Ok(keep) => keep,
-            Err(e) => {
-                failure.fail(e);
-                None
-            }
-        };
-        let step = |prepared, share: &mut WorkerShare| {
-            let out = back_raster(&mut *rasterizer, prepared, keep);
-            if let Some(p) = rasterizer.last_phases() {
-                share.raster_phases_ms.get_or_insert_default().add(&p);
-            }
-            out
-        };
-        let send = |out| to_image.send(out).is_ok();
-        let mut share = stage_share(name);
-        let pool = raster_pool.as_ref().as_ref();
-        stage_loop(
-            &mut share,
-            t_total,
-            failure,
-            pool,
-            from_prepare.iter(),
-            step,
-            send,
-        );
-        if keep.is_some()
-            && let Ok(mut device) = shared.device.lock()
-        {
-            device.push(rasterizer);
-        }
-        share
-    });
-    let image = s.spawn(move || {
-        let step = |raster: BackRaster, _: &mut WorkerShare| {
-            let view = raster.item.view;
-            let res = finish_image(raster, dim, params, &shared.sinks, &shared.totals);
-            if let Some(view) = views.get(view) {
-                tracing::debug!(view = %view.name, "image done");
-            }
-            shared.bar_back.inc(1);
-            res
-        };
-        let mut share = stage_share(format!("image-{g}"));
-        let pool = pool.as_ref().as_ref();
-        stage_loop(
-            &mut share,
-            t_total,
-            failure,
-            pool,
-            from_raster.iter(),
-            step,
-            |()| true,
-        );
-        share
-    });
+    let prepare = {
+        let pool = Arc::clone(&pool);
+        s.spawn(move || back_prepare_thread(g, rx, to_raster, precompute, &pool, shared))
+    };
+    let raster = {
+        let pool = Arc::clone(&pool);
+        s.spawn(move || back_raster_thread(name, rasterizer, from_prepare, to_image, &pool, shared))
+    };
+    let image = s.spawn(move || back_image_thread(g, from_raster, &pool, shared));
     [prepare, raster, image]
+}
+
+/// The *prepare* thread of [`spawn_back`]: the next finished front item from `rx`, its pixel
+/// labels and sort depths (with the rasterizer's view `precompute`), handed on to the raster.
+fn back_prepare_thread(
+    g: usize,
+    rx: Arc<Mutex<mpsc::Receiver<FrontItem>>>,
+    to_raster: mpsc::SyncSender<BackPrepared>,
+    precompute: Option<Arc<dyn ViewPrecompute>>,
+    pool: &Option<rayon::ThreadPool>,
+    shared: &Shared<'_>,
+) -> WorkerShare {
+    let (views, raster_intrinsics, params) = (shared.views, shared.raster_intrinsics, shared.params);
+    // Take the next finished front item; the lock is held only while waiting.
+    let items = std::iter::from_fn(|| {
+        let item = rx.lock().ok()?.recv().ok()?;
+        shared.queue.leave(item.bytes());
+        Some(item)
+    });
+    let step = |item, _: &mut WorkerShare| {
+        let pre = precompute.as_deref();
+        back_prepare(views, raster_intrinsics, item, shared.dim, params.image_stage, pre)
+    };
+    let send = |out| to_raster.send(out).is_ok();
+    let mut share = stage_share(format!("prepare-{g}"));
+    stage_loop(&mut share, shared.t_total, &shared.failure, pool.as_ref(), items, step, send);
+    share
+}
+
+/// The *raster* thread of [`spawn_back`] (named `name`): each prepared view through the GPU,
+/// its sums handed on to the image thread, or kept on the device for the device reduction
+/// ([`keep_on_device`]), in which case the rasterizer is handed to the pool's end.
+fn back_raster_thread(
+    name: String,
+    mut rasterizer: Box<dyn WeightRasterizer>,
+    from_prepare: mpsc::Receiver<BackPrepared>,
+    to_image: mpsc::SyncSender<BackRaster>,
+    pool: &Option<rayon::ThreadPool>,
+    shared: &Shared<'_>,
+) -> WorkerShare {
+    let failure = &shared.failure;
+    let keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim) {
+        Ok(keep) => keep,
+        Err(e) => {
+            failure.fail(e);
+            None
+        }
+    };
+    let step = |prepared, share: &mut WorkerShare| {
+        let out = back_raster(&mut *rasterizer, prepared, keep);
+        if let Some(p) = rasterizer.last_phases() {
+            share.raster_phases_ms.get_or_insert_default().add(&p);
+        }
+        out
+    };
+    let send = |out| to_image.send(out).is_ok();
+    let mut share = stage_share(name);
+    let views = from_prepare.iter();
+    stage_loop(&mut share, shared.t_total, failure, pool.as_ref(), views, step, send);
+    if keep.is_some()
+        && let Ok(mut device) = shared.device.lock()
+    {
+        device.push(rasterizer);
+    }
+    share
+}
+
+/// The *image* thread of [`spawn_back`]: the last view's sums reduced and expanded into the
+/// sinks.
+fn back_image_thread(
+    g: usize,
+    from_raster: mpsc::Receiver<BackRaster>,
+    pool: &Option<rayon::ThreadPool>,
+    shared: &Shared<'_>,
+) -> WorkerShare {
+    let (dim, params) = (shared.dim, shared.params);
+    let step = |raster: BackRaster, _: &mut WorkerShare| {
+        let view = raster.item.view;
+        let res = finish_image(raster, dim, params, &shared.sinks, &shared.totals);
+        if let Some(view) = shared.views.get(view) {
+            tracing::debug!(view = %view.name, "image done");
+        }
+        shared.bar_back.inc(1);
+        res
+    };
+    let mut share = stage_share(format!("image-{g}"));
+    let views = from_raster.iter();
+    stage_loop(&mut share, shared.t_total, &shared.failure, pool.as_ref(), views, step, |()| true);
+    share
 }
 
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction

@@ -47,6 +47,8 @@ pub struct SegmentTask {
     ctl: Arc<SegmentControl>,
     handle: Option<JoinHandle<Outcome>>,
     threads: usize,
+    /// Threads of the pool it was given since ([`SegmentTask::widen`]).
+    widened_to: Option<usize>,
 }
 
 /// What [`SegmentTask::finish`] returns.
@@ -57,7 +59,8 @@ pub struct Segmented {
     pub stats: SegmentStats,
     /// Threads of its pool while the encode ran.
     pub threads: usize,
-    /// Threads it was given when it outlasted the encode; `None`: it was done by then.
+    /// Threads it was given when it outlasted the encode's views (the device reduction) or the
+    /// whole encode; `None`: it was done by then.
     pub widened_to: Option<usize>,
     /// Seconds the caller waited for it after the encode (0 when it was already done).
     pub waited_s: f64,
@@ -118,7 +121,25 @@ impl SegmentTask {
             ctl,
             handle: Some(handle),
             threads,
+            widened_to: None,
         })
+    }
+
+    /// Gives the segmentation's stages from now on a pool of `threads` threads, while the
+    /// encode still runs but leaves the host's cores idle (its reduction runs on the GPU). A
+    /// pool that cannot be started is logged and the segmentation keeps its own.
+    pub fn widen(&mut self, threads: usize) {
+        let done = self.handle.as_ref().is_none_or(|h| h.is_finished());
+        if done || threads <= self.threads || self.widened_to.is_some() {
+            return;
+        }
+        match pool(threads) {
+            Ok(p) => {
+                self.ctl.set_pool(p);
+                self.widened_to = Some(threads);
+            }
+            Err(e) => tracing::warn!(error = %e, "segments keep their pool"),
+        }
     }
 
     /// Waits for the segmentation and returns its result. When it is still running, its stages
@@ -133,7 +154,9 @@ impl SegmentTask {
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
         let widened_to = if handle.is_finished() || threads <= self.threads {
-            None
+            self.widened_to
+        } else if self.widened_to.is_some_and(|w| w >= threads) {
+            self.widened_to
         } else {
             self.ctl.set_pool(pool(threads)?);
             Some(threads)

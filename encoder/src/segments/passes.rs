@@ -167,13 +167,18 @@ struct Run<'a> {
 
 impl Run<'_> {
     /// The tiles' criterion passes, [`tiles_at_once`] at a time, each on a forest of its own;
-    /// `None` once stopped.
+    /// `None` once stopped. Each wave's size is taken from the pool it runs on, so that a
+    /// segmentation whose pool was widened (the encode ended) runs more tiles at once from then
+    /// on; the tiles are independent, so the waves change no result.
     fn parallel_tiles(&self, st: &mut SegmentTimings) -> Option<Tiled> {
         let tiles = self.tm.members.len();
-        let at_once = self.ctl.run(|| tiles_at_once(self.tm, self.p.neighbours));
         let mut passes: Vec<TilePass> = Vec::with_capacity(tiles);
         let order: Vec<u32> = (0..tiles as u32).collect();
-        for wave in order.chunks(at_once) {
+        let mut rest = &order[..];
+        while !rest.is_empty() {
+            let at_once = self.ctl.run(|| tiles_at_once(self.tm, self.p.neighbours));
+            let (wave, later) = rest.split_at(at_once.min(rest.len()));
+            rest = later;
             let done: Vec<TilePass> = self.ctl.run(|| {
                 wave.par_iter()
                     .map(|&t| tile_pass(t, self.g, self.p, self.w, self.nb, self.tm, self.tile_of))
