@@ -4,7 +4,8 @@
 #   scripts/lab/device-scaling.sh clip                   # CLIP ViT-B/16: torch (GPU) vs ONNX Runtime
 #   scripts/lab/device-scaling.sh big [N] [VIEWS]        # synthetic terrain of N Gaussians (default 30M)
 #                                                    # on one GPU, peak host + GPU memory
-#   scripts/lab/device-scaling.sh reduce [N] [VIEWS] [MODES]  # synthetic terrain (default 30M, 16 views),
+#   scripts/lab/device-scaling.sh reduce [N] [VIEWS] [MODES]  # synthetic terrain (default 30M, 16 views; every
+#                                                    # view unless VIEWS="--views ..." is set),
 #                                                    # one bench per --reduce mode in MODES (default
 #                                                    # host,auto,auto), GNU time and GPU memory each
 #   scripts/lab/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
@@ -53,7 +54,7 @@ big)
   echo "synth-scene took $(python3 -c "import time; print(round(time.time()-$start,1))") s"
   du -sh "$W/big"
   gpu_mem_watch "$R/gpu-mem-big.csv" & watch=$!
-  "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --raster-scale 0.5 --gpus 1 \
+  "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --raster-scale 0.5 ${VIEWS:---views all} --gpus 1 \
     --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --quiet --out "$W/big-out" 2>&1 \
     | grep -v XDG_RUNTIME | tee "$R/big.txt"
   kill $watch 2>/dev/null
@@ -82,7 +83,7 @@ reduce)
     rm -rf "$W"/out-*  # the disk holds one 30M run's outputs (31 GB dense) at a time
     gpu_mem_watch "$W/gpu-mem-$i.csv" & watch=$!
     start=$(date +%s.%N)
-    "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 \
+    "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 ${VIEWS:---views all} \
       --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --reduce "$m" --quiet \
       --out "$W/out-$i" > "$W/run-$i.txt" 2>&1
     wall=$(python3 -c "import time; print(round(time.time()-$start,1))")
