@@ -133,9 +133,7 @@ impl Encoder {
         segmented.mask_record = mask_record.filter(|_| segmented.stats.mask_record.is_some());
         report.segments = Some(segmented);
         // Written again, with the segments: the report stays the run's last file.
-        let json = serde_json::to_vec_pretty(&report)
-            .map_err(|e| slag_common::Error::internal(format!("report: {e}")))?;
-        slag_common::io::write_atomic(&report.outputs.report, &json)?;
+        super::finish::write_report_file(&report)?;
         Ok(report)
     }
 }

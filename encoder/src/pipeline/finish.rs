@@ -67,11 +67,18 @@ impl OutputFiles {
             precision,
             report: self.report.clone(),
         };
-        let json = serde_json::to_vec_pretty(&report)
-            .map_err(|e| Error::internal(format!("report: {e}")))?;
-        write_atomic(&self.report, &json)?;
+        write_report_file(&report)?;
         Ok(report)
     }
+}
+
+/// Writes `report` to its own path (`report.outputs.report`) atomically.
+///
+/// Errors: the report cannot be serialised ([`Error::Internal`]), I/O.
+pub(crate) fn write_report_file(report: &Report) -> Result<()> {
+    let json =
+        serde_json::to_vec_pretty(report).map_err(|e| Error::internal(format!("report: {e}")))?;
+    write_atomic(&report.outputs.report, &json)
 }
 
 /// Removes `path` if it exists: a file of an earlier run that this run does not write (a level
@@ -246,12 +253,9 @@ fn reduce_tail(
         "reduce",
         &format!("E_k on the {place}"),
     );
-    let (dim, params, model_id) = (out.dim, out.params, out.model_id);
     let tail = match one_device(device)? {
-        Some(mut rasterizer) => {
-            reduce_on_device(&mut *rasterizer, out.means, dim, params, model_id, embeddings)?
-        }
-        None => reduce_outputs(store, out.means, dim, params, model_id, embeddings)?,
+        Some(mut rasterizer) => reduce_on_device(&mut *rasterizer, out, embeddings)?,
+        None => reduce_outputs(store, out, embeddings)?,
     };
     spinner.finish_with_message(format!("E_k on the {place}: {:.1} s", tail.reduce_s));
     Ok(tail)
@@ -325,12 +329,10 @@ fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn W
 /// ([`Error::Internal`]).
 fn reduce_on_device(
     rasterizer: &mut dyn WeightRasterizer,
-    means: &[[f32; 3]],
-    dim: usize,
-    params: &EncodeParams,
-    model_id: &str,
+    out: &TailInputs,
     embeddings: &Path,
 ) -> Result<ReducedOutputs> {
+    let (means, dim, params, model_id) = (out.means, out.dim, out.params, out.model_id);
     let t0 = Instant::now();
     let writer = dense_writer(params, dim, embeddings)?;
     let p = DeviceReduce {
@@ -442,12 +444,10 @@ struct ReducedOutputs {
 /// Errors: neither form asked for ([`Error::Invalid`]), the reduction's, I/O.
 fn reduce_outputs(
     store: &aggregate::ContributionStore,
-    means: &[[f32; 3]],
-    dim: usize,
-    params: &EncodeParams,
-    model_id: &str,
+    out: &TailInputs,
     embeddings: &Path,
 ) -> Result<ReducedOutputs> {
+    let (means, dim, params, model_id) = (out.means, out.dim, out.params, out.model_id);
     let t0 = Instant::now();
     let p = params.reduce;
     let Some(writer) = dense_writer(params, dim, embeddings)? else {

@@ -153,9 +153,8 @@ impl SegmentTask {
             .handle
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
-        let widened_to = if handle.is_finished() || threads <= self.threads {
-            self.widened_to
-        } else if self.widened_to.is_some_and(|w| w >= threads) {
+        let pool_threads = self.widened_to.unwrap_or(self.threads);
+        let widened_to = if handle.is_finished() || threads <= pool_threads {
             self.widened_to
         } else {
             self.ctl.set_pool(pool(threads)?);
