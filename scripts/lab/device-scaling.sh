@@ -7,7 +7,7 @@
 #   scripts/lab/device-scaling.sh reduce [N] [VIEWS] [MODES]  # synthetic terrain (default 30M, 16 views; every
 #                                                    # view unless VIEWS="--views ..." is set),
 #                                                    # one bench per --reduce mode in MODES (default
-#                                                    # host,auto,auto), GNU time and GPU memory each
+#                                                    # host,auto,auto), GNU time, GPU memory and an RSS timeline each
 #   scripts/lab/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
 #                                                    # (color-clip all views; ViT-B/16 and color-sam
 #                                                    # every 8th view); rates from device_facts.py
@@ -83,6 +83,8 @@ reduce)
     rm -rf "$W"/out-*  # the disk holds one 30M run's outputs (31 GB dense) at a time
     gpu_mem_watch "$W/gpu-mem-$i.csv" & watch=$!
     start=$(date +%s.%N)
+    # RSS over time (rss-*.tsv: seconds, bytes) and its peak before, in and after the encode's tail.
+    python3 scripts/lab/rss-timeline.py --every 0.25 --out "$R/rss-$i-$m.tsv" --report "$W/out-$i/report.json" -- \
     "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 ${VIEWS:---views all} \
       --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --reduce "$m" --quiet \
       --out "$W/out-$i" > "$W/run-$i.txt" 2>&1
@@ -111,7 +113,7 @@ if seg:
           f"(widened to {seg['widened_to']}), waited {seg['waited_s']:.2f} s; stages "
           + ", ".join(f"{k} {v:.2f}" for k, v in st["stages"].items() if isinstance(v, (int, float))))
 for line in open(log):
-    if "segments written" in line or "error" in line.lower():
+    if "segments written" in line or "rss-timeline" in line or "error" in line.lower():
         print("  " + line.strip()[-300:])
 EOF2
     grep -v XDG_RUNTIME "$W/run-$i.txt" | tail -40 > "$R/run-$i-$m.txt"
