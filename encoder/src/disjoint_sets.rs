@@ -35,10 +35,7 @@ impl<C: Copy> DisjointSets<C> {
 
     /// The root of `x`'s set; points every element on the path from `x` straight at it.
     pub(crate) fn find(&mut self, x: u32) -> u32 {
-        let mut root = x;
-        while self.parent[root as usize] != root {
-            root = self.parent[root as usize];
-        }
+        let root = self.root(x);
         let mut x = x;
         while self.parent[x as usize] != root {
             let next = self.parent[x as usize];
@@ -46,6 +43,21 @@ impl<C: Copy> DisjointSets<C> {
             x = next;
         }
         root
+    }
+
+    /// The root of `x`'s set, without compressing its path (so that threads may share the
+    /// forest).
+    pub(crate) fn root(&self, x: u32) -> u32 {
+        let mut root = x;
+        while self.parent[root as usize] != root {
+            root = self.parent[root as usize];
+        }
+        root
+    }
+
+    /// The number of elements.
+    pub(crate) fn len(&self) -> usize {
+        self.parent.len()
     }
 
     /// The data of the set whose root is `root` (meaningless for an element that is not a root).
@@ -71,6 +83,7 @@ mod tests {
         s.attach(1, 0, 2);
         s.attach(2, 1, 3);
         s.attach(4, 3, 2);
+        assert_eq!((s.root(2), s.parent[2]), (0, 1), "root() leaves the path as it is");
         assert_eq!(s.find(2), 0);
         assert_eq!(s.parent[2], 0, "the path from 2 now points at the root");
         assert_eq!((s.find(4), s.component(3)), (3, 2));

@@ -1,6 +1,8 @@
 //! The Felzenszwalb–Huttenlocher passes (module doc, "Segmentation") over a list of edges: the
 //! union-find forest with each component's size and `Int`.
 
+use rayon::prelude::*;
+
 use super::regions::Regions;
 use super::weights::Edge;
 use crate::disjoint_sets::DisjointSets;
@@ -72,6 +74,15 @@ impl Forest {
             r.absorb(root, if root == a { b } else { a });
         }
     }
+    /// Whether each Gaussian's component has fewer than `min_size` Gaussians now (in parallel,
+    /// the forest read only). As components only grow, the minimum-size pass can join across
+    /// an edge only if one of its ends is in such a component before the pass.
+    pub(super) fn small_members(&self, min_size: usize) -> Vec<bool> {
+        (0..self.len() as u32)
+            .into_par_iter()
+            .map(|x| (self.component(self.root(x)).size as usize) < min_size)
+            .collect()
+    }
     /// The minimum-size pass over `edges` in their order.
     /// Edges that `allowed` refuses are skipped (a mask border).
     #[cfg(test)]
@@ -94,9 +105,9 @@ impl Forest {
         for e in edges {
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
-                && allowed(e)
                 && ((self.component(a).size as usize) < min_size
                     || (self.component(b).size as usize) < min_size)
+                && allowed(e)
                 && regions.as_deref().is_none_or(|r| r.allows(a, b))
             {
                 self.join_regions(a, b, e.weight(), regions.as_deref_mut());

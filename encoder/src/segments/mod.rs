@@ -59,8 +59,12 @@
 //! the same components (their `Int` and sizes carried over); the minimum-size pass then goes
 //! over each tile's edges again and the border edges last. As a tile's inner edges join only
 //! its own Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
-//! (`passes.rs`); the minimum-size pass needs only the inner edges still between two components
-//! after their tile's pass (kept from it), as it would skip the others. Memory: 48 bytes per
+//! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The
+//! minimum-size pass needs only the inner edges still between two components after their
+//! tile's pass (kept from it), as it would skip the others; of those, and of the border edges,
+//! it runs over the ones picked in parallel beforehand that have an end in a component below
+//! the minimum size and that the mask veto lets through (components only grow, so it would
+//! skip the others too). Memory: 48 bytes per
 //! Gaussian for the whole scene (normals, flatness, size, tile, its place in the tile,
 //! union-find) plus the neighbours, the edges of the tiles in flight (at most 1 GiB, about 70
 //! bytes per Gaussian of a tile) and the border edges and those kept.
@@ -253,7 +257,7 @@ pub struct SegmentTimings {
     pub criterion: f64,
     /// The tiles' edges and criterion passes, which run in parallel (wall time).
     pub tile_passes: f64,
-    /// The minimum-size pass (union-find).
+    /// The minimum-size pass: picking its edges (in parallel) and the union-find pass over them.
     pub min_size: f64,
     /// Each Gaussian's root and the canonical ids.
     pub ids: f64,

@@ -24,7 +24,8 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 const TILES_IN_FLIGHT_BYTES: usize = 1 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
-/// inner edges still between components, the border edges its Gaussians own, its edge count.
+/// inner edges still between components, the border edges its Gaussians own, its edge count,
+/// and the seconds of its edges' weights, their sort and the pass.
 struct TilePass {
     roots: Vec<u32>,
     components: Vec<Component>,
@@ -34,47 +35,68 @@ struct TilePass {
     seconds: [f64; 3],
 }
 
-/// Runs tile `t`'s edges and criterion pass on a forest of its own.
-fn tile_pass(
+/// One tile's edges, weighed, the inner ones sorted (local ids), waiting for its criterion
+/// pass; the seconds of the weights and of the sort.
+struct BuiltTile {
+    t: u32,
+    inner: Vec<Edge>,
+    border: Vec<Edge>,
+    seconds: [f64; 2],
+}
+
+/// Tile `t`'s edges with their weights (on all the pool's threads), its inner edges sorted by
+/// `(w, i, j)` in parallel (a total order: the same order whatever the threads).
+fn build_tile(
     t: u32,
     g: &Gaussians,
-    p: &SegmentParams,
     w: &Weigher,
     nb: &Neighbours,
     tm: &TileMembers,
     tile_of: &[u32],
-) -> TilePass {
+) -> BuiltTile {
     let clock = Instant::now();
     let (mut inner, border) = tile_edges(t, &g.means, tm, tile_of, nb, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
-    let sort_s = clock.elapsed().as_secs_f64();
-    let clock = Instant::now();
-    let mut f = Forest::singletons(tm.members[t as usize].len());
-    f.criterion_pass_in(&inner, p.threshold, None);
-    let kept = if p.min_size > 1 {
-        inner
-            .iter()
-            .filter(|e| f.find(e.i) != f.find(e.j))
-            .copied()
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let (roots, components) = f.into_roots();
-    TilePass {
-        roots,
-        components,
-        kept,
+    BuiltTile {
+        t,
+        inner,
         border,
-        inner: inner.len() as u64,
-        seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
+        seconds: [edges_s, clock.elapsed().as_secs_f64()],
     }
 }
 
-/// How many tiles run at once: the pool's threads, fewer where their edges would pass
-/// [`TILES_IN_FLIGHT_BYTES`].
+impl BuiltTile {
+    /// The tile's criterion pass (one thread), on a forest of its own over its `members`.
+    fn criterion(self, p: &SegmentParams, members: usize) -> TilePass {
+        let clock = Instant::now();
+        let mut f = Forest::singletons(members);
+        f.criterion_pass_in(&self.inner, p.threshold, None);
+        let kept = if p.min_size > 1 {
+            self.inner
+                .iter()
+                .filter(|e| f.find(e.i) != f.find(e.j))
+                .copied()
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let (roots, components) = f.into_roots();
+        let [edges_s, sort_s] = self.seconds;
+        TilePass {
+            roots,
+            components,
+            kept,
+            border: self.border,
+            inner: self.inner.len() as u64,
+            seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
+        }
+    }
+}
+
+/// How many tiles may hold their edges at once: the pool's threads, fewer where their edges
+/// would pass [`TILES_IN_FLIGHT_BYTES`].
 fn tiles_at_once(tm: &TileMembers, k: usize) -> usize {
     let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
     let bytes = (largest * 2 * k * std::mem::size_of::<Edge>()).max(1);
@@ -128,7 +150,7 @@ pub(super) fn merge(
     let Some(Tiled {
         mut forest,
         mut border,
-        kept,
+        mut kept,
         inner,
     }) = tiled
     else {
@@ -143,15 +165,39 @@ pub(super) fn merge(
     forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
     let clock = Instant::now();
+    let border_count = border.len() as u64;
     if p.min_size > 1 {
-        let allowed = |e: &Edge| w.may_absorb(e);
-        for edges in kept.iter().chain(std::iter::once(&border)) {
-            forest.min_size_pass_in(edges, p.min_size, allowed, regions.as_mut());
-        }
+        kept.push(border);
+        let edges = ctl.run(|| min_size_candidates(&forest, kept, p.min_size, w));
+        forest.min_size_pass_in(&edges, p.min_size, |_| true, regions.as_mut());
     }
     st.min_size += clock.elapsed().as_secs_f64();
-    let count = inner + border.len() as u64;
-    (Some(forest), count, border.len() as u64)
+    (Some(forest), inner + border_count, border_count)
+}
+
+/// The edges of `lists` (one list after the other, each in its order) that the minimum-size
+/// pass could join across, in parallel: those with an end in a component of fewer than
+/// `min_size` Gaussians now and that `w` lets it join ([`Weigher::may_absorb`]). The pass over
+/// them alone joins what the pass over all of `lists` joins: components only grow, so an edge
+/// between two components of `min_size` or more now never qualifies, and the mask veto is the
+/// edge's own. Each list is freed once filtered.
+fn min_size_candidates(
+    forest: &Forest,
+    lists: Vec<Vec<Edge>>,
+    min_size: usize,
+    w: &Weigher,
+) -> Vec<Edge> {
+    let small = forest.small_members(min_size);
+    let mut out = Vec::new();
+    for list in lists {
+        let part: Vec<Edge> = list
+            .par_iter()
+            .filter(|e| (small[e.i as usize] || small[e.j as usize]) && w.may_absorb(e))
+            .copied()
+            .collect();
+        out.extend(part);
+    }
+    out
 }
 
 /// What every tile's pass reads.
@@ -166,28 +212,34 @@ struct Run<'a> {
 }
 
 impl Run<'_> {
-    /// The tiles' criterion passes, [`tiles_at_once`] at a time, each on a forest of its own;
-    /// `None` once stopped. Each wave's size is taken from the pool it runs on, so that a
-    /// segmentation whose pool was widened (the encode ended) runs more tiles at once from then
-    /// on; the tiles are independent, so the waves change no result.
+    /// The tiles' criterion passes, each on a forest of its own; `None` once stopped. The
+    /// tiles go in waves, and while one wave runs its criterion passes (one thread per tile)
+    /// the next wave's edges are weighed and sorted on the other threads; two waves of half
+    /// [`tiles_at_once`] each hold edges at a time (one wave, not overlapped, where only one
+    /// tile fits). Each wave's size is taken from the pool it runs on, so that a segmentation
+    /// whose pool was widened (the encode ended) runs more tiles at once from then on; the
+    /// tiles are independent, so the waves change no result.
     fn parallel_tiles(&self, st: &mut SegmentTimings) -> Option<Tiled> {
-        let tiles = self.tm.members.len();
-        let mut passes: Vec<TilePass> = Vec::with_capacity(tiles);
-        let order: Vec<u32> = (0..tiles as u32).collect();
-        let mut rest = &order[..];
-        while !rest.is_empty() {
+        let tiles = self.tm.members.len() as u32;
+        let mut passes: Vec<TilePass> = Vec::with_capacity(tiles as usize);
+        let (mut next, mut waiting) = (0u32, Vec::new());
+        while next < tiles || !waiting.is_empty() {
             let at_once = self.ctl.run(|| tiles_at_once(self.tm, self.p.neighbours));
-            let (wave, later) = rest.split_at(at_once.min(rest.len()));
-            rest = later;
-            let done: Vec<TilePass> = self.ctl.run(|| {
-                wave.par_iter()
-                    .map(|&t| tile_pass(t, self.g, self.p, self.w, self.nb, self.tm, self.tile_of))
-                    .collect()
-            });
+            let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
+            next = wave.end;
+            let prev = std::mem::take(&mut waiting);
+            let (done, built) = if at_once >= 2 {
+                self.ctl
+                    .run(|| rayon::join(|| self.criteria(prev), || self.build(wave)))
+            } else {
+                let done = self.ctl.run(|| self.criteria(prev));
+                (done, self.ctl.run(|| self.build(wave)))
+            };
             if self.ctl.stopped() {
                 return None;
             }
             passes.extend(done);
+            waiting = built;
         }
         for pass in &passes {
             st.weights += pass.seconds[0];
@@ -197,7 +249,7 @@ impl Run<'_> {
         let forest = self.ctl.run(|| self.scene_forest(&passes));
         let inner = passes.iter().map(|t| t.inner).sum();
         let mut border = Vec::new();
-        let mut kept = Vec::with_capacity(tiles);
+        let mut kept = Vec::with_capacity(tiles as usize);
         for (t, pass) in passes.into_iter().enumerate() {
             border.extend(pass.border);
             let m = &self.tm.members[t];
@@ -214,6 +266,24 @@ impl Run<'_> {
             kept,
             inner,
         })
+    }
+
+    /// The edges of the tiles `wave`, weighed and sorted.
+    fn build(&self, wave: std::ops::Range<u32>) -> Vec<BuiltTile> {
+        wave.into_par_iter()
+            .map(|t| build_tile(t, self.g, self.w, self.nb, self.tm, self.tile_of))
+            .collect()
+    }
+
+    /// The criterion passes of `built`, one thread per tile.
+    fn criteria(&self, built: Vec<BuiltTile>) -> Vec<TilePass> {
+        built
+            .into_par_iter()
+            .map(|b| {
+                let members = self.tm.members[b.t as usize].len();
+                b.criterion(self.p, members)
+            })
+            .collect()
     }
 
     /// The scene's forest from the tiles' own: each Gaussian's root and its component.
