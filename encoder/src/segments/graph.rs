@@ -6,7 +6,7 @@ use std::sync::atomic::AtomicBool;
 use rayon::prelude::*;
 
 use super::SegmentParams;
-use super::weights::{Edge, Geometry, Weigher};
+use super::weights::{Edge, Geometry, Weigher, distance};
 
 /// Each Gaussian's neighbours in the graph: `k` slots per Gaussian, the nearest other means
 /// within `max_edge` in ascending `(distance, id)` order, [`NO_NEIGHBOUR`] in unused slots.
@@ -66,43 +66,65 @@ impl TileMembers {
     }
 }
 
+/// The geometric part of every neighbour slot's edge weight ([`Geometry::geometric`] of
+/// Gaussian `i` and its slot's neighbour `j`), `k` per Gaussian in the scene's id order (slot `s`
+/// of Gaussian `i` at `i k + s`), 0 in unused slots. It needs no masks, so it is computed
+/// before the masks' record arrives (beside the encode); afterwards an edge's weight only adds
+/// the mask term. 4 bytes per slot (40 per Gaussian at k = 10).
+pub(super) fn slot_geometry(
+    means: &[[f32; 3]],
+    nb: &Neighbours,
+    geo: &Geometry,
+    p: &SegmentParams,
+) -> Vec<f32> {
+    let mut out = vec![0.0f32; means.len() * nb.k];
+    out.par_chunks_mut(nb.k.max(1) * 1024)
+        .enumerate()
+        .for_each(|(c, part)| {
+            for (l, slots) in part.chunks_mut(nb.k.max(1)).enumerate() {
+                let i = c * 1024 + l;
+                for (s, j) in nb.of(i).enumerate() {
+                    let d = distance(means[i], means[j as usize]);
+                    slots[s] = geo.geometric(p, i, j as usize, d);
+                }
+            }
+        });
+    out
+}
+
 /// The graph's edges owned by tile `t`'s Gaussians: the inner ones (both ends in the tile) in
 /// the tile's local ids (`members` order, which keeps the ids' order), and the border ones
-/// (one end outside), in scene ids; both unordered.
+/// (one end outside), in scene ids; both unordered. `geometric` is [`slot_geometry`]'s.
 ///
 /// An edge `(i, j)` of Gaussian `i` has the weight `w(i, j)` (the weights are not exactly
 /// symmetric in rounding); when `j` lists `i` too, `w(j, i)` is an edge as well unless both
 /// weights are the same (one edge then): the edges of each Gaussian's list, deduplicated.
 pub(super) fn tile_edges(
     t: u32,
-    means: &[[f32; 3]],
+    geometric: &[f32],
     tiles: &TileMembers,
     tile_of: &[u32],
     nb: &Neighbours,
     w: &Weigher,
 ) -> (Vec<Edge>, Vec<Edge>) {
-    let members = &tiles.members[t as usize];
+    let (members, k) = (&tiles.members[t as usize], nb.k);
     let parts: Vec<(Vec<Edge>, Vec<Edge>)> = members
         .par_chunks(4096)
         .map(|chunk| {
             let (mut inner, mut border) = (Vec::new(), Vec::new());
             for &i in chunk {
-                for j in nb.of(i as usize) {
-                    let mutual = nb.of(j as usize).any(|x| x == i);
-                    if mutual && j < i {
+                let iu = i as usize;
+                for (s, j) in nb.of(iu).enumerate() {
+                    let ju = j as usize;
+                    let back = nb.of(ju).position(|x| x == i);
+                    if back.is_some() && j < i {
                         continue;
                     }
-                    let (a, b) = (means[i as usize], means[j as usize]);
-                    let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2))
-                        .sqrt();
-                    let wij = w.weight(i as usize, j as usize, d).to_bits();
-                    let wji = if mutual {
-                        w.weight(j as usize, i as usize, d).to_bits()
-                    } else {
-                        wij
-                    };
+                    let wij = w.weight(geometric[iu * k + s], iu, ju).to_bits();
+                    let wji =
+                        back.map_or(wij, |b| w.weight(geometric[ju * k + b], ju, iu).to_bits());
                     let (lo, hi) = (i.min(j), i.max(j));
-                    let (out, lo, hi) = if tile_of[j as usize] == t {
+                    let (out, lo, hi) = if tile_of[ju] == t {
                         let l = |g: u32| tiles.local_of[g as usize];
                         (&mut inner, l(lo), l(hi))
                     } else {

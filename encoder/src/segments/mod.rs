@@ -101,7 +101,7 @@ use slag_common::segments::canonical_ids;
 use slag_common::{Error, Result};
 
 use crate::check::require;
-use graph::{neighbour_graph, resolve_max_edge};
+use graph::{neighbour_graph, resolve_max_edge, slot_geometry};
 use passes::merge;
 use tiles::plan_tiles;
 use weights::{Weigher, geometry};
@@ -247,9 +247,12 @@ pub struct SegmentTimings {
     pub tiles: f64,
     /// The k-nearest-neighbour search of the means.
     pub neighbours: f64,
+    /// The geometric part of every edge's weight (before the masks' record).
+    pub edge_geometry: f64,
     /// Waiting for the masks' record (the encode's last view).
     pub record_wait: f64,
-    /// The edges and their weights (the mask term included), summed over the tiles.
+    /// The edges and their weights (their geometric part read from the `edge_geometry` stage's,
+    /// the mask term added), summed over the tiles.
     pub weights: f64,
     /// Sorting the edges, summed over the tiles, and the border edges.
     pub sort: f64,
@@ -375,6 +378,12 @@ pub fn segment_with(
         return Ok(None);
     };
     st.neighbours = lap(&mut t);
+    let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
+    drop(geo);
+    st.edge_geometry = lap(&mut t);
+    if ctl.stopped() {
+        return Ok(None);
+    }
     let record = masks();
     st.record_wait = lap(&mut t);
     if ctl.stopped() {
@@ -394,10 +403,15 @@ pub fn segment_with(
     }
     let w = Weigher {
         p,
-        geo: &geo,
         masks: record.as_deref(),
     };
-    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &nb, &tile_of, rects.len(), &mut st);
+    let graph = passes::Graph {
+        nb: &nb,
+        geometric: &geometric,
+        tile_of: &tile_of,
+        tiles: rects.len(),
+    };
+    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &graph, &mut st);
     let forest = match forest {
         Some(f) => f,
         None => return Ok(None),

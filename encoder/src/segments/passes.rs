@@ -44,18 +44,28 @@ struct BuiltTile {
     seconds: [f64; 2],
 }
 
+/// The neighbour graph the passes take their edges from: each Gaussian's neighbours, the
+/// geometric part of each neighbour slot's weight ([`super::graph::slot_geometry`]), each
+/// Gaussian's tile and the tile count.
+pub(super) struct Graph<'a> {
+    pub(super) nb: &'a Neighbours,
+    pub(super) geometric: &'a [f32],
+    pub(super) tile_of: &'a [u32],
+    pub(super) tiles: usize,
+}
+
+impl Graph<'_> {
+    /// [`tile_edges`] of tile `t`.
+    fn edges(&self, t: u32, tm: &TileMembers, w: &Weigher) -> (Vec<Edge>, Vec<Edge>) {
+        tile_edges(t, self.geometric, tm, self.tile_of, self.nb, w)
+    }
+}
+
 /// Tile `t`'s edges with their weights (on all the pool's threads), its inner edges sorted by
 /// `(w, i, j)` in parallel (a total order: the same order whatever the threads).
-fn build_tile(
-    t: u32,
-    g: &Gaussians,
-    w: &Weigher,
-    nb: &Neighbours,
-    tm: &TileMembers,
-    tile_of: &[u32],
-) -> BuiltTile {
+fn build_tile(t: u32, graph: &Graph, w: &Weigher, tm: &TileMembers) -> BuiltTile {
     let clock = Instant::now();
-    let (mut inner, border) = tile_edges(t, &g.means, tm, tile_of, nb, w);
+    let (mut inner, border) = graph.edges(t, tm, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
@@ -123,12 +133,10 @@ pub(super) fn merge(
     p: &SegmentParams,
     ctl: &SegmentControl,
     w: &Weigher,
-    nb: &Neighbours,
-    tile_of: &[u32],
-    tiles: usize,
+    graph: &Graph,
     st: &mut SegmentTimings,
 ) -> (Option<Forest>, u64, u64) {
-    let tm = TileMembers::new(tile_of, tiles);
+    let tm = TileMembers::new(graph.tile_of, graph.tiles);
     let mut regions = w
         .masks
         .filter(|_| p.region_veto < 1.0)
@@ -139,9 +147,8 @@ pub(super) fn merge(
         p,
         ctl,
         w,
-        nb,
+        graph,
         tm: &tm,
-        tile_of,
     };
     let tiled = match regions.as_mut() {
         None => run.parallel_tiles(st),
@@ -206,9 +213,8 @@ struct Run<'a> {
     p: &'a SegmentParams,
     ctl: &'a SegmentControl,
     w: &'a Weigher<'a>,
-    nb: &'a Neighbours,
+    graph: &'a Graph<'a>,
     tm: &'a TileMembers,
-    tile_of: &'a [u32],
 }
 
 impl Run<'_> {
@@ -271,7 +277,7 @@ impl Run<'_> {
     /// The edges of the tiles `wave`, weighed and sorted.
     fn build(&self, wave: std::ops::Range<u32>) -> Vec<BuiltTile> {
         wave.into_par_iter()
-            .map(|t| build_tile(t, self.g, self.w, self.nb, self.tm, self.tile_of))
+            .map(|t| build_tile(t, self.graph, self.w, self.tm))
             .collect()
     }
 
@@ -288,7 +294,7 @@ impl Run<'_> {
 
     /// The scene's forest from the tiles' own: each Gaussian's root and its component.
     fn scene_forest(&self, passes: &[TilePass]) -> Forest {
-        let (tm, tile_of) = (self.tm, self.tile_of);
+        let (tm, tile_of) = (self.tm, self.graph.tile_of);
         let (parent, components) = (0..tile_of.len())
             .into_par_iter()
             .map(|i| {
@@ -309,16 +315,7 @@ impl Run<'_> {
         let (mut border, mut kept, mut inner) = (Vec::new(), Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
-            let (mut local, b) = self.ctl.run(|| {
-                tile_edges(
-                    t as u32,
-                    &self.g.means,
-                    self.tm,
-                    self.tile_of,
-                    self.nb,
-                    self.w,
-                )
-            });
+            let (mut local, b) = self.ctl.run(|| self.graph.edges(t as u32, self.tm, self.w));
             self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;

@@ -18,7 +18,7 @@ use super::forest::Forest;
 use super::graph::{NO_NEIGHBOUR, Neighbours, resolve_max_edge};
 use super::regions::Regions;
 use super::tiles::plan_tiles;
-use super::weights::{Edge, Weigher, geometry};
+use super::weights::{Edge, Geometry, Weigher, distance, geometry};
 
 /// The segment ids (canonical) of `g` by the old implementation.
 pub(super) fn segment_ids(
@@ -30,12 +30,8 @@ pub(super) fn segment_ids(
     let h = resolve_max_edge(p, &geo);
     let (ax, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
     let nb = neighbour_graph(g, p, h, ax, &tile_of, &rects);
-    let w = Weigher {
-        p,
-        geo: &geo,
-        masks,
-    };
-    let mut forest = merge(g, p, &w, &nb, &tile_of, rects.len());
+    let w = Weigher { p, masks };
+    let mut forest = merge(g, p, &geo, &w, &nb, &tile_of, rects.len());
     let roots: Vec<u32> = (0..g.len() as u32).map(|i| forest.find(i)).collect();
     canonical_ids(&roots).0
 }
@@ -128,6 +124,7 @@ pub(super) fn tile_neighbours(
 fn edges_of_tile(
     t: u32,
     means: &[[f32; 3]],
+    geo: &Geometry,
     tile_of: &[u32],
     nb: &Neighbours,
     w: &Weigher,
@@ -138,11 +135,10 @@ fn edges_of_tile(
         .map(|i| {
             let (mut inn, mut bor) = (Vec::new(), Vec::new());
             for j in nb.of(i as usize) {
-                let (a, b) = (means[i as usize], means[j as usize]);
-                let d =
-                    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+                let d = distance(means[i as usize], means[j as usize]);
+                let (i_, j_) = (i as usize, j as usize);
                 let e = Edge {
-                    w: w.weight(i as usize, j as usize, d).to_bits(),
+                    w: w.weight(geo.geometric(w.p, i_, j_, d), i_, j_).to_bits(),
                     i: i.min(j),
                     j: i.max(j),
                 };
@@ -165,6 +161,7 @@ fn edges_of_tile(
 fn merge(
     g: &Gaussians,
     p: &SegmentParams,
+    geo: &Geometry,
     w: &Weigher,
     nb: &Neighbours,
     tile_of: &[u32],
@@ -177,7 +174,7 @@ fn merge(
         .map(|r| Regions::new(r, p.region_veto));
     let mut border: Vec<Edge> = Vec::new();
     for t in 0..tiles {
-        let (inner, b) = edges_of_tile(t as u32, &g.means, tile_of, nb, w);
+        let (inner, b) = edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w);
         forest.criterion_pass_in(&inner, p.threshold, regions.as_mut());
         border.extend(b);
     }
@@ -187,7 +184,7 @@ fn merge(
     if p.min_size > 1 {
         let allowed = |e: &Edge| w.may_absorb(e);
         for t in 0..tiles {
-            let (inner, _) = edges_of_tile(t as u32, &g.means, tile_of, nb, w);
+            let (inner, _) = edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w);
             forest.min_size_pass_in(&inner, p.min_size, allowed, regions.as_mut());
         }
         forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
@@ -201,12 +198,8 @@ pub(super) fn all_edges(g: &Gaussians, p: &SegmentParams) -> Vec<Edge> {
     let h = resolve_max_edge(p, &geo);
     let (ax, one, rects) = plan_tiles(&g.means, usize::MAX);
     let nb = neighbour_graph(g, p, h, ax, &one, &rects);
-    let w = Weigher {
-        p,
-        geo: &geo,
-        masks: None,
-    };
-    let (all, none) = edges_of_tile(0, &g.means, &one, &nb, &w);
+    let w = Weigher { p, masks: None };
+    let (all, none) = edges_of_tile(0, &g.means, &geo, &one, &nb, &w);
     assert!(none.is_empty());
     all
 }

@@ -81,17 +81,10 @@ impl Edge {
     }
 }
 
-/// The edge weights: the geometric terms and, with a masks' record, the mask term (module doc).
-pub(super) struct Weigher<'a> {
-    pub(super) p: &'a SegmentParams,
-    pub(super) geo: &'a Geometry,
-    pub(super) masks: Option<&'a MaskRecord>,
-}
-
-impl Weigher<'_> {
-    /// The geometric part of the weight of edge `(i, j)` of length `d`.
-    fn geometric(&self, i: usize, j: usize, d: f32) -> f32 {
-        let (p, geo) = (self.p, self.geo);
+impl Geometry {
+    /// The geometric part of the weight of edge `(i, j)` of length `d` under `p`'s weights.
+    pub(super) fn geometric(&self, p: &SegmentParams, i: usize, j: usize, d: f32) -> f32 {
+        let geo = self;
         let (ni, nj) = (geo.normals[i], geo.normals[j]);
         let dot = (ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2])
             .abs()
@@ -107,7 +100,21 @@ impl Weigher<'_> {
         };
         p.normal_weight * normal + p.distance_weight * gap + p.shape_weight * shape
     }
+}
 
+/// The distance `|a − b|` of two means (scene units).
+pub(super) fn distance(a: [f32; 3], b: [f32; 3]) -> f32 {
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+}
+
+/// The edge weights from their geometric part ([`Geometry::geometric`]) and, with a masks'
+/// record, the mask term (module doc).
+pub(super) struct Weigher<'a> {
+    pub(super) p: &'a SegmentParams,
+    pub(super) masks: Option<&'a MaskRecord>,
+}
+
+impl Weigher<'_> {
     /// The mask disagreement `m ∈ [0, 1]` of `(i, j)`: the record's, or
     /// [`SegmentParams::mask_unknown`] when the two share no recorded view; `None` without a
     /// record.
@@ -116,9 +123,10 @@ impl Weigher<'_> {
             .map(|r| r.disagreement(i, j).unwrap_or(self.p.mask_unknown))
     }
 
-    /// The weight of edge `(i, j)` of length `d` (≥ 0; non-finite → `f32::MAX`).
-    pub(super) fn weight(&self, i: usize, j: usize, d: f32) -> f32 {
-        let mut w = self.geometric(i, j, d);
+    /// The weight of edge `(i, j)` whose geometric part is `geometric`: that plus the mask
+    /// term (≥ 0; non-finite → `f32::MAX`).
+    pub(super) fn weight(&self, geometric: f32, i: usize, j: usize) -> f32 {
+        let mut w = geometric;
         if let Some(m) = self.disagreement(i, j) {
             w += self.p.mask_weight * m;
         }
