@@ -64,10 +64,13 @@
 //! tile's pass (kept from it), as it would skip the others; of those, and of the border edges,
 //! it runs over the ones picked in parallel beforehand that have an end in a component below
 //! the minimum size and that the mask veto lets through (components only grow, so it would
-//! skip the others too). Memory: 48 bytes per
-//! Gaussian for the whole scene (normals, flatness, size, tile, its place in the tile,
-//! union-find) plus the neighbours, the edges of the tiles in flight (at most 1 GiB, about 70
-//! bytes per Gaussian of a tile) and the border edges and those kept.
+//! skip the others too). The geometric part of each
+//! neighbour's edge weight needs no masks: it is computed before the record arrives, so that
+//! afterwards an edge's weight only adds the mask term. Memory: 28 bytes per Gaussian for the
+//! whole scene (tile, its place in the tile, union-find; normals, flatness and size, 20 more,
+//! until the geometric parts are computed) plus the neighbours and the geometric parts (4 bytes
+//! each per slot), the edges of the tiles in flight (at most 1 GiB, about 70 bytes per Gaussian
+//! of a tile) and the border edges and those kept.
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same
 //! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
