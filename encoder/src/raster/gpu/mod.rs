@@ -444,6 +444,97 @@ fn upload_geometry(
     ]
 }
 
+/// Validation step: the Gaussians' arrays agree in length and their count fits a u32.
+fn gaussian_count(gaussians: &Gaussians) -> Result<u32> {
+    let n = gaussians.len();
+    if gaussians.scales.len() != n
+        || gaussians.rotations.len() != n
+        || gaussians.opacities.len() != n
+    {
+        return Err(Error::internal(
+            "Gaussians arrays (means/scales/rotations/opacities) have different lengths",
+        ));
+    }
+    u32::try_from(n)
+        .map_err(|_| Error::Invalid(format!("{n} Gaussians exceed the 2^32 - 1 supported")))
+}
+
+/// Device step: opens the adapter's device with its own limits, and f64 where it has it.
+fn open_device(
+    adapter: &wgpu::Adapter,
+    info: &wgpu::AdapterInfo,
+    limits: &wgpu::Limits,
+) -> Result<(wgpu::Device, wgpu::Queue)> {
+    pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        label: Some("slag-raster"),
+        // f64 for the device reduction (ek.wgsl), where the adapter has it.
+        required_features: adapter.features() & wgpu::Features::SHADER_F64,
+        required_limits: limits.clone(),
+        ..Default::default()
+    }))
+    .map_err(|e| gpu_err(&format!("cannot open device {}", info.name), e))
+}
+
+/// Limits step: `n` Gaussians' largest per-Gaussian buffer (the splats) fits one binding.
+fn check_gaussians_fit(n: usize, limits: &wgpu::Limits) -> Result<()> {
+    let max_bind = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    let per_g = 32u64; // largest per-Gaussian buffer: splats, 32 B
+    if n as u64 * per_g > max_bind {
+        return Err(Error::Gpu(format!(
+            "{n} Gaussians need {} MiB buffers but the device allows {} MiB per binding; \
+             use a GPU with larger limits or a smaller scene",
+            (n as u64 * per_g) >> 20,
+            max_bind >> 20
+        )));
+    }
+    Ok(())
+}
+
+/// Scratch step: the per-Gaussian buffers every view rewrites for `n` Gaussians: splats, tile
+/// rects (`isect`), sort depths, tile counts (`n + 1` words) and their scan's block sums.
+fn per_view_scratch(device: &wgpu::Device, n: u32) -> [wgpu::Buffer; 5] {
+    let n64 = u64::from(n);
+    [
+        storage(device, "splats", n64 * 32),
+        storage(device, "isect", n64 * 8),
+        storage(device, "sort_depths", n64 * 4),
+        storage(device, "tile_counts", (n64 + 1) * 4),
+        storage(
+            device,
+            "tile_count_sums",
+            (u64::from(n.div_ceil(SCAN_BLOCK)) + 1) * 4,
+        ),
+    ]
+}
+
+impl Pipelines {
+    /// Kernel step: compiles the joined WGSL ([`SHADER`]) and every entry point's pipeline.
+    fn compile(device: &wgpu::Device) -> Self {
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("slag-raster kernels"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let pipe = |entry: &str| compute_pipeline(device, &module, entry);
+        Pipelines {
+            project: pipe("project"),
+            blend: pipe("blend"),
+            blend_sums: pipe("blend_sums"),
+            scan_local: pipe("scan_local"),
+            scan_blocks: pipe("scan_blocks"),
+            scan_add: pipe("scan_add"),
+            emit: pipe("emit"),
+            radix_count: pipe("radix_count"),
+            radix_scatter: pipe("radix_scatter"),
+            tile_bounds: pipe("tile_bounds"),
+            record_keys: pipe("record_keys"),
+            record_heads: pipe("record_heads"),
+            record_sums: pipe("record_sums"),
+        }
+    }
+}
+
 impl GpuRasterizer {
     /// Creates the device (see [`ADAPTER_ENV`] for adapter choice), compiles the kernels and
     /// uploads the Gaussians' geometry once (`3 × 16 B` per Gaussian, plus `48 B` of per-view
@@ -507,74 +598,20 @@ impl GpuRasterizer {
 
     /// The rasterizer on one given adapter (see [`GpuRasterizer::new`]).
     fn with_adapter(gaussians: &Gaussians, adapter: wgpu::Adapter) -> Result<Self> {
+        let n32 = gaussian_count(gaussians)?;
         let n = gaussians.len();
-        if gaussians.scales.len() != n
-            || gaussians.rotations.len() != n
-            || gaussians.opacities.len() != n
-        {
-            return Err(Error::internal(
-                "Gaussians arrays (means/scales/rotations/opacities) have different lengths",
-            ));
-        }
-        let n32 = u32::try_from(n)
-            .map_err(|_| Error::Invalid(format!("{n} Gaussians exceed the 2^32 - 1 supported")))?;
         let info = adapter.get_info();
         let limits = adapter.limits();
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("slag-raster"),
-            // f64 for the device reduction (ek.wgsl), where the adapter has it.
-            required_features: adapter.features() & wgpu::Features::SHADER_F64,
-            required_limits: limits.clone(),
-            ..Default::default()
-        }))
-        .map_err(|e| gpu_err(&format!("cannot open device {}", info.name), e))?;
+        let (device, queue) = open_device(&adapter, &info, &limits)?;
         let name = format!("wgpu-vulkan {} ({:?})", info.name, info.device_type);
         tracing::info!(adapter = %name, gaussians = n, "weight rasterizer device");
-
-        let max_bind = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
-        let per_g = 32u64; // largest per-Gaussian buffer: splats, 32 B
-        if n as u64 * per_g > max_bind {
-            return Err(Error::Gpu(format!(
-                "{n} Gaussians need {} MiB buffers but the device allows {} MiB per binding; \
-                 use a GPU with larger limits or a smaller scene",
-                (n as u64 * per_g) >> 20,
-                max_bind >> 20
-            )));
-        }
+        check_gaussians_fit(n, &limits)?;
         let scope = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let origin = scene_origin(&gaussians.means);
         let [means_opac, scales, quats] = upload_geometry(&device, gaussians, origin);
-        let splats = storage(&device, "splats", n as u64 * 32);
-        let isect = storage(&device, "isect", n as u64 * 8);
-        let sort_depths = storage(&device, "sort_depths", n as u64 * 4);
-        let tile_counts = storage(&device, "tile_counts", (n as u64 + 1) * 4);
-        let tile_count_sums = storage(
-            &device,
-            "tile_count_sums",
-            (u64::from(n32.div_ceil(SCAN_BLOCK)) + 1) * 4,
-        );
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("slag-raster kernels"),
-            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
-        });
-        let pipe = |entry: &str| compute_pipeline(&device, &module, entry);
-        let pipelines = Pipelines {
-            project: pipe("project"),
-            blend: pipe("blend"),
-            blend_sums: pipe("blend_sums"),
-            scan_local: pipe("scan_local"),
-            scan_blocks: pipe("scan_blocks"),
-            scan_add: pipe("scan_add"),
-            emit: pipe("emit"),
-            radix_count: pipe("radix_count"),
-            radix_scatter: pipe("radix_scatter"),
-            tile_bounds: pipe("tile_bounds"),
-            record_keys: pipe("record_keys"),
-            record_heads: pipe("record_heads"),
-            record_sums: pipe("record_sums"),
-        };
+        let [splats, isect, sort_depths, tile_counts, tile_count_sums] =
+            per_view_scratch(&device, n32);
+        let pipelines = Pipelines::compile(&device);
         if let Some(e) = pollster::block_on(scope.pop()) {
             return Err(gpu_err("creating the rasterizer kernels/buffers failed", e));
         }
