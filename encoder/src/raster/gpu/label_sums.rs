@@ -86,106 +86,157 @@ impl GpuRasterizer {
         b: &Binned,
         labels: &[u32],
     ) -> Result<(LabelSums, f64)> {
-        let k = view.k;
-        if labels.len() != view.n_pix as usize {
-            return Err(Error::internal(format!(
-                "{} pixel labels for a {}x{} raster; pass one label per raster pixel",
-                labels.len(),
-                k.width,
-                k.height
-            )));
-        }
+        check_labels(view, labels)?;
         let labels_buf = storage_init(&self.device, "labels", bytemuck::cast_slice(labels));
         let max_records = self.max_label_records();
         let mut kept = self.label_out.take();
-        let mut records = Vec::new();
-        let mut contributions = 0u64;
-        let mut retries = 0u32;
-        let (mut written, mut bands) = (0u64, 0u32);
+        let mut tally = BandTally::default();
         // The radix passes of the device reduction cover the label bits up to the largest.
         let max_label = labels.iter().copied().max().unwrap_or(0);
-        let mut host = std::time::Duration::ZERO;
         let mut rows = view.tiles_y;
         let mut r0 = 0u32;
         while r0 < view.tiles_y {
             let r1 = (r0 + rows).min(view.tiles_y);
             let capacity = self.label_records.clamp(1, max_records);
             let out = self.record_buffers(kept.take(), capacity);
-            self.noise(&out.records, SEED_SALT + 6 + u64::from(r0));
-            view.params.tile_y0 = r0;
-            view.params.out_cap = capacity as u32;
-            self.write_params(view);
-            let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(&out.records, 0, Some(HEADER_BYTES));
-            {
-                let bg = self.bind(
-                    &self.pipelines.blend_sums,
-                    &[
-                        (0, &view.params_buf),
-                        (4, &self.splats),
-                        (6, &b.ranges),
-                        (7, &b.sorted_ids),
-                        (12, &labels_buf),
-                        (13, &out.records),
-                    ],
-                );
-                let mut pass = enc.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&self.pipelines.blend_sums);
-                pass.set_bind_group(0, &bg, &[]);
-                pass.dispatch_workgroups(view.tiles_x, r1 - r0, 1);
-            }
-            enc.copy_buffer_to_buffer(&out.records, 0, &out.staging, 0, HEADER_BYTES);
-            let mut header = [0u32; 4];
-            self.submit_and_map(enc, &[(&out.staging, HEADER_BYTES)], |_, bytes| {
-                header = bytemuck::pod_read_unaligned(bytes);
-            })?;
+            let header = self.dispatch_band(view, b, &labels_buf, &out, (r0, r1), capacity)?;
             let wanted = u64::from(header[0]);
             if wanted > capacity {
                 // The band did not fit: re-run it with room for its records, or split it.
-                retries += 1;
-                if wanted <= max_records {
-                    self.label_records = (wanted + wanted / 4).min(max_records);
-                } else if r1 - r0 > 1 {
-                    self.label_records = max_records;
-                    rows = (r1 - r0) / 2;
-                } else {
-                    return Err(Error::limit(
-                        Resource::GpuBinding,
-                        format!(
-                            "{} MiB of label-sum records for one row of tiles of the {}x{} \
-                             weight raster",
-                            (wanted * RECORD_BYTES) >> 20,
-                            k.width,
-                            k.height
-                        ),
-                        format!("{} MiB per binding", (max_records * RECORD_BYTES) >> 20),
-                    ));
-                }
+                tally.retries += 1;
+                self.grow_or_split(view, wanted, max_records, r1 - r0, &mut rows)?;
                 kept = Some(out);
                 continue;
             }
-            contributions += (u64::from(header[2]) << 32) | u64::from(header[1]);
-            written += wanted;
+            tally.contributions += (u64::from(header[2]) << 32) | u64::from(header[1]);
+            tally.written += wanted;
             if wanted > 0 {
-                bands += 1;
-                host += self.band_records(view, &out, wanted, max_label, &mut records)?;
+                tally.bands += 1;
+                tally.host +=
+                    self.band_records(view, &out, wanted, max_label, &mut tally.records)?;
             }
             kept = Some(out);
             r0 = r1;
         }
         self.label_out = kept;
-        self.label_retries = retries;
-        self.label_record_count = written;
+        self.label_retries = tally.retries;
+        self.label_record_count = tally.written;
         Ok((
             LabelSums {
-                records,
-                contributions,
+                records: tally.records,
+                contributions: tally.contributions,
                 // Keys of several bands may repeat across them.
-                sorted: self.reduce_on_device && bands <= 1,
+                sorted: self.reduce_on_device && tally.bands <= 1,
             },
-            host.as_secs_f64() * 1e3,
+            tally.host.as_secs_f64() * 1e3,
         ))
     }
+
+    /// Dispatch step: runs `blend_sums` over the tile rows `[r0, r1)` into `out` (room for
+    /// `capacity` records, header cleared first) and reads back the 4-word header: records
+    /// wanted, contributions low and high word.
+    fn dispatch_band(
+        &self,
+        view: &mut View,
+        b: &Binned,
+        labels_buf: &wgpu::Buffer,
+        out: &RecordBuffers,
+        (r0, r1): (u32, u32),
+        capacity: u64,
+    ) -> Result<[u32; 4]> {
+        self.noise(&out.records, SEED_SALT + 6 + u64::from(r0));
+        view.params.tile_y0 = r0;
+        view.params.out_cap = capacity as u32;
+        self.write_params(view);
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        enc.clear_buffer(&out.records, 0, Some(HEADER_BYTES));
+        {
+            let bg = self.bind(
+                &self.pipelines.blend_sums,
+                &[
+                    (0, &view.params_buf),
+                    (4, &self.splats),
+                    (6, &b.ranges),
+                    (7, &b.sorted_ids),
+                    (12, labels_buf),
+                    (13, &out.records),
+                ],
+            );
+            let mut pass = enc.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.blend_sums);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(view.tiles_x, r1 - r0, 1);
+        }
+        enc.copy_buffer_to_buffer(&out.records, 0, &out.staging, 0, HEADER_BYTES);
+        let mut header = [0u32; 4];
+        self.submit_and_map(enc, &[(&out.staging, HEADER_BYTES)], |_, bytes| {
+            header = bytemuck::pod_read_unaligned(bytes);
+        })?;
+        Ok(header)
+    }
+
+    /// Overflow step: a band of `band_rows` tile rows wanted `wanted` records past its buffer;
+    /// the next run gets room for them (a quarter more), or, past one binding, half the rows.
+    ///
+    /// Errors: one row of tiles wants more than one binding holds ([`Error::Limit`]).
+    fn grow_or_split(
+        &mut self,
+        view: &View,
+        wanted: u64,
+        max_records: u64,
+        band_rows: u32,
+        rows: &mut u32,
+    ) -> Result<()> {
+        if wanted <= max_records {
+            self.label_records = (wanted + wanted / 4).min(max_records);
+        } else if band_rows > 1 {
+            self.label_records = max_records;
+            *rows = band_rows / 2;
+        } else {
+            return Err(Error::limit(
+                Resource::GpuBinding,
+                format!(
+                    "{} MiB of label-sum records for one row of tiles of the {}x{} \
+                     weight raster",
+                    (wanted * RECORD_BYTES) >> 20,
+                    view.k.width,
+                    view.k.height
+                ),
+                format!("{} MiB per binding", (max_records * RECORD_BYTES) >> 20),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Input step: `labels` holds one label per raster pixel of `view`.
+fn check_labels(view: &View, labels: &[u32]) -> Result<()> {
+    if labels.len() != view.n_pix as usize {
+        return Err(Error::internal(format!(
+            "{} pixel labels for a {}x{} raster; pass one label per raster pixel",
+            labels.len(),
+            view.k.width,
+            view.k.height
+        )));
+    }
+    Ok(())
+}
+
+/// What the bands of one label-sum view add up to.
+#[derive(Default)]
+struct BandTally {
+    /// Records read back (none while the view is kept on the device).
+    records: Vec<LabelSum>,
+    /// Labelled contributions the kernel counted.
+    contributions: u64,
+    /// Band re-runs (a band did not fit its buffer).
+    retries: u32,
+    /// Records the kernel wrote, all bands.
+    written: u64,
+    /// Bands that wrote records.
+    bands: u32,
+    /// Host time copying records out of the readback buffer.
+    host: std::time::Duration,
 }
 
 impl GpuRasterizer {
