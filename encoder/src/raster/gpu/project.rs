@@ -39,80 +39,20 @@ pub fn bin_and_sort(
     if (n_chunks as u64).saturating_mul(n_t as u64) > 4 * total.max(1 << 16) {
         return bin_and_sort_reference(isect, means, w2c, tiles_x, n_tiles);
     }
-    let per_chunk = isect.len().div_ceil(n_chunks).max(1);
-    let outside = || {
-        Error::internal(format!(
-            "projection produced a tile outside the {n_tiles}-tile grid"
-        ))
+    let chunks = Chunks {
+        isect,
+        per_chunk: isect.len().div_ceil(n_chunks).max(1),
+        tiles_x,
+        n_tiles,
     };
     // 1. Intersections per (chunk, tile).
-    let counts: Vec<Vec<u32>> = isect
-        .par_chunks(per_chunk)
-        .map(|chunk| {
-            let mut h = vec![0u32; n_t];
-            for r in chunk {
-                let (x0, y0, x1, y1) = rect(r);
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        *h.get_mut((y * tiles_x + x) as usize).ok_or_else(outside)? += 1;
-                    }
-                }
-            }
-            Ok(h)
-        })
-        .collect::<Result<_>>()?;
+    let counts = chunks.tile_counts()?;
     // 2. Every chunk sorts its own keys by tile (a local counting sort: id order within a tile).
-    let local: Vec<(Vec<u128>, Vec<u32>)> = isect
-        .par_chunks(per_chunk)
-        .zip(counts.par_iter())
-        .enumerate()
-        .map(|(c, (chunk, h))| {
-            let mut starts = Vec::with_capacity(n_t + 1);
-            let mut next = 0u32;
-            for &k in h {
-                starts.push(next);
-                next += k;
-            }
-            starts.push(next);
-            let mut cursor = starts.clone();
-            let mut keys = vec![0u128; next as usize];
-            for (j, r) in chunk.iter().enumerate() {
-                let (x0, y0, x1, y1) = rect(r);
-                if x0 == x1 || y0 == y1 {
-                    continue;
-                }
-                let key = depth_key(c * per_chunk + j, means, w2c);
-                for y in y0..y1 {
-                    for x in x0..x1 {
-                        let t = (y * tiles_x + x) as usize;
-                        keys[cursor[t] as usize] = key;
-                        cursor[t] += 1;
-                    }
-                }
-            }
-            (keys, starts)
-        })
-        .collect();
+    let local = chunks.keys_by_tile(&counts, means, w2c);
     // 3. Tile ranges; each tile gathers its keys from every chunk (chunk order) and sorts them by
     //    (depth, id).
-    let mut ranges = vec![[0u32; 2]; n_t];
-    let mut next = 0u32;
-    for (t, r) in ranges.iter_mut().enumerate() {
-        let len: u32 = counts.iter().map(|h| h[t]).sum();
-        *r = [next, next + len];
-        next += len;
-    }
-    let mut keys = vec![0u128; total as usize];
-    let segments = split_lengths(&mut keys, ranges.iter().map(|r| (r[1] - r[0]) as usize));
-    segments.into_par_iter().enumerate().for_each(|(t, seg)| {
-        let mut at = 0;
-        for (chunk_keys, starts) in &local {
-            let part = &chunk_keys[starts[t] as usize..starts[t + 1] as usize];
-            seg[at..at + part.len()].copy_from_slice(part);
-            at += part.len();
-        }
-        seg.sort_unstable();
-    });
+    let mut ranges = tile_ranges(&counts, n_t);
+    let keys = gather_tiles(&local, &ranges, total);
     drop(local);
     let ids = keys.into_par_iter().map(|k| k as u32).collect();
     // Empty tiles read [0, 0), as in the reference.
@@ -120,6 +60,118 @@ pub fn bin_and_sort(
         *r = [0, 0];
     }
     Ok((ranges, ids))
+}
+
+/// The Gaussians' tile rects cut into chunks of `per_chunk` for [`bin_and_sort`], on a grid of
+/// `n_tiles` tiles, `tiles_x` per row.
+struct Chunks<'a> {
+    isect: &'a [[u32; 2]],
+    per_chunk: usize,
+    tiles_x: u32,
+    n_tiles: u32,
+}
+
+/// One chunk's keys sorted by tile (id order within a tile) and, per tile, where its keys start
+/// (`n_tiles + 1` offsets, the total last).
+type ChunkKeys = (Vec<u128>, Vec<u32>);
+
+impl Chunks<'_> {
+    /// Counting step: per chunk, its intersections per tile.
+    ///
+    /// Errors: a rect outside the grid ([`Error::Internal`]).
+    fn tile_counts(&self) -> Result<Vec<Vec<u32>>> {
+        let (n_tiles, tiles_x) = (self.n_tiles, self.tiles_x);
+        let outside = || {
+            Error::internal(format!(
+                "projection produced a tile outside the {n_tiles}-tile grid"
+            ))
+        };
+        self.isect
+            .par_chunks(self.per_chunk)
+            .map(|chunk| {
+                let mut h = vec![0u32; n_tiles as usize];
+                for r in chunk {
+                    let (x0, y0, x1, y1) = rect(r);
+                    for y in y0..y1 {
+                        for x in x0..x1 {
+                            *h.get_mut((y * tiles_x + x) as usize).ok_or_else(outside)? += 1;
+                        }
+                    }
+                }
+                Ok(h)
+            })
+            .collect()
+    }
+
+    /// Local sort step: every chunk places its `(depth, id)` keys by tile, from its `counts`.
+    fn keys_by_tile(
+        &self,
+        counts: &[Vec<u32>],
+        means: &[[f32; 3]],
+        w2c: &WorldToCamera,
+    ) -> Vec<ChunkKeys> {
+        self.isect
+            .par_chunks(self.per_chunk)
+            .zip(counts.par_iter())
+            .enumerate()
+            .map(|(c, (chunk, h))| {
+                let mut starts = Vec::with_capacity(h.len() + 1);
+                let mut next = 0u32;
+                for &k in h {
+                    starts.push(next);
+                    next += k;
+                }
+                starts.push(next);
+                let mut cursor = starts.clone();
+                let mut keys = vec![0u128; next as usize];
+                for (j, r) in chunk.iter().enumerate() {
+                    let (x0, y0, x1, y1) = rect(r);
+                    if x0 == x1 || y0 == y1 {
+                        continue;
+                    }
+                    let key = depth_key(c * self.per_chunk + j, means, w2c);
+                    for y in y0..y1 {
+                        for x in x0..x1 {
+                            let t = (y * self.tiles_x + x) as usize;
+                            keys[cursor[t] as usize] = key;
+                            cursor[t] += 1;
+                        }
+                    }
+                }
+                (keys, starts)
+            })
+            .collect()
+    }
+}
+
+/// Range step: every tile's `[start, end)` in the sorted keys, tiles in order, from the chunks'
+/// counts.
+fn tile_ranges(counts: &[Vec<u32>], n_t: usize) -> Vec<[u32; 2]> {
+    let mut ranges = vec![[0u32; 2]; n_t];
+    let mut next = 0u32;
+    for (t, r) in ranges.iter_mut().enumerate() {
+        let len: u32 = counts.iter().map(|h| h[t]).sum();
+        *r = [next, next + len];
+        next += len;
+    }
+    ranges
+}
+
+/// Gather step: each tile's keys from every chunk (chunk order) into its range of the `total`
+/// keys, then sorted by `(depth, id)`, tiles in parallel.
+fn gather_tiles(local: &[ChunkKeys], ranges: &[[u32; 2]], total: u64) -> Vec<u128> {
+    let mut keys = vec![0u128; total as usize];
+    let segments = split_lengths(&mut keys, ranges.iter().map(|r| (r[1] - r[0]) as usize));
+    segments.into_par_iter().enumerate().for_each(|(t, seg)| {
+        let mut at = 0;
+        for (chunk_keys, starts) in local {
+            let part = &chunk_keys[starts[t] as usize..starts[t + 1] as usize];
+            seg[at..at + part.len()].copy_from_slice(part);
+            at += part.len();
+        }
+        seg.sort_unstable();
+    });
+    keys
 }
 
 /// A Gaussian's packed tile rect as `(x0, y0, x1, y1)`, end-exclusive, empty when `x1 <= x0` or
