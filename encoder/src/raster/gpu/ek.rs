@@ -216,85 +216,121 @@ impl GpuRasterizer {
         let Some(kept) = self.kept.as_ref() else {
             return Err(Error::internal("a kept band without keeping started"));
         };
-        if kept.bytes + bytes > kept.budget {
-            return Err(Error::limit(
-                Resource::GpuMemory,
-                format!(
-                    "{} MiB of label sums kept on the device for the reduction",
-                    (kept.bytes + bytes) >> 20
-                ),
-                format!(
-                    "{} MiB (--device-reduce-memory-mb; or --reduce host)",
-                    kept.budget >> 20
-                ),
-            ));
-        }
-        let records = storage(&self.device, "kept_records", bytes);
+        check_kept_budget(kept, bytes)?;
         let blocks = self.n.div_ceil(BLOCK_GAUSSIANS);
-        let starts_bytes = (u64::from(blocks) + 1) * 4;
-        let starts_buf = storage(&self.device, "kept_block_starts", starts_bytes);
-        let dom_bytes = if dominant { u64::from(n) * 16 } else { 4 };
-        let dom = storage(&self.device, "kept_dominant", dom_bytes);
+        let band = self.band_buffers(n, blocks, dominant);
         let mut enc = self.device.create_command_encoder(&Default::default());
         if n > 0 {
-            enc.copy_buffer_to_buffer(reduced, 0, &records, 0, bytes);
-            let params = self.ek_uniform(&EkParams {
-                n_records: n,
-                n_blocks: blocks,
-                groups_x: GROUPS_X,
-                // The view's own table alone is uploaded (at base 0), not every view's so far.
-                pad0: 0,
-                ..bytemuck::Zeroable::zeroed()
-            });
-            let base = kept.views.get(view as usize).map_or(0, |v| v[0] as usize);
-            let tables = dominant.then(|| {
-                let table = kept.tables.get(base..).unwrap_or_default();
-                storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(table))
-            });
-            let (x, y) = groups_2d(n.div_ceil(256));
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            let bg = self.bind(
-                &kept.block_starts,
-                &[(0, &params), (1, &records), (2, &starts_buf)],
-            );
-            pass.set_pipeline(&kept.block_starts);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(x, y, 1);
-            if let Some(tables) = &tables {
-                // `order` (2) is bound for the record reader `dominant` shares with ek_reduce;
-                // `dominant` reads the records unsorted, never `order`.
-                let bg = self.bind(
-                    &kept.dominant,
-                    &[(0, &params), (1, &records), (2, &starts_buf), (4, tables), (7, &dom)],
-                );
-                pass.set_pipeline(&kept.dominant);
-                pass.set_bind_group(0, &bg, &[]);
-                pass.dispatch_workgroups(x, y, 1);
-            }
+            enc.copy_buffer_to_buffer(reduced, 0, &band.records, 0, bytes);
+            self.encode_band_index(&mut enc, kept, view, &band, (n, blocks), dominant);
         }
-        let mut reads = vec![(&starts_buf, 0, starts_bytes)];
-        if dominant && n > 0 {
-            reads.push((&dom, 0, dom_bytes));
-        }
-        let read = self.submit_and_read(enc, &reads)?;
-        let starts: Vec<u32> = if n > 0 {
-            bytemuck::pod_collect_to_vec(&read[0][..starts_bytes as usize])
-        } else {
-            vec![0; blocks as usize + 1]
-        };
-        let heads = match read.get(1) {
-            Some(bytes) => dominant_heads(&bytes[..dom_bytes as usize]),
-            None => Vec::new(),
-        };
+        let (starts, heads) = self.read_band_index(enc, &band, (n, blocks), dominant)?;
         let kept = self.kept.as_mut().ok_or_else(|| Error::internal("keeping stopped"))?;
         kept.bytes += bytes;
         kept.parts.push(KeptPart {
-            records,
+            records: band.records,
             n,
             view,
             starts,
         });
         Ok(heads)
+    }
+
+    /// Allocation step of [`Self::keep_band`]: the band's `n` records, its index of `blocks`
+    /// block starts, and room for its dominant masks (a placeholder without `dominant`).
+    fn band_buffers(&self, n: u32, blocks: u32, dominant: bool) -> BandBuffers {
+        let records = storage(&self.device, "kept_records", u64::from(n) * 16);
+        let starts_bytes = (u64::from(blocks) + 1) * 4;
+        let starts = storage(&self.device, "kept_block_starts", starts_bytes);
+        let dom_bytes = if dominant { u64::from(n) * 16 } else { 4 };
+        let dom = storage(&self.device, "kept_dominant", dom_bytes);
+        BandBuffers {
+            records,
+            starts,
+            starts_bytes,
+            dom,
+            dom_bytes,
+        }
+    }
+
+    /// Dispatch step of [`Self::keep_band`]: `block_starts` over the band's `n` records and,
+    /// with `dominant`, the `dominant` kernel on the view's own label table.
+    fn encode_band_index(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        kept: &Kept,
+        view: u32,
+        band: &BandBuffers,
+        (n, blocks): (u32, u32),
+        dominant: bool,
+    ) {
+        let params = self.ek_uniform(&EkParams {
+            n_records: n,
+            n_blocks: blocks,
+            groups_x: GROUPS_X,
+            // The view's own table alone is uploaded (at base 0), not every view's so far.
+            pad0: 0,
+            ..bytemuck::Zeroable::zeroed()
+        });
+        let base = kept.views.get(view as usize).map_or(0, |v| v[0] as usize);
+        let tables = dominant.then(|| {
+            let table = kept.tables.get(base..).unwrap_or_default();
+            storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(table))
+        });
+        let (x, y) = groups_2d(n.div_ceil(256));
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        let bg = self.bind(
+            &kept.block_starts,
+            &[(0, &params), (1, &band.records), (2, &band.starts)],
+        );
+        pass.set_pipeline(&kept.block_starts);
+        pass.set_bind_group(0, &bg, &[]);
+        pass.dispatch_workgroups(x, y, 1);
+        if let Some(tables) = &tables {
+            // `order` (2) is bound for the record reader `dominant` shares with ek_reduce;
+            // `dominant` reads the records unsorted, never `order`.
+            let bg = self.bind(
+                &kept.dominant,
+                &[
+                    (0, &params),
+                    (1, &band.records),
+                    (2, &band.starts),
+                    (4, tables),
+                    (7, &band.dom),
+                ],
+            );
+            pass.set_pipeline(&kept.dominant);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+    }
+
+    /// Readback step of [`Self::keep_band`]: submits `enc` and returns the band's block starts
+    /// (all 0 for an empty band) and, with `dominant`, its dominant masks.
+    ///
+    /// Errors: device failures.
+    fn read_band_index(
+        &self,
+        enc: wgpu::CommandEncoder,
+        band: &BandBuffers,
+        (n, blocks): (u32, u32),
+        dominant: bool,
+    ) -> Result<(Vec<u32>, Vec<(u32, u32, f32)>)> {
+        let mut reads = vec![(&band.starts, 0, band.starts_bytes)];
+        if dominant && n > 0 {
+            reads.push((&band.dom, 0, band.dom_bytes));
+        }
+        let read = self.submit_and_read(enc, &reads)?;
+        let starts: Vec<u32> = if n > 0 {
+            bytemuck::pod_collect_to_vec(&read[0][..band.starts_bytes as usize])
+        } else {
+            vec![0; blocks as usize + 1]
+        };
+        let heads = match read.get(1) {
+            Some(bytes) => dominant_heads(&bytes[..band.dom_bytes as usize]),
+            None => Vec::new(),
+        };
+        Ok((starts, heads))
     }
 
     /// Every kept view as host data ([`KeptExport`]), for another device's reduction; keeping
@@ -625,6 +661,37 @@ impl GpuRasterizer {
         *kept = Some(sb);
         Ok(order)
     }
+}
+
+/// The device buffers of one kept band ([`GpuRasterizer::keep_band`]): its records, the index
+/// of where each block of Gaussians starts, and its dominant masks, with their sizes in bytes.
+struct BandBuffers {
+    records: wgpu::Buffer,
+    starts: wgpu::Buffer,
+    starts_bytes: u64,
+    dom: wgpu::Buffer,
+    dom_bytes: u64,
+}
+
+/// Budget step of [`GpuRasterizer::keep_band`]: `bytes` more kept records stay within the
+/// budget.
+///
+/// Errors: past it ([`Error::Limit`] `GpuMemory`, naming the flag that raises it).
+fn check_kept_budget(kept: &Kept, bytes: u64) -> Result<()> {
+    if kept.bytes + bytes > kept.budget {
+        return Err(Error::limit(
+            Resource::GpuMemory,
+            format!(
+                "{} MiB of label sums kept on the device for the reduction",
+                (kept.bytes + bytes) >> 20
+            ),
+            format!(
+                "{} MiB (--device-reduce-memory-mb; or --reduce host)",
+                kept.budget >> 20
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// What every tile of one reduction shares.
