@@ -541,40 +541,15 @@ impl GpuRasterizer {
         tile: &Tile,
         sort: &mut Option<SortBuffers>,
     ) -> Result<KeptTile> {
-        let (kept, p, dim) = (s.kept, s.p, s.kept.dim);
-        let n_tile = u64::from(tile.n_tile);
+        let (p, dim) = (s.p, s.kept.dim);
         let n = tile.records as u32;
-        // The tile's records after a 4-word header (the layout record_keys reads), and per part
-        // its segment: first record, view, table base, codebook row.
+        // The tile's records after a 4-word header (the layout record_keys reads).
         let recs = storage(&self.device, "ek_tile_records", 16 + tile.records * 16);
-        let mut segs: Vec<[u32; 4]> = Vec::with_capacity(tile.ranges.len().max(1));
         let mut enc = self.device.create_command_encoder(&Default::default());
-        let mut at = 0u32;
-        for &(i, first, count) in &tile.ranges {
-            let part = &kept.parts[i];
-            let [base, row] = kept.views[part.view as usize];
-            segs.push([at, part.view, base, row]);
-            enc.copy_buffer_to_buffer(
-                &part.records,
-                u64::from(first) * 16,
-                &recs,
-                16 + u64::from(at) * 16,
-                u64::from(count) * 16,
-            );
-            at += count;
-        }
-        if segs.is_empty() {
-            segs.push([0; 4]);
-        }
+        let segs = gather_tile_records(&mut enc, s.kept, tile, &recs);
         let segs_buf = storage_init(&self.device, "ek_segments", bytemuck::cast_slice(&segs));
-        let meta = storage(&self.device, "ek_meta", n_tile * 8);
-        let kept_out = storage(&self.device, "ek_kept", n_tile * p.keep as u64 * 8);
-        let rows = storage(
-            &self.device,
-            "ek_rows",
-            if p.dense { n_tile * dim as u64 * 4 } else { 4 },
-        );
-        for b in [&meta, &kept_out, &rows] {
+        let out = TileOutputs::new(&self.device, tile, p, dim);
+        for b in [&out.meta, &out.kept, &out.rows] {
             enc.clear_buffer(b, 0, None);
         }
         let order = if n > 0 {
@@ -583,45 +558,66 @@ impl GpuRasterizer {
             None
         };
         if let Some(order) = &order {
-            let params = self.ek_uniform(&EkParams {
-                min_total_weight: p.min_total_weight,
-                n_records: n,
-                g0: tile.g0,
-                n_tile: tile.n_tile,
-                dim: dim as u32,
-                keep: p.keep as u32,
-                n_segments: segs.len() as u32,
-                groups_x: GROUPS_X,
-                dense: u32::from(p.dense),
-                n_blocks: 0,
-                pad0: 0,
-            });
-            let bg = self.bind(
-                &kept.ek_reduce,
-                &[
-                    (0, &params),
-                    (1, &recs),
-                    (2, order),
-                    (3, &segs_buf),
-                    (4, s.tables),
-                    (5, s.codebook),
-                    (6, &meta),
-                    (7, &kept_out),
-                    (8, &rows),
-                ],
-            );
-            let mut pass = enc.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&kept.ek_reduce);
-            pass.set_bind_group(0, &bg, &[]);
-            let (x, y) = groups_2d(n);
-            pass.dispatch_workgroups(x, y, 1);
+            let inputs = [&recs, order, &segs_buf];
+            self.encode_ek_reduce(&mut enc, s, tile, segs.len() as u32, inputs, &out);
         }
-        let mut reads = vec![(&meta, 0, n_tile * 8), (&kept_out, 0, n_tile * p.keep as u64 * 8)];
+        let n_tile = u64::from(tile.n_tile);
+        let mut reads = vec![
+            (&out.meta, 0, n_tile * 8),
+            (&out.kept, 0, n_tile * p.keep as u64 * 8),
+        ];
         if p.dense {
-            reads.push((&rows, 0, n_tile * dim as u64 * 4));
+            reads.push((&out.rows, 0, n_tile * dim as u64 * 4));
         }
         let read = self.submit_and_read(enc, &reads)?;
         Ok(tile_output(tile, p, dim, &read))
+    }
+
+    /// Dispatch step of [`Self::reduce_tile`]: `ek_reduce` over the tile's records, reading
+    /// `[records, sorted order, segments]` and writing its outputs.
+    fn encode_ek_reduce(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        s: &TileShared<'_>,
+        tile: &Tile,
+        n_segments: u32,
+        [recs, order, segs]: [&wgpu::Buffer; 3],
+        out: &TileOutputs,
+    ) {
+        let (kept, p) = (s.kept, s.p);
+        let n = tile.records as u32;
+        let params = self.ek_uniform(&EkParams {
+            min_total_weight: p.min_total_weight,
+            n_records: n,
+            g0: tile.g0,
+            n_tile: tile.n_tile,
+            dim: kept.dim as u32,
+            keep: p.keep as u32,
+            n_segments,
+            groups_x: GROUPS_X,
+            dense: u32::from(p.dense),
+            n_blocks: 0,
+            pad0: 0,
+        });
+        let bg = self.bind(
+            &kept.ek_reduce,
+            &[
+                (0, &params),
+                (1, recs),
+                (2, order),
+                (3, segs),
+                (4, s.tables),
+                (5, s.codebook),
+                (6, &out.meta),
+                (7, &out.kept),
+                (8, &out.rows),
+            ],
+        );
+        let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&kept.ek_reduce);
+        pass.set_bind_group(0, &bg, &[]);
+        let (x, y) = groups_2d(n);
+        pass.dispatch_workgroups(x, y, 1);
     }
 
     /// Records the stable sort of the tile's `n` records by Gaussian (the raster module's
@@ -692,6 +688,60 @@ fn check_kept_budget(kept: &Kept, bytes: u64) -> Result<()> {
         ));
     }
     Ok(())
+}
+
+/// Gather step of [`GpuRasterizer::reduce_tile`]: records the copies of every part's records
+/// in the tile into `recs` (after its 4-word header) and returns per part its segment: first
+/// record, view, table base, codebook row (one zero segment when the tile has none).
+fn gather_tile_records(
+    enc: &mut wgpu::CommandEncoder,
+    kept: &Kept,
+    tile: &Tile,
+    recs: &wgpu::Buffer,
+) -> Vec<[u32; 4]> {
+    let mut segs: Vec<[u32; 4]> = Vec::with_capacity(tile.ranges.len().max(1));
+    let mut at = 0u32;
+    for &(i, first, count) in &tile.ranges {
+        let part = &kept.parts[i];
+        let [base, row] = kept.views[part.view as usize];
+        segs.push([at, part.view, base, row]);
+        enc.copy_buffer_to_buffer(
+            &part.records,
+            u64::from(first) * 16,
+            recs,
+            16 + u64::from(at) * 16,
+            u64::from(count) * 16,
+        );
+        at += count;
+    }
+    if segs.is_empty() {
+        segs.push([0; 4]);
+    }
+    segs
+}
+
+/// The outputs of one tile of the reduction: per Gaussian its meta (observed, total weight)
+/// and kept pairs, and with `p.dense` its row (a placeholder without).
+struct TileOutputs {
+    meta: wgpu::Buffer,
+    kept: wgpu::Buffer,
+    rows: wgpu::Buffer,
+}
+
+impl TileOutputs {
+    /// Allocation step of [`GpuRasterizer::reduce_tile`]: the tile's output buffers.
+    fn new(device: &wgpu::Device, tile: &Tile, p: &DeviceReduce, dim: usize) -> Self {
+        let n_tile = u64::from(tile.n_tile);
+        TileOutputs {
+            meta: storage(device, "ek_meta", n_tile * 8),
+            kept: storage(device, "ek_kept", n_tile * p.keep as u64 * 8),
+            rows: storage(
+                device,
+                "ek_rows",
+                if p.dense { n_tile * dim as u64 * 4 } else { 4 },
+            ),
+        }
+    }
 }
 
 /// What every tile of one reduction shares.
