@@ -156,20 +156,7 @@ fn compare(
     splats: &[Option<Splat2d>],
     label: &str,
 ) -> Agreement {
-    assert_eq!(
-        (gpu.width, gpu.height),
-        (cpu.width, cpu.height),
-        "{label}: size"
-    );
-    let n_pix = (cpu.width * cpu.height) as usize;
-    assert_eq!(gpu.offsets.len(), n_pix + 1, "{label}: offsets length");
-    assert_eq!(gpu.offsets[0], 0, "{label}: first offset");
-    assert_eq!(
-        *gpu.offsets.last().expect("non-empty") as usize,
-        gpu.ids.len(),
-        "{label}: last offset"
-    );
-    assert_eq!(gpu.ids.len(), gpu.weights.len(), "{label}: ids/weights");
+    let n_pix = assert_same_csr_shape(gpu, cpu, label);
     let mut a = Agreement {
         _pixels: n_pix,
         _entries: cpu.ids.len(),
@@ -184,57 +171,21 @@ fn compare(
             );
             let (gi, gw) = gpu.pixel(x, y);
             let (ci, cw) = cpu.pixel(x, y);
+            let px = PixelPair {
+                x,
+                y,
+                gpu: (gi, gw),
+                cpu: (ci, cw),
+            };
             let first_diff = (0..gi.len().max(ci.len())).find(|&e| gi.get(e) != ci.get(e));
             let upto = first_diff.unwrap_or(gi.len());
-            for e in 0..upto {
-                let d = (gw[e] as f64 - cw[e] as f64).abs();
-                a.max_weight_diff = a.max_weight_diff.max(d);
-                assert!(
-                    d <= 1e-4,
-                    "{label}: pixel ({x},{y}) entry {e} id {}: gpu weight {} vs cpu {}",
-                    gi[e],
-                    gw[e],
-                    cw[e]
-                );
-            }
+            a.max_weight_diff = a.max_weight_diff.max(px.max_weight_diff(upto, label));
             let Some(e) = first_diff else {
                 a.identical_lists += 1;
                 continue;
             };
-            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
-            // Transmittance before entry e, replayed in f64 from the reference's splats.
-            let t_before: f64 = ci[..e]
-                .iter()
-                .map(|&id| splats[id as usize].map_or(1.0, |s| 1.0 - splat_alpha(&s, px, py).1))
-                .product();
-            let cand: Vec<u32> = [gi.get(e), ci.get(e)]
-                .into_iter()
-                .flatten()
-                .copied()
-                .collect();
-            let depth = |id: u32| splats[id as usize].map(|s| s.depth);
-            let tie = cand.len() == 2
-                && matches!((depth(cand[0]), depth(cand[1])), (Some(d0), Some(d1)) if (d0 - d1).abs() <= 1e-6 * d0.abs().max(1.0));
-            let border = cand
-                .iter()
-                .find_map(|&id| borderline(splats[id as usize].as_ref(), px, py, t_before));
-            assert!(
-                tie || border.is_some(),
-                "{label}: pixel ({x},{y}) differs at entry {e}: gpu {:?} vs cpu {:?} (weights {:?} vs {:?}); splats {:?}",
-                &gi[e..gi.len().min(e + 3)],
-                &ci[e..ci.len().min(e + 3)],
-                &gw[e..gw.len().min(e + 3)],
-                &cw[e..cw.len().min(e + 3)],
-                cand.iter()
-                    .map(|&id| splats[id as usize])
-                    .collect::<Vec<_>>()
-            );
+            let why = px.explain_difference(e, splats, label);
             a.explained += 1;
-            let why = if tie {
-                "depth tie".to_string()
-            } else {
-                format!("{border:?}")
-            };
             *a.why.entry(why).or_default() += 1;
         }
     }
@@ -246,6 +197,95 @@ fn compare(
         n_pix
     );
     a
+}
+
+/// Shape step of [`compare`]: same raster size, a CSR offsets array with one entry per pixel
+/// plus one, starting at 0 and ending at the entry count; returns the pixel count.
+fn assert_same_csr_shape(gpu: &PixelWeights, cpu: &PixelWeights, label: &str) -> usize {
+    assert_eq!(
+        (gpu.width, gpu.height),
+        (cpu.width, cpu.height),
+        "{label}: size"
+    );
+    let n_pix = (cpu.width * cpu.height) as usize;
+    assert_eq!(gpu.offsets.len(), n_pix + 1, "{label}: offsets length");
+    assert_eq!(gpu.offsets[0], 0, "{label}: first offset");
+    assert_eq!(
+        *gpu.offsets.last().expect("non-empty") as usize,
+        gpu.ids.len(),
+        "{label}: last offset"
+    );
+    assert_eq!(gpu.ids.len(), gpu.weights.len(), "{label}: ids/weights");
+    n_pix
+}
+
+/// One pixel's contributor lists (ids, weights) from the GPU and the CPU reference.
+struct PixelPair<'a> {
+    x: u32,
+    y: u32,
+    gpu: (&'a [u32], &'a [f32]),
+    cpu: (&'a [u32], &'a [f32]),
+}
+
+impl PixelPair<'_> {
+    /// Weight step of [`compare`]: the entries before `upto` (same ids) agree within 1e-4;
+    /// returns their largest difference.
+    fn max_weight_diff(&self, upto: usize, label: &str) -> f64 {
+        let ((gi, gw), (_, cw), (x, y)) = (self.gpu, self.cpu, (self.x, self.y));
+        let mut max = 0.0f64;
+        for e in 0..upto {
+            let d = (gw[e] as f64 - cw[e] as f64).abs();
+            max = max.max(d);
+            assert!(
+                d <= 1e-4,
+                "{label}: pixel ({x},{y}) entry {e} id {}: gpu weight {} vs cpu {}",
+                gi[e],
+                gw[e],
+                cw[e]
+            );
+        }
+        max
+    }
+
+    /// Explanation step of [`compare`]: the lists' first difference, at entry `e`, is an exact
+    /// depth tie or a contributor at a threshold ([`borderline`], transmittance replayed in f64);
+    /// returns which, as the key of [`Agreement::why`].
+    fn explain_difference(&self, e: usize, splats: &[Option<Splat2d>], label: &str) -> String {
+        let ((gi, gw), (ci, cw), (x, y)) = (self.gpu, self.cpu, (self.x, self.y));
+        let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+        // Transmittance before entry e, replayed in f64 from the reference's splats.
+        let t_before: f64 = ci[..e]
+            .iter()
+            .map(|&id| splats[id as usize].map_or(1.0, |s| 1.0 - splat_alpha(&s, px, py).1))
+            .product();
+        let cand: Vec<u32> = [gi.get(e), ci.get(e)]
+            .into_iter()
+            .flatten()
+            .copied()
+            .collect();
+        let depth = |id: u32| splats[id as usize].map(|s| s.depth);
+        let tie = cand.len() == 2
+            && matches!((depth(cand[0]), depth(cand[1])), (Some(d0), Some(d1)) if (d0 - d1).abs() <= 1e-6 * d0.abs().max(1.0));
+        let border = cand
+            .iter()
+            .find_map(|&id| borderline(splats[id as usize].as_ref(), px, py, t_before));
+        assert!(
+            tie || border.is_some(),
+            "{label}: pixel ({x},{y}) differs at entry {e}: gpu {:?} vs cpu {:?} (weights {:?} vs {:?}); splats {:?}",
+            &gi[e..gi.len().min(e + 3)],
+            &ci[e..ci.len().min(e + 3)],
+            &gw[e..gw.len().min(e + 3)],
+            &cw[e..cw.len().min(e + 3)],
+            cand.iter()
+                .map(|&id| splats[id as usize])
+                .collect::<Vec<_>>()
+        );
+        if tie {
+            "depth tie".to_string()
+        } else {
+            format!("{border:?}")
+        }
+    }
 }
 
 /// Invariants every rasterizer output must satisfy.
