@@ -1,6 +1,8 @@
 //! The reduction `E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj` in f64, chunked over Gaussian ids within a
 //! memory budget, into memory ([`reduce`]) or streamed to the embeddings file ([`reduce_to_writer`]).
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 use slag_common::embeddings::EmbeddingsWriter;
 use slag_common::{Error, Result};
@@ -251,6 +253,17 @@ pub(super) struct ChunkSums<T> {
 }
 
 impl<T: Clone + Default> ChunkSums<T> {
+    /// Sums of width `dim` for no Gaussians yet ([`ChunkSums::reset`] sizes them).
+    fn empty(dim: usize) -> Self {
+        ChunkSums {
+            start: 0,
+            dim,
+            num: Vec::new(),
+            den: Vec::new(),
+            extra: Vec::new(),
+        }
+    }
+
     /// Zeroed sums for Gaussians `start..start + len`, reusing the buffers.
     fn reset(&mut self, start: usize, len: usize) {
         self.start = start;
@@ -382,85 +395,116 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
         chunk,
         image_major,
     } = pass;
-    let width_check = |c: &StoredImage| {
-        if c.dim != dim {
-            return Err(Error::mismatch(
-                slag_common::Mismatched::EmbeddingWidth,
-                format!(
-                    "contribution of dim {}, expected {dim}: reduce contributions of one CLIP model",
-                    c.dim
-                ),
-            ));
-        }
-        Ok(())
-    };
-    let empty = || ChunkSums {
-        start: 0,
-        dim,
-        num: Vec::new(),
-        den: Vec::new(),
-        extra: Vec::new(),
-    };
     let mut chunks = 0;
     for start in (0..n_gaussians).step_by(chunk) {
         chunks += 1;
-        let end = (start + chunk).min(n_gaussians);
-        if store.spilled() == 0 && !image_major {
+        let ids = start..(start + chunk).min(n_gaussians);
+        let parts = if store.spilled() == 0 && !image_major {
             let images = &store.in_memory;
-            let mut tags = Vec::with_capacity(images.len());
-            for (image, c) in images.iter().enumerate() {
-                width_check(c)?;
-                tags.push(on_image(start == 0, image, c)?);
-            }
-            let parts: Vec<B> = (start..end)
-                .step_by(REDUCE_BLOCK)
-                .collect::<Vec<_>>()
-                .into_par_iter()
-                .map_init(empty, |sums, g0| {
-                    sums.reset(g0, REDUCE_BLOCK.min(end - g0));
-                    for (c, &tag) in images.iter().zip(&tags) {
-                        let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
-                        add_entries(c, g0 as u32, dim, num, den, extra, tag, &on_entry);
-                    }
-                    finish(sums)
-                })
-                .collect();
-            done(parts)?;
+            block_major_chunk(images, ids, dim, &mut on_image, &on_entry, &finish)?
         } else {
-            const BLOCK: usize = 1024;
-            let mut sums = empty();
-            sums.reset(start, end - start);
-            let mut failure: Option<Error> = None;
-            let mut image = 0usize;
-            store.for_each(|c| {
-                if failure.is_some() {
-                    return;
-                }
-                let tag = match width_check(c).and_then(|()| on_image(start == 0, image, c)) {
-                    Ok(tag) => tag,
-                    Err(e) => {
-                        failure = Some(e);
-                        return;
-                    }
-                };
-                image += 1;
-                sums.num
-                    .par_chunks_mut(BLOCK * dim)
-                    .zip(sums.den.par_chunks_mut(BLOCK))
-                    .zip(sums.extra.par_chunks_mut(BLOCK))
-                    .enumerate()
-                    .for_each(|(b, ((num, den), extra))| {
-                        let g0 = (start + b * BLOCK) as u32;
-                        add_entries(c, g0, dim, num, den, extra, tag, &on_entry);
-                    });
-            })?;
-            if let Some(e) = failure {
-                return Err(e);
-            }
-            done(vec![finish(&mut sums)])?;
-        }
+            let part = image_major_chunk(store, ids, dim, &mut on_image, &on_entry, &finish)?;
+            vec![part]
+        };
+        done(parts)?;
     }
     Ok(chunks)
+}
+
+/// Refuses a contribution whose mask embeddings are not `dim` wide (another CLIP model's).
+fn check_width(c: &StoredImage, dim: usize) -> Result<()> {
+    if c.dim != dim {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "contribution of dim {}, expected {dim}: reduce contributions of one CLIP model",
+                c.dim
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// One chunk (Gaussian ids `ids`) of the Gaussian-block-major loop of [`accumulate`]: checks and
+/// tags every in-memory contribution in order, then rayon over blocks of [`REDUCE_BLOCK`]
+/// Gaussians, each block's sums in its thread's reused accumulator. Returns the blocks' parts in
+/// ascending id order.
+fn block_major_chunk<T: Clone + Default + Send, B: Send>(
+    images: &[StoredImage],
+    ids: Range<usize>,
+    dim: usize,
+    on_image: &mut impl FnMut(bool, usize, &StoredImage) -> Result<u32>,
+    on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
+    finish: &(impl Fn(&mut ChunkSums<T>) -> B + Sync),
+) -> Result<Vec<B>> {
+    let mut tags = Vec::with_capacity(images.len());
+    for (image, c) in images.iter().enumerate() {
+        check_width(c, dim)?;
+        tags.push(on_image(ids.start == 0, image, c)?);
+    }
+    let end = ids.end;
+    Ok(ids
+        .step_by(REDUCE_BLOCK)
+        .collect::<Vec<_>>()
+        .into_par_iter()
+        .map_init(
+            || ChunkSums::empty(dim),
+            |sums, g0| {
+                sums.reset(g0, REDUCE_BLOCK.min(end - g0));
+                for (c, &tag) in images.iter().zip(&tags) {
+                    let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
+                    add_entries(c, g0 as u32, dim, num, den, extra, tag, on_entry);
+                }
+                finish(sums)
+            },
+        )
+        .collect())
+}
+
+/// One chunk (Gaussian ids `ids`) of the image-major loop of [`accumulate`]: a chunk-sized
+/// accumulator; every contribution, streamed in [`ContributionStore::for_each`] order, is checked,
+/// tagged and added by rayon over blocks of 1024 Gaussians. Returns the chunk's one part; the
+/// first error (spill-file I/O first, then width or `on_image`) stops the adding.
+fn image_major_chunk<T: Clone + Default + Send, B>(
+    store: &ContributionStore,
+    ids: Range<usize>,
+    dim: usize,
+    on_image: &mut impl FnMut(bool, usize, &StoredImage) -> Result<u32>,
+    on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
+    finish: &impl Fn(&mut ChunkSums<T>) -> B,
+) -> Result<B> {
+    const BLOCK: usize = 1024;
+    let start = ids.start;
+    let mut sums = ChunkSums::empty(dim);
+    sums.reset(start, ids.len());
+    let mut failure: Option<Error> = None;
+    let mut image = 0usize;
+    store.for_each(|c| {
+        if failure.is_some() {
+            return;
+        }
+        let tag = match check_width(c, dim).and_then(|()| on_image(start == 0, image, c)) {
+            Ok(tag) => tag,
+            Err(e) => {
+                failure = Some(e);
+                return;
+            }
+        };
+        image += 1;
+        sums.num
+            .par_chunks_mut(BLOCK * dim)
+            .zip(sums.den.par_chunks_mut(BLOCK))
+            .zip(sums.extra.par_chunks_mut(BLOCK))
+            .enumerate()
+            .for_each(|(b, ((num, den), extra))| {
+                let g0 = (start + b * BLOCK) as u32;
+                add_entries(c, g0, dim, num, den, extra, tag, on_entry);
+            });
+    })?;
+    if let Some(e) = failure {
+        return Err(e);
+    }
+    Ok(finish(&mut sums))
 }
 
 /// Gaussians per task of the Gaussian-block-major reduction ([`accumulate`]).
