@@ -137,15 +137,13 @@ pub fn combine_levels(
             per_level.len()
         )));
     }
-    let pick = |l: usize, k: usize, c: usize| {
-        if has_level[l][k] {
-            per_level[l][k * classes + c]
-        } else {
-            fallback[k * classes + c]
-        }
+    let tables = LevelTables {
+        per_level,
+        has_level,
+        fallback,
+        classes,
+        n,
     };
-    let mut out = vec![0f32; fallback.len()];
-    let mut chosen = Vec::new();
     match rule {
         LevelRule::Fixed(l) => {
             if l >= per_level.len() {
@@ -155,55 +153,102 @@ pub fn combine_levels(
                     format!("a level below {} (the levels stored)", per_level.len()),
                 ));
             }
+            let mut out = vec![0f32; fallback.len()];
             for k in 0..n {
                 for c in 0..classes {
-                    out[k * classes + c] = pick(l, k, c);
+                    out[k * classes + c] = tables.pick(l, k, c);
                 }
             }
+            Ok((out, Vec::new()))
         }
-        LevelRule::Max => {
-            for k in 0..n {
-                let present: Vec<usize> =
-                    (0..per_level.len()).filter(|&l| has_level[l][k]).collect();
-                for c in 0..classes {
-                    out[k * classes + c] = present
-                        .iter()
-                        .map(|&l| per_level[l][k * classes + c])
-                        .reduce(f32::max)
-                        .unwrap_or(fallback[k * classes + c]);
-                }
-            }
-        }
-        LevelRule::Select => {
-            for c in 0..classes {
-                let relevancy = |l: usize| {
-                    let mut s: Vec<f32> = (0..n)
-                        .filter(|&k| has_level[l][k])
-                        .map(|k| per_level[l][k * classes + c])
-                        .collect();
-                    if s.is_empty() {
-                        return f32::NEG_INFINITY;
-                    }
-                    let top = s.len().div_ceil(100);
-                    s.select_nth_unstable_by(top - 1, |a, b| b.total_cmp(a));
-                    s[..top].iter().sum::<f32>() / top as f32
-                };
-                let mut best = 0;
-                let mut best_r = f32::NEG_INFINITY;
-                for l in 0..per_level.len() {
-                    let r = relevancy(l);
-                    if r > best_r {
-                        (best, best_r) = (l, r);
-                    }
-                }
-                chosen.push(best);
-                for k in 0..n {
-                    out[k * classes + c] = pick(best, k, c);
-                }
-            }
+        LevelRule::Max => Ok((tables.max_over_levels(), Vec::new())),
+        LevelRule::Select => Ok(tables.select_per_class()),
+    }
+}
+
+/// The checked inputs of [`combine_levels`]: `L` per-level `[N × C]` score tables, which
+/// Gaussians have each level, and the mean `E_k`'s `[N × C]` table.
+struct LevelTables<'a> {
+    per_level: &'a [Vec<f32>],
+    has_level: &'a [Vec<bool>],
+    fallback: &'a [f32],
+    /// C.
+    classes: usize,
+    /// N.
+    n: usize,
+}
+
+impl LevelTables<'_> {
+    /// Gaussian `k`'s score for class `c` at level `l`, the fallback's where it lacks that level.
+    fn pick(&self, l: usize, k: usize, c: usize) -> f32 {
+        if self.has_level[l][k] {
+            self.per_level[l][k * self.classes + c]
+        } else {
+            self.fallback[k * self.classes + c]
         }
     }
-    Ok((out, chosen))
+
+    /// Writes class `c`'s column of `out` (`[N × C]`) from level `l` ([`LevelTables::pick`]).
+    fn fill_class(&self, out: &mut [f32], l: usize, c: usize) {
+        for k in 0..self.n {
+            out[k * self.classes + c] = self.pick(l, k, c);
+        }
+    }
+
+    /// [`LevelRule::Max`]: per Gaussian and class, the highest score of the levels it has (the
+    /// fallback's where it has none). `[N × C]`.
+    fn max_over_levels(&self) -> Vec<f32> {
+        let classes = self.classes;
+        let mut out = vec![0f32; self.fallback.len()];
+        for k in 0..self.n {
+            let present: Vec<usize> = (0..self.per_level.len())
+                .filter(|&l| self.has_level[l][k])
+                .collect();
+            for c in 0..classes {
+                out[k * classes + c] = present
+                    .iter()
+                    .map(|&l| self.per_level[l][k * classes + c])
+                    .reduce(f32::max)
+                    .unwrap_or(self.fallback[k * classes + c]);
+            }
+        }
+        out
+    }
+
+    /// [`LevelRule::Select`]: per class, the level of highest [`LevelTables::relevancy`] (the
+    /// first on a tie) answers for every Gaussian. Returns `[N × C]` and the level per class.
+    fn select_per_class(&self) -> (Vec<f32>, Vec<usize>) {
+        let mut out = vec![0f32; self.fallback.len()];
+        let mut chosen = Vec::with_capacity(self.classes);
+        for c in 0..self.classes {
+            let mut best = 0;
+            let mut best_r = f32::NEG_INFINITY;
+            for l in 0..self.per_level.len() {
+                let r = self.relevancy(l, c);
+                if r > best_r {
+                    (best, best_r) = (l, r);
+                }
+            }
+            chosen.push(best);
+            self.fill_class(&mut out, best, c);
+        }
+        (out, chosen)
+    }
+
+    /// LangSplat's relevancy of level `l` for class `c`: the mean of the best 1 % (rounded up) of
+    /// the class's scores among the Gaussians that have the level; −∞ where none has it.
+    fn relevancy(&self, l: usize, c: usize) -> f32 {
+        let mut s: Vec<f32> = (0..self.n)
+            .filter(|&k| self.has_level[l][k])
+            .map(|k| self.per_level[l][k * self.classes + c])
+            .collect();
+        if s.is_empty() {
+            return f32::NEG_INFINITY;
+        }
+        let top = s.len().div_ceil(100);
+        s.select_nth_unstable_by(top - 1, |a, b| b.total_cmp(a));
+        s[..top].iter().sum::<f32>() / top as f32
+    }
 }
 
 #[cfg(test)]
