@@ -115,12 +115,45 @@ impl PartitionReducer {
         }
     }
 
+    /// Reduces the partition's local ids once every worker's contributions are in: the map
+    /// statistics, the rows in records of [`ROWS_PER_RECORD`] (global ids), then the partition's
+    /// summary. Errors: an abort received, an incomplete or inconsistent job
+    /// ([`PartitionReducer::complete_job`]), a failed reduction.
     pub(super) fn reduce(&mut self) -> std::result::Result<Vec<ToGather>, String> {
         if let Some(m) = self.abort.take() {
             return Err(m);
         }
         let p = self.partition;
-        let mut job: Option<JobKey> = None;
+        let job = self.complete_job()?;
+        let dim = job.dim as usize;
+        let t0 = Instant::now();
+        let reduced = aggregate::reduce(&self.store, self.local_gaussians(&job), dim, self.params)
+            .map_err(|e| format!("partition {p}: {e}"))?;
+        let reduce_s = t0.elapsed().as_secs_f64();
+        let mut out: Vec<ToGather> = std::mem::take(&mut self.stats)
+            .into_iter()
+            .map(ToGather::Map)
+            .collect();
+        self.push_rows(&mut out, &reduced, dim);
+        out.push(ToGather::Part(PartSummary {
+            partition: p,
+            rows: reduced.ids.len() as u64,
+            images: self.images,
+            entries: self.entries,
+            chunks: reduced.chunks as u64,
+            spilled: self.store.spilled() as u64,
+            reduce_s,
+            job,
+        }));
+        Ok(out)
+    }
+
+    /// The job every worker's end record names, once the partition holds all of it: every
+    /// worker ended and loaded the scene, all name the same job, every view's contribution was
+    /// sent and received, and the contributions have the job's width.
+    fn complete_job(&self) -> std::result::Result<JobKey, String> {
+        let p = self.partition;
+        let mut job: Option<&JobKey> = None;
         let mut sent = 0;
         for (w, d) in self.done.iter().enumerate() {
             let Some((images, key)) = d else {
@@ -133,8 +166,8 @@ impl PartitionReducer {
             let Some(key) = key else {
                 return Err(format!("partition {p}: worker {w} did not load the scene"));
             };
-            match &job {
-                None => job = Some(key.clone()),
+            match job {
+                None => job = Some(key),
                 Some(j) if j != key => {
                     return Err(format!(
                         "processes disagree on the job (worker {w}: {:?}, worker 0: {:?}); start \
@@ -160,20 +193,24 @@ impl PartitionReducer {
                 self.dim
             ));
         }
-        let (n, peers) = (job.gaussians, self.peers as u64);
-        let n_local = if (p as u64) < n {
-            (n - p as u64).div_ceil(peers) as usize
+        Ok(job.clone())
+    }
+
+    /// How many of the job's Gaussians fall in this partition: global ids `p, p + peers, …`
+    /// below the scene's count, numbered locally from 0.
+    fn local_gaussians(&self, job: &JobKey) -> usize {
+        let (p, n, peers) = (self.partition as u64, job.gaussians, self.peers as u64);
+        if p < n {
+            (n - p).div_ceil(peers) as usize
         } else {
             0
-        };
-        let t0 = Instant::now();
-        let reduced = aggregate::reduce(&self.store, n_local, dim, self.params)
-            .map_err(|e| format!("partition {p}: {e}"))?;
-        let reduce_s = t0.elapsed().as_secs_f64();
-        let mut out: Vec<ToGather> = std::mem::take(&mut self.stats)
-            .into_iter()
-            .map(ToGather::Map)
-            .collect();
+        }
+    }
+
+    /// Appends the reduced rows to `out` in records of [`ROWS_PER_RECORD`], local ids mapped back
+    /// to global ones (`l · peers + p`).
+    fn push_rows(&self, out: &mut Vec<ToGather>, reduced: &aggregate::Reduced, dim: usize) {
+        let p = self.partition;
         let rows = reduced.ids.len();
         for start in (0..rows).step_by(ROWS_PER_RECORD) {
             let end = (start + ROWS_PER_RECORD).min(rows);
@@ -187,16 +224,5 @@ impl PartitionReducer {
                 total_weights: reduced.total_weights[start..end].to_vec(),
             });
         }
-        out.push(ToGather::Part(PartSummary {
-            partition: p,
-            rows: rows as u64,
-            images: self.images,
-            entries: self.entries,
-            chunks: reduced.chunks as u64,
-            spilled: self.store.spilled() as u64,
-            reduce_s,
-            job,
-        }));
-        Ok(out)
     }
 }
