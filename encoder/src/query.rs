@@ -1,7 +1,7 @@
 //! Check a text prompt against an embeddings file (`slag-encoder query`): the best Gaussians,
 //! optionally a copy of the scene `.ply` with the matches highlighted.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use slag_common::Result;
 use slag_common::embeddings::Embeddings;
@@ -132,44 +132,80 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
     text.check_pair(&emb.model)?;
     let q = text.encode(&[a.text.as_str()])?.remove(0);
     let (all, summary) = match a.smooth {
-        Smooth::None => similarity::rank(
-            &emb.ids,
-            &emb.means,
-            &emb.vectors,
-            emb.dim,
-            &q,
-            None,
-            Some(a.threshold),
-        )?,
+        Smooth::None => rank(&emb, &q, None, Some(a.threshold))?,
         Smooth::Segment => rank_smoothed(a, &emb, &q)?,
     };
     if let (Some(src), Some(dst)) = (&a.ply, &a.highlight_out) {
-        let mut hit = vec![
-            false;
-            emb.scene_gaussians
-                .max(emb.ids.iter().map(|&i| i as u64 + 1).max().unwrap_or(0))
-                as usize
-        ];
-        all.iter().for_each(|m| hit[m.id as usize] = true);
-        let rgb = a.highlight_rgb;
-        slag_common::scene::write_highlighted_ply(src, dst, |i| {
-            hit.get(i).copied().unwrap_or(false).then_some(rgb)
-        })?;
+        write_highlight(src, dst, a.highlight_rgb, &emb, &all)?;
     }
+    let (objects, object_members) = group_matches(a, &all)?;
+    let nearest_below_threshold = if all.is_empty() {
+        rank(&emb, &q, Some(a.top_k), None)?.0
+    } else {
+        Vec::new()
+    };
+    Ok(QueryOutput {
+        query: a.text.clone(),
+        model: emb.model.clone(),
+        threshold: a.threshold,
+        smooth: a.smooth,
+        summary,
+        objects,
+        object_members,
+        matches: all.into_iter().take(a.top_k).collect(),
+        nearest_below_threshold,
+        highlighted_ply: a.highlight_out.clone(),
+    })
+}
+
+/// The rows of `emb` ranked by cosine with the text embedding `q` ([`similarity::rank`]): at
+/// most `top_k` of them, those ≥ `threshold`, best first.
+fn rank(
+    emb: &Embeddings,
+    q: &[f32],
+    top_k: Option<usize>,
+    threshold: Option<f32>,
+) -> Result<(Vec<Match>, MatchSummary)> {
+    similarity::rank(
+        &emb.ids,
+        &emb.means,
+        &emb.vectors,
+        emb.dim,
+        q,
+        top_k,
+        threshold,
+    )
+}
+
+/// Writes a copy of the scene `src` to `dst` with every Gaussian of `matches` painted `rgb`.
+fn write_highlight(
+    src: &Path,
+    dst: &Path,
+    rgb: [f32; 3],
+    emb: &Embeddings,
+    matches: &[Match],
+) -> Result<()> {
+    let largest_id = emb.ids.iter().map(|&i| i as u64 + 1).max().unwrap_or(0);
+    let mut hit = vec![false; emb.scene_gaussians.max(largest_id) as usize];
+    matches.iter().for_each(|m| hit[m.id as usize] = true);
+    slag_common::scene::write_highlighted_ply(src, dst, |i| {
+        hit.get(i).copied().unwrap_or(false).then_some(rgb)
+    })
+}
+
+/// The matches grouped into objects ([`objects::group_objects`] with [`QueryParams::objects`],
+/// weighted by opacity when the scene `.ply` is given, else by score), and per object the ids of
+/// its member Gaussians, ascending.
+fn group_matches(a: &QueryParams, all: &[Match]) -> Result<(Vec<SceneObject>, Vec<Vec<u32>>)> {
     let opacities = match &a.ply {
         Some(src) => {
             let g = slag_common::scene::load_ply(
                 src,
                 slag_common::scene::PlyLoadOptions { colours: false },
             )?;
-            Some(
-                all.iter()
-                    .map(|m| {
-                        // Already the sigmoid of the stored opacity.
-                        g.opacities.get(m.id as usize).copied().unwrap_or(1.0)
-                    })
-                    .collect::<Vec<f32>>(),
-            )
+            // Already the sigmoid of the stored opacity.
+            let of = |m: &Match| g.opacities.get(m.id as usize).copied().unwrap_or(1.0);
+            Some(all.iter().map(of).collect::<Vec<f32>>())
         }
         None => None,
     };
@@ -192,32 +228,7 @@ pub fn run(a: &QueryParams) -> Result<QueryOutput> {
         }
     }
     object_members.iter_mut().for_each(|m| m.sort_unstable());
-    let nearest_below_threshold = if all.is_empty() {
-        similarity::rank(
-            &emb.ids,
-            &emb.means,
-            &emb.vectors,
-            emb.dim,
-            &q,
-            Some(a.top_k),
-            None,
-        )?
-        .0
-    } else {
-        Vec::new()
-    };
-    Ok(QueryOutput {
-        query: a.text.clone(),
-        model: emb.model.clone(),
-        threshold: a.threshold,
-        smooth: a.smooth,
-        summary,
-        objects: grouped.objects,
-        object_members,
-        matches: all.into_iter().take(a.top_k).collect(),
-        nearest_below_threshold,
-        highlighted_ply: a.highlight_out.clone(),
-    })
+    Ok((grouped.objects, object_members))
 }
 
 /// Every Gaussian scored with its segment's mean cosine, those ≥ the threshold ranked best first
@@ -230,7 +241,7 @@ fn rank_smoothed(
     let path = a.segments.clone().unwrap_or_else(|| {
         a.embeddings
             .parent()
-            .unwrap_or(std::path::Path::new("."))
+            .unwrap_or(Path::new("."))
             .join(slag_common::segments::FILE_NAME)
     });
     let rows = slag_common::segments::Segments::read(&path)?.gather(&emb.ids)?;
