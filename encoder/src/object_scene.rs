@@ -26,14 +26,13 @@
 use std::path::Path;
 
 use glam::{DQuat, DVec3};
-use rayon::prelude::*;
 use slag_common::rng::SplitMix64;
 use slag_common::scene::{Gaussians, ShCoeffs, write_ply};
 use slag_common::{Error, Result};
 
 use crate::synthetic::{
-    COLOUR_NAMES, PALETTE, SyntheticSceneParams, SyntheticSummary, camera, check_params, focal,
-    poses, ray_box, scene_folders, write_cameras, write_file,
+    COLOUR_NAMES, PALETTE, SyntheticSceneParams, SyntheticSummary, check_params, poses, ray_box,
+    render_rays, scene_folders, write_cameras, write_file,
 };
 
 /// Largest `k` of [`room_layout`].
@@ -667,31 +666,17 @@ fn hit_room(room: &Room<'_>, c: DVec3, d: DVec3) -> Option<(f64, Surface, DVec3)
 /// The photo of view `i`: every pixel ray-cast against the objects, floor and walls, coloured
 /// with the texture at the hit point; rays that leave the room over the walls see white.
 fn render_room(i: usize, p: &SyntheticSceneParams, room: &Room<'_>) -> image::RgbImage {
-    let (r, c) = camera(i, p);
-    let rt = r.transpose();
-    let f = focal(p);
-    let (cx, cy) = (p.width as f64 / 2.0, p.height as f64 / 2.0);
-    let mut img = image::RgbImage::new(p.width, p.height);
-    let w = p.width as usize;
-    let buf: &mut [u8] = &mut img;
-    buf.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
-        for x in 0..w {
-            let d = rt * DVec3::new((x as f64 + 0.5 - cx) / f, (y as f64 + 0.5 - cy) / f, 1.0);
-            let obj = hit_object(room, c, d);
-            let wall = hit_room(room, c, d);
-            let rgb = match (obj, wall) {
-                (Some((t, k, n)), w) if w.is_none_or(|w| t <= w.0) => {
-                    room.colour(Surface::Object(k), c + d * t, n)
-                }
-                (_, Some((t, s, n))) => room.colour(s, c + d * t, n),
-                _ => [1.0; 3],
-            };
-            for ch in 0..3 {
-                row[3 * x + ch] = (rgb[ch] * 255.0).round() as u8;
+    render_rays(i, p, |c, d| {
+        let obj = hit_object(room, c, d);
+        let wall = hit_room(room, c, d);
+        match (obj, wall) {
+            (Some((t, k, n)), w) if w.is_none_or(|w| t <= w.0) => {
+                room.colour(Surface::Object(k), c + d * t, n)
             }
+            (_, Some((t, s, n))) => room.colour(s, c + d * t, n),
+            _ => [1.0; 3],
         }
-    });
-    img
+    })
 }
 
 /// Writes the room scene (module doc) at `dir`: `point_cloud.ply`, `objects.json`,

@@ -422,6 +422,44 @@ pub(crate) fn focal(p: &SyntheticSceneParams) -> f64 {
 /// with a faint per-Gaussian-spacing texture; pixels above the horizon are sky white.
 fn render_image(i: usize, p: &SyntheticSceneParams, objects: &[PlacedObject]) -> image::RgbImage {
     let boxes: Vec<([[f64; 3]; 2], usize)> = objects.iter().map(|o| (o.aabb(), o.colour)).collect();
+    render_rays(i, p, |c, d| {
+        let hit = boxes
+            .iter()
+            .filter_map(|(b, col)| ray_box(c, d, b).map(|t| (t, *col)))
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((t, col)) = hit {
+            let g = c + d * t;
+            let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
+            PALETTE[col].map(|v| (v as f64 * k).min(1.0))
+        } else if d.z < -1e-9 {
+            let t = -c.z / d.z;
+            let g = c + d * t;
+            if g.x.abs() <= p.extent / 2.0 && g.y.abs() <= p.extent / 2.0 {
+                let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
+                let ground = if boxes.is_empty() {
+                    patch(g.x, g.y, p.extent)
+                } else {
+                    GROUND_WITH_OBJECTS
+                };
+                PALETTE[ground].map(|v| (v as f64 * k).min(1.0))
+            } else {
+                [0.35, 0.35, 0.35]
+            }
+        } else {
+            [1.0, 1.0, 1.0]
+        }
+    })
+}
+
+/// The `p.width × p.height` photo of view `i` ([`camera`], [`focal`]): each pixel is
+/// `colour(c, d)` (r, g, b in 0..1, rounded to 8 bits) of the ray through its centre from the
+/// camera centre `c` along `d` (world frame, unit depth along the optical axis, not normalised);
+/// rows in parallel.
+pub(crate) fn render_rays(
+    i: usize,
+    p: &SyntheticSceneParams,
+    colour: impl Fn(DVec3, DVec3) -> [f64; 3] + Sync,
+) -> image::RgbImage {
     let (r, c) = camera(i, p);
     let rt = r.transpose();
     let f = focal(p);
@@ -432,31 +470,7 @@ fn render_image(i: usize, p: &SyntheticSceneParams, objects: &[PlacedObject]) ->
     buf.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
         for x in 0..w {
             let d = rt * DVec3::new((x as f64 + 0.5 - cx) / f, (y as f64 + 0.5 - cy) / f, 1.0);
-            let hit = boxes
-                .iter()
-                .filter_map(|(b, col)| ray_box(c, d, b).map(|t| (t, *col)))
-                .min_by(|a, b| a.0.total_cmp(&b.0));
-            let rgb = if let Some((t, col)) = hit {
-                let g = c + d * t;
-                let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
-                PALETTE[col].map(|v| (v as f64 * k).min(1.0))
-            } else if d.z < -1e-9 {
-                let t = -c.z / d.z;
-                let g = c + d * t;
-                if g.x.abs() <= p.extent / 2.0 && g.y.abs() <= p.extent / 2.0 {
-                    let k = 0.95 + 0.05 * ((g.x * 7.0).sin() * (g.y * 7.0).cos());
-                    let ground = if boxes.is_empty() {
-                        patch(g.x, g.y, p.extent)
-                    } else {
-                        GROUND_WITH_OBJECTS
-                    };
-                    PALETTE[ground].map(|v| (v as f64 * k).min(1.0))
-                } else {
-                    [0.35, 0.35, 0.35]
-                }
-            } else {
-                [1.0, 1.0, 1.0]
-            };
+            let rgb = colour(c, d);
             for ch in 0..3 {
                 row[3 * x + ch] = (rgb[ch] * 255.0).round() as u8;
             }
