@@ -392,44 +392,7 @@ impl SceneWriter<'_> {
         mut manifest: Manifest,
         key: Option<&SigningKey>,
     ) -> Result<Manifest> {
-        if manifest.scene_id != self.scene {
-            return Err(Error::internal(format!(
-                "manifest is for scene {} but writer for {}",
-                manifest.scene_id, self.scene
-            )));
-        }
-        for t in &manifest.tiles {
-            let b = self
-                .store
-                .shards
-                .get(tile_key(&self.scene, self.generation, t.id))
-                .map_err(db_err)?;
-            let ok = b.is_some_and(|b| {
-                b.len() as u64 == t.bytes && format!("{:08x}", shard_checksum(&b)) == t.checksum
-            });
-            if !ok {
-                return Err(Error::internal(format!(
-                    "tile {} has no stored shard matching the manifest",
-                    t.id
-                )));
-            }
-        }
-        if let Some(x) = &manifest.mixture {
-            let b = self
-                .store
-                .codebooks
-                .get(prefix(&self.scene, self.generation))
-                .map_err(db_err)?;
-            let ok = b.is_some_and(|b| {
-                b.len() as u64 == x.codebook_bytes
-                    && format!("{:08x}", shard_checksum(&b)) == x.codebook_checksum
-            });
-            if !ok {
-                return Err(Error::internal(
-                    "the mixture manifest's codebook is not stored with its size and checksum",
-                ));
-            }
-        }
+        self.check_stored(&manifest)?;
         manifest.generation = self.generation;
         let json = manifest.to_json();
         let signature = key.map(|k| k.sign(&json).to_json());
@@ -474,6 +437,52 @@ impl SceneWriter<'_> {
         boundary("shards.commit:flush_removals");
         Ok(manifest)
     }
+
+    /// Checks that `manifest` is for this writer's scene and that this generation holds every
+    /// tile's shard, and a mixture manifest's codebook, with the listed size and checksum.
+    ///
+    /// Errors: [`Error::Internal`] (the writer's contract) for another scene or a missing or
+    /// mismatching shard or codebook; storage errors.
+    fn check_stored(&self, manifest: &Manifest) -> Result<()> {
+        if manifest.scene_id != self.scene {
+            return Err(Error::internal(format!(
+                "manifest is for scene {} but writer for {}",
+                manifest.scene_id, self.scene
+            )));
+        }
+        let shards = &self.store.shards;
+        for t in &manifest.tiles {
+            let b = shards
+                .get(tile_key(&self.scene, self.generation, t.id))
+                .map_err(db_err)?;
+            if !stored_as_listed(b, t.bytes, &t.checksum) {
+                return Err(Error::internal(format!(
+                    "tile {} has no stored shard matching the manifest",
+                    t.id
+                )));
+            }
+        }
+        if let Some(x) = &manifest.mixture {
+            let codebooks = &self.store.codebooks;
+            let b = codebooks
+                .get(prefix(&self.scene, self.generation))
+                .map_err(db_err)?;
+            if !stored_as_listed(b, x.codebook_bytes, &x.codebook_checksum) {
+                return Err(Error::internal(
+                    "the mixture manifest's codebook is not stored with its size and checksum",
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Whether `stored` is present with the manifest's length `bytes` and CRC-32 `checksum` (8
+/// lower-case hex digits, [`shard_checksum`]).
+fn stored_as_listed(stored: Option<sled::IVec>, bytes: u64, checksum: &str) -> bool {
+    stored.is_some_and(|b| {
+        b.len() as u64 == bytes && format!("{:08x}", shard_checksum(&b)) == checksum
+    })
 }
 
 /// Partitions `src` straight into `store` as a new generation of `params.scene_id`, committing
