@@ -31,8 +31,8 @@ use slag_common::scene::{Gaussians, ShCoeffs, write_ply};
 use slag_common::{Error, Result};
 
 use crate::synthetic::{
-    COLOUR_NAMES, PALETTE, SyntheticSceneParams, SyntheticSummary, check_params, poses, ray_box,
-    render_rays, scene_folders, write_cameras, write_file,
+    COLOUR_NAMES, PALETTE, SceneFolders, SyntheticSceneParams, SyntheticSummary, check_params,
+    ray_box, render_rays, write_file,
 };
 
 /// Largest `k` of [`room_layout`].
@@ -694,7 +694,7 @@ pub fn write_room_scene(
 ) -> Result<SyntheticSummary> {
     check_params(p)?;
     texture.check()?;
-    let (images, sparse, images_txt) = scene_folders(dir)?;
+    let folders = SceneFolders::create(dir)?;
     let room = Room {
         extent: p.extent,
         wall: p.extent / 4.0,
@@ -720,22 +720,7 @@ pub fn write_room_scene(
         .collect();
     write_file(&dir.join("objects.json"), &pretty(&listed)?)?;
     write_file(&dir.join(GaussianTruth::FILE_NAME), &pretty(&truth)?)?;
-    for i in 0..p.views {
-        let path = images.join(format!("view_{i:04}.png"));
-        render_room(i, p, &room)
-            .save(&path)
-            .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
-    }
-    write_cameras(&sparse, p)?;
-    write_file(&images_txt, poses(p).as_bytes())?;
-    let ply_bytes = std::fs::metadata(&ply)
-        .map_err(|e| Error::io(&ply, e))?
-        .len();
-    Ok(SyntheticSummary {
-        gaussians: g.len(),
-        views: p.views,
-        ply_bytes,
-    })
+    folders.finish(p, &ply, g.len(), |i| render_room(i, p, &room))
 }
 
 /// Pretty JSON of the truth files the room writes.

@@ -22,7 +22,7 @@
 //! holds no Gaussians.
 
 use std::io::Write;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DQuat, DVec3};
 use rayon::prelude::*;
@@ -528,7 +528,7 @@ pub fn write_synthetic_scene_with_objects(
         }
     }
     check_params(p)?;
-    let (images, sparse, images_txt) = scene_folders(dir)?;
+    let folders = SceneFolders::create(dir)?;
     let (g, instances) = scene_with_instances(p, objects);
     let gaussians = g.len();
     let ply = dir.join("point_cloud.ply");
@@ -549,27 +549,12 @@ pub fn write_synthetic_scene_with_objects(
             .map_err(|e| Error::internal(format!("objects.json: {e}")))?;
         write_file(&dir.join("objects.json"), &bytes)?;
     }
-    for i in 0..p.views {
-        let path = images.join(format!("view_{i:04}.png"));
-        render_image(i, p, objects)
-            .save(&path)
-            .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
-    }
-    write_cameras(&sparse, p)?;
-    write_file(&images_txt, poses(p).as_bytes())?;
-    let ply_bytes = std::fs::metadata(&ply)
-        .map_err(|e| Error::io(&ply, e))?
-        .len();
-    Ok(SyntheticSummary {
-        gaussians,
-        views: p.views,
-        ply_bytes,
-    })
+    folders.finish(p, &ply, gaussians, |i| render_image(i, p, objects))
 }
 
 /// Writes `cameras.txt` (one PINHOLE camera of [`focal`]) and an empty `points3D.txt` into
 /// `sparse` (`sparse/0`).
-pub(crate) fn write_cameras(sparse: &Path, p: &SyntheticSceneParams) -> Result<()> {
+fn write_cameras(sparse: &Path, p: &SyntheticSceneParams) -> Result<()> {
     let f = focal(p);
     let cameras = format!(
         "# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n1 PINHOLE {} {} {f} {f} {} {}\n",
@@ -582,25 +567,64 @@ pub(crate) fn write_cameras(sparse: &Path, p: &SyntheticSceneParams) -> Result<(
     write_file(&sparse.join("points3D.txt"), b"# no points\n")
 }
 
-/// Creates `dir/images` and `dir/sparse/0` and removes a stale `sparse/0/images.txt` (an
-/// interrupted rewrite must not look complete); returns the two folders and that file's path,
-/// written last.
-///
-/// Errors: I/O naming the path.
-pub(crate) fn scene_folders(
-    dir: &Path,
-) -> Result<(std::path::PathBuf, std::path::PathBuf, std::path::PathBuf)> {
-    let images = dir.join("images");
-    let sparse = dir.join("sparse").join("0");
-    for d in [&images, &sparse] {
-        std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+/// The folders of a scene being written: `images/` for the photos, `sparse/0` for the COLMAP
+/// text files, and its `images.txt`, written last (a folder without it is incomplete).
+pub(crate) struct SceneFolders {
+    images: PathBuf,
+    sparse: PathBuf,
+    images_txt: PathBuf,
+}
+
+impl SceneFolders {
+    /// Creates `dir/images` and `dir/sparse/0` and removes a stale `sparse/0/images.txt` (an
+    /// interrupted rewrite must not look complete).
+    ///
+    /// Errors: I/O naming the path.
+    pub(crate) fn create(dir: &Path) -> Result<Self> {
+        let images = dir.join("images");
+        let sparse = dir.join("sparse").join("0");
+        for d in [&images, &sparse] {
+            std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))?;
+        }
+        // Stale poses first: an interrupted rewrite must not look complete.
+        let images_txt = sparse.join("images.txt");
+        if images_txt.exists() {
+            std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
+        }
+        Ok(SceneFolders {
+            images,
+            sparse,
+            images_txt,
+        })
     }
-    // Stale poses first: an interrupted rewrite must not look complete.
-    let images_txt = sparse.join("images.txt");
-    if images_txt.exists() {
-        std::fs::remove_file(&images_txt).map_err(|e| Error::io(&images_txt, e))?;
+
+    /// Completes the scene whose `.ply` of `gaussians` Gaussians is written at `ply`: every
+    /// view's photo `render(i)` as `images/view_XXXX.png`, the cameras, then `images.txt` last.
+    /// Returns what was written.
+    ///
+    /// Errors: I/O naming the path.
+    pub(crate) fn finish(
+        &self,
+        p: &SyntheticSceneParams,
+        ply: &Path,
+        gaussians: usize,
+        render: impl Fn(usize) -> image::RgbImage,
+    ) -> Result<SyntheticSummary> {
+        for i in 0..p.views {
+            let path = self.images.join(format!("view_{i:04}.png"));
+            render(i)
+                .save(&path)
+                .map_err(|e| Error::io(&path, std::io::Error::other(e)))?;
+        }
+        write_cameras(&self.sparse, p)?;
+        write_file(&self.images_txt, poses(p).as_bytes())?;
+        let ply_bytes = std::fs::metadata(ply).map_err(|e| Error::io(ply, e))?.len();
+        Ok(SyntheticSummary {
+            gaussians,
+            views: p.views,
+            ply_bytes,
+        })
     }
-    Ok((images, sparse, images_txt))
 }
 
 /// Checks a scene's size: Gaussians, views and the image size at least 1, a finite positive
@@ -632,7 +656,7 @@ pub(crate) fn check_params(p: &SyntheticSceneParams) -> Result<()> {
 }
 
 /// The text of `images.txt`: every view of the ring ([`camera`]), `view_XXXX.png`.
-pub(crate) fn poses(p: &SyntheticSceneParams) -> String {
+fn poses(p: &SyntheticSceneParams) -> String {
     let mut poses = String::from("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n");
     for i in 0..p.views {
         let (r, c) = camera(i, p);
