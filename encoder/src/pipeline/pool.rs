@@ -93,11 +93,7 @@ pub(crate) fn run_pool(
         return Err(no_views(scene, views_total));
     }
     let (views, selection, made) = select_views(scene, &gaussians, training, make_rasterizers)?;
-    // Raster intrinsics of every view, checked (scale range, raster size) before any image work.
-    let raster_intrinsics = views
-        .iter()
-        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, params.raster_scale))
-        .collect::<Result<Vec<_>>>()?;
+    let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
     // Under the pipeline's target, where the README's sample output shows this line.
     tracing::info!(
         target: "slag_encoder::pipeline",
@@ -107,11 +103,7 @@ pub(crate) fn run_pool(
         "scene loaded"
     );
     let n_fronts = fronts.len();
-    let multi = MultiProgress::with_draw_target(if params.progress {
-        ProgressDrawTarget::stderr()
-    } else {
-        ProgressDrawTarget::hidden()
-    });
+    let multi = progress_display(params.progress);
     let shared = Shared {
         views: &views,
         raster_intrinsics: &raster_intrinsics,
@@ -156,6 +148,24 @@ pub(crate) fn run_pool(
         selection,
         mask_record: left.mask_record,
         device: left.device,
+    })
+}
+
+/// The raster intrinsics of every view at `raster_scale`, checked (scale range, raster size)
+/// before any image work. Errors: the first view whose raster is refused.
+fn raster_intrinsics_of(views: &[View], raster_scale: f64) -> Result<Vec<Intrinsics>> {
+    views
+        .iter()
+        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, raster_scale))
+        .collect()
+}
+
+/// Where the pool's progress bars draw: stderr when `progress`, else nowhere.
+fn progress_display(progress: bool) -> MultiProgress {
+    MultiProgress::with_draw_target(if progress {
+        ProgressDrawTarget::stderr()
+    } else {
+        ProgressDrawTarget::hidden()
     })
 }
 
