@@ -64,8 +64,6 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     let many = dir.path().join("many");
     let fronts = graph_fronts(&[None, None, None]);
     let params = pipeline::EncodeParams {
-        raster_scale: 0.5,
-        image_stage: Default::default(),
         reduce: slag_encoder::aggregate::ReduceParams {
             min_total_weight: 1e-6,
             accumulator_budget_bytes: 64 << 20,
@@ -73,14 +71,7 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
         },
         contribution_budget_bytes: 1 << 20, // small: some images spill to disk
         precision: slag_common::embeddings::StoredPrecision::F32,
-        out_dir: many.clone(),
-        progress: false,
-        dense: true,
-        mixture_keep: None,
-        levels: false,
-        mask_record_slots: None,
-        reduce_on: slag_encoder::config::ReduceOn::Auto,
-        device_reduce_budget_bytes: 1 << 30,
+        ..pool_params(&many)
     };
     let scene_in = pipeline::SceneInput::new(&scene, None, 1);
     let r2 = pipeline::encode_pool(
@@ -325,21 +316,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
             gpu: None,
         },
     ];
-    let params = pipeline::EncodeParams {
-        raster_scale: 0.5,
-        image_stage: Default::default(),
-        reduce: Default::default(),
-        contribution_budget_bytes: 1 << 30,
-        precision: slag_common::embeddings::StoredPrecision::F16,
-        out_dir: out.clone(),
-        progress: false,
-        dense: true,
-        mixture_keep: None,
-        levels: false,
-        mask_record_slots: None,
-        reduce_on: slag_encoder::config::ReduceOn::Auto,
-        device_reduce_budget_bytes: 1 << 30,
-    };
+    let params = pool_params(&out);
     let err = pipeline::encode_pool(
         &pipeline::SceneInput::new(&scene, None, 1),
         fronts,
