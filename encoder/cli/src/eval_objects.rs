@@ -4,12 +4,13 @@
 use std::path::PathBuf;
 
 use clap::Args;
-use slag_common::objects::{self, ObjectParams};
+use slag_common::objects;
 use slag_encoder::args::{RasterArg, SmoothArg};
 use slag_eval::instances::{EvalObjectsConfig, ObjectsEval, evaluate_synthetic_objects};
 use slag_eval::object_truth::{ObjectTruthConfig, ObjectTruthEval, run_object_truth};
 
 use crate::EpArg;
+use crate::query::ObjectGroupingArgs;
 
 /// Arguments of `eval-objects`.
 #[derive(Debug, Clone, Args)]
@@ -25,13 +26,8 @@ pub struct EvalObjectsArgs {
     /// `$SLAG_SHARED/fixtures/clip`.
     #[arg(long, value_name = "DIR")]
     pub color_clip: Option<PathBuf>,
-    /// Matches closer than this (scene units) join one object; default: 4 × the matches' median
-    /// nearest-neighbour distance (the scene's own spacing).
-    #[arg(long)]
-    pub object_gap: Option<f32>,
-    /// Objects of fewer matching Gaussians are dropped.
-    #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
-    pub object_min_gaussians: usize,
+    #[command(flatten)]
+    pub grouping: ObjectGroupingArgs,
     /// Score smoothing of the queries, one score per value (repeat the flag: `--smooth none
     /// --smooth segment`); `segment` scores each Gaussian with its geometric segment's mean.
     #[arg(long, value_enum, default_values_t = [SmoothArg::None])]
@@ -90,12 +86,7 @@ pub fn run(a: &EvalObjectsArgs) -> anyhow::Result<EvalObjectsOutput> {
         scene: a.scene.clone(),
         embeddings: a.embeddings.clone(),
         color_clip: color_clip.clone(),
-        objects: ObjectParams {
-            gap: a.object_gap,
-            min_gaussians: a.object_min_gaussians,
-            max_objects: objects::DEFAULT_MAX_OBJECTS,
-            near: None,
-        },
+        objects: a.grouping.params(objects::DEFAULT_MAX_OBJECTS, None),
         smooth: a.smooth.iter().map(|&s| s.into()).collect(),
         segments: a.segments.clone(),
         ep: a.ep.into(),

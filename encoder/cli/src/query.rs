@@ -53,13 +53,8 @@ pub struct QueryArgs {
     /// x,y,z (scene frame): sort objects by distance from this point instead of by score.
     #[arg(long, allow_hyphen_values = true, value_parser = parse_xyz)]
     pub near: Option<[f32; 3]>,
-    /// Single-linkage gap between an object's matches, scene units; default: 4 × the matches'
-    /// median nearest-neighbour distance (the scene's own spacing).
-    #[arg(long)]
-    pub object_gap: Option<f32>,
-    /// Smallest object, in matching Gaussians.
-    #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
-    pub object_min_gaussians: usize,
+    #[command(flatten)]
+    pub grouping: ObjectGroupingArgs,
     /// `segment`: score each Gaussian with its geometric segment's mean cosine (the
     /// open-vocabulary analogue of prediction filtering); `none`: its own.
     #[arg(long, value_enum, default_value_t = SmoothArg::None)]
@@ -67,6 +62,31 @@ pub struct QueryArgs {
     /// Segments for --smooth segment; default segments.safetensors beside --embeddings.
     #[arg(long, value_name = "FILE")]
     pub segments: Option<PathBuf>,
+}
+
+/// How the matches are grouped into objects (`query`, `eval-objects`; [`slag_common::objects`]).
+#[derive(Debug, Clone, Args)]
+pub struct ObjectGroupingArgs {
+    /// Single-linkage gap between an object's matches, scene units; default: 4 × the matches'
+    /// median nearest-neighbour distance (the scene's own spacing).
+    #[arg(long)]
+    pub object_gap: Option<f32>,
+    /// Smallest object, in matching Gaussians; smaller groups are dropped as stray matches.
+    #[arg(long, default_value_t = objects::DEFAULT_MIN_GAUSSIANS)]
+    pub object_min_gaussians: usize,
+}
+
+impl ObjectGroupingArgs {
+    /// The grouping with at most `max_objects` objects, sorted by distance from `near` when
+    /// given (else by score mass).
+    pub fn params(&self, max_objects: usize, near: Option<[f32; 3]>) -> ObjectParams {
+        ObjectParams {
+            gap: self.object_gap,
+            min_gaussians: self.object_min_gaussians,
+            max_objects,
+            near,
+        }
+    }
 }
 
 /// Three comma-separated numbers that all pass `valid`, else `expected` (what to write instead)
@@ -108,12 +128,7 @@ impl From<&QueryArgs> for QueryParams {
             highlight_out: a.highlight_out.clone(),
             highlight_rgb: a.highlight_rgb,
             ep: a.ep.into(),
-            objects: ObjectParams {
-                gap: a.object_gap,
-                min_gaussians: a.object_min_gaussians,
-                max_objects: a.max_objects,
-                near: a.near,
-            },
+            objects: a.grouping.params(a.max_objects, a.near),
             smooth: a.smooth.into(),
             segments: a.segments.clone(),
         }
@@ -152,8 +167,10 @@ mod tests {
             ep: EpArg::Cpu,
             max_objects: objects::DEFAULT_MAX_OBJECTS,
             near: None,
-            object_gap: None,
-            object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
+            grouping: ObjectGroupingArgs {
+                object_gap: None,
+                object_min_gaussians: objects::DEFAULT_MIN_GAUSSIANS,
+            },
             smooth: SmoothArg::None,
             segments: None,
         }
