@@ -426,9 +426,11 @@ fn check_width(c: &StoredImage, dim: usize) -> Result<()> {
 }
 
 /// One chunk (Gaussian ids `ids`) of the Gaussian-block-major loop of [`accumulate`]: checks and
-/// tags every in-memory contribution in order, then rayon over blocks of [`REDUCE_BLOCK`]
-/// Gaussians, each block's sums in its thread's reused accumulator. Returns the blocks' parts in
-/// ascending id order.
+/// tags every in-memory contribution in order, then rayon over runs of [`BLOCKS_PER_TASK`]
+/// consecutive blocks of [`REDUCE_BLOCK`] Gaussians, each block's sums in its thread's reused
+/// accumulator. Within a run each image's entries are walked forward: a block's first entry is
+/// where the previous block's ended, so only the run's first block searches the whole image.
+/// Returns the blocks' parts in ascending id order.
 fn block_major_chunk<T: Clone + Default + Send, B: Send>(
     images: &[StoredImage],
     ids: Range<usize>,
@@ -443,22 +445,32 @@ fn block_major_chunk<T: Clone + Default + Send, B: Send>(
         tags.push(on_image(ids.start == 0, image, c)?);
     }
     let end = ids.end;
-    Ok(ids
-        .step_by(REDUCE_BLOCK)
+    let span = REDUCE_BLOCK * BLOCKS_PER_TASK;
+    let runs: Vec<Vec<B>> = ids
+        .step_by(span)
         .collect::<Vec<_>>()
         .into_par_iter()
         .map_init(
-            || ChunkSums::empty(dim),
-            |sums, g0| {
-                sums.reset(g0, REDUCE_BLOCK.min(end - g0));
-                for (c, &tag) in images.iter().zip(&tags) {
-                    let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
-                    add_entries(c, g0 as u32, dim, num, den, extra, tag, on_entry);
-                }
-                finish(sums)
+            || (ChunkSums::empty(dim), Vec::new()),
+            |(sums, cursors), t0| {
+                // Each image's first entry of Gaussian `t0` or later.
+                cursors.clear();
+                cursors.extend(images.iter().map(|c| first_entry_of(c, t0 as u32)));
+                (t0..(t0 + span).min(end))
+                    .step_by(REDUCE_BLOCK)
+                    .map(|g0| {
+                        sums.reset(g0, REDUCE_BLOCK.min(end - g0));
+                        for ((c, &tag), lo) in images.iter().zip(&tags).zip(cursors.iter_mut()) {
+                            let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
+                            *lo = add_entries(c, *lo, g0 as u32, dim, num, den, extra, tag, on_entry);
+                        }
+                        finish(sums)
+                    })
+                    .collect()
             },
         )
-        .collect())
+        .collect();
+    Ok(runs.into_iter().flatten().collect())
 }
 
 /// One chunk (Gaussian ids `ids`) of the image-major loop of [`accumulate`]: a chunk-sized
@@ -498,7 +510,8 @@ fn image_major_chunk<T: Clone + Default + Send, B>(
             .enumerate()
             .for_each(|(b, ((num, den), extra))| {
                 let g0 = (start + b * BLOCK) as u32;
-                add_entries(c, g0, dim, num, den, extra, tag, on_entry);
+                let lo = first_entry_of(c, g0);
+                add_entries(c, lo, g0, dim, num, den, extra, tag, on_entry);
             });
     })?;
     if let Some(e) = failure {
@@ -507,15 +520,43 @@ fn image_major_chunk<T: Clone + Default + Send, B>(
     Ok(finish(&mut sums))
 }
 
-/// Gaussians per task of the Gaussian-block-major reduction ([`accumulate`]).
+/// Gaussians per block of the Gaussian-block-major reduction ([`accumulate`]).
 const REDUCE_BLOCK: usize = 128;
 
+/// Consecutive blocks per rayon task of the block-major reduction: enough that the binary
+/// search of each image's entries (one cache miss per step over arrays of millions) is paid
+/// once per run, few enough that a chunk still splits into hundreds of tasks.
+const BLOCKS_PER_TASK: usize = 8;
+
+/// The index of `c`'s first entry whose Gaussian is `g0` or later (its entries are sorted by
+/// Gaussian): a binary search over the whole image.
+fn first_entry_of(c: &StoredImage, g0: u32) -> usize {
+    c.gaussians.partition_point(|&g| g < g0)
+}
+
+/// The number of leading `ids` (ascending) below `bound`: an exponential search from the front,
+/// then a binary search within the last step, so a short run costs a few reads near its start
+/// instead of a search over the whole slice.
+fn leading_below(ids: &[u32], bound: u32) -> usize {
+    let (mut lo, mut step) = (0, 1);
+    // Invariant: every id of `ids[..lo]` is below `bound`.
+    while lo + step <= ids.len() && ids[lo + step - 1] < bound {
+        lo += step;
+        step *= 2;
+    }
+    let hi = (lo + step).min(ids.len());
+    lo + ids[lo..hi].partition_point(|&g| g < bound)
+}
+
 /// Adds one image's entries for Gaussians `g0..g0 + db.len()` (its entries are sorted by
-/// Gaussian) to that block's sums: `db[r] += a`, `nb[r·D..(r+1)·D] += a · E_j`, in entry order.
+/// Gaussian; `lo` is its first entry of Gaussian `g0` or later) to that block's sums: `db[r] +=
+/// a`, `nb[r·D..(r+1)·D] += a · E_j`, in entry order. Returns the index of the first entry after
+/// the block, where the next block's entries start.
 #[allow(clippy::too_many_arguments)]
 #[inline]
 fn add_entries<T>(
     c: &StoredImage,
+    lo: usize,
     g0: u32,
     dim: usize,
     nb: &mut [f64],
@@ -523,10 +564,9 @@ fn add_entries<T>(
     xb: &mut [T],
     tag: u32,
     on_entry: &(impl Fn(&mut T, &Entry, u32) + Sync),
-) {
+) -> usize {
     let g1 = g0 + db.len() as u32;
-    let lo = c.gaussians.partition_point(|&g| g < g0);
-    let hi = lo + c.gaussians[lo..].partition_point(|&g| g < g1);
+    let hi = lo + leading_below(&c.gaussians[lo..], g1);
     let run = Run {
         gaussians: &c.gaussians[lo..hi],
         weights: &c.weights[lo..hi],
@@ -539,6 +579,7 @@ fn add_entries<T>(
         MaskColumn::U16(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
         MaskColumn::U32(m) => run.add(&m[lo..hi], nb, db, xb, tag, on_entry),
     }
+    hi
 }
 
 /// The entries of one image that fall in one block of Gaussians ([`add_entries`]).
@@ -677,6 +718,26 @@ mod simd_tests {
                         assert_eq!(bits(&v), bits(&want), "avx512, len {len}, a {scale}");
                     }
                 }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod walk_tests {
+    use super::*;
+
+    /// The galloping search finds what a binary search over the whole slice finds, for every
+    /// bound around and between the ids, on runs of repeated ids and gaps.
+    #[test]
+    fn leading_below_equals_partition_point() {
+        let mut rng = slag_common::rng::SplitMix64::new(3);
+        for len in [0usize, 1, 2, 3, 7, 8, 9, 100, 1000] {
+            let mut ids: Vec<u32> = (0..len).map(|_| (rng.next_f64() * 300.0) as u32).collect();
+            ids.sort_unstable();
+            for bound in 0..=301u32 {
+                let want = ids.partition_point(|&g| g < bound);
+                assert_eq!(leading_below(&ids, bound), want, "len {len}, bound {bound}");
             }
         }
     }
