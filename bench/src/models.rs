@@ -25,7 +25,7 @@ use ort::value::TensorRef;
 use slag_common::camera::load_views;
 use slag_common::onnx::{OnnxModel, Placement};
 use slag_common::table::Table;
-use slag_encoder::clip::{ClipVisual, VisualInput, crop_pixels};
+use slag_encoder::clip::{ClipVisual, CropFill, VisualInput, crop_pixels};
 use slag_encoder::masks::MaskGenerator;
 use slag_encoder::masks::graph::{GraphParams, GraphSegmenter};
 use slag_encoder::preprocess::{load_rgb, sam_pixel_values};
@@ -164,7 +164,7 @@ fn clip_rows(
     let mut pixels = Vec::new();
     for img in images {
         let masks = seg.generate(img)?;
-        pixels.extend(crop_pixels(img, &masks)?);
+        pixels.extend(crop_pixels(img, &masks, CropFill::default())?);
     }
     let per = 3 * 224 * 224;
     let crops = pixels.len() / per;

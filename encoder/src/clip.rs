@@ -2,7 +2,10 @@
 //!
 //! The crop is the paper's: the mask's bounding box (inclusive, SAM/COCO `xywh`), pixels outside
 //! the mask set to white (255). Each crop gets open_clip's preprocessing: shortest side 224 with
-//! PIL bicubic and centre crop, as bytes ([`crate::preprocess::clip_pixels`]), then CLIP's
+//! PIL bicubic and centre crop, as bytes ([`crate::preprocess::clip_pixels`]). Where the white
+//! fill is applied is [`CropFill`]: before that resize (the paper's order, which blends the
+//! mask's border pixels with white) or after it (the default: the box of the image and the mask
+//! resized alike, white set at CLIP's resolution). Then CLIP's
 //! mean/std ([`crate::preprocess::clip_normalize`]), on the host for a tower whose input is
 //! `pixel_values f32[B,3,224,224]`, in the graph for one whose input is `pixels
 //! u8[B,3,224,224]` (`scripts/clip-u8-pixels.py`; a quarter of the bytes to copy to a GPU).
@@ -48,6 +51,30 @@ pub enum VisualInput {
     U8Pixels,
 }
 
+/// Where a crop's white fill is applied relative to CLIP's resize to 224 × 224 (`encode
+/// --crop-fill`).
+///
+/// The resize (bicubic, as open_clip's) mixes each output pixel from a few input pixels; filled
+/// before it, a mask's border pixels are blended with the white outside, which pulls a small or
+/// light object's colour towards white. Filled after it, the bounding box of the raw image is
+/// resized and the mask with it (the same filter), and every pixel where the resized mask is
+/// below one half is set white at CLIP's resolution; before that resize, the mask's colours are
+/// extended a few pixels past its border, so a kept pixel mixes only the object's own colours
+/// (neither white nor the background next to the object).
+/// The two are the same crop when the mask fills its box, or when the box needs no resize.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CropFill {
+    /// White outside the mask at the image's resolution, then the resize: the paper's crop
+    /// (`np.where(mask, image, 255)` then open_clip's preprocessing), as in
+    /// `fixtures/clip/reference.json`.
+    BeforeResize,
+    /// The box of the image (the mask's colours extended past its border) and of the mask
+    /// resized alike, then white where the resized mask is below one half.
+    #[default]
+    AfterResize,
+}
+
 /// The white-background bounding-box crop of `mask` in `image` (the paper's CLIP input):
 /// `np.where(mask, image, 255)[y:y+h+1, x:x+w+1]` with `[x, y, w, h] = mask.bbox_xywh`, the box
 /// clipped to the image.
@@ -56,6 +83,49 @@ pub enum VisualInput {
 /// [`Error::Mismatch`] when the mask and image sizes differ, [`Error::Internal`] for a malformed
 /// mask or a box outside the image.
 pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
+    let b = crop_box(image, mask)?;
+    let src = image.as_raw();
+    let mut out = vec![255u8; b.w * b.h * 3];
+    for (yy, orow) in out.chunks_exact_mut(b.w * 3).enumerate() {
+        let start = (b.y + yy) * b.iw + b.x;
+        let inside = &mask.pixels[start..start + b.w];
+        let irow = &src[start * 3..(start + b.w) * 3];
+        for ((o, i), &m) in orow
+            .chunks_exact_mut(3)
+            .zip(irow.chunks_exact(3))
+            .zip(inside)
+        {
+            if m != 0 {
+                o.copy_from_slice(i);
+            }
+        }
+    }
+    b.image(out)
+}
+
+/// A mask's bounding box clipped to its image, in pixels (`x`, `y`: top left; `w`, `h`: size;
+/// `iw`: the image's width).
+struct CropBox {
+    x: usize,
+    y: usize,
+    w: usize,
+    h: usize,
+    iw: usize,
+}
+
+impl CropBox {
+    /// `rgb` (`w × h × 3` bytes) as an image of the box's size.
+    fn image(&self, rgb: Vec<u8>) -> Result<RgbImage> {
+        RgbImage::from_raw(self.w as u32, self.h as u32, rgb)
+            .ok_or_else(|| Error::internal("crop buffer size mismatch"))
+    }
+}
+
+/// The box of `mask` in `image` ([`crop`]), after checking that they fit each other.
+///
+/// # Errors
+/// As [`crop`].
+fn crop_box(image: &RgbImage, mask: &Mask) -> Result<CropBox> {
     if (mask.width, mask.height) != image.dimensions() {
         return Err(Error::mismatch(
             slag_common::Mismatched::ImageSize,
@@ -85,25 +155,101 @@ pub fn crop(image: &RgbImage, mask: &Mask) -> Result<RgbImage> {
     }
     let x1 = x.saturating_add(w).min(iw - 1);
     let y1 = y.saturating_add(h).min(ih - 1);
-    let (cw, ch) = (x1 - x + 1, y1 - y + 1);
-    let (x, y, iw, cwu) = (x as usize, y as usize, iw as usize, cw as usize);
+    Ok(CropBox {
+        x: x as usize,
+        y: y as usize,
+        w: (x1 - x + 1) as usize,
+        h: (y1 - y + 1) as usize,
+        iw: iw as usize,
+    })
+}
+
+/// One mask's CLIP input `u8[3, 224, 224]` into `out`, its white fill applied as `fill` says:
+/// [`CropFill::BeforeResize`] is [`crop`] then [`clip_pixels`]. [`CropFill::AfterResize`] runs
+/// [`clip_pixels`] on the box of the image with the mask's colours extended past its border
+/// ([`extend_colours`], as deep as the resize's filter reaches, so no mask pixel is mixed with
+/// a pixel outside the mask) and on the box of the mask (0 or 255 in every channel), then sets
+/// white every pixel whose resized mask value is below 128.
+///
+/// # Errors
+/// As [`crop`] and [`clip_pixels`].
+pub fn mask_crop_pixels(
+    image: &RgbImage,
+    mask: &Mask,
+    fill: CropFill,
+    out: &mut [u8],
+) -> Result<()> {
+    if fill == CropFill::BeforeResize {
+        return clip_pixels(&crop(image, mask)?, out);
+    }
+    let b = crop_box(image, mask)?;
     let src = image.as_raw();
-    let mut out = vec![255u8; cwu * ch as usize * 3];
-    for (yy, orow) in out.chunks_exact_mut(cwu * 3).enumerate() {
-        let start = (y + yy) * iw + x;
-        let inside = &mask.pixels[start..start + cwu];
-        let irow = &src[start * 3..(start + cwu) * 3];
-        for ((o, i), &m) in orow
-            .chunks_exact_mut(3)
-            .zip(irow.chunks_exact(3))
-            .zip(inside)
-        {
-            if m != 0 {
-                o.copy_from_slice(i);
-            }
+    let mut raw = Vec::with_capacity(b.w * b.h * 3);
+    let mut inside = Vec::with_capacity(b.w * b.h);
+    for yy in 0..b.h {
+        let start = (b.y + yy) * b.iw + b.x;
+        raw.extend_from_slice(&src[start * 3..(start + b.w) * 3]);
+        inside.extend(mask.pixels[start..start + b.w].iter().map(|&m| m != 0));
+    }
+    let mask_rgb = inside
+        .iter()
+        .flat_map(|&m| [if m { 255 } else { 0 }; 3])
+        .collect();
+    // Bicubic reaches 2 input pixels, or 2 × the shrink factor when the box shrinks to 224.
+    let shrink = b.w.min(b.h) as f64 / f64::from(CLIP_IMAGE_SIZE);
+    let depth = (2.0 * shrink.max(1.0)).ceil() as usize + 1;
+    extend_colours(&mut raw, inside, b.w, depth);
+    clip_pixels(&b.image(raw)?, out)?;
+    let mut resized = vec![0u8; CLIP_PIXELS];
+    clip_pixels(&b.image(mask_rgb)?, &mut resized)?;
+    let plane = CLIP_PIXELS / 3;
+    for (i, _) in resized[..plane]
+        .iter()
+        .enumerate()
+        .filter(|(_, m)| **m < 128)
+    {
+        for c in 0..3 {
+            out[c * plane + i] = 255;
         }
     }
-    RgbImage::from_raw(cw, ch, out).ok_or_else(|| Error::internal("crop buffer size mismatch"))
+    Ok(())
+}
+
+/// Extends the colours of the pixels marked `inside` of `rgb` (a `width`-pixel wide RGB image)
+/// outward by `depth` rings: in each ring, every pixel outside with an 8-neighbour inside (or
+/// reached by an earlier ring) takes those neighbours' mean colour.
+fn extend_colours(rgb: &mut [u8], mut inside: Vec<bool>, width: usize, depth: usize) {
+    let height = inside.len() / width.max(1);
+    let mut ring = Vec::new();
+    for _ in 0..depth {
+        ring.clear();
+        for y in 0..height {
+            for x in (0..width).filter(|&x| !inside[y * width + x]) {
+                let (mut sum, mut n) = ([0u32; 3], 0u32);
+                for ny in y.saturating_sub(1)..(y + 2).min(height) {
+                    for nx in x.saturating_sub(1)..(x + 2).min(width) {
+                        let q = ny * width + nx;
+                        if inside[q] {
+                            for (s, &v) in sum.iter_mut().zip(&rgb[q * 3..q * 3 + 3]) {
+                                *s += u32::from(v);
+                            }
+                            n += 1;
+                        }
+                    }
+                }
+                if n > 0 {
+                    ring.push((y * width + x, sum.map(|s| ((s + n / 2) / n) as u8)));
+                }
+            }
+        }
+        if ring.is_empty() {
+            break;
+        }
+        for &(p, colour) in &ring {
+            rgb[p * 3..p * 3 + 3].copy_from_slice(&colour);
+            inside[p] = true;
+        }
+    }
 }
 
 /// The CLIP image tower over ONNX (`pixel_values f32[B,3,224,224]` or `pixels u8[B,3,224,224]`
@@ -118,6 +264,8 @@ pub struct ClipVisual {
     dim: usize,
     /// Whether every run is padded to `batch_size` rows (GPU providers; see `run_batch`).
     fixed_batch: bool,
+    /// Where the crops' white fill is applied.
+    crop_fill: CropFill,
 }
 
 impl ClipVisual {
@@ -198,6 +346,7 @@ impl ClipVisual {
             model_id,
             dim: 0,
             fixed_batch,
+            crop_fill: CropFill::default(),
         };
         clip.dim = match declared {
             Some(d) => d as usize,
@@ -243,6 +392,17 @@ impl ClipVisual {
     /// the CPU is for tests.
     pub fn set_fixed_batch(&mut self, on: bool) {
         self.fixed_batch = on;
+    }
+
+    /// Where the crops of [`ClipVisual::embed_masks`] get their white fill (default
+    /// [`CropFill::AfterResize`]); a [`ClipService`] started from this tower keeps it.
+    pub fn set_crop_fill(&mut self, fill: CropFill) {
+        self.crop_fill = fill;
+    }
+
+    /// Where the crops of [`ClipVisual::embed_masks`] get their white fill.
+    pub fn crop_fill(&self) -> CropFill {
+        self.crop_fill
     }
 
     /// Embeds crops `u8[n,3,224,224]` made by [`crate::preprocess::clip_pixels`] (or
@@ -341,13 +501,13 @@ impl ClipVisual {
     }
 
     /// CLIP embeddings (L2-normalised, model width `D`) of the white-background crops of `masks`
-    /// in `image`, in mask order. Crops are cut and preprocessed in parallel (rayon), then run in
-    /// batches of the configured size.
+    /// in `image` (white fill as [`ClipVisual::set_crop_fill`] says), in mask order. Crops are
+    /// cut and preprocessed in parallel (rayon), then run in batches of the configured size.
     ///
     /// # Errors
     /// As [`crop`] and [`ClipVisual::embed_pixels`].
     pub fn embed_masks(&mut self, image: &RgbImage, masks: &[Mask]) -> Result<Vec<Vec<f32>>> {
-        let pixels = crop_pixels(image, masks)?;
+        let pixels = crop_pixels(image, masks, self.crop_fill)?;
         self.embed_pixels(&pixels)
     }
 
@@ -368,17 +528,18 @@ impl ClipVisual {
 }
 
 /// `u8[masks.len(), 3, 224, 224]`: the white-background crops of `masks`, resized and
-/// centre-cropped for CLIP ([`clip_pixels`]), cut in parallel (rayon).
+/// centre-cropped for CLIP, white filled as `fill` says ([`mask_crop_pixels`]), cut in parallel
+/// (rayon).
 ///
 /// # Errors
 /// As [`crop`] and [`clip_pixels`].
-pub fn crop_pixels(image: &RgbImage, masks: &[Mask]) -> Result<Vec<u8>> {
+pub fn crop_pixels(image: &RgbImage, masks: &[Mask], fill: CropFill) -> Result<Vec<u8>> {
     let per = CLIP_PIXELS;
     let mut pixels = vec![0u8; masks.len() * per];
     pixels
         .par_chunks_mut(per)
         .zip(masks.par_iter())
-        .try_for_each(|(buf, m)| clip_pixels(&crop(image, m)?, buf))?;
+        .try_for_each(|(buf, m)| mask_crop_pixels(image, m, fill, buf))?;
     Ok(pixels)
 }
 
@@ -543,18 +704,20 @@ pub struct ClipService {
     provider: ExecutionProvider,
     stats: Arc<Mutex<ClipServiceStats>>,
     input: VisualInput,
+    crop_fill: CropFill,
 }
 
 impl ClipService {
     fn start(mut clip: ClipVisual) -> Self {
         let (tx, rx) = mpsc::channel::<Request>();
         let stats = Arc::new(Mutex::new(ClipServiceStats::default()));
-        let (model_id, dim, device, provider, input) = (
+        let (model_id, dim, device, provider, input, crop_fill) = (
             clip.model_id.clone(),
             clip.dim,
             clip.device_label(),
             clip.provider(),
             clip.input,
+            clip.crop_fill,
         );
         let st = Arc::clone(&stats);
         let spawned = std::thread::Builder::new()
@@ -607,6 +770,7 @@ impl ClipService {
             provider,
             stats,
             input,
+            crop_fill,
         }
     }
 
@@ -618,6 +782,7 @@ impl ClipService {
             dim: self.dim,
             device: self.device.clone(),
             input: self.input,
+            crop_fill: self.crop_fill,
         }
     }
 
@@ -686,6 +851,7 @@ pub struct ClipHandle {
     dim: usize,
     device: String,
     input: VisualInput,
+    crop_fill: CropFill,
 }
 
 impl ClipHandle {
@@ -711,7 +877,7 @@ impl ClipHandle {
         if masks.is_empty() {
             return Ok(Vec::new());
         }
-        let crops = Crops::for_tower(self.input, crop_pixels(image, masks)?)?;
+        let crops = Crops::for_tower(self.input, crop_pixels(image, masks, self.crop_fill)?)?;
         let count = crops.batch().count();
         let (reply, answer) = mpsc::sync_channel(1);
         let gone = || {
@@ -765,6 +931,77 @@ mod tests {
                 what: slag_common::Mismatched::ImageSize,
                 ..
             })
+        ));
+    }
+
+    /// The `[r, g, b]` pixels of one CLIP input `u8[3, 224, 224]`.
+    fn rgb_pixels(buf: &[u8]) -> Vec<[u8; 3]> {
+        let plane = CLIP_PIXELS / 3;
+        (0..plane)
+            .map(|i| [buf[i], buf[plane + i], buf[2 * plane + i]])
+            .collect()
+    }
+
+    #[test]
+    fn fill_after_resize_keeps_the_border_colour() {
+        // A light object (pink) on a gray floor; the mask is a triangle, so its box holds
+        // pixels outside it, and the 30 x 20 box is enlarged to CLIP's 224.
+        const PINK: [u8; 3] = [250, 160, 200];
+        let (w, h) = (48u32, 32u32);
+        let inside =
+            |x: u32, y: u32| (4..34).contains(&x) && (6..26).contains(&y) && x - 4 >= y - 6;
+        let img = RgbImage::from_fn(w, h, |x, y| {
+            image::Rgb(if inside(x, y) { PINK } else { [128, 128, 128] })
+        });
+        let px = (0..w * h).map(|i| u8::from(inside(i % w, i / w))).collect();
+        let m = Mask::from_pixels(w, h, px).unwrap();
+        let mut after = vec![0u8; CLIP_PIXELS];
+        mask_crop_pixels(&img, &m, CropFill::AfterResize, &mut after).unwrap();
+        let mut before = vec![0u8; CLIP_PIXELS];
+        mask_crop_pixels(&img, &m, CropFill::BeforeResize, &mut before).unwrap();
+        let after = rgb_pixels(&after);
+        let white = [255u8; 3];
+        // Filled after the resize, every pixel is the object's own colour or the fill: the
+        // border is not blended with white (nor with the floor outside the mask).
+        let pink = after.iter().filter(|&&p| p == PINK).count();
+        assert!(after.iter().all(|&p| p == PINK || p == white));
+        assert!(
+            pink > after.len() / 4 && pink < after.len() * 3 / 4,
+            "{pink} pink pixels"
+        );
+        // Filled before it, the border pixels are pink blended with white.
+        let blended = rgb_pixels(&before)
+            .into_iter()
+            .filter(|&p| p != PINK && p != white)
+            .count();
+        assert!(blended > 100, "only {blended} blended pixels");
+    }
+
+    #[test]
+    fn fills_agree_where_the_mask_covers_its_box() {
+        let img = RgbImage::from_fn(40, 30, |x, y| {
+            image::Rgb([(x * 6) as u8, (y * 8) as u8, ((x * y) % 251) as u8])
+        });
+        let px = (0..40 * 30)
+            .map(|i| u8::from((3..34).contains(&(i % 40)) && (5..22).contains(&(i / 40))))
+            .collect();
+        let m = Mask::from_pixels(40, 30, px).unwrap();
+        let mut crops = [vec![0u8; CLIP_PIXELS], vec![0u8; CLIP_PIXELS]];
+        for (fill, out) in [CropFill::BeforeResize, CropFill::AfterResize]
+            .into_iter()
+            .zip(&mut crops)
+        {
+            mask_crop_pixels(&img, &m, fill, out).unwrap();
+        }
+        assert!(
+            crops[0] == crops[1],
+            "the two fills differ on a full-box mask"
+        );
+        assert!(crops[0].iter().any(|&v| v != 255));
+        let small = RgbImage::new(39, 30);
+        assert!(matches!(
+            mask_crop_pixels(&small, &m, CropFill::AfterResize, &mut crops[0]),
+            Err(Error::Mismatch { .. })
         ));
     }
 }

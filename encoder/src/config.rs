@@ -377,6 +377,9 @@ pub struct ClipConfig {
     /// Crops per CLIP batch; `None` (default): [`CLIP_BATCH_GPU`] on a GPU provider,
     /// [`CLIP_BATCH_CPU`] on the CPU.
     pub batch: Option<usize>,
+    /// Where each mask crop's white fill is applied relative to CLIP's resize (default: after
+    /// it; `before-resize` is the paper's order).
+    pub crop_fill: crate::clip::CropFill,
 }
 
 /// Which weight rasterizer runs.

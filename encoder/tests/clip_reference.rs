@@ -15,7 +15,7 @@ use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
 use slag_common::text::TextEncoder;
-use slag_encoder::clip::{ClipVisual, VisualInput, crop};
+use slag_encoder::clip::{ClipVisual, CropFill, VisualInput, crop};
 use slag_encoder::masks::Mask;
 use slag_encoder::preprocess::{clip_pixel_values, load_rgb};
 
@@ -56,6 +56,8 @@ fn clip_crops_reproduce_open_clip_reference() {
         4,
     )
     .unwrap();
+    // The reference is the paper's crop: white outside the mask, then open_clip's resize.
+    visual.set_crop_fill(CropFill::BeforeResize);
     let crops = reference["crops"].as_array().unwrap();
     let want = reference["image_embeds"].as_array().unwrap();
     let mut done = 0;

@@ -8,7 +8,9 @@ use clap::{Args, ValueEnum};
 use slag_common::cli::EpArg;
 use slag_common::embeddings::StoredPrecision;
 
-use super::values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, ViewsArg};
+use super::values::{
+    CropFillArg, MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, ViewsArg,
+};
 use crate::config::{
     AggregateConfig, ClipConfig, EncodeConfig, ExecutionConfig, GpuCount, GraphConfig, MasksConfig,
     OutputConfig, RasterConfig, SamConfig, SceneConfig, SegmentsConfig,
@@ -155,6 +157,13 @@ pub struct EncodeArgs {
     /// ViT-B/16 fp16 1.45x faster than at 32 on an H100 (docs/results/gpu-models.md); 32 on the CPU).
     #[arg(long)]
     pub clip_batch: Option<usize>,
+    /// Where each mask crop's white fill is applied: after-resize (the default: the box of the
+    /// image and the mask resized to CLIP's 224 × 224 alike, then white outside the mask, so the
+    /// object's border pixels keep their colour) or before-resize (the paper's order: white
+    /// outside the mask, then the resize, which blends the border with white). Measured in
+    /// docs/results/prediction-filtering.md ("object truth").
+    #[arg(long, value_enum, value_name = "ORDER", default_value_t = CropFillArg::AfterResize)]
+    pub crop_fill: CropFillArg,
     /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
     #[arg(long, default_value_t = 1)]
     pub every: usize,
@@ -353,6 +362,7 @@ impl From<&EncodeArgs> for EncodeConfig {
             clip: ClipConfig {
                 visual: a.clip_visual.clone(),
                 batch: a.clip_batch,
+                crop_fill: a.crop_fill.into(),
             },
             raster: RasterConfig {
                 scale: a.raster_scale,

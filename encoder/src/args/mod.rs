@@ -7,4 +7,6 @@ pub mod encode;
 pub mod values;
 
 pub use encode::{EncodeArgs, OnOff, PrecisionArg, SegmentArgs};
-pub use values::{MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, SmoothArg, ViewsArg};
+pub use values::{
+    CropFillArg, MaskSourceArg, MaskWeightingArg, OverlapArg, RasterArg, SmoothArg, ViewsArg,
+};

@@ -73,6 +73,27 @@ impl From<MaskWeightingArg> for MaskWeighting {
     }
 }
 
+/// `--crop-fill`: where a mask crop's white fill is applied ([`crate::clip::CropFill`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum CropFillArg {
+    /// White outside the mask at the image's resolution, then the resize to CLIP's 224 × 224:
+    /// the paper's crop (border pixels blend with the white).
+    BeforeResize,
+    /// The box of the image and of the mask resized alike, then white where the resized mask
+    /// is below one half: the object's border pixels keep their colour.
+    #[default]
+    AfterResize,
+}
+
+impl From<CropFillArg> for crate::clip::CropFill {
+    fn from(a: CropFillArg) -> Self {
+        match a {
+            CropFillArg::BeforeResize => crate::clip::CropFill::BeforeResize,
+            CropFillArg::AfterResize => crate::clip::CropFill::AfterResize,
+        }
+    }
+}
+
 /// `--overlap`: how a pixel covered by several masks contributes ([`MaskOverlap`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum OverlapArg {

@@ -48,12 +48,13 @@ impl ClusterEncoder {
         let config = c.clone();
         let stages: StageFactory = Arc::new(move |g| {
             let masks = build::build_masks(&config, threads)?;
-            let crops = crate::clip::ClipVisual::with_threads(
+            let mut crops = crate::clip::ClipVisual::with_threads(
                 &config.clip.visual,
                 config.execution.ep,
                 config.clip.batch.unwrap_or(CLIP_BATCH_CPU),
                 threads,
             )?;
+            crops.set_crop_fill(config.clip.crop_fill);
             Ok(Stages {
                 masks,
                 crops: Box::new(crops),

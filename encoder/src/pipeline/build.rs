@@ -159,6 +159,7 @@ pub fn report_header(c: &EncodeConfig, threads: usize) -> Report {
         },
         parameters: Parameters {
             clip_batch: c.clip.batch,
+            crop_fill: c.clip.crop_fill,
             cluster_addresses: None,
             cluster_processes: None,
             front_workers: e.front_workers,
@@ -290,11 +291,12 @@ pub struct Fronts {
 pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
     let gpu_threads = (threads / gpus.max(1)).max(1);
     let gpu_batch = c.clip.batch.unwrap_or(CLIP_BATCH_GPU);
-    let clip0 = crate::clip::ClipVisual::with_placement(
+    let mut clip0 = crate::clip::ClipVisual::with_placement(
         &c.clip.visual,
         &c.placement(0, gpu_threads),
         gpu_batch,
     )?;
+    clip0.set_crop_fill(c.clip.crop_fill);
     if clip0.provider() == ExecutionProvider::Cpu {
         drop(clip0);
         return cpu_fronts(c, gpus, threads);
@@ -305,11 +307,12 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
     let mut providers = Vec::new();
     for g in 0..gpus {
         if g > 0 {
-            let clip = crate::clip::ClipVisual::with_placement(
+            let mut clip = crate::clip::ClipVisual::with_placement(
                 &c.clip.visual,
                 &c.placement(g as u32, gpu_threads),
                 gpu_batch,
             )?;
+            clip.set_crop_fill(c.clip.crop_fill);
             services.push(clip.into_service()?);
         }
         let sam = gpu_sam(c, g, gpu_threads)?;
@@ -375,7 +378,10 @@ fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuS
         &placement,
         c.masks.sam.params(),
     )?;
-    Ok(Some((sam, sam_timing(c, &placement, &c.masks.sam.params())?)))
+    Ok(Some((
+        sam,
+        sam_timing(c, &placement, &c.masks.sam.params())?,
+    )))
 }
 
 /// The fronts when CLIP runs on the CPU ([`build_fronts`]): every worker its own SAM and CLIP
@@ -395,12 +401,13 @@ fn cpu_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
     let mut stages = Vec::with_capacity(n);
     for _ in 0..n {
         let masks = build_masks_within(&cpu, per_front, Some(SAM_CPU_DECODER_BYTES / n))?;
-        let clip = crate::clip::ClipVisual::with_threads(
+        let mut clip = crate::clip::ClipVisual::with_threads(
             &c.clip.visual,
             ExecutionProvider::Cpu,
             batch,
             per_front,
         )?;
+        clip.set_crop_fill(c.clip.crop_fill);
         stages.push(FrontStages::new(masks, Box::new(clip)));
     }
     let sam = (c.masks.source == MaskSource::Sam).then_some(ExecutionProvider::Cpu);
