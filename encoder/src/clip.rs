@@ -3,8 +3,8 @@
 //! The crop is the paper's: the mask's bounding box (inclusive, SAM/COCO `xywh`), pixels outside
 //! the mask set to white (255). Each crop gets open_clip's preprocessing: shortest side 224 with
 //! PIL bicubic and centre crop, as bytes ([`crate::preprocess::clip_pixels`]). Where the white
-//! fill is applied is [`CropFill`]: before that resize (the paper's order, which blends the
-//! mask's border pixels with white) or after it (the default: the box of the image and the mask
+//! fill is applied is [`CropFill`]: before that resize (the paper's order and the default, which
+//! blends the mask's border pixels with white) or after it (the box of the image and the mask
 //! resized alike, white set at CLIP's resolution). Then CLIP's
 //! mean/std ([`crate::preprocess::clip_normalize`]), on the host for a tower whose input is
 //! `pixel_values f32[B,3,224,224]`, in the graph for one whose input is `pixels
@@ -67,11 +67,13 @@ pub enum VisualInput {
 pub enum CropFill {
     /// White outside the mask at the image's resolution, then the resize: the paper's crop
     /// (`np.where(mask, image, 255)` then open_clip's preprocessing), as in
-    /// `fixtures/clip/reference.json`.
+    /// `fixtures/clip/reference.json`. The default: the other order helped the labelled-object
+    /// room with heavy texture but cost snowmiku's held-out mIoU
+    /// (`docs/results/prediction-filtering.md`).
+    #[default]
     BeforeResize,
     /// The box of the image (the mask's colours extended past its border) and of the mask
     /// resized alike, then white where the resized mask is below one half.
-    #[default]
     AfterResize,
 }
 
@@ -395,7 +397,7 @@ impl ClipVisual {
     }
 
     /// Where the crops of [`ClipVisual::embed_masks`] get their white fill (default
-    /// [`CropFill::AfterResize`]); a [`ClipService`] started from this tower keeps it.
+    /// [`CropFill::BeforeResize`]); a [`ClipService`] started from this tower keeps it.
     pub fn set_crop_fill(&mut self, fill: CropFill) {
         self.crop_fill = fill;
     }

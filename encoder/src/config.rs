@@ -377,8 +377,8 @@ pub struct ClipConfig {
     /// Crops per CLIP batch; `None` (default): [`CLIP_BATCH_GPU`] on a GPU provider,
     /// [`CLIP_BATCH_CPU`] on the CPU.
     pub batch: Option<usize>,
-    /// Where each mask crop's white fill is applied relative to CLIP's resize (default: after
-    /// it; `before-resize` is the paper's order).
+    /// Where each mask crop's white fill is applied relative to CLIP's resize (default: before
+    /// it, the paper's order).
     pub crop_fill: crate::clip::CropFill,
 }
 

@@ -678,7 +678,7 @@ mod tests {
                 "raster_scale": 0.5, "sam_points_per_side": 0, "sam_points_per_batch": null,
                 "sam_pred_iou_thresh": 0.88f32, "sam_stability_score_thresh": 0.0,
                 "sam_box_nms_thresh": 0.0, "graph_k": 700.0f32, "graph_min_size": null,
-                "clip_batch": null, "crop_fill": "after-resize", "top_k_per_pixel": null,
+                "clip_batch": null, "crop_fill": "before-resize", "top_k_per_pixel": null,
                 "mask_weighting": "none",
                 "overlap": "finest", "levels": false, "min_weight": 1e-6, "mixture_keep": null,
                 "threads": 2, "gpus": "Count(1)", "front_workers": null,

@@ -118,15 +118,7 @@ fn prediction_filtering_helps_on_object_truth() {
         "pf-majority {} vs {no_pf}",
         pixel("pf-majority")
     );
-    // Per Gaussian the gain is smaller: with the crops' white fill after the resize (the
-    // default) slag itself answers better (3D 0.2232 against 0.1996 with the paper's order) and
-    // pf-majority adds 0.013 (0.026 with the paper's order).
-    assert!(
-        three_d("pf-majority") >= three_d("slag") + 0.01,
-        "pf-majority 3D {} vs {}",
-        three_d("pf-majority"),
-        three_d("slag")
-    );
+    assert!(three_d("pf-majority") >= three_d("slag") + 0.02);
     // So does the vote weighted by how much the views saw each Gaussian (Σ_j a_kj).
     assert!(
         pixel("pf-weighted") >= no_pf + 0.02,

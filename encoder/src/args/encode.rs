@@ -157,12 +157,13 @@ pub struct EncodeArgs {
     /// ViT-B/16 fp16 1.45x faster than at 32 on an H100 (docs/results/gpu-models.md); 32 on the CPU).
     #[arg(long)]
     pub clip_batch: Option<usize>,
-    /// Where each mask crop's white fill is applied: after-resize (the default: the box of the
-    /// image and the mask resized to CLIP's 224 × 224 alike, then white outside the mask, so the
-    /// object's border pixels keep their colour) or before-resize (the paper's order: white
-    /// outside the mask, then the resize, which blends the border with white). Measured in
-    /// docs/results/prediction-filtering.md ("object truth").
-    #[arg(long, value_enum, value_name = "ORDER", default_value_t = CropFillArg::AfterResize)]
+    /// Where each mask crop's white fill is applied: before-resize (the default, the paper's
+    /// order: white outside the mask, then the resize to CLIP's 224 × 224, which blends the
+    /// mask's border with white) or after-resize (the box of the image, the mask's colours
+    /// extended past its border, and the box of the mask resized alike, then white outside the
+    /// resized mask: the border keeps its colour). after-resize helped the labelled-object room
+    /// with heavy texture but cost snowmiku's held-out mIoU (docs/results/prediction-filtering.md).
+    #[arg(long, value_enum, value_name = "ORDER", default_value_t = CropFillArg::BeforeResize)]
     pub crop_fill: CropFillArg,
     /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
     #[arg(long, default_value_t = 1)]

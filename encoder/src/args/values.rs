@@ -78,10 +78,10 @@ impl From<MaskWeightingArg> for MaskWeighting {
 pub enum CropFillArg {
     /// White outside the mask at the image's resolution, then the resize to CLIP's 224 × 224:
     /// the paper's crop (border pixels blend with the white).
+    #[default]
     BeforeResize,
     /// The box of the image and of the mask resized alike, then white where the resized mask
     /// is below one half: the object's border pixels keep their colour.
-    #[default]
     AfterResize,
 }
 
