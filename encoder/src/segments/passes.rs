@@ -78,15 +78,16 @@ fn build_tile(t: u32, graph: &Graph, w: &Weigher, tm: &TileMembers) -> BuiltTile
 }
 
 impl BuiltTile {
-    /// The tile's criterion pass (one thread), on a forest of its own over its `members`.
+    /// The tile's criterion pass (one thread), on a forest of its own over its `members`, then
+    /// its edges still between components picked in parallel.
     fn criterion(self, p: &SegmentParams, members: usize) -> TilePass {
         let clock = Instant::now();
         let mut f = Forest::singletons(members);
         f.criterion_pass_in(&self.inner, p.threshold, None);
         let kept = if p.min_size > 1 {
             self.inner
-                .iter()
-                .filter(|e| f.find(e.i) != f.find(e.j))
+                .par_iter()
+                .filter(|e| f.root(e.i) != f.root(e.j))
                 .copied()
                 .collect()
         } else {
