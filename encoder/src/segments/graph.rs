@@ -33,7 +33,32 @@ impl Neighbours {
     }
 }
 
-/// The whole scene's k-NN graph within `h`; `None` once `stop` was set.
+impl Neighbours {
+    /// The same lists with Gaussian `i`'s slots at `i` (no `pos_of`): an edge's weight then
+    /// reads its far end's list from one place rather than two. Parallel; for a moment both
+    /// copies of the slots are held.
+    fn in_id_order(self) -> Self {
+        let Some(pos_of) = &self.pos_of else {
+            return self;
+        };
+        let k = self.k.max(1);
+        let mut ids = vec![NO_NEIGHBOUR; self.ids.len()];
+        ids.par_chunks_mut(k)
+            .zip(pos_of.par_iter())
+            .for_each(|(out, &at)| {
+                let at = at as usize * k;
+                out.copy_from_slice(&self.ids[at..at + k]);
+            });
+        Neighbours {
+            k: self.k,
+            ids,
+            pos_of: None,
+        }
+    }
+}
+
+/// The whole scene's k-NN graph within `h`, each Gaussian's list at its id; `None` once `stop`
+/// was set.
 pub(super) fn neighbour_graph(
     means: &[[f32; 3]],
     p: &SegmentParams,
@@ -41,28 +66,28 @@ pub(super) fn neighbour_graph(
     stop: &AtomicBool,
 ) -> Option<Neighbours> {
     let nb = super::grid::neighbours(means, p.neighbours, h, stop);
-    (!stop.load(std::sync::atomic::Ordering::Relaxed)).then_some(nb)
+    (!stop.load(std::sync::atomic::Ordering::Relaxed)).then(|| nb.in_id_order())
 }
 
-/// A tile's Gaussians: their ids, ascending, and where each Gaussian of the scene stands in
-/// its tile's list.
+/// A tile's Gaussians: their ids, ascending, and where each Gaussian of the scene stands.
 pub(super) struct TileMembers {
     /// Each tile's Gaussian ids, ascending.
     pub(super) members: Vec<Vec<u32>>,
-    /// Gaussian `i` is `members[tile_of[i]][local_of[i]]`.
-    pub(super) local_of: Vec<u32>,
+    /// Gaussian `i`'s tile `t` and place `l` in it, side by side (one read for an edge's far
+    /// end): `i` is `members[t][l]`.
+    pub(super) place: Vec<(u32, u32)>,
 }
 
 impl TileMembers {
     pub(super) fn new(tile_of: &[u32], tiles: usize) -> Self {
         let mut members = vec![Vec::new(); tiles];
-        let mut local_of = vec![0u32; tile_of.len()];
+        let mut place = vec![(0u32, 0u32); tile_of.len()];
         for (i, &t) in tile_of.iter().enumerate() {
             let m = &mut members[t as usize];
-            local_of[i] = m.len() as u32;
+            place[i] = (t, m.len() as u32);
             m.push(i as u32);
         }
-        TileMembers { members, local_of }
+        TileMembers { members, place }
     }
 }
 
@@ -103,7 +128,6 @@ pub(super) fn tile_edges(
     t: u32,
     geometric: &[f32],
     tiles: &TileMembers,
-    tile_of: &[u32],
     nb: &Neighbours,
     w: &Weigher,
 ) -> (Vec<Edge>, Vec<Edge>) {
@@ -124,9 +148,11 @@ pub(super) fn tile_edges(
                     let wji =
                         back.map_or(wij, |b| w.weight(geometric[ju * k + b], ju, iu).to_bits());
                     let (lo, hi) = (i.min(j), i.max(j));
-                    let (out, lo, hi) = if tile_of[ju] == t {
-                        let l = |g: u32| tiles.local_of[g as usize];
-                        (&mut inner, l(lo), l(hi))
+                    let (tj, lj) = tiles.place[ju];
+                    let (out, lo, hi) = if tj == t {
+                        let li = tiles.place[iu].1;
+                        let (a, b) = if i < j { (li, lj) } else { (lj, li) };
+                        (&mut inner, a, b)
                     } else {
                         (&mut border, lo, hi)
                     };

@@ -57,7 +57,7 @@ pub(super) struct Graph<'a> {
 impl Graph<'_> {
     /// [`tile_edges`] of tile `t`.
     fn edges(&self, t: u32, tm: &TileMembers, w: &Weigher) -> (Vec<Edge>, Vec<Edge>) {
-        tile_edges(t, self.geometric, tm, self.tile_of, self.nb, w)
+        tile_edges(t, self.geometric, tm, self.nb, w)
     }
 }
 
@@ -299,8 +299,8 @@ impl Run<'_> {
         let (parent, components) = (0..tile_of.len())
             .into_par_iter()
             .map(|i| {
-                let t = tile_of[i] as usize;
-                let l = tm.local_of[i] as usize;
+                let (t, l) = tm.place[i];
+                let (t, l) = (t as usize, l as usize);
                 let root = tm.members[t][passes[t].roots[l] as usize];
                 (root, passes[t].components[l])
             })
