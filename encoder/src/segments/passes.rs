@@ -6,7 +6,10 @@
 //! forest over the scene). Their forests then make the scene's forest, which takes the border
 //! edges and the minimum-size pass. That pass skips the inner edges whose ends were already
 //! joined after their tile's criterion pass (components only grow, so it would skip them
-//! anyway): it runs over the few edges between components, in the same order.
+//! anyway), and, of the edges between components, those with no end in a component below the
+//! minimum size or that the mask veto refuses ([`min_size_candidates`], picked in parallel): it
+//! runs over the rest, in the same order. While one wave of tiles runs its criterion passes,
+//! the next wave's edges are weighed and sorted on the other threads.
 
 use std::time::Instant;
 
@@ -128,7 +131,6 @@ struct Tiled {
 
 /// The two passes (module doc): the scene's forest (`None` once stopped), the edge count and
 /// the border-edge count; their stages' seconds added to `st` (the tiles', summed over tiles).
-#[allow(clippy::too_many_arguments)]
 pub(super) fn merge(
     g: &Gaussians,
     p: &SegmentParams,
