@@ -367,89 +367,123 @@ pub fn segment_with(
 ) -> Result<Option<(Segments, SegmentStats)>> {
     p.validate()?;
     let t0 = Instant::now();
-    let n = g.len();
     check_scene(g)?;
     let mut st = SegmentTimings::default();
-    let mut t = Instant::now();
-    let geo = ctl.run(|| geometry(g));
-    if ctl.stopped() {
-        return Ok(None);
-    }
-    let h = resolve_max_edge(p, &geo);
-    st.geometry = lap(&mut t);
-    let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
-    st.tiles = lap(&mut t);
-    let Some(nb) = ctl.run(|| neighbour_graph(&g.means, p, h, &ctl.stop)) else {
+    let Some(pre) = before_record(g, p, ctl, &mut st) else {
         return Ok(None);
     };
-    st.neighbours = lap(&mut t);
-    let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
-    drop(geo);
-    st.edge_geometry = lap(&mut t);
-    if ctl.stopped() {
-        return Ok(None);
-    }
+    let mut t = Instant::now();
     let record = masks();
     st.record_wait = lap(&mut t);
     if ctl.stopped() {
         return Ok(None);
     }
-    if let Some(r) = &record
-        && r.len() != n
-    {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::Scene,
-            format!(
-                "the masks' record holds {} Gaussians but the scene has {n}: use the record \
-                 of an encode of this .ply",
-                r.len()
-            ),
-        ));
-    }
+    check_record(record.as_deref(), g.len())?;
     let w = Weigher {
         p,
         masks: record.as_deref(),
     };
     let graph = passes::Graph {
-        nb: &nb,
-        geometric: &geometric,
-        tile_of: &tile_of,
-        tiles: rects.len(),
+        nb: &pre.nb,
+        geometric: &pre.geometric,
+        tile_of: &pre.tile_of,
+        tiles: pre.tiles,
     };
     let (forest, edges, border_edges) = merge(g, p, ctl, &w, &graph, &mut st);
-    let forest = match forest {
-        Some(f) => f,
-        None => return Ok(None),
+    let Some(forest) = forest else {
+        return Ok(None);
     };
     t = Instant::now();
     let (roots, _) = forest.into_roots();
     let (segments, segment_count) = canonical_root_ids(&roots);
     st.ids = lap(&mut t);
     let stats = SegmentStats {
-        gaussians: n,
+        gaussians: g.len(),
         segments: segment_count,
-        tiles: rects.len(),
+        tiles: pre.tiles,
         edges,
         border_edges,
-        max_edge: h,
+        max_edge: pre.max_edge,
         mask_record: record.as_ref().map(|r| r.slots),
         seconds: t0.elapsed().as_secs_f64(),
         stages: st,
     };
-    let parameters = serde_json::to_string(&serde_json::json!({
-        "params": p, "max_edge_used": h, "tiles": rects.len(),
-        "mask_record_slots": record.as_ref().map(|r| r.slots),
+    let segments = Segments {
+        segments,
+        segment_count,
+        source_ply: source_ply.to_string(),
+        parameters: parameters_json(p, &stats),
+    };
+    Ok(Some((segments, stats)))
+}
+
+/// What [`segment_with`] builds before the masks' record: the edge length cap used (scene
+/// units), each Gaussian's tile (`[N]`) and the tile count, the k-nearest-neighbour graph and
+/// the geometric part of each neighbour slot's weight (`[N * k]`).
+struct BeforeRecord {
+    max_edge: f32,
+    tile_of: Vec<u32>,
+    tiles: usize,
+    nb: graph::Neighbours,
+    geometric: Vec<f32>,
+}
+
+/// The stages that need no masks' record, each timed into `st`: the Gaussians' geometry, the
+/// tile plan, the neighbour graph and the edges' geometric parts (the per-Gaussian geometry is
+/// freed after them). `None` once [`SegmentControl::stop`] was called.
+fn before_record(
+    g: &Gaussians,
+    p: &SegmentParams,
+    ctl: &SegmentControl,
+    st: &mut SegmentTimings,
+) -> Option<BeforeRecord> {
+    let mut t = Instant::now();
+    let geo = ctl.run(|| geometry(g));
+    if ctl.stopped() {
+        return None;
+    }
+    let max_edge = resolve_max_edge(p, &geo);
+    st.geometry = lap(&mut t);
+    let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    st.tiles = lap(&mut t);
+    let nb = ctl.run(|| neighbour_graph(&g.means, p, max_edge, &ctl.stop))?;
+    st.neighbours = lap(&mut t);
+    let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
+    drop(geo);
+    st.edge_geometry = lap(&mut t);
+    (!ctl.stopped()).then_some(BeforeRecord {
+        max_edge,
+        tile_of,
+        tiles: rects.len(),
+        nb,
+        geometric,
+    })
+}
+
+/// Refuses a masks' record of another scene than the `n` Gaussians segmented
+/// ([`Error::Mismatch`], telling the user to pass the record of an encode of this `.ply`).
+fn check_record(record: Option<&MaskRecord>, n: usize) -> Result<()> {
+    match record {
+        Some(r) if r.len() != n => Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "the masks' record holds {} Gaussians but the scene has {n}: use the record \
+                 of an encode of this .ply",
+                r.len()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// The settings stored with the segments (JSON): `p`, the edge length cap used, the tile count
+/// and the masks' record's slots (`null` without a record).
+fn parameters_json(p: &SegmentParams, stats: &SegmentStats) -> String {
+    serde_json::to_string(&serde_json::json!({
+        "params": p, "max_edge_used": stats.max_edge, "tiles": stats.tiles,
+        "mask_record_slots": stats.mask_record,
     }))
-    .unwrap_or_default();
-    Ok(Some((
-        Segments {
-            segments,
-            segment_count,
-            source_ply: source_ply.to_string(),
-            parameters,
-        },
-        stats,
-    )))
+    .unwrap_or_default()
 }
 
 /// [`canonical_ids`] of union-find roots (each below `roots.len()`), its map an array: the
