@@ -324,42 +324,8 @@ fn mixture_keep(flag: Option<usize>) -> Option<usize> {
 impl From<&EncodeArgs> for EncodeConfig {
     fn from(a: &EncodeArgs) -> Self {
         EncodeConfig {
-            scene: SceneConfig {
-                dir: a.scene.clone(),
-                ply: a.ply.clone(),
-                every: a.every,
-                hold_out_every: a.hold_out_every,
-                views: ViewSelection {
-                    mode: a.views.unwrap_or_default().into(),
-                    count: a.view_count,
-                    coverage: CoverageRule {
-                        min_weight: a.view_coverage_weight,
-                        min_views: a.view_coverage_min_views,
-                        min_angle_deg: a.view_coverage_angle,
-                        target: a.view_coverage_target,
-                        min_gain: a.view_coverage_min_gain,
-                        raster_scale: a.view_coverage_raster_scale,
-                    },
-                },
-            },
-            masks: MasksConfig {
-                source: a.masks.into(),
-                sam: SamConfig {
-                    encoder: a.sam_encoder.clone(),
-                    decoder: a.sam_decoder.clone(),
-                    points_per_side: a.sam_points_per_side,
-                    points_per_batch: a.sam_points_per_batch,
-                    pred_iou_thresh: a.sam_pred_iou_thresh,
-                    stability_score_thresh: a.sam_stability_score_thresh,
-                    box_nms_thresh: a.sam_box_nms_thresh,
-                    timing_encoder: a.sam_timing_encoder.clone(),
-                    timing_decoder: a.sam_timing_decoder.clone(),
-                },
-                graph: GraphConfig {
-                    k: a.graph_k,
-                    min_size: a.graph_min_size,
-                },
-            },
+            scene: scene_config(a),
+            masks: masks_config(a),
             clip: ClipConfig {
                 visual: a.clip_visual.clone(),
                 batch: a.clip_batch,
@@ -403,5 +369,50 @@ impl From<&EncodeArgs> for EncodeConfig {
                 params: SegmentParams::from(&a.segment),
             },
         }
+    }
+}
+
+/// The scene and its views of `a` (`--scene-dir`, `--ply`, `--every`, `--hold-out-every`,
+/// `--views` and the coverage rule's flags).
+fn scene_config(a: &EncodeArgs) -> SceneConfig {
+    SceneConfig {
+        dir: a.scene.clone(),
+        ply: a.ply.clone(),
+        every: a.every,
+        hold_out_every: a.hold_out_every,
+        views: ViewSelection {
+            mode: a.views.unwrap_or_default().into(),
+            count: a.view_count,
+            coverage: CoverageRule {
+                min_weight: a.view_coverage_weight,
+                min_views: a.view_coverage_min_views,
+                min_angle_deg: a.view_coverage_angle,
+                target: a.view_coverage_target,
+                min_gain: a.view_coverage_min_gain,
+                raster_scale: a.view_coverage_raster_scale,
+            },
+        },
+    }
+}
+
+/// The mask source of `a` and the settings of each (`--masks`, `--sam-*`, `--graph-*`).
+fn masks_config(a: &EncodeArgs) -> MasksConfig {
+    MasksConfig {
+        source: a.masks.into(),
+        sam: SamConfig {
+            encoder: a.sam_encoder.clone(),
+            decoder: a.sam_decoder.clone(),
+            points_per_side: a.sam_points_per_side,
+            points_per_batch: a.sam_points_per_batch,
+            pred_iou_thresh: a.sam_pred_iou_thresh,
+            stability_score_thresh: a.sam_stability_score_thresh,
+            box_nms_thresh: a.sam_box_nms_thresh,
+            timing_encoder: a.sam_timing_encoder.clone(),
+            timing_decoder: a.sam_timing_decoder.clone(),
+        },
+        graph: GraphConfig {
+            k: a.graph_k,
+            min_size: a.graph_min_size,
+        },
     }
 }
