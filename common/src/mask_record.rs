@@ -166,22 +166,48 @@ impl MaskRecord {
             return;
         };
         let s = self.slots;
-        let base = g as usize * s;
-        let better = |i: usize| -> bool {
-            let (v, wi) = (self.views[base + i], self.weights[base + i]);
-            v == EMPTY_VIEW || w > wi || (w == wi && view < v)
-        };
-        let Some(pos) = (0..s).find(|&i| better(i)) else {
-            return;
-        };
-        for i in (pos + 1..s).rev() {
-            self.views[base + i] = self.views[base + i - 1];
-            self.masks[base + i] = self.masks[base + i - 1];
-            self.weights[base + i] = self.weights[base + i - 1];
+        let at = g as usize * s..(g as usize + 1) * s;
+        insert_slot(
+            &mut self.views[at.clone()],
+            &mut self.masks[at.clone()],
+            &mut self.weights[at],
+            MaskSlot {
+                view,
+                mask,
+                weight: w,
+            },
+        );
+    }
+
+    /// Adds the views of `other`, a record of the same Gaussians and slots whose views this one
+    /// does not hold (another GPU's views of the same encode): the result is the record of all
+    /// views together, whatever the order of the merge (the slots keep the module doc's order).
+    ///
+    /// Errors: [`Error::Internal`] for records of other Gaussian counts or slots.
+    pub fn merge(&mut self, other: &MaskRecord) -> Result<()> {
+        use rayon::prelude::*;
+        if other.slots != self.slots || other.len() != self.len() {
+            return Err(Error::internal(format!(
+                "merging a mask record of {} Gaussians × {} slots into one of {} × {}",
+                other.len(),
+                other.slots,
+                self.len(),
+                self.slots
+            )));
         }
-        self.views[base + pos] = view;
-        self.masks[base + pos] = mask;
-        self.weights[base + pos] = w;
+        let s = self.slots;
+        self.views
+            .par_chunks_mut(s)
+            .zip(self.masks.par_chunks_mut(s))
+            .zip(self.weights.par_chunks_mut(s))
+            .enumerate()
+            .for_each(|(k, ((views, masks), weights))| {
+                for slot in other.of(k) {
+                    insert_slot(views, masks, weights, slot);
+                }
+            });
+        self.view_count = self.view_count.max(other.view_count);
+        Ok(())
     }
 
     /// Multi-view mask co-membership of Gaussians `i` and `j`: over the views both record, the
@@ -284,6 +310,25 @@ impl MaskRecord {
     }
 }
 
+/// Enters `slot` into one Gaussian's slots (`views`, `masks`, `weights`, each `[S]`) when it
+/// beats the weakest; slots stay in the module doc's order (`a_kj` descending, then view
+/// ascending, unused last).
+fn insert_slot(views: &mut [u16], masks: &mut [u16], weights: &mut [f32], slot: MaskSlot) {
+    let better = |i: usize| -> bool {
+        let (v, wi) = (views[i], weights[i]);
+        v == EMPTY_VIEW || slot.weight > wi || (slot.weight == wi && slot.view < v)
+    };
+    let Some(pos) = (0..views.len()).find(|&i| better(i)) else {
+        return;
+    };
+    views[pos..].rotate_right(1);
+    masks[pos..].rotate_right(1);
+    weights[pos..].rotate_right(1);
+    views[pos] = slot.view;
+    masks[pos] = slot.mask;
+    weights[pos] = slot.weight;
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
@@ -346,5 +391,39 @@ mod tests {
         std::fs::write(&path, b"not safetensors").unwrap();
         assert!(matches!(MaskRecord::read(&path), Err(Error::Format { .. })));
         assert!(MaskRecord::new(1, 0, 1).is_err());
+    }
+
+    #[test]
+    fn merging_records_of_disjoint_views_gives_the_record_of_all_views() {
+        // 40 Gaussians in 12 views with 3 slots: most Gaussians have more views than slots, and
+        // equal weights occur, so the order rules decide.
+        let view_entries = |v: usize| -> Vec<(u32, u32, f32)> {
+            (0..40u32)
+                .filter(|g| (g + v as u32) % 3 != 0)
+                .map(|g| (g, (g * 7 + v as u32) % 5, ((g * 13 + v as u32 * 29) % 6) as f32))
+                .collect()
+        };
+        let mut all = MaskRecord::new(40, 3, 12).unwrap();
+        let (mut first, mut second) = (all.clone(), all.clone());
+        for v in 0..12 {
+            all.add_view(v, view_entries(v));
+            let part = if v % 2 == 0 { &mut first } else { &mut second };
+            part.add_view(v, view_entries(v));
+        }
+        assert_ne!(first, all, "one half of the views alone is another record");
+        first.merge(&second).unwrap();
+        assert_eq!(first, all);
+        let mut b = MaskRecord::new(40, 3, 12).unwrap();
+        for v in (1..12).step_by(2) {
+            b.add_view(v, view_entries(v));
+        }
+        let mut a = MaskRecord::new(40, 3, 12).unwrap();
+        for v in (0..12).step_by(2) {
+            a.add_view(v, view_entries(v));
+        }
+        b.merge(&a).unwrap();
+        assert_eq!(b, all, "merged the other way round");
+        assert!(all.merge(&MaskRecord::new(41, 3, 12).unwrap()).is_err());
+        assert!(all.merge(&MaskRecord::new(40, 2, 12).unwrap()).is_err());
     }
 }

@@ -342,6 +342,8 @@ pub(crate) type DominantMasks = Vec<(u32, u32, f32)>;
 pub(crate) struct KeepView<'a> {
     pub(crate) embeddings: &'a [f32],
     pub(crate) dominant: bool,
+    /// The view's index in the encode's view list.
+    pub(crate) view: usize,
 }
 
 /// The pixel labels of one view and what the image stage needs of its masks afterwards, made
@@ -435,6 +437,7 @@ pub(crate) fn raster_view(
                 factors: &factors,
                 embeddings: keep.embeddings,
                 dominant: keep.dominant,
+                view: keep.view,
             },
         )?
     {
@@ -603,6 +606,7 @@ pub(crate) fn back_raster(
     let keep = keep_dominant.map(|dominant| KeepView {
         embeddings: &p.item.embeddings,
         dominant,
+        view: p.item.view,
     });
     let rastered = raster_view(rasterizer, &p.intrinsics, &p.world_to_camera, p.prepared, keep)?;
     Ok(BackRaster {

@@ -124,7 +124,15 @@ pub(crate) fn run_pool(
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
         checked_rasterizers(made.into_rasterizers(&gaussians), bound_gpus)
     });
-    let left = shared.finish(slots)?;
+    let mut left = shared.finish(slots)?;
+    let mask_record = gather_mask_record(left.mask_record.take(), &mut left.device, params)
+        .and_then(|r| {
+            r.map(|(record, slots)| match record {
+                Some(r) => Ok(r),
+                None => MaskRecord::new(gaussians.len(), slots, views.len()),
+            })
+            .transpose()
+        })?;
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
@@ -146,9 +154,36 @@ pub(crate) fn run_pool(
         workers,
         queue: left.queue,
         selection,
-        mask_record: left.mask_record,
+        mask_record,
         device: left.device,
     })
+}
+
+/// The masks' record of the run (with [`EncodeParams::mask_record_slots`]): the views recorded on
+/// the host (`host`) merged with each device's kept record, read back from the rasterizers in
+/// `device`; `None` inside when no view recorded anything, with the record's slots.
+///
+/// Errors: device failures reading a record back; records of other shapes
+/// ([`MaskRecord::merge`]).
+fn gather_mask_record(
+    host: Option<Option<MaskRecord>>,
+    device: &mut [Box<dyn WeightRasterizer>],
+    params: &EncodeParams,
+) -> Result<Option<(Option<MaskRecord>, usize)>> {
+    let (Some(mut out), Some(slots)) = (host, params.mask_record_slots) else {
+        return Ok(None);
+    };
+    let t0 = Instant::now();
+    for rasterizer in device.iter_mut() {
+        if let Some(kept) = rasterizer.take_mask_record()? {
+            match &mut out {
+                Some(r) => r.merge(&kept)?,
+                None => out = Some(kept),
+            }
+        }
+    }
+    tracing::debug!(seconds = t0.elapsed().as_secs_f64(), "masks' record gathered");
+    Ok(Some((out, slots)))
 }
 
 /// The raster intrinsics of every view at `raster_scale`, checked (scale range, raster size)
@@ -238,18 +273,47 @@ impl Failure {
 
 /// Where the image stage's `a_kj` go: the contribution store; with [`EncodeParams::levels`] one
 /// store per granularity level (the same entries, split by level); with
-/// [`EncodeParams::mask_record_slots`] the masks' record.
+/// [`EncodeParams::mask_record_slots`] the masks' record of the views recorded on the host.
 struct PoolSinks {
     store: Mutex<ContributionStore>,
     level_stores: Vec<Mutex<ContributionStore>>,
-    record: Option<Mutex<MaskRecord>>,
+    record: Option<Mutex<HostRecord>>,
+}
+
+/// The masks' record of the views whose dominant masks reach the host, made at the first of
+/// them: a run whose rasterizers keep the record on their devices
+/// ([`WeightRasterizer::keep_mask_record`]) holds none on the host until the end.
+struct HostRecord {
+    gaussians: usize,
+    slots: usize,
+    views: usize,
+    record: Option<MaskRecord>,
+}
+
+impl HostRecord {
+    /// Adds view `view`'s dominant masks ([`MaskRecord::add_view`]).
+    ///
+    /// Errors: the record's ([`MaskRecord::new`]).
+    fn add_view(&mut self, view: usize, dominant: &[(u32, u32, f32)]) -> Result<()> {
+        if dominant.is_empty() {
+            return Ok(());
+        }
+        let record = match &mut self.record {
+            Some(r) => r,
+            None => self
+                .record
+                .insert(MaskRecord::new(self.gaussians, self.slots, self.views)?),
+        };
+        record.add_view(view, dominant.iter().copied());
+        Ok(())
+    }
 }
 
 impl PoolSinks {
     /// Empty sinks for `n_views` views of `n_gaussians` Gaussians; the stores spill under
     /// [`EncodeParams::out_dir`].
     ///
-    /// Errors: the masks' record's ([`MaskRecord::new`]).
+    /// Errors: [`Error::Param`] `slots` for a record of other than 1 to 64 slots.
     fn new(params: &EncodeParams, n_gaussians: usize, n_views: usize) -> Result<Self> {
         let store = |name: String| {
             Mutex::new(ContributionStore::new(
@@ -265,7 +329,16 @@ impl PoolSinks {
             Vec::new()
         };
         let record = match params.mask_record_slots {
-            Some(slots) => Some(Mutex::new(MaskRecord::new(n_gaussians, slots, n_views)?)),
+            // Checked now (an empty record), allocated at its first view.
+            Some(slots) => Some(Mutex::new(HostRecord {
+                record: None,
+                ..HostRecord {
+                    gaussians: n_gaussians,
+                    slots,
+                    views: n_views,
+                    record: Some(MaskRecord::new(0, slots, n_views)?),
+                }
+            })),
             None => None,
         };
         Ok(PoolSinks {
@@ -300,7 +373,8 @@ struct Shared<'a> {
 struct WorkersLeft {
     store: ContributionStore,
     level_stores: Vec<ContributionStore>,
-    mask_record: Option<MaskRecord>,
+    /// With the masks' record: its views recorded on the host, if any.
+    mask_record: Option<Option<MaskRecord>>,
     device: Vec<Box<dyn WeightRasterizer>>,
     totals: ImageWork,
     queue: QueueStats,
@@ -334,6 +408,7 @@ impl Shared<'_> {
         let mask_record = record
             .map(|r| {
                 r.into_inner()
+                    .map(|h| h.record)
                     .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))
             })
             .transpose()?;
@@ -573,7 +648,8 @@ fn back_raster_thread(
     shared: &Shared<'_>,
 ) -> WorkerShare {
     let failure = &shared.failure;
-    let keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim) {
+    let n_views = shared.views.len();
+    let keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views) {
         Ok(keep) => keep,
         Err(e) => {
             failure.fail(e);
@@ -625,7 +701,9 @@ fn back_image_thread(
 
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction
 /// ([`crate::config::ReduceOn`]): `Some(whether the masks' record wants the dominant masks)`,
-/// or `None` for the host reduction. The device reduction needs GPU rasterizers whose devices
+/// or `None` for the host reduction. A rasterizer that keeps the sums keeps the masks' record
+/// of an encode of `n_views` views there too where it can
+/// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The device reduction needs GPU rasterizers whose devices
 /// have f64, and no per-level files; on several GPUs each keeps its own views and one reduces
 /// them all.
 ///
@@ -634,6 +712,7 @@ fn keep_on_device(
     rasterizer: &mut dyn WeightRasterizer,
     params: &EncodeParams,
     dim: usize,
+    n_views: usize,
 ) -> Result<Option<bool>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
@@ -652,7 +731,11 @@ fn keep_on_device(
             "GPU rasterizers whose devices have f64, and no --levels (or --reduce host)",
         ));
     }
-    Ok(keeps.then_some(params.mask_record_slots.is_some()))
+    let record_on_device = keeps
+        && params
+            .mask_record_slots
+            .is_some_and(|slots| rasterizer.keep_mask_record(slots, n_views));
+    Ok(keeps.then_some(params.mask_record_slots.is_some() && !record_on_device))
 }
 
 /// The rasterizers of a run: already made (for the coverage pass), or still to be made (while
@@ -797,15 +880,20 @@ fn finish_image(
     if let Some(record) = record {
         // Each Gaussian's dominant mask here (or from the device), found outside the record's
         // lock.
+        // Kept on the device: the dominant masks reached the host only when the device holds
+        // no record (empty otherwise).
+        let computed;
         let dominant = match &out.dominant {
-            Some(d) => d.clone(),
-            None => dominant_masks(&out.contribution.entries),
+            Some(d) => d,
+            None => {
+                computed = dominant_masks(&out.contribution.entries);
+                &computed
+            }
         };
-        let view = raster_view;
         record
             .lock()
             .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))?
-            .add_view(view, dominant);
+            .add_view(raster_view, dominant)?;
     }
     let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
     if !level_stores.is_empty() {

@@ -163,6 +163,23 @@ pub trait WeightRasterizer: Send {
         let _ = (intrinsics, world_to_camera, labels, precomputed, masks);
         Ok(None)
     }
+    /// Keeps the masks' record ([`slag_common::mask_record`], `slots` slots per Gaussian, for an
+    /// encode of `view_count` views) on the device from here on, once this rasterizer keeps the
+    /// views' sums there ([`Self::keep_on_device`]): each kept view's dominant masks enter it
+    /// there ([`KeptMasks::view`]) and [`Self::label_sums_kept`] returns none. Returns whether it
+    /// does; the default (and a scene whose record does not fit the device) does not, and the
+    /// caller records the dominant masks [`KeptMasks::dominant`] returns.
+    fn keep_mask_record(&mut self, slots: usize, view_count: usize) -> bool {
+        let _ = (slots, view_count);
+        false
+    }
+    /// The masks' record kept on the device ([`Self::keep_mask_record`]), read back and freed
+    /// there; `None` when none was kept (the default).
+    ///
+    /// Errors: device failures.
+    fn take_mask_record(&mut self) -> Result<Option<slag_common::mask_record::MaskRecord>> {
+        Ok(None)
+    }
     /// The device reduction of every kept view (`E_k`, its kept mixture pairs, the unobserved
     /// rule: the host reduction's, see [`gpu`]'s `ek` module), tile by tile of Gaussian ids
     /// ascending into `sink`; the kept sums are freed.
@@ -214,6 +231,9 @@ pub struct KeptMasks<'a> {
     pub embeddings: &'a [f32],
     /// Also find each Gaussian's dominant mask of the view (the masks' record).
     pub dominant: bool,
+    /// The view's index in the encode's view list: the view the masks' record kept on the
+    /// device ([`WeightRasterizer::keep_mask_record`]) enters its dominant masks as.
+    pub view: usize,
 }
 
 /// What [`WeightRasterizer::label_sums_kept`] returns of a view.

@@ -1051,6 +1051,7 @@ fn device_reduction_equals_the_host_reduction() {
             factors: &factors,
             embeddings: &emb,
             dominant: true,
+            view: seed as usize,
         };
         let keeper = if seed < 3 { &mut dev } else { &mut second };
         let view = keeper
@@ -1110,3 +1111,62 @@ fn device_reduction_equals_the_host_reduction() {
     }
     assert!(dominants.iter().all(|d| !d.is_empty()));
 }
+
+/// The masks' record kept on the device equals the host's record fed with the same views'
+/// dominant masks: the same slots in the same order, with more views than slots, views split
+/// into several bands of tile rows, views arriving out of order, and the views split over two
+/// devices whose records merge (a run on several GPUs).
+#[test]
+fn device_mask_record_equals_the_host_record() {
+    use slag_common::mask_record::MaskRecord;
+    let n = 6_000;
+    let g = random_scene(12, n);
+    let Some(mut heads) = gpu(&g) else { return };
+    let Some(mut first) = gpu(&g) else { return };
+    let Some(mut second) = gpu(&g) else { return };
+    let (dim, slots, views) = (4, 2, 7);
+    for r in [&mut heads, &mut first, &mut second] {
+        assert!(r.keep_on_device(dim, 1 << 30, true));
+    }
+    assert!(first.keep_mask_record(slots, views));
+    assert!(second.keep_mask_record(slots, views));
+    let mut host = MaskRecord::new(n, slots, views).unwrap();
+    // Every view of each Gaussian, to count those seen in more views than slots.
+    let mut every = MaskRecord::new(n, views, views).unwrap();
+    for view in [3usize, 0, 6, 1, 5, 2, 4] {
+        let (k, w2c) = test_camera(view as u64);
+        let masks = random_masks(view as u64, k.width * 2, k.height * 2, 7);
+        let overlap = crate::aggregate::ImageStageParams::default().overlap;
+        let labels = crate::aggregate::overlap_labels(&masks, k.width, k.height, overlap).merged();
+        let area = crate::aggregate::MaskWeighting::Area;
+        let factors = crate::aggregate::image::mask_factors(&masks, area);
+        let emb = vec![0.5f32; masks.len() * dim];
+        // Odd views in bands of a few tile rows: the same bands on both sides.
+        let band_limit = (view % 2 == 1).then_some(2_000);
+        let keeper = if view < 4 { &mut first } else { &mut second };
+        let on = |r: &mut GpuRasterizer, dominant: bool| {
+            r.set_label_records(16, band_limit);
+            let kept = KeptMasks {
+                masks_of: &labels.masks_of,
+                factors: &factors,
+                embeddings: &emb,
+                dominant,
+                view,
+            };
+            let out = r.label_sums_kept(&k, &w2c, &labels.labels, None, kept);
+            out.unwrap().expect("kept").dominant
+        };
+        let dominant = on(&mut heads, true);
+        assert!(!dominant.is_empty(), "view {view} sees Gaussians");
+        every.add_view(view, dominant.iter().copied());
+        host.add_view(view, dominant);
+        assert!(on(keeper, false).is_empty(), "the record on the device returns none");
+    }
+    let mut merged = first.take_mask_record().unwrap().expect("kept on the device");
+    assert!(first.take_mask_record().unwrap().is_none(), "taken once");
+    merged.merge(&second.take_mask_record().unwrap().expect("kept")).unwrap();
+    assert_eq!(merged, host);
+    let evicted = (0..n).filter(|&k| every.of(k).count() > slots).count();
+    assert!(evicted >= 10, "{evicted} Gaussians seen in more views than slots: too few");
+}
+

@@ -68,6 +68,8 @@ pub(super) struct Kept {
     block_starts: wgpu::ComputePipeline,
     ek_reduce: wgpu::ComputePipeline,
     dominant: wgpu::ComputePipeline,
+    /// The masks' record's kernel ([`super::record`]).
+    pub(super) record_dominant: wgpu::ComputePipeline,
     dim: usize,
     budget: u64,
     bytes: u64,
@@ -121,6 +123,19 @@ fn dominant_heads(bytes: &[u8]) -> Vec<(u32, u32, f32)> {
         .collect()
 }
 
+/// The kept view a band belongs to, and what its dominant masks are for
+/// ([`GpuRasterizer::keep_band`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Keeping {
+    /// The kept view (an index into [`Kept::views`]).
+    pub(super) id: u32,
+    /// Return each Gaussian's dominant mask of the band to the host.
+    pub(super) dominant: bool,
+    /// Enter them into the masks' record on the device ([`super::record`]) as this view of the
+    /// encode (below 65,535) instead.
+    pub(super) record_view: Option<u32>,
+}
+
 /// A tile of the reduction: blocks `[b0, b1)` and, per part, its records there.
 struct Tile {
     g0: u32,
@@ -151,8 +166,12 @@ impl GpuRasterizer {
                 source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
             });
         let pipe = |entry: &str| super::compute_pipeline(&self.device, &module, entry);
-        let (block_starts, ek_reduce, dominant) =
-            (pipe("block_starts"), pipe("ek_reduce"), pipe("dominant"));
+        let (block_starts, ek_reduce, dominant, record_dominant) = (
+            pipe("block_starts"),
+            pipe("ek_reduce"),
+            pipe("dominant"),
+            pipe("record_dominant"),
+        );
         if let Some(e) = pollster::block_on(scope.pop()) {
             tracing::warn!(error = %e, "the device reduction's kernels do not build here; reducing on the host");
             return false;
@@ -161,6 +180,7 @@ impl GpuRasterizer {
             block_starts,
             ek_reduce,
             dominant,
+            record_dominant,
             dim,
             budget: budget_bytes,
             bytes: 0,
@@ -197,20 +217,20 @@ impl GpuRasterizer {
         Ok(id)
     }
 
-    /// Keeps the `n` reduced records of one band of view `view` (in `reduced`, sorted by
-    /// (Gaussian, label)) on the device, with the index of where each block of Gaussians starts;
-    /// with `dominant`, also returns each Gaussian's dominant mask of the band for the masks'
-    /// record (`(Gaussian, mask, a_kj)`, Gaussians ascending; `aggregate`'s rule: the largest
-    /// `a_kj`, ties to the smaller mask).
+    /// Keeps the `n` reduced records of one band of the kept view `keeping.id` (in `reduced`,
+    /// sorted by (Gaussian, label)) on the device, with the index of where each block of
+    /// Gaussians starts; with [`Keeping::dominant`], also returns each Gaussian's dominant mask
+    /// of the band for the masks' record (`(Gaussian, mask, a_kj)`, Gaussians ascending;
+    /// `aggregate`'s rule: the largest `a_kj`, ties to the smaller mask); with
+    /// [`Keeping::record_view`], enters them into the masks' record on the device instead.
     ///
     /// Errors: the kept records would pass the budget ([`Error::Limit`] `GpuMemory`, naming the
     /// flag that raises it); device failures.
     pub(super) fn keep_band(
         &mut self,
-        view: u32,
+        keeping: Keeping,
         reduced: &wgpu::Buffer,
         n: u32,
-        dominant: bool,
     ) -> Result<Vec<(u32, u32, f32)>> {
         let bytes = u64::from(n) * 16;
         let Some(kept) = self.kept.as_ref() else {
@@ -218,19 +238,19 @@ impl GpuRasterizer {
         };
         check_kept_budget(kept, bytes)?;
         let blocks = self.n.div_ceil(BLOCK_GAUSSIANS);
-        let band = self.band_buffers(n, blocks, dominant);
+        let band = self.band_buffers(n, blocks, keeping.dominant);
         let mut enc = self.device.create_command_encoder(&Default::default());
         if n > 0 {
             enc.copy_buffer_to_buffer(reduced, 0, &band.records, 0, bytes);
-            self.encode_band_index(&mut enc, kept, view, &band, (n, blocks), dominant);
+            self.encode_band_index(&mut enc, kept, keeping, &band, (n, blocks));
         }
-        let (starts, heads) = self.read_band_index(enc, &band, (n, blocks), dominant)?;
+        let (starts, heads) = self.read_band_index(enc, &band, (n, blocks), keeping.dominant)?;
         let kept = self.kept.as_mut().ok_or_else(|| Error::internal("keeping stopped"))?;
         kept.bytes += bytes;
         kept.parts.push(KeptPart {
             records: band.records,
             n,
-            view,
+            view: keeping.id,
             starts,
         });
         Ok(heads)
@@ -254,15 +274,15 @@ impl GpuRasterizer {
     }
 
     /// Dispatch step of [`Self::keep_band`]: `block_starts` over the band's `n` records and,
-    /// with `dominant`, the `dominant` kernel on the view's own label table.
+    /// with [`Keeping::dominant`], the `dominant` kernel on the view's own label table, or with
+    /// [`Keeping::record_view`], the masks' record's kernel ([`Self::record_band`]).
     fn encode_band_index(
         &self,
         enc: &mut wgpu::CommandEncoder,
         kept: &Kept,
-        view: u32,
+        keeping: Keeping,
         band: &BandBuffers,
         (n, blocks): (u32, u32),
-        dominant: bool,
     ) {
         let params = self.ek_uniform(&EkParams {
             n_records: n,
@@ -272,8 +292,9 @@ impl GpuRasterizer {
             pad0: 0,
             ..bytemuck::Zeroable::zeroed()
         });
-        let base = kept.views.get(view as usize).map_or(0, |v| v[0] as usize);
-        let tables = dominant.then(|| {
+        let base = kept.views.get(keeping.id as usize).map_or(0, |v| v[0] as usize);
+        let record_view = keeping.record_view.filter(|_| self.mask_record.is_some());
+        let tables = (keeping.dominant || record_view.is_some()).then(|| {
             let table = kept.tables.get(base..).unwrap_or_default();
             storage_init(&self.device, "ek_view_table", bytemuck::cast_slice(table))
         });
@@ -286,7 +307,13 @@ impl GpuRasterizer {
         pass.set_pipeline(&kept.block_starts);
         pass.set_bind_group(0, &bg, &[]);
         pass.dispatch_workgroups(x, y, 1);
-        if let Some(tables) = &tables {
+        let Some(tables) = &tables else {
+            return;
+        };
+        if let Some(view) = record_view {
+            let band_bufs = [&params, &band.records, &band.starts, tables];
+            self.record_band(&mut pass, kept, view, band_bufs, (x, y));
+        } else {
             // `order` (2) is bound for the record reader `dominant` shares with ek_reduce;
             // `dominant` reads the records unsorted, never `order`.
             let bg = self.bind(

@@ -284,29 +284,10 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
     }
 }
 
-// The masks' record's view data (slag_common::mask_record), from one kept view's records (no
-// header, no order; ep.n_records of them, table at ep.pad0): one thread per record; the first
-// record of each Gaussian writes the Gaussian's dominant mask of the view, argmax_j a_kj with
-// a_kj as ek_reduce makes it (ties: the smaller mask), as (Gaussian, mask, a bits) at its own
-// index; every other record writes (UNUSED, 0, 0). Output in `kept` (as vec2 pairs: 2 per
-// record, (Gaussian, mask) then (a bits, 0)).
-@compute @workgroup_size(256)
-fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    let r = flat_group(wid) * 256u + lid;
-    if (r >= ep.n_records) {
-        return;
-    }
-    let k = recs[r].x;
-    kept[2u * r] = vec2<u32>(UNUSED, 0u);
-    kept[2u * r + 1u] = vec2<u32>(0u, 0u);
-    if (r > 0u && recs[r - 1u].x == k) {
-        return;
-    }
-    var end = r + 1u;
-    while (end < ep.n_records && recs[end].x == k) {
-        end++;
-    }
-    let base = ep.pad0;
+// The dominant mask of one Gaussian in one view, from its records [r, end) (no order; table at
+// `base`): argmax_j a_kj with a_kj as ek_reduce makes it (ties: the smaller mask), as (mask,
+// a bits), or (UNUSED, 0) when no mask holds a positive a_kj.
+fn view_dominant(r: u32, end: u32, base: u32) -> vec2<u32> {
     var best_j = UNUSED;
     var best_a = 0.0;
     var j = next_mask(r, end, base, 0u, true, false);
@@ -321,8 +302,124 @@ fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_ind
         }
         j = next_mask(r, end, base, j, false, false);
     }
-    if (best_j != UNUSED) {
-        kept[2u * r] = vec2<u32>(k, best_j);
-        kept[2u * r + 1u] = vec2<u32>(bitcast<u32>(best_a), 0u);
+    return vec2<u32>(best_j, bitcast<u32>(best_a));
+}
+
+// The end of the run of records of the Gaussian whose first record is r, or 0 when r does not
+// start a run (one view's records, no order).
+fn run_end(r: u32) -> u32 {
+    let k = recs[r].x;
+    if (r > 0u && recs[r - 1u].x == k) {
+        return 0u;
     }
+    var end = r + 1u;
+    while (end < ep.n_records && recs[end].x == k) {
+        end++;
+    }
+    return end;
+}
+
+// The masks' record's view data (slag_common::mask_record), from one kept view's records (no
+// header, no order; ep.n_records of them, table at ep.pad0): one thread per record; the first
+// record of each Gaussian writes the Gaussian's dominant mask of the view (view_dominant), as
+// (Gaussian, mask, a bits) at its own index; every other record writes (UNUSED, 0, 0). Output
+// in `kept` (as vec2 pairs: 2 per record, (Gaussian, mask) then (a bits, 0)).
+@compute @workgroup_size(256)
+fn dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let r = flat_group(wid) * 256u + lid;
+    if (r >= ep.n_records) {
+        return;
+    }
+    kept[2u * r] = vec2<u32>(UNUSED, 0u);
+    kept[2u * r + 1u] = vec2<u32>(0u, 0u);
+    let end = run_end(r);
+    if (end == 0u) {
+        return;
+    }
+    let best = view_dominant(r, end, ep.pad0);
+    if (best.x != UNUSED) {
+        kept[2u * r] = vec2<u32>(recs[r].x, best.x);
+        kept[2u * r + 1u] = vec2<u32>(best.y, 0u);
+    }
+}
+
+// The masks' record kept on the device (record.rs): per Gaussian `slots` slots of ((view + 1)
+// << 16 | mask, a bits), 0 when unused (so a zeroed buffer is an empty record), in
+// slag_common::mask_record's order: a_kj descending, then view ascending, unused last.
+struct RecordParams {
+    view: u32,           // the encode's view index (below 65,535)
+    slots: u32,
+    n_gaussians: u32,
+    pad0: u32,
+}
+
+@group(0) @binding(9) var<uniform> rp: RecordParams;
+@group(0) @binding(10) var<storage, read_write> mask_record: array<vec2<u32>>;
+
+// Whether (a, view) ranks before the used slot s (a_kj descending, then view ascending).
+fn ranks_before(a: f32, view: u32, s: vec2<u32>) -> bool {
+    let w = bitcast<f32>(s.y);
+    return a > w || (a == w && view < (s.x >> 16u) - 1u);
+}
+
+// Gaussian k's dominant mask `mask` (a_kj `a`) of view rp.view into its slots, as
+// MaskRecord::add_view enters it. An earlier band of the same view may have entered another
+// mask for k: the better of the two stays (largest a_kj, ties to the smaller mask), as the
+// host keeps the best of a view's bands.
+fn record_insert(k: u32, mask: u32, a: f32) {
+    let base = k * rp.slots;
+    let tag = (rp.view + 1u) << 16u;
+    for (var i = 0u; i < rp.slots; i++) {
+        let s = mask_record[base + i];
+        if ((s.x & 0xffff0000u) == tag) {
+            let w = bitcast<f32>(s.y);
+            if (!(a > w || (a == w && mask < (s.x & 0xffffu)))) {
+                return;
+            }
+            for (var t = i; t + 1u < rp.slots; t++) {
+                mask_record[base + t] = mask_record[base + t + 1u];
+            }
+            mask_record[base + rp.slots - 1u] = vec2<u32>(0u, 0u);
+            break;
+        }
+    }
+    var pos = rp.slots;
+    for (var i = 0u; i < rp.slots; i++) {
+        let s = mask_record[base + i];
+        if (s.x == 0u || ranks_before(a, rp.view, s)) {
+            pos = i;
+            break;
+        }
+    }
+    if (pos == rp.slots) {
+        return;
+    }
+    for (var t = rp.slots - 1u; t > pos; t--) {
+        mask_record[base + t] = mask_record[base + t - 1u];
+    }
+    mask_record[base + pos] = vec2<u32>(tag | mask, bitcast<u32>(a));
+}
+
+// The masks' record of one kept band, on the device: as `dominant`, but each Gaussian's
+// dominant mask goes straight into its slots (record_insert) instead of to the host. One
+// thread per Gaussian of the band, so no two threads touch the same slots; a view's bands run
+// one after the other. Masks past 65,535, Gaussians past the record and a_kj that is not
+// positive and finite are not recorded (as on the host).
+@compute @workgroup_size(256)
+fn record_dominant(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let r = flat_group(wid) * 256u + lid;
+    if (r >= ep.n_records) {
+        return;
+    }
+    let end = run_end(r);
+    let k = recs[r].x;
+    if (end == 0u || k >= rp.n_gaussians) {
+        return;
+    }
+    let best = view_dominant(r, end, ep.pad0);
+    let a = bitcast<f32>(best.y);
+    if (best.x > 0xffffu || !(a > 0.0) || a > bitcast<f32>(0x7f7fffffu)) {
+        return;
+    }
+    record_insert(k, best.x, a);
 }

@@ -254,9 +254,9 @@ impl GpuRasterizer {
         records: &mut Vec<LabelSum>,
     ) -> Result<std::time::Duration> {
         let mut host = std::time::Duration::ZERO;
-        if let Some((id, dominant)) = self.keeping {
+        if let Some(keeping) = self.keeping {
             let (reduced, keys) = self.reduce_records(view, &out.records, wanted as u32, max_label)?;
-            let heads = self.keep_band(id, &reduced, keys, dominant)?;
+            let heads = self.keep_band(keeping, &reduced, keys)?;
             self.kept_heads.extend(heads);
             return Ok(host);
         }

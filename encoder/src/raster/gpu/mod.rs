@@ -89,6 +89,7 @@ pub mod ek;
 pub mod icd;
 mod label_sums;
 pub mod project;
+mod record;
 mod reduce;
 mod sort;
 mod write;
@@ -253,8 +254,10 @@ pub struct GpuRasterizer {
     cpu_adapter: bool,
     /// The kept views of the device reduction ([`ek`]), once keeping started.
     kept: Option<ek::Kept>,
-    /// While a kept view runs: its id, and whether its dominant masks are wanted.
-    keeping: Option<(u32, bool)>,
+    /// While a kept view runs: its id, and where its dominant masks go.
+    keeping: Option<ek::Keeping>,
+    /// The masks' record kept on the device ([`record`]), once started.
+    mask_record: Option<record::DeviceRecord>,
     /// The dominant masks of the kept view's bands so far.
     kept_heads: Vec<(u32, u32, f32)>,
     /// Testing aid: bytes of one tile of the device reduction ([`Self::set_reduce_tile_bytes`]).
@@ -648,6 +651,7 @@ impl GpuRasterizer {
             cpu_adapter: info.device_type == wgpu::DeviceType::Cpu,
             kept: None,
             keeping: None,
+            mask_record: None,
             kept_heads: Vec::new(),
             reduce_tile_bytes: None,
         })
@@ -998,7 +1002,16 @@ impl WeightRasterizer for GpuRasterizer {
             return Ok(None);
         }
         let id = self.begin_kept_view(&masks)?;
-        self.keeping = Some((id, masks.dominant));
+        let record_view = self
+            .mask_record
+            .as_ref()
+            .and_then(|_| u32::try_from(masks.view).ok())
+            .filter(|&v| v < u32::from(slag_common::mask_record::EMPTY_VIEW));
+        self.keeping = Some(ek::Keeping {
+            id,
+            dominant: masks.dominant,
+            record_view,
+        });
         self.kept_heads.clear();
         self.precomputed = precomputed;
         let out = self.label_sums(k, w2c, labels);
@@ -1020,6 +1033,14 @@ impl WeightRasterizer for GpuRasterizer {
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
         self.reduce_kept_tiles(params, sink)
+    }
+
+    fn keep_mask_record(&mut self, slots: usize, view_count: usize) -> bool {
+        self.start_device_mask_record(slots, view_count)
+    }
+
+    fn take_mask_record(&mut self) -> Result<Option<slag_common::mask_record::MaskRecord>> {
+        self.take_device_mask_record()
     }
 
     fn export_kept(&mut self) -> Result<Option<KeptExport>> {
