@@ -444,7 +444,7 @@ fn before_record(
     }
     let max_edge = resolve_max_edge(p, &geo);
     st.geometry = lap(&mut t);
-    let (_, tile_of, rects) = plan_tiles(&g.means, p.tile_gaussians);
+    let (_, tile_of, rects) = ctl.run(|| plan_tiles(&g.means, p.tile_gaussians));
     st.tiles = lap(&mut t);
     let nb = ctl.run(|| neighbour_graph(&g.means, p, max_edge, &ctl.stop))?;
     st.neighbours = lap(&mut t);

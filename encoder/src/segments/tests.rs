@@ -428,3 +428,32 @@ fn root_ids_are_the_canonical_ids() {
     let roots: Vec<u32> = (0..500u32).map(|i| (i * 7919 % 97) * 5 % 500).collect();
     assert_eq!(canonical_root_ids(&roots), canonical_ids(&roots));
 }
+
+/// The tile plan split in parallel over contiguous keys equals the one-thread plan over the
+/// ids: the same tiles, numbered alike, with the same rectangles, on scenes large enough for
+/// the parallel splits, with ties in the coordinates (a coarse grid) and without.
+#[test]
+fn parallel_tile_plan_equals_the_one_thread_plan() {
+    let mut s = 11u64;
+    let mut next = || {
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (s >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let smooth: Vec<[f32; 3]> = (0..150_000)
+        .map(|_| [next() * 8.0, next() * 3.0, next() * 0.5])
+        .collect();
+    let coarse: Vec<[f32; 3]> = smooth
+        .iter()
+        .map(|m| [(m[0] * 4.0).floor(), (m[1] * 4.0).floor(), m[2]])
+        .collect();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+    for means in [&smooth, &coarse] {
+        for cap in [2_000, 40_000, 150_000] {
+            let parallel = pool.install(|| plan_tiles(means, cap));
+            assert_eq!(parallel, reference::plan_tiles(means, cap), "cap {cap}");
+            assert!(parallel.2.len() >= means.len() / cap, "{} tiles", parallel.2.len());
+        }
+    }
+}
