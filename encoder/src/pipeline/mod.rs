@@ -608,7 +608,13 @@ pub(crate) fn back_raster(
         dominant,
         view: p.item.view,
     });
-    let rastered = raster_view(rasterizer, &p.intrinsics, &p.world_to_camera, p.prepared, keep)?;
+    let rastered = raster_view(
+        rasterizer,
+        &p.intrinsics,
+        &p.world_to_camera,
+        p.prepared,
+        keep,
+    )?;
     Ok(BackRaster {
         item: p.item,
         rastered,

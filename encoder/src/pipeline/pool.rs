@@ -182,7 +182,10 @@ fn gather_mask_record(
             }
         }
     }
-    tracing::debug!(seconds = t0.elapsed().as_secs_f64(), "masks' record gathered");
+    tracing::debug!(
+        seconds = t0.elapsed().as_secs_f64(),
+        "masks' record gathered"
+    );
     Ok(Some((out, slots)))
 }
 
@@ -619,7 +622,8 @@ fn back_prepare_thread(
     pool: &Option<rayon::ThreadPool>,
     shared: &Shared<'_>,
 ) -> WorkerShare {
-    let (views, raster_intrinsics, params) = (shared.views, shared.raster_intrinsics, shared.params);
+    let (views, raster_intrinsics, params) =
+        (shared.views, shared.raster_intrinsics, shared.params);
     // Take the next finished front item; the lock is held only while waiting.
     let items = std::iter::from_fn(|| {
         let item = rx.lock().ok()?.recv().ok()?;
@@ -628,11 +632,26 @@ fn back_prepare_thread(
     });
     let step = |item, _: &mut WorkerShare| {
         let pre = precompute.as_deref();
-        back_prepare(views, raster_intrinsics, item, shared.dim, params.image_stage, pre)
+        back_prepare(
+            views,
+            raster_intrinsics,
+            item,
+            shared.dim,
+            params.image_stage,
+            pre,
+        )
     };
     let send = |out| to_raster.send(out).is_ok();
     let mut share = stage_share(format!("prepare-{g}"));
-    stage_loop(&mut share, shared.t_total, &shared.failure, pool.as_ref(), items, step, send);
+    stage_loop(
+        &mut share,
+        shared.t_total,
+        &shared.failure,
+        pool.as_ref(),
+        items,
+        step,
+        send,
+    );
     share
 }
 
@@ -666,7 +685,15 @@ fn back_raster_thread(
     let send = |out| to_image.send(out).is_ok();
     let mut share = stage_share(name);
     let views = from_prepare.iter();
-    stage_loop(&mut share, shared.t_total, failure, pool.as_ref(), views, step, send);
+    stage_loop(
+        &mut share,
+        shared.t_total,
+        failure,
+        pool.as_ref(),
+        views,
+        step,
+        send,
+    );
     if keep.is_some()
         && let Ok(mut device) = shared.device.lock()
     {
@@ -695,7 +722,15 @@ fn back_image_thread(
     };
     let mut share = stage_share(format!("image-{g}"));
     let views = from_raster.iter();
-    stage_loop(&mut share, shared.t_total, &shared.failure, pool.as_ref(), views, step, |()| true);
+    stage_loop(
+        &mut share,
+        shared.t_total,
+        &shared.failure,
+        pool.as_ref(),
+        views,
+        step,
+        |()| true,
+    );
     share
 }
 

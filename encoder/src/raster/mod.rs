@@ -191,7 +191,9 @@ pub trait WeightRasterizer: Send {
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
         let _ = (params, sink);
-        Err(Error::internal("this rasterizer keeps no sums on its device"))
+        Err(Error::internal(
+            "this rasterizer keeps no sums on its device",
+        ))
     }
     /// Every view this rasterizer kept, as host data for another rasterizer's
     /// [`Self::import_kept`] (a run on several GPUs reduces on one); keeping stops. `None`: it
@@ -207,7 +209,9 @@ pub trait WeightRasterizer: Send {
     /// Errors: this rasterizer keeps nothing (the default: [`Error::Internal`]).
     fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
         let _ = kept;
-        Err(Error::internal("this rasterizer keeps no sums on its device"))
+        Err(Error::internal(
+            "this rasterizer keeps no sums on its device",
+        ))
     }
     /// A short name for logs and reports (e.g. the GPU adapter).
     fn name(&self) -> &str;

@@ -1040,11 +1040,13 @@ fn device_reduction_equals_the_host_reduction() {
         let (k, w2c) = test_camera(seed);
         let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
         let mut r = SplitMix64::new(seed ^ 0xE3B);
-        let emb: Vec<f32> = (0..masks.len() * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
+        let emb: Vec<f32> = (0..masks.len() * dim)
+            .map(|_| r.range(-1.0, 1.0) as f32)
+            .collect();
         let (c, _) =
             view_contribution(&mut host_gpu, &k, &w2c, &masks, emb.clone(), dim, params).unwrap();
-        let labels = crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap)
-            .merged();
+        let labels =
+            crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap).merged();
         let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
         let kept = KeptMasks {
             masks_of: &labels.masks_of,
@@ -1058,7 +1060,11 @@ fn device_reduction_equals_the_host_reduction() {
             .label_sums_kept(&k, &w2c, &labels.labels, None, kept)
             .unwrap()
             .expect("kept");
-        assert_eq!(view.dominant, crate::pipeline::pool::dominant_masks(&c.entries), "view {seed}");
+        assert_eq!(
+            view.dominant,
+            crate::pipeline::pool::dominant_masks(&c.entries),
+            "view {seed}"
+        );
         dominants.push(view.dominant);
         store.push(c).unwrap();
     }
@@ -1081,12 +1087,32 @@ fn device_reduction_equals_the_host_reduction() {
         Ok(())
     });
     let out = out.unwrap();
-    assert!(out.tiles >= 2, "{} tiles: the small tile budget splits the scene", out.tiles);
-    assert_eq!(out.codebook, sparse.codebook, "the codebook rows in view order");
+    assert!(
+        out.tiles >= 2,
+        "{} tiles: the small tile budget splits the scene",
+        out.tiles
+    );
+    assert_eq!(
+        out.codebook, sparse.codebook,
+        "the codebook rows in view order"
+    );
     let ids: Vec<u32> = tiles.iter().flat_map(|t| t.ids.clone()).collect();
-    assert!(host.ids.len() > 100, "{} observed Gaussians: too few to test", host.ids.len());
-    let missing: Vec<&u32> = host.ids.iter().filter(|k| !ids.contains(k)).take(10).collect();
-    assert_eq!(ids.len(), host.ids.len(), "observed Gaussians; first missing {missing:?}");
+    assert!(
+        host.ids.len() > 100,
+        "{} observed Gaussians: too few to test",
+        host.ids.len()
+    );
+    let missing: Vec<&u32> = host
+        .ids
+        .iter()
+        .filter(|k| !ids.contains(k))
+        .take(10)
+        .collect();
+    assert_eq!(
+        ids.len(),
+        host.ids.len(),
+        "observed Gaussians; first missing {missing:?}"
+    );
     assert_eq!(ids, host.ids, "observed Gaussians");
     let totals: Vec<f32> = tiles.iter().flat_map(|t| t.total_weights.clone()).collect();
     for (d, h) in totals.iter().zip(&host.total_weights) {
@@ -1160,13 +1186,23 @@ fn device_mask_record_equals_the_host_record() {
         assert!(!dominant.is_empty(), "view {view} sees Gaussians");
         every.add_view(view, dominant.iter().copied());
         host.add_view(view, dominant);
-        assert!(on(keeper, false).is_empty(), "the record on the device returns none");
+        assert!(
+            on(keeper, false).is_empty(),
+            "the record on the device returns none"
+        );
     }
-    let mut merged = first.take_mask_record().unwrap().expect("kept on the device");
+    let mut merged = first
+        .take_mask_record()
+        .unwrap()
+        .expect("kept on the device");
     assert!(first.take_mask_record().unwrap().is_none(), "taken once");
-    merged.merge(&second.take_mask_record().unwrap().expect("kept")).unwrap();
+    merged
+        .merge(&second.take_mask_record().unwrap().expect("kept"))
+        .unwrap();
     assert_eq!(merged, host);
     let evicted = (0..n).filter(|&k| every.of(k).count() > slots).count();
-    assert!(evicted >= 10, "{evicted} Gaussians seen in more views than slots: too few");
+    assert!(
+        evicted >= 10,
+        "{evicted} Gaussians seen in more views than slots: too few"
+    );
 }
-

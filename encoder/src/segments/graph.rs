@@ -1,8 +1,6 @@
 //! The k-nearest-neighbour graph of the Gaussian means ([`super::grid`]) and its edges with
 //! their weights, tile by tile (module doc, "Bounded memory: tiles").
 
-use std::sync::atomic::AtomicBool;
-
 use rayon::prelude::*;
 
 use super::SegmentParams;
@@ -57,16 +55,17 @@ impl Neighbours {
     }
 }
 
-/// The whole scene's k-NN graph within `h`, each Gaussian's list at its id; `None` once `stop`
-/// was set.
+/// The whole scene's k-NN graph within `h`, each Gaussian's list at its id, searched on
+/// `ctl`'s pool (a pool widened meanwhile takes over the searches left); `None` once `ctl` was
+/// stopped.
 pub(super) fn neighbour_graph(
     means: &[[f32; 3]],
     p: &SegmentParams,
     h: f32,
-    stop: &AtomicBool,
+    ctl: &super::SegmentControl,
 ) -> Option<Neighbours> {
-    let nb = super::grid::neighbours(means, p.neighbours, h, stop);
-    (!stop.load(std::sync::atomic::Ordering::Relaxed)).then(|| nb.in_id_order())
+    let nb = super::grid::neighbours(means, p.neighbours, h, ctl);
+    (!ctl.is_stopped()).then(|| ctl.run(|| nb.in_id_order()))
 }
 
 /// A tile's Gaussians: their ids, ascending, and where each Gaussian of the scene stands.

@@ -11,11 +11,10 @@
 //! Gaussian while it runs (cell order, the means in that order, the cell keys) plus the cells'
 //! index, besides the result.
 
-use std::sync::atomic::{AtomicBool, Ordering};
-
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
+use super::SegmentControl;
 use super::graph::{NO_NEIGHBOUR, Neighbours};
 
 /// Cells per axis at most: a cell's coordinates fit 21 bits of its 63-bit key.
@@ -182,15 +181,21 @@ fn distance_2(a: &[f32; 3], b: &[f32; 3]) -> f32 {
     dx * dx + dy * dy + dz * dz
 }
 
-/// Every Gaussian's `k` nearest other means within `max_edge` (module doc). Once `stop` is set
-/// the remaining Gaussians get none: the caller discards such a partial result.
+/// Rounds the cells' searches are cut into: each round runs on `ctl`'s pool of its moment, so
+/// a segmentation widened while it searches ([`SegmentControl::set_pool`]) searches its
+/// remaining cells on all the threads it was given.
+const SEARCH_ROUNDS: usize = 32;
+
+/// Every Gaussian's `k` nearest other means within `max_edge` (module doc), the cells searched
+/// in [`SEARCH_ROUNDS`] rounds on `ctl`'s pool. Once `ctl` is stopped the remaining Gaussians
+/// get none: the caller discards such a partial result.
 pub(super) fn neighbours(
     means: &[[f32; 3]],
     k: usize,
     max_edge: f32,
-    stop: &AtomicBool,
+    ctl: &SegmentControl,
 ) -> Neighbours {
-    let grid = Grid::build(means, max_edge);
+    let grid = ctl.run(|| Grid::build(means, max_edge));
     let h2 = max_edge * max_edge;
     let mut ids = vec![NO_NEIGHBOUR; means.len() * k];
     let mut parts: Vec<(usize, &mut [u32])> = Vec::with_capacity(grid.cells.len());
@@ -201,11 +206,17 @@ pub(super) fn neighbours(
         parts.push((c, head));
         rest = tail;
     }
-    parts.into_par_iter().for_each(|(c, out)| {
-        if !stop.load(Ordering::Relaxed) {
-            search_cell(&grid, c, k, h2, out);
-        }
-    });
+    let per_round = parts.len().div_ceil(SEARCH_ROUNDS).max(1);
+    while !parts.is_empty() && !ctl.is_stopped() {
+        let round: Vec<(usize, &mut [u32])> = parts.drain(..per_round.min(parts.len())).collect();
+        ctl.run(|| {
+            round.into_par_iter().for_each(|(c, out)| {
+                if !ctl.is_stopped() {
+                    search_cell(&grid, c, k, h2, out);
+                }
+            });
+        });
+    }
     let mut pos_of = vec![0u32; means.len()];
     for (pos, &i) in grid.order.iter().enumerate() {
         pos_of[i as usize] = pos as u32;

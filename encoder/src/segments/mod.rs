@@ -298,7 +298,8 @@ impl SegmentControl {
         }
     }
 
-    /// The stages that start from now on run on `pool` (those under way finish where they are).
+    /// The stages that start from now on run on `pool` (those under way finish where they are,
+    /// but for the neighbour search, which moves over between its rounds).
     pub fn set_pool(&self, pool: rayon::ThreadPool) {
         *self.pool.lock().unwrap_or_else(|e| e.into_inner()) = Some(Arc::new(pool));
     }
@@ -446,7 +447,7 @@ fn before_record(
     st.geometry = lap(&mut t);
     let (_, tile_of, rects) = ctl.run(|| plan_tiles(&g.means, p.tile_gaussians));
     st.tiles = lap(&mut t);
-    let nb = ctl.run(|| neighbour_graph(&g.means, p, max_edge, &ctl.stop))?;
+    let nb = neighbour_graph(&g.means, p, max_edge, ctl)?;
     st.neighbours = lap(&mut t);
     let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
     drop(geo);

@@ -1,7 +1,5 @@
 #![allow(clippy::unwrap_used)]
 
-use std::sync::atomic::AtomicBool;
-
 use super::forest::Forest;
 use super::graph::NO_NEIGHBOUR;
 use super::reference;
@@ -331,8 +329,7 @@ fn grid_neighbours_equal_the_tree_search() {
         };
         let (ax, one, rects) = plan_tiles(&g.means, usize::MAX);
         let tree = reference::neighbour_graph(&g, &p, h, ax, &one, &rects);
-        let go = AtomicBool::new(false);
-        let grid = graph::neighbour_graph(&g.means, &p, h, &go).unwrap();
+        let grid = graph::neighbour_graph(&g.means, &p, h, &SegmentControl::default()).unwrap();
         let mut lonely = 0;
         for i in 0..g.len() {
             let a: Vec<u32> = tree.of(i).collect();
@@ -352,7 +349,10 @@ fn grid_neighbours_equal_the_tree_search() {
 }
 
 /// [`corners`] and its [`strips_record`].
-fn corners_with_record() -> (Gaussians, std::sync::Arc<slag_common::mask_record::MaskRecord>) {
+fn corners_with_record() -> (
+    Gaussians,
+    std::sync::Arc<slag_common::mask_record::MaskRecord>,
+) {
     let g = corners();
     let record = std::sync::Arc::new(strips_record(&g));
     (g, record)
@@ -448,12 +448,19 @@ fn parallel_tile_plan_equals_the_one_thread_plan() {
         .iter()
         .map(|m| [(m[0] * 4.0).floor(), (m[1] * 4.0).floor(), m[2]])
         .collect();
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(4).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(4)
+        .build()
+        .unwrap();
     for means in [&smooth, &coarse] {
         for cap in [2_000, 40_000, 150_000] {
             let parallel = pool.install(|| plan_tiles(means, cap));
             assert_eq!(parallel, reference::plan_tiles(means, cap), "cap {cap}");
-            assert!(parallel.2.len() >= means.len() / cap, "{} tiles", parallel.2.len());
+            assert!(
+                parallel.2.len() >= means.len() / cap,
+                "{} tiles",
+                parallel.2.len()
+            );
         }
     }
 }

@@ -56,6 +56,9 @@ fn bounds_init() -> ([f32; 3], [f32; 3]) {
     ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3])
 }
 
+/// A tile's rectangle `(lo, hi)` on the two split axes.
+type Rect = ([f32; 2], [f32; 2]);
+
 /// Below this many Gaussians a range is split on the calling thread.
 const SEQUENTIAL_BELOW: usize = 1 << 16;
 
@@ -67,7 +70,7 @@ fn split_tiles(
     cap: usize,
     rows: &mut [u32],
     offset: usize,
-) -> Vec<(usize, usize, ([f32; 2], [f32; 2]))> {
+) -> Vec<(usize, usize, Rect)> {
     if rows.is_empty() {
         return Vec::new();
     }
@@ -76,7 +79,11 @@ fn split_tiles(
         return vec![(offset, offset + rows.len(), rect)];
     }
     let (rlo, rhi) = rect;
-    let axis = if rhi[0] - rlo[0] >= rhi[1] - rlo[1] { ax[0] } else { ax[1] };
+    let axis = if rhi[0] - rlo[0] >= rhi[1] - rlo[1] {
+        ax[0]
+    } else {
+        ax[1]
+    };
     let mid = rows.len() / 2;
     select_lower_half(means, axis, rows, mid);
     let (lower, upper) = rows.split_at_mut(mid);
@@ -96,7 +103,7 @@ fn split_tiles(
 }
 
 /// The bounds of `rows`' means on the axes `ax`.
-fn rect_of(means: &[[f32; 3]], ax: [usize; 2], rows: &[u32]) -> ([f32; 2], [f32; 2]) {
+fn rect_of(means: &[[f32; 3]], ax: [usize; 2], rows: &[u32]) -> Rect {
     use rayon::prelude::*;
     let init = || ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
     let add = |(mut lo, mut hi): ([f32; 2], [f32; 2]), &r: &u32| {
@@ -109,12 +116,14 @@ fn rect_of(means: &[[f32; 3]], ax: [usize; 2], rows: &[u32]) -> ([f32; 2], [f32;
     if rows.len() < SEQUENTIAL_BELOW {
         return rows.iter().fold(init(), add);
     }
-    rows.par_iter().fold(init, add).reduce(init, |(l0, h0), (l1, h1)| {
-        (
-            [l0[0].min(l1[0]), l0[1].min(l1[1])],
-            [h0[0].max(h1[0]), h0[1].max(h1[1])],
-        )
-    })
+    rows.par_iter()
+        .fold(init, add)
+        .reduce(init, |(l0, h0), (l1, h1)| {
+            (
+                [l0[0].min(l1[0]), l0[1].min(l1[1])],
+                [h0[0].max(h1[0]), h0[1].max(h1[1])],
+            )
+        })
 }
 
 /// Reorders `rows` so that its first `mid` are the `mid` smallest by (coordinate on `axis`, id).

@@ -245,7 +245,10 @@ impl GpuRasterizer {
             self.encode_band_index(&mut enc, kept, keeping, &band, (n, blocks));
         }
         let (starts, heads) = self.read_band_index(enc, &band, (n, blocks), keeping.dominant)?;
-        let kept = self.kept.as_mut().ok_or_else(|| Error::internal("keeping stopped"))?;
+        let kept = self
+            .kept
+            .as_mut()
+            .ok_or_else(|| Error::internal("keeping stopped"))?;
         kept.bytes += bytes;
         kept.parts.push(KeptPart {
             records: band.records,
@@ -292,7 +295,10 @@ impl GpuRasterizer {
             pad0: 0,
             ..bytemuck::Zeroable::zeroed()
         });
-        let base = kept.views.get(keeping.id as usize).map_or(0, |v| v[0] as usize);
+        let base = kept
+            .views
+            .get(keeping.id as usize)
+            .map_or(0, |v| v[0] as usize);
         let record_view = keeping.record_view.filter(|_| self.mask_record.is_some());
         let tables = (keeping.dominant || record_view.is_some()).then(|| {
             let table = kept.tables.get(base..).unwrap_or_default();
@@ -409,7 +415,9 @@ impl GpuRasterizer {
     /// codebook past 2^32.
     pub(super) fn import_kept_views(&mut self, e: KeptExport) -> Result<()> {
         let Some(kept) = self.kept.as_mut() else {
-            return Err(Error::internal("importing kept views without keeping started"));
+            return Err(Error::internal(
+                "importing kept views without keeping started",
+            ));
         };
         if kept.dim != e.dim {
             return Err(Error::internal(format!(
@@ -538,7 +546,11 @@ impl GpuRasterizer {
         let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
         let out_per_gaussian = 8 + p.keep as u64 * 8 + if p.dense { dim as u64 * 4 } else { 0 };
         let tiles = self.kept_tiles(&kept, out_per_gaussian, tile_bytes)?;
-        let tables = storage_init(&self.device, "ek_tables", bytemuck::cast_slice(&kept.tables));
+        let tables = storage_init(
+            &self.device,
+            "ek_tables",
+            bytemuck::cast_slice(&kept.tables),
+        );
         let codebook = storage_init(
             &self.device,
             "ek_codebook",
@@ -673,7 +685,12 @@ impl GpuRasterizer {
             let p = &self.pipelines;
             let bg = self.bind(
                 &p.record_keys,
-                &[(0, &params), (13, recs), (16, &sb.keys[0]), (17, &sb.vals[0])],
+                &[
+                    (0, &params),
+                    (13, recs),
+                    (16, &sb.keys[0]),
+                    (17, &sb.vals[0]),
+                ],
             );
             pass.set_pipeline(&p.record_keys);
             pass.set_bind_group(0, &bg, &[]);

@@ -255,7 +255,8 @@ impl GpuRasterizer {
     ) -> Result<std::time::Duration> {
         let mut host = std::time::Duration::ZERO;
         if let Some(keeping) = self.keeping {
-            let (reduced, keys) = self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+            let (reduced, keys) =
+                self.reduce_records(view, &out.records, wanted as u32, max_label)?;
             let heads = self.keep_band(keeping, &reduced, keys)?;
             self.kept_heads.extend(heads);
             return Ok(host);
@@ -263,7 +264,8 @@ impl GpuRasterizer {
         let mut enc = self.device.create_command_encoder(&Default::default());
         // One record per key (reduced on the device), or the records as written.
         let bytes = if self.reduce_on_device {
-            let (reduced, keys) = self.reduce_records(view, &out.records, wanted as u32, max_label)?;
+            let (reduced, keys) =
+                self.reduce_records(view, &out.records, wanted as u32, max_label)?;
             let bytes = u64::from(keys) * RECORD_BYTES;
             enc.copy_buffer_to_buffer(&reduced, 0, &out.staging, 0, bytes);
             bytes
