@@ -16,7 +16,7 @@ use slag_common::{Error, Result};
 use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
-use crate::raster::{DeviceReduce, WeightRasterizer};
+use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
 use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
 use slag_common::mixture::SparseMixture;
 
@@ -369,7 +369,7 @@ fn reduce_on_device(
                 })
                 .collect::<Result<Vec<_>>>()?;
             if let Some(s) = sparse.as_mut() {
-                push_kept(s, &tile.ids, &run_means, tile.kept);
+                push_kept(s, &tile, &run_means);
             }
             tx.send((tile.ids, run_means, tile.rows, tile.total_weights))
                 .map_err(|_| Error::internal("the embeddings writer stopped early"))
@@ -401,13 +401,14 @@ fn reduce_on_device(
     })
 }
 
-/// Appends the observed Gaussians `ids` (ascending, with their centres `means`) and each one's
-/// kept `(a_kj, codebook row)` pairs to the mixture's sparse rows.
-fn push_kept(s: &mut SparseMixture, ids: &[u32], means: &[[f32; 3]], kept: Vec<Vec<(f32, u32)>>) {
-    for ((&k, mean), pairs) in ids.iter().zip(means).zip(kept) {
-        s.gaussian_ids.push(k);
-        s.means.push(*mean);
-        for (a, atom) in pairs {
+/// Appends the tile's observed Gaussians (ascending, with their centres `means`) and each
+/// one's kept `(a_kj, codebook row)` pairs to the mixture's sparse rows.
+fn push_kept(s: &mut SparseMixture, tile: &KeptTile, means: &[[f32; 3]]) {
+    s.gaussian_ids.extend_from_slice(&tile.ids);
+    s.means.extend_from_slice(means);
+    s.offsets.reserve(tile.ids.len());
+    for i in 0..tile.ids.len() {
+        for &(a, atom) in tile.kept_of(i) {
             s.atoms.push(atom);
             s.weights.push(a as f64);
         }

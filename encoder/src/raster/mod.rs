@@ -268,10 +268,24 @@ pub struct KeptTile {
     pub ids: Vec<u32>,
     /// `[B]` `Σ_i Σ_j a_kj`, rounded to f32.
     pub total_weights: Vec<f32>,
-    /// `[B]` the kept `(a_kj, codebook row)` pairs, at most `keep` each (unordered).
-    pub kept: Vec<Vec<(f32, u32)>>,
+    /// `[B + 1]` where each Gaussian's kept pairs start in [`KeptTile::kept`] (the last: its
+    /// length).
+    pub kept_starts: Vec<u32>,
+    /// The kept `(a_kj, codebook row)` pairs, Gaussian after Gaussian, at most `keep` each
+    /// (unordered within a Gaussian).
+    pub kept: Vec<(f32, u32)>,
     /// With [`DeviceReduce::dense`]: `[B × D]` the unit `E_k`, f32; else empty.
     pub rows: Vec<f32>,
+}
+
+impl KeptTile {
+    /// The kept pairs of the tile's `i`-th Gaussian (empty past the tile).
+    pub fn kept_of(&self, i: usize) -> &[(f32, u32)] {
+        match (self.kept_starts.get(i), self.kept_starts.get(i + 1)) {
+            (Some(&a), Some(&b)) => self.kept.get(a as usize..b as usize).unwrap_or_default(),
+            _ => &[],
+        }
+    }
 }
 
 /// The views one rasterizer kept on its device, as host data ([`WeightRasterizer::export_kept`]):

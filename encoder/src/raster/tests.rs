@@ -1122,7 +1122,10 @@ fn device_reduction_equals_the_host_reduction() {
     for (d, h) in rows.iter().zip(&host.vectors) {
         assert!((d - h).abs() <= 2e-7, "E_k value {d} vs host {h}");
     }
-    let kept: Vec<Vec<(f32, u32)>> = tiles.into_iter().flat_map(|t| t.kept).collect();
+    let kept: Vec<Vec<(f32, u32)>> = tiles
+        .iter()
+        .flat_map(|t| (0..t.ids.len()).map(|i| t.kept_of(i).to_vec()))
+        .collect();
     for (i, row) in kept.iter().enumerate() {
         let (a, b) = (sparse.offsets[i], sparse.offsets[i + 1]);
         let mut dev_row: Vec<(u32, f64)> = row.iter().map(|&(w, j)| (j, w as f64)).collect();
