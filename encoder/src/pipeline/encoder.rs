@@ -3,6 +3,7 @@
 use slag_common::Result;
 
 use super::build::{self, Fronts};
+use super::scene_load::SceneLoad;
 use super::segment_task::SegmentTask;
 use crate::config::{ConfigError, EncodeConfig};
 use crate::report::{Report, SegmentsOutput};
@@ -51,7 +52,8 @@ impl Encoder {
     ///
     /// The segments are computed beside the encode, from the start, on a pool of their own
     /// (a quarter of the threads, all of them for what is left once the encode is done:
-    /// `pipeline::segment_task`), and written only once the encode has succeeded: a failed or
+    /// `pipeline::segment_task`), on the encode's own Gaussians (the `.ply` is loaded once, on
+    /// a thread of its own while the models are set up: `pipeline::scene_load`), and written only once the encode has succeeded: a failed or
     /// killed encode leaves no segments file. When the segmentation fails, the encode still
     /// finishes and writes its complete outputs (the embeddings do not depend on the
     /// segments), and the run then returns the segmentation's error with no segments file:
@@ -70,16 +72,19 @@ impl Encoder {
         crate::views::check_hold_out(c.scene.hold_out_every)?;
         c.scene.views.validate()?;
         let threads = build::setup_threads(c);
-        // Started before anything else; dropped (stopped and joined) on any early return. It
-        // builds its neighbour graph at once and weighs it when the masks' record comes.
+        let scene = build::scene_input(c);
+        // Started before anything else; dropped (stopped and joined) on any early return. The
+        // scene is loaded once, for both: the segments build their neighbour graph as soon as
+        // it is loaded and weigh it when the masks' record comes.
         let (record_tx, record_rx) = std::sync::mpsc::channel();
-        let mut segments = if c.segments.enabled {
-            Some(SegmentTask::start(c, threads, record_rx)?)
+        let (shared, mut segments) = if c.segments.enabled {
+            let (load, loaded) = SceneLoad::start(scene.ply.clone())?;
+            let task = SegmentTask::start(c, threads, loaded, record_rx)?;
+            (Some(load), Some(task))
         } else {
-            None
+            (None, None)
         };
         let mut record = None;
-        let scene = build::scene_input(c);
         let gpus = build::gpu_count(c);
         let fronts = build::build_fronts(c, gpus, threads)?;
         let params = build::encode_params(c);
@@ -89,11 +94,15 @@ impl Encoder {
         let Fronts {
             stages, services, ..
         } = fronts;
-        let report = super::encode_pool_with(
-            &scene,
-            stages,
+        let pool = super::EncodePool {
+            scene: &scene,
+            shared,
+            fronts: stages,
+            params: &params,
+        };
+        let report = super::encode_pool_sharing(
+            pool,
             |g| build::make_rasterizers(c, g),
-            &params,
             header,
             |r, on_device| {
                 if let Some(r) = r {

@@ -7,10 +7,12 @@
 //! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
 use slag_common::io::write_atomic;
+use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
 use super::pool::Pooled;
@@ -133,15 +135,14 @@ pub(crate) fn finish(
     (models.front_workers, models.masks) = (Some(fronts), mask_name);
     models.clip_model_id = model_id.clone();
 
-    // Only the centres are written from here on: the rest of the geometry is let go first.
-    let means = {
-        let g = gaussians;
-        g.means
-    };
+    // Only the centres are written from here on: the rest of the geometry is let go first,
+    // unless the segments still hold the scene.
+    let centres = Centres::of(gaussians);
+    let means = centres.as_slice();
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
     let out = TailInputs {
-        means: &means,
+        means,
         dim,
         params,
         model_id: &model_id,
@@ -222,6 +223,31 @@ fn form_outputs(
         mixture_codebook_rows: mixture.map(|m| m.codebook_len()),
         mixture_keep: mixture.map(|m| m.keep),
         mixture_reduce_s: mixture.map(|_| mixture_s),
+    }
+}
+
+/// The Gaussians' centres for the tail, without a copy: taken out of the scene when the encode
+/// holds its last reference (the rest of the geometry is freed then), else read in the scene
+/// that the segments still hold (freed when the later of the two is done with it).
+enum Centres {
+    Owned(Vec<[f32; 3]>),
+    Shared(Arc<Gaussians>),
+}
+
+impl Centres {
+    fn of(g: Arc<Gaussians>) -> Self {
+        match Arc::try_unwrap(g) {
+            Ok(g) => Centres::Owned(g.means),
+            Err(g) => Centres::Shared(g),
+        }
+    }
+
+    /// `[N]` centres, scene frame.
+    fn as_slice(&self) -> &[[f32; 3]] {
+        match self {
+            Centres::Owned(m) => m,
+            Centres::Shared(g) => &g.means,
+        }
     }
 }
 

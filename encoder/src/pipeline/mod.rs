@@ -35,6 +35,7 @@ pub mod build;
 mod encoder;
 pub(crate) mod finish;
 pub(crate) mod pool;
+pub(crate) mod scene_load;
 pub(crate) mod segment_task;
 
 pub use encoder::Encoder;
@@ -97,19 +98,60 @@ impl SceneInput {
     /// Errors: no scene folder ([`Error::Param`] `scene`), unreadable `.ply` or cameras, as
     /// [`crate::views::training_indices`].
     pub fn load(&self) -> Result<(Gaussians, Vec<View>, usize)> {
-        if !self.dir.is_dir() {
-            return Err(Error::param(
-                "scene",
-                self.dir.display(),
-                "an existing scene folder holding point_cloud.ply, images/ and sparse/0 or \
-                 transforms.json",
-            ));
-        }
+        self.check_dir()?;
         let gaussians = scene::load_ply(&self.ply, PlyLoadOptions::default())?;
+        let (training, total) = self.load_views()?;
+        Ok((gaussians, training, total))
+    }
+
+    /// [`SceneInput::load`] for the encode's pool, its Gaussians from `shared` (the load the
+    /// segments share, [`scene_load::SceneLoad`]) when given, else loaded here; the same checks
+    /// in the same order. Returns the Gaussians (shared with the segments when they run), the
+    /// training views, the scene's view count and the seconds spent reading the `.ply` and the
+    /// cameras (the `.ply`'s own load, not the wait for a shared one).
+    ///
+    /// Errors: as [`SceneInput::load`].
+    pub(crate) fn load_sharing(
+        &self,
+        shared: Option<scene_load::SceneLoad>,
+    ) -> Result<(std::sync::Arc<Gaussians>, Vec<View>, usize, f64)> {
+        let t0 = Instant::now();
+        self.check_dir()?;
+        let (gaussians, ply_s) = match shared {
+            Some(load) => {
+                let waited = Instant::now();
+                let l = load.wait()?;
+                (l.gaussians, l.seconds - waited.elapsed().as_secs_f64())
+            }
+            None => {
+                let g = scene::load_ply(&self.ply, PlyLoadOptions::default())?;
+                (std::sync::Arc::new(g), 0.0)
+            }
+        };
+        let (training, views_total) = self.load_views()?;
+        let seconds = t0.elapsed().as_secs_f64() + ply_s;
+        Ok((gaussians, training, views_total, seconds))
+    }
+
+    /// Errors: no scene folder ([`Error::Param`] `scene`).
+    fn check_dir(&self) -> Result<()> {
+        if self.dir.is_dir() {
+            return Ok(());
+        }
+        Err(Error::param(
+            "scene",
+            self.dir.display(),
+            "an existing scene folder holding point_cloud.ply, images/ and sparse/0 or \
+             transforms.json",
+        ))
+    }
+
+    /// The training views and the scene's view count ([`SceneInput::load`]).
+    fn load_views(&self) -> Result<(Vec<View>, usize)> {
         let views = camera::load_views(&self.dir)?;
         let total = views.len();
         let training = crate::views::training_views(views, self.every, self.hold_out_every)?;
-        Ok((gaussians, training, total))
+        Ok((training, total))
     }
 }
 
@@ -742,8 +784,42 @@ pub fn encode_pool_with(
     report: Report,
     on_tail: impl FnOnce(Option<std::sync::Arc<slag_common::mask_record::MaskRecord>>, bool),
 ) -> Result<Report> {
+    let pool = EncodePool {
+        scene,
+        shared: None,
+        fronts,
+        params,
+    };
+    encode_pool_sharing(pool, make_rasterizers, report, on_tail)
+}
+
+/// What [`encode_pool_sharing`] runs: `scene`'s encode with `fronts` and `params`, its
+/// Gaussians from `shared` ([`SceneInput::load_sharing`]) when given.
+pub(crate) struct EncodePool<'a> {
+    pub(crate) scene: &'a SceneInput,
+    pub(crate) shared: Option<scene_load::SceneLoad>,
+    pub(crate) fronts: Vec<FrontStages>,
+    pub(crate) params: &'a EncodeParams,
+}
+
+/// [`encode_pool_with`] with the Gaussians of a load shared with the segments
+/// ([`EncodePool::shared`]).
+///
+/// Errors: as [`encode_pool`].
+pub(crate) fn encode_pool_sharing(
+    pool: EncodePool<'_>,
+    make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
+    report: Report,
+    on_tail: impl FnOnce(Option<std::sync::Arc<slag_common::mask_record::MaskRecord>>, bool),
+) -> Result<Report> {
+    let EncodePool {
+        scene,
+        shared,
+        fronts,
+        params,
+    } = pool;
     let t_total = Instant::now();
-    let mut pooled = pool::run_pool(scene, fronts, make_rasterizers, params, t_total)?;
+    let mut pooled = pool::run_pool(scene, shared, fronts, make_rasterizers, params, t_total)?;
     let record = pooled.mask_record.take().map(std::sync::Arc::new);
     on_tail(record, !pooled.device.is_empty());
     finish::finish(scene, pooled, params, report, t_total)

@@ -27,8 +27,9 @@ use slag_common::mask_record::MaskRecord;
 /// Gaussians, every image's `a_kj` (and, with [`EncodeParams::levels`], per SAM level), the
 /// models' names and what the workers measured.
 pub(crate) struct Pooled {
-    /// The scene's Gaussians (the reduction needs their means).
-    pub gaussians: Gaussians,
+    /// The scene's Gaussians (the reduction needs their means), shared with the segments when
+    /// they run beside the encode.
+    pub gaussians: Arc<Gaussians>,
     /// Embedding width D.
     pub dim: usize,
     /// The crop embedder's model id.
@@ -73,12 +74,15 @@ pub(crate) struct Pooled {
 /// workers go to one [`ContributionStore`]; the reduction (`E_k`, f64) runs once at the end, so
 /// the result equals a one-worker run up to the f64 summation order.
 ///
-/// `t_total` is the run's start (the workers' [`WorkerShare`] times count from it).
+/// `t_total` is the run's start (the workers' [`WorkerShare`] times count from it). The
+/// Gaussians come from `shared` (the load the segments share) when given, else the pool loads
+/// them ([`SceneInput::load_sharing`]).
 ///
 /// Errors: the first error of any worker stops the others; the scene's and the rasterizers'
 /// set-up errors. All fronts must embed with the same model (same `model_id` and `dim`).
 pub(crate) fn run_pool(
     scene: &SceneInput,
+    shared: Option<super::scene_load::SceneLoad>,
     fronts: Vec<FrontStages>,
     make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
     params: &EncodeParams,
@@ -86,9 +90,8 @@ pub(crate) fn run_pool(
 ) -> Result<Pooled> {
     let mut t = StageTimings::default();
     let model = FrontModel::of(&fronts)?;
-    let t0 = Instant::now();
-    let (gaussians, training, views_total) = scene.load()?;
-    t.load_scene = t0.elapsed().as_secs_f64();
+    let (gaussians, training, views_total, load_s) = scene.load_sharing(shared)?;
+    t.load_scene = load_s;
     if training.is_empty() {
         return Err(no_views(scene, views_total));
     }

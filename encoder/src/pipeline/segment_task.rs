@@ -5,14 +5,16 @@
 //! The segmentation's parallel stages run on a rayon pool of its own, [`segment_threads`]
 //! threads, so the encode's host work (SAM post-processing on the global pool, the rasterizer
 //! threads, the label and `a_kj` threads) keeps the rest of the cores; if it outlasts the encode
-//! (a large scene, few views), its remaining stages get all the threads. It reloads the `.ply`
-//! itself (the encode's copy lives inside the worker pool) and holds its memory only while it
-//! runs; when that overlaps the encode's peak (its tail), the two add up (docs/guide/lifting.md,
-//! memory model).
+//! (a large scene, few views), its remaining stages get all the threads. It reads the encode's
+//! own copy of the Gaussians ([`super::scene_load`]: one load, shared, never cloned) and holds
+//! it, with its own memory, only while it runs; when that overlaps the encode's peak (its tail),
+//! its own memory adds to it, and the scene stays whole until both are done
+//! (docs/guide/lifting.md, memory model).
 //!
-//! The mask term of the weights needs every view's masks: the k-NN search runs from the start,
-//! the weights and the merge passes once the encode hands over its masks' record (after its
-//! last view, while it reduces the embeddings).
+//! The mask term of the weights needs every view's masks: the k-NN search runs as soon as the
+//! scene is loaded (while the encode sets up its models), the weights and the merge passes once
+//! the encode hands over its masks' record (after its last view, while it reduces the
+//! embeddings).
 //!
 //! Nothing is written here: the caller writes `segments.safetensors` after the encode
 //! succeeded. A task dropped without [`SegmentTask::finish`] (the encode failed) is stopped
@@ -23,6 +25,7 @@ use std::thread::JoinHandle;
 use std::time::Instant;
 
 use slag_common::mask_record::MaskRecord;
+use slag_common::scene::Gaussians;
 use slag_common::segments::Segments;
 use slag_common::{Error, Result};
 
@@ -67,17 +70,19 @@ pub struct Segmented {
 }
 
 impl SegmentTask {
-    /// Loads `c`'s `.ply` and segments it with `c.segments.params`, on a thread of its own with
+    /// Segments the Gaussians that come on `scene` (the encode's load of `c`'s `.ply`,
+    /// [`super::scene_load::SceneLoad`]) with `c.segments.params`, on a thread of its own with
     /// its parallel stages on a new pool of [`segment_threads`]`(threads)` threads; returns at
-    /// once. The neighbour graph is built at once; the weights wait for the masks' record that
-    /// the encode sends on `masks` when its last view is done (a closed channel: geometry
-    /// only).
+    /// once. The neighbour graph is built as soon as the scene comes (a closed channel: the load
+    /// failed, and the encode reports it); the weights wait for the masks' record that the
+    /// encode sends on `masks` when its last view is done (a closed channel: geometry only).
     ///
     /// Errors: [`Error::Internal`] when the thread or its pool cannot be started (the
     /// segmentation's own errors come from [`SegmentTask::finish`]).
     pub fn start(
         c: &EncodeConfig,
         threads: usize,
+        scene: mpsc::Receiver<Arc<Gaussians>>,
         masks: mpsc::Receiver<Arc<MaskRecord>>,
     ) -> Result<Self> {
         let threads = segment_threads(threads);
@@ -88,25 +93,21 @@ impl SegmentTask {
         let handle = std::thread::Builder::new()
             .name("slag-segments".into())
             .spawn(move || -> Outcome {
-                let out = shared
-                    .run(|| {
-                        slag_common::scene::load_ply(
-                            &ply,
-                            slag_common::scene::PlyLoadOptions::default(),
-                        )
-                    })
-                    .and_then(|g| {
-                        crate::segments::segment_with(
-                            &g,
-                            &params,
-                            &ply.display().to_string(),
-                            &shared,
-                            || wait_for_record(&masks, &shared),
-                        )
-                    });
+                let out = match wait_for(&scene, &shared) {
+                    // Stopped, or no scene (the encode fails with the load's error).
+                    None => Ok(None),
+                    Some(g) => crate::segments::segment_with(
+                        &g,
+                        &params,
+                        &ply.display().to_string(),
+                        &shared,
+                        || wait_for(&masks, &shared),
+                    ),
+                };
                 // The graph's many small allocations were freed in this pool's malloc arenas,
                 // which glibc keeps for reuse: given back, so that the encode's peak does not
-                // carry them (1.9 GiB at 2M Gaussians on an H100 host).
+                // carry them (1.9 GiB at 2M Gaussians on an H100 host). The scene was let go
+                // before (the encode may still hold it).
                 release_freed_heap();
                 if let Err(e) = &out {
                     // Said at once; the run fails with it after the encode.
@@ -145,7 +146,7 @@ impl SegmentTask {
     /// Waits for the segmentation and returns its result. When it is still running, its stages
     /// from now on run on a new pool of `threads` threads (the encode's, idle now).
     ///
-    /// Errors: the segmentation's ([`crate::segments::segment`], the `.ply` unreadable),
+    /// Errors: the segmentation's ([`crate::segments::segment`]),
     /// [`Error::Internal`] when its thread panicked or a pool cannot be started.
     pub fn finish(mut self, threads: usize) -> Result<Segmented> {
         let t0 = Instant::now();
@@ -175,14 +176,11 @@ impl SegmentTask {
     }
 }
 
-/// The record from `masks`, waited for until it comes, the channel closes (`None`) or the
-/// segmentation is stopped (`None`; the caller then sees the stop).
-fn wait_for_record(
-    masks: &mpsc::Receiver<Arc<MaskRecord>>,
-    ctl: &SegmentControl,
-) -> Option<Arc<MaskRecord>> {
+/// What comes on `rx` (the scene, the masks' record), waited for until it comes, the channel
+/// closes (`None`) or the segmentation is stopped (`None`; the caller then sees the stop).
+fn wait_for<T>(rx: &mpsc::Receiver<T>, ctl: &SegmentControl) -> Option<T> {
     loop {
-        match masks.recv_timeout(std::time::Duration::from_millis(50)) {
+        match rx.recv_timeout(std::time::Duration::from_millis(50)) {
             Ok(r) => return Some(r),
             Err(mpsc::RecvTimeoutError::Disconnected) => return None,
             Err(mpsc::RecvTimeoutError::Timeout) if ctl.is_stopped() => return None,
