@@ -77,7 +77,7 @@ impl Encoder {
         // scene is loaded once, for both: the segments build their neighbour graph as soon as
         // it is loaded and weigh it when the masks' record comes.
         let (record_tx, record_rx) = std::sync::mpsc::channel();
-        let (shared, mut segments) = if c.segments.enabled {
+        let (shared, segments) = if c.segments.enabled {
             let (load, loaded) = SceneLoad::start(scene.ply.clone())?;
             let task = SegmentTask::start(c, threads, loaded, record_rx)?;
             (Some(load), Some(task))
@@ -94,11 +94,19 @@ impl Encoder {
         let Fronts {
             stages, services, ..
         } = fronts;
+        // The views' sums and the masks' record stay on the GPU: the host's cores, but for the
+        // fronts', are the segments' from the first kept view on.
+        let widen_segments = || {
+            if let Some(task) = segments.as_ref() {
+                task.widen(threads);
+            }
+        };
         let pool = super::EncodePool {
             scene: &scene,
             shared,
             fronts: stages,
             params: &params,
+            on_device_keep: Some(&widen_segments),
         };
         let report = super::encode_pool_sharing(
             pool,
@@ -111,7 +119,7 @@ impl Encoder {
                     record = Some(r);
                 }
                 // The device reduces from here on: the host's cores are the segments'.
-                if let (Some(task), true) = (segments.as_mut(), on_device) {
+                if let (Some(task), true) = (segments.as_ref(), on_device) {
                     task.widen(threads);
                 }
             },

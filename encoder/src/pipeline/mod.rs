@@ -789,6 +789,7 @@ pub fn encode_pool_with(
         shared: None,
         fronts,
         params,
+        on_device_keep: None,
     };
     encode_pool_sharing(pool, make_rasterizers, report, on_tail)
 }
@@ -800,6 +801,9 @@ pub(crate) struct EncodePool<'a> {
     pub(crate) shared: Option<scene_load::SceneLoad>,
     pub(crate) fronts: Vec<FrontStages>,
     pub(crate) params: &'a EncodeParams,
+    /// Called (once) when the first rasterizer starts keeping its views' sums on its device:
+    /// the host's per-view work is light from then on.
+    pub(crate) on_device_keep: Option<&'a (dyn Fn() + Sync)>,
 }
 
 /// [`encode_pool_with`] with the Gaussians of a load shared with the segments
@@ -817,9 +821,14 @@ pub(crate) fn encode_pool_sharing(
         shared,
         fronts,
         params,
+        on_device_keep,
     } = pool;
     let t_total = Instant::now();
-    let mut pooled = pool::run_pool(scene, shared, fronts, make_rasterizers, params, t_total)?;
+    let hooks = pool::PoolHooks {
+        t_total,
+        on_device_keep,
+    };
+    let mut pooled = pool::run_pool(scene, shared, fronts, make_rasterizers, params, hooks)?;
     let record = pooled.mask_record.take().map(std::sync::Arc::new);
     on_tail(record, !pooled.device.is_empty());
     finish::finish(scene, pooled, params, report, t_total)

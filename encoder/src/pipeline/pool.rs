@@ -74,7 +74,7 @@ pub(crate) struct Pooled {
 /// workers go to one [`ContributionStore`]; the reduction (`E_k`, f64) runs once at the end, so
 /// the result equals a one-worker run up to the f64 summation order.
 ///
-/// `t_total` is the run's start (the workers' [`WorkerShare`] times count from it). The
+/// `hooks` holds the run's start (the workers' [`WorkerShare`] times count from it). The
 /// Gaussians come from `shared` (the load the segments share) when given, else the pool loads
 /// them ([`SceneInput::load_sharing`]).
 ///
@@ -86,8 +86,12 @@ pub(crate) fn run_pool(
     fronts: Vec<FrontStages>,
     make_rasterizers: impl FnOnce(&Gaussians) -> Result<Vec<Box<dyn WeightRasterizer>>>,
     params: &EncodeParams,
-    t_total: Instant,
+    hooks: PoolHooks<'_>,
 ) -> Result<Pooled> {
+    let PoolHooks {
+        t_total,
+        on_device_keep,
+    } = hooks;
     let mut t = StageTimings::default();
     let model = FrontModel::of(&fronts)?;
     let (gaussians, training, views_total, load_s) = scene.load_sharing(shared)?;
@@ -119,6 +123,7 @@ pub(crate) fn run_pool(
         totals: Mutex::new(ImageWork::default()),
         sinks: PoolSinks::new(params, gaussians.len(), views.len())?,
         device: Mutex::new(Vec::new()),
+        on_device_keep: Mutex::new(on_device_keep),
         bar_front: bar(&multi, views.len(), "masks + CLIP"),
         bar_back: bar(&multi, views.len(), "raster + a_kj"),
     };
@@ -355,6 +360,14 @@ impl PoolSinks {
     }
 }
 
+/// What the caller of [`run_pool`] hooks into it.
+pub(crate) struct PoolHooks<'a> {
+    /// The run's start: the workers' times count from it.
+    pub(crate) t_total: Instant,
+    /// Called once, when the first rasterizer starts keeping its views' sums on its device.
+    pub(crate) on_device_keep: Option<&'a (dyn Fn() + Sync)>,
+}
+
 /// What every worker of [`run_pool`] shares: the views and settings, the next unclaimed view,
 /// the first error, the queues' gauge, the image stage's sinks and totals, the progress bars.
 struct Shared<'a> {
@@ -369,6 +382,8 @@ struct Shared<'a> {
     /// What the back workers add up (under one lock, once per image).
     totals: Mutex<ImageWork>,
     sinks: PoolSinks,
+    /// [`PoolHooks::on_device_keep`], taken by the first rasterizer that keeps.
+    on_device_keep: Mutex<Option<&'a (dyn Fn() + Sync)>>,
     /// The rasterizers that kept their views' sums on the device, handed back at their end.
     device: Mutex<Vec<Box<dyn WeightRasterizer>>>,
     bar_front: ProgressBar,
@@ -678,6 +693,12 @@ fn back_raster_thread(
             None
         }
     };
+    if keep.is_some() {
+        let hook = shared.on_device_keep.lock().ok().and_then(|mut h| h.take());
+        if let Some(hook) = hook {
+            hook();
+        }
+    }
     let step = |prepared, share: &mut WorkerShare| {
         let out = back_raster(&mut *rasterizer, prepared, keep);
         if let Some(p) = rasterizer.last_phases() {

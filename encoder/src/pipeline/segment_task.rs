@@ -4,8 +4,11 @@
 //!
 //! The segmentation's parallel stages run on a rayon pool of its own, [`segment_threads`]
 //! threads, so the encode's host work (SAM post-processing on the global pool, the rasterizer
-//! threads, the label and `a_kj` threads) keeps the rest of the cores; if it outlasts the encode
-//! (a large scene, few views), its remaining stages get all the threads. It reads the encode's
+//! threads, the label and `a_kj` threads) keeps the rest of the cores. When a rasterizer keeps
+//! its views' sums (and the masks' record) on its GPU, the encode's per-view host work is light:
+//! the segmentation then gets all the threads at once ([`SegmentTask::widen`]; its neighbour
+//! search takes them between its rounds); if it outlasts the encode (a large scene, few views),
+//! its remaining stages get all the threads too. It reads the encode's
 //! own copy of the Gaussians ([`super::scene_load`]: one load, shared, never cloned) and holds
 //! it, with its own memory, only while it runs; when that overlaps the encode's peak (its tail),
 //! its own memory adds to it, and the scene stays whole until both are done
@@ -51,7 +54,7 @@ pub struct SegmentTask {
     handle: Option<JoinHandle<Outcome>>,
     threads: usize,
     /// Threads of the pool it was given since ([`SegmentTask::widen`]).
-    widened_to: Option<usize>,
+    widened_to: std::sync::OnceLock<usize>,
 }
 
 /// What [`SegmentTask::finish`] returns.
@@ -122,22 +125,23 @@ impl SegmentTask {
             ctl,
             handle: Some(handle),
             threads,
-            widened_to: None,
+            widened_to: std::sync::OnceLock::new(),
         })
     }
 
-    /// Gives the segmentation's stages from now on a pool of `threads` threads, while the
-    /// encode still runs but leaves the host's cores idle (its reduction runs on the GPU). A
-    /// pool that cannot be started is logged and the segmentation keeps its own.
-    pub fn widen(&mut self, threads: usize) {
+    /// Gives the segmentation's stages from now on (and its neighbour search's rounds left) a
+    /// pool of `threads` threads, while the encode still runs but leaves the host's cores idle
+    /// (its views' sums and the masks' record stay on the GPU). Once only; a pool that cannot be
+    /// started is logged and the segmentation keeps its own.
+    pub fn widen(&self, threads: usize) {
         let done = self.handle.as_ref().is_none_or(|h| h.is_finished());
-        if done || threads <= self.threads || self.widened_to.is_some() {
+        if done || threads <= self.threads || self.widened_to.get().is_some() {
             return;
         }
         match pool(threads) {
             Ok(p) => {
                 self.ctl.set_pool(p);
-                self.widened_to = Some(threads);
+                let _ = self.widened_to.set(threads);
             }
             Err(e) => tracing::warn!(error = %e, "segments keep their pool"),
         }
@@ -154,9 +158,10 @@ impl SegmentTask {
             .handle
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
-        let pool_threads = self.widened_to.unwrap_or(self.threads);
+        let widened = self.widened_to.get().copied();
+        let pool_threads = widened.unwrap_or(self.threads);
         let widened_to = if handle.is_finished() || threads <= pool_threads {
-            self.widened_to
+            widened
         } else {
             self.ctl.set_pool(pool(threads)?);
             Some(threads)
