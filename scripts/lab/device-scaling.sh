@@ -113,7 +113,7 @@ if seg:
           f"(widened to {seg['widened_to']}), waited {seg['waited_s']:.2f} s; stages "
           + ", ".join(f"{k} {v:.2f}" for k, v in st["stages"].items() if isinstance(v, (int, float))))
 for line in open(log):
-    if any(s in line for s in ("segments written", "rss-timeline", "device reduction")) or "error" in line.lower():
+    if any(s in line for s in ("segments written", "rss-timeline", "device reduction", "neighbour search")) or "error" in line.lower():
         print("  " + line.strip()[-300:])
 EOF2
     grep -v XDG_RUNTIME "$W/run-$i.txt" | tail -40 > "$R/run-$i-$m.txt"

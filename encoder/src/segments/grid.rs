@@ -195,7 +195,9 @@ pub(super) fn neighbours(
     max_edge: f32,
     ctl: &SegmentControl,
 ) -> Neighbours {
+    let t0 = std::time::Instant::now();
     let grid = ctl.run(|| Grid::build(means, max_edge));
+    let build_s = t0.elapsed().as_secs_f64();
     let h2 = max_edge * max_edge;
     let mut ids = vec![NO_NEIGHBOUR; means.len() * k];
     let mut parts: Vec<(usize, &mut [u32])> = Vec::with_capacity(grid.cells.len());
@@ -207,8 +209,13 @@ pub(super) fn neighbours(
         rest = tail;
     }
     let per_round = parts.len().div_ceil(SEARCH_ROUNDS).max(1);
-    while !parts.is_empty() && !ctl.is_stopped() {
-        let round: Vec<(usize, &mut [u32])> = parts.drain(..per_round.min(parts.len())).collect();
+    let mut parts = parts.into_iter();
+    let t1 = std::time::Instant::now();
+    while !ctl.is_stopped() {
+        let round: Vec<(usize, &mut [u32])> = parts.by_ref().take(per_round).collect();
+        if round.is_empty() {
+            break;
+        }
         ctl.run(|| {
             round.into_par_iter().for_each(|(c, out)| {
                 if !ctl.is_stopped() {
@@ -217,10 +224,19 @@ pub(super) fn neighbours(
             });
         });
     }
+    let search_s = t1.elapsed().as_secs_f64();
     let mut pos_of = vec![0u32; means.len()];
     for (pos, &i) in grid.order.iter().enumerate() {
         pos_of[i as usize] = pos as u32;
     }
+    tracing::debug!(
+        target: "slag_encoder::segments",
+        cells = grid.cells.len(),
+        build_s = format!("{build_s:.2}"),
+        search_s = format!("{search_s:.2}"),
+        total_s = format!("{:.2}", t0.elapsed().as_secs_f64()),
+        "neighbour search"
+    );
     Neighbours {
         k,
         ids,
