@@ -459,7 +459,9 @@ pub struct AggregateConfig {
 pub enum ReduceOn {
     /// On the GPU where it can (GPU rasterizers with f64, no `--levels`) and the dense file is
     /// not asked for (its rows would cross to the host anyway: at 30M Gaussians the host's
-    /// reduction, which overlaps their write, was the faster), else on the host.
+    /// reduction, which overlaps their write, was the faster), else on the host. When the kept
+    /// label sums meet the device memory limit during the run, the views kept so far are
+    /// brought back to the host, which reduces (`Counts::device_reduce_fallback` in the report).
     Auto,
     /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot.
     Device,

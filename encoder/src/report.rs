@@ -98,6 +98,16 @@ impl ImageWork {
     }
 }
 
+/// Why and where the device reduction gave way to the host's ([`Counts::device_reduce_fallback`]).
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct DeviceReduceFallback {
+    /// The device memory limit the kept label sums met (the first rasterizer's error: the
+    /// budget `--device-reduce-memory-mb`, or the device full).
+    pub reason: String,
+    /// Views whose label sums had been kept on the devices and were brought back to the host.
+    pub views_brought_back: usize,
+}
+
 /// Counts describing the run.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Counts {
@@ -124,6 +134,11 @@ pub struct Counts {
     /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
     /// host, so `entries` counts none.
     pub device_reduce: bool,
+    /// The device reduction (`--reduce auto`) gave way to the host's during the run: the views
+    /// kept on the devices were brought back as the host's `a_kj` and the host reduced
+    /// (`device_reduce` false); `None`: it did not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub device_reduce_fallback: Option<DeviceReduceFallback>,
     /// Views whose `a_kj` were summed on the GPU per (Gaussian, mask-set label)
     /// ([`crate::pipeline::view_contribution`]); the others went through per-pixel lists.
     pub device_sum_views: usize,

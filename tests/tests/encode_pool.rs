@@ -188,9 +188,20 @@ fn rasterizers(
     n: usize,
     g: &slag_common::scene::Gaussians,
 ) -> slag_common::Result<Vec<Box<dyn WeightRasterizer>>> {
+    rasterizers_set_up(n, g, |_| {})
+}
+
+/// [`rasterizers`], each set up by `set_up` first.
+fn rasterizers_set_up(
+    n: usize,
+    g: &slag_common::scene::Gaussians,
+    set_up: impl Fn(&mut slag_encoder::raster::GpuRasterizer),
+) -> slag_common::Result<Vec<Box<dyn WeightRasterizer>>> {
     (0..n)
         .map(|_| {
-            Ok(Box::new(slag_encoder::raster::GpuRasterizer::new(g)?) as Box<dyn WeightRasterizer>)
+            let mut r = slag_encoder::raster::GpuRasterizer::new(g)?;
+            set_up(&mut r);
+            Ok(Box::new(r) as Box<dyn WeightRasterizer>)
         })
         .collect()
 }
@@ -406,4 +417,108 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
         assert!(read(&host_dir) == read(&dev_dir), "{file} differs");
         assert!(read(&host_dir) == read(&mixture_dir), "{file} differs without rows");
     }
+}
+
+/// `--reduce auto` whose kept label sums pass the device's budget after a few views gives way
+/// to the host's reduction: the run succeeds and writes what `--reduce host` writes (with one
+/// rasterizer the same mixture byte for byte; with two, whose views reach the store in any
+/// order, the same observed Gaussians), the same masks' record and `a_kj` count; the report
+/// says so. `--reduce device` with the same budget fails with the budget's typed error.
+#[test]
+fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
+    use slag_common::mixture::MixtureEmbeddings;
+    use slag_encoder::config::ReduceOn;
+    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+        return;
+    }
+    let (dir, scene) = folder_with_small_scene();
+    let input = pipeline::SceneInput::new(&scene, None, 1);
+    // About two views' kept label sums of this scene.
+    let budget = 1000 << 10;
+    let run = |name: &str, reduce_on: ReduceOn, n_rasterizers: usize| {
+        let out = dir.path().join(name);
+        // The default outputs (the mixture, no dense file): what `auto` reduces on the device.
+        let params = pipeline::EncodeParams {
+            dense: false,
+            mixture_keep: Some(4),
+            mask_record_slots: Some(slag_common::mask_record::DEFAULT_SLOTS),
+            reduce_on,
+            device_reduce_budget_bytes: budget,
+            ..pool_params(&out)
+        };
+        let mut record = None;
+        let report = pipeline::encode_pool_with(
+            &input,
+            graph_fronts(&[None]),
+            // Kept for `auto` also on a CPU device (lavapipe in CI).
+            |g: &slag_common::scene::Gaussians| {
+                rasterizers_set_up(n_rasterizers, g, |r| r.set_cpu_adapter(false))
+            },
+            &params,
+            Default::default(),
+            |r, _| record = r,
+        );
+        (report, out.join("mixture.safetensors"), record)
+    };
+    let (host, host_mixture, host_record) = run("host", ReduceOn::Host, 1);
+    let host = host.unwrap();
+    assert!(host.counts.device_reduce_fallback.is_none());
+    assert!(
+        host.counts.observed > 1000,
+        "{} observed",
+        host.counts.observed
+    );
+    for (name, n_rasterizers) in [("auto", 1), ("auto-two", 2)] {
+        let (auto, auto_mixture, auto_record) = run(name, ReduceOn::Auto, n_rasterizers);
+        let auto = auto.unwrap();
+        let fallback = auto
+            .counts
+            .device_reduce_fallback
+            .clone()
+            .expect("gave way");
+        assert!(
+            (1..7).contains(&fallback.views_brought_back),
+            "{name}: {fallback:?}"
+        );
+        assert!(
+            fallback.reason.contains("--device-reduce-memory-mb"),
+            "{name}: {fallback:?}"
+        );
+        assert!(!auto.counts.device_reduce, "{name}: the host reduced");
+        assert_eq!(
+            auto.counts.entries, host.counts.entries,
+            "{name}: a_kj on the host"
+        );
+        assert_eq!(auto.counts.observed, host.counts.observed, "{name}");
+        assert!(
+            auto_record.is_some() && auto_record == host_record,
+            "{name}: masks' record"
+        );
+        let read = |p: &std::path::Path| std::fs::read(p).unwrap();
+        if n_rasterizers == 1 {
+            assert!(
+                read(&auto_mixture) == read(&host_mixture),
+                "{name}: mixture differs"
+            );
+        }
+        let ids = |p: &std::path::Path| MixtureEmbeddings::read(p).unwrap().gaussian_ids;
+        assert_eq!(
+            ids(&auto_mixture),
+            ids(&host_mixture),
+            "{name}: observed Gaussians"
+        );
+    }
+    let (device, device_mixture, _) = run("device", ReduceOn::Device, 1);
+    let err = device.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            slag_common::Error::Limit {
+                resource: slag_common::Resource::GpuMemory,
+                ..
+            }
+        ) && err.to_string().contains("--device-reduce-memory-mb"),
+        "{err}"
+    );
+    assert!(!device_mixture.exists());
 }

@@ -95,6 +95,12 @@ fn tail_summary(r: &slag_encoder::report::Report) -> String {
         "reduce {:.1} s on the {place}, write {:.1} s",
         r.timings.reduce, r.timings.write
     );
+    if let Some(f) = &r.counts.device_reduce_fallback {
+        s.push_str(&format!(
+            " (the GPU reduction gave way after {} views: {})",
+            f.views_brought_back, f.reason
+        ));
+    }
     if let Some(seg) = &r.segments {
         s.push_str(&format!(", segments waited {:.1} s", seg.waited_s));
     }

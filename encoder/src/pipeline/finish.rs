@@ -126,6 +126,7 @@ pub(crate) fn finish(
         selection,
         mask_record: _,
         device,
+        reduce_fallback,
     } = pooled;
     report.view_selection = Some(selection);
     report.workers = workers;
@@ -153,6 +154,7 @@ pub(crate) fn finish(
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
     t.reduce = tail.reduce_s - tail.gather_s;
     counts.device_reduce = tail.on_device;
+    counts.device_reduce_fallback = reduce_fallback;
     counts.spilled_images = store.spilled();
     counts.reduce_chunks = tail.chunks;
     counts.observed = tail.observed;

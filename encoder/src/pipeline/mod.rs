@@ -33,6 +33,7 @@ use crate::report::{ImageWork, Report};
 
 pub mod build;
 mod encoder;
+mod fallback;
 pub(crate) mod finish;
 pub(crate) mod pool;
 pub(crate) mod scene_load;
@@ -356,6 +357,9 @@ pub fn view_contribution(
 pub(crate) struct RasteredView {
     out: Rastered,
     stats: ViewStats,
+    /// The device memory limit on which the view's sums went the host's way instead of being
+    /// kept ([`KeepView::fall_back`]); the views kept before stay kept.
+    gave_up_keeping: Option<Error>,
 }
 
 enum Rastered {
@@ -378,14 +382,36 @@ enum Rastered {
 /// (the masks' record's input).
 pub(crate) type DominantMasks = Vec<(u32, u32, f32)>;
 
-/// The device reduction's inputs of a view ([`raster_view`]): its mask embeddings and whether
-/// the masks' record wants the dominant masks.
+/// How the views are offered to the device reduction ([`back_raster`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Keep {
+    /// The masks' record wants each Gaussian's dominant mask.
+    pub(crate) dominant: bool,
+    /// A device memory limit on keeping a view ([`Error::Limit`] `GpuMemory`: the kept sums'
+    /// budget, or the device full with them) sends the view the host's way instead of failing
+    /// (`--reduce auto`).
+    pub(crate) fall_back: bool,
+}
+
+/// The device reduction's inputs of a view ([`raster_view`]): its mask embeddings and how it
+/// is offered ([`Keep`]).
 #[derive(Clone, Copy)]
 pub(crate) struct KeepView<'a> {
     pub(crate) embeddings: &'a [f32],
-    pub(crate) dominant: bool,
+    pub(crate) keep: Keep,
     /// The view's index in the encode's view list.
     pub(crate) view: usize,
+}
+
+/// Whether `e` is a device memory limit ([`Keep::fall_back`]).
+fn is_device_memory(e: &Error) -> bool {
+    matches!(
+        e,
+        Error::Limit {
+            resource: slag_common::Resource::GpuMemory,
+            ..
+        }
+    )
 }
 
 /// The pixel labels of one view and what the image stage needs of its masks afterwards, made
@@ -435,9 +461,10 @@ pub(crate) fn prepare_view<M: ImageMask>(
 }
 
 /// The rasterizer's part of [`view_contribution`]: the device's label sums of the prepared
-/// labels (kept on the device with `keep`, when the rasterizer keeps them), or the per-pixel
-/// lists when the rasterizer has no label sums or there are no labels. `stats.aggregate_s` holds
-/// the labels' host time so far.
+/// labels (kept on the device with `keep`, when the rasterizer keeps them; with
+/// [`Keep::fall_back`] a device memory limit sends them the host's way, recorded in the
+/// result), or the per-pixel lists when the rasterizer has no label sums or there are no
+/// labels. `stats.aggregate_s` holds the labels' host time so far.
 ///
 /// Errors: the rasterizer's.
 pub(crate) fn raster_view(
@@ -467,29 +494,24 @@ pub(crate) fn raster_view(
         counted_pixels,
         device_sums: true,
     };
-    if let (Some(labels), Some(keep)) = (&labels, keep)
-        && let Some(view) = rasterizer.label_sums_kept(
-            intrinsics,
-            world_to_camera,
-            &labels.labels,
-            // Taken: a rasterizer that keeps nothing falls back without it (only slower).
-            precomputed.take(),
-            crate::raster::KeptMasks {
-                masks_of: &labels.masks_of,
-                factors: &factors,
-                embeddings: keep.embeddings,
-                dominant: keep.dominant,
-                view: keep.view,
-            },
-        )?
-    {
-        let stats = sums_stats(view.contributions);
-        let out = Rastered::Kept {
-            dominant: view.dominant,
-        };
-        return Ok(RasteredView { out, stats });
+    let mut gave_up_keeping = None;
+    if let (Some(labels), Some(keep)) = (&labels, keep) {
+        // Taken: a rasterizer that keeps nothing falls back without it (only slower).
+        let pre = precomputed.take();
+        match keep_view(rasterizer, intrinsics, world_to_camera, labels, pre, &factors, keep) {
+            Ok(Some(view)) => {
+                let stats = sums_stats(view.contributions);
+                let out = Rastered::Kept {
+                    dominant: view.dominant,
+                };
+                return Ok(RasteredView { out, stats, gave_up_keeping });
+            }
+            Ok(None) => {}
+            Err(e) if keep.keep.fall_back && is_device_memory(&e) => gave_up_keeping = Some(e),
+            Err(e) => return Err(e),
+        }
     }
-    if let Some(labels) = labels
+    let out = if let Some(labels) = labels
         && let Some(sums) = rasterizer.label_sums_precomputed(
             intrinsics,
             world_to_camera,
@@ -503,8 +525,53 @@ pub(crate) fn raster_view(
             masks_of: labels.masks_of,
             factors,
         };
-        return Ok(RasteredView { out, stats });
-    }
+        RasteredView { out, stats, gave_up_keeping: None }
+    } else {
+        raster_weights(rasterizer, intrinsics, world_to_camera, labels_s)?
+    };
+    Ok(RasteredView { gave_up_keeping, ..out })
+}
+
+/// The kept step of [`raster_view`]: the view's sums kept on the device
+/// ([`WeightRasterizer::label_sums_kept`]) with its masks; `Ok(None)` when the rasterizer
+/// keeps none. `precomputed`: the view's host work done ahead; `factors`: the masks'.
+///
+/// Errors: the rasterizer's.
+fn keep_view(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    labels: &aggregate::PixelLabels,
+    precomputed: Option<crate::raster::PrecomputedView>,
+    factors: &[f32],
+    keep: KeepView<'_>,
+) -> Result<Option<crate::raster::KeptView>> {
+    rasterizer.label_sums_kept(
+        intrinsics,
+        world_to_camera,
+        &labels.labels,
+        precomputed,
+        crate::raster::KeptMasks {
+            masks_of: &labels.masks_of,
+            factors,
+            embeddings: keep.embeddings,
+            dominant: keep.keep.dominant,
+            view: keep.view,
+        },
+    )
+}
+
+/// The per-pixel lists' step of [`raster_view`] (no labels, or no label sums here);
+/// `labels_s`: the labels' host time so far.
+///
+/// Errors: the rasterizer's.
+fn raster_weights(
+    rasterizer: &mut dyn WeightRasterizer,
+    intrinsics: &Intrinsics,
+    world_to_camera: &WorldToCamera,
+    labels_s: f64,
+) -> Result<RasteredView> {
+    let pixels = intrinsics.width as usize * intrinsics.height as usize;
     let t0 = Instant::now();
     let weights = rasterizer.rasterize(intrinsics, world_to_camera)?;
     let stats = ViewStats {
@@ -518,6 +585,7 @@ pub(crate) fn raster_view(
     Ok(RasteredView {
         out: Rastered::Weights(weights),
         stats,
+        gave_up_keeping: None,
     })
 }
 
@@ -541,15 +609,7 @@ pub(crate) fn finish_view(
             sums,
             masks_of,
             factors,
-        } => {
-            let mut entries = aggregate::image::expand_label_records(sums, &masks_of);
-            aggregate::image::apply_mask_factors(&mut entries, &factors);
-            ImageContribution {
-                dim,
-                mask_embeddings,
-                entries,
-            }
-        }
+        } => sums_contribution(sums, &masks_of, &factors, mask_embeddings, dim),
         Rastered::Weights(weights) => {
             aggregate::image_contribution(&weights, masks, mask_embeddings, dim, params)?
         }
@@ -564,6 +624,25 @@ pub(crate) fn finish_view(
     };
     stats.aggregate_s += t0.elapsed().as_secs_f64();
     Ok((c, dominant, stats))
+}
+
+/// An image's contribution from its view's label sums (any order, a key several times): the
+/// sums reduced and expanded from labels to the masks `masks_of` names, each mask's `a_kj`
+/// times its factor (`factors`; empty: all 1), with the masks' embeddings `[M × dim]`.
+pub(crate) fn sums_contribution(
+    sums: crate::raster::LabelSums,
+    masks_of: &[Vec<u32>],
+    factors: &[f32],
+    mask_embeddings: Vec<f32>,
+    dim: usize,
+) -> ImageContribution {
+    let mut entries = aggregate::image::expand_label_records(sums, masks_of);
+    aggregate::image::apply_mask_factors(&mut entries, factors);
+    ImageContribution {
+        dim,
+        mask_embeddings,
+        entries,
+    }
 }
 
 /// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
@@ -636,18 +715,31 @@ pub(crate) struct BackRaster {
     rastered: RasteredView,
 }
 
-/// The rasterizer's part of [`back_stage`]; `keep_dominant`: `Some` when the rasterizer keeps
-/// the sums on its device (whether the masks' record wants the dominant masks).
+impl BackRaster {
+    /// The device memory limit on which this view went the host's way instead of being kept
+    /// ([`Keep::fall_back`]), taken; `None`: it did not.
+    pub(crate) fn take_gave_up_keeping(&mut self) -> Option<Error> {
+        self.rastered.gave_up_keeping.take()
+    }
+
+    /// Whether the view's sums stayed on the device ([`WeightRasterizer::label_sums_kept`]).
+    pub(crate) fn is_kept(&self) -> bool {
+        matches!(self.rastered.out, Rastered::Kept { .. })
+    }
+}
+
+/// The rasterizer's part of [`back_stage`]; `keep`: `Some` when the rasterizer keeps the sums
+/// on its device ([`Keep`]).
 ///
 /// Errors: the rasterizer's.
 pub(crate) fn back_raster(
     rasterizer: &mut dyn WeightRasterizer,
     p: BackPrepared,
-    keep_dominant: Option<bool>,
+    keep: Option<Keep>,
 ) -> Result<BackRaster> {
-    let keep = keep_dominant.map(|dominant| KeepView {
+    let keep = keep.map(|keep| KeepView {
         embeddings: &p.item.embeddings,
-        dominant,
+        keep,
         view: p.item.view,
     });
     let rastered = raster_view(

@@ -13,9 +13,10 @@ use slag_common::camera::{Intrinsics, View};
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
+use super::fallback::ReduceFallback;
 use super::{
-    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, SceneInput, back_finish,
-    back_prepare, back_raster, front_stage, no_views,
+    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, Keep, SceneInput,
+    back_finish, back_prepare, back_raster, front_stage, no_views,
 };
 use crate::aggregate::ContributionStore;
 use crate::masks::MaskGenerator;
@@ -60,6 +61,9 @@ pub(crate) struct Pooled {
     /// The rasterizers that kept their views' sums on their devices, for the device reduction
     /// ([`WeightRasterizer::reduce_kept`]); empty: the store holds the `a_kj`.
     pub device: Vec<Box<dyn WeightRasterizer>>,
+    /// Why the device reduction gave way to the host's during the run
+    /// ([`super::fallback`]); `None`: it did not.
+    pub reduce_fallback: Option<crate::report::DeviceReduceFallback>,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -101,14 +105,7 @@ pub(crate) fn run_pool(
     }
     let (views, selection, made) = select_views(scene, &gaussians, training, make_rasterizers)?;
     let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
-    // Under the pipeline's target, where the README's sample output shows this line.
-    tracing::info!(
-        target: "slag_encoder::pipeline",
-        gaussians = gaussians.len(),
-        views = views.len(),
-        fronts = fronts.len(),
-        "scene loaded"
-    );
+    log_scene_loaded(gaussians.len(), views.len(), fronts.len());
     let n_fronts = fronts.len();
     let multi = progress_display(params.progress);
     let shared = Shared {
@@ -124,6 +121,7 @@ pub(crate) fn run_pool(
         sinks: PoolSinks::new(params, gaussians.len(), views.len())?,
         device: Mutex::new(Vec::new()),
         on_device_keep: Mutex::new(on_device_keep),
+        fallback: ReduceFallback::default(),
         bar_front: bar(&multi, views.len(), "masks + CLIP"),
         bar_back: bar(&multi, views.len(), "raster + a_kj"),
     };
@@ -132,15 +130,12 @@ pub(crate) fn run_pool(
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
         checked_rasterizers(made.into_rasterizers(&gaussians), bound_gpus)
     });
+    shared.bring_back_late();
     let mut left = shared.finish(slots)?;
-    let mask_record = gather_mask_record(left.mask_record.take(), &mut left.device, params)
-        .and_then(|r| {
-            r.map(|(record, slots)| match record {
-                Some(r) => Ok(r),
-                None => MaskRecord::new(gaussians.len(), slots, views.len()),
-            })
-            .transpose()
-        })?;
+    let empty = |slots| MaskRecord::new(gaussians.len(), slots, views.len());
+    let mask_record = gather_mask_record(left.mask_record.take(), &mut left.device, params)?
+        .map(|(record, slots)| record.map_or_else(|| empty(slots), Ok))
+        .transpose()?;
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
@@ -164,7 +159,20 @@ pub(crate) fn run_pool(
         selection,
         mask_record,
         device: left.device,
+        reduce_fallback: left.reduce_fallback,
     })
+}
+
+/// The log line of a loaded scene: its Gaussians, the views to encode and the front workers.
+fn log_scene_loaded(gaussians: usize, views: usize, fronts: usize) {
+    // Under the pipeline's target, where the README's sample output shows this line.
+    tracing::info!(
+        target: "slag_encoder::pipeline",
+        gaussians,
+        views,
+        fronts,
+        "scene loaded"
+    );
 }
 
 /// The masks' record of the run (with [`EncodeParams::mask_record_slots`]): the views recorded on
@@ -385,10 +393,16 @@ struct Shared<'a> {
     /// [`PoolHooks::on_device_keep`], taken by the first rasterizer that keeps.
     on_device_keep: Mutex<Option<&'a (dyn Fn() + Sync)>>,
     /// The rasterizers that kept their views' sums on the device, handed back at their end.
-    device: Mutex<Vec<Box<dyn WeightRasterizer>>>,
+    device: Mutex<Vec<KeepingRasterizer>>,
+    /// Whether `--reduce auto` gave way to the host's reduction ([`super::fallback`]).
+    fallback: ReduceFallback,
     bar_front: ProgressBar,
     bar_back: ProgressBar,
 }
+
+/// A rasterizer that kept views on its device, with the views it kept in keeping order (their
+/// indices in the encode's view list).
+type KeepingRasterizer = (Box<dyn WeightRasterizer>, Vec<usize>);
 
 /// What the workers leave ([`Shared::finish`]).
 struct WorkersLeft {
@@ -397,11 +411,54 @@ struct WorkersLeft {
     /// With the masks' record: its views recorded on the host, if any.
     mask_record: Option<Option<MaskRecord>>,
     device: Vec<Box<dyn WeightRasterizer>>,
+    reduce_fallback: Option<crate::report::DeviceReduceFallback>,
     totals: ImageWork,
     queue: QueueStats,
 }
 
 impl Shared<'_> {
+    /// Brings the views `rasterizer` kept (`kept`: their indices in `views`, in keeping order)
+    /// back to the store ([`ReduceFallback::bring_back`]). A masks' record the device kept is
+    /// dropped (a view that failed may have entered some of its bands there) and its views are
+    /// recorded on the host from their `a_kj`, as the host path records them.
+    ///
+    /// Errors: as that; the device's reading the record back; [`Error::Internal`] for kept
+    /// views the worker did not count, or a poisoned record.
+    fn bring_back(&self, rasterizer: &mut dyn WeightRasterizer, kept: &[usize]) -> Result<()> {
+        let record = match rasterizer.take_mask_record()? {
+            Some(_) => self.sinks.record.as_ref(),
+            None => None,
+        };
+        let (store, totals) = (&self.sinks.store, &self.totals);
+        self.fallback.bring_back(rasterizer, self.dim, store, totals, |i, c| {
+            let Some(record) = record else {
+                return Ok(());
+            };
+            let view = kept.get(i).copied().ok_or_else(|| {
+                Error::internal(format!("kept view {i} of {} counted", kept.len()))
+            })?;
+            let poisoned = |_| Error::internal("masks' record poisoned by a panicked worker");
+            let dominant = dominant_masks(&c.entries);
+            record.lock().map_err(poisoned)?.add_view(view, &dominant)
+        })
+    }
+
+    /// After the workers: when the run gave way to the host's reduction, the rasterizers that
+    /// ended before it did bring their views back too; an error fails the run.
+    fn bring_back_late(&self) {
+        if !self.fallback.is_set() || self.failure.has_failed() {
+            return;
+        }
+        let Ok(mut device) = self.device.lock() else {
+            return self.failure.fail(Error::internal("kept rasterizers poisoned"));
+        };
+        for (mut r, kept_views) in device.drain(..) {
+            if let Err(e) = self.bring_back(&mut *r, &kept_views) {
+                return self.failure.fail(e);
+            }
+        }
+    }
+
     /// What the workers left, the queues' occupancy over their `slots`; the progress bars end.
     ///
     /// Errors: the first worker error; [`Error::Internal`] for a store or record poisoned by a
@@ -415,7 +472,8 @@ impl Shared<'_> {
             record,
         } = self.sinks;
         let store = store.into_inner().map_err(poisoned)?;
-        if store.len() != self.views.len() {
+        // A view brought back from a device is there twice: empty, then with its a_kj.
+        if store.len() != self.views.len() + self.fallback.views() {
             return Err(Error::internal(format!(
                 "only {} of {} images reached the reduction",
                 store.len(),
@@ -443,7 +501,8 @@ impl Shared<'_> {
             store,
             level_stores,
             mask_record,
-            device,
+            device: device.into_iter().map(|(r, _)| r).collect(),
+            reduce_fallback: self.fallback.into_report(),
             totals: self.totals.into_inner().unwrap_or_default(),
             queue: self.queue.stats(slots),
         })
@@ -686,7 +745,7 @@ fn back_raster_thread(
 ) -> WorkerShare {
     let failure = &shared.failure;
     let n_views = shared.views.len();
-    let keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views) {
+    let mut keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views) {
         Ok(keep) => keep,
         Err(e) => {
             failure.fail(e);
@@ -699,12 +758,25 @@ fn back_raster_thread(
             hook();
         }
     }
+    // The views kept on the device, in keeping order.
+    let mut kept_views = Vec::new();
     let step = |prepared, share: &mut WorkerShare| {
-        let out = back_raster(&mut *rasterizer, prepared, keep);
+        let mut out = back_raster(&mut *rasterizer, prepared, keep)?;
         if let Some(p) = rasterizer.last_phases() {
             share.raster_phases_ms.get_or_insert_default().add(&p);
         }
-        out
+        if out.is_kept() {
+            kept_views.push(out.item.view);
+        }
+        if let Some(e) = out.take_gave_up_keeping() {
+            shared.fallback.give_way(rasterizer.name(), &e);
+        }
+        // Before this view goes on: the views kept so far reach the store first.
+        if keep.is_some() && shared.fallback.is_set() {
+            keep = None;
+            shared.bring_back(&mut *rasterizer, &std::mem::take(&mut kept_views))?;
+        }
+        Ok(out)
     };
     let send = |out| to_image.send(out).is_ok();
     let mut share = stage_share(name);
@@ -721,7 +793,7 @@ fn back_raster_thread(
     if keep.is_some()
         && let Ok(mut device) = shared.device.lock()
     {
-        device.push(rasterizer);
+        device.push((rasterizer, kept_views));
     }
     share
 }
@@ -759,12 +831,13 @@ fn back_image_thread(
 }
 
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction
-/// ([`crate::config::ReduceOn`]): `Some(whether the masks' record wants the dominant masks)`,
-/// or `None` for the host reduction. A rasterizer that keeps the sums keeps the masks' record
-/// of an encode of `n_views` views there too where it can
-/// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The device reduction needs GPU rasterizers whose devices
-/// have f64, and no per-level files; on several GPUs each keeps its own views and one reduces
-/// them all.
+/// ([`crate::config::ReduceOn`]): `Some` with whether the masks' record wants the dominant
+/// masks and whether a device memory limit gives way to the host (`auto`,
+/// [`super::fallback`]), or `None` for the host reduction. A rasterizer that keeps the sums
+/// keeps the masks' record of an encode of `n_views` views there too where it can
+/// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The
+/// device reduction needs GPU rasterizers whose devices have f64, and no per-level files; on
+/// several GPUs each keeps its own views and one reduces them all.
 ///
 /// Errors: `--reduce device` where it cannot run ([`Error::Param`] `reduce`).
 fn keep_on_device(
@@ -772,7 +845,7 @@ fn keep_on_device(
     params: &EncodeParams,
     dim: usize,
     n_views: usize,
-) -> Result<Option<bool>> {
+) -> Result<Option<Keep>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
     // With the dense file every row crosses to the host anyway: `auto` leaves it to the host.
@@ -794,7 +867,10 @@ fn keep_on_device(
         && params
             .mask_record_slots
             .is_some_and(|slots| rasterizer.keep_mask_record(slots, n_views));
-    Ok(keeps.then_some(params.mask_record_slots.is_some() && !record_on_device))
+    Ok(keeps.then_some(Keep {
+        dominant: params.mask_record_slots.is_some() && !record_on_device,
+        fall_back: !forced,
+    }))
 }
 
 /// The rasterizers of a run: already made (for the coverage pass), or still to be made (while

@@ -151,7 +151,8 @@ pub trait WeightRasterizer: Send {
     /// ([`Self::keep_on_device`]).
     ///
     /// Errors: as [`Self::label_sums`]; the kept sums would pass the budget ([`Error::Limit`]
-    /// `GpuMemory`).
+    /// `GpuMemory`). A view that fails is not kept; the views kept before it stay
+    /// ([`Self::export_kept`] brings them back).
     fn label_sums_kept(
         &mut self,
         intrinsics: &Intrinsics,
@@ -299,6 +300,21 @@ pub struct KeptExport {
     pub(crate) views: Vec<(Vec<u32>, Vec<f32>)>,
     /// Per band: its view, its records (16 bytes each), where each block of Gaussians starts.
     pub(crate) parts: Vec<(u32, Vec<u8>, Vec<u32>)>,
+}
+
+/// One kept view brought back to the host ([`KeptExport::into_host_views`]): what the host's
+/// image stage expands into the view's `a_kj` (`aggregate::image::expand_label_records`, then
+/// the masks' factors), the same entries it makes of a view whose sums were read back.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct KeptHostView {
+    /// The view's records, one per (Gaussian, label) key and band (not [`LabelSums::sorted`]).
+    pub(crate) sums: LabelSums,
+    /// `[L]` the masks of each pixel label (label 0: none).
+    pub(crate) masks_of: Vec<Vec<u32>>,
+    /// `[M]` each mask's weighting factor.
+    pub(crate) factors: Vec<f32>,
+    /// `[M × D]` the masks' CLIP embeddings.
+    pub(crate) embeddings: Vec<f32>,
 }
 
 /// What [`WeightRasterizer::reduce_kept`] leaves besides the tiles.

@@ -1209,3 +1209,77 @@ fn device_mask_record_equals_the_host_record() {
         "{evicted} Gaussians seen in more views than slots: too few"
     );
 }
+
+
+/// A view whose keeping fails on the kept sums' budget (met in a later band of the view) is not
+/// kept at all: the views kept before it come back alone, as the host has them
+/// ([`KeptExport::into_host_views`]: the same records, label table, factors and embeddings).
+#[test]
+fn a_view_past_the_kept_budget_is_not_kept_and_the_others_come_back() {
+    use crate::aggregate::image::mask_factors;
+    use crate::aggregate::{MaskWeighting, overlap_labels};
+    let g = random_scene(41, 6000);
+    let Some(mut host) = gpu(&g) else { return };
+    let Some(mut dev) = gpu(&g) else { return };
+    let (k, w2c) = test_camera(41);
+    let masks = random_masks(41, k.width * 2, k.height * 2, 7);
+    let labels = overlap_labels(&masks, k.width, k.height, Default::default()).merged();
+    let factors = mask_factors(&masks, MaskWeighting::Area);
+    let dim = 5;
+    let emb: Vec<f32> = (0..masks.len() * dim).map(|i| i as f32 * 0.25).collect();
+    host.set_label_reduce_on_device(false);
+    let raw = host
+        .label_sums(&k, &w2c, &labels.labels)
+        .unwrap()
+        .expect("gpu sums");
+    let written = host.last_label_records();
+    let reference = raw.reduced();
+    host.set_label_reduce_on_device(true);
+    let kept = KeptMasks {
+        masks_of: &labels.masks_of,
+        factors: &factors,
+        embeddings: &emb,
+        dominant: false,
+        view: 0,
+    };
+    // Bands of about a third of the view: what one view keeps, measured on `host`.
+    for r in [&mut host, &mut dev] {
+        r.set_label_records(16, Some(written / 3));
+    }
+    assert!(host.keep_on_device(dim, 1 << 30, true), "lavapipe has f64");
+    host.label_sums_kept(&k, &w2c, &labels.labels, None, kept)
+        .unwrap()
+        .expect("kept");
+    let one = host.export_kept().unwrap().expect("kept");
+    assert!(one.parts.len() >= 3, "{} bands", one.parts.len());
+    let bytes: u64 = one.parts.iter().map(|p| p.1.len() as u64).sum();
+    // Room for the view and half of it again: the second view's first band fits, a later one not.
+    assert!(dev.keep_on_device(dim, bytes + bytes / 2, true));
+    let mut keep = || dev.label_sums_kept(&k, &w2c, &labels.labels, None, kept);
+    keep().unwrap().expect("the first view is kept");
+    let err = keep().unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::Limit {
+                resource: slag_common::Resource::GpuMemory,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    let views = dev
+        .export_kept()
+        .unwrap()
+        .expect("kept")
+        .into_host_views()
+        .unwrap();
+    assert_eq!(views.len(), 1, "the failed view is not kept");
+    let v = views.into_iter().next().unwrap();
+    assert!(!v.sums.sorted, "bands of a view come back as records");
+    assert_eq!(v.sums.reduced(), reference);
+    assert_eq!(
+        (v.masks_of, v.factors, v.embeddings),
+        (labels.masks_of, factors, emb)
+    );
+}

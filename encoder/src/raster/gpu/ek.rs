@@ -20,7 +20,9 @@ use super::buffers::{storage, storage_init};
 use super::reduce::record_radix_shifts;
 use super::sort::{SortBuffers, groups_2d};
 use super::{GROUPS_X, GpuRasterizer, Params};
-use crate::raster::{DeviceReduce, KeptExport, KeptMasks, KeptReduced, KeptTile};
+use crate::raster::{
+    DeviceReduce, KeptExport, KeptHostView, KeptMasks, KeptReduced, KeptTile, LabelSum,
+};
 
 /// Gaussians per block of a view's record index (`ek.wgsl` `BLOCK_GAUSSIANS`): tiles of the
 /// reduction are whole blocks.
@@ -110,6 +112,29 @@ fn push_table(tables: &mut Vec<u32>, masks: &KeptMasks<'_>, n_masks: usize) -> R
     tables.extend_from_slice(&table);
     u32::try_from(tables.len()).map_err(|_| too_big())?;
     Ok(base)
+}
+
+/// The masks of each label and each mask's factor from a view's label table ([`push_table`]'s
+/// layout, `table` starting at its base).
+///
+/// Errors: a table that is not of that layout ([`Error::Internal`]).
+fn table_masks(table: &[u32]) -> Result<(Vec<Vec<u32>>, Vec<f32>)> {
+    let bad = || Error::internal(format!("a kept label table of {} words", table.len()));
+    let (&n_labels, &factors_at) = (
+        table.first().ok_or_else(bad)?,
+        table.get(1).ok_or_else(bad)?,
+    );
+    let offsets = table.get(2..3 + n_labels as usize).ok_or_else(bad)?;
+    let masks_of = offsets
+        .windows(2)
+        .map(|w| table.get(w[0] as usize..w[1] as usize).map(<[u32]>::to_vec))
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(bad)?;
+    let factors = table.get(factors_at as usize..).ok_or_else(bad)?;
+    Ok((
+        masks_of,
+        factors.iter().map(|&b| f32::from_bits(b)).collect(),
+    ))
 }
 
 /// The dominant masks the `dominant` kernel wrote (4 words per record: Gaussian, mask, a bits,
@@ -451,6 +476,36 @@ impl GpuRasterizer {
     /// most one binding); a tile holds at least one block of Gaussians whatever it says.
     pub fn set_reduce_tile_bytes(&mut self, bytes: Option<u64>) {
         self.reduce_tile_bytes = bytes;
+    }
+
+    /// Testing aid: whether the device counts as a CPU one (lavapipe), where only a forced
+    /// device reduction keeps views ([`crate::raster::WeightRasterizer::keep_on_device`]);
+    /// `false` lets `--reduce auto` keep them there too.
+    pub fn set_cpu_adapter(&mut self, cpu: bool) {
+        self.cpu_adapter = cpu;
+    }
+
+    /// Drops what view `view` kept so far (its bands; its table and codebook rows when it is
+    /// the last view): a view whose keeping failed is not kept at all, the views before it stay.
+    pub(super) fn forget_kept_view(&mut self, view: u32) {
+        let Some(kept) = self.kept.as_mut() else {
+            return;
+        };
+        let Kept {
+            parts, bytes, dim, ..
+        } = kept;
+        parts.retain(|p| {
+            if p.view == view {
+                *bytes -= u64::from(p.n) * 16;
+            }
+            p.view != view
+        });
+        if kept.views.len() == view as usize + 1
+            && let Some([base, row]) = kept.views.pop()
+        {
+            kept.tables.truncate(base as usize);
+            kept.codebook.truncate(row as usize * *dim);
+        }
     }
 
     fn ek_uniform(&self, p: &EkParams) -> wgpu::Buffer {
@@ -843,4 +898,81 @@ fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[Vec<u8>]) -> K
         }
     }
     out
+}
+
+impl KeptExport {
+    /// Every kept view as the host's image stage has it after the label sums
+    /// ([`KeptHostView`]), in keeping order; the records' bytes are let go part by part.
+    ///
+    /// Errors: a label table, codebook rows or records not of the export's layout
+    /// ([`Error::Internal`]).
+    pub(crate) fn into_host_views(self) -> Result<Vec<KeptHostView>> {
+        let KeptExport { dim, views, parts } = self;
+        let mut out = views
+            .into_iter()
+            .map(|(table, embeddings)| {
+                if dim == 0 || !embeddings.len().is_multiple_of(dim) {
+                    return Err(Error::internal(format!(
+                        "{} kept mask embedding values are not rows of {dim}",
+                        embeddings.len()
+                    )));
+                }
+                let (masks_of, factors) = table_masks(&table)?;
+                Ok(KeptHostView {
+                    sums: Default::default(),
+                    masks_of,
+                    factors,
+                    embeddings,
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let n_views = out.len();
+        for (view, bytes, _) in parts {
+            let v = out.get_mut(view as usize).filter(|_| bytes.len() % 16 == 0);
+            let v = v.ok_or_else(|| {
+                Error::internal(format!(
+                    "a kept band of {} bytes of view {view} ({n_views} views)",
+                    bytes.len()
+                ))
+            })?;
+            let records: Vec<LabelSum> = bytemuck::pod_collect_to_vec(&bytes);
+            v.sums.records.extend_from_slice(&records);
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_label_table_reads_back_as_written() {
+        let masks_of = vec![vec![], vec![0, 2], vec![1]];
+        let factors = [0.5f32, 2.0, 1.25];
+        let embeddings = [0.0f32; 6];
+        let mut tables = vec![7, 7, 7];
+        for (f, n) in [(&factors[..], 3), (&[][..], 3)] {
+            let masks = KeptMasks {
+                masks_of: &masks_of,
+                factors: f,
+                embeddings: &embeddings,
+                dominant: false,
+                view: 0,
+            };
+            let base = push_table(&mut tables, &masks, n).unwrap() as usize;
+            let (m, got) = table_masks(&tables[base..]).unwrap();
+            assert_eq!(m, masks_of);
+            // Without factors every mask's is 1.
+            let want = if f.is_empty() {
+                vec![1.0; 3]
+            } else {
+                f.to_vec()
+            };
+            assert_eq!(got, want);
+            tables.truncate(base + 2);
+            assert!(table_masks(&tables[base..]).is_err(), "a cut table");
+        }
+    }
 }

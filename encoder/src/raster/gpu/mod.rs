@@ -1017,6 +1017,7 @@ impl WeightRasterizer for GpuRasterizer {
         let out = self.label_sums(k, w2c, labels);
         self.precomputed = None;
         self.keeping = None;
+        let out = out.inspect_err(|_| self.forget_kept_view(id));
         let sums = out?.ok_or_else(|| Error::internal("no sums from a kept view"))?;
         let mut dominant = std::mem::take(&mut self.kept_heads);
         // A view of several bands: its bands' Gaussians interleave; keep them ascending.
