@@ -8,10 +8,11 @@
 //! its views' sums (and the masks' record) on its GPU, the encode's per-view host work is light:
 //! the segmentation then gets all the threads at once ([`SegmentTask::widen`]; its neighbour
 //! search takes them between its rounds); if it outlasts the encode (a large scene, few views),
-//! its remaining stages get all the threads too. It reads the encode's
-//! own copy of the Gaussians ([`super::scene_load`]: one load, shared, never cloned) and holds
-//! it, with its own memory, only while it runs; when that overlaps the encode's peak (its tail),
-//! its own memory adds to it, and the scene stays whole until both are done
+//! its remaining stages get all the threads too. It reads the encode's own copy of the
+//! Gaussians ([`super::scene_load`]: one load, shared, never cloned) and lets go of it once its
+//! neighbour graph and edge geometry are made (the passes after the masks' record need only the
+//! count), so the scene is freed when the later of the two is done with it. Its own memory it
+//! holds while it runs; when that overlaps the encode's peak (its tail), the two add up
 //! (docs/guide/lifting.md, memory model).
 //!
 //! The mask term of the weights needs every view's masks: the k-NN search runs as soon as the
@@ -100,7 +101,7 @@ impl SegmentTask {
                     // Stopped, or no scene (the encode fails with the load's error).
                     None => Ok(None),
                     Some(g) => crate::segments::segment_with(
-                        &g,
+                        g,
                         &params,
                         &ply.display().to_string(),
                         &shared,
@@ -109,8 +110,7 @@ impl SegmentTask {
                 };
                 // The graph's many small allocations were freed in this pool's malloc arenas,
                 // which glibc keeps for reuse: given back, so that the encode's peak does not
-                // carry them (1.9 GiB at 2M Gaussians on an H100 host). The scene was let go
-                // before (the encode may still hold it).
+                // carry them (1.9 GiB at 2M Gaussians on an H100 host).
                 release_freed_heap();
                 if let Err(e) = &out {
                     // Said at once; the run fails with it after the encode.

@@ -72,7 +72,8 @@
 //! whole scene (tile, its place in the tile, union-find; normals, flatness and size, 20 more,
 //! until the geometric parts are computed) plus the neighbours and the geometric parts (4 bytes
 //! each per slot), the edges of the tiles in flight (at most 1 GiB, about 70 bytes per Gaussian
-//! of a tile) and the border edges and those kept.
+//! of a tile) and the border edges and those kept. The Gaussians themselves are read only
+//! until the geometric parts are computed ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same
 //! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
@@ -358,9 +359,13 @@ pub fn segment(
 /// before): the encode hands over its record there when its last view is done. It may block;
 /// `None`: geometry only.
 ///
+/// `g` is let go of before `masks` is called: the stages after the neighbour graph and its edge
+/// geometry need only the Gaussians' count, so a shared scene (`Arc<Gaussians>`, the encode's)
+/// is freed then if nothing else holds it.
+///
 /// Errors: those of [`segment`].
 pub fn segment_with(
-    g: &Gaussians,
+    g: impl std::ops::Deref<Target = Gaussians>,
     p: &SegmentParams,
     source_ply: &str,
     ctl: &SegmentControl,
@@ -368,18 +373,20 @@ pub fn segment_with(
 ) -> Result<Option<(Segments, SegmentStats)>> {
     p.validate()?;
     let t0 = Instant::now();
-    check_scene(g)?;
+    check_scene(&g)?;
     let mut st = SegmentTimings::default();
-    let Some(pre) = before_record(g, p, ctl, &mut st) else {
+    let Some(pre) = before_record(&g, p, ctl, &mut st) else {
         return Ok(None);
     };
+    let n = g.len();
+    drop(g);
     let mut t = Instant::now();
     let record = masks();
     st.record_wait = lap(&mut t);
     if ctl.stopped() {
         return Ok(None);
     }
-    check_record(record.as_deref(), g.len())?;
+    check_record(record.as_deref(), n)?;
     let w = Weigher {
         p,
         masks: record.as_deref(),
@@ -390,7 +397,7 @@ pub fn segment_with(
         tile_of: &pre.tile_of,
         tiles: pre.tiles,
     };
-    let (forest, edges, border_edges) = merge(g, p, ctl, &w, &graph, &mut st);
+    let (forest, edges, border_edges) = merge(n, p, ctl, &w, &graph, &mut st);
     let Some(forest) = forest else {
         return Ok(None);
     };
@@ -399,7 +406,7 @@ pub fn segment_with(
     let (segments, segment_count) = canonical_root_ids(&roots);
     st.ids = lap(&mut t);
     let stats = SegmentStats {
-        gaussians: g.len(),
+        gaussians: n,
         segments: segment_count,
         tiles: pre.tiles,
         edges,

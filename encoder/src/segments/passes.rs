@@ -14,7 +14,6 @@
 use std::time::Instant;
 
 use rayon::prelude::*;
-use slag_common::scene::Gaussians;
 
 use super::forest::{Component, Forest};
 use super::graph::{Neighbours, TileMembers, tile_edges};
@@ -129,10 +128,11 @@ struct Tiled {
     inner: u64,
 }
 
-/// The two passes (module doc): the scene's forest (`None` once stopped), the edge count and
-/// the border-edge count; their stages' seconds added to `st` (the tiles', summed over tiles).
+/// The two passes (module doc) over a scene of `gaussians` Gaussians: its forest (`None` once
+/// stopped), the edge count and the border-edge count; their stages' seconds added to `st` (the
+/// tiles', summed over tiles).
 pub(super) fn merge(
-    g: &Gaussians,
+    gaussians: usize,
     p: &SegmentParams,
     ctl: &SegmentControl,
     w: &Weigher,
@@ -146,7 +146,7 @@ pub(super) fn merge(
         .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
     let clock = Instant::now();
     let run = Run {
-        g,
+        gaussians,
         p,
         ctl,
         w,
@@ -212,7 +212,8 @@ fn min_size_candidates(
 
 /// What every tile's pass reads.
 struct Run<'a> {
-    g: &'a Gaussians,
+    /// The scene's Gaussian count.
+    gaussians: usize,
     p: &'a SegmentParams,
     ctl: &'a SegmentControl,
     w: &'a Weigher<'a>,
@@ -314,7 +315,7 @@ impl Run<'_> {
     /// regions' veto; `None` once stopped.
     fn serial_tiles(&self, regions: &mut Regions, st: &mut SegmentTimings) -> Option<Tiled> {
         let tiles = self.tm.members.len();
-        let mut forest = Forest::singletons(self.g.len());
+        let mut forest = Forest::singletons(self.gaussians);
         let (mut border, mut kept, mut inner) = (Vec::new(), Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();

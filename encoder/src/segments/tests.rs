@@ -206,6 +206,26 @@ fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     assert_eq!(wide, plain);
 }
 
+/// A shared scene is let go of before the masks' record is waited for (the passes after it need
+/// only the count), and the ids are those of a borrowed scene.
+#[test]
+fn a_shared_scene_is_let_go_before_the_record() {
+    let (g, _) = planes();
+    let p = params_in_tiles(500);
+    let shared = Arc::new(g);
+    let kept = Arc::clone(&shared);
+    let ctl = SegmentControl::default();
+    let mut holders = None;
+    let (got, _) = segment_with(shared, &p, "x", &ctl, || {
+        holders = Some(Arc::strong_count(&kept));
+        None
+    })
+    .unwrap()
+    .unwrap();
+    assert_eq!(holders, Some(1));
+    assert_eq!(got, segment(&kept, &p, "x", None).unwrap().0);
+}
+
 #[test]
 fn region_profiles_sum_cap_and_disagree() {
     let a = vec![(0u16, 1u16, 2.0f32), (0, 2, 2.0), (3, 1, 1.0)];
