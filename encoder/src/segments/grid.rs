@@ -90,7 +90,7 @@ impl Grid {
         let mut side = (f64::from(max_edge) / 4.0).max(floor);
         let mut keyed = Self::keyed(means, &lo, side);
         for _ in 0..2 {
-            let occupied = 1 + keyed.windows(2).filter(|w| w[0].0 != w[1].0).count();
+            let occupied = 1 + keyed.par_windows(2).filter(|w| w[0].0 != w[1].0).count();
             let finer = (side / 2.0).max(floor);
             if (means.len() as f64) <= CROWDED * occupied as f64 || finer >= side {
                 break;
@@ -113,15 +113,20 @@ impl Grid {
     }
 
     fn from_keyed(means: &[[f32; 3]], origin: [f64; 3], side: f64, keyed: Vec<(u64, u32)>) -> Grid {
-        let mut starts = Vec::new();
-        let mut cells = Vec::new();
-        let mut index = CellIndex::default();
-        for (pos, w) in keyed.iter().enumerate() {
-            if pos == 0 || keyed[pos - 1].0 != w.0 {
-                index.insert(w.0, cells.len() as u32);
-                starts.push(pos as u32);
-                cells.push(cell_of(&means[w.1 as usize], &origin, side));
-            }
+        // Where each cell starts: the positions whose key differs from the one before (in
+        // order, found in parallel).
+        let mut starts: Vec<u32> = (0..keyed.len())
+            .into_par_iter()
+            .filter(|&pos| pos == 0 || keyed[pos - 1].0 != keyed[pos].0)
+            .map(|pos| pos as u32)
+            .collect();
+        let cells: Vec<[i64; 3]> = starts
+            .par_iter()
+            .map(|&pos| cell_of(&means[keyed[pos as usize].1 as usize], &origin, side))
+            .collect();
+        let mut index = CellIndex::with_capacity_and_hasher(starts.len(), Default::default());
+        for (c, &pos) in starts.iter().enumerate() {
+            index.insert(keyed[pos as usize].0, c as u32);
         }
         starts.push(keyed.len() as u32);
         let last = std::array::from_fn(|a| cells.iter().map(|c| c[a]).max().unwrap_or(0));
@@ -199,7 +204,9 @@ pub(super) fn neighbours(
     let grid = ctl.run(|| Grid::build(means, max_edge));
     let build_s = t0.elapsed().as_secs_f64();
     let h2 = max_edge * max_edge;
-    let mut ids = vec![NO_NEIGHBOUR; means.len() * k];
+    // Filled on every thread: 40 bytes per Gaussian at k = 10.
+    let mut ids = Vec::with_capacity(means.len() * k);
+    ids.par_extend(rayon::iter::repeat_n(NO_NEIGHBOUR, means.len() * k));
     let mut parts: Vec<(usize, &mut [u32])> = Vec::with_capacity(grid.cells.len());
     let mut rest: &mut [u32] = &mut ids;
     for c in 0..grid.cells.len() {
