@@ -225,6 +225,19 @@ pub fn problems(binary: &str, exe: &str, root: &Path) -> Vec<String> {
     problems
 }
 
+/// The `docs_flags` integration test of each slag binary: every `binary …` command line that
+/// README.md and docs/guide/ show names a subcommand and flags its `--help` lists, and every
+/// flag of every subcommand keeps one name per thing across the slag binaries
+/// ([`crate::flag_names`]).
+///
+/// `exe` is the built executable (`env!("CARGO_BIN_EXE_<binary>")`), `root` the repository.
+///
+/// Panics (test support): with every line of [`problems`] when there is any.
+pub fn assert_no_problems(binary: &str, exe: &str, root: &Path) {
+    let problems = problems(binary, exe, root);
+    assert!(problems.is_empty(), "`{binary}`:\n{}", problems.join("\n"));
+}
+
 /// The `--flags` a `--help` text lists.
 pub fn help_flags(help: &str) -> BTreeSet<String> {
     help.split(|c: char| c.is_whitespace() || c == ',' || c == '[' || c == '(')

@@ -65,19 +65,22 @@ fn first_view_image() -> image::RgbImage {
     slag_encoder::preprocess::load_rgb(&views[0].image_path).unwrap()
 }
 
-fn export(args: &[&str]) -> f64 {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/export-models.py");
-    let t = Instant::now();
+/// Runs `python <script> <args…>`; panics with its stderr unless it exits with status 0.
+fn run_python<A: AsRef<std::ffi::OsStr> + std::fmt::Debug>(script: &Path, args: &[A]) {
     let out = Command::new(python())
-        .arg(&script)
+        .arg(script)
         .args(args)
         .output()
         .unwrap();
-    assert!(
-        out.status.success(),
-        "export-models.py {args:?} failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{} {args:?} failed:\n{err}", script.display());
+}
+
+/// Runs `scripts/export-models.py` with `args`; the seconds it took.
+fn export(args: &[&str]) -> f64 {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/export-models.py");
+    let t = Instant::now();
+    run_python(&script, args);
     t.elapsed().as_secs_f64()
 }
 
@@ -254,13 +257,9 @@ fn f16_multimask_decoder_gives_the_same_masks() {
     export(&["sam", "--kind", "tiny", "--fp16-decoder", &s("m")]);
     let cut = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scripts/sam-decoder-low-res.py");
     for (flag, out) in [(None, "f32.onnx"), (Some("--f16-multimask"), "f16.onnx")] {
-        let o = Command::new(python())
-            .arg(&cut)
-            .args(flag)
-            .args([s("m/sam-tiny-decoder.onnx"), s(out)])
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let mut args: Vec<String> = flag.map(String::from).into_iter().collect();
+        args.extend([s("m/sam-tiny-decoder.onnx"), s(out)]);
+        run_python(&cut, &args);
     }
     // An f32 decoder is refused: its logits would be rounded.
     export(&["sam", "--kind", "tiny", "--decoder-only", &s("f32dec")]);

@@ -12,15 +12,14 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Output, Stdio};
 
-use support::slag_encoder;
+use support::{assert_success, slag_encoder};
 
 fn fixtures() -> PathBuf {
     slag_common::paths::source_tree_shared_dir().join("fixtures")
 }
 
 fn ok(o: Output) -> String {
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
+    assert_success(&o);
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 

@@ -19,7 +19,7 @@ use std::time::{Duration, Instant};
 use slag_common::embeddings::Embeddings;
 
 mod support;
-use support::slag_encoder;
+use support::{assert_success, slag_encoder};
 
 /// Exit status of a process that lost a peer (`slag_encoder::distributed::EXIT_PEER_LOST`).
 const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
@@ -213,7 +213,7 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
         .args(encode_args(&single_out))
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_success(&o);
     let single = Embeddings::read(&single_out.join("embeddings.safetensors")).unwrap();
 
     // (2) Process 1 dies after its first image (of 7: processes take views 0,3,6 / 1,4 / 2,5).

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 mod support;
-use support::slag_encoder;
+use support::{assert_success, slag_encoder};
 
 /// `data/snowmiku-mini` (60k Gaussians, 13 views).
 fn scene() -> PathBuf {
@@ -44,11 +44,7 @@ fn encode_writes_the_segments_of_slag_encoder_segment() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
     let run = encode(&scene(), &out);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    assert_success(&run);
     let alone = dir.path().join("alone.safetensors");
     // The segmentation alone, from the masks' record the encode kept, gives the same file.
     let seg = slag_encoder()
@@ -60,11 +56,7 @@ fn encode_writes_the_segments_of_slag_encoder_segment() {
         .arg(&alone)
         .output()
         .unwrap();
-    assert!(
-        seg.status.success(),
-        "{}",
-        String::from_utf8_lossy(&seg.stderr)
-    );
+    assert_success(&seg);
     let with_encode = std::fs::read(out.join("segments.safetensors")).unwrap();
     let segmented =
         slag_common::segments::Segments::read(&out.join("segments.safetensors")).unwrap();

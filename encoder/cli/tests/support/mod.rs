@@ -15,3 +15,9 @@ pub fn slag_encoder() -> std::process::Command {
         _ => std::process::Command::new(bin),
     }
 }
+
+/// Panics with the command's stderr unless it exited with status 0.
+pub fn assert_success(o: &std::process::Output) {
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+}
