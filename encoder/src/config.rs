@@ -445,7 +445,7 @@ pub struct AggregateConfig {
     /// output); `None`: no mixture, which needs [`OutputConfig::dense`] (what a cluster encode
     /// writes, [`EncodeConfig::check_cluster`]).
     pub mixture_keep: Option<usize>,
-    /// Where the reduction to `E_k` runs (default [`ReduceOn::Host`]).
+    /// Where the reduction to `E_k` runs (default [`ReduceOn::Auto`]).
     pub reduce_on: ReduceOn,
     /// Device memory the label sums kept for the device reduction may take, MiB (default
     /// 16384: 16 B per (Gaussian, label) key of every view).
@@ -462,12 +462,14 @@ pub enum ReduceOn {
     /// reduction, which overlaps their write, was the faster), else on the host. When the kept
     /// label sums meet the device memory limit during the run, the views kept so far are
     /// brought back to the host, which reduces (`Counts::device_reduce_fallback` in the report).
+    /// The default: measured faster and lighter than the host at 2M and 30M Gaussians on an
+    /// H100 (docs/results/scaling.md, docs/results/gpu-models.md).
+    #[default]
     Auto,
     /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot.
     Device,
-    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU (the default
-    /// until the GPU reduction is measured faster at scale, docs/results/scaling.md).
-    #[default]
+    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU (machines
+    /// without a GPU with f64, and `--dense`, reduce here under `auto` too).
     Host,
 }
 
@@ -482,7 +484,7 @@ impl Default for AggregateConfig {
             contribution_memory_mb: 4096,
             accumulator_memory_mb: 2048,
             mixture_keep: Some(DEFAULT_MIXTURE_KEEP),
-            reduce_on: ReduceOn::Host,
+            reduce_on: ReduceOn::Auto,
             device_reduce_memory_mb: 16384,
         }
     }

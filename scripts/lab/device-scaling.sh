@@ -7,7 +7,8 @@
 #   scripts/lab/device-scaling.sh reduce [N] [VIEWS] [MODES]  # synthetic terrain (default 30M, 16 views; every
 #                                                    # view unless VIEWS="--views ..." is set),
 #                                                    # one bench per --reduce mode in MODES (default
-#                                                    # host,auto,auto), GNU time, GPU memory and an RSS timeline each
+#                                                    # host,auto,auto; `default` passes no --reduce),
+#                                                    # GNU time, GPU memory and an RSS timeline each
 #   scripts/lab/device-scaling.sh stages                 # slag-bench stages: each stage vs its floor
 #                                                    # (color-clip all views; ViT-B/16 and color-sam
 #                                                    # every 8th view); rates from device_facts.py
@@ -82,11 +83,12 @@ reduce)
     i=$((i+1))
     rm -rf "$W"/out-*  # the disk holds one 30M run's outputs (31 GB dense) at a time
     gpu_mem_watch "$W/gpu-mem-$i.csv" & watch=$!
+    ra=(--reduce "$m"); [ "$m" = default ] && ra=()  # default: the encoder's own choice
     start=$(date +%s.%N)
     # RSS over time (rss-*.tsv: seconds, bytes) and its peak before, in and after the encode's tail.
     python3 scripts/lab/rss-timeline.py --every 0.25 --out "$R/rss-$i-$m.tsv" --report "$W/out-$i/report.json" -- \
     "${T[@]}" "$B" bench --scene-dir "$W/big" --masks graph "${CLIP[@]}" --ep cpu --raster-scale 0.5 ${VIEWS:---views all} \
-      --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 --reduce "$m" --quiet \
+      --gpus 1 --contribution-memory-mb 4096 --accumulator-memory-mb 2048 "${ra[@]}" --quiet \
       --out "$W/out-$i" > "$W/run-$i.txt" 2>&1
     wall=$(python3 -c "import time; print(round(time.time()-$start,1))")
     kill $watch 2>/dev/null

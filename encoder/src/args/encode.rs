@@ -264,7 +264,7 @@ pub struct EncodeArgs {
     /// Where E_k is reduced: host (the CPU, in f64), device (on the GPU: the label sums stay on
     /// the device; also lavapipe; an error where it cannot), or auto (the GPU where it can and
     /// --dense is not asked for; past --device-reduce-memory-mb it goes on on the host).
-    #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Host)]
+    #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
     pub reduce: crate::config::ReduceOn,
     /// Device memory for the label sums kept for the GPU reduction, MiB (16 B per Gaussian and
     /// pixel label of each view).
