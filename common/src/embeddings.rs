@@ -600,12 +600,7 @@ mod tests {
         let back = Embeddings::read(&p16).unwrap();
         assert_eq!(back.ids, e.ids);
         assert_eq!(back.means, e.means);
-        let max_err = back
-            .vectors
-            .iter()
-            .zip(&e.vectors)
-            .map(|(a, b)| (a - b).abs())
-            .fold(0.0, f32::max);
+        let max_err = crate::similarity::max_abs_difference(&back.vectors, &e.vectors);
         assert!(max_err < 1e-3, "f16 error {max_err}");
         assert!(!p16.with_extension("safetensors.partial").exists());
     }

@@ -101,6 +101,16 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     acc.iter().sum::<f32>() + tail
 }
 
+/// The largest `|a[i] - b[i]|` over the pairs of `a` and `b` (their common length; NaN
+/// differences are passed over), 0 when there is none: how far two copies of the same rows
+/// (e.g. an f16 round trip, two encodes) drift apart.
+pub fn max_abs_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
 /// Indices of the `k` highest scores, best first (ties by lower index). NaN scores are ignored.
 pub fn top_k(scores: &[f32], k: usize) -> Vec<(usize, f32)> {
     let mut idx: Vec<(usize, f32)> = scores

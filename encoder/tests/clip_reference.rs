@@ -14,6 +14,7 @@ use serde::Deserialize;
 use serde_json::Value;
 use slag_common::Error;
 use slag_common::onnx::ExecutionProvider;
+use slag_common::similarity::max_abs_difference;
 use slag_common::text::TextEncoder;
 use slag_encoder::clip::{ClipVisual, CropFill, VisualInput, crop};
 use slag_encoder::masks::Mask;
@@ -157,7 +158,7 @@ fn u8_pixel_tower_gives_the_f32_towers_embeddings() {
     let max_diff = |a: &[Vec<f32>], b: &[Vec<f32>]| {
         a.iter()
             .zip(b)
-            .flat_map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p - q).abs()))
+            .map(|(x, y)| max_abs_difference(x, y))
             .fold(0f32, f32::max)
     };
     // Crops that differ give different embeddings, so equal rows are not a constant answer.
@@ -384,11 +385,7 @@ fn service_returns_each_worker_its_rows(model: &std::path::Path) {
                 let want = direct.embed_masks(&img, &masks_of(seed)).unwrap();
                 assert_eq!(rows.len(), want.len());
                 for (a, b) in rows.iter().zip(&want) {
-                    let d = a
-                        .iter()
-                        .zip(b)
-                        .map(|(x, y)| (x - y).abs())
-                        .fold(0f32, f32::max);
+                    let d = max_abs_difference(a, b);
                     assert!(d < 1e-5, "request {seed}: max |diff| {d}");
                 }
             }

@@ -347,7 +347,7 @@ fn u8_pixels_clip_export_gives_the_same_embeddings() {
     let diff = want
         .iter()
         .zip(&got)
-        .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+        .map(|(a, b)| slag_common::similarity::max_abs_difference(a, b))
         .fold(0f32, f32::max);
     assert!(diff <= 1e-5, "max |Δ| {diff} over {} crops", masks.len());
 }

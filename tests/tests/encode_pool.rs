@@ -34,11 +34,7 @@ fn small_scene(dir: &std::path::Path) {
 
 fn max_abs_diff(a: &Embeddings, b: &Embeddings) -> f32 {
     assert_eq!(a.ids, b.ids, "observed Gaussians differ");
-    a.vectors
-        .iter()
-        .zip(&b.vectors)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max)
+    slag_common::similarity::max_abs_difference(&a.vectors, &b.vectors)
 }
 
 /// Graph masks and color-clip at raster scale 0.5, f32 output, 2 threads.

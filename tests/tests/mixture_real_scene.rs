@@ -7,7 +7,7 @@
 
 use slag_common::embeddings::Embeddings;
 use slag_common::mixture::MixtureEmbeddings;
-use slag_common::similarity::cosine_scores;
+use slag_common::similarity::{cosine_scores, max_abs_difference};
 use slag_tests::{default_scene, encode, fixture, graph_config};
 
 #[test]
@@ -37,11 +37,7 @@ fn mixture_keeping_every_atom_reproduces_the_dense_embeddings() {
     assert_eq!(forms.mixture_codebook_rows, Some(mix.codebook_len()));
     assert!(mix.codebook_len() <= report.counts.masks);
     let recon = mix.to_dense();
-    let max = recon
-        .iter()
-        .zip(&dense.vectors)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f32::max);
+    let max = max_abs_difference(&recon, &dense.vectors);
     assert!(max < 1e-3, "max |Δ| {max} beyond f16 rounding");
     // The colour prompts' scores agree too (color-clip text embeddings).
     let mut text = slag_common::text::TextEncoder::new(
@@ -54,11 +50,7 @@ fn mixture_keeping_every_atom_reproduces_the_dense_embeddings() {
     for q in &prompts {
         let a = mix.scores(q).unwrap();
         let b = cosine_scores(&dense.vectors, dense.dim, q).unwrap();
-        let worst = a
-            .iter()
-            .zip(&b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max);
+        let worst = max_abs_difference(&a, &b);
         assert!(worst < 2e-3, "score difference {worst}");
     }
 

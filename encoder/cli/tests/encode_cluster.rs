@@ -17,6 +17,7 @@ use std::process::{Child, ExitStatus};
 use std::time::{Duration, Instant};
 
 use slag_common::embeddings::Embeddings;
+use slag_common::similarity::max_abs_difference;
 
 mod support;
 use support::{assert_success, slag_encoder};
@@ -171,12 +172,7 @@ fn assert_same(single: &Embeddings, cluster: &Embeddings) {
     assert_eq!(single.means, cluster.means);
     assert_eq!(single.model, cluster.model);
     assert_eq!(single.scene_gaussians, cluster.scene_gaussians);
-    let max_dv = single
-        .vectors
-        .iter()
-        .zip(&cluster.vectors)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0f32, f32::max);
+    let max_dv = max_abs_difference(&single.vectors, &cluster.vectors);
     let max_dw = single
         .total_weights
         .iter()

@@ -313,11 +313,7 @@ fn mixture_with_every_atom_kept_reproduces_reduce() {
         assert_eq!(mix.means[i], means[k as usize]);
     }
     let dense = mix.to_dense();
-    let max = dense
-        .iter()
-        .zip(&exact.vectors)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0, f32::max);
+    let max = slag_common::similarity::max_abs_difference(&dense, &exact.vectors);
     // f16 rounding of codebook values and weights of magnitude <= 1: <= 2^-11 each.
     assert!(max < 1e-3, "max |Δ| {max}");
     assert!(max > 0.0, "f16 storage should not be bit-exact against f32");
