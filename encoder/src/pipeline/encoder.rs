@@ -77,13 +77,7 @@ impl Encoder {
         // scene is loaded once, for both: the segments build their neighbour graph as soon as
         // it is loaded and weigh it when the masks' record comes.
         let (record_tx, record_rx) = std::sync::mpsc::channel();
-        let (shared, segments) = if c.segments.enabled {
-            let (load, loaded) = SceneLoad::start(scene.ply.clone())?;
-            let task = SegmentTask::start(c, threads, loaded, record_rx)?;
-            (Some(load), Some(task))
-        } else {
-            (None, None)
-        };
+        let (shared, segments) = start_segments(c, &scene, threads, record_rx)?;
         let mut record = None;
         let gpus = build::gpu_count(c);
         let fronts = build::build_fronts(c, gpus, threads)?;
@@ -125,34 +119,69 @@ impl Encoder {
             },
         )?;
         drop(record_tx);
-        for s in &services {
-            let st = s.stats();
-            tracing::info!(
-                device = s.device_label(),
-                runs = st.runs,
-                crops = st.crops,
-                run_s = st.run_s,
-                "CLIP service"
-            );
-        }
-        // Written after a successful encode only, so that a failed or killed run leaves nothing
-        // that looks complete; an optional file of its own (atomic): `partition` without it
-        // simply stores no segments.
-        let mask_record = match &record {
-            Some(r) => Some(write_mask_record(c, r)?),
-            None => None,
-        };
-        let Some(task) = segments else {
-            return Ok(report);
-        };
-        let mut report = report;
-        let mut segmented = write_segments(c, task, threads)?;
-        segmented.mask_record = mask_record.filter(|_| segmented.stats.mask_record.is_some());
-        report.segments = Some(segmented);
-        // Written again, with the segments: the report stays the run's last file.
-        super::finish::write_report_file(&report)?;
-        Ok(report)
+        log_clip_services(&services);
+        finish_with_segments(c, report, record.as_deref(), segments, threads)
     }
+}
+
+/// The scene's shared load and the segmentation beside the encode (with `c.segments`, else
+/// neither): the load starts at once on a thread of its own, the segmentation on
+/// [`SegmentTask::start`]'s pool, waiting for the masks' record on `record_rx`.
+///
+/// Errors: a thread or pool that cannot be started ([`Error::Internal`](slag_common::Error)).
+fn start_segments(
+    c: &EncodeConfig,
+    scene: &super::SceneInput,
+    threads: usize,
+    record_rx: std::sync::mpsc::Receiver<std::sync::Arc<slag_common::mask_record::MaskRecord>>,
+) -> Result<(Option<SceneLoad>, Option<SegmentTask>)> {
+    if !c.segments.enabled {
+        return Ok((None, None));
+    }
+    let (load, loaded) = SceneLoad::start(scene.ply.clone())?;
+    let task = SegmentTask::start(c, threads, loaded, record_rx)?;
+    Ok((Some(load), Some(task)))
+}
+
+/// Logs each GPU's shared CLIP service's work (runs, crops, seconds).
+fn log_clip_services(services: &[crate::clip::ClipService]) {
+    for s in services {
+        let st = s.stats();
+        tracing::info!(
+            device = s.device_label(),
+            runs = st.runs,
+            crops = st.crops,
+            run_s = st.run_s,
+            "CLIP service"
+        );
+    }
+}
+
+/// After a successful encode: the masks' record written (when kept), then, with `segments`,
+/// the segments waited for and written, and the report written again with them, so that it
+/// stays the run's last file. A failed or killed run leaves neither file looking complete; each
+/// is optional and atomic (`partition` without the segments simply stores none).
+///
+/// Errors: I/O; the segmentation's ([`write_segments`]).
+fn finish_with_segments(
+    c: &EncodeConfig,
+    mut report: Report,
+    record: Option<&slag_common::mask_record::MaskRecord>,
+    segments: Option<SegmentTask>,
+    threads: usize,
+) -> Result<Report> {
+    let mask_record = match record {
+        Some(r) => Some(write_mask_record(c, r)?),
+        None => None,
+    };
+    let Some(task) = segments else {
+        return Ok(report);
+    };
+    let mut segmented = write_segments(c, task, threads)?;
+    segmented.mask_record = mask_record.filter(|_| segmented.stats.mask_record.is_some());
+    report.segments = Some(segmented);
+    super::finish::write_report_file(&report)?;
+    Ok(report)
 }
 
 /// Writes the masks' record to `<out>/mask-record.safetensors` (atomically), for
