@@ -348,16 +348,17 @@ impl PoolSinks {
             Vec::new()
         };
         let record = match params.mask_record_slots {
-            // Checked now (an empty record), allocated at its first view.
-            Some(slots) => Some(Mutex::new(HostRecord {
-                record: None,
-                ..HostRecord {
+            Some(slots) => {
+                // The slots are checked now (a record of no Gaussians); the record itself is
+                // allocated at its first view.
+                MaskRecord::new(0, slots, n_views)?;
+                Some(Mutex::new(HostRecord {
                     gaussians: n_gaussians,
                     slots,
                     views: n_views,
-                    record: Some(MaskRecord::new(0, slots, n_views)?),
-                }
-            })),
+                    record: None,
+                }))
+            }
             None => None,
         };
         Ok(PoolSinks {
