@@ -344,17 +344,16 @@ fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn W
     Ok(Some(first))
 }
 
-/// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]):
-/// with [`EncodeParams::dense`] each tile's unit rows handed to a writer thread for the dense
-/// file at `embeddings` (with `means`, the Gaussians' centres), so that the next tile is reduced
-/// while one is written (without it the device makes no row), and with
-/// [`EncodeParams::mixture_keep`] the kept pairs gathered into the mixture's sparse rows over the
-/// codebook of the kept views' mask embeddings. The reduction's seconds run until the last tile
-/// was handed on.
+/// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]),
+/// each tile handed to a host thread ([`take_tiles`]) so that the next tile is reduced while
+/// one is taken in: with [`EncodeParams::mixture_keep`] its kept pairs gathered into the
+/// mixture's sparse rows over the codebook of the kept views' mask embeddings, with
+/// [`EncodeParams::dense`] its unit rows written to the dense file at `embeddings` (with
+/// `means`, the Gaussians' centres; without it the device makes no row). The reduction's
+/// seconds run until the last tile was handed on.
 ///
-/// Errors: the device's; the writer's (I/O, non-finite rows), which take precedence over the
-/// reduction's "writer stopped" error they cause; a Gaussian id without a mean
-/// ([`Error::Internal`]).
+/// Errors: the device's; the host thread's (I/O, non-finite rows, a Gaussian id without a mean),
+/// which take precedence over the reduction's "host side stopped" error they cause.
 fn reduce_on_device(
     rasterizer: &mut dyn WeightRasterizer,
     out: &TailInputs,
@@ -368,45 +367,26 @@ fn reduce_on_device(
         keep: params.mixture_keep.unwrap_or(1),
         dense: params.dense,
     };
-    let mut sparse = params.mixture_keep.map(|_| SparseMixture {
+    let sparse = params.mixture_keep.map(|_| SparseMixture {
         dim,
         model_id: model_id.to_string(),
         offsets: vec![0],
         ..Default::default()
     });
-    type Rows = (Vec<u32>, Vec<[f32; 3]>, Vec<f32>, Vec<f32>);
     std::thread::scope(|s| {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<Rows>(1);
-        let handle = s.spawn(move || -> Result<Option<EmbeddingsWriter>> {
-            let mut writer = writer;
-            for (ids, run_means, rows, weights) in rx {
-                if let Some(w) = writer.as_mut() {
-                    w.push(&ids, &run_means, &rows, &weights)?;
-                }
-            }
-            Ok(writer)
-        });
+        // The host's side of each tile on a thread of its own: the device reduces the next tile
+        // meanwhile (one tile waits between them).
+        let (tx, rx) = std::sync::mpsc::sync_channel::<KeptTile>(1);
+        let handle = s.spawn(move || take_tiles(rx, means, sparse, writer));
         let reduced = rasterizer.reduce_kept(&p, &mut |tile| {
-            let run_means = tile
-                .ids
-                .iter()
-                .map(|&k| {
-                    means.get(k as usize).copied().ok_or_else(|| {
-                        Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
-                    })
-                })
-                .collect::<Result<Vec<_>>>()?;
-            if let Some(s) = sparse.as_mut() {
-                push_kept(s, &tile, &run_means);
-            }
-            tx.send((tile.ids, run_means, tile.rows, tile.total_weights))
-                .map_err(|_| Error::internal("the embeddings writer stopped early"))
+            tx.send(tile)
+                .map_err(|_| Error::internal("the reduction's host side stopped early"))
         });
         let reduce_s = t0.elapsed().as_secs_f64();
         drop(tx);
-        let writer = handle
+        let (writer, mut sparse) = handle
             .join()
-            .map_err(|_| Error::internal("the embeddings writer thread panicked"))??;
+            .map_err(|_| Error::internal("the reduction's host thread panicked"))??;
         let out = reduced?;
         if let Some(s) = sparse.as_mut() {
             s.codebook = out.codebook;
@@ -427,6 +407,38 @@ fn reduce_on_device(
             write_s: t0.elapsed().as_secs_f64() - reduce_s,
         })
     })
+}
+
+/// The host's side of the device reduction's tiles from `rx`, in order: each tile's centres
+/// looked up in `means`, its kept pairs appended to `sparse` (the mixture's rows), its unit rows
+/// (with `--dense`) pushed to `writer`. Returns both when the tiles end.
+///
+/// Errors: a Gaussian id without a mean ([`Error::Internal`]); the writer's (I/O, non-finite
+/// rows).
+fn take_tiles(
+    rx: std::sync::mpsc::Receiver<KeptTile>,
+    means: &[[f32; 3]],
+    mut sparse: Option<SparseMixture>,
+    mut writer: Option<EmbeddingsWriter>,
+) -> Result<(Option<EmbeddingsWriter>, Option<SparseMixture>)> {
+    for tile in rx {
+        let run_means = tile
+            .ids
+            .iter()
+            .map(|&k| {
+                means.get(k as usize).copied().ok_or_else(|| {
+                    Error::internal(format!("Gaussian {k} has no mean ({} given)", means.len()))
+                })
+            })
+            .collect::<Result<Vec<_>>>()?;
+        if let Some(s) = sparse.as_mut() {
+            push_kept(s, &tile, &run_means);
+        }
+        if let Some(w) = writer.as_mut() {
+            w.push(&tile.ids, &run_means, &tile.rows, &tile.total_weights)?;
+        }
+    }
+    Ok((writer, sparse))
 }
 
 /// Appends the tile's observed Gaussians (ascending, with their centres `means`) and each
