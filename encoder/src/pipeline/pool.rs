@@ -132,10 +132,8 @@ pub(crate) fn run_pool(
     });
     shared.bring_back_late();
     let mut left = shared.finish(slots)?;
-    let empty = |slots| MaskRecord::new(gaussians.len(), slots, views.len());
-    let mask_record = gather_mask_record(left.mask_record.take(), &mut left.device, params)?
-        .map(|(record, slots)| record.map_or_else(|| empty(slots), Ok))
-        .transpose()?;
+    let shape = (gaussians.len(), views.len());
+    let mask_record = gather_mask_record(left.mask_record.take(), &mut left.device, params, shape)?;
     let mut counts = Counts {
         views_total,
         views_used: views.len(),
@@ -177,7 +175,7 @@ fn log_scene_loaded(gaussians: usize, views: usize, fronts: usize) {
 
 /// The masks' record of the run (with [`EncodeParams::mask_record_slots`]): the views recorded on
 /// the host (`host`) merged with each device's kept record, read back from the rasterizers in
-/// `device`; `None` inside when no view recorded anything, with the record's slots.
+/// `device`; an empty record of `(Gaussians, views)` when no view recorded anything.
 ///
 /// Errors: device failures reading a record back; records of other shapes
 /// ([`MaskRecord::merge`]).
@@ -185,7 +183,8 @@ fn gather_mask_record(
     host: Option<Option<MaskRecord>>,
     device: &mut [Box<dyn WeightRasterizer>],
     params: &EncodeParams,
-) -> Result<Option<(Option<MaskRecord>, usize)>> {
+    (gaussians, views): (usize, usize),
+) -> Result<Option<MaskRecord>> {
     let (Some(mut out), Some(slots)) = (host, params.mask_record_slots) else {
         return Ok(None);
     };
@@ -202,7 +201,10 @@ fn gather_mask_record(
         seconds = t0.elapsed().as_secs_f64(),
         "masks' record gathered"
     );
-    Ok(Some((out, slots)))
+    match out {
+        Some(r) => Ok(Some(r)),
+        None => MaskRecord::new(gaussians, slots, views).map(Some),
+    }
 }
 
 /// The raster intrinsics of every view at `raster_scale`, checked (scale range, raster size)

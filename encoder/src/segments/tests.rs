@@ -7,6 +7,15 @@ use super::regions::{PROFILE_CAP, merge_profiles, region_disagreement};
 use super::weights::Edge;
 use super::*;
 
+/// The next value in `[0, 1)` of a 64-bit linear congruential sequence with state `s` (its top
+/// 24 bits): deterministic test data.
+fn unit_lcg(s: &mut u64) -> f32 {
+    *s = s
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    (*s >> 40) as f32 / (1u64 << 24) as f32
+}
+
 /// A scene of flat Gaussians on planes: the floor z = 0 over `[0, 4]²`, a wall x = 0 over
 /// `y, z ∈ [0, 2]`, and a box (its top face at z = 1 over `[2.5, 3.5]²`) floating apart,
 /// on a grid of spacing 0.1 with a little deterministic jitter. Returns the Gaussians and
@@ -15,12 +24,7 @@ fn planes() -> (Gaussians, Vec<u8>) {
     let mut g = Gaussians::default();
     let mut label = Vec::new();
     let mut s = 7u64;
-    let mut jitter = || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        ((s >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.01
-    };
+    let mut jitter = || (unit_lcg(&mut s) - 0.5) * 0.01;
     // Rotations taking the local z axis (smallest scale) to the plane's normal.
     let z_up = [1.0, 0.0, 0.0, 0.0];
     let x_normal = [0.5f32.sqrt(), 0.0, 0.5f32.sqrt(), 0.0]; // z → x
@@ -455,12 +459,7 @@ fn root_ids_are_the_canonical_ids() {
 #[test]
 fn parallel_tile_plan_equals_the_one_thread_plan() {
     let mut s = 11u64;
-    let mut next = || {
-        s = s
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        (s >> 40) as f32 / (1u64 << 24) as f32
-    };
+    let mut next = || unit_lcg(&mut s);
     let smooth: Vec<[f32; 3]> = (0..150_000)
         .map(|_| [next() * 8.0, next() * 3.0, next() * 0.5])
         .collect();

@@ -9,6 +9,19 @@ use wgpu::util::DeviceExt;
 
 use super::{GpuRasterizer, gpu_err};
 
+/// A uniform buffer holding `params` (a kernel's parameter block).
+pub(super) fn uniform_init<T: bytemuck::Pod>(
+    device: &wgpu::Device,
+    label: &str,
+    params: &T,
+) -> wgpu::Buffer {
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(params),
+        usage: wgpu::BufferUsages::UNIFORM,
+    })
+}
+
 pub(super) fn storage_init(device: &wgpu::Device, label: &str, data: &[u8]) -> wgpu::Buffer {
     // Bindings must be non-empty and hold one array element: pad empty data to 64 bytes.
     let pad = [0u8; 64];

@@ -509,13 +509,7 @@ impl GpuRasterizer {
     }
 
     fn ek_uniform(&self, p: &EkParams) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("ek_params"),
-                contents: bytemuck::bytes_of(p),
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
+        super::buffers::uniform_init(&self.device, "ek_params", p)
     }
 
     /// The tiles of the reduction: runs of whole blocks whose records fit one tile buffer and

@@ -18,7 +18,7 @@ use slag_common::mask_record::MaskRecord;
 use slag_common::{Error, Result};
 
 use super::GpuRasterizer;
-use super::buffers::storage;
+use super::buffers::{storage, uniform_init};
 use super::ek::Kept;
 
 /// The uniform of `record_dominant` (`ek.wgsl` `RecordParams`), 16 bytes.
@@ -79,12 +79,13 @@ impl GpuRasterizer {
         let Some(record) = &self.mask_record else {
             return;
         };
-        let uniform = self.record_uniform(&RecordParams {
+        let record_params = RecordParams {
             view,
             slots: record.slots,
             n_gaussians: self.n,
             pad0: 0,
-        });
+        };
+        let uniform = uniform_init(&self.device, "record_params", &record_params);
         let bg = self.bind(
             &kept.record_dominant,
             &[
@@ -99,16 +100,6 @@ impl GpuRasterizer {
         pass.set_pipeline(&kept.record_dominant);
         pass.set_bind_group(0, &bg, &[]);
         pass.dispatch_workgroups(x, y, 1);
-    }
-
-    fn record_uniform(&self, p: &RecordParams) -> wgpu::Buffer {
-        use wgpu::util::DeviceExt;
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("record_params"),
-                contents: bytemuck::bytes_of(p),
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
     }
 
     /// The masks' record kept on the device, read back (in chunks of at most

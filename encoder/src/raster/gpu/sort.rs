@@ -22,7 +22,6 @@ use std::sync::Arc;
 use rayon::prelude::*;
 use slag_common::Result;
 use slag_common::camera::WorldToCamera;
-use wgpu::util::DeviceExt;
 
 use super::super::project::camera_point;
 use super::super::{PrecomputedView, ViewPrecompute};
@@ -96,12 +95,7 @@ impl SortBuffers {
 impl GpuRasterizer {
     /// A uniform buffer holding `p`.
     pub(super) fn uniform(&self, p: &Params) -> wgpu::Buffer {
-        self.device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("params"),
-                contents: bytemuck::bytes_of(p),
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
+        super::buffers::uniform_init(&self.device, "params", p)
     }
 
     /// Records the exclusive scan (`scan.wgsl`) of `data[0..params.n_pixels]` in place, total to
