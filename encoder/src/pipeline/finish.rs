@@ -128,6 +128,7 @@ pub(crate) fn finish(
         device,
         reduce_fallback,
     } = pooled;
+    crate::report::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
     let models = &mut report.models;
@@ -150,6 +151,7 @@ pub(crate) fn finish(
         ply: scene.ply.display().to_string(),
     };
     let tail = reduce_tail(&out, device, &store, &files.embeddings)?;
+    crate::report::log_rss("encode: reduction");
     // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
     t.reduce = tail.reduce_s - tail.gather_s;
@@ -168,12 +170,14 @@ pub(crate) fn finish(
         .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
         .transpose()?;
     let mixture_s = tail.gather_s + t0.elapsed().as_secs_f64();
+    crate::report::log_rss("encode: mixture built");
     let (level_files, levels_s) = write_levels(&out, &level_stores)?;
     drop(level_stores);
 
     let t0 = Instant::now();
     let mix_path = write_forms(&out, tail.writer, mixture.as_ref())?;
     t.write = tail.write_s + t0.elapsed().as_secs_f64();
+    crate::report::log_rss("encode: written");
     t.total = t_total.elapsed().as_secs_f64();
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     counts.queue = Some(queue);

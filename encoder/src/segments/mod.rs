@@ -107,6 +107,7 @@ use slag_common::segments::canonical_ids;
 use slag_common::{Error, Result};
 
 use crate::check::require;
+use crate::report::log_rss;
 use graph::{neighbour_graph, resolve_max_edge, slot_geometry};
 use passes::merge;
 use tiles::plan_tiles;
@@ -383,6 +384,7 @@ pub fn segment_with(
     let mut t = Instant::now();
     let record = masks();
     st.record_wait = lap(&mut t);
+    log_rss("segments: masks' record");
     if ctl.stopped() {
         return Ok(None);
     }
@@ -398,6 +400,7 @@ pub fn segment_with(
         tiles: pre.tiles,
     };
     let (forest, edges, border_edges) = merge(n, p, ctl, &w, &graph, &mut st);
+    log_rss("segments: passes");
     let Some(forest) = forest else {
         return Ok(None);
     };
@@ -405,6 +408,7 @@ pub fn segment_with(
     let (roots, _) = forest.into_roots();
     let (segments, segment_count) = canonical_root_ids(&roots);
     st.ids = lap(&mut t);
+    log_rss("segments: ids");
     let stats = SegmentStats {
         gaussians: n,
         segments: segment_count,
@@ -456,9 +460,11 @@ fn before_record(
     st.tiles = lap(&mut t);
     let nb = neighbour_graph(&g.means, p, max_edge, ctl)?;
     st.neighbours = lap(&mut t);
+    log_rss("segments: neighbour graph");
     let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
     drop(geo);
     st.edge_geometry = lap(&mut t);
+    log_rss("segments: edge geometry");
     (!ctl.stopped()).then_some(BeforeRecord {
         max_edge,
         tile_of,

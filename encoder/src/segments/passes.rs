@@ -167,6 +167,7 @@ pub(super) fn merge(
         return (None, 0, 0);
     };
     st.tile_passes = clock.elapsed().as_secs_f64();
+    crate::report::log_rss("segments: tile passes");
     let clock = Instant::now();
     ctl.run(|| border.par_sort_unstable());
     border.dedup();

@@ -68,6 +68,7 @@ struct KeptPart {
 /// Every kept view, and the kernels that reduce them.
 pub(super) struct Kept {
     block_starts: wgpu::ComputePipeline,
+    run_starts: wgpu::ComputePipeline,
     ek_reduce: wgpu::ComputePipeline,
     dominant: wgpu::ComputePipeline,
     /// The masks' record's kernel ([`super::record`]).
@@ -191,8 +192,9 @@ impl GpuRasterizer {
                 source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
             });
         let pipe = |entry: &str| super::compute_pipeline(&self.device, &module, entry);
-        let (block_starts, ek_reduce, dominant, record_dominant) = (
+        let (block_starts, run_starts, ek_reduce, dominant, record_dominant) = (
             pipe("block_starts"),
+            pipe("run_starts"),
             pipe("ek_reduce"),
             pipe("dominant"),
             pipe("record_dominant"),
@@ -203,6 +205,7 @@ impl GpuRasterizer {
         }
         self.kept = Some(Kept {
             block_starts,
+            run_starts,
             ek_reduce,
             dominant,
             record_dominant,
@@ -645,24 +648,28 @@ impl GpuRasterizer {
     ) -> Result<KeptTile> {
         let (p, dim) = (s.p, s.kept.dim);
         let n = tile.records as u32;
+        let mut phases = TilePhases::new();
         // The tile's records after a 4-word header (the layout record_keys reads).
         let recs = storage(&self.device, "ek_tile_records", 16 + tile.records * 16);
         let mut enc = self.device.create_command_encoder(&Default::default());
         let segs = gather_tile_records(&mut enc, s.kept, tile, &recs);
         let segs_buf = storage_init(&self.device, "ek_segments", bytemuck::cast_slice(&segs));
         let out = TileOutputs::new(&self.device, tile, p, dim);
-        for b in [&out.meta, &out.kept, &out.rows] {
+        for b in [&out.meta, &out.kept, &out.rows, &out.run_start] {
             enc.clear_buffer(b, 0, None);
         }
+        enc = self.phase_end(enc, &mut phases)?;
         let order = if n > 0 {
             Some(self.sort_tile(&mut enc, &recs, n, sort)?)
         } else {
             None
         };
+        enc = self.phase_end(enc, &mut phases)?;
         if let Some(order) = &order {
             let inputs = [&recs, order, &segs_buf];
             self.encode_ek_reduce(&mut enc, s, tile, segs.len() as u32, inputs, &out);
         }
+        enc = self.phase_end(enc, &mut phases)?;
         let n_tile = u64::from(tile.n_tile);
         let mut reads = vec![
             (&out.meta, 0, n_tile * 8),
@@ -672,11 +679,37 @@ impl GpuRasterizer {
             reads.push((&out.rows, 0, n_tile * dim as u64 * 4));
         }
         let read = self.submit_and_read(enc, &reads)?;
-        Ok(tile_output(tile, p, dim, &read))
+        phases.mark();
+        let output = tile_output(tile, p, dim, &read);
+        phases.mark();
+        phases.log(tile);
+        Ok(output)
     }
 
-    /// Dispatch step of [`Self::reduce_tile`]: `ek_reduce` over the tile's records, reading
-    /// `[records, sorted order, segments]` and writing its outputs.
+    /// With the reduction's debug log on, ends a phase of [`Self::reduce_tile`]: submits `enc`,
+    /// waits for the device and marks the time, returning a new encoder; otherwise returns `enc`
+    /// as it is (one submission per tile).
+    ///
+    /// Errors: waiting for the device fails.
+    fn phase_end(
+        &self,
+        enc: wgpu::CommandEncoder,
+        phases: &mut TilePhases,
+    ) -> Result<wgpu::CommandEncoder> {
+        if phases.marks.is_none() {
+            return Ok(enc);
+        }
+        self.queue.submit([enc.finish()]);
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| super::gpu_err("waiting for the device reduction failed", e))?;
+        phases.mark();
+        Ok(self.device.create_command_encoder(&Default::default()))
+    }
+
+    /// Dispatch step of [`Self::reduce_tile`]: `run_starts` over the tile's sorted records, then
+    /// `ek_reduce` over the tile's Gaussians, reading `[records, sorted order, segments]` and
+    /// writing its outputs.
     fn encode_ek_reduce(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -701,6 +734,10 @@ impl GpuRasterizer {
             n_blocks: 0,
             pad0: 0,
         });
+        let starts = self.bind(
+            &kept.run_starts,
+            &[(0, &params), (1, recs), (2, order), (11, &out.run_start)],
+        );
         let bg = self.bind(
             &kept.ek_reduce,
             &[
@@ -713,12 +750,17 @@ impl GpuRasterizer {
                 (6, &out.meta),
                 (7, &out.kept),
                 (8, &out.rows),
+                (11, &out.run_start),
             ],
         );
         let mut pass = enc.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&kept.run_starts);
+        pass.set_bind_group(0, &starts, &[]);
+        let (x, y) = groups_2d(n.div_ceil(256));
+        pass.dispatch_workgroups(x, y, 1);
         pass.set_pipeline(&kept.ek_reduce);
         pass.set_bind_group(0, &bg, &[]);
-        let (x, y) = groups_2d(n);
+        let (x, y) = groups_2d(tile.n_tile);
         pass.dispatch_workgroups(x, y, 1);
     }
 
@@ -828,11 +870,13 @@ fn gather_tile_records(
 }
 
 /// The outputs of one tile of the reduction: per Gaussian its meta (observed, total weight)
-/// and kept pairs, and with `p.dense` its row (a placeholder without).
+/// and kept pairs, and with `p.dense` its row (a placeholder without); and per Gaussian where
+/// its sorted records start (`run_starts`, read by `ek_reduce`).
 struct TileOutputs {
     meta: wgpu::Buffer,
     kept: wgpu::Buffer,
     rows: wgpu::Buffer,
+    run_start: wgpu::Buffer,
 }
 
 impl TileOutputs {
@@ -847,7 +891,51 @@ impl TileOutputs {
                 "ek_rows",
                 if p.dense { n_tile * dim as u64 * 4 } else { 4 },
             ),
+            run_start: storage(device, "ek_run_start", n_tile * 4),
         }
+    }
+}
+
+/// Where one tile's time goes, kept only while the reduction's debug log is on (target
+/// `slag_encoder::pipeline`): the device is then waited for after each phase (gather and
+/// clear, sort, reduce, readback), and the host's conversion of the outputs is timed.
+struct TilePhases {
+    /// The start, then one instant per phase end.
+    marks: Option<Vec<std::time::Instant>>,
+}
+
+impl TilePhases {
+    const NAMES: [&str; 5] = ["gather_s", "sort_s", "reduce_s", "read_s", "output_s"];
+
+    fn new() -> Self {
+        let on = tracing::enabled!(target: "slag_encoder::pipeline", tracing::Level::DEBUG);
+        TilePhases {
+            marks: on.then(|| vec![std::time::Instant::now()]),
+        }
+    }
+
+    fn mark(&mut self) {
+        if let Some(m) = &mut self.marks {
+            m.push(std::time::Instant::now());
+        }
+    }
+
+    /// The debug line of one tile: its Gaussians, records and seconds per phase.
+    fn log(&self, tile: &Tile) {
+        let Some(m) = &self.marks else { return };
+        let phases: Vec<String> = Self::NAMES
+            .iter()
+            .zip(m.windows(2))
+            .map(|(name, w)| format!("{name}={:.3}", (w[1] - w[0]).as_secs_f64()))
+            .collect();
+        tracing::debug!(
+            target: "slag_encoder::pipeline",
+            g0 = tile.g0,
+            gaussians = tile.n_tile,
+            records = tile.records,
+            phases = phases.join(" "),
+            "device reduction tile"
+        );
     }
 }
 
@@ -860,16 +948,43 @@ struct TileShared<'a> {
 }
 
 /// The observed Gaussians of a tile from its read-back outputs (`read`: meta, kept pairs, and
-/// with `p.dense` the rows).
+/// with `p.dense` the rows), converted on every thread in chunks of Gaussians, then joined in
+/// order (millions of Gaussians per tile).
 fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[Vec<u8>]) -> KeptTile {
+    use rayon::prelude::*;
+    const CHUNK: usize = 1 << 16;
     let n_tile = tile.n_tile as usize;
-    // Read-back bytes carry no alignment: copied out, not cast in place.
-    let meta: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[0][..n_tile * 8]);
-    let pairs: Vec<[u32; 2]> = bytemuck::pod_collect_to_vec(&read[1][..n_tile * p.keep * 8]);
-    let rows: Vec<f32> = if p.dense {
-        bytemuck::pod_collect_to_vec(&read[2][..n_tile * dim * 4])
-    } else {
-        Vec::new()
+    let parts: Vec<KeptTile> = (0..n_tile.div_ceil(CHUNK))
+        .into_par_iter()
+        .map(|c| tile_output_range(tile, p, dim, read, c * CHUNK..((c + 1) * CHUNK).min(n_tile)))
+        .collect();
+    let mut out = KeptTile {
+        kept_starts: vec![0],
+        ..KeptTile::default()
+    };
+    for part in parts {
+        let base = out.kept.len() as u32;
+        out.ids.extend_from_slice(&part.ids);
+        out.total_weights.extend_from_slice(&part.total_weights);
+        out.kept_starts
+            .extend(part.kept_starts[1..].iter().map(|&e| base + e));
+        out.kept.extend_from_slice(&part.kept);
+        out.rows.extend_from_slice(&part.rows);
+    }
+    out
+}
+
+/// [`tile_output`] of the tile's Gaussians `range` (tile indices). Read-back bytes carry no
+/// alignment: each value is read, not cast in place.
+fn tile_output_range(
+    tile: &Tile,
+    p: &DeviceReduce,
+    dim: usize,
+    read: &[Vec<u8>],
+    range: std::ops::Range<usize>,
+) -> KeptTile {
+    let pair = |bytes: &[u8], i: usize| -> [u32; 2] {
+        bytemuck::pod_read_unaligned(&bytes[i * 8..i * 8 + 8])
     };
     let mut out = KeptTile {
         kept_starts: vec![0],
@@ -877,18 +992,24 @@ fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[Vec<u8>]) -> K
     };
     // One flat list of pairs, not a list per Gaussian: tens of millions of Gaussians per
     // reduction.
-    for (i, m) in meta.iter().enumerate() {
+    for i in range {
+        let m = pair(&read[0], i);
         if m[0] != 1 {
             continue;
         }
         out.ids.push(tile.g0 + i as u32);
         out.total_weights.push(f32::from_bits(m[1]));
-        let slots = &pairs[i * p.keep..(i + 1) * p.keep];
-        let used = slots.iter().filter(|s| s[0] != u32::MAX);
+        let used = (i * p.keep..(i + 1) * p.keep)
+            .map(|s| pair(&read[1], s))
+            .filter(|s| s[0] != u32::MAX);
         out.kept.extend(used.map(|s| (f32::from_bits(s[1]), s[0])));
         out.kept_starts.push(out.kept.len() as u32);
         if p.dense {
-            out.rows.extend_from_slice(&rows[i * dim..(i + 1) * dim]);
+            let row = &read[2][i * dim * 4..(i + 1) * dim * 4];
+            out.rows.extend(
+                row.chunks_exact(4)
+                    .map(|b| f32::from_ne_bytes([b[0], b[1], b[2], b[3]])),
+            );
         }
     }
     out

@@ -11,8 +11,9 @@
 //                  host cuts any tile of whole blocks out of every view without reading records.
 //   ek_reduce      at the end, per tile of Gaussians: the tile's records of every view copied
 //                  into one buffer (after a 4-word header, view by view), stably radix-sorted by
-//                  Gaussian (sort.wgsl, by the raster module: record_keys + radix passes), then one
-//                  64-wide workgroup per sorted record that starts a Gaussian's run: the run's
+//                  Gaussian (sort.wgsl, by the raster module: record_keys + radix passes), each
+//                  Gaussian's run start marked (run_starts), then one 64-wide workgroup per
+//                  Gaussian of the tile that has records: the run's
 //                  records, view by view, expanded to the view's masks exactly as the host's image
 //                  stage does (aggregate::image::expand_labels: per mask, ascending, the f64 sum of
 //                  the sums of the labels holding it, rounded to f32, times the mask's factor),
@@ -63,6 +64,11 @@ struct EkParams {
 @group(0) @binding(8) var<storage, read_write> rows: array<f32>;
 
 var<workgroup> norm_part: array<f64, 64>;
+// ek_reduce: the workgroup's Gaussian's run_start (read by every thread).
+var<workgroup> wg_start: u32;
+// Per tile Gaussian: 1 + the sorted position of its first record, 0 when it has none
+// (run_starts writes it, ek_reduce reads it).
+@group(0) @binding(11) var<storage, read_write> run_start: array<u32>;
 
 fn flat_group(wid: vec3<u32>) -> u32 {
     return wid.y * ep.groups_x + wid.x;
@@ -172,17 +178,39 @@ fn mask_factor(base: u32, j: u32) -> f32 {
     return bitcast<f32>(tables[factors + j]);
 }
 
+// One thread per sorted record of the tile: the first record of each Gaussian's run writes
+// where the run starts, so that ek_reduce runs one workgroup per Gaussian, not per record.
+@compute @workgroup_size(256)
+fn run_starts(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let i = flat_group(wid) * 256u + lid;
+    if (i >= ep.n_records) {
+        return;
+    }
+    let k = rec_at(i).x;
+    if (i == 0u || rec_at(i - 1u).x != k) {
+        run_start[k - ep.g0] = i + 1u;
+    }
+}
+
 @compute @workgroup_size(64)
 fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    // No early return: the norm's workgroup sum needs every thread at its barriers, in uniform
-    // control flow. Every thread reads the same records, so `head` agrees across the workgroup.
-    let i0 = flat_group(wid);
-    var k = 0u;
-    var head = false;
-    if (i0 < ep.n_records) {
-        k = rec_at(i0).x;
-        head = i0 == 0u || rec_at(i0 - 1u).x != k;
+    // One workgroup per tile Gaussian; one without records leaves at once. The norm's
+    // workgroup sum needs every thread at its barriers, so the test is made uniform through
+    // workgroup memory (thread 0's read is the workgroup's).
+    let g = flat_group(wid);
+    if (lid == 0u) {
+        var s = 0u;
+        if (g < ep.n_tile) {
+            s = run_start[g];
+        }
+        wg_start = s;
     }
+    let start = workgroupUniformLoad(&wg_start);
+    if (start == 0u) {
+        return;
+    }
+    let i0 = start - 1u;
+    let k = rec_at(i0).x;
     var acc: array<f64, 16>;
     for (var t = 0u; t < MAX_PER_THREAD; t++) {
         acc[t] = 0.0lf;
@@ -191,60 +219,58 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
     var kept_a: array<f32, 32>;
     var kept_atom: array<u32, 32>;
     var n_kept = 0u;
-    if (head) {
-        var end = i0 + 1u;
-        while (end < ep.n_records && rec_at(end).x == k) {
-            end++;
+    var end = i0 + 1u;
+    while (end < ep.n_records && rec_at(end).x == k) {
+        end++;
+    }
+    var p = i0;
+    while (p < end) {
+        // One view's records of this Gaussian (a view's parts share its id): [p, q).
+        let seg = segs[segment_of(order[p])];
+        var q = p + 1u;
+        while (q < end && segs[segment_of(order[q])].y == seg.y) {
+            q++;
         }
-        var p = i0;
-        while (p < end) {
-            // One view's records of this Gaussian (a view's parts share its id): [p, q).
-            let seg = segs[segment_of(order[p])];
-            var q = p + 1u;
-            while (q < end && segs[segment_of(order[q])].y == seg.y) {
-                q++;
-            }
-            let base = seg.z;
-            var j = next_mask(p, q, base, 0u, true, true);
-            while (j != UNUSED) {
-                let a64 = mask_sum(p, q, base, j, true);
-                if (a64 > 0.0lf) {
-                    let a = f32(a64) * mask_factor(base, j);
-                    let atom = seg.w + j;
-                    let wa = f64(a);
-                    den += wa;
-                    let row = atom * ep.dim;
-                    for (var t = 0u; t < MAX_PER_THREAD; t++) {
-                        let d = lid + t * WG;
-                        if (d < ep.dim) {
-                            acc[t] += wa * f64(codebook[row + d]);
-                        }
-                    }
-                    // push_top: fill, then replace the weakest (least a; of equal a, the
-                    // larger row) by a stronger pair.
-                    if (n_kept < ep.keep) {
-                        kept_a[n_kept] = a;
-                        kept_atom[n_kept] = atom;
-                        n_kept++;
-                    } else {
-                        var w = 0u;
-                        for (var s = 1u; s < n_kept; s++) {
-                            let weaker = kept_a[s] < kept_a[w]
-                                || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
-                            if (weaker) {
-                                w = s;
-                            }
-                        }
-                        if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
-                            kept_a[w] = a;
-                            kept_atom[w] = atom;
-                        }
+        let base = seg.z;
+        var j = next_mask(p, q, base, 0u, true, true);
+        while (j != UNUSED) {
+            let a64 = mask_sum(p, q, base, j, true);
+            if (a64 > 0.0lf) {
+                let a = f32(a64) * mask_factor(base, j);
+                let atom = seg.w + j;
+                let wa = f64(a);
+                den += wa;
+                let row = atom * ep.dim;
+                for (var t = 0u; t < MAX_PER_THREAD; t++) {
+                    let d = lid + t * WG;
+                    if (d < ep.dim) {
+                        acc[t] += wa * f64(codebook[row + d]);
                     }
                 }
-                j = next_mask(p, q, base, j, false, true);
+                // push_top: fill, then replace the weakest (least a; of equal a, the
+                // larger row) by a stronger pair.
+                if (n_kept < ep.keep) {
+                    kept_a[n_kept] = a;
+                    kept_atom[n_kept] = atom;
+                    n_kept++;
+                } else {
+                    var w = 0u;
+                    for (var s = 1u; s < n_kept; s++) {
+                        let weaker = kept_a[s] < kept_a[w]
+                            || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
+                        if (weaker) {
+                            w = s;
+                        }
+                    }
+                    if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
+                        kept_a[w] = a;
+                        kept_atom[w] = atom;
+                    }
+                }
             }
-            p = q;
+            j = next_mask(p, q, base, j, false, true);
         }
+        p = q;
     }
     var sq = 0.0lf;
     for (var t = 0u; t < MAX_PER_THREAD; t++) {
@@ -262,7 +288,7 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
     // Unobserved (nothing written; meta, kept and rows were cleared): Σ a NaN or below the
     // threshold, or the norm not finite or at most 1e-9·Σ a.
     let finite = norm == norm && norm <= 1.7976931348623157e308lf;
-    let observed = head && den >= ep.min_total_weight && finite && norm > 1e-9lf * den;
+    let observed = den >= ep.min_total_weight && finite && norm > 1e-9lf * den;
     let kl = k - ep.g0;
     if (observed && lid == 0u) {
         gmeta[kl] = vec2<u32>(1u, bitcast<u32>(f32(den)));
