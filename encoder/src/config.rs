@@ -430,6 +430,9 @@ pub struct AggregateConfig {
     pub mask_weighting: MaskWeighting,
     /// Which masks a pixel covered by several gives its weights to (default: the finest).
     pub overlap: MaskOverlap,
+    /// Erode every mask by this many image pixels for the `a_kj` only (default 0: whole masks;
+    /// [`crate::aggregate::ImageStageParams::mask_erode`]).
+    pub mask_erode: u32,
     /// Also write `embeddings-level{0,1,2}.safetensors`, one reduction per SAM granularity level
     /// (default off; needs [`MaskSource::Sam`]).
     pub levels: bool,
@@ -479,6 +482,7 @@ impl Default for AggregateConfig {
             top_k_per_pixel: None,
             mask_weighting: MaskWeighting::None,
             overlap: MaskOverlap::Finest,
+            mask_erode: 0,
             levels: false,
             min_weight: 1e-6,
             contribution_memory_mb: 4096,

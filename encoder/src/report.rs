@@ -337,6 +337,8 @@ pub struct Parameters {
     pub graph_min_size: Option<u32>,
     /// [`crate::config::AggregateConfig::levels`].
     pub levels: bool,
+    /// [`crate::config::AggregateConfig::mask_erode`].
+    pub mask_erode: u32,
     /// [`crate::config::AggregateConfig::mask_weighting`].
     pub mask_weighting: crate::aggregate::MaskWeighting,
     /// [`crate::config::AggregateConfig::min_weight`].
@@ -714,7 +716,7 @@ mod tests {
                 "sam_box_nms_thresh": 0.0, "graph_k": 700.0f32, "graph_min_size": null,
                 "clip_batch": null, "crop_fill": "before-resize", "top_k_per_pixel": null,
                 "mask_weighting": "none",
-                "overlap": "finest", "levels": false, "min_weight": 1e-6, "mixture_keep": null,
+                "overlap": "finest", "mask_erode": 0, "levels": false, "min_weight": 1e-6, "mixture_keep": null,
                 "threads": 2, "gpus": "Count(1)", "front_workers": null,
             });
             let outputs = if cluster {

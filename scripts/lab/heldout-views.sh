@@ -8,11 +8,12 @@
 # `default` passes no --views flag (the encoder's default selection with its own stopping rule;
 # COUNT unused); a run named everyE encodes every E-th view (`--every E`; with the hold-out of
 # every 4th view, --every 2 keeps 25 of snowmiku's 97 views, so COUNT=25 gives coverage the same
-# count).
+# count). EXTRA_ENCODE: more encode flags for every run, split on spaces.
 # Usage: scripts/lab/heldout-views.sh BINARY SCENE OUTDIR [COUNT]   (needs $SLAG_SHARED, ONNX Runtime)
 set -uo pipefail
 B=$1; S=$2; R=$3; COUNT=${4:-36}; W=${WORK:-/tmp/slag-views}; HOLD=${HOLD:-4}
 F=$SLAG_SHARED/fixtures
+read -r -a EXTRA <<< "${EXTRA_ENCODE:-}"
 mkdir -p "$R" "$W"
 SAM=(--masks sam --sam-encoder $F/sam-amg/color-sam-encoder.onnx --sam-decoder $F/sam-amg/color-sam-decoder.onnx
      --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5)
@@ -27,7 +28,7 @@ for name in ${RUNS:-coverage uniform all}; do
     *) echo "unknown run $name (default, coverage, uniform, all, everyE)" >&2; exit 2 ;;
   esac
   t0=$(date +%s.%N)
-  "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every "$HOLD" ${V[@]+"${V[@]}"} --raster-scale 0.5 --dense \
+  "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every "$HOLD" ${V[@]+"${V[@]}"} ${EXTRA[@]+"${EXTRA[@]}"} --raster-scale 0.5 --dense \
     --segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s.%N)
   "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$W/$name/embeddings.safetensors" \

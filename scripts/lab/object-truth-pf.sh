@@ -11,15 +11,17 @@
 # Usage: scripts/lab/object-truth-pf.sh BINARY OUTDIR [SEED ...]          (default SEED: 1 2)
 # Texture levels: default (the flags' defaults) and heavy (speckles 0.2, stripes 0.3, shading 0.5).
 # Scene size: GAUSSIANS (30000), VIEWS (16), WIDTH×HEIGHT (320×240), room side EXTENT (6).
+# EXTRA_ENCODE: more encode flags, split on spaces (e.g. EXTRA_ENCODE="--mask-erode 2").
 set -euo pipefail
-[ $# -ge 2 ] || { sed -n '2,13p' "$0"; exit 2; }
+[ $# -ge 2 ] || { sed -n '2,14p' "$0"; exit 2; }
 B=$(realpath "$1"); R=$2; shift 2
 SEEDS=("$@"); [ ${#SEEDS[@]} -gt 0 ] || SEEDS=(1 2)
 : "${SLAG_SHARED:?set SLAG_SHARED to the shared folder (fixtures/sam-amg, fixtures/clip)}"
 F=$SLAG_SHARED/fixtures
 G=${GAUSSIANS:-30000}; V=${VIEWS:-16}; W=${WIDTH:-320}; H=${HEIGHT:-240}; X=${EXTENT:-6}
+read -r -a EXTRA <<< "${EXTRA_ENCODE:-}"
 mkdir -p "$R"
-echo "# PF on object truth ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder))" > "$R/table.md"
+echo "# PF on object truth ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder)${EXTRA_ENCODE:+, encode $EXTRA_ENCODE})" > "$R/table.md"
 for seed in "${SEEDS[@]}"; do
   for level in default heavy; do
     tex=(); [ "$level" = heavy ] && tex=(--speckles 0.2 --stripes 0.3 --shading 0.5)
@@ -31,7 +33,7 @@ for seed in "${SEEDS[@]}"; do
       --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" --sam-points-per-side 16 \
       --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
       --clip-visual "$F/clip/color-clip-visual.onnx" --hold-out-every 4 --dense --quiet \
-      --out "$E" > "$D/encode.log" 2>&1
+      ${EXTRA[@]+"${EXTRA[@]}"} --out "$E" > "$D/encode.log" 2>&1
     "$B" segment --scene-dir "$S" --geometry-only --out "$D/geometric.safetensors" \
       > "$D/geometric.json" 2> "$D/geometric.log"
     "$B" eval-objects --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \

@@ -146,6 +146,11 @@ pub struct ImageStageParams {
     /// Which of the masks covering a pixel receive its weights (default: all, the paper's
     /// rule; [`MaskOverlap`]).
     pub overlap: MaskOverlap,
+    /// Erode every mask by this many image pixels before its pixels credit it (default 0: the
+    /// whole mask, the paper's rule; [`crate::aggregate::erode`]): a mask's border pixels then
+    /// credit only the masks that still hold them after erosion, or none. The CLIP crop is not
+    /// affected.
+    pub mask_erode: u32,
 }
 
 /// How a pixel covered by several masks contributes (`encode --overlap`).
@@ -367,6 +372,28 @@ pub fn overlap_labels<M: ImageMask>(
     labels
 }
 
+/// The pixel labels the image stage sums over under `params`: [`overlap_labels`] of the masks
+/// eroded by [`ImageStageParams::mask_erode`] ([`crate::aggregate::erode::erode_all`]; none at
+/// 0, the same labels as [`overlap_labels`] of `masks`). The overlap rule picks the finest mask
+/// by the masks' own areas, before erosion. Used by the host image stage and for the labels
+/// summed on the rasterizer's device alike.
+pub fn stage_labels<M: ImageMask>(
+    masks: &[M],
+    width: u32,
+    height: u32,
+    params: ImageStageParams,
+) -> PixelLabels {
+    if params.mask_erode == 0 {
+        return overlap_labels(masks, width, height, params.overlap);
+    }
+    let eroded = super::erode::erode_all(masks, params.mask_erode);
+    let mut labels = pixel_labels(&eroded, width, height);
+    if params.overlap == MaskOverlap::Finest {
+        restrict_to_finest(&mut labels.masks_of, masks);
+    }
+    labels
+}
+
 /// Checks the image stage's inputs: one embedding of width `dim` per mask, masks of one size.
 pub(crate) fn check_image_inputs<M: ImageMask>(
     masks: &[M],
@@ -485,7 +512,7 @@ pub fn image_contribution(
     let PixelLabels {
         labels: pixel_sig,
         masks_of,
-    } = overlap_labels(masks, w, h, params.overlap);
+    } = stage_labels(masks, w, h, params);
 
     // Σ_p w_kp per (Gaussian, label), row bands in parallel, f64 sums.
     let band = (h as usize)

@@ -17,7 +17,7 @@
 //! [`reduce_to_writer_with_mixture`] gives both forms from one pass (the encoder's tail).
 //!
 //! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
-//! image), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
+//! image; [`erode`], the masks eroded for it with `--mask-erode`), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
 //! reduction, spilling to disk beyond a budget), [`reduce`] (the f64 reduction to `E_k`, in
 //! memory or streamed to the embeddings file) and [`mixture`] (the same reduction kept as a sparse
 //! mixture). Beyond the paper's mean: [`levels`] (SAM's granularity levels reduced apart, and
@@ -25,6 +25,7 @@
 //! instead of their mean). The rasterizer is driven by the pipeline's back stage
 //! ([`crate::pipeline::view_contribution`]), not from here: this module is the paper's math only.
 
+pub mod erode;
 pub mod image;
 pub mod levels;
 pub mod mixture;
@@ -34,7 +35,7 @@ pub mod store;
 
 pub use image::{
     Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
-    image_contribution, overlap_labels, pixel_labels,
+    image_contribution, overlap_labels, pixel_labels, stage_labels,
 };
 pub use mixture::{
     StreamedMixture, reduce_mixture, reduce_mixture_chunks, reduce_mixture_sparse,

@@ -247,6 +247,13 @@ pub struct EncodeArgs {
     /// or all (the paper's a_kj). `--overlap all --mask-weighting none` is the paper's mean.
     #[arg(long, value_enum, default_value_t = OverlapArg::Finest)]
     pub overlap: OverlapArg,
+    /// Erode every mask by PIXELS image pixels (a square of that radius) before its pixels
+    /// credit it in the a_kj, so that the border pixels of a mask, where its assignment is least
+    /// certain, credit only the masks that still hold them (or none). The CLIP crop keeps the
+    /// whole mask; the image's edge is not a border; a mask erosion would empty is kept whole.
+    /// Default 0: whole masks (the paper's a_kj).
+    #[arg(long, value_name = "PIXELS", default_value_t = 0)]
+    pub mask_erode: u32,
     /// Also write OUT/embeddings-level{0,1,2}.safetensors: one embedding per SAM granularity
     /// level (subpart, part, whole; SAM's three multimask outputs), each reduced over that
     /// level's masks only (LangSplat's levels; needs --masks sam).
@@ -339,6 +346,7 @@ impl From<&EncodeArgs> for EncodeConfig {
                 top_k_per_pixel: a.top_k_per_pixel,
                 mask_weighting: a.mask_weighting.into(),
                 overlap: a.overlap.into(),
+                mask_erode: a.mask_erode,
                 levels: a.levels,
                 min_weight: a.min_weight,
                 contribution_memory_mb: a.contribution_memory_mb,

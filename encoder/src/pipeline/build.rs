@@ -171,6 +171,7 @@ pub fn report_header(c: &EncodeConfig, threads: usize) -> Report {
             min_weight: a.min_weight,
             mixture_keep: a.mixture_keep,
             overlap: a.overlap,
+            mask_erode: a.mask_erode,
             raster_scale: c.raster.scale,
             sam_box_nms_thresh: f64::from(sam.box_nms_thresh),
             sam_points_per_batch: sam.points_per_batch,
@@ -203,6 +204,7 @@ pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
             top_k_per_pixel: a.top_k_per_pixel,
             mask_weighting: a.mask_weighting,
             overlap: a.overlap,
+            mask_erode: a.mask_erode,
         },
         reduce: ReduceParams {
             min_total_weight: a.min_weight,

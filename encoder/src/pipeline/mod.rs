@@ -440,8 +440,7 @@ pub(crate) fn prepare_view<M: ImageMask>(
     let t0 = Instant::now();
     // Labels of equal mask sets merged: integer sums on the device, so the a_kj are the same.
     let labels = (params.top_k_per_pixel.is_none() && !masks.is_empty()).then(|| {
-        aggregate::overlap_labels(masks, intrinsics.width, intrinsics.height, params.overlap)
-            .merged()
+        aggregate::stage_labels(masks, intrinsics.width, intrinsics.height, params).merged()
     });
     let precomputed = labels
         .as_ref()

@@ -658,12 +658,13 @@ fn gpu_label_sums_equal_the_host_image_stage() {
                 h.weight
             );
         }
-        // The finest covering mask only, and per-mask weighting: the same labels, expanded and
-        // weighted on the host like the list path's.
-        if seed == 1 {
+        // The finest covering mask only, and per-mask weighting, with whole and eroded masks:
+        // the same labels, expanded and weighted on the host like the list path's.
+        for mask_erode in [0, 2].into_iter().filter(|_| seed == 1) {
             let fine = ImageStageParams {
                 overlap: crate::aggregate::MaskOverlap::Finest,
                 mask_weighting: crate::aggregate::MaskWeighting::Area,
+                mask_erode,
                 ..params
             };
             let host = image_contribution(&weights, &masks, emb.clone(), dim, fine).expect("host");
