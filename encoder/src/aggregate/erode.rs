@@ -1,7 +1,8 @@
 //! Mask erosion for lifting (`encode --mask-erode`): each mask shrunk by a square of radius `r`
-//! image pixels before the pixel labels of the image stage are built, so that the pixels along a
-//! mask's border — where a mask generator's assignment is least certain — credit no mask, or
-//! only the masks that still hold them after erosion. The CLIP crop keeps the whole mask.
+//! image pixels for the pixel labels of the image stage, so that the pixels along a mask's
+//! border — where a mask generator's assignment is least certain — no longer credit it: a pixel
+//! credits those of its masks (after the overlap rule) that still hold it once eroded, or none
+//! ([`super::image::stage_labels`]). The CLIP crop keeps the whole mask.
 //!
 //! A pixel stays in the eroded mask when every pixel within Chebyshev distance `r` (the
 //! `(2r+1)²` square around it) is inside the mask or outside the image: the image's edge is not
@@ -48,7 +49,11 @@ pub fn erode_mask<M: ImageMask>(mask: &M, radius: u32) -> CompactMask {
             bottom: by as usize + gh == height as usize,
         };
         let eroded = erode_grid(&inside, gw, gh, radius as usize, edges);
-        let kept = if eroded.contains(&true) { &eroded } else { &inside };
+        let kept = if eroded.contains(&true) {
+            &eroded
+        } else {
+            &inside
+        };
         grid_runs(kept, gw, [bx, by], (width, height))
     };
     out.predicted_iou = predicted_iou;
@@ -111,7 +116,12 @@ fn erode_line(src: &[bool], dst: &mut [bool], r: usize, open_start: bool, open_e
 
 /// The grid's inside pixels as a [`CompactMask`] of a `width × height` image, the grid's
 /// top-left pixel at `origin`; box and area from the pixels (scores 1, no point or level).
-fn grid_runs(grid: &[bool], gw: usize, [ox, oy]: [u32; 2], (width, height): (u32, u32)) -> CompactMask {
+fn grid_runs(
+    grid: &[bool],
+    gw: usize,
+    [ox, oy]: [u32; 2],
+    (width, height): (u32, u32),
+) -> CompactMask {
     let mut runs = Vec::new();
     let (mut x0, mut y0, mut x1, mut y1) = (u32::MAX, u32::MAX, 0, 0);
     let mut area = 0u32;
@@ -175,8 +185,7 @@ mod tests {
         (0..h)
             .flat_map(|y| (0..w).map(move |x| (x, y)))
             .map(|(x, y)| {
-                let all =
-                    (-r..=r).all(|dy| (-r..=r).all(|dx| at(x + dx, y + dy)));
+                let all = (-r..=r).all(|dy| (-r..=r).all(|dx| at(x + dx, y + dy)));
                 u8::from(all && m.pixels[(y * w + x) as usize] != 0)
             })
             .collect()
@@ -218,7 +227,10 @@ mod tests {
         assert_eq!((e.area, e.bbox_xywh), (m.area, m.bbox_xywh));
         // Radius 1 keeps its middle row.
         let e = erode_mask(&m, 1).expand();
-        assert_eq!(e.pixels, mask(40, 20, |x, y| (6..34).contains(&x) && y == 9).pixels);
+        assert_eq!(
+            e.pixels,
+            mask(40, 20, |x, y| (6..34).contains(&x) && y == 9).pixels
+        );
     }
 
     #[test]
@@ -234,7 +246,13 @@ mod tests {
             let (w, h) = (8 + next() % 24, 8 + next() % 24);
             // Blobs: a few filled discs, some touching the image edge.
             let discs: Vec<(i64, i64, i64)> = (0..3)
-                .map(|_| (i64::from(next() % w), i64::from(next() % h), 2 + i64::from(next() % 6)))
+                .map(|_| {
+                    (
+                        i64::from(next() % w),
+                        i64::from(next() % h),
+                        2 + i64::from(next() % 6),
+                    )
+                })
                 .collect();
             let m = mask(w, h, |x, y| {
                 discs.iter().any(|&(cx, cy, rr)| {
@@ -252,7 +270,10 @@ mod tests {
                 }
                 // The compact form of the eroded mask gives its own box and runs back.
                 let again = CompactMask::new(&got.expand());
-                assert_eq!((again.runs, again.bbox_xywh), (got.runs.clone(), got.bbox_xywh));
+                assert_eq!(
+                    (again.runs, again.bbox_xywh),
+                    (got.runs.clone(), got.bbox_xywh)
+                );
             }
         }
     }
@@ -304,10 +325,21 @@ mod tests {
         assert_eq!(at(0, 29), vec![0]);
         assert_eq!(at(39, 20), vec![0]);
         assert_eq!(at(15, 10), vec![1]);
-        // The object's eroded bottom rows go to the floor alone, the floor's eroded top rows to
-        // the object alone; where both eroded masks hold a pixel, the finest (the object).
-        assert_eq!(at(15, 21), vec![0]);
+        // Where both whole masks hold a pixel the object (the finest) has it while its eroded
+        // mask holds it; in the object's eroded bottom rows it credits no mask rather than the
+        // floor beneath (erosion only drops masks)...
         assert_eq!(at(15, 16), vec![1]);
-        assert_eq!(at(15, 18), vec![1]);
+        assert_eq!(at(15, 19), vec![1]);
+        assert_eq!(at(15, 21), Vec::<u32>::new());
+        // ...and under the paper's rule (every covering mask) the floor keeps it.
+        let all = ImageStageParams {
+            overlap: MaskOverlap::All,
+            ..params
+        };
+        let l = stage_labels(&masks, 40, 30, all);
+        let at = |x: usize, y: usize| l.masks_of[l.labels[y * 40 + x] as usize].clone();
+        assert_eq!(at(15, 21), vec![0]);
+        assert_eq!(at(15, 19), vec![0, 1]);
+        assert_eq!(at(30, 16), Vec::<u32>::new());
     }
 }

@@ -372,26 +372,53 @@ pub fn overlap_labels<M: ImageMask>(
     labels
 }
 
-/// The pixel labels the image stage sums over under `params`: [`overlap_labels`] of the masks
-/// eroded by [`ImageStageParams::mask_erode`] ([`crate::aggregate::erode::erode_all`]; none at
-/// 0, the same labels as [`overlap_labels`] of `masks`). The overlap rule picks the finest mask
-/// by the masks' own areas, before erosion. Used by the host image stage and for the labels
-/// summed on the rasterizer's device alike.
+/// The pixel labels the image stage sums over under `params`: [`overlap_labels`] of the whole
+/// masks, each pixel then keeping only those of its masks that still hold it once eroded by
+/// [`ImageStageParams::mask_erode`] ([`crate::aggregate::erode::erode_all`]). Erosion only ever
+/// drops a pixel's masks: under [`MaskOverlap::Finest`] a pixel in the eroded border of its
+/// finest mask credits no mask, rather than the larger mask beneath it. At 0 these are
+/// [`overlap_labels`] of `masks`. Used by the host image stage and for the labels summed on the
+/// rasterizer's device alike.
 pub fn stage_labels<M: ImageMask>(
     masks: &[M],
     width: u32,
     height: u32,
     params: ImageStageParams,
 ) -> PixelLabels {
-    if params.mask_erode == 0 {
-        return overlap_labels(masks, width, height, params.overlap);
+    let whole = overlap_labels(masks, width, height, params.overlap);
+    if params.mask_erode == 0 || masks.is_empty() {
+        return whole;
     }
-    let eroded = super::erode::erode_all(masks, params.mask_erode);
-    let mut labels = pixel_labels(&eroded, width, height);
-    if params.overlap == MaskOverlap::Finest {
-        restrict_to_finest(&mut labels.masks_of, masks);
-    }
-    labels
+    let eroded = pixel_labels(
+        &super::erode::erode_all(masks, params.mask_erode),
+        width,
+        height,
+    );
+    // One label per (whole, eroded) pair met, numbered in row-major order of first appearance;
+    // 0 where no mask is left.
+    let mut ids: FxHashMap<(u32, u32), u32> = FxHashMap::default();
+    let mut masks_of: Vec<Vec<u32>> = vec![Vec::new()];
+    let labels = whole
+        .labels
+        .iter()
+        .zip(&eroded.labels)
+        .map(|(&a, &b)| {
+            *ids.entry((a, b)).or_insert_with(|| {
+                let held = &eroded.masks_of[b as usize];
+                let set: Vec<u32> = whole.masks_of[a as usize]
+                    .iter()
+                    .copied()
+                    .filter(|j| held.binary_search(j).is_ok())
+                    .collect();
+                if set.is_empty() {
+                    return 0;
+                }
+                masks_of.push(set);
+                (masks_of.len() - 1) as u32
+            })
+        })
+        .collect();
+    PixelLabels { labels, masks_of }
 }
 
 /// Checks the image stage's inputs: one embedding of width `dim` per mask, masks of one size.
