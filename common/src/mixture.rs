@@ -30,8 +30,10 @@
 //! `model_id` (CLIP visual model id), `keep` (S).
 
 use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use half::f16;
+use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use safetensors::tensor::Dtype;
 
@@ -139,7 +141,9 @@ pub struct SparseMixture {
 }
 
 impl SparseMixture {
-    /// The codebook's row count M, once the parts agree with each other.
+    /// The codebook's row count M, once the parts agree with each other. The passes over the
+    /// per-entry arrays run in parallel and answer as a serial pass would (the atom named is the
+    /// first one out of range).
     ///
     /// Errors ([`Error::Invalid`]): as [`MixtureEmbeddings::from_sparse`], apart from the checks
     /// of each row.
@@ -165,7 +169,7 @@ impl SparseMixture {
             || atoms.len() != weights.len()
             || offsets.first() != Some(&0)
             || offsets.last() != Some(&atoms.len())
-            || offsets.windows(2).any(|w| w[0] > w[1])
+            || offsets.par_windows(2).any(|w| w[0] > w[1])
         {
             return bad(format!(
                 "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
@@ -175,109 +179,203 @@ impl SparseMixture {
                 weights.len()
             ));
         }
-        if self.gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
+        if self.gaussian_ids.par_windows(2).any(|w| w[0] >= w[1]) {
             return bad("Gaussian ids are not strictly ascending".into());
         }
-        if self.codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
+        if self.codebook.par_iter().any(|v| !v.is_finite())
+            || weights.par_iter().any(|v| !v.is_finite())
+        {
             return bad("non-finite codebook value or weight".into());
         }
-        if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
+        if let Some(a) = atoms.par_iter().find_first(|&&a| a as usize >= m) {
             return bad(format!("atom {a} beyond the {m} codebook rows"));
         }
         Ok(m)
     }
+
+    /// `S` of the stored form: the most non-zero weights in any row, at least 1. Call after
+    /// [`SparseMixture::codebook_rows`] (the offsets index the weights).
+    fn longest_row(&self) -> usize {
+        self.offsets
+            .par_windows(2)
+            .map(|w| {
+                self.weights[w[0]..w[1]]
+                    .iter()
+                    .filter(|&&a| a != 0.0)
+                    .count()
+            })
+            .max()
+            .unwrap_or(0)
+            .max(1)
+    }
 }
 
 /// The codebook rows some non-zero weight uses, renumbered in their original order: each of the
-/// `m` rows' new number ([`UNUSED`] for a dropped row) and the kept rows rounded to f16,
-/// `[kept, dim]` row-major.
+/// `m` rows' new number ([`UNUSED`] for a dropped row) and the kept rows as f16, `[kept, dim]`
+/// row-major (the values the file stores; half the bytes of f32 for the rows' many random
+/// reads). The marking and the rounding run in parallel; the numbering is one serial pass over
+/// the `m` rows.
 fn used_codebook(
     codebook: &[f32],
     dim: usize,
     m: usize,
     atoms: &[u32],
     weights: &[f64],
-) -> (Vec<u32>, Vec<f32>) {
+) -> (Vec<u32>, Vec<f16>) {
+    let used: Vec<AtomicBool> = (0..m).map(|_| AtomicBool::new(false)).collect();
+    atoms.par_iter().zip(weights).for_each(|(&a, &w)| {
+        // Only the first sighting writes, so that workers seldom contend for a line.
+        let u = &used[a as usize];
+        if w != 0.0 && !u.load(Ordering::Relaxed) {
+            u.store(true, Ordering::Relaxed);
+        }
+    });
     let mut new_row = vec![UNUSED; m];
-    for (i, &a) in atoms.iter().enumerate() {
-        if weights[i] != 0.0 {
-            new_row[a as usize] = 0;
+    let mut kept = Vec::new();
+    for (r, u) in used.iter().enumerate() {
+        if u.load(Ordering::Relaxed) {
+            new_row[r] = kept.len() as u32;
+            kept.push(r);
         }
     }
-    let mut kept_rows = 0u32;
-    let mut book = Vec::new();
-    for (r, slot) in new_row.iter_mut().enumerate() {
-        if *slot == 0 {
-            *slot = kept_rows;
-            kept_rows += 1;
-            book.extend(
-                codebook[r * dim..(r + 1) * dim]
-                    .iter()
-                    .map(|&v| round_f16(v)),
-            );
-        }
-    }
+    drop(used);
+    let mut book = vec![f16::ZERO; kept.len() * dim];
+    book.par_chunks_mut(dim)
+        .zip(kept.par_iter())
+        .for_each(|(out, &r)| out.convert_from_f32_slice(&codebook[r * dim..(r + 1) * dim]));
     (new_row, book)
 }
 
-/// One Gaussian's row of `(kept codebook row, a)`: ordered by decreasing `a` (ties: lower row
-/// first) and scaled by `1 / ‖Σ_s a_s · E_s‖` over the f16-rounded `book`, weights rounded to
-/// f16.
-///
-/// Errors (the message, naming the Gaussian `id`): a repeated atom, a weighted sum of zero, a
-/// weight beyond the f16 range.
-fn normalised_row(
-    mut row: Vec<(u32, f64)>,
-    book: &[f32],
-    dim: usize,
-    id: u32,
-) -> std::result::Result<Vec<(u32, f64)>, String> {
-    row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
-    let mut ids: Vec<u32> = row.iter().map(|r| r.0).collect();
-    ids.sort_unstable();
-    if ids.windows(2).any(|w| w[0] == w[1]) {
-        return Err(format!("Gaussian {id} repeats an atom"));
-    }
-    let mut acc = vec![0f64; dim];
-    for &(a, w) in &row {
-        let e = &book[a as usize * dim..(a as usize + 1) * dim];
-        acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
-    }
-    let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
-    if !(norm.is_finite() && norm > 0.0) {
-        return Err(format!(
-            "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
-        ));
-    }
-    let mut out = Vec::with_capacity(row.len());
-    for (a, w) in row {
-        let s = w / norm;
-        if s.abs() > MAX_WEIGHT as f64 {
-            return Err(format!(
-                "Gaussian {id}: weight {s:e} beyond the f16 range (its mask embeddings \
-                 nearly cancel out); such a Gaussian cannot be stored as a mixture, \
-                 use the dense embeddings file"
-            ));
-        }
-        out.push((a, round_f16(s as f32) as f64));
-    }
-    Ok(out)
+/// The f16 rows as f32 (exact), in parallel: the stored codebook.
+fn widened(book: &[f16], dim: usize) -> Vec<f32> {
+    let mut out = vec![0f32; book.len()];
+    out.par_chunks_mut(dim)
+        .zip(book.par_chunks(dim))
+        .for_each(|(o, h)| h.convert_to_f32_slice(o));
+    out
 }
 
-/// The rows in the stored layout: `S` (the longest row, at least 1) and the `[N, S]` atoms
-/// (padded with [`UNUSED`]) and f32 weights (padded with 0).
-fn pack_rows(kept: &[Vec<(u32, f64)>]) -> (usize, Vec<u32>, Vec<f32>) {
-    let n = kept.len();
-    let keep = kept.iter().map(Vec::len).max().unwrap_or(0).max(1);
-    let mut out_atoms = vec![UNUSED; n * keep];
-    let mut out_weights = vec![0f32; n * keep];
-    for (i, row) in kept.iter().enumerate() {
-        for (s, &(a, w)) in row.iter().enumerate() {
-            out_atoms[i * keep + s] = a;
-            out_weights[i * keep + s] = w as f32;
+/// Gaussians whose rows one worker normalises together: the sums of squares of their norms run
+/// side by side (each still in dimension order, so each as alone), not one long chain of
+/// dependent additions after another.
+const BATCH: usize = 8;
+
+/// What one worker of [`MixtureEmbeddings::from_sparse`] reuses from batch to batch, so that a
+/// row costs no allocation: each batched Gaussian's row of `(kept codebook row, a)`, the
+/// `[BATCH, D]` f64 accumulators of their weighted sums, one codebook row widened to f32, and
+/// room to sort the ids of a long row.
+struct RowScratch {
+    rows: [Vec<(u32, f64)>; BATCH],
+    acc: Vec<f64>,
+    wide: Vec<f32>,
+    ids: Vec<u32>,
+}
+
+impl RowScratch {
+    fn new(dim: usize, keep: usize) -> Self {
+        RowScratch {
+            rows: std::array::from_fn(|_| Vec::with_capacity(keep)),
+            acc: vec![0.0; BATCH * dim],
+            wide: vec![0.0; dim],
+            ids: Vec::new(),
         }
     }
-    (keep, out_atoms, out_weights)
+}
+
+/// True when `row` names some codebook row twice: compared pairwise in a short row, through a
+/// sorted copy of the ids (in `ids`, reused) in a long one.
+fn repeats_an_atom(row: &[(u32, f64)], ids: &mut Vec<u32>) -> bool {
+    if row.len() <= 32 {
+        return (1..row.len()).any(|i| row[..i].iter().any(|x| x.0 == row[i].0));
+    }
+    ids.clear();
+    ids.extend(row.iter().map(|r| r.0));
+    ids.sort_unstable();
+    ids.windows(2).any(|w| w[0] == w[1])
+}
+
+/// Writes the `S` packed slots of a batch of Gaussians (`ids`, at most [`BATCH`]) from their
+/// rows of `(kept codebook row, a)` (the non-zero `a`, in `s.rows`): each ordered by decreasing
+/// `a` (ties: lower row first), scaled by `1 / ‖Σ_s a_s · E_s‖` over the f16 `book` (f64, each
+/// dimension summed in slot order, the squares in dimension order), rounded to f16; the slots
+/// past a row get [`UNUSED`] and 0.
+///
+/// Errors (the message, naming the first failing Gaussian of the batch): a repeated atom, a
+/// weighted sum of zero, a weight beyond the f16 range (checked per Gaussian in that order); the
+/// slots are then left part-written.
+fn fill_rows(
+    s: &mut RowScratch,
+    book: &[f16],
+    dim: usize,
+    ids: &[u32],
+    atoms: &mut [u32],
+    weights: &mut [f32],
+) -> std::result::Result<(), String> {
+    let RowScratch {
+        rows,
+        acc,
+        wide,
+        ids: sorted_ids,
+    } = s;
+    // A repeat ends the batch: the rows before it may still fail first.
+    let mut ready = ids.len();
+    for (g, row) in rows.iter_mut().enumerate().take(ids.len()) {
+        row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
+        if repeats_an_atom(row, sorted_ids) {
+            ready = g;
+            break;
+        }
+    }
+    for (row, acc) in rows.iter().zip(acc.chunks_exact_mut(dim)).take(ready) {
+        acc.fill(0.0);
+        for &(a, w) in row {
+            book[a as usize * dim..(a as usize + 1) * dim].convert_to_f32_slice(wide);
+            acc.iter_mut()
+                .zip(wide.iter())
+                .for_each(|(s, &v)| *s += w * v as f64);
+        }
+    }
+    // Lanes past `ready` hold stale sums nobody reads.
+    let lanes: [&[f64]; BATCH] = std::array::from_fn(|g| &acc[g * dim..(g + 1) * dim]);
+    let mut squares = [0f64; BATCH];
+    for d in 0..dim {
+        for (sum, lane) in squares.iter_mut().zip(&lanes) {
+            *sum += lane[d] * lane[d];
+        }
+    }
+    let keep = atoms.len() / ids.len();
+    let slots = atoms
+        .chunks_exact_mut(keep)
+        .zip(weights.chunks_exact_mut(keep));
+    for (g, (slot_atoms, slot_weights)) in slots.enumerate().take(ready) {
+        let (id, norm) = (ids[g], squares[g].sqrt());
+        if !(norm.is_finite() && norm > 0.0) {
+            return Err(format!(
+                "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
+            ));
+        }
+        let mut out = slot_atoms.iter_mut().zip(slot_weights.iter_mut());
+        for (&(a, w), (slot_atom, slot_weight)) in rows[g].iter().zip(&mut out) {
+            let scaled = w / norm;
+            if scaled.abs() > MAX_WEIGHT as f64 {
+                return Err(format!(
+                    "Gaussian {id}: weight {scaled:e} beyond the f16 range (its mask embeddings \
+                     nearly cancel out); such a Gaussian cannot be stored as a mixture, \
+                     use the dense embeddings file"
+                ));
+            }
+            *slot_atom = a;
+            *slot_weight = round_f16(scaled as f32);
+        }
+        for (slot_atom, slot_weight) in out {
+            *slot_atom = UNUSED;
+            *slot_weight = 0.0;
+        }
+    }
+    match ids.get(ready) {
+        Some(id) => Err(format!("Gaussian {id} repeats an atom")),
+        None => Ok(()),
+    }
 }
 
 impl MixtureEmbeddings {
@@ -287,12 +385,17 @@ impl MixtureEmbeddings {
     /// weights by `1 / ‖Σ_s a_s · E_s‖` (computed in f64 with the f16-rounded codebook) before
     /// rounding them to f16.
     ///
+    /// The rows are written straight into the `[N, S]` arrays in parallel (rayon), and the sparse
+    /// inputs are freed as soon as they are spent, so the build holds at most the parts plus the
+    /// stored form.
+    ///
     /// Errors ([`Error::Invalid`]): inconsistent lengths, ids not strictly ascending, an atom out of
     /// range or repeated in a row, non-finite values, a row whose weighted codebook rows sum to
     /// zero (no direction), or a weight beyond the f16 range (the kept mask embeddings nearly
-    /// cancel: `‖Σ a E‖ < Σ|a| / 65504`).
+    /// cancel: `‖Σ a E‖ < Σ|a| / 65504`). A row's error names the first such Gaussian in id order.
     pub fn from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
         let m = parts.codebook_rows()?;
+        let keep = parts.longest_row();
         let SparseMixture {
             dim,
             model_id,
@@ -305,31 +408,47 @@ impl MixtureEmbeddings {
         } = parts;
         let (new_row, book) = used_codebook(&codebook, dim, m, &atoms, &weights);
         drop(codebook);
-        // Rows: sorted, de-duplicated check, normalised with the rounded codebook.
-        let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
-            .into_par_iter()
-            .map(|i| {
-                let row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
-                    .filter(|&e| weights[e] != 0.0)
-                    .map(|e| (new_row[atoms[e] as usize], weights[e]))
-                    .collect();
-                normalised_row(row, &book, dim, gaussian_ids[i])
-            })
-            .collect();
-        let kept = rows
-            .into_iter()
-            .collect::<std::result::Result<Vec<_>, String>>()
-            .map_err(|m| Error::Invalid(format!("mixture: {m}")))?;
-        let (keep, atoms, weights) = pack_rows(&kept);
+        // Zeroed (lazily mapped) arrays whose every slot `fill_rows` writes.
+        let n = gaussian_ids.len();
+        let mut packed_atoms = vec![0u32; n * keep];
+        let mut packed_weights = vec![0f32; n * keep];
+        let failed = packed_atoms
+            .par_chunks_mut(keep * BATCH)
+            .zip(packed_weights.par_chunks_mut(keep * BATCH))
+            .enumerate()
+            .map_init(
+                || RowScratch::new(dim, keep),
+                |s, (b, (slot_atoms, slot_weights))| {
+                    let first = b * BATCH;
+                    let batch = first..first + slot_atoms.len() / keep;
+                    for (row, i) in s.rows.iter_mut().zip(batch.clone()) {
+                        row.clear();
+                        row.extend(
+                            (offsets[i]..offsets[i + 1])
+                                .filter(|&e| weights[e] != 0.0)
+                                .map(|e| (new_row[atoms[e] as usize], weights[e])),
+                        );
+                    }
+                    let ids = &gaussian_ids[batch];
+                    fill_rows(s, &book, dim, ids, slot_atoms, slot_weights)
+                },
+            )
+            .find_map_first(std::result::Result::err);
+        drop((offsets, atoms, weights, new_row));
+        if let Some(m) = failed {
+            return Err(Error::Invalid(format!("mixture: {m}")));
+        }
+        let codebook = widened(&book, dim);
+        drop(book);
         Ok(MixtureEmbeddings {
             dim,
             model_id,
-            codebook: book,
+            codebook,
             gaussian_ids,
             means,
             keep,
-            atoms,
-            weights,
+            atoms: packed_atoms,
+            weights: packed_weights,
         })
     }
 
@@ -786,6 +905,9 @@ impl MixtureEmbeddings {
         Ok(out)
     }
 }
+
+#[cfg(test)]
+mod build_tests;
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]

@@ -1,0 +1,540 @@
+//! [`MixtureEmbeddings::from_sparse`] against a reference: the straightforward build (one row
+//! `Vec` per Gaussian, collected, then packed) kept here as the oracle. The two must agree bit
+//! for bit, errors and their messages included, on random sparse mixtures.
+
+#![allow(clippy::unwrap_used)]
+
+use super::*;
+use crate::rng::SplitMix64;
+
+/// The reference checks of the parts (serial), as [`SparseMixture::codebook_rows`].
+fn reference_codebook_rows(p: &SparseMixture) -> Result<usize> {
+    let (dim, n) = (p.dim, p.gaussian_ids.len());
+    let bad = |m: String| Err(Error::Invalid(format!("mixture: {m}")));
+    if dim == 0 || !p.codebook.len().is_multiple_of(dim) {
+        return bad(format!(
+            "codebook of {} values for dim {dim}",
+            p.codebook.len()
+        ));
+    }
+    let m = p.codebook.len() / dim;
+    if m >= UNUSED as usize {
+        return bad(format!(
+            "{m} codebook rows; at most {} fit u32 ids",
+            UNUSED - 1
+        ));
+    }
+    let (offsets, atoms, weights) = (&p.offsets, &p.atoms, &p.weights);
+    if p.means.len() != n
+        || offsets.len() != n + 1
+        || atoms.len() != weights.len()
+        || offsets.first() != Some(&0)
+        || offsets.last() != Some(&atoms.len())
+        || offsets.windows(2).any(|w| w[0] > w[1])
+    {
+        return bad(format!(
+            "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
+            p.means.len(),
+            offsets.len(),
+            atoms.len(),
+            weights.len()
+        ));
+    }
+    if p.gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
+        return bad("Gaussian ids are not strictly ascending".into());
+    }
+    if p.codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
+        return bad("non-finite codebook value or weight".into());
+    }
+    if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
+        return bad(format!("atom {a} beyond the {m} codebook rows"));
+    }
+    Ok(m)
+}
+
+/// The reference renumbering and f16 rounding of the used codebook rows (serial).
+fn reference_used_codebook(
+    codebook: &[f32],
+    dim: usize,
+    m: usize,
+    atoms: &[u32],
+    weights: &[f64],
+) -> (Vec<u32>, Vec<f32>) {
+    let mut new_row = vec![UNUSED; m];
+    for (i, &a) in atoms.iter().enumerate() {
+        if weights[i] != 0.0 {
+            new_row[a as usize] = 0;
+        }
+    }
+    let mut kept_rows = 0u32;
+    let mut book = Vec::new();
+    for (r, slot) in new_row.iter_mut().enumerate() {
+        if *slot == 0 {
+            *slot = kept_rows;
+            kept_rows += 1;
+            book.extend(
+                codebook[r * dim..(r + 1) * dim]
+                    .iter()
+                    .map(|&v| round_f16(v)),
+            );
+        }
+    }
+    (new_row, book)
+}
+
+/// The reference row: sorted, checked with an allocated id list, normalised with an allocated
+/// accumulator.
+fn reference_row(
+    mut row: Vec<(u32, f64)>,
+    book: &[f32],
+    dim: usize,
+    id: u32,
+) -> std::result::Result<Vec<(u32, f64)>, String> {
+    row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
+    let mut ids: Vec<u32> = row.iter().map(|r| r.0).collect();
+    ids.sort_unstable();
+    if ids.windows(2).any(|w| w[0] == w[1]) {
+        return Err(format!("Gaussian {id} repeats an atom"));
+    }
+    let mut acc = vec![0f64; dim];
+    for &(a, w) in &row {
+        let e = &book[a as usize * dim..(a as usize + 1) * dim];
+        acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
+    }
+    let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(format!(
+            "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
+        ));
+    }
+    let mut out = Vec::with_capacity(row.len());
+    for (a, w) in row {
+        let s = w / norm;
+        if s.abs() > MAX_WEIGHT as f64 {
+            return Err(format!(
+                "Gaussian {id}: weight {s:e} beyond the f16 range (its mask embeddings \
+                 nearly cancel out); such a Gaussian cannot be stored as a mixture, \
+                 use the dense embeddings file"
+            ));
+        }
+        out.push((a, round_f16(s as f32) as f64));
+    }
+    Ok(out)
+}
+
+/// The reference build: one `Vec` per Gaussian, collected, the first error in id order, packed.
+pub(super) fn reference_from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
+    let m = reference_codebook_rows(&parts)?;
+    let SparseMixture {
+        dim,
+        model_id,
+        codebook,
+        gaussian_ids,
+        means,
+        offsets,
+        atoms,
+        weights,
+    } = parts;
+    let (new_row, book) = reference_used_codebook(&codebook, dim, m, &atoms, &weights);
+    let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
+        .into_par_iter()
+        .map(|i| {
+            let row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
+                .filter(|&e| weights[e] != 0.0)
+                .map(|e| (new_row[atoms[e] as usize], weights[e]))
+                .collect();
+            reference_row(row, &book, dim, gaussian_ids[i])
+        })
+        .collect();
+    let kept = rows
+        .into_iter()
+        .collect::<std::result::Result<Vec<_>, String>>()
+        .map_err(|m| Error::Invalid(format!("mixture: {m}")))?;
+    let n = kept.len();
+    let keep = kept.iter().map(Vec::len).max().unwrap_or(0).max(1);
+    let mut out_atoms = vec![UNUSED; n * keep];
+    let mut out_weights = vec![0f32; n * keep];
+    for (i, row) in kept.iter().enumerate() {
+        for (s, &(a, w)) in row.iter().enumerate() {
+            out_atoms[i * keep + s] = a;
+            out_weights[i * keep + s] = w as f32;
+        }
+    }
+    Ok(MixtureEmbeddings {
+        dim,
+        model_id,
+        codebook: book,
+        gaussian_ids,
+        means,
+        keep,
+        atoms: out_atoms,
+        weights: out_weights,
+    })
+}
+
+/// The two results as comparable bits: values by their bit patterns, errors by their message.
+fn bits(r: &Result<MixtureEmbeddings>) -> std::result::Result<String, String> {
+    let f32_bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    match r {
+        Ok(m) => Ok(format!(
+            "dim {} model {:?} keep {} codebook {:?} ids {:?} means {:?} atoms {:?} weights {:?}",
+            m.dim,
+            m.model_id,
+            m.keep,
+            f32_bits(&m.codebook),
+            m.gaussian_ids,
+            m.means
+                .iter()
+                .flatten()
+                .map(|x| x.to_bits())
+                .collect::<Vec<_>>(),
+            m.atoms,
+            f32_bits(&m.weights),
+        )),
+        Err(Error::Invalid(msg)) => Err(msg.clone()),
+        Err(e) => Err(format!("not Invalid: {e:?}")),
+    }
+}
+
+fn assert_same(parts: SparseMixture, what: &str) -> std::result::Result<String, String> {
+    let want = bits(&reference_from_sparse(parts.clone()));
+    let got = bits(&MixtureEmbeddings::from_sparse(parts));
+    assert_eq!(got, want, "{what}");
+    got
+}
+
+/// What a random case may hold besides plain positive rows.
+#[derive(Clone, Copy)]
+struct Flavour {
+    /// Longest row (entries, zeros included).
+    keep: usize,
+    /// Rows with no entry, or only zero weights (each one an error).
+    empty: bool,
+    /// A repeated atom among the non-zero weights of some row.
+    repeat: bool,
+    /// Opposite codebook rows mixed with equal weights (zero sum) or nearly equal rows
+    /// (f16 overflow).
+    cancel: bool,
+    /// Negative and signed-zero weights.
+    signs: bool,
+}
+
+/// A random sparse mixture: `n` Gaussians over `m` codebook rows of width `dim`. Weights come
+/// from a small set of values so that ties are common; codebook rows 0 and 1 are opposite and
+/// rows 2 and 3 nearly opposite (after f16 rounding) in the cancelling cases.
+fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> SparseMixture {
+    let mut r = SplitMix64::new(seed);
+    let mut codebook: Vec<f32> = (0..m * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
+    // Rows 0 and 1 sum to zero; rows 2 and 3 to 1e-5 (f16 subnormal) in dimension 0.
+    if f.cancel && m >= 4 {
+        for d in 0..dim {
+            let v = if d == 0 { 0.0 } else { codebook[d] };
+            codebook[d] = v;
+            codebook[dim + d] = -v;
+            codebook[2 * dim + d] = v;
+            codebook[3 * dim + d] = if d == 0 { 1e-5 } else { -v };
+        }
+    }
+    // Values on an f16 rounding tie, f16 subnormals and values that round to zero.
+    let edges = [
+        1.0 + 2f32.powi(-11),
+        -(1.0 + 3.0 * 2f32.powi(-11)),
+        3e-6,
+        -6e-8,
+        1e-9,
+    ];
+    for (k, v) in edges.iter().enumerate() {
+        codebook[(k * 31 + seed as usize) % (m * dim)] = *v;
+    }
+    let ties = [0.25, 0.5, 1.0, 1.0, 2.0, 3.0];
+    let mut parts = SparseMixture {
+        dim,
+        model_id: format!("model-{seed}"),
+        codebook,
+        gaussian_ids: (0..n as u32).map(|i| 2 * i + (seed % 3) as u32).collect(),
+        means: (0..n)
+            .map(|i| [i as f32, -0.5, r.next_f64() as f32])
+            .collect(),
+        offsets: vec![0],
+        ..Default::default()
+    };
+    for _ in 0..n {
+        let len = if f.empty && r.next_u64() % 40 == 0 {
+            0
+        } else {
+            1 + (r.next_u64() % f.keep as u64) as usize
+        };
+        let start = parts.atoms.len();
+        let first = (r.next_u64() % m as u64) as u32;
+        for t in 0..len {
+            parts.atoms.push((first + t as u32) % m as u32);
+            let u = r.next_u64();
+            let w = if u % 3 == 0 {
+                r.range(0.01, 4.0)
+            } else {
+                ties[(u >> 8) as usize % ties.len()]
+            };
+            // Zeros after a row's first entry, which keeps single-entry rows valid.
+            parts.weights.push(match (f.signs, u % 29, t) {
+                (true, 1, _) => -w,
+                (true, 2, 1..) => -0.0,
+                (_, 3, 1..) => 0.0,
+                _ => w,
+            });
+        }
+        let row = start..parts.atoms.len();
+        if f.empty && len > 0 && r.next_u64() % 60 == 0 {
+            parts.weights[row.clone()].iter_mut().for_each(|w| *w = 0.0);
+        }
+        if f.repeat && len >= 2 && r.next_u64() % 50 == 0 {
+            parts.atoms[row.end - 1] = parts.atoms[row.start];
+        }
+        if f.cancel && len >= 2 && m >= 4 && r.next_u64() % 50 == 0 {
+            let pair = if r.next_u64() % 2 == 0 {
+                [0, 1]
+            } else {
+                [2, 3]
+            };
+            parts.atoms.truncate(row.start);
+            parts.weights.truncate(row.start);
+            parts.atoms.extend(pair);
+            parts.weights.extend([1.5, 1.5]);
+        }
+        parts.offsets.push(parts.atoms.len());
+    }
+    parts
+}
+
+#[test]
+fn the_build_equals_the_reference_on_random_mixtures() {
+    let (mut ok, mut errors) = (0, std::collections::BTreeSet::new());
+    for case in 0..160u64 {
+        let keep = 1 + (case % 8) as usize;
+        let f = Flavour {
+            keep,
+            empty: case % 5 == 1,
+            repeat: case % 5 == 2,
+            cancel: case % 5 == 3,
+            signs: case % 2 == 0,
+        };
+        let (n, m, dim) = (
+            1 + (case * 37 % 300) as usize,
+            8 + (case * 13 % 40) as usize,
+            2 + (case * 7 % 32) as usize,
+        );
+        let parts = random_parts(n, m, dim, f, case);
+        match assert_same(
+            parts,
+            &format!("case {case}: n {n} m {m} dim {dim} keep {keep}"),
+        ) {
+            Ok(_) => ok += 1,
+            Err(msg) => {
+                let kinds = ["repeats an atom", "sum to zero", "beyond the f16 range"];
+                let kind = kinds.iter().find(|k| msg.contains(*k));
+                errors.insert(*kind.unwrap_or_else(|| panic!("case {case}: {msg}")));
+            }
+        }
+    }
+    // The cases reach every outcome: built mixtures and the three row errors.
+    assert!(ok > 50, "{ok} built");
+    assert_eq!(errors.len(), 3, "{errors:?}");
+}
+
+#[test]
+fn the_first_failing_gaussian_in_id_order_is_reported() {
+    // Many failing rows spread over a large mixture: the reported one is the first of them
+    // however the work is split.
+    let f = Flavour {
+        keep: 4,
+        empty: true,
+        repeat: true,
+        cancel: true,
+        signs: true,
+    };
+    for seed in 0..4 {
+        let parts = random_parts(20_000, 24, 8, f, 1000 + seed);
+        let got = assert_same(parts, &format!("seed {seed}"));
+        assert!(got.is_err());
+    }
+}
+
+#[test]
+fn long_rows_with_repeats_equal_the_reference() {
+    // Rows longer than the inline duplicate check.
+    let f = Flavour {
+        keep: 48,
+        empty: false,
+        repeat: true,
+        cancel: false,
+        signs: true,
+    };
+    for seed in 0..6 {
+        let parts = random_parts(300, 400, 6, f, 50 + seed);
+        let _ = assert_same(parts, &format!("seed {seed}"));
+    }
+    let row: Vec<u32> = (0..40).map(|t| 7 * t).collect();
+    let mut parts = SparseMixture {
+        dim: 6,
+        codebook: random_parts(1, 300, 6, f, 9).codebook,
+        gaussian_ids: vec![4, 8],
+        means: vec![[0.0; 3]; 2],
+        offsets: vec![0, 40, 80],
+        atoms: row.iter().chain(&row).copied().collect(),
+        weights: (0..80).map(|t| 1.0 + (t % 9) as f64).collect(),
+        ..Default::default()
+    };
+    parts.atoms[79] = parts.atoms[43];
+    let err = assert_same(parts, "a long row repeating an atom");
+    assert!(err.unwrap_err().contains("repeats an atom"));
+}
+
+#[test]
+fn bad_parts_give_the_reference_messages() {
+    let f = Flavour {
+        keep: 3,
+        empty: false,
+        repeat: false,
+        cancel: false,
+        signs: false,
+    };
+    let base = random_parts(30, 9, 5, f, 77);
+    assert!(assert_same(base.clone(), "base").is_ok());
+    let mut cases: Vec<(&str, SparseMixture)> = Vec::new();
+    let mut p = base.clone();
+    p.dim = 0;
+    cases.push(("dim 0", p));
+    let mut p = base.clone();
+    p.codebook.pop();
+    cases.push(("ragged codebook", p));
+    let mut p = base.clone();
+    p.means.pop();
+    cases.push(("short means", p));
+    let mut p = base.clone();
+    p.offsets[5] = p.offsets[7];
+    cases.push(("offsets not ascending", p));
+    let mut p = base.clone();
+    *p.offsets.last_mut().unwrap() += 1;
+    cases.push(("offsets past the atoms", p));
+    let mut p = base.clone();
+    p.weights.pop();
+    cases.push(("short weights", p));
+    let mut p = base.clone();
+    p.gaussian_ids[20] = p.gaussian_ids[19];
+    cases.push(("repeated id", p));
+    let mut p = base.clone();
+    p.codebook[17] = f32::NAN;
+    cases.push(("NaN codebook", p));
+    let mut p = base.clone();
+    p.weights[11] = f64::INFINITY;
+    cases.push(("infinite weight", p));
+    let mut p = base.clone();
+    p.atoms[4] = 12;
+    p.atoms[9] = 9;
+    cases.push(("atoms out of range", p));
+    let mut p = base.clone();
+    p.codebook.iter_mut().step_by(7).for_each(|v| *v *= 1e5); // f16 infinities
+    cases.push(("codebook beyond f16", p));
+    let mut p = base;
+    p.weights.iter_mut().for_each(|w| *w = 0.0);
+    cases.push(("all weights zero", p));
+    for (what, p) in cases {
+        assert!(assert_same(p, what).is_err(), "{what}");
+    }
+    // Empty mixtures, with and without a codebook.
+    for m in [0, 3] {
+        let p = SparseMixture {
+            dim: 4,
+            codebook: vec![0.5; m * 4],
+            offsets: vec![0],
+            ..Default::default()
+        };
+        assert!(assert_same(p, "empty").is_ok());
+    }
+}
+
+/// Bit-for-bit equality of two stored forms (no text made of them: the timing's are large).
+fn same_bits(a: &MixtureEmbeddings, b: &MixtureEmbeddings) -> bool {
+    let f32_eq = |x: &[f32], y: &[f32]| {
+        x.len() == y.len() && x.iter().zip(y).all(|(p, q)| p.to_bits() == q.to_bits())
+    };
+    (a.dim, &a.model_id, a.keep, &a.gaussian_ids, &a.atoms)
+        == (b.dim, &b.model_id, b.keep, &b.gaussian_ids, &b.atoms)
+        && f32_eq(&a.codebook, &b.codebook)
+        && f32_eq(&a.weights, &b.weights)
+        && f32_eq(a.means.as_flattened(), b.means.as_flattened())
+}
+
+/// Times the build of 3M Gaussians (`SLAG_MIXTURE_TIMING_N` to change) × 4 atoms over a
+/// 512-wide codebook of 20,000 rows against the reference:
+/// `cargo test -p slag-common --lib build_timing -- --ignored --nocapture` (with an optimised
+/// build of this crate for figures that mean anything).
+#[test]
+#[ignore = "a timing, not a test"]
+fn build_timing() {
+    let n: usize = std::env::var("SLAG_MIXTURE_TIMING_N")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3_000_000);
+    let (m, dim, keep) = (20_000usize, 512usize, 4usize);
+    let mut r = SplitMix64::new(5);
+    let mut parts = SparseMixture {
+        dim,
+        codebook: (0..m * dim).map(|_| r.range(-1.0, 1.0) as f32).collect(),
+        gaussian_ids: (0..n as u32).collect(),
+        means: vec![[0.0; 3]; n],
+        offsets: Vec::with_capacity(n + 1),
+        atoms: Vec::with_capacity(n * keep),
+        weights: Vec::with_capacity(n * keep),
+        ..Default::default()
+    };
+    parts.offsets.push(0);
+    for _ in 0..n {
+        let first = (r.next_u64() % m as u64) as u32;
+        for t in 0..keep as u32 {
+            parts.atoms.push((first + 97 * t) % m as u32);
+            parts.weights.push(r.range(0.05, 3.0));
+        }
+        parts.offsets.push(parts.atoms.len());
+    }
+    // Seconds and peak resident growth (MiB, Linux) of one build.
+    let kib = |key: &str| -> f64 {
+        let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+        let line = status.lines().find(|l| l.starts_with(key)).unwrap_or("");
+        line.split_whitespace()
+            .nth(1)
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0.0)
+    };
+    // Process CPU seconds (user + system, all threads; Linux, 100 ticks a second).
+    let cpu = || -> f64 {
+        let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+        let after = stat.rsplit(')').next().unwrap_or("");
+        let f: Vec<f64> = after
+            .split_whitespace()
+            .filter_map(|v| v.parse().ok())
+            .collect();
+        f.get(10)
+            .zip(f.get(11))
+            .map_or(0.0, |(u, s)| (u + s) / 100.0)
+    };
+    let run = |build: fn(SparseMixture) -> Result<MixtureEmbeddings>, parts: SparseMixture| {
+        let _ = std::fs::write("/proc/self/clear_refs", "5"); // resets VmHWM
+        let (before, cpu0) = (kib("VmRSS:"), cpu());
+        let t0 = std::time::Instant::now();
+        let out = build(parts).unwrap();
+        let s = t0.elapsed().as_secs_f64();
+        let peak = (kib("VmHWM:") - before) / 1024.0;
+        (
+            out,
+            format!("{s:.2} s ({:.2} s CPU, +{peak:.0} MiB peak)", cpu() - cpu0),
+        )
+    };
+    let (a, reference) = run(reference_from_sparse, parts.clone());
+    let (b, build) = run(MixtureEmbeddings::from_sparse, parts);
+    assert!(same_bits(&a, &b));
+    println!(
+        "{n} Gaussians x {keep} atoms, D {dim}, M {m}, {} threads: reference {reference}, \
+         from_sparse {build}",
+        rayon::current_num_threads()
+    );
+}
