@@ -259,7 +259,7 @@ fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> Sparse
         ..Default::default()
     };
     for _ in 0..n {
-        let len = if f.empty && r.next_u64() % 40 == 0 {
+        let len = if f.empty && r.next_u64().is_multiple_of(40) {
             0
         } else {
             1 + (r.next_u64() % f.keep as u64) as usize
@@ -269,7 +269,7 @@ fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> Sparse
         for t in 0..len {
             parts.atoms.push((first + t as u32) % m as u32);
             let u = r.next_u64();
-            let w = if u % 3 == 0 {
+            let w = if u.is_multiple_of(3) {
                 r.range(0.01, 4.0)
             } else {
                 ties[(u >> 8) as usize % ties.len()]
@@ -283,14 +283,14 @@ fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> Sparse
             });
         }
         let row = start..parts.atoms.len();
-        if f.empty && len > 0 && r.next_u64() % 60 == 0 {
+        if f.empty && len > 0 && r.next_u64().is_multiple_of(60) {
             parts.weights[row.clone()].iter_mut().for_each(|w| *w = 0.0);
         }
-        if f.repeat && len >= 2 && r.next_u64() % 50 == 0 {
+        if f.repeat && len >= 2 && r.next_u64().is_multiple_of(50) {
             parts.atoms[row.end - 1] = parts.atoms[row.start];
         }
-        if f.cancel && len >= 2 && m >= 4 && r.next_u64() % 50 == 0 {
-            let pair = if r.next_u64() % 2 == 0 {
+        if f.cancel && len >= 2 && m >= 4 && r.next_u64().is_multiple_of(50) {
+            let pair = if r.next_u64().is_multiple_of(2) {
                 [0, 1]
             } else {
                 [2, 3]
