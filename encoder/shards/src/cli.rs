@@ -8,7 +8,9 @@ use anyhow::Context;
 use slag_common::embeddings::Embeddings;
 use slag_common::forms::EmbeddingsForm;
 use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap};
+use slag_common::shards::{
+    DisplayColumns, Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap,
+};
 
 use crate::partition::{
     DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice, mixture_layout,
@@ -238,6 +240,7 @@ fn resolve_segments(
 fn partition_with_segments(
     args: &PartitionArgs,
     src: &impl GaussianSource,
+    mix: Option<&MixtureEmbeddings>,
     segments: Option<&slag_common::segments::Segments>,
     up: UpChoice,
     to_map: Option<SceneToMap>,
@@ -246,36 +249,64 @@ fn partition_with_segments(
     match segments {
         Some(s) => {
             let src = slag_common::shards::WithSegments::new(src, s)?;
-            partition_source(args, &src, up, to_map, scene_gaussians)
+            partition_source(args, &src, mix, up, to_map, scene_gaussians)
         }
-        None => partition_source(args, src, up, to_map, scene_gaussians),
+        None => partition_source(args, src, mix, up, to_map, scene_gaussians),
     }
 }
 
 /// Resolves the cap for `src`, opens `--store` and partitions `src` into it, then prints and
-/// (with `--report`) writes the [`StorageReport`]. `scene_gaussians`: the source scene's
-/// Gaussian count if known. A cap that cannot hold one Gaussian fails before the store is opened.
+/// (with `--report`) writes the [`StorageReport`]. `mix`: the mixture whose rows `src` gives ids,
+/// means and display columns of (its shards are f16 slots, `--dtype` does not apply); `None`:
+/// `src`'s own dense vectors. `scene_gaussians`: the source scene's Gaussian count if known. A
+/// cap that cannot hold one Gaussian fails before the store is opened.
 fn partition_source(
     args: &PartitionArgs,
     src: &impl GaussianSource,
+    mix: Option<&MixtureEmbeddings>,
     up: UpChoice,
     to_map: Option<SceneToMap>,
     scene_gaussians: Option<u64>,
 ) -> anyhow::Result<(Manifest, StorageReport)> {
-    let layout = shard_layout(src, &args.scene, args.dtype);
-    let max_per_shard = resolve_max_per_shard(&layout, args.shard_cap()?)?;
+    let (max_per_shard, dtype) = match mix {
+        None => {
+            let layout = shard_layout(src, &args.scene, args.dtype);
+            (
+                resolve_max_per_shard(&layout, args.shard_cap()?)?,
+                args.dtype,
+            )
+        }
+        Some(mix) => {
+            let layout = mixture_layout(src, &args.scene, mix.keep);
+            let cap = resolve_mixture_max_per_shard(&layout, args.shard_cap()?)?;
+            (cap, Dtype::F16)
+        }
+    };
     let key = load_signing_key(args.signing_key.as_deref())?;
     let store = &ShardStore::open(&args.store)?;
     let params = PartitionParams {
         scene_id: args.scene.clone(),
         max_per_shard,
         up,
-        dtype: args.dtype,
+        dtype,
         to_map,
     };
-    let m = partition_into_store_signed(store, src, &params, key.as_ref()).context("partition")?;
+    let m = match mix {
+        None => partition_into_store_signed(store, src, &params, key.as_ref()),
+        Some(mix) => partition_mixture_into_store_signed(store, src, mix, &params, key.as_ref()),
+    }
+    .context("partition")?;
     let report = report_partition(args, store, &m, scene_gaussians)?;
     Ok((m, report))
+}
+
+/// The display columns of `--display-ply` and the `.ply`'s Gaussian count. Shards store the
+/// `.ply` convention (log-scales, logit opacities, normalised rotations, SH DC): the columns
+/// invert load_ply's activations.
+fn display_columns(ply: &std::path::Path) -> anyhow::Result<(DisplayColumns, u64)> {
+    let g =
+        slag_common::scene::load_ply(ply, slag_common::scene::PlyLoadOptions { colours: true })?;
+    Ok((DisplayColumns::from_gaussians(&g), g.len() as u64))
 }
 
 /// Runs `partition`; prints a one-line summary and the stored-vs-dense [`StorageReport`]
@@ -311,34 +342,19 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     };
     let to_map = args.scene_to_map()?;
     let segments = resolve_segments(args, path)?;
+    let segs = segments.as_ref();
     let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
     // The embeddings file records the source .ply's Gaussian count (0 in files without it).
     let mut scene_gaussians = Some(emb.scene_gaussians).filter(|&n| n > 0);
     let (m, _) = match &args.display_ply {
         Some(ply) => {
-            // Shards store the .ply convention (log-scales, logit opacities, normalised
-            // rotations, SH DC): invert load_ply's activations.
-            let g = slag_common::scene::load_ply(
-                ply,
-                slag_common::scene::PlyLoadOptions { colours: true },
-            )?;
-            scene_gaussians = scene_gaussians.or(Some(g.len() as u64));
-            let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
-            drop(g);
+            let (cols, n) = display_columns(ply)?;
+            scene_gaussians = scene_gaussians.or(Some(n));
             let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
-            partition_with_segments(
-                args,
-                &src,
-                segments.as_ref(),
-                up,
-                to_map.clone(),
-                scene_gaussians,
-            )?
+            partition_with_segments(args, &src, None, segs, up, to_map, scene_gaussians)?
         }
-        None => {
-            partition_with_segments(args, &emb, segments.as_ref(), up, to_map, scene_gaussians)?
-        }
+        None => partition_with_segments(args, &emb, None, segs, up, to_map, scene_gaussians)?,
     };
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
@@ -439,21 +455,16 @@ fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow
     // The segments beside the mixture file (the encoder writes both into OUT/), as for dense
     // embeddings: the shards then carry them (format version 4).
     let segments = resolve_segments(args, path)?;
+    let segs = segments.as_ref();
     let up = args.up_or_cameras(to_map.as_ref())?;
     let t = std::time::Instant::now();
     let (m, report) = match &args.display_ply {
         Some(ply) => {
-            let g = slag_common::scene::load_ply(
-                ply,
-                slag_common::scene::PlyLoadOptions { colours: true },
-            )?;
-            let n = g.len() as u64;
-            let cols = slag_common::shards::DisplayColumns::from_gaussians(&g);
-            drop(g);
+            let (cols, n) = display_columns(ply)?;
             let src = slag_common::shards::WithDisplay::from_columns(&mix, &cols)?;
-            mixture_with_segments(args, &src, &mix, segments.as_ref(), up, to_map, Some(n))?
+            partition_with_segments(args, &src, Some(&mix), segs, up, to_map, Some(n))?
         }
-        None => mixture_with_segments(args, &mix, &mix, segments.as_ref(), up, to_map, None)?,
+        None => partition_with_segments(args, &mix, Some(&mix), segs, up, to_map, None)?,
     };
     println!(
         "scene {} generation {}: {} Gaussians as mixtures of {} slots over {} codebook rows in {} \
@@ -471,52 +482,6 @@ fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow
         t.elapsed().as_secs_f64()
     );
     Ok(())
-}
-
-/// [`partition_mixture_source`] with the segments wrapped around `src` when there are any.
-fn mixture_with_segments(
-    args: &PartitionArgs,
-    src: &impl GaussianSource,
-    mix: &MixtureEmbeddings,
-    segments: Option<&slag_common::segments::Segments>,
-    up: UpChoice,
-    to_map: Option<SceneToMap>,
-    scene_gaussians: Option<u64>,
-) -> anyhow::Result<(Manifest, StorageReport)> {
-    match segments {
-        Some(s) => {
-            let src = slag_common::shards::WithSegments::new(src, s)?;
-            partition_mixture_source(args, &src, mix, up, to_map, scene_gaussians)
-        }
-        None => partition_mixture_source(args, src, mix, up, to_map, scene_gaussians),
-    }
-}
-
-/// [`partition_source`] for a mixture: `src` gives ids, means and display columns of `mix`'s
-/// rows.
-fn partition_mixture_source(
-    args: &PartitionArgs,
-    src: &impl GaussianSource,
-    mix: &MixtureEmbeddings,
-    up: UpChoice,
-    to_map: Option<SceneToMap>,
-    scene_gaussians: Option<u64>,
-) -> anyhow::Result<(Manifest, StorageReport)> {
-    let layout = mixture_layout(src, &args.scene, mix.keep);
-    let max_per_shard = resolve_mixture_max_per_shard(&layout, args.shard_cap()?)?;
-    let key = load_signing_key(args.signing_key.as_deref())?;
-    let store = &ShardStore::open(&args.store)?;
-    let params = PartitionParams {
-        scene_id: args.scene.clone(),
-        max_per_shard,
-        up,
-        dtype: Dtype::F16,
-        to_map,
-    };
-    let m = partition_mixture_into_store_signed(store, src, mix, &params, key.as_ref())
-        .context("partition")?;
-    let report = report_partition(args, store, &m, scene_gaussians)?;
-    Ok((m, report))
 }
 
 /// Measures the committed partition's bytes from the store, prints the [`StorageReport`] and
@@ -568,7 +533,7 @@ fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<(
     };
     let t = std::time::Instant::now();
     // A synthetic scene has no source .ply: its baseline counts the stored rows.
-    let (m, _) = partition_source(args, &scene, up, to_map, None)?;
+    let (m, _) = partition_source(args, &scene, None, up, to_map, None)?;
     let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
     println!(
         "scene {} generation {}: {} synthetic Gaussians (dim {dim}) in {} shards, {} bytes ({:?}), {:.1}s",
