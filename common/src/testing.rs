@@ -21,6 +21,16 @@ pub async fn exchange(addr: &str, raw: &[u8]) -> (u16, String, String) {
     read_answer(&mut s).await
 }
 
+/// [`exchange`], asserting that the answer is the servers' JSON error body with `status`
+/// ([`assert_json_error`]).
+///
+/// Panics as [`exchange`], and when the answer is another.
+pub async fn exchange_error(addr: &str, raw: &[u8], status: u16) {
+    let (got, head, body) = exchange(addr, raw).await;
+    assert_eq!(got, status, "{head}");
+    assert_json_error(status, &head, &body);
+}
+
 /// [`exchange`] from the local address `source` (another loopback address such as 127.0.0.2 is
 /// another client to the server's per-address share).
 ///
@@ -91,6 +101,56 @@ pub async fn stalled_heads(addr: &str, n: usize, path: &str) -> Vec<TcpStream> {
     stalled
 }
 
+/// The connection limit under stalled clients: opens `n` [`stalled_heads`] to `addr`, asserts
+/// that `GET path` on a fresh connection is still answered 200 with `expect` in its body, then
+/// that the server closes every stalled connection within 30 s (its header timeout).
+///
+/// Panics as [`exchange`], and when an assertion fails.
+pub async fn assert_answered_while_stalled(addr: &str, n: usize, path: &str, expect: &str) {
+    let mut stalled = stalled_heads(addr, n, path).await;
+    let (status, _, body) = exchange(addr, &get_request(path, "")).await;
+    assert_eq!(status, 200, "{body}");
+    assert!(body.contains(expect), "{body}");
+    for s in &mut stalled {
+        closed_within(s, Duration::from_secs(30)).await;
+    }
+}
+
+/// One address flooding a server whose per-address share is below its connection limit: `n`
+/// connections from 127.0.0.1 each send `unfinished` (a request cut short) and stay open; then
+/// asserts that `GET path` from 127.0.0.2 is answered 200 within 20 s and that one more
+/// connection from 127.0.0.1 is refused with the JSON 429. Returns the flood's connections and
+/// the 429's head and body.
+///
+/// Panics when a connection fails or an assertion fails.
+pub async fn flood_from_one_address(
+    addr: &str,
+    n: usize,
+    unfinished: &[u8],
+    path: &str,
+) -> (Vec<TcpStream>, String, String) {
+    let flood: std::net::IpAddr = "127.0.0.1".parse().expect("loopback");
+    let other: std::net::IpAddr = "127.0.0.2".parse().expect("loopback");
+    let mut stalled = Vec::with_capacity(n);
+    for _ in 0..n {
+        let mut s = connect_from(flood, addr).await;
+        let _ = s.write_all(unfinished).await;
+        stalled.push(s);
+    }
+    let (status, _, body) = tokio::time::timeout(
+        Duration::from_secs(20),
+        exchange_from(other, addr, &get_request(path, "")),
+    )
+    .await
+    .expect("another address is answered while one address floods the server");
+    assert_eq!(status, 200, "{body}");
+    let mut s = connect_from(flood, addr).await;
+    let (status, head, body) = read_answer(&mut s).await;
+    assert_eq!(status, 429, "{head}\n{body}");
+    assert_json_error(429, &head, &body);
+    (stalled, head, body)
+}
+
 /// Asserts that the server at `addr` answers `GET path` carrying the header line `one` (an
 /// accepted `Authorization` header, ending in `\r\n`) with 200, and answers 401 with the JSON
 /// error body when the request carries two `Authorization` headers: `one` twice, or `one` with
@@ -109,6 +169,15 @@ pub async fn assert_two_authorizations_refused(addr: &str, path: &str, one: &str
         assert_eq!(status, 401, "{two}: {body}");
         assert_json_error(401, &head, &body);
     }
+}
+
+/// Asserts that a server started with the token variable `var` set blank refused to start: it
+/// failed, and its stderr names `var`, says "blank" and gives a `hint:`.
+pub fn assert_blank_token_refused(out: &std::process::Output, var: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "started with a blank token: {err}");
+    assert!(err.contains(var) && err.contains("blank"), "{err}");
+    assert!(err.contains("hint:"), "{err}");
 }
 
 /// Asserts that an answer is the servers' JSON error body with `status`: a JSON content type,
@@ -310,4 +379,22 @@ pub fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
             std::fs::copy(e.path(), to.join(e.file_name())).expect("copy a file");
         }
     }
+}
+
+/// The `host:port` a started `serve` (`slag-shards serve`, `slag-encoder serve`) listens on, from
+/// the first line of its stdout (`serving on SCHEME://ADDR/v1/...`).
+///
+/// Panics when the child's stdout is not piped, cannot be read, or its first line holds no
+/// address.
+pub fn served_address(child: &mut std::process::Child) -> String {
+    use std::io::BufRead;
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.as_mut().expect("the child's stdout is piped"))
+        .read_line(&mut line)
+        .expect("read the server's first line");
+    let rest = line
+        .split("://")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no address in {line:?}"));
+    rest.split('/').next().unwrap_or_default().to_string()
 }

@@ -12,7 +12,8 @@ use std::time::Duration;
 use slag_common::http::ServerLimits;
 use slag_common::shards::Dtype;
 use slag_common::testing::{
-    assert_json_error, closed_within, exchange, get_request as get, stalled_heads,
+    assert_answered_while_stalled, assert_blank_token_refused, assert_json_error, closed_within,
+    exchange, exchange_error, flood_from_one_address, get_request as get,
 };
 use slag_edge::serve::{AppState, ServeOptions};
 use support::{
@@ -107,28 +108,11 @@ async fn one_address_cannot_take_every_connection_slot() {
         ..ServeOptions::new("grid")
     };
     let (addr, _dir) = edge(Arc::new(BasisEmbedder::new(8)), opts).await;
-    let flood: std::net::IpAddr = "127.0.0.1".parse().unwrap();
-    let other: std::net::IpAddr = "127.0.0.2".parse().unwrap();
-    // 24 stalled bodies from one address: more than every slot.
-    let mut stalled = Vec::new();
-    for _ in 0..24 {
-        let mut s = slag_common::testing::connect_from(flood, &addr).await;
-        let _ = s.write_all(STALLED_BODY).await;
-        stalled.push(s);
-    }
-    // Another address is answered at once: it still has its share of the slots.
-    let health = tokio::time::timeout(
-        Duration::from_secs(20),
-        slag_common::testing::exchange_from(other, &addr, &get("/health", "")),
-    )
-    .await
-    .expect("/health from another address is answered while one address floods the server");
-    assert_eq!(health.0, 200, "{}", health.2);
-    // The flooding address is told why (429 with Retry-After and the JSON body).
-    let mut s = slag_common::testing::connect_from(flood, &addr).await;
-    let (status, head, body) = slag_common::testing::read_answer(&mut s).await;
-    assert_eq!(status, 429, "{head}\n{body}");
-    assert_json_error(429, &head, &body);
+    // 24 stalled bodies from one address: more than every slot. Another address is answered
+    // at once (it still has its share of the slots); the flooding address is told why (429
+    // with Retry-After and the JSON body).
+    let (mut stalled, head, body) =
+        flood_from_one_address(&addr, 24, STALLED_BODY, "/health").await;
     assert!(
         head.to_ascii_lowercase().contains("retry-after: 1"),
         "{head}"
@@ -178,14 +162,8 @@ async fn stalled_and_idle_connections_are_closed_within_the_header_timeout() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn health_answers_while_stalled_sockets_hold_every_connection_slot() {
     let (addr, _dir) = edge_with_limits(limits(1, 8)).await;
-    let mut stalled = stalled_heads(&addr, 24, "/health").await;
     // Three times the limit stalls; slots come free as the header timeout closes them.
-    let (status, _, body) = exchange(&addr, &get("/health", "")).await;
-    assert_eq!(status, 200, "{body}");
-    assert!(body.contains("\"ok\""), "{body}");
-    for s in &mut stalled {
-        closed_within(s, Duration::from_secs(30)).await;
-    }
+    assert_answered_while_stalled(&addr, 24, "/health", "\"ok\"").await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -252,27 +230,17 @@ async fn every_error_the_server_sends_has_the_json_body() {
          Content-Length: {}\r\n\r\n{big}",
         big.len()
     );
-    let (s, head, body) = exchange(&addr, raw.as_bytes()).await;
-    assert_eq!(s, 413, "{head}");
-    assert_json_error(413, &head, &body);
+    exchange_error(&addr, raw.as_bytes(), 413).await;
     // 414: an overlong request target.
     let path = format!("/query?text={}", "a".repeat(9_000));
-    let (s, head, body) = exchange(&addr, &get(&path, "")).await;
-    assert_eq!(s, 414, "{head}");
-    assert_json_error(414, &head, &body);
+    exchange_error(&addr, &get(&path, ""), 414).await;
     // 431: an oversized header block.
     let hdr = format!("X-Pad: {}\r\n", "b".repeat(20_000));
-    let (s, head, body) = exchange(&addr, &get("/health", &hdr)).await;
-    assert_eq!(s, 431, "{head}");
-    assert_json_error(431, &head, &body);
+    exchange_error(&addr, &get("/health", &hdr), 431).await;
     // 408: a query held past the request timeout (its prompt waits at the gate).
-    let (s, head, body) = exchange(&addr, &get("/query?text=t1", "")).await;
-    assert_eq!(s, 408, "{head}");
-    assert_json_error(408, &head, &body);
+    exchange_error(&addr, &get("/query?text=t1", ""), 408).await;
     // 404 and 400 as before.
-    let (s, head, body) = exchange(&addr, &get("/nope", "")).await;
-    assert_eq!(s, 404);
-    assert_json_error(404, &head, &body);
+    exchange_error(&addr, &get("/nope", ""), 404).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -361,13 +329,7 @@ fn a_blank_token_in_the_environment_refuses_to_start() {
             .env("RUST_LOG", "warn")
             .output()
             .unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "started with a blank token: {err}");
-        assert!(
-            err.contains("SLAG_EDGE_TOKEN") && err.contains("blank"),
-            "{err}"
-        );
-        assert!(err.contains("hint:"), "{err}");
+        assert_blank_token_refused(&out, "SLAG_EDGE_TOKEN");
     }
 }
 

@@ -8,10 +8,11 @@
 
 mod support;
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Output, Stdio};
 
+use slag_common::testing::served_address;
 use support::{assert_success, slag_encoder};
 
 fn fixtures() -> PathBuf {
@@ -129,8 +130,15 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         "{segments}"
     );
     assert!(segments["waited_s"].as_f64().unwrap() >= 0.0, "{segments}");
-    assert!(segments["stats"]["stages"]["neighbours"].is_number(), "{segments}");
-    assert!(report["timings"]["reduce"].as_f64().unwrap() > 0.0, "{}", report["timings"]);
+    assert!(
+        segments["stats"]["stages"]["neighbours"].is_number(),
+        "{segments}"
+    );
+    assert!(
+        report["timings"]["reduce"].as_f64().unwrap() > 0.0,
+        "{}",
+        report["timings"]
+    );
     assert!(
         closing.contains("on the CPU, write") && closing.contains("segments waited"),
         "{closing}"
@@ -167,16 +175,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let mut line = String::new();
-    BufReader::new(server.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let addr = line
-        .split("://")
-        .nth(1)
-        .and_then(|r| r.split('/').next())
-        .unwrap()
-        .to_string();
+    let addr = served_address(&mut server);
     let (status, body) = get(&addr, "/v1/scenes/tiny/manifest");
     let (codebook_status, codebook) = get(&addr, "/v1/scenes/tiny/codebook");
     server.kill().unwrap();

@@ -10,7 +10,8 @@ use std::time::Duration;
 
 use slag_common::http::ServerLimits;
 use slag_common::testing::{
-    assert_json_error, closed_within, exchange, get_request as get, stalled_heads,
+    assert_answered_while_stalled, assert_blank_token_refused, assert_json_error, closed_within,
+    exchange, exchange_error, flood_from_one_address, get_request as get,
 };
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -31,14 +32,8 @@ async fn start(token: Option<&str>, limits: ServerLimits) -> (String, tempfile::
 async fn stalled_sockets_close_and_the_connection_limit_keeps_the_server_answering() {
     let (addr, _dir) = start(None, limits(1, 5, 8)).await;
     let mut idle = tokio::net::TcpStream::connect(&addr).await.unwrap();
-    let mut stalled = stalled_heads(&addr, 24, "/v1/scenes").await;
-    let (status, _, body) = exchange(&addr, &get("/v1/scenes", "")).await;
-    assert_eq!(status, 200, "{body}");
-    assert!(body.contains("lab"), "{body}");
+    assert_answered_while_stalled(&addr, 24, "/v1/scenes", "lab").await;
     closed_within(&mut idle, Duration::from_secs(30)).await;
-    for s in &mut stalled {
-        closed_within(s, Duration::from_secs(30)).await;
-    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -50,25 +45,7 @@ async fn one_address_cannot_take_every_connection_slot() {
         ..limits(60, 5, 8)
     };
     let (addr, _dir) = start(None, l).await;
-    let flood: std::net::IpAddr = "127.0.0.1".parse().unwrap();
-    let other: std::net::IpAddr = "127.0.0.2".parse().unwrap();
-    let mut stalled = Vec::new();
-    for _ in 0..16 {
-        let mut s = slag_common::testing::connect_from(flood, &addr).await;
-        let _ = s.write_all(b"GET /v1/scenes HTTP/1.1\r\n").await;
-        stalled.push(s);
-    }
-    let (status, _, body) = tokio::time::timeout(
-        Duration::from_secs(20),
-        slag_common::testing::exchange_from(other, &addr, &get("/v1/scenes", "")),
-    )
-    .await
-    .expect("another address is answered while one address floods the server");
-    assert_eq!(status, 200, "{body}");
-    let mut s = slag_common::testing::connect_from(flood, &addr).await;
-    let (status, head, body) = slag_common::testing::read_answer(&mut s).await;
-    assert_eq!(status, 429, "{head}\n{body}");
-    assert_json_error(429, &head, &body);
+    flood_from_one_address(&addr, 16, b"GET /v1/scenes HTTP/1.1\r\n", "/v1/scenes").await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -123,24 +100,14 @@ async fn errors_have_the_json_body_and_the_bearer_scheme_is_case_insensitive() {
     )
     .await;
     assert_eq!(s, 200);
-    let (s, head, body) = exchange(
-        &addr,
-        format!("POST /v1/scenes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{auth}Content-Length: 0\r\n\r\n")
-            .as_bytes(),
-    )
-    .await;
-    assert_eq!(s, 405, "{head}");
-    assert_json_error(405, &head, &body);
-    let (s, head, body) = exchange(&addr, &get(&format!("/v1/{}", "a".repeat(9000)), auth)).await;
-    assert_eq!(s, 414, "{head}");
-    assert_json_error(414, &head, &body);
+    let post = format!(
+        "POST /v1/scenes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n{auth}Content-Length: 0\r\n\r\n"
+    );
+    exchange_error(&addr, post.as_bytes(), 405).await;
+    exchange_error(&addr, &get(&format!("/v1/{}", "a".repeat(9000)), auth), 414).await;
     let pad = format!("{auth}X-Pad: {}\r\n", "p".repeat(20_000));
-    let (s, head, body) = exchange(&addr, &get("/v1/scenes", &pad)).await;
-    assert_eq!(s, 431, "{head}");
-    assert_json_error(431, &head, &body);
-    let (s, head, body) = exchange(&addr, &get("/v1/scenes/lab/codebook", auth)).await;
-    assert_eq!(s, 404, "{head}");
-    assert_json_error(404, &head, &body);
+    exchange_error(&addr, &get("/v1/scenes", &pad), 431).await;
+    exchange_error(&addr, &get("/v1/scenes/lab/codebook", auth), 404).await;
     // 416 keeps its Content-Range and gets the JSON body.
     let (_, _, m) = exchange(&addr, &get("/v1/scenes/lab/manifest", auth)).await;
     let m = slag_common::shards::Manifest::from_json(m.as_bytes(), "http").unwrap();
@@ -170,12 +137,6 @@ fn a_blank_shard_token_in_the_environment_refuses_to_start() {
             .env("SLAG_SHARD_TOKEN", blank)
             .output()
             .unwrap();
-        let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "started with a blank token: {err}");
-        assert!(
-            err.contains("SLAG_SHARD_TOKEN") && err.contains("blank"),
-            "{err}"
-        );
-        assert!(err.contains("hint:"), "{err}");
+        assert_blank_token_refused(&out, "SLAG_SHARD_TOKEN");
     }
 }

@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use slag_common::http::ServerLimits;
 use slag_common::testing::{
     TestCa, TlsClient, assert_json_error, closed_within, exchange_tls, get_request as get,
-    peer_certificate, read_answer, tls_client_config, tls_connect,
+    peer_certificate, read_answer, served_address, tls_client_config, tls_connect,
 };
 use slag_common::tls::ServerTls;
 use tokio::io::AsyncWriteExt;
@@ -101,20 +101,10 @@ fn shards(args: &[&str], env: &[(&str, &str)]) -> Child {
 /// paths), started as [`shards`] starts it.
 fn serve_tls_on_loopback(store: &str, cert: &str, key: &str) -> Child {
     let args = ["serve", "--store", store, "--bind", "127.0.0.1:0"];
-    shards(&[&args[..], &["--tls-cert", cert, "--tls-key", key]].concat(), &[])
-}
-
-/// The address of a started `serve` from its first line (`serving on SCHEME://ADDR/v1/...`).
-fn served_address(child: &mut Child) -> String {
-    let mut line = String::new();
-    BufReader::new(child.stdout.as_mut().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let rest = line
-        .split("://")
-        .nth(1)
-        .unwrap_or_else(|| panic!("no address in {line:?}"));
-    rest.split('/').next().unwrap().to_string()
+    shards(
+        &[&args[..], &["--tls-cert", cert, "--tls-key", key]].concat(),
+        &[],
+    )
 }
 
 /// Sends `SIGHUP` to `child`.
