@@ -12,6 +12,9 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+#[path = "../src/raster/testdata.rs"]
+mod testdata;
+
 use glam::{DMat3, DQuat, DVec3};
 use proptest::prelude::*;
 use slag_common::camera::{Intrinsics, WorldToCamera};
@@ -20,6 +23,7 @@ use slag_common::scene::Gaussians;
 use slag_encoder::aggregate::{ContributionStore, Entry, ImageContribution, ReduceParams, reduce};
 use slag_encoder::raster::project::{ALPHA_MAX, ALPHA_MIN, LOW_PASS, project_gaussian};
 use slag_encoder::raster::{CpuRasterizer, GpuRasterizer, PixelWeights, WeightRasterizer};
+use testdata::gpu_unless_skipped;
 
 // ---------------------------------------------------------------------------------------------
 // helpers
@@ -31,19 +35,9 @@ fn unit_quat(r: &mut SplitMix64) -> [f32; 4] {
     q.map(|v| (v / n) as f32)
 }
 
-fn skip_gpu() -> bool {
-    std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1")
-}
-
 /// The GPU rasterizer with noise-filled scratch buffers; `None` only under `SLAG_SKIP_GPU=1`.
 fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
-    if skip_gpu() {
-        eprintln!("SLAG_SKIP_GPU=1: skipping the GPU part");
-        return None;
-    }
-    let mut r = GpuRasterizer::new(g).unwrap_or_else(|e| {
-        panic!("no usable Vulkan adapter ({e}); install mesa-vulkan-drivers or set SLAG_SKIP_GPU=1")
-    });
+    let mut r = gpu_unless_skipped(|| GpuRasterizer::new(g))?;
     r.set_noise_fill(Some(0x57ab));
     Some(r)
 }

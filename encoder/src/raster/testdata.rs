@@ -1,6 +1,6 @@
 //! Test/benchmark helpers for the shared snowmiku scene, over the real loaders
-//! (`slag_common::scene::load_ply`, `slag_common::camera::load_views`). Shared by `raster::tests`
-//! and `benches/raster.rs` (via `#[path]`).
+//! (`slag_common::scene::load_ply`, `slag_common::camera::load_views`), and the GPU tests' skip
+//! rule. Shared by `raster::tests`, `tests/stability.rs` and `benches/raster.rs` (via `#[path]`).
 
 #![allow(dead_code, clippy::unwrap_used)]
 
@@ -29,4 +29,24 @@ pub fn load_views_for_test(scene: &Path) -> Vec<(String, Intrinsics, WorldToCame
         .into_iter()
         .map(|v| (v.name, v.intrinsics, v.world_to_camera))
         .collect()
+}
+
+/// Whether `SLAG_SKIP_GPU=1` asks to skip the GPU parts of the tests.
+pub fn skip_gpu() -> bool {
+    std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1")
+}
+
+/// `None` when [`skip_gpu`] (said on stderr); else what `make` builds (the GPU rasterizer),
+/// panicking with a hint when it fails: without `SLAG_SKIP_GPU=1` a missing Vulkan adapter fails
+/// the test rather than skipping it.
+pub fn gpu_unless_skipped<R, E: std::fmt::Display>(
+    make: impl FnOnce() -> Result<R, E>,
+) -> Option<R> {
+    if skip_gpu() {
+        eprintln!("SLAG_SKIP_GPU=1: skipping the GPU part of this test");
+        return None;
+    }
+    Some(make().unwrap_or_else(|e| {
+        panic!("no usable Vulkan adapter ({e}); install mesa-vulkan-drivers or set SLAG_SKIP_GPU=1")
+    }))
 }

@@ -12,25 +12,17 @@ use slag_common::rng::SplitMix64;
 use slag_common::scene::Gaussians;
 
 use super::project::{ALPHA_MIN, Splat2d, T_MIN, TILE_SIZE, splat_alpha};
-use super::testdata::{load_ply_for_test, load_views_for_test, snowmiku_dir};
+use super::testdata::{
+    gpu_unless_skipped, load_ply_for_test, load_views_for_test, skip_gpu, snowmiku_dir,
+};
 use super::*;
 
 // ---------------------------------------------------------------------------------------------
 // helpers
 
-fn skip_gpu() -> bool {
-    std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1")
-}
-
 /// The GPU rasterizer, with noise-filled outputs; `None` only when `SLAG_SKIP_GPU=1`.
 fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
-    if skip_gpu() {
-        eprintln!("SLAG_SKIP_GPU=1: skipping the GPU part of this test");
-        return None;
-    }
-    let mut r = GpuRasterizer::new(g).unwrap_or_else(|e| {
-        panic!("no usable Vulkan adapter ({e}); install mesa-vulkan-drivers or set SLAG_SKIP_GPU=1")
-    });
+    let mut r = gpu_unless_skipped(|| GpuRasterizer::new(g))?;
     r.set_noise_fill(Some(0x5eed));
     Some(r)
 }
