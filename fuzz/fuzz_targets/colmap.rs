@@ -10,15 +10,12 @@ use std::sync::OnceLock;
 
 use libfuzzer_sys::fuzz_target;
 
+mod scratch;
+
 fn dirs() -> &'static [PathBuf; 2] {
     static DIRS: OnceLock<[PathBuf; 2]> = OnceLock::new();
     DIRS.get_or_init(|| {
-        let base = if std::path::Path::new("/dev/shm").is_dir() {
-            PathBuf::from("/dev/shm")
-        } else {
-            std::env::temp_dir()
-        };
-        let root = base.join(format!("slag-fuzz-colmap-{}", std::process::id()));
+        let root = scratch::scratch_dir("colmap");
         let d = [root.join("bin"), root.join("txt")];
         for x in &d {
             std::fs::create_dir_all(x.join("sparse/0")).unwrap();

@@ -7,15 +7,12 @@ use std::sync::OnceLock;
 
 use libfuzzer_sys::fuzz_target;
 
+mod scratch;
+
 fn dir() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let base = if std::path::Path::new("/dev/shm").is_dir() {
-            PathBuf::from("/dev/shm")
-        } else {
-            std::env::temp_dir()
-        };
-        let d = base.join(format!("slag-fuzz-transforms-{}", std::process::id()));
+        let d = scratch::scratch_dir("transforms");
         std::fs::create_dir_all(&d).unwrap();
         d
     })

@@ -28,23 +28,20 @@ pub(crate) enum Opened {
 
 /// Names a file type for a message: "a folder", "a FIFO", "a symbolic link", …
 pub(crate) fn kind_of(t: std::fs::FileType) -> &'static str {
-    if t.is_file() {
-        "a regular file"
-    } else if t.is_dir() {
-        "a folder"
-    } else if t.is_symlink() {
-        "a symbolic link"
-    } else if t.is_fifo() {
-        "a FIFO"
-    } else if t.is_char_device() {
-        "a character device"
-    } else if t.is_block_device() {
-        "a block device"
-    } else if t.is_socket() {
-        "a socket"
-    } else {
-        "not a regular file"
-    }
+    use std::fs::FileType;
+    const KINDS: [(fn(&FileType) -> bool, &str); 7] = [
+        (FileType::is_file, "a regular file"),
+        (FileType::is_dir, "a folder"),
+        (FileType::is_symlink, "a symbolic link"),
+        (FileType::is_fifo, "a FIFO"),
+        (FileType::is_char_device, "a character device"),
+        (FileType::is_block_device, "a block device"),
+        (FileType::is_socket, "a socket"),
+    ];
+    KINDS
+        .iter()
+        .find(|(is, _)| is(&t))
+        .map_or("not a regular file", |&(_, name)| name)
 }
 
 /// Opens `path` for reading without following a symbolic link in its last component and
