@@ -615,10 +615,12 @@ impl GpuRasterizer {
             p,
         };
         let mut sort: Option<SortBuffers> = None;
+        let largest = tiles.iter().map(|t| u64::from(t.n_tile)).max().unwrap_or(0);
+        let staging = TileStaging::new(&self.device, largest, p, dim);
         let (mut device_s, mut sink_s) = (0.0, 0.0);
         for tile in &tiles {
             let t0 = std::time::Instant::now();
-            let out = self.reduce_tile(&shared, tile, &mut sort)?;
+            let out = self.reduce_tile(&shared, tile, &mut sort, &staging)?;
             let t1 = std::time::Instant::now();
             sink(out)?;
             device_s += (t1 - t0).as_secs_f64();
@@ -645,6 +647,7 @@ impl GpuRasterizer {
         s: &TileShared<'_>,
         tile: &Tile,
         sort: &mut Option<SortBuffers>,
+        staging: &TileStaging,
     ) -> Result<KeptTile> {
         let (p, dim) = (s.p, s.kept.dim);
         let n = tile.records as u32;
@@ -671,16 +674,22 @@ impl GpuRasterizer {
         }
         enc = self.phase_end(enc, &mut phases)?;
         let n_tile = u64::from(tile.n_tile);
-        let mut reads = vec![
-            (&out.meta, 0, n_tile * 8),
-            (&out.kept, 0, n_tile * p.keep as u64 * 8),
-        ];
+        let mut sizes = vec![n_tile * 8, n_tile * p.keep as u64 * 8];
         if p.dense {
-            reads.push((&out.rows, 0, n_tile * dim as u64 * 4));
+            sizes.push(n_tile * dim as u64 * 4);
         }
-        let read = self.submit_and_read(enc, &reads)?;
-        phases.mark();
-        let output = tile_output(tile, p, dim, &read);
+        for ((src, dst), &size) in [&out.meta, &out.kept, &out.rows]
+            .into_iter()
+            .zip(&staging.buffers)
+            .zip(&sizes)
+        {
+            enc.copy_buffer_to_buffer(src, 0, dst, 0, size);
+        }
+        self.queue.submit([enc.finish()]);
+        let output = staging.read(&self.device, &sizes, |read| {
+            phases.mark();
+            tile_output(tile, p, dim, read)
+        })?;
         phases.mark();
         phases.log(tile);
         Ok(output)
@@ -939,6 +948,77 @@ impl TilePhases {
     }
 }
 
+/// The host-visible buffers each tile's outputs are copied to and read from (meta, kept pairs,
+/// and with the dense rows), made once for the largest tile: a new mapping per tile of
+/// hundreds of MB costs more than the copy.
+struct TileStaging {
+    buffers: Vec<wgpu::Buffer>,
+}
+
+impl TileStaging {
+    fn new(device: &wgpu::Device, largest: u64, p: &DeviceReduce, dim: usize) -> Self {
+        let mut sizes = vec![largest * 8, largest * p.keep as u64 * 8];
+        if p.dense {
+            sizes.push(largest * dim as u64 * 4);
+        }
+        let buffers = sizes
+            .into_iter()
+            .map(|size| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("ek_staging"),
+                    size: size.max(4).next_multiple_of(4),
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                })
+            })
+            .collect();
+        TileStaging { buffers }
+    }
+
+    /// Waits for the submitted copies, maps the first `sizes[i]` bytes of each buffer and hands
+    /// them to `visit` together, then unmaps.
+    ///
+    /// Errors: waiting for or mapping the buffers fails.
+    fn read<R>(
+        &self,
+        device: &wgpu::Device,
+        sizes: &[u64],
+        visit: impl FnOnce(&[&[u8]]) -> R,
+    ) -> Result<R> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let range = |size: u64| ..size.max(4).next_multiple_of(4);
+        for (buf, &size) in self.buffers.iter().zip(sizes) {
+            let tx = tx.clone();
+            buf.slice(range(size))
+                .map_async(wgpu::MapMode::Read, move |r| {
+                    let _ = tx.send(r);
+                });
+        }
+        drop(tx);
+        device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| super::gpu_err("waiting for the device reduction failed", e))?;
+        for r in rx.iter() {
+            r.map_err(|e| super::gpu_err("reading back the device reduction failed", e))?;
+        }
+        let out = {
+            let views = self
+                .buffers
+                .iter()
+                .zip(sizes)
+                .map(|(buf, &size)| buf.slice(range(size)).get_mapped_range())
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .map_err(|e| super::gpu_err("mapping the device reduction's output failed", e))?;
+            let slices: Vec<&[u8]> = views.iter().map(|v| &v[..]).collect();
+            visit(&slices)
+        };
+        for buf in self.buffers.iter().take(sizes.len()) {
+            buf.unmap();
+        }
+        Ok(out)
+    }
+}
+
 /// What every tile of one reduction shares.
 struct TileShared<'a> {
     kept: &'a Kept,
@@ -950,7 +1030,7 @@ struct TileShared<'a> {
 /// The observed Gaussians of a tile from its read-back outputs (`read`: meta, kept pairs, and
 /// with `p.dense` the rows), converted on every thread in chunks of Gaussians, then joined in
 /// order (millions of Gaussians per tile).
-fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[Vec<u8>]) -> KeptTile {
+fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[&[u8]]) -> KeptTile {
     use rayon::prelude::*;
     const CHUNK: usize = 1 << 16;
     let n_tile = tile.n_tile as usize;
@@ -980,7 +1060,7 @@ fn tile_output_range(
     tile: &Tile,
     p: &DeviceReduce,
     dim: usize,
-    read: &[Vec<u8>],
+    read: &[&[u8]],
     range: std::ops::Range<usize>,
 ) -> KeptTile {
     let pair = |bytes: &[u8], i: usize| -> [u32; 2] {
