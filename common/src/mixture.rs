@@ -358,34 +358,55 @@ fn fill_rows(
         .chunks_exact_mut(keep)
         .zip(weights.chunks_exact_mut(keep));
     for (g, (slot_atoms, slot_weights)) in slots.enumerate().take(ready) {
-        let (id, norm) = (ids[g], squares[g].sqrt());
-        if !(norm.is_finite() && norm > 0.0) {
-            return Err(format!(
-                "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
-            ));
-        }
-        let mut out = slot_atoms.iter_mut().zip(slot_weights.iter_mut());
-        for (&(a, w), (slot_atom, slot_weight)) in rows[g].iter().zip(&mut out) {
-            let scaled = w / norm;
-            if scaled.abs() > MAX_WEIGHT as f64 {
-                return Err(format!(
-                    "Gaussian {id}: weight {scaled:e} beyond the f16 range (its mask embeddings \
-                     nearly cancel out); such a Gaussian cannot be stored as a mixture, \
-                     use the dense embeddings file"
-                ));
-            }
-            *slot_atom = a;
-            *slot_weight = round_f16(scaled as f32);
-        }
-        for (slot_atom, slot_weight) in out {
-            *slot_atom = UNUSED;
-            *slot_weight = 0.0;
-        }
+        write_slots(
+            &rows[g],
+            squares[g].sqrt(),
+            ids[g],
+            slot_atoms,
+            slot_weights,
+        )?;
     }
     match ids.get(ready) {
         Some(id) => Err(format!("Gaussian {id} repeats an atom")),
         None => Ok(()),
     }
+}
+
+/// Writes one Gaussian's slots from its ordered row and the norm of its weighted sum: each
+/// `a / norm` rounded to f16, then [`UNUSED`] and 0 past the row.
+///
+/// Errors (the message, naming Gaussian `id`): a norm of zero or not finite, a weight beyond the
+/// f16 range.
+fn write_slots(
+    row: &[(u32, f64)],
+    norm: f64,
+    id: u32,
+    atoms: &mut [u32],
+    weights: &mut [f32],
+) -> std::result::Result<(), String> {
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(format!(
+            "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
+        ));
+    }
+    let mut out = atoms.iter_mut().zip(weights.iter_mut());
+    for (&(a, w), (slot_atom, slot_weight)) in row.iter().zip(&mut out) {
+        let scaled = w / norm;
+        if scaled.abs() > MAX_WEIGHT as f64 {
+            return Err(format!(
+                "Gaussian {id}: weight {scaled:e} beyond the f16 range (its mask embeddings \
+                 nearly cancel out); such a Gaussian cannot be stored as a mixture, \
+                 use the dense embeddings file"
+            ));
+        }
+        *slot_atom = a;
+        *slot_weight = round_f16(scaled as f32);
+    }
+    for (slot_atom, slot_weight) in out {
+        *slot_atom = UNUSED;
+        *slot_weight = 0.0;
+    }
+    Ok(())
 }
 
 impl MixtureEmbeddings {

@@ -7,49 +7,37 @@
 use super::*;
 use crate::rng::SplitMix64;
 
-/// The reference checks of the parts (serial), as [`SparseMixture::codebook_rows`].
+/// The reference checks of the parts: serial passes, the first failing check's message.
 fn reference_codebook_rows(p: &SparseMixture) -> Result<usize> {
-    let (dim, n) = (p.dim, p.gaussian_ids.len());
-    let bad = |m: String| Err(Error::Invalid(format!("mixture: {m}")));
-    if dim == 0 || !p.codebook.len().is_multiple_of(dim) {
-        return bad(format!(
-            "codebook of {} values for dim {dim}",
-            p.codebook.len()
-        ));
-    }
-    let m = p.codebook.len() / dim;
-    if m >= UNUSED as usize {
-        return bad(format!(
-            "{m} codebook rows; at most {} fit u32 ids",
-            UNUSED - 1
-        ));
-    }
-    let (offsets, atoms, weights) = (&p.offsets, &p.atoms, &p.weights);
-    if p.means.len() != n
-        || offsets.len() != n + 1
-        || atoms.len() != weights.len()
-        || offsets.first() != Some(&0)
-        || offsets.last() != Some(&atoms.len())
-        || offsets.windows(2).any(|w| w[0] > w[1])
-    {
-        return bad(format!(
-            "{n} ids, {} means, {} offsets, {} atoms, {} weights disagree",
-            p.means.len(),
-            offsets.len(),
-            atoms.len(),
-            weights.len()
-        ));
-    }
-    if p.gaussian_ids.windows(2).any(|w| w[0] >= w[1]) {
-        return bad("Gaussian ids are not strictly ascending".into());
-    }
-    if p.codebook.iter().any(|v| !v.is_finite()) || weights.iter().any(|v| !v.is_finite()) {
-        return bad("non-finite codebook value or weight".into());
-    }
-    if let Some(a) = atoms.iter().find(|&&a| a as usize >= m) {
-        return bad(format!("atom {a} beyond the {m} codebook rows"));
-    }
-    Ok(m)
+    let (dim, n, entries) = (p.dim, p.gaussian_ids.len(), p.atoms.len());
+    let m = p.codebook.len().checked_div(dim).unwrap_or(0);
+    let offsets = &p.offsets;
+    let lengths_agree = p.means.len() == n
+        && offsets.len() == n + 1
+        && p.weights.len() == entries
+        && offsets.first() == Some(&0)
+        && offsets.last() == Some(&entries)
+        && offsets.windows(2).all(|w| w[0] <= w[1]);
+    let finite =
+        p.codebook.iter().all(|v| v.is_finite()) && p.weights.iter().all(|v| v.is_finite());
+    let message = if dim == 0 || !p.codebook.len().is_multiple_of(dim) {
+        format!("codebook of {} values for dim {dim}", p.codebook.len())
+    } else if m >= UNUSED as usize {
+        format!("{m} codebook rows; at most {} fit u32 ids", UNUSED - 1)
+    } else if !lengths_agree {
+        let lengths = [p.means.len(), offsets.len(), entries, p.weights.len()];
+        let [a, b, c, d] = lengths;
+        format!("{n} ids, {a} means, {b} offsets, {c} atoms, {d} weights disagree")
+    } else if !p.gaussian_ids.windows(2).all(|w| w[0] < w[1]) {
+        "Gaussian ids are not strictly ascending".into()
+    } else if !finite {
+        "non-finite codebook value or weight".into()
+    } else if let Some(a) = p.atoms.iter().find(|&&a| a as usize >= m) {
+        format!("atom {a} beyond the {m} codebook rows")
+    } else {
+        return Ok(m);
+    };
+    Err(Error::Invalid(format!("mixture: {message}")))
 }
 
 /// The reference renumbering and f16 rounding of the used codebook rows (serial).
@@ -125,17 +113,10 @@ fn reference_row(
 /// The reference build: one `Vec` per Gaussian, collected, the first error in id order, packed.
 pub(super) fn reference_from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
     let m = reference_codebook_rows(&parts)?;
-    let SparseMixture {
-        dim,
-        model_id,
-        codebook,
-        gaussian_ids,
-        means,
-        offsets,
-        atoms,
-        weights,
-    } = parts;
-    let (new_row, book) = reference_used_codebook(&codebook, dim, m, &atoms, &weights);
+    let p = parts;
+    let (dim, offsets, atoms, weights) = (p.dim, &p.offsets, &p.atoms, &p.weights);
+    let gaussian_ids = &p.gaussian_ids;
+    let (new_row, book) = reference_used_codebook(&p.codebook, dim, m, atoms, weights);
     let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
         .into_par_iter()
         .map(|i| {
@@ -161,14 +142,17 @@ pub(super) fn reference_from_sparse(parts: SparseMixture) -> Result<MixtureEmbed
         }
     }
     Ok(MixtureEmbeddings {
-        dim,
-        model_id,
         codebook: book,
-        gaussian_ids,
-        means,
         keep,
         atoms: out_atoms,
         weights: out_weights,
+        ..MixtureEmbeddings {
+            dim,
+            model_id: p.model_id,
+            gaussian_ids: p.gaussian_ids,
+            means: p.means,
+            ..Default::default()
+        }
     })
 }
 
@@ -218,6 +202,15 @@ struct Flavour {
     /// Negative and signed-zero weights.
     signs: bool,
 }
+
+/// Plain positive rows of up to 4 entries.
+const PLAIN: Flavour = Flavour {
+    keep: 4,
+    empty: false,
+    repeat: false,
+    cancel: false,
+    signs: false,
+};
 
 /// A random sparse mixture: `n` Gaussians over `m` codebook rows of width `dim`. Weights come
 /// from a small set of values so that ties are common; codebook rows 0 and 1 are opposite and
@@ -345,11 +338,11 @@ fn the_first_failing_gaussian_in_id_order_is_reported() {
     // Many failing rows spread over a large mixture: the reported one is the first of them
     // however the work is split.
     let f = Flavour {
-        keep: 4,
         empty: true,
         repeat: true,
         cancel: true,
         signs: true,
+        ..PLAIN
     };
     for seed in 0..4 {
         let parts = random_parts(20_000, 24, 8, f, 1000 + seed);
@@ -363,10 +356,9 @@ fn long_rows_with_repeats_equal_the_reference() {
     // Rows longer than the inline duplicate check.
     let f = Flavour {
         keep: 48,
-        empty: false,
         repeat: true,
-        cancel: false,
         signs: true,
+        ..PLAIN
     };
     for seed in 0..6 {
         let parts = random_parts(300, 400, 6, f, 50 + seed);
@@ -390,54 +382,41 @@ fn long_rows_with_repeats_equal_the_reference() {
 
 #[test]
 fn bad_parts_give_the_reference_messages() {
-    let f = Flavour {
-        keep: 3,
-        empty: false,
-        repeat: false,
-        cancel: false,
-        signs: false,
-    };
+    let f = Flavour { keep: 3, ..PLAIN };
     let base = random_parts(30, 9, 5, f, 77);
     assert!(assert_same(base.clone(), "base").is_ok());
-    let mut cases: Vec<(&str, SparseMixture)> = Vec::new();
-    let mut p = base.clone();
-    p.dim = 0;
-    cases.push(("dim 0", p));
-    let mut p = base.clone();
-    p.codebook.pop();
-    cases.push(("ragged codebook", p));
-    let mut p = base.clone();
-    p.means.pop();
-    cases.push(("short means", p));
-    let mut p = base.clone();
-    p.offsets[5] = p.offsets[7];
-    cases.push(("offsets not ascending", p));
-    let mut p = base.clone();
-    *p.offsets.last_mut().unwrap() += 1;
-    cases.push(("offsets past the atoms", p));
-    let mut p = base.clone();
-    p.weights.pop();
-    cases.push(("short weights", p));
-    let mut p = base.clone();
-    p.gaussian_ids[20] = p.gaussian_ids[19];
-    cases.push(("repeated id", p));
-    let mut p = base.clone();
-    p.codebook[17] = f32::NAN;
-    cases.push(("NaN codebook", p));
-    let mut p = base.clone();
-    p.weights[11] = f64::INFINITY;
-    cases.push(("infinite weight", p));
-    let mut p = base.clone();
-    p.atoms[4] = 12;
-    p.atoms[9] = 9;
-    cases.push(("atoms out of range", p));
-    let mut p = base.clone();
-    p.codebook.iter_mut().step_by(7).for_each(|v| *v *= 1e5); // f16 infinities
-    cases.push(("codebook beyond f16", p));
-    let mut p = base;
-    p.weights.iter_mut().for_each(|w| *w = 0.0);
-    cases.push(("all weights zero", p));
-    for (what, p) in cases {
+    type Edit = fn(&mut SparseMixture);
+    let cases: [(&str, Edit); 13] = [
+        ("dim 0", |p| p.dim = 0),
+        ("ragged codebook", |p| {
+            p.codebook.pop();
+        }),
+        ("short means", |p| {
+            p.means.pop();
+        }),
+        ("offsets not ascending", |p| p.offsets[5] = p.offsets[7]),
+        ("offsets past the atoms", |p| {
+            *p.offsets.last_mut().unwrap() += 1
+        }),
+        ("short weights", |p| {
+            p.weights.pop();
+        }),
+        ("repeated id", |p| p.gaussian_ids[20] = p.gaussian_ids[19]),
+        ("NaN codebook", |p| p.codebook[17] = f32::NAN),
+        ("infinite weight", |p| p.weights[11] = f64::INFINITY),
+        ("atoms out of range", |p| (p.atoms[4], p.atoms[9]) = (12, 9)),
+        ("codebook beyond f16", |p| {
+            p.codebook.iter_mut().step_by(7).for_each(|v| *v *= 1e5)
+        }),
+        ("all weights zero", |p| p.weights.fill(0.0)),
+        ("one row all zero", |p| {
+            let row = p.offsets[3]..p.offsets[4];
+            p.weights[row].fill(-0.0)
+        }),
+    ];
+    for (what, edit) in cases {
+        let mut p = base.clone();
+        edit(&mut p);
         assert!(assert_same(p, what).is_err(), "{what}");
     }
     // Empty mixtures, with and without a codebook.
