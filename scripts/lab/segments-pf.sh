@@ -20,8 +20,9 @@
 # Python package `onnxruntime`, whose library is then used). On an NVIDIA host without a display
 # the Vulkan driver file is picked by scripts/vulkan-icd.sh (VK_DRIVER_FILES, when unset).
 # SKIP_ENCODE=1 reuses OUTDIR/e<N>/enc; SKIP_HELDOUT=1 stops after the 3D measures.
+# EXTRA_ENCODE: more encode flags, split on spaces (e.g. EXTRA_ENCODE="--mask-erode 15").
 set -euo pipefail
-[ $# -ge 3 ] || { sed -n '2,24p' "$0"; exit 2; }
+[ $# -ge 3 ] || { sed -n '2,25p' "$0"; exit 2; }
 B=$(realpath "$1"); S=$2; R=$3; shift 3
 EVERYS=("$@"); [ ${#EVERYS[@]} -gt 0 ] || EVERYS=(4 5)
 here=$(cd "$(dirname "$0")" && pwd)
@@ -34,8 +35,9 @@ fi
 if [ -z "${VK_DRIVER_FILES:-}" ] && command -v nvidia-smi > /dev/null; then
   VK_DRIVER_FILES=$(bash "$here/../vulkan-icd.sh") && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
 fi
+read -r -a EXTRA <<< "${EXTRA_ENCODE:-}"
 mkdir -p "$R"
-echo "# Segments and PF, held-out protocol ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder))" > "$R/table.md"
+echo "# Segments and PF, held-out protocol ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder)${EXTRA_ENCODE:+, encode $EXTRA_ENCODE})" > "$R/table.md"
 NAMES=(geometric masks masks-min5 masks-min2 region)
 for N in "${EVERYS[@]}"; do
   D=$R/e$N; E=$D/enc; mkdir -p "$D/seg"
@@ -45,7 +47,7 @@ for N in "${EVERYS[@]}"; do
       --sam-decoder "$F/sam-amg/color-sam-decoder.onnx" --sam-points-per-side 16 \
       --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5 \
       --clip-visual "$F/clip/color-clip-visual.onnx" --every "$N" --raster-scale 0.5 --dense --quiet \
-      --out "$E" > "$D/encode.log" 2>&1
+      ${EXTRA[@]+"${EXTRA[@]}"} --out "$E" > "$D/encode.log" 2>&1
     echo "every $N: encode $(( $(date +%s) - t0 )) s"
   fi
   rec=(--mask-record "$E/mask-record.safetensors")
