@@ -304,32 +304,37 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         return cpu_fronts(c, gpus, threads);
     }
     let provider = clip0.provider();
-    let mut services = vec![clip0.into_service()?];
-    let mut sams = Vec::new();
-    let mut providers = Vec::new();
-    for g in 0..gpus {
-        if g > 0 {
-            let mut clip = crate::clip::ClipVisual::with_placement(
-                &c.clip.visual,
-                &c.placement(g as u32, gpu_threads),
-                gpu_batch,
-            )?;
-            clip.set_crop_fill(c.clip.crop_fill);
-            services.push(clip.into_service()?);
-        }
-        let sam = gpu_sam(c, g, gpu_threads)?;
+    let service0 = clip0.into_service()?;
+    // Each GPU's models are set up on a thread of their own (sessions, warm-up runs: seconds
+    // per GPU); the first error in GPU order is the one returned.
+    let per_gpu: Vec<Result<(crate::clip::ClipService, Option<GpuSam>)>> =
+        std::thread::scope(|s| {
+            let others: Vec<_> = (1..gpus)
+                .map(|g| s.spawn(move || gpu_models(c, g, gpu_threads, gpu_batch, None)))
+                .collect();
+            let first = gpu_models(c, 0, gpu_threads, gpu_batch, Some(service0));
+            let joined = others.into_iter().map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(Error::internal("a GPU's model setup panicked")))
+            });
+            std::iter::once(first).chain(joined).collect()
+        });
+    let (mut services, mut sams, mut providers) = (Vec::new(), Vec::new(), Vec::new());
+    for (g, models) in per_gpu.into_iter().enumerate() {
+        let (service, sam) = models?;
         let (enc_p, dec_p) = sam.as_ref().map_or((None, None), |(s, _)| {
             let (e, d) = s.models().providers();
             (Some(e), Some(d))
         });
         providers.push(ModelPlacement {
             clip_batch: gpu_batch,
-            clip_visual: services[g].provider(),
-            device: services[g].device_label().to_string(),
+            clip_visual: service.provider(),
+            device: service.device_label().to_string(),
             gpu: Some(g),
             sam_decoder: dec_p,
             sam_encoder: enc_p,
         });
+        services.push(service);
         sams.push(sam);
     }
     let n = c
@@ -356,6 +361,31 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
         providers,
         provider,
     })
+}
+
+/// GPU `g`'s CLIP service (`clip`, or a new one with `gpu_batch`) and SAM ([`gpu_sam`]).
+///
+/// Errors: the models missing or unloadable; CLIP's warm-up run failing.
+fn gpu_models(
+    c: &EncodeConfig,
+    g: usize,
+    gpu_threads: usize,
+    gpu_batch: usize,
+    clip: Option<crate::clip::ClipService>,
+) -> Result<(crate::clip::ClipService, Option<GpuSam>)> {
+    let service = match clip {
+        Some(s) => s,
+        None => {
+            let mut clip = crate::clip::ClipVisual::with_placement(
+                &c.clip.visual,
+                &c.placement(g as u32, gpu_threads),
+                gpu_batch,
+            )?;
+            clip.set_crop_fill(c.clip.crop_fill);
+            clip.into_service()?
+        }
+    };
+    Ok((service, gpu_sam(c, g, gpu_threads)?))
 }
 
 /// One GPU's SAM and the copy that times its stages (with the encode's SAM timing setting).
