@@ -94,6 +94,21 @@ pub(crate) fn remove_stale(path: &Path) -> Result<()> {
     Ok(())
 }
 
+/// The report's models: the rasterizers (the first as `rasterizer`), the front workers, the
+/// masks' generator and the CLIP model.
+fn record_models(
+    models: &mut crate::report::Models,
+    rasterizers: Vec<String>,
+    fronts: usize,
+    mask_name: String,
+    model_id: &str,
+) {
+    models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
+    models.rasterizers = Some(rasterizers);
+    (models.front_workers, models.masks) = (Some(fronts), mask_name);
+    models.clip_model_id = model_id.to_string();
+}
+
 /// Reduces what the pool left ([`Pooled`]) and writes the outputs of `scene`'s encode into
 /// [`EncodeParams::out_dir`]: `mixture.safetensors` with [`EncodeParams::mixture_keep`],
 /// `embeddings.safetensors` with [`EncodeParams::dense`], the level files with
@@ -131,11 +146,7 @@ pub(crate) fn finish(
     crate::report::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
-    let models = &mut report.models;
-    models.rasterizer = rasterizers.first().cloned().unwrap_or_default();
-    models.rasterizers = Some(rasterizers);
-    (models.front_workers, models.masks) = (Some(fronts), mask_name);
-    models.clip_model_id = model_id.clone();
+    record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
 
     // Only the centres are written from here on: the rest of the geometry is let go first,
     // unless the segments still hold the scene.
