@@ -209,23 +209,37 @@ impl GpuRasterizer {
     }
 
     /// Submits `enc` (which ends with copies into the `MAP_READ` buffers of `staged`), waits, and
-    /// hands the first `bytes` of each staged buffer to `visit(index, bytes)`, then unmaps it.
+    /// hands the first `bytes` of each staged buffer to `visit(index, bytes)`, then unmaps them.
     pub(super) fn submit_and_map(
         &self,
         enc: wgpu::CommandEncoder,
         staged: &[(&wgpu::Buffer, u64)],
         mut visit: impl FnMut(usize, &[u8]),
     ) -> Result<()> {
+        self.submit_and_map_all(enc, staged, |views| {
+            for (i, view) in views.iter().enumerate() {
+                visit(i, view);
+            }
+        })
+    }
+
+    /// As [`Self::submit_and_map`], but hands the first `bytes` of every staged buffer to
+    /// `visit` at once (outputs read together), returning what it returns.
+    pub(super) fn submit_and_map_all<R>(
+        &self,
+        enc: wgpu::CommandEncoder,
+        staged: &[(&wgpu::Buffer, u64)],
+        visit: impl FnOnce(&[&[u8]]) -> R,
+    ) -> Result<R> {
         self.queue.submit([enc.finish()]);
+        let range = |bytes: u64| ..bytes.max(4).next_multiple_of(4);
         let (tx, rx) = mpsc::channel();
         for &(buf, bytes) in staged {
             let tx = tx.clone();
-            buf.slice(..bytes.max(4).next_multiple_of(4)).map_async(
-                wgpu::MapMode::Read,
-                move |r| {
+            buf.slice(range(bytes))
+                .map_async(wgpu::MapMode::Read, move |r| {
                     let _ = tx.send(r);
-                },
-            );
+                });
         }
         drop(tx);
         self.device
@@ -234,16 +248,22 @@ impl GpuRasterizer {
         for r in rx.iter() {
             r.map_err(|e| gpu_err("reading back rasterizer output failed", e))?;
         }
-        for (i, &(buf, bytes)) in staged.iter().enumerate() {
-            {
-                let view = buf
-                    .slice(..bytes.max(4).next_multiple_of(4))
-                    .get_mapped_range()
-                    .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
-                visit(i, &view[..bytes as usize]);
-            }
+        let out = {
+            let views = staged
+                .iter()
+                .map(|&(buf, bytes)| buf.slice(range(bytes)).get_mapped_range())
+                .collect::<std::result::Result<Vec<_>, _>>()
+                .map_err(|e| gpu_err("mapping rasterizer output failed", e))?;
+            let slices: Vec<&[u8]> = views
+                .iter()
+                .zip(staged)
+                .map(|(view, &(_, bytes))| &view[..bytes as usize])
+                .collect();
+            visit(&slices)
+        };
+        for &(buf, _) in staged {
             buf.unmap();
         }
-        Ok(())
+        Ok(out)
     }
 }

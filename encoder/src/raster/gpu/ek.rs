@@ -673,20 +673,12 @@ impl GpuRasterizer {
             self.encode_ek_reduce(&mut enc, s, tile, segs.len() as u32, inputs, &out);
         }
         enc = self.phase_end(enc, &mut phases)?;
-        let n_tile = u64::from(tile.n_tile);
-        let mut sizes = vec![n_tile * 8, n_tile * p.keep as u64 * 8];
-        if p.dense {
-            sizes.push(n_tile * dim as u64 * 4);
-        }
-        for ((src, dst), &size) in [&out.meta, &out.kept, &out.rows]
-            .into_iter()
-            .zip(&staging.buffers)
-            .zip(&sizes)
-        {
+        let sizes = output_bytes(u64::from(tile.n_tile), p, dim);
+        let staged: Vec<(&wgpu::Buffer, u64)> = staging.buffers.iter().zip(sizes).collect();
+        for (src, &(dst, size)) in [&out.meta, &out.kept, &out.rows].into_iter().zip(&staged) {
             enc.copy_buffer_to_buffer(src, 0, dst, 0, size);
         }
-        self.queue.submit([enc.finish()]);
-        let output = staging.read(&self.device, &sizes, |read| {
+        let output = self.submit_and_map_all(enc, &staged, |read| {
             phases.mark();
             tile_output(tile, p, dim, read)
         })?;
@@ -892,14 +884,12 @@ impl TileOutputs {
     /// Allocation step of [`GpuRasterizer::reduce_tile`]: the tile's output buffers.
     fn new(device: &wgpu::Device, tile: &Tile, p: &DeviceReduce, dim: usize) -> Self {
         let n_tile = u64::from(tile.n_tile);
+        let bytes = output_bytes(n_tile, p, dim);
         TileOutputs {
-            meta: storage(device, "ek_meta", n_tile * 8),
-            kept: storage(device, "ek_kept", n_tile * p.keep as u64 * 8),
-            rows: storage(
-                device,
-                "ek_rows",
-                if p.dense { n_tile * dim as u64 * 4 } else { 4 },
-            ),
+            meta: storage(device, "ek_meta", bytes[0]),
+            kept: storage(device, "ek_kept", bytes[1]),
+            // A placeholder without the dense rows.
+            rows: storage(device, "ek_rows", bytes.get(2).copied().unwrap_or(4)),
             run_start: storage(device, "ek_run_start", n_tile * 4),
         }
     }
@@ -957,11 +947,7 @@ struct TileStaging {
 
 impl TileStaging {
     fn new(device: &wgpu::Device, largest: u64, p: &DeviceReduce, dim: usize) -> Self {
-        let mut sizes = vec![largest * 8, largest * p.keep as u64 * 8];
-        if p.dense {
-            sizes.push(largest * dim as u64 * 4);
-        }
-        let buffers = sizes
+        let buffers = output_bytes(largest, p, dim)
             .into_iter()
             .map(|size| {
                 device.create_buffer(&wgpu::BufferDescriptor {
@@ -974,49 +960,16 @@ impl TileStaging {
             .collect();
         TileStaging { buffers }
     }
+}
 
-    /// Waits for the submitted copies, maps the first `sizes[i]` bytes of each buffer and hands
-    /// them to `visit` together, then unmaps.
-    ///
-    /// Errors: waiting for or mapping the buffers fails.
-    fn read<R>(
-        &self,
-        device: &wgpu::Device,
-        sizes: &[u64],
-        visit: impl FnOnce(&[&[u8]]) -> R,
-    ) -> Result<R> {
-        let (tx, rx) = std::sync::mpsc::channel();
-        let range = |size: u64| ..size.max(4).next_multiple_of(4);
-        for (buf, &size) in self.buffers.iter().zip(sizes) {
-            let tx = tx.clone();
-            buf.slice(range(size))
-                .map_async(wgpu::MapMode::Read, move |r| {
-                    let _ = tx.send(r);
-                });
-        }
-        drop(tx);
-        device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| super::gpu_err("waiting for the device reduction failed", e))?;
-        for r in rx.iter() {
-            r.map_err(|e| super::gpu_err("reading back the device reduction failed", e))?;
-        }
-        let out = {
-            let views = self
-                .buffers
-                .iter()
-                .zip(sizes)
-                .map(|(buf, &size)| buf.slice(range(size)).get_mapped_range())
-                .collect::<std::result::Result<Vec<_>, _>>()
-                .map_err(|e| super::gpu_err("mapping the device reduction's output failed", e))?;
-            let slices: Vec<&[u8]> = views.iter().map(|v| &v[..]).collect();
-            visit(&slices)
-        };
-        for buf in self.buffers.iter().take(sizes.len()) {
-            buf.unmap();
-        }
-        Ok(out)
+/// Bytes of the outputs read back for `n` Gaussians: meta, kept pairs, and with `p.dense`
+/// the rows.
+fn output_bytes(n: u64, p: &DeviceReduce, dim: usize) -> Vec<u64> {
+    let mut sizes = vec![n * 8, n * p.keep as u64 * 8];
+    if p.dense {
+        sizes.push(n * dim as u64 * 4);
     }
+    sizes
 }
 
 /// What every tile of one reduction shares.
