@@ -168,11 +168,7 @@ mod tests {
     use crate::masks::Mask;
 
     fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
-        let pixels = (0..h)
-            .flat_map(|y| (0..w).map(move |x| (x, y)))
-            .map(|(x, y)| u8::from(f(x, y)))
-            .collect();
-        Mask::from_pixels(w, h, pixels).unwrap()
+        Mask::from_fn(w, h, f).unwrap()
     }
 
     /// Brute-force reference: every pixel of the `(2r+1)²` square inside the mask or outside

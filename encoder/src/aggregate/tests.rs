@@ -10,11 +10,7 @@ use slag_common::Error;
 use std::path::Path;
 
 fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
-    let px = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| f(x, y) as u8)
-        .collect();
-    Mask::from_pixels(w, h, px).unwrap()
+    Mask::from_fn(w, h, f).unwrap()
 }
 
 /// Random-ish PixelWeights with 0..4 contributors per pixel.

@@ -116,11 +116,7 @@ mod tests {
     use super::*;
 
     fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
-        let pixels = (0..h)
-            .flat_map(|y| (0..w).map(move |x| (x, y)))
-            .map(|(x, y)| u8::from(f(x, y)))
-            .collect();
-        let mut m = Mask::from_pixels(w, h, pixels).unwrap();
+        let mut m = Mask::from_fn(w, h, f).unwrap();
         m.predicted_iou = 0.93;
         m.stability_score = 0.71;
         m.point = Some([3.5, 1.25]);

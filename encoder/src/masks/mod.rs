@@ -43,6 +43,21 @@ pub struct Mask {
 }
 
 impl Mask {
+    /// The mask of the pixels `(x, y)` of a `width × height` image where `inside(x, y)` holds
+    /// ([`Mask::from_pixels`]); `None` when it holds nowhere. For tests.
+    #[cfg(test)]
+    pub(crate) fn from_fn(
+        width: u32,
+        height: u32,
+        inside: impl Fn(u32, u32) -> bool,
+    ) -> Option<Mask> {
+        let pixels = (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .map(|(x, y)| u8::from(inside(x, y)))
+            .collect();
+        Mask::from_pixels(width, height, pixels)
+    }
+
     /// Builds a mask from a row-major 0/1 buffer, computing `area` and `bbox_xywh`.
     /// Returns `None` for an empty mask or a buffer whose length is not `width * height`.
     pub fn from_pixels(width: u32, height: u32, pixels: Vec<u8>) -> Option<Mask> {
