@@ -939,7 +939,7 @@ impl TilePhases {
 }
 
 /// The host-visible buffers each tile's outputs are copied to and read from (meta, kept pairs,
-/// and with the dense rows), made once for the largest tile: a new mapping per tile of
+/// and with `p.dense` the rows), made once for the largest tile: a new mapping per tile of
 /// hundreds of MB costs more than the copy.
 struct TileStaging {
     buffers: Vec<wgpu::Buffer>,
