@@ -214,12 +214,22 @@ impl MaskRecord {
     /// share of evidence for *different* dominant masks, each shared view counting
     /// `min(a_i, a_j)`. `None` when they record no common view.
     pub fn disagreement(&self, i: usize, j: usize) -> Option<f32> {
-        let s = self.slots;
-        let (n, (a, b)) = (self.len(), (i * s, j * s));
-        if i >= n || j >= n {
+        Self::disagreement_between((self, i), (self, j))
+    }
+
+    /// [`MaskRecord::disagreement`] of row `a.1` of record `a.0` and row `b.1` of record `b.0`
+    /// (two records of the same slot count, e.g. a scene's and a gathered part of it,
+    /// [`MaskRecord::gather`]): the same value, bit for bit, as the one of the two Gaussians
+    /// in the scene's record. `None` when they record no common view, a row lies beyond its
+    /// record or the slot counts differ.
+    pub fn disagreement_between(a: (&MaskRecord, usize), b: (&MaskRecord, usize)) -> Option<f32> {
+        let ((ra, i), (rb, j)) = (a, b);
+        let s = ra.slots;
+        if rb.slots != s || i >= ra.len() || j >= rb.len() {
             return None;
         }
-        let (va, vb) = (&self.views[a..a + s], &self.views[b..b + s]);
+        let (a, b) = (i * s, j * s);
+        let (va, vb) = (&ra.views[a..a + s], &rb.views[b..b + s]);
         let (mut agree, mut differ) = (0.0f32, 0.0f32);
         for (x, &view) in va.iter().enumerate() {
             if view == EMPTY_VIEW {
@@ -227,8 +237,8 @@ impl MaskRecord {
             }
             // The first slot of `j` with the same view (the edges' hot loop: plain slices).
             if let Some(y) = vb.iter().position(|&v| v == view) {
-                let w = self.weights[a + x].min(self.weights[b + y]);
-                if self.masks[a + x] == self.masks[b + y] {
+                let w = ra.weights[a + x].min(rb.weights[b + y]);
+                if ra.masks[a + x] == rb.masks[b + y] {
                     agree += w;
                 } else {
                     differ += w;
@@ -237,6 +247,36 @@ impl MaskRecord {
         }
         let total = agree + differ;
         (total > 0.0 && total.is_finite()).then(|| differ / total)
+    }
+
+    /// The rows `rows` of this record, in that order, as a record of their own (`rows.len()`
+    /// Gaussians, the same slots and view count), gathered in parallel: a part of the scene
+    /// laid out so that rows read together sit together in memory. Rows beyond the record
+    /// come out empty.
+    pub fn gather(&self, rows: &[u32]) -> MaskRecord {
+        use rayon::prelude::*;
+        let s = self.slots.max(1);
+        let mut out = MaskRecord {
+            slots: self.slots,
+            view_count: self.view_count,
+            views: vec![EMPTY_VIEW; rows.len() * self.slots],
+            masks: vec![0; rows.len() * self.slots],
+            weights: vec![0.0; rows.len() * self.slots],
+        };
+        let n = self.len();
+        out.views
+            .par_chunks_mut(s)
+            .zip(out.masks.par_chunks_mut(s))
+            .zip(out.weights.par_chunks_mut(s))
+            .zip(rows.par_iter())
+            .filter(|(_, k)| (**k as usize) < n)
+            .for_each(|(((views, masks), weights), &k)| {
+                let at = k as usize * s;
+                views.copy_from_slice(&self.views[at..at + s]);
+                masks.copy_from_slice(&self.masks[at..at + s]);
+                weights.copy_from_slice(&self.weights[at..at + s]);
+            });
+        out
     }
 
     /// Writes the file atomically (`<path>.partial`, fsync, rename).
@@ -377,6 +417,52 @@ mod tests {
     }
 
     #[test]
+    fn gathered_rows_give_the_scene_record_disagreements() {
+        // 30 Gaussians in 9 views with 6 slots, shared views with equal and different masks.
+        let mut r = MaskRecord::new(30, 6, 9).unwrap();
+        for v in 0..9u32 {
+            let entries = (0..30u32).filter(|g| (g + v) % 4 != 0).map(|g| {
+                (
+                    g,
+                    (g / 3 + v * (g % 2)) % 4,
+                    ((g * 7 + v * 5) % 9 + 1) as f32,
+                )
+            });
+            r.add_view(v as usize, entries);
+        }
+        let rows: Vec<u32> = vec![17, 3, 29, 4, 0, 12, 30];
+        let part = r.gather(&rows);
+        assert_eq!((part.len(), part.slots, part.view_count), (7, 6, 9));
+        assert_eq!(part.of(6).count(), 0, "a row beyond the record is empty");
+        let mut shared = 0;
+        for (a, &i) in rows.iter().enumerate().take(6) {
+            assert!(part.of(a).eq(r.of(i as usize)));
+            for j in 0..30 {
+                let want = r.disagreement(i as usize, j);
+                shared += usize::from(want.is_some_and(|m| m > 0.0 && m < 1.0));
+                let got = MaskRecord::disagreement_between((&part, a), (&r, j));
+                assert_eq!(
+                    got.map(f32::to_bits),
+                    want.map(f32::to_bits),
+                    "rows {i}, {j}"
+                );
+                let back = MaskRecord::disagreement_between((&r, j), (&part, a));
+                assert_eq!(
+                    back.map(f32::to_bits),
+                    r.disagreement(j, i as usize).map(f32::to_bits)
+                );
+            }
+        }
+        assert!(
+            shared > 10,
+            "the pairs must mix agreeing and differing views: {shared}"
+        );
+        assert_eq!(MaskRecord::disagreement_between((&part, 0), (&r, 30)), None);
+        let other = MaskRecord::new(30, 2, 9).unwrap();
+        assert_eq!(MaskRecord::disagreement_between((&r, 0), (&other, 0)), None);
+    }
+
+    #[test]
     fn round_trips_through_the_file() {
         let dir = tempfile::tempdir().unwrap();
         let mut r = MaskRecord::new(3, 4, 2).unwrap();
@@ -400,7 +486,13 @@ mod tests {
         let view_entries = |v: usize| -> Vec<(u32, u32, f32)> {
             (0..40u32)
                 .filter(|g| (g + v as u32) % 3 != 0)
-                .map(|g| (g, (g * 7 + v as u32) % 5, ((g * 13 + v as u32 * 29) % 6) as f32))
+                .map(|g| {
+                    (
+                        g,
+                        (g * 7 + v as u32) % 5,
+                        ((g * 13 + v as u32 * 29) % 6) as f32,
+                    )
+                })
                 .collect()
         };
         let mut all = MaskRecord::new(40, 3, 12).unwrap();

@@ -4,68 +4,103 @@
 use rayon::prelude::*;
 
 use super::SegmentParams;
+use slag_common::mask_record::MaskRecord;
+
 use super::weights::{Edge, Geometry, Weigher, distance};
 
-/// Each Gaussian's neighbours in the graph: `k` slots per Gaussian, the nearest other means
-/// within `max_edge` in ascending `(distance, id)` order, [`NO_NEIGHBOUR`] in unused slots.
-/// 4 bytes per slot (40 per Gaussian at k = 10) and 4 for the slots' place, for the whole
-/// scene: the k-NN search runs once and before the masks are known (beside the encode).
+/// Each Gaussian's neighbours in the graph, at its id: `k` slots per Gaussian, the nearest
+/// other means within `max_edge` in ascending `(distance, id)` order, [`NO_NEIGHBOUR`] in unused
+/// slots (the tests' reference search; [`Ranked`] holds the same lists in space order).
+#[cfg(test)]
 pub(super) struct Neighbours {
     pub(super) k: usize,
-    /// The slots, `k` per Gaussian, in the order of `pos_of`.
+    /// The slots, `k` per Gaussian, Gaussian `i`'s at `i k`.
     pub(super) ids: Vec<u32>,
-    /// Where Gaussian `i`'s slots start, in units of `k`; `None`: at `i`.
-    pub(super) pos_of: Option<Vec<u32>>,
 }
 
-/// Slot of [`Neighbours`] without a neighbour.
+/// Slot of [`Neighbours`] and [`Ranked`] without a neighbour.
 pub(super) const NO_NEIGHBOUR: u32 = u32::MAX;
 
+#[cfg(test)]
 impl Neighbours {
     pub(super) fn of(&self, i: usize) -> impl Iterator<Item = u32> + '_ {
-        let at = self.pos_of.as_ref().map_or(i, |p| p[i] as usize);
-        self.ids[at * self.k..(at + 1) * self.k]
+        self.ids[i * self.k..(i + 1) * self.k]
             .iter()
             .copied()
             .take_while(|&j| j != NO_NEIGHBOUR)
     }
 }
 
-impl Neighbours {
-    /// The same lists with Gaussian `i`'s slots at `i` (no `pos_of`): an edge's weight then
-    /// reads its far end's list from one place rather than two. Parallel; for a moment both
-    /// copies of the slots are held.
-    fn in_id_order(self) -> Self {
-        let Some(pos_of) = &self.pos_of else {
-            return self;
-        };
-        let k = self.k.max(1);
-        let mut ids = vec![NO_NEIGHBOUR; self.ids.len()];
-        ids.par_chunks_mut(k)
-            .zip(pos_of.par_iter())
-            .for_each(|(out, &at)| {
-                let at = at as usize * k;
-                out.copy_from_slice(&self.ids[at..at + k]);
-            });
-        Neighbours {
-            k: self.k,
-            ids,
-            pos_of: None,
+/// The neighbour graph in *space order*: rank `r` is Gaussian `perm[r]`, the ranks following
+/// the k-NN grid's cells in Morton order (ascending id within a cell), so that Gaussians near
+/// in space sit near in memory. Each rank has `k` slots holding its neighbours' ranks (the
+/// lists of [`Neighbours`], mapped). The per-Gaussian data an edge's weight reads (the far
+/// end's list, the geometric parts, the masks' record of a tile) is laid out in this order:
+/// in the scene's id order, which a trained `.ply` leaves unrelated to space, every edge reads
+/// two far-apart places. 4 bytes per slot and 4 per Gaussian.
+pub(super) struct Ranked {
+    pub(super) k: usize,
+    /// Rank → Gaussian id, `[N]`.
+    pub(super) perm: Vec<u32>,
+    /// The slots, `k` per rank, rank `r`'s at `r k`: neighbours' ranks.
+    pub(super) slots: Vec<u32>,
+}
+
+impl Ranked {
+    /// The lists `ids` (`k` slots per Gaussian in the order `order`, holding Gaussian ids)
+    /// with their ids mapped to ranks, in place and in parallel; `order` becomes `perm`.
+    pub(super) fn from_cell_order(k: usize, mut ids: Vec<u32>, order: Vec<u32>) -> Self {
+        let mut rank_of = vec![0u32; order.len()];
+        for (r, &i) in order.iter().enumerate() {
+            rank_of[i as usize] = r as u32;
         }
+        ids.par_iter_mut()
+            .filter(|j| **j != NO_NEIGHBOUR)
+            .for_each(|j| *j = rank_of[*j as usize]);
+        Ranked {
+            k,
+            perm: order,
+            slots: ids,
+        }
+    }
+
+    /// The neighbours (ranks) of rank `r`.
+    pub(super) fn of(&self, r: usize) -> impl Iterator<Item = u32> + '_ {
+        self.slots[r * self.k..(r + 1) * self.k]
+            .iter()
+            .copied()
+            .take_while(|&j| j != NO_NEIGHBOUR)
+    }
+
+    /// `values` (one per Gaussian, in id order) in rank order.
+    pub(super) fn gather<T: Copy + Send + Sync>(&self, values: &[T]) -> Vec<T> {
+        self.perm.par_iter().map(|&i| values[i as usize]).collect()
+    }
+
+    /// The same lists in id order, holding ids ([`Neighbours`]).
+    #[cfg(test)]
+    pub(super) fn in_id_order(&self) -> Neighbours {
+        let k = self.k;
+        let mut ids = vec![NO_NEIGHBOUR; self.slots.len()];
+        for (r, &i) in self.perm.iter().enumerate() {
+            for (s, j) in self.of(r).enumerate() {
+                ids[i as usize * k + s] = self.perm[j as usize];
+            }
+        }
+        Neighbours { k, ids }
     }
 }
 
-/// The whole scene's k-NN graph within `h`, each Gaussian's list at its id, searched on
-/// `ctl`'s pool (a pool widened meanwhile takes over the searches left); `None` once `ctl` was
-/// stopped.
+/// The whole scene's k-NN graph within `h` in space order, searched on `ctl`'s pool (a pool
+/// widened meanwhile takes over the searches left); `None` once `ctl` was stopped.
 pub(super) fn neighbour_graph(
     means: &[[f32; 3]],
     p: &SegmentParams,
     h: f32,
     ctl: &super::SegmentControl,
-) -> Option<Neighbours> {
+) -> Option<Ranked> {
     let nb = super::grid::neighbours(means, p.neighbours, h, ctl);
-    (!ctl.is_stopped()).then(|| ctl.run(|| nb.in_id_order()))
+    (!ctl.is_stopped()).then_some(nb)
 }
 
 /// A tile's Gaussians: their ids, ascending, and where each Gaussian of the scene stands.
@@ -91,13 +126,14 @@ impl TileMembers {
 }
 
 /// The geometric part of every neighbour slot's edge weight ([`Geometry::geometric`] of
-/// Gaussian `i` and its slot's neighbour `j`), `k` per Gaussian in the scene's id order (slot `s`
-/// of Gaussian `i` at `i k + s`), 0 in unused slots. It needs no masks, so it is computed
-/// before the masks' record arrives (beside the encode); afterwards an edge's weight only adds
-/// the mask term. 4 bytes per slot (40 per Gaussian at k = 10).
+/// rank `r` and its slot's neighbour), `k` per rank in rank order (slot `s` of rank `r` at
+/// `r k + s`), 0 in unused slots; `means` and `geo` are in rank order ([`Ranked::gather`],
+/// [`Geometry::permuted`]). It needs no masks, so it is computed before the masks' record
+/// arrives (beside the encode); afterwards an edge's weight only adds the mask term. 4 bytes
+/// per slot (40 per Gaussian at k = 10).
 pub(super) fn slot_geometry(
     means: &[[f32; 3]],
-    nb: &Neighbours,
+    nb: &Ranked,
     geo: &Geometry,
     p: &SegmentParams,
 ) -> Vec<f32> {
@@ -106,54 +142,82 @@ pub(super) fn slot_geometry(
         .enumerate()
         .for_each(|(c, part)| {
             for (l, slots) in part.chunks_mut(nb.k.max(1)).enumerate() {
-                let i = c * 1024 + l;
-                for (s, j) in nb.of(i).enumerate() {
-                    let d = distance(means[i], means[j as usize]);
-                    slots[s] = geo.geometric(p, i, j as usize, d);
+                let r = c * 1024 + l;
+                for (s, rj) in nb.of(r).enumerate() {
+                    let d = distance(means[r], means[rj as usize]);
+                    slots[s] = geo.geometric(p, r, rj as usize, d);
                 }
             }
         });
     out
 }
 
+/// What a tile's edges read: the graph in space order, the geometric parts ([`slot_geometry`]),
+/// the tiles' ranks ([`TileMembers`] over ranks: each tile's ranks ascending, each rank's tile
+/// and place there) and the tiles' Gaussian ids ([`TileMembers`] over ids).
+pub(super) struct EdgeSource<'a> {
+    pub(super) nb: &'a Ranked,
+    pub(super) geometric: &'a [f32],
+    pub(super) ranks: &'a TileMembers,
+    pub(super) ids: &'a TileMembers,
+}
+
 /// The graph's edges owned by tile `t`'s Gaussians: the inner ones (both ends in the tile) in
-/// the tile's local ids (`members` order, which keeps the ids' order), and the border ones
-/// (one end outside), in scene ids; both unordered. `geometric` is [`slot_geometry`]'s.
+/// the tile's local ids (`ids.members` order, which keeps the ids' order), and the border ones
+/// (one end outside), in scene ids; both unordered.
 ///
 /// An edge `(i, j)` of Gaussian `i` has the weight `w(i, j)` (the weights are not exactly
 /// symmetric in rounding); when `j` lists `i` too, `w(j, i)` is an edge as well unless both
 /// weights are the same (one edge then): the edges of each Gaussian's list, deduplicated.
-pub(super) fn tile_edges(
-    t: u32,
-    geometric: &[f32],
-    tiles: &TileMembers,
-    nb: &Neighbours,
-    w: &Weigher,
-) -> (Vec<Edge>, Vec<Edge>) {
-    let (members, k) = (&tiles.members[t as usize], nb.k);
-    let parts: Vec<(Vec<Edge>, Vec<Edge>)> = members
+///
+/// The tile's Gaussians are visited in space order, with their masks' record gathered in that
+/// order first ([`MaskRecord::gather`]): the reads an edge makes at its far end land near
+/// those of its near end. The edges are those of the scene's id order, weight for weight.
+pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> (Vec<Edge>, Vec<Edge>) {
+    let (ranks, k) = (&src.ranks.members[t as usize], src.nb.k);
+    // The tile's Gaussians in space order: their ids, their local ids (in id order) and
+    // their rows of the record.
+    let ids: Vec<u32> = ranks.par_iter().map(|&r| src.nb.perm[r as usize]).collect();
+    let local: Vec<u32> = ids
+        .par_iter()
+        .map(|&i| src.ids.place[i as usize].1)
+        .collect();
+    let rows = w.masks.map(|m| (m.gather(&ids), m));
+    let parts: Vec<(Vec<Edge>, Vec<Edge>)> = ranks
         .par_chunks(4096)
-        .map(|chunk| {
+        .enumerate()
+        .map(|(c, chunk)| {
             let (mut inner, mut border) = (Vec::new(), Vec::new());
-            for &i in chunk {
-                let iu = i as usize;
-                for (s, j) in nb.of(iu).enumerate() {
-                    let ju = j as usize;
-                    let back = nb.of(ju).position(|x| x == i);
+            for (l, &r) in chunk.iter().enumerate() {
+                let (s, r) = (c * 4096 + l, r as usize);
+                let i = ids[s];
+                for (slot, rj) in src.nb.of(r).enumerate() {
+                    let ru = rj as usize;
+                    let j = src.nb.perm[ru];
+                    let back = src.nb.of(ru).position(|x| x as usize == r);
                     if back.is_some() && j < i {
                         continue;
                     }
-                    let wij = w.weight(geometric[iu * k + s], iu, ju).to_bits();
-                    let wji =
-                        back.map_or(wij, |b| w.weight(geometric[ju * k + b], ju, iu).to_bits());
-                    let (lo, hi) = (i.min(j), i.max(j));
-                    let (tj, lj) = tiles.place[ju];
+                    let (tj, sj) = src.ranks.place[ru];
+                    let far = (tj == t).then_some(sj as usize);
+                    let m_ij = rows.as_ref().map(|x| {
+                        let (near, far) = record_rows(x, s, far, j as usize);
+                        w.disagreement_between(near, far)
+                    });
+                    let wij = w.weight_with(src.geometric[r * k + slot], m_ij).to_bits();
+                    let wji = back.map_or(wij, |b| {
+                        let m_ji = rows.as_ref().map(|x| {
+                            let (near, far) = record_rows(x, s, far, j as usize);
+                            w.disagreement_between(far, near)
+                        });
+                        w.weight_with(src.geometric[ru * k + b], m_ji).to_bits()
+                    });
                     let (out, lo, hi) = if tj == t {
-                        let li = tiles.place[iu].1;
+                        let (li, lj) = (local[s], local[sj as usize]);
                         let (a, b) = if i < j { (li, lj) } else { (lj, li) };
                         (&mut inner, a, b)
                     } else {
-                        (&mut border, lo, hi)
+                        (&mut border, i.min(j), i.max(j))
                     };
                     out.push(Edge {
                         w: wij,
@@ -178,6 +242,22 @@ pub(super) fn tile_edges(
         border.extend(b);
     }
     (inner, border)
+}
+
+/// The record rows of an edge's two ends: the near end's row `s` of the tile's gathered
+/// rows, the far end's row there (`far`, inside the tile) or Gaussian `j`'s of the scene's
+/// record.
+fn record_rows<'a>(
+    (tile, scene): &'a (MaskRecord, &'a MaskRecord),
+    s: usize,
+    far: Option<usize>,
+    j: usize,
+) -> ((&'a MaskRecord, usize), (&'a MaskRecord, usize)) {
+    let far = match far {
+        Some(sj) => (tile, sj),
+        None => (*scene, j),
+    };
+    ((tile, s), far)
 }
 
 /// `max_edge` for `p` and `geo`: the given one, or 10 × the median largest standard deviation.

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 use super::SegmentControl;
-use super::graph::{NO_NEIGHBOUR, Neighbours};
+use super::graph::{NO_NEIGHBOUR, Ranked};
 
 /// Cells per axis at most: a cell's coordinates fit 21 bits of its 63-bit key.
 const AXIS_CELLS: f64 = (1u64 << 21) as f64 - 2.0;
@@ -49,8 +49,22 @@ fn cell_of(m: &[f32; 3], origin: &[f64; 3], side: f64) -> [i64; 3] {
     std::array::from_fn(|a| ((f64::from(m[a]) - origin[a]) / side).floor() as i64)
 }
 
+/// A cell's key: its three 21-bit coordinates interleaved bit by bit (a Morton, or Z-order,
+/// code), so that the cells sorted by key keep cells near in space near in the order: the
+/// means in cell order are the segmentation's space order ([`super::graph::Ranked`]).
 fn key(c: [i64; 3]) -> u64 {
-    ((c[0] as u64) << 42) | ((c[1] as u64) << 21) | c[2] as u64
+    (0..3).fold(0, |k, a| k | (spread(c[a] as u64) << a))
+}
+
+/// The low 21 bits of `v` spread to every third bit (bit `b` to bit `3b`).
+fn spread(v: u64) -> u64 {
+    let mut v = v & 0x1f_ffff;
+    v = (v | (v << 32)) & 0x001f_0000_0000_ffff;
+    v = (v | (v << 16)) & 0x001f_0000_ff00_00ff;
+    v = (v | (v << 8)) & 0x100f_00f0_0f00_f00f;
+    v = (v | (v << 4)) & 0x10c3_0c30_c30c_30c3;
+    v = (v | (v << 2)) & 0x1249_2492_4924_9249;
+    v
 }
 
 /// The means' bounding box.
@@ -199,7 +213,7 @@ pub(super) fn neighbours(
     k: usize,
     max_edge: f32,
     ctl: &SegmentControl,
-) -> Neighbours {
+) -> Ranked {
     let t0 = std::time::Instant::now();
     let grid = ctl.run(|| Grid::build(means, max_edge));
     let build_s = t0.elapsed().as_secs_f64();
@@ -232,10 +246,7 @@ pub(super) fn neighbours(
         });
     }
     let search_s = t1.elapsed().as_secs_f64();
-    let mut pos_of = vec![0u32; means.len()];
-    for (pos, &i) in grid.order.iter().enumerate() {
-        pos_of[i as usize] = pos as u32;
-    }
+    let nb = Ranked::from_cell_order(k, ids, grid.order);
     tracing::debug!(
         target: "slag_encoder::segments",
         cells = grid.cells.len(),
@@ -244,11 +255,7 @@ pub(super) fn neighbours(
         total_s = format!("{:.2}", t0.elapsed().as_secs_f64()),
         "neighbour search"
     );
-    Neighbours {
-        k,
-        ids,
-        pos_of: Some(pos_of),
-    }
+    nb
 }
 
 /// The neighbours of every mean of cell `c` into `out`, `k` slots each, in cell order.
@@ -348,4 +355,42 @@ fn shell_cells(at: [i64; 3], shell: i64) -> impl Iterator<Item = [i64; 3]> {
                 .map(move |dz| [at[0] + dx, at[1] + dy, at[2] + dz])
         })
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::key;
+
+    #[test]
+    fn cell_keys_interleave_the_coordinates_bit_by_bit() {
+        let slow = |c: [i64; 3]| {
+            (0..21).fold(0u64, |k, b| {
+                (0..3).fold(k, |k, a| k | ((c[a] as u64 >> b) & 1) << (3 * b + a))
+            })
+        };
+        let last = (1i64 << 21) - 1;
+        let corners = [
+            [0, 0, 0],
+            [1, 0, 0],
+            [0, 1, 0],
+            [0, 0, 1],
+            [last; 3],
+            [5, 77, 1 << 20],
+        ];
+        let mut s = 7u64;
+        let random = (0..1000).map(|_| {
+            std::array::from_fn(|_| {
+                s = s
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (s >> 43) as i64
+            })
+        });
+        for c in corners.into_iter().chain(random) {
+            assert_eq!(key(c), slow(c), "{c:?}");
+        }
+        // Cells next to each other share a long key prefix: a 2×2×2 block is 8 keys in a row.
+        let block: Vec<u64> = (0..8).map(|b| key([b & 1, (b >> 1) & 1, b >> 2])).collect();
+        assert_eq!(block, (0..8).collect::<Vec<u64>>());
+    }
 }

@@ -48,9 +48,13 @@
 //! The k-NN search bins the means into cubic cells and scans the cells around each mean, shell
 //! after shell, until no cell left can hold a nearer mean: exact, the same
 //! neighbours as any exact search (same `d²`, ties by id), in time about linear in the
-//! Gaussians. The lists are then put in the order of the Gaussians' ids (an edge's weight reads
-//! its far end's list from one place). Memory: 40 bytes per Gaussian for the result, 28 more
-//! while the search runs and 44 more while the lists are reordered.
+//! Gaussians. The cells are ordered along a Morton curve, and the means in that order are the
+//! *space order* the later stages work in: the lists, the edges' geometric parts and, tile by
+//! tile, the masks' record are laid out by it, so that an edge's two ends are read from near
+//! places in memory (a trained `.ply`'s id order is unrelated to space, and reading the far
+//! end's data by id was most of the edges' time). The edges, their order and the ids are
+//! those of the id order. Memory: 44 bytes per Gaussian for the result (the lists and the
+//! order), 28 more while the search runs.
 //!
 //! # Bounded memory and parallel passes: tiles
 //!
@@ -68,10 +72,12 @@
 //! the minimum size and that the mask veto lets through (components only grow, so it would
 //! skip the others too). The geometric part of each
 //! neighbour's edge weight needs no masks: it is computed before the record arrives, so that
-//! afterwards an edge's weight only adds the mask term. Memory: 28 bytes per Gaussian for the
-//! whole scene (tile, its place in the tile, union-find; normals, flatness and size, 20 more,
-//! until the geometric parts are computed) plus the neighbours and the geometric parts (4 bytes
-//! each per slot), the edges of the tiles in flight (at most 1 GiB, about 70 bytes per Gaussian
+//! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the
+//! whole scene (tile, its place in the tile, both by id and by rank; union-find; normals,
+//! flatness and size, 20 more, twice while they are put in space order, until the geometric
+//! parts are computed) plus the neighbours and the geometric parts (4 bytes
+//! each per slot), the edges of the tiles in flight and their gathered rows of the record (at
+//! most 1 GiB, about 70 + 64 bytes per Gaussian
 //! of a tile) and the border edges and those kept. The Gaussians themselves are read only
 //! until the geometric parts are computed ([`segment_with`] lets go of a shared scene there).
 //!
@@ -393,13 +399,13 @@ pub fn segment_with(
         p,
         masks: record.as_deref(),
     };
-    let graph = passes::Graph {
+    let src = graph::EdgeSource {
         nb: &pre.nb,
         geometric: &pre.geometric,
-        tile_of: &pre.tile_of,
-        tiles: pre.tiles,
+        ranks: &pre.ranks,
+        ids: &pre.ids,
     };
-    let (forest, edges, border_edges) = merge(n, p, ctl, &w, &graph, &mut st);
+    let (forest, edges, border_edges) = merge(n, p, ctl, &w, &src, &mut st);
     log_rss("segments: passes");
     let Some(forest) = forest else {
         return Ok(None);
@@ -430,19 +436,22 @@ pub fn segment_with(
 }
 
 /// What [`segment_with`] builds before the masks' record: the edge length cap used (scene
-/// units), each Gaussian's tile (`[N]`) and the tile count, the k-nearest-neighbour graph and
-/// the geometric part of each neighbour slot's weight (`[N * k]`).
+/// units), the tile count, the k-nearest-neighbour graph in space order, the geometric part of
+/// each neighbour slot's weight (`[N * k]`, rank order) and the tiles' members both as ranks
+/// and as Gaussian ids (each with every Gaussian's tile and place in it).
 struct BeforeRecord {
     max_edge: f32,
-    tile_of: Vec<u32>,
     tiles: usize,
-    nb: graph::Neighbours,
+    nb: graph::Ranked,
     geometric: Vec<f32>,
+    ranks: graph::TileMembers,
+    ids: graph::TileMembers,
 }
 
 /// The stages that need no masks' record, each timed into `st`: the Gaussians' geometry, the
-/// tile plan, the neighbour graph and the edges' geometric parts (the per-Gaussian geometry is
-/// freed after them). `None` once [`SegmentControl::stop`] was called.
+/// tile plan, the neighbour graph, the edges' geometric parts (the per-Gaussian geometry,
+/// put in space order for them, is freed after them) and the tiles' members. `None` once
+/// [`SegmentControl::stop`] was called.
 fn before_record(
     g: &Gaussians,
     p: &SegmentParams,
@@ -461,16 +470,24 @@ fn before_record(
     let nb = neighbour_graph(&g.means, p, max_edge, ctl)?;
     st.neighbours = lap(&mut t);
     log_rss("segments: neighbour graph");
-    let geometric = ctl.run(|| slot_geometry(&g.means, &nb, &geo, p));
+    let geometric = ctl.run(|| {
+        let geo = geo.permuted(&nb.perm);
+        slot_geometry(&nb.gather(&g.means), &nb, &geo, p)
+    });
     drop(geo);
+    let (ranks, ids) = ctl.run(|| {
+        let ranks = graph::TileMembers::new(&nb.gather(&tile_of), rects.len());
+        (ranks, graph::TileMembers::new(&tile_of, rects.len()))
+    });
     st.edge_geometry = lap(&mut t);
     log_rss("segments: edge geometry");
     (!ctl.stopped()).then_some(BeforeRecord {
         max_edge,
-        tile_of,
         tiles: rects.len(),
         nb,
         geometric,
+        ranks,
+        ids,
     })
 }
 

@@ -16,7 +16,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
-use super::graph::{Neighbours, TileMembers, tile_edges};
+use super::graph::{EdgeSource, TileMembers, tile_edges};
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -46,28 +46,11 @@ struct BuiltTile {
     seconds: [f64; 2],
 }
 
-/// The neighbour graph the passes take their edges from: each Gaussian's neighbours, the
-/// geometric part of each neighbour slot's weight ([`super::graph::slot_geometry`]), each
-/// Gaussian's tile and the tile count.
-pub(super) struct Graph<'a> {
-    pub(super) nb: &'a Neighbours,
-    pub(super) geometric: &'a [f32],
-    pub(super) tile_of: &'a [u32],
-    pub(super) tiles: usize,
-}
-
-impl Graph<'_> {
-    /// [`tile_edges`] of tile `t`.
-    fn edges(&self, t: u32, tm: &TileMembers, w: &Weigher) -> (Vec<Edge>, Vec<Edge>) {
-        tile_edges(t, self.geometric, tm, self.nb, w)
-    }
-}
-
 /// Tile `t`'s edges with their weights (on all the pool's threads), its inner edges sorted by
 /// `(w, i, j)` in parallel (a total order: the same order whatever the threads).
-fn build_tile(t: u32, graph: &Graph, w: &Weigher, tm: &TileMembers) -> BuiltTile {
+fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
     let clock = Instant::now();
-    let (mut inner, border) = graph.edges(t, tm, w);
+    let (mut inner, border) = tile_edges(t, src, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
@@ -109,10 +92,11 @@ impl BuiltTile {
 }
 
 /// How many tiles may hold their edges at once: the pool's threads, fewer where their edges
-/// would pass [`TILES_IN_FLIGHT_BYTES`].
-fn tiles_at_once(tm: &TileMembers, k: usize) -> usize {
+/// and their gathered rows of the masks' record (`record_bytes` per Gaussian) would pass
+/// [`TILES_IN_FLIGHT_BYTES`].
+fn tiles_at_once(tm: &TileMembers, k: usize, record_bytes: usize) -> usize {
     let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
-    let bytes = (largest * 2 * k * std::mem::size_of::<Edge>()).max(1);
+    let bytes = (largest * (2 * k * std::mem::size_of::<Edge>() + record_bytes)).max(1);
     rayon::current_num_threads()
         .min(TILES_IN_FLIGHT_BYTES / bytes)
         .max(1)
@@ -136,10 +120,10 @@ pub(super) fn merge(
     p: &SegmentParams,
     ctl: &SegmentControl,
     w: &Weigher,
-    graph: &Graph,
+    src: &EdgeSource,
     st: &mut SegmentTimings,
 ) -> (Option<Forest>, u64, u64) {
-    let tm = TileMembers::new(graph.tile_of, graph.tiles);
+    let tm = src.ids;
     let mut regions = w
         .masks
         .filter(|_| p.region_veto < 1.0)
@@ -150,8 +134,8 @@ pub(super) fn merge(
         p,
         ctl,
         w,
-        graph,
-        tm: &tm,
+        src,
+        tm,
     };
     let tiled = match regions.as_mut() {
         None => run.parallel_tiles(st),
@@ -218,7 +202,7 @@ struct Run<'a> {
     p: &'a SegmentParams,
     ctl: &'a SegmentControl,
     w: &'a Weigher<'a>,
-    graph: &'a Graph<'a>,
+    src: &'a EdgeSource<'a>,
     tm: &'a TileMembers,
 }
 
@@ -235,7 +219,10 @@ impl Run<'_> {
         let mut passes: Vec<TilePass> = Vec::with_capacity(tiles as usize);
         let (mut next, mut waiting) = (0u32, Vec::new());
         while next < tiles || !waiting.is_empty() {
-            let at_once = self.ctl.run(|| tiles_at_once(self.tm, self.p.neighbours));
+            let record_bytes = self.w.masks.map_or(0, |m| m.bytes_per_gaussian());
+            let at_once = self
+                .ctl
+                .run(|| tiles_at_once(self.tm, self.p.neighbours, record_bytes));
             let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
             next = wave.end;
             let prev = std::mem::take(&mut waiting);
@@ -282,7 +269,7 @@ impl Run<'_> {
     /// The edges of the tiles `wave`, weighed and sorted.
     fn build(&self, wave: std::ops::Range<u32>) -> Vec<BuiltTile> {
         wave.into_par_iter()
-            .map(|t| build_tile(t, self.graph, self.w, self.tm))
+            .map(|t| build_tile(t, self.src, self.w))
             .collect()
     }
 
@@ -299,8 +286,8 @@ impl Run<'_> {
 
     /// The scene's forest from the tiles' own: each Gaussian's root and its component.
     fn scene_forest(&self, passes: &[TilePass]) -> Forest {
-        let (tm, tile_of) = (self.tm, self.graph.tile_of);
-        let (parent, components) = (0..tile_of.len())
+        let tm = self.tm;
+        let (parent, components) = (0..tm.place.len())
             .into_par_iter()
             .map(|i| {
                 let (t, l) = tm.place[i];
@@ -320,7 +307,7 @@ impl Run<'_> {
         let (mut border, mut kept, mut inner) = (Vec::new(), Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
-            let (mut local, b) = self.ctl.run(|| self.graph.edges(t as u32, self.tm, self.w));
+            let (mut local, b) = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
             self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;

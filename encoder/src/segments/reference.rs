@@ -47,7 +47,6 @@ pub(super) fn neighbour_graph(
     let mut nb = Neighbours {
         k: p.neighbours,
         ids: vec![NO_NEIGHBOUR; g.len() * p.neighbours],
-        pos_of: None,
     };
     let go = AtomicBool::new(false);
     for (t, rect) in rects.iter().enumerate() {

@@ -353,7 +353,9 @@ fn grid_neighbours_equal_the_tree_search() {
         };
         let (ax, one, rects) = plan_tiles(&g.means, usize::MAX);
         let tree = reference::neighbour_graph(&g, &p, h, ax, &one, &rects);
-        let grid = graph::neighbour_graph(&g.means, &p, h, &SegmentControl::default()).unwrap();
+        let grid = graph::neighbour_graph(&g.means, &p, h, &SegmentControl::default())
+            .unwrap()
+            .in_id_order();
         let mut lonely = 0;
         for i in 0..g.len() {
             let a: Vec<u32> = tree.of(i).collect();

@@ -38,6 +38,18 @@ pub(super) fn geometry(g: &Gaussians) -> Geometry {
     }
 }
 
+impl Geometry {
+    /// The same geometry with entry `r` that of Gaussian `perm[r]` (in parallel).
+    pub(super) fn permuted(&self, perm: &[u32]) -> Geometry {
+        let at = |v: &[f32]| perm.par_iter().map(|&i| v[i as usize]).collect();
+        Geometry {
+            normals: perm.par_iter().map(|&i| self.normals[i as usize]).collect(),
+            flatness: at(&self.flatness),
+            size: at(&self.size),
+        }
+    }
+}
+
 /// Column `a` of the rotation matrix of the quaternion `q` = (w, x, y, z), normalised first.
 fn axis(q: &[f32; 4], a: usize) -> [f32; 3] {
     let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
@@ -125,12 +137,31 @@ impl Weigher<'_> {
 
     /// The weight of edge `(i, j)` whose geometric part is `geometric`: that plus the mask
     /// term (≥ 0; non-finite → `f32::MAX`).
+    #[cfg(test)]
     pub(super) fn weight(&self, geometric: f32, i: usize, j: usize) -> f32 {
+        self.weight_with(geometric, self.disagreement(i, j))
+    }
+
+    /// The weight of an edge whose geometric part is `geometric` and whose mask disagreement
+    /// is `m` (`None`: no record): `geometric + mask_weight · m` (≥ 0; non-finite →
+    /// `f32::MAX`).
+    pub(super) fn weight_with(&self, geometric: f32, m: Option<f32>) -> f32 {
         let mut w = geometric;
-        if let Some(m) = self.disagreement(i, j) {
+        if let Some(m) = m {
             w += self.p.mask_weight * m;
         }
         if w.is_finite() { w.max(0.0) } else { f32::MAX }
+    }
+
+    /// The mask disagreement of two rows of records ([`MaskRecord::disagreement_between`]), or
+    /// [`SegmentParams::mask_unknown`] when they share no recorded view: the value
+    /// [`Weigher::weight`] adds for the two Gaussians, bit for bit.
+    pub(super) fn disagreement_between(
+        &self,
+        a: (&MaskRecord, usize),
+        b: (&MaskRecord, usize),
+    ) -> f32 {
+        MaskRecord::disagreement_between(a, b).unwrap_or(self.p.mask_unknown)
     }
 
     /// Whether the minimum-size pass may join across `e`: always without a record; with one,
