@@ -13,9 +13,23 @@ use crate::{Error, Result};
 ///
 /// Errors: [`Error::Io`] naming the file or folder that failed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    write_atomic_parts(path, &[bytes])
+}
+
+/// [`write_atomic`] of the concatenation of `parts`, written one after the other through a
+/// buffer: a file made of large arrays is written without first being copied into one.
+///
+/// Errors: [`Error::Io`] naming the temporary file, the file or its folder.
+pub fn write_atomic_parts(path: &Path, parts: &[&[u8]]) -> Result<()> {
     const SITE: &str = "io.write_atomic";
-    let (tmp, mut f) = create_partial(path)?;
-    f.write_all(bytes).map_err(|e| Error::io(&tmp, e))?;
+    let (tmp, f) = create_partial(path)?;
+    let mut w = std::io::BufWriter::with_capacity(1 << 20, f);
+    for part in parts {
+        w.write_all(part).map_err(|e| Error::io(&tmp, e))?;
+    }
+    let f = w
+        .into_inner()
+        .map_err(|e| Error::io(&tmp, e.into_error()))?;
     boundary_in(SITE, "write");
     f.sync_all().map_err(|e| Error::io(&tmp, e))?;
     boundary_in(SITE, "fsync");

@@ -290,14 +290,26 @@ impl MaskRecord {
         {
             return Err(Error::internal("mask record arrays of different lengths"));
         }
-        let weights: Vec<u8> = self.weights.iter().flat_map(|w| w.to_le_bytes()).collect();
-        let views: Vec<u8> = self.views.iter().flat_map(|v| v.to_le_bytes()).collect();
-        let masks: Vec<u8> = self.masks.iter().flat_map(|v| v.to_le_bytes()).collect();
         let shape = vec![n, self.slots];
         let tensors = vec![
-            ("views", Dtype::U16, shape.clone(), views.as_slice()),
-            ("masks", Dtype::U16, shape.clone(), masks.as_slice()),
-            ("weights", Dtype::F32, shape, weights.as_slice()),
+            (
+                "views",
+                Dtype::U16,
+                shape.clone(),
+                bytemuck::cast_slice(&self.views),
+            ),
+            (
+                "masks",
+                Dtype::U16,
+                shape.clone(),
+                bytemuck::cast_slice(&self.masks),
+            ),
+            (
+                "weights",
+                Dtype::F32,
+                shape,
+                bytemuck::cast_slice(&self.weights),
+            ),
         ];
         let meta = [
             ("format", FORMAT.to_string()),

@@ -10,7 +10,7 @@ use half::f16;
 use safetensors::SafeTensors;
 use safetensors::tensor::{Dtype, TensorView};
 
-use crate::io::write_atomic;
+use crate::io::write_atomic_parts;
 use crate::{Error, Result};
 
 /// What a slag safetensors file must declare in its `__metadata__`, and the words its errors use.
@@ -95,7 +95,10 @@ impl<'a> Checked<'a> {
 }
 
 /// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
-/// strings `meta` and writes the file atomically ([`write_atomic`]).
+/// strings `meta` and writes the file atomically ([`write_atomic_parts`]): the header first,
+/// then each tensor's data straight from `tensors`, with no copy of the whole file in memory.
+/// The bytes are those of `safetensors::serialize` with `meta` added (the crate lays out the
+/// header and the tensors' order).
 ///
 /// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape;
 /// I/O.
@@ -104,17 +107,81 @@ pub(crate) fn write(
     tensors: Vec<(&str, Dtype, Vec<usize>, &[u8])>,
     meta: &[(&str, String)],
 ) -> Result<()> {
-    let views = tensors
-        .into_iter()
-        .map(|(name, dtype, shape, data)| {
-            TensorView::new(dtype, shape, data)
-                .map(|v| (name, v))
-                .map_err(|e| Error::internal(format!("safetensors: {e}")))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let bytes = safetensors::serialize(views, None::<HashMap<String, String>>)
+    let header = header(&tensors, meta)?;
+    let mut parts: Vec<(usize, &[u8])> = Vec::with_capacity(tensors.len() + 1);
+    for (name, _, _, data) in &tensors {
+        parts.push((data_offset(&header, name)?, data));
+    }
+    parts.sort_by_key(|p| p.0);
+    let all: Vec<&[u8]> = std::iter::once(header.as_slice())
+        .chain(parts.into_iter().map(|p| p.1))
+        .collect();
+    write_atomic_parts(path, &all)
+}
+
+/// A tensor's data as the crate would write it, without the data: its dtype, shape and length.
+struct Described<'a> {
+    dtype: Dtype,
+    shape: &'a [usize],
+    len: usize,
+}
+
+impl safetensors::View for Described<'_> {
+    fn dtype(&self) -> Dtype {
+        self.dtype
+    }
+    fn shape(&self) -> &[usize] {
+        self.shape
+    }
+    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
+        std::borrow::Cow::Borrowed(&[])
+    }
+    fn data_len(&self) -> usize {
+        self.len
+    }
+}
+
+/// The file's first bytes (the header's length and the header, with `meta`) for `tensors`:
+/// what `safetensors::serialize` writes before the data, with `meta` added ([`with_metadata`]).
+///
+/// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape.
+fn header(
+    tensors: &[(&str, Dtype, Vec<usize>, &[u8])],
+    meta: &[(&str, String)],
+) -> Result<Vec<u8>> {
+    let mut described = Vec::with_capacity(tensors.len());
+    for (name, dtype, shape, data) in tensors {
+        // TensorView checks the length against the dtype and shape.
+        TensorView::new(*dtype, shape.clone(), data)
+            .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
+        let len = data.len();
+        described.push((
+            *name,
+            Described {
+                dtype: *dtype,
+                shape,
+                len,
+            },
+        ));
+    }
+    let bytes = safetensors::serialize(described, None::<HashMap<String, String>>)
         .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
-    write_atomic(path, &with_metadata(&bytes, meta)?)
+    with_metadata(&bytes, meta)
+}
+
+/// Where tensor `name`'s data starts (`data_offsets[0]`, relative to the data) in `header`
+/// ([`header`]'s bytes).
+///
+/// Errors: [`Error::Internal`] when the header does not list it.
+fn data_offset(header: &[u8], name: &str) -> Result<usize> {
+    let json: serde_json::Value = serde_json::from_slice(header.get(8..).unwrap_or_default())
+        .map_err(|e| Error::internal(format!("safetensors header: {e}")))?;
+    json.get(name)
+        .and_then(|t| t.get("data_offsets"))
+        .and_then(|o| o.get(0))
+        .and_then(serde_json::Value::as_u64)
+        .and_then(|o| usize::try_from(o).ok())
+        .ok_or_else(|| Error::internal(format!("safetensors header lists no tensor {name}")))
 }
 
 /// `file` (a safetensors file without metadata) with `meta` as its `__metadata__`, keys in
@@ -180,4 +247,39 @@ pub(crate) fn le_f16(bytes: &[u8]) -> Vec<f32> {
 /// `[x, y, z]` rows of a flat `[N * 3]` array (a trailing partial row is ignored).
 pub(crate) fn triples(flat: &[f32]) -> Vec<[f32; 3]> {
     flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_streamed_file_is_the_serialized_one_with_its_metadata() {
+        let dir = tempfile::tempdir().unwrap();
+        let a: Vec<u8> = (0..24u8).collect();
+        let b: Vec<u8> = (0..6u8).map(|v| v * 3).collect();
+        let c: Vec<u8> = (0..16u8).rev().collect();
+        let tensors = vec![
+            ("zeta", Dtype::U16, vec![3], &b[..]),
+            ("alpha", Dtype::F32, vec![2, 3], &a[..]),
+            ("mid", Dtype::U32, vec![4], &c[..]),
+            ("empty", Dtype::F16, vec![0, 5], &[][..]),
+        ];
+        let meta = [("version", "1".to_string()), ("format", "test".to_string())];
+        let views: Vec<(&str, TensorView)> = tensors
+            .iter()
+            .map(|(n, d, s, x)| (*n, TensorView::new(*d, s.clone(), x).unwrap()))
+            .collect();
+        let whole = safetensors::serialize(views, None::<HashMap<String, String>>).unwrap();
+        let path = dir.path().join("t.safetensors");
+        write(&path, tensors.clone(), &meta).unwrap();
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            with_metadata(&whole, &meta).unwrap()
+        );
+        let mut bad = tensors;
+        bad[0].2 = vec![4];
+        assert!(matches!(write(&path, bad, &meta), Err(Error::Internal(_))));
+    }
 }

@@ -77,8 +77,8 @@
 //! flatness and size, 20 more, twice while they are put in space order, until the geometric
 //! parts are computed) plus the neighbours and the geometric parts (4 bytes
 //! each per slot), the edges of the tiles in flight and their gathered rows of the record (at
-//! most 1 GiB, about 70 + 64 bytes per Gaussian
-//! of a tile) and the border edges and those kept. The Gaussians themselves are read only
+//! most 2 GiB, sized from the edges per Gaussian of the tiles built so far: about 100 + 64
+//! bytes per Gaussian of a tile) and the border edges and those kept. The Gaussians themselves are read only
 //! until the geometric parts are computed ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same

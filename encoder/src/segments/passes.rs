@@ -21,9 +21,10 @@ use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
 
-/// Bytes of edges that the tiles in flight at once may hold (about 12 bytes per edge, up to
-/// `2k` edges per Gaussian): bounds the passes' memory whatever the thread count.
-const TILES_IN_FLIGHT_BYTES: usize = 1 << 30;
+/// Bytes that the tiles in flight at once may hold: their edges (12 bytes each) and, while
+/// they are built, their rows of the masks' record. Bounds the passes' memory whatever the
+/// thread count.
+const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
 /// inner edges still between components, the border edges its Gaussians own, its edge count,
@@ -91,15 +92,42 @@ impl BuiltTile {
     }
 }
 
-/// How many tiles may hold their edges at once: the pool's threads, fewer where their edges
-/// and their gathered rows of the masks' record (`record_bytes` per Gaussian) would pass
-/// [`TILES_IN_FLIGHT_BYTES`].
-fn tiles_at_once(tm: &TileMembers, k: usize, record_bytes: usize) -> usize {
+/// How many tiles may hold their edges at once: the pool's threads, fewer where the largest
+/// tile's bytes at `bytes_per_gaussian` would pass [`TILES_IN_FLIGHT_BYTES`].
+fn tiles_at_once(tm: &TileMembers, bytes_per_gaussian: usize) -> usize {
     let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
-    let bytes = (largest * (2 * k * std::mem::size_of::<Edge>() + record_bytes)).max(1);
+    let bytes = (largest * bytes_per_gaussian).max(1);
     rayon::current_num_threads()
         .min(TILES_IN_FLIGHT_BYTES / bytes)
         .max(1)
+}
+
+/// What a tile in flight holds per Gaussian, as far as the tiles built so far tell: its edges
+/// (the most per Gaussian of any tile built, a quarter more for the tiles to come; `2k`, the
+/// most there can be, before any) and its rows of the record (`record_bytes`).
+struct InFlight {
+    most_edges: f64,
+    k: usize,
+    record_bytes: usize,
+}
+
+impl InFlight {
+    fn bytes_per_gaussian(&self) -> usize {
+        let edges = if self.most_edges > 0.0 {
+            (1.25 * self.most_edges).min(2.0 * self.k as f64)
+        } else {
+            2.0 * self.k as f64
+        };
+        (edges * std::mem::size_of::<Edge>() as f64).ceil() as usize + self.record_bytes
+    }
+
+    fn saw(&mut self, built: &[BuiltTile], tm: &TileMembers) {
+        for b in built {
+            let members = tm.members[b.t as usize].len().max(1) as f64;
+            let edges = (b.inner.len() + b.border.len()) as f64 / members;
+            self.most_edges = self.most_edges.max(edges);
+        }
+    }
 }
 
 /// The tiles' criterion passes: the scene's forest after them, the border edges (unordered),
@@ -218,11 +246,14 @@ impl Run<'_> {
         let tiles = self.tm.members.len() as u32;
         let mut passes: Vec<TilePass> = Vec::with_capacity(tiles as usize);
         let (mut next, mut waiting) = (0u32, Vec::new());
+        let mut in_flight = InFlight {
+            most_edges: 0.0,
+            k: self.p.neighbours,
+            record_bytes: self.w.masks.map_or(0, |m| m.bytes_per_gaussian()),
+        };
         while next < tiles || !waiting.is_empty() {
-            let record_bytes = self.w.masks.map_or(0, |m| m.bytes_per_gaussian());
-            let at_once = self
-                .ctl
-                .run(|| tiles_at_once(self.tm, self.p.neighbours, record_bytes));
+            let per = in_flight.bytes_per_gaussian();
+            let at_once = self.ctl.run(|| tiles_at_once(self.tm, per));
             let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
             next = wave.end;
             let prev = std::mem::take(&mut waiting);
@@ -237,6 +268,7 @@ impl Run<'_> {
                 return None;
             }
             passes.extend(done);
+            in_flight.saw(&built, self.tm);
             waiting = built;
         }
         for pass in &passes {
