@@ -6,7 +6,7 @@
 //! layout of `slag_eval::heldout::gaussian_scores`); `observed[k]` says whether Gaussian `k` has an
 //! embedding. Unobserved Gaussians do not vote, and receive their segment's answer when the
 //! segment has observed members (a segment without any stays at zero, as unobserved Gaussians are
-//! without PF). Three tables are scored by `eval-colors --held-out --prediction-filtering`:
+//! without PF). These tables are scored by `eval-colors --held-out --prediction-filtering`:
 //!
 //! - `argmax`: each observed Gaussian's own class as a one-hot row (the control: PF's one-hot
 //!   rendering without segments);
@@ -17,7 +17,10 @@
 //!   `Σ_j a_kj` (how much the encoded views saw of it), one-hot;
 //! - `pf-confident`: a Gaussian whose own class is clear keeps it: one whose score margin (best
 //!   class score minus the second) is at least the median margin of the observed Gaussians keeps
-//!   its own class, the others (and the unobserved) take `pf-weighted`'s segment class, one-hot.
+//!   its own class, the others (and the unobserved) take `pf-weighted`'s segment class, one-hot;
+//! - `pf-strict`: the paper's majority only where it is a strict majority (the winning class
+//!   holds more than half of the segment's votes); the Gaussians of a segment split more evenly,
+//!   which PF's premise (one segment, one object) evidently does not fit, keep their own class.
 
 use std::collections::HashMap;
 
@@ -103,16 +106,16 @@ pub fn majority_table(
     })
 }
 
-/// Each segment's class by votes weighted by `weights[k]` (≥ 0; non-finite counts 0) over its
-/// observed Gaussians of known class (ties to the smaller class); `None` for a segment
-/// without votes. One entry per Gaussian.
+/// Each segment's votes by `weights[k]` (≥ 0; non-finite counts 0) over its observed Gaussians
+/// of known class: the winning class (ties to the smaller class), its weight and the total
+/// weight. Segments without a positive vote are absent.
 ///
 /// Errors: lengths that differ ([`Error::Internal`]).
-pub fn weighted_majority(
+fn segment_votes(
     own: &[Option<u8>],
     weights: &[f32],
     segments: &[u32],
-) -> Result<Vec<Option<u8>>> {
+) -> Result<HashMap<u32, (u8, f64, f64)>> {
     if own.len() != segments.len() || weights.len() != segments.len() {
         return Err(Error::internal(format!(
             "{} classes, {} weights, {} segment ids",
@@ -128,14 +131,55 @@ pub fn weighted_majority(
             votes.entry(s).or_insert([0.0; 256])[*c as usize] += w as f64;
         }
     }
-    let winner: HashMap<u32, u8> = votes
+    Ok(votes
         .into_iter()
         .filter_map(|(s, v)| {
             let best = argmax(&v);
-            (v[best] > 0.0).then_some((s, best as u8))
+            (v[best] > 0.0).then(|| (s, (best as u8, v[best], v.iter().sum())))
         })
-        .collect();
-    Ok(segments.iter().map(|s| winner.get(s).copied()).collect())
+        .collect())
+}
+
+/// Each segment's class by votes weighted by `weights[k]` (≥ 0; non-finite counts 0) over its
+/// observed Gaussians of known class (ties to the smaller class); `None` for a segment
+/// without votes. One entry per Gaussian.
+///
+/// Errors: lengths that differ ([`Error::Internal`]).
+pub fn weighted_majority(
+    own: &[Option<u8>],
+    weights: &[f32],
+    segments: &[u32],
+) -> Result<Vec<Option<u8>>> {
+    let winner = segment_votes(own, weights, segments)?;
+    Ok(segments
+        .iter()
+        .map(|s| winner.get(s).map(|w| w.0))
+        .collect())
+}
+
+/// `pf-strict` (module doc): the paper's majority where it is one, i.e. where the segment's
+/// winning class holds more than half of its observed Gaussians' votes; in a segment split
+/// more evenly every observed Gaussian keeps its own class (unobserved ones take the winning
+/// class, as with `pf-majority`). One-hot rows.
+///
+/// Errors: tables whose sizes disagree ([`Error::Internal`]).
+pub fn strict_majority_table(
+    scores: &[f32],
+    observed: &[bool],
+    segments: &[u32],
+    classes: usize,
+) -> Result<Vec<f32>> {
+    vote_table(scores, observed, classes, |own| {
+        let votes = segment_votes(own, &vec![1.0; own.len()], segments)?;
+        Ok(own
+            .iter()
+            .zip(segments)
+            .map(|(o, s)| match votes.get(s) {
+                Some(&(best, w, total)) if 2.0 * w > total || o.is_none() => Some(best),
+                _ => *o,
+            })
+            .collect())
+    })
 }
 
 /// `pf-weighted` (module doc): one-hot rows of each segment's class by votes weighted by
@@ -348,6 +392,27 @@ mod tests {
         let c = confident_table(&scores, &observed, &weights, &segments, 2).unwrap();
         assert_eq!(c, vec![0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0]);
         assert!(weighted_table(&scores, &observed, &weights[1..], &segments, 2).is_err());
+    }
+
+    #[test]
+    fn the_strict_majority_filters_only_segments_one_class_holds() {
+        // Segment 0: classes 0, 0, 0, 1 (a strict majority: all become 0); segment 1: 0, 0,
+        // 1, 1 (split evenly: each keeps its own); an unobserved Gaussian in each takes the
+        // winner (the smaller class on the tie).
+        let scores = vec![
+            0.9, 0.1, 0.9, 0.1, 0.9, 0.1, 0.1, 0.9, 0.0, 0.0, //
+            0.9, 0.1, 0.9, 0.1, 0.1, 0.9, 0.1, 0.9, 0.0, 0.0,
+        ];
+        let observed = [true, true, true, true, false, true, true, true, true, false];
+        let segments = [0u32, 0, 0, 0, 0, 1, 1, 1, 1, 1];
+        let t = strict_majority_table(&scores, &observed, &segments, 2).unwrap();
+        let classes: Vec<usize> = t.chunks(2).map(|r| argmax(r)).collect();
+        assert_eq!(classes, vec![0, 0, 0, 0, 0, 0, 0, 1, 1, 0]);
+        assert!(t.chunks(2).all(|r| r.iter().sum::<f32>() == 1.0));
+        // The paper's majority filters both segments.
+        let m = majority_table(&scores, &observed, &segments, 2).unwrap();
+        assert!(m.chunks(2).all(|r| r == [1.0, 0.0]));
+        assert!(strict_majority_table(&scores, &observed, &segments[1..], 2).is_err());
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! The prediction-filtering predictors of a held-out pass, one set per segmentation, scored
 //! beside the unfiltered ones (`eval-colors --held-out --pf`, `eval-objects --held-out`):
-//! `argmax` (the control), `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident`
+//! `argmax` (the control), `pf-majority`, `pf-strict`, `pf-mean`, `pf-weighted`, `pf-confident`
 //! ([`slag_encoder::prediction_filtering`]), and the last two over the mixture's mean form.
 
 use std::path::{Path, PathBuf};
@@ -13,11 +13,11 @@ use slag_encoder::prediction_filtering as pf;
 use crate::heldout_variants::VariantTable;
 
 /// The prediction-filtering tables of the held-out pass: `argmax` (the control), then per
-/// segmentation `pf-majority`, `pf-mean`, `pf-weighted` and `pf-confident` over slag's dense
-/// scores, and `pf-weighted` and `pf-confident` over the mixture's mean form when it is among
-/// `variants` (the stored default). The first segmentation's names are bare; the others' get
-/// `@<parent folder>/<file stem>`. `emb` gives which of the `n` scene Gaussians are observed
-/// and their `Σ_j a_kj`; every table is `[n × c]`.
+/// segmentation `pf-majority`, `pf-strict`, `pf-mean`, `pf-weighted` and `pf-confident` over
+/// slag's dense scores, and `pf-weighted` and `pf-confident` over the mixture's mean form when
+/// it is among `variants` (the stored default). The first segmentation's names are bare; the
+/// others' get `@<parent folder>/<file stem>`. `emb` gives which of the `n` scene Gaussians
+/// are observed and their `Σ_j a_kj`; every table is `[n × c]`.
 ///
 /// Errors: tables whose sizes disagree ([`slag_common::Error::Internal`]).
 pub fn pf_tables(
@@ -72,6 +72,11 @@ pub fn pf_tables(
             format!("pf-majority{tag}"),
             path,
             pf::majority_table(slag_scores, &observed, seg, c)?,
+        ));
+        out.push(table(
+            format!("pf-strict{tag}"),
+            path,
+            pf::strict_majority_table(slag_scores, &observed, seg, c)?,
         ));
         out.push(table(
             format!("pf-mean{tag}"),

@@ -5,25 +5,28 @@
 # the mask-term segments and the masks' record), make the geometric segments
 # (`segment --geometry-only`), and score every predictor and PF variant on both segmentations
 # against the object truth in one pass (`eval-objects --held-out`: per-pixel and per-Gaussian
-# mIoU), with the object AP50 and box IoU of each class's query at the default object gap.
+# mIoU), with the object AP50 and box IoU of each class's query at the default object gap (its
+# scores smoothed also over the geometric segments: OUTDIR/<level>-s<seed>/objects-geometric.json).
 # Writes OUTDIR/table.md and keeps every JSON under OUTDIR/<level>-s<seed>/.
 #
 # Usage: scripts/lab/object-truth-pf.sh BINARY OUTDIR [SEED ...]          (default SEED: 1 2)
 # Texture levels: default (the flags' defaults) and heavy (speckles 0.2, stripes 0.3, shading 0.5).
 # Scene size: GAUSSIANS (30000), VIEWS (16), WIDTH×HEIGHT (320×240), room side EXTENT (6).
 # EXTRA_ENCODE: more encode flags, split on spaces (e.g. EXTRA_ENCODE="--mask-erode 2").
+# LEVELS: the texture levels to run, split on spaces (default "default heavy").
 set -euo pipefail
-[ $# -ge 2 ] || { sed -n '2,14p' "$0"; exit 2; }
+[ $# -ge 2 ] || { sed -n '2,15p' "$0"; exit 2; }
 B=$(realpath "$1"); R=$2; shift 2
 SEEDS=("$@"); [ ${#SEEDS[@]} -gt 0 ] || SEEDS=(1 2)
 : "${SLAG_SHARED:?set SLAG_SHARED to the shared folder (fixtures/sam-amg, fixtures/clip)}"
 F=$SLAG_SHARED/fixtures
 G=${GAUSSIANS:-30000}; V=${VIEWS:-16}; W=${WIDTH:-320}; H=${HEIGHT:-240}; X=${EXTENT:-6}
 read -r -a EXTRA <<< "${EXTRA_ENCODE:-}"
+read -r -a LEVEL_LIST <<< "${LEVELS:-default heavy}"
 mkdir -p "$R"
 echo "# PF on object truth ($(date -u +%F), $(hostname), $("$B" --version 2>/dev/null || echo slag-encoder)${EXTRA_ENCODE:+, encode $EXTRA_ENCODE})" > "$R/table.md"
 for seed in "${SEEDS[@]}"; do
-  for level in default heavy; do
+  for level in "${LEVEL_LIST[@]}"; do
     tex=(); [ "$level" = heavy ] && tex=(--speckles 0.2 --stripes 0.3 --shading 0.5)
     D=$R/$level-s$seed; S=$D/scene; E=$D/enc; mkdir -p "$D"
     t0=$(date +%s)
@@ -39,16 +42,19 @@ for seed in "${SEEDS[@]}"; do
     "$B" eval-objects --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \
       --color-clip "$F/clip" --smooth none --smooth segment --held-out \
       --more-segments "$D/geometric.safetensors" > "$D/eval.json" 2> "$D/eval.log"
+    "$B" eval-objects --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \
+      --color-clip "$F/clip" --smooth segment --segments "$D/geometric.safetensors" \
+      > "$D/objects-geometric.json" 2> "$D/objects-geometric.log"
     echo "$level seed $seed: $(( $(date +%s) - t0 )) s"
   done
 done
-python3 - "$R" "${SEEDS[@]}" >> "$R/table.md" <<'PY'
-import json, sys
+LEVELS="${LEVEL_LIST[*]}" python3 - "$R" "${SEEDS[@]}" >> "$R/table.md" <<'PY'
+import json, os, sys
 r, seeds = sys.argv[1], sys.argv[2:]
 names = ["slag", "mixture-mean-S4", "argmax"]
-pf = ["pf-majority", "pf-mean", "pf-weighted", "pf-confident",
+pf = ["pf-majority", "pf-strict", "pf-mean", "pf-weighted", "pf-confident",
       "mixture-mean-S4+pf-weighted", "mixture-mean-S4+pf-confident"]
-for level in ["default", "heavy"]:
+for level in os.environ["LEVELS"].split():
     for seed in seeds:
         e = json.load(open(f"{r}/{level}-s{seed}/eval.json"))
         t = e["object_truth"]
@@ -68,9 +74,10 @@ for level in ["default", "heavy"]:
                   f"{s['class_purity']['purity']:.4f}, object purity {s['object_purity']['purity']:.4f}; "
                   f"over the objects' Gaussians: class {s['objects_class_purity']['purity']:.4f}, "
                   f"object {s['objects_object_purity']['purity']:.4f}")
-        for run in e["runs"]:
+        geo_runs = json.load(open(f"{r}/{level}-s{seed}/objects-geometric.json"))["runs"]
+        for run, on in [(x, "") for x in e["runs"]] + [(x, " (geometric segments)") for x in geo_runs]:
             sc = run["score"]
-            print(f"\nobjects, smooth {run['smooth']}: AP50 {sc['ap50']:.4f}, box AP50 "
+            print(f"\nobjects, smooth {run['smooth']}{on}: AP50 {sc['ap50']:.4f}, box AP50 "
                   f"{sc['box_ap50']:.4f}, mean box IoU {sc['mean_box_iou']:.4f}")
 PY
 cat "$R/table.md"
