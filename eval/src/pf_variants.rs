@@ -1,7 +1,7 @@
 //! The prediction-filtering predictors of a held-out pass, one set per segmentation, scored
 //! beside the unfiltered ones (`eval-colors --held-out --pf`, `eval-objects --held-out`):
-//! `argmax` (the control), `pf-majority`, `pf-strict`, `pf-mean`, `pf-weighted`, `pf-confident`
-//! ([`slag_encoder::prediction_filtering`]), and the last two over the mixture's mean form.
+//! `argmax` (the control), `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident`, `pf-strict`
+//! ([`slag_encoder::prediction_filtering`]), and the last three over the mixture's mean form.
 
 use std::path::{Path, PathBuf};
 
@@ -13,9 +13,9 @@ use slag_encoder::prediction_filtering as pf;
 use crate::heldout_variants::VariantTable;
 
 /// The prediction-filtering tables of the held-out pass: `argmax` (the control), then per
-/// segmentation `pf-majority`, `pf-strict`, `pf-mean`, `pf-weighted` and `pf-confident` over
-/// slag's dense scores, and `pf-weighted` and `pf-confident` over the mixture's mean form when
-/// it is among `variants` (the stored default). The first segmentation's names are bare; the
+/// segmentation `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident` and `pf-strict` over
+/// slag's dense scores, and the last three over the mixture's mean form when it is among
+/// `variants` (the stored default). The first segmentation's names are bare; the
 /// others' get `@<parent folder>/<file stem>`. `emb` gives which of the `n` scene Gaussians
 /// are observed and their `Σ_j a_kj`; every table is `[n × c]`.
 ///
@@ -74,21 +74,18 @@ pub fn pf_tables(
             pf::majority_table(slag_scores, &observed, seg, c)?,
         ));
         out.push(table(
-            format!("pf-strict{tag}"),
-            path,
-            pf::strict_majority_table(slag_scores, &observed, seg, c)?,
-        ));
-        out.push(table(
             format!("pf-mean{tag}"),
             path,
             pf::mean_table(slag_scores, &observed, seg, c)?,
         ));
-        // `pf-weighted` and `pf-confident` of `scores`, their names after `prefix`.
+        // `pf-weighted`, `pf-confident` and `pf-strict` of `scores`, their names after `prefix`.
         let mut push_weighted = |prefix: &str, scores: &[f32]| -> Result<()> {
             let weighted = pf::weighted_table(scores, &observed, &sum_a, seg, c)?;
             out.push(table(format!("{prefix}pf-weighted{tag}"), path, weighted));
             let confident = pf::confident_table(scores, &observed, &sum_a, seg, c)?;
             out.push(table(format!("{prefix}pf-confident{tag}"), path, confident));
+            let strict = pf::strict_majority_table(scores, &observed, seg, c)?;
+            out.push(table(format!("{prefix}pf-strict{tag}"), path, strict));
             Ok(())
         };
         push_weighted("", slag_scores)?;

@@ -82,9 +82,11 @@ fn prediction_filtering_helps_on_object_truth() {
         pixel("pf-mean")
     );
     eprintln!(
-        "pf-weighted {:.4} (3D {:.4})",
+        "pf-weighted {:.4} (3D {:.4}), pf-strict {:.4} (3D {:.4})",
         pixel("pf-weighted"),
-        three_d("pf-weighted")
+        three_d("pf-weighted"),
+        pixel("pf-strict"),
+        three_d("pf-strict")
     );
     assert!(
         no_pf > pixel("majority"),
@@ -125,4 +127,11 @@ fn prediction_filtering_helps_on_object_truth() {
         "pf-weighted {} vs {no_pf}",
         pixel("pf-weighted")
     );
+    // And the majority kept to segments where it is one (more than half of the votes).
+    assert!(
+        pixel("pf-strict") >= no_pf + 0.02,
+        "pf-strict {} vs {no_pf}",
+        pixel("pf-strict")
+    );
+    assert!(three_d("pf-strict") >= three_d("slag") + 0.02);
 }

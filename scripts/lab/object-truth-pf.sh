@@ -53,7 +53,7 @@ import json, os, sys
 r, seeds = sys.argv[1], sys.argv[2:]
 names = ["slag", "mixture-mean-S4", "argmax"]
 pf = ["pf-majority", "pf-strict", "pf-mean", "pf-weighted", "pf-confident",
-      "mixture-mean-S4+pf-weighted", "mixture-mean-S4+pf-confident"]
+      "mixture-mean-S4+pf-weighted", "mixture-mean-S4+pf-confident", "mixture-mean-S4+pf-strict"]
 for level in os.environ["LEVELS"].split():
     for seed in seeds:
         e = json.load(open(f"{r}/{level}-s{seed}/eval.json"))
