@@ -32,6 +32,18 @@ pub fn mem_available_bytes() -> Option<u64> {
     proc_kb("/proc/meminfo", "MemAvailable")
 }
 
+/// CPU time this process has used so far, user + system over all its threads, seconds
+/// (`utime` + `stime` of `/proc/self/stat`, clock ticks of 1/100 s: 10 ms resolution).
+pub fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The fields after the command name (in parentheses, which may itself hold spaces and
+    // parentheses) start at field 3, the state; utime is field 14, stime 15.
+    let (_, rest) = stat.rsplit_once(')')?;
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |field: usize| fields.get(field - 3)?.parse::<f64>().ok();
+    Some((ticks(14)? + ticks(15)?) / 100.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -47,6 +59,8 @@ mod tests {
         assert!(rss > 0, "{rss}");
         assert!(peak >= rss, "peak {peak} < current {rss}");
         assert!(mem_available_bytes().is_some_and(|m| m > 0));
+        let cpu = cpu_seconds().expect("utime + stime");
+        assert!(cpu_seconds().expect("utime + stime") >= cpu);
         assert_eq!(status_bytes("NoSuchKey"), None);
     }
 }

@@ -35,6 +35,8 @@ fn main() -> anyhow::Result<()> {
     }
     println!("{params:?}");
     let reps = 5;
+    // CPU time (user + system) of this process so far, seconds (Linux only, else 0).
+    let cpu_seconds = || slag_common::util::cpu_seconds().unwrap_or(0.0);
     for path in images {
         let img = image::open(&path)?.to_rgb8();
         let (t, c) = (Instant::now(), cpu_seconds());
@@ -71,19 +73,4 @@ fn main() -> anyhow::Result<()> {
         );
     }
     Ok(())
-}
-
-/// CPU time (user + system) of this process so far, seconds (10 ms resolution; Linux only, else 0).
-fn cpu_seconds() -> f64 {
-    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-    // Fields after the command name (which is in parentheses): utime is field 14, stime 15.
-    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<f64> = rest
-        .split_whitespace()
-        .filter_map(|x| x.parse().ok())
-        .collect();
-    // `rest` starts at field 3 (state, not numeric, filtered out) so utime is f[10], stime f[11].
-    f.get(10)
-        .zip(f.get(11))
-        .map_or(0.0, |(u, s)| (u + s) / 100.0)
 }

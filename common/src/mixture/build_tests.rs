@@ -476,33 +476,15 @@ fn build_timing() {
         parts.offsets.push(parts.atoms.len());
     }
     // Seconds and peak resident growth (MiB, Linux) of one build.
-    let kib = |key: &str| -> f64 {
-        let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-        let line = status.lines().find(|l| l.starts_with(key)).unwrap_or("");
-        line.split_whitespace()
-            .nth(1)
-            .and_then(|v| v.parse().ok())
-            .unwrap_or(0.0)
-    };
-    // Process CPU seconds (user + system, all threads; Linux, 100 ticks a second).
-    let cpu = || -> f64 {
-        let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-        let after = stat.rsplit(')').next().unwrap_or("");
-        let f: Vec<f64> = after
-            .split_whitespace()
-            .filter_map(|v| v.parse().ok())
-            .collect();
-        f.get(10)
-            .zip(f.get(11))
-            .map_or(0.0, |(u, s)| (u + s) / 100.0)
-    };
+    let mib = |bytes: Option<u64>| bytes.unwrap_or(0) as f64 / (1024.0 * 1024.0);
+    let cpu = || crate::util::cpu_seconds().unwrap_or(0.0);
     let run = |build: fn(SparseMixture) -> Result<MixtureEmbeddings>, parts: SparseMixture| {
         let _ = std::fs::write("/proc/self/clear_refs", "5"); // resets VmHWM
-        let (before, cpu0) = (kib("VmRSS:"), cpu());
+        let (before, cpu0) = (mib(crate::util::rss_bytes()), cpu());
         let t0 = std::time::Instant::now();
         let out = build(parts).unwrap();
         let s = t0.elapsed().as_secs_f64();
-        let peak = (kib("VmHWM:") - before) / 1024.0;
+        let peak = mib(crate::util::peak_rss_bytes()) - before;
         (
             out,
             format!("{s:.2} s ({:.2} s CPU, +{peak:.0} MiB peak)", cpu() - cpu0),
