@@ -25,7 +25,7 @@ use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
 use slag_common::mixture::SparseMixture;
 use slag_common::table::Table;
 use slag_encoder::aggregate::{
-    ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_sparse,
+    ContributionStore, Entry, ImageContribution, ReduceParams, reduce_mixture_chunks,
     reduce_to_writer, reduce_to_writer_with_mixture,
 };
 use std::time::Instant;
@@ -59,7 +59,7 @@ pub struct ReduceArgs {
     pub block_major_only: bool,
     /// Also time the tail with the mixture form keeping this many `a_kj` per Gaussian
     /// (`encode --mixture-keep`), in the default loop order: two passes (`reduce_to_writer`, then
-    /// `reduce_mixture_sparse`) against the one fused pass (`reduce_to_writer_with_mixture`),
+    /// `reduce_mixture_chunks`) against the one fused pass (`reduce_to_writer_with_mixture`),
     /// which must give the same embeddings bytes and mixture.
     #[arg(long)]
     pub mixture_keep: Option<usize>,
@@ -198,8 +198,7 @@ fn mixture_tail(
         let s = reduce_to_writer(store, means, a.dim, params, writer)?;
         let reduce_s = s.reduce_s;
         let t = Instant::now();
-        let n = means.len();
-        let sparse = reduce_mixture_sparse(store, n, a.dim, params, keep, "m", means)?;
+        let (sparse, _) = reduce_mixture_chunks(store, means, a.dim, params, keep, "m")?;
         (s, sparse, reduce_s, t.elapsed().as_secs_f64())
     };
     let total_s = t.elapsed().as_secs_f64();

@@ -44,34 +44,27 @@ pub fn reduce_mixture(
     model_id: &str,
     means: &[[f32; 3]],
 ) -> Result<MixtureEmbeddings> {
-    let sparse = reduce_mixture_sparse(store, n_gaussians, dim, params, keep, model_id, means)?;
+    check_keep(keep)?;
+    if means.len() != n_gaussians {
+        return Err(Error::internal(format!(
+            "reduce_mixture: {} means for {n_gaussians} Gaussians",
+            means.len()
+        )));
+    }
+    let (sparse, _) = reduce_mixture_chunks(store, means, dim, params, keep, model_id)?;
     MixtureEmbeddings::from_sparse(sparse)
 }
 
-/// The part of [`reduce_mixture`] that reads `store`: the codebook (every mask embedding, `[M *
-/// D]` f32) and each observed Gaussian's `keep` largest `(atom, a_kj)` as a [`SparseMixture`]
-/// (`[N]` ids and means, `[N + 1]` offsets, up to `N × keep` atoms and f64 weights), before
-/// [`MixtureEmbeddings::from_sparse`] builds the stored form. The encoder's tail drops the store
-/// in between, so that the build's buffers never add to the `a_kj` entries.
+/// The part of [`reduce_mixture`] that reads `store`, over all `means` (`[N]`, world frame,
+/// `.ply` order): the codebook (every mask embedding, `[M * D]` f32) and each observed
+/// Gaussian's `keep` largest `(atom, a_kj)` as a [`SparseMixture`] (`[N]` ids and means,
+/// `[N + 1]` offsets, up to `N × keep` atoms and f64 weights), before
+/// [`MixtureEmbeddings::from_sparse`] builds the stored form; also the number of Gaussian-id
+/// chunks the pass took. The encoder's tail when only the mixture is written: no dense `E_k`
+/// row is made, and the store is dropped before the build, so that the build's buffers never
+/// add to the `a_kj` entries.
 ///
 /// Errors: those of [`reduce_mixture`] but [`MixtureEmbeddings::from_sparse`]'s.
-pub fn reduce_mixture_sparse(
-    store: &ContributionStore,
-    n_gaussians: usize,
-    dim: usize,
-    params: ReduceParams,
-    keep: usize,
-    model_id: &str,
-    means: &[[f32; 3]],
-) -> Result<SparseMixture> {
-    sparse_pass(store, n_gaussians, dim, params, keep, model_id, means).map(|(sparse, _)| sparse)
-}
-
-/// [`reduce_mixture_sparse`] over all `means` (`[N]`, world frame, `.ply` order), also returning
-/// the number of Gaussian-id chunks the pass took: the encoder's tail when only the mixture is
-/// written, so that no dense `E_k` row is made.
-///
-/// Errors: those of [`reduce_mixture_sparse`].
 pub fn reduce_mixture_chunks(
     store: &ContributionStore,
     means: &[[f32; 3]],
@@ -80,21 +73,8 @@ pub fn reduce_mixture_chunks(
     keep: usize,
     model_id: &str,
 ) -> Result<(SparseMixture, usize)> {
-    sparse_pass(store, means.len(), dim, params, keep, model_id, means)
-}
-
-/// The one pass of [`reduce_mixture_sparse`] and [`reduce_mixture_chunks`]: the sparse parts
-/// and the number of chunks.
-fn sparse_pass(
-    store: &ContributionStore,
-    n_gaussians: usize,
-    dim: usize,
-    params: ReduceParams,
-    keep: usize,
-    model_id: &str,
-    means: &[[f32; 3]],
-) -> Result<(SparseMixture, usize)> {
-    let (mut codebook, mut gather) = Gather::new(n_gaussians, dim, keep, model_id, means)?;
+    let n_gaussians = means.len();
+    let (mut codebook, mut gather) = Gather::new(dim, keep, model_id, means)?;
     let (min_total_weight, per_gaussian) =
         (params.min_total_weight, Gather::per_gaussian(dim, keep));
     let chunks = accumulate(
@@ -118,7 +98,7 @@ fn sparse_pass(
 }
 
 /// What [`reduce_to_writer_with_mixture`] leaves: the embeddings as [`reduce_to_writer`] leaves
-/// them and the mixture's sparse parts as [`reduce_mixture_sparse`] returns them.
+/// them and the mixture's sparse parts as [`reduce_mixture_chunks`] returns them.
 pub struct StreamedMixture {
     /// The embeddings writer (all rows pushed, not yet finished), chunks, and the wall time of
     /// the shared reduction ([`Streamed::reduce_s`], which includes `gather_s`).
@@ -132,7 +112,7 @@ pub struct StreamedMixture {
     pub gather_s: f64,
 }
 
-/// [`reduce_to_writer`] and [`reduce_mixture_sparse`] in ONE pass over `store` (the encoder's
+/// [`reduce_to_writer`] and [`reduce_mixture_chunks`] in ONE pass over `store` (the encoder's
 /// tail when the mixture is asked for): each chunk's f64 sums give both the embeddings rows,
 /// streamed to `writer`, and the mixture's sparse parts, so the mixture costs its top-`keep`
 /// bookkeeping and codebook, not a second reduction. The results are exactly those of the two
@@ -140,14 +120,14 @@ pub struct StreamedMixture {
 /// ties, same codebook order; the chunking changes no value): the written rows bit for bit, the
 /// [`SparseMixture`] equal.
 ///
-/// Memory: that of [`reduce_to_writer`] with the accumulator of [`reduce_mixture_sparse`] (the
+/// Memory: that of [`reduce_to_writer`] with the accumulator of [`reduce_mixture_chunks`] (the
 /// per-Gaussian kept pairs beside the f64 sums, chunked within
 /// `params.accumulator_budget_bytes` on the image-major path, one block per thread on the
 /// block-major path), plus the growing result: the `M × D` f32 codebook and up to `keep`
 /// `(atom, a)` per observed Gaussian. `means` are all Gaussian centres (`[N]`, world frame,
 /// `.ply` order); `model_id` is the CLIP visual model id recorded in the mixture.
 ///
-/// Errors: those of [`reduce_to_writer`] and [`reduce_mixture_sparse`] (`keep == 0` is refused
+/// Errors: those of [`reduce_to_writer`] and [`reduce_mixture_chunks`] (`keep == 0` is refused
 /// before anything is read).
 pub fn reduce_to_writer_with_mixture(
     store: &ContributionStore,
@@ -159,7 +139,7 @@ pub fn reduce_to_writer_with_mixture(
     model_id: &str,
 ) -> Result<StreamedMixture> {
     let n_gaussians = means.len();
-    let (mut codebook, mut gather) = Gather::new(n_gaussians, dim, keep, model_id, means)?;
+    let (mut codebook, mut gather) = Gather::new(dim, keep, model_id, means)?;
     let mut gather_s = 0.0;
     let per_gaussian = Gather::per_gaussian(dim, keep);
     let streamed = stream_to_writer(
@@ -240,31 +220,29 @@ struct Gather<'m> {
     parts: SparseMixture,
 }
 
+/// Refuses `keep == 0` ([`Error::Param`] `mixture_keep`): a mixture keeps at least one atom.
+fn check_keep(keep: usize) -> Result<()> {
+    if keep == 0 {
+        return Err(Error::param(
+            "mixture_keep",
+            keep,
+            "at least 1 mask embedding kept per Gaussian",
+        ));
+    }
+    Ok(())
+}
+
 impl<'m> Gather<'m> {
-    /// An empty codebook and gather for Gaussians `0..n_gaussians`.
+    /// An empty codebook and gather for the Gaussians of `means`.
     ///
-    /// Errors: `keep == 0` ([`Error::Param`] `mixture_keep`), `means.len() != n_gaussians`
-    /// ([`Error::Internal`]).
+    /// Errors: `keep == 0` ([`Error::Param`] `mixture_keep`).
     fn new(
-        n_gaussians: usize,
         dim: usize,
         keep: usize,
         model_id: &str,
         means: &'m [[f32; 3]],
     ) -> Result<(Codebook, Self)> {
-        if keep == 0 {
-            return Err(Error::param(
-                "mixture_keep",
-                keep,
-                "at least 1 mask embedding kept per Gaussian",
-            ));
-        }
-        if means.len() != n_gaussians {
-            return Err(Error::internal(format!(
-                "reduce_mixture: {} means for {n_gaussians} Gaussians",
-                means.len()
-            )));
-        }
+        check_keep(keep)?;
         let codebook = Codebook {
             dim,
             rows: Vec::new(),

@@ -38,8 +38,7 @@ pub use image::{
     image_contribution, overlap_labels, pixel_labels, stage_labels,
 };
 pub use mixture::{
-    StreamedMixture, reduce_mixture, reduce_mixture_chunks, reduce_mixture_sparse,
-    reduce_to_writer_with_mixture,
+    StreamedMixture, reduce_mixture, reduce_mixture_chunks, reduce_to_writer_with_mixture,
 };
 pub use reduce::{
     OUTPUT_CHUNK_BYTES, ReduceParams, Reduced, Streamed, output_chunk_rows, reduce, reduce_each,

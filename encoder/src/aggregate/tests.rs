@@ -393,15 +393,14 @@ impl TailCase<'_> {
     }
 
     /// The embeddings file and the mixture's sparse parts of the two separate passes,
-    /// `reduce_to_writer` then `reduce_mixture_sparse`.
+    /// `reduce_to_writer` then `reduce_mixture_chunks`.
     fn separate(&self, path: &Path) -> (Vec<u8>, slag_common::mixture::SparseMixture) {
         let (store, means, dim, p) = (self.store, self.means, self.dim, self.p);
         let s = reduce_to_writer(store, means, dim, p, self.writer(path)).unwrap();
         s.writer
             .finish("m", means.len() as u64, "scene.ply")
             .unwrap();
-        let n = means.len();
-        let sparse = reduce_mixture_sparse(store, n, dim, p, self.keep, "m", means).unwrap();
+        let (sparse, _) = reduce_mixture_chunks(store, means, dim, p, self.keep, "m").unwrap();
         (std::fs::read(path).unwrap(), sparse)
     }
 

@@ -1008,7 +1008,7 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
 fn device_reduction_equals_the_host_reduction() {
     use crate::aggregate::{
         ContributionStore, ImageStageParams, MaskWeighting, ReduceParams, reduce,
-        reduce_mixture_sparse,
+        reduce_mixture_chunks,
     };
     use crate::pipeline::view_contribution;
     let n = 20_000;
@@ -1065,7 +1065,7 @@ fn device_reduction_equals_the_host_reduction() {
     let host = reduce(&store, n, dim, rp).unwrap();
     let keep = 3;
     let means = g.means.clone();
-    let sparse = reduce_mixture_sparse(&store, n, dim, rp, keep, "m", &means).unwrap();
+    let (sparse, _) = reduce_mixture_chunks(&store, &means, dim, rp, keep, "m").unwrap();
     let p = DeviceReduce {
         min_total_weight: rp.min_total_weight,
         keep,
@@ -1202,7 +1202,6 @@ fn device_mask_record_equals_the_host_record() {
         "{evicted} Gaussians seen in more views than slots: too few"
     );
 }
-
 
 /// A view whose keeping fails on the kept sums' budget (met in a later band of the view) is not
 /// kept at all: the views kept before it come back alone, as the host has them
