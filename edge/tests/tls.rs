@@ -34,6 +34,11 @@ fn https(ca: &TestCa) -> reqwest::Client {
         .unwrap()
 }
 
+/// Sends `request`, which must get an answer (of any status).
+async fn send(request: reqwest::RequestBuilder) -> reqwest::Response {
+    request.send().await.unwrap()
+}
+
 /// The certificate (DER) the server presented for `r`.
 fn peer(r: &reqwest::Response) -> Vec<u8> {
     let info = r.extensions().get::<reqwest::tls::TlsInfo>().unwrap();
@@ -59,21 +64,13 @@ async fn post_reload_swaps_the_certificate_while_an_answer_in_flight_completes()
         .await
         .replace("http://", "https://");
     let health = async || {
-        let r = https(&ca)
-            .get(format!("{url}/health"))
-            .send()
-            .await
-            .unwrap();
+        let r = send(https(&ca).get(format!("{url}/health"))).await;
         assert_eq!(r.status(), 200);
         peer(&r)
     };
     assert_eq!(health().await, first.der);
     let reload = async || {
-        let r = https(&ca)
-            .post(format!("{url}/reload"))
-            .send()
-            .await
-            .unwrap();
+        let r = send(https(&ca).post(format!("{url}/reload"))).await;
         let status = r.status().as_u16();
         (status, r.json::<serde_json::Value>().await.unwrap())
     };
@@ -264,11 +261,7 @@ async fn the_binary_serves_https_and_reloads_its_certificate_on_sighup() {
     })
     .await
     .unwrap();
-    let r = https(&ca)
-        .get(format!("{url}/query?text=pink&top_k=2&threshold=none"))
-        .send()
-        .await
-        .unwrap();
+    let r = send(https(&ca).get(format!("{url}/query?text=pink&top_k=2&threshold=none"))).await;
     assert_eq!(r.status(), 200);
     assert_eq!(peer(&r), first.der);
 
@@ -279,11 +272,7 @@ async fn the_binary_serves_https_and_reloads_its_certificate_on_sighup() {
         .unwrap();
     assert!(hup.success());
     wait_until("SIGHUP reloads the certificate", async || {
-        let r = https(&ca)
-            .get(format!("{url}/health"))
-            .send()
-            .await
-            .unwrap();
+        let r = send(https(&ca).get(format!("{url}/health"))).await;
         peer(&r) == second.der
     })
     .await;

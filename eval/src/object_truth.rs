@@ -276,14 +276,12 @@ pub fn run_object_truth(c: &ObjectTruthConfig) -> anyhow::Result<ObjectTruthEval
     let t0 = Instant::now();
     let truth = GaussianTruth::read(&c.scene)?;
     let classes = crate::ColorClasses::load(&c.color_clip.join("color-clip.json"))?;
+    let scene_mismatch = |what: String| Error::mismatch(slag_common::Mismatched::Scene, what);
     if classes.names != truth.classes {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::Scene,
-            format!(
-                "the scene's truth names the classes {:?} but color-clip {:?}",
-                truth.classes, classes.names
-            ),
-        )
+        return Err(scene_mismatch(format!(
+            "the scene's truth names the classes {:?} but color-clip {:?}",
+            truth.classes, classes.names
+        ))
         .into());
     }
     let nc = classes.len();
@@ -294,13 +292,10 @@ pub fn run_object_truth(c: &ObjectTruthConfig) -> anyhow::Result<ObjectTruthEval
     let n = gaussians.len();
     let emb = Embeddings::read(&c.embeddings)?;
     if truth.gaussians != n || emb.scene_gaussians != n as u64 {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::Scene,
-            format!(
-                "{n} Gaussians in the scene, {} in its truth, {} in the embeddings' scene",
-                truth.gaussians, emb.scene_gaussians
-            ),
-        )
+        return Err(scene_mismatch(format!(
+            "{n} Gaussians in the scene, {} in its truth, {} in the embeddings' scene",
+            truth.gaussians, emb.scene_gaussians
+        ))
         .into());
     }
     let true_class = truth.classes_per_gaussian();

@@ -83,6 +83,22 @@ fn push_section(s: &mut String, heading: &str, intro: Option<&str>, table: &Tabl
     s.push_str(&table.markdown());
 }
 
+/// Appends the section `heading` with its `intro` and a table of `header`'s columns (right-aligned
+/// from the third): one row of `cells` per row of the study's `section` (`storage`, `index`).
+fn push_points_section(
+    s: &mut String,
+    rows: &[Row],
+    section: &str,
+    heading: &str,
+    intro: &str,
+    header: &str,
+    cells: impl Fn(&Row) -> Vec<String>,
+) {
+    let points = rows.iter().filter(|r| r.section == section).map(cells);
+    let table = Table::with_header(header).right_from(2).with_rows(points);
+    push_section(s, heading, Some(intro), &table);
+}
+
 /// The CSV text: a header line of [`CSV_COLUMNS`], then one line per row.
 pub fn csv(rows: &[Row]) -> String {
     let mut t = Table::new(CSV_COLUMNS);
@@ -288,25 +304,24 @@ fn storage_section(s: &mut String, rows: &[Row]) {
          over the Gaussians + S × 6 B + 16 B); its query is `MixtureEmbeddings::scores` (one dot \
          per codebook row, then S multiply-adds per Gaussian) plus the threshold, and its build \
          time the cut.";
-    let storage_rows = rows.iter().filter(|r| r.section == "storage").map(|r| {
-        vec![
-            format!("`{}`", r.point),
-            r.storage.clone(),
-            format!("{:.1}", r.bytes_per_gaussian),
-            format!("{:.3}", r.build_s),
-            format!("{:.2}", r.query_ms),
-            miou_str(r.colour_miou),
-            format!("{:.4} ({})", r.iou, r.iou_prompts),
-        ]
-    });
-    let storage_table = Table::with_header("point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts)")
-    .right_from(2)
-    .with_rows(storage_rows);
-    push_section(
+    push_points_section(
         s,
+        rows,
+        "storage",
         "Stored precision (baseline run's embeddings)",
-        Some(storage_intro),
-        &storage_table,
+        storage_intro,
+        "point | storage | bytes / Gaussian | build s | scan ms | colour mIoU | IoU vs f32 (prompts)",
+        |r| {
+            vec![
+                format!("`{}`", r.point),
+                r.storage.clone(),
+                format!("{:.1}", r.bytes_per_gaussian),
+                format!("{:.3}", r.build_s),
+                format!("{:.2}", r.query_ms),
+                miou_str(r.colour_miou),
+                format!("{:.4} ({})", r.iou, r.iou_prompts),
+            ]
+        },
     );
 }
 
@@ -320,26 +335,25 @@ fn index_section(s: &mut String, h: &Header, rows: &[Row]) {
          many rows tie there); *set IoU*: the top-{k} id sets compared as returned.",
         k = h.index_top_k
     );
-    let index_rows = rows.iter().filter(|r| r.section == "index").map(|r| {
-        vec![
-            format!("`{}`", r.point),
-            r.index.clone(),
-            r.observed.to_string(),
-            format!("{:.2}", r.build_s),
-            format!("{:.1}", r.bytes_per_gaussian),
-            format!("{:.3}", r.query_ms),
-            format!("{:.4}", r.iou),
-            format!("{:.4} ({})", r.set_iou, r.iou_prompts),
-        ]
-    });
-    let index_table = Table::with_header("point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts)")
-    .right_from(2)
-    .with_rows(index_rows);
-    push_section(
+    push_points_section(
         s,
+        rows,
+        "index",
         "Exact scan vs approximate index (HNSW)",
-        Some(&index_intro),
-        &index_table,
+        &index_intro,
+        "point | index | rows | build s | bytes / Gaussian | top-k ms | recall vs exact | set IoU (prompts)",
+        |r| {
+            vec![
+                format!("`{}`", r.point),
+                r.index.clone(),
+                r.observed.to_string(),
+                format!("{:.2}", r.build_s),
+                format!("{:.1}", r.bytes_per_gaussian),
+                format!("{:.3}", r.query_ms),
+                format!("{:.4}", r.iou),
+                format!("{:.4} ({})", r.set_iou, r.iou_prompts),
+            ]
+        },
     );
 }
 

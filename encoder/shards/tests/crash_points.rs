@@ -8,7 +8,6 @@
 #![allow(clippy::unwrap_used)]
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
@@ -16,7 +15,7 @@ use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list, st
 use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::rng::SplitMix64;
 use slag_common::shards::Manifest;
-use slag_common::testing::copy_dir;
+use slag_common::testing::{copy_dir, served_address};
 
 const SCENE: &str = "crash";
 
@@ -73,16 +72,7 @@ fn served(store: &Path) -> (u64, Served) {
         .stderr(Stdio::inherit())
         .spawn()
         .unwrap();
-    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-    let base = loop {
-        let line = lines
-            .next()
-            .expect("serve exited before listening")
-            .unwrap();
-        if let Some(url) = line.strip_prefix("serving on ") {
-            break url.split_whitespace().next().unwrap().to_string();
-        }
-    };
+    let base = format!("http://{}/v1/scenes", served_address(&mut child));
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
