@@ -67,10 +67,10 @@
 //! its own Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
 //! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The
 //! minimum-size pass needs only the inner edges still between two components after their
-//! tile's pass (kept from it), as it would skip the others; of those, and of the border edges,
-//! it runs over the ones picked in parallel beforehand that have an end in a component below
-//! the minimum size and that the mask veto lets through (components only grow, so it would
-//! skip the others too). The geometric part of each
+//! tile's pass that the mask veto lets through (kept from it, the veto read while the other
+//! tiles run), as it would skip the others; of those, and of the border edges, it runs over the
+//! ones picked in parallel beforehand that have an end in a component below the minimum size
+//! and that the veto lets through (components only grow, so it would skip the others too). The geometric part of each
 //! neighbour's edge weight needs no masks: it is computed before the record arrives, so that
 //! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the
 //! whole scene (tile, its place in the tile, both by id and by rank; union-find; normals,

@@ -6,9 +6,9 @@
 //! forest over the scene). Their forests then make the scene's forest, which takes the border
 //! edges and the minimum-size pass. That pass skips the inner edges whose ends were already
 //! joined after their tile's criterion pass (components only grow, so it would skip them
-//! anyway), and, of the edges between components, those with no end in a component below the
-//! minimum size or that the mask veto refuses ([`min_size_candidates`], picked in parallel): it
-//! runs over the rest, in the same order. While one wave of tiles runs its criterion passes,
+//! anyway) and those that the mask veto refuses (both dropped by the tile's pass), and, of the
+//! edges left, those with no end in a component below the minimum size
+//! ([`min_size_candidates`], picked in parallel): it runs over the rest, in the same order. While one wave of tiles runs its criterion passes,
 //! the next wave's edges are weighed and sorted on the other threads.
 
 use std::time::Instant;
@@ -64,17 +64,25 @@ fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
 }
 
 impl BuiltTile {
-    /// The tile's criterion pass (one thread), on a forest of its own over its `members`, then
-    /// its edges still between components picked in parallel.
-    fn criterion(self, p: &SegmentParams, members: usize) -> TilePass {
+    /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
+    /// ids, ascending), then, picked in parallel, its edges still between components that the
+    /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`]), in scene ids
+    /// and in order: the pass could use no other.
+    fn criterion(self, p: &SegmentParams, members: &[u32], w: &Weigher) -> TilePass {
         let clock = Instant::now();
-        let mut f = Forest::singletons(members);
+        let mut f = Forest::singletons(members.len());
         f.criterion_pass_in(&self.inner, p.threshold, None);
         let kept = if p.min_size > 1 {
+            let global = |e: &Edge| Edge {
+                w: e.w,
+                i: members[e.i as usize],
+                j: members[e.j as usize],
+            };
             self.inner
                 .par_iter()
                 .filter(|e| f.root(e.i) != f.root(e.j))
-                .copied()
+                .map(global)
+                .filter(|e| w.may_absorb(e))
                 .collect()
         } else {
             Vec::new()
@@ -131,8 +139,8 @@ impl InFlight {
 }
 
 /// The tiles' criterion passes: the scene's forest after them, the border edges (unordered),
-/// each tile's inner edges still between components after its pass (scene ids, in order) and
-/// the inner edges' count.
+/// each tile's inner edges still between components after its pass that the mask veto lets
+/// the minimum-size pass join across (scene ids, in order) and the inner edges' count.
 struct Tiled {
     forest: Forest,
     border: Vec<Edge>,
@@ -172,7 +180,7 @@ pub(super) fn merge(
     let Some(Tiled {
         mut forest,
         mut border,
-        mut kept,
+        kept,
         inner,
     }) = tiled
     else {
@@ -190,36 +198,48 @@ pub(super) fn merge(
     let clock = Instant::now();
     let border_count = border.len() as u64;
     if p.min_size > 1 {
-        kept.push(border);
-        let edges = ctl.run(|| min_size_candidates(&forest, kept, p.min_size, w));
+        let kept_count: usize = kept.iter().map(Vec::len).sum();
+        let edges = ctl.run(|| min_size_candidates(&forest, kept, border, p.min_size, w));
+        tracing::debug!(
+            target: "slag_encoder::segments",
+            kept = kept_count,
+            border = border_count,
+            candidates = edges.len(),
+            "minimum-size pass"
+        );
         forest.min_size_pass_in(&edges, p.min_size, |_| true, regions.as_mut());
     }
     st.min_size += clock.elapsed().as_secs_f64();
     (Some(forest), inner + border_count, border_count)
 }
 
-/// The edges of `lists` (one list after the other, each in its order) that the minimum-size
-/// pass could join across, in parallel: those with an end in a component of fewer than
-/// `min_size` Gaussians now and that `w` lets it join ([`Weigher::may_absorb`]). The pass over
-/// them alone joins what the pass over all of `lists` joins: components only grow, so an edge
-/// between two components of `min_size` or more now never qualifies, and the mask veto is the
-/// edge's own. Each list is freed once filtered.
+/// The edges of `kept` (one list after the other, each in its order), then of `border`, that
+/// the minimum-size pass could join across, in parallel: those with an end in a component of
+/// fewer than `min_size` Gaussians now and, of `border`, that `w` lets it join
+/// ([`Weigher::may_absorb`]; the tiles' passes checked `kept`'s). The pass over them alone joins
+/// what the pass over all of the lists joins: components only grow, so an edge between two
+/// components of `min_size` or more now never qualifies, and the mask veto is the edge's own.
+/// Each list is freed once filtered.
 fn min_size_candidates(
     forest: &Forest,
-    lists: Vec<Vec<Edge>>,
+    kept: Vec<Vec<Edge>>,
+    border: Vec<Edge>,
     min_size: usize,
     w: &Weigher,
 ) -> Vec<Edge> {
     let small = forest.small_members(min_size);
+    let small_end = |e: &&Edge| small[e.i as usize] || small[e.j as usize];
     let mut out = Vec::new();
-    for list in lists {
-        let part: Vec<Edge> = list
-            .par_iter()
-            .filter(|e| (small[e.i as usize] || small[e.j as usize]) && w.may_absorb(e))
-            .copied()
-            .collect();
+    for list in kept {
+        let part: Vec<Edge> = list.par_iter().filter(small_end).copied().collect();
         out.extend(part);
     }
+    let part: Vec<Edge> = border
+        .par_iter()
+        .filter(|e| small_end(e) && w.may_absorb(e))
+        .copied()
+        .collect();
+    out.extend(part);
     out
 }
 
@@ -280,15 +300,9 @@ impl Run<'_> {
         let inner = passes.iter().map(|t| t.inner).sum();
         let mut border = Vec::new();
         let mut kept = Vec::with_capacity(tiles as usize);
-        for (t, pass) in passes.into_iter().enumerate() {
+        for pass in passes {
             border.extend(pass.border);
-            let m = &self.tm.members[t];
-            let global = |e: &Edge| Edge {
-                w: e.w,
-                i: m[e.i as usize],
-                j: m[e.j as usize],
-            };
-            kept.push(pass.kept.iter().map(global).collect());
+            kept.push(pass.kept);
         }
         Some(Tiled {
             forest,
@@ -310,8 +324,8 @@ impl Run<'_> {
         built
             .into_par_iter()
             .map(|b| {
-                let members = self.tm.members[b.t as usize].len();
-                b.criterion(self.p, members)
+                let members = &self.tm.members[b.t as usize];
+                b.criterion(self.p, members, self.w)
             })
             .collect()
     }
@@ -359,7 +373,7 @@ impl Run<'_> {
             inner += edges.len() as u64;
             let between: Vec<Edge> = edges
                 .into_iter()
-                .filter(|e| forest.find(e.i) != forest.find(e.j))
+                .filter(|e| forest.find(e.i) != forest.find(e.j) && self.w.may_absorb(e))
                 .collect();
             kept.push(between);
             border.extend(b);
