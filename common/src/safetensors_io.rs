@@ -97,8 +97,9 @@ impl<'a> Checked<'a> {
 /// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
 /// strings `meta` and writes the file atomically ([`write_atomic_parts`]): the header first,
 /// then each tensor's data straight from `tensors`, with no copy of the whole file in memory.
-/// The bytes are those of `safetensors::serialize` with `meta` added (the crate lays out the
-/// header and the tensors' order).
+/// The bytes are those of `safetensors::serialize` with `meta` added as its first header entry,
+/// keys sorted, so that the same tensors and metadata always give the same bytes
+/// (`safetensors::serialize` takes a `HashMap`, whose order changes from run to run).
 ///
 /// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape;
 /// I/O.
@@ -107,90 +108,66 @@ pub(crate) fn write(
     tensors: Vec<(&str, Dtype, Vec<usize>, &[u8])>,
     meta: &[(&str, String)],
 ) -> Result<()> {
-    let header = header(&tensors, meta)?;
-    let mut parts: Vec<(usize, &[u8])> = Vec::with_capacity(tensors.len() + 1);
-    for (name, _, _, data) in &tensors {
-        parts.push((data_offset(&header, name)?, data));
-    }
-    parts.sort_by_key(|p| p.0);
-    let all: Vec<&[u8]> = std::iter::once(header.as_slice())
-        .chain(parts.into_iter().map(|p| p.1))
-        .collect();
-    write_atomic_parts(path, &all)
-}
-
-/// A tensor's data as the crate would write it, without the data: its dtype, shape and length.
-struct Described<'a> {
-    dtype: Dtype,
-    shape: &'a [usize],
-    len: usize,
-}
-
-impl safetensors::View for Described<'_> {
-    fn dtype(&self) -> Dtype {
-        self.dtype
-    }
-    fn shape(&self) -> &[usize] {
-        self.shape
-    }
-    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
-        std::borrow::Cow::Borrowed(&[])
-    }
-    fn data_len(&self) -> usize {
-        self.len
-    }
-}
-
-/// The file's first bytes (the header's length and the header, with `meta`) for `tensors`:
-/// what `safetensors::serialize` writes before the data, with `meta` added ([`with_metadata`]).
-///
-/// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape.
-fn header(
-    tensors: &[(&str, Dtype, Vec<usize>, &[u8])],
-    meta: &[(&str, String)],
-) -> Result<Vec<u8>> {
-    let mut described = Vec::with_capacity(tensors.len());
-    for (name, dtype, shape, data) in tensors {
-        // TensorView checks the length against the dtype and shape.
+    for (_, dtype, shape, data) in &tensors {
+        // TensorView checks the length against the dtype and shape (no copy).
         TensorView::new(*dtype, shape.clone(), data)
             .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
-        let len = data.len();
-        described.push((
-            *name,
-            Described {
-                dtype: *dtype,
-                shape,
-                len,
-            },
+    }
+    // The crate's layout: by dtype, largest alignment first, then by name.
+    let mut order: Vec<&(&str, Dtype, Vec<usize>, &[u8])> = tensors.iter().collect();
+    order.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
+    let header = header(&order, meta)?;
+    let parts: Vec<&[u8]> = std::iter::once(header.as_slice())
+        .chain(order.iter().map(|t| t.3))
+        .collect();
+    write_atomic_parts(path, &parts)
+}
+
+/// The file's first bytes for the tensors in `order` (their data in that order): the header's
+/// length (u64, little-endian) and the header, `{"__metadata__":{..},"name":{"dtype":..,
+/// "shape":..,"data_offsets":[..]},..}` padded with spaces to a multiple of 8 bytes, as the
+/// crate writes it.
+///
+/// Errors: [`Error::Internal`] when the header cannot be serialised.
+fn header(order: &[&(&str, Dtype, Vec<usize>, &[u8])], meta: &[(&str, String)]) -> Result<Vec<u8>> {
+    let json = |e: serde_json::Error| Error::internal(format!("safetensors header: {e}"));
+    let sorted: std::collections::BTreeMap<&str, &str> =
+        meta.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let mut text = format!(
+        "{{\"__metadata__\":{}",
+        serde_json::to_string(&sorted).map_err(json)?
+    );
+    let mut offset = 0;
+    for (name, dtype, shape, data) in order {
+        let info = safetensors::tensor::TensorInfo {
+            dtype: *dtype,
+            shape: shape.clone(),
+            data_offsets: (offset, offset + data.len()),
+        };
+        offset += data.len();
+        let name = serde_json::to_string(name).map_err(json)?;
+        text.push_str(&format!(
+            ",{name}:{}",
+            serde_json::to_string(&info).map_err(json)?
         ));
     }
-    let bytes = safetensors::serialize(described, None::<HashMap<String, String>>)
-        .map_err(|e| Error::internal(format!("safetensors: {e}")))?;
-    with_metadata(&bytes, meta)
+    text.push('}');
+    while text.len() % 8 != 0 {
+        text.push(' ');
+    }
+    let mut out = Vec::with_capacity(8 + text.len());
+    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    out.extend_from_slice(text.as_bytes());
+    Ok(out)
 }
 
-/// Where tensor `name`'s data starts (`data_offsets[0]`, relative to the data) in `header`
-/// ([`header`]'s bytes).
-///
-/// Errors: [`Error::Internal`] when the header does not list it.
-fn data_offset(header: &[u8], name: &str) -> Result<usize> {
-    let json: serde_json::Value = serde_json::from_slice(header.get(8..).unwrap_or_default())
-        .map_err(|e| Error::internal(format!("safetensors header: {e}")))?;
-    json.get(name)
-        .and_then(|t| t.get("data_offsets"))
-        .and_then(|o| o.get(0))
-        .and_then(serde_json::Value::as_u64)
-        .and_then(|o| usize::try_from(o).ok())
-        .ok_or_else(|| Error::internal(format!("safetensors header lists no tensor {name}")))
-}
-
-/// `file` (a safetensors file without metadata) with `meta` as its `__metadata__`, keys in
-/// sorted order, so that the same tensors and metadata always give the same bytes
-/// (`safetensors::serialize` takes a `HashMap`, whose order changes from run to run). The header
+/// `file` (a safetensors file without metadata, from `safetensors::serialize`) with `meta` as
+/// its `__metadata__`, keys in sorted order: the tests' reference for [`write`]. The header
 /// stays padded with spaces to a multiple of 8 bytes; data offsets are relative to the end of the
 /// header, so the tensors are untouched.
 ///
 /// Errors: [`Error::Internal`] when `file` is not what `safetensors::serialize` writes.
+#[cfg(test)]
 fn with_metadata(file: &[u8], meta: &[(&str, String)]) -> Result<Vec<u8>> {
     let bad = || Error::internal("safetensors: unexpected header layout from serialize");
     let n = file
