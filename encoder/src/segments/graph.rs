@@ -2,10 +2,9 @@
 //! their weights, tile by tile (module doc, "Bounded memory: tiles").
 
 use rayon::prelude::*;
-
-use super::SegmentParams;
 use slag_common::mask_record::MaskRecord;
 
+use super::SegmentParams;
 use super::weights::{Edge, Geometry, Weigher, distance};
 
 /// Each Gaussian's neighbours in the graph, at its id: `k` slots per Gaussian, the nearest

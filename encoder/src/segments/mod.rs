@@ -66,20 +66,20 @@
 //! over each tile's edges again and the border edges last. As a tile's inner edges join only
 //! its own Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
 //! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The
-//! minimum-size pass needs only the inner edges still between two components after their
-//! tile's pass that the mask veto lets through (kept from it, the veto read while the other
-//! tiles run), as it would skip the others; of those, and of the border edges, it runs over the
-//! ones picked in parallel beforehand that have an end in a component below the minimum size
-//! and that the veto lets through (components only grow, so it would skip the others too). The geometric part of each
+//! minimum-size pass needs only the inner edges still between two components after their tile's
+//! pass that the mask veto lets through (kept from it, the veto read while the other tiles run), as
+//! it would skip the others; of those, and of the border edges, it runs over the ones picked in
+//! parallel beforehand that have an end in a component below the minimum size and that the veto
+//! lets through (components only grow, so it would skip the others too). The geometric part of each
 //! neighbour's edge weight needs no masks: it is computed before the record arrives, so that
-//! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the
-//! whole scene (tile, its place in the tile, both by id and by rank; union-find; normals,
-//! flatness and size, 20 more, twice while they are put in space order, until the geometric
-//! parts are computed) plus the neighbours and the geometric parts (4 bytes
-//! each per slot), the edges of the tiles in flight and their gathered rows of the record (at
-//! most 2 GiB, sized from the edges per Gaussian of the tiles built so far: about 100 + 64
-//! bytes per Gaussian of a tile) and the border edges and those kept. The Gaussians themselves are read only
-//! until the geometric parts are computed ([`segment_with`] lets go of a shared scene there).
+//! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
+//! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
+//! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
+//! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
+//! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
+//! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
+//! those kept. The Gaussians themselves are read only until the geometric parts are computed
+//! ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same
 //! algorithm over the edge order "every tile's inner edges (ascending), then the border edges

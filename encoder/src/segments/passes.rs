@@ -1,15 +1,15 @@
-//! The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc, "Bounded
-//! memory: tiles"). A tile's inner edges join only its own Gaussians, and before the border
-//! edges every component lies in one tile: so the tiles' criterion passes are independent and
-//! run in parallel, each on a forest of its own over the tile's Gaussians (local ids keep the
-//! order of the scene's ids, so the edge order, the joins and the roots are those of one
-//! forest over the scene). Their forests then make the scene's forest, which takes the border
-//! edges and the minimum-size pass. That pass skips the inner edges whose ends were already
-//! joined after their tile's criterion pass (components only grow, so it would skip them
-//! anyway) and those that the mask veto refuses (both dropped by the tile's pass), and, of the
-//! edges left, those with no end in a component below the minimum size
-//! ([`min_size_candidates`], picked in parallel): it runs over the rest, in the same order. While one wave of tiles runs its criterion passes,
-//! the next wave's edges are weighed and sorted on the other threads.
+//! The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc, "Bounded memory:
+//! tiles"). A tile's inner edges join only its own Gaussians, and before the border edges every
+//! component lies in one tile: so the tiles' criterion passes are independent and run in parallel,
+//! each on a forest of its own over the tile's Gaussians (local ids keep the order of the scene's
+//! ids, so the edge order, the joins and the roots are those of one forest over the scene). Their
+//! forests then make the scene's forest, which takes the border edges and the minimum-size pass.
+//! That pass skips the inner edges whose ends were already joined after their tile's criterion pass
+//! (components only grow, so it would skip them anyway) and those that the mask veto refuses (both
+//! dropped by the tile's pass), and, of the edges left, those with no end in a component below the
+//! minimum size ([`min_size_candidates`], picked in parallel): it runs over the rest, in the same
+//! order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed and
+//! sorted on the other threads.
 
 use std::time::Instant;
 
