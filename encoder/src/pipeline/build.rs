@@ -281,30 +281,31 @@ pub struct Fronts {
 
 /// Builds the front workers of `c` over `gpus` GPUs with `threads` cores.
 ///
-/// CLIP is loaded on GPU 0 first with `c`'s execution provider: if it runs on the CPU (provider
-/// `cpu`, or `auto` without a usable GPU provider) every front worker gets its own sessions with
-/// a share of the cores (as ONNX Runtime's CPU provider scales best) and a share of
-/// [`SAM_CPU_DECODER_BYTES`] for its SAM decoder calls; otherwise each GPU gets one
-/// SAM session pair and one [`crate::clip::ClipService`], and the workers are bound round-robin
-/// to the GPUs. The CLIP batch defaults to [`CLIP_BATCH_GPU`] on a GPU provider,
-/// [`CLIP_BATCH_CPU`] on the CPU.
+/// With provider `cpu`, or `auto` without a usable GPU provider (CLIP is loaded on GPU 0 first
+/// to find out), every front worker gets its own sessions with a share of the cores (as ONNX
+/// Runtime's CPU provider scales best) and a share of [`SAM_CPU_DECODER_BYTES`] for its SAM
+/// decoder calls. Otherwise each GPU gets one SAM session pair and one
+/// [`crate::clip::ClipService`], all set up side by side ([`gpu_models`]), and the workers are
+/// bound round-robin to the GPUs. The CLIP batch defaults to [`CLIP_BATCH_GPU`] on a GPU
+/// provider, [`CLIP_BATCH_CPU`] on the CPU.
 ///
 /// Errors: models missing or unloadable.
 pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fronts> {
     let gpu_threads = (threads / gpus.max(1)).max(1);
     let gpu_batch = c.clip.batch.unwrap_or(CLIP_BATCH_GPU);
-    let mut clip0 = crate::clip::ClipVisual::with_placement(
-        &c.clip.visual,
-        &c.placement(0, gpu_threads),
-        gpu_batch,
-    )?;
-    clip0.set_crop_fill(c.clip.crop_fill);
-    if clip0.provider() == ExecutionProvider::Cpu {
-        drop(clip0);
-        return cpu_fronts(c, gpus, threads);
-    }
-    let provider = clip0.provider();
-    let service0 = clip0.into_service()?;
+    let clip0 = match c.execution.ep {
+        ExecutionProvider::Cpu => return cpu_fronts(c, gpus, threads),
+        // Only a built session tells whether `auto` found a GPU.
+        ExecutionProvider::Auto => {
+            let clip0 = gpu_clip(c, 0, gpu_threads, gpu_batch)?;
+            if clip0.provider() == ExecutionProvider::Cpu {
+                drop(clip0);
+                return cpu_fronts(c, gpus, threads);
+            }
+            Some(clip0)
+        }
+        ExecutionProvider::Cuda | ExecutionProvider::TensorRt => None,
+    };
     // Each GPU's models are set up on a thread of their own (sessions, warm-up runs: seconds
     // per GPU); the first error in GPU order is the one returned.
     let per_gpu: Vec<Result<(crate::clip::ClipService, Option<GpuSam>)>> =
@@ -312,7 +313,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
             let others: Vec<_> = (1..gpus)
                 .map(|g| s.spawn(move || gpu_models(c, g, gpu_threads, gpu_batch, None)))
                 .collect();
-            let first = gpu_models(c, 0, gpu_threads, gpu_batch, Some(service0));
+            let first = gpu_models(c, 0, gpu_threads, gpu_batch, clip0);
             let joined = others.into_iter().map(|h| {
                 h.join()
                     .unwrap_or_else(|_| Err(Error::internal("a GPU's model setup panicked")))
@@ -355,6 +356,7 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
             gpu: Some(g),
         });
     }
+    let provider = services.first().map_or(c.execution.ep, |s| s.provider());
     Ok(Fronts {
         stages,
         services,
@@ -363,29 +365,52 @@ pub fn build_fronts(c: &EncodeConfig, gpus: usize, threads: usize) -> Result<Fro
     })
 }
 
-/// GPU `g`'s CLIP service (`clip`, or a new one with `gpu_batch`) and SAM ([`gpu_sam`]).
+/// CLIP's visual tower on GPU `g` (`gpu_threads` host threads, batches of `gpu_batch` crops),
+/// with the encode's crop fill.
 ///
-/// Errors: the models missing or unloadable; CLIP's warm-up run failing.
+/// Errors: the model missing or unloadable; the provider not registering.
+fn gpu_clip(
+    c: &EncodeConfig,
+    g: usize,
+    gpu_threads: usize,
+    gpu_batch: usize,
+) -> Result<crate::clip::ClipVisual> {
+    let mut clip = crate::clip::ClipVisual::with_placement(
+        &c.clip.visual,
+        &c.placement(g as u32, gpu_threads),
+        gpu_batch,
+    )?;
+    clip.set_crop_fill(c.clip.crop_fill);
+    Ok(clip)
+}
+
+/// GPU `g`'s CLIP service (from `clip`, or a new session with `gpu_batch`) and SAM
+/// ([`gpu_sam`]). CLIP, SAM and SAM's timing copy are set up side by side, each on a thread of
+/// its own: each is seconds of session building (graph optimisation, weights to the device)
+/// and warm-up, and none needs another.
+///
+/// Errors: the models missing or unloadable; CLIP's warm-up run failing (CLIP's error first,
+/// then SAM's).
 fn gpu_models(
     c: &EncodeConfig,
     g: usize,
     gpu_threads: usize,
     gpu_batch: usize,
-    clip: Option<crate::clip::ClipService>,
+    clip: Option<crate::clip::ClipVisual>,
 ) -> Result<(crate::clip::ClipService, Option<GpuSam>)> {
-    let service = match clip {
-        Some(s) => s,
-        None => {
-            let mut clip = crate::clip::ClipVisual::with_placement(
-                &c.clip.visual,
-                &c.placement(g as u32, gpu_threads),
-                gpu_batch,
-            )?;
-            clip.set_crop_fill(c.clip.crop_fill);
-            clip.into_service()?
-        }
+    let service = move || match clip {
+        Some(clip) => clip.into_service(),
+        None => gpu_clip(c, g, gpu_threads, gpu_batch)?.into_service(),
     };
-    Ok((service, gpu_sam(c, g, gpu_threads)?))
+    let (service, sam) = std::thread::scope(|s| {
+        let service = s.spawn(service);
+        let sam = gpu_sam(c, g, gpu_threads);
+        let service = service
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal("a CLIP model setup panicked")));
+        (service, sam)
+    });
+    Ok((service?, sam?))
 }
 
 /// One GPU's SAM and the copy that times its stages (with the encode's SAM timing setting).
@@ -404,16 +429,21 @@ fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuS
     }
     let (enc, dec) = sam_paths(c)?;
     let placement = c.placement(g as u32, gpu_threads);
-    let sam = crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-        enc,
-        dec,
-        &placement,
-        c.masks.sam.params(),
-    )?;
-    Ok(Some((
-        sam,
-        sam_timing(c, &placement, &c.masks.sam.params())?,
-    )))
+    let params = c.masks.sam.params();
+    let (sam, timing) = std::thread::scope(|s| {
+        let timing = s.spawn(|| sam_timing(c, &placement, &params));
+        let sam = crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+            enc,
+            dec,
+            &placement,
+            params.clone(),
+        );
+        let timing = timing
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal("a SAM timing model setup panicked")));
+        (sam, timing)
+    });
+    Ok(Some((sam?, timing?)))
 }
 
 /// The fronts when CLIP runs on the CPU ([`build_fronts`]): every worker its own SAM and CLIP

@@ -142,11 +142,18 @@ pub(crate) fn finish(
         mask_record: _,
         device,
         reduce_fallback,
+        retired: _,
     } = pooled;
     crate::report::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
-    record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
+    record_models(
+        &mut report.models,
+        rasterizers,
+        fronts,
+        mask_name,
+        &model_id,
+    );
 
     // Only the centres are written from here on: the rest of the geometry is let go first,
     // unless the segments still hold the scene.
@@ -342,8 +349,14 @@ fn write_levels(
     Ok((level_files, t0.elapsed().as_secs_f64()))
 }
 
+/// Bytes of kept records that one batch of a hand-over between devices holds on the host
+/// ([`one_device`]).
+const HAND_OVER_BATCH_BYTES: u64 = 256 << 20;
+
 /// The rasterizers that kept their views on their devices, as one: the first, with every other
-/// one's views imported ([`WeightRasterizer::import_kept`]); `None` without any.
+/// one's views imported ([`WeightRasterizer::import_kept`]) batch by batch
+/// ([`HAND_OVER_BATCH_BYTES`]), each other device's records freed as they go; `None` without
+/// any.
 ///
 /// Errors: the devices' (reading the others' sums back).
 fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn WeightRasterizer>>> {
@@ -352,9 +365,17 @@ fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn W
         return Ok(None);
     };
     for mut other in rasterizers {
-        if let Some(kept) = other.export_kept()? {
+        let (t0, mut bytes) = (Instant::now(), 0usize);
+        while let Some(kept) = other.export_kept_batch(HAND_OVER_BATCH_BYTES)? {
+            bytes += kept.parts.iter().map(|p| p.1.len()).sum::<usize>();
             first.import_kept(kept)?;
         }
+        tracing::debug!(
+            target: "slag_encoder::pipeline",
+            bytes,
+            seconds = t0.elapsed().as_secs_f64(),
+            "kept views handed over"
+        );
     }
     Ok(Some(first))
 }

@@ -922,7 +922,19 @@ pub(crate) fn encode_pool_sharing(
     let mut pooled = pool::run_pool(scene, shared, fronts, make_rasterizers, params, hooks)?;
     let record = pooled.mask_record.take().map(std::sync::Arc::new);
     on_tail(record, !pooled.device.is_empty());
-    finish::finish(scene, pooled, params, report, t_total)
+    // The fronts' sessions are torn down beside the tail, and that is waited for before
+    // returning: none outlives the encode.
+    let retired = std::mem::take(&mut pooled.retired);
+    let teardown = std::thread::spawn(move || {
+        let t0 = Instant::now();
+        drop(retired);
+        t0.elapsed().as_secs_f64()
+    });
+    let finished = finish::finish(scene, pooled, params, report, t_total);
+    if let Ok(seconds) = teardown.join() {
+        tracing::debug!(target: "slag_encoder::pipeline", seconds, "front models let go");
+    }
+    finished
 }
 
 /// [`CropEmbedder`] for the CLIP front-ends that have the same inherent `model_id`, `dim` and

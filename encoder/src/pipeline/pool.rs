@@ -64,6 +64,10 @@ pub(crate) struct Pooled {
     /// Why the device reduction gave way to the host's during the run
     /// ([`super::fallback`]); `None`: it did not.
     pub reduce_fallback: Option<crate::report::DeviceReduceFallback>,
+    /// The front workers' models (SAM and CLIP sessions, or handles to a GPU's), kept from the
+    /// workers' threads so that the caller lets them go beside the tail: the reduction does not
+    /// need them, and tearing a GPU's sessions down takes time.
+    pub retired: Vec<FrontStages>,
 }
 
 /// The encode pipeline over a pool of workers: `fronts.len()` front threads (decode → masks →
@@ -122,6 +126,7 @@ pub(crate) fn run_pool(
         device: Mutex::new(Vec::new()),
         on_device_keep: Mutex::new(on_device_keep),
         fallback: ReduceFallback::default(),
+        retired: Mutex::new(Vec::new()),
         bar_front: bar(&multi, views.len(), "masks + CLIP"),
         bar_back: bar(&multi, views.len(), "raster + a_kj"),
     };
@@ -130,6 +135,15 @@ pub(crate) fn run_pool(
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
         checked_rasterizers(made.into_rasterizers(&gaussians), bound_gpus)
     });
+    tracing::debug!(
+        target: "slag_encoder::pipeline",
+        seconds = t_total.elapsed().as_secs_f64(),
+        "workers done"
+    );
+    let retired = match shared.retired.lock() {
+        Ok(mut r) => std::mem::take(&mut *r),
+        Err(_) => Vec::new(),
+    };
     shared.bring_back_late();
     let mut left = shared.finish(slots)?;
     let shape = (gaussians.len(), views.len());
@@ -158,6 +172,7 @@ pub(crate) fn run_pool(
         mask_record,
         device: left.device,
         reduce_fallback: left.reduce_fallback,
+        retired,
     })
 }
 
@@ -399,6 +414,8 @@ struct Shared<'a> {
     device: Mutex<Vec<KeepingRasterizer>>,
     /// Whether `--reduce auto` gave way to the host's reduction ([`super::fallback`]).
     fallback: ReduceFallback,
+    /// Each front worker's models once it is done ([`Pooled::retired`]).
+    retired: Mutex<Vec<FrontStages>>,
     bar_front: ProgressBar,
     bar_back: ProgressBar,
 }
@@ -590,7 +607,13 @@ fn run_workers(
         let mut handles = Vec::new();
         for (w, mut front) in fronts.into_iter().enumerate() {
             let tx = senders[front.gpu.unwrap_or(0) % n_queues].clone();
-            handles.push(s.spawn(move || front_loop(w, &mut front, &tx, shared)));
+            handles.push(s.spawn(move || {
+                let share = front_loop(w, &mut front, &tx, shared);
+                if let Ok(mut retired) = shared.retired.lock() {
+                    retired.push(front);
+                }
+                share
+            }));
         }
         // The back workers hold the only receivers: when every front is done, the queue closes.
         drop(senders);

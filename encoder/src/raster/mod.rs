@@ -204,7 +204,19 @@ pub trait WeightRasterizer: Send {
     fn export_kept(&mut self) -> Result<Option<KeptExport>> {
         Ok(None)
     }
-    /// Adds the views another rasterizer kept ([`Self::export_kept`]) to this one's, for one
+    /// The next batch of what this rasterizer kept, for another rasterizer's
+    /// [`Self::import_kept`], with at most about `max_bytes` of records: the first batch has
+    /// every view, later ones continue it ([`KeptExport::continues`]); keeping stops at the
+    /// first; `None` once all went. The default hands everything over in one batch
+    /// ([`Self::export_kept`]).
+    ///
+    /// Errors: device failures reading the sums back.
+    fn export_kept_batch(&mut self, max_bytes: u64) -> Result<Option<KeptExport>> {
+        let _ = max_bytes;
+        self.export_kept()
+    }
+    /// Adds the views another rasterizer kept ([`Self::export_kept`], or a batch of them:
+    /// [`Self::export_kept_batch`]) to this one's, for one
     /// [`Self::reduce_kept`] over all of them.
     ///
     /// Errors: this rasterizer keeps nothing (the default: [`Error::Internal`]).
@@ -300,6 +312,10 @@ pub struct KeptExport {
     pub(crate) views: Vec<(Vec<u32>, Vec<f32>)>,
     /// Per band: its view, its records (16 bytes each), where each block of Gaussians starts.
     pub(crate) parts: Vec<(u32, Vec<u8>, Vec<u32>)>,
+    /// Whether this batch continues the export whose first batch brought the views
+    /// ([`WeightRasterizer::export_kept_batch`]): its `views` is then empty, and its bands'
+    /// views are those of that batch.
+    pub(crate) continues: bool,
 }
 
 /// One kept view brought back to the host ([`KeptExport::into_host_views`]): what the host's

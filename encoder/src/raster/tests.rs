@@ -1071,8 +1071,18 @@ fn device_reduction_equals_the_host_reduction() {
         keep,
         dense: true,
     };
-    dev.import_kept(second.export_kept().unwrap().expect("views kept"))
-        .unwrap();
+    // One band per batch: the batches after the first continue its views.
+    let mut batches = 0;
+    while let Some(batch) = second.export_kept_batch(1).unwrap() {
+        assert_eq!(batch.continues, batches > 0, "batch {batches}");
+        assert_eq!(batch.views.is_empty(), batches > 0, "batch {batches}");
+        dev.import_kept(batch).unwrap();
+        batches += 1;
+    }
+    assert!(
+        batches >= 2,
+        "{batches} batches: a band per batch, two views"
+    );
     assert!(second.export_kept().unwrap().is_none(), "keeping stopped");
     let mut tiles = Vec::new();
     let out = dev.reduce_kept(&p, &mut |t| {

@@ -83,6 +83,12 @@ pub(super) struct Kept {
     views: Vec<[u32; 2]>,
     /// `[M × D]` every kept view's mask embeddings, in view order.
     codebook: Vec<f32>,
+    /// Whether an export batch took the views' tables and codebook already
+    /// ([`GpuRasterizer::export_kept_views_batch`]); keeping has stopped then.
+    exporting: bool,
+    /// The first of the views that the latest import brought ([`GpuRasterizer::import_kept_views`]):
+    /// where the bands of a batch that continues it point.
+    import_base: u32,
 }
 
 /// Appends one view's label table to `tables` and returns its base: `[n_labels, factors
@@ -216,6 +222,8 @@ impl GpuRasterizer {
             tables: Vec::new(),
             views: Vec::new(),
             codebook: Vec::new(),
+            exporting: false,
+            import_base: 0,
         });
         true
     }
@@ -225,8 +233,10 @@ impl GpuRasterizer {
     ///
     /// Errors: embeddings not `M × D` ([`Error::Internal`]: the image stage checked them); tables or codebook past 2^32.
     pub(super) fn begin_kept_view(&mut self, masks: &KeptMasks<'_>) -> Result<u32> {
-        let Some(kept) = self.kept.as_mut() else {
-            return Err(Error::internal("a kept view without keeping started"));
+        let Some(kept) = self.kept.as_mut().filter(|k| !k.exporting) else {
+            return Err(Error::internal(
+                "a kept view without keeping started, or after its export began",
+            ));
         };
         let dim = kept.dim;
         if !masks.embeddings.len().is_multiple_of(dim) {
@@ -399,33 +409,47 @@ impl GpuRasterizer {
     ///
     /// Errors: device failures reading the records back.
     pub(super) fn export_kept_views(&mut self) -> Result<Option<KeptExport>> {
-        let Some(kept) = self.kept.take() else {
+        let all = self.export_kept_views_batch(u64::MAX);
+        self.kept = None;
+        all
+    }
+
+    /// The next batch of the kept views as host data, for another device's reduction
+    /// ([`Self::import_kept_views`]): the first batch has every view's label table and codebook
+    /// rows, and each batch the next bands, as many as fit `max_bytes` of records (at least
+    /// one), each freed here once read. Keeping stops at the first batch; `None` once every
+    /// band went (or nothing was kept). So a hand-over holds one batch on the host at a time.
+    ///
+    /// Errors: device failures reading the records back.
+    pub(super) fn export_kept_views_batch(&mut self, max_bytes: u64) -> Result<Option<KeptExport>> {
+        let Some(kept) = self.kept.as_mut() else {
             return Ok(None);
         };
+        let first = !kept.exporting;
+        if !first && kept.parts.is_empty() {
+            self.kept = None;
+            return Ok(None);
+        }
+        kept.exporting = true;
+        let views = if first { host_views(kept) } else { Vec::new() };
+        let (mut take, mut bytes) = (0, 0u64);
+        for p in &kept.parts {
+            let b = u64::from(p.n) * 16;
+            if take > 0 && bytes + b > max_bytes {
+                break;
+            }
+            (take, bytes) = (take + 1, bytes + b);
+        }
+        let batch: Vec<KeptPart> = kept.parts.drain(..take).collect();
+        kept.bytes -= bytes;
         let dim = kept.dim;
-        let n_views = kept.views.len();
-        let views = (0..n_views)
-            .map(|v| {
-                let [base, row] = kept.views[v];
-                let (table_end, row_end) = match kept.views.get(v + 1) {
-                    Some(&[b, r]) => (b as usize, r as usize),
-                    None => (kept.tables.len(), kept.codebook.len() / dim),
-                };
-                (
-                    kept.tables[base as usize..table_end].to_vec(),
-                    kept.codebook[row as usize * dim..row_end * dim].to_vec(),
-                )
-            })
-            .collect();
         let enc = self.device.create_command_encoder(&Default::default());
-        let reads: Vec<(&wgpu::Buffer, u64, u64)> = kept
-            .parts
+        let reads: Vec<(&wgpu::Buffer, u64, u64)> = batch
             .iter()
             .map(|p| (&p.records, 0, u64::from(p.n) * 16))
             .collect();
         let read = self.submit_and_read(enc, &reads)?;
-        let parts = kept
-            .parts
+        let parts = batch
             .into_iter()
             .zip(read)
             .map(|(p, mut bytes)| {
@@ -433,7 +457,12 @@ impl GpuRasterizer {
                 (p.view, bytes, p.starts)
             })
             .collect();
-        Ok(Some(KeptExport { dim, views, parts }))
+        Ok(Some(KeptExport {
+            dim,
+            views,
+            parts,
+            continues: !first,
+        }))
     }
 
     /// Adds another device's kept views ([`Self::export_kept_views`]) to this one's, after its
@@ -454,7 +483,10 @@ impl GpuRasterizer {
             )));
         }
         let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
-        let first_view = kept.views.len() as u32;
+        if !e.continues {
+            kept.import_base = kept.views.len() as u32;
+        }
+        let first_view = kept.import_base;
         for (table, rows) in e.views {
             let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
             let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
@@ -463,12 +495,19 @@ impl GpuRasterizer {
             kept.views.push([base, row]);
         }
         for (view, bytes, starts) in e.parts {
+            let view = first_view + view;
+            if view as usize >= kept.views.len() {
+                return Err(Error::internal(format!(
+                    "an imported band of view {view} of {} kept views",
+                    kept.views.len()
+                )));
+            }
             let n = (bytes.len() / 16) as u32;
             kept.bytes += bytes.len() as u64;
             kept.parts.push(KeptPart {
                 records: storage_init(&self.device, "kept_records", &bytes),
                 n,
-                view: first_view + view,
+                view,
                 starts,
             });
         }
@@ -1048,6 +1087,24 @@ fn tile_output_range(
     out
 }
 
+/// Per kept view, its label table and its codebook rows, copied out of `kept`.
+fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>)> {
+    let dim = kept.dim;
+    (0..kept.views.len())
+        .map(|v| {
+            let [base, row] = kept.views[v];
+            let (table_end, row_end) = match kept.views.get(v + 1) {
+                Some(&[b, r]) => (b as usize, r as usize),
+                None => (kept.tables.len(), kept.codebook.len() / dim),
+            };
+            (
+                kept.tables[base as usize..table_end].to_vec(),
+                kept.codebook[row as usize * dim..row_end * dim].to_vec(),
+            )
+        })
+        .collect()
+}
+
 impl KeptExport {
     /// Every kept view as the host's image stage has it after the label sums
     /// ([`KeptHostView`]), in keeping order; the records' bytes are let go part by part.
@@ -1055,7 +1112,9 @@ impl KeptExport {
     /// Errors: a label table, codebook rows or records not of the export's layout
     /// ([`Error::Internal`]).
     pub(crate) fn into_host_views(self) -> Result<Vec<KeptHostView>> {
-        let KeptExport { dim, views, parts } = self;
+        let KeptExport {
+            dim, views, parts, ..
+        } = self;
         let mut out = views
             .into_iter()
             .map(|(table, embeddings)| {

@@ -1048,6 +1048,10 @@ impl WeightRasterizer for GpuRasterizer {
         self.export_kept_views()
     }
 
+    fn export_kept_batch(&mut self, max_bytes: u64) -> Result<Option<KeptExport>> {
+        self.export_kept_views_batch(max_bytes)
+    }
+
     fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
         self.import_kept_views(kept)
     }
