@@ -415,6 +415,59 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
     }
 }
 
+/// Two GPUs that both keep their views (`--reduce device`, fronts bound to each): the second's
+/// views are handed over to the first, which reduces them all, and the run writes what the
+/// host's reduction writes: the same `E_k` rows (f16), the same observed Gaussians and masks'
+/// record, and no `a_kj` on the host.
+#[test]
+fn two_devices_hand_their_kept_views_to_one_reduction() {
+    use slag_common::mixture::MixtureEmbeddings;
+    use slag_encoder::config::ReduceOn;
+    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+        return;
+    }
+    let (dir, scene) = folder_with_small_scene();
+    let input = pipeline::SceneInput::new(&scene, None, 1);
+    let run = |name: &str, reduce_on: ReduceOn| {
+        let out = dir.path().join(name);
+        let params = pipeline::EncodeParams {
+            mixture_keep: Some(4),
+            mask_record_slots: Some(slag_common::mask_record::DEFAULT_SLOTS),
+            reduce_on,
+            ..pool_params(&out)
+        };
+        let mut record = None;
+        let report = pipeline::encode_pool_with(
+            &input,
+            graph_fronts(&[Some(0), Some(1)]),
+            |g: &slag_common::scene::Gaussians| {
+                rasterizers_set_up(2, g, |r| r.set_cpu_adapter(false))
+            },
+            &params,
+            Default::default(),
+            |r, _| record = r,
+        )
+        .unwrap();
+        (report, out, record)
+    };
+    let (host, host_dir, host_record) = run("host", ReduceOn::Host);
+    let (dev, dev_dir, dev_record) = run("device", ReduceOn::Device);
+    assert!(dev.counts.device_reduce && dev.counts.entries == 0, "reduced on the device");
+    let images = |name: &str| dev.workers.iter().find(|w| w.name.starts_with(name)).unwrap().images;
+    assert!(images("raster-0") > 0 && images("raster-1") > 0, "both devices kept views");
+    assert_eq!(dev.counts.observed, host.counts.observed);
+    let load = |d: &std::path::Path| Embeddings::read(&d.join("embeddings.safetensors")).unwrap();
+    let diff = max_abs_diff(&load(&host_dir), &load(&dev_dir));
+    assert!(diff <= 1e-3, "E_k differ by {diff} (f16 rows)");
+    let ids = |d: &std::path::Path| {
+        MixtureEmbeddings::read(&d.join("mixture.safetensors"))
+            .unwrap()
+            .gaussian_ids
+    };
+    assert_eq!(ids(&dev_dir), ids(&host_dir), "observed Gaussians");
+    assert!(dev_record.is_some() && dev_record == host_record, "masks' record");
+}
+
 /// `--reduce auto` whose kept label sums pass the device's budget after a few views gives way
 /// to the host's reduction: the run succeeds and writes what `--reduce host` writes (with one
 /// rasterizer the same mixture byte for byte; with two, whose views reach the store in any

@@ -350,13 +350,11 @@ fn write_levels(
 }
 
 /// Bytes of kept records that one batch of a hand-over between devices holds on the host
-/// ([`one_device`]).
+/// ([`hand_over`]).
 const HAND_OVER_BATCH_BYTES: u64 = 256 << 20;
 
 /// The rasterizers that kept their views on their devices, as one: the first, with every other
-/// one's views imported ([`WeightRasterizer::import_kept`]) batch by batch
-/// ([`HAND_OVER_BATCH_BYTES`]), each other device's records freed as they go; `None` without
-/// any.
+/// one's views imported ([`WeightRasterizer::import_kept`]); `None` without any.
 ///
 /// Errors: the devices' (reading the others' sums back).
 fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn WeightRasterizer>>> {
@@ -364,20 +362,56 @@ fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn W
     let Some(mut first) = rasterizers.next() else {
         return Ok(None);
     };
-    for mut other in rasterizers {
-        let (t0, mut bytes) = (Instant::now(), 0usize);
-        while let Some(kept) = other.export_kept_batch(HAND_OVER_BATCH_BYTES)? {
-            bytes += kept.parts.iter().map(|p| p.1.len()).sum::<usize>();
-            first.import_kept(kept)?;
-        }
-        tracing::debug!(
-            target: "slag_encoder::pipeline",
-            bytes,
-            seconds = t0.elapsed().as_secs_f64(),
-            "kept views handed over"
-        );
+    for other in rasterizers {
+        hand_over(other, &mut *first)?;
     }
     Ok(Some(first))
+}
+
+/// Moves every view `from` kept to `to`, batch by batch ([`HAND_OVER_BATCH_BYTES`]): a thread
+/// reads `from`'s next batch back while `to` takes the one before, so the host holds at most
+/// three batches, and `from`'s records are freed as they go.
+///
+/// Errors: either device's.
+fn hand_over(mut from: Box<dyn WeightRasterizer>, to: &mut dyn WeightRasterizer) -> Result<()> {
+    let t0 = Instant::now();
+    let (tx, rx) = std::sync::mpsc::sync_channel::<crate::raster::KeptExport>(1);
+    let (bytes, read_s, read) = std::thread::scope(|s| {
+        let reader = s.spawn(move || -> Result<f64> {
+            let mut read_s = 0.0;
+            loop {
+                let t = Instant::now();
+                let batch = from.export_kept_batch(HAND_OVER_BATCH_BYTES)?;
+                read_s += t.elapsed().as_secs_f64();
+                // Done, or the importer stopped on an error of its own.
+                let Some(batch) = batch else {
+                    return Ok(read_s);
+                };
+                if tx.send(batch).is_err() {
+                    return Ok(read_s);
+                }
+            }
+        });
+        let mut bytes = 0usize;
+        let imported = rx.iter().try_for_each(|batch| {
+            bytes += batch.parts.iter().map(|p| p.1.len()).sum::<usize>();
+            to.import_kept(batch)
+        });
+        // An import error hangs up first, so that the reader stops at its next batch.
+        drop(rx);
+        let read = reader
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal("a kept views' reader panicked")));
+        (bytes, read.as_ref().copied().unwrap_or(0.0), read.and(imported))
+    });
+    tracing::debug!(
+        target: "slag_encoder::pipeline",
+        bytes,
+        read_s,
+        seconds = t0.elapsed().as_secs_f64(),
+        "kept views handed over"
+    );
+    read
 }
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]),
