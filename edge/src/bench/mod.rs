@@ -504,6 +504,8 @@ fn scan_rows(args: &BenchArgs, w: &Workload) -> anyhow::Result<ScanRows> {
             if dtype == Dtype::F32 {
                 f32_sets = Some(sets);
             }
+            // Without the feature `run_bench` has refused `--qdrant` already.
+            #[cfg(feature = "qdrant-edge")]
             if args.qdrant {
                 let exact = f32_sets.as_deref().unwrap_or(&[]);
                 out.qdrant.extend(qdrant::exact_rows(
@@ -861,29 +863,6 @@ mod qdrant {
                 Ok(out)
             }
         }
-    }
-}
-
-#[cfg(not(feature = "qdrant-edge"))]
-mod qdrant {
-    //! Without the `qdrant-edge` feature `run_bench` refuses `--qdrant` before it gets here.
-    use std::collections::HashSet;
-
-    use slag_common::shards::Dtype;
-
-    use slag_edge::scan::VectorStore;
-
-    use super::{BenchArgs, QRow};
-
-    pub(super) fn exact_rows(
-        _: &BenchArgs,
-        _: usize,
-        _: Dtype,
-        _: &VectorStore,
-        _: &[Vec<f32>],
-        _: &[HashSet<usize>],
-    ) -> anyhow::Result<Vec<QRow>> {
-        anyhow::bail!("slag-edge was built without the `qdrant-edge` feature")
     }
 }
 
