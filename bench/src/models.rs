@@ -145,21 +145,16 @@ pub fn run(a: &ModelsArgs) -> anyhow::Result<String> {
         a.repeats
     )?;
     if !a.clip_visual.is_empty() {
-        clip_rows(a, &images, ep, &mut out)?;
+        clip_rows(a, &images, &mut out)?;
     }
     if !a.sam_encoder.is_empty() {
-        sam_rows(a, &images, ep, &mut out)?;
+        sam_rows(a, &images, &mut out)?;
     }
     Ok(out)
 }
 
 /// The CLIP table: ms per crop at the batch size, and each tower's cosine to the first.
-fn clip_rows(
-    a: &ModelsArgs,
-    images: &[image::RgbImage],
-    ep: slag_common::onnx::ExecutionProvider,
-    out: &mut String,
-) -> anyhow::Result<()> {
+fn clip_rows(a: &ModelsArgs, images: &[image::RgbImage], out: &mut String) -> anyhow::Result<()> {
     let mut seg = GraphSegmenter::new(GraphParams::default());
     let mut pixels = Vec::new();
     for img in images {
@@ -183,7 +178,8 @@ fn clip_rows(
     let mut reference: Option<Vec<Vec<f32>>> = None;
     let mut notes = String::new();
     for path in &a.clip_visual {
-        let mut clip = ClipVisual::with_placement(path, &Placement::new(ep, 0, 0), a.batch)?;
+        let mut clip =
+            ClipVisual::with_placement(path, &Placement::new(a.ep.into(), 0, 0), a.batch)?;
         clip.set_fixed_batch(true);
         let mut emb = clip.embed_pixels(&pixels)?; // warm-up, and the embeddings compared
         let mut passes = Vec::new();
@@ -261,12 +257,7 @@ struct Decoded {
 
 /// The SAM table: encoder ms per image, decoder ms per image for the whole grid, and each
 /// decoder's agreement with the first.
-fn sam_rows(
-    a: &ModelsArgs,
-    images: &[image::RgbImage],
-    ep: slag_common::onnx::ExecutionProvider,
-    out: &mut String,
-) -> anyhow::Result<()> {
+fn sam_rows(a: &ModelsArgs, images: &[image::RgbImage], out: &mut String) -> anyhow::Result<()> {
     let n = (a.points_per_side * a.points_per_side) as usize;
     writeln!(
         out,
@@ -293,7 +284,7 @@ fn sam_rows(
             ]
         })
         .collect();
-    let placement = Placement::new(ep, 0, 0);
+    let placement = Placement::new(a.ep.into(), 0, 0);
     let mut reference: Option<Vec<Decoded>> = None;
     let mut reference_embeddings: Option<Vec<Vec<f32>>> = None;
     for (enc_path, dec_path) in a.sam_encoder.iter().zip(&a.sam_decoder) {
