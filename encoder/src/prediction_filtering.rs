@@ -78,32 +78,37 @@ pub fn one_hot(classes: &[Option<u8>], c: usize) -> Vec<f32> {
     t
 }
 
+/// What every PF table reads: the scene's score table, which Gaussians are observed and each
+/// Gaussian's segment (the module doc's layout).
+#[derive(Debug, Clone, Copy)]
+pub struct PfInputs<'a> {
+    /// `[N × classes]` row-major class scores, row `k` for `.ply` Gaussian `k`.
+    pub scores: &'a [f32],
+    /// `[N]`: whether Gaussian `k` has an embedding (only observed Gaussians vote).
+    pub observed: &'a [bool],
+    /// `[N]` segment id of each Gaussian.
+    pub segments: &'a [u32],
+    /// Classes `C` (1 to 256).
+    pub classes: usize,
+}
+
 /// One-hot rows of the classes `vote` chooses from each Gaussian's own class
 /// ([`gaussian_classes`]): the form of every one-hot PF table.
 ///
 /// Errors: `scores` not `observed.len() × classes`, or `vote`'s ([`Error::Internal`]).
 fn vote_table(
-    scores: &[f32],
-    observed: &[bool],
-    classes: usize,
+    t: &PfInputs,
     vote: impl FnOnce(&[Option<u8>]) -> Result<Vec<Option<u8>>>,
 ) -> Result<Vec<f32>> {
-    let own = gaussian_classes(scores, observed, classes)?;
-    Ok(one_hot(&vote(&own)?, classes))
+    let own = gaussian_classes(t.scores, t.observed, t.classes)?;
+    Ok(one_hot(&vote(&own)?, t.classes))
 }
 
 /// The paper's PF: one-hot rows of each segment's majority class over its observed Gaussians.
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
-pub fn majority_table(
-    scores: &[f32],
-    observed: &[bool],
-    segments: &[u32],
-    classes: usize,
-) -> Result<Vec<f32>> {
-    vote_table(scores, observed, classes, |own| {
-        majority_per_segment(own, segments)
-    })
+pub fn majority_table(t: &PfInputs) -> Result<Vec<f32>> {
+    vote_table(t, |own| majority_per_segment(own, t.segments))
 }
 
 /// Each segment's votes by `weights[k]` (≥ 0; non-finite counts 0) over its observed Gaussians
@@ -163,17 +168,12 @@ pub fn weighted_majority(
 /// class, as with `pf-majority`). One-hot rows.
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
-pub fn strict_majority_table(
-    scores: &[f32],
-    observed: &[bool],
-    segments: &[u32],
-    classes: usize,
-) -> Result<Vec<f32>> {
-    vote_table(scores, observed, classes, |own| {
-        let votes = segment_votes(own, &vec![1.0; own.len()], segments)?;
+pub fn strict_majority_table(t: &PfInputs) -> Result<Vec<f32>> {
+    vote_table(t, |own| {
+        let votes = segment_votes(own, &vec![1.0; own.len()], t.segments)?;
         Ok(own
             .iter()
-            .zip(segments)
+            .zip(t.segments)
             .map(|(o, s)| match votes.get(s) {
                 Some(&(best, w, total)) if 2.0 * w > total || o.is_none() => Some(best),
                 _ => *o,
@@ -186,16 +186,8 @@ pub fn strict_majority_table(
 /// `weights` (`[N]`, e.g. `Σ_j a_kj`).
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
-pub fn weighted_table(
-    scores: &[f32],
-    observed: &[bool],
-    weights: &[f32],
-    segments: &[u32],
-    classes: usize,
-) -> Result<Vec<f32>> {
-    vote_table(scores, observed, classes, |own| {
-        weighted_majority(own, weights, segments)
-    })
+pub fn weighted_table(t: &PfInputs, weights: &[f32]) -> Result<Vec<f32>> {
+    vote_table(t, |own| weighted_majority(own, weights, t.segments))
 }
 
 /// Each row's margin: its best score minus its second best.
@@ -221,19 +213,13 @@ fn margins(scores: &[f32], classes: usize) -> Vec<f32> {
 /// keep their own class; the rest take the segment's `weights`-weighted class. One-hot rows.
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
-pub fn confident_table(
-    scores: &[f32],
-    observed: &[bool],
-    weights: &[f32],
-    segments: &[u32],
-    classes: usize,
-) -> Result<Vec<f32>> {
-    vote_table(scores, observed, classes, |own| {
-        let seg = weighted_majority(own, weights, segments)?;
-        let m = margins(scores, classes);
+pub fn confident_table(t: &PfInputs, weights: &[f32]) -> Result<Vec<f32>> {
+    vote_table(t, |own| {
+        let seg = weighted_majority(own, weights, t.segments)?;
+        let m = margins(t.scores, t.classes);
         let mut seen: Vec<f32> = m
             .iter()
-            .zip(observed)
+            .zip(t.observed)
             .filter(|(_, o)| **o)
             .map(|(v, _)| *v)
             .collect();
@@ -258,12 +244,13 @@ pub fn confident_table(
 /// Segment-mean scores: each class score averaged over the segment's observed Gaussians.
 ///
 /// Errors: tables whose sizes disagree ([`Error::Internal`]).
-pub fn mean_table(
-    scores: &[f32],
-    observed: &[bool],
-    segments: &[u32],
-    classes: usize,
-) -> Result<Vec<f32>> {
+pub fn mean_table(t: &PfInputs) -> Result<Vec<f32>> {
+    let &PfInputs {
+        scores,
+        observed,
+        segments,
+        classes,
+    } = t;
     check(scores, observed.len(), classes)?;
     if segments.len() != observed.len() {
         return Err(Error::internal(format!(
@@ -311,6 +298,20 @@ pub fn filter_rows(predicted: &[u8], row_segments: &[u32]) -> Result<Vec<u8>> {
 mod tests {
     use super::*;
 
+    fn inputs<'a>(
+        scores: &'a [f32],
+        observed: &'a [bool],
+        segments: &'a [u32],
+        classes: usize,
+    ) -> PfInputs<'a> {
+        PfInputs {
+            scores,
+            observed,
+            segments,
+            classes,
+        }
+    }
+
     /// A synthetic scene: 3 segments of 50 Gaussians whose true classes are 0, 1, 2; a noisy
     /// labelling gets 30 % of each segment wrong (deterministically), and a few Gaussians are
     /// unobserved. PF restores the truth everywhere, and every segment's Gaussians share a class.
@@ -343,8 +344,9 @@ mod tests {
                 .count()
                 < n * 3 / 4
         );
-        let pf = majority_table(&scores, &observed, &segments, c).unwrap();
-        let mean = mean_table(&scores, &observed, &segments, c).unwrap();
+        let t = inputs(&scores, &observed, &segments, c);
+        let pf = majority_table(&t).unwrap();
+        let mean = mean_table(&t).unwrap();
         for k in 0..n {
             let row = &pf[k * c..(k + 1) * c];
             assert_eq!(
@@ -365,7 +367,8 @@ mod tests {
         for (f, t) in filtered.iter().zip(&truth) {
             assert_eq!(*f as usize, *t);
         }
-        assert!(majority_table(&scores, &observed, &segments[1..], c).is_err());
+        let short = inputs(&scores, &observed, &segments[1..], c);
+        assert!(majority_table(&short).is_err());
     }
 
     #[test]
@@ -381,17 +384,18 @@ mod tests {
         let observed = [true; 4];
         let segments = [0u32; 4];
         let weights = [1.0, 1.0, 1.0, 10.0];
-        let major = majority_table(&scores, &observed, &segments, 2).unwrap();
+        let t = inputs(&scores, &observed, &segments, 2);
+        let major = majority_table(&t).unwrap();
         assert!(major.chunks(2).all(|r| r == [1.0, 0.0]));
-        let w = weighted_table(&scores, &observed, &weights, &segments, 2).unwrap();
+        let w = weighted_table(&t, &weights).unwrap();
         assert!(w.chunks(2).all(|r| r == [0.0, 1.0]));
         // Confident: margins 0.01, 0.01, 0.02, 0.8; median (upper middle) 0.02: Gaussians 2
         // and 3 keep their own classes, 0 and 1 take the weighted vote (class 1).
-        let c = confident_table(&scores, &observed, &[1.0; 4], &segments, 2).unwrap();
+        let c = confident_table(&t, &[1.0; 4]).unwrap();
         assert_eq!(c, vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 1.0]);
-        let c = confident_table(&scores, &observed, &weights, &segments, 2).unwrap();
+        let c = confident_table(&t, &weights).unwrap();
         assert_eq!(c, vec![0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 1.0]);
-        assert!(weighted_table(&scores, &observed, &weights[1..], &segments, 2).is_err());
+        assert!(weighted_table(&t, &weights[1..]).is_err());
     }
 
     #[test]
@@ -405,22 +409,25 @@ mod tests {
         ];
         let observed = [true, true, true, true, false, true, true, true, true, false];
         let segments = [0u32, 0, 0, 0, 0, 1, 1, 1, 1, 1];
-        let t = strict_majority_table(&scores, &observed, &segments, 2).unwrap();
+        let pf = inputs(&scores, &observed, &segments, 2);
+        let t = strict_majority_table(&pf).unwrap();
         let classes: Vec<usize> = t.chunks(2).map(|r| argmax(r)).collect();
         assert_eq!(classes, vec![0, 0, 0, 0, 0, 0, 0, 1, 1, 0]);
         assert!(t.chunks(2).all(|r| r.iter().sum::<f32>() == 1.0));
         // The paper's majority filters both segments.
-        let m = majority_table(&scores, &observed, &segments, 2).unwrap();
+        let m = majority_table(&pf).unwrap();
         assert!(m.chunks(2).all(|r| r == [1.0, 0.0]));
-        assert!(strict_majority_table(&scores, &observed, &segments[1..], 2).is_err());
+        let short = inputs(&scores, &observed, &segments[1..], 2);
+        assert!(strict_majority_table(&short).is_err());
     }
 
     #[test]
     fn a_segment_without_observed_gaussians_stays_empty() {
         let scores = vec![0.5, 0.1, 0.0, 0.0];
-        let pf = majority_table(&scores, &[true, false], &[0, 1], 2).unwrap();
+        let t = inputs(&scores, &[true, false], &[0, 1], 2);
+        let pf = majority_table(&t).unwrap();
         assert_eq!(pf, vec![1.0, 0.0, 0.0, 0.0]);
-        let mean = mean_table(&scores, &[true, false], &[0, 1], 2).unwrap();
+        let mean = mean_table(&t).unwrap();
         assert_eq!(mean, vec![0.5, 0.1, 0.0, 0.0]);
     }
 }

@@ -67,24 +67,26 @@ pub fn pf_tables(
                 .unwrap_or_default();
             format!("@{parent}/{stem}")
         };
-        let seg = &s.segments;
+        let slag = pf::PfInputs {
+            scores: slag_scores,
+            observed: &observed,
+            segments: &s.segments,
+            classes: c,
+        };
         out.push(table(
             format!("pf-majority{tag}"),
             path,
-            pf::majority_table(slag_scores, &observed, seg, c)?,
+            pf::majority_table(&slag)?,
         ));
-        out.push(table(
-            format!("pf-mean{tag}"),
-            path,
-            pf::mean_table(slag_scores, &observed, seg, c)?,
-        ));
+        out.push(table(format!("pf-mean{tag}"), path, pf::mean_table(&slag)?));
         // `pf-weighted`, `pf-confident` and `pf-strict` of `scores`, their names after `prefix`.
         let mut push_weighted = |prefix: &str, scores: &[f32]| -> Result<()> {
-            let weighted = pf::weighted_table(scores, &observed, &sum_a, seg, c)?;
+            let t = pf::PfInputs { scores, ..slag };
+            let weighted = pf::weighted_table(&t, &sum_a)?;
             out.push(table(format!("{prefix}pf-weighted{tag}"), path, weighted));
-            let confident = pf::confident_table(scores, &observed, &sum_a, seg, c)?;
+            let confident = pf::confident_table(&t, &sum_a)?;
             out.push(table(format!("{prefix}pf-confident{tag}"), path, confident));
-            let strict = pf::strict_majority_table(scores, &observed, seg, c)?;
+            let strict = pf::strict_majority_table(&t)?;
             out.push(table(format!("{prefix}pf-strict{tag}"), path, strict));
             Ok(())
         };
