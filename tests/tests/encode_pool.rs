@@ -415,6 +415,32 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
     }
 }
 
+/// The masks' record an encode hands to its tail.
+type TailRecord = Option<std::sync::Arc<slag_common::mask_record::MaskRecord>>;
+
+/// An encode of `input` with `params` over graph fronts bound to `gpus` and `n_rasterizers`
+/// GPU rasterizers that keep views for `auto` also on a CPU device (lavapipe in CI): its
+/// report and the masks' record it handed to its tail.
+fn keeping_run(
+    input: &pipeline::SceneInput,
+    gpus: &[Option<usize>],
+    n_rasterizers: usize,
+    params: &pipeline::EncodeParams,
+) -> (slag_common::Result<slag_encoder::report::Report>, TailRecord) {
+    let mut record = None;
+    let report = pipeline::encode_pool_with(
+        input,
+        graph_fronts(gpus),
+        |g: &slag_common::scene::Gaussians| {
+            rasterizers_set_up(n_rasterizers, g, |r| r.set_cpu_adapter(false))
+        },
+        params,
+        Default::default(),
+        |r, _| record = r,
+    );
+    (report, record)
+}
+
 /// Two GPUs that both keep their views (`--reduce device`, fronts bound to each): the second's
 /// views are handed over to the first, which reduces them all, and the run writes what the
 /// host's reduction writes: the same `E_k` rows (f16), the same observed Gaussians and masks'
@@ -436,19 +462,8 @@ fn two_devices_hand_their_kept_views_to_one_reduction() {
             reduce_on,
             ..pool_params(&out)
         };
-        let mut record = None;
-        let report = pipeline::encode_pool_with(
-            &input,
-            graph_fronts(&[Some(0), Some(1)]),
-            |g: &slag_common::scene::Gaussians| {
-                rasterizers_set_up(2, g, |r| r.set_cpu_adapter(false))
-            },
-            &params,
-            Default::default(),
-            |r, _| record = r,
-        )
-        .unwrap();
-        (report, out, record)
+        let (report, record) = keeping_run(&input, &[Some(0), Some(1)], 2, &params);
+        (report.unwrap(), out, record)
     };
     let (host, host_dir, host_record) = run("host", ReduceOn::Host);
     let (dev, dev_dir, dev_record) = run("device", ReduceOn::Device);
@@ -495,18 +510,7 @@ fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
             device_reduce_budget_bytes: budget,
             ..pool_params(&out)
         };
-        let mut record = None;
-        let report = pipeline::encode_pool_with(
-            &input,
-            graph_fronts(&[None]),
-            // Kept for `auto` also on a CPU device (lavapipe in CI).
-            |g: &slag_common::scene::Gaussians| {
-                rasterizers_set_up(n_rasterizers, g, |r| r.set_cpu_adapter(false))
-            },
-            &params,
-            Default::default(),
-            |r, _| record = r,
-        );
+        let (report, record) = keeping_run(&input, &[None], n_rasterizers, &params);
         (report, out.join("mixture.safetensors"), record)
     };
     let (host, host_mixture, host_record) = run("host", ReduceOn::Host, 1);

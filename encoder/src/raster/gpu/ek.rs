@@ -89,6 +89,8 @@ pub(super) struct Kept {
     /// The first of the views that the latest import brought ([`GpuRasterizer::import_kept_views`]):
     /// where the bands of a batch that continues it point.
     import_base: u32,
+    /// The staging buffer of the last export batch, for the next ([`GpuRasterizer::read_parts`]).
+    staging: Option<wgpu::Buffer>,
 }
 
 /// Appends one view's label table to `tables` and returns its base: `[n_labels, factors
@@ -224,6 +226,7 @@ impl GpuRasterizer {
             codebook: Vec::new(),
             exporting: false,
             import_base: 0,
+            staging: None,
         });
         true
     }
@@ -443,19 +446,15 @@ impl GpuRasterizer {
         let batch: Vec<KeptPart> = kept.parts.drain(..take).collect();
         kept.bytes -= bytes;
         let dim = kept.dim;
-        let enc = self.device.create_command_encoder(&Default::default());
-        let reads: Vec<(&wgpu::Buffer, u64, u64)> = batch
-            .iter()
-            .map(|p| (&p.records, 0, u64::from(p.n) * 16))
-            .collect();
-        let read = self.submit_and_read(enc, &reads)?;
+        let staging = kept.staging.take();
+        let (read, staging) = self.read_parts(&batch, bytes, staging)?;
+        if let Some(kept) = self.kept.as_mut() {
+            kept.staging = staging;
+        }
         let parts = batch
             .into_iter()
             .zip(read)
-            .map(|(p, mut bytes)| {
-                bytes.truncate(p.n as usize * 16);
-                (p.view, bytes, p.starts)
-            })
+            .map(|(p, bytes)| (p.view, bytes, p.starts))
             .collect();
         Ok(Some(KeptExport {
             dim,
@@ -463,6 +462,54 @@ impl GpuRasterizer {
             parts,
             continues: !first,
         }))
+    }
+
+    /// The records of `parts` (`bytes` in all) read back, one `Vec` per part, through one
+    /// staging buffer: `staging` when it holds `bytes`, else a new one, returned for the next
+    /// batch (a hand-over reads batch after batch, and mapping fresh host memory for each costs
+    /// more than the copy).
+    ///
+    /// Errors: device failures.
+    fn read_parts(
+        &self,
+        parts: &[KeptPart],
+        bytes: u64,
+        staging: Option<wgpu::Buffer>,
+    ) -> Result<(Vec<Vec<u8>>, Option<wgpu::Buffer>)> {
+        if bytes == 0 {
+            return Ok((vec![Vec::new(); parts.len()], staging));
+        }
+        let size = bytes.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+        let staging = match staging {
+            Some(b) if b.size() >= size => b,
+            _ => self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("kept_readback"),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+        };
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        let mut at = 0;
+        for p in parts {
+            let n = u64::from(p.n) * 16;
+            if n > 0 {
+                enc.copy_buffer_to_buffer(&p.records, 0, &staging, at, n);
+            }
+            at += n;
+        }
+        let read = self.submit_and_map_all(enc, &[(&staging, bytes)], |views| {
+            let mut rest = views[0];
+            parts
+                .iter()
+                .map(|p| {
+                    let (part, after) = rest.split_at(p.n as usize * 16);
+                    rest = after;
+                    part.to_vec()
+                })
+                .collect()
+        })?;
+        Ok((read, Some(staging)))
     }
 
     /// Adds another device's kept views ([`Self::export_kept_views`]) to this one's, after its
