@@ -5,6 +5,8 @@
 #![allow(clippy::unwrap_used)]
 
 use slag_common::embeddings::Embeddings;
+use slag_common::mixture::MixtureEmbeddings;
+use slag_encoder::config::ReduceOn;
 use slag_encoder::masks::{Mask, MaskGenerator};
 use slag_encoder::pipeline::{self, FrontStages};
 use slag_encoder::raster::WeightRasterizer;
@@ -383,11 +385,9 @@ fn a_rasterizer_set_up_failure_stops_the_running_fronts() {
 /// within f64 round-off, and byte for byte the same mixture, masks' record and segments.
 #[test]
 fn the_device_reduction_writes_what_the_host_reduction_writes() {
-    use slag_encoder::config::ReduceOn;
-    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+    let Some((dir, scene)) = scene_for_the_gpu() else {
         return;
-    }
-    let (dir, scene) = folder_with_small_scene();
+    };
     let run = |name: &str, reduce_on: ReduceOn, dense: bool| {
         let out = dir.path().join(name);
         let mut c = config(&scene, &out);
@@ -413,6 +413,13 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
         assert!(read(&host_dir) == read(&dev_dir), "{file} differs");
         assert!(read(&host_dir) == read(&mixture_dir), "{file} differs without rows");
     }
+}
+
+/// The small scene's folder for a test on the GPU rasterizer; `None` where `SLAG_SKIP_GPU=1`
+/// asks to skip those.
+fn scene_for_the_gpu() -> Option<(tempfile::TempDir, std::path::PathBuf)> {
+    let skip = std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1");
+    (!skip).then(folder_with_small_scene)
 }
 
 /// The masks' record an encode hands to its tail.
@@ -447,12 +454,9 @@ fn keeping_run(
 /// record, and no `a_kj` on the host.
 #[test]
 fn two_devices_hand_their_kept_views_to_one_reduction() {
-    use slag_common::mixture::MixtureEmbeddings;
-    use slag_encoder::config::ReduceOn;
-    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+    let Some((dir, scene)) = scene_for_the_gpu() else {
         return;
-    }
-    let (dir, scene) = folder_with_small_scene();
+    };
     let input = pipeline::SceneInput::new(&scene, None, 1);
     let run = |name: &str, reduce_on: ReduceOn| {
         let out = dir.path().join(name);
@@ -490,12 +494,9 @@ fn two_devices_hand_their_kept_views_to_one_reduction() {
 /// says so. `--reduce device` with the same budget fails with the budget's typed error.
 #[test]
 fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
-    use slag_common::mixture::MixtureEmbeddings;
-    use slag_encoder::config::ReduceOn;
-    if std::env::var("SLAG_SKIP_GPU").is_ok_and(|v| v == "1") {
+    let Some((dir, scene)) = scene_for_the_gpu() else {
         return;
-    }
-    let (dir, scene) = folder_with_small_scene();
+    };
     let input = pipeline::SceneInput::new(&scene, None, 1);
     // About two views' kept label sums of this scene.
     let budget = 1000 << 10;
