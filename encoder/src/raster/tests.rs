@@ -1252,8 +1252,12 @@ fn a_view_past_the_kept_budget_is_not_kept_and_the_others_come_back() {
     host.label_sums_kept(&k, &w2c, &labels.labels, None, kept)
         .unwrap()
         .expect("kept");
+    // Each band read back on its own, through the one staging buffer.
+    host.set_readback_bytes(Some(1));
     let one = host.export_kept().unwrap().expect("kept");
     assert!(one.parts.len() >= 3, "{} bands", one.parts.len());
+    let read = one.clone().into_host_views().unwrap().remove(0);
+    assert_eq!(read.sums.reduced(), reference, "bands read back one by one");
     let bytes: u64 = one.parts.iter().map(|p| p.1.len() as u64).sum();
     // Room for the view and half of it again: the second view's first band fits, a later one not.
     assert!(dev.keep_on_device(dim, bytes + bytes / 2, true));

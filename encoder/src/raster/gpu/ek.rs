@@ -31,6 +31,9 @@ pub(super) const BLOCK_GAUSSIANS: u32 = 4096;
 pub const MAX_DIM: usize = 1024;
 /// Most kept pairs per Gaussian (`ek.wgsl` `MAX_KEEP`).
 pub const MAX_KEEP: usize = 32;
+/// Most bytes of kept records read back through one staging buffer at a time
+/// ([`GpuRasterizer::read_parts`]): a band larger than this is read alone.
+const READBACK_BYTES: u64 = 256 << 20;
 /// Most bytes of one tile's outputs (meta, kept pairs, rows) and of its records.
 const TILE_BYTES: u64 = 1 << 30;
 
@@ -421,7 +424,7 @@ impl GpuRasterizer {
     /// ([`Self::import_kept_views`]): the first batch has every view's label table and codebook
     /// rows, and each batch the next bands, as many as fit `max_bytes` of records (at least
     /// one), each freed here once read. Keeping stops at the first batch; `None` once every
-    /// band went (or nothing was kept). So a hand-over holds one batch on the host at a time.
+    /// band went (or nothing was kept). So a hand-over need not hold every record on the host.
     ///
     /// Errors: device failures reading the records back.
     pub(super) fn export_kept_views_batch(&mut self, max_bytes: u64) -> Result<Option<KeptExport>> {
@@ -447,7 +450,7 @@ impl GpuRasterizer {
         kept.bytes -= bytes;
         let dim = kept.dim;
         let staging = kept.staging.take();
-        let (read, staging) = self.read_parts(&batch, bytes, staging)?;
+        let (read, staging) = self.read_parts(&batch, staging)?;
         if let Some(kept) = self.kept.as_mut() {
             kept.staging = staging;
         }
@@ -464,52 +467,63 @@ impl GpuRasterizer {
         }))
     }
 
-    /// The records of `parts` (`bytes` in all) read back, one `Vec` per part, through one
-    /// staging buffer: `staging` when it holds `bytes`, else a new one, returned for the next
-    /// batch (a hand-over reads batch after batch, and mapping fresh host memory for each costs
-    /// more than the copy).
+    /// The records of `parts` read back, one `Vec` per part, through one staging buffer reused
+    /// group after group of parts (at most [`READBACK_BYTES`] a group, or one part; see
+    /// [`Self::set_readback_bytes`]): `staging`
+    /// when it is large enough, else a new one, returned for the next call (a hand-over reads
+    /// batch after batch, and mapping fresh host memory each time costs more than the copy).
     ///
     /// Errors: device failures.
     fn read_parts(
         &self,
         parts: &[KeptPart],
-        bytes: u64,
-        staging: Option<wgpu::Buffer>,
+        mut staging: Option<wgpu::Buffer>,
     ) -> Result<(Vec<Vec<u8>>, Option<wgpu::Buffer>)> {
-        if bytes == 0 {
-            return Ok((vec![Vec::new(); parts.len()], staging));
-        }
-        let size = bytes.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
-        let staging = match staging {
-            Some(b) if b.size() >= size => b,
-            _ => self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("kept_readback"),
-                size,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }),
-        };
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        let mut at = 0;
-        for p in parts {
-            let n = u64::from(p.n) * 16;
-            if n > 0 {
-                enc.copy_buffer_to_buffer(&p.records, 0, &staging, at, n);
+        let bytes_of = |p: &KeptPart| u64::from(p.n) * 16;
+        let most = self.readback_bytes.unwrap_or(READBACK_BYTES);
+        let mut out = Vec::with_capacity(parts.len());
+        let mut rest = parts;
+        while !rest.is_empty() {
+            let (mut take, mut group) = (0, 0u64);
+            for p in rest {
+                if take > 0 && group + bytes_of(p) > most {
+                    break;
+                }
+                (take, group) = (take + 1, group + bytes_of(p));
             }
-            at += n;
+            let (now, later) = rest.split_at(take);
+            rest = later;
+            if group == 0 {
+                out.extend(now.iter().map(|_| Vec::new()));
+                continue;
+            }
+            let size = group.next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+            let buffer = match staging.take() {
+                Some(b) if b.size() >= size => b,
+                _ => self.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("kept_readback"),
+                    size,
+                    usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                }),
+            };
+            let mut enc = self.device.create_command_encoder(&Default::default());
+            let mut at = 0;
+            for p in now.iter().filter(|p| p.n > 0) {
+                enc.copy_buffer_to_buffer(&p.records, 0, &buffer, at, bytes_of(p));
+                at += bytes_of(p);
+            }
+            self.submit_and_map_all(enc, &[(&buffer, group)], |views| {
+                let mut left: &[u8] = views.first().copied().unwrap_or_default();
+                for p in now {
+                    let (part, after) = left.split_at((bytes_of(p) as usize).min(left.len()));
+                    left = after;
+                    out.push(part.to_vec());
+                }
+            })?;
+            staging = Some(buffer);
         }
-        let read = self.submit_and_map_all(enc, &[(&staging, bytes)], |views| {
-            let mut rest = views[0];
-            parts
-                .iter()
-                .map(|p| {
-                    let (part, after) = rest.split_at(p.n as usize * 16);
-                    rest = after;
-                    part.to_vec()
-                })
-                .collect()
-        })?;
-        Ok((read, Some(staging)))
+        Ok((out, staging))
     }
 
     /// Adds another device's kept views ([`Self::export_kept_views`]) to this one's, after its
@@ -565,6 +579,12 @@ impl GpuRasterizer {
     /// most one binding); a tile holds at least one block of Gaussians whatever it says.
     pub fn set_reduce_tile_bytes(&mut self, bytes: Option<u64>) {
         self.reduce_tile_bytes = bytes;
+    }
+
+    /// Testing aid: the most bytes of kept records read back through one staging buffer at a
+    /// time (default [`READBACK_BYTES`]); a band larger than this is read alone.
+    pub fn set_readback_bytes(&mut self, bytes: Option<u64>) {
+        self.readback_bytes = bytes;
     }
 
     /// Testing aid: whether the device counts as a CPU one (lavapipe), where only a forced

@@ -262,6 +262,9 @@ pub struct GpuRasterizer {
     kept_heads: Vec<(u32, u32, f32)>,
     /// Testing aid: bytes of one tile of the device reduction ([`Self::set_reduce_tile_bytes`]).
     reduce_tile_bytes: Option<u64>,
+    /// Testing aid: bytes read back through one staging buffer at a time
+    /// ([`Self::set_readback_bytes`]).
+    readback_bytes: Option<u64>,
 }
 
 /// What one [`GpuRasterizer::run`] produced.
@@ -654,6 +657,7 @@ impl GpuRasterizer {
             mask_record: None,
             kept_heads: Vec::new(),
             reduce_tile_bytes: None,
+            readback_bytes: None,
         })
     }
 
