@@ -148,8 +148,7 @@ impl SegmentTask {
     }
 
     /// Waits for the segmentation and returns its result. When it is still running, its stages
-    /// from now on run on a new pool of `threads` threads (the encode's, idle now), with twice
-    /// the tiles in flight ([`SegmentControl::set_alone`]).
+    /// from now on run on a new pool of `threads` threads (the encode's, idle now).
     ///
     /// Errors: the segmentation's ([`crate::segments::segment`]),
     /// [`Error::Internal`] when its thread panicked or a pool cannot be started.
@@ -159,8 +158,6 @@ impl SegmentTask {
             .handle
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
-        // The encode is over and has let its memory go.
-        self.ctl.set_alone();
         let widened = self.widened_to.get().copied();
         let pool_threads = widened.unwrap_or(self.threads);
         let widened_to = if handle.is_finished() || threads <= pool_threads {

@@ -76,9 +76,9 @@
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
 //! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
-//! flight and their gathered rows of the record (at most 2 GiB, 4 GiB once the encode it runs
-//! beside is over, sized from the edges per Gaussian of the tiles built so far: about 100 + 64
-//! bytes per Gaussian of a tile) and the border edges and those kept. The Gaussians themselves are read only until the geometric parts are computed
+//! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
+//! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
+//! those kept. The Gaussians themselves are read only until the geometric parts are computed
 //! ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is exactly the same
@@ -294,8 +294,6 @@ fn lap(t: &mut Instant) -> f64 {
 pub struct SegmentControl {
     stop: AtomicBool,
     pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
-    /// Whether the work it ran beside is over ([`SegmentControl::set_alone`]).
-    alone: AtomicBool,
 }
 
 impl SegmentControl {
@@ -305,20 +303,7 @@ impl SegmentControl {
         SegmentControl {
             stop: AtomicBool::new(false),
             pool: Mutex::new(pool.map(Arc::new)),
-            alone: AtomicBool::new(false),
         }
-    }
-
-    /// The work that the segmentation ran beside (an encode) is over and has let its memory go:
-    /// from the next wave on, twice as many tiles may hold their edges at once (`passes.rs`).
-    /// The tiles are independent, so this changes no result.
-    pub fn set_alone(&self) {
-        self.alone.store(true, Ordering::Relaxed);
-    }
-
-    /// Whether [`SegmentControl::set_alone`] was called.
-    fn is_alone(&self) -> bool {
-        self.alone.load(Ordering::Relaxed)
     }
 
     /// The stages that start from now on run on `pool` (those under way finish where they are,

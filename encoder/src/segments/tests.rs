@@ -205,12 +205,9 @@ fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     let narrow = segment_with(&g, &p, "x", &ctl, || None).unwrap().unwrap().0;
     ctl.set_pool(pool(3));
     let wide = segment_with(&g, &p, "x", &ctl, || None).unwrap().unwrap().0;
-    ctl.set_alone();
-    let alone = segment_with(&g, &p, "x", &ctl, || None).unwrap().unwrap().0;
     let plain = segment(&g, &p, "x", None).unwrap().0;
     assert_eq!(narrow, plain);
     assert_eq!(wide, plain);
-    assert_eq!(alone, plain);
 }
 
 /// A shared scene is let go of before the masks' record is waited for (the passes after it need
