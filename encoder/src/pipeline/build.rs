@@ -402,15 +402,25 @@ fn gpu_models(
         Some(clip) => clip.into_service(),
         None => gpu_clip(c, g, gpu_threads, gpu_batch)?.into_service(),
     };
-    let (service, sam) = std::thread::scope(|s| {
-        let service = s.spawn(service);
-        let sam = gpu_sam(c, g, gpu_threads);
-        let service = service
-            .join()
-            .unwrap_or_else(|_| Err(Error::internal("a CLIP model setup panicked")));
-        (service, sam)
-    });
+    let (service, sam) = side_by_side("a CLIP model setup", service, || gpu_sam(c, g, gpu_threads));
     Ok((service?, sam?))
+}
+
+/// `a` on a thread of its own while `b` runs on this one, and both results (a panic in `a`
+/// becomes an [`Error::Internal`] naming `what`).
+fn side_by_side<A: Send, B>(
+    what: &str,
+    a: impl FnOnce() -> Result<A> + Send,
+    b: impl FnOnce() -> Result<B>,
+) -> (Result<A>, Result<B>) {
+    std::thread::scope(|s| {
+        let a = s.spawn(a);
+        let b = b();
+        let a = a
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal(format!("{what} panicked"))));
+        (a, b)
+    })
 }
 
 /// One GPU's SAM and the copy that times its stages (with the encode's SAM timing setting).
@@ -430,19 +440,18 @@ fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuS
     let (enc, dec) = sam_paths(c)?;
     let placement = c.placement(g as u32, gpu_threads);
     let params = c.masks.sam.params();
-    let (sam, timing) = std::thread::scope(|s| {
-        let timing = s.spawn(|| sam_timing(c, &placement, &params));
-        let sam = crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-            enc,
-            dec,
-            &placement,
-            params.clone(),
-        );
-        let timing = timing
-            .join()
-            .unwrap_or_else(|_| Err(Error::internal("a SAM timing model setup panicked")));
-        (sam, timing)
-    });
+    let (timing, sam) = side_by_side(
+        "a SAM timing model setup",
+        || sam_timing(c, &placement, &params),
+        || {
+            crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                enc,
+                dec,
+                &placement,
+                params.clone(),
+            )
+        },
+    );
     Ok(Some((sam?, timing?)))
 }
 

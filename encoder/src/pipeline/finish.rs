@@ -147,13 +147,7 @@ pub(crate) fn finish(
     crate::report::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
-    record_models(
-        &mut report.models,
-        rasterizers,
-        fronts,
-        mask_name,
-        &model_id,
-    );
+    record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
 
     // Only the centres are written from here on: the rest of the geometry is let go first,
     // unless the segments still hold the scene.

@@ -135,15 +135,7 @@ pub(crate) fn run_pool(
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
         checked_rasterizers(made.into_rasterizers(&gaussians), bound_gpus)
     });
-    tracing::debug!(
-        target: "slag_encoder::pipeline",
-        seconds = t_total.elapsed().as_secs_f64(),
-        "workers done"
-    );
-    let retired = match shared.retired.lock() {
-        Ok(mut r) => std::mem::take(&mut *r),
-        Err(_) => Vec::new(),
-    };
+    let retired = shared.take_retired();
     shared.bring_back_late();
     let mut left = shared.finish(slots)?;
     let shape = (gaussians.len(), views.len());
@@ -463,6 +455,14 @@ impl Shared<'_> {
         })
     }
 
+    /// After the workers: the front workers' models they handed back ([`Pooled::retired`]).
+    fn take_retired(&self) -> Vec<FrontStages> {
+        match self.retired.lock() {
+            Ok(mut r) => std::mem::take(&mut *r),
+            Err(_) => Vec::new(),
+        }
+    }
+
     /// After the workers: when the run gave way to the host's reduction, the rasterizers that
     /// ended before it did bring their views back too; an error fails the run.
     fn bring_back_late(&self) {
@@ -638,6 +638,11 @@ fn run_workers(
                     .fail(Error::internal("an encode worker thread panicked")),
             }
         }
+        tracing::debug!(
+            target: "slag_encoder::pipeline",
+            seconds = shared.t_total.elapsed().as_secs_f64(),
+            "workers done"
+        );
         (shares, names)
     })
 }
