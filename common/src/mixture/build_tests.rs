@@ -499,3 +499,98 @@ fn build_timing() {
         rayon::current_num_threads()
     );
 }
+
+/// `parts` with its weights rounded to f32 (what the device reduction's pairs carry), and the
+/// same rows built by [`stream::MixtureBuilder`] in runs cut at `cuts` (Gaussian indices).
+fn streamed(parts: &mut SparseMixture, width: usize, cuts: &[usize]) -> Result<MixtureEmbeddings> {
+    parts.weights.iter_mut().for_each(|w| *w = *w as f32 as f64);
+    let pairs: Vec<(f32, u32)> = parts
+        .weights
+        .iter()
+        .zip(&parts.atoms)
+        .map(|(&w, &a)| (w as f32, a))
+        .collect();
+    let mut b = stream::MixtureBuilder::new(
+        parts.dim,
+        parts.model_id.clone(),
+        &parts.codebook,
+        width,
+        parts.gaussian_ids.len(),
+    )?;
+    let n = parts.gaussian_ids.len();
+    let mut bounds: Vec<usize> = cuts.iter().map(|&c| c.min(n)).collect();
+    bounds.extend([0, n]);
+    bounds.sort_unstable();
+    for w in bounds.windows(2) {
+        let (g0, g1) = (w[0], w[1]);
+        let (e0, e1) = (parts.offsets[g0], parts.offsets[g1]);
+        let starts: Vec<u32> = parts.offsets[g0..=g1]
+            .iter()
+            .map(|&o| (o - e0) as u32)
+            .collect();
+        b.push(stream::RowRun {
+            ids: &parts.gaussian_ids[g0..g1],
+            means: &parts.means[g0..g1],
+            starts: &starts,
+            pairs: &pairs[e0..e1],
+        })?;
+    }
+    Ok(b.finish())
+}
+
+#[test]
+fn the_build_run_by_run_equals_the_whole_build() {
+    let (mut ok, mut errors) = (0, std::collections::BTreeSet::new());
+    for case in 0..120u64 {
+        let keep = 1 + (case % 6) as usize;
+        let f = Flavour {
+            keep,
+            empty: case % 5 == 1,
+            repeat: case % 5 == 2,
+            cancel: case % 5 == 3,
+            signs: case % 2 == 0,
+        };
+        let (n, m, dim) = (
+            1 + (case * 37 % 300) as usize,
+            8 + (case * 13 % 40) as usize,
+            2 + (case * 7 % 32) as usize,
+        );
+        let mut parts = random_parts(n, m, dim, f, case);
+        let mut r = SplitMix64::new(case + 1000);
+        let cuts: Vec<usize> = (0..case % 5)
+            .map(|_| (r.next_u64() % (n as u64 + 1)) as usize)
+            .collect();
+        // Slots to spare in some cases: the finish narrows them to the longest row.
+        let width = keep + (case % 3) as usize;
+        let got = bits(&streamed(&mut parts, width, &cuts));
+        let want = bits(&MixtureEmbeddings::from_sparse(parts));
+        assert_eq!(got, want, "case {case}: n {n} m {m} dim {dim} keep {keep} cuts {cuts:?}");
+        match got {
+            Ok(_) => ok += 1,
+            Err(msg) => {
+                errors.insert(msg.split(':').next_back().unwrap_or_default().to_string());
+            }
+        }
+    }
+    assert!(ok > 40, "{ok} built");
+    assert!(errors.len() >= 3, "{errors:?}");
+}
+
+#[test]
+fn a_run_out_of_order_or_too_wide_is_refused() {
+    let mut parts = random_parts(20, 8, 4, PLAIN, 7);
+    // Two runs, the second starting below the first's last id.
+    let swapped = {
+        let mut p = parts.clone();
+        p.gaussian_ids.swap(9, 10);
+        p
+    };
+    let msg = |r: Result<MixtureEmbeddings>| match r {
+        Err(Error::Invalid(m)) => m,
+        other => panic!("expected an error, got {:?}", other.map(|m| m.len())),
+    };
+    let mut s = swapped;
+    assert!(msg(streamed(&mut s, 4, &[10])).contains("not strictly ascending"));
+    // Rows of up to 4 pairs into 2 slots.
+    assert!(msg(streamed(&mut parts, 2, &[])).contains("for 2 slots per Gaussian"));
+}
