@@ -372,41 +372,6 @@ fn fill_rows(
     }
 }
 
-/// Packs the rows of the Gaussians `ids` (`[n]`) into the `[n, S]` slot arrays `slots` (`S`:
-/// their length over `n`) in parallel (rayon): `row_of(i, row)` appends Gaussian `i`'s non-zero
-/// `(row of the f16 `book`, a)` pairs to `row` (empty on entry), and [`fill_rows`] orders, checks
-/// and scales them, a batch of [`BATCH`] Gaussians at a time. The one packing of
-/// [`MixtureEmbeddings::from_sparse`] and [`stream::MixtureBuilder`].
-///
-/// Errors (the message): the first failing Gaussian in id order ([`fill_rows`]'s checks).
-fn pack_rows(
-    book: &[f16],
-    dim: usize,
-    ids: &[u32],
-    slots: (&mut [u32], &mut [f32]),
-    row_of: impl Fn(usize, &mut Vec<(u32, f64)>) + Sync,
-) -> Option<String> {
-    let (atoms, weights) = slots;
-    let keep = atoms.len().checked_div(ids.len()).unwrap_or(1).max(1);
-    atoms
-        .par_chunks_mut(keep * BATCH)
-        .zip(weights.par_chunks_mut(keep * BATCH))
-        .enumerate()
-        .map_init(
-            || RowScratch::new(dim, keep),
-            |s, (b, (slot_atoms, slot_weights))| {
-                let first = b * BATCH;
-                let batch = first..first + slot_atoms.len() / keep;
-                for (row, i) in s.rows.iter_mut().zip(batch.clone()) {
-                    row.clear();
-                    row_of(i, row);
-                }
-                fill_rows(s, book, dim, &ids[batch], slot_atoms, slot_weights)
-            },
-        )
-        .find_map_first(std::result::Result::err)
-}
-
 /// Writes one Gaussian's slots from its ordered row and the norm of its weighted sum: each
 /// `a / norm` rounded to f16, then [`UNUSED`] and 0 past the row.
 ///
@@ -474,23 +439,32 @@ impl MixtureEmbeddings {
         } = parts;
         let (new_row, book) = used_codebook(&codebook, dim, m, &atoms, &weights);
         drop(codebook);
-        // Zeroed (lazily mapped) arrays whose every slot `pack_rows` writes.
+        // Zeroed (lazily mapped) arrays whose every slot `fill_rows` writes.
         let n = gaussian_ids.len();
         let mut packed_atoms = vec![0u32; n * keep];
         let mut packed_weights = vec![0f32; n * keep];
-        let failed = pack_rows(
-            &book,
-            dim,
-            &gaussian_ids,
-            (&mut packed_atoms, &mut packed_weights),
-            |i, row| {
-                row.extend(
-                    (offsets[i]..offsets[i + 1])
-                        .filter(|&e| weights[e] != 0.0)
-                        .map(|e| (new_row[atoms[e] as usize], weights[e])),
-                );
-            },
-        );
+        let failed = packed_atoms
+            .par_chunks_mut(keep * BATCH)
+            .zip(packed_weights.par_chunks_mut(keep * BATCH))
+            .enumerate()
+            .map_init(
+                || RowScratch::new(dim, keep),
+                |s, (b, (slot_atoms, slot_weights))| {
+                    let first = b * BATCH;
+                    let batch = first..first + slot_atoms.len() / keep;
+                    for (row, i) in s.rows.iter_mut().zip(batch.clone()) {
+                        row.clear();
+                        row.extend(
+                            (offsets[i]..offsets[i + 1])
+                                .filter(|&e| weights[e] != 0.0)
+                                .map(|e| (new_row[atoms[e] as usize], weights[e])),
+                        );
+                    }
+                    let ids = &gaussian_ids[batch];
+                    fill_rows(s, &book, dim, ids, slot_atoms, slot_weights)
+                },
+            )
+            .find_map_first(std::result::Result::err);
         drop((offsets, atoms, weights, new_row));
         if let Some(m) = failed {
             return Err(Error::Invalid(format!("mixture: {m}")));
@@ -962,8 +936,6 @@ impl MixtureEmbeddings {
         Ok(out)
     }
 }
-
-pub mod stream;
 
 #[cfg(test)]
 mod build_tests;

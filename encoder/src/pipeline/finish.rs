@@ -20,8 +20,7 @@ use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
 use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
-use slag_common::mixture::stream::{MixtureBuilder, RowRun};
-use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
+use slag_common::mixture::SparseMixture;
 
 /// The two files an encode writes into its output folder, each path whether written or not: the
 /// dense embeddings (a one-process encode writes them only when asked), then the report, last.
@@ -178,11 +177,11 @@ pub(crate) fn finish(
     // buffers never add to them.
     let t0 = Instant::now();
     drop(store);
-    let mixture = match (tail.mixture, tail.sparse) {
-        (Some(built), _) => Some(built),
-        (None, sparse) => sparse.map(MixtureEmbeddings::from_sparse).transpose()?,
-    };
-    let mixture_s = tail.gather_s + tail.pack_s + t0.elapsed().as_secs_f64();
+    let mixture = tail
+        .sparse
+        .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
+        .transpose()?;
+    let mixture_s = tail.gather_s + t0.elapsed().as_secs_f64();
     crate::report::log_rss("encode: mixture built");
     let (level_files, levels_s) = write_levels(&out, &level_stores)?;
     drop(level_stores);
@@ -411,8 +410,8 @@ fn hand_over(mut from: Box<dyn WeightRasterizer>, to: &mut dyn WeightRasterizer)
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]),
 /// each tile handed to a host thread ([`take_tiles`]) so that the next tile is reduced while
-/// one is taken in: with [`EncodeParams::mixture_keep`] its kept pairs packed into the stored
-/// mixture over the codebook of the kept views' mask embeddings ([`MixtureBuilder`]), with
+/// one is taken in: with [`EncodeParams::mixture_keep`] its kept pairs gathered into the
+/// mixture's sparse rows over the codebook of the kept views' mask embeddings, with
 /// [`EncodeParams::dense`] its unit rows written to the dense file at `embeddings` (with
 /// `means`, the Gaussians' centres; without it the device makes no row). The reduction's
 /// seconds run until the last tile was handed on.
@@ -432,60 +431,60 @@ fn reduce_on_device(
         keep: params.mixture_keep.unwrap_or(1),
         dense: params.dense,
     };
-    let codebook = rasterizer.kept_codebook().unwrap_or_default();
-    let mixture = params
-        .mixture_keep
-        .map(|keep| MixtureBuilder::new(dim, model_id.to_string(), codebook, keep, means.len()))
-        .transpose()?;
+    let sparse = params.mixture_keep.map(|_| SparseMixture {
+        dim,
+        model_id: model_id.to_string(),
+        offsets: vec![0],
+        ..Default::default()
+    });
     std::thread::scope(|s| {
         // The host's side of each tile on a thread of its own: the device reduces the next tile
         // meanwhile (one tile waits between them).
         let (tx, rx) = std::sync::mpsc::sync_channel::<KeptTile>(1);
-        let handle = s.spawn(move || take_tiles(rx, means, mixture, writer));
+        let handle = s.spawn(move || take_tiles(rx, means, sparse, writer));
         let reduced = rasterizer.reduce_kept(&p, &mut |tile| {
             tx.send(tile)
                 .map_err(|_| Error::internal("the reduction's host side stopped early"))
         });
         let reduce_s = t0.elapsed().as_secs_f64();
         drop(tx);
-        let (writer, mixture, pack_s) = handle
+        let (writer, mut sparse) = handle
             .join()
             .map_err(|_| Error::internal("the reduction's host thread panicked"))??;
         let out = reduced?;
-        let observed = match (&writer, &mixture) {
+        if let Some(s) = sparse.as_mut() {
+            s.codebook = out.codebook;
+        }
+        let observed = match (&writer, &sparse) {
             (Some(w), _) => w.len(),
-            (None, Some(m)) => m.len(),
+            (None, Some(s)) => s.gaussian_ids.len(),
             (None, None) => 0,
         };
         Ok(ReducedOutputs {
             on_device: true,
             writer,
-            sparse: None,
-            mixture,
+            sparse,
             chunks: out.tiles,
             observed,
             reduce_s,
             gather_s: 0.0,
-            pack_s,
             write_s: t0.elapsed().as_secs_f64() - reduce_s,
         })
     })
 }
 
 /// The host's side of the device reduction's tiles from `rx`, in order: each tile's centres
-/// looked up in `means`, its kept pairs packed by `mixture` (the stored mixture's rows), its unit
-/// rows (with `--dense`) pushed to `writer`. Returns the writer, the built mixture and the
-/// seconds spent packing and finishing it when the tiles end.
+/// looked up in `means`, its kept pairs appended to `sparse` (the mixture's rows), its unit rows
+/// (with `--dense`) pushed to `writer`. Returns both when the tiles end.
 ///
-/// Errors: a Gaussian id without a mean ([`Error::Internal`]); the mixture's (a row it cannot
-/// store: [`MixtureBuilder::push`]); the writer's (I/O, non-finite rows).
+/// Errors: a Gaussian id without a mean ([`Error::Internal`]); the writer's (I/O, non-finite
+/// rows).
 fn take_tiles(
     rx: std::sync::mpsc::Receiver<KeptTile>,
     means: &[[f32; 3]],
-    mut mixture: Option<MixtureBuilder>,
+    mut sparse: Option<SparseMixture>,
     mut writer: Option<EmbeddingsWriter>,
-) -> Result<(Option<EmbeddingsWriter>, Option<MixtureEmbeddings>, f64)> {
-    let mut pack_s = 0.0;
+) -> Result<(Option<EmbeddingsWriter>, Option<SparseMixture>)> {
     for tile in rx {
         let run_means = tile
             .ids
@@ -496,23 +495,29 @@ fn take_tiles(
                 })
             })
             .collect::<Result<Vec<_>>>()?;
-        if let Some(b) = mixture.as_mut() {
-            let t0 = Instant::now();
-            b.push(RowRun {
-                ids: &tile.ids,
-                means: &run_means,
-                starts: &tile.kept_starts,
-                pairs: &tile.kept,
-            })?;
-            pack_s += t0.elapsed().as_secs_f64();
+        if let Some(s) = sparse.as_mut() {
+            push_kept(s, &tile, &run_means);
         }
         if let Some(w) = writer.as_mut() {
             w.push(&tile.ids, &run_means, &tile.rows, &tile.total_weights)?;
         }
     }
-    let t0 = Instant::now();
-    let built = mixture.map(MixtureBuilder::finish);
-    Ok((writer, built, pack_s + t0.elapsed().as_secs_f64()))
+    Ok((writer, sparse))
+}
+
+/// Appends the tile's observed Gaussians (ascending, with their centres `means`) and each
+/// one's kept `(a_kj, codebook row)` pairs to the mixture's sparse rows.
+fn push_kept(s: &mut SparseMixture, tile: &KeptTile, means: &[[f32; 3]]) {
+    s.gaussian_ids.extend_from_slice(&tile.ids);
+    s.means.extend_from_slice(means);
+    s.offsets.reserve(tile.ids.len());
+    for i in 0..tile.ids.len() {
+        for &(a, atom) in tile.kept_of(i) {
+            s.atoms.push(atom);
+            s.weights.push(a as f64);
+        }
+        s.offsets.push(s.atoms.len());
+    }
 }
 
 /// What the tail's reduction leaves ([`reduce_outputs`]).
@@ -521,12 +526,8 @@ struct ReducedOutputs {
     on_device: bool,
     /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
     writer: Option<EmbeddingsWriter>,
-    /// The mixture's sparse parts, built by the caller; with [`EncodeParams::mixture_keep`] on
-    /// the host's reduction.
+    /// The mixture's sparse parts; with [`EncodeParams::mixture_keep`].
     sparse: Option<SparseMixture>,
-    /// The mixture already built; with [`EncodeParams::mixture_keep`] on the device's
-    /// reduction.
-    mixture: Option<MixtureEmbeddings>,
     /// Gaussian-id chunks of the pass.
     chunks: usize,
     /// Observed Gaussians (the rows of either form).
@@ -536,9 +537,6 @@ struct ReducedOutputs {
     /// Seconds of it spent only on gathering the mixture's kept atoms (0 when the mixture is
     /// the only form: then the whole pass is its reduction).
     gather_s: f64,
-    /// Seconds spent packing the built [`ReducedOutputs::mixture`] on the reduction's host
-    /// thread, beside the device (0 on the host's reduction).
-    pack_s: f64,
     /// Seconds of the dense write outside the reduction (0 without the dense file).
     write_s: f64,
 }
@@ -566,11 +564,9 @@ fn reduce_outputs(
             writer: None,
             observed: sparse.gaussian_ids.len(),
             sparse: Some(sparse),
-            mixture: None,
             chunks,
             reduce_s: t0.elapsed().as_secs_f64(),
             gather_s: 0.0,
-            pack_s: 0.0,
             write_s: 0.0,
         });
     };
@@ -592,11 +588,9 @@ fn reduce_outputs(
         observed: streamed.writer.len(),
         writer: Some(streamed.writer),
         sparse,
-        mixture: None,
         chunks: streamed.chunks,
         reduce_s: streamed.reduce_s,
         gather_s,
-        pack_s: 0.0,
         write_s: t0.elapsed().as_secs_f64() - streamed.reduce_s,
     })
 }

@@ -181,12 +181,6 @@ pub trait WeightRasterizer: Send {
     fn take_mask_record(&mut self) -> Result<Option<slag_common::mask_record::MaskRecord>> {
         Ok(None)
     }
-    /// The codebook of the views kept on the device so far: `[M × D]` f32 row-major, the masks'
-    /// embeddings `E_j` in the order [`KeptTile::kept`] names them; `None` when none are kept
-    /// (the default). [`Self::reduce_kept`] reduces over exactly these rows.
-    fn kept_codebook(&self) -> Option<&[f32]> {
-        None
-    }
     /// The device reduction of every kept view (`E_k`, its kept mixture pairs, the unobserved
     /// rule: the host reduction's, see [`gpu`]'s `ek` module), tile by tile of Gaussian ids
     /// ascending into `sink`; the kept sums are freed.

@@ -96,14 +96,6 @@ pub(super) struct Kept {
     staging: Option<wgpu::Buffer>,
 }
 
-impl Kept {
-    /// `[M × D]` every kept view's mask embeddings, in view order (what the reduction's
-    /// codebook rows name).
-    pub(super) fn codebook(&self) -> &[f32] {
-        &self.codebook
-    }
-}
-
 /// Appends one view's label table to `tables` and returns its base: `[n_labels, factors
 /// offset, n_labels + 1 mask offsets, the masks of every label, one f32 factor (bits) per
 /// mask]`, offsets relative to the base. Without factors every mask's is 1.

@@ -1032,10 +1032,6 @@ impl WeightRasterizer for GpuRasterizer {
         }))
     }
 
-    fn kept_codebook(&self) -> Option<&[f32]> {
-        self.kept.as_ref().map(ek::Kept::codebook)
-    }
-
     fn reduce_kept(
         &mut self,
         params: &DeviceReduce,
