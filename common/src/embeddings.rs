@@ -163,13 +163,11 @@ impl Embeddings {
             ),
         ];
         let meta = [
-            ("format", FORMAT.to_string()),
-            ("version", VERSION.to_string()),
             ("model", self.model.clone()),
             ("scene_gaussians", self.scene_gaussians.to_string()),
             ("source_ply", self.source_ply.clone()),
         ];
-        safetensors_io::write(path, tensors, &meta)
+        safetensors_io::write(path, &KIND, tensors, &meta)
     }
 
     /// Reads a file written by [`Embeddings::write`] (either precision). To read the rows of

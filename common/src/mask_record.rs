@@ -312,13 +312,11 @@ impl MaskRecord {
             ),
         ];
         let meta = [
-            ("format", FORMAT.to_string()),
-            ("version", VERSION.to_string()),
             ("scene_gaussians", n.to_string()),
             ("slots", self.slots.to_string()),
             ("views", self.view_count.to_string()),
         ];
-        safetensors_io::write(path, tensors, &meta)
+        safetensors_io::write(path, &KIND, tensors, &meta)
     }
 
     /// Reads a file written by [`MaskRecord::write`].

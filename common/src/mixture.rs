@@ -872,13 +872,11 @@ impl MixtureEmbeddings {
             ),
         ];
         let meta = [
-            ("format", FORMAT.to_string()),
-            ("version", VERSION.to_string()),
             ("dim", d.to_string()),
             ("model_id", self.model_id.clone()),
             ("keep", s.to_string()),
         ];
-        safetensors_io::write(path, tensors, &meta)
+        safetensors_io::write(path, &KIND, tensors, &meta)
     }
 
     /// Reads a file written by [`MixtureEmbeddings::write`].

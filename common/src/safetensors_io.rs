@@ -95,16 +95,18 @@ impl<'a> Checked<'a> {
 }
 
 /// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
-/// strings `meta` and writes the file atomically ([`write_atomic_parts`]): the header first,
-/// then each tensor's data straight from `tensors`, with no copy of the whole file in memory.
-/// The bytes are those of `safetensors::serialize` with `meta` added as its first header entry,
-/// keys sorted, so that the same tensors and metadata always give the same bytes
+/// strings `meta` plus `kind`'s `format` and `version` (the pair [`open`] checks), and writes the
+/// file atomically ([`write_atomic_parts`]): the header first, then each tensor's data straight
+/// from `tensors`, with no copy of the whole file in memory. The bytes are those of
+/// `safetensors::serialize` with that metadata added as its first header entry, keys sorted, so
+/// that the same tensors and metadata always give the same bytes
 /// (`safetensors::serialize` takes a `HashMap`, whose order changes from run to run).
 ///
 /// Errors: [`Error::Internal`] when a tensor's data length disagrees with its dtype and shape;
 /// I/O.
 pub(crate) fn write(
     path: &Path,
+    kind: &FileKind,
     tensors: Vec<(&str, Dtype, Vec<usize>, &[u8])>,
     meta: &[(&str, String)],
 ) -> Result<()> {
@@ -116,7 +118,12 @@ pub(crate) fn write(
     // The crate's layout: by dtype, largest alignment first, then by name.
     let mut order: Vec<&(&str, Dtype, Vec<usize>, &[u8])> = tensors.iter().collect();
     order.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(b.0)));
-    let header = header(&order, meta)?;
+    let kind_meta = [
+        ("format", kind.format.to_string()),
+        ("version", kind.version.to_string()),
+    ];
+    let all_meta: Vec<(&str, String)> = kind_meta.into_iter().chain(meta.iter().cloned()).collect();
+    let header = header(&order, &all_meta)?;
     let parts: Vec<&[u8]> = std::iter::once(header.as_slice())
         .chain(order.iter().map(|t| t.3))
         .collect();
@@ -243,20 +250,35 @@ mod tests {
             ("mid", Dtype::U32, vec![4], &c[..]),
             ("empty", Dtype::F16, vec![0, 5], &[][..]),
         ];
-        let meta = [("version", "1".to_string()), ("format", "test".to_string())];
+        let kind = FileKind {
+            format: "test",
+            version: "1",
+            noun: "test",
+            file_name: "t.safetensors",
+            rewrite_with: "the test",
+        };
+        let meta = [("extra", "x".to_string())];
+        let all_meta = [
+            ("version", "1".to_string()),
+            ("format", "test".to_string()),
+            ("extra", "x".to_string()),
+        ];
         let views: Vec<(&str, TensorView)> = tensors
             .iter()
             .map(|(n, d, s, x)| (*n, TensorView::new(*d, s.clone(), x).unwrap()))
             .collect();
         let whole = safetensors::serialize(views, None::<HashMap<String, String>>).unwrap();
         let path = dir.path().join("t.safetensors");
-        write(&path, tensors.clone(), &meta).unwrap();
+        write(&path, &kind, tensors.clone(), &meta).unwrap();
         assert_eq!(
             std::fs::read(&path).unwrap(),
-            with_metadata(&whole, &meta).unwrap()
+            with_metadata(&whole, &all_meta).unwrap()
         );
         let mut bad = tensors;
         bad[0].2 = vec![4];
-        assert!(matches!(write(&path, bad, &meta), Err(Error::Internal(_))));
+        assert!(matches!(
+            write(&path, &kind, bad, &meta),
+            Err(Error::Internal(_))
+        ));
     }
 }

@@ -105,14 +105,12 @@ impl Segments {
             bytemuck::cast_slice::<u32, u8>(&self.segments),
         )];
         let meta = [
-            ("format", FORMAT.to_string()),
-            ("version", VERSION.to_string()),
             ("scene_gaussians", self.segments.len().to_string()),
             ("segment_count", self.segment_count.to_string()),
             ("source_ply", self.source_ply.clone()),
             ("parameters", self.parameters.clone()),
         ];
-        safetensors_io::write(path, tensors, &meta)
+        safetensors_io::write(path, &KIND, tensors, &meta)
     }
 
     /// Reads a file written by [`Segments::write`].
