@@ -95,22 +95,12 @@ impl Encoder {
                 task.widen(threads);
             }
         };
-        // A segmentation still at work when the tail builds the mixture has all the threads (it
-        // was widened): the build takes a quarter of them, so that the later of the two, which
-        // the process waits for, is not slowed by the earlier.
-        let tail_threads = || {
-            segments
-                .as_ref()
-                .filter(|t| t.is_running())
-                .map(|_| super::segment_task::segment_threads(threads))
-        };
         let pool = super::EncodePool {
             scene: &scene,
             shared,
             fronts: stages,
             params: &params,
             on_device_keep: Some(&widen_segments),
-            tail_threads: Some(&tail_threads),
         };
         let report = super::encode_pool_sharing(
             pool,

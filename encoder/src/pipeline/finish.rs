@@ -20,7 +20,7 @@ use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
 use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
-use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
+use slag_common::mixture::SparseMixture;
 
 /// The two files an encode writes into its output folder, each path whether written or not: the
 /// dense embeddings (a one-process encode writes them only when asked), then the report, last.
@@ -124,7 +124,6 @@ pub(crate) fn finish(
     params: &EncodeParams,
     mut report: Report,
     t_total: Instant,
-    tail_threads: Option<&dyn Fn() -> Option<usize>>,
 ) -> Result<Report> {
     let Pooled {
         gaussians,
@@ -180,7 +179,7 @@ pub(crate) fn finish(
     drop(store);
     let mixture = tail
         .sparse
-        .map(|s| build_mixture(s, tail_threads.and_then(|f| f())))
+        .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
         .transpose()?;
     let mixture_s = tail.gather_s + t0.elapsed().as_secs_f64();
     crate::report::log_rss("encode: mixture built");
@@ -198,25 +197,6 @@ pub(crate) fn finish(
     report.counts = counts;
     let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
     files.write_report(report, params.precision, None, Some(forms))
-}
-
-/// The stored mixture of `sparse` ([`MixtureEmbeddings::from_sparse`]), on `threads` threads of
-/// a pool of its own when given (the segments still running beside it keep the other cores:
-/// the process waits for the later of the two), else on the encode's pool. The result does not
-/// depend on the thread count.
-///
-/// Errors: `from_sparse`'s; the pool not starting ([`Error::Internal`]).
-fn build_mixture(sparse: SparseMixture, threads: Option<usize>) -> Result<MixtureEmbeddings> {
-    let Some(threads) = threads else {
-        return MixtureEmbeddings::from_sparse(sparse);
-    };
-    tracing::debug!(target: "slag_encoder::pipeline", threads, "mixture built beside the segments");
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("slag-mixture-{i}"))
-        .build()
-        .map_err(|e| Error::internal(format!("cannot start the mixture's threads: {e}")))?
-        .install(|| MixtureEmbeddings::from_sparse(sparse))
 }
 
 /// Finishes the dense file of `writer` (every row pushed) and writes the mixture to

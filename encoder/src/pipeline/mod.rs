@@ -881,7 +881,6 @@ pub fn encode_pool_with(
         fronts,
         params,
         on_device_keep: None,
-        tail_threads: None,
     };
     encode_pool_sharing(pool, make_rasterizers, report, on_tail)
 }
@@ -896,9 +895,6 @@ pub(crate) struct EncodePool<'a> {
     /// Called (once) when the first rasterizer starts keeping its views' sums on its device:
     /// the host's per-view work is light from then on.
     pub(crate) on_device_keep: Option<&'a (dyn Fn() + Sync)>,
-    /// Asked as the tail's host-heavy step (the mixture's build) begins: the threads it may
-    /// take then, `None` for all of the encode's ([`finish::finish`]).
-    pub(crate) tail_threads: Option<&'a dyn Fn() -> Option<usize>>,
 }
 
 /// [`encode_pool_with`] with the Gaussians of a load shared with the segments
@@ -917,7 +913,6 @@ pub(crate) fn encode_pool_sharing(
         fronts,
         params,
         on_device_keep,
-        tail_threads,
     } = pool;
     let t_total = Instant::now();
     let hooks = pool::PoolHooks {
@@ -935,7 +930,7 @@ pub(crate) fn encode_pool_sharing(
         drop(retired);
         t0.elapsed().as_secs_f64()
     });
-    let finished = finish::finish(scene, pooled, params, report, t_total, tail_threads);
+    let finished = finish::finish(scene, pooled, params, report, t_total);
     if let Ok(seconds) = teardown.join() {
         tracing::debug!(target: "slag_encoder::pipeline", seconds, "front models let go");
     }

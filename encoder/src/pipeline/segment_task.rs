@@ -129,11 +129,6 @@ impl SegmentTask {
         })
     }
 
-    /// Whether the segmentation is still at work (not finished, not yet collected).
-    pub fn is_running(&self) -> bool {
-        self.handle.as_ref().is_some_and(|h| !h.is_finished())
-    }
-
     /// Gives the segmentation's stages from now on (and its neighbour search's rounds left) a
     /// pool of `threads` threads, while the encode still runs but leaves the host's cores idle
     /// (its views' sums and the masks' record stay on the GPU). Once only; a pool that cannot be
