@@ -20,7 +20,7 @@ use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use safetensors::tensor::Dtype;
 
-use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, triples};
+use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, tensor, triples};
 use crate::{Error, Result};
 
 /// Format identifier stored in the metadata.
@@ -134,33 +134,19 @@ impl Embeddings {
             ));
         }
         let halves: Vec<f16>;
-        let (emb_dtype, emb): (Dtype, &[u8]) = match precision {
-            StoredPrecision::F32 => (Dtype::F32, bytemuck::cast_slice(&self.vectors)),
+        let shape = vec![n, self.dim];
+        let emb = match precision {
+            StoredPrecision::F32 => tensor("embeddings", shape, &self.vectors),
             StoredPrecision::F16 => {
                 halves = self.vectors.iter().map(|&v| f16::from_f32(v)).collect();
-                (Dtype::F16, bytemuck::cast_slice(&halves))
+                tensor("embeddings", shape, &halves)
             }
         };
         let tensors = vec![
-            (
-                "gaussian_ids",
-                Dtype::U32,
-                vec![n],
-                bytemuck::cast_slice(&self.ids),
-            ),
-            (
-                "means",
-                Dtype::F32,
-                vec![n, 3],
-                bytemuck::cast_slice(&self.means),
-            ),
-            ("embeddings", emb_dtype, vec![n, self.dim], emb),
-            (
-                "total_weights",
-                Dtype::F32,
-                vec![n],
-                bytemuck::cast_slice(&self.total_weights),
-            ),
+            tensor("gaussian_ids", vec![n], &self.ids),
+            tensor("means", vec![n, 3], &self.means),
+            emb,
+            tensor("total_weights", vec![n], &self.total_weights),
         ];
         let meta = [
             ("model", self.model.clone()),

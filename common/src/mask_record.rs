@@ -28,7 +28,7 @@ use std::path::Path;
 
 use safetensors::tensor::Dtype;
 
-use crate::safetensors_io::{self, FileKind, le_f32};
+use crate::safetensors_io::{self, FileKind, le_f32, tensor};
 use crate::{Error, Result};
 
 /// Format identifier stored in the metadata.
@@ -292,24 +292,9 @@ impl MaskRecord {
         }
         let shape = vec![n, self.slots];
         let tensors = vec![
-            (
-                "views",
-                Dtype::U16,
-                shape.clone(),
-                bytemuck::cast_slice(&self.views),
-            ),
-            (
-                "masks",
-                Dtype::U16,
-                shape.clone(),
-                bytemuck::cast_slice(&self.masks),
-            ),
-            (
-                "weights",
-                Dtype::F32,
-                shape,
-                bytemuck::cast_slice(&self.weights),
-            ),
+            tensor("views", shape.clone(), &self.views),
+            tensor("masks", shape.clone(), &self.masks),
+            tensor("weights", shape, &self.weights),
         ];
         let meta = [
             ("scene_gaussians", n.to_string()),

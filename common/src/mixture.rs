@@ -37,7 +37,7 @@ use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 use safetensors::tensor::Dtype;
 
-use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, triples};
+use crate::safetensors_io::{self, FileKind, le_f16, le_f32, le_u32, tensor, triples};
 use crate::similarity::dot;
 use crate::{Error, Result};
 
@@ -840,36 +840,11 @@ impl MixtureEmbeddings {
         let book: Vec<f16> = self.codebook.iter().map(|&v| f16::from_f32(v)).collect();
         let weights: Vec<f16> = self.weights.iter().map(|&v| f16::from_f32(v)).collect();
         let tensors = vec![
-            (
-                "codebook",
-                Dtype::F16,
-                vec![m, d],
-                bytemuck::cast_slice(&book),
-            ),
-            (
-                "atoms",
-                Dtype::U32,
-                vec![n, s],
-                bytemuck::cast_slice(&self.atoms),
-            ),
-            (
-                "weights",
-                Dtype::F16,
-                vec![n, s],
-                bytemuck::cast_slice(&weights),
-            ),
-            (
-                "gaussian_ids",
-                Dtype::U32,
-                vec![n],
-                bytemuck::cast_slice(&self.gaussian_ids),
-            ),
-            (
-                "means",
-                Dtype::F32,
-                vec![n, 3],
-                bytemuck::cast_slice(&self.means),
-            ),
+            tensor("codebook", vec![m, d], &book),
+            tensor("atoms", vec![n, s], &self.atoms),
+            tensor("weights", vec![n, s], &weights),
+            tensor("gaussian_ids", vec![n], &self.gaussian_ids),
+            tensor("means", vec![n, 3], &self.means),
         ];
         let meta = [
             ("dim", d.to_string()),

@@ -94,6 +94,41 @@ impl<'a> Checked<'a> {
     }
 }
 
+/// One tensor of [`write`]: `(name, dtype, shape, little-endian data)`.
+pub(crate) type Tensor<'a> = (&'a str, Dtype, Vec<usize>, &'a [u8]);
+
+/// An element type slag stores in safetensors, with its dtype.
+pub(crate) trait Element: bytemuck::Pod {
+    /// The safetensors dtype of a tensor of this element.
+    const DTYPE: Dtype;
+}
+
+impl Element for u16 {
+    const DTYPE: Dtype = Dtype::U16;
+}
+impl Element for u32 {
+    const DTYPE: Dtype = Dtype::U32;
+}
+impl Element for f32 {
+    const DTYPE: Dtype = Dtype::F32;
+}
+impl Element for f16 {
+    const DTYPE: Dtype = Dtype::F16;
+}
+impl Element for [f32; 3] {
+    const DTYPE: Dtype = Dtype::F32;
+}
+
+/// `data` as a tensor of [`write`] of shape `shape`, its dtype that of `T` (so the two cannot
+/// disagree), its bytes in the host's order (little-endian on every target slag builds for).
+pub(crate) fn tensor<'a, T: Element>(
+    name: &'a str,
+    shape: Vec<usize>,
+    data: &'a [T],
+) -> Tensor<'a> {
+    (name, T::DTYPE, shape, bytemuck::cast_slice(data))
+}
+
 /// Serialises `tensors` (`(name, dtype, shape, little-endian data)`) with the `__metadata__`
 /// strings `meta` plus `kind`'s `format` and `version` (the pair [`open`] checks), and writes the
 /// file atomically ([`write_atomic_parts`]): the header first, then each tensor's data straight
@@ -107,7 +142,7 @@ impl<'a> Checked<'a> {
 pub(crate) fn write(
     path: &Path,
     kind: &FileKind,
-    tensors: Vec<(&str, Dtype, Vec<usize>, &[u8])>,
+    tensors: Vec<Tensor<'_>>,
     meta: &[(&str, String)],
 ) -> Result<()> {
     for (_, dtype, shape, data) in &tensors {

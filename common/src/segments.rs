@@ -17,7 +17,7 @@ use std::path::Path;
 
 use safetensors::tensor::Dtype;
 
-use crate::safetensors_io::{self, FileKind, le_u32};
+use crate::safetensors_io::{self, FileKind, le_u32, tensor};
 use crate::{Error, Result};
 
 /// Format identifier stored in the metadata.
@@ -98,11 +98,10 @@ impl Segments {
     pub fn write(&self, path: &Path) -> Result<()> {
         self.validate()
             .map_err(|e| Error::internal(format!("segments writer: {e}")))?;
-        let tensors = vec![(
+        let tensors = vec![tensor(
             "segments",
-            Dtype::U32,
             vec![self.segments.len()],
-            bytemuck::cast_slice::<u32, u8>(&self.segments),
+            &self.segments,
         )];
         let meta = [
             ("scene_gaussians", self.segments.len().to_string()),
