@@ -11,6 +11,12 @@ use slag_common::onnx::ExecutionProvider;
 /// in the pipeline, so the sum of stages can exceed `total`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct StageTimings {
+    /// Setting up the front workers' models before the encode starts (ONNX Runtime sessions,
+    /// weights to the devices, CLIP's warm-up run; each GPU's side by side), wall clock. Not
+    /// within [`StageTimings::total`]: the process's wall is about this plus `total`. 0 in
+    /// reports written before it was recorded.
+    #[serde(default)]
+    pub models: f64,
     /// Reading the `.ply` and the cameras.
     pub load_scene: f64,
     /// Decoding image files.
@@ -473,6 +479,7 @@ pub fn timing_table(r: &Report) -> String {
     let t = &r.timings;
     let n = r.counts.views_used.max(1) as f64;
     let rows = [
+        ("models set up (before the total)", t.models, false),
         ("load scene", t.load_scene, false),
         ("decode", t.decode, true),
         ("masks", t.masks, true),

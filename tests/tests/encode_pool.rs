@@ -57,6 +57,14 @@ fn pool_of_fronts_and_rasterizers_equals_one_worker() {
     let r1 = encode(one_front).unwrap();
     assert_eq!(r1.counts.views_used, 7);
     assert!(r1.counts.observed > 10_000, "{}", r1.counts.observed);
+    // The models' set-up is timed before the encode and kept in the report written to disk.
+    assert!(r1.timings.models > 0.0, "{:?}", r1.timings);
+    let written: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(one.join("report.json")).unwrap()).unwrap();
+    assert_eq!(
+        written["timings"]["models"].as_f64(),
+        Some(r1.timings.models)
+    );
 
     // Three fronts and two rasterizers (two wgpu devices on the same adapter), built by hand.
     let many = dir.path().join("many");

@@ -398,12 +398,30 @@ fn gpu_models(
     gpu_batch: usize,
     clip: Option<crate::clip::ClipVisual>,
 ) -> Result<(crate::clip::ClipService, Option<GpuSam>)> {
-    let service = move || match clip {
-        Some(clip) => clip.into_service(),
-        None => gpu_clip(c, g, gpu_threads, gpu_batch)?.into_service(),
+    let service = move || {
+        timed("CLIP", g, || match clip {
+            Some(clip) => clip.into_service(),
+            None => gpu_clip(c, g, gpu_threads, gpu_batch)?.into_service(),
+        })
     };
     let (service, sam) = side_by_side("a CLIP model setup", service, || gpu_sam(c, g, gpu_threads));
     Ok((service?, sam?))
+}
+
+/// `set_up()`, with a debug line naming `model`, GPU `g` and the seconds it took (where the
+/// encode's start goes: the report's `timings.models` is the longest of them).
+fn timed<T>(model: &str, g: usize, set_up: impl FnOnce() -> Result<T>) -> Result<T> {
+    let t0 = std::time::Instant::now();
+    let out = set_up();
+    tracing::debug!(
+        target: "slag_encoder::pipeline",
+        model,
+        gpu = g,
+        seconds = t0.elapsed().as_secs_f64(),
+        ok = out.is_ok(),
+        "model set up"
+    );
+    out
 }
 
 /// `a` on a thread of its own while `b` runs on this one, and both results (a panic in `a`
@@ -442,14 +460,16 @@ fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuS
     let params = c.masks.sam.params();
     let (timing, sam) = side_by_side(
         "a SAM timing model setup",
-        || sam_timing(c, &placement, &params),
+        || timed("SAM timing copy", g, || sam_timing(c, &placement, &params)),
         || {
-            crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
-                enc,
-                dec,
-                &placement,
-                params.clone(),
-            )
+            timed("SAM", g, || {
+                crate::masks::sam::SamAutomaticMaskGenerator::with_placement(
+                    enc,
+                    dec,
+                    &placement,
+                    params.clone(),
+                )
+            })
         },
     );
     Ok(Some((sam?, timing?)))

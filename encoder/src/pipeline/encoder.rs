@@ -80,9 +80,11 @@ impl Encoder {
         let (shared, segments) = start_segments(c, &scene, threads, record_rx)?;
         let mut record = None;
         let gpus = build::gpu_count(c);
+        let t_models = std::time::Instant::now();
         let fronts = build::build_fronts(c, gpus, threads)?;
         let params = build::encode_params(c);
         let mut header = build::report_header(c, threads);
+        header.timings.models = t_models.elapsed().as_secs_f64();
         header.models.execution_provider = Some(fronts.provider);
         header.models.execution_providers = Some(fronts.providers.clone());
         let Fronts {

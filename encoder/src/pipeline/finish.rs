@@ -193,6 +193,8 @@ pub(crate) fn finish(
     t.total = t_total.elapsed().as_secs_f64();
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     counts.queue = Some(queue);
+    // The header carries what was timed before the pool started: the models' set-up.
+    t.models = report.timings.models;
     report.timings = t;
     report.counts = counts;
     let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
