@@ -13,8 +13,8 @@ use slag_common::onnx::ExecutionProvider;
 pub struct StageTimings {
     /// Setting up the front workers' models before the encode starts (ONNX Runtime sessions,
     /// weights to the devices, CLIP's warm-up run; each GPU's side by side), wall clock. Not
-    /// within [`StageTimings::total`]: the process's wall is about this plus `total`. 0 in
-    /// reports written before it was recorded.
+    /// within [`StageTimings::total`]: the process's wall is about this plus `total`. 0 where
+    /// it is not timed: `encode-cluster`'s reports, and reports written before it was recorded.
     #[serde(default)]
     pub models: f64,
     /// Reading the `.ply` and the cameras.
