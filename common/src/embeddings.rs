@@ -357,12 +357,36 @@ impl EmbeddingsWriter {
     ///
     /// Errors: I/O (the partial file is removed).
     pub fn finish(mut self, model: &str, scene_gaussians: u64, source_ply: &str) -> Result<()> {
-        use std::io::{Seek, SeekFrom};
-        let n = self.ids.len();
-        let mut w = self
+        let w = self
             .file
             .take()
             .ok_or_else(|| Error::internal("embeddings writer already finished"))?;
+        let (mut hbytes, data_len) = self.header_json(model, scene_gaussians, source_ply)?;
+        let mut f = self.append_tail(w, data_len)?;
+        let reserve = (HEADER_RESERVE - 8) as usize;
+        let res = if hbytes.len() <= reserve {
+            hbytes.resize(reserve, b' ');
+            write_reserved_header(&mut f, &hbytes).map(|()| self.partial.clone())
+        } else {
+            drop(f);
+            move_behind_header(&self.partial, hbytes)
+        };
+        match res {
+            Ok(done) => std::fs::rename(&done, &self.path).map_err(|e| Error::io(&self.path, e)),
+            Err(e) => Err(Error::io(&self.partial, e)),
+        }
+    }
+
+    /// The safetensors JSON header for the rows written so far (tensor dtypes, shapes and
+    /// offsets in file order: embeddings, ids, means, weights; plus the metadata), and the
+    /// length in bytes of the data section it describes.
+    fn header_json(
+        &self,
+        model: &str,
+        scene_gaussians: u64,
+        source_ply: &str,
+    ) -> Result<(Vec<u8>, usize)> {
+        let n = self.ids.len();
         let (dtype, elem) = match self.precision {
             StoredPrecision::F32 => ("F32", 4usize),
             StoredPrecision::F16 => ("F16", 2usize),
@@ -389,63 +413,73 @@ impl EmbeddingsWriter {
             );
             off += len;
         }
-        let mut hbytes = serde_json::to_vec(&serde_json::Value::Object(header))
+        let hbytes = serde_json::to_vec(&serde_json::Value::Object(header))
             .map_err(|e| Error::internal(format!("embeddings header: {e}")))?;
-        let partial = self.partial.clone();
-        let io = |e| Error::io(&partial, e);
+        Ok((hbytes, off))
+    }
+
+    /// Writes ids, means and total weights behind the vectors, flushes, and checks that the
+    /// data section is exactly `data_len` bytes long. Returns the open partial file.
+    fn append_tail(
+        &self,
+        mut w: std::io::BufWriter<std::fs::File>,
+        data_len: usize,
+    ) -> Result<std::fs::File> {
+        use std::io::Seek;
+        let partial = &self.partial;
+        let io = |e| Error::io(partial, e);
         w.write_all(bytemuck::cast_slice(&self.ids)).map_err(io)?;
         w.write_all(bytemuck::cast_slice(&self.means)).map_err(io)?;
         w.write_all(bytemuck::cast_slice(&self.total_weights))
             .map_err(io)?;
         let mut f = w.into_inner().map_err(|e| io(e.into_error()))?;
         let end = f.stream_position().map_err(io)?;
-        if end != HEADER_RESERVE + off as u64 {
+        if end != HEADER_RESERVE + data_len as u64 {
             return Err(Error::internal(format!(
-                "{}: {} data bytes written, {off} expected",
+                "{}: {} data bytes written, {data_len} expected",
                 partial.display(),
                 end - HEADER_RESERVE
             )));
         }
-        let reserve = (HEADER_RESERVE - 8) as usize;
-        let res = if hbytes.len() <= reserve {
-            hbytes.resize(reserve, b' ');
-            (|| -> std::io::Result<()> {
-                f.seek(SeekFrom::Start(0))?;
-                f.write_all(&(reserve as u64).to_le_bytes())?;
-                f.write_all(&hbytes)?;
-                f.sync_all()
-            })()
-            .map(|()| partial.clone())
-        } else {
-            // The header does not fit: copy the data behind a header of its own size.
-            while hbytes.len() % 8 != 0 {
-                hbytes.push(b' ');
-            }
-            drop(f);
-            let mut again = partial.as_os_str().to_owned();
-            again.push("2");
-            let again = std::path::PathBuf::from(again);
-            let r = (|| -> std::io::Result<()> {
-                let mut src = std::fs::File::open(&partial)?;
-                src.seek(SeekFrom::Start(HEADER_RESERVE))?;
-                let mut out =
-                    std::io::BufWriter::with_capacity(1 << 22, std::fs::File::create(&again)?);
-                out.write_all(&(hbytes.len() as u64).to_le_bytes())?;
-                out.write_all(&hbytes)?;
-                std::io::copy(&mut src, &mut out)?;
-                out.into_inner().map_err(|e| e.into_error())?.sync_all()
-            })();
-            let _ = std::fs::remove_file(&partial);
-            if r.is_err() {
-                let _ = std::fs::remove_file(&again);
-            }
-            r.map(|()| again)
-        };
-        match res {
-            Ok(done) => std::fs::rename(&done, &self.path).map_err(|e| Error::io(&self.path, e)),
-            Err(e) => Err(Error::io(&partial, e)),
-        }
+        Ok(f)
     }
+}
+
+/// Writes the 8-byte length and the header `hbytes` (already padded to fill the reserved
+/// region: `HEADER_RESERVE - 8` bytes) at the start of `f`, then fsyncs it.
+fn write_reserved_header(f: &mut std::fs::File, hbytes: &[u8]) -> std::io::Result<()> {
+    use std::io::{Seek, SeekFrom};
+    f.seek(SeekFrom::Start(0))?;
+    f.write_all(&(hbytes.len() as u64).to_le_bytes())?;
+    f.write_all(hbytes)?;
+    f.sync_all()
+}
+
+/// For a header too large for the reserved region: writes `<partial>2` with the header
+/// (padded to a multiple of 8 bytes) followed by the data section of `partial`, fsyncs it and
+/// removes `partial`. Returns the new file's path; on failure both files are removed.
+fn move_behind_header(partial: &Path, mut hbytes: Vec<u8>) -> std::io::Result<std::path::PathBuf> {
+    use std::io::{Seek, SeekFrom};
+    while !hbytes.len().is_multiple_of(8) {
+        hbytes.push(b' ');
+    }
+    let mut again = partial.as_os_str().to_owned();
+    again.push("2");
+    let again = std::path::PathBuf::from(again);
+    let r = (|| -> std::io::Result<()> {
+        let mut src = std::fs::File::open(partial)?;
+        src.seek(SeekFrom::Start(HEADER_RESERVE))?;
+        let mut out = std::io::BufWriter::with_capacity(1 << 22, std::fs::File::create(&again)?);
+        out.write_all(&(hbytes.len() as u64).to_le_bytes())?;
+        out.write_all(&hbytes)?;
+        std::io::copy(&mut src, &mut out)?;
+        out.into_inner().map_err(|e| e.into_error())?.sync_all()
+    })();
+    let _ = std::fs::remove_file(partial);
+    if r.is_err() {
+        let _ = std::fs::remove_file(&again);
+    }
+    r.map(|()| again)
 }
 
 impl Drop for EmbeddingsWriter {
