@@ -66,6 +66,53 @@ impl Forest {
             }
         }
     }
+    /// [`Forest::criterion_pass_in`] over `edges`, and for each of `stops` (`(position, node)`,
+    /// positions ascending, at most `edges.len()`) the merge threshold `Int + τ/|C|` of `node`'s
+    /// component once the edges before `position` are passed: the components a border edge
+    /// meets at its own place in the edge order, as far as the tile's edges tell (module doc,
+    /// "Bounded memory and parallel passes: tiles"). One threshold per stop, in order.
+    pub(super) fn criterion_pass_with_stops(
+        &mut self,
+        edges: &[Edge],
+        tau: f32,
+        stops: &[(usize, u32)],
+        mut regions: Option<&mut Regions>,
+    ) -> Vec<f32> {
+        let mut at = 0;
+        let mut thresholds = Vec::with_capacity(stops.len());
+        for &(position, node) in stops {
+            let position = position.clamp(at, edges.len());
+            self.criterion_pass_in(&edges[at..position], tau, regions.as_deref_mut());
+            at = position;
+            thresholds.push(self.merge_threshold(node, tau));
+        }
+        self.criterion_pass_in(&edges[at..], tau, regions);
+        thresholds
+    }
+    /// The merge threshold `Int + τ/|C|` of `x`'s component now: an edge to another component
+    /// joins them when its weight is within both sides' thresholds.
+    pub(super) fn merge_threshold(&mut self, x: u32, tau: f32) -> f32 {
+        let root = self.find(x);
+        let c = self.component(root);
+        c.int + tau / c.size as f32
+    }
+    /// The border pass: joins across each of `edges` (in their order) whose weight is within
+    /// `thresholds[k]`, the smaller of its two ends' merge thresholds where it stands in the edge
+    /// order ([`Forest::criterion_pass_with_stops`]), unless both ends are already one component
+    /// or `regions` refuses.
+    pub(super) fn border_pass_in(
+        &mut self,
+        edges: &[Edge],
+        thresholds: &[f32],
+        mut regions: Option<&mut Regions>,
+    ) {
+        for (e, &t) in edges.iter().zip(thresholds) {
+            let (a, b) = (self.find(e.i), self.find(e.j));
+            if a != b && e.weight() <= t && regions.as_deref().is_none_or(|r| r.allows(a, b)) {
+                self.join_regions(a, b, e.weight(), regions.as_deref_mut());
+            }
+        }
+    }
     /// [`Forest::join`], and the profiles of `regions` merged into the new root.
     fn join_regions(&mut self, a: u32, b: u32, w: f32, regions: Option<&mut Regions>) {
         self.join(a, b, w);

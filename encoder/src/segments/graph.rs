@@ -161,19 +161,20 @@ pub(super) struct EdgeSource<'a> {
     pub(super) ids: &'a TileMembers,
 }
 
-/// The graph's edges owned by tile `t`'s Gaussians: the inner ones (both ends in the tile) in
-/// the tile's local ids (`ids.members` order, which keeps the ids' order), and the border ones
-/// (one end outside), in scene ids; both unordered.
+/// The graph's edges inside tile `t` (both ends in the tile), in the tile's local ids
+/// (`ids.members` order, which keeps the ids' order), unordered. The edges that cross the
+/// tile's border are [`border_edges`]'.
 ///
 /// An edge `(i, j)` of Gaussian `i` has the weight `w(i, j)` (the weights are not exactly
 /// symmetric in rounding); when `j` lists `i` too, `w(j, i)` is an edge as well unless both
-/// weights are the same (one edge then): the edges of each Gaussian's list, deduplicated.
+/// weights are the same (one edge then): the edges of each Gaussian's list, deduplicated
+/// ([`slot_weights`]).
 ///
 /// The tile's Gaussians are visited in space order, with their masks' record gathered in that
 /// order first ([`MaskRecord::gather`]): the reads an edge makes at its far end land near
 /// those of its near end. The edges are those of the scene's id order, weight for weight.
-pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> (Vec<Edge>, Vec<Edge>) {
-    let (ranks, k) = (&src.ranks.members[t as usize], src.nb.k);
+pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
+    let ranks = &src.ranks.members[t as usize];
     // The tile's Gaussians in space order: their ids, their local ids (in id order) and
     // their rows of the record.
     let ids: Vec<u32> = ranks.par_iter().map(|&r| src.nb.perm[r as usize]).collect();
@@ -182,81 +183,108 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> (Vec<Edge>, V
         .map(|&i| src.ids.place[i as usize].1)
         .collect();
     let rows = w.masks.map(|m| (m.gather(&ids), m));
-    let parts: Vec<(Vec<Edge>, Vec<Edge>)> = ranks
+    let parts: Vec<Vec<Edge>> = ranks
         .par_chunks(4096)
         .enumerate()
         .map(|(c, chunk)| {
-            let (mut inner, mut border) = (Vec::new(), Vec::new());
+            let mut inner = Vec::new();
             for (l, &r) in chunk.iter().enumerate() {
                 let (s, r) = (c * 4096 + l, r as usize);
-                let i = ids[s];
                 for (slot, rj) in src.nb.of(r).enumerate() {
-                    let ru = rj as usize;
-                    let j = src.nb.perm[ru];
-                    let back = src.nb.of(ru).position(|x| x as usize == r);
-                    if back.is_some() && j < i {
+                    let (tj, sj) = src.ranks.place[rj as usize];
+                    if tj != t {
                         continue;
                     }
-                    let (tj, sj) = src.ranks.place[ru];
-                    let far = (tj == t).then_some(sj as usize);
-                    let m_ij = rows.as_ref().map(|x| {
-                        let (near, far) = record_rows(x, s, far, j as usize);
-                        w.disagreement_between(near, far)
-                    });
-                    let wij = w.weight_with(src.geometric[r * k + slot], m_ij).to_bits();
-                    let wji = back.map_or(wij, |b| {
-                        let m_ji = rows.as_ref().map(|x| {
-                            let (near, far) = record_rows(x, s, far, j as usize);
-                            w.disagreement_between(far, near)
-                        });
-                        w.weight_with(src.geometric[ru * k + b], m_ji).to_bits()
-                    });
-                    let (out, lo, hi) = if tj == t {
-                        let (li, lj) = (local[s], local[sj as usize]);
-                        let (a, b) = if i < j { (li, lj) } else { (lj, li) };
-                        (&mut inner, a, b)
-                    } else {
-                        (&mut border, i.min(j), i.max(j))
+                    let record = rows.as_ref().map(|x| ((&x.0, s), (&x.0, sj as usize)));
+                    let Some((wij, wji)) = slot_weights(src, w, r, slot, record) else {
+                        continue;
                     };
-                    out.push(Edge {
-                        w: wij,
-                        i: lo,
-                        j: hi,
-                    });
-                    if wji != wij {
-                        out.push(Edge {
-                            w: wji,
-                            i: lo,
-                            j: hi,
-                        });
-                    }
+                    let (li, lj) = (local[s], local[sj as usize]);
+                    let (lo, hi) = (li.min(lj), li.max(lj));
+                    push_edges(&mut inner, wij, wji, lo, hi);
                 }
             }
-            (inner, border)
+            inner
         })
         .collect();
-    let (mut inner, mut border) = (Vec::new(), Vec::new());
-    for (a, b) in parts {
-        inner.extend(a);
-        border.extend(b);
-    }
-    (inner, border)
+    parts.concat()
 }
 
-/// The record rows of an edge's two ends: the near end's row `s` of the tile's gathered
-/// rows, the far end's row there (`far`, inside the tile) or Gaussian `j`'s of the scene's
-/// record.
-fn record_rows<'a>(
-    (tile, scene): &'a (MaskRecord, &'a MaskRecord),
-    s: usize,
-    far: Option<usize>,
-    j: usize,
-) -> ((&'a MaskRecord, usize), (&'a MaskRecord, usize)) {
-    let far = match far {
-        Some(sj) => (tile, sj),
-        None => (*scene, j),
-    };
-    ((tile, s), far)
+/// Every edge of the graph whose ends lie in different tiles, in scene ids, ascending by
+/// `(w, i, j)` and deduplicated: the same edges and weights that [`tile_edges`] gives inside a
+/// tile. They are weighed before the tiles' passes so that each tile's pass can note, at each
+/// border edge's place in the edge order, its end's merge threshold (module doc, "Bounded
+/// memory and parallel passes: tiles"). About 0.1–0.2 % of the edges of a large scene.
+pub(super) fn border_edges(src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
+    let n = src.nb.perm.len();
+    let mut out: Vec<Edge> = (0..n)
+        .into_par_iter()
+        .with_min_len(4096)
+        .flat_map_iter(|r| {
+            let (t, i) = (src.ranks.place[r].0, src.nb.perm[r]);
+            let mut edges = Vec::new();
+            for (slot, rj) in src.nb.of(r).enumerate() {
+                if src.ranks.place[rj as usize].0 == t {
+                    continue;
+                }
+                let j = src.nb.perm[rj as usize];
+                let record = w.masks.map(|m| ((m, i as usize), (m, j as usize)));
+                if let Some((wij, wji)) = slot_weights(src, w, r, slot, record) {
+                    push_edges(&mut edges, wij, wji, i.min(j), i.max(j));
+                }
+            }
+            edges
+        })
+        .collect();
+    out.par_sort_unstable();
+    out.dedup();
+    out
+}
+
+/// The record rows of an edge's two ends, `(near, far)`.
+type RecordRows<'a> = ((&'a MaskRecord, usize), (&'a MaskRecord, usize));
+
+/// The weights `(w(i, j), w(j, i))` (bit patterns) of the edge from rank `r` (Gaussian `i`) to
+/// its `slot`-th neighbour `j`, with the two ends' rows of the masks' record when there is
+/// one; `w(j, i) = w(i, j)` when `j` does not list `i`. `None` when `j` lists `i` and `j < i`:
+/// `j`'s own list gives that pair.
+fn slot_weights(
+    src: &EdgeSource,
+    w: &Weigher,
+    r: usize,
+    slot: usize,
+    record: Option<RecordRows>,
+) -> Option<(u32, u32)> {
+    let k = src.nb.k;
+    let ru = src.nb.slots[r * k + slot] as usize;
+    let (i, j) = (src.nb.perm[r], src.nb.perm[ru]);
+    let back = src.nb.of(ru).position(|x| x as usize == r);
+    if back.is_some() && j < i {
+        return None;
+    }
+    let m_ij = record.map(|(near, far)| w.disagreement_between(near, far));
+    let wij = w.weight_with(src.geometric[r * k + slot], m_ij).to_bits();
+    let wji = back.map_or(wij, |b| {
+        let m_ji = record.map(|(near, far)| w.disagreement_between(far, near));
+        w.weight_with(src.geometric[ru * k + b], m_ji).to_bits()
+    });
+    Some((wij, wji))
+}
+
+/// Pushes the edge `(lo, hi)` with weight `wij`, and with `wji` too when that differs.
+fn push_edges(out: &mut Vec<Edge>, wij: u32, wji: u32, lo: u32, hi: u32) {
+    out.push(Edge {
+        w: wij,
+        i: lo,
+        j: hi,
+    });
+    if wji != wij {
+        out.push(Edge {
+            w: wji,
+            i: lo,
+            j: hi,
+        });
+    }
 }
 
 /// `max_edge` for `p` and `geo`: the given one, or 10 × the median largest standard deviation.

@@ -60,11 +60,17 @@
 //!
 //! The edges are never held whole. The Gaussians are cut into tiles of at most
 //! [`SegmentParams::tile_gaussians`] by median splits on the two world axes of largest extent.
-//! Per tile, the edges inside it run the merge criterion; the edges that cross a tile border
-//! are kept (a few per border Gaussian) and run it afterwards in a second union-find pass over
-//! the same components (their `Int` and sizes carried over); the minimum-size pass then goes
-//! over each tile's edges again and the border edges last. As a tile's inner edges join only
-//! its own Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
+//! The edges that cross a tile border (a few per border Gaussian, about 0.1–0.2 % of a large
+//! scene's edges) are weighed first, for the whole scene. Per tile, the edges inside it run the
+//! merge criterion, and where each border edge with an end in the tile falls in the edge order,
+//! the pass notes that end's merge threshold `Int(C) + τ/|C|` as its component stands then.
+//! Afterwards the border edges join, in order, where their weight is within both ends' noted
+//! thresholds: each is judged by the components it would meet at its own place in the order of
+//! one untiled pass, as far as its two tiles tell, not by the components grown after every
+//! inner edge, which joins across borders more than one tile does (the purity of tiled segments
+//! against one tile's, both ways: docs/results/scaling.md). The minimum-size pass then goes over
+//! each tile's edges again and the border edges last. As a tile's inner edges join only its own
+//! Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
 //! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The
 //! minimum-size pass needs only the inner edges still between two components after their tile's
 //! pass that the mask veto lets through (kept from it, the veto read while the other tiles run), as
@@ -81,10 +87,11 @@
 //! those kept. The Gaussians themselves are read only until the geometric parts are computed
 //! ([`segment_with`] lets go of a shared scene there).
 //!
-//! With one tile this is exactly the algorithm above. With several, it is exactly the same
-//! algorithm over the edge order "every tile's inner edges (ascending), then the border edges
-//! (ascending)" instead of one ascending order; a segment that no tile border cuts comes out the
-//! same either way. `tests::tiles_equal_the_tile_grouped_order` checks this statement. Neither
+//! With one tile this is exactly the algorithm above. With several, it is the criterion pass of
+//! each tile over its inner edges, then the border edges judged by their noted thresholds, then
+//! the minimum-size pass over the edge order "every tile's inner edges (ascending), then the
+//! border edges (ascending)"; a segment that no tile border cuts comes out the same as with one
+//! tile. `tests::tiles_equal_the_tile_grouped_order` checks this statement by brute force. Neither
 //! the tiles in parallel nor the thread count change a single id
 //! (`tests::ids_do_not_depend_on_threads`).
 

@@ -1,9 +1,11 @@
-//! The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc, "Bounded memory:
-//! tiles"). A tile's inner edges join only its own Gaussians, and before the border edges every
-//! component lies in one tile: so the tiles' criterion passes are independent and run in parallel,
-//! each on a forest of its own over the tile's Gaussians (local ids keep the order of the scene's
-//! ids, so the edge order, the joins and the roots are those of one forest over the scene). Their
-//! forests then make the scene's forest, which takes the border edges and the minimum-size pass.
+//! The two Felzenszwalb–Huttenlocher passes over the tiles' edges (module doc, "Bounded memory
+//! and parallel passes: tiles"). The border edges are weighed first. A tile's inner edges join
+//! only its own Gaussians, and before the border edges every component lies in one tile: so the
+//! tiles' criterion passes are independent and run in parallel, each on a forest of its own over
+//! the tile's Gaussians (local ids keep the order of the scene's ids, so the edge order, the joins
+//! and the roots are those of one forest over the scene), each noting its ends' merge thresholds
+//! where the border edges fall in its order. Their forests then make the scene's forest, which
+//! takes the border edges by those thresholds and the minimum-size pass.
 //! That pass skips the inner edges whose ends were already joined after their tile's criterion pass
 //! (components only grow, so it would skip them anyway) and those that the mask veto refuses (both
 //! dropped by the tile's pass), and, of the edges left, those with no end in a component below the
@@ -16,7 +18,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
-use super::graph::{EdgeSource, TileMembers, tile_edges};
+use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -27,51 +29,93 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
-/// inner edges still between components, the border edges its Gaussians own, its edge count,
-/// and the seconds of its edges' weights, their sort and the pass.
+/// inner edges still between components, its ends' merge thresholds at its border edges
+/// (`(k, threshold)`, `k` indexing the scene's border edges), its edge count, and the seconds
+/// of its edges' weights, their sort and the pass.
 struct TilePass {
     roots: Vec<u32>,
     components: Vec<Component>,
     kept: Vec<Edge>,
-    border: Vec<Edge>,
+    thresholds: Vec<(u32, f32)>,
     inner: u64,
     seconds: [f64; 3],
 }
 
-/// One tile's edges, weighed, the inner ones sorted (local ids), waiting for its criterion
-/// pass; the seconds of the weights and of the sort.
+/// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass; the
+/// seconds of the weights and of the sort.
 struct BuiltTile {
     t: u32,
     inner: Vec<Edge>,
-    border: Vec<Edge>,
     seconds: [f64; 2],
 }
 
-/// Tile `t`'s edges with their weights (on all the pool's threads), its inner edges sorted by
-/// `(w, i, j)` in parallel (a total order: the same order whatever the threads).
+/// Tile `t`'s inner edges with their weights (on all the pool's threads), sorted by `(w, i, j)`
+/// in parallel (a total order: the same order whatever the threads).
 fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
     let clock = Instant::now();
-    let (mut inner, border) = tile_edges(t, src, w);
+    let mut inner = tile_edges(t, src, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
     BuiltTile {
         t,
         inner,
-        border,
         seconds: [edges_s, clock.elapsed().as_secs_f64()],
     }
 }
 
+/// Where each of `ends` (`(k, node)`: border edge `k` of `border`, its end `node` of the tile,
+/// ascending in `k`) stands in the tile's sorted `edges`: the count of edges before border edge
+/// `k` in the order `(w, i, j)` of scene ids (`id` maps an edge's ids to the scene's), with
+/// `node` as given.
+fn stops_in(
+    edges: &[Edge],
+    border: &[Edge],
+    ends: &[(u32, u32)],
+    id: impl Fn(u32) -> u32,
+) -> Vec<(usize, u32)> {
+    let mut at = 0;
+    ends.iter()
+        .map(|&(k, node)| {
+            let b = &border[k as usize];
+            at += edges[at..].partition_point(|e| (e.w, id(e.i), id(e.j)) < (b.w, b.i, b.j));
+            (at, node)
+        })
+        .collect()
+}
+
+/// Each tile's ends of the border edges (`border`, scene ids, ascending): `(k, local id)` per
+/// end in the tile, ascending in `k`.
+fn border_ends(border: &[Edge], tm: &TileMembers) -> Vec<Vec<(u32, u32)>> {
+    let mut ends = vec![Vec::new(); tm.members.len()];
+    for (k, e) in border.iter().enumerate() {
+        for end in [e.i, e.j] {
+            let (t, l) = tm.place[end as usize];
+            ends[t as usize].push((k as u32, l));
+        }
+    }
+    ends
+}
+
 impl BuiltTile {
     /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
-    /// ids, ascending), then, picked in parallel, its edges still between components that the
+    /// ids, ascending), noting its `ends` of the scene's `border` edges' merge thresholds where
+    /// each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
+    /// picked in parallel, its edges still between components that the
     /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`]), in scene ids
     /// and in order: the pass could use no other.
-    fn criterion(self, p: &SegmentParams, members: &[u32], w: &Weigher) -> TilePass {
+    fn criterion(
+        self,
+        p: &SegmentParams,
+        members: &[u32],
+        w: &Weigher,
+        (border, ends): (&[Edge], &[(u32, u32)]),
+    ) -> TilePass {
         let clock = Instant::now();
         let mut f = Forest::singletons(members.len());
-        f.criterion_pass_in(&self.inner, p.threshold, None);
+        let stops = stops_in(&self.inner, border, ends, |l| members[l as usize]);
+        let at_stops = f.criterion_pass_with_stops(&self.inner, p.threshold, &stops, None);
+        let thresholds = ends.iter().map(|e| e.0).zip(at_stops).collect();
         let kept = if p.min_size > 1 {
             let global = |e: &Edge| Edge {
                 w: e.w,
@@ -93,7 +137,7 @@ impl BuiltTile {
             roots,
             components,
             kept,
-            border: self.border,
+            thresholds,
             inner: self.inner.len() as u64,
             seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
         }
@@ -132,18 +176,19 @@ impl InFlight {
     fn saw(&mut self, built: &[BuiltTile], tm: &TileMembers) {
         for b in built {
             let members = tm.members[b.t as usize].len().max(1) as f64;
-            let edges = (b.inner.len() + b.border.len()) as f64 / members;
+            let edges = b.inner.len() as f64 / members;
             self.most_edges = self.most_edges.max(edges);
         }
     }
 }
 
-/// The tiles' criterion passes: the scene's forest after them, the border edges (unordered),
-/// each tile's inner edges still between components after its pass that the mask veto lets
-/// the minimum-size pass join across (scene ids, in order) and the inner edges' count.
+/// The tiles' criterion passes: the scene's forest after them, each border edge's threshold
+/// (the smaller of its two ends' merge thresholds where it stands in the order), each tile's
+/// inner edges still between components after its pass that the mask veto lets the
+/// minimum-size pass join across (scene ids, in order) and the inner edges' count.
 struct Tiled {
     forest: Forest,
-    border: Vec<Edge>,
+    thresholds: Vec<f32>,
     kept: Vec<Vec<Edge>>,
     inner: u64,
 }
@@ -165,6 +210,11 @@ pub(super) fn merge(
         .filter(|_| p.region_veto < 1.0)
         .map(|r| ctl.run(|| Regions::new(r, p.region_veto)));
     let clock = Instant::now();
+    let border = ctl.run(|| border_edges(src, w));
+    st.weights += clock.elapsed().as_secs_f64();
+    if ctl.stopped() {
+        return (None, 0, 0);
+    }
     let run = Run {
         gaussians,
         p,
@@ -172,6 +222,8 @@ pub(super) fn merge(
         w,
         src,
         tm,
+        ends: border_ends(&border, tm),
+        border: &border,
     };
     let tiled = match regions.as_mut() {
         None => run.parallel_tiles(st),
@@ -179,7 +231,7 @@ pub(super) fn merge(
     };
     let Some(Tiled {
         mut forest,
-        mut border,
+        thresholds,
         kept,
         inner,
     }) = tiled
@@ -189,11 +241,7 @@ pub(super) fn merge(
     st.tile_passes = clock.elapsed().as_secs_f64();
     crate::report::log_rss("segments: tile passes");
     let clock = Instant::now();
-    ctl.run(|| border.par_sort_unstable());
-    border.dedup();
-    st.sort += clock.elapsed().as_secs_f64();
-    let clock = Instant::now();
-    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
+    forest.border_pass_in(&border, &thresholds, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let border_count = border.len() as u64;
@@ -252,6 +300,9 @@ struct Run<'a> {
     w: &'a Weigher<'a>,
     src: &'a EdgeSource<'a>,
     tm: &'a TileMembers,
+    /// The scene's border edges ([`border_edges`]) and each tile's ends of them ([`border_ends`]).
+    border: &'a [Edge],
+    ends: Vec<Vec<(u32, u32)>>,
 }
 
 impl Run<'_> {
@@ -298,15 +349,18 @@ impl Run<'_> {
         }
         let forest = self.ctl.run(|| self.scene_forest(&passes));
         let inner = passes.iter().map(|t| t.inner).sum();
-        let mut border = Vec::new();
+        let mut thresholds = vec![f32::INFINITY; self.border.len()];
         let mut kept = Vec::with_capacity(tiles as usize);
         for pass in passes {
-            border.extend(pass.border);
+            for (k, t) in pass.thresholds {
+                let at = &mut thresholds[k as usize];
+                *at = at.min(t);
+            }
             kept.push(pass.kept);
         }
         Some(Tiled {
             forest,
-            border,
+            thresholds,
             kept,
             inner,
         })
@@ -324,8 +378,9 @@ impl Run<'_> {
         built
             .into_par_iter()
             .map(|b| {
-                let members = &self.tm.members[b.t as usize];
-                b.criterion(self.p, members, self.w)
+                let t = b.t as usize;
+                let ends = (self.border, &self.ends[t][..]);
+                b.criterion(self.p, &self.tm.members[t], self.w, ends)
             })
             .collect()
     }
@@ -350,10 +405,11 @@ impl Run<'_> {
     fn serial_tiles(&self, regions: &mut Regions, st: &mut SegmentTimings) -> Option<Tiled> {
         let tiles = self.tm.members.len();
         let mut forest = Forest::singletons(self.gaussians);
-        let (mut border, mut kept, mut inner) = (Vec::new(), Vec::with_capacity(tiles), 0);
+        let mut thresholds = vec![f32::INFINITY; self.border.len()];
+        let (mut kept, mut inner) = (Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
-            let (mut local, b) = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
+            let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
             self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;
@@ -369,19 +425,24 @@ impl Run<'_> {
                     j: m[e.j as usize],
                 })
                 .collect();
-            forest.criterion_pass_in(&edges, self.p.threshold, Some(regions));
+            let ends: Vec<(u32, u32)> = self.ends[t].iter().map(|&(k, l)| (k, m[l as usize])).collect();
+            let stops = stops_in(&edges, self.border, &ends, |i| i);
+            let at_stops =
+                forest.criterion_pass_with_stops(&edges, self.p.threshold, &stops, Some(regions));
+            for (&(k, _), t) in ends.iter().zip(at_stops) {
+                thresholds[k as usize] = thresholds[k as usize].min(t);
+            }
             inner += edges.len() as u64;
             let between: Vec<Edge> = edges
                 .into_iter()
                 .filter(|e| forest.find(e.i) != forest.find(e.j) && self.w.may_absorb(e))
                 .collect();
             kept.push(between);
-            border.extend(b);
             st.criterion += clock.elapsed().as_secs_f64();
         }
         Some(Tiled {
             forest,
-            border,
+            thresholds,
             kept,
             inner,
         })

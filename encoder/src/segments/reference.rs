@@ -155,7 +155,8 @@ fn edges_of_tile(
     (inner, border.into_iter().flatten().collect())
 }
 
-/// The two passes over the tiles' edges, tile after tile.
+/// The two passes over the tiles' edges, tile after tile; each border edge joins by its two
+/// ends' merge thresholds where it stands in the tile's order of edges.
 fn merge(
     g: &Gaussians,
     p: &SegmentParams,
@@ -172,13 +173,34 @@ fn merge(
         .map(|r| Regions::new(r, p.region_veto));
     let mut border: Vec<Edge> = Vec::new();
     for t in 0..tiles {
-        let (inner, b) = edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w);
-        forest.criterion_pass_in(&inner, p.threshold, regions.as_mut());
-        border.extend(b);
+        border.extend(edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w).1);
     }
     border.par_sort_unstable();
     border.dedup();
-    forest.criterion_pass_in(&border, p.threshold, regions.as_mut());
+    let mut thresholds = vec![f32::INFINITY; border.len()];
+    for t in 0..tiles {
+        let (inner, _) = edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w);
+        // Each end in this tile, in the border's order; noted before the first inner edge
+        // that comes after its edge.
+        let ends: Vec<(usize, u32)> = border
+            .iter()
+            .enumerate()
+            .flat_map(|(k, e)| [(k, e.i), (k, e.j)])
+            .filter(|&(_, x)| tile_of[x as usize] == t as u32)
+            .collect();
+        let mut next = 0;
+        for e in inner.iter().map(Some).chain([None]) {
+            while next < ends.len() && e.is_none_or(|e| border[ends[next].0] < *e) {
+                let (k, x) = ends[next];
+                thresholds[k] = thresholds[k].min(forest.merge_threshold(x, p.threshold));
+                next += 1;
+            }
+            if let Some(e) = e {
+                forest.criterion_pass_in(std::slice::from_ref(e), p.threshold, regions.as_mut());
+            }
+        }
+    }
+    forest.border_pass_in(&border, &thresholds, regions.as_mut());
     if p.min_size > 1 {
         let allowed = |e: &Edge| w.may_absorb(e);
         for t in 0..tiles {
