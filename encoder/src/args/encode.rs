@@ -53,7 +53,8 @@ pub struct SegmentArgs {
     /// median of the Gaussians' largest standard deviation.
     #[arg(long, value_name = "LENGTH")]
     pub segment_max_edge: Option<f32>,
-    /// Segmentation: most Gaussians per tile (bounds the graph's memory).
+    /// Segmentation: most Gaussians per tile (bounds the graph's memory; smaller tiles run faster
+    /// and their segments differ more from one tile's across tile borders).
     #[arg(long, default_value_t = SegmentParams::default().tile_gaussians)]
     pub segment_tile_gaussians: usize,
     /// Segmentation: weight of the mask term (an edge whose ends fall in different SAM masks in

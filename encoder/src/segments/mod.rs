@@ -148,7 +148,9 @@ pub struct SegmentParams {
     /// Weight of the shape (size-ratio) term `w_s` (default 0.1).
     pub shape_weight: f32,
     /// Most Gaussians per tile (default 2,000,000); bounds the memory of the edges, and sets
-    /// how many union-find passes run in parallel (one per tile).
+    /// how many union-find passes run in parallel (one per tile). A scene with more Gaussians
+    /// gets segments that differ from one tile's where they cross tile borders: smaller tiles
+    /// are faster and differ more (docs/results/scaling.md).
     pub tile_gaussians: usize,
     /// Weight of the mask term `w_m`: an edge whose ends fall in different masks in every view
     /// that records both gets `w_m` added (default 1; 0: geometry only). Used only with a
