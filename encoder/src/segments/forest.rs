@@ -1,6 +1,8 @@
 //! The Felzenszwalb–Huttenlocher passes (module doc, "Segmentation") over a list of edges: the
 //! union-find forest with each component's size and `Int`.
 
+use std::collections::HashMap;
+
 use rayon::prelude::*;
 
 use super::regions::Regions;
@@ -9,7 +11,7 @@ use crate::disjoint_sets::DisjointSets;
 
 /// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
 /// of its minimum spanning tree.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub(super) struct Component {
     size: u32,
     int: f32,
@@ -67,49 +69,82 @@ impl Forest {
         }
     }
     /// [`Forest::criterion_pass_in`] over `edges`, and for each of `stops` (`(position, node)`,
-    /// positions ascending, at most `edges.len()`) the merge threshold `Int + τ/|C|` of `node`'s
-    /// component once the edges before `position` are passed: the components a border edge
-    /// meets at its own place in the edge order, as far as the tile's edges tell (module doc,
-    /// "Bounded memory and parallel passes: tiles"). One threshold per stop, in order.
+    /// positions ascending, at most `edges.len()`) `node`'s component (size, `Int`) once the
+    /// edges before `position` are passed: the component a border edge meets at its own place
+    /// in the edge order, as far as the tile's edges tell (module doc, "Bounded memory and
+    /// parallel passes: tiles"). One component per stop, in order.
     pub(super) fn criterion_pass_with_stops(
         &mut self,
         edges: &[Edge],
         tau: f32,
         stops: &[(usize, u32)],
         mut regions: Option<&mut Regions>,
-    ) -> Vec<f32> {
+    ) -> Vec<Component> {
         let mut at = 0;
-        let mut thresholds = Vec::with_capacity(stops.len());
+        let mut states = Vec::with_capacity(stops.len());
         for &(position, node) in stops {
             let position = position.clamp(at, edges.len());
             self.criterion_pass_in(&edges[at..position], tau, regions.as_deref_mut());
             at = position;
-            thresholds.push(self.merge_threshold(node, tau));
+            states.push(self.component_of(node));
         }
         self.criterion_pass_in(&edges[at..], tau, regions);
-        thresholds
+        states
     }
-    /// The merge threshold `Int + τ/|C|` of `x`'s component now: an edge to another component
-    /// joins them when its weight is within both sides' thresholds.
-    pub(super) fn merge_threshold(&mut self, x: u32, tau: f32) -> f32 {
+    /// `x`'s component now (size, `Int`).
+    pub(super) fn component_of(&mut self, x: u32) -> Component {
         let root = self.find(x);
-        let c = self.component(root);
-        c.int + tau / c.size as f32
+        self.component(root)
     }
-    /// The border pass: joins across each of `edges` (in their order) whose weight is within
-    /// `thresholds[k]`, the smaller of its two ends' merge thresholds where it stands in the edge
-    /// order ([`Forest::criterion_pass_with_stops`]), unless both ends are already one component
-    /// or `regions` refuses.
+    /// The border pass over `edges` (in their order), with `ends[k]` the components that edge
+    /// `k`'s ends `i` and `j` met where it stands in the order
+    /// ([`Forest::criterion_pass_with_stops`]). An edge joins its two components when its weight
+    /// is within both sides' merge thresholds `Int + τ/|C|` (and `regions`, if any, allows),
+    /// where a side is the component its end met, or, once border edges have joined that
+    /// side's component to others, the group they make: its pieces' sizes summed (each
+    /// piece's the largest seen at a join, this one's as it met the edge) and the largest of
+    /// their `Int`s and the joins' weights. So a line of segments along a tile border is held
+    /// to its growing size as one pass would hold it, instead of each join being judged alone.
     pub(super) fn border_pass_in(
         &mut self,
         edges: &[Edge],
-        thresholds: &[f32],
+        ends: &[[Component; 2]],
+        tau: f32,
         mut regions: Option<&mut Regions>,
     ) {
-        for (e, &t) in edges.iter().zip(thresholds) {
-            let (a, b) = (self.find(e.i), self.find(e.j));
-            if a != b && e.weight() <= t && regions.as_deref().is_none_or(|r| r.allows(a, b)) {
-                self.join_regions(a, b, e.weight(), regions.as_deref_mut());
+        // The component after the tiles' passes (a "piece") that each end lies in.
+        let pieces: Vec<[u32; 2]> = edges.iter().map(|e| [self.find(e.i), self.find(e.j)]).collect();
+        // Per group root: its pieces' sizes summed and its Int; per piece in a group: its size.
+        let mut groups: HashMap<u32, (u64, f32)> = HashMap::new();
+        let mut seen: HashMap<u32, u32> = HashMap::new();
+        for ((e, met), piece) in edges.iter().zip(ends).zip(&pieces) {
+            let roots = [self.find(e.i), self.find(e.j)];
+            if roots[0] == roots[1] {
+                continue;
+            }
+            let side = |s: usize| -> (u64, f32) {
+                let c = met[s];
+                match groups.get(&roots[s]) {
+                    None => (c.size as u64, c.int),
+                    Some(&(sum, int)) => {
+                        let before = seen.get(&piece[s]).copied().unwrap_or(0);
+                        (sum - before as u64 + before.max(c.size) as u64, int.max(c.int))
+                    }
+                }
+            };
+            let ((sa, ia), (sb, ib)) = (side(0), side(1));
+            let w = e.weight();
+            let ta = ia + tau / sa as f32;
+            let tb = ib + tau / sb as f32;
+            if w <= ta.min(tb) && regions.as_deref().is_none_or(|r| r.allows(roots[0], roots[1])) {
+                for s in 0..2 {
+                    let before = seen.get(&piece[s]).copied().unwrap_or(0);
+                    seen.insert(piece[s], before.max(met[s].size));
+                    groups.remove(&roots[s]);
+                }
+                self.join_regions(roots[0], roots[1], w, regions.as_deref_mut());
+                let root = self.find(roots[0]);
+                groups.insert(root, (sa + sb, ia.max(ib).max(w)));
             }
         }
     }

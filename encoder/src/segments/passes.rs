@@ -29,14 +29,15 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
-/// inner edges still between components, its ends' merge thresholds at its border edges
-/// (`(k, threshold)`, `k` indexing the scene's border edges), its edge count, and the seconds
-/// of its edges' weights, their sort and the pass.
+/// inner edges still between components, the components its ends of border edges met where
+/// each edge stands in the order (`(k, side, component)`: edge `k` of the scene's border edges,
+/// side 0 for its end `i`, 1 for `j`), its edge count, and the seconds of its edges' weights,
+/// their sort and the pass.
 struct TilePass {
     roots: Vec<u32>,
     components: Vec<Component>,
     kept: Vec<Edge>,
-    thresholds: Vec<(u32, f32)>,
+    met: Vec<(u32, usize, Component)>,
     inner: u64,
     seconds: [f64; 3],
 }
@@ -115,7 +116,12 @@ impl BuiltTile {
         let mut f = Forest::singletons(members.len());
         let stops = stops_in(&self.inner, border, ends, |l| members[l as usize]);
         let at_stops = f.criterion_pass_with_stops(&self.inner, p.threshold, &stops, None);
-        let thresholds = ends.iter().map(|e| e.0).zip(at_stops).collect();
+        let side = |k: u32, l: u32| usize::from(border[k as usize].i != members[l as usize]);
+        let met = ends
+            .iter()
+            .zip(at_stops)
+            .map(|(&(k, l), c)| (k, side(k, l), c))
+            .collect();
         let kept = if p.min_size > 1 {
             let global = |e: &Edge| Edge {
                 w: e.w,
@@ -137,7 +143,7 @@ impl BuiltTile {
             roots,
             components,
             kept,
-            thresholds,
+            met,
             inner: self.inner.len() as u64,
             seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
         }
@@ -182,13 +188,13 @@ impl InFlight {
     }
 }
 
-/// The tiles' criterion passes: the scene's forest after them, each border edge's threshold
-/// (the smaller of its two ends' merge thresholds where it stands in the order), each tile's
+/// The tiles' criterion passes: the scene's forest after them, the components each border
+/// edge's ends (`i`, `j`) met where it stands in the order, each tile's
 /// inner edges still between components after its pass that the mask veto lets the
 /// minimum-size pass join across (scene ids, in order) and the inner edges' count.
 struct Tiled {
     forest: Forest,
-    thresholds: Vec<f32>,
+    met: Vec<[Component; 2]>,
     kept: Vec<Vec<Edge>>,
     inner: u64,
 }
@@ -231,7 +237,7 @@ pub(super) fn merge(
     };
     let Some(Tiled {
         mut forest,
-        thresholds,
+        met,
         kept,
         inner,
     }) = tiled
@@ -241,7 +247,7 @@ pub(super) fn merge(
     st.tile_passes = clock.elapsed().as_secs_f64();
     crate::report::log_rss("segments: tile passes");
     let clock = Instant::now();
-    forest.border_pass_in(&border, &thresholds, regions.as_mut());
+    forest.border_pass_in(&border, &met, p.threshold, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     let border_count = border.len() as u64;
@@ -349,18 +355,17 @@ impl Run<'_> {
         }
         let forest = self.ctl.run(|| self.scene_forest(&passes));
         let inner = passes.iter().map(|t| t.inner).sum();
-        let mut thresholds = vec![f32::INFINITY; self.border.len()];
+        let mut met = vec![[Component::default(); 2]; self.border.len()];
         let mut kept = Vec::with_capacity(tiles as usize);
         for pass in passes {
-            for (k, t) in pass.thresholds {
-                let at = &mut thresholds[k as usize];
-                *at = at.min(t);
+            for (k, side, c) in pass.met {
+                met[k as usize][side] = c;
             }
             kept.push(pass.kept);
         }
         Some(Tiled {
             forest,
-            thresholds,
+            met,
             kept,
             inner,
         })
@@ -405,7 +410,7 @@ impl Run<'_> {
     fn serial_tiles(&self, regions: &mut Regions, st: &mut SegmentTimings) -> Option<Tiled> {
         let tiles = self.tm.members.len();
         let mut forest = Forest::singletons(self.gaussians);
-        let mut thresholds = vec![f32::INFINITY; self.border.len()];
+        let mut met = vec![[Component::default(); 2]; self.border.len()];
         let (mut kept, mut inner) = (Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
@@ -429,8 +434,8 @@ impl Run<'_> {
             let stops = stops_in(&edges, self.border, &ends, |i| i);
             let at_stops =
                 forest.criterion_pass_with_stops(&edges, self.p.threshold, &stops, Some(regions));
-            for (&(k, _), t) in ends.iter().zip(at_stops) {
-                thresholds[k as usize] = thresholds[k as usize].min(t);
+            for (&(k, x), c) in ends.iter().zip(at_stops) {
+                met[k as usize][usize::from(self.border[k as usize].i != x)] = c;
             }
             inner += edges.len() as u64;
             let between: Vec<Edge> = edges
@@ -442,7 +447,7 @@ impl Run<'_> {
         }
         Some(Tiled {
             forest,
-            thresholds,
+            met,
             kept,
             inner,
         })

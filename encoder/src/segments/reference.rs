@@ -177,22 +177,22 @@ fn merge(
     }
     border.par_sort_unstable();
     border.dedup();
-    let mut thresholds = vec![f32::INFINITY; border.len()];
+    let mut met = vec![[Default::default(); 2]; border.len()];
     for t in 0..tiles {
         let (inner, _) = edges_of_tile(t as u32, &g.means, geo, tile_of, nb, w);
         // Each end in this tile, in the border's order; noted before the first inner edge
         // that comes after its edge.
-        let ends: Vec<(usize, u32)> = border
+        let ends: Vec<(usize, usize, u32)> = border
             .iter()
             .enumerate()
-            .flat_map(|(k, e)| [(k, e.i), (k, e.j)])
-            .filter(|&(_, x)| tile_of[x as usize] == t as u32)
+            .flat_map(|(k, e)| [(k, 0, e.i), (k, 1, e.j)])
+            .filter(|&(_, _, x)| tile_of[x as usize] == t as u32)
             .collect();
         let mut next = 0;
         for e in inner.iter().map(Some).chain([None]) {
             while next < ends.len() && e.is_none_or(|e| border[ends[next].0] < *e) {
-                let (k, x) = ends[next];
-                thresholds[k] = thresholds[k].min(forest.merge_threshold(x, p.threshold));
+                let (k, side, x) = ends[next];
+                met[k][side] = forest.component_of(x);
                 next += 1;
             }
             if let Some(e) = e {
@@ -200,7 +200,7 @@ fn merge(
             }
         }
     }
-    forest.border_pass_in(&border, &thresholds, regions.as_mut());
+    forest.border_pass_in(&border, &met, p.threshold, regions.as_mut());
     if p.min_size > 1 {
         let allowed = |e: &Edge| w.may_absorb(e);
         for t in 0..tiles {

@@ -114,8 +114,8 @@ fn deterministic_over_thread_counts() {
 }
 
 /// The tiled result equals, over the whole graph: each tile's criterion pass over its inner
-/// edges, then the border edges in order, each joining when its weight is within both ends'
-/// merge thresholds as they stood in their own tile where the edge falls in the order, then
+/// edges, then the border pass over the border edges in order, given the components their
+/// ends met in their own tile where each edge falls in the order, then
 /// the minimum-size pass in tile-grouped order (every tile's inner edges, then the border
 /// edges): the statement of the module doc, checked here by brute force (a fresh pass per
 /// border end). One tile equals the untiled algorithm.
@@ -145,16 +145,13 @@ fn tiles_equal_the_tile_grouped_order() {
             .collect()
     };
     let border: Vec<Edge> = all.iter().filter(|e| tile(e.i) != tile(e.j)).copied().collect();
-    let threshold_at = |b: &Edge, x: u32| {
+    let met_at = |b: &Edge, x: u32| {
         let before: Vec<Edge> = inner_of(tile(x)).into_iter().filter(|e| e < b).collect();
         let mut f = Forest::singletons(g.len());
         f.criterion_pass(&before, p.threshold);
-        f.merge_threshold(x, p.threshold)
+        f.component_of(x)
     };
-    let thresholds: Vec<f32> = border
-        .iter()
-        .map(|b| threshold_at(b, b.i).min(threshold_at(b, b.j)))
-        .collect();
+    let met: Vec<_> = border.iter().map(|b| [met_at(b, b.i), met_at(b, b.j)]).collect();
     let mut order: Vec<Edge> = Vec::new();
     let mut f = Forest::singletons(g.len());
     for t in 0..rects.len() as u32 {
@@ -162,14 +159,14 @@ fn tiles_equal_the_tile_grouped_order() {
         f.criterion_pass(&inner, p.threshold);
         order.extend(inner);
     }
-    f.border_pass_in(&border, &thresholds, None);
+    f.border_pass_in(&border, &met, p.threshold, None);
     order.extend(&border);
     assert_eq!(order.len() as u64, stats.edges);
     f.min_size_pass(&order, p.min_size, |_| true);
     let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
     assert_eq!(canonical_ids(&roots).0, tiled.segments);
     // The border edges judged by their components after every tile's pass instead (the
-    // rule these thresholds replace) join other segments on this scene.
+    // rule the border pass replaces) join other segments on this scene.
     let mut late = Forest::singletons(g.len());
     late.criterion_pass(&order, p.threshold);
     late.min_size_pass(&order, p.min_size, |_| true);
@@ -186,6 +183,43 @@ fn tiles_equal_the_tile_grouped_order() {
     f.min_size_pass(&all, p.min_size, |_| true);
     let roots: Vec<u32> = (0..g.len() as u32).map(|i| f.find(i)).collect();
     assert_eq!(canonical_ids(&roots).0, untiled.segments);
+}
+
+/// Where every piece is one Gaussian (no inner edges), the border pass is the criterion pass
+/// itself: a group's summed sizes and `Int` are its component's, so a line of joins is held
+/// to its growing size exactly as one pass holds it.
+#[test]
+fn the_border_pass_over_single_gaussians_is_the_criterion_pass() {
+    let mut s = 7u64;
+    for round in 0..20 {
+        let n = 60;
+        let mut edges: Vec<Edge> = (0..240)
+            .map(|_| {
+                let i = (unit_lcg(&mut s) * n as f32) as u32 % n;
+                let j = (i + 1 + (unit_lcg(&mut s) * 4.0) as u32) % n;
+                Edge {
+                    w: (unit_lcg(&mut s) * 0.6).to_bits(),
+                    i: i.min(j),
+                    j: i.max(j),
+                }
+            })
+            .filter(|e| e.i != e.j)
+            .collect();
+        edges.sort_unstable();
+        edges.dedup();
+        let tau = 0.2 + 0.1 * (round % 5) as f32;
+        let single = Forest::singletons(1).component_of(0);
+        let met = vec![[single; 2]; edges.len()];
+        let mut by_border = Forest::singletons(n as usize);
+        by_border.border_pass_in(&edges, &met, tau, None);
+        let mut by_criterion = Forest::singletons(n as usize);
+        by_criterion.criterion_pass(&edges, tau);
+        let ids = |f: &mut Forest| {
+            let roots: Vec<u32> = (0..n).map(|i| f.find(i)).collect();
+            canonical_ids(&roots).0
+        };
+        assert_eq!(ids(&mut by_border), ids(&mut by_criterion), "round {round}");
+    }
 }
 
 #[test]
