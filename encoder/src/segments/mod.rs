@@ -63,12 +63,14 @@
 //! The edges that cross a tile border (a few per border Gaussian, about 0.1–0.2 % of a large
 //! scene's edges) are weighed first, for the whole scene. Per tile, the edges inside it run the
 //! merge criterion, and where each border edge with an end in the tile falls in the edge order,
-//! the pass notes that end's merge threshold `Int(C) + τ/|C|` as its component stands then.
-//! Afterwards the border edges join, in order, where their weight is within both ends' noted
+//! the pass notes that end's component (size and `Int`) as it stands then.
+//! Afterwards the border edges join, in order, where their weight is within both sides'
 //! thresholds: each is judged by the components it would meet at its own place in the order of
 //! one untiled pass, as far as its two tiles tell, not by the components grown after every
-//! inner edge, which joins across borders more than one tile does (the purity of tiled segments
-//! against one tile's, both ways: docs/results/scaling.md). The minimum-size pass then goes over
+//! inner edge; and once border edges have joined a side to others, that side is the group they
+//! make (sizes summed, the largest `Int`), so that a line of segments along a border is held to
+//! its growing size as one pass holds it. Segments along the borders still differ from one
+//! tile's (the purity of tiled segments against one tile's: docs/results/scaling.md). The minimum-size pass then goes over
 //! each tile's edges again and the border edges last. As a tile's inner edges join only its own
 //! Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
 //! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The

@@ -3,9 +3,9 @@
 //! only its own Gaussians, and before the border edges every component lies in one tile: so the
 //! tiles' criterion passes are independent and run in parallel, each on a forest of its own over
 //! the tile's Gaussians (local ids keep the order of the scene's ids, so the edge order, the joins
-//! and the roots are those of one forest over the scene), each noting its ends' merge thresholds
-//! where the border edges fall in its order. Their forests then make the scene's forest, which
-//! takes the border edges by those thresholds and the minimum-size pass.
+//! and the roots are those of one forest over the scene), each noting the components its ends of
+//! border edges meet where those edges fall in its order. Their forests then make the scene's
+//! forest, which takes the border edges by those components and the minimum-size pass.
 //! That pass skips the inner edges whose ends were already joined after their tile's criterion pass
 //! (components only grow, so it would skip them anyway) and those that the mask veto refuses (both
 //! dropped by the tile's pass), and, of the edges left, those with no end in a component below the
@@ -100,8 +100,8 @@ fn border_ends(border: &[Edge], tm: &TileMembers) -> Vec<Vec<(u32, u32)>> {
 
 impl BuiltTile {
     /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
-    /// ids, ascending), noting its `ends` of the scene's `border` edges' merge thresholds where
-    /// each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
+    /// ids, ascending), noting the components its `ends` of the scene's `border` edges meet
+    /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
     /// picked in parallel, its edges still between components that the
     /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`]), in scene ids
     /// and in order: the pass could use no other.
