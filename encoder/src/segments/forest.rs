@@ -113,7 +113,10 @@ impl Forest {
         mut regions: Option<&mut Regions>,
     ) {
         // The component after the tiles' passes (a "piece") that each end lies in.
-        let pieces: Vec<[u32; 2]> = edges.iter().map(|e| [self.find(e.i), self.find(e.j)]).collect();
+        let pieces: Vec<[u32; 2]> = edges
+            .iter()
+            .map(|e| [self.find(e.i), self.find(e.j)])
+            .collect();
         // Per group root: its pieces' sizes summed and its Int; per piece in a group: its size.
         let mut groups: HashMap<u32, (u64, f32)> = HashMap::new();
         let mut seen: HashMap<u32, u32> = HashMap::new();
@@ -128,7 +131,10 @@ impl Forest {
                     None => (c.size as u64, c.int),
                     Some(&(sum, int)) => {
                         let before = seen.get(&piece[s]).copied().unwrap_or(0);
-                        (sum - before as u64 + before.max(c.size) as u64, int.max(c.int))
+                        (
+                            sum - before as u64 + before.max(c.size) as u64,
+                            int.max(c.int),
+                        )
                     }
                 }
             };
@@ -136,7 +142,11 @@ impl Forest {
             let w = e.weight();
             let ta = ia + tau / sa as f32;
             let tb = ib + tau / sb as f32;
-            if w <= ta.min(tb) && regions.as_deref().is_none_or(|r| r.allows(roots[0], roots[1])) {
+            if w <= ta.min(tb)
+                && regions
+                    .as_deref()
+                    .is_none_or(|r| r.allows(roots[0], roots[1]))
+            {
                 for s in 0..2 {
                     let before = seen.get(&piece[s]).copied().unwrap_or(0);
                     seen.insert(piece[s], before.max(met[s].size));

@@ -430,7 +430,10 @@ impl Run<'_> {
                     j: m[e.j as usize],
                 })
                 .collect();
-            let ends: Vec<(u32, u32)> = self.ends[t].iter().map(|&(k, l)| (k, m[l as usize])).collect();
+            let ends: Vec<(u32, u32)> = self.ends[t]
+                .iter()
+                .map(|&(k, l)| (k, m[l as usize]))
+                .collect();
             let stops = stops_in(&edges, self.border, &ends, |i| i);
             let at_stops =
                 forest.criterion_pass_with_stops(&edges, self.p.threshold, &stops, Some(regions));

@@ -144,14 +144,21 @@ fn tiles_equal_the_tile_grouped_order() {
             .copied()
             .collect()
     };
-    let border: Vec<Edge> = all.iter().filter(|e| tile(e.i) != tile(e.j)).copied().collect();
+    let border: Vec<Edge> = all
+        .iter()
+        .filter(|e| tile(e.i) != tile(e.j))
+        .copied()
+        .collect();
     let met_at = |b: &Edge, x: u32| {
         let before: Vec<Edge> = inner_of(tile(x)).into_iter().filter(|e| e < b).collect();
         let mut f = Forest::singletons(g.len());
         f.criterion_pass(&before, p.threshold);
         f.component_of(x)
     };
-    let met: Vec<_> = border.iter().map(|b| [met_at(b, b.i), met_at(b, b.j)]).collect();
+    let met: Vec<_> = border
+        .iter()
+        .map(|b| [met_at(b, b.i), met_at(b, b.j)])
+        .collect();
     let mut order: Vec<Edge> = Vec::new();
     let mut f = Forest::singletons(g.len());
     for t in 0..rects.len() as u32 {
