@@ -19,7 +19,9 @@ use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
-use crate::report::{ClusterOutputs, FormOutputs, LevelOutput, Outputs, Report};
+use crate::report::{
+    ClusterOutputs, Counts, FormOutputs, LevelOutput, Outputs, QueueStats, Report, StageTimings,
+};
 use slag_common::mixture::SparseMixture;
 
 /// The two files an encode writes into its output folder, each path whether written or not: the
@@ -164,25 +166,9 @@ pub(crate) fn finish(
     };
     let tail = reduce_tail(&out, device, &store, &files.embeddings)?;
     crate::report::log_rss("encode: reduction");
-    // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
-    // as the mixture's, not the reduction's: the tail's phases stay disjoint.
-    t.reduce = tail.reduce_s - tail.gather_s;
-    counts.device_reduce = tail.on_device;
-    counts.device_reduce_fallback = reduce_fallback;
     counts.spilled_images = store.spilled();
-    counts.reduce_chunks = tail.chunks;
-    counts.observed = tail.observed;
-    counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
-    // The mixture's stored form is built after the store's entries are freed, so that its
-    // buffers never add to them.
-    let t0 = Instant::now();
-    drop(store);
-    let mixture = tail
-        .sparse
-        .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
-        .transpose()?;
-    let mixture_s = tail.gather_s + t0.elapsed().as_secs_f64();
-    crate::report::log_rss("encode: mixture built");
+    record_reduction(&tail, reduce_fallback, n_gaussians, &mut t, &mut counts);
+    let (mixture, mixture_s) = build_mixture(store, tail.sparse, tail.gather_s)?;
     let (level_files, levels_s) = write_levels(&out, &level_stores)?;
     drop(level_stores);
 
@@ -190,6 +176,61 @@ pub(crate) fn finish(
     let mix_path = write_forms(&out, tail.writer, mixture.as_ref())?;
     t.write = tail.write_s + t0.elapsed().as_secs_f64();
     crate::report::log_rss("encode: written");
+    record_totals(&mut report, t, counts, queue, t_total);
+    let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
+    files.write_report(report, params.precision, None, Some(forms))
+}
+
+/// Records the tail's reduction in the timings `t` (its seconds, less the mixture's gathering)
+/// and `counts` (where it ran, the fallback `reduce_fallback` if any, its chunks and the
+/// observed Gaussians, also as a fraction of the scene's `n_gaussians`).
+fn record_reduction(
+    tail: &ReducedOutputs,
+    reduce_fallback: Option<crate::report::DeviceReduceFallback>,
+    n_gaussians: usize,
+    t: &mut StageTimings,
+    counts: &mut Counts,
+) {
+    // The mixture's own share of the pass (gathering its kept atoms between chunks) is counted
+    // as the mixture's, not the reduction's: the tail's phases stay disjoint.
+    t.reduce = tail.reduce_s - tail.gather_s;
+    counts.device_reduce = tail.on_device;
+    counts.device_reduce_fallback = reduce_fallback;
+    counts.reduce_chunks = tail.chunks;
+    counts.observed = tail.observed;
+    counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
+}
+
+/// The mixture's stored form from its reduced `sparse` parts (`None` without the mixture),
+/// built after `store` is freed so that its buffers never add to the store's entries. Returns it
+/// with the mixture's seconds: `gather_s` (its share of the reduction pass) plus the build.
+///
+/// Errors: the mixture's (inconsistent sparse parts).
+fn build_mixture(
+    store: aggregate::ContributionStore,
+    sparse: Option<SparseMixture>,
+    gather_s: f64,
+) -> Result<(Option<slag_common::mixture::MixtureEmbeddings>, f64)> {
+    let t0 = Instant::now();
+    drop(store);
+    let mixture = sparse
+        .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
+        .transpose()?;
+    let mixture_s = gather_s + t0.elapsed().as_secs_f64();
+    crate::report::log_rss("encode: mixture built");
+    Ok((mixture, mixture_s))
+}
+
+/// Completes `report`'s timings `t` (the total, from `t_total`; the models' set-up, timed
+/// before the pool started, kept from the report's header) and `counts` (peak resident bytes,
+/// the queues' occupancy `queue`), and stores both in the report.
+fn record_totals(
+    report: &mut Report,
+    mut t: StageTimings,
+    mut counts: Counts,
+    queue: QueueStats,
+    t_total: Instant,
+) {
     t.total = t_total.elapsed().as_secs_f64();
     counts.peak_rss_bytes = crate::report::peak_rss_bytes();
     counts.queue = Some(queue);
@@ -197,8 +238,6 @@ pub(crate) fn finish(
     t.models = report.timings.models;
     report.timings = t;
     report.counts = counts;
-    let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
-    files.write_report(report, params.precision, None, Some(forms))
 }
 
 /// Finishes the dense file of `writer` (every row pushed) and writes the mixture to
