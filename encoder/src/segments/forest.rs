@@ -11,7 +11,7 @@ use crate::disjoint_sets::DisjointSets;
 
 /// A Felzenszwalb–Huttenlocher component: its Gaussian count and `Int`, the largest edge weight
 /// of its minimum spanning tree.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Default)]
 pub(super) struct Component {
     size: u32,
     int: f32,

@@ -182,7 +182,7 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
         .par_iter()
         .map(|&i| src.ids.place[i as usize].1)
         .collect();
-    let rows = w.masks.map(|m| (m.gather(&ids), m));
+    let rows = w.masks.map(|m| m.gather(&ids));
     let parts: Vec<Vec<Edge>> = ranks
         .par_chunks(4096)
         .enumerate()
@@ -195,7 +195,7 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
                     if tj != t {
                         continue;
                     }
-                    let record = rows.as_ref().map(|x| ((&x.0, s), (&x.0, sj as usize)));
+                    let record = rows.as_ref().map(|x| ((x, s), (x, sj as usize)));
                     let Some((wij, wji)) = slot_weights(src, w, r, slot, record) else {
                         continue;
                     };
@@ -213,7 +213,7 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
 /// Every edge of the graph whose ends lie in different tiles, in scene ids, ascending by
 /// `(w, i, j)` and deduplicated: the same edges and weights that [`tile_edges`] gives inside a
 /// tile. They are weighed before the tiles' passes so that each tile's pass can note, at each
-/// border edge's place in the edge order, its end's merge threshold (module doc, "Bounded
+/// border edge's place in the edge order, the component its end meets (module doc, "Bounded
 /// memory and parallel passes: tiles"). About 0.1–0.2 % of the edges of a large scene.
 pub(super) fn border_edges(src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
     let n = src.nb.perm.len();
