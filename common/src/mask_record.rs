@@ -224,29 +224,20 @@ impl MaskRecord {
     /// record or the slot counts differ.
     pub fn disagreement_between(a: (&MaskRecord, usize), b: (&MaskRecord, usize)) -> Option<f32> {
         let ((ra, i), (rb, j)) = (a, b);
-        let s = ra.slots;
-        if rb.slots != s {
+        if rb.slots != ra.slots {
             return None;
         }
         let (a, b) = (ra.row(i)?, rb.row(j)?);
-        let (va, vb) = (&ra.views[a.clone()], &rb.views[b.clone()]);
-        let (mut agree, mut differ) = (0.0f32, 0.0f32);
-        for (x, &view) in va.iter().enumerate() {
-            if view == EMPTY_VIEW {
-                continue;
-            }
-            // The first slot of `j` with the same view.
-            if let Some(y) = first_slot_of(vb, view) {
-                let w = ra.weights[a.start + x].min(rb.weights[b.start + y]);
-                if ra.masks[a.start + x] == rb.masks[b.start + y] {
-                    agree += w;
-                } else {
-                    differ += w;
-                }
-            }
+        disagreement_of(ra.slots_at(a), rb.slots_at(b))
+    }
+
+    /// The slots at `at`, one row's range ([`MaskRecord::row`]).
+    fn slots_at(&self, at: std::ops::Range<usize>) -> Slots<'_> {
+        Slots {
+            views: &self.views[at.clone()],
+            masks: &self.masks[at.clone()],
+            weights: &self.weights[at],
         }
-        let total = agree + differ;
-        (total > 0.0 && total.is_finite()).then(|| differ / total)
     }
 
     /// The slot range of row `k` in the `[N * S]` arrays; `None` beyond the record.
@@ -284,6 +275,32 @@ impl MaskRecord {
                 weights.copy_from_slice(&self.weights[at..at + s]);
             });
         out
+    }
+
+    /// The rows `rows` of this record, in that order, each packed into one [`PackedRow`] (a
+    /// 64-byte line: an edge's far end is one cache line instead of three), gathered in
+    /// parallel; `None` unless the record has [`DEFAULT_SLOTS`] slots. Rows beyond the record
+    /// come out empty. [`PackedRow::disagreement`] gives the same values as
+    /// [`MaskRecord::disagreement`], bit for bit.
+    pub fn gather_packed(&self, rows: &[u32]) -> Option<Vec<PackedRow>> {
+        use rayon::prelude::*;
+        if self.slots != DEFAULT_SLOTS {
+            return None;
+        }
+        let packed = rows
+            .par_iter()
+            .map(|&k| {
+                let Some(at) = self.row(k as usize) else {
+                    return PackedRow::EMPTY;
+                };
+                let mut row = PackedRow::EMPTY;
+                row.views.copy_from_slice(&self.views[at.clone()]);
+                row.masks.copy_from_slice(&self.masks[at.clone()]);
+                row.weights.copy_from_slice(&self.weights[at]);
+                row
+            })
+            .collect();
+        Some(packed)
     }
 
     /// Writes the file atomically (`<path>.partial`, fsync, rename).
@@ -352,9 +369,76 @@ impl MaskRecord {
     }
 }
 
+/// One Gaussian's [`DEFAULT_SLOTS`] slots of the record side by side in one 64-byte line (the
+/// module doc's slot order): what [`MaskRecord::gather_packed`] lays out for the segments'
+/// edges, which read one such line at each end.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C, align(64))]
+pub struct PackedRow {
+    /// View per slot ([`EMPTY_VIEW`] when unused).
+    pub views: [u16; DEFAULT_SLOTS],
+    /// Dominant mask per slot.
+    pub masks: [u16; DEFAULT_SLOTS],
+    /// Its `a_kj` (raster pixels); 0 when unused.
+    pub weights: [f32; DEFAULT_SLOTS],
+}
+
+impl PackedRow {
+    /// A row with no recorded view.
+    pub const EMPTY: PackedRow = PackedRow {
+        views: [EMPTY_VIEW; DEFAULT_SLOTS],
+        masks: [0; DEFAULT_SLOTS],
+        weights: [0.0; DEFAULT_SLOTS],
+    };
+
+    /// [`MaskRecord::disagreement`] of this row's Gaussian and `other`'s, bit for bit.
+    pub fn disagreement(&self, other: &PackedRow) -> Option<f32> {
+        disagreement_of(self.slots(), other.slots())
+    }
+
+    fn slots(&self) -> Slots<'_> {
+        Slots {
+            views: &self.views,
+            masks: &self.masks,
+            weights: &self.weights,
+        }
+    }
+}
+
+/// One Gaussian's slots, wherever they are stored.
+#[derive(Clone, Copy)]
+struct Slots<'a> {
+    views: &'a [u16],
+    masks: &'a [u16],
+    weights: &'a [f32],
+}
+
+/// [`MaskRecord::disagreement`] of the Gaussians with the slots `a` and `b`: over `a`'s used
+/// slots in their order, each against the first slot of `b` with the same view.
+#[inline(always)]
+fn disagreement_of(a: Slots, b: Slots) -> Option<f32> {
+    let (mut agree, mut differ) = (0.0f32, 0.0f32);
+    for (x, &view) in a.views.iter().enumerate() {
+        if view == EMPTY_VIEW {
+            continue;
+        }
+        if let Some(y) = first_slot_of(b.views, view) {
+            let w = a.weights[x].min(b.weights[y]);
+            if a.masks[x] == b.masks[y] {
+                agree += w;
+            } else {
+                differ += w;
+            }
+        }
+    }
+    let total = agree + differ;
+    (total > 0.0 && total.is_finite()).then(|| differ / total)
+}
+
 /// The first of `views` (one Gaussian's slots) equal to `view`. The edges' hot loop: with the
 /// default 8 slots the comparisons run side by side (no early exit), so that the compiler
 /// turns them into one vector compare.
+#[inline(always)]
 fn first_slot_of(views: &[u16], view: u16) -> Option<usize> {
     if let Ok(row) = <&[u16; DEFAULT_SLOTS]>::try_from(views) {
         let hits = row
@@ -526,6 +610,11 @@ mod tests {
                 r.masks[x] = ((v >> 8) % 3) as u16;
                 r.weights[x] = 0.25 + ((v >> 16) % 97) as f32 * 0.37;
             }
+            // Packed lines (8 slots only), in reverse order and with a row beyond the record.
+            let order: Vec<u32> = (0..=n as u32).rev().collect();
+            let packed = r.gather_packed(&order);
+            assert_eq!(packed.is_some(), slots == DEFAULT_SLOTS);
+            let line = |k: usize| packed.as_ref().map(|p| p[n - k]);
             let mut mixed = 0;
             for i in 0..n {
                 for j in 0..n {
@@ -536,7 +625,18 @@ mod tests {
                         want.map(f32::to_bits),
                         "{slots} slots, rows {i}, {j}"
                     );
+                    if let (Some(a), Some(b)) = (line(i), line(j)) {
+                        assert_eq!(
+                            a.disagreement(&b).map(f32::to_bits),
+                            want.map(f32::to_bits),
+                            "packed rows {i}, {j}"
+                        );
+                    }
                 }
+            }
+            if let Some(p) = &packed {
+                assert_eq!(p[0], PackedRow::EMPTY, "a row beyond the record is empty");
+                assert_eq!(std::mem::size_of::<PackedRow>(), 64);
             }
             assert!(mixed > n, "{slots} slots: too few mixed pairs ({mixed})");
             assert_eq!(r.disagreement(0, n), None, "a row beyond the record");

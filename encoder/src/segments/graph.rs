@@ -2,7 +2,7 @@
 //! their weights, tile by tile (module doc, "Bounded memory: tiles").
 
 use rayon::prelude::*;
-use slag_common::mask_record::MaskRecord;
+use slag_common::mask_record::{MaskRecord, PackedRow};
 
 use super::SegmentParams;
 use super::weights::{Edge, Geometry, Weigher, distance};
@@ -171,8 +171,9 @@ pub(super) struct EdgeSource<'a> {
 /// ([`slot_weights`]).
 ///
 /// The tile's Gaussians are visited in space order, with their masks' record gathered in that
-/// order first ([`MaskRecord::gather`]): the reads an edge makes at its far end land near
-/// those of its near end. The edges are those of the scene's id order, weight for weight.
+/// order first, each row packed into one cache line ([`MaskRecord::gather_packed`]; other slot
+/// counts than the default: [`MaskRecord::gather`]): the reads an edge makes at its far end
+/// land near those of its near end. The edges are those of the scene's id order, weight for weight.
 pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
     let ranks = &src.ranks.members[t as usize];
     // The tile's Gaussians in space order: their ids, their local ids (in id order) and
@@ -182,7 +183,10 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
         .par_iter()
         .map(|&i| src.ids.place[i as usize].1)
         .collect();
-    let rows = w.masks.map(|m| m.gather(&ids));
+    let rows = w.masks.map(|m| match m.gather_packed(&ids) {
+        Some(lines) => TileRecord::Packed(lines),
+        None => TileRecord::Rows(m.gather(&ids)),
+    });
     let parts: Vec<Vec<Edge>> = ranks
         .par_chunks(4096)
         .enumerate()
@@ -195,7 +199,7 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
                     if tj != t {
                         continue;
                     }
-                    let record = rows.as_ref().map(|x| ((x, s), (x, sj as usize)));
+                    let record = rows.as_ref().map(|x| x.rows(s, sj as usize));
                     let Some((wij, wji)) = slot_weights(src, w, r, slot, record) else {
                         continue;
                     };
@@ -228,7 +232,9 @@ pub(super) fn border_edges(src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
                     continue;
                 }
                 let j = src.nb.perm[rj as usize];
-                let record = w.masks.map(|m| ((m, i as usize), (m, j as usize)));
+                let record = w
+                    .masks
+                    .map(|m| RecordRows::Rows((m, i as usize), (m, j as usize)));
                 if let Some((wij, wji)) = slot_weights(src, w, r, slot, record) {
                     push_edges(&mut edges, wij, wji, i.min(j), i.max(j));
                 }
@@ -241,8 +247,44 @@ pub(super) fn border_edges(src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
     out
 }
 
-/// The record rows of an edge's two ends, `(near, far)`.
-type RecordRows<'a> = ((&'a MaskRecord, usize), (&'a MaskRecord, usize));
+/// A tile's rows of the masks' record, in its space order ([`tile_edges`]).
+enum TileRecord {
+    /// One line per Gaussian (the default slot count).
+    Packed(Vec<PackedRow>),
+    /// A gathered part of the record (any other slot count).
+    Rows(MaskRecord),
+}
+
+impl TileRecord {
+    /// The rows of the tile's Gaussians at places `near` and `far`.
+    fn rows(&self, near: usize, far: usize) -> RecordRows<'_> {
+        match self {
+            TileRecord::Packed(lines) => RecordRows::Packed(&lines[near], &lines[far]),
+            TileRecord::Rows(r) => RecordRows::Rows((r, near), (r, far)),
+        }
+    }
+}
+
+/// The record rows of an edge's two ends, `(near, far)`: rows of a record (the scene's or a
+/// gathered part of it), or packed lines.
+#[derive(Clone, Copy)]
+enum RecordRows<'a> {
+    Rows((&'a MaskRecord, usize), (&'a MaskRecord, usize)),
+    Packed(&'a PackedRow, &'a PackedRow),
+}
+
+impl RecordRows<'_> {
+    /// The mask disagreement from the near end to the far one ([`MaskRecord::disagreement`]),
+    /// or the other way round; `None` when they share no recorded view.
+    fn disagreement(self, far_to_near: bool) -> Option<f32> {
+        match (self, far_to_near) {
+            (RecordRows::Rows(near, far), false) => MaskRecord::disagreement_between(near, far),
+            (RecordRows::Rows(near, far), true) => MaskRecord::disagreement_between(far, near),
+            (RecordRows::Packed(near, far), false) => near.disagreement(far),
+            (RecordRows::Packed(near, far), true) => far.disagreement(near),
+        }
+    }
+}
 
 /// The weights `(w(i, j), w(j, i))` (bit patterns) of the edge from rank `r` (Gaussian `i`) to
 /// its `slot`-th neighbour `j`, with the two ends' rows of the masks' record when there is
@@ -262,10 +304,10 @@ fn slot_weights(
     if back.is_some() && j < i {
         return None;
     }
-    let m_ij = record.map(|(near, far)| w.disagreement_between(near, far));
+    let m_ij = record.map(|rows| w.known_or_unknown(rows.disagreement(false)));
     let wij = w.weight_with(src.geometric[r * k + slot], m_ij).to_bits();
     let wji = back.map_or(wij, |b| {
-        let m_ji = record.map(|(near, far)| w.disagreement_between(far, near));
+        let m_ji = record.map(|rows| w.known_or_unknown(rows.disagreement(true)));
         w.weight_with(src.geometric[ru * k + b], m_ji).to_bits()
     });
     Some((wij, wji))

@@ -390,9 +390,10 @@ fn corners() -> Gaussians {
     g
 }
 
-/// A masks' record of `g` over 6 views: masks by strips of the plane, each view its own.
-fn strips_record(g: &Gaussians) -> slag_common::mask_record::MaskRecord {
-    let mut r = slag_common::mask_record::MaskRecord::new(g.len(), 4, 6).unwrap();
+/// A masks' record of `g` over 6 views with `slots` slots: masks by strips of the plane, each
+/// view its own.
+fn strips_record(g: &Gaussians, slots: usize) -> slag_common::mask_record::MaskRecord {
+    let mut r = slag_common::mask_record::MaskRecord::new(g.len(), slots, 6).unwrap();
     for v in 0..6usize {
         let entries = (0..g.len() as u32)
             .filter(|&i| (i as usize + v) % 3 != 0)
@@ -445,7 +446,7 @@ fn corners_with_record() -> (
     std::sync::Arc<slag_common::mask_record::MaskRecord>,
 ) {
     let g = corners();
-    let record = std::sync::Arc::new(strips_record(&g));
+    let record = std::sync::Arc::new(strips_record(&g, 4));
     (g, record)
 }
 
@@ -461,10 +462,13 @@ fn corners_params(tile_gaussians: usize) -> SegmentParams {
 #[test]
 fn ids_equal_the_previous_implementation() {
     let (g, record) = corners_with_record();
+    // The default slot count: the tiles read their rows as packed lines.
+    let packed = std::sync::Arc::new(strips_record(&g, slag_common::mask_record::DEFAULT_SLOTS));
     let base = corners_params(700);
     for (p, masks) in [
         (base, None),
         (base, Some(&record)),
+        (base, Some(&packed)),
         (
             SegmentParams {
                 region_veto: 0.6,

@@ -153,15 +153,11 @@ impl Weigher<'_> {
         if w.is_finite() { w.max(0.0) } else { f32::MAX }
     }
 
-    /// The mask disagreement of two rows of records ([`MaskRecord::disagreement_between`]), or
-    /// [`SegmentParams::mask_unknown`] when they share no recorded view: the value
+    /// A mask disagreement of two rows of the record (e.g. [`MaskRecord::disagreement_between`]),
+    /// or [`SegmentParams::mask_unknown`] when they share no recorded view (`None`): the value
     /// [`Weigher::weight`] adds for the two Gaussians, bit for bit.
-    pub(super) fn disagreement_between(
-        &self,
-        a: (&MaskRecord, usize),
-        b: (&MaskRecord, usize),
-    ) -> f32 {
-        MaskRecord::disagreement_between(a, b).unwrap_or(self.p.mask_unknown)
+    pub(super) fn known_or_unknown(&self, m: Option<f32>) -> f32 {
+        m.unwrap_or(self.p.mask_unknown)
     }
 
     /// Whether the minimum-size pass may join across `e`: always without a record; with one,
