@@ -18,7 +18,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
-use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
+use super::graph::{EdgeSource, TileLines, TileMembers, border_edges, tile_edges};
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -42,11 +42,13 @@ struct TilePass {
     seconds: [f64; 3],
 }
 
-/// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass; the
-/// seconds of the weights and of the sort.
+/// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass, with
+/// its packed rows of the masks' record (the default slot count); the seconds of the weights
+/// and of the sort.
 struct BuiltTile {
     t: u32,
     inner: Vec<Edge>,
+    lines: Option<TileLines>,
     seconds: [f64; 2],
 }
 
@@ -54,13 +56,14 @@ struct BuiltTile {
 /// in parallel (a total order: the same order whatever the threads).
 fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
     let clock = Instant::now();
-    let mut inner = tile_edges(t, src, w);
+    let (mut inner, lines) = tile_edges(t, src, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
     BuiltTile {
         t,
         inner,
+        lines,
         seconds: [edges_s, clock.elapsed().as_secs_f64()],
     }
 }
@@ -103,8 +106,9 @@ impl BuiltTile {
     /// ids, ascending), noting the components its `ends` of the scene's `border` edges meet
     /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
     /// picked in parallel, its edges still between components that the
-    /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`]), in scene ids
-    /// and in order: the pass could use no other.
+    /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`], read from the
+    /// tile's packed lines where it has them), in scene ids and in order: the pass could use no
+    /// other.
     fn criterion(
         self,
         p: &SegmentParams,
@@ -128,11 +132,14 @@ impl BuiltTile {
                 i: members[e.i as usize],
                 j: members[e.j as usize],
             };
+            let absorbs = |e: &Edge| match &self.lines {
+                Some(lines) => lines.may_absorb(w, e),
+                None => w.may_absorb(&global(e)),
+            };
             self.inner
                 .par_iter()
-                .filter(|e| f.root(e.i) != f.root(e.j))
+                .filter(|e| f.root(e.i) != f.root(e.j) && absorbs(e))
                 .map(global)
-                .filter(|e| w.may_absorb(e))
                 .collect()
         } else {
             Vec::new()
@@ -414,7 +421,7 @@ impl Run<'_> {
         let (mut kept, mut inner) = (Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
-            let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
+            let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w).0);
             self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;

@@ -501,6 +501,30 @@ fn ids_equal_the_previous_implementation() {
     }
 }
 
+/// The minimum-size pass's mask veto, which the tiles check from their packed lines of the
+/// record (the default slot count): the reference's ids at a veto strict enough to change them.
+#[test]
+fn the_mask_veto_from_the_tiles_lines_equals_the_reference() {
+    let (g, _) = corners_with_record();
+    let record = std::sync::Arc::new(strips_record(&g, slag_common::mask_record::DEFAULT_SLOTS));
+    let ids = |mask_veto: f32| {
+        let p = SegmentParams {
+            mask_veto,
+            min_size: 40,
+            ..corners_params(700)
+        };
+        let (s, stats) = segment(&g, &p, "x", Some(record.clone())).unwrap();
+        assert!(stats.tiles > 4, "{stats:?}");
+        assert_eq!(
+            s.segments,
+            reference::segment_ids(&g, &p, Some(&*record)),
+            "{p:?}"
+        );
+        s.segments
+    };
+    assert_ne!(ids(0.05), ids(1.0), "the veto must refuse some joins here");
+}
+
 #[test]
 fn ids_do_not_depend_on_threads() {
     let (g, record) = corners_with_record();
