@@ -72,7 +72,7 @@ use timely::dataflow::operators::Operator;
 
 use crate::aggregate::ContributionStore;
 use crate::pipeline::finish::OutputFiles;
-use crate::report::Report;
+use crate::report::{ClusterOutputs, Counts, Report, StageTimings};
 
 mod config;
 mod encoder;
@@ -324,15 +324,58 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
     let t_total = Instant::now();
     cluster.check().map_err(Error::Invalid)?;
     let process = cluster.process;
-    let out = job.params.out_dir.clone();
-    std::fs::create_dir_all(&out).map_err(|e| Error::io(&out, e))?;
-    let spill = spill_dir(&out, process);
+    let spill = fresh_spill_dir(&job.params.out_dir, process)?;
+
+    let previous_hook = std::panic::take_hook();
+    set_peer_lost_hook(process, spill);
+    let connected = Arc::new(AtomicBool::new(false));
+    start_connect_watchdog(cluster, Arc::clone(&connected));
+
+    let models_header = job.report.clone();
+    let job = Arc::new(job);
+    let outcome = run_job(&job, cluster, &connected);
+    // Past this point neither the watchdog nor the hook may act: the job has ended one way or the
+    // other (joined) or never started.
+    connected.store(true, Ordering::SeqCst);
+    std::panic::set_hook(previous_hook);
+
+    let outcome = outcome?;
+    let Some(output) = outcome.output else {
+        tracing::info!(
+            process,
+            images = outcome.images,
+            "job completed; process 0 writes the outputs"
+        );
+        return Ok(None);
+    };
+    let report = write_outputs(
+        &job,
+        cluster,
+        models_header,
+        outcome.models,
+        output,
+        t_total,
+    )?;
+    Ok(Some(report))
+}
+
+/// Creates the output folder `out` and removes a spill folder of process `process` left by an
+/// earlier run; returns that spill folder's path.
+///
+/// Errors: I/O on either folder.
+fn fresh_spill_dir(out: &Path, process: usize) -> Result<PathBuf> {
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let spill = spill_dir(out, process);
     if spill.exists() {
         std::fs::remove_dir_all(&spill).map_err(|e| Error::io(&spill, e))?;
     }
+    Ok(spill)
+}
 
-    let previous_hook = std::panic::take_hook();
-    let hook_spill = spill.clone();
+/// Installs the process-wide panic hook of [`encode_cluster`]: a panic on any thread prints one
+/// line naming its cause (a lost peer or an internal error), removes `spill` and exits the
+/// process with [`EXIT_PEER_LOST`].
+fn set_peer_lost_hook(process: usize, spill: PathBuf) {
     std::panic::set_hook(Box::new(move |info| {
         let text = panic_text(info);
         let cause = if text.contains("timely communication error")
@@ -346,31 +389,44 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
             "error: encode-cluster process {process}: {cause}: {text}\nerror: the job failed and \
              wrote no output; rerun every process"
         );
-        let _ = std::fs::remove_dir_all(&hook_spill);
+        let _ = std::fs::remove_dir_all(&spill);
         std::process::exit(EXIT_PEER_LOST);
     }));
+}
 
-    let connected = Arc::new(AtomicBool::new(false));
-    {
-        let (connected, timeout, n) = (
-            Arc::clone(&connected),
-            cluster.connect_timeout,
-            cluster.addresses.len(),
-        );
-        std::thread::spawn(move || {
-            std::thread::sleep(timeout);
-            if !connected.load(Ordering::SeqCst) {
-                eprintln!(
-                    "error: encode-cluster process {process}: not all {n} processes connected \
-                     within {} s; start every process with the same hosts file (and check the \
-                     addresses and firewalls)",
-                    timeout.as_secs()
-                );
-                std::process::exit(EXIT_PEER_LOST);
-            }
-        });
-    }
+/// Starts a thread that exits the process with [`EXIT_PEER_LOST`] unless `connected` is set
+/// within the cluster's `connect_timeout`.
+fn start_connect_watchdog(cluster: &ClusterConfig, connected: Arc<AtomicBool>) {
+    let (process, timeout, n) = (
+        cluster.process,
+        cluster.connect_timeout,
+        cluster.addresses.len(),
+    );
+    std::thread::spawn(move || {
+        std::thread::sleep(timeout);
+        if !connected.load(Ordering::SeqCst) {
+            eprintln!(
+                "error: encode-cluster process {process}: not all {n} processes connected \
+                 within {} s; start every process with the same hosts file (and check the \
+                 addresses and firewalls)",
+                timeout.as_secs()
+            );
+            std::process::exit(EXIT_PEER_LOST);
+        }
+    });
+}
 
+/// Runs `job` as this process's single timely worker of `cluster` and waits for it to end;
+/// `connected` is set once the worker runs (every process has connected).
+///
+/// Errors: the cluster cannot start (this process's address cannot be bound); the worker's own
+/// error or panic.
+fn run_job(
+    job: &Arc<ClusterJob>,
+    cluster: &ClusterConfig,
+    connected: &Arc<AtomicBool>,
+) -> Result<WorkerOutcome> {
+    let process = cluster.process;
     let config = timely::Config {
         communication: timely::CommunicationConfig::Cluster {
             threads: 1,
@@ -381,60 +437,58 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         },
         worker: timely::WorkerConfig::default(),
     };
-    let models_header = job.report.clone();
-    let job = Arc::new(job);
-    let worker_job = Arc::clone(&job);
-    let worker_connected = Arc::clone(&connected);
+    let worker_job = Arc::clone(job);
+    let worker_connected = Arc::clone(connected);
     let started = timely::execute(config, move |worker| {
         worker_connected.store(true, Ordering::SeqCst);
         run_worker(worker, &worker_job)
     });
-    // Past this point neither the watchdog nor the hook may act: the job has ended one way or the
-    // other (joined) or never started.
-    let results = started.map(|guards| guards.join());
-    connected.store(true, Ordering::SeqCst);
-    std::panic::set_hook(previous_hook);
-    let results = results.map_err(|e| {
+    let results = started.map(|guards| guards.join()).map_err(|e| {
         Error::network(
             cluster.addresses[process].clone(),
             format!("encode-cluster process {process}: cannot start the cluster: {e}"),
         )
     })?;
-
-    let outcome = results
+    results
         .into_iter()
         .next()
         .ok_or_else(|| Error::internal("timely started no worker"))?
-        .map_err(|e| Error::internal(format!("worker thread failed: {e}")))??;
-    let Some((embeddings, counts, mut timings, cluster_stats)) = outcome.output else {
-        tracing::info!(
-            process,
-            images = outcome.images,
-            "job completed; process 0 writes the outputs"
-        );
-        return Ok(None);
-    };
+        .map_err(|e| Error::internal(format!("worker thread failed: {e}")))?
+}
+
+/// Process 0's end of the job: writes `OUT/embeddings.safetensors`, then `OUT/report.json` from
+/// `report` (the models' header) completed with the worker's `models` (rasterizer, CLIP model
+/// id, masks), the cluster's addresses and `output`'s counts and timings; returns the report.
+///
+/// Errors: I/O on the outputs.
+fn write_outputs(
+    job: &ClusterJob,
+    cluster: &ClusterConfig,
+    mut report: Report,
+    models: [String; 3],
+    output: (Embeddings, Counts, StageTimings, ClusterOutputs),
+    t_total: Instant,
+) -> Result<Report> {
+    let (embeddings, counts, mut timings, cluster_stats) = output;
     let t0 = Instant::now();
     let embeddings = Embeddings {
-        model: outcome.models[1].clone(),
+        model: models[1].clone(),
         scene_gaussians: counts.gaussians as u64,
         source_ply: job.scene.ply.display().to_string(),
         ..embeddings
     };
-    let files = OutputFiles::begin(&out)?;
+    let files = OutputFiles::begin(&job.params.out_dir)?;
     embeddings.write(&files.embeddings, job.params.precision)?;
     timings.write = t0.elapsed().as_secs_f64();
     timings.total = t_total.elapsed().as_secs_f64();
-    let mut report = models_header;
-    let [rasterizer, clip_model_id, masks] = outcome.models;
+    let [rasterizer, clip_model_id, masks] = models;
     report.models.rasterizer = rasterizer;
     report.models.clip_model_id = clip_model_id;
     report.models.masks = masks;
     report.parameters.cluster_addresses = Some(cluster.addresses.clone());
     report.timings = timings;
     report.counts = counts;
-    let report = files.write_report(report, job.params.precision, Some(cluster_stats), None)?;
-    Ok(Some(report))
+    files.write_report(report, job.params.precision, Some(cluster_stats), None)
 }
 
 #[cfg(test)]
