@@ -312,16 +312,25 @@ impl PixelLabels {
             if set.is_empty() {
                 continue;
             }
-            remap[s] = *ids.entry(set.as_slice()).or_insert_with(|| {
-                masks_of.push(set.clone());
-                (masks_of.len() - 1) as u32
-            });
+            remap[s] = *ids
+                .entry(set.as_slice())
+                .or_insert_with(|| new_label(&mut masks_of, set.clone()));
         }
         labels
             .par_iter_mut()
             .for_each(|l| *l = remap.get(*l as usize).copied().unwrap_or(0));
         PixelLabels { labels, masks_of }
     }
+}
+
+/// Appends the mask set `set` to `masks_of` as a new label and returns that label; an empty set
+/// gets none and is label 0 (no mask).
+fn new_label(masks_of: &mut Vec<Vec<u32>>, set: Vec<u32>) -> u32 {
+    if set.is_empty() {
+        return 0;
+    }
+    masks_of.push(set);
+    (masks_of.len() - 1) as u32
 }
 
 /// The labels of the raster grid `width × height` for full-resolution `masks` (nearest sampling
@@ -347,8 +356,7 @@ pub fn pixel_labels<M: ImageMask>(masks: &[M], width: u32, height: u32) -> Pixel
                 let members = (0..masks.len() as u32)
                     .filter(|&j| set[j as usize / 64] >> (j % 64) & 1 == 1)
                     .collect();
-                masks_of.push(members);
-                (masks_of.len() - 1) as u32
+                new_label(&mut masks_of, members)
             })
         })
         .collect();
@@ -410,11 +418,7 @@ pub fn stage_labels<M: ImageMask>(
                     .copied()
                     .filter(|j| held.binary_search(j).is_ok())
                     .collect();
-                if set.is_empty() {
-                    return 0;
-                }
-                masks_of.push(set);
-                (masks_of.len() - 1) as u32
+                new_label(&mut masks_of, set)
             })
         })
         .collect();
@@ -741,10 +745,8 @@ mod expand_tests {
                 if set.is_empty() {
                     return 0;
                 }
-                *ids.entry(set.clone()).or_insert_with(|| {
-                    masks_of.push(set);
-                    (masks_of.len() - 1) as u32
-                })
+                *ids.entry(set.clone())
+                    .or_insert_with(|| new_label(&mut masks_of, set))
             })
             .collect();
         assert!(masks_of.len() > 50, "many distinct sets");
