@@ -265,6 +265,11 @@ fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
     out
 }
 
+/// Centres of `n` Gaussians on a line along x: Gaussian `k` at `(k, y, z)`.
+fn means_along_x(n: u32, y: f32, z: f32) -> Vec<[f32; 3]> {
+    (0..n).map(|k| [k as f32, y, z]).collect()
+}
+
 /// Images with overlapping masks over `n` Gaussians, unit mask embeddings of width `dim`.
 fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionStore {
     let mut store = ContributionStore::new(budget, dir.to_path_buf());
@@ -286,7 +291,7 @@ fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionS
 fn mixture_with_every_atom_kept_reproduces_reduce() {
     let (n, dim) = (3000u32, 16);
     let dir = tempfile::tempdir().unwrap();
-    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 1.0, -2.0]).collect();
+    let means = means_along_x(n, 1.0, -2.0);
     let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
     let exact = reduce(&store, n as usize, dim, ReduceParams::default()).unwrap();
     let mix = reduce_mixture(
@@ -331,7 +336,7 @@ fn both_loop_orders_give_the_same_sums_bit_for_bit() {
     // budget 3 chunks whose edges fall inside blocks of the image-major loop.
     let (n, dim) = (3000u32, 16);
     let dir = tempfile::tempdir().unwrap();
-    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.0, 0.0]).collect();
+    let means = means_along_x(n, 0.0, 0.0);
     let store = mixture_store(n, dim, usize::MAX, &dir.path().join("a"));
     assert_eq!(store.spilled(), 0);
     for budget in [usize::MAX / 2, 1024 * (dim + 1) * 8] {
@@ -422,7 +427,7 @@ impl TailCase<'_> {
 fn fused_tail_writes_exactly_what_the_two_passes_write() {
     let (n, dim) = (5000u32, 16);
     let dir = tempfile::tempdir().unwrap();
-    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.5, -1.0]).collect();
+    let means = means_along_x(n, 0.5, -1.0);
     let in_memory = mixture_store(n, dim, usize::MAX, &dir.path().join("mem"));
     let half = in_memory.bytes_in_memory() / 2;
     let mixed = mixture_store(n, dim, half, &dir.path().join("mixed"));
@@ -499,7 +504,7 @@ fn fused_tail_rejects_what_the_mixture_rejects() {
     use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
     let (n, dim) = (300u32, 8);
     let dir = tempfile::tempdir().unwrap();
-    let means: Vec<[f32; 3]> = (0..n).map(|k| [k as f32, 0.0, 0.0]).collect();
+    let means = means_along_x(n, 0.0, 0.0);
     let mut store = mixture_store(n, dim, usize::MAX, &dir.path().join("s"));
     let path = dir.path().join("e.safetensors");
     let p = ReduceParams::default();
