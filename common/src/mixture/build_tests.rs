@@ -187,6 +187,26 @@ fn assert_same(parts: SparseMixture, what: &str) -> std::result::Result<String, 
     got
 }
 
+/// [`assert_same`] on the [`random_parts`] of seeds `first_seed + i` for `i` in `0..cases`
+/// (labelled `seed {i}`); the build's outcomes, in that order.
+fn assert_same_over_seeds(
+    n: usize,
+    m: usize,
+    dim: usize,
+    f: Flavour,
+    first_seed: u64,
+    cases: u64,
+) -> Vec<std::result::Result<String, String>> {
+    (0..cases)
+        .map(|i| {
+            assert_same(
+                random_parts(n, m, dim, f, first_seed + i),
+                &format!("seed {i}"),
+            )
+        })
+        .collect()
+}
+
 /// What a random case may hold besides plain positive rows.
 #[derive(Clone, Copy)]
 struct Flavour {
@@ -344,9 +364,7 @@ fn the_first_failing_gaussian_in_id_order_is_reported() {
         signs: true,
         ..PLAIN
     };
-    for seed in 0..4 {
-        let parts = random_parts(20_000, 24, 8, f, 1000 + seed);
-        let got = assert_same(parts, &format!("seed {seed}"));
+    for got in assert_same_over_seeds(20_000, 24, 8, f, 1000, 4) {
         assert!(got.is_err());
     }
 }
@@ -360,10 +378,7 @@ fn long_rows_with_repeats_equal_the_reference() {
         signs: true,
         ..PLAIN
     };
-    for seed in 0..6 {
-        let parts = random_parts(300, 400, 6, f, 50 + seed);
-        let _ = assert_same(parts, &format!("seed {seed}"));
-    }
+    let _ = assert_same_over_seeds(300, 400, 6, f, 50, 6);
     let row: Vec<u32> = (0..40).map(|t| 7 * t).collect();
     let mut parts = SparseMixture {
         dim: 6,
