@@ -174,7 +174,7 @@ pub(super) struct EdgeSource<'a> {
 /// order first, each row packed into one cache line ([`MaskRecord::gather_packed`]; other slot
 /// counts than the default: [`MaskRecord::gather`]): the reads an edge makes at its far end
 /// land near those of its near end. The edges are those of the scene's id order, weight for weight.
-pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> (Vec<Edge>, Option<TileLines>) {
+pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
     let ranks = &src.ranks.members[t as usize];
     // The tile's Gaussians in space order: their ids, their local ids (in id order) and
     // their rows of the record.
@@ -211,35 +211,7 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> (Vec<Edge>, O
             inner
         })
         .collect();
-    let lines = match rows {
-        Some(TileRecord::Packed(lines)) => {
-            let mut place = vec![0u32; local.len()];
-            for (s, &l) in local.iter().enumerate() {
-                place[l as usize] = s as u32;
-            }
-            Some(TileLines { lines, place })
-        }
-        _ => None,
-    };
-    (parts.concat(), lines)
-}
-
-/// A tile's rows of the masks' record as packed lines ([`MaskRecord::gather_packed`], in the
-/// tile's space order) and where each local id's line is: what the tile's own veto checks
-/// read ([`TileLines::may_absorb`]) instead of the scene's record.
-pub(super) struct TileLines {
-    lines: Vec<PackedRow>,
-    /// Local id → its line.
-    place: Vec<u32>,
-}
-
-impl TileLines {
-    /// [`Weigher::may_absorb`] of the tile's edge `e` (local ids), from the tile's lines: the
-    /// same answer, as the lines hold the record's rows bit for bit.
-    pub(super) fn may_absorb(&self, w: &Weigher, e: &Edge) -> bool {
-        let line = |l: u32| &self.lines[self.place[l as usize] as usize];
-        w.absorbs(line(e.i).disagreement(line(e.j)))
-    }
+    parts.concat()
 }
 
 /// Every edge of the graph whose ends lie in different tiles, in scene ids, ascending by

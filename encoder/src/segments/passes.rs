@@ -7,10 +7,10 @@
 //! border edges meet where those edges fall in its order. Their forests then make the scene's
 //! forest, which takes the border edges by those components and the minimum-size pass.
 //! That pass skips the inner edges whose ends were already joined after their tile's criterion pass
-//! (components only grow, so it would skip them anyway) and those that the mask veto refuses (both
-//! dropped by the tile's pass), and, of the edges left, those with no end in a component below the
-//! minimum size ([`min_size_candidates`], picked in parallel): it runs over the rest, in the same
-//! order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed and
+//! (components only grow, so it would skip them anyway; dropped by the tile's pass), and, of the
+//! edges left, those with no end in a component below the minimum size and those that the mask
+//! veto refuses ([`min_size_candidates`], picked in parallel, the veto last: it reads the scene's
+//! record, and few edges are left to check by then): it runs over the rest, in the same order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed and
 //! sorted on the other threads.
 
 use std::time::Instant;
@@ -18,7 +18,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
-use super::graph::{EdgeSource, TileLines, TileMembers, border_edges, tile_edges};
+use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -42,13 +42,11 @@ struct TilePass {
     seconds: [f64; 3],
 }
 
-/// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass, with
-/// its packed rows of the masks' record (the default slot count); the seconds of the weights
-/// and of the sort.
+/// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass; the
+/// seconds of the weights and of the sort.
 struct BuiltTile {
     t: u32,
     inner: Vec<Edge>,
-    lines: Option<TileLines>,
     seconds: [f64; 2],
 }
 
@@ -56,14 +54,13 @@ struct BuiltTile {
 /// in parallel (a total order: the same order whatever the threads).
 fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
     let clock = Instant::now();
-    let (mut inner, lines) = tile_edges(t, src, w);
+    let mut inner = tile_edges(t, src, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
     inner.par_sort_unstable();
     BuiltTile {
         t,
         inner,
-        lines,
         seconds: [edges_s, clock.elapsed().as_secs_f64()],
     }
 }
@@ -105,15 +102,12 @@ impl BuiltTile {
     /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
     /// ids, ascending), noting the components its `ends` of the scene's `border` edges meet
     /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
-    /// picked in parallel, its edges still between components that the
-    /// mask veto lets the minimum-size pass join across ([`Weigher::may_absorb`], read from the
-    /// tile's packed lines where it has them), in scene ids and in order: the pass could use no
-    /// other.
+    /// picked in parallel, its edges still between components, in scene ids and in order: the
+    /// minimum-size pass could join across no other.
     fn criterion(
         self,
         p: &SegmentParams,
         members: &[u32],
-        w: &Weigher,
         (border, ends): (&[Edge], &[(u32, u32)]),
     ) -> TilePass {
         let clock = Instant::now();
@@ -132,13 +126,9 @@ impl BuiltTile {
                 i: members[e.i as usize],
                 j: members[e.j as usize],
             };
-            let absorbs = |e: &Edge| match &self.lines {
-                Some(lines) => lines.may_absorb(w, e),
-                None => w.may_absorb(&global(e)),
-            };
             self.inner
                 .par_iter()
-                .filter(|e| f.root(e.i) != f.root(e.j) && absorbs(e))
+                .filter(|e| f.root(e.i) != f.root(e.j))
                 .map(global)
                 .collect()
         } else {
@@ -197,8 +187,8 @@ impl InFlight {
 
 /// The tiles' criterion passes: the scene's forest after them, the components each border
 /// edge's ends (`i`, `j`) met where it stands in the order, each tile's
-/// inner edges still between components after its pass that the mask veto lets the
-/// minimum-size pass join across (scene ids, in order) and the inner edges' count.
+/// inner edges still between components after its pass (scene ids, in order) and the inner
+/// edges' count.
 struct Tiled {
     forest: Forest,
     met: Vec<[Component; 2]>,
@@ -276,8 +266,8 @@ pub(super) fn merge(
 
 /// The edges of `kept` (one list after the other, each in its order), then of `border`, that
 /// the minimum-size pass could join across, in parallel: those with an end in a component of
-/// fewer than `min_size` Gaussians now and, of `border`, that `w` lets it join
-/// ([`Weigher::may_absorb`]; the tiles' passes checked `kept`'s). The pass over them alone joins
+/// fewer than `min_size` Gaussians now that `w` lets it join ([`Weigher::may_absorb`], checked
+/// last: most edges have no small end). The pass over them alone joins
 /// what the pass over all of the lists joins: components only grow, so an edge between two
 /// components of `min_size` or more now never qualifies, and the mask veto is the edge's own.
 /// Each list is freed once filtered.
@@ -292,7 +282,11 @@ fn min_size_candidates(
     let small_end = |e: &&Edge| small[e.i as usize] || small[e.j as usize];
     let mut out = Vec::new();
     for list in kept {
-        let part: Vec<Edge> = list.par_iter().filter(small_end).copied().collect();
+        let part: Vec<Edge> = list
+            .par_iter()
+            .filter(|e| small_end(e) && w.may_absorb(e))
+            .copied()
+            .collect();
         out.extend(part);
     }
     let part: Vec<Edge> = border
@@ -392,7 +386,7 @@ impl Run<'_> {
             .map(|b| {
                 let t = b.t as usize;
                 let ends = (self.border, &self.ends[t][..]);
-                b.criterion(self.p, &self.tm.members[t], self.w, ends)
+                b.criterion(self.p, &self.tm.members[t], ends)
             })
             .collect()
     }
@@ -421,7 +415,7 @@ impl Run<'_> {
         let (mut kept, mut inner) = (Vec::with_capacity(tiles), 0);
         for t in 0..tiles {
             let clock = Instant::now();
-            let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w).0);
+            let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
             self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;
@@ -450,7 +444,7 @@ impl Run<'_> {
             inner += edges.len() as u64;
             let between: Vec<Edge> = edges
                 .into_iter()
-                .filter(|e| forest.find(e.i) != forest.find(e.j) && self.w.may_absorb(e))
+                .filter(|e| forest.find(e.i) != forest.find(e.j))
                 .collect();
             kept.push(between);
             st.criterion += clock.elapsed().as_secs_f64();

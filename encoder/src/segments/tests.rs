@@ -501,10 +501,11 @@ fn ids_equal_the_previous_implementation() {
     }
 }
 
-/// The minimum-size pass's mask veto, which the tiles check from their packed lines of the
-/// record (the default slot count): the reference's ids at a veto strict enough to change them.
+/// The minimum-size pass's mask veto, checked on the candidates of that pass only (after the
+/// tiles' passes, with the default slot count's packed lines for the weights): the reference's
+/// ids at a veto strict enough to change them.
 #[test]
-fn the_mask_veto_from_the_tiles_lines_equals_the_reference() {
+fn the_mask_veto_on_the_minimum_size_candidates_equals_the_reference() {
     let (g, _) = corners_with_record();
     let record = std::sync::Arc::new(strips_record(&g, slag_common::mask_record::DEFAULT_SLOTS));
     let ids = |mask_veto: f32| {

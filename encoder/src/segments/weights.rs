@@ -163,12 +163,7 @@ impl Weigher<'_> {
     /// Whether the minimum-size pass may join across `e`: always without a record; with one,
     /// unless the masks disagree on it more than [`SegmentParams::mask_veto`].
     pub(super) fn may_absorb(&self, e: &Edge) -> bool {
-        self.absorbs(self.disagreement(e.i as usize, e.j as usize))
-    }
-
-    /// Whether an edge whose mask disagreement is `m` (`None`: no record, or no view shared)
-    /// may be joined across by the minimum-size pass ([`Weigher::may_absorb`]).
-    pub(super) fn absorbs(&self, m: Option<f32>) -> bool {
-        m.is_none_or(|m| m <= self.p.mask_veto)
+        self.disagreement(e.i as usize, e.j as usize)
+            .is_none_or(|m| m <= self.p.mask_veto)
     }
 }
