@@ -566,20 +566,16 @@ mod tests {
     /// slot of `j` with that view.
     fn disagreement_by_definition(r: &MaskRecord, i: usize, j: usize) -> Option<f32> {
         let (mut agree, mut differ) = (0.0f32, 0.0f32);
-        let row = |k: usize| k * r.slots..(k + 1) * r.slots;
-        for x in row(i) {
-            let view = r.views[x];
-            if view == EMPTY_VIEW {
+        for a in r.of(i) {
+            let Some(b) = r.of(j).find(|b| b.view == a.view) else {
                 continue;
-            }
-            if let Some(y) = row(j).find(|&y| r.views[y] == view) {
-                let w = r.weights[x].min(r.weights[y]);
-                if r.masks[x] == r.masks[y] {
-                    agree += w;
-                } else {
-                    differ += w;
-                }
-            }
+            };
+            let sum = if a.mask == b.mask {
+                &mut agree
+            } else {
+                &mut differ
+            };
+            *sum += a.weight.min(b.weight);
         }
         let total = agree + differ;
         (total > 0.0 && total.is_finite()).then(|| differ / total)

@@ -281,7 +281,7 @@ fn min_size_candidates(
     let small = forest.small_members(min_size);
     let small_end = |e: &&Edge| small[e.i as usize] || small[e.j as usize];
     let mut out = Vec::new();
-    for list in kept {
+    for list in kept.into_iter().chain([border]) {
         let part: Vec<Edge> = list
             .par_iter()
             .filter(|e| small_end(e) && w.may_absorb(e))
@@ -289,12 +289,6 @@ fn min_size_candidates(
             .collect();
         out.extend(part);
     }
-    let part: Vec<Edge> = border
-        .par_iter()
-        .filter(|e| small_end(e) && w.may_absorb(e))
-        .copied()
-        .collect();
-    out.extend(part);
     out
 }
 
