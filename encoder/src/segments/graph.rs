@@ -173,7 +173,8 @@ pub(super) struct EdgeSource<'a> {
 /// The tile's Gaussians are visited in space order, with their masks' record gathered in that
 /// order first, each row packed into one cache line ([`MaskRecord::gather_packed`]; other slot
 /// counts than the default: [`MaskRecord::gather`]): the reads an edge makes at its far end
-/// land near those of its near end. The edges are those of the scene's id order, weight for weight.
+/// land near those of its near end. The edges are those of the scene's id order, weight for
+/// weight.
 pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
     let ranks = &src.ranks.members[t as usize];
     // The tile's Gaussians in space order: their ids, their local ids (in id order) and

@@ -70,16 +70,17 @@
 //! inner edge; and once border edges have joined a side to others, that side is the group they
 //! make (sizes summed, the largest `Int`), so that a line of segments along a border is held to
 //! its growing size as one pass holds it. Segments along the borders still differ from one
-//! tile's (the purity of tiled segments against one tile's: docs/results/scaling.md). The minimum-size pass then goes over
-//! each tile's edges again and the border edges last. As a tile's inner edges join only its own
-//! Gaussians, the tiles' criterion passes run in parallel, each on a forest of its own
-//! (`passes.rs`), while the next tiles' edges are weighed and sorted on the other threads. The
-//! minimum-size pass needs only the inner edges still between two components after their tile's
-//! pass that the mask veto lets through (kept from it, the veto read while the other tiles run), as
-//! it would skip the others; of those, and of the border edges, it runs over the ones picked in
-//! parallel beforehand that have an end in a component below the minimum size and that the veto
-//! lets through (components only grow, so it would skip the others too). The geometric part of each
-//! neighbour's edge weight needs no masks: it is computed before the record arrives, so that
+//! tile's (the purity of tiled segments against one tile's: docs/results/scaling.md). The
+//! minimum-size pass then goes over each tile's edges again and the border edges last. As a
+//! tile's inner edges join only its own Gaussians, the tiles' criterion passes run in parallel,
+//! each on a forest of its own (`passes.rs`), while the next tiles' edges are weighed and sorted
+//! on the other threads; a tile reads its rows of the record packed one Gaussian per cache line.
+//! The minimum-size pass needs only the inner edges still between two components after their tile's
+//! pass (kept from it), as it would skip the others; of those, and of the border edges, it runs
+//! over the ones picked in parallel beforehand that have an end in a component below the minimum
+//! size and then that the mask veto lets through (components only grow, so it would skip the others
+//! too; the veto, read from the scene's record, is checked on those few). The geometric part of
+//! each neighbour's edge weight needs no masks: it is computed before the record arrives, so that
 //! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
 //! size, 20 more, twice while they are put in space order, until the geometric parts are computed)

@@ -6,12 +6,13 @@
 //! and the roots are those of one forest over the scene), each noting the components its ends of
 //! border edges meet where those edges fall in its order. Their forests then make the scene's
 //! forest, which takes the border edges by those components and the minimum-size pass.
-//! That pass skips the inner edges whose ends were already joined after their tile's criterion pass
-//! (components only grow, so it would skip them anyway; dropped by the tile's pass), and, of the
-//! edges left, those with no end in a component below the minimum size and those that the mask
-//! veto refuses ([`min_size_candidates`], picked in parallel, the veto last: it reads the scene's
-//! record, and few edges are left to check by then): it runs over the rest, in the same order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed and
-//! sorted on the other threads.
+//! That pass skips the inner edges whose ends were already joined after their tile's criterion
+//! pass (components only grow, so it would skip them anyway; dropped by the tile's pass), and, of
+//! the edges left, those with no end in a component below the minimum size and those that the
+//! mask veto refuses ([`min_size_candidates`], picked in parallel, the veto last: it reads the
+//! scene's record, and few edges are left to check by then): it runs over the rest, in the same
+//! order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed
+//! and sorted on the other threads.
 
 use std::time::Instant;
 
