@@ -132,7 +132,7 @@ impl Weigher<'_> {
     /// record.
     fn disagreement(&self, i: usize, j: usize) -> Option<f32> {
         self.masks
-            .map(|r| r.disagreement(i, j).unwrap_or(self.p.mask_unknown))
+            .map(|r| self.known_or_unknown(r.disagreement(i, j)))
     }
 
     /// The weight of edge `(i, j)` whose geometric part is `geometric`: that plus the mask
