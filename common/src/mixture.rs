@@ -255,6 +255,46 @@ fn widened(book: &[f16], dim: usize) -> Vec<f32> {
     out
 }
 
+/// The largest used codebook (rows M) whose Gram matrix the build computes (`M² × 8` bytes:
+/// 32 MiB at the limit). Beyond it each row's norm comes from its weighted sum instead.
+pub(crate) const GRAM_MAX_ROWS: usize = 2048;
+
+/// The Gram matrix of the codebook `book` (`[M, D]` row-major, f32 values of f16 rows):
+/// `[M * M]` f64 with entry `(s, t)` = `Σ_d book[s, d] · book[t, d]`, each summed in dimension
+/// order (so `(s, t)` and `(t, s)` are the same bits). Rows in parallel.
+fn gram(book: &[f32], dim: usize) -> Vec<f64> {
+    let m = book.len() / dim;
+    let mut g = vec![0f64; m * m];
+    g.par_chunks_mut(m.max(1))
+        .zip(book.par_chunks(dim))
+        .for_each(|(out, es)| {
+            for (o, et) in out.iter_mut().zip(book.chunks_exact(dim)) {
+                *o = es
+                    .iter()
+                    .zip(et)
+                    .fold(0f64, |acc, (&x, &y)| acc + x as f64 * y as f64);
+            }
+        });
+    g
+}
+
+/// How [`fill_rows`] finds each row's norm `‖Σ_s a_s · E_s‖`: from the codebook's Gram matrix
+/// (`[M * M]`, [`gram`]) when the codebook is small, else from the weighted sum itself.
+#[derive(Clone, Copy)]
+enum Norms<'a> {
+    /// `sqrt(Σ_s Σ_t a_s · a_t · G[s, t])`, `s` then `t` in slot order: `S²` multiply-adds
+    /// per Gaussian instead of `S · D`.
+    Gram {
+        /// `[M * M]`, [`gram`].
+        g: &'a [f64],
+        /// M.
+        m: usize,
+    },
+    /// The `[D]` sum in f64, each dimension summed in slot order, the squares in dimension
+    /// order.
+    Sums,
+}
+
 /// Gaussians whose rows one worker normalises together: the sums of squares of their norms run
 /// side by side (each still in dimension order, so each as alone), not one long chain of
 /// dependent additions after another.
@@ -262,21 +302,20 @@ const BATCH: usize = 8;
 
 /// What one worker of [`MixtureEmbeddings::from_sparse`] reuses from batch to batch, so that a
 /// row costs no allocation: each batched Gaussian's row of `(kept codebook row, a)`, the
-/// `[BATCH, D]` f64 accumulators of their weighted sums, one codebook row widened to f32, and
-/// room to sort the ids of a long row.
+/// `[BATCH, D]` f64 accumulators of their weighted sums (empty when the norms come from the
+/// Gram matrix), and room to sort the ids of a long row.
 struct RowScratch {
     rows: [Vec<(u32, f64)>; BATCH],
     acc: Vec<f64>,
-    wide: Vec<f32>,
     ids: Vec<u32>,
 }
 
 impl RowScratch {
-    fn new(dim: usize, keep: usize) -> Self {
+    fn new(dim: usize, keep: usize, norms: Norms) -> Self {
+        let sums = matches!(norms, Norms::Sums);
         RowScratch {
             rows: std::array::from_fn(|_| Vec::with_capacity(keep)),
-            acc: vec![0.0; BATCH * dim],
-            wide: vec![0.0; dim],
+            acc: vec![0.0; if sums { BATCH * dim } else { 0 }],
             ids: Vec::new(),
         }
     }
@@ -296,62 +335,31 @@ fn repeats_an_atom(row: &[(u32, f64)], ids: &mut Vec<u32>) -> bool {
 
 /// Writes the `S` packed slots of a batch of Gaussians (`ids`, at most [`BATCH`]) from their
 /// rows of `(kept codebook row, a)` (the non-zero `a`, in `s.rows`): each ordered by decreasing
-/// `a` (ties: lower row first), scaled by `1 / ‖Σ_s a_s · E_s‖` over the f16 `book` (f64, each
-/// dimension summed in slot order, the squares in dimension order), rounded to f16; the slots
-/// past a row get [`UNUSED`] and 0.
+/// `a` (ties: lower row first), scaled by `1 / ‖Σ_s a_s · E_s‖` over the f16-rounded codebook
+/// `book` (`[M, D]` as f32; f64, found as `norms` says), rounded to f16; the slots past a row get
+/// [`UNUSED`] and 0.
 ///
 /// Errors (the message, naming the first failing Gaussian of the batch): a repeated atom, a
 /// weighted sum of zero, a weight beyond the f16 range (checked per Gaussian in that order); the
 /// slots are then left part-written.
 fn fill_rows(
     s: &mut RowScratch,
-    book: &[f16],
-    dim: usize,
+    book: &[f32],
+    norms: Norms,
     ids: &[u32],
     atoms: &mut [u32],
     weights: &mut [f32],
 ) -> std::result::Result<(), String> {
-    let RowScratch {
-        rows,
-        acc,
-        wide,
-        ids: sorted_ids,
-    } = s;
-    // A repeat ends the batch: the rows before it may still fail first.
-    let mut ready = ids.len();
-    for (g, row) in rows.iter_mut().enumerate().take(ids.len()) {
-        row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
-        if repeats_an_atom(row, sorted_ids) {
-            ready = g;
-            break;
-        }
-    }
-    // One read per cache line of every codebook row the batch uses, all independent, so the
-    // processor fetches the lines side by side before the sums walk them row after row.
-    let mut probe = 0u16;
-    for row in rows.iter().take(ready) {
-        for &(a, _) in row {
-            let e = &book[a as usize * dim..(a as usize + 1) * dim];
-            e.iter().step_by(32).for_each(|h| probe |= h.to_bits());
-        }
-    }
-    std::hint::black_box(probe);
-    for (row, acc) in rows.iter().zip(acc.chunks_exact_mut(dim)).take(ready) {
-        acc.fill(0.0);
-        for &(a, w) in row {
-            book[a as usize * dim..(a as usize + 1) * dim].convert_to_f32_slice(wide);
-            acc.iter_mut()
-                .zip(wide.iter())
-                .for_each(|(s, &v)| *s += w * v as f64);
-        }
-    }
-    // Lanes past `ready` hold stale sums nobody reads.
-    let lanes: [&[f64]; BATCH] = std::array::from_fn(|g| &acc[g * dim..(g + 1) * dim]);
+    let ready = sort_rows(s, ids.len());
+    let rows = &s.rows[..ready];
     let mut squares = [0f64; BATCH];
-    for d in 0..dim {
-        for (sum, lane) in squares.iter_mut().zip(&lanes) {
-            *sum += lane[d] * lane[d];
+    match norms {
+        Norms::Gram { g, m } => {
+            for (sum, row) in squares.iter_mut().zip(rows) {
+                *sum = gram_square(g, m, row);
+            }
         }
+        Norms::Sums => summed_squares(&mut s.acc, book, rows, &mut squares),
     }
     let keep = atoms.len() / ids.len();
     let slots = atoms
@@ -359,7 +367,7 @@ fn fill_rows(
         .zip(weights.chunks_exact_mut(keep));
     for (g, (slot_atoms, slot_weights)) in slots.enumerate().take(ready) {
         write_slots(
-            &rows[g],
+            &s.rows[g],
             squares[g].sqrt(),
             ids[g],
             slot_atoms,
@@ -369,6 +377,68 @@ fn fill_rows(
     match ids.get(ready) {
         Some(id) => Err(format!("Gaussian {id} repeats an atom")),
         None => Ok(()),
+    }
+}
+
+/// Orders the first `n` rows of `s` by decreasing `a` (ties: lower codebook row first). Returns
+/// how many of them come before the first row that repeats an atom (`n` when none does): a
+/// repeat ends the batch, and the rows before it may still fail first.
+fn sort_rows(s: &mut RowScratch, n: usize) -> usize {
+    for (g, row) in s.rows.iter_mut().enumerate().take(n) {
+        row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
+        if repeats_an_atom(row, &mut s.ids) {
+            return g;
+        }
+    }
+    n
+}
+
+/// `Σ_s Σ_t a_s · a_t · G[s, t]` over one ordered row, `s` then `t` in slot order (f64): the
+/// squared norm of its weighted sum, from the codebook's Gram matrix `g` (`[m * m]`).
+fn gram_square(g: &[f64], m: usize, row: &[(u32, f64)]) -> f64 {
+    let mut sum = 0f64;
+    for &(s, a) in row {
+        let g_s = &g[s as usize * m..(s as usize + 1) * m];
+        for &(t, b) in row {
+            sum += a * b * g_s[t as usize];
+        }
+    }
+    sum
+}
+
+/// The squared norms of the batch's weighted sums `Σ_s a_s · E_s` into `squares` (one per row of
+/// `rows`): each sum in the f64 lanes `acc` (`[BATCH, D]`), each dimension summed in slot order,
+/// then the squares in dimension order, the batch's sums side by side (each still as alone).
+fn summed_squares(
+    acc: &mut [f64],
+    book: &[f32],
+    rows: &[Vec<(u32, f64)>],
+    squares: &mut [f64; BATCH],
+) {
+    let dim = acc.len() / BATCH;
+    // One read per cache line of every codebook row the batch uses, all independent, so the
+    // processor fetches the lines side by side before the sums walk them row after row.
+    let mut probe = 0u32;
+    for row in rows {
+        for &(a, _) in row {
+            let e = &book[a as usize * dim..(a as usize + 1) * dim];
+            e.iter().step_by(16).for_each(|v| probe |= v.to_bits());
+        }
+    }
+    std::hint::black_box(probe);
+    for (row, acc) in rows.iter().zip(acc.chunks_exact_mut(dim)) {
+        acc.fill(0.0);
+        for &(a, w) in row {
+            let e = &book[a as usize * dim..(a as usize + 1) * dim];
+            acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
+        }
+    }
+    // Lanes past the batch's rows hold stale sums nobody reads.
+    let lanes: [&[f64]; BATCH] = std::array::from_fn(|g| &acc[g * dim..(g + 1) * dim]);
+    for d in 0..dim {
+        for (sum, lane) in squares.iter_mut().zip(&lanes) {
+            *sum += lane[d] * lane[d];
+        }
     }
 }
 
@@ -414,7 +484,9 @@ impl MixtureEmbeddings {
     /// rest in their original order), rounds the codebook to f16, orders each row by decreasing
     /// `a` (ties: lower codebook row first), sets `S` to the longest row, and scales each row's
     /// weights by `1 / ‖Σ_s a_s · E_s‖` (computed in f64 with the f16-rounded codebook) before
-    /// rounding them to f16.
+    /// rounding them to f16. With at most [`GRAM_MAX_ROWS`] used codebook rows the norm comes from
+    /// the codebook's Gram matrix (`S²` multiply-adds per Gaussian, where the sum costs `S · D`);
+    /// the two agree to f64 rounding, far below the f16 rounding of the stored weights.
     ///
     /// The rows are written straight into the `[N, S]` arrays in parallel (rayon), and the sparse
     /// inputs are freed as soon as they are spent, so the build holds at most the parts plus the
@@ -425,6 +497,15 @@ impl MixtureEmbeddings {
     /// zero (no direction), or a weight beyond the f16 range (the kept mask embeddings nearly
     /// cancel: `‖Σ a E‖ < Σ|a| / 65504`). A row's error names the first such Gaussian in id order.
     pub fn from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
+        Self::from_sparse_with(parts, GRAM_MAX_ROWS)
+    }
+
+    /// [`MixtureEmbeddings::from_sparse`] with the Gram matrix used up to `gram_max_rows` used
+    /// codebook rows (0: never).
+    pub(crate) fn from_sparse_with(
+        parts: SparseMixture,
+        gram_max_rows: usize,
+    ) -> Result<MixtureEmbeddings> {
         let m = parts.codebook_rows()?;
         let keep = parts.longest_row();
         let SparseMixture {
@@ -439,6 +520,14 @@ impl MixtureEmbeddings {
         } = parts;
         let (new_row, book) = used_codebook(&codebook, dim, m, &atoms, &weights);
         drop(codebook);
+        let codebook = widened(&book, dim);
+        drop(book);
+        let used = codebook.len() / dim;
+        let g = (used <= gram_max_rows).then(|| gram(&codebook, dim));
+        let norms = match &g {
+            Some(g) => Norms::Gram { g, m: used },
+            None => Norms::Sums,
+        };
         // Zeroed (lazily mapped) arrays whose every slot `fill_rows` writes.
         let n = gaussian_ids.len();
         let mut packed_atoms = vec![0u32; n * keep];
@@ -448,7 +537,7 @@ impl MixtureEmbeddings {
             .zip(packed_weights.par_chunks_mut(keep * BATCH))
             .enumerate()
             .map_init(
-                || RowScratch::new(dim, keep),
+                || RowScratch::new(dim, keep, norms),
                 |s, (b, (slot_atoms, slot_weights))| {
                     let first = b * BATCH;
                     let batch = first..first + slot_atoms.len() / keep;
@@ -461,16 +550,14 @@ impl MixtureEmbeddings {
                         );
                     }
                     let ids = &gaussian_ids[batch];
-                    fill_rows(s, &book, dim, ids, slot_atoms, slot_weights)
+                    fill_rows(s, &codebook, norms, ids, slot_atoms, slot_weights)
                 },
             )
             .find_map_first(std::result::Result::err);
-        drop((offsets, atoms, weights, new_row));
+        drop((offsets, atoms, weights, new_row, g));
         if let Some(m) = failed {
             return Err(Error::Invalid(format!("mixture: {m}")));
         }
-        let codebook = widened(&book, dim);
-        drop(book);
         Ok(MixtureEmbeddings {
             dim,
             model_id,

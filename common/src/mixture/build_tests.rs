@@ -70,12 +70,30 @@ fn reference_used_codebook(
     (new_row, book)
 }
 
+/// The reference Gram matrix: `[M * M]`, entry `(s, t)` the f64 dot product of codebook rows
+/// `s` and `t`, summed in dimension order.
+fn reference_gram(book: &[f32], dim: usize) -> Vec<f64> {
+    let m = book.len() / dim;
+    let mut g = vec![0f64; m * m];
+    for s in 0..m {
+        for t in 0..m {
+            let mut dot = 0f64;
+            for d in 0..dim {
+                dot += book[s * dim + d] as f64 * book[t * dim + d] as f64;
+            }
+            g[s * m + t] = dot;
+        }
+    }
+    g
+}
+
 /// The reference row: sorted, checked with an allocated id list, normalised with an allocated
-/// accumulator.
+/// accumulator, or with the Gram matrix `gram` (`[M * M]`) when given.
 fn reference_row(
     mut row: Vec<(u32, f64)>,
     book: &[f32],
     dim: usize,
+    gram: Option<&[f64]>,
     id: u32,
 ) -> std::result::Result<Vec<(u32, f64)>, String> {
     row.sort_unstable_by(|x, y| y.1.total_cmp(&x.1).then(x.0.cmp(&y.0)));
@@ -84,12 +102,26 @@ fn reference_row(
     if ids.windows(2).any(|w| w[0] == w[1]) {
         return Err(format!("Gaussian {id} repeats an atom"));
     }
-    let mut acc = vec![0f64; dim];
-    for &(a, w) in &row {
-        let e = &book[a as usize * dim..(a as usize + 1) * dim];
-        acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
-    }
-    let norm = acc.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let norm = match gram {
+        Some(g) => {
+            let m = book.len() / dim;
+            let mut square = 0f64;
+            for &(s, a) in &row {
+                for &(t, b) in &row {
+                    square += a * b * g[s as usize * m + t as usize];
+                }
+            }
+            square.sqrt()
+        }
+        None => {
+            let mut acc = vec![0f64; dim];
+            for &(a, w) in &row {
+                let e = &book[a as usize * dim..(a as usize + 1) * dim];
+                acc.iter_mut().zip(e).for_each(|(s, &v)| *s += w * v as f64);
+            }
+            acc.iter().map(|v| v * v).sum::<f64>().sqrt()
+        }
+    };
     if !(norm.is_finite() && norm > 0.0) {
         return Err(format!(
             "Gaussian {id}: its weighted mask embeddings sum to zero (no direction)"
@@ -110,13 +142,18 @@ fn reference_row(
     Ok(out)
 }
 
-/// The reference build: one `Vec` per Gaussian, collected, the first error in id order, packed.
-pub(super) fn reference_from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
+/// The reference build: one `Vec` per Gaussian, collected, the first error in id order, packed;
+/// norms from the Gram matrix when at most `gram_max_rows` codebook rows are used.
+pub(super) fn reference_from_sparse(
+    parts: SparseMixture,
+    gram_max_rows: usize,
+) -> Result<MixtureEmbeddings> {
     let m = reference_codebook_rows(&parts)?;
     let p = parts;
     let (dim, offsets, atoms, weights) = (p.dim, &p.offsets, &p.atoms, &p.weights);
     let gaussian_ids = &p.gaussian_ids;
     let (new_row, book) = reference_used_codebook(&p.codebook, dim, m, atoms, weights);
+    let gram = (book.len() / dim <= gram_max_rows).then(|| reference_gram(&book, dim));
     let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
         .into_par_iter()
         .map(|i| {
@@ -124,7 +161,7 @@ pub(super) fn reference_from_sparse(parts: SparseMixture) -> Result<MixtureEmbed
                 .filter(|&e| weights[e] != 0.0)
                 .map(|e| (new_row[atoms[e] as usize], weights[e]))
                 .collect();
-            reference_row(row, &book, dim, gaussian_ids[i])
+            reference_row(row, &book, dim, gram.as_deref(), gaussian_ids[i])
         })
         .collect();
     let kept = rows
@@ -180,10 +217,18 @@ fn bits(r: &Result<MixtureEmbeddings>) -> std::result::Result<String, String> {
     }
 }
 
+/// The build against the reference, bit for bit, with the norms from the Gram matrix (the
+/// default for these small codebooks) and from the sums; the first's outcome.
 fn assert_same(parts: SparseMixture, what: &str) -> std::result::Result<String, String> {
-    let want = bits(&reference_from_sparse(parts.clone()));
+    let sums = bits(&MixtureEmbeddings::from_sparse_with(parts.clone(), 0));
+    assert_eq!(
+        sums,
+        bits(&reference_from_sparse(parts.clone(), 0)),
+        "{what}, sums"
+    );
+    let want = bits(&reference_from_sparse(parts.clone(), GRAM_MAX_ROWS));
     let got = bits(&MixtureEmbeddings::from_sparse(parts));
-    assert_eq!(got, want, "{what}");
+    assert_eq!(got, want, "{what}, Gram matrix");
     got
 }
 
@@ -446,6 +491,30 @@ fn bad_parts_give_the_reference_messages() {
     }
 }
 
+#[test]
+fn norms_from_the_gram_matrix_agree_with_the_sums() {
+    // The same rows normalised both ways: the same atoms, and weights that differ at most where
+    // the f64 norms' last bits move an f16 rounding (one f16 step, seldom).
+    let f = Flavour { keep: 6, ..PLAIN };
+    let (mut weights, mut moved) = (0usize, 0usize);
+    for seed in 0..6 {
+        let parts = random_parts(4_000, 64, 48, f, 300 + seed);
+        let gram = MixtureEmbeddings::from_sparse_with(parts.clone(), GRAM_MAX_ROWS).unwrap();
+        let sums = MixtureEmbeddings::from_sparse_with(parts, 0).unwrap();
+        assert_eq!(gram.atoms, sums.atoms, "seed {seed}");
+        for (&x, &y) in gram.weights.iter().zip(&sums.weights) {
+            let step = f16::from_f32(x.abs().max(y.abs())).to_f32() * 2f32.powi(-10);
+            assert!((x - y).abs() <= step, "seed {seed}: {x} against {y}");
+            weights += 1;
+            moved += usize::from(x != y);
+        }
+    }
+    assert!(
+        moved * 1000 <= weights,
+        "{moved} of {weights} weights moved"
+    );
+}
+
 /// Bit-for-bit equality of two stored forms (no text made of them: the timing's are large).
 fn same_bits(a: &MixtureEmbeddings, b: &MixtureEmbeddings) -> bool {
     let f32_eq = |x: &[f32], y: &[f32]| {
@@ -459,7 +528,8 @@ fn same_bits(a: &MixtureEmbeddings, b: &MixtureEmbeddings) -> bool {
 }
 
 /// Times the build of 3M Gaussians (`SLAG_MIXTURE_TIMING_N` to change) × 4 atoms over a
-/// 512-wide codebook of 20,000 rows against the reference:
+/// 512-wide codebook of 20,000 rows (`SLAG_MIXTURE_TIMING_M`; at most [`GRAM_MAX_ROWS`] takes
+/// the norms from the Gram matrix) against the reference:
 /// `cargo test -p slag-common --lib build_timing -- --ignored --nocapture` (with an optimised
 /// build of this crate for figures that mean anything).
 #[test]
@@ -469,7 +539,11 @@ fn build_timing() {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(3_000_000);
-    let (m, dim, keep) = (20_000usize, 512usize, 4usize);
+    let m: usize = std::env::var("SLAG_MIXTURE_TIMING_M")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(20_000);
+    let (dim, keep) = (512usize, 4usize);
     let mut r = SplitMix64::new(5);
     let mut parts = SparseMixture {
         dim,
@@ -493,7 +567,7 @@ fn build_timing() {
     // Seconds and peak resident growth (MiB, Linux) of one build.
     let mib = |bytes: Option<u64>| bytes.unwrap_or(0) as f64 / (1024.0 * 1024.0);
     let cpu = || crate::util::cpu_seconds().unwrap_or(0.0);
-    let run = |build: fn(SparseMixture) -> Result<MixtureEmbeddings>, parts: SparseMixture| {
+    let run = |build: &dyn Fn(SparseMixture) -> Result<MixtureEmbeddings>, parts: SparseMixture| {
         let _ = std::fs::write("/proc/self/clear_refs", "5"); // resets VmHWM
         let (before, cpu0) = (mib(crate::util::rss_bytes()), cpu());
         let t0 = std::time::Instant::now();
@@ -505,8 +579,8 @@ fn build_timing() {
             format!("{s:.2} s ({:.2} s CPU, +{peak:.0} MiB peak)", cpu() - cpu0),
         )
     };
-    let (a, reference) = run(reference_from_sparse, parts.clone());
-    let (b, build) = run(MixtureEmbeddings::from_sparse, parts);
+    let (a, reference) = run(&|p| reference_from_sparse(p, GRAM_MAX_ROWS), parts.clone());
+    let (b, build) = run(&MixtureEmbeddings::from_sparse, parts);
     assert!(same_bits(&a, &b));
     println!(
         "{n} Gaussians x {keep} atoms, D {dim}, M {m}, {} threads: reference {reference}, \
