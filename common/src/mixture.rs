@@ -136,8 +136,9 @@ pub struct SparseMixture {
     pub offsets: Vec<usize>,
     /// Codebook rows (`< M`); no repeats within a row.
     pub atoms: Vec<u32>,
-    /// Mixture weights `a_kj` (any positive scale; zeros are dropped).
-    pub weights: Vec<f64>,
+    /// Mixture weights `a_kj` (any positive scale; zeros are dropped). f32, as the reductions
+    /// keep them (the build's norms run in f64).
+    pub weights: Vec<f32>,
 }
 
 impl SparseMixture {
@@ -220,7 +221,7 @@ fn used_codebook(
     dim: usize,
     m: usize,
     atoms: &[u32],
-    weights: &[f64],
+    weights: &[f32],
 ) -> (Vec<u32>, Vec<f16>) {
     let used: Vec<AtomicBool> = (0..m).map(|_| AtomicBool::new(false)).collect();
     atoms.par_iter().zip(weights).for_each(|(&a, &w)| {
@@ -546,7 +547,7 @@ impl MixtureEmbeddings {
                         row.extend(
                             (offsets[i]..offsets[i + 1])
                                 .filter(|&e| weights[e] != 0.0)
-                                .map(|e| (new_row[atoms[e] as usize], weights[e])),
+                                .map(|e| (new_row[atoms[e] as usize], f64::from(weights[e]))),
                         );
                     }
                     let ids = &gaussian_ids[batch];
@@ -1056,7 +1057,7 @@ mod tests {
             let k = 1 + i % 4;
             for t in 0..k {
                 parts.atoms.push(((i * 7 + t * 3) % m) as u32);
-                parts.weights.push(0.1 + r().abs() as f64 * 5.0);
+                parts.weights.push(0.1 + r().abs() * 5.0);
             }
             parts.offsets.push(parts.atoms.len());
         }
@@ -1070,7 +1071,7 @@ mod tests {
         for e in parts.offsets[i]..parts.offsets[i + 1] {
             let a = parts.atoms[e] as usize;
             for (s, &v) in acc.iter_mut().zip(&parts.codebook[a * d..(a + 1) * d]) {
-                *s += parts.weights[e] * v as f64;
+                *s += f64::from(parts.weights[e]) * v as f64;
             }
         }
         let n = acc.iter().map(|v| v * v).sum::<f64>().sqrt();

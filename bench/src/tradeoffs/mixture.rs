@@ -30,7 +30,7 @@ pub fn truncate(mix: &MixtureEmbeddings, keep: usize) -> anyhow::Result<MixtureE
             .take(keep)
         {
             atoms.push(a);
-            weights.push(f64::from(w));
+            weights.push(w);
         }
         offsets.push(atoms.len());
     }

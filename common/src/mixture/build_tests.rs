@@ -46,7 +46,7 @@ fn reference_used_codebook(
     dim: usize,
     m: usize,
     atoms: &[u32],
-    weights: &[f64],
+    weights: &[f32],
 ) -> (Vec<u32>, Vec<f32>) {
     let mut new_row = vec![UNUSED; m];
     for (i, &a) in atoms.iter().enumerate() {
@@ -159,7 +159,7 @@ pub(super) fn reference_from_sparse(
         .map(|i| {
             let row: Vec<(u32, f64)> = (offsets[i]..offsets[i + 1])
                 .filter(|&e| weights[e] != 0.0)
-                .map(|e| (new_row[atoms[e] as usize], weights[e]))
+                .map(|e| (new_row[atoms[e] as usize], f64::from(weights[e])))
                 .collect();
             reference_row(row, &book, dim, gram.as_deref(), gaussian_ids[i])
         })
@@ -328,7 +328,7 @@ fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> Sparse
             parts.atoms.push((first + t as u32) % m as u32);
             let u = r.next_u64();
             let w = if u.is_multiple_of(3) {
-                r.range(0.01, 4.0)
+                r.range(0.01, 4.0) as f32
             } else {
                 ties[(u >> 8) as usize % ties.len()]
             };
@@ -432,7 +432,7 @@ fn long_rows_with_repeats_equal_the_reference() {
         means: vec![[0.0; 3]; 2],
         offsets: vec![0, 40, 80],
         atoms: row.iter().chain(&row).copied().collect(),
-        weights: (0..80).map(|t| 1.0 + (t % 9) as f64).collect(),
+        weights: (0..80).map(|t| 1.0 + (t % 9) as f32).collect(),
         ..Default::default()
     };
     parts.atoms[79] = parts.atoms[43];
@@ -463,7 +463,7 @@ fn bad_parts_give_the_reference_messages() {
         }),
         ("repeated id", |p| p.gaussian_ids[20] = p.gaussian_ids[19]),
         ("NaN codebook", |p| p.codebook[17] = f32::NAN),
-        ("infinite weight", |p| p.weights[11] = f64::INFINITY),
+        ("infinite weight", |p| p.weights[11] = f32::INFINITY),
         ("atoms out of range", |p| (p.atoms[4], p.atoms[9]) = (12, 9)),
         ("codebook beyond f16", |p| {
             p.codebook.iter_mut().step_by(7).for_each(|v| *v *= 1e5)
@@ -560,7 +560,7 @@ fn build_timing() {
         let first = (r.next_u64() % m as u64) as u32;
         for t in 0..keep as u32 {
             parts.atoms.push((first + 97 * t) % m as u32);
-            parts.weights.push(r.range(0.05, 3.0));
+            parts.weights.push(r.range(0.05, 3.0) as f32);
         }
         parts.offsets.push(parts.atoms.len());
     }

@@ -49,7 +49,7 @@ fn mixture(n: usize) -> MixtureEmbeddings {
     for i in 0..n {
         for t in 0..1 + i % 3 {
             parts.atoms.push(((i + 2 * t) % m) as u32);
-            parts.weights.push(r.range(0.2, 1.0));
+            parts.weights.push(r.range(0.2, 1.0) as f32);
         }
         parts.offsets.push(parts.atoms.len());
     }

@@ -40,7 +40,7 @@ fn mixture(n: usize, m: usize, dim: usize) -> MixtureEmbeddings {
     for i in 0..n {
         for t in 0..1 + i % 5 {
             parts.atoms.push(((i * 7 + t * 13) % m) as u32);
-            parts.weights.push(0.1 + next() as f64);
+            parts.weights.push(0.1 + next() as f32);
         }
         parts.offsets.push(parts.atoms.len());
     }

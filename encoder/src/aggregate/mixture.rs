@@ -275,7 +275,7 @@ impl<'m> Gather<'m> {
             parts.means.push(self.means[k]);
             for (a, atom) in top {
                 parts.atoms.push(atom);
-                parts.weights.push(a as f64);
+                parts.weights.push(a);
             }
             parts.offsets.push(parts.atoms.len());
         }

@@ -555,7 +555,7 @@ fn push_kept(s: &mut SparseMixture, tile: &KeptTile, means: &[[f32; 3]]) {
     for i in 0..tile.ids.len() {
         for &(a, atom) in tile.kept_of(i) {
             s.atoms.push(atom);
-            s.weights.push(a as f64);
+            s.weights.push(a);
         }
         s.offsets.push(s.atoms.len());
     }

@@ -1131,8 +1131,8 @@ fn device_reduction_equals_the_host_reduction() {
         .collect();
     for (i, row) in kept.iter().enumerate() {
         let (a, b) = (sparse.offsets[i], sparse.offsets[i + 1]);
-        let mut dev_row: Vec<(u32, f64)> = row.iter().map(|&(w, j)| (j, w as f64)).collect();
-        let mut host_row: Vec<(u32, f64)> = sparse.atoms[a..b]
+        let mut dev_row: Vec<(u32, f32)> = row.iter().map(|&(w, j)| (j, w)).collect();
+        let mut host_row: Vec<(u32, f32)> = sparse.atoms[a..b]
             .iter()
             .copied()
             .zip(sparse.weights[a..b].iter().copied())
