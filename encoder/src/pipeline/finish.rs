@@ -151,9 +151,9 @@ pub(crate) fn finish(
     report.workers = workers;
     record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
 
-    // Only the centres are written from here on: the rest of the geometry is let go first,
-    // unless the segments still hold the scene.
-    let centres = Centres::of(gaussians);
+    // Only the centres are written from here on: the encode lets go of the rest of the geometry
+    // (freed now, or when the segments are done with it).
+    let centres = centres_of(gaussians);
     let means = centres.as_slice();
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
@@ -285,28 +285,15 @@ fn form_outputs(
     }
 }
 
-/// The Gaussians' centres for the tail, without a copy: taken out of the scene when the encode
-/// holds its last reference (the rest of the geometry is freed then), else read in the scene
-/// that the segments still hold (freed when the later of the two is done with it).
-enum Centres {
-    Owned(Vec<[f32; 3]>),
-    Shared(Arc<Gaussians>),
-}
-
-impl Centres {
-    fn of(g: Arc<Gaussians>) -> Self {
-        match Arc::try_unwrap(g) {
-            Ok(g) => Centres::Owned(g.means),
-            Err(g) => Centres::Shared(g),
-        }
-    }
-
-    /// `[N]` centres, scene frame.
-    fn as_slice(&self) -> &[[f32; 3]] {
-        match self {
-            Centres::Owned(m) => m,
-            Centres::Shared(g) => &g.means,
-        }
+/// The Gaussians' centres (`[N]`, scene frame) for the tail, and the encode's hold on the rest
+/// of the scene let go: taken out of the scene when the encode holds its last reference, else
+/// copied (12 bytes per Gaussian), so that the scale, rotation, opacity and colour arrays are
+/// freed as soon as the segments are done with them (after their edge geometry), not at the end
+/// of the tail, where they would add to its peak.
+fn centres_of(g: Arc<Gaussians>) -> Vec<[f32; 3]> {
+    match Arc::try_unwrap(g) {
+        Ok(g) => g.means,
+        Err(g) => g.means.clone(),
     }
 }
 
