@@ -482,11 +482,12 @@ fn before_record(
     let nb = neighbour_graph(&g.means, p, max_edge, ctl)?;
     st.neighbours = lap(&mut t);
     log_rss("segments: neighbour graph");
-    let geometric = ctl.run(|| {
-        let geo = geo.permuted(&nb.perm);
-        slot_geometry(&nb.gather(&g.means), &nb, &geo, p)
-    });
+    // The scene-order geometry is freed before the slots' pass, so that only one copy of it
+    // is held beside the pass's outputs.
+    let ranked = ctl.run(|| geo.permuted(&nb.perm));
     drop(geo);
+    let geometric = ctl.run(|| slot_geometry(&nb.gather(&g.means), &nb, &ranked, p));
+    drop(ranked);
     let (ranks, ids) = ctl.run(|| {
         let ranks = graph::TileMembers::new(&nb.gather(&tile_of), rects.len());
         (ranks, graph::TileMembers::new(&tile_of, rects.len()))
