@@ -110,6 +110,7 @@ mod tests;
 mod tiles;
 mod weights;
 
+use std::borrow::Cow;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -378,13 +379,14 @@ pub fn segment(
 /// before): the encode hands over its record there when its last view is done. It may block;
 /// `None`: geometry only.
 ///
-/// `g` is let go of before `masks` is called: the stages after the neighbour graph and its edge
-/// geometry need only the Gaussians' count, so a shared scene (`Arc<Gaussians>`, the encode's)
-/// is freed then if nothing else holds it.
+/// `g` is let go of after the Gaussians' geometry ([`SceneHandle::into_means`]: a shared scene,
+/// the encode's `Arc<Gaussians>`, is then freed once nothing else holds it), and its means,
+/// where copied, before `masks` is called: the stages after the neighbour graph and its edge
+/// geometry need only the Gaussians' count.
 ///
 /// Errors: those of [`segment`].
 pub fn segment_with(
-    g: impl std::ops::Deref<Target = Gaussians>,
+    g: impl SceneHandle,
     p: &SegmentParams,
     source_ply: &str,
     ctl: &SegmentControl,
@@ -394,11 +396,10 @@ pub fn segment_with(
     let t0 = Instant::now();
     check_scene(&g)?;
     let mut st = SegmentTimings::default();
-    let Some(pre) = before_record(&g, p, ctl, &mut st) else {
+    let n = g.len();
+    let Some(pre) = before_record(g, p, ctl, &mut st) else {
         return Ok(None);
     };
-    let n = g.len();
-    drop(g);
     let mut t = Instant::now();
     let record = masks();
     st.record_wait = lap(&mut t);
@@ -462,31 +463,34 @@ struct BeforeRecord {
 
 /// The stages that need no masks' record, each timed into `st`: the Gaussians' geometry, the
 /// tile plan, the neighbour graph, the edges' geometric parts (the per-Gaussian geometry,
-/// put in space order for them, is freed after them) and the tiles' members. `None` once
+/// put in space order for them, is freed after them) and the tiles' members. After the geometry
+/// only the means are read: `g` gives them up there ([`SceneHandle::into_means`]). `None` once
 /// [`SegmentControl::stop`] was called.
 fn before_record(
-    g: &Gaussians,
+    g: impl SceneHandle,
     p: &SegmentParams,
     ctl: &SegmentControl,
     st: &mut SegmentTimings,
 ) -> Option<BeforeRecord> {
     let mut t = Instant::now();
-    let geo = ctl.run(|| geometry(g));
+    let scene: &Gaussians = &g;
+    let geo = ctl.run(|| geometry(scene));
     if ctl.stopped() {
         return None;
     }
     let max_edge = resolve_max_edge(p, &geo);
     st.geometry = lap(&mut t);
-    let (_, tile_of, rects) = ctl.run(|| plan_tiles(&g.means, p.tile_gaussians));
+    let means = g.into_means();
+    let (_, tile_of, rects) = ctl.run(|| plan_tiles(&means, p.tile_gaussians));
     st.tiles = lap(&mut t);
-    let nb = neighbour_graph(&g.means, p, max_edge, ctl)?;
+    let nb = neighbour_graph(&means, p, max_edge, ctl)?;
     st.neighbours = lap(&mut t);
     log_rss("segments: neighbour graph");
     // The scene-order geometry is freed before the slots' pass, so that only one copy of it
     // is held beside the pass's outputs.
     let ranked = ctl.run(|| geo.permuted(&nb.perm));
     drop(geo);
-    let geometric = ctl.run(|| slot_geometry(&nb.gather(&g.means), &nb, &ranked, p));
+    let geometric = ctl.run(|| slot_geometry(&nb.gather(&means), &nb, &ranked, p));
     drop(ranked);
     let (ranks, ids) = ctl.run(|| {
         let ranks = graph::TileMembers::new(&nb.gather(&tile_of), rects.len());
@@ -502,6 +506,41 @@ fn before_record(
         ranks,
         ids,
     })
+}
+
+/// How the segmentation holds the scene it reads: borrowed (`&Gaussians`, nothing to let go)
+/// or shared with the encode (`Arc<Gaussians>`). Only the geometry stage reads more than the
+/// means, so a shared scene is let go of after it.
+pub trait SceneHandle: std::ops::Deref<Target = Gaussians> + Sized {
+    /// The Gaussians' means (`[N]`, scene frame) for the stages after the geometry, the rest of
+    /// the scene let go of where this handle can: a borrow lends the scene's own means; a
+    /// shared scene gives its means up when this is its last holder (the rest freed now), else
+    /// copies them (12 bytes a Gaussian) and lets go, so that the scene is freed as soon as the
+    /// encode is done with it rather than when the segments' edge geometry is made.
+    fn into_means<'a>(self) -> Cow<'a, [[f32; 3]]>
+    where
+        Self: 'a;
+}
+
+impl SceneHandle for &Gaussians {
+    fn into_means<'a>(self) -> Cow<'a, [[f32; 3]]>
+    where
+        Self: 'a,
+    {
+        Cow::Borrowed(&self.means)
+    }
+}
+
+impl SceneHandle for Arc<Gaussians> {
+    fn into_means<'a>(self) -> Cow<'a, [[f32; 3]]>
+    where
+        Self: 'a,
+    {
+        match Arc::try_unwrap(self) {
+            Ok(g) => Cow::Owned(g.means),
+            Err(g) => Cow::Owned(g.means.clone()),
+        }
+    }
 }
 
 /// Refuses a masks' record of another scene than the `n` Gaussians segmented

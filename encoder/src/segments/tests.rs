@@ -295,6 +295,24 @@ fn a_shared_scene_is_let_go_before_the_record() {
     assert_eq!(got, segment(&kept, &p, "x", None).unwrap().0);
 }
 
+/// What the stages after the geometry read: a borrowed scene lends its own means; a shared one
+/// hands over equal means and lets go of the scene (a copy while the encode still holds it).
+#[test]
+fn a_scene_handle_gives_its_means_and_lets_go() {
+    let (g, _) = planes();
+    let borrowed = SceneHandle::into_means(&g);
+    assert!(
+        matches!(borrowed, std::borrow::Cow::Borrowed(m) if std::ptr::eq(m, g.means.as_slice()))
+    );
+    let shared = Arc::new(g.clone());
+    let kept = Arc::clone(&shared);
+    let copied = shared.into_means();
+    assert_eq!(Arc::strong_count(&kept), 1);
+    assert!(matches!(&copied, std::borrow::Cow::Owned(m) if *m == g.means));
+    let last = kept.into_means();
+    assert!(matches!(&last, std::borrow::Cow::Owned(m) if *m == g.means));
+}
+
 #[test]
 fn region_profiles_sum_cap_and_disagree() {
     let a = vec![(0u16, 1u16, 2.0f32), (0, 2, 2.0), (3, 1, 1.0)];
