@@ -282,29 +282,7 @@ const PLAIN: Flavour = Flavour {
 /// rows 2 and 3 nearly opposite (after f16 rounding) in the cancelling cases.
 fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> SparseMixture {
     let mut r = SplitMix64::new(seed);
-    let mut codebook: Vec<f32> = (0..m * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
-    // Rows 0 and 1 sum to zero; rows 2 and 3 to 1e-5 (f16 subnormal) in dimension 0.
-    if f.cancel && m >= 4 {
-        for d in 0..dim {
-            let v = if d == 0 { 0.0 } else { codebook[d] };
-            codebook[d] = v;
-            codebook[dim + d] = -v;
-            codebook[2 * dim + d] = v;
-            codebook[3 * dim + d] = if d == 0 { 1e-5 } else { -v };
-        }
-    }
-    // Values on an f16 rounding tie, f16 subnormals and values that round to zero.
-    let edges = [
-        1.0 + 2f32.powi(-11),
-        -(1.0 + 3.0 * 2f32.powi(-11)),
-        3e-6,
-        -6e-8,
-        1e-9,
-    ];
-    for (k, v) in edges.iter().enumerate() {
-        codebook[(k * 31 + seed as usize) % (m * dim)] = *v;
-    }
-    let ties = [0.25, 0.5, 1.0, 1.0, 2.0, 3.0];
+    let codebook = random_codebook(&mut r, m, dim, f, seed);
     let mut parts = SparseMixture {
         dim,
         model_id: format!("model-{seed}"),
@@ -317,50 +295,85 @@ fn random_parts(n: usize, m: usize, dim: usize, f: Flavour, seed: u64) -> Sparse
         ..Default::default()
     };
     for _ in 0..n {
-        let len = if f.empty && r.next_u64().is_multiple_of(40) {
-            0
-        } else {
-            1 + (r.next_u64() % f.keep as u64) as usize
-        };
-        let start = parts.atoms.len();
-        let first = (r.next_u64() % m as u64) as u32;
-        for t in 0..len {
-            parts.atoms.push((first + t as u32) % m as u32);
-            let u = r.next_u64();
-            let w = if u.is_multiple_of(3) {
-                r.range(0.01, 4.0) as f32
-            } else {
-                ties[(u >> 8) as usize % ties.len()]
-            };
-            // Zeros after a row's first entry, which keeps single-entry rows valid.
-            parts.weights.push(match (f.signs, u % 29, t) {
-                (true, 1, _) => -w,
-                (true, 2, 1..) => -0.0,
-                (_, 3, 1..) => 0.0,
-                _ => w,
-            });
-        }
-        let row = start..parts.atoms.len();
-        if f.empty && len > 0 && r.next_u64().is_multiple_of(60) {
-            parts.weights[row.clone()].iter_mut().for_each(|w| *w = 0.0);
-        }
-        if f.repeat && len >= 2 && r.next_u64().is_multiple_of(50) {
-            parts.atoms[row.end - 1] = parts.atoms[row.start];
-        }
-        if f.cancel && len >= 2 && m >= 4 && r.next_u64().is_multiple_of(50) {
-            let pair = if r.next_u64().is_multiple_of(2) {
-                [0, 1]
-            } else {
-                [2, 3]
-            };
-            parts.atoms.truncate(row.start);
-            parts.weights.truncate(row.start);
-            parts.atoms.extend(pair);
-            parts.weights.extend([1.5, 1.5]);
-        }
-        parts.offsets.push(parts.atoms.len());
+        push_random_row(&mut parts, &mut r, m, f);
     }
     parts
+}
+
+/// `[m * dim]` values in `[-1, 1)`, with the cancelling rows (rows 0 and 1 summing to zero, rows
+/// 2 and 3 to 1e-5, an f16 subnormal, in dimension 0) when `f.cancel`, and values on an f16
+/// rounding tie, f16 subnormals and values that round to zero at places set by `seed`.
+fn random_codebook(r: &mut SplitMix64, m: usize, dim: usize, f: Flavour, seed: u64) -> Vec<f32> {
+    let mut codebook: Vec<f32> = (0..m * dim).map(|_| r.range(-1.0, 1.0) as f32).collect();
+    if f.cancel && m >= 4 {
+        for d in 0..dim {
+            let v = if d == 0 { 0.0 } else { codebook[d] };
+            codebook[d] = v;
+            codebook[dim + d] = -v;
+            codebook[2 * dim + d] = v;
+            codebook[3 * dim + d] = if d == 0 { 1e-5 } else { -v };
+        }
+    }
+    let edges = [
+        1.0 + 2f32.powi(-11),
+        -(1.0 + 3.0 * 2f32.powi(-11)),
+        3e-6,
+        -6e-8,
+        1e-9,
+    ];
+    for (k, v) in edges.iter().enumerate() {
+        codebook[(k * 31 + seed as usize) % (m * dim)] = *v;
+    }
+    codebook
+}
+
+/// Appends one random row over `m` codebook rows to `parts`: up to `f.keep` consecutive atoms
+/// with tie-prone weights, and, as `f` allows, an empty or all-zero row, signed and zero
+/// weights, a repeated atom, or a cancelling pair of rows with equal weights.
+fn push_random_row(parts: &mut SparseMixture, r: &mut SplitMix64, m: usize, f: Flavour) {
+    let ties = [0.25, 0.5, 1.0, 1.0, 2.0, 3.0];
+    let len = if f.empty && r.next_u64().is_multiple_of(40) {
+        0
+    } else {
+        1 + (r.next_u64() % f.keep as u64) as usize
+    };
+    let start = parts.atoms.len();
+    let first = (r.next_u64() % m as u64) as u32;
+    for t in 0..len {
+        parts.atoms.push((first + t as u32) % m as u32);
+        let u = r.next_u64();
+        let w = if u.is_multiple_of(3) {
+            r.range(0.01, 4.0) as f32
+        } else {
+            ties[(u >> 8) as usize % ties.len()]
+        };
+        // Zeros after a row's first entry, which keeps single-entry rows valid.
+        parts.weights.push(match (f.signs, u % 29, t) {
+            (true, 1, _) => -w,
+            (true, 2, 1..) => -0.0,
+            (_, 3, 1..) => 0.0,
+            _ => w,
+        });
+    }
+    let row = start..parts.atoms.len();
+    if f.empty && len > 0 && r.next_u64().is_multiple_of(60) {
+        parts.weights[row.clone()].iter_mut().for_each(|w| *w = 0.0);
+    }
+    if f.repeat && len >= 2 && r.next_u64().is_multiple_of(50) {
+        parts.atoms[row.end - 1] = parts.atoms[row.start];
+    }
+    if f.cancel && len >= 2 && m >= 4 && r.next_u64().is_multiple_of(50) {
+        let pair = if r.next_u64().is_multiple_of(2) {
+            [0, 1]
+        } else {
+            [2, 3]
+        };
+        parts.atoms.truncate(row.start);
+        parts.weights.truncate(row.start);
+        parts.atoms.extend(pair);
+        parts.weights.extend([1.5, 1.5]);
+    }
+    parts.offsets.push(parts.atoms.len());
 }
 
 #[test]
