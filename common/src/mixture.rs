@@ -260,10 +260,34 @@ fn widened(book: &[f16], dim: usize) -> Vec<f32> {
 /// 32 MiB at the limit). Beyond it each row's norm comes from its weighted sum instead.
 pub(crate) const GRAM_MAX_ROWS: usize = 2048;
 
+/// Where [`MixtureEmbeddings::from_sparse_with`] takes each row's norm from.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum GramUse {
+    /// The Gram matrix when it is the cheaper: at most [`GRAM_MAX_ROWS`] used codebook rows M,
+    /// and `M²` at most the sparse entries (`M² · D` work to make it, against `entries · D` for
+    /// the sums).
+    WhenCheaper,
+    /// Always the Gram matrix.
+    Always,
+    /// Always the sums.
+    Never,
+}
+
+impl GramUse {
+    /// Whether a build over `used` codebook rows and `entries` sparse entries uses the matrix.
+    pub(crate) fn applies(self, used: usize, entries: usize) -> bool {
+        match self {
+            GramUse::WhenCheaper => used <= GRAM_MAX_ROWS && used * used <= entries,
+            GramUse::Always => true,
+            GramUse::Never => false,
+        }
+    }
+}
+
 /// The Gram matrix of the codebook `book` (`[M, D]` row-major, f32 values of f16 rows):
 /// `[M * M]` f64 with entry `(s, t)` = `Σ_d book[s, d] · book[t, d]`, each summed in dimension
 /// order (so `(s, t)` and `(t, s)` are the same bits). Rows in parallel.
-fn gram(book: &[f32], dim: usize) -> Vec<f64> {
+fn gram_matrix(book: &[f32], dim: usize) -> Vec<f64> {
     let m = book.len() / dim;
     let mut g = vec![0f64; m * m];
     g.par_chunks_mut(m.max(1))
@@ -280,13 +304,13 @@ fn gram(book: &[f32], dim: usize) -> Vec<f64> {
 }
 
 /// How [`fill_rows`] finds each row's norm `‖Σ_s a_s · E_s‖`: from the codebook's Gram matrix
-/// (`[M * M]`, [`gram`]) when the codebook is small, else from the weighted sum itself.
+/// (`[M * M]`, [`gram_matrix`]) when the codebook is small, else from the weighted sum itself.
 #[derive(Clone, Copy)]
 enum Norms<'a> {
     /// `sqrt(Σ_s Σ_t a_s · a_t · G[s, t])`, `s` then `t` in slot order: `S²` multiply-adds
     /// per Gaussian instead of `S · D`.
     Gram {
-        /// `[M * M]`, [`gram`].
+        /// `[M * M]`, [`gram_matrix`].
         g: &'a [f64],
         /// M.
         m: usize,
@@ -485,9 +509,10 @@ impl MixtureEmbeddings {
     /// rest in their original order), rounds the codebook to f16, orders each row by decreasing
     /// `a` (ties: lower codebook row first), sets `S` to the longest row, and scales each row's
     /// weights by `1 / ‖Σ_s a_s · E_s‖` (computed in f64 with the f16-rounded codebook) before
-    /// rounding them to f16. With at most [`GRAM_MAX_ROWS`] used codebook rows the norm comes from
-    /// the codebook's Gram matrix (`S²` multiply-adds per Gaussian, where the sum costs `S · D`);
-    /// the two agree to f64 rounding, far below the f16 rounding of the stored weights.
+    /// rounding them to f16. Where it is the cheaper ([`GramUse::WhenCheaper`]: a small codebook
+    /// beside many Gaussians) the norm comes from the codebook's Gram matrix (`S²` multiply-adds
+    /// per Gaussian, where the sum costs `S · D`); the two agree to f64 rounding, far below the
+    /// f16 rounding of the stored weights.
     ///
     /// The rows are written straight into the `[N, S]` arrays in parallel (rayon), and the sparse
     /// inputs are freed as soon as they are spent, so the build holds at most the parts plus the
@@ -498,14 +523,13 @@ impl MixtureEmbeddings {
     /// zero (no direction), or a weight beyond the f16 range (the kept mask embeddings nearly
     /// cancel: `‖Σ a E‖ < Σ|a| / 65504`). A row's error names the first such Gaussian in id order.
     pub fn from_sparse(parts: SparseMixture) -> Result<MixtureEmbeddings> {
-        Self::from_sparse_with(parts, GRAM_MAX_ROWS)
+        Self::from_sparse_with(parts, GramUse::WhenCheaper)
     }
 
-    /// [`MixtureEmbeddings::from_sparse`] with the Gram matrix used up to `gram_max_rows` used
-    /// codebook rows (0: never).
+    /// [`MixtureEmbeddings::from_sparse`] with the norms from the Gram matrix where `gram` says.
     pub(crate) fn from_sparse_with(
         parts: SparseMixture,
-        gram_max_rows: usize,
+        gram: GramUse,
     ) -> Result<MixtureEmbeddings> {
         let m = parts.codebook_rows()?;
         let keep = parts.longest_row();
@@ -524,7 +548,9 @@ impl MixtureEmbeddings {
         let codebook = widened(&book, dim);
         drop(book);
         let used = codebook.len() / dim;
-        let g = (used <= gram_max_rows).then(|| gram(&codebook, dim));
+        let g = gram
+            .applies(used, atoms.len())
+            .then(|| gram_matrix(&codebook, dim));
         let norms = match &g {
             Some(g) => Norms::Gram { g, m: used },
             None => Norms::Sums,

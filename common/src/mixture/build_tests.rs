@@ -143,17 +143,20 @@ fn reference_row(
 }
 
 /// The reference build: one `Vec` per Gaussian, collected, the first error in id order, packed;
-/// norms from the Gram matrix when at most `gram_max_rows` codebook rows are used.
+/// norms from the Gram matrix where `gram` says.
 pub(super) fn reference_from_sparse(
     parts: SparseMixture,
-    gram_max_rows: usize,
+    gram: GramUse,
 ) -> Result<MixtureEmbeddings> {
     let m = reference_codebook_rows(&parts)?;
     let p = parts;
     let (dim, offsets, atoms, weights) = (p.dim, &p.offsets, &p.atoms, &p.weights);
     let gaussian_ids = &p.gaussian_ids;
     let (new_row, book) = reference_used_codebook(&p.codebook, dim, m, atoms, weights);
-    let gram = (book.len() / dim <= gram_max_rows).then(|| reference_gram(&book, dim));
+    let used = book.len() / dim;
+    let gram = gram
+        .applies(used, atoms.len())
+        .then(|| reference_gram(&book, dim));
     let rows: Vec<std::result::Result<Vec<(u32, f64)>, String>> = (0..gaussian_ids.len())
         .into_par_iter()
         .map(|i| {
@@ -217,18 +220,17 @@ fn bits(r: &Result<MixtureEmbeddings>) -> std::result::Result<String, String> {
     }
 }
 
-/// The build against the reference, bit for bit, with the norms from the Gram matrix (the
-/// default for these small codebooks) and from the sums; the first's outcome.
+/// The build against the reference, bit for bit, with the norms from the sums, from the Gram
+/// matrix, and from the one the build picks; the last's outcome.
 fn assert_same(parts: SparseMixture, what: &str) -> std::result::Result<String, String> {
-    let sums = bits(&MixtureEmbeddings::from_sparse_with(parts.clone(), 0));
-    assert_eq!(
-        sums,
-        bits(&reference_from_sparse(parts.clone(), 0)),
-        "{what}, sums"
-    );
-    let want = bits(&reference_from_sparse(parts.clone(), GRAM_MAX_ROWS));
+    for gram in [GramUse::Never, GramUse::Always] {
+        let got = bits(&MixtureEmbeddings::from_sparse_with(parts.clone(), gram));
+        let want = bits(&reference_from_sparse(parts.clone(), gram));
+        assert_eq!(got, want, "{what}, {gram:?}");
+    }
+    let want = bits(&reference_from_sparse(parts.clone(), GramUse::WhenCheaper));
     let got = bits(&MixtureEmbeddings::from_sparse(parts));
-    assert_eq!(got, want, "{what}, Gram matrix");
+    assert_eq!(got, want, "{what}, the build's pick");
     got
 }
 
@@ -512,8 +514,8 @@ fn norms_from_the_gram_matrix_agree_with_the_sums() {
     let (mut weights, mut moved) = (0usize, 0usize);
     for seed in 0..6 {
         let parts = random_parts(4_000, 64, 48, f, 300 + seed);
-        let gram = MixtureEmbeddings::from_sparse_with(parts.clone(), GRAM_MAX_ROWS).unwrap();
-        let sums = MixtureEmbeddings::from_sparse_with(parts, 0).unwrap();
+        let gram = MixtureEmbeddings::from_sparse_with(parts.clone(), GramUse::Always).unwrap();
+        let sums = MixtureEmbeddings::from_sparse_with(parts, GramUse::Never).unwrap();
         assert_eq!(gram.atoms, sums.atoms, "seed {seed}");
         for (&x, &y) in gram.weights.iter().zip(&sums.weights) {
             let step = f16::from_f32(x.abs().max(y.abs())).to_f32() * 2f32.powi(-10);
@@ -541,8 +543,8 @@ fn same_bits(a: &MixtureEmbeddings, b: &MixtureEmbeddings) -> bool {
 }
 
 /// Times the build of 3M Gaussians (`SLAG_MIXTURE_TIMING_N` to change) × 4 atoms over a
-/// 512-wide codebook of 20,000 rows (`SLAG_MIXTURE_TIMING_M`; at most [`GRAM_MAX_ROWS`] takes
-/// the norms from the Gram matrix) against the reference:
+/// 512-wide codebook of 20,000 rows (`SLAG_MIXTURE_TIMING_M`; [`GramUse::WhenCheaper`] says
+/// where the norms come from the Gram matrix) against the reference:
 /// `cargo test -p slag-common --lib build_timing -- --ignored --nocapture` (with an optimised
 /// build of this crate for figures that mean anything).
 #[test]
@@ -592,7 +594,10 @@ fn build_timing() {
             format!("{s:.2} s ({:.2} s CPU, +{peak:.0} MiB peak)", cpu() - cpu0),
         )
     };
-    let (a, reference) = run(&|p| reference_from_sparse(p, GRAM_MAX_ROWS), parts.clone());
+    let (a, reference) = run(
+        &|p| reference_from_sparse(p, GramUse::WhenCheaper),
+        parts.clone(),
+    );
     let (b, build) = run(&MixtureEmbeddings::from_sparse, parts);
     assert!(same_bits(&a, &b));
     println!(
