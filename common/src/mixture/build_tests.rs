@@ -550,14 +550,16 @@ fn same_bits(a: &MixtureEmbeddings, b: &MixtureEmbeddings) -> bool {
 #[test]
 #[ignore = "a timing, not a test"]
 fn build_timing() {
-    let n: usize = std::env::var("SLAG_MIXTURE_TIMING_N")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(3_000_000);
-    let m: usize = std::env::var("SLAG_MIXTURE_TIMING_M")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(20_000);
+    let setting = |name: &str, default: usize| {
+        std::env::var(name)
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(default)
+    };
+    let (n, m) = (
+        setting("SLAG_MIXTURE_TIMING_N", 3_000_000),
+        setting("SLAG_MIXTURE_TIMING_M", 20_000),
+    );
     let (dim, keep) = (512usize, 4usize);
     let mut r = SplitMix64::new(5);
     let mut parts = SparseMixture {
