@@ -267,9 +267,11 @@ pub(crate) enum GramUse {
     /// and `M²` at most the sparse entries (`M² · D` work to make it, against `entries · D` for
     /// the sums).
     WhenCheaper,
-    /// Always the Gram matrix.
+    /// Always the Gram matrix (the tests' check of that path).
+    #[cfg(test)]
     Always,
-    /// Always the sums.
+    /// Always the sums (the tests' check of that path).
+    #[cfg(test)]
     Never,
 }
 
@@ -278,7 +280,9 @@ impl GramUse {
     pub(crate) fn applies(self, used: usize, entries: usize) -> bool {
         match self {
             GramUse::WhenCheaper => used <= GRAM_MAX_ROWS && used * used <= entries,
+            #[cfg(test)]
             GramUse::Always => true,
+            #[cfg(test)]
             GramUse::Never => false,
         }
     }
