@@ -7,18 +7,17 @@
 //! cluster's ([`crate::distributed`], whose reduction runs in the dataflow).
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Instant;
 
 use slag_common::embeddings::{EmbeddingsWriter, StoredPrecision};
 use slag_common::io::write_atomic;
-use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
 use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
+use crate::segments::SceneHandle;
 use crate::report::{
     ClusterOutputs, Counts, FormOutputs, LevelOutput, Outputs, QueueStats, Report, StageTimings,
 };
@@ -152,8 +151,9 @@ pub(crate) fn finish(
     record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
 
     // Only the centres are written from here on: the encode lets go of the rest of the geometry
-    // (freed now, or when the segments are done with it).
-    let centres = centres_of(gaussians);
+    // (freed now, or copied out if the segments still read the scene, as they do until their
+    // first stage is done).
+    let centres = SceneHandle::into_means(gaussians).into_owned();
     let means = centres.as_slice();
     let n_gaussians = means.len();
     let files = OutputFiles::begin(&params.out_dir)?;
@@ -282,18 +282,6 @@ fn form_outputs(
         mixture_codebook_rows: mixture.map(|m| m.codebook_len()),
         mixture_keep: mixture.map(|m| m.keep),
         mixture_reduce_s: mixture.map(|_| mixture_s),
-    }
-}
-
-/// The Gaussians' centres (`[N]`, scene frame) for the tail, and the encode's hold on the rest
-/// of the scene let go: taken out of the scene when the encode holds its last reference, else
-/// copied (12 bytes per Gaussian), so that the scale, rotation, opacity and colour arrays are
-/// freed as soon as the segments are done with them (after their edge geometry), not at the end
-/// of the tail, where they would add to its peak.
-fn centres_of(g: Arc<Gaussians>) -> Vec<[f32; 3]> {
-    match Arc::try_unwrap(g) {
-        Ok(g) => g.means,
-        Err(g) => g.means.clone(),
     }
 }
 

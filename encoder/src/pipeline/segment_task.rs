@@ -9,11 +9,12 @@
 //! the segmentation then gets all the threads at once ([`SegmentTask::widen`]; its neighbour
 //! search takes them between its rounds); if it outlasts the encode (a large scene, few views),
 //! its remaining stages get all the threads too. It reads the encode's own copy of the
-//! Gaussians ([`super::scene_load`]: one load, shared, never cloned) and lets go of it once its
-//! neighbour graph and edge geometry are made (the passes after the masks' record need only the
-//! count). The encode's tail keeps a copy of the centres only, so the rest of the scene is freed
-//! then, not after the tail. Its own memory it holds while it runs; when that overlaps the
-//! encode's peak (its tail), the two add up (docs/guide/lifting.md, memory model).
+//! Gaussians ([`super::scene_load`]: one load, shared, never cloned) and lets go of it once the
+//! Gaussians' geometry is made, keeping a copy of the means until its edge geometry is made
+//! (the passes after the masks' record need only the count). The encode's tail keeps the
+//! centres only, so the rest of the scene is freed when the later of the two lets go, before
+//! the tail's peak. Its own memory it holds while it runs; when that overlaps the encode's peak
+//! (its tail), the two add up (docs/guide/lifting.md, memory model).
 //!
 //! The mask term of the weights needs every view's masks: the k-NN search runs as soon as the
 //! scene is loaded (while the encode sets up its models), the weights and the merge passes once
