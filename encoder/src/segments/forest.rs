@@ -17,6 +17,13 @@ pub(super) struct Component {
     int: f32,
 }
 
+impl Component {
+    /// Its Gaussian count.
+    pub(super) fn size(&self) -> usize {
+        self.size as usize
+    }
+}
+
 /// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
 pub(super) type Forest = DisjointSets<Component>;
 
@@ -28,7 +35,8 @@ impl Forest {
     /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
     /// so the result does not depend on anything but the edge order); `Int` of the union is
     /// the largest of `w` and both sides'.
-    fn join(&mut self, a: u32, b: u32, w: f32) {
+    /// Returns the root attached, the root kept and the union's component.
+    pub(super) fn join(&mut self, a: u32, b: u32, w: f32) -> (u32, u32, Component) {
         let (ca, cb) = (self.component(a), self.component(b));
         let (big, small) = if ca.size > cb.size || (ca.size == cb.size && a < b) {
             (a, b)
@@ -40,6 +48,7 @@ impl Forest {
             int: ca.int.max(cb.int).max(w),
         };
         self.attach(small, big, merged);
+        (small, big, merged)
     }
     /// The merge criterion over `edges` in their order.
     #[cfg(test)]
@@ -165,6 +174,13 @@ impl Forest {
             let root = self.find(a);
             r.absorb(root, if root == a { b } else { a });
         }
+    }
+    /// Each element's root (`[N]`), found in parallel without changing the forest.
+    pub(super) fn roots(&self) -> Vec<u32> {
+        (0..self.len() as u32)
+            .into_par_iter()
+            .map(|x| self.root(x))
+            .collect()
     }
     /// Whether each Gaussian's component has fewer than `min_size` Gaussians now (in parallel,
     /// the forest read only). As components only grow, the minimum-size pass can join across

@@ -79,7 +79,10 @@
 //! pass (kept from it), as it would skip the others; of those, and of the border edges, it runs
 //! over the ones picked in parallel beforehand that have an end in a component below the minimum
 //! size and then that the mask veto lets through (components only grow, so it would skip the others
-//! too; the veto, read from the scene's record, is checked on those few). The geometric part of
+//! too; the veto, read from the scene's record, is checked on those few). Its tiles' part runs
+//! in parallel: each tile applies its edges between components that lie in it alone and defers
+//! those that touch a component joined across a border, which then run in order with the
+//! border edges (`min_size.rs`: the same joins as one pass). The geometric part of
 //! each neighbour's edge weight needs no masks: it is computed before the record arrives, so that
 //! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
@@ -87,7 +90,8 @@
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
 //! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
 //! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
-//! those kept. The Gaussians themselves are read only until the geometric parts are computed
+//! those kept; in the minimum-size pass, a forest per tile that has candidate edges (13 bytes
+//! per Gaussian of the tile). The Gaussians themselves are read only until the geometric parts are computed
 //! ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is the criterion pass of
@@ -101,6 +105,7 @@
 mod forest;
 mod graph;
 mod grid;
+mod min_size;
 mod passes;
 #[cfg(test)]
 mod reference;
@@ -269,9 +274,10 @@ pub struct SegmentStats {
 pub struct SegmentTimings {
     /// Each Gaussian's normal, flatness and size.
     pub geometry: f64,
-    /// The tiles' plan (median splits).
+    /// The tiles' plan (median splits) and their members, made beside the neighbour search
+    /// (its own seconds, within `neighbours`).
     pub tiles: f64,
-    /// The k-nearest-neighbour search of the means.
+    /// The k-nearest-neighbour search of the means, and the tiles' plan beside it (wall time).
     pub neighbours: f64,
     /// The geometric part of every edge's weight (before the masks' record).
     pub edge_geometry: f64,
@@ -424,8 +430,7 @@ pub fn segment_with(
         return Ok(None);
     };
     t = Instant::now();
-    let (roots, _) = forest.into_roots();
-    let (segments, segment_count) = canonical_root_ids(&roots);
+    let (segments, segment_count) = ctl.run(|| canonical_root_ids(&forest.roots()));
     st.ids = lap(&mut t);
     log_rss("segments: ids");
     let stats = SegmentStats {
@@ -481,26 +486,41 @@ fn before_record(
     let max_edge = resolve_max_edge(p, &geo);
     st.geometry = lap(&mut t);
     let means = g.into_means();
-    let (_, tile_of, rects) = ctl.run(|| plan_tiles(&means, p.tile_gaussians));
-    st.tiles = lap(&mut t);
-    let nb = neighbour_graph(&means, p, max_edge, ctl)?;
+    // The tiles' plan (median splits: few threads at a time) is made on a thread of its own
+    // beside the neighbour search (all of the pool's threads).
+    let (planned, nb) = std::thread::scope(|s| {
+        let side = s.spawn(|| {
+            let clock = Instant::now();
+            let (_, tile_of, rects) = ctl.run(|| plan_tiles(&means, p.tile_gaussians));
+            let ids = graph::TileMembers::new(&tile_of, rects.len());
+            (tile_of, ids, clock.elapsed().as_secs_f64())
+        });
+        let nb = neighbour_graph(&means, p, max_edge, ctl);
+        let planned = side.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
+        (planned, nb)
+    });
+    let (tile_of, ids, tiles_s) = planned;
+    st.tiles = tiles_s;
+    let nb = nb?;
     st.neighbours = lap(&mut t);
     log_rss("segments: neighbour graph");
     // The scene-order geometry is freed before the slots' pass, so that only one copy of it
     // is held beside the pass's outputs.
     let ranked = ctl.run(|| geo.permuted(&nb.perm));
     drop(geo);
-    let geometric = ctl.run(|| slot_geometry(&nb.gather(&means), &nb, &ranked, p));
-    drop(ranked);
-    let (ranks, ids) = ctl.run(|| {
-        let ranks = graph::TileMembers::new(&nb.gather(&tile_of), rects.len());
-        (ranks, graph::TileMembers::new(&tile_of, rects.len()))
+    let tiles = ids.members.len();
+    let (geometric, ranks) = ctl.run(|| {
+        rayon::join(
+            || slot_geometry(&nb.gather(&means), &nb, &ranked, p),
+            || graph::TileMembers::new(&nb.gather(&tile_of), tiles),
+        )
     });
+    drop(ranked);
     st.edge_geometry = lap(&mut t);
     log_rss("segments: edge geometry");
     (!ctl.stopped()).then_some(BeforeRecord {
         max_edge,
-        tiles: rects.len(),
+        tiles,
         nb,
         geometric,
         ranks,
@@ -569,21 +589,53 @@ fn parameters_json(p: &SegmentParams, stats: &SegmentStats) -> String {
     .unwrap_or_default()
 }
 
-/// [`canonical_ids`] of union-find roots (each below `roots.len()`), its map an array: the
-/// same ids, numbered by each segment's smallest Gaussian id.
+/// [`canonical_ids`] of union-find roots (each below `roots.len()`), in parallel: the same
+/// ids, numbered by each segment's smallest Gaussian id. A segment's smallest member is found
+/// by an atomic minimum per root; its id is the count of smaller segments' smallest members
+/// (a prefix sum over the Gaussians, in chunks).
 fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
-    let mut map = vec![u32::MAX; roots.len()];
-    let mut next = 0u32;
-    let ids = roots
-        .iter()
-        .map(|&r| {
-            let id = &mut map[r as usize];
-            if *id == u32::MAX {
-                *id = next;
-                next += 1;
-            }
-            *id
+    use rayon::prelude::*;
+    use std::sync::atomic::AtomicU32;
+    const CHUNK: usize = 1 << 16;
+    let smallest: Vec<AtomicU32> = (0..roots.len()).map(|_| AtomicU32::new(u32::MAX)).collect();
+    roots.par_iter().enumerate().for_each(|(x, &r)| {
+        smallest[r as usize].fetch_min(x as u32, Ordering::Relaxed);
+    });
+    let smallest: Vec<u32> = smallest.into_iter().map(AtomicU32::into_inner).collect();
+    let is_first = |x: usize| smallest[roots[x] as usize] == x as u32;
+    // Each chunk's count of smallest members, then each chunk's first id.
+    let counts: Vec<u32> = (0..roots.len())
+        .into_par_iter()
+        .step_by(CHUNK)
+        .map(|c| {
+            (c..(c + CHUNK).min(roots.len()))
+                .filter(|&x| is_first(x))
+                .count() as u32
         })
+        .collect();
+    let mut starts = Vec::with_capacity(counts.len());
+    let mut next = 0u32;
+    for c in counts {
+        starts.push(next);
+        next += c;
+    }
+    // The id of each segment, at its smallest member.
+    let mut first_id = vec![u32::MAX; roots.len()];
+    first_id
+        .par_chunks_mut(CHUNK)
+        .zip(starts)
+        .enumerate()
+        .for_each(|(c, (out, mut id))| {
+            for (k, slot) in out.iter_mut().enumerate() {
+                if is_first(c * CHUNK + k) {
+                    *slot = id;
+                    id += 1;
+                }
+            }
+        });
+    let ids = roots
+        .par_iter()
+        .map(|&r| first_id[smallest[r as usize] as usize])
         .collect();
     (ids, next)
 }

@@ -11,7 +11,8 @@
 //! the edges left, those with no end in a component below the minimum size and those that the
 //! mask veto refuses ([`min_size_candidates`], picked in parallel, the veto last: it reads the
 //! scene's record, and few edges are left to check by then): it runs over the rest, in the same
-//! order. While one wave of tiles runs its criterion passes, the next wave's edges are weighed
+//! order, the tiles' part in parallel where no regions' veto is asked for (`min_size.rs`).
+//! While one wave of tiles runs its criterion passes, the next wave's edges are weighed
 //! and sorted on the other threads.
 
 use std::time::Instant;
@@ -20,6 +21,7 @@ use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
 use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
+use super::min_size;
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -247,50 +249,63 @@ pub(super) fn merge(
     let clock = Instant::now();
     forest.border_pass_in(&border, &met, p.threshold, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
-    let clock = Instant::now();
     let border_count = border.len() as u64;
     if p.min_size > 1 {
-        let kept_count: usize = kept.iter().map(Vec::len).sum();
-        let edges = ctl.run(|| min_size_candidates(&forest, kept, border, p.min_size, w));
-        tracing::debug!(
-            target: "slag_encoder::segments",
-            kept = kept_count,
-            border = border_count,
-            candidates = edges.len(),
-            "minimum-size pass"
-        );
-        forest.min_size_pass_in(&edges, p.min_size, |_| true, regions.as_mut());
+        let clock = Instant::now();
+        min_size_pass(&mut forest, kept, border, (w, tm), regions.as_mut(), ctl);
+        st.min_size += clock.elapsed().as_secs_f64();
     }
-    st.min_size += clock.elapsed().as_secs_f64();
     (Some(forest), inner + border_count, border_count)
 }
 
-/// The edges of `kept` (one list after the other, each in its order), then of `border`, that
-/// the minimum-size pass could join across, in parallel: those with an end in a component of
-/// fewer than `min_size` Gaussians now that `w` lets it join ([`Weigher::may_absorb`], checked
-/// last: most edges have no small end). The pass over them alone joins
-/// what the pass over all of the lists joins: components only grow, so an edge between two
-/// components of `min_size` or more now never qualifies, and the mask veto is the edge's own.
-/// Each list is freed once filtered.
-fn min_size_candidates(
-    forest: &Forest,
+/// The minimum-size pass over `kept` (each tile's inner edges still between components after
+/// its criterion pass, scene ids, in order) and then `border` on the scene's `forest`, over
+/// the candidates [`min_size::candidates`] picks: without a regions' veto, the tiles' part in
+/// parallel ([`min_size::tiled_min_size_pass`]); with one, one pass on the calling thread.
+fn min_size_pass(
+    forest: &mut Forest,
     kept: Vec<Vec<Edge>>,
     border: Vec<Edge>,
-    min_size: usize,
-    w: &Weigher,
-) -> Vec<Edge> {
-    let small = forest.small_members(min_size);
-    let small_end = |e: &&Edge| small[e.i as usize] || small[e.j as usize];
-    let mut out = Vec::new();
-    for list in kept.into_iter().chain([border]) {
-        let part: Vec<Edge> = list
-            .par_iter()
-            .filter(|e| small_end(e) && w.may_absorb(e))
-            .copied()
-            .collect();
-        out.extend(part);
-    }
-    out
+    (w, tm): (&Weigher, &TileMembers),
+    regions: Option<&mut Regions>,
+    ctl: &SegmentControl,
+) {
+    let min = w.p.min_size;
+    let kept_count: usize = kept.iter().map(Vec::len).sum();
+    let clock = Instant::now();
+    let spanning = regions
+        .is_none()
+        .then(|| min_size::spanning_roots(forest, &border));
+    let (inner, picked_border) = ctl.run(|| min_size::candidates(forest, kept, border, min, w));
+    let pick_s = clock.elapsed().as_secs_f64();
+    let candidates = inner.iter().map(Vec::len).sum::<usize>();
+    let ([joins, deferred], [parallel_s, serial_s]) = match (regions, spanning) {
+        (None, Some(spanning)) => ctl.run(|| {
+            min_size::tiled_min_size_pass(forest, tm, inner, &picked_border, &spanning, min)
+        }),
+        (regions, _) => {
+            let clock = Instant::now();
+            let edges: Vec<Edge> = inner
+                .into_iter()
+                .flatten()
+                .chain(picked_border.iter().copied())
+                .collect();
+            forest.min_size_pass_in(&edges, min, |_| true, regions);
+            ([0, edges.len()], [0.0, clock.elapsed().as_secs_f64()])
+        }
+    };
+    tracing::debug!(
+        target: "slag_encoder::segments",
+        kept = kept_count,
+        candidates,
+        border = picked_border.len(),
+        parallel_joins = joins,
+        deferred,
+        pick_s = format!("{pick_s:.2}"),
+        parallel_s = format!("{parallel_s:.2}"),
+        serial_s = format!("{serial_s:.2}"),
+        "minimum-size pass"
+    );
 }
 
 /// What every tile's pass reads.

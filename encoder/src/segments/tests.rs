@@ -565,6 +565,12 @@ fn ids_do_not_depend_on_threads() {
 fn root_ids_are_the_canonical_ids() {
     let roots: Vec<u32> = (0..500u32).map(|i| (i * 7919 % 97) * 5 % 500).collect();
     assert_eq!(canonical_root_ids(&roots), canonical_ids(&roots));
+    // Several of the parallel numbering's chunks, with segments that span chunks.
+    let n = 300_000u64;
+    let roots: Vec<u32> = (0..n)
+        .map(|i| ((i * 2_654_435_761 % 4_099) * 73 % n) as u32)
+        .collect();
+    assert_eq!(canonical_root_ids(&roots), canonical_ids(&roots));
 }
 
 /// The tile plan split in parallel over contiguous keys equals the one-thread plan over the
