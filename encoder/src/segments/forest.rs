@@ -35,8 +35,7 @@ impl Forest {
     /// Joins the components of roots `a` and `b` (union by size, ties to the smaller root id,
     /// so the result does not depend on anything but the edge order); `Int` of the union is
     /// the largest of `w` and both sides'.
-    /// Returns the root attached, the root kept and the union's component.
-    pub(super) fn join(&mut self, a: u32, b: u32, w: f32) -> (u32, u32, Component) {
+    fn join(&mut self, a: u32, b: u32, w: f32) {
         let (ca, cb) = (self.component(a), self.component(b));
         let (big, small) = if ca.size > cb.size || (ca.size == cb.size && a < b) {
             (a, b)
@@ -48,7 +47,6 @@ impl Forest {
             int: ca.int.max(cb.int).max(w),
         };
         self.attach(small, big, merged);
-        (small, big, merged)
     }
     /// The merge criterion over `edges` in their order.
     #[cfg(test)]
@@ -180,15 +178,6 @@ impl Forest {
         (0..self.len() as u32)
             .into_par_iter()
             .map(|x| self.root(x))
-            .collect()
-    }
-    /// Whether each Gaussian's component has fewer than `min_size` Gaussians now (in parallel,
-    /// the forest read only). As components only grow, the minimum-size pass can join across
-    /// an edge only if one of its ends is in such a component before the pass.
-    pub(super) fn small_members(&self, min_size: usize) -> Vec<bool> {
-        (0..self.len() as u32)
-            .into_par_iter()
-            .map(|x| (self.component(self.root(x)).size as usize) < min_size)
             .collect()
     }
     /// The minimum-size pass over `edges` in their order.

@@ -75,24 +75,20 @@
 //! tile's inner edges join only its own Gaussians, the tiles' criterion passes run in parallel,
 //! each on a forest of its own (`passes.rs`), while the next tiles' edges are weighed and sorted
 //! on the other threads; a tile reads its rows of the record packed one Gaussian per cache line.
-//! The minimum-size pass needs only the inner edges still between two components after their tile's
-//! pass (kept from it), as it would skip the others; of those, and of the border edges, it runs
-//! over the ones picked in parallel beforehand that have an end in a component below the minimum
-//! size and then that the mask veto lets through (components only grow, so it would skip the others
-//! too; the veto, read from the scene's record, is checked on those few). Its tiles' part runs
-//! in parallel: each tile applies its edges between components that lie in it alone and defers
-//! those that touch a component joined across a border, which then run in order with the
-//! border edges (`min_size.rs`: the same joins as one pass). The geometric part of
-//! each neighbour's edge weight needs no masks: it is computed before the record arrives, so that
-//! afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
+//! The minimum-size pass needs only the inner edges still between two components after their
+//! tile's pass, with an end in a component below the minimum size then, that the mask veto lets
+//! through (components only grow, so it would skip the others). Each tile picks those in
+//! parallel right after its own criterion pass, beside the other tiles' passes (the veto, read
+//! from the scene's record, last); the pass itself runs over them in order on one thread. The
+//! geometric part of each neighbour's edge weight needs no masks: it is computed before the
+//! record arrives, so that afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
 //! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
 //! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
 //! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
-//! those kept; in the minimum-size pass, a forest per tile that has candidate edges (13 bytes
-//! per Gaussian of the tile). The Gaussians themselves are read only until the geometric parts are computed
-//! ([`segment_with`] lets go of a shared scene there).
+//! those kept for the minimum-size pass. The Gaussians themselves are read only until the
+//! geometric parts are computed ([`segment_with`] lets go of a shared scene there).
 //!
 //! With one tile this is exactly the algorithm above. With several, it is the criterion pass of
 //! each tile over its inner edges, then the border edges judged by their noted thresholds, then
@@ -105,7 +101,6 @@
 mod forest;
 mod graph;
 mod grid;
-mod min_size;
 mod passes;
 #[cfg(test)]
 mod reference;
@@ -292,7 +287,8 @@ pub struct SegmentTimings {
     pub criterion: f64,
     /// The tiles' edges and criterion passes, which run in parallel (wall time).
     pub tile_passes: f64,
-    /// The minimum-size pass: picking its edges (in parallel) and the union-find pass over them.
+    /// The minimum-size pass: picking its edges (in parallel, each tile's right after its
+    /// criterion pass; summed over the tiles) and the union-find pass over them.
     pub min_size: f64,
     /// Each Gaussian's root and the canonical ids.
     pub ids: f64,
@@ -486,13 +482,21 @@ fn before_record(
     let max_edge = resolve_max_edge(p, &geo);
     st.geometry = lap(&mut t);
     let means = g.into_means();
-    // The tiles' plan (median splits: few threads at a time) is made on a thread of its own
-    // beside the neighbour search (all of the pool's threads).
+    // The tiles' plan (median splits, mostly one thread at a time) is made beside the
+    // neighbour search on a one-thread pool of its own: on the search's pool, a thread of the
+    // search waiting for its own work could pick up a long split and hold the search up.
     let (planned, nb) = std::thread::scope(|s| {
         let side = s.spawn(|| {
             let clock = Instant::now();
-            let (_, tile_of, rects) = ctl.run(|| plan_tiles(&means, p.tile_gaussians));
-            let ids = graph::TileMembers::new(&tile_of, rects.len());
+            let plan = || {
+                let (_, tile_of, rects) = plan_tiles(&means, p.tile_gaussians);
+                let ids = graph::TileMembers::new(&tile_of, rects.len());
+                (tile_of, ids)
+            };
+            let (tile_of, ids) = match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+                Ok(own) => own.install(plan),
+                Err(_) => ctl.run(plan),
+            };
             (tile_of, ids, clock.elapsed().as_secs_f64())
         });
         let nb = neighbour_graph(&means, p, max_edge, ctl);
@@ -599,7 +603,12 @@ fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
     const CHUNK: usize = 1 << 16;
     let smallest: Vec<AtomicU32> = (0..roots.len()).map(|_| AtomicU32::new(u32::MAX)).collect();
     roots.par_iter().enumerate().for_each(|(x, &r)| {
-        smallest[r as usize].fetch_min(x as u32, Ordering::Relaxed);
+        // Read first: most Gaussians are not their segment's smallest, and a write to a
+        // segment's shared entry from every thread would contend for its cache line.
+        let s = &smallest[r as usize];
+        if (x as u32) < s.load(Ordering::Relaxed) {
+            s.fetch_min(x as u32, Ordering::Relaxed);
+        }
     });
     let smallest: Vec<u32> = smallest.into_iter().map(AtomicU32::into_inner).collect();
     let is_first = |x: usize| smallest[roots[x] as usize] == x as u32;

@@ -6,12 +6,12 @@
 //! and the roots are those of one forest over the scene), each noting the components its ends of
 //! border edges meet where those edges fall in its order. Their forests then make the scene's
 //! forest, which takes the border edges by those components and the minimum-size pass.
-//! That pass skips the inner edges whose ends were already joined after their tile's criterion
-//! pass (components only grow, so it would skip them anyway; dropped by the tile's pass), and, of
-//! the edges left, those with no end in a component below the minimum size and those that the
-//! mask veto refuses ([`min_size_candidates`], picked in parallel, the veto last: it reads the
-//! scene's record, and few edges are left to check by then): it runs over the rest, in the same
-//! order, the tiles' part in parallel where no regions' veto is asked for (`min_size.rs`).
+//! That pass runs over each tile's edges in order, then over the border edges. Of a tile's
+//! edges it needs only those that its tile's pass picks, in parallel, right after the tile's
+//! criterion pass ([`min_size_candidates`]): still between two components, with an end in one
+//! below the minimum size, and not refused by the mask veto. Components only grow, so the pass
+//! would skip the others; and the picking, the veto's reads of the scene's record included,
+//! runs beside the other tiles' passes instead of after them all.
 //! While one wave of tiles runs its criterion passes, the next wave's edges are weighed
 //! and sorted on the other threads.
 
@@ -21,7 +21,6 @@ use rayon::prelude::*;
 
 use super::forest::{Component, Forest};
 use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
-use super::min_size;
 use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
@@ -32,17 +31,18 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
-/// inner edges still between components, the components its ends of border edges met where
-/// each edge stands in the order (`(k, side, component)`: edge `k` of the scene's border edges,
-/// side 0 for its end `i`, 1 for `j`), its edge count, and the seconds of its edges' weights,
-/// their sort and the pass.
+/// components its ends of border edges met where each edge stands in the order (`(k, side,
+/// component)`: edge `k` of the scene's border edges, side 0 for its end `i`, 1 for `j`), the
+/// edges the minimum-size pass could join across ([`min_size_candidates`], scene ids, in
+/// order), its edge count, and the seconds of its edges' weights, their sort, the pass and
+/// the pick.
 struct TilePass {
     roots: Vec<u32>,
     components: Vec<Component>,
-    kept: Vec<Edge>,
     met: Vec<(u32, usize, Component)>,
+    kept: Vec<Edge>,
     inner: u64,
-    seconds: [f64; 3],
+    seconds: [f64; 4],
 }
 
 /// One tile's inner edges, weighed and sorted (local ids), waiting for its criterion pass; the
@@ -104,15 +104,15 @@ fn border_ends(border: &[Edge], tm: &TileMembers) -> Vec<Vec<(u32, u32)>> {
 impl BuiltTile {
     /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
     /// ids, ascending), noting the components its `ends` of the scene's `border` edges meet
-    /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then,
-    /// picked in parallel, its edges still between components, in scene ids and in order: the
-    /// minimum-size pass could join across no other.
+    /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then
+    /// its edges for the minimum-size pass, picked in parallel ([`min_size_candidates`]).
     fn criterion(
         self,
-        p: &SegmentParams,
+        w: &Weigher,
         members: &[u32],
         (border, ends): (&[Edge], &[(u32, u32)]),
     ) -> TilePass {
+        let p = w.p;
         let clock = Instant::now();
         let mut f = Forest::singletons(members.len());
         let stops = stops_in(&self.inner, border, ends, |l| members[l as usize]);
@@ -123,31 +123,54 @@ impl BuiltTile {
             .zip(at_stops)
             .map(|(&(k, l), c)| (k, side(k, l), c))
             .collect();
-        let kept = if p.min_size > 1 {
-            let global = |e: &Edge| Edge {
-                w: e.w,
-                i: members[e.i as usize],
-                j: members[e.j as usize],
-            };
-            self.inner
-                .par_iter()
-                .filter(|e| f.root(e.i) != f.root(e.j))
-                .map(global)
-                .collect()
-        } else {
-            Vec::new()
-        };
+        let criterion_s = clock.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let kept = min_size_candidates(&f, &self.inner, w, |l| members[l as usize]);
         let (roots, components) = f.into_roots();
         let [edges_s, sort_s] = self.seconds;
         TilePass {
             roots,
             components,
-            kept,
             met,
+            kept,
             inner: self.inner.len() as u64,
-            seconds: [edges_s, sort_s, clock.elapsed().as_secs_f64()],
+            seconds: [edges_s, sort_s, criterion_s, clock.elapsed().as_secs_f64()],
         }
     }
+}
+
+/// The edges of `edges` (in order; `id` maps their ends to scene ids) that the minimum-size
+/// pass could join across once `forest` has grown further, picked in parallel, in scene ids:
+/// those between two components with an end in one of fewer than
+/// [`SegmentParams::min_size`] Gaussians now that `w` lets it join ([`Weigher::may_absorb`],
+/// checked last: it reads the scene's record). The pass over them alone joins what the pass
+/// over all of `edges` joins: components only grow, so an edge inside one component or
+/// between two of the minimum size or more now never qualifies, and the mask veto is the
+/// edge's own. None with a minimum size of 1 (no such pass).
+fn min_size_candidates(
+    forest: &Forest,
+    edges: &[Edge],
+    w: &Weigher,
+    id: impl Fn(u32) -> u32 + Sync,
+) -> Vec<Edge> {
+    let min = w.p.min_size;
+    if min <= 1 {
+        return Vec::new();
+    }
+    let global = |e: &Edge| Edge {
+        w: e.w,
+        i: id(e.i),
+        j: id(e.j),
+    };
+    edges
+        .par_iter()
+        .filter(|e| {
+            let (a, b) = (forest.root(e.i), forest.root(e.j));
+            a != b && (forest.component(a).size() < min || forest.component(b).size() < min)
+        })
+        .map(global)
+        .filter(|e| w.may_absorb(e))
+        .collect()
 }
 
 /// How many tiles may hold their edges at once: the pool's threads, fewer where the largest
@@ -189,9 +212,9 @@ impl InFlight {
 }
 
 /// The tiles' criterion passes: the scene's forest after them, the components each border
-/// edge's ends (`i`, `j`) met where it stands in the order, each tile's
-/// inner edges still between components after its pass (scene ids, in order) and the inner
-/// edges' count.
+/// edge's ends (`i`, `j`) met where it stands in the order, each tile's edges that the
+/// minimum-size pass could join across ([`min_size_candidates`], scene ids, in order) and the
+/// inner edges' count.
 struct Tiled {
     forest: Forest,
     met: Vec<[Component; 2]>,
@@ -249,63 +272,24 @@ pub(super) fn merge(
     let clock = Instant::now();
     forest.border_pass_in(&border, &met, p.threshold, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
-    let border_count = border.len() as u64;
     if p.min_size > 1 {
         let clock = Instant::now();
-        min_size_pass(&mut forest, kept, border, (w, tm), regions.as_mut(), ctl);
-        st.min_size += clock.elapsed().as_secs_f64();
-    }
-    (Some(forest), inner + border_count, border_count)
-}
-
-/// The minimum-size pass over `kept` (each tile's inner edges still between components after
-/// its criterion pass, scene ids, in order) and then `border` on the scene's `forest`, over
-/// the candidates [`min_size::candidates`] picks: without a regions' veto, the tiles' part in
-/// parallel ([`min_size::tiled_min_size_pass`]); with one, one pass on the calling thread.
-fn min_size_pass(
-    forest: &mut Forest,
-    kept: Vec<Vec<Edge>>,
-    border: Vec<Edge>,
-    (w, tm): (&Weigher, &TileMembers),
-    regions: Option<&mut Regions>,
-    ctl: &SegmentControl,
-) {
-    let min = w.p.min_size;
-    let kept_count: usize = kept.iter().map(Vec::len).sum();
-    let clock = Instant::now();
-    let spanning = regions
-        .is_none()
-        .then(|| min_size::spanning_roots(forest, &border));
-    let (inner, picked_border) = ctl.run(|| min_size::candidates(forest, kept, border, min, w));
-    let pick_s = clock.elapsed().as_secs_f64();
-    let candidates = inner.iter().map(Vec::len).sum::<usize>();
-    let ([joins, deferred], [parallel_s, serial_s]) = match (regions, spanning) {
-        (None, Some(spanning)) => ctl.run(|| {
-            min_size::tiled_min_size_pass(forest, tm, inner, &picked_border, &spanning, min)
-        }),
-        (regions, _) => {
-            let clock = Instant::now();
-            let edges: Vec<Edge> = inner
-                .into_iter()
-                .flatten()
-                .chain(picked_border.iter().copied())
-                .collect();
-            forest.min_size_pass_in(&edges, min, |_| true, regions);
-            ([0, edges.len()], [0.0, clock.elapsed().as_secs_f64()])
+        for edges in &kept {
+            forest.min_size_pass_in(edges, p.min_size, |_| true, regions.as_mut());
         }
-    };
-    tracing::debug!(
-        target: "slag_encoder::segments",
-        kept = kept_count,
-        candidates,
-        border = picked_border.len(),
-        parallel_joins = joins,
-        deferred,
-        pick_s = format!("{pick_s:.2}"),
-        parallel_s = format!("{parallel_s:.2}"),
-        serial_s = format!("{serial_s:.2}"),
-        "minimum-size pass"
-    );
+        let allowed = |e: &Edge| w.may_absorb(e);
+        forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
+        st.min_size += clock.elapsed().as_secs_f64();
+        tracing::debug!(
+            target: "slag_encoder::segments",
+            kept = kept.iter().map(Vec::len).sum::<usize>(),
+            border = border.len(),
+            seconds = format!("{:.2}", clock.elapsed().as_secs_f64()),
+            "minimum-size pass"
+        );
+    }
+    let border_count = border.len() as u64;
+    (Some(forest), inner + border_count, border_count)
 }
 
 /// What every tile's pass reads.
@@ -363,11 +347,12 @@ impl Run<'_> {
             st.weights += pass.seconds[0];
             st.sort += pass.seconds[1];
             st.criterion += pass.seconds[2];
+            st.min_size += pass.seconds[3];
         }
         let forest = self.ctl.run(|| self.scene_forest(&passes));
         let inner = passes.iter().map(|t| t.inner).sum();
         let mut met = vec![[Component::default(); 2]; self.border.len()];
-        let mut kept = Vec::with_capacity(tiles as usize);
+        let mut kept = Vec::with_capacity(passes.len());
         for pass in passes {
             for (k, side, c) in pass.met {
                 met[k as usize][side] = c;
@@ -396,7 +381,7 @@ impl Run<'_> {
             .map(|b| {
                 let t = b.t as usize;
                 let ends = (self.border, &self.ends[t][..]);
-                b.criterion(self.p, &self.tm.members[t], ends)
+                b.criterion(self.w, &self.tm.members[t], ends)
             })
             .collect()
     }
@@ -417,7 +402,8 @@ impl Run<'_> {
     }
 
     /// The tiles' criterion passes one after the other on the scene's forest, with the
-    /// regions' veto; `None` once stopped.
+    /// regions' veto, each with its pick of edges for the minimum-size pass; `None` once
+    /// stopped.
     fn serial_tiles(&self, regions: &mut Regions, st: &mut SegmentTimings) -> Option<Tiled> {
         let tiles = self.tm.members.len();
         let mut forest = Forest::singletons(self.gaussians);
@@ -452,12 +438,13 @@ impl Run<'_> {
                 met[k as usize][usize::from(self.border[k as usize].i != x)] = c;
             }
             inner += edges.len() as u64;
-            let between: Vec<Edge> = edges
-                .into_iter()
-                .filter(|e| forest.find(e.i) != forest.find(e.j))
-                .collect();
-            kept.push(between);
             st.criterion += clock.elapsed().as_secs_f64();
+            let clock = Instant::now();
+            kept.push(
+                self.ctl
+                    .run(|| min_size_candidates(&forest, &edges, self.w, |i| i)),
+            );
+            st.min_size += clock.elapsed().as_secs_f64();
         }
         Some(Tiled {
             forest,
