@@ -45,6 +45,26 @@ impl<C: Copy> DisjointSets<C> {
         root
     }
 
+    /// Asks the CPU to bring `x`'s parent entry into its cache ahead of a [`DisjointSets::find`]
+    /// of `x`: a hint that changes no result. A pass over edges in weight order reads the
+    /// forest at random places, each read a cache miss on a large forest; prefetching the ends
+    /// of an edge some edges ahead overlaps those misses. No-op off x86_64 and out of range.
+    #[inline(always)]
+    pub(crate) fn prefetch(&self, x: u32) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(p) = self.parent.get(x as usize) {
+            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+            // SAFETY: a prefetch never faults and changes nothing the program can read; the
+            // pointer is to an element of the vector.
+            #[allow(unsafe_code)]
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(p).cast::<i8>());
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = x;
+    }
+
     /// The root of `x`'s set, without compressing its path (so that threads may share the
     /// forest).
     pub(crate) fn root(&self, x: u32) -> u32 {
@@ -83,7 +103,11 @@ mod tests {
         s.attach(1, 0, 2);
         s.attach(2, 1, 3);
         s.attach(4, 3, 2);
-        assert_eq!((s.root(2), s.parent[2]), (0, 1), "root() leaves the path as it is");
+        assert_eq!(
+            (s.root(2), s.parent[2]),
+            (0, 1),
+            "root() leaves the path as it is"
+        );
         assert_eq!(s.find(2), 0);
         assert_eq!(s.parent[2], 0, "the path from 2 now points at the root");
         assert_eq!((s.find(4), s.component(3)), (3, 2));

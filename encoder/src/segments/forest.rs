@@ -27,7 +27,21 @@ impl Component {
 /// Union-find with the Felzenszwalb–Huttenlocher component data (size, `Int`).
 pub(super) type Forest = DisjointSets<Component>;
 
+/// How many edges ahead a pass prefetches the forest entries of an edge's ends
+/// ([`DisjointSets::prefetch`]): far enough ahead for a miss to land before the edge comes,
+/// near enough for the line to be still in cache then.
+const PREFETCH_AHEAD: usize = 16;
+
 impl Forest {
+    /// Prefetches the forest entries of the ends of `edges[k]`, if any.
+    #[inline(always)]
+    fn prefetch_ends(&self, edges: &[Edge], k: usize) {
+        if let Some(e) = edges.get(k) {
+            self.prefetch(e.i);
+            self.prefetch(e.j);
+        }
+    }
+
     /// Every Gaussian of `n` its own component.
     pub(super) fn singletons(n: usize) -> Self {
         DisjointSets::new(n, Component { size: 1, int: 0.0 })
@@ -61,7 +75,8 @@ impl Forest {
         tau: f32,
         mut regions: Option<&mut Regions>,
     ) {
-        for e in edges {
+        for (k, e) in edges.iter().enumerate() {
+            self.prefetch_ends(edges, k + PREFETCH_AHEAD);
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a == b {
                 continue;
@@ -199,7 +214,8 @@ impl Forest {
         allowed: impl Fn(&Edge) -> bool,
         mut regions: Option<&mut Regions>,
     ) {
-        for e in edges {
+        for (k, e) in edges.iter().enumerate() {
+            self.prefetch_ends(edges, k + PREFETCH_AHEAD);
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
                 && ((self.component(a).size as usize) < min_size
