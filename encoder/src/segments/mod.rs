@@ -85,7 +85,8 @@
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
 //! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
-//! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
+//! flight and their gathered rows of the record (at most 2 GiB by default,
+//! [`SegmentControl::set_in_flight_bytes`]; sized from the edges per Gaussian
 //! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
 //! those kept for the minimum-size pass. The Gaussians themselves are read only until the
 //! geometric parts are computed ([`segment_with`] lets go of a shared scene there).
@@ -111,7 +112,7 @@ mod tiles;
 mod weights;
 
 use std::borrow::Cow;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -309,6 +310,8 @@ fn lap(t: &mut Instant) -> f64 {
 pub struct SegmentControl {
     stop: AtomicBool,
     pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
+    /// Bytes the tiles in flight may hold; 0: the default (2 GiB).
+    in_flight: AtomicUsize,
 }
 
 impl SegmentControl {
@@ -318,6 +321,23 @@ impl SegmentControl {
         SegmentControl {
             stop: AtomicBool::new(false),
             pool: Mutex::new(pool.map(Arc::new)),
+            in_flight: AtomicUsize::new(0),
+        }
+    }
+
+    /// The bytes that the tiles in flight may hold from the next wave of tiles on (their
+    /// edges, and their rows of the masks' record while they are built; module doc, "Bounded
+    /// memory"); 0: the default, 2 GiB. Fewer bytes run fewer tiles at once. The encode that
+    /// runs a segmentation beside itself gives it less while its own tail holds its peak.
+    pub fn set_in_flight_bytes(&self, bytes: usize) {
+        self.in_flight.store(bytes, Ordering::Relaxed);
+    }
+
+    /// [`SegmentControl::set_in_flight_bytes`]'s bytes now.
+    fn in_flight_bytes(&self) -> usize {
+        match self.in_flight.load(Ordering::Relaxed) {
+            0 => passes::TILES_IN_FLIGHT_BYTES,
+            bytes => bytes,
         }
     }
 

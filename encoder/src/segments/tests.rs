@@ -273,6 +273,10 @@ fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     let plain = segment(&g, &p, "x", None).unwrap().0;
     assert_eq!(narrow, plain);
     assert_eq!(wide, plain);
+    // One tile in flight at a time (the smallest budget) changes no id either.
+    ctl.set_in_flight_bytes(1);
+    let one_at_a_time = segment_with(&g, &p, "x", &ctl, || None).unwrap().unwrap().0;
+    assert_eq!(one_at_a_time, plain);
 }
 
 /// A shared scene is let go of before the masks' record is waited for (the passes after it need
@@ -414,7 +418,7 @@ fn strips_record(g: &Gaussians, slots: usize) -> slag_common::mask_record::MaskR
     let mut r = slag_common::mask_record::MaskRecord::new(g.len(), slots, 6).unwrap();
     for v in 0..6usize {
         let entries = (0..g.len() as u32)
-            .filter(|&i| (i as usize + v) % 3 != 0)
+            .filter(|&i| !(i as usize + v).is_multiple_of(3))
             .map(|i| {
                 let m = g.means[i as usize];
                 let mask = ((m[0] + 0.3 * v as f32) / 0.7).floor().max(0.0) as u32;
