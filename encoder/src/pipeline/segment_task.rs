@@ -46,13 +46,6 @@ pub fn segment_threads(threads: usize) -> usize {
     (threads / 4).max(1)
 }
 
-/// Bytes the segmentation's tiles in flight may hold while the encode runs
-/// ([`SegmentControl::set_in_flight_bytes`]): half the default, so that the tiles' passes that
-/// overlap the encode's tail (the reduction, the mixture and the write, the run's peak of
-/// resident memory at 30M Gaussians) add less to that peak; the default from
-/// [`SegmentTask::finish`] on.
-const IN_FLIGHT_BESIDE_ENCODE: usize = 1 << 30;
-
 /// What a segmentation thread hands back: `None` when it was stopped.
 type Outcome = Result<Option<(Segments, SegmentStats)>>;
 
@@ -101,7 +94,6 @@ impl SegmentTask {
         let ply = c.ply();
         let params = c.segments.params;
         let ctl = Arc::new(SegmentControl::new(Some(pool(threads)?)));
-        ctl.set_in_flight_bytes(IN_FLIGHT_BESIDE_ENCODE);
         let shared = Arc::clone(&ctl);
         let handle = std::thread::Builder::new()
             .name("slag-segments".into())
@@ -167,8 +159,6 @@ impl SegmentTask {
             .handle
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
-        // The encode is done: its memory is freed, and the tiles may hold the default bytes.
-        self.ctl.set_in_flight_bytes(0);
         let widened = self.widened_to.get().copied();
         let pool_threads = widened.unwrap_or(self.threads);
         let widened_to = if handle.is_finished() || threads <= pool_threads {

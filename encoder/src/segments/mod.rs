@@ -85,8 +85,7 @@
 //! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
 //! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
-//! flight and their gathered rows of the record (at most 2 GiB by default,
-//! [`SegmentControl::set_in_flight_bytes`]; sized from the edges per Gaussian
+//! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
 //! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
 //! those kept for the minimum-size pass. The Gaussians themselves are read only until the
 //! geometric parts are computed ([`segment_with`] lets go of a shared scene there).
@@ -112,7 +111,7 @@ mod tiles;
 mod weights;
 
 use std::borrow::Cow;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -270,8 +269,8 @@ pub struct SegmentStats {
 pub struct SegmentTimings {
     /// Each Gaussian's normal, flatness and size.
     pub geometry: f64,
-    /// The tiles' plan (median splits) and their members, made beside the neighbour search
-    /// (its own seconds, within `neighbours`).
+    /// The tiles' plan (median splits), made beside the neighbour search (its own seconds,
+    /// within `neighbours`).
     pub tiles: f64,
     /// The k-nearest-neighbour search of the means, and the tiles' plan beside it (wall time).
     pub neighbours: f64,
@@ -310,8 +309,6 @@ fn lap(t: &mut Instant) -> f64 {
 pub struct SegmentControl {
     stop: AtomicBool,
     pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
-    /// Bytes the tiles in flight may hold; 0: the default (2 GiB).
-    in_flight: AtomicUsize,
 }
 
 impl SegmentControl {
@@ -321,23 +318,6 @@ impl SegmentControl {
         SegmentControl {
             stop: AtomicBool::new(false),
             pool: Mutex::new(pool.map(Arc::new)),
-            in_flight: AtomicUsize::new(0),
-        }
-    }
-
-    /// The bytes that the tiles in flight may hold from the next wave of tiles on (their
-    /// edges, and their rows of the masks' record while they are built; module doc, "Bounded
-    /// memory"); 0: the default, 2 GiB. Fewer bytes run fewer tiles at once. The encode that
-    /// runs a segmentation beside itself gives it less while its own tail holds its peak.
-    pub fn set_in_flight_bytes(&self, bytes: usize) {
-        self.in_flight.store(bytes, Ordering::Relaxed);
-    }
-
-    /// [`SegmentControl::set_in_flight_bytes`]'s bytes now.
-    fn in_flight_bytes(&self) -> usize {
-        match self.in_flight.load(Ordering::Relaxed) {
-            0 => passes::TILES_IN_FLIGHT_BYTES,
-            bytes => bytes,
         }
     }
 
@@ -508,22 +488,18 @@ fn before_record(
     let (planned, nb) = std::thread::scope(|s| {
         let side = s.spawn(|| {
             let clock = Instant::now();
-            let plan = || {
-                let (_, tile_of, rects) = plan_tiles(&means, p.tile_gaussians);
-                let ids = graph::TileMembers::new(&tile_of, rects.len());
-                (tile_of, ids)
-            };
-            let (tile_of, ids) = match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
+            let plan = || plan_tiles(&means, p.tile_gaussians);
+            let (_, tile_of, rects) = match rayon::ThreadPoolBuilder::new().num_threads(1).build() {
                 Ok(own) => own.install(plan),
                 Err(_) => ctl.run(plan),
             };
-            (tile_of, ids, clock.elapsed().as_secs_f64())
+            (tile_of, rects.len(), clock.elapsed().as_secs_f64())
         });
         let nb = neighbour_graph(&means, p, max_edge, ctl);
         let planned = side.join().unwrap_or_else(|e| std::panic::resume_unwind(e));
         (planned, nb)
     });
-    let (tile_of, ids, tiles_s) = planned;
+    let (tile_of, tiles, tiles_s) = planned;
     st.tiles = tiles_s;
     let nb = nb?;
     st.neighbours = lap(&mut t);
@@ -532,11 +508,15 @@ fn before_record(
     // is held beside the pass's outputs.
     let ranked = ctl.run(|| geo.permuted(&nb.perm));
     drop(geo);
-    let tiles = ids.members.len();
-    let (geometric, ranks) = ctl.run(|| {
+    let (geometric, (ranks, ids)) = ctl.run(|| {
         rayon::join(
             || slot_geometry(&nb.gather(&means), &nb, &ranked, p),
-            || graph::TileMembers::new(&nb.gather(&tile_of), tiles),
+            || {
+                rayon::join(
+                    || graph::TileMembers::new(&nb.gather(&tile_of), tiles),
+                    || graph::TileMembers::new(&tile_of, tiles),
+                )
+            },
         )
     });
     drop(ranked);

@@ -25,10 +25,10 @@ use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
 
-/// Bytes that the tiles in flight at once may hold by default: their edges (12 bytes each) and,
-/// while they are built, their rows of the masks' record. Bounds the passes' memory whatever
-/// the thread count ([`SegmentControl::set_in_flight_bytes`] changes it).
-pub(super) const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
+/// Bytes that the tiles in flight at once may hold: their edges (12 bytes each) and, while
+/// they are built, their rows of the masks' record. Bounds the passes' memory whatever the
+/// thread count.
+const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
 /// components its ends of border edges met where each edge stands in the order (`(k, side,
@@ -174,11 +174,13 @@ fn min_size_candidates(
 }
 
 /// How many tiles may hold their edges at once: the pool's threads, fewer where the largest
-/// tile's bytes at `bytes_per_gaussian` would pass `budget` bytes.
-fn tiles_at_once(tm: &TileMembers, bytes_per_gaussian: usize, budget: usize) -> usize {
+/// tile's bytes at `bytes_per_gaussian` would pass [`TILES_IN_FLIGHT_BYTES`].
+fn tiles_at_once(tm: &TileMembers, bytes_per_gaussian: usize) -> usize {
     let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
     let bytes = (largest * bytes_per_gaussian).max(1);
-    rayon::current_num_threads().min(budget / bytes).max(1)
+    rayon::current_num_threads()
+        .min(TILES_IN_FLIGHT_BYTES / bytes)
+        .max(1)
 }
 
 /// What a tile in flight holds per Gaussian, as far as the tiles built so far tell: its edges
@@ -323,8 +325,7 @@ impl Run<'_> {
         };
         while next < tiles || !waiting.is_empty() {
             let per = in_flight.bytes_per_gaussian();
-            let budget = self.ctl.in_flight_bytes();
-            let at_once = self.ctl.run(|| tiles_at_once(self.tm, per, budget));
+            let at_once = self.ctl.run(|| tiles_at_once(self.tm, per));
             let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
             next = wave.end;
             let prev = std::mem::take(&mut waiting);
