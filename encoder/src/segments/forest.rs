@@ -218,8 +218,7 @@ impl Forest {
             self.prefetch_ends(edges, k + PREFETCH_AHEAD);
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
-                && ((self.component(a).size as usize) < min_size
-                    || (self.component(b).size as usize) < min_size)
+                && (self.component(a).size() < min_size || self.component(b).size() < min_size)
                 && allowed(e)
                 && regions.as_deref().is_none_or(|r| r.allows(a, b))
             {

@@ -81,9 +81,10 @@
 //! parallel right after its own criterion pass, beside the other tiles' passes (the veto, read
 //! from the scene's record, last); the pass itself runs over them in order on one thread. The
 //! geometric part of each neighbour's edge weight needs no masks: it is computed before the
-//! record arrives, so that afterwards an edge's weight only adds the mask term. Memory: 40 bytes per Gaussian for the whole
-//! scene (tile, its place in the tile, both by id and by rank; union-find; normals, flatness and
-//! size, 20 more, twice while they are put in space order, until the geometric parts are computed)
+//! record arrives, so that afterwards an edge's weight only adds the mask term. Memory: 40 bytes
+//! per Gaussian for the whole scene (tile, its place in the tile, both by id and by rank;
+//! union-find; normals, flatness and size, 20 more, twice while they are put in space order,
+//! until the geometric parts are computed)
 //! plus the neighbours and the geometric parts (4 bytes each per slot), the edges of the tiles in
 //! flight and their gathered rows of the record (at most 2 GiB, sized from the edges per Gaussian
 //! of the tiles built so far: about 100 + 64 bytes per Gaussian of a tile) and the border edges and
@@ -596,7 +597,7 @@ fn parameters_json(p: &SegmentParams, stats: &SegmentStats) -> String {
 /// [`canonical_ids`] of union-find roots (each below `roots.len()`), in parallel: the same
 /// ids, numbered by each segment's smallest Gaussian id. A segment's smallest member is found
 /// by an atomic minimum per root; its id is the count of smaller segments' smallest members
-/// (a prefix sum over the Gaussians, in chunks).
+/// (numbered within chunks of the Gaussians, then offset by the chunks before).
 fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
     use rayon::prelude::*;
     use std::sync::atomic::AtomicU32;
@@ -611,15 +612,21 @@ fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
         }
     });
     let smallest: Vec<u32> = smallest.into_iter().map(AtomicU32::into_inner).collect();
-    let is_first = |x: usize| smallest[roots[x] as usize] == x as u32;
-    // Each chunk's count of smallest members, then each chunk's first id.
-    let counts: Vec<u32> = (0..roots.len())
-        .into_par_iter()
-        .step_by(CHUNK)
-        .map(|c| {
-            (c..(c + CHUNK).min(roots.len()))
-                .filter(|&x| is_first(x))
-                .count() as u32
+    // At each segment's smallest member, its number within its chunk; each chunk's count.
+    let mut first_id = vec![u32::MAX; roots.len()];
+    let counts: Vec<u32> = first_id
+        .par_chunks_mut(CHUNK)
+        .enumerate()
+        .map(|(c, out)| {
+            let mut count = 0;
+            for (k, slot) in out.iter_mut().enumerate() {
+                let x = c * CHUNK + k;
+                if smallest[roots[x] as usize] == x as u32 {
+                    *slot = count;
+                    count += 1;
+                }
+            }
+            count
         })
         .collect();
     let mut starts = Vec::with_capacity(counts.len());
@@ -628,18 +635,12 @@ fn canonical_root_ids(roots: &[u32]) -> (Vec<u32>, u32) {
         starts.push(next);
         next += c;
     }
-    // The id of each segment, at its smallest member.
-    let mut first_id = vec![u32::MAX; roots.len()];
     first_id
         .par_chunks_mut(CHUNK)
         .zip(starts)
-        .enumerate()
-        .for_each(|(c, (out, mut id))| {
-            for (k, slot) in out.iter_mut().enumerate() {
-                if is_first(c * CHUNK + k) {
-                    *slot = id;
-                    id += 1;
-                }
+        .for_each(|(out, start)| {
+            for slot in out.iter_mut().filter(|s| **s != u32::MAX) {
+                *slot += start;
             }
         });
     let ids = roots

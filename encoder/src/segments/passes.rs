@@ -274,15 +274,17 @@ pub(super) fn merge(
     st.criterion += clock.elapsed().as_secs_f64();
     if p.min_size > 1 {
         let clock = Instant::now();
-        for edges in &kept {
-            forest.min_size_pass_in(edges, p.min_size, |_| true, regions.as_mut());
+        let kept_count: usize = kept.iter().map(Vec::len).sum();
+        // Each tile's list is freed once passed.
+        for edges in kept {
+            forest.min_size_pass_in(&edges, p.min_size, |_| true, regions.as_mut());
         }
         let allowed = |e: &Edge| w.may_absorb(e);
         forest.min_size_pass_in(&border, p.min_size, allowed, regions.as_mut());
         st.min_size += clock.elapsed().as_secs_f64();
         tracing::debug!(
             target: "slag_encoder::segments",
-            kept = kept.iter().map(Vec::len).sum::<usize>(),
+            kept = kept_count,
             border = border.len(),
             seconds = format!("{:.2}", clock.elapsed().as_secs_f64()),
             "minimum-size pass"
