@@ -15,6 +15,6 @@ cp .devcarry/slag-encoder /tmp/bin-new; cp .devcarry/slag-encoder-old /tmp/bin-o
 one() { # TAG BINARY(new|old) VIEWS [bench view flags; default --views all]
   cp "/tmp/bin-$2" .devcarry/slag-encoder
   VIEWS="${4:---views all}" OUT=$OUT/$1 bash scripts/lab/device-scaling.sh reduce 30M "$3" default > "$OUT/$1.txt" 2>&1
-  grep -h "resident memory\|device reduction\|neighbour search\|minimum-size pass" /tmp/slag-work/run-1.txt | cut -c1-260 > "$OUT/$1-log.txt"
+  grep -h "resident memory\|device reduction\|neighbour search\|minimum-size pass\|tile wave" /tmp/slag-work/run-1.txt | cut -c1-260 > "$OUT/$1-log.txt"
   echo "== $1"; head -3 "$OUT/$1/reduce.txt"
 }

@@ -212,7 +212,14 @@ pub(super) fn tile_edges(t: u32, src: &EdgeSource, w: &Weigher) -> Vec<Edge> {
             inner
         })
         .collect();
-    parts.concat()
+    // One part copied at a time and freed once copied: the tile's edges are held about once
+    // at the end, not twice as a concatenation holds them (the tiles in flight are budgeted
+    // by their edges' bytes).
+    let mut edges = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for part in parts {
+        edges.extend_from_slice(&part);
+    }
+    edges
 }
 
 /// Every edge of the graph whose ends lie in different tiles, in scene ids, ascending by

@@ -331,6 +331,7 @@ impl Run<'_> {
             let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
             next = wave.end;
             let prev = std::mem::take(&mut waiting);
+            let clock = Instant::now();
             let (done, built) = if at_once >= 2 {
                 self.ctl
                     .run(|| rayon::join(|| self.criteria(prev), || self.build(wave)))
@@ -341,6 +342,15 @@ impl Run<'_> {
             if self.ctl.stopped() {
                 return None;
             }
+            tracing::debug!(
+                target: "slag_encoder::segments",
+                passed = done.len(),
+                built = built.len(),
+                at_once,
+                threads = self.ctl.run(rayon::current_num_threads),
+                seconds = format!("{:.2}", clock.elapsed().as_secs_f64()),
+                "tile wave"
+            );
             passes.extend(done);
             in_flight.saw(&built, self.tm);
             waiting = built;

@@ -275,6 +275,43 @@ fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     assert_eq!(wide, plain);
 }
 
+/// Pools that change while the tiles' passes run (as the encode widens the segmentation's pool)
+/// lose no tile and change no id: each stage runs on the pool of its moment, and each wave of
+/// tiles takes its size from that pool.
+#[test]
+fn pools_changing_under_the_tiles_change_no_id() {
+    use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+    let (g, _) = planes();
+    let p = params_in_tiles(100);
+    let plain = segment(&g, &p, "x", None).unwrap().0;
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
+    for pause_us in [50, 200, 800] {
+        let ctl = SegmentControl::new(Some(pool(1)));
+        let done = AtomicBool::new(false);
+        let (got, switches) = std::thread::scope(|s| {
+            let switcher = s.spawn(|| {
+                let mut switches = 0;
+                while !done.load(Relaxed) {
+                    ctl.set_pool(pool(switches % 3 + 1));
+                    switches += 1;
+                    std::thread::sleep(std::time::Duration::from_micros(pause_us));
+                }
+                switches
+            });
+            let got = segment_with(&g, &p, "x", &ctl, || None).unwrap().unwrap().0;
+            done.store(true, Relaxed);
+            (got, switcher.join().unwrap())
+        });
+        assert!(switches > 1, "the pool changed {switches} times");
+        assert_eq!(got, plain, "{pause_us} µs between pools");
+    }
+}
+
 /// A shared scene is let go of before the masks' record is waited for (the passes after it need
 /// only the count), and the ids are those of a borrowed scene.
 #[test]
