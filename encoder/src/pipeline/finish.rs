@@ -455,8 +455,9 @@ fn reduce_on_device(
     });
     std::thread::scope(|s| {
         // The host's side of each tile on a thread of its own: the device reduces the next tile
-        // meanwhile (one tile waits between them).
-        let (tx, rx) = std::sync::mpsc::sync_channel::<KeptTile>(1);
+        // meanwhile, and hands it over once the host has taken in the one before (no tile
+        // waits between them: the host holds two tiles' outputs at most).
+        let (tx, rx) = std::sync::mpsc::sync_channel::<KeptTile>(0);
         let handle = s.spawn(move || take_tiles(rx, means, sparse, writer));
         let reduced = rasterizer.reduce_kept(&p, &mut |tile| {
             tx.send(tile)

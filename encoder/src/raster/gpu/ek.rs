@@ -34,8 +34,12 @@ pub const MAX_KEEP: usize = 32;
 /// Most bytes of kept records read back through one staging buffer at a time
 /// ([`GpuRasterizer::read_parts`]): a band larger than this is read alone.
 const READBACK_BYTES: u64 = 256 << 20;
-/// Most bytes of one tile's outputs (meta, kept pairs, rows) and of its records.
-const TILE_BYTES: u64 = 1 << 30;
+/// Most bytes of one tile's outputs (meta, kept pairs, rows) and of its records. The host
+/// holds a tile's outputs while it takes them in, beside the segments that run on during the
+/// reduction: at 30M Gaussians, 512 MiB tiles (8 of them, the host taking one at a time)
+/// peaked 0.45–0.73 GiB lower than 1 GiB tiles, in the same reduction time
+/// (docs/results/scaling.md).
+const TILE_BYTES: u64 = 512 << 20;
 
 /// The uniform of `ek.wgsl` (`EkParams`): an f64 then 10 u32, 48 bytes.
 #[repr(C)]
@@ -575,7 +579,7 @@ impl GpuRasterizer {
         Ok(())
     }
 
-    /// Testing aid: the most bytes of one tile's records and outputs (default 1 GiB, and at
+    /// Testing aid: the most bytes of one tile's records and outputs (default 512 MiB, and at
     /// most one binding); a tile holds at least one block of Gaussians whatever it says.
     pub fn set_reduce_tile_bytes(&mut self, bytes: Option<u64>) {
         self.reduce_tile_bytes = bytes;
