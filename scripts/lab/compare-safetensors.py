@@ -2,6 +2,8 @@
 """Compares two .safetensors files tensor by tensor (a device harness, not part of CI).
 
 Usage: compare-safetensors.py A B
+For two mixture files it also checks whether the codebooks hold the same rows in another order
+with the atoms renumbered to match (the same embeddings, stored in another order).
 Prints, per tensor: equal, or the count of differing elements and the largest absolute
 difference (f16 and f32 read as float64). Exit status 0 either way.
 """
@@ -26,3 +28,14 @@ for name in sorted(set(a) | set(b)):
     else:
         d = np.abs(x.astype(np.float64) - y.astype(np.float64))
         print(f"{name}: {n} of {x.size} differ, max |diff| {d.max():.3g} {x.shape} {x.dtype}")
+
+# Mixture files: does each kept slot point at the same codebook row content in both (the same
+# embeddings, whatever order the codebook rows are stored in)?
+if all(k in a and k in b for k in ("codebook", "atoms")):
+    ids = {}
+    content = lambda book: np.array([ids.setdefault(r.tobytes(), len(ids)) for r in book] + [-1])
+    ca, cb = content(a["codebook"]), content(b["codebook"])
+    unused = np.iinfo(a["atoms"].dtype).max
+    slot = lambda atoms, c: c[np.where(atoms == unused, len(c) - 1, atoms).astype(np.int64)]
+    same = int((slot(a["atoms"], ca) == slot(b["atoms"], cb)).sum())
+    print(f"atoms by codebook row content: {same} of {a['atoms'].size} slots agree")
