@@ -2,8 +2,9 @@
 """Compares two .safetensors files tensor by tensor (a device harness, not part of CI).
 
 Usage: compare-safetensors.py A B
-For two mixture files it also checks whether the codebooks hold the same rows in another order
-with the atoms renumbered to match (the same embeddings, stored in another order).
+For two mixture files it also counts the kept slots (`atoms`) whose codebook rows have the same
+content in both: all of them when the files hold the same embeddings with the codebook's rows
+stored in another order.
 Prints, per tensor: equal, or the count of differing elements and the largest absolute
 difference (f16 and f32 read as float64). Exit status 0 either way.
 """
