@@ -38,6 +38,27 @@ fn unit_rows_of(rows: &[f32], dim: usize) -> Vec<f32> {
     out
 }
 
+/// Gaussians at the origin over `codebook` (rows `dim` wide), one per `(id, entries)`, each
+/// entry a `(codebook row, a)` pair of its ragged row.
+fn at_origin(dim: usize, codebook: Vec<f32>, gaussians: &[(u32, &[(u32, f32)])]) -> SparseMixture {
+    let mut parts = SparseMixture {
+        dim,
+        codebook,
+        offsets: vec![0],
+        ..Default::default()
+    };
+    for &(id, entries) in gaussians {
+        parts.gaussian_ids.push(id);
+        parts.means.push([0.0; 3]);
+        for &(atom, a) in entries {
+            parts.atoms.push(atom);
+            parts.weights.push(a);
+        }
+        parts.offsets.push(parts.atoms.len());
+    }
+    parts
+}
+
 /// N Gaussians, each mixing up to 4 of M rows with positive weights.
 fn sample(n: usize, m: usize, dim: usize, seed: u64) -> SparseMixture {
     let mut r = stream(seed ^ 0x5eed);
@@ -107,16 +128,11 @@ fn reconstruction_is_the_normalised_weighted_mean_and_unit_length() {
 #[test]
 fn unused_codebook_rows_are_dropped_and_renumbered() {
     let dim = 4;
-    let parts = SparseMixture {
+    let parts = at_origin(
         dim,
-        model_id: String::new(),
-        codebook: unit_rows(5, dim, 3),
-        gaussian_ids: vec![2, 9],
-        means: vec![[0.0; 3]; 2],
-        offsets: vec![0, 2, 3],
-        atoms: vec![4, 1, 4],
-        weights: vec![1.0, 3.0, 2.0],
-    };
+        unit_rows(5, dim, 3),
+        &[(2, &[(4, 1.0), (1, 3.0)]), (9, &[(4, 2.0)])],
+    );
     let mix = MixtureEmbeddings::from_sparse(parts.clone()).unwrap();
     assert_eq!(mix.codebook_len(), 2);
     // Row 1 -> 0, row 4 -> 1; the larger weight (3 on row 1) comes first.
@@ -404,17 +420,7 @@ fn corrupt_or_inconsistent_files_are_format_errors() {
 
 #[test]
 fn cancelling_or_inconsistent_rows_are_rejected() {
-    let dim = 2;
-    let base = SparseMixture {
-        dim,
-        model_id: String::new(),
-        codebook: vec![1.0, 0.0, -1.0, 0.0],
-        gaussian_ids: vec![0],
-        means: vec![[0.0; 3]],
-        offsets: vec![0, 2],
-        atoms: vec![0, 1],
-        weights: vec![1.0, 1.0],
-    };
+    let base = at_origin(2, vec![1.0, 0.0, -1.0, 0.0], &[(0, &[(0, 1.0), (1, 1.0)])]);
     assert!(matches!(
         MixtureEmbeddings::from_sparse(base.clone()),
         Err(Error::Invalid(_))
