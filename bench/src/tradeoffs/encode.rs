@@ -181,12 +181,15 @@ impl EncodePoint {
     }
 }
 
-/// Worker counts passed to every encode of the sweep (part of each point's cache key).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+/// Worker counts passed to every encode of the sweep (part of each point's cache key); the
+/// study's `--threads` and `--front-workers`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::Args)]
 pub struct Workers {
-    /// `--threads` (default: all cores).
+    /// Worker threads of the encoder (default: all cores).
+    #[arg(long)]
     pub threads: Option<usize>,
-    /// `--front-workers` (default: the encoder's, GPUs + 1).
+    /// Front workers of the encoder (masks + CLIP; default GPUs + 1: raise it on many cores).
+    #[arg(long)]
     pub front_workers: Option<usize>,
 }
 

@@ -90,12 +90,9 @@ pub struct TradeoffArgs {
     /// Fixtures folder (sam-amg/, clip/). Default: <shared>/fixtures.
     #[arg(long)]
     pub fixtures: Option<PathBuf>,
-    /// Worker threads of the encoder (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
-    /// Front workers of the encoder (masks + CLIP; default GPUs + 1: raise it on many cores).
-    #[arg(long)]
-    pub front_workers: Option<usize>,
+    /// Worker counts of every encode of the sweep.
+    #[command(flatten)]
+    pub workers: encode::Workers,
     /// Timed repetitions of each prompt's scan (default 5, --quick 1).
     #[arg(long)]
     pub repeats: Option<usize>,
@@ -420,10 +417,6 @@ fn encode_sweep(
     held: &mut heldout::HeldOutViews,
     points: &[EncodePoint],
 ) -> anyhow::Result<Sweep> {
-    let workers = encode::Workers {
-        threads: a.threads,
-        front_workers: a.front_workers,
-    };
     let held_names = held.names();
     let mut sweep = Sweep {
         encoded: Vec::new(),
@@ -432,7 +425,7 @@ fn encode_sweep(
     };
     for (i, p) in points.iter().enumerate() {
         let dir = encode::point_dir(&su.work, p);
-        let config = p.encode_config(&su.scene, &su.fixtures, &workers, &dir);
+        let config = p.encode_config(&su.scene, &su.fixtures, &a.workers, &dir);
         let emb_path = dir.join("embeddings.safetensors");
         let prior = (!a.fresh).then(|| encode::cached(&dir, &config)).flatten();
         let prior_eval = prior.as_ref().and_then(|_| {
@@ -451,7 +444,7 @@ fn encode_sweep(
         eprintln!("{progress} encode {} ({})", p.id(), p.knob);
         let (rec, cached) = match prior {
             Some(r) if usable => (r, true),
-            _ => encode::run_point(p, &su.scene, &su.fixtures, &workers, &dir, true)?,
+            _ => encode::run_point(p, &su.scene, &su.fixtures, &a.workers, &dir, true)?,
         };
         let ev = evaluate_point(ctx, held, p.every, &dir, su.repeats)?;
         if let Some(h) = &ev.held_out {
