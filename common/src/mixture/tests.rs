@@ -6,6 +6,7 @@ use crate::similarity::cosine_scores;
 use proptest::prelude::*;
 use safetensors::tensor::TensorView;
 use std::collections::HashMap;
+use std::path::PathBuf;
 
 /// Deterministic xorshift stream in [-1, 1).
 fn stream(seed: u64) -> impl FnMut() -> f32 {
@@ -80,6 +81,14 @@ fn sample(n: usize, m: usize, dim: usize, seed: u64) -> SparseMixture {
         parts.offsets.push(parts.atoms.len());
     }
     parts
+}
+
+/// A new temporary folder, and the path `name` in it (a relative path) where `mix` was written.
+fn written_in_tempdir(mix: &MixtureEmbeddings, name: &str) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join(name);
+    mix.write(&p).unwrap();
+    (dir, p)
 }
 
 /// The f64 normalised weighted mean, straight from E_k = Σ a E / Σ a.
@@ -274,10 +283,8 @@ fn bad_queries_are_typed_errors() {
 
 #[test]
 fn write_read_round_trip_is_exact() {
-    let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("sub/mixture.safetensors");
     let mix = MixtureEmbeddings::from_sparse(sample(50, 11, 12, 5)).unwrap();
-    mix.write(&p).unwrap();
+    let (dir, p) = written_in_tempdir(&mix, "sub/mixture.safetensors");
     assert!(!dir.path().join("sub/mixture.safetensors.partial").exists());
     let back = MixtureEmbeddings::read(&p).unwrap();
     assert_eq!(back, mix);
@@ -326,10 +333,8 @@ fn the_same_mixture_always_writes_the_same_bytes() {
 
 #[test]
 fn corrupt_or_inconsistent_files_are_format_errors() {
-    let dir = tempfile::tempdir().unwrap();
-    let p = dir.path().join("m.safetensors");
     let mix = MixtureEmbeddings::from_sparse(sample(6, 5, 4, 2)).unwrap();
-    mix.write(&p).unwrap();
+    let (_dir, p) = written_in_tempdir(&mix, "m.safetensors");
     let bytes = std::fs::read(&p).unwrap();
     std::fs::write(&p, &bytes[..bytes.len() - 5]).unwrap();
     assert!(matches!(
