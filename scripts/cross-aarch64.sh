@@ -47,7 +47,10 @@ export AR_aarch64_unknown_linux_gnu=aarch64-linux-gnu-ar
 # live under /lib/aarch64-linux-gnu. (`-L /usr/aarch64-linux-gnu` makes threaded binaries hang in
 # pthread_create.)
 QEMU="qemu-aarch64-static -L /"
-export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=$QEMU
+# Test binaries run through a wrapper that stops one running past its time limit and runs it once
+# more (qemu-user can deadlock a forked child before its exec; see the wrapper's header).
+export SLAG_QEMU=$QEMU
+export CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER=$SLAG_ROOT/scripts/qemu-test-runner.sh
 # A test under qemu-user cannot exec an aarch64 program itself (the host kernel has no binfmt_misc
 # entry here: the child fails with status 127). Tests that spawn the binary
 # (env!("CARGO_BIN_EXE_slag-edge"), current_exe()) must prefix this runner when it is set.
@@ -59,7 +62,7 @@ if [ "${1:-}" = --env ]; then
   # For running other cargo commands by hand: eval "$(bash scripts/cross-aarch64.sh --env)"
   for v in RUSTC RUSTDOC CARGO_TARGET_DIR CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER \
     CC_aarch64_unknown_linux_gnu CXX_aarch64_unknown_linux_gnu AR_aarch64_unknown_linux_gnu \
-    CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER SLAG_TEST_RUNNER ORT_DYLIB_PATH SLAG_SHARED; do
+    CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER SLAG_QEMU SLAG_TEST_RUNNER ORT_DYLIB_PATH SLAG_SHARED; do
     printf 'export %s=%q\n' "$v" "${!v}"
   done
   echo "# then: /usr/bin/cargo test|build --release -p slag-edge --target $TARGET"
