@@ -13,8 +13,8 @@ use super::*;
 /// largest `a_kj` over all images, so that `E_k ≈ Σ_{kept} a_kj E_j / ‖Σ_{kept} a_kj E_j‖`.
 ///
 /// Codebook ids: the mask embeddings of the images are concatenated in the order
-/// [`ContributionStore::for_each`] visits them (the in-memory images, then the spilled ones, each
-/// in push order), so mask `j` of image `i` is row `offset_i + j`; rows no kept atom uses are then
+/// [`ContributionStore::for_each`] visits them (by view index, whatever the order they arrived
+/// in), so mask `j` of image `i` is row `offset_i + j`; rows no kept atom uses are then
 /// dropped and the rest renumbered in that order ([`MixtureEmbeddings::from_sparse`]).
 ///
 /// The observed Gaussians are exactly those of [`reduce`] with the same `params` (same f64

@@ -130,12 +130,17 @@ impl StoredImage {
 /// The budget counts each image as [`ImageContribution::bytes`] (12 bytes an `a_kj`), the size it
 /// arrives in; in memory it is held as a [`StoredImage`] (9 bytes an `a_kj` with at most 256 masks
 /// an image), so the memory held stays below the budget. Which images spill depends on that count
-/// only, and with it the order in which the reduction visits them.
+/// and on the order they arrive in; the reduction visits them by view index whatever the order
+/// ([`Self::push_stored_as`]), so that the same encode gives the same sums in the same order.
 pub struct ContributionStore {
     budget_bytes: usize,
     used_bytes: usize,
+    /// The images held in memory, by view index (ties in push order).
     pub(super) in_memory: Vec<StoredImage>,
-    spilled: Vec<PathBuf>,
+    /// `[in_memory.len()]` the view index of each, ascending.
+    memory_views: Vec<usize>,
+    /// The spilled images' view indices and files, by view index (ties in push order).
+    spilled: Vec<(usize, PathBuf)>,
     spill_dir: PathBuf,
 }
 
@@ -147,6 +152,7 @@ impl ContributionStore {
             budget_bytes,
             used_bytes: 0,
             in_memory: Vec::new(),
+            memory_views: Vec::new(),
             spilled: Vec::new(),
             spill_dir,
         }
@@ -174,12 +180,13 @@ impl ContributionStore {
         self.in_memory.iter().map(StoredImage::bytes).sum()
     }
 
-    /// Adds one image's contribution: kept in memory as a [`StoredImage`] while the budget (counted
-    /// at [`ImageContribution::bytes`]) allows, else written to a spill file.
+    /// Adds one image's contribution after every image so far: kept in memory as a
+    /// [`StoredImage`] while the budget (counted at [`ImageContribution::bytes`]) allows, else
+    /// written to a spill file.
     ///
     /// Errors: I/O writing the spill file.
     pub fn push(&mut self, c: ImageContribution) -> Result<()> {
-        self.push_stored(StoredImage::from_contribution(c))
+        self.push_stored_as(self.len(), StoredImage::from_contribution(c))
     }
 
     /// [`Self::push`] of a contribution already in the store's columns
@@ -188,9 +195,21 @@ impl ContributionStore {
     ///
     /// Errors: I/O writing the spill file.
     pub fn push_stored(&mut self, c: StoredImage) -> Result<()> {
+        self.push_stored_as(self.len(), c)
+    }
+
+    /// [`Self::push_stored`] of the image `view` (its index in the encode's view list): the
+    /// reduction visits the images by `view` ([`Self::for_each`]), not in the order they
+    /// arrived, so views finished in any order give the same codebook, the same ties and the
+    /// same sums. Images of equal `view` keep their push order.
+    ///
+    /// Errors: I/O writing the spill file.
+    pub fn push_stored_as(&mut self, view: usize, c: StoredImage) -> Result<()> {
         if self.used_bytes + c.arrival_bytes() <= self.budget_bytes {
             self.used_bytes += c.arrival_bytes();
-            self.in_memory.push(c);
+            let at = self.memory_views.partition_point(|&v| v <= view);
+            self.memory_views.insert(at, view);
+            self.in_memory.insert(at, c);
             return Ok(());
         }
         std::fs::create_dir_all(&self.spill_dir).map_err(|e| Error::io(&self.spill_dir, e))?;
@@ -212,7 +231,8 @@ impl ContributionStore {
             f.write_all(&e.weight.to_le_bytes()).map_err(io)?;
         }
         f.flush().map_err(io)?;
-        self.spilled.push(path);
+        let at = self.spilled.partition_point(|(v, _)| *v <= view);
+        self.spilled.insert(at, (view, path));
         Ok(())
     }
 
@@ -254,15 +274,20 @@ impl ContributionStore {
         }))
     }
 
-    /// Calls `f` on every contribution: the in-memory ones, then the spilled ones (read back one
-    /// at a time), each in push order.
+    /// Calls `f` on every contribution by view index ([`Self::push_stored_as`]), the in-memory
+    /// ones and the spilled ones (read back one at a time) merged; of equal view index, the
+    /// in-memory ones first, each side in push order.
     ///
     /// Errors: I/O reading a spill file.
     pub fn for_each(&self, mut f: impl FnMut(&StoredImage)) -> Result<()> {
-        self.in_memory.iter().for_each(&mut f);
-        for p in &self.spilled {
-            f(&Self::read_spilled(p)?);
+        let mut memory = self.memory_views.iter().zip(&self.in_memory).peekable();
+        for (view, path) in &self.spilled {
+            while let Some((_, c)) = memory.next_if(|(v, _)| *v <= view) {
+                f(c);
+            }
+            f(&Self::read_spilled(path)?);
         }
+        memory.for_each(|(_, c)| f(c));
         Ok(())
     }
 }
@@ -282,7 +307,7 @@ impl ContributionStore {
 
 impl Drop for ContributionStore {
     fn drop(&mut self) {
-        for p in &self.spilled {
+        for (_, p) in &self.spilled {
             let _ = std::fs::remove_file(p);
         }
         let _ = std::fs::remove_dir(&self.spill_dir);

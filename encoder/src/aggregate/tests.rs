@@ -246,6 +246,49 @@ fn chunked_and_spilled_reduction_equals_single_pass() {
     drop(spilling);
     assert!(!dir.path().join("b").exists());
 }
+
+/// Views pushed out of order, some kept in memory and some spilled, are visited by view index;
+/// and the same views pushed in any order give the same mixture, bit for bit.
+#[test]
+fn the_store_visits_views_by_index_whatever_their_arrival() {
+    let (dim, n) = (2, 50u32);
+    // View v: one mask embedding [v, 1] and an a_kj on Gaussians v and v + 10.
+    let view = |v: u32| ImageContribution {
+        dim,
+        mask_embeddings: vec![v as f32, 1.0],
+        entries: entries(&[(v, 0, 1.0 + v as f32), (v + 10, 0, 0.5)]),
+    };
+    let one_view_bytes = view(0).bytes();
+    let dir = tempfile::tempdir().unwrap();
+    let visited = |arrival: &[u32], name: &str| {
+        // Room for three views in memory: the rest spill.
+        let mut store = ContributionStore::new(3 * one_view_bytes, dir.path().join(name));
+        for &v in arrival {
+            let stored = StoredImage::from_contribution(view(v));
+            store.push_stored_as(v as usize, stored).unwrap();
+        }
+        let mut seen = Vec::new();
+        store
+            .for_each(|c| seen.push(c.mask_embeddings[0] as u32))
+            .unwrap();
+        (store, seen)
+    };
+    let (sorted, in_order) = visited(&[0, 1, 2, 3, 4, 5], "sorted");
+    let (shuffled, out_of_order) = visited(&[4, 1, 5, 0, 3, 2], "shuffled");
+    assert_eq!(shuffled.spilled(), 3);
+    assert_eq!(in_order, [0, 1, 2, 3, 4, 5]);
+    assert_eq!(out_of_order, in_order);
+    let means = vec![[0.0f32; 3]; n as usize];
+    let rp = ReduceParams::default();
+    let a = reduce_mixture_chunks(&sorted, &means, dim, rp, 2, "m")
+        .unwrap()
+        .0;
+    let b = reduce_mixture_chunks(&shuffled, &means, dim, rp, 2, "m")
+        .unwrap()
+        .0;
+    assert_eq!(a.codebook, b.codebook);
+    assert_eq!((a.atoms, a.weights), (b.atoms, b.weights));
+}
 /// Unit rows from a xorshift stream.
 fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
     let mut s = seed | 1;

@@ -83,7 +83,8 @@ impl PartitionReducer {
                     mask_embeddings: part.mask_embeddings,
                     entries,
                 };
-                if let Err(e) = self.store.push(c) {
+                let stored = aggregate::StoredImage::from_contribution(c);
+                if let Err(e) = self.store.push_stored_as(part.image as usize, stored) {
                     self.fail(format!("partition {}: {e}", self.partition));
                 }
             }

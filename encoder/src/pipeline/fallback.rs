@@ -15,8 +15,8 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 use slag_common::{Error, Result};
 
-use crate::aggregate::{ContributionStore, ImageContribution};
 use crate::aggregate::store::StoredImage;
+use crate::aggregate::{ContributionStore, ImageContribution};
 use crate::raster::WeightRasterizer;
 use crate::report::{DeviceReduceFallback, ImageWork};
 
@@ -70,8 +70,8 @@ impl ReduceFallback {
     /// Brings every view `rasterizer` kept back to the host ([`WeightRasterizer::export_kept`];
     /// keeping stops): each view's label sums expanded into its `a_kj`
     /// ([`super::sums_contribution`], embeddings of width `dim`), handed to `on_view` with its
-    /// place in keeping order, pushed to `store` in keeping order, their entries added to
-    /// `totals`.
+    /// place in keeping order, pushed to `store` under its view index (the store visits views
+    /// by index), their entries added to `totals`.
     ///
     /// Errors: the device's (reading the sums back); a malformed export ([`Error::Internal`]);
     /// `on_view`'s; the store's (spill I/O); a lock poisoned by a panicked worker.
@@ -93,7 +93,10 @@ impl ReduceFallback {
             on_view(i, &c)?;
             entries += c.entries.len() as u64;
             let stored = StoredImage::from_contribution(c);
-            store.lock().map_err(poisoned)?.push_stored(stored)?;
+            store
+                .lock()
+                .map_err(poisoned)?
+                .push_stored_as(v.view, stored)?;
             self.views.fetch_add(1, Ordering::SeqCst);
         }
         if let Ok(mut t) = totals.lock() {

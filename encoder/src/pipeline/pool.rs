@@ -1065,12 +1065,18 @@ fn finish_image(
     if !level_stores.is_empty() {
         let parts = crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
         for (part, ls) in parts.into_iter().zip(level_stores) {
-            ls.lock().map_err(poisoned)?.push(part)?;
+            let part = crate::aggregate::store::StoredImage::from_contribution(part);
+            ls.lock()
+                .map_err(poisoned)?
+                .push_stored_as(raster_view, part)?;
         }
     }
     // Into the store's columns here, not under the store's lock.
     let stored = crate::aggregate::store::StoredImage::from_contribution(out.contribution);
-    store.lock().map_err(poisoned)?.push_stored(stored)?;
+    store
+        .lock()
+        .map_err(poisoned)?
+        .push_stored_as(raster_view, stored)?;
     work.image_aggregate_s += t1.elapsed().as_secs_f64();
     if let Ok(mut tt) = totals.lock() {
         tt.add(&work);

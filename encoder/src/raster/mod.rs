@@ -307,9 +307,10 @@ impl KeptTile {
 pub struct KeptExport {
     /// Embedding width D.
     pub(crate) dim: usize,
-    /// Per view: its label table (the device reduction's layout, offsets relative to its start)
-    /// and its masks' embeddings `[M × D]`.
-    pub(crate) views: Vec<(Vec<u32>, Vec<f32>)>,
+    /// Per view, in keeping order: its label table (the device reduction's layout, offsets
+    /// relative to its start), its masks' embeddings `[M × D]` and its index in the encode's
+    /// view list ([`KeptMasks::view`]).
+    pub(crate) views: Vec<(Vec<u32>, Vec<f32>, u32)>,
     /// Per band: its view, its records (16 bytes each), where each block of Gaussians starts.
     pub(crate) parts: Vec<(u32, Vec<u8>, Vec<u32>)>,
     /// Whether this batch continues the export whose first batch brought the views
@@ -331,6 +332,8 @@ pub(crate) struct KeptHostView {
     pub(crate) factors: Vec<f32>,
     /// `[M × D]` the masks' CLIP embeddings.
     pub(crate) embeddings: Vec<f32>,
+    /// The view's index in the encode's view list ([`KeptMasks::view`]).
+    pub(crate) view: usize,
 }
 
 /// What [`WeightRasterizer::reduce_kept`] leaves besides the tiles.
@@ -338,8 +341,8 @@ pub(crate) struct KeptHostView {
 pub struct KeptReduced {
     /// Tiles the reduction used.
     pub tiles: usize,
-    /// `[M × D]` every kept view's mask embeddings in keeping order: the codebook the kept
-    /// pairs' rows index.
+    /// `[M × D]` every kept view's mask embeddings, by view index ([`KeptMasks::view`]) and then
+    /// mask: the codebook the kept pairs' rows index.
     pub codebook: Vec<f32>,
 }
 

@@ -1003,11 +1003,12 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
 /// pipeline's results: the same observed Gaussians, `Σ a_kj`, unit `E_k` within f64 round-off,
 /// the same kept mixture pairs and the same dominant masks, with overlapping masks, area
 /// weighting, several views and tiles of a few blocks of Gaussians, and with the last views kept
-/// on a second device whose views the first imports (a run on several GPUs).
+/// on a second device whose views the first imports (a run on several GPUs). The views are kept
+/// out of order, as the fronts finish them: the codebook still comes in view order.
 #[test]
 fn device_reduction_equals_the_host_reduction() {
     use crate::aggregate::{
-        ContributionStore, ImageStageParams, MaskWeighting, ReduceParams, reduce,
+        ContributionStore, ImageStageParams, MaskWeighting, ReduceParams, StoredImage, reduce,
         reduce_mixture_chunks,
     };
     use crate::pipeline::view_contribution;
@@ -1029,7 +1030,8 @@ fn device_reduction_equals_the_host_reduction() {
     };
     let mut store = ContributionStore::new(1 << 30, std::env::temp_dir());
     let mut dominants = Vec::new();
-    for seed in 0..5u64 {
+    let mut first_view_rows = Vec::new();
+    for seed in [2u64, 0, 4, 1, 3] {
         let (k, w2c) = test_camera(seed);
         let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
         let mut r = SplitMix64::new(seed ^ 0xE3B);
@@ -1059,7 +1061,11 @@ fn device_reduction_equals_the_host_reduction() {
             "view {seed}"
         );
         dominants.push(view.dominant);
-        store.push(c).unwrap();
+        if seed == 0 {
+            first_view_rows = emb;
+        }
+        let stored = StoredImage::from_contribution(c);
+        store.push_stored_as(seed as usize, stored).unwrap();
     }
     let rp = ReduceParams::default();
     let host = reduce(&store, n, dim, rp).unwrap();
@@ -1094,6 +1100,11 @@ fn device_reduction_equals_the_host_reduction() {
         out.tiles >= 2,
         "{} tiles: the small tile budget splits the scene",
         out.tiles
+    );
+    assert_eq!(
+        out.codebook[..first_view_rows.len()],
+        first_view_rows[..],
+        "view 0's masks first, though kept second"
     );
     assert_eq!(
         out.codebook, sparse.codebook,

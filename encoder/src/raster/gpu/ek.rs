@@ -86,9 +86,11 @@ pub(super) struct Kept {
     parts: Vec<KeptPart>,
     /// The views' label tables, one after the other (layout: see [`push_table`]).
     tables: Vec<u32>,
-    /// Per view: the base of its table in `tables`, its first codebook row.
-    views: Vec<[u32; 2]>,
-    /// `[M × D]` every kept view's mask embeddings, in view order.
+    /// Per kept view, in keeping order: the base of its table in `tables`, its first codebook
+    /// row, and its index in the encode's view list ([`KeptMasks::view`]).
+    views: Vec<[u32; 3]>,
+    /// `[M × D]` every kept view's mask embeddings, in keeping order (in the encode's view
+    /// order once [`Kept::sort_by_view`] ran).
     codebook: Vec<f32>,
     /// Whether an export batch took the views' tables and codebook already
     /// ([`GpuRasterizer::export_kept_views_batch`]); keeping has stopped then.
@@ -256,12 +258,14 @@ impl GpuRasterizer {
             )));
         }
         let n_masks = masks.embeddings.len() / dim;
+        let index = u32::try_from(masks.view)
+            .map_err(|_| Error::Invalid(format!("view index {} past 2^32", masks.view)))?;
         let base = push_table(&mut kept.tables, masks, n_masks)?;
         let row = u32::try_from(kept.codebook.len() / dim)
             .map_err(|_| Error::Invalid("more than 2^32 kept mask embeddings".into()))?;
         kept.codebook.extend_from_slice(masks.embeddings);
         let id = kept.views.len() as u32;
-        kept.views.push([base, row]);
+        kept.views.push([base, row, index]);
         Ok(id)
     }
 
@@ -552,12 +556,12 @@ impl GpuRasterizer {
             kept.import_base = kept.views.len() as u32;
         }
         let first_view = kept.import_base;
-        for (table, rows) in e.views {
+        for (table, rows, index) in e.views {
             let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
             let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
             kept.tables.extend_from_slice(&table);
             kept.codebook.extend_from_slice(&rows);
-            kept.views.push([base, row]);
+            kept.views.push([base, row, index]);
         }
         for (view, bytes, starts) in e.parts {
             let view = first_view + view;
@@ -614,7 +618,7 @@ impl GpuRasterizer {
             p.view != view
         });
         if kept.views.len() == view as usize + 1
-            && let Some([base, row]) = kept.views.pop()
+            && let Some([base, row, _]) = kept.views.pop()
         {
             kept.tables.truncate(base as usize);
             kept.codebook.truncate(row as usize * *dim);
@@ -694,7 +698,7 @@ impl GpuRasterizer {
         p: &DeviceReduce,
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
-        let Some(kept) = self.kept.take() else {
+        let Some(mut kept) = self.kept.take() else {
             return Err(Error::internal("the device reduction has no kept views"));
         };
         if p.keep == 0 || p.keep > MAX_KEEP {
@@ -704,6 +708,7 @@ impl GpuRasterizer {
                 format!("1 to {MAX_KEEP} for the device reduction (or --reduce host)"),
             ));
         }
+        kept.sort_by_view();
         let dim = kept.dim;
         let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
         let out_per_gaussian = 8 + p.keep as u64 * 8 + if p.dense { dim as u64 * 4 } else { 0 };
@@ -963,7 +968,7 @@ fn gather_tile_records(
     let mut at = 0u32;
     for &(i, first, count) in &tile.ranges {
         let part = &kept.parts[i];
-        let [base, row] = kept.views[part.view as usize];
+        let [base, row, _] = kept.views[part.view as usize];
         segs.push([at, part.view, base, row]);
         enc.copy_buffer_to_buffer(
             &part.records,
@@ -1158,22 +1163,57 @@ fn tile_output_range(
     out
 }
 
-/// Per kept view, its label table and its codebook rows, copied out of `kept`.
-fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>)> {
+/// Per kept view, its label table, its codebook rows and its index in the encode's view list,
+/// copied out of `kept` (in keeping order, before [`Kept::sort_by_view`]).
+fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
     let dim = kept.dim;
     (0..kept.views.len())
         .map(|v| {
-            let [base, row] = kept.views[v];
+            let [base, row, index] = kept.views[v];
             let (table_end, row_end) = match kept.views.get(v + 1) {
-                Some(&[b, r]) => (b as usize, r as usize),
+                Some(&[b, r, _]) => (b as usize, r as usize),
                 None => (kept.tables.len(), kept.codebook.len() / dim),
             };
             (
                 kept.tables[base as usize..table_end].to_vec(),
                 kept.codebook[row as usize * dim..row_end * dim].to_vec(),
+                index,
             )
         })
         .collect()
+}
+
+impl Kept {
+    /// Puts the kept views in the encode's view order, whatever order they were kept in (the
+    /// fronts finish views in no fixed order, and a second device's views come after the
+    /// first's): the codebook's rows by view index and then mask, each view's first row moved
+    /// with them, and the bands by view index (a view's bands in keeping order). The reduction
+    /// then numbers its atoms, breaks ties between equal `a_kj` (the smaller row) and adds the
+    /// views' terms in one order for every run, so that the same encode writes the same bytes.
+    fn sort_by_view(&mut self) {
+        let dim = self.dim;
+        let mut order: Vec<usize> = (0..self.views.len()).collect();
+        order.sort_by_key(|&v| (self.views[v][2], v));
+        // Each view's rows in keeping order, before any first row moves.
+        let rows: Vec<std::ops::Range<usize>> = (0..self.views.len())
+            .map(|v| {
+                let end = self
+                    .views
+                    .get(v + 1)
+                    .map_or(self.codebook.len() / dim, |n| n[1] as usize);
+                self.views[v][1] as usize..end
+            })
+            .collect();
+        let mut rank = vec![0u32; self.views.len()];
+        let mut codebook = Vec::with_capacity(self.codebook.len());
+        for (r, &v) in order.iter().enumerate() {
+            rank[v] = r as u32;
+            self.views[v][1] = (codebook.len() / dim) as u32;
+            codebook.extend_from_slice(&self.codebook[rows[v].start * dim..rows[v].end * dim]);
+        }
+        self.codebook = codebook;
+        self.parts.sort_by_key(|p| rank[p.view as usize]);
+    }
 }
 
 impl KeptExport {
@@ -1188,7 +1228,7 @@ impl KeptExport {
         } = self;
         let mut out = views
             .into_iter()
-            .map(|(table, embeddings)| {
+            .map(|(table, embeddings, view)| {
                 if dim == 0 || !embeddings.len().is_multiple_of(dim) {
                     return Err(Error::internal(format!(
                         "{} kept mask embedding values are not rows of {dim}",
@@ -1201,6 +1241,7 @@ impl KeptExport {
                     masks_of,
                     factors,
                     embeddings,
+                    view: view as usize,
                 })
             })
             .collect::<Result<Vec<_>>>()?;
