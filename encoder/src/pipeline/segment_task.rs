@@ -149,7 +149,9 @@ impl SegmentTask {
     }
 
     /// Waits for the segmentation and returns its result. When it is still running, its stages
-    /// from now on run on a new pool of `threads` threads (the encode's, idle now).
+    /// from now on run on a new pool of `threads` threads (the encode's, idle now), and its
+    /// tiles may hold [`crate::segments::TILES_IN_FLIGHT_BYTES_ALONE`] at once (the encode's
+    /// memory is let go by now), so that more of them run at once.
     ///
     /// Errors: the segmentation's ([`crate::segments::segment`]),
     /// [`Error::Internal`] when its thread panicked or a pool cannot be started.
@@ -159,6 +161,8 @@ impl SegmentTask {
             .handle
             .take()
             .ok_or_else(|| Error::internal("segmentation already collected"))?;
+        self.ctl
+            .set_in_flight_bytes(crate::segments::TILES_IN_FLIGHT_BYTES_ALONE);
         let widened = self.widened_to.get().copied();
         let pool_threads = widened.unwrap_or(self.threads);
         let widened_to = if handle.is_finished() || threads <= pool_threads {

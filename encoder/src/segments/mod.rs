@@ -302,15 +302,34 @@ fn lap(t: &mut Instant) -> f64 {
     s
 }
 
-/// Where [`segment_with`] runs its parallel stages, and whether it should give up. Another
-/// thread may change both while it runs: the encode that runs a segmentation beside itself
-/// starts it on a small pool, widens it when the encode is done, and stops it when the encode
-/// failed.
-#[derive(Debug, Default)]
+/// Where [`segment_with`] runs its parallel stages, how much memory its tiles in flight may
+/// hold, and whether it should give up. Another thread may change all three while it runs: the
+/// encode that runs a segmentation beside itself starts it on a small pool, widens it when the
+/// encode is done, lets its tiles hold more once the encode's own memory is freed, and stops it
+/// when the encode failed.
+#[derive(Debug)]
 pub struct SegmentControl {
     stop: AtomicBool,
     pool: Mutex<Option<Arc<rayon::ThreadPool>>>,
+    in_flight_bytes: std::sync::atomic::AtomicUsize,
 }
+
+impl Default for SegmentControl {
+    fn default() -> Self {
+        Self::new(None)
+    }
+}
+
+/// Bytes that the tiles in flight at once may hold ([`SegmentControl::set_in_flight_bytes`]):
+/// their edges (12 bytes each) and, while they are built, their rows of the masks' record. The
+/// default, 2 GiB, is what a segmentation may add beside an encode's tail at 30M Gaussians
+/// within a 10 GiB peak (docs/results/scaling.md).
+pub const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
+
+/// What the tiles in flight may hold once the encode beside them has ended and let go of its
+/// own memory (its reduction, its mixture, its write buffers, several GiB at 30M Gaussians):
+/// twice [`TILES_IN_FLIGHT_BYTES`], so that more tiles run at once in the wait after the encode.
+pub const TILES_IN_FLIGHT_BYTES_ALONE: usize = 4 << 30;
 
 impl SegmentControl {
     /// Stages on `pool`; `None`: on the pool of the calling thread (rayon's global pool, or the
@@ -319,7 +338,19 @@ impl SegmentControl {
         SegmentControl {
             stop: AtomicBool::new(false),
             pool: Mutex::new(pool.map(Arc::new)),
+            in_flight_bytes: TILES_IN_FLIGHT_BYTES.into(),
         }
+    }
+
+    /// The tiles' waves that start from now on may hold `bytes` at once (their edges and their
+    /// rows of the masks' record; at least one tile runs whatever it says). The waves change no
+    /// result, only how many tiles run at once.
+    pub fn set_in_flight_bytes(&self, bytes: usize) {
+        self.in_flight_bytes.store(bytes, Ordering::Relaxed);
+    }
+
+    fn in_flight_bytes(&self) -> usize {
+        self.in_flight_bytes.load(Ordering::Relaxed)
     }
 
     /// The stages that start from now on run on `pool` (those under way finish where they are,

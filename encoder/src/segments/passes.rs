@@ -25,11 +25,6 @@ use super::regions::Regions;
 use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
 
-/// Bytes that the tiles in flight at once may hold: their edges (12 bytes each) and, while
-/// they are built, their rows of the masks' record. Bounds the passes' memory whatever the
-/// thread count.
-const TILES_IN_FLIGHT_BYTES: usize = 2 << 30;
-
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
 /// components its ends of border edges met where each edge stands in the order (`(k, side,
 /// component)`: edge `k` of the scene's border edges, side 0 for its end `i`, 1 for `j`), the
@@ -174,13 +169,12 @@ fn min_size_candidates(
 }
 
 /// How many tiles may hold their edges at once: the pool's threads, fewer where the largest
-/// tile's bytes at `bytes_per_gaussian` would pass [`TILES_IN_FLIGHT_BYTES`].
-fn tiles_at_once(tm: &TileMembers, bytes_per_gaussian: usize) -> usize {
+/// tile's bytes at `bytes_per_gaussian` would pass `budget` (the control's in-flight bytes,
+/// [`super::TILES_IN_FLIGHT_BYTES`] by default); at least one.
+fn tiles_at_once(tm: &TileMembers, bytes_per_gaussian: usize, budget: usize) -> usize {
     let largest = tm.members.iter().map(Vec::len).max().unwrap_or(0);
     let bytes = (largest * bytes_per_gaussian).max(1);
-    rayon::current_num_threads()
-        .min(TILES_IN_FLIGHT_BYTES / bytes)
-        .max(1)
+    rayon::current_num_threads().min(budget / bytes).max(1)
 }
 
 /// What a tile in flight holds per Gaussian, as far as the tiles built so far tell: its edges
@@ -327,7 +321,8 @@ impl Run<'_> {
         };
         while next < tiles || !waiting.is_empty() {
             let per = in_flight.bytes_per_gaussian();
-            let at_once = self.ctl.run(|| tiles_at_once(self.tm, per));
+            let budget = self.ctl.in_flight_bytes();
+            let at_once = self.ctl.run(|| tiles_at_once(self.tm, per, budget));
             let wave = next..(next + (at_once / 2).max(1) as u32).min(tiles);
             next = wave.end;
             let prev = std::mem::take(&mut waiting);
@@ -347,6 +342,7 @@ impl Run<'_> {
                 passed = done.len(),
                 built = built.len(),
                 at_once,
+                budget_mib = budget >> 20,
                 threads = self.ctl.run(rayon::current_num_threads),
                 seconds = format!("{:.2}", clock.elapsed().as_secs_f64()),
                 "tile wave"

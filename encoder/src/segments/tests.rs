@@ -275,9 +275,10 @@ fn a_stop_gives_no_result_and_pools_do_not_change_it() {
     assert_eq!(wide, plain);
 }
 
-/// Pools that change while the tiles' passes run (as the encode widens the segmentation's pool)
-/// lose no tile and change no id: each stage runs on the pool of its moment, and each wave of
-/// tiles takes its size from that pool.
+/// Pools and in-flight budgets that change while the tiles' passes run (as the encode widens
+/// the segmentation's pool and lets its tiles hold more once it ends) lose no tile and change
+/// no id: each stage runs on the pool of its moment, and each wave of tiles takes its size from
+/// that pool and budget (one tile at a time under a budget of one byte).
 #[test]
 fn pools_changing_under_the_tiles_change_no_id() {
     use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
@@ -298,6 +299,7 @@ fn pools_changing_under_the_tiles_change_no_id() {
                 let mut switches = 0;
                 while !done.load(Relaxed) {
                     ctl.set_pool(pool(switches % 3 + 1));
+                    ctl.set_in_flight_bytes([1, 1 << 20, usize::MAX][(switches / 2) % 3]);
                     switches += 1;
                     std::thread::sleep(std::time::Duration::from_micros(pause_us));
                 }
