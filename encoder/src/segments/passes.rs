@@ -120,8 +120,13 @@ impl BuiltTile {
             .collect();
         let criterion_s = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let kept = min_size_candidates(&f, &self.inner, w, |l| members[l as usize]);
+        // Each element's root once, so that the pick reads one entry per end, not a path.
         let (roots, components) = f.into_roots();
+        let lookup = (
+            |l: u32| roots[l as usize],
+            |r: u32| components[r as usize].size(),
+        );
+        let kept = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
         let [edges_s, sort_s] = self.seconds;
         TilePass {
             roots,
@@ -135,7 +140,8 @@ impl BuiltTile {
 }
 
 /// The edges of `edges` (in order; `id` maps their ends to scene ids) that the minimum-size
-/// pass could join across once `forest` has grown further, picked in parallel, in scene ids:
+/// pass could join across once the forest (`root` of each element, `size` of each root's
+/// component) has grown further, picked in parallel, in scene ids:
 /// those between two components with an end in one of fewer than
 /// [`SegmentParams::min_size`] Gaussians now that `w` lets it join ([`Weigher::may_absorb`],
 /// checked last: it reads the scene's record). The pass over them alone joins what the pass
@@ -143,7 +149,7 @@ impl BuiltTile {
 /// between two of the minimum size or more now never qualifies, and the mask veto is the
 /// edge's own. None with a minimum size of 1 (no such pass).
 fn min_size_candidates(
-    forest: &Forest,
+    (root, size): (impl Fn(u32) -> u32 + Sync, impl Fn(u32) -> usize + Sync),
     edges: &[Edge],
     w: &Weigher,
     id: impl Fn(u32) -> u32 + Sync,
@@ -160,8 +166,8 @@ fn min_size_candidates(
     edges
         .par_iter()
         .filter(|e| {
-            let (a, b) = (forest.root(e.i), forest.root(e.j));
-            a != b && (forest.component(a).size() < min || forest.component(b).size() < min)
+            let (a, b) = (root(e.i), root(e.j));
+            a != b && (size(a) < min || size(b) < min)
         })
         .map(global)
         .filter(|e| w.may_absorb(e))
@@ -448,10 +454,10 @@ impl Run<'_> {
             inner += edges.len() as u64;
             st.criterion += clock.elapsed().as_secs_f64();
             let clock = Instant::now();
-            kept.push(
-                self.ctl
-                    .run(|| min_size_candidates(&forest, &edges, self.w, |i| i)),
-            );
+            kept.push(self.ctl.run(|| {
+                let lookup = (|x| forest.root(x), |r| forest.component(r).size());
+                min_size_candidates(lookup, &edges, self.w, |i| i)
+            }));
             st.min_size += clock.elapsed().as_secs_f64();
         }
         Some(Tiled {
