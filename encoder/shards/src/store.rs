@@ -101,10 +101,11 @@ fn check_scene(scene: &str) -> Result<()> {
 impl ShardStore {
     /// Opens (creating if needed) the store folder `path`.
     ///
-    /// Errors: the folder cannot be opened, e.g. another process holds it ([`Error::Io`] /
-    /// [`Error::Format`]).
+    /// Errors: another process holds it ([`Error::Invalid`], after waiting up to 2 s for a
+    /// store just closed in this process to let go of its lock); the folder cannot be opened
+    /// ([`Error::Io`] / [`Error::Format`]).
     pub fn open(path: &Path) -> Result<ShardStore> {
-        let db = sled::open(path).map_err(|e| sled_err(path, e))?;
+        let db = open_db(path)?;
         let tree = |name: &str| db.open_tree(name).map_err(|e| sled_err(path, e));
         Ok(ShardStore {
             current: tree("current")?,
@@ -550,6 +551,33 @@ fn db_err(e: sled::Error) -> Error {
             "<shard store>",
             format!("{other}; the store may be corrupted, re-run partition into a new folder"),
         ),
+    }
+}
+
+/// How long [`open_db`] waits for a lock that a store closed in this process still holds.
+const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// `sled::open(path)`, waiting up to [`LOCK_WAIT`] while its lock is held: a store dropped in
+/// this process (a `partition` just done, say) keeps its lock until sled's flusher thread stops,
+/// within its flush interval (500 ms). A lock still held after that is another process's, and
+/// the error says so.
+fn open_db(path: &Path) -> Result<sled::Db> {
+    let t0 = std::time::Instant::now();
+    loop {
+        match sled::open(path) {
+            // sled reports the lock as an `Other` I/O error that names it.
+            Err(sled::Error::Io(io)) if io.to_string().contains("could not acquire lock") => {
+                if t0.elapsed() >= LOCK_WAIT {
+                    return Err(Error::Invalid(format!(
+                        "shard store {} is in use by another process (a running `slag-shards \
+                         serve` or `partition`?): stop it, or partition into another store ({io})",
+                        path.display()
+                    )));
+                }
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            other => return other.map_err(|e| sled_err(path, e)),
+        }
     }
 }
 

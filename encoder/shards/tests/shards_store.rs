@@ -174,3 +174,24 @@ fn killed_writer_leaves_previous_generation_readable() {
     assert_eq!(assert_complete(&store, "kill"), m3);
     assert_eq!(store.stored_generations("kill").expect("gens"), vec![2]);
 }
+
+/// A store closed in this process opens again at once, however long sled's flusher takes to
+/// let go of its lock; a store that is still open elsewhere is refused with a typed error that
+/// says it is in use, after a bounded wait.
+#[test]
+fn a_closed_store_reopens_and_one_in_use_is_refused() {
+    let dir = tempfile::tempdir().expect("tmp");
+    for round in 0..20 {
+        let store = ShardStore::open(dir.path()).expect("open");
+        let s = SyntheticScene::new(300, 8, 3, 50.0, round);
+        partition_into_store(&store, &s, &params("a", 100, Dtype::F16)).expect("partition");
+        drop(store);
+    }
+    let held = ShardStore::open(dir.path()).expect("open");
+    let t0 = std::time::Instant::now();
+    let e = ShardStore::open(dir.path()).err().expect("a second open while held");
+    assert!(matches!(e, Error::Invalid(_)), "{e}");
+    assert!(e.to_string().contains("in use"), "{e}");
+    assert!(t0.elapsed() < std::time::Duration::from_secs(10), "bounded wait");
+    drop(held);
+}
