@@ -559,8 +559,8 @@ const LOCK_WAIT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// `sled::open(path)`, waiting up to [`LOCK_WAIT`] while its lock is held: a store dropped in
 /// this process (a `partition` just done, say) keeps its lock until sled's flusher thread stops,
-/// within its flush interval (500 ms). A lock still held after that is another process's, and
-/// the error says so.
+/// within its flush interval (500 ms). A lock still held after that belongs to another process
+/// (or to a store still open in this one), and the error says so.
 fn open_db(path: &Path) -> Result<sled::Db> {
     let t0 = std::time::Instant::now();
     loop {
