@@ -1169,21 +1169,29 @@ fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
     let dim = kept.dim;
     (0..kept.views.len())
         .map(|v| {
-            let [base, row, index] = kept.views[v];
-            let (table_end, row_end) = match kept.views.get(v + 1) {
-                Some(&[b, r, _]) => (b as usize, r as usize),
-                None => (kept.tables.len(), kept.codebook.len() / dim),
-            };
+            let (table, rows) = kept.extent(v);
             (
-                kept.tables[base as usize..table_end].to_vec(),
-                kept.codebook[row as usize * dim..row_end * dim].to_vec(),
-                index,
+                kept.tables[table].to_vec(),
+                kept.codebook[rows.start * dim..rows.end * dim].to_vec(),
+                kept.views[v][2],
             )
         })
         .collect()
 }
 
 impl Kept {
+    /// View `v`'s words of `tables` and rows of the codebook: from its own starts to the next
+    /// view's (or the ends). Holds while both follow keeping order, before
+    /// [`Kept::sort_by_view`] moves the rows.
+    fn extent(&self, v: usize) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
+        let [base, row, _] = self.views[v];
+        let (table_end, row_end) = match self.views.get(v + 1) {
+            Some(&[b, r, _]) => (b as usize, r as usize),
+            None => (self.tables.len(), self.codebook.len() / self.dim),
+        };
+        (base as usize..table_end, row as usize..row_end)
+    }
+
     /// Puts the kept views in the encode's view order, whatever order they were kept in (the
     /// fronts finish views in no fixed order, and a second device's views come after the
     /// first's): the codebook's rows by view index and then mask, each view's first row moved
@@ -1195,15 +1203,8 @@ impl Kept {
         let mut order: Vec<usize> = (0..self.views.len()).collect();
         order.sort_by_key(|&v| (self.views[v][2], v));
         // Each view's rows in keeping order, before any first row moves.
-        let rows: Vec<std::ops::Range<usize>> = (0..self.views.len())
-            .map(|v| {
-                let end = self
-                    .views
-                    .get(v + 1)
-                    .map_or(self.codebook.len() / dim, |n| n[1] as usize);
-                self.views[v][1] as usize..end
-            })
-            .collect();
+        let rows: Vec<std::ops::Range<usize>> =
+            (0..self.views.len()).map(|v| self.extent(v).1).collect();
         let mut rank = vec![0u32; self.views.len()];
         let mut codebook = Vec::with_capacity(self.codebook.len());
         for (r, &v) in order.iter().enumerate() {
