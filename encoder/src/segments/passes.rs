@@ -120,12 +120,15 @@ impl BuiltTile {
             .collect();
         let criterion_s = clock.elapsed().as_secs_f64();
         let clock = Instant::now();
-        // Each element's root once, so that the pick reads one entry per end, not a path.
+        // Each element's root once, so that the pick reads one entry per end, not a path; and
+        // whether its component is below the minimum size, one byte per element, so that the
+        // many edges between two large components are refused without reading their roots.
         let (roots, components) = f.into_roots();
-        let lookup = (
-            |l: u32| roots[l as usize],
-            |r: u32| components[r as usize].size(),
-        );
+        let small: Vec<bool> = roots
+            .par_iter()
+            .map(|&r| components[r as usize].size() < p.min_size)
+            .collect();
+        let lookup = (|l: u32| roots[l as usize], |l: u32| small[l as usize]);
         let kept = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
         let [edges_s, sort_s] = self.seconds;
         TilePass {
@@ -140,8 +143,9 @@ impl BuiltTile {
 }
 
 /// The edges of `edges` (in order; `id` maps their ends to scene ids) that the minimum-size
-/// pass could join across once the forest (`root` of each element, `size` of each root's
-/// component) has grown further, picked in parallel, in scene ids:
+/// pass could join across once the forest (`root` of each element, and whether an element's
+/// component is `small`, below [`SegmentParams::min_size`]) has grown further, picked in
+/// parallel, in scene ids:
 /// those between two components with an end in one of fewer than
 /// [`SegmentParams::min_size`] Gaussians now that `w` lets it join ([`Weigher::may_absorb`],
 /// checked last: it reads the scene's record). The pass over them alone joins what the pass
@@ -149,7 +153,7 @@ impl BuiltTile {
 /// between two of the minimum size or more now never qualifies, and the mask veto is the
 /// edge's own. None with a minimum size of 1 (no such pass).
 fn min_size_candidates(
-    (root, size): (impl Fn(u32) -> u32 + Sync, impl Fn(u32) -> usize + Sync),
+    (root, small): (impl Fn(u32) -> u32 + Sync, impl Fn(u32) -> bool + Sync),
     edges: &[Edge],
     w: &Weigher,
     id: impl Fn(u32) -> u32 + Sync,
@@ -163,16 +167,29 @@ fn min_size_candidates(
         i: id(e.i),
         j: id(e.j),
     };
-    edges
+    let candidates: Vec<Edge> = edges
         .par_iter()
-        .filter(|e| {
-            let (a, b) = (root(e.i), root(e.j));
-            a != b && (size(a) < min || size(b) < min)
-        })
+        .filter(|e| (small(e.i) || small(e.j)) && root(e.i) != root(e.j))
         .map(global)
-        .filter(|e| w.may_absorb(e))
+        .collect();
+    // The veto reads both ends' rows of the scene's record, at random places: each chunk's
+    // edges prefetch the rows of the edge some edges ahead of them.
+    candidates
+        .par_chunks(4096)
+        .flat_map_iter(|chunk| {
+            chunk.iter().enumerate().filter_map(|(k, e)| {
+                if let Some(ahead) = chunk.get(k + RECORD_PREFETCH_AHEAD) {
+                    w.prefetch_ends(ahead);
+                }
+                w.may_absorb(e).then_some(*e)
+            })
+        })
         .collect()
 }
+
+/// How many edges ahead the pick prefetches the record rows of an edge's ends
+/// ([`Weigher::prefetch_ends`]): far enough for the misses to land before the edge comes.
+const RECORD_PREFETCH_AHEAD: usize = 8;
 
 /// How many tiles may hold their edges at once: the pool's threads, fewer where the largest
 /// tile's bytes at `bytes_per_gaussian` would pass `budget` (the control's in-flight bytes,
@@ -455,7 +472,8 @@ impl Run<'_> {
             st.criterion += clock.elapsed().as_secs_f64();
             let clock = Instant::now();
             kept.push(self.ctl.run(|| {
-                let lookup = (|x| forest.root(x), |r| forest.component(r).size());
+                let small = |x| forest.component(forest.root(x)).size() < self.p.min_size;
+                let lookup = (|x| forest.root(x), small);
                 min_size_candidates(lookup, &edges, self.w, |i| i)
             }));
             st.min_size += clock.elapsed().as_secs_f64();

@@ -160,6 +160,16 @@ impl Weigher<'_> {
         m.unwrap_or(self.p.mask_unknown)
     }
 
+    /// Prefetches the record rows of `e`'s ends ([`MaskRecord::prefetch`]); nothing without a
+    /// record.
+    #[inline(always)]
+    pub(super) fn prefetch_ends(&self, e: &Edge) {
+        if let Some(r) = self.masks {
+            r.prefetch(e.i as usize);
+            r.prefetch(e.j as usize);
+        }
+    }
+
     /// Whether the minimum-size pass may join across `e`: always without a record; with one,
     /// unless the masks disagree on it more than [`SegmentParams::mask_veto`].
     pub(super) fn may_absorb(&self, e: &Edge) -> bool {
