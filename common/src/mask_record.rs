@@ -240,7 +240,6 @@ impl MaskRecord {
         }
     }
 
-    /// The slot range of row `k` in the `[N * S]` arrays; `None` beyond the record.
     /// Asks the CPU to bring Gaussian `k`'s row (its views, masks and weights) into its cache
     /// ahead of a [`MaskRecord::disagreement`] that reads it: a hint that changes no result. A
     /// pass over edges reads rows at random places of a large record, each read a cache miss;
@@ -269,6 +268,7 @@ impl MaskRecord {
         let _ = k;
     }
 
+    /// The slot range of row `k` in the `[N * S]` arrays; `None` beyond the record.
     fn row(&self, k: usize) -> Option<std::ops::Range<usize>> {
         let start = k.checked_mul(self.slots)?;
         let end = start.checked_add(self.slots)?;
