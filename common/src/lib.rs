@@ -4,6 +4,7 @@
 //! | module | paper stage / concern |
 //! |---|---|
 //! | [`scene`] | inputs: the trained 3DGS `.ply` (INRIA layout) |
+//! | [`cache`] | a prefetch hint for passes that read large arrays at random places |
 //! | [`camera`] | inputs: posed training images (COLMAP `sparse/0`, nerfstudio `transforms.json`) |
 //! | [`onnx`] | ONNX Runtime sessions (`ort`, `load-dynamic`) with a selectable execution provider |
 //! | [`text`] | CLIP text tower + tokenizer (queries) |
@@ -27,6 +28,7 @@
 //! | [`util`] | the process's resident memory and the machine's available memory (`/proc`) |
 
 pub mod auth;
+pub mod cache;
 pub mod camera;
 #[cfg(all(feature = "clap", feature = "onnx"))]
 pub mod cli;

@@ -243,29 +243,15 @@ impl MaskRecord {
     /// Asks the CPU to bring Gaussian `k`'s row (its views, masks and weights) into its cache
     /// ahead of a [`MaskRecord::disagreement`] that reads it: a hint that changes no result. A
     /// pass over edges reads rows at random places of a large record, each read a cache miss;
-    /// prefetching the rows of an edge some edges ahead overlaps those misses. No-op off
-    /// x86_64 and beyond the record.
+    /// prefetching the rows of an edge some edges ahead overlaps those misses
+    /// ([`crate::cache::prefetch`]). No-op beyond the record.
     #[inline(always)]
     pub fn prefetch(&self, k: usize) {
-        #[cfg(target_arch = "x86_64")]
         if let Some(at) = self.row(k) {
-            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-            let lines = [
-                std::ptr::from_ref(&self.views[at.start]).cast::<i8>(),
-                std::ptr::from_ref(&self.masks[at.start]).cast::<i8>(),
-                std::ptr::from_ref(&self.weights[at.start]).cast::<i8>(),
-            ];
-            for line in lines {
-                // SAFETY: a prefetch never faults and changes nothing the program can read;
-                // each pointer is to an element of a vector of the record.
-                #[allow(unsafe_code)]
-                unsafe {
-                    _mm_prefetch::<_MM_HINT_T0>(line);
-                }
-            }
+            crate::cache::prefetch(&self.views[at.start]);
+            crate::cache::prefetch(&self.masks[at.start]);
+            crate::cache::prefetch(&self.weights[at.start]);
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = k;
     }
 
     /// The slot range of row `k` in the `[N * S]` arrays; `None` beyond the record.

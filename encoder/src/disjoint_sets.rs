@@ -48,21 +48,12 @@ impl<C: Copy> DisjointSets<C> {
     /// Asks the CPU to bring `x`'s parent entry into its cache ahead of a [`DisjointSets::find`]
     /// of `x`: a hint that changes no result. A pass over edges in weight order reads the
     /// forest at random places, each read a cache miss on a large forest; prefetching the ends
-    /// of an edge some edges ahead overlaps those misses. No-op off x86_64 and out of range.
+    /// of an edge some edges ahead overlaps those misses ([`slag_common::cache::prefetch`]). No-op out of range.
     #[inline(always)]
     pub(crate) fn prefetch(&self, x: u32) {
-        #[cfg(target_arch = "x86_64")]
         if let Some(p) = self.parent.get(x as usize) {
-            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-            // SAFETY: a prefetch never faults and changes nothing the program can read; the
-            // pointer is to an element of the vector.
-            #[allow(unsafe_code)]
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(std::ptr::from_ref(p).cast::<i8>());
-            }
+            slag_common::cache::prefetch(p);
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = x;
     }
 
     /// The root of `x`'s set, without compressing its path (so that threads may share the
