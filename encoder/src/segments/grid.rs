@@ -170,27 +170,37 @@ impl Grid {
     }
 }
 
-/// The `k` smallest `(d², id)` keys seen, ascending.
+/// The `(d², id)` keys of the means offered, cut back to the `k` smallest whenever the `k`-th
+/// is asked for (a selection over the batch, instead of an insertion per mean).
 struct Nearest {
     k: usize,
-    best: Vec<u64>,
+    keys: Vec<u64>,
 }
 
 impl Nearest {
     fn offer(&mut self, d2: f32, j: u32) {
-        let key = (u64::from(d2.to_bits()) << 32) | u64::from(j);
-        if self.best.len() == self.k {
-            if key >= self.best[self.k - 1] {
-                return;
-            }
-            self.best.pop();
-        }
-        let at = self.best.partition_point(|&b| b < key);
-        self.best.insert(at, key);
+        self.keys
+            .push((u64::from(d2.to_bits()) << 32) | u64::from(j));
     }
-    /// The `k`-th smallest `d²` so far, when `k` were seen.
-    fn kth(&self) -> Option<f32> {
-        (self.best.len() == self.k).then(|| f32::from_bits((self.best[self.k - 1] >> 32) as u32))
+    /// The `k`-th smallest `d²` so far, when `k` were seen; the keys are cut back to the `k`
+    /// smallest (unordered).
+    fn kth(&mut self) -> Option<f32> {
+        if self.keys.len() < self.k {
+            return None;
+        }
+        let (_, kth, _) = self.keys.select_nth_unstable(self.k - 1);
+        let kth = *kth;
+        self.keys.truncate(self.k);
+        Some(f32::from_bits((kth >> 32) as u32))
+    }
+    /// The `k` smallest keys (or all, when fewer), ascending.
+    fn best(&mut self) -> &[u64] {
+        if self.keys.len() > self.k {
+            self.keys.select_nth_unstable(self.k - 1);
+            self.keys.truncate(self.k);
+        }
+        self.keys.sort_unstable();
+        &self.keys
     }
 }
 
@@ -275,22 +285,22 @@ fn search_cell(grid: &Grid, c: usize, k: usize, h2: f32, out: &mut [u32]) {
     let own = grid.starts[c] as usize..grid.starts[c + 1] as usize;
     let mut near = Nearest {
         k,
-        best: Vec::with_capacity(k + 1),
+        keys: Vec::with_capacity(64),
     };
     for (pos, slots) in own.zip(out.chunks_mut(k)) {
         let (i, p) = (grid.order[pos], grid.points[pos]);
-        near.best.clear();
+        near.keys.clear();
         for s in &block {
             offer_span(grid, s.clone(), i, &p, h2, &mut near);
         }
         let mut shell = 1;
-        while !settled(grid, &p, at, shell, &near, h2) {
+        while !settled(grid, &p, at, shell, &mut near, h2) {
             shell += 1;
             for cell in shell_cells(at, shell) {
                 offer_span(grid, grid.span(cell), i, &p, h2, &mut near);
             }
         }
-        for (slot, &b) in slots.iter_mut().zip(&near.best) {
+        for (slot, &b) in slots.iter_mut().zip(near.best()) {
             *slot = b as u32;
         }
     }
@@ -320,7 +330,14 @@ fn offer_span(
 /// Whether no mean outside the cube of cells within `shell` of `at` can enter `near`: the
 /// cube holds every cell, or the `k`-th distance found is shorter than the distance from `p` to
 /// outside the cube, or that distance exceeds `max_edge` (both with a margin for rounding).
-fn settled(grid: &Grid, p: &[f32; 3], at: [i64; 3], shell: i64, near: &Nearest, h2: f32) -> bool {
+fn settled(
+    grid: &Grid,
+    p: &[f32; 3],
+    at: [i64; 3],
+    shell: i64,
+    near: &mut Nearest,
+    h2: f32,
+) -> bool {
     if (0..3).all(|a| at[a] - shell <= 0 && at[a] + shell >= grid.last[a]) {
         return true;
     }
