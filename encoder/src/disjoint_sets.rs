@@ -48,7 +48,8 @@ impl<C: Copy> DisjointSets<C> {
     /// Asks the CPU to bring `x`'s parent entry into its cache ahead of a [`DisjointSets::find`]
     /// of `x`: a hint that changes no result. A pass over edges in weight order reads the
     /// forest at random places, each read a cache miss on a large forest; prefetching the ends
-    /// of an edge some edges ahead overlaps those misses ([`slag_common::cache::prefetch`]). No-op out of range.
+    /// of an edge some edges ahead overlaps those misses ([`slag_common::cache::prefetch`]).
+    /// No-op out of range.
     #[inline(always)]
     pub(crate) fn prefetch(&self, x: u32) {
         if let Some(p) = self.parent.get(x as usize) {
