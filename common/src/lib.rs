@@ -4,7 +4,6 @@
 //! | module | paper stage / concern |
 //! |---|---|
 //! | [`scene`] | inputs: the trained 3DGS `.ply` (INRIA layout) |
-//! | [`cache`] | a prefetch hint for passes that read large arrays at random places |
 //! | [`camera`] | inputs: posed training images (COLMAP `sparse/0`, nerfstudio `transforms.json`) |
 //! | [`onnx`] | ONNX Runtime sessions (`ort`, `load-dynamic`) with a selectable execution provider |
 //! | [`text`] | CLIP text tower + tokenizer (queries) |
@@ -25,6 +24,7 @@
 //! | [`term`] | whether log lines may carry colour codes (a terminal, `NO_COLOR`) |
 //! | `testing` | raw-socket clients for the HTTP servers' integration tests (feature `testing`) |
 //! | `tls` | the servers' TLS certificate (PEM, reloadable) and the no-token-in-clear-text rule (feature `server`) |
+//! | [`cache`] | a prefetch hint for passes that read large arrays at random places |
 //! | [`util`] | the process's resident memory and the machine's available memory (`/proc`) |
 
 pub mod auth;
