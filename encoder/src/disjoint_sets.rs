@@ -57,6 +57,22 @@ impl<C: Copy> DisjointSets<C> {
         }
     }
 
+    /// The second step of [`DisjointSets::prefetch`], some steps later, once `x`'s parent entry
+    /// has arrived: prefetches the parent entry and the data of `x`'s parent. Paths are short
+    /// after compression, so that parent is most often the root, whose data the pass reads
+    /// next. A hint that changes no result; no-op out of range.
+    #[inline(always)]
+    pub(crate) fn prefetch_parent(&self, x: u32) {
+        if let Some(&p) = self.parent.get(x as usize) {
+            if let Some(pp) = self.parent.get(p as usize) {
+                slag_common::cache::prefetch(pp);
+            }
+            if let Some(c) = self.components.get(p as usize) {
+                slag_common::cache::prefetch(c);
+            }
+        }
+    }
+
     /// The root of `x`'s set, without compressing its path (so that threads may share the
     /// forest).
     pub(crate) fn root(&self, x: u32) -> u32 {

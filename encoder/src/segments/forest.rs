@@ -32,13 +32,23 @@ pub(super) type Forest = DisjointSets<Component>;
 /// near enough for the line to be still in cache then.
 const PREFETCH_AHEAD: usize = 16;
 
+/// How many edges ahead a pass prefetches the entries of the ends' parents, read from the ends'
+/// entries prefetched [`PREFETCH_AHEAD`] edges ahead ([`DisjointSets::prefetch_parent`]).
+const PREFETCH_PARENTS_AHEAD: usize = 8;
+
 impl Forest {
-    /// Prefetches the forest entries of the ends of `edges[k]`, if any.
+    /// Prefetches the forest entries of the ends of `edges[k]` and, for the edge
+    /// [`PREFETCH_PARENTS_AHEAD`] after `k`, those of its ends' parents: a find's two reads and
+    /// the root's data, each in flight before the edge comes.
     #[inline(always)]
     fn prefetch_ends(&self, edges: &[Edge], k: usize) {
-        if let Some(e) = edges.get(k) {
+        if let Some(e) = edges.get(k + PREFETCH_AHEAD) {
             self.prefetch(e.i);
             self.prefetch(e.j);
+        }
+        if let Some(e) = edges.get(k + PREFETCH_PARENTS_AHEAD) {
+            self.prefetch_parent(e.i);
+            self.prefetch_parent(e.j);
         }
     }
 
@@ -76,7 +86,7 @@ impl Forest {
         mut regions: Option<&mut Regions>,
     ) {
         for (k, e) in edges.iter().enumerate() {
-            self.prefetch_ends(edges, k + PREFETCH_AHEAD);
+            self.prefetch_ends(edges, k);
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a == b {
                 continue;
@@ -215,7 +225,7 @@ impl Forest {
         mut regions: Option<&mut Regions>,
     ) {
         for (k, e) in edges.iter().enumerate() {
-            self.prefetch_ends(edges, k + PREFETCH_AHEAD);
+            self.prefetch_ends(edges, k);
             let (a, b) = (self.find(e.i), self.find(e.j));
             if a != b
                 && (self.component(a).size() < min_size || self.component(b).size() < min_size)
