@@ -9,9 +9,10 @@
 //! That pass runs over each tile's edges in order, then over the border edges. Of a tile's
 //! edges it needs only those that its tile's pass picks, in parallel, right after the tile's
 //! criterion pass ([`min_size_candidates`]): still between two components, with an end in one
-//! below the minimum size, and not refused by the mask veto. Components only grow, so the pass
-//! would skip the others; and the picking, the veto's reads of the scene's record included,
-//! runs beside the other tiles' passes instead of after them all.
+//! below the minimum size, and not refused by the mask veto; and of those, the first between each
+//! pair of the tile's components ([`first_per_pair`]). Components only grow, so the pass would
+//! skip the others; and the picking, the veto's reads of the scene's record included, runs
+//! beside the other tiles' passes instead of after them all.
 //! While one wave of tiles runs its criterion passes, the next wave's edges are weighed
 //! and sorted on the other threads.
 
@@ -28,9 +29,9 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
 /// components its ends of border edges met where each edge stands in the order (`(k, side,
 /// component)`: edge `k` of the scene's border edges, side 0 for its end `i`, 1 for `j`), the
-/// edges the minimum-size pass could join across ([`min_size_candidates`], scene ids, in
-/// order), its edge count, and the seconds of its edges' weights, their sort, the pass and
-/// the pick.
+/// edges the minimum-size pass could join across ([`min_size_candidates`], the first per pair
+/// of components, [`first_per_pair`]; scene ids, in order), its edge count, and the seconds of
+/// its edges' weights, their sort, the pass and the pick.
 struct TilePass {
     roots: Vec<u32>,
     components: Vec<Component>,
@@ -100,7 +101,8 @@ impl BuiltTile {
     /// The tile's criterion pass (one thread), on a forest of its own over its `members` (scene
     /// ids, ascending), noting the components its `ends` of the scene's `border` edges meet
     /// where each border edge stands in the order ([`Forest::criterion_pass_with_stops`]), then
-    /// its edges for the minimum-size pass, picked in parallel ([`min_size_candidates`]).
+    /// its edges for the minimum-size pass, picked in parallel ([`min_size_candidates`]), the
+    /// first per pair of its components ([`first_per_pair`]).
     fn criterion(
         self,
         w: &Weigher,
@@ -129,7 +131,15 @@ impl BuiltTile {
             .map(|&r| components[r as usize].size() < p.min_size)
             .collect();
         let lookup = (|l: u32| roots[l as usize], |l: u32| small[l as usize]);
-        let kept = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
+        let picked = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
+        let kept = first_per_pair(picked, |l| roots[l as usize])
+            .into_iter()
+            .map(|e| Edge {
+                w: e.w,
+                i: members[e.i as usize],
+                j: members[e.j as usize],
+            })
+            .collect();
         let [edges_s, sort_s] = self.seconds;
         TilePass {
             roots,
@@ -142,10 +152,10 @@ impl BuiltTile {
     }
 }
 
-/// The edges of `edges` (in order; `id` maps their ends to scene ids) that the minimum-size
-/// pass could join across once the forest (`root` of each element, and whether an element's
-/// component is `small`, below [`SegmentParams::min_size`]) has grown further, picked in
-/// parallel, in scene ids:
+/// The edges of `edges` (in order, in their own ids; `id` maps their ends to scene ids) that
+/// the minimum-size pass could join across once the forest (`root` of each element, and
+/// whether an element's component is `small`, below [`SegmentParams::min_size`]) has grown
+/// further, picked in parallel:
 /// those between two components with an end in one of fewer than
 /// [`SegmentParams::min_size`] Gaussians now that `w` lets it join ([`Weigher::may_absorb`],
 /// checked last: it reads the scene's record). The pass over them alone joins what the pass
@@ -170,7 +180,7 @@ fn min_size_candidates(
     let candidates: Vec<Edge> = edges
         .par_iter()
         .filter(|e| (small(e.i) || small(e.j)) && root(e.i) != root(e.j))
-        .map(global)
+        .copied()
         .collect();
     // The veto reads both ends' rows of the scene's record, at random places: each chunk's
     // edges prefetch the rows of the edge some edges ahead of them.
@@ -179,11 +189,42 @@ fn min_size_candidates(
         .flat_map_iter(|chunk| {
             chunk.iter().enumerate().filter_map(|(k, e)| {
                 if let Some(ahead) = chunk.get(k + RECORD_PREFETCH_AHEAD) {
-                    w.prefetch_ends(ahead);
+                    w.prefetch_ends(&global(ahead));
                 }
-                w.may_absorb(e).then_some(*e)
+                w.may_absorb(&global(e)).then_some(*e)
             })
         })
+        .collect()
+}
+
+/// The first edge of `edges` (in order) between each pair of components (`root` of each end:
+/// the components of the forest the edges were picked on, [`min_size_candidates`]); the edges
+/// after it between the same two components go. The minimum-size pass would pass them by
+/// without a join: when the first comes, its two components are already one (and stay one),
+/// or it joins them, or neither is below the minimum size (and neither ever will be again,
+/// since components only grow); and the mask veto was each edge's own, applied before. Not
+/// for a pass with the regions' veto, whose answer for two components may change as they
+/// grow. The pass's edges shrink many times over (about 29 times on a 2M terrain), and so do
+/// the memory and the one-thread time of the pass after the tiles.
+pub(super) fn first_per_pair(edges: Vec<Edge>, root: impl Fn(u32) -> u32 + Sync) -> Vec<Edge> {
+    let pair = |e: &Edge| {
+        let (a, b) = (root(e.i), root(e.j));
+        u64::from(a.min(b)) << 32 | u64::from(a.max(b))
+    };
+    // Each chunk keeps its first edge per pair in parallel; the pass over what they keep, in
+    // order, then keeps the first of all.
+    let firsts: Vec<Vec<Edge>> = edges
+        .par_chunks(1 << 16)
+        .map(|chunk| {
+            let mut seen = rustc_hash::FxHashSet::default();
+            chunk.iter().filter(|e| seen.insert(pair(e))).copied().collect()
+        })
+        .collect();
+    let mut seen = rustc_hash::FxHashSet::default();
+    firsts
+        .into_iter()
+        .flatten()
+        .filter(|e| seen.insert(pair(e)))
         .collect()
 }
 

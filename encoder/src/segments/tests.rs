@@ -642,3 +642,64 @@ fn parallel_tile_plan_equals_the_one_thread_plan() {
         }
     }
 }
+
+#[test]
+fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
+    // Random edges between near Gaussians of a line of 3,000, a criterion pass over the
+    // lightest third (components of many sizes, many below the minimum), then the minimum-size
+    // pass over the rest: over every edge between two components, against over the first edge
+    // per pair of them.
+    let n = 3_000u32;
+    let mut state = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let mut edges: Vec<Edge> = (0..40_000)
+        .map(|_| {
+            let a = (next() % n as u64) as u32;
+            let b = (a + 1 + (next() % 24) as u32).min(n - 1);
+            let w = (next() % 4_000) as f32 / 1_000.0;
+            Edge {
+                w: w.to_bits(),
+                i: a.min(b),
+                j: a.max(b),
+            }
+        })
+        .filter(|e| e.i != e.j)
+        .collect();
+    edges.sort_unstable();
+    let (first, rest) = edges.split_at(edges.len() / 3);
+    let min_size = 12;
+    let criterion = || {
+        let mut f = Forest::singletons(n as usize);
+        f.criterion_pass(first, 0.3);
+        f
+    };
+    let roots = criterion().roots();
+    let between: Vec<Edge> = rest
+        .iter()
+        .filter(|e| roots[e.i as usize] != roots[e.j as usize])
+        .copied()
+        .collect();
+    let firsts = super::passes::first_per_pair(between.clone(), |x| roots[x as usize]);
+    assert!(
+        firsts.len() * 2 < between.len(),
+        "{} of {}",
+        firsts.len(),
+        between.len()
+    );
+    let mut over_all = criterion();
+    over_all.min_size_pass(&between, min_size, |_| true);
+    let mut over_firsts = criterion();
+    over_firsts.min_size_pass(&firsts, min_size, |_| true);
+    let ids = |f: &Forest| canonical_ids(&f.roots()).0;
+    assert_eq!(ids(&over_firsts), ids(&over_all));
+    assert_ne!(
+        ids(&over_all),
+        ids(&criterion()),
+        "the pass joins components"
+    );
+}
