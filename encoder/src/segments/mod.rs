@@ -77,9 +77,11 @@
 //! on the other threads; a tile reads its rows of the record packed one Gaussian per cache line.
 //! The minimum-size pass needs only the inner edges still between two components after their
 //! tile's pass, with an end in a component below the minimum size then, that the mask veto lets
-//! through (components only grow, so it would skip the others). Each tile picks those in
-//! parallel right after its own criterion pass, beside the other tiles' passes (the veto, read
-//! from the scene's record, last); the pass itself runs over them in order on one thread. The
+//! through (components only grow, so it would skip the others), and of those only the first
+//! between each pair of the tile's components (it would pass the later ones by without a join).
+//! Each tile picks those in parallel right after its own criterion pass, beside the other
+//! tiles' passes (the veto, read from the scene's record, last); the pass itself runs over them
+//! in order on one thread. The
 //! geometric part of each neighbour's edge weight needs no masks: it is computed before the
 //! record arrives, so that afterwards an edge's weight only adds the mask term. Memory: 40 bytes
 //! per Gaussian for the whole scene (tile, its place in the tile, both by id and by rank;
