@@ -37,9 +37,10 @@ const PREFETCH_AHEAD: usize = 16;
 const PREFETCH_PARENTS_AHEAD: usize = 8;
 
 impl Forest {
-    /// Prefetches the forest entries of the ends of `edges[k]` and, for the edge
-    /// [`PREFETCH_PARENTS_AHEAD`] after `k`, those of its ends' parents: a find's two reads and
-    /// the root's data, each in flight before the edge comes.
+    /// For a pass at `edges[k]`: prefetches the forest entries of the ends of the edge
+    /// [`PREFETCH_AHEAD`] after it, and those of the ends' parents of the edge
+    /// [`PREFETCH_PARENTS_AHEAD`] after it: a find's two reads and the root's data, each in
+    /// flight before its edge comes.
     #[inline(always)]
     fn prefetch_ends(&self, edges: &[Edge], k: usize) {
         if let Some(e) = edges.get(k + PREFETCH_AHEAD) {
