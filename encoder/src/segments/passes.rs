@@ -133,12 +133,8 @@ impl BuiltTile {
         let lookup = (|l: u32| roots[l as usize], |l: u32| small[l as usize]);
         let picked = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
         let kept = first_per_pair(picked, |l| roots[l as usize])
-            .into_iter()
-            .map(|e| Edge {
-                w: e.w,
-                i: members[e.i as usize],
-                j: members[e.j as usize],
-            })
+            .iter()
+            .map(|e| e.mapped(|l| members[l as usize]))
             .collect();
         let [edges_s, sort_s] = self.seconds;
         TilePass {
@@ -172,11 +168,7 @@ fn min_size_candidates(
     if min <= 1 {
         return Vec::new();
     }
-    let global = |e: &Edge| Edge {
-        w: e.w,
-        i: id(e.i),
-        j: id(e.j),
-    };
+    let global = |e: &Edge| e.mapped(&id);
     let candidates: Vec<Edge> = edges
         .par_iter()
         .filter(|e| (small(e.i) || small(e.j)) && root(e.i) != root(e.j))
@@ -217,7 +209,11 @@ pub(super) fn first_per_pair(edges: Vec<Edge>, root: impl Fn(u32) -> u32 + Sync)
         .par_chunks(1 << 16)
         .map(|chunk| {
             let mut seen = rustc_hash::FxHashSet::default();
-            chunk.iter().filter(|e| seen.insert(pair(e))).copied().collect()
+            chunk
+                .iter()
+                .filter(|e| seen.insert(pair(e)))
+                .copied()
+                .collect()
         })
         .collect();
     let mut seen = rustc_hash::FxHashSet::default();
@@ -491,14 +487,7 @@ impl Run<'_> {
             st.weights += clock.elapsed().as_secs_f64();
             let clock = Instant::now();
             let m = &self.tm.members[t];
-            let edges: Vec<Edge> = local
-                .iter()
-                .map(|e| Edge {
-                    w: e.w,
-                    i: m[e.i as usize],
-                    j: m[e.j as usize],
-                })
-                .collect();
+            let edges: Vec<Edge> = local.iter().map(|e| e.mapped(|l| m[l as usize])).collect();
             let ends: Vec<(u32, u32)> = self.ends[t]
                 .iter()
                 .map(|&(k, l)| (k, m[l as usize]))

@@ -91,6 +91,15 @@ impl Edge {
     pub(super) fn weight(&self) -> f32 {
         f32::from_bits(self.w)
     }
+
+    /// The same edge with its ends mapped by `id` (a tile's local ids to the scene's).
+    pub(super) fn mapped(&self, id: impl Fn(u32) -> u32) -> Edge {
+        Edge {
+            w: self.w,
+            i: id(self.i),
+            j: id(self.j),
+        }
+    }
 }
 
 /// The radix sort's key of an edge: its weight's bits, least significant byte first.
