@@ -23,7 +23,7 @@ use rayon::prelude::*;
 use super::forest::{Component, Forest};
 use super::graph::{EdgeSource, TileMembers, border_edges, tile_edges};
 use super::regions::Regions;
-use super::weights::{Edge, Weigher, sort_edges};
+use super::weights::{Edge, Weigher};
 use super::{SegmentControl, SegmentParams, SegmentTimings};
 
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
@@ -50,13 +50,13 @@ struct BuiltTile {
 }
 
 /// Tile `t`'s inner edges with their weights (on all the pool's threads), sorted by `(w, i, j)`
-/// in parallel ([`sort_edges`]; a total order: the same order whatever the threads).
+/// in parallel (a total order: the same order whatever the threads).
 fn build_tile(t: u32, src: &EdgeSource, w: &Weigher) -> BuiltTile {
     let clock = Instant::now();
     let mut inner = tile_edges(t, src, w);
     let edges_s = clock.elapsed().as_secs_f64();
     let clock = Instant::now();
-    sort_edges(&mut inner);
+    inner.par_sort_unstable();
     BuiltTile {
         t,
         inner,
@@ -480,7 +480,7 @@ impl Run<'_> {
         for t in 0..tiles {
             let clock = Instant::now();
             let mut local = self.ctl.run(|| tile_edges(t as u32, self.src, self.w));
-            self.ctl.run(|| sort_edges(&mut local));
+            self.ctl.run(|| local.par_sort_unstable());
             if self.ctl.stopped() {
                 return None;
             }

@@ -102,32 +102,6 @@ impl Edge {
     }
 }
 
-/// The radix sort's key of an edge: its weight's bits, least significant byte first.
-impl rdst::RadixKey for Edge {
-    const LEVELS: usize = 4;
-
-    #[inline]
-    fn get_level(&self, level: usize) -> u8 {
-        (self.w >> (level * 8)) as u8
-    }
-}
-
-/// Sorts `edges` by `(w, i, j)`, the order of [`Edge`]'s `Ord` (a total order, so the result
-/// is the one `sort_unstable` gives, whatever the threads): a radix sort by the weight's bits
-/// on the current rayon pool (`rdst`), then each run of equal weights by its ends. A tile's
-/// millions of edges take about half a comparison sort's work this way. The sort runs in
-/// place (`rdst`'s low-memory tuner: no second copy of the edges, which the tiles in flight
-/// are budgeted by).
-pub(super) fn sort_edges(edges: &mut [Edge]) {
-    use rayon::prelude::*;
-    use rdst::RadixSort;
-    edges.radix_sort_builder().with_low_mem_tuner().sort();
-    edges
-        .par_chunk_by_mut(|a, b| a.w == b.w)
-        .filter(|run| run.len() > 1)
-        .for_each(|run| run.sort_unstable());
-}
-
 impl Geometry {
     /// The geometric part of the weight of edge `(i, j)` of length `d` under `p`'s weights.
     pub(super) fn geometric(&self, p: &SegmentParams, i: usize, j: usize, d: f32) -> f32 {
