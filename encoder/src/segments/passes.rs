@@ -132,7 +132,7 @@ impl BuiltTile {
             .collect();
         let lookup = (|l: u32| roots[l as usize], |l: u32| small[l as usize]);
         let picked = min_size_candidates(lookup, &self.inner, w, |l| members[l as usize]);
-        let kept = first_per_pair(picked, |l| roots[l as usize])
+        let kept = first_per_pair(&picked, |l| roots[l as usize])
             .iter()
             .map(|e| e.mapped(|l| members[l as usize]))
             .collect();
@@ -198,7 +198,7 @@ fn min_size_candidates(
 /// for a pass with the regions' veto, whose answer for two components may change as they
 /// grow. The pass's edges shrink many times over (about 29 times on a 2M terrain), and so do
 /// the memory and the one-thread time of the pass after the tiles.
-pub(super) fn first_per_pair(edges: Vec<Edge>, root: impl Fn(u32) -> u32 + Sync) -> Vec<Edge> {
+pub(super) fn first_per_pair(edges: &[Edge], root: impl Fn(u32) -> u32 + Sync) -> Vec<Edge> {
     let pair = |e: &Edge| {
         let (a, b) = (root(e.i), root(e.j));
         u64::from(a.min(b)) << 32 | u64::from(a.max(b))

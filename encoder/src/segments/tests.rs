@@ -684,7 +684,7 @@ fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
         .filter(|e| roots[e.i as usize] != roots[e.j as usize])
         .copied()
         .collect();
-    let firsts = super::passes::first_per_pair(between.clone(), |x| roots[x as usize]);
+    let firsts = super::passes::first_per_pair(&between, |x| roots[x as usize]);
     assert!(
         firsts.len() * 2 < between.len(),
         "{} of {}",
