@@ -684,7 +684,8 @@ fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
         .filter(|e| roots[e.i as usize] != roots[e.j as usize])
         .copied()
         .collect();
-    let firsts = super::passes::first_per_pair(&between, |x| roots[x as usize]);
+    let every = (|_: &Edge| true, |_: &Edge| true);
+    let firsts = super::passes::first_per_pair(&between, |x| roots[x as usize], every);
     assert!(
         firsts.len() * 2 < between.len(),
         "{} of {}",
@@ -701,5 +702,53 @@ fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
         ids(&over_all),
         ids(&criterion()),
         "the pass joins components"
+    );
+}
+
+#[test]
+fn the_first_edge_per_pair_is_the_first_that_passes_both_tests_across_chunks() {
+    // 2.5 chunks of the pick's edges between 4,000 elements in 150 components;
+    // a cheap candidate test and a veto. The pick asks the veto less often than there are
+    // candidates and keeps what filtering by both tests, then keeping the first per pair, keeps.
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    };
+    let roots: Vec<u32> = (0..4_000).map(|_| (next() % 150) as u32).collect();
+    let edges: Vec<Edge> = (0..(5 * super::passes::PICK_CHUNK / 2) as u32)
+        .map(|k| {
+            let (a, b) = ((next() % 4_000) as u32, (next() % 4_000) as u32);
+            Edge {
+                w: k,
+                i: a.min(b),
+                j: a.max(b),
+            }
+        })
+        .collect();
+    let root = |x: u32| roots[x as usize];
+    let candidate = |e: &Edge| root(e.i) != root(e.j) && (e.i + e.j) % 3 != 0;
+    let vetoed = |e: &Edge| (e.i.wrapping_mul(2_654_435_761) ^ e.j) % 4 == 0;
+    let asked = std::sync::atomic::AtomicUsize::new(0);
+    let absorbs = |e: &Edge| {
+        asked.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        !vetoed(e)
+    };
+    let got = super::passes::first_per_pair(&edges, root, (candidate, absorbs));
+    let mut seen = std::collections::HashSet::new();
+    let want: Vec<Edge> = edges
+        .iter()
+        .filter(|e| candidate(e) && !vetoed(e))
+        .filter(|e| seen.insert((root(e.i).min(root(e.j)), root(e.i).max(root(e.j)))))
+        .copied()
+        .collect();
+    assert!(got == want, "{} kept, {} expected", got.len(), want.len());
+    let candidates = edges.iter().filter(|e| candidate(e)).count();
+    let asked = asked.into_inner();
+    assert!(
+        asked * 2 < candidates,
+        "veto asked {asked} times for {candidates} candidates"
     );
 }

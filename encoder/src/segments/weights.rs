@@ -80,7 +80,7 @@ fn axis(q: &[f32; 4], a: usize) -> [f32; 3] {
 
 /// An undirected edge `(i, j)`, `i < j`, with its weight; ordered by `(w, i, j)` (weights are
 /// ≥ 0, so their bit patterns order like the values).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, bytemuck::Zeroable)]
 pub(super) struct Edge {
     pub(super) w: u32,
     pub(super) i: u32,
