@@ -19,6 +19,8 @@ one() { # TAG BINARY(new|old) GPUS
   local bin=/root/bin/slag-encoder; [ "$2" = old ] && bin=/root/bin/slag-encoder-old
   SLAG_ENCODER=$bin TAG=$1 EXTRA="--views all --gpus $3" OUT=/root/ab \
     bash scripts/lab/device-gpu-models.sh e2e 2M 250 > "/root/ab/$1.out" 2>&1
+  # device-gpu-models.sh bundles a run's files into results-e2e-TAG-*.tgz: unpack the newest.
+  tar xzf "$(ls -t /root/ab/results-e2e-"$1"-*.tgz | head -1)" -C /root/ab e2e-f16-"$1".txt
   local f=/root/ab/e2e-f16-$1.txt
   echo "== $1 ($2, $3 GPUs)"
   grep -E "^\| total|^\| reduce|Elapsed|Maximum resident|rss-timeline: wall" "$f"
