@@ -643,6 +643,17 @@ fn parallel_tile_plan_equals_the_one_thread_plan() {
     }
 }
 
+/// A xorshift64 generator from `seed` (not 0): the edge tests' random numbers.
+fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+    let mut state = seed;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        state
+    }
+}
+
 #[test]
 fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
     // Random edges between near Gaussians of a line of 3,000, a criterion pass over the
@@ -650,13 +661,7 @@ fn the_minimum_size_pass_over_the_first_edge_per_pair_joins_as_over_all() {
     // pass over the rest: over every edge between two components, against over the first edge
     // per pair of them.
     let n = 3_000u32;
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
+    let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
     let mut edges: Vec<Edge> = (0..40_000)
         .map(|_| {
             let a = (next() % n as u64) as u32;
@@ -710,13 +715,7 @@ fn the_first_edge_per_pair_is_the_first_that_passes_both_tests_across_chunks() {
     // 2.5 chunks of the pick's edges between 4,000 elements in 150 components;
     // a cheap candidate test and a veto. The pick asks the veto less often than there are
     // candidates and keeps what filtering by both tests, then keeping the first per pair, keeps.
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        state
-    };
+    let mut next = xorshift(0x2545_f491_4f6c_dd1d);
     let roots: Vec<u32> = (0..4_000).map(|_| (next() % 150) as u32).collect();
     let edges: Vec<Edge> = (0..(5 * super::passes::PICK_CHUNK / 2) as u32)
         .map(|k| {
