@@ -388,7 +388,8 @@ impl SamAutomaticMaskGenerator {
         params: SamParams,
     ) -> Result<Self> {
         params.validate()?;
-        let enc = OnnxModel::load(encoder, placement)?;
+        let (enc, dec) = load_side_by_side(encoder, decoder, placement);
+        let enc = enc?;
         onnx::check_signature(
             enc.session(),
             encoder,
@@ -399,7 +400,7 @@ impl SamAutomaticMaskGenerator {
              (normalised, padded) and output image_embeddings f32[1,256,64,64] \
              (scripts/export-models.py sam)",
         )?;
-        let dec = OnnxModel::load(decoder, placement)?;
+        let dec = dec?;
         let low_res_as = |outputs| {
             onnx::check_signature(
                 dec.session(),
@@ -1229,6 +1230,25 @@ impl MaskGenerator for SamAutomaticMaskGenerator {
     fn generate(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
         self.generate_masks(image)
     }
+}
+
+/// The encoder's and the decoder's sessions, built side by side (the decoder on a thread of its
+/// own): each session is its own graph optimisation and weights to the device, and on a GPU
+/// even a tiny one takes most of a second (color-sam's two sessions: 0.8–1.0 s on an H200), so
+/// the decoder need not wait for SAM ViT-H's 1.3 GB encoder. The encoder's error comes first.
+fn load_side_by_side(
+    encoder: &Path,
+    decoder: &Path,
+    placement: &Placement,
+) -> (Result<OnnxModel>, Result<OnnxModel>) {
+    std::thread::scope(|s| {
+        let dec = s.spawn(|| OnnxModel::load(decoder, placement));
+        let enc = OnnxModel::load(encoder, placement);
+        let dec = dec
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal("the SAM decoder's session setup panicked")));
+        (enc, dec)
+    })
 }
 
 #[cfg(test)]
