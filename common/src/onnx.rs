@@ -187,6 +187,24 @@ pub fn load_session(path: &Path, ep: ExecutionProvider, intra_threads: usize) ->
     Ok(OnnxModel::load(path, &Placement::new(ep, 0, intra_threads))?.session)
 }
 
+/// `a` on a thread of its own while `b` runs on this one, and both results (a panic in `a`
+/// becomes an [`Error::Internal`] naming `what`): model set-ups that need nothing of each other,
+/// each seconds of session building (graph optimisation, weights to the device).
+pub fn side_by_side<A: Send, B>(
+    what: &str,
+    a: impl FnOnce() -> Result<A> + Send,
+    b: impl FnOnce() -> Result<B>,
+) -> (Result<A>, Result<B>) {
+    std::thread::scope(|s| {
+        let a = s.spawn(a);
+        let b = b();
+        let a = a
+            .join()
+            .unwrap_or_else(|_| Err(Error::internal(format!("{what} panicked"))));
+        (a, b)
+    })
+}
+
 /// One loaded ONNX model with the provider that actually runs it and the GPU it sits on; its
 /// errors ([`OnnxModel::error`]) name the model, the provider, the GPU and the remedy.
 ///

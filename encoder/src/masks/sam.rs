@@ -388,7 +388,15 @@ impl SamAutomaticMaskGenerator {
         params: SamParams,
     ) -> Result<Self> {
         params.validate()?;
-        let (enc, dec) = load_side_by_side(encoder, decoder, placement);
+        // The decoder's session is built on a thread of its own while the encoder's is: on a
+        // GPU even a tiny session takes most of a second (color-sam's two: 0.8–1.0 s on an
+        // H200), so the decoder need not wait for SAM ViT-H's 1.3 GB encoder. The encoder's
+        // error comes first.
+        let (dec, enc) = onnx::side_by_side(
+            "the SAM decoder's session setup",
+            || OnnxModel::load(decoder, placement),
+            || OnnxModel::load(encoder, placement),
+        );
         let enc = enc?;
         onnx::check_signature(
             enc.session(),
@@ -1230,25 +1238,6 @@ impl MaskGenerator for SamAutomaticMaskGenerator {
     fn generate(&mut self, image: &RgbImage) -> Result<Vec<Mask>> {
         self.generate_masks(image)
     }
-}
-
-/// The encoder's and the decoder's sessions, built side by side (the decoder on a thread of its
-/// own): each session is its own graph optimisation and weights to the device, and on a GPU
-/// even a tiny one takes most of a second (color-sam's two sessions: 0.8–1.0 s on an H200), so
-/// the decoder need not wait for SAM ViT-H's 1.3 GB encoder. The encoder's error comes first.
-fn load_side_by_side(
-    encoder: &Path,
-    decoder: &Path,
-    placement: &Placement,
-) -> (Result<OnnxModel>, Result<OnnxModel>) {
-    std::thread::scope(|s| {
-        let dec = s.spawn(|| OnnxModel::load(decoder, placement));
-        let enc = OnnxModel::load(encoder, placement);
-        let dec = dec
-            .join()
-            .unwrap_or_else(|_| Err(Error::internal("the SAM decoder's session setup panicked")));
-        (enc, dec)
-    })
 }
 
 #[cfg(test)]

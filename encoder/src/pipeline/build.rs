@@ -404,7 +404,9 @@ fn gpu_models(
             None => gpu_clip(c, g, gpu_threads, gpu_batch)?.into_service(),
         })
     };
-    let (service, sam) = side_by_side("a CLIP model setup", service, || gpu_sam(c, g, gpu_threads));
+    let (service, sam) = slag_common::onnx::side_by_side("a CLIP model setup", service, || {
+        gpu_sam(c, g, gpu_threads)
+    });
     Ok((service?, sam?))
 }
 
@@ -424,23 +426,6 @@ fn timed<T>(model: &str, g: usize, set_up: impl FnOnce() -> Result<T>) -> Result
     out
 }
 
-/// `a` on a thread of its own while `b` runs on this one, and both results (a panic in `a`
-/// becomes an [`Error::Internal`] naming `what`).
-fn side_by_side<A: Send, B>(
-    what: &str,
-    a: impl FnOnce() -> Result<A> + Send,
-    b: impl FnOnce() -> Result<B>,
-) -> (Result<A>, Result<B>) {
-    std::thread::scope(|s| {
-        let a = s.spawn(a);
-        let b = b();
-        let a = a
-            .join()
-            .unwrap_or_else(|_| Err(Error::internal(format!("{what} panicked"))));
-        (a, b)
-    })
-}
-
 /// One GPU's SAM and the copy that times its stages (with the encode's SAM timing setting).
 type GpuSam = (
     crate::masks::sam::SamAutomaticMaskGenerator,
@@ -458,7 +443,7 @@ fn gpu_sam(c: &EncodeConfig, g: usize, gpu_threads: usize) -> Result<Option<GpuS
     let (enc, dec) = sam_paths(c)?;
     let placement = c.placement(g as u32, gpu_threads);
     let params = c.masks.sam.params();
-    let (timing, sam) = side_by_side(
+    let (timing, sam) = slag_common::onnx::side_by_side(
         "a SAM timing model setup",
         || timed("SAM timing copy", g, || sam_timing(c, &placement, &params)),
         || {
