@@ -18,7 +18,8 @@
 #                                            # LOWRES=1: both SAM decoders cut down by
 #                                            # scripts/sam-decoder-low-res.py (needs python onnx)
 #                                            # DECDIR=f16d: ViT-H's half-precision decoder
-#                                            # ENCDIR=f16x: the fused-attention encoder (sam mode)
+#                                            # ENCDIR=f16x: the fused-attention encoder (exported
+#                                            # here when missing; sam mode exports it too)
 #                                            # F16M=1: ViT-H's low-res decoder returns f16
 #                                            # multimask channels (--f16-multimask)
 #                                            # TAG=NAME: the run's files named e2e-PREC-NAME
@@ -72,6 +73,13 @@ vith_f16d() {
   fi
   [ -f "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx" ] || python3 scripts/sam-decoder-low-res.py --f16-multimask \
     "$M/f16d/sam-vit_h-decoder.onnx" "$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx"
+}
+# SAM ViT-H fp16 with fused attention in its encoder ($M/f16x: export-models.py --fuse, its fp16
+# decoder with it), unless an earlier call left it.
+vith_f16x() {
+  [ -f "$M/f16x/sam-vit_h-encoder.onnx" ] && return
+  python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
+  grep -A14 fused_encoder "$R/export-vith-fused.json"
 }
 # The carried wheels (segment_anything, open_clip_torch, ftfy, wcwidth) into /root/site.
 wheels() { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl; }
@@ -149,6 +157,8 @@ e2e)
     wheels
     vith_f16d
   fi
+  # ENCDIR=f16x: the timing model's encoder with fused attention (its decoder stays DECDIR's).
+  [ "${ENCDIR:-}" = f16x ] && { wheels; vith_f16x; }
   case "${CLIPDIR:-}" in f16fuse|f16fuse-u8) clip_f16fuse ;; esac
   t=$prec${TAG:+-$TAG}
   MA=("${SAMARGS[@]}" $(samm $prec vit_h))
@@ -219,10 +229,7 @@ sam)
   # EXPORT_ONLY=1: the exports alone (they take most of a call).
   wheels
   vith_f16d
-  if [ ! -f "$M/f16x/sam-vit_h-encoder.onnx" ]; then
-    python3 scripts/export-models.py sam --kind vit_h --random --fp16 --fp16-decoder --fuse "$M/f16x" > "$R/export-vith-fused.json" 2> "$R/export-vith-fused.err" || tail -3 "$R/export-vith-fused.err"
-    grep -A14 fused_encoder "$R/export-vith-fused.json"
-  fi
+  vith_f16x
   f16m=$M/f16d/sam-vit_h-decoder-low-res-f16m.onnx
   [ "${EXPORT_ONLY:-0}" = 1 ] && exit 0
   SA=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"

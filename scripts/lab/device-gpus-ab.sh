@@ -10,6 +10,8 @@
 #   . scripts/lab/device-gpus-ab.sh
 #   one new-g1 new 1; one new-g2 new 2; one old-g2 old 2; one old-g1 old 1
 #   summary > $OUT/summary.txt
+# A variable set before `one` reaches that run alone, e.g. `ENCDIR=f16x one fused-g1 new 1`: the
+# timing model's encoder with fused attention (export-models.py --fuse), exported on first use.
 # Each run's output, report, RSS samples and debug lines go to /root/ab/TAG*; `pack` puts them
 # in $OUT/ab.tar.gz (the device returns few files).
 export RUST_LOG="info,slag_encoder::pipeline=debug,slag_encoder::memory=debug"
