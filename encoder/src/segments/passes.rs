@@ -8,8 +8,8 @@
 //! forest, which takes the border edges by those components and the minimum-size pass.
 //! That pass runs over each tile's edges in order, then over the border edges. Of a tile's
 //! edges it needs only those that its tile's pass picks, in parallel, right after the tile's
-//! criterion pass ([`min_size_candidates`]): still between two components, with an end in one
-//! below the minimum size, and not refused by the mask veto; and of those, the first between each
+//! criterion pass: still between two components, with an end in one below the minimum size
+//! ([`may_join_later`]), and not refused by the mask veto; and of those, the first between each
 //! pair of the tile's components ([`first_per_pair`]). Components only grow, so the pass would
 //! skip the others; and the picking, the veto's reads of the scene's record included, runs
 //! beside the other tiles' passes instead of after them all.
@@ -29,8 +29,8 @@ use super::{SegmentControl, SegmentParams, SegmentTimings};
 /// One tile's criterion pass: each of its Gaussians' root and component (local ids), the
 /// components its ends of border edges met where each edge stands in the order (`(k, side,
 /// component)`: edge `k` of the scene's border edges, side 0 for its end `i`, 1 for `j`), the
-/// edges the minimum-size pass could join across ([`min_size_candidates`], the first per pair
-/// of components, [`first_per_pair`]; scene ids, in order), its edge count, and the seconds of
+/// edges the minimum-size pass could join across (the first per pair of components,
+/// [`first_per_pair`]; scene ids, in order), its edge count, and the seconds of
 /// its edges' weights, their sort, the pass and the pick.
 struct TilePass {
     roots: Vec<u32>,
@@ -306,8 +306,9 @@ impl InFlight {
 
 /// The tiles' criterion passes: the scene's forest after them, the components each border
 /// edge's ends (`i`, `j`) met where it stands in the order, each tile's edges that the
-/// minimum-size pass could join across ([`min_size_candidates`], scene ids, in order) and the
-/// inner edges' count.
+/// minimum-size pass could join across ([`min_size_candidates`] in the tiles one after the other,
+/// [`first_per_pair`] in the tiles on forests of their own; scene ids, in order) and the inner
+/// edges' count.
 struct Tiled {
     forest: Forest,
     met: Vec<[Component; 2]>,
