@@ -409,44 +409,7 @@ impl SamAutomaticMaskGenerator {
              (scripts/export-models.py sam)",
         )?;
         let dec = dec?;
-        let low_res_as = |outputs| {
-            onnx::check_signature(
-                dec.session(),
-                decoder,
-                "SAM mask decoder",
-                DECODER_INPUTS,
-                outputs,
-                "",
-            )
-            .is_ok()
-        };
-        let f16_multimask = low_res_as(DECODER_OUTPUTS_LOW_RES_F16);
-        let low_res_only = f16_multimask || low_res_as(DECODER_OUTPUTS_LOW_RES);
-        if !low_res_only {
-            onnx::check_signature(
-                dec.session(),
-                decoder,
-                "SAM mask decoder",
-                DECODER_INPUTS,
-                DECODER_OUTPUTS,
-                "pass a SAM decoder exported with segment_anything's SamOnnxModel \
-                 (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py \
-                 sam, or one cut down to iou_predictions and low_res_masks by \
-                 scripts/sam-decoder-low-res.py [--f16-multimask]",
-            )?;
-        }
-        if low_res_only && params.postprocess == MaskPostprocess::Graph {
-            return Err(Error::param(
-                "postprocess",
-                "graph",
-                format!(
-                    "the low-resolution post-processing: {} has no full-resolution `masks` \
-                     output (cut down by scripts/sam-decoder-low-res.py); pass the full decoder \
-                     for MaskPostprocess::Graph",
-                    decoder.display()
-                ),
-            ));
-        }
+        let low_res_logits = decoder_low_res(&dec, decoder, params.postprocess)?;
         let providers = (enc.provider(), dec.provider());
         let device = enc.device_label();
         Ok(SamAutomaticMaskGenerator {
@@ -455,11 +418,7 @@ impl SamAutomaticMaskGenerator {
                 decoder: Mutex::new(dec),
                 providers,
                 device,
-                low_res_logits: if f16_multimask {
-                    LowResLogits::F16Multimask
-                } else {
-                    LowResLogits::F32AllChannels
-                },
+                low_res_logits,
             }),
             params,
         })
@@ -1228,6 +1187,64 @@ fn nms(cands: &[Candidate], iou_thresh: f32) -> Vec<usize> {
         }
     }
     keep
+}
+
+/// Signature step of [`SamAutomaticMaskGenerator::with_placement`]: the layout of the
+/// low-resolution logits of the decoder at `decoder`, which is segment_anything's full
+/// `SamOnnxModel` (`masks` included) or one cut down to `iou_predictions` and `low_res_masks`
+/// (scripts/sam-decoder-low-res.py [--f16-multimask]).
+///
+/// # Errors
+/// [`Error::Model`] for neither signature; [`Error::Param`] for a cut-down decoder with
+/// [`MaskPostprocess::Graph`], which reads the full-resolution `masks`.
+fn decoder_low_res(
+    dec: &OnnxModel,
+    decoder: &Path,
+    postprocess: MaskPostprocess,
+) -> Result<LowResLogits> {
+    let low_res_as = |outputs| {
+        onnx::check_signature(
+            dec.session(),
+            decoder,
+            "SAM mask decoder",
+            DECODER_INPUTS,
+            outputs,
+            "",
+        )
+        .is_ok()
+    };
+    let f16_multimask = low_res_as(DECODER_OUTPUTS_LOW_RES_F16);
+    let low_res_only = f16_multimask || low_res_as(DECODER_OUTPUTS_LOW_RES);
+    if !low_res_only {
+        onnx::check_signature(
+            dec.session(),
+            decoder,
+            "SAM mask decoder",
+            DECODER_INPUTS,
+            DECODER_OUTPUTS,
+            "pass a SAM decoder exported with segment_anything's SamOnnxModel \
+             (return_single_mask=False, dynamic point axes), e.g. scripts/export-models.py \
+             sam, or one cut down to iou_predictions and low_res_masks by \
+             scripts/sam-decoder-low-res.py [--f16-multimask]",
+        )?;
+    }
+    if low_res_only && postprocess == MaskPostprocess::Graph {
+        return Err(Error::param(
+            "postprocess",
+            "graph",
+            format!(
+                "the low-resolution post-processing: {} has no full-resolution `masks` \
+                 output (cut down by scripts/sam-decoder-low-res.py); pass the full decoder \
+                 for MaskPostprocess::Graph",
+                decoder.display()
+            ),
+        ));
+    }
+    Ok(if f16_multimask {
+        LowResLogits::F16Multimask
+    } else {
+        LowResLogits::F32AllChannels
+    })
 }
 
 impl MaskGenerator for SamAutomaticMaskGenerator {
