@@ -140,6 +140,10 @@ pub struct Counts {
     /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
     /// host, so `entries` counts none.
     pub device_reduce: bool,
+    /// GPUs the device reduction ran on at once: one per GPU that kept views when they split
+    /// the Gaussians between them (the default outputs on several GPUs), else 1; 0 when the
+    /// host reduced.
+    pub device_reduce_gpus: usize,
     /// The device reduction (`--reduce auto`) gave way to the host's during the run: the views
     /// kept on the devices were brought back as the host's `a_kj` and the host reduced
     /// (`device_reduce` false); `None`: it did not.

@@ -456,30 +456,33 @@ fn keeping_run(
     (report, record)
 }
 
-/// Two GPUs that both keep their views (`--reduce device`, fronts bound to each): the second's
-/// views are handed over to the first, which reduces them all, and the run writes what the
-/// host's reduction writes: the same `E_k` rows (f16), the same mixture byte for byte (the views
-/// in view order, whichever device kept them), the same masks' record, and no `a_kj` on the
-/// host.
+/// Two GPUs that both keep their views (`--reduce device`, fronts bound to each) write what the
+/// host's reduction writes, in both ways they meet: with the dense file the second's views are
+/// handed over to the first, which reduces them all; with the default outputs each reduces a
+/// range of Gaussians after they swapped records. The same `E_k` rows (f16), the same mixture
+/// byte for byte (the views in view order, whichever device kept them), the same masks'
+/// record, and no `a_kj` on the host.
 #[test]
-fn two_devices_hand_their_kept_views_to_one_reduction() {
+fn two_devices_reduce_their_kept_views_as_one() {
     let Some((dir, scene)) = scene_for_the_gpu() else {
         return;
     };
     let input = pipeline::SceneInput::new(&scene, None, 1);
-    let run = |name: &str, reduce_on: ReduceOn| {
+    let run = |name: &str, reduce_on: ReduceOn, dense: bool| {
         let out = dir.path().join(name);
         let params = pipeline::EncodeParams {
             mixture_keep: Some(4),
             mask_record_slots: Some(slag_common::mask_record::DEFAULT_SLOTS),
             reduce_on,
+            dense,
             ..pool_params(&out)
         };
         let (report, record) = keeping_run(&input, &[Some(0), Some(1)], 2, &params);
         (report.unwrap(), out, record)
     };
-    let (host, host_dir, host_record) = run("host", ReduceOn::Host);
-    let (dev, dev_dir, dev_record) = run("device", ReduceOn::Device);
+    let (host, host_dir, host_record) = run("host", ReduceOn::Host, true);
+    let (dev, dev_dir, dev_record) = run("device", ReduceOn::Device, true);
+    let (split, split_dir, split_record) = run("device-split", ReduceOn::Device, false);
     assert!(dev.counts.device_reduce && dev.counts.entries == 0, "reduced on the device");
     let images = |name: &str| dev.workers.iter().find(|w| w.name.starts_with(name)).unwrap().images;
     assert!(images("raster-0") > 0 && images("raster-1") > 0, "both devices kept views");
@@ -496,6 +499,15 @@ fn two_devices_hand_their_kept_views_to_one_reduction() {
     let read = |d: &std::path::Path| std::fs::read(d.join("mixture.safetensors")).unwrap();
     assert!(read(&dev_dir) == read(&host_dir), "mixture differs");
     assert!(dev_record.is_some() && dev_record == host_record, "masks' record");
+    assert!(split.counts.device_reduce && split.counts.entries == 0);
+    assert_eq!(
+        (dev.counts.device_reduce_gpus, split.counts.device_reduce_gpus),
+        (1, 2),
+        "with the dense file the first reduces all, without it both reduce"
+    );
+    assert!(!split_dir.join("embeddings.safetensors").exists(), "no dense file asked");
+    assert!(read(&split_dir) == read(&host_dir), "mixture differs with the reduction split");
+    assert!(split_record == host_record, "masks' record with the reduction split");
 }
 
 /// `--reduce auto` whose kept label sums pass the device's budget after a few views gives way

@@ -17,10 +17,10 @@ use super::pool::Pooled;
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::{DeviceReduce, KeptTile, WeightRasterizer};
-use crate::segments::SceneHandle;
 use crate::report::{
     ClusterOutputs, Counts, FormOutputs, LevelOutput, Outputs, QueueStats, Report, StageTimings,
 };
+use crate::segments::SceneHandle;
 use slag_common::mixture::SparseMixture;
 
 /// The two files an encode writes into its output folder, each path whether written or not: the
@@ -148,7 +148,13 @@ pub(crate) fn finish(
     crate::report::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
-    record_models(&mut report.models, rasterizers, fronts, mask_name, &model_id);
+    record_models(
+        &mut report.models,
+        rasterizers,
+        fronts,
+        mask_name,
+        &model_id,
+    );
 
     // Only the centres are written from here on: the encode lets go of the rest of the geometry
     // (freed now, or copied out if the segments still read the scene, as they do until their
@@ -195,6 +201,7 @@ fn record_reduction(
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
     t.reduce = tail.reduce_s - tail.gather_s;
     counts.device_reduce = tail.on_device;
+    counts.device_reduce_gpus = tail.devices;
     counts.device_reduce_fallback = reduce_fallback;
     counts.reduce_chunks = tail.chunks;
     counts.observed = tail.observed;
@@ -288,17 +295,19 @@ fn form_outputs(
 /// What every output of the tail is made from: the Gaussians' centres `means` (`[N]`, scene
 /// units), the embedding width `dim`, the encode's parameters, the CLIP model id and the
 /// scene's `.ply` path (both recorded in each file's header).
-struct TailInputs<'a> {
-    means: &'a [[f32; 3]],
-    dim: usize,
-    params: &'a EncodeParams,
-    model_id: &'a str,
-    ply: String,
+pub(super) struct TailInputs<'a> {
+    pub(super) means: &'a [[f32; 3]],
+    pub(super) dim: usize,
+    pub(super) params: &'a EncodeParams,
+    pub(super) model_id: &'a str,
+    pub(super) ply: String,
 }
 
-/// The tail's reduction: on the device when the pool kept the views there ([`one_device`],
-/// [`reduce_on_device`]), else the host's pass over `store` ([`reduce_outputs`]); a spinner
-/// shows it with [`EncodeParams::progress`].
+/// The tail's reduction: on the device when the pool kept the views there ([`reduce_on_device`];
+/// on several devices each reduces one range of Gaussians,
+/// [`super::devices::reduce_across_devices`], or, for the dense file, the first reduces all,
+/// [`super::devices::one_device`]), else the host's pass over `store` ([`reduce_outputs`]); a
+/// spinner shows it with [`EncodeParams::progress`].
 ///
 /// Errors: the reduction's, I/O on the dense file.
 fn reduce_tail(
@@ -313,9 +322,16 @@ fn reduce_tail(
         "reduce",
         &format!("E_k on the {place}"),
     );
-    let tail = match one_device(device)? {
-        Some(mut rasterizer) => reduce_on_device(&mut *rasterizer, out, embeddings)?,
-        None => reduce_outputs(store, out, embeddings)?,
+    let tail = if device.len() > 1 && !out.params.dense {
+        super::devices::reduce_across_devices(device, out, embeddings)?
+    } else {
+        match super::devices::one_device(device)? {
+            Some(mut rasterizer) => {
+                let writer = dense_writer(out.params, out.dim, embeddings)?;
+                reduce_on_device(&mut *rasterizer, out, writer, None)?
+            }
+            None => reduce_outputs(store, out, embeddings)?,
+        }
     };
     spinner.finish_with_message(format!("E_k on the {place}: {:.1} s", tail.reduce_s));
     Ok(tail)
@@ -359,93 +375,30 @@ fn write_levels(
     Ok((level_files, t0.elapsed().as_secs_f64()))
 }
 
-/// Bytes of kept records that one batch of a hand-over between devices holds on the host
-/// ([`hand_over`]).
-const HAND_OVER_BATCH_BYTES: u64 = 256 << 20;
-
-/// The rasterizers that kept their views on their devices, as one: the first, with every other
-/// one's views imported ([`WeightRasterizer::import_kept`]); `None` without any.
-///
-/// Errors: the devices' (reading the others' sums back).
-fn one_device(device: Vec<Box<dyn WeightRasterizer>>) -> Result<Option<Box<dyn WeightRasterizer>>> {
-    let mut rasterizers = device.into_iter();
-    let Some(mut first) = rasterizers.next() else {
-        return Ok(None);
-    };
-    for other in rasterizers {
-        hand_over(other, &mut *first)?;
-    }
-    Ok(Some(first))
-}
-
-/// Moves every view `from` kept to `to`, batch by batch ([`HAND_OVER_BATCH_BYTES`]): a thread
-/// reads `from`'s next batch back while `to` takes the one before, so the host holds at most
-/// three batches, and `from`'s records are freed as they go.
-///
-/// Errors: either device's.
-fn hand_over(mut from: Box<dyn WeightRasterizer>, to: &mut dyn WeightRasterizer) -> Result<()> {
-    let t0 = Instant::now();
-    let (tx, rx) = std::sync::mpsc::sync_channel::<crate::raster::KeptExport>(1);
-    let (bytes, read_s, read) = std::thread::scope(|s| {
-        let reader = s.spawn(move || -> Result<f64> {
-            let mut read_s = 0.0;
-            loop {
-                let t = Instant::now();
-                let batch = from.export_kept_batch(HAND_OVER_BATCH_BYTES)?;
-                read_s += t.elapsed().as_secs_f64();
-                // Done, or the importer stopped on an error of its own.
-                let Some(batch) = batch else {
-                    return Ok(read_s);
-                };
-                if tx.send(batch).is_err() {
-                    return Ok(read_s);
-                }
-            }
-        });
-        let mut bytes = 0usize;
-        let imported = rx.iter().try_for_each(|batch| {
-            bytes += batch.parts.iter().map(|p| p.1.len()).sum::<usize>();
-            to.import_kept(batch)
-        });
-        // An import error hangs up first, so that the reader stops at its next batch.
-        drop(rx);
-        let read = reader
-            .join()
-            .unwrap_or_else(|_| Err(Error::internal("a kept views' reader panicked")));
-        (bytes, read.as_ref().copied().unwrap_or(0.0), read.and(imported))
-    });
-    tracing::debug!(
-        target: "slag_encoder::pipeline",
-        bytes,
-        read_s,
-        seconds = t0.elapsed().as_secs_f64(),
-        "kept views handed over"
-    );
-    read
-}
-
-/// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`]),
-/// each tile handed to a host thread ([`take_tiles`]) so that the next tile is reduced while
-/// one is taken in: with [`EncodeParams::mixture_keep`] its kept pairs gathered into the
-/// mixture's sparse rows over the codebook of the kept views' mask embeddings, with
-/// [`EncodeParams::dense`] its unit rows written to the dense file at `embeddings` (with
-/// `means`, the Gaussians' centres; without it the device makes no row). The reduction's
-/// seconds run until the last tile was handed on.
+/// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`];
+/// of the Gaussian ids `gaussians` only, when given), each tile handed to a host thread
+/// ([`take_tiles`]) so that the next tile is reduced while one is taken in: with
+/// [`EncodeParams::mixture_keep`] its kept pairs gathered into the mixture's sparse rows over
+/// the codebook of the kept views' mask embeddings, with [`EncodeParams::dense`] its unit rows
+/// pushed to `writer` (the dense file's, [`dense_writer`]; with `means`, the Gaussians'
+/// centres; without it the device makes no row). The reduction's seconds run until the last
+/// tile was handed on.
 ///
 /// Errors: the device's; the host thread's (I/O, non-finite rows, a Gaussian id without a mean),
 /// which take precedence over the reduction's "host side stopped" error they cause.
-fn reduce_on_device(
+pub(super) fn reduce_on_device(
     rasterizer: &mut dyn WeightRasterizer,
     out: &TailInputs,
-    embeddings: &Path,
+    writer: Option<EmbeddingsWriter>,
+    gaussians: Option<(u32, u32)>,
 ) -> Result<ReducedOutputs> {
     let (means, dim, params, model_id) = (out.means, out.dim, out.params, out.model_id);
     let t0 = Instant::now();
-    let writer = dense_writer(params, dim, embeddings)?;
     let p = DeviceReduce {
         min_total_weight: params.reduce.min_total_weight,
         keep: params.mixture_keep.unwrap_or(1),
         dense: params.dense,
+        gaussians,
     };
     let sparse = params.mixture_keep.map(|_| SparseMixture {
         dim,
@@ -479,6 +432,7 @@ fn reduce_on_device(
         };
         Ok(ReducedOutputs {
             on_device: true,
+            devices: 1,
             writer,
             sparse,
             chunks: out.tiles,
@@ -538,24 +492,26 @@ fn push_kept(s: &mut SparseMixture, tile: &KeptTile, means: &[[f32; 3]]) {
 }
 
 /// What the tail's reduction leaves ([`reduce_outputs`]).
-struct ReducedOutputs {
+pub(super) struct ReducedOutputs {
     /// Whether the device reduced (the views were kept there) rather than the host.
-    on_device: bool,
+    pub(super) on_device: bool,
+    /// Devices that reduced at once (0 on the host).
+    pub(super) devices: usize,
     /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
-    writer: Option<EmbeddingsWriter>,
+    pub(super) writer: Option<EmbeddingsWriter>,
     /// The mixture's sparse parts; with [`EncodeParams::mixture_keep`].
-    sparse: Option<SparseMixture>,
+    pub(super) sparse: Option<SparseMixture>,
     /// Gaussian-id chunks of the pass.
-    chunks: usize,
+    pub(super) chunks: usize,
     /// Observed Gaussians (the rows of either form).
-    observed: usize,
+    pub(super) observed: usize,
     /// Wall seconds of the reduction, `gather_s` included.
-    reduce_s: f64,
+    pub(super) reduce_s: f64,
     /// Seconds of it spent only on gathering the mixture's kept atoms (0 when the mixture is
     /// the only form: then the whole pass is its reduction).
-    gather_s: f64,
+    pub(super) gather_s: f64,
     /// Seconds of the dense write outside the reduction (0 without the dense file).
-    write_s: f64,
+    pub(super) write_s: f64,
 }
 
 /// The tail's one f64 pass over `store`: with [`EncodeParams::dense`] the rows stream into
@@ -578,6 +534,7 @@ fn reduce_outputs(
             aggregate::reduce_mixture_chunks(store, means, dim, p, keep, model_id)?;
         return Ok(ReducedOutputs {
             on_device: false,
+            devices: 0,
             writer: None,
             observed: sparse.gaussian_ids.len(),
             sparse: Some(sparse),
@@ -602,6 +559,7 @@ fn reduce_outputs(
     };
     Ok(ReducedOutputs {
         on_device: false,
+        devices: 0,
         observed: streamed.writer.len(),
         writer: Some(streamed.writer),
         sparse,
@@ -616,7 +574,7 @@ fn reduce_outputs(
 /// a dense file of an earlier run there is removed.
 ///
 /// Errors: neither form asked for ([`Error::Invalid`]), I/O.
-fn dense_writer(
+pub(super) fn dense_writer(
     params: &EncodeParams,
     dim: usize,
     embeddings: &Path,

@@ -34,6 +34,7 @@ use crate::report::{ImageWork, Report};
 pub mod build;
 mod encoder;
 mod fallback;
+pub(crate) mod devices;
 pub(crate) mod finish;
 pub(crate) mod pool;
 pub(crate) mod scene_load;

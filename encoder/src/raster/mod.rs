@@ -215,11 +215,37 @@ pub trait WeightRasterizer: Send {
         let _ = max_bytes;
         self.export_kept()
     }
-    /// Adds the views another rasterizer kept ([`Self::export_kept`], or a batch of them:
-    /// [`Self::export_kept_batch`]) to this one's, for one
-    /// [`Self::reduce_kept`] over all of them.
+    /// Per block of Gaussians, how many records this rasterizer's own kept views hold: the
+    /// block's size in Gaussians and `[blocks]` counts, for splitting the reduction between
+    /// devices by work ([`Self::export_kept_range`]); `None` when it keeps nothing (the default).
+    fn kept_block_records(&self) -> Option<(u32, Vec<u64>)> {
+        None
+    }
+    /// The next batch of this rasterizer's own kept records of the Gaussians in `cursor`'s
+    /// range, with at most about `max_bytes` of records, for the rasterizer that reduces that
+    /// range ([`Self::import_kept`], then [`Self::reduce_kept`] with
+    /// [`DeviceReduce::gaussians`]): a run on several GPUs splits the reduction by Gaussians,
+    /// each device sending the others their ranges. The first batch has every view this
+    /// rasterizer kept itself, later ones continue it; keeping stops at the first; its own
+    /// range's records stay. `None` once all went, or nothing was kept (the default).
     ///
-    /// Errors: this rasterizer keeps nothing (the default: [`Error::Internal`]).
+    /// Errors: a range not on block bounds ([`Error::Internal`]); device failures reading the
+    /// sums back.
+    fn export_kept_range(
+        &mut self,
+        cursor: &mut KeptRangeCursor,
+        max_bytes: u64,
+    ) -> Result<Option<KeptExport>> {
+        let _ = (cursor, max_bytes);
+        Ok(None)
+    }
+    /// Adds the views another rasterizer kept ([`Self::export_kept`], or a batch of them:
+    /// [`Self::export_kept_batch`], [`Self::export_kept_range`]) to this one's, for one
+    /// [`Self::reduce_kept`] over all of them; keeping stops (the views kept so far are this
+    /// rasterizer's own).
+    ///
+    /// Errors: this rasterizer keeps nothing (the default: [`Error::Internal`]); a batch that
+    /// continues an export whose first batch did not come.
     fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
         let _ = kept;
         Err(Error::internal(
@@ -272,6 +298,10 @@ pub struct DeviceReduce {
     pub keep: usize,
     /// Also return the unit rows `E_k` (the dense file).
     pub dense: bool,
+    /// Only the Gaussian ids `[first, end)` (a run on several GPUs gives each one range,
+    /// [`WeightRasterizer::export_kept_range`]); `None`: every Gaussian. A range starts and ends
+    /// on a block of [`WeightRasterizer::kept_block_records`] (or at the last Gaussian).
+    pub gaussians: Option<(u32, u32)>,
 }
 
 /// One tile of the device reduction: its observed Gaussians, ascending.
@@ -317,6 +347,32 @@ pub struct KeptExport {
     /// ([`WeightRasterizer::export_kept_batch`]): its `views` is then empty, and its bands'
     /// views are those of that batch.
     pub(crate) continues: bool,
+    /// Which rasterizer it came from, as whoever moves it numbers them (0 unless set): an
+    /// importer takes batches of several sources interleaved, each source's bands pointing at
+    /// the views of that source's first batch.
+    pub(crate) source: u32,
+}
+
+/// Where an export of one range of Gaussians stands ([`WeightRasterizer::export_kept_range`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct KeptRangeCursor {
+    /// The Gaussian ids `[first, end)` exported.
+    pub(crate) gaussians: std::ops::Range<u32>,
+    /// The next of the exporter's own bands.
+    pub(crate) next_part: usize,
+    /// Whether the first batch (the views) went.
+    pub(crate) started: bool,
+}
+
+impl KeptRangeCursor {
+    /// An export of the kept records of the Gaussian ids `[first, end)`, from its start.
+    pub fn new(gaussians: std::ops::Range<u32>) -> Self {
+        Self {
+            gaussians,
+            next_part: 0,
+            started: false,
+        }
+    }
 }
 
 /// One kept view brought back to the host ([`KeptExport::into_host_views`]): what the host's

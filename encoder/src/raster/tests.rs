@@ -1076,6 +1076,7 @@ fn device_reduction_equals_the_host_reduction() {
         min_total_weight: rp.min_total_weight,
         keep,
         dense: true,
+        gaussians: None,
     };
     // One band per batch: the batches after the first continue its views.
     let mut batches = 0;
@@ -1153,6 +1154,108 @@ fn device_reduction_equals_the_host_reduction() {
         assert_eq!(dev_row, host_row, "kept pairs of Gaussian {}", ids[i]);
     }
     assert!(dominants.iter().all(|d| !d.is_empty()));
+}
+
+/// The device reduction split by Gaussians over three devices gives what one device gives with
+/// every view, bit for bit: each device keeps some of the views, the ranges follow the kept
+/// records, every device sends the others their ranges' records a band per batch (so a device
+/// takes in batches of two sources interleaved), and each reduces its own range; the same
+/// observed Gaussians, `Σ a_kj`, rows and kept pairs, and the same codebook on every device.
+#[test]
+fn device_reduction_split_over_devices_equals_one_device() {
+    use crate::pipeline::devices::{exchange_kept, split_by_records};
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let Some(mut one) = gpu(&g) else { return };
+    let mut devices: Vec<GpuRasterizer> = (0..3).filter_map(|_| gpu(&g)).collect();
+    let dim = 6;
+    for r in devices.iter_mut().chain([&mut one]) {
+        assert!(r.keep_on_device(dim, 1 << 30, true), "lavapipe has f64");
+        r.set_reduce_tile_bytes(Some(100_000));
+    }
+    let params = crate::aggregate::ImageStageParams {
+        mask_weighting: crate::aggregate::MaskWeighting::Area,
+        ..Default::default()
+    };
+    for seed in [2u64, 0, 4, 1, 5, 3] {
+        let (k, w2c) = test_camera(seed);
+        let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
+        let mut r = SplitMix64::new(seed ^ 0x5B1);
+        let emb: Vec<f32> = (0..masks.len() * dim)
+            .map(|_| r.range(-1.0, 1.0) as f32)
+            .collect();
+        let labels =
+            crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap).merged();
+        let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
+        let kept = KeptMasks {
+            masks_of: &labels.masks_of,
+            factors: &factors,
+            embeddings: &emb,
+            dominant: false,
+            view: seed as usize,
+        };
+        for r in [&mut one, &mut devices[seed as usize % 3]] {
+            let out = r.label_sums_kept(&k, &w2c, &labels.labels, None, kept);
+            out.unwrap().expect("kept");
+        }
+    }
+    let p = DeviceReduce {
+        min_total_weight: crate::aggregate::ReduceParams::default().min_total_weight,
+        keep: 3,
+        dense: true,
+        gaussians: None,
+    };
+    let reduce = |r: &mut dyn WeightRasterizer, p: &DeviceReduce| {
+        let mut tiles = Vec::new();
+        let out = r.reduce_kept(p, &mut |t| {
+            tiles.push(t);
+            Ok(())
+        });
+        (out.unwrap(), tiles)
+    };
+    let (whole, whole_tiles) = reduce(&mut one, &p);
+    let boxed: Vec<Box<dyn WeightRasterizer>> = devices
+        .into_iter()
+        .map(|r| Box::new(r) as Box<dyn WeightRasterizer>)
+        .collect();
+    let ranges = split_by_records(&boxed, n).unwrap();
+    assert_eq!(ranges.len(), 3);
+    assert!(ranges.windows(2).all(|w| w[0].end == w[1].start));
+    assert_eq!((ranges[0].start, ranges[2].end), (0, n as u32));
+    assert!(
+        ranges.iter().all(|r| !r.is_empty()),
+        "{ranges:?}: every device reduces some"
+    );
+    let boxed: Vec<_> = boxed.into_iter().map(std::sync::Mutex::new).collect();
+    exchange_kept(&boxed, &ranges, 1).unwrap();
+    let mut split_tiles = Vec::new();
+    for (r, range) in boxed.into_iter().zip(&ranges) {
+        let p = DeviceReduce {
+            gaussians: Some((range.start, range.end)),
+            ..p
+        };
+        let (out, tiles) = reduce(&mut **r.lock().unwrap(), &p);
+        assert!(
+            out.codebook == whole.codebook,
+            "every device holds every view"
+        );
+        assert!(tiles.iter().flat_map(|t| &t.ids).all(|k| range.contains(k)));
+        split_tiles.extend(tiles);
+    }
+    let flat = |tiles: &[KeptTile]| {
+        let ids: Vec<u32> = tiles.iter().flat_map(|t| t.ids.clone()).collect();
+        let totals: Vec<f32> = tiles.iter().flat_map(|t| t.total_weights.clone()).collect();
+        let rows: Vec<f32> = tiles.iter().flat_map(|t| t.rows.clone()).collect();
+        let kept: Vec<Vec<(f32, u32)>> = tiles
+            .iter()
+            .flat_map(|t| (0..t.ids.len()).map(|i| t.kept_of(i).to_vec()))
+            .collect();
+        (ids, totals, rows, kept)
+    };
+    let (whole, split) = (flat(&whole_tiles), flat(&split_tiles));
+    assert!(whole.0.len() > 100, "{} observed: too few", whole.0.len());
+    assert_eq!(split.0, whole.0, "observed Gaussians");
+    assert!(split == whole, "Σ a_kj, rows or kept pairs differ");
 }
 
 /// The masks' record kept on the device equals the host's record fed with the same views'

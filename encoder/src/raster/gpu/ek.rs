@@ -21,7 +21,8 @@ use super::reduce::record_radix_shifts;
 use super::sort::{SortBuffers, groups_2d};
 use super::{GROUPS_X, GpuRasterizer, Params};
 use crate::raster::{
-    DeviceReduce, KeptExport, KeptHostView, KeptMasks, KeptReduced, KeptTile, LabelSum,
+    DeviceReduce, KeptExport, KeptHostView, KeptMasks, KeptRangeCursor, KeptReduced, KeptTile,
+    LabelSum,
 };
 
 /// Gaussians per block of a view's record index (`ek.wgsl` `BLOCK_GAUSSIANS`): tiles of the
@@ -95,9 +96,13 @@ pub(super) struct Kept {
     /// Whether an export batch took the views' tables and codebook already
     /// ([`GpuRasterizer::export_kept_views_batch`]); keeping has stopped then.
     exporting: bool,
-    /// The first of the views that the latest import brought ([`GpuRasterizer::import_kept_views`]):
-    /// where the bands of a batch that continues it point.
-    import_base: u32,
+    /// This device's own views and bands, counted when keeping stopped for an exchange
+    /// between devices (the first [`GpuRasterizer::export_kept_range`] or
+    /// [`GpuRasterizer::import_kept_views`]): what a range export sends; imports come after.
+    own: Option<OwnKept>,
+    /// Per source ([`KeptExport::source`]), the first of the views its first batch brought
+    /// ([`GpuRasterizer::import_kept_views`]): where the bands of its later batches point.
+    import_bases: Vec<(u32, u32)>,
     /// The staging buffer of the last export batch, for the next ([`GpuRasterizer::read_parts`]).
     staging: Option<wgpu::Buffer>,
 }
@@ -179,6 +184,28 @@ pub(super) struct Keeping {
     pub(super) record_view: Option<u32>,
 }
 
+/// How many of the kept views and bands are a device's own, counted when keeping stopped for
+/// an exchange ([`Kept::own`]).
+#[derive(Debug, Clone, Copy)]
+struct OwnKept {
+    views: usize,
+    parts: usize,
+}
+
+/// Records `[first, first + n)` of one band's buffer, to be read back
+/// ([`GpuRasterizer::read_parts`]).
+struct RecordSlice<'a> {
+    records: &'a wgpu::Buffer,
+    first: u32,
+    n: u32,
+}
+
+impl RecordSlice<'_> {
+    fn bytes(&self) -> u64 {
+        u64::from(self.n) * 16
+    }
+}
+
 /// A tile of the reduction: blocks `[b0, b1)` and, per part, its records there.
 struct Tile {
     g0: u32,
@@ -234,7 +261,8 @@ impl GpuRasterizer {
             views: Vec::new(),
             codebook: Vec::new(),
             exporting: false,
-            import_base: 0,
+            own: None,
+            import_bases: Vec::new(),
             staging: None,
         });
         true
@@ -245,7 +273,11 @@ impl GpuRasterizer {
     ///
     /// Errors: embeddings not `M × D` ([`Error::Internal`]: the image stage checked them); tables or codebook past 2^32.
     pub(super) fn begin_kept_view(&mut self, masks: &KeptMasks<'_>) -> Result<u32> {
-        let Some(kept) = self.kept.as_mut().filter(|k| !k.exporting) else {
+        let Some(kept) = self
+            .kept
+            .as_mut()
+            .filter(|k| !k.exporting && k.own.is_none())
+        else {
             return Err(Error::internal(
                 "a kept view without keeping started, or after its export began",
             ));
@@ -445,7 +477,11 @@ impl GpuRasterizer {
             return Ok(None);
         }
         kept.exporting = true;
-        let views = if first { host_views(kept) } else { Vec::new() };
+        let views = if first {
+            host_views(kept, kept.views.len())
+        } else {
+            Vec::new()
+        };
         let (mut take, mut bytes) = (0, 0u64);
         for p in &kept.parts {
             let b = u64::from(p.n) * 16;
@@ -458,7 +494,15 @@ impl GpuRasterizer {
         kept.bytes -= bytes;
         let dim = kept.dim;
         let staging = kept.staging.take();
-        let (read, staging) = self.read_parts(&batch, staging)?;
+        let slices: Vec<RecordSlice<'_>> = batch
+            .iter()
+            .map(|p| RecordSlice {
+                records: &p.records,
+                first: 0,
+                n: p.n,
+            })
+            .collect();
+        let (read, staging) = self.read_parts(&slices, staging)?;
         if let Some(kept) = self.kept.as_mut() {
             kept.staging = staging;
         }
@@ -472,11 +516,117 @@ impl GpuRasterizer {
             views,
             parts,
             continues: !first,
+            source: 0,
         }))
     }
 
-    /// The records of `parts` read back, one `Vec` per part, through one staging buffer reused
-    /// group after group of parts (at most [`READBACK_BYTES`] a group, or one part; see
+    /// Per block of [`BLOCK_GAUSSIANS`] Gaussians, the records of this device's own kept views
+    /// (`[blocks]`); `None` when it keeps nothing.
+    pub(super) fn kept_block_records(&self) -> Option<Vec<u64>> {
+        let kept = self.kept.as_ref()?;
+        let own = kept.own.map_or(kept.parts.len(), |o| o.parts);
+        let blocks = self.n.div_ceil(BLOCK_GAUSSIANS) as usize;
+        let mut out = vec![0u64; blocks];
+        for p in &kept.parts[..own] {
+            for (b, n) in out.iter_mut().enumerate() {
+                *n += u64::from(p.starts[b + 1] - p.starts[b]);
+            }
+        }
+        Some(out)
+    }
+
+    /// The next batch of this device's own kept records of the Gaussians in `cursor`'s range,
+    /// for another device's reduction of that range ([`Self::import_kept_views`]): the first
+    /// batch has every own view's label table and codebook rows, each batch the next bands'
+    /// records in the range (as many as fit `max_bytes`, at least one band), each band's block
+    /// index moved to the range (no records before it or after it). Keeping stops at the first
+    /// batch; the records stay here for this device's own range. `None` once every band went
+    /// (or nothing was kept).
+    ///
+    /// Errors: a range not on block bounds ([`Error::Internal`]); device failures reading the
+    /// records back.
+    pub(super) fn export_kept_range(
+        &mut self,
+        cursor: &mut KeptRangeCursor,
+        max_bytes: u64,
+    ) -> Result<Option<KeptExport>> {
+        let blocks = self.blocks_of(cursor.gaussians.clone())?;
+        let Some(kept) = self.kept.as_mut() else {
+            return Ok(None);
+        };
+        let own = kept.stop();
+        if cursor.started && cursor.next_part >= own.parts {
+            return Ok(None);
+        }
+        let views = if cursor.started {
+            Vec::new()
+        } else {
+            host_views(kept, own.views)
+        };
+        let kept = self
+            .kept
+            .as_ref()
+            .ok_or_else(|| Error::internal("keeping stopped"))?;
+        let (mut slices, mut picked, mut bytes) = (Vec::new(), Vec::new(), 0u64);
+        while cursor.next_part < own.parts {
+            let p = &kept.parts[cursor.next_part];
+            let (lo, hi) = (p.starts[blocks.start], p.starts[blocks.end]);
+            let slice = RecordSlice {
+                records: &p.records,
+                first: lo,
+                n: hi - lo,
+            };
+            if !slices.is_empty() && bytes + slice.bytes() > max_bytes {
+                break;
+            }
+            cursor.next_part += 1;
+            if slice.n == 0 {
+                continue;
+            }
+            bytes += slice.bytes();
+            let starts = p.starts.iter().map(|&s| s.clamp(lo, hi) - lo).collect();
+            picked.push((p.view, starts));
+            slices.push(slice);
+        }
+        let (read, _) = self.read_parts(&slices, None)?;
+        let parts = picked
+            .into_iter()
+            .zip(read)
+            .map(|((view, starts), bytes)| (view, bytes, starts))
+            .collect();
+        let continues = cursor.started;
+        cursor.started = true;
+        Ok(Some(KeptExport {
+            dim: kept.dim,
+            views,
+            parts,
+            continues,
+            source: 0,
+        }))
+    }
+
+    /// The blocks `[b0, b1)` of [`BLOCK_GAUSSIANS`] that hold the Gaussians `gaussians`.
+    ///
+    /// Errors: a range that does not start on a block or end on one (or at the last
+    /// Gaussian), or past the scene ([`Error::Internal`]).
+    fn blocks_of(&self, gaussians: std::ops::Range<u32>) -> Result<std::ops::Range<usize>> {
+        let on_bound = |g: u32| g.is_multiple_of(BLOCK_GAUSSIANS) || g == self.n;
+        if gaussians.start > gaussians.end
+            || gaussians.end > self.n
+            || !on_bound(gaussians.start)
+            || !on_bound(gaussians.end)
+        {
+            return Err(Error::internal(format!(
+                "Gaussians {gaussians:?} of {} are not whole blocks of {BLOCK_GAUSSIANS}",
+                self.n
+            )));
+        }
+        let b = |g: u32| g.div_ceil(BLOCK_GAUSSIANS) as usize;
+        Ok(b(gaussians.start)..b(gaussians.end))
+    }
+
+    /// The records of `parts` read back, one `Vec` per slice, through one staging buffer reused
+    /// group after group of slices (at most [`READBACK_BYTES`] a group, or one slice; see
     /// [`Self::set_readback_bytes`]): `staging`
     /// when it is large enough, else a new one, returned for the next call (a hand-over reads
     /// batch after batch, and mapping fresh host memory each time costs more than the copy).
@@ -484,10 +634,10 @@ impl GpuRasterizer {
     /// Errors: device failures.
     fn read_parts(
         &self,
-        parts: &[KeptPart],
+        parts: &[RecordSlice<'_>],
         mut staging: Option<wgpu::Buffer>,
     ) -> Result<(Vec<Vec<u8>>, Option<wgpu::Buffer>)> {
-        let bytes_of = |p: &KeptPart| u64::from(p.n) * 16;
+        let bytes_of = RecordSlice::bytes;
         let most = self.readback_bytes.unwrap_or(READBACK_BYTES);
         let mut out = Vec::with_capacity(parts.len());
         let mut rest = parts;
@@ -518,7 +668,8 @@ impl GpuRasterizer {
             let mut enc = self.device.create_command_encoder(&Default::default());
             let mut at = 0;
             for p in now.iter().filter(|p| p.n > 0) {
-                enc.copy_buffer_to_buffer(&p.records, 0, &buffer, at, bytes_of(p));
+                let from = u64::from(p.first) * 16;
+                enc.copy_buffer_to_buffer(p.records, from, &buffer, at, bytes_of(p));
                 at += bytes_of(p);
             }
             self.submit_and_map_all(enc, &[(&buffer, group)], |views| {
@@ -552,10 +703,26 @@ impl GpuRasterizer {
             )));
         }
         let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
-        if !e.continues {
-            kept.import_base = kept.views.len() as u32;
-        }
-        let first_view = kept.import_base;
+        kept.stop();
+        let base_of = kept.import_bases.iter_mut().find(|(s, _)| *s == e.source);
+        let first_view = match (e.continues, base_of) {
+            (true, Some((_, base))) => *base,
+            (true, None) => {
+                return Err(Error::internal(format!(
+                    "a batch of kept views continues an export of source {} never begun",
+                    e.source
+                )));
+            }
+            (false, Some((_, base))) => {
+                *base = kept.views.len() as u32;
+                *base
+            }
+            (false, None) => {
+                let base = kept.views.len() as u32;
+                kept.import_bases.push((e.source, base));
+                base
+            }
+        };
         for (table, rows, index) in e.views {
             let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
             let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
@@ -633,8 +800,13 @@ impl GpuRasterizer {
     /// whose outputs (`out_per_gaussian` bytes each) fit `tile_bytes` (at least one block).
     ///
     /// Errors: one block holds more records than a tile can ([`Error::Limit`] `GpuBinding`).
-    fn kept_tiles(&self, kept: &Kept, out_per_gaussian: u64, tile_bytes: u64) -> Result<Vec<Tile>> {
-        let blocks = self.n.div_ceil(BLOCK_GAUSSIANS) as usize;
+    fn kept_tiles(
+        &self,
+        kept: &Kept,
+        blocks: std::ops::Range<usize>,
+        out_per_gaussian: u64,
+        tile_bytes: u64,
+    ) -> Result<Vec<Tile>> {
         let record_cap = (self.max_binding().min(tile_bytes) / 16).saturating_sub(1);
         let gaussian_cap = (self.max_binding().min(tile_bytes) / out_per_gaussian.max(1))
             .max(u64::from(BLOCK_GAUSSIANS));
@@ -645,11 +817,11 @@ impl GpuRasterizer {
                 .sum()
         };
         let mut tiles = Vec::new();
-        let mut b0 = 0usize;
-        while b0 < blocks {
+        let mut b0 = blocks.start;
+        while b0 < blocks.end {
             let mut b1 = b0;
             let mut records = 0u64;
-            while b1 < blocks {
+            while b1 < blocks.end {
                 let more = block_records(b1);
                 let gaussians = (b1 + 1 - b0) as u64 * u64::from(BLOCK_GAUSSIANS);
                 if b1 > b0 && (records + more > record_cap || gaussians > gaussian_cap) {
@@ -687,12 +859,13 @@ impl GpuRasterizer {
         Ok(tiles)
     }
 
-    /// Reduces every kept view (see the module docs), tile by tile of Gaussian ids ascending,
-    /// handing each tile's observed Gaussians to `sink`; keeping stops and the kept records are
-    /// freed. Returns the number of tiles and the codebook.
+    /// Reduces every kept view (see the module docs), tile by tile of Gaussian ids ascending
+    /// (those of [`DeviceReduce::gaussians`] only, when given), handing each tile's observed
+    /// Gaussians to `sink`; keeping stops and the kept records are freed. Returns the number of
+    /// tiles and the codebook.
     ///
     /// Errors: nothing kept ([`Error::Internal`]); `p.keep` above [`MAX_KEEP`] ([`Error::Param`]);
-    /// device failures; `sink`'s.
+    /// a range of Gaussians not on block bounds ([`Error::Internal`]); device failures; `sink`'s.
     pub(super) fn reduce_kept_tiles(
         &mut self,
         p: &DeviceReduce,
@@ -708,11 +881,12 @@ impl GpuRasterizer {
                 format!("1 to {MAX_KEEP} for the device reduction (or --reduce host)"),
             ));
         }
+        let blocks = self.blocks_of(p.gaussians.map_or(0..self.n, |(a, b)| a..b))?;
         kept.sort_by_view();
         let dim = kept.dim;
         let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
         let out_per_gaussian = 8 + p.keep as u64 * 8 + if p.dense { dim as u64 * 4 } else { 0 };
-        let tiles = self.kept_tiles(&kept, out_per_gaussian, tile_bytes)?;
+        let tiles = self.kept_tiles(&kept, blocks, out_per_gaussian, tile_bytes)?;
         let tables = storage_init(
             &self.device,
             "ek_tables",
@@ -1163,11 +1337,11 @@ fn tile_output_range(
     out
 }
 
-/// Per kept view, its label table, its codebook rows and its index in the encode's view list,
-/// copied out of `kept` (in keeping order, before [`Kept::sort_by_view`]).
-fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
+/// Per kept view of the first `n`, its label table, its codebook rows and its index in the
+/// encode's view list, copied out of `kept` (in keeping order, before [`Kept::sort_by_view`]).
+fn host_views(kept: &Kept, n: usize) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
     let dim = kept.dim;
-    (0..kept.views.len())
+    (0..n.min(kept.views.len()))
         .map(|v| {
             let (table, rows) = kept.extent(v);
             (
@@ -1180,6 +1354,15 @@ fn host_views(kept: &Kept) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
 }
 
 impl Kept {
+    /// Stops keeping for an exchange between devices: from here on no view is kept, and the
+    /// views and bands so far are this device's own ([`Kept::own`]). Returns them.
+    fn stop(&mut self) -> OwnKept {
+        *self.own.get_or_insert(OwnKept {
+            views: self.views.len(),
+            parts: self.parts.len(),
+        })
+    }
+
     /// View `v`'s words of `tables` and rows of the codebook: from its own starts to the next
     /// view's (or the ends). Holds while both follow keeping order, before
     /// [`Kept::sort_by_view`] moves the rows.

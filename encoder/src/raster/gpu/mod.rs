@@ -79,8 +79,8 @@ use wgpu::util::DeviceExt;
 
 use super::project::{jacobian_limits, tile_grid};
 use super::{
-    DeviceReduce, KeptExport, KeptMasks, KeptReduced, KeptTile, KeptView, LabelSums, PixelWeights,
-    PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
+    DeviceReduce, KeptExport, KeptMasks, KeptRangeCursor, KeptReduced, KeptTile, KeptView,
+    LabelSums, PixelWeights, PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
 };
 
 mod buffers;
@@ -1054,6 +1054,18 @@ impl WeightRasterizer for GpuRasterizer {
 
     fn export_kept_batch(&mut self, max_bytes: u64) -> Result<Option<KeptExport>> {
         self.export_kept_views_batch(max_bytes)
+    }
+
+    fn kept_block_records(&self) -> Option<(u32, Vec<u64>)> {
+        Some((ek::BLOCK_GAUSSIANS, self.kept_block_records()?))
+    }
+
+    fn export_kept_range(
+        &mut self,
+        cursor: &mut KeptRangeCursor,
+        max_bytes: u64,
+    ) -> Result<Option<KeptExport>> {
+        self.export_kept_range(cursor, max_bytes)
     }
 
     fn import_kept(&mut self, kept: KeptExport) -> Result<()> {
