@@ -27,7 +27,7 @@ one() { # TAG BINARY(new|old) GPUS
   echo "== $1 ($2, $3 GPUs)"
   grep -E "^\| total|^\| reduce|Elapsed|Maximum resident|rss-timeline: wall" "$f"
   grep -E "^\| front-" "$f" | awk -F'|' '{print "  " $2 $4}' | tr '\n' ' '; echo
-  grep -E "scene loaded|workers done|handed over|let go|device reduction tiles|geometric segments written" "$f" | cut -c12-27,50-230
+  grep -E "scene loaded|workers done|handed over|exchanged|let go|device reduction tiles|geometric segments written" "$f" | cut -c12-27,50-230
 }
 summary() { for f in /root/ab/*.out; do echo "== $f"; tail -3 "$f"; done; }
 pack() { tar -czf "$OUT/ab.tar.gz" -C /root ab; }

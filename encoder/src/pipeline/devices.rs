@@ -179,10 +179,11 @@ pub(crate) fn split_blocks(records: &[u64], parts: usize) -> Vec<Range<usize>> {
 
 /// Every device in `device` sends each other device the records of that one's range of
 /// Gaussians (`ranges[d]` for device `d`), `batch_bytes` at a time
-/// ([`WeightRasterizer::export_kept_range`], [`WeightRasterizer::import_kept`]). Per device
-/// one thread reads its batches back for the others, one after the other, and one takes in what
-/// the others send; a device is locked for one batch at a time, so that its reading and its
-/// taking in interleave, and all devices work at once.
+/// ([`WeightRasterizer::export_kept_range`], [`WeightRasterizer::import_uploaded`]). Per device
+/// one thread reads its batches back for the others ([`send_ranges`]) and one takes in what the
+/// others send ([`take_batches`]), uploading each batch to the device before it locks the
+/// device to add it: a device is locked for one batch's reading or adding at a time, and all
+/// devices work at once.
 ///
 /// Errors: the devices' (the first stops the exchange); [`Error::Internal`] for a device
 /// poisoned by a panicked thread.
@@ -202,39 +203,21 @@ pub(crate) fn exchange_kept(
     let (senders, receivers): (Vec<_>, Vec<_>) = (0..n)
         .map(|_| std::sync::mpsc::sync_channel::<KeptExport>(1))
         .unzip();
-    let bytes = AtomicU64::new(0);
-    let lock = |d: usize| device[d].lock().map_err(|_| poisoned());
+    let stats = ExchangeStats::default();
     let results: Vec<Result<()>> = std::thread::scope(|s| {
         let takers: Vec<_> = receivers
             .into_iter()
             .enumerate()
             .map(|(d, rx)| {
-                s.spawn(move || -> Result<()> {
-                    // An error drops `rx`: the readers sending here stop at their next batch.
-                    rx.iter().try_for_each(|batch| lock(d)?.import_kept(batch))
-                })
+                let (device, stats) = (&device[d], &stats);
+                s.spawn(move || take_batches(device, rx, stats))
             })
             .collect();
         let readers: Vec<_> = (0..n)
             .map(|from| {
-                let (senders, bytes) = (senders.clone(), &bytes);
-                s.spawn(move || -> Result<()> {
-                    for to in (1..n).map(|k| (from + k) % n) {
-                        let mut cursor = KeptRangeCursor::new(ranges[to].clone());
-                        loop {
-                            let batch = lock(from)?.export_kept_range(&mut cursor, batch_bytes)?;
-                            let Some(mut batch) = batch else { break };
-                            batch.source = from as u32;
-                            let b: usize = batch.parts.iter().map(|p| p.1.len()).sum();
-                            bytes.fetch_add(b as u64, Ordering::Relaxed);
-                            if senders[to].send(batch).is_err() {
-                                // The taker stopped on an error of its own, which it returns.
-                                break;
-                            }
-                        }
-                    }
-                    Ok(())
-                })
+                let senders = senders.clone();
+                let (stats, send) = (&stats, (ranges, batch_bytes));
+                s.spawn(move || send_ranges(device, from, &senders, send, stats))
             })
             .collect();
         drop(senders);
@@ -246,13 +229,95 @@ pub(crate) fn exchange_kept(
         out
     });
     results.into_iter().collect::<Result<()>>()?;
+    let secs = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64 * 1e-9;
     tracing::debug!(
         target: "slag_encoder::pipeline",
         devices = n,
-        bytes = bytes.into_inner(),
+        bytes = stats.bytes.load(Ordering::Relaxed),
+        read_s = secs(&stats.read_ns),
+        upload_s = secs(&stats.upload_ns),
+        add_s = secs(&stats.add_ns),
         seconds = t0.elapsed().as_secs_f64(),
         "kept views exchanged"
     );
+    Ok(())
+}
+
+/// What an exchange moved and where its time went, summed over the devices' threads.
+#[derive(Default)]
+struct ExchangeStats {
+    bytes: AtomicU64,
+    read_ns: AtomicU64,
+    upload_ns: AtomicU64,
+    add_ns: AtomicU64,
+}
+
+impl ExchangeStats {
+    fn add_time(counter: &AtomicU64, since: Instant) {
+        counter.fetch_add(since.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    }
+}
+
+/// Reader step of [`exchange_kept`]: device `from` reads back its records of every other
+/// device's range (`ranges`, in batches of `batch_bytes`) and sends them to that device's taker
+/// (`senders[to]`), one device after the other.
+///
+/// Errors: the device's.
+fn send_ranges(
+    device: &[Mutex<Box<dyn WeightRasterizer>>],
+    from: usize,
+    senders: &[std::sync::mpsc::SyncSender<KeptExport>],
+    (ranges, batch_bytes): (&[Range<u32>], u64),
+    stats: &ExchangeStats,
+) -> Result<()> {
+    let n = device.len();
+    for to in (1..n).map(|k| (from + k) % n) {
+        let mut cursor = KeptRangeCursor::new(ranges[to].clone());
+        loop {
+            let mut rasterizer = device[from].lock().map_err(|_| poisoned())?;
+            let t = Instant::now();
+            let batch = rasterizer.export_kept_range(&mut cursor, batch_bytes)?;
+            drop(rasterizer);
+            ExchangeStats::add_time(&stats.read_ns, t);
+            let Some(mut batch) = batch else { break };
+            batch.source = from as u32;
+            let b: usize = batch.parts.iter().map(|p| p.1.len()).sum();
+            stats.bytes.fetch_add(b as u64, Ordering::Relaxed);
+            if senders[to].send(batch).is_err() {
+                // The taker stopped on an error of its own, which it returns.
+                break;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Taker step of [`exchange_kept`]: every batch from `rx` uploaded to the device without
+/// holding it ([`WeightRasterizer::kept_uploader`]; a rasterizer without one takes the batch
+/// as it is), then added under its lock.
+///
+/// Errors: the device's; on an error `rx` is dropped, so the readers sending here stop at their
+/// next batch.
+fn take_batches(
+    device: &Mutex<Box<dyn WeightRasterizer>>,
+    rx: std::sync::mpsc::Receiver<KeptExport>,
+    stats: &ExchangeStats,
+) -> Result<()> {
+    let uploader = device.lock().map_err(|_| poisoned())?.kept_uploader();
+    for batch in rx {
+        let t = Instant::now();
+        let Some(uploader) = &uploader else {
+            device.lock().map_err(|_| poisoned())?.import_kept(batch)?;
+            ExchangeStats::add_time(&stats.add_ns, t);
+            continue;
+        };
+        let uploaded = uploader.upload(batch);
+        ExchangeStats::add_time(&stats.upload_ns, t);
+        let mut rasterizer = device.lock().map_err(|_| poisoned())?;
+        let t = Instant::now();
+        rasterizer.import_uploaded(uploaded)?;
+        ExchangeStats::add_time(&stats.add_ns, t);
+    }
     Ok(())
 }
 

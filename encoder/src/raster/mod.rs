@@ -239,6 +239,23 @@ pub trait WeightRasterizer: Send {
         let _ = (cursor, max_bytes);
         Ok(None)
     }
+    /// What uploads other rasterizers' kept records to this one's device without holding this
+    /// rasterizer ([`gpu::ek::KeptUploader`]), for [`Self::import_uploaded`]; `None` where it
+    /// keeps nothing on a device (the default).
+    fn kept_uploader(&self) -> Option<gpu::ek::KeptUploader> {
+        None
+    }
+    /// [`Self::import_kept`] of a batch whose records [`Self::kept_uploader`] put on this
+    /// rasterizer's device already.
+    ///
+    /// Errors: as [`Self::import_kept`]; a batch uploaded to another device
+    /// ([`Error::Internal`]).
+    fn import_uploaded(&mut self, kept: gpu::ek::UploadedKept) -> Result<()> {
+        let _ = kept;
+        Err(Error::internal(
+            "this rasterizer keeps no sums on its device",
+        ))
+    }
     /// Adds the views another rasterizer kept ([`Self::export_kept`], or a batch of them:
     /// [`Self::export_kept_batch`], [`Self::export_kept_range`]) to this one's, for one
     /// [`Self::reduce_kept`] over all of them; keeping stops (the views kept so far are this

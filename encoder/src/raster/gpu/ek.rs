@@ -206,6 +206,54 @@ impl RecordSlice<'_> {
     }
 }
 
+/// Uploads the kept records of batches from other devices to one device without holding its
+/// rasterizer ([`crate::raster::WeightRasterizer::kept_uploader`]): an exchange between devices
+/// uploads one batch while the device reads its own next batch back.
+#[derive(Debug, Clone)]
+pub struct KeptUploader {
+    device: wgpu::Device,
+}
+
+impl KeptUploader {
+    /// `batch` with each band's records in a buffer on this uploader's device, their host bytes
+    /// let go, for [`crate::raster::WeightRasterizer::import_uploaded`].
+    pub fn upload(&self, mut batch: KeptExport) -> UploadedKept {
+        let records = batch
+            .parts
+            .iter_mut()
+            .map(|(_, bytes, _)| {
+                let bytes = std::mem::take(bytes);
+                UploadedRecords {
+                    buffer: storage_init(&self.device, "kept_records", &bytes),
+                    n: (bytes.len() / 16) as u32,
+                    device: self.device.clone(),
+                }
+            })
+            .collect();
+        UploadedKept { batch, records }
+    }
+}
+
+/// A batch of kept views whose records are on the device that takes it in
+/// ([`KeptUploader::upload`]).
+#[derive(Debug)]
+pub struct UploadedKept {
+    /// The batch, its bands' bytes let go.
+    batch: KeptExport,
+    /// Per band of `batch`, its records.
+    records: Vec<UploadedRecords>,
+}
+
+/// One band's records uploaded ([`UploadedKept`]).
+#[derive(Debug)]
+struct UploadedRecords {
+    buffer: wgpu::Buffer,
+    /// Records held.
+    n: u32,
+    /// The device it is on.
+    device: wgpu::Device,
+}
+
 /// A tile of the reduction: blocks `[b0, b1)` and, per part, its records there.
 struct Tile {
     g0: u32,
@@ -563,6 +611,7 @@ impl GpuRasterizer {
         } else {
             host_views(kept, own.views)
         };
+        let staging = kept.staging.take();
         let kept = self
             .kept
             .as_ref()
@@ -588,7 +637,11 @@ impl GpuRasterizer {
             picked.push((p.view, starts));
             slices.push(slice);
         }
-        let (read, _) = self.read_parts(&slices, None)?;
+        let (read, staging) = self.read_parts(&slices, staging)?;
+        let dim = kept.dim;
+        if let Some(kept) = self.kept.as_mut() {
+            kept.staging = staging;
+        }
         let parts = picked
             .into_iter()
             .zip(read)
@@ -597,7 +650,7 @@ impl GpuRasterizer {
         let continues = cursor.started;
         cursor.started = true;
         Ok(Some(KeptExport {
-            dim: kept.dim,
+            dim,
             views,
             parts,
             continues,
@@ -691,6 +744,28 @@ impl GpuRasterizer {
     /// Errors: keeping not started here, or another width ([`Error::Internal`]); tables or
     /// codebook past 2^32.
     pub(super) fn import_kept_views(&mut self, e: KeptExport) -> Result<()> {
+        let uploaded = self.kept_uploader().upload(e);
+        self.import_uploaded(uploaded)
+    }
+
+    /// The uploader of kept records to this device ([`KeptUploader`]).
+    pub(super) fn kept_uploader(&self) -> KeptUploader {
+        KeptUploader {
+            device: self.device.clone(),
+        }
+    }
+
+    /// [`Self::import_kept_views`] of a batch whose records are on this device already
+    /// ([`KeptUploader::upload`]).
+    ///
+    /// Errors: as [`Self::import_kept_views`]; a batch uploaded to another device.
+    pub(super) fn import_uploaded(&mut self, u: UploadedKept) -> Result<()> {
+        let UploadedKept { batch: e, records } = u;
+        if records.len() != e.parts.len() || records.iter().any(|r| r.device != self.device) {
+            return Err(Error::internal(
+                "kept records uploaded for another device, or not all of them",
+            ));
+        }
         let Some(kept) = self.kept.as_mut() else {
             return Err(Error::internal(
                 "importing kept views without keeping started",
@@ -703,26 +778,7 @@ impl GpuRasterizer {
             )));
         }
         let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
-        kept.stop();
-        let base_of = kept.import_bases.iter_mut().find(|(s, _)| *s == e.source);
-        let first_view = match (e.continues, base_of) {
-            (true, Some((_, base))) => *base,
-            (true, None) => {
-                return Err(Error::internal(format!(
-                    "a batch of kept views continues an export of source {} never begun",
-                    e.source
-                )));
-            }
-            (false, Some((_, base))) => {
-                *base = kept.views.len() as u32;
-                *base
-            }
-            (false, None) => {
-                let base = kept.views.len() as u32;
-                kept.import_bases.push((e.source, base));
-                base
-            }
-        };
+        let first_view = kept.import_base(e.source, e.continues)?;
         for (table, rows, index) in e.views {
             let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
             let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
@@ -730,7 +786,7 @@ impl GpuRasterizer {
             kept.codebook.extend_from_slice(&rows);
             kept.views.push([base, row, index]);
         }
-        for (view, bytes, starts) in e.parts {
+        for ((view, _, starts), r) in e.parts.into_iter().zip(records) {
             let view = first_view + view;
             if view as usize >= kept.views.len() {
                 return Err(Error::internal(format!(
@@ -738,11 +794,10 @@ impl GpuRasterizer {
                     kept.views.len()
                 )));
             }
-            let n = (bytes.len() / 16) as u32;
-            kept.bytes += bytes.len() as u64;
+            kept.bytes += u64::from(r.n) * 16;
             kept.parts.push(KeptPart {
-                records: storage_init(&self.device, "kept_records", &bytes),
-                n,
+                records: r.buffer,
+                n: r.n,
                 view,
                 starts,
             });
@@ -1354,6 +1409,31 @@ fn host_views(kept: &Kept, n: usize) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
 }
 
 impl Kept {
+    /// Where the views of an imported batch from `source` start among the kept views: a first
+    /// batch (`continues` false) starts them after every view kept so far; a later one points
+    /// where that source's first batch did. Keeping stops ([`Kept::stop`]).
+    ///
+    /// Errors: a batch that continues an export never begun ([`Error::Internal`]).
+    fn import_base(&mut self, source: u32, continues: bool) -> Result<u32> {
+        self.stop();
+        let next = self.views.len() as u32;
+        let base_of = self.import_bases.iter_mut().find(|(s, _)| *s == source);
+        match (continues, base_of) {
+            (true, Some((_, base))) => Ok(*base),
+            (true, None) => Err(Error::internal(format!(
+                "a batch of kept views continues an export of source {source} never begun"
+            ))),
+            (false, Some((_, base))) => {
+                *base = next;
+                Ok(next)
+            }
+            (false, None) => {
+                self.import_bases.push((source, next));
+                Ok(next)
+            }
+        }
+    }
+
     /// Stops keeping for an exchange between devices: from here on no view is kept, and the
     /// views and bands so far are this device's own ([`Kept::own`]). Returns them.
     fn stop(&mut self) -> OwnKept {

@@ -1072,6 +1072,14 @@ impl WeightRasterizer for GpuRasterizer {
         self.import_kept_views(kept)
     }
 
+    fn kept_uploader(&self) -> Option<ek::KeptUploader> {
+        self.kept.is_some().then(|| self.kept_uploader())
+    }
+
+    fn import_uploaded(&mut self, kept: ek::UploadedKept) -> Result<()> {
+        self.import_uploaded(kept)
+    }
+
     fn name(&self) -> &str {
         &self.name
     }
