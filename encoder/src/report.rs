@@ -33,6 +33,8 @@ pub struct StageTimings {
     /// (the writer thread converts and writes each chunk while the next one is accumulated).
     /// With the mixture form, the same pass also selects each Gaussian's kept `a_kj` (counted
     /// here); the moving of them into the mixture's rows is in `outputs.mixture_reduce_s`.
+    /// With the device reduction on several GPUs, the moving of the kept records between them
+    /// counts here too.
     pub reduce: f64,
     /// Writing the output files, wall clock after the reduction: the last chunk's write, the
     /// mixture file and the embeddings file's assembly and fsync (what the overlap left).

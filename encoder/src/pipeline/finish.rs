@@ -325,10 +325,15 @@ fn reduce_tail(
     let tail = if device.len() > 1 && !out.params.dense {
         super::devices::reduce_across_devices(device, out, embeddings)?
     } else {
+        let t0 = Instant::now();
         match super::devices::one_device(device)? {
             Some(mut rasterizer) => {
+                // The hand-over between devices counts as the reduction's, as an exchange does.
+                let handed_over_s = t0.elapsed().as_secs_f64();
                 let writer = dense_writer(out.params, out.dim, embeddings)?;
-                reduce_on_device(&mut *rasterizer, out, writer, None)?
+                let mut tail = reduce_on_device(&mut *rasterizer, out, writer, None)?;
+                tail.reduce_s += handed_over_s;
+                tail
             }
             None => reduce_outputs(store, out, embeddings)?,
         }

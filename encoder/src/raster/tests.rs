@@ -999,6 +999,57 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
 // ---------------------------------------------------------------------------------------------
 // the device reduction
 
+/// A random view as the device reduction keeps it: camera `seed`, 9 random masks, their overlap
+/// labels and weighting factors (`params`), and random mask embeddings of width `dim` drawn
+/// from `salt`.
+struct RandomKeptView {
+    seed: u64,
+    intrinsics: Intrinsics,
+    world_to_camera: WorldToCamera,
+    masks: Vec<crate::masks::Mask>,
+    embeddings: Vec<f32>,
+    labels: crate::aggregate::image::PixelLabels,
+    factors: Vec<f32>,
+}
+
+impl RandomKeptView {
+    fn new(seed: u64, salt: u64, dim: usize, params: crate::aggregate::ImageStageParams) -> Self {
+        let (k, w2c) = test_camera(seed);
+        let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
+        let mut r = SplitMix64::new(salt);
+        let embeddings = (0..masks.len() * dim)
+            .map(|_| r.range(-1.0, 1.0) as f32)
+            .collect();
+        let overlap = params.overlap;
+        let labels = crate::aggregate::overlap_labels(&masks, k.width, k.height, overlap).merged();
+        let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
+        Self {
+            seed,
+            intrinsics: k,
+            world_to_camera: w2c,
+            masks,
+            embeddings,
+            labels,
+            factors,
+        }
+    }
+
+    /// The view kept on `r` ([`WeightRasterizer::label_sums_kept`], with its dominant masks when
+    /// `dominant`); `None` where `r` does not keep.
+    fn keep_on(&self, r: &mut GpuRasterizer, dominant: bool) -> Option<KeptView> {
+        let kept = KeptMasks {
+            masks_of: &self.labels.masks_of,
+            factors: &self.factors,
+            embeddings: &self.embeddings,
+            dominant,
+            view: self.seed as usize,
+        };
+        let (k, w2c) = (&self.intrinsics, &self.world_to_camera);
+        r.label_sums_kept(k, w2c, &self.labels.labels, None, kept)
+            .unwrap()
+    }
+}
+
 /// The device reduction (label sums kept on the device, reduced there in tiles) gives the host
 /// pipeline's results: the same observed Gaussians, `Σ a_kj`, unit `E_k` within f64 round-off,
 /// the same kept mixture pairs and the same dominant masks, with overlapping masks, area
@@ -1032,29 +1083,12 @@ fn device_reduction_equals_the_host_reduction() {
     let mut dominants = Vec::new();
     let mut first_view_rows = Vec::new();
     for seed in [2u64, 0, 4, 1, 3] {
-        let (k, w2c) = test_camera(seed);
-        let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
-        let mut r = SplitMix64::new(seed ^ 0xE3B);
-        let emb: Vec<f32> = (0..masks.len() * dim)
-            .map(|_| r.range(-1.0, 1.0) as f32)
-            .collect();
+        let v = RandomKeptView::new(seed, seed ^ 0xE3B, dim, params);
+        let (k, w2c, emb) = (&v.intrinsics, &v.world_to_camera, &v.embeddings);
         let (c, _) =
-            view_contribution(&mut host_gpu, &k, &w2c, &masks, emb.clone(), dim, params).unwrap();
-        let labels =
-            crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap).merged();
-        let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
-        let kept = KeptMasks {
-            masks_of: &labels.masks_of,
-            factors: &factors,
-            embeddings: &emb,
-            dominant: true,
-            view: seed as usize,
-        };
+            view_contribution(&mut host_gpu, k, w2c, &v.masks, emb.clone(), dim, params).unwrap();
         let keeper = if seed < 3 { &mut dev } else { &mut second };
-        let view = keeper
-            .label_sums_kept(&k, &w2c, &labels.labels, None, kept)
-            .unwrap()
-            .expect("kept");
+        let view = v.keep_on(keeper, true).expect("kept");
         assert_eq!(
             view.dominant,
             crate::pipeline::pool::dominant_masks(&c.entries),
@@ -1062,7 +1096,7 @@ fn device_reduction_equals_the_host_reduction() {
         );
         dominants.push(view.dominant);
         if seed == 0 {
-            first_view_rows = emb;
+            first_view_rows = v.embeddings.clone();
         }
         let stored = StoredImage::from_contribution(c);
         store.push_stored_as(seed as usize, stored).unwrap();
@@ -1178,25 +1212,9 @@ fn device_reduction_split_over_devices_equals_one_device() {
         ..Default::default()
     };
     for seed in [2u64, 0, 4, 1, 5, 3] {
-        let (k, w2c) = test_camera(seed);
-        let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
-        let mut r = SplitMix64::new(seed ^ 0x5B1);
-        let emb: Vec<f32> = (0..masks.len() * dim)
-            .map(|_| r.range(-1.0, 1.0) as f32)
-            .collect();
-        let labels =
-            crate::aggregate::overlap_labels(&masks, k.width, k.height, params.overlap).merged();
-        let factors = crate::aggregate::image::mask_factors(&masks, params.mask_weighting);
-        let kept = KeptMasks {
-            masks_of: &labels.masks_of,
-            factors: &factors,
-            embeddings: &emb,
-            dominant: false,
-            view: seed as usize,
-        };
+        let v = RandomKeptView::new(seed, seed ^ 0x5B1, dim, params);
         for r in [&mut one, &mut devices[seed as usize % 3]] {
-            let out = r.label_sums_kept(&k, &w2c, &labels.labels, None, kept);
-            out.unwrap().expect("kept");
+            v.keep_on(r, false).expect("kept");
         }
     }
     let p = DeviceReduce {
