@@ -55,7 +55,10 @@ pub(super) fn reduce_across_devices(
             .map(|(r, range)| {
                 s.spawn(move || {
                     let mut r = r.into_inner().map_err(|_| poisoned())?;
-                    reduce_on_device(&mut *r, out, None, Some((range.start, range.end)))
+                    let range = Some((range.start, range.end));
+                    let mut reduced = reduce_on_device(&mut *r, out, None, range)?;
+                    reduced.spent.push(r);
+                    Ok(reduced)
                 })
             })
             .collect();
@@ -79,15 +82,18 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
     let devices = parts.len();
     let chunks = parts.iter().map(|p| p.chunks).sum();
     let observed = parts.iter().map(|p| p.observed).sum();
-    let mut sparse: Option<SparseMixture> = None;
-    for part in parts.into_iter().filter_map(|p| p.sparse) {
-        match sparse.as_mut() {
-            None => sparse = Some(part),
-            Some(all) => append_rows(all, part)?,
+    let (mut sparse, mut spent) = (None::<SparseMixture>, Vec::new());
+    for p in parts {
+        spent.extend(p.spent);
+        match (sparse.as_mut(), p.sparse) {
+            (_, None) => {}
+            (None, Some(part)) => sparse = Some(part),
+            (Some(all), Some(part)) => append_rows(all, part)?,
         }
     }
     Ok(ReducedOutputs {
         on_device: true,
+        spent,
         devices,
         writer: None,
         sparse,

@@ -170,7 +170,8 @@ pub(crate) fn finish(
         model_id: &model_id,
         ply: scene.ply.display().to_string(),
     };
-    let tail = reduce_tail(&out, device, &store, &files.embeddings)?;
+    let mut tail = reduce_tail(&out, device, &store, &files.embeddings)?;
+    let spent = let_go(std::mem::take(&mut tail.spent));
     crate::report::log_rss("encode: reduction");
     counts.spilled_images = store.spilled();
     record_reduction(&tail, reduce_fallback, n_gaussians, &mut t, &mut counts);
@@ -182,9 +183,23 @@ pub(crate) fn finish(
     let mix_path = write_forms(&out, tail.writer, mixture.as_ref())?;
     t.write = tail.write_s + t0.elapsed().as_secs_f64();
     crate::report::log_rss("encode: written");
+    if let Ok(seconds) = spent.join() {
+        tracing::debug!(target: "slag_encoder::pipeline", seconds, "rasterizers let go");
+    }
     record_totals(&mut report, t, counts, queue, t_total);
     let forms = form_outputs(mixture.as_ref(), mix_path, mixture_s, level_files, levels_s);
     files.write_report(report, params.precision, None, Some(forms))
+}
+
+/// Drops the rasterizers that reduced (`spent`: their devices, and the records they kept) on a
+/// thread of its own, beside the writes; returns the thread, to be joined before the encode
+/// returns (no device outlives it), with the seconds it took.
+fn let_go(spent: Vec<Box<dyn WeightRasterizer>>) -> std::thread::JoinHandle<f64> {
+    std::thread::spawn(move || {
+        let t0 = Instant::now();
+        drop(spent);
+        t0.elapsed().as_secs_f64()
+    })
 }
 
 /// Records the tail's reduction in the timings `t` (its seconds, less the mixture's gathering)
@@ -333,6 +348,7 @@ fn reduce_tail(
                 let writer = dense_writer(out.params, out.dim, embeddings)?;
                 let mut tail = reduce_on_device(&mut *rasterizer, out, writer, None)?;
                 tail.reduce_s += handed_over_s;
+                tail.spent.push(rasterizer);
                 tail
             }
             None => reduce_outputs(store, out, embeddings)?,
@@ -437,6 +453,7 @@ pub(super) fn reduce_on_device(
         };
         Ok(ReducedOutputs {
             on_device: true,
+            spent: Vec::new(),
             devices: 1,
             writer,
             sparse,
@@ -500,6 +517,9 @@ fn push_kept(s: &mut SparseMixture, tile: &KeptTile, means: &[[f32; 3]]) {
 pub(super) struct ReducedOutputs {
     /// Whether the device reduced (the views were kept there) rather than the host.
     pub(super) on_device: bool,
+    /// The rasterizers that reduced, with what they kept: let go beside the writes
+    /// ([`let_go`]).
+    pub(super) spent: Vec<Box<dyn WeightRasterizer>>,
     /// Devices that reduced at once (0 on the host).
     pub(super) devices: usize,
     /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
@@ -539,6 +559,7 @@ fn reduce_outputs(
             aggregate::reduce_mixture_chunks(store, means, dim, p, keep, model_id)?;
         return Ok(ReducedOutputs {
             on_device: false,
+            spent: Vec::new(),
             devices: 0,
             writer: None,
             observed: sparse.gaussian_ids.len(),
@@ -564,6 +585,7 @@ fn reduce_outputs(
     };
     Ok(ReducedOutputs {
         on_device: false,
+        spent: Vec::new(),
         devices: 0,
         observed: streamed.writer.len(),
         writer: Some(streamed.writer),

@@ -182,7 +182,8 @@ fn log_scene_loaded(gaussians: usize, views: usize, fronts: usize) {
 
 /// The masks' record of the run (with [`EncodeParams::mask_record_slots`]): the views recorded on
 /// the host (`host`) merged with each device's kept record, read back from the rasterizers in
-/// `device`; an empty record of `(Gaussians, views)` when no view recorded anything.
+/// `device` (all at once); an empty record of `(Gaussians, views)` when no view recorded
+/// anything.
 ///
 /// Errors: device failures reading a record back; records of other shapes
 /// ([`MaskRecord::merge`]).
@@ -196,8 +197,22 @@ fn gather_mask_record(
         return Ok(None);
     };
     let t0 = Instant::now();
-    for rasterizer in device.iter_mut() {
-        if let Some(kept) = rasterizer.take_mask_record()? {
+    // Each device reads its record back on a thread of its own.
+    let taken: Vec<Result<Option<MaskRecord>>> = std::thread::scope(|s| {
+        let handles: Vec<_> = device
+            .iter_mut()
+            .map(|r| s.spawn(move || r.take_mask_record()))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(Error::internal("a masks' record reader panicked")))
+            })
+            .collect()
+    });
+    for kept in taken {
+        if let Some(kept) = kept? {
             match &mut out {
                 Some(r) => r.merge(&kept)?,
                 None => out = Some(kept),

@@ -183,7 +183,7 @@ pub trait WeightRasterizer: Send {
     }
     /// The device reduction of every kept view (`E_k`, its kept mixture pairs, the unobserved
     /// rule: the host reduction's, see [`gpu`]'s `ek` module), tile by tile of Gaussian ids
-    /// ascending into `sink`; the kept sums are freed.
+    /// ascending into `sink`; the kept sums are freed with the rasterizer.
     ///
     /// Errors: nothing kept (the default: [`Error::Internal`]); device failures; `sink`'s.
     fn reduce_kept(

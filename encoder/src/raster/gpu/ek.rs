@@ -295,6 +295,7 @@ impl GpuRasterizer {
             tracing::warn!(error = %e, "the device reduction's kernels do not build here; reducing on the host");
             return false;
         }
+        self.spent_kept = None;
         self.kept = Some(Kept {
             block_starts,
             run_starts,
@@ -916,8 +917,8 @@ impl GpuRasterizer {
 
     /// Reduces every kept view (see the module docs), tile by tile of Gaussian ids ascending
     /// (those of [`DeviceReduce::gaussians`] only, when given), handing each tile's observed
-    /// Gaussians to `sink`; keeping stops and the kept records are freed. Returns the number of
-    /// tiles and the codebook.
+    /// Gaussians to `sink`; keeping stops, and the kept records are freed with the rasterizer
+    /// (or when keeping starts again). Returns the number of tiles and the codebook.
     ///
     /// Errors: nothing kept ([`Error::Internal`]); `p.keep` above [`MAX_KEEP`] ([`Error::Param`]);
     /// a range of Gaussians not on block bounds ([`Error::Internal`]); device failures; `sink`'s.
@@ -979,9 +980,11 @@ impl GpuRasterizer {
             sink_s = format!("{sink_s:.2}"),
             "device reduction"
         );
+        let codebook = std::mem::take(&mut kept.codebook);
+        self.spent_kept = Some(kept);
         Ok(KeptReduced {
             tiles: tiles.len(),
-            codebook: kept.codebook,
+            codebook,
         })
     }
 

@@ -254,6 +254,10 @@ pub struct GpuRasterizer {
     cpu_adapter: bool,
     /// The kept views of the device reduction ([`ek`]), once keeping started.
     kept: Option<ek::Kept>,
+    /// The kept views a reduction used (every band a buffer of its own), freed with the
+    /// rasterizer or when keeping starts again: an encode drops its rasterizers on a thread
+    /// beside its writes, so their freeing is not on its critical path.
+    spent_kept: Option<ek::Kept>,
     /// While a kept view runs: its id, and where its dominant masks go.
     keeping: Option<ek::Keeping>,
     /// The masks' record kept on the device ([`record`]), once started.
@@ -653,6 +657,7 @@ impl GpuRasterizer {
             reduce_on_device: true,
             cpu_adapter: info.device_type == wgpu::DeviceType::Cpu,
             kept: None,
+            spent_kept: None,
             keeping: None,
             mask_record: None,
             kept_heads: Vec::new(),
