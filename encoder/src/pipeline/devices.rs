@@ -79,7 +79,6 @@ pub(super) fn reduce_across_devices(
 fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOutputs> {
     let slowest = |f: fn(&ReducedOutputs) -> f64| parts.iter().map(f).fold(0.0, f64::max);
     let (reduce_s, write_s) = (slowest(|p| p.reduce_s), slowest(|p| p.write_s));
-    let devices = parts.len();
     let chunks = parts.iter().map(|p| p.chunks).sum();
     let observed = parts.iter().map(|p| p.observed).sum();
     let (mut sparse, mut spent) = (None::<SparseMixture>, Vec::new());
@@ -94,7 +93,6 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
     Ok(ReducedOutputs {
         on_device: true,
         spent,
-        devices,
         writer: None,
         sparse,
         chunks,

@@ -171,6 +171,8 @@ pub(crate) fn finish(
         ply: scene.ply.display().to_string(),
     };
     let mut tail = reduce_tail(&out, device, &store, &files.embeddings)?;
+    // Every device that reduced is among the spent rasterizers (none when the host reduced).
+    counts.device_reduce_gpus = tail.spent.len();
     let spent = let_go(std::mem::take(&mut tail.spent));
     crate::report::log_rss("encode: reduction");
     counts.spilled_images = store.spilled();
@@ -216,7 +218,6 @@ fn record_reduction(
     // as the mixture's, not the reduction's: the tail's phases stay disjoint.
     t.reduce = tail.reduce_s - tail.gather_s;
     counts.device_reduce = tail.on_device;
-    counts.device_reduce_gpus = tail.devices;
     counts.device_reduce_fallback = reduce_fallback;
     counts.reduce_chunks = tail.chunks;
     counts.observed = tail.observed;
@@ -454,7 +455,6 @@ pub(super) fn reduce_on_device(
         Ok(ReducedOutputs {
             on_device: true,
             spent: Vec::new(),
-            devices: 1,
             writer,
             sparse,
             chunks: out.tiles,
@@ -520,8 +520,6 @@ pub(super) struct ReducedOutputs {
     /// The rasterizers that reduced, with what they kept: let go beside the writes
     /// ([`let_go`]).
     pub(super) spent: Vec<Box<dyn WeightRasterizer>>,
-    /// Devices that reduced at once (0 on the host).
-    pub(super) devices: usize,
     /// The dense file's writer, every row pushed, not yet finished; with [`EncodeParams::dense`].
     pub(super) writer: Option<EmbeddingsWriter>,
     /// The mixture's sparse parts; with [`EncodeParams::mixture_keep`].
@@ -560,7 +558,6 @@ fn reduce_outputs(
         return Ok(ReducedOutputs {
             on_device: false,
             spent: Vec::new(),
-            devices: 0,
             writer: None,
             observed: sparse.gaussian_ids.len(),
             sparse: Some(sparse),
@@ -586,7 +583,6 @@ fn reduce_outputs(
     Ok(ReducedOutputs {
         on_device: false,
         spent: Vec::new(),
-        devices: 0,
         observed: streamed.writer.len(),
         writer: Some(streamed.writer),
         sparse,
