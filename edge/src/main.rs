@@ -482,15 +482,8 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let tls = resolve_tls(&a, &c)?;
     let limits = resolve_limits(&a, &c)?;
     let shard_token = resolve_shard_token(&a, &c)?;
+    let (max_scans, scan_queue, max_matches) = resolve_scan_bounds(&a, &c)?;
     let ca_cert = a.ca_cert.clone().or(c.ca_cert.clone());
-    let need = |v: Option<PathBuf>, flag: &str| {
-        v.with_context(|| {
-            format!(
-                "--{flag} is required (flag or `{}` in --config)",
-                flag.replace('-', "_")
-            )
-        })
-    };
     let store = a
         .store
         .or(c.store)
@@ -499,20 +492,10 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         .scene
         .or(c.scene)
         .context("--scene is required (flag or `scene` in --config)")?;
-    let addr: std::net::SocketAddr = a
-        .addr
-        .or(c.listen)
-        .unwrap_or_else(|| "0.0.0.0:8080".into())
-        .parse()
-        .context("--listen: use HOST:PORT, e.g. 0.0.0.0:8080")?;
-    let text_model = need(a.text_model.or(c.clip_textual), "clip-textual")?;
-    let tokenizer = need(a.tokenizer.or(c.tokenizer), "tokenizer")?;
-    let ep = match (a.ep, c.ep.as_deref()) {
-        (Some(e), _) => e,
-        (None, None) => EpArg::Cpu,
-        (None, Some(name)) => <EpArg as ValueEnum>::from_str(name, true)
-            .map_err(|_| anyhow::anyhow!("config ep {name:?}: use cpu, cuda, tensorrt or auto"))?,
-    };
+    let addr = listen_addr(a.addr.or(c.listen))?;
+    let text_model = required(a.text_model.or(c.clip_textual), "clip-textual")?;
+    let tokenizer = required(a.tokenizer.or(c.tokenizer), "tokenizer")?;
+    let ep = resolve_ep(a.ep, c.ep.as_deref())?;
     let threshold = a.threshold.or(c.threshold).unwrap_or(PAPER_THRESHOLD);
     anyhow::ensure!(
         threshold.is_finite() && (-1.0..=1.0).contains(&threshold),
@@ -525,17 +508,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         a.allow_plain_http || c.allow_plain_http.unwrap_or(false),
     )?;
     let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
-    let hnsw_backend = match a.hnsw_backend.or(c.hnsw_backend) {
-        None => HnswBackend::default(),
-        Some(name) => {
-            anyhow::ensure!(
-                hnsw,
-                "--hnsw-backend {name} without --hnsw: add --hnsw (or `hnsw = true` in --config) \
-                 to build the index, or drop the backend"
-            );
-            HnswBackend::from_name(&name)?.require()?
-        }
-    };
+    let hnsw_backend = resolve_hnsw_backend(hnsw, a.hnsw_backend.or(c.hnsw_backend))?;
     let opts = ServeOptions {
         scene,
         token,
@@ -544,35 +517,20 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         hnsw,
         hnsw_backend,
         request_timeout: timeout(a.request_timeout, "--request-timeout")?,
-        max_scans: a
-            .max_scans
-            .or(c.max_scans)
-            .unwrap_or(slag_edge::serve::DEFAULT_MAX_SCANS),
-        scan_queue: a
-            .scan_queue
-            .or(c.scan_queue)
-            .unwrap_or(slag_edge::serve::DEFAULT_SCAN_QUEUE),
-        max_matches: a
-            .max_matches
-            .or(c.max_matches)
-            .unwrap_or(slag_edge::serve::DEFAULT_MAX_MATCHES),
+        max_scans,
+        scan_queue,
+        max_matches,
         limits,
         shard_token,
         tls,
         ca_cert,
     };
-    anyhow::ensure!(opts.max_matches >= 1, "--max-matches must be at least 1");
-    anyhow::ensure!(opts.max_scans >= 1, "--max-scans must be at least 1");
     let ros2 = if a.ros2 || c.ros2.unwrap_or(false) {
-        let d = slag_edge::ros2::Ros2Options::default();
-        let o = slag_edge::ros2::Ros2Options {
-            node_name: a.ros2_node.or(c.ros2_node).unwrap_or(d.node_name),
-            namespace: a.ros2_namespace.or(c.ros2_namespace).unwrap_or(d.namespace),
-            frame_id: a.ros2_frame_id.or(c.ros2_frame_id).unwrap_or(d.frame_id),
-            domain_id: slag_edge::ros2::domain_id_from_env()?,
-        };
-        o.check()?;
-        Some(o)
+        Some(resolve_ros2(
+            a.ros2_node.or(c.ros2_node),
+            a.ros2_namespace.or(c.ros2_namespace),
+            a.ros2_frame_id.or(c.ros2_frame_id),
+        )?)
     } else {
         None
     };
@@ -586,6 +544,83 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         web_dir,
         ros2,
     })
+}
+
+/// The path of a required `--flag` (or its config key, the flag's name with `_`).
+/// Errors: neither given.
+fn required(v: Option<PathBuf>, flag: &str) -> anyhow::Result<PathBuf> {
+    v.with_context(|| {
+        format!(
+            "--{flag} is required (flag or `{}` in --config)",
+            flag.replace('-', "_")
+        )
+    })
+}
+
+/// The address to listen on: `listen` (flag or config) or `0.0.0.0:8080`.
+/// Errors: not `HOST:PORT`.
+fn listen_addr(listen: Option<String>) -> anyhow::Result<std::net::SocketAddr> {
+    listen
+        .unwrap_or_else(|| "0.0.0.0:8080".into())
+        .parse()
+        .context("--listen: use HOST:PORT, e.g. 0.0.0.0:8080")
+}
+
+/// The server's scan bounds `(max_scans, scan_queue, max_matches)`: each flag, else its
+/// config key, else the server's default. Errors: `max_scans` or `max_matches` of 0.
+fn resolve_scan_bounds(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<(usize, usize, usize)> {
+    use slag_edge::serve::{DEFAULT_MAX_MATCHES, DEFAULT_MAX_SCANS, DEFAULT_SCAN_QUEUE};
+    let max_scans = a.max_scans.or(c.max_scans).unwrap_or(DEFAULT_MAX_SCANS);
+    let scan_queue = a.scan_queue.or(c.scan_queue).unwrap_or(DEFAULT_SCAN_QUEUE);
+    let max_matches = a.max_matches.or(c.max_matches).unwrap_or(DEFAULT_MAX_MATCHES);
+    anyhow::ensure!(max_matches >= 1, "--max-matches must be at least 1");
+    anyhow::ensure!(max_scans >= 1, "--max-scans must be at least 1");
+    Ok((max_scans, scan_queue, max_matches))
+}
+
+/// Where the text tower runs: the flag `ep`, else the config's `ep` name (case-insensitive),
+/// else the CPU. Errors: a config name that is not one of the flag's values.
+fn resolve_ep(ep: Option<EpArg>, config: Option<&str>) -> anyhow::Result<EpArg> {
+    match (ep, config) {
+        (Some(e), _) => Ok(e),
+        (None, None) => Ok(EpArg::Cpu),
+        (None, Some(name)) => <EpArg as ValueEnum>::from_str(name, true)
+            .map_err(|_| anyhow::anyhow!("config ep {name:?}: use cpu, cuda, tensorrt or auto")),
+    }
+}
+
+/// The HNSW index's backend: the default without a name; a named one only with the index on
+/// (`hnsw`) and only when this build carries it. Errors: a name without `--hnsw`, an unknown
+/// name, a backend not compiled in.
+fn resolve_hnsw_backend(hnsw: bool, name: Option<String>) -> anyhow::Result<HnswBackend> {
+    let Some(name) = name else {
+        return Ok(HnswBackend::default());
+    };
+    anyhow::ensure!(
+        hnsw,
+        "--hnsw-backend {name} without --hnsw: add --hnsw (or `hnsw = true` in --config) \
+         to build the index, or drop the backend"
+    );
+    Ok(HnswBackend::from_name(&name)?.require()?)
+}
+
+/// The ROS 2 node's options: each given name (flag or config) or the default, the domain from
+/// `ROS_DOMAIN_ID`. Errors: a domain or a name that ROS 2 refuses
+/// ([`slag_edge::ros2::Ros2Options::check`]).
+fn resolve_ros2(
+    node_name: Option<String>,
+    namespace: Option<String>,
+    frame_id: Option<String>,
+) -> anyhow::Result<slag_edge::ros2::Ros2Options> {
+    let d = slag_edge::ros2::Ros2Options::default();
+    let o = slag_edge::ros2::Ros2Options {
+        node_name: node_name.unwrap_or(d.node_name),
+        namespace: namespace.unwrap_or(d.namespace),
+        frame_id: frame_id.unwrap_or(d.frame_id),
+        domain_id: slag_edge::ros2::domain_id_from_env()?,
+    };
+    o.check()?;
+    Ok(o)
 }
 
 fn run_serve(a: ServeArgs) -> anyhow::Result<()> {
@@ -828,68 +863,9 @@ fn hint(e: &anyhow::Error) -> Option<String> {
 fn hint_for(e: &slag_common::Error) -> Option<String> {
     use slag_common::onnx::{InferenceCause, inference_cause};
     use slag_common::{Error, Resource};
-    const FETCH: &str =
-        "slag-edge fetch --from URL --scene NAME --center X,Y --radius R --store DIR";
     Some(match e {
-        Error::Param { name, .. } => match *name {
-            "store" => format!("run `{FETCH}` first, or pass the --store that fetch wrote"),
-            "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
-            "scene_id" => "pass --scene NAME".into(),
-            "radius" => "pass --radius R, a finite number ≥ 0".into(),
-            "server" => "pass --from http://HOST:PORT without user or password, and the shard \
-                         server's token with --token or SLAG_SHARD_TOKEN"
-                .into(),
-            "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
-                               \"instant-distance\"` in --config), or use a slag-edge built with \
-                               `cargo build --release -p slag-edge --features qdrant-edge`"
-                .into(),
-            "jobs" => "pass --jobs N with N ≥ 1".into(),
-            "ros2_node" => "pass --ros2-node NAME ([A-Za-z_][A-Za-z0-9_]*)".into(),
-            "ros2_namespace" => "pass --ros2-namespace /NS (or /)".into(),
-            "ros2_frame_id" => "pass --ros2-frame-id map".into(),
-            "ROS_DOMAIN_ID" => "set ROS_DOMAIN_ID to 0..=232, or unset it for domain 0".into(),
-            "token" => "write a real token in the token file or SLAG_EDGE_TOKEN / --token, or \
-                        unset the variable to run without one"
-                .into(),
-            "max_connections" => "pass --max-connections N (or `max_connections` in --config), \
-                                  or raise the open-file limit (ulimit -n, LimitNOFILE)"
-                .into(),
-            "header_timeout" => "pass --header-timeout SECONDS".into(),
-            "write_timeout" => "pass --write-timeout SECONDS".into(),
-            "body_timeout" => "pass --body-timeout SECONDS".into(),
-            "max_connections_per_ip" => "pass --max-connections-per-ip N (or \
-                                         `max_connections_per_ip` in --config)"
-                .into(),
-            "plain_http" => "pass --tls-cert FILE --tls-key FILE (HTTPS; `tls_cert` and \
-                             `tls_key` in --config), or listen on a loopback address (--listen \
-                             127.0.0.1:PORT), or pass --allow-plain-http (`allow_plain_http = \
-                             true`) to send the token in clear text anyway"
-                .into(),
-            _ => return None,
-        },
-        Error::Query { field, message } => match *field {
-            "text" => "pass --text chair".into(),
-            "top_k" => "pass --top-k N".into(),
-            "threshold" => "pass --threshold T (or none)".into(),
-            "mode" => "pass --mode cosine|relevancy".into(),
-            "bbox" => "pass --bbox minx,miny,minz,maxx,maxy,maxz".into(),
-            "max_objects" => "pass --max-objects N".into(),
-            "near" => "pass --near X,Y,Z".into(),
-            "object_gap" => "pass --object-gap D".into(),
-            "object_min_gaussians" => "pass --object-min-gaussians N".into(),
-            "smooth" if message.contains("no geometric segments") => {
-                "leave out --smooth, or partition the scene with segments and fetch again".into()
-            }
-            "smooth" => "pass --smooth none|segment (segment with the exact scan)".into(),
-            "frame" => {
-                "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
-            }
-            "index" if message.contains("mixture") => {
-                "use index=exact: a mixture scene is scanned exactly".into()
-            }
-            "index" => "start serve with --hnsw for index=hnsw".into(),
-            _ => return None,
-        },
+        Error::Param { name, .. } => return param_hint(name),
+        Error::Query { field, message } => return query_hint(field, message),
         Error::Limit {
             resource: Resource::Memory,
             ..
@@ -932,6 +908,78 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
         },
         Error::Internal(_) => "rerun with --verbose and report the command and its output".into(),
         Error::Untrusted { what, .. } => untrusted_hint(*what).into(),
+        _ => return None,
+    })
+}
+
+/// The command that fills a store, as the hints name it.
+const FETCH: &str = "slag-edge fetch --from URL --scene NAME --center X,Y --radius R --store DIR";
+
+/// [`hint_for`] of a parameter the library refused ([`slag_common::Error::Param`]'s `name`):
+/// the flag (or config key) that sets it.
+fn param_hint(name: &str) -> Option<String> {
+    Some(match name {
+        "store" => format!("run `{FETCH}` first, or pass the --store that fetch wrote"),
+        "scene" => format!("run `{FETCH}` for that scene first, or pass another --scene"),
+        "scene_id" => "pass --scene NAME".into(),
+        "radius" => "pass --radius R, a finite number ≥ 0".into(),
+        "server" => "pass --from http://HOST:PORT without user or password, and the shard \
+                     server's token with --token or SLAG_SHARD_TOKEN"
+            .into(),
+        "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
+                           \"instant-distance\"` in --config), or use a slag-edge built with \
+                           `cargo build --release -p slag-edge --features qdrant-edge`"
+            .into(),
+        "jobs" => "pass --jobs N with N ≥ 1".into(),
+        "ros2_node" => "pass --ros2-node NAME ([A-Za-z_][A-Za-z0-9_]*)".into(),
+        "ros2_namespace" => "pass --ros2-namespace /NS (or /)".into(),
+        "ros2_frame_id" => "pass --ros2-frame-id map".into(),
+        "ROS_DOMAIN_ID" => "set ROS_DOMAIN_ID to 0..=232, or unset it for domain 0".into(),
+        "token" => "write a real token in the token file or SLAG_EDGE_TOKEN / --token, or \
+                    unset the variable to run without one"
+            .into(),
+        "max_connections" => "pass --max-connections N (or `max_connections` in --config), \
+                              or raise the open-file limit (ulimit -n, LimitNOFILE)"
+            .into(),
+        "header_timeout" => "pass --header-timeout SECONDS".into(),
+        "write_timeout" => "pass --write-timeout SECONDS".into(),
+        "body_timeout" => "pass --body-timeout SECONDS".into(),
+        "max_connections_per_ip" => "pass --max-connections-per-ip N (or \
+                                     `max_connections_per_ip` in --config)"
+            .into(),
+        "plain_http" => "pass --tls-cert FILE --tls-key FILE (HTTPS; `tls_cert` and \
+                         `tls_key` in --config), or listen on a loopback address (--listen \
+                         127.0.0.1:PORT), or pass --allow-plain-http (`allow_plain_http = \
+                         true`) to send the token in clear text anyway"
+            .into(),
+        _ => return None,
+    })
+}
+
+/// [`hint_for`] of a query field the library refused ([`slag_common::Error::Query`]'s `field`
+/// and `message`): the flag that sets it, or what to do instead.
+fn query_hint(field: &str, message: &str) -> Option<String> {
+    Some(match field {
+        "text" => "pass --text chair".into(),
+        "top_k" => "pass --top-k N".into(),
+        "threshold" => "pass --threshold T (or none)".into(),
+        "mode" => "pass --mode cosine|relevancy".into(),
+        "bbox" => "pass --bbox minx,miny,minz,maxx,maxy,maxz".into(),
+        "max_objects" => "pass --max-objects N".into(),
+        "near" => "pass --near X,Y,Z".into(),
+        "object_gap" => "pass --object-gap D".into(),
+        "object_min_gaussians" => "pass --object-min-gaussians N".into(),
+        "smooth" if message.contains("no geometric segments") => {
+            "leave out --smooth, or partition the scene with segments and fetch again".into()
+        }
+        "smooth" => "pass --smooth none|segment (segment with the exact scan)".into(),
+        "frame" => {
+            "pass --frame scene, or partition the scene with --to-map / --to-map-points".into()
+        }
+        "index" if message.contains("mixture") => {
+            "use index=exact: a mixture scene is scanned exactly".into()
+        }
+        "index" => "start serve with --hnsw for index=hnsw".into(),
         _ => return None,
     })
 }
