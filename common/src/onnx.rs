@@ -307,57 +307,13 @@ impl OnnxModel {
                 .map_err(|e| model_err("cannot set the intra-op thread count", &e))?;
         }
         if let Some(prefix) = std::env::var_os(PROFILE_ENV).filter(|p| !p.is_empty()) {
-            // ONNX Runtime appends the date and `.json` to the prefix; the model's folder and
-            // file stem keep the traces of several models apart.
-            let stem = path.file_stem().unwrap_or_default().to_string_lossy();
-            let folder = path
-                .parent()
-                .and_then(Path::file_name)
-                .unwrap_or_default()
-                .to_string_lossy();
-            let mut prefix = PathBuf::from(prefix);
-            prefix.as_mut_os_string().push(format!("-{folder}-{stem}"));
             builder = builder
-                .with_profiling(&prefix)
+                .with_profiling(profile_prefix(path, PathBuf::from(prefix)))
                 .map_err(|e| model_err("cannot turn on ONNX Runtime's profiler", &e))?;
         }
         if matches!(ep, ExecutionProvider::Cuda | ExecutionProvider::TensorRt) {
-            let available = match ep {
-                ExecutionProvider::TensorRt => ort::ep::TensorRT::is_available(),
-                _ => ort::ep::CUDA::is_available(),
-            }
-            .map_err(|e| inference_err(format!("cannot list execution providers: {e}")))?;
-            if !available {
-                return Err(inference_err(format!(
-                    "the {ep} execution provider was requested but the ONNX Runtime at {} was \
-                     built without it",
-                    dylib_path().unwrap_or_default().display()
-                )));
-            }
-            let mut cuda = ort::ep::CUDA::default()
-                .with_device_id(device as i32)
-                .with_arena_extend_strategy(ort::ep::ArenaExtendStrategy::SameAsRequested);
-            if let Some(limit) = placement.gpu_mem_limit {
-                cuda = cuda.with_memory_limit(limit);
-            }
-            let mut eps = Vec::new();
-            if ep == ExecutionProvider::TensorRt {
-                let cache = path.with_extension("trt-cache");
-                eps.push(
-                    ort::ep::TensorRT::default()
-                        .with_device_id(device as i32)
-                        .with_fp16(true)
-                        .with_engine_cache(true)
-                        .with_engine_cache_path(cache.display())
-                        .with_timing_cache(true)
-                        .with_timing_cache_path(cache.display())
-                        .build()
-                        .error_on_failure(),
-                );
-            }
-            eps.push(cuda.build().error_on_failure());
             builder = builder
-                .with_execution_providers(eps)
+                .with_execution_providers(gpu_providers(path, placement, ep)?)
                 .map_err(|e| inference_err(format!("the provider did not register: {e}")))?;
         }
         let session = builder.commit_from_file(path).map_err(|e| {
@@ -466,6 +422,71 @@ pub fn device_label(ep: ExecutionProvider, device: u32) -> String {
         ExecutionProvider::Cpu => "cpu".into(),
         other => format!("{other}:{device}"),
     }
+}
+
+/// The profiler's file prefix for the model at `path`: `prefix` with `-FOLDER-STEM` of the
+/// model appended. ONNX Runtime appends the date and `.json`; the model's folder and file stem
+/// keep the traces of several models apart.
+fn profile_prefix(path: &Path, mut prefix: PathBuf) -> PathBuf {
+    let stem = path.file_stem().unwrap_or_default().to_string_lossy();
+    let folder = path
+        .parent()
+        .and_then(Path::file_name)
+        .unwrap_or_default()
+        .to_string_lossy();
+    prefix.as_mut_os_string().push(format!("-{folder}-{stem}"));
+    prefix
+}
+
+/// The execution providers of a GPU session on `placement.device`, in ONNX Runtime's order of
+/// preference: with [`ExecutionProvider::TensorRt`], TensorRT (fp16 engines and timing cached
+/// in `<model>.trt-cache`) before CUDA; CUDA alone otherwise. CUDA's arena grows by what is
+/// requested, within `placement.gpu_mem_limit`.
+///
+/// Errors: [`Error::Inference`] when the loaded ONNX Runtime lacks the provider or cannot list
+/// its providers.
+fn gpu_providers(
+    path: &Path,
+    placement: &Placement,
+    ep: ExecutionProvider,
+) -> Result<Vec<ort::ep::ExecutionProviderDispatch>> {
+    let device = placement.device;
+    let inference_err = |message: String| inference_error(path, ep, device, &message);
+    let available = match ep {
+        ExecutionProvider::TensorRt => ort::ep::TensorRT::is_available(),
+        _ => ort::ep::CUDA::is_available(),
+    }
+    .map_err(|e| inference_err(format!("cannot list execution providers: {e}")))?;
+    if !available {
+        return Err(inference_err(format!(
+            "the {ep} execution provider was requested but the ONNX Runtime at {} was \
+             built without it",
+            dylib_path().unwrap_or_default().display()
+        )));
+    }
+    let mut cuda = ort::ep::CUDA::default()
+        .with_device_id(device as i32)
+        .with_arena_extend_strategy(ort::ep::ArenaExtendStrategy::SameAsRequested);
+    if let Some(limit) = placement.gpu_mem_limit {
+        cuda = cuda.with_memory_limit(limit);
+    }
+    let mut eps = Vec::new();
+    if ep == ExecutionProvider::TensorRt {
+        let cache = path.with_extension("trt-cache");
+        eps.push(
+            ort::ep::TensorRT::default()
+                .with_device_id(device as i32)
+                .with_fp16(true)
+                .with_engine_cache(true)
+                .with_engine_cache_path(cache.display())
+                .with_timing_cache(true)
+                .with_timing_cache_path(cache.display())
+                .build()
+                .error_on_failure(),
+        );
+    }
+    eps.push(cuda.build().error_on_failure());
+    Ok(eps)
 }
 
 fn inference_error(path: &Path, ep: ExecutionProvider, device: u32, message: &str) -> Error {
