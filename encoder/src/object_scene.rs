@@ -461,55 +461,47 @@ fn room_gaussians(room: &Room<'_>, p: &SyntheticSceneParams) -> (Gaussians, Gaus
     let area = e * e + 4.0 * e * h + room.objects.iter().map(object_area).sum::<f64>();
     let s = (area / p.gaussians.max(1) as f64).sqrt();
     let mut rng = SplitMix64::new(p.seed ^ 0x005E_ED0F_F100_u64);
+    let parts = surface_samples(room, s, &mut rng);
+    let (g, runs) = splat_samples(room, parts, s, &mut rng);
+    let truth = GaussianTruth {
+        classes: COLOUR_NAMES.iter().map(|s| s.to_string()).collect(),
+        gaussians: g.means.len(),
+        runs,
+    };
+    (g, truth)
+}
+
+/// Points and outward normals on the room's floor, its four walls and each object, about `s`
+/// metres apart, drawn from `rng` in that order.
+fn surface_samples(room: &Room<'_>, s: f64, rng: &mut SplitMix64) -> Vec<(Surface, Vec<Sample>)> {
+    let (e, h) = (room.extent, room.wall);
     let half = e / 2.0;
     let (x, y, z) = (DVec3::X, DVec3::Y, DVec3::Z);
-    let floor = rect(
-        DVec3::new(-half, -half, 0.0),
-        (x, e),
-        (y, e),
-        z,
-        s,
-        &mut rng,
-    );
+    let floor = rect(DVec3::new(-half, -half, 0.0), (x, e), (y, e), z, s, rng);
     let walls = [
-        rect(
-            DVec3::new(-half, -half, 0.0),
-            (y, e),
-            (z, h),
-            x,
-            s,
-            &mut rng,
-        ),
-        rect(
-            DVec3::new(half, -half, 0.0),
-            (y, e),
-            (z, h),
-            -x,
-            s,
-            &mut rng,
-        ),
-        rect(
-            DVec3::new(-half, -half, 0.0),
-            (x, e),
-            (z, h),
-            y,
-            s,
-            &mut rng,
-        ),
-        rect(
-            DVec3::new(-half, half, 0.0),
-            (x, e),
-            (z, h),
-            -y,
-            s,
-            &mut rng,
-        ),
+        rect(DVec3::new(-half, -half, 0.0), (y, e), (z, h), x, s, rng),
+        rect(DVec3::new(half, -half, 0.0), (y, e), (z, h), -x, s, rng),
+        rect(DVec3::new(-half, -half, 0.0), (x, e), (z, h), y, s, rng),
+        rect(DVec3::new(-half, half, 0.0), (x, e), (z, h), -y, s, rng),
     ]
     .concat();
     let mut parts = vec![(Surface::Floor, floor), (Surface::Wall, walls)];
     for (k, o) in room.objects.iter().enumerate() {
-        parts.push((Surface::Object(k), object_samples(o, s, &mut rng)));
+        parts.push((Surface::Object(k), object_samples(o, s, rng)));
     }
+    parts
+}
+
+/// One flat Gaussian per sample of `parts` that no object hides: a disc of about `s` metres
+/// facing the sample's normal, its surface's colour as SH DC. Returns the Gaussians and one
+/// truth run per surface, in order.
+fn splat_samples(
+    room: &Room<'_>,
+    parts: Vec<(Surface, Vec<Sample>)>,
+    s: f64,
+    rng: &mut SplitMix64,
+) -> (Gaussians, Vec<TruthRun>) {
+    const SH_C0: f64 = 0.282_094_791_773_878_14;
     let mut g = Gaussians {
         means: Vec::new(),
         scales: Vec::new(),
@@ -519,7 +511,6 @@ fn room_gaussians(room: &Room<'_>, p: &SyntheticSceneParams) -> (Gaussians, Gaus
     };
     let mut dc = Vec::new();
     let mut runs = Vec::new();
-    const SH_C0: f64 = 0.282_094_791_773_878_14;
     for (surface, samples) in parts {
         let start = g.means.len();
         for (m, n) in samples {
@@ -554,12 +545,7 @@ fn room_gaussians(room: &Room<'_>, p: &SyntheticSceneParams) -> (Gaussians, Gaus
         degree: 0,
         coeffs: dc,
     });
-    let truth = GaussianTruth {
-        classes: COLOUR_NAMES.iter().map(|s| s.to_string()).collect(),
-        gaussians: g.means.len(),
-        runs,
-    };
-    (g, truth)
+    (g, runs)
 }
 
 /// Nearest hit of the ray `c + t·d` (t > 0) with an object: distance, object, outward normal.
