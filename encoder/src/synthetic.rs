@@ -225,16 +225,30 @@ pub fn scene_with_instances(
     objects: &[PlacedObject],
 ) -> (Gaussians, Vec<std::ops::Range<usize>>) {
     let boxes: Vec<[[f64; 3]; 2]> = objects.iter().map(|o| o.aabb()).collect();
+    let spacing = p.extent / (p.gaussians.max(1) as f64).sqrt();
+    let terrain = terrain_discs(p, !objects.is_empty(), &boxes, spacing);
+    let (shells, ranges) = object_shells(p, objects, &boxes, spacing, terrain.len());
+    (gaussians_of(terrain.into_iter().chain(shells), p.gaussians), ranges)
+}
+
+/// The ground's discs: `p.gaussians` draws over the square of side `p.extent`, each a disc of
+/// about `spacing` lying on the ground, the rolling terrain's height and palette patches, or
+/// flat ground of one colour `with_objects`. Draws that fall under one of the `boxes` are left
+/// out. Chunks of 65,536 draws have their own seeds: parallel and still deterministic.
+fn terrain_discs(
+    p: &SyntheticSceneParams,
+    with_objects: bool,
+    boxes: &[[[f64; 3]; 2]],
+    spacing: f64,
+) -> Vec<Disc> {
+    const SH_C0: f64 = 0.282_094_791_773_878_14;
+    const CHUNK: usize = 1 << 16;
     let under_a_box = |x: f64, y: f64| {
         boxes
             .iter()
             .any(|b| x >= b[0][0] && x <= b[1][0] && y >= b[0][1] && y <= b[1][1])
     };
-    const SH_C0: f64 = 0.282_094_791_773_878_14;
     let n = p.gaussians;
-    let spacing = p.extent / (n.max(1) as f64).sqrt();
-    // Chunks with their own seeds so generation is parallel and still deterministic.
-    const CHUNK: usize = 1 << 16;
     let parts: Vec<_> = (0..n.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| {
@@ -244,19 +258,19 @@ pub fn scene_with_instances(
             for _ in 0..len {
                 let x = (rng.next_f64() - 0.5) * p.extent;
                 let y = (rng.next_f64() - 0.5) * p.extent;
-                let z = if objects.is_empty() {
-                    height(x, y, p.extent)
-                } else {
+                let z = if with_objects {
                     0.0
+                } else {
+                    height(x, y, p.extent)
                 };
                 let s = spacing * (0.6 + 0.8 * rng.next_f64());
                 // A disc lying on the ground: thin along z, random spin about z.
                 let a = rng.next_f64() * std::f64::consts::PI;
                 let rot = [(a * 0.5).cos() as f32, 0.0, 0.0, (a * 0.5).sin() as f32];
-                let col = if objects.is_empty() {
-                    PALETTE[patch(x, y, p.extent)]
-                } else {
+                let col = if with_objects {
                     PALETTE[GROUND_WITH_OBJECTS]
+                } else {
+                    PALETTE[patch(x, y, p.extent)]
                 };
                 let jitter = 0.9 + 0.2 * rng.next_f64();
                 let dc = col.map(|c| (((c as f64 * jitter).min(1.0) - 0.5) / SH_C0) as f32);
@@ -275,18 +289,21 @@ pub fn scene_with_instances(
             out
         })
         .collect();
-    let mut g = Gaussians {
-        means: Vec::with_capacity(n),
-        scales: Vec::with_capacity(n),
-        rotations: Vec::with_capacity(n),
-        opacities: Vec::with_capacity(n),
-        sh: None,
-    };
-    let mut dc = Vec::with_capacity(n * 3);
-    let terrain: Vec<Disc> = parts.into_iter().flatten().collect();
+    parts.into_iter().flatten().collect()
+}
+
+/// Each object's shell ([`box_shell`], leaving out what lies inside the other `boxes`), one
+/// after the other, and the range of each in the scene's vertex order, the shells starting at
+/// vertex `start`.
+fn object_shells(
+    p: &SyntheticSceneParams,
+    objects: &[PlacedObject],
+    boxes: &[[[f64; 3]; 2]],
+    spacing: f64,
+    mut start: usize,
+) -> (Vec<Disc>, Vec<std::ops::Range<usize>>) {
     let mut ranges = Vec::with_capacity(objects.len());
-    let mut start = terrain.len();
-    let shells: Vec<Disc> = objects
+    let shells = objects
         .iter()
         .enumerate()
         .flat_map(|(k, o)| {
@@ -302,7 +319,20 @@ pub fn scene_with_instances(
             shell
         })
         .collect();
-    for (m, s, r, o, d) in terrain.into_iter().chain(shells) {
+    (shells, ranges)
+}
+
+/// The discs as Gaussians (SH degree 0), in order; `capacity` Gaussians reserved.
+fn gaussians_of(discs: impl Iterator<Item = Disc>, capacity: usize) -> Gaussians {
+    let mut g = Gaussians {
+        means: Vec::with_capacity(capacity),
+        scales: Vec::with_capacity(capacity),
+        rotations: Vec::with_capacity(capacity),
+        opacities: Vec::with_capacity(capacity),
+        sh: None,
+    };
+    let mut dc = Vec::with_capacity(capacity * 3);
+    for (m, s, r, o, d) in discs {
         g.means.push(m);
         g.scales.push(s);
         g.rotations.push(r);
@@ -313,7 +343,7 @@ pub fn scene_with_instances(
         degree: 0,
         coeffs: dc,
     });
-    (g, ranges)
+    g
 }
 
 /// One Gaussian of a synthetic scene: mean, scales, rotation (w, x, y, z), opacity, SH DC.
