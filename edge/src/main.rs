@@ -691,38 +691,15 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     }
     match check {
         Err(e) => problems.push(format!("store: {e:#}")),
-        Ok(check) => {
-            problems.extend(check.problems);
-            let engine = &check.engine;
-            let m = &engine.manifest;
+        Ok(mut check) => {
+            problems.extend(std::mem::take(&mut check.problems));
             if let Some((v, text)) = &text {
-                if let Err(e) = text.check_pair(&m.model) {
-                    problems.push(format!("text model: {e}"));
-                } else if v.first().map_or(0, Vec::len) != engine.store.dim() {
-                    problems.push(format!(
-                        "the text model gives {}-d embeddings, the stored Gaussians are {}-d \
-                         ({}): use the CLIP text tower of that model",
-                        v.first().map_or(0, Vec::len),
-                        engine.store.dim(),
-                        m.model
-                    ));
-                }
+                let text_dim = v.first().map_or(0, Vec::len);
+                problems.extend(text_against_store(text.as_ref(), text_dim, &check.engine));
             }
-            let (set_aside, set_aside_bytes) = check.set_aside;
-            let fields = serde_json::json!({
-                "generation": m.generation,
-                "embedding_model": m.model,
-                "frames": m.frames,
-                "shards_loaded": engine.load.loaded_tiles.len(),
-                "shards_absent": engine.load.absent_tiles,
-                "shards_rejected": engine.load.rejected,
-                "shards_missing": check.missing,
-                "gaussians": engine.store.len(),
-                "vector_memory_bytes": engine.store.memory_bytes(),
-                "set_aside": set_aside,
-                "set_aside_bytes": set_aside_bytes,
-            });
-            if let (Some(o), serde_json::Value::Object(f)) = (report.as_object_mut(), fields) {
+            if let (Some(o), serde_json::Value::Object(f)) =
+                (report.as_object_mut(), store_fields(&check))
+            {
                 o.extend(f);
             }
         }
@@ -741,6 +718,48 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
         problems.join("; ")
     );
     Ok(())
+}
+
+/// `check`'s problem with a text model that cannot query the stored Gaussians: another CLIP
+/// model than the one that embedded them, or `text_dim` other than theirs. `None`: it can.
+fn text_against_store(
+    text: &dyn TextEmbedder,
+    text_dim: usize,
+    engine: &slag_edge::engine::Engine,
+) -> Option<String> {
+    let m = &engine.manifest;
+    if let Err(e) = text.check_pair(&m.model) {
+        return Some(format!("text model: {e}"));
+    }
+    (text_dim != engine.store.dim()).then(|| {
+        format!(
+            "the text model gives {text_dim}-d embeddings, the stored Gaussians are {}-d ({}): \
+             use the CLIP text tower of that model",
+            engine.store.dim(),
+            m.model
+        )
+    })
+}
+
+/// `check`'s report fields of a loaded store: its generation, model and frames, the shards
+/// loaded, absent, rejected and missing, the Gaussians and their memory, what fetch set aside.
+fn store_fields(check: &slag_edge::engine::StoreCheck) -> serde_json::Value {
+    let engine = &check.engine;
+    let m = &engine.manifest;
+    let (set_aside, set_aside_bytes) = check.set_aside;
+    serde_json::json!({
+        "generation": m.generation,
+        "embedding_model": m.model,
+        "frames": m.frames,
+        "shards_loaded": engine.load.loaded_tiles.len(),
+        "shards_absent": engine.load.absent_tiles,
+        "shards_rejected": engine.load.rejected,
+        "shards_missing": check.missing,
+        "gaussians": engine.store.len(),
+        "vector_memory_bytes": engine.store.memory_bytes(),
+        "set_aside": set_aside,
+        "set_aside_bytes": set_aside_bytes,
+    })
 }
 
 /// `check`'s words on the store's signature ([`EdgeStore::verify_signed`]): plainly whether the

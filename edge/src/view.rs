@@ -276,6 +276,51 @@ pub fn painted_ply_framed(
     to_map: Option<&slag_common::shards::SceneToMap>,
 ) -> Result<Vec<u8>> {
     let frame = to_map.map(|t| (t, t.scale.ln() as f32, t.quaternion_wxyz()));
+    check_style(style)?;
+    let n = attrs.len();
+    let mut bytes = slag_common::scene::float_vertex_header(
+        n,
+        &PLY_PROPERTIES,
+        Some("slag-edge /query.ply: matches painted in a flat colour"),
+    );
+    bytes.reserve(n * PLY_PROPERTIES.len() * 4);
+    let fallback_scale = attrs.fallback_log_scale();
+    let mut put = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
+    for i in 0..n {
+        let f = attrs.present[i];
+        let mean = match frame {
+            Some((t, _, _)) => t.to_map_f32(attrs.means[i]),
+            None => attrs.means[i],
+        };
+        mean.iter().for_each(|&v| put(v));
+        painted_dc(paint(attrs.ids[i]), attrs.sh_dc[i], style.dim)?
+            .iter()
+            .for_each(|&v| put(v));
+        put(attrs.logit_opacities[i]);
+        let s = if f & HAS_SCALES != 0 {
+            attrs.log_scales[i]
+        } else {
+            [fallback_scale; 3]
+        };
+        match frame {
+            Some((_, ln_s, q_r)) => {
+                s.iter().for_each(|&v| put(v + ln_s));
+                quat_mul(q_r, attrs.rotations[i].map(f64::from))
+                    .iter()
+                    .for_each(|&v| put(v as f32));
+            }
+            None => {
+                s.iter().for_each(|&v| put(v));
+                attrs.rotations[i].iter().for_each(|&v| put(v));
+            }
+        }
+    }
+    Ok(bytes)
+}
+
+/// Refuses a highlight style whose colour is not RGB in 0..=1 ([`Error::Query`] `color`) or
+/// whose dim factor is not in 0..=1 ([`Error::Query`] `dim`).
+fn check_style(style: &HighlightStyle) -> Result<()> {
     if style
         .colour
         .iter()
@@ -297,64 +342,33 @@ pub fn painted_ply_framed(
             format!("dim {f}: use a factor in 0..=1"),
         ));
     }
-    let n = attrs.len();
-    let mut bytes = slag_common::scene::float_vertex_header(
-        n,
-        &PLY_PROPERTIES,
-        Some("slag-edge /query.ply: matches painted in a flat colour"),
-    );
-    bytes.reserve(n * PLY_PROPERTIES.len() * 4);
-    let fallback_scale = attrs.fallback_log_scale();
-    let mut put = |v: f32| bytes.extend_from_slice(&v.to_le_bytes());
-    for i in 0..n {
-        let f = attrs.present[i];
-        let mean = match frame {
-            Some((t, _, _)) => t.to_map_f32(attrs.means[i]),
-            None => attrs.means[i],
-        };
-        mean.iter().for_each(|&v| put(v));
-        let dc = if let Some(rgb) = paint(attrs.ids[i]) {
-            if rgb
-                .iter()
-                .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
-            {
-                return Err(Error::query(
-                    "color",
-                    format!("paint colour {rgb:?}: use RGB components in 0..=1"),
-                ));
-            }
-            dc_of_rgb(rgb)
-        } else {
-            let dc = attrs.sh_dc[i];
-            match style.dim {
-                Some(k) => dc.map(|c| {
-                    let rgb = 0.5 + SH_C0 * c as f64;
-                    ((k as f64 * rgb - 0.5) / SH_C0) as f32
-                }),
-                None => dc,
-            }
-        };
-        dc.iter().for_each(|&v| put(v));
-        put(attrs.logit_opacities[i]);
-        let s = if f & HAS_SCALES != 0 {
-            attrs.log_scales[i]
-        } else {
-            [fallback_scale; 3]
-        };
-        match frame {
-            Some((_, ln_s, q_r)) => {
-                s.iter().for_each(|&v| put(v + ln_s));
-                quat_mul(q_r, attrs.rotations[i].map(f64::from))
-                    .iter()
-                    .for_each(|&v| put(v as f32));
-            }
-            None => {
-                s.iter().for_each(|&v| put(v));
-                attrs.rotations[i].iter().for_each(|&v| put(v));
-            }
+    Ok(())
+}
+
+/// A Gaussian's SH DC in a painted PLY: `painted` (linear display RGB in 0..1) as DC, else its
+/// own `dc`, its colour scaled by `dim` when given.
+///
+/// Errors: a painted colour outside 0..=1 ([`Error::Query`] `color`).
+fn painted_dc(painted: Option<[f32; 3]>, dc: [f32; 3], dim: Option<f32>) -> Result<[f32; 3]> {
+    if let Some(rgb) = painted {
+        if rgb
+            .iter()
+            .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
+        {
+            return Err(Error::query(
+                "color",
+                format!("paint colour {rgb:?}: use RGB components in 0..=1"),
+            ));
         }
+        return Ok(dc_of_rgb(rgb));
     }
-    Ok(bytes)
+    Ok(match dim {
+        Some(k) => dc.map(|c| {
+            let rgb = 0.5 + SH_C0 * c as f64;
+            ((k as f64 * rgb - 0.5) / SH_C0) as f32
+        }),
+        None => dc,
+    })
 }
 
 /// Parses a colour `RRGGBB` or `#RRGGBB` (hex, sRGB bytes mapped to 0..1).
