@@ -805,16 +805,7 @@ pub(crate) fn encoded_views<'a>(
 pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     let settings = report_settings(&a.embeddings)?;
     let every = held_out_step(a.every, &settings, &a.embeddings)?;
-    let raster_scale = a.raster_scale.or(settings.raster_scale).ok_or_else(|| {
-        Error::param(
-            "raster_scale",
-            "unknown",
-            format!(
-                "the encoder's raster_scale: the report beside {} has none",
-                a.embeddings.display()
-            ),
-        )
-    })?;
+    let raster_scale = oracle_raster_scale(a, &settings)?;
     let inputs = load_inputs(a)?;
     let colour_3d = colour_3d(&inputs)?;
     let segment_sets = if a.prediction_filtering {
@@ -822,14 +813,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
     } else {
         Vec::new()
     };
-    let colour_3d_pf = match segment_sets.first() {
-        Some((_, s)) => Some(colour_3d_pf(&inputs, s)?),
-        None => None,
-    };
-    let segment_quality = segment_sets
-        .iter()
-        .map(|(p, s)| segment_quality(&inputs, p, s))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    let (colour_3d_pf, segment_quality) = segments_scored(&inputs, &segment_sets)?;
     let t0 = Instant::now();
     let views = camera::load_views(&a.scene)?;
     let held = held_out_of(&a.scene, views.len(), every)?;
@@ -868,10 +852,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         .zip(&tally.predictors[2..])
         .map(|(v, cf)| v.scored(tally.score(cf, names)))
         .collect();
-    let slag_over_oracle = match (slag.miou, oracle_score.miou) {
-        (Some(s), Some(o)) if o > 0.0 => Some(s / o),
-        _ => None,
-    };
+    let slag_over_oracle = miou_ratio(slag.miou, oracle_score.miou);
     let held_out = HeldOutEval {
         every,
         held_out_views: held.iter().map(|&i| views[i].name.clone()).collect(),
@@ -882,12 +863,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         pixels: tally.pixels,
         counted_pixels: tally.counted(),
         miou_min_class_fraction: crate::MIOU_MIN_CLASS_FRACTION,
-        miou_classes: slag
-            .classes
-            .iter()
-            .filter(|s| s.in_miou)
-            .map(|s| s.name.clone())
-            .collect(),
+        miou_classes: miou_class_names(&slag),
         majority_class: names[tally.majority_class()].clone(),
         slag,
         majority,
@@ -905,6 +881,56 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         segment_quality,
         photo_truth,
     })
+}
+
+/// With segments (`segment_sets`, the first the main set): the 3D colour score after
+/// prediction filtering by the main set, and every set's quality; `None` and nothing without.
+fn segments_scored(
+    inputs: &Inputs,
+    segment_sets: &[(PathBuf, Segments)],
+) -> anyhow::Result<(Option<crate::ColourEval>, Vec<SegmentQuality>)> {
+    let colour_3d_pf = match segment_sets.first() {
+        Some((_, s)) => Some(colour_3d_pf(inputs, s)?),
+        None => None,
+    };
+    let quality = segment_sets
+        .iter()
+        .map(|(p, s)| segment_quality(inputs, p, s))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok((colour_3d_pf, quality))
+}
+
+/// The raster scale of the oracle's lifting: `a.raster_scale`, else the encoder's, from the
+/// report beside the embeddings. Errors: neither ([`Error::Param`] `raster_scale`).
+fn oracle_raster_scale(a: &EvalColorsConfig, settings: &ReportSettings) -> anyhow::Result<f64> {
+    Ok(a.raster_scale.or(settings.raster_scale).ok_or_else(|| {
+        Error::param(
+            "raster_scale",
+            "unknown",
+            format!(
+                "the encoder's raster_scale: the report beside {} has none",
+                a.embeddings.display()
+            ),
+        )
+    })?)
+}
+
+/// `miou / reference`, when both are known and the reference is above 0.
+fn miou_ratio(miou: Option<f64>, reference: Option<f64>) -> Option<f64> {
+    match (miou, reference) {
+        (Some(s), Some(o)) if o > 0.0 => Some(s / o),
+        _ => None,
+    }
+}
+
+/// The names of the classes that a held-out score's mIoU averages over.
+fn miou_class_names(score: &heldout::PixelScore) -> Vec<String> {
+    score
+        .classes
+        .iter()
+        .filter(|s| s.in_miou)
+        .map(|s| s.name.clone())
+        .collect()
 }
 
 /// The predictors scored beside slag's: the aggregation variants

@@ -300,55 +300,8 @@ pub fn evaluate(
     class_names: &[String],
 ) -> Result<ColourEval> {
     let k = class_names.len();
-    if predicted.len() != embeddings.len() {
-        return Err(Error::internal(format!(
-            "{} predictions for {} embedding rows; pass assign(embeddings, ..)",
-            predicted.len(),
-            embeddings.len()
-        )));
-    }
-    if embeddings.scene_gaussians != 0 && embeddings.scene_gaussians != gt.len() as u64 {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::Scene,
-            format!(
-                "the embeddings come from a scene of {} Gaussians but the ground truth has {}; \
-                 evaluate against the .ply the encoder ran on",
-                embeddings.scene_gaussians,
-                gt.len()
-            ),
-        ));
-    }
-    if let Some(c) = gt
-        .iter()
-        .flatten()
-        .chain(predicted)
-        .find(|&&c| c as usize >= k)
-    {
-        return Err(Error::param(
-            "class_names",
-            format!("{k} names"),
-            format!("a name for every class used (class index {c} appears)"),
-        ));
-    }
-    // Prediction per scene Gaussian (None = unobserved).
-    let mut pred: Vec<Option<u8>> = vec![None; gt.len()];
-    for (&id, &p) in embeddings.ids.iter().zip(predicted) {
-        let slot = pred.get_mut(id as usize).ok_or_else(|| {
-            Error::mismatch(
-                slag_common::Mismatched::Scene,
-                format!(
-                    "Gaussian id {id} outside the scene's {} Gaussians; evaluate against the \
-                     .ply the encoder ran on",
-                    gt.len()
-                ),
-            )
-        })?;
-        if slot.replace(p).is_some() {
-            return Err(Error::Invalid(format!(
-                "Gaussian id {id} appears twice in the embeddings"
-            )));
-        }
-    }
+    check_evaluate_inputs(gt, embeddings, predicted, k)?;
+    let pred = predictions_per_gaussian(gt.len(), embeddings, predicted)?;
     let (mut gt_count, mut pred_count, mut inter) = (vec![0u64; k], vec![0u64; k], vec![0u64; k]);
     let (mut opaque, mut observed_opaque) = (0u64, 0u64);
     for (g, p) in gt.iter().zip(&pred) {
@@ -395,6 +348,75 @@ pub fn evaluate(
         observed_opaque,
         correct,
     })
+}
+
+/// [`evaluate`]'s refusals: a prediction count other than the embedding rows; embeddings of
+/// a scene of another size than `gt`; a class index (truth or prediction) without one of the
+/// `k` names.
+fn check_evaluate_inputs(
+    gt: &[Option<u8>],
+    embeddings: &Embeddings,
+    predicted: &[u8],
+    k: usize,
+) -> Result<()> {
+    if predicted.len() != embeddings.len() {
+        return Err(Error::internal(format!(
+            "{} predictions for {} embedding rows; pass assign(embeddings, ..)",
+            predicted.len(),
+            embeddings.len()
+        )));
+    }
+    if embeddings.scene_gaussians != 0 && embeddings.scene_gaussians != gt.len() as u64 {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::Scene,
+            format!(
+                "the embeddings come from a scene of {} Gaussians but the ground truth has {}; \
+                 evaluate against the .ply the encoder ran on",
+                embeddings.scene_gaussians,
+                gt.len()
+            ),
+        ));
+    }
+    if let Some(c) = gt
+        .iter()
+        .flatten()
+        .chain(predicted)
+        .find(|&&c| c as usize >= k)
+    {
+        return Err(Error::param(
+            "class_names",
+            format!("{k} names"),
+            format!("a name for every class used (class index {c} appears)"),
+        ));
+    }
+    Ok(())
+}
+
+/// Each of the scene's `scene_gaussians` Gaussians' predicted class, `None` where no embedding
+/// row observed it. Errors: a row's Gaussian id outside the scene, or seen twice.
+fn predictions_per_gaussian(
+    scene_gaussians: usize,
+    embeddings: &Embeddings,
+    predicted: &[u8],
+) -> Result<Vec<Option<u8>>> {
+    let mut pred: Vec<Option<u8>> = vec![None; scene_gaussians];
+    for (&id, &p) in embeddings.ids.iter().zip(predicted) {
+        let slot = pred.get_mut(id as usize).ok_or_else(|| {
+            Error::mismatch(
+                slag_common::Mismatched::Scene,
+                format!(
+                    "Gaussian id {id} outside the scene's {scene_gaussians} Gaussians; evaluate \
+                     against the .ply the encoder ran on"
+                ),
+            )
+        })?;
+        if slot.replace(p).is_some() {
+            return Err(Error::Invalid(format!(
+                "Gaussian id {id} appears twice in the embeddings"
+            )));
+        }
+    }
+    Ok(pred)
 }
 
 #[cfg(test)]
