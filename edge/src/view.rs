@@ -321,11 +321,7 @@ pub fn painted_ply_framed(
 /// Refuses a highlight style whose colour is not RGB in 0..=1 ([`Error::Query`] `color`) or
 /// whose dim factor is not in 0..=1 ([`Error::Query`] `dim`).
 fn check_style(style: &HighlightStyle) -> Result<()> {
-    if style
-        .colour
-        .iter()
-        .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
-    {
+    if !unit_rgb(&style.colour) {
         return Err(Error::query(
             "color",
             format!(
@@ -345,16 +341,18 @@ fn check_style(style: &HighlightStyle) -> Result<()> {
     Ok(())
 }
 
+/// Whether every component of `rgb` is a finite number in 0..=1.
+fn unit_rgb(rgb: &[f32; 3]) -> bool {
+    rgb.iter().all(|c| c.is_finite() && (0.0..=1.0).contains(c))
+}
+
 /// A Gaussian's SH DC in a painted PLY: `painted` (linear display RGB in 0..1) as DC, else its
 /// own `dc`, its colour scaled by `dim` when given.
 ///
 /// Errors: a painted colour outside 0..=1 ([`Error::Query`] `color`).
 fn painted_dc(painted: Option<[f32; 3]>, dc: [f32; 3], dim: Option<f32>) -> Result<[f32; 3]> {
     if let Some(rgb) = painted {
-        if rgb
-            .iter()
-            .any(|c| !c.is_finite() || !(0.0..=1.0).contains(c))
-        {
+        if !unit_rgb(&rgb) {
             return Err(Error::query(
                 "color",
                 format!("paint colour {rgb:?}: use RGB components in 0..=1"),
