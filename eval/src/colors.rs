@@ -863,7 +863,7 @@ pub fn run_held_out(a: &EvalColorsConfig) -> anyhow::Result<HeldOutOutput> {
         pixels: tally.pixels,
         counted_pixels: tally.counted(),
         miou_min_class_fraction: crate::MIOU_MIN_CLASS_FRACTION,
-        miou_classes: miou_class_names(&slag),
+        miou_classes: slag.miou_classes(),
         majority_class: names[tally.majority_class()].clone(),
         slag,
         majority,
@@ -921,16 +921,6 @@ fn miou_ratio(miou: Option<f64>, reference: Option<f64>) -> Option<f64> {
         (Some(s), Some(o)) if o > 0.0 => Some(s / o),
         _ => None,
     }
-}
-
-/// The names of the classes that a held-out score's mIoU averages over.
-fn miou_class_names(score: &heldout::PixelScore) -> Vec<String> {
-    score
-        .classes
-        .iter()
-        .filter(|s| s.in_miou)
-        .map(|s| s.name.clone())
-        .collect()
 }
 
 /// The predictors scored beside slag's: the aggregation variants

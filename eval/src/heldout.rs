@@ -495,6 +495,18 @@ pub struct PixelScore {
     pub classes: Vec<PixelClassScore>,
 }
 
+impl PixelScore {
+    /// The names of the classes that [`PixelScore::miou`] averages over (`in_miou`), in
+    /// class-index order.
+    pub fn miou_classes(&self) -> Vec<String> {
+        self.classes
+            .iter()
+            .filter(|c| c.in_miou)
+            .map(|c| c.name.clone())
+            .collect()
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used)] // tests fail loudly on purpose
 mod tests {
