@@ -16,71 +16,56 @@
 # ../shared/tools/ort-gpu-chunks.sh on a machine without network) and only adds the CUDA libraries
 # of torch. VK_DRIVER_FILES names the NVIDIA Vulkan driver file that works without a display
 # (scripts/vulkan-icd.sh). Without a GPU nothing here changes (CI's path).
-set -euo pipefail
-SLAG_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
-export SLAG_SHARED=${SLAG_SHARED:-$(cd "$SLAG_ROOT/.." && pwd)/shared}
-if [ ! -d "$SLAG_SHARED" ]; then
-  echo "setup: no shared/ folder at $SLAG_SHARED (set SLAG_SHARED)" >&2
-  exit 1
-fi
-need=()
-dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || need+=(mesa-vulkan-drivers)
-dpkg -s libvulkan1 >/dev/null 2>&1 || need+=(libvulkan1)
-if [ ${#need[@]} -gt 0 ]; then
-  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
-fi
-ORT_VERSION=${ORT_VERSION:-1.23.2}
-ORT_DIR=${ORT_DIR:-$HOME/.cache/slag/onnxruntime-$ORT_VERSION-$(uname -m)}
-if [ ! -e "$ORT_DIR/libonnxruntime.so" ]; then
-  bash "$SLAG_SHARED/tools/install-onnxruntime.sh" "$ORT_DIR" "$ORT_VERSION" >/dev/null
-fi
-export ORT_DYLIB_PATH=$ORT_DIR/libonnxruntime.so
-# Mesa's Vulkan loader (wgpu on lavapipe) prints "error: XDG_RUNTIME_DIR is invalid or not set"
-# at every start on machines without a login session (CI, containers): give it a private runtime
-# folder, as a login session would. Other errors still reach stderr.
-if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "$XDG_RUNTIME_DIR" ]; then
-  export XDG_RUNTIME_DIR=${TMPDIR:-/tmp}/slag-runtime-$(id -u)
-  mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR"
-fi
+#
+# Safe to source: the caller's shell options (errexit, nounset, pipefail, ...) are the same after
+# it as before, and a failure returns non-zero to the caller instead of closing its shell (run as
+# `bash scripts/setup.sh`, it exits non-zero). It exports only the variables named above
+# (SLAG_SHARED, ORT_DYLIB_PATH, XDG_RUNTIME_DIR, and with a GPU LD_LIBRARY_PATH and VK_DRIVER_FILES).
 
-slag_gpu=0
-for _a in "$@"; do [ "$_a" = --gpu ] && slag_gpu=1; done
-if [ "${SLAG_GPU:-}" = 1 ]; then
-  slag_gpu=1
-elif [ "${SLAG_GPU:-}" != 0 ] && [ "$slag_gpu" = 0 ]; then
-  if [ -e /proc/driver/nvidia ] || { command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; }; then
-    slag_gpu=1
-  fi
-fi
-if [ "$slag_gpu" = 1 ]; then
-  SLAG_PYTHON=${SLAG_PYTHON:-python3}
-  # The CUDA library folders of $SLAG_PYTHON's torch, if it is built for CUDA major $1.
-  slag_torch_cuda_libs() {
-    "$SLAG_PYTHON" - "$1" 2>/dev/null <<'PY' || true
+# `set +o` in a command substitution reports errexit off (bash does not pass -e into it): $- has it.
+_slag_setup_opts=$(set +o)
+case $- in *e*) _slag_setup_opts+=$'\nset -e' ;; esac
+# The body runs without errexit (set here, whatever the caller's), so every step that can fail is
+# checked where it runs and returns its own message.
+set +e +u -o pipefail
+
+# Fails with a message on stderr: `slag_setup_fail "what went wrong"; return 1`.
+slag_setup_fail() { echo "setup: $1" >&2; }
+
+# Installs Mesa's lavapipe and the Vulkan loader when missing (apt; sudo when not root).
+slag_setup_vulkan() {
+  local need=() sudo=""
+  dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || need+=(mesa-vulkan-drivers)
+  dpkg -s libvulkan1 >/dev/null 2>&1 || need+=(libvulkan1)
+  [ ${#need[@]} -gt 0 ] || return 0
+  [ "$(id -u)" -eq 0 ] || sudo=sudo
+  $sudo apt-get update -qq \
+    && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null \
+    || { slag_setup_fail "apt-get could not install ${need[*]}"; return 1; }
+}
+
+# The CUDA library folders of $SLAG_PYTHON's torch, if it is built for CUDA major $1 (empty if not).
+slag_torch_cuda_libs() {
+  "$SLAG_PYTHON" - "$1" 2>/dev/null <<'PY' || true
 import glob, os, sys
 import torch
 if (torch.version.cuda or "").split(".")[0] == sys.argv[1]:
     site = os.path.dirname(os.path.dirname(torch.__file__))
     print(":".join(sorted({os.path.dirname(p) for p in glob.glob(f"{site}/nvidia/**/lib*.so*", recursive=True)})))
 PY
-  }
-  if [ -n "${SLAG_ORT_GPU_DIR:-}" ]; then
-    ORT_GPU_DIR=$SLAG_ORT_GPU_DIR
-    cuda_major=${SLAG_CUDA_MAJOR:-13}
-  else
-    ORT_GPU_VERSION=${ORT_GPU_VERSION:-1.31.1}
-    ORT_GPU_DIR=$HOME/.cache/slag/onnxruntime-gpu-$ORT_GPU_VERSION-$(uname -m)
-    if [ ! -e "$ORT_GPU_DIR/libonnxruntime_providers_cuda.so" ] || [ ! -e "$ORT_GPU_DIR/cuda-requirements.txt" ]; then
-      _tmp=$(mktemp -d)
-      python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
-        --platform "manylinux_2_28_$(uname -m)" --platform "manylinux_2_27_$(uname -m)" \
-        --platform "manylinux_2_17_$(uname -m)" -d "$_tmp" "onnxruntime-gpu==$ORT_GPU_VERSION"
-      mkdir -p "$ORT_GPU_DIR"
-      # The libraries, and the `cuda` + `cudnn` extras of the wheel's own metadata (the CUDA
-      # runtime wheels it was built against) in cuda-requirements.txt.
-      python3 - "$_tmp" "$ORT_GPU_DIR" <<'PY'
+}
+
+# Downloads onnxruntime-gpu==$1 from PyPI into folder $2: its libraries, and the `cuda` + `cudnn`
+# extras of the wheel's own metadata (the CUDA runtime wheels it was built against) in
+# cuda-requirements.txt.
+slag_fetch_ort_gpu() {
+  local tmp rc
+  tmp=$(mktemp -d) || return 1
+  python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.11 --implementation cp \
+    --platform "manylinux_2_28_$(uname -m)" --platform "manylinux_2_27_$(uname -m)" \
+    --platform "manylinux_2_17_$(uname -m)" -d "$tmp" "onnxruntime-gpu==$1" \
+    && mkdir -p "$2" \
+    && python3 - "$tmp" "$2" <<'PY'
 import glob, os, re, shutil, sys, zipfile
 tmp, dest = sys.argv[1:3]
 whl = glob.glob(os.path.join(tmp, "onnxruntime_gpu-*.whl"))[0]
@@ -105,43 +90,113 @@ if os.path.lexists(link):
 os.symlink(os.path.basename(lib), link)
 open(os.path.join(dest, "cuda-requirements.txt"), "w").write("\n".join(reqs) + "\n")
 PY
-      rm -rf "$_tmp"
+  rc=$?
+  rm -rf "$tmp"
+  return $rc
+}
+
+# Whether to set up the GPU: --gpu among the arguments, SLAG_GPU=1, or (unless SLAG_GPU=0) an
+# NVIDIA driver that answers.
+slag_want_gpu() {
+  local a
+  [ "${SLAG_GPU:-}" = 1 ] && return 0
+  for a in "$@"; do [ "$a" = --gpu ] && return 0; done
+  [ "${SLAG_GPU:-}" != 0 ] || return 1
+  [ -e /proc/driver/nvidia ] || { command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; }
+}
+
+# The GPU part: ORT_DYLIB_PATH to ONNX Runtime with the CUDA provider, LD_LIBRARY_PATH to the CUDA
+# libraries it needs, VK_DRIVER_FILES to the headless NVIDIA Vulkan driver file.
+slag_setup_gpu() {
+  local root=$1 ort_gpu_dir cuda_major ortlib cudalibs cudafrom missing cuda_libs_dir icd
+  local SLAG_PYTHON=${SLAG_PYTHON:-python3}
+  if [ -n "${SLAG_ORT_GPU_DIR:-}" ]; then
+    ort_gpu_dir=$SLAG_ORT_GPU_DIR
+    cuda_major=${SLAG_CUDA_MAJOR:-13}
+  else
+    local version=${ORT_GPU_VERSION:-1.31.1}
+    ort_gpu_dir=$HOME/.cache/slag/onnxruntime-gpu-$version-$(uname -m)
+    if [ ! -e "$ort_gpu_dir/libonnxruntime_providers_cuda.so" ] || [ ! -e "$ort_gpu_dir/cuda-requirements.txt" ]; then
+      slag_fetch_ort_gpu "$version" "$ort_gpu_dir" \
+        || { slag_setup_fail "could not fetch onnxruntime-gpu $version into $ort_gpu_dir"; return 1; }
     fi
-    cuda_major=$(sed -n 's/^nvidia-cuda-runtime[-a-z0-9]*~=\([0-9]*\).*/\1/p' "$ORT_GPU_DIR/cuda-requirements.txt")
+    cuda_major=$(sed -n 's/^nvidia-cuda-runtime[-a-z0-9]*~=\([0-9]*\).*/\1/p' "$ort_gpu_dir/cuda-requirements.txt")
   fi
-  _ortlib=$ORT_GPU_DIR/libonnxruntime.so
-  [ -e "$_ortlib" ] || _ortlib=$(ls "$ORT_GPU_DIR"/libonnxruntime.so.* 2>/dev/null | head -1)
-  if [ -z "$_ortlib" ] || [ ! -e "$ORT_GPU_DIR/libonnxruntime_providers_cuda.so" ]; then
-    echo "setup: $ORT_GPU_DIR lacks libonnxruntime.so or libonnxruntime_providers_cuda.so" >&2
-    return 1 2>/dev/null || exit 1
+  ortlib=$ort_gpu_dir/libonnxruntime.so
+  [ -e "$ortlib" ] || ortlib=$(ls "$ort_gpu_dir"/libonnxruntime.so.* 2>/dev/null | head -1)
+  if [ -z "$ortlib" ] || [ ! -e "$ort_gpu_dir/libonnxruntime_providers_cuda.so" ]; then
+    slag_setup_fail "$ort_gpu_dir lacks libonnxruntime.so or libonnxruntime_providers_cuda.so"
+    return 1
   fi
-  _cudalibs=$(slag_torch_cuda_libs "$cuda_major")
-  _cudafrom=${_cudalibs:+torch ($SLAG_PYTHON)}
+  cudalibs=$(slag_torch_cuda_libs "$cuda_major")
+  cudafrom=${cudalibs:+torch ($SLAG_PYTHON)}
   # Libraries the CUDA provider still cannot find (the driver's libcuda.so.1 aside), e.g. cuRAND,
   # which some torch wheels do not ship.
-  _missing=$(LD_LIBRARY_PATH=$ORT_GPU_DIR${_cudalibs:+:$_cudalibs} ldd "$ORT_GPU_DIR/libonnxruntime_providers_cuda.so" 2>/dev/null \
+  missing=$(LD_LIBRARY_PATH=$ort_gpu_dir${cudalibs:+:$cudalibs} ldd "$ort_gpu_dir/libonnxruntime_providers_cuda.so" 2>/dev/null \
     | awk '/not found/ && $1 != "libcuda.so.1" {print $1}' | paste -sd' ')
-  if { [ -z "$_cudalibs" ] || [ -n "$_missing" ]; } && [ -z "${SLAG_ORT_GPU_DIR:-}" ]; then
-    CUDA_LIBS_DIR=$HOME/.cache/slag/cuda$cuda_major
-    if ! cmp -s "$ORT_GPU_DIR/cuda-requirements.txt" "$CUDA_LIBS_DIR/.requirements.txt"; then
+  if { [ -z "$cudalibs" ] || [ -n "$missing" ]; } && [ -z "${SLAG_ORT_GPU_DIR:-}" ]; then
+    cuda_libs_dir=$HOME/.cache/slag/cuda$cuda_major
+    if ! cmp -s "$ort_gpu_dir/cuda-requirements.txt" "$cuda_libs_dir/.requirements.txt"; then
       PIP_ROOT_USER_ACTION=ignore python3 -m pip install -q --disable-pip-version-check \
-        --no-warn-script-location --target "$CUDA_LIBS_DIR" -r "$ORT_GPU_DIR/cuda-requirements.txt"
-      cp "$ORT_GPU_DIR/cuda-requirements.txt" "$CUDA_LIBS_DIR/.requirements.txt"
+        --no-warn-script-location --target "$cuda_libs_dir" -r "$ort_gpu_dir/cuda-requirements.txt" \
+        && cp "$ort_gpu_dir/cuda-requirements.txt" "$cuda_libs_dir/.requirements.txt" \
+        || { slag_setup_fail "pip could not install the CUDA $cuda_major libraries into $cuda_libs_dir"; return 1; }
     fi
-    _cudalibs=${_cudalibs:+$_cudalibs:}$(find "$CUDA_LIBS_DIR/nvidia" -name 'lib*.so*' -printf '%h\n' | sort -u | paste -sd:)
-    _cudafrom="${_cudafrom:+$_cudafrom + }$CUDA_LIBS_DIR"
-  elif [ -n "$_missing" ] || [ -z "$_cudalibs" ]; then
-    echo "setup: warning: the CUDA provider in $ORT_GPU_DIR misses ${_missing:-the CUDA $cuda_major libraries} (no torch for CUDA $cuda_major in $SLAG_PYTHON has them): add their folders to LD_LIBRARY_PATH" >&2
+    cudalibs=${cudalibs:+$cudalibs:}$(find "$cuda_libs_dir/nvidia" -name 'lib*.so*' -printf '%h\n' | sort -u | paste -sd:)
+    cudafrom="${cudafrom:+$cudafrom + }$cuda_libs_dir"
+  elif [ -n "$missing" ] || [ -z "$cudalibs" ]; then
+    echo "setup: warning: the CUDA provider in $ort_gpu_dir misses ${missing:-the CUDA $cuda_major libraries} (no torch for CUDA $cuda_major in $SLAG_PYTHON has them): add their folders to LD_LIBRARY_PATH" >&2
   fi
-  export LD_LIBRARY_PATH=$ORT_GPU_DIR${_cudalibs:+:$_cudalibs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
-  export ORT_DYLIB_PATH=$_ortlib
-  echo "setup: GPU: ONNX Runtime CUDA provider from $ORT_GPU_DIR, CUDA $cuda_major libraries from ${_cudafrom:-nowhere}" >&2
+  export LD_LIBRARY_PATH=$ort_gpu_dir${cudalibs:+:$cudalibs}${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+  export ORT_DYLIB_PATH=$ortlib
+  echo "setup: GPU: ONNX Runtime CUDA provider from $ort_gpu_dir, CUDA $cuda_major libraries from ${cudafrom:-nowhere}" >&2
   # The NVIDIA Vulkan driver file that works without a display (scripts/vulkan-icd.sh says why).
-  _icd=$(bash "$SLAG_ROOT/scripts/vulkan-icd.sh" || true)
-  if [ -n "$_icd" ]; then
-    export VK_DRIVER_FILES=$_icd
+  icd=$(bash "$root/scripts/vulkan-icd.sh" || true)
+  if [ -n "$icd" ]; then
+    export VK_DRIVER_FILES=$icd
     echo "setup: GPU: Vulkan driver file $VK_DRIVER_FILES" >&2
   fi
-  unset -f slag_torch_cuda_libs
+}
+
+# The whole set-up, in order; returns non-zero at the first step that fails.
+slag_setup() {
+  local root ort_version ort_dir
+  root=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd) || return 1
+  export SLAG_SHARED=${SLAG_SHARED:-$(cd "$root/.." && pwd)/shared}
+  if [ ! -d "$SLAG_SHARED" ]; then
+    slag_setup_fail "no shared/ folder at $SLAG_SHARED (set SLAG_SHARED)"
+    return 1
+  fi
+  slag_setup_vulkan || return 1
+  ort_version=${ORT_VERSION:-1.23.2}
+  ort_dir=${ORT_DIR:-$HOME/.cache/slag/onnxruntime-$ort_version-$(uname -m)}
+  if [ ! -e "$ort_dir/libonnxruntime.so" ]; then
+    bash "$SLAG_SHARED/tools/install-onnxruntime.sh" "$ort_dir" "$ort_version" >/dev/null \
+      || { slag_setup_fail "could not install ONNX Runtime $ort_version into $ort_dir"; return 1; }
+  fi
+  export ORT_DYLIB_PATH=$ort_dir/libonnxruntime.so
+  # Mesa's Vulkan loader (wgpu on lavapipe) prints "error: XDG_RUNTIME_DIR is invalid or not set"
+  # at every start on machines without a login session (CI, containers): give it a private runtime
+  # folder, as a login session would. Other errors still reach stderr.
+  if [ -z "${XDG_RUNTIME_DIR:-}" ] || [ ! -d "$XDG_RUNTIME_DIR" ]; then
+    export XDG_RUNTIME_DIR=${TMPDIR:-/tmp}/slag-runtime-$(id -u)
+    mkdir -p "$XDG_RUNTIME_DIR" && chmod 700 "$XDG_RUNTIME_DIR" \
+      || { slag_setup_fail "cannot make $XDG_RUNTIME_DIR"; return 1; }
+  fi
+  if slag_want_gpu "$@"; then
+    slag_setup_gpu "$root" || return 1
+  fi
+  echo "setup: ORT_DYLIB_PATH=$ORT_DYLIB_PATH SLAG_SHARED=$SLAG_SHARED" >&2
+}
+
+slag_setup "$@"
+_slag_setup_rc=$?
+unset -f slag_setup slag_setup_fail slag_setup_vulkan slag_torch_cuda_libs slag_fetch_ort_gpu \
+  slag_want_gpu slag_setup_gpu
+eval "$_slag_setup_opts"
+unset _slag_setup_opts
+if [ "$_slag_setup_rc" -ne 0 ]; then
+  unset _slag_setup_rc
+  return 1 2>/dev/null || exit 1
 fi
-echo "setup: ORT_DYLIB_PATH=$ORT_DYLIB_PATH SLAG_SHARED=$SLAG_SHARED" >&2
+unset _slag_setup_rc
