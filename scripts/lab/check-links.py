@@ -30,7 +30,7 @@ def pages(root):
 
 def slug(heading):
     """GitHub's anchor for a heading's text: lower case, punctuation dropped, spaces to hyphens."""
-    text = re.sub(r"`|\*\*|\*|_(?=\w)|(?<=\w)_", "", heading)
+    text = re.sub(r"`|\*", "", heading)
     text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", text).strip().lower()
     return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
 
