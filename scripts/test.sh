@@ -3,7 +3,8 @@
 # (Jetson) cross build of slag-edge with its tests under qemu and the glibc guard
 # (scripts/cross-aarch64.sh; x86_64 Debian 12 hosts). The web page's browser test needs chromium,
 # node and the vendored viewer: scripts/web-setup.sh (SLAG_SKIP_WEB=1 skips it). SLAG_SKIP_CROSS=1 skips the cross step
-# (quick local runs); CI (.ci/run) always runs it. Arguments go to `cargo test`.
+# (quick local runs); CI (.ci/run) always runs it. Before the tests, scripts/lab/check-links.py checks
+# the docs' relative links. Arguments go to `cargo test`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . scripts/setup.sh
@@ -18,6 +19,9 @@ disk_free() { df -h "${CARGO_TARGET_DIR:-target}" 2>/dev/null | awk 'NR==2 {prin
 mkdir -p "${CARGO_TARGET_DIR:-target}"
 echo "test: disk before the build: $(disk_free)" >&2
 native=0
+# The docs' relative links and section anchors (pure Python, about a second): a broken one fails
+# the run like a failed test.
+python3 scripts/lab/check-links.py || native=$?
 cargo test --workspace --locked --no-fail-fast "$@" || native=$?
 [ "${SLAG_SKIP_PROBE:-0}" = 1 ] || bash scripts/probe.sh --short --debug || native=$?
 echo "test: disk after the native tests: $(disk_free)" >&2
