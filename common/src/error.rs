@@ -130,6 +130,22 @@ pub enum Error {
         /// The bound, with its unit.
         limit: String,
     },
+    /// An encode whose views observe none of the scene's Gaussians, or far fewer than they should:
+    /// its map would be empty or mostly empty, so it is refused instead of written. `stage` says
+    /// which count fell short; the scene, its cameras or the view and raster settings are the
+    /// user's to change (HTTP 400).
+    #[error("{stage}: {observed} of {gaussians} Gaussians observed, {expected}")]
+    Unobserved {
+        /// Where the Gaussians were counted.
+        stage: Observation,
+        /// Gaussians observed there.
+        observed: u64,
+        /// Gaussians of the scene.
+        gaussians: u64,
+        /// What was expected instead, in words (e.g. `at least 1`, `the chosen views see
+        /// 812,000 in the coverage pass`).
+        expected: String,
+    },
     /// Something that must not happen did (a panicked worker task, a broken invariant): a bug in
     /// slag, never the user's input (HTTP 500).
     #[error(
@@ -243,7 +259,10 @@ impl Error {
     /// be placed here). Front ends map it: the edge's HTTP status, the CLIs' exit messages.
     pub fn kind(&self) -> ErrorKind {
         match self {
-            Error::Param { .. } | Error::Query { .. } | Error::Invalid(_) => ErrorKind::UserInput,
+            Error::Param { .. }
+            | Error::Query { .. }
+            | Error::Invalid(_)
+            | Error::Unobserved { .. } => ErrorKind::UserInput,
             Error::ModelMismatch { .. } | Error::Mismatch { .. } => ErrorKind::Conflict,
             Error::Network { .. } | Error::Untrusted { .. } => ErrorKind::Upstream,
             Error::Io { .. }
@@ -358,6 +377,25 @@ pub enum Mismatched {
     /// The scene: embeddings, pixel weights, ground truth or a manifest made from another scene
     /// (another Gaussian count, an id beyond it). Use the inputs of one `.ply`.
     Scene,
+}
+
+/// Where an encode counted the Gaussians its views observe ([`Error::Unobserved`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Observation {
+    /// The coverage pass over the candidate views, at its rule's blend-weight floor: with none
+    /// seen, no view would be chosen.
+    CoveragePass,
+    /// The encode's reduction: the Gaussians with any blend weight in an encoded view's masks.
+    Encode,
+}
+
+impl std::fmt::Display for Observation {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Observation::CoveragePass => "the coverage pass's candidate views",
+            Observation::Encode => "the encoded views",
+        })
+    }
 }
 
 /// Which check of a signed manifest failed ([`Error::Untrusted`]).

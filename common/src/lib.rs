@@ -36,8 +36,8 @@ pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
 pub mod fault;
-pub mod forms;
 pub mod flag_names;
+pub mod forms;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;
@@ -64,4 +64,4 @@ pub mod text;
 pub mod tls;
 pub mod util;
 
-pub use error::{Error, ErrorKind, Mismatched, Resource, Result, Untrusted};
+pub use error::{Error, ErrorKind, Mismatched, Observation, Resource, Result, Untrusted};

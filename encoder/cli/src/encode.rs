@@ -169,7 +169,7 @@ mod tests {
         assert_eq!(
             v.coverage,
             slag_encoder::views::CoverageRule {
-                min_weight: 2.5,
+                min_weight: Some(2.5),
                 min_views: 3,
                 min_angle_deg: 15.0,
                 target: 0.9,

@@ -4,7 +4,7 @@
 //! result as `hint: …` under the error).
 
 use slag_common::onnx::{InferenceCause, inference_cause};
-use slag_common::{Error, Resource};
+use slag_common::{Error, Observation, Resource};
 use slag_encoder::config::{ClusterUnsupported, ConfigError, Field};
 
 /// The hint for `e` or the first error it wraps that has one.
@@ -89,6 +89,7 @@ pub fn hint_for(e: &Error) -> Option<String> {
         Error::Internal(_) => {
             Some("rerun with --verbose and report the command and its log".into())
         }
+        Error::Unobserved { stage, .. } => Some(unobserved_hint(*stage).into()),
         _ => slag_shards::cli::hint_for(e),
     }
 }
@@ -134,6 +135,22 @@ fn param_flag(name: &str) -> Option<&'static str> {
         "ply" => "pass the .ply used by encode with --ply",
         _ => return None,
     })
+}
+
+/// The flags that let an encode's views observe the scene's Gaussians ([`Error::Unobserved`]).
+fn unobserved_hint(stage: Observation) -> &'static str {
+    match stage {
+        Observation::CoveragePass => {
+            "encode every view with --views all, lower the floor with --view-coverage-weight \
+             (e.g. 0.01 pixels), or raise --view-coverage-raster-scale (e.g. 1); check that the \
+             cameras look at the scene's Gaussians"
+        }
+        Observation::Encode => {
+            "encode every view with --views all, or raise --raster-scale (e.g. 1) so that small \
+             Gaussians reach a pixel; check that the cameras look at the scene's Gaussians and \
+             that --scene-dir's images and point cloud belong together"
+        }
+    }
 }
 
 /// The flags that act on an ONNX Runtime failure of `cause` on `provider`; `None` where the
@@ -238,5 +255,30 @@ mod tests {
         assert!(h(e).contains("--clip-batch"));
         assert!(h(Error::internal("panicked")).contains("--verbose"));
         assert_eq!(hint_for(&Error::param("no_such_parameter", 0, "x")), None);
+    }
+
+    #[test]
+    fn an_encode_that_observes_nothing_names_the_flags_that_let_it() {
+        for (stage, flag) in [
+            (
+                slag_common::Observation::CoveragePass,
+                "--view-coverage-weight",
+            ),
+            (slag_common::Observation::Encode, "--raster-scale"),
+        ] {
+            let e = Error::Unobserved {
+                stage,
+                observed: 0,
+                gaussians: 30_000_000,
+                expected: "at least 1".into(),
+            };
+            assert!(!e.to_string().contains("--"), "{e}");
+            assert!(e.is_user_input());
+            let h = hint(&anyhow::Error::new(e).context("encode")).unwrap_or_default();
+            assert!(
+                h.contains(flag) && h.contains("--views all"),
+                "{stage:?}: {h}"
+            );
+        }
     }
 }

@@ -183,9 +183,11 @@ pub struct EncodeArgs {
     #[arg(long, value_name = "N")]
     pub view_count: Option<usize>,
     /// --views coverage: blend weight a view must give a Gaussian to count as seeing it, in
-    /// pixels of the full-resolution image (Σ_p α·T over the view).
-    #[arg(long, value_name = "PIXELS", default_value_t = CoverageRule::default().min_weight)]
-    pub view_coverage_weight: f64,
+    /// pixels of the full-resolution image (Σ_p α·T over the view). Default: the scene's own,
+    /// 1 pixel or, in a scene denser in Gaussians than pixels, the median of the Gaussians'
+    /// largest weights in 16 evenly spaced views.
+    #[arg(long, value_name = "PIXELS")]
+    pub view_coverage_weight: Option<f64>,
     /// --views coverage: distinct viewpoints that must see each observed Gaussian (fewer where
     /// the training views have fewer).
     #[arg(long, value_name = "K", default_value_t = CoverageRule::default().min_views)]

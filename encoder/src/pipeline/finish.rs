@@ -118,7 +118,9 @@ fn record_models(
 /// [`EncodeParams::progress`] a spinner on stderr shows each step of the tail (the reduction,
 /// on the GPU or the CPU, then the write).
 ///
-/// Errors: the reduction's, I/O on the outputs; nothing that looks complete is left then.
+/// Errors: the reduction's, [`Error::Unobserved`] for views that observed no Gaussian or far
+/// fewer than they should ([`crate::views::check_observed`]), I/O on the outputs; nothing that
+/// looks complete is left then.
 pub(crate) fn finish(
     scene: &SceneInput,
     pooled: Pooled,
@@ -177,6 +179,8 @@ pub(crate) fn finish(
     crate::report::log_rss("encode: reduction");
     counts.spilled_images = store.spilled();
     record_reduction(&tail, reduce_fallback, n_gaussians, &mut t, &mut counts);
+    crate::views::check_observed(report.view_selection.as_ref(), tail.observed, n_gaussians)
+        .inspect_err(|_| drop(remove_stale(&files.embeddings)))?;
     let (mixture, mixture_s) = build_mixture(store, tail.sparse, tail.gather_s)?;
     let (level_files, levels_s) = write_levels(&out, &level_stores)?;
     drop(level_stores);

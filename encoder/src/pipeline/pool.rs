@@ -107,7 +107,8 @@ pub(crate) fn run_pool(
     if training.is_empty() {
         return Err(no_views(scene, views_total));
     }
-    let (views, selection, made) = select_views(scene, &gaussians, training, make_rasterizers)?;
+    let (views, selection, made) =
+        select_views(scene, &gaussians, training, make_rasterizers, params.progress)?;
     let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
     log_scene_loaded(gaussians.len(), views.len(), fronts.len());
     let n_fronts = fronts.len();
@@ -941,7 +942,8 @@ where
 
 /// The views the encode uses among the scene's `training` views ([`crate::views::choose`]).
 /// Coverage selection needs the rasterizers first: they are made here and handed on; otherwise
-/// `make_rasterizers` is handed on unused.
+/// `make_rasterizers` is handed on unused. With `progress` a bar on stderr counts the coverage
+/// pass's views.
 ///
 /// Errors: as [`crate::views::choose`] and `make_rasterizers`.
 fn select_views<F>(
@@ -949,6 +951,7 @@ fn select_views<F>(
     gaussians: &Gaussians,
     training: Vec<slag_common::camera::View>,
     make_rasterizers: F,
+    progress: bool,
 ) -> Result<(
     Vec<slag_common::camera::View>,
     crate::views::SelectionReport,
@@ -962,8 +965,15 @@ where
         return Ok((views, report, Rasterizers::ToMake(make_rasterizers)));
     }
     let mut rasterizers = make_rasterizers(gaussians)?;
-    let (views, report) =
-        crate::views::choose(training, &scene.selection, gaussians, &mut rasterizers)?;
+    let bar = bar(&progress_display(progress), training.len(), "coverage pass");
+    let (views, report) = crate::views::choose_shown(
+        training,
+        &scene.selection,
+        gaussians,
+        &mut rasterizers,
+        &bar,
+    )?;
+    bar.finish();
     if let Some(c) = &report.coverage {
         tracing::info!(
             target: "slag_encoder::pipeline",

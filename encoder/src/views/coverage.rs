@@ -4,11 +4,25 @@
 //! **The pass.** Each candidate view is rasterized at [`CoverageRule::raster_scale`] (no masks,
 //! no models): every Gaussian's total blend weight in the view, `W_kv = Σ_p w_kp`, converted to
 //! pixels of the full-resolution image (÷ scale²). View `v` *sees* Gaussian `k` when
-//! `W_kv ≥` [`CoverageRule::min_weight`]. Only these sets are kept ([`ViewCoverage`]): per view
+//! `W_kv ≥` the floor (below). Only these sets are kept ([`ViewCoverage`]): per view
 //! the sorted Gaussian ids or a bitset of the scene, whichever is smaller, so memory is at most
 //! `views × Gaussians / 8` bytes (62.5 MB at 2M Gaussians × 250 views), never a dense weight
 //! matrix. With the GPU rasterizer the sums are the device's label sums with every pixel in one
 //! label (exact 64-bit fixed point, so a view's set does not depend on threads or order).
+//!
+//! **The floor.** [`CoverageRule::min_weight`] when given; otherwise the scene's own. Blend
+//! weights share a view's pixels: a view of `P` pixels gives its Gaussians at most `P` pixels of
+//! weight in all, so in a scene with more Gaussians than pixels (30M Gaussians on a 990 × 742
+//! image) few or none reach a pixel each, and a fixed floor of one pixel would see nothing. The
+//! pass first rasterizes [`CALIBRATION_VIEWS`] candidates evenly spaced in name order (all of
+//! them when there are fewer) without a floor, takes each Gaussian they show at all its
+//! largest weight among them, and sets the floor to the median of those, capped at
+//! [`DEFAULT_FLOOR_PX`] (one pixel). Where most Gaussians reach a pixel, as in an ordinary
+//! capture, the floor is that pixel and the choice is the fixed rule's; where they do not, at
+//! least about half the Gaussians the calibration views show clear it, at any density. The
+//! footprints' fixed point follows the floor (a step is 1/256 of it, [`FOOTPRINT_STEPS_PER_PIXEL`]).
+//! A pass whose views see no Gaussian at all is refused ([`Error::Unobserved`]): it would choose
+//! no view and make an empty map.
 //!
 //! **The rule.** Views `u` and `v` are *distinct viewpoints* of Gaussian `k` when the directions
 //! from their camera centres to `k`'s mean differ by at least [`CoverageRule::min_angle_deg`].
@@ -22,13 +36,14 @@
 //! *footprint* is its largest total blend weight in any candidate view, `F_k = max_v W_kv`
 //! (full-resolution pixels, the pass's own figures). A (Gaussian, viewpoint) pair is worth the
 //! Gaussian's footprint, so a Gaussian that no view shows on more than a pixel or two is worth
-//! a pixel or two, not as much as one that fills part of every image.
+//! a pixel or two, not as much as one that fills part of every image. Footprints are kept in
+//! fixed point, 1/256 of the floor.
 //!
 //! **The greedy.** Each step takes the view that adds the most footprint over its new (Gaussian,
 //! distinct viewpoint) pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain
 //! never grows as views are chosen, so re-evaluating only the top is exact). It runs until no
-//! view adds a pair. Footprints are kept in fixed point (1/256 pixel) and gains are integer sums
-//! of them, so the order is the same for any thread count.
+//! view adds a pair. Gains are integer sums of the fixed-point footprints, so the order is the
+//! same for any thread count.
 //!
 //! **The stopping rule.** Every view costs the encode the same (its masks, crops and raster),
 //! while the gains of the greedy order only fall: the first view gives every Gaussian it shows a
@@ -46,15 +61,16 @@
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Instant;
 
 use glam::DVec3;
+use indicatif::ProgressBar;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use slag_common::camera::{Intrinsics, View, WorldToCamera};
 use slag_common::scene::Gaussians;
-use slag_common::{Error, Result};
+use slag_common::{Error, Observation, Result};
 
 use crate::raster::WeightRasterizer;
 
@@ -63,8 +79,10 @@ use crate::raster::WeightRasterizer;
 #[serde(default, deny_unknown_fields)]
 pub struct CoverageRule {
     /// Blend weight a view must give a Gaussian to see it: `Σ_p w_kp` over the view's pixels,
-    /// in pixels of the full-resolution image (default 1: a pixel's worth of the Gaussian).
-    pub min_weight: f64,
+    /// in pixels of the full-resolution image. `None` (the default): the scene's own floor, the
+    /// lower of [`DEFAULT_FLOOR_PX`] and the median footprint of a calibration sample (module
+    /// doc); a value: that floor, whatever the scene.
+    pub min_weight: Option<f64>,
     /// Distinct viewpoints that must see each observed Gaussian (default 2).
     pub min_views: usize,
     /// Angle between two views' directions to a Gaussian, degrees, from which they count as
@@ -85,7 +103,7 @@ pub struct CoverageRule {
 impl Default for CoverageRule {
     fn default() -> Self {
         CoverageRule {
-            min_weight: 1.0,
+            min_weight: None,
             min_views: 2,
             min_angle_deg: 10.0,
             target: 1.0,
@@ -107,8 +125,9 @@ impl CoverageRule {
     /// [0, 180)), `view_coverage_target` (outside (0, 1]), `view_coverage_min_gain` (outside
     /// [0, 1]), `view_coverage_raster_scale` (outside (0, 4]).
     pub fn validate(&self) -> Result<()> {
-        let w = self.min_weight;
-        if !(w.is_finite() && w >= 0.0) {
+        if let Some(w) = self.min_weight
+            && !(w.is_finite() && w >= 0.0)
+        {
             return Err(Error::param(
                 "view_coverage_weight",
                 w,
@@ -220,20 +239,53 @@ impl SeenSet {
     }
 }
 
-/// Fixed-point steps of a footprint per full-resolution pixel ([`ViewCoverage::footprint`]).
+/// Fixed-point steps of a footprint per full-resolution pixel at a floor of a pixel or more
+/// ([`ViewCoverage::footprint`]); a floor `F` below a pixel gets `256 / F` steps to the pixel
+/// (at most `256 / FINEST_FLOOR_PX`), so that a step stays 1/256 of the floor.
 pub const FOOTPRINT_STEPS_PER_PIXEL: f64 = 256.0;
 
-/// What the coverage pass measured: per candidate view the Gaussians it sees (weight ≥
-/// [`CoverageRule::min_weight`]), in a sparse or bitset form, and per Gaussian its footprint
-/// (module doc).
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// The finest floor the footprints' steps follow (full-resolution pixels): below it a step
+/// stays `FINEST_FLOOR_PX / 256` pixels.
+const FINEST_FLOOR_PX: f64 = 1.0 / 65_536.0;
+
+/// The highest floor the scene's own ([`CoverageRule::min_weight`] `None`) takes: a pixel's worth
+/// of a Gaussian, full-resolution pixels.
+pub const DEFAULT_FLOOR_PX: f64 = 1.0;
+
+/// Candidate views, evenly spaced in name order, whose footprints set the scene's floor (all of
+/// them when there are fewer).
+pub const CALIBRATION_VIEWS: usize = 16;
+
+/// Where the pass's floor came from (`report.json`'s `view_selection.coverage.floor_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FloorSource {
+    /// The rule's [`CoverageRule::min_weight`].
+    Given,
+    /// [`DEFAULT_FLOOR_PX`]: the calibration views' median footprint reaches it (or they show
+    /// no Gaussian).
+    Default,
+    /// The calibration views' median footprint, below [`DEFAULT_FLOOR_PX`]: a scene dense in
+    /// Gaussians per pixel.
+    Median,
+}
+
+/// What the coverage pass measured: per candidate view the Gaussians it sees (weight ≥ the
+/// floor), in a sparse or bitset form, and per Gaussian its footprint (module doc).
+#[derive(Debug, Clone, PartialEq)]
 pub struct ViewCoverage {
     gaussians: usize,
     seen: Vec<SeenSet>,
     /// Per Gaussian the largest total blend weight a view that sees it gives it, in
-    /// 1/[`FOOTPRINT_STEPS_PER_PIXEL`] full-resolution pixels (at least 1 for a seen Gaussian,
-    /// 0 for one no view sees).
+    /// 1/`steps_per_px` full-resolution pixels (at least 1 for a seen Gaussian, 0 for one no
+    /// view sees).
     footprint: Vec<u64>,
+    /// The floor a view's weight had to reach: full-resolution pixels.
+    floor_px: f64,
+    /// Where the floor came from.
+    floor_source: FloorSource,
+    /// Footprint steps per full-resolution pixel ([`FOOTPRINT_STEPS_PER_PIXEL`]).
+    steps_per_px: f64,
 }
 
 impl ViewCoverage {
@@ -249,7 +301,18 @@ impl ViewCoverage {
     pub fn footprint(&self, k: usize) -> f64 {
         self.footprint
             .get(k)
-            .map_or(0.0, |&q| q as f64 / FOOTPRINT_STEPS_PER_PIXEL)
+            .map_or(0.0, |&q| q as f64 / self.steps_per_px)
+    }
+
+    /// The floor a view's weight had to reach for the view to see a Gaussian: full-resolution
+    /// pixels, and where it came from.
+    pub fn floor(&self) -> (f64, FloorSource) {
+        (self.floor_px, self.floor_source)
+    }
+
+    /// Gaussians some view sees.
+    pub fn observed(&self) -> usize {
+        self.footprint.iter().filter(|&&f| f > 0).count()
     }
 
     /// Candidate views measured.
@@ -266,8 +329,8 @@ impl ViewCoverage {
 /// The coverage pass: the Gaussians each of `views` sees under `rule` and their footprints, the
 /// views spread over `rasterizers` (one thread each, views taken in turn; each view's set depends
 /// on that view alone and a footprint is a maximum over views, so the result does not depend on
-/// how they were spread). `gaussians` is the scene's
-/// Gaussian count, the rasterizers' scene.
+/// how they were spread). `gaussians` is the scene's Gaussian count, the rasterizers' scene.
+/// Without a [`CoverageRule::min_weight`], the floor is the scene's own ([`scene_floor`]).
 ///
 /// Errors: [`Error::Param`] `view_coverage_raster_scale` or `raster_size` for a raster the scale
 /// cannot make; the rasterizers' errors (the first one); [`Error::Param`] `rasterizers` when
@@ -278,6 +341,19 @@ pub fn measure(
     gaussians: usize,
     rule: &CoverageRule,
 ) -> Result<ViewCoverage> {
+    measure_shown(rasterizers, views, gaussians, rule, &ProgressBar::hidden())
+}
+
+/// [`measure`], each view rasterized counted on `progress` (its length set to the views).
+///
+/// Errors: as [`measure`].
+pub fn measure_shown(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    views: &[View],
+    gaussians: usize,
+    rule: &CoverageRule,
+    progress: &ProgressBar,
+) -> Result<ViewCoverage> {
     if rasterizers.is_empty() {
         return Err(Error::param("rasterizers", 0, "at least one rasterizer"));
     }
@@ -285,77 +361,145 @@ pub fn measure(
         .iter()
         .map(|v| pass_intrinsics(&v.intrinsics, rule.raster_scale))
         .collect::<Result<Vec<_>>>()?;
-    // The floor in the pass's raster pixels; a raster pixel is 1/scale² full-resolution ones.
-    let area = rule.raster_scale * rule.raster_scale;
-    let floor = rule.min_weight * area;
-    let next = AtomicUsize::new(0);
-    let failed = AtomicBool::new(false);
+    let pass = Pass {
+        views,
+        intrinsics: &intrinsics,
+        gaussians,
+        // A raster pixel is 1/scale² full-resolution ones.
+        area: rule.raster_scale * rule.raster_scale,
+    };
+    let (floor_px, floor_source) = match rule.min_weight {
+        Some(w) => (w, FloorSource::Given),
+        None => scene_floor(rasterizers, &pass)?,
+    };
+    let steps_per_px = FOOTPRINT_STEPS_PER_PIXEL / floor_px.clamp(FINEST_FLOOR_PX, 1.0);
+    progress.set_length(views.len() as u64);
     let results: Mutex<Vec<Option<SeenSet>>> = Mutex::new(vec![None; views.len()]);
-    let footprint = Mutex::new(vec![0u64; gaussians]);
-    let first_error: Mutex<Option<Error>> = Mutex::new(None);
-    std::thread::scope(|s| {
-        for r in rasterizers.iter_mut() {
-            let (next, failed, results, first_error, intrinsics, footprint) = (
-                &next,
-                &failed,
-                &results,
-                &first_error,
-                &intrinsics,
-                &footprint,
-            );
-            s.spawn(move || {
-                while !failed.load(Ordering::SeqCst) {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    let (Some(v), Some(k)) = (views.get(i), intrinsics.get(i)) else {
-                        break;
-                    };
-                    match seen_ids(r.as_mut(), k, &v.world_to_camera, floor, gaussians) {
-                        Ok(seen) => {
-                            if let Ok(mut f) = footprint.lock() {
-                                for &(id, w) in &seen {
-                                    let q = footprint_steps(w / area);
-                                    f[id as usize] = f[id as usize].max(q);
-                                }
-                            }
-                            let ids = seen.into_iter().map(|(id, _)| id).collect();
-                            let set = SeenSet::new(ids, gaussians);
-                            if let Ok(mut out) = results.lock() {
-                                out[i] = Some(set);
-                            }
-                        }
-                        Err(e) => {
-                            failed.store(true, Ordering::SeqCst);
-                            if let Ok(mut slot) = first_error.lock() {
-                                slot.get_or_insert(e);
-                            }
-                        }
-                    }
-                }
-            });
+    let footprint: Vec<AtomicU64> = (0..gaussians).map(|_| AtomicU64::new(0)).collect();
+    let all: Vec<usize> = (0..views.len()).collect();
+    pass.run(rasterizers, &all, floor_px * pass.area, |i, seen| {
+        for &(id, w) in &seen {
+            let q = footprint_steps(w / pass.area, steps_per_px);
+            footprint[id as usize].fetch_max(q, Ordering::Relaxed);
         }
-    });
-    if let Some(e) = first_error.into_inner().ok().flatten() {
-        return Err(e);
-    }
+        let ids = seen.into_iter().map(|(id, _)| id).collect();
+        let set = SeenSet::new(ids, gaussians);
+        if let Ok(mut out) = results.lock() {
+            out[i] = Some(set);
+        }
+        progress.inc(1);
+    })?;
     let seen = results
         .into_inner()
         .map_err(|_| Error::internal("coverage pass: a rasterizer thread panicked"))?
         .into_iter()
         .collect::<Option<Vec<_>>>()
         .ok_or_else(|| Error::internal("coverage pass: a view was not rasterized"))?;
-    let footprint = footprint
-        .into_inner()
-        .map_err(|_| Error::internal("coverage pass: a rasterizer thread panicked"))?;
     Ok(ViewCoverage {
         gaussians,
         seen,
-        footprint,
+        footprint: footprint.into_iter().map(AtomicU64::into_inner).collect(),
+        floor_px,
+        floor_source,
+        steps_per_px,
     })
 }
 
-/// A seen Gaussian's weight in full-resolution pixels as footprint steps (at least 1).
-fn footprint_steps(pixels: f64) -> u64 {
-    ((pixels * FOOTPRINT_STEPS_PER_PIXEL).round() as u64).max(1)
+/// The candidate views of one pass and their rasters.
+struct Pass<'a> {
+    views: &'a [View],
+    /// Each view's raster at the pass's scale.
+    intrinsics: &'a [Intrinsics],
+    /// The scene's Gaussian count.
+    gaussians: usize,
+    /// Full-resolution pixels per raster pixel, inverted: `scale²`.
+    area: f64,
+}
+
+impl Pass<'_> {
+    /// Rasterizes the views at positions `which` on `rasterizers` (one thread each, views taken
+    /// in turn) and hands each view's Gaussians of weight ≥ `floor` raster pixels ([`seen_ids`])
+    /// to `take(position, seen)`. Stops at the first error and returns it.
+    fn run(
+        &self,
+        rasterizers: &mut [Box<dyn WeightRasterizer>],
+        which: &[usize],
+        floor: f64,
+        take: impl Fn(usize, Vec<(u32, f64)>) + Sync,
+    ) -> Result<()> {
+        let next = AtomicUsize::new(0);
+        let failed = AtomicBool::new(false);
+        let first_error: Mutex<Option<Error>> = Mutex::new(None);
+        std::thread::scope(|s| {
+            for r in rasterizers.iter_mut() {
+                let (next, failed, first_error, take) = (&next, &failed, &first_error, &take);
+                s.spawn(move || {
+                    while !failed.load(Ordering::SeqCst) {
+                        let Some(&i) = which.get(next.fetch_add(1, Ordering::SeqCst)) else {
+                            break;
+                        };
+                        let (v, k) = (&self.views[i], &self.intrinsics[i]);
+                        match seen_ids(r.as_mut(), k, &v.world_to_camera, floor, self.gaussians) {
+                            Ok(seen) => take(i, seen),
+                            Err(e) => {
+                                failed.store(true, Ordering::SeqCst);
+                                if let Ok(mut slot) = first_error.lock() {
+                                    slot.get_or_insert(e);
+                                }
+                            }
+                        }
+                    }
+                });
+            }
+        });
+        match first_error.into_inner().ok().flatten() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+}
+
+/// The floor a rule without [`CoverageRule::min_weight`] uses (full-resolution pixels), and
+/// where it came from: the median footprint (the largest weight any of them gives it) of the
+/// Gaussians that [`CALIBRATION_VIEWS`] evenly spaced candidates show at all, capped at
+/// [`DEFAULT_FLOOR_PX`]; the cap when they show none.
+///
+/// Errors: the rasterizers' (the first one).
+fn scene_floor(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    pass: &Pass,
+) -> Result<(f64, FloorSource)> {
+    let sample = super::uniform(pass.views.len(), CALIBRATION_VIEWS);
+    // A positive f64's bits order as the value does: the maximum of the bits is the bits of
+    // the maximum.
+    let best: Vec<AtomicU64> = (0..pass.gaussians).map(|_| AtomicU64::new(0)).collect();
+    pass.run(rasterizers, &sample, 0.0, |_, seen| {
+        for (id, w) in seen {
+            best[id as usize].fetch_max(w.to_bits(), Ordering::Relaxed);
+        }
+    })?;
+    let mut shown: Vec<f64> = best
+        .into_iter()
+        .map(|b| f64::from_bits(b.into_inner()))
+        .filter(|&w| w > 0.0)
+        .collect();
+    if shown.is_empty() {
+        return Ok((DEFAULT_FLOOR_PX, FloorSource::Default));
+    }
+    let mid = (shown.len() - 1) / 2;
+    let (_, &mut median, _) = shown.select_nth_unstable_by(mid, f64::total_cmp);
+    let median_px = median / pass.area;
+    Ok(if median_px < DEFAULT_FLOOR_PX {
+        (median_px, FloorSource::Median)
+    } else {
+        (DEFAULT_FLOOR_PX, FloorSource::Default)
+    })
+}
+
+/// A seen Gaussian's weight in full-resolution pixels as footprint steps of `steps_per_px` to
+/// the pixel (at least 1).
+fn footprint_steps(pixels: f64, steps_per_px: f64) -> u64 {
+    ((pixels * steps_per_px).round() as u64).max(1)
 }
 
 /// The pass's raster intrinsics of a view, naming the pass's own scale in errors.
@@ -449,8 +593,15 @@ pub struct CoverageOutcome {
     pub greedy_s: f64,
     /// Bytes of the per-view sets the greedy read.
     pub seen_bytes: u64,
+    /// The floor a view's blend weight had to reach to see a Gaussian: full-resolution pixels
+    /// (the rule's `min_weight`, or the scene's own floor).
+    pub floor_px: f64,
+    /// Where the floor came from.
+    pub floor_source: FloorSource,
     /// Gaussians some candidate sees (the observed ones the rule covers).
     pub observed: usize,
+    /// Of those, the Gaussians some chosen view sees.
+    pub observed_chosen: usize,
     /// (Gaussian, distinct viewpoint) pairs the rule asks for: per observed Gaussian
     /// `min_views`, or fewer when the candidates cannot give that many.
     pub pairs_wanted: u64,
@@ -617,7 +768,8 @@ fn stop_at(
 /// what the pass found.
 ///
 /// Errors: as [`CoverageRule::validate`] and [`measure`]; [`Error::Param`] `views` for more
-/// than 2^32 − 1 views.
+/// than 2^32 − 1 views; [`Error::Unobserved`] when no candidate sees any Gaussian (no view would
+/// be chosen).
 pub fn select(
     rasterizers: &mut [Box<dyn WeightRasterizer>],
     gaussians: &Gaussians,
@@ -625,13 +777,35 @@ pub fn select(
     rule: &CoverageRule,
     cap: Option<usize>,
 ) -> Result<(Vec<usize>, CoverageOutcome)> {
+    select_shown(
+        rasterizers,
+        gaussians,
+        views,
+        rule,
+        cap,
+        &ProgressBar::hidden(),
+    )
+}
+
+/// [`select`], the pass's views counted on `progress` ([`measure_shown`]).
+///
+/// Errors: as [`select`].
+pub fn select_shown(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    gaussians: &Gaussians,
+    views: &[View],
+    rule: &CoverageRule,
+    cap: Option<usize>,
+    progress: &ProgressBar,
+) -> Result<(Vec<usize>, CoverageOutcome)> {
     rule.validate()?;
     if u32::try_from(views.len()).is_err() {
         return Err(Error::param("views", views.len(), "at most 2^32 - 1 views"));
     }
     let t0 = Instant::now();
-    let coverage = measure(rasterizers, views, gaussians.len(), rule)?;
+    let coverage = measure_shown(rasterizers, views, gaussians.len(), rule, progress)?;
     let raster_s = t0.elapsed().as_secs_f64();
+    require_observed(&coverage)?;
     let t1 = Instant::now();
     let centres: Vec<DVec3> = views
         .iter()
@@ -639,34 +813,80 @@ pub fn select(
         .collect();
     let (order, slots) = greedy(&coverage, &gaussians.means, &centres, rule);
     let (taken, stop) = stop_at(&order, rule, cap);
-    let px = |steps: u64| steps as f64 / FOOTPRINT_STEPS_PER_PIXEL;
+    let mut outcome = outcome_of(&coverage, &order, &slots, taken, views, rule);
+    outcome.stop = stop;
+    outcome.raster_s = raster_s;
+    outcome.greedy_s = t1.elapsed().as_secs_f64();
+    let mut chosen: Vec<usize> = order[..taken].iter().map(|&(v, _)| v).collect();
+    chosen.sort_unstable();
+    Ok((chosen, outcome))
+}
+
+/// Refuses a pass that saw no Gaussian: no view would be chosen, and the map would be empty.
+///
+/// Errors: [`Error::Unobserved`] ([`Observation::CoveragePass`]).
+fn require_observed(coverage: &ViewCoverage) -> Result<()> {
+    if coverage.observed() > 0 {
+        return Ok(());
+    }
+    let (floor, source) = coverage.floor();
+    let source = match source {
+        FloorSource::Given => "the rule's floor",
+        FloorSource::Default | FloorSource::Median => "the scene's floor",
+    };
+    Err(Error::Unobserved {
+        stage: Observation::CoveragePass,
+        observed: 0,
+        gaussians: coverage.gaussians as u64,
+        expected: format!(
+            "expected some Gaussian with a total blend weight of {floor:.3e} full-resolution \
+             pixels ({source}) in one of the {} candidate views; no view would be chosen and \
+             the map would be empty",
+            coverage.views()
+        ),
+    })
+}
+
+/// What the pass found and the greedy chose, in the report's terms: the `order` of the greedy
+/// over `views` with its first `taken` chosen, and the final viewpoint `slots`. Its times are
+/// 0 and its stop [`CoverageStop::Exhausted`], for the caller to fill in.
+fn outcome_of(
+    coverage: &ViewCoverage,
+    order: &[(usize, Gain)],
+    slots: &[u32],
+    taken: usize,
+    views: &[View],
+    rule: &CoverageRule,
+) -> CoverageOutcome {
+    let px = |steps: u64| steps as f64 / coverage.steps_per_px;
     let sum = |steps: &[(usize, Gain)]| {
         steps
             .iter()
             .fold((0, 0), |a, &(_, g)| (a.0 + g.0, a.1 + g.1))
     };
-    let (wanted_px, wanted) = sum(&order);
+    let (wanted_px, wanted) = sum(order);
     let (chosen_px, pairs_chosen) = sum(&order[..taken]);
     let mut rank = vec![usize::MAX; views.len()];
     for (r, &(v, _)) in order.iter().enumerate() {
         rank[v] = r;
     }
-    let (observed, full_views, covered) = tally(&slots, rule.min_views.max(1), &rank, taken);
-    let mut chosen: Vec<usize> = order[..taken].iter().map(|&(v, _)| v).collect();
-    chosen.sort_unstable();
-    let outcome = CoverageOutcome {
+    let t = tally(slots, rule.min_views.max(1), &rank, taken);
+    CoverageOutcome {
         rule: *rule,
-        raster_s,
-        greedy_s: t1.elapsed().as_secs_f64(),
+        raster_s: 0.0,
+        greedy_s: 0.0,
         seen_bytes: coverage.bytes() as u64,
-        observed,
+        floor_px: coverage.floor_px,
+        floor_source: coverage.floor_source,
+        observed: t.observed,
+        observed_chosen: t.observed_chosen,
         pairs_wanted: wanted,
         pairs_chosen,
         pairs_wanted_px: px(wanted_px),
         pairs_chosen_px: px(chosen_px),
-        stop,
-        full_views,
-        covered,
+        stop: CoverageStop::Exhausted,
+        full_views: t.full_views,
+        covered: t.covered,
         order: order
             .iter()
             .map(|&(v, (steps, gain))| GreedyStep {
@@ -675,14 +895,38 @@ pub fn select(
                 gain_px: px(steps),
             })
             .collect(),
-    };
-    Ok((chosen, outcome))
+    }
+}
+
+/// Counts of the observed Gaussians under a choice ([`tally`]).
+#[derive(Debug, Default, Clone, Copy)]
+struct Tally {
+    /// Gaussians with any viewpoint.
+    observed: usize,
+    /// Those with a chosen viewpoint: some chosen view sees them.
+    observed_chosen: usize,
+    /// Those with `per` chosen viewpoints.
+    full_views: usize,
+    /// Those whose every viewpoint is chosen.
+    covered: usize,
+}
+
+impl std::ops::Add for Tally {
+    type Output = Tally;
+    fn add(self, b: Tally) -> Tally {
+        Tally {
+            observed: self.observed + b.observed,
+            observed_chosen: self.observed_chosen + b.observed_chosen,
+            full_views: self.full_views + b.full_views,
+            covered: self.covered + b.covered,
+        }
+    }
 }
 
 /// From the final slots (`per` per Gaussian) and each view's rank in the greedy order, with the
-/// first `taken` views chosen: (Gaussians with any viewpoint, those with `per` chosen ones, those
-/// whose every viewpoint is chosen).
-fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> (usize, usize, usize) {
+/// first `taken` views chosen: the [`Tally`]. A Gaussian's slots start with the first view of
+/// the order that sees it, so a Gaussian some chosen view sees has a chosen viewpoint.
+fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> Tally {
     slots
         .par_chunks(per)
         .map(|s| {
@@ -692,11 +936,12 @@ fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> (usize, usi
                 .take_while(|&&u| u != u32::MAX)
                 .filter(|&&u| rank[u as usize] < taken)
                 .count();
-            (
-                usize::from(all > 0),
-                usize::from(chosen == per),
-                usize::from(all > 0 && chosen == all),
-            )
+            Tally {
+                observed: usize::from(all > 0),
+                observed_chosen: usize::from(chosen > 0),
+                full_views: usize::from(chosen == per),
+                covered: usize::from(all > 0 && chosen == all),
+            }
         })
-        .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2))
+        .reduce(Tally::default, |a, b| a + b)
 }

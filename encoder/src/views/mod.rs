@@ -23,8 +23,12 @@ use slag_common::{Error, Result};
 use crate::raster::WeightRasterizer;
 
 pub mod coverage;
+mod observed;
 
-pub use coverage::{CoverageOutcome, CoverageRule, CoverageStop, GreedyStep, ViewCoverage};
+pub use coverage::{
+    CoverageOutcome, CoverageRule, CoverageStop, FloorSource, GreedyStep, ViewCoverage,
+};
+pub use observed::{MIN_OBSERVED_SHARE, check_observed};
 
 /// How the encoded views are chosen among the training views.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -227,6 +231,25 @@ pub fn choose(
     gaussians: &Gaussians,
     rasterizers: &mut [Box<dyn WeightRasterizer>],
 ) -> Result<(Vec<View>, SelectionReport)> {
+    choose_shown(
+        training,
+        selection,
+        gaussians,
+        rasterizers,
+        &indicatif::ProgressBar::hidden(),
+    )
+}
+
+/// [`choose`], the coverage pass's views counted on `progress` ([`coverage::select_shown`]).
+///
+/// Errors: as [`choose`].
+pub fn choose_shown(
+    training: Vec<View>,
+    selection: &ViewSelection,
+    gaussians: &Gaussians,
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    progress: &indicatif::ProgressBar,
+) -> Result<(Vec<View>, SelectionReport)> {
     selection.validate()?;
     let t0 = Instant::now();
     let candidates = training.len();
@@ -237,12 +260,13 @@ pub fn choose(
             None,
         ),
         SelectionMode::Coverage => {
-            let (keep, outcome) = coverage::select(
+            let (keep, outcome) = coverage::select_shown(
                 rasterizers,
                 gaussians,
                 &training,
                 &selection.coverage,
                 selection.count,
+                progress,
             )?;
             (keep, Some(outcome))
         }

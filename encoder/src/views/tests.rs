@@ -43,9 +43,10 @@ fn training() -> (Gaussians, Vec<View>, Vec<View>) {
     (g, training, all)
 }
 
-/// Every view that adds a pair (no stopping rule), at full resolution.
+/// Every view that adds a pair (no stopping rule), at full resolution, at a floor of one pixel.
 fn rule() -> CoverageRule {
     CoverageRule {
+        min_weight: Some(1.0),
         raster_scale: 1.0,
         target: 1.0,
         min_gain: 0.0,
@@ -90,7 +91,9 @@ fn angle(p: DVec3, a: DVec3, b: DVec3) -> f64 {
 fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
     let (g, views, _) = training();
     let r = rule();
+    let floor = r.min_weight.unwrap();
     let cov = coverage::measure(&mut cpu(&g), &views[..2], g.len(), &r).unwrap();
+    assert_eq!(cov.floor(), (floor, FloorSource::Given));
     let mut raster = CpuRasterizer::new(&g);
     let mut footprint = vec![0f64; g.len()];
     for (v, view) in views[..2].iter().enumerate() {
@@ -101,7 +104,7 @@ fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
         for (&id, &wt) in w.ids.iter().zip(&w.weights) {
             total[id as usize] += f64::from(wt);
         }
-        let want: Vec<usize> = (0..g.len()).filter(|&k| total[k] >= r.min_weight).collect();
+        let want: Vec<usize> = (0..g.len()).filter(|&k| total[k] >= floor).collect();
         assert!(!want.is_empty() && want.len() < g.len());
         assert_eq!(cov.seen_by(v), want, "view {}", view.name);
         for &k in &want {
@@ -115,7 +118,7 @@ fn the_pass_keeps_the_gaussians_a_view_gives_enough_weight() {
             "{k}: {f}"
         );
     }
-    assert!(footprint.iter().any(|&f| f > 4.0 * r.min_weight));
+    assert!(footprint.iter().any(|&f| f > 4.0 * floor));
 }
 
 #[test]
@@ -360,4 +363,106 @@ fn uniform_keeps_the_count_asked_for() {
     assert_eq!(c.len(), 5);
     assert_eq!(r.candidates, 36);
     assert!(r.coverage.is_none());
+}
+
+/// A synthetic ring of `views` views of `gaussians` Gaussians on `width × height` images (extent
+/// 10), written to a temporary folder: its Gaussians and views.
+fn ring(gaussians: usize, views: usize, width: u32, height: u32) -> (Gaussians, Vec<View>) {
+    let dir = tempfile::tempdir().unwrap();
+    let p = SyntheticSceneParams {
+        gaussians,
+        views,
+        width,
+        height,
+        extent: 10.0,
+        seed: 3,
+    };
+    write_synthetic_scene(dir.path(), &p).unwrap();
+    let (g, views, _) = SceneInput::new(dir.path(), None, 1).load().unwrap();
+    (g, views)
+}
+
+/// The Gaussians that any of `views` gives any blend weight at the pass's raster `scale`.
+fn any_weight(g: &Gaussians, views: &[View], scale: f64) -> usize {
+    let r = CoverageRule {
+        min_weight: Some(0.0),
+        raster_scale: scale,
+        ..CoverageRule::default()
+    };
+    coverage::measure(&mut cpu(g), views, g.len(), &r)
+        .unwrap()
+        .observed()
+}
+
+#[test]
+fn a_scene_dense_in_gaussians_per_pixel_gets_views_that_observe_most_of_it() {
+    // 40,000 Gaussians seen by a ring of 48 views on 24 × 18 images: about 90 Gaussians to a
+    // pixel, so no Gaussian reaches a pixel of weight in any view.
+    let (g, views) = ring(40_000, 48, 24, 18);
+    let with_floor = |min_weight: Option<f64>| ViewSelection {
+        mode: SelectionMode::Coverage,
+        count: None,
+        coverage: CoverageRule {
+            min_weight,
+            raster_scale: 1.0,
+            ..CoverageRule::default()
+        },
+    };
+    let e = choose(views.clone(), &with_floor(Some(1.0)), &g, &mut cpu(&g)).unwrap_err();
+    assert!(
+        matches!(
+            e,
+            slag_common::Error::Unobserved {
+                stage: slag_common::Observation::CoveragePass,
+                observed: 0,
+                gaussians: 40_000,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    // The scene's own floor: below a pixel, and the chosen views observe nearly every Gaussian
+    // that any view observes.
+    let (chosen, report) = choose(views.clone(), &with_floor(None), &g, &mut cpu(&g)).unwrap();
+    let o = report.coverage.unwrap();
+    assert_eq!(o.floor_source, FloorSource::Median);
+    assert!(o.floor_px > 0.0 && o.floor_px < 1.0, "{}", o.floor_px);
+    let every = any_weight(&g, &views, 1.0);
+    let by_chosen = any_weight(&g, &chosen, 1.0);
+    assert!(
+        !chosen.is_empty() && chosen.len() < views.len(),
+        "{}",
+        chosen.len()
+    );
+    assert!(
+        by_chosen as f64 >= 0.95 * every as f64,
+        "{by_chosen} of {every} by {} views",
+        chosen.len()
+    );
+    assert!(o.observed_chosen <= o.observed && o.observed_chosen > 0);
+}
+
+#[test]
+fn a_scene_sparse_in_gaussians_per_pixel_keeps_the_one_pixel_floor() {
+    // 400 Gaussians on 96 × 72 images: each covers pixels.
+    let (g, views) = ring(400, 24, 96, 72);
+    let scene = ViewSelection::default();
+    let given = ViewSelection {
+        coverage: CoverageRule {
+            min_weight: Some(coverage::DEFAULT_FLOOR_PX),
+            ..CoverageRule::default()
+        },
+        ..ViewSelection::default()
+    };
+    let (a, ra) = choose(views.clone(), &scene, &g, &mut cpu(&g)).unwrap();
+    let (b, rb) = choose(views, &given, &g, &mut cpu(&g)).unwrap();
+    let (oa, ob) = (ra.coverage.unwrap(), rb.coverage.unwrap());
+    assert_eq!(
+        (oa.floor_px, oa.floor_source),
+        (coverage::DEFAULT_FLOOR_PX, FloorSource::Default)
+    );
+    assert_eq!(ob.floor_source, FloorSource::Given);
+    assert_eq!(ra.chosen, rb.chosen);
+    assert_eq!(oa.order, ob.order);
+    assert_eq!(a.len(), b.len());
 }
