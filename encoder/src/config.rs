@@ -450,9 +450,10 @@ pub struct AggregateConfig {
     pub mixture_keep: Option<usize>,
     /// Where the reduction to `E_k` runs (default [`ReduceOn::Auto`]).
     pub reduce_on: ReduceOn,
-    /// Device memory the label sums kept for the device reduction may take, MiB (default
-    /// 16384: 16 B per (Gaussian, label) key of every view).
-    pub device_reduce_memory_mb: usize,
+    /// Device memory the label sums kept for the device reduction may take, MiB (16 B per
+    /// (Gaussian, label) key of every view); `None` (the default): sized from the GPUs' free
+    /// memory at the start ([`crate::pipeline::budget`]).
+    pub device_reduce_memory_mb: Option<usize>,
 }
 
 /// Where the reduction `E_k = Σ a_kj E_j / Σ a_kj` runs (`encode --reduce`). Both give the same
@@ -489,7 +490,7 @@ impl Default for AggregateConfig {
             accumulator_memory_mb: 2048,
             mixture_keep: Some(DEFAULT_MIXTURE_KEEP),
             reduce_on: ReduceOn::Auto,
-            device_reduce_memory_mb: 16384,
+            device_reduce_memory_mb: None,
         }
     }
 }

@@ -339,6 +339,10 @@ pub struct Parameters {
     pub cluster_processes: Option<usize>,
     /// [`crate::config::ClipConfig::crop_fill`].
     pub crop_fill: crate::clip::CropFill,
+    /// The device reduction's memory budget and where it came from (given, or sized from the
+    /// GPUs' free memory at the start, [`crate::pipeline::budget`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub device_reduce_budget: Option<crate::pipeline::budget::DeviceBudget>,
     /// [`crate::config::ExecutionConfig::front_workers`] as asked (`null`: the default).
     pub front_workers: Option<usize>,
     /// [`crate::config::ExecutionConfig::gpus`] in its `Debug` form: `Count(N)` or `All`.

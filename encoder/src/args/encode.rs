@@ -277,9 +277,10 @@ pub struct EncodeArgs {
     #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
     pub reduce: crate::config::ReduceOn,
     /// Device memory for the label sums kept for the GPU reduction, MiB (16 B per Gaussian and
-    /// pixel label of each view).
-    #[arg(long, default_value_t = 16384)]
-    pub device_reduce_memory_mb: usize,
+    /// pixel label of each view). Default: half the least free memory of the GPUs nvidia-smi
+    /// lists at the start, or 16384 where it cannot be read.
+    #[arg(long)]
+    pub device_reduce_memory_mb: Option<usize>,
     /// Stored precision of the embeddings.
     #[arg(long, value_enum, default_value_t = PrecisionArg::F16)]
     pub precision: PrecisionArg,

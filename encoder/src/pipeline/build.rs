@@ -160,6 +160,7 @@ pub fn report_header(c: &EncodeConfig, threads: usize) -> Report {
         parameters: Parameters {
             clip_batch: c.clip.batch,
             crop_fill: c.clip.crop_fill,
+            device_reduce_budget: Some(super::budget::of(c)),
             cluster_addresses: None,
             cluster_processes: None,
             front_workers: e.front_workers,
@@ -223,7 +224,7 @@ pub fn encode_params(c: &EncodeConfig) -> EncodeParams {
             .enabled
             .then_some(slag_common::mask_record::DEFAULT_SLOTS),
         reduce_on: a.reduce_on,
-        device_reduce_budget_bytes: (a.device_reduce_memory_mb as u64) << 20,
+        device_reduce_budget_bytes: super::budget::of(c).bytes,
     }
 }
 

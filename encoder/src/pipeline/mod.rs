@@ -31,6 +31,7 @@ use crate::raster::WeightRasterizer;
 pub use crate::report::WorkerShare;
 use crate::report::{ImageWork, Report};
 
+pub mod budget;
 pub mod build;
 mod encoder;
 mod fallback;
@@ -191,7 +192,8 @@ pub struct EncodeParams {
     pub mask_record_slots: Option<usize>,
     /// Where the reduction runs ([`crate::config::ReduceOn`]).
     pub reduce_on: crate::config::ReduceOn,
-    /// Device memory the label sums kept for the device reduction may take, bytes.
+    /// Device memory the label sums kept for the device reduction may take, bytes
+    /// ([`budget::device_reduce_budget`]).
     pub device_reduce_budget_bytes: u64,
 }
 
