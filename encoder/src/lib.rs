@@ -14,11 +14,11 @@
 //!
 //! Evaluation (colour mIoU, 2D held-out, instance AP50, segment quality) is the crate
 //! `slag-eval` (`eval/`), which depends on this library, never the other way. The `slag-encoder`
-//! binary is the package `slag-encoder-cli` (`encoder/cli/`): its subcommands only turn their
+//! binary is the package `slag-encoder-cli` (`cli/`): its subcommands only turn their
 //! flags into these types and slag-eval's. [`args`] holds the flags that other binaries share
 //! (`encode`'s) and the flag values mapped to the library's types.
 //!
-//! Vector Database and Partitioning lives in its own crate, `slag-shards` (`encoder/shards`):
+//! Vector Database and Partitioning lives in its own crate, `slag-shards` (`shards`):
 //! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
 
 pub mod aggregate;

@@ -115,7 +115,7 @@ fn raster_scale_out_of_range_is_a_clear_error_and_writes_nothing() {
         config.raster.scale = scale;
         let e = encode(config).unwrap_err();
         // The library names the parameter (slag-encoder's hint adds the flag, tested in
-        // encoder/cli/src/hints.rs).
+        // cli/src/hints.rs).
         let err = format!("{e:#}");
         assert!(err.contains("raster_scale"), "{scale}: {err}");
         let param = e

@@ -10,7 +10,7 @@ mod support;
 
 #[test]
 fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
-    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let scene = root.join("data/snowmiku-mini");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let dir = tempfile::tempdir().unwrap();

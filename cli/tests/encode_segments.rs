@@ -11,7 +11,7 @@ use support::{assert_success, slag_encoder};
 
 /// `data/snowmiku-mini` (60k Gaussians, 13 views).
 fn scene() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data/snowmiku-mini")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/snowmiku-mini")
 }
 
 /// `slag-encoder encode` of `scene` into `out` with the default segments (on): graph masks,

@@ -29,7 +29,7 @@ const TIMEOUT: Duration = Duration::from_secs(180);
 /// The encode arguments shared by every run: 7 of the 13 views (all of them encoded), raster
 /// scale 0.25, f32 output.
 fn encode_args(out: &Path) -> Vec<String> {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let mut a: Vec<String> = vec![
         "--scene".into(),

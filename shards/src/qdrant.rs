@@ -24,7 +24,7 @@
 //! `max_per_shard` (the tiling is deterministic), and checked against the manifest's tile counts.
 //!
 //! **Testing status**: CI exercises the client path against a protocol-level test server
-//! (`encoder/shards/tests/qdrant_upsert.rs`) built from `qdrant-client`'s own generated gRPC
+//! (`shards/tests/qdrant_upsert.rs`) built from `qdrant-client`'s own generated gRPC
 //! server traits, which checks every request (collection schema, quantisation, batch sizes, ids,
 //! payload fields, vectors, snapshots); a live server is too heavy for CI. Once, a Qdrant 1.18.3
 //! server built from source took the snowmiku upload (119,792 points, 8 tile collections and

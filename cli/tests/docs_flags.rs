@@ -2,7 +2,7 @@
 
 #[test]
 fn the_manual_shows_only_flags_that_exist_each_with_one_name() {
-    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let exe = env!("CARGO_BIN_EXE_slag-encoder");
     slag_common::doc_flags::assert_no_problems("slag-encoder", exe, &root);
 }
