@@ -29,6 +29,7 @@ pub mod config;
 mod disjoint_sets;
 pub mod distributed;
 pub mod masks;
+mod memory;
 pub mod object_scene;
 pub mod pipeline;
 pub mod prediction_filtering;

@@ -179,33 +179,6 @@ pub struct QueueStats {
     pub largest_item_bytes: u64,
 }
 
-/// The process's peak resident set size (`VmHWM`), bytes, on Linux; `None` elsewhere.
-pub fn peak_rss_bytes() -> Option<u64> {
-    proc_status_bytes("VmHWM:")
-}
-
-/// The process's resident set size now (`VmRSS`), bytes, on Linux; `None` elsewhere.
-pub fn rss_bytes() -> Option<u64> {
-    proc_status_bytes("VmRSS:")
-}
-
-/// A `kB` field of /proc/self/status (`key` with its colon), bytes.
-fn proc_status_bytes(key: &str) -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with(key))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
-}
-
-/// Logs the resident set size now as a debug line (target `slag_encoder::memory`) after `stage` (nothing unless that
-/// target's debug log is on): where a long run's memory goes, stage by stage.
-pub fn log_rss(stage: &str) {
-    if tracing::enabled!(target: "slag_encoder::memory", tracing::Level::DEBUG) {
-        let gib = rss_bytes().map_or(f64::NAN, |b| b as f64 / f64::from(1u32 << 30));
-        tracing::debug!(target: "slag_encoder::memory", stage, rss_gib = format!("{gib:.2}"), "resident memory");
-    }
-}
-
 /// The whole report.
 ///
 /// Every section is a struct; fields are declared in alphabetical order, the order in which

@@ -215,7 +215,7 @@ pub(super) fn assemble(
         spilled_images: g.parts.iter().map(|s| s.spilled).sum::<u64>() as usize,
         reduce_chunks: g.parts.iter().map(|s| s.chunks).sum::<u64>() as usize,
         // Process 0's own peak (it assembles the output); the others report none.
-        peak_rss_bytes: crate::report::peak_rss_bytes(),
+        peak_rss_bytes: slag_common::util::peak_rss_bytes(),
         ..Default::default()
     };
     work.fill(&mut timings, &mut counts);

@@ -147,7 +147,7 @@ pub(crate) fn finish(
         reduce_fallback,
         retired: _,
     } = pooled;
-    crate::report::log_rss("encode: every view");
+    crate::memory::log_rss("encode: every view");
     report.view_selection = Some(selection);
     report.workers = workers;
     record_models(
@@ -176,7 +176,7 @@ pub(crate) fn finish(
     // Every device that reduced is among the spent rasterizers (none when the host reduced).
     counts.device_reduce_gpus = tail.spent.len();
     let spent = let_go(std::mem::take(&mut tail.spent));
-    crate::report::log_rss("encode: reduction");
+    crate::memory::log_rss("encode: reduction");
     counts.spilled_images = store.spilled();
     record_reduction(&tail, reduce_fallback, n_gaussians, &mut t, &mut counts);
     crate::views::check_observed(report.view_selection.as_ref(), tail.observed, n_gaussians)
@@ -188,7 +188,7 @@ pub(crate) fn finish(
     let t0 = Instant::now();
     let mix_path = write_forms(&out, tail.writer, mixture.as_ref())?;
     t.write = tail.write_s + t0.elapsed().as_secs_f64();
-    crate::report::log_rss("encode: written");
+    crate::memory::log_rss("encode: written");
     if let Ok(seconds) = spent.join() {
         tracing::debug!(target: "slag_encoder::pipeline", seconds, "rasterizers let go");
     }
@@ -244,7 +244,7 @@ fn build_mixture(
         .map(slag_common::mixture::MixtureEmbeddings::from_sparse)
         .transpose()?;
     let mixture_s = gather_s + t0.elapsed().as_secs_f64();
-    crate::report::log_rss("encode: mixture built");
+    crate::memory::log_rss("encode: mixture built");
     Ok((mixture, mixture_s))
 }
 
@@ -259,7 +259,7 @@ fn record_totals(
     t_total: Instant,
 ) {
     t.total = t_total.elapsed().as_secs_f64();
-    counts.peak_rss_bytes = crate::report::peak_rss_bytes();
+    counts.peak_rss_bytes = slag_common::util::peak_rss_bytes();
     counts.queue = Some(queue);
     // The header carries what was timed before the pool started: the models' set-up.
     t.models = report.timings.models;

@@ -127,7 +127,7 @@ use slag_common::segments::canonical_ids;
 use slag_common::{Error, Result};
 
 use crate::check::require;
-use crate::report::log_rss;
+use crate::memory::log_rss;
 use graph::{neighbour_graph, resolve_max_edge, slot_geometry};
 use passes::merge;
 use tiles::plan_tiles;

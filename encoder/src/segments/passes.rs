@@ -362,7 +362,7 @@ pub(super) fn merge(
         return (None, 0, 0);
     };
     st.tile_passes = clock.elapsed().as_secs_f64();
-    crate::report::log_rss("segments: tile passes");
+    crate::memory::log_rss("segments: tile passes");
     let clock = Instant::now();
     forest.border_pass_in(&border, &met, p.threshold, regions.as_mut());
     st.criterion += clock.elapsed().as_secs_f64();
