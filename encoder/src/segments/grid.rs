@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 use super::SegmentControl;
-use super::graph::{NO_NEIGHBOUR, Ranked};
+use super::neighbours::{NO_NEIGHBOUR, Ranked};
 
 /// Cells per axis at most: a cell's coordinates fit 21 bits of its 63-bit key.
 const AXIS_CELLS: f64 = (1u64 << 21) as f64 - 2.0;
@@ -51,7 +51,7 @@ fn cell_of(m: &[f32; 3], origin: &[f64; 3], side: f64) -> [i64; 3] {
 
 /// A cell's key: its three 21-bit coordinates interleaved bit by bit (a Morton, or Z-order,
 /// code), so that the cells sorted by key keep cells near in space near in the order: the
-/// means in cell order are the segmentation's space order ([`super::graph::Ranked`]).
+/// means in cell order are the segmentation's space order ([`super::neighbours::Ranked`]).
 fn key(c: [i64; 3]) -> u64 {
     (0..3).fold(0, |k, a| k | (spread(c[a] as u64) << a))
 }

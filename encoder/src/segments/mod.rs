@@ -104,6 +104,7 @@
 mod forest;
 mod graph;
 mod grid;
+mod neighbours;
 mod passes;
 #[cfg(test)]
 mod reference;
@@ -490,7 +491,7 @@ pub fn segment_with(
 struct BeforeRecord {
     max_edge: f32,
     tiles: usize,
-    nb: graph::Ranked,
+    nb: neighbours::Ranked,
     geometric: Vec<f32>,
     ranks: graph::TileMembers,
     ids: graph::TileMembers,

@@ -15,7 +15,8 @@ use slag_common::segments::canonical_ids;
 
 use super::SegmentParams;
 use super::forest::Forest;
-use super::graph::{NO_NEIGHBOUR, Neighbours, resolve_max_edge};
+use super::graph::resolve_max_edge;
+use super::neighbours::{NO_NEIGHBOUR, Neighbours};
 use super::regions::Regions;
 use super::weights::{Edge, Geometry, Weigher, distance, geometry};
 

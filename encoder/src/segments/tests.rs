@@ -1,7 +1,7 @@
 #![allow(clippy::unwrap_used)]
 
 use super::forest::Forest;
-use super::graph::NO_NEIGHBOUR;
+use super::neighbours::NO_NEIGHBOUR;
 use super::reference;
 use super::regions::{PROFILE_CAP, merge_profiles, region_disagreement};
 use super::weights::Edge;
