@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use super::image::ImageMask;
+use super::image_mask::ImageMask;
 use crate::masks::compact::CompactMask;
 
 /// Every mask of an image eroded by `radius` image pixels ([`erode_mask`]), in order, in

@@ -6,90 +6,9 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use slag_common::{Error, Result};
 
+use super::image_mask::ImageMask;
 use crate::masks::Mask;
-use crate::masks::compact::CompactMask;
 use crate::raster::{LabelSums, PixelWeights};
-
-/// What the image stage reads of a mask at its image's full resolution: its size, box, area and
-/// SAM scores, and which pixels of a row are inside. Implemented by [`Mask`] (a byte per pixel)
-/// and [`CompactMask`] (runs), which give the same answers, so that the labels of an image are
-/// made from the compact masks without expanding them.
-pub trait ImageMask: Sync {
-    /// `(width, height)` of the mask's image, pixels.
-    fn size(&self) -> (u32, u32);
-    /// As [`Mask::bbox_xywh`].
-    fn bbox_xywh(&self) -> [u32; 4];
-    /// As [`Mask::area`].
-    fn area(&self) -> u32;
-    /// As [`Mask::predicted_iou`] and [`Mask::stability_score`].
-    fn scores(&self) -> (f32, f32);
-    /// Calls `hit(x)` for each `(x, sx)` of `cols` (`sx` ascending, `< width`) whose pixel
-    /// `(sx, sy)` is inside the mask (`sy < height`).
-    fn row_hits(&self, sy: u32, cols: impl Iterator<Item = (usize, u32)>, hit: impl FnMut(usize));
-}
-
-/// The metadata accessors of [`ImageMask`], the same fields on [`Mask`] and [`CompactMask`].
-macro_rules! image_mask_fields {
-    () => {
-        fn size(&self) -> (u32, u32) {
-            (self.width, self.height)
-        }
-        fn bbox_xywh(&self) -> [u32; 4] {
-            self.bbox_xywh
-        }
-        fn area(&self) -> u32 {
-            self.area
-        }
-        fn scores(&self) -> (f32, f32) {
-            (self.predicted_iou, self.stability_score)
-        }
-    };
-}
-
-impl ImageMask for Mask {
-    image_mask_fields!();
-    fn row_hits(
-        &self,
-        sy: u32,
-        cols: impl Iterator<Item = (usize, u32)>,
-        mut hit: impl FnMut(usize),
-    ) {
-        let row = sy as usize * self.width as usize;
-        for (x, sx) in cols {
-            if self.pixels.get(row + sx as usize).is_some_and(|&v| v != 0) {
-                hit(x);
-            }
-        }
-    }
-}
-
-impl ImageMask for CompactMask {
-    image_mask_fields!();
-    fn row_hits(
-        &self,
-        sy: u32,
-        cols: impl Iterator<Item = (usize, u32)>,
-        mut hit: impl FnMut(usize),
-    ) {
-        // Runs are ascending and never cross a row end: walk the row's runs with the columns.
-        let row = u64::from(sy) * u64::from(self.width);
-        let mut r = self
-            .runs
-            .partition_point(|&(start, len)| u64::from(start) + u64::from(len) <= row);
-        for (x, sx) in cols {
-            let p = row + u64::from(sx);
-            while r < self.runs.len() && u64::from(self.runs[r].0) + u64::from(self.runs[r].1) <= p
-            {
-                r += 1;
-            }
-            match self.runs.get(r) {
-                Some(&(start, _)) if u64::from(start) <= p => hit(x),
-                Some(_) => {}
-                None => break,
-            }
-        }
-    }
-}
 
 /// One non-zero `a_kj` of an image: Gaussian `gaussian` received total blend weight `weight`
 /// (units: pixels at the raster resolution) inside mask `mask`.
@@ -609,6 +528,7 @@ mod expand_tests {
     use std::collections::BTreeMap;
 
     use super::*;
+    use crate::masks::compact::CompactMask;
     use crate::raster::LabelSum;
 
     /// A small deterministic generator (xorshift), so the test needs no seed crate.

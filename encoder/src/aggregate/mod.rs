@@ -27,6 +27,7 @@
 
 pub mod erode;
 pub mod image;
+pub mod image_mask;
 pub mod levels;
 pub mod mixture;
 pub mod reduce;
@@ -34,9 +35,10 @@ pub mod robust;
 pub mod store;
 
 pub use image::{
-    Entry, ImageContribution, ImageMask, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
+    Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels, stage_labels,
 };
+pub use image_mask::ImageMask;
 pub use mixture::{
     StreamedMixture, reduce_mixture, reduce_mixture_chunks, reduce_to_writer_with_mixture,
 };

@@ -23,7 +23,7 @@ use slag_common::embeddings::StoredPrecision;
 use slag_common::scene::{self, Gaussians, PlyLoadOptions};
 use slag_common::{Error, Result};
 
-use crate::aggregate::image::ImageMask;
+use crate::aggregate::ImageMask;
 use crate::aggregate::{self, ImageContribution, ImageStageParams, ReduceParams};
 use crate::masks::compact::CompactMask;
 use crate::masks::{Mask, MaskGenerator};
