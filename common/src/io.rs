@@ -1,4 +1,5 @@
-//! File writing shared by every format: a whole file written atomically, and folder syncs.
+//! File writing shared by every format: a whole file written atomically, a stale file of an
+//! earlier run removed, and folder syncs.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -14,6 +15,17 @@ use crate::{Error, Result};
 /// Errors: [`Error::Io`] naming the file or folder that failed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_parts(path, &[bytes])
+}
+
+/// Removes `path` if it exists: a file of an earlier run that this run does not write (a level
+/// file, the mixture) must not sit beside this run's report.
+///
+/// Errors: [`Error::Io`] naming the file.
+pub fn remove_stale(path: &Path) -> Result<()> {
+    if path.exists() {
+        std::fs::remove_file(path).map_err(|e| Error::io(path, e))?;
+    }
+    Ok(())
 }
 
 /// [`write_atomic`] of the concatenation of `parts`, written one after the other through a

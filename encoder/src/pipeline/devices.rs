@@ -15,7 +15,7 @@ use std::time::Instant;
 use slag_common::mixture::SparseMixture;
 use slag_common::{Error, Result};
 
-use super::finish::{ReducedOutputs, TailInputs, dense_writer, reduce_on_device};
+use super::reduction::{ReducedOutputs, TailInputs, dense_writer, reduce_on_device};
 use crate::raster::{KeptExport, KeptRangeCursor, WeightRasterizer};
 
 /// Bytes of kept records in one batch of an exchange between devices ([`exchange_kept`]). A

@@ -38,6 +38,7 @@ mod fallback;
 pub(crate) mod devices;
 pub(crate) mod finish;
 pub(crate) mod pool;
+mod reduction;
 pub(crate) mod scene_load;
 pub(crate) mod segment_task;
 
