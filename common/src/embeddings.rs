@@ -161,10 +161,10 @@ impl Embeddings {
     ///
     /// Errors: not a safetensors file, another format or version, missing tensors, shapes that
     /// disagree; the mixture file given, or a missing file with the mixture beside it
-    /// ([`crate::forms::dense_file_needed`]); each names the file.
+    /// ([`crate::mixture::dense_file_needed`]); each names the file.
     pub fn read(path: &Path) -> Result<Embeddings> {
         // The mixture given, or only the mixture written: say how to get the dense file.
-        if let Some(e) = crate::forms::dense_file_needed(path) {
+        if let Some(e) = crate::mixture::dense_file_needed(path) {
             return Err(e);
         }
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;

@@ -7,13 +7,14 @@
 //! (`--dense`). A command that needs `E_k` rows reads either form with [`read_rows`] (the
 //! mixture is expanded row by row, [`expand_mixture`]); one that needs the dense file's own
 //! columns (`Σ a_kj`) reads it with [`Embeddings::read`], which says how to get it
-//! ([`dense_file_needed`]) when it is given the mixture or finds only the mixture.
+//! ([`crate::mixture::dense_file_needed`]) when it is given the mixture or finds only the mixture.
 
-use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::embeddings::Embeddings;
 use crate::mixture::MixtureEmbeddings;
+pub use crate::mixture::mixture_beside;
+use crate::safetensors_io;
 use crate::{Error, Result};
 
 /// Which form an embeddings file holds (its `format` metadata).
@@ -25,40 +26,22 @@ pub enum EmbeddingsForm {
     Mixture,
 }
 
-/// Largest safetensors header read by [`form_of`], bytes (the encoder's headers are a few KiB).
-const MAX_HEADER: u64 = 100 << 20;
-
 /// The form of the file at `path`, from its safetensors header alone (a 31 GB dense file is not
 /// read).
 ///
 /// Errors ([`Error::Format`] naming `path`): not a safetensors file, neither slag form;
 /// [`Error::Io`]: unreadable.
 pub fn form_of(path: &Path) -> Result<EmbeddingsForm> {
-    let bad = |m: String| Error::format(path, m);
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len)
-        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
-    let n = u64::from_le_bytes(len);
-    if n > MAX_HEADER {
-        return Err(bad(format!("not a safetensors file (header of {n} bytes)")));
-    }
-    let mut header = vec![0u8; n as usize];
-    f.read_exact(&mut header)
-        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
-    let json: serde_json::Value = serde_json::from_slice(&header)
-        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
-    let format = json
-        .get("__metadata__")
-        .and_then(|m| m.get("format"))
-        .and_then(|f| f.as_str());
-    match format {
+    match safetensors_io::metadata_format(path)?.as_deref() {
         Some(crate::embeddings::FORMAT) => Ok(EmbeddingsForm::Dense),
         Some(crate::mixture::FORMAT) => Ok(EmbeddingsForm::Mixture),
-        other => Err(bad(format!(
-            "neither slag embeddings form (metadata format {other:?}): pass the encoder's \
-             mixture.safetensors or embeddings.safetensors"
-        ))),
+        other => Err(Error::format(
+            path,
+            format!(
+                "neither slag embeddings form (metadata format {other:?}): pass the encoder's \
+                 mixture.safetensors or embeddings.safetensors"
+            ),
+        )),
     }
 }
 
@@ -110,39 +93,6 @@ pub fn read_rows(path: &Path) -> Result<Embeddings> {
         EmbeddingsForm::Dense => Embeddings::read(path),
         EmbeddingsForm::Mixture => Ok(expand_mixture(&MixtureEmbeddings::read(path)?)),
     }
-}
-
-/// `mixture.safetensors` beside `path` (the encoder writes both into one folder).
-pub fn mixture_beside(path: &Path) -> PathBuf {
-    path.with_file_name("mixture.safetensors")
-}
-
-/// The error for a command that reads the dense file at `path` when that file is not there or
-/// is the mixture: what the encoder wrote instead and how to get the dense file. `None` when
-/// neither applies (the caller's own error stands).
-pub fn dense_file_needed(path: &Path) -> Option<Error> {
-    let is_mixture = path.exists() && form_of(path).ok() == Some(EmbeddingsForm::Mixture);
-    let beside = mixture_beside(path);
-    let mixture_here = !path.exists() && beside.is_file();
-    (is_mixture || mixture_here).then(|| {
-        let what = if is_mixture {
-            "this is the mixture form of the embeddings".to_string()
-        } else {
-            format!(
-                "no dense embeddings file here; the encode wrote the mixture form, {}",
-                beside.display()
-            )
-        };
-        Error::format(
-            path,
-            format!(
-                "{what}, and this step reads the dense embeddings.safetensors: re-run \
-                 `slag-encoder encode` with --dense (it writes the dense file beside the \
-                 mixture), or use a command that takes the mixture (partition, query, \
-                 eval-objects)"
-            ),
-        )
-    })
 }
 
 #[cfg(test)]

@@ -29,7 +29,7 @@
 //! Metadata (`__metadata__`, strings): `format = "slag-mixture"`, `version = "1"`, `dim`,
 //! `model_id` (CLIP visual model id), `keep` (S).
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use half::f16;
@@ -58,6 +58,44 @@ const KIND: FileKind = FileKind {
 pub const UNUSED: u32 = u32::MAX;
 /// Largest weight magnitude the f16 file can hold (`f16::MAX`, 65504).
 pub const MAX_WEIGHT: f32 = 65504.0;
+
+/// `mixture.safetensors` beside `path` (the encoder writes both into one folder).
+pub fn mixture_beside(path: &Path) -> PathBuf {
+    path.with_file_name("mixture.safetensors")
+}
+
+/// The error for a command that reads the dense file at `path` ([`crate::embeddings`]) when that
+/// file is not there or is the mixture: what the encoder wrote instead and how to get the dense
+/// file. `None` when neither applies (the caller's own error stands).
+pub fn dense_file_needed(path: &Path) -> Option<Error> {
+    let is_mixture = path.exists()
+        && safetensors_io::metadata_format(path)
+            .ok()
+            .flatten()
+            .as_deref()
+            == Some(FORMAT);
+    let beside = mixture_beside(path);
+    let mixture_here = !path.exists() && beside.is_file();
+    (is_mixture || mixture_here).then(|| {
+        let what = if is_mixture {
+            "this is the mixture form of the embeddings".to_string()
+        } else {
+            format!(
+                "no dense embeddings file here; the encode wrote the mixture form, {}",
+                beside.display()
+            )
+        };
+        Error::format(
+            path,
+            format!(
+                "{what}, and this step reads the dense embeddings.safetensors: re-run \
+                 `slag-encoder encode` with --dense (it writes the dense file beside the \
+                 mixture), or use a command that takes the mixture (partition, query, \
+                 eval-objects)"
+            ),
+        )
+    })
+}
 
 /// Rounds to the nearest f16 value (what the file stores), returned as f32.
 fn round_f16(v: f32) -> f32 {

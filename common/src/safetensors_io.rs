@@ -4,6 +4,7 @@
 //! do.
 
 use std::collections::HashMap;
+use std::io::Read;
 use std::path::Path;
 
 use half::f16;
@@ -12,6 +13,36 @@ use safetensors::tensor::{Dtype, TensorView};
 
 use crate::io::write_atomic_parts;
 use crate::{Error, Result};
+
+/// Largest safetensors header read by [`metadata_format`], bytes (the encoder's headers are a
+/// few KiB).
+const MAX_HEADER: u64 = 100 << 20;
+
+/// The `format` of the safetensors file at `path`'s `__metadata__` (`None`: no such entry), from
+/// its header alone (a 31 GB dense file is not read).
+///
+/// Errors ([`Error::Format`] naming `path`): not a safetensors file; [`Error::Io`]: unreadable.
+pub(crate) fn metadata_format(path: &Path) -> Result<Option<String>> {
+    let bad = |m: String| Error::format(path, m);
+    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len)
+        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
+    let n = u64::from_le_bytes(len);
+    if n > MAX_HEADER {
+        return Err(bad(format!("not a safetensors file (header of {n} bytes)")));
+    }
+    let mut header = vec![0u8; n as usize];
+    f.read_exact(&mut header)
+        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
+    let json: serde_json::Value = serde_json::from_slice(&header)
+        .map_err(|e| bad(format!("not a safetensors file ({e})")))?;
+    Ok(json
+        .get("__metadata__")
+        .and_then(|m| m.get("format"))
+        .and_then(|f| f.as_str())
+        .map(str::to_owned))
+}
 
 /// What a slag safetensors file must declare in its `__metadata__`, and the words its errors use.
 pub(crate) struct FileKind {
