@@ -10,6 +10,8 @@
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 
+use crate::flag_names::help_subcommands;
+
 /// One command line of a binary as a page shows it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ShownCommand {
@@ -242,16 +244,6 @@ pub fn assert_no_problems(binary: &str, exe: &str, root: &Path) {
 pub fn help_flags(help: &str) -> BTreeSet<String> {
     help.split(|c: char| c.is_whitespace() || c == ',' || c == '[' || c == '(')
         .filter_map(flag_name)
-        .collect()
-}
-
-/// The subcommands a top-level `--help` text lists under `Commands:`.
-pub fn help_subcommands(help: &str) -> BTreeSet<String> {
-    help.lines()
-        .skip_while(|l| !l.trim_start().starts_with("Commands:"))
-        .skip(1)
-        .take_while(|l| !l.trim().is_empty())
-        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
         .collect()
 }
 

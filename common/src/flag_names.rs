@@ -13,7 +13,7 @@
 //!
 //! The table is the same for the three binaries, so a concept keeps one name across them.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 /// A thing that several subcommands or binaries name on the command line.
 #[derive(Debug, Clone, Copy)]
@@ -145,6 +145,16 @@ fn option_line(line: &str) -> Option<(String, Option<String>)> {
     (!long.is_empty()).then(|| (format!("--{long}"), value))
 }
 
+/// The subcommands a top-level `--help` text lists under `Commands:`.
+pub fn help_subcommands(help: &str) -> BTreeSet<String> {
+    help.lines()
+        .skip_while(|l| !l.trim_start().starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| !l.trim().is_empty())
+        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
+        .collect()
+}
+
 /// Every flag of every subcommand of a binary: `help(args)` returns the binary's output for
 /// `args` (`["--help"]`, `["serve", "--help"]`), `None` when it exits with an error.
 ///
@@ -161,7 +171,7 @@ pub fn list(
             value,
         })
         .collect();
-    for sub in crate::doc_flags::help_subcommands(&top) {
+    for sub in help_subcommands(&top) {
         if sub == "help" {
             continue;
         }
