@@ -1,0 +1,315 @@
+//! Step 4 of a fetch: the downloads, [`super::FetchParams::jobs`] at a time, each retried after a
+//! transient failure, verified and committed into the store.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use futures_util::{StreamExt, TryStreamExt};
+use indicatif::ProgressBar;
+use slag_common::fault::boundary;
+use slag_common::shards::{CODEBOOK_TILE, Manifest, TileInfo};
+use slag_common::{Error, Result};
+use tokio::io::AsyncWriteExt;
+
+use super::client::{Attempt, net_error, permanent, status_error, transient, url_join};
+use super::resume::{open_partial, partial_prefix, write_chunk};
+use super::{FetchParams, FetchSummary};
+use crate::store::EdgeStore;
+
+/// Bytes of one tile: received over the network in this run, and shown in the progress bar.
+#[derive(Default)]
+pub(super) struct Counts {
+    received: u64,
+    shown: u64,
+}
+
+/// What every download of one fetch shares: the HTTP client, the store, the manifest, the
+/// fetch's parameters (server, token, retries, jobs, trusted key) and the progress bar.
+pub(super) struct Downloads<'a> {
+    pub(super) client: &'a reqwest::Client,
+    pub(super) store: &'a EdgeStore,
+    pub(super) manifest: Arc<Manifest>,
+    pub(super) p: &'a FetchParams,
+    pub(super) pb: ProgressBar,
+}
+
+impl Downloads<'_> {
+    /// Step 4 of the module doc: the codebook first (when `codebook` is due), then the shards of
+    /// `todo`, [`FetchParams::jobs`] at a time; counts what was downloaded in `summary`. On a
+    /// failure every download still finishes, the store is flushed and the first error returned.
+    ///
+    /// Errors: as [`Self::tile`]; store I/O.
+    pub(super) async fn run(
+        &self,
+        codebook: Option<TileInfo>,
+        todo: Vec<TileInfo>,
+        summary: &mut FetchSummary,
+    ) -> Result<()> {
+        if let Some(t) = &codebook {
+            match self.tile(t).await {
+                Ok((_, received)) => summary.bytes_received += received,
+                Err(e) => {
+                    self.pb.finish_and_clear();
+                    self.store.flush()?;
+                    return Err(e);
+                }
+            }
+        }
+        let results: Vec<Result<(bool, u64)>> = futures_util::stream::iter(
+            todo.into_iter().map(|t| async move { self.tile(&t).await }),
+        )
+        .buffer_unordered(self.p.jobs)
+        .collect()
+        .await;
+        self.pb.finish_and_clear();
+        let mut first_error = None;
+        for r in results {
+            match r {
+                Ok((resumed, received)) => {
+                    summary.downloaded += 1;
+                    summary.resumed += resumed as usize;
+                    summary.bytes_received += received;
+                }
+                Err(e) => {
+                    first_error.get_or_insert(e);
+                }
+            }
+        }
+        if let Some(e) = first_error {
+            self.store.flush()?;
+            return Err(e);
+        }
+        Ok(())
+    }
+
+    /// Downloads one tile with retries (transient failures, [`FetchParams::retries`] times with
+    /// a growing wait) and commits it verified; a file that fails verification is downloaded
+    /// once more. Returns `(resumed, bytes received)`.
+    ///
+    /// Errors: the server ([`Error::Network`] after the retries, or at once when not transient),
+    /// a file rejected twice ([`Error::Format`]), store I/O.
+    async fn tile(&self, tile: &TileInfo) -> Result<(bool, u64)> {
+        let url = self.tile_url(tile);
+        let part = self.store.partial_path(&self.manifest.scene_id, tile);
+        self.set_aside_non_file(&part).await?;
+        let mut counts = Counts::default();
+        let mut resumed = false;
+        let mut attempt = 0u32;
+        let mut verify_failures = 0u32;
+        loop {
+            let to = TileFetch {
+                url: &url,
+                part: &part,
+                tile,
+            };
+            match self.try_download(&to, &mut counts).await {
+                Ok(r) => {
+                    resumed |= r;
+                    match self.commit(tile, &part).await? {
+                        Ok(()) => return Ok((resumed, counts.received)),
+                        Err(Error::Format { path, message }) => {
+                            // Corrupted in transit or on disk: start this shard over once.
+                            let _ = tokio::fs::remove_file(&part).await;
+                            verify_failures += 1;
+                            if verify_failures > 1 {
+                                return Err(Error::Format {
+                                    path,
+                                    message: format!(
+                                        "{message}; downloaded twice, rejected twice: the \
+                                         server's copy disagrees with its manifest"
+                                    ),
+                                });
+                            }
+                            tracing::warn!("{}: {message}; downloading again", path.display());
+                        }
+                        Err(e) => return Err(e),
+                    }
+                }
+                Err(a) if a.transient && attempt < self.p.retries => {
+                    attempt += 1;
+                    let wait = Duration::from_millis(200 * 2u64.pow(attempt.min(6)));
+                    tracing::warn!(
+                        "{} (retry {attempt}/{} in {wait:?})",
+                        a.error,
+                        self.p.retries
+                    );
+                    tokio::time::sleep(wait).await;
+                }
+                Err(a) => return Err(a.error),
+            }
+        }
+    }
+
+    /// Whether `tile` is the codebook of a mixture scene, which travels as a pseudo tile
+    /// ([`crate::store::codebook_tile`]): its own URL and verification.
+    fn is_codebook(&self, tile: &TileInfo) -> bool {
+        self.manifest.mixture.is_some() && tile.id == CODEBOOK_TILE
+    }
+
+    /// The URL of `tile` (or of the codebook) on the shard server.
+    fn tile_url(&self, tile: &TileInfo) -> String {
+        let scene = &self.manifest.scene_id;
+        if self.is_codebook(tile) {
+            url_join(&self.p.server, &format!("v1/scenes/{scene}/codebook"))
+        } else {
+            url_join(
+                &self.p.server,
+                &format!("v1/scenes/{scene}/shards/{}", tile.id),
+            )
+        }
+    }
+
+    /// Sets aside a folder (or anything but a plain file) where the partial file `part` belongs.
+    ///
+    /// Errors: store I/O; a failed task ([`Error::Internal`]).
+    async fn set_aside_non_file(&self, part: &Path) -> Result<()> {
+        if let Ok(m) = tokio::fs::symlink_metadata(part).await
+            && !m.is_file()
+        {
+            let (store, part) = (self.store.clone(), part.to_path_buf());
+            tokio::task::spawn_blocking(move || {
+                store.set_aside(&part, "not a partial download file")
+            })
+            .await
+            .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
+        }
+        Ok(())
+    }
+
+    /// Verifies the complete partial file `part` of `tile` and moves it into the store (on the
+    /// blocking pool; hashes too with a trusted key). The outer error is a failed task, the
+    /// inner one the commit's ([`Error::Format`] for a file that fails verification).
+    ///
+    /// Errors: [`Error::Internal`] when the task fails.
+    async fn commit(&self, tile: &TileInfo, part: &Path) -> Result<Result<()>> {
+        let is_codebook = self.is_codebook(tile);
+        let signed = self.p.trusted_key.is_some();
+        let (store, manifest, tile, part) = (
+            self.store.clone(),
+            self.manifest.clone(),
+            tile.clone(),
+            part.to_path_buf(),
+        );
+        tokio::task::spawn_blocking(move || {
+            if is_codebook {
+                store.commit_codebook_partial_checked(&manifest, &part, signed)
+            } else {
+                store.commit_partial_checked(&manifest, &tile, &part, signed)
+            }
+        })
+        .await
+        .map_err(|e| Error::internal(format!("store task failed: {e}")))
+    }
+
+    /// One HTTP attempt: continues `to.part` if it holds a prefix, otherwise starts over. On
+    /// success the file holds exactly `to.tile.bytes` bytes (synced). Returns whether a `Range`
+    /// request was honoured.
+    async fn try_download(
+        &self,
+        to: &TileFetch<'_>,
+        counts: &mut Counts,
+    ) -> std::result::Result<bool, Attempt> {
+        let tile = to.tile;
+        let have = partial_prefix(to.part, tile).await?;
+        if have == tile.bytes && have > 0 {
+            return Ok(false);
+        }
+        let mut req = self.client.get(to.url);
+        if let Some(t) = self.p.token.as_deref() {
+            req = req.bearer_auth(t);
+        }
+        if have > 0 {
+            req = req
+                .header(reqwest::header::RANGE, format!("bytes={have}-"))
+                .header(reqwest::header::IF_RANGE, format!("\"{}\"", tile.checksum));
+        }
+        let resp = req.send().await.map_err(|e| net_error(to.url, e))?;
+        let Some((file, start, resumed)) = open_partial(&resp, to, have).await? else {
+            let status = resp.status();
+            let body = resp.text().await.unwrap_or_default();
+            return Err(status_error(to.url, status, &body));
+        };
+        // Keep the bar at "bytes of this tile on disk" across resumes and restarts.
+        if start >= counts.shown {
+            self.pb.inc(start - counts.shown);
+        } else {
+            self.pb
+                .set_position(self.pb.position().saturating_sub(counts.shown - start));
+        }
+        counts.shown = start;
+        self.receive(resp, file, to, start, counts).await?;
+        Ok(resumed)
+    }
+
+    /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`), then flushes
+    /// and syncs it. Past the manifest's size the file is removed and the attempt starts over;
+    /// a write that fails (disk full) removes it too, never left to fill the disk further; a
+    /// body cut short keeps what arrived for the next attempt to resume.
+    async fn receive(
+        &self,
+        resp: reqwest::Response,
+        mut file: tokio::fs::File,
+        to: &TileFetch<'_>,
+        start: u64,
+        counts: &mut Counts,
+    ) -> std::result::Result<(), Attempt> {
+        let (url, part, tile) = (to.url, to.part, to.tile);
+        let io = |e: std::io::Error| permanent(Error::io(part, e));
+        let mut written = start;
+        let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
+        while let Some(chunk) = stream.next().await {
+            let chunk = match chunk {
+                Ok(c) => c,
+                Err(a) => {
+                    let _ = file.flush().await;
+                    let _ = file.sync_data().await;
+                    return Err(a);
+                }
+            };
+            written += chunk.len() as u64;
+            if written > tile.bytes {
+                drop(file);
+                let _ = tokio::fs::remove_file(part).await;
+                return Err(transient(Error::network(
+                    url,
+                    format!(
+                        "more than the manifest's {} bytes; starting over",
+                        tile.bytes
+                    ),
+                )));
+            }
+            if let Err(e) = write_chunk(&mut file, &chunk).await {
+                // The disk is full or failing: the partial file is removed (with those of the
+                // rest of the scene, by `fetch`), never left to fill the disk further.
+                drop(file);
+                let _ = tokio::fs::remove_file(part).await;
+                return Err(io(e));
+            }
+            boundary("fetch.partial:write");
+            counts.received += chunk.len() as u64;
+            counts.shown += chunk.len() as u64;
+            self.pb.inc(chunk.len() as u64);
+        }
+        file.flush().await.map_err(io)?;
+        file.sync_data().await.map_err(io)?;
+        boundary("fetch.partial:fsync");
+        if written != tile.bytes {
+            return Err(transient(Error::network(
+                url,
+                format!(
+                    "connection closed after {written} of {} bytes; will resume",
+                    tile.bytes
+                ),
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// One tile's download: where from, where to, what it must be.
+pub(super) struct TileFetch<'a> {
+    pub(super) url: &'a str,
+    pub(super) part: &'a Path,
+    pub(super) tile: &'a TileInfo,
+}
