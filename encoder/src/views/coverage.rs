@@ -42,7 +42,9 @@
 //! **The greedy.** Each step takes the view that adds the most footprint over its new (Gaussian,
 //! distinct viewpoint) pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain
 //! never grows as views are chosen, so re-evaluating only the top is exact). It runs until no
-//! view adds a pair. Gains are integer sums of the fixed-point footprints, so the order is the
+//! view adds a pair, or, without a [`CoverageRule::target`] below 1, until the first view the
+//! stopping rule refuses (below): the gains only fall, so no later view would be kept, and on a
+//! ring of a thousand near-duplicate views most of the order lies past that point. Gains are integer sums of the fixed-point footprints, so the order is the
 //! same for any thread count.
 //!
 //! **The stopping rule.** Every view costs the encode the same (its masks, crops and raster),
@@ -417,9 +419,13 @@ struct Pass<'a> {
 }
 
 impl Pass<'_> {
-    /// Rasterizes the views at positions `which` on `rasterizers` (one thread each, views taken
-    /// in turn) and hands each view's Gaussians of weight ≥ `floor` raster pixels ([`seen_ids`])
-    /// to `take(position, seen)`. Stops at the first error and returns it.
+    /// Rasterizes the views at positions `which` on `rasterizers` and hands each view's
+    /// Gaussians of weight ≥ `floor` raster pixels ([`ViewSums::seen`]) to `take(position,
+    /// seen)`. Each rasterizer is a pipeline of three threads, so that its device never waits on
+    /// the host: one takes the next view in turn and does its host work ahead
+    /// ([`WeightRasterizer::view_precompute`]), one drives the rasterizer, one reduces the
+    /// view's sums to its seen Gaussians and hands them on. Stops at the first error and
+    /// returns it.
     fn run(
         &self,
         rasterizers: &mut [Box<dyn WeightRasterizer>],
@@ -428,31 +434,75 @@ impl Pass<'_> {
         take: impl Fn(usize, Vec<(u32, f64)>) + Sync,
     ) -> Result<()> {
         let next = AtomicUsize::new(0);
-        let failed = AtomicBool::new(false);
-        let first_error: Mutex<Option<Error>> = Mutex::new(None);
+        let failure = PassFailure::default();
         std::thread::scope(|s| {
             for r in rasterizers.iter_mut() {
-                let (next, failed, first_error, take) = (&next, &failed, &first_error, &take);
+                let ahead = r.view_precompute();
+                let (pre_tx, pre_rx) = std::sync::mpsc::sync_channel(1);
+                let (sums_tx, sums_rx) = std::sync::mpsc::sync_channel::<(usize, ViewSums)>(1);
+                let (next, failure, take) = (&next, &failure, &take);
                 s.spawn(move || {
-                    while !failed.load(Ordering::SeqCst) {
+                    while !failure.failed() {
                         let Some(&i) = which.get(next.fetch_add(1, Ordering::SeqCst)) else {
                             break;
                         };
+                        let w2c = &self.views[i].world_to_camera;
+                        let pre = ahead.as_ref().map(|a| a.precompute(w2c));
+                        if pre_tx.send((i, pre)).is_err() {
+                            break;
+                        }
+                    }
+                });
+                s.spawn(move || {
+                    for (i, pre) in pre_rx {
                         let (v, k) = (&self.views[i], &self.intrinsics[i]);
-                        match seen_ids(r.as_mut(), k, &v.world_to_camera, floor, self.gaussians) {
-                            Ok(seen) => take(i, seen),
-                            Err(e) => {
-                                failed.store(true, Ordering::SeqCst);
-                                if let Ok(mut slot) = first_error.lock() {
-                                    slot.get_or_insert(e);
+                        match view_sums(r.as_mut(), k, &v.world_to_camera, pre) {
+                            Ok(sums) => {
+                                if sums_tx.send((i, sums)).is_err() {
+                                    break;
                                 }
                             }
+                            Err(e) => {
+                                failure.fail(e);
+                                break;
+                            }
+                        }
+                    }
+                });
+                s.spawn(move || {
+                    for (i, sums) in sums_rx {
+                        if !failure.failed() {
+                            take(i, sums.seen(floor, self.gaussians));
                         }
                     }
                 });
             }
         });
-        match first_error.into_inner().ok().flatten() {
+        failure.into_result()
+    }
+}
+
+/// The first error of a pass's threads; once set, they stop taking views.
+#[derive(Default)]
+struct PassFailure {
+    failed: AtomicBool,
+    first: Mutex<Option<Error>>,
+}
+
+impl PassFailure {
+    fn failed(&self) -> bool {
+        self.failed.load(Ordering::SeqCst)
+    }
+
+    fn fail(&self, e: Error) {
+        self.failed.store(true, Ordering::SeqCst);
+        if let Ok(mut slot) = self.first.lock() {
+            slot.get_or_insert(e);
+        }
+    }
+
+    fn into_result(self) -> Result<()> {
+        match self.first.into_inner().ok().flatten() {
             Some(e) => Err(e),
             None => Ok(()),
         }
@@ -518,42 +568,61 @@ fn pass_intrinsics(k: &Intrinsics, scale: f64) -> Result<Intrinsics> {
     })
 }
 
-/// The Gaussians whose total blend weight in one view is at least `floor` (pixels of raster
-/// `k`), ascending by id, with that weight (raster pixels): the rasterizer's label sums with
-/// every pixel in label 1, or, for a rasterizer without them, its per-pixel lists summed per
-/// Gaussian (f64, pixel order).
-fn seen_ids(
+/// One view's blend weights as a rasterizer gave them: per-label sums (every pixel in label 1)
+/// or, for a rasterizer without them, its per-pixel lists.
+enum ViewSums {
+    Sums(crate::raster::LabelSums),
+    Lists(crate::raster::PixelWeights),
+}
+
+/// View `w2c`'s weights on raster `k` ([`ViewSums`]), with its host work `pre` done ahead.
+///
+/// Errors: the rasterizer's.
+fn view_sums(
     r: &mut dyn WeightRasterizer,
     k: &Intrinsics,
     w2c: &WorldToCamera,
-    floor: f64,
-    gaussians: usize,
-) -> Result<Vec<(u32, f64)>> {
+    pre: Option<crate::raster::PrecomputedView>,
+) -> Result<ViewSums> {
     let labels = vec![1u32; k.width as usize * k.height as usize];
-    if let Some(sums) = r.label_sums(k, w2c, &labels)? {
-        // Compared in the sums' own fixed point: exact.
-        const ONE: f64 = 4_294_967_296.0;
-        let floor_fixed = (floor * ONE).ceil() as u64;
-        return Ok(sums
-            .reduced()
-            .into_iter()
-            .filter(|s| s.sum >= floor_fixed.max(1))
-            .map(|s| (s.gaussian, s.sum as f64 / ONE))
-            .collect());
+    match r.label_sums_precomputed(k, w2c, &labels, pre)? {
+        Some(sums) => Ok(ViewSums::Sums(sums)),
+        None => Ok(ViewSums::Lists(r.rasterize(k, w2c)?)),
     }
-    let w = r.rasterize(k, w2c)?;
-    let mut total = vec![0f64; gaussians];
-    for (&id, &wt) in w.ids.iter().zip(&w.weights) {
-        if let Some(t) = total.get_mut(id as usize) {
-            *t += f64::from(wt);
+}
+
+impl ViewSums {
+    /// The Gaussians whose total blend weight in the view is at least `floor` (raster pixels),
+    /// ascending by id, with that weight (raster pixels): the label sums compared in their own
+    /// fixed point (exact), or the per-pixel lists summed per Gaussian (f64, pixel order) over a
+    /// scene of `gaussians`.
+    fn seen(self, floor: f64, gaussians: usize) -> Vec<(u32, f64)> {
+        match self {
+            ViewSums::Sums(sums) => {
+                const ONE: f64 = 4_294_967_296.0;
+                let floor_fixed = (floor * ONE).ceil() as u64;
+                sums.reduced()
+                    .into_iter()
+                    .filter(|s| s.sum >= floor_fixed.max(1))
+                    .map(|s| (s.gaussian, s.sum as f64 / ONE))
+                    .collect()
+            }
+            ViewSums::Lists(w) => {
+                let mut total = vec![0f64; gaussians];
+                for (&id, &wt) in w.ids.iter().zip(&w.weights) {
+                    if let Some(t) = total.get_mut(id as usize) {
+                        *t += f64::from(wt);
+                    }
+                }
+                total
+                    .iter()
+                    .enumerate()
+                    .filter(|&(_, &t)| t > 0.0 && t >= floor)
+                    .map(|(i, &t)| (i as u32, t))
+                    .collect()
+            }
         }
     }
-    Ok(total
-        .iter()
-        .enumerate()
-        .filter(|&(_, &t)| t > 0.0 && t >= floor)
-        .map(|(i, &t)| (i as u32, t))
-        .collect())
 }
 
 /// One step of the greedy order.
@@ -619,8 +688,14 @@ pub struct CoverageOutcome {
     pub full_views: usize,
     /// Observed Gaussians that the chosen views cover as far as the candidates allow.
     pub covered: usize,
-    /// The whole greedy order, until no view added a pair (the chosen views are its first ones).
+    /// The greedy order (the chosen views are its first ones): until no view added a pair, or,
+    /// without a [`CoverageRule::target`] below 1, until the first view the stopping rule
+    /// refused (or one past the count).
     pub order: Vec<GreedyStep>,
+    /// Whether `order` runs until no view adds a pair. When it stops where the choice did, the
+    /// figures read from the order (`pairs_wanted`, `pairs_wanted_px`, `covered`) count only
+    /// its views: the greedy's later views would add pairs, and viewpoints to Gaussians.
+    pub order_complete: bool,
 }
 
 /// The greedy's state: per Gaussian the candidate views counted as its distinct viewpoints
@@ -699,14 +774,19 @@ impl Viewpoints<'_> {
     }
 }
 
-/// The full greedy order over the measured views (module doc): `(view index, gain)` until no
-/// view adds a pair, and the final per-Gaussian viewpoint slots (`min_views` each).
+/// The greedy order over the measured views (module doc): `(view index, gain)` until no view
+/// adds a pair, or, with `early`, until the first view the stopping rule refuses (its gain
+/// below [`CoverageRule::min_gain`] of the first; gains only fall, so no later view is kept
+/// either) or `cap + 1` views, whichever comes first; and the final per-Gaussian viewpoint
+/// slots (`min_views` each). Returns whether the order is complete (no view left that adds a
+/// pair).
 fn greedy(
     coverage: &ViewCoverage,
     means: &[[f32; 3]],
     centres: &[DVec3],
     rule: &CoverageRule,
-) -> (Vec<(usize, Gain)>, Vec<u32>) {
+    early: Option<Option<usize>>,
+) -> (Vec<(usize, Gain)>, Vec<u32>, bool) {
     let per = rule.min_views.max(1);
     let mut state = Viewpoints {
         slots: vec![u32::MAX; means.len() * per],
@@ -723,19 +803,26 @@ fn greedy(
         .enumerate()
         .map(|(v, s)| (state.gain(v, s), Reverse(v), 0))
         .collect();
-    let mut order = Vec::new();
+    let mut order: Vec<(usize, Gain)> = Vec::new();
     while let Some((gain, Reverse(v), round)) = heap.pop() {
         if gain.1 == 0 {
-            break;
+            return (order, state.slots, true);
         }
-        if round == order.len() {
-            state.choose(v, &coverage.seen[v]);
-            order.push((v, gain));
-        } else {
+        if round != order.len() {
             heap.push((state.gain(v, &coverage.seen[v]), Reverse(v), order.len()));
+            continue;
+        }
+        state.choose(v, &coverage.seen[v]);
+        order.push((v, gain));
+        if let Some(cap) = early {
+            let first = order[0].1.0;
+            let refused = (gain.0 as f64) < rule.min_gain * first as f64;
+            if refused || cap.is_some_and(|c| order.len() > c) {
+                return (order, state.slots, heap.is_empty());
+            }
         }
     }
-    (order, state.slots)
+    (order, state.slots, true)
 }
 
 /// How many views of the greedy `order` the rule keeps (module doc), cut at `cap`, and why.
@@ -811,10 +898,13 @@ pub fn select_shown(
         .iter()
         .map(|v| v.world_to_camera.camera_centre())
         .collect();
-    let (order, slots) = greedy(&coverage, &gaussians.means, &centres, rule);
+    // Without a target the choice needs the order only up to where it stops.
+    let early = (rule.target >= 1.0).then_some(cap);
+    let (order, slots, complete) = greedy(&coverage, &gaussians.means, &centres, rule, early);
     let (taken, stop) = stop_at(&order, rule, cap);
     let mut outcome = outcome_of(&coverage, &order, &slots, taken, views, rule);
     outcome.stop = stop;
+    outcome.order_complete = complete;
     outcome.raster_s = raster_s;
     outcome.greedy_s = t1.elapsed().as_secs_f64();
     let mut chosen: Vec<usize> = order[..taken].iter().map(|&(v, _)| v).collect();
@@ -878,13 +968,14 @@ fn outcome_of(
         seen_bytes: coverage.bytes() as u64,
         floor_px: coverage.floor_px,
         floor_source: coverage.floor_source,
-        observed: t.observed,
+        observed: coverage.observed(),
         observed_chosen: t.observed_chosen,
         pairs_wanted: wanted,
         pairs_chosen,
         pairs_wanted_px: px(wanted_px),
         pairs_chosen_px: px(chosen_px),
         stop: CoverageStop::Exhausted,
+        order_complete: true,
         full_views: t.full_views,
         covered: t.covered,
         order: order
@@ -901,8 +992,6 @@ fn outcome_of(
 /// Counts of the observed Gaussians under a choice ([`tally`]).
 #[derive(Debug, Default, Clone, Copy)]
 struct Tally {
-    /// Gaussians with any viewpoint.
-    observed: usize,
     /// Those with a chosen viewpoint: some chosen view sees them.
     observed_chosen: usize,
     /// Those with `per` chosen viewpoints.
@@ -915,7 +1004,6 @@ impl std::ops::Add for Tally {
     type Output = Tally;
     fn add(self, b: Tally) -> Tally {
         Tally {
-            observed: self.observed + b.observed,
             observed_chosen: self.observed_chosen + b.observed_chosen,
             full_views: self.full_views + b.full_views,
             covered: self.covered + b.covered,
@@ -937,7 +1025,6 @@ fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> Tally {
                 .filter(|&&u| rank[u as usize] < taken)
                 .count();
             Tally {
-                observed: usize::from(all > 0),
                 observed_chosen: usize::from(chosen > 0),
                 full_views: usize::from(chosen == per),
                 covered: usize::from(all > 0 && chosen == all),

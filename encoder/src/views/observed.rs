@@ -77,6 +77,7 @@ mod tests {
                 pairs_wanted_px: 0.0,
                 pairs_chosen_px: 0.0,
                 stop: CoverageStop::MinGain,
+                order_complete: true,
                 full_views: 0,
                 covered: 0,
                 order: Vec::new(),
