@@ -14,10 +14,11 @@
 //! | [`fault`] | fault injection at durability boundaries (crash tests: `SLAG_FAULT_EXIT_AT`, `SLAG_FAULT_LIST`) |
 //! | [`objects`] | objects in a query's answer: groups of matching Gaussians with their boxes |
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
+//! | `mask_record` | the masks' record of an encode (`mask-record.safetensors`), for the segmenter and the evaluation; cloud side only (feature `cloud`) |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
 //! | `cli` | command-line values shared by the binaries (`--ep`), behind the `clap` feature |
-//! | [`doc_flags`] | checks the command lines the manual shows against the binaries' `--help` |
-//! | [`flag_names`] | one name per thing on the three binaries' command lines (the table and its check) |
+//! | `doc_flags` | checks the command lines the manual shows against the binaries' `--help` (feature `testing`) |
+//! | `flag_names` | one name per thing on the three binaries' command lines, the table and its check (feature `testing`) |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
 //! | [`rng`] | SplitMix64, the deterministic generator of synthetic data and randomised tests |
 //! | [`table`] | Markdown and CSV tables of the study reports (rows measured, then written) |
@@ -32,15 +33,18 @@ pub mod cache;
 pub mod camera;
 #[cfg(all(feature = "clap", feature = "onnx"))]
 pub mod cli;
+#[cfg(feature = "testing")]
 pub mod doc_flags;
 pub mod embeddings;
 pub mod error;
 pub mod fault;
+#[cfg(feature = "testing")]
 pub mod flag_names;
 pub mod forms;
 #[cfg(feature = "server")]
 pub mod http;
 pub mod io;
+#[cfg(feature = "cloud")]
 pub mod mask_record;
 pub mod mixture;
 pub mod objects;
