@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The test command: set up (idempotent), then every test of the workspace, then the aarch64
+# The test command: set up (idempotent), then every test of the workspace, the unused-dependency
+# check (cargo machete), then the aarch64
 # (Jetson) cross build of slag-edge with its tests under qemu and the glibc guard
 # (scripts/cross-aarch64.sh; x86_64 Debian 12 hosts). The web page's browser test needs chromium,
 # node and the vendored viewer: scripts/web-setup.sh (SLAG_SKIP_WEB=1 skips it). SLAG_SKIP_CROSS=1 skips the cross step
@@ -25,6 +26,16 @@ python3 scripts/lab/check-links.py || native=$?
 cargo test --workspace --locked --no-fail-fast "$@" || native=$?
 [ "${SLAG_SKIP_PROBE:-0}" = 1 ] || bash scripts/probe.sh --short --debug || native=$?
 echo "test: disk after the native tests: $(disk_free)" >&2
+# No dependency declared and unused: cargo-machete (installed once when missing, about two
+# minutes) reads every crate's sources against its Cargo.toml.
+unused=0
+if ! command -v cargo-machete >/dev/null 2>&1; then
+  echo "test: installing cargo-machete for the unused-dependency check" >&2
+  cargo install --locked cargo-machete || unused=$?
+fi
+if [ "$unused" -eq 0 ]; then
+  cargo machete --skip-target-dir || unused=$?
+fi
 cross=0
 if [ "${SLAG_SKIP_CROSS:-0}" = 1 ]; then
   echo "test: SLAG_SKIP_CROSS=1: aarch64 cross build skipped" >&2
@@ -33,8 +44,8 @@ elif [ "$(uname -m)" != x86_64 ]; then
 else
   bash scripts/cross-aarch64.sh || cross=$?
 fi
-if [ "$native" -ne 0 ] || [ "$cross" -ne 0 ]; then
-  echo "test: FAILED (native cargo test exit $native, aarch64 cross step exit $cross)" >&2
+if [ "$native" -ne 0 ] || [ "$unused" -ne 0 ] || [ "$cross" -ne 0 ]; then
+  echo "test: FAILED (native cargo test exit $native, unused-dependency check exit $unused, aarch64 cross step exit $cross)" >&2
   exit 1
 fi
 echo "test: all passed (native and aarch64 cross step)" >&2

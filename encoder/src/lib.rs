@@ -19,7 +19,8 @@
 //! (`encode`'s) and the flag values mapped to the library's types.
 //!
 //! Vector Database and Partitioning lives in its own crate, `slag-shards` (`shards`):
-//! `slag-encoder partition|serve|export` are its subcommands, re-exposed here.
+//! `slag-encoder partition|serve|export` are its subcommands, re-exposed by the
+//! `slag-encoder` binary.
 
 pub mod aggregate;
 pub mod args;
