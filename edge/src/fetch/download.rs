@@ -13,7 +13,7 @@ use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
 use super::client::{Attempt, net_error, permanent, status_error, transient, url_join};
-use super::resume::{open_partial, partial_prefix, write_chunk};
+use super::resume::{TileFetch, open_partial, partial_prefix, write_chunk};
 use super::{FetchParams, FetchSummary};
 use crate::store::EdgeStore;
 
@@ -305,11 +305,4 @@ impl Downloads<'_> {
         }
         Ok(())
     }
-}
-
-/// One tile's download: where from, where to, what it must be.
-pub(super) struct TileFetch<'a> {
-    pub(super) url: &'a str,
-    pub(super) part: &'a Path,
-    pub(super) tile: &'a TileInfo,
 }

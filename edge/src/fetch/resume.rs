@@ -9,7 +9,6 @@ use slag_common::shards::TileInfo;
 use tokio::io::AsyncWriteExt;
 
 use super::client::{Attempt, permanent, transient};
-use super::download::TileFetch;
 
 /// Appends one received chunk to a partial file (through the disk-full hook,
 /// [`slag_common::fault::enospc`]).
@@ -91,4 +90,11 @@ pub(super) async fn open_partial(
     } else {
         Ok(None)
     }
+}
+
+/// One tile's download: where from, where to, what it must be.
+pub(super) struct TileFetch<'a> {
+    pub(super) url: &'a str,
+    pub(super) part: &'a Path,
+    pub(super) tile: &'a TileInfo,
 }
