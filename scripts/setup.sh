@@ -37,6 +37,8 @@ slag_setup_vulkan() {
   local need=() sudo=""
   dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || need+=(mesa-vulkan-drivers)
   dpkg -s libvulkan1 >/dev/null 2>&1 || need+=(libvulkan1)
+  # The tests check that OpenSSL reads the signing keys and verifies their signatures.
+  dpkg -s openssl >/dev/null 2>&1 || need+=(openssl)
   [ ${#need[@]} -gt 0 ] || return 0
   [ "$(id -u)" -eq 0 ] || sudo=sudo
   $sudo apt-get update -qq \

@@ -11,9 +11,14 @@
 //!
 //! # Files
 //!
-//! - private key: PKCS#8 PEM (`-----BEGIN PRIVATE KEY-----`, file mode 0600), [`PRIVATE_KEY_FILE`];
+//! - private key: PKCS#8 v1 PEM (RFC 5208, `-----BEGIN PRIVATE KEY-----`, the public key not
+//!   embedded, file mode 0600), [`PRIVATE_KEY_FILE`]; a key of `openssl genpkey -algorithm
+//!   ed25519` reads the same;
 //! - public key: SubjectPublicKeyInfo PEM (`-----BEGIN PUBLIC KEY-----`), [`PUBLIC_KEY_FILE`];
-//!   OpenSSL reads both (`openssl pkey -in manifest-key.pem -noout -text`);
+//!   OpenSSL 3.0 and later read both (`openssl pkey -in manifest-key.pem -noout`,
+//!   `openssl pkey -pubin -in manifest-key.pub.pem -noout`);
+//! - trusted keys: a robot trusts one or more public keys ([`TrustedKeys`]: several PEM blocks in
+//!   one file, or several files), so a publisher can rotate its key (docs/guide/security.md);
 //! - signature (`manifest.sig` beside an exported `manifest.json`,
 //!   `GET /v1/scenes/{scene}/manifest.sig`): JSON [`ManifestSignature`], format
 //!   [`SIGNATURE_FORMAT`] version [`SIGNATURE_VERSION`]: `algorithm` `"ed25519"`, `key_id` (16
@@ -209,7 +214,12 @@ impl TrustedKey {
     /// public key in PEM (a private key, another algorithm, garbage).
     pub fn read_pem(path: &Path) -> Result<TrustedKey> {
         let text = read_key_text(path, "public key")?;
-        let key = ed25519_dalek::VerifyingKey::from_public_key_pem(&text).map_err(|e| {
+        TrustedKey::from_pem_text(&text, path)
+    }
+
+    /// [`Self::read_pem`] of the PEM `text` read from `path`.
+    fn from_pem_text(text: &str, path: &Path) -> Result<TrustedKey> {
+        let key = ed25519_dalek::VerifyingKey::from_public_key_pem(text).map_err(|e| {
             let found = if text.contains("PRIVATE KEY") {
                 "this is a private key; a robot trusts the public key file of the pair \
                  (keep the private one on the publisher)"
@@ -276,6 +286,104 @@ impl TrustedKey {
                 )
             })
     }
+}
+
+/// The public keys a robot trusts (module doc, "Files"): a manifest signed by any of them is
+/// accepted. One key normally; two while a publisher rotates (the old key kept until every
+/// generation is signed by the new one).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TrustedKeys(Vec<TrustedKey>);
+
+impl From<TrustedKey> for TrustedKeys {
+    fn from(key: TrustedKey) -> TrustedKeys {
+        TrustedKeys(vec![key])
+    }
+}
+
+impl TrustedKeys {
+    /// The keys of `keys`, in order, each once.
+    ///
+    /// Errors: [`Error::Param`] `trusted_key` for an empty list.
+    pub fn new(keys: Vec<TrustedKey>) -> Result<TrustedKeys> {
+        let mut unique: Vec<TrustedKey> = Vec::with_capacity(keys.len());
+        for k in keys {
+            if !unique.contains(&k) {
+                unique.push(k);
+            }
+        }
+        if unique.is_empty() {
+            return Err(Error::param(
+                "trusted_key",
+                "no key",
+                "at least one Ed25519 public key (PEM)",
+            ));
+        }
+        Ok(TrustedKeys(unique))
+    }
+
+    /// Every `-----BEGIN PUBLIC KEY-----` block of each file of `paths` (a file may hold several
+    /// keys, one PEM block after the other).
+    ///
+    /// Errors: as [`TrustedKey::read_pem`] for a file or a block; [`Error::Format`] for a file
+    /// without a public key block; [`Error::Param`] `trusted_key` for no file.
+    pub fn read_pem_files(paths: &[PathBuf]) -> Result<TrustedKeys> {
+        let mut keys = Vec::new();
+        for path in paths {
+            keys.extend(read_public_key_blocks(path)?);
+        }
+        TrustedKeys::new(keys)
+    }
+
+    /// The trusted keys' ids ([`TrustedKey::key_id`]), in order.
+    pub fn key_ids(&self) -> Vec<String> {
+        self.0.iter().map(TrustedKey::key_id).collect()
+    }
+
+    /// Checks that `signature` (a signature file's bytes) is the signature of exactly
+    /// `manifest_bytes` by the trusted key it names ([`TrustedKey::verify`]); `origin` names
+    /// where the manifest came from in errors.
+    ///
+    /// Errors: [`Error::Untrusted`] [`Untrusted::OtherKey`] when the signature names a key that is
+    /// not trusted (the message lists the trusted ones), [`Untrusted::BadSignature`] when it is
+    /// not a signature file or does not verify.
+    pub fn verify(&self, manifest_bytes: &[u8], signature: &[u8], origin: &str) -> Result<()> {
+        let sig = ManifestSignature::from_json(signature, origin)?;
+        match self.0.iter().find(|k| k.key_id() == sig.key_id) {
+            Some(k) => k.verify(manifest_bytes, signature, origin),
+            None => Err(Error::untrusted(
+                Untrusted::OtherKey,
+                origin,
+                format!(
+                    "the manifest is signed by key {}, the trusted key(s) are {}: trust the \
+                     publisher's public key, or have the publisher sign with a key you trust",
+                    sig.key_id,
+                    self.key_ids().join(", ")
+                ),
+            )),
+        }
+    }
+}
+
+/// The public keys of the PEM blocks of `path` (module doc, "Files").
+///
+/// Errors: as [`TrustedKey::read_pem`]; [`Error::Format`] for a file without a public key block.
+fn read_public_key_blocks(path: &Path) -> Result<Vec<TrustedKey>> {
+    const END: &str = "-----END PUBLIC KEY-----";
+    let text = read_key_text(path, "public key")?;
+    let mut keys = Vec::new();
+    let mut rest = text.as_str();
+    while let Some(start) = rest.find("-----BEGIN PUBLIC KEY-----") {
+        let Some(end) = rest[start..].find(END).map(|e| start + e + END.len()) else {
+            break;
+        };
+        keys.push(TrustedKey::from_pem_text(&rest[start..end], path)?);
+        rest = &rest[end..];
+    }
+    if keys.is_empty() {
+        // What the single-key reader says of the file (a private key, garbage, ...).
+        keys.push(TrustedKey::from_pem_text(&text, path)?);
+    }
+    Ok(keys)
 }
 
 /// A detached manifest signature (module doc, "Files").
@@ -362,10 +470,7 @@ pub fn keygen(dir: &Path) -> Result<KeyPairFiles> {
     }
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let key = SigningKey::generate();
-    let private_pem = key
-        .0
-        .to_pkcs8_pem(LineEnding::LF)
-        .map_err(|e| Error::internal(format!("encoding the private key: {e}")))?;
+    let private_pem = private_key_pem(&key)?;
     let public_pem = key
         .0
         .verifying_key()
@@ -384,6 +489,20 @@ pub fn keygen(dir: &Path) -> Result<KeyPairFiles> {
         public,
         key_id: key.key_id(),
     })
+}
+
+/// The private key as PKCS#8 v1 PEM (RFC 5208 `PrivateKeyInfo`: the 32-byte seed, no public key
+/// embedded), the form `openssl genpkey -algorithm ed25519` writes and every OpenSSL 3 reads;
+/// the v2 form with the public key embedded (RFC 5958) is refused by OpenSSL 3.0 ("unsupported").
+///
+/// Errors: [`Error::Internal`] when the encoder fails.
+fn private_key_pem(key: &SigningKey) -> Result<impl std::ops::Deref<Target = String>> {
+    let v1 = ed25519_dalek::pkcs8::KeypairBytes {
+        secret_key: key.0.to_bytes(),
+        public_key: None,
+    };
+    v1.to_pkcs8_pem(LineEnding::LF)
+        .map_err(|e| Error::internal(format!("encoding the private key: {e}")))
 }
 
 /// Creates `path` (failing if anything is there) with `mode`, writes `bytes` and syncs it.
@@ -622,6 +741,167 @@ mod tests {
             TrustedKey::read_pem(&missing),
             Err(Error::Io { .. })
         ));
+    }
+
+    /// The system's `openssl` on PATH, if any.
+    fn system_openssl() -> bool {
+        std::process::Command::new("openssl")
+            .arg("version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    }
+
+    /// Runs `openssl args…`; its success and stderr.
+    fn openssl(args: &[&std::ffi::OsStr]) -> (bool, String) {
+        let o = std::process::Command::new("openssl")
+            .args(args)
+            .output()
+            .unwrap();
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stderr).into_owned(),
+        )
+    }
+
+    /// `openssl pkeyutl -verify` of the signature file `sig` (its hex decoded) over `manifest`.
+    fn openssl_verifies(
+        dir: &Path,
+        public: &Path,
+        manifest: &[u8],
+        sig: &ManifestSignature,
+    ) -> bool {
+        let (m, s) = (dir.join("manifest.json"), dir.join("sig.bin"));
+        std::fs::write(&m, manifest).unwrap();
+        std::fs::write(&s, unhex(&sig.signature).unwrap()).unwrap();
+        let args = ["pkeyutl", "-verify", "-pubin", "-inkey"].map(std::ffi::OsStr::new);
+        let mut all: Vec<&std::ffi::OsStr> = args.to_vec();
+        all.extend([
+            public.as_os_str(),
+            "-rawin".as_ref(),
+            "-in".as_ref(),
+            m.as_os_str(),
+        ]);
+        all.extend(["-sigfile".as_ref(), s.as_os_str()]);
+        openssl(&all).0
+    }
+
+    #[test]
+    fn the_system_openssl_reads_keygens_keys_and_verifies_its_signatures_and_slag_reads_openssls_keys()
+     {
+        if !system_openssl() {
+            eprintln!("NOTICE: no `openssl` on PATH: the OpenSSL interoperability test is skipped");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let files = keygen(dir.path()).unwrap();
+        let pem = std::fs::read_to_string(&files.private).unwrap();
+        assert!(pem.starts_with("-----BEGIN PRIVATE KEY-----"), "{pem}");
+        let (ok, err) = openssl(
+            &["pkey", "-noout", "-in"]
+                .map(std::ffi::OsStr::new)
+                .iter()
+                .copied()
+                .chain([files.private.as_os_str()])
+                .collect::<Vec<_>>(),
+        );
+        assert!(ok, "openssl pkey cannot read keygen's private key: {err}");
+        let (ok, err) = openssl(
+            &["pkey", "-pubin", "-noout", "-in"]
+                .map(std::ffi::OsStr::new)
+                .iter()
+                .copied()
+                .chain([files.public.as_os_str()])
+                .collect::<Vec<_>>(),
+        );
+        assert!(ok, "openssl pkey cannot read keygen's public key: {err}");
+        let key = SigningKey::read_pem(&files.private).unwrap();
+        let manifest = br#"{"scene_id": "lab", "generation": 7}"#;
+        let sig = key.sign(manifest);
+        assert!(openssl_verifies(dir.path(), &files.public, manifest, &sig));
+        let mut changed = manifest.to_vec();
+        changed[20] ^= 1;
+        assert!(!openssl_verifies(dir.path(), &files.public, &changed, &sig));
+        // A pair OpenSSL made: slag reads both halves, and OpenSSL verifies slag's signature.
+        let (theirs, theirs_pub) = (dir.path().join("o.pem"), dir.path().join("o.pub.pem"));
+        let os = |s: &'static str| std::ffi::OsStr::new(s);
+        let (ok, err) = openssl(&[
+            os("genpkey"),
+            os("-algorithm"),
+            os("ed25519"),
+            os("-out"),
+            theirs.as_os_str(),
+        ]);
+        assert!(ok, "{err}");
+        let (ok, err) = openssl(&[
+            os("pkey"),
+            os("-in"),
+            theirs.as_os_str(),
+            os("-pubout"),
+            os("-out"),
+            theirs_pub.as_os_str(),
+        ]);
+        assert!(ok, "{err}");
+        let key = SigningKey::read_pem(&theirs).unwrap();
+        assert_eq!(key.public(), TrustedKey::read_pem(&theirs_pub).unwrap());
+        let sig = key.sign(manifest);
+        assert!(openssl_verifies(dir.path(), &theirs_pub, manifest, &sig));
+    }
+
+    #[test]
+    fn several_trusted_keys_accept_either_signer_and_name_all_when_refusing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+        let old_files = keygen(&a).unwrap();
+        let new_files = keygen(&b).unwrap();
+        // Both public keys in one file, one PEM block after the other.
+        let both = dir.path().join("trusted.pem");
+        let text = std::fs::read_to_string(&old_files.public).unwrap()
+            + &std::fs::read_to_string(&new_files.public).unwrap();
+        std::fs::write(&both, text).unwrap();
+        let keys = TrustedKeys::read_pem_files(std::slice::from_ref(&both)).unwrap();
+        assert_eq!(
+            keys.key_ids(),
+            vec![old_files.key_id.clone(), new_files.key_id.clone()]
+        );
+        // The same keys from two files.
+        let two =
+            TrustedKeys::read_pem_files(&[old_files.public.clone(), new_files.public.clone()])
+                .unwrap();
+        assert_eq!(two, keys);
+        let manifest = b"{}";
+        for f in [&old_files, &new_files] {
+            let sig = SigningKey::read_pem(&f.private)
+                .unwrap()
+                .sign(manifest)
+                .to_json();
+            keys.verify(manifest, &sig, "m").unwrap();
+        }
+        let stranger = SigningKey::generate();
+        let e = keys
+            .verify(manifest, &stranger.sign(manifest).to_json(), "m")
+            .unwrap_err();
+        assert!(
+            matches!(
+                e,
+                Error::Untrusted {
+                    what: Untrusted::OtherKey,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let m = e.to_string();
+        assert!(
+            m.contains(&old_files.key_id) && m.contains(&new_files.key_id),
+            "{m}"
+        );
+        // A file with a private key and no public one is refused as before.
+        let e = TrustedKeys::read_pem_files(std::slice::from_ref(&old_files.private)).unwrap_err();
+        assert!(
+            matches!(e, Error::Format { .. }) && e.to_string().contains("private key"),
+            "{e}"
+        );
+        assert!(TrustedKeys::read_pem_files(&[]).is_err());
     }
 
     #[test]
