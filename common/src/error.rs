@@ -415,6 +415,10 @@ pub enum Untrusted {
     ContentHash,
     /// A signed manifest of an older generation than the one the store already holds (a replay).
     Replay,
+    /// A manifest, signature or file that fails one of the format's checks (a size, a length,
+    /// a CRC-32, a parse) while a key is trusted: whichever check catches a change, it is a
+    /// refusal.
+    Malformed,
 }
 
 impl std::fmt::Display for Untrusted {
@@ -426,6 +430,7 @@ impl std::fmt::Display for Untrusted {
             Untrusted::Unhashed => "signed manifest without SHA-256",
             Untrusted::ContentHash => "SHA-256 differs from the signed manifest",
             Untrusted::Replay => "older generation (replay)",
+            Untrusted::Malformed => "fails a check of the shard format",
         })
     }
 }

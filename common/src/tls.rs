@@ -152,15 +152,33 @@ fn read_certified_key(cert: &Path, key: &Path) -> Result<CertifiedKey> {
         )
     })?;
     let provider = rustls::crypto::ring::default_provider();
-    CertifiedKey::from_der(chain, key_der, &provider).map_err(|e| {
-        Error::format(
+    CertifiedKey::from_der(chain, key_der, &provider).map_err(|e| match e {
+        // The certificate itself does not parse: a damaged file names the certificate, not the
+        // key.
+        rustls::Error::InvalidCertificate(_) | rustls::Error::NoCertificatesPresented => {
+            Error::format(
+                cert,
+                format!(
+                    "not a valid X.509 certificate ({e}): the file is damaged or not the \
+                     certificate as issued; put the issued certificate (PEM) back"
+                ),
+            )
+        }
+        rustls::Error::InconsistentKeys(_) => Error::format(
             key,
             format!(
                 "this key cannot serve the certificate {}: {e}; pass the private key the \
                  certificate was issued for (an RSA, ECDSA P-256/P-384 or Ed25519 key)",
                 cert.display()
             ),
-        )
+        ),
+        e => Error::format(
+            key,
+            format!(
+                "the private key cannot be used ({e}): pass an RSA, ECDSA P-256/P-384 or \
+                 Ed25519 key in PEM"
+            ),
+        ),
     })
 }
 

@@ -130,6 +130,7 @@ fn build(dir: &Path, tiles: usize, per_tile: usize, dim: usize) {
         radius: 1e9,
         completed_unix_s: 0,
         tiles: None,
+        kept: None,
     };
     store.commit_fetch(&manifest, &record).unwrap();
     println!(

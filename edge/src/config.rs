@@ -64,7 +64,8 @@ pub struct ServeConfig {
     /// `SLAG_SHARD_TOKEN`).
     pub shard_token_file: Option<PathBuf>,
     /// The publisher's Ed25519 public key (PEM): `POST /fetch` accepts only manifests it signed
-    /// (`crate::fetch::FetchParams::trusted_key`); `check` verifies the store with it.
+    /// (`crate::fetch::FetchParams::trusted_keys`; the file may hold several PEM blocks: a key
+    /// rotation); `check` verifies the store with it, and every load hashes the stored tiles.
     pub trusted_key: Option<PathBuf>,
     /// Build the HNSW index.
     pub hnsw: Option<bool>,

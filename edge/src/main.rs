@@ -117,18 +117,25 @@ struct FetchArgs {
     /// Retries per shard after a transient failure.
     #[arg(long, default_value_t = 3)]
     retries: u32,
-    /// Connect / idle-read timeout per request, seconds.
+    /// Connect / idle-read timeout per request, seconds; also the grace before --min-rate counts.
     #[arg(long, default_value_t = 30.0)]
     timeout: f64,
+    /// Least mean rate of every transfer, bytes per second: after --timeout, a file (manifest,
+    /// signature, tile) slower than this is cut off, so each file has a deadline that grows with
+    /// its size (a tile cut off resumes on the retry). The default, 16 KiB/s, is a few percent of
+    /// a slow LTE link. 0: no deadline.
+    #[arg(long, value_name = "BYTES_PER_S", default_value_t = slag_edge::fetch::DEFAULT_MIN_RATE)]
+    min_rate: u64,
     /// Bearer token of the shard server.
     #[arg(long, env = "SLAG_SHARD_TOKEN", hide_env_values = true)]
     token: Option<String>,
     /// The publisher's Ed25519 public key (PEM, `manifest-key.pub.pem` of `slag-shards
     /// keygen`): refuse a manifest it did not sign, a tile whose SHA-256 differs from the signed
-    /// manifest, and an older generation than the store holds. Without it, unsigned maps are
+    /// manifest, and an older generation than the store holds. Repeat it, or put several PEM
+    /// blocks in one file, to trust several keys (a key rotation). Without it, unsigned maps are
     /// accepted.
     #[arg(long, value_name = "FILE")]
-    trusted_key: Option<PathBuf>,
+    trusted_key: Vec<PathBuf>,
     /// A private CA's certificate (PEM; several may follow each other) to trust for an https://
     /// --from, in addition to the built-in public roots.
     #[arg(long, value_name = "FILE")]
@@ -173,9 +180,10 @@ struct ServeArgs {
     shard_token_file: Option<PathBuf>,
     /// The publisher's Ed25519 public key (PEM): POST /fetch then refuses what it did not sign
     /// (as `fetch --trusted-key`), and `check` verifies the stored signature and every stored
-    /// file's SHA-256 with it.
+    /// file's SHA-256 with it; the store's tiles are hashed on every load. Repeatable, or several
+    /// PEM blocks in one file (a key rotation).
     #[arg(long, value_name = "FILE")]
-    trusted_key: Option<PathBuf>,
+    trusted_key: Vec<PathBuf>,
     /// Serve HTTPS with this PEM certificate chain (the server's certificate first, then its
     /// intermediates); needs --tls-key. SIGHUP and POST /reload read both files again.
     #[arg(long, value_name = "FILE")]
@@ -344,6 +352,7 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
         jobs: a.jobs,
         retries: a.retries,
         timeout: timeout(a.timeout, "--timeout")?,
+        min_rate: a.min_rate,
         token: a
             .token
             .as_deref()
@@ -351,7 +360,7 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
             .transpose()?,
         progress: true,
         frame: a.frame.into(),
-        trusted_key: trusted_key(a.trusted_key.as_deref())?,
+        trusted_keys: trusted_keys(&a.trusted_key)?,
     };
     let summary = runtime()?.block_on(slag_edge::fetch::fetch(&store, &params))?;
     if a.json {
@@ -362,12 +371,15 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The publisher's public key of `--trusted-key FILE` (or `trusted_key` in the config), if given.
-fn trusted_key(
-    path: Option<&std::path::Path>,
-) -> slag_common::Result<Option<slag_common::shards::signature::TrustedKey>> {
-    path.map(slag_common::shards::signature::TrustedKey::read_pem)
-        .transpose()
+/// The publisher's public keys of `--trusted-key FILE`… (or `trusted_key` in the config), if
+/// any: every PEM block of every file.
+fn trusted_keys(
+    paths: &[PathBuf],
+) -> slag_common::Result<Option<slag_common::shards::signature::TrustedKeys>> {
+    if paths.is_empty() {
+        return Ok(None);
+    }
+    slag_common::shards::signature::TrustedKeys::read_pem_files(paths).map(Some)
 }
 
 /// Everything `serve` needs, resolved from flags over the config file.
@@ -512,7 +524,11 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let opts = ServeOptions {
         scene,
         token,
-        trusted_key: trusted_key(a.trusted_key.or(c.trusted_key).as_deref())?,
+        trusted_keys: trusted_keys(if a.trusted_key.is_empty() {
+            c.trusted_key.as_slice()
+        } else {
+            &a.trusted_key
+        })?,
         threshold,
         hnsw,
         hnsw_backend,
@@ -572,7 +588,10 @@ fn resolve_scan_bounds(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<(usize,
     use slag_edge::serve::{DEFAULT_MAX_MATCHES, DEFAULT_MAX_SCANS, DEFAULT_SCAN_QUEUE};
     let max_scans = a.max_scans.or(c.max_scans).unwrap_or(DEFAULT_MAX_SCANS);
     let scan_queue = a.scan_queue.or(c.scan_queue).unwrap_or(DEFAULT_SCAN_QUEUE);
-    let max_matches = a.max_matches.or(c.max_matches).unwrap_or(DEFAULT_MAX_MATCHES);
+    let max_matches = a
+        .max_matches
+        .or(c.max_matches)
+        .unwrap_or(DEFAULT_MAX_MATCHES);
     anyhow::ensure!(max_matches >= 1, "--max-matches must be at least 1");
     anyhow::ensure!(max_scans >= 1, "--max-scans must be at least 1");
     Ok((max_scans, scan_queue, max_matches))
@@ -673,7 +692,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
     let mut signature = None;
     let check = EdgeStore::open_existing(&r.store).and_then(|edge| {
         let check = slag_edge::engine::StoreCheck::run(&edge, &r.opts.scene)?;
-        signature = Some(edge.verify_signed(&r.opts.scene, r.opts.trusted_key.as_ref()));
+        signature = Some(edge.verify_signed(&r.opts.scene, r.opts.trusted_keys.as_ref()));
         Ok(check)
     });
     let mut report = serde_json::json!({
@@ -705,7 +724,7 @@ fn run_check(a: ServeArgs) -> anyhow::Result<()> {
         }
     }
     if let Some(s) = signature {
-        report["signature"] = signature_report(s, r.opts.trusted_key.as_ref(), &mut problems);
+        report["signature"] = signature_report(s, r.opts.trusted_keys.as_ref(), &mut problems);
     }
     report["ok"] = problems.is_empty().into();
     report["problems"] = problems.clone().into();
@@ -768,7 +787,7 @@ fn store_fields(check: &slag_edge::engine::StoreCheck) -> serde_json::Value {
 /// is added to `problems`.
 fn signature_report(
     check: slag_common::Result<slag_edge::store::SignatureCheck>,
-    trusted: Option<&slag_common::shards::signature::TrustedKey>,
+    trusted: Option<&slag_common::shards::signature::TrustedKeys>,
     problems: &mut Vec<String>,
 ) -> serde_json::Value {
     let (status, detail) = match &check {
@@ -1025,8 +1044,14 @@ fn untrusted_hint(what: slag_common::Untrusted) -> &'static str {
              every tile's SHA-256)"
         }
         Untrusted::Replay => {
-            "the store keeps its newer generation; if the publisher really started a new shard \
-             store, fetch into a new --store"
+            "the store keeps its newer generation; a publisher that re-created its shard store \
+             partitions with --start-generation above the robots' generation \
+             (docs/guide/security.md, \"Key rotation\")"
+        }
+        Untrusted::Malformed => {
+            "what the server sent under the trusted key fails the shard format's checks: it was \
+             changed on the way or on the server; fetch from the publisher's server over a path \
+             you trust; the store keeps serving its last good generation"
         }
     }
 }

@@ -34,7 +34,7 @@ use std::process::{Command, Stdio};
 use slag_common::fault::{EXIT_AT_VAR, FAULT_EXIT_STATUS, LIST_VAR, read_list, stopped_at};
 use slag_common::rng::SplitMix64;
 use slag_common::shards::signature::{
-    PRIVATE_KEY_FILE, PUBLIC_KEY_FILE, SigningKey, TrustedKey, keygen, sha256_hex,
+    PRIVATE_KEY_FILE, PUBLIC_KEY_FILE, SigningKey, TrustedKey, TrustedKeys, keygen, sha256_hex,
 };
 use slag_common::shards::{
     Dtype, MIXTURE_MANIFEST_VERSION, MIXTURE_SHARD_FORMAT_VERSION, Manifest, MixtureInfo,
@@ -83,7 +83,7 @@ struct Refs {
 /// The parameters of a fetch of the whole grid from `url`, trusting the key in `trusted`.
 fn params(url: &str, trusted: Option<&Path>) -> slag_edge::fetch::FetchParams {
     slag_edge::fetch::FetchParams {
-        trusted_key: trusted.map(|p| TrustedKey::read_pem(p).unwrap()),
+        trusted_keys: trusted.map(|p| TrustedKey::read_pem(p).unwrap().into()),
         ..grid_fetch_params(url, 100.0)
     }
 }
@@ -144,8 +144,7 @@ async fn serve_generation(form: &Form, g: u64) -> (Manifest, String) {
             let key = SigningKey::read_pem(&keys.join(PRIVATE_KEY_FILE)).unwrap();
             let server = shard_server(scene, None).await;
             if form.trusted(g).is_some() {
-                *server.state.signature.write().unwrap() =
-                    Some(key.sign(&m.to_json()).to_json());
+                *server.state.signature.write().unwrap() = Some(key.sign(&m.to_json()).to_json());
             }
             (m, server.url)
         }
@@ -358,7 +357,7 @@ fn restart_and_compare(refs: &Refs, dir: &Path, at: &str) -> u64 {
     if let Some(k) = &refs.trusted {
         // The committed generation is signed by the trusted key, its signature over exactly
         // the committed manifest, and every file holds the bytes the manifest hashes.
-        let key = TrustedKey::read_pem(k).unwrap();
+        let key = TrustedKeys::from(TrustedKey::read_pem(k).unwrap());
         store
             .verify_signed("grid", Some(&key))
             .unwrap_or_else(|e| panic!("{at}: {e}"));
@@ -495,7 +494,9 @@ async fn enumerate_fetch(s: &Scenario, what: &str, only: &[&str]) -> (Tally, Vec
             listed[n - 1],
             "n={n}: the runs pass the boundaries in another order"
         );
-        tally.check_stop(s, &dir, &format!("{what} stopped at {n}"), name).await;
+        tally
+            .check_stop(s, &dir, &format!("{what} stopped at {n}"), name)
+            .await;
     }
     // Both sides of the commit were reached: before it the old state is served, after it B.
     assert!(
@@ -647,7 +648,9 @@ async fn serve_stopped_inside_post_fetch_at_every_boundary_restarts_on_a_or_b() 
         assert_eq!(answered, None, "n={n}: the server answered: {err}");
         assert_eq!(status.code(), Some(FAULT_EXIT_STATUS), "n={n}: {err}");
         let name = stopped_at(&err).unwrap_or_else(|| panic!("n={n}: {err}"));
-        tally.check_stop(&s, &dir, &format!("serve stopped at {n}"), name).await;
+        tally
+            .check_stop(&s, &dir, &format!("serve stopped at {n}"), name)
+            .await;
     }
     tally.report("slag-edge serve, POST /fetch", &listed);
     assert!(tally.served.contains_key(&1) && tally.served.contains_key(&2));
@@ -663,7 +666,13 @@ async fn a_mixture_fetch_stopped_at_every_boundary_serves_a_or_b_and_one_fetch_r
         "store.commit_codebook:dir_sync",
         "store.evict_codebook:remove",
     ];
-    enumerate_all(&s, "mixture", "slag-edge fetch of a mixture scene", &reached).await;
+    enumerate_all(
+        &s,
+        "mixture",
+        "slag-edge fetch of a mixture scene",
+        &reached,
+    )
+    .await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -265,3 +265,151 @@ async fn bad_requests_fail_with_messages_that_say_what_to_do() {
         "{e}"
     );
 }
+
+/// A raw HTTP server on loopback: answers `GET …/manifest` with `manifest` at once, and every
+/// other request (the signature) with a 200 whose declared 300-byte body comes one byte every
+/// 200 ms (never idle long enough for an idle timeout). Returns its URL.
+async fn dripping_server(manifest: Vec<u8>) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(async move {
+        loop {
+            let Ok((mut conn, _)) = listener.accept().await else {
+                return;
+            };
+            let manifest = manifest.clone();
+            tokio::spawn(async move {
+                let mut head = vec![0u8; 4096];
+                let n = conn.read(&mut head).await.unwrap_or(0);
+                let line = String::from_utf8_lossy(&head[..n])
+                    .lines()
+                    .next()
+                    .unwrap_or("")
+                    .to_string();
+                if line.contains("/manifest ") {
+                    let h = format!(
+                        "HTTP/1.1 200 OK\r\ncontent-length: {}\r\n\r\n",
+                        manifest.len()
+                    );
+                    let _ = conn.write_all(h.as_bytes()).await;
+                    let _ = conn.write_all(&manifest).await;
+                    return;
+                }
+                let _ = conn
+                    .write_all(b"HTTP/1.1 200 OK\r\ncontent-length: 300\r\n\r\n")
+                    .await;
+                for _ in 0..300 {
+                    tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+                    if conn.write_all(b"{").await.is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    url
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_signature_dripped_a_byte_at_a_time_is_cut_off_at_the_least_rate() {
+    let scene = grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1);
+    let url = dripping_server(scene.manifest.to_json()).await;
+    let key = slag_common::shards::signature::SigningKey::generate().public();
+    let (_dir, store) = temp_store();
+    let p = FetchParams {
+        timeout: std::time::Duration::from_secs(1),
+        min_rate: 1000,
+        trusted_keys: Some(key.into()),
+        ..grid_fetch_params(&url, 100.0)
+    };
+    let t = std::time::Instant::now();
+    let e = fetch(&store, &p).await.unwrap_err();
+    let took = t.elapsed();
+    // 1 s of grace, then 1000 bytes/s: cut at about 1 s, where 300 bytes would take 60 s.
+    assert!(took < std::time::Duration::from_secs(10), "{took:?}: {e}");
+    match &e {
+        Error::Network { url, message, .. } => {
+            assert!(url.ends_with("manifest.sig"), "{e}");
+            assert!(message.contains("least rate of 1000 bytes/s"), "{e}");
+        }
+        other => panic!("expected a network error, got {other}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tile_sent_slower_than_the_least_rate_is_cut_off_and_keeps_what_arrived() {
+    let server = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    *server.state.slow.lock().unwrap() = Some((1, std::time::Duration::from_millis(100)));
+    let (dir, store) = temp_store();
+    let p = FetchParams {
+        timeout: std::time::Duration::from_secs(1),
+        min_rate: 1000,
+        ..grid_fetch_params(&server.url, 100.0)
+    };
+    let t = std::time::Instant::now();
+    let e = fetch(&store, &p).await.unwrap_err();
+    assert!(t.elapsed() < std::time::Duration::from_secs(10), "{e}");
+    assert!(e.to_string().contains("least rate"), "{e}");
+    // A network failure: what arrived is kept for the next run to resume.
+    assert!(partial_files(dir.path()) > 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_error_after_a_redirect_names_the_url_that_answered() {
+    let target = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    let to = target.url.clone();
+    let redirect = axum::Router::new().fallback(move |uri: axum::http::Uri| {
+        let to = to.clone();
+        async move { axum::response::Redirect::temporary(&format!("{to}{uri}")) }
+    });
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let first = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(async move { axum::serve(listener, redirect).await.unwrap() });
+    let (_dir, store) = temp_store();
+    let p = FetchParams {
+        scene: "nowhere".into(),
+        ..grid_fetch_params(&first, 100.0)
+    };
+    let e = fetch(&store, &p).await.unwrap_err();
+    let m = e.to_string();
+    assert!(m.contains(&target.url) && !m.contains(&first), "{m}");
+    assert!(m.contains("404"), "{m}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn post_fetch_past_the_request_timeout_answers_408_speaking_of_the_fetch() {
+    let server = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    let (_dir, store) = support::fetch_grid(&server.url, 100.0).await;
+    let url = support::serve_store(
+        store,
+        std::sync::Arc::new(support::BasisEmbedder::new(8)),
+        slag_edge::serve::ServeOptions {
+            request_timeout: std::time::Duration::from_secs(1),
+            ..support::grid_serve_options(None, false)
+        },
+    )
+    .await;
+    // Generation 2, whose tiles never finish arriving.
+    *server.state.scene.write().unwrap() = grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 2);
+    server
+        .state
+        .stall
+        .lock()
+        .unwrap()
+        .extend((0..4).map(|t| (t, 10)));
+    let body = serde_json::json!({"center": [0.0, 0.0], "radius": 100.0, "server": server.url});
+    let (status, answer) = support::send_json(
+        reqwest::Client::new()
+            .post(format!("{url}/fetch"))
+            .json(&body),
+    )
+    .await;
+    assert_eq!(status, 408, "{answer}");
+    let m = support::error_message(&answer);
+    assert!(m.contains("fetch") && !m.contains("top_k"), "{m}");
+    // Queries keep their own 408 advice.
+    let (status, _) =
+        support::send_json(reqwest::Client::new().get(format!("{url}/query?text=t1"))).await;
+    assert_eq!(status, 200);
+}

@@ -157,6 +157,7 @@ fn commit_generation(store: &EdgeStore, scene: &TestScene, set: &[u64], prune: b
         radius: 0.0,
         completed_unix_s: 0,
         tiles: Some(tiles),
+        kept: None,
     };
     store.commit_fetch(m, &record).unwrap();
     if prune {

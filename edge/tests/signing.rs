@@ -128,7 +128,7 @@ fn rewrite_tile(scene: &TestScene) -> Vec<u8> {
 /// A fetch of the whole grid from `url` that trusts `key`.
 fn signed_params(url: &str, key: &TrustedKey) -> FetchParams {
     FetchParams {
-        trusted_key: Some(key.clone()),
+        trusted_keys: Some(key.clone().into()),
         ..grid_fetch_params(url, 100.0)
     }
 }
@@ -146,7 +146,7 @@ impl Edge {
         let (dir, store) = temp_store();
         fetch(&store, &signed_params(shards, key)).await.unwrap();
         let opts = ServeOptions {
-            trusted_key: Some(key.clone()),
+            trusted_keys: Some(key.clone().into()),
             ..ServeOptions::new("grid")
         };
         let state = AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap();
@@ -314,7 +314,10 @@ async fn a_trusted_key_refuses_every_tampering_and_the_last_good_generation_keep
     assert_eq!(status, 200, "{body}");
     edge.assert_serving(2).await;
     // ... and kept with its signature: verified again offline, every stored file hashed.
-    let check = edge.store.verify_signed("grid", Some(&trusted)).unwrap();
+    let check = edge
+        .store
+        .verify_signed("grid", Some(&trusted.clone().into()))
+        .unwrap();
     assert!(
         check.signed && check.verified && check.files_hashed == 9,
         "{check:?}"
@@ -343,7 +346,9 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
     fetch(&store, &grid_fetch_params(&server.url, 100.0))
         .await
         .unwrap();
-    let check = store.verify_signed("grid", Some(&trusted)).unwrap();
+    let check = store
+        .verify_signed("grid", Some(&trusted.clone().into()))
+        .unwrap();
     assert!(!check.signed && !check.verified, "{check:?}");
     // Signed: verified without a key only as far as naming the key.
     publish(&server.state, scene("grid", 1), Some(&publisher));
@@ -355,14 +360,14 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
     assert!(check.signed && !check.verified, "{check:?}");
     assert_eq!(
         store
-            .verify_signed("grid", Some(&trusted))
+            .verify_signed("grid", Some(&trusted.clone().into()))
             .unwrap()
             .files_hashed,
         9
     );
     // Another trusted key: refused.
     let e = store
-        .verify_signed("grid", Some(&SigningKey::generate().public()))
+        .verify_signed("grid", Some(&SigningKey::generate().public().into()))
         .unwrap_err();
     assert_untrusted(&e, Untrusted::OtherKey);
     // A stored shard rewritten in place with its CRC-32 kept: the CRC check passes, the
@@ -370,7 +375,9 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
     let s = scene("grid", 1);
     let path = support::shard_path(&store, 0);
     std::fs::write(&path, rewrite_tile(&s)).unwrap();
-    let e = store.verify_signed("grid", Some(&trusted)).unwrap_err();
+    let e = store
+        .verify_signed("grid", Some(&trusted.clone().into()))
+        .unwrap_err();
     assert_untrusted(&e, Untrusted::ContentHash);
     assert!(e.to_string().contains("tile 0"), "{e}");
     // A signed fetch sets the rewritten file aside and downloads the tile again.
@@ -378,7 +385,9 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
         .await
         .unwrap();
     assert_eq!((summary.set_aside, summary.downloaded), (1, 1), "{summary}");
-    store.verify_signed("grid", Some(&trusted)).unwrap();
+    store
+        .verify_signed("grid", Some(&trusted.clone().into()))
+        .unwrap();
 }
 
 /// A mixture scene of 2 tiles × 4 Gaussians, 2 slots each, over a codebook of 4 basis rows
@@ -458,7 +467,9 @@ async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
     fetch(&store, &signed_params(&server.url, &trusted))
         .await
         .unwrap();
-    let check = store.verify_signed("grid", Some(&trusted)).unwrap();
+    let check = store
+        .verify_signed("grid", Some(&trusted.clone().into()))
+        .unwrap();
     assert_eq!(
         check.files_hashed, 3,
         "two shards and the codebook: {check:?}"
@@ -487,7 +498,7 @@ async fn a_mixture_scenes_codebook_is_held_to_its_signed_sha256() {
         .unwrap();
     assert_eq!(
         store
-            .verify_signed("grid", Some(&trusted))
+            .verify_signed("grid", Some(&trusted.clone().into()))
             .unwrap()
             .files_hashed,
         3
@@ -595,4 +606,213 @@ async fn the_command_lines_fetch_with_a_trusted_key_and_check_says_whether_the_s
     let (ok, r) = report(check(&unsigned, true)).await;
     assert!(!ok, "{r}");
     assert!(r["problems"].to_string().contains("unsigned"), "{r}");
+}
+
+/// The centre of tile 8 (the grid's far corner, tile (2, 2)): a disc of radius 1 there selects
+/// that tile alone.
+const FAR_CORNER: [f64; 2] = [24.5, 24.5];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tile_forged_under_an_unsigned_fetch_outside_a_signed_fetchs_disc_is_dropped_never_served()
+ {
+    use slag_edge::fetch::Center;
+    use slag_edge::store::KeptTiles;
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    // An unsigned fetch of the whole grid while tile 0 is forged on the way (its CRC-32s
+    // kept): accepted, as every unsigned fetch would.
+    let forged = rewrite_tile(&scene("grid", 1));
+    let mut tampered = scene("grid", 1);
+    tampered.shards.insert(0, forged.clone());
+    let server = shard_server(tampered, None).await;
+    let (_dir, store) = temp_store();
+    fetch(&store, &grid_fetch_params(&server.url, 100.0))
+        .await
+        .unwrap();
+    assert_eq!(
+        std::fs::read(support::shard_path(&store, 0)).unwrap(),
+        forged
+    );
+    let before = slag_edge::engine::Engine::load(&store, "grid", false).unwrap();
+    assert!(before.load.loaded_tiles.contains(&0), "{:?}", before.load);
+
+    // The publisher's signed generation, fetched for a disc that does not cover tile 0: every
+    // stored tile the generation keeps is hashed, and the forged one is dropped.
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let small = FetchParams {
+        center: Center::Ground(FAR_CORNER),
+        radius: 1.0,
+        ..signed_params(&server.url, &trusted)
+    };
+    let s = fetch(&store, &small).await.unwrap();
+    assert_eq!((s.selected, s.downloaded, s.skipped), (1, 0, 1), "{s:?}");
+    let dropped = KeptTiles {
+        verified: 8,
+        refetched: 0,
+        dropped: 1,
+    };
+    assert_eq!(s.kept, dropped, "{s:?}");
+    assert!(s.to_string().contains("1 dropped"), "{s}");
+    assert!(!support::shard_path(&store, 0).exists());
+    let committed = {
+        let _g = store.lock_generation();
+        store.committed("grid").unwrap()
+    };
+    let ids: Vec<u64> = committed.tiles().iter().map(|t| t.id).collect();
+    assert_eq!(ids, (1..9).collect::<Vec<u64>>());
+    assert_eq!(committed.record.as_ref().unwrap().kept, Some(dropped));
+
+    // `serve` with the key: the forged rows are not answered, and /stats says what the fetch
+    // did with the kept tiles and that every served tile was hashed on load.
+    let opts = ServeOptions {
+        trusted_keys: Some(trusted.clone().into()),
+        ..ServeOptions::new("grid")
+    };
+    let state = AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap();
+    let url = serve_on_loopback(state).await;
+    let client = reqwest::Client::new();
+    let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+    assert_eq!(stats["shards_loaded"], 8, "{stats}");
+    assert_eq!(stats["shards_hashed"], 8, "{stats}");
+    assert_eq!(stats["last_fetch"]["kept"]["dropped"], 1, "{stats}");
+    assert_eq!(stats["last_fetch"]["kept"]["verified"], 8, "{stats}");
+    // The forged Gaussian (id 0) points along basis 5.
+    let (status, answer) =
+        send_json(client.get(format!("{url}/query?text=t5&top_k=90&threshold=-1"))).await;
+    assert_eq!(status, 200, "{answer}");
+    assert!(
+        !support::match_ids(&answer).contains(&0),
+        "the forged row is served: {answer}"
+    );
+
+    // Fetching the same disc again finds nothing more to drop.
+    let s = fetch(&store, &small).await.unwrap();
+    assert_eq!(
+        s.kept,
+        KeptTiles {
+            verified: 8,
+            refetched: 0,
+            dropped: 0
+        }
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tile_rewritten_on_disk_with_its_crcs_kept_is_not_served_by_a_server_that_trusts_the_key()
+{
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let (_dir, store) = temp_store();
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    std::fs::write(
+        support::shard_path(&store, 0),
+        rewrite_tile(&scene("grid", 1)),
+    )
+    .unwrap();
+    let load = |keys: Option<TrustedKey>| {
+        let opts = ServeOptions {
+            trusted_keys: keys.map(Into::into),
+            ..ServeOptions::new("grid")
+        };
+        AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap()
+    };
+    // Without the key, the CRC-32s pass: the rewritten tile is served.
+    let url = serve_on_loopback(load(None)).await;
+    let client = reqwest::Client::new();
+    let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+    assert_eq!(
+        (
+            stats["shards_loaded"].as_u64(),
+            stats["shards_hashed"].as_u64()
+        ),
+        (Some(9), Some(0)),
+        "{stats}"
+    );
+    // With it, every tile is hashed on load; the rewritten one is rejected, the rest served.
+    let url = serve_on_loopback(load(Some(trusted.clone()))).await;
+    let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+    assert_eq!(stats["shards_loaded"], 8, "{stats}");
+    assert_eq!(stats["shards_hashed"], 8, "{stats}");
+    let rejected = stats["shards_rejected"].to_string();
+    assert!(
+        rejected.contains("tile 0") && rejected.contains("SHA-256"),
+        "{stats}"
+    );
+    // POST /reload loads the same way.
+    let (status, body) = send_json(client.post(format!("{url}/reload"))).await;
+    assert_eq!((status, body["shards"].as_u64()), (200, Some(8)), "{body}");
+    // A stored manifest whose signature no longer holds is refused as a whole.
+    let other = SigningKey::generate().public();
+    let e = match AppState::new(
+        store.clone(),
+        Arc::new(BasisEmbedder::new(DIM)),
+        ServeOptions {
+            trusted_keys: Some(other.into()),
+            ..ServeOptions::new("grid")
+        },
+    ) {
+        Err(e) => e,
+        Ok(_) => panic!("loaded a generation the trusted key did not sign"),
+    };
+    assert_untrusted(&e, Untrusted::OtherKey);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_manifest_failing_a_size_check_under_a_trusted_key_is_a_counted_refusal() {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let edge = Edge::start(&server.url, &trusted).await;
+    // Edited in transit: tile 0 declares 10^12 bytes; the publisher's signature of the original.
+    let mut edited = scene("grid", 2);
+    let sig = publisher.sign(&edited.manifest.to_json()).to_json();
+    edited.manifest.tiles[0].bytes = 1_000_000_000_000;
+    publish(&server.state, edited, None);
+    *server.state.signature.write().unwrap() = Some(sig);
+    let m = edge
+        .refused(&server.url, &trusted, Untrusted::BadSignature, 1)
+        .await;
+    assert!(m.contains("changed after it was signed"), "{m}");
+    // Signed that way by the publisher itself: still a refusal, naming the check and the value.
+    let mut signed_bad = scene("grid", 2);
+    signed_bad.manifest.tiles[0].bytes = 1_000_000_000_000;
+    publish(&server.state, signed_bad, Some(&publisher));
+    let m = edge
+        .refused(&server.url, &trusted, Untrusted::Malformed, 1)
+        .await;
+    assert!(m.contains("declares 1000000000000 bytes"), "{m}");
+    // The sizes the message gives are how a length is made, never a range holding the value.
+    assert!(!m.contains("..="), "{m}");
+    assert_eq!(edge.stats().await["fetch_refusals"], 2);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_trusted_keys_accept_either_during_a_rotation_and_refuse_a_third_naming_both() {
+    let (old, new) = (SigningKey::generate(), SigningKey::generate());
+    let keys =
+        slag_common::shards::signature::TrustedKeys::new(vec![old.public(), new.public()]).unwrap();
+    let server = shard_server(scene("grid", 1), None).await;
+    let (_dir, store) = temp_store();
+    let params = FetchParams {
+        trusted_keys: Some(keys),
+        ..grid_fetch_params(&server.url, 100.0)
+    };
+    publish(&server.state, scene("grid", 1), Some(&old));
+    assert_eq!(fetch(&store, &params).await.unwrap().generation, 1);
+    publish(&server.state, scene("grid", 2), Some(&new));
+    assert_eq!(fetch(&store, &params).await.unwrap().generation, 2);
+    let stranger = SigningKey::generate();
+    publish(&server.state, scene("grid", 3), Some(&stranger));
+    let e = fetch(&store, &params).await.unwrap_err();
+    assert_untrusted(&e, Untrusted::OtherKey);
+    let m = e.to_string();
+    assert!(
+        m.contains(&old.key_id()) && m.contains(&new.key_id()),
+        "{m}"
+    );
 }

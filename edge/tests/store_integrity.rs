@@ -85,6 +85,7 @@ async fn a_manifest_that_is_not_a_set_is_refused_before_anything_is_stored() {
                 &twice_adding_up,
                 &FetchRecord {
                     tiles: None,
+                    kept: None,
                     ..record
                 },
             )

@@ -279,3 +279,44 @@ async fn the_binary_serves_https_and_reloads_its_certificate_on_sighup() {
     let _ = child.kill();
     let _ = child.wait();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_scheme_on_either_side_says_which_scheme_to_use() {
+    let ca = TestCa::new("slag edge test CA");
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = ca.server_cert(1).write(certs.path());
+    let tls = Arc::new(ServerTls::load(&cert_file, &key_file).unwrap());
+    let secure = shard_server_tls(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), tls).await;
+    let plain = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    let (_dir, store) = temp_store();
+    let http_to_tls = secure.url.replacen("https://", "http://", 1);
+    let e = fetch(&store, &grid_fetch_params(&http_to_tls, 100.0))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("use https://"), "{e}");
+    let https_to_plain = plain.url.replacen("http://", "https://", 1);
+    let e = fetch(&store, &grid_fetch_params(&https_to_plain, 100.0))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("use http://"), "{e}");
+}
+
+#[test]
+fn a_damaged_certificate_at_a_reload_is_named_as_the_certificate() {
+    let ca = TestCa::new("slag edge test CA");
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = ca.server_cert(1).write(certs.path());
+    let tls = ServerTls::load(&cert_file, &key_file).unwrap();
+    // Base64 still, so still PEM, but the DER inside no longer parses.
+    let pem = std::fs::read_to_string(&cert_file).unwrap();
+    let mut lines: Vec<String> = pem.lines().map(str::to_string).collect();
+    for l in lines.iter_mut().skip(2).take(4) {
+        *l = "A".repeat(l.len());
+    }
+    std::fs::write(&cert_file, lines.join("\n") + "\n").unwrap();
+    let e = slag_common::tls::log_reload(&tls, "SIGHUP").unwrap_err();
+    let m = e.to_string();
+    assert!(m.contains(&cert_file.display().to_string()), "{m}");
+    assert!(m.contains("not a valid X.509 certificate"), "{m}");
+    assert!(!m.contains("this key cannot serve"), "{m}");
+}

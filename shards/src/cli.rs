@@ -133,6 +133,15 @@ pub struct PartitionArgs {
     /// trust the public key (`slag-edge fetch --trusted-key`) refuse anything else.
     #[arg(long, value_name = "FILE")]
     pub signing_key: Option<PathBuf>,
+    /// Sign with a --signing-key that users other than its owner may read (refused otherwise:
+    /// chmod 600 it).
+    #[arg(long)]
+    pub allow_readable_key: bool,
+    /// The least generation to write (≥ 1): a publisher that re-created its store carries on
+    /// above the generation its robots hold, which they would refuse as a replay. Default: one
+    /// more than the store's current generation (1 for a new scene).
+    #[arg(long, value_name = "N")]
+    pub start_generation: Option<u64>,
 }
 
 impl PartitionArgs {
@@ -283,7 +292,11 @@ fn partition_source(
         }
     };
     let key = load_signing_key(args.signing_key.as_deref())?;
-    let store = &ShardStore::open(&args.store)?;
+    let mut store = ShardStore::open(&args.store)?;
+    if let Some(g) = args.start_generation {
+        store = store.starting_at(g)?;
+    }
+    let store = &store;
     let params = PartitionParams {
         scene_id: args.scene.clone(),
         max_per_shard,
@@ -319,7 +332,15 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     args.shard_cap()?;
     if let Some(p) = &args.signing_key {
         SigningKey::read_pem(p)?;
-        warn_if_readable(p);
+        check_key_mode(p, args.allow_readable_key)?;
+    }
+    if args.start_generation == Some(0) {
+        return Err(slag_common::Error::param(
+            "start_generation",
+            0,
+            "a generation ≥ 1 (above the one the robots hold)",
+        )
+        .into());
     }
     if let Some(spec) = &args.synthetic {
         return run_partition_synthetic(args, spec);
@@ -603,6 +624,9 @@ pub struct ServeArgs {
     /// signatures are then not served. Without it, stored signatures are served.
     #[arg(long, value_name = "FILE")]
     pub signing_key: Option<PathBuf>,
+    /// Sign with a --signing-key that users other than its owner may read (refused otherwise).
+    #[arg(long)]
+    pub allow_readable_key: bool,
 }
 
 impl ServeArgs {
@@ -670,7 +694,7 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     )?;
     let key = load_signing_key(args.signing_key.as_deref())?;
     if let Some(p) = &args.signing_key {
-        warn_if_readable(p);
+        check_key_mode(p, args.allow_readable_key)?;
     }
     let store = ShardStore::open(&args.store)?;
     let rt = tokio::runtime::Runtime::new().context("tokio runtime")?;
@@ -714,6 +738,9 @@ pub struct ExportArgs {
     /// instead of the signature stored with the generation.
     #[arg(long, value_name = "FILE")]
     pub signing_key: Option<PathBuf>,
+    /// Sign with a --signing-key that users other than its owner may read (refused otherwise).
+    #[arg(long)]
+    pub allow_readable_key: bool,
 }
 
 /// Runs `export`.
@@ -722,7 +749,7 @@ pub struct ExportArgs {
 pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
     let key = load_signing_key(args.signing_key.as_deref())?;
     if let Some(p) = &args.signing_key {
-        warn_if_readable(p);
+        check_key_mode(p, args.allow_readable_key)?;
     }
     let store = ShardStore::open(&args.store)?;
     let m = crate::export::export_signed(&store, &args.scene, &args.dir, args.force, key.as_ref())?;
@@ -768,14 +795,27 @@ fn load_signing_key(path: Option<&std::path::Path>) -> slag_common::Result<Optio
     path.map(SigningKey::read_pem).transpose()
 }
 
-/// Logs a warning when the private key file at `path` may be read by other users.
-fn warn_if_readable(path: &std::path::Path) {
-    if let Some(mode) = slag_common::shards::signature::readable_by_others(path) {
+/// Refuses the private key file at `path` when users other than its owner may read or write it
+/// (anyone who reads it can sign maps the robots accept), unless `allow` (`--allow-readable-key`,
+/// then logged as a warning).
+///
+/// Errors: [`slag_common::Error::Param`] `signing_key` naming the file's mode.
+fn check_key_mode(path: &std::path::Path, allow: bool) -> slag_common::Result<()> {
+    let Some(mode) = slag_common::shards::signature::readable_by_others(path) else {
+        return Ok(());
+    };
+    if allow {
         tracing::warn!(
             "{}: the private signing key may be read by other users (mode {mode:o}); chmod 600 it",
             path.display()
         );
+        return Ok(());
     }
+    Err(slag_common::Error::param(
+        "signing_key",
+        format!("{} (mode {mode:o})", path.display()),
+        "a private key only its owner may read: chmod 600 it (or pass --allow-readable-key)",
+    ))
 }
 
 /// The process's exit status for a subcommand's `result`: success, or failure after printing

@@ -47,6 +47,8 @@ pub struct ShardStore {
     shards: sled::Tree,
     codebooks: sled::Tree,
     signatures: sled::Tree,
+    /// The least generation [`ShardStore::writer`] gives a scene ([`ShardStore::starting_at`]).
+    start_generation: u64,
 }
 
 /// The current manifest of a scene as stored: its exact JSON bytes (what is served and signed),
@@ -114,8 +116,27 @@ impl ShardStore {
             shards: tree("shards")?,
             codebooks: tree("codebooks")?,
             signatures: tree("signatures")?,
+            start_generation: 1,
             db,
         })
+    }
+
+    /// This store, whose next generation of a scene is at least `start` (≥ 1): a publisher that
+    /// re-creates its store (a lost disk, a new machine) carries on above the generation its
+    /// robots hold, which they would otherwise refuse as a replay. A scene whose committed
+    /// generation is `start` or more carries on from it as usual.
+    ///
+    /// Errors: [`Error::Param`] `start_generation` for 0.
+    pub fn starting_at(mut self, start: u64) -> Result<ShardStore> {
+        if start == 0 {
+            return Err(Error::param(
+                "start_generation",
+                0,
+                "a generation ≥ 1 (above the one the robots hold)",
+            ));
+        }
+        self.start_generation = start;
+        Ok(self)
     }
 
     /// Committed generation of `scene`, if any.
@@ -298,7 +319,7 @@ impl ShardStore {
         Ok(SceneWriter {
             store: self,
             scene: scene.to_string(),
-            generation: current.map_or(1, |g| g + 1),
+            generation: current.map_or(1, |g| g + 1).max(self.start_generation),
         })
     }
 

@@ -121,9 +121,10 @@ pub fn robot_fetch_params(shard_url: &str) -> slag_edge::fetch::FetchParams {
         jobs: 4,
         retries: 1,
         timeout: std::time::Duration::from_secs(30),
+        min_rate: slag_edge::fetch::DEFAULT_MIN_RATE,
         token: None,
         progress: false,
-        trusted_key: None,
+        trusted_keys: None,
         frame: Default::default(),
     }
 }
@@ -218,6 +219,8 @@ pub fn robot_path_with(
         qdrant_snapshot_per_tile: false,
         qdrant_api_key: None,
         signing_key: None,
+        allow_readable_key: false,
+        start_generation: None,
     })
     .expect("partition");
     rt.block_on(async {

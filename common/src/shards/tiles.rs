@@ -451,26 +451,31 @@ impl Manifest {
         let d = self.dim as u64;
         let (scene, model) = (self.scene_id.len(), self.model.len());
         let dense_header = header_len_for(scene, model, false) as u64;
-        let check = |what: String,
-                     bytes: u64,
-                     count: u64,
-                     min_header: u64,
-                     payload: &dyn Fn(u8) -> u64| {
-            if count > u32::MAX as u64 {
-                return Err(bad(format!(
-                    "{what} declares {count} Gaussians, more than a shard's 32-bit count"
-                )));
-            }
-            if shard_len_allowed(bytes, min_header, payload) {
-                return Ok(());
-            }
-            Err(bad(format!(
-                "{what} declares {bytes} bytes, but a shard of {count} Gaussians of this scene is \
-                 {}..={} bytes",
-                min_header + payload(0),
-                super::format::MAX_HEADER_LEN as u64 + payload(super::format::KNOWN_FLAGS)
-            )))
-        };
+        let check =
+            |what: String, bytes: u64, count: u64, min_header: u64, payload: &dyn Fn(u8) -> u64| {
+                if count > u32::MAX as u64 {
+                    return Err(bad(format!(
+                        "{what} declares {count} Gaussians, more than a shard's 32-bit count"
+                    )));
+                }
+                if shard_len_allowed(bytes, min_header, payload) {
+                    return Ok(());
+                }
+                // The lengths a shard may have are not one range (a header in steps of 8 plus one of
+                // a few payloads): say how they are made, never a range that holds `bytes`.
+                let mut payloads: Vec<u64> =
+                    (0..=super::format::KNOWN_FLAGS).map(payload).collect();
+                payloads.sort_unstable();
+                payloads.dedup();
+                let payloads: Vec<String> = payloads.iter().map(u64::to_string).collect();
+                Err(bad(format!(
+                    "{what} declares {bytes} bytes, a length no shard of {count} Gaussians of this \
+                 scene has: a shard is a header of {min_header} to {} bytes (a multiple of 8) \
+                 plus a payload of {} bytes",
+                    super::format::MAX_HEADER_LEN,
+                    payloads.join(" or ")
+                )))
+            };
         match &self.mixture {
             None => {
                 for t in &self.tiles {

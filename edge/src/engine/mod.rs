@@ -25,6 +25,7 @@ pub use queries::{
 };
 
 use slag_common::Result;
+use slag_common::shards::signature::TrustedKeys;
 use slag_common::shards::{Manifest, MixtureShard, StoredShard};
 
 use crate::query::{QueryAnswer, QueryContext, QueryParams, TextEmbedder};
@@ -87,13 +88,33 @@ impl Engine {
     /// ([`slag_common::shards::ShardError::ManifestNotASet`]); the index build
     /// ([`ApproxIndex::build`]).
     pub fn load_with(edge: &EdgeStore, scene: &str, hnsw: Option<HnswBackend>) -> Result<Engine> {
+        Engine::load_trusting(edge, scene, hnsw, None)
+    }
+
+    /// [`Engine::load_with`], and with `trusted` (the publisher's keys, as `serve` holds them)
+    /// for a signed generation: the stored signature is verified over the stored manifest bytes
+    /// and every tile's bytes are hashed as they are read, beside their verification
+    /// ([`EdgeStore::load_committed`]); a tile whose SHA-256 or length differs from the signed
+    /// manifest (a file rewritten on disk with its CRC-32s kept) is not served
+    /// ([`SceneLoad::rejected`]), and [`SceneLoad::hashed`] counts those that match. An
+    /// unsigned generation loads on its CRC-32s alone, with a warning.
+    ///
+    /// Errors: as [`Engine::load_with`]; [`slag_common::Error::Untrusted`] when the stored
+    /// signature is by none of `trusted` or does not hold over the stored manifest, or the
+    /// manifest lacks a SHA-256; a mixture scene's codebook whose SHA-256 differs.
+    pub fn load_trusting(
+        edge: &EdgeStore,
+        scene: &str,
+        hnsw: Option<HnswBackend>,
+        trusted: Option<&TrustedKeys>,
+    ) -> Result<Engine> {
         if let Some(b) = hnsw {
             b.require()?;
         }
         let loaded = {
             // One committed generation, read whole while no fetch commits or evicts.
             let _generation = edge.lock_generation();
-            load_generation(edge, scene)?
+            load_generation(edge, scene, trusted)?
         };
         let (manifest, store, load, display, record, seq) = loaded;
         let hnsw = build_index(&store, scene, hnsw)?;
@@ -246,14 +267,19 @@ type Generation = (
 /// drop), then the check that no Gaussian id is in two shards.
 ///
 /// Errors: as [`Engine::load_with`].
-fn load_generation(edge: &EdgeStore, scene: &str) -> Result<Generation> {
+fn load_generation(
+    edge: &EdgeStore,
+    scene: &str,
+    trusted: Option<&TrustedKeys>,
+) -> Result<Generation> {
     let committed = edge.committed(scene)?;
     let manifest = &committed.manifest;
+    let hashes = signed_generation(edge, scene, manifest, trusted)?;
     let mut store = match &manifest.mixture {
         // A mixture scene: its codebook first (verified; missing or corrupt is an error,
         // since no row can be scored without it).
         Some(m) => {
-            let cb = edge.codebook(manifest)?;
+            let cb = edge.codebook_checked(manifest, hashes)?;
             let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
                 slag_common::Error::format("<manifest>", "codebook checksum is not hex")
             })?;
@@ -280,13 +306,13 @@ fn load_generation(edge: &EdgeStore, scene: &str) -> Result<Generation> {
         ids.extend(ids_of.iter().map(|&i| (i, k)));
     };
     let load = if store.is_mixture() {
-        edge.load_committed(&committed, |s: MixtureShard| {
+        edge.load_committed(&committed, hashes, |s: MixtureShard| {
             note(&s.ids, s.header.tile_id);
             display.push_shard(&s);
             store.push_mixture_shard(s)
         })?
     } else {
-        edge.load_committed(&committed, |s: StoredShard| {
+        edge.load_committed(&committed, hashes, |s: StoredShard| {
             note(&s.ids, s.header.tile_id);
             display.push_shard(&s);
             store.push_shard(s)
@@ -301,6 +327,36 @@ fn load_generation(edge: &EdgeStore, scene: &str) -> Result<Generation> {
         committed.record,
         committed.seq,
     ))
+}
+
+/// Whether a load with the publisher's keys `trusted` hashes the committed generation's tiles
+/// ([`Engine::load_trusting`]): true once the stored signature of `scene` is verified over the
+/// stored manifest bytes (`manifest` parsed from them) and the manifest names every SHA-256;
+/// false without keys, or for an unsigned generation (logged). Call with the generation lock
+/// held.
+///
+/// Errors: [`slag_common::Error::Untrusted`] (module `signature`); store I/O.
+fn signed_generation(
+    edge: &EdgeStore,
+    scene: &str,
+    manifest: &Manifest,
+    trusted: Option<&TrustedKeys>,
+) -> Result<bool> {
+    let Some(keys) = trusted else {
+        return Ok(false);
+    };
+    let Some(sig) = edge.signature(scene)? else {
+        tracing::warn!(
+            "scene {scene}: the stored generation is unsigned, so its tiles are checked by their \
+             CRC-32s only; fetch it with the trusted key to have them hashed"
+        );
+        return Ok(false);
+    };
+    let origin = format!("the store's manifest of scene {scene}");
+    let bytes = edge.manifest_bytes(scene)?.unwrap_or_default();
+    keys.verify(&bytes, &sig, &origin)?;
+    slag_common::shards::signature::check_hashes(manifest, &origin)?;
+    Ok(true)
 }
 
 /// Refuses rows of one Gaussian id in two shards: the manifest's tiles must partition the

@@ -40,6 +40,9 @@ pub struct EngineOptions {
     pub scan_queue: usize,
     /// Matches one request may ask for in all (Σ `top_k` over a batch; [`check_matches`]).
     pub max_matches: usize,
+    /// The publisher's keys: every load verifies a signed generation's signature and hashes its
+    /// tiles ([`Engine::load_trusting`]); `None`: CRC-32s only.
+    pub trusted_keys: Option<slag_common::shards::signature::TrustedKeys>,
 }
 
 /// The query engine: the served generation ([`ServedEngine`]), the text model and the embedded
@@ -72,7 +75,8 @@ impl QueryEngine {
         text: Arc<dyn TextEmbedder>,
         opts: EngineOptions,
     ) -> Result<QueryEngine> {
-        let engine = Engine::load_with(&edge, &opts.scene, opts.index)?;
+        let engine =
+            Engine::load_trusting(&edge, &opts.scene, opts.index, opts.trusted_keys.as_ref())?;
         text.check_pair(&engine.manifest.model)?;
         let negatives = text.embed(&CANONICAL_NEGATIVES)?;
         if let Some(n) = negatives.first()
@@ -190,7 +194,12 @@ impl QueryEngine {
     pub async fn reload(&self) -> Result<()> {
         let s = self.0.clone();
         let e = tokio::task::spawn_blocking(move || {
-            Engine::load_with(&s.edge, &s.opts.scene, s.opts.index)
+            Engine::load_trusting(
+                &s.edge,
+                &s.opts.scene,
+                s.opts.index,
+                s.opts.trusted_keys.as_ref(),
+            )
         })
         .await
         .map_err(|e| Error::internal(format!("reload task failed: {e}")))??;

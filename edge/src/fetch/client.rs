@@ -1,8 +1,11 @@
 //! The HTTP side of a fetch: the client (rustls, with a private CA's certificates), URLs, one
-//! request's failure (transient or not) and the error a status means, and the manifest's
-//! download (streamed under its size cap).
+//! request's failure (transient or not) and the error a status means, the pace every transfer
+//! must keep ([`Pace`]), and the manifest's download (streamed under its size cap).
+//!
+//! Errors name the URL that answered (after a redirect, the last one), and a wrong scheme (an
+//! `https://` URL for a plain HTTP port, `http://` for a TLS port) is named with its fix.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
 use slag_common::shards::{MAX_MANIFEST_BYTES, Manifest, manifest_too_large};
@@ -34,8 +37,104 @@ pub(super) fn permanent(error: Error) -> Attempt {
     }
 }
 
+/// The deadline a transfer keeps: the request's head within the fetch's timeout, and after that
+/// every byte at the least mean rate ([`super::FetchParams::min_rate`]), so a server that sends
+/// a file a few bytes at a time (never idle long enough for the idle timeout) is cut off too.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Pace {
+    start: Instant,
+    grace: Duration,
+    min_rate: u64,
+}
+
+impl Pace {
+    /// A transfer starting now, with `grace` (the fetch's timeout) before the rate counts and
+    /// `min_rate` bytes per second after (0: no deadline).
+    pub(super) fn new(grace: Duration, min_rate: u64) -> Pace {
+        Pace {
+            start: Instant::now(),
+            grace,
+            min_rate,
+        }
+    }
+
+    /// When the first `bytes` bytes of the body must have arrived (`None`: never).
+    pub(super) fn due(&self, bytes: u64) -> Option<tokio::time::Instant> {
+        (self.min_rate > 0).then(|| {
+            let rest = Duration::from_secs_f64(bytes as f64 / self.min_rate as f64);
+            tokio::time::Instant::from_std(self.start + self.grace + rest)
+        })
+    }
+
+    /// `fut` (the head of a request, or the next chunk after `bytes` bytes) within its deadline.
+    ///
+    /// Errors: [`Error::Network`] naming `url`, the bytes received, the rate and the flags.
+    pub(super) async fn within<T>(
+        &self,
+        url: &str,
+        bytes: u64,
+        fut: impl std::future::Future<Output = T>,
+    ) -> std::result::Result<T, Attempt> {
+        let Some(due) = self.due(bytes + 1) else {
+            return Ok(fut.await);
+        };
+        tokio::time::timeout_at(due, fut).await.map_err(|_| {
+            transient(Error::network(
+                url,
+                format!(
+                    "{bytes} bytes in {:.1} s: slower than the least rate of {} bytes/s after \
+                     the first {:.1} s (--min-rate, --timeout); the link is too slow or the \
+                     server stalls",
+                    self.start.elapsed().as_secs_f64(),
+                    self.min_rate,
+                    self.grace.as_secs_f64()
+                ),
+            ))
+        })
+    }
+}
+
+/// The URL a reqwest error is about (the one that answered, after a redirect), else `url`;
+/// without user name and password.
+fn answering_url(url: &str, e: &reqwest::Error) -> String {
+    let u = e.url().map_or(url, reqwest::Url::as_str);
+    slag_common::auth::redact_url(u).into_owned()
+}
+
+/// What a failed request says of a wrong scheme, with its fix: an `https://` URL for a port that
+/// speaks plain HTTP (the TLS handshake reads an HTTP answer), or `http://` for a TLS port (the
+/// HTTP parser reads a TLS record).
+fn wrong_scheme(url: &str, causes: &str) -> Option<&'static str> {
+    let c = causes.to_ascii_lowercase();
+    if url.starts_with("https://")
+        && (c.contains("invalidcontenttype")
+            || c.contains("corrupt message")
+            || c.contains("wrong version number")
+            || c.contains("invalid message"))
+    {
+        Some(
+            "the server does not speak TLS on this port: use http:// for a plain HTTP server \
+             (or the port its TLS listens on)",
+        )
+    } else if url.starts_with("http://")
+        && (c.contains("invalid http version") || c.contains("invalid http status"))
+    {
+        Some(
+            "the server answered with something that is not HTTP, as a TLS port does: use \
+             https:// (with --ca-cert for a private CA)",
+        )
+    } else {
+        None
+    }
+}
+
 pub(super) fn net_error(url: &str, e: reqwest::Error) -> Attempt {
     let causes = slag_common::error::causes_once(&e);
+    let url = &answering_url(url, &e);
+    if let Some(fix) = wrong_scheme(url, &causes) {
+        // Not transient: the same port answers the same way on every retry.
+        return permanent(Error::network(url, format!("{fix} ({causes})")));
+    }
     if e.is_connect() && causes.contains("certificate") {
         // Not transient: the same certificate fails the same way on every retry.
         return permanent(Error::network(
@@ -138,24 +237,38 @@ pub async fn fetch_manifest(
         .map(|(_, m)| m)
 }
 
-/// GETs `url` (with the bearer `token`) and reads its body, refusing more than `cap` bytes
-/// with `too_large(bytes seen)`: streamed with the cap, so a server that sends more is cut off
-/// there, whatever its Content-Length said. Returns the status and the body.
+/// A body read by [`get_capped`]: its status, the URL that answered (after a redirect, the last
+/// one; without user name and password) and its bytes.
+pub(super) struct Answer {
+    pub(super) status: reqwest::StatusCode,
+    pub(super) url: String,
+    pub(super) body: Vec<u8>,
+}
+
+/// GETs `url` (with the bearer `token`) and reads its body at `pace`, refusing more than `cap`
+/// bytes with `too_large(bytes seen)`: streamed with the cap, so a server that sends more is cut
+/// off there, whatever its Content-Length said.
 ///
-/// Errors: [`Error::Network`]; `too_large`'s error.
+/// Errors: [`Error::Network`] (a transfer slower than `pace` too); `too_large`'s error.
 pub(super) async fn get_capped(
     client: &reqwest::Client,
     url: &str,
     token: Option<&str>,
     cap: u64,
+    pace: Pace,
     too_large: impl Fn(u64) -> Error,
-) -> Result<(reqwest::StatusCode, Vec<u8>)> {
+) -> Result<Answer> {
     let mut req = client.get(url);
     if let Some(t) = token {
         req = req.bearer_auth(t);
     }
-    let resp = req.send().await.map_err(|e| net_error(url, e).error)?;
+    let resp = pace
+        .within(url, 0, req.send())
+        .await
+        .map_err(|a| a.error)?
+        .map_err(|e| net_error(url, e).error)?;
     let status = resp.status();
+    let answered = slag_common::auth::redact_url(resp.url().as_str()).into_owned();
     if let Some(len) = resp.content_length()
         && len > cap
     {
@@ -163,14 +276,22 @@ pub(super) async fn get_capped(
     }
     let mut body = Vec::new();
     let mut stream = resp.bytes_stream();
-    while let Some(chunk) = stream.next().await {
-        let chunk = chunk.map_err(|e| net_error(url, e).error)?;
+    loop {
+        let next = pace.within(&answered, body.len() as u64, stream.next());
+        let Some(chunk) = next.await.map_err(|a| a.error)? else {
+            break;
+        };
+        let chunk = chunk.map_err(|e| net_error(&answered, e).error)?;
         if (body.len() + chunk.len()) as u64 > cap {
             return Err(too_large((body.len() + chunk.len()) as u64));
         }
         body.extend_from_slice(&chunk);
     }
-    Ok((status, body))
+    Ok(Answer {
+        status,
+        url: answered,
+        body,
+    })
 }
 
 /// [`fetch_manifest`], also returning the manifest's bytes exactly as the server sent them
@@ -183,26 +304,62 @@ pub async fn fetch_manifest_bytes(
     scene: &str,
     token: Option<&str>,
 ) -> Result<(Vec<u8>, Manifest)> {
+    fetch_manifest_paced(client, server, scene, token, Pace::new(Duration::ZERO, 0)).await
+}
+
+/// [`fetch_manifest_bytes`] at `pace`.
+///
+/// Errors: as [`fetch_manifest`]; a transfer slower than `pace` ([`Error::Network`]).
+pub(super) async fn fetch_manifest_paced(
+    client: &reqwest::Client,
+    server: &str,
+    scene: &str,
+    token: Option<&str>,
+    pace: Pace,
+) -> Result<(Vec<u8>, Manifest)> {
+    let (url, body) = get_manifest(client, server, scene, token, pace).await?;
+    let m = parse_manifest(&body, &url, scene)?;
+    Ok((body, m))
+}
+
+/// The manifest's bytes as the server sent them, and its URL (the one that answered); not
+/// parsed.
+///
+/// Errors: [`Error::Network`] (unreachable, non-2xx, slower than `pace`), [`Error::Limit`]
+/// [`slag_common::Resource::ManifestBytes`] (more than [`MAX_MANIFEST_BYTES`]).
+pub(super) async fn get_manifest(
+    client: &reqwest::Client,
+    server: &str,
+    scene: &str,
+    token: Option<&str>,
+    pace: Pace,
+) -> Result<(String, Vec<u8>)> {
     let url = url_join(server, &format!("v1/scenes/{scene}/manifest"));
-    let (status, body) = get_capped(client, &url, token, MAX_MANIFEST_BYTES, |n| {
+    let a = get_capped(client, &url, token, MAX_MANIFEST_BYTES, pace, |n| {
         manifest_too_large(n, &url)
     })
     .await?;
-    if !status.is_success() {
-        return Err(status_error(&url, status, &String::from_utf8_lossy(&body)).error);
+    if !a.status.is_success() {
+        return Err(status_error(&a.url, a.status, &String::from_utf8_lossy(&a.body)).error);
     }
-    let m = Manifest::from_json(&body, &url)?;
+    Ok((a.url, a.body))
+}
+
+/// Parses the manifest `body` from `url` for `scene` and checks what a fetch needs of it: the
+/// format's checks ([`Manifest::from_json`]), the scene id, every tile's checksum.
+///
+/// Errors: [`Error::Format`] (not a manifest, sizes the shard format does not allow, another
+/// scene's, a checksum that is not 8 hex digits).
+pub(super) fn parse_manifest(body: &[u8], url: &str, scene: &str) -> Result<Manifest> {
+    let m = Manifest::from_json(body, url)?;
     if m.scene_id != scene {
         return Err(Error::format(
-            &url,
-            format!(
-                "manifest is for scene {:?}, asked for {scene:?}",
-                m.scene_id
-            ),
+            url,
+            format!("manifest is for scene {}, asked for {scene}", m.scene_id),
         ));
     }
     for t in &m.tiles {
         parse_checksum(t)?;
     }
-    Ok((body, m))
+    Ok(m)
 }

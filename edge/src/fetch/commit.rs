@@ -2,13 +2,14 @@
 //! damaged one set aside) and what to download, then steps 5 and 6 (the new generation
 //! committed, shards it does not hold evicted, partial files tidied).
 
+use rayon::prelude::*;
 use slag_common::Error;
 use slag_common::Result;
 use slag_common::fault::boundary;
 use slag_common::shards::{Manifest, TileInfo};
 
 use super::FetchSummary;
-use crate::store::{EdgeStore, FetchRecord, SignedManifest, Stored, parse_checksum};
+use crate::store::{EdgeStore, FetchRecord, KeptTiles, SignedManifest, Stored, parse_checksum};
 
 /// Step 3 of the module doc on the blocking pool: checks what the store holds for each of
 /// `tiles` against `manifest` (hashes too when `hashed`), setting a damaged file aside under the
@@ -23,31 +24,90 @@ pub(super) async fn check_stored_tiles(
 ) -> Result<(Vec<(TileInfo, Stored)>, Manifest)> {
     let store = store.clone();
     tokio::task::spawn_blocking(move || {
-        let mut out = Vec::with_capacity(tiles.len());
-        for t in tiles {
-            let state = match store.check_stored_signed(&manifest, &t, hashed)? {
-                Stored::Damaged { path, why } => {
-                    // A load in progress reads the committed generation whole.
-                    let _generation = store.lock_generation();
-                    store.set_aside(&path, &why)?;
-                    Stored::Damaged { path, why }
-                }
-                s => s,
-            };
-            out.push((t, state));
-        }
-        Ok::<_, Error>((out, manifest))
+        let states = check_each(&store, &manifest, &tiles, hashed)?;
+        Ok::<_, Error>((tiles.into_iter().zip(states).collect(), manifest))
     })
     .await
     .map_err(|e| Error::internal(format!("store task failed: {e}")))?
 }
 
+/// [`EdgeStore::check_stored_signed`] of each of `tiles`, on the rayon pool (hashing is the
+/// cost of a signed fetch's checks), then each damaged file set aside under the generation lock
+/// (a load in progress reads the committed generation whole). In the order of `tiles`.
+///
+/// Errors: store I/O.
+fn check_each(
+    store: &EdgeStore,
+    manifest: &Manifest,
+    tiles: &[TileInfo],
+    hashed: bool,
+) -> Result<Vec<Stored>> {
+    let states: Vec<Stored> = tiles
+        .par_iter()
+        .map(|t| store.check_stored_signed(manifest, t, hashed))
+        .collect::<Result<_>>()?;
+    for s in &states {
+        if let Stored::Damaged { path, why } = s {
+            let _generation = store.lock_generation();
+            store.set_aside(path, why)?;
+        }
+    }
+    Ok(states)
+}
+
+/// A fetch with a trusted key, without pruning: hashes the stored files of the manifest's tiles
+/// outside the disc (`selected`), which the new generation would keep, against the signed
+/// manifest. A file that matches counts as verified in `kept`; one that does not (a tile forged
+/// while an unsigned fetch was trusted, a file rewritten on disk with its CRC-32 kept) is set
+/// aside and counted as dropped: it is not part of the new generation, so it is never served. A
+/// fetch downloads only its disc, so a dropped tile comes back with a fetch whose disc covers
+/// it. Returns `manifest` back.
+///
+/// Errors: store I/O; a failed task ([`Error::Internal`]).
+pub(super) async fn check_kept_outside(
+    store: &EdgeStore,
+    manifest: Manifest,
+    selected: &[TileInfo],
+    kept: &mut KeptTiles,
+) -> Result<Manifest> {
+    let inside: std::collections::HashSet<u64> = selected.iter().map(|t| t.id).collect();
+    let store = store.clone();
+    let outside: Vec<TileInfo> = manifest
+        .tiles
+        .iter()
+        .filter(|t| !inside.contains(&t.id))
+        .cloned()
+        .collect();
+    let (states, manifest) = tokio::task::spawn_blocking(move || {
+        let mut stored = Vec::new();
+        for t in outside {
+            if store.has_shard(&manifest.scene_id, &t)? {
+                stored.push(t);
+            }
+        }
+        let states = check_each(&store, &manifest, &stored, true)?;
+        Ok::<_, Error>((states, manifest))
+    })
+    .await
+    .map_err(|e| Error::internal(format!("store task failed: {e}")))??;
+    for s in states {
+        match s {
+            Stored::Verified => kept.verified += 1,
+            Stored::Damaged { .. } => kept.dropped += 1,
+            Stored::Missing => {}
+        }
+    }
+    Ok(manifest)
+}
+
 /// What to download after [`check_stored_tiles`]: the shards not verified in the store, and the
 /// codebook (`codebook`'s tile) when it is not; counts the verified shards (`skipped`) and the
-/// files set aside in `summary`.
+/// files set aside in `summary`, and with a trusted key (`hashed`) the stored tiles verified and
+/// re-fetched ([`FetchSummary::kept`]).
 pub(super) fn plan_downloads(
     checked: Vec<(TileInfo, Stored)>,
     codebook: Option<&TileInfo>,
+    hashed: bool,
     summary: &mut FetchSummary,
 ) -> (Vec<TileInfo>, Option<TileInfo>) {
     let mut todo = Vec::new();
@@ -56,9 +116,14 @@ pub(super) fn plan_downloads(
         let is_codebook = codebook.is_some_and(|c| c.id == t.id);
         match state {
             Stored::Verified if is_codebook => {}
-            Stored::Verified => summary.skipped += 1,
+            Stored::Verified => {
+                summary.skipped += 1;
+                summary.kept.verified += hashed as usize;
+            }
             Stored::Missing | Stored::Damaged { .. } => {
-                summary.set_aside += matches!(state, Stored::Damaged { .. }) as usize;
+                let damaged = matches!(state, Stored::Damaged { .. });
+                summary.set_aside += damaged as usize;
+                summary.kept.refetched += (hashed && damaged && !is_codebook) as usize;
                 if is_codebook {
                     codebook_todo = Some(t);
                 } else {

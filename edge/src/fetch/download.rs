@@ -12,8 +12,9 @@ use slag_common::shards::{CODEBOOK_TILE, Manifest, TileInfo};
 use slag_common::{Error, Result};
 use tokio::io::AsyncWriteExt;
 
-use super::client::{Attempt, net_error, permanent, status_error, transient, url_join};
+use super::client::{Attempt, Pace, net_error, permanent, status_error, transient, url_join};
 use super::resume::{TileFetch, open_partial, partial_prefix, write_chunk};
+use super::signed::refusal;
 use super::{FetchParams, FetchSummary};
 use crate::store::EdgeStore;
 
@@ -108,6 +109,12 @@ impl Downloads<'_> {
                     resumed |= r;
                     match self.commit(tile, &part).await? {
                         Ok(()) => return Ok((resumed, counts.received)),
+                        // Under a trusted key the SHA-256 matched first: the same bytes would
+                        // fail again, and any failed check is a refusal.
+                        Err(e @ Error::Format { .. }) if self.p.trusted_keys.is_some() => {
+                            let _ = tokio::fs::remove_file(&part).await;
+                            return Err(refusal(e, &format!("tile {}", tile.id)));
+                        }
                         Err(Error::Format { path, message }) => {
                             // Corrupted in transit or on disk: start this shard over once.
                             let _ = tokio::fs::remove_file(&part).await;
@@ -130,9 +137,10 @@ impl Downloads<'_> {
                     attempt += 1;
                     let wait = Duration::from_millis(200 * 2u64.pow(attempt.min(6)));
                     tracing::warn!(
-                        "{} (retry {attempt}/{} in {wait:?})",
+                        "{} (retry {attempt}/{} in {:.1} s)",
                         a.error,
-                        self.p.retries
+                        self.p.retries,
+                        wait.as_secs_f64()
                     );
                     tokio::time::sleep(wait).await;
                 }
@@ -184,7 +192,7 @@ impl Downloads<'_> {
     /// Errors: [`Error::Internal`] when the task fails.
     async fn commit(&self, tile: &TileInfo, part: &Path) -> Result<Result<()>> {
         let is_codebook = self.is_codebook(tile);
-        let signed = self.p.trusted_key.is_some();
+        let signed = self.p.trusted_keys.is_some();
         let (store, manifest, tile, part) = (
             self.store.clone(),
             self.manifest.clone(),
@@ -224,11 +232,16 @@ impl Downloads<'_> {
                 .header(reqwest::header::RANGE, format!("bytes={have}-"))
                 .header(reqwest::header::IF_RANGE, format!("\"{}\"", tile.checksum));
         }
-        let resp = req.send().await.map_err(|e| net_error(to.url, e))?;
+        let pace = Pace::new(self.p.timeout, self.p.min_rate);
+        let resp = pace
+            .within(to.url, 0, req.send())
+            .await?
+            .map_err(|e| net_error(to.url, e))?;
         let Some((file, start, resumed)) = open_partial(&resp, to, have).await? else {
             let status = resp.status();
-            let body = resp.text().await.unwrap_or_default();
-            return Err(status_error(to.url, status, &body));
+            let answered = slag_common::auth::redact_url(resp.url().as_str()).into_owned();
+            let body = pace.within(&answered, 0, resp.text()).await?;
+            return Err(status_error(&answered, status, &body.unwrap_or_default()));
         };
         // Keep the bar at "bytes of this tile on disk" across resumes and restarts.
         if start >= counts.shown {
@@ -238,30 +251,34 @@ impl Downloads<'_> {
                 .set_position(self.pb.position().saturating_sub(counts.shown - start));
         }
         counts.shown = start;
-        self.receive(resp, file, to, start, counts).await?;
+        self.receive(resp, file, to, (start, pace), counts).await?;
         Ok(resumed)
     }
 
-    /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`), then flushes
-    /// and syncs it. Past the manifest's size the file is removed and the attempt starts over;
-    /// a write that fails (disk full) removes it too, never left to fill the disk further; a
-    /// body cut short keeps what arrived for the next attempt to resume.
+    /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`) at `pace`,
+    /// then flushes and syncs it. Past the manifest's size the file is removed and the attempt
+    /// starts over (with a trusted key: refused); a write that fails (disk full) removes it too,
+    /// never left to fill the disk further; a body cut short, or slower than `pace`, keeps what
+    /// arrived for the next attempt to resume.
     async fn receive(
         &self,
         resp: reqwest::Response,
         mut file: tokio::fs::File,
         to: &TileFetch<'_>,
-        start: u64,
+        (start, pace): (u64, Pace),
         counts: &mut Counts,
     ) -> std::result::Result<(), Attempt> {
-        let (url, part, tile) = (to.url, to.part, to.tile);
+        let (part, tile) = (to.part, to.tile);
+        let url = &slag_common::auth::redact_url(resp.url().as_str()).into_owned();
         let io = |e: std::io::Error| permanent(Error::io(part, e));
         let mut written = start;
         let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
-        while let Some(chunk) = stream.next().await {
-            let chunk = match chunk {
-                Ok(c) => c,
-                Err(a) => {
+        loop {
+            let next = pace.within(url, written - start, stream.next()).await;
+            let chunk = match next {
+                Ok(None) => break,
+                Ok(Some(Ok(c))) => c,
+                Ok(Some(Err(a))) | Err(a) => {
                     let _ = file.flush().await;
                     let _ = file.sync_data().await;
                     return Err(a);
@@ -271,6 +288,18 @@ impl Downloads<'_> {
             if written > tile.bytes {
                 drop(file);
                 let _ = tokio::fs::remove_file(part).await;
+                if self.p.trusted_keys.is_some() {
+                    // Its length is signed: a longer body is not the publisher's file.
+                    return Err(permanent(Error::untrusted(
+                        slag_common::Untrusted::Malformed,
+                        url,
+                        format!(
+                            "the server sent more than the {} bytes the signed manifest gives \
+                             tile {}: not the publisher's file",
+                            tile.bytes, tile.id
+                        ),
+                    )));
+                }
                 return Err(transient(Error::network(
                     url,
                     format!(

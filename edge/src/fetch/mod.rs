@@ -30,7 +30,7 @@
 //!
 //! # Signed manifests
 //!
-//! With [`FetchParams::trusted_key`] the manifest must come with the publisher's signature
+//! With [`FetchParams::trusted_keys`] the manifest must come with the publisher's signature
 //! (`GET {server}/v1/scenes/{scene}/manifest.sig`, [`slag_common::shards::signature`]) over its
 //! exact bytes, which name the generation and every file's SHA-256. Before anything is
 //! downloaded the fetch refuses ([`Error::Untrusted`], naming what failed) a manifest without a
@@ -100,16 +100,22 @@ use slag_common::shards::{MAP_FRAME, TileInfo, valid_scene_id};
 use slag_common::{Error, Result};
 
 use crate::query::FrameChoice;
-use crate::store::{EdgeStore, FetchRecord, codebook_tile};
-use slag_common::shards::signature::TrustedKey;
+use crate::store::{EdgeStore, FetchRecord, KeptTiles, codebook_tile};
+use slag_common::shards::signature::TrustedKeys;
 
 pub use client::{client, client_trusting, fetch_manifest, fetch_manifest_bytes};
 pub use disc::{Center, select_tiles, selection_disc};
 pub use signed::fetch_trusted_manifest;
 
-use commit::{check_stored_tiles, commit_and_evict, plan_downloads, tidy_after_commit};
+use commit::{
+    check_kept_outside, check_stored_tiles, commit_and_evict, plan_downloads, tidy_after_commit,
+};
 use download::Downloads;
 use space::check_free_space;
+
+/// Default [`FetchParams::min_rate`]: 16 KiB/s (131 kbit/s), a few percent of what a slow LTE
+/// link carries, so only a stalled or dripping transfer falls below it.
+pub const DEFAULT_MIN_RATE: u64 = 16 * 1024;
 
 /// What to fetch and how.
 #[derive(Debug, Clone)]
@@ -134,16 +140,23 @@ pub struct FetchParams {
     pub jobs: usize,
     /// Retries per shard after a transient failure (connection drop, timeout, 5xx).
     pub retries: u32,
-    /// Connect and read (idle) timeout per request.
+    /// Connect and read (idle) timeout per request; also the grace before [`Self::min_rate`]
+    /// counts.
     pub timeout: Duration,
+    /// Least mean rate of every transfer (manifest, signature, each tile), bytes per second:
+    /// after [`Self::timeout`], a file must keep arriving at this rate or its request is cut
+    /// off (a deadline per file that grows with its size, so a server that sends a byte now and
+    /// then, never idle long enough for the timeout, cannot hold a fetch). A tile cut off keeps
+    /// what arrived for the retry to resume. 0: no deadline. [`DEFAULT_MIN_RATE`] by default.
+    pub min_rate: u64,
     /// Bearer token for the shard server, if it requires one.
     pub token: Option<String>,
     /// Draw a progress bar on stderr (when it is a terminal).
     pub progress: bool,
-    /// The publisher's public key: only a manifest it signed, and files matching that
-    /// manifest's SHA-256s, are accepted (module doc, "Signed manifests"). `None`: unsigned
+    /// The publisher's public keys (one, or two while it rotates): only a manifest one of them
+    /// signed, and files matching that manifest's SHA-256s, are accepted (module doc, "Signed manifests"). `None`: unsigned
     /// manifests are accepted as they are.
-    pub trusted_key: Option<TrustedKey>,
+    pub trusted_keys: Option<TrustedKeys>,
 }
 
 /// What a fetch did.
@@ -184,6 +197,10 @@ pub struct FetchSummary {
     /// Mixture scenes: bytes of the scene's codebook (downloaded now or already stored); 0 for
     /// a dense scene.
     pub codebook_bytes: u64,
+    /// With a trusted key: the stored tiles the new generation would keep, hashed against the
+    /// signed manifest (verified, re-fetched inside the disc, dropped outside it); all 0 for an
+    /// unsigned fetch.
+    pub kept: KeptTiles,
 }
 
 impl std::fmt::Display for FetchSummary {
@@ -193,7 +210,7 @@ impl std::fmt::Display for FetchSummary {
             "scene {} generation {} ({} frame{}): {} shards in the radius ({} downloaded, {} \
              resumed, {} already stored and verified, {} damaged set aside), {} Gaussians, {:.1} \
              MB of shards, {:.1} MB received; {} outside the radius kept, {} evicted; store {:.1} \
-             MB on disk{}",
+             MB on disk{}{}",
             self.scene,
             self.generation,
             self.frame,
@@ -220,6 +237,18 @@ impl std::fmt::Display for FetchSummary {
                 )
             } else {
                 String::new()
+            },
+            match self.kept {
+                KeptTiles {
+                    verified: 0,
+                    refetched: 0,
+                    dropped: 0,
+                } => String::new(),
+                k => format!(
+                    "; stored tiles hashed against the signed manifest: {} verified, {} \
+                     re-fetched, {} dropped",
+                    k.verified, k.refetched, k.dropped
+                ),
             }
         )
     }
@@ -233,7 +262,7 @@ impl std::fmt::Display for FetchSummary {
 /// large or whose sizes the shard format does not allow ([`Error::Limit`], [`Error::Format`]),
 /// not enough free disk space for what is to be downloaded ([`Error::Limit`]
 /// [`slag_common::Resource::DiskSpace`], naming the folder), a shard that fails verification
-/// twice ([`Error::Format`]), with [`FetchParams::trusted_key`] a manifest or file the key does
+/// twice ([`Error::Format`]), with [`FetchParams::trusted_keys`] a manifest or file the key does
 /// not vouch for ([`Error::Untrusted`], module doc "Signed manifests"), store I/O. On error the
 /// store keeps every shard completed so far and the previous manifest stays current; rerunning
 /// resumes (partial files are kept only after a network failure: module doc).
@@ -330,7 +359,12 @@ async fn fetch_inner(
     }
     let tiles: Vec<TileInfo> = codebook.iter().chain(&selected).cloned().collect();
     let (checked, manifest) = check_stored_tiles(store, manifest, tiles, hashed).await?;
-    let (todo, codebook_todo) = plan_downloads(checked, codebook.as_ref(), &mut summary);
+    let (todo, codebook_todo) = plan_downloads(checked, codebook.as_ref(), hashed, &mut summary);
+    let manifest = if hashed && !p.prune {
+        check_kept_outside(store, manifest, &selected, &mut summary.kept).await?
+    } else {
+        manifest
+    };
     let total: u64 = todo.iter().chain(&codebook_todo).map(|t| t.bytes).sum();
     check_free_space(store, &manifest, todo.iter().chain(&codebook_todo))?;
     let downloads = Downloads {
@@ -351,6 +385,7 @@ async fn fetch_inner(
             .map(|d| d.as_secs())
             .unwrap_or(0),
         tiles: None,
+        kept: hashed.then_some(summary.kept),
     };
     let manifest = downloads.manifest;
     let (evicted, kept_outside) = {

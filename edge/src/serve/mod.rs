@@ -17,7 +17,7 @@
 //!   "frame": "map" | "scene"}` (map metres by default when the manifest has a transform) → fetches
 //!   from the server of the last fetch (or `"server"`; with the body's `"token"`, else
 //!   [`ServeOptions::shard_token`]) into the store this process holds, then
-//!   reloads; `POST /reload` reloads the store. With [`ServeOptions::trusted_key`] the fetch
+//!   reloads; `POST /reload` reloads the store. With [`ServeOptions::trusted_keys`] the fetch
 //!   accepts only what the publisher signed ([`crate::fetch`], "Signed manifests"): a refusal
 //!   is answered 502 naming the failed check, logged as one error line, counted in `/stats`
 //!   (`fetch_refusals`, `last_refusal`), and the scene served before keeps answering.
@@ -124,8 +124,8 @@ pub struct ServeOptions {
     /// no token).
     pub shard_token: Option<String>,
     /// The publisher's public key `POST /fetch` requires signatures of
-    /// ([`FetchParams::trusted_key`]); `None`: unsigned maps are accepted.
-    pub trusted_key: Option<slag_common::shards::signature::TrustedKey>,
+    /// ([`FetchParams::trusted_keys`]); `None`: unsigned maps are accepted.
+    pub trusted_keys: Option<slag_common::shards::signature::TrustedKeys>,
     /// Serve HTTPS with this certificate (`None`: plain HTTP); `SIGHUP` and `POST /reload` read
     /// its files again (module doc, "TLS").
     pub tls: Option<Arc<slag_common::tls::ServerTls>>,
@@ -150,8 +150,8 @@ impl std::fmt::Debug for ServeOptions {
             .field("limits", &self.limits)
             .field("shard_token", &secret(&self.shard_token))
             .field(
-                "trusted_key",
-                &self.trusted_key.as_ref().map(|k| k.key_id()),
+                "trusted_keys",
+                &self.trusted_keys.as_ref().map(|k| k.key_ids()),
             )
             .field("tls", &self.tls)
             .field("ca_cert", &self.ca_cert)
@@ -178,7 +178,7 @@ impl ServeOptions {
             max_matches: DEFAULT_MAX_MATCHES,
             limits: ServerLimits::default(),
             shard_token: None,
-            trusted_key: None,
+            trusted_keys: None,
             tls: None,
             ca_cert: None,
         }
@@ -194,6 +194,7 @@ impl ServeOptions {
             max_scans: self.max_scans,
             scan_queue: self.scan_queue,
             max_matches: self.max_matches,
+            trusted_keys: self.trusted_keys.clone(),
         }
     }
 }
@@ -296,6 +297,8 @@ impl From<Arc<AppState>> for QueryEngine {
 /// Builds the router (auth, body limit, timeout and JSON error layers included).
 pub fn router(state: Arc<AppState>) -> Router {
     let timeout = state.opts.request_timeout;
+    // POST /fetch keeps its own request timeout, whose 408 speaks of the fetch (fetch_post).
+    let fetching = Router::new().route("/fetch", post(fetch_post));
     let router = Router::new()
         .route("/health", get(health))
         .route("/stats", get(stats))
@@ -305,8 +308,12 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/index.html", get(web::index))
         .route("/app.js", get(web::app_js))
         .route("/vendor/{name}", get(web::vendor))
-        .route("/fetch", post(fetch_post))
         .route("/reload", post(reload))
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            StatusCode::REQUEST_TIMEOUT,
+            timeout,
+        ))
+        .merge(fetching)
         .fallback(|| async {
             error(
                 StatusCode::NOT_FOUND,
@@ -326,10 +333,6 @@ pub fn router(state: Arc<AppState>) -> Router {
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(
             MAX_BODY_BYTES,
-        ))
-        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
-            StatusCode::REQUEST_TIMEOUT,
-            timeout,
         ))
         .with_state(state);
     slag_common::http::json_errors(router)
@@ -489,6 +492,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "shards_loaded": e.load.loaded_tiles.len(),
         "shards_absent": e.load.absent_tiles,
         "shards_rejected": e.load.rejected,
+        "shards_hashed": e.load.hashed,
         "gaussians": n,
         "memory": {
             "vectors_bytes": e.store.memory_bytes(),
@@ -499,7 +503,7 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         },
         "store_disk_bytes": disk,
         "last_fetch": record,
-        "signed_fetches": state.opts.trusted_key.as_ref().map(|k| k.key_id()),
+        "signed_fetches": state.opts.trusted_keys.as_ref().map(|k| k.key_ids()),
         "fetch_refusals": fetch_refusals,
         "last_refusal": last_refusal,
         "queries_served": state.engine.queries_served(),
@@ -765,8 +769,24 @@ async fn fetch_post(
         Ok(p) => p,
         Err(m) => return error(StatusCode::BAD_REQUEST, m),
     };
-    let _guard = state.fetching.lock().await;
-    let fetched = fetch::fetch_classified(&state.edge, &params).await;
+    let limit = state.opts.request_timeout;
+    let Ok(fetched) = tokio::time::timeout(limit, async {
+        let _guard = state.fetching.lock().await;
+        fetch::fetch_classified(&state.edge, &params).await
+    })
+    .await
+    else {
+        return error(
+            StatusCode::REQUEST_TIMEOUT,
+            format!(
+                "the fetch did not finish within the server's request timeout ({:.0} s, \
+                 --request-timeout): the shards it completed are kept and the scene served \
+                 before keeps answering; POST /fetch again to resume the partial downloads, \
+                 fetch a smaller radius, or raise --request-timeout",
+                limit.as_secs_f64()
+            ),
+        );
+    };
     if let Err(f) = &fetched
         && matches!(f.error, Error::Untrusted { .. })
     {
@@ -830,10 +850,11 @@ fn fetch_params(
         jobs: 4,
         retries: 3,
         timeout: Duration::from_secs(30),
+        min_rate: crate::fetch::DEFAULT_MIN_RATE,
         token: b.token.or_else(|| state.opts.shard_token.clone()),
         progress: false,
         frame,
-        trusted_key: state.opts.trusted_key.clone(),
+        trusted_keys: state.opts.trusted_keys.clone(),
     })
 }
 

@@ -98,6 +98,25 @@ pub struct FetchRecord {
     /// manifest.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tiles: Option<Vec<u64>>,
+    /// A fetch with a trusted key: what became of the tiles the store already held (their
+    /// SHA-256 checked against the signed manifest). `None` for an unsigned fetch.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kept: Option<KeptTiles>,
+}
+
+/// What a fetch with a trusted key did with the tiles of the new generation that the store
+/// already held (a tile's stored file is hashed and compared with the signed manifest's SHA-256
+/// and length before it joins the generation; a codebook is checked the same way but not counted).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct KeptTiles {
+    /// Stored tiles (inside the disc and outside it) whose bytes match the signed manifest:
+    /// kept.
+    pub verified: usize,
+    /// Stored tiles inside the disc that did not match: set aside and downloaded again.
+    pub refetched: usize,
+    /// Stored tiles outside the disc that did not match: set aside, not part of the new
+    /// generation (a fetch never downloads outside its disc), so never served.
+    pub dropped: usize,
 }
 
 /// The store: shard files, a sled database of manifests, and the partial-download folder.
@@ -562,7 +581,7 @@ fn header_disagreement(
 
 /// A decoded shard type [`EdgeStore::load_shards`] reads: [`StoredShard`] (dense manifests) or
 /// [`MixtureShard`] (mixture manifests).
-pub trait LoadableShard: Sized {
+pub trait LoadableShard: Sized + Send {
     /// Verifies the stored bytes of `tile` against `manifest` and decodes them.
     ///
     /// Errors: as [`verify_shard`] / [`verify_mixture_shard`].
@@ -994,6 +1013,14 @@ impl EdgeStore {
     /// Errors: [`Error::Format`] when it is missing (naming `slag-edge fetch`), truncated or
     /// corrupted on disk, or belongs to another scene; [`Error::Io`] when it cannot be read.
     pub fn codebook(&self, manifest: &Manifest) -> Result<Codebook> {
+        self.codebook_checked(manifest, false)
+    }
+
+    /// [`Self::codebook`], and with `hashes` (a signed generation whose signature the caller
+    /// verified) the file's SHA-256 compared with the manifest's too.
+    ///
+    /// Errors: as [`Self::codebook`]; [`Error::Untrusted`] for another SHA-256.
+    pub fn codebook_checked(&self, manifest: &Manifest, hashes: bool) -> Result<Codebook> {
         let Some(path) = self.codebook_path(manifest)? else {
             return verify_codebook(manifest, &[]);
         };
@@ -1004,6 +1031,9 @@ impl EdgeStore {
                 "the mixture scene's codebook is not stored; run `slag-edge fetch` again",
             ));
         };
+        if hashes && let Some(t) = codebook_tile(manifest) {
+            signed::check_download(manifest, &t, &bytes)?;
+        }
         verify_codebook(manifest, &bytes)
     }
 
@@ -1336,8 +1366,13 @@ pub struct SceneLoad {
     pub loaded_tiles: Vec<u64>,
     /// Tiles of the manifest that are not stored (outside the fetched radius, or never fetched).
     pub absent_tiles: usize,
-    /// Stored tiles that failed verification (corrupted on disk); not served.
+    /// Stored tiles that failed verification (corrupted on disk, or bytes other than the signed
+    /// manifest's); not served.
     pub rejected: Vec<String>,
+    /// Of the loaded tiles, those whose bytes were hashed at this load and match the signed
+    /// manifest's SHA-256 (a load with trusted keys of a signed generation,
+    /// [`crate::engine::Engine::load_trusting`]; 0 otherwise).
+    pub hashed: usize,
 }
 
 impl EdgeStore {
@@ -1370,29 +1405,35 @@ impl EdgeStore {
         manifest: &Manifest,
         f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
-        self.load_tiles(manifest, manifest.tiles.iter(), f)
+        self.load_tiles(manifest, manifest.tiles.iter(), false, f)
     }
 
     /// [`Self::load_shards`] for the tiles of one committed generation ([`Committed::tiles`]):
-    /// the manifest's other tiles count as absent, whatever files are there.
+    /// the manifest's other tiles count as absent, whatever files are there. With `hashes` (a
+    /// signed generation whose signature the caller verified), each file's SHA-256 is also
+    /// compared with the manifest's, alongside its verification; a file that differs is rejected
+    /// like a corrupted one ([`SceneLoad::rejected`], an [`Error::Untrusted`] message).
     ///
     /// Errors: the first error `f` returns.
     pub fn load_committed<S: LoadableShard>(
         &self,
         committed: &Committed,
+        hashes: bool,
         f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let tiles = committed.tiles();
-        let mut load = self.load_tiles(&committed.manifest, tiles.iter().copied(), f)?;
+        let mut load = self.load_tiles(&committed.manifest, tiles.iter().copied(), hashes, f)?;
         load.absent_tiles += committed.manifest.tiles.len() - tiles.len();
         Ok(load)
     }
 
-    /// Reads `tiles` of `manifest` as [`Self::load_shards`] describes.
+    /// Reads `tiles` of `manifest` as [`Self::load_shards`] describes; hashes each too with
+    /// `hashes` ([`Self::load_committed`]).
     fn load_tiles<'a, S: LoadableShard>(
         &self,
         manifest: &Manifest,
         tiles: impl Iterator<Item = &'a TileInfo>,
+        hashes: bool,
         mut f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let mut load = SceneLoad::default();
@@ -1415,11 +1456,20 @@ impl EdgeStore {
                     continue;
                 }
             };
-            let verified = S::verify(manifest, tile, &bytes);
+            // The hash runs beside the decoding (two cores: about the time of the longer).
+            let (hash, verified) = if hashes {
+                rayon::join(
+                    || signed::check_download(manifest, tile, &bytes),
+                    || S::verify(manifest, tile, &bytes),
+                )
+            } else {
+                (Ok(()), S::verify(manifest, tile, &bytes))
+            };
             drop(bytes);
-            match verified {
+            match hash.and(verified) {
                 Ok(s) => {
                     load.loaded_tiles.push(tile.id);
+                    load.hashed += hashes as usize;
                     f(s)?;
                 }
                 Err(e) => {

@@ -14,7 +14,7 @@ use std::sync::atomic::Ordering;
 
 use slag_common::fault::boundary;
 use slag_common::shards::signature::{
-    ManifestSignature, TrustedKey, check_hashes, compare_sha256, sha256_reader,
+    ManifestSignature, TrustedKeys, check_hashes, compare_sha256, sha256_reader,
 };
 use slag_common::shards::{Manifest, TileInfo};
 use slag_common::{Error, Result};
@@ -218,7 +218,10 @@ impl EdgeStore {
             Some(want) if want == got => Stored::Verified,
             want => Stored::Damaged {
                 path,
-                why: format!("SHA-256 {got}, the signed manifest says {want:?}"),
+                why: format!(
+                    "SHA-256 {got}, the signed manifest says {}",
+                    want.unwrap_or("none")
+                ),
             },
         })
     }
@@ -240,7 +243,7 @@ impl EdgeStore {
     /// Errors: [`Error::Untrusted`] for a signature that does not hold (another key, changed
     /// bytes) or a stored file whose SHA-256 differs; [`Error::Param`] `scene` for a scene never
     /// fetched; store I/O.
-    pub fn verify_signed(&self, scene: &str, key: Option<&TrustedKey>) -> Result<SignatureCheck> {
+    pub fn verify_signed(&self, scene: &str, key: Option<&TrustedKeys>) -> Result<SignatureCheck> {
         let _generation = self.lock_generation();
         let committed = self.committed(scene)?;
         let Some(sig) = self.signature(scene)? else {

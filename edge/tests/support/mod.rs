@@ -633,9 +633,10 @@ pub fn grid_fetch_params(url: &str, radius: f64) -> FetchParams {
         jobs: 2,
         retries: 0,
         timeout: Duration::from_secs(10),
+        min_rate: slag_edge::fetch::DEFAULT_MIN_RATE,
         token: None,
         progress: false,
-        trusted_key: None,
+        trusted_keys: None,
         frame: Default::default(),
     }
 }
