@@ -6,7 +6,7 @@ use clap::Args;
 
 use slag_encoder::object_scene::{self, Texture, room_layout, write_room_scene};
 use slag_encoder::synthetic::{
-    SyntheticSceneParams, SyntheticSummary, object_layout, touching_layout,
+    SyntheticSceneParams, SyntheticSummary, ViewLayout, object_layout, touching_layout,
     write_synthetic_scene_with_objects,
 };
 
@@ -16,7 +16,7 @@ pub struct SynthArgs {
     /// Number of Gaussians (suffixes K and M allowed, e.g. 30M).
     #[arg(long, value_parser = parse_count)]
     pub gaussians: usize,
-    /// Number of posed views on the camera ring.
+    /// Number of posed views.
     #[arg(
         long = "view-count",
         alias = "views",
@@ -36,6 +36,11 @@ pub struct SynthArgs {
     /// Generator seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// How the cameras fly: a ring high above the terrain, each view seeing most of it, or a
+    /// survey drone's lawnmower sweep, low and looking forward and down, each view a patch (the
+    /// paper's large scene: --gaussians 38M --view-count 1657 --layout sweep).
+    #[arg(long, value_enum, default_value_t = ViewLayout::Ring)]
+    pub layout: ViewLayout,
     /// Output scene folder.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
@@ -94,6 +99,7 @@ pub fn run(a: &SynthArgs) -> anyhow::Result<SyntheticSummary> {
         height: a.height,
         extent: a.extent,
         seed: a.seed,
+        layout: a.layout,
     };
     if let (true, Some(k)) = (a.room, a.objects) {
         let defaults = Texture::for_extent(a.extent);

@@ -727,6 +727,7 @@ mod tests {
             height: 72,
             extent: 6.0,
             seed,
+            ..Default::default()
         }
     }
 

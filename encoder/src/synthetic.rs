@@ -6,7 +6,9 @@
 //! (scene units, read as metres) centred on the origin, z up, painted in a 4 × 3 grid of the 12
 //! colour-clip colours, so colour prompts have a ground truth here too. Gaussians are flat discs
 //! on the terrain, spaced `extent / √N`. Cameras fly a ring at `0.6 · extent` height, looking at
-//! points on the ground, COLMAP/OpenCV camera axes (x right, y down, z forward), PINHOLE.
+//! points on the ground ([`ViewLayout::Ring`]), or sweep the terrain lane by lane like a survey
+//! drone, low and looking forward and down ([`ViewLayout::Sweep`]); COLMAP/OpenCV camera axes (x
+//! right, y down, z forward), PINHOLE.
 //! Each image is the terrain colour at the ray's ground hit (ray-cast against the plane z = 0, with
 //! a little texture), so masks follow the colour patches the Gaussians carry.
 //!
@@ -65,6 +67,23 @@ pub struct SyntheticSceneParams {
     pub extent: f64,
     /// Seed of the deterministic generator.
     pub seed: u64,
+    /// How the cameras fly.
+    pub layout: ViewLayout,
+}
+
+/// How a synthetic scene's cameras fly ([`camera`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum ViewLayout {
+    /// A ring at `0.6 · extent` height, radius `0.35 · extent`, each view looking at a ground
+    /// point on the far side of the centre: every view sees most of the terrain.
+    #[default]
+    Ring,
+    /// A survey drone's lawnmower sweep: parallel lanes along x across the terrain, flown in
+    /// alternate directions at `0.12 · extent` height, each view looking along the lane and 50°
+    /// down: a view sees a patch of the terrain, its neighbours along and across the lane
+    /// overlap it, as in a photogrammetry flight (the paper's large scene: 1,657 such views).
+    Sweep,
 }
 
 impl Default for SyntheticSceneParams {
@@ -76,6 +95,7 @@ impl Default for SyntheticSceneParams {
             height: 742,
             extent: 100.0,
             seed: 1,
+            layout: ViewLayout::Ring,
         }
     }
 }
@@ -430,17 +450,43 @@ pub(crate) fn ray_box(c: DVec3, d: DVec3, b: &[[f64; 3]; 2]) -> Option<f64> {
 }
 
 /// One view: world-to-camera rotation (rows = camera x right, y down, z forward in world
-/// coordinates) and camera centre, world frame.
+/// coordinates) and camera centre, world frame, as `p.layout` flies them.
 pub(crate) fn camera(i: usize, p: &SyntheticSceneParams) -> (DMat3, DVec3) {
-    let a = std::f64::consts::TAU * i as f64 / p.views.max(1) as f64;
-    let r = 0.35 * p.extent;
-    let centre = DVec3::new(r * a.cos(), r * a.sin(), 0.6 * p.extent);
-    // Look at a ground point on the ring's far side of the centre: oblique, drone-like.
-    let target = DVec3::new(-0.15 * p.extent * a.cos(), -0.15 * p.extent * a.sin(), 0.0);
-    let fwd = (target - centre).normalize();
+    let (centre, fwd) = match p.layout {
+        ViewLayout::Ring => ring_view(i, p),
+        ViewLayout::Sweep => sweep_view(i, p),
+    };
     let right = fwd.cross(DVec3::Z).normalize();
     let down = fwd.cross(right);
     (DMat3::from_cols(right, down, fwd).transpose(), centre)
+}
+
+/// View `i` of the ring: its centre and unit forward direction, looking at a ground point on
+/// the ring's far side of the centre (oblique, drone-like).
+fn ring_view(i: usize, p: &SyntheticSceneParams) -> (DVec3, DVec3) {
+    let a = std::f64::consts::TAU * i as f64 / p.views.max(1) as f64;
+    let r = 0.35 * p.extent;
+    let centre = DVec3::new(r * a.cos(), r * a.sin(), 0.6 * p.extent);
+    let target = DVec3::new(-0.15 * p.extent * a.cos(), -0.15 * p.extent * a.sin(), 0.0);
+    (centre, (target - centre).normalize())
+}
+
+/// View `i` of the sweep ([`ViewLayout::Sweep`]): its centre and unit forward direction. The
+/// `views` are cut into `round(√(views / 4))` lanes (at least 1) of equal length, lanes spread
+/// evenly over the middle 80 % of the terrain in y, views evenly along the middle 90 % in x,
+/// odd lanes flown back; forward is along the lane, 50° below the horizon.
+fn sweep_view(i: usize, p: &SyntheticSceneParams) -> (DVec3, DVec3) {
+    let views = p.views.max(1);
+    let lanes = ((views as f64 / 4.0).sqrt().round() as usize).clamp(1, views);
+    let per_lane = views.div_ceil(lanes);
+    let (lane, k) = (i / per_lane, i % per_lane);
+    let e = p.extent;
+    let y = e * (-0.4 + 0.8 * (lane as f64 + 0.5) / lanes as f64);
+    let along = e * (-0.45 + 0.9 * (k as f64 + 0.5) / per_lane as f64);
+    let heading = if lane % 2 == 0 { 1.0 } else { -1.0 };
+    let centre = DVec3::new(heading * along, y, 0.12 * e);
+    let pitch = 50f64.to_radians();
+    (centre, DVec3::new(heading * pitch.cos(), 0.0, -pitch.sin()))
 }
 
 /// Focal length (pixels) giving a 60° horizontal field of view.
@@ -710,6 +756,57 @@ mod tests {
     use crate::raster::{CpuRasterizer, WeightRasterizer, raster_intrinsics};
 
     #[test]
+    fn a_sweep_flies_low_lanes_whose_views_each_see_a_patch_of_the_terrain() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let p = SyntheticSceneParams {
+            gaussians: 20_000,
+            views: 16,
+            width: 80,
+            height: 60,
+            extent: 50.0,
+            seed: 7,
+            layout: ViewLayout::Sweep,
+        };
+        write_synthetic_scene(dir.path(), &p).expect("write");
+        let (g, views, _) = crate::pipeline::SceneInput::new(dir.path(), None, 1)
+            .load()
+            .expect("scene");
+        assert_eq!(views.len(), 16);
+        let mut r = CpuRasterizer::new(&g);
+        let mut union = vec![false; g.len()];
+        let mut seen_by = Vec::new();
+        for v in &views {
+            // Low over the terrain: 0.12 of the extent up.
+            let c = v.world_to_camera.camera_centre();
+            assert!((c.z - 6.0).abs() < 1e-6, "{c:?}");
+            let k = raster_intrinsics(&v.intrinsics, 0.5).expect("intrinsics");
+            let w = r.rasterize(&k, &v.world_to_camera).expect("raster");
+            let total = (w.width * w.height) as usize;
+            let covered = (0..total).filter(|&i| w.offsets[i + 1] > w.offsets[i]).count();
+            assert!(covered * 2 > total, "only {covered} of {total} pixels covered");
+            let mut seen = vec![false; g.len()];
+            for &id in &w.ids {
+                seen[id as usize] = true;
+                union[id as usize] = true;
+            }
+            let n = seen.iter().filter(|&&s| s).count();
+            // A patch: far less than the terrain.
+            assert!(n * 5 < g.len(), "{} sees {n} of {}", v.name, g.len());
+            seen_by.push(seen);
+        }
+        // Two lanes of eight: neighbours along a lane overlap, and the lanes together see most
+        // of the terrain's middle.
+        for lane in 0..2 {
+            for k in 0..7 {
+                let (a, b) = (&seen_by[lane * 8 + k], &seen_by[lane * 8 + k + 1]);
+                assert!(a.iter().zip(b).any(|(x, y)| *x && *y), "{lane} {k}");
+            }
+        }
+        let all = union.iter().filter(|&&s| s).count();
+        assert!(all * 3 > g.len(), "the sweep sees {all} of {}", g.len());
+    }
+
+    #[test]
     fn synthetic_scene_loads_and_its_views_see_the_terrain() {
         let dir = tempfile::tempdir().expect("tempdir");
         let p = SyntheticSceneParams {
@@ -719,6 +816,7 @@ mod tests {
             height: 120,
             extent: 50.0,
             seed: 7,
+            ..Default::default()
         };
         let s = write_synthetic_scene(dir.path(), &p).expect("write");
         assert_eq!((s.gaussians, s.views), (20_000, 3));

@@ -64,6 +64,7 @@ fn placed_objects_come_back_with_their_positions_and_boxes() {
         height: 180,
         extent: EXTENT,
         seed: 3,
+        ..Default::default()
     };
     let placed = object_layout(5, EXTENT).expect("layout");
     write_synthetic_scene_with_objects(&scene, &p, &placed).expect("scene");

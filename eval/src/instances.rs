@@ -700,6 +700,7 @@ mod tests {
             height: 8,
             extent: 20.0,
             seed: 5,
+            ..Default::default()
         };
         let placed = touching_layout(6, p.extent).unwrap();
         let (g, ranges) = scene_with_instances(&p, &placed);

@@ -30,6 +30,7 @@ fn prediction_filtering_helps_on_object_truth() {
         height: 120,
         extent: 6.0,
         seed: 11,
+        ..Default::default()
     };
     let objects = room_layout(10, p.extent).expect("layout");
     write_room_scene(&scene, &p, &objects, &Texture::for_extent(p.extent)).expect("room");

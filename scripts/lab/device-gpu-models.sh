@@ -24,6 +24,12 @@
 #                                            # multimask channels (--f16-multimask)
 #                                            # TAG=NAME: the run's files named e2e-PREC-NAME
 #                                            # EXTRA="ARGS": more slag-encoder bench arguments
+#   scripts/lab/device-gpu-models.sh paper [N] [V] # the paper's large scene: N Gaussians (38M), V
+#                                            # views (1657) at 990x742 on a drone's sweep
+#                                            # (synth-scene --layout sweep), e2e's models (ViT-H
+#                                            # 16x16 + CLIP ViT-B/16, PREC), every view and the
+#                                            # default views (SELECTIONS="all coverage"); GNU
+#                                            # time, an RSS timeline and GPU memory each
 #   scripts/lab/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
@@ -140,6 +146,32 @@ fronts)
     "${SAMARGS[@]}" $(samm f16 vit_b) $(clipm f16) --quiet --out "$W/fronts8" > "$R/fronts8.txt" 2>&1
   echo "exit $?"; grep -E "wall|masks|CLIP|Maximum resident|peak|execution" "$R/fronts8.txt" | head -20
   cp "$W/fronts8/report.json" "$R/report-fronts8.json" 2>/dev/null
+  ;;
+paper)
+  n=${2:-38M}; v=${3:-1657}; d=/root/paper-$n-$v
+  if [ ! -f "$d/report-synth.json" ]; then
+    echo "### synth-scene $n Gaussians, $v views 990x742, drone sweep"
+    t0=$(date +%s.%N)
+    /usr/bin/time -v "$B" synth-scene --gaussians "$n" --view-count "$v" --width 990 --height 742 \
+      --layout sweep --out "$d" > /root/paper-synth.json 2> "$R/paper-synth.txt"
+    echo "exit $? synth-scene took $(python3 -c "import time; print(round(time.time()-$t0,1))") s"
+    grep -E "Maximum resident|Elapsed" "$R/paper-synth.txt"
+    cp /root/paper-synth.json "$d/report-synth.json"
+  fi
+  cp "$d/report-synth.json" "$R/paper-synth.json"
+  prec=${PREC:-f16}
+  for sel in ${SELECTIONS:-all coverage}; do
+    echo "### encode $sel views: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA"
+    gpu_mem() { nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 500; }
+    gpu_mem > "$R/gpu-mem-paper-$sel.csv" 2>/dev/null & watch=$!
+    python3 scripts/lab/rss-timeline.py --out "$R/rss-paper-$sel.tsv" --report "$W/paper-$sel/report.json" -- \
+      /usr/bin/time -v "$B" bench --scene-dir "$d" --ep cuda --raster-scale 0.5 --views "$sel" \
+      "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) ${EXTRA:-} --quiet --out "$W/paper-$sel" \
+      > "$R/paper-$sel.txt" 2>&1
+    echo "exit $?"; kill $watch 2>/dev/null
+    grep -E "wall|views|observed|Maximum resident|Elapsed" "$R/paper-$sel.txt" | tail -12
+    cp "$W/paper-$sel/report.json" "$R/report-paper-$sel.json" 2>/dev/null
+  done
   ;;
 e2e)
   n=${2:-2M}; v=${3:-250}

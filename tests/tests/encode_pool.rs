@@ -30,6 +30,7 @@ fn small_scene(dir: &std::path::Path) {
         height: 180,
         extent: 60.0,
         seed: 3,
+        ..Default::default()
     };
     write_synthetic_scene(dir, &p).unwrap();
 }

@@ -26,6 +26,7 @@ fn scene_dir() -> &'static std::path::Path {
             height: 72,
             extent: 10.0,
             seed: 7,
+            ..Default::default()
         };
         write_synthetic_scene(dir.path(), &p).unwrap();
         dir
@@ -376,6 +377,7 @@ fn ring(gaussians: usize, views: usize, width: u32, height: u32) -> (Gaussians, 
         height,
         extent: 10.0,
         seed: 3,
+        ..Default::default()
     };
     write_synthetic_scene(dir.path(), &p).unwrap();
     let (g, views, _) = SceneInput::new(dir.path(), None, 1).load().unwrap();
