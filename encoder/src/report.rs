@@ -139,6 +139,16 @@ pub struct Counts {
     pub spilled_images: usize,
     /// Chunks the reduction used (tiles of Gaussians on the device).
     pub reduce_chunks: usize,
+    /// Times the device reduction reduced kept views: 1 when every view was kept to the end,
+    /// else the streamed reduction's waves (each folds the views kept so far into a running
+    /// state per Gaussian and frees them); 0 when the host reduced.
+    #[serde(default)]
+    pub device_reduce_waves: usize,
+    /// The most bytes the device reduction held on one device at once: the streamed
+    /// reduction's running state plus the most label sums kept at once (0 when the host
+    /// reduced).
+    #[serde(default)]
+    pub device_reduce_peak_bytes: u64,
     /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
     /// host, so `entries` counts none.
     pub device_reduce: bool,

@@ -511,19 +511,21 @@ fn two_devices_reduce_their_kept_views_as_one() {
     assert!(split_record == host_record, "masks' record with the reduction split");
 }
 
-/// `--reduce auto` whose kept label sums pass the device's budget after a few views gives way
-/// to the host's reduction: the run succeeds and writes what `--reduce host` writes (the same
-/// mixture byte for byte, with one rasterizer and with two, whose views reach the store in any
-/// order), the same masks' record and `a_kj` count; the report says so. `--reduce device` with the same budget fails with the budget's typed error.
+/// Kept label sums that pass the device's budget after a few views: with one rasterizer the
+/// reduction streams (the kept views folded a wave at a time into a state per Gaussian) and
+/// writes what `--reduce host` writes, byte for byte; with two, `--reduce auto` gives way to
+/// the host's reduction and writes the same (their views reach the store in any order), with
+/// the same masks' record and `a_kj` count; the report says which. `--reduce device` with a
+/// budget the state does not fit fails with the budget's typed error.
 #[test]
-fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
+fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
     let Some((dir, scene)) = scene_for_the_gpu() else {
         return;
     };
     let input = pipeline::SceneInput::new(&scene, None, 1);
     // About two views' kept label sums of this scene.
     let budget = 1000 << 10;
-    let run = |name: &str, reduce_on: ReduceOn, n_rasterizers: usize| {
+    let run_with = |name: &str, reduce_on: ReduceOn, n_rasterizers: usize, budget: u64| {
         let out = dir.path().join(name);
         // The default outputs (the mixture, no dense file): what `auto` reduces on the device.
         let params = pipeline::EncodeParams {
@@ -537,17 +539,55 @@ fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
         let (report, record) = keeping_run(&input, &[None], n_rasterizers, &params);
         (report, out.join("mixture.safetensors"), record)
     };
-    let (host, host_mixture, host_record) = run("host", ReduceOn::Host, 1);
+    let (host, host_mixture, host_record) = run_with("host", ReduceOn::Host, 1, budget);
     let host = host.unwrap();
+    // The streamed reduction's state (Σ a_kj and 4 kept pairs per Gaussian) comes out of the
+    // budget first: about two views' label sums are left beside it.
+    let two_views = budget;
+    let budget = two_views + host.counts.gaussians as u64 * (8 + 8 * 4);
+    // Two rasterizers keep every view: about two views pass their budget.
+    let run = |name: &str, reduce_on: ReduceOn, n: usize| {
+        run_with(name, reduce_on, n, if n == 1 { budget } else { two_views })
+    };
     assert!(host.counts.device_reduce_fallback.is_none());
     assert!(
         host.counts.observed > 1000,
         "{} observed",
         host.counts.observed
     );
-    for (name, n_rasterizers) in [("auto", 1), ("auto-two", 2)] {
-        let (auto, auto_mixture, auto_record) = run(name, ReduceOn::Auto, n_rasterizers);
+    for (name, n_rasterizers) in [("auto", 1), ("device-streamed", 1), ("auto-two", 2)] {
+        let reduce_on = if name.starts_with("device") {
+            ReduceOn::Device
+        } else {
+            ReduceOn::Auto
+        };
+        let (auto, auto_mixture, auto_record) = run(name, reduce_on, n_rasterizers);
         let auto = auto.unwrap();
+        let read = |p: &std::path::Path| std::fs::read(p).unwrap();
+        assert!(
+            auto_record.is_some() && auto_record == host_record,
+            "{name}: masks' record"
+        );
+        assert!(
+            read(&auto_mixture) == read(&host_mixture),
+            "{name}: mixture differs"
+        );
+        if n_rasterizers == 1 {
+            assert!(auto.counts.device_reduce_fallback.is_none(), "{name}");
+            assert!(auto.counts.device_reduce, "{name}: the device reduced");
+            assert!(
+                auto.counts.device_reduce_waves >= 2,
+                "{name}: {} waves",
+                auto.counts.device_reduce_waves
+            );
+            assert!(
+                auto.counts.device_reduce_peak_bytes <= budget,
+                "{name}: {} B at most on the device, within {budget}",
+                auto.counts.device_reduce_peak_bytes
+            );
+            assert_eq!(auto.counts.observed, host.counts.observed, "{name}");
+            continue;
+        }
         let fallback = auto
             .counts
             .device_reduce_fallback
@@ -567,15 +607,6 @@ fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
             "{name}: a_kj on the host"
         );
         assert_eq!(auto.counts.observed, host.counts.observed, "{name}");
-        assert!(
-            auto_record.is_some() && auto_record == host_record,
-            "{name}: masks' record"
-        );
-        let read = |p: &std::path::Path| std::fs::read(p).unwrap();
-        assert!(
-            read(&auto_mixture) == read(&host_mixture),
-            "{name}: mixture differs"
-        );
         let ids = |p: &std::path::Path| MixtureEmbeddings::read(p).unwrap().gaussian_ids;
         assert_eq!(
             ids(&auto_mixture),
@@ -583,7 +614,9 @@ fn auto_reduction_past_the_device_budget_gives_way_to_the_host() {
             "{name}: observed Gaussians"
         );
     }
-    let (device, device_mixture, _) = run("device", ReduceOn::Device, 1);
+    // A budget the state of the streamed reduction does not fit: every view is kept, and the
+    // first one passes it.
+    let (device, device_mixture, _) = run_with("device", ReduceOn::Device, 1, 4 << 10);
     let err = device.unwrap_err();
     assert!(
         matches!(

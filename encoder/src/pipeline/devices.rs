@@ -81,6 +81,10 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
     let (reduce_s, write_s) = (slowest(|p| p.reduce_s), slowest(|p| p.write_s));
     let chunks = parts.iter().map(|p| p.chunks).sum();
     let observed = parts.iter().map(|p| p.observed).sum();
+    let memory = super::reduction::DeviceReduceMemory {
+        waves: parts.iter().map(|p| p.memory.waves).max().unwrap_or(0),
+        peak_bytes: parts.iter().map(|p| p.memory.peak_bytes).max().unwrap_or(0),
+    };
     let (mut sparse, mut spent) = (None::<SparseMixture>, Vec::new());
     for p in parts {
         spent.extend(p.spent);
@@ -100,6 +104,7 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
         reduce_s: exchange_s + reduce_s,
         gather_s: 0.0,
         write_s,
+        memory,
     })
 }
 

@@ -14,7 +14,9 @@ use slag_common::io::{remove_stale, write_atomic};
 use slag_common::{Error, Result};
 
 use super::pool::Pooled;
-use super::reduction::{ReducedOutputs, TailInputs, dense_writer, reduce_on_device};
+use super::reduction::{
+    DeviceReduceMemory, ReducedOutputs, TailInputs, dense_writer, reduce_on_device,
+};
 use super::{EncodeParams, SceneInput};
 use crate::aggregate;
 use crate::raster::WeightRasterizer;
@@ -214,6 +216,8 @@ fn record_reduction(
     counts.device_reduce = tail.on_device;
     counts.device_reduce_fallback = reduce_fallback;
     counts.reduce_chunks = tail.chunks;
+    counts.device_reduce_waves = tail.memory.waves;
+    counts.device_reduce_peak_bytes = tail.memory.peak_bytes;
     counts.observed = tail.observed;
     counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
 }
@@ -408,6 +412,7 @@ fn reduce_outputs(
             reduce_s: t0.elapsed().as_secs_f64(),
             gather_s: 0.0,
             write_s: 0.0,
+            memory: DeviceReduceMemory::default(),
         });
     };
     let (streamed, sparse, gather_s) = match params.mixture_keep {
@@ -433,5 +438,6 @@ fn reduce_outputs(
         reduce_s: streamed.reduce_s,
         gather_s,
         write_s: t0.elapsed().as_secs_f64() - streamed.reduce_s,
+        memory: DeviceReduceMemory::default(),
     })
 }

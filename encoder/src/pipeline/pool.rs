@@ -112,25 +112,13 @@ pub(crate) fn run_pool(
     let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
     log_scene_loaded(gaussians.len(), views.len(), fronts.len());
     let n_fronts = fronts.len();
-    let multi = progress_display(params.progress);
-    let shared = Shared {
-        views: &views,
-        raster_intrinsics: &raster_intrinsics,
+    let shared = Shared::new(
+        (&views, &raster_intrinsics),
         params,
-        dim: model.dim,
+        (model.dim, gaussians.len()),
         t_total,
-        next_view: AtomicUsize::new(0),
-        failure: Failure::default(),
-        queue: QueueGauge::default(),
-        totals: Mutex::new(ImageWork::default()),
-        sinks: PoolSinks::new(params, gaussians.len(), views.len())?,
-        device: Mutex::new(Vec::new()),
-        on_device_keep: Mutex::new(on_device_keep),
-        fallback: ReduceFallback::default(),
-        retired: Mutex::new(Vec::new()),
-        bar_front: bar(&multi, views.len(), "masks + CLIP"),
-        bar_back: bar(&multi, views.len(), "raster + a_kj"),
-    };
+        on_device_keep,
+    )?;
     let queues = Queues::for_fronts(&fronts);
     let (slots, bound_gpus) = (queues.slots(), queues.bound_gpus);
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
@@ -426,6 +414,9 @@ struct Shared<'a> {
     retired: Mutex<Vec<FrontStages>>,
     bar_front: ProgressBar,
     bar_back: ProgressBar,
+    /// The run's rasterizers, once made: the device reduction streams with one
+    /// ([`keep_on_device`]).
+    rasterizers: AtomicUsize,
 }
 
 /// A rasterizer that kept views on its device, with the views it kept in keeping order (their
@@ -442,6 +433,42 @@ struct WorkersLeft {
     reduce_fallback: Option<crate::report::DeviceReduceFallback>,
     totals: ImageWork,
     queue: QueueStats,
+}
+
+impl<'a> Shared<'a> {
+    /// What the workers of a run share, before any started: the encode's `views` with their
+    /// raster intrinsics, the `dim`-wide embeddings of a scene of `n_gaussians` Gaussians, the
+    /// sinks, and the progress bars (shown with [`EncodeParams::progress`]).
+    ///
+    /// Errors: the sinks' ([`PoolSinks::new`]).
+    fn new(
+        (views, raster_intrinsics): (&'a [View], &'a [Intrinsics]),
+        params: &'a EncodeParams,
+        (dim, n_gaussians): (usize, usize),
+        t_total: Instant,
+        on_device_keep: Option<&'a (dyn Fn() + Sync)>,
+    ) -> Result<Self> {
+        let multi = progress_display(params.progress);
+        Ok(Shared {
+            views,
+            raster_intrinsics,
+            params,
+            dim,
+            t_total,
+            next_view: AtomicUsize::new(0),
+            failure: Failure::default(),
+            queue: QueueGauge::default(),
+            totals: Mutex::new(ImageWork::default()),
+            sinks: PoolSinks::new(params, n_gaussians, views.len())?,
+            device: Mutex::new(Vec::new()),
+            on_device_keep: Mutex::new(on_device_keep),
+            fallback: ReduceFallback::default(),
+            retired: Mutex::new(Vec::new()),
+            bar_front: bar(&multi, views.len(), "masks + CLIP"),
+            bar_back: bar(&multi, views.len(), "raster + a_kj"),
+            rasterizers: AtomicUsize::new(0),
+        })
+    }
 }
 
 impl Shared<'_> {
@@ -638,6 +665,7 @@ fn run_workers(
             Vec::new()
         });
         let names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
+        shared.rasterizers.store(names.len(), Ordering::SeqCst);
         for (g, rasterizer) in rasterizers.into_iter().enumerate() {
             let rx = Arc::clone(&receivers[g % n_queues]);
             let name = format!("raster-{g} {}", names[g]);
@@ -792,7 +820,9 @@ fn back_raster_thread(
 ) -> WorkerShare {
     let failure = &shared.failure;
     let n_views = shared.views.len();
-    let mut keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views) {
+    let alone = shared.rasterizers.load(Ordering::SeqCst) == 1;
+    let mut keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views, alone)
+    {
         Ok(keep) => keep,
         Err(e) => {
             failure.fail(e);
@@ -807,6 +837,7 @@ fn back_raster_thread(
     }
     // The views kept on the device, in keeping order.
     let mut kept_views = Vec::new();
+    let mut done = ViewsDone::new(n_views);
     let step = |prepared, share: &mut WorkerShare| {
         let mut out = back_raster(&mut *rasterizer, prepared, keep)?;
         if let Some(p) = rasterizer.last_phases() {
@@ -814,6 +845,13 @@ fn back_raster_thread(
         }
         if out.is_kept() {
             kept_views.push(out.item.view);
+        }
+        // The streamed reduction folds the views before the first not rastered yet; once a
+        // wave ran, the host can no longer take the reduction over.
+        if let Some(k) = keep.as_mut()
+            && rasterizer.fold_kept(done.add(out.item.view))?
+        {
+            k.fall_back = false;
         }
         if let Some(e) = out.take_gave_up_keeping() {
             shared.fallback.give_way(rasterizer.name(), &e);
@@ -877,6 +915,33 @@ fn back_image_thread(
     share
 }
 
+/// The views one rasterizer is done with, as the lowest view not done yet: with one
+/// rasterizer every view of the encode comes to it, so no view below that one is still to come.
+struct ViewsDone {
+    done: Vec<bool>,
+    below: usize,
+}
+
+impl ViewsDone {
+    fn new(n_views: usize) -> Self {
+        ViewsDone {
+            done: vec![false; n_views],
+            below: 0,
+        }
+    }
+
+    /// Marks `view` done and returns the lowest view not done.
+    fn add(&mut self, view: usize) -> usize {
+        if let Some(d) = self.done.get_mut(view) {
+            *d = true;
+        }
+        while self.done.get(self.below).copied().unwrap_or(false) {
+            self.below += 1;
+        }
+        self.below
+    }
+}
+
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction
 /// ([`crate::config::ReduceOn`]): `Some` with whether the masks' record wants the dominant
 /// masks and whether a device memory limit gives way to the host (`auto`,
@@ -884,7 +949,9 @@ fn back_image_thread(
 /// keeps the masks' record of an encode of `n_views` views there too where it can
 /// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The
 /// device reduction needs GPU rasterizers whose devices have f64, and no per-level files; on
-/// several GPUs each keeps its own views and one reduces them all.
+/// several GPUs each keeps its own views and one reduces them all. The only rasterizer of a
+/// run (`alone`) streams its views when only the mixture is written
+/// ([`WeightRasterizer::stream_kept`]): its device memory does not grow with the views.
 ///
 /// Errors: `--reduce device` where it cannot run ([`Error::Param`] `reduce`).
 fn keep_on_device(
@@ -892,6 +959,7 @@ fn keep_on_device(
     params: &EncodeParams,
     dim: usize,
     n_views: usize,
+    alone: bool,
 ) -> Result<Option<Keep>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
@@ -909,6 +977,13 @@ fn keep_on_device(
             "device",
             "GPU rasterizers whose devices have f64, and no --levels (or --reduce host)",
         ));
+    }
+    if keeps
+        && alone
+        && !params.dense
+        && let Some(keep) = params.mixture_keep
+    {
+        rasterizer.stream_kept(keep);
     }
     let record_on_device = keeps
         && params

@@ -47,6 +47,19 @@ pub(super) struct ReducedOutputs {
     pub(super) gather_s: f64,
     /// Seconds of the dense write outside the reduction (0 without the dense file).
     pub(super) write_s: f64,
+    /// The device reduction's waves and memory (zero when the host reduced).
+    pub(super) memory: DeviceReduceMemory,
+}
+
+/// How the device reduction used the device's memory ([`crate::raster::KeptReduced`]).
+#[derive(Debug, Clone, Copy, Default)]
+pub(super) struct DeviceReduceMemory {
+    /// Times the kept views were reduced: 1 when every view was kept to the end, else the
+    /// streamed reduction's waves.
+    pub(super) waves: usize,
+    /// The most bytes of the reduction on one device at once: its running state (streamed)
+    /// plus the most label sums kept at once.
+    pub(super) peak_bytes: u64,
 }
 
 /// The device reduction of the views `rasterizer` kept ([`WeightRasterizer::reduce_kept`];
@@ -114,6 +127,10 @@ pub(super) fn reduce_on_device(
             reduce_s,
             gather_s: 0.0,
             write_s: t0.elapsed().as_secs_f64() - reduce_s,
+            memory: DeviceReduceMemory {
+                waves: out.waves,
+                peak_bytes: out.state_bytes + out.peak_kept_bytes,
+            },
         })
     })
 }

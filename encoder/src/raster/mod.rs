@@ -21,6 +21,8 @@ pub mod project;
 mod testdata;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod stream_tests;
 
 pub use colour::{psnr, render_colour};
 pub use cpu::CpuRasterizer;
@@ -143,6 +145,26 @@ pub trait WeightRasterizer: Send {
     fn keep_on_device(&mut self, dim: usize, budget_bytes: u64, on_cpu_adapter: bool) -> bool {
         let _ = (dim, budget_bytes, on_cpu_adapter);
         false
+    }
+    /// Streams the kept views ([`Self::keep_on_device`] first, nothing kept yet): instead of
+    /// keeping every view to the end, [`Self::fold_kept`] folds them a wave at a time into a
+    /// running state of `keep` mixture pairs and `Σ a_kj` per Gaussian, so that the device
+    /// memory does not grow with the views ([`gpu`]'s `fold` module). [`Self::reduce_kept`]
+    /// then writes the mixture only (no dense rows, every Gaussian). Returns whether it
+    /// streams; the default (and a state that passes half the budget) does not.
+    fn stream_kept(&mut self, keep: usize) -> bool {
+        let _ = keep;
+        false
+    }
+    /// With [`Self::stream_kept`], folds the kept views whose index in the encode's view list
+    /// is below `below` into the running state when the kept records passed the wave size
+    /// (half the budget left beside the state); no view below `below` may come after. Returns
+    /// whether a wave ran; the default does nothing.
+    ///
+    /// Errors: device failures; a tile's records past a binding ([`Error::Limit`]).
+    fn fold_kept(&mut self, below: usize) -> Result<bool> {
+        let _ = below;
+        Ok(false)
     }
     /// [`Self::label_sums_precomputed`] whose sums stay on the device, with the view's masks
     /// (`masks`) for their expansion at the reduction: nothing per `a_kj` is read back. Returns
@@ -412,8 +434,17 @@ pub(crate) struct KeptHostView {
 /// What [`WeightRasterizer::reduce_kept`] leaves besides the tiles.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct KeptReduced {
-    /// Tiles the reduction used.
+    /// Tiles the reduction used (at the end: the streamed reduction's waves come before).
     pub tiles: usize,
+    /// Times the kept views were reduced: 1 when every view was kept to the end; with the
+    /// streamed reduction ([`WeightRasterizer::stream_kept`]), its waves.
+    pub waves: usize,
+    /// Bytes of the streamed reduction's running state on the device (0 without it).
+    pub state_bytes: u64,
+    /// The most bytes of label sums kept on the device at once.
+    pub peak_kept_bytes: u64,
+    /// Bytes of every label sum kept over the run (16 per record).
+    pub records_bytes: u64,
     /// `[M × D]` every kept view's mask embeddings, by view index ([`KeptMasks::view`]) and then
     /// mask: the codebook the kept pairs' rows index.
     pub codebook: Vec<f32>,

@@ -21,7 +21,7 @@ use super::*;
 // helpers
 
 /// The GPU rasterizer, with noise-filled outputs; `None` only when `SLAG_SKIP_GPU=1`.
-fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
+pub(super) fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
     let mut r = gpu_unless_skipped(|| GpuRasterizer::new(g))?;
     r.set_noise_fill(Some(0x5eed));
     Some(r)
@@ -30,7 +30,7 @@ fn gpu(g: &Gaussians) -> Option<GpuRasterizer> {
 /// A random scene of `n` Gaussians around the origin: means in front of and behind a camera at
 /// z = -4 looking down +z, scales over 4 orders of magnitude, random unit quaternions, opacities
 /// including values near 0 and near 1.
-fn random_scene(seed: u64, n: usize) -> Gaussians {
+pub(super) fn random_scene(seed: u64, n: usize) -> Gaussians {
     let mut r = SplitMix64::new(seed);
     let mut g = Gaussians::default();
     for _ in 0..n {
@@ -1002,18 +1002,18 @@ fn device_reduced_label_sums_equal_the_host_reduction() {
 /// A random view as the device reduction keeps it: camera `seed`, 9 random masks, their overlap
 /// labels and weighting factors (`params`), and random mask embeddings of width `dim` drawn
 /// from `salt`.
-struct RandomKeptView {
+pub(super) struct RandomKeptView {
     seed: u64,
-    intrinsics: Intrinsics,
-    world_to_camera: WorldToCamera,
-    masks: Vec<crate::masks::Mask>,
-    embeddings: Vec<f32>,
+    pub(super) intrinsics: Intrinsics,
+    pub(super) world_to_camera: WorldToCamera,
+    pub(super) masks: Vec<crate::masks::Mask>,
+    pub(super) embeddings: Vec<f32>,
     labels: crate::aggregate::image::PixelLabels,
     factors: Vec<f32>,
 }
 
 impl RandomKeptView {
-    fn new(seed: u64, salt: u64, dim: usize, params: crate::aggregate::ImageStageParams) -> Self {
+    pub(super) fn new(seed: u64, salt: u64, dim: usize, params: crate::aggregate::ImageStageParams) -> Self {
         let (k, w2c) = test_camera(seed);
         let masks = random_masks(seed, k.width * 2, k.height * 2, 9);
         let mut r = SplitMix64::new(salt);
@@ -1036,7 +1036,7 @@ impl RandomKeptView {
 
     /// The view kept on `r` ([`WeightRasterizer::label_sums_kept`], with its dominant masks when
     /// `dominant`); `None` where `r` does not keep.
-    fn keep_on(&self, r: &mut GpuRasterizer, dominant: bool) -> Option<KeptView> {
+    pub(super) fn keep_on(&self, r: &mut GpuRasterizer, dominant: bool) -> Option<KeptView> {
         let kept = KeptMasks {
             masks_of: &self.labels.masks_of,
             factors: &self.factors,

@@ -40,37 +40,39 @@ const READBACK_BYTES: u64 = 256 << 20;
 /// reduction: at 30M Gaussians, 512 MiB tiles (8 of them, the host taking one at a time)
 /// peaked 0.45–0.73 GiB lower than 1 GiB tiles, in the same reduction time
 /// (docs/results/scaling.md).
-const TILE_BYTES: u64 = 512 << 20;
+pub(super) const TILE_BYTES: u64 = 512 << 20;
 
 /// The uniform of `ek.wgsl` (`EkParams`): an f64 then 10 u32, 48 bytes.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct EkParams {
-    min_total_weight: f64,
-    n_records: u32,
-    g0: u32,
-    n_tile: u32,
-    dim: u32,
-    keep: u32,
-    n_segments: u32,
-    groups_x: u32,
-    dense: u32,
-    n_blocks: u32,
-    pad0: u32,
+pub(super) struct EkParams {
+    pub(super) min_total_weight: f64,
+    pub(super) n_records: u32,
+    pub(super) g0: u32,
+    pub(super) n_tile: u32,
+    pub(super) dim: u32,
+    pub(super) keep: u32,
+    pub(super) n_segments: u32,
+    pub(super) groups_x: u32,
+    pub(super) dense: u32,
+    pub(super) n_blocks: u32,
+    /// `block_starts`, `dominant`: the view's label-table base; `ek_fold`, `ek_finish`: the
+    /// first Gaussian of the state chunk bound.
+    pub(super) pad0: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<EkParams>() == 48);
 
 /// One band of a kept view: its reduced records on the device and where each block of
 /// Gaussians starts among them.
-struct KeptPart {
-    records: wgpu::Buffer,
+pub(super) struct KeptPart {
+    pub(super) records: wgpu::Buffer,
     /// Records held.
-    n: u32,
+    pub(super) n: u32,
     /// The view (an index into [`Kept::views`]).
-    view: u32,
+    pub(super) view: u32,
     /// `[blocks + 1]`: index of the first record of each block of [`BLOCK_GAUSSIANS`], `n` last.
-    starts: Vec<u32>,
+    pub(super) starts: Vec<u32>,
 }
 
 /// Every kept view, and the kernels that reduce them.
@@ -81,18 +83,18 @@ pub(super) struct Kept {
     dominant: wgpu::ComputePipeline,
     /// The masks' record's kernel ([`super::record`]).
     pub(super) record_dominant: wgpu::ComputePipeline,
-    dim: usize,
-    budget: u64,
-    bytes: u64,
-    parts: Vec<KeptPart>,
+    pub(super) dim: usize,
+    pub(super) budget: u64,
+    pub(super) bytes: u64,
+    pub(super) parts: Vec<KeptPart>,
     /// The views' label tables, one after the other (layout: see [`push_table`]).
-    tables: Vec<u32>,
+    pub(super) tables: Vec<u32>,
     /// Per kept view, in keeping order: the base of its table in `tables`, its first codebook
     /// row, and its index in the encode's view list ([`KeptMasks::view`]).
-    views: Vec<[u32; 3]>,
+    pub(super) views: Vec<[u32; 3]>,
     /// `[M × D]` every kept view's mask embeddings, in keeping order (in the encode's view
     /// order once [`Kept::sort_by_view`] ran).
-    codebook: Vec<f32>,
+    pub(super) codebook: Vec<f32>,
     /// Whether an export batch took the views' tables and codebook already
     /// ([`GpuRasterizer::export_kept_views_batch`]); keeping has stopped then.
     exporting: bool,
@@ -105,6 +107,10 @@ pub(super) struct Kept {
     import_bases: Vec<(u32, u32)>,
     /// The staging buffer of the last export batch, for the next ([`GpuRasterizer::read_parts`]).
     staging: Option<wgpu::Buffer>,
+    /// The most bytes of records kept at once.
+    pub(super) peak_bytes: u64,
+    /// Bytes of every record kept so far.
+    pub(super) total_bytes: u64,
 }
 
 /// Appends one view's label table to `tables` and returns its base: `[n_labels, factors
@@ -255,12 +261,12 @@ struct UploadedRecords {
 }
 
 /// A tile of the reduction: blocks `[b0, b1)` and, per part, its records there.
-struct Tile {
-    g0: u32,
-    n_tile: u32,
+pub(super) struct Tile {
+    pub(super) g0: u32,
+    pub(super) n_tile: u32,
     /// Per part with records: (part, first record, count).
-    ranges: Vec<(usize, u32, u32)>,
-    records: u64,
+    pub(super) ranges: Vec<(usize, u32, u32)>,
+    pub(super) records: u64,
 }
 
 impl GpuRasterizer {
@@ -296,6 +302,7 @@ impl GpuRasterizer {
             return false;
         }
         self.spent_kept = None;
+        self.stream = None;
         self.kept = Some(Kept {
             block_starts,
             run_starts,
@@ -313,6 +320,8 @@ impl GpuRasterizer {
             own: None,
             import_bases: Vec::new(),
             staging: None,
+            peak_bytes: 0,
+            total_bytes: 0,
         });
         true
     }
@@ -383,6 +392,8 @@ impl GpuRasterizer {
             .as_mut()
             .ok_or_else(|| Error::internal("keeping stopped"))?;
         kept.bytes += bytes;
+        kept.peak_bytes = kept.peak_bytes.max(kept.bytes);
+        kept.total_bytes += bytes;
         kept.parts.push(KeptPart {
             records: band.records,
             n,
@@ -796,6 +807,7 @@ impl GpuRasterizer {
                 )));
             }
             kept.bytes += u64::from(r.n) * 16;
+            kept.peak_bytes = kept.peak_bytes.max(kept.bytes);
             kept.parts.push(KeptPart {
                 records: r.buffer,
                 n: r.n,
@@ -848,7 +860,7 @@ impl GpuRasterizer {
         }
     }
 
-    fn ek_uniform(&self, p: &EkParams) -> wgpu::Buffer {
+    pub(super) fn ek_uniform(&self, p: &EkParams) -> wgpu::Buffer {
         super::buffers::uniform_init(&self.device, "ek_params", p)
     }
 
@@ -856,18 +868,33 @@ impl GpuRasterizer {
     /// whose outputs (`out_per_gaussian` bytes each) fit `tile_bytes` (at least one block).
     ///
     /// Errors: one block holds more records than a tile can ([`Error::Limit`] `GpuBinding`).
-    fn kept_tiles(
+    pub(super) fn kept_tiles(
         &self,
-        kept: &Kept,
+        parts: &[KeptPart],
         blocks: std::ops::Range<usize>,
         out_per_gaussian: u64,
         tile_bytes: u64,
+    ) -> Result<Vec<Tile>> {
+        self.kept_tiles_within(parts, blocks, out_per_gaussian, tile_bytes, usize::MAX)
+    }
+
+    /// [`Self::kept_tiles`] with no tile across a multiple of `chunk_blocks` blocks (the chunks
+    /// of the streamed reduction's state, [`super::fold`]).
+    ///
+    /// Errors: as [`Self::kept_tiles`].
+    pub(super) fn kept_tiles_within(
+        &self,
+        parts: &[KeptPart],
+        blocks: std::ops::Range<usize>,
+        out_per_gaussian: u64,
+        tile_bytes: u64,
+        chunk_blocks: usize,
     ) -> Result<Vec<Tile>> {
         let record_cap = (self.max_binding().min(tile_bytes) / 16).saturating_sub(1);
         let gaussian_cap = (self.max_binding().min(tile_bytes) / out_per_gaussian.max(1))
             .max(u64::from(BLOCK_GAUSSIANS));
         let block_records = |b: usize| -> u64 {
-            kept.parts
+            parts
                 .iter()
                 .map(|p| u64::from(p.starts[b + 1] - p.starts[b]))
                 .sum()
@@ -880,7 +907,9 @@ impl GpuRasterizer {
             while b1 < blocks.end {
                 let more = block_records(b1);
                 let gaussians = (b1 + 1 - b0) as u64 * u64::from(BLOCK_GAUSSIANS);
-                if b1 > b0 && (records + more > record_cap || gaussians > gaussian_cap) {
+                let chunk_end = b1 > b0 && b1.is_multiple_of(chunk_blocks.max(1));
+                if b1 > b0 && (records + more > record_cap || gaussians > gaussian_cap || chunk_end)
+                {
                     break;
                 }
                 if more > record_cap {
@@ -895,8 +924,7 @@ impl GpuRasterizer {
             }
             let g0 = b0 as u32 * BLOCK_GAUSSIANS;
             let g1 = (b1 as u32 * BLOCK_GAUSSIANS).min(self.n);
-            let ranges = kept
-                .parts
+            let ranges = parts
                 .iter()
                 .enumerate()
                 .filter_map(|(i, p)| {
@@ -942,7 +970,7 @@ impl GpuRasterizer {
         let dim = kept.dim;
         let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
         let out_per_gaussian = 8 + p.keep as u64 * 8 + if p.dense { dim as u64 * 4 } else { 0 };
-        let tiles = self.kept_tiles(&kept, blocks, out_per_gaussian, tile_bytes)?;
+        let tiles = self.kept_tiles(&kept.parts, blocks, out_per_gaussian, tile_bytes)?;
         let tables = storage_init(
             &self.device,
             "ek_tables",
@@ -981,10 +1009,15 @@ impl GpuRasterizer {
             "device reduction"
         );
         let codebook = std::mem::take(&mut kept.codebook);
+        let (peak_kept_bytes, records_bytes) = (kept.peak_bytes, kept.total_bytes);
         self.spent_kept = Some(kept);
         Ok(KeptReduced {
             tiles: tiles.len(),
             codebook,
+            waves: 1,
+            state_bytes: 0,
+            peak_kept_bytes,
+            records_bytes,
         })
     }
 
@@ -1002,7 +1035,11 @@ impl GpuRasterizer {
         // The tile's records after a 4-word header (the layout record_keys reads).
         let recs = storage(&self.device, "ek_tile_records", 16 + tile.records * 16);
         let mut enc = self.device.create_command_encoder(&Default::default());
-        let segs = gather_tile_records(&mut enc, s.kept, tile, &recs);
+        let views = &s.kept.views;
+        let segs = gather_tile_records(&mut enc, &s.kept.parts, tile, &recs, |part| {
+            let [base, row, _] = views[part.view as usize];
+            [base, row]
+        });
         let segs_buf = storage_init(&self.device, "ek_segments", bytemuck::cast_slice(&segs));
         let out = TileOutputs::new(&self.device, tile, p, dim);
         for b in [&out.meta, &out.kept, &out.rows, &out.run_start] {
@@ -1115,7 +1152,7 @@ impl GpuRasterizer {
     /// Records the stable sort of the tile's `n` records by Gaussian (the raster module's
     /// `record_keys` and radix passes over the Gaussian-id bits only) and returns the buffer of
     /// sorted record indices.
-    fn sort_tile(
+    pub(super) fn sort_tile(
         &self,
         enc: &mut wgpu::CommandEncoder,
         recs: &wgpu::Buffer,
@@ -1190,17 +1227,18 @@ fn check_kept_budget(kept: &Kept, bytes: u64) -> Result<()> {
 /// Gather step of [`GpuRasterizer::reduce_tile`]: records the copies of every part's records
 /// in the tile into `recs` (after its 4-word header) and returns per part its segment: first
 /// record, view, table base, codebook row (one zero segment when the tile has none).
-fn gather_tile_records(
+pub(super) fn gather_tile_records(
     enc: &mut wgpu::CommandEncoder,
-    kept: &Kept,
+    parts: &[KeptPart],
     tile: &Tile,
     recs: &wgpu::Buffer,
+    table_and_row: impl Fn(&KeptPart) -> [u32; 2],
 ) -> Vec<[u32; 4]> {
     let mut segs: Vec<[u32; 4]> = Vec::with_capacity(tile.ranges.len().max(1));
     let mut at = 0u32;
     for &(i, first, count) in &tile.ranges {
-        let part = &kept.parts[i];
-        let [base, row, _] = kept.views[part.view as usize];
+        let part = &parts[i];
+        let [base, row] = table_and_row(part);
         segs.push([at, part.view, base, row]);
         enc.copy_buffer_to_buffer(
             &part.records,
@@ -1288,12 +1326,12 @@ impl TilePhases {
 /// The host-visible buffers each tile's outputs are copied to and read from (meta, kept pairs,
 /// and with `p.dense` the rows), made once for the largest tile: a new mapping per tile of
 /// hundreds of MB costs more than the copy.
-struct TileStaging {
-    buffers: Vec<wgpu::Buffer>,
+pub(super) struct TileStaging {
+    pub(super) buffers: Vec<wgpu::Buffer>,
 }
 
 impl TileStaging {
-    fn new(device: &wgpu::Device, largest: u64, p: &DeviceReduce, dim: usize) -> Self {
+    pub(super) fn new(device: &wgpu::Device, largest: u64, p: &DeviceReduce, dim: usize) -> Self {
         let buffers = output_bytes(largest, p, dim)
             .into_iter()
             .map(|size| {
@@ -1311,7 +1349,7 @@ impl TileStaging {
 
 /// Bytes of the outputs read back for `n` Gaussians: meta, kept pairs, and with `p.dense`
 /// the rows.
-fn output_bytes(n: u64, p: &DeviceReduce, dim: usize) -> Vec<u64> {
+pub(super) fn output_bytes(n: u64, p: &DeviceReduce, dim: usize) -> Vec<u64> {
     let mut sizes = vec![n * 8, n * p.keep as u64 * 8];
     if p.dense {
         sizes.push(n * dim as u64 * 4);
@@ -1330,7 +1368,7 @@ struct TileShared<'a> {
 /// The observed Gaussians of a tile from its read-back outputs (`read`: meta, kept pairs, and
 /// with `p.dense` the rows), converted on every thread in chunks of Gaussians, then joined in
 /// order (millions of Gaussians per tile).
-fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[&[u8]]) -> KeptTile {
+pub(super) fn tile_output(tile: &Tile, p: &DeviceReduce, dim: usize, read: &[&[u8]]) -> KeptTile {
     use rayon::prelude::*;
     const CHUNK: usize = 1 << 16;
     let n_tile = tile.n_tile as usize;
@@ -1373,14 +1411,14 @@ fn tile_output_range(
     // One flat list of pairs, not a list per Gaussian: tens of millions of Gaussians per
     // reduction.
     for i in range {
-        let m = pair(&read[0], i);
+        let m = pair(read[0], i);
         if m[0] != 1 {
             continue;
         }
         out.ids.push(tile.g0 + i as u32);
         out.total_weights.push(f32::from_bits(m[1]));
         let used = (i * p.keep..(i + 1) * p.keep)
-            .map(|s| pair(&read[1], s))
+            .map(|s| pair(read[1], s))
             .filter(|s| s[0] != u32::MAX);
         out.kept.extend(used.map(|s| (f32::from_bits(s[1]), s[0])));
         out.kept_starts.push(out.kept.len() as u32);
@@ -1464,7 +1502,7 @@ impl Kept {
     /// with them, and the bands by view index (a view's bands in keeping order). The reduction
     /// then numbers its atoms, breaks ties between equal `a_kj` (the smaller row) and adds the
     /// views' terms in one order for every run, so that the same encode writes the same bytes.
-    fn sort_by_view(&mut self) {
+    pub(super) fn sort_by_view(&mut self) {
         let dim = self.dim;
         let mut order: Vec<usize> = (0..self.views.len()).collect();
         order.sort_by_key(|&v| (self.views[v][2], v));

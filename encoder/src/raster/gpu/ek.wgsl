@@ -310,6 +310,122 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
     }
 }
 
+// The streamed reduction (gpu/fold.rs): instead of keeping every view until the end, the kept
+// views are folded, a wave at a time, into a running state per Gaussian: Σ a in f64 and the
+// `keep` slots of push_top, exactly the values ek_reduce holds in registers after the same views.
+// A wave's views all come before the next wave's in the encode's view order, so each Gaussian's
+// terms are added in the order ek_reduce adds them: the state after the last wave is the state
+// ek_reduce reaches, bit for bit.
+//
+//   ek_fold     per tile Gaussian that has records in the wave (one thread each): its state read,
+//               its records view by view expanded and added as ek_reduce does, its state written.
+//   ek_finish   per tile Gaussian: the unobserved rule on Σ a (below the threshold, not positive,
+//               or not finite: nothing written) and the meta and kept pairs as ek_reduce writes
+//               them.
+//
+// State, per Gaussian of the bound chunk (index k - ep.pad0): Σ a (f64), and `keep` slots of
+// (codebook row + 1, a bits), 0 where unused (a cleared buffer is the empty state).
+@group(0) @binding(12) var<storage, read_write> state_den: array<f64>;
+@group(0) @binding(13) var<storage, read_write> state_kept: array<vec2<u32>>;
+
+@compute @workgroup_size(64)
+fn ek_fold(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let g = flat_group(wid) * 64u + lid;
+    if (g >= ep.n_tile) {
+        return;
+    }
+    let start = run_start[g];
+    if (start == 0u) {
+        return;
+    }
+    let i0 = start - 1u;
+    let k = rec_at(i0).x;
+    let sl = k - ep.pad0;
+    var den = state_den[sl];
+    var kept_a: array<f32, 32>;
+    var kept_atom: array<u32, 32>;
+    var n_kept = 0u;
+    for (var s = 0u; s < ep.keep; s++) {
+        let v = state_kept[sl * ep.keep + s];
+        if (v.x == 0u) {
+            break;
+        }
+        kept_atom[n_kept] = v.x - 1u;
+        kept_a[n_kept] = bitcast<f32>(v.y);
+        n_kept++;
+    }
+    var end = i0 + 1u;
+    while (end < ep.n_records && rec_at(end).x == k) {
+        end++;
+    }
+    var p = i0;
+    while (p < end) {
+        let seg = segs[segment_of(order[p])];
+        var q = p + 1u;
+        while (q < end && segs[segment_of(order[q])].y == seg.y) {
+            q++;
+        }
+        let base = seg.z;
+        var j = next_mask(p, q, base, 0u, true, true);
+        while (j != UNUSED) {
+            let a64 = mask_sum(p, q, base, j, true);
+            if (a64 > 0.0lf) {
+                let a = f32(a64) * mask_factor(base, j);
+                let atom = seg.w + j;
+                den += f64(a);
+                // push_top, as ek_reduce.
+                if (n_kept < ep.keep) {
+                    kept_a[n_kept] = a;
+                    kept_atom[n_kept] = atom;
+                    n_kept++;
+                } else {
+                    var w = 0u;
+                    for (var s = 1u; s < n_kept; s++) {
+                        let weaker = kept_a[s] < kept_a[w]
+                            || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
+                        if (weaker) {
+                            w = s;
+                        }
+                    }
+                    if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
+                        kept_a[w] = a;
+                        kept_atom[w] = atom;
+                    }
+                }
+            }
+            j = next_mask(p, q, base, j, false, true);
+        }
+        p = q;
+    }
+    state_den[sl] = den;
+    for (var s = 0u; s < n_kept; s++) {
+        state_kept[sl * ep.keep + s] = vec2<u32>(kept_atom[s] + 1u, bitcast<u32>(kept_a[s]));
+    }
+}
+
+@compute @workgroup_size(64)
+fn ek_finish(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let g = flat_group(wid) * 64u + lid;
+    if (g >= ep.n_tile) {
+        return;
+    }
+    let sl = ep.g0 + g - ep.pad0;
+    let den = state_den[sl];
+    let finite = den == den && den <= 1.7976931348623157e308lf;
+    if (!(den >= ep.min_total_weight && den > 0.0lf && finite)) {
+        return;
+    }
+    gmeta[g] = vec2<u32>(1u, bitcast<u32>(f32(den)));
+    for (var s = 0u; s < ep.keep; s++) {
+        let v = state_kept[sl * ep.keep + s];
+        if (v.x == 0u) {
+            kept[g * ep.keep + s] = vec2<u32>(UNUSED, 0u);
+        } else {
+            kept[g * ep.keep + s] = vec2<u32>(v.x - 1u, v.y);
+        }
+    }
+}
+
 // The dominant mask of one Gaussian in one view, from its records [r, end) (no order; table at
 // `base`): argmax_j a_kj with a_kj as ek_reduce makes it (ties: the smaller mask), as (mask,
 // a bits), or (UNUSED, 0) when no mask holds a positive a_kj.

@@ -86,6 +86,7 @@ use super::{
 mod buffers;
 mod count_scan;
 pub mod ek;
+mod fold;
 pub mod icd;
 mod label_sums;
 pub mod project;
@@ -254,6 +255,9 @@ pub struct GpuRasterizer {
     cpu_adapter: bool,
     /// The kept views of the device reduction ([`ek`]), once keeping started.
     kept: Option<ek::Kept>,
+    /// The streamed reduction's running state, once started ([`fold`]): the kept views are
+    /// folded into it a wave at a time instead of being kept to the end.
+    stream: Option<fold::Stream>,
     /// The kept views a reduction used (every band a buffer of its own), freed with the
     /// rasterizer or when keeping starts again: an encode drops its rasterizers on a thread
     /// beside its writes, so their freeing is not on its critical path.
@@ -657,6 +661,7 @@ impl GpuRasterizer {
             reduce_on_device: true,
             cpu_adapter: info.device_type == wgpu::DeviceType::Cpu,
             kept: None,
+            stream: None,
             spent_kept: None,
             keeping: None,
             mask_record: None,
@@ -1042,7 +1047,18 @@ impl WeightRasterizer for GpuRasterizer {
         params: &DeviceReduce,
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
+        if self.stream.is_some() {
+            return self.reduce_streamed(params, sink);
+        }
         self.reduce_kept_tiles(params, sink)
+    }
+
+    fn stream_kept(&mut self, keep: usize) -> bool {
+        self.start_streaming(keep)
+    }
+
+    fn fold_kept(&mut self, below: usize) -> Result<bool> {
+        self.fold_kept_due(below)
     }
 
     fn keep_mask_record(&mut self, slots: usize, view_count: usize) -> bool {

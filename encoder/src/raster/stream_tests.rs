@@ -1,0 +1,176 @@
+//! The streamed device reduction ([`WeightRasterizer::stream_kept`]) against the all-kept one.
+
+use super::tests::{RandomKeptView, gpu, random_scene};
+use super::*;
+use slag_common::scene::Gaussians;
+use crate::aggregate::{ImageStageParams, MaskWeighting, ReduceParams};
+
+const DIM: usize = 70;
+const KEEP: usize = 3;
+/// Bytes of a tile of the reduction: several tiles per scene.
+const TILE: u64 = 400_000;
+
+/// What one reduction gives: per tile its outputs, and the reduction's figures.
+struct Reduced {
+    tiles: Vec<KeptTile>,
+    out: KeptReduced,
+}
+
+/// The kept views, reduced on a fresh GPU rasterizer of `g`: kept in `order` (as fronts finish
+/// them), each followed by [`WeightRasterizer::fold_kept`] with the lowest view not kept yet;
+/// streamed with a budget of `stream_budget` bytes, or every view kept to the end without;
+/// tiles of the reduction of `tile_bytes`.
+/// `None` only where the GPU tests are skipped.
+fn reduce_views(
+    g: &Gaussians,
+    views: &[RandomKeptView],
+    order: &[usize],
+    stream_budget: Option<u64>,
+    tile_bytes: u64,
+) -> Option<Reduced> {
+    let mut r = gpu(g)?;
+    assert!(r.keep_on_device(DIM, stream_budget.unwrap_or(1 << 30), true));
+    r.set_reduce_tile_bytes(Some(tile_bytes));
+    if stream_budget.is_some() {
+        assert!(r.stream_kept(KEEP), "the state fits half the budget");
+    }
+    let mut done = vec![false; views.len()];
+    for &v in order {
+        views[v].keep_on(&mut r, false).expect("kept");
+        done[v] = true;
+        let below = done.iter().position(|d| !d).unwrap_or(done.len());
+        r.fold_kept(below).unwrap();
+    }
+    let p = DeviceReduce {
+        min_total_weight: ReduceParams::default().min_total_weight,
+        keep: KEEP,
+        dense: false,
+        gaussians: None,
+    };
+    let mut tiles = Vec::new();
+    let out = r
+        .reduce_kept(&p, &mut |t| {
+            tiles.push(t);
+            Ok(())
+        })
+        .unwrap();
+    Some(Reduced { tiles, out })
+}
+
+/// `n` random views of width [`DIM`] with overlapping, area-weighted masks.
+fn random_views(n: u64) -> Vec<RandomKeptView> {
+    let params = ImageStageParams {
+        mask_weighting: MaskWeighting::Area,
+        ..Default::default()
+    };
+    (0..n)
+        .map(|seed| RandomKeptView::new(seed, seed ^ 0xE3B, DIM, params))
+        .collect()
+}
+
+/// Every observed Gaussian of `r` with its `Σ a_kj` bits and kept pairs (bits, in slot order).
+fn rows_of(r: &Reduced) -> Vec<(u32, u32, Vec<(u32, u32)>)> {
+    r.tiles
+        .iter()
+        .flat_map(|t| {
+            (0..t.ids.len()).map(move |i| {
+                let kept = t.kept_of(i).iter().map(|&(a, j)| (a.to_bits(), j)).collect();
+                (t.ids[i], t.total_weights[i].to_bits(), kept)
+            })
+        })
+        .collect()
+}
+
+/// The state of `n` Gaussians with [`KEEP`] pairs each, in bytes.
+fn state_bytes(n: usize) -> u64 {
+    n as u64 * (8 + 8 * KEEP as u64)
+}
+
+/// Streamed, the reduction gives the all-kept reduction's bytes: the same observed Gaussians,
+/// the same `Σ a_kj` bits, the same kept pairs in the same slots and the same codebook, at
+/// two budgets small enough that the views go in several waves, with the views kept out of
+/// order (a wave takes only the views before the first not kept yet).
+#[test]
+fn streamed_reduction_equals_the_all_kept_reduction() {
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let views = random_views(12);
+    // Pairs finished out of order, as fronts finish them.
+    let order = [1usize, 0, 3, 2, 5, 4, 7, 6, 9, 8, 11, 10];
+    let Some(all) = reduce_views(&g, &views, &order, None, TILE) else {
+        return;
+    };
+    assert_eq!(all.out.waves, 1);
+    let records = all.out.peak_kept_bytes;
+    let expected = rows_of(&all);
+    assert!(expected.len() > 100, "{} observed: too few", expected.len());
+    // The records of the views not folded may take 60 % and 45 % of every view's records: a
+    // wave at half of that.
+    let state = state_bytes(n);
+    for share in [0.6, 0.45] {
+        let budget = state + (records as f64 * share) as u64;
+        let streamed = reduce_views(&g, &views, &order, Some(budget), TILE).expect("a GPU");
+        assert!(
+            streamed.out.waves >= 3,
+            "{} waves at {share} of the records",
+            streamed.out.waves
+        );
+        assert_eq!(streamed.out.state_bytes, state);
+        assert!(
+            streamed.out.peak_kept_bytes + state <= budget,
+            "peak {} + state {state} within the budget {budget}",
+            streamed.out.peak_kept_bytes
+        );
+        assert_eq!(streamed.out.codebook, all.out.codebook, "codebook at {share}");
+        let got = rows_of(&streamed);
+        assert_eq!(got.len(), expected.len(), "observed Gaussians at {share}");
+        for (s, a) in got.iter().zip(&expected) {
+            assert_eq!(s, a, "Gaussian {} at {share}", a.0);
+        }
+    }
+}
+
+/// Streamed, the device holds no more with 64 views than with 8: with a budget that holds 8
+/// views' records beside the state, 64 views go through in waves within the same budget (kept
+/// at once, they take several times it), and give the bytes that waves twice as large give.
+#[test]
+fn streamed_memory_stays_flat_as_the_views_grow() {
+    let n = 8_000;
+    let g = random_scene(5, n);
+    let views = random_views(64);
+    let state = state_bytes(n);
+    let first: Vec<usize> = (0..8).collect();
+    let Some(eight) = reduce_views(&g, &views[..8], &first, None, TILE) else {
+        return;
+    };
+    let budget = state + eight.out.peak_kept_bytes;
+    let order: Vec<usize> = (0..64).collect();
+    let streamed_8 = reduce_views(&g, &views[..8], &first, Some(budget), TILE).expect("a GPU");
+    let streamed_64 = reduce_views(&g, &views, &order, Some(budget), TILE).expect("a GPU");
+    let larger = budget + eight.out.peak_kept_bytes;
+    let larger_64 = reduce_views(&g, &views, &order, Some(larger), 2 * TILE).expect("a GPU");
+    assert_eq!(eight.out.records_bytes, eight.out.peak_kept_bytes);
+    assert!(
+        streamed_64.out.records_bytes > 4 * (budget - state),
+        "64 views' records ({} B) are several times what the budget leaves them ({} B): the \
+         test means something",
+        streamed_64.out.records_bytes,
+        budget - state
+    );
+    for (count, s) in [(8, &streamed_8), (64, &streamed_64)] {
+        assert!(
+            s.out.peak_kept_bytes + s.out.state_bytes <= budget,
+            "{count} views: {} B kept + {} B state within {budget} B",
+            s.out.peak_kept_bytes,
+            s.out.state_bytes
+        );
+    }
+    assert!(streamed_64.out.waves >= 6, "{} waves", streamed_64.out.waves);
+    assert!(
+        larger_64.out.waves < streamed_64.out.waves,
+        "{} waves with the larger budget",
+        larger_64.out.waves
+    );
+    assert_eq!(rows_of(&streamed_64), rows_of(&larger_64));
+    assert_eq!(rows_of(&streamed_8), rows_of(&eight));
+}
