@@ -846,13 +846,6 @@ fn back_raster_thread(
         if out.is_kept() {
             kept_views.push(out.item.view);
         }
-        // The streamed reduction folds the views before the first not rastered yet; once a
-        // wave ran, the host can no longer take the reduction over.
-        if let Some(k) = keep.as_mut()
-            && rasterizer.fold_kept(done.add(out.item.view))?
-        {
-            k.fall_back = false;
-        }
         if let Some(e) = out.take_gave_up_keeping() {
             shared.fallback.give_way(rasterizer.name(), &e);
         }
@@ -860,6 +853,14 @@ fn back_raster_thread(
         if keep.is_some() && shared.fallback.is_set() {
             keep = None;
             shared.bring_back(&mut *rasterizer, &std::mem::take(&mut kept_views))?;
+        }
+        // The streamed reduction folds the views before the first not rastered yet; once a
+        // wave ran, the host can no longer take the reduction over (a view past the budget is
+        // then the run's error).
+        if let Some(k) = keep.as_mut()
+            && rasterizer.fold_kept(done.add(out.item.view))?
+        {
+            k.fall_back = false;
         }
         Ok(out)
     };
