@@ -178,6 +178,36 @@ fn mask_factor(base: u32, j: u32) -> f32 {
     return bitcast<f32>(tables[factors + j]);
 }
 
+// push_top (aggregate::mixture's): the pair (a, atom) into the `ep.keep` slots of kept_a /
+// kept_atom, n_kept of them used: fill, then replace the weakest (least a; of equal a, the
+// larger row) by a stronger pair.
+fn push_top(
+    kept_a: ptr<function, array<f32, 32>>,
+    kept_atom: ptr<function, array<u32, 32>>,
+    n_kept: ptr<function, u32>,
+    a: f32,
+    atom: u32,
+) {
+    if (*n_kept < ep.keep) {
+        (*kept_a)[*n_kept] = a;
+        (*kept_atom)[*n_kept] = atom;
+        *n_kept = *n_kept + 1u;
+        return;
+    }
+    var w = 0u;
+    for (var s = 1u; s < *n_kept; s++) {
+        let weaker = (*kept_a)[s] < (*kept_a)[w]
+            || ((*kept_a)[s] == (*kept_a)[w] && (*kept_atom)[s] > (*kept_atom)[w]);
+        if (weaker) {
+            w = s;
+        }
+    }
+    if (a > (*kept_a)[w] || (a == (*kept_a)[w] && atom < (*kept_atom)[w])) {
+        (*kept_a)[w] = a;
+        (*kept_atom)[w] = atom;
+    }
+}
+
 // One thread per sorted record of the tile: the first record of each Gaussian's run writes
 // where the run starts, so that ek_reduce runs one workgroup per Gaussian, not per record.
 @compute @workgroup_size(256)
@@ -247,26 +277,7 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
                         acc[t] += wa * f64(codebook[row + d]);
                     }
                 }
-                // push_top: fill, then replace the weakest (least a; of equal a, the
-                // larger row) by a stronger pair.
-                if (n_kept < ep.keep) {
-                    kept_a[n_kept] = a;
-                    kept_atom[n_kept] = atom;
-                    n_kept++;
-                } else {
-                    var w = 0u;
-                    for (var s = 1u; s < n_kept; s++) {
-                        let weaker = kept_a[s] < kept_a[w]
-                            || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
-                        if (weaker) {
-                            w = s;
-                        }
-                    }
-                    if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
-                        kept_a[w] = a;
-                        kept_atom[w] = atom;
-                    }
-                }
+                push_top(&kept_a, &kept_atom, &n_kept, a, atom);
             }
             j = next_mask(p, q, base, j, false, true);
         }
@@ -373,25 +384,7 @@ fn ek_fold(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
                 let a = f32(a64) * mask_factor(base, j);
                 let atom = seg.w + j;
                 den += f64(a);
-                // push_top, as ek_reduce.
-                if (n_kept < ep.keep) {
-                    kept_a[n_kept] = a;
-                    kept_atom[n_kept] = atom;
-                    n_kept++;
-                } else {
-                    var w = 0u;
-                    for (var s = 1u; s < n_kept; s++) {
-                        let weaker = kept_a[s] < kept_a[w]
-                            || (kept_a[s] == kept_a[w] && kept_atom[s] > kept_atom[w]);
-                        if (weaker) {
-                            w = s;
-                        }
-                    }
-                    if (a > kept_a[w] || (a == kept_a[w] && atom < kept_atom[w])) {
-                        kept_a[w] = a;
-                        kept_atom[w] = atom;
-                    }
-                }
+                push_top(&kept_a, &kept_atom, &n_kept, a, atom);
             }
             j = next_mask(p, q, base, j, false, true);
         }
