@@ -11,7 +11,7 @@
 # Expects .devcarry/slag-encoder.xz (stripped release build) and .devcarry/shared/fixtures/clip,
 # and .gl/ (Vulkan loader debs). Writes $OUT/views.txt (one line per run: process wall, peak RSS,
 # peak GPU memory, the reduction's waves and peak, observed Gaussians, the coverage pass) and
-# $OUT/views.tgz (each run's report.json, log tail, RSS timeline and GPU memory samples).
+# $OUT/views-N-COUNTS.tgz (each run's report.json, log tail, RSS timeline and GPU memory samples).
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
 VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
@@ -21,7 +21,7 @@ R=${OUT:-/tmp/out}; W=/tmp/slag-views; L=$W/logs; mkdir -p "$R" "$L"
 B=/tmp/slag-encoder
 [ -x "$B" ] || python3 -c "import lzma, shutil; shutil.copyfileobj(lzma.open('.devcarry/slag-encoder.xz'), open('$B', 'wb'))"
 chmod +x "$B"
-nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader | tee "$R/views.txt"
+nvidia-smi --query-gpu=index,name,driver_version,memory.total --format=csv,noheader | tee -a "$R/views.txt"
 echo "cores: $(nproc); scene: $n Gaussians, layout $layout" | tee -a "$R/views.txt"
 T=(/usr/bin/env time -v)
 for v in ${counts//,/ }; do
@@ -64,5 +64,5 @@ for v in ${counts//,/ }; do
     fi
   done
 done
-tar czf "$R/views.tgz" -C "$L" .
+tar czf "$R/views-$n-${counts//,/_}.tgz" -C "$L" . && rm -rf "$L"
 exit 0
