@@ -15,7 +15,8 @@
 set -uo pipefail
 for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
 VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
-export SLAG_SHARED=$PWD/.devcarry/shared XDG_RUNTIME_DIR=/tmp
+ORT_LIB=$(python3 -c 'import onnxruntime, os, glob; print(sorted(glob.glob(os.path.join(os.path.dirname(onnxruntime.__file__), "capi", "libonnxruntime.so*")))[0])')
+export ORT_DYLIB_PATH=$ORT_LIB SLAG_SHARED=$PWD/.devcarry/shared XDG_RUNTIME_DIR=/tmp
 n=${1:-30M}; counts=${2:-16}; runs=${3:-all}; layout=${4:-ring}
 R=${OUT:-/tmp/out}; W=/tmp/slag-views; L=$W/logs; mkdir -p "$R" "$L"
 B=/tmp/slag-encoder
