@@ -149,6 +149,12 @@ pub struct Counts {
     /// reduced).
     #[serde(default)]
     pub device_reduce_peak_bytes: u64,
+    /// When the host reduced and only the mixture was written: the most bytes of the host's
+    /// streamed reduction at once (each Gaussian's Σ a_kj and kept pairs, the codebook, and the
+    /// views that waited for an earlier one); 0 otherwise. It does not grow with the views
+    /// beyond the codebook.
+    #[serde(default)]
+    pub host_fold_peak_bytes: u64,
     /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
     /// host, so `entries` counts none.
     pub device_reduce: bool,

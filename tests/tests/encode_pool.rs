@@ -550,6 +550,9 @@ fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
         run_with(name, reduce_on, n, if n == 1 { budget } else { two_views })
     };
     assert!(host.counts.device_reduce_fallback.is_none());
+    // `--reduce host` with only the mixture folds each view into its state as it comes: no view
+    // is kept, none spills.
+    assert!(host.counts.host_fold_peak_bytes > 0 && host.counts.spilled_images == 0);
     assert!(
         host.counts.observed > 1000,
         "{} observed",

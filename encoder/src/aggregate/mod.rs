@@ -15,6 +15,8 @@
 //! [`reduce_mixture`] runs the same reduction but keeps each `E_k` as a sparse mixture of the
 //! shared mask embeddings (`slag_common::mixture`), the compressed storage form;
 //! [`reduce_to_writer_with_mixture`] gives both forms from one pass (the encoder's tail).
+//! When only the mixture is written, [`MixtureFold`] folds each view into a running state as it
+//! comes instead, so that the host keeps no view.
 //!
 //! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
 //! image; [`erode`], the masks eroded for it with `--mask-erode`), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
@@ -26,6 +28,7 @@
 //! ([`crate::pipeline::view_contribution`]), not from here: this module is the paper's math only.
 
 pub mod erode;
+pub mod fold;
 pub mod image;
 pub mod image_mask;
 pub mod levels;
@@ -34,6 +37,7 @@ pub mod reduce;
 pub mod robust;
 pub mod store;
 
+pub use fold::MixtureFold;
 pub use image::{
     Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels, stage_labels,

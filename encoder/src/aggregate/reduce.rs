@@ -395,6 +395,11 @@ pub(super) fn accumulate<T: Clone + Default + Send, B: Send>(
         chunk,
         image_major,
     } = pass;
+    if store.is_folding() {
+        return Err(Error::internal(
+            "the views were folded into the mixture: no reduction can read them again",
+        ));
+    }
     let mut chunks = 0;
     for start in (0..n_gaussians).step_by(chunk) {
         chunks += 1;
@@ -462,7 +467,8 @@ fn block_major_chunk<T: Clone + Default + Send, B: Send>(
                         sums.reset(g0, REDUCE_BLOCK.min(end - g0));
                         for ((c, &tag), lo) in images.iter().zip(&tags).zip(cursors.iter_mut()) {
                             let (num, den, extra) = (&mut sums.num, &mut sums.den, &mut sums.extra);
-                            *lo = add_entries(c, *lo, g0 as u32, dim, num, den, extra, tag, on_entry);
+                            *lo =
+                                add_entries(c, *lo, g0 as u32, dim, num, den, extra, tag, on_entry);
                         }
                         finish(sums)
                     })

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 
 use slag_common::{Error, Result};
 
+use super::fold::MixtureFold;
 use super::*;
 
 /// One image's contribution as the store holds it: the [`ImageContribution`]'s entries split into
@@ -142,6 +143,9 @@ pub struct ContributionStore {
     /// The spilled images' view indices and files, by view index (ties in push order).
     spilled: Vec<(usize, PathBuf)>,
     spill_dir: PathBuf,
+    /// When set, every view is folded into the mixture's running state instead of kept
+    /// ([`Self::folding`]).
+    fold: Option<Box<MixtureFold>>,
 }
 
 impl ContributionStore {
@@ -155,12 +159,34 @@ impl ContributionStore {
             memory_views: Vec::new(),
             spilled: Vec::new(),
             spill_dir,
+            fold: None,
         }
+    }
+
+    /// A store that keeps no view: each pushed view is folded into `fold` once every view
+    /// before it is in ([`MixtureFold::push`]), so that the host's memory stays flat however
+    /// many views come. For an encode that writes only the mixture; [`Self::take_fold`] hands
+    /// the state to the reduction, and [`Self::for_each`] refuses.
+    pub fn folding(fold: MixtureFold) -> Self {
+        let mut store = Self::new(0, PathBuf::new());
+        store.fold = Some(Box::new(fold));
+        store
+    }
+
+    /// The fold of a [`Self::folding`] store (`None` otherwise, or once taken); the store then
+    /// holds nothing.
+    pub fn take_fold(&mut self) -> Option<MixtureFold> {
+        self.fold.take().map(|f| *f)
+    }
+
+    /// Whether views pushed here are folded ([`Self::folding`]).
+    pub fn is_folding(&self) -> bool {
+        self.fold.is_some()
     }
 
     /// Number of contributions held.
     pub fn len(&self) -> usize {
-        self.in_memory.len() + self.spilled.len()
+        self.in_memory.len() + self.spilled.len() + self.fold.as_ref().map_or(0, |f| f.len())
     }
     /// True when empty.
     pub fn is_empty(&self) -> bool {
@@ -203,8 +229,13 @@ impl ContributionStore {
     /// arrived, so views finished in any order give the same codebook, the same ties and the
     /// same sums. Images of equal `view` keep their push order.
     ///
-    /// Errors: I/O writing the spill file.
+    /// A [`Self::folding`] store folds it instead ([`MixtureFold::push`]).
+    ///
+    /// Errors: I/O writing the spill file; the fold's.
     pub fn push_stored_as(&mut self, view: usize, c: StoredImage) -> Result<()> {
+        if let Some(fold) = &mut self.fold {
+            return fold.push(view, c);
+        }
         if self.used_bytes + c.arrival_bytes() <= self.budget_bytes {
             self.used_bytes += c.arrival_bytes();
             let at = self.memory_views.partition_point(|&v| v <= view);
@@ -278,8 +309,14 @@ impl ContributionStore {
     /// ones and the spilled ones (read back one at a time) merged; of equal view index, the
     /// in-memory ones first, each side in push order.
     ///
-    /// Errors: I/O reading a spill file.
+    /// Errors: I/O reading a spill file; [`Error::Internal`] for a [`Self::folding`] store,
+    /// which keeps no view.
     pub fn for_each(&self, mut f: impl FnMut(&StoredImage)) -> Result<()> {
+        if self.fold.is_some() {
+            return Err(Error::internal(
+                "the views were folded into the mixture: no reduction can read them again",
+            ));
+        }
         let mut memory = self.memory_views.iter().zip(&self.in_memory).peekable();
         for (view, path) in &self.spilled {
             while let Some((_, c)) = memory.next_if(|(v, _)| *v <= view) {

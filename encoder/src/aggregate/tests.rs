@@ -313,21 +313,123 @@ fn means_along_x(n: u32, y: f32, z: f32) -> Vec<[f32; 3]> {
     (0..n).map(|k| [k as f32, y, z]).collect()
 }
 
+/// View `seed`'s contribution: three overlapping masks over the Gaussians of `pw` (30 × 20
+/// pixels), unit mask embeddings of width `dim`.
+fn mixture_view(pw: &PixelWeights, dim: usize, seed: u64) -> ImageContribution {
+    let masks = vec![
+        mask(30, 20, |x, _| x < 15),
+        mask(30, 20, |_, y| y < 12),
+        mask(30, 20, |x, y| (x + 2 * y) % 5 < 2),
+    ];
+    let emb = unit_rows(masks.len(), dim, seed * 31);
+    image_contribution(pw, &masks, emb, dim, ImageStageParams::default()).unwrap()
+}
+
 /// Images with overlapping masks over `n` Gaussians, unit mask embeddings of width `dim`.
 fn mixture_store(n: u32, dim: usize, budget: usize, dir: &Path) -> ContributionStore {
     let mut store = ContributionStore::new(budget, dir.to_path_buf());
     for seed in 1..5u64 {
-        let pw = weights(30, 20, n, seed);
-        let masks = vec![
-            mask(30, 20, |x, _| x < 15),
-            mask(30, 20, |_, y| y < 12),
-            mask(30, 20, |x, y| (x + 2 * y) % 5 < 2),
-        ];
-        let emb = unit_rows(masks.len(), dim, seed * 31);
-        let c = image_contribution(&pw, &masks, emb, dim, ImageStageParams::default()).unwrap();
-        store.push(c).unwrap();
+        store
+            .push(mixture_view(&weights(30, 20, n, seed), dim, seed))
+            .unwrap();
     }
     store
+}
+
+/// The host's fold of views pushed in any order gives the kept store's mixture bit for bit
+/// (Σ a_kj in f64 in view order, the same pairs in the same slots, the codebook in view order),
+/// at one kept pair (displaced by later views) and at three, over Gaussians spread across
+/// several of the fold's parallel blocks; a view pushed twice is refused.
+#[test]
+fn the_folded_mixture_equals_the_kept_stores_whatever_the_arrival() {
+    let (dim, views) = (8, 12u64);
+    // 300 Gaussians, each seen by many views, spread over ids 0..140,000 (three blocks).
+    let spread = |seed| {
+        let mut pw = weights(30, 20, 300, seed);
+        pw.ids.iter_mut().for_each(|g| *g *= 467);
+        pw
+    };
+    let n = 140_000usize;
+    let images: Vec<ImageContribution> = (1..=views)
+        .map(|v| mixture_view(&spread(v), dim, v))
+        .collect();
+    let means = means_along_x(n as u32, 0.0, 0.0);
+    let rp = ReduceParams::default();
+    let kept = ContributionStore::in_memory(images.iter().cloned());
+    for keep in [1, 3] {
+        let (want, _) = reduce_mixture_chunks(&kept, &means, dim, rp, keep, "m").unwrap();
+        let mut fold = MixtureFold::new(n, dim, keep, rp.min_total_weight).unwrap();
+        // Arrival: every third view first, then the rest backwards.
+        let order: Vec<usize> = (0..views as usize)
+            .filter(|v| v % 3 == 2)
+            .chain((0..views as usize).rev().filter(|v| v % 3 != 2))
+            .collect();
+        for &v in &order {
+            fold.push(v, StoredImage::from_contribution(images[v].clone()))
+                .unwrap();
+        }
+        assert_eq!(fold.len(), views as usize);
+        assert!(
+            fold.peak_pending_bytes() > 0,
+            "views waited for earlier ones"
+        );
+        let again = StoredImage::from_contribution(images[0].clone());
+        assert!(matches!(fold.push(0, again), Err(Error::Internal(_))));
+        let got = fold.finish(&means, "m").unwrap();
+        assert!(
+            want.gaussian_ids.len() > 250,
+            "{} observed",
+            want.gaussian_ids.len()
+        );
+        assert!(want.gaussian_ids.last().is_some_and(|&g| g > 2 * 65_536));
+        assert_eq!(got.gaussian_ids, want.gaussian_ids, "keep {keep}");
+        assert_eq!(got.means, want.means);
+        assert_eq!(got.offsets, want.offsets);
+        assert_eq!(got.atoms, want.atoms, "keep {keep}");
+        assert_eq!(
+            got.weights.iter().map(|w| w.to_bits()).collect::<Vec<_>>(),
+            want.weights.iter().map(|w| w.to_bits()).collect::<Vec<_>>()
+        );
+        assert_eq!(got.codebook, want.codebook);
+    }
+}
+
+/// A fold refuses what it cannot add, with the error that names it: no kept pair, a view of
+/// another width, a Gaussian past the scene, a mask past the view's embeddings.
+#[test]
+fn a_fold_refuses_views_it_cannot_add() {
+    assert!(matches!(
+        MixtureFold::new(10, 2, 0, 1e-6),
+        Err(Error::Param { .. })
+    ));
+    let view = |dim: usize, g: u32, mask: u32| {
+        StoredImage::from_contribution(ImageContribution {
+            dim,
+            mask_embeddings: vec![1.0; dim],
+            entries: entries(&[(g, mask, 1.0)]),
+        })
+    };
+    let mut fold = MixtureFold::new(10, 2, 2, 1e-6).unwrap();
+    assert!(matches!(
+        fold.push(0, view(3, 1, 0)),
+        Err(Error::Mismatch { .. })
+    ));
+    let mut fold = MixtureFold::new(10, 2, 2, 1e-6).unwrap();
+    assert!(matches!(
+        fold.push(0, view(2, 10, 0)),
+        Err(Error::Invalid(_))
+    ));
+    let mut fold = MixtureFold::new(10, 2, 2, 1e-6).unwrap();
+    assert!(matches!(
+        fold.push(0, view(2, 1, 1)),
+        Err(Error::Invalid(_))
+    ));
+    // Nothing past a refused view is half-added: the next good view folds from a clean state.
+    let mut fold = MixtureFold::new(10, 2, 2, 1e-6).unwrap();
+    fold.push(0, view(2, 3, 0)).unwrap();
+    let got = fold.finish(&means_along_x(10, 0.0, 0.0), "m").unwrap();
+    assert_eq!(got.gaussian_ids, [3]);
+    assert_eq!((got.atoms, got.weights), (vec![0], vec![1.0]));
 }
 
 #[test]

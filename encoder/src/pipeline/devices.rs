@@ -105,6 +105,7 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
         gather_s: 0.0,
         write_s,
         memory,
+        host_fold_peak_bytes: 0,
     })
 }
 

@@ -43,7 +43,8 @@ impl ReduceFallback {
             error = %e,
             "keeping the label sums on the device for its reduction met its memory limit: the \
              views kept so far go back to the host, which reduces (--device-reduce-memory-mb \
-             raises the limit; --reduce host reads every view back from the start)"
+             raises the limit; --reduce host reduces on the host from the start, folding each view \
+             as it comes when only the mixture is written)"
         );
         if let Ok(mut reason) = self.reason.lock() {
             reason.get_or_insert_with(|| e.to_string());

@@ -127,7 +127,7 @@ pub(crate) fn finish(
         mask_name,
         fronts,
         rasterizers,
-        store,
+        mut store,
         level_stores,
         timings: mut t,
         mut counts,
@@ -164,7 +164,7 @@ pub(crate) fn finish(
         model_id: &model_id,
         ply: scene.ply.display().to_string(),
     };
-    let mut tail = reduce_tail(&out, device, &store, &files.embeddings)?;
+    let mut tail = reduce_tail(&out, device, &mut store, &files.embeddings)?;
     // Every device that reduced is among the spent rasterizers (none when the host reduced).
     counts.device_reduce_gpus = tail.spent.len();
     let spent = let_go(std::mem::take(&mut tail.spent));
@@ -218,6 +218,7 @@ fn record_reduction(
     counts.reduce_chunks = tail.chunks;
     counts.device_reduce_waves = tail.memory.waves;
     counts.device_reduce_peak_bytes = tail.memory.peak_bytes;
+    counts.host_fold_peak_bytes = tail.host_fold_peak_bytes;
     counts.observed = tail.observed;
     counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
 }
@@ -316,7 +317,7 @@ fn form_outputs(
 fn reduce_tail(
     out: &TailInputs,
     device: Vec<Box<dyn WeightRasterizer>>,
-    store: &aggregate::ContributionStore,
+    store: &mut aggregate::ContributionStore,
     embeddings: &Path,
 ) -> Result<ReducedOutputs> {
     let place = if device.is_empty() { "CPU" } else { "GPU" };
@@ -384,17 +385,22 @@ fn write_levels(
     Ok((level_files, t0.elapsed().as_secs_f64()))
 }
 
-/// The tail's one f64 pass over `store`: with [`EncodeParams::dense`] the rows stream into
+/// The tail's one f64 pass over `store` (or, when the store folded the views as they came, the
+/// mixture made from its fold, [`folded_outputs`]): with [`EncodeParams::dense`] the rows stream into
 /// `embeddings` (the `[N, D]` matrix is never in memory) and, with the mixture, the same pass
 /// keeps each Gaussian's largest `a_kj` and the codebook; without it only the mixture is
 /// reduced, no dense row is made, and an `embeddings` file of an earlier run is removed.
 ///
 /// Errors: neither form asked for ([`Error::Invalid`]), the reduction's, I/O.
 fn reduce_outputs(
-    store: &aggregate::ContributionStore,
+    store: &mut aggregate::ContributionStore,
     out: &TailInputs,
     embeddings: &Path,
 ) -> Result<ReducedOutputs> {
+    if let Some(fold) = store.take_fold() {
+        return folded_outputs(fold, out, embeddings);
+    }
+    let store = &*store;
     let (means, dim, params, model_id) = (out.means, out.dim, out.params, out.model_id);
     let t0 = Instant::now();
     let p = params.reduce;
@@ -413,6 +419,7 @@ fn reduce_outputs(
             gather_s: 0.0,
             write_s: 0.0,
             memory: DeviceReduceMemory::default(),
+            host_fold_peak_bytes: 0,
         });
     };
     let (streamed, sparse, gather_s) = match params.mixture_keep {
@@ -439,5 +446,35 @@ fn reduce_outputs(
         gather_s,
         write_s: t0.elapsed().as_secs_f64() - streamed.reduce_s,
         memory: DeviceReduceMemory::default(),
+        host_fold_peak_bytes: 0,
+    })
+}
+
+/// The mixture from the host's `fold` of the views as they came ([`aggregate::MixtureFold`]):
+/// its sparse parts over the centres of `out`; an `embeddings` file of an earlier run is removed
+/// (the fold makes no dense row).
+///
+/// Errors: the fold's ([`aggregate::MixtureFold::finish`]); I/O removing the stale file.
+fn folded_outputs(
+    fold: aggregate::MixtureFold,
+    out: &TailInputs,
+    embeddings: &Path,
+) -> Result<ReducedOutputs> {
+    let t0 = Instant::now();
+    remove_stale(embeddings)?;
+    let peak = fold.state_bytes() + fold.peak_pending_bytes();
+    let sparse = fold.finish(out.means, out.model_id)?;
+    Ok(ReducedOutputs {
+        on_device: false,
+        spent: Vec::new(),
+        writer: None,
+        observed: sparse.gaussian_ids.len(),
+        sparse: Some(sparse),
+        chunks: 1,
+        reduce_s: t0.elapsed().as_secs_f64(),
+        gather_s: 0.0,
+        write_s: 0.0,
+        memory: DeviceReduceMemory::default(),
+        host_fold_peak_bytes: peak as u64,
     })
 }

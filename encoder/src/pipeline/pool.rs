@@ -15,8 +15,8 @@ use slag_common::{Error, Result};
 
 use super::fallback::ReduceFallback;
 use super::{
-    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, Keep, SceneInput,
-    back_finish, back_prepare, back_raster, front_stage, no_views,
+    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, Keep, SceneInput, back_finish,
+    back_prepare, back_raster, front_stage, no_views,
 };
 use crate::aggregate::ContributionStore;
 use crate::masks::MaskGenerator;
@@ -107,8 +107,13 @@ pub(crate) fn run_pool(
     if training.is_empty() {
         return Err(no_views(scene, views_total));
     }
-    let (views, selection, made) =
-        select_views(scene, &gaussians, training, make_rasterizers, params.progress)?;
+    let (views, selection, made) = select_views(
+        scene,
+        &gaussians,
+        training,
+        make_rasterizers,
+        params.progress,
+    )?;
     let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
     log_scene_loaded(gaussians.len(), views.len(), fronts.len());
     let n_fronts = fronts.len();
@@ -345,8 +350,13 @@ impl PoolSinks {
     /// Empty sinks for `n_views` views of `n_gaussians` Gaussians; the stores spill under
     /// [`EncodeParams::out_dir`].
     ///
-    /// Errors: [`Error::Param`] `slots` for a record of other than 1 to 64 slots.
-    fn new(params: &EncodeParams, n_gaussians: usize, n_views: usize) -> Result<Self> {
+    /// Errors: [`Error::Param`] `slots` for a record of other than 1 to 64 slots; the host's
+    /// fold's ([`folded_mixture`]).
+    fn new(
+        params: &EncodeParams,
+        (dim, n_gaussians): (usize, usize),
+        n_views: usize,
+    ) -> Result<Self> {
         let store = |name: String| {
             Mutex::new(ContributionStore::new(
                 params.contribution_budget_bytes,
@@ -374,11 +384,42 @@ impl PoolSinks {
             }
             None => None,
         };
+        let main = match folded_mixture(params, dim, n_gaussians)? {
+            Some(fold) => Mutex::new(ContributionStore::folding(fold)),
+            None => store(".contributions.partial".to_string()),
+        };
         Ok(PoolSinks {
-            store: store(".contributions.partial".to_string()),
+            store: main,
             level_stores,
             record,
         })
+    }
+}
+
+/// The host's streamed reduction of an encode that reduces on the host from the start
+/// (`--reduce host`) and writes only the mixture: each view folded into a running state per
+/// Gaussian as it comes ([`crate::aggregate::MixtureFold`]), none kept. `None` otherwise: the
+/// dense file and the level files need every view's `a_kj`, and a run that may keep its views on
+/// a device gives them to the store only if it gives way to the host.
+///
+/// Errors: the fold's ([`crate::aggregate::MixtureFold::new`]).
+fn folded_mixture(
+    params: &EncodeParams,
+    dim: usize,
+    n_gaussians: usize,
+) -> Result<Option<crate::aggregate::MixtureFold>> {
+    let host = params.reduce_on == crate::config::ReduceOn::Host;
+    match params.mixture_keep {
+        Some(keep) if host && !params.dense && !params.levels => {
+            let fold = crate::aggregate::MixtureFold::new(
+                n_gaussians,
+                dim,
+                keep,
+                params.reduce.min_total_weight,
+            )?;
+            Ok(Some(fold))
+        }
+        _ => Ok(None),
     }
 }
 
@@ -459,7 +500,7 @@ impl<'a> Shared<'a> {
             failure: Failure::default(),
             queue: QueueGauge::default(),
             totals: Mutex::new(ImageWork::default()),
-            sinks: PoolSinks::new(params, n_gaussians, views.len())?,
+            sinks: PoolSinks::new(params, (dim, n_gaussians), views.len())?,
             device: Mutex::new(Vec::new()),
             on_device_keep: Mutex::new(on_device_keep),
             fallback: ReduceFallback::default(),
@@ -485,17 +526,18 @@ impl Shared<'_> {
             None => None,
         };
         let (store, totals) = (&self.sinks.store, &self.totals);
-        self.fallback.bring_back(rasterizer, self.dim, store, totals, |i, c| {
-            let Some(record) = record else {
-                return Ok(());
-            };
-            let view = kept.get(i).copied().ok_or_else(|| {
-                Error::internal(format!("kept view {i} of {} counted", kept.len()))
-            })?;
-            let poisoned = |_| Error::internal("masks' record poisoned by a panicked worker");
-            let dominant = dominant_masks(&c.entries);
-            record.lock().map_err(poisoned)?.add_view(view, &dominant)
-        })
+        self.fallback
+            .bring_back(rasterizer, self.dim, store, totals, |i, c| {
+                let Some(record) = record else {
+                    return Ok(());
+                };
+                let view = kept.get(i).copied().ok_or_else(|| {
+                    Error::internal(format!("kept view {i} of {} counted", kept.len()))
+                })?;
+                let poisoned = |_| Error::internal("masks' record poisoned by a panicked worker");
+                let dominant = dominant_masks(&c.entries);
+                record.lock().map_err(poisoned)?.add_view(view, &dominant)
+            })
     }
 
     /// After the workers: the front workers' models they handed back ([`Pooled::retired`]).
@@ -513,7 +555,9 @@ impl Shared<'_> {
             return;
         }
         let Ok(mut device) = self.device.lock() else {
-            return self.failure.fail(Error::internal("kept rasterizers poisoned"));
+            return self
+                .failure
+                .fail(Error::internal("kept rasterizers poisoned"));
         };
         for (mut r, kept_views) in device.drain(..) {
             if let Err(e) = self.bring_back(&mut *r, &kept_views) {

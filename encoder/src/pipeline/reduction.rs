@@ -49,6 +49,10 @@ pub(super) struct ReducedOutputs {
     pub(super) write_s: f64,
     /// The device reduction's waves and memory (zero when the host reduced).
     pub(super) memory: DeviceReduceMemory,
+    /// When the host folded the views as they came ([`crate::aggregate::MixtureFold`]): the
+    /// most bytes of its reduction at once (the running state and the views waiting for an
+    /// earlier one); 0 otherwise.
+    pub(super) host_fold_peak_bytes: u64,
 }
 
 /// How the device reduction used the device's memory ([`crate::raster::KeptReduced`]).
@@ -131,6 +135,7 @@ pub(super) fn reduce_on_device(
                 waves: out.waves,
                 peak_bytes: out.state_bytes + out.peak_kept_bytes,
             },
+            host_fold_peak_bytes: 0,
         })
     })
 }

@@ -1,0 +1,296 @@
+//! The mixture's reduction folded on the host view by view ([`MixtureFold`]): each view's `a_kj`
+//! are added to a running state per Gaussian as soon as every view before it is in, and then
+//! freed, so that the host's memory does not grow with the views.
+//!
+//! The mixture needs, per Gaussian, only `Σ_i Σ_j a_kj` and its `keep` largest `(a_kj, atom)`:
+//! each mask belongs to one view, so a pair's weight is final once its view is in. The state is
+//! `N × (8 + 8·keep + 1)` bytes whatever the number of views, plus the codebook (`M × D` f32, the
+//! views' mask embeddings) and the views that arrived before an earlier one (at most the views in
+//! flight).
+
+use std::collections::BTreeMap;
+
+use rayon::prelude::*;
+use slag_common::mixture::SparseMixture;
+use slag_common::{Error, Result};
+
+use super::store::{MaskColumn, StoredImage};
+
+/// Gaussians per parallel block of a fold (each block's state is one task's).
+const BLOCK: usize = 1 << 16;
+
+/// The host's streamed mixture reduction: views pushed in any order
+/// ([`MixtureFold::push`]) are folded in view order, each Gaussian's terms added in the order
+/// [`super::reduce_mixture_chunks`] adds them (views by index, entries in their order), so that
+/// `Σ a_kj` has the same f64 bits and the kept pairs are the same pairs in the same slots.
+///
+/// Where it differs from [`super::reduce_mixture_chunks`]: that pass also sums `Σ a_kj·E_j` and
+/// leaves a Gaussian unobserved when that sum's norm is at most `1e-9·Σ a_kj` (mask embeddings
+/// that cancel out). The fold holds no such sum (that is its saving), so its rule is on `Σ a_kj`
+/// alone: at least `min_total_weight`, positive and finite, as the device's streamed reduction.
+/// CLIP embeddings of masks do not cancel in practice; the rule is documented in
+/// docs/results/stability.md.
+pub struct MixtureFold {
+    dim: usize,
+    keep: usize,
+    min_total_weight: f64,
+    /// `[N]` Σ a_kj in f64.
+    den: Vec<f64>,
+    /// `[N × keep]` kept `(a_kj, atom)` in push order; the first `n_kept[k]` of a row are used.
+    kept: Vec<(f32, u32)>,
+    /// `[N]` kept pairs used per Gaussian.
+    n_kept: Vec<u8>,
+    /// `[M × D]` every folded view's mask embeddings, in view order.
+    codebook: Vec<f32>,
+    /// The next view to fold: every view below it is folded or never comes.
+    next: usize,
+    /// Views that arrived before `next` reached them, by view index.
+    pending: BTreeMap<usize, StoredImage>,
+    /// The most bytes `pending` held at once.
+    peak_pending_bytes: usize,
+    /// Views folded.
+    folded: usize,
+}
+
+impl MixtureFold {
+    /// An empty fold for `n_gaussians` Gaussians of `dim`-wide embeddings, keeping `keep`
+    /// pairs per Gaussian; a Gaussian is observed when its `Σ a_kj` is at least
+    /// `min_total_weight`, positive and finite.
+    ///
+    /// Errors: [`Error::Param`] `mixture_keep` for `keep` outside 1..=255.
+    pub fn new(n_gaussians: usize, dim: usize, keep: usize, min_total_weight: f64) -> Result<Self> {
+        if !(1..=u8::MAX as usize).contains(&keep) {
+            return Err(Error::param(
+                "mixture_keep",
+                keep,
+                "1 to 255 mask embeddings kept per Gaussian",
+            ));
+        }
+        Ok(MixtureFold {
+            dim,
+            keep,
+            min_total_weight,
+            den: vec![0.0; n_gaussians],
+            kept: vec![(0.0, 0); n_gaussians * keep],
+            n_kept: vec![0; n_gaussians],
+            codebook: Vec::new(),
+            next: 0,
+            pending: BTreeMap::new(),
+            peak_pending_bytes: 0,
+            folded: 0,
+        })
+    }
+
+    /// Bytes of the running state per Gaussian with `keep` pairs (Σ a, the pairs, their count).
+    pub fn state_bytes_per_gaussian(keep: usize) -> usize {
+        8 + keep * std::mem::size_of::<(f32, u32)>() + 1
+    }
+
+    /// Adds view `view`'s `a_kj` (its index in the encode's view list, each view once): folded
+    /// now when every view below it is in (with the views waiting behind it), else kept until
+    /// they are.
+    ///
+    /// Errors: a view pushed twice or one already passed ([`Error::Internal`]); a contribution
+    /// of another width than `dim` ([`Error::Mismatch`]); a Gaussian id past the scene or a mask
+    /// past the view's embeddings ([`Error::Invalid`]); more than `u32::MAX - 1` mask
+    /// embeddings in all ([`Error::Invalid`]).
+    pub fn push(&mut self, view: usize, c: StoredImage) -> Result<()> {
+        if view < self.next || self.pending.contains_key(&view) {
+            return Err(Error::internal(format!(
+                "view {view} reached the host's reduction twice"
+            )));
+        }
+        self.pending.insert(view, c);
+        let waiting: usize = self.pending.values().map(StoredImage::bytes).sum();
+        self.peak_pending_bytes = self.peak_pending_bytes.max(waiting);
+        while let Some(c) = self.pending.remove(&self.next) {
+            self.fold(&c)?;
+            self.next += 1;
+        }
+        Ok(())
+    }
+
+    /// Views pushed so far.
+    pub fn len(&self) -> usize {
+        self.folded + self.pending.len()
+    }
+
+    /// True before the first view.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The most bytes of views waiting for an earlier one, so far.
+    pub fn peak_pending_bytes(&self) -> usize {
+        self.peak_pending_bytes
+    }
+
+    /// Bytes of the running state (Σ a, the kept pairs, the codebook so far).
+    pub fn state_bytes(&self) -> usize {
+        self.den.len() * Self::state_bytes_per_gaussian(self.keep) + self.codebook.len() * 4
+    }
+
+    /// One view's entries into the state, its mask embeddings appended to the codebook.
+    fn fold(&mut self, c: &StoredImage) -> Result<()> {
+        let dim = self.dim.max(1);
+        check_view(c, self.dim, self.den.len())?;
+        let base = self.codebook.len() / dim;
+        if base + c.mask_embeddings.len() / dim >= u32::MAX as usize {
+            return Err(Error::Invalid(format!(
+                "more than {} mask embeddings in all: too many for u32 codebook ids",
+                u32::MAX - 1
+            )));
+        }
+        self.codebook.extend_from_slice(&c.mask_embeddings);
+        let (keep, base) = (self.keep, base as u32);
+        self.den
+            .par_chunks_mut(BLOCK)
+            .zip(self.kept.par_chunks_mut(BLOCK * keep))
+            .zip(self.n_kept.par_chunks_mut(BLOCK))
+            .enumerate()
+            .for_each(|(b, ((den, kept), n_kept))| {
+                let g0 = (b * BLOCK) as u32;
+                let lo = c.gaussians.partition_point(|&g| g < g0);
+                let hi = lo + c.gaussians[lo..].partition_point(|&g| g < g0 + den.len() as u32);
+                let block = Block {
+                    g0,
+                    keep,
+                    den,
+                    kept,
+                    n_kept,
+                };
+                match &c.masks {
+                    MaskColumn::U8(m) => block.add(c, &m[lo..hi], lo, base),
+                    MaskColumn::U16(m) => block.add(c, &m[lo..hi], lo, base),
+                    MaskColumn::U32(m) => block.add(c, &m[lo..hi], lo, base),
+                }
+            });
+        self.folded += 1;
+        Ok(())
+    }
+
+    /// The mixture's sparse parts: every view still waiting folded (in view order), then the
+    /// observed Gaussians in id order with their kept pairs and `means` (`[N]`, world frame),
+    /// the codebook in view order. The same parts as [`super::reduce_mixture_chunks`] on the
+    /// same views, up to the observed rule ([`MixtureFold`]).
+    ///
+    /// Errors: as [`Self::push`]; [`Error::Internal`] when `means` is not `[N]`.
+    pub fn finish(mut self, means: &[[f32; 3]], model_id: &str) -> Result<SparseMixture> {
+        if means.len() != self.den.len() {
+            return Err(Error::internal(format!(
+                "the host's fold: {} means for {} Gaussians",
+                means.len(),
+                self.den.len()
+            )));
+        }
+        for (_, c) in std::mem::take(&mut self.pending) {
+            self.fold(&c)?;
+        }
+        let min = self.min_total_weight;
+        let mut parts = SparseMixture {
+            dim: self.dim,
+            model_id: model_id.to_string(),
+            offsets: vec![0],
+            ..Default::default()
+        };
+        for (k, &d) in self.den.iter().enumerate() {
+            if d.is_nan() || d < min || d <= 0.0 || !d.is_finite() {
+                continue;
+            }
+            parts.gaussian_ids.push(k as u32);
+            parts.means.push(means[k]);
+            let row = &self.kept[k * self.keep..k * self.keep + self.n_kept[k] as usize];
+            for &(a, atom) in row {
+                parts.atoms.push(atom);
+                parts.weights.push(a);
+            }
+            parts.offsets.push(parts.atoms.len());
+        }
+        parts.codebook = std::mem::take(&mut self.codebook);
+        Ok(parts)
+    }
+}
+
+/// Refuses a view the fold cannot add: embeddings of another width than `dim`, a Gaussian id
+/// at or past `n_gaussians`, a mask past the view's embeddings.
+fn check_view(c: &StoredImage, dim: usize, n_gaussians: usize) -> Result<()> {
+    if c.dim != dim || !c.mask_embeddings.len().is_multiple_of(dim.max(1)) {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "a view's mask embeddings are {} wide, the reduction's {dim}: one CLIP model \
+                 per encode",
+                c.dim
+            ),
+        ));
+    }
+    if let Some(&g) = c.gaussians.last()
+        && g as usize >= n_gaussians
+    {
+        return Err(Error::Invalid(format!(
+            "a view names Gaussian {g} of a scene of {n_gaussians}"
+        )));
+    }
+    let masks = c.mask_embeddings.len() / dim.max(1);
+    let most = match &c.masks {
+        MaskColumn::U8(m) => m.iter().max().map(|&v| v as usize),
+        MaskColumn::U16(m) => m.iter().max().map(|&v| v as usize),
+        MaskColumn::U32(m) => m.iter().max().map(|&v| v as usize),
+    };
+    if most.is_some_and(|j| j >= masks) {
+        return Err(Error::Invalid(format!(
+            "a view names mask {} of its {masks}",
+            most.unwrap_or(0)
+        )));
+    }
+    Ok(())
+}
+
+/// One parallel block of Gaussians `g0..g0 + den.len()`: its slices of the state.
+struct Block<'a> {
+    g0: u32,
+    keep: usize,
+    den: &'a mut [f64],
+    kept: &'a mut [(f32, u32)],
+    n_kept: &'a mut [u8],
+}
+
+impl Block<'_> {
+    /// Adds the view's entries `lo..lo + masks.len()` (those of this block, `masks` their mask
+    /// indices) in entry order: `Σ a += a` in f64, and the pair `(a, base + mask)` offered to the
+    /// Gaussian's kept pairs as [`super::mixture`]'s push_top offers it.
+    fn add<M: Copy + Into<u32>>(mut self, c: &StoredImage, masks: &[M], lo: usize, base: u32) {
+        let n = masks.len();
+        let ids = &c.gaussians[lo..lo + n];
+        let weights = &c.weights[lo..lo + n];
+        for ((&g, &mask), &a) in ids.iter().zip(masks).zip(weights) {
+            let r = (g - self.g0) as usize;
+            self.den[r] += a as f64;
+            let atom = base + mask.into();
+            self.push_top(r, a, atom);
+        }
+    }
+
+    /// The kept pairs of row `r`: filled in arrival order, then the weakest (least `a`; of equal
+    /// `a`, the larger atom) replaced by a stronger pair. Atoms arrive in increasing order, so an
+    /// equal `a` never displaces a kept one.
+    fn push_top(&mut self, r: usize, a: f32, atom: u32) {
+        let keep = self.keep;
+        let used = self.n_kept[r] as usize;
+        let row = &mut self.kept[r * keep..(r + 1) * keep];
+        if used < keep {
+            row[used] = (a, atom);
+            self.n_kept[r] += 1;
+            return;
+        }
+        let weakest = row
+            .iter()
+            .enumerate()
+            .min_by(|x, y| x.1.0.total_cmp(&y.1.0).then(y.1.1.cmp(&x.1.1)));
+        if let Some((i, &(wa, watom))) = weakest
+            && (a > wa || (a == wa && atom < watom))
+        {
+            row[i] = (a, atom);
+        }
+    }
+}
