@@ -197,15 +197,17 @@ impl SeenSet {
         // ascending ids.
         const WORDS: usize = 4096;
         let mut bits = vec![0u64; n.div_ceil(64)];
-        bits.par_chunks_mut(WORDS).enumerate().for_each(|(b, words)| {
-            let lo = (b * WORDS * 64) as u64;
-            let hi = lo + (words.len() * 64) as u64;
-            let first = ids.partition_point(|&id| u64::from(id) < lo);
-            for &id in ids[first..].iter().take_while(|&&id| u64::from(id) < hi) {
-                let at = (u64::from(id) - lo) as usize;
-                words[at / 64] |= 1 << (at % 64);
-            }
-        });
+        bits.par_chunks_mut(WORDS)
+            .enumerate()
+            .for_each(|(b, words)| {
+                let lo = (b * WORDS * 64) as u64;
+                let hi = lo + (words.len() * 64) as u64;
+                let first = ids.partition_point(|&id| u64::from(id) < lo);
+                for &id in ids[first..].iter().take_while(|&&id| u64::from(id) < hi) {
+                    let at = (u64::from(id) - lo) as usize;
+                    words[at / 64] |= 1 << (at % 64);
+                }
+            });
         SeenSet::Bits(bits)
     }
 
@@ -1064,7 +1066,11 @@ mod seen_set_tests {
         assert_eq!(back, ids);
         let mut part = Vec::new();
         set.for_each_in(262_080, 262_200, |i| part.push(i as u32));
-        let want: Vec<u32> = ids.iter().copied().filter(|&i| (262_080..262_200).contains(&i)).collect();
+        let want: Vec<u32> = ids
+            .iter()
+            .copied()
+            .filter(|&i| (262_080..262_200).contains(&i))
+            .collect();
         assert_eq!(part, want);
     }
 }
