@@ -49,7 +49,9 @@
 //! address's share gets its 429 over TLS: the refusal runs the handshake (under the same
 //! deadline) in one of at most [`TLS_REFUSALS`] refusal slots of its own, apart from the
 //! connection slots; when all are busy the connection is closed without an answer. SIGHUP reads
-//! the certificate and key files again ([`crate::tls::reload_on_hangup`]).
+//! the certificate and key files again ([`crate::tls::reload_on_hangup`]). A plain-HTTP request
+//! on a TLS port is answered a plain `400` whose body names the `https://` URL to use, and
+//! logged at warn level (module `plain_on_tls`).
 //!
 //! # Error bodies
 //!
@@ -76,6 +78,8 @@ use hyper_util::service::TowerToHyperService;
 
 use crate::tls::ServerTls;
 use crate::{Error, Result};
+
+mod plain_on_tls;
 
 /// Default header-read (and idle keep-alive) timeout: 10 s.
 pub const DEFAULT_HEADER_TIMEOUT: Duration = Duration::from_secs(10);
@@ -285,11 +289,13 @@ pub async fn serve_with_tls(
         tokio::spawn(async move {
             let _permit = permit;
             let _share = share;
-            let io = timed(stream, limits);
             match acceptor {
-                None => serve_connection(io, peer, router, limits, &mut stop).await,
+                None => {
+                    let io = timed(stream, limits);
+                    serve_connection(io, peer, router, limits, &mut stop).await;
+                }
                 Some(a) => {
-                    if let Some(io) = handshake(&a, io, peer, limits).await {
+                    if let Some(io) = handshake(&a, stream, peer, limits).await {
                         serve_connection(io, peer, router, limits, &mut stop).await;
                     }
                 }
@@ -314,15 +320,27 @@ fn timed(stream: tokio::net::TcpStream, limits: ServerLimits) -> Timed {
     Box::pin(io)
 }
 
-/// The server side of a TLS handshake on `io`, which must end within the header-read timeout
-/// (a deadline); `None` (logged at debug level) when it fails or does not end in time.
+/// The server side of a TLS handshake on `stream`, which must end within the header-read
+/// timeout (a deadline); `None` (logged at debug level) when it fails or does not end in time.
+/// A plain-HTTP request in place of the handshake is answered 400 naming `https://` instead
+/// ([`plain_on_tls`]).
 async fn handshake(
     acceptor: &tokio_rustls::TlsAcceptor,
-    io: Timed,
+    stream: tokio::net::TcpStream,
     peer: SocketAddr,
     limits: ServerLimits,
 ) -> Option<tokio_rustls::server::TlsStream<Timed>> {
-    match tokio::time::timeout(limits.header_timeout, acceptor.accept(io)).await {
+    let deadline = tokio::time::Instant::now() + limits.header_timeout;
+    let mut first = [0u8; 1];
+    let accepted = match tokio::time::timeout_at(deadline, stream.peek(&mut first)).await {
+        Ok(Ok(n)) if n > 0 && plain_on_tls::is_plain_http(first[0]) => {
+            plain_on_tls::answer(stream, peer, deadline, limits.write_timeout).await;
+            return None;
+        }
+        Ok(_) => tokio::time::timeout_at(deadline, acceptor.accept(timed(stream, limits))).await,
+        Err(elapsed) => Err(elapsed),
+    };
+    match accepted {
         Ok(Ok(s)) => Some(s),
         Ok(Err(e)) => {
             tracing::debug!("connection {peer}: TLS handshake failed: {e}");
@@ -455,7 +473,7 @@ fn refuse_over_share_tls(
     let acceptor = acceptor.clone();
     tokio::spawn(async move {
         let _slot = slot;
-        let Some(mut tls) = handshake(&acceptor, timed(stream, limits), peer, limits).await else {
+        let Some(mut tls) = handshake(&acceptor, stream, peer, limits).await else {
             return;
         };
         let answer = over_share_answer(peer, max);

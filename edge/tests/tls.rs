@@ -320,3 +320,96 @@ fn a_damaged_certificate_at_a_reload_is_named_as_the_certificate() {
     assert!(m.contains("not a valid X.509 certificate"), "{m}");
     assert!(!m.contains("this key cannot serve"), "{m}");
 }
+
+/// A log line buffer for a test's tracing subscriber.
+#[derive(Clone, Default)]
+struct LogBuffer(Arc<std::sync::Mutex<Vec<u8>>>);
+
+impl std::io::Write for LogBuffer {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        self.0.lock().unwrap().extend_from_slice(b);
+        Ok(b.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Sends a plain HTTP/1.1 GET of `path` to `addr` (`HOST:PORT`) and reads the answer to its end.
+async fn plain_get(addr: &str, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nUser-Agent: test\r\n\r\n");
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut answer = Vec::new();
+    tokio::time::timeout(
+        std::time::Duration::from_secs(10),
+        s.read_to_end(&mut answer),
+    )
+    .await
+    .expect("the server answers and closes")
+    .unwrap();
+    String::from_utf8_lossy(&answer).into_owned()
+}
+
+/// The server side of a wrong scheme: `http://` to the TLS port of `serve` and of the shard
+/// server gets a plain 400 whose JSON body names the `https://` URL to use, the server logs it,
+/// and HTTPS still answers on the same port. (The current-thread runtime runs the servers'
+/// tasks on this thread, where the log subscriber is set.)
+#[tokio::test]
+async fn plain_http_to_a_tls_port_is_answered_400_naming_https_and_logged() {
+    let log = LogBuffer::default();
+    let writer = log.clone();
+    let _guard = tracing::subscriber::set_default(
+        tracing_subscriber::fmt()
+            .with_ansi(false)
+            .with_max_level(tracing::Level::WARN)
+            .with_writer(move || writer.clone())
+            .finish(),
+    );
+    let ca = TestCa::new("slag edge test CA");
+    let certs = tempfile::tempdir().unwrap();
+    let (cert_file, key_file) = ca.server_cert(1).write(certs.path());
+    let tls = Arc::new(ServerTls::load(&cert_file, &key_file).unwrap());
+    let shards =
+        shard_server_tls(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), tls.clone()).await;
+    let plain = shard_server(grid_scene("grid", 2, 2, 10, 8, Dtype::F16, 1), None).await;
+    let (_dir, store) = fetch_grid(&plain.url, 100.0).await;
+    let (gate, _open) = GateEmbedder::with_guard(8);
+    let opts = ServeOptions {
+        tls: Some(tls),
+        ..grid_serve_options(None, false)
+    };
+    let edge = serve_on_loopback(AppState::new(store, gate, opts).unwrap()).await;
+    for (url, path) in [
+        (edge.as_str(), "/health"),
+        (shards.url.as_str(), "/v1/scenes/grid/manifest"),
+    ] {
+        let addr = url.split("://").nth(1).unwrap().trim_end_matches('/');
+        let answer = plain_get(addr, &format!("{path}?x=1")).await;
+        assert!(answer.starts_with("HTTP/1.1 400 "), "{url}: {answer}");
+        assert!(
+            answer.contains(&format!("use https://{addr}{path}\"")),
+            "{url}: {answer}"
+        );
+        let body = answer.split("\r\n\r\n").nth(1).unwrap();
+        let json: serde_json::Value = serde_json::from_str(body).unwrap();
+        assert_eq!(json["status"], 400, "{body}");
+        let https_url = format!("https://{addr}{path}");
+        assert_eq!(send(https(&ca).get(https_url)).await.status(), 200, "{url}");
+    }
+    let logged = String::from_utf8(log.0.lock().unwrap().clone()).unwrap();
+    let lines: Vec<&str> = logged
+        .lines()
+        .filter(|l| l.contains("plain HTTP request (GET /health) on this HTTPS port"))
+        .collect();
+    assert_eq!(lines.len(), 1, "{logged}");
+    assert!(
+        lines[0].contains("WARN") && lines[0].contains("use https://"),
+        "{logged}"
+    );
+    assert!(
+        logged.contains("plain HTTP request (GET /v1/scenes/grid/manifest) on this HTTPS port"),
+        "{logged}"
+    );
+}
