@@ -441,8 +441,8 @@ impl Answering {
                     c.publish_failed.fetch_add(1, Ordering::SeqCst);
                 }
                 tracing::debug!(
-                    "ros2: {:?} answered in {:.1} ms",
-                    a.query,
+                    "ros2: prompt \"{}\" answered in {:.1} ms",
+                    a.query.escape_debug(),
                     received.elapsed().as_secs_f64() * 1e3
                 );
             }
@@ -466,15 +466,15 @@ impl Publishers {
     async fn publish(&self, m: convert::AnswerMessages) -> bool {
         let mut ok = true;
         if let Err(e) = self.objects.async_publish(m.objects).await {
-            tracing::warn!("ros2: publishing ~/objects failed: {e:?}");
+            tracing::warn!("ros2: publishing ~/objects failed: {e}");
             ok = false;
         }
         if let Err(e) = self.matches.async_publish(m.matches).await {
-            tracing::warn!("ros2: publishing ~/matches failed: {e:?}");
+            tracing::warn!("ros2: publishing ~/matches failed: {e}");
             ok = false;
         }
         if let Err(e) = self.markers.async_publish(m.markers).await {
-            tracing::warn!("ros2: publishing ~/markers failed: {e:?}");
+            tracing::warn!("ros2: publishing ~/markers failed: {e}");
             ok = false;
         }
         ok
