@@ -61,17 +61,24 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use slag_common::fault::{boundary, boundary_in};
 use slag_common::io::sync_dir;
 use slag_common::shards::{
-    CODEBOOK_TILE, Codebook, Dtype, MAX_MANIFEST_BYTES, Manifest, MixtureShard,
-    SHARD_FORMAT_VERSION, ShardHeader, StoredShard, TileInfo, decode_codebook, decode_header,
-    decode_mixture_shard, decode_shard_stored, shard_checksum, valid_scene_id,
+    CODEBOOK_TILE, Codebook, Dtype, MAX_MANIFEST_BYTES, Manifest, SHARD_FORMAT_VERSION, TileInfo,
+    decode_header, valid_scene_id,
 };
 use slag_common::{Error, Result};
 
+mod load;
 mod regular;
 mod signed;
+mod verify;
+pub use load::SceneLoad;
 pub use regular::read_regular;
 use regular::{Opened, db_not_regular, open_regular};
 pub use signed::{SignatureCheck, SignedManifest};
+pub use verify::{
+    CODEBOOK_EXTENSION, LoadableShard, WholeFile, codebook_tile, verify_codebook,
+    verify_mixture_shard, verify_shard,
+};
+use verify::{header_disagreement, verify_any_shard};
 
 /// sled page-cache size of the edge store (bytes). sled holds only manifests and fetch records.
 pub const SLED_CACHE_BYTES: u64 = 8 * 1024 * 1024;
@@ -377,251 +384,6 @@ pub fn parse_checksum(tile: &TileInfo) -> Result<u32> {
             ),
         )
     })
-}
-
-/// File-name extension of a stored codebook.
-pub const CODEBOOK_EXTENSION: &str = "codebook";
-
-/// The manifest entry of a mixture scene's codebook as a pseudo tile ([`CODEBOOK_TILE`], its
-/// bytes and checksum, no footprint), so downloads and partial files treat it like a shard;
-/// `None` for a dense scene.
-pub fn codebook_tile(manifest: &Manifest) -> Option<TileInfo> {
-    manifest.mixture.as_ref().map(|m| TileInfo {
-        id: CODEBOOK_TILE,
-        footprint: Vec::new(),
-        aabb: Default::default(),
-        count: m.atoms as u64,
-        bytes: m.codebook_bytes,
-        checksum: m.codebook_checksum.clone(),
-        sha256: m.codebook_sha256.clone(),
-    })
-}
-
-/// Checks downloaded codebook bytes against a mixture manifest: length, CRC-32, and a decode
-/// ([`decode_codebook`]) whose scene, model, width and row count match.
-///
-/// Errors: [`Error::Format`] naming what differs (truncated, corrupted, another scene's), or
-/// [`Error::Param`] `scene` for a dense manifest (it has no codebook).
-pub fn verify_codebook(manifest: &Manifest, bytes: &[u8]) -> Result<Codebook> {
-    let Some(info) = &manifest.mixture else {
-        return Err(Error::param(
-            "scene",
-            format!("{:?}", manifest.scene_id),
-            "a mixture scene: this one is dense and has no codebook",
-        ));
-    };
-    let origin = format!("codebook of scene {}", manifest.scene_id);
-    if bytes.len() as u64 != info.codebook_bytes {
-        return Err(Error::format(
-            &origin,
-            format!(
-                "{} bytes, the manifest says {}; fetch again",
-                bytes.len(),
-                info.codebook_bytes
-            ),
-        ));
-    }
-    let got = format!("{:08x}", shard_checksum(bytes));
-    if got != info.codebook_checksum {
-        return Err(Error::format(
-            &origin,
-            format!(
-                "checksum {got}, the manifest says {}; the codebook is corrupted, fetch again",
-                info.codebook_checksum
-            ),
-        ));
-    }
-    let cb = decode_codebook(bytes).map_err(|e| Error::format(&origin, e.to_string()))?;
-    if cb.scene_id != manifest.scene_id
-        || cb.model != manifest.model
-        || cb.dim != manifest.dim as usize
-        || cb.len() != info.atoms as usize
-    {
-        return Err(Error::format(
-            &origin,
-            format!(
-                "header (scene {}, model {}, dim {}, {} rows) disagrees with the manifest (scene \
-                 {}, model {}, dim {}, {} rows)",
-                cb.scene_id,
-                cb.model,
-                cb.dim,
-                cb.len(),
-                manifest.scene_id,
-                manifest.model,
-                manifest.dim,
-                info.atoms
-            ),
-        ));
-    }
-    Ok(cb)
-}
-
-/// [`verify_shard`] for a mixture scene's shard: length, CRC-32, a full decode
-/// ([`decode_mixture_shard`]) whose header names the same scene, tile, model, dim and count, the
-/// manifest's slot count and its codebook's checksum.
-///
-/// Errors: [`Error::Format`] naming the tile and what differs, [`Error::Unsupported`] for a shard
-/// of a format version this slag does not read.
-pub fn verify_mixture_shard(
-    manifest: &Manifest,
-    tile: &TileInfo,
-    bytes: &[u8],
-) -> Result<MixtureShard> {
-    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
-    check_bytes(&origin, tile, bytes)?;
-    let shard = decode_mixture_shard(bytes).map_err(|e| shard_error(&origin, e))?;
-    let h = &shard.header;
-    let want = manifest
-        .mixture
-        .as_ref()
-        .map(|m| (m.slots, m.codebook_checksum.clone()));
-    if h.scene_id != manifest.scene_id
-        || h.tile_id != tile.id
-        || h.model != manifest.model
-        || h.dim != manifest.dim
-        || h.count as u64 != tile.count
-        || want != Some((shard.slots, format!("{:08x}", shard.codebook_crc)))
-    {
-        return Err(Error::format(
-            &origin,
-            format!(
-                "header (scene {}, tile {}, model {}, dim {}, {} Gaussians, {} slots, codebook \
-                 {:08x}) disagrees with the manifest (scene {}, tile {}, model {}, dim {}, {} \
-                 Gaussians, mixture {:?})",
-                h.scene_id,
-                h.tile_id,
-                h.model,
-                h.dim,
-                h.count,
-                shard.slots,
-                shard.codebook_crc,
-                manifest.scene_id,
-                tile.id,
-                manifest.model,
-                manifest.dim,
-                tile.count,
-                manifest.mixture
-            ),
-        ));
-    }
-    Ok(shard)
-}
-
-/// Length and whole-file CRC-32 of downloaded bytes against their manifest entry.
-fn check_bytes(origin: &str, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
-    if bytes.len() as u64 != tile.bytes {
-        return Err(Error::format(
-            origin,
-            format!("{} bytes, the manifest says {}", bytes.len(), tile.bytes),
-        ));
-    }
-    let want = parse_checksum(tile)?;
-    let got = shard_checksum(bytes);
-    if got != want {
-        return Err(Error::format(
-            origin,
-            format!("checksum {got:08x}, the manifest says {want:08x}"),
-        ));
-    }
-    Ok(())
-}
-
-/// A decoding failure as the store reports it: another version is [`Error::Unsupported`] (not
-/// corruption: fetch does not download it again), anything else [`Error::Format`].
-fn shard_error(origin: &str, e: slag_common::shards::ShardError) -> Error {
-    match e {
-        slag_common::shards::ShardError::UnsupportedVersion(_) => Error::Unsupported {
-            path: origin.into(),
-            message: e.to_string(),
-        },
-        e => Error::format(origin, e.to_string()),
-    }
-}
-
-/// What a shard header `h` gets wrong against its manifest entry: scene, tile, model, dim,
-/// `dtype` and count, and the format `version` when one is given; `None` when all agree. The
-/// message names both sides.
-fn header_disagreement(
-    h: &ShardHeader,
-    manifest: &Manifest,
-    tile: &TileInfo,
-    version: Option<u16>,
-    dtype: Dtype,
-) -> Option<String> {
-    if version.is_none_or(|v| h.version == v)
-        && h.scene_id == manifest.scene_id
-        && h.tile_id == tile.id
-        && h.model == manifest.model
-        && h.dim == manifest.dim
-        && h.dtype == dtype
-        && h.count as u64 == tile.count
-    {
-        return None;
-    }
-    let (hv, mv) = match version {
-        Some(v) => (format!("version {}, ", h.version), format!("version {v}, ")),
-        None => (String::new(), String::new()),
-    };
-    Some(format!(
-        "header ({hv}scene {}, tile {}, model {}, dim {}, {:?}, {} Gaussians) disagrees with the \
-         manifest ({mv}scene {}, tile {}, model {}, dim {}, {dtype:?}, {} Gaussians)",
-        h.scene_id,
-        h.tile_id,
-        h.model,
-        h.dim,
-        h.dtype,
-        h.count,
-        manifest.scene_id,
-        tile.id,
-        manifest.model,
-        manifest.dim,
-        tile.count
-    ))
-}
-
-/// A decoded shard type [`EdgeStore::load_shards`] reads: [`StoredShard`] (dense manifests) or
-/// [`MixtureShard`] (mixture manifests).
-pub trait LoadableShard: Sized + Send {
-    /// Verifies the stored bytes of `tile` against `manifest` and decodes them.
-    ///
-    /// Errors: as [`verify_shard`] / [`verify_mixture_shard`].
-    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self>;
-}
-
-impl LoadableShard for StoredShard {
-    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self> {
-        verify_shard(manifest, tile, bytes)
-    }
-}
-
-impl LoadableShard for MixtureShard {
-    fn verify(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<Self> {
-        verify_mixture_shard(manifest, tile, bytes)
-    }
-}
-
-/// Checks downloaded bytes against the manifest entry and the manifest itself: length, whole-shard
-/// CRC-32, and a full decode whose header names the same scene, tile, model, dim and dtype.
-///
-/// Errors: [`Error::Format`] naming the tile and what differs (the caller discards the bytes).
-pub fn verify_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<StoredShard> {
-    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
-    check_bytes(&origin, tile, bytes)?;
-    // Another version is not corruption: a shard from a newer (or older) slag, typed apart so
-    // that fetch does not download it again and the message names the version.
-    let shard = decode_shard_stored(bytes).map_err(|e| shard_error(&origin, e))?;
-    if let Some(m) = header_disagreement(&shard.header, manifest, tile, None, manifest.dtype) {
-        return Err(Error::format(&origin, m));
-    }
-    Ok(shard)
-}
-
-/// [`verify_mixture_shard`] for a mixture manifest, [`verify_shard`] otherwise.
-fn verify_any_shard(manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
-    match manifest.mixture {
-        Some(_) => verify_mixture_shard(manifest, tile, bytes).map(drop),
-        None => verify_shard(manifest, tile, bytes).map(drop),
-    }
 }
 
 impl EdgeStore {
@@ -1223,7 +985,7 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; nothing is stored) or
     /// file I/O ([`Error::Io`]; at most a `.tmp` file is left, removed by the next fetch).
     pub fn commit_shard(&self, manifest: &Manifest, tile: &TileInfo, bytes: &[u8]) -> Result<()> {
-        verify_any_shard(manifest, tile, bytes)?;
+        verify_any_shard(manifest, tile, bytes, WholeFile::Crc32)?;
         let path = self.shard_path(&manifest.scene_id, tile)?;
         self.ensure_scene_dir(&manifest.scene_id)?;
         let tmp = path.with_extension(format!("{SHARD_EXTENSION}.tmp"));
@@ -1240,8 +1002,9 @@ impl EdgeStore {
         self.commit_partial_checked(manifest, tile, part, false)
     }
 
-    /// [`Self::commit_partial`], first checking the shard's SHA-256 against a signed manifest
-    /// when `signed` (before its CRC-32, so that any other bytes are named as such).
+    /// [`Self::commit_partial`], also checking the shard's SHA-256 against a signed manifest
+    /// when `signed`, beside its verification; a file failing both is refused for its SHA-256,
+    /// so that any other bytes are named as such.
     ///
     /// Errors: as [`Self::commit_partial`]; [`Error::Untrusted`] for another SHA-256.
     pub fn commit_partial_checked(
@@ -1252,10 +1015,15 @@ impl EdgeStore {
         signed: bool,
     ) -> Result<()> {
         let bytes = read_partial(part, tile.bytes)?;
-        if signed {
-            signed::check_download(manifest, tile, &bytes)?;
-        }
-        verify_any_shard(manifest, tile, &bytes)?;
+        // The hash runs beside the verification, on the rayon pool; the SHA-256's error first.
+        let (hashed, verified) = rayon::join(
+            || match signed {
+                true => signed::check_download(manifest, tile, &bytes),
+                false => Ok(()),
+            },
+            || verify_any_shard(manifest, tile, &bytes, WholeFile::Crc32),
+        );
+        hashed.and(verified)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;
         self.move_into_place(&manifest.scene_id, part, &path, "store.commit_shard")
@@ -1356,129 +1124,6 @@ impl EdgeStore {
     /// Bytes the store uses on disk (shard files, sled files, partial downloads, quarantine).
     pub fn disk_bytes(&self) -> u64 {
         dir_bytes(&self.root)
-    }
-}
-
-/// Which of the manifest's tiles are present, for [`EdgeStore::load_scene`] and `/stats`.
-#[derive(Debug, Clone, Default, serde::Serialize)]
-pub struct SceneLoad {
-    /// Tiles loaded (verified).
-    pub loaded_tiles: Vec<u64>,
-    /// Tiles of the manifest that are not stored (outside the fetched radius, or never fetched).
-    pub absent_tiles: usize,
-    /// Stored tiles that failed verification (corrupted on disk, or bytes other than the signed
-    /// manifest's); not served.
-    pub rejected: Vec<String>,
-    /// Of the loaded tiles, those whose bytes were hashed at this load and match the signed
-    /// manifest's SHA-256 (a load with trusted keys of a signed generation,
-    /// [`crate::engine::Engine::load_trusting`]; 0 otherwise).
-    pub hashed: usize,
-}
-
-impl EdgeStore {
-    /// Decodes every stored shard of the scene's current manifest, verifying each again
-    /// ([`verify_shard`]); corrupted shards are reported in [`SceneLoad::rejected`] and skipped.
-    /// Holds every decoded shard at once: servers use [`Self::load_shards`].
-    ///
-    /// Errors: no completed fetch of `scene` ([`Error::Param`] `scene`), store I/O.
-    pub fn load_scene(&self, scene: &str) -> Result<(Manifest, Vec<StoredShard>, SceneLoad)> {
-        let manifest = self.current_manifest(scene)?;
-        let mut shards = Vec::new();
-        let load = self.load_shards(&manifest, |s| {
-            shards.push(s);
-            Ok(())
-        })?;
-        Ok((manifest, shards, load))
-    }
-
-    /// Reads the stored shards of `manifest` one file at a time, in manifest tile order: each is
-    /// read, verified ([`LoadableShard::verify`]: [`verify_shard`] for a dense manifest's
-    /// [`StoredShard`]s, [`verify_mixture_shard`] for a mixture manifest's [`MixtureShard`]s), its
-    /// file bytes freed, and the decoded shard handed to `f`, so a caller that copies the rows
-    /// elsewhere holds at most one shard (file bytes plus decoded copy) besides its own copy.
-    /// Tiles without a file count as absent; corrupted ones and files that cannot be read are
-    /// logged, listed in [`SceneLoad::rejected`] and skipped.
-    ///
-    /// Errors: the first error `f` returns.
-    pub fn load_shards<S: LoadableShard>(
-        &self,
-        manifest: &Manifest,
-        f: impl FnMut(S) -> Result<()>,
-    ) -> Result<SceneLoad> {
-        self.load_tiles(manifest, manifest.tiles.iter(), false, f)
-    }
-
-    /// [`Self::load_shards`] for the tiles of one committed generation ([`Committed::tiles`]):
-    /// the manifest's other tiles count as absent, whatever files are there. With `hashes` (a
-    /// signed generation whose signature the caller verified), each file's SHA-256 is also
-    /// compared with the manifest's, alongside its verification; a file that differs is rejected
-    /// like a corrupted one ([`SceneLoad::rejected`], an [`Error::Untrusted`] message).
-    ///
-    /// Errors: the first error `f` returns.
-    pub fn load_committed<S: LoadableShard>(
-        &self,
-        committed: &Committed,
-        hashes: bool,
-        f: impl FnMut(S) -> Result<()>,
-    ) -> Result<SceneLoad> {
-        let tiles = committed.tiles();
-        let mut load = self.load_tiles(&committed.manifest, tiles.iter().copied(), hashes, f)?;
-        load.absent_tiles += committed.manifest.tiles.len() - tiles.len();
-        Ok(load)
-    }
-
-    /// Reads `tiles` of `manifest` as [`Self::load_shards`] describes; hashes each too with
-    /// `hashes` ([`Self::load_committed`]).
-    fn load_tiles<'a, S: LoadableShard>(
-        &self,
-        manifest: &Manifest,
-        tiles: impl Iterator<Item = &'a TileInfo>,
-        hashes: bool,
-        mut f: impl FnMut(S) -> Result<()>,
-    ) -> Result<SceneLoad> {
-        let mut load = SceneLoad::default();
-        for tile in tiles {
-            let bytes = match self.shard_bytes(&manifest.scene_id, tile) {
-                Ok(Some(b)) => b,
-                Ok(None) => {
-                    load.absent_tiles += 1;
-                    continue;
-                }
-                // A checksum the store cannot name, or a file that cannot be read (a folder in
-                // its place, a bad block): reported like a corrupted shard, and the rest of the
-                // scene is served.
-                Err(e) => {
-                    tracing::error!("not serving shard {}: {e}", tile.id);
-                    load.rejected.push(format!(
-                        "shard {} of scene {}: {e}",
-                        tile.id, manifest.scene_id
-                    ));
-                    continue;
-                }
-            };
-            // The hash runs beside the decoding (two cores: about the time of the longer).
-            let (hash, verified) = if hashes {
-                rayon::join(
-                    || signed::check_download(manifest, tile, &bytes),
-                    || S::verify(manifest, tile, &bytes),
-                )
-            } else {
-                (Ok(()), S::verify(manifest, tile, &bytes))
-            };
-            drop(bytes);
-            match hash.and(verified) {
-                Ok(s) => {
-                    load.loaded_tiles.push(tile.id);
-                    load.hashed += hashes as usize;
-                    f(s)?;
-                }
-                Err(e) => {
-                    tracing::error!("not serving a corrupted shard: {e}");
-                    load.rejected.push(e.to_string());
-                }
-            }
-        }
-        Ok(load)
     }
 }
 
