@@ -39,13 +39,15 @@ impl EdgeStore {
     }
 
     /// Reads the stored shards of `manifest`, handing them to `f` in manifest tile order: each
-    /// file is read, verified ([`LoadableShard::verify`]: [`verify_shard`](super::verify_shard) for a dense
-    /// manifest's [`StoredShard`]s, [`verify_mixture_shard`](super::verify_mixture_shard) for a mixture manifest's
-    /// [`MixtureShard`](slag_common::shards::MixtureShard)s) and its bytes freed on the rayon pool, a window of
-    /// [`load_window`] files at a time, while `f` takes the shards already decoded; so a caller
-    /// that copies the rows elsewhere holds at most three windows of decoded shards besides its
-    /// own copy. Tiles without a file count as absent; corrupted ones and files that cannot be
-    /// read are logged, listed in [`SceneLoad::rejected`] and skipped.
+    /// file is read, verified ([`LoadableShard::verify`]: [`verify_shard`](super::verify_shard)
+    /// for a dense manifest's [`StoredShard`]s,
+    /// [`verify_mixture_shard`](super::verify_mixture_shard) for a mixture manifest's
+    /// [`MixtureShard`](slag_common::shards::MixtureShard)s) and its bytes freed on the rayon
+    /// pool, [`load_window`] files at a time, while `f` takes the shards already decoded. A
+    /// caller that copies the rows elsewhere holds at most three windows of decoded shards (and
+    /// one window of file bytes) besides its own copy. Tiles without a file count as absent;
+    /// corrupted ones and files that cannot be read are logged, listed in
+    /// [`SceneLoad::rejected`] and skipped.
     ///
     /// Errors: the first error `f` returns (the files being read then are dropped).
     pub fn load_shards<S: LoadableShard>(
@@ -161,9 +163,14 @@ impl EdgeStore {
     }
 }
 
-/// Files [`EdgeStore::load_shards`] reads and checks at once: one per thread of the rayon pool.
+/// Most files a load reads and checks at once ([`EdgeStore::load_shards`]).
+pub const MAX_LOAD_WINDOW: usize = 4;
+
+/// Files [`EdgeStore::load_shards`] reads and checks at once: one per thread of the rayon pool,
+/// at most [`MAX_LOAD_WINDOW`] (with 16 MiB shards, three windows of decoded shards stay under
+/// 200 MB beside the rows already copied).
 pub fn load_window() -> usize {
-    rayon::current_num_threads().max(1)
+    rayon::current_num_threads().clamp(1, MAX_LOAD_WINDOW)
 }
 
 /// One stored tile, read and checked ([`EdgeStore::load_tiles`]).

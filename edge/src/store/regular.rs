@@ -29,7 +29,9 @@ pub(crate) enum Opened {
 /// Names a file type for a message: "a folder", "a FIFO", "a symbolic link", …
 pub(crate) fn kind_of(t: std::fs::FileType) -> &'static str {
     use std::fs::FileType;
-    const KINDS: [(fn(&FileType) -> bool, &str); 7] = [
+    /// A test of a file type and the name it gives.
+    type Kind = (fn(&FileType) -> bool, &'static str);
+    const KINDS: [Kind; 7] = [
         (FileType::is_file, "a regular file"),
         (FileType::is_dir, "a folder"),
         (FileType::is_symlink, "a symbolic link"),
