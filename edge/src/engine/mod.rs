@@ -93,7 +93,7 @@ impl Engine {
 
     /// [`Engine::load_with`], and with `trusted` (the publisher's keys, as `serve` holds them)
     /// for a signed generation: the stored signature is verified over the stored manifest bytes
-    /// and every tile's bytes are hashed as they are read, beside their verification
+    /// and every tile's bytes are hashed as they are read, before their decoding
     /// ([`EdgeStore::load_committed`]); a tile whose SHA-256 or length differs from the signed
     /// manifest (a file rewritten on disk with its CRC-32s kept) is not served
     /// ([`SceneLoad::rejected`]), and [`SceneLoad::hashed`] counts those that match. An
@@ -263,8 +263,9 @@ type Generation = (
 );
 
 /// Reads the scene's committed generation (call with the generation lock held): the manifest
-/// once, then one listed shard file at a time (read, verify, copy its rows into the scan store,
-/// drop), then the check that no Gaussian id is in two shards.
+/// once, then the listed shard files a few at a time (read, verified and decoded on the rayon
+/// pool, then their rows copied into the scan store in tile order and the decoded shard
+/// dropped), then the check that no Gaussian id is in two shards.
 ///
 /// Errors: as [`Engine::load_with`].
 fn load_generation(

@@ -44,7 +44,8 @@
 //! Shard bytes live in files, not in sled, because sled 0.34 kept the ~65 MB values it had read in
 //! its page cache well past its configured capacity: loading 1M × 512 f16 Gaussians (16 shards)
 //! left ~1 GB of shard values resident beside the 1 GB scan copy (measured with
-//! `cargo run --example store_rss`). Loading now reads one file at a time and frees it.
+//! `cargo run --example store_rss`). Loading reads a few files at a time ([`load_window`])
+//! and frees each once decoded.
 //!
 //! A store written by an older slag-edge (shards inside sled, tree `shards`) is refused at
 //! [`EdgeStore::open`] with [`Error::Unsupported`] telling the user to fetch again.
@@ -70,7 +71,7 @@ mod load;
 mod regular;
 mod signed;
 mod verify;
-pub use load::SceneLoad;
+pub use load::{MAX_LOAD_WINDOW, SceneLoad, load_window};
 pub use regular::read_regular;
 use regular::{Opened, db_not_regular, open_regular};
 pub use signed::{SignatureCheck, SignedManifest};
