@@ -1,8 +1,8 @@
 //! Loading a scene's stored shards: each file read, verified (and hashed against a signed
 //! manifest), decoded and handed to the caller in manifest tile order.
 
-use slag_common::Result;
 use slag_common::shards::{Manifest, StoredShard, TileInfo};
+use slag_common::{Error, Result};
 
 use super::{Committed, EdgeStore, LoadableShard, WholeFile, signed};
 
@@ -24,10 +24,11 @@ pub struct SceneLoad {
 
 impl EdgeStore {
     /// Decodes every stored shard of the scene's current manifest, verifying each again
-    /// ([`verify_shard`](super::verify_shard)); corrupted shards are reported in [`SceneLoad::rejected`] and skipped.
-    /// Holds every decoded shard at once: servers use [`Self::load_shards`].
+    /// ([`verify_shard`](super::verify_shard)); corrupted shards are reported in
+    /// [`SceneLoad::rejected`] and skipped. Holds every decoded shard at once: servers use
+    /// [`Self::load_shards`].
     ///
-    /// Errors: no completed fetch of `scene` ([`Error::Param`](slag_common::Error::Param) `scene`), store I/O.
+    /// Errors: no completed fetch of `scene` ([`Error::Param`] `scene`), store I/O.
     pub fn load_scene(&self, scene: &str) -> Result<(Manifest, Vec<StoredShard>, SceneLoad)> {
         let manifest = self.current_manifest(scene)?;
         let mut shards = Vec::new();
@@ -62,8 +63,8 @@ impl EdgeStore {
     /// [`Self::load_shards`] for the tiles of one committed generation ([`Committed::tiles`]):
     /// the manifest's other tiles count as absent, whatever files are there. With `hashes` (a
     /// signed generation whose signature the caller verified), each file's SHA-256 is also
-    /// compared with the manifest's, alongside its verification; a file that differs is rejected
-    /// like a corrupted one ([`SceneLoad::rejected`], an [`Error::Untrusted`](slag_common::Error::Untrusted) message).
+    /// compared with the manifest's, before its decoding; a file that differs is rejected like a
+    /// corrupted one ([`SceneLoad::rejected`], an [`Error::Untrusted`] message).
     ///
     /// Errors: the first error `f` returns.
     pub fn load_committed<S: LoadableShard>(
@@ -82,6 +83,9 @@ impl EdgeStore {
     /// `hashes` ([`Self::load_committed`]). A thread of its own reads and checks the files, a
     /// window at a time on the rayon pool, and sends them in order to this one, which hands
     /// them to `f`: checking the next files overlaps with `f` copying the rows of the last ones.
+    ///
+    /// Errors: the first error `f` returns; [`Error::Internal`] when the reading thread cannot
+    /// be started (the system is out of threads or memory).
     fn load_tiles<S: LoadableShard>(
         &self,
         manifest: &Manifest,
@@ -94,20 +98,25 @@ impl EdgeStore {
         let mut load = SceneLoad::default();
         std::thread::scope(|scope| {
             let (tx, rx) = std::sync::mpsc::sync_channel::<Checked<S>>(window);
-            scope.spawn(move || {
-                for w in tiles.chunks(window) {
-                    let checked: Vec<Checked<S>> = w
-                        .par_iter()
-                        .map(|t| self.check_tile(manifest, t, hashes))
-                        .collect();
-                    for c in checked {
-                        if tx.send(c).is_err() {
-                            // `f` failed: the load is over.
-                            return;
+            let reader = std::thread::Builder::new().name("slag-load".into());
+            reader
+                .spawn_scoped(scope, move || {
+                    for w in tiles.chunks(window) {
+                        let checked: Vec<Checked<S>> = w
+                            .par_iter()
+                            .map(|t| self.check_tile(manifest, t, hashes))
+                            .collect();
+                        for c in checked {
+                            if tx.send(c).is_err() {
+                                // `f` failed: the load is over.
+                                return;
+                            }
                         }
                     }
-                }
-            });
+                })
+                .map_err(|e| {
+                    Error::internal(format!("the store's loading thread did not start: {e}"))
+                })?;
             for (tile, checked) in tiles.iter().zip(rx) {
                 match checked {
                     Checked::Loaded(s) => {
