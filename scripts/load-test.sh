@@ -22,8 +22,8 @@ W=$(mktemp -d)
 pids=()
 cleanup() { for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done; rm -rf "$W"; }
 trap cleanup EXIT
-$ENC partition --synthetic "$N:512" --store "$W/shards" --scene synth --dtype "$DTYPE" --max-per-shard 65536
-$ENC serve --store "$W/shards" --listen 127.0.0.1:18090 >/dev/null &
+$ENC partition --synthetic "$N:512" --shard-store "$W/shards" --scene synth --dtype "$DTYPE" --max-per-shard 65536
+$ENC serve --shard-store "$W/shards" --listen 127.0.0.1:18090 >/dev/null &
 pids+=($!)
 for _ in $(seq 50); do curl -fs http://127.0.0.1:18090/v1/scenes >/dev/null && break; sleep 0.2; done
 $EDGE fetch --from http://127.0.0.1:18090 --scene synth --center 1000,1000 --radius 100000 --store "$W/edge"

@@ -27,16 +27,16 @@ run() { # expect-status command...
         echo "FAIL: expected $want"; fails=$((fails + 1))
     fi
 }
-part() { "$S" partition --synthetic 20000:16 --store "$W/$1" --scene "$2" --max-per-shard "$3" \
+part() { "$S" partition --synthetic 20000:16 --shard-store "$W/$1" --scene "$2" --max-per-shard "$3" \
     --signing-key "$W/keys/manifest-key.pem" >/dev/null 2>&1; }
 run ok "$S" keygen --out "$W/keys"
 run refused "$S" keygen --out "$W/keys"
 "$S" keygen --out "$W/other" >/dev/null
-part store lab 2000 && "$S" export --store "$W/store" --scene lab "$W/srv/g1" >/dev/null
-part store lab 600 && "$S" export --store "$W/store" --scene lab "$W/srv/g2" >/dev/null
-part store2 lac 600 && "$S" export --store "$W/store2" --scene lac "$W/srv/other-scene" >/dev/null
-"$S" export --store "$W/store" --scene lab --signing-key "$W/other/manifest-key.pem" \
-    "$W/srv/otherkey" >/dev/null
+part store lab 2000 && "$S" export --shard-store "$W/store" --scene lab --out "$W/srv/g1" >/dev/null
+part store lab 600 && "$S" export --shard-store "$W/store" --scene lab --out "$W/srv/g2" >/dev/null
+part store2 lac 600 && "$S" export --shard-store "$W/store2" --scene lac --out "$W/srv/other-scene" >/dev/null
+"$S" export --shard-store "$W/store" --scene lab --signing-key "$W/other/manifest-key.pem" \
+    --out "$W/srv/otherkey" >/dev/null
 python3 -c "import json,sys;open(sys.argv[2],'wb').write(bytes.fromhex(json.load(open(sys.argv[1]))['signature']))" \
     "$W/srv/g2/manifest.sig" "$W/sig.bin"
 run ok openssl pkeyutl -verify -pubin -inkey "$W/keys/manifest-key.pub.pem" -rawin \

@@ -581,7 +581,7 @@ def main():
     print(f"probe: {'short' if a.short else 'full'}; {n_stall} stalled sockets; edge "
           f"{'with' if new_flags else 'without'} timeout flags", flush=True)
 
-    shard_cmd = [a.shards, "serve", "--store", f"{W}/shards", "--listen", f"{HOST}:{sp}"] + timeouts_s
+    shard_cmd = [a.shards, "serve", "--shard-store", f"{W}/shards", "--listen", f"{HOST}:{sp}"] + timeouts_s
     shards = start(shard_cmd, {"SLAG_SHARD_TOKEN": TOKEN}, nofile=1024, log=log)
     assert wait_up(sp, "/v1/scenes", shards), "shard server did not start"
     r = subprocess.run([a.edge, "fetch", "--from", f"http://{HOST}:{sp}", "--scene", "probe",
@@ -779,7 +779,7 @@ def main():
         ("edge", [a.edge, "serve", "--store", f"{W}/edge", "--scene", "probe", "--listen",
                   f"{HOST}:{ep + 10}", "--clip-textual", a.text_model, "--tokenizer", a.tokenizer],
          "SLAG_EDGE_TOKEN"),
-        ("shards", [a.shards, "serve", "--store", f"{W}/shards-copy", "--listen", f"{HOST}:{ep + 11}"],
+        ("shards", [a.shards, "serve", "--shard-store", f"{W}/shards-copy", "--listen", f"{HOST}:{ep + 11}"],
          "SLAG_SHARD_TOKEN"),
     ]:
         os.makedirs(f"{W}/shards-copy", exist_ok=True)

@@ -46,7 +46,7 @@ F=$SLAG_SHARED/fixtures/clip
 W=$(mktemp -d)
 trap 'rm -rf "$W"' EXIT
 if [ "$short" = 1 ]; then N=8000; PER=1000; else N=60000; PER=7500; fi
-"$SHARDS" partition --synthetic "$N:512" --store "$W/shards" --scene probe --dtype f16 \
+"$SHARDS" partition --synthetic "$N:512" --shard-store "$W/shards" --scene probe --dtype f16 \
   --max-per-shard "$PER" >/dev/null
 args=(--edge "$EDGE" --shards "$SHARDS" --work "$W" --text-model "$F/color-clip-textual.onnx"
   --tokenizer "$F/clip-tokenizer.json")

@@ -6,6 +6,8 @@ use clap::{Parser, Subcommand};
 #[derive(Parser)]
 #[command(name = "slag-bench", version, about)]
 struct Cli {
+    #[command(flatten)]
+    global: slag_common::cli::process::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -28,10 +30,17 @@ enum Command {
     Models(Box<slag_bench::models::ModelsArgs>),
 }
 
-fn main() -> anyhow::Result<()> {
-    slag_shards::cli::init_logging(false);
+fn main() -> std::process::ExitCode {
+    slag_common::cli::deprecated::note_deprecated();
     let cli = Cli::parse();
-    match cli.command {
+    let verbose = cli.global.verbose;
+    slag_common::cli::process::init_logging(verbose);
+    slag_common::cli::process::exit_code(run(cli.command), |_| None, verbose)
+}
+
+/// Runs one study and prints its table.
+fn run(command: Command) -> anyhow::Result<()> {
+    match command {
         Command::Tradeoffs(a) => {
             let summary = slag_bench::tradeoffs::run(&a)?;
             println!("{summary}");
@@ -42,4 +51,16 @@ fn main() -> anyhow::Result<()> {
         Command::Models(a) => println!("{}", slag_bench::models::run(&a)?),
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod flag_names {
+    /// Every flag name of this binary, hidden aliases included, keeps one meaning across the slag
+    /// binaries, and every meaning one name ([`slag_common::flag_names`]).
+    #[test]
+    fn each_flag_name_has_one_meaning_across_the_binaries() {
+        use clap::CommandFactory;
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        slag_common::flag_names::assert_one_meaning("slag-bench", &super::Cli::command(), &root);
+    }
 }

@@ -37,7 +37,7 @@ use std::time::Instant;
 #[derive(Debug, Clone, clap::Args)]
 pub struct ModelsArgs {
     /// Scene folder whose images give the inputs (COLMAP or transforms.json).
-    #[arg(long)]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: PathBuf,
     /// Views used, spread evenly over the scene.
     #[arg(long, default_value_t = 8)]

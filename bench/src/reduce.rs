@@ -61,7 +61,7 @@ pub struct ReduceArgs {
     /// (`encode --mixture-keep`), in the default loop order: two passes (`reduce_to_writer`, then
     /// `reduce_mixture_chunks`) against the one fused pass (`reduce_to_writer_with_mixture`),
     /// which must give the same embeddings bytes and mixture.
-    #[arg(long)]
+    #[arg(long, value_name = "S")]
     pub mixture_keep: Option<usize>,
     /// Seed of the synthetic store.
     #[arg(long, default_value_t = 7)]

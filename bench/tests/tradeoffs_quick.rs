@@ -52,7 +52,7 @@ fn quick_study_writes_complete_consistent_tables() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("docs");
     let status = std::process::Command::new(env!("CARGO_BIN_EXE_slag-bench"))
-        .args(["tradeoffs", "--quick", "--scene"])
+        .args(["tradeoffs", "--quick", "--scene-dir"])
         .arg(repo().join("data/snowmiku-mini"))
         .arg("--out")
         .arg(&out)

@@ -79,7 +79,7 @@ mod tests {
             "0",
             "--hosts",
             "hosts.txt",
-            "--scene",
+            "--scene-dir",
             "s",
             "--clip-visual",
             "c.onnx",

@@ -32,7 +32,7 @@ mod tests {
     fn parse(extra: &[&str]) -> EncodeConfig {
         let argv = [
             "encode",
-            "--scene",
+            "--scene-dir",
             "s",
             "--clip-visual",
             "c.onnx",

@@ -14,14 +14,14 @@ use crate::EpArg;
 #[derive(Debug, Clone, Args)]
 pub struct EvalArgs {
     /// Scene folder (its point_cloud.ply gives the ground truth colours), or use --ply.
-    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: PathBuf,
     /// The .ply the embeddings were made from; default <scene>/point_cloud.ply.
     #[arg(long)]
     pub ply: Option<PathBuf>,
     /// The dense embeddings.safetensors written by `encode --dense` with color-clip (the scores
     /// use each Gaussian's Σa, which the mixture does not store).
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     pub embeddings: PathBuf,
     /// Folder holding color-clip (`color-clip-textual.onnx`, `clip-tokenizer.json`,
     /// `color-clip.json`); default `$SLAG_SHARED/fixtures/clip`. The three flags below override
@@ -48,7 +48,7 @@ pub struct EvalArgs {
     /// The held-out step (held-out only): the encoder's `--hold-out-every`, else its `--every`;
     /// default: `inputs.hold_out_every`, else `inputs.every`, of the report.json beside the
     /// embeddings.
-    #[arg(long)]
+    #[arg(long = "hold-out-every", value_name = "N")]
     pub every: Option<usize>,
     /// The encoder's `--raster-scale`, at which the oracle lifts the encoded views (held-out
     /// only); default: `parameters.raster_scale` of the report.json beside the embeddings. The
@@ -69,7 +69,7 @@ pub struct EvalArgs {
     /// --held-out the tables `argmax`, `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident`
     /// under `variants`.
     /// Needs the segments of `slag-encoder segment` (--segments).
-    #[arg(long, visible_alias = "pf")]
+    #[arg(long, alias = "pf")]
     pub prediction_filtering: bool,
     /// Segments for --prediction-filtering; default segments.safetensors beside --embeddings.
     #[arg(long, value_name = "FILE", requires = "prediction_filtering")]

@@ -16,11 +16,11 @@ use crate::query::ObjectGroupingArgs;
 #[derive(Debug, Clone, Args)]
 pub struct EvalObjectsArgs {
     /// The scene folder written by `synth-scene --objects K` (objects.json, point_cloud.ply).
-    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: PathBuf,
     /// The embeddings of that scene, made with color-clip: OUT/mixture.safetensors (the default
     /// output) or the dense OUT/embeddings.safetensors.
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     pub embeddings: PathBuf,
     /// Folder holding color-clip-textual.onnx and clip-tokenizer.json; default
     /// `$SLAG_SHARED/fixtures/clip`.
@@ -48,8 +48,9 @@ pub struct EvalObjectsArgs {
     /// `pf-…@<folder>/<stem>`).
     #[arg(long, value_name = "FILE", requires = "held_out")]
     pub more_segments: Vec<PathBuf>,
-    /// With --held-out: the held-out step; default from the report.json beside --embeddings.
-    #[arg(long, requires = "held_out")]
+    /// With --held-out: the held-out step (the encoder's `--hold-out-every`, else its
+    /// `--every`); default from the report.json beside --embeddings.
+    #[arg(long = "hold-out-every", value_name = "N", requires = "held_out")]
     pub every: Option<usize>,
     /// With --held-out: write a picture of the first held-out view here (PNG: the photo, the
     /// rendered object-class map, slag's classes and pf-majority's, side by side).

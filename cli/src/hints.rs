@@ -105,8 +105,8 @@ fn param_flag(name: &str) -> Option<&'static str> {
         "objects" => "pass --objects K with K in 1..=6",
         "raster_size" => "raise --raster-scale (the raster is empty)",
         "every" => {
-            "pass --every N (the same N to `encode` and to `eval-colors --held-out`; N >= 2 \
-             holds views out)"
+            "pass --every N to `encode` (and the same N to `eval-colors --held-out` as \
+             --hold-out-every N; N >= 2 holds views out)"
         }
         "hold_out_every" => {
             "pass --hold-out-every N with N >= 2 (the same N to `eval-colors --held-out`)"

@@ -37,7 +37,7 @@ use slag_common::cli::EpArg;
 #[command(version, about, long_about, verbatim_doc_comment)]
 struct Cli {
     #[command(flatten)]
-    global: slag_shards::cli::GlobalArgs,
+    global: slag_common::cli::process::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -113,8 +113,10 @@ fn print_json<T: serde::Serialize>(v: &T) -> anyhow::Result<()> {
 }
 
 fn main() -> std::process::ExitCode {
+    slag_common::cli::deprecated::note_deprecated();
     let args = Cli::parse();
-    slag_shards::cli::init_logging(args.global.verbose);
+    let verbose = args.global.verbose;
+    slag_common::cli::process::init_logging(verbose);
     let result = match &args.command {
         Command::Encode(a) => encode::run(a).map(|r| {
             eprintln!(
@@ -163,5 +165,17 @@ fn main() -> std::process::ExitCode {
         Command::SynthScene(a) => synthetic::run(a).and_then(|o| print_json(&o)),
         Command::Segment(a) => segment::run(a).and_then(|o| print_json(&o)),
     };
-    slag_shards::cli::exit_code(result, hints::hint)
+    slag_common::cli::process::exit_code(result, hints::hint, verbose)
+}
+
+#[cfg(test)]
+mod flag_names {
+    /// Every flag name of this binary, hidden aliases included, keeps one meaning across the slag
+    /// binaries, and every meaning one name ([`slag_common::flag_names`]).
+    #[test]
+    fn each_flag_name_has_one_meaning_across_the_binaries() {
+        use clap::CommandFactory;
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        slag_common::flag_names::assert_one_meaning("slag-encoder", &super::Cli::command(), &root);
+    }
 }

@@ -18,7 +18,7 @@ pub struct QueryArgs {
     /// The embeddings `encode` wrote: OUT/mixture.safetensors (the default output) or the dense
     /// OUT/embeddings.safetensors (`encode --dense`); a missing dense file names the mixture
     /// beside it.
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     pub embeddings: PathBuf,
     /// CLIP text tower ONNX (input_ids i64[B,77] -> [B,D]) of the same CLIP model.
     #[arg(long, alias = "text-model", value_name = "ONNX")]
@@ -30,7 +30,7 @@ pub struct QueryArgs {
     #[arg(long)]
     pub text: String,
     /// Print at most this many matches.
-    #[arg(long, default_value_t = 20)]
+    #[arg(long, value_name = "K", default_value_t = 100)]
     pub top_k: usize,
     /// Cosine threshold (the paper uses 0.28); matches below it are dropped.
     #[arg(long, default_value_t = similarity::PAPER_THRESHOLD)]

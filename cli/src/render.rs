@@ -17,7 +17,7 @@ use slag_encoder::raster::WeightRasterizer;
 #[derive(Debug, Clone, Args)]
 pub struct RenderArgs {
     /// Scene folder (point_cloud.ply, images/, sparse/0 or transforms.json).
-    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: PathBuf,
     /// The .ply; default <scene>/point_cloud.ply.
     #[arg(long)]

@@ -15,7 +15,6 @@ pub struct SegmentCmdArgs {
     /// Scene folder holding point_cloud.ply, or use --ply.
     #[arg(
         long = "scene-dir",
-        alias = "scene",
         value_name = "DIR",
         required_unless_present = "ply"
     )]

@@ -17,12 +17,7 @@ pub struct SynthArgs {
     #[arg(long, value_parser = parse_count)]
     pub gaussians: usize,
     /// Number of posed views.
-    #[arg(
-        long = "view-count",
-        alias = "views",
-        value_name = "N",
-        default_value_t = 16
-    )]
+    #[arg(long = "view-count", value_name = "N", default_value_t = 16)]
     pub views: usize,
     /// Image width, pixels.
     #[arg(long, default_value_t = 990)]

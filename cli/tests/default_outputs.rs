@@ -63,7 +63,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
     let scene = dir.path().join("scene");
     let out = dir.path().join("out");
     ok(slag_encoder()
-        .args(["synth-scene", "--gaussians", "3000", "--views", "4"])
+        .args(["synth-scene", "--gaussians", "3000", "--view-count", "4"])
         .args(["--width", "96", "--height", "72", "--extent", "20", "--out"])
         .arg(&scene)
         .output()
@@ -76,7 +76,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
             "graph",
             "--rasterizer",
             "cpu",
-            "--scene",
+            "--scene-dir",
         ])
         .arg(&scene)
         .arg("--clip-visual")
@@ -155,7 +155,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
         .arg("partition")
         .arg("--embeddings")
         .arg(&dense_path)
-        .arg("--store")
+        .arg("--shard-store")
         .arg(&store)
         .args(["--scene", "tiny"])
         .output()
@@ -168,9 +168,9 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
     // serve: the manifest (a mixture scene, every observed Gaussian) and the codebook.
     let mut server = slag_encoder()
         .arg("serve")
-        .arg("--store")
+        .arg("--shard-store")
         .arg(&store)
-        .args(["--bind", "127.0.0.1:0"])
+        .args(["--listen", "127.0.0.1:0"])
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()
@@ -195,7 +195,7 @@ fn the_default_outputs_are_enough_for_partition_serve_and_query() {
     // A command that needs the dense rows names the flag that writes them.
     let o = slag_encoder()
         .arg("eval-colors")
-        .arg("--scene")
+        .arg("--scene-dir")
         .arg(&scene)
         .arg("--embeddings")
         .arg(&dense_path)

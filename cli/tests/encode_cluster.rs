@@ -32,7 +32,7 @@ fn encode_args(out: &Path) -> Vec<String> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let mut a: Vec<String> = vec![
-        "--scene".into(),
+        "--scene-dir".into(),
         root.join("data/snowmiku-mini").display().to_string(),
     ];
     a.extend(["--masks", "graph", "--clip-visual"].map(String::from));

@@ -19,7 +19,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
     // A zero contribution budget spills every image's a_kj to disk as soon as it is computed,
     // so the run writes into OUT early and keeps writing until the end.
     let mut child = cmd
-        .args(["encode", "--scene"])
+        .args(["encode", "--scene-dir"])
         .arg(&scene)
         .arg("--out")
         .arg(&out)

@@ -29,7 +29,7 @@ fn encode(scene: &Path, out: &Path) -> Output {
             "--rasterizer",
             "cpu",
         ])
-        .args(["--raster-scale", "0.25", "--scene"])
+        .args(["--raster-scale", "0.25", "--scene-dir"])
         .arg(scene)
         .arg("--clip-visual")
         .arg(clip)
@@ -48,7 +48,7 @@ fn encode_writes_the_segments_of_slag_encoder_segment() {
     let alone = dir.path().join("alone.safetensors");
     // The segmentation alone, from the masks' record the encode kept, gives the same file.
     let seg = slag_encoder()
-        .args(["segment", "--scene"])
+        .args(["segment", "--scene-dir"])
         .arg(scene())
         .arg("--mask-record")
         .arg(out.join(slag_common::mask_record::FILE_NAME))

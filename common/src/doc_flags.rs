@@ -10,8 +10,6 @@
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 
-use crate::flag_names::help_subcommands;
-
 /// One command line of a binary as a page shows it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct ShownCommand {
@@ -209,28 +207,19 @@ pub fn run_binary(bin: &Path, args: &[&str]) -> std::result::Result<String, Stri
     }
 }
 
-/// Everything wrong with the command line of `binary` (its built executable `exe`), one line
-/// each: the manual's command lines of it against its `--help` ([`check_binary`] over the
-/// repository at `root`) and its flags' names ([`crate::flag_names::check`]). Empty when all is
-/// well.
+/// Everything wrong with the command line of `binary` (its built executable `exe`) as the
+/// manual of the repository at `root` shows it ([`check_binary`]), one line each. Empty when all
+/// is well. (One meaning per flag name across the binaries is each binary's own unit test:
+/// [`crate::flag_names`].)
 pub fn problems(binary: &str, exe: &str, root: &Path) -> Vec<String> {
-    let mut problems: Vec<String> = check_binary(binary, Path::new(exe), root)
+    check_binary(binary, Path::new(exe), root)
         .err()
         .into_iter()
-        .collect();
-    let run = |args: &[&str]| output(exe, args);
-    problems.extend(
-        crate::flag_names::check(binary, &run)
-            .err()
-            .unwrap_or_default(),
-    );
-    problems
+        .collect()
 }
 
 /// The `docs_flags` integration test of each slag binary: every `binary …` command line that
-/// README.md and docs/guide/ show names a subcommand and flags its `--help` lists, and every
-/// flag of every subcommand keeps one name per thing across the slag binaries
-/// ([`crate::flag_names`]).
+/// README.md and docs/guide/ show names a subcommand and flags its `--help` lists.
 ///
 /// `exe` is the built executable (`env!("CARGO_BIN_EXE_<binary>")`), `root` the repository.
 ///
@@ -238,6 +227,16 @@ pub fn problems(binary: &str, exe: &str, root: &Path) -> Vec<String> {
 pub fn assert_no_problems(binary: &str, exe: &str, root: &Path) {
     let problems = problems(binary, exe, root);
     assert!(problems.is_empty(), "`{binary}`:\n{}", problems.join("\n"));
+}
+
+/// The subcommands a top-level `--help` text lists under `Commands:`.
+pub fn help_subcommands(help: &str) -> BTreeSet<String> {
+    help.lines()
+        .skip_while(|l| !l.trim_start().starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| !l.trim().is_empty())
+        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
+        .collect()
 }
 
 /// The `--flags` a `--help` text lists.

@@ -1,380 +1,691 @@
-//! One name per thing on the command line: across `slag-encoder`, `slag-shards` and `slag-edge`
-//! a concept has one visible long flag, and a visible long flag names one concept.
+//! One meaning per flag name and one name per meaning, across every slag binary (`slag-encoder`,
+//! `slag-shards`, `slag-edge`, `slag-bench`), hidden aliases included.
 //!
-//! [`CONCEPTS`] is the table of the things several subcommands or binaries name: each with its
-//! flag, the values its `--help` may show, what it means, and the older spellings every binary
-//! still accepts as hidden aliases (so scripts keep working). Each binary's crate runs [`check`]
-//! in an integration test against its own built binary: it lists every flag of every subcommand
-//! from `--help` ([`list`]) and fails when
-//! - a visible flag is an older spelling of a concept (a second name for one thing);
-//! - a concept's flag shows another value (one name for a second thing);
-//! - one flag shows two different values in two subcommands of the binary;
-//! - an older spelling is no longer accepted where the concept's flag is.
-//!
-//! The table is the same for the three binaries, so a concept keeps one name across them.
+//! Each binary's unit test walks its own clap command tree ([`tree_flags`]): every long flag of
+//! every subcommand with its value name, default, aliases and whether it is hidden. The rows of
+//! every binary are kept in `tests/flags/<binary>.txt` (the test fails when a binary's rows
+//! differ from its file, and rewrites it with `SLAG_BLESS_FLAGS=1`), so one binary's test checks
+//! its live tree against the others' ([`assert_one_meaning`], [`check_tree`]). It fails when
+//! - one name has two meanings: a flag, or an alias of one, named as another flag is, with a
+//!   different value name (`--scene <NAME>` here, `--scene-dir <DIR>` with the hidden alias
+//!   `--scene` there), or not what [`CONCEPTS`] says the name means;
+//! - one meaning has two names: a visible alias; a hidden alias that is not an older spelling
+//!   listed in [`crate::cli::deprecated::DEPRECATED`] (which also notes its use on stderr); a
+//!   visible flag spelt as such an older spelling; an older spelling no binary accepts;
+//! - one concept has two defaults: a flag of [`CONCEPTS`] that keeps one default with different
+//!   defaults in two places (`--top-k`).
 
 use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
 
-/// A thing that several subcommands or binaries name on the command line.
+use crate::cli::deprecated::{DEPRECATED, lookup};
+
+/// A thing several subcommands or binaries name on the command line, with its one name.
 #[derive(Debug, Clone, Copy)]
 pub struct Concept {
-    /// Its one visible long flag, e.g. `--listen`.
+    /// Its one long flag, e.g. `--listen`.
     pub flag: &'static str,
-    /// The value names its `--help` may show (`HOST:PORT` in `--listen <HOST:PORT>`).
+    /// The value names it may show (`HOST:PORT` in `--listen <HOST:PORT>`); empty for a switch.
     pub values: &'static [&'static str],
     /// What it names, in a few words.
     pub meaning: &'static str,
-    /// Older spellings, still accepted as hidden aliases wherever `flag` is.
-    pub old: &'static [&'static str],
-    /// A value the flag accepts, to try the older spellings with.
-    pub sample: &'static str,
+    /// Whether every subcommand that gives it a default gives the same one (`--listen`: no, each
+    /// server has its own port).
+    pub one_default: bool,
 }
 
-/// The concepts with one name across the three binaries.
+/// The concepts that several subcommands or binaries name, or whose names were once used for
+/// something else: the flag keeps this meaning wherever it appears.
 pub const CONCEPTS: &[Concept] = &[
     Concept {
         flag: "--listen",
         values: &["HOST:PORT"],
         meaning: "the socket address a server listens on",
-        old: &["--addr", "--bind"],
-        sample: "127.0.0.1:8080",
+        one_default: false,
     },
     Concept {
         flag: "--clip-textual",
         values: &["ONNX"],
         meaning: "the CLIP text tower (ONNX) that embeds prompts",
-        old: &["--text-model"],
-        sample: "clip-textual.onnx",
+        one_default: true,
     },
     Concept {
         flag: "--scene",
         values: &["NAME"],
         meaning: "a scene's name in a shard store, a manifest and the URLs",
-        old: &[],
-        sample: "lab",
+        one_default: true,
     },
     Concept {
         flag: "--scene-dir",
         values: &["DIR"],
         meaning: "a scene's folder (point_cloud.ply, images/, poses)",
-        old: &["--scene"],
-        sample: "scene",
+        one_default: true,
     },
     Concept {
         flag: "--views",
         values: &["RULE"],
         meaning: "which training views are encoded (all, uniform, coverage)",
-        old: &[],
-        sample: "all",
+        one_default: true,
     },
     Concept {
         flag: "--view-count",
         values: &["N"],
         meaning: "how many views",
-        old: &["--views"],
-        sample: "4",
+        one_default: false,
+    },
+    Concept {
+        flag: "--every",
+        values: &["N"],
+        meaning: "keep every N-th training view (thinning)",
+        one_default: true,
+    },
+    Concept {
+        flag: "--hold-out-every",
+        values: &["N"],
+        meaning: "the held-out step: views with index ≡ N/2 (mod N) are held out",
+        one_default: true,
     },
     Concept {
         flag: "--out",
         values: &["DIR", "FILE"],
         meaning: "where a subcommand writes: a folder or a file, as it says",
-        old: &[],
-        sample: "out",
+        one_default: false,
     },
     Concept {
         flag: "--segments",
-        values: &["FILE", "FILE|off", "on|off"],
-        meaning: "the geometric segments: a segments file to read, or on / off",
-        old: &[],
-        sample: "off",
+        values: &["FILE", "FILE|off"],
+        meaning: "a segments file to read (default: the one beside the embeddings)",
+        one_default: true,
+    },
+    Concept {
+        flag: "--write-segments",
+        values: &["on|off"],
+        meaning: "whether an encode also writes the geometric segments",
+        one_default: true,
+    },
+    Concept {
+        flag: "--store",
+        values: &["DIR"],
+        meaning: "the robot's store folder (fetched shards, verified)",
+        one_default: true,
+    },
+    Concept {
+        flag: "--shard-store",
+        values: &["DIR"],
+        meaning: "the publisher's shard store folder (sled: every scene's generations)",
+        one_default: true,
+    },
+    Concept {
+        flag: "--ep",
+        values: &["EP"],
+        meaning: "the ONNX Runtime execution provider (cpu, cuda, tensorrt, auto)",
+        // An encode takes the GPU when there is one (auto); a query of one prompt, the
+        // evaluation's text tower and the robot stay on the CPU; the model timings time CUDA.
+        one_default: false,
+    },
+    Concept {
+        flag: "--verbose",
+        values: &[],
+        meaning: "debug logging, and an error's debug form",
+        one_default: true,
+    },
+    Concept {
+        flag: "--mixture-keep",
+        values: &["S"],
+        meaning: "slots (codebook atom, weight) kept per Gaussian in a mixture",
+        one_default: false,
+    },
+    Concept {
+        flag: "--embeddings",
+        values: &["FILE"],
+        meaning: "a per-Gaussian embeddings file, either form (mixture or dense)",
+        one_default: true,
+    },
+    Concept {
+        flag: "--shard-token-file",
+        values: &["FILE"],
+        meaning: "a file holding the shard server's bearer token",
+        one_default: true,
+    },
+    Concept {
+        flag: "--token-file",
+        values: &["FILE"],
+        meaning: "a file holding the bearer token this server's clients must send",
+        one_default: true,
+    },
+    Concept {
+        flag: "--top-k",
+        values: &["K"],
+        meaning: "how many matches a query returns (default 100)",
+        one_default: true,
     },
 ];
 
-/// One flag of one subcommand, as its `--help` defines it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ShownFlag {
-    /// The subcommand (`None`: the binary's top-level options).
-    pub subcommand: Option<String>,
+/// One long flag of one subcommand in a binary's command tree.
+#[derive(Debug, Clone, PartialEq, Eq, PartialOrd, Ord)]
+pub struct TreeFlag {
+    /// The binary, `slag-edge`.
+    pub binary: String,
+    /// The subcommand's path (`serve`; empty: the binary's top-level options).
+    pub subcommand: String,
     /// The long name, `--listen`.
     pub long: String,
     /// The value name, `HOST:PORT` (`None` for a switch).
     pub value: Option<String>,
+    /// The default value, if clap has one.
+    pub default: Option<String>,
+    /// Whether `--help` leaves the flag out.
+    pub hidden: bool,
+    /// The other names it answers to, `--bind`, each with whether `--help` shows it.
+    pub aliases: Vec<(String, bool)>,
 }
 
-/// The long flags a `--help` text defines, each with its value name: the option lines after
-/// `Usage:` (`  -v, --verbose`, `      --listen <HOST:PORT>`) and their visible aliases
-/// (`[aliases: --bind]`), never a flag a description or the text above `Usage:` mentions.
-pub fn defined_flags(help: &str) -> Vec<(String, Option<String>)> {
-    let mut out: Vec<(String, Option<String>)> = Vec::new();
-    for line in help.lines().skip_while(|line| !line.starts_with("Usage:")) {
-        if let Some(flag) = option_line(line) {
-            out.push(flag);
+impl TreeFlag {
+    /// Where it is, as a user would type it: `slag-edge serve --listen`.
+    fn place(&self) -> String {
+        let sub = if self.subcommand.is_empty() {
+            String::new()
+        } else {
+            format!(" {}", self.subcommand)
+        };
+        format!("`{}{sub} {}`", self.binary, self.long)
+    }
+
+    /// One tab-separated line: binary, subcommand, long, value, default, hidden, aliases (`-`
+    /// for none; a visible alias is marked `+`).
+    pub fn to_line(&self) -> String {
+        let or_dash = |s: &Option<String>| s.clone().unwrap_or_else(|| "-".into());
+        let aliases: Vec<String> = self
+            .aliases
+            .iter()
+            .map(|(a, visible)| if *visible { format!("+{a}") } else { a.clone() })
+            .collect();
+        [
+            self.binary.clone(),
+            if self.subcommand.is_empty() {
+                "-".into()
+            } else {
+                self.subcommand.clone()
+            },
+            self.long.clone(),
+            or_dash(&self.value),
+            or_dash(&self.default),
+            if self.hidden { "hidden" } else { "shown" }.into(),
+            if aliases.is_empty() {
+                "-".into()
+            } else {
+                aliases.join(",")
+            },
+        ]
+        .join("\t")
+    }
+
+    /// The flag of a line [`Self::to_line`] wrote.
+    ///
+    /// Errors: a line without its seven fields, named.
+    pub fn from_line(line: &str) -> Result<Self, String> {
+        let f: Vec<&str> = line.split('\t').collect();
+        let [binary, sub, long, value, default, hidden, aliases] = f[..] else {
+            return Err(format!("{line:?}: seven tab-separated fields expected"));
+        };
+        let opt = |s: &str| (s != "-").then(|| s.to_owned());
+        Ok(TreeFlag {
+            binary: binary.into(),
+            subcommand: opt(sub).unwrap_or_default(),
+            long: long.into(),
+            value: opt(value),
+            default: opt(default),
+            hidden: hidden == "hidden",
+            aliases: opt(aliases)
+                .map(|a| {
+                    a.split(',')
+                        .map(|a| match a.strip_prefix('+') {
+                            Some(a) => (a.to_owned(), true),
+                            None => (a.to_owned(), false),
+                        })
+                        .collect()
+                })
+                .unwrap_or_default(),
+        })
+    }
+}
+
+/// Every long flag of `cmd` and of its subcommands, at any depth, but `--help` and `--version`.
+pub fn tree_flags(binary: &str, cmd: &clap::Command) -> Vec<TreeFlag> {
+    let mut out = Vec::new();
+    walk(binary, "", cmd, &mut out);
+    out.sort();
+    out
+}
+
+/// [`tree_flags`] of `cmd`, the subcommand at `path`.
+fn walk(binary: &str, path: &str, cmd: &clap::Command, out: &mut Vec<TreeFlag>) {
+    for arg in cmd.get_arguments() {
+        let Some(long) = arg.get_long() else { continue };
+        if matches!(long, "help" | "version") {
+            continue;
         }
-        let aliases = line
-            .split_once("[aliases: ")
-            .or_else(|| line.split_once("[alias: "))
-            .and_then(|(_, rest)| rest.split_once(']'));
-        if let (Some((aliases, _)), Some((_, value))) = (aliases, out.last().cloned()) {
-            for alias in aliases.split(',').map(|a| a.trim().trim_start_matches('-')) {
-                if alias.len() > 1 {
-                    out.push((format!("--{alias}"), value.clone()));
-                }
-            }
+        let visible: BTreeSet<&str> = arg
+            .get_visible_aliases()
+            .unwrap_or_default()
+            .into_iter()
+            .collect();
+        let value = arg.get_action().takes_values().then(|| {
+            arg.get_value_names()
+                .and_then(|v| v.first())
+                .map(|v| v.to_string())
+                .unwrap_or_else(|| arg.get_id().as_str().to_uppercase())
+        });
+        let defaults: Vec<String> = arg
+            .get_default_values()
+            .iter()
+            .map(|d| d.to_string_lossy().into_owned())
+            .collect();
+        out.push(TreeFlag {
+            binary: binary.to_owned(),
+            subcommand: path.to_owned(),
+            long: format!("--{long}"),
+            value,
+            default: (!defaults.is_empty()).then(|| defaults.join(",")),
+            hidden: arg.is_hide_set(),
+            aliases: arg
+                .get_all_aliases()
+                .unwrap_or_default()
+                .into_iter()
+                .map(|a| (format!("--{a}"), visible.contains(a)))
+                .collect(),
+        });
+    }
+    for sub in cmd.get_subcommands() {
+        let name = sub.get_name();
+        let sub_path = if path.is_empty() {
+            name.to_owned()
+        } else {
+            format!("{path} {name}")
+        };
+        walk(binary, &sub_path, sub, out);
+    }
+}
+
+/// What a flag means, as far as the command line can tell: the concept its name belongs to, or
+/// else its own name with its value name.
+fn meaning(f: &TreeFlag) -> String {
+    match CONCEPTS.iter().find(|c| c.flag == f.long) {
+        Some(c) => format!("{} ({})", c.flag, c.meaning),
+        None => format!("{} <{}>", f.long, f.value.as_deref().unwrap_or("no value")),
+    }
+}
+
+/// Everything wrong with the names of `flags` (the rows of one or more binaries), one line each
+/// naming the places and what to do; empty when each name has one meaning and each meaning one
+/// name.
+pub fn check_tree(flags: &[TreeFlag]) -> Vec<String> {
+    let mut problems = Vec::new();
+    problems.extend(flags.iter().flat_map(concept_problems));
+    problems.extend(flags.iter().flat_map(alias_problems));
+    problems.extend(names_with_two_meanings(flags));
+    problems.extend(concepts_with_two_defaults(flags));
+    for d in DEPRECATED {
+        let accepted = flags.iter().any(|f| {
+            (f.long == d.new && f.aliases.iter().any(|(a, _)| a == d.old))
+                || (f.long == d.old && f.hidden)
+        });
+        if !accepted {
+            problems.push(format!(
+                "{} is listed as an older spelling of {}, but no binary accepts it: keep it as \
+                 a hidden alias of {}, or take it out of slag_common::cli::deprecated::DEPRECATED",
+                d.old, d.new, d.new
+            ));
+        }
+    }
+    problems.sort();
+    problems.dedup();
+    problems
+}
+
+/// A flag named as a concept that shows another value than the concept's.
+fn concept_problems(f: &TreeFlag) -> Option<String> {
+    let c = CONCEPTS.iter().find(|c| c.flag == f.long)?;
+    let value = f.value.as_deref();
+    let fits = match value {
+        None => c.values.is_empty(),
+        Some(v) => c.values.contains(&v),
+    };
+    (!fits).then(|| {
+        format!(
+            "{} takes <{}>, but {} means {} (<{}>) in every slag binary: give this flag a name \
+             of its own",
+            f.place(),
+            value.unwrap_or("no value"),
+            c.flag,
+            c.meaning,
+            c.values.join("> or <"),
+        )
+    })
+}
+
+/// A second name for one flag: a visible alias, a hidden one that is not a listed older
+/// spelling of it, a visible flag spelt as an older spelling.
+fn alias_problems(f: &TreeFlag) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(d) = lookup(&f.long).filter(|_| !f.hidden) {
+        out.push(format!(
+            "{} is an older spelling of {}: name it {} (keep {} as a hidden alias)",
+            f.place(),
+            d.new,
+            d.new,
+            d.old
+        ));
+    }
+    for (alias, visible) in &f.aliases {
+        if *visible {
+            out.push(format!(
+                "{} shows a second name, {alias}: one name per meaning (hide it if it is an \
+                 older spelling, and list it in slag_common::cli::deprecated::DEPRECATED)",
+                f.place()
+            ));
+        } else if lookup(alias).is_none_or(|d| d.new != f.long) {
+            out.push(format!(
+                "{} answers to the hidden alias {alias}, which is not listed as an older \
+                 spelling of {} in slag_common::cli::deprecated::DEPRECATED (so its use is \
+                 never noted): list it there, or remove it",
+                f.place(),
+                f.long
+            ));
         }
     }
     out
 }
 
-/// The long flag and value name an option line defines (`      --listen <HOST:PORT>  …`).
-fn option_line(line: &str) -> Option<(String, Option<String>)> {
-    let rest = line.strip_prefix("      --").or_else(|| {
-        let short = line.strip_prefix("  -")?;
-        let mut chars = short.chars();
-        chars.next().filter(char::is_ascii_alphanumeric)?;
-        chars.as_str().strip_prefix(", --")
-    })?;
-    let long: String = rest
-        .chars()
-        .take_while(|c| c.is_ascii_alphanumeric() || *c == '-')
-        .collect();
-    let after = rest[long.len()..].trim_start_matches([' ', '=', '[']);
-    let value = after
-        .strip_prefix('<')
-        .and_then(|v| v.split_once('>'))
-        .map(|(v, _)| v.to_owned());
-    (!long.is_empty()).then(|| (format!("--{long}"), value))
-}
-
-/// The subcommands a top-level `--help` text lists under `Commands:`.
-pub fn help_subcommands(help: &str) -> BTreeSet<String> {
-    help.lines()
-        .skip_while(|l| !l.trim_start().starts_with("Commands:"))
-        .skip(1)
-        .take_while(|l| !l.trim().is_empty())
-        .filter_map(|l| l.split_whitespace().next().map(str::to_owned))
+/// Names (flags and aliases alike) that stand for two meanings.
+fn names_with_two_meanings(flags: &[TreeFlag]) -> Vec<String> {
+    let mut by_name: BTreeMap<&str, BTreeMap<String, Vec<String>>> = BTreeMap::new();
+    for f in flags {
+        let m = meaning(f);
+        let names = std::iter::once((f.long.as_str(), false))
+            .chain(f.aliases.iter().map(|(a, _)| (a.as_str(), true)));
+        for (name, is_alias) in names {
+            let place = if is_alias {
+                format!("{} (alias of {})", f.place().replace(&f.long, name), f.long)
+            } else {
+                f.place()
+            };
+            by_name
+                .entry(name)
+                .or_default()
+                .entry(m.clone())
+                .or_default()
+                .push(place);
+        }
+    }
+    by_name
+        .into_iter()
+        .filter(|(_, meanings)| meanings.len() > 1)
+        .map(|(name, meanings)| {
+            let each: Vec<String> = meanings
+                .iter()
+                .map(|(m, places)| format!("{m} in {}", places.join(", ")))
+                .collect();
+            format!(
+                "{name} has {} meanings: {}. One name, one meaning: rename one of them (or, if \
+                 they are one thing, give them one value name and list it in \
+                 slag_common::flag_names::CONCEPTS)",
+                meanings.len(),
+                each.join("; ")
+            )
+        })
         .collect()
 }
 
-/// Every flag of every subcommand of a binary: `help(args)` returns the binary's output for
-/// `args` (`["--help"]`, `["serve", "--help"]`), `None` when it exits with an error.
-///
-/// Errors: a `--help` page that cannot be read, named.
-pub fn list(
-    help: &dyn Fn(&[&str]) -> Option<String>,
-) -> std::result::Result<Vec<ShownFlag>, String> {
-    let top = help(&["--help"]).ok_or("`--help` failed")?;
-    let mut out: Vec<ShownFlag> = defined_flags(&top)
-        .into_iter()
-        .map(|(long, value)| ShownFlag {
-            subcommand: None,
-            long,
-            value,
-        })
-        .collect();
-    for sub in help_subcommands(&top) {
-        if sub == "help" {
+/// Flags of a concept with one default ([`Concept::one_default`]) whose defaults differ. A flag
+/// outside [`CONCEPTS`] may default per subcommand (a study's `--repeats`, render's
+/// `--raster-scale`).
+fn concepts_with_two_defaults(flags: &[TreeFlag]) -> Vec<String> {
+    let mut by_meaning: BTreeMap<String, BTreeMap<&str, Vec<String>>> = BTreeMap::new();
+    for f in flags {
+        let Some(default) = f.default.as_deref() else {
+            continue;
+        };
+        if !CONCEPTS.iter().any(|c| c.flag == f.long && c.one_default) {
             continue;
         }
-        let page = help(&[&sub, "--help"]).ok_or(format!("`{sub} --help` failed"))?;
-        out.extend(
-            defined_flags(&page)
-                .into_iter()
-                .map(|(long, value)| ShownFlag {
-                    subcommand: Some(sub.clone()),
-                    long,
-                    value,
-                }),
-        );
+        by_meaning
+            .entry(meaning(f))
+            .or_default()
+            .entry(default)
+            .or_default()
+            .push(f.place());
+    }
+    by_meaning
+        .into_iter()
+        .filter(|(_, defaults)| defaults.len() > 1)
+        .map(|(m, defaults)| {
+            let each: Vec<String> = defaults
+                .iter()
+                .map(|(d, places)| format!("{d} in {}", places.join(", ")))
+                .collect();
+            format!(
+                "{m} has {} defaults: {}. One default per concept: give them one, or names of \
+                 their own if they are different things",
+                defaults.len(),
+                each.join("; ")
+            )
+        })
+        .collect()
+}
+
+/// The folder of the binaries' flag rows in the repository at `root`.
+pub fn rows_dir(root: &Path) -> PathBuf {
+    root.join("tests").join("flags")
+}
+
+/// The flag rows of every binary but `binary` kept under [`rows_dir`].
+///
+/// Errors: an unreadable folder or file, a line [`TreeFlag::from_line`] refuses.
+pub fn other_binaries(root: &Path, binary: &str) -> Result<Vec<TreeFlag>, String> {
+    let dir = rows_dir(root);
+    let entries = std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut out = Vec::new();
+    for entry in entries {
+        let path = entry.map_err(|e| format!("{}: {e}", dir.display()))?.path();
+        if path.extension().is_none_or(|x| x != "txt")
+            || path.file_stem().is_some_and(|s| s == binary)
+        {
+            continue;
+        }
+        let text =
+            std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+        for line in text.lines().filter(|l| !l.is_empty()) {
+            out.push(TreeFlag::from_line(line).map_err(|e| format!("{}: {e}", path.display()))?);
+        }
     }
     Ok(out)
 }
 
-/// Checks every flag of `binary` against [`CONCEPTS`] and against each other (see the module
-/// docs); `help` as in [`list`]. Returns the number of flags checked.
+/// The unit test of each binary: `cmd` is its clap command tree, `root` the repository. Its
+/// rows must equal `tests/flags/<binary>.txt` (rewritten instead with `SLAG_BLESS_FLAGS=1`), and
+/// they and every other binary's rows must pass [`check_tree`].
 ///
-/// Errors: one line per problem, naming the subcommand, the flag and what to do.
-pub fn check(
-    binary: &str,
-    help: &dyn Fn(&[&str]) -> Option<String>,
-) -> std::result::Result<usize, Vec<String>> {
-    let flags = list(help).map_err(|e| vec![format!("{binary}: {e}")])?;
+/// Panics (test support): with every problem, one per line.
+pub fn assert_one_meaning(binary: &str, cmd: &clap::Command, root: &Path) {
+    let flags = tree_flags(binary, cmd);
+    let text: String = flags.iter().map(|f| f.to_line() + "\n").collect();
+    let file = rows_dir(root).join(format!("{binary}.txt"));
     let mut problems = Vec::new();
-    let mut values: BTreeMap<&str, BTreeMap<Option<&str>, &ShownFlag>> = BTreeMap::new();
-    let shown = |sub: &Option<String>, long: &str| {
-        flags.iter().any(|f| f.subcommand == *sub && f.long == long)
-    };
-    for f in &flags {
-        let place = format!("`{binary} {}`", f.subcommand.as_deref().unwrap_or_default());
-        let concept = CONCEPTS.iter().find(|c| c.flag == f.long);
-        let older_of = CONCEPTS.iter().find(|c| c.old.contains(&f.long.as_str()));
-        match (concept, older_of) {
-            (Some(c), _) => {
-                if !c.values.contains(&f.value.as_deref().unwrap_or_default()) {
-                    problems.push(format!(
-                        "{place} shows {} <{}>, but {} means {} (<{}>) in every slag binary: \
-                         give this flag a name of its own",
-                        f.long,
-                        f.value.as_deref().unwrap_or_default(),
-                        c.flag,
-                        c.meaning,
-                        c.values.join("> or <"),
-                    ));
-                }
-                // An older spelling the subcommand shows names another concept there.
-                let old = c.old.iter().filter(|old| !shown(&f.subcommand, old));
-                problems.extend(refused_old_spellings(binary, f, c, old, help));
-            }
-            (None, Some(c)) => problems.push(format!(
-                "{place} shows {}, an older spelling of {} ({}): name it {} and keep {} as a \
-                 hidden alias",
-                f.long, c.flag, c.meaning, c.flag, f.long
-            )),
-            (None, None) => {
-                values
-                    .entry(&f.long)
-                    .or_default()
-                    .entry(f.value.as_deref())
-                    .or_insert(f);
-            }
+    if std::env::var_os("SLAG_BLESS_FLAGS").is_some() {
+        if let Err(e) =
+            std::fs::create_dir_all(rows_dir(root)).and_then(|()| std::fs::write(&file, &text))
+        {
+            problems.push(format!("{}: {e}", file.display()));
         }
-    }
-    for (long, by_value) in values.iter().filter(|(_, v)| v.len() > 1) {
-        let shown: Vec<String> = by_value
-            .iter()
-            .map(|(v, f)| {
-                format!(
-                    "<{}> in `{}`",
-                    v.unwrap_or("no value"),
-                    f.subcommand.as_deref().unwrap_or(binary)
-                )
-            })
-            .collect();
+    } else if std::fs::read_to_string(&file).ok().as_deref() != Some(text.as_str()) {
         problems.push(format!(
-            "`{binary}`: {long} takes {}: one name, one meaning; rename one of them (or, if \
-             they are one thing, add it to slag_common::flag_names::CONCEPTS)",
-            shown.join(" but ")
+            "{} does not list {binary}'s flags as they are: check the change, then write it \
+             with SLAG_BLESS_FLAGS=1 cargo test -p <its package> --bin {binary} flag",
+            file.display()
         ));
     }
-    match (flags.len(), problems.is_empty()) {
-        (0, _) => Err(vec![format!("`{binary} --help` lists no flag")]),
-        (n, true) => Ok(n),
-        (_, false) => Err(problems),
+    let mut all = flags;
+    match other_binaries(root, binary) {
+        Ok(others) => all.extend(others),
+        Err(e) => problems.push(e),
     }
-}
-
-/// The older spellings `old` of `c` that the subcommand of `f` no longer accepts.
-fn refused_old_spellings<'a>(
-    binary: &str,
-    f: &ShownFlag,
-    c: &Concept,
-    old: impl Iterator<Item = &'a &'static str>,
-    help: &dyn Fn(&[&str]) -> Option<String>,
-) -> Vec<String> {
-    let sub = f.subcommand.as_deref();
-    old.filter(|old| {
-        let args: Vec<&str> = sub.into_iter().chain([**old, c.sample, "--help"]).collect();
-        help(&args).is_none()
-    })
-    .map(|old| {
-        format!(
-            "`{binary} {} {old} {}` is refused: keep {old} as a hidden alias of {} so that \
-                 scripts keep working",
-            sub.unwrap_or_default(),
-            c.sample,
-            c.flag
-        )
-    })
-    .collect()
+    problems.extend(check_tree(&all));
+    assert!(
+        problems.is_empty(),
+        "the flags of the slag binaries:\n{}",
+        problems.join("\n")
+    );
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::{Arg, ArgAction, Command};
 
-    const TOP: &str = "A tool.\n      --not-an-option <X> in the text above Usage\n\nUsage: x <COMMAND>\n\nCommands:\n  serve  Serve\n  encode  Encode\n  help  \
-                       Print this\n\nOptions:\n  -v, --verbose  Debug\n  -h, --help  Print help\n";
+    fn opt(long: &'static str, value: &'static str) -> Arg {
+        Arg::new(long).long(long).value_name(value)
+    }
 
-    /// A fake binary whose `serve` and `encode` pages are given; `accepts` lists the older
-    /// spellings its parser still takes.
-    fn binary<'a>(
-        serve: &'a str,
-        encode: &'a str,
-        accepts: &'a [&'a str],
-    ) -> impl Fn(&[&str]) -> Option<String> + 'a {
-        move |args: &[&str]| match args {
-            ["--help"] => Some(TOP.to_owned()),
-            ["serve", "--help"] => Some(format!("Usage: x serve\n\nOptions:\n{serve}")),
-            ["encode", "--help"] => Some(format!("Usage: x encode\n\nOptions:\n{encode}")),
-            [_, old, _, "--help"] => accepts.contains(old).then(String::new),
-            _ => None,
+    /// A binary with `serve` and `encode` subcommands; the caller adds their flags.
+    fn binary(serve: Vec<Arg>, encode: Vec<Arg>) -> Command {
+        Command::new("x")
+            .arg(
+                Arg::new("verbose")
+                    .long("verbose")
+                    .short('v')
+                    .action(ArgAction::SetTrue),
+            )
+            .subcommand(Command::new("serve").args(serve))
+            .subcommand(Command::new("encode").args(encode))
+    }
+
+    #[test]
+    fn the_tree_gives_every_flag_with_its_hidden_aliases() {
+        let cmd = binary(
+            vec![
+                opt("listen", "HOST:PORT")
+                    .aliases(["bind", "addr"])
+                    .default_value("127.0.0.1:1"),
+            ],
+            vec![opt("scene-dir", "DIR").visible_alias("folder").hide(true)],
+        );
+        let rows = tree_flags("x", &cmd);
+        let lines: Vec<String> = rows.iter().map(TreeFlag::to_line).collect();
+        assert_eq!(
+            lines,
+            [
+                "x\t-\t--verbose\t-\t-\tshown\t-",
+                "x\tencode\t--scene-dir\tDIR\t-\thidden\t+--folder",
+                "x\tserve\t--listen\tHOST:PORT\t127.0.0.1:1\tshown\t--bind,--addr",
+            ]
+        );
+        for (row, line) in rows.iter().zip(&lines) {
+            assert_eq!(&TreeFlag::from_line(line), &Ok(row.clone()));
+        }
+        assert!(TreeFlag::from_line("x\t-").is_err());
+    }
+
+    #[test]
+    fn one_name_per_meaning_passes() {
+        let cmd = binary(
+            vec![
+                opt("listen", "HOST:PORT").aliases(["bind", "addr"]),
+                opt("scene", "NAME"),
+            ],
+            vec![
+                opt("scene-dir", "DIR"),
+                opt("clip-textual", "ONNX").alias("text-model"),
+                opt("embeddings", "FILE").aliases(["mixture"]),
+                opt("mixture-keep", "S").alias("mixture-slots"),
+                Arg::new("prediction-filtering")
+                    .long("prediction-filtering")
+                    .alias("pf")
+                    .action(ArgAction::SetTrue),
+                opt("token", "TOKEN").hide(true),
+            ],
+        );
+        assert_eq!(check_tree(&tree_flags("x", &cmd)), Vec::<String>::new());
+    }
+
+    /// The deliberate collisions the check exists for: each must fail.
+    #[test]
+    fn a_name_with_two_meanings_fails() {
+        // `--scene` a name in one subcommand, a hidden alias of the folder in another.
+        let cmd = binary(
+            vec![opt("scene", "NAME")],
+            vec![opt("scene-dir", "DIR").alias("scene")],
+        );
+        let problems = check_tree(&tree_flags("x", &cmd));
+        assert!(
+            problems
+                .iter()
+                .any(|p| p.starts_with("--scene has 2 meanings")
+                    && p.contains("`x encode --scene` (alias of --scene-dir)")),
+            "{problems:?}"
+        );
+        // Across two binaries: the same name with two value names.
+        let mut rows = tree_flags("x", &binary(vec![opt("cache", "DIR")], vec![]));
+        rows.extend(tree_flags("y", &binary(vec![], vec![opt("cache", "FILE")])));
+        let problems = check_tree(&rows);
+        assert!(
+            problems
+                .iter()
+                .any(|p| p.starts_with("--cache has 2 meanings")),
+            "{problems:?}"
+        );
+        // A concept's name with another value.
+        let cmd = binary(vec![opt("scene", "DIR")], vec![]);
+        let problems = check_tree(&tree_flags("x", &cmd));
+        assert!(
+            problems
+                .iter()
+                .any(|p| p.contains("`x serve --scene` takes <DIR>")),
+            "{problems:?}"
+        );
+    }
+
+    #[test]
+    fn a_meaning_with_two_names_fails() {
+        let cmd = binary(
+            vec![opt("bind", "HOST:PORT")],
+            vec![
+                opt("scene-dir", "DIR").visible_alias("folder"),
+                opt("every", "N").alias("step"),
+            ],
+        );
+        let problems = check_tree(&tree_flags("x", &cmd));
+        for wanted in [
+            "`x serve --bind` is an older spelling of --listen",
+            "`x encode --scene-dir` shows a second name, --folder",
+            "`x encode --every` answers to the hidden alias --step",
+            "--addr is listed as an older spelling of --listen, but no binary accepts it",
+        ] {
+            assert!(
+                problems.iter().any(|p| p.contains(wanted)),
+                "{wanted}: {problems:?}"
+            );
         }
     }
 
     #[test]
-    fn option_lines_give_flags_and_values_but_descriptions_do_not() {
-        let page = "About --x\n      --before <USAGE>\nUsage: x [OPTIONS]\nOptions:\n      --listen <HOST:PORT>  Listen address [default: x]\n          \
-                    the old --bind is an alias\n  -q, --quiet  Quiet [aliases: --silent, -s]\n      --segments [<FILE|off>]\n  \
-                    <DIR>  Output folder\n";
-        assert_eq!(
-            defined_flags(page),
-            [
-                ("--listen".to_owned(), Some("HOST:PORT".to_owned())),
-                ("--quiet".to_owned(), None),
-                ("--silent".to_owned(), None),
-                ("--segments".to_owned(), Some("FILE|off".to_owned())),
-            ]
+    fn a_concept_with_two_defaults_fails_unless_it_may() {
+        let cmd = binary(
+            vec![
+                opt("top-k", "K").default_value("100"),
+                opt("listen", "HOST:PORT").default_value("a:1"),
+            ],
+            vec![
+                opt("top-k", "K").default_value("20"),
+                opt("listen", "HOST:PORT").default_value("b:2"),
+            ],
         );
-    }
-
-    #[test]
-    fn one_name_per_concept_passes() {
-        let serve = "      --listen <HOST:PORT>  Listen\n      --scene <NAME>  Scene name\n";
-        // `--views` is a concept of its own beside `--view-count`: not its alias there.
-        let encode = "      --scene-dir <DIR>  Folder\n      --scene-name-free <X>\n      \
-                      --views <RULE>\n      --view-count <N>\n";
-        let help = binary(serve, encode, &["--addr", "--bind", "--scene"]);
-        assert_eq!(check("x", &help), Ok(8));
-    }
-
-    #[test]
-    fn a_second_name_for_a_concept_fails() {
-        let serve = "      --bind <ADDR>  Address to bind\n";
-        let help = binary(serve, "", &[]);
-        let problems = check("x", &help).unwrap_err();
+        let problems = check_tree(&tree_flags("x", &cmd));
+        let defaults: Vec<&String> = problems.iter().filter(|p| p.contains("defaults")).collect();
+        assert_eq!(defaults.len(), 1, "{problems:?}");
         assert!(
-            problems
-                .iter()
-                .any(|p| p.contains("--bind, an older spelling of --listen")),
-            "{problems:?}"
+            defaults[0].contains("100 in `x serve --top-k`; 20 in `x encode --top-k`")
+                || defaults[0].contains("20 in `x encode --top-k`; 100 in `x serve --top-k`")
         );
-        // A visible alias is a second visible name too.
-        let serve = "      --listen <HOST:PORT>  Listen [aliases: --addr]\n";
-        let problems = check("x", &binary(serve, "", &["--addr", "--bind"])).unwrap_err();
-        assert_eq!(problems.len(), 1, "{problems:?}");
-        assert!(problems[0].contains("shows --addr, an older spelling of --listen"));
-    }
-
-    #[test]
-    fn a_second_meaning_for_a_name_fails() {
-        let serve = "      --scene <NAME>  Scene name\n";
-        let encode = "      --scene <DIR>  Scene folder\n";
-        let problems = check("x", &binary(serve, encode, &[])).unwrap_err();
-        assert_eq!(problems.len(), 1, "{problems:?}");
-        assert!(
-            problems[0].contains("`x encode` shows --scene <DIR>"),
-            "{problems:?}"
-        );
-        let serve = "      --store <STORE>  Store\n";
-        let encode = "      --store <FILE>  Store\n";
-        let problems = check("x", &binary(serve, encode, &[])).unwrap_err();
-        assert!(problems[0].contains("--store takes <FILE> in `encode` but <STORE> in `serve`"));
-    }
-
-    #[test]
-    fn an_older_spelling_that_no_longer_parses_fails() {
-        let serve = "      --listen <HOST:PORT>  Listen\n";
-        let problems = check("x", &binary(serve, "", &["--addr"])).unwrap_err();
-        assert_eq!(problems.len(), 1, "{problems:?}");
-        assert!(problems[0].contains("`x serve --bind 127.0.0.1:8080` is refused"));
     }
 }

@@ -16,7 +16,7 @@
 //! | [`mixture`] | compressed embeddings: shared mask-embedding codebook + sparse per-Gaussian weights |
 //! | `mask_record` | the masks' record of an encode (`mask-record.safetensors`), for the segmenter and the evaluation; cloud side only (feature `cloud`) |
 //! | [`shards`] | Vector Database and Partitioning: spatial shards, manifest, tile R-tree |
-//! | `cli` | command-line values shared by the binaries (`--ep`), behind the `clap` feature |
+//! | `cli` | the command line the binaries share: values (`--ep`), `--verbose`, logging and exit status, old spellings, the servers' options; behind the `clap` feature |
 //! | `doc_flags` | checks the command lines the manual shows against the binaries' `--help` (feature `testing`) |
 //! | `flag_names` | one name per thing on the three binaries' command lines, the table and its check (feature `testing`) |
 //! | [`paths`] | locating `../shared` fixtures for tests and examples |
@@ -31,7 +31,7 @@
 pub mod auth;
 pub mod cache;
 pub mod camera;
-#[cfg(all(feature = "clap", feature = "onnx"))]
+#[cfg(feature = "clap")]
 pub mod cli;
 #[cfg(feature = "testing")]
 pub mod doc_flags;

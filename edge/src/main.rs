@@ -19,6 +19,7 @@ use std::time::Duration;
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use slag_common::cli::EpArg;
+use slag_common::cli::server::{DEFAULT_EDGE_LISTEN, ServerArgs};
 use slag_common::similarity::PAPER_THRESHOLD;
 use slag_common::text::TextEncoder;
 use slag_edge::config::{ServeConfig, read_token};
@@ -39,10 +40,8 @@ static ALLOCATOR: tikv_jemallocator::Jemalloc = tikv_jemallocator::Jemalloc;
 #[derive(Parser)]
 #[command(version, about)]
 struct Cli {
-    /// On an error, also print its debug form (and the backtrace when RUST_BACKTRACE=1);
-    /// without it an error is one line (its causes joined by `: `).
-    #[arg(long, short = 'v', global = true)]
-    verbose: bool,
+    #[command(flatten)]
+    global: slag_common::cli::process::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -109,7 +108,7 @@ struct FetchArgs {
     #[arg(long)]
     prune: bool,
     /// Store folder (sled database + partial downloads).
-    #[arg(long, default_value = "slag-store")]
+    #[arg(long, value_name = "DIR", default_value = "slag-store")]
     store: PathBuf,
     /// Parallel downloads.
     #[arg(long, default_value_t = 4)]
@@ -126,8 +125,13 @@ struct FetchArgs {
     /// a slow LTE link. 0: no deadline.
     #[arg(long, value_name = "BYTES_PER_S", default_value_t = slag_edge::fetch::DEFAULT_MIN_RATE)]
     min_rate: u64,
-    /// Bearer token of the shard server.
-    #[arg(long, env = "SLAG_SHARD_TOKEN", hide_env_values = true)]
+    /// File whose first line is the shard server's bearer token (as `serve
+    /// --shard-token-file`); without it, env SLAG_SHARD_TOKEN.
+    #[arg(long, value_name = "FILE")]
+    shard_token_file: Option<PathBuf>,
+    /// The shard server's bearer token itself: the older form of --shard-token-file, still
+    /// accepted (noted as deprecated; a token on the command line shows in the process list).
+    #[arg(long, env = "SLAG_SHARD_TOKEN", hide = true, hide_env_values = true)]
     token: Option<String>,
     /// The publisher's Ed25519 public key (PEM, `manifest-key.pub.pem` of `slag-shards
     /// keygen`): refuse a manifest it did not sign, a tile whose SHA-256 differs from the signed
@@ -151,14 +155,15 @@ struct ServeArgs {
     #[arg(long)]
     config: Option<PathBuf>,
     /// Store folder written by `fetch`.
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     store: Option<PathBuf>,
     /// Scene id.
     #[arg(long, value_name = "NAME")]
     scene: Option<String>,
-    /// Listen address (default 0.0.0.0:8080).
-    #[arg(long = "listen", aliases = ["addr", "bind"], value_name = "HOST:PORT")]
-    addr: Option<String>,
+    /// Where to listen, the bearer token clients must send, TLS and the connection limits
+    /// (the flags the shard server shares).
+    #[command(flatten)]
+    server: ServerArgs,
     /// CLIP text tower ONNX (input_ids i64[B,77] → f32[B,D]) of the model that made the shards.
     #[arg(long = "clip-textual", alias = "text-model", value_name = "ONNX")]
     text_model: Option<PathBuf>,
@@ -171,12 +176,9 @@ struct ServeArgs {
     /// Default cosine threshold (paper: 0.28).
     #[arg(long)]
     threshold: Option<f32>,
-    /// File with the bearer token clients must send (also env SLAG_EDGE_TOKEN).
-    #[arg(long)]
-    token_file: Option<PathBuf>,
     /// File with the shard server's bearer token, which POST /fetch sends (also env
     /// SLAG_SHARD_TOKEN).
-    #[arg(long)]
+    #[arg(long, value_name = "FILE")]
     shard_token_file: Option<PathBuf>,
     /// The publisher's Ed25519 public key (PEM): POST /fetch then refuses what it did not sign
     /// (as `fetch --trusted-key`), and `check` verifies the stored signature and every stored
@@ -184,17 +186,6 @@ struct ServeArgs {
     /// PEM blocks in one file (a key rotation).
     #[arg(long, value_name = "FILE")]
     trusted_key: Vec<PathBuf>,
-    /// Serve HTTPS with this PEM certificate chain (the server's certificate first, then its
-    /// intermediates); needs --tls-key. SIGHUP and POST /reload read both files again.
-    #[arg(long, value_name = "FILE")]
-    tls_cert: Option<PathBuf>,
-    /// The PEM private key of --tls-cert (PKCS#8, RSA or EC).
-    #[arg(long, value_name = "FILE")]
-    tls_key: Option<PathBuf>,
-    /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
-    /// the path can read it. Without it, a token with a non-loopback --listen needs --tls-cert.
-    #[arg(long)]
-    allow_plain_http: bool,
     /// A private CA's certificate (PEM) that POST /fetch trusts for an https:// shard server, in
     /// addition to the built-in public roots.
     #[arg(long, value_name = "FILE")]
@@ -219,26 +210,6 @@ struct ServeArgs {
     /// is answered 400 (default 20000).
     #[arg(long)]
     max_matches: Option<usize>,
-    /// Seconds a connection has to send a whole request head; also the idle keep-alive timeout
-    /// (default 10).
-    #[arg(long)]
-    header_timeout: Option<f64>,
-    /// Seconds a write to a client may make no progress (a client that stopped reading) before
-    /// its connection is closed (default 30).
-    #[arg(long)]
-    write_timeout: Option<f64>,
-    /// Connections open at once; further ones wait in the listen queue (default 512). Kept 64
-    /// below the open-file limit (ulimit -n, LimitNOFILE), lowered with a warning where not.
-    #[arg(long)]
-    max_connections: Option<usize>,
-    /// Seconds a request body has to arrive after its head; later gets 408 and the connection
-    /// is closed (default 10).
-    #[arg(long)]
-    body_timeout: Option<f64>,
-    /// Connections one remote address (IPv4 address, IPv6 /64) may hold at once; one more is
-    /// answered 429 and closed (default 64).
-    #[arg(long)]
-    max_connections_per_ip: Option<usize>,
     /// Serve the web page from this folder instead of the compiled-in one: its `index.html` and
     /// `app.js` where present, and the viewer bundles from its `vendor/` (made by `bash
     /// scripts/web-vendor.sh`). Default: the page and viewer compiled into this binary.
@@ -262,7 +233,7 @@ struct ServeArgs {
 #[derive(Args)]
 struct QueryArgs {
     /// Store folder written by `fetch`.
-    #[arg(long, default_value = "slag-store")]
+    #[arg(long, value_name = "DIR", default_value = "slag-store")]
     store: PathBuf,
     /// Scene id.
     #[arg(long, value_name = "NAME")]
@@ -279,8 +250,8 @@ struct QueryArgs {
     /// Prompt.
     #[arg(long)]
     text: String,
-    /// Matches returned.
-    #[arg(long)]
+    /// Matches returned (default 100).
+    #[arg(long, value_name = "K")]
     top_k: Option<String>,
     /// Threshold, or `none`.
     #[arg(long, allow_hyphen_values = true)]
@@ -353,11 +324,14 @@ fn run_fetch(a: FetchArgs) -> anyhow::Result<()> {
         retries: a.retries,
         timeout: timeout(a.timeout, "--timeout")?,
         min_rate: a.min_rate,
-        token: a
-            .token
-            .as_deref()
-            .map(|t| slag_common::auth::configured_token(t, "--token (or SLAG_SHARD_TOKEN)"))
-            .transpose()?,
+        token: match &a.shard_token_file {
+            Some(p) => Some(read_token(p)?),
+            None => a
+                .token
+                .as_deref()
+                .map(|t| slag_common::auth::configured_token(t, "SLAG_SHARD_TOKEN (or --token)"))
+                .transpose()?,
+        },
         progress: true,
         frame: a.frame.into(),
         trusted_keys: trusted_keys(&a.trusted_key)?,
@@ -395,29 +369,6 @@ struct Resolved {
     ros2: Option<slag_edge::ros2::Ros2Options>,
 }
 
-/// The TLS certificate of `serve` (flags over the config file), `None` without one.
-fn resolve_tls(
-    a: &ServeArgs,
-    c: &ServeConfig,
-) -> anyhow::Result<Option<Arc<slag_common::tls::ServerTls>>> {
-    let cert = a.tls_cert.as_ref().or(c.tls_cert.as_ref());
-    let key = a.tls_key.as_ref().or(c.tls_key.as_ref());
-    match (cert, key) {
-        (None, None) => Ok(None),
-        (Some(cert), Some(key)) => Ok(Some(Arc::new(slag_common::tls::ServerTls::load(
-            cert, key,
-        )?))),
-        (Some(_), None) => anyhow::bail!(
-            "--tls-cert without --tls-key: pass the certificate's private key with --tls-key \
-             (or `tls_key` in --config)"
-        ),
-        (None, Some(_)) => anyhow::bail!(
-            "--tls-key without --tls-cert: pass the certificate chain with --tls-cert (or \
-             `tls_cert` in --config)"
-        ),
-    }
-}
-
 /// The bearer token clients must send (`--token-file`, else env `SLAG_EDGE_TOKEN`), refused over
 /// plain HTTP on a non-loopback `addr` unless allowed
 /// ([`slag_common::tls::check_token_transport`]). A blank token from any source is refused: it
@@ -437,38 +388,6 @@ fn resolve_token(
     Ok(token)
 }
 
-/// The server's connection limits and timeouts (flags over the config file over the defaults).
-fn resolve_limits(
-    a: &ServeArgs,
-    c: &ServeConfig,
-) -> anyhow::Result<slag_common::http::ServerLimits> {
-    let d = slag_common::http::ServerLimits::default();
-    let limits = slag_common::http::ServerLimits {
-        header_timeout: match a.header_timeout.or(c.header_timeout) {
-            Some(s) => timeout(s, "--header-timeout")?,
-            None => d.header_timeout,
-        },
-        write_timeout: match a.write_timeout.or(c.write_timeout) {
-            Some(s) => timeout(s, "--write-timeout")?,
-            None => d.write_timeout,
-        },
-        body_timeout: match a.body_timeout.or(c.body_timeout) {
-            Some(s) => timeout(s, "--body-timeout")?,
-            None => d.body_timeout,
-        },
-        max_connections: a
-            .max_connections
-            .or(c.max_connections)
-            .unwrap_or(d.max_connections),
-        max_connections_per_ip: a
-            .max_connections_per_ip
-            .or(c.max_connections_per_ip)
-            .unwrap_or(d.max_connections_per_ip),
-    };
-    limits.validate()?;
-    Ok(limits)
-}
-
 /// The shard server's token `POST /fetch` sends: `--shard-token-file`, else env
 /// `SLAG_SHARD_TOKEN` (refused when blank).
 fn resolve_shard_token(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<Option<String>> {
@@ -485,14 +404,31 @@ fn resolve_shard_token(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<Option<
     Ok(Some(t.trim().to_string()))
 }
 
+/// The server flags, each left out taken from the config file's key of the same name.
+fn server_over_config(a: &ServerArgs, c: &ServeConfig) -> ServerArgs {
+    ServerArgs {
+        listen: a.listen.clone().or(c.listen.clone()),
+        token_file: a.token_file.clone().or(c.token_file.clone()),
+        tls_cert: a.tls_cert.clone().or(c.tls_cert.clone()),
+        tls_key: a.tls_key.clone().or(c.tls_key.clone()),
+        allow_plain_http: a.allow_plain_http || c.allow_plain_http.unwrap_or(false),
+        header_timeout: a.header_timeout.or(c.header_timeout),
+        write_timeout: a.write_timeout.or(c.write_timeout),
+        max_connections: a.max_connections.or(c.max_connections),
+        body_timeout: a.body_timeout.or(c.body_timeout),
+        max_connections_per_ip: a.max_connections_per_ip.or(c.max_connections_per_ip),
+    }
+}
+
 fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
     let web_dir = a.web_dir.clone();
     let c = match &a.config {
         Some(p) => ServeConfig::read(p)?,
         None => ServeConfig::default(),
     };
-    let tls = resolve_tls(&a, &c)?;
-    let limits = resolve_limits(&a, &c)?;
+    let server = server_over_config(&a.server, &c);
+    let tls = server.tls()?;
+    let limits = server.limits()?;
     let shard_token = resolve_shard_token(&a, &c)?;
     let (max_scans, scan_queue, max_matches) = resolve_scan_bounds(&a, &c)?;
     let ca_cert = a.ca_cert.clone().or(c.ca_cert.clone());
@@ -504,7 +440,7 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         .scene
         .or(c.scene)
         .context("--scene is required (flag or `scene` in --config)")?;
-    let addr = listen_addr(a.addr.or(c.listen))?;
+    let addr = server.listen_addr(DEFAULT_EDGE_LISTEN)?;
     let text_model = required(a.text_model.or(c.clip_textual), "clip-textual")?;
     let tokenizer = required(a.tokenizer.or(c.tokenizer), "tokenizer")?;
     let ep = resolve_ep(a.ep, c.ep.as_deref())?;
@@ -514,10 +450,10 @@ fn resolve(a: ServeArgs) -> anyhow::Result<Resolved> {
         "--threshold {threshold}: use a cosine in -1..=1"
     );
     let token = resolve_token(
-        a.token_file.as_deref().or(c.token_file.as_deref()),
+        server.token_file.as_deref(),
         addr,
         tls.is_some(),
-        a.allow_plain_http || c.allow_plain_http.unwrap_or(false),
+        server.allow_plain_http,
     )?;
     let hnsw = a.hnsw || c.hnsw.unwrap_or(false);
     let hnsw_backend = resolve_hnsw_backend(hnsw, a.hnsw_backend.or(c.hnsw_backend))?;
@@ -575,13 +511,6 @@ fn required(v: Option<PathBuf>, flag: &str) -> anyhow::Result<PathBuf> {
 
 /// The address to listen on: `listen` (flag or config) or `0.0.0.0:8080`.
 /// Errors: not `HOST:PORT`.
-fn listen_addr(listen: Option<String>) -> anyhow::Result<std::net::SocketAddr> {
-    listen
-        .unwrap_or_else(|| "0.0.0.0:8080".into())
-        .parse()
-        .context("--listen: use HOST:PORT, e.g. 0.0.0.0:8080")
-}
-
 /// The server's scan bounds `(max_scans, scan_queue, max_matches)`: each flag, else its
 /// config key, else the server's default. Errors: `max_scans` or `max_matches` of 0.
 fn resolve_scan_bounds(a: &ServeArgs, c: &ServeConfig) -> anyhow::Result<(usize, usize, usize)> {
@@ -862,30 +791,11 @@ fn run_query(a: QueryArgs) -> anyhow::Result<()> {
 }
 
 fn main() -> std::process::ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .with_ansi(slag_common::term::stderr_ansi())
-        .init();
+    slag_common::cli::deprecated::note_deprecated();
     let cli = Cli::parse();
-    let verbose = cli.verbose;
-    match run(cli.command) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            // One line with the causes; no backtrace (anyhow captures one when RUST_BACKTRACE is
-            // set, and returning the error from main printed it on every failure).
-            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
-            if let Some(h) = hint(&e) {
-                eprintln!("hint: {h}");
-            }
-            if verbose {
-                eprintln!("\n{e:?}");
-            }
-            std::process::ExitCode::FAILURE
-        }
-    }
+    let verbose = cli.global.verbose;
+    slag_common::cli::process::init_logging(verbose);
+    slag_common::cli::process::exit_code(run(cli.command), hint, verbose)
 }
 
 /// What the command line adds to a library error (`e` or an error it wraps): the flag or the
@@ -923,7 +833,7 @@ fn hint_for(e: &slag_common::Error) -> Option<String> {
         Error::Network {
             status: Some(401 | 403),
             ..
-        } => "pass --token TOKEN or set SLAG_SHARD_TOKEN".into(),
+        } => "pass --shard-token-file FILE or set SLAG_SHARD_TOKEN".into(),
         Error::Network {
             status: Some(404), ..
         } => "check --scene, or run fetch again if the scene was re-partitioned".into(),
@@ -962,7 +872,7 @@ fn param_hint(name: &str) -> Option<String> {
         "scene_id" => "pass --scene NAME".into(),
         "radius" => "pass --radius R, a finite number ≥ 0".into(),
         "server" => "pass --from http://HOST:PORT without user or password, and the shard \
-                     server's token with --token or SLAG_SHARD_TOKEN"
+                     server's token with --shard-token-file or SLAG_SHARD_TOKEN"
             .into(),
         "hnsw_backend" => "pass --hnsw-backend instant-distance (or `hnsw_backend = \
                            \"instant-distance\"` in --config), or use a slag-edge built with \
@@ -978,6 +888,13 @@ fn param_hint(name: &str) -> Option<String> {
             .into(),
         "max_connections" => "pass --max-connections N (or `max_connections` in --config), \
                               or raise the open-file limit (ulimit -n, LimitNOFILE)"
+            .into(),
+        "listen" => "pass --listen HOST:PORT, e.g. 0.0.0.0:8080 (or `listen` in --config)".into(),
+        "tls_key" => "pass the certificate's private key with --tls-key FILE (or `tls_key` in \
+                      --config)"
+            .into(),
+        "tls_cert" => "pass the key's certificate chain with --tls-cert FILE (or `tls_cert` in \
+                       --config)"
             .into(),
         "header_timeout" => "pass --header-timeout SECONDS".into(),
         "write_timeout" => "pass --write-timeout SECONDS".into(),
@@ -1086,7 +1003,9 @@ mod tests {
         assert!(h(Error::param("store", "/no-store", "a store")).contains("slag-edge fetch"));
         assert!(h(Error::param("radius", -1.0, "≥ 0")).contains("--radius"));
         assert!(h(Error::query("text", "missing query text")).contains("--text"));
-        assert!(h(Error::http_status("http://s/v1", 401, "HTTP 401")).contains("--token"));
+        assert!(
+            h(Error::http_status("http://s/v1", 401, "HTTP 401")).contains("--shard-token-file")
+        );
         assert!(
             h(Error::limit(Resource::Memory, "9e9 rows", "the allocator")).contains("--radius")
         );
@@ -1111,5 +1030,17 @@ mod tests {
         let e = anyhow::Error::new(Error::param("scene", "\"grid\"", "a fetched scene"))
             .context("query");
         assert!(hint(&e).is_some_and(|h| h.contains("slag-edge fetch")));
+    }
+}
+
+#[cfg(test)]
+mod flag_names {
+    /// Every flag name of this binary, hidden aliases included, keeps one meaning across the slag
+    /// binaries, and every meaning one name ([`slag_common::flag_names`]).
+    #[test]
+    fn each_flag_name_has_one_meaning_across_the_binaries() {
+        use clap::CommandFactory;
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        slag_common::flag_names::assert_one_meaning("slag-edge", &super::Cli::command(), &root);
     }
 }

@@ -153,7 +153,7 @@ fn failed_queries_create_nothing_give_cli_hints_and_no_backtrace() {
         }
         let out = Command::new(bin)
             .args(text_model_args(sub, &s, "grid", ["m.onnx", "t.json"]))
-            .args(["--addr", "127.0.0.1:0"])
+            .args(["--listen", "127.0.0.1:0"])
             .env("RUST_LOG", "warn")
             .output()
             .unwrap();
@@ -176,7 +176,7 @@ fn serve_refuses_an_unusable_hnsw_backend_at_start_up() {
     let s = store.display().to_string();
     let serve = |extra: &[&str]| {
         let mut args = text_model_args("serve", &s, "grid", ["m.onnx", "t.json"]);
-        args.extend_from_slice(&["--addr", "127.0.0.1:0"]);
+        args.extend_from_slice(&["--listen", "127.0.0.1:0"]);
         args.extend_from_slice(extra);
         let out = slag_edge(&args);
         assert!(!out.status.success());

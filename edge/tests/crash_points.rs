@@ -574,7 +574,7 @@ fn start_serve(dir: &Path, env: (&str, String)) -> Server {
     let [model, tokenizer] = support::color_clip_text_model();
     let store = dir.display().to_string();
     let mut args = support::text_model_args("serve", &store, "grid", [&model, &tokenizer]);
-    args.extend(["--addr", "127.0.0.1:0"]);
+    args.extend(["--listen", "127.0.0.1:0"]);
     let mut cmd = slag_edge_with_log(&args, "error");
     cmd.env(env.0, env.1);
     let mut child = cmd

@@ -218,7 +218,7 @@ async fn bad_requests_fail_with_messages_that_say_what_to_do() {
     let e = fetch(&store, &params(&server.url, [0.0, 0.0], 5.0))
         .await
         .unwrap_err();
-    // Typed: the status a front end acts on (`slag-edge` adds `--token` as its hint, a unit test
+    // Typed: the status a front end acts on (`slag-edge` adds `--shard-token-file` as its hint, a unit test
     // of the binary); the library's message says what it means.
     assert!(
         matches!(

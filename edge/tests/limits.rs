@@ -320,7 +320,7 @@ fn a_blank_token_in_the_environment_refuses_to_start() {
         let out = c
             .args(["serve", "--scene", "grid", "--store", "/nonexistent/store"])
             .args([
-                "--text-model",
+                "--clip-textual",
                 "/nonexistent/m.onnx",
                 "--tokenizer",
                 "/nonexistent/t.json",

@@ -35,7 +35,7 @@ async fn serve_logs_without_colour_codes_into_a_pipe() {
 
     let [tm, tok] = color_clip_text_model();
     let serve = text_model_args("serve", &store, "grid", [&tm, &tok]);
-    let mut child = command(&[&serve[..], &["--addr", "127.0.0.1:0"]].concat())
+    let mut child = command(&[&serve[..], &["--listen", "127.0.0.1:0"]].concat())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()

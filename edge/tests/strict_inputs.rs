@@ -161,7 +161,9 @@ fn slag_edge_fetch_refuses_a_url_with_credentials() {
     assert!(!out.status.success(), "{err}");
     assert!(!err.contains(SECRET), "{err}");
     assert!(
-        err.contains("***@127.0.0.1:9") && err.contains("hint:") && err.contains("--token"),
+        err.contains("***@127.0.0.1:9")
+            && err.contains("hint:")
+            && err.contains("--shard-token-file"),
         "{err}"
     );
     for (p, bytes) in files_under(dir.path()) {

@@ -165,11 +165,11 @@ async fn serve_stderr(addr: &str, extra: &[&str]) -> String {
             "grid",
             "--store",
             "/nonexistent/store",
-            "--text-model",
+            "--clip-textual",
             "m.onnx",
             "--tokenizer",
             "t.json",
-            "--addr",
+            "--listen",
             addr,
         ][..],
         extra,
@@ -242,7 +242,7 @@ async fn the_binary_serves_https_and_reloads_its_certificate_on_sighup() {
     assert_success(&output_blocking(fetch).await, "fetch");
     let [tm, tok] = support::color_clip_text_model();
     let serve = support::text_model_args("serve", &store, "grid", [&tm, &tok]);
-    let tls = ["--addr", "127.0.0.1:0", "--tls-cert", &c, "--tls-key", &k];
+    let tls = ["--listen", "127.0.0.1:0", "--tls-cert", &c, "--tls-key", &k];
     let mut child = slag_edge_with_log(&[&serve[..], &tls].concat(), "info")
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())

@@ -1,5 +1,5 @@
 //! The prediction-filtering predictors of a held-out pass, one set per segmentation, scored
-//! beside the unfiltered ones (`eval-colors --held-out --pf`, `eval-objects --held-out`):
+//! beside the unfiltered ones (`eval-colors --held-out --prediction-filtering`, `eval-objects --held-out`):
 //! `argmax` (the control), `pf-majority`, `pf-mean`, `pf-weighted`, `pf-confident`, `pf-strict`
 //! ([`slag_encoder::prediction_filtering`]), and the last three over the mixture's mean form.
 

@@ -124,7 +124,7 @@ prep)
   cp "$R/torch-peers.json" /root/torch-peers.json
   ;;
 stages)
-  S=(--scene /root/scene --raster-scale 0.5 --quiet --facts /root/facts.json)
+  S=(--scene-dir /root/scene --raster-scale 0.5 --quiet --facts /root/facts.json)
   st() { # name, ep, every, args...
     local name=$1 ep=$2 every=$3; shift 3
     echo "### $name ($ep, every $every)"
@@ -245,11 +245,11 @@ models)
   CL=(); for d in f32 f16 f16fuse f32fuse; do CL+=(--clip-visual "$M/$d/ViT-B-16-random-visual.onnx"); done
   SA=(); for d in f16r f16d f16e; do SA+=(--sam-encoder "$M/f16d/sam-vit_h-encoder.onnx" --sam-decoder "$M/$d/sam-vit_h-decoder-low-res.onnx"); done
   echo "### slag-bench models: CLIP ViT-B/16 x4, SAM ViT-H fp16 (256 prompts in 1 call, then in 4)"
-  "$BB" models --scene data/snowmiku-mini --images 8 "${CL[@]}" "${SA[@]}" --repeats ${REPEATS:-5} > "$R/models.md" 2> "$R/models.jsonl"; echo "exit $?"
-  "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 64 --repeats ${REPEATS:-5} > "$R/models-pb64.md" 2>> "$R/models.jsonl"; echo "exit $?"
+  "$BB" models --scene-dir data/snowmiku-mini --images 8 "${CL[@]}" "${SA[@]}" --repeats ${REPEATS:-5} > "$R/models.md" 2> "$R/models.jsonl"; echo "exit $?"
+  "$BB" models --scene-dir data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 64 --repeats ${REPEATS:-5} > "$R/models-pb64.md" 2>> "$R/models.jsonl"; echo "exit $?"
   cat "$R/models.md" "$R/models-pb64.md"
   rm -rf "$W/prof"; mkdir -p "$W/prof"
-  SLAG_ORT_PROFILE=$W/prof/p "$BB" models --scene data/snowmiku-mini --images 2 "${CL[@]}" "${SA[@]}" --repeats 3 > /dev/null 2>&1
+  SLAG_ORT_PROFILE=$W/prof/p "$BB" models --scene-dir data/snowmiku-mini --images 2 "${CL[@]}" "${SA[@]}" --repeats 3 > /dev/null 2>&1
   python3 scripts/lab/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
   SAM_KINDS=vit_h python3 scripts/lab/device_torch_peers.py "$R/torch-peers.json" 2>&1 | tail -14
   ;;
@@ -268,10 +268,10 @@ sam)
       --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$M/f16d/sam-vit_h-decoder-low-res.onnx"
       --sam-encoder "$M/f16x/sam-vit_h-encoder.onnx" --sam-decoder "$f16m")
   echo "### slag-bench models: SAM ViT-H fp16, plain vs fused encoder, f32 vs f16 multimask logits, 256 prompts per call"
-  timeout 300 "$BB" models --scene data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 256 --repeats ${REPEATS:-5} > "$R/sam-256.md" 2>> "$R/sam.jsonl"; echo "exit $?"
+  timeout 300 "$BB" models --scene-dir data/snowmiku-mini --images 8 "${SA[@]}" --prompt-batch 256 --repeats ${REPEATS:-5} > "$R/sam-256.md" 2>> "$R/sam.jsonl"; echo "exit $?"
   cat "$R/sam-256.md"
   rm -rf "$W/prof"; mkdir -p "$W/prof"
-  SLAG_ORT_PROFILE=$W/prof/p timeout 100 "$BB" models --scene data/snowmiku-mini --images 2 "${SA[@]}" --repeats 3 > /dev/null 2>&1
+  SLAG_ORT_PROFILE=$W/prof/p timeout 100 "$BB" models --scene-dir data/snowmiku-mini --images 2 "${SA[@]}" --repeats 3 > /dev/null 2>&1
   python3 scripts/lab/ort-profile-summary.py "$W"/prof/*.json > "$R/profile.md" 2>&1; grep -E "^## |^model runs|by provider" "$R/profile.md"
   SAM_KINDS=vit_h TORCH_PROFILE=1 timeout 120 python3 scripts/lab/device_torch_peers.py "$R/torch-peers.json" > "$R/torch-peers.txt" 2>&1
   grep -vE "^clip|^ *\{|^ *\}|^ *\"" "$R/torch-peers.txt" | cut -c1-160 | head -70
@@ -312,7 +312,7 @@ clipu8)
   F=$M/f16fuse/ViT-B-16-random-visual.onnx; U=$M/f16fuse-u8/ViT-B-16-random-visual.onnx
   for order in "$F $U" "$U $F"; do
     set -- $order
-    "$BB" models --scene data/snowmiku-mini --images 8 --clip-visual "$1" --clip-visual "$2" \
+    "$BB" models --scene-dir data/snowmiku-mini --images 8 --clip-visual "$1" --clip-visual "$2" \
       --repeats ${REPEATS:-5} 2>> "$R/clipu8.jsonl"; echo "exit $?"
   done | tee "$R/clipu8.md"
   # torch fp16's ViT-B/16 image tower on the same GPU (inputs already on it), the peer of the table.
@@ -335,7 +335,7 @@ scaling)
   counts=${2:-1,2}; prec=${PREC:-f16}
   [ -f /root/big/report-synth.json ] || { "$B" synth-scene --gaussians 2M --view-count 250 --width 990 --height 742 --out /root/big > /root/big-synth.json && cp /root/big-synth.json /root/big/report-synth.json; }
   echo "### scaling $counts: e2e scene, ViT-H $prec + CLIP $prec on CUDA"
-  "$BB" scaling --scene /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
+  "$BB" scaling --scene-dir /root/big --ep cuda --raster-scale 0.5 ${FRONTS:+--front-workers $FRONTS} "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) \
     --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" 2>&1 | tail -30
   for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json" 2>/dev/null; done; true
   ;;

@@ -10,11 +10,11 @@ for b in main lifting; do [ -f $C/slag-encoder-$b.gz ] && gunzip -c $C/slag-enco
 gunzip -c $C/libonnxruntime.so.gz > $W/libonnxruntime.so; export ORT_DYLIB_PATH=$W/libonnxruntime.so
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader; echo "cores $(nproc)"
 V=${VIEWS:-32}
-t0=$(date +%s); $W/bin/lifting synth-scene --gaussians 2M --views $V --width 990 --height 742 --out $W/scene > $R/synth.json; echo "synth $(( $(date +%s)-t0 )) s"
+t0=$(date +%s); $W/bin/lifting synth-scene --gaussians 2M --view-count $V --width 990 --height 742 --out $W/scene > $R/synth.json; echo "synth $(( $(date +%s)-t0 )) s"
 SAM=(--masks sam --sam-encoder $C/color-sam-encoder.onnx --sam-decoder $C/color-sam-decoder.onnx --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5)
 run() { # name bin timeout args...
   local n=$1 b=$2 to=$3; shift 3; local t=$(date +%s)
-  timeout $to /usr/bin/time -v $W/bin/$b bench --scene $W/scene --raster-scale 0.5 --rasterizer gpu --ep cpu \
+  timeout $to /usr/bin/time -v $W/bin/$b bench --scene-dir $W/scene --raster-scale 0.5 --rasterizer gpu --ep cpu \
     --clip-visual $C/color-clip-visual.onnx --quiet --out $W/$n "$@" > $R/$n.txt 2>&1; local rc=$?
   cp $W/$n/report.json $R/report-$n.json 2>/dev/null
   python3 - $R/report-$n.json $n $rc $(( $(date +%s)-t )) <<'PY'

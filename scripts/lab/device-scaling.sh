@@ -41,7 +41,7 @@ scaling)
   counts=${2:-1,2,4}
   fronts=${FRONTS:-12}
   echo "### scaling: snowmiku, 97 views, graph masks, raster 1.0, GPUs $counts, $fronts front workers"
-  "$BB" scaling --scene .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
+  "$BB" scaling --scene-dir .devcarry/scene --masks graph "${CLIP[@]}" --raster-scale 1.0 \
     --front-workers "$fronts" --quiet --counts "$counts" --out "$W/scaling" --table "$R/scaling.md" \
     2>&1 | grep -v XDG_RUNTIME
   for g in ${counts//,/ }; do cp "$W/scaling/g$g/report.json" "$R/report-scaling-g$g.json"; done
@@ -136,7 +136,7 @@ stages)
   cp "$W/clip/clip-vs-torch.json" "$R/"
   python3 scripts/lab/device_facts.py "$R/facts.json" $F/clip/color-clip-visual.onnx \
     $F/sam-amg/color-sam-encoder.onnx $F/sam-amg/color-sam-decoder.onnx "$V" | tee "$R/facts.txt"
-  S=(--scene .devcarry/scene --raster-scale 1.0 --quiet --facts "$R/facts.json")
+  S=(--scene-dir .devcarry/scene --raster-scale 1.0 --quiet --facts "$R/facts.json")
   echo "### stages: graph masks, color-clip, all views"
   "$BB" stages "${S[@]}" --masks graph "${CLIP[@]}" --front-workers 15 --out "$W/st-color" \
     --table "$R/stages-color.md" 2>&1 | grep -v XDG_RUNTIME
@@ -155,7 +155,7 @@ stages-color)
   # front-worker count given (default 15).
   for fw in ${2:-15}; do
     echo "### stages: graph masks, color-clip, all views, $fw front workers"
-    "$BB" stages --scene .devcarry/scene --raster-scale 1.0 --quiet --facts .devwork/facts.json \
+    "$BB" stages --scene-dir .devcarry/scene --raster-scale 1.0 --quiet --facts .devwork/facts.json \
       --masks graph "${CLIP[@]}" --front-workers "$fw" --out "$W/st-color-$fw" \
       --table "$R/stages-color-f$fw.md" 2>&1 | grep -v XDG_RUNTIME
   done
@@ -163,7 +163,7 @@ stages-color)
 tradeoffs)
   TW=target/slag-bench/snowmiku-dev; mkdir -p "$TW"
   [ -f .devwork/tw.tgz ] && tar xzf .devwork/tw.tgz -C "$TW"
-  timeout "${TW_TIMEOUT:-540}" "$BB" tradeoffs --scene .devcarry/scene --fixtures $F --work "$TW" \
+  timeout "${TW_TIMEOUT:-540}" "$BB" tradeoffs --scene-dir .devcarry/scene --fixtures $F --work "$TW" \
     --out "$R/tradeoffs" --front-workers 8 --cached-only --encode "${2:-}" \
     --note "$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $(nproc) cores, GPU raster (wgpu/Vulkan), ORT CPU EP" \
     2>&1 | grep -v XDG_RUNTIME | tee "$R/tradeoffs.log"

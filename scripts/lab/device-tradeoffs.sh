@@ -31,7 +31,7 @@ esac
 # Start from the committed document so that its hand-written text below the recommendations
 # marker is kept (slag-bench replaces only the generated tables).
 mkdir -p "$R/tradeoffs"; cp docs/results/tradeoffs.md "$R/tradeoffs/tradeoffs.md"
-timeout "${TW_TIMEOUT:-560}" "$BB" tradeoffs --scene "$S" --fixtures "$F" --work "$TW" \
+timeout "${TW_TIMEOUT:-560}" "$BB" tradeoffs --scene-dir "$S" --fixtures "$F" --work "$TW" \
   --out "$R/tradeoffs" --front-workers 8 --cached-only ${IDS:+--encode "$IDS"} \
   --note "$(nvidia-smi --query-gpu=name --format=csv,noheader | head -1), $(nproc) cores, GPU raster (wgpu/Vulkan), ORT CPU EP" \
   2>&1 | grep -v XDG_RUNTIME | tee "$R/tradeoffs.log"

@@ -40,7 +40,7 @@ CLIP=(--clip-visual "$F/clip/color-clip-visual.onnx")
 rm -rf "$OUT/demo" "$OUT/levels" "$OUT/cluster"
 "$BIN" encode --scene-dir "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --out "$OUT/demo"
 "$BIN" encode --scene-dir "$SCENE" "${SAM[@]}" "${CLIP[@]}" --front-workers 1 --quiet --levels --rasterizer cpu \
-  --precision f32 --overlap all --mask-weighting area --mixture-keep 8 --segments off \
+  --precision f32 --overlap all --mask-weighting area --mixture-keep 8 --write-segments off \
   --every 2 --out "$OUT/levels"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
 echo "127.0.0.1:$PORT" >"$OUT/hosts.txt"

@@ -21,7 +21,7 @@ for name in graph color-sam; do
     --embeddings "$W/$name/embeddings.safetensors" --color-clip $F/clip \
     > "$R/heldout-$name.json" 2> "$R/heldout-$name.err" || { tail -n 5 "$R/heldout-$name.err"; exit 1; }
   t2=$(date +%s)
-  echo "$name: encode $((t1 - t0)) s, eval-colors --held-out --pf $((t2 - t1)) s"
+  echo "$name: encode $((t1 - t0)) s, eval-colors --held-out --prediction-filtering $((t2 - t1)) s"
   python3 - "$R/heldout-$name.json" <<'PY'
 import json, sys
 o = json.load(open(sys.argv[1])); e = o["held_out"]

@@ -29,7 +29,7 @@ for name in ${RUNS:-coverage uniform all}; do
   esac
   t0=$(date +%s.%N)
   "$B" encode --scene-dir "$S" "${SAM[@]}" "${CLIP[@]}" --hold-out-every "$HOLD" ${V[@]+"${V[@]}"} ${EXTRA[@]+"${EXTRA[@]}"} --raster-scale 0.5 --dense \
-    --segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
+    --write-segments off --quiet --out "$W/$name" > "$W/$name.log" 2>&1 || { tail -n 5 "$W/$name.log"; exit 1; }
   t1=$(date +%s.%N)
   "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$W/$name/embeddings.safetensors" \
     --color-clip $F/clip > "$R/heldout-views-$name.json" 2> "$R/heldout-views-$name.err" \

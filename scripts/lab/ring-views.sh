@@ -17,7 +17,7 @@ S="$W/ring-$TAG"; O="$W/out-$TAG"
 [ -f "$S/point_cloud.ply" ] || "$B" synth-scene --gaussians "$N" --view-count "$V" ${SYNTH:-} --out "$S"
 rm -rf "$O"
 # shellcheck disable=SC2086
-"$B" encode --scene-dir "$S" --masks graph --clip-visual "$CLIP" --raster-scale 0.5 --segments off \
+"$B" encode --scene-dir "$S" --masks graph --clip-visual "$CLIP" --raster-scale 0.5 --write-segments off \
   --quiet --out "$O" ${EXTRA:-}
 python3 - "$O/report.json" <<'PY'
 import json, sys

@@ -9,8 +9,8 @@
 #   masks-min5  the same, --segment-min-size 5
 #   masks-min2  the same, --segment-min-size 2
 #   region      the same, --segment-region-veto 0.5 (the region mask veto)
-# measure them against the colour truth (`eval-colors --pf`: purity, sizes, what limits them),
-# then one `eval-colors --held-out --pf` pass scores slag with and without PF over all five (and
+# measure them against the colour truth (`eval-colors --prediction-filtering`: purity, sizes, what limits them),
+# then one `eval-colors --held-out --prediction-filtering` pass scores slag with and without PF over all five (and
 # their purity against the lifted photo classes). Writes OUTDIR/table.md (one table per split)
 # and keeps every JSON under OUTDIR/e<N>/.
 #
@@ -62,12 +62,12 @@ for N in "${EVERYS[@]}"; do
   seg region "${rec[@]}" --segment-region-veto 0.5
   more=(); for n in "${NAMES[@]:1}"; do more+=(--more-segments "$D/seg/$n.safetensors"); done
   "$B" eval-colors --scene-dir "$S" --embeddings "$E/embeddings.safetensors" --color-clip "$F/clip" \
-    --pf --segments "$D/seg/geometric.safetensors" "${more[@]}" "${rec[@]}" \
+    --prediction-filtering --segments "$D/seg/geometric.safetensors" "${more[@]}" "${rec[@]}" \
     > "$D/pf-3d.json" 2> "$D/pf-3d.log"
   [ -n "${SKIP_HELDOUT:-}" ] && continue
   t0=$(date +%s)
   "$B" eval-colors --held-out --scene-dir "$S" --embeddings "$E/embeddings.safetensors" \
-    --color-clip "$F/clip" --pf --segments "$D/seg/geometric.safetensors" "${more[@]}" \
+    --color-clip "$F/clip" --prediction-filtering --segments "$D/seg/geometric.safetensors" "${more[@]}" \
     --photo-classes-out "$D/photo-classes.u8" > "$D/heldout.json" 2> "$D/heldout.log"
   echo "every $N: held-out pass $(( $(date +%s) - t0 )) s"
   python3 - "$D" "$N" "${NAMES[@]}" >> "$R/table.md" <<'PY'

@@ -25,9 +25,9 @@ else
 fi
 SCENE_ARGS=()
 case " $* " in
-    *" --scene "*) ;;
-    *" --quick "*) SCENE_ARGS=(--scene data/snowmiku-mini) ;;
-    *) SCENE_ARGS=(--scene ../shared/scenes/snowmiku) ;;
+    *" --scene-dir "*) ;;
+    *" --quick "*) SCENE_ARGS=(--scene-dir data/snowmiku-mini) ;;
+    *) SCENE_ARGS=(--scene-dir ../shared/scenes/snowmiku) ;;
 esac
 "$BIN" tradeoffs "${SCENE_ARGS[@]}" --out "$OUT" "$@"
 

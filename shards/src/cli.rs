@@ -1,10 +1,10 @@
 //! `partition`, `serve`, `export` and `keygen` subcommands (clap `Args` + run functions), shared
 //! by the `slag-shards` binary and `slag-encoder` (same names and flags).
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use anyhow::Context;
+use slag_common::cli::server::{DEFAULT_SHARD_LISTEN, ServerArgs};
 use slag_common::embeddings::Embeddings;
 use slag_common::forms::EmbeddingsForm;
 use slag_common::shards::synthetic::SyntheticScene;
@@ -23,37 +23,41 @@ use slag_common::shards::signature::SigningKey;
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
 #[derive(Debug, Clone, clap::Args)]
 pub struct PartitionArgs {
-    /// Embeddings written by `slag-encoder encode`, either form: OUT/mixture.safetensors (the
-    /// default output; partitioned as with --mixture) or the dense OUT/embeddings.safetensors
-    /// (`encode --dense`). A dense path that does not exist, with OUT/mixture.safetensors beside
-    /// it, partitions that mixture (said on stderr).
+    /// Embeddings written by `slag-encoder encode`, either form, told apart by the file's
+    /// header. The mixture, OUT/mixture.safetensors (the default output; slots per Gaussian set
+    /// by `encode --mixture-keep S`): the shards then hold each Gaussian's codebook slots (atom
+    /// indices + f16 weights, shard format 2) and the scene's codebook is stored beside them
+    /// (manifest version 2); --dtype does not apply (weights and codebook are f16); with
+    /// --qdrant-url the mixture is expanded to dense rows (Qdrant stores dense vectors) and
+    /// partitioned dense, so the shards and Qdrant hold the same rows. The dense
+    /// OUT/embeddings.safetensors (`encode --dense`). A dense path that does not exist, with
+    /// OUT/mixture.safetensors beside it, partitions that mixture (said on stderr).
     #[arg(
         long,
-        required_unless_present_any = ["synthetic", "mixture"],
-        conflicts_with_all = ["synthetic", "mixture"]
+        value_name = "FILE",
+        alias = "mixture",
+        required_unless_present = "synthetic",
+        conflicts_with = "synthetic"
     )]
     pub embeddings: Option<PathBuf>,
-    /// Instead of --embeddings: the mixture file of `slag-encoder encode` (`OUT/mixture.safetensors`,
-    /// its default output; slots per Gaussian set by `--mixture-keep S`): the shards then hold
-    /// each Gaussian's codebook slots (atom indices + f16 weights, shard format 2) and the
-    /// scene's codebook is stored beside them (manifest version 2). --dtype does not apply
-    /// (weights and codebook are f16). With --qdrant-url the mixture is expanded to dense rows
-    /// (Qdrant stores dense vectors) and partitioned dense, so the shards and Qdrant hold the
-    /// same rows.
-    #[arg(long, value_name = "FILE", conflicts_with = "synthetic")]
-    pub mixture: Option<PathBuf>,
-    /// With --mixture: keep only each Gaussian's S strongest slots (slots are ordered by weight),
+    /// With a mixture: keep only each Gaussian's S strongest slots (slots are ordered by weight),
     /// as `eval-colors --held-out` scores "S cut from 16" (8 is its best point); default: every
     /// slot the file has.
-    #[arg(long, value_name = "S", requires = "mixture")]
-    pub mixture_slots: Option<usize>,
+    #[arg(
+        long,
+        value_name = "S",
+        alias = "mixture-slots",
+        requires = "embeddings"
+    )]
+    pub mixture_keep: Option<usize>,
     /// Instead of an embeddings file: a synthetic scene of N Gaussians (`N` or `N:DIM`, default
     /// dim 512; 64 clusters over 2 km × 2 km, z up, random unit vectors), for scale and load tests.
     /// Vectors are generated per tile, never all in memory.
     #[arg(long, value_name = "N[:DIM]")]
     pub synthetic: Option<String>,
-    /// Shard store folder (sled; created if missing).
-    #[arg(long)]
+    /// The publisher's shard store folder (sled: every scene's generations; created if
+    /// missing).
+    #[arg(long = "shard-store", value_name = "DIR")]
     pub store: PathBuf,
     /// Scene id: 1-64 characters of A-Z a-z 0-9 _ - . (used in URLs).
     #[arg(long, value_name = "NAME")]
@@ -397,17 +401,13 @@ pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
     }
 }
 
-/// The embeddings `partition` reads and their form: `--mixture`, else `--embeddings` (either
-/// form, by its header; a missing dense file with `mixture.safetensors` beside it gives that
+/// The embeddings `partition` reads and their form: `--embeddings` (either form, by its header; a missing dense file with `mixture.safetensors` beside it gives that
 /// mixture, said on stderr).
 ///
 /// Errors: neither flag, an unreadable file or one of neither form.
 fn partition_input(args: &PartitionArgs) -> anyhow::Result<(PathBuf, EmbeddingsForm)> {
-    if let Some(path) = &args.mixture {
-        return Ok((path.clone(), EmbeddingsForm::Mixture));
-    }
     let Some(path) = &args.embeddings else {
-        anyhow::bail!("pass --embeddings FILE (or --mixture FILE, or --synthetic N)");
+        anyhow::bail!("pass --embeddings FILE (or --synthetic N)");
     };
     let beside = slag_common::forms::mixture_beside(path);
     if !path.exists() && beside.is_file() {
@@ -422,12 +422,12 @@ fn partition_input(args: &PartitionArgs) -> anyhow::Result<(PathBuf, EmbeddingsF
     Ok((path.clone(), slag_common::forms::form_of(path)?))
 }
 
-/// The mixture at `path`, cut to `--mixture-slots` when given.
+/// The mixture at `path`, cut to `--mixture-keep` when given.
 ///
 /// Errors: unreadable file, a slot count out of range.
 fn read_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<MixtureEmbeddings> {
     let full = MixtureEmbeddings::read(path)?;
-    Ok(match args.mixture_slots {
+    Ok(match args.mixture_keep {
         Some(s) => full.truncated(s)?,
         None => full,
     })
@@ -468,7 +468,7 @@ fn upload_to_qdrant(
     Ok(())
 }
 
-/// `partition --mixture FILE [--mixture-slots S]`: mixture shards + codebook (module doc of
+/// `partition --embeddings MIXTURE [--mixture-keep S]`: mixture shards + codebook (module doc of
 /// [`slag_common::shards::mixture`]).
 fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<()> {
     let to_map = args.scene_to_map()?;
@@ -572,53 +572,13 @@ fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<(
 /// `slag-encoder serve`: HTTP manifest + shards of a store.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
-    /// Shard store folder.
-    #[arg(long)]
+    /// The publisher's shard store folder (written by `partition`).
+    #[arg(long = "shard-store", value_name = "DIR")]
     pub store: PathBuf,
-    /// Listen address.
-    #[arg(
-        long = "listen",
-        aliases = ["bind", "addr"],
-        value_name = "HOST:PORT",
-        default_value = "127.0.0.1:8080"
-    )]
-    pub bind: SocketAddr,
-    /// File whose first line is the bearer token clients must send (also env
-    /// SLAG_SHARD_TOKEN); without either the server is open.
-    #[arg(long)]
-    pub token_file: Option<PathBuf>,
-    /// Serve HTTPS with this PEM certificate chain (the server's certificate first, then its
-    /// intermediates); needs --tls-key. SIGHUP reads both files again (new connections get the
-    /// new certificate; a file that does not load is refused and the old one stays).
-    #[arg(long, value_name = "FILE", requires = "tls_key")]
-    pub tls_cert: Option<PathBuf>,
-    /// The PEM private key of --tls-cert (PKCS#8, RSA or EC).
-    #[arg(long, value_name = "FILE", requires = "tls_cert")]
-    pub tls_key: Option<PathBuf>,
-    /// Serve a bearer token over plain HTTP on a network (non-loopback) address, where anyone on
-    /// the path can read it. Without it, a token with a non-loopback --listen needs --tls-cert.
-    #[arg(long)]
-    pub allow_plain_http: bool,
-    /// Seconds a connection has to send a whole request head (and to finish its TLS
-    /// handshake); also the idle keep-alive timeout.
-    #[arg(long, default_value_t = slag_common::http::DEFAULT_HEADER_TIMEOUT.as_secs_f64())]
-    pub header_timeout: f64,
-    /// Seconds a write to a client may make no progress (a client that stopped reading) before
-    /// its connection is closed.
-    #[arg(long, default_value_t = slag_common::http::DEFAULT_WRITE_TIMEOUT.as_secs_f64())]
-    pub write_timeout: f64,
-    /// Connections open at once; further ones wait in the listen queue. Kept 64 below the
-    /// open-file limit (ulimit -n), lowered with a warning where it is not.
-    #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS)]
-    pub max_connections: usize,
-    /// Seconds a request body has to arrive after its head; later gets 408 and the connection
-    /// is closed.
-    #[arg(long, default_value_t = slag_common::http::DEFAULT_BODY_TIMEOUT.as_secs_f64())]
-    pub body_timeout: f64,
-    /// Connections one remote address (IPv4 address, IPv6 /64) may hold at once; one more is
-    /// answered 429 and closed.
-    #[arg(long, default_value_t = slag_common::http::DEFAULT_MAX_CONNECTIONS_PER_IP)]
-    pub max_connections_per_ip: usize,
+    /// Where to listen, the bearer token, TLS and the connection limits (the flags slag-edge
+    /// serve shares).
+    #[command(flatten)]
+    pub server: ServerArgs,
     /// Sign every manifest served (`GET /v1/scenes/{scene}/manifest.sig`) with this Ed25519
     /// private key (PKCS#8 PEM, from `keygen`), also those partitioned unsigned; stored
     /// signatures are then not served. Without it, stored signatures are served.
@@ -627,44 +587,6 @@ pub struct ServeArgs {
     /// Sign with a --signing-key that users other than its owner may read (refused otherwise).
     #[arg(long)]
     pub allow_readable_key: bool,
-}
-
-impl ServeArgs {
-    /// The server limits these flags set.
-    ///
-    /// Errors: [`slag_common::Error::Param`] for a timeout that is not a finite number > 0 or a
-    /// connection limit of 0.
-    pub fn limits(&self) -> slag_common::Result<slag_common::http::ServerLimits> {
-        let secs = |v: f64, name: &'static str| {
-            if v.is_finite() && v > 0.0 && v < 1e9 {
-                Ok(std::time::Duration::from_secs_f64(v))
-            } else {
-                Err(slag_common::Error::param(name, v, "seconds > 0"))
-            }
-        };
-        let l = slag_common::http::ServerLimits {
-            header_timeout: secs(self.header_timeout, "header_timeout")?,
-            write_timeout: secs(self.write_timeout, "write_timeout")?,
-            body_timeout: secs(self.body_timeout, "body_timeout")?,
-            max_connections: self.max_connections,
-            max_connections_per_ip: self.max_connections_per_ip,
-        };
-        l.validate()?;
-        Ok(l)
-    }
-
-    /// The TLS certificate and key of `--tls-cert` / `--tls-key`, `None` without them.
-    ///
-    /// Errors: as [`slag_common::tls::ServerTls::load`] (unreadable files, no PEM certificate or
-    /// key, a key of another certificate).
-    pub fn tls(&self) -> slag_common::Result<Option<std::sync::Arc<slag_common::tls::ServerTls>>> {
-        match (&self.tls_cert, &self.tls_key) {
-            (Some(c), Some(k)) => Ok(Some(std::sync::Arc::new(
-                slag_common::tls::ServerTls::load(c, k)?,
-            ))),
-            _ => Ok(None),
-        }
-    }
 }
 
 /// The shard server's token: `--token-file` (first line, trimmed) else env `SLAG_SHARD_TOKEN`.
@@ -683,14 +605,16 @@ pub fn serve_token(token_file: Option<&std::path::Path>) -> slag_common::Result<
 ///
 /// Errors: store cannot be opened, address cannot be bound.
 pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
-    let token = serve_token(args.token_file.as_deref())?;
-    let limits = args.limits()?;
-    let tls = args.tls()?;
+    let server = &args.server;
+    let addr = server.listen_addr(DEFAULT_SHARD_LISTEN)?;
+    let token = serve_token(server.token_file.as_deref())?;
+    let limits = server.limits()?;
+    let tls = server.tls()?;
     slag_common::tls::check_token_transport(
-        args.bind,
+        addr,
         token.is_some(),
         tls.is_some(),
-        args.allow_plain_http,
+        server.allow_plain_http,
     )?;
     let key = load_signing_key(args.signing_key.as_deref())?;
     if let Some(p) = &args.signing_key {
@@ -710,7 +634,7 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
     };
     rt.block_on(crate::serve::serve_with_tls_signed(
         store,
-        args.bind,
+        addr,
         token,
         limits,
         tls,
@@ -723,14 +647,19 @@ pub fn run_serve(args: &ServeArgs) -> anyhow::Result<()> {
 /// `slag-encoder export`: manifest.json + shard files of one scene, written atomically.
 #[derive(Debug, Clone, clap::Args)]
 pub struct ExportArgs {
-    /// Shard store folder.
-    #[arg(long)]
+    /// The publisher's shard store folder (written by `partition`).
+    #[arg(long = "shard-store", value_name = "DIR")]
     pub store: PathBuf,
     /// Scene id.
     #[arg(long, value_name = "NAME")]
     pub scene: String,
     /// Output folder (must not exist unless --force).
-    pub dir: PathBuf,
+    #[arg(long, value_name = "DIR", required_unless_present = "dir")]
+    pub out: Option<PathBuf>,
+    /// The output folder as a bare argument: the older form of --out, still accepted (noted as
+    /// deprecated).
+    #[arg(hide = true, conflicts_with = "out", value_name = "DIR")]
+    pub dir: Option<PathBuf>,
     /// Replace an existing output folder.
     #[arg(long)]
     pub force: bool,
@@ -751,16 +680,35 @@ pub fn run_export(args: &ExportArgs) -> anyhow::Result<()> {
     if let Some(p) = &args.signing_key {
         check_key_mode(p, args.allow_readable_key)?;
     }
+    let dir = export_dir(args)?;
     let store = ShardStore::open(&args.store)?;
-    let m = crate::export::export_signed(&store, &args.scene, &args.dir, args.force, key.as_ref())?;
+    let m = crate::export::export_signed(&store, &args.scene, &dir, args.force, key.as_ref())?;
     println!(
         "exported {} shards of {} (generation {}) to {}",
         m.tiles.len(),
         m.scene_id,
         m.generation,
-        args.dir.display()
+        dir.display()
     );
     Ok(())
+}
+
+/// The output folder of `export`: `--out`, else the bare argument (noted as deprecated).
+///
+/// Errors: [`slag_common::Error::Param`] `dir` when neither is given.
+fn export_dir(args: &ExportArgs) -> slag_common::Result<PathBuf> {
+    match (&args.out, &args.dir) {
+        (Some(out), _) => Ok(out.clone()),
+        (None, Some(dir)) => {
+            eprintln!(
+                "note: the output folder as a bare argument is deprecated and will be removed: \
+                 use --out {}",
+                dir.display()
+            );
+            Ok(dir.clone())
+        }
+        (None, None) => Err(slag_common::Error::param("dir", "none", "an output folder")),
+    }
 }
 
 /// `slag-shards keygen`: a new Ed25519 key pair for signing manifests.
@@ -818,25 +766,6 @@ fn check_key_mode(path: &std::path::Path, allow: bool) -> slag_common::Result<()
     ))
 }
 
-/// The process's exit status for a subcommand's `result`: success, or failure after printing
-/// the error with its causes and, where `hint` has one for it, a hint (both on stderr). Shared by
-/// `slag-shards` and `slag-encoder`, each with its own hints.
-pub fn exit_code(
-    result: anyhow::Result<()>,
-    hint: impl Fn(&anyhow::Error) -> Option<String>,
-) -> std::process::ExitCode {
-    match result {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {}", slag_common::error::causes_once(e.as_ref()));
-            if let Some(h) = hint(&e) {
-                eprintln!("hint: {h}");
-            }
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
-
 /// What the command line adds to an error of the shard stage (`e` or an error it wraps): the
 /// flag that sets the parameter the library names ([`slag_common::Error::Param`]) or lowers the
 /// need ([`slag_common::Error::Limit`]). The library's messages name no flag.
@@ -853,7 +782,7 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
             let flag = match *name {
                 "up" => "--up x|y|z|-x|-y|-z",
                 "dtype" => "--dtype f32",
-                "mixture_slots" => "--mixture-slots S (1 to the file's keep)",
+                "mixture_slots" => "--mixture-keep S (1 to the file's keep)",
                 "qdrant_url" => {
                     "--qdrant-url to the partition of the scene you upload (it partitions a \
                      mixture as its dense rows, the rows Qdrant stores)"
@@ -863,13 +792,16 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
                 "batch_size" => "--qdrant-batch N",
                 "collection" => "--qdrant-collection NAME",
                 "scene_id" | "scene" => "--scene NAME",
-                "dir" => "the export folder DIR",
+                "dir" => "--out DIR (the export folder)",
                 "token" => "a non-blank --token-file, or unset SLAG_SHARD_TOKEN",
                 "header_timeout" => "--header-timeout SECONDS",
                 "write_timeout" => "--write-timeout SECONDS",
                 "max_connections" => "--max-connections N (or raise ulimit -n)",
                 "body_timeout" => "--body-timeout SECONDS",
                 "max_connections_per_ip" => "--max-connections-per-ip N",
+                "listen" => "--listen HOST:PORT, e.g. 127.0.0.1:8090",
+                "tls_key" => "--tls-key FILE with --tls-cert (the certificate's private key)",
+                "tls_cert" => "--tls-cert FILE with --tls-key (the key's certificate chain)",
                 "plain_http" => {
                     "--tls-cert FILE --tls-key FILE (HTTPS), or bind a loopback address \
                      (--listen 127.0.0.1:PORT), or --allow-plain-http to send the token in clear \
@@ -889,25 +821,4 @@ pub fn hint_for(e: &slag_common::Error) -> Option<String> {
         }
         _ => None,
     }
-}
-
-/// Options every subcommand of `slag-shards` and `slag-encoder` takes.
-#[derive(Debug, Clone, Copy, clap::Args)]
-pub struct GlobalArgs {
-    /// Debug logging (or set RUST_LOG).
-    #[arg(long, short, global = true)]
-    pub verbose: bool,
-}
-
-/// Sets up `tracing` (respects `RUST_LOG`, default `info`, `debug` with `verbose`) on stderr,
-/// coloured only on a terminal without `NO_COLOR` ([`slag_common::term::stderr_ansi`]).
-pub fn init_logging(verbose: bool) {
-    let default = if verbose { "debug" } else { "info" };
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
-    let _ = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(slag_common::term::stderr_ansi())
-        .try_init();
 }

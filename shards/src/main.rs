@@ -7,14 +7,14 @@ use slag_shards::cli;
 
 /// slag-shards: cut per-Gaussian embeddings into spatial shards, serve or export them.
 ///
-///   slag-shards partition --embeddings OUT/embeddings.safetensors --store STORE --scene lab
-///   slag-shards serve --store STORE --listen 0.0.0.0:8090
-///   slag-shards export --store STORE --scene lab DIR
+///   slag-shards partition --embeddings OUT/mixture.safetensors --shard-store STORE --scene lab
+///   slag-shards serve --shard-store STORE --listen 0.0.0.0:8090
+///   slag-shards export --shard-store STORE --scene lab --out DIR
 #[derive(Parser)]
 #[command(version, about, long_about, verbatim_doc_comment)]
 struct Cli {
     #[command(flatten)]
-    global: cli::GlobalArgs,
+    global: slag_common::cli::process::GlobalArgs,
     #[command(subcommand)]
     command: Command,
 }
@@ -33,13 +33,27 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    slag_common::cli::deprecated::note_deprecated();
     let args = Cli::parse();
-    cli::init_logging(args.global.verbose);
+    let verbose = args.global.verbose;
+    slag_common::cli::process::init_logging(verbose);
     let result = match &args.command {
         Command::Partition(a) => cli::run_partition(a),
         Command::Serve(a) => cli::run_serve(a),
         Command::Export(a) => cli::run_export(a),
         Command::Keygen(a) => cli::run_keygen(a),
     };
-    cli::exit_code(result, cli::hint)
+    slag_common::cli::process::exit_code(result, cli::hint, verbose)
+}
+
+#[cfg(test)]
+mod flag_names {
+    /// Every flag name of this binary, hidden aliases included, keeps one meaning across the slag
+    /// binaries, and every meaning one name ([`slag_common::flag_names`]).
+    #[test]
+    fn each_flag_name_has_one_meaning_across_the_binaries() {
+        use clap::CommandFactory;
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        slag_common::flag_names::assert_one_meaning("slag-shards", &super::Cli::command(), &root);
+    }
 }

@@ -67,7 +67,7 @@ struct Served {
 /// Starts `slag-shards serve` on `store`, reads everything it serves for the scene, stops it.
 fn served(store: &Path) -> (u64, Served) {
     let store_s = store.display().to_string();
-    let mut child = slag_shards(&["serve", "--store", &store_s, "--bind", "127.0.0.1:0"])
+    let mut child = slag_shards(&["serve", "--shard-store", &store_s, "--listen", "127.0.0.1:0"])
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
         .spawn()
@@ -121,7 +121,7 @@ fn a_partition_stopped_at_every_boundary_serves_a_or_b_and_a_rerun_commits_b() {
         "partition",
         "--synthetic",
         "240:8",
-        "--store",
+        "--shard-store",
         &t,
         "--scene",
         SCENE,
@@ -138,7 +138,7 @@ fn a_partition_stopped_at_every_boundary_serves_a_or_b_and_a_rerun_commits_b() {
         let store = store.display().to_string();
         let args = [
             "partition",
-            "--mixture",
+            "--embeddings",
             &mix_s,
             "--up",
             "z",
@@ -146,7 +146,7 @@ fn a_partition_stopped_at_every_boundary_serves_a_or_b_and_a_rerun_commits_b() {
             "50",
             "--report",
             &report_s,
-            "--store",
+            "--shard-store",
             &store,
             "--scene",
             SCENE,

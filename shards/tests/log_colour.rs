@@ -1,5 +1,6 @@
-//! The log lines of `slag-shards` (and of `slag-encoder` and `slag-bench`, which share
-//! `slag_shards::cli::init_logging`) carry no ANSI colour codes when stderr is not a terminal.
+//! The log lines of `slag-shards` (and of `slag-encoder`, `slag-edge` and `slag-bench`, which
+//! share `slag_common::cli::process::init_logging`) carry no ANSI colour codes when stderr is not
+//! a terminal.
 #![allow(clippy::unwrap_used)]
 
 use std::process::Command;
@@ -15,7 +16,7 @@ fn partition_logs_without_colour_codes_into_a_pipe() {
             "2000:16",
             "--scene",
             "syn",
-            "--store",
+            "--shard-store",
         ])
         .arg(&store)
         .env("RUST_LOG", "debug")

@@ -6,7 +6,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-/// `slag-shards partition --synthetic 500:8 --scene syn --store STORE` with `extra` flags.
+/// `slag-shards partition --synthetic 500:8 --scene syn --shard-store STORE` with `extra` flags.
 fn partition(store: &Path, extra: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_slag-shards"))
         .args([
@@ -15,7 +15,7 @@ fn partition(store: &Path, extra: &[&str]) -> Output {
             "500:8",
             "--scene",
             "syn",
-            "--store",
+            "--shard-store",
         ])
         .arg(store)
         .args(extra)

@@ -132,7 +132,7 @@ fn a_blank_shard_token_in_the_environment_refuses_to_start() {
     let dir = tempfile::tempdir().unwrap();
     for blank in ["", "  \t"] {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_slag-shards"))
-            .args(["serve", "--bind", "127.0.0.1:0", "--store"])
+            .args(["serve", "--listen", "127.0.0.1:0", "--shard-store"])
             .arg(dir.path())
             .env("SLAG_SHARD_TOKEN", blank)
             .output()

@@ -100,7 +100,7 @@ fn shards(args: &[&str], env: &[(&str, &str)]) -> Child {
 /// `slag-shards serve` of `store` on a free loopback port over TLS with `cert` and `key` (PEM
 /// paths), started as [`shards`] starts it.
 fn serve_tls_on_loopback(store: &str, cert: &str, key: &str) -> Child {
-    let args = ["serve", "--store", store, "--bind", "127.0.0.1:0"];
+    let args = ["serve", "--shard-store", store, "--listen", "127.0.0.1:0"];
     shards(
         &[&args[..], &["--tls-cert", cert, "--tls-key", key]].concat(),
         &[],
@@ -219,7 +219,7 @@ fn a_token_over_plain_http_off_loopback_needs_allow_plain_http() {
     let store = dir.path().display().to_string();
     let token = [("SLAG_SHARD_TOKEN", "s3cret")];
     let serve = |bind: &str, extra: &[&str]| {
-        let args = [&["serve", "--store", &store, "--bind", bind][..], extra].concat();
+        let args = [&["serve", "--shard-store", &store, "--listen", bind][..], extra].concat();
         shards(&args, &token)
     };
     let out = serve("0.0.0.0:0", &[]).wait_with_output().unwrap();

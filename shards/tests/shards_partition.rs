@@ -413,7 +413,7 @@ fn parse(extra: &[&str]) -> Result<PartitionCli, clap::Error> {
         "partition",
         "--synthetic",
         "10",
-        "--store",
+        "--shard-store",
         "S",
         "--scene",
         "x",

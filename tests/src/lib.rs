@@ -161,11 +161,11 @@ pub enum Shards<'a> {
         display: bool,
     },
     /// Encode with `--mixture-keep keep` and partition `mixture.safetensors`
-    /// (`partition --mixture`, cut to `slots` with `--mixture-slots` when given).
+    /// (`partition --embeddings`, cut to `slots` with `--mixture-keep` when given).
     Mixture {
         /// `encode --mixture-keep`.
         keep: usize,
-        /// `partition --mixture-slots`.
+        /// `partition --mixture-keep`.
         slots: Option<usize>,
     },
 }
@@ -195,9 +195,8 @@ pub fn robot_path_with(
     let embeddings = out.join("embeddings.safetensors");
     let shard_store = dir.path().join("shards");
     slag_shards::cli::run_partition(&slag_shards::cli::PartitionArgs {
-        embeddings: mixture.is_none().then(|| embeddings.clone()),
-        mixture: mixture.clone(),
-        mixture_slots,
+        embeddings: Some(mixture.clone().unwrap_or_else(|| embeddings.clone())),
+        mixture_keep: mixture_slots,
         synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),

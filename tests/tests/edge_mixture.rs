@@ -1,5 +1,5 @@
 //! The robot path for the mixture form: encode snowmiku-mini with
-//! `--mixture-keep 16` → `partition --mixture --mixture-slots 8` (mixture shards + codebook) →
+//! `--mixture-keep 16` → `partition --embeddings --mixture-keep 8` (mixture shards + codebook) →
 //! `slag-encoder serve` → `slag-edge fetch` (codebook verified) → `Engine` / `slag-edge serve`,
 //! whose scores must equal `MixtureEmbeddings::truncated(8).scores` (the held-out evaluation's
 //! "top 8 cut from 16"); a corrupted or truncated codebook is refused with a typed error.

@@ -1,5 +1,5 @@
-//! `slag-encoder serve` with a bearer token and `slag-edge fetch --token`: refused (401, a message
-//! naming `--token`) without or with a wrong token, served with the right one.
+//! `slag-encoder serve` with a bearer token and `slag-edge fetch --shard-token-file`: refused
+//! (401, a message naming the token) without or with a wrong token, served with the right one.
 #![allow(clippy::unwrap_used)]
 
 use std::time::Duration;
@@ -63,7 +63,7 @@ async fn fetch_needs_the_shard_servers_token() {
             ),
             "{msg}"
         );
-        // The library names the token; `slag-edge` adds `--token` (its hint).
+        // The library names the token; `slag-edge` adds `--shard-token-file` (its hint).
         assert!(msg.contains("401") && msg.contains("token"), "{msg}");
     }
     p.token = Some("tok-42".into());

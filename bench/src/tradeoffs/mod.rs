@@ -60,10 +60,10 @@ pub use encode::{Aggregation, EncodePoint, EncodeRecord, MaskChoice};
 pub struct TradeoffArgs {
     /// Scene folder (point_cloud.ply, images/, sparse/0). Default: <shared>/scenes/snowmiku, or
     /// data/snowmiku-mini with --quick.
-    #[arg(long)]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: Option<PathBuf>,
     /// Output folder for tradeoffs.md and tradeoffs.csv (e.g. docs/results/).
-    #[arg(long)]
+    #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
     /// Small study for tests: 3 encode points (reference, baseline, raster 0.25), every storage
     /// and index point, fewer repeats.

@@ -42,8 +42,8 @@ pub struct BenchArgs {
     /// Embedding width D.
     #[arg(long, default_value_t = 512)]
     pub dim: usize,
-    /// k of the top-k queries.
-    #[arg(long, default_value_t = 1000)]
+    /// k of the top-k queries the bench times (a workload size, not the answer's `--top-k`).
+    #[arg(long = "k", value_name = "K", default_value_t = 1000)]
     pub top_k: usize,
     /// Cosine threshold of the threshold query (the paper's 0.28).
     #[arg(long, default_value_t = 0.28)]
@@ -106,8 +106,13 @@ pub struct BenchArgs {
     /// int8 copies of the same Gaussians); 0 = no mixture table.
     #[arg(long, default_value_t = 4000)]
     pub mixture_atoms: usize,
-    /// Slots per Gaussian S of the mixture table.
-    #[arg(long, default_value_t = 8)]
+    /// Slots per Gaussian S of the mixture table (kept per Gaussian, as `encode --mixture-keep`).
+    #[arg(
+        long = "mixture-keep",
+        alias = "mixture-slots",
+        value_name = "S",
+        default_value_t = 8
+    )]
     pub mixture_slots: usize,
     /// Matching Gaussians of the objects table (grouping a query's matches into objects);
     /// 0 = no objects table.

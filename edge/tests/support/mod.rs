@@ -719,7 +719,7 @@ pub fn fetch_args<'a>(url: &'a str, store: &'a str, radius: &'a str) -> Vec<&'a 
     [&["fetch", "--from", url][..], &scene, &["--store", store]].concat()
 }
 
-/// `SUB --store STORE --scene SCENE --text-model TEXT_MODEL --tokenizer TOKENIZER` (check,
+/// `SUB --store STORE --scene SCENE --clip-textual TEXT_MODEL --tokenizer TOKENIZER` (check,
 /// query, serve); `model` is `[TEXT_MODEL, TOKENIZER]`.
 pub fn text_model_args<'a>(
     sub: &'a str,
@@ -731,7 +731,7 @@ pub fn text_model_args<'a>(
     let store = [sub, "--store", store, "--scene", scene];
     [
         &store[..],
-        &["--text-model", text_model, "--tokenizer", tokenizer],
+        &["--clip-textual", text_model, "--tokenizer", tokenizer],
     ]
     .concat()
 }

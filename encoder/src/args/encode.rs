@@ -27,7 +27,7 @@ pub enum PrecisionArg {
     F32,
 }
 
-/// `--segments`: write the geometric segments or not.
+/// `--write-segments`: write the geometric segments or not.
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
 pub enum OnOff {
     /// Write them.
@@ -106,7 +106,7 @@ impl From<&SegmentArgs> for SegmentParams {
 #[derive(Debug, Clone, Args)]
 pub struct EncodeArgs {
     /// Scene folder: point_cloud.ply (or --ply), images/, and sparse/0 (COLMAP) or transforms.json.
-    #[arg(long = "scene-dir", alias = "scene", value_name = "DIR")]
+    #[arg(long = "scene-dir", value_name = "DIR")]
     pub scene: PathBuf,
     /// The trained 3DGS .ply (INRIA layout); default <scene>/point_cloud.ply.
     #[arg(long)]
@@ -167,7 +167,7 @@ pub struct EncodeArgs {
     #[arg(long, value_enum, value_name = "ORDER", default_value_t = CropFillArg::BeforeResize)]
     pub crop_fill: CropFillArg,
     /// Keep every N-th image (1 = all; the paper uses 1:20 on large scenes).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, value_name = "N", default_value_t = 1)]
     pub every: usize,
     /// Hold out the views with name-sorted index ≡ N/2 (mod N) for `eval-colors --held-out`
     /// and train on all the others (N >= 2; e.g. 4 trains on 3 views of 4).
@@ -223,7 +223,7 @@ pub struct EncodeArgs {
     #[arg(long, value_name = "GIB")]
     pub gpu_mem_limit_gb: Option<f64>,
     /// Worker threads (ONNX Runtime intra-op and CPU stages; a quarter of them segment the
-    /// Gaussians beside the encode, see --segments); default: all cores.
+    /// Gaussians beside the encode, see --write-segments); default: all cores.
     #[arg(long)]
     pub threads: Option<usize>,
     /// GPUs to rasterize on: a count or `all` (every discrete GPU; one wgpu device and one back
@@ -309,7 +309,12 @@ pub struct EncodeArgs {
     /// Also write the Gaussians' geometric segments (`segments.safetensors`, for prediction
     /// filtering, the shards and `&smooth=segment`): computed beside the encode, written after it
     /// succeeded.
-    #[arg(long, value_enum, value_name = "on|off", default_value_t = OnOff::On)]
+    #[arg(
+        long = "write-segments",
+        value_enum,
+        value_name = "on|off",
+        default_value_t = OnOff::On
+    )]
     pub segments: OnOff,
     /// The segmentation's settings (`--segment-*`).
     #[command(flatten)]

@@ -1,10 +1,19 @@
-//! Command-line values shared by the binaries (the `clap` feature): the library's own types
-//! derive no command-line traits; each value here maps to one with `From`.
+//! The command line the binaries share (the `clap` feature): values whose library types derive
+//! no command-line traits (each maps to one with `From`), the options every binary takes and the
+//! process's logging and exit status ([`process`]), the old flag spellings still accepted
+//! ([`deprecated`]), and the HTTP servers' options ([`server`], with the `server` feature).
 
+pub mod deprecated;
+pub mod process;
+#[cfg(feature = "server")]
+pub mod server;
+
+#[cfg(feature = "onnx")]
 use crate::onnx::ExecutionProvider;
 
 /// `--ep`: the ONNX Runtime execution provider ([`ExecutionProvider`]), the same value in every
 /// binary (`cpu`, `cuda`, `tensorrt`, `auto`).
+#[cfg(feature = "onnx")]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum EpArg {
     /// The default CPU provider.
@@ -26,9 +35,10 @@ pub enum EpArg {
     Auto,
 }
 
-#[cfg(doc)]
+#[cfg(all(doc, feature = "onnx"))]
 use crate::Error;
 
+#[cfg(feature = "onnx")]
 impl From<EpArg> for ExecutionProvider {
     fn from(a: EpArg) -> Self {
         match a {
