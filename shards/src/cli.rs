@@ -1,24 +1,20 @@
-//! `partition`, `serve`, `export` and `keygen` subcommands (clap `Args` + run functions), shared
-//! by the `slag-shards` binary and `slag-encoder` (same names and flags).
+//! `partition`, `serve`, `export` and `keygen` subcommands (clap `Args`, each turned into the
+//! library's settings, and its run function), shared by the `slag-shards` binary and
+//! `slag-encoder` (same names and flags). The partition itself runs from a typed
+//! [`PartitionConfig`] ([`crate::stage`]).
 
 use std::path::PathBuf;
 
 use anyhow::Context;
 use slag_common::cli::server::{DEFAULT_SHARD_LISTEN, ServerArgs};
-use slag_common::embeddings::Embeddings;
-use slag_common::forms::EmbeddingsForm;
-use slag_common::shards::synthetic::SyntheticScene;
-use slag_common::shards::{
-    DisplayColumns, Dtype, GaussianSource, GroundFrame, Manifest, SceneToMap,
-};
+use slag_common::shards::{Dtype, GroundFrame};
 
-use crate::partition::{
-    DEFAULT_MAX_SHARD_MIB, PartitionParams, ShardCap, StorageReport, UpChoice, mixture_layout,
-    resolve_max_per_shard, resolve_mixture_max_per_shard, shard_layout, storage_report,
+use crate::partition::{DEFAULT_MAX_SHARD_MIB, ShardCap};
+use crate::qdrant::QdrantParams;
+use crate::stage::{
+    PartitionConfig, PartitionInput, SegmentsChoice, ToMap, check_key_mode, load_signing_key,
 };
-use crate::store::{ShardStore, partition_into_store_signed, partition_mixture_into_store_signed};
-use slag_common::mixture::MixtureEmbeddings;
-use slag_common::shards::signature::SigningKey;
+use crate::store::ShardStore;
 
 /// `slag-encoder partition`: cut an embeddings file into spatial shards in a sled store.
 #[derive(Debug, Clone, clap::Args)]
@@ -149,64 +145,6 @@ pub struct PartitionArgs {
 }
 
 impl PartitionArgs {
-    /// The scene-to-map transform of `--to-map` / `--to-map-points`, if any (printed).
-    ///
-    /// Errors: unreadable file, bad JSON, too few / collinear points, a non-rotation
-    /// ([`slag_common::Error`]).
-    pub fn scene_to_map(&self) -> slag_common::Result<Option<SceneToMap>> {
-        let t = match (&self.to_map, &self.to_map_points) {
-            (Some(f), _) => SceneToMap::read(f)?,
-            (None, Some(f)) => SceneToMap::read_points(f)?,
-            (None, None) => return Ok(None),
-        };
-        let q = t.quaternion_wxyz();
-        println!(
-            "scene-to-map ({:?}): scale {:.9} m per scene unit, rotation (wxyz) [{:.9}, {:.9}, \
-             {:.9}, {:.9}], translation {:?} m{}",
-            t.source,
-            t.scale,
-            q[0],
-            q[1],
-            q[2],
-            q[3],
-            t.translation,
-            match (t.points, t.rms_residual) {
-                (Some(n), Some(r)) => format!("; {n} surveyed points, RMS residual {r:.4} m"),
-                _ => String::new(),
-            }
-        );
-        Ok(Some(t))
-    }
-
-    /// The up-axis choice: `--up`, else the map's z when a transform is given, else `--cameras`,
-    /// else PCA of the means.
-    fn up_choice(&self, to_map: Option<&SceneToMap>) -> anyhow::Result<Option<UpChoice>> {
-        Ok(if let Some(u) = &self.up {
-            Some(UpChoice::Given(GroundFrame::from_axis_name(u)?))
-        } else {
-            to_map
-                .map(|t| crate::partition::map_ground_frame(t).map(UpChoice::Given))
-                .transpose()?
-        })
-    }
-
-    /// [`Self::up_choice`], else the mean camera up of `--cameras`, else PCA.
-    fn up_or_cameras(&self, to_map: Option<&SceneToMap>) -> anyhow::Result<UpChoice> {
-        Ok(if let Some(u) = self.up_choice(to_map)? {
-            u
-        } else if let Some(dir) = &self.cameras {
-            let views = slag_common::camera::load_views(dir)?;
-            UpChoice::CameraUps(
-                views
-                    .iter()
-                    .map(|v| (-v.world_to_camera.rotation.row(1)).to_array())
-                    .collect(),
-            )
-        } else {
-            UpChoice::Pca
-        })
-    }
-
     /// The tile cap asked for: `--max-per-shard N` when given (a count), else `--max-shard-mb`
     /// (bytes; default [`DEFAULT_MAX_SHARD_MIB`]).
     ///
@@ -217,318 +155,69 @@ impl PartitionArgs {
             None => ShardCap::from_mib(self.max_shard_mb),
         }
     }
-}
 
-/// The segments `--segments` names for the embeddings (or mixture) file at `embeddings`: the
-/// file given, the `segments.safetensors` beside it when it exists, or none (`off`).
-fn resolve_segments(
-    args: &PartitionArgs,
-    embeddings: &std::path::Path,
-) -> anyhow::Result<Option<slag_common::segments::Segments>> {
-    let path = match &args.segments {
-        Some(p) if p.as_os_str() == "off" => return Ok(None),
-        Some(p) => p.clone(),
-        None => {
-            let beside = embeddings
-                .parent()
-                .unwrap_or(std::path::Path::new("."))
-                .join(slag_common::segments::FILE_NAME);
-            if !beside.exists() {
-                return Ok(None);
-            }
-            beside
-        }
-    };
-    let s = slag_common::segments::Segments::read(&path)?;
-    eprintln!(
-        "segments: {} ({} segments over {} Gaussians)",
-        path.display(),
-        s.segment_count,
-        s.len()
-    );
-    Ok(Some(s))
-}
-
-/// [`partition_source`] with the segments wrapped around `src` when there are any.
-fn partition_with_segments(
-    args: &PartitionArgs,
-    src: &impl GaussianSource,
-    mix: Option<&MixtureEmbeddings>,
-    segments: Option<&slag_common::segments::Segments>,
-    up: UpChoice,
-    to_map: Option<SceneToMap>,
-    scene_gaussians: Option<u64>,
-) -> anyhow::Result<(Manifest, StorageReport)> {
-    match segments {
-        Some(s) => {
-            let src = slag_common::shards::WithSegments::new(src, s)?;
-            partition_source(args, &src, mix, up, to_map, scene_gaussians)
-        }
-        None => partition_source(args, src, mix, up, to_map, scene_gaussians),
+    /// The typed settings of the run these flags ask for.
+    ///
+    /// Errors: a bad `--max-shard-mb`, `--up` or `--synthetic` value, neither `--embeddings`
+    /// nor `--synthetic`.
+    pub fn config(&self) -> anyhow::Result<PartitionConfig> {
+        let input = match (&self.synthetic, &self.embeddings) {
+            (Some(spec), _) => synthetic_input(spec)?,
+            (None, Some(path)) => PartitionInput::Embeddings(path.clone()),
+            (None, None) => anyhow::bail!("pass --embeddings FILE (or --synthetic N)"),
+        };
+        let to_map = match (&self.to_map, &self.to_map_points) {
+            (Some(f), _) => Some(ToMap::File(f.clone())),
+            (None, Some(f)) => Some(ToMap::Points(f.clone())),
+            (None, None) => None,
+        };
+        let segments = match &self.segments {
+            None => SegmentsChoice::Beside,
+            Some(p) if p.as_os_str() == "off" => SegmentsChoice::Off,
+            Some(p) => SegmentsChoice::File(p.clone()),
+        };
+        let qdrant = self.qdrant_url.as_ref().map(|url| QdrantParams {
+            url: url.clone(),
+            collection: self
+                .qdrant_collection
+                .clone()
+                .unwrap_or_else(|| self.scene.clone()),
+            batch_size: self.qdrant_batch,
+            quantize_int8: self.qdrant_int8,
+            snapshot_per_tile: self.qdrant_snapshot_per_tile,
+            api_key: self.qdrant_api_key.clone(),
+        });
+        Ok(PartitionConfig {
+            input,
+            mixture_keep: self.mixture_keep,
+            store: self.store.clone(),
+            scene: self.scene.clone(),
+            cap: self.shard_cap()?,
+            report: self.report.clone(),
+            up: self
+                .up
+                .as_deref()
+                .map(GroundFrame::from_axis_name)
+                .transpose()?,
+            cameras: self.cameras.clone(),
+            to_map,
+            display_ply: self.display_ply.clone(),
+            dtype: self.dtype,
+            segments,
+            qdrant,
+            signing_key: self.signing_key.clone(),
+            allow_readable_key: self.allow_readable_key,
+            start_generation: self.start_generation,
+        })
     }
 }
 
-/// Resolves the cap for `src`, opens `--store` and partitions `src` into it, then prints and
-/// (with `--report`) writes the [`StorageReport`]. `mix`: the mixture whose rows `src` gives ids,
-/// means and display columns of (its shards are f16 slots, `--dtype` does not apply); `None`:
-/// `src`'s own dense vectors. `scene_gaussians`: the source scene's Gaussian count if known. A
-/// cap that cannot hold one Gaussian fails before the store is opened.
-fn partition_source(
-    args: &PartitionArgs,
-    src: &impl GaussianSource,
-    mix: Option<&MixtureEmbeddings>,
-    up: UpChoice,
-    to_map: Option<SceneToMap>,
-    scene_gaussians: Option<u64>,
-) -> anyhow::Result<(Manifest, StorageReport)> {
-    let (max_per_shard, dtype) = match mix {
-        None => {
-            let layout = shard_layout(src, &args.scene, args.dtype);
-            (
-                resolve_max_per_shard(&layout, args.shard_cap()?)?,
-                args.dtype,
-            )
-        }
-        Some(mix) => {
-            let layout = mixture_layout(src, &args.scene, mix.keep);
-            let cap = resolve_mixture_max_per_shard(&layout, args.shard_cap()?)?;
-            (cap, Dtype::F16)
-        }
-    };
-    let key = load_signing_key(args.signing_key.as_deref())?;
-    let mut store = ShardStore::open(&args.store)?;
-    if let Some(g) = args.start_generation {
-        store = store.starting_at(g)?;
-    }
-    let store = &store;
-    let params = PartitionParams {
-        scene_id: args.scene.clone(),
-        max_per_shard,
-        up,
-        dtype,
-        to_map,
-    };
-    let m = match mix {
-        None => partition_into_store_signed(store, src, &params, key.as_ref()),
-        Some(mix) => partition_mixture_into_store_signed(store, src, mix, &params, key.as_ref()),
-    }
-    .context("partition")?;
-    let report = report_partition(args, store, &m, scene_gaussians)?;
-    Ok((m, report))
-}
-
-/// The display columns of `--display-ply` and the `.ply`'s Gaussian count. Shards store the
-/// `.ply` convention (log-scales, logit opacities, normalised rotations, SH DC): the columns
-/// invert load_ply's activations.
-fn display_columns(ply: &std::path::Path) -> anyhow::Result<(DisplayColumns, u64)> {
-    let g =
-        slag_common::scene::load_ply(ply, slag_common::scene::PlyLoadOptions { colours: true })?;
-    Ok((DisplayColumns::from_gaussians(&g), g.len() as u64))
-}
-
-/// Runs `partition`; prints a one-line summary and the stored-vs-dense [`StorageReport`]
-/// (also written as JSON with `--report FILE`).
+/// `--synthetic N[:DIM]` as an input.
 ///
-/// Errors: unreadable embeddings, invalid parameters (a `--max-shard-mb` smaller than one
-/// Gaussian's shard, `--max-per-shard 0`), store failures.
-pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
-    // Reject a bad --max-shard-mb or signing key before reading a large input.
-    args.shard_cap()?;
-    if let Some(p) = &args.signing_key {
-        SigningKey::read_pem(p)?;
-        check_key_mode(p, args.allow_readable_key)?;
-    }
-    if args.start_generation == Some(0) {
-        return Err(slag_common::Error::param(
-            "start_generation",
-            0,
-            "a generation ≥ 1 (above the one the robots hold)",
-        )
-        .into());
-    }
-    if let Some(spec) = &args.synthetic {
-        return run_partition_synthetic(args, spec);
-    }
-    let (path, form) = partition_input(args)?;
-    let path = &path;
-    let emb = match form {
-        EmbeddingsForm::Mixture if args.qdrant_url.is_none() => {
-            return run_partition_mixture(args, path);
-        }
-        EmbeddingsForm::Mixture => {
-            eprintln!(
-                "{}: Qdrant stores dense vectors: the mixture is expanded to its rows and \
-                 partitioned dense",
-                path.display()
-            );
-            slag_common::forms::expand_mixture(&read_mixture(args, path)?)
-        }
-        EmbeddingsForm::Dense => Embeddings::read(path)?,
-    };
-    let to_map = args.scene_to_map()?;
-    let segments = resolve_segments(args, path)?;
-    let segs = segments.as_ref();
-    let up = args.up_or_cameras(to_map.as_ref())?;
-    let t = std::time::Instant::now();
-    // The embeddings file records the source .ply's Gaussian count (0 in files without it).
-    let mut scene_gaussians = Some(emb.scene_gaussians).filter(|&n| n > 0);
-    let (m, _) = match &args.display_ply {
-        Some(ply) => {
-            let (cols, n) = display_columns(ply)?;
-            scene_gaussians = scene_gaussians.or(Some(n));
-            let src = slag_common::shards::WithDisplay::from_columns(&emb, &cols)?;
-            partition_with_segments(args, &src, None, segs, up, to_map, scene_gaussians)?
-        }
-        None => partition_with_segments(args, &emb, None, segs, up, to_map, scene_gaussians)?,
-    };
-    let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
-    println!(
-        "scene {} generation {}: {} Gaussians in {} shards, {} bytes ({:.1} B/Gaussian, {:?}), up {:?} ({:?}), {:.1}s",
-        m.scene_id,
-        m.generation,
-        m.total_gaussians,
-        m.tiles.len(),
-        bytes,
-        bytes as f64 / m.total_gaussians.max(1) as f64,
-        m.dtype,
-        m.ground.up,
-        m.ground.up_source,
-        t.elapsed().as_secs_f64()
-    );
-    match &args.qdrant_url {
-        Some(url) => upload_to_qdrant(args, url, &emb, &m),
-        None => Ok(()),
-    }
-}
-
-/// The embeddings `partition` reads and their form: `--embeddings` (either form, by its header; a missing dense file with `mixture.safetensors` beside it gives that
-/// mixture, said on stderr).
-///
-/// Errors: neither flag, an unreadable file or one of neither form.
-fn partition_input(args: &PartitionArgs) -> anyhow::Result<(PathBuf, EmbeddingsForm)> {
-    let Some(path) = &args.embeddings else {
-        anyhow::bail!("pass --embeddings FILE (or --synthetic N)");
-    };
-    let beside = slag_common::forms::mixture_beside(path);
-    if !path.exists() && beside.is_file() {
-        eprintln!(
-            "{} does not exist (`slag-encoder encode` writes it only with --dense): partitioning \
-             the mixture beside it, {}",
-            path.display(),
-            beside.display()
-        );
-        return Ok((beside, EmbeddingsForm::Mixture));
-    }
-    Ok((path.clone(), slag_common::forms::form_of(path)?))
-}
-
-/// The mixture at `path`, cut to `--mixture-keep` when given.
-///
-/// Errors: unreadable file, a slot count out of range.
-fn read_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<MixtureEmbeddings> {
-    let full = MixtureEmbeddings::read(path)?;
-    Ok(match args.mixture_keep {
-        Some(s) => full.truncated(s)?,
-        None => full,
-    })
-}
-
-/// Upserts `emb` (the rows `m` was partitioned from) into the Qdrant server at `url`.
-///
-/// Errors: Qdrant's, a collection or batch the server refuses.
-fn upload_to_qdrant(
-    args: &PartitionArgs,
-    url: &str,
-    emb: &Embeddings,
-    m: &Manifest,
-) -> anyhow::Result<()> {
-    let params = crate::qdrant::QdrantParams {
-        url: url.to_string(),
-        collection: args
-            .qdrant_collection
-            .clone()
-            .unwrap_or_else(|| args.scene.clone()),
-        batch_size: args.qdrant_batch,
-        quantize_int8: args.qdrant_int8,
-        snapshot_per_tile: args.qdrant_snapshot_per_tile,
-        api_key: args.qdrant_api_key.clone(),
-    };
-    let t = std::time::Instant::now();
-    // Display attributes are not uploaded; the plain embeddings have the same rows.
-    let s = crate::qdrant::upload(emb, m, &params).context("Qdrant upload")?;
-    println!(
-        "Qdrant {url}: {} points into {} in {} batches, {} tile collections, {} snapshots, {:.1}s",
-        s.points,
-        s.collection,
-        s.batches,
-        s.tile_collections.len(),
-        s.snapshots.len(),
-        t.elapsed().as_secs_f64()
-    );
-    Ok(())
-}
-
-/// `partition --embeddings MIXTURE [--mixture-keep S]`: mixture shards + codebook (module doc of
-/// [`slag_common::shards::mixture`]).
-fn run_partition_mixture(args: &PartitionArgs, path: &std::path::Path) -> anyhow::Result<()> {
-    let to_map = args.scene_to_map()?;
-    let mix = read_mixture(args, path)?;
-    // The segments beside the mixture file (the encoder writes both into OUT/), as for dense
-    // embeddings: the shards then carry them (format version 4).
-    let segments = resolve_segments(args, path)?;
-    let segs = segments.as_ref();
-    let up = args.up_or_cameras(to_map.as_ref())?;
-    let t = std::time::Instant::now();
-    let (m, report) = match &args.display_ply {
-        Some(ply) => {
-            let (cols, n) = display_columns(ply)?;
-            let src = slag_common::shards::WithDisplay::from_columns(&mix, &cols)?;
-            partition_with_segments(args, &src, Some(&mix), segs, up, to_map, Some(n))?
-        }
-        None => partition_with_segments(args, &mix, Some(&mix), segs, up, to_map, None)?,
-    };
-    println!(
-        "scene {} generation {}: {} Gaussians as mixtures of {} slots over {} codebook rows in {} \
-         shards + codebook, {} bytes ({:.1} B/Gaussian), up {:?} ({:?}), {:.1}s",
-        m.scene_id,
-        m.generation,
-        m.total_gaussians,
-        mix.keep,
-        mix.codebook_len(),
-        m.tiles.len(),
-        report.bytes_stored,
-        report.bytes_stored as f64 / m.total_gaussians.max(1) as f64,
-        m.ground.up,
-        m.ground.up_source,
-        t.elapsed().as_secs_f64()
-    );
-    Ok(())
-}
-
-/// Measures the committed partition's bytes from the store, prints the [`StorageReport`] and
-/// writes it with `--report`.
-fn report_partition(
-    args: &PartitionArgs,
-    store: &ShardStore,
-    m: &Manifest,
-    scene_gaussians: Option<u64>,
-) -> anyhow::Result<StorageReport> {
-    let bytes = store
-        .scene_bytes(&m.scene_id)?
-        .context("the partition was committed but its scene is missing from the store")?;
-    let report = storage_report(m, scene_gaussians, bytes);
-    println!("{report}");
-    if let Some(path) = &args.report {
-        let json = serde_json::to_vec_pretty(&report).context("report JSON")?;
-        slag_common::io::write_atomic(path, &json)?;
-    }
-    Ok(report)
-}
-
-/// `partition --synthetic N[:DIM]`: a [`SyntheticScene`] (z up) straight into the store.
-fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<()> {
+/// Errors: a count of 0, a width outside 1..=65536, anything but `N` or `N:DIM`.
+fn synthetic_input(spec: &str) -> anyhow::Result<PartitionInput> {
     let mut it = spec.split(':');
-    let n: usize = it
+    let gaussians: usize = it
         .next()
         .and_then(|s| s.trim().parse().ok())
         .filter(|&n| n > 0)
@@ -542,31 +231,14 @@ fn run_partition_synthetic(args: &PartitionArgs, spec: &str) -> anyhow::Result<(
             .filter(|&d| d > 0 && d <= slag_common::shards::format::MAX_DIM as usize)
             .with_context(|| format!("--synthetic {spec:?}: DIM must be 1..=65536"))?,
     };
-    anyhow::ensure!(
-        args.qdrant_url.is_none() && args.display_ply.is_none(),
-        "--synthetic has no display attributes and is not uploaded to Qdrant"
-    );
-    let to_map = args.scene_to_map()?;
-    let scene = SyntheticScene::new(n, dim, 64, 2000.0, 42);
-    let up = match args.up_choice(to_map.as_ref())? {
-        Some(u) => u,
-        None => UpChoice::Given(GroundFrame::from_axis_name("z")?),
-    };
-    let t = std::time::Instant::now();
-    // A synthetic scene has no source .ply: its baseline counts the stored rows.
-    let (m, _) = partition_source(args, &scene, None, up, to_map, None)?;
-    let bytes: u64 = m.tiles.iter().map(|t| t.bytes).sum();
-    println!(
-        "scene {} generation {}: {} synthetic Gaussians (dim {dim}) in {} shards, {} bytes ({:?}), {:.1}s",
-        m.scene_id,
-        m.generation,
-        m.total_gaussians,
-        m.tiles.len(),
-        bytes,
-        m.dtype,
-        t.elapsed().as_secs_f64()
-    );
-    Ok(())
+    Ok(PartitionInput::Synthetic { gaussians, dim })
+}
+
+/// Runs `partition` with the flags' settings ([`PartitionArgs::config`], [`crate::stage::partition`]).
+///
+/// Errors: as those two.
+pub fn run_partition(args: &PartitionArgs) -> anyhow::Result<()> {
+    crate::stage::partition(&args.config()?)
 }
 
 /// `slag-encoder serve`: HTTP manifest + shards of a store.
@@ -734,36 +406,6 @@ pub fn run_keygen(args: &KeygenArgs) -> anyhow::Result<()> {
         files.public.display()
     );
     Ok(())
-}
-
-/// The private key of a `--signing-key` flag, if given.
-///
-/// Errors: as [`SigningKey::read_pem`].
-fn load_signing_key(path: Option<&std::path::Path>) -> slag_common::Result<Option<SigningKey>> {
-    path.map(SigningKey::read_pem).transpose()
-}
-
-/// Refuses the private key file at `path` when users other than its owner may read or write it
-/// (anyone who reads it can sign maps the robots accept), unless `allow` (`--allow-readable-key`,
-/// then logged as a warning).
-///
-/// Errors: [`slag_common::Error::Param`] `signing_key` naming the file's mode.
-fn check_key_mode(path: &std::path::Path, allow: bool) -> slag_common::Result<()> {
-    let Some(mode) = slag_common::shards::signature::readable_by_others(path) else {
-        return Ok(());
-    };
-    if allow {
-        tracing::warn!(
-            "{}: the private signing key may be read by other users (mode {mode:o}); chmod 600 it",
-            path.display()
-        );
-        return Ok(());
-    }
-    Err(slag_common::Error::param(
-        "signing_key",
-        format!("{} (mode {mode:o})", path.display()),
-        "a private key only its owner may read: chmod 600 it (or pass --allow-readable-key)",
-    ))
 }
 
 /// What the command line adds to an error of the shard stage (`e` or an error it wraps): the

@@ -8,8 +8,10 @@
 //! bearer token), [`export`] writes `manifest.json` + shard files for any static host, [`qdrant`]
 //! upserts the points into a Qdrant collection (optionally one snapshot per tile).
 //!
-//! [`cli`] is the command-line surface (`partition`, `serve`, `export`) shared by the
-//! `slag-shards` binary and `slag-encoder`'s subcommands of the same names and flags.
+//! [`stage`] runs a partition from its typed settings ([`stage::PartitionConfig`], as the
+//! encoder has `EncodeConfig`). [`cli`] is the command-line surface (`partition`, `serve`,
+//! `export`, `keygen`) shared by the `slag-shards` binary and `slag-encoder`'s subcommands of the
+//! same names and flags: each turns its flags into the library's settings.
 //!
 //! Depends on `slag-common` only (house rule, ARCHITECTURE.md).
 
@@ -18,4 +20,5 @@ pub mod export;
 pub mod partition;
 pub mod qdrant;
 pub mod serve;
+pub mod stage;
 pub mod store;

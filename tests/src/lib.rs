@@ -194,29 +194,23 @@ pub fn robot_path_with(
     encode(config).expect("encode");
     let embeddings = out.join("embeddings.safetensors");
     let shard_store = dir.path().join("shards");
-    slag_shards::cli::run_partition(&slag_shards::cli::PartitionArgs {
-        embeddings: Some(mixture.clone().unwrap_or_else(|| embeddings.clone())),
+    slag_shards::stage::partition(&slag_shards::stage::PartitionConfig {
+        input: slag_shards::stage::PartitionInput::Embeddings(
+            mixture.clone().unwrap_or_else(|| embeddings.clone()),
+        ),
         mixture_keep: mixture_slots,
-        synthetic: None,
         store: shard_store.clone(),
         scene: "snowmiku-mini".into(),
-        max_shard_mb: slag_shards::partition::DEFAULT_MAX_SHARD_MIB,
         // A count keeps this scene's tiling independent of the dtype under test.
-        max_per_shard: Some(8000),
+        cap: slag_shards::partition::ShardCap::Gaussians(8000),
         report: None,
         up: None,
         cameras: Some(default_scene()),
         to_map: None,
-        to_map_points: None,
         display_ply: display.then(|| default_scene().join("point_cloud.ply")),
         dtype: dtype.parse().expect("dtype"),
-        segments: None,
-        qdrant_url: None,
-        qdrant_collection: None,
-        qdrant_batch: 256,
-        qdrant_int8: false,
-        qdrant_snapshot_per_tile: false,
-        qdrant_api_key: None,
+        segments: slag_shards::stage::SegmentsChoice::Beside,
+        qdrant: None,
         signing_key: None,
         allow_readable_key: false,
         start_generation: None,
