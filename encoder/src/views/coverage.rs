@@ -193,21 +193,10 @@ impl SeenSet {
         if ids.len() * 32 <= n {
             return SeenSet::Ids(ids);
         }
-        // Words of 64 Gaussians set in parallel, each block of words from its run of the
-        // ascending ids.
-        const WORDS: usize = 4096;
         let mut bits = vec![0u64; n.div_ceil(64)];
-        bits.par_chunks_mut(WORDS)
-            .enumerate()
-            .for_each(|(b, words)| {
-                let lo = (b * WORDS * 64) as u64;
-                let hi = lo + (words.len() * 64) as u64;
-                let first = ids.partition_point(|&id| u64::from(id) < lo);
-                for &id in ids[first..].iter().take_while(|&&id| u64::from(id) < hi) {
-                    let at = (u64::from(id) - lo) as usize;
-                    words[at / 64] |= 1 << (at % 64);
-                }
-            });
+        for id in ids {
+            bits[id as usize / 64] |= 1 << (id % 64);
+        }
         SeenSet::Bits(bits)
     }
 
@@ -391,13 +380,11 @@ pub fn measure_shown(
     let footprint: Vec<AtomicU64> = (0..gaussians).map(|_| AtomicU64::new(0)).collect();
     let all: Vec<usize> = (0..views.len()).collect();
     pass.run(rasterizers, &all, floor_px * pass.area, |i, seen| {
-        // A view of a large scene sees millions of Gaussians: its host side runs on every
-        // core, so that it keeps pace with the device (a maximum is the same in any order).
-        seen.par_iter().for_each(|&(id, w)| {
+        for &(id, w) in &seen {
             let q = footprint_steps(w / pass.area, steps_per_px);
             footprint[id as usize].fetch_max(q, Ordering::Relaxed);
-        });
-        let ids = seen.par_iter().map(|&(id, _)| id).collect();
+        }
+        let ids = seen.into_iter().map(|(id, _)| id).collect();
         let set = SeenSet::new(ids, gaussians);
         if let Ok(mut out) = results.lock() {
             out[i] = Some(set);
@@ -537,9 +524,9 @@ fn scene_floor(
     // the maximum.
     let best: Vec<AtomicU64> = (0..pass.gaussians).map(|_| AtomicU64::new(0)).collect();
     pass.run(rasterizers, &sample, 0.0, |_, seen| {
-        seen.par_iter().for_each(|&(id, w)| {
+        for (id, w) in seen {
             best[id as usize].fetch_max(w.to_bits(), Ordering::Relaxed);
-        });
+        }
     })?;
     let mut shown: Vec<f64> = best
         .into_iter()
@@ -614,9 +601,8 @@ impl ViewSums {
             ViewSums::Sums(sums) => {
                 const ONE: f64 = 4_294_967_296.0;
                 let floor_fixed = (floor * ONE).ceil() as u64;
-                // Millions of records a view in a large scene: filtered on every core, in order.
                 sums.reduced()
-                    .par_iter()
+                    .into_iter()
                     .filter(|s| s.sum >= floor_fixed.max(1))
                     .map(|s| (s.gaussian, s.sum as f64 / ONE))
                     .collect()
@@ -1045,32 +1031,4 @@ fn tally(slots: &[u32], per: usize, rank: &[usize], taken: usize) -> Tally {
             }
         })
         .reduce(Tally::default, |a, b| a + b)
-}
-
-#[cfg(test)]
-mod seen_set_tests {
-    use super::SeenSet;
-
-    /// A bitset made in parallel blocks holds exactly the ids it was given, across the blocks'
-    /// edges, and reads back in ascending order over any range.
-    #[test]
-    fn a_parallel_bitset_holds_exactly_its_ids() {
-        let n = 1_000_003;
-        // Dense enough for the bitset form; ids on both sides of each 4096-word block's edge.
-        let ids: Vec<u32> = (0..n as u32)
-            .filter(|i| i % 7 == 0 || (i % 262_144).abs_diff(262_143) <= 1)
-            .collect();
-        let set = SeenSet::new(ids.clone(), n);
-        assert!(matches!(set, SeenSet::Bits(_)));
-        let back: Vec<u32> = set.ids(n).into_iter().map(|i| i as u32).collect();
-        assert_eq!(back, ids);
-        let mut part = Vec::new();
-        set.for_each_in(262_080, 262_200, |i| part.push(i as u32));
-        let want: Vec<u32> = ids
-            .iter()
-            .copied()
-            .filter(|&i| (262_080..262_200).contains(&i))
-            .collect();
-        assert_eq!(part, want);
-    }
 }
