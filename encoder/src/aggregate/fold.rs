@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use slag_common::mixture::SparseMixture;
 use slag_common::{Error, Result};
 
-use super::store::{MaskColumn, StoredImage};
+use super::{MaskColumn, StoredImage};
 
 /// Gaussians per parallel block of a fold (each block's state is one task's).
 const BLOCK: usize = 1 << 16;

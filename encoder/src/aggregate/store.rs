@@ -6,7 +6,6 @@ use std::path::{Path, PathBuf};
 
 use slag_common::{Error, Result};
 
-use super::fold::MixtureFold;
 use super::*;
 
 /// One image's contribution as the store holds it: the [`ImageContribution`]'s entries split into
