@@ -4,7 +4,8 @@
 # (Jetson) cross build of slag-edge with its tests under qemu and the glibc guard
 # (scripts/cross-aarch64.sh; x86_64 Debian 12 hosts). The web page's browser test needs chromium,
 # node and the vendored viewer: scripts/web-setup.sh (SLAG_SKIP_WEB=1 skips it). SLAG_SKIP_CROSS=1 skips the cross step
-# (quick local runs); CI (.ci/run) always runs it. Before the tests, scripts/lab/check-links.py checks
+# (quick local runs); CI (.ci/run) always runs it, and with SLAG_FREE_NATIVE_TARGET=1 removes the
+# native build before it (a small disk). Before the tests, scripts/lab/check-links.py checks
 # the docs' relative links. Arguments go to `cargo test`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -37,6 +38,12 @@ if [ "$unused" -eq 0 ]; then
   cargo machete --skip-target-dir || unused=$?
 fi
 cross=0
+# CI's machine has a small disk: the native build is done with, so its files make room for the
+# cross build's (SLAG_FREE_NATIVE_TARGET=1, set by .ci/run; a developer's target stays).
+if [ "${SLAG_FREE_NATIVE_TARGET:-0}" = 1 ] && [ "${SLAG_SKIP_CROSS:-0}" != 1 ]; then
+  rm -rf "${CARGO_TARGET_DIR:-target}/debug"
+  echo "test: native build removed for the cross step: $(disk_free)" >&2
+fi
 if [ "${SLAG_SKIP_CROSS:-0}" = 1 ]; then
   echo "test: SLAG_SKIP_CROSS=1: aarch64 cross build skipped" >&2
 elif [ "$(uname -m)" != x86_64 ]; then
