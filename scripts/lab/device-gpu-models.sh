@@ -30,6 +30,7 @@
 #                                            # 16x16 + CLIP ViT-B/16, PREC), every view and the
 #                                            # default views (SELECTIONS="all coverage"); GNU
 #                                            # time, an RSS timeline and GPU memory each
+#                                            # MASKMODEL=DIR: e2e's timing + mask models
 #   scripts/lab/device-gpu-models.sh models      # per-model table: slag-bench models (CLIP f32 / fp16 /
 #                                            # fused, SAM ViT-H) + torch fp16 + ORT profiles
 #                                            # (CLIPDIR=f16fuse: e2e with the fused CLIP tower)
@@ -88,6 +89,16 @@ vith_f16x() {
   grep -A14 fused_encoder "$R/export-vith-fused.json"
 }
 # The carried wheels (segment_anything, open_clip_torch, ftfy, wcwidth) into /root/site.
+# MA = the timing model + mask model arguments: SAM ViT-H (encoder $2, decoder $3) runs on every
+# image for its cost, $MASKMODEL's color-sam 16x16 (0.8 / 0.5; decoder $1) gives the masks that go
+# downstream (about 100 an image on a synthetic scene, as a trained SAM keeps), so CLIP and the
+# lifting see a real mask count while a random-weight ViT-H keeps almost none.
+timed_masks() {
+  MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
+    --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "$1"
+    --sam-timing-encoder "$2" --sam-timing-decoder "$3")
+  echo "### timing model SAM ViT-H $prec, mask model color-sam 16x16 (0.8/0.5)"
+}
 wheels() { python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /root/site .whl/*.whl; }
 # CLIP ViT-B/16 fp16 fused ($M/f16fuse) and the same file given byte input ($M/f16fuse-u8,
 # scripts/clip-u8-pixels.py), each exported unless an earlier call left it.
@@ -160,13 +171,15 @@ paper)
   fi
   cp "$d/report-synth.json" "$R/paper-synth.json"
   prec=${PREC:-f16}
+  MA=("${SAMARGS[@]}" $(samm $prec vit_h))
+  [ -n "${MASKMODEL:-}" ] && timed_masks "$MASKMODEL/color-sam-decoder.onnx" "$M/$prec/sam-vit_h-encoder.onnx" "$M/$prec/sam-vit_h-decoder.onnx"
   for sel in ${SELECTIONS:-all coverage}; do
     echo "### encode $sel views: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA"
     gpu_mem() { nvidia-smi --query-gpu=index,memory.used --format=csv,noheader,nounits -lms 500; }
     gpu_mem > "$R/gpu-mem-paper-$sel.csv" 2>/dev/null & watch=$!
     python3 scripts/lab/rss-timeline.py --out "$R/rss-paper-$sel.tsv" --report "$W/paper-$sel/report.json" -- \
       /usr/bin/time -v "$B" bench --scene-dir "$d" --ep cuda --raster-scale 0.5 --views "$sel" \
-      "${SAMARGS[@]}" $(samm $prec vit_h) $(clipm $prec) ${EXTRA:-} --quiet --out "$W/paper-$sel" \
+      "${MA[@]}" $(clipm $prec) ${EXTRA:-} --quiet --out "$W/paper-$sel" \
       > "$R/paper-$sel.txt" 2>&1
     echo "exit $?"; kill $watch 2>/dev/null
     grep -E "wall|views|observed|Maximum resident|Elapsed" "$R/paper-$sel.txt" | tail -12
@@ -203,10 +216,7 @@ e2e)
       python3 scripts/sam-decoder-low-res.py ${F16M:+--f16-multimask} "${dec[1]}" "$low"
       dec=(/root/color-sam-decoder-low-res.onnx "$low")
     fi
-    MA=(--masks sam --sam-points-per-side 16 --sam-pred-iou-thresh 0.8 --sam-stability-score-thresh 0.5
-      --sam-encoder "$MASKMODEL/color-sam-encoder.onnx" --sam-decoder "${dec[0]}"
-      --sam-timing-encoder "$M/${ENCDIR:-$prec}/sam-vit_h-encoder.onnx" --sam-timing-decoder "${dec[1]}")
-    echo "### timing model SAM ViT-H $prec, mask model color-sam 16x16 (0.8/0.5)"
+    timed_masks "${dec[0]}" "$M/${ENCDIR:-$prec}/sam-vit_h-encoder.onnx" "${dec[1]}"
   fi
   echo "### encode: SAM ViT-H $prec 16x16 + CLIP ViT-B/16 $prec, CUDA, ${FRONTS:-default} fronts"
   # RSS over time (rss-e2e-*.tsv: seconds, bytes): where the peak falls against the report's phases.
