@@ -536,6 +536,11 @@ impl RawQuery {
     }
 }
 
+/// `serde` skips a count of 0 ([`QueryAnswer::tiles_pending_verification`]).
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
 /// The answer to one query (JSON of `GET /query`).
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct QueryAnswer {
@@ -578,6 +583,15 @@ pub struct QueryAnswer {
     pub best_score_below_threshold: Option<f32>,
     /// Gaussians searched.
     pub searched: usize,
+    /// Tiles of the served generation whose SHA-256 is still being checked in the background
+    /// (a server with a trusted key, just started): none of their Gaussians was searched, and
+    /// they join the answers once verified. Left out of the JSON when 0.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub tiles_pending_verification: usize,
+    /// True when `tiles_pending_verification` > 0: the answer covers the verified tiles only.
+    /// Left out of the JSON when false.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub partial: bool,
     /// Server-side time: text encoding and scan, milliseconds.
     pub timings_ms: Timings,
 }
@@ -694,6 +708,8 @@ pub fn run_query_framed(cx: &QueryContext<'_>, q: &QueryParams) -> Result<QueryA
         match_objects: found.match_objects,
         best_score_below_threshold: found.best_score_below_threshold,
         searched: store.len(),
+        tiles_pending_verification: 0,
+        partial: false,
         timings_ms: Timings {
             text: t_text,
             scan: t1.elapsed().as_secs_f64() * 1e3,

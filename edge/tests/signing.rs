@@ -13,6 +13,7 @@ use std::sync::Arc;
 use slag_common::shards::signature::{SigningKey, TrustedKey, sha256_hex};
 use slag_common::shards::{Dtype, decode_shard};
 use slag_common::{Error, Untrusted};
+use slag_edge::engine::Verification;
 use slag_edge::fetch::{FetchParams, fetch};
 use slag_edge::serve::{AppState, ServeOptions};
 use slag_edge::store::EdgeStore;
@@ -125,6 +126,14 @@ fn rewrite_tile(scene: &TestScene) -> Vec<u8> {
     b
 }
 
+/// `state` once the background verification of its stored tiles is done (it starts with
+/// `AppState::new` under a trusted key; none runs without one).
+fn verified(state: AppState) -> AppState {
+    let v = state.query_engine().wait_verified();
+    assert!(matches!(v, Verification::Done | Verification::Off), "{v:?}");
+    state
+}
+
 /// A fetch of the whole grid from `url` that trusts `key`.
 fn signed_params(url: &str, key: &TrustedKey) -> FetchParams {
     FetchParams {
@@ -150,6 +159,7 @@ impl Edge {
             ..ServeOptions::new("grid")
         };
         let state = AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap();
+        let state = verified(state);
         Edge {
             store,
             url: serve_on_loopback(state).await,
@@ -669,7 +679,7 @@ async fn a_tile_forged_under_an_unsigned_fetch_outside_a_signed_fetchs_disc_is_d
         ..ServeOptions::new("grid")
     };
     let state = AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap();
-    let url = serve_on_loopback(state).await;
+    let url = serve_on_loopback(verified(state)).await;
     let client = reqwest::Client::new();
     let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
     assert_eq!(stats["shards_loaded"], 8, "{stats}");
@@ -718,7 +728,7 @@ async fn a_tile_rewritten_on_disk_with_its_crcs_kept_is_not_served_by_a_server_t
             trusted_keys: keys.map(Into::into),
             ..ServeOptions::new("grid")
         };
-        AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap()
+        verified(AppState::new(store.clone(), Arc::new(BasisEmbedder::new(DIM)), opts).unwrap())
     };
     // Without the key, the CRC-32s pass: the rewritten tile is served.
     let url = serve_on_loopback(load(None)).await;
@@ -815,4 +825,113 @@ async fn two_trusted_keys_accept_either_during_a_rotation_and_refuse_a_third_nam
         m.contains(&old.key_id()) && m.contains(&new.key_id()),
         "{m}"
     );
+}
+
+/// A server that trusts the key answers at once: while its tiles are verified in the background
+/// (held at a gate, then running) every answer is marked partial and holds no row of a pending
+/// tile; once verified, every tile that passed is answered and a tile rewritten on disk with
+/// its CRC-32s kept never is, before, during or after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_never() {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let (_dir, store) = temp_store();
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    std::fs::write(
+        support::shard_path(&store, 0),
+        rewrite_tile(&scene("grid", 1)),
+    )
+    .unwrap();
+    let opts = ServeOptions {
+        trusted_keys: Some(trusted.clone().into()),
+        ..ServeOptions::new("grid")
+    };
+    let gate = slag_edge::engine::VerifyGate::new();
+    let embedder = Arc::new(BasisEmbedder::new(DIM));
+    let state = AppState::new_gated(store.clone(), embedder, opts, Some(gate.clone())).unwrap();
+    let state = Arc::new(state);
+    let engine = slag_edge::engine::QueryEngine::from(state.clone());
+    let url = support::serve_shared_on_loopback(state).await;
+    let client = reqwest::Client::new();
+    let all = format!("{url}/query?text=t5&top_k=90&threshold=-1");
+
+    // Held at the gate: answered at once, partial, no row of the nine pending tiles.
+    let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+    assert_eq!(stats["verification"], "running", "{stats}");
+    assert_eq!(stats["tiles_pending_verification"], 9, "{stats}");
+    assert_eq!(
+        (
+            stats["tiles_verified"].as_u64(),
+            stats["gaussians"].as_u64()
+        ),
+        (Some(0), Some(0)),
+        "{stats}"
+    );
+    let (status, answer) = send_json(client.get(&all)).await;
+    assert_eq!(status, 200, "{answer}");
+    assert_eq!(answer["partial"], true, "{answer}");
+    assert_eq!(answer["tiles_pending_verification"], 9, "{answer}");
+    assert_eq!(support::match_ids(&answer), Vec::<u32>::new(), "{answer}");
+    let ply = client
+        .get(format!("{url}/query.ply?text=t5&threshold=-1"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(ply.status(), 200);
+    assert_eq!(ply.headers()["x-slag-tiles-pending-verification"], "9");
+    assert_eq!(ply.headers()["x-slag-gaussians"], "0");
+
+    // Running: every answer is either partial and empty, or whole without the forged row.
+    gate.open();
+    let mut partial_seen = 0;
+    loop {
+        let running = engine.verification() == Verification::Running;
+        let (status, answer) = send_json(client.get(&all)).await;
+        assert_eq!(status, 200, "{answer}");
+        let ids = support::match_ids(&answer);
+        if answer["partial"] == true {
+            partial_seen += 1;
+            assert!(ids.is_empty(), "a pending tile is served: {answer}");
+        } else {
+            assert_eq!(ids.len(), 8 * PER_TILE, "{answer}");
+        }
+        assert!(!ids.contains(&0), "the forged row is served: {answer}");
+        if !running {
+            break;
+        }
+    }
+    assert!(partial_seen >= 1);
+
+    // Verified: the eight good tiles are answered, the forged one is dropped and counted.
+    assert_eq!(engine.wait_verified(), Verification::Done);
+    let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+    assert_eq!(stats["verification"], "done", "{stats}");
+    assert_eq!(
+        (
+            stats["tiles_verified"].as_u64(),
+            stats["tiles_pending_verification"].as_u64(),
+            stats["tiles_dropped"].as_u64(),
+            stats["gaussians"].as_u64()
+        ),
+        (Some(8), Some(0), Some(1), Some(8 * PER_TILE as u64)),
+        "{stats}"
+    );
+    assert!(
+        stats["shards_rejected"].to_string().contains("SHA-256"),
+        "{stats}"
+    );
+    let (_, answer) = send_json(client.get(&all)).await;
+    assert!(answer.get("partial").is_none(), "{answer}");
+    assert!(
+        answer.get("tiles_pending_verification").is_none(),
+        "{answer}"
+    );
+    let ids = support::match_ids(&answer);
+    assert_eq!(ids.len(), 8 * PER_TILE, "{answer}");
+    assert!(!ids.contains(&0), "the forged row is served: {answer}");
+    assert!(ids.contains(&(PER_TILE as u32)), "{answer}");
 }

@@ -21,14 +21,14 @@ pub mod queries;
 pub use admission::{Admission, Busy};
 pub use queries::{
     DEFAULT_MAX_MATCHES, DEFAULT_MAX_SCANS, DEFAULT_SCAN_QUEUE, EngineOptions, QueryEngine,
-    check_matches, compact_answer,
+    Verification, VerifyGate, check_matches, compact_answer,
 };
 
 use slag_common::Result;
 use slag_common::shards::signature::TrustedKeys;
 use slag_common::shards::{Manifest, MixtureShard, StoredShard};
 
-use crate::query::{QueryAnswer, QueryContext, QueryParams, TextEmbedder};
+use crate::query::{IndexKind, QueryAnswer, QueryContext, QueryParams, TextEmbedder};
 use crate::scan::VectorStore;
 use crate::scan::hnsw::{ApproxIndex, HnswBackend, HnswParams};
 use crate::store::{EdgeStore, FetchRecord, SceneLoad};
@@ -129,6 +129,56 @@ impl Engine {
         })
     }
 
+    /// The engine a server with the publisher's keys `trusted` answers from while the tiles of
+    /// `scene`'s signed generation are hashed in the background ([`QueryEngine::new`]): the
+    /// committed generation's manifest, fetch record and commit count, with **no rows** (and
+    /// no approximate index), and [`SceneLoad::pending_verification`] counting its stored tiles.
+    /// Its signature is verified here, over the stored manifest bytes, and a mixture scene's
+    /// codebook is hashed and decoded (every row needs it). A served engine thus only ever
+    /// holds rows decoded from bytes whose SHA-256 matched: this one none, the one the
+    /// background load builds ([`Engine::load_trusting`]) every tile that passed.
+    ///
+    /// `None` without `trusted` or for an unsigned generation: the caller loads at once
+    /// ([`Engine::load_trusting`], CRC-32s only).
+    ///
+    /// Errors: as [`Engine::load_trusting`] for the signature, the manifest and the codebook;
+    /// store I/O.
+    pub fn pending(
+        edge: &EdgeStore,
+        scene: &str,
+        trusted: Option<&TrustedKeys>,
+    ) -> Result<Option<Engine>> {
+        if trusted.is_none() {
+            return Ok(None);
+        }
+        let _generation = edge.lock_generation();
+        let committed = edge.committed(scene)?;
+        if edge.signature(scene)?.is_none() {
+            return Ok(None);
+        }
+        let manifest = &committed.manifest;
+        let hashes = signed_generation(edge, scene, manifest, trusted)?;
+        let store = empty_store(edge, manifest, hashes)?;
+        let mut pending = 0;
+        for tile in committed.tiles() {
+            pending += edge.has_shard(&manifest.scene_id, tile)? as usize;
+        }
+        let load = SceneLoad {
+            absent_tiles: manifest.tiles.len() - pending,
+            pending_verification: pending,
+            ..SceneLoad::default()
+        };
+        Ok(Some(Engine {
+            store,
+            load,
+            hnsw: None,
+            display: crate::view::DisplayAttrs::new(),
+            manifest: committed.manifest,
+            record: committed.record,
+            seq: committed.seq,
+        }))
+    }
+
     /// What a query over this generation runs against: its rows, embedding model, scene-to-map
     /// transform, approximate index and display columns, with the prompt side (`text`, and
     /// `negatives`: the embeddings of [`crate::query::CANONICAL_NEGATIVES`], `[4][D]`).
@@ -150,7 +200,8 @@ impl Engine {
 
     /// Answers the validated query `q` over this generation ([`Self::context`]): scan, objects,
     /// and every coordinate in the answer's frame (the map frame when the manifest has a
-    /// scene-to-map transform, unless `q.frame` is scene).
+    /// scene-to-map transform, unless `q.frame` is scene). While tiles are pending verification
+    /// ([`Engine::pending`]) the answer says so ([`QueryAnswer::partial`]).
     ///
     /// Errors: as [`crate::query::run_query_framed`].
     pub fn answer(
@@ -159,7 +210,23 @@ impl Engine {
         negatives: &[Vec<f32>],
         q: &QueryParams,
     ) -> Result<QueryAnswer> {
-        crate::query::run_query_framed(&self.context(text, negatives), q)
+        let pending = self.load.pending_verification;
+        let mut a = if pending > 0 && q.index == IndexKind::Hnsw && !self.store.is_mixture() {
+            // No row is served yet, so no index is built: the exact scan of no rows gives the
+            // same (empty) answer.
+            let exact = QueryParams {
+                index: IndexKind::Exact,
+                ..q.clone()
+            };
+            let mut a = crate::query::run_query_framed(&self.context(text, negatives), &exact)?;
+            a.index = IndexKind::Hnsw;
+            a
+        } else {
+            crate::query::run_query_framed(&self.context(text, negatives), q)?
+        };
+        a.tiles_pending_verification = pending;
+        a.partial = pending > 0;
+        Ok(a)
     }
 }
 
@@ -276,18 +343,7 @@ fn load_generation(
     let committed = edge.committed(scene)?;
     let manifest = &committed.manifest;
     let hashes = signed_generation(edge, scene, manifest, trusted)?;
-    let mut store = match &manifest.mixture {
-        // A mixture scene: its codebook first (verified; missing or corrupt is an error,
-        // since no row can be scored without it).
-        Some(m) => {
-            let cb = edge.codebook_checked(manifest, hashes)?;
-            let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
-                slag_common::Error::format("<manifest>", "codebook checksum is not hex")
-            })?;
-            VectorStore::new_mixture(cb.dim, m.slots as usize, cb.rows, crc)?
-        }
-        None => VectorStore::new(manifest.dim as usize, manifest.dtype)?,
-    };
+    let mut store = empty_store(edge, manifest, hashes)?;
     // Room for the rows of every stored shard up front: they land in place (no reallocation,
     // no doubling of the served memory) on transparent huge pages.
     let mut rows = 0u64;
@@ -328,6 +384,25 @@ fn load_generation(
         committed.record,
         committed.seq,
     ))
+}
+
+/// The scan store of `manifest`'s generation before any shard is pushed: a mixture scene's
+/// codebook read and verified first (hashed too with `hashes`; missing or corrupt is an error,
+/// since no row can be scored without it), an empty dense store of the manifest's width and
+/// dtype otherwise.
+///
+/// Errors: as [`EdgeStore::codebook_checked`]; a codebook checksum that is not hex.
+fn empty_store(edge: &EdgeStore, manifest: &Manifest, hashes: bool) -> Result<VectorStore> {
+    match &manifest.mixture {
+        Some(m) => {
+            let cb = edge.codebook_checked(manifest, hashes)?;
+            let crc = u32::from_str_radix(&m.codebook_checksum, 16).map_err(|_| {
+                slag_common::Error::format("<manifest>", "codebook checksum is not hex")
+            })?;
+            VectorStore::new_mixture(cb.dim, m.slots as usize, cb.rows, crc)
+        }
+        None => VectorStore::new(manifest.dim as usize, manifest.dtype),
+    }
 }
 
 /// Whether a load with the publisher's keys `trusted` hashes the committed generation's tiles

@@ -4,8 +4,8 @@
 //! ([`crate::serve`]) and the ROS 2 node ([`crate::ros2`]) both call it; neither knows the
 //! other.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::Instant;
 
 use slag_common::{Error, Result};
@@ -61,11 +61,65 @@ struct Shared {
     opts: EngineOptions,
     admission: Admission,
     queries: AtomicU64,
+    /// Where the background verification of the tiles served at start stands.
+    verification: (Mutex<Verification>, Condvar),
+}
+
+/// Where a server's background verification of its stored tiles stands ([`QueryEngine::new`];
+/// `/stats` `verification`).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Verification {
+    /// None runs: no trusted key, or an unsigned generation (loaded at once on its CRC-32s).
+    Off,
+    /// The tiles are being read, hashed and decoded; the server answers from the engine of
+    /// [`Engine::pending`] (no rows) meanwhile.
+    Running,
+    /// Done: every tile that passed is served, those that did not are in
+    /// [`crate::store::SceneLoad::rejected`].
+    Done,
+    /// The load failed as a whole (the message): no tile of the generation is served; a
+    /// `reload` tries again.
+    Failed(String),
+}
+
+/// Holds a background verification ([`QueryEngine::new_gated`]) before it reads its first tile,
+/// until [`VerifyGate::open`]: a test queries a server whose tiles are all pending, and then one
+/// whose tiles are verified, without timing anything. Clones share one gate.
+#[derive(Debug, Clone, Default)]
+pub struct VerifyGate(Arc<(Mutex<bool>, Condvar)>);
+
+impl VerifyGate {
+    /// A closed gate.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Lets the verification held at the gate run.
+    pub fn open(&self) {
+        let (open, cv) = &*self.0;
+        *open.lock().unwrap_or_else(PoisonError::into_inner) = true;
+        cv.notify_all();
+    }
+
+    /// Blocks until [`Self::open`].
+    fn wait(&self) {
+        let (open, cv) = &*self.0;
+        let mut g = open.lock().unwrap_or_else(PoisonError::into_inner);
+        while !*g {
+            g = cv.wait(g).unwrap_or_else(PoisonError::into_inner);
+        }
+    }
 }
 
 impl QueryEngine {
     /// Loads `opts.scene` from `edge` (building the approximate index of `opts.index`) and
-    /// embeds the canonical negatives once.
+    /// embeds the canonical negatives once. With [`EngineOptions::trusted_keys`] and a signed
+    /// generation, only its signature (and a mixture scene's codebook) is checked here: the
+    /// server answers at once from an engine without rows ([`Engine::pending`]; answers are
+    /// [`QueryAnswer::partial`]), while a thread reads, hashes and decodes the tiles and then
+    /// serves them all at once ([`Self::verification`]). No row of a tile whose SHA-256 was not
+    /// checked is ever in a served engine.
     ///
     /// Errors: as [`Engine::load_with`]; a text model of another CLIP model than the stored
     /// embeddings ([`Error::ModelMismatch`]) or whose width differs from theirs
@@ -75,8 +129,26 @@ impl QueryEngine {
         text: Arc<dyn TextEmbedder>,
         opts: EngineOptions,
     ) -> Result<QueryEngine> {
-        let engine =
-            Engine::load_trusting(&edge, &opts.scene, opts.index, opts.trusted_keys.as_ref())?;
+        Self::new_gated(edge, text, opts, None)
+    }
+
+    /// [`Self::new`], whose background verification (if any) first waits at `gate`.
+    ///
+    /// Errors: as [`Self::new`].
+    pub fn new_gated(
+        edge: EdgeStore,
+        text: Arc<dyn TextEmbedder>,
+        opts: EngineOptions,
+        gate: Option<VerifyGate>,
+    ) -> Result<QueryEngine> {
+        let trusted = opts.trusted_keys.as_ref();
+        let (engine, background) = match Engine::pending(&edge, &opts.scene, trusted)? {
+            Some(pending) => (pending, true),
+            None => (
+                Engine::load_trusting(&edge, &opts.scene, opts.index, trusted)?,
+                false,
+            ),
+        };
         text.check_pair(&engine.manifest.model)?;
         let negatives = text.embed(&CANONICAL_NEGATIVES)?;
         if let Some(n) = negatives.first()
@@ -95,7 +167,11 @@ impl QueryEngine {
                 ),
             ));
         }
-        Ok(QueryEngine(Arc::new(Shared {
+        let state = match background {
+            true => Verification::Running,
+            false => Verification::Off,
+        };
+        let engine = QueryEngine(Arc::new(Shared {
             served: ServedEngine::new(engine),
             edge,
             text,
@@ -103,7 +179,80 @@ impl QueryEngine {
             admission: Admission::new(opts.max_scans, opts.scan_queue),
             opts,
             queries: AtomicU64::new(0),
-        })))
+            verification: (Mutex::new(state), Condvar::new()),
+        }));
+        if background {
+            engine.spawn_verification(gate)?;
+        }
+        Ok(engine)
+    }
+
+    /// Starts the background verification of [`Self::new`] on a thread of its own: (after
+    /// `gate`) the committed generation loaded as [`Engine::load_trusting`] loads it (each
+    /// tile's bytes read once, hashed against the signed manifest, decoded, a window of files
+    /// at a time on the rayon pool; a tile that differs is rejected, never pushed) and offered
+    /// whole to the served engine ([`ServedEngine::offer`]).
+    ///
+    /// Errors: [`Error::Internal`] when the thread cannot be started.
+    fn spawn_verification(&self, gate: Option<VerifyGate>) -> Result<()> {
+        let s = self.0.clone();
+        std::thread::Builder::new()
+            .name("slag-verify".into())
+            .spawn(move || {
+                if let Some(g) = gate {
+                    g.wait();
+                }
+                let t = Instant::now();
+                let loaded = Engine::load_trusting(
+                    &s.edge,
+                    &s.opts.scene,
+                    s.opts.index,
+                    s.opts.trusted_keys.as_ref(),
+                )
+                .and_then(|e| s.text.check_pair(&e.manifest.model).map(|()| e));
+                let state = match loaded {
+                    Ok(e) => {
+                        tracing::info!(
+                            "scene {}: {} tiles verified in the background in {:.2} s, {} not                              served; all of them are answered now",
+                            s.opts.scene,
+                            e.load.hashed,
+                            t.elapsed().as_secs_f64(),
+                            e.load.rejected.len()
+                        );
+                        s.served.offer(e);
+                        Verification::Done
+                    }
+                    Err(e) => {
+                        tracing::error!(
+                            "scene {}: the background verification of its tiles failed, none                              of them is served (POST /reload or SIGHUP tries again): {e}",
+                            s.opts.scene
+                        );
+                        Verification::Failed(e.to_string())
+                    }
+                };
+                let (m, cv) = &s.verification;
+                *m.lock().unwrap_or_else(PoisonError::into_inner) = state;
+                cv.notify_all();
+            })
+            .map(drop)
+            .map_err(|e| Error::internal(format!("the verifying thread did not start: {e}")))
+    }
+
+    /// Where the background verification stands.
+    pub fn verification(&self) -> Verification {
+        let (m, _) = &self.0.verification;
+        m.lock().unwrap_or_else(PoisonError::into_inner).clone()
+    }
+
+    /// Blocks until the background verification is no longer [`Verification::Running`] and
+    /// returns where it ended (at once when none runs).
+    pub fn wait_verified(&self) -> Verification {
+        let (m, cv) = &self.0.verification;
+        let mut g = m.lock().unwrap_or_else(PoisonError::into_inner);
+        while *g == Verification::Running {
+            g = cv.wait(g).unwrap_or_else(PoisonError::into_inner);
+        }
+        g.clone()
     }
 
     /// The generation served now (a query keeps the one it took to its end).

@@ -244,15 +244,30 @@ impl Refusals {
 
 impl AppState {
     /// Loads the scene (building the approximate index when [`ServeOptions::hnsw`]) and embeds
-    /// the canonical negatives once.
+    /// the canonical negatives once; with [`ServeOptions::trusted_keys`] a signed generation's
+    /// tiles are verified in the background ([`QueryEngine::new`]) and served once verified.
     ///
     /// Errors: [`Error::Param`] `hnsw_backend` first, before the store is read, for a backend
     /// this binary was built without ([`HnswBackend::require`]); as [`Engine::load_with`]; a
     /// text model of another CLIP model than the stored embeddings
     /// ([`Error::ModelMismatch`]) or whose width differs from theirs.
     pub fn new(edge: EdgeStore, text: Arc<dyn TextEmbedder>, opts: ServeOptions) -> Result<Self> {
+        Self::new_gated(edge, text, opts, None)
+    }
+
+    /// [`Self::new`], whose background verification of a signed generation's tiles (with
+    /// [`ServeOptions::trusted_keys`]) first waits at `gate` ([`QueryEngine::new_gated`]): a
+    /// test queries the server while every tile is pending, then opens the gate.
+    ///
+    /// Errors: as [`Self::new`].
+    pub fn new_gated(
+        edge: EdgeStore,
+        text: Arc<dyn TextEmbedder>,
+        opts: ServeOptions,
+        gate: Option<crate::engine::VerifyGate>,
+    ) -> Result<Self> {
         opts.hnsw_backend.require()?;
-        let engine = QueryEngine::new(edge.clone(), text, opts.engine_options())?;
+        let engine = QueryEngine::new_gated(edge.clone(), text, opts.engine_options(), gate)?;
         Ok(AppState {
             engine,
             edge,
@@ -493,6 +508,10 @@ async fn stats(State(state): State<Arc<AppState>>) -> Response {
         "shards_absent": e.load.absent_tiles,
         "shards_rejected": e.load.rejected,
         "shards_hashed": e.load.hashed,
+        "verification": state.engine.verification(),
+        "tiles_verified": e.load.hashed,
+        "tiles_pending_verification": e.load.pending_verification,
+        "tiles_dropped": e.load.rejected.len(),
         "gaussians": n,
         "memory": {
             "vectors_bytes": e.store.memory_bytes(),

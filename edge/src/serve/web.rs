@@ -130,6 +130,10 @@ pub(crate) async fn query_ply(
             named("x-slag-gaussians", engine.display.len().to_string()),
             named("x-slag-up", format!("{},{},{}", up[0], up[1], up[2])),
             named("x-slag-frame", answer.frame.to_string()),
+            named(
+                "x-slag-tiles-pending-verification",
+                answer.tiles_pending_verification.to_string(),
+            ),
         ],
         bytes,
     )

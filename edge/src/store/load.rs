@@ -20,6 +20,11 @@ pub struct SceneLoad {
     /// manifest's SHA-256 (a load with trusted keys of a signed generation,
     /// [`crate::engine::Engine::load_trusting`]; 0 otherwise).
     pub hashed: usize,
+    /// Stored tiles of the generation waiting for their SHA-256 check, which a server with
+    /// trusted keys runs in the background after it starts
+    /// ([`crate::engine::Engine::pending`]): none of their rows is loaded, so none is served
+    /// until the check passes. 0 for a load that checked every tile itself.
+    pub pending_verification: usize,
 }
 
 impl EdgeStore {
