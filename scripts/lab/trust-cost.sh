@@ -34,16 +34,16 @@ if [ ! -f "$key" ]; then
     "$shards" keygen --out keys >/dev/null
 fi
 [ -d pub-big ] || "$shards" partition --synthetic 1000000:512 --max-per-shard 10000 \
-    --signing-key keys/manifest-key.pem --store pub-big --scene big >/dev/null
+    --signing-key keys/manifest-key.pem --shard-store pub-big --scene big >/dev/null
 [ -d pub-small ] || "$shards" partition --synthetic 100000:512 --max-per-shard 1000 \
-    --signing-key keys/manifest-key.pem --store pub-small --scene small >/dev/null
+    --signing-key keys/manifest-key.pem --shard-store pub-small --scene small >/dev/null
 
 # Two shard servers on free loopback ports, stopped on exit.
 pids=()
 trap 'for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done' EXIT
-"$shards" serve --store pub-big --listen 127.0.0.1:0 >serve-big.log 2>&1 &
+"$shards" serve --shard-store pub-big --listen 127.0.0.1:0 >serve-big.log 2>&1 &
 pids+=($!)
-"$shards" serve --store pub-small --listen 127.0.0.1:0 >serve-small.log 2>&1 &
+"$shards" serve --shard-store pub-small --listen 127.0.0.1:0 >serve-small.log 2>&1 &
 pids+=($!)
 url_of() { # LOG -> the URL the server logged
     for _ in $(seq 100); do
