@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use clap::Args;
 use slag_encoder::config::EncodeConfig;
-use slag_encoder::distributed::{ClusterConfig, ClusterEncoder};
+use slag_encoder::distributed::{ClusterConfig, ClusterEncoder, ClusterSecret};
 use slag_encoder::report::Report;
 
 use crate::encode::EncodeArgs;
@@ -21,9 +21,12 @@ pub struct EncodeClusterArgs {
     /// Host file, the same for every process: one host:port per line (the address each process listens on).
     #[arg(long)]
     pub hosts: PathBuf,
-    /// Seconds to wait for every process of the host file to connect.
+    /// Seconds to wait for every process of the host file to connect (and prove the cluster secret).
     #[arg(long, default_value_t = 300)]
     pub connect_timeout: u64,
+    /// File holding the cluster's shared secret (first line, at least 16 bytes, e.g. `head -c 32 /dev/urandom | base64`; mode 0600), the same on every process: each connection starts with an HMAC challenge on it and a peer without it is refused. Needed unless every address of --hosts is on loopback. The traffic after the challenge is not encrypted: use a private network or a VPN.
+    #[arg(long, value_name = "PATH")]
+    pub cluster_secret_file: Option<PathBuf>,
     /// The encode arguments (identical on every process).
     #[command(flatten)]
     pub encode: EncodeArgs,
@@ -51,11 +54,14 @@ fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
 /// file is read; [`crate::hints::hint`] names the flags), then cluster, model and encode errors.
 pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
     let encoder = ClusterEncoder::new(cluster_config(a))?;
-    let cluster = ClusterConfig::from_hosts_file(
+    let mut cluster = ClusterConfig::from_hosts_file(
         &a.hosts,
         a.process,
         Duration::from_secs(a.connect_timeout),
     )?;
+    if let Some(path) = &a.cluster_secret_file {
+        cluster = cluster.with_secret(ClusterSecret::read(path)?);
+    }
     Ok(encoder.run(&cluster)?)
 }
 

@@ -133,6 +133,10 @@ fn param_flag(name: &str) -> Option<&'static str> {
         "precision" => "pass --precision f32",
         "color_clip" => "pass --color-clip DIR (or set SLAG_SHARED)",
         "ply" => "pass the .ply used by encode with --ply",
+        "cluster_secret" => {
+            "pass --cluster-secret-file FILE, the same file (mode 0600, at least 16 random bytes) \
+             on every process"
+        }
         _ => return None,
     })
 }

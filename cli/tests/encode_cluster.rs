@@ -84,14 +84,24 @@ struct Proc {
     log: PathBuf,
 }
 
-/// Starts process `i` of the cluster described by `hosts`, logging to `dir/<tag>-<i>.log`.
-fn spawn(i: usize, hosts: &Path, out: &Path, dir: &Path, tag: &str, fault: Option<u32>) -> Proc {
+/// Starts process `i` of the cluster described by `hosts`, logging to `dir/<tag>-<i>.log`,
+/// with `extra` arguments (a secret file).
+fn spawn(
+    i: usize,
+    hosts: &Path,
+    out: &Path,
+    dir: &Path,
+    tag: &str,
+    fault: Option<u32>,
+    extra: &[String],
+) -> Proc {
     let log = dir.join(format!("{tag}-{i}.log"));
     let f = std::fs::File::create(&log).unwrap();
     let mut c = slag_encoder();
     c.args(["encode-cluster", "--process", &i.to_string(), "--hosts"])
         .arg(hosts)
         .args(["--connect-timeout", "120"])
+        .args(extra)
         .args(encode_args(out))
         // Spill every contribution and chunk the accumulator, as on a scene larger than memory.
         .args([
@@ -101,6 +111,7 @@ fn spawn(i: usize, hosts: &Path, out: &Path, dir: &Path, tag: &str, fault: Optio
             "16",
         ])
         .env_remove("SLAG_FAULT_EXIT_AFTER_IMAGES")
+        .env("RUST_LOG", "info")
         .stdout(f.try_clone().unwrap())
         .stderr(f);
     if let Some(n) = fault {
@@ -148,6 +159,7 @@ fn run_cluster(
     dir: &Path,
     tag: &str,
     fault: Option<(usize, u32)>,
+    extra: &[String],
 ) -> Vec<(ExitStatus, String)> {
     let procs = (0..3)
         .map(|i| {
@@ -158,6 +170,7 @@ fn run_cluster(
                 dir,
                 tag,
                 fault.filter(|f| f.0 == i).map(|f| f.1),
+                extra,
             )
         })
         .collect();
@@ -187,6 +200,24 @@ fn assert_same(single: &Embeddings, cluster: &Embeddings) {
     assert!(max_dw <= 1e-6, "max relative Δ weight {max_dw}");
 }
 
+/// The `host:port` lines of a host file.
+fn host_lines(hosts: &Path) -> Vec<String> {
+    std::fs::read_to_string(hosts)
+        .unwrap()
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+/// `--cluster-secret-file` with `secret` written to `dir/name` (mode 0600).
+fn secret_args(dir: &Path, name: &str, secret: &str) -> Vec<String> {
+    use std::os::unix::fs::PermissionsExt;
+    let path = dir.join(name);
+    std::fs::write(&path, format!("{secret}\n")).unwrap();
+    std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+    vec!["--cluster-secret-file".into(), path.display().to_string()]
+}
+
 fn names(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
@@ -212,18 +243,24 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     assert_success(&o);
     let single = Embeddings::read(&single_out.join("embeddings.safetensors")).unwrap();
 
-    // (2) Process 1 dies after its first image (of 7: processes take views 0,3,6 / 1,4 / 2,5).
+    // (2) Process 1 dies after its first image (of 7: processes take views 0,3,6 / 1,4 / 2,5),
+    // in a cluster whose connections prove a secret.
     let hosts = hosts_file(dir.path(), "hosts-1");
+    let secret = secret_args(dir.path(), "secret", "the cluster's secret, 32 bytes..");
     let t0 = Instant::now();
-    let r = run_cluster(&hosts, &out, dir.path(), "faulted", Some((1, 1)));
+    let r = run_cluster(&hosts, &out, dir.path(), "faulted", Some((1, 1)), &secret);
     eprintln!("faulted run ended in {:.1} s", t0.elapsed().as_secs_f64());
     assert_eq!(r[1].0.code(), Some(137), "{}", r[1].1);
+    let dead = format!(
+        "process 1 ({}) died or its connection failed",
+        host_lines(&hosts)[1]
+    );
     for i in [0, 2] {
         let (status, log) = &r[i];
         assert_eq!(status.code(), Some(PEER_LOST), "process {i}: {log}");
         assert!(
-            log.contains("lost the connection to another process"),
-            "process {i}: {log}"
+            log.contains(&dead),
+            "process {i} names the dead process: {log}"
         );
     }
     assert!(!out.join("embeddings.safetensors").exists());
@@ -234,7 +271,8 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
 
     // (1) Rerun in the same OUT: completes, equals the single-process run.
     let hosts = hosts_file(dir.path(), "hosts-2");
-    let r = run_cluster(&hosts, &out, dir.path(), "rerun", None);
+    // Without a secret: allowed, every address being on loopback.
+    let r = run_cluster(&hosts, &out, dir.path(), "rerun", None, &[]);
     for (i, (status, log)) in r.iter().enumerate() {
         assert!(status.success(), "process {i}: {log}");
     }
@@ -268,4 +306,84 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     for key in ["masks", "entries"] {
         assert_eq!(report["counts"][key], single_report["counts"][key], "{key}");
     }
+}
+
+/// A process holding another secret takes process 1's place first: processes 0 and 2 refuse it
+/// (logged with its address), it refuses them, and the job does not start with it; once it is
+/// gone the right process 1 joins and the job completes. A run off loopback without a secret
+/// is refused before anything is bound.
+#[test]
+fn a_peer_with_a_wrong_secret_is_refused_and_the_job_waits_for_the_right_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let hosts = hosts_file(dir.path(), "hosts");
+    let right = secret_args(dir.path(), "right", "the cluster's secret, 32 bytes..");
+    let wrong = secret_args(dir.path(), "wrong", "another secret of the same length");
+    let p0 = spawn(0, &hosts, &out, dir.path(), "auth", None, &right);
+    let p2 = spawn(2, &hosts, &out, dir.path(), "auth", None, &right);
+    let mut intruder = spawn(1, &hosts, &out, dir.path(), "intruder", None, &wrong);
+    let refused = |p: &Proc, what: &str| {
+        std::fs::read_to_string(&p.log)
+            .unwrap_or_default()
+            .contains(what)
+    };
+    let t0 = Instant::now();
+    while !(refused(&p0, "refused a connection from 127.0.0.1:")
+        && refused(&p2, "refused the connection to process 1")
+        && refused(&intruder, "refused the connection to process 0"))
+    {
+        assert!(t0.elapsed() < TIMEOUT, "no refusal logged");
+        assert!(
+            intruder.child.try_wait().unwrap().is_none(),
+            "intruder exited"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let intruder_log = std::fs::read_to_string(&intruder.log).unwrap();
+    assert!(
+        intruder_log.contains("process 0 failed the challenge"),
+        "{intruder_log}"
+    );
+    intruder.child.kill().unwrap();
+    intruder.child.wait().unwrap();
+    assert!(
+        !out.join("report.json").exists(),
+        "no job ran with the intruder"
+    );
+
+    let p1 = spawn(1, &hosts, &out, dir.path(), "auth", None, &right);
+    let r = wait_all(vec![p0, p1, p2]);
+    for (i, (status, log)) in r.iter().enumerate() {
+        assert!(status.success(), "process {i}: {log}");
+    }
+    assert!(
+        r[2].1.contains("process 1 failed the challenge"),
+        "process 2 logs why: {}",
+        r[2].1
+    );
+    assert!(
+        r[0].1.contains("it holds another cluster secret"),
+        "process 0 logs why: {}",
+        r[0].1
+    );
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report["counts"]["views_used"], 7);
+
+    // Off loopback without a secret: refused at once, with the flag in the hint.
+    let remote = dir.path().join("hosts-remote");
+    std::fs::write(&remote, "127.0.0.1:1\n10.255.255.1:4000\n").unwrap();
+    let o = slag_encoder()
+        .args(["encode-cluster", "--process", "0", "--hosts"])
+        .arg(&remote)
+        .args(encode_args(&dir.path().join("refused")))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("10.255.255.1:4000 off loopback")
+            && stderr.contains("--cluster-secret-file"),
+        "{stderr}"
+    );
 }

@@ -8,6 +8,7 @@ use std::time::Duration;
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
+use super::net::{ClusterSecret, all_loopback};
 use crate::masks::MaskGenerator;
 use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput};
 use crate::raster::WeightRasterizer;
@@ -37,6 +38,9 @@ pub struct ClusterConfig {
     pub addresses: Vec<String>,
     /// How long to wait for every process to connect before giving up.
     pub connect_timeout: Duration,
+    /// The secret every connection proves at its start ([`super::net`]'s handshake); `None` is
+    /// allowed only when every address is on loopback (see [`ClusterConfig::check_secret`]).
+    pub secret: Option<ClusterSecret>,
 }
 
 impl ClusterConfig {
@@ -67,9 +71,48 @@ impl ClusterConfig {
             process,
             addresses,
             connect_timeout,
+            secret: None,
         };
         config.check().map_err(|m| Error::format(path, m))?;
         Ok(config)
+    }
+
+    /// This configuration with the cluster secret `secret`.
+    pub fn with_secret(self, secret: ClusterSecret) -> Self {
+        Self {
+            secret: Some(secret),
+            ..self
+        }
+    }
+
+    /// Refuses a cluster without a secret unless every address is on loopback (then only users
+    /// of this machine can reach its ports; a warning says so): on a shared network anyone who
+    /// reaches an unauthenticated port could join the job or feed it records.
+    ///
+    /// Errors: [`Error::Param`] `cluster_secret` naming the first address off loopback.
+    pub fn check_secret(&self) -> Result<()> {
+        if self.secret.is_some() {
+            return Ok(());
+        }
+        if all_loopback(&self.addresses) {
+            tracing::warn!(
+                "encode-cluster without a cluster secret: any user of this machine can connect \
+                 to its ports; give every process the same secret file"
+            );
+            return Ok(());
+        }
+        let off = self
+            .addresses
+            .iter()
+            .find(|a| !all_loopback(std::slice::from_ref(a)))
+            .cloned()
+            .unwrap_or_default();
+        Err(Error::param(
+            "cluster_secret",
+            format!("none, with {off} off loopback"),
+            "a shared secret file, the same on every process, when any process is on another \
+             machine: without one anyone who reaches the ports could join the job or send it data",
+        ))
     }
 
     pub(super) fn check(&self) -> std::result::Result<(), String> {

@@ -47,8 +47,16 @@
 //! process exits non-zero with that message and nothing is written. A process that dies
 //! (`kill -9`, machine loss) closes its TCP connections; timely's network threads then panic with
 //! "timely communication error"; [`encode_cluster`] turns that into an immediate exit with status
-//! [`EXIT_PEER_LOST`] and a message saying which process lost a peer, after removing its own spill
+//! [`EXIT_PEER_LOST`] and a message naming the process that died and its address (each peer's
+//! stream records its index when it fails, [`net::PeerStream`]), after removing its own spill
 //! folder. timely has no fault tolerance: a job that lost a process is rerun as a whole.
+//!
+//! # Connections
+//!
+//! The TCP connections are made by [`net::connect_peers`], not by timely: each starts with a
+//! mutual HMAC challenge on the cluster secret ([`ClusterSecret`]; without one only on loopback,
+//! [`ClusterConfig::check_secret`]), and only connections that pass it are handed to timely
+//! (`initialize_networking_from_sockets`, `execute_from`).
 //!
 //! # Fault injection (tests only)
 //!
@@ -59,7 +67,6 @@ use std::cell::RefCell;
 use std::path::{Path, PathBuf};
 use std::rc::Rc;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use slag_common::camera::View;
@@ -78,6 +85,7 @@ mod config;
 mod encoder;
 mod gather;
 mod map;
+pub mod net;
 mod records;
 mod reduce;
 
@@ -85,6 +93,8 @@ pub use config::{ClusterConfig, ClusterJob, StageFactory, Stages};
 pub use encoder::ClusterEncoder;
 use gather::{Gathered, WorkerOutcome, assemble};
 use map::{Input, job_key, map_side};
+pub use net::ClusterSecret;
+use net::{LostPeer, PeerStream};
 use records::{JobKey, MapStats, ToGather, ToReducer};
 use reduce::PartitionReducer;
 
@@ -310,33 +320,41 @@ fn panic_text(info: &std::panic::PanicHookInfo<'_>) -> String {
 /// `OUT/embeddings.safetensors` then `OUT/report.json` (each atomically, the report last) and
 /// returns the report; other processes return `None` once the job completed.
 ///
-/// Blocks until every process of `cluster` has connected (at most `connect_timeout`, then the
-/// process exits with [`EXIT_PEER_LOST`]) and the job has completed. For its duration it installs a
-/// process-wide panic hook: a panic on any thread (timely's network threads panic when a peer
-/// process dies) prints one line naming the cause, removes this process's spill folder and exits
-/// the process with [`EXIT_PEER_LOST`] at once — a dead peer can never make a survivor write
-/// anything.
+/// Blocks until every process of `cluster` has connected and proved the cluster secret
+/// ([`net::connect_peers`]; peers that fail are refused, logged and waited past) and the job has
+/// completed. For its duration it installs a process-wide panic hook: a panic on any thread
+/// (timely's network threads panic when a peer process dies) prints one line naming the cause
+/// (the process whose connection failed, with its address), removes this process's spill folder
+/// and exits the process with [`EXIT_PEER_LOST`] at once — a dead peer can never make a survivor
+/// write anything.
 ///
-/// Errors (returned on every process): a worker's encode error (bad scene, model, image), processes
-/// started with different arguments, an incomplete job, I/O on the outputs; the address of this
-/// process cannot be bound (port in use).
+/// Errors (returned on every process): no secret with an address off loopback
+/// ([`ClusterConfig::check_secret`]); this process's address cannot be listened on (port in
+/// use); not every process connected with the secret within `connect_timeout`
+/// ([`Error::Network`] naming them); a worker's encode error (bad scene, model, image),
+/// processes started with different arguments, an incomplete job, I/O on the outputs.
 pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option<Report>> {
     let t_total = Instant::now();
     cluster.check().map_err(Error::Invalid)?;
+    cluster.check_secret()?;
     let process = cluster.process;
     let spill = fresh_spill_dir(&job.params.out_dir, process)?;
 
     let previous_hook = std::panic::take_hook();
-    set_peer_lost_hook(process, spill);
-    let connected = Arc::new(AtomicBool::new(false));
-    start_connect_watchdog(cluster, Arc::clone(&connected));
-
+    let lost = Arc::new(LostPeer::default());
+    set_peer_lost_hook(process, spill, cluster.addresses.clone(), Arc::clone(&lost));
     let models_header = job.report.clone();
     let job = Arc::new(job);
-    let outcome = run_job(&job, cluster, &connected);
-    // Past this point neither the watchdog nor the hook may act: the job has ended one way or the
-    // other (joined) or never started.
-    connected.store(true, Ordering::SeqCst);
+    let outcome = net::connect_peers(
+        &cluster.addresses,
+        process,
+        cluster.secret.as_ref(),
+        net::HANDSHAKE_TIMEOUT,
+        t_total + cluster.connect_timeout,
+        &lost,
+    )
+    .and_then(|peers| run_job(&job, peers, process));
+    // The job has ended one way or the other (joined) or never started: the hook may not act.
     std::panic::set_hook(previous_hook);
 
     let outcome = outcome?;
@@ -373,17 +391,23 @@ fn fresh_spill_dir(out: &Path, process: usize) -> Result<PathBuf> {
 }
 
 /// Installs the process-wide panic hook of [`encode_cluster`]: a panic on any thread prints one
-/// line naming its cause (a lost peer or an internal error), removes `spill` and exits the
-/// process with [`EXIT_PEER_LOST`].
-fn set_peer_lost_hook(process: usize, spill: PathBuf) {
+/// line naming its cause (the peer process whose connection failed, from the panicking timely
+/// network thread or else from `lost`, with its address in `addresses`; or an internal error),
+/// removes `spill` and exits the process with [`EXIT_PEER_LOST`].
+fn set_peer_lost_hook(process: usize, spill: PathBuf, addresses: Vec<String>, lost: Arc<LostPeer>) {
     std::panic::set_hook(Box::new(move |info| {
         let text = panic_text(info);
-        let cause = if text.contains("timely communication error")
-            || text.contains("MergeQueue poisoned")
-        {
-            "lost the connection to another process of the job (it died or the network failed)"
-        } else {
-            "internal error"
+        let network =
+            text.contains("timely communication error") || text.contains("MergeQueue poisoned");
+        let cause = match network_thread_peer().or_else(|| lost.get()) {
+            Some(peer) if network => {
+                let address = addresses.get(peer).map_or("?", String::as_str);
+                format!("process {peer} ({address}) died or its connection failed")
+            }
+            _ if network => "lost the connection to another process of the job (it died or \
+                             the network failed)"
+                .into(),
+            _ => "internal error".into(),
         };
         eprintln!(
             "error: encode-cluster process {process}: {cause}: {text}\nerror: the job failed and \
@@ -394,62 +418,48 @@ fn set_peer_lost_hook(process: usize, spill: PathBuf) {
     }));
 }
 
-/// Starts a thread that exits the process with [`EXIT_PEER_LOST`] unless `connected` is set
-/// within the cluster's `connect_timeout`.
-fn start_connect_watchdog(cluster: &ClusterConfig, connected: Arc<AtomicBool>) {
-    let (process, timeout, n) = (
-        cluster.process,
-        cluster.connect_timeout,
-        cluster.addresses.len(),
-    );
-    std::thread::spawn(move || {
-        std::thread::sleep(timeout);
-        if !connected.load(Ordering::SeqCst) {
-            eprintln!(
-                "error: encode-cluster process {process}: not all {n} processes connected \
-                 within {} s; start every process with the same hosts file (and check the \
-                 addresses and firewalls)",
-                timeout.as_secs()
-            );
-            std::process::exit(EXIT_PEER_LOST);
-        }
-    });
+/// The peer process of the current thread when it is one of timely's network threads
+/// (`timely:send-N`, `timely:recv-N`, each serving the connection to process `N`).
+fn network_thread_peer() -> Option<usize> {
+    let current = std::thread::current();
+    let name = current.name()?;
+    name.strip_prefix("timely:recv-")
+        .or_else(|| name.strip_prefix("timely:send-"))?
+        .parse()
+        .ok()
 }
 
-/// Runs `job` as this process's single timely worker of `cluster` and waits for it to end;
-/// `connected` is set once the worker runs (every process has connected).
+/// Runs `job` as this process's single timely worker over the connected `peers` (one stream per
+/// process, `None` at `process`, as [`net::connect_peers`] returns them) and waits for it to end.
 ///
-/// Errors: the cluster cannot start (this process's address cannot be bound); the worker's own
-/// error or panic.
+/// Errors: timely's network threads cannot start; the worker's own error or panic.
 fn run_job(
     job: &Arc<ClusterJob>,
-    cluster: &ClusterConfig,
-    connected: &Arc<AtomicBool>,
+    peers: Vec<Option<PeerStream>>,
+    process: usize,
 ) -> Result<WorkerOutcome> {
-    let process = cluster.process;
-    let config = timely::Config {
-        communication: timely::CommunicationConfig::Cluster {
-            threads: 1,
-            process,
-            addresses: cluster.addresses.clone(),
-            report: false,
-            zerocopy: false,
-        },
-        worker: timely::WorkerConfig::default(),
-    };
+    use timely::communication::allocator::zero_copy::initialize::initialize_networking_from_sockets;
+    use timely::communication::allocator::{AllocatorBuilder, ProcessBuilder};
+
+    let hooks = timely::communication::Hooks::default();
+    let local = ProcessBuilder::new_typed_vector(1, hooks.refill.clone(), hooks.spill.clone());
+    let (builders, comms) = initialize_networking_from_sockets(local, peers, process, 1, hooks)
+        .map_err(|e| {
+            Error::internal(format!(
+                "encode-cluster process {process}: cannot start the network threads: {e}"
+            ))
+        })?;
+    let builders = builders.into_iter().map(AllocatorBuilder::Tcp).collect();
     let worker_job = Arc::clone(job);
-    let worker_connected = Arc::clone(connected);
-    let started = timely::execute(config, move |worker| {
-        worker_connected.store(true, Ordering::SeqCst);
-        run_worker(worker, &worker_job)
-    });
-    let results = started.map(|guards| guards.join()).map_err(|e| {
-        Error::network(
-            cluster.addresses[process].clone(),
-            format!("encode-cluster process {process}: cannot start the cluster: {e}"),
-        )
-    })?;
-    results
+    let guards = timely::execute::execute_from(
+        builders,
+        Box::new(comms),
+        timely::WorkerConfig::default(),
+        move |worker| run_worker(worker, &worker_job),
+    )
+    .map_err(|e| Error::internal(format!("encode-cluster process {process}: {e}")))?;
+    guards
+        .join()
         .into_iter()
         .next()
         .ok_or_else(|| Error::internal("timely started no worker"))?
