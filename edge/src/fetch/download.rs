@@ -16,7 +16,7 @@ use super::client::{Attempt, Pace, net_error, permanent, status_error, transient
 use super::resume::{TileFetch, open_partial, partial_prefix, write_chunk};
 use super::signed::refusal;
 use super::{FetchParams, FetchSummary};
-use crate::store::{EdgeStore, Sha256Check};
+use crate::store::EdgeStore;
 
 /// Bytes of one tile: received over the network in this run, and shown in the progress bar.
 #[derive(Default)]
@@ -105,9 +105,9 @@ impl Downloads<'_> {
                 tile,
             };
             match self.try_download(&to, &mut counts).await {
-                Ok((r, streamed)) => {
+                Ok(r) => {
                     resumed |= r;
-                    match self.commit(tile, &part, streamed).await? {
+                    match self.commit(tile, &part).await? {
                         Ok(()) => return Ok((resumed, counts.received)),
                         // Under a trusted key the SHA-256 matched first: the same bytes would
                         // fail again, and any failed check is a refusal.
@@ -186,18 +186,11 @@ impl Downloads<'_> {
     }
 
     /// Verifies the complete partial file `part` of `tile` and moves it into the store (on the
-    /// blocking pool). With a trusted key its SHA-256 is checked too: `streamed`, the digest
-    /// of the bytes as they came in ([`Self::receive`]), or else a hash of the file. The outer
-    /// error is a failed task, the inner one the commit's ([`Error::Format`] for a file that
-    /// fails verification).
+    /// blocking pool; hashes too with a trusted key). The outer error is a failed task, the
+    /// inner one the commit's ([`Error::Format`] for a file that fails verification).
     ///
     /// Errors: [`Error::Internal`] when the task fails.
-    async fn commit(
-        &self,
-        tile: &TileInfo,
-        part: &Path,
-        streamed: Option<String>,
-    ) -> Result<Result<()>> {
+    async fn commit(&self, tile: &TileInfo, part: &Path) -> Result<Result<()>> {
         let is_codebook = self.is_codebook(tile);
         let signed = self.p.trusted_keys.is_some();
         let (store, manifest, tile, part) = (
@@ -207,11 +200,6 @@ impl Downloads<'_> {
             part.to_path_buf(),
         );
         tokio::task::spawn_blocking(move || {
-            let signed = match (signed, streamed.as_deref()) {
-                (false, _) => Sha256Check::Off,
-                (true, None) => Sha256Check::Hash,
-                (true, Some(d)) => Sha256Check::Streamed(d),
-            };
             if is_codebook {
                 store.commit_codebook_partial_checked(&manifest, &part, signed)
             } else {
@@ -224,17 +212,16 @@ impl Downloads<'_> {
 
     /// One HTTP attempt: continues `to.part` if it holds a prefix, otherwise starts over. On
     /// success the file holds exactly `to.tile.bytes` bytes (synced). Returns whether a `Range`
-    /// request was honoured, and with a trusted key the SHA-256 of a body received whole
-    /// ([`Self::receive`]).
+    /// request was honoured.
     async fn try_download(
         &self,
         to: &TileFetch<'_>,
         counts: &mut Counts,
-    ) -> std::result::Result<(bool, Option<String>), Attempt> {
+    ) -> std::result::Result<bool, Attempt> {
         let tile = to.tile;
         let have = partial_prefix(to.part, tile).await?;
         if have == tile.bytes && have > 0 {
-            return Ok((false, None));
+            return Ok(false);
         }
         let mut req = self.client.get(to.url);
         if let Some(t) = self.p.token.as_deref() {
@@ -264,15 +251,12 @@ impl Downloads<'_> {
                 .set_position(self.pb.position().saturating_sub(counts.shown - start));
         }
         counts.shown = start;
-        let streamed = self.receive(resp, file, to, (start, pace), counts).await?;
-        Ok((resumed, streamed))
+        self.receive(resp, file, to, (start, pace), counts).await?;
+        Ok(resumed)
     }
 
     /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`) at `pace`,
-    /// then flushes and syncs it. With a trusted key and `start` 0, each chunk is hashed as it
-    /// is written (one pass over the bytes, overlapped with the network) and the SHA-256 of
-    /// the whole body is returned, for the commit to compare instead of hashing the file again;
-    /// `None` for a resumed body (the commit hashes the file). Past the manifest's size the file is removed and the attempt
+    /// then flushes and syncs it. Past the manifest's size the file is removed and the attempt
     /// starts over (with a trusted key: refused); a write that fails (disk full) removes it too,
     /// never left to fill the disk further; a body cut short, or slower than `pace`, keeps what
     /// arrived for the next attempt to resume.
@@ -283,10 +267,8 @@ impl Downloads<'_> {
         to: &TileFetch<'_>,
         (start, pace): (u64, Pace),
         counts: &mut Counts,
-    ) -> std::result::Result<Option<String>, Attempt> {
-        use sha2::Digest;
+    ) -> std::result::Result<(), Attempt> {
         let (part, tile) = (to.part, to.tile);
-        let mut hasher = (self.p.trusted_keys.is_some() && start == 0).then(sha2::Sha256::new);
         let url = &slag_common::auth::redact_url(resp.url().as_str()).into_owned();
         let io = |e: std::io::Error| permanent(Error::io(part, e));
         let mut written = start;
@@ -334,9 +316,6 @@ impl Downloads<'_> {
                 return Err(io(e));
             }
             boundary("fetch.partial:write");
-            if let Some(h) = hasher.as_mut() {
-                h.update(&chunk);
-            }
             counts.received += chunk.len() as u64;
             counts.shown += chunk.len() as u64;
             self.pb.inc(chunk.len() as u64);
@@ -353,6 +332,6 @@ impl Downloads<'_> {
                 ),
             )));
         }
-        Ok(hasher.map(|h| crate::store::hex(&h.finalize())))
+        Ok(())
     }
 }

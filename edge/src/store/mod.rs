@@ -74,7 +74,7 @@ mod verify;
 pub use load::{MAX_LOAD_WINDOW, SceneLoad, load_window};
 pub use regular::read_regular;
 use regular::{Opened, db_not_regular, open_regular};
-pub use signed::{Sha256Check, SignatureCheck, SignedManifest};
+pub use signed::{SignatureCheck, SignedManifest};
 pub use verify::{
     CODEBOOK_EXTENSION, LoadableShard, WholeFile, codebook_tile, verify_codebook,
     verify_mixture_shard, verify_shard,
@@ -346,7 +346,7 @@ fn dir_bytes(p: &Path) -> u64 {
 }
 
 /// Lower-case hex of `bytes`.
-pub(crate) fn hex(bytes: &[u8]) -> String {
+fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
@@ -731,23 +731,23 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`]; `part` is left for the caller to discard), file
     /// I/O.
     pub fn commit_codebook_partial(&self, manifest: &Manifest, part: &Path) -> Result<()> {
-        self.commit_codebook_partial_checked(manifest, part, Sha256Check::Off)
+        self.commit_codebook_partial_checked(manifest, part, false)
     }
 
     /// [`Self::commit_codebook_partial`], first checking the codebook's SHA-256 against a
-    /// signed manifest as `signed` says.
+    /// signed manifest when `signed`.
     ///
     /// Errors: as [`Self::commit_codebook_partial`]; [`Error::Untrusted`] for another SHA-256.
     pub fn commit_codebook_partial_checked(
         &self,
         manifest: &Manifest,
         part: &Path,
-        signed: Sha256Check<'_>,
+        signed: bool,
     ) -> Result<()> {
         let max = manifest.mixture.as_ref().map_or(0, |m| m.codebook_bytes);
         let bytes = read_partial(part, max)?;
-        if let Some(t) = codebook_tile(manifest) {
-            signed::check_download_as(manifest, &t, &bytes, signed)?;
+        if signed && let Some(t) = codebook_tile(manifest) {
+            signed::check_download(manifest, &t, &bytes)?;
         }
         verify_codebook(manifest, &bytes)?;
         drop(bytes);
@@ -1000,12 +1000,12 @@ impl EdgeStore {
     /// Errors: verification ([`Error::Format`] / [`Error::Unsupported`]; `part` is left for the
     /// caller to discard) or file I/O ([`Error::Io`]).
     pub fn commit_partial(&self, manifest: &Manifest, tile: &TileInfo, part: &Path) -> Result<()> {
-        self.commit_partial_checked(manifest, tile, part, Sha256Check::Off)
+        self.commit_partial_checked(manifest, tile, part, false)
     }
 
     /// [`Self::commit_partial`], also checking the shard's SHA-256 against a signed manifest
-    /// as `signed` says, beside its verification; a file failing both is refused for its
-    /// SHA-256, so that any other bytes are named as such.
+    /// when `signed`, beside its verification; a file failing both is refused for its SHA-256,
+    /// so that any other bytes are named as such.
     ///
     /// Errors: as [`Self::commit_partial`]; [`Error::Untrusted`] for another SHA-256.
     pub fn commit_partial_checked(
@@ -1013,21 +1013,17 @@ impl EdgeStore {
         manifest: &Manifest,
         tile: &TileInfo,
         part: &Path,
-        signed: Sha256Check<'_>,
+        signed: bool,
     ) -> Result<()> {
         let bytes = read_partial(part, tile.bytes)?;
-        // A hash (not streamed in) runs beside the verification, on the rayon pool; the
-        // SHA-256's error first.
-        let (hashed, verified) = match signed {
-            Sha256Check::Hash => rayon::join(
-                || signed::check_download_as(manifest, tile, &bytes, signed),
-                || verify_any_shard(manifest, tile, &bytes, WholeFile::Crc32),
-            ),
-            _ => (
-                signed::check_download_as(manifest, tile, &bytes, signed),
-                verify_any_shard(manifest, tile, &bytes, WholeFile::Crc32),
-            ),
-        };
+        // The hash runs beside the verification, on the rayon pool; the SHA-256's error first.
+        let (hashed, verified) = rayon::join(
+            || match signed {
+                true => signed::check_download(manifest, tile, &bytes),
+                false => Ok(()),
+            },
+            || verify_any_shard(manifest, tile, &bytes, WholeFile::Crc32),
+        );
         hashed.and(verified)?;
         drop(bytes);
         let path = self.shard_path(&manifest.scene_id, tile)?;

@@ -66,41 +66,6 @@ pub(super) fn check_download(manifest: &Manifest, tile: &TileInfo, bytes: &[u8])
     )
 }
 
-/// How a commit checks downloaded bytes against a signed manifest's SHA-256
-/// ([`EdgeStore::commit_partial_checked`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Sha256Check<'a> {
-    /// None: an unsigned fetch.
-    Off,
-    /// The file's bytes, read back for their verification, are hashed too.
-    Hash,
-    /// The SHA-256 (64 lowercase hex digits) of the bytes as the fetch received and wrote them
-    /// into the partial file, hashed while they streamed in: compared, not computed again.
-    Streamed(&'a str),
-}
-
-/// [`check_download`] as `check` says: nothing ([`Sha256Check::Off`]), the hash of `bytes`, or
-/// the digest streamed in compared with the manifest's.
-///
-/// Errors: as [`check_download`].
-pub(super) fn check_download_as(
-    manifest: &Manifest,
-    tile: &TileInfo,
-    bytes: &[u8],
-    check: Sha256Check<'_>,
-) -> Result<()> {
-    match check {
-        Sha256Check::Off => Ok(()),
-        Sha256Check::Hash => check_download(manifest, tile, bytes),
-        Sha256Check::Streamed(got) => compare_sha256(
-            tile.sha256.as_deref(),
-            got,
-            &file_name(manifest, tile),
-            &format!("scene {}", manifest.scene_id),
-        ),
-    }
-}
-
 /// "tile N" or "the codebook", for messages.
 fn file_name(manifest: &Manifest, tile: &TileInfo) -> String {
     if manifest.mixture.is_some() && tile.id == slag_common::shards::CODEBOOK_TILE {
