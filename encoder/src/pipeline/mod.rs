@@ -41,6 +41,7 @@ pub(crate) mod pool;
 mod reduction;
 pub(crate) mod scene_load;
 pub(crate) mod segment_task;
+mod sinks;
 
 pub use encoder::Encoder;
 pub use pool::FrontStages;

@@ -14,8 +14,10 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
 use super::fallback::ReduceFallback;
+pub(crate) use super::sinks::dominant_masks;
+use super::sinks::{PoolSinks, finish_image};
 use super::{
-    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, Keep, SceneInput, back_finish,
+    BackPrepared, BackRaster, CropEmbedder, EncodeParams, FrontItem, Keep, SceneInput,
     back_prepare, back_raster, front_stage, no_views,
 };
 use crate::aggregate::ContributionStore;
@@ -305,121 +307,6 @@ impl Failure {
             Some(e) => Err(e),
             None => Ok(()),
         }
-    }
-}
-
-/// Where the image stage's `a_kj` go: the contribution store; with [`EncodeParams::levels`] one
-/// store per granularity level (the same entries, split by level); with
-/// [`EncodeParams::mask_record_slots`] the masks' record of the views recorded on the host.
-struct PoolSinks {
-    store: Mutex<ContributionStore>,
-    level_stores: Vec<Mutex<ContributionStore>>,
-    record: Option<Mutex<HostRecord>>,
-}
-
-/// The masks' record of the views whose dominant masks reach the host, made at the first of
-/// them: a run whose rasterizers keep the record on their devices
-/// ([`WeightRasterizer::keep_mask_record`]) holds none on the host until the end.
-struct HostRecord {
-    gaussians: usize,
-    slots: usize,
-    views: usize,
-    record: Option<MaskRecord>,
-}
-
-impl HostRecord {
-    /// Adds view `view`'s dominant masks ([`MaskRecord::add_view`]).
-    ///
-    /// Errors: the record's ([`MaskRecord::new`]).
-    fn add_view(&mut self, view: usize, dominant: &[(u32, u32, f32)]) -> Result<()> {
-        if dominant.is_empty() {
-            return Ok(());
-        }
-        let record = match &mut self.record {
-            Some(r) => r,
-            None => self
-                .record
-                .insert(MaskRecord::new(self.gaussians, self.slots, self.views)?),
-        };
-        record.add_view(view, dominant.iter().copied());
-        Ok(())
-    }
-}
-
-impl PoolSinks {
-    /// Empty sinks for `n_views` views of `n_gaussians` Gaussians; the stores spill under
-    /// [`EncodeParams::out_dir`].
-    ///
-    /// Errors: [`Error::Param`] `slots` for a record of other than 1 to 64 slots; the host's
-    /// fold's ([`folded_mixture`]).
-    fn new(
-        params: &EncodeParams,
-        (dim, n_gaussians): (usize, usize),
-        n_views: usize,
-    ) -> Result<Self> {
-        let store = |name: String| {
-            Mutex::new(ContributionStore::new(
-                params.contribution_budget_bytes,
-                params.out_dir.join(name),
-            ))
-        };
-        let level_stores = if params.levels {
-            (0..crate::aggregate::levels::LEVELS)
-                .map(|l| store(format!(".contributions-level{l}.partial")))
-                .collect()
-        } else {
-            Vec::new()
-        };
-        let record = match params.mask_record_slots {
-            Some(slots) => {
-                // The slots are checked now (a record of no Gaussians); the record itself is
-                // allocated at its first view.
-                MaskRecord::new(0, slots, n_views)?;
-                Some(Mutex::new(HostRecord {
-                    gaussians: n_gaussians,
-                    slots,
-                    views: n_views,
-                    record: None,
-                }))
-            }
-            None => None,
-        };
-        let main = match folded_mixture(params, dim, n_gaussians)? {
-            Some(fold) => Mutex::new(ContributionStore::folding(fold)),
-            None => store(".contributions.partial".to_string()),
-        };
-        Ok(PoolSinks {
-            store: main,
-            level_stores,
-            record,
-        })
-    }
-}
-
-/// The host's streamed reduction of an encode that reduces on the host from the start
-/// (`--reduce host`) and writes only the mixture: each view folded into a running state per
-/// Gaussian as it comes ([`crate::aggregate::MixtureFold`]), none kept. `None` otherwise: the
-/// dense file and the level files need every view's `a_kj`, and a run that may keep its views on
-/// a device gives them to the store only if it gives way to the host.
-///
-/// Errors: the fold's ([`crate::aggregate::MixtureFold::new`]).
-fn folded_mixture(
-    params: &EncodeParams,
-    dim: usize,
-    n_gaussians: usize,
-) -> Result<Option<crate::aggregate::MixtureFold>> {
-    let host = params.reduce_on == crate::config::ReduceOn::Host;
-    match params.mixture_keep {
-        Some(keep) if host && !params.dense && !params.levels => {
-            let fold = crate::aggregate::MixtureFold::new(
-                n_gaussians,
-                dim,
-                keep,
-                params.reduce.min_total_weight,
-            )?;
-            Ok(Some(fold))
-        }
-        _ => Ok(None),
     }
 }
 
@@ -1160,90 +1047,6 @@ fn stage_loop<I, O: Send>(
             }
         }
     }
-}
-
-/// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj` pushed to
-/// the sinks (split by level with `levels`; each Gaussian's dominant mask to the masks' record),
-/// and its work added to `totals`.
-///
-/// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock.
-fn finish_image(
-    raster: BackRaster,
-    dim: usize,
-    params: &EncodeParams,
-    sinks: &PoolSinks,
-    totals: &Mutex<ImageWork>,
-) -> Result<()> {
-    let PoolSinks {
-        store,
-        level_stores,
-        record,
-    } = sinks;
-    let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
-    let item = &raster.item;
-    let (n_masks, decode_s, masks_s, clip_s) =
-        (item.masks.len(), item.decode_s, item.masks_s, item.clip_s);
-    let mask_levels: Vec<Option<u8>> = item.masks.iter().map(|m| m.level).collect();
-    let raster_view = item.view;
-    let out = back_finish(raster, dim, params.image_stage)?;
-    let t1 = Instant::now();
-    let entries = out.contribution.entries.len();
-    if let Some(record) = record {
-        // Each Gaussian's dominant mask here (or from the device), found outside the record's
-        // lock.
-        // Kept on the device: the dominant masks reached the host only when the device holds
-        // no record (empty otherwise).
-        let computed;
-        let dominant = match &out.dominant {
-            Some(d) => d,
-            None => {
-                computed = dominant_masks(&out.contribution.entries);
-                &computed
-            }
-        };
-        record
-            .lock()
-            .map_err(|_| Error::internal("masks' record poisoned by a panicked worker"))?
-            .add_view(raster_view, dominant)?;
-    }
-    let mut work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
-    if !level_stores.is_empty() {
-        let parts = crate::aggregate::levels::split_by_level(&out.contribution, &mask_levels)?;
-        for (part, ls) in parts.into_iter().zip(level_stores) {
-            let part = crate::aggregate::store::StoredImage::from_contribution(part);
-            ls.lock()
-                .map_err(poisoned)?
-                .push_stored_as(raster_view, part)?;
-        }
-    }
-    // Into the store's columns here, not under the store's lock.
-    let stored = crate::aggregate::store::StoredImage::from_contribution(out.contribution);
-    store
-        .lock()
-        .map_err(poisoned)?
-        .push_stored_as(raster_view, stored)?;
-    work.image_aggregate_s += t1.elapsed().as_secs_f64();
-    if let Ok(mut tt) = totals.lock() {
-        tt.add(&work);
-    }
-    Ok(())
-}
-
-/// Each Gaussian's mask of largest `a_kj` in `entries` (sorted by Gaussian), ties to the
-/// smaller mask, as `(gaussian, mask, a_kj)`.
-pub(crate) fn dominant_masks(entries: &[crate::aggregate::Entry]) -> Vec<(u32, u32, f32)> {
-    let mut out: Vec<(u32, u32, f32)> = Vec::new();
-    for e in entries {
-        match out.last_mut() {
-            Some(d) if d.0 == e.gaussian => {
-                if e.weight > d.2 || (e.weight == d.2 && e.mask < d.1) {
-                    *d = (e.gaussian, e.mask, e.weight);
-                }
-            }
-            _ => out.push((e.gaussian, e.mask, e.weight)),
-        }
-    }
-    out
 }
 
 /// The rayon pool of back worker `g`: as many threads as the global pool (at least 2). Each
