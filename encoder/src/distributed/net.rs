@@ -52,6 +52,10 @@ const ACCEPTED: u8 = 1;
 pub const MIN_SECRET_BYTES: usize = 16;
 /// Longest wait for each step of a handshake (a silent peer is refused after it).
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+/// Most connections checked at once by one process: past it a new connection is closed at once,
+/// so a flood of connections costs a bounded number of threads (each freed within the handshake
+/// timeout) and the real peer, which retries, gets in once it ebbs.
+const MAX_PENDING_HANDSHAKES: usize = 32;
 /// Pause between two attempts to reach a peer.
 const RETRY: Duration = Duration::from_millis(500);
 /// The HMAC key of a cluster run without a secret (every address on loopback): the handshake
@@ -380,7 +384,8 @@ fn reach(address: &str, timeout: Duration) -> io::Result<TcpStream> {
 
 /// Accepts the processes above this one on `listener` until each has passed the handshake or
 /// the deadline passes; the streams in process order (`None` where the deadline passed). Each
-/// accepted connection is checked on its own thread, so a silent peer delays no other.
+/// accepted connection is checked on its own thread, so a silent peer delays no other; at most
+/// [`MAX_PENDING_HANDSHAKES`] at once.
 fn accept_higher(listener: &TcpListener, m: &Membership<'_>) -> Vec<Option<TcpStream>> {
     let processes = m.addresses.len();
     let mut streams: Vec<Option<TcpStream>> = (m.me + 1..processes).map(|_| None).collect();
@@ -392,15 +397,33 @@ fn accept_higher(listener: &TcpListener, m: &Membership<'_>) -> Vec<Option<TcpSt
         return streams;
     }
     let (done, results) = mpsc::channel();
+    // Handshake threads started and not yet reported: each reports exactly once.
+    let mut pending = 0usize;
     while streams.iter().any(Option::is_none) && Instant::now() < m.deadline {
-        match listener.accept() {
-            Ok((stream, peer)) => spawn_accept_handshake(stream, peer, m, done.clone()),
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}
-            Err(e) => tracing::debug!("accepting a cluster connection failed: {e}"),
+        // The connections waiting now (a bounded number per pass, so that a flood cannot keep
+        // the results below from being read), each checked on its own thread or closed at once.
+        for _ in 0..2 * MAX_PENDING_HANDSHAKES {
+            match listener.accept() {
+                Ok((_, peer)) if pending >= MAX_PENDING_HANDSHAKES => tracing::warn!(
+                    peer = %peer,
+                    "encode-cluster process {}: refused a connection from {peer}: \
+                     {MAX_PENDING_HANDSHAKES} others are being checked",
+                    m.me
+                ),
+                Ok((stream, peer)) => {
+                    pending += usize::from(spawn_accept_handshake(stream, peer, m, done.clone()));
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => break,
+                Err(e) => {
+                    tracing::debug!("accepting a cluster connection failed: {e}");
+                    break;
+                }
+            }
         }
         let Ok((peer, outcome)) = results.recv_timeout(Duration::from_millis(20)) else {
             continue;
         };
+        pending -= 1;
         match outcome {
             Ok((c, stream)) => {
                 if streams[c - m.me - 1].replace(stream).is_some() {
@@ -424,13 +447,14 @@ fn accept_higher(listener: &TcpListener, m: &Membership<'_>) -> Vec<Option<TcpSt
 /// stream or the reason it was refused.
 type AcceptOutcome = (SocketAddr, std::result::Result<(usize, TcpStream), String>);
 
-/// Runs [`accept_handshake`] on `stream` on a new thread, reporting to `done`.
+/// Runs [`accept_handshake`] on `stream` on a new thread, reporting to `done`; whether the
+/// thread started (else the connection is closed, logged).
 fn spawn_accept_handshake(
     stream: TcpStream,
     peer: SocketAddr,
     m: &Membership<'_>,
     done: mpsc::Sender<AcceptOutcome>,
-) {
+) -> bool {
     let (me, processes, key, step) = (m.me, m.addresses.len(), m.key.clone(), m.step_timeout);
     let spawned = std::thread::Builder::new()
         .name("slag:cluster-handshake".into())
@@ -438,9 +462,10 @@ fn spawn_accept_handshake(
             let outcome = accept_handshake(stream, me, processes, &key, step);
             let _ = done.send((peer, outcome));
         });
-    if let Err(e) = spawned {
+    if let Err(e) = &spawned {
         tracing::warn!(peer = %peer, "refused a connection: no thread to check it on: {e}");
     }
+    spawned.is_ok()
 }
 
 /// The fields a hello and a challenge share: sender, receiver, processes, nonce.
@@ -862,6 +887,31 @@ mod tests {
         assert_eq!(to_1.read(&mut b).unwrap(), 0);
         assert_eq!(lost[0].get(), Some(1));
         assert_eq!(lost[2].get(), None);
+    }
+
+    #[test]
+    fn a_flood_of_silent_connections_does_not_keep_the_real_peer_out() {
+        let hosts = loopback_hosts(2);
+        let step = Duration::from_millis(300);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        let s = secret("0123456789abcdef");
+        std::thread::scope(|scope| {
+            let p0 =
+                scope.spawn(|| connect_peers(&hosts, 0, Some(&s), step, deadline, &Arc::default()));
+            // Twice as many silent connections as are checked at once, held open.
+            let mut flood = Vec::new();
+            while flood.len() < 2 * MAX_PENDING_HANDSHAKES {
+                match TcpStream::connect(&hosts[0]) {
+                    Ok(c) => flood.push(c),
+                    Err(_) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+            let p1 = connect_peers(&hosts, 1, Some(&s), step, deadline, &Arc::default()).unwrap();
+            assert_eq!(p1[0].as_ref().map(PeerStream::process), Some(0));
+            let p0 = p0.join().unwrap().unwrap();
+            assert_eq!(p0[1].as_ref().map(PeerStream::process), Some(1));
+            drop(flood);
+        });
     }
 
     #[test]
