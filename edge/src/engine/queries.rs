@@ -196,6 +196,12 @@ impl QueryEngine {
     /// Errors: [`Error::Internal`] when the thread cannot be started.
     fn spawn_verification(&self, gate: Option<VerifyGate>) -> Result<()> {
         let s = self.0.clone();
+        tracing::info!(
+            "scene {}: signature verified; hashing its {} stored tiles in the background, \
+             answering partial (no tile served) until then",
+            s.opts.scene,
+            s.served.current().load.pending_verification
+        );
         std::thread::Builder::new()
             .name("slag-verify".into())
             .spawn(move || {
