@@ -14,6 +14,7 @@ use rayon::prelude::*;
 use slag_common::mixture::SparseMixture;
 use slag_common::{Error, Result};
 
+use super::top::replace_weakest;
 use super::{MaskColumn, StoredImage};
 
 /// Gaussians per parallel block of a fold (each block's state is one task's).
@@ -258,7 +259,7 @@ struct Block<'a> {
 impl Block<'_> {
     /// Adds the view's entries `lo..lo + masks.len()` (those of this block, `masks` their mask
     /// indices) in entry order: `Σ a += a` in f64, and the pair `(a, base + mask)` offered to the
-    /// Gaussian's kept pairs as [`super::mixture`]'s push_top offers it.
+    /// Gaussian's kept pairs by the rule the mixture keeps them by ([`super::top`]).
     fn add<M: Copy + Into<u32>>(mut self, c: &StoredImage, masks: &[M], lo: usize, base: u32) {
         let n = masks.len();
         let ids = &c.gaussians[lo..lo + n];
@@ -283,14 +284,6 @@ impl Block<'_> {
             self.n_kept[r] += 1;
             return;
         }
-        let weakest = row
-            .iter()
-            .enumerate()
-            .min_by(|x, y| x.1.0.total_cmp(&y.1.0).then(y.1.1.cmp(&x.1.1)));
-        if let Some((i, &(wa, watom))) = weakest
-            && (a > wa || (a == wa && atom < watom))
-        {
-            row[i] = (a, atom);
-        }
+        replace_weakest(row, a, atom);
     }
 }

@@ -6,6 +6,7 @@ use slag_common::mixture::{MixtureEmbeddings, SparseMixture};
 use slag_common::{Error, Result};
 
 use super::reduce::{Pass, accumulate, stream_to_writer};
+use super::top::replace_weakest;
 use super::*;
 
 /// The same reduction as [`reduce`], kept in mixture form ([`MixtureEmbeddings`]): a shared
@@ -297,13 +298,5 @@ fn push_top(top: &mut Vec<(f32, u32)>, keep: usize, a: f32, atom: u32) {
         top.push((a, atom));
         return;
     }
-    let weakest = top
-        .iter()
-        .enumerate()
-        .min_by(|x, y| x.1.0.total_cmp(&y.1.0).then(y.1.1.cmp(&x.1.1)));
-    if let Some((i, &(wa, watom))) = weakest
-        && (a > wa || (a == wa && atom < watom))
-    {
-        top[i] = (a, atom);
-    }
+    replace_weakest(top, a, atom);
 }

@@ -36,6 +36,7 @@ pub mod mixture;
 pub mod reduce;
 pub mod robust;
 pub mod store;
+mod top;
 
 pub use fold::MixtureFold;
 pub use image::{
