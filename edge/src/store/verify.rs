@@ -107,8 +107,7 @@ fn verify_mixture_shard_as(
     bytes: &[u8],
     whole: WholeFile,
 ) -> Result<MixtureShard> {
-    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
-    check_bytes(&origin, tile, bytes, whole)?;
+    let origin = check_bytes(manifest, tile, bytes, whole)?;
     let shard = decode_mixture_shard(bytes).map_err(|e| shard_error(&origin, e))?;
     let h = &shard.header;
     let want = manifest
@@ -162,26 +161,35 @@ pub enum WholeFile {
 }
 
 /// Length and (with [`WholeFile::Crc32`]) whole-file CRC-32 of downloaded bytes against their
-/// manifest entry.
-fn check_bytes(origin: &str, tile: &TileInfo, bytes: &[u8], whole: WholeFile) -> Result<()> {
+/// manifest entry. Returns the name of the shard the later checks' errors give
+/// (`shard <id> of scene <scene>`).
+///
+/// Errors: [`Error::Format`] under that name, saying what differs.
+fn check_bytes(
+    manifest: &Manifest,
+    tile: &TileInfo,
+    bytes: &[u8],
+    whole: WholeFile,
+) -> Result<String> {
+    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
     if bytes.len() as u64 != tile.bytes {
         return Err(Error::format(
-            origin,
+            &origin,
             format!("{} bytes, the manifest says {}", bytes.len(), tile.bytes),
         ));
     }
     if whole == WholeFile::Hashed {
-        return Ok(());
+        return Ok(origin);
     }
     let want = parse_checksum(tile)?;
     let got = shard_checksum(bytes);
     if got != want {
         return Err(Error::format(
-            origin,
+            &origin,
             format!("checksum {got:08x}, the manifest says {want:08x}"),
         ));
     }
-    Ok(())
+    Ok(origin)
 }
 
 /// A decoding failure as the store reports it: another version is [`Error::Unsupported`] (not
@@ -285,8 +293,7 @@ fn verify_shard_as(
     bytes: &[u8],
     whole: WholeFile,
 ) -> Result<StoredShard> {
-    let origin = format!("shard {} of scene {}", tile.id, manifest.scene_id);
-    check_bytes(&origin, tile, bytes, whole)?;
+    let origin = check_bytes(manifest, tile, bytes, whole)?;
     // Another version is not corruption: a shard from a newer (or older) slag, typed apart so
     // that fetch does not download it again and the message names the version.
     let shard = decode_shard_stored(bytes).map_err(|e| shard_error(&origin, e))?;
