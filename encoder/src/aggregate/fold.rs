@@ -31,6 +31,12 @@ const BLOCK: usize = 1 << 16;
 /// alone: at least `min_total_weight`, positive and finite, as the device's streamed reduction.
 /// CLIP embeddings of masks do not cancel in practice; the rule is documented in
 /// docs/results/stability.md.
+///
+/// A fold may also cover a share of a scene's Gaussians ([`MixtureFold::counting`], the cluster
+/// encode's partitions): its Gaussian ids are that share's own numbering, and it counts each
+/// view's mask embeddings (the codebook's atom ids stay global) without keeping them. Since each
+/// Gaussian's terms depend only on its own entries and on the views' mask counts, the shares'
+/// rows are, bit for bit, the rows of one fold over the whole scene.
 pub struct MixtureFold {
     dim: usize,
     keep: usize,
@@ -41,12 +47,17 @@ pub struct MixtureFold {
     kept: Vec<(f32, u32)>,
     /// `[N]` kept pairs used per Gaussian.
     n_kept: Vec<u8>,
-    /// `[M × D]` every folded view's mask embeddings, in view order.
+    /// `[M × D]` every folded view's mask embeddings, in view order (empty when not kept).
     codebook: Vec<f32>,
+    /// Whether the views' mask embeddings are kept ([`MixtureFold::new`]) or only counted
+    /// ([`MixtureFold::counting`]).
+    keeps_codebook: bool,
+    /// Mask embeddings of the views folded so far (the next view's first atom id).
+    atoms: usize,
     /// The next view to fold: every view below it is folded or never comes.
     next: usize,
-    /// Views that arrived before `next` reached them, by view index.
-    pending: BTreeMap<usize, StoredImage>,
+    /// Views that arrived before `next` reached them, by view index, with their mask counts.
+    pending: BTreeMap<usize, (StoredImage, usize)>,
     /// The most bytes `pending` held at once.
     peak_pending_bytes: usize,
     /// Views folded.
@@ -60,6 +71,31 @@ impl MixtureFold {
     ///
     /// Errors: [`Error::Param`] `mixture_keep` for `keep` outside 1..=255.
     pub fn new(n_gaussians: usize, dim: usize, keep: usize, min_total_weight: f64) -> Result<Self> {
+        Self::with_codebook(n_gaussians, dim, keep, min_total_weight, true)
+    }
+
+    /// As [`MixtureFold::new`], for a share of a scene's Gaussians numbered `0..n_gaussians` in
+    /// the share, that counts the views' mask embeddings without keeping them: its views come
+    /// with their mask counts ([`MixtureFold::push_counted`]), their embeddings may be left out,
+    /// and [`MixtureFold::finish_rows`] gives an empty codebook.
+    ///
+    /// Errors: as [`MixtureFold::new`].
+    pub fn counting(
+        n_gaussians: usize,
+        dim: usize,
+        keep: usize,
+        min_total_weight: f64,
+    ) -> Result<Self> {
+        Self::with_codebook(n_gaussians, dim, keep, min_total_weight, false)
+    }
+
+    fn with_codebook(
+        n_gaussians: usize,
+        dim: usize,
+        keep: usize,
+        min_total_weight: f64,
+        keeps_codebook: bool,
+    ) -> Result<Self> {
         if !(1..=u8::MAX as usize).contains(&keep) {
             return Err(Error::param(
                 "mixture_keep",
@@ -75,6 +111,8 @@ impl MixtureFold {
             kept: vec![(0.0, 0); n_gaussians * keep],
             n_kept: vec![0; n_gaussians],
             codebook: Vec::new(),
+            keeps_codebook,
+            atoms: 0,
             next: 0,
             pending: BTreeMap::new(),
             peak_pending_bytes: 0,
@@ -96,19 +134,42 @@ impl MixtureFold {
     /// past the view's embeddings ([`Error::Invalid`]); more than `u32::MAX - 1` mask
     /// embeddings in all ([`Error::Invalid`]).
     pub fn push(&mut self, view: usize, c: StoredImage) -> Result<()> {
+        let masks = c.mask_embeddings.len() / self.dim.max(1);
+        self.push_counted(view, c, masks)
+    }
+
+    /// As [`MixtureFold::push`], for a view of `masks` mask embeddings: `c` holds all of them,
+    /// or none when the fold does not keep the codebook ([`MixtureFold::counting`]).
+    ///
+    /// Errors: as [`MixtureFold::push`]; [`Error::Invalid`] when `c` holds another number of
+    /// mask embeddings (none is allowed only in a counting fold).
+    pub fn push_counted(&mut self, view: usize, c: StoredImage, masks: usize) -> Result<()> {
         if view < self.next || self.pending.contains_key(&view) {
             return Err(Error::internal(format!(
                 "view {view} reached the host's reduction twice"
             )));
         }
-        self.pending.insert(view, c);
-        let waiting: usize = self.pending.values().map(StoredImage::bytes).sum();
+        check_width(&c, self.dim)?;
+        let held = c.mask_embeddings.len();
+        if held != masks * self.dim && (self.keeps_codebook || held != 0) {
+            return Err(Error::Invalid(format!(
+                "view {view} comes with {held} mask embedding values for {masks} masks of width {}",
+                self.dim
+            )));
+        }
+        self.pending.insert(view, (c, masks));
+        let waiting: usize = self.pending.values().map(|(c, _)| c.bytes()).sum();
         self.peak_pending_bytes = self.peak_pending_bytes.max(waiting);
-        while let Some(c) = self.pending.remove(&self.next) {
-            self.fold(&c)?;
+        while let Some((c, masks)) = self.pending.remove(&self.next) {
+            self.fold(&c, masks)?;
             self.next += 1;
         }
         Ok(())
+    }
+
+    /// Views folded so far (all below this index): a checkpoint of the fold covers them.
+    pub fn folded_views(&self) -> usize {
+        self.next
     }
 
     /// Views pushed so far.
@@ -131,18 +192,21 @@ impl MixtureFold {
         self.den.len() * Self::state_bytes_per_gaussian(self.keep) + self.codebook.len() * 4
     }
 
-    /// One view's entries into the state, its mask embeddings appended to the codebook.
-    fn fold(&mut self, c: &StoredImage) -> Result<()> {
-        let dim = self.dim.max(1);
-        check_view(c, self.dim, self.den.len())?;
-        let base = self.codebook.len() / dim;
-        if base + c.mask_embeddings.len() / dim >= u32::MAX as usize {
+    /// One view's entries (of its `masks` masks) into the state, its mask embeddings appended to
+    /// the codebook when the fold keeps it.
+    fn fold(&mut self, c: &StoredImage, masks: usize) -> Result<()> {
+        check_view(c, self.dim, masks, self.den.len())?;
+        let base = self.atoms;
+        if base + masks >= u32::MAX as usize {
             return Err(Error::Invalid(format!(
                 "more than {} mask embeddings in all: too many for u32 codebook ids",
                 u32::MAX - 1
             )));
         }
-        self.codebook.extend_from_slice(&c.mask_embeddings);
+        if self.keeps_codebook {
+            self.codebook.extend_from_slice(&c.mask_embeddings);
+        }
+        self.atoms += masks;
         let (keep, base) = (self.keep, base as u32);
         self.den
             .par_chunks_mut(BLOCK)
@@ -176,7 +240,7 @@ impl MixtureFold {
     /// same views, up to the observed rule ([`MixtureFold`]).
     ///
     /// Errors: as [`Self::push`]; [`Error::Internal`] when `means` is not `[N]`.
-    pub fn finish(mut self, means: &[[f32; 3]], model_id: &str) -> Result<SparseMixture> {
+    pub fn finish(self, means: &[[f32; 3]], model_id: &str) -> Result<SparseMixture> {
         if means.len() != self.den.len() {
             return Err(Error::internal(format!(
                 "the host's fold: {} means for {} Gaussians",
@@ -184,13 +248,28 @@ impl MixtureFold {
                 self.den.len()
             )));
         }
-        for (_, c) in std::mem::take(&mut self.pending) {
-            self.fold(&c)?;
+        let mut parts = self.finish_rows()?;
+        parts.model_id = model_id.to_string();
+        parts.means = parts
+            .gaussian_ids
+            .iter()
+            .map(|&k| means[k as usize])
+            .collect();
+        Ok(parts)
+    }
+
+    /// The fold's rows: every view still waiting folded (in view order), then the observed
+    /// Gaussians in id order (the fold's own numbering) with their kept pairs, and the codebook
+    /// (empty for a [`MixtureFold::counting`] fold). `means` and `model_id` are left empty.
+    ///
+    /// Errors: as [`Self::push`].
+    pub fn finish_rows(mut self) -> Result<SparseMixture> {
+        for (_, (c, masks)) in std::mem::take(&mut self.pending) {
+            self.fold(&c, masks)?;
         }
         let min = self.min_total_weight;
         let mut parts = SparseMixture {
             dim: self.dim,
-            model_id: model_id.to_string(),
             offsets: vec![0],
             ..Default::default()
         };
@@ -199,7 +278,6 @@ impl MixtureFold {
                 continue;
             }
             parts.gaussian_ids.push(k as u32);
-            parts.means.push(means[k]);
             let row = &self.kept[k * self.keep..k * self.keep + self.n_kept[k] as usize];
             for &(a, atom) in row {
                 parts.atoms.push(atom);
@@ -213,18 +291,9 @@ impl MixtureFold {
 }
 
 /// Refuses a view the fold cannot add: embeddings of another width than `dim`, a Gaussian id
-/// at or past `n_gaussians`, a mask past the view's embeddings.
-fn check_view(c: &StoredImage, dim: usize, n_gaussians: usize) -> Result<()> {
-    if c.dim != dim || !c.mask_embeddings.len().is_multiple_of(dim.max(1)) {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::EmbeddingWidth,
-            format!(
-                "a view's mask embeddings are {} wide, the reduction's {dim}: one CLIP model \
-                 per encode",
-                c.dim
-            ),
-        ));
-    }
+/// at or past `n_gaussians`, a mask past the view's `masks` masks.
+fn check_view(c: &StoredImage, dim: usize, masks: usize, n_gaussians: usize) -> Result<()> {
+    check_width(c, dim)?;
     if let Some(&g) = c.gaussians.last()
         && g as usize >= n_gaussians
     {
@@ -232,7 +301,6 @@ fn check_view(c: &StoredImage, dim: usize, n_gaussians: usize) -> Result<()> {
             "a view names Gaussian {g} of a scene of {n_gaussians}"
         )));
     }
-    let masks = c.mask_embeddings.len() / dim.max(1);
     let most = match &c.masks {
         MaskColumn::U8(m) => m.iter().max().map(|&v| v as usize),
         MaskColumn::U16(m) => m.iter().max().map(|&v| v as usize),
@@ -243,6 +311,21 @@ fn check_view(c: &StoredImage, dim: usize, n_gaussians: usize) -> Result<()> {
             "a view names mask {} of its {masks}",
             most.unwrap_or(0)
         )));
+    }
+    Ok(())
+}
+
+/// Refuses a view whose mask embeddings are not `dim` wide ([`Error::Mismatch`]).
+fn check_width(c: &StoredImage, dim: usize) -> Result<()> {
+    if c.dim != dim || !c.mask_embeddings.len().is_multiple_of(dim.max(1)) {
+        return Err(Error::mismatch(
+            slag_common::Mismatched::EmbeddingWidth,
+            format!(
+                "a view's mask embeddings are {} wide, the reduction's {dim}: one CLIP model \
+                 per encode",
+                c.dim
+            ),
+        ));
     }
     Ok(())
 }
