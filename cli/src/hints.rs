@@ -38,21 +38,11 @@ fn config_hint(e: &ConfigError) -> &'static str {
         ConfigError::LevelsNeedSam => {
             "--levels needs --masks sam; drop --levels with --masks graph"
         }
-        ConfigError::ClusterUnsupported(ClusterUnsupported::Mixture) => {
-            "drop --mixture-keep, or run `slag-encoder encode --mixture-keep S` on one machine"
-        }
-        ConfigError::ClusterUnsupported(ClusterUnsupported::NoDense) => {
-            "pass --dense (a cluster encode writes OUT/embeddings.safetensors only)"
-        }
         ConfigError::NoEmbeddingsOutput => {
             "keep the mixture (--mixture-keep S with S >= 1, the default 4) or pass --dense"
         }
         ConfigError::ClusterUnsupported(ClusterUnsupported::Levels) => {
             "drop --levels, or run `slag-encoder encode --levels` on one machine"
-        }
-        ConfigError::ClusterUnsupported(ClusterUnsupported::CoverageSelection) => {
-            "drop --views coverage (or use --views uniform --view-count N), or run \
-             `slag-encoder encode --views coverage` on one machine"
         }
         ConfigError::ClusterUnsupported(ClusterUnsupported::Workers) => {
             "drop --gpus / --front-workers and start one process per GPU (one line each in \

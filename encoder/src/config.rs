@@ -142,25 +142,17 @@ impl EncodeConfig {
         Ok(())
     }
 
-    /// Refuses what a cluster encode cannot honour (instead of ignoring it): the mixture form
-    /// and per-level files (written by the one-process encode only), and more than one GPU or
-    /// front worker per process (each process runs one rasterizer and one front; start one
-    /// process per GPU instead).
+    /// Refuses what a cluster encode cannot honour (instead of ignoring it): per-level files
+    /// (written by the one-process encode only), and more than one GPU or front worker per
+    /// process (each process runs one rasterizer and one front; start one process per GPU
+    /// instead). The mixture, the dense file, the view selection and the segments run as in a
+    /// one-process encode.
     ///
     /// Errors: [`ConfigError::ClusterUnsupported`] naming what.
     pub fn check_cluster(&self) -> Result<(), ConfigError> {
         let unsupported = |what| Err(ConfigError::ClusterUnsupported(what));
-        if self.aggregate.mixture_keep.is_some() {
-            return unsupported(ClusterUnsupported::Mixture);
-        }
-        if !self.output.dense {
-            return unsupported(ClusterUnsupported::NoDense);
-        }
         if self.aggregate.levels {
             return unsupported(ClusterUnsupported::Levels);
-        }
-        if self.scene.views.mode == crate::views::SelectionMode::Coverage {
-            return unsupported(ClusterUnsupported::CoverageSelection);
         }
         if self.execution.gpus != GpuCount::Count(1)
             || self.execution.front_workers.is_some_and(|f| f != 1)
@@ -445,8 +437,7 @@ pub struct AggregateConfig {
     pub accumulator_memory_mb: usize,
     /// Write `mixture.safetensors`: a shared codebook of the mask embeddings plus each
     /// Gaussian's S largest `a_kj` (S ≥ 1); default [`DEFAULT_MIXTURE_KEEP`] (the default
-    /// output); `None`: no mixture, which needs [`OutputConfig::dense`] (what a cluster encode
-    /// writes, [`EncodeConfig::check_cluster`]).
+    /// output); `None`: no mixture, which needs [`OutputConfig::dense`].
     pub mixture_keep: Option<usize>,
     /// Where the reduction to `E_k` runs (default [`ReduceOn::Auto`]).
     pub reduce_on: ReduceOn,
@@ -680,17 +671,10 @@ impl std::fmt::Display for Field {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[non_exhaustive]
 pub enum ClusterUnsupported {
-    /// The mixture form ([`AggregateConfig::mixture_keep`]).
-    Mixture,
     /// Per-level embeddings ([`AggregateConfig::levels`]).
     Levels,
     /// More than one GPU or front worker per process.
     Workers,
-    /// Coverage selection of the views ([`crate::views::SelectionMode::Coverage`]).
-    CoverageSelection,
-    /// Outputs without the dense embeddings ([`OutputConfig::dense`] off): a cluster encode
-    /// writes only the dense file.
-    NoDense,
 }
 
 /// An [`EncodeConfig`] that cannot run, found before anything is loaded.
@@ -746,22 +730,9 @@ fn missing_what(field: Field) -> &'static str {
 
 fn cluster_unsupported(what: ClusterUnsupported) -> &'static str {
     match what {
-        ClusterUnsupported::Mixture => {
-            "a cluster encode does not write the mixture form yet: set aggregate.mixture_keep \
-             to none (dense embeddings only), or write the mixture with a one-process encode"
-        }
-        ClusterUnsupported::NoDense => {
-            "a cluster encode writes the dense embeddings only: set output.dense, or \
-             write the mixture with a one-process encode"
-        }
         ClusterUnsupported::Levels => {
             "a cluster encode does not write per-level embeddings yet (aggregate.levels): write \
              them with a one-process encode"
-        }
-        ClusterUnsupported::CoverageSelection => {
-            "a cluster encode does not run the coverage pass (scene.views.mode coverage, the \
-             default): set scene.views.mode to all or uniform, or choose the views with a \
-             one-process encode"
         }
         ClusterUnsupported::Workers => {
             "a cluster encode runs one rasterizer and one front worker per process \
@@ -882,19 +853,15 @@ mod tests {
     #[test]
     fn the_cluster_refuses_what_it_cannot_honour() {
         assert!(cluster_config().check_cluster().is_ok());
-        assert_eq!(
-            graph_config().check_cluster(),
-            Err(ConfigError::ClusterUnsupported(ClusterUnsupported::Mixture)),
-            "the default mixture form is refused, not dropped"
+        assert!(
+            graph_config().check_cluster().is_ok(),
+            "the default outputs and views run on a cluster"
         );
         let mut c = cluster_config();
         c.execution.front_workers = Some(1);
         assert!(c.check_cluster().is_ok());
         let cases: [(Set, ClusterUnsupported); 4] = [
-            (
-                |c| c.aggregate.mixture_keep = Some(8),
-                ClusterUnsupported::Mixture,
-            ),
+            (|c| c.aggregate.levels = true, ClusterUnsupported::Levels),
             (
                 |c| c.execution.gpus = GpuCount::Count(2),
                 ClusterUnsupported::Workers,

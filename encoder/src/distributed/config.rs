@@ -2,9 +2,11 @@
 //! file), [`ClusterJob`], the per-worker [`Stages`].
 
 use std::path::Path;
-use std::sync::Arc;
+use std::sync::mpsc::Sender;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use slag_common::mask_record::MaskRecord;
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
@@ -141,4 +143,52 @@ pub struct ClusterJob {
     pub stages: StageFactory,
     /// The report header (inputs, models, parameters) process 0 completes and writes.
     pub report: Report,
+    /// Process 0 with the segments: where its scene and its masks' record go (`None` on the
+    /// other processes, or without the segments).
+    pub segments: Option<Arc<SegmentFeed>>,
+}
+
+/// What process 0's encode hands to the segments computed beside it
+/// ([`crate::pipeline::segment_task::SegmentTask`]): the Gaussians as soon as they are loaded,
+/// the masks' record once every partition's rows are assembled. Each is sent once; a receiver
+/// that hung up (a failed segmentation) is ignored.
+pub struct SegmentFeed {
+    scene: Mutex<Option<Sender<Arc<Gaussians>>>>,
+    record: Mutex<Option<Sender<Arc<MaskRecord>>>>,
+    kept: Mutex<Option<Arc<MaskRecord>>>,
+}
+
+impl SegmentFeed {
+    /// A feed into the segments' `scene` and `record` channels.
+    pub fn new(scene: Sender<Arc<Gaussians>>, record: Sender<Arc<MaskRecord>>) -> Self {
+        SegmentFeed {
+            scene: Mutex::new(Some(scene)),
+            record: Mutex::new(Some(record)),
+            kept: Mutex::new(None),
+        }
+    }
+
+    /// Sends the loaded Gaussians (the first call only).
+    pub(super) fn send_scene(&self, gaussians: &Arc<Gaussians>) {
+        if let Some(tx) = self.scene.lock().ok().and_then(|mut s| s.take()) {
+            let _ = tx.send(Arc::clone(gaussians));
+        }
+    }
+
+    /// Sends the assembled masks' record (the first call only) and keeps it for
+    /// [`SegmentFeed::take_record`].
+    pub(super) fn send_record(&self, record: MaskRecord) {
+        let record = Arc::new(record);
+        if let Some(tx) = self.record.lock().ok().and_then(|mut s| s.take()) {
+            let _ = tx.send(Arc::clone(&record));
+        }
+        if let Ok(mut kept) = self.kept.lock() {
+            *kept = Some(record);
+        }
+    }
+
+    /// The masks' record sent, once the job has completed (to write it beside the outputs).
+    pub fn take_record(&self) -> Option<Arc<MaskRecord>> {
+        self.kept.lock().ok().and_then(|mut k| k.take())
+    }
 }

@@ -5,9 +5,10 @@ use std::sync::Arc;
 
 use slag_common::Result;
 
-use super::{ClusterConfig, ClusterJob, StageFactory, Stages, encode_cluster};
+use super::{ClusterConfig, ClusterJob, SegmentFeed, StageFactory, Stages, encode_cluster};
 use crate::config::{CLIP_BATCH_CPU, ConfigError, EncodeConfig};
 use crate::pipeline::build;
+use crate::pipeline::segment_task::SegmentTask;
 use crate::report::Report;
 
 /// One process's part of a cluster encode ([`encode_cluster`]): every process of the cluster
@@ -37,12 +38,30 @@ impl ClusterEncoder {
 
     /// Runs this process's part of the job over `cluster`; the report on process 0 (which
     /// writes the outputs), `None` on the others. Sets rayon's global pool as
-    /// [`crate::pipeline::Encoder::run`] does.
+    /// [`crate::pipeline::Encoder::run`] does. With [`crate::config::SegmentsConfig::enabled`]
+    /// process 0 computes the segments beside the job, as `encode` does (from its own load of
+    /// the scene, then the masks' record the partitions assembled), and writes the masks' record
+    /// and `segments.safetensors` after the job's outputs, then the report again.
     ///
-    /// Errors: as [`encode_cluster`].
+    /// Errors: as [`encode_cluster`]; the segmentation's, after the job's outputs.
     pub fn run(&self, cluster: &ClusterConfig) -> Result<Option<Report>> {
         let c = &self.config;
+        if c.segments.enabled {
+            // Refused before the job, not after it.
+            c.segments.params.validate()?;
+        }
+        crate::views::check_hold_out(c.scene.hold_out_every)?;
+        c.scene.views.validate()?;
         let threads = build::setup_threads(c);
+        let (segments, feed) = if c.segments.enabled && cluster.process == 0 {
+            let (scene_tx, scene_rx) = std::sync::mpsc::channel();
+            let (record_tx, record_rx) = std::sync::mpsc::channel();
+            let task = SegmentTask::start(c, threads, scene_rx, record_rx)?;
+            let feed = Arc::new(SegmentFeed::new(scene_tx, record_tx));
+            (Some(task), Some(feed))
+        } else {
+            (None, None)
+        };
         let mut report = build::report_header(c, threads);
         report.parameters.cluster_processes = Some(cluster.addresses.len());
         let config = c.clone();
@@ -66,7 +85,13 @@ impl ClusterEncoder {
             params: build::encode_params(c),
             stages,
             report,
+            segments: feed.clone(),
         };
-        encode_cluster(job, cluster)
+        let Some(report) = encode_cluster(job, cluster)? else {
+            return Ok(None);
+        };
+        let record = feed.as_deref().and_then(SegmentFeed::take_record);
+        crate::pipeline::finish_with_segments(c, report, record.as_deref(), segments, threads)
+            .map(Some)
     }
 }

@@ -5,7 +5,6 @@ use std::cell::RefCell;
 use std::time::Instant;
 
 use slag_common::Result;
-use slag_common::scene::Gaussians;
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
 
@@ -29,7 +28,7 @@ pub(super) fn job_key(
         views: views.len() as u64,
         dim: dim as u64,
         fingerprint: format!(
-            "views {:?}..{:?} every {} hold_out_every {:?} selection {:?} raster_scale {} image_stage {:?} masks {} clip {} min_weight {}",
+            "views {:?}..{:?} every {} hold_out_every {:?} selection {:?} raster_scale {} image_stage {:?} masks {} clip {} min_weight {} mixture_keep {:?} dense {} record {:?}",
             views.first().map(|v| &v.name),
             views.last().map(|v| &v.name),
             job.scene.every,
@@ -40,19 +39,37 @@ pub(super) fn job_key(
             stages.masks.name(),
             stages.crops.model_id(),
             p.reduce.min_total_weight,
+            p.mixture_keep,
+            p.dense,
+            p.mask_record_slots,
         ),
     }
 }
 
 /// Splits one image's contribution into the `peers` partitions (`k mod peers`), with local ids
-/// `k / peers` (ascending, as [`aggregate::reduce`] requires) and the image's mask table in each.
-pub(super) fn split(c: &ImageContribution, image: u32, peers: usize) -> Vec<ImagePart> {
+/// `k / peers` (ascending, as [`aggregate::reduce`] requires), the image's mask count and
+/// `scene` (Gaussians, views) in each, its mask table in partition 0's and, with
+/// `embeddings_to_all` (the dense reduction needs them), in every partition's.
+pub(super) fn split(
+    c: &ImageContribution,
+    image: u32,
+    peers: usize,
+    scene: (u64, u32),
+    embeddings_to_all: bool,
+) -> Vec<ImagePart> {
+    let dim = c.dim.max(1);
     let mut parts: Vec<ImagePart> = (0..peers as u32)
         .map(|p| ImagePart {
             partition: p,
             image,
             dim: c.dim as u32,
-            mask_embeddings: c.mask_embeddings.clone(),
+            scene,
+            mask_count: (c.mask_embeddings.len() / dim) as u32,
+            mask_embeddings: if p == 0 || embeddings_to_all {
+                c.mask_embeddings.clone()
+            } else {
+                Vec::new()
+            },
             local_ids: Vec::new(),
             masks: Vec::new(),
             weights: Vec::new(),
@@ -77,13 +94,12 @@ pub(super) fn map_side(
     input: &mut Input,
     job: &ClusterJob,
     aborted: &RefCell<Option<String>>,
-    scene: &(Gaussians, Vec<slag_common::camera::View>, usize),
+    views: &[slag_common::camera::View],
     stages: &mut Stages,
     key: &JobKey,
     stats: &mut MapStats,
 ) -> Result<()> {
     let (w, peers) = (worker.index(), worker.peers());
-    let (_, views, _) = scene;
     let dim = key.dim as usize;
     let fault_after: Option<u64> = std::env::var("SLAG_FAULT_EXIT_AFTER_IMAGES")
         .ok()
@@ -116,7 +132,8 @@ pub(super) fn map_side(
             out.contribution.entries.len(),
         ));
         let c = out.contribution;
-        let parts = split(&c, i as u32, peers);
+        let scene = (key.gaussians, views.len() as u32);
+        let parts = split(&c, i as u32, peers, scene, job.params.dense);
         for part in parts {
             input.send(ToReducer::Image(part));
         }

@@ -79,7 +79,7 @@ use timely::dataflow::operators::Operator;
 
 use crate::aggregate::ContributionStore;
 use crate::pipeline::finish::OutputFiles;
-use crate::report::{ClusterOutputs, Counts, Report, StageTimings};
+use crate::report::Report;
 
 mod config;
 mod encoder;
@@ -88,15 +88,17 @@ mod map;
 pub mod net;
 mod records;
 mod reduce;
+mod views;
 
-pub use config::{ClusterConfig, ClusterJob, StageFactory, Stages};
+pub use config::{ClusterConfig, ClusterJob, SegmentFeed, StageFactory, Stages};
 pub use encoder::ClusterEncoder;
-use gather::{Gathered, WorkerOutcome, assemble};
+use gather::{Assembled, Gathered, WorkerOutcome, assemble};
 use map::{Input, job_key, map_side};
 pub use net::ClusterSecret;
 use net::{LostPeer, PeerStream};
 use records::{JobKey, MapStats, ToGather, ToReducer};
-use reduce::PartitionReducer;
+use reduce::{Forms, PartitionReducer};
+use views::{Heard, ViewsInput, agree_on_views, build_views_dataflow, refuse_views};
 
 /// Exit status of a process that lost a peer process (its TCP connection failed) or hit an
 /// internal panic: the job failed, wrote no output, and is to be rerun.
@@ -109,14 +111,19 @@ pub const FAULT_EXIT_STATUS: i32 = slag_common::fault::FAULT_EXIT_STATUS;
 /// until the dataflow completed; worker 0 assembles the output.
 fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<WorkerOutcome> {
     let (w, peers) = (worker.index(), worker.peers());
+    let mut views_input = ViewsInput::new();
+    let heard = Rc::new(RefCell::new(Heard::default()));
+    build_views_dataflow(worker, &mut views_input, &heard);
     let mut input = Input::new();
     let aborted: Rc<RefCell<Option<String>>> = Rc::new(RefCell::new(None));
     let gathered = Rc::new(RefCell::new(Gathered::default()));
     let spill_dir = spill_dir(&job.params.out_dir, w);
+    let forms = forms_of(&job.params);
     let reducer = PartitionReducer::new(
         w as u32,
         peers as u32,
         job.params.reduce,
+        forms,
         ContributionStore::new(job.params.contribution_budget_bytes, spill_dir),
     );
     build_dataflow(worker, &mut input, reducer, &aborted, &gathered);
@@ -129,7 +136,8 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         },
         ..Default::default()
     };
-    let result = run_map(worker, &mut input, job, &aborted, &mut map);
+    let views = (views_input, &*heard);
+    let result = run_map(worker, &mut input, views, job, &aborted, &mut map);
     let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
     send_done(&mut input, peers, w, failed, &map);
     drop(input);
@@ -145,6 +153,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         }
         return Ok(WorkerOutcome {
             output: None,
+            selection: None,
             models: map.models,
             images,
         });
@@ -152,12 +161,29 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     let (gaussians, _, views_total) = map
         .scene
         .ok_or_else(|| Error::internal("worker 0 has no scene"))?;
-    let output = assemble(gathered, peers, &gaussians, views_total, map.load_scene_s)?;
+    let output = assemble(
+        gathered,
+        peers,
+        forms,
+        &gaussians,
+        views_total,
+        map.load_scene_s,
+    )?;
     Ok(WorkerOutcome {
         output: Some(output),
+        selection: map.selection,
         models: map.models,
         images,
     })
+}
+
+/// The outputs a partition reduces to for an encode of `params`.
+fn forms_of(params: &crate::pipeline::EncodeParams) -> Forms {
+    Forms {
+        dense: params.dense,
+        mixture_keep: params.mixture_keep,
+        record_slots: params.mask_record_slots,
+    }
 }
 
 /// Builds the dataflow (identically on every worker): the records of `input` go to their
@@ -228,33 +254,56 @@ struct MapOutcome {
     /// The job's fingerprint, once the stages are built.
     key: Option<JobKey>,
     /// The scene (Gaussians, chosen views, training views in all), once the map side ran.
-    scene: Option<(Gaussians, Vec<View>, usize)>,
+    scene: Option<(Arc<Gaussians>, Vec<View>, usize)>,
+    /// Worker 0: what the report records of the view selection.
+    selection: Option<crate::views::SelectionReport>,
     /// This worker's map figures.
     stats: MapStats,
 }
 
-/// Loads the scene, builds the stages and runs the map side of this worker, recording in `out`
-/// what the end of the job needs.
+/// Loads the scene, builds the stages, agrees on the views with every worker (worker 0 chooses
+/// them, [`agree_on_views`]) and runs the map side of this worker, recording in `out` what the
+/// end of the job needs. On process 0 the loaded Gaussians also go to the segments
+/// ([`ClusterJob::segments`]).
 ///
-/// Errors: the scene's or the stages' ([`Error`]), no views, the map side's.
+/// Errors: the scene's or the stages' ([`Error`]), the views' choice, no views, the map side's.
 fn run_map(
     worker: &mut timely::worker::Worker,
     input: &mut Input,
+    (views_input, heard): (ViewsInput, &RefCell<Heard>),
     job: &ClusterJob,
     aborted: &RefCell<Option<String>>,
     out: &mut MapOutcome,
 ) -> Result<()> {
     let t_load = Instant::now();
-    let (gaussians, training, total) = job.scene.load()?;
-    // All or uniformly thinned views: coverage selection is refused before a cluster starts
-    // (`EncodeConfig::check_cluster`), so no rasterizer is needed here.
-    let (views, _) = crate::views::choose(training, &job.scene.selection, &gaussians, &mut [])?;
+    let prepared = job.scene.load().and_then(|(gaussians, training, total)| {
+        let stages = (job.stages)(&gaussians)?;
+        Ok((Arc::new(gaussians), training, total, stages))
+    });
+    let (gaussians, training, total, mut stages) = match prepared {
+        Ok(p) => p,
+        Err(e) => {
+            refuse_views(worker, views_input, &e.to_string());
+            return Err(e);
+        }
+    };
+    if let Some(feed) = &job.segments {
+        feed.send_scene(&gaussians);
+    }
+    let (views, selection) = agree_on_views(
+        worker,
+        views_input,
+        heard,
+        &job.scene,
+        (&gaussians, training),
+        Some(&mut stages.rasterizer),
+    )?;
+    out.selection = selection;
     let scene = (gaussians, views, total);
     out.load_scene_s = t_load.elapsed().as_secs_f64();
     if scene.1.is_empty() {
         return Err(crate::pipeline::no_views(&job.scene, scene.2));
     }
-    let mut stages = (job.stages)(&scene.0)?;
     out.models = [
         stages.rasterizer.name().to_string(),
         stages.crops.model_id().to_string(),
@@ -267,7 +316,7 @@ fn run_map(
         input,
         job,
         aborted,
-        &scene,
+        &scene.1,
         &mut stages,
         &k,
         &mut out.stats,
@@ -370,7 +419,7 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         &job,
         cluster,
         models_header,
-        outcome.models,
+        (outcome.models, outcome.selection),
         output,
         t_total,
     )?;
@@ -466,39 +515,96 @@ fn run_job(
         .map_err(|e| Error::internal(format!("worker thread failed: {e}")))?
 }
 
-/// Process 0's end of the job: writes `OUT/embeddings.safetensors`, then `OUT/report.json` from
-/// `report` (the models' header) completed with the worker's `models` (rasterizer, CLIP model
-/// id, masks), the cluster's addresses and `output`'s counts and timings; returns the report.
+/// Process 0's end of the job, in the order `encode` writes: `OUT/embeddings.safetensors` (with
+/// `--dense`, else one of an earlier run removed), `OUT/mixture.safetensors` (with the mixture,
+/// else likewise), then `OUT/report.json` from `report` (the models' header) completed with the
+/// worker's models (rasterizer, CLIP model id, masks), the view selection, the cluster's
+/// addresses and `output`'s counts and timings; returns the report. The masks' record goes to
+/// the segments ([`ClusterJob::segments`]), which the caller writes.
 ///
-/// Errors: I/O on the outputs.
+/// Errors: views that observed no Gaussian or far fewer than they should
+/// ([`crate::views::check_observed`]); the mixture's (inconsistent parts); I/O on the outputs.
 fn write_outputs(
     job: &ClusterJob,
     cluster: &ClusterConfig,
     mut report: Report,
-    models: [String; 3],
-    output: (Embeddings, Counts, StageTimings, ClusterOutputs),
+    (models, selection): ([String; 3], Option<crate::views::SelectionReport>),
+    output: Assembled,
     t_total: Instant,
 ) -> Result<Report> {
-    let (embeddings, counts, mut timings, cluster_stats) = output;
+    let Assembled {
+        embeddings,
+        mixture,
+        record,
+        counts,
+        mut timings,
+        cluster: cluster_stats,
+    } = output;
+    if let (Some(feed), Some(record)) = (&job.segments, record) {
+        feed.send_record(record);
+    }
+    crate::views::check_observed(selection.as_ref(), counts.observed, counts.gaussians)?;
     let t0 = Instant::now();
-    let embeddings = Embeddings {
-        model: models[1].clone(),
-        scene_gaussians: counts.gaussians as u64,
-        source_ply: job.scene.ply.display().to_string(),
-        ..embeddings
-    };
     let files = OutputFiles::begin(&job.params.out_dir)?;
-    embeddings.write(&files.embeddings, job.params.precision)?;
+    match embeddings {
+        Some(e) => Embeddings {
+            model: models[1].clone(),
+            scene_gaussians: counts.gaussians as u64,
+            source_ply: job.scene.ply.display().to_string(),
+            ..e
+        }
+        .write(&files.embeddings, job.params.precision)?,
+        None => slag_common::io::remove_stale(&files.embeddings)?,
+    }
+    let forms = write_mixture(&job.params.out_dir, mixture, &models[1])?;
     timings.write = t0.elapsed().as_secs_f64();
     timings.total = t_total.elapsed().as_secs_f64();
     let [rasterizer, clip_model_id, masks] = models;
     report.models.rasterizer = rasterizer;
     report.models.clip_model_id = clip_model_id;
     report.models.masks = masks;
+    report.view_selection = selection;
     report.parameters.cluster_addresses = Some(cluster.addresses.clone());
     report.timings = timings;
     report.counts = counts;
-    files.write_report(report, job.params.precision, Some(cluster_stats), None)
+    files.write_report(
+        report,
+        job.params.precision,
+        Some(cluster_stats),
+        Some(forms),
+    )
+}
+
+/// Writes the mixture of `mixture`'s parts (of CLIP model `model_id`) to
+/// `<out>/mixture.safetensors` atomically, or removes one of an earlier run when there is none;
+/// returns the report's record of the forms written.
+///
+/// Errors: the mixture's (inconsistent parts), I/O.
+fn write_mixture(
+    out: &Path,
+    mixture: Option<slag_common::mixture::SparseMixture>,
+    model_id: &str,
+) -> Result<crate::report::FormOutputs> {
+    let t0 = Instant::now();
+    let mixture = mixture
+        .map(|mut m| {
+            m.model_id = model_id.to_string();
+            slag_common::mixture::MixtureEmbeddings::from_sparse(m)
+        })
+        .transpose()?;
+    let path = out.join("mixture.safetensors");
+    match &mixture {
+        Some(m) => m.write(&path)?,
+        None => slag_common::io::remove_stale(&path)?,
+    }
+    let seconds = t0.elapsed().as_secs_f64();
+    Ok(crate::pipeline::finish::form_outputs(
+        mixture.as_ref(),
+        path,
+        seconds,
+        Vec::new(),
+        0.0,
+    ))
 }
 
 #[cfg(test)]
@@ -512,6 +618,7 @@ mod tests {
     use super::records::JobKey;
     use super::*;
     use crate::aggregate::{self, Entry, ImageContribution, ReduceParams};
+    use slag_common::mask_record::MaskRecord;
 
     #[test]
     fn hosts_file_is_parsed_and_checked() {
@@ -580,22 +687,32 @@ mod tests {
         }
     }
 
+    /// Every output form: the dense file, the mixture (3 kept pairs) and the masks' record.
+    const ALL_FORMS: Forms = Forms {
+        dense: true,
+        mixture_keep: Some(3),
+        record_slots: Some(4),
+    };
+
     /// The whole reduce/gather path in one process: `images` split over `peers` workers
-    /// round-robin, each partition reduced, worker 0 assembling. `tamper` edits the records.
-    fn distributed(
+    /// round-robin, each partition reduced to `forms`, worker 0 assembling. `tamper` edits the
+    /// records (their order too: the order they reach the reducers).
+    fn distributed_forms(
         images: &[ImageContribution],
         n: usize,
         peers: usize,
+        forms: Forms,
         tamper: impl Fn(&mut Vec<ToReducer>),
-    ) -> Result<Embeddings> {
+    ) -> Result<Assembled> {
         let dim = images[0].dim;
         let dir = tempfile::tempdir().unwrap();
         let mut records = Vec::new();
+        let scene = (n as u64, images.len() as u32);
         for w in 0..peers {
             let mine: Vec<usize> = (w..images.len()).step_by(peers).collect();
             for &i in &mine {
                 records.extend(
-                    split(&images[i], i as u32, peers)
+                    split(&images[i], i as u32, peers, scene, forms.dense)
                         .into_iter()
                         .map(ToReducer::Image),
                 );
@@ -626,7 +743,7 @@ mod tests {
                     accumulator_budget_bytes: 1,
                     ..Default::default()
                 };
-                PartitionReducer::new(p, peers as u32, params, store)
+                PartitionReducer::new(p, peers as u32, params, forms, store)
             })
             .collect();
         for r in records {
@@ -640,7 +757,78 @@ mod tests {
             means: (0..n).map(|i| [i as f32, 0.0, 1.0]).collect(),
             ..Default::default()
         };
-        assemble(gathered, peers, &gaussians, images.len(), 0.0).map(|r| r.0)
+        assemble(gathered, peers, forms, &gaussians, images.len(), 0.0)
+    }
+
+    /// [`distributed_forms`]'s dense embeddings.
+    fn distributed(
+        images: &[ImageContribution],
+        n: usize,
+        peers: usize,
+        tamper: impl Fn(&mut Vec<ToReducer>),
+    ) -> Result<Embeddings> {
+        let a = distributed_forms(images, n, peers, ALL_FORMS, tamper)?;
+        Ok(a.embeddings.unwrap())
+    }
+
+    /// Shuffles `records` with the seed `seed` (Fisher–Yates on an xorshift stream).
+    fn shuffle(records: &mut [ToReducer], seed: u64) {
+        let mut s = seed | 1;
+        for i in (1..records.len()).rev() {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            records.swap(i, (s % (i as u64 + 1)) as usize);
+        }
+    }
+
+    /// The partitions' folds, assembled, are one fold over the whole scene bit for bit, and the
+    /// partitions' masks' records one record: whatever the number of partitions (1 to 5, so
+    /// that some partitions hold no observed Gaussian of some views) and the order in which the
+    /// images' parts reach them.
+    #[test]
+    fn partitioned_fold_equals_one_fold_whatever_the_partitions_and_the_arrival() {
+        let (n, dim) = (3000usize, 6);
+        let images = contributions(9, n, 7, dim);
+        let means: Vec<[f32; 3]> = (0..n).map(|i| [i as f32, 0.0, 1.0]).collect();
+        let keep = ALL_FORMS.mixture_keep.unwrap();
+        let mut fold = aggregate::MixtureFold::new(n, dim, keep, 1e-6).unwrap();
+        let slots = ALL_FORMS.record_slots.unwrap();
+        let mut record = MaskRecord::new(n, slots, images.len()).unwrap();
+        for (v, c) in images.iter().enumerate() {
+            record.add_view(v, crate::pipeline::sinks::dominant_masks(&c.entries));
+            fold.push(v, aggregate::StoredImage::from_contribution(c.clone()))
+                .unwrap();
+        }
+        let want = fold.finish(&means, "").unwrap();
+        assert!(
+            want.gaussian_ids.len() > n / 2,
+            "{}",
+            want.gaussian_ids.len()
+        );
+        let bits = |w: &[f32]| w.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        for peers in 1..=5 {
+            for (seed, dense) in [(0, false), (7, true), (1234, false)] {
+                let forms = Forms { dense, ..ALL_FORMS };
+                let got = distributed_forms(&images, n, peers, forms, |r| {
+                    if seed != 0 {
+                        shuffle(r, seed);
+                    }
+                })
+                .unwrap();
+                let m = got.mixture.unwrap();
+                let case = format!("{peers} partitions, arrival {seed}");
+                assert_eq!(m.gaussian_ids, want.gaussian_ids, "{case}");
+                assert_eq!(m.means, want.means, "{case}");
+                assert_eq!(m.offsets, want.offsets, "{case}");
+                assert_eq!(m.atoms, want.atoms, "{case}");
+                assert_eq!(bits(&m.weights), bits(&want.weights), "{case}");
+                assert_eq!(bits(&m.codebook), bits(&want.codebook), "{case}");
+                assert_eq!(got.record.as_ref(), Some(&record), "{case}");
+                assert_eq!(got.embeddings.is_some(), dense, "{case}");
+                assert_eq!(got.counts.observed, want.gaussian_ids.len(), "{case}");
+            }
+        }
     }
 
     #[test]

@@ -30,7 +30,13 @@ pub(super) struct ImagePart {
     pub(super) partition: u32,
     pub(super) image: u32,
     pub(super) dim: u32,
-    /// `[M * dim]` the image's mask embeddings `E_j`.
+    /// The scene's Gaussians N and the job's views (each partition sizes its state from them).
+    pub(super) scene: (u64, u32),
+    /// M, the image's masks (each partition numbers the codebook's atoms from the counts).
+    pub(super) mask_count: u32,
+    /// `[M * dim]` the image's mask embeddings `E_j`: sent to the partitions that need them
+    /// (partition 0, which keeps the mixture's codebook; every partition for the dense
+    /// reduction), empty for the others.
     pub(super) mask_embeddings: Vec<f32>,
     /// Local Gaussian ids (global id / P), ascending.
     pub(super) local_ids: Vec<u32>,
@@ -75,6 +81,34 @@ pub(super) struct PartSummary {
     pub(super) spilled: u64,
     pub(super) reduce_s: f64,
     pub(super) job: JobKey,
+    /// Observed Gaussians of the mixture's rows sent (0 without the mixture).
+    pub(super) mixture_rows: u64,
+    /// Rows of the masks' record sent (the partition's Gaussians; 0 without the record).
+    pub(super) record_rows: u64,
+}
+
+/// A block of a partition's mixture rows ([`crate::aggregate::MixtureFold::finish_rows`]),
+/// global Gaussian ids ascending.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(super) struct MixtureRows {
+    pub(super) partition: u32,
+    pub(super) ids: Vec<u32>,
+    /// `[ids.len()]` kept pairs per row.
+    pub(super) lengths: Vec<u8>,
+    /// The rows' kept pairs in row order: codebook atoms (global) and `a_kj`.
+    pub(super) atoms: Vec<u32>,
+    pub(super) weights: Vec<f32>,
+}
+
+/// A block of a partition's masks' record ([`slag_common::mask_record::MaskRecord`]): `S`
+/// slots of each of `ids` (global Gaussian ids).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub(super) struct RecordRows {
+    pub(super) partition: u32,
+    pub(super) ids: Vec<u32>,
+    pub(super) views: Vec<u16>,
+    pub(super) masks: Vec<u16>,
+    pub(super) weights: Vec<f32>,
 }
 
 /// Reduce → gather records, all routed to worker 0.
@@ -87,6 +121,10 @@ pub(super) enum ToGather {
         total_weights: Vec<f32>,
     },
     Part(PartSummary),
+    Mixture(MixtureRows),
+    /// Partition 0's codebook: every view's mask embeddings in view order, `[M * D]`.
+    Codebook(Vec<f32>),
+    Record(RecordRows),
     Map(MapStats),
     Abort(String),
 }

@@ -1,20 +1,51 @@
-//! The reduce side: [`PartitionReducer`] collects its partition's `a_kj` from every worker,
-//! checks completeness, and runs `aggregate::reduce` over its local ids.
+//! The reduce side: [`PartitionReducer`] takes in its partition's `a_kj` from every worker as
+//! they come and keeps the running state of its own Gaussians only: the mixture's fold
+//! ([`MixtureFold`], views folded in view order), the masks' record of its Gaussians, and, for the
+//! dense file, its contributions (spilled beyond a budget) for `aggregate::reduce`. Once every
+//! worker's contributions are in, it checks completeness and sends its rows to worker 0.
 
 use std::time::Instant;
 
-use super::records::{JobKey, MapStats, PartSummary, ToGather, ToReducer};
-use crate::aggregate::{self, ContributionStore, Entry, ImageContribution, ReduceParams};
+use slag_common::mask_record::MaskRecord;
+
+use super::records::{
+    ImagePart, JobKey, MapStats, MixtureRows, PartSummary, RecordRows, ToGather, ToReducer,
+};
+use crate::aggregate::{
+    self, ContributionStore, Entry, ImageContribution, MixtureFold, ReduceParams, StoredImage,
+};
 
 /// Rows per gather record (worker 0 receives each partition in chunks of this many Gaussians).
 pub(super) const ROWS_PER_RECORD: usize = 4096;
+
+/// The outputs a partition reduces to (the encode's [`crate::pipeline::EncodeParams`]).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Forms {
+    /// The dense `E_k` ([`aggregate::reduce`] over the kept contributions).
+    pub(super) dense: bool,
+    /// The mixture's kept pairs per Gaussian ([`MixtureFold`]), when written.
+    pub(super) mixture_keep: Option<usize>,
+    /// The masks' record's slots per Gaussian, when kept.
+    pub(super) record_slots: Option<usize>,
+}
+
+/// The streamed state of one partition's Gaussians, made at its first view.
+struct PartitionState {
+    /// The scene's Gaussians and the job's views, as the first view named them.
+    scene: (u64, u32),
+    fold: Option<MixtureFold>,
+    record: Option<MaskRecord>,
+}
 
 /// The reduce side of one partition.
 pub(super) struct PartitionReducer {
     pub(super) partition: u32,
     pub(super) peers: u32,
     pub(super) params: ReduceParams,
+    pub(super) forms: Forms,
+    /// The contributions kept for the dense reduction (used with [`Forms::dense`] only).
     pub(super) store: ContributionStore,
+    state: Option<PartitionState>,
     pub(super) dim: Option<usize>,
     pub(super) images: u64,
     pub(super) entries: u64,
@@ -23,18 +54,31 @@ pub(super) struct PartitionReducer {
     pub(super) abort: Option<String>,
 }
 
+/// How many of a scene's `n` Gaussians fall in partition `p` of `peers`: global ids
+/// `p, p + peers, …` below `n`, numbered locally from 0.
+pub(super) fn local_gaussians(p: u64, n: u64, peers: u64) -> usize {
+    if p < n {
+        (n - p).div_ceil(peers) as usize
+    } else {
+        0
+    }
+}
+
 impl PartitionReducer {
     pub(super) fn new(
         partition: u32,
         peers: u32,
         params: ReduceParams,
+        forms: Forms,
         store: ContributionStore,
     ) -> Self {
         Self {
             partition,
             peers,
             params,
+            forms,
             store,
+            state: None,
             dim: None,
             images: 0,
             entries: 0,
@@ -54,38 +98,8 @@ impl PartitionReducer {
                 if self.abort.is_some() {
                     return;
                 }
-                let dim = part.dim as usize;
-                if *self.dim.get_or_insert(dim) != dim
-                    || part.mask_embeddings.len() % dim.max(1) != 0
-                    || part.local_ids.len() != part.masks.len()
-                    || part.local_ids.len() != part.weights.len()
-                {
-                    return self.fail(format!(
-                        "partition {}: malformed contribution of image {}",
-                        self.partition, part.image
-                    ));
-                }
-                self.images += 1;
-                self.entries += part.local_ids.len() as u64;
-                let entries = part
-                    .local_ids
-                    .iter()
-                    .zip(&part.masks)
-                    .zip(&part.weights)
-                    .map(|((&gaussian, &mask), &weight)| Entry {
-                        gaussian,
-                        mask,
-                        weight,
-                    })
-                    .collect();
-                let c = ImageContribution {
-                    dim,
-                    mask_embeddings: part.mask_embeddings,
-                    entries,
-                };
-                let stored = aggregate::StoredImage::from_contribution(c);
-                if let Err(e) = self.store.push_stored_as(part.image as usize, stored) {
-                    self.fail(format!("partition {}: {e}", self.partition));
+                if let Err(m) = self.absorb_image(part) {
+                    self.fail(format!("partition {}: {m}", self.partition));
                 }
             }
             ToReducer::Done {
@@ -108,6 +122,113 @@ impl PartitionReducer {
         }
     }
 
+    /// Takes in one image's share: its entries into the fold and the record of this
+    /// partition's Gaussians (made at the first image), and into the store for the dense
+    /// reduction.
+    ///
+    /// Errors: a malformed share, one naming another scene than the first, the fold's, the
+    /// store's (spill I/O).
+    fn absorb_image(&mut self, part: ImagePart) -> std::result::Result<(), String> {
+        let dim = part.dim as usize;
+        let (masks, held) = (part.mask_count as usize, part.mask_embeddings.len());
+        if *self.dim.get_or_insert(dim) != dim
+            || (held != 0 && held != masks * dim)
+            || part.local_ids.len() != part.masks.len()
+            || part.local_ids.len() != part.weights.len()
+        {
+            return Err(format!("malformed contribution of image {}", part.image));
+        }
+        self.images += 1;
+        self.entries += part.local_ids.len() as u64;
+        let entries: Vec<Entry> = part
+            .local_ids
+            .iter()
+            .zip(&part.masks)
+            .zip(&part.weights)
+            .map(|((&gaussian, &mask), &weight)| Entry {
+                gaussian,
+                mask,
+                weight,
+            })
+            .collect();
+        let image = part.image as usize;
+        let (dense, partition) = (self.forms.dense, self.partition);
+        let state = self.state_for(part.scene, dim)?;
+        if let Some(record) = state.record.as_mut() {
+            record.add_view(image, crate::pipeline::sinks::dominant_masks(&entries));
+        }
+        let stored = StoredImage::from_contribution(ImageContribution {
+            dim,
+            mask_embeddings: part.mask_embeddings,
+            entries,
+        });
+        // The dense reduction keeps the image; the fold only reads it before its turn.
+        let (folded, kept) = match (state.fold.is_some(), dense) {
+            (true, true) => (Some(stored.clone()), Some(stored)),
+            (true, false) => (Some(stored), None),
+            (false, _) => (None, Some(stored)),
+        };
+        if let (Some(fold), Some(mut folded)) = (state.fold.as_mut(), folded) {
+            if partition != 0 {
+                // A counting fold: the codebook is partition 0's.
+                folded.mask_embeddings = Vec::new();
+            }
+            fold.push_counted(image, folded, masks)
+                .map_err(|e| e.to_string())?;
+        }
+        if let Some(kept) = kept.filter(|_| dense) {
+            self.store
+                .push_stored_as(image, kept)
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(())
+    }
+
+    /// The partition's streamed state for a job of `scene` (Gaussians, views) and embedding
+    /// width `dim`: made at the first image, then checked against each image.
+    ///
+    /// Errors: a scene other than the first image's; the fold's or the record's parameters.
+    fn state_for(
+        &mut self,
+        scene: (u64, u32),
+        dim: usize,
+    ) -> std::result::Result<&mut PartitionState, String> {
+        let n_local = local_gaussians(self.partition as u64, scene.0, self.peers as u64);
+        let state = match self.state.take() {
+            Some(s) => s,
+            None => PartitionState {
+                scene,
+                fold: self
+                    .forms
+                    .mixture_keep
+                    .map(|keep| {
+                        let min = self.params.min_total_weight;
+                        if self.partition == 0 {
+                            MixtureFold::new(n_local, dim, keep, min)
+                        } else {
+                            MixtureFold::counting(n_local, dim, keep, min)
+                        }
+                    })
+                    .transpose()
+                    .map_err(|e| e.to_string())?,
+                record: self
+                    .forms
+                    .record_slots
+                    .map(|slots| MaskRecord::new(n_local, slots, scene.1 as usize))
+                    .transpose()
+                    .map_err(|e| e.to_string())?,
+            },
+        };
+        if state.scene != scene {
+            return Err(format!(
+                "images of scenes of {:?} and {scene:?} (Gaussians, views): give every process \
+                 the same scene and arguments",
+                state.scene
+            ));
+        }
+        Ok(self.state.insert(state))
+    }
+
     /// Reduces the partition; the records for worker 0 (or one `Abort`).
     pub(super) fn finish(mut self) -> Vec<ToGather> {
         match self.reduce() {
@@ -117,8 +238,12 @@ impl PartitionReducer {
     }
 
     /// Reduces the partition's local ids once every worker's contributions are in: the map
-    /// statistics, the rows in records of [`ROWS_PER_RECORD`] (global ids), then the partition's
-    /// summary. Errors: an abort received, an incomplete or inconsistent job
+    /// statistics; the dense rows with [`Forms::dense`], the mixture's rows (and, from
+    /// partition 0, the codebook) with [`Forms::mixture_keep`], the masks' record's rows with
+    /// [`Forms::record_slots`], each in records of [`ROWS_PER_RECORD`] Gaussians (global ids);
+    /// then the partition's summary.
+    ///
+    /// Errors: an abort received, an incomplete or inconsistent job
     /// ([`PartitionReducer::complete_job`]), a failed reduction.
     pub(super) fn reduce(&mut self) -> std::result::Result<Vec<ToGather>, String> {
         if let Some(m) = self.abort.take() {
@@ -128,25 +253,97 @@ impl PartitionReducer {
         let job = self.complete_job()?;
         let dim = job.dim as usize;
         let t0 = Instant::now();
-        let reduced = aggregate::reduce(&self.store, self.local_gaussians(&job), dim, self.params)
-            .map_err(|e| format!("partition {p}: {e}"))?;
-        let reduce_s = t0.elapsed().as_secs_f64();
         let mut out: Vec<ToGather> = std::mem::take(&mut self.stats)
             .into_iter()
             .map(ToGather::Map)
             .collect();
-        self.push_rows(&mut out, &reduced, dim);
+        let (mut rows, mut chunks) = (0, 0);
+        if self.forms.dense {
+            let n_local = local_gaussians(p as u64, job.gaussians, self.peers as u64);
+            let reduced = aggregate::reduce(&self.store, n_local, dim, self.params)
+                .map_err(|e| format!("partition {p}: {e}"))?;
+            self.push_rows(&mut out, &reduced, dim);
+            (rows, chunks) = (reduced.ids.len() as u64, reduced.chunks as u64);
+        }
+        let state = self.state.take();
+        let (fold, record) = state.map(|s| (s.fold, s.record)).unwrap_or_default();
+        let mixture_rows = match fold {
+            Some(fold) => {
+                let rows = fold
+                    .finish_rows()
+                    .map_err(|e| format!("partition {p}: {e}"))?;
+                self.push_mixture(&mut out, rows)
+            }
+            None => 0,
+        };
+        let record_rows = record.map_or(0, |r| self.push_record(&mut out, &r));
         out.push(ToGather::Part(PartSummary {
             partition: p,
-            rows: reduced.ids.len() as u64,
+            rows,
             images: self.images,
             entries: self.entries,
-            chunks: reduced.chunks as u64,
+            chunks,
             spilled: self.store.spilled() as u64,
-            reduce_s,
+            reduce_s: t0.elapsed().as_secs_f64(),
             job,
+            mixture_rows,
+            record_rows,
         }));
         Ok(out)
+    }
+
+    /// The global id of local id `l` of this partition: `l · peers + p`.
+    fn global(&self, l: u32) -> u32 {
+        l * self.peers + self.partition
+    }
+
+    /// Appends the fold's `rows` to `out` in records of [`ROWS_PER_RECORD`] Gaussians (global
+    /// ids), and from partition 0 its codebook; returns the rows sent.
+    fn push_mixture(
+        &self,
+        out: &mut Vec<ToGather>,
+        rows: slag_common::mixture::SparseMixture,
+    ) -> u64 {
+        let n = rows.gaussian_ids.len();
+        for start in (0..n).step_by(ROWS_PER_RECORD) {
+            let end = (start + ROWS_PER_RECORD).min(n);
+            let pairs = rows.offsets[start]..rows.offsets[end];
+            out.push(ToGather::Mixture(MixtureRows {
+                partition: self.partition,
+                ids: rows.gaussian_ids[start..end]
+                    .iter()
+                    .map(|&l| self.global(l))
+                    .collect(),
+                lengths: rows.offsets[start..=end]
+                    .windows(2)
+                    .map(|w| (w[1] - w[0]) as u8)
+                    .collect(),
+                atoms: rows.atoms[pairs.clone()].to_vec(),
+                weights: rows.weights[pairs].to_vec(),
+            }));
+        }
+        if self.partition == 0 {
+            out.push(ToGather::Codebook(rows.codebook));
+        }
+        n as u64
+    }
+
+    /// Appends the partition's masks' record to `out` in records of [`ROWS_PER_RECORD`]
+    /// Gaussians (global ids); returns the rows sent.
+    fn push_record(&self, out: &mut Vec<ToGather>, r: &MaskRecord) -> u64 {
+        let (n, s) = (r.len(), r.slots);
+        for start in (0..n).step_by(ROWS_PER_RECORD) {
+            let end = (start + ROWS_PER_RECORD).min(n);
+            let slots = start * s..end * s;
+            out.push(ToGather::Record(RecordRows {
+                partition: self.partition,
+                ids: (start as u32..end as u32).map(|l| self.global(l)).collect(),
+                views: r.views[slots.clone()].to_vec(),
+                masks: r.masks[slots.clone()].to_vec(),
+                weights: r.weights[slots].to_vec(),
+            }));
+        }
+        n as u64
     }
 
     /// The job every worker's end record names, once the partition holds all of it: every
@@ -187,6 +384,15 @@ impl PartitionReducer {
                 self.images, job.views
             ));
         }
+        if let Some(state) = &self.state
+            && state.scene != (job.gaussians, job.views as u32)
+        {
+            return Err(format!(
+                "partition {p}: images of a scene of {:?} (Gaussians, views), the job's {:?}",
+                state.scene,
+                (job.gaussians, job.views)
+            ));
+        }
         let dim = job.dim as usize;
         if self.dim.is_some_and(|d| d != dim) {
             return Err(format!(
@@ -195,17 +401,6 @@ impl PartitionReducer {
             ));
         }
         Ok(job.clone())
-    }
-
-    /// How many of the job's Gaussians fall in this partition: global ids `p, p + peers, …`
-    /// below the scene's count, numbered locally from 0.
-    fn local_gaussians(&self, job: &JobKey) -> usize {
-        let (p, n, peers) = (self.partition as u64, job.gaussians, self.peers as u64);
-        if p < n {
-            (n - p).div_ceil(peers) as usize
-        } else {
-            0
-        }
     }
 
     /// Appends the reduced rows to `out` in records of [`ROWS_PER_RECORD`], local ids mapped back
@@ -219,7 +414,7 @@ impl PartitionReducer {
                 partition: p,
                 ids: reduced.ids[start..end]
                     .iter()
-                    .map(|&l| l * self.peers + p)
+                    .map(|&l| self.global(l))
                     .collect(),
                 vectors: reduced.vectors[start * dim..end * dim].to_vec(),
                 total_weights: reduced.total_weights[start..end].to_vec(),

@@ -165,7 +165,7 @@ fn log_clip_services(services: &[crate::clip::ClipService]) {
 /// is optional and atomic (`partition` without the segments simply stores none).
 ///
 /// Errors: I/O; the segmentation's ([`write_segments`]).
-fn finish_with_segments(
+pub(crate) fn finish_with_segments(
     c: &EncodeConfig,
     mut report: Report,
     record: Option<&slag_common::mask_record::MaskRecord>,

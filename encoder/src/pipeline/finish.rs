@@ -288,7 +288,7 @@ fn write_forms(
 
 /// The report's record of the optional forms: the mixture written at `mix_path` (its reduction
 /// took `mixture_s`) and the level files (`levels_s`); each `None` when not written.
-fn form_outputs(
+pub(crate) fn form_outputs(
     mixture: Option<&slag_common::mixture::MixtureEmbeddings>,
     mix_path: PathBuf,
     mixture_s: f64,

@@ -41,9 +41,10 @@ pub(crate) mod pool;
 mod reduction;
 pub(crate) mod scene_load;
 pub(crate) mod segment_task;
-mod sinks;
+pub(crate) mod sinks;
 
 pub use encoder::Encoder;
+pub(crate) use encoder::finish_with_segments;
 pub use pool::FrontStages;
 
 /// Embeds the masks of one image: one L2-normalised vector per mask (the paper's
