@@ -15,7 +15,7 @@ use crate::encode::EncodeArgs;
 /// Arguments of `encode-cluster`: the cluster placement plus every `encode` argument.
 #[derive(Debug, Clone, Args)]
 pub struct EncodeClusterArgs {
-    /// This process's index: line `I` (0-based) of --hosts; process 0 writes OUT/embeddings.safetensors (a cluster encode writes the dense file) and OUT/report.json.
+    /// This process's index: line `I` (0-based) of --hosts; process 0 chooses the views and writes the outputs `encode` writes (OUT/mixture.safetensors, with --dense OUT/embeddings.safetensors, the masks' record, OUT/segments.safetensors, OUT/report.json).
     #[arg(long)]
     pub process: usize,
     /// Host file, the same for every process: one host:port per line (the address each process listens on).
@@ -32,20 +32,10 @@ pub struct EncodeClusterArgs {
     pub encode: EncodeArgs,
 }
 
-/// The encode settings of a cluster run: as `encode`'s, except that a cluster encode writes the
-/// dense embeddings (with or without `--dense`), an unset `--mixture-keep` means no mixture
-/// file and an unset `--views` every training view (asking for the mixture or for coverage
-/// selection is refused by [`ClusterEncoder::new`]).
+/// The encode settings of a cluster run: exactly `encode`'s (what a cluster cannot honour,
+/// `--levels` and several GPUs or fronts per process, is refused by [`ClusterEncoder::new`]).
 fn cluster_config(a: &EncodeClusterArgs) -> EncodeConfig {
-    let mut config = EncodeConfig::from(&a.encode);
-    if a.encode.mixture_keep.is_none() {
-        config.aggregate.mixture_keep = None;
-    }
-    if a.encode.views.is_none() {
-        config.scene.views.mode = slag_encoder::views::SelectionMode::All;
-    }
-    config.output.dense = true;
-    config
+    EncodeConfig::from(&a.encode)
 }
 
 /// Runs this process's part of the job; the report on process 0, `None` on the others.
@@ -109,19 +99,20 @@ mod tests {
     fn flags_the_cluster_cannot_honour_are_refused_not_ignored() {
         assert!(
             check(&parse(&[])).is_ok(),
-            "no mixture and every view unless asked"
+            "encode's default outputs and views"
         );
-        assert!(check(&parse(&["--mixture-keep", "0"])).is_ok());
-        assert!(check(&parse(&["--gpus", "1", "--front-workers", "1"])).is_ok());
+        for ok in [
+            &["--mixture-keep", "8"][..],
+            &["--dense"][..],
+            &["--views", "coverage"][..],
+            &["--gpus", "1", "--front-workers", "1"][..],
+        ] {
+            assert!(check(&parse(ok)).is_ok(), "{ok:?}");
+        }
         for (bad, what) in [
-            (&["--mixture-keep", "8"][..], ClusterUnsupported::Mixture),
             (&["--gpus", "2"][..], ClusterUnsupported::Workers),
             (&["--gpus", "all"][..], ClusterUnsupported::Workers),
             (&["--front-workers", "3"][..], ClusterUnsupported::Workers),
-            (
-                &["--views", "coverage"][..],
-                ClusterUnsupported::CoverageSelection,
-            ),
         ] {
             match check(&parse(bad)) {
                 Err(e @ ConfigError::ClusterUnsupported(w)) => {

@@ -1,15 +1,19 @@
 //! `slag-encoder encode-cluster`: three worker processes of the built binary on loopback
-//! (timely dataflow's TCP cluster) on the embedded mini scene, graph masks + color-clip.
+//! (timely dataflow's TCP cluster) on the embedded mini scene, graph masks + color-clip, the
+//! default outputs and the default view selection (coverage).
 //!
-//! 1. The cluster's embeddings equal a single-process `slag-encoder encode` of the same inputs:
-//!    the same observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run
-//!    the same f64 code, only the order in which images are summed differs), total weights within
-//!    1e-6 relative.
+//! 1. The cluster writes the files a single-process `slag-encoder encode --reduce host` of the
+//!    same arguments writes (the mixture, the masks' record, the segments, the report), each
+//!    byte-identical but the report, whose counts and chosen views agree.
 //! 2. One worker process dies after its first image (`SLAG_FAULT_EXIT_AFTER_IMAGES=1`, exit 137
 //!    without destructors or connection shutdown, as `kill -9`): every process exits non-zero
-//!    within the timeout, the survivors with status 3 and a message naming the lost connection,
-//!    and OUT holds nothing that looks complete (no embeddings.safetensors, no report.json, only
-//!    `.partial` names). A rerun in the same OUT completes and matches the single-process run.
+//!    within the timeout, the survivors with status 3 and a message naming the process that died,
+//!    and OUT holds nothing that looks complete (no output file, only `.partial` names). A rerun
+//!    in the same OUT completes and matches the single-process run.
+//! 3. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
+//!    observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run the same
+//!    f64 code, only the order in which images are summed may differ), total weights within 1e-6
+//!    relative; its mixture stays byte-identical.
 #![allow(clippy::unwrap_used)]
 
 use std::path::{Path, PathBuf};
@@ -26,8 +30,8 @@ use support::{assert_success, slag_encoder};
 const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
 const TIMEOUT: Duration = Duration::from_secs(180);
 
-/// The encode arguments shared by every run: 7 of the 13 views (all of them encoded), raster
-/// scale 0.25, f32 output.
+/// The encode arguments shared by every run: 7 of the 13 views (the coverage pass chooses among
+/// them), raster scale 0.25, f32 output, the host's reduction.
 fn encode_args(out: &Path) -> Vec<String> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
@@ -46,8 +50,8 @@ fn encode_args(out: &Path) -> Vec<String> {
         [
             "--every",
             "2",
-            "--views",
-            "all",
+            "--reduce",
+            "host",
             "--raster-scale",
             "0.25",
             "--rasterizer",
@@ -177,6 +181,37 @@ fn run_cluster(
     wait_all(procs)
 }
 
+/// A single-process `encode` of [`encode_args`] and `extra` into `out`.
+fn run_single(out: &Path, extra: &[&str]) {
+    let o = slag_encoder()
+        .arg("encode")
+        .args(extra)
+        .args(encode_args(out))
+        .output()
+        .unwrap();
+    assert_success(&o);
+}
+
+/// Asserts every file of `single` but the report has the same bytes in `cluster`, and that the
+/// two folders hold the same names.
+fn assert_same_bytes(single: &Path, cluster: &Path) {
+    assert_eq!(names(single), names(cluster));
+    for name in names(single) {
+        if name == "report.json" {
+            continue;
+        }
+        let (a, b) = (
+            std::fs::read(single.join(&name)).unwrap(),
+            std::fs::read(cluster.join(&name)).unwrap(),
+        );
+        assert!(a == b, "{name}: {} and {} bytes differ", a.len(), b.len());
+    }
+}
+
+fn report(out: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap()
+}
+
 /// Asserts the cluster's output equals the single-process output (module doc, point 1).
 fn assert_same(single: &Embeddings, cluster: &Embeddings) {
     assert!(!single.is_empty());
@@ -233,18 +268,19 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     let single_out = dir.path().join("single");
     let out = dir.path().join("cluster");
 
-    // Reference: one process.
-    let o = slag_encoder()
-        .arg("encode")
-        .arg("--dense")
-        .args(encode_args(&single_out))
-        .output()
-        .unwrap();
-    assert_success(&o);
-    let single = Embeddings::read(&single_out.join("embeddings.safetensors")).unwrap();
+    // Reference: one process, the default outputs.
+    run_single(&single_out, &[]);
+    assert_eq!(
+        names(&single_out),
+        [
+            "mask-record.safetensors",
+            "mixture.safetensors",
+            "report.json",
+            "segments.safetensors"
+        ]
+    );
 
-    // (2) Process 1 dies after its first image (of 7: processes take views 0,3,6 / 1,4 / 2,5),
-    // in a cluster whose connections prove a secret.
+    // (2) Process 1 dies after its first image, in a cluster whose connections prove a secret.
     let hosts = hosts_file(dir.path(), "hosts-1");
     let secret = secret_args(dir.path(), "secret", "the cluster's secret, 32 bytes..");
     let t0 = Instant::now();
@@ -263,49 +299,81 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
             "process {i} names the dead process: {log}"
         );
     }
-    assert!(!out.join("embeddings.safetensors").exists());
-    assert!(!out.join("report.json").exists());
     for name in names(&out) {
         assert!(name.ends_with(".partial"), "{name} left after a failed job");
     }
 
-    // (1) Rerun in the same OUT: completes, equals the single-process run.
+    // (1) Rerun in the same OUT: completes, the same files as the single-process run.
     let hosts = hosts_file(dir.path(), "hosts-2");
     // Without a secret: allowed, every address being on loopback.
     let r = run_cluster(&hosts, &out, dir.path(), "rerun", None, &[]);
     for (i, (status, log)) in r.iter().enumerate() {
         assert!(status.success(), "process {i}: {log}");
     }
-    assert_eq!(names(&out), ["embeddings.safetensors", "report.json"]);
-    let cluster = Embeddings::read(&out.join("embeddings.safetensors")).unwrap();
-    assert_same(&single, &cluster);
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
-    assert_eq!(report["counts"]["views_used"], 7);
-    assert_eq!(report["counts"]["observed"], cluster.len());
+    assert_same_bytes(&single_out, &out);
+    let (report, single_report) = (report(&out), report(&single_out));
+    for key in ["views_used", "views_total", "observed", "masks", "entries"] {
+        assert_eq!(report["counts"][key], single_report["counts"][key], "{key}");
+    }
+    assert_eq!(
+        report["view_selection"]["chosen"],
+        single_report["view_selection"]["chosen"]
+    );
+    assert_eq!(report["view_selection"]["mode"], "coverage");
+    assert_eq!(
+        report["outputs"]["forms"]["mixture_codebook_rows"],
+        single_report["outputs"]["forms"]["mixture_codebook_rows"]
+    );
+    assert_eq!(
+        report["segments"]["stats"]["segments"],
+        single_report["segments"]["stats"]["segments"]
+    );
+    let views = report["counts"]["views_used"].as_u64().unwrap();
     let parts = report["outputs"]["cluster"]["partitions"]
         .as_array()
         .unwrap();
     assert_eq!(parts.len(), 3);
     let observed: u64 = parts.iter().map(|p| p["observed"].as_u64().unwrap()).sum();
-    assert_eq!(observed as usize, cluster.len());
+    assert_eq!(observed, report["counts"]["observed"].as_u64().unwrap());
     let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
     let images: Vec<u64> = workers
         .iter()
         .map(|w| w["images"].as_u64().unwrap())
         .collect();
-    assert_eq!(images, [3, 2, 2], "round-robin image assignment");
+    let round_robin: Vec<u64> = (0..3)
+        .map(|w| (w..views).step_by(3).count() as u64)
+        .collect();
+    assert_eq!(images, round_robin, "round-robin image assignment");
+
+    // (3) The dense file too: within f32 round-off of the single process's, the rest the same.
+    let (single_dense, dense) = (dir.path().join("single-dense"), dir.path().join("dense"));
+    run_single(&single_dense, &["--dense"]);
+    let hosts = hosts_file(dir.path(), "hosts-3");
+    let r = run_cluster(
+        &hosts,
+        &dense,
+        dir.path(),
+        "dense",
+        None,
+        &["--dense".into()],
+    );
+    for (i, (status, log)) in r.iter().enumerate() {
+        assert!(status.success(), "process {i}: {log}");
+    }
+    let e = |d: &Path| Embeddings::read(&d.join("embeddings.safetensors")).unwrap();
+    assert_same(&e(&single_dense), &e(&dense));
+    assert_eq!(
+        std::fs::read(single_dense.join("mixture.safetensors")).unwrap(),
+        std::fs::read(dense.join("mixture.safetensors")).unwrap(),
+        "the mixture with --dense"
+    );
+    let report = self::report(&dense);
     assert_eq!(
         report["counts"]["spilled_images"],
-        7 * 3,
+        views * 3,
         "every image part was spilled"
     );
     assert!(report["counts"]["reduce_chunks"].as_u64().unwrap() >= 3 * 3);
-    let single_report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(single_out.join("report.json")).unwrap()).unwrap();
-    for key in ["masks", "entries"] {
-        assert_eq!(report["counts"][key], single_report["counts"][key], "{key}");
-    }
 }
 
 /// A process holding another secret takes process 1's place first: processes 0 and 2 refuse it
