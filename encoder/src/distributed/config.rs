@@ -148,8 +148,8 @@ pub struct ClusterJob {
     pub segments: Option<Arc<SegmentFeed>>,
 }
 
-/// What process 0's encode hands to the segments computed beside it
-/// ([`crate::pipeline::segment_task::SegmentTask`]): the Gaussians as soon as they are loaded,
+/// What process 0's encode hands to the segments computed beside it (as `encode` computes
+/// them, `pipeline::segment_task`): the Gaussians as soon as they are loaded,
 /// the masks' record once every partition's rows are assembled. Each is sent once; a receiver
 /// that hung up (a failed segmentation) is ignored.
 pub struct SegmentFeed {

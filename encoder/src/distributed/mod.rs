@@ -2,14 +2,20 @@
 //! multi-process TCP cluster (`slag-encoder encode-cluster`).
 //!
 //! ```text
+//!   views  (worker 0):  the view selection (coverage by default) on its rasterizer, run once;
+//!          the chosen names sent to every worker ([`views`]) before the map starts
 //!   map    (worker w, images i ≡ w mod P):  masks → CLIP crops → weight raster → a_kj
 //!          (aggregate::image_contribution), split by partition p = k mod P
-//!   exchange (timely Exchange pact, key p): the image's a_kj of partition p with local ids k / P,
-//!          and the image's mask table E_j
-//!   reduce (worker p):  E_k = Σ a_kj E_j / Σ a_kj for k ≡ p mod P, exactly aggregate::reduce
-//!          (f64, chunked accumulator, spilling contribution store, same unobserved rule)
-//!   gather (worker 0):  rows of every partition + per-partition counts → embeddings.safetensors,
-//!          then report.json, written by process 0 only after every process has finished
+//!   exchange (timely Exchange pact, key p): the image's a_kj of partition p with local ids k / P
+//!          and its mask count; its mask table E_j to partition 0 (to all with --dense)
+//!   reduce (worker p):  for k ≡ p mod P only, as views arrive (folded in view order): the
+//!          mixture's running state (aggregate::MixtureFold over the partition's Gaussians;
+//!          partition 0 also keeps the codebook), the masks' record of its Gaussians; with
+//!          --dense its contributions, then E_k = Σ a_kj E_j / Σ a_kj by aggregate::reduce
+//!   gather (worker 0):  rows of every partition + per-partition counts → mixture.safetensors,
+//!          (embeddings.safetensors), report.json, written by process 0 only after every process
+//!          has finished; the masks' record and the segments (computed on process 0 beside the
+//!          job) after them, as `encode` writes them
 //! ```
 //!
 //! One timely worker per process (each process owns its ONNX Runtime sessions and its GPU
@@ -18,20 +24,22 @@
 //!
 //! # What the map emits
 //!
-//! An image's per-Gaussian partial sum `Σ_j a_kj·E_j` factorises through its mask table, so the map
-//! side ships the sparse `a_kj` (12 bytes each) plus the image's `M × D` mask embeddings per
-//! partition instead of dense f64 `[D]` partial sums (4 KiB per Gaussian at D = 512): on snowmiku
-//! ~35 non-zero `a_kj` per Gaussian over 49 views, about 30× less traffic and no `N × D` f64
-//! accumulator on any map worker. The reducer of partition `p` rebuilds an
-//! [`ImageContribution`] over its local ids and runs [`aggregate::reduce`] unchanged, so
-//! the distributed result uses the single-process reduction code and rule.
+//! An image's per-Gaussian terms factorise through its mask table, so the map side ships the
+//! sparse `a_kj` (12 bytes each) instead of dense f64 `[D]` partial sums (4 KiB per Gaussian at
+//! D = 512): on snowmiku ~35 non-zero `a_kj` per Gaussian over 49 views. The mixture needs each
+//! view's mask count (to number the codebook's atoms) but its mask embeddings only where the
+//! codebook is assembled. A Gaussian's terms are added in view order whichever partition holds it,
+//! so the mixture and the record are those of a one-process `encode --reduce host` bit for bit; the
+//! dense reduction is [`crate::aggregate::reduce`] unchanged over each partition's local ids.
 //!
 //! # Memory
 //!
-//! A map worker holds one image at a time. A reducer holds its partition's contributions up to
-//! `contribution_budget_bytes` and spills the rest to `OUT/.cluster-<process>.partial/`; its f64
-//! accumulator covers `N / P` Gaussians and is chunked to `reduce.accumulator_budget_bytes`
-//! ([`aggregate::reduce`]). Process 0 holds the final rows (observed × D f32), as `encode` does.
+//! A map worker holds one image at a time. A reducer holds the running state of `N / P`
+//! Gaussians (`MixtureFold::state_bytes_per_gaussian`, the record's slots) and the views that
+//! arrived before an earlier one; with `--dense` its partition's contributions up to
+//! `contribution_budget_bytes`, the rest spilled to `OUT/.cluster-<process>.partial/`, and an f64
+//! accumulator chunked to `reduce.accumulator_budget_bytes`. Process 0 holds the codebook and the
+//! final rows, as `encode` does.
 //!
 //! # Completeness and failure
 //!
@@ -39,9 +47,9 @@
 //! sent and a fingerprint of the job (Gaussians, views, embedding width, parameters); a reducer
 //! reduces only when it holds `Done` from all `P` workers with equal fingerprints and exactly
 //! one contribution per view; worker 0 assembles only when it holds the summary of all `P`
-//! partitions and each partition's row count matches the rows received. Process 0 then writes
-//! `embeddings.safetensors` (temporary file + rename) and `report.json` last, after timely has shut
-//! down every connection cleanly, i.e. after every process completed.
+//! partitions and each partition's row counts (dense, mixture, record) match the rows received.
+//! Process 0 then writes its files (each temporary file + rename) and `report.json` last, after
+//! timely has shut down every connection cleanly, i.e. after every process completed.
 //!
 //! An error in any worker (bad image, model failure) is broadcast as an `Abort` record: every
 //! process exits non-zero with that message and nothing is written. A process that dies
