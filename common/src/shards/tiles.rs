@@ -434,88 +434,37 @@ impl Manifest {
     /// Errors: [`Error::Format`] naming `origin` and the first tile that disagrees.
     pub fn check_sizes(&self, origin: &str) -> Result<()> {
         use super::format::{MAX_DIM, expected_payload, header_len_for, payload_with_rows};
-        let bad = |m: String| {
-            Error::format(
-                origin,
-                format!(
-                    "{m}; the manifest is damaged or not from a slag partitioner: re-partition"
-                ),
-            )
-        };
         if self.dim == 0 || self.dim > MAX_DIM {
-            return Err(bad(format!(
-                "embedding dim {} outside 1..={MAX_DIM}",
-                self.dim
-            )));
+            return Err(damaged_manifest(
+                origin,
+                format!("embedding dim {} outside 1..={MAX_DIM}", self.dim),
+            ));
         }
         let d = self.dim as u64;
         let (scene, model) = (self.scene_id.len(), self.model.len());
         let dense_header = header_len_for(scene, model, false) as u64;
-        let check =
-            |what: String, bytes: u64, count: u64, min_header: u64, payload: &dyn Fn(u8) -> u64| {
-                if count > u32::MAX as u64 {
-                    return Err(bad(format!(
-                        "{what} declares {count} Gaussians, more than a shard's 32-bit count"
-                    )));
-                }
-                if shard_len_allowed(bytes, min_header, payload) {
-                    return Ok(());
-                }
-                // The lengths a shard may have are not one range (a header in steps of 8 plus one of
-                // a few payloads): say how they are made, never a range that holds `bytes`.
-                let mut payloads: Vec<u64> =
-                    (0..=super::format::KNOWN_FLAGS).map(payload).collect();
-                payloads.sort_unstable();
-                payloads.dedup();
-                let payloads: Vec<String> = payloads.iter().map(u64::to_string).collect();
-                Err(bad(format!(
-                    "{what} declares {bytes} bytes, a length no shard of {count} Gaussians of this \
-                 scene has: a shard is a header of {min_header} to {} bytes (a multiple of 8) \
-                 plus a payload of {} bytes",
-                    super::format::MAX_HEADER_LEN,
-                    payloads.join(" or ")
-                )))
-            };
-        match &self.mixture {
-            None => {
-                for t in &self.tiles {
-                    let n = t.count;
-                    let payload = |f: u8| expected_payload(self.dtype, f, n, d);
-                    check(
-                        format!("tile {} ({:?}, dim {d})", t.id, self.dtype),
-                        t.bytes,
-                        n,
-                        dense_header,
-                        &payload,
-                    )?;
-                }
+        let Some(x) = &self.mixture else {
+            for t in &self.tiles {
+                let (what, n) = (
+                    format!("tile {} ({:?}, dim {d})", t.id, self.dtype),
+                    t.count,
+                );
+                let payload = |f: u8| expected_payload(self.dtype, f, n, d);
+                check_declared_size(origin, what, (t.bytes, n), dense_header, &payload)?;
             }
-            Some(x) => {
-                let header = header_len_for(scene, model, true) as u64;
-                let s = x.slots as u64;
-                for t in &self.tiles {
-                    let n = t.count;
-                    let payload = |f: u8| payload_with_rows(f, n, 6 * n * s);
-                    check(
-                        format!("tile {} (mixture, {s} slots)", t.id),
-                        t.bytes,
-                        n,
-                        header,
-                        &payload,
-                    )?;
-                }
-                let a = x.atoms as u64;
-                let payload = |f: u8| expected_payload(Dtype::F16, f, a, d);
-                check(
-                    format!("the codebook ({a} rows of dim {d})"),
-                    x.codebook_bytes,
-                    a,
-                    dense_header,
-                    &payload,
-                )?;
-            }
+            return Ok(());
+        };
+        let header = header_len_for(scene, model, true) as u64;
+        let s = x.slots as u64;
+        for t in &self.tiles {
+            let (what, n) = (format!("tile {} (mixture, {s} slots)", t.id), t.count);
+            let payload = |f: u8| payload_with_rows(f, n, 6 * n * s);
+            check_declared_size(origin, what, (t.bytes, n), header, &payload)?;
         }
-        Ok(())
+        let a = x.atoms as u64;
+        let what = format!("the codebook ({a} rows of dim {d})");
+        let payload = |f: u8| expected_payload(Dtype::F16, f, a, d);
+        check_declared_size(origin, what, (x.codebook_bytes, a), dense_header, &payload)
     }
 
     /// R-tree over this manifest's tile footprints.
@@ -526,6 +475,55 @@ impl Manifest {
     pub fn to_json(&self) -> Vec<u8> {
         serde_json::to_vec_pretty(self).unwrap_or_default()
     }
+}
+
+/// The error of [`Manifest::check_sizes`]: `message` about the manifest at `origin`, and what
+/// to do about it.
+fn damaged_manifest(origin: &str, message: String) -> Error {
+    Error::format(
+        origin,
+        format!("{message}; the manifest is damaged or not from a slag partitioner: re-partition"),
+    )
+}
+
+/// One declared size of [`Manifest::check_sizes`]: `what` (a tile or the codebook) declares
+/// `bytes` bytes for `count` Gaussians (or codebook rows); a shard of them is a header of
+/// `min_header` to [`super::format::MAX_HEADER_LEN`] bytes (a multiple of 8) plus `payload(flags)`
+/// bytes for one of the combinations of display sections.
+///
+/// Errors: [`Error::Format`] naming `origin` and `what`, for a count past the header's 32-bit
+/// field or a length no such shard has (the message says how the lengths are made, never a
+/// range that holds `bytes`).
+fn check_declared_size(
+    origin: &str,
+    what: String,
+    (bytes, count): (u64, u64),
+    min_header: u64,
+    payload: &dyn Fn(u8) -> u64,
+) -> Result<()> {
+    if count > u32::MAX as u64 {
+        return Err(damaged_manifest(
+            origin,
+            format!("{what} declares {count} Gaussians, more than a shard's 32-bit count"),
+        ));
+    }
+    if shard_len_allowed(bytes, min_header, payload) {
+        return Ok(());
+    }
+    let mut payloads: Vec<u64> = (0..=super::format::KNOWN_FLAGS).map(payload).collect();
+    payloads.sort_unstable();
+    payloads.dedup();
+    let payloads: Vec<String> = payloads.iter().map(u64::to_string).collect();
+    Err(damaged_manifest(
+        origin,
+        format!(
+            "{what} declares {bytes} bytes, a length no shard of {count} Gaussians of this \
+             scene has: a shard is a header of {min_header} to {} bytes (a multiple of 8) \
+             plus a payload of {} bytes",
+            super::format::MAX_HEADER_LEN,
+            payloads.join(" or ")
+        ),
+    ))
 }
 
 /// True when `bytes` = a header length in `min_header..=MAX_HEADER_LEN` (a multiple of 8) plus
