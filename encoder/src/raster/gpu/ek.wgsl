@@ -1,4 +1,4 @@
-// The device reduction E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj (gpu/ek.rs), a shader module of its own
+// The device reduction E_k = Σ_i Σ_j a_kj·E_j / Σ_i Σ_j a_kj (gpu/ek/), a shader module of its own
 // because it needs f64 (wgpu's SHADER_F64): the raster module compiles on devices without it.
 //
 // Each labelled view leaves its device-reduced label sums on the device (records sorted by
