@@ -551,9 +551,12 @@ fn write_outputs(
     if let (Some(feed), Some(record)) = (&job.segments, record) {
         feed.send_record(record);
     }
-    crate::views::check_observed(selection.as_ref(), counts.observed, counts.gaussians)?;
     let t0 = Instant::now();
+    // As `encode`: a report of an earlier run goes first, then a run whose views observed too
+    // little fails with no dense file that could pass for this run's.
     let files = OutputFiles::begin(&job.params.out_dir)?;
+    crate::views::check_observed(selection.as_ref(), counts.observed, counts.gaussians)
+        .inspect_err(|_| drop(slag_common::io::remove_stale(&files.embeddings)))?;
     match embeddings {
         Some(e) => Embeddings {
             model: models[1].clone(),
