@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# encode-cluster against encode on one machine, on loopback: the same arguments as the loopback
+# test (cli/tests/encode_cluster.rs: data/snowmiku-mini, every 2nd view then the default views,
+# graph masks, color-clip, CPU rasterizer at raster scale 0.25, --reduce host, f32, one thread a
+# process), a one-process `encode` then 3 processes of `encode-cluster` with a shared secret,
+# ROUNDS times; prints each run's wall and whether every output file but the report is
+# byte-identical (cmp). NOT part of CI.
+#   scripts/lab/cluster-loopback.sh [SLAG_ENCODER] [ROUNDS]      (run in the repo root)
+set -uo pipefail
+B=${1:-target/debug/slag-encoder}; rounds=${2:-2}
+shared=${SLAG_SHARED:-../shared}
+w=$(mktemp -d); trap 'rm -rf "$w"' EXIT
+(umask 077; head -c 32 /dev/urandom | base64 > "$w/secret")
+args=(--scene-dir data/snowmiku-mini --masks graph --clip-visual "$shared/fixtures/clip/color-clip-visual.onnx"
+  --every 2 --reduce host --raster-scale 0.25 --rasterizer cpu --precision f32 --threads 1 --quiet)
+now() { date +%s.%N; }
+for r in $(seq "$rounds"); do
+  t0=$(now); "$B" encode "${args[@]}" --out "$w/one-$r" > "$w/one-$r.log" 2>&1 || { echo "encode failed"; tail -5 "$w/one-$r.log"; exit 1; }
+  t1=$(now)
+  ports=$(python3 -c 'import socket
+s=[socket.socket() for _ in range(3)]
+[x.bind(("127.0.0.1",0)) for x in s]
+print(" ".join(str(x.getsockname()[1]) for x in s))')
+  : > "$w/hosts"; for p in $ports; do echo "127.0.0.1:$p" >> "$w/hosts"; done
+  t2=$(now); pids=()
+  for i in 0 1 2; do
+    "$B" encode-cluster --process $i --hosts "$w/hosts" --cluster-secret-file "$w/secret" "${args[@]}" \
+      --out "$w/cluster-$r" > "$w/cluster-$r-$i.log" 2>&1 & pids+=($!)
+  done
+  rc=0; for p in "${pids[@]}"; do wait "$p" || rc=$?; done
+  t3=$(now)
+  [ $rc = 0 ] || { echo "encode-cluster failed ($rc)"; tail -5 "$w"/cluster-$r-*.log; exit 1; }
+  same=yes
+  for f in "$w/one-$r"/*; do
+    n=$(basename "$f"); [ "$n" = report.json ] && continue
+    cmp -s "$f" "$w/cluster-$r/$n" || { same="no ($n differs)"; break; }
+  done
+  printf 'round %s: encode %.1f s, encode-cluster (3 processes) %.1f s; files but the report byte-identical: %s (%s)\n' \
+    "$r" "$(echo "$t1 - $t0" | bc)" "$(echo "$t3 - $t2" | bc)" "$same" "$(cd "$w/one-$r" && ls | tr '\n' ' ')"
+done
