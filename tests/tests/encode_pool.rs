@@ -348,6 +348,59 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
     assert!(!out.join("report.json").exists());
 }
 
+/// Masks that find nothing in any image.
+struct NoMasks;
+
+impl MaskGenerator for NoMasks {
+    fn name(&self) -> &str {
+        "none"
+    }
+    fn generate(&mut self, _image: &image::RgbImage) -> slag_common::Result<Vec<Mask>> {
+        Ok(Vec::new())
+    }
+}
+
+/// Views whose masks observe none of the Gaussians make an empty map: the encode fails with
+/// the typed error that says so, and writes neither the embeddings, the mixture nor the report.
+#[test]
+fn an_encode_that_observes_nothing_fails_and_writes_nothing() {
+    let (dir, scene) = folder_with_small_scene();
+    let out = dir.path().join("out");
+    let mut fronts = graph_fronts(&[None]);
+    fronts[0].masks = Box::new(NoMasks);
+    let params = pipeline::EncodeParams {
+        mixture_keep: Some(4),
+        ..pool_params(&out)
+    };
+    let err = pipeline::encode_pool(
+        &pipeline::SceneInput::new(&scene, None, 1),
+        fronts,
+        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
+        &params,
+        Default::default(),
+    )
+    .unwrap_err();
+    assert!(
+        matches!(
+            err,
+            slag_common::Error::Unobserved {
+                stage: slag_common::Observation::Encode,
+                observed: 0,
+                gaussians: 40_000,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    for file in [
+        "embeddings.safetensors",
+        "mixture.safetensors",
+        "report.json",
+    ] {
+        assert!(!out.join(file).exists(), "{file} written");
+    }
+}
+
 /// The rasterizers are set up while the fronts already run: a set-up that fails, or that yields
 /// fewer rasterizers than the GPUs the fronts are bound to, stops the fronts (no hang) and
 /// returns the error; nothing is written.
