@@ -57,6 +57,19 @@ fn device_state_bytes(r: &Report) -> u64 {
     r.counts.gaussians as u64 * (8 + 8 * keep)
 }
 
+/// The device reduced in several waves (`what` names the run).
+fn assert_streamed(c: &slag_encoder::report::Counts, what: &str) {
+    assert!(
+        c.device_reduce && c.device_reduce_fallback.is_none(),
+        "{what}"
+    );
+    assert!(
+        c.device_reduce_waves > 1,
+        "{what}: {} waves",
+        c.device_reduce_waves
+    );
+}
+
 /// Streamed against all kept on the device: at two budgets small enough that the views go in
 /// several waves (fewer with the larger), the mixture, the masks' record and the segments are
 /// byte for byte those of the reduction that kept every view to the end, and the device held
@@ -102,15 +115,7 @@ fn the_streamed_device_reduction_writes_what_keeping_every_view_writes_at_two_bu
     for budget_mb in [small, larger] {
         let (streamed, streamed_dir) = run(&format!("streamed-{budget_mb}"), budget_mb);
         let c = &streamed.counts;
-        assert!(
-            c.device_reduce && c.device_reduce_fallback.is_none(),
-            "{budget_mb} MiB"
-        );
-        assert!(
-            c.device_reduce_waves > 1,
-            "{budget_mb} MiB: {} waves",
-            c.device_reduce_waves
-        );
+        assert_streamed(c, &format!("{budget_mb} MiB"));
         assert!(
             c.device_reduce_peak_bytes <= (budget_mb as u64) << 20,
             "{budget_mb} MiB: {} B on the device",
@@ -193,15 +198,7 @@ fn the_reductions_peak_stays_flat_from_8_to_64_views_but_for_the_codebook() {
     for views in [8, 64] {
         let r = run(views, ReduceOn::Device, budget_mb);
         let c = &r.counts;
-        assert!(
-            c.device_reduce && c.device_reduce_fallback.is_none(),
-            "{views} views"
-        );
-        assert!(
-            c.device_reduce_waves > 1,
-            "{views} views: {} waves",
-            c.device_reduce_waves
-        );
+        assert_streamed(c, &format!("{views} views"));
         assert!(
             c.device_reduce_peak_bytes <= budget,
             "{views} views: {} B on the device, budget {budget} B",

@@ -303,6 +303,21 @@ impl MaskGenerator for GatedMasks {
     }
 }
 
+/// An encode of `scene` with `params` through `fronts` and one GPU rasterizer: its report.
+fn encode_on_one_rasterizer(
+    scene: &std::path::Path,
+    fronts: Vec<FrontStages>,
+    params: &pipeline::EncodeParams,
+) -> slag_common::Result<slag_encoder::report::Report> {
+    pipeline::encode_pool(
+        &pipeline::SceneInput::new(scene, None, 1),
+        fronts,
+        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
+        params,
+        Default::default(),
+    )
+}
+
 #[test]
 fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
     let (dir, scene) = folder_with_small_scene();
@@ -335,14 +350,7 @@ fn a_failing_worker_stops_the_pool_and_nothing_looks_complete() {
         },
     ];
     let params = pool_params(&out);
-    let err = pipeline::encode_pool(
-        &pipeline::SceneInput::new(&scene, None, 1),
-        fronts,
-        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
-        &params,
-        Default::default(),
-    )
-    .unwrap_err();
+    let err = encode_on_one_rasterizer(&scene, fronts, &params).unwrap_err();
     assert!(err.to_string().contains("injected mask failure"), "{err}");
     assert!(!out.join("embeddings.safetensors").exists());
     assert!(!out.join("report.json").exists());
@@ -372,14 +380,7 @@ fn an_encode_that_observes_nothing_fails_and_writes_nothing() {
         mixture_keep: Some(4),
         ..pool_params(&out)
     };
-    let err = pipeline::encode_pool(
-        &pipeline::SceneInput::new(&scene, None, 1),
-        fronts,
-        |g: &slag_common::scene::Gaussians| rasterizers(1, g),
-        &params,
-        Default::default(),
-    )
-    .unwrap_err();
+    let err = encode_on_one_rasterizer(&scene, fronts, &params).unwrap_err();
     assert!(
         matches!(
             err,
