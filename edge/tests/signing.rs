@@ -134,6 +134,25 @@ fn verified(state: AppState) -> AppState {
     state
 }
 
+/// A store holding scene "grid" fetched under a trusted key, then tile 0 rewritten on disk with
+/// its CRC-32s kept ([`rewrite_tile`]): the store's folder (kept alive), the store and the key.
+async fn signed_store_with_a_rewritten_tile() -> (tempfile::TempDir, EdgeStore, TrustedKey) {
+    let publisher = SigningKey::generate();
+    let trusted = publisher.public();
+    let server = shard_server(scene("grid", 1), None).await;
+    publish(&server.state, scene("grid", 1), Some(&publisher));
+    let (dir, store) = temp_store();
+    fetch(&store, &signed_params(&server.url, &trusted))
+        .await
+        .unwrap();
+    std::fs::write(
+        support::shard_path(&store, 0),
+        rewrite_tile(&scene("grid", 1)),
+    )
+    .unwrap();
+    (dir, store, trusted)
+}
+
 /// A fetch of the whole grid from `url` that trusts `key`.
 fn signed_params(url: &str, key: &TrustedKey) -> FetchParams {
     FetchParams {
@@ -710,19 +729,7 @@ async fn a_tile_forged_under_an_unsigned_fetch_outside_a_signed_fetchs_disc_is_d
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_tile_rewritten_on_disk_with_its_crcs_kept_is_not_served_by_a_server_that_trusts_the_key()
 {
-    let publisher = SigningKey::generate();
-    let trusted = publisher.public();
-    let server = shard_server(scene("grid", 1), None).await;
-    publish(&server.state, scene("grid", 1), Some(&publisher));
-    let (_dir, store) = temp_store();
-    fetch(&store, &signed_params(&server.url, &trusted))
-        .await
-        .unwrap();
-    std::fs::write(
-        support::shard_path(&store, 0),
-        rewrite_tile(&scene("grid", 1)),
-    )
-    .unwrap();
+    let (_dir, store, trusted) = signed_store_with_a_rewritten_tile().await;
     let load = |keys: Option<TrustedKey>| {
         let opts = ServeOptions {
             trusted_keys: keys.map(Into::into),
@@ -833,19 +840,7 @@ async fn two_trusted_keys_accept_either_during_a_rotation_and_refuse_a_third_nam
 /// its CRC-32s kept never is, before, during or after.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_never() {
-    let publisher = SigningKey::generate();
-    let trusted = publisher.public();
-    let server = shard_server(scene("grid", 1), None).await;
-    publish(&server.state, scene("grid", 1), Some(&publisher));
-    let (_dir, store) = temp_store();
-    fetch(&store, &signed_params(&server.url, &trusted))
-        .await
-        .unwrap();
-    std::fs::write(
-        support::shard_path(&store, 0),
-        rewrite_tile(&scene("grid", 1)),
-    )
-    .unwrap();
+    let (_dir, store, trusted) = signed_store_with_a_rewritten_tile().await;
     let opts = ServeOptions {
         trusted_keys: Some(trusted.clone().into()),
         ..ServeOptions::new("grid")
