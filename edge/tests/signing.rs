@@ -835,9 +835,11 @@ async fn two_trusted_keys_accept_either_during_a_rotation_and_refuse_a_third_nam
 }
 
 /// A server that trusts the key answers at once: while its tiles are verified in the background
-/// (held at a gate, then running) every answer is marked partial and holds no row of a pending
-/// tile; once verified, every tile that passed is answered and a tile rewritten on disk with
-/// its CRC-32s kept never is, before, during or after.
+/// (held at a gate) every answer is marked partial and holds no row of a pending tile; while the
+/// verification runs, each answer is either partial and empty or whole (how many of each depends
+/// on the scheduler, so only their contents are checked); once verified, every tile that passed
+/// is answered and a tile rewritten on disk with its CRC-32s kept never is, before, during or
+/// after.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_never() {
     let (_dir, store, trusted) = signed_store_with_a_rewritten_tile().await;
@@ -880,16 +882,16 @@ async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_
     assert_eq!(ply.headers()["x-slag-tiles-pending-verification"], "9");
     assert_eq!(ply.headers()["x-slag-gaussians"], "0");
 
-    // Running: every answer is either partial and empty, or whole without the forged row.
+    // Running: every answer is either partial and empty, or whole without the forged row. The
+    // verification may finish before the first answer here; the gated answers above are the
+    // partial ones this test requires.
     gate.open();
-    let mut partial_seen = 0;
     loop {
         let running = engine.verification() == Verification::Running;
         let (status, answer) = send_json(client.get(&all)).await;
         assert_eq!(status, 200, "{answer}");
         let ids = support::match_ids(&answer);
         if answer["partial"] == true {
-            partial_seen += 1;
             assert!(ids.is_empty(), "a pending tile is served: {answer}");
         } else {
             assert_eq!(ids.len(), 8 * PER_TILE, "{answer}");
@@ -899,7 +901,6 @@ async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_
             break;
         }
     }
-    assert!(partial_seen >= 1);
 
     // Verified: the eight good tiles are answered, the forged one is dropped and counted.
     assert_eq!(engine.wait_verified(), Verification::Done);
