@@ -834,14 +834,14 @@ async fn two_trusted_keys_accept_either_during_a_rotation_and_refuse_a_third_nam
     );
 }
 
-/// A server that trusts the key answers at once: while its tiles are verified in the background
-/// (held at a gate) every answer is marked partial and holds no row of a pending tile; while the
-/// verification runs, each answer is either partial and empty or whole (how many of each depends
-/// on the scheduler, so only their contents are checked); once verified, every tile that passed
-/// is answered and a tile rewritten on disk with its CRC-32s kept never is, before, during or
-/// after.
+/// A server that trusts the key answers at once, and serves its tiles one by one as they pass
+/// the verification in the background (released one at a time by a gate, so nothing is timed):
+/// every answer while it runs is marked partial with the count of pending tiles, holds exactly
+/// the rows of the tiles verified so far and none of a pending one, and `/stats` counts move as
+/// tiles pass; once verified, every tile that passed is answered. The first tile, rewritten on
+/// disk with its CRC-32s kept, is never served, before, during or after.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_never() {
+async fn tiles_are_served_one_by_one_as_they_pass_verification_and_a_forged_one_never() {
     let (_dir, store, trusted) = signed_store_with_a_rewritten_tile().await;
     let opts = ServeOptions {
         trusted_keys: Some(trusted.clone().into()),
@@ -882,25 +882,46 @@ async fn tiles_are_served_only_once_verified_in_the_background_and_a_forged_one_
     assert_eq!(ply.headers()["x-slag-tiles-pending-verification"], "9");
     assert_eq!(ply.headers()["x-slag-gaussians"], "0");
 
-    // Running: every answer is either partial and empty, or whole without the forged row. The
-    // verification may finish before the first answer here; the gated answers above are the
-    // partial ones this test requires.
-    gate.open();
-    loop {
-        let running = engine.verification() == Verification::Running;
+    // Tile by tile: tile 0 (forged) is dropped, then tiles 1 and 2 pass. After each, the
+    // answer holds exactly the rows of the tiles verified so far (tile k holds ids
+    // 10k..10k+9) and none of the pending ones.
+    for (handed, verified, dropped) in [(1, 0, 1), (2, 1, 1), (3, 2, 1)] {
+        gate.release(1);
+        let passed = tokio::task::spawn_blocking({
+            let gate = gate.clone();
+            move || gate.wait_passed(handed)
+        })
+        .await
+        .unwrap();
+        assert_eq!(passed, handed, "the verification ended early");
+        let (_, stats) = send_json(client.get(format!("{url}/stats"))).await;
+        assert_eq!(stats["verification"], "running", "{stats}");
+        assert_eq!(
+            (
+                stats["tiles_verified"].as_u64(),
+                stats["tiles_dropped"].as_u64(),
+                stats["tiles_pending_verification"].as_u64(),
+                stats["gaussians"].as_u64()
+            ),
+            (
+                Some(verified),
+                Some(dropped),
+                Some(9 - handed as u64),
+                Some(verified * PER_TILE as u64)
+            ),
+            "{stats}"
+        );
         let (status, answer) = send_json(client.get(&all)).await;
         assert_eq!(status, 200, "{answer}");
-        let ids = support::match_ids(&answer);
-        if answer["partial"] == true {
-            assert!(ids.is_empty(), "a pending tile is served: {answer}");
-        } else {
-            assert_eq!(ids.len(), 8 * PER_TILE, "{answer}");
-        }
-        assert!(!ids.contains(&0), "the forged row is served: {answer}");
-        if !running {
-            break;
-        }
+        assert_eq!(answer["partial"], true, "{answer}");
+        assert_eq!(answer["tiles_pending_verification"], 9 - handed, "{answer}");
+        let mut ids = support::match_ids(&answer);
+        ids.sort_unstable();
+        let expected: Vec<u32> =
+            (PER_TILE as u32..(1 + verified as u32) * PER_TILE as u32).collect();
+        assert_eq!(ids, expected, "tiles 1..={verified} exactly: {answer}");
     }
+    gate.open();
 
     // Verified: the eight good tiles are answered, the forged one is dropped and counted.
     assert_eq!(engine.wait_verified(), Verification::Done);

@@ -108,13 +108,31 @@ impl Engine {
         hnsw: Option<HnswBackend>,
         trusted: Option<&TrustedKeys>,
     ) -> Result<Engine> {
+        Engine::load_observed(edge, scene, hnsw, trusted, &mut |_| Ok(()))
+    }
+
+    /// [`Engine::load_trusting`], handing `observe` the rows loaded so far after each tile of
+    /// the generation ([`LoadProgress`]; in manifest tile order, whether the tile passed, was
+    /// rejected or had no file): a server that verifies in the background serves the tiles
+    /// verified so far from it ([`QueryEngine::new`]). The check that no Gaussian id is in
+    /// two shards and the approximate index come after the last tile.
+    ///
+    /// Errors: as [`Engine::load_trusting`]; the first error `observe` returns (the load
+    /// stops there).
+    pub fn load_observed(
+        edge: &EdgeStore,
+        scene: &str,
+        hnsw: Option<HnswBackend>,
+        trusted: Option<&TrustedKeys>,
+        observe: &mut dyn FnMut(&LoadProgress<'_>) -> Result<()>,
+    ) -> Result<Engine> {
         if let Some(b) = hnsw {
             b.require()?;
         }
         let loaded = {
             // One committed generation, read whole while no fetch commits or evicts.
             let _generation = edge.lock_generation();
-            load_generation(edge, scene, trusted)?
+            load_generation(edge, scene, trusted, observe)?
         };
         let (manifest, store, load, display, record, seq) = loaded;
         let hnsw = build_index(&store, scene, hnsw)?;
@@ -177,6 +195,31 @@ impl Engine {
             record: committed.record,
             seq: committed.seq,
         }))
+    }
+
+    /// The engine a background verification serves after some of the tiles of this one (the
+    /// engine of [`Engine::pending`]) passed: a copy of the rows in `progress` (those of the
+    /// tiles verified so far, never of a pending or rejected one), with this generation's
+    /// manifest, fetch record and commit count, no approximate index, and
+    /// [`SceneLoad::pending_verification`] counting the stored tiles not yet handed.
+    pub fn verified_so_far(&self, progress: &LoadProgress<'_>) -> Engine {
+        let p = progress.load;
+        let handed = p.loaded_tiles.len() + p.rejected.len();
+        Engine {
+            manifest: self.manifest.clone(),
+            store: progress.store.clone(),
+            load: SceneLoad {
+                loaded_tiles: p.loaded_tiles.clone(),
+                absent_tiles: self.load.absent_tiles,
+                rejected: p.rejected.clone(),
+                hashed: p.hashed,
+                pending_verification: self.load.pending_verification.saturating_sub(handed),
+            },
+            hnsw: None,
+            display: progress.display.clone(),
+            record: self.record.clone(),
+            seq: self.seq,
+        }
     }
 
     /// What a query over this generation runs against: its rows, embedding model, scene-to-map
@@ -302,6 +345,21 @@ impl ServedEngine {
             .clone()
     }
 
+    /// Serves `next` if `expected` is the engine served now (the same `Arc`); returns whether
+    /// it was swapped in. A background verification publishes its progress this way, so that
+    /// it never replaces an engine a reload swapped in meanwhile.
+    pub fn swap_if(&self, expected: &std::sync::Arc<Engine>, next: std::sync::Arc<Engine>) -> bool {
+        let mut g = self
+            .0
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let swap = std::sync::Arc::ptr_eq(&g, expected);
+        if swap {
+            *g = next;
+        }
+        swap
+    }
+
     /// Serves `engine` unless the one served now holds a later generation (a larger
     /// [`Engine::seq`]); returns whether it was swapped in.
     pub fn offer(&self, engine: Engine) -> bool {
@@ -315,6 +373,53 @@ impl ServedEngine {
         } else {
             false
         }
+    }
+}
+
+/// The rows of a generation loaded so far ([`Engine::load_observed`]): every row of the tiles
+/// that passed, in tile order, their display columns, and what became of each tile handed so
+/// far.
+pub struct LoadProgress<'a> {
+    /// The rows of every tile that passed so far.
+    pub store: &'a VectorStore,
+    /// Their display columns, same row order.
+    pub display: &'a crate::view::DisplayAttrs,
+    /// The tiles handed so far: loaded (and hashed), rejected, without a file.
+    pub load: &'a SceneLoad,
+}
+
+/// A decoded shard a scene's rows are made of: dense ([`StoredShard`]) or mixture
+/// ([`MixtureShard`]), for [`load_generation`].
+trait ServedShard: crate::store::LoadableShard + crate::view::ShardDisplay {
+    /// Gaussian ids of its rows.
+    fn row_ids(&self) -> &[u32];
+    /// Its tile.
+    fn tile(&self) -> u64;
+    /// Moves its rows into `store` (errors: as [`VectorStore::push_shard`]).
+    fn push_into(self, store: &mut VectorStore) -> Result<()>;
+}
+
+impl ServedShard for StoredShard {
+    fn row_ids(&self) -> &[u32] {
+        &self.ids
+    }
+    fn tile(&self) -> u64 {
+        self.header.tile_id
+    }
+    fn push_into(self, store: &mut VectorStore) -> Result<()> {
+        store.push_shard(self)
+    }
+}
+
+impl ServedShard for MixtureShard {
+    fn row_ids(&self) -> &[u32] {
+        &self.ids
+    }
+    fn tile(&self) -> u64 {
+        self.header.tile_id
+    }
+    fn push_into(self, store: &mut VectorStore) -> Result<()> {
+        store.push_mixture_shard(self)
     }
 }
 
@@ -339,6 +444,7 @@ fn load_generation(
     edge: &EdgeStore,
     scene: &str,
     trusted: Option<&TrustedKeys>,
+    observe: &mut dyn FnMut(&LoadProgress<'_>) -> Result<()>,
 ) -> Result<Generation> {
     let committed = edge.committed(scene)?;
     let manifest = &committed.manifest;
@@ -362,18 +468,15 @@ fn load_generation(
         tiles.push(tile);
         ids.extend(ids_of.iter().map(|&i| (i, k)));
     };
-    let load = if store.is_mixture() {
-        edge.load_committed(&committed, hashes, |s: MixtureShard| {
-            note(&s.ids, s.header.tile_id);
-            display.push_shard(&s);
-            store.push_mixture_shard(s)
-        })?
+    let rows = Rows {
+        store: &mut store,
+        display: &mut display,
+        note: &mut note,
+    };
+    let load = if rows.store.is_mixture() {
+        rows.load::<MixtureShard>(edge, &committed, hashes, observe)?
     } else {
-        edge.load_committed(&committed, hashes, |s: StoredShard| {
-            note(&s.ids, s.header.tile_id);
-            display.push_shard(&s);
-            store.push_shard(s)
-        })?
+        rows.load::<StoredShard>(edge, &committed, hashes, observe)?
     };
     refuse_shared_ids(ids, &tiles, scene)?;
     Ok((
@@ -384,6 +487,47 @@ fn load_generation(
         committed.record,
         committed.seq,
     ))
+}
+
+/// Where [`load_generation`] puts the rows of each tile that passes: the scan store, the
+/// display columns, and `note` (its Gaussian ids and tile, for [`refuse_shared_ids`]).
+struct Rows<'a> {
+    store: &'a mut VectorStore,
+    display: &'a mut crate::view::DisplayAttrs,
+    note: &'a mut dyn FnMut(&[u32], u64),
+}
+
+impl Rows<'_> {
+    /// Loads the committed generation's tiles as `S` shards ([`EdgeStore::load_committed_each`]),
+    /// pushing the rows of each that passes and handing `observe` the rows so far after every
+    /// tile.
+    ///
+    /// Errors: as [`EdgeStore::load_committed_each`]; the first error of a push or `observe`.
+    fn load<S: ServedShard>(
+        self,
+        edge: &EdgeStore,
+        committed: &crate::store::Committed,
+        hashes: bool,
+        observe: &mut dyn FnMut(&LoadProgress<'_>) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        let Rows {
+            store,
+            display,
+            note,
+        } = self;
+        edge.load_committed_each(committed, hashes, |s: Option<S>, load| {
+            if let Some(s) = s {
+                note(s.row_ids(), s.tile());
+                display.push_shard(&s);
+                s.push_into(store)?;
+            }
+            observe(&LoadProgress {
+                store,
+                display,
+                load,
+            })
+        })
+    }
 }
 
 /// The scan store of `manifest`'s generation before any shard is pushed: a mixture scene's

@@ -11,7 +11,7 @@ use std::time::Instant;
 use slag_common::{Error, Result};
 
 use super::admission::{Admission, Busy};
-use super::{Engine, ServedEngine};
+use super::{Engine, LoadProgress, ServedEngine};
 use crate::query::{CANONICAL_NEGATIVES, QueryAnswer, QueryParams, TextEmbedder};
 use crate::scan::hnsw::HnswBackend;
 use crate::store::EdgeStore;
@@ -72,8 +72,9 @@ struct Shared {
 pub enum Verification {
     /// None runs: no trusted key, or an unsigned generation (loaded at once on its CRC-32s).
     Off,
-    /// The tiles are being read, hashed and decoded; the server answers from the engine of
-    /// [`Engine::pending`] (no rows) meanwhile.
+    /// The tiles are being read, hashed and decoded; the server answers from the tiles
+    /// verified so far meanwhile (none at first: [`Engine::pending`]; then
+    /// [`Engine::verified_so_far`]), every answer [`QueryAnswer::partial`].
     Running,
     /// Done: every tile that passed is served, those that did not are in
     /// [`crate::store::SceneLoad::rejected`].
@@ -83,32 +84,104 @@ pub enum Verification {
     Failed(String),
 }
 
-/// Holds a background verification ([`QueryEngine::new_gated`]) before it reads its first tile,
-/// until [`VerifyGate::open`]: a test queries a server whose tiles are all pending, and then one
-/// whose tiles are verified, without timing anything. Clones share one gate.
+/// Holds a background verification ([`QueryEngine::new_gated`]) tile by tile: the tiles of the
+/// generation are handed on (served, once they pass) only as far as the gate has released them
+/// ([`Self::release`], [`Self::open`]), so a test queries a server whose tiles are all pending,
+/// then one with exactly the first tiles handed, and so on, without timing anything. Clones
+/// share one gate.
 #[derive(Debug, Clone, Default)]
-pub struct VerifyGate(Arc<(Mutex<bool>, Condvar)>);
+pub struct VerifyGate(Arc<(Mutex<GateState>, Condvar)>);
+
+/// Where a [`VerifyGate`] stands: how many tiles it lets through, and how many went through
+/// (their outcome published to the served engine).
+#[derive(Debug, Default)]
+struct GateState {
+    released: usize,
+    passed: usize,
+    /// The verification ended (done or failed): no tile passes any more.
+    ended: bool,
+}
 
 impl VerifyGate {
-    /// A closed gate.
+    /// A closed gate: no tile goes through.
     pub fn new() -> Self {
         Self::default()
     }
 
-    /// Lets the verification held at the gate run.
+    /// Lets every tile through.
     pub fn open(&self) {
-        let (open, cv) = &*self.0;
-        *open.lock().unwrap_or_else(PoisonError::into_inner) = true;
+        self.update(|g| g.released = usize::MAX);
+    }
+
+    /// Lets `tiles` more tiles through (in manifest tile order).
+    pub fn release(&self, tiles: usize) {
+        self.update(|g| g.released = g.released.saturating_add(tiles));
+    }
+
+    /// Blocks until `tiles` tiles in all have gone through, what became of each published to the
+    /// served engine (served, rejected or absent), or the verification ended; returns how many
+    /// went through.
+    pub fn wait_passed(&self, tiles: usize) -> usize {
+        let g = self.wait_until(|g| g.passed >= tiles || g.ended);
+        g.passed
+    }
+
+    /// Blocks until tile `k` (0-based) may go through.
+    fn wait_turn(&self, k: usize) {
+        drop(self.wait_until(|g| g.released > k));
+    }
+
+    /// Records that `tiles` tiles in all have gone through.
+    fn passed(&self, tiles: usize) {
+        self.update(|g| g.passed = tiles);
+    }
+
+    /// Records that the verification ended.
+    fn end(&self) {
+        self.update(|g| g.ended = true);
+    }
+
+    fn update(&self, f: impl FnOnce(&mut GateState)) {
+        let (m, cv) = &*self.0;
+        f(&mut m.lock().unwrap_or_else(PoisonError::into_inner));
         cv.notify_all();
     }
 
-    /// Blocks until [`Self::open`].
-    fn wait(&self) {
-        let (open, cv) = &*self.0;
-        let mut g = open.lock().unwrap_or_else(PoisonError::into_inner);
-        while !*g {
+    fn wait_until(
+        &self,
+        done: impl Fn(&GateState) -> bool,
+    ) -> std::sync::MutexGuard<'_, GateState> {
+        let (m, cv) = &*self.0;
+        let mut g = m.lock().unwrap_or_else(PoisonError::into_inner);
+        while !done(&g) {
             g = cv.wait(g).unwrap_or_else(PoisonError::into_inner);
         }
+        g
+    }
+}
+
+/// How often a background verification publishes the rows verified so far
+/// ([`QueryEngine::new`]): each publish copies them, so without a gate it waits until
+/// [`COPY_SHARE`] times the last copy's duration has passed since the last publish, which keeps
+/// the copying under a fifth of the verification's time however large the store; with a gate
+/// (tests), after every tile.
+struct Cadence {
+    every_tile: bool,
+    last: Instant,
+    copy: std::time::Duration,
+}
+
+/// See [`Cadence`].
+const COPY_SHARE: u32 = 4;
+
+impl Cadence {
+    fn due(&self) -> bool {
+        self.every_tile || self.last.elapsed() >= self.copy * COPY_SHARE
+    }
+
+    fn copied(&mut self, started: Instant) {
+        self.last = Instant::now();
+        self.copy = self.last - started;
     }
 }
 
@@ -117,9 +190,10 @@ impl QueryEngine {
     /// embeds the canonical negatives once. With [`EngineOptions::trusted_keys`] and a signed
     /// generation, only its signature (and a mixture scene's codebook) is checked here: the
     /// server answers at once from an engine without rows ([`Engine::pending`]; answers are
-    /// [`QueryAnswer::partial`]), while a thread reads, hashes and decodes the tiles and then
-    /// serves them all at once ([`Self::verification`]). No row of a tile whose SHA-256 was not
-    /// checked is ever in a served engine.
+    /// [`QueryAnswer::partial`]), while a thread reads, hashes and decodes the tiles, serves
+    /// those that passed so far as it goes (a copy of their rows, at most every few tiles on a
+    /// large store: [`Cadence`]), and then the whole generation ([`Self::verification`]). No row
+    /// of a tile whose SHA-256 was not checked, or did not match, is ever in a served engine.
     ///
     /// Errors: as [`Engine::load_with`]; a text model of another CLIP model than the stored
     /// embeddings ([`Error::ModelMismatch`]) or whose width differs from theirs
@@ -132,7 +206,8 @@ impl QueryEngine {
         Self::new_gated(edge, text, opts, None)
     }
 
-    /// [`Self::new`], whose background verification (if any) first waits at `gate`.
+    /// [`Self::new`], whose background verification (if any) waits at `gate` before each tile
+    /// ([`VerifyGate`]).
     ///
     /// Errors: as [`Self::new`].
     pub fn new_gated(
@@ -187,39 +262,45 @@ impl QueryEngine {
         Ok(engine)
     }
 
-    /// Starts the background verification of [`Self::new`] on a thread of its own: (after
-    /// `gate`) the committed generation loaded as [`Engine::load_trusting`] loads it (each
-    /// tile's bytes read once, hashed against the signed manifest, decoded, a window of files
-    /// at a time on the rayon pool; a tile that differs is rejected, never pushed) and offered
-    /// whole to the served engine ([`ServedEngine::offer`]).
+    /// Starts the background verification of [`Self::new`] on a thread of its own: the
+    /// committed generation loaded as [`Engine::load_trusting`] loads it (each tile's bytes
+    /// read once, hashed against the signed manifest, decoded, a window of files at a time on
+    /// the rayon pool; a tile that differs is rejected, never pushed), the rows of the tiles
+    /// that passed so far published to the served engine as it goes ([`Self::publish_progress`]),
+    /// and the whole generation (its approximate index built) offered at the end
+    /// ([`ServedEngine::offer`]). Each tile waits at `gate` first, if any.
     ///
     /// Errors: [`Error::Internal`] when the thread cannot be started.
     fn spawn_verification(&self, gate: Option<VerifyGate>) -> Result<()> {
         let s = self.0.clone();
         tracing::info!(
             "scene {}: signature verified; hashing its {} stored tiles in the background, \
-             answering partial (no tile served) until then",
+             answering partial (from the tiles verified so far) until then",
             s.opts.scene,
             s.served.current().load.pending_verification
         );
+        let engine = self.clone();
         std::thread::Builder::new()
             .name("slag-verify".into())
             .spawn(move || {
-                if let Some(g) = gate {
-                    g.wait();
-                }
                 let t = Instant::now();
-                let loaded = Engine::load_trusting(
+                let pending = s.served.current();
+                let mut published = pending.clone();
+                let mut publish = engine.publish_progress(&pending, &mut published, gate.clone());
+                let loaded = Engine::load_observed(
                     &s.edge,
                     &s.opts.scene,
                     s.opts.index,
                     s.opts.trusted_keys.as_ref(),
+                    &mut publish,
                 )
                 .and_then(|e| s.text.check_pair(&e.manifest.model).map(|()| e));
+                drop(publish);
                 let state = match loaded {
                     Ok(e) => {
                         tracing::info!(
-                            "scene {}: {} tiles verified in the background in {:.2} s, {} not                              served; all of them are answered now",
+                            "scene {}: {} tiles verified in the background in {:.2} s, {} not \
+                             served; the whole generation is answered now",
                             s.opts.scene,
                             e.load.hashed,
                             t.elapsed().as_secs_f64(),
@@ -229,8 +310,11 @@ impl QueryEngine {
                         Verification::Done
                     }
                     Err(e) => {
+                        // No tile of a generation whose load failed stays served.
+                        s.served.swap_if(&published, pending);
                         tracing::error!(
-                            "scene {}: the background verification of its tiles failed, none                              of them is served (POST /reload or SIGHUP tries again): {e}",
+                            "scene {}: the background verification of its tiles failed, none \
+                             of them is served (POST /reload or SIGHUP tries again): {e}",
                             s.opts.scene
                         );
                         Verification::Failed(e.to_string())
@@ -239,9 +323,52 @@ impl QueryEngine {
                 let (m, cv) = &s.verification;
                 *m.lock().unwrap_or_else(PoisonError::into_inner) = state;
                 cv.notify_all();
+                if let Some(g) = gate {
+                    g.end();
+                }
             })
             .map(drop)
             .map_err(|e| Error::internal(format!("the verifying thread did not start: {e}")))
+    }
+
+    /// The observer of a background verification ([`Engine::load_observed`]): after each tile
+    /// (having waited its turn at `gate`), while tiles are left to verify, it serves an engine
+    /// holding a copy of the rows verified so far ([`Engine::verified_so_far`] of `pending`, the
+    /// engine served at start) when the [`Cadence`] says so, in place of `published` (the last
+    /// one it served). It stops publishing once something else was swapped in (a reload).
+    fn publish_progress<'a>(
+        &'a self,
+        pending: &'a Arc<Engine>,
+        published: &'a mut Arc<Engine>,
+        gate: Option<VerifyGate>,
+    ) -> impl FnMut(&LoadProgress<'_>) -> Result<()> + 'a {
+        let mut cadence = Cadence {
+            every_tile: gate.is_some(),
+            last: Instant::now(),
+            copy: std::time::Duration::ZERO,
+        };
+        let (mut handed, mut stale) = (0, false);
+        move |p: &LoadProgress<'_>| {
+            if let Some(g) = &gate {
+                g.wait_turn(handed);
+            }
+            handed += 1;
+            let left = pending.load.pending_verification
+                > p.load.loaded_tiles.len() + p.load.rejected.len();
+            if left && !stale && cadence.due() {
+                let t = Instant::now();
+                let next = Arc::new(pending.verified_so_far(p));
+                cadence.copied(t);
+                match self.0.served.swap_if(published, next.clone()) {
+                    true => *published = next,
+                    false => stale = true,
+                }
+            }
+            if let Some(g) = &gate {
+                g.passed(handed);
+            }
+            Ok(())
+        }
     }
 
     /// Where the background verification stands.

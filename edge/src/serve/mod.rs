@@ -256,8 +256,9 @@ impl AppState {
     }
 
     /// [`Self::new`], whose background verification of a signed generation's tiles (with
-    /// [`ServeOptions::trusted_keys`]) first waits at `gate` ([`QueryEngine::new_gated`]): a
-    /// test queries the server while every tile is pending, then opens the gate.
+    /// [`ServeOptions::trusted_keys`]) waits at `gate` before each tile
+    /// ([`QueryEngine::new_gated`]): a test queries the server while every tile is pending,
+    /// then after each tile it releases.
     ///
     /// Errors: as [`Self::new`].
     pub fn new_gated(

@@ -62,7 +62,8 @@ impl EdgeStore {
         f: impl FnMut(S) -> Result<()>,
     ) -> Result<SceneLoad> {
         let tiles: Vec<&TileInfo> = manifest.tiles.iter().collect();
-        self.load_tiles(manifest, &tiles, false, f)
+        let mut f = f;
+        self.load_tiles(manifest, &tiles, false, |s, _| s.map_or(Ok(()), &mut f))
     }
 
     /// [`Self::load_shards`] for the tiles of one committed generation ([`Committed::tiles`]):
@@ -76,7 +77,23 @@ impl EdgeStore {
         &self,
         committed: &Committed,
         hashes: bool,
-        f: impl FnMut(S) -> Result<()>,
+        mut f: impl FnMut(S) -> Result<()>,
+    ) -> Result<SceneLoad> {
+        self.load_committed_each(committed, hashes, |s, _| s.map_or(Ok(()), &mut f))
+    }
+
+    /// [`Self::load_committed`], calling `f` once per listed tile in order, whatever became of
+    /// it: with `Some(shard)` for a tile that passed (verified, hashed with `hashes`, decoded)
+    /// and `None` for one without a file or rejected; with the [`SceneLoad`] of the tiles
+    /// handed so far, this one included. A server that serves tiles as they pass
+    /// ([`crate::engine::QueryEngine::new`]) publishes what `f` has taken after each call.
+    ///
+    /// Errors: the first error `f` returns.
+    pub fn load_committed_each<S: LoadableShard>(
+        &self,
+        committed: &Committed,
+        hashes: bool,
+        f: impl FnMut(Option<S>, &SceneLoad) -> Result<()>,
     ) -> Result<SceneLoad> {
         let tiles = committed.tiles();
         let mut load = self.load_tiles(&committed.manifest, &tiles, hashes, f)?;
@@ -87,7 +104,8 @@ impl EdgeStore {
     /// Reads `tiles` of `manifest` as [`Self::load_shards`] describes; hashes each too with
     /// `hashes` ([`Self::load_committed`]). A thread of its own reads and checks the files, a
     /// window at a time on the rayon pool, and sends them in order to this one, which hands
-    /// them to `f`: checking the next files overlaps with `f` copying the rows of the last ones.
+    /// each tile's outcome to `f` ([`Self::load_committed_each`]): checking the next files
+    /// overlaps with `f` copying the rows of the last ones.
     ///
     /// Errors: the first error `f` returns; [`Error::Internal`] when the reading thread cannot
     /// be started (the system is out of threads or memory).
@@ -96,7 +114,7 @@ impl EdgeStore {
         manifest: &Manifest,
         tiles: &[&TileInfo],
         hashes: bool,
-        mut f: impl FnMut(S) -> Result<()>,
+        mut f: impl FnMut(Option<S>, &SceneLoad) -> Result<()>,
     ) -> Result<SceneLoad> {
         use rayon::prelude::*;
         let window = load_window();
@@ -123,15 +141,22 @@ impl EdgeStore {
                     Error::internal(format!("the store's loading thread did not start: {e}"))
                 })?;
             for (tile, checked) in tiles.iter().zip(rx) {
-                match checked {
+                let shard = match checked {
                     Checked::Loaded(s) => {
                         load.loaded_tiles.push(tile.id);
                         load.hashed += hashes as usize;
-                        f(s)?;
+                        Some(s)
                     }
-                    Checked::Absent => load.absent_tiles += 1,
-                    Checked::Rejected(why) => load.rejected.push(why),
-                }
+                    Checked::Absent => {
+                        load.absent_tiles += 1;
+                        None
+                    }
+                    Checked::Rejected(why) => {
+                        load.rejected.push(why);
+                        None
+                    }
+                };
+                f(shard, &load)?;
             }
             Ok(load)
         })
