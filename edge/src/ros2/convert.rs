@@ -14,6 +14,10 @@ use crate::query::QueryAnswer;
 pub const BOX_NS: &str = "slag_objects";
 /// RViz namespace of the object labels.
 pub const LABEL_NS: &str = "slag_labels";
+/// RViz namespace of the one text marker that says an answer is partial ([`partial_marker`]).
+pub const PARTIAL_NS: &str = "slag_partial";
+/// Height above the frame's origin of the [`partial_marker`], metres.
+pub const PARTIAL_MARKER_HEIGHT: f64 = 1.0;
 /// Height of a label's text, metres (RViz reads `scale.z`).
 pub const LABEL_HEIGHT: f64 = 0.15;
 /// Smallest edge drawn for a box marker (a flat object still shows), metres.
@@ -41,7 +45,9 @@ pub struct AnswerMessages {
 ///   (FLOAT32, little-endian, 16 bytes per point), in the answer's order;
 /// - markers: `DELETEALL` first (no box of an earlier answer stays), then per object a
 ///   translucent `CUBE` on its oriented box and a `TEXT_VIEW_FACING` label (prompt and score)
-///   above it.
+///   above it; and, for a partial answer ([`QueryAnswer::partial`]: some stored tiles are still
+///   pending verification, so the answer covers only the tiles verified so far), the
+///   [`partial_marker`] last.
 pub fn messages(answer: &QueryAnswer, frame_id: &str, stamp: Time) -> AnswerMessages {
     let header = Header {
         stamp,
@@ -57,7 +63,61 @@ pub fn messages(answer: &QueryAnswer, frame_id: &str, stamp: Time) -> AnswerMess
                 .collect(),
         },
         matches: point_cloud(&answer.matches, &header),
-        markers: markers(&answer.objects, &answer.query, &header),
+        markers: markers(
+            &answer.objects,
+            &answer.query,
+            answer.partial.then_some(answer.tiles_pending_verification),
+            &header,
+        ),
+    }
+}
+
+/// The marker that says an answer is partial: a `TEXT_VIEW_FACING` marker in namespace
+/// [`PARTIAL_NS`], id 0, [`PARTIAL_MARKER_HEIGHT`] above the frame's origin, orange, whose text
+/// is `partial: N tiles pending verification` (`pending` = N). A subscriber of `~/markers` tells
+/// a partial answer by this namespace; RViz shows the text.
+pub fn partial_marker(pending: usize, header: &Header) -> Marker {
+    let origin = Point {
+        x: 0.0,
+        y: 0.0,
+        z: PARTIAL_MARKER_HEIGHT,
+    };
+    let orange = ColorRGBA {
+        r: 1.0,
+        g: 0.6,
+        b: 0.0,
+        a: 1.0,
+    };
+    let text = format!("partial: {pending} tiles pending verification");
+    text_marker(header, (PARTIAL_NS, 0), origin, orange, text)
+}
+
+/// A `TEXT_VIEW_FACING` marker `(ns, id)` showing `text` at `position`, [`LABEL_HEIGHT`] high.
+fn text_marker(
+    header: &Header,
+    (ns, id): (&str, i32),
+    position: Point,
+    color: ColorRGBA,
+    text: String,
+) -> Marker {
+    Marker {
+        header: header.clone(),
+        ns: ns.into(),
+        id,
+        type_: Marker::TEXT_VIEW_FACING,
+        action: Marker::ADD,
+        pose: Pose {
+            position,
+            orientation: Quaternion::default(),
+        },
+        scale: Vector3 {
+            x: 0.0,
+            y: 0.0,
+            z: LABEL_HEIGHT,
+        },
+        color,
+        text,
+        ..Marker::default()
     }
 }
 
@@ -204,8 +264,14 @@ fn score_color(score: f32) -> ColorRGBA {
     }
 }
 
-/// `DELETEALL`, then a box and a label per object.
-pub fn markers(objects: &[SceneObject], prompt: &str, header: &Header) -> MarkerArray {
+/// `DELETEALL`, then a box and a label per object, then, for a partial answer (`pending`:
+/// `Some` count of tiles pending verification), the [`partial_marker`].
+pub fn markers(
+    objects: &[SceneObject],
+    prompt: &str,
+    pending: Option<usize>,
+    header: &Header,
+) -> MarkerArray {
     let mut markers = vec![Marker {
         header: header.clone(),
         action: Marker::DELETEALL,
@@ -231,31 +297,16 @@ pub fn markers(objects: &[SceneObject], prompt: &str, header: &Header) -> Marker
         });
         let mut above = point(o.obb.center);
         above.z = f64::from(o.aabb[1][2]) + LABEL_HEIGHT;
-        markers.push(Marker {
-            header: header.clone(),
-            ns: LABEL_NS.into(),
-            id,
-            type_: Marker::TEXT_VIEW_FACING,
-            action: Marker::ADD,
-            pose: Pose {
-                position: above,
-                orientation: Quaternion::default(),
-            },
-            scale: Vector3 {
-                x: 0.0,
-                y: 0.0,
-                z: LABEL_HEIGHT,
-            },
-            color: ColorRGBA {
-                r: 1.0,
-                g: 1.0,
-                b: 1.0,
-                a: 1.0,
-            },
-            text: format!("{prompt} {:.2}", o.max_score),
-            ..Marker::default()
-        });
+        let white = ColorRGBA {
+            r: 1.0,
+            g: 1.0,
+            b: 1.0,
+            a: 1.0,
+        };
+        let text = format!("{prompt} {:.2}", o.max_score);
+        markers.push(text_marker(header, (LABEL_NS, id), above, white, text));
     }
+    markers.extend(pending.map(|n| partial_marker(n, header)));
     MarkerArray { markers }
 }
 
@@ -373,13 +424,26 @@ mod tests {
                 z: 0.0
             }
         );
-        let m = markers(std::slice::from_ref(&o), "chair", &h);
+        let m = markers(std::slice::from_ref(&o), "chair", None, &h);
         assert_eq!(m.markers.len(), 3);
+        assert!(m.markers.iter().all(|k| k.ns != PARTIAL_NS));
         assert_eq!(m.markers[0].action, Marker::DELETEALL);
         assert_eq!(m.markers[1].type_, Marker::CUBE);
         assert_eq!(m.markers[1].scale.z, MIN_MARKER_EDGE);
         assert_eq!(m.markers[2].text, "chair 0.75");
         assert_eq!(m.markers[2].pose.position.z, 4.0 + LABEL_HEIGHT);
         assert!(m.markers.iter().all(|k| k.header == h));
+
+        // A partial answer: the same markers, then the one that says so, last.
+        let p = markers(std::slice::from_ref(&o), "chair", Some(7), &h);
+        assert_eq!(p.markers.len(), 4);
+        assert_eq!(p.markers[..3], m.markers[..]);
+        let last = &p.markers[3];
+        assert_eq!(
+            (last.ns.as_str(), last.type_, last.action),
+            (PARTIAL_NS, Marker::TEXT_VIEW_FACING, Marker::ADD)
+        );
+        assert_eq!(last.text, "partial: 7 tiles pending verification");
+        assert_eq!(last.header, h);
     }
 }
