@@ -7,23 +7,26 @@
 # Builds named NAME=DIR are run alternately, round by round; DIR holds slag-edge and
 # examples/load_cost of that build (e.g. target/debug). slag-shards comes from the first DIR.
 #
-# usage: bash scripts/lab/trust-cost.sh [--load-rounds N] [--fetch-rounds N] NAME=DIR...
+# usage: bash scripts/lab/trust-cost.sh [--load-rounds N] [--fetch-rounds N] [--fetch-only] NAME=DIR...
 #   e.g. bash scripts/lab/trust-cost.sh main=/tmp/main-debug branch=target/debug
+# --fetch-only: part 2 alone (the 1 GB store is then neither made nor loaded).
 # Needs ~4 GB free under ${TMPDIR:-/tmp}; the stores are made once and kept in
 # ${SLAG_TRUST_COST_DIR:-$TMPDIR/slag-trust-cost} for the next run.
 set -euo pipefail
 load_rounds=5
 fetch_rounds=9
+fetch_only=0
 builds=()
 while [ $# -gt 0 ]; do
     case "$1" in
         --load-rounds) load_rounds=$2; shift 2 ;;
         --fetch-rounds) fetch_rounds=$2; shift 2 ;;
+        --fetch-only) fetch_only=1; shift ;;
         *=*) builds+=("$1"); shift ;;
-        *) echo "usage: $0 [--load-rounds N] [--fetch-rounds N] NAME=DIR..." >&2; exit 2 ;;
+        *) echo "usage: $0 [--load-rounds N] [--fetch-rounds N] [--fetch-only] NAME=DIR..." >&2; exit 2 ;;
     esac
 done
-[ ${#builds[@]} -gt 0 ] || { echo "usage: $0 [--load-rounds N] [--fetch-rounds N] NAME=DIR..." >&2; exit 2; }
+[ ${#builds[@]} -gt 0 ] || { echo "usage: $0 [--load-rounds N] [--fetch-rounds N] [--fetch-only] NAME=DIR..." >&2; exit 2; }
 first=${builds[0]#*=}
 shards="$first/slag-shards"
 work=${SLAG_TRUST_COST_DIR:-${TMPDIR:-/tmp}/slag-trust-cost}
@@ -33,7 +36,7 @@ key=keys/manifest-key.pub.pem
 if [ ! -f "$key" ]; then
     "$shards" keygen --out keys >/dev/null
 fi
-[ -d pub-big ] || "$shards" partition --synthetic 1000000:512 --max-per-shard 10000 \
+[ $fetch_only = 1 ] || [ -d pub-big ] || "$shards" partition --synthetic 1000000:512 --max-per-shard 10000 \
     --signing-key keys/manifest-key.pem --shard-store pub-big --scene big >/dev/null
 [ -d pub-small ] || "$shards" partition --synthetic 100000:512 --max-per-shard 1000 \
     --signing-key keys/manifest-key.pem --shard-store pub-small --scene small >/dev/null
@@ -41,8 +44,10 @@ fi
 # Two shard servers on free loopback ports, stopped on exit.
 pids=()
 trap 'for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done' EXIT
-"$shards" serve --shard-store pub-big --listen 127.0.0.1:0 >serve-big.log 2>&1 &
-pids+=($!)
+if [ $fetch_only = 0 ]; then
+    "$shards" serve --shard-store pub-big --listen 127.0.0.1:0 >serve-big.log 2>&1 &
+    pids+=($!)
+fi
 "$shards" serve --shard-store pub-small --listen 127.0.0.1:0 >serve-small.log 2>&1 &
 pids+=($!)
 url_of() { # LOG -> the URL the server logged
@@ -54,16 +59,20 @@ url_of() { # LOG -> the URL the server logged
     echo "a shard server did not start: $(cat "$1")" >&2
     exit 1
 }
-big=$(url_of serve-big.log)
 small=$(url_of serve-small.log)
-[ -d edge-big ] || "$first/slag-edge" fetch --from "$big" --scene big --center 1000,1000 \
-    --radius 5000 --store edge-big --trusted-key "$key" >/dev/null
+if [ $fetch_only = 0 ]; then
+    big=$(url_of serve-big.log)
+    [ -d edge-big ] || "$first/slag-edge" fetch --from "$big" --scene big --center 1000,1000 \
+        --radius 5000 --store edge-big --trusted-key "$key" >/dev/null
+fi
 
 echo "machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), load average $(cut -d' ' -f1-3 /proc/loadavg)"
-echo "== load of the 1 GB store (128 tiles), $load_rounds rounds per build"
-for b in "${builds[@]}"; do
-    echo "$b: $("${b#*=}/examples/load_cost" edge-big big "$key" "$load_rounds" | tail -1)"
-done
+if [ $fetch_only = 0 ]; then
+    echo "== load of the 1 GB store (128 tiles), $load_rounds rounds per build"
+    for b in "${builds[@]}"; do
+        echo "$b: $("${b#*=}/examples/load_cost" edge-big big "$key" "$load_rounds" | tail -1)"
+    done
+fi
 echo "== fetch of the 104-tile disc into a new store, $fetch_rounds rounds"
 python3 - "$small" "$key" "$fetch_rounds" "${builds[@]}" <<'EOF'
 import json, resource, shutil, statistics, subprocess, sys, time
