@@ -16,7 +16,7 @@ use super::client::{Attempt, Pace, net_error, permanent, status_error, transient
 use super::resume::{TileFetch, open_partial, partial_prefix, write_chunk};
 use super::signed::refusal;
 use super::{FetchParams, FetchSummary};
-use crate::store::EdgeStore;
+use crate::store::{EdgeStore, Received};
 
 /// Bytes of one tile: received over the network in this run, and shown in the progress bar.
 #[derive(Default)]
@@ -105,9 +105,9 @@ impl Downloads<'_> {
                 tile,
             };
             match self.try_download(&to, &mut counts).await {
-                Ok(r) => {
+                Ok((r, received)) => {
                     resumed |= r;
-                    match self.commit(tile, &part).await? {
+                    match self.commit(tile, &part, received).await? {
                         Ok(()) => return Ok((resumed, counts.received)),
                         // Under a trusted key the SHA-256 matched first: the same bytes would
                         // fail again, and any failed check is a refusal.
@@ -186,11 +186,18 @@ impl Downloads<'_> {
     }
 
     /// Verifies the complete partial file `part` of `tile` and moves it into the store (on the
-    /// blocking pool; hashes too with a trusted key). The outer error is a failed task, the
-    /// inner one the commit's ([`Error::Format`] for a file that fails verification).
+    /// blocking pool; hashes too with a trusted key: from `received`, the body kept and hashed
+    /// as it came in, when this run received it whole, else the file read back). The outer
+    /// error is a failed task, the inner one the commit's ([`Error::Format`] for a file that
+    /// fails verification).
     ///
     /// Errors: [`Error::Internal`] when the task fails.
-    async fn commit(&self, tile: &TileInfo, part: &Path) -> Result<Result<()>> {
+    async fn commit(
+        &self,
+        tile: &TileInfo,
+        part: &Path,
+        received: Option<Received>,
+    ) -> Result<Result<()>> {
         let is_codebook = self.is_codebook(tile);
         let signed = self.p.trusted_keys.is_some();
         let (store, manifest, tile, part) = (
@@ -199,12 +206,10 @@ impl Downloads<'_> {
             tile.clone(),
             part.to_path_buf(),
         );
-        tokio::task::spawn_blocking(move || {
-            if is_codebook {
-                store.commit_codebook_partial_checked(&manifest, &part, signed)
-            } else {
-                store.commit_partial_checked(&manifest, &tile, &part, signed)
-            }
+        tokio::task::spawn_blocking(move || match received {
+            _ if is_codebook => store.commit_codebook_partial_checked(&manifest, &part, signed),
+            Some(r) => store.commit_partial_received(&manifest, &tile, &part, &r),
+            None => store.commit_partial_checked(&manifest, &tile, &part, signed),
         })
         .await
         .map_err(|e| Error::internal(format!("store task failed: {e}")))
@@ -212,16 +217,17 @@ impl Downloads<'_> {
 
     /// One HTTP attempt: continues `to.part` if it holds a prefix, otherwise starts over. On
     /// success the file holds exactly `to.tile.bytes` bytes (synced). Returns whether a `Range`
-    /// request was honoured.
+    /// request was honoured, and with a trusted key the body kept and hashed when this attempt
+    /// received the whole tile ([`Self::receive`]).
     async fn try_download(
         &self,
         to: &TileFetch<'_>,
         counts: &mut Counts,
-    ) -> std::result::Result<bool, Attempt> {
+    ) -> std::result::Result<(bool, Option<Received>), Attempt> {
         let tile = to.tile;
         let have = partial_prefix(to.part, tile).await?;
         if have == tile.bytes && have > 0 {
-            return Ok(false);
+            return Ok((false, None));
         }
         let mut req = self.client.get(to.url);
         if let Some(t) = self.p.token.as_deref() {
@@ -251,12 +257,15 @@ impl Downloads<'_> {
                 .set_position(self.pb.position().saturating_sub(counts.shown - start));
         }
         counts.shown = start;
-        self.receive(resp, file, to, (start, pace), counts).await?;
-        Ok(resumed)
+        let received = self.receive(resp, file, to, (start, pace), counts).await?;
+        Ok((resumed, received))
     }
 
     /// Appends the body of `resp` to `file` (holding `start` bytes of `to.part`) at `pace`,
-    /// then flushes and syncs it. Past the manifest's size the file is removed and the attempt
+    /// then flushes and syncs it. With a trusted key, a body received whole (`start` 0; not
+    /// the codebook) is also kept in memory and hashed on a thread of its own as it arrives
+    /// ([`BodyHash`]), so that the commit neither reads the file back nor waits for a hash of
+    /// it: returned as [`Received`]. Past the manifest's size the file is removed and the attempt
     /// starts over (with a trusted key: refused); a write that fails (disk full) removes it too,
     /// never left to fill the disk further; a body cut short, or slower than `pace`, keeps what
     /// arrived for the next attempt to resume.
@@ -267,12 +276,14 @@ impl Downloads<'_> {
         to: &TileFetch<'_>,
         (start, pace): (u64, Pace),
         counts: &mut Counts,
-    ) -> std::result::Result<(), Attempt> {
+    ) -> std::result::Result<Option<Received>, Attempt> {
         let (part, tile) = (to.part, to.tile);
         let url = &slag_common::auth::redact_url(resp.url().as_str()).into_owned();
         let io = |e: std::io::Error| permanent(Error::io(part, e));
         let mut written = start;
         let mut stream = resp.bytes_stream().map_err(|e| net_error(url, e));
+        let whole = self.p.trusted_keys.is_some() && start == 0 && !self.is_codebook(tile);
+        let mut body = whole.then(|| BodyHash::new(tile.bytes));
         loop {
             let next = pace.within(url, written - start, stream.next()).await;
             let chunk = match next {
@@ -288,25 +299,7 @@ impl Downloads<'_> {
             if written > tile.bytes {
                 drop(file);
                 let _ = tokio::fs::remove_file(part).await;
-                if self.p.trusted_keys.is_some() {
-                    // Its length is signed: a longer body is not the publisher's file.
-                    return Err(permanent(Error::untrusted(
-                        slag_common::Untrusted::Malformed,
-                        url,
-                        format!(
-                            "the server sent more than the {} bytes the signed manifest gives \
-                             tile {}: not the publisher's file",
-                            tile.bytes, tile.id
-                        ),
-                    )));
-                }
-                return Err(transient(Error::network(
-                    url,
-                    format!(
-                        "more than the manifest's {} bytes; starting over",
-                        tile.bytes
-                    ),
-                )));
+                return Err(self.too_long(url, tile));
             }
             if let Err(e) = write_chunk(&mut file, &chunk).await {
                 // The disk is full or failing: the partial file is removed (with those of the
@@ -316,6 +309,9 @@ impl Downloads<'_> {
                 return Err(io(e));
             }
             boundary("fetch.partial:write");
+            if let Some(b) = body.as_mut() {
+                b.push(&chunk);
+            }
             counts.received += chunk.len() as u64;
             counts.shown += chunk.len() as u64;
             self.pb.inc(chunk.len() as u64);
@@ -332,6 +328,91 @@ impl Downloads<'_> {
                 ),
             )));
         }
-        Ok(())
+        match body {
+            Some(b) => Ok(Some(b.finish().await.map_err(permanent)?)),
+            None => Ok(None),
+        }
+    }
+}
+
+impl Downloads<'_> {
+    /// The failed attempt of a body longer than the manifest gives `tile` (from `url`): with
+    /// a trusted key a refusal (its length is signed, so a longer body is not the publisher's
+    /// file), else a transient failure that starts over.
+    fn too_long(&self, url: &str, tile: &TileInfo) -> Attempt {
+        if self.p.trusted_keys.is_some() {
+            return permanent(Error::untrusted(
+                slag_common::Untrusted::Malformed,
+                url,
+                format!(
+                    "the server sent more than the {} bytes the signed manifest gives tile {}: \
+                     not the publisher's file",
+                    tile.bytes, tile.id
+                ),
+            ));
+        }
+        transient(Error::network(
+            url,
+            format!(
+                "more than the manifest's {} bytes; starting over",
+                tile.bytes
+            ),
+        ))
+    }
+}
+
+/// Most bytes [`BodyHash::new`] reserves before the body arrives (a larger tile grows its
+/// buffer as it comes).
+const MAX_BODY_RESERVE: u64 = 64 << 20;
+
+/// A body kept in memory and hashed on a blocking thread as its chunks arrive
+/// ([`Downloads::receive`]): each chunk is appended to the kept bytes and handed (shared, not
+/// copied) to the hashing thread, so the SHA-256 overlaps with the network and the writes.
+struct BodyHash<C> {
+    bytes: Vec<u8>,
+    chunks: std::sync::mpsc::Sender<C>,
+    digest: tokio::task::JoinHandle<String>,
+}
+
+impl<C: AsRef<[u8]> + Clone + Send + 'static> BodyHash<C> {
+    /// Room for `len` bytes (at most [`MAX_BODY_RESERVE`] up front), and the hashing thread
+    /// started (on the blocking pool).
+    fn new(len: u64) -> Self {
+        let (chunks, rx) = std::sync::mpsc::channel::<C>();
+        let digest = tokio::task::spawn_blocking(move || {
+            use sha2::Digest;
+            let mut h = sha2::Sha256::new();
+            for c in rx {
+                h.update(c.as_ref());
+            }
+            h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+        });
+        BodyHash {
+            bytes: Vec::with_capacity(len.min(MAX_BODY_RESERVE) as usize),
+            chunks,
+            digest,
+        }
+    }
+
+    /// Keeps and hashes the next chunk.
+    fn push(&mut self, chunk: &C) {
+        self.bytes.extend_from_slice(chunk.as_ref());
+        // The thread only ends once `chunks` is dropped, so the send cannot fail.
+        let _ = self.chunks.send(chunk.clone());
+    }
+
+    /// The kept bytes and their SHA-256, once the thread has hashed every chunk.
+    ///
+    /// Errors: [`Error::Internal`] when the hashing task failed.
+    async fn finish(self) -> Result<Received> {
+        drop(self.chunks);
+        let sha256 = self
+            .digest
+            .await
+            .map_err(|e| Error::internal(format!("the hashing task failed: {e}")))?;
+        Ok(Received {
+            bytes: self.bytes,
+            sha256,
+        })
     }
 }

@@ -331,6 +331,16 @@ fn read_partial(part: &Path, max: u64) -> Result<Vec<u8>> {
     })
 }
 
+/// A download received whole in one response, as the fetch kept it for
+/// [`EdgeStore::commit_partial_received`]: its bytes, exactly as written to the partial file,
+/// and their SHA-256 (64 lowercase hex digits).
+pub struct Received {
+    /// The body, in order.
+    pub bytes: Vec<u8>,
+    /// SHA-256 of `bytes`.
+    pub sha256: String,
+}
+
 /// Bytes of the files under `p` (0 for what cannot be read).
 fn dir_bytes(p: &Path) -> u64 {
     let Ok(rd) = std::fs::read_dir(p) else {
@@ -1026,6 +1036,28 @@ impl EdgeStore {
         );
         hashed.and(verified)?;
         drop(bytes);
+        let path = self.shard_path(&manifest.scene_id, tile)?;
+        self.move_into_place(&manifest.scene_id, part, &path, "store.commit_shard")
+    }
+
+    /// [`Self::commit_partial_checked`] of a signed download received whole in this run, from
+    /// what the fetch kept of it ([`Received`]): the bytes it wrote to `part` (synced) and
+    /// their SHA-256, hashed on another thread while they arrived. The digest is compared with
+    /// the signed manifest's and the same bytes are verified (length, CRC-32s, decode); the
+    /// file is neither read back nor hashed again. A file changed in `partial/` by another
+    /// process between its write and this rename would go unseen here, as a stored file
+    /// changed after its commit does: a server with the key hashes every tile again on load.
+    ///
+    /// Errors: as [`Self::commit_partial_checked`].
+    pub fn commit_partial_received(
+        &self,
+        manifest: &Manifest,
+        tile: &TileInfo,
+        part: &Path,
+        received: &Received,
+    ) -> Result<()> {
+        signed::compare_download(manifest, tile, &received.sha256)?;
+        verify_any_shard(manifest, tile, &received.bytes, WholeFile::Crc32)?;
         let path = self.shard_path(&manifest.scene_id, tile)?;
         self.move_into_place(&manifest.scene_id, part, &path, "store.commit_shard")
     }

@@ -66,6 +66,18 @@ pub(super) fn check_download(manifest: &Manifest, tile: &TileInfo, bytes: &[u8])
     )
 }
 
+/// [`check_download`] for a digest already computed (`sha256`, 64 hex digits) of the bytes.
+///
+/// Errors: as [`check_download`].
+pub(super) fn compare_download(manifest: &Manifest, tile: &TileInfo, sha256: &str) -> Result<()> {
+    slag_common::shards::signature::compare_sha256(
+        tile.sha256.as_deref(),
+        sha256,
+        &file_name(manifest, tile),
+        &format!("scene {}", manifest.scene_id),
+    )
+}
+
 /// "tile N" or "the codebook", for messages.
 fn file_name(manifest: &Manifest, tile: &TileInfo) -> String {
     if manifest.mixture.is_some() && tile.id == slag_common::shards::CODEBOOK_TILE {
