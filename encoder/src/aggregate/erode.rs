@@ -14,6 +14,7 @@
 use rayon::prelude::*;
 
 use super::image_mask::ImageMask;
+use crate::masks::MaskMeta;
 use crate::masks::compact::CompactMask;
 
 /// Every mask of an image eroded by `radius` image pixels ([`erode_mask`]), in order, in
@@ -149,15 +150,8 @@ fn grid_runs(
         [x0, y0, x1 - x0, y1 - y0]
     };
     CompactMask {
-        width,
-        height,
         runs,
-        bbox_xywh,
-        area,
-        predicted_iou: 1.0,
-        stability_score: 1.0,
-        point: None,
-        level: None,
+        meta: MaskMeta::unscored(width, height, bbox_xywh, area),
     }
 }
 
@@ -267,7 +261,7 @@ mod tests {
                 // The compact form of the eroded mask gives its own box and runs back.
                 let again = CompactMask::new(&got.expand());
                 assert_eq!(
-                    (again.runs, again.bbox_xywh),
+                    (again.runs.clone(), again.bbox_xywh),
                     (got.runs.clone(), got.bbox_xywh)
                 );
             }

@@ -2,47 +2,41 @@
 //! ([`Mask`]) and a compact one ([`CompactMask`]), for the pixel labels ([`super::image`]) and
 //! the erosion ([`super::erode`]).
 
-use crate::masks::Mask;
 use crate::masks::compact::CompactMask;
+use crate::masks::{Mask, MaskMeta};
 
 /// What the image stage reads of a mask at its image's full resolution: its size, box, area and
-/// SAM scores, and which pixels of a row are inside. Implemented by [`Mask`] (a byte per pixel)
-/// and [`CompactMask`] (runs), which give the same answers, so that the labels of an image are
-/// made from the compact masks without expanding them.
+/// SAM scores (from its [`MaskMeta`]), and which pixels of a row are inside. Implemented by
+/// [`Mask`] (a byte per pixel) and [`CompactMask`] (runs), which give the same answers, so that
+/// the labels of an image are made from the compact masks without expanding them.
 pub trait ImageMask: Sync {
+    /// The mask's metadata: size, box, area, scores.
+    fn meta(&self) -> &MaskMeta;
     /// `(width, height)` of the mask's image, pixels.
-    fn size(&self) -> (u32, u32);
-    /// As [`Mask::bbox_xywh`].
-    fn bbox_xywh(&self) -> [u32; 4];
-    /// As [`Mask::area`].
-    fn area(&self) -> u32;
-    /// As [`Mask::predicted_iou`] and [`Mask::stability_score`].
-    fn scores(&self) -> (f32, f32);
+    fn size(&self) -> (u32, u32) {
+        (self.meta().width, self.meta().height)
+    }
+    /// As [`MaskMeta::bbox_xywh`].
+    fn bbox_xywh(&self) -> [u32; 4] {
+        self.meta().bbox_xywh
+    }
+    /// As [`MaskMeta::area`].
+    fn area(&self) -> u32 {
+        self.meta().area
+    }
+    /// As [`MaskMeta::predicted_iou`] and [`MaskMeta::stability_score`].
+    fn scores(&self) -> (f32, f32) {
+        (self.meta().predicted_iou, self.meta().stability_score)
+    }
     /// Calls `hit(x)` for each `(x, sx)` of `cols` (`sx` ascending, `< width`) whose pixel
     /// `(sx, sy)` is inside the mask (`sy < height`).
     fn row_hits(&self, sy: u32, cols: impl Iterator<Item = (usize, u32)>, hit: impl FnMut(usize));
 }
 
-/// The metadata accessors of [`ImageMask`], the same fields on [`Mask`] and [`CompactMask`].
-macro_rules! image_mask_fields {
-    () => {
-        fn size(&self) -> (u32, u32) {
-            (self.width, self.height)
-        }
-        fn bbox_xywh(&self) -> [u32; 4] {
-            self.bbox_xywh
-        }
-        fn area(&self) -> u32 {
-            self.area
-        }
-        fn scores(&self) -> (f32, f32) {
-            (self.predicted_iou, self.stability_score)
-        }
-    };
-}
-
 impl ImageMask for Mask {
-    image_mask_fields!();
+    fn meta(&self) -> &MaskMeta {
+        &self.meta
+    }
     fn row_hits(
         &self,
         sy: u32,
@@ -59,7 +53,9 @@ impl ImageMask for Mask {
 }
 
 impl ImageMask for CompactMask {
-    image_mask_fields!();
+    fn meta(&self) -> &MaskMeta {
+        &self.meta
+    }
     fn row_hits(
         &self,
         sy: u32,

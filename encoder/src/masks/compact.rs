@@ -7,31 +7,20 @@
 //! kB. [`CompactMask::expand`] gives back the identical [`Mask`], so whatever the back stage
 //! computes from it is bit-identical.
 
-use super::Mask;
+use super::{Mask, MaskMeta};
 
-/// One [`Mask`] as row-major runs of inside pixels, with its metadata unchanged.
+/// One [`Mask`] as row-major runs of inside pixels, with its metadata unchanged (the same
+/// [`MaskMeta`], whose fields read and write through the compact mask: `compact.area`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct CompactMask {
-    /// Image width, pixels.
-    pub width: u32,
-    /// Image height, pixels.
-    pub height: u32,
     /// `(start, len)` of each run of inside pixels, `start` the row-major pixel index
     /// `y * width + x`; runs are ascending, non-empty, never adjacent and never cross a row end.
     pub runs: Vec<(u32, u32)>,
-    /// As [`Mask::bbox_xywh`].
-    pub bbox_xywh: [u32; 4],
-    /// As [`Mask::area`].
-    pub area: u32,
-    /// As [`Mask::predicted_iou`].
-    pub predicted_iou: f32,
-    /// As [`Mask::stability_score`].
-    pub stability_score: f32,
-    /// As [`Mask::point`].
-    pub point: Option<[f32; 2]>,
-    /// As [`Mask::level`].
-    pub level: Option<u8>,
+    /// Size, box, area, scores, point and level, as the [`Mask`]'s.
+    pub meta: MaskMeta,
 }
+
+super::deref_to_meta!(CompactMask);
 
 impl CompactMask {
     /// Encodes `mask` (any pixel value other than 0 is inside; [`CompactMask::expand`] writes 1).
@@ -58,15 +47,8 @@ impl CompactMask {
             }
         }
         CompactMask {
-            width: mask.width,
-            height: mask.height,
             runs,
-            bbox_xywh: mask.bbox_xywh,
-            area: mask.area,
-            predicted_iou: mask.predicted_iou,
-            stability_score: mask.stability_score,
-            point: mask.point,
-            level: mask.level,
+            meta: mask.meta,
         }
     }
 
@@ -81,15 +63,8 @@ impl CompactMask {
             pixels[a..b].fill(1);
         }
         Mask {
-            width: self.width,
-            height: self.height,
             pixels,
-            bbox_xywh: self.bbox_xywh,
-            area: self.area,
-            predicted_iou: self.predicted_iou,
-            stability_score: self.stability_score,
-            point: self.point,
-            level: self.level,
+            meta: self.meta,
         }
     }
 

@@ -35,7 +35,7 @@
 use image::RgbImage;
 use slag_common::{Error, Result};
 
-use super::{Mask, MaskGenerator};
+use super::{Mask, MaskGenerator, MaskMeta};
 use crate::check::require;
 use crate::disjoint_sets::DisjointSets;
 
@@ -228,15 +228,8 @@ pub fn masks_from_labels(labels: &[u32], count: u32, width: u32, height: u32) ->
         .zip(area)
         .filter(|&(_, a)| a > 0)
         .map(|((pixels, b), area)| Mask {
-            width,
-            height,
             pixels,
-            bbox_xywh: [b[0], b[1], b[2] - b[0], b[3] - b[1]],
-            area,
-            predicted_iou: 1.0,
-            stability_score: 1.0,
-            point: None,
-            level: None,
+            meta: MaskMeta::unscored(width, height, [b[0], b[1], b[2] - b[0], b[3] - b[1]], area),
         })
         .collect()
 }

@@ -15,15 +15,16 @@ pub mod graph;
 pub mod sam;
 pub mod timed;
 
-/// One binary mask over an image of `width` x `height` pixels.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Mask {
+/// What is known of one mask besides which pixels it covers: its image's size, its box and area,
+/// and the generator's scores, point and level. Shared by the full mask ([`Mask`], a byte per
+/// pixel) and the compact one ([`compact::CompactMask`], runs), which both dereference to it, so
+/// that `mask.area` reads the same on either.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MaskMeta {
     /// Image width, pixels.
     pub width: u32,
     /// Image height, pixels.
     pub height: u32,
-    /// `width * height` values, row-major, 1 = inside the mask, 0 = outside.
-    pub pixels: Vec<u8>,
     /// Bounding box `[x, y, w, h]` in SAM's (COCO) convention: `x, y` = min column/row of the
     /// mask, `w = max_col - x`, `h = max_row - y` (the box is inclusive: the crop spans `w+1` columns).
     pub bbox_xywh: [u32; 4],
@@ -41,6 +42,56 @@ pub struct Mask {
     /// segmenter, masks built from pixels).
     pub level: Option<u8>,
 }
+
+impl MaskMeta {
+    /// The metadata of a mask from a generator without scores, prompts or levels (the graph
+    /// segmenter, masks built from pixels, eroded masks): both scores 1.0, no point, no level.
+    /// `bbox_xywh` and `area` as on [`MaskMeta`], in pixels of the `width × height` image.
+    pub fn unscored(width: u32, height: u32, bbox_xywh: [u32; 4], area: u32) -> MaskMeta {
+        MaskMeta {
+            width,
+            height,
+            bbox_xywh,
+            area,
+            predicted_iou: 1.0,
+            stability_score: 1.0,
+            point: None,
+            level: None,
+        }
+    }
+}
+
+/// One binary mask over an image of `width` x `height` pixels: its pixels and its metadata
+/// ([`MaskMeta`], whose fields read and write through the mask: `mask.area`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Mask {
+    /// `width * height` values, row-major, 1 = inside the mask, 0 = outside.
+    pub pixels: Vec<u8>,
+    /// Size, box, area, scores, point and level.
+    pub meta: MaskMeta,
+}
+
+/// `Deref` and `DerefMut` of a mask type with a `meta: MaskMeta` field to that field, so that
+/// `mask.area` reads and writes the metadata whatever holds the pixels.
+macro_rules! deref_to_meta {
+    ($mask:ty) => {
+        impl std::ops::Deref for $mask {
+            type Target = $crate::masks::MaskMeta;
+            fn deref(&self) -> &$crate::masks::MaskMeta {
+                &self.meta
+            }
+        }
+
+        impl std::ops::DerefMut for $mask {
+            fn deref_mut(&mut self) -> &mut $crate::masks::MaskMeta {
+                &mut self.meta
+            }
+        }
+    };
+}
+pub(crate) use deref_to_meta;
+
+deref_to_meta!(Mask);
 
 impl Mask {
     /// The mask of the pixels `(x, y)` of a `width × height` image where `inside(x, y)` holds
@@ -76,15 +127,8 @@ impl Mask {
             }
         }
         (area > 0).then(|| Mask {
-            width,
-            height,
             pixels,
-            bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
-            area,
-            predicted_iou: 1.0,
-            stability_score: 1.0,
-            point: None,
-            level: None,
+            meta: MaskMeta::unscored(width, height, [x0, y0, x1 - x0, y1 - y0], area),
         })
     }
 

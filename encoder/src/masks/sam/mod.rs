@@ -56,7 +56,7 @@ use rayon::prelude::*;
 use slag_common::onnx::{self, ElemType, ExecutionProvider, OnnxModel, Placement, TensorSpec};
 use slag_common::{Error, Result};
 
-use super::{Mask, MaskGenerator};
+use super::{Mask, MaskGenerator, MaskMeta};
 use crate::preprocess::{SAM_IMAGE_SIZE, sam_pixel_values, sam_preprocess_shape};
 
 use self::candidates::{Candidate, candidate, nms};
@@ -482,15 +482,17 @@ impl SamAutomaticMaskGenerator {
                 }
                 let [x0, y0, x1, y1] = c.bbox;
                 Mask {
-                    width: w,
-                    height: h,
                     pixels,
-                    bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
-                    area: c.area,
-                    predicted_iou: c.iou,
-                    stability_score: c.stability,
-                    point: Some([c.point[0] as f32, c.point[1] as f32]),
-                    level: Some(c.channel - 1),
+                    meta: MaskMeta {
+                        width: w,
+                        height: h,
+                        bbox_xywh: [x0, y0, x1 - x0, y1 - y0],
+                        area: c.area,
+                        predicted_iou: c.iou,
+                        stability_score: c.stability,
+                        point: Some([c.point[0] as f32, c.point[1] as f32]),
+                        level: Some(c.channel - 1),
+                    },
                 }
             })
             .collect();
