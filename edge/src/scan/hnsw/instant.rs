@@ -12,6 +12,7 @@ use std::sync::Arc;
 use instant_distance::{Builder, Hnsw, Point, Search};
 use slag_common::Error;
 
+use super::IndexShape;
 use crate::scan::kernels::dot_f32;
 use crate::scan::{Hit, VectorStore};
 
@@ -45,17 +46,14 @@ impl Point for RowPoint {
 pub struct HnswIndex {
     hnsw: Hnsw<RowPoint>,
     data: Arc<[f32]>,
-    dim: usize,
-    len: usize,
-    ef_search: usize,
+    /// Row width, row count and the beam fixed at build time.
+    shape: IndexShape,
 }
 
 impl std::fmt::Debug for HnswIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("HnswIndex")
-            .field("len", &self.len)
-            .field("dim", &self.dim)
-            .field("ef_search", &self.ef_search)
+            .field("shape", &self.shape)
             .finish()
     }
 }
@@ -113,23 +111,17 @@ impl HnswIndex {
         Ok(HnswIndex {
             hnsw,
             data,
-            dim,
-            len: n,
-            ef_search,
+            shape: IndexShape {
+                dim,
+                len: n,
+                ef_search,
+            },
         })
     }
 
-    /// Number of indexed rows.
-    pub fn len(&self) -> usize {
-        self.len
-    }
-    /// `true` when the index holds no row.
-    pub fn is_empty(&self) -> bool {
-        self.len == 0
-    }
-    /// The search beam fixed at build time.
-    pub fn ef_search(&self) -> usize {
-        self.ef_search
+    /// Row width, row count and the search beam fixed at build time.
+    pub fn shape(&self) -> &IndexShape {
+        &self.shape
     }
 
     /// Approximately the `k` rows with the highest cosine to `query` (`[D]`), best first (score
@@ -138,11 +130,11 @@ impl HnswIndex {
     /// Errors: as [`crate::scan::scan`] for a query of the wrong width or with non-finite values;
     /// [`Error::Param`] `top_k` for `k > ef_search` (rebuild with `ef_search >= k`).
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        super::check_query(self.dim, self.ef_search, query, k, "rebuild with ef_search")?;
+        self.shape.check_query(query, k, "rebuild with ef_search")?;
         let q = RowPoint {
             data: query.into(),
             row: 0,
-            dim: self.dim as u32,
+            dim: self.shape.dim as u32,
         };
         let mut search = Search::default();
         let mut hits: Vec<Hit> = self
@@ -162,7 +154,7 @@ impl HnswIndex {
     /// graph as laid out by instant-distance 0.6 (layer 0: `2·M` u32 links per node; each upper
     /// layer `l`: `M` links for every node of layer ≥ `l`; M = 32). Excludes allocator slack.
     pub fn memory_bytes(&self) -> usize {
-        let n = self.len;
+        let n = self.shape.len;
         let vectors = self.data.len() * 4;
         let handles = n * std::mem::size_of::<RowPoint>();
         let zero = n * 2 * HNSW_M * 4;

@@ -230,27 +230,28 @@ impl ApproxIndex {
         }
     }
 
+    /// The index's row width, row count and search beam, from whichever backend built it.
+    pub fn shape(&self) -> &IndexShape {
+        match self {
+            ApproxIndex::InstantDistance(i) => i.shape(),
+            #[cfg(feature = "qdrant-edge")]
+            ApproxIndex::QdrantEdge(i) => i.shape(),
+        }
+    }
+
     /// Number of indexed rows.
     pub fn len(&self) -> usize {
-        match self {
-            ApproxIndex::InstantDistance(i) => i.len(),
-            #[cfg(feature = "qdrant-edge")]
-            ApproxIndex::QdrantEdge(i) => i.len(),
-        }
+        self.shape().len
     }
 
     /// `true` when the index holds no row.
     pub fn is_empty(&self) -> bool {
-        self.len() == 0
+        self.shape().is_empty()
     }
 
     /// The search beam; also the largest `k` [`ApproxIndex::query`] answers.
     pub fn ef_search(&self) -> usize {
-        match self {
-            ApproxIndex::InstantDistance(i) => i.ef_search(),
-            #[cfg(feature = "qdrant-edge")]
-            ApproxIndex::QdrantEdge(i) => i.ef_search(),
-        }
+        self.shape().ef_search
     }
 
     /// Sets the search beam of later queries (a larger beam: higher recall, slower queries).
@@ -262,18 +263,18 @@ impl ApproxIndex {
         if ef == 0 {
             return Err(Error::param("ef_search", 0, "at least 1"));
         }
+        let built = self.ef_search();
         match self {
-            ApproxIndex::InstantDistance(i) => {
-                if ef == i.ef_search() {
+            ApproxIndex::InstantDistance(_) => {
+                if ef == built {
                     Ok(())
                 } else {
                     Err(Error::param(
                         "ef_search",
                         ef,
                         format!(
-                            "{}: instant-distance fixes the beam at build time; rebuild the \
-                             index with this ef_search",
-                            i.ef_search()
+                            "{built}: instant-distance fixes the beam at build time; rebuild \
+                             the index with this ef_search"
                         ),
                     ))
                 }
@@ -316,25 +317,42 @@ impl ApproxIndex {
     }
 }
 
-/// The checks of every backend's query before it searches: the query's width and values (as the
-/// exact scan checks them), and `k` at most the beam `ef_search` ([`Error::Param`] `top_k`, whose
-/// remedy reads `"{remedy} >= k"`, e.g. "rebuild with ef_search").
-fn check_query(
-    dim: usize,
-    ef_search: usize,
-    query: &[f32],
-    k: usize,
-    remedy: &str,
-) -> Result<(), Error> {
-    super::check_queries(dim, &[query])?;
-    if k > ef_search {
-        return Err(Error::param(
-            "top_k",
-            k,
-            format!("at most the index's ef_search {ef_search} ({remedy} >= {k})"),
-        ));
+/// What every backend's index knows of itself the same way: the width of its rows, how many rows
+/// it holds and its search beam. [`ApproxIndex::len`], [`ApproxIndex::is_empty`] and
+/// [`ApproxIndex::ef_search`] read it, whichever backend built the index.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IndexShape {
+    /// Values per row and per query (`D`).
+    pub dim: usize,
+    /// Number of indexed rows.
+    pub len: usize,
+    /// The search beam (`ef_search`, ≥ 1); also the largest `k` a query answers.
+    pub ef_search: usize,
+}
+
+impl IndexShape {
+    /// `true` when the index holds no row.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
     }
-    Ok(())
+
+    /// The checks of every backend's query before it searches: the query's width and values (as
+    /// the exact scan checks them), and `k` at most the beam `ef_search` ([`Error::Param`]
+    /// `top_k`, whose remedy reads `"{remedy} >= k"`, e.g. "rebuild with ef_search").
+    fn check_query(&self, query: &[f32], k: usize, remedy: &str) -> Result<(), Error> {
+        super::check_queries(self.dim, &[query])?;
+        if k > self.ef_search {
+            return Err(Error::param(
+                "top_k",
+                k,
+                format!(
+                    "at most the index's ef_search {} ({remedy} >= {k})",
+                    self.ef_search
+                ),
+            ));
+        }
+        Ok(())
+    }
 }
 
 #[cfg(test)]

@@ -22,7 +22,7 @@ use qdrant_edge::{
 };
 use slag_common::Error;
 
-use super::HnswParams;
+use super::{HnswParams, IndexShape};
 use crate::scan::{Hit, VectorStore};
 
 /// Rows per upsert call.
@@ -165,9 +165,8 @@ pub struct QdrantHnsw {
     /// `None` only while dropping: the shard is closed before its folder is removed.
     shard: Option<EdgeShard>,
     dir: PathBuf,
-    dim: usize,
-    len: usize,
-    ef_search: usize,
+    /// Row width, row count and the beam of queries (`hnsw_ef`).
+    shape: IndexShape,
     /// Size of the shard's files after the build.
     bytes: usize,
 }
@@ -220,9 +219,11 @@ impl QdrantHnsw {
         let mut index = QdrantHnsw {
             shard: Some(shard),
             dir,
-            dim,
-            len: n,
-            ef_search: params.ef_search,
+            shape: IndexShape {
+                dim,
+                len: n,
+                ef_search: params.ef_search,
+            },
             bytes: 0,
         };
         let shard = index.shard()?;
@@ -240,24 +241,15 @@ impl QdrantHnsw {
             .ok_or_else(|| Error::internal("Qdrant Edge shard used after it was closed"))
     }
 
-    /// Number of indexed rows.
-    pub fn len(&self) -> usize {
-        self.len
-    }
-
-    /// `true` when the index holds no row.
-    pub fn is_empty(&self) -> bool {
-        self.len == 0
-    }
-
-    /// The search beam (`hnsw_ef`) of queries; also the largest `k` answered.
-    pub fn ef_search(&self) -> usize {
-        self.ef_search
+    /// Row width, row count and the search beam (`hnsw_ef`) of queries, also the largest `k`
+    /// answered.
+    pub fn shape(&self) -> &IndexShape {
+        &self.shape
     }
 
     /// Sets the search beam of later queries (≥ 1, checked by the caller).
     pub fn set_ef_search(&mut self, ef: usize) {
-        self.ef_search = ef.max(1);
+        self.shape.ef_search = ef.max(1);
     }
 
     /// Segments of the shard (1 after a build; for the bench's report).
@@ -273,16 +265,16 @@ impl QdrantHnsw {
     }
 
     /// Approximately the `k` best rows for `query` (`[D]`), best first (score desc, row asc),
-    /// searched with `hnsw_ef` = [`QdrantHnsw::ef_search`].
+    /// searched with `hnsw_ef` = the shape's [`IndexShape::ef_search`].
     ///
     /// Errors: as [`super::ApproxIndex::query`].
     pub fn query(&self, query: &[f32], k: usize) -> Result<Vec<Hit>, Error> {
-        super::check_query(self.dim, self.ef_search, query, k, "raise ef_search to")?;
-        if k == 0 || self.len == 0 {
+        self.shape.check_query(query, k, "raise ef_search to")?;
+        if k == 0 || self.shape.is_empty() {
             return Ok(Vec::new());
         }
         let params = SearchParams {
-            hnsw_ef: Some(self.ef_search),
+            hnsw_ef: Some(self.shape.ef_search),
             exact: false,
             ..SearchParams::default()
         };
@@ -294,13 +286,13 @@ impl QdrantHnsw {
         let mut hits = found
             .iter()
             .map(|p| match p.id {
-                PointId::NumId(i) if (i as usize) < self.len => Ok(Hit {
+                PointId::NumId(i) if (i as usize) < self.shape.len => Ok(Hit {
                     row: i as usize,
                     score: p.score,
                 }),
                 other => Err(Error::internal(format!(
                     "Qdrant Edge returned point id {other} outside the {} rows it was given",
-                    self.len
+                    self.shape.len
                 ))),
             })
             .collect::<Result<Vec<Hit>, Error>>()?;
