@@ -27,9 +27,21 @@ pub struct EncodeClusterArgs {
     /// File holding the cluster's shared secret (first line, at least 16 bytes, e.g. `head -c 32 /dev/urandom | base64`; mode 0600), the same on every process: each connection starts with an HMAC challenge on it and a peer without it is refused. Needed unless every address of --hosts is on loopback. The traffic after the challenge is not encrypted: use a private network or a VPN.
     #[arg(long, value_name = "PATH")]
     pub cluster_secret_file: Option<PathBuf>,
+    /// Seconds between two checkpoints of each process's partition (OUT/.cluster-<P>-of-<N>.checkpoint on that process's machine: the running state of its Gaussians after the views it took in), 0: none. A rerun of every process with the same arguments resumes from them (views every partition holds are not encoded again); a checkpoint of other arguments is refused with what to do. They are removed once the job completes. None are written with --dense.
+    #[arg(long, value_name = "SECONDS", default_value = "300", value_parser = seconds)]
+    pub checkpoint_every: std::time::Duration,
     /// The encode arguments (identical on every process).
     #[command(flatten)]
     pub encode: EncodeArgs,
+}
+
+/// A non-negative, finite number of seconds (fractions allowed).
+fn seconds(s: &str) -> Result<Duration, String> {
+    let x: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?} is not a number of seconds"))?;
+    Duration::try_from_secs_f64(x).map_err(|_| format!("{s}: give 0 or more seconds"))
 }
 
 /// The encode settings of a cluster run: exactly `encode`'s (what a cluster cannot honour,
@@ -48,7 +60,8 @@ pub fn run(a: &EncodeClusterArgs) -> anyhow::Result<Option<Report>> {
         &a.hosts,
         a.process,
         Duration::from_secs(a.connect_timeout),
-    )?;
+    )?
+    .with_checkpoint_every(Some(a.checkpoint_every));
     if let Some(path) = &a.cluster_secret_file {
         cluster = cluster.with_secret(ClusterSecret::read(path)?);
     }
@@ -93,6 +106,29 @@ mod tests {
 
     fn check(a: &EncodeClusterArgs) -> Result<ClusterEncoder, ConfigError> {
         ClusterEncoder::new(cluster_config(a))
+    }
+
+    #[test]
+    fn checkpoint_every_takes_seconds_and_zero_turns_it_off() {
+        assert_eq!(parse(&[]).checkpoint_every, Duration::from_secs(300));
+        let a = parse(&["--checkpoint-every", "0.25"]);
+        assert_eq!(a.checkpoint_every, Duration::from_millis(250));
+        for bad in ["-1", "soon", "inf"] {
+            let argv = ["x", "--process", "0", "--hosts", "h", "--scene-dir", "s"];
+            let argv = argv.iter().copied().chain(["--checkpoint-every", bad]);
+            assert!(Cli::try_parse_from(argv).is_err(), "{bad}");
+        }
+        let c = ClusterConfig {
+            process: 0,
+            addresses: vec!["127.0.0.1:1".into()],
+            connect_timeout: Duration::from_secs(1),
+            secret: None,
+            checkpoint_every: None,
+        };
+        let off = c.clone().with_checkpoint_every(Some(Duration::ZERO));
+        assert_eq!(off.checkpoint_every, None);
+        let on = c.with_checkpoint_every(Some(Duration::from_secs(2)));
+        assert_eq!(on.checkpoint_every, Some(Duration::from_secs(2)));
     }
 
     #[test]

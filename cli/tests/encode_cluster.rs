@@ -5,11 +5,14 @@
 //! 1. The cluster writes the files a single-process `slag-encoder encode --reduce host` of the
 //!    same arguments writes (the mixture, the masks' record, the segments, the report), each
 //!    byte-identical but the report, whose counts and chosen views agree.
-//! 2. One worker process dies after its first image (`SLAG_FAULT_EXIT_AFTER_IMAGES=1`, exit 137
+//! 2. With a checkpoint after every view taken in (`--checkpoint-every 0.001`), one worker
+//!    process dies right after writing its third checkpoint (`SLAG_FAULT_EXIT_AT`, exit 137
 //!    without destructors or connection shutdown, as `kill -9`): every process exits non-zero
 //!    within the timeout, the survivors with status 3 and a message naming the process that died,
-//!    and OUT holds nothing that looks complete (no output file, only `.partial` names). A rerun
-//!    in the same OUT completes and matches the single-process run.
+//!    and OUT holds nothing that looks complete (no output file, only `.partial` names and the
+//!    partitions' checkpoints). A rerun in the same OUT resumes from the checkpoints (the report
+//!    says how many views each partition restored), matches the single-process run byte for byte
+//!    and removes the checkpoints.
 //! 3. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
 //!    observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run the same
 //!    f64 code, only the order in which images are summed may differ), total weights within 1e-6
@@ -99,6 +102,21 @@ fn spawn(
     fault: Option<u32>,
     extra: &[String],
 ) -> Proc {
+    let fault = fault.map(|n| (FAULT_AFTER_IMAGES, n));
+    spawn_with(i, hosts, (out, dir, tag), fault, extra)
+}
+
+/// The fault hook that stops a process after its n-th image.
+const FAULT_AFTER_IMAGES: &str = "SLAG_FAULT_EXIT_AFTER_IMAGES";
+
+/// [`spawn`] with any fault hook: `fault` is the variable and its value.
+fn spawn_with(
+    i: usize,
+    hosts: &Path,
+    (out, dir, tag): (&Path, &Path, &str),
+    fault: Option<(&str, u32)>,
+    extra: &[String],
+) -> Proc {
     let log = dir.join(format!("{tag}-{i}.log"));
     let f = std::fs::File::create(&log).unwrap();
     let mut c = slag_encoder();
@@ -114,12 +132,13 @@ fn spawn(
             "--accumulator-memory-mb",
             "16",
         ])
-        .env_remove("SLAG_FAULT_EXIT_AFTER_IMAGES")
+        .env_remove(FAULT_AFTER_IMAGES)
+        .env_remove(slag_common::fault::EXIT_AT_VAR)
         .env("RUST_LOG", "info")
         .stdout(f.try_clone().unwrap())
         .stderr(f);
-    if let Some(n) = fault {
-        c.env("SLAG_FAULT_EXIT_AFTER_IMAGES", n.to_string());
+    if let Some((var, n)) = fault {
+        c.env(var, n.to_string());
     }
     Proc {
         child: c.spawn().unwrap(),
@@ -162,20 +181,13 @@ fn run_cluster(
     out: &Path,
     dir: &Path,
     tag: &str,
-    fault: Option<(usize, u32)>,
+    fault: Option<(usize, &str, u32)>,
     extra: &[String],
 ) -> Vec<(ExitStatus, String)> {
     let procs = (0..3)
         .map(|i| {
-            spawn(
-                i,
-                hosts,
-                out,
-                dir,
-                tag,
-                fault.filter(|f| f.0 == i).map(|f| f.1),
-                extra,
-            )
+            let fault = fault.filter(|f| f.0 == i).map(|f| (f.1, f.2));
+            spawn_with(i, hosts, (out, dir, tag), fault, extra)
         })
         .collect();
     wait_all(procs)
@@ -280,13 +292,30 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
         ]
     );
 
-    // (2) Process 1 dies after its first image, in a cluster whose connections prove a secret.
-    let hosts = hosts_file(dir.path(), "hosts-1");
-    let secret = secret_args(dir.path(), "secret", "the cluster's secret, 32 bytes..");
+    faulted_run(dir.path(), &out);
+    let views = resumed_run(dir.path(), &out, &single_out);
+    dense_run(dir.path(), views);
+}
+
+/// Point 2 of the module doc: process 1 of a cluster writing OUT `out` dies after its third
+/// checkpoint; the survivors name it, and OUT holds only `.partial` names and checkpoints.
+fn faulted_run(dir: &Path, out: &Path) {
+    // (2) Process 1 dies right after its third checkpoint (four durability boundaries each:
+    // write, fsync, rename, folder sync), in a cluster whose connections prove a secret.
+    let hosts = hosts_file(dir, "hosts-1");
+    let mut args = secret_args(dir, "secret", "the cluster's secret, 32 bytes..");
+    args.extend(["--checkpoint-every".into(), "0.001".into()]);
     let t0 = Instant::now();
-    let r = run_cluster(&hosts, &out, dir.path(), "faulted", Some((1, 1)), &secret);
+    let exit_at = (1, slag_common::fault::EXIT_AT_VAR, 12);
+    let r = run_cluster(&hosts, out, dir, "faulted", Some(exit_at), &args);
     eprintln!("faulted run ended in {:.1} s", t0.elapsed().as_secs_f64());
     assert_eq!(r[1].0.code(), Some(137), "{}", r[1].1);
+    assert_eq!(
+        slag_common::fault::stopped_at(&r[1].1).as_deref(),
+        Some("cluster.checkpoint:dir_sync"),
+        "{}",
+        r[1].1
+    );
     let dead = format!(
         "process 1 ({}) died or its connection failed",
         host_lines(&hosts)[1]
@@ -299,19 +328,33 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
             "process {i} names the dead process: {log}"
         );
     }
-    for name in names(&out) {
-        assert!(name.ends_with(".partial"), "{name} left after a failed job");
+    for name in names(out) {
+        assert!(
+            name.ends_with(".partial") || name.ends_with(".checkpoint"),
+            "{name} left after a failed job"
+        );
     }
+    assert!(out.join(".cluster-1-of-3.checkpoint").exists());
+}
 
-    // (1) Rerun in the same OUT: completes, the same files as the single-process run.
-    let hosts = hosts_file(dir.path(), "hosts-2");
+/// Point 1 of the module doc: the rerun in `out` resumes and matches `single_out`, the
+/// single-process run, byte for byte; returns the views encoded.
+fn resumed_run(dir: &Path, out: &Path, single_out: &Path) -> u64 {
+    // (1) Rerun in the same OUT, checkpoints at the default interval: resumes, the same files as
+    // the single-process run, no checkpoint left.
+    let hosts = hosts_file(dir, "hosts-2");
     // Without a secret: allowed, every address being on loopback.
-    let r = run_cluster(&hosts, &out, dir.path(), "rerun", None, &[]);
+    let r = run_cluster(&hosts, out, dir, "rerun", None, &[]);
     for (i, (status, log)) in r.iter().enumerate() {
         assert!(status.success(), "process {i}: {log}");
     }
-    assert_same_bytes(&single_out, &out);
-    let (report, single_report) = (report(&out), report(&single_out));
+    assert!(
+        r[1].1.contains("resumed from the partition's checkpoint"),
+        "{}",
+        r[1].1
+    );
+    assert_same_bytes(single_out, &out);
+    let (report, single_report) = (report(out), report(single_out));
     for key in ["views_used", "views_total", "observed", "masks", "entries"] {
         assert_eq!(report["counts"][key], single_report["counts"][key], "{key}");
     }
@@ -329,34 +372,49 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
         single_report["segments"]["stats"]["segments"]
     );
     let views = report["counts"]["views_used"].as_u64().unwrap();
-    let parts = report["outputs"]["cluster"]["partitions"]
-        .as_array()
-        .unwrap();
+    let cluster = &report["outputs"]["cluster"];
+    let parts = cluster["partitions"].as_array().unwrap();
     assert_eq!(parts.len(), 3);
     let observed: u64 = parts.iter().map(|p| p["observed"].as_u64().unwrap()).sum();
     assert_eq!(observed, report["counts"]["observed"].as_u64().unwrap());
-    let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
-    let images: Vec<u64> = workers
+    let restored: Vec<u64> = parts
+        .iter()
+        .map(|p| p["views_restored"].as_u64().unwrap())
+        .collect();
+    let resumed = cluster["views_resumed"].as_u64().unwrap();
+    eprintln!("views restored per partition {restored:?}, views not encoded again {resumed}");
+    assert!(
+        restored[1] >= 3,
+        "partition 1 wrote 3 checkpoints: {restored:?}"
+    );
+    assert_eq!(resumed, *restored.iter().min().unwrap());
+    let images: u64 = cluster["workers"]
+        .as_array()
+        .unwrap()
         .iter()
         .map(|w| w["images"].as_u64().unwrap())
-        .collect();
-    let round_robin: Vec<u64> = (0..3)
-        .map(|w| (w..views).step_by(3).count() as u64)
-        .collect();
-    assert_eq!(images, round_robin, "round-robin image assignment");
-
-    // (3) The dense file too: within f32 round-off of the single process's, the rest the same.
-    let (single_dense, dense) = (dir.path().join("single-dense"), dir.path().join("dense"));
-    run_single(&single_dense, &["--dense"]);
-    let hosts = hosts_file(dir.path(), "hosts-3");
-    let r = run_cluster(
-        &hosts,
-        &dense,
-        dir.path(),
-        "dense",
-        None,
-        &["--dense".into()],
+        .sum();
+    assert_eq!(
+        images + resumed,
+        views,
+        "every view encoded once or resumed"
     );
+    for name in names(out) {
+        assert!(
+            !name.contains("checkpoint"),
+            "{name} left after the job completed"
+        );
+    }
+    views
+}
+
+/// Point 3 of the module doc: with `--dense`, over the same `views` views.
+fn dense_run(dir: &Path, views: u64) {
+    // (3) The dense file too: within f32 round-off of the single process's, the rest the same.
+    let (single_dense, dense) = (dir.join("single-dense"), dir.join("dense"));
+    run_single(&single_dense, &["--dense"]);
+    let hosts = hosts_file(dir, "hosts-3");
+    let r = run_cluster(&hosts, &dense, dir, "dense", None, &["--dense".into()]);
     for (i, (status, log)) in r.iter().enumerate() {
         assert!(status.success(), "process {i}: {log}");
     }
@@ -373,6 +431,15 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
         views * 3,
         "every image part was spilled"
     );
+    let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
+    let images: Vec<u64> = workers
+        .iter()
+        .map(|w| w["images"].as_u64().unwrap())
+        .collect();
+    let round_robin: Vec<u64> = (0..3)
+        .map(|w| (w..views).step_by(3).count() as u64)
+        .collect();
+    assert_eq!(images, round_robin, "round-robin image assignment");
     assert!(report["counts"]["reduce_chunks"].as_u64().unwrap() >= 3 * 3);
 }
 

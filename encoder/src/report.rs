@@ -435,6 +435,9 @@ pub struct ClusterOutputs {
     pub processes: usize,
     /// How [`StageTimings::reduce`] is measured for a cluster.
     pub reduce_timing: String,
+    /// Views no process encoded because every partition's checkpoint held them (a resumed
+    /// job; 0 otherwise).
+    pub views_resumed: u64,
     /// One entry per map worker.
     pub workers: Vec<ClusterWorker>,
 }
@@ -456,6 +459,14 @@ pub struct ClusterPartition {
     pub reduce_s: f64,
     /// Image parts spilled to disk.
     pub spilled_images: u64,
+    /// Views restored from its checkpoint (`0..views_restored`; 0 for a fresh partition).
+    pub views_restored: u64,
+    /// Checkpoints it wrote during this run.
+    pub checkpoints: u64,
+    /// Seconds writing them, in all.
+    pub checkpoint_s: f64,
+    /// Bytes of the largest one.
+    pub checkpoint_bytes: u64,
 }
 
 /// One map worker of a cluster encode.
@@ -681,9 +692,14 @@ mod tests {
                         reduce_chunks: 1,
                         reduce_s: 0.25,
                         spilled_images: 0,
+                        views_restored: 2,
+                        checkpoints: 1,
+                        checkpoint_s: 0.5,
+                        checkpoint_bytes: 4096,
                     }],
                     processes: 1,
                     reduce_timing: "slowest".into(),
+                    views_resumed: 1,
                     workers: vec![ClusterWorker {
                         entries: 5,
                         images: 3,
@@ -738,8 +754,11 @@ mod tests {
                                      "entries": 5}],
                         "partitions": [{"partition": 0, "observed": 4, "images": 3,
                                         "entries": 5, "reduce_s": 0.25, "reduce_chunks": 1,
-                                        "spilled_images": 0}],
+                                        "spilled_images": 0, "views_restored": 2,
+                                        "checkpoints": 1, "checkpoint_s": 0.5,
+                                        "checkpoint_bytes": 4096}],
                         "reduce_timing": "slowest",
+                        "views_resumed": 1,
                     },
                 })
             } else {

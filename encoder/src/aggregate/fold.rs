@@ -8,6 +8,7 @@
 //! views' mask embeddings) and the views that arrived before an earlier one (at most the views in
 //! flight).
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 
 use rayon::prelude::*;
@@ -172,6 +173,77 @@ impl MixtureFold {
         self.next
     }
 
+    /// The running state of a fold with no view waiting, to write as a checkpoint: it covers
+    /// views `0..next` ([`MixtureFold::folded_views`]). The arrays are borrowed.
+    ///
+    /// Errors: [`Error::Internal`] while a view waits for an earlier one (its state would be
+    /// lost: push views in view order before taking the state).
+    pub fn state(&self) -> Result<FoldState<'_>> {
+        if !self.pending.is_empty() {
+            return Err(Error::internal(format!(
+                "the fold's state was taken with {} views waiting for view {}",
+                self.pending.len(),
+                self.next
+            )));
+        }
+        Ok(FoldState {
+            dim: self.dim,
+            keep: self.keep,
+            min_total_weight: self.min_total_weight,
+            keeps_codebook: self.keeps_codebook,
+            atoms: self.atoms,
+            next: self.next,
+            den: Cow::Borrowed(&self.den),
+            kept: Cow::Borrowed(&self.kept),
+            n_kept: Cow::Borrowed(&self.n_kept),
+            codebook: Cow::Borrowed(&self.codebook),
+        })
+    }
+
+    /// The fold [`MixtureFold::state`] took, views `0..state.next` folded: pushing views
+    /// `state.next..` then gives the rows of one fold of every view, bit for bit.
+    ///
+    /// Errors: [`Error::Param`] `mixture_keep` as [`MixtureFold::new`]; [`Error::Invalid`] for
+    /// arrays of other lengths than `N`, `N × keep`, `atoms × dim` (none without the codebook),
+    /// a row using more than `keep` pairs.
+    pub fn from_state(state: FoldState<'_>) -> Result<Self> {
+        let n = state.den.len();
+        let mut fold = Self::with_codebook(
+            n,
+            state.dim,
+            state.keep,
+            state.min_total_weight,
+            state.keeps_codebook,
+        )?;
+        let codebook_len = if state.keeps_codebook {
+            state.atoms.checked_mul(state.dim)
+        } else {
+            Some(0)
+        };
+        if state.kept.len() != n * state.keep
+            || state.n_kept.len() != n
+            || Some(state.codebook.len()) != codebook_len
+            || state.n_kept.iter().any(|&u| u as usize > state.keep)
+        {
+            return Err(Error::Invalid(format!(
+                "a fold's state of {n} Gaussians, {} pairs, {} counts and {} codebook values \
+                 for {} kept pairs and {} mask embeddings of width {}",
+                state.kept.len(),
+                state.n_kept.len(),
+                state.codebook.len(),
+                state.keep,
+                state.atoms,
+                state.dim
+            )));
+        }
+        fold.den = state.den.into_owned();
+        fold.kept = state.kept.into_owned();
+        fold.n_kept = state.n_kept.into_owned();
+        fold.codebook = state.codebook.into_owned();
+        (fold.atoms, fold.next, fold.folded) = (state.atoms, state.next, state.next);
+        Ok(fold)
+    }
+
     /// Views pushed so far.
     pub fn len(&self) -> usize {
         self.folded + self.pending.len()
@@ -288,6 +360,34 @@ impl MixtureFold {
         parts.codebook = std::mem::take(&mut self.codebook);
         Ok(parts)
     }
+}
+
+/// The running state of a [`MixtureFold`] with no view waiting ([`MixtureFold::state`],
+/// [`MixtureFold::from_state`]): what a checkpoint of the fold holds. `N` is the fold's
+/// Gaussians.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FoldState<'a> {
+    /// Embedding width D.
+    pub dim: usize,
+    /// Pairs kept per Gaussian.
+    pub keep: usize,
+    /// The observed rule's floor on `Σ a_kj`.
+    pub min_total_weight: f64,
+    /// Whether the fold keeps the views' mask embeddings (else it counts them).
+    pub keeps_codebook: bool,
+    /// Mask embeddings of the folded views (the next view's first atom id).
+    pub atoms: usize,
+    /// Views folded: `0..next`.
+    pub next: usize,
+    /// `[N]` Σ a_kj in f64.
+    pub den: Cow<'a, [f64]>,
+    /// `[N × keep]` kept `(a_kj, atom)`; the first `n_kept[k]` of row `k` are used.
+    pub kept: Cow<'a, [(f32, u32)]>,
+    /// `[N]` kept pairs used per Gaussian (at most `keep`).
+    pub n_kept: Cow<'a, [u8]>,
+    /// `[atoms × dim]` the folded views' mask embeddings in view order; empty when the fold only
+    /// counts them.
+    pub codebook: Cow<'a, [f32]>,
 }
 
 /// Refuses a view the fold cannot add: embeddings of another width than `dim`, a Gaussian id

@@ -38,7 +38,7 @@ pub mod robust;
 pub mod store;
 mod top;
 
-pub use fold::MixtureFold;
+pub use fold::{FoldState, MixtureFold};
 pub use image::{
     Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels, stage_labels,

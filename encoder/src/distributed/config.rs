@@ -30,6 +30,10 @@ pub struct Stages {
 /// worker thread (ONNX sessions and the GPU device live there).
 pub type StageFactory = Arc<dyn Fn(&Gaussians) -> Result<Stages> + Send + Sync>;
 
+/// The least time between two checkpoints unless set ([`ClusterConfig::checkpoint_every`]):
+/// 5 minutes, a small share of a long job's wall for the state of its Gaussians.
+pub const DEFAULT_CHECKPOINT_EVERY: Duration = Duration::from_secs(300);
+
 /// Where this process sits in the cluster.
 #[derive(Debug, Clone)]
 pub struct ClusterConfig {
@@ -43,6 +47,10 @@ pub struct ClusterConfig {
     /// The secret every connection proves at its start ([`super::net`]'s handshake); `None` is
     /// allowed only when every address is on loopback (see [`ClusterConfig::check_secret`]).
     pub secret: Option<ClusterSecret>,
+    /// The least time between two checkpoints of a process's partition
+    /// (`OUT/.cluster-<p>-of-<P>.checkpoint`, [`super::encode_cluster`]); `None`: none written
+    /// (a checkpoint of the same job is still resumed).
+    pub checkpoint_every: Option<Duration>,
 }
 
 impl ClusterConfig {
@@ -74,9 +82,18 @@ impl ClusterConfig {
             addresses,
             connect_timeout,
             secret: None,
+            checkpoint_every: Some(DEFAULT_CHECKPOINT_EVERY),
         };
         config.check().map_err(|m| Error::format(path, m))?;
         Ok(config)
+    }
+
+    /// This configuration with checkpoints at most every `every` (`None` or zero: none).
+    pub fn with_checkpoint_every(self, every: Option<Duration>) -> Self {
+        Self {
+            checkpoint_every: every.filter(|d| !d.is_zero()),
+            ..self
+        }
     }
 
     /// This configuration with the cluster secret `secret`.

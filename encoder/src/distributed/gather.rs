@@ -276,9 +276,14 @@ impl Gathered {
                     reduce_chunks: s.chunks,
                     reduce_s: s.reduce_s,
                     spilled_images: s.spilled,
+                    views_restored: s.restored,
+                    checkpoints: s.checkpoints.0,
+                    checkpoint_s: s.checkpoints.1,
+                    checkpoint_bytes: s.checkpoints.2,
                 })
                 .collect(),
             processes: peers,
+            views_resumed: self.stats.iter().map(|s| s.resumed).sum(),
             reduce_timing: "slowest partition (partitions reduce in parallel)".into(),
             workers: self
                 .stats
@@ -322,9 +327,10 @@ pub(super) fn assemble(
         ));
     }
     let images: u64 = g.stats.iter().map(|s| s.work.images).sum();
-    if images != job.views {
+    let resumed: u64 = g.stats.iter().map(|s| s.resumed).sum();
+    if images + resumed != job.views {
         return Err(Error::internal(format!(
-            "incomplete job: {images} of {} views encoded",
+            "incomplete job: {images} of {} views encoded, {resumed} resumed from checkpoints",
             job.views
         )));
     }
@@ -392,5 +398,11 @@ fn figures(
         ..Default::default()
     };
     work.fill(&mut timings, &mut counts);
+    if g.parts.iter().any(|s| s.restored > 0) {
+        // A resumed job mapped only some views: the partitions count every view's masks and
+        // entries (those of their checkpoints too).
+        counts.masks = g.parts.first().map_or(0, |s| s.masks) as usize;
+        counts.entries = g.parts.iter().map(|s| s.entries).sum::<u64>() as usize;
+    }
     (counts, timings)
 }

@@ -86,8 +86,37 @@ pub(super) fn split(
 
 pub(super) type Input = InputHandle<u64, CapacityContainerBuilder<Vec<ToReducer>>>;
 
-/// The map side of worker `w`: images `w, w + P, …`; sends each image's partitions and advances
-/// the input's time so they leave at once. Returns the worker's stats and the job key.
+/// Which partitions a worker's images go to, and how many went to each.
+#[derive(Debug, Clone, Default)]
+pub(super) struct Shares {
+    /// `[P]` the views each partition holds from its checkpoint: `0..held[p]`.
+    pub(super) held: Vec<u32>,
+    /// `[P]` images this worker sent to each partition.
+    pub(super) sent: Vec<u64>,
+}
+
+impl Shares {
+    /// Whether some partition lacks view `view` (it must be mapped).
+    fn needed(&self, view: usize) -> bool {
+        self.held.iter().any(|&h| h as usize <= view)
+    }
+
+    /// Sends the parts of `parts` whose partition lacks their view, counting them.
+    fn send(&mut self, input: &mut Input, parts: Vec<ImagePart>) {
+        self.sent.resize(self.held.len(), 0);
+        for part in parts {
+            let p = part.partition as usize;
+            if self.held.get(p).is_some_and(|&h| h <= part.image) {
+                self.sent[p] += 1;
+                input.send(ToReducer::Image(part));
+            }
+        }
+    }
+}
+
+/// The map side of worker `w`: images `w, w + P, …` that some partition lacks (`shares.held`);
+/// sends each image's parts to the partitions that lack it and advances the input's time so
+/// they leave at once. Records the worker's figures in `stats`, the parts sent in `shares`.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn map_side(
     worker: &mut timely::worker::Worker,
@@ -97,7 +126,7 @@ pub(super) fn map_side(
     views: &[slag_common::camera::View],
     stages: &mut Stages,
     key: &JobKey,
-    stats: &mut MapStats,
+    (stats, shares): (&mut MapStats, &mut Shares),
 ) -> Result<()> {
     let (w, peers) = (worker.index(), worker.peers());
     let dim = key.dim as usize;
@@ -112,6 +141,10 @@ pub(super) fn map_side(
     for (round, i) in (w..views.len()).step_by(peers).enumerate() {
         if aborted.borrow().is_some() {
             break;
+        }
+        if !shares.needed(i) {
+            stats.resumed += 1;
+            continue;
         }
         let item = front_stage(&views[i], i, &mut *stages.masks, &mut *stages.crops, dim)?;
         let n_masks = item.masks.len();
@@ -133,10 +166,7 @@ pub(super) fn map_side(
         ));
         let c = out.contribution;
         let scene = (key.gaussians, views.len() as u32);
-        let parts = split(&c, i as u32, peers, scene, job.params.dense);
-        for part in parts {
-            input.send(ToReducer::Image(part));
-        }
+        shares.send(input, split(&c, i as u32, peers, scene, job.params.dense));
         input.advance_to(round as u64 + 1);
         worker.step();
         tracing::info!(

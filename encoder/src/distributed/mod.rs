@@ -89,6 +89,7 @@ use crate::aggregate::ContributionStore;
 use crate::pipeline::finish::OutputFiles;
 use crate::report::Report;
 
+mod checkpoint;
 mod config;
 mod encoder;
 mod gather;
@@ -96,16 +97,20 @@ mod map;
 pub mod net;
 mod records;
 mod reduce;
+mod resume;
 mod views;
 
-pub use config::{ClusterConfig, ClusterJob, SegmentFeed, StageFactory, Stages};
+pub use config::{
+    ClusterConfig, ClusterJob, DEFAULT_CHECKPOINT_EVERY, SegmentFeed, StageFactory, Stages,
+};
 pub use encoder::ClusterEncoder;
 use gather::{Assembled, Gathered, WorkerOutcome, assemble};
 use map::{Input, job_key, map_side};
 pub use net::ClusterSecret;
 use net::{LostPeer, PeerStream};
 use records::{JobKey, MapStats, ToGather, ToReducer};
-use reduce::{Forms, PartitionReducer};
+use reduce::{Forms, PartitionReducer, Resume};
+use resume::{Notes, ResumeInput, agree_on_resume, build_resume_dataflow};
 use views::{Heard, ViewsInput, agree_on_views, build_views_dataflow, refuse_views};
 
 /// Exit status of a process that lost a peer process (its TCP connection failed) or hit an
@@ -115,27 +120,68 @@ pub const EXIT_PEER_LOST: i32 = 3;
 /// Exit status of the fault hook (`SLAG_FAULT_EXIT_AFTER_IMAGES`): 128 + SIGKILL.
 pub const FAULT_EXIT_STATUS: i32 = slag_common::fault::FAULT_EXIT_STATUS;
 
-/// Runs one worker: builds the dataflow (identically on every worker), the map side, then steps
-/// until the dataflow completed; worker 0 assembles the output.
-fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<WorkerOutcome> {
+/// The dataflows' ends on one worker ([`build_dataflows`]): the inputs it sends on and what it
+/// hears.
+struct Dataflows {
+    views: ViewsInput,
+    heard: Rc<RefCell<Heard>>,
+    resume: ResumeInput,
+    notes: Rc<RefCell<Notes>>,
+    /// Where this worker puts its partition's [`Resume`] for its reducer.
+    slot: Rc<RefCell<Option<Resume>>>,
+    input: Input,
+    aborted: Rc<RefCell<Option<String>>>,
+    gathered: Rc<RefCell<Gathered>>,
+}
+
+/// Builds the job's dataflows, identically on every worker and in the same order: the views'
+/// choice, the partitions' notes of what their checkpoints hold, the map → reduce → gather job.
+fn build_dataflows(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Dataflows {
     let (w, peers) = (worker.index(), worker.peers());
-    let mut views_input = ViewsInput::new();
-    let heard = Rc::new(RefCell::new(Heard::default()));
-    build_views_dataflow(worker, &mut views_input, &heard);
-    let mut input = Input::new();
-    let aborted: Rc<RefCell<Option<String>>> = Rc::new(RefCell::new(None));
-    let gathered = Rc::new(RefCell::new(Gathered::default()));
+    let mut d = Dataflows {
+        views: ViewsInput::new(),
+        heard: Rc::new(RefCell::new(Heard::default())),
+        resume: ResumeInput::new(),
+        notes: Rc::new(RefCell::new(Notes::default())),
+        slot: Rc::new(RefCell::new(None)),
+        input: Input::new(),
+        aborted: Rc::new(RefCell::new(None)),
+        gathered: Rc::new(RefCell::new(Gathered::default())),
+    };
+    build_views_dataflow(worker, &mut d.views, &d.heard);
+    build_resume_dataflow(worker, &mut d.resume, &d.notes);
     let spill_dir = spill_dir(&job.params.out_dir, w);
-    let forms = forms_of(&job.params);
     let reducer = PartitionReducer::new(
         w as u32,
         peers as u32,
         job.params.reduce,
-        forms,
+        forms_of(&job.params),
         ContributionStore::new(job.params.contribution_budget_bytes, spill_dir),
+        Rc::clone(&d.slot),
     );
-    build_dataflow(worker, &mut input, reducer, &aborted, &gathered);
+    build_dataflow(worker, &mut d.input, reducer, &d.aborted, &d.gathered);
+    d
+}
 
+/// Runs one worker: builds the dataflows (identically on every worker), the map side (with
+/// checkpoints every `every`, `None`: off), then steps until the dataflow completed; worker 0
+/// assembles the output.
+fn run_worker(
+    worker: &mut timely::worker::Worker,
+    job: &ClusterJob,
+    every: Option<std::time::Duration>,
+) -> Result<WorkerOutcome> {
+    let (w, peers) = (worker.index(), worker.peers());
+    let Dataflows {
+        views,
+        heard,
+        resume,
+        notes,
+        slot,
+        mut input,
+        aborted,
+        gathered,
+    } = build_dataflows(worker, job);
     // Map side. Errors are broadcast as Abort so every process fails with the same message.
     let mut map = MapOutcome {
         stats: MapStats {
@@ -144,8 +190,12 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         },
         ..Default::default()
     };
-    let views = (views_input, &*heard);
-    let result = run_map(worker, &mut input, views, job, &aborted, &mut map);
+    let agree = Agreements {
+        views: (views, &*heard),
+        resume: (resume, &*notes, &*slot),
+        every,
+    };
+    let result = run_map(worker, &mut input, agree, job, &aborted, &mut map);
     let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
     send_done(&mut input, peers, w, failed, &map);
     drop(input);
@@ -169,6 +219,7 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
     let (gaussians, _, views_total) = map
         .scene
         .ok_or_else(|| Error::internal("worker 0 has no scene"))?;
+    let forms = forms_of(&job.params);
     let output = assemble(
         gathered,
         peers,
@@ -183,6 +234,14 @@ fn run_worker(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Result<W
         models: map.models,
         images,
     })
+}
+
+/// What the workers agree on before the map starts: the views (worker 0's choice) and what each
+/// partition's checkpoint holds; `every` is the checkpoints' interval (`None`: off).
+struct Agreements<'a> {
+    views: (ViewsInput, &'a RefCell<Heard>),
+    resume: (ResumeInput, &'a RefCell<Notes>, &'a RefCell<Option<Resume>>),
+    every: Option<std::time::Duration>,
 }
 
 /// The outputs a partition reduces to for an encode of `params`.
@@ -267,18 +326,22 @@ struct MapOutcome {
     selection: Option<crate::views::SelectionReport>,
     /// This worker's map figures.
     stats: MapStats,
+    /// What each partition holds from its checkpoint and the parts this worker sent it.
+    shares: map::Shares,
 }
 
 /// Loads the scene, builds the stages, agrees on the views with every worker (worker 0 chooses
-/// them, [`agree_on_views`]) and runs the map side of this worker, recording in `out` what the
+/// them, [`agree_on_views`]) and on what each partition's checkpoint holds
+/// ([`agree_on_checkpoints`]), and runs the map side of this worker, recording in `out` what the
 /// end of the job needs. On process 0 the loaded Gaussians also go to the segments
 /// ([`ClusterJob::segments`]).
 ///
-/// Errors: the scene's or the stages' ([`Error`]), the views' choice, no views, the map side's.
+/// Errors: the scene's or the stages' ([`Error`]), the views' choice, no views, a checkpoint of
+/// another job (on any process), the map side's.
 fn run_map(
     worker: &mut timely::worker::Worker,
     input: &mut Input,
-    (views_input, heard): (ViewsInput, &RefCell<Heard>),
+    agree: Agreements<'_>,
     job: &ClusterJob,
     aborted: &RefCell<Option<String>>,
     out: &mut MapOutcome,
@@ -288,6 +351,7 @@ fn run_map(
         let stages = (job.stages)(&gaussians)?;
         Ok((Arc::new(gaussians), training, total, stages))
     });
+    let (views_input, heard) = agree.views;
     let (gaussians, training, total, mut stages) = match prepared {
         Ok(p) => p,
         Err(e) => {
@@ -319,18 +383,72 @@ fn run_map(
     ];
     let k = job_key(job, scene.0.len(), &scene.1, stages.crops.dim(), &stages);
     out.key = Some(k.clone());
-    let r = map_side(
+    let held = agree_on_checkpoints(
         worker,
-        input,
+        agree.resume,
+        agree.every,
         job,
-        aborted,
-        &scene.1,
-        &mut stages,
+        (&scene.0, &scene.1),
         &k,
-        &mut out.stats,
     );
+    let r = held.and_then(|held| {
+        out.shares.held = held;
+        let shares = (&mut out.stats, &mut out.shares);
+        map_side(
+            worker,
+            input,
+            job,
+            aborted,
+            &scene.1,
+            &mut stages,
+            &k,
+            shares,
+        )
+    });
     out.scene = Some(scene);
     r
+}
+
+/// Reads this worker's partition's checkpoint of the job (`key` on `gaussians` and `views`,
+/// [`resume::job_digest`]), hands it and the checkpoints' settings (interval `every`, off with
+/// `--dense`) to the partition's reducer through `slot`, and agrees with every worker on what
+/// each partition holds ([`agree_on_resume`]): `[P]` views `0..held[p]`.
+///
+/// Errors: a checkpoint of another job or unreadable, on this or another process.
+fn agree_on_checkpoints(
+    worker: &mut timely::worker::Worker,
+    (input, notes, slot): (ResumeInput, &RefCell<Notes>, &RefCell<Option<Resume>>),
+    every: Option<std::time::Duration>,
+    job: &ClusterJob,
+    (gaussians, views): (&Gaussians, &[View]),
+    key: &JobKey,
+) -> Result<Vec<u32>> {
+    let (w, peers) = (worker.index(), worker.peers());
+    let dense = job.params.dense;
+    if dense && every.is_some() && w == 0 {
+        tracing::info!("no checkpoints with --dense: they do not hold the dense contributions");
+    }
+    let every = every.filter(|_| !dense);
+    let checkpoint = checkpoint::path(&job.params.out_dir, w as u32, peers as u32);
+    let mine = if every.is_some() || checkpoint.exists() {
+        let digest = resume::job_digest(job, key, views, gaussians, peers);
+        resume::partition_resume(job, (w as u32, peers as u32), digest, every)
+    } else {
+        Ok((Resume::default(), 0))
+    };
+    let held = mine.map(|(resume, next)| {
+        *slot.borrow_mut() = Some(resume);
+        next
+    });
+    let held = agree_on_resume(worker, input, notes, held.map_err(|e| e.to_string()))?;
+    let resumed = held.iter().copied().min().unwrap_or(0);
+    if held.iter().any(|&h| h > 0) && w == 0 {
+        tracing::info!(
+            "resuming from the checkpoints: the partitions hold views {held:?}; the first \
+             {resumed} views are not encoded again"
+        );
+    }
+    Ok(held)
 }
 
 /// Ends this worker's map side at every partition: an `Abort` with the message of a failure,
@@ -347,7 +465,7 @@ fn send_done(input: &mut Input, peers: usize, w: usize, failed: Option<String>, 
         input.send(ToReducer::Done {
             partition: p,
             worker: w as u32,
-            images: map.stats.work.images,
+            images: map.shares.sent.get(p as usize).copied().unwrap_or(0),
             job: map.key.clone(),
             stats: (p == 0).then(|| map.stats.clone()),
         });
@@ -410,17 +528,19 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         t_total + cluster.connect_timeout,
         &lost,
     )
-    .and_then(|peers| run_job(&job, peers, process));
+    .and_then(|peers| run_job(&job, peers, process, cluster.checkpoint_every));
     // The job has ended one way or the other (joined) or never started: the hook may not act.
     std::panic::set_hook(previous_hook);
 
     let outcome = outcome?;
+    let peers = cluster.addresses.len() as u32;
     let Some(output) = outcome.output else {
         tracing::info!(
             process,
             images = outcome.images,
             "job completed; process 0 writes the outputs"
         );
+        checkpoint::remove(&job.params.out_dir, process as u32, peers);
         return Ok(None);
     };
     let report = write_outputs(
@@ -431,6 +551,7 @@ pub fn encode_cluster(job: ClusterJob, cluster: &ClusterConfig) -> Result<Option
         output,
         t_total,
     )?;
+    checkpoint::remove(&job.params.out_dir, process as u32, peers);
     Ok(Some(report))
 }
 
@@ -487,13 +608,15 @@ fn network_thread_peer() -> Option<usize> {
 }
 
 /// Runs `job` as this process's single timely worker over the connected `peers` (one stream per
-/// process, `None` at `process`, as [`net::connect_peers`] returns them) and waits for it to end.
+/// process, `None` at `process`, as [`net::connect_peers`] returns them), its partition
+/// checkpointed every `every` (`None`: never), and waits for it to end.
 ///
 /// Errors: timely's network threads cannot start; the worker's own error or panic.
 fn run_job(
     job: &Arc<ClusterJob>,
     peers: Vec<Option<PeerStream>>,
     process: usize,
+    every: Option<std::time::Duration>,
 ) -> Result<WorkerOutcome> {
     use timely::communication::allocator::zero_copy::initialize::initialize_networking_from_sockets;
     use timely::communication::allocator::{AllocatorBuilder, ProcessBuilder};
@@ -512,7 +635,7 @@ fn run_job(
         builders,
         Box::new(comms),
         timely::WorkerConfig::default(),
-        move |worker| run_worker(worker, &worker_job),
+        move |worker| run_worker(worker, &worker_job, every),
     )
     .map_err(|e| Error::internal(format!("encode-cluster process {process}: {e}")))?;
     guards
@@ -619,6 +742,9 @@ fn write_mixture(
 }
 
 #[cfg(test)]
+mod checkpoint_tests;
+
+#[cfg(test)]
 #[allow(clippy::unwrap_used)]
 mod tests {
     use std::time::Duration;
@@ -647,7 +773,12 @@ mod tests {
 
     /// `images` pseudo-random image contributions (seeds 1, 2, …) of `masks` masks each over
     /// `n` Gaussians.
-    fn contributions(images: u64, n: usize, masks: u32, dim: usize) -> Vec<ImageContribution> {
+    pub(super) fn contributions(
+        images: u64,
+        n: usize,
+        masks: u32,
+        dim: usize,
+    ) -> Vec<ImageContribution> {
         (1..=images)
             .map(|seed| contribution(seed, n as u32, masks, dim))
             .collect()
@@ -689,7 +820,7 @@ mod tests {
         }
     }
 
-    fn key(n: usize, views: u64, dim: usize) -> JobKey {
+    pub(super) fn key(n: usize, views: u64, dim: usize) -> JobKey {
         JobKey {
             gaussians: n as u64,
             views,
@@ -699,7 +830,7 @@ mod tests {
     }
 
     /// Every output form: the dense file, the mixture (3 kept pairs) and the masks' record.
-    const ALL_FORMS: Forms = Forms {
+    pub(super) const ALL_FORMS: Forms = Forms {
         dense: true,
         mixture_keep: Some(3),
         record_slots: Some(4),
@@ -708,7 +839,7 @@ mod tests {
     /// The whole reduce/gather path in one process: `images` split over `peers` workers
     /// round-robin, each partition reduced to `forms`, worker 0 assembling. `tamper` edits the
     /// records (their order too: the order they reach the reducers).
-    fn distributed_forms(
+    pub(super) fn distributed_forms(
         images: &[ImageContribution],
         n: usize,
         peers: usize,
@@ -746,7 +877,7 @@ mod tests {
             }
         }
         tamper(&mut records);
-        let mut reducers: Vec<PartitionReducer> = (0..peers as u32)
+        let reducers: Vec<PartitionReducer> = (0..peers as u32)
             .map(|p| {
                 // Budget 0: every contribution is spilled, as on a scene larger than memory.
                 let store = ContributionStore::new(0, dir.path().join(format!("p{p}")));
@@ -754,9 +885,22 @@ mod tests {
                     accumulator_budget_bytes: 1,
                     ..Default::default()
                 };
-                PartitionReducer::new(p, peers as u32, params, forms, store)
+                PartitionReducer::new(p, peers as u32, params, forms, store, Default::default())
             })
             .collect();
+        reduce_and_assemble(reducers, records, n, forms, images.len())
+    }
+
+    /// `records` taken in by their partition's reducer of `reducers`, each reduced, worker 0
+    /// assembling `forms` for a scene of `n` Gaussians at `(k, 0, 1)` and `views` views.
+    pub(super) fn reduce_and_assemble(
+        mut reducers: Vec<PartitionReducer>,
+        records: Vec<ToReducer>,
+        n: usize,
+        forms: Forms,
+        views: usize,
+    ) -> Result<Assembled> {
+        let peers = reducers.len();
         for r in records {
             reducers[r.partition() as usize].absorb(r);
         }
@@ -768,7 +912,7 @@ mod tests {
             means: (0..n).map(|i| [i as f32, 0.0, 1.0]).collect(),
             ..Default::default()
         };
-        assemble(gathered, peers, forms, &gaussians, images.len(), 0.0)
+        assemble(gathered, peers, forms, &gaussians, views, 0.0)
     }
 
     /// [`distributed_forms`]'s dense embeddings.
@@ -783,7 +927,7 @@ mod tests {
     }
 
     /// Shuffles `records` with the seed `seed` (Fisher–Yates on an xorshift stream).
-    fn shuffle(records: &mut [ToReducer], seed: u64) {
+    pub(super) fn shuffle(records: &mut [ToReducer], seed: u64) {
         let mut s = seed | 1;
         for i in (1..records.len()).rev() {
             s ^= s << 13;

@@ -10,6 +10,8 @@ pub(super) struct MapStats {
     pub(super) worker: u32,
     /// Wall-clock seconds of the map loop.
     pub(super) wall_s: f64,
+    /// Views of this worker it did not map because every partition's checkpoint held them.
+    pub(super) resumed: u64,
     /// The images' work (the same struct `encode`'s back workers sum). Not `#[serde(flatten)]`:
     /// timely's exchange uses bincode, which cannot decode flattened structs.
     pub(super) work: crate::report::ImageWork,
@@ -51,6 +53,7 @@ pub(super) enum ToReducer {
     Done {
         partition: u32,
         worker: u32,
+        /// Images the worker sent to this partition.
         images: u64,
         job: Option<JobKey>,
         stats: Option<MapStats>,
@@ -85,6 +88,12 @@ pub(super) struct PartSummary {
     pub(super) mixture_rows: u64,
     /// Rows of the masks' record sent (the partition's Gaussians; 0 without the record).
     pub(super) record_rows: u64,
+    /// Masks of the views taken in (every view's, once the job is complete).
+    pub(super) masks: u64,
+    /// Views restored from the partition's checkpoint.
+    pub(super) restored: u64,
+    /// Checkpoints written, their seconds in all, the largest one's bytes.
+    pub(super) checkpoints: (u64, f64, u64),
 }
 
 /// A block of a partition's mixture rows ([`crate::aggregate::MixtureFold::finish_rows`]),

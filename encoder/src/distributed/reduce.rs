@@ -4,10 +4,14 @@
 //! dense file, its contributions (spilled beyond a budget) for `aggregate::reduce`. Once every
 //! worker's contributions are in, it checks completeness and sends its rows to worker 0.
 
+use std::cell::RefCell;
+use std::collections::BTreeMap;
+use std::rc::Rc;
 use std::time::Instant;
 
 use slag_common::mask_record::MaskRecord;
 
+use super::checkpoint::{Progress, Saved};
 use super::records::{
     ImagePart, JobKey, MapStats, MixtureRows, PartSummary, RecordRows, ToGather, ToReducer,
 };
@@ -37,6 +41,33 @@ struct PartitionState {
     record: Option<MaskRecord>,
 }
 
+/// How a partition checkpoints its state ([`super::checkpoint`]), and what it wrote so far.
+pub(super) struct Checkpointer {
+    /// The partition's checkpoint file.
+    pub(super) path: std::path::PathBuf,
+    /// The job's digest written in it ([`super::resume::job_digest`]).
+    pub(super) job: [u8; 32],
+    /// The least time between two checkpoints.
+    pub(super) every: std::time::Duration,
+    /// When the last one was written (or the partition started).
+    pub(super) last: Instant,
+    /// Views the last one covers.
+    pub(super) written: u32,
+    /// Checkpoints written, their seconds in all and the largest one's bytes.
+    pub(super) count: u64,
+    pub(super) seconds: f64,
+    pub(super) bytes: u64,
+}
+
+/// What a partition starts from, set by its worker once the job's views are agreed and before
+/// any image is sent ([`PartitionReducer::adopt`]): the state of a checkpoint, and how to write
+/// the next ones.
+#[derive(Default)]
+pub(super) struct Resume {
+    pub(super) saved: Option<Saved<'static>>,
+    pub(super) checkpoints: Option<Checkpointer>,
+}
+
 /// The reduce side of one partition.
 pub(super) struct PartitionReducer {
     pub(super) partition: u32,
@@ -52,6 +83,17 @@ pub(super) struct PartitionReducer {
     pub(super) done: Vec<Option<(u64, Option<JobKey>)>>,
     pub(super) stats: Vec<MapStats>,
     pub(super) abort: Option<String>,
+    /// Views taken in, in view order: `0..next` (restored or received).
+    next: u32,
+    /// Views received before an earlier one, by view index.
+    waiting: BTreeMap<u32, ImagePart>,
+    /// Masks of the views taken in.
+    masks: u64,
+    /// Views restored from a checkpoint.
+    restored: u32,
+    /// Where the worker puts the partition's [`Resume`] (taken at the first record).
+    resume: Rc<RefCell<Option<Resume>>>,
+    checkpoints: Option<Checkpointer>,
 }
 
 /// How many of a scene's `n` Gaussians fall in partition `p` of `peers`: global ids
@@ -71,6 +113,7 @@ impl PartitionReducer {
         params: ReduceParams,
         forms: Forms,
         store: ContributionStore,
+        resume: Rc<RefCell<Option<Resume>>>,
     ) -> Self {
         Self {
             partition,
@@ -85,21 +128,161 @@ impl PartitionReducer {
             done: vec![None; peers as usize],
             stats: Vec::new(),
             abort: None,
+            next: 0,
+            waiting: BTreeMap::new(),
+            masks: 0,
+            restored: 0,
+            resume,
+            checkpoints: None,
         }
+    }
+
+    /// Takes the partition's [`Resume`] once its worker has set it: the checkpoint's state
+    /// (views `0..next`, their counts, the fold and the record) and the checkpoint settings.
+    fn adopt(&mut self) {
+        let Some(resume) = self.resume.borrow_mut().take() else {
+            return;
+        };
+        self.checkpoints = resume.checkpoints;
+        if let Some(saved) = resume.saved
+            && let Err(m) = self.restore(saved)
+        {
+            self.fail(format!("partition {}: {m}", self.partition));
+        }
+    }
+
+    /// The state of checkpoint `saved`, views `0..saved.progress.next` taken in.
+    ///
+    /// Errors: a fold or a record where this job's outputs have none (or none where they have
+    /// one), the fold's ([`MixtureFold::from_state`]).
+    fn restore(&mut self, saved: Saved<'static>) -> std::result::Result<(), String> {
+        let p = saved.progress;
+        if saved.fold.is_some() != self.forms.mixture_keep.is_some()
+            || saved.record.is_some() != self.forms.record_slots.is_some()
+            || saved
+                .fold
+                .as_ref()
+                .is_some_and(|f| f.keeps_codebook != (self.partition == 0))
+        {
+            return Err("its checkpoint holds other outputs than the job's".into());
+        }
+        let fold = saved
+            .fold
+            .map(MixtureFold::from_state)
+            .transpose()
+            .map_err(|e| e.to_string())?;
+        self.state = Some(PartitionState {
+            scene: p.scene,
+            fold,
+            record: saved.record.map(std::borrow::Cow::into_owned),
+        });
+        self.dim = Some(p.dim as usize);
+        (self.next, self.restored, self.images) = (p.next, p.next, p.next as u64);
+        (self.entries, self.masks) = (p.entries, p.masks);
+        tracing::info!(
+            partition = self.partition,
+            views = p.next,
+            "resumed from the partition's checkpoint"
+        );
+        Ok(())
+    }
+
+    /// Takes in image `part` and every view waiting behind it, in view order, then writes a
+    /// checkpoint when one is due.
+    fn absorb_in_order(&mut self, part: ImagePart) {
+        let image = part.image;
+        if image < self.next || self.waiting.contains_key(&image) {
+            let p = self.partition;
+            self.fail(format!("partition {p}: view {image} reached it twice"));
+            return;
+        }
+        self.waiting.insert(image, part);
+        while let Some(part) = self.waiting.remove(&self.next) {
+            if let Err(m) = self.absorb_image(part) {
+                self.fail(format!("partition {}: {m}", self.partition));
+                return;
+            }
+            self.next += 1;
+        }
+        self.checkpoint_if_due();
+    }
+
+    /// Writes the partition's state to its checkpoint when checkpoints are on, views were taken
+    /// in since the last one and the interval has passed. A failed write is logged and the job
+    /// goes on (the previous checkpoint stays whole).
+    fn checkpoint_if_due(&mut self) {
+        let Some(mut c) = self.checkpoints.take() else {
+            return;
+        };
+        if self.next > c.written && c.last.elapsed() >= c.every {
+            let t0 = Instant::now();
+            let written = self
+                .saved(c.job)
+                .and_then(|s| super::checkpoint::write(&c.path, &s).map_err(|e| e.to_string()));
+            let seconds = t0.elapsed().as_secs_f64();
+            match written {
+                Ok(bytes) => {
+                    (c.count, c.seconds, c.bytes) =
+                        (c.count + 1, c.seconds + seconds, c.bytes.max(bytes));
+                    c.written = self.next;
+                    tracing::info!(
+                        partition = self.partition,
+                        views = self.next,
+                        bytes,
+                        seconds,
+                        "checkpoint written"
+                    );
+                }
+                Err(e) => tracing::warn!(
+                    partition = self.partition,
+                    "checkpoint not written, the previous one stays: {e}"
+                ),
+            }
+            c.last = Instant::now();
+        }
+        self.checkpoints = Some(c);
+    }
+
+    /// The partition's state after views `0..next` for a checkpoint of job `job`, its arrays
+    /// borrowed.
+    ///
+    /// Errors: no state yet; the fold's ([`MixtureFold::state`]).
+    fn saved(&self, job: [u8; 32]) -> std::result::Result<Saved<'_>, String> {
+        let state = self.state.as_ref().ok_or("no state to checkpoint")?;
+        let fold = state
+            .fold
+            .as_ref()
+            .map(MixtureFold::state)
+            .transpose()
+            .map_err(|e| e.to_string())?;
+        Ok(Saved {
+            progress: Progress {
+                job,
+                partition: self.partition,
+                peers: self.peers,
+                scene: state.scene,
+                dim: self.dim.unwrap_or(0) as u64,
+                next: self.next,
+                entries: self.entries,
+                masks: self.masks,
+            },
+            fold,
+            record: state.record.as_ref().map(std::borrow::Cow::Borrowed),
+        })
     }
 
     pub(super) fn fail(&mut self, message: String) {
         self.abort.get_or_insert(message);
     }
 
+    /// Takes in one record: an image's share (folded in view order, [`Self::absorb_in_order`]),
+    /// a worker's end record, an abort.
     pub(super) fn absorb(&mut self, record: ToReducer) {
+        self.adopt();
         match record {
             ToReducer::Image(part) => {
-                if self.abort.is_some() {
-                    return;
-                }
-                if let Err(m) = self.absorb_image(part) {
-                    self.fail(format!("partition {}: {m}", self.partition));
+                if self.abort.is_none() {
+                    self.absorb_in_order(part);
                 }
             }
             ToReducer::Done {
@@ -140,6 +323,7 @@ impl PartitionReducer {
         }
         self.images += 1;
         self.entries += part.local_ids.len() as u64;
+        self.masks += masks as u64;
         let entries: Vec<Entry> = part
             .local_ids
             .iter()
@@ -246,6 +430,7 @@ impl PartitionReducer {
     /// Errors: an abort received, an incomplete or inconsistent job
     /// ([`PartitionReducer::complete_job`]), a failed reduction.
     pub(super) fn reduce(&mut self) -> std::result::Result<Vec<ToGather>, String> {
+        self.adopt();
         if let Some(m) = self.abort.take() {
             return Err(m);
         }
@@ -288,6 +473,12 @@ impl PartitionReducer {
             job,
             mixture_rows,
             record_rows,
+            masks: self.masks,
+            restored: self.restored as u64,
+            checkpoints: self
+                .checkpoints
+                .as_ref()
+                .map_or((0, 0.0, 0), |c| (c.count, c.seconds, c.bytes)),
         }));
         Ok(out)
     }
@@ -377,10 +568,11 @@ impl PartitionReducer {
             }
         }
         let job = job.ok_or_else(|| format!("partition {p}: no worker"))?;
-        if sent != job.views || self.images != job.views {
+        let restored = self.restored as u64;
+        if sent + restored != job.views || self.images != job.views {
             return Err(format!(
-                "partition {p}: {} contributions received, {sent} sent, {} views; the job is \
-                 incomplete",
+                "partition {p}: {} contributions taken in ({restored} of them from its \
+                 checkpoint), {sent} sent, {} views; the job is incomplete",
                 self.images, job.views
             ));
         }
