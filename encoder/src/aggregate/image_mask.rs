@@ -6,27 +6,25 @@ use crate::masks::compact::CompactMask;
 use crate::masks::{Mask, MaskMeta};
 
 /// What the image stage reads of a mask at its image's full resolution: its size, box, area and
-/// SAM scores (from its [`MaskMeta`]), and which pixels of a row are inside. Implemented by
+/// SAM scores (the [`MaskMeta`] it dereferences to), and which pixels of a row are inside. Implemented by
 /// [`Mask`] (a byte per pixel) and [`CompactMask`] (runs), which give the same answers, so that
 /// the labels of an image are made from the compact masks without expanding them.
-pub trait ImageMask: Sync {
-    /// The mask's metadata: size, box, area, scores.
-    fn meta(&self) -> &MaskMeta;
+pub trait ImageMask: std::ops::Deref<Target = MaskMeta> + Sync {
     /// `(width, height)` of the mask's image, pixels.
     fn size(&self) -> (u32, u32) {
-        (self.meta().width, self.meta().height)
+        (self.width, self.height)
     }
     /// As [`MaskMeta::bbox_xywh`].
     fn bbox_xywh(&self) -> [u32; 4] {
-        self.meta().bbox_xywh
+        self.bbox_xywh
     }
     /// As [`MaskMeta::area`].
     fn area(&self) -> u32 {
-        self.meta().area
+        self.area
     }
     /// As [`MaskMeta::predicted_iou`] and [`MaskMeta::stability_score`].
     fn scores(&self) -> (f32, f32) {
-        (self.meta().predicted_iou, self.meta().stability_score)
+        (self.predicted_iou, self.stability_score)
     }
     /// Calls `hit(x)` for each `(x, sx)` of `cols` (`sx` ascending, `< width`) whose pixel
     /// `(sx, sy)` is inside the mask (`sy < height`).
@@ -34,9 +32,6 @@ pub trait ImageMask: Sync {
 }
 
 impl ImageMask for Mask {
-    fn meta(&self) -> &MaskMeta {
-        &self.meta
-    }
     fn row_hits(
         &self,
         sy: u32,
@@ -53,9 +48,6 @@ impl ImageMask for Mask {
 }
 
 impl ImageMask for CompactMask {
-    fn meta(&self) -> &MaskMeta {
-        &self.meta
-    }
     fn row_hits(
         &self,
         sy: u32,
