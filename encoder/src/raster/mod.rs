@@ -18,11 +18,11 @@ pub mod cpu;
 pub mod gpu;
 pub mod project;
 #[cfg(test)]
+mod stream_tests;
+#[cfg(test)]
 mod testdata;
 #[cfg(test)]
 mod tests;
-#[cfg(test)]
-mod stream_tests;
 
 pub use colour::{psnr, render_colour};
 pub use cpu::CpuRasterizer;
@@ -136,6 +136,37 @@ pub trait WeightRasterizer: Send {
     ) -> Result<Option<LabelSums>> {
         let _ = precomputed;
         self.label_sums(intrinsics, world_to_camera, labels)
+    }
+    /// One view of the coverage pass ([`crate::views`]): the Gaussians whose total blend weight
+    /// in the view, `W_k = Σ_p w_kp` over every raster pixel of `intrinsics`, reaches `floor`,
+    /// as a bitset over the scene (bit `k % 64` of word `k / 64`, `⌈N / 64⌉` words). `W_k` and
+    /// `floor` are 64-bit fixed point, `2^32` = one raster pixel, the per-pixel weights truncated
+    /// to it and summed exactly: the totals of [`Self::label_sums`] with every pixel in one
+    /// label. A floor of 0 counts as 1 (a Gaussian must contribute). The rasterizer keeps, per
+    /// Gaussian, the largest `W_k` of a view that saw it ([`Self::take_coverage_maxima`]).
+    /// `precomputed` is the view's host work done ahead, as for
+    /// [`Self::label_sums_precomputed`].
+    ///
+    /// `Ok(None)`: this rasterizer has no such path (the default; the pass then sums
+    /// [`Self::label_sums`] or the per-pixel lists on the host). Errors: as [`Self::rasterize`].
+    fn coverage_view(
+        &mut self,
+        intrinsics: &Intrinsics,
+        world_to_camera: &slag_common::camera::WorldToCamera,
+        floor: u64,
+        precomputed: Option<PrecomputedView>,
+    ) -> Result<Option<Vec<u64>>> {
+        let _ = (intrinsics, world_to_camera, floor, precomputed);
+        Ok(None)
+    }
+    /// The maxima that [`Self::coverage_view`] kept since the last call, then forgotten: per
+    /// Gaussian (`N` values) the largest total blend weight (its fixed point) of a view that saw
+    /// it, 0 when none did. `Ok(None)` for a rasterizer without [`Self::coverage_view`] (the
+    /// default).
+    ///
+    /// Errors: device failures.
+    fn take_coverage_maxima(&mut self) -> Result<Option<Vec<u64>>> {
+        Ok(None)
     }
     /// Starts keeping every labelled view's sums on the device for the device reduction
     /// ([`Self::label_sums_kept`], then [`Self::reduce_kept`]): `dim` is the embedding width,

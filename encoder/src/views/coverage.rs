@@ -7,8 +7,11 @@
 //! `W_kv ≥` the floor (below). Only these sets are kept ([`ViewCoverage`]): per view
 //! the sorted Gaussian ids or a bitset of the scene, whichever is smaller, so memory is at most
 //! `views × Gaussians / 8` bytes (62.5 MB at 2M Gaussians × 250 views), never a dense weight
-//! matrix. With the GPU rasterizer the sums are the device's label sums with every pixel in one
-//! label (exact 64-bit fixed point, so a view's set does not depend on threads or order).
+//! matrix. With the GPU rasterizer the sums stay on the device: per Gaussian the label sums' total
+//! with every pixel in one label (exact 64-bit fixed point, so a view's set does not depend on
+//! threads or order), compared with the floor there; a view reads back one bit per Gaussian, and
+//! the largest totals, for the footprints, are read once at the end
+//! ([`WeightRasterizer::coverage_view`]).
 //!
 //! **The floor.** [`CoverageRule::min_weight`] when given; otherwise the scene's own. Blend
 //! weights share a view's pixels: a view of `P` pixels gives its Gaussians at most `P` pixels of
@@ -200,6 +203,19 @@ impl SeenSet {
         SeenSet::Bits(bits)
     }
 
+    /// The set of the bitset `words` (bit `k % 64` of word `k / 64`, no bit at `n` or past it)
+    /// over a scene of `n` Gaussians, in the form [`SeenSet::new`] would give it.
+    fn from_bits(mut words: Vec<u64>, n: usize) -> Self {
+        words.truncate(n.div_ceil(64));
+        let count: usize = words.iter().map(|w| w.count_ones() as usize).sum();
+        if count * 32 > n {
+            return SeenSet::Bits(words);
+        }
+        let mut ids = Vec::with_capacity(count);
+        SeenSet::Bits(words).for_each_in(0, n, |k| ids.push(k as u32));
+        SeenSet::Ids(ids)
+    }
+
     /// Bytes held.
     fn bytes(&self) -> usize {
         match self {
@@ -379,17 +395,26 @@ pub fn measure_shown(
     let results: Mutex<Vec<Option<SeenSet>>> = Mutex::new(vec![None; views.len()]);
     let footprint: Vec<AtomicU64> = (0..gaussians).map(|_| AtomicU64::new(0)).collect();
     let all: Vec<usize> = (0..views.len()).collect();
+    let footprint_of = |w: f64| footprint_steps(w / pass.area, steps_per_px);
     pass.run(rasterizers, &all, floor_px * pass.area, |i, seen| {
-        for &(id, w) in &seen {
-            let q = footprint_steps(w / pass.area, steps_per_px);
-            footprint[id as usize].fetch_max(q, Ordering::Relaxed);
-        }
-        let ids = seen.into_iter().map(|(id, _)| id).collect();
-        let set = SeenSet::new(ids, gaussians);
+        let set = match seen {
+            SeenView::Weighed(seen) => {
+                for &(id, w) in &seen {
+                    footprint[id as usize].fetch_max(footprint_of(w), Ordering::Relaxed);
+                }
+                SeenSet::new(seen.into_iter().map(|(id, _)| id).collect(), gaussians)
+            }
+            SeenView::Bits(words) => SeenSet::from_bits(words, gaussians),
+        };
         if let Ok(mut out) = results.lock() {
             out[i] = Some(set);
         }
         progress.inc(1);
+    })?;
+    // The device's maxima of the views that saw each Gaussian: the footprint is monotone in the
+    // weight, so the footprint of the maximum is the maximum of the footprints.
+    fold_device_maxima(rasterizers, |k, w| {
+        footprint[k].fetch_max(footprint_of(w), Ordering::Relaxed);
     })?;
     let seen = results
         .into_inner()
@@ -407,6 +432,30 @@ pub fn measure_shown(
     })
 }
 
+/// Hands `fold(Gaussian, weight)` every non-zero maximum the `rasterizers` kept over the views
+/// of a pass ([`WeightRasterizer::take_coverage_maxima`]; weights in raster pixels), and clears
+/// them.
+///
+/// Errors: the rasterizers' (the first one).
+fn fold_device_maxima(
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
+    fold: impl Fn(usize, f64) + Sync,
+) -> Result<()> {
+    for r in rasterizers.iter_mut() {
+        if let Some(maxima) = r.take_coverage_maxima()? {
+            maxima.par_iter().enumerate().for_each(|(k, &m)| {
+                if m > 0 {
+                    fold(k, m as f64 / FIXED_ONE);
+                }
+            });
+        }
+    }
+    Ok(())
+}
+
+/// One pixel of blend weight in the label sums' and the coverage totals' fixed point.
+const FIXED_ONE: f64 = 4_294_967_296.0;
+
 /// The candidate views of one pass and their rasters.
 struct Pass<'a> {
     views: &'a [View],
@@ -421,7 +470,8 @@ struct Pass<'a> {
 impl Pass<'_> {
     /// Rasterizes the views at positions `which` on `rasterizers` and hands each view's
     /// Gaussians of weight ≥ `floor` raster pixels ([`ViewSums::seen`]) to `take(position,
-    /// seen)`. Each rasterizer is a pipeline of three threads, so that its device never waits on
+    /// seen)` (a rasterizer that keeps them on the device hands on their ids only, and keeps
+    /// their largest weights for [`fold_device_maxima`]). Each rasterizer is a pipeline of three threads, so that its device never waits on
     /// the host: one takes the next view in turn and does its host work ahead
     /// ([`WeightRasterizer::view_precompute`]), one drives the rasterizer, one reduces the
     /// view's sums to its seen Gaussians and hands them on. Stops at the first error and
@@ -431,7 +481,7 @@ impl Pass<'_> {
         rasterizers: &mut [Box<dyn WeightRasterizer>],
         which: &[usize],
         floor: f64,
-        take: impl Fn(usize, Vec<(u32, f64)>) + Sync,
+        take: impl Fn(usize, SeenView) + Sync,
     ) -> Result<()> {
         let next = AtomicUsize::new(0);
         let failure = PassFailure::default();
@@ -456,7 +506,7 @@ impl Pass<'_> {
                 s.spawn(move || {
                     for (i, pre) in pre_rx {
                         let (v, k) = (&self.views[i], &self.intrinsics[i]);
-                        match view_sums(r.as_mut(), k, &v.world_to_camera, pre) {
+                        match view_sums(r.as_mut(), k, &v.world_to_camera, pre, floor) {
                             Ok(sums) => {
                                 if sums_tx.send((i, sums)).is_err() {
                                     break;
@@ -524,9 +574,14 @@ fn scene_floor(
     // the maximum.
     let best: Vec<AtomicU64> = (0..pass.gaussians).map(|_| AtomicU64::new(0)).collect();
     pass.run(rasterizers, &sample, 0.0, |_, seen| {
-        for (id, w) in seen {
-            best[id as usize].fetch_max(w.to_bits(), Ordering::Relaxed);
+        if let SeenView::Weighed(seen) = seen {
+            for (id, w) in seen {
+                best[id as usize].fetch_max(w.to_bits(), Ordering::Relaxed);
+            }
         }
+    })?;
+    fold_device_maxima(rasterizers, |k, w| {
+        best[k].fetch_max(w.to_bits(), Ordering::Relaxed);
     })?;
     let mut shown: Vec<f64> = best
         .into_iter()
@@ -568,14 +623,26 @@ fn pass_intrinsics(k: &Intrinsics, scale: f64) -> Result<Intrinsics> {
     })
 }
 
-/// One view's blend weights as a rasterizer gave them: per-label sums (every pixel in label 1)
-/// or, for a rasterizer without them, its per-pixel lists.
+/// One view's blend weights as a rasterizer gave them: the Gaussians at the floor, found on
+/// the device ([`WeightRasterizer::coverage_view`]); per-label sums (every pixel in label 1);
+/// or, for a rasterizer without either, its per-pixel lists.
 enum ViewSums {
+    Seen(Vec<u64>),
     Sums(crate::raster::LabelSums),
     Lists(crate::raster::PixelWeights),
 }
 
-/// View `w2c`'s weights on raster `k` ([`ViewSums`]), with its host work `pre` done ahead.
+/// The Gaussians a view sees, as [`ViewSums::seen`] hands them on.
+enum SeenView {
+    /// Ascending ids, each with its total blend weight in the view (raster pixels).
+    Weighed(Vec<(u32, f64)>),
+    /// A bitset over the scene (bit `k % 64` of word `k / 64`); the weights stayed on the
+    /// device ([`fold_device_maxima`]).
+    Bits(Vec<u64>),
+}
+
+/// View `w2c`'s weights on raster `k` ([`ViewSums`]) for a floor of `floor` raster pixels,
+/// with its host work `pre` done ahead.
 ///
 /// Errors: the rasterizer's.
 fn view_sums(
@@ -583,28 +650,39 @@ fn view_sums(
     k: &Intrinsics,
     w2c: &WorldToCamera,
     pre: Option<crate::raster::PrecomputedView>,
+    floor: f64,
 ) -> Result<ViewSums> {
+    if let Some(bits) = r.coverage_view(k, w2c, fixed_floor(floor), pre)? {
+        return Ok(ViewSums::Seen(bits));
+    }
+    // A rasterizer without the device's pass has no host work ahead either.
     let labels = vec![1u32; k.width as usize * k.height as usize];
-    match r.label_sums_precomputed(k, w2c, &labels, pre)? {
+    match r.label_sums_precomputed(k, w2c, &labels, None)? {
         Some(sums) => Ok(ViewSums::Sums(sums)),
         None => Ok(ViewSums::Lists(r.rasterize(k, w2c)?)),
     }
 }
 
+/// A floor of `floor` raster pixels in the label sums' fixed point, at least 1 (a Gaussian
+/// must contribute).
+fn fixed_floor(floor: f64) -> u64 {
+    ((floor * FIXED_ONE).ceil() as u64).max(1)
+}
+
 impl ViewSums {
-    /// The Gaussians whose total blend weight in the view is at least `floor` (raster pixels),
-    /// ascending by id, with that weight (raster pixels): the label sums compared in their own
-    /// fixed point (exact), or the per-pixel lists summed per Gaussian (f64, pixel order) over a
-    /// scene of `gaussians`.
-    fn seen(self, floor: f64, gaussians: usize) -> Vec<(u32, f64)> {
-        match self {
+    /// The Gaussians whose total blend weight in the view is at least `floor` (raster pixels):
+    /// the device's bitset as it came; or, ascending by id with that weight (raster pixels),
+    /// the label sums compared in their own fixed point (exact), or the per-pixel lists summed
+    /// per Gaussian (f64, pixel order) over a scene of `gaussians`.
+    fn seen(self, floor: f64, gaussians: usize) -> SeenView {
+        SeenView::Weighed(match self {
+            ViewSums::Seen(bits) => return SeenView::Bits(bits),
             ViewSums::Sums(sums) => {
-                const ONE: f64 = 4_294_967_296.0;
-                let floor_fixed = (floor * ONE).ceil() as u64;
+                let floor_fixed = fixed_floor(floor);
                 sums.reduced()
                     .into_iter()
-                    .filter(|s| s.sum >= floor_fixed.max(1))
-                    .map(|s| (s.gaussian, s.sum as f64 / ONE))
+                    .filter(|s| s.sum >= floor_fixed)
+                    .map(|s| (s.gaussian, s.sum as f64 / FIXED_ONE))
                     .collect()
             }
             ViewSums::Lists(w) => {
@@ -621,7 +699,7 @@ impl ViewSums {
                     .map(|(i, &t)| (i as u32, t))
                     .collect()
             }
-        }
+        })
     }
 }
 
@@ -722,6 +800,10 @@ impl Viewpoints<'_> {
     fn adds(&self, g: usize, v: usize, slots: &[u32]) -> bool {
         if slots[self.per - 1] != u32::MAX {
             return false;
+        }
+        if slots[0] == u32::MAX {
+            // No viewpoint yet: any view adds the first (no direction to compare).
+            return true;
         }
         let m = self.means[g].map(f64::from);
         let m = DVec3::new(m[0], m[1], m[2]);

@@ -42,8 +42,8 @@ struct Params {
     out_cap: u32,        // blend_sums: records that fit in records[] after its 4-word header
     n_keys: u32,         // sort: (Gaussian, tile) intersections of the view
     shift: u32,          // radix passes: bit of the 64-bit key where this pass's 4-bit digit starts
-    pad0: u32,
-    pad1: u32,
+    floor_lo: u32,       // coverage_seen: the floor of a seen Gaussian's total, low word
+    floor_hi: u32,       //   and high word (64-bit fixed point, 2^32 = one raster pixel)
 }
 
 struct Splat {

@@ -55,6 +55,13 @@
 //!    sorted. A view of several bands leaves the merge of their keys to the image stage
 //!    ([`super::LabelSums::reduced`]), on its own thread.
 //!
+//! 3''. Instead of 3–4, for the coverage pass of the view selection
+//!    ([`WeightRasterizer::coverage_view`], [`coverage`], `coverage.wgsl`): the `blend_totals`
+//!    kernel sums each splat's weights over a tile as `blend_sums` does with every pixel in one
+//!    label, and adds the tile's sum to the Gaussian's 64-bit total on the device; `coverage_seen`
+//!    compares each total with the floor, sets the Gaussian's bit and keeps its largest total
+//!    over the views. One bit per Gaussian is read back per view.
+//!
 //! Output buffers are sized from the counts and checked against the device's
 //! `max_storage_buffer_binding_size` / `max_buffer_size`; a view whose single row of tiles (or
 //! offsets array) exceeds them is an [`Error::Limit`] naming the limit (the command line adds
@@ -85,6 +92,7 @@ use super::{
 
 mod buffers;
 mod count_scan;
+mod coverage;
 pub mod ek;
 mod fold;
 pub mod icd;
@@ -108,6 +116,7 @@ const SHADER: &str = concat!(
     include_str!("scan.wgsl"),
     include_str!("sort.wgsl"),
     include_str!("reduce.wgsl"),
+    include_str!("coverage.wgsl"),
 );
 /// x extent of the 2D dispatches over Gaussians / scan blocks (must match `params.groups_x` use).
 const GROUPS_X: u32 = 32768;
@@ -139,8 +148,8 @@ struct Params {
     out_cap: u32,
     n_keys: u32,
     shift: u32,
-    pad0: u32,
-    pad1: u32,
+    floor_lo: u32,
+    floor_hi: u32,
 }
 
 // `Params` is a WGSL uniform (common.wgsl): 5 vec4<f32> then 16 u32, 144 bytes, no padding.
@@ -197,6 +206,8 @@ struct Pipelines {
     record_keys: wgpu::ComputePipeline,
     record_heads: wgpu::ComputePipeline,
     record_sums: wgpu::ComputePipeline,
+    blend_totals: wgpu::ComputePipeline,
+    coverage_seen: wgpu::ComputePipeline,
 }
 
 /// 3DGS weight rasterizer on a wgpu device (see the module docs for the kernel sequence).
@@ -242,6 +253,8 @@ pub struct GpuRasterizer {
     label_record_limit: Option<u64>,
     /// The label-sum records buffer and its staging twin, kept across views.
     label_out: Option<RecordBuffers>,
+    /// The coverage pass's totals, maxima and bitset, kept across its views ([`coverage`]).
+    coverage: Option<coverage::CoverageBuffers>,
     /// Re-runs of a band (it did not fit its buffer) in the last label-sum view.
     label_retries: u32,
     /// Records the `blend_sums` kernel wrote in the last label-sum view (all bands).
@@ -545,6 +558,8 @@ impl Pipelines {
             record_keys: pipe("record_keys"),
             record_heads: pipe("record_heads"),
             record_sums: pipe("record_sums"),
+            blend_totals: pipe("blend_totals"),
+            coverage_seen: pipe("coverage_seen"),
         }
     }
 }
@@ -655,6 +670,7 @@ impl GpuRasterizer {
             label_records: INITIAL_LABEL_RECORDS,
             label_record_limit: None,
             label_out: None,
+            coverage: None,
             label_retries: 0,
             label_record_count: 0,
             reduce: None,
@@ -753,22 +769,8 @@ impl GpuRasterizer {
         w2c: &WorldToCamera,
         labels: Option<&[u32]>,
     ) -> Result<RunOutput> {
-        validate_raster(k)?;
         let mut kept = self.out.take();
-        let mut view = self.begin_view(k, w2c)?;
-        self.noise(&self.splats, SEED_SALT);
-        self.noise(&self.isect, SEED_SALT + 1);
-
-        // 1. Projection, the Gaussians' tile counts and their total.
-        let mut clock = std::time::Instant::now();
-        let mut timings = PhaseTimings::default();
-        self.upload_sort_depths(w2c);
-        let depth_ms = lap(&mut clock);
-        let total = self.project_count(&view)?;
-        timings.project_ms = lap(&mut clock);
-        // 2. Binning and depth sort on the GPU (recorded and submitted; no wait).
-        let binned = self.sort_tiles(&view, total)?;
-        timings.bin_sort_ms = depth_ms + lap(&mut clock);
+        let (mut view, binned, mut timings, mut clock) = self.project_and_bin(k, w2c)?;
 
         // 3'. Label sums instead of per-pixel lists: only the compact records are read back.
         if let Some(labels) = labels {
@@ -798,6 +800,32 @@ impl GpuRasterizer {
             ids,
             weights,
         }))
+    }
+
+    /// Steps 1–2 of a view: projection, the Gaussians' tile counts and their total, then the
+    /// tile binning and depth sort on the GPU (recorded and submitted; no wait). Returns the
+    /// view, its binned intersections, the phases' timings so far and the clock at their end.
+    ///
+    /// Errors: an invalid raster ([`validate_raster`]), the device's limits
+    /// ([`Self::begin_view`]), device failures.
+    fn project_and_bin(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+    ) -> Result<(View, Binned, PhaseTimings, std::time::Instant)> {
+        validate_raster(k)?;
+        let view = self.begin_view(k, w2c)?;
+        self.noise(&self.splats, SEED_SALT);
+        self.noise(&self.isect, SEED_SALT + 1);
+        let mut clock = std::time::Instant::now();
+        let mut timings = PhaseTimings::default();
+        self.upload_sort_depths(w2c);
+        let depth_ms = lap(&mut clock);
+        let total = self.project_count(&view)?;
+        timings.project_ms = lap(&mut clock);
+        let binned = self.sort_tiles(&view, total)?;
+        timings.bin_sort_ms = depth_ms + lap(&mut clock);
+        Ok((view, binned, timings, clock))
     }
 
     /// Checks the view against the device's dispatch and binding limits and uploads its
@@ -849,8 +877,8 @@ impl GpuRasterizer {
             out_cap: 0,
             n_keys: 0,
             shift: 0,
-            pad0: 0,
-            pad1: 0,
+            floor_lo: 0,
+            floor_hi: 0,
         };
         let params_buf = self
             .device
@@ -995,6 +1023,23 @@ impl WeightRasterizer for GpuRasterizer {
         let out = self.label_sums(k, w2c, labels);
         self.precomputed = None;
         out
+    }
+
+    fn coverage_view(
+        &mut self,
+        k: &Intrinsics,
+        w2c: &WorldToCamera,
+        floor: u64,
+        precomputed: Option<PrecomputedView>,
+    ) -> Result<Option<Vec<u64>>> {
+        self.precomputed = precomputed;
+        let out = self.in_error_scopes(k, |r| r.run_coverage(k, w2c, floor));
+        self.precomputed = None;
+        out.map(Some)
+    }
+
+    fn take_coverage_maxima(&mut self) -> Result<Option<Vec<u64>>> {
+        self.read_coverage_maxima().map(Some)
     }
 
     fn keep_on_device(&mut self, dim: usize, budget_bytes: u64, on_cpu_adapter: bool) -> bool {

@@ -9,6 +9,7 @@
 //! the GPU's binning and depth sort; [`device_reduction`] the reduction kept on the device. This
 //! file holds the scenes, cameras and masks they share.
 
+mod coverage;
 mod device_reduction;
 mod label_sums;
 mod sort;
