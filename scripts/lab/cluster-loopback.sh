@@ -4,8 +4,11 @@
 # graph masks, color-clip, CPU rasterizer at raster scale 0.25, --reduce host, f32, one thread a
 # process), a one-process `encode` then 3 processes of `encode-cluster` with a shared secret,
 # ROUNDS times; prints each run's wall and whether every output file but the report is
-# byte-identical (cmp). NOT part of CI.
-#   scripts/lab/cluster-loopback.sh [SLAG_ENCODER] [ROUNDS]      (run in the repo root)
+# byte-identical (cmp). With CHECKPOINT_EVERY=SECONDS the cluster runs with --checkpoint-every
+# SECONDS (0.001: a checkpoint after every view a partition takes in) and each round also prints
+# the checkpoints each partition wrote, their seconds and the largest one's bytes (report.json).
+# NOT part of CI.
+#   [CHECKPOINT_EVERY=S] scripts/lab/cluster-loopback.sh [SLAG_ENCODER] [ROUNDS]   (repo root)
 set -uo pipefail
 B=${1:-target/debug/slag-encoder}; rounds=${2:-2}
 shared=${SLAG_SHARED:-../shared}
@@ -23,8 +26,9 @@ s=[socket.socket() for _ in range(3)]
 print(" ".join(str(x.getsockname()[1]) for x in s))')
   : > "$w/hosts"; for p in $ports; do echo "127.0.0.1:$p" >> "$w/hosts"; done
   t2=$(now); pids=()
+  ckpt=(); [ -n "${CHECKPOINT_EVERY:-}" ] && ckpt=(--checkpoint-every "$CHECKPOINT_EVERY")
   for i in 0 1 2; do
-    "$B" encode-cluster --process $i --hosts "$w/hosts" --cluster-secret-file "$w/secret" "${args[@]}" \
+    "$B" encode-cluster --process $i --hosts "$w/hosts" --cluster-secret-file "$w/secret" "${args[@]}" "${ckpt[@]}" \
       --out "$w/cluster-$r" > "$w/cluster-$r-$i.log" 2>&1 & pids+=($!)
   done
   rc=0; for p in "${pids[@]}"; do wait "$p" || rc=$?; done
@@ -37,4 +41,8 @@ print(" ".join(str(x.getsockname()[1]) for x in s))')
   done
   printf 'round %s: encode %.1f s, encode-cluster (3 processes) %.1f s; files but the report byte-identical: %s (%s)\n' \
     "$r" "$(echo "$t1 - $t0" | bc)" "$(echo "$t3 - $t2" | bc)" "$same" "$(cd "$w/one-$r" && ls | tr '\n' ' ')"
+  [ -n "${CHECKPOINT_EVERY:-}" ] && python3 -c 'import json,sys
+c=json.load(open(sys.argv[1]))["outputs"]["cluster"]
+for p in c["partitions"]:
+    print("  partition %d: %d checkpoints, %.4f s in all, largest %d bytes" % (p["partition"], p["checkpoints"], p["checkpoint_s"], p["checkpoint_bytes"]))' "$w/cluster-$r/report.json"
 done
