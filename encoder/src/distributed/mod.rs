@@ -57,7 +57,18 @@
 //! "timely communication error"; [`encode_cluster`] turns that into an immediate exit with status
 //! [`EXIT_PEER_LOST`] and a message naming the process that died and its address (each peer's
 //! stream records its index when it fails, [`net::PeerStream`]), after removing its own spill
-//! folder. timely has no fault tolerance: a job that lost a process is rerun as a whole.
+//! folder. timely has no fault tolerance: a job that lost a process is rerun, and the rerun
+//! resumes from the partitions' checkpoints.
+//!
+//! # Checkpoints
+//!
+//! A partition takes its views in view order (those that arrive early wait), so its state always
+//! covers views `0..n`; at most every [`ClusterConfig::checkpoint_every`] it writes that state
+//! (`checkpoint.rs`: the fold, the record, `n`, a digest of the job) atomically. Before the map of
+//! a rerun every worker reads its partition's checkpoint and tells every worker its `n`
+//! (`resume.rs`); a view is mapped only when some partition lacks it and its parts go only to
+//! those partitions, so each partition takes in every view exactly once, and its rows are those
+//! of an uninterrupted run bit for bit. No checkpoint is written with `--dense`.
 //!
 //! # Connections
 //!
