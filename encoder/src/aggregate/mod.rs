@@ -16,7 +16,8 @@
 //! shared mask embeddings (`slag_common::mixture`), the compressed storage form;
 //! [`reduce_to_writer_with_mixture`] gives both forms from one pass (the encoder's tail).
 //! When only the mixture is written, [`MixtureFold`] folds each view into a running state as it
-//! comes instead, so that the host keeps no view.
+//! comes instead, so that the host keeps no view; with the dense file, [`DenseFold`] folds each
+//! view into f64 accumulators tiled by Gaussian ids (spilled past a budget), with the same sums.
 //!
 //! One file per step: [`image`] (the image stage: pixel labels, mask weighting, `a_kj` of one
 //! image; [`erode`], the masks eroded for it with `--mask-erode`), [`store`] (the [`ContributionStore`] that holds every image's `a_kj` until the
@@ -27,6 +28,7 @@
 //! instead of their mean). The rasterizer is driven by the pipeline's back stage
 //! ([`crate::pipeline::view_contribution`]), not from here: this module is the paper's math only.
 
+pub mod dense_fold;
 pub mod erode;
 pub mod fold;
 pub mod image;
@@ -38,6 +40,7 @@ pub mod robust;
 pub mod store;
 mod top;
 
+pub use dense_fold::{DenseFold, DenseFoldParams, DenseFoldStats, DenseFolded};
 pub use fold::{FoldState, MixtureFold};
 pub use image::{
     Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,

@@ -279,35 +279,62 @@ impl<T: Clone + Default> ChunkSums<T> {
     /// unit vectors `Σ a E / ‖Σ a E‖` rounded to f32 `[B * D]`, `Σ a` rounded to f32 `[B]`,
     /// `chunks` 0.
     pub(super) fn reduced(&self, min_total_weight: f64) -> Reduced {
-        let mut out = Reduced::default();
-        for (r, row, norm, d) in self.observed(min_total_weight) {
-            out.ids.push((self.start + r) as u32);
-            out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
-            out.total_weights.push(d as f32);
-        }
-        out
+        reduced_rows(self.start, self.dim, &self.num, &self.den, min_total_weight)
     }
 
-    /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`.
-    /// Unobserved (skipped): `Σ a` NaN or below `min_total_weight`, or the norm not finite or
-    /// at most `1e-9 · Σ a` (mask embeddings that cancel out carry no direction).
+    /// The observed Gaussians of the chunk, ascending: `(row r, Σ a E [D], its L2 norm, Σ a)`
+    /// ([`observed_rows`]).
     pub(super) fn observed(
         &self,
         min_total_weight: f64,
     ) -> impl Iterator<Item = (usize, &[f64], f64, f64)> {
-        self.den.iter().enumerate().filter_map(move |(r, &d)| {
-            // NaN sums count as unobserved too.
-            if d.is_nan() || d < min_total_weight {
-                return None;
-            }
-            let row = &self.num[r * self.dim..(r + 1) * self.dim];
-            let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
-            if !norm.is_finite() || norm <= 1e-9 * d {
-                return None;
-            }
-            Some((r, row, norm, d))
-        })
+        observed_rows(self.dim, &self.num, &self.den, min_total_weight)
     }
+}
+
+/// The observed rows of Gaussians `start..start + den.len()` from their final sums (`num`
+/// `[B * dim]` `Σ a E`, `den` `[B]` `Σ a`, f64) as a [`Reduced`]: ids `[B']`, the unit vectors
+/// `Σ a E / ‖Σ a E‖` rounded to f32 `[B' * dim]`, `Σ a` rounded to f32 `[B']`, `chunks` 0.
+/// Every reduction (kept views, or the host's dense fold) turns its sums into rows here, so
+/// equal sums give equal bytes.
+pub(super) fn reduced_rows(
+    start: usize,
+    dim: usize,
+    num: &[f64],
+    den: &[f64],
+    min_total_weight: f64,
+) -> Reduced {
+    let mut out = Reduced::default();
+    for (r, row, norm, d) in observed_rows(dim, num, den, min_total_weight) {
+        out.ids.push((start + r) as u32);
+        out.vectors.extend(row.iter().map(|v| (v / norm) as f32));
+        out.total_weights.push(d as f32);
+    }
+    out
+}
+
+/// The observed Gaussians among sums `num` `[B * dim]` and `den` `[B]`, ascending: `(row r,
+/// Σ a E [D], its L2 norm, Σ a)`. Unobserved (skipped): `Σ a` NaN or below
+/// `min_total_weight`, or the norm not finite or at most `1e-9 · Σ a` (mask embeddings that
+/// cancel out carry no direction).
+pub(super) fn observed_rows<'s>(
+    dim: usize,
+    num: &'s [f64],
+    den: &'s [f64],
+    min_total_weight: f64,
+) -> impl Iterator<Item = (usize, &'s [f64], f64, f64)> {
+    den.iter().enumerate().filter_map(move |(r, &d)| {
+        // NaN sums count as unobserved too.
+        if d.is_nan() || d < min_total_weight {
+            return None;
+        }
+        let row = &num[r * dim..(r + 1) * dim];
+        let norm = row.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if !norm.is_finite() || norm <= 1e-9 * d {
+            return None;
+        }
+        Some((r, row, norm, d))
+    })
 }
 
 /// What one [`accumulate`] pass reduces: every contribution of `store` over Gaussian ids
@@ -536,7 +563,7 @@ const BLOCKS_PER_TASK: usize = 8;
 
 /// The index of `c`'s first entry whose Gaussian is `g0` or later (its entries are sorted by
 /// Gaussian): a binary search over the whole image.
-fn first_entry_of(c: &StoredImage, g0: u32) -> usize {
+pub(super) fn first_entry_of(c: &StoredImage, g0: u32) -> usize {
     c.gaussians.partition_point(|&g| g < g0)
 }
 
@@ -560,7 +587,7 @@ fn leading_below(ids: &[u32], bound: u32) -> usize {
 /// the block, where the next block's entries start.
 #[allow(clippy::too_many_arguments)]
 #[inline]
-fn add_entries<T>(
+pub(super) fn add_entries<T>(
     c: &StoredImage,
     lo: usize,
     g0: u32,

@@ -145,6 +145,9 @@ pub struct ContributionStore {
     /// When set, every view is folded into the mixture's running state instead of kept
     /// ([`Self::folding`]).
     fold: Option<Box<MixtureFold>>,
+    /// When set, every view is folded into the dense accumulators instead of kept
+    /// ([`Self::folding_dense`]).
+    dense: Option<Box<DenseFold>>,
 }
 
 impl ContributionStore {
@@ -159,6 +162,7 @@ impl ContributionStore {
             spilled: Vec::new(),
             spill_dir,
             fold: None,
+            dense: None,
         }
     }
 
@@ -178,14 +182,34 @@ impl ContributionStore {
         self.fold.take().map(|f| *f)
     }
 
-    /// Whether views pushed here are folded ([`Self::folding`]).
+    /// A store that keeps no view: each pushed view is folded into the dense accumulators of
+    /// `fold` once every view before it is in ([`DenseFold::push`]), so that the host's memory
+    /// stays flat however many views come. For an encode that writes the dense file;
+    /// [`Self::take_dense_fold`] hands the fold to the reduction, and [`Self::for_each`]
+    /// refuses.
+    pub fn folding_dense(fold: DenseFold) -> Self {
+        let mut store = Self::new(0, PathBuf::new());
+        store.dense = Some(Box::new(fold));
+        store
+    }
+
+    /// The fold of a [`Self::folding_dense`] store (`None` otherwise, or once taken); the store
+    /// then holds nothing.
+    pub fn take_dense_fold(&mut self) -> Option<DenseFold> {
+        self.dense.take().map(|f| *f)
+    }
+
+    /// Whether views pushed here are folded ([`Self::folding`], [`Self::folding_dense`]).
     pub fn is_folding(&self) -> bool {
-        self.fold.is_some()
+        self.fold.is_some() || self.dense.is_some()
     }
 
     /// Number of contributions held.
     pub fn len(&self) -> usize {
-        self.in_memory.len() + self.spilled.len() + self.fold.as_ref().map_or(0, |f| f.len())
+        self.in_memory.len()
+            + self.spilled.len()
+            + self.fold.as_ref().map_or(0, |f| f.len())
+            + self.dense.as_ref().map_or(0, |f| f.len())
     }
     /// True when empty.
     pub fn is_empty(&self) -> bool {
@@ -228,12 +252,16 @@ impl ContributionStore {
     /// arrived, so views finished in any order give the same codebook, the same ties and the
     /// same sums. Images of equal `view` keep their push order.
     ///
-    /// A [`Self::folding`] store folds it instead ([`MixtureFold::push`]).
+    /// A [`Self::folding`] store folds it instead ([`MixtureFold::push`]), a
+    /// [`Self::folding_dense`] one into its accumulators ([`DenseFold::push`]).
     ///
     /// Errors: I/O writing the spill file; the fold's.
     pub fn push_stored_as(&mut self, view: usize, c: StoredImage) -> Result<()> {
         if let Some(fold) = &mut self.fold {
             return fold.push(view, c);
+        }
+        if let Some(dense) = &mut self.dense {
+            return dense.push(view, c);
         }
         if self.used_bytes + c.arrival_bytes() <= self.budget_bytes {
             self.used_bytes += c.arrival_bytes();
@@ -311,7 +339,7 @@ impl ContributionStore {
     /// Errors: I/O reading a spill file; [`Error::Internal`] for a [`Self::folding`] store,
     /// which keeps no view.
     pub fn for_each(&self, mut f: impl FnMut(&StoredImage)) -> Result<()> {
-        if self.fold.is_some() {
+        if self.is_folding() {
             return Err(Error::internal(
                 "the views were folded into the mixture: no reduction can read them again",
             ));

@@ -9,12 +9,12 @@ use rustc_hash::FxHashMap;
 use slag_common::Error;
 use std::path::Path;
 
-fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
+pub(super) fn mask(w: u32, h: u32, f: impl Fn(u32, u32) -> bool) -> Mask {
     Mask::from_fn(w, h, f).unwrap()
 }
 
 /// Random-ish PixelWeights with 0..4 contributors per pixel.
-fn weights(w: u32, h: u32, n: u32, seed: u64) -> PixelWeights {
+pub(super) fn weights(w: u32, h: u32, n: u32, seed: u64) -> PixelWeights {
     let mut s = seed;
     let mut next = || {
         s ^= s << 13;
@@ -290,7 +290,7 @@ fn the_store_visits_views_by_index_whatever_their_arrival() {
     assert_eq!((a.atoms, a.weights), (b.atoms, b.weights));
 }
 /// Unit rows from a xorshift stream.
-fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
+pub(super) fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
     let mut s = seed | 1;
     let mut out = Vec::new();
     for _ in 0..m {
@@ -309,13 +309,13 @@ fn unit_rows(m: usize, dim: usize, seed: u64) -> Vec<f32> {
 }
 
 /// Centres of `n` Gaussians on a line along x: Gaussian `k` at `(k, y, z)`.
-fn means_along_x(n: u32, y: f32, z: f32) -> Vec<[f32; 3]> {
+pub(super) fn means_along_x(n: u32, y: f32, z: f32) -> Vec<[f32; 3]> {
     (0..n).map(|k| [k as f32, y, z]).collect()
 }
 
 /// View `seed`'s contribution: three overlapping masks over the Gaussians of `pw` (30 × 20
 /// pixels), unit mask embeddings of width `dim`.
-fn mixture_view(pw: &PixelWeights, dim: usize, seed: u64) -> ImageContribution {
+pub(super) fn mixture_view(pw: &PixelWeights, dim: usize, seed: u64) -> ImageContribution {
     let masks = vec![
         mask(30, 20, |x, _| x < 15),
         mask(30, 20, |_, y| y < 12),
