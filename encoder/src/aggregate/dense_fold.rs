@@ -18,6 +18,7 @@ use slag_common::embeddings::EmbeddingsWriter;
 use slag_common::mixture::SparseMixture;
 use slag_common::{Error, Resource, Result};
 
+use super::fold::check_view;
 use super::reduce::{add_entries, first_entry_of, reduced_rows};
 use super::{MixtureFold, Reduced, StoredImage};
 
@@ -188,7 +189,8 @@ impl DenseFold {
     /// View `view` (the next) into the mixture and the batch; the batch swept over the tiles
     /// once it holds its budget.
     fn take_in(&mut self, view: usize, c: StoredImage) -> Result<()> {
-        check_view(&c, self.dim, self.tiles.n_gaussians)?;
+        let masks = c.mask_embeddings.len() / self.dim;
+        check_view(&c, self.dim, masks, self.tiles.n_gaussians)?;
         if let Some(m) = self.mixture.as_mut() {
             m.fold_next(view, &c)?;
         }
@@ -280,36 +282,6 @@ impl DenseFold {
             peak_bytes: self.stats.peak_bytes + mixture_bytes,
         })
     }
-}
-
-/// Refuses a view the fold cannot add: mask embeddings not `dim` wide, a Gaussian id at or past
-/// `n_gaussians`, a mask past the view's embeddings.
-fn check_view(c: &StoredImage, dim: usize, n_gaussians: usize) -> Result<()> {
-    if c.dim != dim || !c.mask_embeddings.len().is_multiple_of(dim) {
-        return Err(Error::mismatch(
-            slag_common::Mismatched::EmbeddingWidth,
-            format!(
-                "a view's mask embeddings are {} wide, the reduction's {dim}: one CLIP model \
-                 per encode",
-                c.dim
-            ),
-        ));
-    }
-    if let Some(&g) = c.gaussians.last()
-        && g as usize >= n_gaussians
-    {
-        return Err(Error::Invalid(format!(
-            "a view names Gaussian {g} of a scene of {n_gaussians}"
-        )));
-    }
-    let masks = c.mask_embeddings.len() / dim;
-    let most = (0..c.len()).map(|i| c.entry(i).mask).max();
-    if let Some(j) = most.filter(|&j| j as usize >= masks) {
-        return Err(Error::Invalid(format!(
-            "a view names mask {j} of its {masks}"
-        )));
-    }
-    Ok(())
 }
 
 /// One tile's sums: Gaussians `start..start + den.len()`.

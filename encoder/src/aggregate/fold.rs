@@ -410,9 +410,15 @@ pub struct FoldState<'a> {
     pub codebook: Cow<'a, [f32]>,
 }
 
-/// Refuses a view the fold cannot add: embeddings of another width than `dim`, a Gaussian id
-/// at or past `n_gaussians`, a mask past the view's `masks` masks.
-fn check_view(c: &StoredImage, dim: usize, masks: usize, n_gaussians: usize) -> Result<()> {
+/// Refuses a view a fold cannot add (this one's, and [`super::DenseFold`]'s): embeddings of
+/// another width than `dim` ([`Error::Mismatch`]), a Gaussian id at or past `n_gaussians`, a
+/// mask past the view's `masks` masks ([`Error::Invalid`]).
+pub(super) fn check_view(
+    c: &StoredImage,
+    dim: usize,
+    masks: usize,
+    n_gaussians: usize,
+) -> Result<()> {
     check_width(c, dim)?;
     if let Some(&g) = c.gaussians.last()
         && g as usize >= n_gaussians
