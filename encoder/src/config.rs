@@ -430,10 +430,12 @@ pub struct AggregateConfig {
     pub levels: bool,
     /// `Σ a_kj` below which a Gaussian is unobserved and gets no embedding (default 1e-6).
     pub min_weight: f64,
-    /// Memory for per-image contributions before spilling to disk, MiB (default 4096).
+    /// Memory for per-image contributions before spilling to disk, MiB (default 4096); with the
+    /// dense file, the views batched for one sweep over its spilled tiles.
     pub contribution_memory_mb: usize,
     /// Memory for the reduction's f64 accumulator, MiB (default 2048; larger scenes are reduced
-    /// in chunks).
+    /// in chunks; with the dense file, its tiles past it spill to disk,
+    /// [`crate::aggregate::DenseFold`]).
     pub accumulator_memory_mb: usize,
     /// Write `mixture.safetensors`: a shared codebook of the mask embeddings plus each
     /// Gaussian's S largest `a_kj` (S ≥ 1); default [`DEFAULT_MIXTURE_KEEP`] (the default
@@ -461,10 +463,12 @@ pub enum ReduceOn {
     /// H100 (docs/results/scaling.md, docs/results/gpu-models.md).
     #[default]
     Auto,
-    /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot.
+    /// On the GPU (also on a CPU Vulkan device such as lavapipe); an error where it cannot,
+    /// and with the dense file, which is always folded on the host as the views come
+    /// ([`crate::aggregate::DenseFold`]).
     Device,
-    /// On the host: every view's `a_kj` read back and reduced in f64 on the CPU (machines
-    /// without a GPU with f64, and `--dense`, reduce here under `auto` too).
+    /// On the host: every view's `a_kj` read back and folded in f64 on the CPU as it comes
+    /// (machines without a GPU with f64, and `--dense`, reduce here under `auto` too).
     Host,
 }
 

@@ -155,6 +155,11 @@ pub struct Counts {
     /// beyond the codebook.
     #[serde(default)]
     pub host_fold_peak_bytes: u64,
+    /// With `--dense`: the host's dense fold (f64 accumulators tiled by Gaussian ids, the
+    /// views folded as they came): its tiles, the tiles spilled to disk, the sweeps of a batch
+    /// of views over them and the bytes written to its spill files.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub dense_fold: Option<crate::aggregate::DenseFoldStats>,
     /// The reduction ran on the GPU ([`crate::config::ReduceOn`]): the `a_kj` never reached the
     /// host, so `entries` counts none.
     pub device_reduce: bool,

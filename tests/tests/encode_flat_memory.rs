@@ -1,11 +1,14 @@
 //! The encode's reduction streams, so its memory stays flat as the views grow: on the device
 //! (lavapipe in CI) the kept label sums go in waves within `--device-reduce-memory-mb` and write
-//! what keeping every view writes, byte for byte; on the device and on the host the reduction's
-//! own peak (the report's counts, which are deterministic, not the noisy RSS) is no larger with
-//! 64 views than with 8 but for the codebook.
+//! what keeping every view writes, byte for byte; `--dense` folds each view on the host into f64
+//! accumulators tiled by Gaussian ids and spilled past `--accumulator-memory-mb`, and writes the
+//! same rows whatever the tiles and batches; on the device and on the host the reduction's own
+//! peak (the report's counts, which are deterministic, not the noisy RSS) is no larger with 64
+//! views than with 8 but for the codebook.
 
 #![allow(clippy::unwrap_used)]
 
+use slag_common::embeddings::Embeddings;
 use slag_encoder::config::{EncodeConfig, ReduceOn};
 use slag_encoder::report::Report;
 use slag_encoder::synthetic::{SyntheticSceneParams, write_synthetic_scene};
@@ -145,7 +148,8 @@ fn the_streamed_device_reduction_writes_what_keeping_every_view_writes_at_two_bu
 /// raster and masks per view): on the device, within the same budget at both though 64 views'
 /// label sums are many times it; on the host (`--reduce host`, the mixture folded as views
 /// come), its peak less the codebook (masks × D × 4 B) grows by at most a quarter, though 64
-/// views' `a_kj` are many times it.
+/// views' `a_kj` are many times it; with `--dense` (the accumulators tiled within 1 MiB, most
+/// spilled), likewise, though the accumulators are many times it.
 #[test]
 fn the_reductions_peak_stays_flat_from_8_to_64_views_but_for_the_codebook() {
     let dir = tempfile::tempdir().unwrap();
@@ -191,6 +195,28 @@ fn the_reductions_peak_stays_flat_from_8_to_64_views_but_for_the_codebook() {
         a_kj_64 > 4 * flat_64,
         "64 views' a_kj ({a_kj_64} B) are several times the fold's peak: the test means something"
     );
+    // `--dense`: the accumulators (N × (D + 1) × 8 B) within 1 MiB, the rest spilled, the views
+    // swept one at a time (a batch of 1 MiB would hold all 8 small views but not 64); its peak
+    // less the codebook grows by at most a quarter too.
+    let dense_run = |views: usize| {
+        let out = dir.path().join(format!("{views}-dense"));
+        let scene_dir = dir.path().join(format!("scene-{views}"));
+        let mut c = dense(config(&scene_dir, &out, ReduceOn::Auto, budget_mb), 1, 0);
+        c.segments.enabled = false;
+        encode(c).unwrap()
+    };
+    let (dense_8, dense_64) = (dense_run(8), dense_run(64));
+    let (dense_flat_8, dense_flat_64) = (beside_codebook(&dense_8), beside_codebook(&dense_64));
+    assert!(
+        dense_flat_64 * 4 <= dense_flat_8 * 5,
+        "dense: {dense_flat_64} B beside the codebook with 64 views, {dense_flat_8} B with 8"
+    );
+    let accumulators = dense_64.counts.gaussians as u64 * (dim + 1) * 8;
+    let spilled = dense_64.counts.dense_fold.unwrap().tiles_spilled;
+    assert!(
+        accumulators > 4 * dense_flat_64 && spilled > 0,
+        "the accumulators ({accumulators} B) are several times the dense fold's peak and spill"
+    );
     if skip_gpu() {
         return;
     }
@@ -213,4 +239,88 @@ fn the_reductions_peak_stays_flat_from_8_to_64_views_but_for_the_codebook() {
         "64 views kept: {} B, the budget {budget} B: the test would stream nothing",
         all_64.counts.device_reduce_peak_bytes
     );
+}
+
+/// `c` with the dense file, folded on the host within `accumulator_mb` MiB of f64 accumulators
+/// (the tiles past it spilled) and `batch_mb` MiB of views per sweep over the spilled tiles.
+fn dense(mut c: EncodeConfig, accumulator_mb: usize, batch_mb: usize) -> EncodeConfig {
+    c.output.dense = true;
+    c.aggregate.reduce_on = ReduceOn::Auto;
+    c.aggregate.accumulator_memory_mb = accumulator_mb;
+    c.aggregate.contribution_memory_mb = batch_mb;
+    c
+}
+
+/// The smallest cosine between the rows of Gaussian `ids[i]` in `a` and `b` (the same ids).
+fn least_cosine(a: &Embeddings, b: &Embeddings) -> f64 {
+    assert_eq!(a.ids, b.ids, "the same observed Gaussians");
+    (0..a.ids.len())
+        .map(|i| {
+            let (x, y) = (a.vector(i), b.vector(i));
+            let dot: f64 = x.iter().zip(y).map(|(p, q)| *p as f64 * *q as f64).sum();
+            let norm = |v: &[f32]| v.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
+            dot / (norm(x) * norm(y))
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+/// `--dense` streamed at two tile and batch sizes (1 MiB of accumulators: tiles of 128
+/// Gaussians, a sweep per view; 16 MiB: tiles of 896, the views batched within 1 MiB, which
+/// holds all 8 here), each with a
+/// budget far below the scene's `N × (D + 1) × 8` B so that most tiles spill: the dense rows
+/// within the documented tolerance of the fold that holds every accumulator in memory (cosine
+/// ≥ 0.9999 per Gaussian; in fact the same bytes, the f64 sums running in the same order), and
+/// the mixture, the masks' record and the segments byte for byte; the spill folder is gone.
+#[test]
+fn the_dense_fold_writes_the_same_rows_at_two_tile_and_batch_sizes() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_dir = dir.path().join("scene");
+    scene(&scene_dir, 10_000, 8, 96, 72);
+    let run = |name: &str, accumulator_mb: usize, batch_mb: usize| {
+        let out = dir.path().join(name);
+        let c = dense(
+            config(&scene_dir, &out, ReduceOn::Auto, 1024),
+            accumulator_mb,
+            batch_mb,
+        );
+        let r = encode(c).unwrap();
+        assert!(
+            !out.join(".dense-accumulators.partial").exists(),
+            "{name}: spill left"
+        );
+        (r.counts.dense_fold.expect("the dense fold"), out)
+    };
+    let (held, held_dir) = run("in-memory", 2048, 4096);
+    assert_eq!((held.tiles, held.tiles_spilled), (1, 0));
+    let load = |d: &std::path::Path| Embeddings::read(&d.join("embeddings.safetensors")).unwrap();
+    let want = load(&held_dir);
+    assert!(want.ids.len() > 1000, "{} observed", want.ids.len());
+    let mut tiles = Vec::new();
+    for (accumulator_mb, batch_mb) in [(1, 0), (16, 1)] {
+        let what = format!("{accumulator_mb} MiB of accumulators, {batch_mb} MiB of views");
+        let (stats, out) = run(
+            &format!("{accumulator_mb}-{batch_mb}"),
+            accumulator_mb,
+            batch_mb,
+        );
+        // A sweep per view without a batch; with 1 MiB the 8 small views wait for one sweep.
+        let sweeps = if batch_mb == 0 { 8..9 } else { 1..8 };
+        assert!(
+            stats.tiles_spilled * 2 > stats.tiles && sweeps.contains(&stats.batches),
+            "{what}: {stats:?}"
+        );
+        let cosine = least_cosine(&load(&out), &want);
+        assert!(cosine >= 0.9999, "{what}: a row at cosine {cosine}");
+        for file in [
+            "embeddings.safetensors",
+            "mixture.safetensors",
+            "mask-record.safetensors",
+            "segments.safetensors",
+        ] {
+            let read = |d: &std::path::Path| std::fs::read(d.join(file)).unwrap();
+            assert!(read(&out) == read(&held_dir), "{what}: {file} differs");
+        }
+        tiles.push(stats.tiles);
+    }
+    assert!(tiles[0] > tiles[1], "tiles at 1 and 16 MiB: {tiles:?}");
 }

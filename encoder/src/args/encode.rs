@@ -265,15 +265,18 @@ pub struct EncodeArgs {
     /// Σa below which a Gaussian is unobserved (gets no embedding).
     #[arg(long, default_value_t = 1e-6)]
     pub min_weight: f64,
-    /// Memory for per-image contributions before spilling to disk, MiB.
+    /// Memory for per-image contributions before spilling to disk, MiB; with --dense, the
+    /// views batched for one sweep over the dense accumulators' spilled tiles.
     #[arg(long, default_value_t = 4096)]
     pub contribution_memory_mb: usize,
-    /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks).
+    /// Memory for the reduction's f64 accumulator, MiB (larger scenes are reduced in chunks;
+    /// with --dense, the tiles of (D + 1) × 8 B a Gaussian past it spill to disk under OUT).
     #[arg(long, default_value_t = 2048)]
     pub accumulator_memory_mb: usize,
     /// Where E_k is reduced: host (the CPU, in f64), device (on the GPU: the label sums stay on
-    /// the device; also lavapipe; an error where it cannot), or auto (the GPU where it can and
-    /// --dense is not asked for; past --device-reduce-memory-mb it goes on on the host).
+    /// the device; also lavapipe; an error where it cannot, and with --dense), or auto (the GPU
+    /// where it can and --dense is not asked for; past --device-reduce-memory-mb it goes on on
+    /// the host). --dense is always reduced on the host, each view folded as it comes.
     #[arg(long, value_enum, default_value_t = crate::config::ReduceOn::Auto)]
     pub reduce: crate::config::ReduceOn,
     /// Device memory for the label sums kept for the GPU reduction, MiB (16 B per Gaussian and

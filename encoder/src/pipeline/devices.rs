@@ -106,6 +106,7 @@ fn join_reduced(parts: Vec<ReducedOutputs>, exchange_s: f64) -> Result<ReducedOu
         write_s,
         memory,
         host_fold_peak_bytes: 0,
+        dense_fold: None,
     })
 }
 

@@ -219,6 +219,7 @@ fn record_reduction(
     counts.device_reduce_waves = tail.memory.waves;
     counts.device_reduce_peak_bytes = tail.memory.peak_bytes;
     counts.host_fold_peak_bytes = tail.host_fold_peak_bytes;
+    counts.dense_fold = tail.dense_fold;
     counts.observed = tail.observed;
     counts.observed_fraction = tail.observed as f64 / n_gaussians.max(1) as f64;
 }
@@ -386,7 +387,8 @@ fn write_levels(
 }
 
 /// The tail's one f64 pass over `store` (or, when the store folded the views as they came, the
-/// mixture made from its fold, [`folded_outputs`]): with [`EncodeParams::dense`] the rows stream into
+/// mixture made from its fold, [`folded_outputs`], or the dense file and the mixture from its
+/// dense fold, [`dense_folded_outputs`]): with [`EncodeParams::dense`] the rows stream into
 /// `embeddings` (the `[N, D]` matrix is never in memory) and, with the mixture, the same pass
 /// keeps each Gaussian's largest `a_kj` and the codebook; without it only the mixture is
 /// reduced, no dense row is made, and an `embeddings` file of an earlier run is removed.
@@ -399,6 +401,9 @@ fn reduce_outputs(
 ) -> Result<ReducedOutputs> {
     if let Some(fold) = store.take_fold() {
         return folded_outputs(fold, out, embeddings);
+    }
+    if let Some(fold) = store.take_dense_fold() {
+        return dense_folded_outputs(fold, out, embeddings);
     }
     let store = &*store;
     let (means, dim, params, model_id) = (out.means, out.dim, out.params, out.model_id);
@@ -420,6 +425,7 @@ fn reduce_outputs(
             write_s: 0.0,
             memory: DeviceReduceMemory::default(),
             host_fold_peak_bytes: 0,
+            dense_fold: None,
         });
     };
     let (streamed, sparse, gather_s) = match params.mixture_keep {
@@ -447,6 +453,7 @@ fn reduce_outputs(
         write_s: t0.elapsed().as_secs_f64() - streamed.reduce_s,
         memory: DeviceReduceMemory::default(),
         host_fold_peak_bytes: 0,
+        dense_fold: None,
     })
 }
 
@@ -476,5 +483,37 @@ fn folded_outputs(
         write_s: 0.0,
         memory: DeviceReduceMemory::default(),
         host_fold_peak_bytes: peak as u64,
+        dense_fold: None,
+    })
+}
+
+/// The dense file, and with the mixture its sparse parts, from the host's dense `fold` of the
+/// views as they came ([`aggregate::DenseFold`]): the last batch swept over the tiles, then
+/// each tile's rows streamed into `embeddings` in id order.
+///
+/// Errors: the fold's ([`aggregate::DenseFold::finish`]: spill-file I/O, the writer's);
+/// [`Error::Internal`] for a fold of an encode without the dense file.
+fn dense_folded_outputs(
+    fold: aggregate::DenseFold,
+    out: &TailInputs,
+    embeddings: &Path,
+) -> Result<ReducedOutputs> {
+    let t0 = Instant::now();
+    let writer = dense_writer(out.params, out.dim, embeddings)?
+        .ok_or_else(|| Error::internal("the dense fold of an encode without the dense file"))?;
+    let done = fold.finish(out.means, out.model_id, writer)?;
+    Ok(ReducedOutputs {
+        on_device: false,
+        spent: Vec::new(),
+        writer: Some(done.writer),
+        observed: done.observed,
+        sparse: done.sparse,
+        chunks: done.stats.tiles,
+        reduce_s: t0.elapsed().as_secs_f64(),
+        gather_s: 0.0,
+        write_s: 0.0,
+        memory: DeviceReduceMemory::default(),
+        host_fold_peak_bytes: done.peak_bytes,
+        dense_fold: Some(done.stats),
     })
 }

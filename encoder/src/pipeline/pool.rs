@@ -880,7 +880,8 @@ impl ViewsDone {
 /// [`super::fallback`]), or `None` for the host reduction. A rasterizer that keeps the sums
 /// keeps the masks' record of an encode of `n_views` views there too where it can
 /// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The
-/// device reduction needs GPU rasterizers whose devices have f64, and no per-level files; on
+/// device reduction needs GPU rasterizers whose devices have f64, no per-level files and no
+/// dense file (folded on the host, [`crate::aggregate::DenseFold`]); on
 /// several GPUs each keeps its own views and one reduces them all. The only rasterizer of a
 /// run (`alone`) streams its views when only the mixture is written
 /// ([`WeightRasterizer::stream_kept`]): its device memory does not grow with the views.
@@ -895,11 +896,11 @@ fn keep_on_device(
 ) -> Result<Option<Keep>> {
     use crate::config::ReduceOn;
     let forced = params.reduce_on == ReduceOn::Device;
-    // With the dense file every row crosses to the host anyway: `auto` leaves it to the host.
+    // With the dense file every row crosses to the host anyway: the host folds each view into
+    // its dense accumulators as it comes (`aggregate::DenseFold`), so no device keeps them.
     let possible = match params.reduce_on {
         ReduceOn::Host => false,
-        ReduceOn::Auto => !params.levels && !params.dense,
-        ReduceOn::Device => !params.levels,
+        ReduceOn::Auto | ReduceOn::Device => !params.levels && !params.dense,
     };
     let keeps =
         possible && rasterizer.keep_on_device(dim, params.device_reduce_budget_bytes, forced);
@@ -907,7 +908,8 @@ fn keep_on_device(
         return Err(Error::param(
             "reduce",
             "device",
-            "GPU rasterizers whose devices have f64, and no --levels (or --reduce host)",
+            "GPU rasterizers whose devices have f64, no --levels and no --dense (the dense file \
+             is reduced on the host as the views come: leave --reduce at auto, or --reduce host)",
         ));
     }
     if keeps

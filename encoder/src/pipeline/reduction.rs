@@ -53,6 +53,9 @@ pub(super) struct ReducedOutputs {
     /// most bytes of its reduction at once (the running state and the views waiting for an
     /// earlier one); 0 otherwise.
     pub(super) host_fold_peak_bytes: u64,
+    /// When the host folded the views into the dense accumulators as they came
+    /// ([`crate::aggregate::DenseFold`], `--dense`): its tiles, spills and sweeps.
+    pub(super) dense_fold: Option<crate::aggregate::DenseFoldStats>,
 }
 
 /// How the device reduction used the device's memory ([`crate::raster::KeptReduced`]).
@@ -136,6 +139,7 @@ pub(super) fn reduce_on_device(
                 peak_bytes: out.state_bytes + out.peak_kept_bytes,
             },
             host_fold_peak_bytes: 0,
+            dense_fold: None,
         })
     })
 }

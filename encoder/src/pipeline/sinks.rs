@@ -89,9 +89,13 @@ impl PoolSinks {
             }
             None => None,
         };
-        let main = match folded_mixture(params, dim, n_gaussians)? {
-            Some(fold) => Mutex::new(ContributionStore::folding(fold)),
-            None => store(".contributions.partial".to_string()),
+        let main = if let Some(fold) = folded_dense(params, dim, n_gaussians)? {
+            Mutex::new(ContributionStore::folding_dense(fold))
+        } else {
+            match folded_mixture(params, dim, n_gaussians)? {
+                Some(fold) => Mutex::new(ContributionStore::folding(fold)),
+                None => store(".contributions.partial".to_string()),
+            }
         };
         Ok(PoolSinks {
             store: main,
@@ -126,6 +130,32 @@ fn folded_mixture(
         }
         _ => Ok(None),
     }
+}
+
+/// The host's streamed dense reduction of an encode that writes the dense file
+/// ([`EncodeParams::dense`], always reduced on the host): each view folded into f64
+/// accumulators per Gaussian as it comes ([`crate::aggregate::DenseFold`]), tiled by Gaussian
+/// ids within the accumulator budget and spilled to `<out>/.dense-accumulators.partial` past it,
+/// the views batched within the contribution budget while tiles are spilled; with the mixture
+/// its pairs folded beside. `None` without the dense file.
+///
+/// Errors: the fold's ([`crate::aggregate::DenseFold::new`]).
+fn folded_dense(
+    params: &EncodeParams,
+    dim: usize,
+    n_gaussians: usize,
+) -> Result<Option<crate::aggregate::DenseFold>> {
+    if !params.dense {
+        return Ok(None);
+    }
+    let p = crate::aggregate::DenseFoldParams {
+        min_total_weight: params.reduce.min_total_weight,
+        accumulator_budget_bytes: params.reduce.accumulator_budget_bytes,
+        batch_budget_bytes: params.contribution_budget_bytes,
+        spill_dir: params.out_dir.join(".dense-accumulators.partial"),
+        mixture_keep: params.mixture_keep,
+    };
+    crate::aggregate::DenseFold::new(n_gaussians, dim, p).map(Some)
 }
 
 /// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj` pushed to
