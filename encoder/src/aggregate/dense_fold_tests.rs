@@ -197,3 +197,33 @@ fn spill_failures_are_typed_errors_and_leave_nothing() {
     fold.push(0, view()).unwrap();
     assert!(matches!(fold.push(0, view()), Err(Error::Internal(_))));
 }
+
+/// A view that never comes (view 5 of 12) holds up no later view for good: they wait, and the
+/// finish folds them in order, as keeping the 11 views that came writes them.
+#[test]
+fn a_view_that_never_comes_leaves_the_others_folded_in_order() {
+    let (n, dim, mut images) = spread_views();
+    let dir = tempfile::tempdir().unwrap();
+    let means = means_along_x(n as u32, 0.5, -1.0);
+    let mut fold = DenseFold::new(n, dim, params(usize::MAX, 0, &dir.path().join("s"))).unwrap();
+    for (v, c) in images.iter().enumerate().filter(|(v, _)| *v != 5) {
+        fold.push(v, StoredImage::from_contribution(c.clone()))
+            .unwrap();
+    }
+    let got_file = dir.path().join("got.safetensors");
+    let writer = EmbeddingsWriter::create(&got_file, dim, StoredPrecision::F32).unwrap();
+    let got = fold.finish(&means, "m", writer).unwrap();
+    got.writer.finish("m", n as u64, "scene.ply").unwrap();
+    images.remove(5);
+    let kept = ContributionStore::in_memory(images);
+    let want_file = dir.path().join("want.safetensors");
+    let writer = EmbeddingsWriter::create(&want_file, dim, StoredPrecision::F32).unwrap();
+    let rp = ReduceParams::default();
+    let want = reduce_to_writer_with_mixture(&kept, &means, dim, rp, writer, 3, "m").unwrap();
+    want.streamed
+        .writer
+        .finish("m", n as u64, "scene.ply")
+        .unwrap();
+    assert!(std::fs::read(&got_file).unwrap() == std::fs::read(&want_file).unwrap());
+    assert_eq!(got.sparse, Some(want.sparse));
+}

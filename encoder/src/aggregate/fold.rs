@@ -170,13 +170,14 @@ impl MixtureFold {
 
     /// Folds view `view` now, by reference: for a caller that already holds the views in view
     /// order ([`super::DenseFold`], which keeps the view for its own sums), so that no view is
-    /// copied or waits here. `view` must be the next view ([`Self::folded_views`]) and no view
-    /// may be waiting.
+    /// copied or waits here. `view` must not come before the next view ([`Self::folded_views`];
+    /// a later one means the views between never come, as at [`Self::finish_rows`]) and no
+    /// view may be waiting.
     ///
-    /// Errors: another view than the next, or views waiting ([`Error::Internal`]); as
+    /// Errors: a view already passed, or views waiting ([`Error::Internal`]); as
     /// [`Self::push`] otherwise.
     pub(crate) fn fold_next(&mut self, view: usize, c: &StoredImage) -> Result<()> {
-        if view != self.next || !self.pending.is_empty() {
+        if view < self.next || !self.pending.is_empty() {
             return Err(Error::internal(format!(
                 "view {view} folded out of order: the mixture's fold expects view {}",
                 self.next
@@ -184,7 +185,7 @@ impl MixtureFold {
         }
         check_width(c, self.dim)?;
         self.fold(c, c.mask_embeddings.len() / self.dim.max(1))?;
-        self.next += 1;
+        self.next = view + 1;
         Ok(())
     }
 
