@@ -44,7 +44,8 @@
 //!
 //! **The greedy.** Each step takes the view that adds the most footprint over its new (Gaussian,
 //! distinct viewpoint) pairs, ties to the lower name-sorted index (lazy evaluation: a view's gain
-//! never grows as views are chosen, so re-evaluating only the top is exact). It runs until no
+//! never grows as views are chosen, so re-evaluating only the top is exact; the stale views on
+//! top are re-evaluated together, one per thread, which changes no choice). It runs until no
 //! view adds a pair, or, without a [`CoverageRule::target`] below 1, until the first view the
 //! stopping rule refuses (below): the gains only fall, so no later view would be kept, and on a
 //! ring of a thousand near-duplicate views most of the order lies past that point. Gains are integer sums of the fixed-point footprints, so the order is the
@@ -63,8 +64,6 @@
 //! [`CoverageRule::target`] of all the pairs (default 1: no bound) and
 //! [`super::ViewSelection::count`] views.
 
-use std::cmp::Reverse;
-use std::collections::BinaryHeap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::time::Instant;
@@ -78,6 +77,11 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Observation, Result};
 
 use crate::raster::WeightRasterizer;
+
+mod greedy;
+
+use greedy::Gain;
+pub(super) use greedy::{AtOnce, greedy};
 
 /// The stopping rule of coverage selection (module doc).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -214,6 +218,14 @@ impl SeenSet {
         let mut ids = Vec::with_capacity(count);
         SeenSet::Bits(words).for_each_in(0, n, |k| ids.push(k as u32));
         SeenSet::Ids(ids)
+    }
+
+    /// Gaussians in the set.
+    fn len(&self) -> usize {
+        match self {
+            SeenSet::Ids(v) => v.len(),
+            SeenSet::Bits(v) => v.iter().map(|w| w.count_ones() as usize).sum(),
+        }
     }
 
     /// Bytes held.
@@ -776,137 +788,6 @@ pub struct CoverageOutcome {
     pub order_complete: bool,
 }
 
-/// The greedy's state: per Gaussian the candidate views counted as its distinct viewpoints
-/// (`min_views` slots, `u32::MAX` = empty, filled from the front).
-struct Viewpoints<'a> {
-    slots: Vec<u32>,
-    per: usize,
-    cos_max: f64,
-    means: &'a [[f32; 3]],
-    centres: &'a [DVec3],
-    /// Per Gaussian its footprint in fixed-point steps ([`ViewCoverage`]).
-    footprint: &'a [u64],
-}
-
-/// What a view adds: the footprint of its new pairs (fixed-point steps), then the pairs.
-type Gain = (u64, u64);
-
-/// Gaussians per parallel chunk of the greedy (a multiple of 64, the bitsets' word).
-const CHUNK: usize = 1 << 14;
-
-impl Viewpoints<'_> {
-    /// Whether view `v` adds a distinct viewpoint to Gaussian `g` (`slots` = `g`'s slots): `g`
-    /// has fewer than `per`, and `v`'s direction to it is at least the angle away from each.
-    fn adds(&self, g: usize, v: usize, slots: &[u32]) -> bool {
-        if slots[self.per - 1] != u32::MAX {
-            return false;
-        }
-        if slots[0] == u32::MAX {
-            // No viewpoint yet: any view adds the first (no direction to compare).
-            return true;
-        }
-        let m = self.means[g].map(f64::from);
-        let m = DVec3::new(m[0], m[1], m[2]);
-        let dir = (m - self.centres[v]).normalize_or_zero();
-        slots
-            .iter()
-            .take_while(|&&u| u != u32::MAX)
-            .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
-    }
-
-    /// What view `v` (seeing `seen`) would add (integer sums: exact in any order).
-    fn gain(&self, v: usize, seen: &SeenSet) -> Gain {
-        let n = self.means.len();
-        (0..n.div_ceil(CHUNK))
-            .into_par_iter()
-            .map(|c| {
-                let (mut weight, mut count) = (0u64, 0u64);
-                seen.for_each_in(c * CHUNK, ((c + 1) * CHUNK).min(n), |g| {
-                    let s = &self.slots[g * self.per..(g + 1) * self.per];
-                    if self.adds(g, v, s) {
-                        weight += self.footprint[g];
-                        count += 1;
-                    }
-                });
-                (weight, count)
-            })
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
-    }
-
-    /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
-    fn choose(&mut self, v: usize, seen: &SeenSet) {
-        let n = self.means.len();
-        let per = self.per;
-        let mut slots = std::mem::take(&mut self.slots);
-        slots
-            .par_chunks_mut(CHUNK * per)
-            .enumerate()
-            .for_each(|(c, chunk)| {
-                let lo = c * CHUNK;
-                seen.for_each_in(lo, (lo + CHUNK).min(n), |g| {
-                    let s = &mut chunk[(g - lo) * per..(g - lo + 1) * per];
-                    if self.adds(g, v, s)
-                        && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
-                    {
-                        *free = v as u32;
-                    }
-                });
-            });
-        self.slots = slots;
-    }
-}
-
-/// The greedy order over the measured views (module doc): `(view index, gain)` until no view
-/// adds a pair, or, with `early`, until the first view the stopping rule refuses (its gain
-/// below [`CoverageRule::min_gain`] of the first; gains only fall, so no later view is kept
-/// either) or `cap + 1` views, whichever comes first; and the final per-Gaussian viewpoint
-/// slots (`min_views` each). Returns whether the order is complete (no view left that adds a
-/// pair).
-fn greedy(
-    coverage: &ViewCoverage,
-    means: &[[f32; 3]],
-    centres: &[DVec3],
-    rule: &CoverageRule,
-    early: Option<Option<usize>>,
-) -> (Vec<(usize, Gain)>, Vec<u32>, bool) {
-    let per = rule.min_views.max(1);
-    let mut state = Viewpoints {
-        slots: vec![u32::MAX; means.len() * per],
-        per,
-        cos_max: rule.min_angle_deg.to_radians().cos(),
-        means,
-        centres,
-        footprint: &coverage.footprint,
-    };
-    // Max-heap on (gain, lowest index); the round tells whether the gain is current.
-    let mut heap: BinaryHeap<(Gain, Reverse<usize>, usize)> = coverage
-        .seen
-        .iter()
-        .enumerate()
-        .map(|(v, s)| (state.gain(v, s), Reverse(v), 0))
-        .collect();
-    let mut order: Vec<(usize, Gain)> = Vec::new();
-    while let Some((gain, Reverse(v), round)) = heap.pop() {
-        if gain.1 == 0 {
-            return (order, state.slots, true);
-        }
-        if round != order.len() {
-            heap.push((state.gain(v, &coverage.seen[v]), Reverse(v), order.len()));
-            continue;
-        }
-        state.choose(v, &coverage.seen[v]);
-        order.push((v, gain));
-        if let Some(cap) = early {
-            let first = order[0].1.0;
-            let refused = (gain.0 as f64) < rule.min_gain * first as f64;
-            if refused || cap.is_some_and(|c| order.len() > c) {
-                return (order, state.slots, heap.is_empty());
-            }
-        }
-    }
-    (order, state.slots, true)
-}
-
 /// How many views of the greedy `order` the rule keeps (module doc), cut at `cap`, and why.
 fn stop_at(
     order: &[(usize, Gain)],
@@ -982,7 +863,9 @@ pub fn select_shown(
         .collect();
     // Without a target the choice needs the order only up to where it stops.
     let early = (rule.target >= 1.0).then_some(cap);
-    let (order, slots, complete) = greedy(&coverage, &gaussians.means, &centres, rule, early);
+    let at_once = AtOnce::for_threads();
+    let (order, slots, complete) =
+        greedy(&coverage, &gaussians.means, &centres, rule, early, at_once);
     let (taken, stop) = stop_at(&order, rule, cap);
     let mut outcome = outcome_of(&coverage, &order, &slots, taken, views, rule);
     outcome.stop = stop;

@@ -468,3 +468,39 @@ fn a_scene_sparse_in_gaussians_per_pixel_keeps_the_one_pixel_floor() {
     assert_eq!(oa.order, ob.order);
     assert_eq!(a.len(), b.len());
 }
+
+/// Re-evaluating the stale views on top of the greedy's heap together changes no choice: on a
+/// ring of near-duplicate views (many stale bounds at every step) the order, the viewpoints and
+/// whether the order is complete are those of re-evaluating one view at a time, for every
+/// batch size, with and without the early stop.
+#[test]
+fn the_greedy_order_is_the_same_however_many_stale_views_are_re_evaluated_at_once() {
+    let (g, views) = ring(3_000, 40, 48, 36);
+    let rule = CoverageRule {
+        raster_scale: 1.0,
+        ..CoverageRule::default()
+    };
+    let cov = coverage::measure(&mut cpu(&g), &views, g.len(), &rule).unwrap();
+    let centres: Vec<DVec3> = views
+        .iter()
+        .map(|v| v.world_to_camera.camera_centre())
+        .collect();
+    for early in [None, Some(None)] {
+        let at_once = |views, seen| coverage::AtOnce { views, seen };
+        let one = coverage::greedy(&cov, &g.means, &centres, &rule, early, at_once(1, 0));
+        assert!(one.0.len() > 3, "{} views in the order", one.0.len());
+        for (views, seen) in [
+            (2, usize::MAX),
+            (7, usize::MAX),
+            (64, usize::MAX),
+            (64, 2_000),
+        ] {
+            let many =
+                coverage::greedy(&cov, &g.means, &centres, &rule, early, at_once(views, seen));
+            assert_eq!(
+                many, one,
+                "{views} views, {seen} seen at once, early {early:?}"
+            );
+        }
+    }
+}
