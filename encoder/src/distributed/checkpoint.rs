@@ -319,7 +319,7 @@ pub(super) fn read(path: &Path) -> Result<Saved<'static>> {
         return Err(r.corrupt("not a cluster checkpoint of this version"));
     }
     let progress = read_progress(&mut r)?;
-    let n = super::reduce::local_gaussians(
+    let n = super::records::local_gaussians(
         progress.partition as u64,
         progress.scene.0,
         progress.peers as u64,

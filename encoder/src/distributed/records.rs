@@ -4,6 +4,16 @@
 
 use serde::{Deserialize, Serialize};
 
+/// How many of a scene's `n` Gaussians fall in partition `p` of `peers`: global ids
+/// `p, p + peers, …` below `n`, numbered locally from 0.
+pub(super) fn local_gaussians(p: u64, n: u64, peers: u64) -> usize {
+    if p < n {
+        (n - p).div_ceil(peers) as usize
+    } else {
+        0
+    }
+}
+
 /// Timings and counts of one map worker, summed over its images.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub(super) struct MapStats {

@@ -14,6 +14,7 @@ use slag_common::mask_record::MaskRecord;
 use super::checkpoint::{Progress, Saved};
 use super::records::{
     ImagePart, JobKey, MapStats, MixtureRows, PartSummary, RecordRows, ToGather, ToReducer,
+    local_gaussians,
 };
 use crate::aggregate::{
     self, ContributionStore, Entry, ImageContribution, MixtureFold, ReduceParams, StoredImage,
@@ -94,16 +95,6 @@ pub(super) struct PartitionReducer {
     /// Where the worker puts the partition's [`Resume`] (taken at the first record).
     resume: Rc<RefCell<Option<Resume>>>,
     checkpoints: Option<Checkpointer>,
-}
-
-/// How many of a scene's `n` Gaussians fall in partition `p` of `peers`: global ids
-/// `p, p + peers, …` below `n`, numbered locally from 0.
-pub(super) fn local_gaussians(p: u64, n: u64, peers: u64) -> usize {
-    if p < n {
-        (n - p).div_ceil(peers) as usize
-    } else {
-        0
-    }
 }
 
 impl PartitionReducer {
