@@ -1,5 +1,5 @@
-//! `slag-encoder encode` SIGKILLed after it started writing (per-image contributions spilled to
-//! `OUT/.contributions.partial`) leaves no output that looks complete: no `report.json`, no
+//! `slag-encoder encode` SIGKILLed after it started writing (the dense accumulators spilled to
+//! `OUT/.dense-accumulators.partial`) leaves no output that looks complete: no `report.json`, no
 //! `embeddings.safetensors` (the embeddings are written to `.partial`, synced and renamed).
 #![allow(clippy::unwrap_used)]
 
@@ -16,7 +16,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("out");
     let mut cmd = support::slag_encoder();
-    // A zero contribution budget spills every image's a_kj to disk as soon as it is computed,
+    // A zero accumulator budget spills the dense accumulators to disk from the first view on,
     // so the run writes into OUT early and keeps writing until the end.
     let mut child = cmd
         .args(["encode", "--scene-dir"])
@@ -30,7 +30,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
             "0.25",
             "--rasterizer",
             "cpu",
-            "--contribution-memory-mb",
+            "--accumulator-memory-mb",
             "0",
             "--dense",
             // Every view: a run long enough to be killed mid-way.
@@ -41,7 +41,7 @@ fn encode_killed_mid_run_leaves_nothing_that_looks_complete() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let spill = out.join(".contributions.partial");
+    let spill = out.join(".dense-accumulators.partial");
     let t0 = Instant::now();
     loop {
         let started = std::fs::read_dir(&spill).is_ok_and(|mut rd| rd.next().is_some());

@@ -450,6 +450,12 @@ pub struct ClusterOutputs {
 /// One reduce partition of a cluster encode.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ClusterPartition {
+    /// Bytes of the largest checkpoint it wrote.
+    pub checkpoint_bytes: u64,
+    /// Seconds writing its checkpoints, in all.
+    pub checkpoint_s: f64,
+    /// Checkpoints it wrote during this run.
+    pub checkpoints: u64,
     /// Non-zero `a_kj` it reduced.
     pub entries: u64,
     /// Image parts it received.
@@ -466,12 +472,6 @@ pub struct ClusterPartition {
     pub spilled_images: u64,
     /// Views restored from its checkpoint (`0..views_restored`; 0 for a fresh partition).
     pub views_restored: u64,
-    /// Checkpoints it wrote during this run.
-    pub checkpoints: u64,
-    /// Seconds writing them, in all.
-    pub checkpoint_s: f64,
-    /// Bytes of the largest one.
-    pub checkpoint_bytes: u64,
 }
 
 /// One map worker of a cluster encode.

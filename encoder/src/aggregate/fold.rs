@@ -21,6 +21,10 @@ use super::{MaskColumn, StoredImage};
 /// Gaussians per parallel block of a fold (each block's state is one task's).
 const BLOCK: usize = 1 << 16;
 
+/// Most (mask, weight) pairs a fold keeps per Gaussian ([`MixtureFold::new`]): its pair counts
+/// are bytes. A mixture of more pairs (up to every atom) is reduced from the kept views instead.
+pub const MAX_FOLDED_KEEP: usize = u8::MAX as usize;
+
 /// The host's streamed mixture reduction: views pushed in any order
 /// ([`MixtureFold::push`]) are folded in view order, each Gaussian's terms added in the order
 /// [`super::reduce_mixture_chunks`] adds them (views by index, entries in their order), so that
@@ -97,7 +101,7 @@ impl MixtureFold {
         min_total_weight: f64,
         keeps_codebook: bool,
     ) -> Result<Self> {
-        if !(1..=u8::MAX as usize).contains(&keep) {
+        if !(1..=MAX_FOLDED_KEEP).contains(&keep) {
             return Err(Error::param(
                 "mixture_keep",
                 keep,

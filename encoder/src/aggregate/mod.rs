@@ -41,7 +41,7 @@ pub mod store;
 mod top;
 
 pub use dense_fold::{DenseFold, DenseFoldParams, DenseFoldStats, DenseFolded};
-pub use fold::{FoldState, MixtureFold};
+pub use fold::{FoldState, MAX_FOLDED_KEEP, MixtureFold};
 pub use image::{
     Entry, ImageContribution, ImageStageParams, MaskOverlap, MaskWeighting, PixelLabels,
     image_contribution, overlap_labels, pixel_labels, stage_labels,

@@ -119,7 +119,12 @@ fn folded_mixture(
 ) -> Result<Option<crate::aggregate::MixtureFold>> {
     let host = params.reduce_on == crate::config::ReduceOn::Host;
     match params.mixture_keep {
-        Some(keep) if host && !params.dense && !params.levels => {
+        Some(keep)
+            if host
+                && !params.dense
+                && !params.levels
+                && keep <= crate::aggregate::MAX_FOLDED_KEEP =>
+        {
             let fold = crate::aggregate::MixtureFold::new(
                 n_gaussians,
                 dim,
@@ -137,7 +142,9 @@ fn folded_mixture(
 /// accumulators per Gaussian as it comes ([`crate::aggregate::DenseFold`]), tiled by Gaussian
 /// ids within the accumulator budget and spilled to `<out>/.dense-accumulators.partial` past it,
 /// the views batched within the contribution budget while tiles are spilled; with the mixture
-/// its pairs folded beside. `None` without the dense file.
+/// its pairs folded beside. `None` without the dense file, or with a mixture of more pairs per
+/// Gaussian than a fold keeps ([`crate::aggregate::MAX_FOLDED_KEEP`]: every view is then kept,
+/// spilling past the contribution budget, and reduced at the end).
 ///
 /// Errors: the fold's ([`crate::aggregate::DenseFold::new`]).
 fn folded_dense(
@@ -145,7 +152,10 @@ fn folded_dense(
     dim: usize,
     n_gaussians: usize,
 ) -> Result<Option<crate::aggregate::DenseFold>> {
-    if !params.dense {
+    let keeps_more = params
+        .mixture_keep
+        .is_some_and(|k| k > crate::aggregate::MAX_FOLDED_KEEP);
+    if !params.dense || keeps_more {
         return Ok(None);
     }
     let p = crate::aggregate::DenseFoldParams {
