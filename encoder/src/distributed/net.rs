@@ -843,14 +843,15 @@ mod tests {
         let deadline = Instant::now() + Duration::from_secs(20);
         let lost: Vec<Arc<LostPeer>> = (0..3).map(|_| Arc::default()).collect();
         let streams = std::thread::scope(|scope| {
-            let handles: Vec<_> = (0..3)
-                .map(|p| {
-                    let (hosts, s, lost) = (&hosts, &s, &lost[p]);
-                    scope.spawn(move || connect_peers(hosts, p, Some(s), STEP, deadline, lost))
-                })
-                .collect();
+            let spawn = |p: usize| {
+                let (hosts, s, lost) = (&hosts, &s, &lost[p]);
+                scope.spawn(move || connect_peers(hosts, p, Some(s), STEP, deadline, lost))
+            };
+            // Processes 0 and 1 first: process 0 listens until process 2 is in, so the intruder
+            // below always finds it listening, however the threads are scheduled.
+            let mut handles: Vec<_> = (0..2).map(spawn).collect();
             // An intruder with another secret, posing as process 2 to process 0; it is refused
-            // and the real process 2 still gets in.
+            // and the real process 2, started after it, still gets in.
             let intruder = ClusterSecret::new(b"not the cluster's secret").unwrap();
             let m = Membership {
                 addresses: &hosts,
@@ -863,9 +864,11 @@ mod tests {
                 if let Ok(c) = TcpStream::connect(&hosts[0]) {
                     break c;
                 }
+                assert!(Instant::now() < deadline, "process 0 never listened");
                 std::thread::sleep(Duration::from_millis(10));
             };
             assert!(connect_handshake(c, &m, 0).is_err());
+            handles.push(spawn(2));
             handles
                 .into_iter()
                 .map(|h| h.join().unwrap().unwrap())
