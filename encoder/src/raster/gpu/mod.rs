@@ -76,7 +76,6 @@
 //! layout, constants and bindings, and the two blend kernels' workgroup arrays and shared
 //! steps; the shader module is the files joined in that order.
 
-use std::path::Path;
 use std::sync::Arc;
 
 use slag_common::camera::{Intrinsics, WorldToCamera};
@@ -90,6 +89,7 @@ use super::{
     LabelSums, PixelWeights, PrecomputedView, ViewPrecompute, WeightRasterizer, validate_raster,
 };
 
+mod adapters;
 mod buffers;
 mod count_scan;
 mod coverage;
@@ -103,6 +103,8 @@ mod reduce;
 mod sort;
 mod write;
 
+pub use adapters::adapter_names;
+use adapters::ranked_adapters;
 use buffers::{OutBuffers, storage, storage_init};
 use label_sums::{INITIAL_LABEL_RECORDS, RecordBuffers};
 use sort::SortBuffers;
@@ -123,7 +125,10 @@ const GROUPS_X: u32 = 32768;
 /// Elements per scan block (256 invocations × 4).
 const SCAN_BLOCK: u32 = 1024;
 
-/// Environment variable: substring (case-insensitive) of the adapter name to use.
+/// Environment variable: substring (case-insensitive) of the adapter name to use, or `#N`, the
+/// N-th (0-based) adapter of the ranked list `--gpus` takes its GPUs from: the only way to tell
+/// apart identical GPUs of one host, e.g. one process per GPU of `encode-cluster` (ONNX Runtime's
+/// GPU is chosen by `CUDA_VISIBLE_DEVICES`; Vulkan does not read it).
 pub const ADAPTER_ENV: &str = "SLAG_WGPU_ADAPTER";
 
 #[repr(C)]
@@ -344,83 +349,6 @@ impl std::fmt::Debug for GpuRasterizer {
 
 fn gpu_err(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Gpu(format!("{what}: {e}"))
-}
-
-/// The Vulkan adapters slag would use, best first: those matching `$SLAG_WGPU_ADAPTER`
-/// (case-insensitive substring) if set, else ranked discrete, integrated, virtual, other, CPU
-/// (Mesa lavapipe), in enumeration order within a rank.
-///
-/// Errors: [`Error::Gpu`] when there is no Vulkan adapter (install a driver), when an NVIDIA
-/// driver is loaded but Vulkan offers only CPU adapters or none (the message gives the exact fix,
-/// see [`icd`]; naming a CPU adapter in `$SLAG_WGPU_ADAPTER` runs on it anyway), or when none
-/// matches `$SLAG_WGPU_ADAPTER` (the message lists what exists).
-fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
-    let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
-    let names: Vec<String> = adapters
-        .iter()
-        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
-        .collect();
-    let wanted = std::env::var(ADAPTER_ENV).ok();
-    // An NVIDIA host whose Vulkan offers no GPU: name the exact fix instead of running on
-    // Mesa's CPU driver a hundred times slower (unless the CPU adapter was asked for by name).
-    let only_cpu = adapters
-        .iter()
-        .all(|a| a.get_info().device_type == wgpu::DeviceType::Cpu);
-    if only_cpu
-        && wanted.is_none()
-        && let Some(hint) = icd::no_gpu_adapter_hint(
-            &names.join(", "),
-            Path::new("/"),
-            icd::nvidia_driver_present(),
-        )
-    {
-        return Err(Error::Gpu(hint));
-    }
-    if adapters.is_empty() {
-        return Err(Error::Gpu(
-            "no Vulkan adapter found; install a Vulkan driver (on Debian/Ubuntu without a GPU: \
-             `apt-get install mesa-vulkan-drivers` for the lavapipe CPU driver)"
-                .into(),
-        ));
-    }
-    if let Some(want) = wanted {
-        let want_l = want.to_lowercase();
-        let matching: Vec<wgpu::Adapter> = adapters
-            .into_iter()
-            .filter(|a| a.get_info().name.to_lowercase().contains(&want_l))
-            .collect();
-        if matching.is_empty() {
-            return Err(Error::Gpu(format!(
-                "{ADAPTER_ENV}={want:?} matches no Vulkan adapter; available: {}",
-                names.join(", ")
-            )));
-        }
-        return Ok(matching);
-    }
-    use wgpu::DeviceType as D;
-    let rank = |t: D| match t {
-        D::DiscreteGpu => 0,
-        D::IntegratedGpu => 1,
-        D::VirtualGpu => 2,
-        D::Other => 3,
-        D::Cpu => 4,
-    };
-    let mut adapters = adapters;
-    adapters.sort_by_key(|a| rank(a.get_info().device_type));
-    Ok(adapters)
-}
-
-/// Names and types of the adapters [`GpuRasterizer::new_many`] chooses from, best first.
-///
-/// Errors: as [`GpuRasterizer::new`] when no adapter exists.
-pub fn adapter_names() -> Result<Vec<String>> {
-    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-    desc.backends = wgpu::Backends::VULKAN;
-    let instance = wgpu::Instance::new(desc);
-    Ok(ranked_adapters(&instance)?
-        .iter()
-        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
-        .collect())
 }
 
 /// The compute pipeline of `entry` in `module`, its bind group layout derived from the shader.
