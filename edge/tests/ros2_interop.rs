@@ -5,7 +5,9 @@
 //! store: the same objects (count, ids, centres within 1e-5, scores) and the same top matches
 //! (positions and scores) as the points of the cloud. Blank and over-long prompts publish
 //! nothing and are counted; a subscriber that joins late receives the last answer
-//! (transient-local).
+//! (transient-local). A partial answer (a signed store whose tiles are still being verified in
+//! the background) ends `~/markers` with the `slag_partial` text marker naming the count of
+//! pending tiles the HTTP answer gives; a whole answer has none.
 //!
 //! The Python side is installed by `scripts/ros2-interop-setup.sh` (a cached venv). When that is
 //! impossible here (no python3, PyPI unreachable) the test says so and passes, unless
@@ -25,10 +27,15 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use slag_common::shards::Dtype;
+use slag_common::shards::signature::SigningKey;
+use slag_edge::engine::{QueryEngine, Verification, VerifyGate};
+use slag_edge::fetch::{FetchParams, fetch};
+use slag_edge::ros2::convert::{PARTIAL_MARKER_HEIGHT, PARTIAL_NS};
 use slag_edge::ros2::{Ros2Counts, Ros2Options};
 use slag_edge::serve::{AppState, ServeOptions};
 use support::{
-    BasisEmbedder, fetch_grid, grid_scene, serve_shared_on_loopback, shard_server, wait_until,
+    BasisEmbedder, fetch_grid, grid_fetch_params, grid_scene, serve_shared_on_loopback,
+    shard_server, temp_store, wait_until,
 };
 
 /// The venv's python, or `None` (with the reason printed) when the install is impossible.
@@ -74,10 +81,12 @@ struct Node {
     url: String,
     options: Ros2Options,
     counters: Arc<slag_edge::ros2::Ros2Counters>,
+    state: Arc<AppState>,
     _dir: tempfile::TempDir,
 }
 
-/// A store of the grid scene served over HTTP and ROS 2 from one [`AppState`].
+/// A store of the grid scene (`nx` × `nx` tiles of `per_tile` Gaussians of dimension `dim`)
+/// served over HTTP and ROS 2 from one [`AppState`].
 async fn start(nx: usize, per_tile: usize, dim: usize) -> Node {
     let server = shard_server(
         grid_scene("grid", nx, nx, per_tile, dim, Dtype::F32, 1),
@@ -85,45 +94,89 @@ async fn start(nx: usize, per_tile: usize, dim: usize) -> Node {
     )
     .await;
     let (dir, store) = fetch_grid(&server.url, 1e4).await;
-    let state = Arc::new(
-        AppState::new(
-            store,
-            Arc::new(BasisEmbedder::new(dim)),
-            ServeOptions {
-                request_timeout: Duration::from_secs(60),
-                ..ServeOptions::new("grid")
-            },
-        )
-        .unwrap(),
+    let state = AppState::new(
+        store,
+        Arc::new(BasisEmbedder::new(dim)),
+        serve_options(None),
     );
+    serve_node(state.unwrap(), dir, "").await
+}
+
+/// [`start`] of a grid signed by a publisher, fetched and served with its key trusted: the
+/// background verification of the stored tiles waits at `gate` before each tile, so the
+/// answers are partial until the gate lets every tile through.
+async fn start_signed(nx: usize, per_tile: usize, dim: usize, gate: VerifyGate) -> Node {
+    let scene = grid_scene("grid", nx, nx, per_tile, dim, Dtype::F32, 1);
+    let publisher = SigningKey::generate();
+    let signature = publisher.sign(&scene.manifest.to_json()).to_json();
+    let server = shard_server(scene, None).await;
+    *server.state.signature.write().unwrap() = Some(signature);
+    let trusted = publisher.public();
+    let (dir, store) = temp_store();
+    let params = FetchParams {
+        trusted_keys: Some(trusted.clone().into()),
+        ..grid_fetch_params(&server.url, 1e4)
+    };
+    fetch(&store, &params).await.unwrap();
+    let embedder = Arc::new(BasisEmbedder::new(dim));
+    let opts = serve_options(Some(trusted.into()));
+    let state = AppState::new_gated(store, embedder, opts, Some(gate)).unwrap();
+    serve_node(state, dir, "_partial").await
+}
+
+/// The options both nodes serve with: a long request timeout (a loaded CI machine), `trusted`
+/// keys if any.
+fn serve_options(trusted: Option<slag_common::shards::signature::TrustedKeys>) -> ServeOptions {
+    ServeOptions {
+        request_timeout: Duration::from_secs(60),
+        trusted_keys: trusted,
+        ..ServeOptions::new("grid")
+    }
+}
+
+/// Starts the ROS 2 node over `state` ([`start_ros2`] with `suffix`) and serves it over HTTP
+/// on loopback; `dir` holds the store.
+async fn serve_node(state: AppState, dir: tempfile::TempDir, suffix: &str) -> Node {
+    let state = Arc::new(state);
+    let node = start_ros2(&state, suffix);
+    Node {
+        url: serve_shared_on_loopback(state.clone()).await,
+        options: node.options,
+        counters: node.counters,
+        state,
+        _dir: dir,
+    }
+}
+
+/// A ROS 2 node over `state`, named `slag_<pid><suffix>` in namespace `/interop`: each test
+/// its own suffix, so that tests running at once do not see each other's answers (another
+/// suffix: other topics, without the answers another node published).
+fn start_ros2(state: &Arc<AppState>, suffix: &str) -> slag_edge::ros2::Ros2Node {
     let pid = std::process::id();
     let options = Ros2Options {
-        node_name: format!("slag_{pid}"),
+        node_name: format!("slag_{pid}{suffix}"),
         namespace: "/interop".into(),
         frame_id: "map".into(),
         // Apart from other test runs on this host (each also has its own node name).
         domain_id: 1 + (pid % 200) as u16,
     };
-    let node = slag_edge::ros2::start(state.clone(), options.clone()).unwrap();
-    Node {
-        url: serve_shared_on_loopback(state).await,
-        options,
-        counters: node.counters,
-        _dir: dir,
-    }
+    slag_edge::ros2::start(state.clone(), options).unwrap()
 }
 
-/// Runs the Python client with `request` (a JSON object; topics are added) and returns its
-/// output.
-async fn client(python: &str, node: &Node, mut request: serde_json::Value) -> serde_json::Value {
-    let o = &node.options;
+/// Runs the Python client with `request` (a JSON object; the topics of the node `o` and the
+/// HTTP server `url` are added) and returns its output.
+async fn client(
+    python: &str,
+    (o, url): (&Ros2Options, &str),
+    mut request: serde_json::Value,
+) -> serde_json::Value {
     request["topics"] = serde_json::json!({
         "prompt": o.dds_topic("prompt"),
         "objects": o.dds_topic("objects"),
         "matches": o.dds_topic("matches"),
         "markers": o.dds_topic("markers"),
     });
-    request["http"] = serde_json::json!(node.url);
+    request["http"] = serde_json::json!(url);
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/ros2_interop/client.py");
     let (python, domain, body) = (python.to_string(), o.domain_id, request.to_string());
     // The client bounds its own run (`timeout_s`); a blocking thread waits for it.
@@ -227,9 +280,15 @@ fn assert_equal_answers(
         }
         assert_eq!(f(&p[3]) as f32, f(&m["score"]) as f32, "{prompt}: score");
     }
-    // Markers: clear, then a box and a label per object.
+    // Markers: clear, then a box and a label per object, then for a partial answer the marker
+    // that says so.
     let ms = markers["markers"].as_array().unwrap();
-    assert_eq!(ms.len(), 1 + 2 * want.len(), "{prompt}: markers");
+    let partial = http["partial"] == true;
+    assert_eq!(
+        ms.len(),
+        1 + 2 * want.len() + usize::from(partial),
+        "{prompt}: markers"
+    );
     assert_eq!(ms[0]["action"], 3, "DELETEALL first");
     for (i, o) in want.iter().enumerate() {
         assert_eq!(ms[1 + 2 * i]["type"], 1, "CUBE");
@@ -241,6 +300,38 @@ fn assert_equal_answers(
         assert_eq!(ms[2 + 2 * i]["type"], 9, "TEXT_VIEW_FACING");
         assert!(ms[2 + 2 * i]["text"].as_str().unwrap().starts_with(prompt));
     }
+    assert_eq!(
+        ms.iter().filter(|m| m["ns"] == PARTIAL_NS).count(),
+        usize::from(partial),
+        "{prompt}: one {PARTIAL_NS} marker for a partial answer, none for a whole one"
+    );
+    if partial {
+        assert_partial_marker(prompt, &ms[ms.len() - 1], http);
+    }
+}
+
+/// The last marker of a partial answer: a `TEXT_VIEW_FACING` marker added in namespace
+/// [`PARTIAL_NS`], id 0, above the frame's origin, whose text gives the HTTP answer's count of
+/// tiles pending verification.
+fn assert_partial_marker(prompt: &str, m: &serde_json::Value, http: &serde_json::Value) {
+    let pending = http["tiles_pending_verification"].as_u64().unwrap();
+    assert!(pending > 0, "{prompt}: {http}");
+    assert_eq!(m["ns"], PARTIAL_NS, "{prompt}: the partial marker last");
+    assert_eq!(
+        (&m["id"], &m["type"], &m["action"]),
+        (&0.into(), &9.into(), &0.into())
+    );
+    let p = &m["pose"]["position"];
+    assert_eq!(
+        (f(&p[0]), f(&p[1]), f(&p[2])),
+        (0.0, 0.0, PARTIAL_MARKER_HEIGHT),
+        "{prompt}: above the origin"
+    );
+    assert_eq!(
+        m["text"],
+        format!("partial: {pending} tiles pending verification"),
+        "{prompt}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -262,7 +353,7 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
     sent.extend(prompts.iter().map(|p| p.to_string()));
     let out = client(
         &python,
-        &node,
+        (&node.options, &node.url),
         serde_json::json!({
             "prompts": sent, "expect": prompts.len(), "timeout_s": 120, "late_subscriber": true
         }),
@@ -315,6 +406,64 @@ async fn cyclone_dds_and_rosbags_see_the_http_answer() {
     );
 }
 
+/// A signed store served while its tiles are verified in the background: with four of the
+/// nine tiles verified, each answer over ROS 2 equals the HTTP answer (partial, five tiles
+/// pending) and its `~/markers` end with the `slag_partial` marker saying so; once every tile
+/// is verified, the same prompt's markers carry none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_partial_answer_ends_the_markers_with_the_slag_partial_marker() {
+    let Some(python) = python() else { return };
+    let gate = VerifyGate::new();
+    let node = start_signed(3, 40, 8, gate.clone()).await;
+    gate.release(4);
+    let passed = tokio::task::spawn_blocking({
+        let gate = gate.clone();
+        move || gate.wait_passed(4)
+    })
+    .await
+    .unwrap();
+    assert_eq!(passed, 4, "the verification ended early");
+    // Tiles 0 to 3 are served: "t1" and "t3" match their rows.
+    let prompts = ["t3", "t1"];
+    let mut http = Vec::new();
+    for p in prompts {
+        let a = http_answer(&node.url, p).await;
+        assert_eq!(
+            (&a["partial"], &a["tiles_pending_verification"]),
+            (&true.into(), &5.into()),
+            "{p}: {a}"
+        );
+        assert!(!a["objects"].as_array().unwrap().is_empty(), "{p}: {a}");
+        http.push(a);
+    }
+    let request = |prompts: &[&str]| serde_json::json!({"prompts": prompts, "expect": prompts.len(), "timeout_s": 120});
+    let out = client(&python, (&node.options, &node.url), request(&prompts)).await;
+    for key in ["objects", "matches", "markers"] {
+        assert_eq!(out[key].as_array().unwrap().len(), prompts.len(), "{key}");
+    }
+    for (i, p) in prompts.iter().enumerate() {
+        let (objects, cloud) = (&out["objects"][i], &out["matches"][i]);
+        assert_equal_answers(p, objects, cloud, &out["markers"][i], &http[i]);
+    }
+
+    // Every tile verified: whole answers, no partial marker.
+    gate.open();
+    let engine = QueryEngine::from(node.state.clone());
+    let verified = tokio::task::spawn_blocking(move || engine.wait_verified());
+    assert_eq!(verified.await.unwrap(), Verification::Done);
+    let whole = http_answer(&node.url, "t3").await;
+    assert!(whole.get("partial").is_none(), "{whole}");
+    // A second node over the same state: its topics hold no answer of the first run (which a
+    // new subscription would receive first: transient-local).
+    let verified = start_ros2(&node.state, "_partial_verified");
+    let out = client(&python, (&verified.options, &node.url), request(&["t3"])).await;
+    for key in ["objects", "matches", "markers"] {
+        assert_eq!(out[key].as_array().unwrap().len(), 1, "{key}");
+    }
+    let (objects, cloud) = (&out["objects"][0], &out["matches"][0]);
+    assert_equal_answers("t3", objects, cloud, &out["markers"][0], &whole);
+}
+
 /// Prompt → published objects over ROS 2 next to the same query over HTTP, one prompt at a
 /// time, measured by the same client in one run (`docs/results/ros2-latency.md`):
 /// `cargo test --release -p slag-edge --test ros2_interop -- --ignored --nocapture`.
@@ -331,7 +480,7 @@ async fn latency_ros2_next_to_http() {
     let n = prompts.len();
     let out = client(
         &python,
-        &node,
+        (&node.options, &node.url),
         serde_json::json!({"prompts": prompts, "expect": n, "timeout_s": 300, "latency": true}),
     )
     .await;
