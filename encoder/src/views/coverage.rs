@@ -81,7 +81,7 @@ use crate::raster::WeightRasterizer;
 mod greedy;
 
 use greedy::Gain;
-pub(super) use greedy::{AtOnce, greedy};
+pub(super) use greedy::{AtOnce, greedy, greedy_counted};
 
 /// The stopping rule of coverage selection (module doc).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
