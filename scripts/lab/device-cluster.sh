@@ -13,6 +13,11 @@
 #   e.g. bash scripts/lab/device-cluster.sh /root/ab/e2e-f16-g2.txt cl2 2 20 /root/ref-g2
 # Output: $OUT/cluster-TAG.txt (the lines printed) and $OUT/cluster-TAG.tgz (logs, report).
 set -uo pipefail
+for f in .gl/*.deb; do dpkg -x "$f" / >/dev/null 2>&1; done; ldconfig
+VK_DRIVER_FILES=$(bash scripts/vulkan-icd.sh) && [ -n "$VK_DRIVER_FILES" ] && export VK_DRIVER_FILES
+export XDG_RUNTIME_DIR=/tmp
+# shellcheck disable=SC1091
+source /root/og/assemble.sh  # ONNX Runtime's CUDA provider, as device-gpu-models.sh assembles it
 ref=$1; tag=$2; procs=$3; ckpt=${4:-0}; ref_out=${5:-}
 R=${OUT:-/tmp/out}; w=/root/cluster-$tag; mkdir -p "$R" "$w"
 line=$(grep -m1 'Command being timed' "$ref" | sed -e 's/^[^"]*"//' -e 's/"$//')
@@ -72,5 +77,5 @@ EOF
   fi
   tail -3 "$w/process-0.log"
 } | tee -a "$R/cluster-$tag.txt"
-tar czf "$R/cluster-$tag.tgz" -C "$w" hosts process-*.log out/report.json 2>/dev/null
+(cd "$w" && tar czf "$R/cluster-$tag.tgz" hosts process-*.log out/report.json 2>/dev/null)
 exit 0
