@@ -385,7 +385,7 @@ impl<C: AsRef<[u8]> + Clone + Send + 'static> BodyHash<C> {
             for c in rx {
                 h.update(c.as_ref());
             }
-            h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+            crate::store::hex_digest(&h.finalize())
         });
         BodyHash {
             bytes: Vec::with_capacity(len.min(MAX_BODY_RESERVE) as usize),

@@ -72,6 +72,7 @@ mod regular;
 mod signed;
 mod verify;
 pub use load::{MAX_LOAD_WINDOW, SceneLoad, load_window};
+pub(crate) use regular::hex_digest;
 pub use regular::read_regular;
 use regular::{Opened, db_not_regular, open_regular};
 pub use signed::{SignatureCheck, SignedManifest};
@@ -590,6 +591,19 @@ impl EdgeStore {
     /// Errors: [`Error::Format`] for a checksum that is not 8 hex digits; [`Error::Io`] when the
     /// file exists but cannot be read.
     pub fn check_stored(&self, manifest: &Manifest, tile: &TileInfo) -> Result<Stored> {
+        self.check_stored_read(manifest, tile, None)
+    }
+
+    /// [`Self::check_stored`], feeding every byte it reads to `sha256` as well when given (the
+    /// digest is of the whole file when the check reports [`Stored::Verified`]).
+    ///
+    /// Errors: as [`Self::check_stored`].
+    pub(crate) fn check_stored_read(
+        &self,
+        manifest: &Manifest,
+        tile: &TileInfo,
+        sha256: Option<&mut sha2::Sha256>,
+    ) -> Result<Stored> {
         let path = self.stored_path(manifest, tile)?;
         let damaged = |why: String| {
             Ok(Stored::Damaged {
@@ -619,8 +633,8 @@ impl EdgeStore {
             ));
         }
         // Never past the stated length, whatever the file does meanwhile.
-        let (got, head, total) =
-            regular::crc_and_head(f, tile.bytes, HEAD_BYTES).map_err(|e| Error::io(&path, e))?;
+        let (got, head, total) = regular::crc_and_head(f, tile.bytes, HEAD_BYTES, sha256)
+            .map_err(|e| Error::io(&path, e))?;
         if total != tile.bytes {
             return damaged(format!(
                 "{total} bytes read, the manifest says {}",

@@ -89,17 +89,21 @@ pub(crate) fn read_bounded(f: std::fs::File, max: u64) -> std::io::Result<Vec<u8
     Ok(out)
 }
 
-/// Reads `f` to its end, but never more than `max + 1` bytes, 1 MiB at a time: the CRC-32 of
-/// every byte read, its first `head_bytes` bytes, and how many bytes were read.
+/// Reads `f` to its end, but never more than `max + 1` bytes, 1 MiB at a time (a smaller
+/// buffer for a smaller `max`): the CRC-32 of every byte read, its first `head_bytes` bytes, and
+/// how many bytes were read. With `sha256`, the same bytes are hashed in the same pass (for a
+/// trusted key: one read of the file gives both digests).
 pub(crate) fn crc_and_head(
     f: std::fs::File,
     max: u64,
     head_bytes: usize,
+    mut sha256: Option<&mut sha2::Sha256>,
 ) -> std::io::Result<(u32, Vec<u8>, u64)> {
+    use sha2::Digest;
     let mut f = f.take(max.saturating_add(1));
     let mut crc = crc32fast::Hasher::new();
     let mut head: Vec<u8> = Vec::new();
-    let mut buf = vec![0u8; 1 << 20];
+    let mut buf = vec![0u8; max.saturating_add(1).min(1 << 20) as usize];
     let mut total = 0u64;
     loop {
         let n = match f.read(&mut buf) {
@@ -109,6 +113,9 @@ pub(crate) fn crc_and_head(
             Err(e) => return Err(e),
         };
         crc.update(&buf[..n]);
+        if let Some(h) = sha256.as_deref_mut() {
+            h.update(&buf[..n]);
+        }
         if head.len() < head_bytes {
             let take = n.min(head_bytes - head.len());
             head.extend_from_slice(&buf[..take]);
@@ -116,6 +123,11 @@ pub(crate) fn crc_and_head(
         total += n as u64;
     }
     Ok((crc.finalize(), head, total))
+}
+
+/// Lowercase hex of a digest (64 digits for a SHA-256), as manifests write it.
+pub(crate) fn hex_digest(digest: &[u8]) -> String {
+    digest.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// The refusal of something at `path` that is not a regular file (`what`: the file's role,
@@ -192,6 +204,41 @@ pub(crate) fn db_not_regular(db: &Path) -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One pass gives the CRC-32, the head and, when asked, the SHA-256 of the bytes read;
+    /// never more than `max + 1` of them, over several reads of the buffer.
+    #[test]
+    fn one_read_gives_the_crc_the_head_and_the_sha256() {
+        use sha2::Digest;
+        let d = tempfile::tempdir().expect("tempdir");
+        let file = d.path().join("f");
+        let bytes: Vec<u8> = (0..(3 << 20) + 17)
+            .map(|i: u32| (i * 7 + i / 251) as u8)
+            .collect();
+        std::fs::write(&file, &bytes).expect("write");
+        let open = || std::fs::File::open(&file).expect("open");
+        let len = bytes.len() as u64;
+        let mut h = sha2::Sha256::new();
+        let (crc, head, total) = crc_and_head(open(), len, 64, Some(&mut h)).expect("read");
+        assert_eq!(
+            (crc, &head[..], total),
+            (crc32fast::hash(&bytes), &bytes[..64], len)
+        );
+        assert_eq!(
+            hex_digest(&h.finalize()),
+            slag_common::shards::signature::sha256_hex(&bytes)
+        );
+        let (crc_alone, _, _) = crc_and_head(open(), len, 64, None).expect("read");
+        assert_eq!(crc_alone, crc);
+        // A file longer than `max`: `max + 1` bytes read and hashed, no more.
+        let mut h = sha2::Sha256::new();
+        let (_, _, total) = crc_and_head(open(), 1000, 64, Some(&mut h)).expect("read");
+        assert_eq!(total, 1001);
+        assert_eq!(
+            hex_digest(&h.finalize()),
+            slag_common::shards::signature::sha256_hex(&bytes[..1001])
+        );
+    }
 
     #[test]
     fn only_regular_files_are_read_and_never_past_the_limit() {

@@ -211,25 +211,27 @@ impl EdgeStore {
     /// [`Self::check_stored`], and for a fetch with a trusted key (`signed`) also the SHA-256 of
     /// a file that passes it against the signed manifest: a file that differs (one stored by an
     /// unsigned fetch whose CRC-32 was made to match) is reported [`Stored::Damaged`], so the
-    /// fetch sets it aside and downloads the tile again.
+    /// fetch sets it aside and downloads the tile again. The file is read once: its SHA-256 is
+    /// computed in the same pass as its CRC-32.
     ///
-    /// Errors: as [`Self::check_stored`]; [`Error::Io`] when the file cannot be read again.
+    /// Errors: as [`Self::check_stored`].
     pub fn check_stored_signed(
         &self,
         manifest: &Manifest,
         tile: &TileInfo,
         signed: bool,
     ) -> Result<Stored> {
-        let state = self.check_stored(manifest, tile)?;
+        use sha2::Digest;
+        let mut hasher = sha2::Sha256::new();
+        let state = self.check_stored_read(manifest, tile, signed.then_some(&mut hasher))?;
         if !signed || state != Stored::Verified {
             return Ok(state);
         }
-        let path = self.stored_path(manifest, tile)?;
-        let got = self.file_sha256(&path)?;
+        let got = regular::hex_digest(&hasher.finalize());
         Ok(match tile.sha256.as_deref() {
             Some(want) if want == got => Stored::Verified,
             want => Stored::Damaged {
-                path,
+                path: self.stored_path(manifest, tile)?,
                 why: format!(
                     "SHA-256 {got}, the signed manifest says {}",
                     want.unwrap_or("none")
