@@ -3,7 +3,9 @@
 #   1. the engine load of a 1 GB signed store without and with the trusted key
 #      (edge/examples/load_cost: wall and CPU seconds, medians);
 #   2. a 104-tile signed disc fetched into a new store without and with --trusted-key
-#      (wall seconds and the fetch process's CPU seconds, medians, and their ratios).
+#      (wall seconds and the fetch process's CPU seconds, medians, and their ratios), then
+#      fetched again into the store that now holds it (every tile kept and checked: CRC-32s
+#      only without the key, also hashed with it).
 # Builds named NAME=DIR are run alternately, round by round; DIR holds slag-edge and
 # examples/load_cost of that build (e.g. target/debug). slag-shards comes from the first DIR.
 #
@@ -73,12 +75,21 @@ if [ $fetch_only = 0 ]; then
         echo "$b: $("${b#*=}/examples/load_cost" edge-big big "$key" "$load_rounds" | tail -1)"
     done
 fi
-echo "== fetch of the 104-tile disc into a new store, $fetch_rounds rounds"
+echo "== fetch of the 104-tile disc into a new store, then again into that store, $fetch_rounds rounds"
 python3 - "$small" "$key" "$fetch_rounds" "${builds[@]}" <<'EOF'
 import json, resource, shutil, statistics, subprocess, sys, time
 url, key, rounds, builds = sys.argv[1], sys.argv[2], int(sys.argv[3]), [b.split('=', 1) for b in sys.argv[4:]]
 t, cpu = {}, {}
 children = lambda: (lambda r: r.ru_utime + r.ru_stime)(resource.getrusage(resource.RUSAGE_CHILDREN))
+def timed(key, cmd):
+    s, c = time.monotonic(), children()
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    e, c = time.monotonic() - s, children() - c
+    if p.returncode != 0:
+        sys.exit(f'{key}: {p.stderr}')
+    t.setdefault(key, []).append(e)
+    cpu.setdefault(key, []).append(c)
+    return json.loads(p.stdout)
 for _ in range(rounds):
     for name, d in builds:
         for mode in ('unsigned', 'signed'):
@@ -88,19 +99,15 @@ for _ in range(rounds):
                    '1000,1000', '--radius', '1000', '--store', store, '--json']
             if mode == 'signed':
                 cmd += ['--trusted-key', key]
-            s, c = time.monotonic(), children()
-            p = subprocess.run(cmd, capture_output=True, text=True)
-            e, c = time.monotonic() - s, children() - c
-            if p.returncode != 0:
-                sys.exit(f'{name} {mode}: {p.stderr}')
-            t.setdefault((name, mode), []).append(e)
-            cpu.setdefault((name, mode), []).append(c)
-            tiles = json.loads(p.stdout)['downloaded']
+            tiles = timed((name, mode), cmd)['downloaded']
+            kept = timed((name, mode, 'again'), cmd)['skipped']
 for name, _ in builds:
-    u, s = (statistics.median(t[(name, m)]) for m in ('unsigned', 'signed'))
-    runs = lambda m: ' '.join(f'{x:.3f}' for x in t[(name, m)])
-    cu, cs = (statistics.median(cpu[(name, m)]) for m in ('unsigned', 'signed'))
-    print(f'{name} ({tiles} tiles): unsigned median {u:.3f} s ({runs("unsigned")}); '
-          f'signed median {s:.3f} s ({runs("signed")}); ratio {s / u:.2f}; '
-          f'client CPU median {cu:.3f} s unsigned, {cs:.3f} s signed, ratio {cs / cu:.2f}')
+    for again, what in (((), f'new store ({tiles} tiles)'), (('again',), f'again ({kept} kept)')):
+        k = lambda m: (name, m) + again
+        u, s = (statistics.median(t[k(m)]) for m in ('unsigned', 'signed'))
+        runs = lambda m: ' '.join(f'{x:.3f}' for x in t[k(m)])
+        cu, cs = (statistics.median(cpu[k(m)]) for m in ('unsigned', 'signed'))
+        print(f'{name}, {what}: unsigned median {u:.3f} s ({runs("unsigned")}); '
+              f'signed median {s:.3f} s ({runs("signed")}); ratio {s / u:.2f}; '
+              f'client CPU median {cu:.3f} s unsigned, {cs:.3f} s signed, ratio {cs / cu:.2f}')
 EOF
