@@ -280,8 +280,13 @@ fn assert_equal_answers(
         }
         assert_eq!(f(&p[3]) as f32, f(&m["score"]) as f32, "{prompt}: score");
     }
-    // Markers: clear, then a box and a label per object, then for a partial answer the marker
-    // that says so.
+    assert_markers(prompt, markers, http);
+}
+
+/// The markers of one answer against its HTTP answer: clear, then a box and a label per
+/// object, then for a partial answer the marker that says so.
+fn assert_markers(prompt: &str, markers: &serde_json::Value, http: &serde_json::Value) {
+    let want = http["objects"].as_array().unwrap();
     let ms = markers["markers"].as_array().unwrap();
     let partial = http["partial"] == true;
     assert_eq!(
