@@ -408,7 +408,14 @@ async fn check_verifies_the_stored_signature_and_finds_a_file_changed_on_disk() 
         .verify_signed("grid", Some(&trusted.clone().into()))
         .unwrap_err();
     assert_untrusted(&e, Untrusted::ContentHash);
-    assert!(e.to_string().contains("tile 0"), "{e}");
+    let m = e.to_string();
+    assert!(m.contains("tile 0"), "{m}");
+    // Named as the store's file changed after its commit, with what repairs it: a fetch with
+    // the key whose disc covers the tile.
+    assert!(
+        m.contains("changed after its commit") && m.contains("fetch --trusted-key"),
+        "{m}"
+    );
     // A signed fetch sets the rewritten file aside and downloads the tile again.
     let summary = fetch(&store, &signed_params(&server.url, &trusted))
         .await

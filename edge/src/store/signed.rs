@@ -79,6 +79,30 @@ pub(super) fn compare_download(manifest: &Manifest, tile: &TileInfo, sha256: &st
 }
 
 /// "tile N" or "the codebook", for messages.
+/// A stored file `what` whose SHA-256 (`got`) differs from the signed manifest's, as
+/// [`EdgeStore::verify_signed`] reports it: the file was changed in the store after its commit
+/// (not on the way, as for a download), so the message says what serves it and what repairs
+/// it. Any other error `e` stays as it is.
+fn stored_file_changed(e: Error, what: &str, got: &str, origin: &str) -> Error {
+    match e {
+        Error::Untrusted {
+            what: slag_common::Untrusted::ContentHash,
+            ..
+        } => Error::untrusted(
+            slag_common::Untrusted::ContentHash,
+            origin,
+            format!(
+                "{what} has SHA-256 {got}, not the signed manifest's: the stored file was \
+                 changed after its commit (its CRC-32s may still match). A server with the \
+                 trusted key does not serve it; `slag-edge fetch --trusted-key` sets it aside \
+                 and downloads it again when its disc covers the tile (the codebook: always), \
+                 and drops it from a disc that does not"
+            ),
+        ),
+        e => e,
+    }
+}
+
 fn file_name(manifest: &Manifest, tile: &TileInfo) -> String {
     if manifest.mixture.is_some() && tile.id == slag_common::shards::CODEBOOK_TILE {
         "the codebook".into()
@@ -292,7 +316,8 @@ impl EdgeStore {
             }
             let got = self.file_sha256(&path)?;
             let what = format!("{} ({})", file_name(manifest, t), path.display());
-            compare_sha256(t.sha256.as_deref(), &got, &what, &origin)?;
+            compare_sha256(t.sha256.as_deref(), &got, &what, &origin)
+                .map_err(|e| stored_file_changed(e, &what, &got, &origin))?;
             files_hashed += 1;
         }
         Ok(SignatureCheck {
