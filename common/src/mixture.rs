@@ -546,6 +546,60 @@ fn write_slots(
     Ok(())
 }
 
+/// Moves the sparse rows (`offsets`, `[N + 1]`, into `atoms` and `weights`) into `keep` slots
+/// per Gaussian in place: row `i`'s entries of non-zero weight, in their order, at
+/// `[i · keep, i · keep + count)`, then slots of atom 0 and weight 0 (which the build reads as
+/// empty) up to `(i + 1) · keep`; both arrays end `N · keep` long. `keep` is at least each row's
+/// count of non-zero weights ([`SparseMixture::longest_row`]). Two serial passes: the non-zero
+/// entries packed forward (each lands at or before where it was), then the rows spread
+/// backward (each lands at or after where it was), so that no entry is overwritten before it
+/// is moved; none when every row already fills its slots.
+fn pad_rows_in_place(
+    mut offsets: Vec<usize>,
+    atoms: &mut Vec<u32>,
+    weights: &mut Vec<f32>,
+    keep: usize,
+) {
+    let n = offsets.len() - 1;
+    let padded = atoms.len() == n * keep
+        && offsets.par_iter().enumerate().all(|(i, &o)| o == i * keep)
+        && weights.par_iter().all(|&w| w != 0.0);
+    if padded {
+        return;
+    }
+    // Forward: the non-zero entries, `offsets[i]` becoming where row `i`'s now start.
+    let (mut write, mut read) = (0, 0);
+    for i in 0..n {
+        let end = offsets[i + 1];
+        offsets[i] = write;
+        for e in read..end {
+            if weights[e] != 0.0 {
+                atoms[write] = atoms[e];
+                weights[write] = weights[e];
+                write += 1;
+            }
+        }
+        read = end;
+    }
+    offsets[n] = write;
+    // Backward: each row to its slots.
+    let len = atoms.len().max(n * keep);
+    // Exactly: a doubled capacity would stay reserved with the stored form.
+    atoms.reserve_exact(len - atoms.len());
+    weights.reserve_exact(len - weights.len());
+    atoms.resize(len, 0);
+    weights.resize(len, 0.0);
+    for i in (0..n).rev() {
+        let (start, end, slot) = (offsets[i], offsets[i + 1], i * keep);
+        atoms.copy_within(start..end, slot);
+        weights.copy_within(start..end, slot);
+        atoms[slot + end - start..slot + keep].fill(0);
+        weights[slot + end - start..slot + keep].fill(0.0);
+    }
+    atoms.truncate(n * keep);
+    weights.truncate(n * keep);
+}
+
 impl MixtureEmbeddings {
     /// Builds the stored form from sparse rows: drops codebook rows no atom uses (renumbering the
     /// rest in their original order), rounds the codebook to f16, orders each row by decreasing
@@ -597,10 +651,12 @@ impl MixtureEmbeddings {
             Some(g) => Norms::Gram { g, m: used },
             None => Norms::Sums,
         };
-        // Zeroed (lazily mapped) arrays whose every slot `fill_rows` writes.
-        let n = gaussian_ids.len();
-        let mut packed_atoms = vec![0u32; n * keep];
-        let mut packed_weights = vec![0f32; n * keep];
+        // The rows' non-zero entries moved into `keep` slots per Gaussian in place, so that the
+        // packed arrays are the sparse ones (no second copy of the pairs beside them: 32 bytes
+        // a Gaussian at S = 4); each batch then reads its own slots before `fill_rows`
+        // overwrites them.
+        let (mut packed_atoms, mut packed_weights) = (atoms, weights);
+        pad_rows_in_place(offsets, &mut packed_atoms, &mut packed_weights, keep);
         let failed = packed_atoms
             .par_chunks_mut(keep * BATCH)
             .zip(packed_weights.par_chunks_mut(keep * BATCH))
@@ -610,12 +666,16 @@ impl MixtureEmbeddings {
                 |s, (b, (slot_atoms, slot_weights))| {
                     let first = b * BATCH;
                     let batch = first..first + slot_atoms.len() / keep;
-                    for (row, i) in s.rows.iter_mut().zip(batch.clone()) {
+                    let slots = slot_atoms
+                        .chunks_exact(keep)
+                        .zip(slot_weights.chunks_exact(keep));
+                    for (row, (a, w)) in s.rows.iter_mut().zip(slots) {
                         row.clear();
                         row.extend(
-                            (offsets[i]..offsets[i + 1])
-                                .filter(|&e| weights[e] != 0.0)
-                                .map(|e| (new_row[atoms[e] as usize], f64::from(weights[e]))),
+                            a.iter()
+                                .zip(w)
+                                .filter(|&(_, &w)| w != 0.0)
+                                .map(|(&a, &w)| (new_row[a as usize], f64::from(w))),
                         );
                     }
                     let ids = &gaussian_ids[batch];
@@ -623,7 +683,7 @@ impl MixtureEmbeddings {
                 },
             )
             .find_map_first(std::result::Result::err);
-        drop((offsets, atoms, weights, new_row, g));
+        drop((new_row, g));
         if let Some(m) = failed {
             return Err(Error::Invalid(format!("mixture: {m}")));
         }

@@ -608,3 +608,58 @@ fn build_timing() {
         rayon::current_num_threads()
     );
 }
+
+/// The reference padding: each row's non-zero entries, in order, then atom 0 and weight 0.
+fn reference_padded(
+    offsets: &[usize],
+    atoms: &[u32],
+    weights: &[f32],
+    keep: usize,
+) -> (Vec<u32>, Vec<f32>) {
+    let (mut a, mut w) = (Vec::new(), Vec::new());
+    for r in offsets.windows(2) {
+        let row: Vec<usize> = (r[0]..r[1]).filter(|&e| weights[e] != 0.0).collect();
+        a.extend(row.iter().map(|&e| atoms[e]));
+        w.extend(row.iter().map(|&e| weights[e]));
+        a.resize(a.len() + keep - row.len(), 0);
+        w.resize(w.len() + keep - row.len(), 0.0);
+    }
+    (a, w)
+}
+
+#[test]
+fn rows_padded_in_place_equal_the_reference_padding() {
+    // Rows longer than `keep` (zeros among them: entries move forward), shorter (they move
+    // backward), empty, and rows that already fill their slots (nothing moves).
+    let mut r = SplitMix64::new(7);
+    let below = |r: &mut SplitMix64, k: u64| r.next_u64() % k;
+    for case in 0..200u64 {
+        let keep = 1 + (case % 5) as usize;
+        let full = case % 4 == 0;
+        let n = (case % 37) as usize;
+        let (mut offsets, mut atoms, mut weights) = (vec![0], Vec::new(), Vec::new());
+        for _ in 0..n {
+            let nonzero = if full {
+                keep
+            } else {
+                below(&mut r, keep as u64 + 1) as usize
+            };
+            let zeros = if full { 0 } else { below(&mut r, 4) as usize };
+            let mut row: Vec<f32> = (0..nonzero).map(|_| r.range(0.1, 2.0) as f32).collect();
+            for _ in 0..zeros {
+                let at = below(&mut r, row.len() as u64 + 1) as usize;
+                row.insert(at, if below(&mut r, 2) == 0 { 0.0 } else { -0.0 });
+            }
+            atoms.extend(row.iter().map(|_| below(&mut r, 1000) as u32));
+            weights.extend(row);
+            offsets.push(atoms.len());
+        }
+        let expected = reference_padded(&offsets, &atoms, &weights, keep);
+        pad_rows_in_place(offsets, &mut atoms, &mut weights, keep);
+        assert_eq!(
+            (atoms, weights),
+            expected,
+            "case {case}: n {n} keep {keep} full {full}"
+        );
+    }
+}
