@@ -160,8 +160,9 @@ impl Viewpoints<'_> {
             .fold(Evaluated::empty(keep), Evaluated::then)
     }
 
-    /// The gains of `views`: one view spread over the threads, several each on a thread of its
-    /// own. With `live` (and its share), each view's live list is narrowed to the Gaussians it
+    /// The gains of `views`, each spread over the threads in chunks of Gaussians (rayon
+    /// balances the chunks of several views: a view's short live list leaves no thread idle
+    /// while another's long seen set is walked). With `live` (and its share), each view's live list is narrowed to the Gaussians it
     /// adds to now when that list is at most 1 / share of what was walked ([`LIVE_SHARE`]);
     /// `work` counts what was walked.
     fn gains(
@@ -172,18 +173,14 @@ impl Viewpoints<'_> {
         work: &mut GreedyWork,
     ) -> Vec<(usize, Gain)> {
         let keep = live.is_some();
-        let n = self.means.len();
         let source = |v: usize| match live.as_ref().and_then(|(l, _)| l[v].as_deref()) {
             Some(ids) => Source::Live(ids),
             None => Source::Seen(&seen[v]),
         };
-        let evaluated: Vec<(usize, Evaluated)> = match views {
-            [v] => vec![(*v, self.evaluate(*v, source(*v), keep))],
-            _ => views
-                .par_iter()
-                .map(|&v| (v, self.evaluate_in(v, source(v), 0, n, keep)))
-                .collect(),
-        };
+        let evaluated: Vec<(usize, Evaluated)> = views
+            .par_iter()
+            .map(|&v| (v, self.evaluate(v, source(v), keep)))
+            .collect();
         work.evaluations += evaluated.len() as u64;
         evaluated
             .into_iter()
