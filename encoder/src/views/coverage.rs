@@ -81,7 +81,7 @@ use crate::raster::WeightRasterizer;
 mod greedy;
 
 use greedy::Gain;
-pub(super) use greedy::{AtOnce, greedy, greedy_counted};
+pub(super) use greedy::{AtOnce, greedy};
 
 /// The stopping rule of coverage selection (module doc).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -1,12 +1,6 @@
 //! The greedy choice of the coverage selection (the parent module's doc): per Gaussian the
 //! chosen views counted as its distinct viewpoints, each view's gain over them, and the lazy
 //! greedy order, its stale views re-evaluated together.
-//!
-//! Whether a view adds a viewpoint to a Gaussian only ever turns from yes to no (slots fill up
-//! and are never emptied, and a direction too close to a counted one stays too close). So once
-//! a view has been re-evaluated, the Gaussians it no longer adds to are dropped from its list
-//! ([`Live`]): later re-evaluations, the bulk of the greedy on a large scene, walk only the
-//! Gaussians that can still count. The gains are the same integers, so the order is too.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -31,76 +25,8 @@ struct Viewpoints<'a> {
 /// What a view adds: the footprint of its new pairs (fixed-point steps), then the pairs.
 pub(in crate::views) type Gain = (u64, u64);
 
-/// The Gaussians an evaluation of a view walks: its seen set, or its live list ([`Live`]).
-#[derive(Clone, Copy)]
-enum Source<'a> {
-    Seen(&'a SeenSet),
-    Live(&'a [u32]),
-}
-
-impl Source<'_> {
-    /// Calls `f` with every id in `lo..hi` (`lo` a multiple of 64), ascending.
-    fn for_each_in(self, lo: usize, hi: usize, mut f: impl FnMut(usize)) {
-        match self {
-            Source::Seen(seen) => seen.for_each_in(lo, hi, f),
-            Source::Live(ids) => {
-                let start = ids.partition_point(|&i| (i as usize) < lo);
-                ids[start..]
-                    .iter()
-                    .take_while(|&&i| (i as usize) < hi)
-                    .for_each(|&i| f(i as usize));
-            }
-        }
-    }
-}
-
 /// Gaussians per parallel chunk of the greedy (a multiple of 64, the bitsets' word).
 const CHUNK: usize = 1 << 14;
-
-/// A re-evaluated view keeps the list of the Gaussians it still adds to when the list is at
-/// most 1 / this of what it walked (bounding the lists' memory by a quarter of the seen sets).
-const LIVE_SHARE: usize = 4;
-
-/// Per view, the ascending ids of the Gaussians it may still add a viewpoint to (`None`: its
-/// whole seen set). Each list holds every Gaussian the view adds to now.
-type Live = Vec<Option<Vec<u32>>>;
-
-/// What the greedy walked: gain evaluations, the Gaussians they visited, and how many of them
-/// left a narrowed live list.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub(in crate::views) struct GreedyWork {
-    pub(in crate::views) evaluations: u64,
-    pub(in crate::views) visited: u64,
-    pub(in crate::views) lists_kept: u64,
-}
-
-/// One evaluation of a view: its gain, the Gaussians walked and, when asked for, the ids it
-/// adds to (ascending).
-struct Evaluated {
-    gain: Gain,
-    walked: u64,
-    adding: Option<Vec<u32>>,
-}
-
-impl Evaluated {
-    fn empty(keep: bool) -> Self {
-        Evaluated {
-            gain: (0, 0),
-            walked: 0,
-            adding: keep.then(Vec::new),
-        }
-    }
-
-    /// `self` then `next` (the ids of `next` follow `self`'s).
-    fn then(mut self, next: Evaluated) -> Self {
-        self.gain = (self.gain.0 + next.gain.0, self.gain.1 + next.gain.1);
-        self.walked += next.walked;
-        if let (Some(a), Some(b)) = (self.adding.as_mut(), next.adding) {
-            a.extend(b);
-        }
-        self
-    }
-}
 
 impl Viewpoints<'_> {
     /// Whether view `v` adds a distinct viewpoint to Gaussian `g` (`slots` = `g`'s slots): `g`
@@ -122,83 +48,44 @@ impl Viewpoints<'_> {
             .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
     }
 
-    /// Evaluates view `v` over its Gaussians in `lo..hi` that may still count (`lo` a multiple
-    /// of 64; `from`: its live list, else its seen set), on the calling thread.
-    fn evaluate_in(
-        &self,
-        v: usize,
-        from: Source<'_>,
-        lo: usize,
-        hi: usize,
-        keep: bool,
-    ) -> Evaluated {
-        let mut out = Evaluated::empty(keep);
-        let mut visit = |g: usize| {
-            out.walked += 1;
-            let s = &self.slots[g * self.per..(g + 1) * self.per];
-            if self.adds(g, v, s) {
-                out.gain.0 += self.footprint[g];
-                out.gain.1 += 1;
-                if let Some(a) = out.adding.as_mut() {
-                    a.push(g as u32);
-                }
-            }
-        };
-        from.for_each_in(lo, hi, &mut visit);
-        out
-    }
-
-    /// What view `v` would add (integer sums: exact in any order), its Gaussians split into
-    /// chunks over the threads.
-    fn evaluate(&self, v: usize, from: Source<'_>, keep: bool) -> Evaluated {
+    /// What view `v` (seeing `seen`) would add (integer sums: exact in any order), its
+    /// Gaussians split into chunks over the threads.
+    fn gain(&self, v: usize, seen: &SeenSet) -> Gain {
         let n = self.means.len();
         (0..n.div_ceil(CHUNK))
             .into_par_iter()
-            .map(|c| self.evaluate_in(v, from, c * CHUNK, ((c + 1) * CHUNK).min(n), keep))
-            .collect::<Vec<_>>()
-            .into_iter()
-            .fold(Evaluated::empty(keep), Evaluated::then)
+            .map(|c| self.gain_in(v, seen, c * CHUNK, ((c + 1) * CHUNK).min(n)))
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     }
 
-    /// The gains of `views`, each spread over the threads in chunks of Gaussians (rayon
-    /// balances the chunks of several views: a view's short live list leaves no thread idle
-    /// while another's long seen set is walked). With `live` (and its share), each view's live list is narrowed to the Gaussians it
-    /// adds to now when that list is at most 1 / share of what was walked ([`LIVE_SHARE`]);
-    /// `work` counts what was walked.
-    fn gains(
-        &self,
-        views: &[usize],
-        seen: &[SeenSet],
-        mut live: Option<(&mut Live, usize)>,
-        work: &mut GreedyWork,
-    ) -> Vec<(usize, Gain)> {
-        let keep = live.is_some();
-        let source = |v: usize| match live.as_ref().and_then(|(l, _)| l[v].as_deref()) {
-            Some(ids) => Source::Live(ids),
-            None => Source::Seen(&seen[v]),
-        };
-        let evaluated: Vec<(usize, Evaluated)> = views
-            .par_iter()
-            .map(|&v| (v, self.evaluate(v, source(v), keep)))
-            .collect();
-        work.evaluations += evaluated.len() as u64;
-        evaluated
-            .into_iter()
-            .map(|(v, e)| {
-                work.visited += e.walked;
-                if let (Some((live, share)), Some(adding)) = (live.as_mut(), e.adding)
-                    && adding.len() * *share <= e.walked as usize
-                {
-                    live[v] = Some(adding);
-                    work.lists_kept += 1;
-                }
-                (v, e.gain)
-            })
-            .collect()
+    /// What view `v` (seeing `seen`) would add through its Gaussians in `lo..hi` (`lo` a
+    /// multiple of 64), on the calling thread.
+    fn gain_in(&self, v: usize, seen: &SeenSet, lo: usize, hi: usize) -> Gain {
+        let (mut weight, mut count) = (0u64, 0u64);
+        seen.for_each_in(lo, hi, |g| {
+            let s = &self.slots[g * self.per..(g + 1) * self.per];
+            if self.adds(g, v, s) {
+                weight += self.footprint[g];
+                count += 1;
+            }
+        });
+        (weight, count)
     }
 
-    /// Counts view `v` as a viewpoint of every Gaussian it adds one to (walking `from`).
-    fn choose(&mut self, v: usize, from: Source<'_>) {
+    /// The gains of `views` (each seeing `seen[v]`): one view spread over the threads, several
+    /// each on a thread of its own.
+    fn gains(&self, views: &[usize], seen: &[SeenSet]) -> Vec<(usize, Gain)> {
+        match views {
+            [v] => vec![(*v, self.gain(*v, &seen[*v]))],
+            _ => views
+                .par_iter()
+                .map(|&v| (v, self.gain_in(v, &seen[v], 0, self.means.len())))
+                .collect(),
+        }
+    }
+
+    /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
+    fn choose(&mut self, v: usize, seen: &SeenSet) {
         let n = self.means.len();
         let per = self.per;
         let mut slots = std::mem::take(&mut self.slots);
@@ -207,15 +94,14 @@ impl Viewpoints<'_> {
             .enumerate()
             .for_each(|(c, chunk)| {
                 let lo = c * CHUNK;
-                let mut count = |g: usize| {
+                seen.for_each_in(lo, (lo + CHUNK).min(n), |g| {
                     let s = &mut chunk[(g - lo) * per..(g - lo + 1) * per];
                     if self.adds(g, v, s)
                         && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
                     {
                         *free = v as u32;
                     }
-                };
-                from.for_each_in(lo, (lo + CHUNK).min(n), &mut count);
+                });
             });
         self.slots = slots;
     }
@@ -292,27 +178,6 @@ pub(in crate::views) fn greedy(
     early: Option<Option<usize>>,
     at_once: AtOnce,
 ) -> (Vec<(usize, Gain)>, Vec<u32>, bool) {
-    let live = Some(LIVE_SHARE);
-    let (result, work) = greedy_counted(coverage, (means, centres), rule, early, at_once, live);
-    tracing::debug!(
-        evaluations = work.evaluations,
-        visited = work.visited,
-        lists_kept = work.lists_kept,
-        "coverage greedy"
-    );
-    result
-}
-
-/// [`greedy`], with the live lists ([`Live`], kept at `live_share` as [`LIVE_SHARE`]) or without
-/// (`None`): the same order either way; and what it walked.
-pub(in crate::views) fn greedy_counted(
-    coverage: &ViewCoverage,
-    (means, centres): (&[[f32; 3]], &[DVec3]),
-    rule: &CoverageRule,
-    early: Option<Option<usize>>,
-    at_once: AtOnce,
-    live_share: Option<usize>,
-) -> ((Vec<(usize, Gain)>, Vec<u32>, bool), GreedyWork) {
     let per = rule.min_views.max(1);
     let mut state = Viewpoints {
         slots: vec![u32::MAX; means.len() * per],
@@ -322,52 +187,34 @@ pub(in crate::views) fn greedy_counted(
         centres,
         footprint: &coverage.footprint,
     };
-    let mut work = GreedyWork::default();
-    let mut live: Live = vec![None; coverage.seen.len()];
-    // Max-heap on (gain, lowest index); the round tells whether the gain is current. The first
-    // evaluation finds every Gaussian adding (no viewpoint yet): no list to narrow.
+    // Max-heap on (gain, lowest index); the round tells whether the gain is current.
     let all: Vec<usize> = (0..coverage.seen.len()).collect();
-    let mut sizes: Vec<usize> = coverage.seen.par_iter().map(SeenSet::len).collect();
+    let sizes: Vec<usize> = coverage.seen.par_iter().map(SeenSet::len).collect();
     let mut heap: BinaryHeap<Entry> = state
-        .gains(&all, &coverage.seen, None, &mut work)
+        .gains(&all, &coverage.seen)
         .into_iter()
         .map(|(v, g)| (g, Reverse(v), 0))
         .collect();
     let mut order: Vec<(usize, Gain)> = Vec::new();
-    let done =
-        |order, state: Viewpoints<'_>, complete, work| ((order, state.slots, complete), work);
     while let Some((gain, Reverse(v), round)) = heap.pop() {
         if gain.1 == 0 {
-            return done(order, state, true, work);
+            return (order, state.slots, true);
         }
         if round != order.len() {
             let stale = stale_on_top(&mut heap, (v, order.len()), at_once, &sizes);
-            let lists = live_share.map(|share| (&mut live, share.max(1)));
-            let fresh = state.gains(&stale, &coverage.seen, lists, &mut work);
-            for &u in &stale {
-                if let Some(ids) = &live[u] {
-                    sizes[u] = ids.len();
-                }
-            }
+            let fresh = state.gains(&stale, &coverage.seen);
             heap.extend(fresh.into_iter().map(|(u, g)| (g, Reverse(u), order.len())));
             continue;
         }
-        let from = match &live[v] {
-            Some(ids) => Source::Live(ids),
-            None => Source::Seen(&coverage.seen[v]),
-        };
-        state.choose(v, from);
-        // A chosen view adds nothing more to any Gaussian: its list is no longer needed.
-        live[v] = None;
+        state.choose(v, &coverage.seen[v]);
         order.push((v, gain));
         if let Some(cap) = early {
             let first = order[0].1.0;
             let refused = (gain.0 as f64) < rule.min_gain * first as f64;
             if refused || cap.is_some_and(|c| order.len() > c) {
-                let complete = heap.is_empty();
-                return done(order, state, complete, work);
+                return (order, state.slots, heap.is_empty());
             }
         }
     }
-    done(order, state, true, work)
+    (order, state.slots, true)
 }
