@@ -84,6 +84,17 @@ pub(super) fn split(
     parts
 }
 
+/// The test-only delay before each view a process maps ([`super::MAP_DELAY_VAR`], in
+/// milliseconds; unset, empty or unparsable: none): makes one process of a loopback cluster the
+/// slow one.
+pub(super) fn map_delay() -> Option<std::time::Duration> {
+    std::env::var(super::MAP_DELAY_VAR)
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&ms| ms > 0)
+        .map(std::time::Duration::from_millis)
+}
+
 pub(super) type Input = InputHandle<u64, CapacityContainerBuilder<Vec<ToReducer>>>;
 
 /// Which partitions a worker's images go to, and how many went to each.
@@ -133,6 +144,7 @@ pub(super) fn map_side(
     let fault_after: Option<u64> = std::env::var("SLAG_FAULT_EXIT_AFTER_IMAGES")
         .ok()
         .and_then(|v| v.trim().parse().ok());
+    let delay = map_delay();
     let raster_intrinsics = views
         .iter()
         .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
@@ -145,6 +157,9 @@ pub(super) fn map_side(
         if !shares.needed(i) {
             stats.resumed += 1;
             continue;
+        }
+        if let Some(d) = delay {
+            std::thread::sleep(d);
         }
         let item = front_stage(&views[i], i, &mut *stages.masks, &mut *stages.crops, dim)?;
         let n_masks = item.masks.len();

@@ -81,6 +81,8 @@
 //!
 //! `SLAG_FAULT_EXIT_AFTER_IMAGES=<n>` makes a process exit with status 137 (as if SIGKILLed, no
 //! destructors, no connection shutdown) right after it has sent its n-th image.
+//! `SLAG_TEST_MAP_DELAY_MS=<ms>` ([`MAP_DELAY_VAR`]) makes a process wait that long before each
+//! view it maps: a slow process, on one machine.
 
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
@@ -127,6 +129,11 @@ use views::{Heard, ViewsInput, agree_on_views, build_views_dataflow, refuse_view
 /// Exit status of a process that lost a peer process (its TCP connection failed) or hit an
 /// internal panic: the job failed, wrote no output, and is to be rerun.
 pub const EXIT_PEER_LOST: i32 = 3;
+
+/// Test-only: the environment variable whose value (milliseconds) a process waits before each
+/// view it maps, as a slower GPU or a busier host would (the cluster tests and
+/// `scripts/lab/cluster-loopback.sh` make one process slow with it). Not for production runs.
+pub const MAP_DELAY_VAR: &str = "SLAG_TEST_MAP_DELAY_MS";
 
 /// Exit status of the fault hook (`SLAG_FAULT_EXIT_AFTER_IMAGES`): 128 + SIGKILL.
 pub const FAULT_EXIT_STATUS: i32 = slag_common::fault::FAULT_EXIT_STATUS;
