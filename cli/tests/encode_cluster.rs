@@ -13,7 +13,10 @@
 //!    partitions' checkpoints). A rerun in the same OUT resumes from the checkpoints (the report
 //!    says how many views each partition restored), matches the single-process run byte for byte
 //!    and removes the checkpoints.
-//! 3. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
+//! 3. With one process slowed down (`SLAG_TEST_MAP_DELAY_MS` before each view it maps) the
+//!    views are handed out by work done: the slow process maps fewer views than each of the
+//!    others, every view is mapped once, and the files are still byte-identical to `encode`'s.
+//! 4. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
 //!    observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run the same
 //!    f64 code, only the order in which images are summed may differ), total weights within 1e-6
 //!    relative; its mixture stays byte-identical.
@@ -134,6 +137,7 @@ fn spawn_with(
         ])
         .env_remove(FAULT_AFTER_IMAGES)
         .env_remove(slag_common::fault::EXIT_AT_VAR)
+        .env_remove(slag_encoder::distributed::MAP_DELAY_VAR)
         .env("RUST_LOG", "info")
         .stdout(f.try_clone().unwrap())
         .stderr(f);
@@ -294,7 +298,61 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
 
     faulted_run(dir.path(), &out);
     let views = resumed_run(dir.path(), &out, &single_out);
+    slow_run(dir.path(), &single_out, views);
     dense_run(dir.path(), views);
+}
+
+/// The views each process mapped, from a cluster's report; asserts that together they are the
+/// `views` views, each mapped once.
+fn mapped_views(report: &serde_json::Value, views: u64) -> Vec<Vec<u64>> {
+    let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
+    let mapped: Vec<Vec<u64>> = workers
+        .iter()
+        .map(|w| {
+            let v: Vec<u64> = w["views"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|i| i.as_u64().unwrap())
+                .collect();
+            assert_eq!(w["images"].as_u64(), Some(v.len() as u64), "{w}");
+            v
+        })
+        .collect();
+    let mut all: Vec<u64> = mapped.concat();
+    all.sort_unstable();
+    assert_eq!(
+        all,
+        (0..views).collect::<Vec<_>>(),
+        "every view mapped once"
+    );
+    mapped
+}
+
+/// Point 3 of the module doc: process 1 waits `SLOW_MS` before each view it maps; compared
+/// with `single_out`, the single-process run over the same `views` views.
+fn slow_run(dir: &Path, single_out: &Path, views: u64) {
+    // Several views' time of the others (about a second each on a loaded 2-core machine), so
+    // that they map the other views while it waits on its first.
+    const SLOW_MS: u32 = 6000;
+    let out = dir.join("slow");
+    let hosts = hosts_file(dir, "hosts-slow");
+    let slow = (1, slag_encoder::distributed::MAP_DELAY_VAR, SLOW_MS);
+    let t0 = Instant::now();
+    let r = run_cluster(&hosts, &out, dir, "slow", Some(slow), &[]);
+    for (i, (status, log)) in r.iter().enumerate() {
+        assert!(status.success(), "process {i}: {log}");
+    }
+    assert_same_bytes(single_out, &out);
+    let mapped = mapped_views(&report(&out), views);
+    eprintln!(
+        "slow process 1: views mapped per process {mapped:?} in {:.1} s",
+        t0.elapsed().as_secs_f64()
+    );
+    assert!(
+        mapped[1].len() < mapped[0].len() && mapped[1].len() < mapped[2].len(),
+        "the slow process maps fewer views than each of the others: {mapped:?}"
+    );
 }
 
 /// Point 2 of the module doc: process 1 of a cluster writing OUT `out` dies after its third
@@ -408,7 +466,7 @@ fn resumed_run(dir: &Path, out: &Path, single_out: &Path) -> u64 {
     views
 }
 
-/// Point 3 of the module doc: with `--dense`, over the same `views` views.
+/// Point 4 of the module doc: with `--dense`, over the same `views` views.
 fn dense_run(dir: &Path, views: u64) {
     // (3) The dense file too: within f32 round-off of the single process's, the rest the same.
     let (single_dense, dense) = (dir.join("single-dense"), dir.join("dense"));
@@ -431,15 +489,7 @@ fn dense_run(dir: &Path, views: u64) {
         views * 3,
         "every image part was spilled"
     );
-    let workers = report["outputs"]["cluster"]["workers"].as_array().unwrap();
-    let images: Vec<u64> = workers
-        .iter()
-        .map(|w| w["images"].as_u64().unwrap())
-        .collect();
-    let round_robin: Vec<u64> = (0..3)
-        .map(|w| (w..views).step_by(3).count() as u64)
-        .collect();
-    assert_eq!(images, round_robin, "round-robin image assignment");
+    mapped_views(&report, views);
     assert!(report["counts"]["reduce_chunks"].as_u64().unwrap() >= 3 * 3);
 }
 

@@ -485,6 +485,9 @@ pub struct ClusterWorker {
     pub map_wall_s: f64,
     /// Masks of its images.
     pub masks: u64,
+    /// The views it mapped (indices into the chosen views), in the order it mapped them: each
+    /// process takes the next view nobody has taken when it finishes one.
+    pub views: Vec<u32>,
     /// Worker (= process) index.
     pub worker: u32,
 }
@@ -710,6 +713,7 @@ mod tests {
                         images: 3,
                         map_wall_s: 1.5,
                         masks: 7,
+                        views: vec![1, 2, 4],
                         worker: 0,
                     }],
                 }),
@@ -756,7 +760,7 @@ mod tests {
                     "cluster": {
                         "processes": 1,
                         "workers": [{"worker": 0, "images": 3, "map_wall_s": 1.5, "masks": 7,
-                                     "entries": 5}],
+                                     "entries": 5, "views": [1, 2, 4]}],
                         "partitions": [{"partition": 0, "observed": 4, "images": 3,
                                         "entries": 5, "reduce_s": 0.25, "reduce_chunks": 1,
                                         "spilled_images": 0, "views_restored": 2,

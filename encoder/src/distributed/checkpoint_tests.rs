@@ -12,6 +12,7 @@ use slag_common::Error;
 
 use super::checkpoint;
 use super::gather::Assembled;
+use super::handout::Handout;
 use super::map::split;
 use super::records::{MapStats, ToReducer};
 use super::reduce::{Checkpointer, Forms, PartitionReducer, Resume};
@@ -92,9 +93,10 @@ fn run_until_killed(
     saved.map_or(0, |s| s.progress.next)
 }
 
-/// The rerun: each partition resumes from its checkpoint under `dir`; worker `w` maps its views
-/// (`i ≡ w mod peers`) that some partition lacks and sends each only to those partitions, in a
-/// shuffled arrival; worker 0 assembles.
+/// The rerun: each partition resumes from its checkpoint under `dir`; worker 0 hands out the
+/// views some partition lacks ([`Handout`]) to workers asking in turn, worker 1 once for every
+/// two asks of each of the others (a slow process); each view's parts go only to the partitions that
+/// lack it, in a shuffled arrival; worker 0 assembles.
 fn rerun(
     images: &[ImageContribution],
     n: usize,
@@ -103,31 +105,38 @@ fn rerun(
     dir: &Path,
 ) -> Assembled {
     let mut records = Vec::new();
-    for w in 0..peers {
-        let mut stats = MapStats {
+    let mut handout = Handout::new(images.len(), held, peers);
+    let mut stats: Vec<MapStats> = (0..peers)
+        .map(|w| MapStats {
             worker: w as u32,
+            resumed: if w == 0 { handout.skipped() } else { 0 },
             ..Default::default()
-        };
-        let mut sent = vec![0u64; peers];
-        for i in (w..images.len()).step_by(peers) {
-            let lacking: Vec<usize> = (0..peers).filter(|&p| held[p] as usize <= i).collect();
-            if lacking.is_empty() {
-                stats.resumed += 1;
-                continue;
-            }
-            stats.work.images += 1;
-            for p in lacking {
-                sent[p] += 1;
-                records.push(part(images, n, peers, p, i));
-            }
+        })
+        .collect();
+    let mut sent = vec![vec![0u64; peers]; peers];
+    let asks = [0, 2, 0, 2, 1].into_iter().cycle();
+    for w in asks {
+        if handout.all_ended() {
+            break;
         }
-        for (p, &sent) in sent.iter().enumerate() {
+        let Some(i) = handout.grant(w as u32) else {
+            continue;
+        };
+        stats[w].work.images += 1;
+        stats[w].views.push(i);
+        for p in (0..peers).filter(|&p| held[p] <= i) {
+            sent[w][p] += 1;
+            records.push(part(images, n, peers, p, i as usize));
+        }
+    }
+    for w in 0..peers {
+        for (p, &sent) in sent[w].iter().enumerate() {
             records.push(ToReducer::Done {
                 partition: p as u32,
                 worker: w as u32,
                 images: sent,
                 job: Some(key(n, images.len() as u64, images[0].dim)),
-                stats: (p == 0).then(|| stats.clone()),
+                stats: (p == 0).then(|| stats[w].clone()),
             });
         }
     }
@@ -181,6 +190,12 @@ fn partitions_resumed_from_their_checkpoints_give_the_uninterrupted_outputs() {
     );
     let restored: Vec<u64> = c.partitions.iter().map(|p| p.views_restored).collect();
     assert_eq!(restored, [2, 4, 6]);
+    let views: Vec<&[u32]> = c.workers.iter().map(|w| w.views.as_slice()).collect();
+    assert_eq!(
+        views,
+        [&[2, 4, 7, 9][..], &[6][..], &[3, 5, 8][..]],
+        "the views some partition lacks, by work done: the slow worker 1 mapped one"
+    );
 }
 
 /// A partition's checkpoint read back equals what was written and writes the same bytes again;

@@ -27,7 +27,8 @@ pub struct Stages {
 }
 
 /// Builds a worker's [`Stages`] from the scene's Gaussians; called once in every process, on its
-/// worker thread (ONNX sessions and the GPU device live there).
+/// worker thread; the stages then map the views on the process's map thread (as `encode`'s
+/// stages run on its pool's threads).
 pub type StageFactory = Arc<dyn Fn(&Gaussians) -> Result<Stages> + Send + Sync>;
 
 /// The least time between two checkpoints unless set ([`ClusterConfig::checkpoint_every`]):

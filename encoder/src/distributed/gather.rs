@@ -293,6 +293,7 @@ impl Gathered {
                     images: s.work.images,
                     map_wall_s: s.wall_s,
                     masks: s.work.masks,
+                    views: s.views.clone(),
                     worker: s.worker,
                 })
                 .collect(),

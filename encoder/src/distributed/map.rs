@@ -1,18 +1,24 @@
-//! The map side: each worker encodes its images (masks → CLIP → raster → `a_kj`) and splits
-//! each image's `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
+//! The map side: each worker encodes the views worker 0 hands it ([`super::handout`]: masks →
+//! CLIP → raster → `a_kj`, on a thread of its own while its timely worker keeps stepping) and
+//! splits each image's `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
 
 use std::cell::RefCell;
-use std::time::Instant;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
-use slag_common::Result;
+use slag_common::camera::{Intrinsics, View};
+use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
 
 use super::FAULT_EXIT_STATUS;
 use super::config::{ClusterJob, Stages};
+use super::handout::{Granted, Handout, HandoutEnds};
 use super::records::{ImagePart, JobKey, MapStats, ToReducer};
 use crate::aggregate::ImageContribution;
+use crate::aggregate::ImageStageParams;
 use crate::pipeline::{back_stage, front_stage};
+use crate::report::ImageWork;
 
 /// The fingerprint of the parameters every process must share.
 pub(super) fn job_key(
@@ -107,11 +113,6 @@ pub(super) struct Shares {
 }
 
 impl Shares {
-    /// Whether some partition lacks view `view` (it must be mapped).
-    fn needed(&self, view: usize) -> bool {
-        self.held.iter().any(|&h| h as usize <= view)
-    }
-
     /// Sends the parts of `parts` whose partition lacks their view, counting them.
     fn send(&mut self, input: &mut Input, parts: Vec<ImagePart>) {
         self.sent.resize(self.held.len(), 0);
@@ -125,80 +126,243 @@ impl Shares {
     }
 }
 
-/// The map side of worker `w`: images `w, w + P, …` that some partition lacks (`shares.held`);
-/// sends each image's parts to the partitions that lack it and advances the input's time so
-/// they leave at once. Records the worker's figures in `stats`, the parts sent in `shares`.
+/// What a worker's map thread needs of the job to map a view: the job's views, their raster
+/// intrinsics, the embedding width, the image stage's parameters and the test-only delay.
+struct ViewJob<'a> {
+    views: &'a [View],
+    raster_intrinsics: Vec<Intrinsics>,
+    dim: usize,
+    image_stage: ImageStageParams,
+    delay: Option<Duration>,
+}
+
+/// One view mapped: its work figures and its contribution.
+type Mapped = Result<(ImageWork, ImageContribution)>;
+
+impl ViewJob<'_> {
+    /// Maps view `i` on `stages`: masks → CLIP crops → weight raster → `a_kj`.
+    fn map(&self, i: usize, stages: &mut Stages) -> Mapped {
+        if let Some(d) = self.delay {
+            std::thread::sleep(d);
+        }
+        let item = front_stage(
+            &self.views[i],
+            i,
+            &mut *stages.masks,
+            &mut *stages.crops,
+            self.dim,
+        )?;
+        let n_masks = item.masks.len();
+        let (decode_s, masks_s, clip_s) = (item.decode_s, item.masks_s, item.clip_s);
+        let out = back_stage(
+            &mut *stages.rasterizer,
+            self.views,
+            &self.raster_intrinsics,
+            item,
+            self.dim,
+            self.image_stage,
+        )?;
+        let entries = out.contribution.entries.len();
+        let work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
+        Ok((work, out.contribution))
+    }
+}
+
+/// Where one worker's map loop stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Turn {
+    /// No view in hand: ask for one.
+    Idle,
+    /// Asked; waiting for worker 0's grant.
+    Asked,
+    /// Its map thread maps this view.
+    Mapping(u32),
+    /// No more views for this worker.
+    Ended,
+}
+
+/// The map side of worker `w`: it asks worker 0 for a view, maps it on its map thread while its
+/// timely worker keeps stepping (worker 0 answers the others' asks meanwhile: `handout`, worker
+/// 0 only), sends the image's parts to the partitions that lack the view and asks again, until
+/// no view is left or the job aborted. Records the worker's figures in `stats`, the parts sent
+/// in `shares`.
+///
+/// Errors: the first view this worker failed to map (it maps nothing more; worker 0 then hands
+/// out nothing more).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn map_side(
     worker: &mut timely::worker::Worker,
     input: &mut Input,
     job: &ClusterJob,
     aborted: &RefCell<Option<String>>,
-    views: &[slag_common::camera::View],
+    views: &[View],
     stages: &mut Stages,
     key: &JobKey,
+    (ends, handout): (&mut HandoutEnds, Option<&mut Handout>),
     (stats, shares): (&mut MapStats, &mut Shares),
 ) -> Result<()> {
-    let (w, peers) = (worker.index(), worker.peers());
-    let dim = key.dim as usize;
-    let fault_after: Option<u64> = std::env::var("SLAG_FAULT_EXIT_AFTER_IMAGES")
-        .ok()
-        .and_then(|v| v.trim().parse().ok());
-    let delay = map_delay();
-    let raster_intrinsics = views
-        .iter()
-        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
-        .collect::<Result<Vec<_>>>()?;
+    let view_job = ViewJob {
+        views,
+        raster_intrinsics: views
+            .iter()
+            .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
+            .collect::<Result<Vec<_>>>()?,
+        dim: key.dim as usize,
+        image_stage: job.params.image_stage,
+        delay: map_delay(),
+    };
+    if let Some(h) = handout.as_deref() {
+        stats.resumed = h.skipped();
+    }
     let t_map = Instant::now();
-    for (round, i) in (w..views.len()).step_by(peers).enumerate() {
-        if aborted.borrow().is_some() {
-            break;
+    let (to_thread, views_in) = mpsc::channel::<usize>();
+    let (mapped_out, mapped) = mpsc::channel::<(usize, Mapped)>();
+    let woken = std::thread::current();
+    let result = std::thread::scope(|s| {
+        s.spawn(move || {
+            for i in views_in {
+                let r = view_job.map(i, stages);
+                let _ = mapped_out.send((i, r));
+                woken.unpark();
+            }
+        });
+        let mut lp = MapLoop {
+            worker,
+            input,
+            job,
+            key,
+            views: views.len(),
+            to_thread,
+            mapped,
+            stats: &mut *stats,
+            shares,
+            failed: None,
+        };
+        lp.run(aborted, ends, handout);
+        lp.failed.take()
+    });
+    stats.wall_s = t_map.elapsed().as_secs_f64();
+    result.map_or(Ok(()), Err)
+}
+
+/// One worker's map loop ([`map_side`]): its timely worker, its map thread's ends, what it sent.
+struct MapLoop<'a, 'w> {
+    worker: &'w mut timely::worker::Worker,
+    input: &'w mut Input,
+    job: &'w ClusterJob,
+    key: &'w JobKey,
+    views: usize,
+    to_thread: mpsc::Sender<usize>,
+    mapped: mpsc::Receiver<(usize, Mapped)>,
+    stats: &'a mut MapStats,
+    shares: &'a mut Shares,
+    /// The first view this worker failed to map.
+    failed: Option<Error>,
+}
+
+impl MapLoop<'_, '_> {
+    /// Steps the worker until its views are mapped and (worker 0, holding `handout`) every
+    /// worker's asks are answered; closes its asks, then (worker 0) its grants.
+    fn run(
+        &mut self,
+        aborted: &RefCell<Option<String>>,
+        ends: &mut HandoutEnds,
+        mut handout: Option<&mut Handout>,
+    ) {
+        let w = self.worker.index() as u32;
+        let mut turn = Turn::Idle;
+        loop {
+            let stopping = self.failed.is_some() || aborted.borrow().is_some();
+            let mut moved = false;
+            if let Some(h) = handout.as_deref_mut() {
+                if stopping {
+                    h.stop();
+                }
+                moved |= ends.serve(h);
+            }
+            let next = self.turn(turn, stopping, ends, w);
+            moved |= next != turn;
+            turn = next;
+            if turn == Turn::Ended {
+                ends.end_asks();
+                if handout.as_deref().is_none_or(|h| ends.served(h)) {
+                    break;
+                }
+            }
+            if !moved {
+                self.worker.step_or_park(Some(Duration::from_millis(20)));
+            } else {
+                self.worker.step();
+            }
         }
-        if !shares.needed(i) {
-            stats.resumed += 1;
-            continue;
-        }
-        if let Some(d) = delay {
-            std::thread::sleep(d);
-        }
-        let item = front_stage(&views[i], i, &mut *stages.masks, &mut *stages.crops, dim)?;
-        let n_masks = item.masks.len();
-        let (decode_s, masks_s, clip_s) = (item.decode_s, item.masks_s, item.clip_s);
-        let out = back_stage(
-            &mut *stages.rasterizer,
-            views,
-            &raster_intrinsics,
-            item,
-            dim,
-            job.params.image_stage,
-        )?;
-        stats.work.add(&out.work(
-            decode_s,
-            masks_s,
-            clip_s,
-            n_masks,
-            out.contribution.entries.len(),
-        ));
-        let c = out.contribution;
-        let scene = (key.gaussians, views.len() as u32);
-        shares.send(input, split(&c, i as u32, peers, scene, job.params.dense));
-        input.advance_to(round as u64 + 1);
-        worker.step();
-        tracing::info!(
-            worker = w,
-            image = i,
-            views = views.len(),
-            masks = n_masks,
-            "image sent"
-        );
-        if fault_after == Some(stats.work.images) {
-            eprintln!(
-                "SLAG_FAULT_EXIT_AFTER_IMAGES={}: process exits after image {i}",
-                stats.work.images
-            );
-            std::process::exit(FAULT_EXIT_STATUS);
+        ends.end_grants();
+    }
+
+    /// The next turn of worker `w` from `turn` (`stopping`: the job failed, ask nothing more).
+    fn turn(&mut self, turn: Turn, stopping: bool, ends: &mut HandoutEnds, w: u32) -> Turn {
+        match turn {
+            Turn::Idle if stopping => Turn::Ended,
+            Turn::Idle => {
+                ends.ask(w);
+                Turn::Asked
+            }
+            Turn::Asked => match ends.granted() {
+                Granted::View(i) if !stopping && self.to_thread.send(i as usize).is_ok() => {
+                    Turn::Mapping(i)
+                }
+                Granted::Waiting => Turn::Asked,
+                _ => Turn::Ended,
+            },
+            Turn::Mapping(_) => match self.mapped.try_recv() {
+                Ok((i, r)) => self.sent(i, r),
+                Err(mpsc::TryRecvError::Empty) => turn,
+                Err(mpsc::TryRecvError::Disconnected) => {
+                    self.failed
+                        .get_or_insert_with(|| Error::internal("the map thread ended early"));
+                    Turn::Ended
+                }
+            },
+            Turn::Ended => Turn::Ended,
         }
     }
-    stats.wall_s = t_map.elapsed().as_secs_f64();
-    Ok(())
+
+    /// Sends view `i`'s parts (or keeps its error) and applies the fault hook; the next turn.
+    fn sent(&mut self, i: usize, mapped: Mapped) -> Turn {
+        let (work, c) = match mapped {
+            Ok(m) => m,
+            Err(e) => {
+                self.failed.get_or_insert(e);
+                return Turn::Ended;
+            }
+        };
+        self.stats.work.add(&work);
+        self.stats.views.push(i as u32);
+        let peers = self.worker.peers();
+        let scene = (self.key.gaussians, self.views as u32);
+        let parts = split(&c, i as u32, peers, scene, self.job.params.dense);
+        self.shares.send(self.input, parts);
+        self.input.advance_to(self.stats.work.images);
+        self.worker.step();
+        tracing::info!(
+            worker = self.worker.index(),
+            image = i,
+            views = self.views,
+            masks = work.masks,
+            "image sent"
+        );
+        exit_after_images(self.stats.work.images, i);
+        Turn::Idle
+    }
+}
+
+/// The fault hook: exits the process with [`FAULT_EXIT_STATUS`] (as if SIGKILLed, no
+/// destructors) once it has sent `images` images when `SLAG_FAULT_EXIT_AFTER_IMAGES` says so.
+fn exit_after_images(images: u64, view: usize) {
+    let after: Option<u64> = std::env::var("SLAG_FAULT_EXIT_AFTER_IMAGES")
+        .ok()
+        .and_then(|v| v.trim().parse().ok());
+    if after == Some(images) {
+        eprintln!("SLAG_FAULT_EXIT_AFTER_IMAGES={images}: process exits after image {view}");
+        std::process::exit(FAULT_EXIT_STATUS);
+    }
 }

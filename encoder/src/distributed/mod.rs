@@ -4,8 +4,9 @@
 //! ```text
 //!   views  (worker 0):  the view selection (coverage by default) on its rasterizer, run once;
 //!          the chosen names sent to every worker ([`views`]) before the map starts
-//!   map    (worker w, images i ≡ w mod P):  masks → CLIP crops → weight raster → a_kj
-//!          (aggregate::image_contribution), split by partition p = k mod P
+//!   hand-out (worker 0): the next view nobody has taken, to whichever worker asks ([`handout`])
+//!   map    (worker w, the views it was handed, on its map thread):  masks → CLIP crops →
+//!          weight raster → a_kj (aggregate::image_contribution), split by partition p = k mod P
 //!   exchange (timely Exchange pact, key p): the image's a_kj of partition p with local ids k / P
 //!          and its mask count; its mask table E_j to partition 0 (to all with --dense)
 //!   reduce (worker p):  for k ≡ p mod P only, as views arrive (folded in view order): the
@@ -21,6 +22,16 @@
 //! One timely worker per process (each process owns its ONNX Runtime sessions and its GPU
 //! rasterizer; `--threads` goes to ONNX Runtime and rayon). Every process receives the same encode
 //! arguments and the same host list; process `I` listens on line `I` of the list.
+//!
+//! # Views by work done
+//!
+//! A process that finishes a view asks worker 0 for the next one nobody has taken
+//! ([`handout`]), so a slower process (a slower GPU, a busier host) maps fewer views instead of
+//! holding the job back. The outputs do not depend on who mapped what: each partition folds the
+//! views in view order, and the end records count the images each worker sent. Each process maps
+//! on a thread of its own while its timely worker keeps stepping (answering asks on worker 0,
+//! folding its partition's parts as they arrive); the report lists the views each process
+//! mapped (`outputs.cluster.workers[].views`).
 //!
 //! # What the map emits
 //!
@@ -106,6 +117,7 @@ mod checkpoint;
 mod config;
 mod encoder;
 mod gather;
+mod handout;
 mod map;
 pub mod net;
 mod records;
@@ -118,6 +130,7 @@ pub use config::{
 };
 pub use encoder::ClusterEncoder;
 use gather::{Assembled, Gathered, WorkerOutcome, assemble};
+use handout::{Handout, HandoutEnds, build_handout_dataflows};
 use map::{Input, job_key, map_side};
 pub use net::ClusterSecret;
 use net::{LostPeer, PeerStream};
@@ -147,27 +160,34 @@ struct Dataflows {
     notes: Rc<RefCell<Notes>>,
     /// Where this worker puts its partition's [`Resume`] for its reducer.
     slot: Rc<RefCell<Option<Resume>>>,
+    handout: HandoutEnds,
     input: Input,
     aborted: Rc<RefCell<Option<String>>>,
     gathered: Rc<RefCell<Gathered>>,
 }
 
 /// Builds the job's dataflows, identically on every worker and in the same order: the views'
-/// choice, the partitions' notes of what their checkpoints hold, the map → reduce → gather job.
+/// choice, the partitions' notes of what their checkpoints hold, the views' hand-out, the map →
+/// reduce → gather job.
 fn build_dataflows(worker: &mut timely::worker::Worker, job: &ClusterJob) -> Dataflows {
     let (w, peers) = (worker.index(), worker.peers());
+    let mut views = ViewsInput::new();
+    let heard = Rc::new(RefCell::new(Heard::default()));
+    build_views_dataflow(worker, &mut views, &heard);
+    let mut resume = ResumeInput::new();
+    let notes = Rc::new(RefCell::new(Notes::default()));
+    build_resume_dataflow(worker, &mut resume, &notes);
     let mut d = Dataflows {
-        views: ViewsInput::new(),
-        heard: Rc::new(RefCell::new(Heard::default())),
-        resume: ResumeInput::new(),
-        notes: Rc::new(RefCell::new(Notes::default())),
+        views,
+        heard,
+        resume,
+        notes,
         slot: Rc::new(RefCell::new(None)),
+        handout: build_handout_dataflows(worker),
         input: Input::new(),
         aborted: Rc::new(RefCell::new(None)),
         gathered: Rc::new(RefCell::new(Gathered::default())),
     };
-    build_views_dataflow(worker, &mut d.views, &d.heard);
-    build_resume_dataflow(worker, &mut d.resume, &d.notes);
     let spill_dir = spill_dir(&job.params.out_dir, w);
     let reducer = PartitionReducer::new(
         w as u32,
@@ -196,6 +216,7 @@ fn run_worker(
         resume,
         notes,
         slot,
+        handout,
         mut input,
         aborted,
         gathered,
@@ -212,6 +233,7 @@ fn run_worker(
         views: (views, &*heard),
         resume: (resume, &*notes, &*slot),
         every,
+        handout,
     };
     let result = run_map(worker, &mut input, agree, job, &aborted, &mut map);
     let failed = result.as_ref().err().map(|e| format!("process {w}: {e}"));
@@ -255,11 +277,13 @@ fn run_worker(
 }
 
 /// What the workers agree on before the map starts: the views (worker 0's choice) and what each
-/// partition's checkpoint holds; `every` is the checkpoints' interval (`None`: off).
+/// partition's checkpoint holds; `every` is the checkpoints' interval (`None`: off); then the
+/// views are handed out over `handout`.
 struct Agreements<'a> {
     views: (ViewsInput, &'a RefCell<Heard>),
     resume: (ResumeInput, &'a RefCell<Notes>, &'a RefCell<Option<Resume>>),
     every: Option<std::time::Duration>,
+    handout: HandoutEnds,
 }
 
 /// The outputs a partition reduces to for an encode of `params`.
@@ -409,7 +433,11 @@ fn run_map(
         (&scene.0, &scene.1),
         &k,
     );
+    let mut ends = agree.handout;
     let r = held.and_then(|held| {
+        // Worker 0 hands out the views some partition lacks.
+        let mut handout =
+            (worker.index() == 0).then(|| Handout::new(scene.1.len(), &held, worker.peers()));
         out.shares.held = held;
         let shares = (&mut out.stats, &mut out.shares);
         map_side(
@@ -420,6 +448,7 @@ fn run_map(
             &scene.1,
             &mut stages,
             &k,
+            (&mut ends, handout.as_mut()),
             shares,
         )
     });

@@ -20,8 +20,11 @@ pub(super) struct MapStats {
     pub(super) worker: u32,
     /// Wall-clock seconds of the map loop.
     pub(super) wall_s: f64,
-    /// Views of this worker it did not map because every partition's checkpoint held them.
+    /// Views no worker mapped because every partition's checkpoint held them (worker 0, which
+    /// hands out the views, counts them; 0 on the others).
     pub(super) resumed: u64,
+    /// The views this worker mapped, in the order it mapped them.
+    pub(super) views: Vec<u32>,
     /// The images' work (the same struct `encode`'s back workers sum). Not `#[serde(flatten)]`:
     /// timely's exchange uses bincode, which cannot decode flattened structs.
     pub(super) work: crate::report::ImageWork,
