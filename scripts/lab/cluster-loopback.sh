@@ -7,8 +7,10 @@
 # byte-identical (cmp). With CHECKPOINT_EVERY=SECONDS the cluster runs with --checkpoint-every
 # SECONDS (0.001: a checkpoint after every view a partition takes in) and each round also prints
 # the checkpoints each partition wrote, their seconds and the largest one's bytes (report.json).
+# With SLOW_MS=MS process 1 waits MS milliseconds before each view it maps (the test-only
+# SLAG_TEST_MAP_DELAY_MS: a slow process) and each round prints the views each process mapped.
 # NOT part of CI.
-#   [CHECKPOINT_EVERY=S] scripts/lab/cluster-loopback.sh [SLAG_ENCODER] [ROUNDS]   (repo root)
+#   [CHECKPOINT_EVERY=S] [SLOW_MS=MS] scripts/lab/cluster-loopback.sh [SLAG_ENCODER] [ROUNDS]   (repo root)
 set -uo pipefail
 B=${1:-target/debug/slag-encoder}; rounds=${2:-2}
 shared=${SLAG_SHARED:-../shared}
@@ -28,7 +30,8 @@ print(" ".join(str(x.getsockname()[1]) for x in s))')
   t2=$(now); pids=()
   ckpt=(); [ -n "${CHECKPOINT_EVERY:-}" ] && ckpt=(--checkpoint-every "$CHECKPOINT_EVERY")
   for i in 0 1 2; do
-    "$B" encode-cluster --process $i --hosts "$w/hosts" --cluster-secret-file "$w/secret" "${args[@]}" "${ckpt[@]}" \
+    slow=(); [ "$i" = 1 ] && [ -n "${SLOW_MS:-}" ] && slow=(env SLAG_TEST_MAP_DELAY_MS="$SLOW_MS")
+    "${slow[@]}" "$B" encode-cluster --process $i --hosts "$w/hosts" --cluster-secret-file "$w/secret" "${args[@]}" "${ckpt[@]}" \
       --out "$w/cluster-$r" > "$w/cluster-$r-$i.log" 2>&1 & pids+=($!)
   done
   rc=0; for p in "${pids[@]}"; do wait "$p" || rc=$?; done
@@ -41,6 +44,9 @@ print(" ".join(str(x.getsockname()[1]) for x in s))')
   done
   printf 'round %s: encode %.1f s, encode-cluster (3 processes) %.1f s; files but the report byte-identical: %s (%s)\n' \
     "$r" "$(echo "$t1 - $t0" | bc)" "$(echo "$t3 - $t2" | bc)" "$same" "$(cd "$w/one-$r" && ls | tr '\n' ' ')"
+  [ -n "${SLOW_MS:-}" ] && python3 -c 'import json,sys
+for w in json.load(open(sys.argv[1]))["outputs"]["cluster"]["workers"]:
+    print("  process %d: %d images %s, map wall %.1f s" % (w["worker"], w["images"], w.get("views", "?"), w["map_wall_s"]))' "$w/cluster-$r/report.json"
   [ -n "${CHECKPOINT_EVERY:-}" ] && python3 -c 'import json,sys
 c=json.load(open(sys.argv[1]))["outputs"]["cluster"]
 for p in c["partitions"]:
