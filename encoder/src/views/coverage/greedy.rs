@@ -72,14 +72,16 @@ impl Viewpoints<'_> {
         (weight, count)
     }
 
-    /// The gains of `views` (each seeing `seen[v]`), each spread over the threads in chunks of
-    /// Gaussians: rayon balances the chunks of several views, so a batch of small views leaves
-    /// no thread idle while one walks a large view.
+    /// The gains of `views` (each seeing `seen[v]`): one view spread over the threads, several
+    /// each on a thread of its own.
     fn gains(&self, views: &[usize], seen: &[SeenSet]) -> Vec<(usize, Gain)> {
-        views
-            .par_iter()
-            .map(|&v| (v, self.gain(v, &seen[v])))
-            .collect()
+        match views {
+            [v] => vec![(*v, self.gain(*v, &seen[*v]))],
+            _ => views
+                .par_iter()
+                .map(|&v| (v, self.gain_in(v, &seen[v], 0, self.means.len())))
+                .collect(),
+        }
     }
 
     /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
@@ -111,8 +113,9 @@ impl Viewpoints<'_> {
 type Entry = (Gain, Reverse<usize>, usize);
 
 /// How many stale views the greedy re-evaluates together: at most `views`, and, past the first,
-/// no more than `seen` seen Gaussians in all (a view that sees many is re-evaluated alone, so
-/// that the threads do not work through large views the lazy greedy would not have needed).
+/// no more than `seen` seen Gaussians in all (a view that sees many is re-evaluated alone,
+/// spread over the threads, so that no thread works through a large view the lazy greedy
+/// would not have needed).
 #[derive(Debug, Clone, Copy)]
 pub(in crate::views) struct AtOnce {
     pub(in crate::views) views: usize,
