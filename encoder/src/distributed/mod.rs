@@ -615,10 +615,14 @@ fn fresh_spill_dir(out: &Path, process: usize) -> Result<PathBuf> {
     Ok(spill)
 }
 
+/// How long a process that lost a peer keeps its own connections open before it exits.
+const PEER_LOST_GRACE: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Installs the process-wide panic hook of [`encode_cluster`]: a panic on any thread prints one
 /// line naming its cause (the peer process whose connection failed, from the panicking timely
 /// network thread or else from `lost`, with its address in `addresses`; or an internal error),
-/// removes `spill` and exits the process with [`EXIT_PEER_LOST`].
+/// removes `spill` and exits the process with [`EXIT_PEER_LOST`] ([`PEER_LOST_GRACE`] later when
+/// a connection failed).
 fn set_peer_lost_hook(process: usize, spill: PathBuf, addresses: Vec<String>, lost: Arc<LostPeer>) {
     std::panic::set_hook(Box::new(move |info| {
         let text = panic_text(info);
@@ -639,6 +643,11 @@ fn set_peer_lost_hook(process: usize, spill: PathBuf, addresses: Vec<String>, lo
              wrote no output; rerun every process"
         );
         let _ = std::fs::remove_dir_all(&spill);
+        if network {
+            // Keep this process's connections open a moment: the other survivors then see the
+            // process that really died fail first, and name it rather than this one.
+            std::thread::sleep(PEER_LOST_GRACE);
+        }
         std::process::exit(EXIT_PEER_LOST);
     }));
 }
