@@ -17,10 +17,7 @@ use super::{ADAPTER_ENV, icd};
 /// matches `$SLAG_WGPU_ADAPTER` (the message lists what exists).
 pub(super) fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Adapter>> {
     let adapters = pollster::block_on(instance.enumerate_adapters(wgpu::Backends::VULKAN));
-    let names: Vec<String> = adapters
-        .iter()
-        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
-        .collect();
+    let names: Vec<String> = adapters.iter().map(label).collect();
     let wanted = std::env::var(ADAPTER_ENV).ok();
     // An NVIDIA host whose Vulkan offers no GPU: name the exact fix instead of running on
     // Mesa's CPU driver a hundred times slower (unless the CPU adapter was asked for by name).
@@ -45,7 +42,7 @@ pub(super) fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Ada
         ));
     }
     if let Some(index) = wanted.as_deref().and_then(|w| w.strip_prefix('#')) {
-        return adapter_at(rank_adapters(adapters), index, &names);
+        return adapter_at(rank_adapters(adapters), index);
     }
     if let Some(want) = wanted {
         let want_l = want.to_lowercase();
@@ -64,6 +61,12 @@ pub(super) fn ranked_adapters(instance: &wgpu::Instance) -> Result<Vec<wgpu::Ada
     Ok(rank_adapters(adapters))
 }
 
+/// An adapter's name and type, as messages and the report show it.
+fn label(adapter: &wgpu::Adapter) -> String {
+    let info = adapter.get_info();
+    format!("{} ({:?})", info.name, info.device_type)
+}
+
 /// `adapters` ranked discrete, integrated, virtual, other, CPU; enumeration order within a rank.
 fn rank_adapters(mut adapters: Vec<wgpu::Adapter>) -> Vec<wgpu::Adapter> {
     use wgpu::DeviceType as D;
@@ -80,13 +83,11 @@ fn rank_adapters(mut adapters: Vec<wgpu::Adapter>) -> Vec<wgpu::Adapter> {
 
 /// The adapter `#index` of `ranked` alone (`$SLAG_WGPU_ADAPTER=#N`).
 ///
-/// Errors: [`Error::Gpu`] when `index` is not a number or past the list (naming what exists).
-fn adapter_at(
-    ranked: Vec<wgpu::Adapter>,
-    index: &str,
-    names: &[String],
-) -> Result<Vec<wgpu::Adapter>> {
+/// Errors: [`Error::Gpu`] when `index` is not a number or past the list (naming what exists, in
+/// its order).
+fn adapter_at(ranked: Vec<wgpu::Adapter>, index: &str) -> Result<Vec<wgpu::Adapter>> {
     let n = ranked.len();
+    let names: Vec<String> = ranked.iter().map(label).collect();
     match index.trim().parse::<usize>() {
         Ok(i) if i < n => Ok(ranked.into_iter().skip(i).take(1).collect()),
         _ => Err(Error::Gpu(format!(
@@ -105,10 +106,7 @@ pub fn adapter_names() -> Result<Vec<String>> {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = wgpu::Backends::VULKAN;
     let instance = wgpu::Instance::new(desc);
-    Ok(ranked_adapters(&instance)?
-        .iter()
-        .map(|a| format!("{} ({:?})", a.get_info().name, a.get_info().device_type))
-        .collect())
+    Ok(ranked_adapters(&instance)?.iter().map(label).collect())
 }
 
 #[cfg(test)]
@@ -135,17 +133,14 @@ mod tests {
             return;
         }
         let n = adapters.len();
-        let names: Vec<String> = rank_adapters(vulkan_adapters())
-            .iter()
-            .map(|a| a.get_info().name)
-            .collect();
+        let names: Vec<String> = rank_adapters(vulkan_adapters()).iter().map(label).collect();
         for i in 0..n {
-            let one = adapter_at(rank_adapters(vulkan_adapters()), &i.to_string(), &names).unwrap();
+            let one = adapter_at(rank_adapters(vulkan_adapters()), &i.to_string()).unwrap();
             assert_eq!(one.len(), 1);
-            assert_eq!(one[0].get_info().name, names[i]);
+            assert_eq!(label(&one[0]), names[i]);
         }
         for bad in [n.to_string(), "x".to_string(), "-1".to_string()] {
-            let e = adapter_at(rank_adapters(vulkan_adapters()), &bad, &names).unwrap_err();
+            let e = adapter_at(rank_adapters(vulkan_adapters()), &bad).unwrap_err();
             let msg = e.to_string();
             assert!(
                 msg.contains(&format!("#{}", n - 1)) && msg.contains(&names[0]),
