@@ -44,10 +44,6 @@ fn config_hint(e: &ConfigError) -> &'static str {
         ConfigError::ClusterUnsupported(ClusterUnsupported::Levels) => {
             "drop --levels, or run `slag-encoder encode --levels` on one machine"
         }
-        ConfigError::ClusterUnsupported(ClusterUnsupported::Workers) => {
-            "drop --gpus / --front-workers and start one process per GPU (one line each in \
-             --hosts)"
-        }
         // `ConfigError` is non_exhaustive: a case added later.
         _ => "see slag-encoder encode --help",
     }

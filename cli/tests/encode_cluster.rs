@@ -16,7 +16,10 @@
 //! 3. With one process slowed down (`SLAG_TEST_MAP_DELAY_MS` before each view it maps) the
 //!    views are handed out by work done: the slow process maps fewer views than each of the
 //!    others, every view is mapped once, and the files are still byte-identical to `encode`'s.
-//! 4. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
+//! 4. With `--front-workers 2 --threads 2` (each process runs the encode's worker pool: two
+//!    front workers of one thread each, several views in flight) the files are still
+//!    byte-identical to `encode`'s, every view is mapped once and every process maps views.
+//! 5. With `--dense` the cluster's dense embeddings equal the single-process ones: the same
 //!    observed Gaussian ids, vectors within 1e-6 (both stored as f32; the reductions run the same
 //!    f64 code, only the order in which images are summed may differ), total weights within 1e-6
 //!    relative; its mixture stays byte-identical.
@@ -37,8 +40,9 @@ const PEER_LOST: i32 = slag_encoder::distributed::EXIT_PEER_LOST;
 const TIMEOUT: Duration = Duration::from_secs(180);
 
 /// The encode arguments shared by every run: 7 of the 13 views (the coverage pass chooses among
-/// them), raster scale 0.25, f32 output, the host's reduction.
-fn encode_args(out: &Path) -> Vec<String> {
+/// them), raster scale 0.25, f32 output, the host's reduction, one thread unless `extra` (the
+/// run's other arguments) sets `--threads`.
+fn encode_args(out: &Path, extra: &[String]) -> Vec<String> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let fixtures = slag_common::paths::source_tree_shared_dir().join("fixtures");
     let mut a: Vec<String> = vec![
@@ -64,13 +68,14 @@ fn encode_args(out: &Path) -> Vec<String> {
             "cpu",
             "--precision",
             "f32",
-            "--threads",
-            "1",
             "--quiet",
-            "--out",
         ]
         .map(String::from),
     );
+    if !extra.iter().any(|a| a == "--threads") {
+        a.extend(["--threads", "1"].map(String::from));
+    }
+    a.push("--out".into());
     a.push(out.display().to_string());
     a
 }
@@ -127,7 +132,7 @@ fn spawn_with(
         .arg(hosts)
         .args(["--connect-timeout", "120"])
         .args(extra)
-        .args(encode_args(out))
+        .args(encode_args(out, extra))
         // Spill every contribution and chunk the accumulator, as on a scene larger than memory.
         .args([
             "--contribution-memory-mb",
@@ -199,10 +204,11 @@ fn run_cluster(
 
 /// A single-process `encode` of [`encode_args`] and `extra` into `out`.
 fn run_single(out: &Path, extra: &[&str]) {
+    let extra: Vec<String> = extra.iter().map(|a| a.to_string()).collect();
     let o = slag_encoder()
         .arg("encode")
-        .args(extra)
-        .args(encode_args(out))
+        .args(&extra)
+        .args(encode_args(out, &extra))
         .output()
         .unwrap();
     assert_success(&o);
@@ -299,6 +305,7 @@ fn cluster_of_three_matches_single_process_and_survives_a_killed_worker() {
     faulted_run(dir.path(), &out);
     let views = resumed_run(dir.path(), &out, &single_out);
     slow_run(dir.path(), &single_out, views);
+    pooled_run(dir.path(), &single_out, views);
     dense_run(dir.path(), views);
 }
 
@@ -353,6 +360,36 @@ fn slow_run(dir: &Path, single_out: &Path, views: u64) {
         mapped[1].len() < mapped[0].len() && mapped[1].len() < mapped[2].len(),
         "the slow process maps fewer views than each of the others: {mapped:?}"
     );
+}
+
+/// Point 4 of the module doc: every process runs two front workers (one thread each, as the
+/// single-process run's one front); compared with `single_out` over the same `views` views.
+fn pooled_run(dir: &Path, single_out: &Path, views: u64) {
+    let out = dir.join("pooled");
+    let hosts = hosts_file(dir, "hosts-pooled");
+    let extra: Vec<String> = ["--front-workers", "2", "--threads", "2"]
+        .map(String::from)
+        .into();
+    let t0 = Instant::now();
+    let r = run_cluster(&hosts, &out, dir, "pooled", None, &extra);
+    for (i, (status, log)) in r.iter().enumerate() {
+        assert!(status.success(), "process {i}: {log}");
+        assert!(
+            log.lines()
+                .any(|l| l.contains("map pool started") && l.contains("fronts=2")),
+            "process {i} runs two fronts: {log}"
+        );
+    }
+    assert_same_bytes(single_out, &out);
+    let report = report(&out);
+    let mapped = mapped_views(&report, views);
+    eprintln!(
+        "two fronts per process: views mapped per process {mapped:?} in {:.1} s",
+        t0.elapsed().as_secs_f64()
+    );
+    for (i, m) in mapped.iter().enumerate() {
+        assert!(!m.is_empty(), "process {i} mapped no view: {mapped:?}");
+    }
 }
 
 /// Point 2 of the module doc: process 1 of a cluster writing OUT `out` dies after its third
@@ -466,7 +503,7 @@ fn resumed_run(dir: &Path, out: &Path, single_out: &Path) -> u64 {
     views
 }
 
-/// Point 4 of the module doc: with `--dense`, over the same `views` views.
+/// Point 5 of the module doc: with `--dense`, over the same `views` views.
 fn dense_run(dir: &Path, views: u64) {
     // (3) The dense file too: within f32 round-off of the single process's, the rest the same.
     let (single_dense, dense) = (dir.join("single-dense"), dir.join("dense"));
@@ -561,7 +598,7 @@ fn a_peer_with_a_wrong_secret_is_refused_and_the_job_waits_for_the_right_one() {
     let o = slag_encoder()
         .args(["encode-cluster", "--process", "0", "--hosts"])
         .arg(&remote)
-        .args(encode_args(&dir.path().join("refused")))
+        .args(encode_args(&dir.path().join("refused"), &[]))
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr);

@@ -11,24 +11,46 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
 use super::net::{ClusterSecret, all_loopback};
-use crate::masks::MaskGenerator;
-use crate::pipeline::{CropEmbedder, EncodeParams, SceneInput};
+use crate::pipeline::{EncodeParams, FrontStages, SceneInput};
 use crate::raster::WeightRasterizer;
 use crate::report::Report;
 
-/// The per-image stage implementations of one worker process.
+/// The per-image stage implementations of one worker process: its front workers and its
+/// rasterizers, as `encode` runs them (`--front-workers`, `--gpus`).
 pub struct Stages {
-    /// Mask source (SAM automatic masks or the graph segmenter).
-    pub masks: Box<dyn MaskGenerator>,
-    /// CLIP visual tower over mask crops.
-    pub crops: Box<dyn CropEmbedder>,
-    /// Weight rasterizer over the scene's Gaussians.
-    pub rasterizer: Box<dyn WeightRasterizer>,
+    /// The front workers (each a mask source and a CLIP visual tower over mask crops, possibly
+    /// bound to a GPU); at least one, all embedding with the same model.
+    pub fronts: Vec<FrontStages>,
+    /// One weight rasterizer over the scene's Gaussians per GPU (or the one CPU reference); at
+    /// least one, and one for each GPU the fronts are bound to.
+    pub rasterizers: Vec<Box<dyn WeightRasterizer>>,
+    /// What keeps the fronts' shared GPU models alive (the GPUs' CLIP services; empty on the
+    /// CPU), dropped after the job.
+    pub services: Vec<crate::clip::ClipService>,
+}
+
+impl Stages {
+    /// The first front's masks (their name) and CLIP model (its id and width `D`); every front
+    /// embeds with the same model.
+    ///
+    /// Errors: [`Error::Param`] `fronts` when there is none.
+    pub(super) fn first_front(&self) -> Result<&FrontStages> {
+        self.fronts
+            .first()
+            .ok_or_else(|| Error::param("fronts", 0, "at least one front worker"))
+    }
+
+    /// The first rasterizer's name (the report's).
+    pub(super) fn rasterizer_name(&self) -> String {
+        self.rasterizers
+            .first()
+            .map_or_else(String::new, |r| r.name().to_string())
+    }
 }
 
 /// Builds a worker's [`Stages`] from the scene's Gaussians; called once in every process, on its
-/// worker thread; the stages then map the views on the process's map thread (as `encode`'s
-/// stages run on its pool's threads).
+/// worker thread; the stages then map the views on the encode's worker pool, fed by the job's
+/// hand-out (`map::map_side`).
 pub type StageFactory = Arc<dyn Fn(&Gaussians) -> Result<Stages> + Send + Sync>;
 
 /// The least time between two checkpoints unless set ([`ClusterConfig::checkpoint_every`]):

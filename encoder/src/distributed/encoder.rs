@@ -6,15 +6,17 @@ use std::sync::Arc;
 use slag_common::Result;
 
 use super::{ClusterConfig, ClusterJob, SegmentFeed, StageFactory, Stages, encode_cluster};
-use crate::config::{CLIP_BATCH_CPU, ConfigError, EncodeConfig};
+use crate::config::{ConfigError, EncodeConfig};
 use crate::pipeline::build;
 use crate::pipeline::segment_task::SegmentTask;
 use crate::report::Report;
 
 /// One process's part of a cluster encode ([`encode_cluster`]): every process of the cluster
 /// runs the same [`EncodeConfig`], each with its own [`ClusterConfig::process`]. Each process
-/// runs one front worker (its own ONNX Runtime sessions, with the config's execution provider
-/// and all its threads) and one rasterizer.
+/// runs `encode`'s front workers and rasterizers ([`build::build_fronts`] over
+/// [`build::gpu_count`] GPUs, [`build::make_rasterizers`]: `execution.gpus` and
+/// `execution.front_workers` mean what they mean to `encode`, for this process alone), fed by
+/// the job's hand-out.
 #[derive(Debug, Clone)]
 pub struct ClusterEncoder {
     config: EncodeConfig,
@@ -66,18 +68,11 @@ impl ClusterEncoder {
         report.parameters.cluster_processes = Some(cluster.addresses.len());
         let config = c.clone();
         let stages: StageFactory = Arc::new(move |g| {
-            let masks = build::build_masks(&config, threads)?;
-            let mut crops = crate::clip::ClipVisual::with_threads(
-                &config.clip.visual,
-                config.execution.ep,
-                config.clip.batch.unwrap_or(CLIP_BATCH_CPU),
-                threads,
-            )?;
-            crops.set_crop_fill(config.clip.crop_fill);
+            let fronts = build::build_fronts(&config, build::gpu_count(&config), threads)?;
             Ok(Stages {
-                masks,
-                crops: Box::new(crops),
-                rasterizer: build::make_rasterizer(config.raster.backend, g)?,
+                fronts: fronts.stages,
+                rasterizers: build::make_rasterizers(&config, g)?,
+                services: fronts.services,
             })
         });
         let job = ClusterJob {

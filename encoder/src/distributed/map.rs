@@ -1,12 +1,13 @@
 //! The map side: each worker encodes the views worker 0 hands it ([`super::handout`]: masks →
-//! CLIP → raster → `a_kj`, on a thread of its own while its timely worker keeps stepping) and
-//! splits each image's `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
+//! CLIP → raster → `a_kj`, on the encode's worker pool, [`run_handed`]: several front workers
+//! and one rasterizer per GPU, while its timely worker keeps stepping) and splits each image's
+//! `a_kj` by partition `p = k mod P` into [`ToReducer`] records.
 
 use std::cell::RefCell;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
-use slag_common::camera::{Intrinsics, View};
+use slag_common::camera::View;
 use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
@@ -16,23 +17,27 @@ use super::config::{ClusterJob, Stages};
 use super::handout::{Granted, Handout, HandoutEnds};
 use super::records::{ImagePart, JobKey, MapStats, ToReducer};
 use crate::aggregate::ImageContribution;
-use crate::aggregate::ImageStageParams;
-use crate::pipeline::{back_stage, front_stage};
-use crate::report::ImageWork;
+use crate::pipeline::FrontStages;
+use crate::pipeline::feed::{Forwarded, ViewsFeeder, handed_views};
+use crate::pipeline::handed::{HandedRun, run_handed};
+use crate::raster::WeightRasterizer;
 
 /// The fingerprint of the parameters every process must share.
+///
+/// It holds what changes the outputs, not how a process computes them: its front workers and
+/// GPUs are its own (processes may differ in both); `front` names the masks and the CLIP model
+/// (every front of a process embeds with the same).
 pub(super) fn job_key(
     job: &ClusterJob,
     gaussians: usize,
     views: &[slag_common::camera::View],
-    dim: usize,
-    stages: &Stages,
+    front: &FrontStages,
 ) -> JobKey {
     let p = &job.params;
     JobKey {
         gaussians: gaussians as u64,
         views: views.len() as u64,
-        dim: dim as u64,
+        dim: front.crops.dim() as u64,
         fingerprint: format!(
             "views {:?}..{:?} every {} hold_out_every {:?} selection {:?} raster_scale {} image_stage {:?} masks {} clip {} min_weight {} mixture_keep {:?} dense {} record {:?}",
             views.first().map(|v| &v.name),
@@ -42,8 +47,8 @@ pub(super) fn job_key(
             job.scene.selection,
             p.raster_scale,
             p.image_stage,
-            stages.masks.name(),
-            stages.crops.model_id(),
+            front.masks.name(),
+            front.crops.model_id(),
             p.reduce.min_total_weight,
             p.mixture_keep,
             p.dense,
@@ -126,69 +131,40 @@ impl Shares {
     }
 }
 
-/// What a worker's map thread needs of the job to map a view: the job's views, their raster
-/// intrinsics, the embedding width, the image stage's parameters and the test-only delay.
-struct ViewJob<'a> {
-    views: &'a [View],
-    raster_intrinsics: Vec<Intrinsics>,
-    dim: usize,
-    image_stage: ImageStageParams,
-    delay: Option<Duration>,
+/// One worker's map loop ([`map_side`]): its timely worker, the ends of its pool (the views it
+/// hands to the fronts, the views' `a_kj` and the pool's end), what it sent.
+struct MapLoop<'a, 'w> {
+    worker: &'w mut timely::worker::Worker,
+    input: &'w mut Input,
+    job: &'w ClusterJob,
+    key: &'w JobKey,
+    views: usize,
+    /// The process's front workers: it keeps this many views asked for or at a front.
+    fronts: usize,
+    feeder: ViewsFeeder,
+    mapped: mpsc::Receiver<Forwarded>,
+    pool_end: mpsc::Receiver<Result<()>>,
+    /// Asks sent and not answered yet.
+    asked: usize,
+    /// No view is left for this worker (or it asks no more): its feeder is closed.
+    ended: bool,
+    /// The pool has ended (every view handed to it is sent, or it failed).
+    pool_done: bool,
+    stats: &'a mut MapStats,
+    shares: &'a mut Shares,
+    /// The first error of this worker's pool.
+    failed: Option<Error>,
 }
 
-/// One view mapped: its work figures and its contribution.
-type Mapped = Result<(ImageWork, ImageContribution)>;
-
-impl ViewJob<'_> {
-    /// Maps view `i` on `stages`: masks → CLIP crops → weight raster → `a_kj`.
-    fn map(&self, i: usize, stages: &mut Stages) -> Mapped {
-        if let Some(d) = self.delay {
-            std::thread::sleep(d);
-        }
-        let item = front_stage(
-            &self.views[i],
-            i,
-            &mut *stages.masks,
-            &mut *stages.crops,
-            self.dim,
-        )?;
-        let n_masks = item.masks.len();
-        let (decode_s, masks_s, clip_s) = (item.decode_s, item.masks_s, item.clip_s);
-        let out = back_stage(
-            &mut *stages.rasterizer,
-            self.views,
-            &self.raster_intrinsics,
-            item,
-            self.dim,
-            self.image_stage,
-        )?;
-        let entries = out.contribution.entries.len();
-        let work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
-        Ok((work, out.contribution))
-    }
-}
-
-/// Where one worker's map loop stands.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Turn {
-    /// No view in hand: ask for one.
-    Idle,
-    /// Asked; waiting for worker 0's grant.
-    Asked,
-    /// Its map thread maps this view.
-    Mapping(u32),
-    /// No more views for this worker.
-    Ended,
-}
-
-/// The map side of worker `w`: it asks worker 0 for a view, maps it on its map thread while its
-/// timely worker keeps stepping (worker 0 answers the others' asks meanwhile: `handout`, worker
-/// 0 only), sends the image's parts to the partitions that lack the view and asks again, until
-/// no view is left or the job aborted. Records the worker's figures in `stats`, the parts sent
-/// in `shares`.
+/// The map side of worker `w`: it runs the encode's worker pool over `stages` (its front
+/// workers and its rasterizers, [`run_handed`]) on threads of their own, and, while its timely
+/// worker keeps stepping (worker 0 answers every worker's asks meanwhile: `handout`, worker 0
+/// only), asks worker 0 for a view whenever one of its fronts is free, hands each granted view to
+/// the pool and sends each mapped view's parts to the partitions that lack the view, until no
+/// view is left or the job aborted. Records the worker's figures in `stats`, the parts sent in
+/// `shares`.
 ///
-/// Errors: the first view this worker failed to map (it maps nothing more; worker 0 then hands
-/// out nothing more).
+/// Errors: the pool's first error (it maps nothing more; worker 0 then hands out nothing more).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn map_side(
     worker: &mut timely::worker::Worker,
@@ -201,30 +177,31 @@ pub(super) fn map_side(
     (ends, handout): (&mut HandoutEnds, Option<&mut Handout>),
     (stats, shares): (&mut MapStats, &mut Shares),
 ) -> Result<()> {
-    let view_job = ViewJob {
-        views,
-        raster_intrinsics: views
-            .iter()
-            .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
-            .collect::<Result<Vec<_>>>()?,
-        dim: key.dim as usize,
-        image_stage: job.params.image_stage,
-        delay: map_delay(),
-    };
+    let raster_intrinsics = views
+        .iter()
+        .map(|v| crate::raster::raster_intrinsics(&v.intrinsics, job.params.raster_scale))
+        .collect::<Result<Vec<_>>>()?;
     if let Some(h) = handout.as_deref() {
         stats.resumed = h.skipped();
     }
     let t_map = Instant::now();
-    let (to_thread, views_in) = mpsc::channel::<usize>();
-    let (mapped_out, mapped) = mpsc::channel::<(usize, Mapped)>();
+    let (fronts, rasterizers) = pool_stages(stages, worker.index());
+    let n_fronts = fronts.len();
+    let (feeder, handed) = handed_views(map_delay());
+    let (forward, mapped) = mpsc::channel::<Forwarded>();
+    let (pool_ended, pool_end) = mpsc::channel::<Result<()>>();
     let woken = std::thread::current();
+    let run = HandedRun {
+        views,
+        raster_intrinsics: &raster_intrinsics,
+        params: &job.params,
+        dim: key.dim as usize,
+    };
     let result = std::thread::scope(|s| {
         s.spawn(move || {
-            for i in views_in {
-                let r = view_job.map(i, stages);
-                let _ = mapped_out.send((i, r));
-                woken.unpark();
-            }
+            let r = run_handed(run, fronts, rasterizers, handed, forward);
+            let _ = pool_ended.send(r.map(drop));
+            woken.unpark();
         });
         let mut lp = MapLoop {
             worker,
@@ -232,8 +209,13 @@ pub(super) fn map_side(
             job,
             key,
             views: views.len(),
-            to_thread,
+            fronts: n_fronts,
+            feeder,
             mapped,
+            pool_end,
+            asked: 0,
+            ended: false,
+            pool_done: false,
             stats: &mut *stats,
             shares,
             failed: None,
@@ -245,23 +227,24 @@ pub(super) fn map_side(
     result.map_or(Ok(()), Err)
 }
 
-/// One worker's map loop ([`map_side`]): its timely worker, its map thread's ends, what it sent.
-struct MapLoop<'a, 'w> {
-    worker: &'w mut timely::worker::Worker,
-    input: &'w mut Input,
-    job: &'w ClusterJob,
-    key: &'w JobKey,
-    views: usize,
-    to_thread: mpsc::Sender<usize>,
-    mapped: mpsc::Receiver<(usize, Mapped)>,
-    stats: &'a mut MapStats,
-    shares: &'a mut Shares,
-    /// The first view this worker failed to map.
-    failed: Option<Error>,
+/// The front workers and rasterizers of worker `w`'s pool, taken from `stages` (logged).
+fn pool_stages(
+    stages: &mut Stages,
+    w: usize,
+) -> (Vec<FrontStages>, Vec<Box<dyn WeightRasterizer>>) {
+    let fronts = std::mem::take(&mut stages.fronts);
+    let rasterizers = std::mem::take(&mut stages.rasterizers);
+    tracing::info!(
+        worker = w,
+        fronts = fronts.len(),
+        rasterizers = rasterizers.len(),
+        "map pool started"
+    );
+    (fronts, rasterizers)
 }
 
 impl MapLoop<'_, '_> {
-    /// Steps the worker until its views are mapped and (worker 0, holding `handout`) every
+    /// Steps the worker until its pool has ended and (worker 0, holding `handout`) every
     /// worker's asks are answered; closes its asks, then (worker 0) its grants.
     fn run(
         &mut self,
@@ -270,7 +253,6 @@ impl MapLoop<'_, '_> {
         mut handout: Option<&mut Handout>,
     ) {
         let w = self.worker.index() as u32;
-        let mut turn = Turn::Idle;
         loop {
             let stopping = self.failed.is_some() || aborted.borrow().is_some();
             let mut moved = false;
@@ -280,10 +262,10 @@ impl MapLoop<'_, '_> {
                 }
                 moved |= ends.serve(h);
             }
-            let next = self.turn(turn, stopping, ends, w);
-            moved |= next != turn;
-            turn = next;
-            if turn == Turn::Ended {
+            moved |= self.take_grants(stopping, ends);
+            moved |= self.ask(stopping, ends, w);
+            moved |= self.send_mapped();
+            if self.pool_done {
                 ends.end_asks();
                 if handout.as_deref().is_none_or(|h| ends.served(h)) {
                     break;
@@ -298,43 +280,81 @@ impl MapLoop<'_, '_> {
         ends.end_grants();
     }
 
-    /// The next turn of worker `w` from `turn` (`stopping`: the job failed, ask nothing more).
-    fn turn(&mut self, turn: Turn, stopping: bool, ends: &mut HandoutEnds, w: u32) -> Turn {
-        match turn {
-            Turn::Idle if stopping => Turn::Ended,
-            Turn::Idle => {
-                ends.ask(w);
-                Turn::Asked
+    /// Hands each view granted to the pool's fronts (drops it when `stopping`); at worker 0's
+    /// word that no view is left, or when `stopping`, closes the feeder. Whether anything came.
+    fn take_grants(&mut self, stopping: bool, ends: &mut HandoutEnds) -> bool {
+        let mut moved = false;
+        while !self.ended {
+            match ends.granted() {
+                Granted::View(i) => {
+                    self.asked = self.asked.saturating_sub(1);
+                    if stopping || !self.feeder.hand(i as usize) {
+                        self.ended = true;
+                    }
+                }
+                Granted::Waiting => break,
+                Granted::Ended => self.ended = true,
             }
-            Turn::Asked => match ends.granted() {
-                Granted::View(i) if !stopping && self.to_thread.send(i as usize).is_ok() => {
-                    Turn::Mapping(i)
-                }
-                Granted::Waiting => Turn::Asked,
-                _ => Turn::Ended,
-            },
-            Turn::Mapping(_) => match self.mapped.try_recv() {
-                Ok((i, r)) => self.sent(i, r),
-                Err(mpsc::TryRecvError::Empty) => turn,
-                Err(mpsc::TryRecvError::Disconnected) => {
-                    self.failed
-                        .get_or_insert_with(|| Error::internal("the map thread ended early"));
-                    Turn::Ended
-                }
-            },
-            Turn::Ended => Turn::Ended,
+            moved = true;
         }
+        if stopping {
+            self.ended = true;
+        }
+        if self.ended {
+            self.feeder.close();
+        }
+        moved
     }
 
-    /// Sends view `i`'s parts (or keeps its error) and applies the fault hook; the next turn.
-    fn sent(&mut self, i: usize, mapped: Mapped) -> Turn {
-        let (work, c) = match mapped {
-            Ok(m) => m,
-            Err(e) => {
-                self.failed.get_or_insert(e);
-                return Turn::Ended;
+    /// Asks worker 0 for a view for each front that is free and has none coming: the views
+    /// asked for and those at the fronts stay within the fronts. Whether it asked.
+    fn ask(&mut self, stopping: bool, ends: &mut HandoutEnds, w: u32) -> bool {
+        let mut moved = false;
+        while !stopping && !self.ended && self.asked + self.feeder.in_fronts() < self.fronts {
+            ends.ask(w);
+            self.asked += 1;
+            moved = true;
+        }
+        moved
+    }
+
+    /// Sends the parts of every view the pool has mapped; notes the pool's end (and its error).
+    /// Whether anything came.
+    fn send_mapped(&mut self) -> bool {
+        if self.pool_done {
+            return false;
+        }
+        let mut moved = false;
+        while let Ok(f) = self.mapped.try_recv() {
+            self.sent(f);
+            moved = true;
+        }
+        let end = match self.pool_end.try_recv() {
+            Ok(r) => r,
+            Err(mpsc::TryRecvError::Empty) => return moved,
+            Err(mpsc::TryRecvError::Disconnected) => {
+                Err(Error::internal("the map pool's thread ended early"))
             }
         };
+        // Every view it mapped was forwarded before it ended.
+        while let Ok(f) = self.mapped.try_recv() {
+            self.sent(f);
+        }
+        if let Err(e) = end {
+            self.failed.get_or_insert(e);
+        }
+        (self.pool_done, self.ended) = (true, true);
+        self.feeder.close();
+        true
+    }
+
+    /// Sends view `f.view`'s parts and applies the fault hook.
+    fn sent(&mut self, f: Forwarded) {
+        let Forwarded {
+            view: i,
+            work,
+            contribution: c,
+        } = f;
         self.stats.work.add(&work);
         self.stats.views.push(i as u32);
         let peers = self.worker.peers();
@@ -351,7 +371,6 @@ impl MapLoop<'_, '_> {
             "image sent"
         );
         exit_after_images(self.stats.work.images, i);
-        Turn::Idle
     }
 }
 

@@ -5,8 +5,9 @@
 //!   views  (worker 0):  the view selection (coverage by default) on its rasterizer, run once;
 //!          the chosen names sent to every worker ([`views`]) before the map starts
 //!   hand-out (worker 0): the next view nobody has taken, to whichever worker asks ([`handout`])
-//!   map    (worker w, the views it was handed, on its map thread):  masks → CLIP crops →
-//!          weight raster → a_kj (aggregate::image_contribution), split by partition p = k mod P
+//!   map    (worker w, the views it was handed, on the encode's worker pool: its front workers
+//!          and one rasterizer per GPU):  masks → CLIP crops → weight raster → a_kj
+//!          (aggregate::image_contribution), split by partition p = k mod P
 //!   exchange (timely Exchange pact, key p): the image's a_kj of partition p with local ids k / P
 //!          and its mask count; its mask table E_j to partition 0 (to all with --dense)
 //!   reduce (worker p):  for k ≡ p mod P only, as views arrive (folded in view order): the
@@ -19,19 +20,23 @@
 //!          job) after them, as `encode` writes them
 //! ```
 //!
-//! One timely worker per process (each process owns its ONNX Runtime sessions and its GPU
-//! rasterizer; `--threads` goes to ONNX Runtime and rayon). Every process receives the same encode
-//! arguments and the same host list; process `I` listens on line `I` of the list.
+//! One timely worker per process. Each process owns its ONNX Runtime sessions and its GPU
+//! rasterizers and runs `encode`'s worker pool (`pipeline::handed`): `--front-workers` front
+//! workers and one rasterizer per `--gpus` GPU, with `encode`'s defaults; `--threads` goes to
+//! ONNX Runtime and rayon. These are each process's own (processes may differ in GPUs); every
+//! other encode argument and the host list are the same on every process; process `I` listens
+//! on line `I` of the list.
 //!
 //! # Views by work done
 //!
-//! A process that finishes a view asks worker 0 for the next one nobody has taken
-//! ([`handout`]), so a slower process (a slower GPU, a busier host) maps fewer views instead of
-//! holding the job back. The outputs do not depend on who mapped what: each partition folds the
-//! views in view order, and the end records count the images each worker sent. Each process maps
-//! on a thread of its own while its timely worker keeps stepping (answering asks on worker 0,
-//! folding its partition's parts as they arrive); the report lists the views each process
-//! mapped (`outputs.cluster.workers[].views`).
+//! A process asks worker 0 for the next view nobody has taken ([`handout`]) whenever one of its
+//! front workers is free (it keeps at most as many views asked for or at its fronts as it has
+//! fronts), so a slower process (a slower GPU, a busier host) maps fewer views instead of
+//! holding the job back. The outputs do not depend on who mapped what, nor on the order in which
+//! a process's views finish: each partition folds the views in view order, and the end records
+//! count the images each worker sent. Each process maps on threads of its own while its timely
+//! worker keeps stepping (answering asks on worker 0, folding its partition's parts as they
+//! arrive); the report lists the views each process mapped (`outputs.cluster.workers[].views`).
 //!
 //! # What the map emits
 //!
@@ -45,7 +50,8 @@
 //!
 //! # Memory
 //!
-//! A map worker holds one image at a time. A reducer holds the running state of `N / P`
+//! A map worker holds the images of its pool, as `encode` does (one per front worker, the
+//! queue to its rasterizers, three per rasterizer). A reducer holds the running state of `N / P`
 //! Gaussians (`MixtureFold::state_bytes_per_gaussian`, the record's slots) and the views that
 //! arrived before an earlier one; with `--dense` its partition's contributions up to
 //! `contribution_budget_bytes`, the rest spilled to `OUT/.cluster-<process>.partial/`, and an f64
@@ -92,8 +98,8 @@
 //!
 //! `SLAG_FAULT_EXIT_AFTER_IMAGES=<n>` makes a process exit with status 137 (as if SIGKILLed, no
 //! destructors, no connection shutdown) right after it has sent its n-th image.
-//! `SLAG_TEST_MAP_DELAY_MS=<ms>` ([`MAP_DELAY_VAR`]) makes a process wait that long before each
-//! view it maps: a slow process, on one machine.
+//! `SLAG_TEST_MAP_DELAY_MS=<ms>` ([`MAP_DELAY_VAR`]) makes each front worker of a process wait
+//! that long before each view it takes: a slow process, on one machine.
 
 use std::cell::RefCell;
 use std::path::{Path, PathBuf};
@@ -410,7 +416,7 @@ fn run_map(
         heard,
         &job.scene,
         (&gaussians, training),
-        Some(&mut stages.rasterizer),
+        &mut stages.rasterizers,
     )?;
     out.selection = selection;
     let scene = (gaussians, views, total);
@@ -418,12 +424,13 @@ fn run_map(
     if scene.1.is_empty() {
         return Err(crate::pipeline::no_views(&job.scene, scene.2));
     }
+    let front = stages.first_front()?;
     out.models = [
-        stages.rasterizer.name().to_string(),
-        stages.crops.model_id().to_string(),
-        stages.masks.name().to_string(),
+        stages.rasterizer_name(),
+        front.crops.model_id().to_string(),
+        front.masks.name().to_string(),
     ];
-    let k = job_key(job, scene.0.len(), &scene.1, stages.crops.dim(), &stages);
+    let k = job_key(job, scene.0.len(), &scene.1, front);
     out.key = Some(k.clone());
     let held = agree_on_checkpoints(
         worker,

@@ -64,7 +64,7 @@ pub(super) fn build_views_dataflow(
 }
 
 /// The job's views among the scene's `training` views: on worker 0 chosen here
-/// ([`crate::views::choose`] with `rasterizer`, `None` when its stages failed) and sent to every
+/// ([`crate::views::choose`] on this process's `rasterizers`) and sent to every
 /// worker, with the selection's report; on the others the views worker 0 named, waited for.
 /// Closes `input` either way.
 ///
@@ -76,13 +76,9 @@ pub(super) fn agree_on_views(
     heard: &RefCell<Heard>,
     scene: &SceneInput,
     (gaussians, training): (&Gaussians, Vec<View>),
-    rasterizer: Option<&mut Box<dyn WeightRasterizer>>,
+    rasterizers: &mut [Box<dyn WeightRasterizer>],
 ) -> Result<(Vec<View>, Option<SelectionReport>)> {
     if worker.index() == 0 {
-        let rasterizers = match rasterizer {
-            Some(r) => std::slice::from_mut(r),
-            None => &mut [],
-        };
         let chosen = crate::views::choose(training, &scene.selection, gaussians, rasterizers);
         let names = match &chosen {
             Ok((_, report)) => Ok(report.chosen.clone()),

@@ -12,7 +12,8 @@
 //! [`EncodeParams`] and the report's header, and [`encode_pool`] runs them: the worker pool
 //! (`pool`: fronts, queues, the first error), then the finish (`finish`: the reduction, the
 //! level and mixture files, the writes, the report last). This file holds the per-image stages
-//! both encoders share (`front_stage`, `back_stage`, [`view_contribution`]).
+//! both encoders share (`front_stage`; the back stage: `back_prepare`, `back_raster`,
+//! `back_finish`; [`view_contribution`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -35,6 +36,8 @@ pub mod budget;
 pub mod build;
 mod encoder;
 mod fallback;
+pub(crate) mod feed;
+pub(crate) mod handed;
 pub(crate) mod devices;
 pub(crate) mod finish;
 pub(crate) mod pool;
@@ -206,8 +209,8 @@ pub(crate) struct FrontItem {
     /// Index of the view in the scene's view list.
     pub view: usize,
     /// SAM (or graph) masks of the image, run-length encoded while the image waits between the
-    /// stages ([`CompactMask`]; [`back_stage`] labels them from their runs and expands them only for
-    /// the per-pixel lists).
+    /// stages ([`CompactMask`]; [`back_prepare`] labels them from their runs and [`back_finish`]
+    /// expands them only for the per-pixel lists).
     pub masks: Vec<CompactMask>,
     /// `[masks.len() * D]` CLIP crop embeddings `E_j`, row-major.
     pub embeddings: Vec<f32>,
@@ -650,24 +653,6 @@ pub(crate) fn sums_contribution(
     }
 }
 
-/// The back stages of a [`FrontItem`]: the image's `a_kj` from its view at `raster_intrinsics`
-/// ([`view_contribution`]: GPU label sums, or weights then the host image stage).
-///
-/// Errors: those of the rasterizer and the image stage; [`Error::Internal`] for a view index out
-/// of range of `views` or `raster_intrinsics` (an internal error).
-pub(crate) fn back_stage(
-    rasterizer: &mut dyn WeightRasterizer,
-    views: &[View],
-    raster_intrinsics: &[Intrinsics],
-    item: FrontItem,
-    dim: usize,
-    image_stage: ImageStageParams,
-) -> Result<BackOut> {
-    let prepared = back_prepare(views, raster_intrinsics, item, dim, image_stage, None)?;
-    let raster = back_raster(rasterizer, prepared, None)?;
-    back_finish(raster, dim, image_stage)
-}
-
 /// A [`FrontItem`] with its view's camera and labels, ready for its rasterizer
 /// ([`back_prepare`]).
 pub(crate) struct BackPrepared {
@@ -677,10 +662,14 @@ pub(crate) struct BackPrepared {
     prepared: PreparedView,
 }
 
-/// The first part of [`back_stage`]: the item's view and its pixel labels, made from the masks'
-/// runs (not expanded), and the rasterizer's host work of the view (`precompute`).
+/// The first part of the back stage of a [`FrontItem`] (the image's `a_kj` from its view at
+/// `raster_intrinsics`, [`view_contribution`]: GPU label sums, or weights then the host image
+/// stage; then [`back_raster`] and [`back_finish`]): the item's view and its pixel labels, made
+/// from the masks' runs (not expanded), and the rasterizer's host work of the view
+/// (`precompute`).
 ///
-/// Errors: as [`back_stage`], without the rasterizer's.
+/// Errors: the image stage's input checks; [`Error::Internal`] for a view index out of range of
+/// `views` or `raster_intrinsics` (an internal error).
 pub(crate) fn back_prepare(
     views: &[View],
     raster_intrinsics: &[Intrinsics],
@@ -713,7 +702,7 @@ pub(crate) fn back_prepare(
     })
 }
 
-/// The rasterizer's part of [`back_stage`] ([`raster_view`]): what [`back_finish`] completes.
+/// The rasterizer's part of the back stage ([`raster_view`]): what [`back_finish`] completes.
 pub(crate) struct BackRaster {
     /// The front's item (its masks compact, its embeddings).
     pub item: FrontItem,
@@ -733,7 +722,7 @@ impl BackRaster {
     }
 }
 
-/// The rasterizer's part of [`back_stage`]; `keep`: `Some` when the rasterizer keeps the sums
+/// The rasterizer's part of the back stage; `keep`: `Some` when the rasterizer keeps the sums
 /// on its device ([`Keep`]).
 ///
 /// Errors: the rasterizer's.
@@ -760,9 +749,9 @@ pub(crate) fn back_raster(
     })
 }
 
-/// The host's half of [`back_stage`] ([`finish_view`]).
+/// The host's half of the back stage ([`finish_view`]).
 ///
-/// Errors: as [`back_stage`].
+/// Errors: the image stage's.
 pub(crate) fn back_finish(
     r: BackRaster,
     dim: usize,

@@ -14,6 +14,7 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
 use super::fallback::ReduceFallback;
+use super::feed::ViewFeed;
 pub(crate) use super::sinks::dominant_masks;
 use super::sinks::{PoolSinks, finish_image};
 use super::{
@@ -119,13 +120,14 @@ pub(crate) fn run_pool(
     let raster_intrinsics = raster_intrinsics_of(&views, params.raster_scale)?;
     log_scene_loaded(gaussians.len(), views.len(), fronts.len());
     let n_fronts = fronts.len();
+    let sinks = PoolSinks::new(params, (model.dim, gaussians.len()), views.len())?;
     let shared = Shared::new(
         (&views, &raster_intrinsics),
         params,
-        (model.dim, gaussians.len()),
-        t_total,
-        on_device_keep,
-    )?;
+        model.dim,
+        (t_total, on_device_keep),
+        (sinks, ViewFeed::Counter(AtomicUsize::new(0))),
+    );
     let queues = Queues::for_fronts(&fronts);
     let (slots, bound_gpus) = (queues.slots(), queues.bound_gpus);
     let (workers, rasterizers) = run_workers(&shared, fronts, queues, || {
@@ -318,15 +320,17 @@ pub(crate) struct PoolHooks<'a> {
     pub(crate) on_device_keep: Option<&'a (dyn Fn() + Sync)>,
 }
 
-/// What every worker of [`run_pool`] shares: the views and settings, the next unclaimed view,
-/// the first error, the queues' gauge, the image stage's sinks and totals, the progress bars.
-struct Shared<'a> {
+/// What every worker of [`run_pool`] shares: the views and settings, where the fronts take
+/// their views, the first error, the queues' gauge, the image stage's sinks and totals, the
+/// progress bars.
+pub(super) struct Shared<'a> {
     views: &'a [View],
     raster_intrinsics: &'a [Intrinsics],
     params: &'a EncodeParams,
     dim: usize,
     t_total: Instant,
-    next_view: AtomicUsize,
+    /// Where a free front worker takes its next view.
+    feed: ViewFeed,
     failure: Failure,
     queue: QueueGauge,
     /// What the back workers add up (under one lock, once per image).
@@ -365,29 +369,28 @@ struct WorkersLeft {
 
 impl<'a> Shared<'a> {
     /// What the workers of a run share, before any started: the encode's `views` with their
-    /// raster intrinsics, the `dim`-wide embeddings of a scene of `n_gaussians` Gaussians, the
-    /// sinks, and the progress bars (shown with [`EncodeParams::progress`]).
-    ///
-    /// Errors: the sinks' ([`PoolSinks::new`]).
-    fn new(
+    /// raster intrinsics, the `dim`-wide embeddings, the run's start `t_total` and its hook,
+    /// the `sinks`, where the fronts take their views (`feed`), and the progress bars (shown
+    /// with [`EncodeParams::progress`]).
+    pub(super) fn new(
         (views, raster_intrinsics): (&'a [View], &'a [Intrinsics]),
         params: &'a EncodeParams,
-        (dim, n_gaussians): (usize, usize),
-        t_total: Instant,
-        on_device_keep: Option<&'a (dyn Fn() + Sync)>,
-    ) -> Result<Self> {
+        dim: usize,
+        (t_total, on_device_keep): (Instant, Option<&'a (dyn Fn() + Sync)>),
+        (sinks, feed): (PoolSinks, ViewFeed),
+    ) -> Self {
         let multi = progress_display(params.progress);
-        Ok(Shared {
+        Shared {
             views,
             raster_intrinsics,
             params,
             dim,
             t_total,
-            next_view: AtomicUsize::new(0),
+            feed,
             failure: Failure::default(),
             queue: QueueGauge::default(),
             totals: Mutex::new(ImageWork::default()),
-            sinks: PoolSinks::new(params, (dim, n_gaussians), views.len())?,
+            sinks,
             device: Mutex::new(Vec::new()),
             on_device_keep: Mutex::new(on_device_keep),
             fallback: ReduceFallback::default(),
@@ -395,7 +398,15 @@ impl<'a> Shared<'a> {
             bar_front: bar(&multi, views.len(), "masks + CLIP"),
             bar_back: bar(&multi, views.len(), "raster + a_kj"),
             rasterizers: AtomicUsize::new(0),
-        })
+        }
+    }
+
+    /// After the workers: the first worker's error, if any (`handed::run_handed`,
+    /// whose sinks forward every view and keep nothing to finish).
+    pub(super) fn into_failure(self) -> Result<()> {
+        self.bar_front.finish();
+        self.bar_back.finish();
+        self.failure.into_result()
     }
 }
 
@@ -464,6 +475,7 @@ impl Shared<'_> {
             store,
             level_stores,
             record,
+            ..
         } = self.sinks;
         let store = store.into_inner().map_err(poisoned)?;
         // A view brought back from a device is there twice: empty, then with its a_kj.
@@ -507,16 +519,16 @@ impl Shared<'_> {
 /// the fronts are bound to GPUs, one per GPU so an image stays on the GPU whose SAM and CLIP
 /// made its masks. Each queue holds two finished images per rasterizer it feeds (the unbound
 /// fronts' queue: two per front, at most 8).
-struct Queues {
+pub(super) struct Queues {
     senders: Vec<mpsc::SyncSender<FrontItem>>,
     receivers: Vec<Arc<Mutex<mpsc::Receiver<FrontItem>>>>,
     capacity: usize,
     /// How many GPUs the fronts are bound to, if they are.
-    bound_gpus: Option<usize>,
+    pub(super) bound_gpus: Option<usize>,
 }
 
 impl Queues {
-    fn for_fronts(fronts: &[FrontStages]) -> Self {
+    pub(super) fn for_fronts(fronts: &[FrontStages]) -> Self {
         let bound_gpus = fronts.iter().filter_map(|f| f.gpu).max().map(|g| g + 1);
         let (n, capacity) = match bound_gpus {
             Some(n) => (n, 2),
@@ -545,7 +557,7 @@ impl Queues {
 /// `made`, checked: at least one rasterizer, and one for each GPU the fronts are bound to.
 ///
 /// Errors: `made`'s; [`Error::Param`] for none; [`Error::Internal`] for too few.
-fn checked_rasterizers(
+pub(super) fn checked_rasterizers(
     made: Result<Vec<Box<dyn WeightRasterizer>>>,
     bound_gpus: Option<usize>,
 ) -> Result<Vec<Box<dyn WeightRasterizer>>> {
@@ -567,7 +579,7 @@ fn checked_rasterizers(
 /// (fronts first) and the rasterizers' names. The fronts start first; `rasterizers` makes the
 /// rasterizers (device, upload of the Gaussians) while the first images go through SAM and
 /// CLIP, so that set-up is off the critical path; its error stops the run like a worker's.
-fn run_workers(
+pub(super) fn run_workers(
     shared: &Shared<'_>,
     fronts: Vec<FrontStages>,
     queues: Queues,
@@ -622,9 +634,9 @@ fn run_workers(
     })
 }
 
-/// Front worker `w`'s loop: claims the next view, runs its masks and CLIP crops
-/// ([`front_stage`]) and hands the item to its queue `tx`, until the views are done, the queue
-/// is gone, or a worker failed (its own error is recorded).
+/// Front worker `w`'s loop: takes the next view from the run's feed, runs its masks and CLIP
+/// crops ([`front_stage`]) and hands the item to its queue `tx`, until the views are done, the
+/// queue is gone, or a worker failed (its own error is recorded).
 fn front_loop(
     w: usize,
     front: &mut FrontStages,
@@ -632,9 +644,13 @@ fn front_loop(
     shared: &Shared<'_>,
 ) -> WorkerShare {
     let mut share = stage_share(format!("front-{w}"));
-    while !shared.failure.has_failed() {
-        let i = shared.next_view.fetch_add(1, Ordering::SeqCst);
+    let failed = || shared.failure.has_failed();
+    while let Some(i) = shared.feed.next(shared.views.len(), failed) {
         let Some(view) = shared.views.get(i) else {
+            let n = shared.views.len();
+            shared
+                .failure
+                .fail(Error::internal(format!("view {i} handed out of {n}")));
             break;
         };
         let t0 = Instant::now();
@@ -654,6 +670,8 @@ fn front_loop(
                     shared.queue.leave(bytes);
                     break;
                 }
+                // Free again: its item is in the queue.
+                shared.feed.fronted();
             }
             Err(e) => {
                 shared.failure.fail(e);

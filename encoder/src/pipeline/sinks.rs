@@ -3,23 +3,26 @@
 //! host's streamed fold of the mixture) and the host side of one rasterized view that fills them.
 //! Apart from the workers that call it ([`super::pool`]) so that either can change alone.
 
-use std::sync::Mutex;
+use std::sync::{Mutex, mpsc};
 use std::time::Instant;
 
 use slag_common::mask_record::MaskRecord;
 use slag_common::{Error, Result};
 
+use super::feed::Forwarded;
 use super::{BackRaster, EncodeParams, back_finish};
 use crate::aggregate::ContributionStore;
 use crate::report::ImageWork;
 
 /// Where the image stage's `a_kj` go: the contribution store; with [`EncodeParams::levels`] one
 /// store per granularity level (the same entries, split by level); with
-/// [`EncodeParams::mask_record_slots`] the masks' record of the views recorded on the host.
+/// [`EncodeParams::mask_record_slots`] the masks' record of the views recorded on the host. Or,
+/// with `forward`, each view's `a_kj` and work forwarded as it is done, and nothing stored.
 pub(super) struct PoolSinks {
     pub(super) store: Mutex<ContributionStore>,
     pub(super) level_stores: Vec<Mutex<ContributionStore>>,
     pub(super) record: Option<Mutex<HostRecord>>,
+    pub(super) forward: Option<mpsc::Sender<Forwarded>>,
 }
 
 /// The masks' record of the views whose dominant masks reach the host, made at the first of
@@ -101,7 +104,19 @@ impl PoolSinks {
             store: main,
             level_stores,
             record,
+            forward: None,
         })
+    }
+
+    /// Sinks that forward each view's `a_kj` and work to `forward` and store nothing (the
+    /// store stays empty and never spills).
+    pub(super) fn forwarding(forward: mpsc::Sender<Forwarded>) -> Self {
+        PoolSinks {
+            store: Mutex::new(ContributionStore::new(0, std::path::PathBuf::new())),
+            level_stores: Vec::new(),
+            record: None,
+            forward: Some(forward),
+        }
     }
 }
 
@@ -170,9 +185,10 @@ fn folded_dense(
 
 /// The image stage's host side of one rasterized view ([`back_finish`]): its `a_kj` pushed to
 /// the sinks (split by level with `levels`; each Gaussian's dominant mask to the masks' record),
-/// and its work added to `totals`.
+/// and its work added to `totals`; or, with [`PoolSinks::forward`], both forwarded.
 ///
-/// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock.
+/// Errors: the image stage's; the stores' (spill I/O); [`Error::Internal`] for a poisoned lock
+/// or a forward whose receiver is gone.
 pub(super) fn finish_image(
     raster: BackRaster,
     dim: usize,
@@ -184,6 +200,7 @@ pub(super) fn finish_image(
         store,
         level_stores,
         record,
+        forward,
     } = sinks;
     let poisoned = |_| Error::internal("contribution store poisoned by a panicked worker");
     let item = &raster.item;
@@ -194,6 +211,11 @@ pub(super) fn finish_image(
     let out = back_finish(raster, dim, params.image_stage)?;
     let t1 = Instant::now();
     let entries = out.contribution.entries.len();
+    if let Some(forward) = forward {
+        let work = out.work(decode_s, masks_s, clip_s, n_masks, entries);
+        let view = (raster_view, work, out.contribution);
+        return forward_view(forward, view);
+    }
     if let Some(record) = record {
         // Each Gaussian's dominant mask here (or from the device), found outside the record's
         // lock.
@@ -233,6 +255,22 @@ pub(super) fn finish_image(
         tt.add(&work);
     }
     Ok(())
+}
+
+/// Sends one view's `(view, work, a_kj)` to `forward`.
+///
+/// Errors: [`Error::Internal`] when its receiver is gone.
+fn forward_view(
+    forward: &mpsc::Sender<Forwarded>,
+    (view, work, contribution): (usize, ImageWork, crate::aggregate::ImageContribution),
+) -> Result<()> {
+    forward
+        .send(Forwarded {
+            view,
+            work,
+            contribution,
+        })
+        .map_err(|_| Error::internal("nothing takes the views' a_kj any more"))
 }
 
 /// Each Gaussian's mask of largest `a_kj` in `entries` (sorted by Gaussian), ties to the
