@@ -20,8 +20,8 @@ use std::rc::Rc;
 use serde::{Deserialize, Serialize};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
-use timely::dataflow::channels::pact::Exchange;
-use timely::dataflow::operators::Operator;
+
+use super::inbox::build_inbox;
 
 /// Worker 0's hand-out of one job's views: the views some partition lacks, in view order, each
 /// to the first worker that asks after the one before it was taken.
@@ -118,30 +118,26 @@ pub(super) fn build_handout_dataflows(worker: &mut timely::worker::Worker) -> Ha
     let inbox = Rc::new(RefCell::new(Inbox::default()));
     let mut asks = AskInput::new();
     let mut grants = GrantInput::new();
-    let into = Rc::clone(&inbox);
-    worker.dataflow::<u64, _, _>(|scope| {
-        asks.to_stream(scope).sink(
-            Exchange::new(|_: &Ask| 0),
-            "asks",
-            move |(input, frontier)| {
-                let mut inbox = into.borrow_mut();
-                input.for_each(|_time, data| inbox.asks.extend(data.drain(..).map(|a| a.from)));
-                inbox.asks_closed = frontier.is_empty();
-            },
-        );
-    });
-    let into = Rc::clone(&inbox);
-    worker.dataflow::<u64, _, _>(|scope| {
-        grants.to_stream(scope).sink(
-            Exchange::new(|g: &Grant| g.to as u64),
-            "grants",
-            move |(input, frontier)| {
-                let mut inbox = into.borrow_mut();
-                input.for_each(|_time, data| inbox.grants.extend(data.drain(..).map(|g| g.view)));
-                inbox.grants_closed = frontier.is_empty();
-            },
-        );
-    });
+    build_inbox(
+        worker,
+        &mut asks,
+        ("asks", |_: &Ask| 0),
+        &inbox,
+        (
+            |inbox: &mut Inbox, a: Ask| inbox.asks.push_back(a.from),
+            |inbox: &mut Inbox| inbox.asks_closed = true,
+        ),
+    );
+    build_inbox(
+        worker,
+        &mut grants,
+        ("grants", |g: &Grant| g.to as u64),
+        &inbox,
+        (
+            |inbox: &mut Inbox, g: Grant| inbox.grants.push_back(g.view),
+            |inbox: &mut Inbox| inbox.grants_closed = true,
+        ),
+    );
     HandoutEnds {
         asks: Some(asks),
         // Only worker 0 grants.

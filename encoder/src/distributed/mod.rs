@@ -124,6 +124,7 @@ mod config;
 mod encoder;
 mod gather;
 mod handout;
+mod inbox;
 mod map;
 pub mod net;
 mod records;

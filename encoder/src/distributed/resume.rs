@@ -18,11 +18,10 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
-use timely::dataflow::channels::pact::Exchange;
-use timely::dataflow::operators::Operator;
 
 use super::checkpoint::{self, Saved};
 use super::config::ClusterJob;
+use super::inbox::build_inbox;
 use super::records::JobKey;
 use super::reduce::{Checkpointer, Resume};
 
@@ -161,28 +160,22 @@ pub(super) fn build_resume_dataflow(
     input: &mut ResumeInput,
     notes: &Rc<RefCell<Notes>>,
 ) {
-    let notes = Rc::clone(notes);
-    let peers = worker.peers();
-    worker.dataflow::<u64, _, _>(|scope| {
-        input.to_stream(scope).sink(
-            Exchange::new(|n: &ResumeNote| n.to as u64),
-            "resume",
-            move |(input, frontier)| {
-                let mut notes = notes.borrow_mut();
-                notes.held.resize(peers, None);
-                input.for_each(|_time, data| {
-                    for n in data.drain(..) {
-                        if let Some(slot) = notes.held.get_mut(n.from as usize) {
-                            slot.get_or_insert(n.held);
-                        }
-                    }
-                });
-                if frontier.is_empty() {
-                    notes.closed = true;
+    // One slot per worker, each empty until its note comes.
+    notes.borrow_mut().held.resize(worker.peers(), None);
+    build_inbox(
+        worker,
+        input,
+        ("resume", |n: &ResumeNote| n.to as u64),
+        notes,
+        (
+            |notes: &mut Notes, n: ResumeNote| {
+                if let Some(slot) = notes.held.get_mut(n.from as usize) {
+                    slot.get_or_insert(n.held);
                 }
             },
-        );
-    });
+            |notes: &mut Notes| notes.closed = true,
+        ),
+    );
 }
 
 /// Tells every worker `held` (the views this worker's partition holds, or why it failed), closes

@@ -12,9 +12,8 @@ use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 use timely::container::CapacityContainerBuilder;
 use timely::dataflow::InputHandle;
-use timely::dataflow::channels::pact::Exchange;
-use timely::dataflow::operators::Operator;
 
+use super::inbox::build_inbox;
 use crate::pipeline::SceneInput;
 use crate::raster::WeightRasterizer;
 use crate::views::SelectionReport;
@@ -44,23 +43,18 @@ pub(super) fn build_views_dataflow(
     input: &mut ViewsInput,
     heard: &Rc<RefCell<Heard>>,
 ) {
-    let heard = Rc::clone(heard);
-    worker.dataflow::<u64, _, _>(|scope| {
-        input.to_stream(scope).sink(
-            Exchange::new(|c: &ViewChoice| c.to as u64),
-            "views",
-            move |(input, frontier)| {
-                input.for_each(|_time, data| {
-                    for c in data.drain(..) {
-                        heard.borrow_mut().choice.get_or_insert(c.chosen);
-                    }
-                });
-                if frontier.is_empty() {
-                    heard.borrow_mut().closed = true;
-                }
+    build_inbox(
+        worker,
+        input,
+        ("views", |c: &ViewChoice| c.to as u64),
+        heard,
+        (
+            |heard: &mut Heard, c: ViewChoice| {
+                heard.choice.get_or_insert(c.chosen);
             },
-        );
-    });
+            |heard: &mut Heard| heard.closed = true,
+        ),
+    );
 }
 
 /// The job's views among the scene's `training` views: on worker 0 chosen here
