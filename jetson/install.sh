@@ -9,7 +9,8 @@
 #       [--etc /etc/slag] [--unit-dir /etc/systemd/system] [--no-systemd] [--start]
 #
 # Defaults look beside this script first (a bundle: slag-edge, onnxruntime/, models/), then in the
-# repository's cross-build output (target/aarch64/aarch64-unknown-linux-gnu/release/slag-edge) and
+# repository's cross-build output (target/aarch64/aarch64-unknown-linux-gnu/jetson/slag-edge, then
+# .../release/slag-edge) and
 # ~/.cache/slag/onnxruntime-1.23.2-aarch64.
 #   --prefix DIR     binary in DIR/bin, ONNX Runtime in DIR/lib/slag/onnxruntime, models in
 #                    DIR/share/slag/models (default /usr/local)
@@ -48,6 +49,7 @@ first() { for f in "$@"; do [ -e "$f" ] && { echo "$f"; return 0; }; done; retur
 
 # ---- what to install -----------------------------------------------------------------------------
 [ -n "$BIN" ] || BIN=$(first "$here/slag-edge" \
+  "$repo/target/aarch64/aarch64-unknown-linux-gnu/jetson/slag-edge" \
   "$repo/target/aarch64/aarch64-unknown-linux-gnu/release/slag-edge")
 [ -n "$BIN" ] && [ -f "$BIN" ] ||
   die "no slag-edge binary: pass --bin FILE (build it with scripts/cross-aarch64.sh)"

@@ -9,8 +9,11 @@
 #      start-up, so the bookworm-backports qemu 10 is used; the source is added when apt lacks it);
 #   2. fetches the arm64 ONNX Runtime library (PyPI `onnxruntime` manylinux aarch64 wheel) into
 #      ~/.cache/slag/onnxruntime-VERSION-aarch64 (the name scripts/setup.sh uses on an aarch64 host);
-#   3. builds and runs the edge crate's tests under qemu-user (ORT_DYLIB_PATH = the arm64 library);
-#   4. builds the release binary, runs `slag-edge --version` / `--help` under qemu;
+#   3. builds and runs the edge crate's tests under qemu-user (ORT_DYLIB_PATH = the arm64 library),
+#      release profile;
+#   4. builds the binary that ships with the `jetson` profile (release with whole-program LTO and
+#      one codegen unit: a smaller binary, see docs/results/edge-binary.md), runs
+#      `slag-edge --version` / `--help` under qemu;
 #   5. glibc guard: fails when the binary (or the arm64 ORT library) needs a GLIBC_ symbol newer
 #      than 2.35 (JetPack 6).
 # The rustup toolchain stays the user's default for native builds: this script calls Debian's
@@ -19,15 +22,16 @@
 #   bash scripts/cross-aarch64.sh            # everything above
 #   SLAG_CROSS_NO_TEST=1 bash scripts/cross-aarch64.sh   # build + guard only (no test run)
 #   eval "$(bash scripts/cross-aarch64.sh --env)"        # the cross environment, for other cargo runs
-# Environment: SLAG_CROSS_TARGET_DIR (default target/aarch64), SLAG_CROSS_PROFILE (release|dev,
-# default release), SLAG_GLIBC_MAX (default 2.35), ORT_VERSION (default 1.23.2), SLAG_SHARED.
-# Output: target/aarch64/aarch64-unknown-linux-gnu/release/slag-edge (see jetson/README.md).
+# Environment: SLAG_CROSS_TARGET_DIR (default target/aarch64), SLAG_CROSS_PROFILE (the binary's
+# profile: jetson|release|dev, default jetson; the tests run in release, or in dev with dev),
+# SLAG_GLIBC_MAX (default 2.35), ORT_VERSION (default 1.23.2), SLAG_SHARED.
+# Output: target/aarch64/aarch64-unknown-linux-gnu/jetson/slag-edge (see jetson/README.md).
 set -euo pipefail
 SLAG_ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$SLAG_ROOT"
 TARGET=aarch64-unknown-linux-gnu
 GLIBC_MAX=${SLAG_GLIBC_MAX:-2.35}
-PROFILE=${SLAG_CROSS_PROFILE:-release}
+PROFILE=${SLAG_CROSS_PROFILE:-jetson}
 ORT_VERSION=${ORT_VERSION:-1.23.2}
 export SLAG_SHARED=${SLAG_SHARED:-$(cd "$SLAG_ROOT/.." && pwd)/shared}
 say() { echo "cross-aarch64: $*" >&2; }
@@ -65,7 +69,8 @@ if [ "${1:-}" = --env ]; then
     CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_RUNNER SLAG_QEMU SLAG_TEST_RUNNER ORT_DYLIB_PATH SLAG_SHARED; do
     printf 'export %s=%q\n' "$v" "${!v}"
   done
-  echo "# then: /usr/bin/cargo test|build --release -p slag-edge --target $TARGET"
+  echo "# then: /usr/bin/cargo test --release -p slag-edge --target $TARGET"
+  echo "#   or: /usr/bin/cargo build --profile jetson -p slag-edge --target $TARGET --bin slag-edge"
   exit 0
 fi
 
@@ -134,18 +139,25 @@ fi
 ORT_LIB=$(readlink -f "$ORT_DIR/libonnxruntime.so")
 
 # ---- 3./4. tests under qemu, build, run ---------------------------------------------------------
-prof=(--release); outdir=release
-[ "$PROFILE" = release ] || { prof=(); outdir=debug; }
-cargo_x() { "$CARGO" "$@" --locked -p slag-edge --target "$TARGET" "${prof[@]}"; }
+# The tests run in the release profile: the `jetson` profile's whole-program LTO would link every
+# test binary that way too (many minutes each on 2 cores), and LTO changes no behaviour.
+case "$PROFILE" in
+  jetson) test_prof=(--release); prof=(--profile jetson); outdir=jetson ;;
+  release) test_prof=(--release); prof=(--release); outdir=release ;;
+  dev) test_prof=(); prof=(); outdir=debug ;;
+  *) die "SLAG_CROSS_PROFILE=$PROFILE: expected jetson, release or dev" ;;
+esac
+cargo_x() { "$CARGO" "$@" --locked -p slag-edge --target "$TARGET"; }
 if [ "${SLAG_CROSS_NO_TEST:-0}" != 1 ]; then
   say "building and running the edge tests under qemu (ORT_DYLIB_PATH=$ORT_DYLIB_PATH)"
-  cargo_x test
+  cargo_x test "${test_prof[@]}"
 fi
 # The plain build after the tests: `cargo test` unifies the dev-dependencies' features (proptest's
-# rand, ...) and leaves its own build of the binary at the output path; this one (a few crates
-# recompiled on a cold cache) is what ships.
-say "building slag-edge ($PROFILE) for $TARGET"
-cargo_x build --bin slag-edge
+# rand, ...) and leaves its own build of the binary at the output path; this one is what ships.
+say "building slag-edge ($PROFILE profile) for $TARGET"
+tb=$(date +%s)
+cargo_x build "${prof[@]}" --bin slag-edge
+say "slag-edge ($PROFILE profile) built in $(( $(date +%s) - tb )) s"
 BIN=$CARGO_TARGET_DIR/$TARGET/$outdir/slag-edge
 file_out=$(file -b "$BIN" 2>/dev/null || true)
 say "binary: $BIN ($(du -h "$BIN" | cut -f1)) $file_out"
