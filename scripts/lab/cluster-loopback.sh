@@ -15,18 +15,16 @@ set -uo pipefail
 B=${1:-target/debug/slag-encoder}; rounds=${2:-2}
 shared=${SLAG_SHARED:-../shared}
 w=$(mktemp -d); trap 'rm -rf "$w"' EXIT
-(umask 077; head -c 32 /dev/urandom | base64 > "$w/secret")
+# shellcheck source=cluster-common.sh
+source "$(dirname "${BASH_SOURCE[0]}")/cluster-common.sh"
+cluster_secret "$w"
 args=(--scene-dir data/snowmiku-mini --masks graph --clip-visual "$shared/fixtures/clip/color-clip-visual.onnx"
   --every 2 --reduce host --raster-scale 0.25 --rasterizer cpu --precision f32 --threads 1 --quiet)
 now() { date +%s.%N; }
 for r in $(seq "$rounds"); do
   t0=$(now); "$B" encode "${args[@]}" --out "$w/one-$r" > "$w/one-$r.log" 2>&1 || { echo "encode failed"; tail -5 "$w/one-$r.log"; exit 1; }
   t1=$(now)
-  ports=$(python3 -c 'import socket
-s=[socket.socket() for _ in range(3)]
-[x.bind(("127.0.0.1",0)) for x in s]
-print(" ".join(str(x.getsockname()[1]) for x in s))')
-  : > "$w/hosts"; for p in $ports; do echo "127.0.0.1:$p" >> "$w/hosts"; done
+  cluster_hosts "$w" 3
   t2=$(now); pids=()
   ckpt=(); [ -n "${CHECKPOINT_EVERY:-}" ] && ckpt=(--checkpoint-every "$CHECKPOINT_EVERY")
   for i in 0 1 2; do

@@ -37,12 +37,9 @@ for ((i = 2; i < ${#cmd[@]}; i++)); do  # cmd[1] is `bench`
     *) args+=("${cmd[$i]}") ;;
   esac
 done
-(umask 077; head -c 32 /dev/urandom | base64 > "$w/secret")
-ports=$(python3 -c "import socket
-s=[socket.socket() for _ in range($procs)]
-[x.bind(('127.0.0.1',0)) for x in s]
-print(' '.join(str(x.getsockname()[1]) for x in s))")
-: > "$w/hosts"; for p in $ports; do echo "127.0.0.1:$p" >> "$w/hosts"; done
+# shellcheck source=cluster-common.sh
+source "$(dirname "${BASH_SOURCE[0]}")/cluster-common.sh"
+cluster_secret "$w"; cluster_hosts "$w" "$procs"
 rm -rf "$w/out"
 {
   echo "## encode-cluster $tag: $procs processes, one GPU each, front workers ${FRONTS:-default}, checkpoint every $ckpt s"
