@@ -473,11 +473,25 @@ fn the_device_reduction_writes_what_the_host_reduction_writes() {
     let (dev, dev_dir) = run("device-mixture", ReduceOn::Device, false);
     assert!(!dev_dir.join("embeddings.safetensors").exists());
     assert!(!host.counts.device_reduce && dev.counts.device_reduce);
-    assert!(host.counts.dense_fold.is_some(), "the host folded the dense rows");
-    assert!(host.counts.entries > 0 && dev.counts.entries == 0, "no a_kj reached the host");
+    assert!(
+        host.counts.dense_fold.is_some(),
+        "the host folded the dense rows"
+    );
+    assert!(
+        host.counts.entries > 0 && dev.counts.entries == 0,
+        "no a_kj reached the host"
+    );
     assert_eq!(dev.counts.observed, host.counts.observed);
-    assert!(host.counts.observed > 1000, "{} observed", host.counts.observed);
-    for file in ["mixture.safetensors", "mask-record.safetensors", "segments.safetensors"] {
+    assert!(
+        host.counts.observed > 1000,
+        "{} observed",
+        host.counts.observed
+    );
+    for file in [
+        "mixture.safetensors",
+        "mask-record.safetensors",
+        "segments.safetensors",
+    ] {
         let read = |d: &std::path::Path| std::fs::read(d.join(file)).unwrap();
         assert!(read(&host_dir) == read(&dev_dir), "{file} differs");
     }
@@ -505,7 +519,10 @@ fn keeping_run(
     gpus: &[Option<usize>],
     n_rasterizers: usize,
     params: &pipeline::EncodeParams,
-) -> (slag_common::Result<slag_encoder::report::Report>, TailRecord) {
+) -> (
+    slag_common::Result<slag_encoder::report::Report>,
+    TailRecord,
+) {
     let mut record = None;
     let report = pipeline::encode_pool_with(
         input,
@@ -545,10 +562,22 @@ fn two_devices_reduce_their_kept_views_as_one() {
     };
     let (host, host_dir, host_record) = run("host", ReduceOn::Host, true);
     let (split, split_dir, split_record) = run("device-split", ReduceOn::Device, false);
-    assert!(split.counts.device_reduce && split.counts.entries == 0, "reduced on the device");
-    let images =
-        |name: &str| split.workers.iter().find(|w| w.name.starts_with(name)).unwrap().images;
-    assert!(images("raster-0") > 0 && images("raster-1") > 0, "both devices kept views");
+    assert!(
+        split.counts.device_reduce && split.counts.entries == 0,
+        "reduced on the device"
+    );
+    let images = |name: &str| {
+        split
+            .workers
+            .iter()
+            .find(|w| w.name.starts_with(name))
+            .unwrap()
+            .images
+    };
+    assert!(
+        images("raster-0") > 0 && images("raster-1") > 0,
+        "both devices kept views"
+    );
     assert_eq!(split.counts.observed, host.counts.observed);
     let ids = |d: &std::path::Path| {
         MixtureEmbeddings::read(&d.join("mixture.safetensors"))
@@ -559,16 +588,27 @@ fn two_devices_reduce_their_kept_views_as_one() {
     let read = |d: &std::path::Path| std::fs::read(d.join("mixture.safetensors")).unwrap();
     assert!(split_record.is_some(), "masks' record");
     assert_eq!(split.counts.device_reduce_gpus, 2, "both reduce");
-    assert!(!split_dir.join("embeddings.safetensors").exists(), "no dense file asked");
-    assert!(read(&split_dir) == read(&host_dir), "mixture differs with the reduction split");
-    assert!(split_record == host_record, "masks' record with the reduction split");
+    assert!(
+        !split_dir.join("embeddings.safetensors").exists(),
+        "no dense file asked"
+    );
+    assert!(
+        read(&split_dir) == read(&host_dir),
+        "mixture differs with the reduction split"
+    );
+    assert!(
+        split_record == host_record,
+        "masks' record with the reduction split"
+    );
 }
 
-/// Kept label sums that pass the device's budget after a few views: with one rasterizer the
-/// reduction streams (the kept views folded a wave at a time into a state per Gaussian) and
-/// writes what `--reduce host` writes, byte for byte; with two, `--reduce auto` gives way to
-/// the host's reduction and writes the same (their views reach the store in any order), with
-/// the same masks' record and `a_kj` count; the report says which. `--reduce device` with a
+/// Kept label sums that pass the device's budget after a few views: the reduction streams (the
+/// kept views folded a wave at a time into a state per Gaussian; with two rasterizers, each
+/// folding its share of the Gaussians, the views sent between them as they come) and writes
+/// what `--reduce host` writes, byte for byte; with two whose shares' state does not fit the
+/// budget, `--reduce auto` gives way to the host's reduction and writes the same (their views
+/// reach the store in any order), with the same masks' record and `a_kj` count; the report
+/// says which. `--reduce device` with a
 /// budget the state does not fit fails with the budget's typed error.
 #[test]
 fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
@@ -598,10 +638,9 @@ fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
     // budget first: about two views' label sums are left beside it.
     let two_views = budget;
     let budget = two_views + host.counts.gaussians as u64 * (8 + 8 * 4);
-    // Two rasterizers keep every view: about two views pass their budget.
-    let run = |name: &str, reduce_on: ReduceOn, n: usize| {
-        run_with(name, reduce_on, n, if n == 1 { budget } else { two_views })
-    };
+    // Below the state of the larger of two rasterizers' shares, neither streams: each keeps
+    // every view, and about two views pass their budget.
+    let kept_to_the_end = two_views.min(host.counts.gaussians as u64 * (8 + 8 * 4) / 2);
     assert!(host.counts.device_reduce_fallback.is_none());
     // `--reduce host` with only the mixture folds each view into its state as it comes: no view
     // is kept, none spills.
@@ -611,13 +650,19 @@ fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
         "{} observed",
         host.counts.observed
     );
-    for (name, n_rasterizers) in [("auto", 1), ("device-streamed", 1), ("auto-two", 2)] {
+    let runs = [
+        ("auto", 1, budget),
+        ("device-streamed", 1, budget),
+        ("device-streamed-two", 2, budget),
+        ("auto-two", 2, kept_to_the_end),
+    ];
+    for (name, n_rasterizers, budget) in runs {
         let reduce_on = if name.starts_with("device") {
             ReduceOn::Device
         } else {
             ReduceOn::Auto
         };
-        let (auto, auto_mixture, auto_record) = run(name, reduce_on, n_rasterizers);
+        let (auto, auto_mixture, auto_record) = run_with(name, reduce_on, n_rasterizers, budget);
         let auto = auto.unwrap();
         let read = |p: &std::path::Path| std::fs::read(p).unwrap();
         assert!(
@@ -628,7 +673,7 @@ fn a_reduction_past_the_device_budget_streams_or_gives_way_to_the_host() {
             read(&auto_mixture) == read(&host_mixture),
             "{name}: mixture differs"
         );
-        if n_rasterizers == 1 {
+        if budget != kept_to_the_end {
             assert!(auto.counts.device_reduce_fallback.is_none(), "{name}");
             assert!(auto.counts.device_reduce, "{name}: the device reduced");
             assert!(

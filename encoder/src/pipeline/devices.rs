@@ -1,9 +1,14 @@
-//! The device reduction on several GPUs. Each GPU kept the views it rasterized; before the
-//! reduction they meet in one of two ways:
-//! - [`reduce_across_devices`] (the mixture, the default outputs): the Gaussians are split into
-//!   one range per GPU with about the same kept records each, every GPU sends the others the
-//!   records of their ranges, and each reduces its own range at the same time. Each GPU reads
-//!   back and takes in about `(G - 1) / G` of its records, and reduces `1 / G` of the work.
+//! The device reduction on several GPUs, in one of three ways:
+//! - streamed ([`StreamSharing`], the default outputs where each GPU's share of the state fits
+//!   its budget): each GPU folds one share of the Gaussians during the run, each view's records
+//!   of the other shares sent to their GPUs as it is kept; at the end
+//!   [`reduce_across_devices`] has each GPU fold its last views and write its share. The
+//!   device memory does not grow with the views, and the bytes are those of one GPU.
+//! - kept to the end ([`reduce_across_devices`], where the shares' state does not fit): each
+//!   GPU kept the views it rasterized; the Gaussians are split into one range per GPU with
+//!   about the same kept records each, every GPU sends the others the records of their ranges,
+//!   and each reduces its own range at the same time. Each GPU reads back and takes in about
+//!   `(G - 1) / G` of its records, and reduces `1 / G` of the work.
 //! - [`one_device`] (with the dense file, whose rows one writer takes in order): every other
 //!   GPU hands all its views over to the first, which reduces them all.
 
@@ -18,22 +23,121 @@ use slag_common::{Error, Result};
 use super::reduction::{ReducedOutputs, TailInputs, dense_writer, reduce_on_device};
 use crate::raster::{KeptExport, KeptRangeCursor, WeightRasterizer};
 
+/// How the rasterizers of a run on several GPUs stream their kept views together
+/// ([`WeightRasterizer::stream_kept_share`]): rasterizer `g` of `G` folds share `g` of the
+/// Gaussians; each view it keeps goes, as it is kept, to the others (their shares of its
+/// records); and a wave folds only the views below the lowest view not yet done on any
+/// device, a view counting as done once it was sent. Each device so adds every view's terms
+/// of its Gaussians in the encode's view order, as one device streaming alone adds them, and
+/// writes the same bytes; its memory holds its share of the state and of the views not folded
+/// yet, whatever the number of views.
+pub(super) struct StreamSharing {
+    /// Every rasterizer waits here until each has said whether it streams.
+    barrier: std::sync::Barrier,
+    /// Per rasterizer, where its share comes in; `None` where it does not stream.
+    inboxes: Mutex<Vec<Option<crate::raster::gpu::ek::KeptInbox>>>,
+    /// The views done on every device.
+    done: Mutex<ViewsDone>,
+}
+
+impl StreamSharing {
+    /// The sharing of `rasterizers` rasterizers over an encode of `n_views` views.
+    pub(super) fn new(rasterizers: usize, n_views: usize) -> Self {
+        StreamSharing {
+            barrier: std::sync::Barrier::new(rasterizers),
+            inboxes: Mutex::new(vec![None; rasterizers]),
+            done: Mutex::new(ViewsDone::new(n_views)),
+        }
+    }
+
+    /// Rasterizer `g` joins, before it keeps any view: with `keep` (the mixture's pairs, when
+    /// it keeps its views on the device and may stream) it starts streaming its share; then it
+    /// waits for every rasterizer of the run, and all stream together or none does
+    /// ([`WeightRasterizer::share_kept_with`]). Every rasterizer of the run must call this
+    /// once. Returns whether they stream together.
+    pub(super) fn join(
+        &self,
+        g: usize,
+        rasterizer: &mut dyn WeightRasterizer,
+        keep: Option<usize>,
+    ) -> bool {
+        let shares = self.inboxes.lock().map_or(0, |i| i.len());
+        let inbox = keep.and_then(|k| rasterizer.stream_kept_share(k, g, shares));
+        if let Ok(mut inboxes) = self.inboxes.lock()
+            && let Some(slot) = inboxes.get_mut(g)
+        {
+            *slot = inbox;
+        }
+        self.barrier.wait();
+        let all: Option<Vec<_>> = match self.inboxes.lock() {
+            Ok(inboxes) => inboxes.iter().cloned().collect(),
+            Err(_) => None,
+        };
+        let peers = all.filter(|all| g < all.len()).map(|mut all| {
+            all.remove(g);
+            all
+        });
+        let together = peers.is_some();
+        rasterizer.share_kept_with(peers);
+        together
+    }
+
+    /// Marks `view` done (kept and sent) and returns the lowest view not done on any device.
+    pub(super) fn view_done(&self, view: usize) -> usize {
+        match self.done.lock() {
+            Ok(mut done) => done.add(view),
+            // A panicked worker: fold nothing more (the run fails).
+            Err(_) => 0,
+        }
+    }
+}
+
+/// The views done so far, as the lowest view not done yet: with one rasterizer every view of
+/// the encode comes to it, and with several that stream together each marks its views in one
+/// of these ([`StreamSharing`]), so no view below that one is still to come.
+pub(super) struct ViewsDone {
+    done: Vec<bool>,
+    below: usize,
+}
+
+impl ViewsDone {
+    pub(super) fn new(n_views: usize) -> Self {
+        ViewsDone {
+            done: vec![false; n_views],
+            below: 0,
+        }
+    }
+
+    /// Marks `view` done and returns the lowest view not done.
+    pub(super) fn add(&mut self, view: usize) -> usize {
+        if let Some(d) = self.done.get_mut(view) {
+            *d = true;
+        }
+        while self.done.get(self.below).copied().unwrap_or(false) {
+            self.below += 1;
+        }
+        self.below
+    }
+}
+
 /// Bytes of kept records in one batch of an exchange between devices ([`exchange_kept`]). A
 /// device's reader holds one, its channel one and the taker on the other side one: about three
 /// per device on the host, as many bytes as a hand-over's three batches on two devices.
 const EXCHANGE_BATCH_BYTES: u64 = 128 << 20;
 
-/// The device reduction with its work split between the devices in `device` (each kept the
-/// views it rasterized): the Gaussians cut into one range per device with about the same kept
-/// records ([`split_by_records`]), every device sending the others the records of their ranges
-/// ([`exchange_kept`]), then every device reducing its own range on a thread of its own
-/// ([`reduce_on_device`]). The mixture's rows are joined in Gaussian order; every device holds
-/// every view, so their codebooks are the same. The dense file is not made this way
+/// The device reduction with its work split between the devices in `device`, every device
+/// reducing its own range of Gaussians on a thread of its own ([`reduce_on_device`]): the
+/// shares of a streamed reduction ([`StreamSharing`]: each folded its range as the views came,
+/// and folds the last views now), or, where the devices kept their own views to the end, the
+/// Gaussians cut into one range per device with about the same kept records
+/// ([`split_by_records`]) and every device sending the others the records of their ranges
+/// first ([`exchange_kept`]). The mixture's rows are joined in Gaussian order; every device
+/// holds every view, so their codebooks are the same. The dense file is not made this way
 /// ([`one_device`]); a dense file of an earlier run is removed.
 ///
 /// Errors: the devices'; [`Error::Internal`] for devices whose codebooks differ.
 pub(super) fn reduce_across_devices(
-    device: Vec<Box<dyn WeightRasterizer>>,
+    mut device: Vec<Box<dyn WeightRasterizer>>,
     out: &TailInputs,
     embeddings: &std::path::Path,
 ) -> Result<ReducedOutputs> {
@@ -43,10 +147,21 @@ pub(super) fn reduce_across_devices(
         ));
     }
     let t0 = Instant::now();
-    let ranges = split_by_records(&device, out.means.len())?;
+    // The rasterizers come back in the order they ended; their shares go in Gaussian order.
+    device.sort_by_key(|r| r.kept_share().map(|(a, b)| (a, b)));
+    let streamed: Option<Vec<Range<u32>>> = device
+        .iter()
+        .map(|r| r.kept_share().map(|(a, b)| a..b))
+        .collect();
+    let ranges = match &streamed {
+        Some(shares) => shares.clone(),
+        None => split_by_records(&device, out.means.len())?,
+    };
     let device: Vec<Mutex<Box<dyn WeightRasterizer>>> =
         device.into_iter().map(Mutex::new).collect();
-    exchange_kept(&device, &ranges, EXCHANGE_BATCH_BYTES)?;
+    if streamed.is_none() {
+        exchange_kept(&device, &ranges, EXCHANGE_BATCH_BYTES)?;
+    }
     let exchange_s = t0.elapsed().as_secs_f64();
     let parts: Vec<Result<ReducedOutputs>> = std::thread::scope(|s| {
         let handles: Vec<_> = device

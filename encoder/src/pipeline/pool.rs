@@ -13,6 +13,7 @@ use slag_common::camera::{Intrinsics, View};
 use slag_common::scene::Gaussians;
 use slag_common::{Error, Result};
 
+use super::devices::{StreamSharing, ViewsDone};
 use super::fallback::ReduceFallback;
 use super::feed::ViewFeed;
 pub(crate) use super::sinks::dominant_masks;
@@ -347,8 +348,10 @@ pub(super) struct Shared<'a> {
     bar_front: ProgressBar,
     bar_back: ProgressBar,
     /// The run's rasterizers, once made: the device reduction streams with one
-    /// ([`keep_on_device`]).
+    /// ([`keep_on_device`]), or on several shared between them ([`StreamSharing`]).
     rasterizers: AtomicUsize,
+    /// With several rasterizers, how they stream their kept views together.
+    sharing: std::sync::OnceLock<StreamSharing>,
 }
 
 /// A rasterizer that kept views on its device, with the views it kept in keeping order (their
@@ -398,6 +401,7 @@ impl<'a> Shared<'a> {
             bar_front: bar(&multi, views.len(), "masks + CLIP"),
             bar_back: bar(&multi, views.len(), "raster + a_kj"),
             rasterizers: AtomicUsize::new(0),
+            sharing: std::sync::OnceLock::new(),
         }
     }
 
@@ -609,6 +613,11 @@ pub(super) fn run_workers(
         });
         let names: Vec<String> = rasterizers.iter().map(|r| r.name().to_string()).collect();
         shared.rasterizers.store(names.len(), Ordering::SeqCst);
+        if names.len() > 1 {
+            let _ = shared
+                .sharing
+                .set(StreamSharing::new(names.len(), shared.views.len()));
+        }
         for (g, rasterizer) in rasterizers.into_iter().enumerate() {
             let rx = Arc::clone(&receivers[g % n_queues]);
             let name = format!("raster-{g} {}", names[g]);
@@ -707,7 +716,8 @@ fn spawn_back<'scope>(
     };
     let raster = {
         let pool = Arc::clone(&pool);
-        s.spawn(move || back_raster_thread(name, rasterizer, from_prepare, to_image, &pool, shared))
+        let back = (from_prepare, to_image);
+        s.spawn(move || back_raster_thread((g, name), rasterizer, back, &pool, shared))
     };
     let image = s.spawn(move || back_image_thread(g, from_raster, &pool, shared));
     [prepare, raster, image]
@@ -760,10 +770,9 @@ fn back_prepare_thread(
 /// its sums handed on to the image thread, or kept on the device for the device reduction
 /// ([`keep_on_device`]), in which case the rasterizer is handed to the pool's end.
 fn back_raster_thread(
-    name: String,
+    (g, name): (usize, String),
     mut rasterizer: Box<dyn WeightRasterizer>,
-    from_prepare: mpsc::Receiver<BackPrepared>,
-    to_image: mpsc::SyncSender<BackRaster>,
+    (from_prepare, to_image): (mpsc::Receiver<BackPrepared>, mpsc::SyncSender<BackRaster>),
     pool: &Option<rayon::ThreadPool>,
     shared: &Shared<'_>,
 ) -> WorkerShare {
@@ -783,6 +792,16 @@ fn back_raster_thread(
         if let Some(hook) = hook {
             hook();
         }
+    }
+    // On several GPUs every rasterizer hears whether all stream before any keeps a view; the
+    // views then cross between devices as they come, so the host can no longer take over.
+    let streamed = keep.and(stream_keep(shared.params));
+    let sharing = shared
+        .sharing
+        .get()
+        .filter(|s| s.join(g, &mut *rasterizer, streamed));
+    if let Some(k) = keep.as_mut().filter(|_| sharing.is_some()) {
+        k.fall_back = false;
     }
     // The views kept on the device, in keeping order.
     let mut kept_views = Vec::new();
@@ -806,8 +825,10 @@ fn back_raster_thread(
         // The streamed reduction folds the views before the first not rastered yet; once a
         // wave ran, the host can no longer take the reduction over (a view past the budget is
         // then the run's error).
+        let view = out.item.view;
         if let Some(k) = keep.as_mut()
-            && rasterizer.fold_kept(done.add(out.item.view))?
+            && rasterizer
+                .fold_kept(sharing.map_or_else(|| done.add(view), |s| s.view_done(view)))?
         {
             k.fall_back = false;
         }
@@ -865,33 +886,6 @@ fn back_image_thread(
     share
 }
 
-/// The views one rasterizer is done with, as the lowest view not done yet: with one
-/// rasterizer every view of the encode comes to it, so no view below that one is still to come.
-struct ViewsDone {
-    done: Vec<bool>,
-    below: usize,
-}
-
-impl ViewsDone {
-    fn new(n_views: usize) -> Self {
-        ViewsDone {
-            done: vec![false; n_views],
-            below: 0,
-        }
-    }
-
-    /// Marks `view` done and returns the lowest view not done.
-    fn add(&mut self, view: usize) -> usize {
-        if let Some(d) = self.done.get_mut(view) {
-            *d = true;
-        }
-        while self.done.get(self.below).copied().unwrap_or(false) {
-            self.below += 1;
-        }
-        self.below
-    }
-}
-
 /// Whether `rasterizer` keeps its views' sums on the device for the device reduction
 /// ([`crate::config::ReduceOn`]): `Some` with whether the masks' record wants the dominant
 /// masks and whether a device memory limit gives way to the host (`auto`,
@@ -899,10 +893,11 @@ impl ViewsDone {
 /// keeps the masks' record of an encode of `n_views` views there too where it can
 /// ([`WeightRasterizer::keep_mask_record`]); its views' dominant masks are then not wanted. The
 /// device reduction needs GPU rasterizers whose devices have f64, no per-level files and no
-/// dense file (folded on the host, [`crate::aggregate::DenseFold`]); on
-/// several GPUs each keeps its own views and one reduces them all. The only rasterizer of a
+/// dense file (folded on the host, [`crate::aggregate::DenseFold`]). The only rasterizer of a
 /// run (`alone`) streams its views when only the mixture is written
-/// ([`WeightRasterizer::stream_kept`]): its device memory does not grow with the views.
+/// ([`WeightRasterizer::stream_kept`]): its device memory does not grow with the views; on
+/// several GPUs they stream together ([`StreamSharing`]), or, where they cannot, each keeps
+/// its own views and each reduces one range of Gaussians at the end ([`super::devices`]).
 ///
 /// Errors: `--reduce device` where it cannot run ([`Error::Param`] `reduce`).
 fn keep_on_device(
@@ -932,8 +927,7 @@ fn keep_on_device(
     }
     if keeps
         && alone
-        && !params.dense
-        && let Some(keep) = params.mixture_keep
+        && let Some(keep) = stream_keep(params)
     {
         rasterizer.stream_kept(keep);
     }
@@ -945,6 +939,12 @@ fn keep_on_device(
         dominant: params.mask_record_slots.is_some() && !record_on_device,
         fall_back: !forced,
     }))
+}
+
+/// The mixture pairs per Gaussian of the streamed device reduction, when it may stream: only
+/// the mixture is written (no dense file).
+fn stream_keep(params: &EncodeParams) -> Option<usize> {
+    params.mixture_keep.filter(|_| !params.dense)
 }
 
 /// The rasterizers of a run: already made (for the coverage pass), or still to be made (while

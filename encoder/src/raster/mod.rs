@@ -197,6 +197,34 @@ pub trait WeightRasterizer: Send {
         let _ = below;
         Ok(false)
     }
+    /// [`Self::stream_kept`] on share `share` of `shares` rasterizers (from 0) that stream
+    /// together (a run on several GPUs): the running state covers that share of the Gaussians
+    /// only. Returns where the others send their views' records of that share; `None`: it
+    /// does not stream (the default). Every rasterizer then hears whether all stream
+    /// ([`Self::share_kept_with`]) before it keeps a view.
+    fn stream_kept_share(
+        &mut self,
+        keep: usize,
+        share: usize,
+        shares: usize,
+    ) -> Option<gpu::ek::KeptInbox> {
+        let _ = (keep, share, shares);
+        None
+    }
+    /// After [`Self::stream_kept_share`]: `Some` with the other rasterizers' inboxes when every
+    /// one streams: from here each view this rasterizer keeps goes, as it is kept, to the
+    /// rasterizers whose shares it holds records of, and [`Self::fold_kept`] takes in what
+    /// they sent before it folds (its `below` counts a view only once it was sent); `None`
+    /// when one does not, and this one stops streaming too. The default does nothing.
+    fn share_kept_with(&mut self, peers: Option<Vec<gpu::ek::KeptInbox>>) {
+        let _ = peers;
+    }
+    /// The Gaussian ids `[first, end)` this rasterizer's streamed share covers
+    /// ([`Self::stream_kept_share`]), which its [`Self::reduce_kept`] writes
+    /// ([`DeviceReduce::gaussians`]); `None` without one (the default).
+    fn kept_share(&self) -> Option<(u32, u32)> {
+        None
+    }
     /// [`Self::label_sums_precomputed`] whose sums stay on the device, with the view's masks
     /// (`masks`) for their expansion at the reduction: nothing per `a_kj` is read back. Returns
     /// the view's contributions and, with [`KeptMasks::dominant`], each Gaussian's dominant mask

@@ -2,8 +2,8 @@
 
 use super::tests::{RandomKeptView, gpu, random_scene};
 use super::*;
-use slag_common::scene::Gaussians;
 use crate::aggregate::{ImageStageParams, MaskWeighting, ReduceParams};
+use slag_common::scene::Gaussians;
 
 const DIM: usize = 70;
 const KEEP: usize = 3;
@@ -74,7 +74,11 @@ fn rows_of(r: &Reduced) -> Vec<(u32, u32, Vec<(u32, u32)>)> {
         .iter()
         .flat_map(|t| {
             (0..t.ids.len()).map(move |i| {
-                let kept = t.kept_of(i).iter().map(|&(a, j)| (a.to_bits(), j)).collect();
+                let kept = t
+                    .kept_of(i)
+                    .iter()
+                    .map(|&(a, j)| (a.to_bits(), j))
+                    .collect();
                 (t.ids[i], t.total_weights[i].to_bits(), kept)
             })
         })
@@ -121,7 +125,10 @@ fn streamed_reduction_equals_the_all_kept_reduction() {
             "peak {} + state {state} within the budget {budget}",
             streamed.out.peak_kept_bytes
         );
-        assert_eq!(streamed.out.codebook, all.out.codebook, "codebook at {share}");
+        assert_eq!(
+            streamed.out.codebook, all.out.codebook,
+            "codebook at {share}"
+        );
         let got = rows_of(&streamed);
         assert_eq!(got.len(), expected.len(), "observed Gaussians at {share}");
         for (s, a) in got.iter().zip(&expected) {
@@ -165,7 +172,11 @@ fn streamed_memory_stays_flat_as_the_views_grow() {
             s.out.state_bytes
         );
     }
-    assert!(streamed_64.out.waves >= 6, "{} waves", streamed_64.out.waves);
+    assert!(
+        streamed_64.out.waves >= 6,
+        "{} waves",
+        streamed_64.out.waves
+    );
     assert!(
         larger_64.out.waves < streamed_64.out.waves,
         "{} waves with the larger budget",
@@ -173,4 +184,136 @@ fn streamed_memory_stays_flat_as_the_views_grow() {
     );
     assert_eq!(rows_of(&streamed_64), rows_of(&larger_64));
     assert_eq!(rows_of(&streamed_8), rows_of(&eight));
+}
+
+/// What two devices that stream together give ([`WeightRasterizer::stream_kept_share`]):
+/// each device's reduction of its share, in share order.
+struct Shared {
+    shares: Vec<Reduced>,
+}
+
+impl Shared {
+    /// Every observed Gaussian of both shares, in Gaussian order ([`rows_of`]).
+    fn rows(&self) -> Vec<(u32, u32, Vec<(u32, u32)>)> {
+        self.shares.iter().flat_map(rows_of).collect()
+    }
+}
+
+/// The views reduced on two fresh GPU rasterizers of `g` that stream together within
+/// `budget` bytes each, view `v` kept on device `v % 2`, in `order` (as fronts finish them);
+/// after each view, the device that kept it folds what is due below the lowest view not kept
+/// on either (a view is sent as it is kept). `None` only where the GPU tests are skipped.
+fn reduce_shared(
+    g: &Gaussians,
+    views: &[RandomKeptView],
+    order: &[usize],
+    budget: u64,
+) -> Option<Shared> {
+    let mut devices = vec![gpu(g)?, gpu(g)?];
+    let inboxes: Vec<_> = devices
+        .iter_mut()
+        .enumerate()
+        .map(|(i, r)| {
+            assert!(r.keep_on_device(DIM, budget, true));
+            r.set_reduce_tile_bytes(Some(TILE));
+            r.stream_kept_share(KEEP, i, 2)
+                .expect("the share's state fits the budget")
+        })
+        .collect();
+    for (i, r) in devices.iter_mut().enumerate() {
+        let mut peers = inboxes.clone();
+        peers.remove(i);
+        r.share_kept_with(Some(peers));
+    }
+    let mut done = vec![false; views.len()];
+    for &v in order {
+        let r = &mut devices[v % 2];
+        views[v].keep_on(r, false).expect("kept");
+        done[v] = true;
+        let below = done.iter().position(|d| !d).unwrap_or(done.len());
+        r.fold_kept(below).unwrap();
+    }
+    let shares = devices
+        .iter_mut()
+        .map(|r| {
+            let p = DeviceReduce {
+                min_total_weight: ReduceParams::default().min_total_weight,
+                keep: KEEP,
+                dense: false,
+                gaussians: r.kept_share(),
+            };
+            let mut tiles = Vec::new();
+            let out = r
+                .reduce_kept(&p, &mut |t| {
+                    tiles.push(t);
+                    Ok(())
+                })
+                .unwrap();
+            Reduced { tiles, out }
+        })
+        .collect();
+    Some(Shared { shares })
+}
+
+/// Two devices that stream together, each folding its share of the Gaussians as the views
+/// come (each view kept on one of them and sent to the other), give the bytes of one device
+/// alone (with 8 views, keeping every view to the end; with 32, streaming): the same observed
+/// Gaussians, `Σ a_kj` bits, kept pairs in the same slots and the same codebook on both, with
+/// the views kept out of order (with 32 views, in several waves on each device). With 32 views
+/// the devices hold no more than with 8: within the same budget, in more waves.
+#[test]
+fn two_devices_streaming_together_equal_one_device() {
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let views = random_views(32);
+    let order: Vec<usize> = (0..32).map(|i| i ^ 1).collect();
+    let eight: Vec<usize> = order.iter().copied().filter(|&v| v < 8).collect();
+    let Some(all_8) = reduce_views(&g, &views[..8], &eight, None, TILE) else {
+        return;
+    };
+    // Each device's state covers its half of the Gaussians; beside it, about a third of the
+    // records of 8 views (half of them sent on as they come).
+    let state = state_bytes(n.div_ceil(2).next_multiple_of(4096));
+    let budget = state + all_8.out.peak_kept_bytes / 3;
+    // 32 views against one device streaming alone, with room for 8 views' records.
+    let alone = state_bytes(n) + all_8.out.peak_kept_bytes;
+    let all_32 = reduce_views(&g, &views, &order, Some(alone), TILE).expect("a GPU");
+    let shared_8 = reduce_shared(&g, &views[..8], &eight, budget).expect("a GPU");
+    let shared_32 = reduce_shared(&g, &views, &order, budget).expect("a GPU");
+    assert!(
+        all_8.out.records_bytes * 4 > 8 * (budget - state),
+        "32 views' records (about {} B) are many times what the budget leaves them: the test \
+         means something",
+        all_8.out.records_bytes * 4
+    );
+    for (count, all, shared) in [(8, &all_8, &shared_8), (32, &all_32, &shared_32)] {
+        let expected = rows_of(all);
+        assert!(expected.len() > 100, "{} observed: too few", expected.len());
+        assert_eq!(shared.rows(), expected, "{count} views");
+        for (d, s) in shared.shares.iter().enumerate() {
+            assert_eq!(
+                s.out.codebook, all.out.codebook,
+                "{count} views: device {d}"
+            );
+            let waves = if count == 32 { 3 } else { 1 };
+            assert!(
+                s.out.waves >= waves,
+                "{count} views: device {d}: {} waves",
+                s.out.waves
+            );
+            assert!(
+                s.out.peak_kept_bytes + s.out.state_bytes <= budget,
+                "{count} views: device {d}: {} B kept + {} B state within {budget} B",
+                s.out.peak_kept_bytes,
+                s.out.state_bytes
+            );
+        }
+    }
+    for d in 0..2 {
+        let (w8, w32) = (shared_8.shares[d].out.waves, shared_32.shares[d].out.waves);
+        assert!(
+            w32 > w8,
+            "device {d}: {w32} waves with 32 views, {w8} with 8"
+        );
+    }
 }

@@ -18,17 +18,26 @@
 //! finite. Such a Gaussian's kept pairs still face the mixture's own check
 //! (`MixtureEmbeddings::from_sparse`: kept embeddings that nearly cancel are refused).
 //!
-//! Memory on the device: the state, in chunks of whole blocks that each fit one binding; the
-//! kept records of the views not folded yet (at most the budget left beside the state: a wave
-//! starts when they pass half of it); during a wave, one tile of records with the sort's
-//! buffers. `--dense` needs the whole `D`-wide sum per Gaussian and is not streamed.
+//! On several devices ([`GpuRasterizer::start_streaming_share`]) each device's state covers one
+//! share of the Gaussians (consecutive whole blocks). As each of its views is kept, its records
+//! of the other shares go to their devices ([`super::ek::KeptInbox`]) and only its own share's
+//! stay; a device takes in what the others sent before each wave, and the caller's `below` is
+//! the lowest view not yet kept and sent on any device. Each device so folds every view's terms
+//! of its Gaussians in view order, and numbers the codebook rows over every view, as one device
+//! alone does: the shares joined are the same bytes.
+//!
+//! Memory on the device: the state (its share), in chunks of whole blocks that each fit one
+//! binding; the kept records of the views not folded yet (at most the budget left beside the
+//! state: a wave starts when they pass half of it; on several devices the records the others
+//! sent count too); during a wave, one tile of records with the sort's buffers. `--dense`
+//! needs the whole `D`-wide sum per Gaussian and is not streamed.
 
 use slag_common::{Error, Result};
 
 use super::buffers::{storage, storage_init};
 use super::ek::{
-    BLOCK_GAUSSIANS, EkParams, Kept, KeptPart, MAX_KEEP, TILE_BYTES, Tile, TileStaging,
-    gather_tile_records, output_bytes, tile_output,
+    BLOCK_GAUSSIANS, EkParams, Kept, KeptInbox, KeptPart, MAX_KEEP, TILE_BYTES, Tile, TileStaging,
+    gather_tile_records, output_bytes, share_gaussians, tile_output,
 };
 use super::sort::{SortBuffers, groups_2d};
 use super::{GROUPS_X, GpuRasterizer};
@@ -50,7 +59,16 @@ pub(super) struct Stream {
     finish: wgpu::ComputePipeline,
     run_starts: wgpu::ComputePipeline,
     chunk_blocks: usize,
+    /// The Gaussian ids `[first, end)` the state covers: every Gaussian, or on several devices
+    /// this device's share ([`Stream::share`]).
+    gaussians: std::ops::Range<u32>,
     chunks: Vec<StateChunk>,
+    /// On several devices: where the other devices' views of this device's share come in, and
+    /// the other devices' inboxes its own views go to ([`super::ek::KeptInbox`]).
+    share: Option<StreamShare>,
+    /// The highest index in the encode's view list of a view folded so far: a view below it
+    /// that comes later would be added out of order ([`wave_parts`] refuses it).
+    folded_up_to: Option<u32>,
     /// Bytes of the state on the device.
     state_bytes: u64,
     /// Kept records past which a wave starts ([`GpuRasterizer::fold_kept_due`]).
@@ -61,6 +79,15 @@ pub(super) struct Stream {
     folded: Vec<bool>,
     /// Waves so far.
     waves: usize,
+}
+
+/// A streamed reduction shared between devices ([`GpuRasterizer::start_streaming_share`]).
+struct StreamShare {
+    /// Where the other devices leave this device's share of their views.
+    inbox: KeptInbox,
+    /// The other devices' inboxes, once every device streams
+    /// ([`GpuRasterizer::share_stream_with`]).
+    peers: Vec<KeptInbox>,
 }
 
 /// What the streamed reduction reports beside its tiles ([`crate::raster::KeptReduced`]).
@@ -77,7 +104,77 @@ impl GpuRasterizer {
     /// budget. The budget the records of the views not folded yet may take shrinks by the
     /// state's bytes; a wave starts when they pass half of what is left.
     pub(super) fn start_streaming(&mut self, keep: usize) -> bool {
-        let n = self.n;
+        self.start_streaming_over(keep, 0..self.n)
+    }
+
+    /// [`Self::start_streaming`] of share `share` of `shares` devices (from 0) that stream
+    /// together: the state covers that share of the Gaussians ([`share_gaussians`]) only, and
+    /// the other devices' views of it come in through the returned inbox. Streaming starts
+    /// once every device streams ([`Self::share_stream_with`]). `None`: it does not stream.
+    pub(super) fn start_streaming_share(
+        &mut self,
+        keep: usize,
+        share: usize,
+        shares: usize,
+    ) -> Option<KeptInbox> {
+        let gaussians = share_gaussians(self.n, share, shares);
+        if !self.start_streaming_over(keep, gaussians.clone()) {
+            return None;
+        }
+        let inbox = KeptInbox::new(&self.device, gaussians);
+        let stream = self.stream.as_mut()?;
+        stream.share = Some(StreamShare {
+            inbox: inbox.clone(),
+            peers: Vec::new(),
+        });
+        Some(inbox)
+    }
+
+    /// After [`Self::start_streaming_share`]: `peers`, the other devices' inboxes, when every
+    /// device streams, from here each view kept is sent to them
+    /// ([`Self::share_kept_view`]); `None` when one does not, and this one stops streaming too
+    /// (every view is kept to the end, its budget whole again). Nothing may be kept yet.
+    pub(super) fn share_stream_with(&mut self, peers: Option<Vec<KeptInbox>>) {
+        match (peers, self.stream.as_mut()) {
+            (Some(peers), Some(stream)) => {
+                if let Some(share) = stream.share.as_mut() {
+                    share.peers = peers;
+                }
+            }
+            (None, Some(stream)) => {
+                if let Some(kept) = self.kept.as_mut() {
+                    kept.budget += stream.state_bytes;
+                }
+                self.stream = None;
+            }
+            (_, None) => {}
+        }
+    }
+
+    /// The Gaussian ids a streamed reduction shared between devices folds here
+    /// ([`Self::start_streaming_share`]); `None` without one.
+    pub(super) fn streamed_share(&self) -> Option<std::ops::Range<u32>> {
+        let stream = self.stream.as_ref()?;
+        stream.share.as_ref().map(|_| stream.gaussians.clone())
+    }
+
+    /// After kept view `id` was kept whole: with a streamed reduction shared between devices,
+    /// it goes to the others ([`Self::share_kept_view`]); otherwise nothing.
+    ///
+    /// Errors: as [`Self::share_kept_view`].
+    pub(super) fn kept_view_done(&mut self, id: u32) -> Result<()> {
+        let Some(stream) = self.stream.as_ref() else {
+            return Ok(());
+        };
+        let Some(share) = stream.share.as_ref().filter(|s| !s.peers.is_empty()) else {
+            return Ok(());
+        };
+        let (own, peers) = (stream.gaussians.clone(), share.peers.clone());
+        self.share_kept_view(id, &own, &peers)
+    }
+
+    /// [`Self::start_streaming`] over the Gaussian ids `gaussians` (whole blocks).
+    fn start_streaming_over(&mut self, keep: usize, gaussians: std::ops::Range<u32>) -> bool {
         let max_binding = self.max_binding();
         let Some(kept) = self.kept.as_ref() else {
             return false;
@@ -86,7 +183,7 @@ impl GpuRasterizer {
             return false;
         }
         let per_gaussian = 8 + 8 * keep as u64;
-        let state_bytes = u64::from(n) * per_gaussian;
+        let state_bytes = u64::from(gaussians.end - gaussians.start) * per_gaussian;
         if state_bytes >= kept.budget {
             tracing::info!(
                 state_mib = state_bytes >> 20,
@@ -96,22 +193,12 @@ impl GpuRasterizer {
             );
             return false;
         }
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let module = self
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("slag-ek fold kernels"),
-                source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
-            });
-        let pipe = |entry: &str| super::compute_pipeline(&self.device, &module, entry);
-        let (fold, finish, run_starts) = (pipe("ek_fold"), pipe("ek_finish"), pipe("run_starts"));
-        if let Some(e) = pollster::block_on(scope.pop()) {
-            tracing::warn!(error = %e, "the streamed reduction's kernels do not build here");
+        let Some([fold, finish, run_starts]) = self.fold_pipelines() else {
             return false;
-        }
+        };
         let block_state = u64::from(BLOCK_GAUSSIANS) * 8 * keep as u64;
         let chunk_blocks = (max_binding / block_state).max(1) as usize;
-        let chunks = state_chunks(&self.device, n, chunk_blocks, keep);
+        let chunks = state_chunks(&self.device, &gaussians, chunk_blocks, keep);
         let Some(kept) = self.kept.as_mut() else {
             return false;
         };
@@ -123,7 +210,10 @@ impl GpuRasterizer {
             finish,
             run_starts,
             chunk_blocks,
+            gaussians,
             chunks,
+            share: None,
+            folded_up_to: None,
             state_bytes,
             wave_bytes,
             rows: 0,
@@ -133,6 +223,25 @@ impl GpuRasterizer {
         true
     }
 
+    /// The streamed reduction's kernels (`ek_fold`, `ek_finish`, `run_starts`); `None` where
+    /// they do not build.
+    fn fold_pipelines(&self) -> Option<[wgpu::ComputePipeline; 3]> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("slag-ek fold kernels"),
+                source: wgpu::ShaderSource::Wgsl(include_str!("ek.wgsl").into()),
+            });
+        let pipe = |entry: &str| super::compute_pipeline(&self.device, &module, entry);
+        let pipelines = [pipe("ek_fold"), pipe("ek_finish"), pipe("run_starts")];
+        if let Some(e) = pollster::block_on(scope.pop()) {
+            tracing::warn!(error = %e, "the streamed reduction's kernels do not build here");
+            return None;
+        }
+        Some(pipelines)
+    }
+
     /// Folds the kept views whose index in the encode's view list is below `below` into the
     /// running state and frees their records, when the kept records passed the wave size
     /// (half the budget beside the state); `below` must be such that no view below it is
@@ -140,6 +249,7 @@ impl GpuRasterizer {
     ///
     /// Errors: device failures; a tile's records past a binding ([`Error::Limit`]).
     pub(super) fn fold_kept_due(&mut self, below: usize) -> Result<bool> {
+        self.take_own_inbox()?;
         let due = match (&self.kept, &self.stream) {
             (Some(k), Some(s)) => k.bytes >= s.wave_bytes.max(1),
             _ => false,
@@ -148,6 +258,23 @@ impl GpuRasterizer {
             return Ok(false);
         }
         self.fold_below(below)
+    }
+
+    /// With a streamed reduction shared between devices, takes in what the others sent
+    /// ([`Self::take_inbox`]); otherwise nothing. A caller that folds the views below `below`
+    /// takes them in after it learnt `below`: a view counts as done only once it was sent.
+    ///
+    /// Errors: as [`Self::take_inbox`].
+    fn take_own_inbox(&mut self) -> Result<()> {
+        let inbox = self
+            .stream
+            .as_ref()
+            .and_then(|s| s.share.as_ref())
+            .map(|s| s.inbox.clone());
+        match inbox {
+            Some(inbox) => self.take_inbox(&inbox),
+            None => Ok(()),
+        }
     }
 
     /// One wave ([`Self::fold_kept_due`]) whatever the records kept: every kept view below
@@ -166,12 +293,12 @@ impl GpuRasterizer {
 
     /// The wave of [`Self::fold_below`] on `kept` (taken out of the rasterizer meanwhile).
     fn fold_wave(&self, kept: &mut Kept, stream: &mut Stream, below: usize) -> Result<bool> {
-        let Some((wave, rows)) = wave_parts(kept, stream, below) else {
+        let Some((wave, rows)) = wave_parts(kept, stream, below)? else {
             return Ok(false);
         };
-        let blocks = self.n.div_ceil(BLOCK_GAUSSIANS) as usize;
+        let blocks = self.blocks_of(stream.gaussians.clone())?;
         let tile_bytes = self.reduce_tile_bytes.unwrap_or(TILE_BYTES);
-        let tiles = self.kept_tiles_within(&wave, 0..blocks, 4, tile_bytes, stream.chunk_blocks)?;
+        let tiles = self.kept_tiles_within(&wave, blocks, 4, tile_bytes, stream.chunk_blocks)?;
         let tables = storage_init(
             &self.device,
             "ek_tables",
@@ -280,6 +407,7 @@ impl GpuRasterizer {
         p: &DeviceReduce,
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<KeptReduced> {
+        self.take_own_inbox()?;
         let (Some(mut kept), Some(mut stream)) = (self.kept.take(), self.stream.take()) else {
             return Err(Error::internal("the streamed reduction has no kept views"));
         };
@@ -303,9 +431,9 @@ impl GpuRasterizer {
     /// tile of Gaussian ids ascending, handed to `sink`. Returns the tiles and the stream's
     /// figures.
     ///
-    /// Errors: `p` asking for the dense rows, a range of Gaussians, or another `keep` than the
-    /// stream's ([`Error::Internal`]: the encoder streams only without them); device failures;
-    /// `sink`'s.
+    /// Errors: `p` asking for the dense rows, other Gaussians than the stream's (all, or its
+    /// share: [`DeviceReduce::gaussians`]), or another `keep` than the stream's
+    /// ([`Error::Internal`]: the encoder streams only without them); device failures; `sink`'s.
     fn finish_stream(
         &self,
         kept: &mut Kept,
@@ -314,9 +442,10 @@ impl GpuRasterizer {
         sink: &mut dyn FnMut(KeptTile) -> Result<()>,
     ) -> Result<(usize, StreamStats)> {
         let keep = stream.keep as usize;
-        if p.dense || p.gaussians.is_some() || p.keep != keep {
+        let gaussians = p.gaussians.map_or(0..self.n, |(a, b)| a..b);
+        if p.dense || gaussians != stream.gaussians || p.keep != keep {
             return Err(Error::internal(
-                "the streamed reduction writes the mixture of every Gaussian, with its own keep",
+                "the streamed reduction writes the mixture of its own Gaussians, with its own keep",
             ));
         }
         self.fold_wave(kept, stream, usize::MAX)?;
@@ -409,14 +538,23 @@ impl GpuRasterizer {
     }
 }
 
-/// The state's chunks for `n` Gaussians: runs of `chunk_blocks` blocks, each a `Σ a` buffer
-/// and a slots buffer (wgpu zeroes new buffers: the empty state).
-fn state_chunks(device: &wgpu::Device, n: u32, chunk_blocks: usize, keep: usize) -> Vec<StateChunk> {
-    let chunk_gaussians = (chunk_blocks as u64 * u64::from(BLOCK_GAUSSIANS)).min(u64::from(u32::MAX));
+/// The state's chunks for the Gaussians `gaussians` (whole blocks): runs of whole blocks that
+/// end at multiples of `chunk_blocks` blocks (the tiles of a wave end there too,
+/// [`GpuRasterizer::kept_tiles_within`]), each a `Σ a` buffer and a slots buffer (wgpu zeroes
+/// new buffers: the empty state).
+fn state_chunks(
+    device: &wgpu::Device,
+    gaussians: &std::ops::Range<u32>,
+    chunk_blocks: usize,
+    keep: usize,
+) -> Vec<StateChunk> {
+    let chunk_gaussians =
+        (chunk_blocks as u64 * u64::from(BLOCK_GAUSSIANS)).min(u64::from(u32::MAX));
+    let end = u64::from(gaussians.end);
     let mut chunks = Vec::new();
-    let mut g0 = 0u64;
-    while g0 < u64::from(n) {
-        let len = chunk_gaussians.min(u64::from(n) - g0);
+    let mut g0 = u64::from(gaussians.start);
+    while g0 < end {
+        let len = ((g0 / chunk_gaussians + 1) * chunk_gaussians).min(end) - g0;
         chunks.push(StateChunk {
             g0: g0 as u32,
             n: len as u32,
@@ -449,11 +587,14 @@ fn chunk_of<'a>(stream: &'a Stream, tile: &Tile) -> Result<&'a StateChunk> {
 /// the encode's view list not folded yet, ordered by view index (a view's bands in keeping
 /// order), with each kept view's first codebook row (numbered on from the views folded
 /// before, in view order; unused for the others). `None` when no view is due.
+///
+/// Errors: a due view below one an earlier wave folded ([`Error::Internal`]: its terms would
+/// be added out of the encode's view order).
 fn wave_parts(
     kept: &mut Kept,
     stream: &mut Stream,
     below: usize,
-) -> Option<(Vec<KeptPart>, Vec<u32>)> {
+) -> Result<Option<(Vec<KeptPart>, Vec<u32>)>> {
     let dim = kept.dim;
     let n_views = kept.views.len();
     stream.folded.resize(n_views, false);
@@ -461,9 +602,16 @@ fn wave_parts(
         .filter(|&v| !stream.folded[v] && (kept.views[v][2] as usize) < below)
         .collect();
     if due.is_empty() {
-        return None;
+        return Ok(None);
     }
     due.sort_by_key(|&v| (kept.views[v][2], v));
+    let (first, last) = (kept.views[due[0]][2], kept.views[due[due.len() - 1]][2]);
+    if let Some(up_to) = stream.folded_up_to.filter(|&u| first < u) {
+        return Err(Error::internal(format!(
+            "view {first} came to the streamed reduction after view {up_to} was folded"
+        )));
+    }
+    stream.folded_up_to = Some(last);
     let mut rows = vec![u32::MAX; n_views];
     let mut rank = vec![usize::MAX; n_views];
     for (r, &v) in due.iter().enumerate() {
@@ -483,7 +631,7 @@ fn wave_parts(
         .partition(|p| rank[p.view as usize] != usize::MAX);
     kept.parts = rest;
     wave.sort_by_key(|p| rank[p.view as usize]);
-    Some((wave, rows))
+    Ok(Some((wave, rows)))
 }
 
 #[cfg(test)]
@@ -504,8 +652,7 @@ mod tests {
             g.rotations.push([1.0, 0.0, 0.0, 0.0]);
             g.opacities.push(0.5);
         }
-        let Some(r) = crate::raster::testdata::gpu_unless_skipped(|| GpuRasterizer::new(&g))
-        else {
+        let Some(r) = crate::raster::testdata::gpu_unless_skipped(|| GpuRasterizer::new(&g)) else {
             return;
         };
         let mut rng = SplitMix64::new(3);
@@ -519,7 +666,9 @@ mod tests {
             let mut enc = r.device.create_command_encoder(&Default::default());
             let mut sort = None;
             let order = r.sort_tile(&mut enc, &recs, n, &mut sort).unwrap();
-            let out = r.submit_and_read(enc, &[(&order, 0, u64::from(n) * 4)]).unwrap();
+            let out = r
+                .submit_and_read(enc, &[(&order, 0, u64::from(n) * 4)])
+                .unwrap();
             let order: Vec<u32> = bytemuck::pod_collect_to_vec(&out[0]);
             let key = |i: u32| (words[4 + 4 * i as usize], words[4 + 4 * i as usize + 1]);
             let bad = order.windows(2).filter(|w| key(w[0]) >= key(w[1])).count();

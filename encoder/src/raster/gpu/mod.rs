@@ -1006,6 +1006,7 @@ impl WeightRasterizer for GpuRasterizer {
         self.keeping = None;
         let out = out.inspect_err(|_| self.forget_kept_view(id));
         let sums = out?.ok_or_else(|| Error::internal("no sums from a kept view"))?;
+        self.kept_view_done(id)?;
         let mut dominant = std::mem::take(&mut self.kept_heads);
         // A view of several bands: its bands' Gaussians interleave; keep them ascending.
         dominant.sort_by_key(|d| d.0);
@@ -1032,6 +1033,23 @@ impl WeightRasterizer for GpuRasterizer {
 
     fn fold_kept(&mut self, below: usize) -> Result<bool> {
         self.fold_kept_due(below)
+    }
+
+    fn stream_kept_share(
+        &mut self,
+        keep: usize,
+        share: usize,
+        shares: usize,
+    ) -> Option<ek::KeptInbox> {
+        self.start_streaming_share(keep, share, shares)
+    }
+
+    fn share_kept_with(&mut self, peers: Option<Vec<ek::KeptInbox>>) {
+        self.share_stream_with(peers);
+    }
+
+    fn kept_share(&self) -> Option<(u32, u32)> {
+        self.streamed_share().map(|r| (r.start, r.end))
     }
 
     fn keep_mask_record(&mut self, slots: usize, view_count: usize) -> bool {

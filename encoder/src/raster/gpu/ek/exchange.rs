@@ -11,10 +11,10 @@ use crate::raster::{KeptExport, KeptHostView, KeptRangeCursor, LabelSum};
 
 /// Records `[first, first + n)` of one band's buffer, to be read back
 /// ([`GpuRasterizer::read_parts`]).
-struct RecordSlice<'a> {
-    records: &'a wgpu::Buffer,
-    first: u32,
-    n: u32,
+pub(super) struct RecordSlice<'a> {
+    pub(super) records: &'a wgpu::Buffer,
+    pub(super) first: u32,
+    pub(super) n: u32,
 }
 
 impl RecordSlice<'_> {
@@ -28,7 +28,7 @@ impl RecordSlice<'_> {
 /// uploads one batch while the device reads its own next batch back.
 #[derive(Debug, Clone)]
 pub struct KeptUploader {
-    device: wgpu::Device,
+    pub(super) device: wgpu::Device,
 }
 
 impl KeptUploader {
@@ -239,7 +239,7 @@ impl GpuRasterizer {
     ///
     /// Errors: a range that does not start on a block or end on one (or at the last
     /// Gaussian), or past the scene ([`Error::Internal`]).
-    pub(super) fn blocks_of(
+    pub(in crate::raster::gpu) fn blocks_of(
         &self,
         gaussians: std::ops::Range<u32>,
     ) -> Result<std::ops::Range<usize>> {
@@ -265,7 +265,7 @@ impl GpuRasterizer {
     /// batch after batch, and mapping fresh host memory each time costs more than the copy).
     ///
     /// Errors: device failures.
-    fn read_parts(
+    pub(super) fn read_parts(
         &self,
         parts: &[RecordSlice<'_>],
         mut staging: Option<wgpu::Buffer>,
@@ -340,43 +340,86 @@ impl GpuRasterizer {
     ///
     /// Errors: as [`Self::import_kept_views`]; a batch uploaded to another device.
     pub(in crate::raster::gpu) fn import_uploaded(&mut self, u: UploadedKept) -> Result<()> {
-        let UploadedKept { batch: e, records } = u;
-        if records.len() != e.parts.len() || records.iter().any(|r| r.device != self.device) {
-            return Err(Error::internal(
-                "kept records uploaded for another device, or not all of them",
-            ));
-        }
+        self.check_uploaded(&u)?;
         let Some(kept) = self.kept.as_mut() else {
             return Err(Error::internal(
                 "importing kept views without keeping started",
             ));
         };
-        if kept.dim != e.dim {
+        let first_view = kept.import_base(u.batch.source, u.batch.continues)?;
+        kept.append_uploaded(u, first_view)
+    }
+
+    /// Takes in a batch of another device's views that a streamed reduction shared between
+    /// devices sent ([`super::share`]): its views after every view kept so far, whatever batch
+    /// came before; keeping goes on (this device's own views and the imported ones interleave).
+    ///
+    /// Errors: as [`Self::import_uploaded`].
+    pub(in crate::raster::gpu) fn import_streamed(&mut self, u: UploadedKept) -> Result<()> {
+        self.check_uploaded(&u)?;
+        let Some(kept) = self.kept.as_mut() else {
+            return Err(Error::internal(
+                "importing kept views without keeping started",
+            ));
+        };
+        let first_view = kept.views.len() as u32;
+        kept.append_uploaded(u, first_view)
+    }
+
+    /// Check step of the imports: `u`'s records are all on this device, of this keeping's
+    /// width.
+    ///
+    /// Errors: [`Error::Internal`] otherwise, or without keeping started.
+    fn check_uploaded(&self, u: &UploadedKept) -> Result<()> {
+        if u.records.len() != u.batch.parts.len()
+            || u.records.iter().any(|r| r.device != self.device)
+        {
+            return Err(Error::internal(
+                "kept records uploaded for another device, or not all of them",
+            ));
+        }
+        let Some(kept) = self.kept.as_ref() else {
+            return Err(Error::internal(
+                "importing kept views without keeping started",
+            ));
+        };
+        if kept.dim != u.batch.dim {
             return Err(Error::internal(format!(
                 "kept views of width {} imported into a reduction of width {}",
-                e.dim, kept.dim
+                u.batch.dim, kept.dim
             )));
         }
+        Ok(())
+    }
+}
+
+impl Kept {
+    /// Appends an uploaded batch's views (their tables and codebook rows, as views
+    /// `first_view` on) and its bands (their records on the device already).
+    ///
+    /// Errors: tables or codebook past 2^32; a band of a view the batch does not have
+    /// ([`Error::Internal`]).
+    fn append_uploaded(&mut self, u: UploadedKept, first_view: u32) -> Result<()> {
+        let UploadedKept { batch: e, records } = u;
         let too_big = || Error::Invalid("the kept label tables exceed 2^32 words".into());
-        let first_view = kept.import_base(e.source, e.continues)?;
         for (table, rows, index) in e.views {
-            let base = u32::try_from(kept.tables.len()).map_err(|_| too_big())?;
-            let row = u32::try_from(kept.codebook.len() / kept.dim).map_err(|_| too_big())?;
-            kept.tables.extend_from_slice(&table);
-            kept.codebook.extend_from_slice(&rows);
-            kept.views.push([base, row, index]);
+            let base = u32::try_from(self.tables.len()).map_err(|_| too_big())?;
+            let row = u32::try_from(self.codebook.len() / self.dim).map_err(|_| too_big())?;
+            self.tables.extend_from_slice(&table);
+            self.codebook.extend_from_slice(&rows);
+            self.views.push([base, row, index]);
         }
         for ((view, _, starts), r) in e.parts.into_iter().zip(records) {
             let view = first_view + view;
-            if view as usize >= kept.views.len() {
+            if view as usize >= self.views.len() {
                 return Err(Error::internal(format!(
                     "an imported band of view {view} of {} kept views",
-                    kept.views.len()
+                    self.views.len()
                 )));
             }
-            kept.bytes += u64::from(r.n) * 16;
-            kept.peak_bytes = kept.peak_bytes.max(kept.bytes);
-            kept.parts.push(KeptPart {
+            self.bytes += u64::from(r.n) * 16;
+            self.peak_bytes = self.peak_bytes.max(self.bytes);
+            self.parts.push(KeptPart {
                 records: r.buffer,
                 n: r.n,
                 view,
@@ -390,17 +433,21 @@ impl GpuRasterizer {
 /// Per kept view of the first `n`, its label table, its codebook rows and its index in the
 /// encode's view list, copied out of `kept` (in keeping order, before [`Kept::sort_by_view`]).
 fn host_views(kept: &Kept, n: usize) -> Vec<(Vec<u32>, Vec<f32>, u32)> {
-    let dim = kept.dim;
     (0..n.min(kept.views.len()))
-        .map(|v| {
-            let (table, rows) = kept.extent(v);
-            (
-                kept.tables[table].to_vec(),
-                kept.codebook[rows.start * dim..rows.end * dim].to_vec(),
-                kept.views[v][2],
-            )
-        })
+        .map(|v| host_view(kept, v))
         .collect()
+}
+
+/// Kept view `v`'s label table, codebook rows and index in the encode's view list, copied out
+/// of `kept` (in keeping order, before [`Kept::sort_by_view`]).
+pub(super) fn host_view(kept: &Kept, v: usize) -> (Vec<u32>, Vec<f32>, u32) {
+    let dim = kept.dim;
+    let (table, rows) = kept.extent(v);
+    (
+        kept.tables[table].to_vec(),
+        kept.codebook[rows.start * dim..rows.end * dim].to_vec(),
+        kept.views[v][2],
+    )
 }
 
 impl Kept {

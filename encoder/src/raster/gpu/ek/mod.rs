@@ -16,14 +16,18 @@
 //!
 //! The files: [`tables`] lays out each view's label table; [`keep`] keeps a view's bands on the
 //! device within the budget; [`exchange`] moves kept views between devices and to the host;
+//! [`share`] sends each view to the other devices of a streamed reduction shared between them;
 //! [`tiles`] reduces the kept records tile by tile. This file holds the state they share.
 
 mod exchange;
 mod keep;
+mod share;
 mod tables;
 mod tiles;
 
 pub use exchange::{KeptUploader, UploadedKept};
+pub use share::KeptInbox;
+pub(super) use share::share_gaussians;
 pub(super) use tiles::{Tile, TileStaging, gather_tile_records, output_bytes, tile_output};
 
 /// Gaussians per block of a view's record index (`ek.wgsl` `BLOCK_GAUSSIANS`): tiles of the
