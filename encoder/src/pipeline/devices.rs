@@ -148,7 +148,7 @@ pub(super) fn reduce_across_devices(
     }
     let t0 = Instant::now();
     // The rasterizers come back in the order they ended; their shares go in Gaussian order.
-    device.sort_by_key(|r| r.kept_share().map(|(a, b)| (a, b)));
+    device.sort_by_key(|r| r.kept_share());
     let streamed: Option<Vec<Range<u32>>> = device
         .iter()
         .map(|r| r.kept_share().map(|(a, b)| a..b))

@@ -68,8 +68,11 @@ fn random_views(n: u64) -> Vec<RandomKeptView> {
         .collect()
 }
 
-/// Every observed Gaussian of `r` with its `Σ a_kj` bits and kept pairs (bits, in slot order).
-fn rows_of(r: &Reduced) -> Vec<(u32, u32, Vec<(u32, u32)>)> {
+/// One observed Gaussian: its id, its `Σ a_kj` bits and its kept pairs (bits, in slot order).
+type Row = (u32, u32, Vec<(u32, u32)>);
+
+/// Every observed Gaussian of `r` ([`Row`]).
+fn rows_of(r: &Reduced) -> Vec<Row> {
     r.tiles
         .iter()
         .flat_map(|t| {
@@ -194,7 +197,7 @@ struct Shared {
 
 impl Shared {
     /// Every observed Gaussian of both shares, in Gaussian order ([`rows_of`]).
-    fn rows(&self) -> Vec<(u32, u32, Vec<(u32, u32)>)> {
+    fn rows(&self) -> Vec<Row> {
         self.shares.iter().flat_map(rows_of).collect()
     }
 }
@@ -209,7 +212,7 @@ fn reduce_shared(
     order: &[usize],
     budget: u64,
 ) -> Option<Shared> {
-    let mut devices = vec![gpu(g)?, gpu(g)?];
+    let mut devices = [gpu(g)?, gpu(g)?];
     let inboxes: Vec<_> = devices
         .iter_mut()
         .enumerate()
