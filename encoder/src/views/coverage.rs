@@ -79,6 +79,8 @@ use slag_common::{Error, Observation, Result};
 use crate::raster::WeightRasterizer;
 
 mod greedy;
+#[cfg(test)]
+mod greedy_tests;
 
 use greedy::Gain;
 pub(super) use greedy::{AtOnce, greedy};
