@@ -855,7 +855,7 @@ pub fn select_shown(
         return Err(Error::param("views", views.len(), "at most 2^32 - 1 views"));
     }
     let t0 = Instant::now();
-    let coverage = measure_shown(rasterizers, views, gaussians.len(), rule, progress)?;
+    let mut coverage = measure_shown(rasterizers, views, gaussians.len(), rule, progress)?;
     let raster_s = t0.elapsed().as_secs_f64();
     require_observed(&coverage)?;
     let t1 = Instant::now();
@@ -866,10 +866,18 @@ pub fn select_shown(
     // Without a target the choice needs the order only up to where it stops.
     let early = (rule.target >= 1.0).then_some(cap);
     let at_once = AtOnce::for_threads();
-    let (order, slots, complete) =
-        greedy(&coverage, &gaussians.means, &centres, rule, early, at_once);
+    let seen_bytes = coverage.bytes() as u64;
+    let (order, slots, complete) = greedy(
+        &mut coverage,
+        &gaussians.means,
+        &centres,
+        rule,
+        early,
+        at_once,
+    );
     let (taken, stop) = stop_at(&order, rule, cap);
     let mut outcome = outcome_of(&coverage, &order, &slots, taken, views, rule);
+    outcome.seen_bytes = seen_bytes;
     outcome.stop = stop;
     outcome.order_complete = complete;
     outcome.raster_s = raster_s;
@@ -905,8 +913,9 @@ fn require_observed(coverage: &ViewCoverage) -> Result<()> {
 }
 
 /// What the pass found and the greedy chose, in the report's terms: the `order` of the greedy
-/// over `views` with its first `taken` chosen, and the final viewpoint `slots`. Its times are
-/// 0 and its stop [`CoverageStop::Exhausted`], for the caller to fill in.
+/// over `views` with its first `taken` chosen, and the final viewpoint `slots`. Its times and
+/// `seen_bytes` are 0 and its stop [`CoverageStop::Exhausted`], for the caller to fill in (the
+/// greedy took the sets out of `coverage`).
 fn outcome_of(
     coverage: &ViewCoverage,
     order: &[(usize, Gain)],
@@ -932,7 +941,7 @@ fn outcome_of(
         rule: *rule,
         raster_s: 0.0,
         greedy_s: 0.0,
-        seen_bytes: coverage.bytes() as u64,
+        seen_bytes: 0,
         floor_px: coverage.floor_px,
         floor_source: coverage.floor_source,
         observed: coverage.observed(),

@@ -487,7 +487,14 @@ fn the_greedy_order_is_the_same_however_many_stale_views_are_re_evaluated_at_onc
         .collect();
     for early in [None, Some(None)] {
         let at_once = |views, seen| coverage::AtOnce { views, seen };
-        let one = coverage::greedy(&cov, &g.means, &centres, &rule, early, at_once(1, 0));
+        let one = coverage::greedy(
+            &mut cov.clone(),
+            &g.means,
+            &centres,
+            &rule,
+            early,
+            at_once(1, 0),
+        );
         assert!(one.0.len() > 3, "{} views in the order", one.0.len());
         for (views, seen) in [
             (2, usize::MAX),
@@ -495,8 +502,14 @@ fn the_greedy_order_is_the_same_however_many_stale_views_are_re_evaluated_at_onc
             (64, usize::MAX),
             (64, 2_000),
         ] {
-            let many =
-                coverage::greedy(&cov, &g.means, &centres, &rule, early, at_once(views, seen));
+            let many = coverage::greedy(
+                &mut cov.clone(),
+                &g.means,
+                &centres,
+                &rule,
+                early,
+                at_once(views, seen),
+            );
             assert_eq!(
                 many, one,
                 "{views} views, {seen} seen at once, early {early:?}"

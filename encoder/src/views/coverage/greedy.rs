@@ -1,6 +1,16 @@
 //! The greedy choice of the coverage selection (the parent module's doc): per Gaussian the
 //! chosen views counted as its distinct viewpoints, each view's gain over them, and the lazy
 //! greedy order, its stale views re-evaluated together.
+//!
+//! **The greedy's order of the Gaussians.** The greedy renumbers the Gaussians in the Morton
+//! order of their means ([`Renumbered`]) and holds each view's set as runs of that order: a view
+//! sees a compact part of the scene, so its set is a few runs and the Gaussians' state is read
+//! in order, where the scene's own order (often random in space) reads it at random. Beside
+//! the viewpoint slots it keeps one bit per Gaussian that still lacks viewpoints, so a gain
+//! skips the Gaussians no view can add to 64 at a time. A gain is an integer sum over
+//! Gaussians, each term depending on that Gaussian alone, so neither changes a gain or a choice.
+//! Its memory: the runs (each view's set freed as its runs are made), and per Gaussian 28 bytes
+//! beside its `4 · min_views` of slots (the order, the means and footprints in it, one bit).
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -10,10 +20,152 @@ use rayon::prelude::*;
 
 use super::{CoverageRule, SeenSet, ViewCoverage};
 
-/// The greedy's state: per Gaussian the candidate views counted as its distinct viewpoints
-/// (`min_views` slots, `u32::MAX` = empty, filled from the front).
+/// A run of Gaussians `start..end` in the greedy's order, never across a multiple of [`CHUNK`].
+type Run = (u32, u32);
+
+/// The measured sets in the greedy's order of the Gaussians (module doc).
+struct Renumbered {
+    /// Per scene Gaussian its index in the greedy's order.
+    local_of: Vec<u32>,
+    /// Per greedy index its Gaussian's mean, world frame.
+    means: Vec<[f32; 3]>,
+    /// Per greedy index its Gaussian's footprint, fixed-point steps ([`ViewCoverage`]).
+    footprint: Vec<u64>,
+    /// Per view its Gaussians as ascending runs of greedy indices.
+    runs: Vec<Vec<Run>>,
+}
+
+impl Renumbered {
+    /// The sets `seen` (each freed once converted) with the `footprint`s of the scene Gaussians
+    /// of `means` (ids at or past `means.len()` left out), renumbered in the Morton order of the
+    /// means.
+    fn new(seen: Vec<SeenSet>, footprint: &[u64], means: &[[f32; 3]]) -> Self {
+        let n = means.len();
+        let order = morton_order(means);
+        let mut local_of = vec![0u32; n];
+        for (l, &k) in order.iter().enumerate() {
+            local_of[k as usize] = l as u32;
+        }
+        let footprint = order
+            .par_iter()
+            .map(|&k| footprint.get(k as usize).copied().unwrap_or(0))
+            .collect();
+        let means = order.par_iter().map(|&k| means[k as usize]).collect();
+        drop(order);
+        let runs = seen
+            .into_par_iter()
+            .map(|set| runs_of(&set, n, &local_of))
+            .collect();
+        Renumbered {
+            local_of,
+            means,
+            footprint,
+            runs,
+        }
+    }
+
+    /// The slots `slots` (`per` per Gaussian, greedy order) in the scene's order.
+    fn scene_slots(&self, slots: &[u32], per: usize) -> Vec<u32> {
+        let mut out = vec![u32::MAX; self.local_of.len() * per];
+        out.par_chunks_mut(per)
+            .zip(self.local_of.par_iter())
+            .for_each(|(o, &l)| o.copy_from_slice(&slots[l as usize * per..][..per]));
+        out
+    }
+}
+
+/// The scene indices of `means` in the Morton order of their quantized means (21 bits an axis
+/// over the means' box), ties to the lower index; non-finite coordinates count as the box's
+/// lower side.
+fn morton_order(means: &[[f32; 3]]) -> Vec<u32> {
+    let (lo, hi) = means
+        .par_iter()
+        .fold(
+            || ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+            |(mut lo, mut hi), m| {
+                for a in 0..3 {
+                    if m[a].is_finite() {
+                        lo[a] = lo[a].min(m[a]);
+                        hi[a] = hi[a].max(m[a]);
+                    }
+                }
+                (lo, hi)
+            },
+        )
+        .reduce(
+            || ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]),
+            |a, b| {
+                let lo = std::array::from_fn(|i| a.0[i].min(b.0[i]));
+                let hi = std::array::from_fn(|i| a.1[i].max(b.1[i]));
+                (lo, hi)
+            },
+        );
+    const TOP: f64 = ((1u64 << 21) - 1) as f64;
+    let code = |m: &[f32; 3]| {
+        (0..3).fold(0u64, |c, a| {
+            let span = (f64::from(hi[a]) - f64::from(lo[a])).max(f64::MIN_POSITIVE);
+            let t = (f64::from(m[a]) - f64::from(lo[a])) / span;
+            // `as` takes NaN to 0 and clamps.
+            c | spread((t * TOP).clamp(0.0, TOP) as u64) << a
+        })
+    };
+    let mut keyed: Vec<(u64, u32)> = means
+        .par_iter()
+        .enumerate()
+        .map(|(k, m)| (code(m), k as u32))
+        .collect();
+    keyed.par_sort_unstable();
+    keyed.into_par_iter().map(|(_, k)| k).collect()
+}
+
+/// The low 21 bits of `x` spread to every third bit.
+fn spread(x: u64) -> u64 {
+    let mut x = x & 0x1f_ffff;
+    x = (x | x << 32) & 0x001f_0000_0000_ffff;
+    x = (x | x << 16) & 0x001f_0000_ff00_00ff;
+    x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+    x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+    x = (x | x << 2) & 0x1249_2492_4924_9249;
+    x
+}
+
+/// The Gaussians of `set` below `n` as ascending runs of their greedy indices `local_of`.
+fn runs_of(set: &SeenSet, n: usize, local_of: &[u32]) -> Vec<Run> {
+    let mut ids = Vec::new();
+    set.for_each_in(0, n, |k| ids.push(local_of[k]));
+    ids.sort_unstable();
+    let mut runs: Vec<Run> = Vec::new();
+    for id in ids {
+        match runs.last_mut() {
+            Some((_, end)) if *end == id && id as usize % CHUNK != 0 => *end += 1,
+            _ => runs.push((id, id + 1)),
+        }
+    }
+    runs.shrink_to_fit();
+    runs
+}
+
+/// The words of a bitset (bit `g % 64` of word `g / 64`) that hold bits `a..b`, each with the
+/// mask of those bits in it.
+fn masks(a: usize, b: usize) -> impl Iterator<Item = (usize, u64)> {
+    (a / 64..b.div_ceil(64)).map(move |w| {
+        let mut mask = !0u64;
+        if w * 64 < a {
+            mask &= !0u64 << (a % 64);
+        }
+        if (w + 1) * 64 > b {
+            mask &= (1u64 << (b % 64)) - 1;
+        }
+        (w, mask)
+    })
+}
+
+/// The greedy's state, in its order of the Gaussians: per Gaussian the candidate views counted
+/// as its distinct viewpoints (`min_views` slots, `u32::MAX` = empty, filled from the front).
 struct Viewpoints<'a> {
     slots: Vec<u32>,
+    /// Bit `g`: Gaussian `g` has fewer than `per` viewpoints (a view may still add one).
+    open: Vec<u64>,
     per: usize,
     cos_max: f64,
     means: &'a [[f32; 3]],
@@ -48,65 +200,82 @@ impl Viewpoints<'_> {
             .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
     }
 
-    /// What view `v` (seeing `seen`) would add (integer sums: exact in any order), its
-    /// Gaussians split into chunks over the threads.
-    fn gain(&self, v: usize, seen: &SeenSet) -> Gain {
-        let n = self.means.len();
-        (0..n.div_ceil(CHUNK))
-            .into_par_iter()
-            .map(|c| self.gain_in(v, seen, c * CHUNK, ((c + 1) * CHUNK).min(n)))
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
-    }
-
-    /// What view `v` (seeing `seen`) would add through its Gaussians in `lo..hi` (`lo` a
-    /// multiple of 64), on the calling thread.
-    fn gain_in(&self, v: usize, seen: &SeenSet, lo: usize, hi: usize) -> Gain {
+    /// What view `v` would add through its Gaussians in `runs`, on the calling thread.
+    fn gain_in(&self, v: usize, runs: &[Run]) -> Gain {
         let (mut weight, mut count) = (0u64, 0u64);
-        seen.for_each_in(lo, hi, |g| {
-            let s = &self.slots[g * self.per..(g + 1) * self.per];
-            if self.adds(g, v, s) {
-                weight += self.footprint[g];
-                count += 1;
+        for &(a, b) in runs {
+            for (w, mask) in masks(a as usize, b as usize) {
+                let mut bits = self.open[w] & mask;
+                while bits != 0 {
+                    let g = w * 64 + bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    if self.adds(g, v, &self.slots[g * self.per..(g + 1) * self.per]) {
+                        weight += self.footprint[g];
+                        count += 1;
+                    }
+                }
             }
-        });
+        }
         (weight, count)
     }
 
-    /// The gains of `views` (each seeing `seen[v]`): one view spread over the threads, several
-    /// each on a thread of its own.
-    fn gains(&self, views: &[usize], seen: &[SeenSet]) -> Vec<(usize, Gain)> {
+    /// What view `v` (seeing `runs`) would add (integer sums: exact in any order), its runs
+    /// split over the threads.
+    fn gain(&self, v: usize, runs: &[Run]) -> Gain {
+        let pieces = 8 * rayon::current_num_threads().max(1);
+        runs.par_chunks(runs.len().div_ceil(pieces).max(1))
+            .map(|part| self.gain_in(v, part))
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+    }
+
+    /// The gains of `views` (view `v` seeing `runs[v]`): one view spread over the threads,
+    /// several each on a thread of its own.
+    fn gains(&self, views: &[usize], runs: &[Vec<Run>]) -> Vec<(usize, Gain)> {
         match views {
-            [v] => vec![(*v, self.gain(*v, &seen[*v]))],
+            [v] => vec![(*v, self.gain(*v, &runs[*v]))],
             _ => views
                 .par_iter()
-                .map(|&v| (v, self.gain_in(v, &seen[v], 0, self.means.len())))
+                .map(|&v| (v, self.gain_in(v, &runs[v])))
                 .collect(),
         }
     }
 
-    /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to.
-    fn choose(&mut self, v: usize, seen: &SeenSet) {
-        let n = self.means.len();
+    /// Counts view `v` (seeing `runs`) as a viewpoint of every Gaussian it adds one to, and
+    /// closes those it gives their last one.
+    fn choose(&mut self, v: usize, runs: &[Run]) {
         let per = self.per;
         let mut slots = std::mem::take(&mut self.slots);
+        let mut open = std::mem::take(&mut self.open);
         slots
             .par_chunks_mut(CHUNK * per)
+            .zip(open.par_chunks_mut(CHUNK / 64))
             .enumerate()
-            .for_each(|(c, chunk)| {
-                let lo = c * CHUNK;
-                seen.for_each_in(lo, (lo + CHUNK).min(n), |g| {
-                    let s = &mut chunk[(g - lo) * per..(g - lo + 1) * per];
-                    if self.adds(g, v, s)
-                        && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
-                    {
-                        *free = v as u32;
+            .for_each(|(c, (chunk, words))| {
+                let (lo, hi) = (c * CHUNK, (c + 1) * CHUNK);
+                let first = runs.partition_point(|r| r.1 as usize <= lo);
+                for &(a, b) in runs[first..].iter().take_while(|r| (r.0 as usize) < hi) {
+                    for (w, mask) in masks(a as usize - lo, b as usize - lo) {
+                        let mut bits = words[w] & mask;
+                        while bits != 0 {
+                            let i = w * 64 + bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
+                            let s = &mut chunk[i * per..(i + 1) * per];
+                            if self.adds(lo + i, v, s)
+                                && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
+                            {
+                                *free = v as u32;
+                                if s[per - 1] != u32::MAX {
+                                    words[w] &= !(1u64 << (i % 64));
+                                }
+                            }
+                        }
                     }
-                });
+                }
             });
         self.slots = slots;
+        self.open = open;
     }
 }
-
 /// A view in the greedy's heap: its gain when last evaluated (an upper bound of its gain now:
 /// gains only fall), its index (ties to the lower), and the round it was evaluated in (current
 /// when it equals the views chosen so far).
@@ -167,11 +336,14 @@ fn stale_on_top(
 /// adds a pair, or, with `early`, until the first view the stopping rule refuses (its gain
 /// below [`CoverageRule::min_gain`] of the first; gains only fall, so no later view is kept
 /// either) or `cap + 1` views, whichever comes first; and the final per-Gaussian viewpoint
-/// slots (`min_views` each). Returns whether the order is complete (no view left that adds a
-/// pair). Stale views are re-evaluated together within `at_once` ([`stale_on_top`]; the order
-/// is the same for any [`AtOnce`]).
+/// slots (`min_views` each, the scene's order of `means`). Returns whether the order is complete
+/// (no view left that adds a pair). Stale views are re-evaluated together within `at_once`
+/// ([`stale_on_top`]; the order is the same for any [`AtOnce`]).
+///
+/// Takes the views' sets out of `coverage` (left with none: [`ViewCoverage::views`] 0), each
+/// freed once the greedy holds it as runs, so that the two forms are not held whole at once.
 pub(in crate::views) fn greedy(
-    coverage: &ViewCoverage,
+    coverage: &mut ViewCoverage,
     means: &[[f32; 3]],
     centres: &[DVec3],
     rule: &CoverageRule,
@@ -179,42 +351,77 @@ pub(in crate::views) fn greedy(
     at_once: AtOnce,
 ) -> (Vec<(usize, Gain)>, Vec<u32>, bool) {
     let per = rule.min_views.max(1);
+    let seen = std::mem::take(&mut coverage.seen);
+    let local = Renumbered::new(seen, &coverage.footprint, means);
+    let n = means.len();
+    let mut open = vec![!0u64; n.div_ceil(64)];
+    if let Some(last) = open.last_mut()
+        && n % 64 != 0
+    {
+        *last = (1u64 << (n % 64)) - 1;
+    }
     let mut state = Viewpoints {
-        slots: vec![u32::MAX; means.len() * per],
+        slots: vec![u32::MAX; n * per],
+        open,
         per,
         cos_max: rule.min_angle_deg.to_radians().cos(),
-        means,
+        means: &local.means,
         centres,
-        footprint: &coverage.footprint,
+        footprint: &local.footprint,
     };
+    let (order, complete) = lazy_order(&mut state, &local.runs, rule, early, at_once);
+    let slots = local.scene_slots(&state.slots, per);
+    (order, slots, complete)
+}
+
+/// Bytes of the runs the greedy holds for the sets of `coverage` over the Gaussians of `means`
+/// (for the bench).
+#[cfg(test)]
+pub(super) fn runs_bytes(coverage: &ViewCoverage, means: &[[f32; 3]]) -> usize {
+    let local = Renumbered::new(coverage.seen.clone(), &coverage.footprint, means);
+    local.runs.iter().map(|r| r.len() * size_of::<Run>()).sum()
+}
+
+/// The lazy greedy over the views of `runs` from `state` (as [`greedy`]): the order, and
+/// whether it is complete.
+fn lazy_order(
+    state: &mut Viewpoints,
+    runs: &[Vec<Run>],
+    rule: &CoverageRule,
+    early: Option<Option<usize>>,
+    at_once: AtOnce,
+) -> (Vec<(usize, Gain)>, bool) {
     // Max-heap on (gain, lowest index); the round tells whether the gain is current.
-    let all: Vec<usize> = (0..coverage.seen.len()).collect();
-    let sizes: Vec<usize> = coverage.seen.par_iter().map(SeenSet::len).collect();
+    let all: Vec<usize> = (0..runs.len()).collect();
+    let sizes: Vec<usize> = runs
+        .iter()
+        .map(|r| r.iter().map(|&(a, b)| (b - a) as usize).sum())
+        .collect();
     let mut heap: BinaryHeap<Entry> = state
-        .gains(&all, &coverage.seen)
+        .gains(&all, runs)
         .into_iter()
         .map(|(v, g)| (g, Reverse(v), 0))
         .collect();
     let mut order: Vec<(usize, Gain)> = Vec::new();
     while let Some((gain, Reverse(v), round)) = heap.pop() {
         if gain.1 == 0 {
-            return (order, state.slots, true);
+            return (order, true);
         }
         if round != order.len() {
             let stale = stale_on_top(&mut heap, (v, order.len()), at_once, &sizes);
-            let fresh = state.gains(&stale, &coverage.seen);
+            let fresh = state.gains(&stale, runs);
             heap.extend(fresh.into_iter().map(|(u, g)| (g, Reverse(u), order.len())));
             continue;
         }
-        state.choose(v, &coverage.seen[v]);
+        state.choose(v, &runs[v]);
         order.push((v, gain));
         if let Some(cap) = early {
             let first = order[0].1.0;
             let refused = (gain.0 as f64) < rule.min_gain * first as f64;
             if refused || cap.is_some_and(|c| order.len() > c) {
-                return (order, state.slots, heap.is_empty());
+                return (order, heap.is_empty());
             }
         }
     }
-    (order, state.slots, true)
+    (order, true)
 }
