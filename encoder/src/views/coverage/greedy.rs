@@ -3,25 +3,59 @@
 //! greedy order, its stale views re-evaluated together.
 //!
 //! **The greedy's order of the Gaussians.** The greedy renumbers the Gaussians in the Morton
-//! order of their means ([`Renumbered`]) and holds each view's set as runs of that order: a view
-//! sees a compact part of the scene, so its set is a few runs and the Gaussians' state is read
-//! in order, where the scene's own order (often random in space) reads it at random. Beside
-//! the viewpoint slots it keeps one bit per Gaussian that still lacks viewpoints, so a gain
-//! skips the Gaussians no view can add to 64 at a time. A gain is an integer sum over
+//! order of their means ([`Renumbered`]) and holds each view's set as a sparse bitset of that
+//! order ([`Words`]): a view sees a compact part of the scene, so its Gaussians fill few words
+//! and their state is read in order, where the scene's own order (often random in space) reads
+//! it at random. Beside the viewpoint slots it keeps one bit per Gaussian that still lacks
+//! viewpoints, so a gain skips the Gaussians no view can add to 64 at a time. A gain is an integer sum over
 //! Gaussians, each term depending on that Gaussian alone, so neither changes a gain or a choice.
-//! Its memory: the runs (each view's set freed as its runs are made), and per Gaussian 28 bytes
+//! Its memory: the words (each view's set freed as its words are made), and per Gaussian 28 bytes
 //! beside its `4 · min_views` of slots (the order, the means and footprints in it, one bit).
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
+use std::ops::Range;
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::{CoverageRule, SeenSet, ViewCoverage};
 
-/// A run of Gaussians `start..end` in the greedy's order, never across a multiple of [`CHUNK`].
-type Run = (u32, u32);
+/// A view's Gaussians in the greedy's order as a sparse bitset: the indices of the words that
+/// hold any of them, ascending, and those words (bit `g % 64` of word `g / 64`).
+#[derive(Debug, Default)]
+struct Words {
+    at: Vec<u32>,
+    bits: Vec<u64>,
+}
+
+impl Words {
+    /// The Gaussians of `set` below `n` by their greedy indices `local_of`.
+    fn of(set: &SeenSet, n: usize, local_of: &[u32]) -> Self {
+        let mut ids = Vec::with_capacity(set.len());
+        set.for_each_in(0, n, |k| ids.push(local_of[k]));
+        ids.sort_unstable();
+        let mut words = Words::default();
+        for id in ids {
+            let (w, bit) = (id / 64, 1u64 << (id % 64));
+            match (words.at.last(), words.bits.last_mut()) {
+                (Some(&last), Some(bits)) if last == w => *bits |= bit,
+                _ => {
+                    words.at.push(w);
+                    words.bits.push(bit);
+                }
+            }
+        }
+        words.at.shrink_to_fit();
+        words.bits.shrink_to_fit();
+        words
+    }
+
+    /// Gaussians in the set.
+    fn len(&self) -> usize {
+        self.bits.iter().map(|b| b.count_ones() as usize).sum()
+    }
+}
 
 /// The measured sets in the greedy's order of the Gaussians (module doc).
 struct Renumbered {
@@ -31,8 +65,8 @@ struct Renumbered {
     means: Vec<[f32; 3]>,
     /// Per greedy index its Gaussian's footprint, fixed-point steps ([`ViewCoverage`]).
     footprint: Vec<u64>,
-    /// Per view its Gaussians as ascending runs of greedy indices.
-    runs: Vec<Vec<Run>>,
+    /// Per view its Gaussians by greedy index.
+    words: Vec<Words>,
 }
 
 impl Renumbered {
@@ -52,15 +86,15 @@ impl Renumbered {
             .collect();
         let means = order.par_iter().map(|&k| means[k as usize]).collect();
         drop(order);
-        let runs = seen
+        let words = seen
             .into_par_iter()
-            .map(|set| runs_of(&set, n, &local_of))
+            .map(|set| Words::of(&set, n, &local_of))
             .collect();
         Renumbered {
             local_of,
             means,
             footprint,
-            runs,
+            words,
         }
     }
 
@@ -129,37 +163,6 @@ fn spread(x: u64) -> u64 {
     x
 }
 
-/// The Gaussians of `set` below `n` as ascending runs of their greedy indices `local_of`.
-fn runs_of(set: &SeenSet, n: usize, local_of: &[u32]) -> Vec<Run> {
-    let mut ids = Vec::new();
-    set.for_each_in(0, n, |k| ids.push(local_of[k]));
-    ids.sort_unstable();
-    let mut runs: Vec<Run> = Vec::new();
-    for id in ids {
-        match runs.last_mut() {
-            Some((_, end)) if *end == id && id as usize % CHUNK != 0 => *end += 1,
-            _ => runs.push((id, id + 1)),
-        }
-    }
-    runs.shrink_to_fit();
-    runs
-}
-
-/// The words of a bitset (bit `g % 64` of word `g / 64`) that hold bits `a..b`, each with the
-/// mask of those bits in it.
-fn masks(a: usize, b: usize) -> impl Iterator<Item = (usize, u64)> {
-    (a / 64..b.div_ceil(64)).map(move |w| {
-        let mut mask = !0u64;
-        if w * 64 < a {
-            mask &= !0u64 << (a % 64);
-        }
-        if (w + 1) * 64 > b {
-            mask &= (1u64 << (b % 64)) - 1;
-        }
-        (w, mask)
-    })
-}
-
 /// The greedy's state, in its order of the Gaussians: per Gaussian the candidate views counted
 /// as its distinct viewpoints (`min_views` slots, `u32::MAX` = empty, filled from the front).
 struct Viewpoints<'a> {
@@ -200,49 +203,51 @@ impl Viewpoints<'_> {
             .all(|&u| dir.dot((m - self.centres[u as usize]).normalize_or_zero()) <= self.cos_max)
     }
 
-    /// What view `v` would add through its Gaussians in `runs`, on the calling thread.
-    fn gain_in(&self, v: usize, runs: &[Run]) -> Gain {
+    /// What view `v` would add through its Gaussians in the words `part` of `seen`, on the
+    /// calling thread.
+    fn gain_in(&self, v: usize, seen: &Words, part: Range<usize>) -> Gain {
         let (mut weight, mut count) = (0u64, 0u64);
-        for &(a, b) in runs {
-            for (w, mask) in masks(a as usize, b as usize) {
-                let mut bits = self.open[w] & mask;
-                while bits != 0 {
-                    let g = w * 64 + bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    if self.adds(g, v, &self.slots[g * self.per..(g + 1) * self.per]) {
-                        weight += self.footprint[g];
-                        count += 1;
-                    }
+        for (&w, &bits) in seen.at[part.clone()].iter().zip(&seen.bits[part]) {
+            let w = w as usize;
+            let mut bits = bits & self.open[w];
+            while bits != 0 {
+                let g = w * 64 + bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                if self.adds(g, v, &self.slots[g * self.per..(g + 1) * self.per]) {
+                    weight += self.footprint[g];
+                    count += 1;
                 }
             }
         }
         (weight, count)
     }
 
-    /// What view `v` (seeing `runs`) would add (integer sums: exact in any order), its runs
+    /// What view `v` (seeing `seen`) would add (integer sums: exact in any order), its words
     /// split over the threads.
-    fn gain(&self, v: usize, runs: &[Run]) -> Gain {
-        let pieces = 8 * rayon::current_num_threads().max(1);
-        runs.par_chunks(runs.len().div_ceil(pieces).max(1))
-            .map(|part| self.gain_in(v, part))
+    fn gain(&self, v: usize, seen: &Words) -> Gain {
+        let len = seen.at.len();
+        let step = len.div_ceil(8 * rayon::current_num_threads().max(1)).max(1);
+        (0..len.div_ceil(step))
+            .into_par_iter()
+            .map(|p| self.gain_in(v, seen, p * step..((p + 1) * step).min(len)))
             .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     }
 
-    /// The gains of `views` (view `v` seeing `runs[v]`): one view spread over the threads,
+    /// The gains of `views` (view `v` seeing `seen[v]`): one view spread over the threads,
     /// several each on a thread of its own.
-    fn gains(&self, views: &[usize], runs: &[Vec<Run>]) -> Vec<(usize, Gain)> {
+    fn gains(&self, views: &[usize], seen: &[Words]) -> Vec<(usize, Gain)> {
         match views {
-            [v] => vec![(*v, self.gain(*v, &runs[*v]))],
+            [v] => vec![(*v, self.gain(*v, &seen[*v]))],
             _ => views
                 .par_iter()
-                .map(|&v| (v, self.gain_in(v, &runs[v])))
+                .map(|&v| (v, self.gain_in(v, &seen[v], 0..seen[v].at.len())))
                 .collect(),
         }
     }
 
-    /// Counts view `v` (seeing `runs`) as a viewpoint of every Gaussian it adds one to, and
+    /// Counts view `v` (seeing `seen`) as a viewpoint of every Gaussian it adds one to, and
     /// closes those it gives their last one.
-    fn choose(&mut self, v: usize, runs: &[Run]) {
+    fn choose(&mut self, v: usize, seen: &Words) {
         let per = self.per;
         let mut slots = std::mem::take(&mut self.slots);
         let mut open = std::mem::take(&mut self.open);
@@ -251,22 +256,24 @@ impl Viewpoints<'_> {
             .zip(open.par_chunks_mut(CHUNK / 64))
             .enumerate()
             .for_each(|(c, (chunk, words))| {
-                let (lo, hi) = (c * CHUNK, (c + 1) * CHUNK);
-                let first = runs.partition_point(|r| r.1 as usize <= lo);
-                for &(a, b) in runs[first..].iter().take_while(|r| (r.0 as usize) < hi) {
-                    for (w, mask) in masks(a as usize - lo, b as usize - lo) {
-                        let mut bits = words[w] & mask;
-                        while bits != 0 {
-                            let i = w * 64 + bits.trailing_zeros() as usize;
-                            bits &= bits - 1;
-                            let s = &mut chunk[i * per..(i + 1) * per];
-                            if self.adds(lo + i, v, s)
-                                && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
-                            {
-                                *free = v as u32;
-                                if s[per - 1] != u32::MAX {
-                                    words[w] &= !(1u64 << (i % 64));
-                                }
+                let (lo, first_word) = (c * CHUNK, c * (CHUNK / 64));
+                let first = seen.at.partition_point(|&w| (w as usize) < first_word);
+                let at = seen.at[first..]
+                    .iter()
+                    .take_while(|&&w| (w as usize) < first_word + CHUNK / 64);
+                for (&w, &bits) in at.zip(&seen.bits[first..]) {
+                    let w = w as usize - first_word;
+                    let mut bits = bits & words[w];
+                    while bits != 0 {
+                        let i = w * 64 + bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
+                        let s = &mut chunk[i * per..(i + 1) * per];
+                        if self.adds(lo + i, v, s)
+                            && let Some(free) = s.iter_mut().find(|u| **u == u32::MAX)
+                        {
+                            *free = v as u32;
+                            if s[per - 1] != u32::MAX {
+                                words[w] &= !(1u64 << (i % 64));
                             }
                         }
                     }
@@ -341,7 +348,8 @@ fn stale_on_top(
 /// ([`stale_on_top`]; the order is the same for any [`AtOnce`]).
 ///
 /// Takes the views' sets out of `coverage` (left with none: [`ViewCoverage::views`] 0), each
-/// freed once the greedy holds it as runs, so that the two forms are not held whole at once.
+/// freed once the greedy holds it as [`Words`], so that the two forms are not held whole at
+/// once.
 pub(in crate::views) fn greedy(
     coverage: &mut ViewCoverage,
     means: &[[f32; 3]],
@@ -369,36 +377,34 @@ pub(in crate::views) fn greedy(
         centres,
         footprint: &local.footprint,
     };
-    let (order, complete) = lazy_order(&mut state, &local.runs, rule, early, at_once);
+    let (order, complete) = lazy_order(&mut state, &local.words, rule, early, at_once);
     let slots = local.scene_slots(&state.slots, per);
     (order, slots, complete)
 }
 
-/// Bytes of the runs the greedy holds for the sets of `coverage` over the Gaussians of `means`
-/// (for the bench).
+/// Bytes of the sparse bitsets the greedy holds for the sets of `coverage` over the Gaussians
+/// of `means` (for the bench).
 #[cfg(test)]
-pub(super) fn runs_bytes(coverage: &ViewCoverage, means: &[[f32; 3]]) -> usize {
+pub(super) fn words_bytes(coverage: &ViewCoverage, means: &[[f32; 3]]) -> usize {
     let local = Renumbered::new(coverage.seen.clone(), &coverage.footprint, means);
-    local.runs.iter().map(|r| r.len() * size_of::<Run>()).sum()
+    let words: usize = local.words.iter().map(|w| w.at.len()).sum();
+    words * (size_of::<u32>() + size_of::<u64>())
 }
 
-/// The lazy greedy over the views of `runs` from `state` (as [`greedy`]): the order, and
+/// The lazy greedy over the views seeing `seen` from `state` (as [`greedy`]): the order, and
 /// whether it is complete.
 fn lazy_order(
     state: &mut Viewpoints,
-    runs: &[Vec<Run>],
+    seen: &[Words],
     rule: &CoverageRule,
     early: Option<Option<usize>>,
     at_once: AtOnce,
 ) -> (Vec<(usize, Gain)>, bool) {
     // Max-heap on (gain, lowest index); the round tells whether the gain is current.
-    let all: Vec<usize> = (0..runs.len()).collect();
-    let sizes: Vec<usize> = runs
-        .iter()
-        .map(|r| r.iter().map(|&(a, b)| (b - a) as usize).sum())
-        .collect();
+    let all: Vec<usize> = (0..seen.len()).collect();
+    let sizes: Vec<usize> = seen.iter().map(Words::len).collect();
     let mut heap: BinaryHeap<Entry> = state
-        .gains(&all, runs)
+        .gains(&all, seen)
         .into_iter()
         .map(|(v, g)| (g, Reverse(v), 0))
         .collect();
@@ -409,11 +415,11 @@ fn lazy_order(
         }
         if round != order.len() {
             let stale = stale_on_top(&mut heap, (v, order.len()), at_once, &sizes);
-            let fresh = state.gains(&stale, runs);
+            let fresh = state.gains(&stale, seen);
             heap.extend(fresh.into_iter().map(|(u, g)| (g, Reverse(u), order.len())));
             continue;
         }
-        state.choose(v, &runs[v]);
+        state.choose(v, &seen[v]);
         order.push((v, gain));
         if let Some(cap) = early {
             let first = order[0].1.0;

@@ -197,8 +197,8 @@ fn greedy_at_scale_on_a_drone_sweep() {
     );
     let rule = CoverageRule::default();
     eprintln!(
-        "runs: {} bytes for the sets' {} bytes",
-        super::greedy::runs_bytes(&cov, &means),
+        "sparse bitsets: {} bytes for the sets' {} bytes",
+        super::greedy::words_bytes(&cov, &means),
         cov.bytes() - cov.footprint.len() * 8
     );
     let (t, cpu) = (Instant::now(), cpu_s());
@@ -325,7 +325,7 @@ fn random_coverage(seed: u64, n: usize, views: usize) -> (Vec<[f32; 3]>, Vec<DVe
     (means, centres, cov)
 }
 
-/// The greedy (renumbered Gaussians, runs, lazy evaluation, batched re-evaluation) chooses
+/// The greedy (renumbered Gaussians, sparse bitsets, lazy evaluation, batched re-evaluation) chooses
 /// exactly the views, gains and viewpoints of the greedy from its definition, on random
 /// scenes and rules.
 #[test]
