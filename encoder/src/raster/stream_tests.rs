@@ -28,6 +28,17 @@ fn reduce_views(
     stream_budget: Option<u64>,
     tile_bytes: u64,
 ) -> Option<Reduced> {
+    try_reduce_views(g, views, order, stream_budget, tile_bytes).map(|r| r.expect("reduced"))
+}
+
+/// [`reduce_views`], with the reduction's error.
+fn try_reduce_views(
+    g: &Gaussians,
+    views: &[RandomKeptView],
+    order: &[usize],
+    stream_budget: Option<u64>,
+    tile_bytes: u64,
+) -> Option<slag_common::Result<Reduced>> {
     let mut r = gpu(g)?;
     assert!(r.keep_on_device(DIM, stream_budget.unwrap_or(1 << 30), true));
     r.set_reduce_tile_bytes(Some(tile_bytes));
@@ -48,13 +59,11 @@ fn reduce_views(
         gaussians: None,
     };
     let mut tiles = Vec::new();
-    let out = r
-        .reduce_kept(&p, &mut |t| {
-            tiles.push(t);
-            Ok(())
-        })
-        .unwrap();
-    Some(Reduced { tiles, out })
+    let out = r.reduce_kept(&p, &mut |t| {
+        tiles.push(t);
+        Ok(())
+    });
+    Some(out.map(|out| Reduced { tiles, out }))
 }
 
 /// `n` random views of width [`DIM`] with overlapping, area-weighted masks.
@@ -318,5 +327,46 @@ fn two_devices_streaming_together_equal_one_device() {
             w32 > w8,
             "device {d}: {w32} waves with 32 views, {w8} with 8"
         );
+    }
+}
+
+/// Kept to the end, 32 views give the bytes they give streamed, or, where the driver cuts the
+/// reduction's loops short, an error that says so and names `--reduce host`: never other
+/// bytes. Lavapipe ends a shader invocation's loops after 65,535 iterations in all; here one
+/// Gaussian has 831 kept label sums over 23 views, more than `ek_reduce` can take there in one
+/// invocation (it took 668 and wrote 1 of its 3 kept pairs), while a wave of the streamed
+/// reduction takes fewer views at a time.
+#[test]
+fn thirty_two_views_kept_to_the_end_equal_them_streamed_or_fail() {
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let views = random_views(32);
+    let order: Vec<usize> = (0..32).map(|i| i ^ 1).collect();
+    let eight: Vec<usize> = order.iter().copied().filter(|&v| v < 8).collect();
+    let Some(all_8) = reduce_views(&g, &views[..8], &eight, None, TILE) else {
+        return;
+    };
+    let budget = state_bytes(n) + all_8.out.peak_kept_bytes;
+    let streamed = reduce_views(&g, &views, &order, Some(budget), TILE).expect("a GPU");
+    assert!(streamed.out.waves >= 3, "{} waves", streamed.out.waves);
+    let expected = rows_of(&streamed);
+    assert!(expected.len() > 100, "{} observed: too few", expected.len());
+    match try_reduce_views(&g, &views, &order, None, TILE).expect("a GPU") {
+        Ok(all) => {
+            assert_eq!(all.out.waves, 1);
+            assert_eq!(all.out.codebook, streamed.out.codebook);
+            let got = rows_of(&all);
+            assert_eq!(got.len(), expected.len(), "observed Gaussians");
+            for (a, s) in got.iter().zip(&expected) {
+                assert_eq!(a, s, "Gaussian {}", s.0);
+            }
+        }
+        Err(slag_common::Error::Gpu(message)) => {
+            assert!(
+                message.contains("cut short") && message.contains("--reduce host"),
+                "{message}"
+            );
+        }
+        Err(e) => panic!("{e}"),
     }
 }

@@ -30,6 +30,8 @@ const WG: u32 = 64u;
 const MAX_PER_THREAD: u32 = 16u;
 const MAX_KEEP: u32 = 32u;
 const UNUSED: u32 = 0xffffffffu;
+// gmeta's first word for a Gaussian whose reduction the driver cut short (see ek_reduce).
+const CUT_SHORT: u32 = 2u;
 
 struct EkParams {
     min_total_weight: f64,
@@ -56,7 +58,7 @@ struct EkParams {
 // every label, then at base + tables[base + n_labels] ... see ek.rs (ViewTable) for the layout.
 @group(0) @binding(4) var<storage, read> tables: array<u32>;
 @group(0) @binding(5) var<storage, read> codebook: array<f32>;
-// Per tile Gaussian: observed (0/1), Σ a as f32 bits.
+// Per tile Gaussian: observed (0/1; ek_reduce: CUT_SHORT when cut short), Σ a as f32 bits.
 @group(0) @binding(6) var<storage, read_write> gmeta: array<vec2<u32>>;
 // Per tile Gaussian, `keep` slots: codebook row (UNUSED when empty), a as f32 bits.
 @group(0) @binding(7) var<storage, read_write> kept: array<vec2<u32>>;
@@ -66,6 +68,8 @@ struct EkParams {
 var<workgroup> norm_part: array<f64, 64>;
 // ek_reduce: the workgroup's Gaussian's run_start (read by every thread).
 var<workgroup> wg_start: u32;
+// ek_reduce: 1 when a thread's loops were cut short (zeroed at the workgroup's start).
+var<workgroup> wg_cut: atomic<u32>;
 // Per tile Gaussian: 1 + the sorted position of its first record, 0 when it has none
 // (run_starts writes it, ek_reduce reads it).
 @group(0) @binding(11) var<storage, read_write> run_start: array<u32>;
@@ -318,6 +322,25 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
                 rows[kl * ep.dim + d] = f32(acc[t] / norm);
             }
         }
+    }
+    // Some drivers end every loop of an invocation once its loops ran a fixed number of
+    // iterations in all (lavapipe: 65,535): a Gaussian with that many terms would be reduced in
+    // part, without a word. A last loop of `keep + 1` iterations (a bound the compiler cannot
+    // see) tells: cut short, it ends after one. The Gaussian is then marked CUT_SHORT, and the
+    // host refuses the tile.
+    var canary = 0u;
+    loop {
+        canary++;
+        if (canary > ep.keep) {
+            break;
+        }
+    }
+    if (canary <= ep.keep) {
+        atomicStore(&wg_cut, 1u);
+    }
+    workgroupBarrier();
+    if (lid == 0u && atomicLoad(&wg_cut) != 0u) {
+        gmeta[kl] = vec2<u32>(CUT_SHORT, 0u);
     }
 }
 

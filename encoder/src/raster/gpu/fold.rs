@@ -534,7 +534,7 @@ impl GpuRasterizer {
         for (src, &(dst, size)) in [&meta, &kept_out].into_iter().zip(&staged) {
             enc.copy_buffer_to_buffer(src, 0, dst, 0, size);
         }
-        self.submit_and_map_all(enc, &staged, |read| tile_output(tile, p, dim, read))
+        self.submit_and_map_all(enc, &staged, |read| tile_output(tile, p, dim, read))?
     }
 }
 

@@ -226,7 +226,7 @@ impl GpuRasterizer {
         let output = self.submit_and_map_all(enc, &staged, |read| {
             phases.mark();
             tile_output(tile, p, dim, read)
-        })?;
+        })??;
         phases.mark();
         phases.log(tile);
         Ok(output)
@@ -505,15 +505,18 @@ struct TileShared<'a> {
 /// The observed Gaussians of a tile from its read-back outputs (`read`: meta, kept pairs, and
 /// with `p.dense` the rows), converted on every thread in chunks of Gaussians, then joined in
 /// order (millions of Gaussians per tile).
+///
+/// Errors: the driver cut a Gaussian's reduction short ([`Error::Gpu`], see [`cut_short`]).
 pub(in crate::raster::gpu) fn tile_output(
     tile: &Tile,
     p: &DeviceReduce,
     dim: usize,
     read: &[&[u8]],
-) -> KeptTile {
+) -> Result<KeptTile> {
     use rayon::prelude::*;
     const CHUNK: usize = 1 << 16;
     let n_tile = tile.n_tile as usize;
+    cut_short(tile, read[0])?;
     let parts: Vec<KeptTile> = (0..n_tile.div_ceil(CHUNK))
         .into_par_iter()
         .map(|c| tile_output_range(tile, p, dim, read, c * CHUNK..((c + 1) * CHUNK).min(n_tile)))
@@ -531,7 +534,33 @@ pub(in crate::raster::gpu) fn tile_output(
         out.kept.extend_from_slice(&part.kept);
         out.rows.extend_from_slice(&part.rows);
     }
-    out
+    Ok(out)
+}
+
+/// `gmeta`'s first word for a Gaussian whose reduction the driver cut short (`ek.wgsl`
+/// `CUT_SHORT`).
+const CUT_SHORT: u32 = 2;
+
+/// Check step of [`tile_output`]: no Gaussian of the tile's meta (`[observed, Σ a bits]` per
+/// Gaussian) is marked cut short. Some drivers (lavapipe) end every loop of a shader
+/// invocation once they ran a fixed number of iterations in all; `ek_reduce` sees it and marks
+/// the Gaussian, whose terms would otherwise be reduced in part without a word.
+///
+/// Errors: a marked Gaussian ([`Error::Gpu`], naming it and `--reduce host`).
+fn cut_short(tile: &Tile, meta: &[u8]) -> Result<()> {
+    let first = meta
+        .chunks_exact(8)
+        .take(tile.n_tile as usize)
+        .position(|m| bytemuck::pod_read_unaligned::<u32>(&m[..4]) == CUT_SHORT);
+    match first {
+        None => Ok(()),
+        Some(i) => Err(Error::Gpu(format!(
+            "the device reduction of Gaussian {} was cut short: this driver stops a shader's \
+             loops after a fixed number of iterations (lavapipe: 65,535), fewer than the \
+             Gaussian's kept label sums need; reduce with --reduce host, or on a GPU",
+            tile.g0 + i as u32
+        ))),
+    }
 }
 
 /// [`tile_output`] of the tile's Gaussians `range` (tile indices). Read-back bytes carry no
