@@ -30,7 +30,7 @@ const WG: u32 = 64u;
 const MAX_PER_THREAD: u32 = 16u;
 const MAX_KEEP: u32 = 32u;
 const UNUSED: u32 = 0xffffffffu;
-// gmeta's first word for a Gaussian whose reduction the driver cut short (see ek_reduce).
+// gmeta's first word for a Gaussian whose reduction the driver cut short (loops_ran_in_full).
 const CUT_SHORT: u32 = 2u;
 
 struct EkParams {
@@ -58,7 +58,7 @@ struct EkParams {
 // every label, then at base + tables[base + n_labels] ... see ek.rs (ViewTable) for the layout.
 @group(0) @binding(4) var<storage, read> tables: array<u32>;
 @group(0) @binding(5) var<storage, read> codebook: array<f32>;
-// Per tile Gaussian: observed (0/1; ek_reduce: CUT_SHORT when cut short), Σ a as f32 bits.
+// Per tile Gaussian: observed (0/1, or CUT_SHORT when cut short), Σ a as f32 bits.
 @group(0) @binding(6) var<storage, read_write> gmeta: array<vec2<u32>>;
 // Per tile Gaussian, `keep` slots: codebook row (UNUSED when empty), a as f32 bits.
 @group(0) @binding(7) var<storage, read_write> kept: array<vec2<u32>>;
@@ -226,6 +226,21 @@ fn run_starts(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_i
     }
 }
 
+// Whether this invocation's loops ran their full course. Some drivers end every loop of an
+// invocation once its loops ran a fixed number of iterations in all (lavapipe: 65,535): a
+// Gaussian with that many terms would be reduced in part, without a word. A last loop of
+// `keep + 1` iterations (a bound the compiler cannot see) tells: cut short, it ends after one.
+fn loops_ran_in_full() -> bool {
+    var canary = 0u;
+    loop {
+        canary++;
+        if (canary > ep.keep) {
+            break;
+        }
+    }
+    return canary > ep.keep;
+}
+
 @compute @workgroup_size(64)
 fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     // One workgroup per tile Gaussian; one without records leaves at once. The norm's
@@ -323,19 +338,9 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
             }
         }
     }
-    // Some drivers end every loop of an invocation once its loops ran a fixed number of
-    // iterations in all (lavapipe: 65,535): a Gaussian with that many terms would be reduced in
-    // part, without a word. A last loop of `keep + 1` iterations (a bound the compiler cannot
-    // see) tells: cut short, it ends after one. The Gaussian is then marked CUT_SHORT, and the
-    // host refuses the tile.
-    var canary = 0u;
-    loop {
-        canary++;
-        if (canary > ep.keep) {
-            break;
-        }
-    }
-    if (canary <= ep.keep) {
+    // Cut short (loops_ran_in_full; last, so that no loop comes after it), the Gaussian is
+    // marked CUT_SHORT: the host refuses the tile.
+    if (!loops_ran_in_full()) {
         atomicStore(&wg_cut, 1u);
     }
     workgroupBarrier();
@@ -355,12 +360,15 @@ fn ek_reduce(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
 //               its records view by view expanded and added as ek_reduce does, its state written.
 //   ek_finish   per tile Gaussian: the unobserved rule on Σ a (below the threshold, not positive,
 //               or not finite: nothing written) and the meta and kept pairs as ek_reduce writes
-//               them.
+//               them (or CUT_SHORT where a fold was cut short).
 //
 // State, per Gaussian of the bound chunk (index k - ep.pad0): Σ a (f64), and `keep` slots of
-// (codebook row + 1, a bits), 0 where unused (a cleared buffer is the empty state).
+// (codebook row + 1, a bits), 0 where unused (a cleared buffer is the empty state). Σ a is
+// CUT_SHORT_DEN (below 0, which no sum of a ≥ 0 is) once a fold of the Gaussian was cut short
+// (loops_ran_in_full): later folds leave it so, and ek_finish marks the Gaussian CUT_SHORT.
 @group(0) @binding(12) var<storage, read_write> state_den: array<f64>;
 @group(0) @binding(13) var<storage, read_write> state_kept: array<vec2<u32>>;
+const CUT_SHORT_DEN: f64 = -1.0lf;
 
 @compute @workgroup_size(64)
 fn ek_fold(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
@@ -376,6 +384,9 @@ fn ek_fold(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     let k = rec_at(i0).x;
     let sl = k - ep.pad0;
     var den = state_den[sl];
+    if (den < 0.0lf) {
+        return;
+    }
     var kept_a: array<f32, 32>;
     var kept_atom: array<u32, 32>;
     var n_kept = 0u;
@@ -417,6 +428,10 @@ fn ek_fold(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_inde
     for (var s = 0u; s < n_kept; s++) {
         state_kept[sl * ep.keep + s] = vec2<u32>(kept_atom[s] + 1u, bitcast<u32>(kept_a[s]));
     }
+    // Last, so that no loop comes after it.
+    if (!loops_ran_in_full()) {
+        state_den[sl] = CUT_SHORT_DEN;
+    }
 }
 
 @compute @workgroup_size(64)
@@ -427,6 +442,10 @@ fn ek_finish(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_in
     }
     let sl = ep.g0 + g - ep.pad0;
     let den = state_den[sl];
+    if (den < 0.0lf) {
+        gmeta[g] = vec2<u32>(CUT_SHORT, 0u);
+        return;
+    }
     let finite = den == den && den <= 1.7976931348623157e308lf;
     if (!(den >= ep.min_total_weight && den > 0.0lf && finite)) {
         return;

@@ -543,8 +543,9 @@ const CUT_SHORT: u32 = 2;
 
 /// Check step of [`tile_output`]: no Gaussian of the tile's meta (`[observed, Σ a bits]` per
 /// Gaussian) is marked cut short. Some drivers (lavapipe) end every loop of a shader
-/// invocation once they ran a fixed number of iterations in all; `ek_reduce` sees it and marks
-/// the Gaussian, whose terms would otherwise be reduced in part without a word.
+/// invocation once they ran a fixed number of iterations in all; `ek_reduce` (or, streamed,
+/// `ek_fold` through `ek_finish`) sees it and marks the Gaussian, whose terms would otherwise be
+/// reduced in part without a word.
 ///
 /// Errors: a marked Gaussian ([`Error::Gpu`], naming it and `--reduce host`).
 fn cut_short(tile: &Tile, meta: &[u8]) -> Result<()> {
