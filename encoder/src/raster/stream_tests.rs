@@ -267,6 +267,35 @@ fn reduce_shared(
     Some(Shared { shares })
 }
 
+/// The scene, views and order both 32-view tests share: 20,000 Gaussians, 32 random views kept
+/// in the order `i ^ 1`, the first 8 of them in that order, and those 8 kept to the end on one
+/// device. `None` without a GPU.
+struct ThirtyTwo {
+    n: usize,
+    g: Gaussians,
+    views: Vec<RandomKeptView>,
+    order: Vec<usize>,
+    eight: Vec<usize>,
+    all_8: Reduced,
+}
+
+fn thirty_two_views() -> Option<ThirtyTwo> {
+    let n = 20_000;
+    let g = random_scene(11, n);
+    let views = random_views(32);
+    let order: Vec<usize> = (0..32).map(|i| i ^ 1).collect();
+    let eight: Vec<usize> = order.iter().copied().filter(|&v| v < 8).collect();
+    let all_8 = reduce_views(&g, &views[..8], &eight, None, TILE)?;
+    Some(ThirtyTwo {
+        n,
+        g,
+        views,
+        order,
+        eight,
+        all_8,
+    })
+}
+
 /// Two devices that stream together, each folding its share of the Gaussians as the views
 /// come (each view kept on one of them and sent to the other), give the bytes of one device
 /// alone (with 8 views, keeping every view to the end; with 32, streaming): the same observed
@@ -275,12 +304,15 @@ fn reduce_shared(
 /// the devices hold no more than with 8: within the same budget, in more waves.
 #[test]
 fn two_devices_streaming_together_equal_one_device() {
-    let n = 20_000;
-    let g = random_scene(11, n);
-    let views = random_views(32);
-    let order: Vec<usize> = (0..32).map(|i| i ^ 1).collect();
-    let eight: Vec<usize> = order.iter().copied().filter(|&v| v < 8).collect();
-    let Some(all_8) = reduce_views(&g, &views[..8], &eight, None, TILE) else {
+    let Some(ThirtyTwo {
+        n,
+        g,
+        views,
+        order,
+        eight,
+        all_8,
+    }) = thirty_two_views()
+    else {
         return;
     };
     // Each device's state covers its half of the Gaussians; beside it, about a third of the
@@ -339,12 +371,15 @@ fn two_devices_streaming_together_equal_one_device() {
 /// within.
 #[test]
 fn thirty_two_views_in_one_reduction_equal_them_in_waves_or_fail() {
-    let n = 20_000;
-    let g = random_scene(11, n);
-    let views = random_views(32);
-    let order: Vec<usize> = (0..32).map(|i| i ^ 1).collect();
-    let eight: Vec<usize> = order.iter().copied().filter(|&v| v < 8).collect();
-    let Some(all_8) = reduce_views(&g, &views[..8], &eight, None, TILE) else {
+    let Some(ThirtyTwo {
+        n,
+        g,
+        views,
+        order,
+        all_8,
+        ..
+    }) = thirty_two_views()
+    else {
         return;
     };
     let budget = state_bytes(n) + all_8.out.peak_kept_bytes;
