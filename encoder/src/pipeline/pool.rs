@@ -778,31 +778,7 @@ fn back_raster_thread(
 ) -> WorkerShare {
     let failure = &shared.failure;
     let n_views = shared.views.len();
-    let alone = shared.rasterizers.load(Ordering::SeqCst) == 1;
-    let mut keep = match keep_on_device(&mut *rasterizer, shared.params, shared.dim, n_views, alone)
-    {
-        Ok(keep) => keep,
-        Err(e) => {
-            failure.fail(e);
-            None
-        }
-    };
-    if keep.is_some() {
-        let hook = shared.on_device_keep.lock().ok().and_then(|mut h| h.take());
-        if let Some(hook) = hook {
-            hook();
-        }
-    }
-    // On several GPUs every rasterizer hears whether all stream before any keeps a view; the
-    // views then cross between devices as they come, so the host can no longer take over.
-    let streamed = keep.and(stream_keep(shared.params));
-    let sharing = shared
-        .sharing
-        .get()
-        .filter(|s| s.join(g, &mut *rasterizer, streamed));
-    if let Some(k) = keep.as_mut().filter(|_| sharing.is_some()) {
-        k.fall_back = false;
-    }
+    let (mut keep, sharing) = raster_keep_setup(g, &mut *rasterizer, shared);
     // The views kept on the device, in keeping order.
     let mut kept_views = Vec::new();
     let mut done = ViewsDone::new(n_views);
@@ -852,6 +828,40 @@ fn back_raster_thread(
         device.push((rasterizer, kept_views));
     }
     share
+}
+
+/// Whether rasterizer `g` keeps its views on the device ([`keep_on_device`]; an error is the
+/// run's failure), running the device-keep hook once, and whether it streams with the other GPUs
+/// ([`StreamSharing::join`]: then views cross devices as they come, and the host cannot take over).
+fn raster_keep_setup<'s>(
+    g: usize,
+    rasterizer: &mut dyn WeightRasterizer,
+    shared: &'s Shared<'_>,
+) -> (Option<Keep>, Option<&'s StreamSharing>) {
+    let n_views = shared.views.len();
+    let alone = shared.rasterizers.load(Ordering::SeqCst) == 1;
+    let mut keep = match keep_on_device(rasterizer, shared.params, shared.dim, n_views, alone) {
+        Ok(keep) => keep,
+        Err(e) => {
+            shared.failure.fail(e);
+            None
+        }
+    };
+    if keep.is_some() {
+        let hook = shared.on_device_keep.lock().ok().and_then(|mut h| h.take());
+        if let Some(hook) = hook {
+            hook();
+        }
+    }
+    let streamed = keep.and(stream_keep(shared.params));
+    let sharing = shared
+        .sharing
+        .get()
+        .filter(|s| s.join(g, rasterizer, streamed));
+    if let Some(k) = keep.as_mut().filter(|_| sharing.is_some()) {
+        k.fall_back = false;
+    }
+    (keep, sharing)
 }
 
 /// The *image* thread of [`spawn_back`]: the last view's sums reduced and expanded into the
